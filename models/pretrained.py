@@ -1,0 +1,118 @@
+"""`save_pretrained` / `from_pretrained` for every network: safetensors weights + config.json."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any, ClassVar, TypeVar
+
+import torch
+from safetensors.torch import load_file, save_file
+
+T = TypeVar("T", bound="PretrainedMixin")
+
+WEIGHTS_NAME = "model.safetensors"
+CONFIG_NAME = "config.json"
+
+
+def config_from_dict(cls: type, data: dict[str, Any], where: str = "config") -> Any:
+    """Build dataclass ``cls`` from a dict, rejecting unknown fields.
+
+    Nested dataclass fields are built recursively; lists become tuples where the default is a tuple.
+
+    Raises:
+        ValueError: an unknown field name (names the field and ``where``).
+    """
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs = {}
+    for key, value in data.items():
+        if key not in fields:
+            raise ValueError(f"{where}: unknown field {key!r} for {cls.__name__} (known: {sorted(fields)})")
+        ftype = fields[key].type
+        default = fields[key].default
+        sub = _dataclass_type(cls, key)
+        if sub is not None and isinstance(value, dict):
+            value = config_from_dict(sub, value, f"{where}.{key}")
+        elif isinstance(value, list) and (isinstance(default, tuple) or "tuple" in str(ftype)):
+            value = tuple(value)
+        kwargs[key] = value
+    return cls(**kwargs)
+
+
+def _dataclass_type(cls: type, name: str) -> type | None:
+    import typing
+
+    hints = typing.get_type_hints(cls)
+    t = hints.get(name)
+    return t if dataclasses.is_dataclass(t) else None
+
+
+class PretrainedMixin:
+    """Mixin for ``nn.Module`` subclasses with a dataclass ``config`` attribute.
+
+    Subclasses set ``config_class``; ``__init__`` must accept the config as its only argument.
+    """
+
+    config_class: ClassVar[type]
+
+    def save_pretrained(self, directory: str | os.PathLike) -> Path:
+        """Write ``model.safetensors`` and ``config.json`` into ``directory`` atomically.
+
+        Files are written into a temporary sibling folder that is renamed over ``directory``,
+        so a killed save never leaves a half-written model.
+
+        Returns:
+            The directory path.
+        """
+        directory = Path(directory)
+        directory.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{directory.name}.", dir=directory.parent))
+        try:
+            state = {k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}
+            save_file(state, str(tmp / WEIGHTS_NAME), metadata={"class": type(self).__name__})
+            cfg = dataclasses.asdict(self.config)
+            (tmp / CONFIG_NAME).write_text(json.dumps({"class": type(self).__name__, **cfg}, indent=2))
+            if directory.exists():
+                old = directory.with_name(f".{directory.name}.old")
+                shutil.rmtree(old, ignore_errors=True)
+                directory.rename(old)
+                tmp.rename(directory)
+                shutil.rmtree(old, ignore_errors=True)
+            else:
+                tmp.rename(directory)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+        return directory
+
+    @classmethod
+    def from_pretrained(cls: type[T], directory: str | os.PathLike, map_location: str = "cpu") -> T:
+        """Load a model written by :meth:`save_pretrained`.
+
+        Raises:
+            FileNotFoundError: ``directory`` lacks config.json or model.safetensors.
+            ValueError: the config names another class or has unknown fields, or weights do not match.
+        """
+        directory = Path(directory)
+        for name in (CONFIG_NAME, WEIGHTS_NAME):
+            if not (directory / name).is_file():
+                raise FileNotFoundError(f"checkpoint: {directory / name} does not exist")
+        data = json.loads((directory / CONFIG_NAME).read_text())
+        saved_class = data.pop("class", cls.__name__)
+        if saved_class != cls.__name__:
+            raise ValueError(f"checkpoint: {directory} holds a {saved_class}, not a {cls.__name__}")
+        config = config_from_dict(cls.config_class, data, str(directory / CONFIG_NAME))
+        model = cls(config)
+        state = load_file(str(directory / WEIGHTS_NAME), device=map_location)
+        missing, unexpected = model.load_state_dict(state, strict=False)
+        if missing or unexpected:
+            raise ValueError(f"checkpoint: {directory} weights do not match {cls.__name__}: "
+                             f"missing {missing[:5]}, unexpected {unexpected[:5]}")
+        return model
+
+
+def count_parameters(module: torch.nn.Module) -> int:
+    """Number of parameters (works on the meta device)."""
+    return sum(p.numel() for p in module.parameters())
