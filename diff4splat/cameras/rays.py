@@ -1,0 +1,93 @@
+"""Per-pixel camera rays and Plücker embeddings (CameraCtrl / AC3D / MoVieS convention)."""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = ["camera_rays", "plucker_rays", "pack_plucker"]
+
+
+def camera_rays(
+    viewmats: Tensor,  # (C, 4, 4) world-to-camera
+    Ks: Tensor,  # (C, 3, 3) pixels
+    width: int,
+    height: int,
+) -> tuple[Tensor, Tensor]:
+    """World-frame origins and unit directions of every pixel's ray (pinhole, OpenCV frame).
+
+    Pixel (i, j) is sampled at its centre (j+0.5, i+0.5): d_cam = K⁻¹ (u, v, 1)ᵀ,
+    d_world = Rᵀ d_cam / ‖·‖, o = −Rᵀ t for viewmat [R | t].
+
+    Returns:
+        origins: (C, H, W, 3) camera centres, metres.
+        dirs: (C, H, W, 3) unit directions, world frame.
+    """
+    if viewmats.dim() != 3 or viewmats.shape[1:] != (4, 4):
+        raise ValueError(f"viewmats must have shape (C, 4, 4), got {tuple(viewmats.shape)}")
+    if Ks.shape != (viewmats.shape[0], 3, 3):
+        raise ValueError(f"Ks must have shape ({viewmats.shape[0]}, 3, 3), got {tuple(Ks.shape)}")
+    dtype, device = viewmats.dtype, viewmats.device
+    v, u = torch.meshgrid(
+        torch.arange(height, dtype=dtype, device=device) + 0.5,
+        torch.arange(width, dtype=dtype, device=device) + 0.5,
+        indexing="ij",
+    )
+    pix = torch.stack([u, v, torch.ones_like(u)], dim=-1)  # (H, W, 3)
+    d_cam = torch.einsum("cij,hwj->chwi", torch.linalg.inv(Ks.to(dtype)), pix)
+    R = viewmats[:, :3, :3]
+    t = viewmats[:, :3, 3]
+    d_world = torch.einsum("cji,chwj->chwi", R, d_cam)  # Rᵀ d
+    d_world = d_world / d_world.norm(dim=-1, keepdim=True)
+    centres = -torch.einsum("cji,cj->ci", R, t)  # −Rᵀ t
+    origins = centres[:, None, None, :].expand_as(d_world)
+    return origins, d_world
+
+
+def plucker_rays(
+    viewmats: Tensor,  # (C, 4, 4) world-to-camera
+    Ks: Tensor,  # (C, 3, 3) pixels
+    width: int,
+    height: int,
+) -> Tensor:
+    """Plücker coordinates ``[o × d, d]`` of every pixel's ray (CameraCtrl, He et al. 2024, Eq. 3).
+
+    Returns:
+        (C, H, W, 6): moment o × d (metres) then unit direction d (world frame).
+    """
+    o, d = camera_rays(viewmats, Ks, width, height)
+    return torch.cat([torch.linalg.cross(o, d, dim=-1), d], dim=-1)
+
+
+def pack_plucker(
+    rays: Tensor,  # (B, T, H, W, 6)
+    temporal: int = 4,
+    spatial: int = 8,
+) -> Tensor:
+    """Pack pixel-rate Plücker rays to the VAE latent grid by space-/time-to-depth.
+
+    Frames follow the VAE's causal grouping: frame 0 alone (repeated ``temporal`` times), then
+    groups of ``temporal`` frames. Each latent pixel gathers its ``spatial``×``spatial`` pixels.
+
+    Args:
+        rays: (B, T, H, W, 6) with T = 1 + temporal·k and H, W multiples of ``spatial``.
+
+    Returns:
+        (B, 6·temporal·spatial², n, H/spatial, W/spatial) with n = 1 + k; channel order
+        (frame-in-group, row-in-block, column-in-block, ray component).
+
+    Raises:
+        ValueError: T ≠ 1 + temporal·k or H, W not multiples of ``spatial``.
+    """
+    if rays.dim() != 5 or rays.shape[-1] != 6:
+        raise ValueError(f"rays must have shape (B, T, H, W, 6), got {tuple(rays.shape)}")
+    B, T, H, W, _ = rays.shape
+    if (T - 1) % temporal != 0:
+        raise ValueError(f"frames must be 1 + {temporal}·k, got T = {T}")
+    if H % spatial or W % spatial:
+        raise ValueError(f"height and width must be multiples of {spatial}, got {H}×{W}")
+    first = rays[:, :1].expand(B, temporal, H, W, 6)
+    x = torch.cat([first, rays[:, 1:]], dim=1)  # (B, temporal·n, H, W, 6)
+    n, h, w = x.shape[1] // temporal, H // spatial, W // spatial
+    x = x.reshape(B, n, temporal, h, spatial, w, spatial, 6)
+    x = x.permute(0, 2, 4, 6, 7, 1, 3, 5)  # (B, temporal, sy, sx, 6, n, h, w)
+    return x.reshape(B, temporal * spatial * spatial * 6, n, h, w)

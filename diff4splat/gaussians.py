@@ -1,0 +1,99 @@
+"""The canonical container of activated 3D Gaussians (means, quats, scales, opacities, SH)."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import torch
+from torch import Tensor
+
+__all__ = ["Gaussians", "SH_C0", "rgb_to_sh0", "sh0_to_rgb", "check_finite"]
+
+SH_C0 = 0.28209479177387814
+"""Degree-0 real spherical-harmonic basis constant 1/(2√π) (INRIA 3DGS convention)."""
+
+
+def rgb_to_sh0(rgb: Tensor) -> Tensor:
+    """DC SH coefficient giving colour ``rgb`` (INRIA: colour = SH_C0·c0 + 0.5). (..., 3) → (..., 3)."""
+    return (rgb - 0.5) / SH_C0
+
+
+def sh0_to_rgb(sh0: Tensor) -> Tensor:
+    """Colour of a DC SH coefficient before clamping: SH_C0·c0 + 0.5. (..., 3) → (..., 3)."""
+    return sh0 * SH_C0 + 0.5
+
+
+def check_finite(name: str, tensor: Tensor) -> None:
+    """Raise ``ValueError`` naming ``name`` if ``tensor`` holds NaN or ±inf."""
+    if tensor.is_floating_point() and tensor.numel() and not bool(torch.isfinite(tensor).all()):
+        bad = int((~torch.isfinite(tensor)).sum())
+        raise ValueError(f"{name} contains {bad} non-finite value(s) (NaN or inf)")
+
+
+@dataclass
+class Gaussians:
+    """N activated 3D Gaussians in world coordinates (3DGS, Kerbl et al. 2023).
+
+    Attributes:
+        means: (N, 3) centres, metres.
+        quats: (N, 4) orientation, wxyz, unnormalised (normalised on use).
+        scales: (N, 3) standard deviations along the local axes, metres, > 0.
+        opacities: (N,) in (0, 1).
+        sh: (N, K, 3) SH coefficients, K = (degree+1)², INRIA convention
+            (colour = max(Σ_k sh_k·Y_k(dir) + 0.5, 0)).
+    """
+
+    means: Tensor
+    quats: Tensor
+    scales: Tensor
+    opacities: Tensor
+    sh: Tensor
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    @property
+    def num_gaussians(self) -> int:
+        return self.means.shape[0]
+
+    @property
+    def sh_degree(self) -> int:
+        return int(math.isqrt(self.sh.shape[1])) - 1
+
+    def validate(self) -> None:
+        """Check shapes and values.
+
+        Raises:
+            ValueError: a wrong shape, non-finite values, scales ≤ 0, opacities outside [0, 1],
+                an SH count that is not a square, or a zero-norm quaternion.
+        """
+        n = self.means.shape[0] if self.means.dim() == 2 else -1
+        expect = {"means": (n, 3), "quats": (n, 4), "scales": (n, 3), "opacities": (n,)}
+        for name, shape in expect.items():
+            t = getattr(self, name)
+            if tuple(t.shape) != shape or n < 0:
+                raise ValueError(f"{name} must have shape {shape} (N = len(means)), got {tuple(t.shape)}")
+        if self.sh.dim() != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3:
+            raise ValueError(f"sh must have shape (N, K, 3), got {tuple(self.sh.shape)}")
+        k = self.sh.shape[1]
+        if math.isqrt(k) ** 2 != k or k > 16:
+            raise ValueError(f"sh must hold (degree+1)² ≤ 16 coefficients per colour, got {k}")
+        for f in fields(self):
+            check_finite(f.name, getattr(self, f.name))
+        if n and bool((self.scales <= 0).any()):
+            raise ValueError(f"scales must be > 0 metres, min is {float(self.scales.min())}")
+        if n and bool(((self.opacities < 0) | (self.opacities > 1)).any()):
+            raise ValueError("opacities must lie in [0, 1]")
+        if n and bool((self.quats.norm(dim=-1) < 1e-12).any()):
+            raise ValueError("quats has a zero-norm quaternion")
+
+    def select(self, index: Tensor) -> "Gaussians":
+        """Subset by boolean mask (N,) or integer indices (M,)."""
+        return Gaussians(*(getattr(self, f.name)[index] for f in fields(self)))
+
+    def to(self, *args, **kwargs) -> "Gaussians":
+        """Move/cast every tensor (``Tensor.to`` arguments)."""
+        return Gaussians(*(getattr(self, f.name).to(*args, **kwargs) for f in fields(self)))
+
+    def detach(self) -> "Gaussians":
+        return Gaussians(*(getattr(self, f.name).detach() for f in fields(self)))
