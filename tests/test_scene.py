@@ -1,0 +1,122 @@
+import math
+
+import pytest
+import torch
+
+from diff4splat.gaussians import Gaussians
+from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
+from diff4splat.scene import DynamicGaussians
+
+
+def _gaussians(m=5, seed=0, dtype=torch.float64):
+    g = torch.Generator().manual_seed(seed)
+    return Gaussians(
+        means=torch.randn(m, 3, generator=g, dtype=dtype),
+        quats=torch.randn(m, 4, generator=g, dtype=dtype),
+        scales=torch.rand(m, 3, generator=g, dtype=dtype) + 0.1,
+        opacities=torch.rand(m, generator=g, dtype=dtype),
+        sh=torch.randn(m, 1, 3, generator=g, dtype=dtype),
+    )
+
+
+def _identity_quats(t, m, dtype=torch.float64):
+    q = torch.zeros(t, m, 4, dtype=dtype)
+    q[..., 0] = 1
+    return q
+
+
+def test_static_scene_returns_canonical_and_stores_nothing():
+    g = _gaussians()
+    scene = DynamicGaussians(g)
+    assert scene.is_static and scene.times is None
+    assert scene.at(0.3) is g
+
+
+def test_key_times_are_exact_and_midpoints_interpolate_linearly():
+    g = _gaussians()
+    times = torch.tensor([0.0, 0.5, 1.0], dtype=torch.float64)
+    d_means = torch.randn(3, 5, 3, dtype=torch.float64)
+    d_scales = torch.randn(3, 5, 3, dtype=torch.float64) * 0.1
+    scene = DynamicGaussians(g, times, d_means, _identity_quats(3, 5), d_scales)
+    for k, t in enumerate(times.tolist()):
+        gt = scene.at(t)
+        torch.testing.assert_close(gt.means, g.means + d_means[k])
+        torch.testing.assert_close(gt.scales, g.scales * torch.exp(d_scales[k]))
+    gt = scene.at(0.25)
+    torch.testing.assert_close(gt.means, g.means + 0.5 * (d_means[0] + d_means[1]))
+    torch.testing.assert_close(gt.scales, g.scales * torch.exp(0.5 * (d_scales[0] + d_scales[1])))
+    torch.testing.assert_close(gt.opacities, g.opacities)
+
+
+def test_rotation_offset_is_applied_on_the_left():
+    # canonical rotation about x, offset rotation about z: R_t = R_z R_x (Δq ⊗ q)
+    m = 1
+    q = axis_angle_to_quat(torch.tensor([1.0, 0, 0], dtype=torch.float64), torch.tensor(0.4, dtype=torch.float64))
+    g = Gaussians(torch.zeros(m, 3, dtype=torch.float64), q[None], torch.ones(m, 3, dtype=torch.float64),
+                  torch.full((m,), 0.5, dtype=torch.float64), torch.zeros(m, 1, 3, dtype=torch.float64))
+    dq = axis_angle_to_quat(torch.tensor([0.0, 0, 1], dtype=torch.float64), torch.tensor(0.9, dtype=torch.float64))
+    times = torch.tensor([0.0, 1.0], dtype=torch.float64)
+    d_quats = torch.stack([torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64), dq[None]])
+    scene = DynamicGaussians(g, times, torch.zeros(2, m, 3, dtype=torch.float64), d_quats,
+                             torch.zeros(2, m, 3, dtype=torch.float64))
+    R = quat_to_rotmat(scene.at(1.0).quats[0])
+    torch.testing.assert_close(R, quat_to_rotmat(dq) @ quat_to_rotmat(q))
+    # halfway: half the angle (nlerp of two rotations about one axis is exact at the midpoint)
+    half = axis_angle_to_quat(torch.tensor([0.0, 0, 1], dtype=torch.float64), torch.tensor(0.45, dtype=torch.float64))
+    torch.testing.assert_close(quat_to_rotmat(scene.at(0.5).quats[0]), quat_to_rotmat(half) @ quat_to_rotmat(q))
+
+
+def test_times_outside_key_range_clamp_and_single_key_time():
+    g = _gaussians(3)
+    d = torch.randn(1, 3, 3, dtype=torch.float64)
+    scene = DynamicGaussians(g, torch.tensor([0.5], dtype=torch.float64), d, _identity_quats(1, 3), torch.zeros(1, 3, 3, dtype=torch.float64))
+    torch.testing.assert_close(scene.at(0.0).means, g.means + d[0])
+    torch.testing.assert_close(scene.at(1.0).means, g.means + d[0])
+
+
+def test_select_keeps_deformation_aligned():
+    g = _gaussians(6)
+    times = torch.tensor([0.0, 1.0], dtype=torch.float64)
+    d_means = torch.randn(2, 6, 3, dtype=torch.float64)
+    scene = DynamicGaussians(g, times, d_means, _identity_quats(2, 6), torch.zeros(2, 6, 3, dtype=torch.float64))
+    mask = torch.tensor([True, False, True, False, False, True])
+    sub = scene.select(mask)
+    torch.testing.assert_close(sub.at(1.0).means, scene.at(1.0).means[mask])
+
+
+def test_identity_deformation_is_dropped():
+    g = _gaussians(4)
+    times = torch.tensor([0.0, 1.0], dtype=torch.float64)
+    z = torch.zeros(2, 4, 3, dtype=torch.float64)
+    assert DynamicGaussians(g, times, z, _identity_quats(2, 4), z).without_deformation().is_static
+    moving = DynamicGaussians(g, times, z + 1e-3, _identity_quats(2, 4), z)
+    assert not moving.without_deformation().is_static
+    assert moving.without_deformation(atol=1e-2).is_static
+
+
+@pytest.mark.parametrize("bad", ["partial", "shape", "nan", "times_range", "times_order", "zero_quat"])
+def test_invalid_deformation_raises(bad):
+    g = _gaussians(2)
+    times = torch.tensor([0.0, 1.0], dtype=torch.float64)
+    dm, dq, ds = torch.zeros(2, 2, 3, dtype=torch.float64), _identity_quats(2, 2), torch.zeros(2, 2, 3, dtype=torch.float64)
+    if bad == "partial":
+        args = (times, dm, None, ds)
+    elif bad == "shape":
+        args = (times, dm[:, :1], dq, ds)
+    elif bad == "nan":
+        dm[0, 0, 0] = math.nan
+        args = (times, dm, dq, ds)
+    elif bad == "times_range":
+        args = (times + 0.5, dm, dq, ds)
+    elif bad == "times_order":
+        args = (times.flip(0), dm, dq, ds)
+    else:
+        dq[1, 1] = 0
+        args = (times, dm, dq, ds)
+    with pytest.raises(ValueError):
+        DynamicGaussians(g, *args)
+
+
+def test_time_outside_unit_interval_raises():
+    with pytest.raises(ValueError, match="time t"):
+        DynamicGaussians(_gaussians()).at(1.5)
