@@ -1,0 +1,286 @@
+"""Camera-controlled video diffusion transformer (the generator of Diff4Splat, Pan et al. 2025 §3.1).
+
+A DiT (Peebles & Xie 2023) over video latents, conditioned on
+  * the flow-matching noise level σ — adaLN-Zero modulation of every block (DiT §3.2);
+  * the first-frame latent — concatenated on channels with a frame-0 mask (image-to-video, as in
+    Wan 2.1 I2V / Stable Video Diffusion);
+  * the camera path — packed Plücker rays (CameraCtrl, He et al. 2024) patchified like the latents
+    and added to the patch tokens through a zero-initialised projection;
+  * text — cross-attention to projected text-encoder tokens in every block (PixArt-α §2.3).
+Self-attention runs over all video tokens with 3D RoPE (``models.rope``) and QK-norm.
+
+The network predicts the flow-matching velocity v = ε − x0 for x_σ = (1 − σ)·x0 + σ·ε
+(rectified flow, Liu et al. 2023; SD3 Esser et al. 2024 Eq. 1–3).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from models.layers import CrossAttention, Mlp, SelfAttention, TimestepEmbedder, modulate, patchify, unpatchify
+from models.pretrained import PretrainedMixin
+from models.rope import rope_3d, rope_split
+
+__all__ = ["VideoDiTConfig", "VideoDiTBlock", "FinalLayer", "VideoDiT"]
+
+SIGMA_SCALE = 1000.0  # σ ∈ [0, 1] is embedded as σ·1000, the DiT/DDPM timestep range.
+
+
+@dataclass
+class VideoDiTConfig:
+    """Sizes of :class:`VideoDiT`. Defaults are the CPU test size (~0.26 M parameters).
+
+    Attributes:
+        latent_channels: c, channels of the video VAE latent.
+        hidden_size: token width D.
+        depth: number of transformer blocks.
+        num_heads: attention heads; head_dim = hidden_size / num_heads must be even and ≥ 6 (3D RoPE).
+        mlp_ratio: feed-forward width / hidden_size.
+        patch_size: (pt, ph, pw) latent voxels per token.
+        text_dim: width of the text-encoder tokens (4096 for T5-XXL).
+        camera_channels: channels of the packed Plücker tensor, 6·4·8·8 = 1536 for
+            ``diff4splat.cameras.pack_plucker`` with the VAE's 4×8×8 compression.
+        frequency_embedding_size: width of the sinusoidal σ features.
+        rope_theta: RoPE base wavelength.
+        qk_norm: RMSNorm queries and keys per head.
+        norm_eps: epsilon of every LayerNorm / RMSNorm.
+    """
+
+    latent_channels: int = 16
+    hidden_size: int = 32
+    depth: int = 2
+    num_heads: int = 2
+    mlp_ratio: float = 4.0
+    patch_size: tuple[int, int, int] = (1, 2, 2)
+    text_dim: int = 32
+    camera_channels: int = 1536
+    frequency_embedding_size: int = 256
+    rope_theta: float = 10000.0
+    qk_norm: bool = True
+    norm_eps: float = 1e-6
+
+    def __post_init__(self):
+        self.patch_size = tuple(int(p) for p in self.patch_size)
+        for name in ("latent_channels", "hidden_size", "depth", "num_heads", "text_dim", "camera_channels",
+                     "frequency_embedding_size"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"VideoDiTConfig.{name} must be a positive int, got {value!r}")
+        if len(self.patch_size) != 3 or min(self.patch_size) < 1:
+            raise ValueError(f"VideoDiTConfig.patch_size must be 3 positive ints, got {self.patch_size!r}")
+        if self.hidden_size % self.num_heads:
+            raise ValueError(f"VideoDiTConfig.hidden_size {self.hidden_size} must be divisible by "
+                             f"num_heads {self.num_heads}")
+        rope_split(self.hidden_size // self.num_heads)  # raises ValueError for an unusable head_dim
+        if not self.mlp_ratio > 0:
+            raise ValueError(f"VideoDiTConfig.mlp_ratio must be > 0, got {self.mlp_ratio}")
+        if not self.rope_theta > 1:
+            raise ValueError(f"VideoDiTConfig.rope_theta must be > 1, got {self.rope_theta}")
+
+    @property
+    def head_dim(self) -> int:
+        return self.hidden_size // self.num_heads
+
+    @classmethod
+    def paper(cls) -> "VideoDiTConfig":
+        """Paper size (Diff4Splat §4 implementation details): 32 blocks, hidden 4096, 32 heads
+        (head_dim 128, RoPE split 44/42/42), 16 latent channels, patch 1×2×2, T5-XXL text (4096).
+        Only instantiate on ``torch.device("meta")`` on a CPU machine."""
+        return cls(latent_channels=16, hidden_size=4096, depth=32, num_heads=32, mlp_ratio=4.0,
+                   patch_size=(1, 2, 2), text_dim=4096, camera_channels=1536)
+
+
+class VideoDiTBlock(nn.Module):
+    """Transformer block: adaLN-Zero self-attention, pre-norm text cross-attention, adaLN-Zero MLP.
+
+    x ← x + g₁ · SelfAttn(modulate(LN(x), β₁, γ₁))          (DiT §3.2, 3D RoPE)
+    x ← x + CrossAttn(LN'(x), text)                          (PixArt-α §2.3; skipped without text)
+    x ← x + g₂ · MLP(modulate(LN(x), β₂, γ₂))
+    with (β₁, γ₁, g₁, β₂, γ₂, g₂) = Linear(SiLU(c)) from the σ embedding c.
+    """
+
+    def __init__(self, hidden_size: int, num_heads: int, mlp_ratio: float, qk_norm: bool, eps: float):
+        super().__init__()
+        self.norm1 = nn.LayerNorm(hidden_size, elementwise_affine=False, eps=eps)
+        self.attn = SelfAttention(hidden_size, num_heads, qk_norm=qk_norm, eps=eps)
+        self.norm2 = nn.LayerNorm(hidden_size, elementwise_affine=True, eps=eps)
+        self.cross_attn = CrossAttention(hidden_size, hidden_size, num_heads, qk_norm=qk_norm, eps=eps)
+        self.norm3 = nn.LayerNorm(hidden_size, elementwise_affine=False, eps=eps)
+        self.mlp = Mlp(hidden_size, int(hidden_size * mlp_ratio))
+        self.adaLN_modulation = nn.Sequential(nn.SiLU(), nn.Linear(hidden_size, 6 * hidden_size))
+
+    def forward(
+        self,
+        x: Tensor,  # (B, N, D) video tokens
+        c: Tensor,  # (B, D) σ embedding
+        rope: tuple[Tensor, Tensor],  # cos, sin: (N, head_dim/2)
+        context: Tensor | None = None,  # (B, L, D) projected text tokens
+        context_mask: Tensor | None = None,  # (B, L) bool, True = real token
+    ) -> Tensor:
+        shift_msa, scale_msa, gate_msa, shift_mlp, scale_mlp, gate_mlp = self.adaLN_modulation(c).chunk(6, dim=1)
+        x = x + gate_msa.unsqueeze(1) * self.attn(modulate(self.norm1(x), shift_msa, scale_msa), rope)
+        if context is not None:  # a None check on an argument, not on tensor values: exportable
+            x = x + self.cross_attn(self.norm2(x), context, context_mask)
+        x = x + gate_mlp.unsqueeze(1) * self.mlp(modulate(self.norm3(x), shift_mlp, scale_mlp))
+        return x
+
+
+class FinalLayer(nn.Module):
+    """adaLN (shift, scale from c) + Linear to one patch of output channels (DiT §3.2)."""
+
+    def __init__(self, hidden_size: int, patch_volume: int, out_channels: int, eps: float):
+        super().__init__()
+        self.norm_final = nn.LayerNorm(hidden_size, elementwise_affine=False, eps=eps)
+        self.linear = nn.Linear(hidden_size, patch_volume * out_channels)
+        self.adaLN_modulation = nn.Sequential(nn.SiLU(), nn.Linear(hidden_size, 2 * hidden_size))
+
+    def forward(self, x: Tensor, c: Tensor) -> Tensor:
+        """x: (B, N, D), c: (B, D) → (B, N, pt·ph·pw·out_channels)."""
+        shift, scale = self.adaLN_modulation(c).chunk(2, dim=1)
+        return self.linear(modulate(self.norm_final(x), shift, scale))
+
+
+class VideoDiT(nn.Module, PretrainedMixin):
+    """Camera- and text-conditioned image-to-video flow-matching DiT (Diff4Splat §3.1).
+
+    Build with a :class:`VideoDiTConfig`; ``save_pretrained`` / ``from_pretrained`` from
+    :class:`models.pretrained.PretrainedMixin`.
+    """
+
+    config_class = VideoDiTConfig
+
+    def __init__(self, config: VideoDiTConfig):
+        super().__init__()
+        self.config = config
+        D, c = config.hidden_size, config.latent_channels
+        patch_volume = config.patch_size[0] * config.patch_size[1] * config.patch_size[2]
+        # Input tokens: [noisy latent (c), first-frame latent at frame 0 (c), frame-0 mask (1)] per patch.
+        self.x_embedder = nn.Linear((2 * c + 1) * patch_volume, D)
+        self.camera_embedder = nn.Linear(config.camera_channels * patch_volume, D)
+        self.t_embedder = TimestepEmbedder(D, config.frequency_embedding_size)
+        self.text_embedder = Mlp(config.text_dim, D, D)  # PixArt-α caption projection
+        self.blocks = nn.ModuleList(
+            VideoDiTBlock(D, config.num_heads, config.mlp_ratio, config.qk_norm, config.norm_eps)
+            for _ in range(config.depth)
+        )
+        self.final_layer = FinalLayer(D, patch_volume, c, config.norm_eps)
+        self.initialize_weights()
+
+    def initialize_weights(self) -> None:
+        """DiT initialisation (DiT ``initialize_weights``) plus two zero-inits for the new branches."""
+        def _basic_init(module):
+            if isinstance(module, nn.Linear):
+                nn.init.xavier_uniform_(module.weight)
+                nn.init.zeros_(module.bias)
+
+        self.apply(_basic_init)
+        nn.init.normal_(self.t_embedder.mlp[0].weight, std=0.02)
+        nn.init.normal_(self.t_embedder.mlp[2].weight, std=0.02)
+        for block in self.blocks:
+            # adaLN-Zero (DiT §3.2): gates start at 0, so every residual branch is off and each block
+            # is the identity at initialisation.
+            nn.init.zeros_(block.adaLN_modulation[-1].weight)
+            nn.init.zeros_(block.adaLN_modulation[-1].bias)
+            # The cross-attention branch has no gate; zeroing its output projection makes it start
+            # off as well (PixArt-α's initialisation), keeping "block = identity" at step 0.
+            nn.init.zeros_(block.cross_attn.proj.weight)
+            nn.init.zeros_(block.cross_attn.proj.bias)
+        # Zero final layer (DiT): the untrained network predicts v = 0 everywhere.
+        nn.init.zeros_(self.final_layer.adaLN_modulation[-1].weight)
+        nn.init.zeros_(self.final_layer.adaLN_modulation[-1].bias)
+        nn.init.zeros_(self.final_layer.linear.weight)
+        nn.init.zeros_(self.final_layer.linear.bias)
+        # Zero camera projection (ControlNet's zero-conv idea, as in CameraCtrl / AC3D): camera tokens
+        # are exactly 0 until training moves this layer, so an untrained camera branch leaves the
+        # network bit-for-bit what it is without cameras, and a pretrained video DiT can be
+        # fine-tuned with camera control without a disruptive first step.
+        nn.init.zeros_(self.camera_embedder.weight)
+        nn.init.zeros_(self.camera_embedder.bias)
+
+    def forward(
+        self,
+        x: Tensor,  # (B, c, n, h, w) noisy latents x_σ
+        sigma: Tensor,  # (B,) noise level in [0, 1]
+        image_latent: Tensor,  # (B, c, 1, h, w) first-frame VAE latent
+        plucker: Tensor | None = None,  # (B, camera_channels, n, h, w) packed Plücker rays
+        text: Tensor | None = None,  # (B, L, text_dim) text-encoder tokens
+        text_mask: Tensor | None = None,  # (B, L) bool, True = real token
+    ) -> Tensor:
+        """Predict the flow-matching velocity v = ε − x0 (SD3 Eq. 3, σ = 1 is pure noise).
+
+        Args:
+            x: (B, c, n, h, w) noisy video latent, n latent frames; n, h, w divisible by patch_size.
+            sigma: (B,) noise level σ ∈ [0, 1] (checked in eager mode; not while tracing/exporting).
+            image_latent: (B, c, 1, h, w) clean latent of the first frame, placed at latent frame 0
+                next to a mask channel that is 1 at frame 0 and 0 elsewhere.
+            plucker: (B, camera_channels, n, h, w) from ``diff4splat.cameras.pack_plucker``
+                (moments in metres, unit directions); None → no camera tokens (identical to an
+                untrained, zero-initialised camera branch).
+            text: (B, L, text_dim) text tokens; None → no cross-attention at all (empty prompt).
+            text_mask: (B, L) bool, True for real tokens; None → all tokens real. Padding tokens
+                get zero attention weight; a sample with no real token gets zero cross-attention.
+
+        Returns:
+            (B, c, n, h, w) velocity, same dtype as the parameters.
+
+        Raises:
+            ValueError: an argument has the wrong shape or dtype (the message names it), σ is
+                outside [0, 1], or ``text_mask`` is given without ``text``.
+        """
+        self._check_inputs(x, sigma, image_latent, plucker, text, text_mask)
+        cfg = self.config
+        B, c, n, h, w = x.shape
+        pt, ph, pw = cfg.patch_size
+        grid = (n // pt, h // ph, w // pw)
+
+        first = (torch.arange(n, device=x.device) == 0).to(x.dtype).view(1, 1, n, 1, 1)  # (1, 1, n, 1, 1)
+        cond = image_latent.to(x.dtype) * first  # first-frame latent at frame 0, zeros after
+        inputs = torch.cat([x, cond, first.expand(B, 1, n, h, w)], dim=1)  # (B, 2c + 1, n, h, w)
+        tokens = self.x_embedder(patchify(inputs, cfg.patch_size))  # (B, N, D)
+        if plucker is not None:
+            tokens = tokens + self.camera_embedder(patchify(plucker.to(x.dtype), cfg.patch_size))
+
+        emb = self.t_embedder(sigma * SIGMA_SCALE)  # (B, D)
+        rope = rope_3d(*grid, cfg.head_dim, cfg.rope_theta, dtype=tokens.dtype, device=x.device)
+        context = self.text_embedder(text.to(tokens.dtype)) if text is not None else None
+        for block in self.blocks:
+            tokens = block(tokens, emb, rope, context, text_mask)
+        out = self.final_layer(tokens, emb)  # (B, N, pt·ph·pw·c)
+        return unpatchify(out, cfg.patch_size, grid, c)
+
+    def _check_inputs(self, x, sigma, image_latent, plucker, text, text_mask) -> None:
+        """Shape checks (static under tracing) and, in eager mode only, the σ range."""
+        cfg = self.config
+        pt, ph, pw = cfg.patch_size
+        if x.dim() != 5 or x.shape[1] != cfg.latent_channels:
+            raise ValueError(f"x must have shape (B, {cfg.latent_channels}, n, h, w), got {tuple(x.shape)}")
+        B, c, n, h, w = x.shape
+        if n % pt or h % ph or w % pw:
+            raise ValueError(f"x: latent size (n, h, w) = {(n, h, w)} must be divisible by "
+                             f"patch_size {cfg.patch_size}")
+        if sigma.shape != (B,):
+            raise ValueError(f"sigma must have shape ({B},), got {tuple(sigma.shape)}")
+        if image_latent.shape != (B, c, 1, h, w):
+            raise ValueError(f"image_latent must have shape {(B, c, 1, h, w)}, got {tuple(image_latent.shape)}")
+        if plucker is not None and plucker.shape != (B, cfg.camera_channels, n, h, w):
+            raise ValueError(f"plucker must have shape {(B, cfg.camera_channels, n, h, w)}, "
+                             f"got {tuple(plucker.shape)}")
+        if text is None:
+            if text_mask is not None:
+                raise ValueError("text_mask was given without text")
+        else:
+            if text.dim() != 3 or text.shape[0] != B or text.shape[2] != cfg.text_dim or text.shape[1] < 1:
+                raise ValueError(f"text must have shape ({B}, L >= 1, {cfg.text_dim}), got {tuple(text.shape)}")
+            if text_mask is not None and (text_mask.shape != text.shape[:2] or text_mask.dtype != torch.bool):
+                raise ValueError(f"text_mask must be a bool tensor of shape {tuple(text.shape[:2])}, "
+                                 f"got {text_mask.dtype} {tuple(text_mask.shape)}")
+        if not _tracing() and bool((~((sigma >= 0) & (sigma <= 1))).any()):
+            raise ValueError(f"sigma must lie in [0, 1] (no NaN), got {sigma.tolist()}")
+
+
+def _tracing() -> bool:
+    """True while torch.jit / torch.compile / torch.export / torch.onnx trace the model."""
+    return bool(torch.jit.is_tracing() or torch.compiler.is_compiling() or torch.onnx.is_in_onnx_export())
+

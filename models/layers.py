@@ -1,0 +1,240 @@
+"""Small building blocks shared by the transformer networks (DiT ``models.py`` style).
+
+Generic pieces, free of any one network's config: sinusoidal timestep embedding, MLP, adaLN
+``modulate``, video patchify/unpatchify, and multi-head self-/cross-attention with QK-norm, 3D RoPE
+and key padding masks. Everything is ONNX-exportable: no complex dtypes and no Python control flow
+on tensor values.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from models.rope import apply_rope
+
+__all__ = [
+    "timestep_embedding",
+    "TimestepEmbedder",
+    "Mlp",
+    "modulate",
+    "patchify",
+    "unpatchify",
+    "SelfAttention",
+    "CrossAttention",
+]
+
+
+def timestep_embedding(t: Tensor, dim: int, max_period: float = 10000.0) -> Tensor:
+    """Sinusoidal embedding of scalar times (DiT ``TimestepEmbedder``; Vaswani et al. 2017 §3.5).
+
+    emb = [cos(t·ω_0), …, cos(t·ω_{k−1}), sin(t·ω_0), …, sin(t·ω_{k−1})], k = ⌊dim/2⌋,
+    ω_i = max_period^(−i/k); a zero column is appended when ``dim`` is odd.
+
+    Args:
+        t: (B,) real times, any range (DiT uses integer steps 0…1000; flow models pass σ·1000).
+        dim: embedding width ≥ 2.
+        max_period: longest wavelength, in units of t.
+
+    Returns:
+        (B, dim) float32 in [−1, 1].
+
+    Raises:
+        ValueError: ``t`` is not 1-D or ``dim`` < 2.
+    """
+    if t.dim() != 1:
+        raise ValueError(f"t must have shape (B,), got {tuple(t.shape)}")
+    if dim < 2:
+        raise ValueError(f"dim must be >= 2, got {dim}")
+    half = dim // 2
+    freqs = torch.exp(-math.log(max_period) * torch.arange(half, dtype=torch.float32, device=t.device) / half)
+    args = t.float()[:, None] * freqs[None]
+    emb = torch.cat([torch.cos(args), torch.sin(args)], dim=-1)
+    if dim % 2:
+        emb = torch.cat([emb, torch.zeros_like(emb[:, :1])], dim=-1)
+    return emb
+
+
+class TimestepEmbedder(nn.Module):
+    """Scalar time → vector: sinusoidal features then Linear–SiLU–Linear (DiT §3.2)."""
+
+    def __init__(self, hidden_size: int, frequency_embedding_size: int = 256):
+        super().__init__()
+        self.frequency_embedding_size = frequency_embedding_size
+        self.mlp = nn.Sequential(
+            nn.Linear(frequency_embedding_size, hidden_size),
+            nn.SiLU(),
+            nn.Linear(hidden_size, hidden_size),
+        )
+
+    def forward(self, t: Tensor) -> Tensor:
+        """t: (B,) → (B, hidden_size)."""
+        emb = timestep_embedding(t, self.frequency_embedding_size)
+        return self.mlp(emb.to(self.mlp[0].weight.dtype))
+
+
+class Mlp(nn.Module):
+    """Linear → GELU(tanh) → Linear, the transformer feed-forward (DiT / ViT)."""
+
+    def __init__(self, in_features: int, hidden_features: int, out_features: int | None = None):
+        super().__init__()
+        self.fc1 = nn.Linear(in_features, hidden_features)
+        self.act = nn.GELU(approximate="tanh")
+        self.fc2 = nn.Linear(hidden_features, out_features or in_features)
+
+    def forward(self, x: Tensor) -> Tensor:
+        """x: (..., in_features) → (..., out_features)."""
+        return self.fc2(self.act(self.fc1(x)))
+
+
+def modulate(x: Tensor, shift: Tensor, scale: Tensor) -> Tensor:
+    """Adaptive LayerNorm affine: x·(1 + scale) + shift, per sample (DiT §3.2, adaLN).
+
+    Args:
+        x: (B, N, D) normalised tokens.
+        shift, scale: (B, D) regressed from the conditioning vector.
+
+    Returns:
+        (B, N, D).
+    """
+    return x * (1 + scale.unsqueeze(1)) + shift.unsqueeze(1)
+
+
+def patchify(x: Tensor, patch: tuple[int, int, int]) -> Tensor:
+    """Cut a video into non-overlapping pt×ph×pw patches, one token each (ViT / DiT patchify).
+
+    Token order is frame-major ((f·h' + y)·w' + x); the channels of a token are ordered
+    (C, pt, ph, pw), i.e. the flattening of a ``Conv3d`` weight, so ``Linear`` on these tokens
+    equals ``Conv3d(kernel_size=patch, stride=patch)``.
+
+    Args:
+        x: (B, C, T, H, W), T, H, W divisible by ``patch``.
+        patch: (pt, ph, pw).
+
+    Returns:
+        (B, T/pt · H/ph · W/pw, C·pt·ph·pw).
+
+    Raises:
+        ValueError: ``x`` is not 5-D or a size is not divisible by its patch size.
+    """
+    if x.dim() != 5:
+        raise ValueError(f"x must have shape (B, C, T, H, W), got {tuple(x.shape)}")
+    B, C, T, H, W = x.shape
+    pt, ph, pw = patch
+    if T % pt or H % ph or W % pw:
+        raise ValueError(f"x of shape {tuple(x.shape)}: (T, H, W) must be divisible by patch {tuple(patch)}")
+    x = x.reshape(B, C, T // pt, pt, H // ph, ph, W // pw, pw)
+    x = x.permute(0, 2, 4, 6, 1, 3, 5, 7)  # (B, n, h, w, C, pt, ph, pw)
+    return x.reshape(B, (T // pt) * (H // ph) * (W // pw), C * pt * ph * pw)
+
+
+def unpatchify(tokens: Tensor, patch: tuple[int, int, int], grid: tuple[int, int, int], channels: int) -> Tensor:
+    """Inverse of :func:`patchify`.
+
+    Args:
+        tokens: (B, n·h·w, channels·pt·ph·pw).
+        patch: (pt, ph, pw).
+        grid: (n, h, w) token grid.
+        channels: C.
+
+    Returns:
+        (B, C, n·pt, h·ph, w·pw).
+
+    Raises:
+        ValueError: ``tokens`` does not have the stated shape.
+    """
+    pt, ph, pw = patch
+    n, h, w = grid
+    B = tokens.shape[0]
+    if tokens.shape != (B, n * h * w, channels * pt * ph * pw):
+        raise ValueError(f"tokens must have shape ({B}, {n * h * w}, {channels * pt * ph * pw}), "
+                         f"got {tuple(tokens.shape)}")
+    x = tokens.reshape(B, n, h, w, channels, pt, ph, pw)
+    x = x.permute(0, 4, 1, 5, 2, 6, 3, 7)  # (B, C, n, pt, h, ph, w, pw)
+    return x.reshape(B, channels, n * pt, h * ph, w * pw)
+
+
+class SelfAttention(nn.Module):
+    """Multi-head self-attention with optional QK-norm and rotary positions.
+
+    QK-norm: RMSNorm over each head's query and key channels before the dot product, which
+    bounds attention logits and stabilises large-scale training (Dehghani et al. 2023, ViT-22B
+    §3.1; SD3 §5.3.3). RoPE (if given) is applied after the norm, as in Wan / SD3.
+    """
+
+    def __init__(self, dim: int, num_heads: int, qk_norm: bool = True, eps: float = 1e-6):
+        super().__init__()
+        if dim % num_heads:
+            raise ValueError(f"dim {dim} must be divisible by num_heads {num_heads}")
+        self.num_heads = num_heads
+        self.head_dim = dim // num_heads
+        self.qkv = nn.Linear(dim, 3 * dim)
+        self.q_norm = nn.RMSNorm(self.head_dim, eps=eps) if qk_norm else nn.Identity()
+        self.k_norm = nn.RMSNorm(self.head_dim, eps=eps) if qk_norm else nn.Identity()
+        self.proj = nn.Linear(dim, dim)
+
+    def forward(
+        self,
+        x: Tensor,  # (B, N, D)
+        rope: tuple[Tensor, Tensor] | None = None,  # cos, sin: (N, head_dim/2) each
+    ) -> Tensor:
+        """Attend every token to every token; returns (B, N, D)."""
+        B, N, D = x.shape
+        q, k, v = self.qkv(x).reshape(B, N, 3, self.num_heads, self.head_dim).permute(2, 0, 3, 1, 4)
+        q, k = self.q_norm(q), self.k_norm(k)  # (B, heads, N, head_dim)
+        if rope is not None:
+            q, k = apply_rope(q, *rope), apply_rope(k, *rope)
+        out = F.scaled_dot_product_attention(q, k, v)
+        return self.proj(out.transpose(1, 2).reshape(B, N, D))
+
+
+class CrossAttention(nn.Module):
+    """Multi-head cross-attention from tokens to a context sequence, with a key padding mask.
+
+    Queries come from ``x``; keys/values from ``context`` (e.g. text tokens, PixArt-α §2.3).
+    QK-norm as in :class:`SelfAttention`; no positional rotation.
+    """
+
+    def __init__(self, dim: int, context_dim: int, num_heads: int, qk_norm: bool = True, eps: float = 1e-6):
+        super().__init__()
+        if dim % num_heads:
+            raise ValueError(f"dim {dim} must be divisible by num_heads {num_heads}")
+        self.num_heads = num_heads
+        self.head_dim = dim // num_heads
+        self.q = nn.Linear(dim, dim)
+        self.kv = nn.Linear(context_dim, 2 * dim)
+        self.q_norm = nn.RMSNorm(self.head_dim, eps=eps) if qk_norm else nn.Identity()
+        self.k_norm = nn.RMSNorm(self.head_dim, eps=eps) if qk_norm else nn.Identity()
+        self.proj = nn.Linear(dim, dim)
+
+    def forward(
+        self,
+        x: Tensor,  # (B, N, D)
+        context: Tensor,  # (B, L, context_dim)
+        context_mask: Tensor | None = None,  # (B, L) bool, True = real token
+    ) -> Tensor:
+        """Returns (B, N, D).
+
+        Masked context tokens get exactly zero attention weight. A sample whose mask is all False
+        has nothing to attend to: its output is exactly zero (not NaN). This is done with tensor
+        ops only (the mask row is opened to all keys, then the result is multiplied by 0), so the
+        module traces/exports without data-dependent branches.
+        """
+        B, N, D = x.shape
+        L = context.shape[1]
+        if context_mask is not None and (context_mask.shape != (B, L) or context_mask.dtype != torch.bool):
+            raise ValueError(f"context_mask must be a bool tensor of shape ({B}, {L}), "
+                             f"got {context_mask.dtype} {tuple(context_mask.shape)}")
+        q = self.q(x).reshape(B, N, self.num_heads, self.head_dim).transpose(1, 2)
+        k, v = self.kv(context).reshape(B, L, 2, self.num_heads, self.head_dim).permute(2, 0, 3, 1, 4)
+        q, k = self.q_norm(q), self.k_norm(k)
+        if context_mask is None:
+            out = F.scaled_dot_product_attention(q, k, v)
+            return self.proj(out.transpose(1, 2).reshape(B, N, D))
+        has_keys = context_mask.any(dim=1)  # (B,)
+        keep = context_mask | ~has_keys[:, None]  # empty rows attend to all keys, then get zeroed
+        out = F.scaled_dot_product_attention(q, k, v, attn_mask=keep[:, None, None, :])
+        out = self.proj(out.transpose(1, 2).reshape(B, N, D))
+        return out * has_keys.to(out.dtype)[:, None, None]

@@ -1,0 +1,146 @@
+"""3D rotary position embedding (RoPE) for video tokens, real-valued (ONNX-exportable).
+
+RoPE (Su et al. 2021, "RoFormer", Eq. 13–15) rotates each consecutive channel pair
+(x_{2i}, x_{2i+1}) of a query/key by the angle m·θ_i, where m is the token position and
+θ_i = theta^(−2i/d). The attention logit q_mᵀ k_n then depends on positions only through
+m − n. For video the head dimension is split into three parts that rotate with the frame,
+row and column index respectively (3D RoPE as in Wan 2.1 / HunyuanVideo); each part uses its
+own frequency ladder over its own width.
+
+Everything is written with cos/sin tables and real arithmetic (no ``torch.complex``), so
+``torch.onnx.export`` can trace it. :func:`apply_rope_complex` is the textbook complex-number
+formulation kept as the reference the tests compare against.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = ["rope_split", "rope_frequencies", "rope_3d", "apply_rope", "apply_rope_complex"]
+
+
+def rope_split(head_dim: int) -> tuple[int, int, int]:
+    """Channels of one attention head given to the (frame, row, column) axes.
+
+    Rule of Wan 2.1 (``d − 4⌊d/6⌋``, ``2⌊d/6⌋``, ``2⌊d/6⌋``): the two spatial axes get equal even
+    widths and time takes the rest (head_dim 128 → (44, 42, 42); 16 → (8, 4, 4)).
+
+    Raises:
+        ValueError: ``head_dim`` is odd or smaller than 6 (some axis would get no channel pair).
+    """
+    if head_dim % 2 or head_dim < 6:
+        raise ValueError(f"head_dim must be even and >= 6 for 3D RoPE, got {head_dim}")
+    d_hw = 2 * (head_dim // 6)
+    return head_dim - 2 * d_hw, d_hw, d_hw
+
+
+def rope_frequencies(dim: int, theta: float = 10000.0, device=None) -> Tensor:
+    """Angular frequencies θ_i = theta^(−2i/dim), i = 0 … dim/2 − 1 (RoFormer Eq. 15).
+
+    Args:
+        dim: even number of channels rotated by one axis.
+        theta: base wavelength (> 1); 10000 as in RoFormer.
+
+    Returns:
+        (dim/2,) float64 radians per unit position, decreasing from 1.
+
+    Raises:
+        ValueError: odd ``dim`` or ``theta`` ≤ 1.
+    """
+    if dim % 2 or dim <= 0:
+        raise ValueError(f"dim must be a positive even number, got {dim}")
+    if not theta > 1.0:
+        raise ValueError(f"theta must be > 1, got {theta}")
+    exponent = torch.arange(0, dim, 2, dtype=torch.float64, device=device) / dim
+    return theta ** (-exponent)
+
+
+def rope_3d(
+    n: int,
+    h: int,
+    w: int,
+    head_dim: int,
+    theta: float = 10000.0,
+    *,
+    dtype: torch.dtype = torch.float32,
+    device=None,
+) -> tuple[Tensor, Tensor]:
+    """cos/sin tables of 3D RoPE for an n×h×w token grid flattened frame-major.
+
+    Token k = (f·h + y)·w + x sits at integer position (f, y, x). Its head dimension is split
+    into ``rope_split(head_dim)`` = (d_t, d_h, d_w) channels; channel pair i of the time part is
+    rotated by f·θ_i (θ over width d_t), pair i of the row part by y·θ_i (θ over d_h) and pair i
+    of the column part by x·θ_i (θ over d_w) — RoFormer Eq. 13 applied per axis.
+
+    Args:
+        n, h, w: grid size in tokens (frames, rows, columns), each ≥ 1.
+        head_dim: channels per attention head (even, ≥ 6).
+        theta: RoPE base wavelength.
+        dtype, device: of the returned tables (angles are computed in float64 first).
+
+    Returns:
+        cos, sin: each (n·h·w, head_dim/2), values in [−1, 1]; column j holds the rotation of
+        channel pair (2j, 2j+1).
+
+    Raises:
+        ValueError: a non-positive grid size or an unusable ``head_dim`` / ``theta``.
+    """
+    for name, size in (("n", n), ("h", h), ("w", w)):
+        if size < 1:
+            raise ValueError(f"{name} must be >= 1, got {size}")
+    d_t, d_h, d_w = rope_split(head_dim)
+    parts = []
+    for size, dim in ((n, d_t), (h, d_h), (w, d_w)):
+        pos = torch.arange(size, dtype=torch.float64, device=device)
+        parts.append(pos[:, None] * rope_frequencies(dim, theta, device)[None, :])  # (size, dim/2)
+    ang_t = parts[0][:, None, None, :].expand(n, h, w, d_t // 2)
+    ang_h = parts[1][None, :, None, :].expand(n, h, w, d_h // 2)
+    ang_w = parts[2][None, None, :, :].expand(n, h, w, d_w // 2)
+    angles = torch.cat([ang_t, ang_h, ang_w], dim=-1).reshape(n * h * w, head_dim // 2)
+    return angles.cos().to(dtype), angles.sin().to(dtype)
+
+
+def apply_rope(
+    x: Tensor,  # (..., N, D) queries or keys
+    cos: Tensor,  # (N, D/2)
+    sin: Tensor,  # (N, D/2)
+) -> Tensor:
+    """Rotate consecutive channel pairs of ``x`` by the tabulated angles (RoFormer Eq. 14).
+
+    (x_{2j}, x_{2j+1}) ↦ (x_{2j} cos φ − x_{2j+1} sin φ, x_{2j} sin φ + x_{2j+1} cos φ).
+    A pure rotation: the norm of every token vector is preserved.
+
+    Args:
+        x: (..., N, D), e.g. (B, heads, N, head_dim); D even.
+        cos, sin: (N, D/2) from :func:`rope_3d`.
+
+    Returns:
+        (..., N, D), same dtype as ``x``.
+
+    Raises:
+        ValueError: the tables do not match ``x``'s last two dimensions.
+    """
+    N, D = x.shape[-2], x.shape[-1]
+    if D % 2 or cos.shape != (N, D // 2) or sin.shape != (N, D // 2):
+        raise ValueError(f"cos/sin must have shape ({N}, {D // 2}) for x of shape {tuple(x.shape)}, "
+                         f"got {tuple(cos.shape)} and {tuple(sin.shape)}")
+    cos, sin = cos.to(x.dtype), sin.to(x.dtype)
+    pairs = x.unflatten(-1, (D // 2, 2))
+    x0, x1 = pairs[..., 0], pairs[..., 1]
+    out = torch.stack([x0 * cos - x1 * sin, x0 * sin + x1 * cos], dim=-1)
+    return out.flatten(-2)
+
+
+def apply_rope_complex(
+    x: Tensor,  # (..., N, D)
+    freqs_cis: Tensor,  # (N, D/2) complex, unit modulus e^{iφ}
+) -> Tensor:
+    """Reference: the rotation as complex multiplication (x_{2j} + i·x_{2j+1})·e^{iφ_j} (RoFormer §3.2.2).
+
+    The LLaMA-style formulation; not exportable to ONNX (complex dtype), used by the tests only.
+
+    Returns:
+        (..., N, D), same dtype as ``x``.
+    """
+    xc = torch.view_as_complex(x.double().unflatten(-1, (x.shape[-1] // 2, 2)).contiguous())
+    return torch.view_as_real(xc * freqs_cis.to(torch.complex128)).flatten(-2).to(x.dtype)
