@@ -1,4 +1,20 @@
 """Cameras: intrinsics, trajectories, camera paths and rays (OpenCV frame, world-to-camera viewmats)."""
+from .intrinsics import fov_from_intrinsics, intrinsics_from_focal, intrinsics_from_fov
+from .path import CameraPath, invert_rigid
 from .rays import camera_rays, pack_plucker, plucker_rays
+from .trajectories import DEFAULT_AMPLITUDES, TRAJECTORIES, look_at, make_trajectory
 
-__all__ = ["camera_rays", "plucker_rays", "pack_plucker"]
+__all__ = [
+    "camera_rays",
+    "plucker_rays",
+    "pack_plucker",
+    "intrinsics_from_fov",
+    "intrinsics_from_focal",
+    "fov_from_intrinsics",
+    "CameraPath",
+    "invert_rigid",
+    "look_at",
+    "make_trajectory",
+    "TRAJECTORIES",
+    "DEFAULT_AMPLITUDES",
+]

@@ -1,0 +1,148 @@
+"""Pinhole intrinsics in pixels (OpenCV convention, pixel (i, j) centred at (j+0.5, i+0.5)).
+
+K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] maps a camera-frame point (x, y, z) to the pixel
+coordinates (u, v) = (fx·x/z + cx, fy·y/z + cy). The principal point defaults to the image
+centre (W/2, H/2), which with the pixel-centre convention above lies exactly midway between the
+two middle pixels of an even-sized image (Hartley & Zisserman, *Multiple View Geometry*, §6.1).
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+__all__ = ["intrinsics_from_fov", "intrinsics_from_focal", "fov_from_intrinsics"]
+
+
+def _check_size(name: str, value: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+        raise ValueError(f"{name} must be a positive integer number of pixels, got {value!r}")
+    return value
+
+
+def _check_positive(name: str, value: float) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a positive finite number, got {value!r}") from None
+    if not math.isfinite(v) or v <= 0:
+        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+    return v
+
+
+def _check_fov(name: str, value: float) -> float:
+    v = _check_positive(name, value)
+    if v >= 180.0:
+        raise ValueError(f"{name} must lie in (0, 180) degrees, got {value!r}")
+    return v
+
+
+def intrinsics_from_focal(
+    fx: float,
+    fy: float,
+    width: int,
+    height: int,
+    cx: float | None = None,
+    cy: float | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> Tensor:
+    """Pinhole intrinsic matrix from focal lengths in pixels.
+
+    Args:
+        fx: horizontal focal length, pixels, > 0.
+        fy: vertical focal length, pixels, > 0.
+        width: image width W, pixels, positive int.
+        height: image height H, pixels, positive int.
+        cx: principal point x, pixels; ``None`` → W/2 (image centre). Any finite value is allowed
+            (off-centre crops put it outside the image).
+        cy: principal point y, pixels; ``None`` → H/2.
+        dtype: floating dtype of the result.
+
+    Returns:
+        (3, 3) K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels.
+
+    Raises:
+        ValueError: naming ``fx``/``fy`` (not positive and finite), ``width``/``height`` (not a
+            positive int) or ``cx``/``cy`` (not finite).
+    """
+    fx = _check_positive("fx", fx)
+    fy = _check_positive("fy", fy)
+    width = _check_size("width", width)
+    height = _check_size("height", height)
+    cx = width / 2.0 if cx is None else float(cx)
+    cy = height / 2.0 if cy is None else float(cy)
+    for name, v in (("cx", cx), ("cy", cy)):
+        if not math.isfinite(v):
+            raise ValueError(f"{name} must be finite, got {v!r}")
+    return torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=dtype)
+
+
+def intrinsics_from_fov(
+    width: int,
+    height: int,
+    *,
+    fov_x_deg: float | None = None,
+    fov_y_deg: float | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> Tensor:
+    """Pinhole intrinsic matrix from a field of view, principal point at the image centre.
+
+    The field of view spans the full image edge to edge: fx = (W/2) / tan(fov_x/2) and
+    fy = (H/2) / tan(fov_y/2) (Hartley & Zisserman §6.1). With one of the two given the pixels are
+    square (fx = fy); with both given each focal length follows its own field of view.
+
+    Args:
+        width: image width W, pixels, positive int.
+        height: image height H, pixels, positive int.
+        fov_x_deg: horizontal field of view in degrees, in (0, 180).
+        fov_y_deg: vertical field of view in degrees, in (0, 180).
+        dtype: floating dtype of the result.
+
+    Returns:
+        (3, 3) K in pixels with (cx, cy) = (W/2, H/2).
+
+    Raises:
+        ValueError: naming ``fov_x_deg``/``fov_y_deg`` (neither given, or outside (0, 180)) or
+            ``width``/``height`` (not a positive int).
+    """
+    width = _check_size("width", width)
+    height = _check_size("height", height)
+    if fov_x_deg is None and fov_y_deg is None:
+        raise ValueError("fov_x_deg or fov_y_deg must be given (degrees in (0, 180)), got neither")
+    fx = fy = None
+    if fov_x_deg is not None:
+        fx = (width / 2.0) / math.tan(math.radians(_check_fov("fov_x_deg", fov_x_deg)) / 2.0)
+    if fov_y_deg is not None:
+        fy = (height / 2.0) / math.tan(math.radians(_check_fov("fov_y_deg", fov_y_deg)) / 2.0)
+    fx = fy if fx is None else fx
+    fy = fx if fy is None else fy
+    return intrinsics_from_focal(fx, fy, width, height, dtype=dtype)
+
+
+def fov_from_intrinsics(K: Tensor, width: int, height: int) -> tuple[float, float]:
+    """Horizontal and vertical field of view (degrees) of a centred pinhole K; inverse of
+    :func:`intrinsics_from_fov`: fov = 2·atan((size/2) / f).
+
+    Args:
+        K: (3, 3) intrinsics in pixels with fx, fy > 0.
+        width: image width W, pixels.
+        height: image height H, pixels.
+
+    Returns:
+        (fov_x_deg, fov_y_deg), each in (0, 180).
+
+    Raises:
+        ValueError: naming ``K`` (wrong shape or non-positive focal) or ``width``/``height``.
+    """
+    if tuple(K.shape) != (3, 3):
+        raise ValueError(f"K must have shape (3, 3), got {tuple(K.shape)}")
+    fx, fy = float(K[0, 0]), float(K[1, 1])
+    if not (fx > 0 and fy > 0):
+        raise ValueError(f"K must have positive focal lengths, got fx={fx}, fy={fy}")
+    width = _check_size("width", width)
+    height = _check_size("height", height)
+    return (
+        math.degrees(2.0 * math.atan(width / 2.0 / fx)),
+        math.degrees(2.0 * math.atan(height / 2.0 / fy)),
+    )

@@ -1,0 +1,175 @@
+"""A camera path: T pinhole cameras (world-to-camera OpenCV viewmats, pixel Ks) with clip times."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..gaussians import check_finite
+
+__all__ = ["CameraPath", "invert_rigid"]
+
+ROTATION_TOL = 1e-4
+"""Tolerance on ‖RᵀR − I‖_F and |det R − 1| for a viewmat's rotation block."""
+
+
+def invert_rigid(viewmats: Tensor) -> Tensor:
+    """Closed-form inverse of rigid transforms [R | t; 0 0 0 1] → [Rᵀ | −Rᵀt; 0 0 0 1].
+
+    Args:
+        viewmats: (..., 4, 4) rigid transforms (R orthonormal, bottom row [0, 0, 0, 1]).
+
+    Returns:
+        (..., 4, 4) inverses (camera-to-world for world-to-camera input), same dtype.
+    """
+    R = viewmats[..., :3, :3]
+    t = viewmats[..., :3, 3:]
+    Rt = R.transpose(-1, -2)
+    out = torch.zeros_like(viewmats)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3:] = -Rt @ t
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def _default_times(n: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    if n <= 1:
+        return torch.zeros(max(n, 0), dtype=dtype, device=device)
+    return torch.arange(n, dtype=dtype, device=device) / (n - 1)
+
+
+@dataclass
+class CameraPath:
+    """T pinhole cameras along a clip (DESIGN.md conventions: OpenCV frame, x right, y down, z forward).
+
+    Attributes:
+        viewmats: (T, 4, 4) world-to-camera rigid transforms [R | t], metres; T ≥ 1.
+        Ks: (T, 3, 3) intrinsics in pixels ([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], fx, fy > 0).
+        width: image width W, pixels.
+        height: image height H, pixels.
+        times: (T,) clip times in [0, 1], non-decreasing; ``None`` → t_i = i/(T−1) (T = 1 → [0]).
+
+    The path is validated on construction (:meth:`validate`); tensors are stored as given
+    (``times`` is created in the dtype of ``viewmats``).
+    """
+
+    viewmats: Tensor
+    Ks: Tensor
+    width: int
+    height: int
+    times: Tensor | None = None
+
+    def __post_init__(self) -> None:
+        if self.times is None and isinstance(self.viewmats, Tensor) and self.viewmats.dim() == 3:
+            self.times = _default_times(self.viewmats.shape[0], self.viewmats.dtype, self.viewmats.device)
+        self.validate()
+
+    def __len__(self) -> int:
+        return int(self.viewmats.shape[0])
+
+    def validate(self) -> None:
+        """Check shapes and values.
+
+        Raises:
+            ValueError: naming the field — ``viewmats`` (not (T, 4, 4) with T ≥ 1, non-finite,
+                rotation block with ‖RᵀR − I‖_F > 1e-4 or |det R − 1| > 1e-4, bottom row not
+                [0, 0, 0, 1] within 1e-6), ``Ks`` (not (T, 3, 3), non-finite, fx or fy ≤ 0, bottom
+                row not [0, 0, 1], non-zero skew/off-diagonal entries), ``width``/``height`` (not a
+                positive int) or ``times`` (not (T,), non-finite, outside [0, 1], decreasing).
+        """
+        for name in ("width", "height"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
+                raise ValueError(f"{name} must be a positive integer number of pixels, got {v!r}")
+        vm, K, times = self.viewmats, self.Ks, self.times
+        if not isinstance(vm, Tensor) or vm.dim() != 3 or tuple(vm.shape[1:]) != (4, 4):
+            raise ValueError(f"viewmats must be a tensor of shape (T, 4, 4), got {_shape(vm)}")
+        T = vm.shape[0]
+        if T == 0:
+            raise ValueError("viewmats has zero frames; a camera path needs T ≥ 1")
+        if not isinstance(K, Tensor) or tuple(K.shape) != (T, 3, 3):
+            raise ValueError(f"Ks must be a tensor of shape ({T}, 3, 3), got {_shape(K)}")
+        if not isinstance(times, Tensor) or tuple(times.shape) != (T,):
+            raise ValueError(f"times must be a tensor of shape ({T},), got {_shape(times)}")
+        for name, t in (("viewmats", vm), ("Ks", K), ("times", times)):
+            if not t.is_floating_point():
+                raise ValueError(f"{name} must be a floating-point tensor, got {t.dtype}")
+            check_finite(name, t)
+
+        vm64 = vm.detach().double()
+        R = vm64[:, :3, :3]
+        eye = torch.eye(3, dtype=torch.float64, device=vm.device)
+        ortho_err = (R.transpose(-1, -2) @ R - eye).flatten(1).norm(dim=-1)
+        det_err = (torch.linalg.det(R) - 1.0).abs()
+        bad = (ortho_err > ROTATION_TOL) | (det_err > ROTATION_TOL)
+        if bool(bad.any()):
+            i = int(bad.nonzero()[0])
+            raise ValueError(
+                f"viewmats[{i}] rotation is not a proper rotation: ‖RᵀR−I‖={float(ortho_err[i]):.3g}, "
+                f"det R={float(torch.linalg.det(R[i])):.6g} (tolerance {ROTATION_TOL})"
+            )
+        bottom = vm64[:, 3, :] - vm64.new_tensor([0.0, 0.0, 0.0, 1.0])
+        bad = bottom.abs().amax(-1) > 1e-6
+        if bool(bad.any()):
+            i = int(bad.nonzero()[0])
+            raise ValueError(f"viewmats[{i}] bottom row must be [0, 0, 0, 1], got {vm64[i, 3].tolist()}")
+
+        K64 = K.detach().double()
+        bad = (K64[:, 0, 0] <= 0) | (K64[:, 1, 1] <= 0)
+        if bool(bad.any()):
+            i = int(bad.nonzero()[0])
+            raise ValueError(f"Ks[{i}] focal lengths must be > 0 pixels, got fx={float(K64[i, 0, 0])}, fy={float(K64[i, 1, 1])}")
+        structure = torch.stack([K64[:, 0, 1], K64[:, 1, 0], K64[:, 2, 0], K64[:, 2, 1], K64[:, 2, 2] - 1.0], -1)
+        bad = structure.abs().amax(-1) > 1e-6
+        if bool(bad.any()):
+            i = int(bad.nonzero()[0])
+            raise ValueError(f"Ks[{i}] must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], got {K64[i].tolist()}")
+
+        if bool(((times < 0) | (times > 1)).any()):
+            raise ValueError(f"times must lie in [0, 1], got min {float(times.min())}, max {float(times.max())}")
+        if T > 1 and bool((times[1:] < times[:-1]).any()):
+            i = int((times[1:] < times[:-1]).nonzero()[0]) + 1
+            raise ValueError(f"times must be non-decreasing, but times[{i}]={float(times[i])} < times[{i - 1}]={float(times[i - 1])}")
+
+    def camera_centers(self) -> Tensor:
+        """(T, 3) camera centres in world coordinates, metres: c = −Rᵀ t."""
+        return invert_rigid(self.viewmats)[:, :3, 3]
+
+    def relative_to_first(self) -> "CameraPath":
+        """The same path in the first camera's frame: V_i' = V_i · V_0⁻¹ (so V_0' = I exactly).
+
+        Relative poses between cameras (V_i V_j⁻¹) and the images they see are unchanged; only the
+        world frame moves. Intrinsics, size and times are copied.
+        """
+        rel = self.viewmats @ invert_rigid(self.viewmats[:1])
+        rel[0] = torch.eye(4, dtype=rel.dtype, device=rel.device)  # exact, not V_0·V_0⁻¹ ≈ I
+        return CameraPath(rel, self.Ks.clone(), self.width, self.height, self.times.clone())
+
+    def resized(self, width: int, height: int) -> "CameraPath":
+        """The path for images resized (stretched, not cropped) to ``width`` × ``height`` pixels.
+
+        Pixel coordinates scale continuously: fx, cx by width/W and fy, cy by height/H (the image
+        edge 0…W maps to 0…width, consistent with pixel centres at j+0.5). A change of aspect ratio
+        therefore gives non-square pixels (fx/fy changes).
+
+        Raises:
+            ValueError: ``width``/``height`` not a positive int.
+        """
+        for name, v in (("width", width), ("height", height)):
+            if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
+                raise ValueError(f"{name} must be a positive integer number of pixels, got {v!r}")
+        scale = self.Ks.new_tensor([width / self.width, height / self.height, 1.0])
+        Ks = self.Ks * scale[None, :, None]
+        return CameraPath(self.viewmats.clone(), Ks, width, height, self.times.clone())
+
+    def to(self, *args, **kwargs) -> "CameraPath":
+        """Move/cast the tensors (``Tensor.to`` arguments)."""
+        return CameraPath(
+            self.viewmats.to(*args, **kwargs), self.Ks.to(*args, **kwargs), self.width, self.height,
+            self.times.to(*args, **kwargs),
+        )
+
+
+def _shape(x: object) -> object:
+    return tuple(x.shape) if hasattr(x, "shape") else type(x).__name__

@@ -1,0 +1,172 @@
+"""Preset camera trajectories relative to the first camera (first viewmat = identity).
+
+All presets are expressed in the frame of the first camera (OpenCV: x right, y down, z forward),
+which is the world frame of the returned path. The scene is assumed to sit around the point
+c = (0, 0, scene_depth) straight ahead of the first camera. Frame i of T has the clip time
+t_i = i/(T−1) (T = 1 → t = 0, a single identity camera).
+
+Presets (eye = camera centre in world coordinates, d = scene_depth, a = amplitude):
+
+- ``orbit``: a full 360° horizontal circle of radius d around c, looking at c:
+  eye_i = c + d·(sin θ_i, 0, −cos θ_i) with θ_i = 2π·i/T, i.e. a seamless loop that starts by
+  moving to the camera's right; the last frame is one step (2π/T) before returning to the first.
+  ``amplitude`` does not apply (the radius is fixed by the first camera and c).
+- ``spiral``: an outward planar spiral of two turns in the first camera's image plane, looking at
+  c: eye(t) = a·d·t·(cos 4πt, sin 4πt, 0). Default a = 0.25 (final radius d/4).
+- ``forward`` / ``backward``: dolly along ±z, eye(t) = ±a·d·t·(0, 0, 1). Default a = 0.5.
+- ``up`` / ``down``: pedestal along ∓y (y points down), eye(t) = ∓a·d·t·(0, 1, 0). Default a = 0.25.
+- ``pan-left`` / ``pan-right``: truck along ∓x, eye(t) = ∓a·d·t·(1, 0, 0). Default a = 0.25.
+
+The translation presets keep the orientation of the first camera (R = I, looking along +z);
+``orbit`` and ``spiral`` use :func:`look_at` towards c with "up" = −y of the first camera.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from .path import CameraPath
+
+__all__ = ["TRAJECTORIES", "DEFAULT_AMPLITUDES", "look_at", "make_trajectory"]
+
+TRAJECTORIES: tuple[str, ...] = ("orbit", "spiral", "forward", "backward", "up", "down", "pan-left", "pan-right")
+"""Names accepted by :func:`make_trajectory`."""
+
+DEFAULT_AMPLITUDES: dict[str, float] = {
+    "spiral": 0.25,
+    "forward": 0.5,
+    "backward": 0.5,
+    "up": 0.25,
+    "down": 0.25,
+    "pan-left": 0.25,
+    "pan-right": 0.25,
+}
+"""Default ``amplitude`` per preset, in units of ``scene_depth`` (``orbit`` takes none)."""
+
+_DIRECTIONS = {
+    "forward": (0.0, 0.0, 1.0),
+    "backward": (0.0, 0.0, -1.0),
+    "up": (0.0, -1.0, 0.0),
+    "down": (0.0, 1.0, 0.0),
+    "pan-left": (-1.0, 0.0, 0.0),
+    "pan-right": (1.0, 0.0, 0.0),
+}
+
+
+def look_at(
+    eyes: Tensor,  # (T, 3) camera centres, world frame
+    targets: Tensor,  # (T, 3) or (3,) points to look at
+    up: tuple[float, float, float] | Tensor = (0.0, -1.0, 0.0),
+) -> Tensor:
+    """World-to-camera viewmats of cameras at ``eyes`` looking at ``targets`` (OpenCV frame).
+
+    The camera's +z axis points from eye to target, +x = normalize(down × z) with down = −up, and
+    +y = z × x points down in the image. With eye = 0, target on +z and the default up = (0, −1, 0)
+    (world y down, as in the OpenCV first-camera frame) the result is exactly the identity.
+    R has rows (x, y, z) and t = −R·eye.
+
+    Args:
+        eyes: (T, 3) camera centres, metres.
+        targets: (T, 3) or (3,) look-at points, metres.
+        up: (3,) world direction that appears up in the image.
+
+    Returns:
+        (T, 4, 4) world-to-camera rigid transforms in the dtype of ``eyes``.
+
+    Raises:
+        ValueError: naming ``eyes``/``targets`` when an eye coincides with its target, or ``up``
+            when the viewing direction is parallel to it.
+    """
+    if eyes.dim() != 2 or eyes.shape[-1] != 3:
+        raise ValueError(f"eyes must have shape (T, 3), got {tuple(eyes.shape)}")
+    targets = torch.as_tensor(targets, dtype=eyes.dtype, device=eyes.device).expand_as(eyes)
+    down = -torch.as_tensor(up, dtype=eyes.dtype, device=eyes.device).expand_as(eyes)
+    fwd = targets - eyes
+    n = fwd.norm(dim=-1, keepdim=True)
+    if bool((n < 1e-12).any()):
+        raise ValueError("eyes and targets must differ (the viewing direction is undefined)")
+    fwd = fwd / n
+    x = torch.linalg.cross(down, fwd, dim=-1)
+    nx = x.norm(dim=-1, keepdim=True)
+    if bool((nx < 1e-9 * down.norm(dim=-1, keepdim=True)).any()):
+        raise ValueError("up must not be parallel to the viewing direction")
+    x = x / nx
+    y = torch.linalg.cross(fwd, x, dim=-1)
+    R = torch.stack([x, y, fwd], dim=-2)  # rows = camera axes in world coordinates
+    out = torch.zeros(eyes.shape[0], 4, 4, dtype=eyes.dtype, device=eyes.device)
+    out[:, :3, :3] = R
+    out[:, :3, 3] = -torch.einsum("tij,tj->ti", R, eyes)
+    out[:, 3, 3] = 1.0
+    return out
+
+
+def make_trajectory(
+    name: str,
+    num_frames: int,
+    K: Tensor,  # (3, 3) pixels
+    width: int,
+    height: int,
+    scene_depth: float = 2.0,
+    amplitude: float | None = None,
+) -> CameraPath:
+    """A preset camera path of ``num_frames`` cameras sharing the intrinsics ``K``.
+
+    See the module docstring for each preset's exact motion and default amplitude.
+
+    Args:
+        name: one of :data:`TRAJECTORIES`.
+        num_frames: T ≥ 1.
+        K: (3, 3) intrinsics in pixels, used for every frame.
+        width: image width, pixels.
+        height: image height, pixels.
+        scene_depth: distance d (metres, > 0) from the first camera to the scene centre c.
+        amplitude: motion size in units of ``scene_depth`` (> 0); ``None`` → the preset default.
+            Not accepted for ``orbit``.
+
+    Returns:
+        :class:`CameraPath` with viewmats (T, 4, 4) (viewmats[0] = I exactly), Ks (T, 3, 3),
+        times t_i = i/(T−1); validated. Dtype: that of ``K`` if floating, else float32.
+
+    Raises:
+        ValueError: naming ``name`` (unknown preset), ``num_frames`` (< 1 or not an int),
+            ``scene_depth`` (≤ 0 or not finite), ``amplitude`` (≤ 0, not finite, or given for
+            ``orbit``), ``K`` (not (3, 3)), or a field of :meth:`CameraPath.validate`.
+    """
+    if name not in TRAJECTORIES:
+        raise ValueError(f"name must be one of {TRAJECTORIES}, got {name!r}")
+    if isinstance(num_frames, bool) or not isinstance(num_frames, int) or num_frames < 1:
+        raise ValueError(f"num_frames must be an integer ≥ 1, got {num_frames!r}")
+    if not isinstance(scene_depth, (int, float)) or not math.isfinite(scene_depth) or scene_depth <= 0:
+        raise ValueError(f"scene_depth must be a finite number > 0 metres, got {scene_depth!r}")
+    if name == "orbit" and amplitude is not None:
+        raise ValueError("amplitude does not apply to 'orbit' (its radius is scene_depth); pass None")
+    if amplitude is None:
+        amplitude = DEFAULT_AMPLITUDES.get(name, 0.0)
+    elif not isinstance(amplitude, (int, float)) or not math.isfinite(amplitude) or amplitude <= 0:
+        raise ValueError(f"amplitude must be a finite number > 0 (units of scene_depth), got {amplitude!r}")
+    K = torch.as_tensor(K)
+    if tuple(K.shape) != (3, 3):
+        raise ValueError(f"K must have shape (3, 3), got {tuple(K.shape)}")
+    dtype = K.dtype if K.is_floating_point() else torch.float32
+
+    T, d, a = num_frames, float(scene_depth), float(amplitude)
+    f64 = torch.float64
+    t = torch.arange(T, dtype=f64) / max(T - 1, 1)
+    target = torch.tensor([0.0, 0.0, d], dtype=f64)
+    if name == "orbit":
+        theta = 2.0 * math.pi * torch.arange(T, dtype=f64) / T
+        eyes = target + d * torch.stack([torch.sin(theta), torch.zeros_like(theta), -torch.cos(theta)], -1)
+        viewmats = look_at(eyes, target)
+    elif name == "spiral":
+        phi = 4.0 * math.pi * t
+        eyes = a * d * t[:, None] * torch.stack([torch.cos(phi), torch.sin(phi), torch.zeros_like(phi)], -1)
+        viewmats = look_at(eyes, target)
+    else:
+        eyes = a * d * t[:, None] * torch.tensor(_DIRECTIONS[name], dtype=f64)
+        viewmats = torch.eye(4, dtype=f64).repeat(T, 1, 1)
+        viewmats[:, :3, 3] = -eyes  # R = I → t = −eye
+    viewmats[0] = torch.eye(4, dtype=f64)  # exact identity (look_at gives it up to rounding)
+    Ks = K.to(dtype).expand(T, 3, 3).clone()
+    return CameraPath(viewmats.to(dtype), Ks, width, height, t.to(dtype))

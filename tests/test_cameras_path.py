@@ -1,0 +1,129 @@
+"""Tests for diff4splat.cameras.path.CameraPath: validation, relative poses, centres, resizing."""
+import math
+
+import pytest
+import torch
+
+from diff4splat.cameras import CameraPath
+from diff4splat.cameras import intrinsics_from_focal, invert_rigid, camera_rays
+from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
+
+
+def random_viewmats(T, seed=0, dtype=torch.float64):
+    g = torch.Generator().manual_seed(seed)
+    axis = torch.randn(T, 3, generator=g, dtype=dtype)
+    angle = torch.rand(T, generator=g, dtype=dtype) * math.pi
+    R = quat_to_rotmat(axis_angle_to_quat(axis, angle))
+    V = torch.eye(4, dtype=dtype).repeat(T, 1, 1)
+    V[:, :3, :3] = R
+    V[:, :3, 3] = torch.randn(T, 3, generator=g, dtype=dtype)
+    return V
+
+
+def make_path(T=4, dtype=torch.float64, **kw):
+    K = intrinsics_from_focal(50.0, 60.0, 32, 24, dtype=dtype).expand(T, 3, 3).clone()
+    return CameraPath(random_viewmats(T, dtype=dtype), K, 32, 24, **kw)
+
+
+def test_default_times_and_len():
+    p = make_path(5)
+    assert len(p) == 5
+    torch.testing.assert_close(p.times, torch.tensor([0.0, 0.25, 0.5, 0.75, 1.0], dtype=torch.float64))
+    assert make_path(1).times.tolist() == [0.0]
+
+
+def test_camera_centers_are_fixed_points_of_projection():
+    # The centre c satisfies R c + t = 0 and equals the ray origins of camera_rays.
+    p = make_path(3)
+    c = p.camera_centers()
+    V = p.viewmats
+    cam = torch.einsum("tij,tj->ti", V[:, :3, :3], c) + V[:, :3, 3]
+    torch.testing.assert_close(cam, torch.zeros_like(cam), atol=1e-12, rtol=0)
+    origins, _ = camera_rays(V, p.Ks, 2, 2)
+    torch.testing.assert_close(origins[:, 0, 0], c)
+    torch.testing.assert_close(invert_rigid(V), torch.linalg.inv(V))
+
+
+def test_relative_to_first_preserves_relative_poses():
+    p = make_path(4)
+    r = p.relative_to_first()
+    assert torch.equal(r.viewmats[0], torch.eye(4, dtype=torch.float64))
+    for i in range(4):
+        for j in range(4):
+            a = p.viewmats[i] @ torch.linalg.inv(p.viewmats[j])
+            b = r.viewmats[i] @ torch.linalg.inv(r.viewmats[j])
+            torch.testing.assert_close(a, b)
+    # A world point X maps to the same camera coordinates via V_i X and V_i' (V_0 X).
+    X = torch.tensor([0.3, -0.2, 2.0, 1.0], dtype=torch.float64)
+    torch.testing.assert_close(p.viewmats @ X, r.viewmats @ (p.viewmats[0] @ X))
+    torch.testing.assert_close(r.Ks, p.Ks)
+    torch.testing.assert_close(r.times, p.times)
+
+
+def test_resized_keeps_projection_in_normalised_coordinates():
+    p = make_path(2)
+    q = p.resized(64, 12)
+    assert (q.width, q.height) == (64, 12)
+    Xc = torch.tensor([0.1, -0.3, 1.7], dtype=torch.float64)
+    uv0 = (p.Ks[0] @ Xc)[:2] / Xc[2]
+    uv1 = (q.Ks[0] @ Xc)[:2] / Xc[2]
+    # Same point lands at the same fraction of the image width/height.
+    torch.testing.assert_close(uv1 / torch.tensor([64.0, 12.0], dtype=torch.float64), uv0 / torch.tensor([32.0, 24.0], dtype=torch.float64))
+    with pytest.raises(ValueError, match="height"):
+        p.resized(10, 0)
+
+
+def _bad(field_mutator, match):
+    p = make_path(3)
+    vm, K, times = p.viewmats.clone(), p.Ks.clone(), p.times.clone()
+    vm, K, times = field_mutator(vm, K, times)
+    with pytest.raises(ValueError, match=match):
+        CameraPath(vm, K, 32, 24, times)
+
+
+def _set(t, idx, value):
+    t[idx] = value
+    return t
+
+
+@pytest.mark.parametrize(
+    "mutator, match",
+    [
+        (lambda vm, K, t: (vm[:0], K[:0], t[:0]), "zero frames"),
+        (lambda vm, K, t: (_set(vm, (1, 0, 3), float("nan")), K, t), "viewmats"),
+        (lambda vm, K, t: (vm, _set(K, (2, 0, 2), float("inf")), t), "Ks"),
+        (lambda vm, K, t: (_set(vm, (1, slice(0, 3), 0), vm[1, :3, 0] * 1.01), K, t), r"viewmats\[1\] rotation"),
+        (lambda vm, K, t: (_set(vm, (2, slice(0, 3), 0), -vm[2, :3, 0]), K, t), r"viewmats\[2\] rotation"),
+        (lambda vm, K, t: (_set(vm, (0, 3, 1), 0.5), K, t), r"viewmats\[0\] bottom row"),
+        (lambda vm, K, t: (vm, _set(K, (1, 1, 1), 0.0), t), r"Ks\[1\] focal"),
+        (lambda vm, K, t: (vm, _set(K, (0, 0, 0), -3.0), t), r"Ks\[0\] focal"),
+        (lambda vm, K, t: (vm, _set(K, (0, 2, 0), 1.0), t), r"Ks\[0\] must be"),
+        (lambda vm, K, t: (vm, K, torch.tensor([0.0, 0.7, 0.6], dtype=torch.float64)), "non-decreasing"),
+        (lambda vm, K, t: (vm, K, torch.tensor([0.0, 0.5, 1.5], dtype=torch.float64)), r"times must lie in \[0, 1\]"),
+        (lambda vm, K, t: (vm, K, torch.tensor([-0.1, 0.5, 1.0], dtype=torch.float64)), r"times must lie in \[0, 1\]"),
+        (lambda vm, K, t: (vm, K, t[:2]), r"times must be a tensor of shape \(3,\)"),
+        (lambda vm, K, t: (vm, K[:2], t), r"Ks must be a tensor of shape \(3, 3, 3\)"),
+    ],
+)
+def test_validation_names_the_field(mutator, match):
+    _bad(mutator, match)
+
+
+def test_validate_size_fields_and_reflection():
+    p = make_path(2)
+    with pytest.raises(ValueError, match="width"):
+        CameraPath(p.viewmats, p.Ks, 0, 24)
+    with pytest.raises(ValueError, match="height"):
+        CameraPath(p.viewmats, p.Ks, 32, True)
+    # An orthonormal reflection (det = −1) passes RᵀR = I but is not a rotation.
+    vm = p.viewmats.clone()
+    vm[0, :3, :3] = torch.diag(torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64))
+    with pytest.raises(ValueError, match="det"):
+        CameraPath(vm, p.Ks, 32, 24)
+
+
+def test_float32_path_and_to():
+    p = make_path(3, dtype=torch.float32)
+    assert p.times.dtype == torch.float32
+    q = p.to(torch.float64)
+    assert q.viewmats.dtype == q.Ks.dtype == q.times.dtype == torch.float64
