@@ -1,0 +1,174 @@
+"""Tests of models/deformation.py: identity at init, time dependence, activations, reference forward."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from models.deformation import (
+    DeformationConfig,
+    DeformationNetwork,
+    deformation_activations,
+    soft_clamp,
+    time_embedding,
+    unit_quat_from_raw,
+)
+
+IDENTITY = torch.tensor([1.0, 0.0, 0.0, 0.0])
+
+
+def _net(seed: int = 0, perturb: bool = False, **kw) -> DeformationNetwork:
+    torch.manual_seed(seed)
+    net = DeformationNetwork(DeformationConfig(**kw))
+    if perturb:
+        with torch.no_grad():
+            net.out_conv.weight.normal_(0.0, 0.5)
+            net.out_conv.bias.normal_(0.0, 0.1)
+    return net
+
+
+def test_identity_at_init_exact():
+    net = _net()
+    feats = torch.randn(2, 64, 8, 8)
+    times = torch.linspace(0, 1, 5)
+    dm, dq, ds = net(feats, times, upsample=8)
+    assert dm.shape == (2, 5, 64, 64, 3) and dq.shape == (2, 5, 64, 64, 4) and ds.shape == (2, 5, 64, 64, 3)
+    assert torch.equal(dm, torch.zeros_like(dm))
+    assert torch.equal(dq, IDENTITY.expand_as(dq))
+    assert torch.equal(ds, torch.zeros_like(ds))
+
+
+def test_perturbed_deformation_nonzero_and_time_varying():
+    net = _net(perturb=True)
+    feats = torch.randn(1, 64, 8, 8)
+    dm, dq, ds = net(feats, torch.tensor([0.0, 0.5, 1.0]), upsample=8)
+    assert dm.abs().max() > 1e-3 and ds.abs().max() > 1e-3
+    assert (dq - IDENTITY).abs().max() > 1e-3
+    for field in (dm, dq, ds):
+        assert (field[:, 0] - field[:, 2]).abs().max() > 1e-4, "deformation must depend on time"
+        assert (field[:, 0] - field[:, 1]).abs().max() > 1e-4
+    torch.testing.assert_close(dq.norm(dim=-1), torch.ones(dq.shape[:-1]))
+    cfg = net.config
+    assert dm.abs().max() < cfg.max_offset and ds.abs().max() < cfg.max_log_scale
+    # deformation varies across pixels too (driven by the features, not only by time)
+    assert (dm[0, 0, 0, 0] - dm[0, 0, 40, 17]).abs().max() > 1e-5
+
+
+def _reference_forward(net: DeformationNetwork, feats, times, u):
+    """Brute force in the order the design states it: per time, FiLM each level at its own
+    resolution, upsample, sum; fuse; upsample to pixels; 1×1 conv; activations."""
+    cfg = net.config
+    B, _, h, w = feats.shape
+    levels = [F.gelu(net.in_conv(feats))]
+    for down in net.down:
+        levels.append(F.gelu(down(levels[-1])))
+    outs = []
+    for t in times:
+        film = net.time_mlp(time_embedding(t[None], cfg.time_frequencies))[0].reshape(cfg.levels, 2, cfg.hidden)
+        agg = 0
+        for lvl, f in enumerate(levels):
+            g, b = film[lvl, 0][None, :, None, None], film[lvl, 1][None, :, None, None]
+            agg = agg + F.interpolate(f * (1 + g) + b, size=(h, w), mode="bilinear", align_corners=False)
+        x = F.gelu(net.fuse(agg))
+        x = F.interpolate(x, scale_factor=u, mode="bilinear", align_corners=False)
+        outs.append(net.out_conv(x).permute(0, 2, 3, 1))  # (B, H, W, 10)
+    return deformation_activations(torch.stack(outs, 1), cfg.max_offset, cfg.max_log_scale)
+
+
+def test_matches_reference_forward():
+    net = _net(perturb=True, in_channels=16, hidden=8).double()
+    feats = torch.randn(2, 16, 6, 4, dtype=torch.float64)
+    times = torch.tensor([0.0, 0.3, 1.0], dtype=torch.float64)
+    got = net(feats, times, upsample=4)
+    ref = _reference_forward(net, feats, times, 4)
+    for g, r in zip(got, ref):
+        torch.testing.assert_close(g, r, atol=1e-10, rtol=1e-10)
+
+
+def test_single_level_and_odd_sizes():
+    net = _net(perturb=True, levels=1, in_channels=8, hidden=4)
+    dm, dq, ds = net(torch.randn(1, 8, 3, 5), torch.tensor([0.2]), upsample=2)
+    assert dm.shape == (1, 1, 6, 10, 3) and torch.isfinite(dq).all()
+
+
+def test_time_embedding_closed_form():
+    t = torch.tensor([0.0, 0.25, 1.0], dtype=torch.float64)
+    emb = time_embedding(t, 3)
+    assert emb.shape == (3, 6)
+    for i, tv in enumerate(t.tolist()):
+        expect = []
+        for k in range(3):
+            expect += [math.sin(2**k * math.pi * tv), math.cos(2**k * math.pi * tv)]
+        torch.testing.assert_close(emb[i], torch.tensor(expect, dtype=torch.float64))
+    assert (emb[0] - emb[2]).abs().max() > 1.0  # t = 0 and t = 1 are distinguishable
+
+
+def test_activations_zero_identity_and_extremes():
+    dm, dq, ds = deformation_activations(torch.zeros(7, 10), 2.0, 3.0)
+    assert torch.equal(dm, torch.zeros(7, 3)) and torch.equal(ds, torch.zeros(7, 3))
+    assert torch.equal(dq, IDENTITY.expand(7, 4))
+    raw = torch.tensor([[1e4] * 10, [-1e4] * 10, [1e4, -1e4] * 5])
+    dm, dq, ds = deformation_activations(raw, 2.0, 3.0)
+    for x in (dm, dq, ds):
+        assert torch.isfinite(x).all()
+    assert dm.abs().max() <= 2.0 and ds.abs().max() <= 3.0
+    torch.testing.assert_close(dq.norm(dim=-1), torch.ones(3))
+    # soft clamp: slope 1 at the origin, bound·tanh(x/bound) in general
+    x = torch.tensor([1e-4, 0.7, -5.0])
+    torch.testing.assert_close(soft_clamp(x, 2.0), 2.0 * torch.tanh(x / 2.0))
+    assert abs(float(soft_clamp(torch.tensor(1e-4), 2.0)) - 1e-4) < 1e-9
+
+
+def test_unit_quat_from_raw():
+    raw = torch.tensor([[0.0, 0.0, 0.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [1.0, 2.0, -2.0, 0.0], [-3.0, 0.0, 4.0, 0.0]])
+    q = unit_quat_from_raw(raw)
+    assert torch.equal(q[0], IDENTITY)
+    assert torch.equal(q[1], IDENTITY), "zero-norm sum falls back to the identity, not NaN"
+    torch.testing.assert_close(q[2], torch.tensor([2.0, 2.0, -2.0, 0.0]) / math.sqrt(12))
+    torch.testing.assert_close(q[3], torch.tensor([-2.0, 0.0, 4.0, 0.0]) / math.sqrt(20))
+
+
+def test_gradients_reach_every_parameter_after_perturbation():
+    net = _net()
+    feats = torch.randn(1, 64, 4, 4)
+    times = torch.tensor([0.1, 0.9])
+    w = [torch.randn(1, 2, 16, 16, c) for c in (3, 4, 3)]
+    # at init only the zero-initialised layer receives gradient (its input is non-zero)
+    loss = sum((o * wi).sum() for o, wi in zip(net(feats, times, 4), w))
+    loss.backward()
+    assert net.out_conv.weight.grad.abs().sum() > 0
+    net.zero_grad()
+    with torch.no_grad():
+        net.out_conv.weight.normal_(0.0, 0.5)
+    loss = sum((o * wi).sum() for o, wi in zip(net(feats, times, 4), w))
+    loss.backward()
+    for name, p in net.named_parameters():
+        assert p.grad is not None and p.grad.abs().sum() > 0, f"no gradient for {name}"
+
+
+def test_validation_errors():
+    net = _net(in_channels=8, hidden=4)
+    with pytest.raises(ValueError, match="features"):
+        net(torch.randn(1, 7, 4, 4), torch.tensor([0.5]), 2)
+    with pytest.raises(ValueError, match="features"):
+        net(torch.randn(8, 4, 4), torch.tensor([0.5]), 2)
+    with pytest.raises(ValueError, match="times"):
+        net(torch.randn(1, 8, 4, 4), torch.tensor([[0.5]]), 2)
+    with pytest.raises(ValueError, match="upsample"):
+        net(torch.randn(1, 8, 4, 4), torch.tensor([0.5]), 0)
+    with pytest.raises(ValueError, match="levels"):
+        DeformationConfig(levels=0)
+    with pytest.raises(ValueError, match="max_offset"):
+        DeformationConfig(max_offset=0.0)
+
+
+def test_save_load_round_trip(tmp_path):
+    net = _net(perturb=True, in_channels=8, hidden=4, levels=2)
+    feats, times = torch.randn(1, 8, 4, 4), torch.tensor([0.0, 1.0])
+    net.save_pretrained(tmp_path / "deform")
+    loaded = DeformationNetwork.from_pretrained(tmp_path / "deform")
+    assert loaded.config == net.config
+    for a, b in zip(net(feats, times, 2), loaded(feats, times, 2)):
+        assert torch.equal(a, b)
