@@ -1,0 +1,30 @@
+"""File IO: Gaussians (INRIA PLY), depth (EXR), video/images (OpenCV), camera paths (JSON, RealEstate10K).
+
+Every writer is atomic: it writes a temporary file beside the target and renames it
+(:func:`atomic_output_path`), so a crash never leaves a half-written output.
+"""
+from .cameras import load_cameras_json, load_realestate10k, save_cameras_json, save_realestate10k
+from .exr import load_depth_exr, save_depth_exr
+from .image import atomic_output_path, load_image, preprocess_image
+from .ply import OPACITY_EPS, load_ply, ply_property_names, save_ply
+from .video import load_video, save_image, save_video, to_uint8
+
+__all__ = [
+    "save_ply",
+    "load_ply",
+    "ply_property_names",
+    "OPACITY_EPS",
+    "save_depth_exr",
+    "load_depth_exr",
+    "save_video",
+    "load_video",
+    "save_image",
+    "to_uint8",
+    "load_image",
+    "preprocess_image",
+    "atomic_output_path",
+    "save_cameras_json",
+    "load_cameras_json",
+    "load_realestate10k",
+    "save_realestate10k",
+]

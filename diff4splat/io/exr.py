@@ -1,0 +1,96 @@
+"""Depth maps as OpenEXR files (float32 channel "Z", optional "A"), via the OpenEXR 3.x Python API."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+from torch import Tensor
+
+from .image import atomic_output_path
+
+__all__ = ["save_depth_exr", "load_depth_exr"]
+
+
+def _as_float32_map(name: str, x: Tensor | np.ndarray) -> np.ndarray:
+    if isinstance(x, Tensor):
+        x = x.detach().cpu().numpy()
+    x = np.asarray(x)
+    if x.ndim != 2 or x.shape[0] == 0 or x.shape[1] == 0:
+        raise ValueError(f"{name} must have shape (H, W) with H, W ≥ 1, got {x.shape}")
+    if not (np.issubdtype(x.dtype, np.floating) or np.issubdtype(x.dtype, np.integer)):
+        raise ValueError(f"{name} must be numeric, got dtype {x.dtype}")
+    return np.ascontiguousarray(x, dtype=np.float32)
+
+
+def save_depth_exr(
+    path: str | os.PathLike,
+    depth: Tensor | np.ndarray,  # (H, W) metres
+    alpha: Tensor | np.ndarray | None = None,  # (H, W) in [0, 1]
+) -> None:
+    """Write a depth map as a single-part scanline EXR (ZIP compression, lossless float32), atomically.
+
+    The depth goes to the standard depth channel "Z" (OpenEXR "Interpreting Deep Pixels"/technical
+    introduction: Z is distance along the camera's view axis); the optional coverage to "A".
+
+    Args:
+        path: output ``.exr`` file; written to a temporary ``.exr`` beside it, then renamed.
+        depth: (H, W) z-depth in metres, ≥ 0 or +inf (background); converted to float32.
+        alpha: (H, W) accumulated opacity in [0, 1], or ``None`` for no "A" channel.
+
+    Raises:
+        ValueError: naming ``depth`` (shape, NaN, negative values) or ``alpha`` (shape mismatch,
+            non-finite, outside [0, 1]).
+    """
+    z = _as_float32_map("depth", depth)
+    if np.isnan(z).any():
+        raise ValueError("depth contains NaN; set pixels without geometry to 0 or +inf")
+    if (z < 0).any():
+        raise ValueError(f"depth must be ≥ 0 metres, min is {float(z.min())}")
+    channels = {"Z": z}
+    if alpha is not None:
+        a = _as_float32_map("alpha", alpha)
+        if a.shape != z.shape:
+            raise ValueError(f"alpha must have the shape of depth {z.shape}, got {a.shape}")
+        if not np.isfinite(a).all() or (a < 0).any() or (a > 1).any():
+            raise ValueError("alpha must be finite and lie in [0, 1]")
+        channels["A"] = a
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with atomic_output_path(path) as tmp:
+        with OpenEXR.File(header, channels) as f:
+            f.write(tmp)
+
+
+def load_depth_exr(
+    path: str | os.PathLike, return_alpha: bool = False
+) -> np.ndarray | tuple[np.ndarray, np.ndarray | None]:
+    """Read a depth map written by :func:`save_depth_exr` (or any EXR with a "Z" channel).
+
+    Args:
+        path: EXR file.
+        return_alpha: also return the "A" channel (``None`` if the file has none).
+
+    Returns:
+        depth (H, W) float32 metres, or ``(depth, alpha)`` with alpha (H, W) float32 or ``None``
+        when ``return_alpha`` is true. Half-float channels are converted to float32.
+
+    Raises:
+        FileNotFoundError: ``path`` is not an existing file.
+        ValueError: the file is not a readable EXR or has no "Z" channel.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"EXR file not found: {path}")
+    try:
+        with OpenEXR.File(str(path), separate_channels=True) as f:
+            channels = {name: np.array(ch.pixels) for name, ch in f.channels().items()}
+    except Exception as e:  # OpenEXR raises RuntimeError/IOError subclasses for corrupt files
+        raise ValueError(f"could not read {path} as an OpenEXR file: {e}") from e
+    if "Z" not in channels:
+        raise ValueError(f"{path} has no depth channel 'Z' (channels: {sorted(channels)})")
+    depth = channels["Z"].astype(np.float32)
+    if not return_alpha:
+        return depth
+    alpha = channels["A"].astype(np.float32) if "A" in channels else None
+    return depth, alpha

@@ -1,0 +1,176 @@
+"""Gaussians as binary PLY in the INRIA 3DGS layout (Kerbl et al. 2023, ``GaussianModel.save_ply``).
+
+Vertex properties, all float32, binary little-endian, in this order::
+
+    x y z nx ny nz f_dc_0 f_dc_1 f_dc_2 f_rest_0 … f_rest_{3(K−1)−1}
+    opacity scale_0 scale_1 scale_2 rot_0 rot_1 rot_2 rot_3
+
+- f_dc_c = sh[:, 0, c]; f_rest is channel-major: the K−1 higher-order coefficients of R, then of G,
+  then of B, i.e. f_rest_{c·(K−1)+k−1} = sh[:, k, c] (INRIA stores features_rest transposed to
+  (N, 3, K−1) before flattening).
+- opacity = logit(clamp(o, 1e-6, 1 − 1e-6)) — opacities of exactly 0 or 1 are clamped first so the
+  logit stays finite; loading applies the sigmoid.
+- scale_i = log(s_i) (scales are stored in log space); loading applies exp.
+- rot = the quaternion wxyz as stored (unnormalised; normalised on use); normals are zero.
+
+Writing needs only numpy (structured arrays); the reader parses the header itself and accepts any
+binary little-endian PLY whose vertex element has scalar properties with these names (extra
+properties are ignored, f_rest_* are ordered by their index as INRIA's loader does).
+"""
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..gaussians import Gaussians
+from .image import atomic_output_path
+
+__all__ = ["save_ply", "load_ply", "ply_property_names", "OPACITY_EPS"]
+
+OPACITY_EPS = 1e-6
+"""Opacities are clamped to [OPACITY_EPS, 1 − OPACITY_EPS] before the logit."""
+
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+
+
+def ply_property_names(sh_coeffs: int) -> list[str]:
+    """INRIA vertex property names, in file order, for K = ``sh_coeffs`` SH coefficients per colour."""
+    names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+    names += [f"f_rest_{i}" for i in range(3 * (sh_coeffs - 1))]
+    names += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    return names
+
+
+def save_ply(path: str | os.PathLike, gaussians: Gaussians) -> None:
+    """Write Gaussians to a binary little-endian PLY in the INRIA layout (module docstring), atomically.
+
+    Args:
+        path: output file (``.ply``); written to a temporary file beside it, then renamed.
+        gaussians: N activated Gaussians (scales > 0 metres, opacities in [0, 1], SH (N, K, 3)).
+            Tensors are detached and moved to the CPU; values are stored as float32.
+
+    Raises:
+        ValueError: ``gaussians`` fails :meth:`Gaussians.validate`.
+    """
+    gaussians.validate()
+    g = gaussians.detach().to("cpu", torch.float64)
+    n, k = g.num_gaussians, g.sh.shape[1]
+    opac = g.opacities.clamp(OPACITY_EPS, 1.0 - OPACITY_EPS)
+    columns = [
+        g.means,
+        torch.zeros(n, 3, dtype=torch.float64),
+        g.sh[:, 0, :],
+        g.sh[:, 1:, :].transpose(1, 2).reshape(n, 3 * (k - 1)),  # channel-major rest coefficients
+        torch.log(opac / (1.0 - opac))[:, None],
+        torch.log(g.scales),
+        g.quats,
+    ]
+    values = torch.cat(columns, dim=1).numpy().astype("<f4")
+    names = ply_property_names(k)
+    vertices = np.empty(n, dtype=[(name, "<f4") for name in names])
+    for i, name in enumerate(names):
+        vertices[name] = values[:, i]
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
+    header += [f"property float {name}" for name in names]
+    header += ["end_header"]
+    with atomic_output_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(("\n".join(header) + "\n").encode("ascii"))
+            f.write(vertices.tobytes())
+
+
+def _read_header(f, path: Path) -> tuple[int, np.dtype]:
+    if f.readline().strip() != b"ply":
+        raise ValueError(f"{path} is not a PLY file (missing 'ply' magic)")
+    n_vertex, props, current, fmt = None, [], None, None
+    while True:
+        line = f.readline()
+        if not line:
+            raise ValueError(f"{path}: PLY header has no end_header")
+        words = line.decode("ascii", errors="replace").split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        if words[0] == "end_header":
+            break
+        if words[0] == "format":
+            fmt = words[1] if len(words) > 1 else None
+        elif words[0] == "element":
+            if len(words) != 3:
+                raise ValueError(f"{path}: malformed PLY element line {line!r}")
+            if n_vertex is not None:
+                raise ValueError(f"{path}: only a single 'vertex' element is supported, found {words[1]!r} after it")
+            if words[1] != "vertex":
+                raise ValueError(f"{path}: expected element 'vertex', found {words[1]!r}")
+            n_vertex, current = int(words[2]), words[1]
+        elif words[0] == "property":
+            if current != "vertex" or len(words) != 3 or words[1] not in _PLY_TYPES:
+                raise ValueError(f"{path}: unsupported PLY property line {line.decode(errors='replace')!r} (list properties are not supported)")
+            props.append((words[2], "<" + _PLY_TYPES[words[1]]))
+    if fmt != "binary_little_endian":
+        raise ValueError(f"{path}: only binary_little_endian PLY is supported, got format {fmt!r}")
+    if n_vertex is None:
+        raise ValueError(f"{path}: PLY has no vertex element")
+    return n_vertex, np.dtype(props)
+
+
+def load_ply(path: str | os.PathLike) -> Gaussians:
+    """Read Gaussians from a binary PLY in the INRIA layout (inverse of :func:`save_ply`).
+
+    Args:
+        path: PLY file with vertex properties x y z f_dc_0..2 [f_rest_*] opacity scale_0..2 rot_0..3
+            (any scalar type; others ignored).
+
+    Returns:
+        :class:`Gaussians` in float32: means (N, 3) metres, quats (N, 4) wxyz as stored,
+        scales = exp(scale_*) (N, 3), opacities = sigmoid(opacity) (N,), sh (N, K, 3) with
+        K = 1 + (number of f_rest_*)/3.
+
+    Raises:
+        FileNotFoundError: ``path`` is not an existing file.
+        ValueError: not a binary little-endian PLY, a required property missing, a number of
+            f_rest_* that is not 3·(K−1) for K ∈ {1, 4, 9, 16}, truncated data, or values failing
+            :meth:`Gaussians.validate`.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"PLY file not found: {path}")
+    with open(path, "rb") as f:
+        n, dtype = _read_header(f, path)
+        data = f.read(n * dtype.itemsize)
+    if len(data) < n * dtype.itemsize:
+        raise ValueError(f"{path}: truncated PLY, expected {n} vertices of {dtype.itemsize} bytes")
+    v = np.frombuffer(data, dtype=dtype, count=n)
+    names = set(dtype.names or ())
+    required = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]
+    required += [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)]
+    missing = [r for r in required if r not in names]
+    if missing:
+        raise ValueError(f"{path}: missing PLY vertex properties {missing}")
+    rest = sorted((p for p in names if p.startswith("f_rest_")), key=lambda p: int(p.split("_")[-1]))
+    k = 1 + len(rest) // 3
+    if len(rest) % 3 or math.isqrt(k) ** 2 != k or k > 16 or rest != [f"f_rest_{i}" for i in range(len(rest))]:
+        raise ValueError(f"{path}: {len(rest)} f_rest_* properties do not form 3·(K−1) with K a square ≤ 16")
+
+    def cols(keys: list[str]) -> torch.Tensor:
+        return torch.from_numpy(np.stack([v[key].astype(np.float64) for key in keys], axis=1)) if keys else torch.zeros(n, 0, dtype=torch.float64)
+
+    sh = torch.empty(n, k, 3, dtype=torch.float64)
+    sh[:, 0, :] = cols(["f_dc_0", "f_dc_1", "f_dc_2"])
+    sh[:, 1:, :] = cols(rest).reshape(n, 3, k - 1).transpose(1, 2)
+    g = Gaussians(
+        means=cols(["x", "y", "z"]),
+        quats=cols([f"rot_{i}" for i in range(4)]),
+        scales=torch.exp(cols([f"scale_{i}" for i in range(3)])),
+        opacities=torch.sigmoid(cols(["opacity"])[:, 0]),
+        sh=sh,
+    )
+    return g.to(torch.float32)

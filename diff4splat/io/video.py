@@ -1,0 +1,141 @@
+"""MP4 video and PNG image writing with OpenCV (atomic), and MP4 reading for tests and tools."""
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+from torch import Tensor
+
+from .image import atomic_output_path
+
+__all__ = ["save_video", "load_video", "save_image", "to_uint8"]
+
+
+def to_uint8(images: Tensor | np.ndarray, name: str = "images") -> np.ndarray:
+    """Convert images to uint8: uint8 passes through, floats in [0, 1] → round(255·clip(x, 0, 1)).
+
+    Float values outside [0, 1] are clipped (rendered SH colours can exceed 1); NaN/inf are errors.
+
+    Args:
+        images: any shape, uint8 or floating point (numpy array or tensor, any device).
+        name: argument name used in error messages.
+
+    Returns:
+        numpy uint8 array of the same shape.
+
+    Raises:
+        ValueError: naming ``name`` for other dtypes or non-finite values.
+    """
+    if isinstance(images, Tensor):
+        images = images.detach().cpu().numpy()
+    images = np.asarray(images)
+    if images.dtype == np.uint8:
+        return images
+    if not np.issubdtype(images.dtype, np.floating):
+        raise ValueError(f"{name} must be uint8 or floating point in [0, 1], got dtype {images.dtype}")
+    if not np.isfinite(images).all():
+        raise ValueError(f"{name} contains NaN or inf values")
+    return np.round(np.clip(images, 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def save_video(path: str | os.PathLike, frames: Tensor | np.ndarray, fps: float = 8) -> None:
+    """Write RGB frames to an MP4 file (MPEG-4 Part 2, OpenCV fourcc ``mp4v``), atomically.
+
+    The encoder is lossy (8-bit 4:2:0 chroma): expect a few grey levels of error on smooth content.
+    MPEG-4 Part 2 needs even frame sizes; odd sizes are rejected rather than silently cropped.
+
+    Args:
+        path: output file; must end in ``.mp4``. Written to a temporary ``.mp4`` beside it, then
+            renamed, so the final path never holds a half-written video.
+        frames: (T, H, W, 3) RGB, uint8 or float in [0, 1] (clipped, see :func:`to_uint8`), T ≥ 1,
+            H and W even.
+        fps: frames per second, > 0.
+
+    Raises:
+        ValueError: naming ``path`` (suffix), ``frames`` (shape, dtype, odd size, NaN) or ``fps``.
+        RuntimeError: OpenCV could not open the encoder.
+    """
+    path = Path(path)
+    if path.suffix.lower() != ".mp4":
+        raise ValueError(f"path must end in .mp4, got {str(path)!r}")
+    if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not math.isfinite(fps) or fps <= 0:
+        raise ValueError(f"fps must be a positive number, got {fps!r}")
+    video = to_uint8(frames, "frames")
+    if video.ndim != 4 or video.shape[-1] != 3 or video.shape[0] < 1:
+        raise ValueError(f"frames must have shape (T, H, W, 3) with T ≥ 1, got {video.shape}")
+    T, H, W, _ = video.shape
+    if H % 2 or W % 2 or H == 0 or W == 0:
+        raise ValueError(f"frames height and width must be positive and even for MP4, got {H}×{W}")
+    with atomic_output_path(path) as tmp:
+        writer = cv2.VideoWriter(tmp, cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (W, H))
+        if not writer.isOpened():
+            raise RuntimeError(f"OpenCV could not open an mp4v video writer for {path}")
+        try:
+            for frame in video:
+                writer.write(np.ascontiguousarray(frame[..., ::-1]))  # RGB → BGR
+        finally:
+            writer.release()
+
+
+def load_video(path: str | os.PathLike) -> np.ndarray:
+    """Decode every frame of a video file with OpenCV.
+
+    Args:
+        path: video file (any container/codec OpenCV's backend reads).
+
+    Returns:
+        (T, H, W, 3) uint8 RGB frames.
+
+    Raises:
+        FileNotFoundError: ``path`` is not an existing file.
+        ValueError: no frame could be decoded.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"video file not found: {path}")
+    cap = cv2.VideoCapture(str(path))
+    frames = []
+    try:
+        while True:
+            ok, frame = cap.read()
+            if not ok:
+                break
+            frames.append(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
+    finally:
+        cap.release()
+    if not frames:
+        raise ValueError(f"could not decode any frame from {path}")
+    return np.stack(frames)
+
+
+def save_image(path: str | os.PathLike, image: Tensor | np.ndarray) -> None:
+    """Write an 8-bit image (PNG, or any format OpenCV writes, chosen by the suffix), atomically.
+
+    Args:
+        path: output file, e.g. ``frame.png``; PNG is lossless.
+        image: (H, W, 3) RGB, (H, W, 4) RGBA or (H, W) grey; uint8 or float in [0, 1] (clipped).
+
+    Raises:
+        ValueError: naming ``path`` (suffix OpenCV cannot write) or ``image`` (shape, dtype, NaN).
+        OSError: OpenCV failed to write the file.
+    """
+    path = Path(path)
+    if not cv2.haveImageWriter(str(path)):
+        raise ValueError(f"path must have an image suffix OpenCV can write (e.g. .png), got {str(path)!r}")
+    img = to_uint8(image, "image")
+    if img.ndim == 3 and img.shape[-1] == 1:
+        img = img[..., 0]
+    if img.ndim == 3 and img.shape[-1] == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+    elif img.ndim == 3 and img.shape[-1] == 4:
+        img = cv2.cvtColor(img, cv2.COLOR_RGBA2BGRA)
+    elif img.ndim != 2:
+        raise ValueError(f"image must have shape (H, W), (H, W, 3) or (H, W, 4), got {img.shape}")
+    if img.shape[0] == 0 or img.shape[1] == 0:
+        raise ValueError(f"image is empty, shape {img.shape}")
+    with atomic_output_path(path) as tmp:
+        if not cv2.imwrite(tmp, np.ascontiguousarray(img)):
+            raise OSError(f"OpenCV failed to write {path}")
