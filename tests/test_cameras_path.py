@@ -4,8 +4,7 @@ import math
 import pytest
 import torch
 
-from diff4splat.cameras import CameraPath
-from diff4splat.cameras import intrinsics_from_focal, invert_rigid, camera_rays
+from diff4splat.cameras import CameraPath, camera_rays, intrinsics_from_focal, invert_rigid
 from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
 
 

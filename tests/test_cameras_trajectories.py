@@ -15,6 +15,7 @@ from diff4splat.cameras import (
 
 W, H = 64, 48
 K = intrinsics_from_fov(W, H, fov_x_deg=60.0, dtype=torch.float64)
+_MOVES = ("pan-left", "pan-right", "up", "down")
 
 
 def project(path: CameraPath, X: torch.Tensor) -> torch.Tensor:
@@ -107,9 +108,6 @@ def test_translation_image_motion_signs():
     r0 = (project(make_trajectory("forward", 3, K, W, H, scene_depth=d), off_axis)[0] - torch.tensor([W / 2, H / 2], dtype=torch.float64)).norm(dim=-1)
     r1 = (project(make_trajectory("backward", 3, K, W, H, scene_depth=d), off_axis)[0] - torch.tensor([W / 2, H / 2], dtype=torch.float64)).norm(dim=-1)
     assert r0[2] > r0[1] > r0[0] and r1[2] < r1[1] < r1[0]  # dolly in magnifies, dolly out shrinks
-
-
-_MOVES = ("pan-left", "pan-right", "up", "down")
 
 
 def test_look_at_identity_and_up_direction():
