@@ -1,0 +1,317 @@
+"""Tests of models/ldrm.py: shapes, activations, pixel-aligned Gaussians, validation, export."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from diff4splat.cameras import camera_rays, pack_plucker, plucker_rays
+from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
+from models.deformation import DeformationConfig
+from models.ldrm import LDRM, LDRMConfig, LDRMOutput, gaussian_activations, sincos_position_3d, to_gaussians
+from models.pretrained import count_parameters
+
+IDENTITY = torch.tensor([1.0, 0.0, 0.0, 0.0])
+H = W = 64
+T = 9  # → n = 3 latent frames
+
+
+def _cameras(T: int = T):
+    """A short orbit-like path: camera i rotated about y by 2° per frame and shifted along x."""
+    Ks = torch.tensor([[60.0, 0.0, 32.0], [0.0, 55.0, 30.0], [0.0, 0.0, 1.0]]).expand(T, 3, 3)
+    angles = torch.arange(T, dtype=torch.float32) * math.radians(2.0)
+    R = quat_to_rotmat(axis_angle_to_quat(torch.tensor([0.0, 1.0, 0.0]).expand(T, 3), angles))
+    viewmats = torch.eye(4).repeat(T, 1, 1)
+    viewmats[:, :3, :3] = R
+    viewmats[:, :3, 3] = torch.stack([-0.05 * torch.arange(T, dtype=torch.float32), torch.zeros(T), torch.zeros(T)], -1)
+    return viewmats, Ks
+
+
+def _inputs(seed: int = 0, channels: int = 4):
+    g = torch.Generator().manual_seed(seed)
+    viewmats, Ks = _cameras()
+    plucker = pack_plucker(plucker_rays(viewmats, Ks, W, H)[None])  # (1, 1536, 3, 8, 8)
+    latents = torch.randn(1, channels, 3, H // 8, W // 8, generator=g)
+    return latents, plucker
+
+
+def _model(seed: int = 0, **kw) -> LDRM:
+    torch.manual_seed(seed)
+    return LDRM(LDRMConfig(**kw))
+
+
+def test_shapes_finite_and_ranges():
+    model = _model()
+    latents, plucker = _inputs()
+    assert plucker.shape == (1, 1536, 3, 8, 8)
+    out = model(latents, plucker, torch.linspace(0, 1, T))
+    cfg = model.config
+    assert out.distance.shape == (1, H, W) and out.opacities.shape == (1, H, W)
+    assert out.scales.shape == (1, H, W, 3) and out.colors.shape == (1, H, W, 3) and out.quats.shape == (1, H, W, 4)
+    assert out.d_means.shape == (1, T, H, W, 3) and out.d_quats.shape == (1, T, H, W, 4)
+    assert out.d_scales.shape == (1, T, H, W, 3)
+    for name, value in vars(out).items():
+        assert torch.isfinite(value).all(), name
+    assert cfg.depth_min <= out.distance.min() and out.distance.max() <= cfg.depth_max
+    assert (out.scales > 0).all() and ((out.opacities >= 0) & (out.opacities <= 1)).all()
+    assert ((out.colors >= 0) & (out.colors <= 1)).all()
+    torch.testing.assert_close(out.quats.norm(dim=-1), torch.ones(1, H, W))
+    assert out.distance.std() > 0, "per-pixel maps must vary across pixels"
+
+
+def test_patch_size_two_and_batch():
+    model = _model(patch_size=2)
+    latents, plucker = _inputs()
+    out = model(latents.repeat(2, 1, 1, 1, 1), plucker.repeat(2, 1, 1, 1, 1), torch.tensor([0.0, 1.0]))
+    assert out.distance.shape == (2, H, W) and out.d_means.shape == (2, 2, H, W, 3)
+    torch.testing.assert_close(out.distance[0], out.distance[1])
+
+
+def test_identity_deformation_at_init_exact():
+    out = _model()(*_inputs(), torch.linspace(0, 1, T))
+    assert torch.equal(out.d_means, torch.zeros_like(out.d_means))
+    assert torch.equal(out.d_quats, IDENTITY.expand_as(out.d_quats))
+    assert torch.equal(out.d_scales, torch.zeros_like(out.d_scales))
+
+
+def test_perturbed_deformation_varies_with_time():
+    model = _model()
+    with torch.no_grad():
+        model.deformation.out_conv.weight.normal_(0.0, 0.5)
+    out = model(*_inputs(), torch.tensor([0.0, 0.5, 1.0]))
+    assert out.d_means.abs().max() > 1e-3
+    assert (out.d_means[:, 0] - out.d_means[:, 2]).abs().max() > 1e-4
+    assert (out.d_quats[:, 0] - out.d_quats[:, 1]).abs().max() > 1e-4
+    assert (out.d_scales[:, 1] - out.d_scales[:, 2]).abs().max() > 1e-4
+
+
+def test_static_scene_skips_deformation_network():
+    model = _model()
+    calls = []
+    model.deformation.register_forward_hook(lambda *args: calls.append(1))
+    out = model(*_inputs(), None)
+    assert calls == [] and out.d_means is None and out.d_quats is None and out.d_scales is None
+    model(*_inputs(), torch.tensor([0.5]))
+    assert calls == [1]
+
+
+def test_reference_frame_uses_other_frames():
+    """Frame-0 maps depend on later latent frames through attention over all tokens."""
+    model = _model()
+    latents, plucker = _inputs()
+    base = model(latents, plucker).distance
+    changed = latents.clone()
+    changed[:, :, 2] += 1.0
+    assert (model(changed, plucker).distance - base).abs().max() > 1e-5
+
+
+@pytest.mark.parametrize("patch", [1, 2])
+def test_head_reads_reference_frame_patch_locally(patch):
+    """With every block an identity (attention and MLP outputs zeroed), pixel (i, j) of frame 0 depends
+    only on the latent pixels of its own patch in latent frame 0: checks patchify order, the choice
+    of the reference frame and the transposed-convolution layout."""
+    model = _model(patch_size=patch)
+    with torch.no_grad():
+        for block in model.blocks:
+            for layer in (block.attn.proj, block.mlp[2]):
+                layer.weight.zero_()
+                layer.bias.zero_()
+    latents, plucker = _inputs()
+    base = model(latents, plucker).distance[0]
+    later = latents.clone()
+    later[:, :, 1:] += 1.0
+    torch.testing.assert_close(model(later, plucker).distance[0], base, atol=0, rtol=0)
+    r, c = 5, 2
+    poked = latents.clone()
+    poked[:, :, 0, r, c] += 1.0
+    diff = (model(poked, plucker).distance[0] - base).abs() > 0
+    size = 8 * patch
+    expect = torch.zeros(H, W, dtype=torch.bool)
+    r0, c0 = (r // patch) * size, (c // patch) * size
+    expect[r0:r0 + size, c0:c0 + size] = True
+    assert torch.equal(diff, expect)
+
+
+def test_activations_at_zero_give_defaults():
+    cfg = LDRMConfig()
+    d, s, q, o, c = gaussian_activations(torch.zeros(5, 12), cfg)
+    torch.testing.assert_close(d, torch.full((5,), cfg.default_depth))
+    torch.testing.assert_close(s, torch.full((5, 3), cfg.default_depth * cfg.scale_base))
+    assert torch.equal(q, IDENTITY.expand(5, 4))
+    assert torch.equal(o, torch.full((5,), 0.5)) and torch.equal(c, torch.full((5, 3), 0.5))
+
+
+def test_activations_extremes_and_monotone():
+    cfg = LDRMConfig()
+    raw = torch.cat([torch.full((1, 12), 1e4), torch.full((1, 12), -1e4),
+                     torch.tensor([[1e4, -1e4] * 6]), torch.tensor([[-1e4, 1e4] * 6])])
+    d, s, q, o, c = gaussian_activations(raw, cfg)
+    for x in (d, s, q, o, c):
+        assert torch.isfinite(x).all()
+    lo, hi = cfg.depth_min * (1 - 1e-5), cfg.depth_max * (1 + 1e-5)
+    assert ((d >= lo) & (d <= hi)).all()
+    torch.testing.assert_close(d[:2], torch.tensor([cfg.depth_max, cfg.depth_min]))
+    bound = math.exp(cfg.scale_log_range) * 1.0001
+    ratio = s / (d[:, None] * cfg.scale_base)
+    assert (s > 0).all() and (ratio <= bound).all() and (ratio >= 1 / bound).all()
+    torch.testing.assert_close(q.norm(dim=-1), torch.ones(4))
+    assert ((o >= 0) & (o <= 1)).all() and ((c >= 0) & (c <= 1)).all()
+    ramp = torch.zeros(50, 12)
+    ramp[:, 0] = torch.linspace(-8, 8, 50)
+    depth = gaussian_activations(ramp, cfg)[0]
+    assert (depth.diff() > 0).all(), "distance increases with its raw channel"
+
+
+def test_to_gaussians_pixel_aligned():
+    torch.manual_seed(1)
+    model = _model()
+    with torch.no_grad():
+        model.deformation.out_conv.weight.normal_(0.0, 0.3)
+    out = model(*_inputs(), torch.tensor([0.0, 0.4, 1.0]))
+    viewmats, Ks = _cameras()
+    viewmat, K = viewmats[4], Ks[0]  # a non-identity world-to-camera
+    g, dm, dq, ds = to_gaussians(out, viewmat, K)
+    g.validate()
+    M = H * W
+    assert g.num_gaussians == M and g.sh.shape == (M, 1, 3) and dm.shape == (3, M, 3) and dq.shape == (3, M, 4)
+    R, t = viewmat[:3, :3], viewmat[:3, 3]
+    centre = -R.T @ t
+    for i, j in [(0, 0), (5, 40), (63, 63), (31, 2)]:
+        idx = i * W + j
+        d_cam = torch.linalg.solve(K, torch.tensor([j + 0.5, i + 0.5, 1.0]))  # explicit K⁻¹ (u, v, 1)
+        d_world = R.T @ d_cam
+        expect = centre + out.distance[0, i, j] * d_world / d_world.norm()
+        torch.testing.assert_close(g.means[idx], expect, atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(dm[:, idx], out.d_means[0, :, i, j])
+        torch.testing.assert_close(g.quats[idx], out.quats[0, i, j])
+    # agrees with camera_rays for every pixel
+    o, d = camera_rays(viewmat[None], K[None], W, H)
+    torch.testing.assert_close(g.means, (o[0] + out.distance[0, ..., None] * d[0]).reshape(M, 3))
+    # projecting the means lands on the pixel centres; the ray distance is recovered
+    cam = g.means @ R.T + t
+    uv = (cam @ K.T)[:, :2] / cam[:, 2:3]
+    v, u = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    torch.testing.assert_close(uv, torch.stack([u, v], -1).reshape(M, 2), atol=2e-4, rtol=0)
+    torch.testing.assert_close(cam.norm(dim=-1), out.distance[0].reshape(M), atol=1e-5, rtol=1e-5)
+    # colours survive the SH-0 encoding (clamped to [1e-4, 1 − 1e-4])
+    from diff4splat.gaussians import sh0_to_rgb
+    torch.testing.assert_close(sh0_to_rgb(g.sh[:, 0]), out.colors[0].reshape(M, 3).clamp(1e-4, 1 - 1e-4))
+
+
+def test_to_gaussians_static_and_errors():
+    out = _model()(*_inputs())
+    g, dm, dq, ds = LDRM.to_gaussians(out, torch.eye(4), _cameras()[1][0])
+    assert dm is None and dq is None and ds is None and g.num_gaussians == H * W
+    with pytest.raises(ValueError, match="batch_index"):
+        to_gaussians(out, torch.eye(4), torch.eye(3), batch_index=1)
+    with pytest.raises(ValueError, match="viewmat"):
+        to_gaussians(out, torch.eye(3), torch.eye(3))
+    with pytest.raises(ValueError, match="K"):
+        to_gaussians(out, torch.eye(4), torch.eye(4))
+
+
+def test_validation_errors():
+    model = _model()
+    latents, plucker = _inputs()
+    with pytest.raises(ValueError, match="latents"):
+        model(latents[0], plucker)
+    with pytest.raises(ValueError, match="latents"):
+        model(torch.randn(1, 5, 3, 8, 8), plucker)
+    with pytest.raises(ValueError, match="plucker"):
+        model(latents, plucker[:, :, :2])  # fewer frames → mismatched token counts
+    with pytest.raises(ValueError, match="plucker"):
+        model(latents, plucker[:, :, :, :4])
+    with pytest.raises(ValueError, match="plucker"):
+        model(latents, plucker[:, :768])
+    with pytest.raises(ValueError, match="times"):
+        model(latents, plucker, torch.tensor([0.0, 1.5]))
+    with pytest.raises(ValueError, match="times"):
+        model(latents, plucker, torch.tensor([-0.1]))
+    with pytest.raises(ValueError, match="times"):
+        model(latents, plucker, torch.tensor([[0.5]]))
+    with pytest.raises(ValueError, match="patch_size"):
+        _model(patch_size=3)(latents, plucker)
+    with pytest.raises(ValueError, match="in_channels"):
+        LDRMConfig(embed_dim=32)  # deformation.in_channels stays 64
+    with pytest.raises(ValueError, match="default_depth"):
+        LDRMConfig(default_depth=200.0)
+
+
+def test_position_embedding_unique_and_closed_form():
+    pe = sincos_position_3d(3, 4, 5, 64)
+    assert pe.shape == (60, 64)
+    assert torch.cdist(pe, pe).add(torch.eye(60) * 10).min() > 1e-3, "every token position is distinct"
+    # token (frame 2, row 1, col 3): first frame channel is sin(2·ω₀) = sin(2); d_t = 24, d_s = 20
+    idx = 2 * 20 + 1 * 5 + 3
+    assert math.isclose(float(pe[idx, 0]), math.sin(2.0), rel_tol=1e-6)
+    assert math.isclose(float(pe[idx, 24]), math.sin(1.0), rel_tol=1e-6)
+    assert math.isclose(float(pe[idx, 44]), math.sin(3.0), rel_tol=1e-6)
+    assert math.isclose(float(pe[idx, 44 + 10]), math.cos(3.0), rel_tol=1e-6)
+
+
+def test_gradients_reach_every_parameter():
+    model = _model()
+    with torch.no_grad():
+        model.deformation.out_conv.weight.normal_(0.0, 0.3)
+    latents, plucker = _inputs()
+    latents = latents[..., :4, :4]
+    plucker = plucker[..., :4, :4]
+    out = model(latents, plucker, torch.tensor([0.2, 0.8]))
+    g = torch.Generator().manual_seed(3)
+    loss = sum((v * torch.randn(v.shape, generator=g)).sum() for v in vars(out).values())
+    loss.backward()
+    for name, p in model.named_parameters():
+        assert p.grad is not None and p.grad.abs().sum() > 0, f"no gradient for {name}"
+
+
+def test_save_load_round_trip(tmp_path):
+    model = _model(patch_size=2, deformation=DeformationConfig(hidden=8, levels=2))
+    with torch.no_grad():
+        model.deformation.out_conv.weight.normal_(0.0, 0.3)
+    inputs = (*_inputs(), torch.tensor([0.0, 1.0]))
+    model.save_pretrained(tmp_path / "ldrm")
+    loaded = LDRM.from_pretrained(tmp_path / "ldrm")
+    assert loaded.config == model.config and isinstance(loaded.config.deformation, DeformationConfig)
+    a, b = model(*inputs), loaded(*inputs)
+    for name in vars(a):
+        assert torch.equal(getattr(a, name), getattr(b, name)), name
+
+
+def test_paper_config_on_meta():
+    cfg = LDRMConfig.paper()
+    with torch.device("meta"):
+        model = LDRM(cfg)
+    n = count_parameters(model)
+    tiny = count_parameters(LDRM(LDRMConfig()))
+    D = cfg.embed_dim
+    per_block = 2 * 2 * D + (3 * D * D + 3 * D) + (D * D + D) + (4 * D * D + 4 * D) + (4 * D * D + D)
+    assert count_parameters(model.blocks) == cfg.depth * per_block
+    assert cfg.depth == 16 and cfg.embed_dim == 64 and cfg.latent_channels == 16
+    assert count_parameters(model.embed) == (16 + 1536) * 4 * D + D
+    print(f"LDRM parameters: paper {n:,} (meta), tiny {tiny:,}")
+    assert tiny < 400_000 < n
+
+
+def test_onnx_export_matches_eager(tmp_path):
+    ort = pytest.importorskip("onnxruntime")
+    torch.manual_seed(0)
+    model = _model().eval()
+    with torch.no_grad():
+        model.deformation.out_conv.weight.normal_(0.0, 0.3)
+    latents, plucker = _inputs()
+    latents, plucker = latents[..., :4, :4], plucker[..., :4, :4]
+    times = torch.tensor([0.0, 0.5, 1.0])
+    path = tmp_path / "ldrm.onnx"
+    torch.onnx.export(model, (latents, plucker, times), str(path), dynamo=True, opset_version=18, verbose=False)
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    feeds = {i.name: x.numpy() for i, x in zip(session.get_inputs(), (latents, plucker, times))}
+    got = session.run(None, feeds)
+    with torch.no_grad():
+        ref = model(latents, plucker, times)
+    names = ["distance", "scales", "quats", "opacities", "colors", "d_means", "d_quats", "d_scales"]
+    assert len(got) == len(names)
+    for name, value in zip(names, got):
+        np.testing.assert_allclose(value, getattr(ref, name).numpy(), atol=1e-4, rtol=1e-4, err_msg=name)
+    assert isinstance(ref, LDRMOutput)
