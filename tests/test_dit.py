@@ -1,0 +1,312 @@
+"""VideoDiT (models/dit.py) and the shared blocks it is built from (models/layers.py)."""
+import math
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from models.dit import VideoDiT, VideoDiTConfig
+from models.layers import CrossAttention, SelfAttention, modulate, patchify, timestep_embedding, unpatchify
+from models.pretrained import count_parameters
+from models.rope import apply_rope, rope_3d
+
+CFG = VideoDiTConfig()
+B, C, N, H, W = 2, CFG.latent_channels, 2, 4, 6
+
+
+def _inputs(seed=0, batch=B, n=N, text_len=5):
+    g = torch.Generator().manual_seed(seed)
+    return dict(
+        x=torch.randn(batch, C, n, H, W, generator=g),
+        sigma=torch.rand(batch, generator=g),
+        image_latent=torch.randn(batch, C, 1, H, W, generator=g),
+        plucker=torch.randn(batch, CFG.camera_channels, n, H, W, generator=g),
+        text=torch.randn(batch, text_len, CFG.text_dim, generator=g),
+    )
+
+
+def _perturb(model, seed=1, skip=(), scale=0.2):
+    """Add noise to every parameter whose name does not start with a prefix in ``skip``."""
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for name, p in model.named_parameters():
+            if not name.startswith(tuple(skip)):
+                p.add_(scale * torch.randn(p.shape, generator=g))
+    return model
+
+
+def _model(seed=0, **perturb):
+    torch.manual_seed(seed)
+    return _perturb(VideoDiT(VideoDiTConfig()), **perturb).eval()
+
+
+# ---------------------------------------------------------------------------------------------- layers
+
+def test_timestep_embedding_closed_form():
+    t = torch.tensor([0.0, 3.0, 500.0])
+    emb = timestep_embedding(t, 6, max_period=100.0)
+    freqs = [100.0 ** (-i / 3) for i in range(3)]
+    expected = [[math.cos(tt * f) for f in freqs] + [math.sin(tt * f) for f in freqs] for tt in t.tolist()]
+    torch.testing.assert_close(emb, torch.tensor(expected), rtol=0, atol=1e-5)
+    assert timestep_embedding(t, 7).shape == (3, 7)
+    with pytest.raises(ValueError, match="t must"):
+        timestep_embedding(t[:, None], 8)
+
+
+def test_modulate_is_per_sample_affine():
+    x = torch.randn(2, 3, 4)
+    shift, scale = torch.randn(2, 4), torch.randn(2, 4)
+    out = modulate(x, shift, scale)
+    torch.testing.assert_close(out[1, 2], x[1, 2] * (1 + scale[1]) + shift[1])
+
+
+def test_patchify_linear_equals_conv3d_and_unpatchify_inverts():
+    x = torch.randn(2, 3, 4, 6, 8)
+    patch = (2, 2, 2)
+    conv = torch.nn.Conv3d(3, 5, kernel_size=patch, stride=patch)
+    tokens = patchify(x, patch)  # (2, 2·3·4, 3·8)
+    assert tokens.shape == (2, 24, 24)
+    via_linear = F.linear(tokens, conv.weight.reshape(5, -1), conv.bias)
+    via_conv = conv(x).flatten(2).transpose(1, 2)  # frame-major token order
+    torch.testing.assert_close(via_linear, via_conv, rtol=1e-5, atol=1e-5)
+    assert torch.equal(unpatchify(tokens, patch, (2, 3, 4), 3), x)
+    with pytest.raises(ValueError, match="divisible"):
+        patchify(x[..., :7], patch)
+    with pytest.raises(ValueError, match="tokens"):
+        unpatchify(tokens, patch, (2, 3, 3), 3)
+
+
+def _reference_attention(q, k, v, keep=None):
+    logits = q @ k.transpose(-1, -2) / math.sqrt(q.shape[-1])
+    if keep is not None:
+        logits = logits.masked_fill(~keep[:, None, None, :], float("-inf"))
+    return torch.softmax(logits, dim=-1) @ v
+
+
+def test_self_attention_matches_reference_with_rope():
+    torch.manual_seed(0)
+    attn = SelfAttention(16, 2, qk_norm=True).double()
+    x = torch.randn(2, 12, 16, dtype=torch.float64)
+    rope = rope_3d(2, 2, 3, 8, dtype=torch.float64)
+    q, k, v = attn.qkv(x).reshape(2, 12, 3, 2, 8).permute(2, 0, 3, 1, 4)
+    rms = lambda t, w: t / t.pow(2).mean(-1, keepdim=True).add(1e-6).sqrt() * w  # noqa: E731
+    q, k = apply_rope(rms(q, attn.q_norm.weight), *rope), apply_rope(rms(k, attn.k_norm.weight), *rope)
+    ref = attn.proj(_reference_attention(q, k, v).transpose(1, 2).reshape(2, 12, 16))
+    torch.testing.assert_close(attn(x, rope), ref, rtol=1e-10, atol=1e-10)
+
+
+def test_cross_attention_mask_matches_reference_and_empty_rows_are_zero():
+    torch.manual_seed(0)
+    attn = CrossAttention(16, 8, 4, qk_norm=False).double()
+    x = torch.randn(3, 5, 16, dtype=torch.float64)
+    ctx = torch.randn(3, 4, 8, dtype=torch.float64)
+    keep = torch.tensor([[True, True, False, False], [True, True, True, True], [False] * 4])
+    out = attn(x, ctx, keep)
+    q = attn.q(x).reshape(3, 5, 4, 4).transpose(1, 2)
+    k, v = attn.kv(ctx).reshape(3, 4, 2, 4, 4).permute(2, 0, 3, 1, 4)
+    ref = attn.proj(_reference_attention(q[:2], k[:2], v[:2], keep[:2]).transpose(1, 2).reshape(2, 5, 16))
+    torch.testing.assert_close(out[:2], ref, rtol=1e-10, atol=1e-10)
+    assert torch.equal(out[2], torch.zeros_like(out[2]))  # nothing to attend to: zero, not NaN
+    with pytest.raises(ValueError, match="context_mask"):
+        attn(x, ctx, keep.float())
+
+
+# ---------------------------------------------------------------------------------------------- VideoDiT
+
+def test_config_validation_and_paper_fields():
+    with pytest.raises(ValueError, match="num_heads"):
+        VideoDiTConfig(hidden_size=30, num_heads=4)
+    with pytest.raises(ValueError, match="head_dim"):
+        VideoDiTConfig(hidden_size=8, num_heads=2)  # head_dim 4 < 6
+    with pytest.raises(ValueError, match="patch_size"):
+        VideoDiTConfig(patch_size=(1, 2))
+    p = VideoDiTConfig.paper()
+    assert (p.depth, p.hidden_size, p.num_heads, p.latent_channels, p.text_dim, p.patch_size) == \
+        (32, 4096, 32, 16, 4096, (1, 2, 2))
+    assert p.camera_channels == 6 * 4 * 8 * 8
+
+
+def _expected_parameter_count(cfg: VideoDiTConfig) -> int:
+    """Closed-form count of the architecture described in models/dit.py."""
+    D, c, hd, M = cfg.hidden_size, cfg.latent_channels, cfg.head_dim, int(cfg.hidden_size * cfg.mlp_ratio)
+    P = math.prod(cfg.patch_size)
+    lin = lambda i, o: i * o + o  # noqa: E731
+    embed = lin((2 * c + 1) * P, D) + lin(cfg.camera_channels * P, D) \
+        + lin(cfg.frequency_embedding_size, D) + lin(D, D) + lin(cfg.text_dim, D) + lin(D, D)
+    qk = 2 * hd if cfg.qk_norm else 0
+    block = (lin(D, 3 * D) + lin(D, D) + qk) + 2 * D + (lin(D, D) + lin(D, 2 * D) + lin(D, D) + qk) \
+        + lin(D, M) + lin(M, D) + lin(D, 6 * D)
+    final = lin(D, 2 * D) + lin(D, P * c)
+    return embed + cfg.depth * block + final
+
+
+def test_parameter_counts_tiny_and_paper_on_meta():
+    tiny = VideoDiT(VideoDiTConfig())
+    n_tiny = count_parameters(tiny)
+    assert n_tiny == _expected_parameter_count(VideoDiTConfig())
+    assert n_tiny < 400_000
+    with torch.device("meta"):
+        paper = VideoDiT(VideoDiTConfig.paper())
+    n_paper = count_parameters(paper)
+    print(f"VideoDiT parameters: tiny {n_tiny:,}, paper {n_paper:,}")
+    assert n_paper == _expected_parameter_count(VideoDiTConfig.paper())
+    assert all(p.device.type == "meta" for p in paper.parameters())
+
+
+def test_shapes_and_finite_outputs():
+    model = _model()
+    inp = _inputs()
+    text_mask = torch.tensor([[True] * 5, [True, True, False, False, False]])
+    for kwargs in (dict(inp, text_mask=text_mask), dict(inp, text=None), dict(inp, plucker=None, text=None)):
+        v = model(**kwargs)
+        assert v.shape == (B, C, N, H, W) and v.dtype == torch.float32
+        assert torch.isfinite(v).all()
+    v3 = model(**_inputs(n=3, batch=1))
+    assert v3.shape == (1, C, 3, H, W)
+
+
+def test_zero_init_outputs_exactly_zero():
+    torch.manual_seed(0)
+    model = VideoDiT(VideoDiTConfig())
+    v = model(**_inputs(), text_mask=torch.ones(B, 5, dtype=torch.bool))
+    assert torch.equal(v, torch.zeros_like(v))
+
+
+def test_blocks_are_identity_at_init():
+    torch.manual_seed(0)
+    model = VideoDiT(VideoDiTConfig())
+    # Only the final layer is made non-trivial: the output then equals FinalLayer(patch tokens),
+    # which holds only if every block (gated self-attn, zero-proj cross-attn, gated MLP) is the identity.
+    _perturb(model, skip=[n for n, _ in model.named_parameters() if not n.startswith("final_layer")])
+    inp = _inputs()
+    tokens = {}
+    model.blocks[0].register_forward_pre_hook(lambda m, args: tokens.update(x=args[0]))
+    v = model(**inp)
+    emb = model.t_embedder(inp["sigma"] * 1000.0)
+    ref = unpatchify(model.final_layer(tokens["x"], emb), CFG.patch_size, (N, H // 2, W // 2), C)
+    assert torch.equal(v, ref)
+
+
+def test_conditioning_channels_layout():
+    model = _model()
+    inp = _inputs()
+    seen = {}
+    model.x_embedder.register_forward_pre_hook(lambda m, args: seen.update(tokens=args[0]))
+    model(**inp)
+    grid = (N, H // 2, W // 2)
+    video = unpatchify(seen["tokens"], CFG.patch_size, grid, 2 * C + 1)  # (B, 2c+1, n, h, w)
+    assert torch.equal(video[:, :C], inp["x"])
+    assert torch.equal(video[:, C:2 * C, :1], inp["image_latent"])
+    assert torch.equal(video[:, C:2 * C, 1:], torch.zeros_like(video[:, C:2 * C, 1:]))
+    assert torch.equal(video[:, 2 * C, 0], torch.ones(B, H, W))
+    assert torch.equal(video[:, 2 * C, 1:], torch.zeros(B, N - 1, H, W))
+
+
+def test_zero_camera_projection_makes_plucker_irrelevant():
+    model = _model(skip=["camera_embedder"])  # everything non-trivial except the camera branch
+    inp = _inputs()
+    v = model(**inp)
+    other = model(**dict(inp, plucker=100.0 * torch.randn_like(inp["plucker"])))
+    none = model(**dict(inp, plucker=None))
+    assert torch.equal(v, other) and torch.equal(v, none)
+    _perturb(model.camera_embedder, seed=5)  # a trained camera branch does use the rays
+    assert not torch.allclose(model(**inp), v, atol=1e-4)
+
+
+def test_text_cross_attention_and_padding_mask():
+    model = _model()
+    inp = _inputs(text_len=4)
+    v_text = model(**inp)
+    v_none = model(**dict(inp, text=None))
+    v_other = model(**dict(inp, text=torch.randn_like(inp["text"])))
+    assert not torch.allclose(v_text, v_none, atol=1e-4)
+    assert not torch.allclose(v_text, v_other, atol=1e-4)
+
+    # Pad the 4 real tokens with 3 junk tokens: masked, they change nothing; unmasked, they do.
+    pad_a = torch.cat([inp["text"], torch.randn(B, 3, CFG.text_dim)], dim=1)
+    pad_b = torch.cat([inp["text"], 50.0 * torch.randn(B, 3, CFG.text_dim)], dim=1)
+    mask = torch.tensor([[True] * 4 + [False] * 3] * B)
+    v_a = model(**dict(inp, text=pad_a), text_mask=mask)
+    v_b = model(**dict(inp, text=pad_b), text_mask=mask)
+    torch.testing.assert_close(v_a, v_b, rtol=0, atol=1e-6)
+    torch.testing.assert_close(v_a, v_text, rtol=0, atol=1e-5)
+    assert not torch.allclose(model(**dict(inp, text=pad_a)), v_text, atol=1e-4)
+
+    # A sample whose tokens are all padding gets no text, the other sample is unaffected.
+    empty = torch.tensor([[False] * 4, [True] * 4])
+    v_empty = model(**inp, text_mask=empty)
+    torch.testing.assert_close(v_empty[0], v_none[0], rtol=0, atol=1e-6)
+    torch.testing.assert_close(v_empty[1], v_text[1], rtol=0, atol=1e-6)
+
+
+def test_sigma_conditions_the_output():
+    model = _model()
+    inp = _inputs()
+    assert not torch.allclose(model(**inp), model(**dict(inp, sigma=1.0 - inp["sigma"])), atol=1e-4)
+
+
+def test_gradients_reach_every_parameter_after_unzeroing():
+    model = _model().train()
+    inp = _inputs()
+    loss = model(**inp, text_mask=torch.tensor([[True] * 5, [True] * 3 + [False] * 2])).pow(2).mean()
+    loss.backward()
+    for name, p in model.named_parameters():
+        assert p.grad is not None and torch.isfinite(p.grad).all(), name
+        assert p.grad.abs().sum() > 0, f"no gradient reaches {name}"
+
+
+def test_save_and_from_pretrained_round_trip(tmp_path):
+    torch.manual_seed(0)
+    cfg = VideoDiTConfig(depth=1, patch_size=(1, 2, 2), mlp_ratio=2.0)
+    model = _perturb(VideoDiT(cfg)).eval()
+    inp = _inputs()
+    model.save_pretrained(tmp_path / "dit")
+    loaded = VideoDiT.from_pretrained(tmp_path / "dit").eval()
+    assert loaded.config == cfg and isinstance(loaded.config.patch_size, tuple)
+    assert torch.equal(loaded(**inp), model(**inp))
+
+
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        (dict(x=torch.randn(B, C, N, H, W - 1)), "x: latent size"),
+        (dict(x=torch.randn(B, C + 1, N, H, W)), "x must"),
+        (dict(sigma=torch.rand(B, 1)), "sigma must have shape"),
+        (dict(sigma=torch.tensor([0.5, 1.5])), r"sigma must lie in \[0, 1\]"),
+        (dict(sigma=torch.tensor([0.5, float("nan")])), r"sigma must lie in \[0, 1\]"),
+        (dict(image_latent=torch.randn(B, C, 2, H, W)), "image_latent"),
+        (dict(plucker=torch.randn(B, 6, N, H, W)), "plucker"),
+        (dict(plucker=torch.randn(B, CFG.camera_channels, N + 1, H, W)), "plucker"),
+        (dict(text=torch.randn(B, 5, CFG.text_dim + 1)), "text must"),
+        (dict(text_mask=torch.ones(B, 4, dtype=torch.bool)), "text_mask"),
+        (dict(text_mask=torch.ones(B, 5)), "text_mask"),
+        (dict(text=None, text_mask=torch.ones(B, 5, dtype=torch.bool)), "text_mask was given without text"),
+    ],
+)
+def test_bad_inputs_raise_value_error(change, match):
+    model = _model()
+    kwargs = dict(_inputs(), text_mask=None)
+    kwargs.update(change)
+    with pytest.raises(ValueError, match=match):
+        model(**kwargs)
+
+
+def test_onnx_export_matches_pytorch(tmp_path):
+    ort = pytest.importorskip("onnxruntime")
+    model = _model()
+    inp = _inputs(batch=1)
+    args = (inp["x"], inp["sigma"], inp["image_latent"], inp["plucker"], inp["text"],
+            torch.tensor([[True, True, True, False, False]]))
+    with torch.no_grad():
+        expected = model(*args).numpy()
+    path = tmp_path / "dit.onnx"
+    program = torch.onnx.export(model, args, dynamo=True, opset_version=18, verbose=False)
+    program.save(str(path))
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    names = [i.name for i in session.get_inputs()]
+    assert names == ["x", "sigma", "image_latent", "plucker", "text", "text_mask"]
+    (out,) = session.run(None, {name: a.numpy() for name, a in zip(names, args)})
+    assert out.shape == expected.shape
+    assert np.abs(out - expected).max() <= 1e-4
+    assert np.abs(expected).max() > 1e-2  # a non-trivial output was compared
