@@ -1,4 +1,4 @@
-"""Camera-controlled video diffusion transformer (the generator of Diff4Splat, Pan et al. 2025 §3.1).
+"""Camera-controlled video diffusion transformer (the video generator of Diff4Splat, Pan et al. 2025).
 
 A DiT (Peebles & Xie 2023) over video latents, conditioned on
   * the flow-matching noise level σ — adaLN-Zero modulation of every block (DiT §3.2);
@@ -6,7 +6,7 @@ A DiT (Peebles & Xie 2023) over video latents, conditioned on
     Wan 2.1 I2V / Stable Video Diffusion);
   * the camera path — packed Plücker rays (CameraCtrl, He et al. 2024) patchified like the latents
     and added to the patch tokens through a zero-initialised projection;
-  * text — cross-attention to projected text-encoder tokens in every block (PixArt-α §2.3).
+  * text — cross-attention to projected text-encoder tokens in every block (PixArt-α, Chen et al. 2024).
 Self-attention runs over all video tokens with 3D RoPE (``models.rope``) and QK-norm.
 
 The network predicts the flow-matching velocity v = ε − x0 for x_σ = (1 − σ)·x0 + σ·ε
@@ -85,7 +85,7 @@ class VideoDiTConfig:
 
     @classmethod
     def paper(cls) -> "VideoDiTConfig":
-        """Paper size (Diff4Splat §4 implementation details): 32 blocks, hidden 4096, 32 heads
+        """Paper size, as fixed in DESIGN.md for Diff4Splat: 32 blocks, hidden 4096, 32 heads
         (head_dim 128, RoPE split 44/42/42), 16 latent channels, patch 1×2×2, T5-XXL text (4096).
         Only instantiate on ``torch.device("meta")`` on a CPU machine."""
         return cls(latent_channels=16, hidden_size=4096, depth=32, num_heads=32, mlp_ratio=4.0,
@@ -96,7 +96,7 @@ class VideoDiTBlock(nn.Module):
     """Transformer block: adaLN-Zero self-attention, pre-norm text cross-attention, adaLN-Zero MLP.
 
     x ← x + g₁ · SelfAttn(modulate(LN(x), β₁, γ₁))          (DiT §3.2, 3D RoPE)
-    x ← x + CrossAttn(LN'(x), text)                          (PixArt-α §2.3; skipped without text)
+    x ← x + CrossAttn(LN'(x), text)                          (PixArt-α; skipped without text)
     x ← x + g₂ · MLP(modulate(LN(x), β₂, γ₂))
     with (β₁, γ₁, g₁, β₂, γ₂, g₂) = Linear(SiLU(c)) from the σ embedding c.
     """
@@ -143,7 +143,7 @@ class FinalLayer(nn.Module):
 
 
 class VideoDiT(nn.Module, PretrainedMixin):
-    """Camera- and text-conditioned image-to-video flow-matching DiT (Diff4Splat §3.1).
+    """Camera- and text-conditioned image-to-video flow-matching DiT (Diff4Splat's generator).
 
     Build with a :class:`VideoDiTConfig`; ``save_pretrained`` / ``from_pretrained`` from
     :class:`models.pretrained.PretrainedMixin`.

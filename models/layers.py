@@ -160,8 +160,8 @@ class SelfAttention(nn.Module):
     """Multi-head self-attention with optional QK-norm and rotary positions.
 
     QK-norm: RMSNorm over each head's query and key channels before the dot product, which
-    bounds attention logits and stabilises large-scale training (Dehghani et al. 2023, ViT-22B
-    §3.1; SD3 §5.3.3). RoPE (if given) is applied after the norm, as in Wan / SD3.
+    bounds attention logits and stabilises large-scale training (Dehghani et al. 2023, ViT-22B;
+    Esser et al. 2024, SD3). RoPE (if given) is applied after the norm, as in Wan / SD3.
     """
 
     def __init__(self, dim: int, num_heads: int, qk_norm: bool = True, eps: float = 1e-6):
@@ -193,7 +193,7 @@ class SelfAttention(nn.Module):
 class CrossAttention(nn.Module):
     """Multi-head cross-attention from tokens to a context sequence, with a key padding mask.
 
-    Queries come from ``x``; keys/values from ``context`` (e.g. text tokens, PixArt-α §2.3).
+    Queries come from ``x``; keys/values from ``context`` (e.g. text tokens, as in PixArt-α).
     QK-norm as in :class:`SelfAttention`; no positional rotation.
     """
 
