@@ -4,13 +4,13 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import shutil
-import tempfile
 from pathlib import Path
 from typing import Any, ClassVar, TypeVar
 
 import torch
 from safetensors.torch import load_file, save_file
+
+from diff4splat.io.atomic import atomic_output_dir
 
 T = TypeVar("T", bound="PretrainedMixin")
 
@@ -61,30 +61,18 @@ class PretrainedMixin:
     def save_pretrained(self, directory: str | os.PathLike) -> Path:
         """Write ``model.safetensors`` and ``config.json`` into ``directory`` atomically.
 
-        Files are written into a temporary sibling folder that is renamed over ``directory``,
-        so a killed save never leaves a half-written model.
+        Files are written into a temporary sibling folder that is renamed over ``directory``
+        (:func:`diff4splat.io.atomic_output_dir`), so a killed save never leaves a half-written model.
 
         Returns:
             The directory path.
         """
         directory = Path(directory)
-        directory.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{directory.name}.", dir=directory.parent))
-        try:
+        with atomic_output_dir(directory) as tmp:
             state = {k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}
             save_file(state, str(tmp / WEIGHTS_NAME), metadata={"class": type(self).__name__})
             cfg = dataclasses.asdict(self.config)
             (tmp / CONFIG_NAME).write_text(json.dumps({"class": type(self).__name__, **cfg}, indent=2))
-            if directory.exists():
-                old = directory.with_name(f".{directory.name}.old")
-                shutil.rmtree(old, ignore_errors=True)
-                directory.rename(old)
-                tmp.rename(directory)
-                shutil.rmtree(old, ignore_errors=True)
-            else:
-                tmp.rename(directory)
-        finally:
-            shutil.rmtree(tmp, ignore_errors=True)
         return directory
 
     @classmethod

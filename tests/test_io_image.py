@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from diff4splat.io import atomic_output_path, load_image, preprocess_image
+from diff4splat.io import load_image, preprocess_image
 
 CHELSEA = Path(__file__).resolve().parents[1] / "examples" / "chelsea.png"
 
@@ -153,18 +153,3 @@ def test_load_errors(tmp_path):
         load_image(tmp_path / "empty.png")
     with pytest.raises(ValueError, match="size"):
         load_image(CHELSEA, size=(64, -1))
-
-
-def test_atomic_output_path(tmp_path):
-    target = tmp_path / "deep" / "x.txt"
-    with atomic_output_path(target) as tmp:
-        assert tmp.endswith(".txt") and Path(tmp).parent == target.parent
-        Path(tmp).write_text("new")
-        assert not target.exists()  # nothing visible until the block succeeds
-    assert target.read_text() == "new"
-    with pytest.raises(RuntimeError):
-        with atomic_output_path(target) as tmp:
-            Path(tmp).write_text("half")
-            raise RuntimeError("crash")
-    assert target.read_text() == "new"
-    assert [p.name for p in target.parent.iterdir()] == ["x.txt"]

@@ -5,7 +5,8 @@ Every writer is atomic: it writes a temporary file beside the target and renames
 """
 from .cameras import load_cameras_json, load_realestate10k, save_cameras_json, save_realestate10k
 from .exr import load_depth_exr, save_depth_exr
-from .image import atomic_output_path, load_image, preprocess_image
+from .atomic import atomic_output_dir, atomic_output_path
+from .image import load_image, preprocess_image
 from .ply import OPACITY_EPS, load_ply, ply_property_names, save_ply
 from .video import load_video, save_image, save_video, to_uint8
 
@@ -23,6 +24,7 @@ __all__ = [
     "load_image",
     "preprocess_image",
     "atomic_output_path",
+    "atomic_output_dir",
     "save_cameras_json",
     "load_cameras_json",
     "load_realestate10k",

@@ -28,7 +28,7 @@ from pathlib import Path
 import torch
 
 from ..cameras.path import CameraPath
-from .image import atomic_output_path
+from .atomic import atomic_output_path
 
 __all__ = ["save_cameras_json", "load_cameras_json", "load_realestate10k", "save_realestate10k"]
 

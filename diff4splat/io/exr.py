@@ -8,7 +8,7 @@ import numpy as np
 import OpenEXR
 from torch import Tensor
 
-from .image import atomic_output_path
+from .atomic import atomic_output_path
 
 __all__ = ["save_depth_exr", "load_depth_exr"]
 

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from ..gaussians import Gaussians
-from .image import atomic_output_path
+from .atomic import atomic_output_path
 
 __all__ = ["save_ply", "load_ply", "ply_property_names", "OPACITY_EPS"]
 

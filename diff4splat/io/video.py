@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 from torch import Tensor
 
-from .image import atomic_output_path
+from .atomic import atomic_output_path
 
 __all__ = ["save_video", "load_video", "save_image", "to_uint8"]
 
