@@ -106,8 +106,9 @@ class LDRMConfig:
     def paper(cls) -> "LDRMConfig":
         """Paper-size LDRM (DESIGN.md: 16 blocks, 64-dim tokens; 16 latent channels; 2×2 patches).
 
-        Heads (4 × 16 dims), patch size 2 and the deformation width 64 are our choices.
-        Only instantiated on ``torch.device("meta")`` in tests.
+        Heads (4 × 16 dims), patch size 2, the deformation width 64 and ``scale_base`` = 2e-3
+        (≈ 1/focal for a ~500 px focal length at the paper's 480×720-class resolution) are our
+        choices, not published numbers. Only instantiated on ``torch.device("meta")`` in tests.
         """
         return cls(latent_channels=16, patch_size=2, embed_dim=64, depth=16, num_heads=4,
                    scale_base=2e-3, deformation=DeformationConfig(in_channels=64, hidden=64))
@@ -123,7 +124,7 @@ class LDRMOutput:
         quats: (B, H, W, 4) unit wxyz, world frame.
         opacities: (B, H, W) in [0, 1] (open interval except where sigmoid saturates in float).
         colors: (B, H, W, 3) RGB in [0, 1].
-        d_means: (B, K, H, W, 3) metres, or None (static: no times asked for).
+        d_means: (B, K, H, W, 3) metres, world frame, or None (static: no times asked for).
         d_quats: (B, K, H, W, 4) unit wxyz (identity (1,0,0,0)), or None.
         d_scales: (B, K, H, W, 3) log-scale offsets (s_t = s·exp(Δs)), or None.
     """
