@@ -1,0 +1,423 @@
+"""Causal 3D-convolution video VAE (4× temporal, 8×8 spatial compression, first frame on its own).
+
+A simplified CogVideoX / Wan-style video VAE (Yang et al. 2024, "CogVideoX", §2.1; Wan Team 2025,
+"Wan: Open and Advanced Large-Scale Video Generative Models", §3.1):
+
+- **Causal in time.** Every convolution pads only with *past* frames, replicating the first frame
+  (:class:`CausalConv3d`), and normalisation is per frame (:class:`FrameGroupNorm`; a GroupNorm
+  over the whole clip would leak future statistics into the past — Wan uses a per-frame norm for
+  the same reason). Hence latent i depends only on frames ≤ 4i and decoded frame t only on latents
+  ≤ ⌈t/4⌉, and the first frame is encoded exactly like a still image.
+- **First frame alone.** A temporal downsample is a causal stride-2 convolution: with two replicated
+  copies of frame 0 in front, T = 1 + 2j frames give 1 + j outputs, output 0 seeing only frame 0.
+  Two of them map T = 1 + 4k frames to n = 1 + k latents; the decoder mirrors this with temporal
+  "pixel shuffle" upsampling (latent 0 → 1 frame, every later latent → 2 frames, twice).
+- **8×8 spatial** by three stride-2 convolutions; latent channels 4 (tiny) or 16 (paper).
+- **Diagonal Gaussian posterior** q(z|x) = N(mean, exp(logvar)), logvar clamped to [−30, 20]
+  (Kingma & Welling 2014; the clamp follows the Stable Diffusion VAE).
+
+Simplifications against the published VAEs: no attention in the middle block, no feature cache
+(the whole clip is encoded at once), no tiling. Tensors are channel-first ``(B, C, T, H, W)``,
+pixels in [−1, 1]; latents ``(B, c, n, H/8, W/8)``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from models.pretrained import PretrainedMixin
+
+__all__ = ["VideoVAEConfig", "PAPER_VIDEO_VAE", "VideoVAE", "CausalConv3d", "FrameGroupNorm", "ResBlock3d",
+           "kl_divergence", "sample_posterior", "estimate_latent_scaling", "LOGVAR_RANGE"]
+
+LOGVAR_RANGE = (-30.0, 20.0)
+"""Clamp of the posterior log-variance (Stable Diffusion ``DiagonalGaussianDistribution``)."""
+
+
+@dataclass
+class VideoVAEConfig:
+    """Video VAE hyper-parameters; defaults are the tiny CPU model (≈ 0.1 M parameters).
+
+    Attributes:
+        in_channels: pixel channels (3, RGB in [−1, 1]).
+        latent_channels: c, channels of the latent video.
+        base_channels: width of the first level.
+        channel_mults: width multiplier per level; ``len − 1`` stride-2 spatial downsamples
+            (4 levels → 8×8).
+        temporal_downsample: one flag per downsample, True = also halve time (first frame alone);
+            two True → 4× temporal compression. The decoder mirrors it.
+        num_res_blocks: residual blocks per encoder level (the decoder has one more, as in SD/Wan).
+        norm_groups: GroupNorm groups; must divide every level width.
+        scaling_factor: a in z_dit = a·(z − b), applied by :meth:`VideoVAE.encode_latents` so the DiT
+            sees roughly unit-variance latents; set after VAE training with :func:`estimate_latent_scaling`.
+        shift_factor: b in the same formula (latent mean).
+    """
+
+    in_channels: int = 3
+    latent_channels: int = 4
+    base_channels: int = 8
+    channel_mults: tuple[int, ...] = (1, 2, 2, 2)
+    temporal_downsample: tuple[bool, ...] = (False, True, True)
+    num_res_blocks: int = 1
+    norm_groups: int = 4
+    scaling_factor: float = 1.0
+    shift_factor: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.channel_mults = tuple(self.channel_mults)
+        self.temporal_downsample = tuple(bool(t) for t in self.temporal_downsample)
+        for name in ("in_channels", "latent_channels", "base_channels", "num_res_blocks", "norm_groups"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"VideoVAEConfig.{name} must be a positive int, got {value!r}")
+        if len(self.channel_mults) < 1 or any(int(m) < 1 for m in self.channel_mults):
+            raise ValueError(f"VideoVAEConfig.channel_mults must be positive ints, got {self.channel_mults}")
+        if len(self.temporal_downsample) != len(self.channel_mults) - 1:
+            raise ValueError(f"VideoVAEConfig.temporal_downsample needs {len(self.channel_mults) - 1} flags "
+                             f"(one per downsample), got {self.temporal_downsample}")
+        for width in self.widths:
+            if width % self.norm_groups:
+                raise ValueError(f"VideoVAEConfig.norm_groups={self.norm_groups} must divide every level "
+                                 f"width, got widths {self.widths}")
+        if not self.scaling_factor > 0:
+            raise ValueError(f"VideoVAEConfig.scaling_factor must be > 0, got {self.scaling_factor}")
+
+    @property
+    def widths(self) -> tuple[int, ...]:
+        """Channel width of each level."""
+        return tuple(self.base_channels * int(m) for m in self.channel_mults)
+
+    @property
+    def spatial_factor(self) -> int:
+        """Spatial compression per axis (8 for 4 levels)."""
+        return 2 ** (len(self.channel_mults) - 1)
+
+    @property
+    def temporal_factor(self) -> int:
+        """Temporal compression of frames after the first (4 for two temporal downsamples)."""
+        return 2 ** sum(self.temporal_downsample)
+
+    def num_latent_frames(self, num_frames: int) -> int:
+        """n = 1 + (T − 1)/temporal_factor. Raises ValueError unless T = 1 + temporal_factor·k, k ≥ 0."""
+        if num_frames < 1 or (num_frames - 1) % self.temporal_factor:
+            raise ValueError(f"video: T={num_frames} frames; T must be 1 + {self.temporal_factor}·k "
+                             f"(1, {1 + self.temporal_factor}, {1 + 2 * self.temporal_factor}, …)")
+        return 1 + (num_frames - 1) // self.temporal_factor
+
+    def num_frames(self, num_latent_frames: int) -> int:
+        """T = 1 + temporal_factor·(n − 1), the decoded length of n ≥ 1 latent frames."""
+        return 1 + self.temporal_factor * (num_latent_frames - 1)
+
+    @classmethod
+    def paper(cls) -> "VideoVAEConfig":
+        """Paper-scale configuration (:data:`PAPER_VIDEO_VAE`)."""
+        return cls(**PAPER_VIDEO_VAE)
+
+
+PAPER_VIDEO_VAE: dict = dict(in_channels=3, latent_channels=16, base_channels=96, channel_mults=(1, 2, 4, 4),
+                             temporal_downsample=(False, True, True), num_res_blocks=2, norm_groups=32,
+                             scaling_factor=1.0, shift_factor=0.0)
+"""Paper-scale VAE: 4×8×8 compression with 16 latent channels; widths and depth of the Wan 2.1 VAE
+(dim 96, mults 1-2-4-4, 2 residual blocks, temporal downsampling in the last two stages). The scale
+and shift stay 1/0 until estimated from data with :func:`estimate_latent_scaling`."""
+
+
+class CausalConv3d(nn.Module):
+    """3D convolution that pads time only on the past side, replicating the first frame.
+
+    With temporal kernel k_t the input gets k_t − 1 copies of frame 0 in front, so output frame i
+    sees input frames ≤ i·s_t (s_t = temporal stride) and frame 0 is processed like a still image
+    repeated. Height/width use symmetric zero padding k//2. (B, C_in, T, H, W) →
+    (B, C_out, ⌊(T − 1)/s_t⌋ + 1, ⌊(H − 1)/s_h⌋ + 1, ⌊(W − 1)/s_w⌋ + 1) for odd spatial kernels.
+    """
+
+    def __init__(self, in_channels: int, out_channels: int, kernel_size: tuple[int, int, int] = (3, 3, 3),
+                 stride: tuple[int, int, int] = (1, 1, 1)):
+        super().__init__()
+        kt, kh, kw = kernel_size
+        self.time_pad = kt - 1
+        self.conv = nn.Conv3d(in_channels, out_channels, kernel_size, stride=stride, padding=(0, kh // 2, kw // 2))
+
+    def forward(self, x: Tensor) -> Tensor:
+        if self.time_pad:
+            x = torch.cat([x[:, :, :1].expand(-1, -1, self.time_pad, -1, -1), x], dim=2)
+        return self.conv(x)
+
+
+class FrameGroupNorm(nn.GroupNorm):
+    """GroupNorm with statistics per frame (over channels-in-group × H × W), so it stays causal in time.
+
+    (B, C, T, H, W) → (B, C, T, H, W); equals ``nn.GroupNorm`` applied to each frame separately.
+    """
+
+    def forward(self, x: Tensor) -> Tensor:
+        b, c, t, h, w = x.shape
+        y = super().forward(x.transpose(1, 2).reshape(b * t, c, h, w))
+        return y.reshape(b, t, c, h, w).transpose(1, 2)
+
+
+class ResBlock3d(nn.Module):
+    """x + conv(SiLU(norm(conv(SiLU(norm(x)))))) with causal 3×3×3 convolutions (1×1×1 skip if widths differ).
+
+    The second convolution is zero-initialised, so every block starts as its skip path: the
+    initial network is the short chain of resampling convolutions, activations do not grow with
+    depth, and each block learns a residual correction (Goyal et al. 2017 §5.1; DiT zero-inits its
+    residual branches for the same reason).
+    """
+
+    def __init__(self, in_channels: int, out_channels: int, groups: int):
+        super().__init__()
+        self.norm1 = FrameGroupNorm(groups, in_channels)
+        self.conv1 = CausalConv3d(in_channels, out_channels)
+        self.norm2 = FrameGroupNorm(groups, out_channels)
+        self.conv2 = CausalConv3d(out_channels, out_channels)
+        nn.init.zeros_(self.conv2.conv.weight)
+        nn.init.zeros_(self.conv2.conv.bias)
+        self.skip = nn.Conv3d(in_channels, out_channels, 1) if in_channels != out_channels else nn.Identity()
+
+    def forward(self, x: Tensor) -> Tensor:
+        h = self.conv1(F.silu(self.norm1(x)))
+        return self.skip(x) + self.conv2(F.silu(self.norm2(h)))
+
+
+class Downsample(nn.Module):
+    """Causal 3×3×3 convolution with stride (2 if temporal else 1, 2, 2): T=1+2j → 1+j, H,W → H/2, W/2."""
+
+    def __init__(self, channels: int, temporal: bool):
+        super().__init__()
+        self.conv = CausalConv3d(channels, channels, stride=(2 if temporal else 1, 2, 2))
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.conv(x)
+
+
+class Upsample(nn.Module):
+    """Nearest 2× in H, W, then a causal conv; temporal: T=n → 1 + 2(n − 1) by time pixel-shuffle.
+
+    With ``temporal`` the conv outputs 2C channels: frame 0 keeps the first C (the first frame stays
+    alone), every later frame i becomes frames 2i − 1 (first C) and 2i (last C).
+    """
+
+    def __init__(self, channels: int, temporal: bool):
+        super().__init__()
+        self.temporal = temporal
+        self.conv = CausalConv3d(channels, channels * (2 if temporal else 1))
+
+    def forward(self, x: Tensor) -> Tensor:
+        x = F.interpolate(x, scale_factor=(1.0, 2.0, 2.0), mode="nearest")
+        y = self.conv(x)
+        if not self.temporal:
+            return y
+        b, c2, n, h, w = y.shape
+        c = c2 // 2
+        rest = y[:, :, 1:].reshape(b, 2, c, n - 1, h, w).permute(0, 2, 3, 1, 4, 5).reshape(b, c, 2 * (n - 1), h, w)
+        return torch.cat([y[:, :c, :1], rest], dim=2)
+
+
+class Encoder(nn.Module):
+    """(B, 3, T, H, W) → (B, 2c, n, H/8, W/8): mean and logvar stacked on channels."""
+
+    def __init__(self, config: VideoVAEConfig):
+        super().__init__()
+        widths, g = config.widths, config.norm_groups
+        self.conv_in = CausalConv3d(config.in_channels, widths[0])
+        layers: list[nn.Module] = []
+        cin = widths[0]
+        for i, width in enumerate(widths):
+            for _ in range(config.num_res_blocks):
+                layers.append(ResBlock3d(cin, width, g))
+                cin = width
+            if i < len(widths) - 1:
+                layers.append(Downsample(width, config.temporal_downsample[i]))
+        layers += [ResBlock3d(cin, cin, g), ResBlock3d(cin, cin, g)]
+        self.layers = nn.Sequential(*layers)
+        self.norm_out = FrameGroupNorm(g, cin)
+        self.conv_out = CausalConv3d(cin, 2 * config.latent_channels)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.conv_out(F.silu(self.norm_out(self.layers(self.conv_in(x)))))
+
+
+class Decoder(nn.Module):
+    """(B, c, n, h, w) → (B, 3, 1 + 4(n − 1), 8h, 8w), mirror of :class:`Encoder`."""
+
+    def __init__(self, config: VideoVAEConfig):
+        super().__init__()
+        widths, g = config.widths, config.norm_groups
+        cin = widths[-1]
+        self.conv_in = CausalConv3d(config.latent_channels, cin)
+        layers: list[nn.Module] = [ResBlock3d(cin, cin, g), ResBlock3d(cin, cin, g)]
+        for i in reversed(range(len(widths))):
+            for _ in range(config.num_res_blocks + 1):
+                layers.append(ResBlock3d(cin, widths[i], g))
+                cin = widths[i]
+            if i > 0:
+                layers.append(Upsample(cin, config.temporal_downsample[i - 1]))
+        self.layers = nn.Sequential(*layers)
+        self.norm_out = FrameGroupNorm(g, cin)
+        self.conv_out = CausalConv3d(cin, config.in_channels)
+
+    def forward(self, z: Tensor) -> Tensor:
+        return self.conv_out(F.silu(self.norm_out(self.layers(self.conv_in(z)))))
+
+
+def sample_posterior(mean: Tensor, logvar: Tensor, generator: torch.Generator | None = None) -> Tensor:
+    """Reparameterised draw z = mean + exp(logvar/2)·ε, ε ~ N(0, I) (Kingma & Welling 2014, Eq. 10).
+
+    Args:
+        mean, logvar: (B, c, n, h, w) posterior parameters (same shape).
+        generator: optional generator for ε (on the tensors' device).
+
+    Returns:
+        (B, c, n, h, w) latent sample; differentiable in mean and logvar.
+
+    Raises:
+        ValueError: shape mismatch.
+    """
+    if mean.shape != logvar.shape:
+        raise ValueError(f"logvar shape {tuple(logvar.shape)} must equal mean shape {tuple(mean.shape)}")
+    eps = torch.randn(mean.shape, generator=generator, device=mean.device, dtype=mean.dtype)
+    return mean + torch.exp(0.5 * logvar) * eps
+
+
+def kl_divergence(mean: Tensor, logvar: Tensor) -> Tensor:
+    """KL(N(mean, exp(logvar)) ‖ N(0, I)) per batch item, summed over all other dims.
+
+    Closed form (Kingma & Welling 2014, Appendix B): ½ Σ (mean² + exp(logvar) − 1 − logvar), in nats.
+
+    Args:
+        mean, logvar: (B, ...) tensors of the same shape.
+
+    Returns:
+        (B,) non-negative KL values.
+
+    Raises:
+        ValueError: shape mismatch or fewer than 1 dimension.
+    """
+    if mean.shape != logvar.shape or mean.ndim < 1:
+        raise ValueError(f"mean {tuple(mean.shape)} and logvar {tuple(logvar.shape)} must have the same (B, ...) shape")
+    kl = 0.5 * (mean.square() + logvar.exp() - 1.0 - logvar)
+    return kl.reshape(kl.shape[0], -1).sum(dim=1)
+
+
+def estimate_latent_scaling(latents: Tensor) -> tuple[float, float]:
+    """(scaling_factor, shift_factor) = (1/std, mean) over all entries of a latent batch.
+
+    Makes a·(z − b) zero-mean and unit-variance (Rombach et al. 2022 §4.3.2 / Appendix G use 1/std;
+    Flux adds the mean shift). Store the result in :class:`VideoVAEConfig` after training the VAE.
+
+    Raises:
+        ValueError: fewer than 2 entries or zero standard deviation.
+    """
+    if latents.numel() < 2:
+        raise ValueError(f"latents: need at least 2 entries to estimate a std, got {latents.numel()}")
+    std = float(latents.double().std())
+    if std == 0:
+        raise ValueError("latents: standard deviation is 0, cannot scale")
+    return 1.0 / std, float(latents.double().mean())
+
+
+class VideoVAE(nn.Module, PretrainedMixin):
+    """Causal video VAE: (B, 3, T, H, W) pixels in [−1, 1] ↔ (B, c, n, H/8, W/8) latents.
+
+    Args:
+        config: :class:`VideoVAEConfig` (the only constructor argument, for save/from_pretrained).
+    """
+
+    config_class = VideoVAEConfig
+
+    def __init__(self, config: VideoVAEConfig):
+        super().__init__()
+        self.config = config
+        self.encoder = Encoder(config)
+        self.decoder = Decoder(config)
+
+    def _check_video(self, video: Tensor) -> None:
+        c = self.config
+        if video.ndim != 5 or video.shape[1] != c.in_channels:
+            raise ValueError(f"video must have shape (B, {c.in_channels}, T, H, W), got {tuple(video.shape)}")
+        c.num_latent_frames(video.shape[2])
+        h, w = video.shape[-2:]
+        if h % c.spatial_factor or w % c.spatial_factor or h == 0 or w == 0:
+            raise ValueError(f"video: H={h}, W={w} must be positive multiples of {c.spatial_factor}")
+
+    def _check_latents(self, z: Tensor) -> None:
+        c = self.config
+        if z.ndim != 5 or z.shape[1] != c.latent_channels or 0 in z.shape:
+            raise ValueError(f"latents must have shape (B, {c.latent_channels}, n, h, w) with n, h, w >= 1, "
+                             f"got {tuple(z.shape)}")
+
+    def encode(self, video: Tensor) -> tuple[Tensor, Tensor]:
+        """Posterior parameters of a clip.
+
+        Args:
+            video: (B, 3, T, H, W), pixels in [−1, 1], T = 1 + 4k, H and W multiples of 8.
+
+        Returns:
+            mean, logvar: (B, c, 1 + k, H/8, W/8) each; logvar clamped to [−30, 20].
+            Latent i depends only on frames ≤ 4i (latent 0 on frame 0 alone).
+
+        Raises:
+            ValueError: wrong rank/channels, T ≠ 1 + 4k, or H/W not multiples of 8.
+        """
+        self._check_video(video)
+        moments = self.encoder(video)
+        mean, logvar = moments.chunk(2, dim=1)
+        return mean, logvar.clamp(*LOGVAR_RANGE)
+
+    def sample(self, mean: Tensor, logvar: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """Reparameterised posterior sample, see :func:`sample_posterior`. (B, c, n, h, w) → same."""
+        return sample_posterior(mean, logvar, generator)
+
+    def decode(self, z: Tensor) -> Tensor:
+        """Latents → video.
+
+        Args:
+            z: (B, c, n, h, w) raw (unscaled) latents.
+
+        Returns:
+            (B, 3, 1 + 4(n − 1), 8h, 8w) pixels, nominally in [−1, 1] (not clamped). Frame t depends
+            only on latents ≤ ⌈t/4⌉.
+
+        Raises:
+            ValueError: wrong rank or channel count.
+        """
+        self._check_latents(z)
+        return self.decoder(z)
+
+    def forward(self, video: Tensor, sample_posterior: bool = True,
+                generator: torch.Generator | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        """Reconstruct a clip (training): encode, sample (or take the mean), decode.
+
+        Args:
+            video: (B, 3, T, H, W) in [−1, 1] (see :meth:`encode`).
+            sample_posterior: draw z ~ q(z|x) (True) or use z = mean (False).
+
+        Returns:
+            reconstruction (B, 3, T, H, W), mean and logvar (B, c, n, H/8, W/8) for the KL term
+            (:func:`kl_divergence`).
+        """
+        mean, logvar = self.encode(video)
+        z = self.sample(mean, logvar, generator) if sample_posterior else mean
+        return self.decode(z), mean, logvar
+
+    def encode_latents(self, video: Tensor, sample_posterior: bool = False,
+                       generator: torch.Generator | None = None) -> Tensor:
+        """Video → DiT latents a·(z − b) with a = ``scaling_factor``, b = ``shift_factor``.
+
+        ``sample_posterior=False`` (default) uses the posterior mean (deterministic conditioning);
+        training the DiT may sample instead. (B, 3, T, H, W) → (B, c, n, H/8, W/8).
+        """
+        mean, logvar = self.encode(video)
+        z = self.sample(mean, logvar, generator) if sample_posterior else mean
+        return (z - self.config.shift_factor) * self.config.scaling_factor
+
+    def decode_latents(self, latents: Tensor) -> Tensor:
+        """DiT latents → video: decode(latents / a + b), inverse of :meth:`encode_latents`.
+
+        (B, c, n, h, w) → (B, 3, 1 + 4(n − 1), 8h, 8w), pixels nominally in [−1, 1].
+        """
+        return self.decode(latents / self.config.scaling_factor + self.config.shift_factor)
