@@ -148,8 +148,9 @@ def gaussian_activations(raw: Tensor, config: LDRMConfig) -> tuple[Tensor, Tenso
     """Map the 12 raw head channels (..., 12) to activated Gaussian parameters; finite for any finite input.
 
     distance = exp(log d_min + σ(r_d + b)·(log d_max − log d_min)), with b chosen so r_d = 0 gives
-        ``default_depth``; a sigmoid in log-depth (scale-uniform, our choice; near/far sigmoid
-        depth as in GS-LRM, Zhang et al. 2024), values in [d_min, d_max] metres.
+        ``default_depth``; a sigmoid in log-depth (scale-uniform; our variant of the near/far-bounded
+        sigmoid ray distance of pixel-aligned LRMs such as GS-LRM, Zhang et al. 2024), values in
+        [d_min, d_max] metres (reached exactly only where the sigmoid saturates in float).
     scales = distance · scale_base · exp(soft_clamp(r_s, scale_log_range)): a pixel footprint
         (distance/focal with scale_base ≈ 1/focal) times a learned factor in e^{±range}; metres > 0.
     quats = normalize(r_q + (1, 0, 0, 0)): unit wxyz; zero raw → identity.
