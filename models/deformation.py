@@ -1,4 +1,4 @@
-"""Spatiotemporal deformation network of the LDRM (Diff4Splat, Pan et al. 2025, §3.2).
+"""Spatiotemporal deformation network of the LDRM (Diff4Splat, Pan et al. 2025, LDRM section).
 
 Given canonical latent features of the reference frame and query times, it predicts per-pixel
 deformation maps (Δμ, Δq, Δs) that move the pixel-aligned canonical Gaussians to each time

@@ -1,4 +1,4 @@
-"""Latent Dynamic Reconstruction Model (LDRM; Diff4Splat, Pan et al. 2025, §3.2).
+"""Latent Dynamic Reconstruction Model (LDRM; Diff4Splat, Pan et al. 2025, LDRM section).
 
 Decodes a video latent plus the camera path (Plücker rays packed to latent resolution) into
 pixel-aligned 3D Gaussians of the reference frame (frame 0) and, when times are given, deformation
