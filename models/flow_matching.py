@@ -270,12 +270,13 @@ def heun_sample(velocity_fn: VelocityFn, noise: Tensor, sigmas: Tensor, progress
     """
     _check_sigmas(sigmas)
     sig = sigmas.to(dtype=noise.dtype, device=noise.device)
+    is_zero = (sigmas == 0).tolist()  # host-side flags: no device sync inside the loop
     x = noise
     for i in tqdm(range(sig.shape[0] - 1), disable=not progress, desc="heun"):
         h = sig[i + 1] - sig[i]
         d = _velocity(velocity_fn, x, sig[i])
         x_pred = x + h * d
-        if float(sig[i + 1]) == 0.0:
+        if is_zero[i + 1]:
             x = x_pred
         else:
             x = x + h * 0.5 * (d + _velocity(velocity_fn, x_pred, sig[i + 1]))

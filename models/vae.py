@@ -265,7 +265,7 @@ class Decoder(nn.Module):
 
 
 def sample_posterior(mean: Tensor, logvar: Tensor, generator: torch.Generator | None = None) -> Tensor:
-    """Reparameterised draw z = mean + exp(logvar/2)·ε, ε ~ N(0, I) (Kingma & Welling 2014, Eq. 10).
+    """Reparameterised draw z = mean + exp(logvar/2)·ε, ε ~ N(0, I) (Kingma & Welling 2014, §2.4).
 
     Args:
         mean, logvar: (B, c, n, h, w) posterior parameters (same shape).
