@@ -1,0 +1,23 @@
+"""CPU Gaussian-splatting renderer (gsplat-compatible API): projection, SH colours, rasterizers.
+
+``rasterize`` is the fast tile path, ``rasterize_dense`` the brute-force reference it is tested
+against; both share :mod:`.projection` and :mod:`.sh` (DESIGN.md, "The renderer").
+"""
+from diff4splat.render.projection import Projection, project_gaussians
+from diff4splat.render.rasterize import rasterize
+from diff4splat.render.reference import rasterize_dense
+from diff4splat.render.sh import sh_basis, sh_to_color, spherical_harmonics
+
+eval_sh = spherical_harmonics
+"""Alias of :func:`spherical_harmonics`."""
+
+__all__ = [
+    "rasterize",
+    "rasterize_dense",
+    "project_gaussians",
+    "Projection",
+    "spherical_harmonics",
+    "eval_sh",
+    "sh_basis",
+    "sh_to_color",
+]

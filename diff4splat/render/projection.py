@@ -1,0 +1,291 @@
+"""EWA projection of 3D Gaussians to screen space (shared by the fast and the dense rasterizer).
+
+This is the per-Gaussian stage of 3D Gaussian Splatting (Kerbl et al. 2023, §4; Zwicker et al.
+2002, EWA splatting eq. 31) written to match gsplat's ``fully_fused_projection`` CUDA kernel
+(``persp_proj``, ``add_blur``, 3σ radius, culling) for the pinhole camera. Camera models are kept
+behind :func:`project_means_covars` so another model (fisheye, through a ray path) can be added
+without touching the rasterizers.
+
+Also home of the 3DGS per-pixel thresholds and of :func:`splat_alpha`, the single definition of a
+Gaussian's opacity at a pixel, used by both rasterizers so they cannot drift apart.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from diff4splat.quaternions import quat_to_rotmat
+
+__all__ = [
+    "ALPHA_MAX",
+    "ALPHA_MIN",
+    "T_MIN",
+    "CAMERA_MODELS",
+    "Projection",
+    "covariance_3d",
+    "world_to_camera",
+    "persp_proj",
+    "project_means_covars",
+    "project_gaussians",
+    "support_extent",
+    "splat_sigma",
+    "splat_alpha",
+]
+
+ALPHA_MAX = 0.99
+"""Per-Gaussian alpha is clamped to this (INRIA 3DGS ``min(0.99f, …)``)."""
+ALPHA_MIN = 1.0 / 255.0
+"""A Gaussian whose alpha at a pixel is below this is skipped there (3DGS, gsplat)."""
+T_MIN = 1e-4
+"""Compositing stops before a Gaussian that would bring transmittance below this (3DGS)."""
+CAMERA_MODELS = ("pinhole",)
+"""Camera models the projection supports."""
+
+
+class Projection(NamedTuple):
+    """Screen-space Gaussians for C cameras (all tensors indexed (camera, Gaussian)).
+
+    Attributes:
+        means2d: (C, N, 2) projected centres, pixels (x right, y down).
+        depths: (C, N) camera-space z of the centres, metres.
+        covars2d: (C, N, 3) dilated screen covariance (Σxx, Σxy, Σyy) = Σ2d + eps2d·I, pixels².
+        conics: (C, N, 3) its inverse (a, b, c): σ(d) = ½(a dx² + c dy²) + b dx dy, 1/pixels².
+        opacities: (C, N) opacities used for compositing (× compensation when antialiased).
+        radii: (C, N) int32 3σ screen radius ceil(3·sqrt(λmax)), pixels; 0 marks a culled Gaussian.
+        compensations: (C, N) sqrt(det Σ2d / det(Σ2d + eps2d·I)), or None in classic mode.
+    """
+
+    means2d: Tensor
+    depths: Tensor
+    covars2d: Tensor
+    conics: Tensor
+    opacities: Tensor
+    radii: Tensor
+    compensations: Tensor | None
+
+
+def covariance_3d(quats: Tensor, scales: Tensor) -> Tensor:
+    """World covariance Σ = R S Sᵀ Rᵀ (3DGS eq. 6).
+
+    Args:
+        quats: (N, 4) wxyz, unnormalised, non-zero norm.
+        scales: (N, 3) standard deviations along the local axes, metres.
+
+    Returns:
+        (N, 3, 3) symmetric PSD covariances, metres².
+
+    Raises:
+        ValueError: a zero-norm quaternion (from :func:`diff4splat.quaternions.quat_to_rotmat`).
+    """
+    m = quat_to_rotmat(quats) * scales[..., None, :]  # R S
+    return m @ m.transpose(-1, -2)
+
+
+def world_to_camera(means: Tensor, covars: Tensor, viewmats: Tensor) -> tuple[Tensor, Tensor]:
+    """Transform means and covariances into each camera's frame.
+
+    Args:
+        means: (N, 3) world points, metres.
+        covars: (N, 3, 3) world covariances, metres².
+        viewmats: (C, 4, 4) world-to-camera [R | t] (OpenCV frame).
+
+    Returns:
+        means_c: (C, N, 3) = R μ + t;  covars_c: (C, N, 3, 3) = R Σ Rᵀ.
+    """
+    R = viewmats[:, :3, :3]
+    t = viewmats[:, :3, 3]
+    means_c = torch.einsum("cij,nj->cni", R, means) + t[:, None, :]
+    covars_c = torch.einsum("cij,njk,clk->cnil", R, covars, R)
+    return means_c, covars_c
+
+
+def persp_proj(
+    means_c: Tensor,  # (C, N, 3) camera frame, z > 0
+    covars_c: Tensor,  # (C, N, 3, 3)
+    Ks: Tensor,  # (C, 3, 3)
+    width: int,
+    height: int,
+) -> tuple[Tensor, Tensor]:
+    """Pinhole projection of centres and first-order (EWA) projection of covariances.
+
+    mean2d = (fx·x/z + cx, fy·y/z + cy); Σ2d = J Σc Jᵀ with the perspective Jacobian
+    J = [[fx/z, 0, −fx·tx/z²], [0, fy/z, −fy·ty/z²]] (EWA splatting eq. 29–31), where, as in
+    gsplat's ``persp_proj``, tx/z is clamped to [−(cx/fx + 0.3·tan½fovx), (W−cx)/fx + 0.3·tan½fovx]
+    (tan½fovx = W/(2fx); for a centred principal point this is ±1.3·tan½fovx), same for y.
+
+    Args:
+        means_c: (C, N, 3) camera-frame centres, metres; z must be non-zero.
+        covars_c: (C, N, 3, 3) camera-frame covariances, metres².
+        Ks: (C, 3, 3) intrinsics, pixels.
+        width, height: image size, pixels.
+
+    Returns:
+        means2d: (C, N, 2) pixels;  covars2d: (C, N, 2, 2) pixels² (not yet dilated).
+    """
+    x, y, z = means_c.unbind(-1)
+    fx, fy = Ks[:, 0, 0, None], Ks[:, 1, 1, None]
+    cx, cy = Ks[:, 0, 2, None], Ks[:, 1, 2, None]
+    tan_fovx = 0.5 * width / fx
+    tan_fovy = 0.5 * height / fy
+    rz = 1.0 / z
+    tx = z * torch.clamp(x * rz, min=-(cx / fx + 0.3 * tan_fovx), max=(width - cx) / fx + 0.3 * tan_fovx)
+    ty = z * torch.clamp(y * rz, min=-(cy / fy + 0.3 * tan_fovy), max=(height - cy) / fy + 0.3 * tan_fovy)
+    zeros = torch.zeros_like(z)
+    J = torch.stack(
+        [fx * rz, zeros, -fx * tx * rz * rz, zeros, fy * rz, -fy * ty * rz * rz], dim=-1
+    ).reshape(z.shape + (2, 3))
+    covars2d = J @ covars_c @ J.transpose(-1, -2)
+    means2d = torch.stack([fx * x * rz + cx, fy * y * rz + cy], dim=-1)
+    return means2d, covars2d
+
+
+def project_means_covars(
+    means_c: Tensor, covars_c: Tensor, Ks: Tensor, width: int, height: int, camera_model: str
+) -> tuple[Tensor, Tensor]:
+    """Dispatch to the camera model's projection; see :func:`persp_proj` for shapes.
+
+    Raises:
+        ValueError: ``camera_model`` not in :data:`CAMERA_MODELS`.
+    """
+    if camera_model == "pinhole":
+        return persp_proj(means_c, covars_c, Ks, width, height)
+    raise ValueError(f"camera_model must be one of {CAMERA_MODELS}, got {camera_model!r}")
+
+
+def project_gaussians(
+    means: Tensor,  # (N, 3)
+    quats: Tensor,  # (N, 4)
+    scales: Tensor,  # (N, 3)
+    opacities: Tensor,  # (N,)
+    viewmats: Tensor,  # (C, 4, 4)
+    Ks: Tensor,  # (C, 3, 3)
+    width: int,
+    height: int,
+    *,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    eps2d: float = 0.3,
+    antialiased: bool = False,
+    camera_model: str = "pinhole",
+) -> Projection:
+    """Project Gaussians into C cameras and cull them, as gsplat's ``fully_fused_projection``.
+
+    Steps (gsplat CUDA kernel order): camera-frame centre; cull z < near_plane or z > far_plane;
+    Σ2d by :func:`persp_proj`; dilation Σ2d + eps2d·I with compensation
+    sqrt(max(0, det Σ2d / det(Σ2d + eps2d·I))) (Mip-Splatting eq. 9, used when ``antialiased``);
+    cull det ≤ 0; conic = (Σ2d + eps2d·I)⁻¹; radius = ceil(3·sqrt(b + sqrt(max(0.01, b² − det))))
+    with b = ½ trace; cull radius ≤ 0 and Gaussians whose radius box lies fully outside the image.
+
+    Culled Gaussians get radius 0 and zeros in every other output; their values are computed from
+    a substituted safe depth so no NaN/inf enters the graph and they receive exactly zero gradient.
+
+    Args:
+        means, quats, scales, opacities: Gaussians (metres; wxyz; metres; (0, 1)).
+        viewmats: (C, 4, 4) world-to-camera, OpenCV.  Ks: (C, 3, 3) pixels.
+        width, height: image size, pixels.
+        near_plane, far_plane: depth range kept, metres.
+        eps2d: screen-space dilation, pixels².
+        antialiased: multiply opacities by the compensation (gsplat ``rasterize_mode="antialiased"``).
+        camera_model: only "pinhole" for now.
+
+    Returns:
+        :class:`Projection`.
+
+    Raises:
+        ValueError: unknown camera model or zero-norm quaternion.
+    """
+    if camera_model not in CAMERA_MODELS:
+        raise ValueError(f"camera_model must be one of {CAMERA_MODELS}, got {camera_model!r}")
+    means_c, covars_c = world_to_camera(means, covariance_3d(quats, scales), viewmats)
+    z = means_c[..., 2]
+    in_depth = (z >= near_plane) & (z <= far_plane)
+    safe_means_c = torch.where(in_depth[..., None], means_c, means_c.new_tensor([0.0, 0.0, 1.0]))
+    means2d, cov = project_means_covars(safe_means_c, covars_c, Ks, width, height, camera_model)
+    sxx, sxy, syy = cov[..., 0, 0], 0.5 * (cov[..., 0, 1] + cov[..., 1, 0]), cov[..., 1, 1]
+    det_orig = sxx * syy - sxy * sxy
+    sxx, syy = sxx + eps2d, syy + eps2d
+    det = sxx * syy - sxy * sxy
+    valid = in_depth & (det > 0)
+    safe_det = torch.where(valid, det, torch.ones_like(det))
+    conics = torch.stack([syy / safe_det, -sxy / safe_det, sxx / safe_det], dim=-1)
+    compensations = torch.sqrt(torch.clamp(det_orig / safe_det, min=0.0)) if antialiased else None
+    with torch.no_grad():
+        b = 0.5 * (sxx + syy)
+        v1 = b + torch.sqrt(torch.clamp(b * b - det, min=0.01))
+        radius = torch.ceil(3.0 * torch.sqrt(torch.clamp(v1, min=0.0)))
+        mx, my = means2d[..., 0], means2d[..., 1]
+        inside = (mx + radius > 0) & (mx - radius < width) & (my + radius > 0) & (my - radius < height)
+        keep = valid & (radius > 0) & inside
+        radii = torch.where(keep, radius, torch.zeros_like(radius)).to(torch.int32)
+    op = opacities[None, :].expand_as(z)
+    if compensations is not None:
+        op = op * compensations
+    k2, k3 = keep[..., None], keep[..., None]
+    return Projection(
+        means2d=torch.where(k2, means2d, 0.0),
+        depths=torch.where(keep, z, 0.0),
+        covars2d=torch.where(k3, torch.stack([sxx, sxy, syy], dim=-1), 0.0),
+        conics=torch.where(k3, conics, 0.0),
+        opacities=torch.where(keep, op, 0.0),
+        radii=radii,
+        compensations=None if compensations is None else torch.where(keep, compensations, 0.0),
+    )
+
+
+def support_extent(covars2d: Tensor, opacities: Tensor) -> Tensor:
+    """Half-size of the screen box outside which a Gaussian's alpha is below :data:`ALPHA_MIN`.
+
+    alpha = min(0.99, o·exp(−σ)) ≥ 1/255 ⇔ σ ≤ τ = ln(255·o); on the ellipse ½dᵀΣ⁻¹d = τ the
+    largest |dx| is sqrt(2τ·Σxx) (and sqrt(2τ·Σyy) for y) — gsplat's opacity-aware box
+    (Radl et al. 2024, StopThePop, App. B.2). A 0.1 % + 1e-3 px margin absorbs rounding; the exact
+    alpha test is still applied per pixel, so the box only needs to contain the support.
+
+    Args:
+        covars2d: (..., 3) dilated screen covariance (Σxx, Σxy, Σyy), pixels².
+        opacities: (...) compositing opacities.
+
+    Returns:
+        (..., 2) half extents (x, y), pixels; negative where the Gaussian is never visible (o < 1/255).
+    """
+    tau = torch.log(torch.clamp(opacities, min=1e-30) / ALPHA_MIN)
+    var = torch.stack([covars2d[..., 0], covars2d[..., 2]], dim=-1).clamp(min=0.0)
+    ext = torch.sqrt(2.0 * tau.clamp(min=0.0)[..., None] * var) * 1.001 + 1e-3
+    return torch.where((tau >= 0)[..., None], ext, torch.full_like(ext, -1.0))
+
+
+def splat_sigma(dx: Tensor, dy: Tensor, conics: Tensor) -> Tensor:
+    """Gaussian exponent σ = ½(a·dx² + c·dy²) + b·dx·dy at pixel offsets (3DGS eq. 2, conic form).
+
+    Args:
+        dx, dy: (...) pixel centre minus projected centre, pixels.
+        conics: (..., 3) conic (a, b, c), 1/pixels²; the trailing 3 is split off and the rest
+            broadcasts with dx, dy.
+
+    Returns:
+        (...) σ, dimensionless (≥ 0 for a positive-definite conic).
+    """
+    a, b, c = conics.unbind(-1)
+    return 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+
+
+def splat_alpha(dx: Tensor, dy: Tensor, conics: Tensor, opacities: Tensor) -> Tensor:
+    """Opacity of screen Gaussians at pixel offsets, with the 3DGS skip rule applied.
+
+    alpha = min(0.99, o·exp(−σ)) with σ from :func:`splat_sigma`; returns 0 where σ < 0 or
+    alpha < 1/255 (the Gaussian is skipped there, gsplat ``rasterize_to_pixels``). All arguments
+    broadcast together.
+
+    Args:
+        dx, dy: (...) pixel centre minus projected centre, pixels.
+        conics: (..., 3) conic (a, b, c), 1/pixels².
+        opacities: (...) opacities in [0, 1].
+
+    Returns:
+        (...) alpha in {0} ∪ [1/255, 0.99].
+    """
+    sigma = splat_sigma(dx, dy, conics)
+    alpha = torch.clamp(opacities * torch.exp(-sigma), max=ALPHA_MAX)
+    keep = (sigma >= 0) & (alpha >= ALPHA_MIN)
+    return torch.where(keep, alpha, torch.zeros_like(alpha))

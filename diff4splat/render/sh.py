@@ -1,0 +1,109 @@
+"""Real spherical harmonics up to degree 3, INRIA 3DGS convention (view-dependent colour).
+
+The basis and constants are those of the INRIA reference implementation (``sh_utils.py`` /
+``forward.cu::computeColorFromSH``, Kerbl et al. 2023 §5), i.e. the orthonormal real SH of
+Sloan, "Stupid Spherical Harmonics (SH) Tricks" (2008), App. A2, with the Condon–Shortley phase,
+evaluated at a unit direction (x, y, z) and ordered l = 0..3, m = −l..l.
+Colour = max(Σ_k c_k·Y_k(dir) + 0.5, 0) (DESIGN.md "Colours").
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from diff4splat.gaussians import SH_C0
+
+__all__ = ["SH_C0", "SH_C1", "SH_C2", "SH_C3", "num_sh_bases", "sh_basis", "spherical_harmonics", "sh_to_color"]
+
+SH_C1 = 0.4886025119029199  # sqrt(3/(4π))
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+SH_C3 = (
+    -0.5900435899266435,
+    2.890611442640554,
+    -0.4570457994644658,
+    0.3731763325901154,
+    -0.4570457994644658,
+    1.445305721320277,
+    -0.5900435899266435,
+)
+
+
+def num_sh_bases(degree: int) -> int:
+    """Number of coefficients (degree+1)² of an SH expansion up to ``degree`` (0–3).
+
+    Raises:
+        ValueError: degree outside 0..3.
+    """
+    if not isinstance(degree, int) or not 0 <= degree <= 3:
+        raise ValueError(f"sh_degree must be an int in 0..3, got {degree!r}")
+    return (degree + 1) ** 2
+
+
+def sh_basis(degree: int, dirs: Tensor) -> Tensor:
+    """Real SH basis Y_k(dir) for k < (degree+1)², INRIA constants and ordering.
+
+    Args:
+        degree: 0..3.
+        dirs: (..., 3) unit directions (x, y, z) (not normalised here).
+
+    Returns:
+        (..., (degree+1)²) basis values.
+
+    Raises:
+        ValueError: degree outside 0..3 or dirs without a trailing 3.
+    """
+    num_sh_bases(degree)
+    if dirs.shape[-1] != 3:
+        raise ValueError(f"dirs must have last dimension 3, got shape {tuple(dirs.shape)}")
+    x, y, z = dirs.unbind(-1)
+    out = [torch.full_like(x, SH_C0)]
+    if degree >= 1:
+        out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
+    if degree >= 2:
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        out += [
+            SH_C2[0] * xy,
+            SH_C2[1] * yz,
+            SH_C2[2] * (2.0 * zz - xx - yy),
+            SH_C2[3] * xz,
+            SH_C2[4] * (xx - yy),
+        ]
+    if degree >= 3:
+        out += [
+            SH_C3[0] * y * (3.0 * xx - yy),
+            SH_C3[1] * xy * z,
+            SH_C3[2] * y * (4.0 * zz - xx - yy),
+            SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
+            SH_C3[4] * x * (4.0 * zz - xx - yy),
+            SH_C3[5] * z * (xx - yy),
+            SH_C3[6] * x * (xx - 3.0 * yy),
+        ]
+    return torch.stack(out, dim=-1)
+
+
+def spherical_harmonics(degrees_to_use: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
+    """Evaluate SH expansions along view directions (gsplat ``spherical_harmonics`` signature).
+
+    Args:
+        degrees_to_use: degree 0..3; the first (degree+1)² coefficients are used.
+        dirs: (..., 3) view directions (mean − camera centre), any length; normalised here
+            (a zero vector gives a zero direction, so only the DC term survives).
+        coeffs: (..., K, D) coefficients, K ≥ (degree+1)²; broadcasts against dirs[..., None, :].
+
+    Returns:
+        (..., D) Σ_k coeffs_k·Y_k(dir), without the +0.5 offset (see :func:`sh_to_color`).
+
+    Raises:
+        ValueError: degree outside 0..3 or too few coefficients.
+    """
+    k = num_sh_bases(degrees_to_use)
+    if coeffs.dim() < 2 or coeffs.shape[-2] < k:
+        raise ValueError(f"coeffs must have shape (..., K≥{k}, D) for degree {degrees_to_use}, got {tuple(coeffs.shape)}")
+    basis = sh_basis(degrees_to_use, F.normalize(dirs, dim=-1))  # (..., k)
+    return (basis[..., :, None] * coeffs[..., :k, :]).sum(-2)
+
+
+def sh_to_color(sh_values: Tensor) -> Tensor:
+    """INRIA colour from an SH value: max(value + 0.5, 0). (...) → (...)."""
+    return torch.clamp_min(sh_values + 0.5, 0.0)
