@@ -126,3 +126,22 @@ def test_float32_path_and_to():
     assert p.times.dtype == torch.float32
     q = p.to(torch.float64)
     assert q.viewmats.dtype == q.Ks.dtype == q.times.dtype == torch.float64
+
+
+def test_fitted_crop_keeps_a_point_on_the_same_image_content():
+    """A point projecting to pixel (u, v) of a 300×450 frame lands where the cropped+resized photo shows it."""
+    import torch as _t
+
+    from diff4splat.cameras import CameraPath as _CP
+    from diff4splat.cameras import center_crop_box as _ccb
+
+    K = _t.tensor([[[400.0, 0, 225.0], [0, 400.0, 150.0], [0, 0, 1]]], dtype=_t.float64)
+    path = _CP(_t.eye(4, dtype=_t.float64)[None], K, 450, 300)
+    fit = path.fitted(64, 64)
+    X = _t.tensor([0.3, -0.2, 2.0], dtype=_t.float64)
+    uv0 = (K[0] @ X)[:2] / X[2]
+    y0, x0, ch, cw = _ccb(300, 450, 64, 64)
+    expected = (uv0 - _t.tensor([x0, y0], dtype=_t.float64)) * _t.tensor([64 / cw, 64 / ch], dtype=_t.float64)
+    uv1 = (fit.Ks[0] @ X)[:2] / X[2]
+    _t.testing.assert_close(uv1, expected)
+    assert (fit.width, fit.height) == (64, 64) and (y0, ch, cw) == (0, 300, 300) and x0 == 75

@@ -1,5 +1,5 @@
 """Cameras: intrinsics, trajectories, camera paths and rays (OpenCV frame, world-to-camera viewmats)."""
-from .intrinsics import fov_from_intrinsics, intrinsics_from_focal, intrinsics_from_fov
+from .intrinsics import center_crop_box, fov_from_intrinsics, intrinsics_from_focal, intrinsics_from_fov
 from .path import CameraPath, invert_rigid
 from .rays import camera_rays, pack_plucker, plucker_rays
 from .trajectories import DEFAULT_AMPLITUDES, TRAJECTORIES, look_at, make_trajectory
@@ -11,6 +11,7 @@ __all__ = [
     "intrinsics_from_fov",
     "intrinsics_from_focal",
     "fov_from_intrinsics",
+    "center_crop_box",
     "CameraPath",
     "invert_rigid",
     "look_at",

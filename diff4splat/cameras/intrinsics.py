@@ -12,7 +12,7 @@ import math
 import torch
 from torch import Tensor
 
-__all__ = ["intrinsics_from_fov", "intrinsics_from_focal", "fov_from_intrinsics"]
+__all__ = ["center_crop_box", "intrinsics_from_fov", "intrinsics_from_focal", "fov_from_intrinsics"]
 
 
 def _check_size(name: str, value: int) -> int:
@@ -146,3 +146,19 @@ def fov_from_intrinsics(K: Tensor, width: int, height: int) -> tuple[float, floa
         math.degrees(2.0 * math.atan(width / 2.0 / fx)),
         math.degrees(2.0 * math.atan(height / 2.0 / fy)),
     )
+
+
+def center_crop_box(height: int, width: int, target_height: int, target_width: int) -> tuple[int, int, int, int]:
+    """The largest centred crop of a height×width image with the aspect ratio of the target.
+
+    Used for photographs (:func:`diff4splat.io.preprocess_image`) and for their intrinsics
+    (:meth:`diff4splat.cameras.CameraPath.fitted`) so both are cropped identically.
+
+    Returns:
+        (y0, x0, crop_height, crop_width) in pixels.
+    """
+    if width * target_height > height * target_width:  # wider than the target: crop columns
+        ch, cw = height, max(1, min(width, round(height * target_width / target_height)))
+    else:  # taller: crop rows
+        ch, cw = max(1, min(height, round(width * target_height / target_width))), width
+    return (height - ch) // 2, (width - cw) // 2, ch, cw

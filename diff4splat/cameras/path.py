@@ -7,6 +7,7 @@ import torch
 from torch import Tensor
 
 from ..gaussians import check_finite
+from .intrinsics import center_crop_box
 
 __all__ = ["CameraPath", "invert_rigid"]
 
@@ -162,6 +163,24 @@ class CameraPath:
         scale = self.Ks.new_tensor([width / self.width, height / self.height, 1.0])
         Ks = self.Ks * scale[None, :, None]
         return CameraPath(self.viewmats.clone(), Ks, width, height, self.times.clone())
+
+    def fitted(self, width: int, height: int) -> "CameraPath":
+        """The path for images centre-cropped to the aspect ratio of ``width``×``height``, then resized.
+
+        Same crop as :func:`diff4splat.io.preprocess_image` (:func:`center_crop_box`): the principal
+        point shifts by the crop offset, then :meth:`resized` scales to the target size.
+
+        Raises:
+            ValueError: ``width``/``height`` not a positive int.
+        """
+        for name, v in (("width", width), ("height", height)):
+            if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
+                raise ValueError(f"{name} must be a positive integer number of pixels, got {v!r}")
+        y0, x0, ch, cw = center_crop_box(self.height, self.width, height, width)
+        Ks = self.Ks.clone()
+        Ks[:, 0, 2] -= x0
+        Ks[:, 1, 2] -= y0
+        return CameraPath(self.viewmats.clone(), Ks, cw, ch, self.times.clone()).resized(width, height)
 
     def to(self, *args, **kwargs) -> "CameraPath":
         """Move/cast the tensors (``Tensor.to`` arguments)."""

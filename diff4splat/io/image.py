@@ -9,6 +9,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..cameras.intrinsics import center_crop_box
+
 __all__ = ["load_image", "preprocess_image"]
 
 
@@ -79,12 +81,7 @@ def preprocess_image(array: np.ndarray, size: tuple[int, int] | None = None) -> 
         color = color * alpha + (1.0 - alpha)  # composite over white
     if size is not None:
         h, w = size
-        H0, W0 = color.shape[:2]
-        if W0 * h > H0 * w:  # wider than the target: crop columns
-            ch, cw = H0, max(1, min(W0, round(H0 * w / h)))
-        else:  # taller: crop rows
-            ch, cw = max(1, min(H0, round(W0 * h / w))), W0
-        y0, x0 = (H0 - ch) // 2, (W0 - cw) // 2
+        y0, x0, ch, cw = center_crop_box(*color.shape[:2], h, w)
         color = color[y0 : y0 + ch, x0 : x0 + cw]
         if (ch, cw) != (h, w):
             interp = cv2.INTER_AREA if (h <= ch and w <= cw) else cv2.INTER_LINEAR

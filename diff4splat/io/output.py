@@ -1,0 +1,120 @@
+"""The output folder of ``diff4splat generate`` (DESIGN.md, "Output folder of generate"), written atomically.
+
+::
+
+    scene.ply           canonical Gaussians, INRIA layout
+    deformation.npz     times (T,), d_means (T,M,3), d_quats (T,M,4), d_scales (T,M,3); absent if static
+    frames/0000.ply …   the Gaussians deformed to each frame's time
+    video.mp4           RGB along the camera path
+    depth/0000.exr …    float32 expected depth "Z" (metres) and coverage "A"
+    cameras.json        Ks, viewmats, width, height, times
+    meta.json           model, seed, steps, timings, counts
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..cameras.path import CameraPath
+from ..scene import DynamicGaussians
+from .atomic import atomic_output_dir, atomic_output_path
+from .cameras import save_cameras_json
+from .exr import save_depth_exr
+from .ply import save_ply
+from .video import save_video
+
+__all__ = ["write_scene_folder", "fill_empty_depth", "save_deformation", "load_deformation"]
+
+ALPHA_EMPTY = 1.0 / 255.0
+"""Pixels with coverage below this hold no geometry (the 3DGS per-Gaussian alpha threshold)."""
+
+
+def fill_empty_depth(depths: Tensor, alphas: Tensor, fallback: float) -> Tensor:
+    """Give pixels without geometry the far distance of the scene, so every depth is finite and > 0.
+
+    Empty pixels (alpha < 1/255) get the largest depth rendered anywhere on the path (the scene's far
+    bound along these views), or ``fallback`` metres if no pixel is covered; the "A" channel of the EXR
+    keeps the coverage so users can mask them.
+
+    Args:
+        depths: (T, H, W) expected depth, metres (0 where empty).
+        alphas: (T, H, W) coverage in [0, 1].
+        fallback: metres > 0.
+
+    Returns:
+        (T, H, W) depth, metres, finite and > 0.
+    """
+    covered = alphas >= ALPHA_EMPTY
+    far = float(depths[covered].max()) if bool(covered.any()) else float(fallback)
+    return torch.where(covered & (depths > 0), depths, torch.full_like(depths, far))
+
+
+def save_deformation(path: str | os.PathLike, scene: DynamicGaussians) -> None:
+    """Write ``deformation.npz`` (float32 arrays times, d_means, d_quats, d_scales).
+
+    Raises:
+        ValueError: the scene is static (it has no deformation to write).
+    """
+    if scene.is_static:
+        raise ValueError("a static scene has no deformation to save")
+    arrays = {k: getattr(scene, k).detach().cpu().float().numpy() for k in ("times", "d_means", "d_quats", "d_scales")}
+    with atomic_output_path(Path(path)) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+
+
+def load_deformation(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Read ``deformation.npz`` → {"times", "d_means", "d_quats", "d_scales"} numpy arrays."""
+    with np.load(path) as data:
+        return {k: data[k] for k in ("times", "d_means", "d_quats", "d_scales")}
+
+
+def write_scene_folder(
+    out_dir: str | os.PathLike,
+    scene: DynamicGaussians,
+    cameras: CameraPath,
+    colors: Tensor,  # (T, H, W, 3) in [0, 1]
+    depths: Tensor,  # (T, H, W) metres
+    alphas: Tensor,  # (T, H, W)
+    meta: dict,
+    *,
+    fps: int = 8,
+    depth_fallback: float = 1.0,
+) -> Path:
+    """Write the whole output folder into a temporary folder, then rename it onto ``out_dir``.
+
+    A failure part-way leaves no ``out_dir`` (or the previous one untouched).
+
+    Raises:
+        ValueError: frame counts of colours/depths/alphas/cameras differ.
+        FileExistsError: ``out_dir`` is a file.
+    """
+    T = len(cameras)
+    if not (colors.shape[0] == depths.shape[0] == alphas.shape[0] == T):
+        raise ValueError(f"colors/depths/alphas must have {T} frames (one per camera), got "
+                         f"{colors.shape[0]}/{depths.shape[0]}/{alphas.shape[0]}")
+    depths = fill_empty_depth(depths, alphas, depth_fallback)
+    with atomic_output_dir(out_dir) as tmp:
+        save_ply(tmp / "scene.ply", scene.canonical)
+        if not scene.is_static:
+            save_deformation(tmp / "deformation.npz", scene)
+        for i in range(T):
+            save_ply(tmp / "frames" / f"{i:04d}.ply", scene.at(float(cameras.times[i])))
+            save_depth_exr(tmp / "depth" / f"{i:04d}.exr", depths[i].cpu(), alphas[i].clamp(0, 1).cpu())
+        save_video(tmp / "video.mp4", colors.cpu(), fps=fps)
+        save_cameras_json(tmp / "cameras.json", cameras.to("cpu"))
+        (tmp / "meta.json").write_text(json.dumps(meta, indent=2, default=_json_default))
+    return Path(out_dir)
+
+
+def _json_default(obj):
+    if isinstance(obj, (np.generic,)):
+        return obj.item()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")

@@ -1,0 +1,177 @@
+"""The whole Diff4Splat model: video VAE, text encoder, video DiT and LDRM under one config.
+
+A checkpoint folder holds ``config.json`` (this module's :class:`Diff4SplatConfig`) and one
+sub-folder per network (``vae/``, ``text_encoder/``, ``dit/``, ``ldrm/``), each written by that
+network's ``save_pretrained``. ``configs/<name>.yaml`` files override the dataclass defaults.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+import yaml
+from torch import nn
+
+from diff4splat.io.atomic import atomic_output_dir
+
+from .dit import VideoDiT, VideoDiTConfig
+from .flow_matching import FlowMatchingConfig
+from .ldrm import LDRM, LDRMConfig
+from .pretrained import CONFIG_NAME, config_from_dict, count_parameters
+from .text_encoder import TextEncoder, TextEncoderConfig
+from .vae import VideoVAE, VideoVAEConfig
+
+__all__ = ["Diff4SplatConfig", "Diff4SplatModel", "load_config", "CONFIG_DIR", "WEIGHTS_DIR"]
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+"""``configs/`` at the repository root (editable installs)."""
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+"""Shipped trained weights, one folder per model name."""
+
+_MODULES = {"vae": VideoVAE, "text_encoder": TextEncoder, "dit": VideoDiT, "ldrm": LDRM}
+
+
+@dataclass
+class Diff4SplatConfig:
+    """Top-level configuration: model resolution, default camera and sampling, and the four networks.
+
+    Attributes:
+        name: model name (``tiny``, ``small``, ``paper``); names ``models/weights/<name>``.
+        height, width: model resolution in pixels (multiples of 8 × the DiT/LDRM patch).
+        num_frames: default clip length T = 1 + 4k.
+        fov_y_deg: vertical field of view of the default intrinsics, degrees.
+        scene_depth: nominal distance to the scene centre, metres; unit of trajectory amplitudes.
+        prune_opacity: Gaussians with opacity below this are pruned from generated scenes.
+        static_atol: deformations below this (metres / quaternion / log-scale) count as static.
+        vae, text_encoder, dit, ldrm, sampling: the networks' and the sampler's configs.
+    """
+
+    name: str = "tiny"
+    height: int = 64
+    width: int = 64
+    num_frames: int = 17
+    fov_y_deg: float = 50.0
+    scene_depth: float = 2.0
+    prune_opacity: float = 0.005
+    static_atol: float = 1e-6
+    vae: VideoVAEConfig = field(default_factory=VideoVAEConfig)
+    text_encoder: TextEncoderConfig = field(default_factory=TextEncoderConfig)
+    dit: VideoDiTConfig = field(default_factory=lambda: VideoDiTConfig(latent_channels=4, text_dim=64))
+    ldrm: LDRMConfig = field(default_factory=LDRMConfig)
+    sampling: FlowMatchingConfig = field(default_factory=FlowMatchingConfig)
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Check that the networks fit together.
+
+        Raises:
+            ValueError: naming the mismatched fields (latent channels, text width, camera channels,
+                VAE compression, resolution, frame count).
+        """
+        c = self.vae.latent_channels
+        if not (self.dit.latent_channels == c == self.ldrm.latent_channels):
+            raise ValueError(f"latent_channels differ: vae {c}, dit {self.dit.latent_channels}, "
+                             f"ldrm {self.ldrm.latent_channels}")
+        if self.dit.text_dim != self.text_encoder.d_model:
+            raise ValueError(f"dit.text_dim ({self.dit.text_dim}) must equal text_encoder.d_model "
+                             f"({self.text_encoder.d_model})")
+        if (self.ldrm.vae_temporal, self.ldrm.vae_spatial) != (self.vae.temporal_factor, self.vae.spatial_factor):
+            raise ValueError(f"ldrm.vae_temporal/vae_spatial ({self.ldrm.vae_temporal}, {self.ldrm.vae_spatial}) "
+                             f"must match the VAE ({self.vae.temporal_factor}, {self.vae.spatial_factor})")
+        if self.dit.camera_channels != self.ldrm.plucker_channels:
+            raise ValueError(f"dit.camera_channels ({self.dit.camera_channels}) must equal "
+                             f"6·{self.vae.temporal_factor}·{self.vae.spatial_factor}² = {self.ldrm.plucker_channels}")
+        unit = self.vae.spatial_factor * max(self.dit.patch_size[1], self.ldrm.patch_size)
+        for name in ("height", "width"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v <= 0 or v % unit:
+                raise ValueError(f"{name} must be a positive multiple of {unit} pixels, got {v!r}")
+        self.vae.num_latent_frames(self.num_frames)  # raises for T ≠ 1 + 4k
+        for name in ("fov_y_deg", "scene_depth"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def load_config(name_or_path: str | os.PathLike) -> Diff4SplatConfig:
+    """Load ``configs/<name>.yaml`` (or a YAML path) over the dataclass defaults.
+
+    Raises:
+        FileNotFoundError: no such config name or file.
+        ValueError: unknown fields or inconsistent networks.
+    """
+    path = Path(name_or_path)
+    if path.suffix not in (".yaml", ".yml"):
+        path = CONFIG_DIR / f"{name_or_path}.yaml"
+    if not path.is_file():
+        known = sorted(p.stem for p in CONFIG_DIR.glob("*.yaml")) if CONFIG_DIR.is_dir() else []
+        raise FileNotFoundError(f"config: {name_or_path!r} not found (known: {known})")
+    data = yaml.safe_load(path.read_text()) or {}
+    if not isinstance(data, dict):
+        raise ValueError(f"config: {path} must hold a mapping, got {type(data).__name__}")
+    return config_from_dict(Diff4SplatConfig, data, str(path))
+
+
+class Diff4SplatModel(nn.Module):
+    """The four networks of Diff4Splat (Pan et al. 2025, Fig. 2) under one config."""
+
+    def __init__(self, config: Diff4SplatConfig):
+        super().__init__()
+        self.config = config
+        self.vae = VideoVAE(config.vae)
+        self.text_encoder = TextEncoder(config.text_encoder)
+        self.dit = VideoDiT(config.dit)
+        self.ldrm = LDRM(config.ldrm)
+
+    def parameter_counts(self) -> dict[str, int]:
+        """Parameters per network and in total (works on the meta device)."""
+        counts = {name: count_parameters(getattr(self, name)) for name in _MODULES}
+        counts["total"] = sum(counts.values())
+        return counts
+
+    def save_pretrained(self, directory: str | os.PathLike) -> Path:
+        """Write ``config.json`` and one sub-folder per network, atomically (temp folder + rename)."""
+        directory = Path(directory)
+        with atomic_output_dir(directory) as tmp:
+            (tmp / CONFIG_NAME).write_text(json.dumps(self.config.to_dict(), indent=2))
+            for name in _MODULES:
+                getattr(self, name).save_pretrained(tmp / name)
+        return directory
+
+    @classmethod
+    def from_pretrained(cls, directory: str | os.PathLike, map_location: str = "cpu") -> "Diff4SplatModel":
+        """Load a folder written by :meth:`save_pretrained`.
+
+        Raises:
+            FileNotFoundError: a missing config.json or network sub-folder.
+            ValueError: configs that do not fit together or weights that do not match.
+        """
+        directory = Path(directory)
+        if not (directory / CONFIG_NAME).is_file():
+            raise FileNotFoundError(f"checkpoint: {directory / CONFIG_NAME} does not exist")
+        config = config_from_dict(Diff4SplatConfig, json.loads((directory / CONFIG_NAME).read_text()),
+                                  str(directory / CONFIG_NAME))
+        model = cls.__new__(cls)
+        nn.Module.__init__(model)
+        model.config = config
+        for name, module_cls in _MODULES.items():
+            sub = module_cls.from_pretrained(directory / name, map_location=map_location)
+            if sub.config != getattr(config, name):
+                raise ValueError(f"checkpoint: {directory / name} config differs from {directory / CONFIG_NAME}")
+            setattr(model, name, sub)
+        return model
+
+    @classmethod
+    def random(cls, config: Diff4SplatConfig, seed: int = 0) -> "Diff4SplatModel":
+        """A randomly initialised model, deterministic for ``seed`` (CPU generator)."""
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            return cls(config)
