@@ -99,18 +99,16 @@ class _CompositePairs(torch.autograd.Function):
     @staticmethod
     def forward(ctx, params, feats, background, gid, px, py, pix, n_pix):  # noqa: D102
         # params (M, 6) = [μx, μy, a, b, c, o]; feats (M, F); gid, pix (P,) int64; px, py (P,) pixel centres
-        prm = params.index_select(0, gid)
-        dx, dy = px - prm[:, 0], py - prm[:, 1]
-        alpha = splat_alpha(dx, dy, prm[:, 2:5], prm[:, 5])
+        prm = params.t().contiguous().index_select(1, gid)  # (6, P), contiguous rows
+        dx, dy = px - prm[0], py - prm[1]
+        alpha = splat_alpha(dx, dy, prm[2:5].t(), prm[5])
         counts = torch.bincount(pix, minlength=n_pix)
         starts = torch.cumsum(counts, 0) - counts
-        first = starts.index_select(0, pix)
-        log_1ma = torch.log1p(-alpha).double()
-        cs = torch.cumsum(log_1ma, 0)
-        excl = cs - log_1ma
-        base = excl.index_select(0, first)
-        incl = (cs - base) >= _LOG_T_MIN
-        T = torch.exp(excl - base).to(alpha.dtype)
+        log_1ma = torch.log1p(-alpha)
+        excl = torch.cumsum(log_1ma, 0, dtype=torch.float64) - log_1ma  # float64: no cancellation
+        log_T = (excl - excl.index_select(0, starts.index_select(0, pix))).to(alpha.dtype)
+        incl = (log_T + log_1ma) >= _LOG_T_MIN  # next_T ≥ 1e-4
+        T = torch.exp(log_T)
         w = torch.where(incl, alpha * T, 0.0)
         f = feats.index_select(0, gid)
         out = feats.new_zeros(n_pix, feats.shape[1]).index_add_(0, pix, w[:, None] * f)
@@ -194,6 +192,9 @@ def composite_tiles(
     rx0, ry0 = torch.maximum(box[:, 0], tx), torch.maximum(box[:, 1], ty)
     rw = torch.minimum(box[:, 2], tx + s - 1) - rx0 + 1
     n_rect = rw * (torch.minimum(box[:, 3], ty + s - 1) - ry0 + 1)
+    # chunk-independent part of each pair's key: tile's first pixel index + rect offset in the tile
+    base = (itile * s2 + (ry0 - ty) * s + (rx0 - tx)).to(torch.int32)
+    rw32 = rw.to(torch.int32)
     cum_pairs = torch.cumsum(torch.zeros(n_tiles, dtype=torch.long).index_add_(0, itile, n_rect), 0)
     cum_isect = torch.cumsum(info["tile_counts"], 0)
     params = torch.cat([means2d, conics, opacities[:, None]], dim=-1)  # (M, 6)
@@ -205,20 +206,23 @@ def composite_tiles(
         t1 = min(max(t1, t0 + 1), t0 + max_tiles, n_tiles)
         i0 = int(cum_isect[t0 - 1]) if t0 else 0
         i1 = int(cum_isect[t1 - 1])
+        n_chunk_pix = (t1 - t0) * s2
         n = n_rect[i0:i1]
-        j = torch.repeat_interleave(torch.arange(i0, i1), n)
-        local = torch.arange(len(j)) - torch.repeat_interleave(torch.cumsum(n, 0) - n, n)
-        w_j = rw[j]
-        px, py = rx0[j] + local % w_j, ry0[j] + local // w_j
-        key = (itile[j] - t0) * s2 + (py - ty[j]) * s + (px - tx[j])  # pixel index within the chunk
-        perm = _stable_argsort_small(key, (t1 - t0) * s2)
-        key, px, py = key[perm], px[perm], py[perm]
-        col, acc = _CompositePairs.apply(
-            params, feats, background, flat[j[perm]], px.to(dtype) + 0.5, py.to(dtype) + 0.5, key, (t1 - t0) * s2
-        )
-        q = torch.arange((t1 - t0) * s2)
+        # Pixel index within the chunk of every pair (int32): rect origin + (row, column) in the rect.
+        start = torch.cumsum(n, 0, dtype=torch.int32) - n.to(torch.int32)
+        local = torch.arange(int(n.sum()), dtype=torch.int32) - torch.repeat_interleave(start, n)
+        rw_p = torch.repeat_interleave(rw32[i0:i1], n)
+        row = torch.div(local, rw_p, rounding_mode="floor")
+        key = torch.repeat_interleave(base[i0:i1] - t0 * s2, n) + row * s + (local - row * rw_p)
+        perm = _stable_argsort_small(key, n_chunk_pix)
+        key = key[perm].long()
+        gid = torch.repeat_interleave(flat[i0:i1], n)[perm]
+        q = torch.arange(n_chunk_pix)
         qt = t0 + q // s2
         qx, qy = qt % tiles_x * s + q % s, qt // tiles_x * s + (q % s2) // s
+        col, acc = _CompositePairs.apply(
+            params, feats, background, gid, (qx.to(dtype) + 0.5)[key], (qy.to(dtype) + 0.5)[key], key, n_chunk_pix
+        )
         inside = (qx < width) & (qy < height)
         ids.append((qy * width + qx)[inside])
         cols.append(col[inside])
