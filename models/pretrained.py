@@ -19,9 +19,11 @@ CONFIG_NAME = "config.json"
 
 
 def config_from_dict(cls: type, data: dict[str, Any], where: str = "config") -> Any:
-    """Build dataclass ``cls`` from a dict, rejecting unknown fields.
+    """Build dataclass ``cls`` from a dict over its defaults, rejecting unknown fields.
 
-    Nested dataclass fields are built recursively; lists become tuples where the default is a tuple.
+    A nested dataclass field given as a dict overrides that field's *default value* field by field
+    (so ``{"dit": {"text_dim": 32}}`` keeps the parent's other ``dit`` defaults); lists become
+    tuples where the field is a tuple.
 
     Raises:
         ValueError: an unknown field name (names the field and ``where``).
@@ -31,15 +33,28 @@ def config_from_dict(cls: type, data: dict[str, Any], where: str = "config") -> 
     for key, value in data.items():
         if key not in fields:
             raise ValueError(f"{where}: unknown field {key!r} for {cls.__name__} (known: {sorted(fields)})")
-        ftype = fields[key].type
-        default = fields[key].default
+        f = fields[key]
         sub = _dataclass_type(cls, key)
         if sub is not None and isinstance(value, dict):
-            value = config_from_dict(sub, value, f"{where}.{key}")
-        elif isinstance(value, list) and (isinstance(default, tuple) or "tuple" in str(ftype)):
+            base = f.default_factory() if f.default_factory is not dataclasses.MISSING else (
+                f.default if f.default is not dataclasses.MISSING else None)
+            merged = _shallow_asdict(base) if dataclasses.is_dataclass(base) else {}
+            for k, v in value.items():
+                if isinstance(v, dict) and isinstance(merged.get(k), dict):
+                    merged[k] = {**merged[k], **v}
+                else:
+                    merged[k] = v
+            value = config_from_dict(sub, merged, f"{where}.{key}")
+        elif isinstance(value, list) and (isinstance(f.default, tuple) or "tuple" in str(f.type)):
             value = tuple(value)
         kwargs[key] = value
     return cls(**kwargs)
+
+
+def _shallow_asdict(obj: Any) -> dict[str, Any]:
+    """Field dict of a dataclass instance, nested dataclasses as dicts (so they merge recursively)."""
+    return {f.name: (_shallow_asdict(v) if dataclasses.is_dataclass(v := getattr(obj, f.name)) else v)
+            for f in dataclasses.fields(obj)}
 
 
 def _dataclass_type(cls: type, name: str) -> type | None:

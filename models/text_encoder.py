@@ -329,4 +329,4 @@ class TextEncoder(nn.Module, PretrainedMixin):
         ids, mask = self.tokenizer(prompts, padding=padding)
         device = self.embed.weight.device
         ids, mask = ids.to(device), mask.to(device)
-        return self.forward(ids, mask), mask
+        return self(ids, mask), mask

@@ -1,0 +1,176 @@
+"""End to end: `diff4splat generate` on the shipped photograph, every output file, every bad input."""
+import json
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from plyfile import PlyData
+
+from conftest import EXAMPLE_IMAGE
+from diff4splat.cli import main
+from diff4splat.io import load_depth_exr, load_ply, load_video, ply_property_names, save_cameras_json
+from diff4splat.io.output import load_deformation
+from diff4splat.quaternions import quat_multiply, quat_normalize, quat_to_rotmat
+from diff4splat.scene import DynamicGaussians
+
+INRIA = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]
+         + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)])
+
+
+def _generate(tmp_path, *extra, frames=9):
+    out = tmp_path / "out"
+    code = main(["generate", str(EXAMPLE_IMAGE), "--frames", str(frames), "--steps", "2", "--quiet",
+                 "--out", str(out), *extra])
+    return code, out
+
+
+def _check_folder(out, frames):
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["frames"] == frames and meta["width"] == meta["height"] == 64
+    assert set(meta["timings_s"]) >= {"load_model", "encode_image", "encode_text", "sample", "reconstruct", "render"}
+    ply = PlyData.read(str(out / "scene.ply"))
+    names = [p.name for p in ply["vertex"].properties]
+    assert names == ply_property_names(1) and set(INRIA) <= set(names)
+    assert len(ply["vertex"]) == meta["num_gaussians"] > 0
+    video = load_video(out / "video.mp4")
+    assert video.shape == (frames, 64, 64, 3)
+    for i in range(frames):
+        depth, alpha = load_depth_exr(out / "depth" / f"{i:04d}.exr", return_alpha=True)
+        assert depth.shape == (64, 64) and np.isfinite(depth).all() and (depth > 0).all()
+        assert alpha is not None and (alpha >= 0).all() and (alpha <= 1).all()
+    cams = json.loads((out / "cameras.json").read_text())
+    assert len(cams["viewmats"]) == frames and cams["width"] == 64
+    np.testing.assert_allclose(cams["viewmats"][0], np.eye(4), atol=1e-6)
+    return meta
+
+
+def test_generate_writes_every_file_on_the_shipped_photograph(tmp_path, capsys):
+    code, out = _generate(tmp_path, "--trajectory", "orbit", "--prompt", "a cat turns its head")
+    assert code == 0
+    err = capsys.readouterr().err
+    assert "randomly initialised" in err or "models/weights" not in err  # the untrained default says so
+    meta = _check_folder(out, 9)
+    assert meta["static"] and not (out / "deformation.npz").exists()
+    canonical = load_ply(out / "scene.ply")
+    for i in range(9):  # static: every frame equals the canonical scene
+        torch.testing.assert_close(load_ply(out / "frames" / f"{i:04d}.ply").means, canonical.means)
+    assert not any(p.name.startswith(".") for p in tmp_path.iterdir())  # no temp folder left
+
+
+def test_dynamic_checkpoint_frames_differ_only_through_the_deformation(tmp_path, dynamic_checkpoint):
+    code, out = _generate(tmp_path, "--checkpoint", str(dynamic_checkpoint), "--trajectory", "spiral", "--frames", "5")
+    assert code == 0
+    meta = _check_folder(out, 5)
+    assert not meta["static"]
+    canonical = load_ply(out / "scene.ply")
+    d = {k: torch.from_numpy(v) for k, v in load_deformation(out / "deformation.npz").items()}
+    assert d["d_means"].shape == (5, canonical.num_gaussians, 3)
+    scene = DynamicGaussians(canonical, d["times"], d["d_means"], d["d_quats"], d["d_scales"])
+    times = json.loads((out / "cameras.json").read_text())["times"]
+    moved = 0.0
+    for i, t in enumerate(times):
+        frame = load_ply(out / "frames" / f"{i:04d}.ply")
+        expect = scene.at(t)
+        torch.testing.assert_close(frame.means, expect.means, atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(frame.scales, expect.scales, atol=1e-6, rtol=1e-4)
+        torch.testing.assert_close(quat_to_rotmat(frame.quats), quat_to_rotmat(expect.quats), atol=1e-5, rtol=0)
+        torch.testing.assert_close(frame.opacities, canonical.opacities)
+        torch.testing.assert_close(frame.sh, canonical.sh)
+        moved = max(moved, float((frame.means - canonical.means).abs().max()))
+    assert moved > 1e-3
+
+
+def test_cameras_file_round_trips_through_generate(tmp_path):
+    code, out = _generate(tmp_path, "--trajectory", "pan-left", "--frames", "5")
+    assert code == 0
+    code2, out2 = main(["generate", str(EXAMPLE_IMAGE), "--cameras", str(out / "cameras.json"), "--steps", "2",
+                        "--quiet", "--out", str(tmp_path / "again")]), tmp_path / "again"
+    assert code2 == 0
+    a = json.loads((out / "cameras.json").read_text())
+    b = json.loads((out2 / "cameras.json").read_text())
+    np.testing.assert_allclose(a["viewmats"], b["viewmats"], atol=1e-6)
+    np.testing.assert_allclose(a["Ks"], b["Ks"], atol=1e-4)
+
+
+def _bad_camera_file(tmp_path, kind):
+    from diff4splat.cameras import CameraPath, intrinsics_from_fov
+
+    cams = CameraPath(torch.eye(4).repeat(5, 1, 1), intrinsics_from_fov(64, 64, fov_y_deg=50).expand(5, 3, 3).clone(), 64, 64)
+    path = tmp_path / "cams.json"
+    save_cameras_json(path, cams)
+    data = json.loads(path.read_text())
+    if kind == "nan":
+        data["viewmats"][2][0][3] = float("nan")
+    elif kind == "rotation":
+        data["viewmats"][2][0][0] = 2.0
+    else:
+        data["viewmats"] = []
+    path.write_text(json.dumps(data).replace("NaN", "NaN"))
+    return path
+
+
+@pytest.mark.parametrize("case", ["missing_image", "unreadable_image", "frames_not_1_plus_4k", "zero_frames",
+                                  "unknown_trajectory", "both_camera_sources", "nan_cameras",
+                                  "non_orthonormal_cameras", "zero_cameras", "missing_cameras",
+                                  "missing_checkpoint", "zero_steps", "out_is_file", "bad_sampler", "no_out"])
+def test_bad_input_one_line_exit_2_and_no_output(tmp_path, capsys, case):
+    out = tmp_path / "out"
+    args = ["generate", str(EXAMPLE_IMAGE), "--steps", "1", "--frames", "5", "--quiet", "--out", str(out)]
+    if case == "missing_image":
+        args[1] = str(tmp_path / "nope.png")
+    elif case == "unreadable_image":
+        (tmp_path / "junk.png").write_bytes(b"not an image")
+        args[1] = str(tmp_path / "junk.png")
+    elif case == "frames_not_1_plus_4k":
+        args[5] = "8"
+    elif case == "zero_frames":
+        args[5] = "0"
+    elif case == "unknown_trajectory":
+        args += ["--trajectory", "loop-de-loop"]
+    elif case == "both_camera_sources":
+        args += ["--trajectory", "orbit", "--cameras", str(_bad_camera_file(tmp_path, "ok"))]
+    elif case in ("nan_cameras", "non_orthonormal_cameras", "zero_cameras"):
+        kind = {"nan_cameras": "nan", "non_orthonormal_cameras": "rotation", "zero_cameras": "empty"}[case]
+        args = [a for a in args if a not in ("--frames", "5")] + ["--cameras", str(_bad_camera_file(tmp_path, kind))]
+    elif case == "missing_cameras":
+        args += ["--cameras", str(tmp_path / "none.json")]
+    elif case == "missing_checkpoint":
+        args += ["--checkpoint", str(tmp_path / "no_ckpt")]
+    elif case == "zero_steps":
+        args[3] = "0"
+    elif case == "out_is_file":
+        out.write_text("x")
+    elif case == "bad_sampler":
+        args += ["--sampler", "rk4"]
+    else:
+        args = args[:-2]
+    code = main(args)
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip() and not line.startswith("diff4splat: warning")]
+    assert code == 2
+    assert len(lines) == 1 and lines[0].startswith("diff4splat: error:"), err
+    assert out.is_file() if case == "out_is_file" else not out.exists()
+    assert not any(p.name.startswith(".out") for p in tmp_path.iterdir())
+
+
+def test_console_script_runs_as_a_process(tmp_path):
+    """The installed entry point (python -m form) exits 2 with one stderr line on a bad image."""
+    proc = subprocess.run([sys.executable, "-m", "diff4splat.cli", "generate", str(tmp_path / "x.png"),
+                           "--out", str(tmp_path / "o")], capture_output=True, text=True)
+    assert proc.returncode == 2 and proc.stderr.strip().count("\n") == 0 and "x.png" in proc.stderr
+
+
+def test_rgba_grey_and_16bit_images_generate(tmp_path):
+    img = cv2.imread(str(EXAMPLE_IMAGE), cv2.IMREAD_UNCHANGED)
+    variants = {"rgba.png": np.dstack([img, np.full(img.shape[:2], 200, np.uint8)]),
+                "grey.png": cv2.cvtColor(img, cv2.COLOR_BGR2GRAY),
+                "deep.png": img.astype(np.uint16) * 257}
+    for name, arr in variants.items():
+        cv2.imwrite(str(tmp_path / name), arr)
+        code = main(["generate", str(tmp_path / name), "--frames", "1", "--steps", "1", "--quiet",
+                     "--out", str(tmp_path / f"out_{name}")])
+        assert code == 0, name
+        assert load_video(tmp_path / f"out_{name}" / "video.mp4").shape == (1, 64, 64, 3)

@@ -1,0 +1,33 @@
+import torch
+
+from diff4splat.cameras import CameraPath, intrinsics_from_fov
+from diff4splat.gaussians import Gaussians, rgb_to_sh0
+from diff4splat.render.path import render_path
+from diff4splat.scene import DynamicGaussians
+
+
+def test_each_frame_renders_the_scene_at_its_own_time():
+    """A small bright Gaussian moving along x: frame i shows it where its mean at t_i projects."""
+    W = H = 32
+    T = 5
+    K = intrinsics_from_fov(W, H, fov_y_deg=60.0, dtype=torch.float64)
+    path = CameraPath(torch.eye(4, dtype=torch.float64).repeat(T, 1, 1), K.expand(T, 3, 3).clone(), W, H)
+    g = Gaussians(torch.tensor([[-0.5, 0.0, 2.0]], dtype=torch.float64), torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64),
+                  torch.full((1, 3), 0.03, dtype=torch.float64), torch.tensor([0.95], dtype=torch.float64),
+                  rgb_to_sh0(torch.ones(1, 1, 3, dtype=torch.float64)))
+    d_means = torch.zeros(T, 1, 3, dtype=torch.float64)
+    d_means[:, 0, 0] = torch.linspace(0, 1.0, T, dtype=torch.float64)
+    dq = torch.zeros(T, 1, 4, dtype=torch.float64)
+    dq[..., 0] = 1
+    scene = DynamicGaussians(g, path.times, d_means, dq, torch.zeros_like(d_means))
+    colors, depths, alphas = render_path(scene, path)
+    assert colors.shape == (T, H, W, 3) and depths.shape == alphas.shape == (T, H, W)
+    xs = torch.arange(W, dtype=torch.float64) + 0.5
+    for i in range(T):
+        w = alphas[i].sum(0)
+        centroid_x = float((w * xs).sum() / w.sum())
+        x = -0.5 + float(d_means[i, 0, 0])
+        expected = float(K[0, 0] * x / 2.0 + K[0, 2])
+        assert abs(centroid_x - expected) < 0.2, (i, centroid_x, expected)
+        peak = alphas[i].argmax()
+        torch.testing.assert_close(depths[i].flatten()[peak], torch.tensor(2.0, dtype=torch.float64), atol=1e-9, rtol=0)
