@@ -4,7 +4,7 @@ import math
 import pytest
 import torch
 
-from diff4splat.cameras import CameraPath, camera_rays, intrinsics_from_focal, invert_rigid
+from diff4splat.cameras import CameraPath, camera_rays, center_crop_box, intrinsics_from_focal, invert_rigid
 from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
 
 
@@ -129,19 +129,13 @@ def test_float32_path_and_to():
 
 
 def test_fitted_crop_keeps_a_point_on_the_same_image_content():
-    """A point projecting to pixel (u, v) of a 300×450 frame lands where the cropped+resized photo shows it."""
-    import torch as _t
-
-    from diff4splat.cameras import CameraPath as _CP
-    from diff4splat.cameras import center_crop_box as _ccb
-
-    K = _t.tensor([[[400.0, 0, 225.0], [0, 400.0, 150.0], [0, 0, 1]]], dtype=_t.float64)
-    path = _CP(_t.eye(4, dtype=_t.float64)[None], K, 450, 300)
-    fit = path.fitted(64, 64)
-    X = _t.tensor([0.3, -0.2, 2.0], dtype=_t.float64)
+    """A point at pixel (u, v) of a 450×300 frame lands where the centre-cropped, resized photo shows it."""
+    K = torch.tensor([[[400.0, 0, 225.0], [0, 400.0, 150.0], [0, 0, 1]]], dtype=torch.float64)
+    fit = CameraPath(torch.eye(4, dtype=torch.float64)[None], K, 450, 300).fitted(64, 64)
+    X = torch.tensor([0.3, -0.2, 2.0], dtype=torch.float64)
+    y0, x0, ch, cw = center_crop_box(300, 450, 64, 64)
+    assert (y0, x0, ch, cw) == (0, 75, 300, 300)
     uv0 = (K[0] @ X)[:2] / X[2]
-    y0, x0, ch, cw = _ccb(300, 450, 64, 64)
-    expected = (uv0 - _t.tensor([x0, y0], dtype=_t.float64)) * _t.tensor([64 / cw, 64 / ch], dtype=_t.float64)
-    uv1 = (fit.Ks[0] @ X)[:2] / X[2]
-    _t.testing.assert_close(uv1, expected)
-    assert (fit.width, fit.height) == (64, 64) and (y0, ch, cw) == (0, 300, 300) and x0 == 75
+    expected = (uv0 - torch.tensor([x0, y0], dtype=torch.float64)) * torch.tensor([64 / cw, 64 / ch], dtype=torch.float64)
+    torch.testing.assert_close((fit.Ks[0] @ X)[:2] / X[2], expected)
+    assert (fit.width, fit.height) == (64, 64)
