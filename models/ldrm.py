@@ -32,6 +32,7 @@ from diff4splat.cameras import camera_rays
 from diff4splat.gaussians import Gaussians, rgb_to_sh0
 
 from .deformation import DeformationConfig, DeformationNetwork, soft_clamp, unit_quat_from_raw
+from .layers import Mlp, SelfAttention, patchify
 from .pretrained import PretrainedMixin
 
 __all__ = ["LDRMConfig", "LDRM", "LDRMOutput", "gaussian_activations", "to_gaussians", "sincos_position_3d"]
@@ -199,41 +200,23 @@ def sincos_position_3d(n: int, h: int, w: int, dim: int, device=None, dtype=torc
     ], dim=-1).reshape(n * h * w, dim)
 
 
-class Attention(nn.Module):
-    """Multi-head self-attention (Vaswani et al. 2017) via ``scaled_dot_product_attention``."""
-
-    def __init__(self, dim: int, heads: int) -> None:
-        super().__init__()
-        self.heads = heads
-        self.qkv = nn.Linear(dim, 3 * dim)
-        self.proj = nn.Linear(dim, dim)
-
-    def forward(self, x: Tensor) -> Tensor:  # (B, N, D) → (B, N, D)
-        B, N, D = x.shape
-        q, k, v = self.qkv(x).reshape(B, N, 3, self.heads, D // self.heads).permute(2, 0, 3, 1, 4)
-        return self.proj(F.scaled_dot_product_attention(q, k, v).transpose(1, 2).reshape(B, N, D))
-
-
 class Block(nn.Module):
-    """Pre-norm transformer block: x + Attn(LN(x)), then x + MLP(LN(x)) (ViT, Dosovitskiy et al. 2021)."""
+    """Pre-norm transformer block: x + Attn(LN(x)), then x + MLP(LN(x)) (ViT, Dosovitskiy et al. 2021).
+
+    Attention and MLP are the shared :class:`models.layers.SelfAttention` (no QK-norm, no RoPE:
+    positions enter as the additive sine-cosine embedding) and :class:`models.layers.Mlp`.
+    """
 
     def __init__(self, dim: int, heads: int, mlp_ratio: float) -> None:
         super().__init__()
-        hidden = int(dim * mlp_ratio)
         self.norm1 = nn.LayerNorm(dim)
-        self.attn = Attention(dim, heads)
+        self.attn = SelfAttention(dim, heads, qk_norm=False)
         self.norm2 = nn.LayerNorm(dim)
-        self.mlp = nn.Sequential(nn.Linear(dim, hidden), nn.GELU(approximate="tanh"), nn.Linear(hidden, dim))
+        self.mlp = Mlp(dim, int(dim * mlp_ratio))
 
-    def forward(self, x: Tensor) -> Tensor:
+    def forward(self, x: Tensor) -> Tensor:  # (B, N, D) → (B, N, D)
         x = x + self.attn(self.norm1(x))
         return x + self.mlp(self.norm2(x))
-
-
-def _patchify(x: Tensor, p: int) -> Tensor:  # (B, C, n, h, w) → (B, n·(h/p)·(w/p), C·p²)
-    B, C, n, h, w = x.shape
-    x = x.reshape(B, C, n, h // p, p, w // p, p).permute(0, 2, 3, 5, 1, 4, 6)
-    return x.reshape(B, n * (h // p) * (w // p), C * p * p)
 
 
 def to_gaussians(
@@ -354,7 +337,7 @@ class LDRM(nn.Module, PretrainedMixin):
         p = cfg.patch_size
         B, _, n, h, w = latents.shape
         hp, wp = h // p, w // p
-        tokens = torch.cat([_patchify(latents, p), _patchify(plucker.to(latents.dtype), p)], dim=-1)
+        tokens = torch.cat([patchify(latents, (1, p, p)), patchify(plucker.to(latents.dtype), (1, p, p))], dim=-1)
         x = self.embed(tokens) + sincos_position_3d(n, hp, wp, cfg.embed_dim, latents.device, latents.dtype)
         for block in self.blocks:
             x = block(x)

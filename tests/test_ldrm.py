@@ -115,7 +115,7 @@ def test_head_reads_reference_frame_patch_locally(patch):
     model = _model(patch_size=patch)
     with torch.no_grad():
         for block in model.blocks:
-            for layer in (block.attn.proj, block.mlp[2]):
+            for layer in (block.attn.proj, block.mlp.fc2):
                 layer.weight.zero_()
                 layer.bias.zero_()
     latents, plucker = _inputs()
