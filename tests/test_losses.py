@@ -1,0 +1,111 @@
+import math
+
+import pytest
+import torch
+
+from training.losses import (depth_correlation_loss, depth_smoothness_loss, flow_matching_loss,
+                             gather_track_predictions, motion_loss, photometric_loss, sample_training_sigmas)
+
+
+def test_flow_matching_loss_is_zero_for_the_exact_velocity_and_closed_form_otherwise():
+    g = torch.Generator().manual_seed(0)
+    x0, eps = torch.randn(2, 4, 3, 8, 8, generator=g), torch.randn(2, 4, 3, 8, 8, generator=g)
+    sigma = torch.tensor([0.3, 0.8])
+    exact = lambda x, s: eps - x0  # noqa: E731  the conditional target
+    assert flow_matching_loss(exact, x0, eps, sigma) == 0
+    zero = lambda x, s: torch.zeros_like(x)  # noqa: E731
+    torch.testing.assert_close(flow_matching_loss(zero, x0, eps, sigma), ((eps - x0) ** 2).mean())
+    seen = []
+    flow_matching_loss(lambda x, s: seen.append((x, s)) or x, x0, eps, sigma)
+    torch.testing.assert_close(seen[0][0], (1 - sigma.view(2, 1, 1, 1, 1)) * x0 + sigma.view(2, 1, 1, 1, 1) * eps)
+
+
+def test_training_sigmas_are_logit_normal_and_shifted():
+    g = torch.Generator().manual_seed(0)
+    s = sample_training_sigmas(200_000, generator=g)
+    assert 0 < s.min() and s.max() < 1
+    logits = torch.log(s / (1 - s))
+    assert abs(float(logits.mean())) < 0.01 and abs(float(logits.std()) - 1) < 0.01
+    g = torch.Generator().manual_seed(0)
+    shifted = sample_training_sigmas(200_000, shift=3.0, generator=g)
+    torch.testing.assert_close(shifted, 3 * s / (1 + 2 * s))
+
+
+def test_photometric_loss_closed_forms():
+    img = torch.rand(2, 3, 32, 32, generator=torch.Generator().manual_seed(1))
+    assert float(photometric_loss(img, img)) == pytest.approx(0.0, abs=1e-6)
+    # a constant offset c: L1 = c; SSIM of x and x + c is the luminance term only
+    c = 0.1
+    l1_only = photometric_loss(img, img + c, ssim_weight=0.0)
+    assert float(l1_only) == pytest.approx(c, rel=1e-5)
+    # pure SSIM term equals 1 − kornia's mean SSIM
+    import kornia
+
+    torch.testing.assert_close(photometric_loss(img, img * 0.5, ssim_weight=1.0),
+                               1 - kornia.metrics.ssim(img, img * 0.5, 11).mean())
+    with pytest.raises(ValueError):
+        photometric_loss(img, img[:, :, :16])
+
+
+def test_depth_correlation_is_invariant_to_scale_and_shift_and_finite_when_constant():
+    g = torch.Generator().manual_seed(2)
+    ref = torch.rand(2, 16, 16, generator=g) + 1
+    # eps = 1e-6 in the variances moves ρ by ~eps/var ≈ 1e-5 for var ≈ 1/12
+    assert float(depth_correlation_loss(3.0 * ref + 2.0, ref)) == pytest.approx(0.0, abs=1e-4)
+    assert float(depth_correlation_loss(-ref, ref)) == pytest.approx(2.0, abs=1e-4)  # ρ = −1
+    const = torch.ones(2, 16, 16)
+    loss = depth_correlation_loss(const, ref)
+    assert torch.isfinite(loss) and float(loss) == pytest.approx(1.0, abs=1e-4)
+    pred = const.clone().requires_grad_()
+    depth_correlation_loss(pred, ref).backward()
+    assert torch.isfinite(pred.grad).all()
+
+
+def test_depth_correlation_ignores_invalid_pixels():
+    g = torch.Generator().manual_seed(3)
+    ref = torch.rand(1, 8, 8, generator=g) + 1
+    pred = 2 * ref
+    valid = torch.ones_like(ref, dtype=torch.bool)
+    valid[0, :2] = False
+    pred_bad = pred.clone()
+    pred_bad[0, :2] = 1000.0  # garbage where invalid
+    ref_bad = ref.clone()
+    ref_bad[0, 0, 0] = math.inf
+    assert float(depth_correlation_loss(pred_bad, ref_bad, valid)) == pytest.approx(0.0, abs=1e-5)
+
+
+def test_smoothness_zero_for_constant_depth_and_down_weighted_at_image_edges():
+    img = torch.zeros(1, 3, 16, 16)
+    assert float(depth_smoothness_loss(torch.full((1, 16, 16), 2.0), img)) == 0.0
+    depth = torch.ones(1, 16, 16)
+    depth[..., 8:] = 2.0  # a vertical depth edge
+    flat = depth_smoothness_loss(depth, img)
+    img_edge = img.clone()
+    img_edge[..., 8:] = 1.0  # the same edge in the image
+    aligned = depth_smoothness_loss(depth, img_edge)
+    torch.testing.assert_close(aligned, flat * math.exp(-1.0))
+
+
+def test_motion_loss_is_masked_mean_end_point_error():
+    pred = torch.zeros(1, 2, 3, 3)
+    target = torch.zeros(1, 2, 3, 3)
+    target[0, 0, :, 0] = 3.0  # track 0 is 3 m off at every time
+    target[0, 1, :, 1] = 100.0  # track 1 is far off but invisible
+    vis = torch.zeros(1, 2, 3, dtype=torch.bool)
+    vis[0, 0] = True
+    assert float(motion_loss(pred, target, vis)) == pytest.approx(3.0)
+    assert float(motion_loss(pred, target, torch.zeros_like(vis))) == 0.0
+    p = pred.clone().requires_grad_()
+    motion_loss(p, pred, vis).backward()  # distance 0: gradient must stay finite
+    assert torch.isfinite(p.grad).all()
+
+
+def test_gather_track_predictions_follows_pixel_aligned_gaussians():
+    B, T, M = 1, 4, 6
+    means = torch.arange(M * 3, dtype=torch.float32).reshape(1, M, 3)
+    d = torch.randn(B, T, M, 3)
+    idx = torch.tensor([[5, 0, 2]])
+    out = gather_track_predictions(means, d, idx)
+    assert out.shape == (1, 3, T, 3)
+    for p, m in enumerate(idx[0].tolist()):
+        torch.testing.assert_close(out[0, p], means[0, m] + d[0, :, m])
