@@ -1,0 +1,569 @@
+"""The dataset scene format (version 1): one folder per scene, written atomically, read lazily.
+
+The layout and every field are specified in ``data_prep/FORMAT.md``; in short::
+
+    <scene>/meta.json  caption.txt?  tracks.npz?
+    <scene>/<cam>/cameras.json            diff4splat cameras.json + "timestamps" (T,) seconds
+    <scene>/<cam>/rgb/00000.png …         8-bit RGB
+    <scene>/<cam>/depth/00000.exr …       float32 "Z", metric z-depth in metres, +inf = invalid
+
+:class:`SceneWriter` builds a scene in a temporary folder beside the target and renames it into
+place (:func:`diff4splat.io.atomic_output_dir`), so a scene folder is either complete or absent.
+:class:`SceneReader` (:func:`load_scene`) reads ``meta.json`` on open and everything else on demand.
+Validation of a whole folder is :func:`data_prep.validate.validate_scene`.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from torch import Tensor
+
+from diff4splat.cameras import CameraPath
+from diff4splat.io import atomic_output_dir, load_cameras_json, load_depth_exr, save_cameras_json, save_depth_exr, save_image
+
+__all__ = [
+    "FORMAT_VERSION",
+    "DEPTH_SOURCES",
+    "SYNC_TOLERANCE_S",
+    "TIMES_TOLERANCE",
+    "SceneMeta",
+    "SceneWriter",
+    "SceneReader",
+    "load_scene",
+    "list_scenes",
+    "frame_name",
+    "check_camera_name",
+    "read_rgb",
+    "read_timestamps",
+    "timestamps_to_times",
+]
+
+FORMAT_VERSION = 1
+"""Version of ``data_prep/FORMAT.md`` written by this module."""
+
+DEPTH_SOURCES: tuple[str, ...] = ("ground_truth", "aligned_estimate", "none")
+"""Allowed values of ``meta["depth_source"]``."""
+
+SYNC_TOLERANCE_S = 1e-3
+"""Cameras are synchronised when their timestamps agree within this many seconds."""
+
+TIMES_TOLERANCE = 1e-4
+"""``times`` must equal the normalised ``timestamps`` within this (times are in [0, 1])."""
+
+_CAMERA_NAME = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9_.-]*$")
+
+
+def check_camera_name(name: Any) -> str:
+    """Return ``name`` if it is a valid camera folder name ([A-Za-z0-9_.-]+, no leading '.'), else ValueError."""
+    if not isinstance(name, str) or not _CAMERA_NAME.match(name):
+        raise ValueError(f"cameras: {name!r} is not a valid camera folder name ([A-Za-z0-9_.-]+, no leading '.')")
+    return name
+
+
+def frame_name(index: int, suffix: str) -> str:
+    """File name of frame ``index``: ``f"{index:05d}{suffix}"`` (e.g. ``00017.png``)."""
+    return f"{index:05d}{suffix}"
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+@dataclass
+class SceneMeta:
+    """The typed content of ``meta.json`` (FORMAT.md, "meta.json").
+
+    Attributes:
+        source: dataset name, e.g. ``"synthetic"``, ``"pointodyssey"``.
+        dynamic: anything in the scene moves (False: static world, only cameras move).
+        depth_source: one of :data:`DEPTH_SOURCES`.
+        num_frames: T ≥ 1 frames per camera.
+        cameras: camera folder names, reference camera first, unique.
+        fps: nominal frame rate of the stored frames, Hz, > 0.
+        depth_scale: > 0; metric = depth_scale·estimate + depth_shift was applied (1 for ground truth).
+        depth_shift: metres (0 for ground truth).
+        format_version: must be :data:`FORMAT_VERSION`.
+        extra: any other keys, kept as is (JSON-serialisable).
+
+    Raises:
+        ValueError: naming the field and the value, on construction.
+    """
+
+    source: str
+    dynamic: bool
+    depth_source: str
+    num_frames: int
+    cameras: list[str]
+    fps: float
+    depth_scale: float = 1.0
+    depth_shift: float = 0.0
+    format_version: int = FORMAT_VERSION
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    _KEYS = ("format_version", "source", "dynamic", "depth_source", "depth_scale", "depth_shift",
+             "num_frames", "cameras", "fps")
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Check every field's type and value (FORMAT.md table). Raises ValueError naming the field."""
+        if not _is_int(self.format_version) or self.format_version != FORMAT_VERSION:
+            raise ValueError(f"format_version must be {FORMAT_VERSION}, got {self.format_version!r}")
+        if not isinstance(self.source, str) or not self.source.strip():
+            raise ValueError(f"source must be a non-empty string, got {self.source!r}")
+        if not isinstance(self.dynamic, bool):
+            raise ValueError(f"dynamic must be true or false, got {self.dynamic!r}")
+        if self.depth_source not in DEPTH_SOURCES:
+            raise ValueError(f"depth_source must be one of {list(DEPTH_SOURCES)}, got {self.depth_source!r}")
+        if not _is_number(self.depth_scale) or self.depth_scale <= 0:
+            raise ValueError(f"depth_scale must be a finite number > 0, got {self.depth_scale!r}")
+        if not _is_number(self.depth_shift):
+            raise ValueError(f"depth_shift must be a finite number (metres), got {self.depth_shift!r}")
+        if not _is_int(self.num_frames) or self.num_frames < 1:
+            raise ValueError(f"num_frames must be an integer ≥ 1, got {self.num_frames!r}")
+        if not _is_number(self.fps) or self.fps <= 0:
+            raise ValueError(f"fps must be a finite number > 0, got {self.fps!r}")
+        if not isinstance(self.cameras, list) or not self.cameras:
+            raise ValueError(f"cameras must be a non-empty list of camera folder names, got {self.cameras!r}")
+        for name in self.cameras:
+            check_camera_name(name)
+        if len(set(self.cameras)) != len(self.cameras):
+            raise ValueError(f"cameras must be unique, got {self.cameras}")
+        if not isinstance(self.extra, dict) or any(k in self._KEYS for k in self.extra):
+            raise ValueError("extra must be a dict whose keys are not standard meta keys")
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON object of ``meta.json`` (standard keys first, then ``extra``)."""
+        out = {k: getattr(self, k) for k in self._KEYS}
+        out["cameras"] = list(self.cameras)
+        out.update(self.extra)
+        return out
+
+    @classmethod
+    def from_dict(cls, data: Any) -> "SceneMeta":
+        """Parse a ``meta.json`` object.
+
+        Raises:
+            ValueError: not an object, a missing key (named) or a field failing :meth:`validate`.
+        """
+        if not isinstance(data, dict):
+            raise ValueError(f"meta must be a JSON object, got {type(data).__name__}")
+        missing = [k for k in cls._KEYS if k not in data]
+        if missing:
+            raise ValueError(f"missing key(s) {missing}")
+        extra = {k: v for k, v in data.items() if k not in cls._KEYS}
+        return cls(**{k: data[k] for k in cls._KEYS}, extra=extra)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "SceneMeta":
+        """Read and parse ``meta.json``.
+
+        Raises:
+            FileNotFoundError: ``path`` does not exist.
+            ValueError: invalid JSON or an invalid field (message prefixed with the path).
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"scene meta not found: {path}")
+        try:
+            return cls.from_dict(json.loads(path.read_text(encoding="utf-8")))
+        except (json.JSONDecodeError, UnicodeDecodeError, ValueError) as e:
+            raise ValueError(f"{path}: {e}") from None
+
+
+def timestamps_to_times(timestamps: np.ndarray) -> np.ndarray:
+    """Clip times t_i = (ts_i − ts_0)/(ts_{T−1} − ts_0) in [0, 1] of timestamps (T,) seconds.
+
+    T = 1, or equal first and last timestamps, gives all zeros. Returns float64 (T,).
+    """
+    ts = np.asarray(timestamps, dtype=np.float64)
+    span = ts[-1] - ts[0] if ts.size else 0.0
+    return (ts - ts[0]) / span if span > 0 else np.zeros_like(ts)
+
+
+def read_timestamps(path: str | os.PathLike) -> np.ndarray:
+    """The ``"timestamps"`` (T,) float64 seconds of a scene camera's ``cameras.json``.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: invalid JSON, missing ``timestamps``, not a list of finite numbers, or decreasing.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"camera file not found: {path}")
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{path} is not valid JSON: {e}") from None
+    ts = data.get("timestamps") if isinstance(data, dict) else None
+    if not isinstance(ts, list) or not all(_is_number(x) for x in ts):
+        raise ValueError(f"{path}: 'timestamps' must be a list of finite numbers (seconds), got {str(ts)[:60]}")
+    ts = np.asarray(ts, dtype=np.float64)
+    if ts.size > 1 and bool((np.diff(ts) < 0).any()):
+        raise ValueError(f"{path}: 'timestamps' must be non-decreasing")
+    return ts
+
+
+def read_rgb(path: str | os.PathLike) -> np.ndarray:
+    """Decode an 8-bit 3-channel RGB image file (OpenCV) to (H, W, 3) float32 in [0, 1] (value/255).
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: OpenCV cannot decode it, or it is not 8-bit with exactly 3 channels.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"image not found: {path}")
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"could not decode {path} as an image")
+    if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
+        ch = img.shape[2] if img.ndim == 3 else 1
+        raise ValueError(f"{path} must be 8-bit RGB (3 channels), got dtype {img.dtype} with {ch} channel(s)")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
+
+
+def _check_depth(depth: Tensor | np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    if isinstance(depth, Tensor):
+        depth = depth.detach().cpu().numpy()
+    z = np.asarray(depth, dtype=np.float32)
+    if z.shape != shape:
+        raise ValueError(f"depth must have shape (H, W) = {shape}, got {z.shape}")
+    bad = np.isnan(z) | (z <= 0) | np.isneginf(z)
+    if bad.any():
+        raise ValueError(f"depth has {int(bad.sum())} NaN, -inf or non-positive value(s); mark invalid pixels as +inf")
+    return z
+
+
+class SceneWriter:
+    """Write one scene folder atomically (FORMAT.md).
+
+    Use as a context manager: the scene is built in a temporary folder beside ``path`` and renamed
+    onto ``path`` when the block exits without error and the scene is complete (every camera has all
+    T RGB frames, and all T depth frames unless ``depth_source == "none"``). By default the finished
+    temporary folder is also checked with :func:`data_prep.validate.validate_scene` before renaming.
+    On any error the temporary folder is deleted and ``path`` is left as it was.
+
+    Example::
+
+        with SceneWriter(out / "scene_0000", source="synthetic", dynamic=True,
+                         depth_source="ground_truth", num_frames=T, fps=8.0) as w:
+            w.add_camera("cam00", camera_path)               # timestamps default to times·(T−1)/fps
+            for i in range(T):
+                w.write_frame("cam00", i, rgb[i], depth[i])  # (H, W, 3) [0, 1] or uint8; (H, W) metres
+            w.write_tracks(points, visibility)
+            w.write_caption("a red ball bounces while the camera orbits")
+
+    Args:
+        path: final scene folder.
+        source, dynamic, depth_source, num_frames, fps, depth_scale, depth_shift: meta fields
+            (:class:`SceneMeta`); ``cameras`` is filled by :meth:`add_camera` in call order.
+        extra: additional JSON-serialisable meta keys.
+        replace: replace an existing scene folder (otherwise ``FileExistsError`` on enter).
+        validate: run the full validator on the finished temporary folder before renaming.
+
+    Raises:
+        ValueError: invalid meta fields (on construction) or an incomplete/invalid scene (on exit).
+        FileExistsError: ``path`` exists and ``replace`` is false.
+    """
+
+    def __init__(self, path: str | os.PathLike, *, source: str, dynamic: bool, depth_source: str,
+                 num_frames: int, fps: float, depth_scale: float = 1.0, depth_shift: float = 0.0,
+                 extra: dict[str, Any] | None = None, replace: bool = False, validate: bool = True) -> None:
+        self.path = Path(path)
+        # cameras is a placeholder until add_camera; validated now so bad meta fails before any IO
+        self.meta = SceneMeta(source=source, dynamic=dynamic, depth_source=depth_source, num_frames=num_frames,
+                              cameras=["cam00"], fps=fps, depth_scale=depth_scale, depth_shift=depth_shift,
+                              extra=dict(extra or {}))
+        self.meta.cameras = []
+        self.replace, self.validate = replace, validate
+        self._ctx = None
+        self._tmp: Path | None = None
+        self._sizes: dict[str, tuple[int, int]] = {}
+        self._written: dict[str, tuple[set[int], set[int]]] = {}
+
+    def __enter__(self) -> "SceneWriter":
+        self._ctx = atomic_output_dir(self.path, replace=self.replace)
+        self._tmp = self._ctx.__enter__()
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        ctx = self._ctx
+        try:
+            if exc_type is None:
+                try:
+                    self._finish()
+                except BaseException as e:  # discard the temporary folder, re-raise
+                    ctx.__exit__(type(e), e, e.__traceback__)
+                    raise
+            return bool(ctx.__exit__(exc_type, exc, tb))
+        finally:
+            self._ctx = self._tmp = None
+
+    @property
+    def tmp_dir(self) -> Path:
+        """The temporary folder being written (only inside the ``with`` block)."""
+        if self._tmp is None or self._ctx is None:
+            raise RuntimeError("SceneWriter is used outside its 'with' block")
+        return self._tmp
+
+    def add_camera(self, name: str, cameras: CameraPath, timestamps: np.ndarray | Tensor | None = None) -> None:
+        """Add camera ``name`` with its T cameras and writes ``<name>/cameras.json``.
+
+        Args:
+            name: camera folder name ([A-Za-z0-9_.-]+); the first added is the reference camera.
+            cameras: T = num_frames cameras (validated :class:`CameraPath`).
+            timestamps: (T,) seconds, non-decreasing, with ``cameras.times`` equal to their
+                normalisation (FORMAT.md); ``None`` → times·(T−1)/fps.
+
+        Raises:
+            ValueError: a bad or duplicate name, a path of the wrong length, or timestamps of the wrong
+                shape, non-finite, decreasing or inconsistent with ``cameras.times``.
+        """
+        root = self.tmp_dir
+        T = self.meta.num_frames
+        if name in self._sizes:
+            raise ValueError(f"camera {name!r} was already added")
+        check_camera_name(name)
+        cameras.validate()
+        if len(cameras) != T:
+            raise ValueError(f"camera {name!r} has {len(cameras)} frames, num_frames is {T}")
+        times = cameras.times.detach().cpu().double().numpy()
+        if timestamps is None:
+            ts = times * (T - 1) / self.meta.fps
+        else:
+            if isinstance(timestamps, Tensor):
+                timestamps = timestamps.detach().cpu().numpy()
+            ts = np.asarray(timestamps, dtype=np.float64)
+            if ts.shape != (T,) or not np.isfinite(ts).all() or (T > 1 and (np.diff(ts) < 0).any()):
+                raise ValueError(f"timestamps of {name!r} must be ({T},) finite non-decreasing seconds, got shape {ts.shape}")
+            err = np.abs(timestamps_to_times(ts) - times).max()
+            if err > TIMES_TOLERANCE:
+                raise ValueError(f"camera {name!r}: times differ from the normalised timestamps by {err:.3g}")
+        if self._sizes:
+            ref = read_timestamps(root / self.meta.cameras[0] / "cameras.json")
+            if np.abs(ref - ts).max() > SYNC_TOLERANCE_S:
+                raise ValueError(f"camera {name!r} is not synchronised with {self.meta.cameras[0]!r} (timestamps differ)")
+        cam_file = root / name / "cameras.json"
+        save_cameras_json(cam_file, cameras)
+        data = json.loads(cam_file.read_text(encoding="utf-8"))
+        data["timestamps"] = ts.tolist()
+        cam_file.write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
+        self.meta.cameras.append(name)
+        self._sizes[name] = (cameras.height, cameras.width)
+        self._written[name] = (set(), set())
+
+    def write_frame(self, camera: str, index: int, rgb: Tensor | np.ndarray,
+                    depth: Tensor | np.ndarray | None = None) -> None:
+        """Write frame ``index`` of ``camera``: ``rgb/{index:05d}.png`` and ``depth/{index:05d}.exr``.
+
+        Args:
+            camera: a camera added with :meth:`add_camera`.
+            index: 0 ≤ index < T.
+            rgb: (H, W, 3) uint8, or float in [0, 1] (clipped and rounded to 8 bits).
+            depth: (H, W) metric z-depth, metres, > 0, +inf where invalid; required unless
+                ``depth_source == "none"`` (then it must be ``None``).
+
+        Raises:
+            ValueError: unknown camera, index out of range, wrong shapes, or invalid depth values
+                (NaN, −inf, ≤ 0: mark invalid pixels +inf).
+        """
+        if camera not in self._sizes:
+            raise ValueError(f"unknown camera {camera!r}; call add_camera first")
+        if not _is_int(index) or not 0 <= index < self.meta.num_frames:
+            raise ValueError(f"frame index must be an int in [0, {self.meta.num_frames}), got {index!r}")
+        H, W = self._sizes[camera]
+        if tuple(rgb.shape) != (H, W, 3):
+            raise ValueError(f"rgb of {camera!r} must have shape {(H, W, 3)}, got {tuple(rgb.shape)}")
+        has_depth = self.meta.depth_source != "none"
+        if has_depth != (depth is not None):
+            raise ValueError(f"depth must be {'given' if has_depth else 'None'} for depth_source={self.meta.depth_source!r}")
+        folder = self.tmp_dir / camera
+        save_image(folder / "rgb" / frame_name(index, ".png"), rgb)
+        self._written[camera][0].add(index)
+        if depth is not None:
+            save_depth_exr(folder / "depth" / frame_name(index, ".exr"), _check_depth(depth, (H, W)))
+            self._written[camera][1].add(index)
+
+    def write_tracks(self, points: np.ndarray | Tensor, visibility: np.ndarray | Tensor) -> None:
+        """Write ``tracks.npz``: points (P, T, 3) metres world frame, visibility (P, T) bool (FORMAT.md).
+
+        Raises:
+            ValueError: wrong shapes (T ≠ num_frames, P = 0), non-finite points, or a static scene
+                whose tracks move by more than 1e-6 m.
+        """
+        pts = np.asarray(points.detach().cpu() if isinstance(points, Tensor) else points, dtype=np.float32)
+        vis = np.asarray(visibility.detach().cpu() if isinstance(visibility, Tensor) else visibility)
+        T = self.meta.num_frames
+        if pts.ndim != 3 or pts.shape[1:] != (T, 3) or pts.shape[0] < 1:
+            raise ValueError(f"points must have shape (P, {T}, 3) with P ≥ 1, got {pts.shape}")
+        if vis.shape != pts.shape[:2] or vis.dtype != np.bool_:
+            raise ValueError(f"visibility must be a bool array of shape {pts.shape[:2]}, got {vis.dtype} {vis.shape}")
+        if not np.isfinite(pts).all():
+            raise ValueError("points must be finite")
+        if not self.meta.dynamic and np.abs(pts - pts[:, :1]).max() > 1e-6:
+            raise ValueError("a static scene (dynamic=false) cannot have moving tracks")
+        np.savez_compressed(self.tmp_dir / "tracks.npz", points=pts, visibility=vis)
+
+    def write_caption(self, caption: str) -> None:
+        """Write ``caption.txt``: one non-empty UTF-8 line. Raises ValueError otherwise."""
+        if not isinstance(caption, str) or not caption.strip() or "\n" in caption.strip() or "\r" in caption:
+            raise ValueError(f"caption must be one non-empty line of text, got {caption!r}")
+        (self.tmp_dir / "caption.txt").write_text(caption.strip() + "\n", encoding="utf-8")
+
+    def _finish(self) -> None:
+        if not self.meta.cameras:
+            raise ValueError(f"scene {self.path} has no camera; call add_camera")
+        T, has_depth = self.meta.num_frames, self.meta.depth_source != "none"
+        for cam, (rgb_done, depth_done) in self._written.items():
+            for kind, done in (("rgb", rgb_done), ("depth", depth_done if has_depth else set(range(T)))):
+                if len(done) != T:
+                    missing = sorted(set(range(T)) - done)
+                    raise ValueError(f"scene {self.path}: camera {cam!r} misses {kind} frame(s) {missing[:5]}")
+        self.meta.validate()
+        (self.tmp_dir / "meta.json").write_text(json.dumps(self.meta.to_dict(), indent=1) + "\n", encoding="utf-8")
+        if self.validate:
+            from .validate import validate_scene  # validate imports this module
+
+            problems = validate_scene(self.tmp_dir)
+            if problems:
+                raise ValueError(f"scene {self.path} is invalid: " + "; ".join(str(p) for p in problems[:5]))
+
+
+class SceneReader:
+    """Lazy read access to one scene folder (FORMAT.md). Only ``meta.json`` is read on open.
+
+    Args:
+        path: scene folder.
+
+    Raises:
+        FileNotFoundError: ``path`` is not a folder or has no ``meta.json``.
+        ValueError: invalid ``meta.json``.
+    """
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+        if not self.path.is_dir():
+            raise FileNotFoundError(f"scene folder not found: {self.path}")
+        self.meta = SceneMeta.load(self.path / "meta.json")
+        self._cameras: dict[str, CameraPath] = {}
+
+    def __repr__(self) -> str:
+        m = self.meta
+        return f"SceneReader({str(self.path)!r}, source={m.source!r}, T={m.num_frames}, cameras={m.cameras})"
+
+    @property
+    def num_frames(self) -> int:
+        """T, frames per camera."""
+        return self.meta.num_frames
+
+    @property
+    def camera_names(self) -> list[str]:
+        """Camera folder names, reference camera first."""
+        return list(self.meta.cameras)
+
+    @property
+    def has_depth(self) -> bool:
+        """False when ``depth_source == "none"``."""
+        return self.meta.depth_source != "none"
+
+    def _cam(self, camera: str) -> Path:
+        if camera not in self.meta.cameras:
+            raise ValueError(f"unknown camera {camera!r}; this scene has {self.meta.cameras}")
+        return self.path / camera
+
+    def _frame(self, camera: str, index: int, sub: str, suffix: str) -> Path:
+        folder = self._cam(camera)
+        if not _is_int(index) or not 0 <= index < self.num_frames:
+            raise ValueError(f"frame index must be an int in [0, {self.num_frames}), got {index!r}")
+        return folder / sub / frame_name(index, suffix)
+
+    def cameras(self, camera: str) -> CameraPath:
+        """The :class:`CameraPath` of ``camera`` (cached): T viewmats (world-to-camera), Ks (pixels), times.
+
+        Raises:
+            ValueError: unknown camera or invalid ``cameras.json``. FileNotFoundError: file missing.
+        """
+        if camera not in self._cameras:
+            self._cameras[camera] = load_cameras_json(self._cam(camera) / "cameras.json")
+        return self._cameras[camera]
+
+    def timestamps(self, camera: str | None = None) -> np.ndarray:
+        """(T,) float64 seconds of ``camera`` (default: the reference camera; all are synchronised)."""
+        return read_timestamps(self._cam(camera or self.meta.cameras[0]) / "cameras.json")
+
+    def rgb(self, camera: str, index: int) -> np.ndarray:
+        """Frame ``index`` of ``camera``: (H, W, 3) float32 RGB in [0, 1].
+
+        Raises:
+            ValueError: unknown camera, index outside [0, T), or an undecodable / non-RGB-8-bit file.
+            FileNotFoundError: the frame file is missing.
+        """
+        return read_rgb(self._frame(camera, index, "rgb", ".png"))
+
+    def depth(self, camera: str, index: int) -> np.ndarray:
+        """Frame ``index`` of ``camera``: (H, W) float32 metric z-depth in metres, +inf where invalid.
+
+        Raises:
+            ValueError: the scene has no depth (``depth_source == "none"``), unknown camera, index out
+                of range, or an unreadable EXR without a "Z" channel.
+            FileNotFoundError: the frame file is missing.
+        """
+        if not self.has_depth:
+            raise ValueError(f"scene {self.path} has no depth (depth_source='none')")
+        return load_depth_exr(self._frame(camera, index, "depth", ".exr"))
+
+    def tracks(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(points (P, T, 3) float32 metres world frame, visibility (P, T) bool)`` or None without tracks.npz.
+
+        Raises:
+            ValueError: the file is unreadable or misses ``points``/``visibility``.
+        """
+        f = self.path / "tracks.npz"
+        if not f.is_file():
+            return None
+        try:
+            with np.load(f, allow_pickle=False) as data:
+                return np.asarray(data["points"]), np.asarray(data["visibility"])
+        except (KeyError, ValueError, OSError) as e:
+            raise ValueError(f"could not read {f}: {e}") from None
+
+    @property
+    def caption(self) -> str | None:
+        """The caption (stripped), or None without caption.txt."""
+        f = self.path / "caption.txt"
+        return f.read_text(encoding="utf-8").strip() if f.is_file() else None
+
+    def video(self, camera: str) -> np.ndarray:
+        """All T RGB frames of ``camera``: (T, H, W, 3) float32 in [0, 1] (reads every file)."""
+        return np.stack([self.rgb(camera, i) for i in range(self.num_frames)])
+
+
+def load_scene(path: str | os.PathLike) -> SceneReader:
+    """Open a scene folder lazily (:class:`SceneReader`); only ``meta.json`` is read and checked."""
+    return SceneReader(path)
+
+
+def list_scenes(root: str | os.PathLike) -> list[Path]:
+    """Scene folders of a dataset root: sorted sub-folders holding ``meta.json``, hidden ones skipped.
+
+    Raises:
+        FileNotFoundError: ``root`` is not a folder.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"dataset folder not found: {root}")
+    return sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".") and (p / "meta.json").is_file())

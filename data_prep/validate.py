@@ -1,0 +1,237 @@
+"""Validation of scene folders against ``data_prep/FORMAT.md`` (``data_prep validate DIR``).
+
+:func:`validate_scene` decodes every file of a scene and returns a list of :class:`Problem`, each
+naming the offending file; an empty list means the scene is valid. It never raises for a bad scene.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from diff4splat.io import load_cameras_json, load_depth_exr
+
+from .format import (
+    SYNC_TOLERANCE_S,
+    TIMES_TOLERANCE,
+    SceneMeta,
+    frame_name,
+    list_scenes,
+    read_rgb,
+    read_timestamps,
+    timestamps_to_times,
+)
+
+__all__ = ["Problem", "validate_scene", "validate_path", "is_scene_dir"]
+
+STATIC_TRACK_TOLERANCE_M = 1e-6
+"""A static scene's tracks may move by at most this many metres."""
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One violation of the format: the file (or folder) concerned and what is wrong with it."""
+
+    file: Path
+    message: str
+
+    def __str__(self) -> str:
+        return f"{self.file}: {self.message}"
+
+
+def is_scene_dir(path: str | os.PathLike) -> bool:
+    """True if ``path`` looks like one scene (has ``meta.json`` or a ``<cam>/cameras.json``), not a dataset root."""
+    path = Path(path)
+    if (path / "meta.json").is_file():
+        return True
+    return any(c.is_dir() and (c / "cameras.json").is_file() for c in path.iterdir()) if path.is_dir() else False
+
+
+def _check_frames(problems: list[Problem], folder: Path, suffix: str, T: int) -> list[Path]:
+    """Report missing frame files and unexpected files; return the existing expected files in order."""
+    expected = [folder / frame_name(i, suffix) for i in range(T)]
+    if not folder.is_dir():
+        problems.append(Problem(folder, "missing folder"))
+        return []
+    names = {p.name for p in expected}
+    for p in sorted(folder.iterdir()):
+        if p.name not in names and not p.name.startswith("."):
+            problems.append(Problem(p, f"unexpected file (frames are {frame_name(0, suffix)} … {frame_name(T - 1, suffix)})"))
+    present = []
+    for p in expected:
+        if p.is_file():
+            present.append(p)
+        else:
+            problems.append(Problem(p, "missing frame"))
+    return present
+
+
+def _check_camera(problems: list[Problem], scene: Path, name: str, meta: SceneMeta,
+                  ref_ts: np.ndarray | None) -> np.ndarray | None:
+    """Validate one camera folder; returns its timestamps (None if unreadable)."""
+    folder, T = scene / name, meta.num_frames
+    if not folder.is_dir():
+        problems.append(Problem(folder, "missing camera folder (listed in meta.json 'cameras')"))
+        return None
+    cam_file = folder / "cameras.json"
+    size, ts = None, None
+    if not cam_file.is_file():
+        problems.append(Problem(cam_file, "missing file"))
+    else:
+        try:
+            path = load_cameras_json(cam_file)
+            size = (path.height, path.width)
+            if len(path) != T:
+                problems.append(Problem(cam_file, f"has {len(path)} cameras, meta.json num_frames is {T}"))
+        except (ValueError, FileNotFoundError) as e:
+            problems.append(Problem(cam_file, str(e).removeprefix(f"{cam_file}: ")))
+            path = None
+        try:
+            ts = read_timestamps(cam_file)
+        except ValueError as e:
+            problems.append(Problem(cam_file, str(e).removeprefix(f"{cam_file}: ")))
+        if ts is not None and ts.shape != (T,):
+            problems.append(Problem(cam_file, f"'timestamps' has {ts.size} values, num_frames is {T}"))
+            ts = None
+        if ts is not None and path is not None and len(path) == T:
+            err = float(np.abs(timestamps_to_times(ts) - path.times.double().numpy()).max())
+            if err > TIMES_TOLERANCE:
+                problems.append(Problem(cam_file, f"'times' differ from the normalised 'timestamps' by {err:.3g} (> {TIMES_TOLERANCE})"))
+        if ts is not None and ref_ts is not None and float(np.abs(ts - ref_ts).max()) > SYNC_TOLERANCE_S:
+            problems.append(Problem(cam_file, f"'timestamps' differ from the reference camera {meta.cameras[0]!r} "
+                                              f"by {float(np.abs(ts - ref_ts).max()):.3g} s (not synchronised)"))
+
+    for f in _check_frames(problems, folder / "rgb", ".png", T):
+        try:
+            img = read_rgb(f)
+        except ValueError as e:
+            problems.append(Problem(f, str(e).replace(str(f), "file")))
+            continue
+        if size is not None and img.shape[:2] != size:
+            problems.append(Problem(f, f"image is {img.shape[1]}×{img.shape[0]}, cameras.json says {size[1]}×{size[0]}"))
+
+    depth_dir = folder / "depth"
+    if meta.depth_source == "none":
+        if depth_dir.exists():
+            problems.append(Problem(depth_dir, "depth folder present but meta.json depth_source is 'none'"))
+        return ts
+    for f in _check_frames(problems, depth_dir, ".exr", T):
+        try:
+            z = load_depth_exr(f)
+        except ValueError as e:
+            problems.append(Problem(f, str(e).replace(str(f), "file")))
+            continue
+        if size is not None and z.shape != size:
+            problems.append(Problem(f, f"depth is {z.shape[1]}×{z.shape[0]}, cameras.json says {size[1]}×{size[0]}"))
+        nan, neginf, nonpos = int(np.isnan(z).sum()), int(np.isneginf(z).sum()), int((z <= 0).sum())
+        if nan or neginf or nonpos:
+            problems.append(Problem(f, f"depth must be > 0 metres or +inf (invalid): {nan} NaN, {neginf} -inf, "
+                                       f"{nonpos} ≤ 0 value(s)"))
+    return ts
+
+
+def _check_tracks(problems: list[Problem], f: Path, meta: SceneMeta) -> None:
+    try:
+        with np.load(f, allow_pickle=False) as data:
+            arrays = {k: np.asarray(data[k]) for k in data.files}
+    except Exception as e:  # numpy raises ValueError/OSError/zipfile errors for corrupt files
+        problems.append(Problem(f, f"could not read as .npz: {e}"))
+        return
+    missing = [k for k in ("points", "visibility") if k not in arrays]
+    if missing:
+        problems.append(Problem(f, f"missing array(s) {missing} (has {sorted(arrays)})"))
+        return
+    pts, vis, T = arrays["points"], arrays["visibility"], meta.num_frames
+    if pts.dtype != np.float32 or pts.ndim != 3 or pts.shape[1:] != (T, 3) or pts.shape[0] < 1:
+        problems.append(Problem(f, f"'points' must be float32 (P, {T}, 3) with P ≥ 1, got {pts.dtype} {pts.shape}"))
+        return
+    if vis.dtype != np.bool_ or vis.shape != pts.shape[:2]:
+        problems.append(Problem(f, f"'visibility' must be bool {pts.shape[:2]}, got {vis.dtype} {vis.shape}"))
+    if not np.isfinite(pts).all():
+        problems.append(Problem(f, f"'points' has {int((~np.isfinite(pts)).sum())} non-finite value(s)"))
+    elif not meta.dynamic:
+        motion = float(np.abs(pts - pts[:, :1]).max())
+        if motion > STATIC_TRACK_TOLERANCE_M:
+            problems.append(Problem(f, f"tracks move by up to {motion:.3g} m in a static scene (dynamic: false)"))
+
+
+def validate_scene(path: str | os.PathLike) -> list[Problem]:
+    """Check one scene folder against FORMAT.md, decoding every file.
+
+    Checks: ``meta.json`` present, valid JSON and typed (:class:`SceneMeta`); each listed camera has
+    a ``cameras.json`` that loads as a valid :class:`~diff4splat.cameras.CameraPath` of T cameras with
+    T ``timestamps`` (seconds, non-decreasing) consistent with ``times`` and synchronised with the
+    reference camera; exactly the T RGB frames, each an 8-bit 3-channel image of the camera's size;
+    unless ``depth_source == "none"`` exactly the T depth EXRs, each of the camera's size with values
+    > 0 or +inf (no NaN/−inf/≤ 0), and no depth folder otherwise; no unlisted camera folders;
+    ``caption.txt`` one non-empty UTF-8 line; ``tracks.npz`` with float32 finite ``points`` (P, T, 3),
+    bool ``visibility`` (P, T), and constant tracks in a static scene.
+
+    Args:
+        path: scene folder.
+
+    Returns:
+        Problems in file order; empty if the scene is valid. If ``meta.json`` is missing or invalid
+        only that problem is reported (T and the cameras are unknown).
+    """
+    scene = Path(path)
+    if not scene.is_dir():
+        return [Problem(scene, "not a folder")]
+    meta_file = scene / "meta.json"
+    if not meta_file.is_file():
+        return [Problem(meta_file, "missing file")]
+    try:
+        meta = SceneMeta.load(meta_file)
+    except ValueError as e:
+        return [Problem(meta_file, str(e).removeprefix(f"{meta_file}: "))]
+    problems: list[Problem] = []
+    cap = scene / "caption.txt"
+    if cap.exists():
+        try:
+            text = cap.read_bytes().decode("utf-8").strip()
+            if not text or "\n" in text or "\r" in text:
+                problems.append(Problem(cap, "caption must be one non-empty line"))
+        except UnicodeDecodeError as e:
+            problems.append(Problem(cap, f"not UTF-8 text: {e}"))
+    ref_ts = None
+    for k, name in enumerate(meta.cameras):
+        ts = _check_camera(problems, scene, name, meta, ref_ts)
+        if k == 0:
+            ref_ts = ts
+    for c in sorted(scene.iterdir()):
+        if c.is_dir() and c.name not in meta.cameras and (c / "cameras.json").exists():
+            problems.append(Problem(c, "camera folder not listed in meta.json 'cameras'"))
+    if (scene / "tracks.npz").exists():
+        _check_tracks(problems, scene / "tracks.npz", meta)
+    return problems
+
+
+def validate_path(path: str | os.PathLike) -> tuple[int, list[Problem]]:
+    """Validate a single scene folder or every scene of a dataset root (:func:`is_scene_dir` decides).
+
+    In a dataset root, non-hidden sub-folders without ``meta.json`` are reported as problems
+    (a scene whose meta.json is lost), and an empty root is a problem.
+
+    Returns:
+        (number of scenes checked, problems).
+
+    Raises:
+        FileNotFoundError: ``path`` is not a folder.
+    """
+    path = Path(path)
+    if not path.is_dir():
+        raise FileNotFoundError(f"not a folder: {path}")
+    if is_scene_dir(path):
+        return 1, validate_scene(path)
+    scenes = list_scenes(path)
+    problems: list[Problem] = []
+    for d in sorted(path.iterdir()):
+        if d.is_dir() and not d.name.startswith(".") and d not in scenes:
+            problems.append(Problem(d / "meta.json", "missing file (sub-folder of a dataset root is not a scene)"))
+    if not scenes and not problems:
+        problems.append(Problem(path, "no scene folders (sub-folders with meta.json) found"))
+    for s in scenes:
+        problems.extend(validate_scene(s))
+    return len(scenes), problems
