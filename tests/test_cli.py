@@ -13,7 +13,7 @@ from conftest import EXAMPLE_IMAGE
 from diff4splat.cli import main
 from diff4splat.io import load_depth_exr, load_ply, load_video, ply_property_names, save_cameras_json
 from diff4splat.io.output import load_deformation
-from diff4splat.quaternions import quat_multiply, quat_normalize, quat_to_rotmat
+from diff4splat.quaternions import quat_to_rotmat
 from diff4splat.scene import DynamicGaussians
 
 INRIA = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]
