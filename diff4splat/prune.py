@@ -17,17 +17,23 @@ def visibility_mask(scene: DynamicGaussians, cameras: CameraPath, near_plane: fl
     A Gaussian is seen by camera i when, deformed to time ``cameras.times[i]``, it passes the
     renderer's culling (:func:`diff4splat.render.project_gaussians`: in front of the near plane and
     its 3σ screen footprint overlapping the image); exactly the Gaussians the rasterizer would skip
-    for every frame are reported unseen.
+    for every frame are reported unseen. With temporal support, a Gaussian gated out at a frame's
+    time (:meth:`DynamicGaussians.active_indices`, o·p(t) < 1/255) is not seen by that camera.
 
     Returns:
         (M,) bool.
     """
     seen = torch.zeros(scene.num_gaussians, dtype=torch.bool, device=scene.canonical.means.device)
     for i in range(len(cameras)):
-        g = scene.at(float(cameras.times[i]))
+        t = float(cameras.times[i])
+        idx, g = scene.active_indices(t), scene.at(t)
         proj = project_gaussians(g.means, g.quats, g.scales, g.opacities, cameras.viewmats[i:i + 1],
                                  cameras.Ks[i:i + 1], cameras.width, cameras.height, near_plane=near_plane)
-        seen |= proj.radii[0] > 0
+        vis = proj.radii[0] > 0
+        if idx is None:
+            seen |= vis
+        else:
+            seen[idx[vis]] = True
     return seen
 
 

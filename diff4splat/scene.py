@@ -7,6 +7,16 @@ linearly (Δq by normalised lerp). The deformed Gaussian (DESIGN.md, "Deformatio
     μ_t = μ + Δμ(t),    q_t = normalize(Δq(t) ⊗ q),    s_t = s · exp(Δs(t)).
 
 A static scene has no deformation arrays at all: ``at(t)`` returns the canonical Gaussians.
+
+Optional temporal support (4D Gaussians, Yang et al. 2024, "Real-time Photorealistic Dynamic Scene
+Representation and Rendering with 4D Gaussian Splatting", ICLR, §3.2): each Gaussian has a time
+mean μ_t and time scale σ_t, and its opacity at time t is multiplied by the marginal of its 4D
+Gaussian along time, p(t) = exp(−½((t − μ_t)/σ_t)²). The marginal is left unnormalised (peak 1 at
+t = μ_t, no 1/(σ_t√(2π)) factor), as in the authors' code (``exp(-0.5 (t - mu_t)² / cov_t)``), so
+a Gaussian is exactly as opaque as its canonical opacity at its own time. Gaussians whose opacity
+o·p(t) is below a threshold (default 1/255, the 3DGS alpha cut-off) can never pass the renderer's
+alpha test (alpha ≤ o·p(t)), so ``at(t)`` leaves them out before projection (temporal gating): the
+image is unchanged and they cost nothing.
 """
 from __future__ import annotations
 
@@ -18,7 +28,11 @@ from torch import Tensor
 from .gaussians import Gaussians, check_finite
 from .quaternions import quat_multiply, quat_nlerp, quat_normalize
 
-__all__ = ["DynamicGaussians"]
+__all__ = ["DynamicGaussians", "TEMPORAL_GATE"]
+
+TEMPORAL_GATE = 1.0 / 255.0
+"""Default gate of :meth:`DynamicGaussians.at`: Gaussians with o·p(t) below this are left out. Equal to
+the renderer's alpha cut-off (:data:`diff4splat.render.projection.ALPHA_MIN`), so gating is exact."""
 
 
 @dataclass
@@ -31,10 +45,14 @@ class DynamicGaussians:
         d_means: (T, M, 3) mean offsets, metres, or None.
         d_quats: (T, M, 4) rotation offsets, wxyz (identity (1,0,0,0)), or None.
         d_scales: (T, M, 3) log-scale offsets (s_t = s·exp(Δs)), or None.
+        t_means: (M,) time mean μ_t of each Gaussian (clip time, any real; [0, 1] spans the clip), or None.
+        t_scales: (M,) time standard deviation σ_t > 0 (clip time), or None. Given together with
+            ``t_means``; without them every Gaussian exists at every time.
 
     Raises:
         ValueError: deformation arrays given partially, with wrong shapes, non-finite values,
-            zero-norm rotations, or times outside [0, 1] / not strictly increasing.
+            zero-norm rotations, or times outside [0, 1] / not strictly increasing; t_means/t_scales
+            given alone, not of shape (M,), non-finite, or t_scales ≤ 0.
     """
 
     canonical: Gaussians
@@ -42,8 +60,11 @@ class DynamicGaussians:
     d_means: Tensor | None = None
     d_quats: Tensor | None = None
     d_scales: Tensor | None = None
+    t_means: Tensor | None = None
+    t_scales: Tensor | None = None
 
     def __post_init__(self) -> None:
+        self._check_temporal()
         parts = (self.times, self.d_means, self.d_quats, self.d_scales)
         if all(p is None for p in parts):
             return
@@ -65,10 +86,71 @@ class DynamicGaussians:
         if M and bool((self.d_quats.norm(dim=-1) < 1e-12).any()):
             raise ValueError("d_quats has a zero-norm quaternion")
 
+    def _check_temporal(self) -> None:
+        if self.t_means is None and self.t_scales is None:
+            return
+        if self.t_means is None or self.t_scales is None:
+            raise ValueError("t_means and t_scales must be given together (or neither)")
+        M = self.canonical.num_gaussians
+        for name in ("t_means", "t_scales"):
+            t = getattr(self, name)
+            if tuple(t.shape) != (M,):
+                raise ValueError(f"{name} must have shape ({M},) (one per Gaussian), got {tuple(t.shape)}")
+            check_finite(name, t)
+        if M and bool((self.t_scales <= 0).any()):
+            raise ValueError(f"t_scales must be > 0, min is {float(self.t_scales.min())}")
+
     @property
     def is_static(self) -> bool:
-        """True when the scene stores no deformation."""
+        """True when the scene stores no deformation (temporal support may still be present)."""
         return self.times is None
+
+    @property
+    def has_temporal(self) -> bool:
+        """True when the Gaussians have temporal support (t_means, t_scales)."""
+        return self.t_means is not None
+
+    def temporal_opacity(self, t: float) -> Tensor:
+        """Marginal p(t) = exp(−½((t − μ_t)/σ_t)²) of every Gaussian (Yang et al. 2024), peak 1.
+
+        Args:
+            t: time in [0, 1].
+
+        Returns:
+            (M,) values in [0, 1] (ones when the scene has no temporal support).
+
+        Raises:
+            ValueError: t outside [0, 1] or not finite.
+        """
+        t = _check_time(t)
+        if not self.has_temporal:
+            return torch.ones_like(self.canonical.opacities)
+        return torch.exp(-0.5 * ((t - self.t_means) / self.t_scales) ** 2)
+
+    def active_indices(self, t: float, gate: float = TEMPORAL_GATE) -> Tensor | None:
+        """Indices of the Gaussians that pass temporal gating at time ``t``: o·p(t) ≥ ``gate``.
+
+        With ``gate`` ≤ 1/255 the dropped Gaussians have alpha = min(0.99, o·p(t)·exp(−σ)) < 1/255
+        at every pixel, which the renderer skips anyway, so the image does not change.
+
+        Args:
+            t: time in [0, 1].
+            gate: opacity threshold ≥ 0 (0 keeps every Gaussian).
+
+        Returns:
+            (K,) int64 ascending indices into the M Gaussians, or None when nothing is gated
+            (no temporal support).
+
+        Raises:
+            ValueError: t outside [0, 1] / not finite, or gate < 0.
+        """
+        if not gate >= 0:
+            raise ValueError(f"gate must be >= 0, got {gate}")
+        if not self.has_temporal:
+            _check_time(t)
+            return None
+        op = self.canonical.opacities.detach() * self.temporal_opacity(t).detach()
+        return torch.nonzero(op >= gate).squeeze(1)
 
     @property
     def num_gaussians(self) -> int:
@@ -104,32 +186,44 @@ class DynamicGaussians:
         lerp = lambda a: (1 - w) * a[k] + w * a[k1]  # noqa: E731
         return lerp(self.d_means), quat_nlerp(self.d_quats[k], self.d_quats[k1], w), lerp(self.d_scales)
 
-    def at(self, t: float) -> Gaussians:
+    def at(self, t: float, gate: float = TEMPORAL_GATE) -> Gaussians:
         """The Gaussians at time ``t`` ∈ [0, 1] (the canonical ones for a static scene).
 
+        With temporal support, opacities are multiplied by p(t) (:meth:`temporal_opacity`) and only
+        the Gaussians of :meth:`active_indices` (o·p(t) ≥ ``gate``) are returned, in index order —
+        the deformation is evaluated for those only.
+
+        Args:
+            t: time in [0, 1].
+            gate: temporal gate (see :meth:`active_indices`); ignored without temporal support.
+
         Raises:
-            ValueError: t outside [0, 1] or not finite.
+            ValueError: t outside [0, 1] or not finite, gate < 0.
         """
         t = _check_time(t)
-        g = self.canonical
+        idx = self.active_indices(t, gate)
+        scene = self if idx is None else self.select(idx)
+        g = scene.canonical
+        opacities = g.opacities if idx is None else g.opacities * scene.temporal_opacity(t)
         if self.is_static:
-            return g
-        d_means, d_quats, d_scales = self.deformation_at(t)
+            return g if idx is None else Gaussians(g.means, g.quats, g.scales, opacities, g.sh)
+        d_means, d_quats, d_scales = scene.deformation_at(t)
         return Gaussians(
             means=g.means + d_means,
             quats=quat_multiply(d_quats, quat_normalize(g.quats)),
             scales=g.scales * torch.exp(d_scales),
-            opacities=g.opacities,
+            opacities=opacities,
             sh=g.sh,
         )
 
     def select(self, index: Tensor) -> "DynamicGaussians":
-        """Subset of Gaussians by boolean mask (M,) or indices; deformation arrays follow."""
+        """Subset of Gaussians by boolean mask (M,) or indices; deformation and temporal arrays follow."""
+        temporal = {} if not self.has_temporal else {"t_means": self.t_means[index], "t_scales": self.t_scales[index]}
         if self.is_static:
-            return DynamicGaussians(self.canonical.select(index))
+            return DynamicGaussians(self.canonical.select(index), **temporal)
         return DynamicGaussians(
             self.canonical.select(index), self.times,
-            self.d_means[:, index], self.d_quats[:, index], self.d_scales[:, index],
+            self.d_means[:, index], self.d_quats[:, index], self.d_scales[:, index], **temporal,
         )
 
     def without_deformation(self, atol: float = 0.0) -> "DynamicGaussians":
@@ -141,15 +235,14 @@ class DynamicGaussians:
         dq = torch.where(dq[..., :1] < 0, -dq, dq)
         if (self.d_means.abs().max() <= atol and (dq - ident).abs().max() <= atol
                 and self.d_scales.abs().max() <= atol) if self.num_gaussians else True:
-            return DynamicGaussians(self.canonical)
+            return DynamicGaussians(self.canonical, t_means=self.t_means, t_scales=self.t_scales)
         return self
 
     def to(self, *args, **kwargs) -> "DynamicGaussians":
-        if self.is_static:
-            return DynamicGaussians(self.canonical.to(*args, **kwargs))
-        return DynamicGaussians(self.canonical.to(*args, **kwargs), self.times.to(*args, **kwargs),
-                                self.d_means.to(*args, **kwargs), self.d_quats.to(*args, **kwargs),
-                                self.d_scales.to(*args, **kwargs))
+        """Move/cast every tensor, temporal arrays included (``Tensor.to`` arguments)."""
+        mv = lambda x: None if x is None else x.to(*args, **kwargs)  # noqa: E731
+        return DynamicGaussians(self.canonical.to(*args, **kwargs), mv(self.times), mv(self.d_means),
+                                mv(self.d_quats), mv(self.d_scales), mv(self.t_means), mv(self.t_scales))
 
 
 def _check_time(t: float) -> float:

@@ -3,7 +3,8 @@
 ::
 
     scene.ply           canonical Gaussians, INRIA layout
-    deformation.npz     times (T,), d_means (T,M,3), d_quats (T,M,4), d_scales (T,M,3); absent if static
+    deformation.npz     times (T,), d_means (T,M,3), d_quats (T,M,4), d_scales (T,M,3) (absent if static),
+                        t_means (M,), t_scales (M,) (4D temporal support, when present); no file if neither
     frames/0000.ply …   the Gaussians deformed to each frame's time
     video.mp4           RGB along the camera path
     depth/0000.exr …    float32 expected depth "Z" (metres) and coverage "A"
@@ -54,24 +55,39 @@ def fill_empty_depth(depths: Tensor, alphas: Tensor, fallback: float) -> Tensor:
     return torch.where(covered & (depths > 0), depths, torch.full_like(depths, far))
 
 
+_DEFORMATION_KEYS = ("times", "d_means", "d_quats", "d_scales")
+_TEMPORAL_KEYS = ("t_means", "t_scales")
+
+
 def save_deformation(path: str | os.PathLike, scene: DynamicGaussians) -> None:
-    """Write ``deformation.npz`` (float32 arrays times, d_means, d_quats, d_scales).
+    """Write ``deformation.npz``: float32 times, d_means, d_quats, d_scales when the scene deforms and
+    t_means (M,), t_scales (M,) (clip time) when it has temporal support.
 
     Raises:
-        ValueError: the scene is static (it has no deformation to write).
+        ValueError: the scene has neither a deformation nor temporal support (nothing to write).
     """
-    if scene.is_static:
-        raise ValueError("a static scene has no deformation to save")
-    arrays = {k: getattr(scene, k).detach().cpu().float().numpy() for k in ("times", "d_means", "d_quats", "d_scales")}
+    if scene.is_static and not scene.has_temporal:
+        raise ValueError("a static scene without temporal support has no deformation to save")
+    keys = (() if scene.is_static else _DEFORMATION_KEYS) + (_TEMPORAL_KEYS if scene.has_temporal else ())
+    arrays = {k: getattr(scene, k).detach().cpu().float().numpy() for k in keys}
     with atomic_output_path(Path(path)) as tmp:
         with open(tmp, "wb") as f:
             np.savez(f, **arrays)
 
 
 def load_deformation(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """Read ``deformation.npz`` → {"times", "d_means", "d_quats", "d_scales"} numpy arrays."""
+    """Read ``deformation.npz`` → numpy arrays {"times", "d_means", "d_quats", "d_scales"} and/or
+    {"t_means", "t_scales"}, whichever the file holds (keyword arguments of ``DynamicGaussians``).
+
+    Raises:
+        ValueError: the file holds a partial set of either group.
+    """
     with np.load(path) as data:
-        return {k: data[k] for k in ("times", "d_means", "d_quats", "d_scales")}
+        out = {k: data[k] for k in _DEFORMATION_KEYS + _TEMPORAL_KEYS if k in data.files}
+    for group in (_DEFORMATION_KEYS, _TEMPORAL_KEYS):
+        if 0 < sum(k in out for k in group) < len(group):
+            raise ValueError(f"{path}: needs all of {group} or none, got {sorted(out)}")
+    return out
 
 
 def write_scene_folder(
@@ -101,7 +117,7 @@ def write_scene_folder(
     depths = fill_empty_depth(depths, alphas, depth_fallback)
     with atomic_output_dir(out_dir) as tmp:
         save_ply(tmp / "scene.ply", scene.canonical)
-        if not scene.is_static:
+        if not scene.is_static or scene.has_temporal:
             save_deformation(tmp / "deformation.npz", scene)
         for i in range(T):
             save_ply(tmp / "frames" / f"{i:04d}.ply", scene.at(float(cameras.times[i])))
