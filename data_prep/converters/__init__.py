@@ -1,0 +1,38 @@
+"""Source dataset converters: each reads one dataset's published on-disk layout and writes the scene format.
+
+Conventions, layouts and what is not converted are documented per source in
+``data_prep/CONVERTERS.md``; shared axis/pose/depth helpers live in :mod:`.common`.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from .pointodyssey import convert_pointodyssey
+from .vkitti2 import convert_vkitti2
+
+__all__ = ["CONVERTERS", "convert"]
+
+CONVERTERS = {
+    "pointodyssey": convert_pointodyssey,
+    "vkitti2": convert_vkitti2,
+}
+"""Source name → ``convert_<source>(src, out, **options) -> Path``."""
+
+
+def convert(source: str, src: str | os.PathLike, out: str | os.PathLike, **options) -> Path:
+    """Convert one source scene/sequence ``src`` to the scene folder ``out``.
+
+    Args:
+        source: a key of :data:`CONVERTERS`.
+        src: the source's scene/sequence folder (layout in CONVERTERS.md).
+        out: output scene folder.
+        **options: passed to the source's converter.
+
+    Raises:
+        ValueError: unknown ``source``, or the converter's errors.
+        FileNotFoundError: missing source files.
+    """
+    if source not in CONVERTERS:
+        raise ValueError(f"unknown source {source!r}; known: {sorted(CONVERTERS)}")
+    return CONVERTERS[source](src, out, **options)

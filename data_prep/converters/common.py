@@ -1,0 +1,369 @@
+"""Helpers shared by every source converter: axis conventions, pose inversion, depth decoding, frame IO.
+
+Every converter turns a source dataset's native conventions into the scene format's
+(``data_prep/FORMAT.md``, DESIGN.md): metres, OpenCV camera axes (x right, y down, z forward),
+world-to-camera ``viewmats``, pixel ``Ks``, +inf for invalid depth. The axis changes needed by the
+sources are collected here so that each is written once:
+
+- OpenGL / Blender / NeRF camera axes (x right, y up, z backward) → OpenCV: flip the camera's y and
+  z axes, c2w_cv = c2w_gl · diag(1, −1, −1, 1) (Mildenhall et al., NeRF code release; MatrixCity
+  README "same pose coordinate system as NeRF").
+- PyTorch3D camera axes (x left, y up, z forward, row-vector convention X_cam = X_world·R + T)
+  → OpenCV: R_cv = diag(−1, −1, 1)·Rᵀ, t_cv = diag(−1, −1, 1)·T (the transform of PyTorch3D's
+  ``opencv_from_cameras_projection``).
+- NED body axes (x forward, y right, z down; AirSim / TartanAir) → OpenCV: x_cv = y_ned,
+  y_cv = z_ned, z_cv = x_ned.
+
+All pose arithmetic is float64 numpy; :func:`camera_path` builds the float64
+:class:`~diff4splat.cameras.CameraPath` (validated: proper rotations, positive focal lengths).
+"""
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from diff4splat.cameras import CameraPath, invert_rigid
+from diff4splat.quaternions import quat_to_rotmat
+
+from ..format import SceneWriter, timestamps_to_times
+
+__all__ = [
+    "GL_TO_CV",
+    "P3D_TO_CV",
+    "NED_TO_CV",
+    "rigid",
+    "invert",
+    "c2w_gl_to_viewmat",
+    "c2w_cv_to_viewmat",
+    "quat_xyzw_to_rotmat",
+    "normalize_rotation",
+    "intrinsics",
+    "camera_path",
+    "decode_scaled_uint16",
+    "float16_bits_to_float",
+    "disparity_to_depth",
+    "finite_positive_or_inf",
+    "read_rgb_uint8",
+    "read_uint16_png",
+    "iter_video_frames",
+    "select_frames",
+    "write_scene",
+    "require_file",
+    "require_dir",
+]
+
+GL_TO_CV = np.diag([1.0, -1.0, -1.0])
+"""OpenGL/Blender camera axes (x right, y up, z back) ↔ OpenCV camera axes (its own inverse)."""
+
+P3D_TO_CV = np.diag([-1.0, -1.0, 1.0])
+"""PyTorch3D camera axes (x left, y up, z forward) ↔ OpenCV camera axes (its own inverse)."""
+
+NED_TO_CV = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+"""Maps a vector in NED body axes (x forward, y right, z down) to OpenCV camera axes."""
+
+
+def require_file(path: str | os.PathLike, what: str) -> Path:
+    """``Path(path)`` if it is a file, else FileNotFoundError naming ``what`` and the path."""
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"{what} not found: {p}")
+    return p
+
+
+def require_dir(path: str | os.PathLike, what: str) -> Path:
+    """``Path(path)`` if it is a folder, else FileNotFoundError naming ``what`` and the path."""
+    p = Path(path)
+    if not p.is_dir():
+        raise FileNotFoundError(f"{what} folder not found: {p}")
+    return p
+
+
+def rigid(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Stack rotations (..., 3, 3) and translations (..., 3) into (..., 4, 4) [R | t; 0 0 0 1] float64."""
+    R = np.asarray(R, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64)
+    out = np.zeros(R.shape[:-2] + (4, 4))
+    out[..., :3, :3] = R
+    out[..., :3, 3] = t
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def invert(mats: np.ndarray) -> np.ndarray:
+    """Closed-form inverse of rigid transforms (..., 4, 4), via :func:`diff4splat.cameras.invert_rigid`."""
+    return invert_rigid(torch.from_numpy(np.asarray(mats, dtype=np.float64))).numpy()
+
+
+def c2w_cv_to_viewmat(c2w: np.ndarray) -> np.ndarray:
+    """(..., 4, 4) camera-to-world with OpenCV camera axes → world-to-camera viewmats (float64)."""
+    return invert(c2w)
+
+
+def c2w_gl_to_viewmat(c2w: np.ndarray) -> np.ndarray:
+    """(..., 4, 4) camera-to-world with OpenGL/Blender camera axes → OpenCV world-to-camera viewmats.
+
+    c2w_cv = c2w_gl · diag(1, −1, −1, 1) (module docstring), then inverted.
+    """
+    c2w = np.array(c2w, dtype=np.float64)
+    c2w[..., :3, :3] = c2w[..., :3, :3] @ GL_TO_CV
+    return invert(c2w)
+
+
+def quat_xyzw_to_rotmat(q: np.ndarray) -> np.ndarray:
+    """Quaternions (..., 4) stored x, y, z, w (Hamilton, as in ROS/TartanAir) → rotation matrices (..., 3, 3).
+
+    Reorders to wxyz and calls :func:`diff4splat.quaternions.quat_to_rotmat` (normalised on use).
+
+    Raises:
+        ValueError: a zero-norm quaternion.
+    """
+    q = np.asarray(q, dtype=np.float64)
+    wxyz = np.concatenate([q[..., 3:4], q[..., :3]], axis=-1)
+    return quat_to_rotmat(torch.from_numpy(wxyz)).numpy()
+
+
+def normalize_rotation(M: np.ndarray, name: str = "rotation") -> np.ndarray:
+    """Remove a uniform scale from (..., 3, 3) scaled rotations: R = M / det(M)^(1/3).
+
+    Some exporters store s·R (MatrixCity's ``transform_matrix``, s = 0.01). A non-uniform scale or
+    a reflection is an error, not something to be silently projected away.
+
+    Raises:
+        ValueError: naming ``name``, if det(M) ≤ 0 or M / det^(1/3) is not orthonormal within 1e-4.
+    """
+    M = np.asarray(M, dtype=np.float64)
+    det = np.linalg.det(M)
+    if (det <= 0).any():
+        raise ValueError(f"{name} has a non-positive determinant (reflection or degenerate): {det.min():.3g}")
+    R = M / np.cbrt(det)[..., None, None]
+    err = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max()
+    if err > 1e-4:
+        raise ValueError(f"{name} is not a uniformly scaled rotation (‖RᵀR − I‖max = {err:.3g})")
+    return R
+
+
+def intrinsics(fx, fy, cx, cy) -> np.ndarray:
+    """(T, 3, 3) float64 pixel intrinsics from per-frame (T,) or scalar fx, fy, cx, cy (broadcast)."""
+    fx, fy, cx, cy = np.broadcast_arrays(*(np.atleast_1d(np.asarray(v, dtype=np.float64)) for v in (fx, fy, cx, cy)))
+    K = np.zeros(fx.shape + (3, 3))
+    K[..., 0, 0], K[..., 1, 1], K[..., 0, 2], K[..., 1, 2], K[..., 2, 2] = fx, fy, cx, cy, 1.0
+    return K
+
+
+def camera_path(viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int,
+                timestamps: np.ndarray) -> CameraPath:
+    """A validated float64 :class:`CameraPath` with times = normalised ``timestamps`` (FORMAT.md).
+
+    Args:
+        viewmats: (T, 4, 4) world-to-camera, OpenCV axes, metres.
+        Ks: (T, 3, 3) or (3, 3) pixel intrinsics.
+        width, height: image size in pixels.
+        timestamps: (T,) seconds, non-decreasing.
+
+    Raises:
+        ValueError: from :meth:`CameraPath.validate` (e.g. an improper rotation after conversion).
+    """
+    V = torch.from_numpy(np.ascontiguousarray(viewmats, dtype=np.float64))
+    K = np.asarray(Ks, dtype=np.float64)
+    if K.ndim == 2:
+        K = np.broadcast_to(K, (V.shape[0], 3, 3))
+    times = torch.from_numpy(timestamps_to_times(timestamps))
+    return CameraPath(V, torch.from_numpy(np.ascontiguousarray(K)), int(width), int(height), times)
+
+
+def finite_positive_or_inf(depth: np.ndarray) -> np.ndarray:
+    """float32 depth with every non-finite or ≤ 0 value replaced by +inf (the format's invalid value)."""
+    d = np.asarray(depth, dtype=np.float32)
+    return np.where(np.isfinite(d) & (d > 0), d, np.float32(np.inf)).astype(np.float32)
+
+
+def decode_scaled_uint16(raw: np.ndarray, metres_per_unit: float, invalid: tuple[int, ...] = (0,)) -> np.ndarray:
+    """Integer depth image → float32 metres: raw·``metres_per_unit``; the ``invalid`` codes → +inf.
+
+    Used for VKITTI2 (centimetres, 65535 = sky) and PointOdyssey (1000 m / 65535 per unit).
+
+    Raises:
+        ValueError: ``raw`` is not an unsigned 16-bit image.
+    """
+    raw = np.asarray(raw)
+    if raw.dtype != np.uint16:
+        raise ValueError(f"expected a 16-bit depth image, got dtype {raw.dtype}")
+    d = raw.astype(np.float64) * metres_per_unit
+    bad = np.isin(raw, np.asarray(invalid, dtype=np.uint16))
+    return finite_positive_or_inf(np.where(bad, np.inf, d))
+
+
+def float16_bits_to_float(raw: np.ndarray) -> np.ndarray:
+    """Reinterpret the bits of a uint16 image as IEEE float16 and widen to float32.
+
+    This is CO3D's / Dynamic Replica's "16-bit PNG depth" encoding (dynamic_stereo
+    ``_load_16big_png_depth``: ``np.frombuffer(uint16, float16)``).
+
+    Raises:
+        ValueError: ``raw`` is not uint16.
+    """
+    raw = np.ascontiguousarray(raw)
+    if raw.dtype != np.uint16:
+        raise ValueError(f"expected a 16-bit image, got dtype {raw.dtype}")
+    return raw.view(np.float16).astype(np.float32)
+
+
+def disparity_to_depth(disparity: np.ndarray, fx: float, baseline: float) -> np.ndarray:
+    """Rectified-stereo disparity (pixels) → z-depth (metres): z = fx·B / d; d ≤ 0 or non-finite → +inf.
+
+    Args:
+        disparity: (H, W) disparity in pixels of the image whose focal length is ``fx``.
+        fx: focal length, pixels.
+        baseline: stereo baseline B, metres.
+    """
+    d = np.asarray(disparity, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = fx * baseline / d
+    return finite_positive_or_inf(np.where(np.isfinite(d) & (d > 0), z, np.inf))
+
+
+def read_rgb_uint8(path: str | os.PathLike) -> np.ndarray:
+    """Decode a colour image file (PNG/JPEG/…, 8 or 16 bit) to (H, W, 3) uint8 RGB.
+
+    16-bit images are scaled by 255/65535 and rounded; alpha is dropped.
+
+    Raises:
+        FileNotFoundError: missing file. ValueError: OpenCV cannot decode it.
+    """
+    p = require_file(path, "image")
+    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"could not decode {p} as an image")
+    if img.dtype == np.uint16:
+        img = np.round(img.astype(np.float64) * (255.0 / 65535.0)).astype(np.uint8)
+    if img.dtype != np.uint8:
+        raise ValueError(f"{p}: expected an 8- or 16-bit image, got {img.dtype}")
+    if img.ndim == 2:
+        return np.repeat(img[..., None], 3, axis=-1)
+    code = cv2.COLOR_BGRA2RGB if img.shape[2] == 4 else cv2.COLOR_BGR2RGB
+    return cv2.cvtColor(img, code)
+
+
+def read_uint16_png(path: str | os.PathLike) -> np.ndarray:
+    """Read a single-channel 16-bit PNG unchanged as (H, W) uint16.
+
+    Raises:
+        FileNotFoundError: missing file. ValueError: undecodable, or not single-channel 16-bit.
+    """
+    p = require_file(path, "depth image")
+    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    if img is None or img.dtype != np.uint16 or img.ndim != 2:
+        raise ValueError(f"{p} must be a single-channel 16-bit PNG, got {None if img is None else (img.dtype, img.shape)}")
+    return img
+
+
+def iter_video_frames(path: str | os.PathLike, indices: list[int]) -> Iterator[np.ndarray]:
+    """Stream the frames ``indices`` (increasing) of a video file as (H, W, 3) uint8 RGB, one at a time.
+
+    Decoding is sequential (OpenCV ``VideoCapture``) so memory stays at one frame, whatever the
+    video length (a 81-frame 1280² MultiCamVideo clip is 400 MB decoded).
+
+    Raises:
+        FileNotFoundError: missing file. ValueError: unreadable video, or it has fewer frames than
+            ``max(indices) + 1``.
+    """
+    p = require_file(path, "video")
+    cap = cv2.VideoCapture(str(p))
+    if not cap.isOpened():
+        raise ValueError(f"could not open video {p}")
+    try:
+        wanted = iter(indices)
+        target = next(wanted, None)
+        frame_index = 0
+        while target is not None:
+            ok, frame = cap.read()
+            if not ok:
+                raise ValueError(f"{p} has only {frame_index} frames, frame {target} was requested")
+            if frame_index == target:
+                yield cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
+                target = next(wanted, None)
+            frame_index += 1
+    finally:
+        cap.release()
+
+
+def select_frames(total: int, start: int = 0, stride: int = 1, max_frames: int | None = None) -> list[int]:
+    """Source frame indices start, start+stride, … (< total), at most ``max_frames`` of them.
+
+    Raises:
+        ValueError: ``total`` < 1, ``start`` outside [0, total), ``stride`` < 1, ``max_frames`` < 1.
+    """
+    if total < 1:
+        raise ValueError("the source sequence has no frames")
+    if not isinstance(start, int) or not 0 <= start < total:
+        raise ValueError(f"start must be an int in [0, {total}), got {start!r}")
+    if not isinstance(stride, int) or stride < 1:
+        raise ValueError(f"stride must be an int ≥ 1, got {stride!r}")
+    if max_frames is not None and (not isinstance(max_frames, int) or max_frames < 1):
+        raise ValueError(f"max_frames must be an int ≥ 1 or None, got {max_frames!r}")
+    idx = list(range(start, total, stride))
+    return idx[:max_frames] if max_frames is not None else idx
+
+
+FrameSource = Callable[[str], Iterable[tuple[np.ndarray, np.ndarray | None]]]
+"""camera name → its T frames in order, each (rgb (H, W, 3) uint8, depth (H, W) float32 metres or None)."""
+
+
+def write_scene(
+    out: str | os.PathLike,
+    *,
+    source: str,
+    dynamic: bool,
+    depth_source: str,
+    fps: float,
+    cameras: dict[str, CameraPath],
+    timestamps: np.ndarray,
+    frames: FrameSource,
+    tracks: tuple[np.ndarray, np.ndarray] | None = None,
+    depth_scale: float = 1.0,
+    depth_shift: float = 0.0,
+    extra: dict | None = None,
+    replace: bool = False,
+) -> Path:
+    """Write one converted scene with :class:`data_prep.format.SceneWriter` (atomic, validated).
+
+    Args:
+        out: scene folder to create.
+        source, dynamic, depth_source, fps, depth_scale, depth_shift, extra: meta fields (FORMAT.md).
+        cameras: camera name → T-frame path, reference camera first (dict order).
+        timestamps: (T,) seconds shared by every camera (the sources are synchronised).
+        frames: called once per camera, yields its T (rgb, depth) pairs in order.
+        tracks: optional (points (P, T, 3) metres world, visibility (P, T) bool).
+        replace: replace an existing scene folder.
+
+    Returns:
+        The scene folder.
+
+    Raises:
+        ValueError: a camera yields a number of frames other than T, or any SceneWriter/validator
+            error (bad shapes, invalid depth values, unsynchronised cameras).
+        FileExistsError: ``out`` exists and ``replace`` is false.
+    """
+    T = len(timestamps)
+    with SceneWriter(out, source=source, dynamic=dynamic, depth_source=depth_source, num_frames=T,
+                     fps=float(fps), depth_scale=float(depth_scale), depth_shift=float(depth_shift),
+                     extra=extra, replace=replace) as w:
+        for name, path in cameras.items():
+            w.add_camera(name, path, timestamps)
+        for name in cameras:
+            n = 0
+            for i, (rgb, depth) in enumerate(frames(name)):
+                if i >= T:
+                    raise ValueError(f"camera {name!r} yields more than num_frames={T} frames")
+                w.write_frame(name, i, rgb, depth)
+                n += 1
+            if n != T:
+                raise ValueError(f"camera {name!r} yields {n} frames, expected {T}")
+        if tracks is not None:
+            w.write_tracks(*tracks)
+    return Path(out)

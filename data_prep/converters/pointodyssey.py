@@ -1,0 +1,105 @@
+"""PointOdyssey → scene format.
+
+Source: Zheng et al., "PointOdyssey: A Large-Scale Synthetic Dataset for Long-Term Point
+Tracking", ICCV 2023, and the loaders of its code release (``pointodysseydataset*.py``). One
+converted scene = one sequence folder::
+
+    <IN>/rgbs/rgb_<%05d>.jpg
+    <IN>/depths/depth_<%05d>.png    uint16; metres = value / 65535 · 1000 (1000 m = the far limit)
+    <IN>/anno.npz                   trajs_2d (T, N, 2) px, trajs_3d (T, N, 3) world metres,
+                                    valids (T, N), visibs (T, N), intrinsics (T, 3, 3) px,
+                                    extrinsics (T, 4, 4) world-to-camera ("cams_T_world")
+
+Camera axes are OpenCV (the release projects ``trajs_3d`` with ``intrinsics @ extrinsics``); depth is
+z-depth. Value 0 and the saturated value 65535 carry no depth and become +inf.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .common import (
+    camera_path,
+    decode_scaled_uint16,
+    read_rgb_uint8,
+    read_uint16_png,
+    require_file,
+    select_frames,
+    write_scene,
+)
+
+__all__ = ["convert_pointodyssey", "POINTODYSSEY_DEPTH_M_PER_UNIT", "POINTODYSSEY_FPS"]
+
+POINTODYSSEY_DEPTH_M_PER_UNIT = 1000.0 / 65535.0
+"""Depth PNG unit in metres (the release decodes depth16 / 65535 · 1000)."""
+
+POINTODYSSEY_FPS = 30.0
+"""Nominal frame rate, Hz (not stated in the annotation files; see CONVERTERS.md)."""
+
+_ANNO_KEYS = ("trajs_3d", "visibs", "valids", "intrinsics", "extrinsics")
+
+
+def _select_tracks(pts: np.ndarray, vis: np.ndarray, max_tracks: int) -> tuple[np.ndarray, np.ndarray]:
+    """Tracks finite in every selected frame, evenly subsampled to at most ``max_tracks`` (deterministic)."""
+    keep = np.flatnonzero(np.isfinite(pts).all(axis=(1, 2)))
+    if keep.size > max_tracks:
+        keep = keep[np.linspace(0, keep.size - 1, max_tracks).round().astype(int)]
+    return pts[keep], vis[keep]
+
+
+def convert_pointodyssey(src: str | os.PathLike, out: str | os.PathLike, *, start: int = 0, stride: int = 1,
+                         max_frames: int | None = None, max_tracks: int = 4096, fps: float = POINTODYSSEY_FPS,
+                         replace: bool = False) -> Path:
+    """Convert one PointOdyssey sequence folder (module docstring) to a scene folder.
+
+    Args:
+        src: sequence folder.
+        out: output scene folder.
+        start, stride, max_frames: frame selection; meta fps = ``fps``/stride.
+        max_tracks: at most this many 3D tracks are kept (those finite in every selected frame,
+            evenly spaced in the source order); 0 writes no ``tracks.npz``.
+        fps: source frame rate, Hz.
+        replace: replace an existing output folder.
+
+    Returns:
+        The scene folder: one camera ``cam00``, ground-truth depth, tracks with visibility =
+        ``visibs & valids`` of the source (its occlusion flags for this camera).
+
+    Raises:
+        FileNotFoundError: missing ``anno.npz`` or frame files.
+        ValueError: ``anno.npz`` misses a key (named) or has inconsistent frame counts.
+    """
+    src = Path(src)
+    with np.load(require_file(src / "anno.npz", "PointOdyssey anno.npz")) as z:
+        missing = [k for k in _ANNO_KEYS if k not in z.files]
+        if missing:
+            raise ValueError(f"{src / 'anno.npz'} misses {missing}")
+        anno = {k: np.asarray(z[k]) for k in _ANNO_KEYS}
+    T_src = anno["extrinsics"].shape[0]
+    for k in _ANNO_KEYS:
+        if anno[k].shape[0] != T_src:
+            raise ValueError(f"anno.npz '{k}' has {anno[k].shape[0]} frames, extrinsics has {T_src}")
+    idx = select_frames(T_src, start, stride, max_frames)
+    ts = np.asarray(idx, dtype=np.float64) / fps
+    first = read_rgb_uint8(src / "rgbs" / f"rgb_{idx[0]:05d}.jpg")
+    H, W = first.shape[:2]
+    cams = {"cam00": camera_path(anno["extrinsics"][idx], anno["intrinsics"][idx], W, H, ts)}
+
+    def frames(_name: str):
+        for f in idx:
+            raw = read_uint16_png(src / "depths" / f"depth_{f:05d}.png")
+            yield (read_rgb_uint8(src / "rgbs" / f"rgb_{f:05d}.jpg"),
+                   decode_scaled_uint16(raw, POINTODYSSEY_DEPTH_M_PER_UNIT, invalid=(0, 65535)))
+
+    tracks = None
+    if max_tracks > 0:
+        pts = np.swapaxes(anno["trajs_3d"][idx], 0, 1).astype(np.float64)  # (N, T, 3)
+        vis = np.swapaxes(anno["visibs"][idx].astype(bool) & anno["valids"][idx].astype(bool), 0, 1)
+        pts, vis = _select_tracks(pts, vis, max_tracks)
+        tracks = (pts, vis) if pts.shape[0] else None
+    return write_scene(out, source="pointodyssey", dynamic=True, depth_source="ground_truth", fps=fps / stride,
+                       cameras=cams, timestamps=ts, frames=frames, tracks=tracks, replace=replace,
+                       extra={"source_id": src.resolve().name, "source_frames": idx,
+                              "tracks_visibility": "source visibs & valids"})
