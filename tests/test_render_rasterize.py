@@ -218,7 +218,7 @@ def test_non_finite_raises_naming_tensor(name):
 
 
 @pytest.mark.parametrize("kw,match", [
-    ({"camera_model": "fisheye"}, "camera_model"), ({"render_mode": "RGBD"}, "render_mode"),
+    ({"camera_model": "orthographic"}, "camera_model"), ({"render_mode": "RGBD"}, "render_mode"),
     ({"rasterize_mode": "aa"}, "rasterize_mode"), ({"tile_size": 0}, "tile_size"), ({"sh_degree": 1}, "colors"),
     ({"backgrounds": torch.zeros(2, 4, dtype=D)}, "backgrounds"), ({"sh_degree": 5}, "sh_degree"),
 ])

@@ -1,12 +1,14 @@
 """A camera path: T pinhole cameras (world-to-camera OpenCV viewmats, pixel Ks) with clip times."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 from ..gaussians import check_finite
+from ..quaternions import quat_nlerp, quat_to_rotmat, rotmat_to_quat
 from .intrinsics import center_crop_box
 
 __all__ = ["CameraPath", "invert_rigid"]
@@ -136,6 +138,39 @@ class CameraPath:
     def camera_centers(self) -> Tensor:
         """(T, 3) camera centres in world coordinates, metres: c = −Rᵀ t."""
         return invert_rigid(self.viewmats)[:, :3, 3]
+
+    def viewmat_at(self, t: float) -> Tensor:
+        """World-to-camera pose at clip time ``t``, interpolated between the path's cameras.
+
+        Between the two cameras whose times bracket t (weight w = (t − t_k)/(t_{k+1} − t_k)) the camera
+        centre is interpolated linearly and the camera-to-world rotation by normalised quaternion lerp
+        (shorter arc, :func:`diff4splat.quaternions.quat_nlerp`, the interpolation the scene uses for
+        Δq); before the first / after the last time the end pose is held; at a camera's own time its
+        viewmat is returned exactly.
+
+        Args:
+            t: clip time, finite.
+
+        Returns:
+            (4, 4) world-to-camera rigid transform, dtype of ``viewmats``.
+
+        Raises:
+            ValueError: t not finite.
+        """
+        t = float(t)
+        if not math.isfinite(t):
+            raise ValueError(f"t must be finite, got {t}")
+        times = self.times.detach().double()
+        k = int(torch.searchsorted(times, torch.tensor(t, dtype=torch.float64), right=True)) - 1
+        if k < 0 or t == float(times[k]) or k == len(self) - 1:
+            return self.viewmats[max(k, 0)]
+        w = (t - float(times[k])) / float(times[k + 1] - times[k])
+        c2w = invert_rigid(self.viewmats[k:k + 2])
+        q = rotmat_to_quat(c2w[:, :3, :3])
+        out = torch.eye(4, dtype=self.viewmats.dtype, device=self.viewmats.device)
+        out[:3, :3] = quat_to_rotmat(quat_nlerp(q[0], q[1], w))
+        out[:3, 3] = (1 - w) * c2w[0, :3, 3] + w * c2w[1, :3, 3]
+        return invert_rigid(out)
 
     def relative_to_first(self) -> "CameraPath":
         """The same path in the first camera's frame: V_i' = V_i · V_0⁻¹ (so V_0' = I exactly).

@@ -1,11 +1,15 @@
 """CPU Gaussian-splatting renderer (gsplat-compatible API): projection, SH colours, rasterizers.
 
 ``rasterize`` is the fast tile path, ``rasterize_dense`` the brute-force reference it is tested
-against; both share :mod:`.projection` and :mod:`.sh` (DESIGN.md, "The renderer").
+against; both share :mod:`.projection` and :mod:`.sh` (DESIGN.md, "The renderer"). Camera effects
+(fisheye, thin lens: ``rasterize(..., camera_params=...)``) go through the ray path ``raytrace``;
+``render_rolling_shutter`` renders row bands of a dynamic scene at their own times.
 """
 from diff4splat.render.projection import Projection, project_gaussians
 from diff4splat.render.rasterize import rasterize
+from diff4splat.render.raytrace import raytrace
 from diff4splat.render.reference import rasterize_dense
+from diff4splat.render.rolling_shutter import render_rolling_shutter
 from diff4splat.render.sh import sh_basis, sh_to_color, spherical_harmonics
 
 eval_sh = spherical_harmonics
@@ -14,6 +18,8 @@ eval_sh = spherical_harmonics
 __all__ = [
     "rasterize",
     "rasterize_dense",
+    "raytrace",
+    "render_rolling_shutter",
     "project_gaussians",
     "Projection",
     "spherical_harmonics",

@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from diff4splat.render.projection import ALPHA_MAX, T_MIN, splat_alpha, splat_sigma, support_extent
+from diff4splat.render.raytrace import raytrace
 from diff4splat.render.reference import render_pipeline
 
 __all__ = ["rasterize", "bin_tiles", "composite_tiles", "PAIR_BUDGET"]
@@ -260,6 +261,7 @@ def rasterize(
     rasterize_mode: str = "classic",
     camera_model: str = "pinhole",
     tile_size: int = 16,
+    camera_params: object = None,
 ) -> tuple[Tensor, Tensor, dict]:
     """Render 3D Gaussians into C cameras (gsplat ``rasterization`` signature), CPU tile path.
 
@@ -283,8 +285,14 @@ def rasterize(
             (depth appended as the last channel).
         rasterize_mode: "classic", or "antialiased" (opacity × sqrt(det Σ2d / det(Σ2d + eps2d·I)),
             Mip-Splatting eq. 9, as gsplat).
-        camera_model: "pinhole" only (others raise).
+        camera_model: "pinhole" (tile path) or "fisheye" (ray path).
         tile_size: tile edge, pixels; a performance knob (results do not depend on it).
+        camera_params: None (plain pinhole: this tile path), or a camera effect of
+            :mod:`diff4splat.cameras.models` — ``ThinLens`` (pinhole depth of field), ``FisheyeKB`` or
+            ``FisheyePolynomial`` (fisheye; None → equidistant). Any non-pinhole model or effect is
+            rendered by the ray path :func:`diff4splat.render.raytrace.raytrace` (its docstring lists
+            the differences: exact ray response, eps2d ignored, depth = distance along the ray, meta
+            keys). Rolling shutter needs a dynamic scene: :func:`diff4splat.render.render_rolling_shutter`.
 
     Rules (3DGS, Kerbl et al. 2023; gsplat CUDA kernels): EWA projection and culling as
     :func:`diff4splat.render.projection.project_gaussians`; alpha = min(0.99, o·exp(−σ)), skipped
@@ -306,6 +314,12 @@ def rasterize(
         ValueError: wrong shapes (naming the argument), non-finite inputs (naming the tensor),
             zero-norm quaternions, unknown render/rasterize mode or camera model, bad sizes.
     """
+    if camera_model != "pinhole" or camera_params is not None:  # camera effects only when asked for
+        return raytrace(
+            means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane=near_plane,
+            far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, backgrounds=backgrounds, render_mode=render_mode,
+            rasterize_mode=rasterize_mode, camera_model=camera_model, camera_params=camera_params, tile_size=tile_size,
+        )
     return render_pipeline(
         composite_tiles, means, quats, scales, opacities, colors, viewmats, Ks, width, height,
         near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, backgrounds=backgrounds,

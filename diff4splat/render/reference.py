@@ -9,6 +9,8 @@ differ only in how Gaussians are composited.
 """
 from __future__ import annotations
 
+import contextlib
+import functools
 from typing import Callable
 
 import torch
@@ -18,7 +20,10 @@ from diff4splat.gaussians import check_finite
 from diff4splat.render.projection import CAMERA_MODELS, T_MIN, Projection, project_gaussians, splat_alpha
 from diff4splat.render.sh import num_sh_bases, sh_to_color, spherical_harmonics
 
-__all__ = ["RENDER_MODES", "RASTERIZE_MODES", "rasterize_dense", "composite_dense", "render_pipeline"]
+__all__ = [
+    "RENDER_MODES", "RASTERIZE_MODES", "rasterize_dense", "composite_dense", "render_pipeline", "color_features",
+    "mode_backgrounds", "expected_depth",
+]
 
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 RASTERIZE_MODES = ("classic", "antialiased")
@@ -27,6 +32,34 @@ RASTERIZE_MODES = ("classic", "antialiased")
 # feats (M,F), covars2d (M,3), background (F,) or None, width, height, tile_size)
 #   -> (colors (H*W, F), alphas (H*W,), info dict).  Only the M visible Gaussians are passed.
 Compositor = Callable[..., tuple[Tensor, Tensor, dict]]
+
+LOW_PRECISION = (torch.float16, torch.bfloat16)
+"""Input dtypes the renderer computes in float32 instead (outputs are float32 then)."""
+
+
+def compute_dtype(dtype: torch.dtype) -> torch.dtype:
+    """The dtype the renderer computes in for inputs of ``dtype``: float16/bfloat16 → float32, else itself."""
+    return torch.float32 if dtype in LOW_PRECISION else dtype
+
+
+def full_precision(fn: Callable) -> Callable:
+    """Decorator: run ``fn`` with autocast disabled (CPU, and CUDA when available).
+
+    Under ``torch.autocast(dtype=bfloat16)`` the projection's matmuls/einsums would run in bfloat16
+    (8-bit mantissa: depth errors of metres, wrong culling); the renderer instead computes in the
+    dtype of its inputs (float32 for float16/bfloat16 inputs, :func:`compute_dtype`), as gsplat's
+    kernels compute in float32 whatever the autocast state.
+    """
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        with contextlib.ExitStack() as stack:
+            stack.enter_context(torch.autocast("cpu", enabled=False))
+            if torch.cuda.is_available():
+                stack.enter_context(torch.autocast("cuda", enabled=False))
+            return fn(*args, **kwargs)
+
+    return wrapper
 
 
 def _check_shape(name: str, t: Tensor, shape: tuple) -> None:
@@ -82,6 +115,46 @@ def validate_inputs(
             check_finite(name, t)
 
 
+def color_features(
+    colors: Tensor,  # (N, D) or (N, K, 3) SH
+    means: Tensor,  # (N, 3)
+    viewmats: Tensor,  # (C, 4, 4)
+    sh_degree: int | None,
+) -> Tensor:
+    """Per-camera colour features (C, N, D): ``colors`` as given, or with ``sh_degree`` the INRIA
+    SH colour max(SH(dir) + 0.5, 0) along dir = mean − camera centre (centre −Rᵀt, gsplat
+    ``rasterization``; :mod:`diff4splat.render.sh`)."""
+    C, N = viewmats.shape[0], means.shape[0]
+    if sh_degree is None:
+        return colors[None].expand(C, N, colors.shape[-1])
+    R, t = viewmats[:, :3, :3], viewmats[:, :3, 3]
+    campos = -torch.einsum("cji,cj->ci", R, t)  # camera centres −Rᵀt, (C, 3)
+    dirs = means[None] - campos[:, None]  # (C, N, 3)
+    return sh_to_color(spherical_harmonics(sh_degree, dirs, colors[None]))
+
+
+def mode_backgrounds(backgrounds: Tensor | None, render_mode: str, C: int, dtype: torch.dtype) -> Tensor | None:
+    """Backgrounds (C, F) of the composited features for ``render_mode``: the colour for "RGB",
+    0 for the depth channel ("D"/"ED" → (C, 1) zeros, "RGB+D"/"RGB+ED" → colour then 0); None stays None."""
+    if backgrounds is None:
+        return None
+    bgs = backgrounds.to(dtype)
+    if render_mode in ("D", "ED"):
+        return bgs.new_zeros(C, 1)
+    if render_mode != "RGB":
+        return torch.cat([bgs, bgs.new_zeros(C, 1)], dim=-1)
+    return bgs
+
+
+def expected_depth(render_colors: Tensor, render_alphas: Tensor, render_mode: str) -> Tensor:
+    """For "ED"/"RGB+ED", divide the accumulated depth (last channel) by max(alpha, 1e-10), so it is
+    0 where alpha is 0; other modes are returned unchanged. (C, H, W, F), (C, H, W, 1) → (C, H, W, F)."""
+    if render_mode not in ("ED", "RGB+ED"):
+        return render_colors
+    return torch.cat([render_colors[..., :-1], render_colors[..., -1:] / render_alphas.clamp(min=1e-10)], dim=-1)
+
+
+@full_precision
 def render_pipeline(
     compositor: Compositor,
     means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor,
@@ -101,7 +174,8 @@ def render_pipeline(
         near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, backgrounds=backgrounds,
         render_mode=render_mode, rasterize_mode=rasterize_mode, camera_model=camera_model, tile_size=tile_size,
     )
-    dtype = means.dtype
+    dtype = compute_dtype(means.dtype)  # autocast is off here (full_precision)
+    means, quats, scales, opacities = means.to(dtype), quats.to(dtype), scales.to(dtype), opacities.to(dtype)
     viewmats, Ks = viewmats.to(dtype), Ks.to(dtype)
     proj = project_gaussians(
         means, quats, scales, opacities, viewmats, Ks, width, height, near_plane=near_plane,
@@ -110,23 +184,11 @@ def render_pipeline(
     C, N = proj.depths.shape
     feats = []
     if render_mode in ("RGB", "RGB+D", "RGB+ED"):
-        if sh_degree is None:
-            feats.append(colors.to(dtype)[None].expand(C, N, colors.shape[-1]))
-        else:
-            R, t = viewmats[:, :3, :3], viewmats[:, :3, 3]
-            campos = -torch.einsum("cji,cj->ci", R, t)  # camera centres −Rᵀt, (C, 3)
-            dirs = means[None] - campos[:, None]  # (C, N, 3)
-            feats.append(sh_to_color(spherical_harmonics(sh_degree, dirs, colors.to(dtype)[None])))
+        feats.append(color_features(colors.to(dtype), means, viewmats, sh_degree))
     if render_mode != "RGB":
         feats.append(proj.depths[..., None])
     feats = torch.cat(feats, dim=-1)  # (C, N, F)
-    bgs = None
-    if backgrounds is not None:
-        bgs = backgrounds.to(dtype)
-        if render_mode in ("D", "ED"):
-            bgs = bgs.new_zeros(C, 1)
-        elif render_mode != "RGB":
-            bgs = torch.cat([bgs, bgs.new_zeros(C, 1)], dim=-1)
+    bgs = mode_backgrounds(backgrounds, render_mode, C, dtype)
 
     out_colors, out_alphas, infos = [], [], []
     for c in range(C):
@@ -139,12 +201,8 @@ def render_pipeline(
         out_colors.append(col.reshape(height, width, -1))
         out_alphas.append(alpha.reshape(height, width, 1))
         infos.append(info)
-    render_colors = torch.stack(out_colors)
     render_alphas = torch.stack(out_alphas)
-    if render_mode in ("ED", "RGB+ED"):
-        render_colors = torch.cat(
-            [render_colors[..., :-1], render_colors[..., -1:] / render_alphas.clamp(min=1e-10)], dim=-1
-        )
+    render_colors = expected_depth(torch.stack(out_colors), render_alphas, render_mode)
     meta = {
         "radii": proj.radii, "means2d": proj.means2d, "depths": proj.depths, "conics": proj.conics,
         "opacities": proj.opacities, "compensations": proj.compensations, "covars2d": proj.covars2d,
