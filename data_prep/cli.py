@@ -1,0 +1,115 @@
+"""``data_prep`` command line: dataset tools (``validate``, ``synth``; more subcommands plug in here).
+
+Each subcommand is one ``_add_<name>(sub)`` function below that adds its parser and sets
+``func=<handler>``; a handler takes the parsed arguments and returns the exit code. To add a
+subcommand, write its two functions and append the adder to :data:`SUBCOMMANDS`.
+
+Bad input (a bad argument, a missing folder, a ``ValueError``) gets one line on stderr
+(``data_prep: error: …``) and exit code 2.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+__all__ = ["main", "build_parser", "SUBCOMMANDS"]
+
+EXIT_USAGE = 2
+
+
+class CLIError(Exception):
+    """A user error reported as one line with exit code 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line, exit 2 (argparse would print usage + message)
+        raise CLIError(message)
+
+
+# --------------------------------------------------------------------------- validate
+
+def _validate(args: argparse.Namespace) -> int:
+    from .validate import validate_path
+
+    n, problems = validate_path(args.dir)
+    for p in problems:
+        print(p)
+    bad = len({_scene_of(p.file, args.dir) for p in problems})
+    print(f"{n} scene(s) checked: " + (f"{len(problems)} problem(s) in {bad} scene(s)" if problems else "all valid"))
+    return 1 if problems else 0
+
+
+def _scene_of(file: Path, root: Path) -> Path:
+    try:
+        rel = Path(file).relative_to(root)
+    except ValueError:
+        return Path(file)
+    return root / rel.parts[0] if rel.parts else root
+
+
+def _add_validate(sub) -> None:
+    p = sub.add_parser("validate", help="check scene folders against data_prep/FORMAT.md",
+                       description="Check a dataset root (folder of scenes) or one scene folder; print each "
+                                   "problem as '<file>: <problem>'. Exit 1 if any problem, 0 otherwise.")
+    p.add_argument("dir", type=Path, help="dataset root or scene folder")
+    p.set_defaults(func=_validate)
+
+
+# --------------------------------------------------------------------------- synth
+
+def _synth(args: argparse.Namespace) -> int:
+    import time
+
+    from .synth import synthesize
+
+    t0 = time.perf_counter()
+    paths = synthesize(args.out, args.scenes, args.seed, size=args.size, frames=args.frames, cameras=args.cameras,
+                       static_ratio=args.static_ratio, workers=args.workers, progress=not args.quiet)
+    print(f"{len(paths)} scene(s) in {args.out} ({time.perf_counter() - t0:.1f} s)")
+    return 0
+
+
+def _add_synth(sub) -> None:
+    p = sub.add_parser("synth", help="generate synthetic dynamic Gaussian scenes",
+                       description="Render procedural scenes (textured room, 1-4 moving objects, synchronised "
+                                   "cameras) with RGB, metric depth, 3D tracks and captions. Scenes already "
+                                   "present are skipped, so a rerun resumes.")
+    p.add_argument("--scenes", type=int, required=True, help="number of scenes N (scene_00000 … )")
+    p.add_argument("--out", type=Path, required=True, help="dataset root to write")
+    p.add_argument("--seed", type=int, default=0, help="global seed ≥ 0 (default 0)")
+    p.add_argument("--size", type=int, default=64, help="image width = height, pixels (default 64)")
+    p.add_argument("--frames", type=int, default=17, help="frames per camera (default 17)")
+    p.add_argument("--cameras", type=int, default=2, help="synchronised cameras per scene (default 2)")
+    p.add_argument("--static-ratio", type=float, default=0.3, help="fraction of static scenes in [0, 1] (default 0.3)")
+    p.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_synth)
+
+
+SUBCOMMANDS: list[Callable] = [_add_validate, _add_synth]
+"""Parser adders, one per subcommand, in help order."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="data_prep", description="diff4splat dataset tools (format: data_prep/FORMAT.md).")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    for add in SUBCOMMANDS:
+        add(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``data_prep`` console script. Returns the exit code (0 ok, 1 problems, 2 bad input)."""
+    try:
+        args = build_parser().parse_args(argv)
+        return int(args.func(args))
+    except (CLIError, ValueError, FileNotFoundError, FileExistsError) as e:
+        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+        print(f"data_prep: error: {msg}", file=sys.stderr)
+        return EXIT_USAGE
+
+
+if __name__ == "__main__":
+    sys.exit(main())

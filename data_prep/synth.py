@@ -1,0 +1,431 @@
+"""Synthetic dynamic scenes made of 3D Gaussians, rendered with diff4splat's renderer (``data_prep synth``).
+
+A scene spec (:func:`data_prep.synth_world.sample_scene_spec`) becomes a
+:class:`~diff4splat.scene.DynamicGaussians`: a textured ground disk and cylindrical backdrop wall
+(flat Gaussians on a grid) plus 1–4 objects (flat Gaussians on their surfaces), coloured by a
+procedural texture (checker, stripes, spotted noise blobs, per-Gaussian jitter) times a Lambertian
+shading term ``ambient + (1 − ambient)·max(0, n·l)`` with a sampled light direction l and tint,
+baked into the degree-0 SH. Object motions (translate/roll, rotate, bounce, deform; formulas in
+:mod:`data_prep.synth_world`) become per-frame deformation maps at the frame times t_i = i/(T−1), so
+``scene.at(t_i)`` holds the exact moved Gaussians. Each camera path is rendered with
+:func:`diff4splat.render.render_path`; depth is the rendered expected z-depth (metres) where the
+accumulated opacity is ≥ 0.5 and +inf elsewhere.
+
+Tracks are the exact world positions of up to 256 object Gaussian means (the same positions the
+renderer draws). Visibility follows FORMAT.md: in front of the reference camera, inside its image
+and not occluded — its rendered depth at the containing pixel ≥ z − (0.05 m + 0.03·z).
+
+Determinism: scene ``index`` of run ``seed`` samples everything from
+``numpy.random.default_rng([seed, index])`` and renders with one torch thread, so scenes are
+identical whether made serially, in parallel or on resume.
+"""
+from __future__ import annotations
+
+import math
+import os
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from diff4splat.cameras import CameraPath, intrinsics_from_fov, look_at
+from diff4splat.gaussians import Gaussians, rgb_to_sh0
+from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat, rotmat_to_quat
+from diff4splat.render.path import render_path
+from diff4splat.scene import DynamicGaussians
+
+from .format import SceneWriter
+from .synth_world import caption_for, sample_scene_spec
+
+__all__ = ["generate_scene", "synthesize", "build_gaussians", "object_transform", "camera_path",
+           "track_visibility", "scene_name", "MAX_TRACKS", "VISIBILITY_TOL_M", "VISIBILITY_TOL_REL"]
+
+MAX_TRACKS = 256
+"""Tracked object points per scene (fewer if the objects have fewer Gaussians)."""
+VISIBILITY_TOL_M = 0.05
+VISIBILITY_TOL_REL = 0.03
+"""Occlusion tolerance VISIBILITY_TOL_M + VISIBILITY_TOL_REL·z, metres (FORMAT.md, tracks). The rendered
+expected depth averages the depths of the Gaussian centres covering a pixel, weighted front to back,
+so on a curved or slanted surface it lies a few centimetres in front of a surface point (≈ spacing ×
+slope, up to about 0.1 m at 3 m here); back sides of objects lie ≥ 0.3 m behind their front."""
+_WALL_HEIGHT = 4.0
+_UP = np.array([0.0, -1.0, 0.0])  # world up (y points down)
+
+
+def scene_name(index: int) -> str:
+    """Folder name of scene ``index``: ``scene_00007``."""
+    return f"scene_{index:05d}"
+
+
+# --------------------------------------------------------------------------- geometry and colour
+
+def _tangent_frames(normals: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) rotations whose columns are (t1, t2, n): local → world frames of flat Gaussians."""
+    a = np.where(np.abs(normals[:, :1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
+    t1 = np.cross(normals, a)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t2 = np.cross(normals, t1)
+    return np.stack([t1, t2, normals], axis=-1)
+
+
+def _texture_rgb(rng: np.random.Generator, tex: dict, base: list[float], uv: np.ndarray, extent: np.ndarray) -> np.ndarray:
+    """Albedo (N, 3) of a procedural texture at surface coordinates ``uv`` (N, 2) metres, ``extent`` (2,) metres."""
+    c1, c2 = np.asarray(base), np.asarray(tex["color2"])
+    ca, sa = math.cos(tex["angle"]), math.sin(tex["angle"])
+    u, v = uv[:, 0] * ca + uv[:, 1] * sa, -uv[:, 0] * sa + uv[:, 1] * ca
+    f = tex["freq"]
+    if tex["kind"] == "checker":
+        mix = ((np.floor(u * f) + np.floor(v * f)) % 2)[:, None]
+    elif tex["kind"] == "stripes":
+        mix = (np.floor(u * f) % 2)[:, None]
+    else:
+        mix = np.zeros((len(uv), 1))
+    rgb = c1 * (1 - mix) + c2 * mix
+    if tex["kind"] == "noise":
+        rel = uv / np.maximum(extent, 1e-6)
+        for c, r, col in zip(tex["blobs"]["centers"], tex["blobs"]["radii"], tex["blobs"]["colors"]):
+            w = np.exp(-((rel - np.asarray(c)) ** 2).sum(1) / (2 * r * r))[:, None]
+            rgb = rgb * (1 - w) + np.asarray(col) * w
+    return rgb + tex["noise"] * rng.standard_normal((len(uv), 1))
+
+
+def _shade(albedo: np.ndarray, normals: np.ndarray, light: dict) -> np.ndarray:
+    """Lambertian shading: albedo·tint·(ambient + (1 − ambient)·max(0, n·l)), clipped to [0, 1]."""
+    lam = np.clip(normals @ np.asarray(light["direction"]), 0, None)[:, None]
+    return np.clip(albedo * np.asarray(light["tint"]) * (light["ambient"] + (1 - light["ambient"]) * lam), 0, 1)
+
+
+def _fibonacci(n: int) -> np.ndarray:
+    """(n, 3) near-uniform unit vectors (Fibonacci lattice)."""
+    i = np.arange(n) + 0.5
+    y = 1 - 2 * i / n
+    r, phi = np.sqrt(1 - y * y), math.pi * (3 - math.sqrt(5)) * i
+    return np.stack([r * np.cos(phi), y, r * np.sin(phi)], 1)
+
+
+def _object_surface(obj: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+    """Object-local surface samples: points (N, 3), normals (N, 3), uv (N, 2) m, extent (2,) m, spacing m."""
+    h = np.asarray(obj["half"])
+    if obj["shape"] == "box":
+        area = 8 * (h[0] * h[1] + h[1] * h[2] + h[0] * h[2])
+        sp = max(math.sqrt(area / 600), 0.04)
+        pts, nrm, uv = [], [], []
+        for ax in range(3):
+            a, b = [k for k in range(3) if k != ax]
+            ga, gb = (np.arange(-h[k] + sp / 2, h[k], sp) for k in (a, b))
+            A, B = (g.reshape(-1) for g in np.meshgrid(ga, gb, indexing="ij"))
+            for sign in (-1.0, 1.0):
+                p = np.zeros((len(A), 3))
+                p[:, a], p[:, b], p[:, ax] = A, B, sign * h[ax]
+                n = np.zeros_like(p)
+                n[:, ax] = sign
+                pts.append(p), nrm.append(n), uv.append(np.stack([A, B], 1))
+        return np.concatenate(pts), np.concatenate(nrm), np.concatenate(uv), 2 * h[:2], sp
+    r = float(h.max())
+    area = 4 * math.pi * (h[0] * h[1] + h[1] * h[2] + h[0] * h[2]) / 3  # ellipsoid area (Thomsen, p=1)
+    n = int(np.clip(area / 0.05 ** 2, 200, 700))
+    d = _fibonacci(n)
+    if obj["shape"] == "blob":  # a sphere with low-order radial lumps: r(d) = r·(1 + Σ c_k·d_{k mod 3}·d_{(k+1) mod 3})
+        c = np.asarray(obj["lumps"])
+        bump = sum(c[k] * d[:, k % 3] * d[:, (k + 1) % 3] * (1 + k // 3) for k in range(len(c)))
+        pts = d * (r * (1 + bump))[:, None]
+        nrm = d
+    else:
+        pts = d * h
+        nrm = d / h
+        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    uv = np.stack([np.arctan2(d[:, 2], d[:, 0]) * r, np.arccos(np.clip(d[:, 1], -1, 1)) * r], 1)
+    return pts, nrm, uv, np.array([2 * math.pi * r, math.pi * r]), math.sqrt(area / n)
+
+
+def _rot_y(angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+
+
+def build_gaussians(spec: dict[str, Any], rng: np.random.Generator) -> tuple[Gaussians, np.ndarray]:
+    """Canonical (t = 0) Gaussians of a scene spec.
+
+    Returns:
+        Gaussians (float32; ground, wall, then objects; flat discs: in-plane σ = 0.7·spacing, normal σ
+        = 0.1 of that), and object_id (M,) int64: −1 for ground/wall, k for ``spec["objects"][k]``.
+    """
+    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, float, float, int]] = []  # pts, nrm, rgb, sigma, opacity, id
+    R, gy, light = spec["room_radius"], spec["ground_y"], spec["light"]
+    sp = 0.25 * min(1.0, 64 / spec["size"]) ** 0.5
+    g = np.arange(-R, R + 1e-9, sp)
+    X, Z = (a.reshape(-1) for a in np.meshgrid(g, g, indexing="ij"))
+    keep = X ** 2 + Z ** 2 <= R * R
+    X, Z = X[keep], Z[keep]
+    pts = np.stack([X, np.full_like(X, gy), Z], 1)
+    nrm = np.tile(_UP, (len(X), 1))
+    tex = spec["ground"]
+    parts.append((pts, nrm, _shade(_texture_rgb(rng, tex["texture"], tex["color"], pts[:, [0, 2]], np.array([2 * R, 2 * R])),
+                                   nrm, light), sp, 0.97, -1))
+    n_arc = int(math.ceil(2 * math.pi * R / (sp * 1.2)))
+    th = np.arange(n_arc) * 2 * math.pi / n_arc
+    ys = gy - np.arange(sp * 0.6, _WALL_HEIGHT, sp * 1.2)
+    TH, Y = (a.reshape(-1) for a in np.meshgrid(th, ys, indexing="ij"))
+    pts = np.stack([R * np.cos(TH), Y, R * np.sin(TH)], 1)
+    nrm = -pts * np.array([1.0, 0.0, 1.0]) / R
+    tex = spec["wall"]
+    uv = np.stack([TH * R, gy - Y], 1)
+    parts.append((pts, nrm, _shade(_texture_rgb(rng, tex["texture"], tex["color"], uv, np.array([2 * math.pi * R, _WALL_HEIGHT])),
+                                   nrm, light), sp * 1.2, 0.97, -1))
+    for k, obj in enumerate(spec["objects"]):
+        p, n, uv, extent, osp = _object_surface(obj)
+        Ry = _rot_y(obj["yaw"])
+        p, n = p @ Ry.T + np.asarray(obj["center"]), n @ Ry.T
+        albedo = _texture_rgb(rng, obj["texture"], obj["color"], uv, extent)
+        parts.append((p, n, _shade(albedo, n, light), osp, obj["opacity"], k))
+    means = np.concatenate([q[0] for q in parts])
+    frames = _tangent_frames(np.concatenate([q[1] for q in parts]))
+    rgb = np.concatenate([q[2] for q in parts])
+    sig = np.concatenate([np.full(len(q[0]), 0.7 * q[3]) for q in parts])
+    scales = np.stack([sig, sig, 0.1 * sig], 1)
+    opac = np.concatenate([np.full(len(q[0]), q[4]) for q in parts])
+    ids = np.concatenate([np.full(len(q[0]), q[5], dtype=np.int64) for q in parts])
+    f32 = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
+    quats = rotmat_to_quat(torch.as_tensor(frames, dtype=torch.float64)).float()
+    return Gaussians(f32(means), quats, f32(scales), f32(opac), rgb_to_sh0(f32(rgb))[:, None, :]), ids
+
+
+# --------------------------------------------------------------------------- motion and cameras
+
+def object_transform(obj: dict[str, Any], t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pose of an object at clip time t ∈ [0, 1]: p(t) = p0 + d + R·(S ⊙ (p − p0)).
+
+    Motion formulas: :mod:`data_prep.synth_world` docstring. A static object gives d = 0, R = I, S = 1.
+
+    Returns:
+        pivot p0 (3,), displacement d (3,) metres, rotation R (3, 3), scale factors S (3,) — float64.
+    """
+    m, c = obj["motion"], np.asarray(obj["center"], dtype=np.float64)
+    d, R, S = np.zeros(3), np.eye(3), np.ones(3)
+    if m is None:
+        return c, d, R, S
+    if m["kind"] in ("translate", "bounce"):
+        d = t * np.asarray(m["velocity"])
+    if m["kind"] == "translate" and m["roll"] and np.linalg.norm(d) > 0:
+        axis = np.cross(_UP, d / np.linalg.norm(d))
+        R = _axis_angle(axis, np.linalg.norm(d) / obj["half"][0])
+    elif m["kind"] == "rotate":
+        R = _axis_angle(np.asarray(m["axis"]), m["omega"] * t)
+    elif m["kind"] == "bounce":
+        tau = (m["hops"] * t) % 1.0
+        d = d + _UP * 4 * m["height"] * tau * (1 - tau)
+    elif m["kind"] == "deform":
+        s = m["amplitude"] * math.sin(2 * math.pi * m["freq"] * t)
+        S = np.full(3, 1 + s) if m["mode"] == "pulse" else np.array([1 + s / 2, 1 - s, 1 + s / 2])
+        c = c + np.array([0.0, obj["half"][1], 0.0])  # pivot at the bottom: the object stays on the ground
+    return c, d, R, S
+
+
+def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
+    q = axis_angle_to_quat(torch.as_tensor(axis, dtype=torch.float64), torch.tensor(float(angle), dtype=torch.float64))
+    return quat_to_rotmat(q).numpy()
+
+
+def build_scene(spec: dict[str, Any], rng: np.random.Generator) -> tuple[DynamicGaussians, np.ndarray]:
+    """The :class:`DynamicGaussians` of a spec (deformation at the T frame times; none if nothing moves)
+    and the object id (M,) of every Gaussian (−1 = background)."""
+    canon, ids = build_gaussians(spec, rng)
+    T = spec["num_frames"]
+    times = np.linspace(0.0, 1.0, T) if T > 1 else np.zeros(1)
+    movers = [k for k, o in enumerate(spec["objects"]) if o["motion"] is not None]
+    if not movers:
+        return DynamicGaussians(canon), ids
+    M = canon.num_gaussians
+    d_means = np.zeros((T, M, 3))
+    d_quats = np.tile(np.array([1.0, 0, 0, 0]), (T, M, 1))
+    d_scales = np.zeros((T, M, 3))
+    means = canon.means.double().numpy()
+    for k in movers:
+        sel = ids == k
+        for i, t in enumerate(times):
+            p0, d, R, S = object_transform(spec["objects"][k], float(t))
+            d_means[i, sel] = p0 + d + ((means[sel] - p0) * S) @ R.T - means[sel]
+            d_quats[i, sel] = rotmat_to_quat(torch.as_tensor(R)).numpy()
+            d_scales[i, sel] = np.log(S).mean()  # isotropic approximation of the Gaussian's shape; means exact
+    f32 = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
+    return DynamicGaussians(canon, f32(times), f32(d_means), f32(d_quats), f32(d_scales)), ids
+
+
+def camera_path(spec: dict[str, Any], cam: dict[str, Any]) -> CameraPath:
+    """T cameras of one sampled camera (square images of ``spec["size"]`` pixels).
+
+    Base pose: eye at azimuth θ, horizontal distance ``distance`` from the scene centre
+    (eye = (d·sin θ, ground_y − height, −d·cos θ)), looking at the point ``target_height`` above the
+    centre; f = horizontal forward, r = horizontal right. Motions over t ∈ [0, 1] (``delta``):
+    orbit θ(t) = θ + δ·t (δ > 0: eye moves to the camera's right); dolly eye, target += δ·t·f;
+    truck eye, target += δ·t·r; pan: target direction turns by δ·t towards r (δ > 0: right); static.
+    """
+    T, size = spec["num_frames"], spec["size"]
+    t = np.linspace(0.0, 1.0, T) if T > 1 else np.zeros(1)
+    gy, d = spec["ground_y"], cam["distance"]
+    theta = cam["azimuth"] + (cam["delta"] * t if cam["kind"] == "orbit" else 0.0 * t)
+    eyes = np.stack([d * np.sin(theta), np.full(T, gy - cam["height"]), -d * np.cos(theta)], 1)
+    targets = np.tile(np.array([0.0, gy - cam["target_height"], 0.0]), (T, 1))
+    f = -eyes[0] * np.array([1.0, 0.0, 1.0])
+    f /= np.linalg.norm(f)
+    r = np.array([f[2], 0.0, -f[0]])  # down × f: the camera's x axis in look_at
+    if cam["kind"] == "dolly":
+        eyes, targets = eyes + cam["delta"] * t[:, None] * f, targets + cam["delta"] * t[:, None] * f
+    elif cam["kind"] == "truck":
+        eyes, targets = eyes + cam["delta"] * t[:, None] * r, targets + cam["delta"] * t[:, None] * r
+    elif cam["kind"] == "pan":
+        to = targets - eyes
+        a = cam["delta"] * t[:, None]
+        fwd, side = (to * f).sum(1, keepdims=True), (to * r).sum(1, keepdims=True)
+        rest = to - fwd * f - side * r
+        targets = eyes + rest + (fwd * np.cos(a) - side * np.sin(a)) * f + (fwd * np.sin(a) + side * np.cos(a)) * r
+    viewmats = look_at(torch.as_tensor(eyes), torch.as_tensor(targets), up=tuple(_UP)).float()
+    K = intrinsics_from_fov(size, size, fov_x_deg=cam["fov_x_deg"])
+    return CameraPath(viewmats, K.expand(T, 3, 3).clone(), size, size)
+
+
+# --------------------------------------------------------------------------- tracks, scenes, driver
+
+def track_visibility(points: np.ndarray, cameras: CameraPath, depth: np.ndarray) -> np.ndarray:
+    """Visibility (P, T) bool of world points in the reference camera (FORMAT.md, tracks.npz).
+
+    Visible at frame i iff z > 0 in camera i, the projection (u, v) = (fx·x/z + cx, fy·y/z + cy)
+    lies in [0, W) × [0, H), and depth[i, ⌊v⌋, ⌊u⌋] ≥ z − (VISIBILITY_TOL_M + VISIBILITY_TOL_REL·z).
+
+    Args:
+        points: (P, T, 3) world positions, metres.
+        cameras: the reference camera's T cameras.
+        depth: (T, H, W) its rendered z-depth, metres (+inf where empty).
+    """
+    V = cameras.viewmats.double().numpy()
+    K = cameras.Ks.double().numpy()
+    cam = np.einsum("tij,ptj->pti", V[:, :3, :3], points.astype(np.float64)) + V[None, :, :3, 3]
+    z = cam[..., 2]
+    zs = np.where(z > 1e-9, z, 1.0)
+    u = K[None, :, 0, 0] * cam[..., 0] / zs + K[None, :, 0, 2]
+    v = K[None, :, 1, 1] * cam[..., 1] / zs + K[None, :, 1, 2]
+    inside = (z > 1e-9) & (u >= 0) & (u < cameras.width) & (v >= 0) & (v < cameras.height)
+    ui = np.clip(np.floor(u), 0, cameras.width - 1).astype(np.int64)
+    vi = np.clip(np.floor(v), 0, cameras.height - 1).astype(np.int64)
+    frame = np.broadcast_to(np.arange(points.shape[1]), z.shape)
+    tol = VISIBILITY_TOL_M + VISIBILITY_TOL_REL * z
+    return inside & (depth[frame, vi, ui] >= z - tol)
+
+
+def generate_scene(out_dir: str | os.PathLike, index: int, seed: int, *, size: int = 64, frames: int = 17,
+                   cameras: int = 2, static_ratio: float = 0.3, replace: bool = False) -> Path:
+    """Sample, render and write scene ``index`` of run ``seed`` to ``out_dir/scene_{index:05d}`` (atomic).
+
+    The scene is static (no object motion) with probability ``static_ratio``, drawn from the scene's
+    own generator ``numpy.random.default_rng([seed, index])``. Rendering uses one torch thread (restored
+    afterwards) so the bytes do not depend on the machine's thread count.
+
+    Returns:
+        The scene folder.
+
+    Raises:
+        FileExistsError: the scene exists and ``replace`` is false.
+    """
+    rng = np.random.default_rng([seed, index])
+    dynamic = bool(rng.random() >= static_ratio)
+    spec = sample_scene_spec(rng, dynamic=dynamic, num_cameras=cameras, size=size, num_frames=frames)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        scene, ids = build_scene(spec, rng)
+        paths = [camera_path(spec, c) for c in spec["cameras"]]
+        renders = []
+        for p in paths:
+            rgb, ed, alpha = render_path(scene, p, background=tuple(spec["background"]))
+            renders.append((rgb.numpy(), torch.where(alpha >= 0.5, ed, torch.inf).numpy()))
+    finally:
+        torch.set_num_threads(threads)
+    obj = np.flatnonzero(ids >= 0)
+    pick = np.sort(rng.choice(obj, size=min(MAX_TRACKS, len(obj)), replace=False))
+    base = scene.canonical.means.numpy()[pick]  # (P, 3)
+    if scene.is_static:
+        points = np.repeat(base[:, None], frames, axis=1)
+    else:
+        points = base[:, None] + scene.d_means.numpy()[:, pick].transpose(1, 0, 2)
+    points = points.astype(np.float32)
+    visibility = track_visibility(points, paths[0], renders[0][1])
+    caption = caption_for(spec, paths[0].viewmats[0, :3, :3].double().numpy())
+    path = Path(out_dir) / scene_name(index)
+    with SceneWriter(path, source="synthetic", dynamic=dynamic, depth_source="ground_truth", num_frames=frames,
+                     fps=spec["fps"], extra={"synth": {"seed": seed, "index": index, "spec": spec}},
+                     replace=replace) as w:
+        for c, (p, (rgb, depth)) in enumerate(zip(paths, renders)):
+            name = f"cam{c:02d}"
+            w.add_camera(name, p)
+            for i in range(frames):
+                w.write_frame(name, i, rgb[i], depth[i])
+        w.write_tracks(points, visibility)
+        w.write_caption(caption)
+    return path
+
+
+def _check_int(name: str, v: Any, lo: int) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+        raise ValueError(f"{name} must be an integer ≥ {lo}, got {v!r}")
+    return v
+
+
+def _init_worker() -> None:
+    torch.set_num_threads(1)
+
+
+def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, size: int = 64, frames: int = 17,
+               cameras: int = 2, static_ratio: float = 0.3, workers: int = 1, progress: bool = True) -> list[Path]:
+    """Generate scenes 0 … num_scenes−1 into ``out_dir``, skipping scenes already present (resume).
+
+    Each scene is written atomically by :func:`generate_scene`; with ``workers`` > 1 scenes are made
+    in that many processes (spawned, one torch thread each). A tqdm bar counts finished scenes.
+
+    Args:
+        out_dir: dataset root (created).
+        num_scenes: ≥ 1.
+        seed: global seed (any int ≥ 0).
+        size: image width = height, pixels, ≥ 8.
+        frames: T ≥ 2 frames per camera.
+        cameras: synchronised cameras per scene, ≥ 1.
+        static_ratio: probability in [0, 1] of a static scene.
+        workers: processes, ≥ 1.
+        progress: show the progress bar.
+
+    Returns:
+        The scene folders of all ``num_scenes`` scenes, in index order.
+
+    Raises:
+        ValueError: naming the argument that is out of range.
+    """
+    _check_int("num_scenes", num_scenes, 1)
+    _check_int("seed", seed, 0)
+    _check_int("size", size, 8)
+    _check_int("frames", frames, 2)
+    _check_int("cameras", cameras, 1)
+    _check_int("workers", workers, 1)
+    if isinstance(static_ratio, bool) or not isinstance(static_ratio, (int, float)) or not 0 <= static_ratio <= 1:
+        raise ValueError(f"static_ratio must be a number in [0, 1], got {static_ratio!r}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    todo = [i for i in range(num_scenes) if not (out / scene_name(i) / "meta.json").is_file()]
+    kw = dict(size=size, frames=frames, cameras=cameras, static_ratio=float(static_ratio))
+    bar = tqdm(total=num_scenes, initial=num_scenes - len(todo), desc="synth", unit="scene", disable=not progress)
+    try:
+        if workers == 1 or len(todo) <= 1:
+            for i in todo:
+                generate_scene(out, i, seed, **kw)
+                bar.update()
+        else:
+            with ProcessPoolExecutor(min(workers, len(todo)), mp_context=get_context("spawn"),
+                                     initializer=_init_worker) as pool:
+                for fut in as_completed([pool.submit(generate_scene, out, i, seed, **kw) for i in todo]):
+                    fut.result()
+                    bar.update()
+    finally:
+        bar.close()
+    return [out / scene_name(i) for i in range(num_scenes)]

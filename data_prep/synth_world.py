@@ -1,0 +1,267 @@
+"""Random specifications of synthetic scenes: layout, objects, motions, cameras, lighting, captions.
+
+Everything here is plain numpy sampling from one ``numpy.random.Generator`` and returns
+JSON-serialisable dicts (stored in ``meta.json["synth"]``), so a scene is fully described by its
+spec; :mod:`data_prep.synth` turns a spec into Gaussians, renders it and writes the scene folder.
+
+World frame (metres, OpenCV-like so cameras need no axis flips): x right, **y down**, z forward.
+The ground is the plane y = ``ground_y`` (> 0, below the origin), the scene centre lies on it at
+(0, ground_y, 0), and a cylindrical backdrop wall of radius ``room_radius`` surrounds it.
+
+Object motion over the clip t ∈ [0, 1] (one per object; applied to every point p of the object
+about its pivot p0, see :func:`data_prep.synth.object_transform`):
+``p(t) = p0 + d(t) + R(t)·(S(t) ⊙ (p − p0))`` with
+- ``translate``: d(t) = t·v (v horizontal); spheres roll without slipping: R about up × v̂ by |d|/r;
+- ``rotate``: R(t) about a unit axis by ω·t (vertical axis → "spins", other → "tumbles");
+- ``bounce``: d(t) = t·v + (0, −4H·τ(1−τ), 0), τ = frac(n·t): n parabolic hops of height H;
+- ``deform``: S(t) = 1 + a·sin(2πft)·(1, 1, 1) ("pulses") or (1 + a/2·s, 1 − a·s, 1 + a/2·s)
+  with s = sin(2πft) ("squashes and stretches"), pivot at the bottom of the object (stays on the
+  ground).
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+__all__ = ["COLORS", "SHAPES", "MOTIONS", "CAMERA_MOTIONS", "TEXTURES", "sample_scene_spec", "caption_for",
+           "direction_word"]
+
+COLORS: dict[str, tuple[float, float, float]] = {
+    "red": (0.85, 0.12, 0.10), "orange": (0.95, 0.50, 0.08), "yellow": (0.95, 0.85, 0.15),
+    "green": (0.20, 0.70, 0.20), "teal": (0.10, 0.60, 0.60), "blue": (0.15, 0.30, 0.90),
+    "purple": (0.55, 0.20, 0.75), "pink": (0.95, 0.50, 0.70), "white": (0.92, 0.92, 0.90),
+    "black": (0.08, 0.08, 0.09), "grey": (0.50, 0.50, 0.52), "brown": (0.50, 0.30, 0.15),
+}
+"""Named base colours (linear-ish RGB in [0, 1]); sampled colours jitter these by ±0.06."""
+
+SHAPES: dict[str, str] = {"sphere": "ball", "box": "box", "ellipsoid": "egg", "blob": "blob"}
+"""Object shapes and the noun used in captions."""
+
+MOTIONS: tuple[str, ...] = ("translate", "rotate", "bounce", "deform")
+CAMERA_MOTIONS: tuple[str, ...] = ("orbit", "dolly", "pan", "truck", "static")
+TEXTURES: dict[str, str] = {"plain": "", "checker": "checkered", "stripes": "striped", "noise": "spotted"}
+"""Procedural textures and the adjective used in captions."""
+
+_MATERIALS = ("wooden", "tiled", "concrete", "carpeted", "grassy", "sandy")
+
+
+def _color(rng: np.random.Generator, exclude: tuple[str, ...] = ()) -> tuple[str, list[float]]:
+    names = [n for n in COLORS if n not in exclude]
+    name = names[int(rng.integers(len(names)))]
+    rgb = np.clip(np.asarray(COLORS[name]) + rng.uniform(-0.06, 0.06, 3), 0.02, 0.98)
+    return name, rgb.round(4).tolist()
+
+
+def _texture(rng: np.random.Generator, kinds: tuple[str, ...], base: list[float], scale: float) -> dict[str, Any]:
+    """A procedural texture: kind, two colours, spatial frequency (cycles per metre), angle, blobs."""
+    kind = kinds[int(rng.integers(len(kinds)))]
+    second = np.clip(np.asarray(base) * rng.uniform(0.3, 0.7) + rng.uniform(0.0, 0.35, 3), 0.02, 0.98)
+    if rng.random() < 0.35:  # a contrasting second colour instead of a shade of the first
+        second = np.asarray(_color(rng)[1])
+    tex = {"kind": kind, "color2": second.round(4).tolist(), "freq": float(rng.uniform(0.6, 1.6) / scale),
+           "angle": float(rng.uniform(0, math.pi)), "noise": float(rng.uniform(0.0, 0.08))}
+    if kind == "noise":
+        n = int(rng.integers(4, 12))
+        tex["blobs"] = {"centers": rng.uniform(0, 1, (n, 2)).round(4).tolist(),
+                        "radii": rng.uniform(0.05, 0.2, n).round(4).tolist(),
+                        "colors": np.clip(rng.uniform(0, 1, (n, 3)), 0.02, 0.98).round(4).tolist()}
+    return tex
+
+
+def direction_word(v_cam: np.ndarray) -> str:
+    """Dominant direction of a camera-frame vector (x right, y down, z forward) as a caption phrase."""
+    axis = int(np.argmax(np.abs(v_cam)))
+    pos = v_cam[axis] > 0
+    return [("to the right", "to the left"), ("downwards", "upwards"), ("away from the camera", "towards the camera")][axis][0 if pos else 1]
+
+
+def _sample_motion(rng: np.random.Generator, shape: str, radius: float, center: np.ndarray,
+                   room: float) -> dict[str, Any]:
+    kind = MOTIONS[int(rng.integers(len(MOTIONS)))]
+    heading = rng.uniform(0, 2 * math.pi)
+    direction = np.array([math.cos(heading), 0.0, math.sin(heading)])
+    # keep the end point within 55% of the room radius from the centre
+    reach = max(0.0, 0.55 * room - float(np.linalg.norm(center[[0, 2]])))
+    if kind == "translate":
+        dist = float(min(rng.uniform(0.5, 1.6), reach + 0.3))
+        return {"kind": "translate", "velocity": (direction * dist).round(5).tolist(), "roll": shape == "sphere"}
+    if kind == "rotate":
+        vertical = rng.random() < 0.7
+        axis = np.array([0.0, 1.0, 0.0]) if vertical else rng.normal(size=3)
+        axis = axis / np.linalg.norm(axis)
+        omega = float(rng.choice([-1, 1]) * rng.uniform(0.5, 2.0) * math.pi)
+        return {"kind": "rotate", "axis": axis.round(6).tolist(), "omega": omega}
+    if kind == "bounce":
+        drift = float(rng.uniform(0.0, min(1.0, reach + 0.2)))
+        return {"kind": "bounce", "velocity": (direction * drift).round(5).tolist(),
+                "height": float(rng.uniform(0.3, 1.0)), "hops": int(rng.integers(1, 4))}
+    return {"kind": "deform", "mode": "pulse" if rng.random() < 0.5 else "squash",
+            "amplitude": float(rng.uniform(0.15, 0.35)), "freq": float(rng.choice([1.0, 1.5, 2.0]))}
+
+
+def _sample_object(rng: np.random.Generator, others: list[dict], room: float) -> dict[str, Any] | None:
+    shape = list(SHAPES)[int(rng.integers(len(SHAPES)))]
+    r = float(rng.uniform(0.2, 0.55))
+    if shape == "sphere" or shape == "blob":
+        half = [r, r, r]
+    elif shape == "box":
+        half = rng.uniform(0.15, 0.5, 3).round(4).tolist()
+    else:
+        half = np.maximum(r * rng.uniform(0.6, 1.3, 3), 0.15).round(4).tolist()
+    for _ in range(20):  # rejection sampling of a free spot on the ground
+        rho, phi = 1.4 * math.sqrt(rng.random()), rng.uniform(0, 2 * math.pi)
+        xz = np.array([rho * math.cos(phi), rho * math.sin(phi)])
+        ok = all(np.linalg.norm(xz - np.asarray(o["center"])[[0, 2]]) > max(half) + max(o["half"]) + 0.1 for o in others)
+        if ok:
+            break
+    else:
+        return None
+    name, rgb = _color(rng)
+    obj = {"shape": shape, "half": [float(h) for h in half], "color_name": name, "color": rgb,
+           "texture": _texture(rng, tuple(TEXTURES), rgb, 0.3), "opacity": float(rng.uniform(0.9, 0.99)),
+           "lumps": rng.normal(0, 0.12, 6).round(4).tolist() if shape == "blob" else [],
+           "yaw": float(rng.uniform(0, 2 * math.pi))}
+    obj["center"] = [float(xz[0]), 0.0, float(xz[1])]  # y is set relative to the ground by the caller
+    obj["motion"] = None
+    return obj
+
+
+def _sample_camera(rng: np.random.Generator, fov: float, kind: str) -> dict[str, Any]:
+    cam = {"kind": kind, "fov_x_deg": fov, "azimuth": float(rng.uniform(-math.pi, math.pi)),
+           "distance": float(rng.uniform(2.6, 4.0)), "height": float(rng.uniform(0.5, 1.6)),
+           "target_height": float(rng.uniform(0.2, 0.6))}
+    sign = float(rng.choice([-1.0, 1.0]))
+    if kind == "orbit":
+        cam["delta"] = sign * float(rng.uniform(math.radians(20), math.radians(70)))  # radians of azimuth
+    elif kind == "dolly":
+        cam["delta"] = sign * float(rng.uniform(0.4, 0.35 * cam["distance"] if sign > 0 else 1.0))  # metres forward
+    elif kind == "pan":
+        cam["delta"] = sign * float(rng.uniform(math.radians(10), math.radians(30)))  # radians of yaw
+    elif kind == "truck":
+        cam["delta"] = sign * float(rng.uniform(0.4, 1.2))  # metres to the right
+    else:
+        cam["delta"] = 0.0
+    return cam
+
+
+def sample_scene_spec(rng: np.random.Generator, *, dynamic: bool, num_cameras: int, size: int,
+                      num_frames: int, fps: float = 8.0) -> dict[str, Any]:
+    """Sample a complete scene description.
+
+    Args:
+        rng: the scene's own generator (its seed makes the scene reproducible).
+        dynamic: at least one object moves; otherwise no object moves (stage 1–2 data).
+        num_cameras: synchronised cameras, ≥ 1; camera 0 is the reference camera.
+        size: image width = height, pixels.
+        num_frames: T frames per camera.
+        fps: frame rate, Hz.
+
+    Returns:
+        JSON-serialisable dict: ``dynamic``, ``size``, ``num_frames``, ``fps``, ``ground_y``,
+        ``room_radius``, ``light`` {direction (3,), ambient, tint (3,)}, ``background`` (3,),
+        ``ground`` / ``wall`` {material, color_name, color, texture}, ``objects`` (1–4 dicts with
+        shape, half extents (3,) metres, center (3,) metres, colour, texture, motion or None) and
+        ``cameras`` (dicts with kind, fov_x_deg, azimuth, distance, height, target_height, delta).
+    """
+    room = float(rng.uniform(5.0, 6.0))
+    ground_y = float(rng.uniform(0.8, 1.5))
+    light = rng.normal(size=3)
+    light[1] = -abs(light[1]) - 0.5  # from above (y down)
+    ground_name, ground_rgb = _color(rng, exclude=("black",))
+    wall_name, wall_rgb = _color(rng, exclude=(ground_name,))
+    spec: dict[str, Any] = {
+        "dynamic": bool(dynamic), "size": int(size), "num_frames": int(num_frames), "fps": float(fps),
+        "room_radius": room, "ground_y": ground_y,
+        "light": {"direction": (light / np.linalg.norm(light)).round(6).tolist(),
+                  "ambient": float(rng.uniform(0.35, 0.6)),
+                  "tint": np.clip(1 + rng.normal(0, 0.06, 3), 0.85, 1.15).round(4).tolist()},
+        "background": np.clip(rng.uniform(0.3, 0.95, 3), 0, 1).round(4).tolist(),
+        "ground": {"material": _MATERIALS[int(rng.integers(len(_MATERIALS)))], "color_name": ground_name,
+                   "color": ground_rgb, "texture": _texture(rng, ("checker", "stripes", "noise"), ground_rgb, 1.2)},
+        "wall": {"color_name": wall_name, "color": wall_rgb,
+                 "texture": _texture(rng, ("plain", "checker", "stripes", "noise"), wall_rgb, 1.5)},
+    }
+    objects: list[dict] = []
+    for _ in range(int(rng.integers(1, 5))):
+        obj = _sample_object(rng, objects, room)
+        if obj is not None:
+            obj["center"][1] = ground_y - obj["half"][1]  # resting on the ground (y down)
+            objects.append(obj)
+    if dynamic:
+        movers = [i for i in range(len(objects)) if rng.random() < 0.7] or [int(rng.integers(len(objects)))]
+        for i in movers:
+            o = objects[i]
+            o["motion"] = _sample_motion(rng, o["shape"], o["half"][0], np.asarray(o["center"]), room)
+    spec["objects"] = objects
+    fov = float(rng.uniform(45, 70))
+    spec["cameras"] = [_sample_camera(rng, fov, CAMERA_MOTIONS[int(rng.integers(len(CAMERA_MOTIONS)))])
+                       for _ in range(num_cameras)]
+    return spec
+
+
+def _object_phrase(o: dict[str, Any]) -> str:
+    adj = TEXTURES[o["texture"]["kind"]]
+    return " ".join(w for w in ("a", o["color_name"], adj, SHAPES[o["shape"]]) if w)
+
+
+def _motion_phrase(m: dict[str, Any], shape: str, cam_R: np.ndarray) -> str:
+    if m["kind"] == "translate":
+        verb = "rolls" if m.get("roll") else "slides"
+        return f"{verb} {direction_word(cam_R @ np.asarray(m['velocity']))}"
+    if m["kind"] == "rotate":
+        axis = np.asarray(m["axis"])
+        if abs(axis[1]) > 0.99:  # a positive angle about +y (down) looks clockwise from above
+            clockwise = (m["omega"] > 0) == (axis[1] > 0)
+            return "spins " + ("clockwise" if clockwise else "counter-clockwise")
+        return "tumbles"
+    if m["kind"] == "bounce":
+        hops = {1: "once", 2: "twice"}.get(m["hops"], f"{m['hops']} times")
+        v = np.asarray(m["velocity"])
+        where = f" {direction_word(cam_R @ v)}" if np.linalg.norm(v) > 0.3 else " in place"
+        return f"bounces {hops}{where}"
+    return "pulses in size" if m["mode"] == "pulse" else "squashes and stretches"
+
+
+def _camera_phrase(cam: dict[str, Any], static_scene: bool = False) -> str:
+    """"the camera orbits right around the scene" etc.; with ``static_scene`` the phrase ends in a
+    preposition ("… orbits right around", "… dollies forward through") to be followed by the scene."""
+    d, kind = cam["delta"], cam["kind"]
+    if kind == "orbit":  # azimuth grows → the eye moves to the camera's right (synth.camera_path)
+        return f"the camera orbits {'right' if d > 0 else 'left'} around" + ("" if static_scene else " the scene")
+    if kind == "dolly":
+        return f"the camera dollies {'forward' if d > 0 else 'backward'}" + (" through" if static_scene else "")
+    if kind in ("pan", "truck"):
+        return f"the camera {kind}s {'right' if d > 0 else 'left'}" + (" across" if static_scene else "")
+    return "the camera stays still" + (" in front of" if static_scene else "")
+
+
+def caption_for(spec: dict[str, Any], ref_rotation: np.ndarray) -> str:
+    """One-line caption of what moves and how (objects, then the reference camera).
+
+    Directions ("to the left", "towards the camera") are in the reference camera's frame at t = 0.
+
+    Args:
+        spec: from :func:`sample_scene_spec`.
+        ref_rotation: (3, 3) world-to-camera rotation of the reference camera at frame 0.
+
+    Returns:
+        e.g. "a red striped ball rolls to the left and a blue box stays still on a wooden floor,
+        while the camera orbits left around the scene" or "the camera dollies forward through a
+        static scene with a green egg on a tiled floor".
+    """
+    floor = f"on a {spec['ground']['material']} floor"
+    objs = spec["objects"]
+    if not spec["dynamic"] or all(o["motion"] is None for o in objs):
+        things = _join([_object_phrase(o) for o in objs])
+        return f"{_camera_phrase(spec['cameras'][0], True)} a static scene with {things} {floor}"
+    clauses = [f"{_object_phrase(o)} {_motion_phrase(o['motion'], o['shape'], ref_rotation)}" for o in objs if o["motion"]]
+    still = [_object_phrase(o) for o in objs if o["motion"] is None]
+    if still:
+        clauses.append(f"{_join(still)} {'stays' if len(still) == 1 else 'stay'} still")
+    return f"{_join(clauses)} {floor}, while {_camera_phrase(spec['cameras'][0])}"
+
+
+def _join(items: list[str]) -> str:
+    return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1]
