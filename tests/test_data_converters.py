@@ -66,8 +66,9 @@ class Expect:
     uv: dict  # camera -> list of (2,) native pixel coordinates per frame
     z: dict  # camera -> list of metric z-depths per frame
     depth_tol: float = 1e-4  # metres, the encoding's resolution at these depths
-    background: float | None = BG  # metres at pixel (H-1, 0), None without depth
+    background: float | None = BG  # metres at background_pixel, None without depth
     invalid_pixel: tuple | None = (0, W - 1)  # encoded as the source's invalid value
+    background_pixel: tuple = (H - 1, 0)
     num_frames: int = T
     tracks: bool = False
     kwargs: dict = field(default_factory=dict)
@@ -135,7 +136,98 @@ def make_pointodyssey(root: Path) -> tuple[Path, Expect]:
     return src, Expect(P_WORLD, {"cam00": uv}, {"cam00": z}, depth_tol=1000 / 65535 / 2 + 1e-6, tracks=True)
 
 
+def make_tartanair(root: Path) -> tuple[Path, Expect]:
+    import torch
+
+    from diff4splat.quaternions import rotmat_to_quat
+
+    src = root / "P000"
+    fx, fy, cx, cy, w, h = 320.0, 320.0, 320.0, 240.0, 640, 480  # TartanAir's fixed camera
+    uv, z = {}, {}
+    for k, side in enumerate(("left", "right")):
+        lines, uv[f"cam{k:02d}"], z[f"cam{k:02d}"] = [], [], []
+        for i, V in enumerate(cv_poses(shift=(0, 0.25 * k, 0))):
+            # NED body axes in world: forward = camera z, right = camera x, down = camera y
+            R_cv_c2w = V[:3, :3].T
+            R_ned = np.stack([R_cv_c2w[:, 2], R_cv_c2w[:, 0], R_cv_c2w[:, 1]], axis=1)
+            t = -R_cv_c2w @ V[:3, 3]
+            q = rotmat_to_quat(torch.from_numpy(R_ned)).numpy()  # wxyz
+            lines.append(" ".join(f"{v:.12g}" for v in [*t, q[1], q[2], q[3], q[0]]))
+            b = R_ned.T @ (P_WORLD - t)  # native NED projection: forward x, right y, down z
+            p = np.array([fx * b[1] / b[0] + cx, fy * b[2] / b[0] + cy])
+            uv[f"cam{k:02d}"].append(p)
+            z[f"cam{k:02d}"].append(b[0])
+            d = np.full((h, w), BG, np.float32)
+            d[int(p[1]), int(p[0])] = b[0]
+            d[0, w - 1] = 10000.0  # sky dome
+            (src / f"depth_{side}").mkdir(parents=True, exist_ok=True)
+            np.save(src / f"depth_{side}" / f"{i:06d}_{side}_depth.npy", d)
+            write_png(src / f"image_{side}" / f"{i:06d}_{side}.png", np.zeros((h, w, 3), np.uint8))
+        (src / f"pose_{side}.txt").write_text("\n".join(lines) + "\n")
+    return src, Expect(P_WORLD, uv, z, depth_tol=1e-5, invalid_pixel=(0, w - 1), background_pixel=(h - 1, 0))
+
+
+def make_spring(root: Path) -> tuple[Path, Expect]:
+    h5py = pytest.importorskip("h5py")
+    src = root / "0001"
+    poses = cv_poses()
+    B = 0.065
+    fx_i = [FX, FX * 1.1, FX * 0.9]  # per-frame focal lengths
+    uv, z = {"cam00": [], "cam01": []}, {"cam00": [], "cam01": []}
+    for i, V in enumerate(poses):
+        for k, side in enumerate(("left", "right")):
+            Vs = V.copy()
+            Vs[0, 3] -= B * k  # right camera: 6.5 cm to the right along the left camera's x axis
+            p, zz = project_cv(Vs, P_WORLD, fx=fx_i[i], fy=fx_i[i])
+            uv[f"cam{k:02d}"].append(p)
+            z[f"cam{k:02d}"].append(zz)
+            disp = np.full((2 * H, 2 * W), fx_i[i] * B / BG, np.float32)
+            r, c = int(p[1]), int(p[0])
+            disp[2 * r:2 * r + 2, 2 * c:2 * c + 2] = fx_i[i] * B / zz
+            disp[0:2, 2 * (W - 1):] = np.nan
+            (src / f"disp1_{side}").mkdir(parents=True, exist_ok=True)
+            with h5py.File(src / f"disp1_{side}" / f"disp1_{side}_{i + 1:04d}.dsp5", "w") as f:
+                f.create_dataset("disparity", data=disp)
+            write_png(src / f"frame_{side}" / f"frame_{side}_{i + 1:04d}.png", rgb_image(i))
+    (src / "cam_data").mkdir()
+    (src / "cam_data" / "intrinsics.txt").write_text("".join(f"{f} {f} {CX} {CY}\n" for f in fx_i))
+    (src / "cam_data" / "extrinsics.txt").write_text("".join(" ".join(f"{v:.12g}" for v in V.reshape(-1)) + "\n" for V in poses))
+    return src, Expect(P_WORLD, uv, z, depth_tol=1e-4)
+
+
+def write_exr_half(path, arr):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                      {"R": arr.astype(np.float16), "G": arr.astype(np.float16), "B": arr.astype(np.float16)}) as f:
+        f.write(str(path))
+
+
+def make_matrixcity(root: Path) -> tuple[Path, Expect]:
+    src = root / "block_1"
+    src.mkdir(parents=True)
+    frames, uv, z = [], [], []
+    for i, V in enumerate(cv_poses()):
+        R_c2w_cv, t = V[:3, :3].T, -V[:3, :3].T @ V[:3, 3]
+        R_gl = R_c2w_cv * np.array([1.0, -1.0, -1.0])  # camera y up, z backward
+        M = np.eye(4)
+        M[:3, :3], M[:3, 3] = 0.01 * R_gl, t  # rotation stored ×0.01, position in metres
+        frames.append({"file_path": f"{i:04d}.png", "transform_matrix": M.tolist()})
+        pc = R_gl.T @ (P_WORLD - t)  # native OpenGL projection: camera looks down −z, y up
+        p = np.array([CX + FX * pc[0] / -pc[2], CY - FY * pc[1] / -pc[2]])
+        uv.append(p)
+        z.append(-pc[2])
+        write_png(src / f"{i:04d}.png", rgb_image(i))
+        write_exr_half(root / "block_1_depth" / f"{i:04d}.exr", depth_map(p, -pc[2], BG * 100, -pc[2] * 100, 65504.0))
+    angle = 2 * math.atan(W / 2 / FX)
+    (src / "transforms.json").write_text(json.dumps({"camera_angle_x": angle, "w": W, "h": H, "frames": frames}))
+    return src, Expect(P_WORLD, {"cam00": uv}, {"cam00": z}, depth_tol=0.005,
+                       kwargs={"depth_dir": root / "block_1_depth"})
+
+
 SOURCES = {
+    "tartanair": make_tartanair,
+    "spring": make_spring,
+    "matrixcity": make_matrixcity,
     "vkitti2": make_vkitti2,
     "pointodyssey": make_pointodyssey,
 }
@@ -169,7 +261,7 @@ def test_known_point_reprojects_with_metric_depth(source, tmp_path):
             assert d.shape == (path.height, path.width)
             col, row = int(math.floor(uv[0])), int(math.floor(uv[1]))
             assert abs(d[row, col] - exp.z[cam][i]) <= exp.depth_tol, (source, cam, i, d[row, col], exp.z[cam][i])
-            assert abs(d[path.height - 1, 0] - exp.background) <= exp.depth_tol + 1e-3 * exp.background
+            assert abs(d[exp.background_pixel] - exp.background) <= exp.depth_tol + 1e-3 * exp.background
             if exp.invalid_pixel is not None:
                 assert np.isposinf(d[exp.invalid_pixel])
     if exp.tracks:

@@ -8,14 +8,20 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from .matrixcity import convert_matrixcity
 from .pointodyssey import convert_pointodyssey
+from .spring import convert_spring
+from .tartanair import convert_tartanair
 from .vkitti2 import convert_vkitti2
 
 __all__ = ["CONVERTERS", "convert"]
 
 CONVERTERS = {
     "pointodyssey": convert_pointodyssey,
+    "spring": convert_spring,
     "vkitti2": convert_vkitti2,
+    "tartanair": convert_tartanair,
+    "matrixcity": convert_matrixcity,
 }
 """Source name → ``convert_<source>(src, out, **options) -> Path``."""
 

@@ -1,0 +1,119 @@
+"""Spring → scene format.
+
+Source: Mehl et al., "Spring: A High-Resolution High-Detail Dataset and Benchmark for Scene Flow,
+Optical Flow and Stereo", CVPR 2023, and its ``flow_library`` (``readDsp5Disp``). One converted
+scene = one scene folder of the train split::
+
+    <IN>/frame_left/frame_left_<%04d>.png        1920×1080, frames numbered from 1
+    <IN>/frame_right/frame_right_<%04d>.png
+    <IN>/disp1_left/disp1_left_<%04d>.dsp5       HDF5, dataset "disparity", 3840×2160 (2× per axis)
+    <IN>/disp1_right/disp1_right_<%04d>.dsp5
+    <IN>/cam_data/intrinsics.txt                 one line per frame: fx fy cx cy (pixels, 1920×1080)
+    <IN>/cam_data/extrinsics.txt                 one line per frame: 16 values, 4×4 row-major world-to-camera
+
+The disparity maps are at twice the image resolution; every second sample ([::2, ::2]) is the
+value of the image pixel, in image pixels (as the reference loaders do), and the left/right
+baseline is 0.065 m: depth = fx·0.065 / disparity. Extrinsics describe the left camera with OpenCV
+axes; the right camera is the left one shifted by the baseline along its x axis
+(t_right = t_left − [0.065, 0, 0]).
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .common import (
+    camera_path,
+    disparity_to_depth,
+    intrinsics,
+    read_rgb_uint8,
+    require_file,
+    select_frames,
+    write_scene,
+)
+
+__all__ = ["convert_spring", "read_dsp5", "SPRING_BASELINE", "SPRING_FPS"]
+
+SPRING_BASELINE = 0.065
+"""Stereo baseline of the Spring cameras, metres."""
+
+SPRING_FPS = 24.0
+"""Nominal frame rate, Hz (the Blender film's rate; not stated in the data files, see CONVERTERS.md)."""
+
+
+def read_dsp5(path: str | os.PathLike) -> np.ndarray:
+    """Read a Spring ``.dsp5`` disparity file (HDF5 dataset ``"disparity"``) as float32 (2H, 2W).
+
+    Raises:
+        ImportError: h5py is not installed. FileNotFoundError: missing file.
+        ValueError: no ``"disparity"`` dataset.
+    """
+    try:
+        import h5py
+    except ImportError as e:  # optional dependency, only needed for Spring
+        raise ImportError("reading Spring .dsp5 files needs h5py (pip install h5py)") from e
+    p = require_file(path, "Spring disparity")
+    with h5py.File(p, "r") as f:
+        if "disparity" not in f:
+            raise ValueError(f"{p} has no 'disparity' dataset; is it a .dsp5 file?")
+        return np.asarray(f["disparity"][()], dtype=np.float32)
+
+
+def _read_rows(path: Path, ncols: int) -> np.ndarray:
+    rows = np.loadtxt(require_file(path, "Spring camera file"), ndmin=2, dtype=np.float64)
+    if rows.shape[1] != ncols:
+        raise ValueError(f"{path}: expected {ncols} values per line, got {rows.shape[1]}")
+    return rows
+
+
+def convert_spring(src: str | os.PathLike, out: str | os.PathLike, *, sides: tuple[str, ...] = ("left", "right"),
+                   start: int = 0, stride: int = 1, max_frames: int | None = None, fps: float = SPRING_FPS,
+                   replace: bool = False) -> Path:
+    """Convert one Spring train scene folder (module docstring) to a scene folder.
+
+    Args:
+        src: scene folder (e.g. ``spring/train/0001``).
+        out: output scene folder.
+        sides: cameras to convert, stored as ``cam00``, ``cam01`` in this order.
+        start, stride, max_frames: selection over frame indices 0…T−1 (file number = index + 1).
+        fps: nominal source frame rate, Hz.
+        replace: replace an existing output folder.
+
+    Returns:
+        The scene folder (dynamic, ground-truth depth from disparity).
+
+    Raises:
+        FileNotFoundError / ImportError / ValueError: missing files, no h5py, malformed camera files,
+            or a disparity map that is not twice the image size.
+    """
+    src = Path(src)
+    intr = _read_rows(src / "cam_data" / "intrinsics.txt", 4)
+    extr = _read_rows(src / "cam_data" / "extrinsics.txt", 16).reshape(-1, 4, 4)
+    idx = select_frames(min(len(intr), len(extr)), start, stride, max_frames)
+    ts = np.asarray(idx, dtype=np.float64) / fps
+    H, W = read_rgb_uint8(src / f"frame_{sides[0]}" / f"frame_{sides[0]}_{idx[0] + 1:04d}.png").shape[:2]
+    K = intrinsics(*intr[idx].T)
+    cams = {}
+    for k, s in enumerate(sides):
+        V = extr[idx].copy()
+        if s == "right":
+            V[:, 0, 3] -= SPRING_BASELINE
+        elif s != "left":
+            raise ValueError(f"sides must be 'left' and/or 'right', got {s!r}")
+        cams[f"cam{k:02d}"] = camera_path(V, K, W, H, ts)
+
+    def frames(name: str):
+        s = sides[int(name[3:])]
+        for j, f in enumerate(idx):
+            disp = read_dsp5(src / f"disp1_{s}" / f"disp1_{s}_{f + 1:04d}.dsp5")
+            if disp.shape != (2 * H, 2 * W):
+                raise ValueError(f"Spring disparity {f + 1} ({s}) has shape {disp.shape}, expected {(2 * H, 2 * W)}")
+            yield (read_rgb_uint8(src / f"frame_{s}" / f"frame_{s}_{f + 1:04d}.png"),
+                   disparity_to_depth(disp[::2, ::2], K[j, 0, 0], SPRING_BASELINE))
+
+    return write_scene(out, source="spring", dynamic=True, depth_source="ground_truth", fps=fps / stride,
+                       cameras=cams, timestamps=ts, frames=frames, replace=replace,
+                       extra={"source_id": src.resolve().name, "source_frames": [f + 1 for f in idx],
+                              "source_cameras": list(sides)})

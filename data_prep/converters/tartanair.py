@@ -1,0 +1,106 @@
+"""TartanAir → scene format.
+
+Source: Wang et al., "TartanAir: A Dataset to Push the Limits of Visual SLAM", IROS 2020, and the
+``tartanair_tools`` README / data-type notes. One converted scene = one trajectory folder::
+
+    <IN>/image_left/<%06d>_left.png          640×480 RGB
+    <IN>/depth_left/<%06d>_left_depth.npy    float32 z-depth, metres (disparity = 80 / depth)
+    <IN>/pose_left.txt                       one line per frame: tx ty tz qx qy qz qw
+    <IN>/image_right, depth_right, pose_right.txt   the same for the right camera (0.25 m baseline)
+
+Poses are camera-to-world in the NED frame (x north/forward, y east/right, z down) for both the
+world and the camera body, quaternions stored x, y, z, w. Pinhole intrinsics are fixed:
+fx = fy = 320, cx = 320, cy = 240 (640 × 480). Sky is rendered at a large finite depth (≈10⁴ m);
+depths beyond ``max_depth`` become +inf. The world frame stays NED (right-handed, metres); only the
+camera axes change: c2w_cv = [R_ned · NED_TO_CVᵀ | t].
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .common import (
+    NED_TO_CV,
+    c2w_cv_to_viewmat,
+    camera_path,
+    finite_positive_or_inf,
+    intrinsics,
+    quat_xyzw_to_rotmat,
+    read_rgb_uint8,
+    require_file,
+    rigid,
+    select_frames,
+    write_scene,
+)
+
+__all__ = ["convert_tartanair", "read_tartanair_poses", "TARTANAIR_K", "TARTANAIR_FPS"]
+
+TARTANAIR_K = (320.0, 320.0, 320.0, 240.0)
+"""(fx, fy, cx, cy) in pixels of every TartanAir camera (640 × 480)."""
+
+TARTANAIR_FPS = 10.0
+"""Nominal frame rate, Hz (TartanAir does not define one; see CONVERTERS.md)."""
+
+
+def read_tartanair_poses(path: str | os.PathLike) -> np.ndarray:
+    """``pose_<side>.txt`` → (T, 4, 4) OpenCV world-to-camera viewmats in the NED world frame, metres.
+
+    Raises:
+        FileNotFoundError: missing file. ValueError: a line without 7 numbers or a zero quaternion.
+    """
+    p = require_file(path, "TartanAir pose file")
+    try:
+        rows = np.loadtxt(p, ndmin=2, dtype=np.float64)
+    except ValueError as e:
+        raise ValueError(f"{p}: {e}") from None
+    if rows.shape[1] != 7:
+        raise ValueError(f"{p}: expected 7 values per line (tx ty tz qx qy qz qw), got {rows.shape[1]}")
+    R_ned = quat_xyzw_to_rotmat(rows[:, 3:])  # camera body (NED) → world (NED)
+    return c2w_cv_to_viewmat(rigid(R_ned @ NED_TO_CV.T, rows[:, :3]))
+
+
+def convert_tartanair(src: str | os.PathLike, out: str | os.PathLike, *, sides: tuple[str, ...] = ("left", "right"),
+                      start: int = 0, stride: int = 1, max_frames: int | None = None, max_depth: float = 1000.0,
+                      fps: float = TARTANAIR_FPS, replace: bool = False) -> Path:
+    """Convert one TartanAir trajectory folder (module docstring) to a scene folder.
+
+    Args:
+        src: trajectory folder (e.g. ``abandonedfactory/Easy/P000``).
+        out: output scene folder.
+        sides: cameras to convert, stored as ``cam00``, ``cam01`` in this order.
+        start, stride, max_frames: frame selection; meta fps = ``fps``/stride.
+        max_depth: depths above this many metres (the sky dome) become +inf.
+        fps: nominal source frame rate, Hz.
+        replace: replace an existing output folder.
+
+    Returns:
+        The scene folder (static world, ground-truth depth).
+
+    Raises:
+        FileNotFoundError: missing pose/frame files. ValueError: malformed poses, frame-count
+            mismatch between pose file and images, or a depth map of another size.
+    """
+    src = Path(src)
+    views = {s: read_tartanair_poses(src / f"pose_{s}.txt") for s in sides}
+    n_total = min(len(v) for v in views.values())
+    idx = select_frames(n_total, start, stride, max_frames)
+    ts = np.asarray(idx, dtype=np.float64) / fps
+    H, W = read_rgb_uint8(src / f"image_{sides[0]}" / f"{idx[0]:06d}_{sides[0]}.png").shape[:2]
+    K = intrinsics(*TARTANAIR_K)[0]
+    cams = {f"cam{k:02d}": camera_path(views[s][idx], K, W, H, ts) for k, s in enumerate(sides)}
+
+    def frames(name: str):
+        s = sides[int(name[3:])]
+        for f in idx:
+            depth = np.load(require_file(src / f"depth_{s}" / f"{f:06d}_{s}_depth.npy", "TartanAir depth"))
+            if depth.shape != (H, W):
+                raise ValueError(f"TartanAir depth frame {f} ({s}) has shape {depth.shape}, images are {(H, W)}")
+            yield (read_rgb_uint8(src / f"image_{s}" / f"{f:06d}_{s}.png"),
+                   finite_positive_or_inf(np.where(depth > max_depth, np.inf, depth)))
+
+    return write_scene(out, source="tartanair", dynamic=False, depth_source="ground_truth", fps=fps / stride,
+                       cameras=cams, timestamps=ts, frames=frames, replace=replace,
+                       extra={"source_id": "/".join(src.resolve().parts[-3:]), "source_frames": idx,
+                              "source_cameras": list(sides), "world_frame": "NED (x north, y east, z down)"})
