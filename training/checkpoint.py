@@ -1,0 +1,115 @@
+"""Training checkpoints that never lose work: weights (safetensors) + optimizer/scheduler/RNG/data state.
+
+Layout of ``<run>/checkpoints/step_00001000/``::
+
+    model.safetensors    model weights (state_dict, CPU)
+    ema.safetensors      EMA weights (if EMA is on)
+    state.pt             optimizer, scheduler, RNG states (torch, numpy, python, step generator),
+                         step, epoch, batch position in the epoch, consecutive non-finite count
+    meta.json            step, epoch, position, wall time, config
+
+Each checkpoint folder is written to a temporary folder and renamed (:func:`diff4splat.io.atomic_output_dir`);
+``<run>/checkpoints/latest`` is a text file naming the newest complete checkpoint, replaced atomically
+after the folder exists. A killed save leaves the previous checkpoint and ``latest`` untouched.
+"""
+from __future__ import annotations
+
+import json
+import os
+import random
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, save_file
+
+from diff4splat.io.atomic import atomic_output_dir, atomic_output_path
+
+__all__ = ["save_checkpoint", "load_checkpoint", "latest_checkpoint", "rng_state", "set_rng_state"]
+
+
+def rng_state(step_generator: torch.Generator | None = None) -> dict[str, Any]:
+    """Every random state a training step may draw from (torch CPU, numpy, python, the step generator)."""
+    return {
+        "torch": torch.get_rng_state(),
+        "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
+        "numpy": np.random.get_state(),
+        "python": random.getstate(),
+        "step_generator": None if step_generator is None else step_generator.get_state(),
+    }
+
+
+def set_rng_state(state: dict[str, Any], step_generator: torch.Generator | None = None) -> None:
+    """Restore the states captured by :func:`rng_state`."""
+    torch.set_rng_state(state["torch"])
+    if state.get("cuda") and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+    np.random.set_state(state["numpy"])
+    random.setstate(state["python"])
+    if step_generator is not None and state.get("step_generator") is not None:
+        step_generator.set_state(state["step_generator"])
+
+
+def save_checkpoint(
+    run_dir: str | os.PathLike,
+    step: int,
+    model_state: dict[str, torch.Tensor],
+    training_state: dict[str, Any],
+    meta: dict[str, Any],
+    ema_state: dict[str, torch.Tensor] | None = None,
+    keep: int = 3,
+) -> Path:
+    """Write checkpoint ``step`` atomically, point ``latest`` at it, and keep the newest ``keep``.
+
+    Args:
+        run_dir: the run folder; checkpoints go to ``run_dir/checkpoints``.
+        step: optimizer steps taken so far.
+        model_state: weights (unwrapped module's state_dict).
+        training_state: optimizer/scheduler/RNG/data position (anything ``torch.save`` can write).
+        meta: JSON-serialisable description.
+        ema_state: EMA weights or None.
+        keep: how many checkpoints to keep (≥ 1).
+
+    Returns:
+        The checkpoint folder.
+    """
+    root = Path(run_dir) / "checkpoints"
+    folder = root / f"step_{step:08d}"
+    with atomic_output_dir(folder) as tmp:
+        save_file({k: v.detach().contiguous().cpu() for k, v in model_state.items()}, str(tmp / "model.safetensors"))
+        if ema_state is not None:
+            save_file({k: v.detach().contiguous().cpu() for k, v in ema_state.items()}, str(tmp / "ema.safetensors"))
+        torch.save(training_state, tmp / "state.pt")
+        (tmp / "meta.json").write_text(json.dumps({"step": step, **meta}, indent=2, default=str))
+    with atomic_output_path(root / "latest") as tmp:
+        Path(tmp).write_text(folder.name)
+    for old in sorted(p for p in root.glob("step_*") if p.is_dir())[:-max(1, keep)]:
+        shutil.rmtree(old, ignore_errors=True)
+    return folder
+
+
+def latest_checkpoint(run_dir: str | os.PathLike) -> Path | None:
+    """The newest complete checkpoint folder of a run, or None."""
+    root = Path(run_dir) / "checkpoints"
+    pointer = root / "latest"
+    if pointer.is_file():
+        folder = root / pointer.read_text().strip()
+        if (folder / "state.pt").is_file():
+            return folder
+    return None
+
+
+def load_checkpoint(folder: str | os.PathLike) -> tuple[dict[str, torch.Tensor], dict[str, Any], dict[str, torch.Tensor] | None]:
+    """Read (model_state, training_state, ema_state or None) from a checkpoint folder.
+
+    Raises:
+        FileNotFoundError: the folder lacks model.safetensors or state.pt.
+    """
+    folder = Path(folder)
+    for name in ("model.safetensors", "state.pt"):
+        if not (folder / name).is_file():
+            raise FileNotFoundError(f"checkpoint: {folder / name} does not exist")
+    ema = load_file(str(folder / "ema.safetensors")) if (folder / "ema.safetensors").is_file() else None
+    return load_file(str(folder / "model.safetensors")), torch.load(folder / "state.pt", weights_only=False), ema
