@@ -35,6 +35,8 @@ from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset, DistributedSampler
 from tqdm.auto import tqdm
 
+from diff4splat.io.atomic import atomic_output_path
+
 from .checkpoint import latest_checkpoint, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 
 __all__ = ["TrainerConfig", "Trainer", "NonFiniteLossError", "warmup_cosine", "StepFn"]
@@ -242,7 +244,22 @@ class Trainer:
         self.nonfinite = state.get("nonfinite", 0)
         if ema is not None and self.ema is not None:
             self.ema = {k: v.float() for k, v in ema.items()}
+        self._truncate_metrics()
         return True
+
+    def _truncate_metrics(self) -> None:
+        """Drop metrics.csv rows logged after the restored step (work the checkpoint does not hold)."""
+        path = self.run_dir / "metrics.csv"
+        if self.rank != 0 or not path.is_file():
+            return
+        with open(path, newline="") as f:
+            reader = csv.DictReader(f)
+            fields, rows = reader.fieldnames, list(reader)
+        keep = [r for r in rows if int(r["step"]) < self.step or (int(r["step"]) == self.step and r["skipped"] == "0")]
+        with atomic_output_path(path) as tmp, open(tmp, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=fields)
+            w.writeheader()
+            w.writerows(keep)
 
     # ----------------------------------------------------------------- data
     def _epoch_batches(self) -> list[list[int]]:
