@@ -224,7 +224,130 @@ def make_matrixcity(root: Path) -> tuple[Path, Expect]:
                        kwargs={"depth_dir": root / "block_1_depth"})
 
 
+D_P3D = np.diag([-1.0, -1.0, 1.0])
+
+
+def make_dynamic_replica(root: Path) -> tuple[Path, Expect]:
+    annots, uv, z = [], {"cam00": [], "cam01": []}, {"cam00": [], "cam01": []}
+    s_ndc = min(W, H) / 2.0  # "ndc_isotropic"
+    cx, cy = 7.5, 6.5  # off-centre principal point, pixels
+    for k, side in enumerate(("left", "right")):
+        for i, V in enumerate(cv_poses(shift=(0.1 * k, 0, 0))):
+            R = V[:3, :3].T @ D_P3D  # PyTorch3D: X_cam = X_world @ R + T, camera x left, y up
+            Tv = D_P3D @ V[:3, 3]
+            f_ndc, p_ndc = FX / s_ndc, [(W / 2 - cx) / s_ndc, (H / 2 - cy) / s_ndc]
+            Xc = P_WORLD @ R + Tv
+            ndc = f_ndc * Xc[:2] / Xc[2] + np.array(p_ndc)  # PyTorch3D NDC: +x left, +y up
+            p = np.array([W / 2 - ndc[0] * s_ndc, H / 2 - ndc[1] * s_ndc])
+            uv[f"cam{k:02d}"].append(p)
+            z[f"cam{k:02d}"].append(Xc[2])
+            half = lambda m: np.float16(m / 2.0).view(np.uint16)  # stored ×scale_adjustment = 2
+            rel_d, rel_i = f"seq/depths/{side}_{i:04d}.geometric.png", f"seq/images/{side}_{i:04d}.png"
+            write_png(root / "train" / rel_d, depth_map(p, Xc[2], half(BG), half(Xc[2]), np.uint16(0)))
+            write_png(root / "train" / rel_i, rgb_image(i))
+            annots.append({"sequence_name": "seq", "camera_name": side, "frame_number": i,
+                           "frame_timestamp": i / 30.0, "image": {"path": rel_i, "size": [H, W]},
+                           "depth": {"path": rel_d, "scale_adjustment": 2.0, "mask_path": None},
+                           "viewpoint": {"R": R.tolist(), "T": Tv.tolist(), "focal_length": [f_ndc, f_ndc],
+                                         "principal_point": p_ndc, "intrinsics_format": "ndc_isotropic"}})
+    annots.append(dict(annots[0], sequence_name="other"))  # a second sequence in the split
+    with gzip.open(root / "frame_annotations_train.jgz", "wt", encoding="utf8") as f:
+        json.dump(annots, f)
+    return root, Expect(P_WORLD, uv, z, depth_tol=0.01, kwargs={"sequence": "seq"})
+
+
+F_UE = np.diag([1.0, -1.0, 1.0])
+Q_UE = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def write_video(path, frames, fps=15):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    h, w = frames[0].shape[:2]
+    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
+    for fr in frames:
+        vw.write(cv2.cvtColor(fr, cv2.COLOR_RGB2BGR))
+    vw.release()
+
+
+def make_multicamvideo(root: Path) -> tuple[Path, Expect]:
+    src = root / "f18_aperture10" / "scene1"
+    n = 16  # square frames like the 1280x1280 release
+    f_px = 18.0 / 23.76 * n
+    P_ue = 100.0 * F_UE @ P_WORLD  # native world: left-handed UE, centimetres
+    data = {f"frame{i}": {} for i in range(T)}
+    uv, z = {}, {}
+    for k, cam in enumerate(("cam01", "cam02")):
+        uv[cam], z[cam] = [], []
+        for i, V in enumerate(cv_poses(shift=(0, 0.2 * k, 0))):
+            R_c, c = V[:3, :3].T, -V[:3, :3].T @ V[:3, 3]
+            R_ue, t_ue = F_UE @ R_c @ Q_UE.T, 100.0 * F_UE @ c
+            rows = [list(R_ue[:, j]) + [0.0] for j in range(3)] + [list(t_ue) + [1.0]]  # row-vector form
+            data[f"frame{i}"][cam] = " ".join("[" + " ".join(f"{v:.12g}" for v in r) + "]" for r in rows)
+            loc = R_ue.T @ (P_ue - t_ue)  # native UE camera: x forward, y right, z up (cm)
+            uv[cam].append(np.array([n / 2 + f_px * loc[1] / loc[0], n / 2 - f_px * loc[2] / loc[0]]))
+            z[cam].append(loc[0] / 100.0)
+        write_video(src / "videos" / f"{cam}.mp4", [np.full((n, n, 3), 30 * i, np.uint8) for i in range(T)])
+    (src / "cameras").mkdir(parents=True)
+    (src / "cameras" / "camera_extrinsics.json").write_text(json.dumps(data))
+    return src, Expect(P_WORLD, uv, z, background=None, invalid_pixel=None)
+
+
+def make_stereo4d(root: Path) -> tuple[Path, Expect]:
+    root.mkdir(parents=True)
+    n = 16
+    f = (n / 2) / math.tan(math.radians(30.0))
+    poses = cv_poses()
+    uv = [project_cv(V, P_WORLD, fx=f, fy=f, cx=n / 2, cy=n / 2)[0] for V in poses]
+    z = [project_cv(V, P_WORLD)[1] for V in poses]
+    c2w = np.stack([np.linalg.inv(V)[:3] for V in poses])  # (T, 3, 4)
+    moving = [P_WORLD + [0.05 * i, 0, 0] for i in range(T)]
+    # track 0: P at every frame; track 1: frames 0, 1 only (dropped); track 2: moving, every frame
+    lengths = np.array([T, 2, T])
+    indices = np.array([0, 1, 2, 0, 1, 0, 1, 2])
+    coords = np.array([P_WORLD] * T + [P_WORLD, P_WORLD] + moving)
+    name = "vid_130030030"
+    np.savez(root / f"{name}.npz", name=name, video_id="vid", timestamps=130030030 + 33367 * np.arange(T),
+             camera2world=c2w, track_lengths=lengths, track_indices=indices, track_coordinates=coords,
+             rectified2rig=np.eye(3), fov_bounds=np.zeros(4))
+    write_video(root / f"{name}-left_rectified.mp4", [np.full((n, n, 3), 50 * i, np.uint8) for i in range(T)], fps=30)
+    return root, Expect(P_WORLD, {"cam00": uv}, {"cam00": z}, background=None, invalid_pixel=None, tracks=True)
+
+
+RE10K_S, RE10K_T = 0.35, 0.02  # metric disparity = s * estimate + t
+
+
+def make_realestate10k(root: Path) -> tuple[Path, Expect]:
+    clip = root / "clip"
+    stamps = [1000000 + 33366 * i for i in range(T)]
+    lines = ["https://www.youtube.com/watch?v=xyz"]
+    uv, z = [], []
+    rng = np.random.default_rng(0)
+    for i, (ts, V) in enumerate(zip(stamps, cv_poses())):
+        lines.append(" ".join([str(ts)] + [f"{v:.12g}" for v in (FX / W, FY / H, CX / W, CY / H, 0, 0, *V[:3].reshape(-1))]))
+        p, zz = project_cv(V, P_WORLD)
+        uv.append(p)
+        z.append(zz)
+        truth = depth_map(p, zz, BG, zz, BG)
+        est = (1.0 / truth - RE10K_T) / RE10K_S  # a relative disparity estimate, exact up to (s, t)
+        est[0, W - 1] = -1.0  # aligned disparity < 0: no valid depth → +inf
+        ref = np.where(rng.uniform(size=(H, W)) < 0.3, truth, np.nan)  # sparse reference
+        ref[0, W - 1] = np.nan
+        ref[1, 1] = 40.0  # a gross outlier in the reference
+        (root / "est").mkdir(parents=True, exist_ok=True)
+        (root / "ref").mkdir(parents=True, exist_ok=True)
+        np.save(root / "est" / f"{ts}.npy", est)
+        np.save(root / "ref" / f"{ts}.npy", ref)
+        write_png(clip / f"{ts}.png", rgb_image(i))
+    (root / "clip.txt").write_text("\n".join(lines) + "\n")
+    return root, Expect(P_WORLD, {"cam00": uv}, {"cam00": z}, depth_tol=1e-4,
+                        kwargs={"estimates_dir": root / "est", "reference_dir": root / "ref"})
+
+
 SOURCES = {
+    "dynamic_replica": make_dynamic_replica,
+    "multicamvideo": make_multicamvideo,
+    "stereo4d": make_stereo4d,
+    "realestate10k": make_realestate10k,
     "tartanair": make_tartanair,
     "spring": make_spring,
     "matrixcity": make_matrixcity,
@@ -242,7 +365,8 @@ def test_known_point_reprojects_with_metric_depth(source, tmp_path):
     out = convert(source, src, tmp_path / "scene", **exp.kwargs)
     scene = load_scene(out)
     assert scene.meta.source == source and scene.num_frames == exp.num_frames
-    assert scene.camera_names == sorted(exp.uv) or scene.camera_names == list(exp.uv)
+    assert scene.camera_names == list(exp.uv)
+    point = exp.point
     for cam in exp.uv:
         path = scene.cameras(cam)
         V = path.viewmats.double().numpy()
@@ -250,7 +374,7 @@ def test_known_point_reprojects_with_metric_depth(source, tmp_path):
         for i in range(exp.num_frames):
             R = V[i, :3, :3]
             assert np.allclose(R.T @ R, np.eye(3), atol=1e-5) and abs(np.linalg.det(R) - 1) < 1e-5
-            x = R @ exp.point + V[i, :3, 3]  # world-to-camera, OpenCV: z forward
+            x = R @ point + V[i, :3, 3]  # world-to-camera, OpenCV: z forward
             assert x[2] > 0
             uv = (K[i] @ (x / x[2]))[:2]
             np.testing.assert_allclose(uv, exp.uv[cam][i], atol=2e-3, err_msg=f"{source} {cam} frame {i}")
@@ -267,5 +391,5 @@ def test_known_point_reprojects_with_metric_depth(source, tmp_path):
     if exp.tracks:
         pts, vis = scene.tracks()
         assert pts.shape[1:] == (exp.num_frames, 3) and vis.shape == pts.shape[:2]
-        np.testing.assert_allclose(pts[0], np.stack([exp.point] * exp.num_frames), atol=1e-5)
+        np.testing.assert_allclose(pts[0], np.stack([point] * exp.num_frames), atol=1e-5)
     assert scene.meta.fps > 0

@@ -8,9 +8,13 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from .dynamic_replica import convert_dynamic_replica
 from .matrixcity import convert_matrixcity
+from .multicamvideo import convert_multicamvideo
 from .pointodyssey import convert_pointodyssey
+from .realestate10k import convert_realestate10k
 from .spring import convert_spring
+from .stereo4d import convert_stereo4d
 from .tartanair import convert_tartanair
 from .vkitti2 import convert_vkitti2
 
@@ -22,6 +26,10 @@ CONVERTERS = {
     "vkitti2": convert_vkitti2,
     "tartanair": convert_tartanair,
     "matrixcity": convert_matrixcity,
+    "dynamic_replica": convert_dynamic_replica,
+    "realestate10k": convert_realestate10k,
+    "stereo4d": convert_stereo4d,
+    "multicamvideo": convert_multicamvideo,
 }
 """Source name → ``convert_<source>(src, out, **options) -> Path``."""
 
