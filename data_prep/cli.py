@@ -1,4 +1,4 @@
-"""``data_prep`` command line: dataset tools (``validate``, ``synth``; more subcommands plug in here).
+"""``data_prep`` command line: dataset tools (``validate``, ``synth``, ``curate``; more subcommands plug in here).
 
 Each subcommand is one ``_add_<name>(sub)`` function below that adds its parser and sets
 ``func=<handler>``; a handler takes the parsed arguments and returns the exit code. To add a
@@ -88,7 +88,38 @@ def _add_synth(sub) -> None:
     p.set_defaults(func=_synth)
 
 
-SUBCOMMANDS: list[Callable] = [_add_validate, _add_synth]
+# --------------------------------------------------------------------------- curate
+
+def _curate(args: argparse.Namespace) -> int:
+    from .curate import DEFAULT_CONFIG_PATH, CurationConfig, curate
+
+    config = CurationConfig.from_yaml(args.config or DEFAULT_CONFIG_PATH)
+    records = curate(args.input, args.output, config, workers=args.workers, mode=args.mode, progress=not args.quiet)
+    n_ok = sum(r["accepted"] for r in records)
+    print(f"curated {len(records)} scene(s): {n_ok} accepted, {len(records) - n_ok} rejected "
+          f"-> {args.output / 'manifest.jsonl'}")
+    return 0
+
+
+def _add_curate(sub) -> None:
+    import os
+
+    p = sub.add_parser("curate", help="filter scenes; write a manifest and the accepted scenes",
+                       description="Measure and filter the scenes of IN (data_prep/curate.py); write "
+                                   "OUT/manifest.jsonl, OUT/accepted.txt and the accepted scenes. A rerun "
+                                   "resumes: scenes already in the manifest are skipped.")
+    p.add_argument("input", type=Path, help="dataset root (folder of scene folders)")
+    p.add_argument("output", type=Path, help="output folder (created; must differ from IN)")
+    p.add_argument("--config", type=Path, default=None,
+                   help="YAML thresholds (default: data_prep/curation_default.yaml)")
+    p.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="worker processes (default: CPU count)")
+    p.add_argument("--mode", default="symlink",
+                   help="accepted scenes in OUT as absolute symlinks, full copies, or not at all (default: symlink)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_curate)
+
+
+SUBCOMMANDS: list[Callable] = [_add_validate, _add_synth, _add_curate]
 """Parser adders, one per subcommand, in help order."""
 
 

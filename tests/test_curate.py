@@ -1,0 +1,300 @@
+"""data_prep.curate: statistics, each filter, manifest, resumability (injected failure and a real kill), workers."""
+from __future__ import annotations
+
+import json
+import math
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+import yaml
+
+import data_prep.curate as cm
+from data_prep.curate import (
+    DEFAULT_CONFIG_PATH, CurationConfig, curate, judge, laplacian_variance, read_manifest, scene_statistics,
+)
+from data_prep.cli import main as cli_main
+from data_prep.format import SceneReader, SceneWriter, list_scenes
+from data_prep.validate import validate_scene
+from diff4splat.cameras import CameraPath, intrinsics_from_fov
+
+H, W = 24, 32
+CONFIG = CurationConfig(min_frames=9, min_translation_m=0.05, max_rotation_deg=30.0, min_valid_depth_ratio=0.3,
+                        dynamic_motion_threshold_m=0.05, min_dynamic_ratio=0.2, min_sharpness=20.0, sample_frames=3)
+
+
+def _rot_y(deg: float) -> np.ndarray:
+    a = math.radians(deg)
+    return np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
+
+
+def make_scene(root: Path, name: str, *, T: int = 9, move: float = 0.3, turn_deg: float = 0.0, blur: bool = False,
+               invalid_rows: int = 0, dynamic: bool = False, tracks: str | None = None, depth: bool = True,
+               cams: int = 1, seed: int = 0) -> Path:
+    """A scene whose camera(s) translate by ``move`` m along x and turn by ``turn_deg`` about y over T frames.
+
+    tracks: None (no file), "static" (4 still points) or "half" (2 of 4 points move 0.5 m, all visible).
+    """
+    rng = np.random.default_rng(seed)
+    K = intrinsics_from_fov(W, H, fov_x_deg=60.0, dtype=torch.float64)
+    path = root / name
+    with SceneWriter(path, source="test", dynamic=dynamic, depth_source="ground_truth" if depth else "none",
+                     num_frames=T, fps=10.0) as w:
+        for c in range(cams):
+            vms = []
+            for i in range(T):
+                s = i / max(T - 1, 1)
+                R = _rot_y(turn_deg * s)
+                centre = np.array([move * s + 0.1 * c, 0.0, 0.0])
+                V = np.eye(4)
+                V[:3, :3], V[:3, 3] = R, -R @ centre
+                vms.append(V)
+            w.add_camera(f"cam{c:02d}", CameraPath(torch.tensor(np.stack(vms)), K.expand(T, 3, 3).clone(), W, H))
+            for i in range(T):
+                img = rng.random((H, W, 3)).astype(np.float32)
+                if blur:
+                    img = cv2.GaussianBlur(img, (0, 0), 4.0)
+                d = np.full((H, W), 2.0, np.float32)
+                d[:invalid_rows] = np.inf
+                w.write_frame(f"cam{c:02d}", i, img, d if depth else None)
+        if tracks is not None:
+            pts = np.tile(rng.normal(size=(4, 1, 3)).astype(np.float32), (1, T, 1))
+            if tracks == "half":
+                pts[:2, :, 0] += np.linspace(0, 0.5, T, dtype=np.float32)
+            w.write_tracks(pts, np.ones((4, T), bool))
+    return path
+
+
+EXPECTED = {  # scene name → reasons under CONFIG (each bad scene violates exactly one filter)
+    "good_static": [],
+    "good_dynamic": [],
+    "good_multiview": [],
+    "few_frames": ["min_frames"],
+    "tiny_motion": ["min_translation_m"],
+    "big_turn": ["max_rotation_deg"],
+    "blurred": ["min_sharpness"],
+    "bad_depth": ["min_valid_depth_ratio"],
+    "static_tracks": ["min_dynamic_ratio"],
+    "no_tracks": ["dynamic_requires_tracks"],
+    "zz_broken": ["error"],
+}
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("curate_in")
+    make_scene(root, "good_static", turn_deg=10.0)
+    make_scene(root, "good_dynamic", dynamic=True, tracks="half")
+    make_scene(root, "good_multiview", move=0.0, cams=2)  # still cameras, 0.1 m baseline
+    make_scene(root, "few_frames", T=5)
+    make_scene(root, "tiny_motion", move=0.01)
+    make_scene(root, "big_turn", turn_deg=45.0)
+    make_scene(root, "blurred", blur=True)
+    make_scene(root, "bad_depth", invalid_rows=20)  # 20/24 rows invalid → ratio 1/6
+    make_scene(root, "static_tracks", dynamic=True, tracks="static")
+    make_scene(root, "no_tracks", dynamic=True)
+    (root / "zz_broken").mkdir()
+    (root / "zz_broken" / "meta.json").write_text("{not json")
+    return root
+
+
+def _manifest_text(out: Path) -> str:
+    return (out / "manifest.jsonl").read_text()
+
+
+def test_laplacian_variance_matches_opencv_reference():
+    img = np.random.default_rng(1).random((20, 30, 3)).astype(np.float32)
+    grey = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY).astype(np.float64) * 255.0
+    kernel = np.ones((3, 3)); kernel[1, 1] = -8.0
+    ref = cv2.filter2D(grey, -1, kernel, borderType=cv2.BORDER_REFLECT_101)
+    assert laplacian_variance(img) == pytest.approx(ref.var(), rel=1e-4)
+    assert laplacian_variance(np.full((8, 8, 3), 0.4, np.float32)) == pytest.approx(0.0, abs=1e-6)
+    assert laplacian_variance(cv2.GaussianBlur(img, (0, 0), 2.0)) < 0.05 * laplacian_variance(img)
+
+
+def test_statistics_closed_forms(dataset):
+    s = scene_statistics(SceneReader(dataset / "good_static"), CONFIG)
+    assert (s.num_frames, s.num_cameras, s.dynamic) == (9, 1, False)
+    assert s.translation_range_m == pytest.approx(0.3, abs=1e-6)
+    assert s.rotation_range_deg == pytest.approx(10.0, abs=1e-3)
+    assert s.valid_depth_ratio == 1.0 and s.dynamic_ratio is None
+    s = scene_statistics(SceneReader(dataset / "good_multiview"), CONFIG)
+    assert s.translation_range_m == pytest.approx(0.1, abs=1e-6) and s.num_cameras == 2
+    assert scene_statistics(SceneReader(dataset / "bad_depth"), CONFIG).valid_depth_ratio == pytest.approx(4 / 24)
+    assert scene_statistics(SceneReader(dataset / "good_dynamic"), CONFIG).dynamic_ratio == pytest.approx(0.5)
+    assert scene_statistics(SceneReader(dataset / "static_tracks"), CONFIG).dynamic_ratio == 0.0
+    # sharpness is the median over the sampled frames (first, middle, last)
+    r = SceneReader(dataset / "blurred")
+    want = np.median([laplacian_variance(r.rgb("cam00", i)) for i in (0, 4, 8)])
+    assert scene_statistics(r, CONFIG).sharpness == pytest.approx(want)
+
+
+def test_dynamic_ratio_counts_visible_observations_only(tmp_path):
+    path = make_scene(tmp_path, "d", dynamic=True, tracks="half")
+    with np.load(path / "tracks.npz") as f:
+        pts, vis = f["points"], f["visibility"].copy()
+    vis[2:, :] = False  # only the two moving points are ever visible
+    vis[0, :4] = False
+    np.savez_compressed(path / "tracks.npz", points=pts, visibility=vis)
+    assert scene_statistics(SceneReader(path), CONFIG).dynamic_ratio == 1.0
+    vis[:2] = False
+    vis[2:] = True  # only still points visible
+    np.savez_compressed(path / "tracks.npz", points=pts, visibility=vis)
+    assert scene_statistics(SceneReader(path), CONFIG).dynamic_ratio == 0.0
+
+
+def test_each_filter_rejects_exactly_its_violators(dataset, tmp_path):
+    records = curate(dataset, tmp_path / "out", CONFIG, progress=False)
+    assert {r["scene"]: r["reasons"] for r in records} == EXPECTED
+    for r in records:
+        assert r["accepted"] == (not r["reasons"]) and len(r["messages"]) == len(r["reasons"])
+
+
+def test_bounds_and_requirements(dataset):
+    s = scene_statistics(SceneReader(dataset / "good_static"), CONFIG)
+    assert judge(s, CONFIG) == []
+    c = CurationConfig(min_frames=10, max_translation_m=0.2, min_rotation_deg=11.0, min_sharpness=1e9)
+    assert [r for r, _ in judge(s, c)] == ["min_frames", "max_translation_m", "min_rotation_deg", "min_sharpness"]
+    assert judge(s, CurationConfig(min_frames=9, min_translation_m=0.3 - 1e-6, max_rotation_deg=10.0 + 1e-3, min_sharpness=0)) == []
+    nodepth = scene_statistics(SceneReader(dataset / "good_static"), CONFIG).__class__(
+        **{**s.__dict__, "valid_depth_ratio": None})
+    assert judge(nodepth, CurationConfig(min_frames=9)) == []
+    assert [r for r, _ in judge(nodepth, CurationConfig(min_frames=9, require_depth=True))] == ["require_depth"]
+    dyn = scene_statistics(SceneReader(dataset / "good_dynamic"), CONFIG)
+    assert [r for r, _ in judge(dyn, CurationConfig(min_frames=9, max_dynamic_ratio=0.4))] == ["max_dynamic_ratio"]
+
+
+def test_manifest_and_outputs(dataset, tmp_path):
+    out = tmp_path / "out"
+    curate(dataset, out, CONFIG, progress=False)
+    lines = _manifest_text(out).splitlines()
+    recs = [json.loads(x) for x in lines]
+    assert [r["scene"] for r in recs] == sorted(EXPECTED) and recs == read_manifest(out)
+    assert set(recs[0]) == {"scene", "accepted", "reasons", "messages", "stats"}
+    good = next(r for r in recs if r["scene"] == "good_static")
+    assert set(good["stats"]) == {"num_frames", "num_cameras", "dynamic", "translation_range_m",
+                                  "rotation_range_deg", "valid_depth_ratio", "dynamic_ratio", "sharpness"}
+    accepted = sorted(s for s, r in EXPECTED.items() if not r)
+    assert (out / "accepted.txt").read_text().split() == accepted
+    assert [p.name for p in list_scenes(out)] == accepted  # OUT is a dataset root of the accepted scenes
+    assert all((out / s).is_symlink() and (out / s).resolve() == (dataset / s).resolve() for s in accepted)
+    assert yaml.safe_load((out / "curation.yaml").read_text()) == {"mode": "symlink", "config": CONFIG.to_dict()}
+    with pytest.raises(ValueError, match="different config"):
+        curate(dataset, out, CurationConfig(min_frames=3), progress=False)
+    with pytest.raises(ValueError, match="different config"):
+        curate(dataset, out, CONFIG, mode="copy", progress=False)
+
+
+def test_copy_and_none_modes(dataset, tmp_path):
+    curate(dataset, tmp_path / "copy", CONFIG, mode="copy", progress=False)
+    curate(dataset, tmp_path / "none", CONFIG, mode="none", progress=False)
+    accepted = sorted(s for s, r in EXPECTED.items() if not r)
+    for s in accepted:
+        assert not (tmp_path / "copy" / s).is_symlink() and validate_scene(tmp_path / "copy" / s) == []
+    assert list_scenes(tmp_path / "none") == []
+    assert _manifest_text(tmp_path / "copy") == _manifest_text(tmp_path / "none")
+
+
+def test_injected_failure_then_rerun_equals_uninterrupted(dataset, tmp_path, monkeypatch):
+    full = tmp_path / "full"
+    curate(dataset, full, CONFIG, progress=False)
+    real, calls = cm.scene_statistics, []
+
+    def dies_on_fourth(scene, config):
+        calls.append(scene.path.name)
+        if len(calls) == 4:
+            raise RuntimeError("killed")
+        return real(scene, config)
+
+    monkeypatch.setattr(cm, "scene_statistics", dies_on_fourth)
+    out = tmp_path / "out"
+    with pytest.raises(RuntimeError, match="killed"):
+        curate(dataset, out, CONFIG, progress=False)
+    assert len(read_manifest(out)) == 3  # partial manifest of the finished scenes
+    monkeypatch.setattr(cm, "scene_statistics", real)
+    curate(dataset, out, CONFIG, progress=False)
+    assert _manifest_text(out) == _manifest_text(full)
+    assert (out / "accepted.txt").read_text() == (full / "accepted.txt").read_text()
+
+
+def test_rerun_skips_recorded_scenes(dataset, tmp_path, monkeypatch):
+    out = tmp_path / "out"
+    curate(dataset, out, CONFIG, progress=False)
+    before = _manifest_text(out)
+    monkeypatch.setattr(cm, "scene_statistics", lambda *a: pytest.fail("a recorded scene was measured again"))
+    assert len(curate(dataset, out, CONFIG, progress=False)) == len(EXPECTED)
+    assert _manifest_text(out) == before
+
+
+def test_killed_process_then_rerun_equals_uninterrupted(dataset, tmp_path):
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text(yaml.safe_dump(CONFIG.to_dict()))
+    full, out = tmp_path / "full", tmp_path / "out"
+    curate(dataset, full, CONFIG, mode="copy", progress=False)
+    cmd = [sys.executable, "-m", "data_prep.cli", "curate", str(dataset), str(out), "--config", str(cfg),
+           "--workers", "1", "--mode", "copy", "--quiet"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.time() + 60
+    while time.time() < deadline and proc.poll() is None and len(list((out / ".curation").glob("*.json"))) < 2:
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGKILL)
+    assert proc.wait() == -signal.SIGKILL  # killed half way, not finished
+    assert 2 <= len(list((out / ".curation").glob("*.json"))) < len(EXPECTED)
+    for p in out.iterdir():  # whole scenes only: every visible scene folder is valid
+        if p.is_dir() and not p.name.startswith("."):
+            assert validate_scene(p) == []
+    curate(dataset, out, CONFIG, mode="copy", progress=False)  # the rerun (in-process: no second torch import)
+    assert _manifest_text(out) == _manifest_text(full)
+    assert not [p for p in out.iterdir() if p.name.startswith(".") and p.name != ".curation"]  # leftovers removed
+
+
+def test_parallel_equals_sequential(dataset, tmp_path):
+    seq = curate(dataset, tmp_path / "seq", CONFIG, workers=1, progress=False)
+    par = curate(dataset, tmp_path / "par", CONFIG, workers=2, progress=False)
+    assert seq == par
+    assert _manifest_text(tmp_path / "seq") == _manifest_text(tmp_path / "par")
+
+
+def test_config_yaml(tmp_path):
+    assert CurationConfig.from_yaml(DEFAULT_CONFIG_PATH) == CurationConfig()
+    f = tmp_path / "c.yaml"
+    f.write_text("min_frames: 5\nmax_translation_m: 2.5\n")
+    assert CurationConfig.from_yaml(f) == CurationConfig(min_frames=5, max_translation_m=2.5)
+    for text, match in [("min_framez: 5\n", "min_framez"), ("min_frames: 0\n", "min_frames"),
+                        ("min_sharpness: -1\n", "min_sharpness"), ("min_valid_depth_ratio: 1.5\n", "ratio"),
+                        ("validate: 1\n", "validate"), ("- 1\n", "mapping")]:
+        f.write_text(text)
+        with pytest.raises(ValueError, match=match):
+            CurationConfig.from_yaml(f)
+    with pytest.raises(FileNotFoundError):
+        CurationConfig.from_yaml(tmp_path / "missing.yaml")
+
+
+def test_bad_arguments(dataset, tmp_path):
+    with pytest.raises(ValueError, match="workers"):
+        curate(dataset, tmp_path / "o", workers=0)
+    with pytest.raises(ValueError, match="mode"):
+        curate(dataset, tmp_path / "o", mode="hardlink")
+    with pytest.raises(ValueError, match="differ"):
+        curate(dataset, dataset)
+    with pytest.raises(FileNotFoundError):
+        curate(tmp_path / "nope", tmp_path / "o")
+
+
+def test_cli_subcommand(dataset, tmp_path, capsys):
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text(yaml.safe_dump(CONFIG.to_dict()))
+    args = ["curate", str(dataset), str(tmp_path / "o"), "--config", str(cfg), "--workers", "1", "--quiet"]
+    assert cli_main(args) == 0
+    assert "11 scene(s): 3 accepted, 8 rejected" in capsys.readouterr().out
+    assert read_manifest(tmp_path / "o") == curate(dataset, tmp_path / "o", CONFIG, progress=False)
+    assert cli_main(["curate", str(dataset), str(tmp_path / "o2"), "--config", str(tmp_path / "missing.yaml")]) == 2
+    assert "not found" in capsys.readouterr().err
+    assert cli_main(["curate", str(dataset), str(tmp_path / "o3"), "--mode", "hardlink"]) == 2
+    assert "mode" in capsys.readouterr().err
