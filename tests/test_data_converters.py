@@ -393,3 +393,123 @@ def test_known_point_reprojects_with_metric_depth(source, tmp_path):
         assert pts.shape[1:] == (exp.num_frames, 3) and vis.shape == pts.shape[:2]
         np.testing.assert_allclose(pts[0], np.stack([point] * exp.num_frames), atol=1e-5)
     assert scene.meta.fps > 0
+
+
+# ------------------------------------------------------------------------- per-source details
+def test_realestate10k_alignment_and_units(tmp_path):
+    from data_prep.converters import convert
+
+    src, exp = make_realestate10k(tmp_path / "native")
+    scene = load_scene(convert("realestate10k", src, tmp_path / "aligned", **exp.kwargs))
+    m = scene.meta
+    assert m.depth_source == "aligned_estimate" and m.extra["metric_scale"] is False
+    assert abs(m.depth_scale - RE10K_S) < 1e-6 and abs(m.depth_shift - RE10K_T) < 1e-6  # outlier rejected
+    # no estimates: no depth; estimates without a metric/SfM reference: refused
+    plain = load_scene(convert("realestate10k", src, tmp_path / "plain"))
+    assert plain.meta.depth_source == "none" and not (tmp_path / "plain" / "cam00" / "depth").exists()
+    with pytest.raises(ValueError, match="reference"):
+        convert("realestate10k", src, tmp_path / "bad", estimates_dir=src / "est")
+    # a metric scale for the SfM units multiplies translations (and depth)
+    scaled = load_scene(convert("realestate10k", src, tmp_path / "scaled", metres_per_unit=2.0, **exp.kwargs))
+    assert scaled.meta.extra["metric_scale"] is True
+    v1, v2 = plain.cameras("cam00").viewmats, scaled.cameras("cam00").viewmats
+    np.testing.assert_allclose(v2[:, :3, 3].numpy(), 2 * v1[:, :3, 3].numpy(), rtol=1e-6, atol=1e-6)
+    i = 1
+    d1, d2 = load_scene(tmp_path / "aligned").depth("cam00", i), scaled.depth("cam00", i)
+    np.testing.assert_allclose(d2[np.isfinite(d1)], 2 * d1[np.isfinite(d1)], rtol=1e-6)
+
+
+def test_pointodyssey_tracks_keep_source_visibility(tmp_path):
+    from data_prep.converters import convert
+
+    src, _ = make_pointodyssey(tmp_path / "native")
+    pts, vis = load_scene(convert("pointodyssey", src, tmp_path / "s")).tracks()
+    assert pts.shape == (2, T, 3)  # the NaN track is dropped
+    np.testing.assert_allclose(pts[1, :, 0], P_WORLD[0] + np.array([0.0, 0.01, 0.02]), atol=1e-6)
+    assert vis.tolist() == [[True, True, True], [True, False, True]]  # visibs & valids, transposed to (P, T)
+    assert load_scene(convert("pointodyssey", src, tmp_path / "n", max_tracks=0)).tracks() is None
+
+
+def test_stereo4d_tracks_and_decoding(tmp_path):
+    from data_prep.converters import convert
+    from data_prep.converters.stereo4d import decode_stereo4d_tracks
+
+    src, _ = make_stereo4d(tmp_path / "native")
+    scene = load_scene(convert("stereo4d", src, tmp_path / "s"))
+    pts, vis = scene.tracks()
+    assert pts.shape == (2, T, 3)  # the track defined on 2 of 3 frames is dropped
+    np.testing.assert_allclose(pts[1, :, 0], P_WORLD[0] + 0.05 * np.arange(T), atol=1e-6)
+    assert vis[0].all()
+    np.testing.assert_allclose(scene.timestamps(), (130030030 + 33367 * np.arange(T)) * 1e-6)
+    full = decode_stereo4d_tracks([2, 1], [0, 2, 1], np.arange(9.0).reshape(3, 3), 3)
+    assert np.isnan(full[0, 1]).all() and (full[0, 2] == [3, 4, 5]).all() and (full[1, 1] == [6, 7, 8]).all()
+    with pytest.raises(ValueError, match="track_lengths"):
+        decode_stereo4d_tracks([3], [0, 1], np.zeros((2, 3)), 3)
+    with pytest.raises(ValueError, match="track_indices"):
+        decode_stereo4d_tracks([1], [5], np.zeros((1, 3)), 3)
+
+
+def test_frame_selection_stride_and_fps(tmp_path):
+    from data_prep.converters import convert
+
+    src, exp = make_vkitti2(tmp_path / "native")
+    scene = load_scene(convert("vkitti2", src, tmp_path / "s", stride=2, cameras=(1,)))
+    assert scene.num_frames == 2 and scene.meta.fps == 5.0 and scene.meta.extra["source_frames"] == [0, 2]
+    np.testing.assert_allclose(scene.timestamps(), [0.0, 0.2])
+    V = scene.cameras("cam00").viewmats.double().numpy()
+    x = V[1, :3, :3] @ P_WORLD + V[1, :3, 3]
+    np.testing.assert_allclose(FX * x[0] / x[2] + CX, exp.uv["cam01"][2][0], atol=2e-3)
+
+
+def test_bad_inputs_raise(tmp_path):
+    from data_prep.converters import convert
+    from data_prep.converters.common import normalize_rotation, select_frames
+    from data_prep.converters.multicamvideo import parse_ue_matrix
+
+    with pytest.raises(ValueError, match="unknown source"):
+        convert("kitti", tmp_path, tmp_path / "o")
+    with pytest.raises(FileNotFoundError):
+        convert("pointodyssey", tmp_path / "missing", tmp_path / "o")
+    src, _ = make_dynamic_replica(tmp_path / "dr")
+    with pytest.raises(ValueError, match="sequence must be given"):
+        convert("dynamic_replica", src, tmp_path / "o")
+    with pytest.raises(ValueError, match="not a uniformly scaled rotation"):
+        normalize_rotation(np.diag([1.0, 2.0, 1.0]))
+    with pytest.raises(ValueError, match="non-positive determinant"):
+        normalize_rotation(np.diag([1.0, 1.0, -1.0]))
+    with pytest.raises(ValueError, match="stride"):
+        select_frames(5, stride=0)
+    with pytest.raises(ValueError, match="start"):
+        select_frames(5, start=5)
+    with pytest.raises(ValueError, match="4×4"):
+        parse_ue_matrix("[1 0 0] [0 1 0] [0 0 1]")
+
+
+def test_depth_decoders():
+    from data_prep.converters.common import decode_scaled_uint16, disparity_to_depth, float16_bits_to_float
+
+    raw = np.array([[0, 100, 65535]], np.uint16)
+    d = decode_scaled_uint16(raw, 0.01, invalid=(0, 65535))
+    assert np.isposinf(d[0, 0]) and d[0, 1] == np.float32(1.0) and np.isposinf(d[0, 2])
+    z = disparity_to_depth(np.array([[2.0, 0.0, np.nan, -1.0]]), fx=100.0, baseline=0.1)
+    assert z[0, 0] == np.float32(5.0) and np.isposinf(z[0, 1:]).all()
+    bits = np.array([[1.5, 1000.0]], np.float16).view(np.uint16)
+    np.testing.assert_array_equal(float16_bits_to_float(bits), [[1.5, 1000.0]])
+    with pytest.raises(ValueError, match="16-bit"):
+        decode_scaled_uint16(np.zeros((1, 1), np.uint8), 1.0)
+
+
+def test_convert_cli(tmp_path, capsys):
+    from data_prep.convert_cli import main, parse_options
+
+    src, _ = make_dynamic_replica(tmp_path / "dr")
+    rc = main(["dynamic_replica", str(src), str(tmp_path / "out"), "--option", "sequence=seq",
+               "--option", 'sides=["left"]', "--max-frames", "2"])
+    assert rc == 0 and "converted" in capsys.readouterr().out
+    scene = load_scene(tmp_path / "out")
+    assert scene.camera_names == ["cam00"] and scene.num_frames == 2
+    assert main(["dynamic_replica", str(src), str(tmp_path / "out2")]) == 2  # ambiguous sequence
+    assert "sequence must be given" in capsys.readouterr().err
+    assert parse_options(["a=1", "b=x", "c=[1, 2]"]) == {"a": 1, "b": "x", "c": (1, 2)}
+    with pytest.raises(ValueError, match="KEY=VALUE"):
+        parse_options(["novalue"])

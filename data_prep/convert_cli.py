@@ -1,0 +1,79 @@
+"""``data_prep convert SOURCE IN OUT``: convert one source scene/sequence to the scene format.
+
+:func:`register` adds the subcommand to the ``data_prep`` parser (``data_prep/cli.py`` appends it to
+its subcommand list); ``python -m data_prep.convert_cli SOURCE IN OUT …`` runs it alone.
+Source-specific options (CONVERTERS.md) are passed as ``--option KEY=VALUE``; VALUE is parsed as
+JSON when it is valid JSON (numbers, true/false, lists → tuples), else kept as a string.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+__all__ = ["register", "parse_options", "main"]
+
+
+def parse_options(items: list[str]) -> dict:
+    """``["key=value", …]`` → {key: value}; JSON values decoded, lists become tuples.
+
+    Raises:
+        ValueError: an item without ``=`` or with an empty key.
+    """
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"--option must be KEY=VALUE, got {item!r}")
+        try:
+            v = json.loads(value)
+        except json.JSONDecodeError:
+            v = value
+        out[key.strip()] = tuple(v) if isinstance(v, list) else v
+    return out
+
+
+def _convert(args: argparse.Namespace) -> int:
+    from .converters import convert
+
+    opts = parse_options(args.option)
+    opts.update(start=args.start, stride=args.stride, max_frames=args.max_frames, replace=args.replace)
+    out = convert(args.source, args.input, args.output, **opts)
+    print(f"converted {args.source} {args.input} -> {out}")
+    return 0
+
+
+def register(sub) -> None:
+    """Add the ``convert`` subparser to an argparse sub-parsers object (sets ``func``)."""
+    from .converters import CONVERTERS
+
+    p = sub.add_parser("convert", help="convert a source dataset scene to the scene format",
+                       description="Read one scene/sequence of SOURCE in its published layout (data_prep/"
+                                   "CONVERTERS.md) and write a validated scene folder OUT.")
+    p.add_argument("source", choices=sorted(CONVERTERS), help="source dataset")
+    p.add_argument("input", type=Path, help="source scene/sequence folder")
+    p.add_argument("output", type=Path, help="output scene folder")
+    p.add_argument("--start", type=int, default=0, help="first source frame (default 0)")
+    p.add_argument("--stride", type=int, default=1, help="keep every n-th frame (default 1)")
+    p.add_argument("--max-frames", type=int, default=None, help="at most this many frames (default: all)")
+    p.add_argument("--replace", action="store_true", help="replace an existing output folder")
+    p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                   help="source-specific option, repeatable (e.g. --option sequence=abc --option depth_dir=/d)")
+    p.set_defaults(func=_convert)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run ``convert`` alone; errors print one line and return 2."""
+    parser = argparse.ArgumentParser(prog="data_prep")
+    register(parser.add_subparsers(dest="command", required=True))
+    try:
+        args = parser.parse_args(["convert", *(sys.argv[1:] if argv is None else argv)])
+        return int(args.func(args))
+    except (ValueError, FileNotFoundError, FileExistsError, ImportError) as e:
+        print(f"data_prep: error: {str(e).splitlines()[0] if str(e) else type(e).__name__}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
