@@ -119,7 +119,9 @@ def _add_curate(sub) -> None:
     p.set_defaults(func=_curate)
 
 
-SUBCOMMANDS: list[Callable] = [_add_validate, _add_synth, _add_curate]
+from .convert_cli import register as _add_convert  # noqa: E402  (data_prep convert SOURCE IN OUT)
+
+SUBCOMMANDS: list[Callable] = [_add_validate, _add_synth, _add_curate, _add_convert]
 """Parser adders, one per subcommand, in help order."""
 
 

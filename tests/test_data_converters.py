@@ -513,3 +513,12 @@ def test_convert_cli(tmp_path, capsys):
     assert parse_options(["a=1", "b=x", "c=[1, 2]"]) == {"a": 1, "b": "x", "c": (1, 2)}
     with pytest.raises(ValueError, match="KEY=VALUE"):
         parse_options(["novalue"])
+
+
+def test_data_prep_cli_has_convert(tmp_path):
+    from data_prep.cli import main
+
+    src, _ = make_pointodyssey(tmp_path / "po")
+    assert main(["convert", "pointodyssey", str(src), str(tmp_path / "out"), "--option", "max_tracks=1"]) == 0
+    assert load_scene(tmp_path / "out").tracks()[0].shape[0] == 1
+    assert main(["convert", "pointodyssey", str(src), str(tmp_path / "out")]) == 2  # exists, no --replace
