@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 import os
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
@@ -41,7 +42,7 @@ from diff4splat.scene import DynamicGaussians
 from .format import SceneWriter
 from .synth_world import caption_for, sample_scene_spec
 
-__all__ = ["generate_scene", "synthesize", "build_gaussians", "object_transform", "camera_path",
+__all__ = ["generate_scene", "synthesize", "render_spec", "write_synth_scene", "SynthScene", "build_scene", "build_gaussians", "object_transform", "camera_path",
            "track_visibility", "scene_name", "MAX_TRACKS", "VISIBILITY_TOL_M", "VISIBILITY_TOL_REL"]
 
 MAX_TRACKS = 256
@@ -316,13 +317,93 @@ def track_visibility(points: np.ndarray, cameras: CameraPath, depth: np.ndarray)
     return inside & (depth[frame, vi, ui] >= z - tol)
 
 
+@dataclass
+class SynthScene:
+    """A rendered synthetic scene, before writing.
+
+    Attributes:
+        spec: the scene spec (:func:`data_prep.synth_world.sample_scene_spec`).
+        scene: its Gaussians with deformation at the T frame times (static: none).
+        object_ids: (M,) int64 object index of every Gaussian, −1 for ground/wall.
+        cameras: one :class:`CameraPath` per camera, reference first.
+        rgb: per camera (T, H, W, 3) float32 in [0, 1].
+        depth: per camera (T, H, W) float32 metres, +inf where the accumulated opacity < 0.5.
+        track_ids: (P,) indices of the tracked Gaussians.
+        points: (P, T, 3) float32 world positions of the tracked Gaussian means, metres.
+        visibility: (P, T) bool in the reference camera (:func:`track_visibility`).
+        caption: one line (:func:`data_prep.synth_world.caption_for`).
+    """
+
+    spec: dict[str, Any]
+    scene: DynamicGaussians
+    object_ids: np.ndarray
+    cameras: list[CameraPath]
+    rgb: list[np.ndarray]
+    depth: list[np.ndarray]
+    track_ids: np.ndarray
+    points: np.ndarray
+    visibility: np.ndarray
+    caption: str
+
+
+def render_spec(spec: dict[str, Any], rng: np.random.Generator) -> SynthScene:
+    """Build, render and track a scene spec (one torch thread, restored afterwards).
+
+    ``rng`` supplies the per-Gaussian texture jitter and the choice of tracked points, so the same
+    spec and generator state give identical arrays.
+    """
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        scene, ids = build_scene(spec, rng)
+        paths = [camera_path(spec, c) for c in spec["cameras"]]
+        rgbs, depths = [], []
+        for p in paths:
+            rgb, ed, alpha = render_path(scene, p, background=tuple(spec["background"]))
+            rgbs.append(rgb.numpy())
+            depths.append(torch.where(alpha >= 0.5, ed, torch.inf).numpy())
+    finally:
+        torch.set_num_threads(threads)
+    obj = np.flatnonzero(ids >= 0)
+    pick = np.sort(rng.choice(obj, size=min(MAX_TRACKS, len(obj)), replace=False))
+    base = scene.canonical.means.numpy()[pick]  # (P, 3)
+    if scene.is_static:
+        points = np.repeat(base[:, None], spec["num_frames"], axis=1)
+    else:  # exactly the means scene.at(t_i) renders (key times are the frame times)
+        points = base[:, None] + scene.d_means.numpy()[:, pick].transpose(1, 0, 2)
+    points = points.astype(np.float32)
+    visibility = track_visibility(points, paths[0], depths[0])
+    caption = caption_for(spec, paths[0].viewmats[0, :3, :3].double().numpy())
+    return SynthScene(spec, scene, ids, paths, rgbs, depths, pick, points, visibility, caption)
+
+
+def write_synth_scene(path: str | os.PathLike, result: SynthScene, extra: dict[str, Any] | None = None,
+                      replace: bool = False) -> Path:
+    """Write a :class:`SynthScene` as a scene folder (FORMAT.md) atomically; cameras ``cam00``, ``cam01``, ….
+
+    meta.json gets ``source: "synthetic"``, ``depth_source: "ground_truth"`` and ``"synth"``: the spec
+    plus ``extra``. Returns the folder.
+    """
+    spec, T = result.spec, result.spec["num_frames"]
+    with SceneWriter(path, source="synthetic", dynamic=spec["dynamic"], depth_source="ground_truth", num_frames=T,
+                     fps=spec["fps"], extra={"synth": {**(extra or {}), "spec": spec}}, replace=replace) as w:
+        for c, (p, rgb, depth) in enumerate(zip(result.cameras, result.rgb, result.depth)):
+            name = f"cam{c:02d}"
+            w.add_camera(name, p)
+            for i in range(T):
+                w.write_frame(name, i, rgb[i], depth[i])
+        w.write_tracks(result.points, result.visibility)
+        w.write_caption(result.caption)
+    return Path(path)
+
+
 def generate_scene(out_dir: str | os.PathLike, index: int, seed: int, *, size: int = 64, frames: int = 17,
                    cameras: int = 2, static_ratio: float = 0.3, replace: bool = False) -> Path:
     """Sample, render and write scene ``index`` of run ``seed`` to ``out_dir/scene_{index:05d}`` (atomic).
 
     The scene is static (no object motion) with probability ``static_ratio``, drawn from the scene's
-    own generator ``numpy.random.default_rng([seed, index])``. Rendering uses one torch thread (restored
-    afterwards) so the bytes do not depend on the machine's thread count.
+    own generator ``numpy.random.default_rng([seed, index])``, which then samples the spec
+    (:func:`sample_scene_spec`) and drives :func:`render_spec`.
 
     Returns:
         The scene folder.
@@ -333,39 +414,8 @@ def generate_scene(out_dir: str | os.PathLike, index: int, seed: int, *, size: i
     rng = np.random.default_rng([seed, index])
     dynamic = bool(rng.random() >= static_ratio)
     spec = sample_scene_spec(rng, dynamic=dynamic, num_cameras=cameras, size=size, num_frames=frames)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        scene, ids = build_scene(spec, rng)
-        paths = [camera_path(spec, c) for c in spec["cameras"]]
-        renders = []
-        for p in paths:
-            rgb, ed, alpha = render_path(scene, p, background=tuple(spec["background"]))
-            renders.append((rgb.numpy(), torch.where(alpha >= 0.5, ed, torch.inf).numpy()))
-    finally:
-        torch.set_num_threads(threads)
-    obj = np.flatnonzero(ids >= 0)
-    pick = np.sort(rng.choice(obj, size=min(MAX_TRACKS, len(obj)), replace=False))
-    base = scene.canonical.means.numpy()[pick]  # (P, 3)
-    if scene.is_static:
-        points = np.repeat(base[:, None], frames, axis=1)
-    else:
-        points = base[:, None] + scene.d_means.numpy()[:, pick].transpose(1, 0, 2)
-    points = points.astype(np.float32)
-    visibility = track_visibility(points, paths[0], renders[0][1])
-    caption = caption_for(spec, paths[0].viewmats[0, :3, :3].double().numpy())
-    path = Path(out_dir) / scene_name(index)
-    with SceneWriter(path, source="synthetic", dynamic=dynamic, depth_source="ground_truth", num_frames=frames,
-                     fps=spec["fps"], extra={"synth": {"seed": seed, "index": index, "spec": spec}},
-                     replace=replace) as w:
-        for c, (p, (rgb, depth)) in enumerate(zip(paths, renders)):
-            name = f"cam{c:02d}"
-            w.add_camera(name, p)
-            for i in range(frames):
-                w.write_frame(name, i, rgb[i], depth[i])
-        w.write_tracks(points, visibility)
-        w.write_caption(caption)
-    return path
+    result = render_spec(spec, rng)
+    return write_synth_scene(Path(out_dir) / scene_name(index), result, {"seed": seed, "index": index}, replace)
 
 
 def _check_int(name: str, v: Any, lo: int) -> int:

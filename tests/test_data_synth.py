@@ -1,0 +1,246 @@
+"""Synthetic scenes: exact tracks (closed-form motion, rendered depth), determinism, captions, static
+scenes, camera/motion directions, variety, resume, CLI."""
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+import pytest
+
+from data_prep.cli import main
+from data_prep.format import load_scene
+from data_prep.synth import (
+    VISIBILITY_TOL_M,
+    VISIBILITY_TOL_REL,
+    camera_path,
+    generate_scene,
+    object_transform,
+    render_spec,
+    scene_name,
+    synthesize,
+)
+from data_prep.synth_world import CAMERA_MOTIONS, MOTIONS, SHAPES, TEXTURES, caption_for, sample_scene_spec
+from data_prep.validate import validate_path, validate_scene
+
+SIZE, T = 32, 5
+VERBS = {"translate": ("slides", "rolls"), "rotate": ("spins", "tumbles"), "bounce": ("bounces",),
+         "deform": ("pulses", "squashes")}
+CAM_VERBS = {"orbit": "orbits", "dolly": "dollies", "pan": "pans", "truck": "trucks", "static": "stays still"}
+
+
+def _project(points, cams):
+    """Independent pinhole projection: (P, T, 3) world → u, v pixels and z metres (P, T)."""
+    V, K = cams.viewmats.double().numpy(), cams.Ks.double().numpy()
+    X = np.einsum("tij,ptj->pti", V[:, :3, :3], points.astype(np.float64)) + V[None, :, :3, 3]
+    z = X[..., 2]
+    return K[None, :, 0, 0] * X[..., 0] / z + K[None, :, 0, 2], K[None, :, 1, 1] * X[..., 1] / z + K[None, :, 1, 2], z
+
+
+def _depth_at(depth, u, v):
+    H, W = depth.shape[1:]
+    inside = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    frame = np.broadcast_to(np.arange(depth.shape[0]), u.shape)
+    d = depth[frame, np.clip(np.floor(v), 0, H - 1).astype(int), np.clip(np.floor(u), 0, W - 1).astype(int)]
+    return np.where(inside, d, np.nan), inside
+
+
+@pytest.fixture(scope="module")
+def rolling_ball():
+    """A ball of radius r rolling 1.2 m to the right of a static reference camera looking along +z."""
+    rng = np.random.default_rng([5, 0])
+    spec = sample_scene_spec(rng, dynamic=True, num_cameras=1, size=SIZE, num_frames=T)
+    r, gy = 0.4, spec["ground_y"]
+    ball = {**spec["objects"][0], "shape": "sphere", "half": [r, r, r], "lumps": [], "center": [-0.6, gy - r, 0.0],
+            "motion": {"kind": "translate", "velocity": [1.2, 0.0, 0.0], "roll": True}}
+    spec["objects"] = [ball]
+    spec["cameras"] = [{"kind": "static", "fov_x_deg": 60.0, "azimuth": 0.0, "distance": 3.0, "height": 0.8,
+                        "target_height": 0.4, "delta": 0.0}]
+    return render_spec(spec, rng)
+
+
+def test_tracks_follow_closed_form_rolling_motion(rolling_ball):
+    res = rolling_ball
+    pts = res.points.astype(np.float64)
+    c0, r = np.asarray(res.spec["objects"][0]["center"]), 0.4
+    t = np.linspace(0, 1, T)
+    for i in range(T):  # rolling without slipping about +z (= up × x̂ with y down) by distance / r
+        a = 1.2 * t[i] / r
+        Rz = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+        expect = c0 + [1.2 * t[i], 0, 0] + (pts[:, 0] - c0) @ Rz.T
+        np.testing.assert_allclose(pts[:, i], expect, atol=2e-5)
+    # the contact point (bottom, y down) is at rest: finite difference of the motion formula
+    bottom = c0 + [0, r, 0]
+    p0, d0, R0, S0 = object_transform(res.spec["objects"][0], 0.5)
+    p1, d1, R1, S1 = object_transform(res.spec["objects"][0], 0.5 + 1e-6)
+    contact = bottom + d0
+    x0 = p0 + d0 + R0 @ (R0.T @ (contact - p0 - d0))
+    x1 = p1 + d1 + R1 @ (R0.T @ (contact - p0 - d0))
+    assert np.linalg.norm(x1 - x0) / 1e-6 < 1e-3
+
+
+def test_tracks_land_on_the_rendered_object(rolling_ball):
+    res = rolling_ball
+    depth, cams = res.depth[0], res.cameras[0]
+    u, v, z = _project(res.points, cams)
+    d, inside = _depth_at(depth, u, v)
+    tol = VISIBILITY_TOL_M + VISIBILITY_TOL_REL * z
+    expect_vis = inside & (z > 0) & (d >= z - tol)
+    np.testing.assert_array_equal(res.visibility, expect_vis)
+    assert (res.visibility.mean(0) > 0.15).all()  # the ball's front is seen in every frame
+    # where visible, the rendered depth equals the point's depth (within tol, from both sides)
+    vis = res.visibility
+    assert (np.abs(d - z)[vis] <= tol[vis]).mean() > 0.97
+    # control: tracks frozen at frame 0 no longer land on the ball once it has rolled away
+    uf, vf, zf = _project(np.repeat(res.points[:, :1], T, 1), cams)
+    df, _ = _depth_at(depth, uf, vf)
+    on_true = (np.abs(d - z) <= tol)[:, -1].mean()
+    on_frozen = (np.abs(df - zf) <= VISIBILITY_TOL_M + VISIBILITY_TOL_REL * zf)[:, -1].mean()
+    assert on_frozen < 0.5 * on_true  # (≈ 0.29: only points near the ground contact still match)
+    assert "rolls to the right" in res.caption
+
+
+def test_generate_is_deterministic_and_seed_dependent(tmp_path):
+    a = generate_scene(tmp_path / "a", 3, 11, size=SIZE, frames=T, cameras=2)
+    b = generate_scene(tmp_path / "b", 3, 11, size=SIZE, frames=T, cameras=2)
+    c = generate_scene(tmp_path / "c", 3, 12, size=SIZE, frames=T, cameras=2)
+    files = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file() and p.suffix != ".npz")
+    assert len(files) == 2 + 2 * (1 + 2 * T)  # meta, caption, per camera cameras.json + frames (npz: arrays below)
+    for f in files:
+        assert (a / f).read_bytes() == (b / f).read_bytes(), f
+    ra, rb, rc = load_scene(a), load_scene(b), load_scene(c)
+    for x, y in zip(ra.tracks(), rb.tracks()):
+        np.testing.assert_array_equal(x, y)
+    assert not np.array_equal(ra.rgb("cam00", 0), rc.rgb("cam00", 0))
+    assert ra.meta.extra["synth"]["spec"] != rc.meta.extra["synth"]["spec"]
+    assert ra.meta.extra["synth"]["seed"] == 11 and ra.meta.extra["synth"]["index"] == 3
+    assert validate_scene(a) == [] and validate_scene(c) == []
+
+
+def test_static_and_dynamic_scenes(tmp_path):
+    s = load_scene(generate_scene(tmp_path, 0, 4, size=SIZE, frames=T, cameras=1, static_ratio=1.0))
+    d = load_scene(generate_scene(tmp_path, 1, 4, size=SIZE, frames=T, cameras=1, static_ratio=0.0))
+    ps, _ = s.tracks()
+    assert not s.meta.dynamic and np.array_equal(ps, np.repeat(ps[:, :1], T, 1))
+    assert "static scene" in s.caption
+    assert all(o["motion"] is None for o in s.meta.extra["synth"]["spec"]["objects"])
+    pd, vd = d.tracks()
+    assert d.meta.dynamic and np.abs(pd - pd[:, :1]).max() > 0.05 and vd.any()
+    assert d.meta.depth_source == "ground_truth" and np.isfinite(d.depth("cam00", 0)).mean() > 0.5
+    assert (d.depth("cam00", 0)[np.isfinite(d.depth("cam00", 0))] > 0).all()
+
+
+def test_captions_mention_sampled_motions():
+    for k in range(150):
+        rng = np.random.default_rng([99, k])
+        spec = sample_scene_spec(rng, dynamic=k % 3 != 0, num_cameras=1, size=SIZE, num_frames=T)
+        cap = caption_for(spec, np.eye(3))
+        assert "\n" not in cap and spec["ground"]["material"] in cap
+        assert CAM_VERBS[spec["cameras"][0]["kind"]] in cap
+        moving = [o for o in spec["objects"] if o["motion"]]
+        assert bool(moving) == spec["dynamic"] and ("static scene" in cap) == (not moving)
+        for o in spec["objects"]:
+            assert o["color_name"] in cap and SHAPES[o["shape"]] in cap
+        for o in moving:
+            assert any(v in cap for v in VERBS[o["motion"]["kind"]]), (cap, o["motion"])
+
+
+def test_caption_directions_match_geometry():
+    rng = np.random.default_rng(0)
+    spec = sample_scene_spec(rng, dynamic=True, num_cameras=1, size=SIZE, num_frames=T)
+    obj = spec["objects"][0]
+    spec["objects"] = [obj]
+    R = np.eye(3)
+    for vel, word in (([1, 0, 0], "to the right"), ([-1, 0, 0], "to the left"), ([0, 0, -1], "towards the camera"),
+                      ([0, 0, 1], "away from the camera")):
+        obj["motion"] = {"kind": "translate", "velocity": vel, "roll": False}
+        assert f"slides {word}" in caption_for(spec, R)
+    obj["motion"] = {"kind": "rotate", "axis": [0, 1, 0], "omega": 1.0}  # +y points down
+    assert "spins clockwise" in caption_for(spec, R)
+    obj["motion"]["omega"] = -1.0
+    assert "spins counter-clockwise" in caption_for(spec, R)
+
+
+@pytest.mark.parametrize("kind,word", [("orbit", "right"), ("truck", "right"), ("pan", "right"), ("dolly", "forward")])
+def test_camera_motion_direction_matches_caption(kind, word):
+    spec = sample_scene_spec(np.random.default_rng(1), dynamic=False, num_cameras=1, size=SIZE, num_frames=T)
+    cam = {"kind": kind, "fov_x_deg": 60.0, "azimuth": 0.7, "distance": 3.0, "height": 1.0, "target_height": 0.3,
+           "delta": 0.5}
+    spec["cameras"] = [cam]
+    path = camera_path(spec, cam).relative_to_first()  # world = first camera: x right, z forward
+    eye_last = path.camera_centers()[-1].numpy()
+    fwd_last = path.viewmats[-1, 2, :3].numpy()  # camera z axis in world coordinates
+    if kind in ("orbit", "truck"):
+        assert eye_last[0] > 0.2
+    elif kind == "dolly":
+        assert eye_last[2] > 0.2 and abs(eye_last[0]) < 1e-5
+    else:
+        assert fwd_last[0] > 0.2 and np.linalg.norm(eye_last) < 1e-5
+    assert f"{CAM_VERBS[kind]} {word}" in caption_for(spec, np.eye(3))
+    neg = copy.deepcopy(spec)
+    neg["cameras"][0]["delta"] = -0.5
+    assert f"{CAM_VERBS[kind]} {word}" not in caption_for(neg, np.eye(3))
+
+
+def test_motion_formulas():
+    obj = {"center": [1.0, 0.5, 2.0], "half": [0.3, 0.3, 0.3], "shape": "box",
+           "motion": {"kind": "bounce", "velocity": [0.4, 0, 0], "height": 0.7, "hops": 2}}
+    for t, up in ((0.0, 0.0), (0.25, 0.7), (0.5, 0.0), (1.0, 0.0), (0.125, 0.7 * 0.75)):
+        _, d, R, S = object_transform(obj, t)
+        np.testing.assert_allclose(d, [0.4 * t, -up, 0], atol=1e-12)
+        np.testing.assert_array_equal(R, np.eye(3))
+    obj["motion"] = {"kind": "deform", "mode": "pulse", "amplitude": 0.2, "freq": 2.0}
+    pivot, d, R, S = object_transform(obj, 1 / 8)
+    np.testing.assert_allclose(S, 1.2)
+    np.testing.assert_allclose(pivot, [1.0, 0.8, 2.0])  # bottom of the object stays on the ground
+    obj["motion"] = {"kind": "rotate", "axis": [0, 1, 0], "omega": math.pi}
+    _, d, R, S = object_transform(obj, 0.5)
+    np.testing.assert_allclose(R @ [1, 0, 0], [0, 0, -1], atol=1e-12)  # +90° about +y: x → −z
+    obj["motion"] = None
+    assert np.array_equal(object_transform(obj, 0.3)[1], np.zeros(3))
+
+
+def test_specs_are_varied():
+    seen = {"motion": set(), "camera": set(), "shape": set(), "texture": set(), "colour": set(), "n_obj": set()}
+    for k in range(60):
+        spec = sample_scene_spec(np.random.default_rng([3, k]), dynamic=True, num_cameras=2, size=SIZE, num_frames=T)
+        seen["n_obj"].add(len(spec["objects"]))
+        seen["camera"].update(c["kind"] for c in spec["cameras"])
+        for o in spec["objects"]:
+            seen["shape"].add(o["shape"])
+            seen["texture"].add(o["texture"]["kind"])
+            seen["colour"].add(o["color_name"])
+            if o["motion"]:
+                seen["motion"].add(o["motion"]["kind"])
+    assert seen["motion"] == set(MOTIONS) and seen["camera"] == set(CAMERA_MOTIONS)
+    assert seen["shape"] == set(SHAPES) and seen["texture"] == set(TEXTURES)
+    assert len(seen["colour"]) >= 10 and seen["n_obj"] == {1, 2, 3, 4}
+
+
+def test_synthesize_resumes_and_validates(tmp_path):
+    kw = dict(size=16, frames=3, cameras=1, progress=False)
+    synthesize(tmp_path, 2, 3, **kw)
+    marker = tmp_path / scene_name(0) / "marker"
+    marker.write_text("kept")
+    paths = synthesize(tmp_path, 3, 3, **kw)
+    assert paths == [tmp_path / scene_name(i) for i in range(3)] and marker.read_text() == "kept"
+    assert validate_path(tmp_path) == (3, [])
+    with pytest.raises(ValueError, match="static_ratio"):
+        synthesize(tmp_path, 1, 0, static_ratio=1.5)
+    with pytest.raises(ValueError, match="frames"):
+        synthesize(tmp_path, 1, 0, frames=1)
+
+
+def test_cli_synth(tmp_path, capsys):
+    out = tmp_path / "data"
+    args = ["synth", "--scenes", "3", "--out", str(out), "--size", "16", "--frames", "3", "--cameras", "2", "--quiet"]
+    assert main(args) == 0
+    assert sorted(p.name for p in out.iterdir()) == [scene_name(i) for i in range(3)]
+    assert main(["validate", str(out)]) == 0
+    assert "3 scene(s) checked: all valid" in capsys.readouterr().out
+    assert main(["synth", "--scenes", "2", "--out", str(out), "--static-ratio", "2"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("data_prep: error: static_ratio") and err.count("\n") == 1
+    assert main(["synth", "--scenes", "x", "--out", str(out)]) == 2
+    assert main(["synth", "--out", str(out)]) == 2
+    assert capsys.readouterr().err.count("\n") == 2
