@@ -22,6 +22,7 @@ __all__ = [
     "ALPHA_MAX",
     "ALPHA_MIN",
     "T_MIN",
+    "RADIUS_MAX",
     "CAMERA_MODELS",
     "Projection",
     "covariance_3d",
@@ -32,6 +33,7 @@ __all__ = [
     "support_extent",
     "splat_sigma",
     "splat_alpha",
+    "matmul",
 ]
 
 ALPHA_MAX = 0.99
@@ -40,8 +42,39 @@ ALPHA_MIN = 1.0 / 255.0
 """A Gaussian whose alpha at a pixel is below this is skipped there (3DGS, gsplat)."""
 T_MIN = 1e-4
 """Compositing stops before a Gaussian that would bring transmittance below this (3DGS)."""
+RADIUS_MAX = 1 << 30
+"""Screen radii are clamped to this (pixels) before the int32 cast (exact in float32)."""
 CAMERA_MODELS = ("pinhole",)
 """Camera models the projection supports."""
+
+
+class _MatmulFullPrecision(torch.autograd.Function):
+    """``a @ b`` (broadcasting) with autocast off in forward and backward.
+
+    Autocast lowers matmuls to bfloat16 also in a backward pass run inside the autocast region; the
+    renderer's small 3×3 / 2×3 products (covariances, camera transforms) then lose 3 digits.
+    """
+
+    @staticmethod
+    def forward(ctx, a, b):  # noqa: D102
+        ctx.save_for_backward(a, b)
+        ctx.device_type = a.device.type
+        with torch.autocast(ctx.device_type, enabled=False):
+            return a @ b
+
+    @staticmethod
+    def backward(ctx, g):  # noqa: D102
+        a, b = ctx.saved_tensors
+        with torch.autocast(ctx.device_type, enabled=False):
+            ga = (g @ b.transpose(-1, -2)).sum_to_size(a.shape) if ctx.needs_input_grad[0] else None
+            gb = (a.transpose(-1, -2) @ g).sum_to_size(b.shape) if ctx.needs_input_grad[1] else None
+        return ga, gb
+
+
+def matmul(a: Tensor, b: Tensor) -> Tensor:
+    """``torch.matmul(a, b)`` (batch dims broadcast) computed in the inputs' dtype even under
+    ``torch.autocast`` — forward and backward. (..., n, k), (..., k, m) → (..., n, m)."""
+    return _MatmulFullPrecision.apply(a, b)
 
 
 class Projection(NamedTuple):
@@ -53,7 +86,8 @@ class Projection(NamedTuple):
         covars2d: (C, N, 3) dilated screen covariance (Σxx, Σxy, Σyy) = Σ2d + eps2d·I, pixels².
         conics: (C, N, 3) its inverse (a, b, c): σ(d) = ½(a dx² + c dy²) + b dx dy, 1/pixels².
         opacities: (C, N) opacities used for compositing (× compensation when antialiased).
-        radii: (C, N) int32 3σ screen radius ceil(3·sqrt(λmax)), pixels; 0 marks a culled Gaussian.
+        radii: (C, N) int32 3σ screen radius ceil(3·sqrt(λmax)), pixels, clamped to 2³⁰ (a huge
+            Gaussian must not wrap around int32); 0 marks a culled Gaussian.
         compensations: (C, N) sqrt(det Σ2d / det(Σ2d + eps2d·I)), or None in classic mode.
     """
 
@@ -80,7 +114,7 @@ def covariance_3d(quats: Tensor, scales: Tensor) -> Tensor:
         ValueError: a zero-norm quaternion (from :func:`diff4splat.quaternions.quat_to_rotmat`).
     """
     m = quat_to_rotmat(quats) * scales[..., None, :]  # R S
-    return m @ m.transpose(-1, -2)
+    return matmul(m, m.transpose(-1, -2))
 
 
 def world_to_camera(means: Tensor, covars: Tensor, viewmats: Tensor) -> tuple[Tensor, Tensor]:
@@ -96,8 +130,8 @@ def world_to_camera(means: Tensor, covars: Tensor, viewmats: Tensor) -> tuple[Te
     """
     R = viewmats[:, :3, :3]
     t = viewmats[:, :3, 3]
-    means_c = torch.einsum("cij,nj->cni", R, means) + t[:, None, :]
-    covars_c = torch.einsum("cij,njk,clk->cnil", R, covars, R)
+    means_c = matmul(means[None], R.transpose(-1, -2)) + t[:, None, :]
+    covars_c = matmul(matmul(R[:, None], covars[None]), R.transpose(-1, -2)[:, None])
     return means_c, covars_c
 
 
@@ -136,7 +170,7 @@ def persp_proj(
     J = torch.stack(
         [fx * rz, zeros, -fx * tx * rz * rz, zeros, fy * rz, -fy * ty * rz * rz], dim=-1
     ).reshape(z.shape + (2, 3))
-    covars2d = J @ covars_c @ J.transpose(-1, -2)
+    covars2d = matmul(matmul(J, covars_c), J.transpose(-1, -2))
     means2d = torch.stack([fx * x * rz + cx, fy * y * rz + cy], dim=-1)
     return means2d, covars2d
 
@@ -218,7 +252,7 @@ def project_gaussians(
         mx, my = means2d[..., 0], means2d[..., 1]
         inside = (mx + radius > 0) & (mx - radius < width) & (my + radius > 0) & (my - radius < height)
         keep = valid & (radius > 0) & inside
-        radii = torch.where(keep, radius, torch.zeros_like(radius)).to(torch.int32)
+        radii = torch.where(keep, radius.clamp(max=float(RADIUS_MAX)), torch.zeros_like(radius)).to(torch.int32)
     op = opacities[None, :].expand_as(z)
     if compensations is not None:
         op = op * compensations

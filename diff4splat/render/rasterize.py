@@ -123,7 +123,7 @@ class _CompositePairs(torch.autograd.Function):
     def backward(ctx, grad_out, grad_acc):  # noqa: D102
         params, feats, background, gid, pix, dx, dy, alpha, T, w, incl, acc, last = ctx.saved_tensors
         grad_out = grad_out.contiguous()
-        g_acc = grad_acc if background is None else grad_acc - grad_out @ background
+        g_acc = grad_acc if background is None else grad_acc - (grad_out * background).sum(-1)
         go = grad_out.index_select(0, pix)  # (P, F)
         f = feats.index_select(0, gid)
         v = (f * go).sum(-1) + g_acc.index_select(0, pix)
@@ -300,6 +300,10 @@ def rasterize(
     T·(1 − alpha) < 1e-4 stops the pixel and is not included, otherwise it adds alpha·T·feat.
     A Gaussian contributes at every pixel where its alpha ≥ 1/255 (the tiles cover that support,
     like gsplat's opacity-aware boxes), so the image equals :func:`rasterize_dense`'s.
+
+    Precision: computed in the dtype of ``means`` — float16/bfloat16 inputs in float32 (outputs are
+    float32 then) — with ``torch.autocast`` turned off inside, forward and backward, so a bfloat16
+    autocast region gives exactly the float32 result (tolerances: tests/test_render_stability.py).
 
     Returns:
         render_colors: (C, H, W, D) for "RGB", (C, H, W, 1) for "D"/"ED", (C, H, W, D + 1) otherwise.
