@@ -202,8 +202,8 @@ def sample_scene_spec(rng: np.random.Generator, *, dynamic: bool, num_cameras: i
 
 
 def _object_phrase(o: dict[str, Any]) -> str:
-    adj = TEXTURES[o["texture"]["kind"]]
-    return " ".join(w for w in ("a", o["color_name"], adj, SHAPES[o["shape"]]) if w)
+    words = " ".join(w for w in (o["color_name"], TEXTURES[o["texture"]["kind"]], SHAPES[o["shape"]]) if w)
+    return ("an " if words[0] in "aeiou" else "a ") + words
 
 
 def _motion_phrase(m: dict[str, Any], shape: str, cam_R: np.ndarray) -> str:

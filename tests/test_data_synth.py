@@ -136,6 +136,7 @@ def test_captions_mention_sampled_motions():
         spec = sample_scene_spec(rng, dynamic=k % 3 != 0, num_cameras=1, size=SIZE, num_frames=T)
         cap = caption_for(spec, np.eye(3))
         assert "\n" not in cap and spec["ground"]["material"] in cap
+        assert not any(f" a {x}" in cap or cap.startswith(f"a {x}") for x in "aeiou"), cap  # "an orange ball"
         assert CAM_VERBS[spec["cameras"][0]["kind"]] in cap
         moving = [o for o in spec["objects"] if o["motion"]]
         assert bool(moving) == spec["dynamic"] and ("static scene" in cap) == (not moving)
