@@ -77,8 +77,7 @@ def direction_word(v_cam: np.ndarray) -> str:
     return [("to the right", "to the left"), ("downwards", "upwards"), ("away from the camera", "towards the camera")][axis][0 if pos else 1]
 
 
-def _sample_motion(rng: np.random.Generator, shape: str, radius: float, center: np.ndarray,
-                   room: float) -> dict[str, Any]:
+def _sample_motion(rng: np.random.Generator, shape: str, center: np.ndarray, room: float) -> dict[str, Any]:
     kind = MOTIONS[int(rng.integers(len(MOTIONS)))]
     heading = rng.uniform(0, 2 * math.pi)
     direction = np.array([math.cos(heading), 0.0, math.sin(heading)])
@@ -101,7 +100,7 @@ def _sample_motion(rng: np.random.Generator, shape: str, radius: float, center: 
             "amplitude": float(rng.uniform(0.15, 0.35)), "freq": float(rng.choice([1.0, 1.5, 2.0]))}
 
 
-def _sample_object(rng: np.random.Generator, others: list[dict], room: float) -> dict[str, Any] | None:
+def _sample_object(rng: np.random.Generator, others: list[dict]) -> dict[str, Any] | None:
     shape = list(SHAPES)[int(rng.integers(len(SHAPES)))]
     r = float(rng.uniform(0.2, 0.55))
     if shape == "sphere" or shape == "blob":
@@ -185,7 +184,7 @@ def sample_scene_spec(rng: np.random.Generator, *, dynamic: bool, num_cameras: i
     }
     objects: list[dict] = []
     for _ in range(int(rng.integers(1, 5))):
-        obj = _sample_object(rng, objects, room)
+        obj = _sample_object(rng, objects)
         if obj is not None:
             obj["center"][1] = ground_y - obj["half"][1]  # resting on the ground (y down)
             objects.append(obj)
@@ -193,7 +192,7 @@ def sample_scene_spec(rng: np.random.Generator, *, dynamic: bool, num_cameras: i
         movers = [i for i in range(len(objects)) if rng.random() < 0.7] or [int(rng.integers(len(objects)))]
         for i in movers:
             o = objects[i]
-            o["motion"] = _sample_motion(rng, o["shape"], o["half"][0], np.asarray(o["center"]), room)
+            o["motion"] = _sample_motion(rng, o["shape"], np.asarray(o["center"]), room)
     spec["objects"] = objects
     fov = float(rng.uniform(45, 70))
     spec["cameras"] = [_sample_camera(rng, fov, CAMERA_MOTIONS[int(rng.integers(len(CAMERA_MOTIONS)))])
