@@ -11,6 +11,7 @@ The compositing step is a ``torch.autograd.Function`` with the analytic backward
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -18,6 +19,7 @@ import torch
 from torch import Tensor
 
 from diff4splat.render.projection import ALPHA_MAX, T_MIN, splat_alpha, splat_sigma, support_extent
+from diff4splat.render.backends import rasterize_gsplat, use_gsplat
 from diff4splat.render.raytrace import raytrace
 from diff4splat.render.reference import render_pipeline
 
@@ -305,6 +307,10 @@ def rasterize(
     float32 then) — with ``torch.autocast`` turned off inside, forward and backward, so a bfloat16
     autocast region gives exactly the float32 result (tolerances: tests/test_render_stability.py).
 
+    Backend: CUDA tensors (not float64) with gsplat installed (extra ``[cuda]``) are rendered by
+    ``gsplat.rasterization`` (:mod:`diff4splat.render.backends`, which lists the differences, e.g.
+    gsplat's 0.999 alpha clamp); everything else by this PyTorch tile path.
+
     Returns:
         render_colors: (C, H, W, D) for "RGB", (C, H, W, 1) for "D"/"ED", (C, H, W, D + 1) otherwise.
         render_alphas: (C, H, W, 1) = 1 − T_final.
@@ -324,8 +330,9 @@ def rasterize(
             far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, backgrounds=backgrounds, render_mode=render_mode,
             rasterize_mode=rasterize_mode, camera_model=camera_model, camera_params=camera_params, tile_size=tile_size,
         )
-    return render_pipeline(
-        composite_tiles, means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+    backend = rasterize_gsplat if use_gsplat(means, camera_model) else functools.partial(render_pipeline, composite_tiles)
+    return backend(  # gsplat's CUDA kernels for CUDA tensors when installed (render/backends.py), else the tile path
+        means, quats, scales, opacities, colors, viewmats, Ks, width, height,
         near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, backgrounds=backgrounds,
         render_mode=render_mode, rasterize_mode=rasterize_mode, camera_model=camera_model, tile_size=tile_size,
     )
