@@ -139,3 +139,28 @@ def test_fitted_crop_keeps_a_point_on_the_same_image_content():
     expected = (uv0 - torch.tensor([x0, y0], dtype=torch.float64)) * torch.tensor([64 / cw, 64 / ch], dtype=torch.float64)
     torch.testing.assert_close((fit.Ks[0] @ X)[:2] / X[2], expected)
     assert (fit.width, fit.height) == (64, 64)
+
+
+def test_viewmat_at_interpolates_centre_and_rotation():
+    """Between cameras at t = 0, 0.5, 1 rotated about y by 0, 0.4, 1.0 rad: at a key time the viewmat itself;
+    half-way the rotation angle and centre are the means (nlerp of same-axis rotations at w = ½ is exact);
+    outside the clip the end poses are held."""
+    D = torch.float64
+    angles, centres = [0.0, 0.4, 1.0], torch.tensor([[0.0, 0, 0], [1.0, 0.2, 0], [1.0, 1.2, -0.4]], dtype=D)
+    vms = torch.eye(4, dtype=D).repeat(3, 1, 1)
+    for i, a in enumerate(angles):
+        R = quat_to_rotmat(axis_angle_to_quat(torch.tensor([0.0, 1.0, 0.0], dtype=D), torch.tensor(a, dtype=D)))
+        vms[i, :3, :3] = R.T  # camera-to-world rotation R
+        vms[i, :3, 3] = -R.T @ centres[i]
+    K = torch.tensor([[10.0, 0, 5], [0, 10.0, 5], [0, 0, 1]], dtype=D).expand(3, 3, 3).clone()
+    path = CameraPath(vms, K, 10, 10)
+    for i in range(3):
+        assert torch.equal(path.viewmat_at(float(path.times[i])), vms[i])
+    assert torch.equal(path.viewmat_at(-0.5), vms[0]) and torch.equal(path.viewmat_at(2.0), vms[2])
+    mid = path.viewmat_at(0.75)
+    c2w = invert_rigid(mid)
+    expect_R = quat_to_rotmat(axis_angle_to_quat(torch.tensor([0.0, 1.0, 0.0], dtype=D), torch.tensor(0.7, dtype=D)))
+    torch.testing.assert_close(c2w[:3, :3], expect_R, rtol=0, atol=1e-12)
+    torch.testing.assert_close(c2w[:3, 3], 0.5 * (centres[1] + centres[2]), rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="finite"):
+        path.viewmat_at(float("nan"))

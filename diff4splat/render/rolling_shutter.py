@@ -4,9 +4,12 @@ Each band of rows (:meth:`diff4splat.cameras.models.RollingShutter.row_bands`) i
 scene deformed to the band's capture time and, optionally, the camera pose interpolated along the
 path to that time (:meth:`diff4splat.cameras.CameraPath.viewmat_at`); the bands are stacked into the
 frame. A band of rows r0 … r1−1 is rendered as an image of height r1 − r0 whose principal point is
-shifted up by r0 pixels (cy − r0), so its pixel centres are exactly those rows of the full image and
-every camera model and effect of :func:`diff4splat.render.rasterize` works per band. Chunks = 1 is a
-single ordinary render.
+shifted up by r0 pixels (cy − r0), so its pixel centres are exactly those rows of the full image.
+Bands are rendered by the ray path (:func:`diff4splat.render.raytrace.raytrace`, every camera model
+and effect), whose rays do not depend on the image extent, so a band equals its rows of the full
+frame exactly. (The tile rasterizer would not do: its EWA Jacobian clamp at 1.3× the field of view,
+as in gsplat, depends on the image height and cy, so a one-row band would distort every splat.)
+Chunks = 1 is one ordinary ray-traced frame.
 """
 from __future__ import annotations
 
@@ -18,7 +21,7 @@ from torch import Tensor
 from ..cameras.models import RollingShutter
 from ..cameras.path import CameraPath
 from ..scene import DynamicGaussians
-from .rasterize import rasterize
+from .raytrace import raytrace
 
 __all__ = ["render_rolling_shutter"]
 
@@ -49,12 +52,12 @@ def render_rolling_shutter(
         frames: frame indices to render (default: all).
         interpolate_pose: move the camera along the path during the readout.
         background: RGB in [0, 1] behind the Gaussians.
-        **rasterize_kwargs: passed to :func:`diff4splat.render.rasterize` (camera_model,
-            camera_params, tile_size, …; not render_mode, which is "RGB+ED").
+        **rasterize_kwargs: passed to :func:`diff4splat.render.raytrace.raytrace` (camera_model,
+            camera_params, tile_size, near_plane, …; not render_mode, which is "RGB+ED").
 
     Returns:
-        colors (F, H, W, 3) clamped to [0, 1], expected depth (F, H, W) (camera z on the pinhole tile
-        path, distance along the ray on the ray path; 0 where alpha = 0), alphas (F, H, W).
+        colors (F, H, W, 3) clamped to [0, 1], expected distance along the ray (F, H, W) metres (0
+        where alpha = 0), alphas (F, H, W).
 
     Raises:
         ValueError: ``frames`` out of range, ``shutter.chunks`` > H, ``render_mode`` in
@@ -81,9 +84,9 @@ def render_rolling_shutter(
             vm = cameras.viewmat_at(t) if interpolate_pose else cameras.viewmats[i]
             K_band = K.clone()
             K_band[1, 2] = K[1, 2] - r0
-            out, alpha, _ = rasterize(g.means, g.quats, g.scales, g.opacities, g.sh, vm[None].to(dtype), K_band[None],
-                                      W, r1 - r0, sh_degree=g.sh_degree, backgrounds=bg, render_mode="RGB+ED",
-                                      **rasterize_kwargs)
+            out, alpha, _ = raytrace(g.means, g.quats, g.scales, g.opacities, g.sh, vm[None].to(dtype), K_band[None],
+                                     W, r1 - r0, sh_degree=g.sh_degree, backgrounds=bg, render_mode="RGB+ED",
+                                     **rasterize_kwargs)
             rows_c.append(out[0])
             rows_a.append(alpha[0, ..., 0])
         img = torch.cat(rows_c, dim=0)
