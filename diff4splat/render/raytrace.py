@@ -62,20 +62,31 @@ def ray_gaussian_response(
     """3DGRT response of every Gaussian at its maximum along every ray.
 
     With o' = W(o − μ), d' = W d: t_max = −(o'·d')/‖d'‖², response = exp(−½‖d' × o'‖²/‖d'‖²)
-    (module docstring). d' and Wo are one (R, 3) × (3, 3G) matrix product each.
+    (module docstring). Each component of d' and o' is one (R, 3) × (3, G) matrix product and the
+    cross product is formed from those contiguous (R, G) planes (the cross-product form keeps
+    float32 accurate for Gaussians far from the origin, where ‖o'‖²‖d'‖² − (o'·d')² would cancel).
 
     Returns:
         response (R, G) in (0, 1], t_max (R, G) metres along the (unit) rays (negative: behind the origin).
     """
-    G = means.shape[0]
-    w_cat = whiten.permute(2, 0, 1).reshape(3, 3 * G)  # [j, (g, i)] = W[g, i, j]
-    d_w = (dirs @ w_cat).reshape(-1, G, 3)
-    o_w = (origins @ w_cat).reshape(-1, G, 3) - torch.einsum("gij,gj->gi", whiten, means)
-    dd = (d_w * d_w).sum(-1)
-    cr = torch.linalg.cross(d_w, o_w.expand_as(d_w), dim=-1)
-    response = torch.exp(-0.5 * (cr * cr).sum(-1) / dd)
-    t_max = -(o_w * d_w).sum(-1) / dd
-    return response, t_max
+    m2, t_max = _ray_gaussian_m2(origins, dirs, means, whiten)
+    return torch.exp(-0.5 * m2), t_max
+
+
+def _ray_gaussian_m2(origins: Tensor, dirs: Tensor, means: Tensor, whiten: Tensor) -> tuple[Tensor, Tensor]:
+    """Squared Mahalanobis distance ‖d' × o'‖²/‖d'‖² of each ray's closest point and its t_max, (R, G) each."""
+    dw, ow = [], []
+    for i in range(3):
+        w_i = whiten[:, i, :]  # (G, 3): row i of every W
+        dw.append(dirs @ w_i.T)  # (R, G)
+        ow.append(origins @ w_i.T - (w_i * means).sum(-1))  # (R or 1, G)
+    cx = dw[1] * ow[2] - dw[2] * ow[1]
+    cy = dw[2] * ow[0] - dw[0] * ow[2]
+    cz = dw[0] * ow[1] - dw[1] * ow[0]
+    dd = dw[0] * dw[0] + dw[1] * dw[1] + dw[2] * dw[2]
+    m2 = (cx * cx + cy * cy + cz * cz) / dd
+    t_max = -(ow[0] * dw[0] + ow[1] * dw[1] + ow[2] * dw[2]) / dd
+    return m2, t_max
 
 
 def composite_rays(
@@ -91,25 +102,37 @@ def composite_rays(
     """Composite G Gaussians along R rays by brute force (every pair), 3DGS rules along t_max.
 
     alpha = min(0.99, o·response), kept iff alpha ≥ 1/255 and near_plane ≤ t_max ≤ far_plane; kept
-    hits sorted by t_max (stable: ties keep input order); log T before hit i is the exclusive prefix
-    sum of log(1 − alpha); hit i is included iff T_i·(1 − alpha_i) ≥ 1e-4 (then every later hit is
-    dropped too); w_i = alpha_i·T_i.
+    hits sorted by t_max (ties in input order); log T before hit i is the exclusive prefix sum of
+    log(1 − alpha); hit i is included iff T_i·(1 − alpha_i) ≥ 1e-4 (then every later hit is dropped
+    too); w_i = alpha_i·T_i. Only the K = max hits per ray are sorted and composited (``topk``, then
+    a stable sort of those by (t_max, index)), not all G candidates.
 
     Returns:
         colour Σ w·feat (R, F) (no background), alpha Σ w (R,), distance Σ w·t_max (R,) metres.
     """
-    response, t = ray_gaussian_response(origins, dirs, means, whiten)
-    alpha = torch.clamp(opacities * response, max=ALPHA_MAX)
-    keep = (alpha >= ALPHA_MIN) & (t >= near_plane) & (t <= far_plane)
-    alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
-    perm = torch.argsort(torch.where(keep, t, torch.full_like(t, math.inf)).detach(), dim=1, stable=True)
-    a = alpha.gather(1, perm)
+    m2, t = _ray_gaussian_m2(origins, dirs, means, whiten)
+    # alpha ≥ 1/255 ⇔ ½m² ≤ ln(255·o): a slightly loose pre-test on every pair, exact test on the hits
+    tau = 2.0 * torch.log(torch.clamp(opacities.detach(), min=1e-30) / ALPHA_MIN) * (1 + 1e-6) + 1e-6
+    keep = (m2 <= tau) & (t >= near_plane) & (t <= far_plane)
+    R, F = dirs.shape[0], feats.shape[-1]
+    k = int(keep.sum(1).max()) if keep.numel() else 0
+    if k == 0:
+        zero = feats.new_zeros(R)
+        return feats.new_zeros(R, F), zero, zero
+    with torch.no_grad():
+        key = torch.where(keep, t, torch.full_like(t, math.inf))
+        _, idx = torch.topk(key, k, dim=1, largest=False, sorted=False)
+        idx, _ = idx.sort(dim=1)  # input order, so the stable sort below breaks ties by index
+        idx = idx.gather(1, torch.argsort(key.gather(1, idx), dim=1, stable=True))
+    alpha = torch.clamp(opacities[idx] * torch.exp(-0.5 * m2.gather(1, idx)), max=ALPHA_MAX)  # (R, k)
+    hit = keep.gather(1, idx) & (alpha >= ALPHA_MIN)
+    a = torch.where(hit, alpha, torch.zeros_like(alpha))
     log_1ma = torch.log1p(-a)
     log_t_next = torch.cumsum(log_1ma, dim=1)
-    incl = (log_t_next >= _LOG_T_MIN) & (a > 0)
-    w_sorted = torch.where(incl, a * torch.exp(log_t_next - log_1ma), torch.zeros_like(a))
-    w = torch.zeros_like(w_sorted).scatter(1, perm, w_sorted)
-    return w @ feats, w.sum(1), (w * t).sum(1)
+    incl = (log_t_next >= _LOG_T_MIN) & hit
+    w = torch.where(incl, a * torch.exp(log_t_next - log_1ma), torch.zeros_like(a))  # (R, k)
+    f = feats.index_select(0, idx.reshape(-1)).reshape(R, k, F)
+    return (w[..., None] * f).sum(1), w.sum(1), (w * t.gather(1, idx)).sum(1)
 
 
 def support_radius(scales: Tensor, opacities: Tensor) -> Tensor:
