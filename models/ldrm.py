@@ -56,8 +56,9 @@ class LDRMConfig:
         mlp_ratio: MLP hidden width / D.
         depth_min, depth_max: range of the predicted ray distance, metres (0 < min < default < max).
         default_depth: distance for a zero raw output, metres.
-        scale_base: Gaussian scale per metre of distance for a zero raw output (≈ one pixel's
-            angular size 1/focal, radians; 0.02 ↔ focal 50 px).
+        scale_base: Gaussian scale per metre of distance for a zero raw output, radians: about
+            0.7 of a pixel's angular size 1/focal (0.01 ↔ focal ≈ 70 px, the tiny 64 px model at 50° fov),
+            so neighbouring pixel-aligned splats overlap without each covering many pixels.
         scale_log_range: bound of the log-scale adjustment; scales lie within
             distance·scale_base·e^{±scale_log_range}.
         deformation: config of the deformation network; its ``in_channels`` must equal ``embed_dim``.
@@ -74,7 +75,7 @@ class LDRMConfig:
     depth_min: float = 0.1
     depth_max: float = 100.0
     default_depth: float = 2.0
-    scale_base: float = 0.02
+    scale_base: float = 0.01
     scale_log_range: float = 4.0
     deformation: DeformationConfig = field(default_factory=DeformationConfig)
 
