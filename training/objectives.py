@@ -1,0 +1,162 @@
+"""The training objectives of each stage, as one module whose ``forward(batch, generator)`` returns losses.
+
+Computing the objective inside ``forward`` lets DDP / FSDP wrap :class:`TrainingModule` and synchronise
+gradients as usual. Batches are :class:`data_prep.clips.ClipDataset` items collated by the default
+collate (``video`` (B,3,T,H,W) in [0,1], ``viewmats``/``Ks`` (B,T,4,4)/(B,T,3,3), ``times`` (B,T),
+``plucker_packed`` (B,1536,n,h,w), ``depth``/``depth_valid`` (B,T,H,W), ``tracks`` (B,N,T,3),
+``track_visibility`` (B,N,T), ``track_mask`` (B,N), ``caption`` list[str]).
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from diff4splat.render import rasterize
+from diff4splat.scene import DynamicGaussians
+from models.bundle import Diff4SplatModel
+from models.ldrm import to_gaussians
+from models.vae import kl_divergence
+
+from .losses import (depth_correlation_loss, depth_smoothness_loss, flow_matching_loss, gather_track_predictions,
+                     motion_loss, photometric_loss, sample_training_sigmas)
+from .stages import StageConfig
+
+__all__ = ["TrainingModule", "render_frames", "track_query_index"]
+
+
+def render_frames(scene: DynamicGaussians, viewmats: Tensor, Ks: Tensor, times: Tensor, frames: list[int],
+                  width: int, height: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Differentiable renders of the chosen frames, each with the scene at its own time.
+
+    Args:
+        scene: the (possibly static) scene.
+        viewmats: (T, 4, 4), Ks: (T, 3, 3), times: (T,) of the clip.
+        frames: frame indices to render.
+
+    Returns:
+        rgb (F, 3, H, W), expected depth (F, H, W) metres, alpha (F, H, W).
+    """
+    if scene.is_static:  # one call, all cameras
+        g = scene.canonical
+        out, alpha, _ = rasterize(g.means, g.quats, g.scales, g.opacities, g.sh, viewmats[frames], Ks[frames],
+                                  width, height, sh_degree=g.sh_degree, render_mode="RGB+ED")
+    else:
+        outs, alphas = [], []
+        for f in frames:
+            g = scene.at(float(times[f]))
+            o, a, _ = rasterize(g.means, g.quats, g.scales, g.opacities, g.sh, viewmats[f:f + 1], Ks[f:f + 1],
+                                width, height, sh_degree=g.sh_degree, render_mode="RGB+ED")
+            outs.append(o)
+            alphas.append(a)
+        out, alpha = torch.cat(outs), torch.cat(alphas)
+    return out[..., :3].permute(0, 3, 1, 2), out[..., 3], alpha[..., 0]
+
+
+def track_query_index(tracks0: Tensor, K: Tensor, width: int, height: int, valid: Tensor) -> tuple[Tensor, Tensor]:
+    """Reference-frame pixel (row-major index) of each track's frame-0 point, in the reference camera
+    (identity viewmat): u = fx·x/z + cx, v = fy·y/z + cy, pixel (⌊v⌋, ⌊u⌋).
+
+    Args:
+        tracks0: (N, 3) points at frame 0, metres, reference camera frame.
+        K: (3, 3) reference intrinsics.  valid: (N,) bool.
+
+    Returns:
+        index (N,) long (0 where invalid) and the updated validity (N,) bool (in front and in the image).
+    """
+    z = tracks0[:, 2]
+    zs = torch.where(z > 1e-6, z, torch.ones_like(z))
+    u = K[0, 0] * tracks0[:, 0] / zs + K[0, 2]
+    v = K[1, 1] * tracks0[:, 1] / zs + K[1, 2]
+    ok = valid & (z > 1e-6) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    idx = torch.where(ok, v.floor().long().clamp(0, height - 1) * width + u.floor().long().clamp(0, width - 1), 0)
+    return idx, ok
+
+
+class TrainingModule(nn.Module):
+    """Wraps a :class:`Diff4SplatModel` with a stage's objectives.
+
+    ``forward(batch, generator)`` returns ``{"loss": total, <component>: value, ...}``; components:
+    ``vae_l1``, ``vae_kl`` (vae objective), ``flow`` (diffusion), ``photo``, ``depth``, ``smooth``,
+    ``motion`` (reconstruction).
+    """
+
+    def __init__(self, model: Diff4SplatModel, stage: StageConfig):
+        super().__init__()
+        self.model = model
+        self.stage = stage
+
+    def forward(self, batch: dict, generator: torch.Generator) -> dict[str, Tensor]:
+        st, m = self.stage, self.model
+        video = batch["video"] * 2 - 1  # (B, 3, T, H, W) in [−1, 1]
+        losses: dict[str, Tensor] = {}
+        total = video.new_zeros(())
+        if "vae" in st.objectives:
+            recon, mean, logvar = m.vae(video, sample_posterior=True, generator=generator)
+            losses["vae_l1"] = (recon - video).abs().mean()
+            losses["vae_kl"] = kl_divergence(mean, logvar).mean() / mean[0].numel()
+            total = total + losses["vae_l1"] + st.kl_weight * losses["vae_kl"]
+        if "diffusion" in st.objectives or "reconstruction" in st.objectives:
+            with torch.no_grad():  # the VAE is frozen after its own stage
+                latents = m.vae.encode_latents(video)
+        if "diffusion" in st.objectives:
+            losses["flow"] = self._diffusion(latents, batch, generator)
+            total = total + losses["flow"]
+        if "reconstruction" in st.objectives:
+            rec = self._reconstruction(latents, batch, generator)
+            losses.update(rec)
+            w = st.weights
+            total = total + w.rgb * rec["photo"] + w.depth * rec["depth"] + w.smooth * rec["smooth"]
+            if "motion" in rec:
+                total = total + w.motion * rec["motion"]
+        losses["loss"] = total
+        return losses
+
+    def _diffusion(self, latents: Tensor, batch: dict, gen: torch.Generator) -> Tensor:
+        m, st = self.model, self.stage
+        B = latents.shape[0]
+        captions = list(batch["caption"])
+        with torch.no_grad():  # frozen text encoder (as the paper's frozen T5)
+            ids, mask = m.text_encoder.tokenizer(captions)
+            text = m.text_encoder(ids.to(latents.device), mask.to(latents.device))
+        drop = torch.rand(B, generator=gen) < st.caption_dropout
+        keep = ~drop.to(mask.device) & torch.tensor([bool(c.strip()) for c in captions], device=mask.device)
+        mask = mask.to(latents.device) & keep[:, None]  # an all-false mask is exactly the no-text path
+        image_latent = latents[:, :, :1]
+        sigma = sample_training_sigmas(B, shift=st.flow_shift, generator=gen).to(latents)
+        noise = torch.randn(latents.shape, generator=gen).to(latents)
+        plucker = batch["plucker_packed"]
+        return flow_matching_loss(lambda x, s: m.dit(x, s, image_latent, plucker, text, mask), latents, noise, sigma)
+
+    def _reconstruction(self, latents: Tensor, batch: dict, gen: torch.Generator) -> dict[str, Tensor]:
+        m, st = self.model, self.stage
+        B, _, T, H, W = batch["video"].shape
+        plucker = batch["plucker_packed"]
+        sums: dict[str, Tensor] = {}
+        outs = None if st.deformation else m.ldrm(latents, plucker, None)
+        for b in range(B):
+            times = batch["times"][b].to(latents.dtype)
+            if st.deformation:
+                out = m.ldrm(latents[b:b + 1], plucker[b:b + 1], times)
+                g, dm, dq, ds = to_gaussians(out, batch["viewmats"][b, 0], batch["Ks"][b, 0])
+                scene = DynamicGaussians(g, times, dm, dq, ds)
+            else:
+                g, *_ = to_gaussians(outs, batch["viewmats"][b, 0], batch["Ks"][b, 0], batch_index=b)
+                scene = DynamicGaussians(g)
+            others = torch.randperm(T - 1, generator=gen)[: st.render_frames - 1] + 1
+            frames = [0] + sorted(others.tolist())
+            rgb, depth, alpha = render_frames(scene, batch["viewmats"][b], batch["Ks"][b], times, frames, W, H)
+            target = batch["video"][b][:, frames].permute(1, 0, 2, 3)  # (F, 3, H, W)
+            gt_depth, valid = batch["depth"][b][frames], batch["depth_valid"][b][frames]
+            parts = {
+                "photo": photometric_loss(rgb, target, st.weights.ssim),
+                "depth": depth_correlation_loss(depth, gt_depth, valid & (alpha > 0.5)),
+                "smooth": depth_smoothness_loss(depth.clamp(min=1e-3), target),
+            }
+            if st.motion:
+                tracks, vis = batch["tracks"][b], batch["track_visibility"][b] & batch["track_mask"][b][:, None]
+                idx, ok = track_query_index(tracks[:, 0], batch["Ks"][b, 0], W, H, vis[:, 0])
+                pred = gather_track_predictions(g.means[None], scene.d_means[None], idx[None])[0]  # (N, T, 3)
+                parts["motion"] = motion_loss(pred, tracks, vis & ok[:, None])
+            for k, v in parts.items():
+                sums[k] = sums.get(k, 0) + v / B
+        return sums

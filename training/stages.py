@@ -1,0 +1,135 @@
+"""Stage configurations: which modules train, at what resolution, on which scenes, with which losses.
+
+Diff4Splat trains progressively (Pan et al. 2025): (1) static geometry pretraining at low resolution
+with the deformation module frozen, (2) static high-resolution refinement, (3) dynamic fine-tuning
+with everything unfrozen and the motion loss on. Before them, the tiny configuration trains its own
+video VAE (``vae`` stage); the VAE then stays frozen, as the text encoder always does (the paper
+uses a frozen T5; the tiny text encoder is a frozen randomly initialised T5-style network whose
+features the DiT's cross-attention learns to read).
+
+``configs/train_<stage>.yaml`` files override :class:`StageConfig`'s defaults.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+from torch import nn
+
+from models.pretrained import config_from_dict
+
+from .losses import LossWeights
+from .trainer import TrainerConfig
+
+__all__ = ["StageConfig", "load_stage", "apply_freezing", "MODULES"]
+
+MODULES = ("vae", "text_encoder", "dit", "ldrm", "ldrm.deformation")
+"""Module names a stage can train (``ldrm.deformation`` is the LDRM's deformation network)."""
+
+OBJECTIVES = ("vae", "diffusion", "reconstruction")
+
+
+@dataclass
+class StageConfig:
+    """One training stage.
+
+    Attributes:
+        name: stage name (``vae``, ``stage1``, ``stage2``, ``stage3``).
+        model_config: model config name (``configs/<name>.yaml``) used when ``init_from`` is None.
+        init_from: a model folder (``Diff4SplatModel.save_pretrained``) to start from, usually the
+            previous stage's ``<run_dir>/model``; None = a seeded random model.
+        data: dataset root in data_prep's format.
+        train: modules whose parameters are optimised (others frozen); see :data:`MODULES`.
+        objectives: subset of ``vae`` (reconstruction + KL), ``diffusion`` (flow matching of the DiT),
+            ``reconstruction`` (rendering losses of the LDRM).
+        scenes: ``static``, ``dynamic`` or ``all`` (ClipDataset filter).
+        height, width, num_frames: clip size (pixels, frames T = 1 + 4k).
+        render_frames: target frames rendered per clip for the rendering losses (frame 0 always
+            included); fewer frames = faster steps.
+        deformation: predict deformation (times passed to the LDRM); off in static stages.
+        motion: motion (track) loss on.
+        weights: loss weights (:class:`training.losses.LossWeights`).
+        kl_weight: weight of the VAE KL term (per element, β-VAE style).
+        caption_dropout: probability of training the DiT without text (the empty-prompt path).
+        flow_shift: timestep shift of the logit-normal training σ.
+        trainer: optimisation settings (:class:`training.trainer.TrainerConfig`).
+    """
+
+    name: str = "stage1"
+    model_config: str = "tiny"
+    init_from: str | None = None
+    data: str = "data/synth_train"
+    train: tuple[str, ...] = ("dit", "ldrm")
+    objectives: tuple[str, ...] = ("diffusion", "reconstruction")
+    scenes: str = "static"
+    height: int = 32
+    width: int = 32
+    num_frames: int = 17
+    render_frames: int = 3
+    deformation: bool = False
+    motion: bool = False
+    weights: LossWeights = field(default_factory=LossWeights)
+    kl_weight: float = 1e-6
+    caption_dropout: float = 0.1
+    flow_shift: float = 1.0
+    trainer: TrainerConfig = field(default_factory=TrainerConfig)
+
+    def __post_init__(self) -> None:
+        for m in self.train:
+            if m not in MODULES:
+                raise ValueError(f"stage.train: unknown module {m!r} (known: {MODULES})")
+        for o in self.objectives:
+            if o not in OBJECTIVES:
+                raise ValueError(f"stage.objectives: unknown objective {o!r} (known: {OBJECTIVES})")
+        if self.scenes not in ("static", "dynamic", "all"):
+            raise ValueError(f"stage.scenes must be static, dynamic or all, got {self.scenes!r}")
+        if self.motion and not self.deformation:
+            raise ValueError("stage.motion needs stage.deformation (tracks move through the deformation)")
+        if not 1 <= self.render_frames <= self.num_frames:
+            raise ValueError(f"stage.render_frames must lie in [1, num_frames], got {self.render_frames}")
+        if not 0 <= self.caption_dropout <= 1:
+            raise ValueError(f"stage.caption_dropout must lie in [0, 1], got {self.caption_dropout}")
+
+
+def load_stage(path: str | os.PathLike, **overrides) -> StageConfig:
+    """Load a stage YAML (``configs/train_<stage>.yaml``); ``overrides`` replace top-level fields
+    (``trainer`` may be a dict of trainer fields).
+
+    Raises:
+        FileNotFoundError: no such file.  ValueError: unknown or invalid fields.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"stage config: {path} does not exist")
+    data = yaml.safe_load(path.read_text()) or {}
+    for k, v in overrides.items():
+        if v is None:
+            continue
+        if isinstance(v, dict) and isinstance(data.get(k), dict):
+            data[k] = {**data[k], **v}
+        else:
+            data[k] = v
+    return config_from_dict(StageConfig, data, str(path))
+
+
+def apply_freezing(model: nn.Module, train: tuple[str, ...]) -> dict[str, int]:
+    """Freeze every parameter except those of the modules in ``train``.
+
+    ``"ldrm"`` without ``"ldrm.deformation"`` trains the LDRM with its deformation network frozen.
+
+    Returns:
+        Trainable parameter count per module name.
+    """
+    model.requires_grad_(False)
+    counts = {}
+    for name in train:
+        if name == "ldrm" and "ldrm.deformation" not in train:
+            params = [p for n, p in model.ldrm.named_parameters() if not n.startswith("deformation.")]
+        else:
+            params = list(model.get_submodule(name).parameters())
+        for p in params:
+            p.requires_grad_(True)
+        counts[name] = sum(p.numel() for p in params)
+    return counts
