@@ -1,4 +1,4 @@
-"""``diff4splat`` command line: ``diff4splat generate IMAGE ... --out DIR``.
+"""``diff4splat`` command line: ``diff4splat generate IMAGE ... --out DIR`` and ``diff4splat export-onnx --out DIR``.
 
 Bad input gets one line on stderr (``diff4splat: error: …``) and exit code 2, and no output folder.
 """
@@ -47,12 +47,61 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--seed", type=int, default=0, help="noise seed (default: 0)")
     g.add_argument("--checkpoint", type=Path, default=None,
                    help="model folder (default: the shipped weights of --config)")
-    g.add_argument("--config", default="tiny", help="model config name in configs/ (default: tiny)")
+    g.add_argument("--config", default=None, help="model config name in configs/ (default: tiny)")
     g.add_argument("--fps", type=int, default=8, help="video frame rate (default: 8)")
     g.add_argument("--device", default="cpu", help="torch device (default: cpu)")
+    g.add_argument("--backend", choices=("torch", "onnxruntime"), default="torch",
+                   help="run the networks with PyTorch or with onnxruntime on an --onnx export (default: torch)")
+    g.add_argument("--onnx", type=Path, default=None, help="folder written by `diff4splat export-onnx` "
+                   "(with --backend onnxruntime)")
     g.add_argument("--quiet", action="store_true", help="no progress bars")
     g.add_argument("--out", type=Path, required=True, help="output folder (replaced atomically)")
+
+    e = sub.add_parser("export-onnx", help="export the networks to ONNX for onnxruntime serving",
+                       description="Export the VAE encoder/decoder, text encoder, DiT velocity and LDRM (+ deformation) "
+                                   "as ONNX graphs with dynamic batch/frames/resolution, plus manifest.json.")
+    e.add_argument("--checkpoint", type=Path, default=None,
+                   help="model folder (default: the shipped weights of --config)")
+    e.add_argument("--config", default="tiny", help="model config name in configs/ (default: tiny)")
+    e.add_argument("--out", type=Path, required=True, help="output folder (replaced atomically)")
+    e.add_argument("--no-text", action="store_true", help="leave out the text encoder (empty prompt only)")
+    e.add_argument("--static", action="store_true",
+                   help="leave out the deformation network (static scenes only)")
+    e.add_argument("--opset", type=int, default=18, help="ONNX opset, >= 18 (default: 18)")
     return parser
+
+
+def _load_model(checkpoint: Path | None, config: str):
+    """``load_model`` with its warnings (e.g. the random-model notice) printed as one line each on stderr.
+
+    Returns:
+        (model, source description, seconds taken).
+    """
+    from .pipeline import load_model
+
+    if checkpoint is not None and not checkpoint.is_dir():
+        raise FileNotFoundError(f"--checkpoint: {checkpoint} is not a folder")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        t0 = time.perf_counter()
+        model, source = load_model(checkpoint, config, seed=0)
+        t_load = time.perf_counter() - t0
+    for w in caught:
+        print(f"diff4splat: warning: {w.message}", file=sys.stderr)
+    return model, source, t_load
+
+
+def export_onnx_command(args) -> dict:
+    """Run ``export-onnx``; returns the manifest written to ``--out/manifest.json``."""
+    from .export import check_opset, export_onnx
+
+    if args.out.exists() and not args.out.is_dir():
+        raise FileExistsError(f"--out: {args.out} is a file")
+    check_opset(args.opset)
+    model, source, _ = _load_model(args.checkpoint, args.config)
+    checkpoint = None if source.startswith("random:") else Path(source)  # hash the weight files read
+    return export_onnx(model, args.out, text=not args.no_text, deformation=not args.static, opset=args.opset,
+                       checkpoint=checkpoint, source=source)
 
 
 def _load_cameras(args, image_shape: tuple[int, int], width: int, height: int):
@@ -79,7 +128,7 @@ def generate(args) -> dict:
     from . import __version__
     from .io import load_image
     from .io.output import write_scene_folder
-    from .pipeline import Diff4SplatPipeline, load_model
+    from .pipeline import Diff4SplatPipeline
     from .render.path import render_path
 
     t_start = time.perf_counter()
@@ -94,17 +143,28 @@ def generate(args) -> dict:
             raise ValueError(f"--{name} must be ≥ 1, got {v}")
     if args.fps < 1:
         raise ValueError(f"--fps must be ≥ 1, got {args.fps}")
-    if args.checkpoint is not None and not args.checkpoint.is_dir():
-        raise FileNotFoundError(f"--checkpoint: {args.checkpoint} is not a folder")
+    versions = {}
+    if args.backend == "onnxruntime":
+        if args.onnx is None:
+            raise ValueError("--backend onnxruntime needs --onnx DIR (a folder written by `diff4splat export-onnx`)")
+        if args.checkpoint is not None or args.config is not None or args.device != "cpu":
+            raise ValueError("--checkpoint, --config and --device do not apply to --backend onnxruntime "
+                             "(the export's manifest fixes the model; onnxruntime picks CUDA or CPU)")
+        import onnxruntime
 
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
+        from .onnx_runtime import OnnxBackend
+
         t0 = time.perf_counter()
-        model, source = load_model(args.checkpoint, args.config, seed=0)
+        backend = OnnxBackend(args.onnx)
         t_load = time.perf_counter() - t0
-    for w in caught:
-        print(f"diff4splat: warning: {w.message}", file=sys.stderr)
-    pipe = Diff4SplatPipeline(model, device=args.device)
+        source = f"onnx:{args.onnx} ({backend.manifest['source']})"
+        versions["onnxruntime"] = onnxruntime.__version__
+        pipe = Diff4SplatPipeline(backend)
+    else:
+        if args.onnx is not None:
+            raise ValueError("--onnx needs --backend onnxruntime")
+        model, source, t_load = _load_model(args.checkpoint, args.config or "tiny")
+        pipe = Diff4SplatPipeline(model, device=args.device)
     cfg = pipe.config
     if args.frames is not None:
         cfg.vae.num_latent_frames(args.frames)  # T = 1 + 4k, checked before any work
@@ -127,6 +187,7 @@ def generate(args) -> dict:
     meta = {
         "model": source,
         "config": cfg.name,
+        "backend": pipe.backend.name,
         "image": str(image_path),
         "prompt": args.prompt,
         "trajectory": None if args.cameras is not None else (args.trajectory or "orbit"),
@@ -143,7 +204,8 @@ def generate(args) -> dict:
         "num_gaussians": result.scene.num_gaussians,
         "prune": result.prune_stats,
         "timings_s": {"load_model": t_load, **result.timings, "render": t_render},
-        "versions": {"diff4splat": __version__, "torch": torch.__version__, "python": platform.python_version()},
+        "versions": {"diff4splat": __version__, "torch": torch.__version__, "python": platform.python_version(),
+                     **versions},
     }
     t0 = time.perf_counter()
     write_scene_folder(args.out, result.scene, result.cameras, colors, depths, alphas, meta, fps=args.fps,
@@ -162,6 +224,10 @@ def main(argv: list[str] | None = None) -> int:
             t = meta["timings_s"]
             print(f"wrote {args.out} ({meta['frames']} frames, {meta['num_gaussians']} Gaussians, "
                   f"{'static' if meta['static'] else 'dynamic'}) in {t['total']:.1f} s")
+        elif args.command == "export-onnx":
+            manifest = export_onnx_command(args)
+            print(f"wrote {args.out} ({', '.join(f['file'] for f in manifest['files'].values())}, "
+                  f"opset {manifest['opset']})")
         return 0
     except (CLIError, ValueError, FileNotFoundError, FileExistsError) as e:
         msg = " ".join(str(e).split())

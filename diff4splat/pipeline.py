@@ -10,6 +10,11 @@ Data flow (DESIGN.md, "Data flow of generate"):
 5. LDRM(video latent, Plücker rays, frame times) → one Gaussian per pixel of the reference frame +
    deformation maps at every distinct frame time → :class:`DynamicGaussians` (static when the
    deformation is the identity), pruned of Gaussians that never contribute.
+
+The networks are reached through a :class:`Backend` (encode_image, encode_text, velocity,
+reconstruct): :class:`TorchBackend` runs the PyTorch modules, ``diff4splat.onnx_runtime.OnnxBackend``
+runs an ONNX export with onnxruntime. Everything else (validation, Plücker rays, noise, sampler,
+Gaussians, pruning) is this module's single implementation for both.
 """
 from __future__ import annotations
 
@@ -17,19 +22,72 @@ import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Protocol, runtime_checkable
 
 import torch
 from torch import Tensor
 
-from models.bundle import WEIGHTS_DIR, Diff4SplatModel, load_config
+from models.bundle import WEIGHTS_DIR, Diff4SplatConfig, Diff4SplatModel, load_config
 from models.flow_matching import sample
-from models.ldrm import to_gaussians
+from models.ldrm import LDRMOutput, to_gaussians
 
 from .cameras import CameraPath, intrinsics_from_fov, make_trajectory, pack_plucker, plucker_rays
 from .prune import prune_scene
 from .scene import DynamicGaussians
 
-__all__ = ["Diff4SplatPipeline", "GenerationResult", "load_model"]
+__all__ = ["Diff4SplatPipeline", "GenerationResult", "load_model", "Backend", "TorchBackend"]
+
+
+@runtime_checkable
+class Backend(Protocol):
+    """What the pipeline needs from the networks (batch 1, float32 tensors in, tensors out).
+
+    Attributes:
+        config: the model's :class:`Diff4SplatConfig` (resolution, VAE factors, sampling defaults).
+        has_deformation: whether :meth:`reconstruct` can predict deformation maps (times not None).
+        name: "torch" or "onnxruntime" (written to meta.json).
+    """
+
+    config: Diff4SplatConfig
+    has_deformation: bool
+    name: str
+
+    def encode_image(self, video: Tensor) -> Tensor:
+        """(1, 3, 1, H, W) pixels in [−1, 1] → (1, c, 1, h, w) DiT-scaled latent (posterior mean)."""
+
+    def encode_text(self, prompt: str) -> tuple[Tensor, Tensor]:
+        """Non-empty prompt → tokens (1, L, d_text), mask (1, L) bool. ValueError if it cannot."""
+
+    def velocity(self, x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor,
+                 text: Tensor | None, text_mask: Tensor | None) -> Tensor:
+        """VideoDiT velocity: x (1, c, n, h, w), sigma (1,), image_latent (1, c, 1, h, w),
+        plucker (1, 1536, n, h, w), text (1, L, d) + mask (1, L) or None → (1, c, n, h, w)."""
+
+    def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None) -> LDRMOutput:
+        """LDRM (+ deformation network when ``times`` (K,) is given) → activated maps."""
+
+
+class TorchBackend:
+    """:class:`Backend` over the PyTorch networks of a :class:`Diff4SplatModel` (eval mode, no grad)."""
+
+    name = "torch"
+    has_deformation = True
+
+    def __init__(self, model: Diff4SplatModel):
+        self.model = model.eval()
+        self.config = model.config
+
+    def encode_image(self, video: Tensor) -> Tensor:
+        return self.model.vae.encode_latents(video)
+
+    def encode_text(self, prompt: str) -> tuple[Tensor, Tensor]:
+        return self.model.text_encoder.encode([prompt])
+
+    def velocity(self, x, sigma, image_latent, plucker, text, text_mask) -> Tensor:
+        return self.model.dit(x, sigma, image_latent, plucker, text, text_mask)
+
+    def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None) -> LDRMOutput:
+        return self.model.ldrm(latents, plucker, times)
 
 
 @dataclass
@@ -77,20 +135,39 @@ class Diff4SplatPipeline:
     """Single image (+ camera path, + prompt) to a 4D Gaussian scene.
 
     Args:
-        model: the four networks (:class:`models.bundle.Diff4SplatModel`).
-        device: torch device to run on.
+        model: the four networks (:class:`models.bundle.Diff4SplatModel`, run by a
+            :class:`TorchBackend`), or any :class:`Backend` (e.g. ``diff4splat.onnx_runtime.OnnxBackend``).
+        device: torch device of the PyTorch networks and the pipeline's tensors (a non-torch
+            backend takes CPU tensors: use "cpu").
+
+    Raises:
+        TypeError: ``model`` is neither a Diff4SplatModel nor a Backend.
     """
 
-    def __init__(self, model: Diff4SplatModel, device: str | torch.device = "cpu"):
-        self.model = model.to(device).eval()
+    def __init__(self, model: Diff4SplatModel | Backend, device: str | torch.device = "cpu"):
+        if isinstance(model, Diff4SplatModel):
+            self.model: Diff4SplatModel | None = model.to(device).eval()
+            self.backend: Backend = TorchBackend(self.model)
+        elif isinstance(model, Backend):
+            self.model, self.backend = None, model
+        else:
+            raise TypeError(f"model must be a Diff4SplatModel or a Backend, got {type(model).__name__}")
         self.device = torch.device(device)
-        self.config = model.config
+        self.config = self.backend.config
 
     @classmethod
     def from_pretrained(cls, checkpoint: str | Path | None = None, config: str = "tiny",
                         device: str | torch.device = "cpu") -> "Diff4SplatPipeline":
         """Pipeline over :func:`load_model` (shipped weights when ``checkpoint`` is None)."""
         return cls(load_model(checkpoint, config)[0], device)
+
+    @classmethod
+    def from_onnx(cls, directory: str | Path, providers: list[str] | None = None) -> "Diff4SplatPipeline":
+        """Pipeline over an ``export-onnx`` folder served by onnxruntime
+        (:class:`diff4splat.onnx_runtime.OnnxBackend`)."""
+        from .onnx_runtime import OnnxBackend
+
+        return cls(OnnxBackend(directory, providers=providers))
 
     def default_cameras(self, trajectory: str = "orbit", num_frames: int | None = None,
                         amplitude: float | None = None) -> CameraPath:
@@ -133,9 +210,10 @@ class Diff4SplatPipeline:
 
         Raises:
             ValueError: wrong image shape or range, cameras at another resolution, T ≠ 1 + 4k,
-                an unknown sampler or steps < 1.
+                an unknown sampler or steps < 1; a prompt the backend cannot encode (an ONNX
+                export made without the text encoder).
         """
-        cfg, m = self.config, self.model
+        cfg, backend = self.config, self.backend
         dev = self.device
         if image.dim() != 3 or tuple(image.shape) != (cfg.height, cfg.width, 3):
             raise ValueError(f"image must have shape ({cfg.height}, {cfg.width}, 3), got {tuple(image.shape)}")
@@ -155,13 +233,13 @@ class Diff4SplatPipeline:
 
         t0 = time.perf_counter()
         video = (image.to(dev, torch.float32) * 2 - 1).permute(2, 0, 1)[None, :, None]  # (1, 3, 1, H, W)
-        image_latent = m.vae.encode_latents(video)  # (1, c, 1, h, w)
+        image_latent = backend.encode_image(video)  # (1, c, 1, h, w)
         timings["encode_image"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
         text = text_mask = None
         if prompt.strip():
-            text, text_mask = m.text_encoder.encode([prompt])
+            text, text_mask = backend.encode_text(prompt)
             text, text_mask = text.to(dev), text_mask.to(dev)
         timings["encode_text"] = time.perf_counter() - t0
 
@@ -173,7 +251,7 @@ class Diff4SplatPipeline:
         noise = torch.randn((1, cfg.vae.latent_channels, n, *image_latent.shape[-2:]), generator=gen).to(dev)
 
         def velocity(x: Tensor, sigma: Tensor) -> Tensor:
-            return m.dit(x, sigma.reshape(1).to(x), image_latent, plucker, text, text_mask)
+            return backend.velocity(x, sigma.reshape(1).to(x), image_latent, plucker, text, text_mask)
 
         latents = sample(velocity, noise, steps, sampler=sampler, shift=cfg.sampling.shift, progress=progress)
         latents = torch.cat([image_latent, latents[:, :, 1:]], dim=2)
@@ -181,9 +259,11 @@ class Diff4SplatPipeline:
 
         t0 = time.perf_counter()
         key_times = torch.unique(cameras.times)
-        out = m.ldrm(latents, plucker, key_times)
+        # A backend without the deformation network (ONNX --static export) makes static scenes.
+        out = backend.reconstruct(latents, plucker, key_times if backend.has_deformation else None)
         gaussians, d_means, d_quats, d_scales = to_gaussians(out, cameras.viewmats[0], cameras.Ks[0])
-        scene = DynamicGaussians(gaussians, key_times, d_means, d_quats, d_scales).without_deformation(cfg.static_atol)
+        times = key_times if d_means is not None else None
+        scene = DynamicGaussians(gaussians, times, d_means, d_quats, d_scales).without_deformation(cfg.static_atol)
         timings["reconstruct"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()

@@ -295,7 +295,9 @@ class TextEncoder(nn.Module, PretrainedMixin):
             mask = torch.ones_like(ids, dtype=torch.bool)
         if mask.shape != ids.shape or mask.dtype != torch.bool:
             raise ValueError(f"mask must be bool with shape {tuple(ids.shape)}, got {mask.dtype} {tuple(mask.shape)}")
-        if ids.device.type != "meta":  # value checks need data; meta tensors only carry shapes
+        # Value checks need data: meta tensors only carry shapes, and torch.export / torch.onnx trace
+        # symbolic tensors (the exported graph leaves id validation to its caller, the tokenizer).
+        if ids.device.type != "meta" and not torch.compiler.is_exporting():
             if ids.numel() and (int(ids.min()) < 0 or int(ids.max()) >= self.config.vocab_size):
                 raise ValueError(f"ids must lie in [0, {self.config.vocab_size}), "
                                  f"got [{int(ids.min())}, {int(ids.max())}]")

@@ -1,0 +1,409 @@
+"""ONNX export of the four networks: one graph per module plus ``manifest.json``.
+
+``export_onnx(model, out_dir)`` writes, atomically (temp folder + rename, :func:`diff4splat.io.atomic_output_dir`):
+
+=====================  =====================================================  ==========================================
+file                   inputs                                                 outputs
+=====================  =====================================================  ==========================================
+``vae_encoder.onnx``   video (B, 3, T=1+4k, H, W) in [−1, 1]                   latents (B, c, 1+k, H/8, W/8) (DiT scale)
+``vae_decoder.onnx``   latents (B, c, n, h, w) (DiT scale)                    video (B, 3, 1+4(n−1), 8h, 8w)
+``text_encoder.onnx``  ids (B, L) int64, mask (B, L) bool                     tokens (B, L, d_text)
+``dit.onnx``           x (B, c, n, h, w), sigma (B,), image_latent            velocity (B, c, n, h, w)
+                       (B, c, 1, h, w), plucker (B, 1536, n, h, w)
+                       [, text (B, L, d_text), text_mask (B, L) bool]
+``ldrm.onnx``          latents (B, c, n, h, w), plucker (B, 1536, n, h, w)    distance, scales, quats, opacities, colors
+                       [, times (K,)]                                         [, d_means, d_quats, d_scales]
+=====================  =====================================================  ==========================================
+
+Every graph has dynamic batch B and frame counts (T / n), dynamic resolution (multiples of the VAE
+factor and patch sizes, above a minimum the guards of the traced graph need), dynamic text length L
+and number of times K. Shapes are traced with ``torch.export.export`` (non-strict) first, so a
+dynamic axis the code cannot honour raises instead of being silently specialised; the exported
+program is translated by the dynamo ONNX exporter (opset ≥ 18) and checked with ``onnx.checker``.
+
+Leaving parts out (CONTRIBUTING, "leave out what a scene does not need"):
+
+- ``text=False`` (``--no-text``): no ``text_encoder.onnx``, and ``dit.onnx`` has no text inputs — it
+  is the text=None graph (no cross-attention at all), serving the empty prompt only.
+- With text, ``dit.onnx`` is the text-conditioned graph and also serves the empty prompt: one zero
+  token with an all-False mask gives *exactly* zero cross-attention (``CrossAttention`` multiplies
+  the output of an all-masked row by 0, and x + 0 = x in IEEE arithmetic), so it equals
+  ``VideoDiT(text=None)`` bit for bit in PyTorch (tests/test_export.py checks this, and the ONNX graph
+  against the text=None PyTorch call). One DiT file serves both, so its weights are stored once.
+- ``deformation=False`` (``--static``): ``ldrm.onnx`` has no ``times`` input and no deformation
+  outputs (the deformation network is not in the graph); such an export only makes static scenes.
+
+``manifest.json`` records the opset, the parts, every file's input/output names, shapes (symbolic
+dims as strings) and dtypes, the model config, and the SHA-256 of the weights (of each
+``model.safetensors`` of the source checkpoint, or of the state dict of an in-memory model).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import re
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor, nn
+from torch.export import Dim
+
+from models.bundle import Diff4SplatModel
+from models.pretrained import WEIGHTS_NAME
+
+from .io.atomic import atomic_output_dir
+
+__all__ = ["export_onnx", "check_opset", "state_dict_sha256", "checkpoint_sha256", "MANIFEST_NAME", "MANIFEST_FORMAT",
+           "MIN_OPSET", "EXTERNAL_DATA_BYTES", "LDRM_OUTPUTS", "STATIC_LDRM_OUTPUTS"]
+
+MANIFEST_NAME = "manifest.json"
+MANIFEST_FORMAT = "diff4splat-onnx/1"
+MIN_OPSET = 18
+"""The dynamo exporter emits opset ≥ 18 (LayerNorm, GroupNorm-free decompositions, ``ReduceMean`` axes inputs)."""
+EXTERNAL_DATA_BYTES = 2_000_000_000
+"""Graphs whose weights reach 2 GB store them in a ``<file>.onnx.data`` beside the graph: a single
+protobuf cannot exceed 2 GiB (``onnx.checker`` and onnxruntime read the external file by path)."""
+STATIC_LDRM_OUTPUTS = ("distance", "scales", "quats", "opacities", "colors")
+LDRM_OUTPUTS = STATIC_LDRM_OUTPUTS + ("d_means", "d_quats", "d_scales")
+_NETWORKS = ("vae", "text_encoder", "dit", "ldrm")
+_MAX = 1 << 14  # upper bound of every dynamic dimension (sizes, not memory: the graph has no limit)
+
+
+class _VAEEncoder(nn.Module):
+    """video (B, 3, T, H, W) in [−1, 1] → DiT latents a·(mean − b) (:meth:`VideoVAE.encode_latents`)."""
+
+    def __init__(self, model: Diff4SplatModel):
+        super().__init__()
+        self.vae = model.vae
+
+    def forward(self, video: Tensor) -> Tensor:
+        return self.vae.encode_latents(video)
+
+
+class _VAEDecoder(nn.Module):
+    """DiT latents (B, c, n, h, w) → video (B, 3, 1 + 4(n − 1), 8h, 8w) (:meth:`VideoVAE.decode_latents`)."""
+
+    def __init__(self, model: Diff4SplatModel):
+        super().__init__()
+        self.vae = model.vae
+
+    def forward(self, latents: Tensor) -> Tensor:
+        return self.vae.decode_latents(latents)
+
+
+class _TextEncoder(nn.Module):
+    """ids (B, L) int64, mask (B, L) bool → tokens (B, L, d_text) (zeros at padding)."""
+
+    def __init__(self, model: Diff4SplatModel):
+        super().__init__()
+        self.text_encoder = model.text_encoder
+
+    def forward(self, ids: Tensor, mask: Tensor) -> Tensor:
+        return self.text_encoder(ids, mask)
+
+
+class _TextDiT(nn.Module):
+    """The DiT velocity with text cross-attention (all-False mask = exactly no cross-attention)."""
+
+    def __init__(self, model: Diff4SplatModel):
+        super().__init__()
+        self.dit = model.dit
+
+    def forward(self, x, sigma, image_latent, plucker, text, text_mask):
+        return self.dit(x, sigma, image_latent, plucker, text, text_mask)
+
+
+class _PlainDiT(nn.Module):
+    """The DiT velocity without text (``text=None``: the cross-attention is not in the graph)."""
+
+    def __init__(self, model: Diff4SplatModel):
+        super().__init__()
+        self.dit = model.dit
+
+    def forward(self, x, sigma, image_latent, plucker):
+        return self.dit(x, sigma, image_latent, plucker)
+
+
+class _DynamicLDRM(nn.Module):
+    """LDRM + deformation network: (latents, plucker, times) → the 8 maps of :data:`LDRM_OUTPUTS`."""
+
+    def __init__(self, model: Diff4SplatModel):
+        super().__init__()
+        self.ldrm = model.ldrm
+
+    def forward(self, latents, plucker, times):
+        out = self.ldrm(latents, plucker, times)
+        return tuple(getattr(out, name) for name in LDRM_OUTPUTS)
+
+
+class _StaticLDRM(nn.Module):
+    """LDRM without the deformation head: (latents, plucker) → the 5 maps of :data:`STATIC_LDRM_OUTPUTS`."""
+
+    def __init__(self, model: Diff4SplatModel):
+        super().__init__()
+        self.ldrm = model.ldrm
+
+    def forward(self, latents, plucker):
+        out = self.ldrm(latents, plucker)
+        return tuple(getattr(out, name) for name in STATIC_LDRM_OUTPUTS)
+
+
+@dataclass
+class _Graph:
+    name: str
+    module: nn.Module
+    args: tuple[Tensor, ...]
+    input_names: tuple[str, ...]
+    output_names: tuple[str, ...]
+    dynamic_shapes: dict
+
+
+def _graphs(model: Diff4SplatModel, text: bool, deformation: bool) -> list[_Graph]:
+    """Example inputs (batch 2, 9 frames / 3 latent frames: sizes 0 and 1 would be specialised by
+    torch.export) and the dynamic dims of every graph.
+
+    Resolution dims are expressed as multiples of what the architecture needs: pixels of 8 (VAE),
+    latent cells of the DiT patch, LDRM latents of its patch. Minimum sizes come from the guards of
+    the traced graphs (the deformation pyramid halves the latent grid ``levels − 1`` times and
+    needs ≥ 2 cells at its coarsest level; the VAE decoder's temporal upsampling is traced for
+    n ≥ 3 latent frames (its graph has guards n − 1 ≠ 1); torch.export names any bound that is too low).
+    """
+    cfg = model.config
+    c, s, tf = cfg.vae.latent_channels, cfg.vae.spatial_factor, cfg.vae.temporal_factor
+    _, ph, pw = cfg.dit.patch_size
+    pl = cfg.ldrm.patch_size
+    h, w = cfg.height // s, cfg.width // s
+    gen = torch.Generator().manual_seed(0)
+    B, n, K, L = 2, 3, 5, 7
+
+    def randn(*shape):
+        return torch.randn(shape, generator=gen)
+
+    batch = Dim("batch", min=1, max=_MAX)
+    k = Dim("k", min=0, max=_MAX)  # T = 1 + 4k frames
+    nd = Dim("latent_frames", min=1, max=_MAX)
+    hv, wv = Dim("h8", min=1, max=_MAX), Dim("w8", min=1, max=_MAX)
+    hl, wl = Dim("latent_h", min=1, max=_MAX), Dim("latent_w", min=1, max=_MAX)
+    ht, wt = Dim("dit_tokens_h", min=1, max=_MAX), Dim("dit_tokens_w", min=1, max=_MAX)
+    levels = cfg.ldrm.deformation.levels if deformation else 1
+    lmin = max(1, 2 ** (levels - 1) + 1) if deformation else 1
+    hr, wr = Dim("ldrm_tokens_h", min=lmin, max=_MAX), Dim("ldrm_tokens_w", min=lmin, max=_MAX)
+    L_d = Dim("text_tokens", min=1, max=_MAX)
+    K_d = Dim("times", min=1, max=_MAX)
+    video_ds = {0: batch, 2: tf * k + 1, 3: s * hv, 4: s * wv}
+    dit_lat = {0: batch, 2: nd, 3: ph * ht, 4: pw * wt}
+    ldrm_lat = {0: batch, 2: nd, 3: pl * hr, 4: pl * wr}
+
+    graphs = [
+        _Graph("vae_encoder", _VAEEncoder(model), (randn(B, 3, 1 + tf * (n - 1), cfg.height, cfg.width).tanh(),),
+               ("video",), ("latents",), {"video": video_ds}),
+        _Graph("vae_decoder", _VAEDecoder(model), (randn(B, c, n, h, w),), ("latents",), ("video",),
+               {"latents": {0: batch, 2: Dim("latent_frames", min=3, max=_MAX), 3: hl, 4: wl}}),
+    ]
+    if text:
+        ids = torch.randint(3, cfg.text_encoder.vocab_size, (B, L), generator=gen)
+        mask = torch.tensor([[True] * L, [True] * (L - 3) + [False] * 3])
+        graphs.append(_Graph("text_encoder", _TextEncoder(model), (ids, mask), ("ids", "mask"), ("tokens",),
+                             {"ids": {0: batch, 1: L_d}, "mask": {0: batch, 1: L_d}}))
+    dit_args = (randn(B, c, n, h, w), torch.rand(B, generator=gen), randn(B, c, 1, h, w),
+                randn(B, cfg.dit.camera_channels, n, h, w))
+    dit_ds = {"x": dit_lat, "sigma": {0: batch}, "image_latent": {0: batch, 3: ph * ht, 4: pw * wt},
+              "plucker": dit_lat}
+    if text:
+        graphs.append(_Graph(
+            "dit", _TextDiT(model), dit_args + (randn(B, L, cfg.dit.text_dim), mask),
+            ("x", "sigma", "image_latent", "plucker", "text", "text_mask"), ("velocity",),
+            {**dit_ds, "text": {0: batch, 1: L_d}, "text_mask": {0: batch, 1: L_d}}))
+    else:
+        graphs.append(_Graph("dit", _PlainDiT(model), dit_args, ("x", "sigma", "image_latent", "plucker"),
+                             ("velocity",), dit_ds))
+    ldrm_args = (randn(B, c, n, h, w), randn(B, cfg.ldrm.plucker_channels, n, h, w))
+    ldrm_ds = {"latents": ldrm_lat, "plucker": ldrm_lat}
+    if deformation:
+        graphs.append(_Graph("ldrm", _DynamicLDRM(model), ldrm_args + (torch.linspace(0, 1, K),),
+                             ("latents", "plucker", "times"), LDRM_OUTPUTS, {**ldrm_ds, "times": {0: K_d}}))
+    else:
+        graphs.append(_Graph("ldrm", _StaticLDRM(model), ldrm_args, ("latents", "plucker"),
+                             STATIC_LDRM_OUTPUTS, ldrm_ds))
+    return graphs
+
+
+def state_dict_sha256(module: nn.Module) -> str:
+    """SHA-256 over a state dict: for each entry in sorted key order, the key, dtype, shape and the
+    tensor's raw bytes (CPU, contiguous). Equal for equal weights, independent of insertion order."""
+    digest = hashlib.sha256()
+    for key, value in sorted(module.state_dict().items()):
+        t = value.detach().cpu().contiguous()
+        digest.update(f"{key}|{t.dtype}|{tuple(t.shape)}|".encode())
+        digest.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+    return digest.hexdigest()
+
+
+def checkpoint_sha256(directory: str | os.PathLike) -> dict[str, str]:
+    """SHA-256 of each network's ``model.safetensors`` in a :meth:`Diff4SplatModel.save_pretrained` folder.
+
+    Returns:
+        {"vae/model.safetensors": hex, …} for the four networks.
+
+    Raises:
+        FileNotFoundError: a network's weights file is missing.
+    """
+    directory = Path(directory)
+    out = {}
+    for name in _NETWORKS:
+        path = directory / name / WEIGHTS_NAME
+        if not path.is_file():
+            raise FileNotFoundError(f"checkpoint: {path} does not exist")
+        digest = hashlib.sha256()
+        with open(path, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                digest.update(chunk)
+        out[f"{name}/{WEIGHTS_NAME}"] = digest.hexdigest()
+    return out
+
+
+def _value_info(values) -> list[dict]:
+    import onnx
+
+    out = []
+    for v in values:
+        t = v.type.tensor_type
+        shape = [d.dim_param if d.HasField("dim_param") else int(d.dim_value) for d in t.shape.dim]
+        out.append({"name": v.name, "shape": shape, "dtype": onnx.helper.tensor_dtype_to_np_dtype(t.elem_type).name})
+    return out
+
+
+def _export_graph(graph: _Graph, path: Path, opset: int, external_data_bytes: int) -> dict:
+    """Trace, translate, save and check one graph; returns its manifest entry."""
+    import onnx
+
+    weight_bytes = sum(t.numel() * t.element_size() for t in graph.module.state_dict().values())
+    onnx_logger = logging.getLogger("torch.onnx")
+    level = onnx_logger.level
+    try:
+        onnx_logger.setLevel(logging.ERROR)  # exporter chatter (missing optional torchvision ops)
+        with warnings.catch_warnings(), torch.no_grad():
+            warnings.simplefilter("ignore")  # deprecation notices of the tracing stack
+            program = torch.export.export(graph.module.eval(), graph.args, dynamic_shapes=graph.dynamic_shapes,
+                                          strict=False)
+            onnx_program = torch.onnx.export(program, graph.args, dynamo=True, opset_version=opset,
+                                             input_names=list(graph.input_names),
+                                             output_names=list(graph.output_names), verbose=False)
+    finally:
+        onnx_logger.setLevel(level)
+    external = weight_bytes >= external_data_bytes
+    onnx_program.save(str(path), external_data=external)
+    proto = onnx.load(str(path), load_external_data=False)  # external tensors keep their file references
+    _name_dims(proto, graph)
+    onnx.save(proto, str(path))
+    onnx.checker.check_model(str(path))  # by path: works for external data and > 2 GiB
+    inputs, outputs = _value_info(proto.graph.input), _value_info(proto.graph.output)
+    if [i["name"] for i in inputs] != list(graph.input_names) or [o["name"] for o in outputs] != list(graph.output_names):
+        raise RuntimeError(f"{path.name}: exported names {[i['name'] for i in inputs]} → "
+                           f"{[o['name'] for o in outputs]} differ from {graph.input_names} → {graph.output_names}")
+    files = sorted(p.name for p in path.parent.iterdir() if p.name.startswith(path.name))
+    return {"file": path.name, "files": files, "external_data": external, "weight_bytes": weight_bytes,
+            "inputs": inputs, "outputs": outputs, "dims": _dim_ranges(graph.dynamic_shapes)}
+
+
+def _name_dims(proto, graph: _Graph) -> None:
+    """Replace torch.export's symbols (``s15``, ``4*s7 + 1``) by the Dim names (``batch``, ``4*k + 1``)
+    in the graph's inputs, outputs and value infos (in place)."""
+    symbol = re.compile(r"\bs\d+\b")
+    mapping: dict[str, str] = {}
+    for value, name in zip(proto.graph.input, graph.input_names):
+        for axis, d in graph.dynamic_shapes.get(name, {}).items():
+            found = symbol.findall(value.type.tensor_type.shape.dim[axis].dim_param)
+            if len(found) == 1:
+                mapping.setdefault(found[0], getattr(d, "root", d).__name__)
+    for value in [*proto.graph.input, *proto.graph.output, *proto.graph.value_info]:
+        for dim in value.type.tensor_type.shape.dim:
+            if dim.HasField("dim_param"):
+                dim.dim_param = symbol.sub(lambda m: mapping.get(m.group(0), m.group(0)), dim.dim_param)
+
+
+def _dim_ranges(dynamic_shapes: dict) -> dict[str, list[int]]:
+    """{root dim name: [min, max]} of a graph's dynamic dims (derived dims like ``4*k + 1`` report k)."""
+    out = {}
+    for axes in dynamic_shapes.values():
+        for d in axes.values():
+            root = getattr(d, "root", d)
+            out[root.__name__] = [int(root.min), int(root.max)]
+    return dict(sorted(out.items()))
+
+
+def check_opset(opset: int) -> None:
+    """Raise ValueError unless ``opset`` is an int in [:data:`MIN_OPSET`, the installed onnx's newest]."""
+    import onnx
+
+    newest = onnx.defs.onnx_opset_version()
+    if isinstance(opset, bool) or not isinstance(opset, int) or not MIN_OPSET <= opset <= newest:
+        raise ValueError(f"opset must be an int in [{MIN_OPSET}, {newest}] (the dynamo exporter needs ≥ {MIN_OPSET}), "
+                         f"got {opset!r}")
+
+
+def export_onnx(
+    model: Diff4SplatModel,
+    out_dir: str | os.PathLike,
+    *,
+    text: bool = True,
+    deformation: bool = True,
+    opset: int = MIN_OPSET,
+    checkpoint: str | os.PathLike | None = None,
+    source: str | None = None,
+    external_data_bytes: int = EXTERNAL_DATA_BYTES,
+) -> dict:
+    """Export ``model`` to ``out_dir`` (one ``.onnx`` per module + ``manifest.json``), atomically.
+
+    Args:
+        model: the four networks (moved to CPU float32 for tracing; eval mode).
+        out_dir: output folder; replaced only when the whole export succeeded.
+        text: include the text encoder and the text-conditioned DiT (False = ``--no-text``).
+        deformation: include the deformation network in the LDRM graph (False = ``--static``).
+        opset: ONNX opset, ≥ :data:`MIN_OPSET` and ≤ the installed onnx's newest.
+        checkpoint: the folder ``model`` was loaded from; its weight files are hashed. None hashes
+            the in-memory state dict (:func:`state_dict_sha256`), e.g. for a random model.
+        source: free-text description of the weights' origin stored in the manifest.
+        external_data_bytes: graphs with at least this many bytes of weights store them externally.
+
+    Returns:
+        The manifest dict (also written to ``out_dir/manifest.json``).
+
+    Raises:
+        ValueError: ``opset`` out of range.
+        FileExistsError: ``out_dir`` is a file.
+        FileNotFoundError: ``checkpoint`` lacks a network's weights.
+        torch._dynamo.exc.UserError: a dynamic dimension cannot be honoured by a network (a bug).
+    """
+    import onnx
+
+    check_opset(opset)
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise FileExistsError(f"--out: {out_dir} is a file")
+    weights = ({"kind": "checkpoint", "path": str(checkpoint), "sha256": checkpoint_sha256(checkpoint)}
+               if checkpoint is not None else {"kind": "state_dict", "sha256": state_dict_sha256(model)})
+    model = model.to("cpu", torch.float32).eval()
+    manifest = {
+        "format": MANIFEST_FORMAT,
+        "opset": opset,
+        "exporter": f"torch {torch.__version__} (dynamo), onnx {onnx.__version__}",
+        "parts": {"vae_encoder": True, "vae_decoder": True, "text_encoder": text, "dit": True,
+                  "dit_text_inputs": text, "ldrm": True, "deformation": deformation},
+        "dit_unconditional": ("text inputs with one zero token and an all-False mask (exactly zero "
+                              "cross-attention)" if text else "graph without text inputs (no cross-attention)"),
+        "config": model.config.to_dict(),
+        "source": source,
+        "weights": weights,
+        "files": {},
+    }
+    with atomic_output_dir(out_dir) as tmp:
+        for graph in _graphs(model, text, deformation):
+            manifest["files"][graph.name] = _export_graph(graph, tmp / f"{graph.name}.onnx", opset,
+                                                          external_data_bytes)
+        (tmp / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2))
+    return manifest

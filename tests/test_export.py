@@ -1,0 +1,247 @@
+"""ONNX export: manifest, checker, per-module parity with PyTorch, dynamic axes, external data, atomic writes.
+
+The export of the perturbed tiny model is made once per test session (:func:`exported`, cached under
+pytest's base temp folder) and shared with tests/test_onnx_runtime.py: exports are the slow part.
+"""
+import hashlib
+import json
+
+import numpy as np
+import onnx
+import pytest
+import torch
+
+from conftest import tiny_model
+from diff4splat.cli import main
+from diff4splat.export import (LDRM_OUTPUTS, MANIFEST_NAME, _export_graph, _graphs, checkpoint_sha256,
+                               export_onnx, state_dict_sha256)
+from models.bundle import Diff4SplatConfig, Diff4SplatModel
+from models.pretrained import config_from_dict
+
+ort = pytest.importorskip("onnxruntime")
+TOL = 1e-4  # float32 max abs difference, ONNX vs eager
+
+
+def parity_model() -> Diff4SplatModel:
+    """tiny_model(dynamic=True) with every all-zero DiT tensor randomised: the zero-init final layer,
+    cross-attention output projections, camera projection and adaLN gates (a default random model
+    predicts v ≡ 0, which would make the DiT comparison trivial)."""
+    model = tiny_model(seed=0, dynamic=True)
+    g = torch.Generator().manual_seed(7)
+    with torch.no_grad():
+        for p in model.dit.parameters():
+            if p.abs().sum() == 0:
+                p.copy_(torch.randn(p.shape, generator=g) * 0.05)
+    return model
+
+
+def exported(tmp_path_factory, *, text=True, deformation=True, cli=False):
+    """(checkpoint folder, export folder) of :func:`parity_model`, built once per session.
+
+    ``cli`` makes the export through ``diff4splat export-onnx`` (flags ``--no-text`` / ``--static``).
+    """
+    base = tmp_path_factory.getbasetemp() / "onnx_cache"
+    ckpt = base / "checkpoint"
+    if not (ckpt / "config.json").exists():
+        parity_model().save_pretrained(ckpt)
+    out = base / f"export_text{int(text)}_deformation{int(deformation)}"
+    if not (out / MANIFEST_NAME).exists():
+        if cli:
+            flags = (["--no-text"] if not text else []) + (["--static"] if not deformation else [])
+            assert main(["export-onnx", "--checkpoint", str(ckpt), "--out", str(out), *flags]) == 0
+        else:
+            model = Diff4SplatModel.from_pretrained(ckpt).eval()
+            export_onnx(model, out, text=text, deformation=deformation, checkpoint=ckpt, source=str(ckpt))
+    return ckpt, out
+
+
+@pytest.fixture(autouse=True)
+def _no_grad():
+    with torch.no_grad():
+        yield
+
+
+@pytest.fixture(scope="module")
+def full(tmp_path_factory):
+    ckpt, out = exported(tmp_path_factory)
+    model = Diff4SplatModel.from_pretrained(ckpt).eval()
+    manifest = json.loads((out / MANIFEST_NAME).read_text())
+    sessions = {name: ort.InferenceSession(str(out / e["file"]), providers=["CPUExecutionProvider"])
+                for name, e in manifest["files"].items()}
+    return ckpt, out, model, manifest, sessions
+
+
+def _randn(*shape, seed=0):
+    return torch.randn(shape, generator=torch.Generator().manual_seed(seed))
+
+
+def _close(got: np.ndarray, ref: torch.Tensor, name: str) -> float:
+    ref = ref.detach().numpy()
+    assert got.shape == ref.shape, name
+    diff = float(np.abs(got - ref).max())
+    assert diff <= TOL, f"{name}: max abs diff {diff}"
+    return diff
+
+
+def test_manifest_records_parts_files_names_shapes_config_and_weight_hashes(full):
+    ckpt, out, model, manifest, _ = full
+    assert manifest["format"] == "diff4splat-onnx/1" and manifest["opset"] == 18
+    assert all(manifest["parts"].values())
+    assert set(manifest["files"]) == {"vae_encoder", "vae_decoder", "text_encoder", "dit", "ldrm"}
+    names = {k: ([i["name"] for i in e["inputs"]], [o["name"] for o in e["outputs"]]) for k, e in manifest["files"].items()}
+    assert names["vae_encoder"] == (["video"], ["latents"])
+    assert names["vae_decoder"] == (["latents"], ["video"])
+    assert names["text_encoder"] == (["ids", "mask"], ["tokens"])
+    assert names["dit"] == (["x", "sigma", "image_latent", "plucker", "text", "text_mask"], ["velocity"])
+    assert names["ldrm"] == (["latents", "plucker", "times"], list(LDRM_OUTPUTS))
+    dit_in = {i["name"]: i for i in manifest["files"]["dit"]["inputs"]}
+    assert dit_in["x"]["shape"] == ["batch", 4, "latent_frames", "2*dit_tokens_h", "2*dit_tokens_w"]
+    assert dit_in["plucker"]["shape"][:2] == ["batch", 1536] and dit_in["text_mask"]["dtype"] == "bool"
+    assert manifest["files"]["vae_encoder"]["inputs"][0]["shape"] == ["batch", 3, "4*k + 1", "8*h8", "8*w8"]
+    assert manifest["files"]["text_encoder"]["inputs"][0]["dtype"] == "int64"
+    assert manifest["files"]["vae_decoder"]["dims"]["latent_frames"][0] == 3
+    assert config_from_dict(Diff4SplatConfig, manifest["config"]) == model.config
+    files = {f"{n}/model.safetensors": hashlib.sha256((ckpt / n / "model.safetensors").read_bytes()).hexdigest()
+             for n in ("vae", "text_encoder", "dit", "ldrm")}
+    assert manifest["weights"] == {"kind": "checkpoint", "path": str(ckpt), "sha256": files}
+    assert sorted(p.name for p in out.iterdir()) == sorted([MANIFEST_NAME] + [e["file"] for e in manifest["files"].values()])
+    assert not any(p.name.startswith(".") for p in out.parent.iterdir())  # no temp folder left
+
+
+def test_every_graph_passes_the_checker_at_the_requested_opset(full):
+    _, out, _, manifest, _ = full
+    for entry in manifest["files"].values():
+        onnx.checker.check_model(str(out / entry["file"]), full_check=True)
+        model = onnx.load(str(out / entry["file"]))
+        assert {o.domain: o.version for o in model.opset_import}[""] == 18
+        assert not entry["external_data"]
+
+
+def test_vae_encoder_and_decoder_match_pytorch_for_several_frame_counts(full):
+    *_, model, _, sessions = full
+    for T in (1, 5, 9):  # exported with 9 frames; 1 is the pipeline's photograph
+        video = _randn(1, 3, T, 64, 64, seed=T).tanh()
+        (got,) = sessions["vae_encoder"].run(None, {"video": video.numpy()})
+        ref = model.vae.encode_latents(video)
+        _close(got, ref, f"vae_encoder T={T}")
+        assert float(ref.abs().max()) > 1e-2
+    for n in (3, 4):
+        z = _randn(2, 4, n, 8, 8, seed=n)
+        (got,) = sessions["vae_decoder"].run(None, {"latents": z.numpy()})
+        _close(got, model.vae.decode_latents(z), f"vae_decoder n={n}")
+        assert got.shape == (2, 3, 1 + 4 * (n - 1), 64, 64)
+
+
+def test_text_encoder_matches_pytorch_with_padding(full):
+    *_, model, _, sessions = full
+    ids, mask = model.text_encoder.tokenizer(["a cat turns its head", "hi"])
+    (got,) = sessions["text_encoder"].run(None, {"ids": ids.numpy(), "mask": mask.numpy()})
+    ref = model.text_encoder(ids, mask)
+    _close(got, ref, "text_encoder")
+    assert np.all(got[1, int(mask[1].sum()):] == 0)  # padded rows are zeroed
+
+
+def _dit_inputs(B, n, h, w, seed=0):
+    return (_randn(B, 4, n, h, w, seed=seed), torch.rand(B, generator=torch.Generator().manual_seed(seed)),
+            _randn(B, 4, 1, h, w, seed=seed + 1), _randn(B, 1536, n, h, w, seed=seed + 2) * 0.5)
+
+
+@pytest.mark.parametrize("B,n,h,w", [(1, 3, 8, 8), (2, 5, 8, 8), (1, 2, 12, 16)])
+def test_dit_velocity_matches_pytorch_over_batch_frames_and_resolution(full, B, n, h, w):
+    *_, model, _, sessions = full
+    x, sigma, image_latent, plucker = _dit_inputs(B, n, h, w)
+    text = _randn(B, 6, 64, seed=3)
+    mask = torch.tensor([[True] * 4 + [False] * 2] * B)
+    feeds = dict(x=x, sigma=sigma, image_latent=image_latent, plucker=plucker, text=text, text_mask=mask)
+    (got,) = sessions["dit"].run(None, {k: v.numpy() for k, v in feeds.items()})
+    ref = model.dit(x, sigma, image_latent, plucker, text, mask)
+    _close(got, ref, f"dit {B, n, h, w}")
+    assert float(ref.abs().max()) > 1e-2
+
+
+def test_all_false_text_mask_is_exactly_the_no_text_dit(full):
+    """The unconditional path of a text export: one zero token with mask False == text=None."""
+    *_, model, _, sessions = full
+    x, sigma, image_latent, plucker = _dit_inputs(1, 3, 8, 8, seed=5)
+    text, mask = torch.zeros(1, 1, 64), torch.zeros(1, 1, dtype=torch.bool)
+    no_text = model.dit(x, sigma, image_latent, plucker)
+    assert torch.equal(model.dit(x, sigma, image_latent, plucker, text, mask), no_text)  # bit for bit
+    assert not torch.allclose(model.dit(x, sigma, image_latent, plucker, _randn(1, 1, 64), ~mask), no_text)
+    feeds = dict(x=x, sigma=sigma, image_latent=image_latent, plucker=plucker, text=text, text_mask=mask)
+    (got,) = sessions["dit"].run(None, {k: v.numpy() for k, v in feeds.items()})
+    _close(got, no_text, "dit all-False mask vs text=None")
+
+
+@pytest.mark.parametrize("B,n,h,w,K", [(1, 3, 8, 8, 9), (2, 2, 6, 10, 1)])
+def test_ldrm_with_deformation_matches_pytorch(full, B, n, h, w, K):
+    *_, model, _, sessions = full
+    latents, plucker = _randn(B, 4, n, h, w, seed=1), _randn(B, 1536, n, h, w, seed=2) * 0.5
+    times = torch.linspace(0, 1, K) if K > 1 else torch.tensor([0.3])
+    got = sessions["ldrm"].run(None, {"latents": latents.numpy(), "plucker": plucker.numpy(), "times": times.numpy()})
+    ref = model.ldrm(latents, plucker, times)
+    for name, value in zip(LDRM_OUTPUTS, got):
+        _close(value, getattr(ref, name), f"ldrm.{name}")
+    assert got[5].shape == (B, K, 8 * h, 8 * w, 3) and float(ref.d_means.abs().max()) > 1e-2
+
+
+def test_external_data_graph_checks_and_runs(tmp_path):
+    """Weights at or above the threshold go to ``<file>.onnx.data`` (threshold 0 here; 2 GB by default)."""
+    model = tiny_model()
+    graph = next(g for g in _graphs(model, text=True, deformation=True) if g.name == "text_encoder")
+    entry = _export_graph(graph, tmp_path / "text_encoder.onnx", 18, external_data_bytes=0)
+    assert entry["external_data"] and len(entry["files"]) == 2
+    data = tmp_path / next(f for f in entry["files"] if f != "text_encoder.onnx")
+    assert data.stat().st_size >= 0.9 * entry["weight_bytes"] > 0  # tiny tensors may stay inline
+    assert (tmp_path / "text_encoder.onnx").stat().st_size < 0.5 * entry["weight_bytes"]  # inline would exceed it
+    onnx.checker.check_model(str(tmp_path / "text_encoder.onnx"))
+    ids, mask = model.text_encoder.tokenizer(["a cat", "a dog on a log"])
+    session = ort.InferenceSession(str(tmp_path / "text_encoder.onnx"), providers=["CPUExecutionProvider"])
+    _close(session.run(None, {"ids": ids.numpy(), "mask": mask.numpy()})[0], model.text_encoder(ids, mask), "external")
+
+
+def test_weight_hashes_follow_the_weights(tmp_path):
+    a, b = tiny_model(seed=0), tiny_model(seed=0)
+    assert state_dict_sha256(a) == state_dict_sha256(b)
+    with torch.no_grad():
+        b.ldrm.head.bias[0] += 1e-6
+    assert state_dict_sha256(a) != state_dict_sha256(b)
+    a.save_pretrained(tmp_path / "ck")
+    hashes = checkpoint_sha256(tmp_path / "ck")
+    assert hashes["dit/model.safetensors"] == hashlib.sha256((tmp_path / "ck/dit/model.safetensors").read_bytes()).hexdigest()
+    (tmp_path / "ck/vae/model.safetensors").unlink()
+    with pytest.raises(FileNotFoundError):
+        checkpoint_sha256(tmp_path / "ck")
+
+
+def test_failed_export_keeps_the_previous_folder_and_leaves_no_temp(tmp_path, monkeypatch):
+    out = tmp_path / "onnx"
+    out.mkdir()
+    (out / "keep.txt").write_text("previous export")
+
+    def broken(graph, path, opset, external_data_bytes):
+        path.write_bytes(b"half-written")
+        raise RuntimeError("exporter crashed")
+
+    monkeypatch.setattr("diff4splat.export._export_graph", broken)
+    with pytest.raises(RuntimeError):
+        export_onnx(tiny_model(), out)
+    assert [p.name for p in out.iterdir()] == ["keep.txt"]
+    assert [p.name for p in tmp_path.iterdir()] == ["onnx"]
+
+
+@pytest.mark.parametrize("case", ["opset_17", "missing_checkpoint", "out_is_file", "no_out"])
+def test_export_cli_bad_input_one_line_exit_2_and_no_output(tmp_path, capsys, case):
+    out = tmp_path / "out"
+    args = ["export-onnx", "--out", str(out)]
+    if case == "opset_17":
+        args += ["--opset", "17"]
+    elif case == "missing_checkpoint":
+        args += ["--checkpoint", str(tmp_path / "nope")]
+    elif case == "out_is_file":
+        out.write_text("x")
+    else:
+        args = args[:1]
+    code = main(args)
+    lines = [line for line in capsys.readouterr().err.splitlines() if not line.startswith("diff4splat: warning")]
+    assert code == 2 and len(lines) == 1 and lines[0].startswith("diff4splat: error:")
+    assert out.is_file() if case == "out_is_file" else not out.exists()
