@@ -1,0 +1,191 @@
+"""onnxruntime serving: the pipeline on ONNX sessions vs PyTorch (PSNR of the rendered video), the CLI
+backend, exports without text / deformation refusing what they cannot serve, manifest errors.
+
+Exports come from tests/test_export.py's session cache (:func:`test_export.exported`).
+"""
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import EXAMPLE_IMAGE
+from diff4splat.cli import main
+from diff4splat.io import load_depth_exr, load_image, load_ply
+from diff4splat.io.output import load_deformation
+from diff4splat.pipeline import Diff4SplatPipeline
+from diff4splat.render.path import render_path
+from models.bundle import Diff4SplatModel
+from test_export import exported
+
+ort = pytest.importorskip("onnxruntime")
+from diff4splat.onnx_runtime import OnnxBackend, default_providers, load_manifest, session_options  # noqa: E402
+
+FRAMES = 9
+PROMPT = "a cat turns its head"
+
+
+@pytest.fixture(scope="module")
+def image():
+    return load_image(EXAMPLE_IMAGE, size=(64, 64))
+
+
+@pytest.fixture(scope="module")
+def full(tmp_path_factory):
+    ckpt, out = exported(tmp_path_factory)
+    return Diff4SplatModel.from_pretrained(ckpt).eval(), out
+
+
+@pytest.fixture(scope="module")
+def lean(tmp_path_factory):
+    """``diff4splat export-onnx --no-text --static`` of the same checkpoint."""
+    ckpt, out = exported(tmp_path_factory, text=False, deformation=False, cli=True)
+    return Diff4SplatModel.from_pretrained(ckpt).eval(), out
+
+
+def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    mse = float(((a - b) ** 2).mean())
+    return math.inf if mse == 0 else 10 * math.log10(1.0 / mse)
+
+
+def _no_networks(monkeypatch):
+    """Make any nn.Module call or model construction fail: the ONNX path must not need them."""
+    def refuse(*a, **k):
+        raise AssertionError("a PyTorch network was used by the onnxruntime backend")
+
+    monkeypatch.setattr(torch.nn.Module, "__call__", refuse)
+    monkeypatch.setattr(Diff4SplatModel, "__init__", refuse)
+
+
+@pytest.mark.parametrize("prompt", [PROMPT, ""])
+def test_onnxruntime_pipeline_matches_pytorch_end_to_end(full, image, prompt, monkeypatch):
+    model, out = full
+    torch_pipe = Diff4SplatPipeline(model)
+    cams = torch_pipe.default_cameras("orbit", FRAMES)
+    ref = torch_pipe(image, cams, prompt, steps=2, seed=3)
+    ref_video = render_path(ref.scene, ref.cameras)[0]
+    with monkeypatch.context() as m:
+        _no_networks(m)
+        onnx_pipe = Diff4SplatPipeline.from_onnx(out)
+        got = onnx_pipe(image, cams, prompt, steps=2, seed=3)
+        assert onnx_pipe.model is None and onnx_pipe.backend.name == "onnxruntime"
+    got_video = render_path(got.scene, got.cameras)[0]
+    assert float((ref.latents[:, :, 1:] - ref.latents[:, :, :1]).abs().max()) > 0.1  # DiT output is not trivial
+    assert float((got.latents - ref.latents).abs().max()) <= 1e-4
+    assert not ref.scene.is_static and not got.scene.is_static
+    assert float((got.scene.d_means - ref.scene.d_means).abs().max()) <= 1e-4
+    assert got.scene.num_gaussians == ref.scene.num_gaussians
+    assert _psnr(got_video, ref_video) >= 45.0
+
+
+def test_prompt_changes_the_onnx_sample(full, image):
+    _, out = full
+    pipe = Diff4SplatPipeline.from_onnx(out)
+    cams = pipe.default_cameras("orbit", 5)
+    a, b = pipe(image, cams, PROMPT, steps=2), pipe(image, cams, "", steps=2)
+    assert float((a.latents - b.latents).abs().max()) > 1e-3
+
+
+def test_generate_cli_onnxruntime_writes_the_same_folder(full, tmp_path, tmp_path_factory):
+    model, out = full
+    ckpt = tmp_path_factory.getbasetemp() / "onnx_cache" / "checkpoint"
+    common = ["generate", str(EXAMPLE_IMAGE), "--frames", "5", "--steps", "2", "--prompt", PROMPT, "--quiet"]
+    assert main(common + ["--checkpoint", str(ckpt), "--out", str(tmp_path / "torch")]) == 0
+    assert main(common + ["--backend", "onnxruntime", "--onnx", str(out), "--out", str(tmp_path / "ort")]) == 0
+    a, b = tmp_path / "torch", tmp_path / "ort"
+    assert sorted(p.name for p in a.iterdir()) == sorted(p.name for p in b.iterdir())
+    meta = json.loads((b / "meta.json").read_text())
+    assert meta["backend"] == "onnxruntime" and meta["model"].startswith("onnx:") and "onnxruntime" in meta["versions"]
+    assert json.loads((a / "meta.json").read_text())["backend"] == "torch"
+    assert (a / "cameras.json").read_text() == (b / "cameras.json").read_text()
+    ga, gb = load_ply(a / "scene.ply"), load_ply(b / "scene.ply")
+    torch.testing.assert_close(gb.means, ga.means, atol=1e-4, rtol=0)
+    torch.testing.assert_close(gb.scales, ga.scales, atol=1e-5, rtol=1e-4)
+    da, db = load_deformation(a / "deformation.npz"), load_deformation(b / "deformation.npz")
+    np.testing.assert_allclose(db["d_means"], da["d_means"], atol=1e-4)
+    depth_a, depth_b = load_depth_exr(a / "depth" / "0004.exr"), load_depth_exr(b / "depth" / "0004.exr")
+    assert np.median(np.abs(depth_a - depth_b)) < 1e-4
+
+
+def test_no_text_static_export_has_only_what_it_serves(lean):
+    _, out = lean
+    manifest = load_manifest(out)
+    assert manifest["parts"]["text_encoder"] is False and manifest["parts"]["deformation"] is False
+    assert set(manifest["files"]) == {"vae_encoder", "vae_decoder", "dit", "ldrm"}
+    assert not (out / "text_encoder.onnx").exists()
+    assert [i["name"] for i in manifest["files"]["dit"]["inputs"]] == ["x", "sigma", "image_latent", "plucker"]
+    ldrm = manifest["files"]["ldrm"]
+    assert [i["name"] for i in ldrm["inputs"]] == ["latents", "plucker"]
+    assert [o["name"] for o in ldrm["outputs"]] == ["distance", "scales", "quats", "opacities", "colors"]
+
+
+def test_no_text_static_export_refuses_prompt_and_times(lean, image):
+    _, out = lean
+    backend = OnnxBackend(out)
+    pipe = Diff4SplatPipeline(backend)
+    cams = pipe.default_cameras("orbit", 5)
+    with pytest.raises(ValueError, match="--no-text"):
+        pipe(image, cams, PROMPT, steps=1)
+    with pytest.raises(ValueError, match="--no-text"):
+        backend.velocity(torch.zeros(1, 4, 2, 8, 8), torch.ones(1), torch.zeros(1, 4, 1, 8, 8),
+                         torch.zeros(1, 1536, 2, 8, 8), torch.zeros(1, 3, 64), None)
+    with pytest.raises(ValueError, match="--static"):
+        backend.reconstruct(torch.zeros(1, 4, 2, 8, 8), torch.zeros(1, 1536, 2, 8, 8), torch.tensor([0.0, 1.0]))
+
+
+def test_no_text_static_export_serves_the_empty_prompt_as_a_static_scene(lean, image):
+    model, out = lean
+    cams = Diff4SplatPipeline(model).default_cameras("orbit", FRAMES)
+    ref = Diff4SplatPipeline(model)(image, cams, "", steps=2, seed=1)  # dynamic in PyTorch (deformation head)
+    got = Diff4SplatPipeline.from_onnx(out)(image, cams, "", steps=2, seed=1)
+    assert not ref.scene.is_static and got.scene.is_static
+    assert float((got.latents - ref.latents).abs().max()) <= 1e-4  # the no-text DiT graph == text=None
+    torch.testing.assert_close(got.scene.canonical.means, ref.scene.canonical.means, atol=1e-4, rtol=0)
+
+
+def test_cli_prompt_on_a_no_text_export_is_one_line_exit_2(lean, tmp_path, capsys):
+    _, out = lean
+    code = main(["generate", str(EXAMPLE_IMAGE), "--frames", "5", "--steps", "1", "--quiet", "--prompt", PROMPT,
+                 "--backend", "onnxruntime", "--onnx", str(out), "--out", str(tmp_path / "o")])
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert code == 2 and len(err) == 1 and "--no-text" in err[0]
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("case", ["no_onnx", "onnx_without_backend", "with_checkpoint", "missing_folder"])
+def test_cli_backend_option_errors(tmp_path, capsys, case):
+    args = ["generate", str(EXAMPLE_IMAGE), "--quiet", "--out", str(tmp_path / "o")]
+    args += {"no_onnx": ["--backend", "onnxruntime"],
+             "onnx_without_backend": ["--onnx", str(tmp_path)],
+             "with_checkpoint": ["--backend", "onnxruntime", "--onnx", str(tmp_path), "--checkpoint", str(tmp_path)],
+             "missing_folder": ["--backend", "onnxruntime", "--onnx", str(tmp_path / "none")]}[case]
+    code = main(args)
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert code == 2 and len(err) == 1 and err[0].startswith("diff4splat: error:")
+    assert not (tmp_path / "o").exists()
+
+
+def test_manifest_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="not a folder"):
+        load_manifest(tmp_path / "none")
+    with pytest.raises(FileNotFoundError, match="manifest.json"):
+        load_manifest(tmp_path)
+    (tmp_path / "manifest.json").write_text(json.dumps({"format": "something-else"}))
+    with pytest.raises(ValueError, match="format"):
+        load_manifest(tmp_path)
+    (tmp_path / "manifest.json").write_text(json.dumps({"format": "diff4splat-onnx/1",
+                                                        "files": {"dit": {"files": ["dit.onnx"]}}}))
+    with pytest.raises(FileNotFoundError, match="dit.onnx"):
+        load_manifest(tmp_path)
+
+
+def test_session_settings():
+    import os
+
+    opts = session_options()
+    assert opts.graph_optimization_level == ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    assert opts.intra_op_num_threads == os.cpu_count()
+    providers = default_providers()
+    assert providers[-1] == "CPUExecutionProvider" and set(providers) <= set(ort.get_available_providers())
+    assert ("CUDAExecutionProvider" in providers) == ("CUDAExecutionProvider" in ort.get_available_providers())
