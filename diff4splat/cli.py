@@ -9,11 +9,15 @@ import platform
 import sys
 import time
 import warnings
+from importlib.metadata import entry_points
 from pathlib import Path
 
 __all__ = ["main", "build_parser"]
 
 EXIT_USAGE = 2
+PLUGIN_GROUP = "diff4splat.commands"
+"""Entry-point group of extra subcommands: ``register(subparsers)`` adds a parser whose defaults hold
+``func(args) -> int``. ``training`` registers ``evaluate`` this way, so this package never imports it."""
 
 
 class CLIError(Exception):
@@ -68,6 +72,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--static", action="store_true",
                    help="leave out the deformation network (static scenes only)")
     e.add_argument("--opset", type=int, default=18, help="ONNX opset, >= 18 (default: 18)")
+    for ep in entry_points(group=PLUGIN_GROUP):  # e.g. `evaluate`, registered by the training package
+        ep.load()(sub)
     return parser
 
 
@@ -228,6 +234,8 @@ def main(argv: list[str] | None = None) -> int:
             manifest = export_onnx_command(args)
             print(f"wrote {args.out} ({', '.join(f['file'] for f in manifest['files'].values())}, "
                   f"opset {manifest['opset']})")
+        elif hasattr(args, "func"):
+            return args.func(args)
         return 0
     except (CLIError, ValueError, FileNotFoundError, FileExistsError) as e:
         msg = " ".join(str(e).split())
