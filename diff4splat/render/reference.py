@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from diff4splat.gaussians import check_finite
-from diff4splat.render.projection import CAMERA_MODELS, T_MIN, Projection, project_gaussians, splat_alpha
+from diff4splat.render.projection import CAMERA_MODELS, T_MIN, project_gaussians, splat_alpha
 from diff4splat.render.sh import num_sh_bases, sh_to_color, spherical_harmonics
 
 __all__ = [
