@@ -67,3 +67,20 @@ def test_evaluate_cli_through_the_entry_point(clips, tmp_path, capsys):
     assert code == 0
     out = capsys.readouterr().out
     assert "psnr_input" in out and (tmp_path / "eval.csv").is_file()
+
+
+def test_stiffness_profile_is_exact_for_a_zero_field_and_positive_otherwise(clips):
+    from training.evaluate import stiffness_profile
+
+    zero = stiffness_profile(Diff4SplatPipeline(tiny_model()), clips[0], steps=3, substeps=2)
+    assert [r["step"] for r in zero] == [0, 1, 2] and zero[0]["sigma"] == 1.0 and zero[-1]["sigma_next"] == 0.0
+    assert all(r["local_error"] == 0.0 and r["lipschitz"] == 0.0 for r in zero)  # v ≡ 0 at zero init
+    model = tiny_model()
+    with torch.no_grad():
+        for p in model.dit.parameters():
+            if p.abs().sum() == 0:
+                p.normal_(0, 0.05)
+    pipe = Diff4SplatPipeline(model)
+    rows = stiffness_profile(pipe, clips[0], steps=3, substeps=4)
+    assert all(r["local_error"] > 0 and r["lipschitz"] > 0 for r in rows)
+    assert type(pipe.backend).velocity is pipe.backend.velocity.__func__  # the recorder was removed
