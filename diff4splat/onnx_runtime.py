@@ -70,7 +70,8 @@ def default_providers() -> list[str]:
 
 
 def session_options(threads: int | None = None, profile_prefix: str | None = None):
-    """onnxruntime ``SessionOptions``: ORT_ENABLE_ALL, ``threads`` intra-op threads (default: CPU cores).
+    """onnxruntime ``SessionOptions``: ORT_ENABLE_ALL, ``threads`` intra-op threads (default: CPU cores),
+    no spin-waiting of idle threads.
 
     ``profile_prefix`` turns on onnxruntime's profiler (a Chrome-trace JSON per session, written by
     ``session.end_profiling()``).
@@ -80,6 +81,9 @@ def session_options(threads: int | None = None, profile_prefix: str | None = Non
     opts = ort.SessionOptions()
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     opts.intra_op_num_threads = int(threads or os.cpu_count() or 1)
+    # Idle pool threads sleep instead of spinning: the pipeline alternates onnxruntime with PyTorch
+    # (glue, renderer), and spinning threads would take the cores PyTorch runs on.
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
     if profile_prefix is not None:
         opts.enable_profiling = True
         opts.profile_file_prefix = profile_prefix
