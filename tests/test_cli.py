@@ -47,27 +47,11 @@ def _check_folder(out, frames):
     return meta
 
 
-def test_generate_writes_every_file_on_the_shipped_photograph(tmp_path, capsys):
-    code, out = _generate(tmp_path, "--trajectory", "orbit", "--prompt", "a cat turns its head")
-    assert code == 0
-    err = capsys.readouterr().err
-    assert "randomly initialised" in err or "models/weights" not in err  # the untrained default says so
-    meta = _check_folder(out, 9)
-    assert meta["static"] and not (out / "deformation.npz").exists()
-    canonical = load_ply(out / "scene.ply")
-    for i in range(9):  # static: every frame equals the canonical scene
-        torch.testing.assert_close(load_ply(out / "frames" / f"{i:04d}.ply").means, canonical.means)
-    assert not any(p.name.startswith(".") for p in tmp_path.iterdir())  # no temp folder left
-
-
-def test_dynamic_checkpoint_frames_differ_only_through_the_deformation(tmp_path, dynamic_checkpoint):
-    code, out = _generate(tmp_path, "--checkpoint", str(dynamic_checkpoint), "--trajectory", "spiral", "--frames", "5")
-    assert code == 0
-    meta = _check_folder(out, 5)
-    assert not meta["static"]
+def _check_frames_follow_deformation(out, frames):
+    """Every per-frame PLY equals the canonical scene deformed by deformation.npz at that frame's time."""
     canonical = load_ply(out / "scene.ply")
     d = {k: torch.from_numpy(v) for k, v in load_deformation(out / "deformation.npz").items()}
-    assert d["d_means"].shape == (5, canonical.num_gaussians, 3)
+    assert d["d_means"].shape == (frames, canonical.num_gaussians, 3)
     scene = DynamicGaussians(canonical, d["times"], d["d_means"], d["d_quats"], d["d_scales"])
     times = json.loads((out / "cameras.json").read_text())["times"]
     moved = 0.0
@@ -80,7 +64,41 @@ def test_dynamic_checkpoint_frames_differ_only_through_the_deformation(tmp_path,
         torch.testing.assert_close(frame.opacities, canonical.opacities)
         torch.testing.assert_close(frame.sh, canonical.sh)
         moved = max(moved, float((frame.means - canonical.means).abs().max()))
-    assert moved > 1e-3
+    return moved
+
+
+def test_generate_writes_every_file_on_the_shipped_photograph(tmp_path, capsys):
+    """The README's command (shorter clip): the shipped trained model, no warning, a dynamic scene."""
+    code, out = _generate(tmp_path, "--trajectory", "orbit", "--prompt", "a cat turns its head")
+    assert code == 0
+    assert "warning" not in capsys.readouterr().err
+    meta = _check_folder(out, 9)
+    assert meta["model"].endswith("models/weights/tiny") and not meta["static"]
+    assert _check_frames_follow_deformation(out, 9) > 1e-4
+    assert not any(p.name.startswith(".") for p in tmp_path.iterdir())  # no temp folder left
+
+
+def test_without_shipped_weights_a_seeded_random_model_is_used_with_a_warning(tmp_path, capsys, monkeypatch):
+    import diff4splat.pipeline
+
+    monkeypatch.setattr(diff4splat.pipeline, "WEIGHTS_DIR", tmp_path / "no_weights")
+    code, out = _generate(tmp_path, "--trajectory", "orbit", "--frames", "5")
+    assert code == 0
+    assert "randomly initialised" in capsys.readouterr().err
+    meta = _check_folder(out, 5)
+    assert meta["model"] == "random:tiny:seed=0"
+    assert meta["static"] and not (out / "deformation.npz").exists()  # zero-initialised deformation
+    canonical = load_ply(out / "scene.ply")
+    for i in range(5):  # static: every frame equals the canonical scene
+        torch.testing.assert_close(load_ply(out / "frames" / f"{i:04d}.ply").means, canonical.means)
+
+
+def test_dynamic_checkpoint_frames_differ_only_through_the_deformation(tmp_path, dynamic_checkpoint):
+    code, out = _generate(tmp_path, "--checkpoint", str(dynamic_checkpoint), "--trajectory", "spiral", "--frames", "5")
+    assert code == 0
+    meta = _check_folder(out, 5)
+    assert not meta["static"]
+    assert _check_frames_follow_deformation(out, 5) > 1e-3
 
 
 def test_cameras_file_round_trips_through_generate(tmp_path):
