@@ -37,6 +37,8 @@ def main() -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         model, source = load_model(None, args.config)
+    root = str(Path(__file__).resolve().parent.parent) + "/"
+    source = source.replace(root, "")  # repo-relative in the docs
     pipe = Diff4SplatPipeline(model)
     cfg = pipe.config
     image = load_image(EXAMPLE, size=(cfg.height, cfg.width))
