@@ -42,9 +42,10 @@ GAP_NOTE = (
     "scatters 8 %, projection matmuls 6 %, the per-pair elementwise alpha/transmittance chain and its "
     "allocations ≈ 57 % (about 40 full passes over the 1.5 M pairs, each a fresh tensor). Tried: the chunk "
     "budget 2²¹ → 2¹⁸ pairs (kept: forward ~350 → ~250 ms, forward+backward ~740 → ~530 ms, per-pair arrays "
-    "stay cache-sized); 1–2 thread runs: with other jobs on the 2 cores, torch's 2-thread pool is several "
-    "times slower (1.8 s forward at 256²), so the table uses 1 thread. Not done: fusing the per-pair chain "
-    "into one loop (torch.compile or a C++ extension), which is what closing the forward gap needs."
+    "stay cache-sized). Load matters: with other jobs on the 2 cores, torch's 2-thread pool is several times "
+    "slower (1.8 s forward at 256² measured under load average ≈ 5; ~230 ms with 1 thread), so compare runs "
+    "only at the load average stated above. Not done: fusing the per-pair chain into one loop (torch.compile "
+    "or a C++ extension), the next step for speed."
 )
 
 
