@@ -7,11 +7,22 @@ import torch
 EXAMPLE_IMAGE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
 
 
-def tiny_model(seed: int = 0, dynamic: bool = False):
-    """A random tiny Diff4SplatModel; ``dynamic`` perturbs the zero-initialised deformation head."""
+def tiny_model(seed: int = 0, dynamic: bool = False, active_dit: bool = False):
+    """A random tiny Diff4SplatModel.
+
+    ``dynamic`` perturbs the zero-initialised deformation head; ``active_dit`` perturbs the DiT's
+    zero-initialised layers (final layer, adaLN gates, camera and cross-attention projections), so its
+    velocity is non-zero and depends on every input.
+    """
     from models.bundle import Diff4SplatConfig, Diff4SplatModel
 
     model = Diff4SplatModel.random(Diff4SplatConfig(), seed=seed).eval()
+    if active_dit:
+        g = torch.Generator().manual_seed(seed + 2)
+        with torch.no_grad():
+            for p in model.dit.parameters():
+                if p.abs().sum() == 0:
+                    p.copy_(torch.randn(p.shape, generator=g) * 0.05)
     if dynamic:
         g = torch.Generator().manual_seed(seed + 1)
         conv = model.ldrm.deformation.out_conv

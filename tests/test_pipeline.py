@@ -76,12 +76,7 @@ def test_prompt_conditions_the_sample_once_cross_attention_is_trained(image):
 
 
 def test_same_seed_same_scene_other_seed_other_latents(image):
-    model = tiny_model()
-    with torch.no_grad():
-        for p in model.dit.parameters():
-            if p.abs().sum() == 0:
-                p.normal_(0, 0.05)
-    pipe = Diff4SplatPipeline(model)
+    pipe = Diff4SplatPipeline(tiny_model(active_dit=True))
     a, b, c = _run(pipe, image, seed=1), _run(pipe, image, seed=1), _run(pipe, image, seed=2)
     assert torch.equal(a.latents, b.latents) and torch.equal(a.scene.canonical.means, b.scene.canonical.means)
     assert not torch.equal(a.latents, c.latents)
