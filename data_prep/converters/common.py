@@ -37,6 +37,7 @@ __all__ = [
     "P3D_TO_CV",
     "NED_TO_CV",
     "rigid",
+    "only_stem",
     "invert",
     "c2w_gl_to_viewmat",
     "c2w_cv_to_viewmat",
@@ -73,6 +74,18 @@ def require_file(path: str | os.PathLike, what: str) -> Path:
     if not p.is_file():
         raise FileNotFoundError(f"{what} not found: {p}")
     return p
+
+
+def only_stem(folder: Path, pattern: str, option: str, what: str) -> str:
+    """Stem of the single file matching ``pattern`` in ``folder`` (the default when ``option`` is not given).
+
+    Raises:
+        ValueError: zero or several matches ("<option> must be given: <folder> holds N <what>").
+    """
+    found = sorted(folder.glob(pattern))
+    if len(found) != 1:
+        raise ValueError(f"{option} must be given: {folder} holds {len(found)} {what}")
+    return found[0].stem
 
 
 def require_dir(path: str | os.PathLike, what: str) -> Path:

@@ -34,7 +34,7 @@ import numpy as np
 from diff4splat.io import load_realestate10k
 
 from ..depth_alignment import align_video, valid_depth_mask
-from .common import camera_path, read_rgb_uint8, require_dir, require_file, select_frames, write_scene
+from .common import camera_path, only_stem, read_rgb_uint8, require_dir, require_file, select_frames, write_scene
 
 __all__ = ["convert_realestate10k", "read_realestate10k_timestamps"]
 
@@ -88,10 +88,7 @@ def convert_realestate10k(src: str | os.PathLike, out: str | os.PathLike, *, cli
     """
     src = Path(src)
     if clip is None:
-        txts = sorted(src.glob("*.txt"))
-        if len(txts) != 1:
-            raise ValueError(f"clip must be given: {src} holds {len(txts)} camera files")
-        clip = txts[0].stem
+        clip = only_stem(src, "*.txt", "clip", "camera files")
     cam_file = require_file(src / f"{clip}.txt", "RealEstate10K camera file")
     if estimates_dir is not None and reference_dir is None:
         raise ValueError("estimates_dir needs reference_dir: RealEstate10K has no metric reference, an unaligned "

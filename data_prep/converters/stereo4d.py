@@ -28,6 +28,7 @@ from .common import (
     camera_path,
     intrinsics,
     iter_video_frames,
+    only_stem,
     require_file,
     select_frames,
     write_scene,
@@ -83,10 +84,7 @@ def convert_stereo4d(src: str | os.PathLike, out: str | os.PathLike, *, name: st
     """
     src = Path(src)
     if name is None:
-        npzs = sorted(src.glob("*.npz"))
-        if len(npzs) != 1:
-            raise ValueError(f"name must be given: {src} holds {len(npzs)} .npz files")
-        name = npzs[0].stem
+        name = only_stem(src, "*.npz", "name", ".npz files")
     with np.load(require_file(src / f"{name}.npz", "Stereo4D npz"), allow_pickle=False) as z:
         missing = [k for k in ("camera2world", "timestamps") if k not in z.files]
         if missing:
