@@ -17,6 +17,17 @@ def clips(tmp_path_factory):
     return _held_out_clips(root, 64, 64, 9, None)
 
 
+@pytest.fixture(scope="module")
+def static_clip(tmp_path_factory):
+    from data_prep.synth import generate_scene
+
+    root = tmp_path_factory.mktemp("heldout_static")
+    generate_scene(root, 0, seed=124, size=64, frames=9, cameras=1, static_ratio=1.0)
+    (clip,) = _held_out_clips(root, 64, 64, 9, None)
+    assert not bool(clip["dynamic"])
+    return clip
+
+
 def test_pearson_and_psnr_closed_forms():
     a = torch.arange(10.0)
     assert _pearson(a, 2 * a + 1) == pytest.approx(1.0)
@@ -34,12 +45,26 @@ def test_metrics_of_a_generated_scene_are_finite_and_in_range(clips):
     assert 0 < m["psnr_input"] < PSNR_CAP and 0 < m["psnr_novel"] < PSNR_CAP
     assert -1 <= m["ssim_input"] <= 1 and -1 <= m["depth_corr"] <= 1
     assert math.isfinite(m["motion_epe"]) and m["motion_epe"] >= 0
-    assert m["loop_psnr"] < PSNR_CAP  # a dynamic scene changes between t = 0 and t = 1
+    assert math.isnan(m["loop_psnr"])  # a dynamic clip has no ground truth at the loop-closing view
 
 
-def test_identity_deformation_is_loop_consistent(clips):
+def test_loop_psnr_of_a_static_scene_is_its_orbit_input_view_psnr(static_clip):
+    """With an identity deformation the loop-closing frame (first camera, t = 1) is the orbit's first
+    frame, so loop_psnr must equal that frame's PSNR against the ground-truth first frame."""
+    from diff4splat.cameras import make_trajectory
+    from diff4splat.render.path import render_path
+
     pipe = Diff4SplatPipeline(tiny_model())  # zero-initialised deformation: a static scene
-    assert evaluate_clip(pipe, clips[0], steps=1)["loop_psnr"] == PSNR_CAP
+    loop = evaluate_clip(pipe, static_clip, steps=1)["loop_psnr"]
+    depth0 = static_clip["depth"][0][static_clip["depth_valid"][0]]
+    orbit = make_trajectory("orbit", 9, static_clip["Ks"][0].double(), 64, 64, scene_depth=float(depth0.median()))
+    res = pipe(static_clip["video"][:, 0].permute(1, 2, 0), orbit, static_clip["caption"], steps=1)
+    colors, _, _ = render_path(res.scene, res.cameras)
+    expected = _psnr(colors[:1].permute(0, 3, 1, 2), static_clip["video"][:, :1].permute(1, 0, 2, 3))
+    assert 0 < loop < PSNR_CAP and loop == pytest.approx(expected, abs=1e-4)
+    # predicted motion moves the loop-closing frame away from the photograph: a different score
+    moving = evaluate_clip(Diff4SplatPipeline(tiny_model(dynamic=True)), static_clip, steps=1)["loop_psnr"]
+    assert math.isfinite(moving) and abs(moving - loop) > 1e-3
 
 
 def test_sampling_sweep_reports_each_sampler_and_nfe(clips):
@@ -63,6 +88,7 @@ def test_evaluate_cli_through_the_entry_point(clips, tmp_path, capsys):
     assert code == 0
     out = capsys.readouterr().out
     assert "psnr_input" in out and (tmp_path / "eval.csv").is_file()
+    assert "| random:tiny:seed=0 |" in out  # the untrained model, not the shipped weights
 
 
 def test_stiffness_profile_is_exact_for_a_zero_field_and_positive_otherwise(clips):
