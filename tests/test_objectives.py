@@ -1,0 +1,187 @@
+"""Tests of training/objectives.py: the track query pixel (closed form), the frame renders of static and
+moving scenes, and TrainingModule's losses and gradient flow for every stage's objective set."""
+import math
+
+import pytest
+import torch
+from torch.utils.data import default_collate
+
+from conftest import tiny_model
+from diff4splat.cameras import camera_rays
+from diff4splat.gaussians import Gaussians, rgb_to_sh0
+from diff4splat.scene import DynamicGaussians
+from training.losses import LossWeights
+from training.objectives import TrainingModule, render_frames, track_query_index
+from training.stages import StageConfig, apply_freezing
+
+SIZE, FRAMES = 32, 9
+
+
+@pytest.fixture(scope="module")
+def clips(tmp_path_factory):
+    """One static and one dynamic 32² clip of 9 frames, as build_training's ClipDataset yields them."""
+    from data_prep.clips import ClipConfig, ClipDataset
+    from data_prep.synth import generate_scene
+
+    root = tmp_path_factory.mktemp("objectives_data")
+    generate_scene(root, 0, seed=11, size=SIZE, frames=FRAMES, cameras=1, static_ratio=1.0)
+    generate_scene(root, 1, seed=11, size=SIZE, frames=FRAMES, cameras=1, static_ratio=0.0)
+    ds = ClipDataset(root, ClipConfig(num_frames=FRAMES, height=SIZE, width=SIZE, scenes="all", plucker="packed",
+                                      num_tracks=64, seed=0))
+    items = [ds[0], ds[1]]
+    assert not bool(items[0]["dynamic"]) and bool(items[1]["dynamic"])
+    return items
+
+
+# ----------------------------------------------------------------------------------- track_query_index
+def test_track_query_index_closed_form():
+    W, H = 40, 24  # not square: a row/column swap changes the index
+    K = torch.tensor([[30.0, 0.0, 21.0], [0.0, 20.0, 11.0], [0.0, 0.0, 1.0]])
+    pts = torch.tensor([
+        [0.0, 0.0, 2.0],      # u = 21, v = 11 → pixel (11, 21)
+        [0.5, -0.25, 1.0],    # u = 36, v = 6 → pixel (6, 36)
+        [-1.4, -1.1, 2.0],    # u = 0, v = 0 exactly → pixel (0, 0)
+        [1.25, 0.6, 2.0],     # u = 39.75, v = 17 → pixel (17, 39), the last column
+        [0.0, 0.0, -2.0],     # behind the camera
+        [0.0, 0.0, 0.0],      # at the camera centre (a padded track)
+        [0.7, 0.0, 1.0],      # u = 42 ≥ W: right of the image
+        [0.0, -0.6, 1.0],     # v = −1 < 0: above the image
+        [-0.71, 0.0, 1.0],    # u = −0.3: floor would give column −1
+        [0.0, 0.66, 1.0],     # v = 24.2 ≥ H
+        [0.1, 0.1, 3.0],      # in the image, but not a valid track
+    ])
+    valid = torch.ones(len(pts), dtype=torch.bool)
+    valid[-1] = False
+    idx, ok = track_query_index(pts, K, W, H, valid)
+    expected_ok = [True, True, True, True, False, False, False, False, False, False, False]
+    assert ok.tolist() == expected_ok
+    assert idx[:4].tolist() == [11 * W + 21, 6 * W + 36, 0, 17 * W + 39]
+    assert idx.dtype == torch.long and idx[4:].tolist() == [0] * 7  # invalid → 0, a safe gather index
+
+
+def test_track_query_index_recovers_the_pixel_of_every_pixel_aligned_gaussian():
+    """Points on the pixel-centre rays (the LDRM's Gaussians, row-major) map back to their own index."""
+    W, H = 12, 7
+    K = torch.tensor([[[9.0, 0.0, 6.3], [0.0, 11.0, 3.2], [0.0, 0.0, 1.0]]], dtype=torch.float64)
+    origins, dirs = camera_rays(torch.eye(4, dtype=torch.float64)[None], K, W, H)
+    dist = 0.5 + 3 * torch.rand(H, W, 1, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    points = (origins[0] + dist * dirs[0]).reshape(-1, 3)
+    idx, ok = track_query_index(points, K[0], W, H, torch.ones(H * W, dtype=torch.bool))
+    assert ok.all() and torch.equal(idx, torch.arange(H * W))
+
+
+# ----------------------------------------------------------------------------------- render_frames
+def test_render_frames_uses_each_frames_time_and_camera():
+    """A rigid deformation Δμ(t) = t·s equals moving the camera by −t·s, so the moving scene's renders
+    equal the static scene's renders through shifted cameras, frame by frame."""
+    D, W, H, T = torch.float64, 20, 16, 4
+    g = torch.Generator().manual_seed(3)
+    r = lambda *s: torch.rand(*s, generator=g, dtype=D)  # noqa: E731
+    m = 80
+    means = torch.stack([r(m) - 0.5, r(m) - 0.5, 2 + r(m)], -1)
+    canon = Gaussians(means, torch.randn(m, 4, generator=g, dtype=D), 0.03 + 0.05 * r(m, 3), 0.3 + 0.6 * r(m),
+                      rgb_to_sh0(r(m, 1, 3)))
+    times = torch.linspace(0, 1, T, dtype=D)
+    shift = torch.tensor([0.3, -0.2, 0.1], dtype=D)
+    dq = torch.zeros(T, m, 4, dtype=D)
+    dq[..., 0] = 1
+    d_means = times[:, None, None] * shift.expand(T, m, 3)
+    moving = DynamicGaussians(canon, times, d_means, dq, torch.zeros(T, m, 3, dtype=D))
+    viewmats = torch.eye(4, dtype=D).repeat(T, 1, 1)
+    viewmats[:, 0, 3] = torch.linspace(0, 0.2, T, dtype=D)  # a camera truck: every frame sees a different view
+    Ks = torch.tensor([[18.0, 0, 10.0], [0, 18.0, 8.0], [0, 0, 1]], dtype=D).expand(T, 3, 3)
+    frames = [0, 2, 3]
+    rgb, depth, alpha = render_frames(moving, viewmats, Ks, times, frames, W, H)
+    assert rgb.shape == (3, 3, H, W) and depth.shape == alpha.shape == (3, H, W)
+    shifted = viewmats.clone()
+    shifted[:, :3, 3] += times[:, None] * shift  # viewmat · translate(t·s)
+    rgb_s, depth_s, alpha_s = render_frames(DynamicGaussians(canon), shifted, Ks, times, frames, W, H)
+    torch.testing.assert_close(rgb, rgb_s)
+    torch.testing.assert_close(alpha, alpha_s)
+    torch.testing.assert_close(depth, depth_s)
+    assert alpha.amax() > 0.5 and not torch.allclose(rgb[1], rgb[2])  # non-trivial renders
+
+
+# ----------------------------------------------------------------------------------- TrainingModule
+NETWORKS = ("vae", "text_encoder", "dit", "ldrm", "ldrm.deformation")
+WEIGHTS = LossWeights(ssim=0.2, rgb=2.0, depth=0.5, smooth=0.25, motion=3.0)  # not the defaults: the sum is checked
+
+
+def _network(name: str) -> str:
+    return "ldrm.deformation" if name.startswith("ldrm.deformation.") else name.split(".")[0]
+
+
+CASES = {
+    # stage: (StageConfig kwargs, loss keys, networks that must receive gradients)
+    "vae": (dict(name="vae", train=("vae",), objectives=("vae",), scenes="all", kl_weight=0.01),
+            {"vae_l1", "vae_kl"}, {"vae"}),
+    "stage1": (dict(train=("dit", "ldrm"), objectives=("diffusion", "reconstruction")),
+               {"flow", "photo", "depth", "smooth"}, {"dit", "ldrm"}),
+    # the deformation network runs (deformation on) but is frozen: it must get no gradient
+    "frozen_deformation": (dict(train=("ldrm",), objectives=("reconstruction",), deformation=True, motion=True),
+                           {"photo", "depth", "smooth", "motion"}, {"ldrm"}),
+    "stage3": (dict(train=("dit", "ldrm", "ldrm.deformation"), objectives=("diffusion", "reconstruction"),
+                    scenes="all", deformation=True, motion=True),
+               {"flow", "photo", "depth", "smooth", "motion"}, {"dit", "ldrm", "ldrm.deformation"}),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_forward_losses_and_gradients_reach_only_the_trainable_networks(clips, case):
+    kwargs, keys, trained = CASES[case]
+    stage = StageConfig(height=SIZE, width=SIZE, num_frames=FRAMES, render_frames=2, weights=WEIGHTS, **kwargs)
+    model = tiny_model(seed=1, dynamic=True)  # a non-zero deformation head: it shapes the renders
+    apply_freezing(model, stage.train)
+    module = TrainingModule(model, stage).train()
+    batch = default_collate(clips[1:] if stage.deformation else clips[:1])
+    losses = module(batch, torch.Generator().manual_seed(0))
+    assert set(losses) == keys | {"loss"}
+    assert all(v.ndim == 0 and math.isfinite(float(v.detach())) for v in losses.values()), losses
+    expected = {
+        "vae": lambda l: l["vae_l1"] + stage.kl_weight * l["vae_kl"],
+        "stage1": lambda l: l["flow"] + 2.0 * l["photo"] + 0.5 * l["depth"] + 0.25 * l["smooth"],
+        "frozen_deformation": lambda l: 2.0 * l["photo"] + 0.5 * l["depth"] + 0.25 * l["smooth"] + 3.0 * l["motion"],
+        "stage3": lambda l: l["flow"] + 2.0 * l["photo"] + 0.5 * l["depth"] + 0.25 * l["smooth"] + 3.0 * l["motion"],
+    }[case](losses)
+    torch.testing.assert_close(losses["loss"], expected)
+    values = {k: float(v.detach()) for k, v in losses.items()}
+    assert all(values[k] >= 0 for k in keys), values
+    if "motion" in keys:
+        assert values["motion"] > 0  # visible tracks were queried and compared
+    losses["loss"].backward()
+    got = {}
+    for name, p in model.named_parameters():
+        if p.grad is None:
+            continue
+        assert _network(name) in trained, f"{case}: frozen {name} received a gradient"
+        got[_network(name)] = got.get(_network(name), 0.0) + float(p.grad.abs().sum())
+    assert set(got) == trained and all(v > 0 for v in got.values()), got
+
+
+def test_forward_is_a_function_of_the_generator(clips):
+    """Same generator state → the same losses (exact resume relies on it); another seed → new σ, ε."""
+    stage = StageConfig(height=SIZE, width=SIZE, num_frames=FRAMES, objectives=("diffusion",), caption_dropout=0.0)
+    module = TrainingModule(tiny_model(active_dit=True), stage)
+    batch = default_collate(clips[:1])
+    with torch.no_grad():
+        a = module(batch, torch.Generator().manual_seed(5))["flow"]
+        b = module(batch, torch.Generator().manual_seed(5))["flow"]
+        c = module(batch, torch.Generator().manual_seed(6))["flow"]
+    assert float(a) == float(b) and float(a) != float(c)
+
+
+def test_caption_dropout_trains_the_empty_prompt_path(clips):
+    """caption_dropout = 1 gives exactly the loss of an empty caption; with 0 the caption changes it."""
+    model = tiny_model(active_dit=True)  # the DiT reads the text through its cross-attention
+    batch = default_collate(clips[:1])
+    assert batch["caption"][0].strip()
+    empty = {**batch, "caption": [""]}
+
+    def flow(b, dropout):
+        stage = StageConfig(height=SIZE, width=SIZE, num_frames=FRAMES, objectives=("diffusion",),
+                            caption_dropout=dropout)
+        with torch.no_grad():
+            return float(TrainingModule(model, stage)(b, torch.Generator().manual_seed(9))["flow"])
+
+    assert flow(batch, 1.0) == pytest.approx(flow(empty, 0.0), abs=1e-7)
+    assert abs(flow(batch, 0.0) - flow(empty, 0.0)) > 1e-6

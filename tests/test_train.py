@@ -1,0 +1,172 @@
+"""Tests of training/train.py: the VAE stage and a stage-1 stage run end to end through ``main`` on a tiny
+generated dataset and chain through ``--init-from``; the VAE's latent scaling is calibrated (closed form);
+bad input is one ``train: error:`` line and exit code 2."""
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from conftest import tiny_model
+from models.bundle import Diff4SplatModel, load_config
+from training.train import calibrate_latent_scaling, main
+
+CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+SIZE, FRAMES = 32, 9
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    """Two static scenes (stages 1–2 train on them) and one dynamic scene; one camera, 9 frames."""
+    from data_prep.synth import generate_scene
+
+    root = tmp_path_factory.mktemp("train_data")
+    for i, ratio in enumerate((1.0, 1.0, 0.0)):
+        generate_scene(root, i, seed=21, size=SIZE, frames=FRAMES, cameras=1, static_ratio=ratio)
+    return root
+
+
+def _clips(root, scenes="all"):
+    """The clips build_training samples from ``root`` at the test size."""
+    from data_prep.clips import ClipConfig, ClipDataset
+
+    return ClipDataset(root, ClipConfig(num_frames=FRAMES, height=SIZE, width=SIZE, scenes=scenes, plucker="packed"))
+
+
+def _stage_yaml(folder: Path, name: str, trainer: dict | None = None, **fields) -> Path:
+    """The shipped ``configs/train_<name>.yaml`` with a few fields replaced (a smaller clip and batch)."""
+    data = yaml.safe_load((CONFIGS / f"train_{name}.yaml").read_text())
+    data.update(fields)
+    data["trainer"] = {**data.get("trainer", {}), **(trainer or {})}
+    path = folder / f"train_{name}.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def _latents(model, clips) -> torch.Tensor:
+    with torch.no_grad():
+        return torch.cat([model.vae.encode_latents(clips[i]["video"][None] * 2 - 1).flatten()
+                          for i in range(len(clips))])
+
+
+@pytest.fixture(scope="module")
+def vae_run(data, tmp_path_factory):
+    """The VAE stage (shipped config at 32², batch 2) for 2 steps through ``main``."""
+    tmp = tmp_path_factory.mktemp("vae_stage")
+    cfg = _stage_yaml(tmp, "vae", height=SIZE, width=SIZE, trainer={"batch_size": 2, "checkpoint_every": 100})
+    run = tmp / "run"
+    code = main(["--config", str(cfg), "--data", str(data), "--run-dir", str(run), "--steps", "2", "--quiet"])
+    return code, run
+
+
+def test_vae_stage_trains_only_the_vae_and_calibrates_its_latents(vae_run, data):
+    code, run = vae_run
+    assert code == 0 and (run / "model" / "config.json").is_file()
+    rows = (run / "metrics.csv").read_text().splitlines()
+    assert len(rows) == 3 and "vae_l1" in rows[0]  # header + 2 steps
+    trained = Diff4SplatModel.from_pretrained(run / "model")
+    init = Diff4SplatModel.random(load_config("tiny"), seed=0)  # the stage's seeded start (trainer.seed 0)
+    assert any(not torch.equal(v, init.vae.state_dict()[k]) for k, v in trained.vae.state_dict().items())
+    for net in ("text_encoder", "dit", "ldrm"):
+        init_state = getattr(init, net).state_dict()
+        assert all(torch.equal(v, init_state[k]) for k, v in getattr(trained, net).state_dict().items()), net
+    # the saved VAE maps the training clips to zero-mean, unit-variance DiT latents
+    z = _latents(trained, _clips(data))
+    assert float(z.mean()) == pytest.approx(0.0, abs=1e-4)
+    assert float(z.std()) == pytest.approx(1.0, abs=1e-4)
+    assert trained.config.vae == trained.vae.config
+
+
+def test_stage1_from_the_vae_run_keeps_the_vae_frozen_and_trains_dit_and_ldrm(vae_run, data, tmp_path, capsys):
+    code, vae = vae_run
+    assert code == 0
+    cfg = _stage_yaml(tmp_path, "stage1", num_frames=FRAMES, render_frames=2,
+                      trainer={"batch_size": 2, "checkpoint_every": 100})
+    run = tmp_path / "run"
+    code = main(["--config", str(cfg), "--data", str(data), "--init-from", str(vae / "model"),
+                 "--run-dir", str(run), "--steps", "2", "--quiet"])
+    assert code == 0, capsys.readouterr().err
+    before = Diff4SplatModel.from_pretrained(vae / "model")
+    after = Diff4SplatModel.from_pretrained(run / "model")
+    old = before.state_dict()
+    changed = {k for k, v in after.state_dict().items() if not torch.equal(v, old[k])}
+    frozen = [k for k in old if k.startswith(("vae.", "text_encoder.", "ldrm.deformation."))]
+    assert frozen and not changed & set(frozen)  # VAE, text encoder and deformation bit-identical
+    assert any(k.startswith("dit.") for k in changed)
+    assert any(k.startswith("ldrm.") for k in changed)
+    assert after.config.vae == before.config.vae  # the latent scaling travels with the model, unchanged
+    assert (before.config.vae.scaling_factor, before.config.vae.shift_factor) != (1.0, 0.0)
+
+
+def test_build_training_optimises_exactly_the_stage_modules_on_its_scenes(vae_run, data, tmp_path):
+    from training.stages import load_stage
+    from training.train import build_training
+
+    stage = load_stage(_stage_yaml(tmp_path, "stage1", num_frames=FRAMES), data=str(data),
+                       init_from=str(vae_run[1] / "model"), trainer={"run_dir": str(tmp_path / "run")})
+    trainer, model, counts = build_training(stage)
+    optimised = {id(p) for group in trainer.optimizer.param_groups for p in group["params"]}
+    for name, p in model.named_parameters():
+        expected = name.startswith(("dit.", "ldrm.")) and not name.startswith("ldrm.deformation.")
+        assert (id(p) in optimised) == p.requires_grad == expected, name
+    trainable = [(k, p.numel()) for k, p in model.named_parameters() if p.requires_grad]
+    assert counts == {n: sum(c for k, c in trainable if k.startswith(n + ".")) for n in ("dit", "ldrm")}
+    ds = trainer.dataset  # stage 1 samples the static scenes only, at the stage's clip size
+    assert len(ds) == 2 and not any(ds.metas[item.scene].dynamic for item in ds.items)
+    assert (ds.config.height, ds.config.width, ds.config.num_frames, ds.config.plucker) == (32, 32, FRAMES, "packed")
+    assert model.config.vae == Diff4SplatModel.from_pretrained(vae_run[1] / "model").config.vae
+
+
+def test_calibrate_latent_scaling_standardises_the_calibration_latents(data):
+    model = tiny_model(seed=3)
+    model.vae.train()
+    clips = _clips(data)
+    a, b = calibrate_latent_scaling(model, clips, num_clips=2)
+    assert (a, b) == (model.config.vae.scaling_factor, model.config.vae.shift_factor)
+    assert (a, b) == (model.vae.config.scaling_factor, model.vae.config.shift_factor)
+    assert model.vae.training  # the mode is restored
+    first_two = [clips[0], clips[1]]
+    z = _latents(model, first_two)
+    assert float(z.mean()) == pytest.approx(0.0, abs=1e-4)
+    assert float(z.std()) == pytest.approx(1.0, abs=1e-4)
+    # it reads the raw posterior means, not the already scaled latents: calibrating again is a no-op
+    assert calibrate_latent_scaling(model, clips, num_clips=2) == pytest.approx((a, b), rel=1e-6)
+    # only the first num_clips clips count
+    assert calibrate_latent_scaling(model, clips, num_clips=3) != pytest.approx((a, b), rel=1e-4)
+
+
+def test_calibrate_latent_scaling_of_an_empty_dataset_raises():
+    with pytest.raises(ValueError, match="dataset"):
+        calibrate_latent_scaling(tiny_model(), [])
+
+
+def _error(capsys) -> str:
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("train: error:"), lines
+    return lines[0]
+
+
+def test_missing_config_file_is_exit_code_2(tmp_path, capsys):
+    assert main(["--config", str(tmp_path / "missing.yaml"), "--quiet"]) == 2
+    assert "missing.yaml" in _error(capsys)
+
+
+def test_missing_data_folder_is_exit_code_2(tmp_path, capsys):
+    run = tmp_path / "run"
+    code = main(["--config", str(CONFIGS / "train_vae.yaml"), "--data", str(tmp_path / "nodata"),
+                 "--run-dir", str(run), "--steps", "2", "--quiet"])
+    assert code == 2
+    line = _error(capsys)
+    assert "data" in line and "nodata" in line
+    assert not run.exists()  # nothing was written
+
+
+@pytest.mark.parametrize("fields, needle", [
+    ({"train": ["dit", "unet"]}, "stage.train"),
+    ({"height": 36, "width": 36}, "height"),  # the packed Plücker rays need multiples of 8
+    ({"init_from": "no_such_model"}, "init_from"),
+])
+def test_bad_stage_values_are_exit_code_2(data, tmp_path, capsys, fields, needle):
+    cfg = _stage_yaml(tmp_path, "vae", **fields)
+    assert main(["--config", str(cfg), "--data", str(data), "--run-dir", str(tmp_path / "run"), "--quiet"]) == 2
+    assert needle in _error(capsys)
