@@ -3,7 +3,8 @@
 Distributed: ``torchrun --nproc_per_node N -m training.train --config ...`` (DDP, gloo on CPU and nccl on
 CUDA; ``--strategy fsdp`` for paper-size models). At the end rank 0 writes the trained model to
 ``<run_dir>/model`` (``Diff4SplatModel.save_pretrained``; EMA weights when EMA is on), the
-``init_from`` of the next stage. Bad input: one line on stderr, exit code 2.
+``init_from`` of the next stage; after a VAE stage the latent scaling is calibrated first
+(:func:`calibrate_latent_scaling`). Bad input: one line on stderr, exit code 2.
 """
 from __future__ import annotations
 
@@ -14,7 +15,10 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["main", "build_training"]
+__all__ = ["main", "build_training", "calibrate_latent_scaling"]
+
+LATENT_SCALING_CLIPS = 64
+"""Training clips whose posterior means set the VAE's latent scaling after its stage."""
 
 
 def build_training(stage, seed: int | None = None):
@@ -43,6 +47,35 @@ def build_training(stage, seed: int | None = None):
     trainer = Trainer(module, dataset, lambda mod, batch, gen: mod(batch, gen), stage.trainer,
                       extra_meta={"stage": dataclasses.asdict(stage), "trainable": counts})
     return trainer, model, counts
+
+
+@torch.no_grad()
+def calibrate_latent_scaling(model, dataset, num_clips: int = LATENT_SCALING_CLIPS) -> tuple[float, float]:
+    """Set the VAE's ``scaling_factor``/``shift_factor`` so that the DiT sees zero-mean, unit-variance
+    latents a·(z − b) (:func:`models.vae.estimate_latent_scaling`; Rombach et al. 2022 §4.3.2).
+
+    Uses the posterior means of the first ``num_clips`` clips of ``dataset`` (deterministic). Run once
+    after the VAE stage, before any stage that trains the DiT on latents.
+
+    Returns:
+        (scaling_factor, shift_factor), also written into ``model.config.vae``.
+
+    Raises:
+        ValueError: an empty dataset.
+    """
+    from models.vae import estimate_latent_scaling
+
+    if len(dataset) == 0:
+        raise ValueError("dataset: no clips to estimate the latent scaling from")
+    vae = model.vae
+    was_training = vae.training
+    vae.eval()
+    means = [vae.encode(dataset[i]["video"][None] * 2 - 1)[0] for i in range(min(num_clips, len(dataset)))]
+    vae.train(was_training)
+    a, b = estimate_latent_scaling(torch.cat([m.flatten() for m in means]))
+    model.config.vae.scaling_factor, model.config.vae.shift_factor = a, b
+    vae.config.scaling_factor, vae.config.shift_factor = a, b
+    return a, b
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -76,6 +109,9 @@ def main(argv: list[str] | None = None) -> int:
         ema = trainer.ema_state_dict()
         if ema is not None:  # keys of the TrainingModule: "model.<network>..."
             model.load_state_dict({k[len("model."):]: v for k, v in ema.items()})
+        if "vae" in stage.objectives:
+            a, b = calibrate_latent_scaling(model, trainer.dataset)
+            print(f"train: VAE latent scaling_factor {a:.6g}, shift_factor {b:.6g}", file=sys.stderr)
         model.save_pretrained(Path(trainer.run_dir) / "model")
         print(f"train: wrote {Path(trainer.run_dir) / 'model'}", file=sys.stderr)
     if torch.distributed.is_available() and torch.distributed.is_initialized():
