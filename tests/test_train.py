@@ -164,6 +164,7 @@ def test_missing_data_folder_is_exit_code_2(tmp_path, capsys):
 @pytest.mark.parametrize("fields, needle", [
     ({"train": ["dit", "unet"]}, "stage.train"),
     ({"height": 36, "width": 36}, "height"),  # the packed Plücker rays need multiples of 8
+    ({"height": 40, "width": 40}, "multiple of 16"),  # the tiny DiT's 2×2 patches on 8×8 latents need 16
     ({"init_from": "no_such_model"}, "init_from"),
 ])
 def test_bad_stage_values_are_exit_code_2(data, tmp_path, capsys, fields, needle):

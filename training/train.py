@@ -36,6 +36,11 @@ def build_training(stage, seed: int | None = None):
         model = Diff4SplatModel.from_pretrained(stage.init_from)
     else:
         model = Diff4SplatModel.random(load_config(stage.model_config), seed=stage.trainer.seed)
+    c = model.config
+    unit = c.vae.spatial_factor * max(c.dit.patch_size[1], c.ldrm.patch_size)
+    for name in ("height", "width"):  # a stage may train below the model resolution, on the same grid
+        if getattr(stage, name) % unit:
+            raise ValueError(f"{name} must be a multiple of {unit} pixels for this model, got {getattr(stage, name)}")
     counts = apply_freezing(model, stage.train)
     if not Path(stage.data).is_dir():
         raise FileNotFoundError(f"data: {stage.data} is not a folder")
