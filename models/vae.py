@@ -16,6 +16,14 @@ A simplified CogVideoX / Wan-style video VAE (Yang et al. 2024, "CogVideoX", §2
 - **Diagonal Gaussian posterior** q(z|x) = N(mean, exp(logvar)), logvar clamped to [−30, 20]
   (Kingma & Welling 2014; the clamp follows the Stable Diffusion VAE).
 
+- **Residual shortcuts** (DC-AE, Chen et al. 2025, "Deep Compression Autoencoder for Efficient
+  High-Resolution Diffusion Models", §3.2 "residual autoencoding"): every down/upsampling block adds a
+  parameter-free path to its learned convolution — space-to-channel averaging (a causal 2×2(×2) mean
+  pool) going down, nearest duplication going up — and the bottleneck adds channel averaging
+  (encoder → mean) and channel duplication (latent → decoder). The untrained network then already
+  passes a block-averaged image through the latent, and training learns the residual; without them
+  the tiny VAE stays at the per-image mean colour for hundreds of steps (see the model card).
+
 Simplifications against the published VAEs: no attention in the middle block, no feature cache
 (the whole clip is encoded at once), no tiling. Tensors are channel-first ``(B, C, T, H, W)``,
 pixels in [−1, 1]; latents ``(B, c, n, H/8, W/8)``.
@@ -51,6 +59,8 @@ class VideoVAEConfig:
             two True → 4× temporal compression. The decoder mirrors it.
         num_res_blocks: residual blocks per encoder level (the decoder has one more, as in SD/Wan).
         norm_groups: GroupNorm groups; must divide every level width.
+        shortcuts: DC-AE residual shortcuts (module docstring); parameter-free. Needs
+            ``latent_channels`` to divide the deepest width.
         scaling_factor: a in z_dit = a·(z − b), applied by :meth:`VideoVAE.encode_latents` so the DiT
             sees roughly unit-variance latents; set after VAE training with :func:`estimate_latent_scaling`.
         shift_factor: b in the same formula (latent mean).
@@ -63,6 +73,7 @@ class VideoVAEConfig:
     temporal_downsample: tuple[bool, ...] = (False, True, True)
     num_res_blocks: int = 1
     norm_groups: int = 4
+    shortcuts: bool = True
     scaling_factor: float = 1.0
     shift_factor: float = 0.0
 
@@ -82,6 +93,9 @@ class VideoVAEConfig:
             if width % self.norm_groups:
                 raise ValueError(f"VideoVAEConfig.norm_groups={self.norm_groups} must divide every level "
                                  f"width, got widths {self.widths}")
+        if self.shortcuts and self.widths[-1] % self.latent_channels:
+            raise ValueError(f"VideoVAEConfig.latent_channels={self.latent_channels} must divide the deepest width "
+                             f"{self.widths[-1]} for the channel-averaging shortcuts (or set shortcuts=False)")
         if not self.scaling_factor > 0:
             raise ValueError(f"VideoVAEConfig.scaling_factor must be > 0, got {self.scaling_factor}")
 
@@ -119,7 +133,7 @@ class VideoVAEConfig:
 
 PAPER_VIDEO_VAE: dict = dict(in_channels=3, latent_channels=16, base_channels=96, channel_mults=(1, 2, 4, 4),
                              temporal_downsample=(False, True, True), num_res_blocks=2, norm_groups=32,
-                             scaling_factor=1.0, shift_factor=0.0)
+                             shortcuts=True, scaling_factor=1.0, shift_factor=0.0)
 """Paper-scale VAE: 4×8×8 compression with 16 latent channels; widths and depth of the Wan 2.1 VAE
 (dim 96, mults 1-2-4-4, 2 residual blocks, temporal downsampling in the last two stages). The scale
 and shift stay 1/0 until estimated from data with :func:`estimate_latent_scaling`."""
@@ -183,45 +197,70 @@ class ResBlock3d(nn.Module):
         return self.skip(x) + self.conv2(F.silu(self.norm2(h)))
 
 
-class Downsample(nn.Module):
-    """Causal 3×3×3 convolution with stride (2 if temporal else 1, 2, 2): T=1+2j → 1+j, H,W → H/2, W/2."""
+def causal_mean_pool(x: Tensor, temporal: bool) -> Tensor:
+    """DC-AE down shortcut: 2×2 spatial mean, and with ``temporal`` frame 0 alone then means of frame
+    pairs (2i − 1, 2i), so output i sees only frames ≤ 2i. (B, C, T, H, W) → (B, C, T', H/2, W/2),
+    T' = 1 + (T − 1)/2 if temporal else T."""
+    if temporal and x.shape[2] > 1:
+        b, c, t, h, w = x.shape
+        x = torch.cat([x[:, :, :1], x[:, :, 1:].reshape(b, c, (t - 1) // 2, 2, h, w).mean(3)], dim=2)
+    return F.avg_pool3d(x, (1, 2, 2))
 
-    def __init__(self, channels: int, temporal: bool):
+
+def causal_repeat(x: Tensor, temporal: bool) -> Tensor:
+    """DC-AE up shortcut, the adjoint layout of :func:`causal_mean_pool`: with ``temporal`` frame 0 stays
+    alone and every later frame becomes two. Spatial upsampling is done by the caller. (B, C, n, H, W) →
+    (B, C, 1 + 2(n − 1), H, W) if temporal else unchanged."""
+    if not temporal:
+        return x
+    return torch.cat([x[:, :, :1], x[:, :, 1:].repeat_interleave(2, dim=2)], dim=2)
+
+
+class Downsample(nn.Module):
+    """Causal 3×3×3 convolution with stride (2 if temporal else 1, 2, 2): T=1+2j → 1+j, H,W → H/2, W/2;
+    plus :func:`causal_mean_pool` of the input when ``shortcut``."""
+
+    def __init__(self, channels: int, temporal: bool, shortcut: bool = True):
         super().__init__()
+        self.temporal, self.shortcut = temporal, shortcut
         self.conv = CausalConv3d(channels, channels, stride=(2 if temporal else 1, 2, 2))
 
     def forward(self, x: Tensor) -> Tensor:
-        return self.conv(x)
+        y = self.conv(x)
+        return y + causal_mean_pool(x, self.temporal) if self.shortcut else y
 
 
 class Upsample(nn.Module):
     """Nearest 2× in H, W, then a causal conv; temporal: T=n → 1 + 2(n − 1) by time pixel-shuffle.
 
     With ``temporal`` the conv outputs 2C channels: frame 0 keeps the first C (the first frame stays
-    alone), every later frame i becomes frames 2i − 1 (first C) and 2i (last C).
+    alone), every later frame i becomes frames 2i − 1 (first C) and 2i (last C). With ``shortcut`` the
+    nearest-upsampled input, repeated in time by :func:`causal_repeat`, is added.
     """
 
-    def __init__(self, channels: int, temporal: bool):
+    def __init__(self, channels: int, temporal: bool, shortcut: bool = True):
         super().__init__()
-        self.temporal = temporal
+        self.temporal, self.shortcut = temporal, shortcut
         self.conv = CausalConv3d(channels, channels * (2 if temporal else 1))
 
     def forward(self, x: Tensor) -> Tensor:
         x = F.interpolate(x, scale_factor=(1.0, 2.0, 2.0), mode="nearest")
         y = self.conv(x)
-        if not self.temporal:
-            return y
-        b, c2, n, h, w = y.shape
-        c = c2 // 2
-        rest = y[:, :, 1:].reshape(b, 2, c, n - 1, h, w).permute(0, 2, 3, 1, 4, 5).reshape(b, c, 2 * (n - 1), h, w)
-        return torch.cat([y[:, :c, :1], rest], dim=2)
+        if self.temporal:
+            b, c2, n, h, w = y.shape
+            c = c2 // 2
+            rest = y[:, :, 1:].reshape(b, 2, c, n - 1, h, w).permute(0, 2, 3, 1, 4, 5).reshape(b, c, 2 * (n - 1), h, w)
+            y = torch.cat([y[:, :c, :1], rest], dim=2)
+        return y + causal_repeat(x, self.temporal) if self.shortcut else y
 
 
 class Encoder(nn.Module):
-    """(B, 3, T, H, W) → (B, 2c, n, H/8, W/8): mean and logvar stacked on channels."""
+    """(B, 3, T, H, W) → (B, 2c, n, H/8, W/8): mean and logvar stacked on channels. With shortcuts the
+    mean gets the deepest features averaged over groups of width/c channels (DC-AE §3.2)."""
 
     def __init__(self, config: VideoVAEConfig):
         super().__init__()
+        self.shortcuts, self.latent_channels = config.shortcuts, config.latent_channels
         widths, g = config.widths, config.norm_groups
         self.conv_in = CausalConv3d(config.in_channels, widths[0])
         layers: list[nn.Module] = []
@@ -231,21 +270,30 @@ class Encoder(nn.Module):
                 layers.append(ResBlock3d(cin, width, g))
                 cin = width
             if i < len(widths) - 1:
-                layers.append(Downsample(width, config.temporal_downsample[i]))
+                layers.append(Downsample(width, config.temporal_downsample[i], config.shortcuts))
         layers += [ResBlock3d(cin, cin, g), ResBlock3d(cin, cin, g)]
         self.layers = nn.Sequential(*layers)
         self.norm_out = FrameGroupNorm(g, cin)
         self.conv_out = CausalConv3d(cin, 2 * config.latent_channels)
 
     def forward(self, x: Tensor) -> Tensor:
-        return self.conv_out(F.silu(self.norm_out(self.layers(self.conv_in(x)))))
+        h = self.layers(self.conv_in(x))
+        out = self.conv_out(F.silu(self.norm_out(h)))
+        if not self.shortcuts:
+            return out
+        b, width, n, hh, ww = h.shape
+        c = self.latent_channels
+        mean_shortcut = h.reshape(b, c, width // c, n, hh, ww).mean(2)
+        return torch.cat([out[:, :c] + mean_shortcut, out[:, c:]], dim=1)
 
 
 class Decoder(nn.Module):
-    """(B, c, n, h, w) → (B, 3, 1 + 4(n − 1), 8h, 8w), mirror of :class:`Encoder`."""
+    """(B, c, n, h, w) → (B, 3, 1 + 4(n − 1), 8h, 8w), mirror of :class:`Encoder`. With shortcuts the
+    latent, each channel repeated width/c times, is added to the first convolution (DC-AE §3.2)."""
 
     def __init__(self, config: VideoVAEConfig):
         super().__init__()
+        self.shortcuts = config.shortcuts
         widths, g = config.widths, config.norm_groups
         cin = widths[-1]
         self.conv_in = CausalConv3d(config.latent_channels, cin)
@@ -255,13 +303,16 @@ class Decoder(nn.Module):
                 layers.append(ResBlock3d(cin, widths[i], g))
                 cin = widths[i]
             if i > 0:
-                layers.append(Upsample(cin, config.temporal_downsample[i - 1]))
+                layers.append(Upsample(cin, config.temporal_downsample[i - 1], config.shortcuts))
         self.layers = nn.Sequential(*layers)
         self.norm_out = FrameGroupNorm(g, cin)
         self.conv_out = CausalConv3d(cin, config.in_channels)
 
     def forward(self, z: Tensor) -> Tensor:
-        return self.conv_out(F.silu(self.norm_out(self.layers(self.conv_in(z)))))
+        h = self.conv_in(z)
+        if self.shortcuts:
+            h = h + z.repeat_interleave(h.shape[1] // z.shape[1], dim=1)
+        return self.conv_out(F.silu(self.norm_out(self.layers(h))))
 
 
 def sample_posterior(mean: Tensor, logvar: Tensor, generator: torch.Generator | None = None) -> Tensor:
