@@ -46,6 +46,11 @@ def test_metrics_of_a_generated_scene_are_finite_and_in_range(clips):
     assert -1 <= m["ssim_input"] <= 1 and -1 <= m["depth_corr"] <= 1
     assert math.isfinite(m["motion_epe"]) and m["motion_epe"] >= 0
     assert math.isnan(m["loop_psnr"])  # a dynamic clip has no ground truth at the loop-closing view
+    # vae_psnr goes through the DiT latent scaling and back: it must equal the raw VAE round trip
+    with torch.no_grad():
+        recon, _, _ = pipe.model.vae(clips[0]["video"][None] * 2 - 1, sample_posterior=False)
+    expected = _psnr(((recon[0] + 1) / 2).permute(1, 0, 2, 3), clips[0]["video"].permute(1, 0, 2, 3))
+    assert 0 < m["vae_psnr"] < PSNR_CAP and m["vae_psnr"] == pytest.approx(expected, abs=1e-3)
 
 
 def test_loop_psnr_of_a_static_scene_is_its_orbit_input_view_psnr(static_clip):

@@ -24,6 +24,10 @@ along the clip's cameras at the clip's times:
   rendered first and last frames with each other instead would reward an identity deformation with a
   perfect score whatever the scene looks like, so it is not used.
 
+- ``vae_psnr``: PSNR of the VAE's reconstruction of the whole clip (posterior mean, decoded) against
+  the clip — the ceiling that the latents put on everything downstream (PyTorch models only; NaN for
+  another backend).
+
 With ``--photo IMAGE`` it also reports ``photo_psnr``: the scene generated from a real photograph,
 rendered from the input camera at t = 0, against that photograph.
 """
@@ -48,7 +52,8 @@ from .objectives import track_query_index
 
 __all__ = ["evaluate_clips", "sampling_tradeoffs", "register", "METRICS"]
 
-METRICS = ("psnr_input", "ssim_input", "psnr_novel", "ssim_novel", "depth_corr", "motion_epe", "loop_psnr")
+METRICS = ("psnr_input", "ssim_input", "psnr_novel", "ssim_novel", "depth_corr", "motion_epe", "loop_psnr",
+           "vae_psnr")
 """Reported metrics; higher is better except ``motion_epe`` (metres)."""
 
 
@@ -112,6 +117,12 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
     else:
         out["motion_epe"] = float("nan")
     out["loop_psnr"] = _loop_psnr(pipe, image, clip, T, steps=steps, sampler=sampler, seed=seed)
+    out["vae_psnr"] = float("nan")
+    if pipe.model is not None:
+        vae = pipe.model.vae
+        video = clip["video"][None].to(pipe.device) * 2 - 1
+        recon = (vae.decode_latents(vae.encode_latents(video))[0].cpu() + 1) / 2
+        out["vae_psnr"] = _psnr(recon.permute(1, 0, 2, 3), gt)
     return out
 
 
