@@ -14,15 +14,20 @@ def test_shipped_weights_load_without_warning_and_match_the_tiny_config():
         warnings.simplefilter("error")  # the random-model fallback would warn
         model, source = load_model()
     assert source.endswith("models/weights/tiny")
-    assert model.config == load_config("tiny")
+    # the architecture is the tiny config; only the VAE's latent scaling was calibrated after its stage
+    tiny = load_config("tiny")
+    assert (tiny.vae.scaling_factor, tiny.vae.shift_factor) == (1.0, 0.0)
+    assert model.config.vae.scaling_factor != 1.0
+    tiny.vae.scaling_factor, tiny.vae.shift_factor = model.config.vae.scaling_factor, model.config.vae.shift_factor
+    assert model.config == tiny
 
 
 def test_trained_model_reproduces_the_photograph_better_than_the_untrained_one():
-    """Model card: 17.74 dB trained vs 15.72 dB untrained (input camera, t = 0, examples/chelsea.png)."""
+    """Model card: 19.32 dB trained vs 15.71 dB untrained (input camera, t = 0, examples/chelsea.png)."""
     from training.evaluate import photo_psnr
 
     trained = photo_psnr(Diff4SplatPipeline.from_pretrained(), EXAMPLE_IMAGE, "a cat turns its head")
     untrained = photo_psnr(Diff4SplatPipeline(Diff4SplatModel.random(load_config("tiny"), seed=0)), EXAMPLE_IMAGE,
                            "a cat turns its head")
-    assert trained == pytest.approx(17.74, abs=0.05) and untrained == pytest.approx(15.72, abs=0.05)
-    assert trained > untrained + 1.5
+    assert trained == pytest.approx(19.32, abs=0.05) and untrained == pytest.approx(15.71, abs=0.05)
+    assert trained > untrained + 3.0
