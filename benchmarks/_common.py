@@ -12,6 +12,12 @@ import torch
 BENCHMARKS_MD = Path(__file__).resolve().parent.parent / "docs" / "benchmarks.md"
 
 
+def repo_relative(source: str) -> str:
+    """A weights path as written in the docs: relative to the repository root when inside it."""
+    root = str(Path(__file__).resolve().parent.parent) + "/"
+    return source.replace(root, "")
+
+
 def machine() -> str:
     """One line: CPU model, cores, torch version and threads."""
     cpu = platform.processor() or platform.machine()

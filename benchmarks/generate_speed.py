@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine, markdown_table, peak_rss_mb, write_section  # noqa: E402
+from _common import machine, markdown_table, peak_rss_mb, repo_relative, write_section  # noqa: E402
 
 from diff4splat.io import load_image  # noqa: E402
 from diff4splat.io.output import write_scene_folder  # noqa: E402
@@ -37,8 +37,7 @@ def main() -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         model, source = load_model(None, args.config)
-    root = str(Path(__file__).resolve().parent.parent) + "/"
-    source = source.replace(root, "")  # repo-relative in the docs
+    source = repo_relative(source)
     pipe = Diff4SplatPipeline(model)
     cfg = pipe.config
     image = load_image(EXAMPLE, size=(cfg.height, cfg.width))

@@ -15,7 +15,7 @@ import warnings
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine, markdown_table, write_section  # noqa: E402
+from _common import machine, markdown_table, repo_relative, write_section  # noqa: E402
 
 from diff4splat.pipeline import Diff4SplatPipeline, load_model  # noqa: E402
 from training.evaluate import _held_out_clips, sampling_tradeoffs, stiffness_profile  # noqa: E402
@@ -31,6 +31,7 @@ def main() -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         model, source = load_model(args.checkpoint, "tiny")
+    source = repo_relative(source)
     pipe = Diff4SplatPipeline(model)
     cfg = pipe.config
     with tempfile.TemporaryDirectory() as tmp:

@@ -47,7 +47,7 @@ LOGVAR_RANGE = (-30.0, 20.0)
 
 @dataclass
 class VideoVAEConfig:
-    """Video VAE hyper-parameters; defaults are the tiny CPU model (≈ 0.1 M parameters).
+    """Video VAE hyper-parameters; defaults are the tiny CPU model (246,819 parameters).
 
     Attributes:
         in_channels: pixel channels (3, RGB in [−1, 1]).
