@@ -43,15 +43,14 @@ EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
 PROMPT = "a cat turns its head"
 TARGET = 1.5
 EXPLANATION = (
-    'Where the time goes below 1.5× (one thread, profiles above): the small VAE decoder is 87% `Conv` '
+    'Where the time goes below 1.5× (one thread, profiles above): the small VAE decoder is 81% `Conv` '
     '(3×3×3 convolutions over 17 frames at up to 128², the same kind of vectorised kernels eager PyTorch '
-    'calls, so a graph runtime has little overhead to remove); the small DiT step is 61% `MatMul` (+5% '
-    '`FusedMatMul`), GEMMs where both sides call optimised BLAS; the LDRM spends about 30% in '
-    '`Transpose`/`Where` (patchify/unpatchify permutes and the branch-free quaternion normalisation), '
-    'which eager PyTorch does as strided views. The all-cores columns were measured while other jobs used'
-    " the machine: there, eager PyTorch's multi-threaded ops wait for worker threads (e.g. 400 ms vs 15 "
-    'ms single-threaded for the tiny VAE encoder), and the end-to-end onnxruntime run pays the same wake-'
-    'up cost per node.'
+    'calls, so a graph runtime has little overhead to remove); the small DiT step is 50% `MatMul`, GEMMs '
+    'where both sides call optimised BLAS; the LDRM spends about 30% in `Transpose`/`Where` '
+    '(patchify/unpatchify permutes and the branch-free quaternion normalisation), which eager PyTorch does '
+    'as strided views. This run had the machine to itself (no other jobs); an earlier run under load showed '
+    "eager PyTorch's multi-threaded ops waiting for worker threads (400 ms vs 15 ms single-threaded for the "
+    'tiny VAE encoder), so compare the all-cores columns only on an idle machine.'
 )
 """Reading of the profiles of the last ``--write`` run (2-core AMD EPYC, shared); update with the numbers."""
 
