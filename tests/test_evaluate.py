@@ -5,7 +5,7 @@ import torch
 
 from conftest import tiny_model
 from diff4splat.pipeline import Diff4SplatPipeline
-from training.evaluate import METRICS, PSNR_CAP, _held_out_clips, _pearson, _psnr, evaluate_clip, sampling_tradeoffs
+from training.evaluate import DIAGNOSTICS, METRICS, PSNR_CAP, _held_out_clips, _pearson, _psnr, evaluate_clip, sampling_tradeoffs
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +41,8 @@ def test_pearson_and_psnr_closed_forms():
 def test_metrics_of_a_generated_scene_are_finite_and_in_range(clips):
     pipe = Diff4SplatPipeline(tiny_model(dynamic=True))
     m = evaluate_clip(pipe, clips[0], steps=2)
-    assert set(m) == set(METRICS)
+    assert set(m) == set(METRICS + DIAGNOSTICS)
+    assert m["motion_epe"] != m["motion_epe_hold"]  # this deformation moves the points
     assert 0 < m["psnr_input"] < PSNR_CAP and 0 < m["psnr_novel"] < PSNR_CAP
     assert -1 <= m["ssim_input"] <= 1 and -1 <= m["depth_corr"] <= 1
     assert math.isfinite(m["motion_epe"]) and m["motion_epe"] >= 0
@@ -70,6 +71,13 @@ def test_loop_psnr_of_a_static_scene_is_its_orbit_input_view_psnr(static_clip):
     # predicted motion moves the loop-closing frame away from the photograph: a different score
     moving = evaluate_clip(Diff4SplatPipeline(tiny_model(dynamic=True)), static_clip, steps=1)["loop_psnr"]
     assert math.isfinite(moving) and abs(moving - loop) > 1e-3
+
+
+def test_motion_diagnostics_of_an_identity_deformation(clips):
+    """No deformation: every time equals frame 0, so the error equals holding the points still."""
+    m = evaluate_clip(Diff4SplatPipeline(tiny_model()), clips[0], steps=1)
+    assert math.isfinite(m["motion_epe"]) and m["motion_epe"] == pytest.approx(m["motion_epe_hold"], abs=1e-6)
+    assert 0 < m["motion_epe_t0"]
 
 
 def test_sampling_sweep_reports_each_sampler_and_nfe(clips):

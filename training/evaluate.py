@@ -50,11 +50,17 @@ from models.bundle import Diff4SplatModel, load_config
 
 from .objectives import track_query_index
 
-__all__ = ["evaluate_clips", "sampling_tradeoffs", "register", "METRICS"]
+__all__ = ["evaluate_clips", "sampling_tradeoffs", "register", "METRICS", "DIAGNOSTICS"]
 
 METRICS = ("psnr_input", "ssim_input", "psnr_novel", "ssim_novel", "depth_corr", "motion_epe", "loop_psnr",
            "vae_psnr")
 """Reported metrics; higher is better except ``motion_epe`` (metres)."""
+
+DIAGNOSTICS = ("motion_epe_t0", "motion_epe_hold")
+"""Reported beside the metrics to split ``motion_epe`` (metres, lower is better): ``motion_epe_t0`` is the
+error at frame 0 alone (geometry: where the scene puts the tracked points before anything moves), and
+``motion_epe_hold`` the error of holding each point at its frame-0 position (no motion). The predicted motion
+helps where ``motion_epe`` < ``motion_epe_hold``; an identity deformation makes them equal."""
 
 
 PSNR_CAP = 100.0
@@ -113,9 +119,13 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
     if bool(ok.any()):
         pred_pts = torch.stack([res.scene.at(float(t)).means[g_idx.clamp(min=0)] for t in res.cameras.times], 1)
         m = vis & ok[:, None]
-        out["motion_epe"] = float((pred_pts.float() - tracks).norm(dim=-1)[m].mean()) if bool(m.any()) else float("nan")
+        err = (pred_pts.float() - tracks).norm(dim=-1)
+        hold = (pred_pts[:, :1].float() - tracks).norm(dim=-1)
+        out["motion_epe"] = float(err[m].mean()) if bool(m.any()) else float("nan")
+        out["motion_epe_hold"] = float(hold[m].mean()) if bool(m.any()) else float("nan")
+        out["motion_epe_t0"] = float(err[:, 0][m[:, 0]].mean()) if bool(m[:, 0].any()) else float("nan")
     else:
-        out["motion_epe"] = float("nan")
+        out["motion_epe"] = out["motion_epe_hold"] = out["motion_epe_t0"] = float("nan")
     out["loop_psnr"] = _loop_psnr(pipe, image, clip, T, steps=steps, sampler=sampler, seed=seed)
     out["vae_psnr"] = float("nan")
     if pipe.model is not None:
@@ -181,9 +191,10 @@ def photo_psnr(pipe: Diff4SplatPipeline, image_path: str | Path, prompt: str = "
 
 
 def evaluate_clips(pipe: Diff4SplatPipeline, clips: list[dict], **kw) -> dict[str, float]:
-    """Mean of every metric over clips (NaNs — e.g. no visible tracks — are skipped)."""
+    """Mean of every metric and diagnostic over clips (NaNs — e.g. no visible tracks — are skipped)."""
     rows = [evaluate_clip(pipe, c, **kw) for c in clips]
-    return {k: statistics.fmean([r[k] for r in rows if not math.isnan(r[k])] or [float("nan")]) for k in METRICS}
+    return {k: statistics.fmean([r[k] for r in rows if not math.isnan(r[k])] or [float("nan")])
+            for k in METRICS + DIAGNOSTICS}
 
 
 @torch.no_grad()
@@ -304,7 +315,7 @@ def run(args) -> int:
         raise ValueError(f"--data: no clips in {args.data}")
     metrics = evaluate_clips(pipe, clips, steps=args.steps)
     row = {"model": source, "clips": len(clips), **metrics}
-    columns = ["model", "clips", *METRICS]
+    columns = ["model", "clips", *METRICS, *DIAGNOSTICS]
     if args.photo is not None:
         row["photo_psnr"] = photo_psnr(pipe, args.photo, args.prompt, steps=args.steps)
         columns.append("photo_psnr")
