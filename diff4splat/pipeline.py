@@ -109,8 +109,12 @@ class GenerationResult:
     prune_stats: dict[str, int] = field(default_factory=dict)
 
 
-def load_model(checkpoint: str | Path | None = None, config: str = "tiny", seed: int = 0) -> tuple[Diff4SplatModel, str]:
+def load_model(checkpoint: str | Path | None = None, config: str = "tiny", seed: int = 0, *,
+               untrained: bool = False) -> tuple[Diff4SplatModel, str]:
     """Load a checkpoint folder, else the shipped weights of ``config``, else a seeded random model.
+
+    ``untrained=True`` skips checkpoint and shipped weights and returns the seeded random model
+    without a warning (the baseline that evaluations compare against).
 
     Returns:
         (model in eval mode, a description of where the weights came from).
@@ -118,6 +122,9 @@ def load_model(checkpoint: str | Path | None = None, config: str = "tiny", seed:
     Raises:
         FileNotFoundError: ``checkpoint`` given but missing, or an unknown config name.
     """
+    random_source = f"random:{config}:seed={seed}"
+    if untrained:
+        return Diff4SplatModel.random(load_config(config), seed=seed).eval(), random_source
     if checkpoint is not None:
         path = Path(checkpoint)
         if not path.is_dir():
@@ -128,7 +135,7 @@ def load_model(checkpoint: str | Path | None = None, config: str = "tiny", seed:
         return Diff4SplatModel.from_pretrained(shipped).eval(), str(shipped)
     warnings.warn(f"no trained weights in {shipped}: using a randomly initialised '{config}' model "
                   f"(seed {seed}); its scenes show the pipeline working, not learned content", stacklevel=2)
-    return Diff4SplatModel.random(load_config(config), seed=seed).eval(), f"random:{config}:seed={seed}"
+    return Diff4SplatModel.random(load_config(config), seed=seed).eval(), random_source
 
 
 class Diff4SplatPipeline:

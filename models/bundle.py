@@ -87,7 +87,7 @@ class Diff4SplatConfig:
         if self.dit.camera_channels != self.ldrm.plucker_channels:
             raise ValueError(f"dit.camera_channels ({self.dit.camera_channels}) must equal "
                              f"6·{self.vae.temporal_factor}·{self.vae.spatial_factor}² = {self.ldrm.plucker_channels}")
-        unit = self.vae.spatial_factor * max(self.dit.patch_size[1], self.ldrm.patch_size)
+        unit = self.pixel_multiple
         for name in ("height", "width"):
             v = getattr(self, name)
             if not isinstance(v, int) or v <= 0 or v % unit:
@@ -96,6 +96,12 @@ class Diff4SplatConfig:
         for name in ("fov_y_deg", "scene_depth"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+
+    @property
+    def pixel_multiple(self) -> int:
+        """Pixels per side that every image size must be a multiple of: the VAE's spatial compression
+        times the largest token patch (DiT or LDRM), e.g. 8·2 = 16 for tiny."""
+        return self.vae.spatial_factor * max(self.dit.patch_size[1], self.ldrm.patch_size)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -166,6 +172,7 @@ class Diff4SplatModel(nn.Module):
             sub = module_cls.from_pretrained(directory / name, map_location=map_location)
             if sub.config != getattr(config, name):
                 raise ValueError(f"checkpoint: {directory / name} config differs from {directory / CONFIG_NAME}")
+            setattr(config, name, sub.config)  # one object, as in __init__: edits reach both
             setattr(model, name, sub)
         return model
 

@@ -46,7 +46,6 @@ from torch import Tensor
 from diff4splat.cameras import CameraPath, make_trajectory
 from diff4splat.pipeline import Diff4SplatPipeline, load_model
 from diff4splat.render.path import render_path
-from models.bundle import Diff4SplatModel, load_config
 
 from .objectives import track_query_index
 
@@ -121,9 +120,9 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
         m = vis & ok[:, None]
         err = (pred_pts.float() - tracks).norm(dim=-1)
         hold = (pred_pts[:, :1].float() - tracks).norm(dim=-1)
-        out["motion_epe"] = float(err[m].mean()) if bool(m.any()) else float("nan")
-        out["motion_epe_hold"] = float(hold[m].mean()) if bool(m.any()) else float("nan")
-        out["motion_epe_t0"] = float(err[:, 0][m[:, 0]].mean()) if bool(m[:, 0].any()) else float("nan")
+        # a mean over no points is NaN, which evaluate_clips skips
+        out["motion_epe"], out["motion_epe_hold"] = float(err[m].mean()), float(hold[m].mean())
+        out["motion_epe_t0"] = float(err[:, 0][m[:, 0]].mean())
     else:
         out["motion_epe"] = out["motion_epe_hold"] = out["motion_epe_t0"] = float("nan")
     out["loop_psnr"] = _loop_psnr(pipe, image, clip, T, steps=steps, sampler=sampler, seed=seed)
@@ -303,11 +302,7 @@ def run(args) -> int:
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        if args.random:  # the untrained baseline, even where trained weights are shipped
-            model = Diff4SplatModel.random(load_config(args.config), seed=args.seed).eval()
-            source = f"random:{args.config}:seed={args.seed}"
-        else:
-            model, source = load_model(args.checkpoint, args.config, seed=args.seed)
+        model, source = load_model(args.checkpoint, args.config, seed=args.seed, untrained=args.random)
     pipe = Diff4SplatPipeline(model)
     cfg = pipe.config
     clips = _held_out_clips(args.data, cfg.height, cfg.width, args.frames or cfg.num_frames, args.limit)

@@ -36,8 +36,7 @@ def build_training(stage, seed: int | None = None):
         model = Diff4SplatModel.from_pretrained(stage.init_from)
     else:
         model = Diff4SplatModel.random(load_config(stage.model_config), seed=stage.trainer.seed)
-    c = model.config
-    unit = c.vae.spatial_factor * max(c.dit.patch_size[1], c.ldrm.patch_size)
+    unit = model.config.pixel_multiple
     for name in ("height", "width"):  # a stage may train below the model resolution, on the same grid
         if getattr(stage, name) % unit:
             raise ValueError(f"{name} must be a multiple of {unit} pixels for this model, got {getattr(stage, name)}")
@@ -78,8 +77,7 @@ def calibrate_latent_scaling(model, dataset, num_clips: int = LATENT_SCALING_CLI
     means = [vae.encode(dataset[i]["video"][None] * 2 - 1)[0] for i in range(min(num_clips, len(dataset)))]
     vae.train(was_training)
     a, b = estimate_latent_scaling(torch.cat([m.flatten() for m in means]))
-    model.config.vae.scaling_factor, model.config.vae.shift_factor = a, b
-    vae.config.scaling_factor, vae.config.shift_factor = a, b
+    vae.config.scaling_factor, vae.config.shift_factor = a, b  # the same object as model.config.vae
     return a, b
 
 
