@@ -9,7 +9,7 @@ import pytest
 import torch
 from plyfile import PlyData
 
-from conftest import EXAMPLE_IMAGE
+from helpers import EXAMPLE_IMAGE
 from diff4splat.cli import main
 from diff4splat.io import load_depth_exr, load_ply, load_video, ply_property_names, save_cameras_json
 from diff4splat.io.output import load_deformation

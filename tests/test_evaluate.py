@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from conftest import tiny_model
+from helpers import tiny_model
 from diff4splat.pipeline import Diff4SplatPipeline
 from training.evaluate import DIAGNOSTICS, METRICS, PSNR_CAP, _held_out_clips, _pearson, _psnr, evaluate_clip, sampling_tradeoffs
 

@@ -11,7 +11,7 @@ import onnx
 import pytest
 import torch
 
-from conftest import tiny_model
+from helpers import exported, parity_model, tiny_model
 from diff4splat.cli import main
 from diff4splat.export import (LDRM_OUTPUTS, MANIFEST_NAME, _export_graph, _graphs, checkpoint_sha256,
                                export_onnx, state_dict_sha256)
@@ -20,39 +20,6 @@ from models.pretrained import config_from_dict
 
 ort = pytest.importorskip("onnxruntime")
 TOL = 1e-4  # float32 max abs difference, ONNX vs eager
-
-
-def parity_model() -> Diff4SplatModel:
-    """tiny_model(dynamic=True) with every all-zero DiT tensor randomised: the zero-init final layer,
-    cross-attention output projections, camera projection and adaLN gates (a default random model
-    predicts v ≡ 0, which would make the DiT comparison trivial)."""
-    model = tiny_model(seed=0, dynamic=True)
-    g = torch.Generator().manual_seed(7)
-    with torch.no_grad():
-        for p in model.dit.parameters():
-            if p.abs().sum() == 0:
-                p.copy_(torch.randn(p.shape, generator=g) * 0.05)
-    return model
-
-
-def exported(tmp_path_factory, *, text=True, deformation=True, cli=False):
-    """(checkpoint folder, export folder) of :func:`parity_model`, built once per session.
-
-    ``cli`` makes the export through ``diff4splat export-onnx`` (flags ``--no-text`` / ``--static``).
-    """
-    base = tmp_path_factory.getbasetemp() / "onnx_cache"
-    ckpt = base / "checkpoint"
-    if not (ckpt / "config.json").exists():
-        parity_model().save_pretrained(ckpt)
-    out = base / f"export_text{int(text)}_deformation{int(deformation)}"
-    if not (out / MANIFEST_NAME).exists():
-        if cli:
-            flags = (["--no-text"] if not text else []) + (["--static"] if not deformation else [])
-            assert main(["export-onnx", "--checkpoint", str(ckpt), "--out", str(out), *flags]) == 0
-        else:
-            model = Diff4SplatModel.from_pretrained(ckpt).eval()
-            export_onnx(model, out, text=text, deformation=deformation, checkpoint=ckpt, source=str(ckpt))
-    return ckpt, out
 
 
 @pytest.fixture(autouse=True)

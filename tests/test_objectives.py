@@ -6,7 +6,7 @@ import pytest
 import torch
 from torch.utils.data import default_collate
 
-from conftest import tiny_model
+from helpers import tiny_model
 from diff4splat.cameras import camera_rays
 from diff4splat.gaussians import Gaussians, rgb_to_sh0
 from diff4splat.scene import DynamicGaussians

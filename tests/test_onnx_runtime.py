@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import EXAMPLE_IMAGE
+from helpers import EXAMPLE_IMAGE
 from diff4splat.cli import main
 from diff4splat.io import load_depth_exr, load_image, load_ply
 from diff4splat.io.output import load_deformation
 from diff4splat.pipeline import Diff4SplatPipeline
 from diff4splat.render.path import render_path
 from models.bundle import Diff4SplatModel
-from test_export import exported
+from helpers import exported
 
 ort = pytest.importorskip("onnxruntime")
 from diff4splat.onnx_runtime import OnnxBackend, default_providers, load_manifest, session_options  # noqa: E402

@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from conftest import EXAMPLE_IMAGE, tiny_model
+from helpers import EXAMPLE_IMAGE, tiny_model
 from diff4splat.cameras import camera_rays
 from diff4splat.io import load_image
 from diff4splat.pipeline import Diff4SplatPipeline

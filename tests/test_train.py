@@ -7,7 +7,7 @@ import pytest
 import torch
 import yaml
 
-from conftest import tiny_model
+from helpers import tiny_model
 from models.bundle import Diff4SplatModel, load_config
 from training.train import calibrate_latent_scaling, main
 

@@ -1,0 +1,18 @@
+"""Numerical constants shared by the renderer, the scene, pruning and IO (one home for each value).
+
+The 3DGS thresholds follow the INRIA reference rasterizer (Kerbl et al. 2023, §4 and its CUDA code) and
+gsplat's ``rasterize_to_pixels``; every module compares against these names, never a literal.
+"""
+from __future__ import annotations
+
+__all__ = ["ALPHA_MAX", "ALPHA_MIN", "T_MIN", "OPACITY_EPS"]
+
+ALPHA_MAX = 0.99
+"""Per-Gaussian alpha is clamped to this (INRIA 3DGS ``min(0.99f, …)``)."""
+ALPHA_MIN = 1.0 / 255.0
+"""A Gaussian whose alpha at a pixel is below this is skipped there (3DGS, gsplat); also the coverage below
+which a pixel counts as empty, and the temporal-opacity gate below which a Gaussian cannot contribute."""
+T_MIN = 1e-4
+"""Compositing stops before a Gaussian that would bring transmittance below this (3DGS)."""
+OPACITY_EPS = 1e-6
+"""Opacities are clamped to [OPACITY_EPS, 1 − OPACITY_EPS] before the logit (PLY storage), so it stays finite."""

@@ -1,0 +1,62 @@
+"""Shared test helpers: small random models (no downloads), the shipped example photograph, and the
+session-cached ONNX export. Test modules import from here, never from each other or from conftest."""
+from pathlib import Path
+
+import torch
+
+EXAMPLE_IMAGE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
+
+def tiny_model(seed: int = 0, dynamic: bool = False, active_dit: bool = False):
+    """A random tiny Diff4SplatModel.
+
+    ``dynamic`` perturbs the zero-initialised deformation head; ``active_dit`` perturbs the DiT's
+    zero-initialised layers (final layer, adaLN gates, camera and cross-attention projections), so its
+    velocity is non-zero and depends on every input.
+    """
+    from models.bundle import Diff4SplatConfig, Diff4SplatModel
+
+    model = Diff4SplatModel.random(Diff4SplatConfig(), seed=seed).eval()
+    if active_dit:
+        g = torch.Generator().manual_seed(seed + 2)
+        with torch.no_grad():
+            for p in model.dit.parameters():
+                if p.abs().sum() == 0:
+                    p.copy_(torch.randn(p.shape, generator=g) * 0.05)
+    if dynamic:
+        g = torch.Generator().manual_seed(seed + 1)
+        conv = model.ldrm.deformation.out_conv
+        with torch.no_grad():
+            conv.weight.copy_(torch.randn(conv.weight.shape, generator=g) * 0.5)
+            conv.bias.copy_(torch.randn(conv.bias.shape, generator=g) * 0.1)
+    return model
+
+
+def parity_model() -> Diff4SplatModel:
+    """tiny_model(dynamic=True) with every all-zero DiT tensor randomised: the zero-init final layer,
+    cross-attention output projections, camera projection and adaLN gates (a default random model
+    predicts v ≡ 0, which would make the DiT comparison trivial)."""
+    return tiny_model(seed=0, dynamic=True, active_dit=True)
+
+
+def exported(tmp_path_factory, *, text=True, deformation=True, cli=False):
+    """(checkpoint folder, export folder) of :func:`parity_model`, built once per session.
+
+    ``cli`` makes the export through ``diff4splat export-onnx`` (flags ``--no-text`` / ``--static``).
+    """
+    from diff4splat.cli import main
+    from diff4splat.export import MANIFEST_NAME, export_onnx
+    from models.bundle import Diff4SplatModel
+
+    base = tmp_path_factory.getbasetemp() / "onnx_cache"
+    ckpt = base / "checkpoint"
+    if not (ckpt / "config.json").exists():
+        parity_model().save_pretrained(ckpt)
+    out = base / f"export_text{int(text)}_deformation{int(deformation)}"
+    if not (out / MANIFEST_NAME).exists():
+        if cli:
+            flags = (["--no-text"] if not text else []) + (["--static"] if not deformation else [])
+            assert main(["export-onnx", "--checkpoint", str(ckpt), "--out", str(out), *flags]) == 0
+        else:
+            model = Diff4SplatModel.from_pretrained(ckpt).eval()
+            export_onnx(model, out, text=text, deformation=deformation, checkpoint=ckpt, source=str(ckpt))
+    return ckpt, out
