@@ -21,7 +21,7 @@ from _common import machine, markdown_table, peak_rss_mb, repo_relative, write_s
 from diff4splat.io import load_image  # noqa: E402
 from diff4splat.io.output import write_scene_folder  # noqa: E402
 from diff4splat.pipeline import Diff4SplatPipeline, load_model  # noqa: E402
-from diff4splat.render.path import render_path  # noqa: E402
+from diff4splat.render.sequence import render_path  # noqa: E402
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
 

@@ -36,7 +36,7 @@ from diff4splat.export import export_onnx  # noqa: E402
 from diff4splat.io import load_image  # noqa: E402
 from diff4splat.onnx_runtime import OnnxBackend  # noqa: E402
 from diff4splat.pipeline import Diff4SplatPipeline  # noqa: E402
-from diff4splat.render.path import render_path  # noqa: E402
+from diff4splat.render.sequence import render_path  # noqa: E402
 from models.bundle import Diff4SplatModel, load_config  # noqa: E402
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"

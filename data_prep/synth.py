@@ -36,7 +36,7 @@ from tqdm.auto import tqdm
 from diff4splat.cameras import CameraPath, intrinsics_from_fov, look_at
 from diff4splat.gaussians import Gaussians, rgb_to_sh0
 from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat, rotmat_to_quat
-from diff4splat.render.path import render_path
+from diff4splat.render.sequence import render_path
 from diff4splat.scene import DynamicGaussians
 
 from .format import SceneWriter

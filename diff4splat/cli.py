@@ -135,7 +135,7 @@ def generate(args) -> dict:
     from .io import load_image
     from .io.output import write_scene_folder
     from .pipeline import Diff4SplatPipeline
-    from .render.path import render_path
+    from .render.sequence import render_path
 
     t_start = time.perf_counter()
     image_path = Path(args.image)

@@ -58,7 +58,7 @@ def test_loop_psnr_of_a_static_scene_is_its_orbit_input_view_psnr(static_clip):
     """With an identity deformation the loop-closing frame (first camera, t = 1) is the orbit's first
     frame, so loop_psnr must equal that frame's PSNR against the ground-truth first frame."""
     from diff4splat.cameras import make_trajectory
-    from diff4splat.render.path import render_path
+    from diff4splat.render.sequence import render_path
 
     pipe = Diff4SplatPipeline(tiny_model())  # zero-initialised deformation: a static scene
     loop = evaluate_clip(pipe, static_clip, steps=1)["loop_psnr"]

@@ -15,7 +15,7 @@ from diff4splat.cli import main
 from diff4splat.io import load_depth_exr, load_image, load_ply
 from diff4splat.io.output import load_deformation
 from diff4splat.pipeline import Diff4SplatPipeline
-from diff4splat.render.path import render_path
+from diff4splat.render.sequence import render_path
 from models.bundle import Diff4SplatModel
 from helpers import exported
 

@@ -4,7 +4,7 @@ import torch
 from diff4splat.cameras import CameraPath, intrinsics_from_fov
 from diff4splat.gaussians import Gaussians
 from diff4splat.prune import prune_scene, visibility_mask
-from diff4splat.render.path import render_path
+from diff4splat.render.sequence import render_path
 from diff4splat.scene import DynamicGaussians
 
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from diff4splat.cameras import camera_rays
-from diff4splat.cameras.models import FisheyeKB, FisheyePolynomial, RollingShutter, ThinLens, generate_rays
+from diff4splat.cameras.lenses import FisheyeKB, FisheyePolynomial, RollingShutter, ThinLens, generate_rays
 from diff4splat.quaternions import axis_angle_to_quat
 from diff4splat.render import rasterize
 from diff4splat.render.projection import ALPHA_MIN

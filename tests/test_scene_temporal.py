@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 import torch
 
-import diff4splat.render.path as render_path_module
+import diff4splat.render.sequence as render_sequence_module
 from diff4splat.cameras import CameraPath, intrinsics_from_fov
 from diff4splat.gaussians import Gaussians, rgb_to_sh0
 from diff4splat.io.output import load_deformation, save_deformation
 from diff4splat.prune import prune_scene
 from diff4splat.render import rasterize, rasterize_dense
-from diff4splat.render.path import render_path
+from diff4splat.render.sequence import render_path
 from diff4splat.scene import TEMPORAL_GATE, DynamicGaussians
 
 D = torch.float64
@@ -111,13 +111,13 @@ def test_gated_gaussians_are_never_passed_to_the_rasterizer(monkeypatch):
     scene = _temporal_scene(m=200, seed=5, deform=True)
     path = _path(5)
     seen = []
-    real = render_path_module.rasterize
+    real = render_sequence_module.rasterize
 
     def spy(means, *args, **kw):
         seen.append(means.shape[0])
         return real(means, *args, **kw)
 
-    monkeypatch.setattr(render_path_module, "rasterize", spy)
+    monkeypatch.setattr(render_sequence_module, "rasterize", spy)
     render_path(scene, path)
     want = [int((scene.canonical.opacities * scene.temporal_opacity(float(t)) >= 1 / 255).sum()) for t in path.times]
     assert seen == want and max(want) < 0.6 * 200  # most Gaussians live only part of the clip

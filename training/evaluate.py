@@ -45,7 +45,7 @@ from torch import Tensor
 
 from diff4splat.cameras import CameraPath, make_trajectory
 from diff4splat.pipeline import Diff4SplatPipeline, load_model
-from diff4splat.render.path import render_path
+from diff4splat.render.sequence import render_path
 
 from .objectives import track_query_index
 

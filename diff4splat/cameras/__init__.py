@@ -1,7 +1,7 @@
 """Cameras: intrinsics, trajectories, camera paths, rays and physical camera models (OpenCV frame,
 world-to-camera viewmats)."""
 from .intrinsics import center_crop_box, fov_from_intrinsics, intrinsics_from_focal, intrinsics_from_fov
-from .models import FisheyeKB, FisheyePolynomial, RollingShutter, ThinLens
+from .lenses import FisheyeKB, FisheyePolynomial, RollingShutter, ThinLens
 from .path import CameraPath, invert_rigid
 from .rays import camera_rays, pack_plucker, plucker_rays
 from .trajectories import DEFAULT_AMPLITUDES, TRAJECTORIES, look_at, make_trajectory

@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 
 from diff4splat.render.projection import ALPHA_MAX, T_MIN, splat_alpha, splat_sigma, support_extent
-from diff4splat.render.backends import rasterize_gsplat, use_gsplat
+from diff4splat.render.gsplat_backend import rasterize_gsplat, use_gsplat
 from diff4splat.render.raytrace import raytrace
 from diff4splat.render.reference import render_pipeline
 
@@ -292,7 +292,7 @@ def rasterize(
         camera_model: "pinhole" (tile path) or "fisheye" (ray path).
         tile_size: tile edge, pixels; a performance knob (results do not depend on it).
         camera_params: None (plain pinhole: this tile path), or a camera effect of
-            :mod:`diff4splat.cameras.models` — ``ThinLens`` (pinhole depth of field), ``FisheyeKB`` or
+            :mod:`diff4splat.cameras.lenses` — ``ThinLens`` (pinhole depth of field), ``FisheyeKB`` or
             ``FisheyePolynomial`` (fisheye; None → equidistant). Any non-pinhole model or effect is
             rendered by the ray path :func:`diff4splat.render.raytrace.raytrace` (its docstring lists
             the differences: exact ray response, eps2d ignored, depth = distance along the ray, meta
@@ -310,7 +310,7 @@ def rasterize(
     autocast region gives exactly the float32 result (tolerances: tests/test_render_stability.py).
 
     Backend: CUDA tensors (not float64) with gsplat installed (extra ``[cuda]``) are rendered by
-    ``gsplat.rasterization`` (:mod:`diff4splat.render.backends`, which lists the differences, e.g.
+    ``gsplat.rasterization`` (:mod:`diff4splat.render.gsplat_backend`, which lists the differences, e.g.
     gsplat's 0.999 alpha clamp); everything else by this PyTorch tile path.
 
     Returns:
@@ -333,7 +333,7 @@ def rasterize(
             rasterize_mode=rasterize_mode, camera_model=camera_model, camera_params=camera_params, tile_size=tile_size,
         )
     backend = rasterize_gsplat if use_gsplat(means, camera_model) else functools.partial(render_pipeline, composite_tiles)
-    return backend(  # gsplat's CUDA kernels for CUDA tensors when installed (render/backends.py), else the tile path
+    return backend(  # gsplat's CUDA kernels for CUDA tensors when installed (render/gsplat_backend.py), else the tile path
         means, quats, scales, opacities, colors, viewmats, Ks, width, height,
         near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, backgrounds=backgrounds,
         render_mode=render_mode, rasterize_mode=rasterize_mode, camera_model=camera_model, tile_size=tile_size,

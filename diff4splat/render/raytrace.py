@@ -28,7 +28,7 @@ import math
 import torch
 from torch import Tensor
 
-from diff4splat.cameras.models import ThinLens, check_camera, generate_rays
+from diff4splat.cameras.lenses import ThinLens, check_camera, generate_rays
 from diff4splat.quaternions import quat_to_rotmat
 from diff4splat.render.projection import ALPHA_MAX, ALPHA_MIN, T_MIN
 from diff4splat.render.reference import color_features, expected_depth, mode_backgrounds, validate_inputs
@@ -214,7 +214,7 @@ def raytrace(
     """Render Gaussians by ray tracing; same arguments and outputs as :func:`diff4splat.render.rasterize`.
 
     :func:`~diff4splat.render.rasterize` routes here when ``camera_model != "pinhole"`` or
-    ``camera_params`` is given. Rays come from :func:`diff4splat.cameras.models.generate_rays`
+    ``camera_params`` is given. Rays come from :func:`diff4splat.cameras.lenses.generate_rays`
     (pixel centres; S = ``camera_params.spp`` lens samples per pixel for :class:`ThinLens`, else 1);
     every ray is composited by :func:`composite_rays`; a pixel is the mean of its S rays (colour with
     background, alpha, accumulated distance).
@@ -226,7 +226,7 @@ def raytrace(
     channel is the distance along the ray t_max (range from the ray origin), not camera z.
 
     Args:
-        camera_model: "pinhole" or "fisheye" (:data:`diff4splat.cameras.models.RAY_CAMERA_MODELS`).
+        camera_model: "pinhole" or "fisheye" (:data:`diff4splat.cameras.lenses.RAY_CAMERA_MODELS`).
         camera_params: None, :class:`ThinLens` (pinhole), :class:`FisheyeKB` or
             :class:`FisheyePolynomial` (fisheye; None → equidistant FisheyeKB()).
         tile_size: pixel tile edge used to group rays for culling (a performance knob).

@@ -1,6 +1,6 @@
 """Rolling-shutter rendering of a dynamic Gaussian scene (4D-GRT's rolling-shutter effect).
 
-Each band of rows (:meth:`diff4splat.cameras.models.RollingShutter.row_bands`) is rendered with the
+Each band of rows (:meth:`diff4splat.cameras.lenses.RollingShutter.row_bands`) is rendered with the
 scene deformed to the band's capture time and, optionally, the camera pose interpolated along the
 path to that time (:meth:`diff4splat.cameras.CameraPath.viewmat_at`); the bands are stacked into the
 frame. A band of rows r0 … r1−1 is rendered as an image of height r1 − r0 whose principal point is
@@ -18,7 +18,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from ..cameras.models import RollingShutter
+from ..cameras.lenses import RollingShutter
 from ..cameras.path import CameraPath
 from ..scene import DynamicGaussians
 from .raytrace import raytrace

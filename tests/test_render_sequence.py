@@ -2,7 +2,7 @@ import torch
 
 from diff4splat.cameras import CameraPath, intrinsics_from_fov
 from diff4splat.gaussians import Gaussians, rgb_to_sh0
-from diff4splat.render.path import render_path
+from diff4splat.render.sequence import render_path
 from diff4splat.scene import DynamicGaussians
 
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from diff4splat.cameras import camera_rays
-from diff4splat.cameras.models import (
+from diff4splat.cameras.lenses import (
     FisheyeKB,
     FisheyePolynomial,
     RollingShutter,

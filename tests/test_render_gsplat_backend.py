@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from diff4splat.render import rasterize, rasterize_dense
-from diff4splat.render.backends import gsplat_available, use_gsplat
+from diff4splat.render.gsplat_backend import gsplat_available, use_gsplat
 
 rasterize_module = importlib.import_module("diff4splat.render.rasterize")  # the package re-exports the function
 W, H = 32, 24
