@@ -2,7 +2,7 @@
 
 A checkpoint folder holds ``config.json`` (this module's :class:`Diff4SplatConfig`) and one
 sub-folder per network (``vae/``, ``text_encoder/``, ``dit/``, ``ldrm/``), each written by that
-network's ``save_pretrained``. ``configs/<name>.yaml`` files override the dataclass defaults.
+network's ``save_pretrained``. ``models/configs/<name>.yaml`` files override the dataclass defaults.
 """
 from __future__ import annotations
 
@@ -25,10 +25,10 @@ from .pretrained import CONFIG_NAME, config_from_dict, count_parameters
 from .text_encoder import TextEncoder, TextEncoderConfig
 from .vae import VideoVAE, VideoVAEConfig
 
-__all__ = ["Diff4SplatConfig", "Diff4SplatModel", "load_config", "CONFIG_DIR", "WEIGHTS_DIR"]
+__all__ = ["Diff4SplatConfig", "Diff4SplatModel", "load_config", "config_names", "CONFIG_DIR", "WEIGHTS_DIR"]
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
-"""``configs/`` at the repository root (editable installs)."""
+CONFIG_DIR = Path(__file__).resolve().parent / "configs"
+"""Model size configs (``tiny``, ``small``, ``paper``), shipped as package data of ``models``."""
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 """Shipped trained weights, one folder per model name."""
 
@@ -107,19 +107,24 @@ class Diff4SplatConfig:
         return dataclasses.asdict(self)
 
 
+def config_names() -> list[str]:
+    """Names of the shipped model configs, sorted (``["paper", "small", "tiny"]``)."""
+    return sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
+
+
 def load_config(name_or_path: str | os.PathLike) -> Diff4SplatConfig:
-    """Load ``configs/<name>.yaml`` (or a YAML path) over the dataclass defaults.
+    """Load a model config by name (``models/configs/<name>.yaml``, shipped with the package) or a YAML path,
+    over the dataclass defaults.
 
     Raises:
-        FileNotFoundError: no such config name or file.
+        FileNotFoundError: no such config name or file (the message lists the known names).
         ValueError: unknown fields or inconsistent networks.
     """
     path = Path(name_or_path)
     if path.suffix not in (".yaml", ".yml"):
         path = CONFIG_DIR / f"{name_or_path}.yaml"
     if not path.is_file():
-        known = sorted(p.stem for p in CONFIG_DIR.glob("*.yaml")) if CONFIG_DIR.is_dir() else []
-        raise FileNotFoundError(f"config: {name_or_path!r} not found (known: {known})")
+        raise FileNotFoundError(f"config: {str(name_or_path)!r} not found (known: {', '.join(config_names())})")
     data = yaml.safe_load(path.read_text()) or {}
     if not isinstance(data, dict):
         raise ValueError(f"config: {path} must hold a mapping, got {type(data).__name__}")

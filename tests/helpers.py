@@ -1,10 +1,13 @@
 """Shared test helpers: small random models (no downloads), the shipped example photograph, and the
 session-cached ONNX export. Test modules import from here, never from each other or from conftest."""
+from __future__ import annotations
+
 from pathlib import Path
 
 import torch
 
 EXAMPLE_IMAGE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
+
 
 def tiny_model(seed: int = 0, dynamic: bool = False, active_dit: bool = False):
     """A random tiny Diff4SplatModel.
@@ -31,7 +34,7 @@ def tiny_model(seed: int = 0, dynamic: bool = False, active_dit: bool = False):
     return model
 
 
-def parity_model() -> Diff4SplatModel:
+def parity_model():
     """tiny_model(dynamic=True) with every all-zero DiT tensor randomised: the zero-init final layer,
     cross-attention output projections, camera projection and adaLN gates (a default random model
     predicts v ≡ 0, which would make the DiT comparison trivial)."""

@@ -11,7 +11,7 @@ import onnx
 import pytest
 import torch
 
-from helpers import exported, parity_model, tiny_model
+from helpers import exported, tiny_model
 from diff4splat.cli import main
 from diff4splat.export import (LDRM_OUTPUTS, MANIFEST_NAME, _export_graph, _graphs, checkpoint_sha256,
                                export_onnx, state_dict_sha256)

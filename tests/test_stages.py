@@ -5,9 +5,9 @@ from pathlib import Path
 import pytest
 
 from models.bundle import Diff4SplatModel, load_config
-from training.stages import MODULES, StageConfig, apply_freezing, load_stage
+from training.stages import MODULES, STAGE_CONFIG_DIR, StageConfig, apply_freezing, load_stage
 
-CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+CONFIGS = STAGE_CONFIG_DIR
 STAGES = ("vae", "stage1", "stage2", "stage3")
 
 

@@ -9,9 +9,10 @@ import yaml
 
 from helpers import tiny_model
 from models.bundle import Diff4SplatModel, load_config
+from training.stages import STAGE_CONFIG_DIR
 from training.train import calibrate_latent_scaling, main
 
-CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+CONFIGS = STAGE_CONFIG_DIR
 SIZE, FRAMES = 32, 9
 
 

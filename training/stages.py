@@ -7,7 +7,8 @@ video VAE (``vae`` stage); the VAE then stays frozen, as the text encoder always
 uses a frozen T5; the tiny text encoder is a frozen randomly initialised T5-style network whose
 features the DiT's cross-attention learns to read).
 
-``configs/train_<stage>.yaml`` files override :class:`StageConfig`'s defaults.
+``training/configs/train_<stage>.yaml`` files (package data; :func:`load_stage` takes their names, e.g.
+``train_stage1``) override :class:`StageConfig`'s defaults.
 """
 from __future__ import annotations
 
@@ -23,7 +24,10 @@ from models.pretrained import config_from_dict
 from .losses import LossWeights
 from .trainer import TrainerConfig
 
-__all__ = ["StageConfig", "load_stage", "apply_freezing", "MODULES"]
+__all__ = ["StageConfig", "load_stage", "stage_names", "apply_freezing", "MODULES", "STAGE_CONFIG_DIR"]
+
+STAGE_CONFIG_DIR = Path(__file__).resolve().parent / "configs"
+"""The shipped stage configs (``train_vae``, ``train_stage1`` … ``train_stage3``), package data of ``training``."""
 
 MODULES = ("vae", "text_encoder", "dit", "ldrm", "ldrm.deformation")
 """Module names a stage can train (``ldrm.deformation`` is the LDRM's deformation network)."""
@@ -93,16 +97,25 @@ class StageConfig:
             raise ValueError(f"stage.caption_dropout must lie in [0, 1], got {self.caption_dropout}")
 
 
-def load_stage(path: str | os.PathLike, **overrides) -> StageConfig:
-    """Load a stage YAML (``configs/train_<stage>.yaml``); ``overrides`` replace top-level fields
-    (``trainer`` may be a dict of trainer fields).
+def stage_names() -> list[str]:
+    """Names of the shipped stage configs, sorted (``train_stage1`` … ``train_vae``)."""
+    return sorted(p.stem for p in STAGE_CONFIG_DIR.glob("*.yaml"))
+
+
+def load_stage(name_or_path: str | os.PathLike, **overrides) -> StageConfig:
+    """Load a stage config by name (``training/configs/<name>.yaml``, e.g. ``train_stage1``) or a YAML path;
+    ``overrides`` replace top-level fields (``trainer`` may be a dict of trainer fields).
 
     Raises:
-        FileNotFoundError: no such file.  ValueError: unknown or invalid fields.
+        FileNotFoundError: no such name or file (the message lists the shipped names).
+        ValueError: unknown or invalid fields.
     """
-    path = Path(path)
+    path = Path(name_or_path)
+    if path.suffix not in (".yaml", ".yml"):
+        path = STAGE_CONFIG_DIR / f"{name_or_path}.yaml"
     if not path.is_file():
-        raise FileNotFoundError(f"stage config: {path} does not exist")
+        raise FileNotFoundError(f"stage config: {str(name_or_path)!r} not found "
+                                f"(shipped: {', '.join(stage_names())}; or a .yaml path)")
     data = yaml.safe_load(path.read_text()) or {}
     for k, v in overrides.items():
         if v is None:

@@ -1,4 +1,4 @@
-"""Train one stage: ``python -m training.train --config configs/train_stage1.yaml [--resume]``.
+"""Train one stage: ``python -m training.train --config train_stage1 [--resume]``.
 
 Distributed: ``torchrun --nproc_per_node N -m training.train --config ...`` (DDP, gloo on CPU and nccl on
 CUDA; ``--strategy fsdp`` for paper-size models). At the end rank 0 writes the trained model to
@@ -83,7 +83,8 @@ def calibrate_latent_scaling(model, dataset, num_clips: int = LATENT_SCALING_CLI
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m training.train", description=__doc__.splitlines()[0])
-    ap.add_argument("--config", required=True, type=Path, help="stage YAML (configs/train_*.yaml)")
+    ap.add_argument("--config", required=True,
+                    help="stage config: a shipped name (train_vae, train_stage1..3) or a YAML path")
     ap.add_argument("--data", default=None, help="dataset root (overrides the YAML)")
     ap.add_argument("--run-dir", default=None, help="run folder (overrides trainer.run_dir)")
     ap.add_argument("--init-from", default=None, help="model folder to start from (overrides the YAML)")
