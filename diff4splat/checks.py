@@ -32,11 +32,17 @@ def check_positive_int(name: str, value: object, what: str = "") -> int:
 
 
 def check_positive(name: str, value: object) -> float:
-    """Return ``value`` as a ``float`` if it is a finite number > 0.
+    """Return ``value`` as a ``float`` if it is a finite number > 0 (``bool`` and strings are refused).
+
+    Args:
+        name: the parameter's name, as the caller's user knows it.
+        value: the value to check (int, float, numpy scalar or one-element tensor).
 
     Raises:
         ValueError: ``value`` is not a number, not finite, or ≤ 0.
     """
+    if isinstance(value, (bool, str, bytes)):
+        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
     try:
         v = float(value)  # type: ignore[arg-type]
     except (TypeError, ValueError):
@@ -47,7 +53,11 @@ def check_positive(name: str, value: object) -> float:
 
 
 def check_finite(name: str, tensor: Tensor) -> None:
-    """Raise ``ValueError`` naming ``name`` if the floating-point ``tensor`` holds NaN or ±inf."""
+    """Raise ``ValueError`` naming ``name`` if the floating-point ``tensor`` holds NaN or ±inf.
+
+    Integer and empty tensors pass. The message counts the bad entries, e.g.
+    ``means contains 2 non-finite value(s) (NaN or inf)``.
+    """
     if tensor.is_floating_point() and tensor.numel() and not bool(torch.isfinite(tensor).all()):
         bad = int((~torch.isfinite(tensor)).sum())
         raise ValueError(f"{name} contains {bad} non-finite value(s) (NaN or inf)")

@@ -4,10 +4,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields
 
-import torch
 from torch import Tensor
 
-__all__ = ["Gaussians", "SH_C0", "rgb_to_sh0", "sh0_to_rgb", "check_finite"]
+from .checks import check_finite
+
+__all__ = ["Gaussians", "SH_C0", "rgb_to_sh0", "sh0_to_rgb"]
 
 SH_C0 = 0.28209479177387814
 """Degree-0 real spherical-harmonic basis constant 1/(2√π) (INRIA 3DGS convention)."""
@@ -21,13 +22,6 @@ def rgb_to_sh0(rgb: Tensor) -> Tensor:
 def sh0_to_rgb(sh0: Tensor) -> Tensor:
     """Colour of a DC SH coefficient before clamping: SH_C0·c0 + 0.5. (..., 3) → (..., 3)."""
     return sh0 * SH_C0 + 0.5
-
-
-def check_finite(name: str, tensor: Tensor) -> None:
-    """Raise ``ValueError`` naming ``name`` if ``tensor`` holds NaN or ±inf."""
-    if tensor.is_floating_point() and tensor.numel() and not bool(torch.isfinite(tensor).all()):
-        bad = int((~torch.isfinite(tensor)).sum())
-        raise ValueError(f"{name} contains {bad} non-finite value(s) (NaN or inf)")
 
 
 @dataclass
@@ -87,13 +81,13 @@ class Gaussians:
         if n and bool((self.quats.norm(dim=-1) < 1e-12).any()):
             raise ValueError("quats has a zero-norm quaternion")
 
-    def select(self, index: Tensor) -> "Gaussians":
+    def select(self, index: Tensor) -> Gaussians:
         """Subset by boolean mask (N,) or integer indices (M,)."""
         return Gaussians(*(getattr(self, f.name)[index] for f in fields(self)))
 
-    def to(self, *args, **kwargs) -> "Gaussians":
+    def to(self, *args, **kwargs) -> Gaussians:
         """Move/cast every tensor (``Tensor.to`` arguments)."""
         return Gaussians(*(getattr(self, f.name).to(*args, **kwargs) for f in fields(self)))
 
-    def detach(self) -> "Gaussians":
+    def detach(self) -> Gaussians:
         return Gaussians(*(getattr(self, f.name).detach() for f in fields(self)))

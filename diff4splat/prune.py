@@ -5,13 +5,14 @@ import torch
 from torch import Tensor
 
 from .cameras.path import CameraPath
+from .render.defaults import NEAR_PLANE
 from .render.projection import project_gaussians
 from .scene import DynamicGaussians
 
 __all__ = ["visibility_mask", "prune_scene"]
 
 
-def visibility_mask(scene: DynamicGaussians, cameras: CameraPath, near_plane: float = 0.01) -> Tensor:
+def visibility_mask(scene: DynamicGaussians, cameras: CameraPath, near_plane: float = NEAR_PLANE) -> Tensor:
     """Which Gaussians any camera of ``cameras`` sees, each at its own frame time.
 
     A Gaussian is seen by camera i when, deformed to time ``cameras.times[i]``, it passes the
@@ -38,7 +39,7 @@ def visibility_mask(scene: DynamicGaussians, cameras: CameraPath, near_plane: fl
 
 
 def prune_scene(scene: DynamicGaussians, cameras: CameraPath | None = None, min_opacity: float = 0.005,
-                near_plane: float = 0.01) -> tuple[DynamicGaussians, dict[str, int]]:
+                near_plane: float = NEAR_PLANE) -> tuple[DynamicGaussians, dict[str, int]]:
     """Drop Gaussians with opacity below ``min_opacity`` or that no camera of ``cameras`` sees.
 
     A Gaussian with opacity o < 1/255 can never pass the 3DGS alpha threshold (alpha ≤ o), so

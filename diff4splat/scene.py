@@ -14,7 +14,8 @@ mean μ_t and time scale σ_t, and its opacity at time t is multiplied by the ma
 Gaussian along time, p(t) = exp(−½((t − μ_t)/σ_t)²). The marginal is left unnormalised (peak 1 at
 t = μ_t, no 1/(σ_t√(2π)) factor), as in the authors' code (``exp(-0.5 (t - mu_t)² / cov_t)``), so
 a Gaussian is exactly as opaque as its canonical opacity at its own time. Gaussians whose opacity
-o·p(t) is below a threshold (default 1/255, the 3DGS alpha cut-off) can never pass the renderer's
+o·p(t) is below a threshold (default :data:`diff4splat.constants.ALPHA_MIN` = 1/255, the 3DGS alpha
+cut-off, so gating is exact) can never pass the renderer's
 alpha test (alpha ≤ o·p(t)), so ``at(t)`` leaves them out before projection (temporal gating): the
 image is unchanged and they cost nothing.
 """
@@ -25,14 +26,12 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .gaussians import Gaussians, check_finite
+from .checks import check_finite
+from .constants import ALPHA_MIN
+from .gaussians import Gaussians
 from .quaternions import quat_multiply, quat_nlerp, quat_normalize
 
-__all__ = ["DynamicGaussians", "TEMPORAL_GATE"]
-
-TEMPORAL_GATE = 1.0 / 255.0
-"""Default gate of :meth:`DynamicGaussians.at`: Gaussians with o·p(t) below this are left out. Equal to
-the renderer's alpha cut-off (:data:`diff4splat.render.projection.ALPHA_MIN`), so gating is exact."""
+__all__ = ["DynamicGaussians"]
 
 
 @dataclass
@@ -127,7 +126,7 @@ class DynamicGaussians:
             return torch.ones_like(self.canonical.opacities)
         return torch.exp(-0.5 * ((t - self.t_means) / self.t_scales) ** 2)
 
-    def active_indices(self, t: float, gate: float = TEMPORAL_GATE) -> Tensor | None:
+    def active_indices(self, t: float, gate: float = ALPHA_MIN) -> Tensor | None:
         """Indices of the Gaussians that pass temporal gating at time ``t``: o·p(t) ≥ ``gate``.
 
         With ``gate`` ≤ 1/255 the dropped Gaussians have alpha = min(0.99, o·p(t)·exp(−σ)) < 1/255
@@ -186,7 +185,7 @@ class DynamicGaussians:
         lerp = lambda a: (1 - w) * a[k] + w * a[k1]  # noqa: E731
         return lerp(self.d_means), quat_nlerp(self.d_quats[k], self.d_quats[k1], w), lerp(self.d_scales)
 
-    def at(self, t: float, gate: float = TEMPORAL_GATE) -> Gaussians:
+    def at(self, t: float, gate: float = ALPHA_MIN) -> Gaussians:
         """The Gaussians at time ``t`` ∈ [0, 1] (the canonical ones for a static scene).
 
         With temporal support, opacities are multiplied by p(t) (:meth:`temporal_opacity`) and only
@@ -216,7 +215,7 @@ class DynamicGaussians:
             sh=g.sh,
         )
 
-    def select(self, index: Tensor) -> "DynamicGaussians":
+    def select(self, index: Tensor) -> DynamicGaussians:
         """Subset of Gaussians by boolean mask (M,) or indices; deformation and temporal arrays follow."""
         temporal = {} if not self.has_temporal else {"t_means": self.t_means[index], "t_scales": self.t_scales[index]}
         if self.is_static:
@@ -226,7 +225,7 @@ class DynamicGaussians:
             self.d_means[:, index], self.d_quats[:, index], self.d_scales[:, index], **temporal,
         )
 
-    def without_deformation(self, atol: float = 0.0) -> "DynamicGaussians":
+    def without_deformation(self, atol: float = 0.0) -> DynamicGaussians:
         """Drop the deformation if it is the identity within ``atol`` (metres / quaternion / log-scale)."""
         if self.is_static:
             return self
@@ -238,7 +237,7 @@ class DynamicGaussians:
             return DynamicGaussians(self.canonical, t_means=self.t_means, t_scales=self.t_scales)
         return self
 
-    def to(self, *args, **kwargs) -> "DynamicGaussians":
+    def to(self, *args, **kwargs) -> DynamicGaussians:
         """Move/cast every tensor, temporal arrays included (``Tensor.to`` arguments)."""
         mv = lambda x: None if x is None else x.to(*args, **kwargs)  # noqa: E731
         return DynamicGaussians(self.canonical.to(*args, **kwargs), mv(self.times), mv(self.d_means),

@@ -53,8 +53,8 @@ def test_json_trajectory_roundtrip_and_default_times(tmp_path):
     [
         (lambda d: d.pop("Ks"), "missing key 'Ks'"),
         (lambda d: d.pop("width"), "missing key 'width'"),
-        (lambda d: d.update(height=0), "'height' must be a positive integer"),
-        (lambda d: d.update(width=64.5), "'width' must be a positive integer"),
+        (lambda d: d.update(height=0), "'height' must be a positive int"),
+        (lambda d: d.update(width=64.5), "'width' must be a positive int"),
         (lambda d: d.update(viewmats=[[[1, 0, 0], [0, 1, 0], [0, 0, 1]]] * 5), "'viewmats' must have shape"),
         (lambda d: d.update(Ks="abc"), "'Ks'"),
         (lambda d: d.update(times=[0, 0.5, 0.4, 0.9, 1.0]), "non-decreasing"),

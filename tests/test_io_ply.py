@@ -5,8 +5,9 @@ import numpy as np
 import pytest
 import torch
 
+from diff4splat.constants import OPACITY_EPS
 from diff4splat.gaussians import Gaussians
-from diff4splat.io import OPACITY_EPS, load_ply, ply_property_names, save_ply
+from diff4splat.io import load_ply, ply_property_names, save_ply
 
 plyfile = pytest.importorskip("plyfile")
 

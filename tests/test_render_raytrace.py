@@ -7,9 +7,9 @@ import torch
 
 from diff4splat.cameras import camera_rays
 from diff4splat.cameras.lenses import FisheyeKB, FisheyePolynomial, RollingShutter, ThinLens, generate_rays
+from diff4splat.constants import ALPHA_MIN
 from diff4splat.quaternions import axis_angle_to_quat
 from diff4splat.render import rasterize
-from diff4splat.render.projection import ALPHA_MIN
 from diff4splat.render.raytrace import composite_rays, ray_gaussian_response, raytrace, whitening
 
 D = torch.float64

@@ -8,12 +8,13 @@ import torch
 
 import diff4splat.render.sequence as render_sequence_module
 from diff4splat.cameras import CameraPath, intrinsics_from_fov
+from diff4splat.constants import ALPHA_MIN
 from diff4splat.gaussians import Gaussians, rgb_to_sh0
 from diff4splat.io.output import load_deformation, save_deformation
 from diff4splat.prune import prune_scene
 from diff4splat.render import rasterize, rasterize_dense
 from diff4splat.render.sequence import render_path
-from diff4splat.scene import TEMPORAL_GATE, DynamicGaussians
+from diff4splat.scene import DynamicGaussians
 
 D = torch.float64
 W = H = 24
@@ -75,7 +76,7 @@ def test_temporal_gating_is_exact(deform):
         gated = scene.at(t)
         full = scene.at(t, gate=0.0)
         assert 0 < gated.num_gaussians < full.num_gaussians == 80  # the gate really drops some
-        assert gated.num_gaussians == int((op >= TEMPORAL_GATE).sum())
+        assert gated.num_gaussians == int((op >= ALPHA_MIN).sum())
         (c1, a1, _), (c2, a2, _) = _render(gated), _render(full)
         assert float(a2.max()) > 0.3
         assert torch.equal(c1, c2) and torch.equal(a1, a2)

@@ -12,27 +12,13 @@ import math
 import torch
 from torch import Tensor
 
+from ..checks import check_positive, check_positive_int
+
 __all__ = ["center_crop_box", "intrinsics_from_fov", "intrinsics_from_focal", "fov_from_intrinsics"]
 
 
-def _check_size(name: str, value: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
-        raise ValueError(f"{name} must be a positive integer number of pixels, got {value!r}")
-    return value
-
-
-def _check_positive(name: str, value: float) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a positive finite number, got {value!r}") from None
-    if not math.isfinite(v) or v <= 0:
-        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
-    return v
-
-
 def _check_fov(name: str, value: float) -> float:
-    v = _check_positive(name, value)
+    v = check_positive(name, value)
     if v >= 180.0:
         raise ValueError(f"{name} must lie in (0, 180) degrees, got {value!r}")
     return v
@@ -66,10 +52,10 @@ def intrinsics_from_focal(
         ValueError: naming ``fx``/``fy`` (not positive and finite), ``width``/``height`` (not a
             positive int) or ``cx``/``cy`` (not finite).
     """
-    fx = _check_positive("fx", fx)
-    fy = _check_positive("fy", fy)
-    width = _check_size("width", width)
-    height = _check_size("height", height)
+    fx = check_positive("fx", fx)
+    fy = check_positive("fy", fy)
+    width = check_positive_int("width", width, "pixels")
+    height = check_positive_int("height", height, "pixels")
     cx = width / 2.0 if cx is None else float(cx)
     cy = height / 2.0 if cy is None else float(cy)
     for name, v in (("cx", cx), ("cy", cy)):
@@ -106,8 +92,8 @@ def intrinsics_from_fov(
         ValueError: naming ``fov_x_deg``/``fov_y_deg`` (neither given, or outside (0, 180)) or
             ``width``/``height`` (not a positive int).
     """
-    width = _check_size("width", width)
-    height = _check_size("height", height)
+    width = check_positive_int("width", width, "pixels")
+    height = check_positive_int("height", height, "pixels")
     if fov_x_deg is None and fov_y_deg is None:
         raise ValueError("fov_x_deg or fov_y_deg must be given (degrees in (0, 180)), got neither")
     fx = fy = None
@@ -140,8 +126,8 @@ def fov_from_intrinsics(K: Tensor, width: int, height: int) -> tuple[float, floa
     fx, fy = float(K[0, 0]), float(K[1, 1])
     if not (fx > 0 and fy > 0):
         raise ValueError(f"K must have positive focal lengths, got fx={fx}, fy={fy}")
-    width = _check_size("width", width)
-    height = _check_size("height", height)
+    width = check_positive_int("width", width, "pixels")
+    height = check_positive_int("height", height, "pixels")
     return (
         math.degrees(2.0 * math.atan(width / 2.0 / fx)),
         math.degrees(2.0 * math.atan(height / 2.0 / fy)),

@@ -23,13 +23,15 @@ intrinsics K; :class:`FisheyeKB` also uses fx, fy, :class:`FisheyePolynomial` wo
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from ..checks import check_positive_int
+from .path import camera_centers
 from .rays import camera_rays
 
 __all__ = [
@@ -358,8 +360,7 @@ class ThinLens:
     def __post_init__(self) -> None:
         _check_number("ThinLens", "aperture_radius", self.aperture_radius, lo=0.0)
         _check_number("ThinLens", "focus_distance", self.focus_distance, lo=0.0, lo_open=True)
-        if isinstance(self.spp, bool) or not isinstance(self.spp, int) or self.spp < 1:
-            raise ValueError(f"ThinLens.spp must be an int >= 1, got {self.spp!r}")
+        check_positive_int("ThinLens.spp", self.spp)
 
     def aperture_samples(self, dtype: torch.dtype = torch.float64) -> Tensor:
         """(spp, 2) lens points (x, y) in the camera frame, metres, inside the aperture disk."""
@@ -396,9 +397,8 @@ class RollingShutter:
         d = _check_number("RollingShutter", "duration", self.duration, lo=0.0)
         if d > 1.0:
             raise ValueError(f"RollingShutter.duration must be <= 1 (clip-time units), got {self.duration!r}")
-        if self.chunks is not None and (isinstance(self.chunks, bool) or not isinstance(self.chunks, int)
-                                        or self.chunks < 1):
-            raise ValueError(f"RollingShutter.chunks must be None or an int >= 1, got {self.chunks!r}")
+        if self.chunks is not None:
+            check_positive_int("RollingShutter.chunks", self.chunks)
         if self.anchor not in ("center", "start"):
             raise ValueError(f"RollingShutter.anchor must be 'center' or 'start', got {self.anchor!r}")
 
@@ -483,8 +483,8 @@ def generate_rays(
     """
     params = check_camera(camera_model, camera_params)
     dtype, C = viewmats.dtype, viewmats.shape[0]
-    R, t = viewmats[:, :3, :3], viewmats[:, :3, 3]
-    centres = -torch.einsum("cji,cj->ci", R, t)  # (C, 3)
+    R = viewmats[:, :3, :3]
+    centres = camera_centers(viewmats)  # (C, 3)
     if params is None:
         o, d = camera_rays(viewmats, Ks, width, height)
         return o[:, :, :, None], d[:, :, :, None], torch.ones(C, height, width, 1, dtype=torch.bool)

@@ -7,11 +7,11 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..gaussians import check_finite
+from ..checks import check_finite, check_positive_int
 from ..quaternions import quat_nlerp, quat_to_rotmat, rotmat_to_quat
 from .intrinsics import center_crop_box
 
-__all__ = ["CameraPath", "invert_rigid"]
+__all__ = ["CameraPath", "invert_rigid", "camera_centers"]
 
 ROTATION_TOL = 1e-4
 """Tolerance on ‖RᵀR − I‖_F and |det R − 1| for a viewmat's rotation block."""
@@ -34,6 +34,23 @@ def invert_rigid(viewmats: Tensor) -> Tensor:
     out[..., :3, 3:] = -Rt @ t
     out[..., 3, 3] = 1.0
     return out
+
+
+def camera_centers(viewmats: Tensor) -> Tensor:
+    """Camera centres c = −Rᵀt of world-to-camera rigid transforms [R | t] (the one home of this formula).
+
+    Args:
+        viewmats: (..., 4, 4) or (..., 3, 4) world-to-camera transforms (OpenCV frame), metres.
+
+    Returns:
+        (..., 3) camera centres in world coordinates, metres, dtype of ``viewmats``.
+
+    Raises:
+        ValueError: ``viewmats`` is not a tensor of shape (..., 4, 4) or (..., 3, 4).
+    """
+    if not isinstance(viewmats, Tensor) or viewmats.dim() < 2 or tuple(viewmats.shape[-2:]) not in ((4, 4), (3, 4)):
+        raise ValueError(f"viewmats must be a tensor of shape (..., 4, 4) or (..., 3, 4), got {_shape(viewmats)}")
+    return -torch.einsum("...ji,...j->...i", viewmats[..., :3, :3], viewmats[..., :3, 3])
 
 
 def _default_times(n: int, dtype: torch.dtype, device: torch.device) -> Tensor:
@@ -81,10 +98,8 @@ class CameraPath:
                 row not [0, 0, 1], non-zero skew/off-diagonal entries), ``width``/``height`` (not a
                 positive int) or ``times`` (not (T,), non-finite, outside [0, 1], decreasing).
         """
-        for name in ("width", "height"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
-                raise ValueError(f"{name} must be a positive integer number of pixels, got {v!r}")
+        self.width = check_positive_int("width", self.width, "pixels")
+        self.height = check_positive_int("height", self.height, "pixels")
         vm, K, times = self.viewmats, self.Ks, self.times
         if not isinstance(vm, Tensor) or vm.dim() != 3 or tuple(vm.shape[1:]) != (4, 4):
             raise ValueError(f"viewmats must be a tensor of shape (T, 4, 4), got {_shape(vm)}")
@@ -136,8 +151,8 @@ class CameraPath:
             raise ValueError(f"times must be non-decreasing, but times[{i}]={float(times[i])} < times[{i - 1}]={float(times[i - 1])}")
 
     def camera_centers(self) -> Tensor:
-        """(T, 3) camera centres in world coordinates, metres: c = −Rᵀ t."""
-        return invert_rigid(self.viewmats)[:, :3, 3]
+        """(T, 3) camera centres in world coordinates, metres: c = −Rᵀ t (:func:`camera_centers`)."""
+        return camera_centers(self.viewmats)
 
     def viewmat_at(self, t: float) -> Tensor:
         """World-to-camera pose at clip time ``t``, interpolated between the path's cameras.
@@ -172,7 +187,7 @@ class CameraPath:
         out[:3, 3] = (1 - w) * c2w[0, :3, 3] + w * c2w[1, :3, 3]
         return invert_rigid(out)
 
-    def relative_to_first(self) -> "CameraPath":
+    def relative_to_first(self) -> CameraPath:
         """The same path in the first camera's frame: V_i' = V_i · V_0⁻¹ (so V_0' = I exactly).
 
         Relative poses between cameras (V_i V_j⁻¹) and the images they see are unchanged; only the
@@ -182,7 +197,7 @@ class CameraPath:
         rel[0] = torch.eye(4, dtype=rel.dtype, device=rel.device)  # exact, not V_0·V_0⁻¹ ≈ I
         return CameraPath(rel, self.Ks.clone(), self.width, self.height, self.times.clone())
 
-    def resized(self, width: int, height: int) -> "CameraPath":
+    def resized(self, width: int, height: int) -> CameraPath:
         """The path for images resized (stretched, not cropped) to ``width`` × ``height`` pixels.
 
         Pixel coordinates scale continuously: fx, cx by width/W and fy, cy by height/H (the image
@@ -192,14 +207,12 @@ class CameraPath:
         Raises:
             ValueError: ``width``/``height`` not a positive int.
         """
-        for name, v in (("width", width), ("height", height)):
-            if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
-                raise ValueError(f"{name} must be a positive integer number of pixels, got {v!r}")
+        width, height = check_positive_int("width", width, "pixels"), check_positive_int("height", height, "pixels")
         scale = self.Ks.new_tensor([width / self.width, height / self.height, 1.0])
         Ks = self.Ks * scale[None, :, None]
         return CameraPath(self.viewmats.clone(), Ks, width, height, self.times.clone())
 
-    def fitted(self, width: int, height: int) -> "CameraPath":
+    def fitted(self, width: int, height: int) -> CameraPath:
         """The path for images centre-cropped to the aspect ratio of ``width``×``height``, then resized.
 
         Same crop as :func:`diff4splat.io.preprocess_image` (:func:`center_crop_box`): the principal
@@ -208,16 +221,14 @@ class CameraPath:
         Raises:
             ValueError: ``width``/``height`` not a positive int.
         """
-        for name, v in (("width", width), ("height", height)):
-            if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
-                raise ValueError(f"{name} must be a positive integer number of pixels, got {v!r}")
+        width, height = check_positive_int("width", width, "pixels"), check_positive_int("height", height, "pixels")
         y0, x0, ch, cw = center_crop_box(self.height, self.width, height, width)
         Ks = self.Ks.clone()
         Ks[:, 0, 2] -= x0
         Ks[:, 1, 2] -= y0
         return CameraPath(self.viewmats.clone(), Ks, cw, ch, self.times.clone()).resized(width, height)
 
-    def to(self, *args, **kwargs) -> "CameraPath":
+    def to(self, *args, **kwargs) -> CameraPath:
         """Move/cast the tensors (``Tensor.to`` arguments)."""
         return CameraPath(
             self.viewmats.to(*args, **kwargs), self.Ks.to(*args, **kwargs), self.width, self.height,

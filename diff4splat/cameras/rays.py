@@ -4,6 +4,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .path import camera_centers
+
 __all__ = ["camera_rays", "plucker_rays", "pack_plucker"]
 
 
@@ -35,10 +37,9 @@ def camera_rays(
     pix = torch.stack([u, v, torch.ones_like(u)], dim=-1)  # (H, W, 3)
     d_cam = torch.einsum("cij,hwj->chwi", torch.linalg.inv(Ks.to(dtype)), pix)
     R = viewmats[:, :3, :3]
-    t = viewmats[:, :3, 3]
     d_world = torch.einsum("cji,chwj->chwi", R, d_cam)  # Rᵀ d
     d_world = d_world / d_world.norm(dim=-1, keepdim=True)
-    centres = -torch.einsum("cji,cj->ci", R, t)  # −Rᵀ t
+    centres = camera_centers(viewmats)  # −Rᵀ t, (C, 3)
     origins = centres[:, None, None, :].expand_as(d_world)
     return origins, d_world
 

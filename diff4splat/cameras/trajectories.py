@@ -27,6 +27,7 @@ import math
 import torch
 from torch import Tensor
 
+from ..checks import check_positive_int
 from .path import CameraPath
 
 __all__ = ["TRAJECTORIES", "DEFAULT_AMPLITUDES", "look_at", "make_trajectory"]
@@ -136,8 +137,7 @@ def make_trajectory(
     """
     if name not in TRAJECTORIES:
         raise ValueError(f"name must be one of {TRAJECTORIES}, got {name!r}")
-    if isinstance(num_frames, bool) or not isinstance(num_frames, int) or num_frames < 1:
-        raise ValueError(f"num_frames must be an integer ≥ 1, got {num_frames!r}")
+    num_frames = check_positive_int("num_frames", num_frames)
     if not isinstance(scene_depth, (int, float)) or not math.isfinite(scene_depth) or scene_depth <= 0:
         raise ValueError(f"scene_depth must be a finite number > 0 metres, got {scene_depth!r}")
     if name == "orbit" and amplitude is not None:

@@ -7,14 +7,13 @@ from .cameras import load_cameras_json, load_realestate10k, save_cameras_json, s
 from .exr import load_depth_exr, save_depth_exr
 from .atomic import atomic_output_dir, atomic_output_path
 from .image import load_image, preprocess_image
-from .ply import OPACITY_EPS, load_ply, ply_property_names, save_ply
+from .ply import load_ply, ply_property_names, save_ply
 from .video import load_video, save_image, save_video, to_uint8
 
 __all__ = [
     "save_ply",
     "load_ply",
     "ply_property_names",
-    "OPACITY_EPS",
     "save_depth_exr",
     "load_depth_exr",
     "save_video",

@@ -21,13 +21,13 @@ with fx, cx divided by the image width, fy, cy divided by the image height, the 
 from __future__ import annotations
 
 import json
-import math
 import os
 from pathlib import Path
 
 import torch
 
 from ..cameras.path import CameraPath
+from ..checks import check_positive, check_positive_int
 from .atomic import atomic_output_path
 
 __all__ = ["save_cameras_json", "load_cameras_json", "load_realestate10k", "save_realestate10k"]
@@ -99,9 +99,10 @@ def load_cameras_json(path: str | os.PathLike) -> CameraPath:
         if key not in data:
             raise ValueError(f"{path}: missing key '{key}'")
     for key in ("width", "height"):
-        v = data[key]
-        if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
-            raise ValueError(f"{path}: '{key}' must be a positive integer, got {v!r}")
+        try:
+            check_positive_int(f"'{key}'", data[key], "pixels")
+        except ValueError as e:
+            raise ValueError(f"{path}: {e}") from None
     viewmats = _tensor(data, "viewmats", (4, 4), path)
     Ks = _tensor(data, "Ks", (3, 3), path)
     times = None
@@ -163,9 +164,7 @@ def load_realestate10k(path: str | os.PathLike, width: int, height: int, relativ
         rows.append(vals)
     if not rows:
         raise ValueError(f"{path}: no camera lines")
-    for name, v in (("width", width), ("height", height)):
-        if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
-            raise ValueError(f"{name} must be a positive integer number of pixels, got {v!r}")
+    width, height = check_positive_int("width", width, "pixels"), check_positive_int("height", height, "pixels")
     vals = torch.tensor(rows, dtype=torch.float64)  # (T, 18)
     T = vals.shape[0]
     Ks = torch.zeros(T, 3, 3, dtype=torch.float64)
@@ -208,8 +207,7 @@ def save_realestate10k(
             frame), ``fps`` (not positive and finite) or a field of :meth:`CameraPath.validate`.
     """
     camera_path.validate()
-    if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not math.isfinite(fps) or fps <= 0:
-        raise ValueError(f"fps must be a positive number, got {fps!r}")
+    fps = check_positive("fps", fps)
     if url is not None and ("\n" in url or "\r" in url or not url.strip() or _is_number(url.split()[0])):
         raise ValueError(f"url must be a single non-numeric line, got {url!r}")
     W, H, T = camera_path.width, camera_path.height, len(camera_path)

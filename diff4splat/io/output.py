@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from ..cameras.path import CameraPath
+from ..constants import ALPHA_MIN
 from ..scene import DynamicGaussians
 from .atomic import atomic_output_dir, atomic_output_path
 from .cameras import save_cameras_json
@@ -31,14 +32,12 @@ from .video import save_video
 
 __all__ = ["write_scene_folder", "fill_empty_depth", "save_deformation", "load_deformation"]
 
-ALPHA_EMPTY = 1.0 / 255.0
-"""Pixels with coverage below this hold no geometry (the 3DGS per-Gaussian alpha threshold)."""
 
 
 def fill_empty_depth(depths: Tensor, alphas: Tensor, fallback: float) -> Tensor:
     """Give pixels without geometry the far distance of the scene, so every depth is finite and > 0.
 
-    Empty pixels (alpha < 1/255) get the largest depth rendered anywhere on the path (the scene's far
+    Empty pixels (alpha < :data:`~diff4splat.constants.ALPHA_MIN` = 1/255) get the largest depth rendered anywhere on the path (the scene's far
     bound along these views), or ``fallback`` metres if no pixel is covered; the "A" channel of the EXR
     keeps the coverage so users can mask them.
 
@@ -50,7 +49,7 @@ def fill_empty_depth(depths: Tensor, alphas: Tensor, fallback: float) -> Tensor:
     Returns:
         (T, H, W) depth, metres, finite and > 0.
     """
-    covered = alphas >= ALPHA_EMPTY
+    covered = alphas >= ALPHA_MIN
     far = float(depths[covered].max()) if bool(covered.any()) else float(fallback)
     return torch.where(covered & (depths > 0), depths, torch.full_like(depths, far))
 

@@ -26,13 +26,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..constants import OPACITY_EPS
 from ..gaussians import Gaussians
 from .atomic import atomic_output_path
 
-__all__ = ["save_ply", "load_ply", "ply_property_names", "OPACITY_EPS"]
-
-OPACITY_EPS = 1e-6
-"""Opacities are clamped to [OPACITY_EPS, 1 − OPACITY_EPS] before the logit."""
+__all__ = ["save_ply", "load_ply", "ply_property_names"]
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",

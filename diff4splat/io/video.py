@@ -1,7 +1,6 @@
 """MP4 video and PNG image writing with OpenCV (atomic), and MP4 reading for tests and tools."""
 from __future__ import annotations
 
-import math
 import os
 from pathlib import Path
 
@@ -9,6 +8,7 @@ import cv2
 import numpy as np
 from torch import Tensor
 
+from ..checks import check_positive
 from .atomic import atomic_output_path
 
 __all__ = ["save_video", "load_video", "save_image", "to_uint8"]
@@ -61,8 +61,7 @@ def save_video(path: str | os.PathLike, frames: Tensor | np.ndarray, fps: float 
     path = Path(path)
     if path.suffix.lower() != ".mp4":
         raise ValueError(f"path must end in .mp4, got {str(path)!r}")
-    if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not math.isfinite(fps) or fps <= 0:
-        raise ValueError(f"fps must be a positive number, got {fps!r}")
+    fps = check_positive("fps", fps)
     video = to_uint8(frames, "frames")
     if video.ndim != 4 or video.shape[-1] != 3 or video.shape[0] < 1:
         raise ValueError(f"frames must have shape (T, H, W, 3) with T ≥ 1, got {video.shape}")

@@ -27,7 +27,18 @@ import importlib.util
 import torch
 from torch import Tensor
 
-from diff4splat.render.reference import compute_dtype, full_precision, validate_inputs
+from diff4splat.render.defaults import (
+    CAMERA_MODEL,
+    EPS2D,
+    FAR_PLANE,
+    NEAR_PLANE,
+    RASTERIZE_MODE,
+    RENDER_MODE,
+    SH_DEGREE,
+    TILE_SIZE,
+)
+from diff4splat.render.stages import compute_dtype, full_precision
+from diff4splat.render.validate import validate_inputs
 
 __all__ = ["gsplat_available", "use_gsplat", "rasterize_gsplat"]
 
@@ -38,7 +49,7 @@ def gsplat_available() -> bool:
     return importlib.util.find_spec("gsplat") is not None and torch.cuda.is_available()
 
 
-def use_gsplat(means: Tensor, camera_model: str = "pinhole") -> bool:
+def use_gsplat(means: Tensor, camera_model: str = CAMERA_MODEL) -> bool:
     """Whether ``rasterize`` should dispatch to gsplat: CUDA tensors that are not float64, a pinhole
     camera (other camera models go through the ray path), and gsplat importable."""
     return (means.is_cuda and means.dtype != torch.float64 and camera_model == "pinhole"
@@ -57,15 +68,15 @@ def rasterize_gsplat(
     width: int,
     height: int,
     *,
-    near_plane: float = 0.01,
-    far_plane: float = 1e10,
-    eps2d: float = 0.3,
-    sh_degree: int | None = None,
+    near_plane: float = NEAR_PLANE,
+    far_plane: float = FAR_PLANE,
+    eps2d: float = EPS2D,
+    sh_degree: int | None = SH_DEGREE,
     backgrounds: Tensor | None = None,
-    render_mode: str = "RGB+ED",
-    rasterize_mode: str = "classic",
-    camera_model: str = "pinhole",
-    tile_size: int = 16,
+    render_mode: str = RENDER_MODE,
+    rasterize_mode: str = RASTERIZE_MODE,
+    camera_model: str = CAMERA_MODEL,
+    tile_size: int = TILE_SIZE,
 ) -> tuple[Tensor, Tensor, dict]:
     """Render with ``gsplat.rasterization``; arguments and outputs as :func:`diff4splat.render.rasterize`.
 

@@ -6,8 +6,8 @@ This is the per-Gaussian stage of 3D Gaussian Splatting (Kerbl et al. 2023, §4;
 behind :func:`project_means_covars` so another model (fisheye, through a ray path) can be added
 without touching the rasterizers.
 
-Also home of the 3DGS per-pixel thresholds and of :func:`splat_alpha`, the single definition of a
-Gaussian's opacity at a pixel, used by both rasterizers so they cannot drift apart.
+Also home of :func:`splat_alpha`, the single definition of a Gaussian's opacity at a pixel (with the
+3DGS thresholds of :mod:`diff4splat.constants`), used by both rasterizers so they cannot drift apart.
 """
 from __future__ import annotations
 
@@ -16,12 +16,10 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from diff4splat.constants import ALPHA_MAX, ALPHA_MIN
 from diff4splat.quaternions import quat_to_rotmat
 
 __all__ = [
-    "ALPHA_MAX",
-    "ALPHA_MIN",
-    "T_MIN",
     "RADIUS_MAX",
     "CAMERA_MODELS",
     "Projection",
@@ -36,12 +34,6 @@ __all__ = [
     "matmul",
 ]
 
-ALPHA_MAX = 0.99
-"""Per-Gaussian alpha is clamped to this (INRIA 3DGS ``min(0.99f, …)``)."""
-ALPHA_MIN = 1.0 / 255.0
-"""A Gaussian whose alpha at a pixel is below this is skipped there (3DGS, gsplat)."""
-T_MIN = 1e-4
-"""Compositing stops before a Gaussian that would bring transmittance below this (3DGS)."""
 RADIUS_MAX = 1 << 30
 """Screen radii are clamped to this (pixels) before the int32 cast (exact in float32)."""
 CAMERA_MODELS = ("pinhole",)

@@ -1,6 +1,7 @@
 """Fast tile-based CPU rasterizer of 3D Gaussians (pure PyTorch, differentiable).
 
-Same rules and outputs as the dense reference (:mod:`diff4splat.render.reference`), organised like
+Same rules and outputs as the dense reference (:mod:`diff4splat.render.reference`; both are compositors
+of :func:`diff4splat.render.stages.render_pipeline`), organised like
 gsplat's CUDA pipeline (Kerbl et al. 2023 §6): per camera the visible Gaussians are sorted once by
 depth, binned into tile_size × tile_size tiles (each tile's list stays depth-sorted), and tiles are
 composited in chunks. Inside a chunk only the (pixel, Gaussian) pairs where the pixel lies in the
@@ -18,10 +19,21 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from diff4splat.render.projection import ALPHA_MAX, T_MIN, splat_alpha, splat_sigma, support_extent
+from diff4splat.constants import ALPHA_MAX, T_MIN
+from diff4splat.render.defaults import (
+    CAMERA_MODEL,
+    EPS2D,
+    FAR_PLANE,
+    NEAR_PLANE,
+    RASTERIZE_MODE,
+    RENDER_MODE,
+    SH_DEGREE,
+    TILE_SIZE,
+)
 from diff4splat.render.gsplat_backend import rasterize_gsplat, use_gsplat
+from diff4splat.render.projection import splat_alpha, splat_sigma, support_extent
 from diff4splat.render.raytrace import raytrace
-from diff4splat.render.reference import render_pipeline
+from diff4splat.render.stages import render_pipeline
 
 __all__ = ["rasterize", "bin_tiles", "composite_tiles", "PAIR_BUDGET"]
 
@@ -256,15 +268,15 @@ def rasterize(
     width: int,
     height: int,
     *,
-    near_plane: float = 0.01,
-    far_plane: float = 1e10,
-    eps2d: float = 0.3,
-    sh_degree: int | None = None,
+    near_plane: float = NEAR_PLANE,
+    far_plane: float = FAR_PLANE,
+    eps2d: float = EPS2D,
+    sh_degree: int | None = SH_DEGREE,
     backgrounds: Tensor | None = None,
-    render_mode: str = "RGB+ED",
-    rasterize_mode: str = "classic",
-    camera_model: str = "pinhole",
-    tile_size: int = 16,
+    render_mode: str = RENDER_MODE,
+    rasterize_mode: str = RASTERIZE_MODE,
+    camera_model: str = CAMERA_MODEL,
+    tile_size: int = TILE_SIZE,
     camera_params: object = None,
 ) -> tuple[Tensor, Tensor, dict]:
     """Render 3D Gaussians into C cameras (gsplat ``rasterization`` signature), CPU tile path.

@@ -29,9 +29,21 @@ import torch
 from torch import Tensor
 
 from diff4splat.cameras.lenses import ThinLens, check_camera, generate_rays
+from diff4splat.cameras.path import camera_centers
+from diff4splat.constants import ALPHA_MAX, ALPHA_MIN, T_MIN
 from diff4splat.quaternions import quat_to_rotmat
-from diff4splat.render.projection import ALPHA_MAX, ALPHA_MIN, T_MIN
-from diff4splat.render.reference import color_features, expected_depth, mode_backgrounds, validate_inputs
+from diff4splat.render.defaults import (
+    CAMERA_MODEL,
+    EPS2D,
+    FAR_PLANE,
+    NEAR_PLANE,
+    RASTERIZE_MODE,
+    RENDER_MODE,
+    SH_DEGREE,
+    TILE_SIZE,
+)
+from diff4splat.render.stages import color_features, expected_depth, mode_backgrounds
+from diff4splat.render.validate import validate_inputs
 
 __all__ = ["raytrace", "whitening", "ray_gaussian_response", "composite_rays", "support_radius", "cull_tiles",
            "RAY_PAIR_BUDGET"]
@@ -199,16 +211,16 @@ def raytrace(
     width: int,
     height: int,
     *,
-    near_plane: float = 0.01,
-    far_plane: float = 1e10,
-    eps2d: float = 0.3,
-    sh_degree: int | None = None,
+    near_plane: float = NEAR_PLANE,
+    far_plane: float = FAR_PLANE,
+    eps2d: float = EPS2D,
+    sh_degree: int | None = SH_DEGREE,
     backgrounds: Tensor | None = None,
-    render_mode: str = "RGB+ED",
-    rasterize_mode: str = "classic",
-    camera_model: str = "pinhole",
+    render_mode: str = RENDER_MODE,
+    rasterize_mode: str = RASTERIZE_MODE,
+    camera_model: str = CAMERA_MODEL,
     camera_params: object = None,
-    tile_size: int = 16,
+    tile_size: int = TILE_SIZE,
     budget: int | None = None,
 ) -> tuple[Tensor, Tensor, dict]:
     """Render Gaussians by ray tracing; same arguments and outputs as :func:`diff4splat.render.rasterize`.
@@ -277,7 +289,7 @@ def raytrace(
         o_all, d_all = origins[c].reshape(n_rays, 3), dirs[c].reshape(n_rays, 3)
         ok_all = valid[c].reshape(n_rays)
         d_sorted, ok_sorted = d_all[ray_order], ok_all[ray_order]
-        centre = -viewmats[c, :3, :3].T @ viewmats[c, :3, 3]
+        centre = camera_centers(viewmats[c])
         vis = cull_tiles(d_sorted, ok_sorted, tile_of_ray, n_tiles, centre.detach(), spread, means.detach(), radii)
         ids, cols, accs, dists, pairs, start = [], [], [], [], 0, 0
         for t in range(n_tiles):

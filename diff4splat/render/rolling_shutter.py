@@ -13,7 +13,7 @@ Chunks = 1 is one ordinary ray-traced frame.
 """
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor
@@ -21,6 +21,7 @@ from torch import Tensor
 from ..cameras.lenses import RollingShutter
 from ..cameras.path import CameraPath
 from ..scene import DynamicGaussians
+from .defaults import BACKGROUND
 from .raytrace import raytrace
 
 __all__ = ["render_rolling_shutter"]
@@ -33,7 +34,7 @@ def render_rolling_shutter(
     *,
     frames: Sequence[int] | None = None,
     interpolate_pose: bool = True,
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    background: tuple[float, float, float] = BACKGROUND,
     **rasterize_kwargs,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Render frames of ``cameras`` with a rolling shutter.

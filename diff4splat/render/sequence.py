@@ -7,6 +7,7 @@ from tqdm.auto import tqdm
 
 from ..cameras.path import CameraPath
 from ..scene import DynamicGaussians
+from .defaults import BACKGROUND
 from .rasterize import rasterize
 
 __all__ = ["render_path"]
@@ -17,7 +18,7 @@ def render_path(
     scene: DynamicGaussians,
     cameras: CameraPath,
     *,
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    background: tuple[float, float, float] = BACKGROUND,
     progress: bool = False,
     **rasterize_kwargs,
 ) -> tuple[Tensor, Tensor, Tensor]:

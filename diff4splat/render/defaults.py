@@ -1,0 +1,36 @@
+"""Default arguments of the render entry points (one home for each value).
+
+:func:`~diff4splat.render.rasterize`, :func:`~diff4splat.render.rasterize_dense`,
+:func:`~diff4splat.render.raytrace` and :func:`~diff4splat.render.gsplat_backend.rasterize_gsplat` keep
+gsplat's ``rasterization`` argument list (so calls port unchanged) and take their default values from
+here; :func:`~diff4splat.render.sequence.render_path` and
+:func:`~diff4splat.render.render_rolling_shutter` take :data:`BACKGROUND` and :data:`NEAR_PLANE`.
+
+The values are gsplat 1.4's ``rasterization`` defaults, except :data:`RENDER_MODE`: this project renders
+colour and expected depth together ("RGB+ED") by default, where gsplat's default is "RGB".
+"""
+from __future__ import annotations
+
+__all__ = [
+    "NEAR_PLANE", "FAR_PLANE", "EPS2D", "SH_DEGREE", "RENDER_MODE", "RASTERIZE_MODE", "CAMERA_MODEL", "TILE_SIZE",
+    "BACKGROUND",
+]
+
+NEAR_PLANE = 0.01
+"""Gaussians (or ray hits) nearer than this, metres along the camera z (the ray), are culled (gsplat 0.01)."""
+FAR_PLANE = 1e10
+"""Gaussians (or ray hits) farther than this, metres, are culled (gsplat 1e10)."""
+EPS2D = 0.3
+"""Screen-space dilation added to each projected covariance, pixels² (gsplat / INRIA 0.3)."""
+SH_DEGREE = None
+"""``colors`` are composited as given unless an SH degree is named (gsplat None)."""
+RENDER_MODE = "RGB+ED"
+"""Colour plus expected depth as the last channel (gsplat's default is "RGB"; this project's is "RGB+ED")."""
+RASTERIZE_MODE = "classic"
+"""No Mip-Splatting opacity compensation (gsplat "classic")."""
+CAMERA_MODEL = "pinhole"
+"""Pinhole projection (gsplat "pinhole")."""
+TILE_SIZE = 16
+"""Tile edge, pixels (gsplat 16); a performance knob, the image does not depend on it."""
+BACKGROUND = (0.0, 0.0, 0.0)
+"""RGB in [0, 1] behind the Gaussians for the scene renderers (render_path, render_rolling_shutter)."""

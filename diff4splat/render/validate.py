@@ -1,0 +1,84 @@
+"""Input validation shared by every render entry point (tile path, dense reference, ray path, gsplat).
+
+One function, :func:`validate_inputs`, checks the gsplat-style argument list; the render modes and
+rasterize modes the renderer accepts are listed here.
+"""
+from __future__ import annotations
+
+from torch import Tensor
+
+from diff4splat.checks import check_finite, check_positive_int
+from diff4splat.render.projection import CAMERA_MODELS
+from diff4splat.render.sh import num_sh_bases
+
+__all__ = ["RENDER_MODES", "RASTERIZE_MODES", "validate_inputs"]
+
+RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
+"""gsplat's render modes: colour, accumulated depth, expected depth, colour + either depth."""
+RASTERIZE_MODES = ("classic", "antialiased")
+"""gsplat's rasterize modes (antialiased: Mip-Splatting opacity compensation)."""
+
+
+def _check_shape(name: str, t: Tensor, shape: tuple) -> None:
+    """Raise ValueError naming ``name`` unless ``t`` has ``shape`` (None = any size)."""
+    if not isinstance(t, Tensor):
+        raise ValueError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
+    ok = t.dim() == len(shape) and all(s is None or s == d for s, d in zip(shape, t.shape))
+    if not ok:
+        want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
+        raise ValueError(f"{name} must have shape {want}, got {tuple(t.shape)}")
+
+
+def validate_inputs(
+    means, quats, scales, opacities, colors, viewmats, Ks, width, height, *,
+    near_plane, far_plane, eps2d, sh_degree, backgrounds, render_mode, rasterize_mode, camera_model, tile_size,
+) -> None:
+    """Check every argument of ``rasterize``; raise one ``ValueError`` naming the first bad one.
+
+    Checked, in order: shapes of means (N, 3), quats (N, 4), scales (N, 3), opacities (N,), colors
+    ((N, D), or (N, K, 3) with K ≥ (sh_degree+1)²), viewmats (C, 4, 4), Ks (C, 3, 3), backgrounds
+    (C, D); width, height, tile_size positive ints (pixels); 0 ≤ near_plane < far_plane (metres);
+    eps2d ≥ 0 (pixels²); render_mode in :data:`RENDER_MODES`, rasterize_mode in
+    :data:`RASTERIZE_MODES`, camera_model in :data:`~diff4splat.render.projection.CAMERA_MODELS`;
+    every tensor floating point and finite. Every entry point (tile path, dense reference, ray path,
+    gsplat backend) calls this, so the same bad argument gives the same message from each.
+
+    Raises:
+        ValueError: naming the first bad argument and its value (or shape).
+    """
+    _check_shape("means", means, (None, 3))
+    n = means.shape[0]
+    _check_shape("quats", quats, (n, 4))
+    _check_shape("scales", scales, (n, 3))
+    _check_shape("opacities", opacities, (n,))
+    if sh_degree is None:
+        _check_shape("colors", colors, (n, None))
+    else:
+        k = num_sh_bases(sh_degree)
+        _check_shape("colors", colors, (n, None, 3))
+        if colors.shape[1] < k:
+            raise ValueError(f"colors holds {colors.shape[1]} SH coefficients, sh_degree={sh_degree} needs {k}")
+    _check_shape("viewmats", viewmats, (None, 4, 4))
+    c = viewmats.shape[0]
+    _check_shape("Ks", Ks, (c, 3, 3))
+    if backgrounds is not None:
+        _check_shape("backgrounds", backgrounds, (c, colors.shape[-1]))
+    check_positive_int("width", width, "pixels")
+    check_positive_int("height", height, "pixels")
+    check_positive_int("tile_size", tile_size, "pixels")
+    if not 0 <= near_plane < far_plane:
+        raise ValueError(f"need 0 <= near_plane < far_plane, got near_plane={near_plane}, far_plane={far_plane}")
+    if not eps2d >= 0:
+        raise ValueError(f"eps2d must be >= 0 pixels², got {eps2d}")
+    if render_mode not in RENDER_MODES:
+        raise ValueError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
+    if rasterize_mode not in RASTERIZE_MODES:
+        raise ValueError(f"rasterize_mode must be one of {RASTERIZE_MODES}, got {rasterize_mode!r}")
+    if camera_model not in CAMERA_MODELS:
+        raise ValueError(f"camera_model must be one of {CAMERA_MODELS} (others are not supported yet), got {camera_model!r}")
+    for name, t in (("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
+                    ("colors", colors), ("viewmats", viewmats), ("Ks", Ks), ("backgrounds", backgrounds)):
+        if t is not None:
+            if not t.is_floating_point():
+                raise ValueError(f"{name} must be a floating-point tensor, got dtype {t.dtype}")
+            check_finite(name, t)
