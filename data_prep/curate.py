@@ -48,6 +48,7 @@ import torch
 import yaml
 from tqdm import tqdm
 
+from diff4splat.cameras import camera_centers
 from diff4splat.io import atomic_output_dir, atomic_output_path
 
 from .format import SceneReader, list_scenes
@@ -237,8 +238,8 @@ def scene_statistics(scene: SceneReader, config: CurationConfig) -> SceneStats:
     trans, rot = 0.0, 0.0
     for name in names:
         vm = scene.cameras(name).viewmats.double().numpy()  # (T, 4, 4) world-to-camera
-        centres = -np.einsum("tji,tj->ti", vm[:, :3, :3], vm[:, :3, 3])  # −Rᵀt
-        ref_centre = -ref[:3, :3].T @ ref[:3, 3]
+        centres = camera_centers(torch.from_numpy(vm)).numpy()  # −Rᵀt
+        ref_centre = camera_centers(torch.from_numpy(ref)).numpy()
         trans = max(trans, float(np.linalg.norm(centres - ref_centre, axis=-1).max()))
         cos = (np.einsum("tij,ij->t", vm[:, :3, :3], ref[:3, :3]) - 1.0) / 2.0  # tr(R Rref^T)
         rot = max(rot, float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).max()))

@@ -5,7 +5,7 @@ gsplat's ``rasterize_to_pixels``; every module compares against these names, nev
 """
 from __future__ import annotations
 
-__all__ = ["ALPHA_MAX", "ALPHA_MIN", "T_MIN", "OPACITY_EPS"]
+__all__ = ["ALPHA_MAX", "ALPHA_MIN", "T_MIN", "OPACITY_EPS", "OPACITY_LOG_FLOOR"]
 
 ALPHA_MAX = 0.99
 """Per-Gaussian alpha is clamped to this (INRIA 3DGS ``min(0.99f, …)``)."""
@@ -16,3 +16,6 @@ T_MIN = 1e-4
 """Compositing stops before a Gaussian that would bring transmittance below this (3DGS)."""
 OPACITY_EPS = 1e-6
 """Opacities are clamped to [OPACITY_EPS, 1 − OPACITY_EPS] before the logit (PLY storage), so it stays finite."""
+OPACITY_LOG_FLOOR = 1e-30
+"""Opacities are clamped to at least this before ln(o / ALPHA_MIN) (support radii, ray pre-test), so a zero
+opacity gives a finite, very negative value (never visible) instead of −inf."""

@@ -7,6 +7,7 @@ from dataclasses import dataclass, fields
 from torch import Tensor
 
 from .checks import check_finite
+from .quaternions import quat_normalize
 
 __all__ = ["Gaussians", "SH_C0", "rgb_to_sh0", "sh0_to_rgb"]
 
@@ -78,8 +79,7 @@ class Gaussians:
             raise ValueError(f"scales must be > 0 metres, min is {float(self.scales.min())}")
         if n and bool(((self.opacities < 0) | (self.opacities > 1)).any()):
             raise ValueError("opacities must lie in [0, 1]")
-        if n and bool((self.quats.norm(dim=-1) < 1e-12).any()):
-            raise ValueError("quats has a zero-norm quaternion")
+        quat_normalize(self.quats, "quats")  # zero norm → ValueError naming quats
 
     def select(self, index: Tensor) -> Gaussians:
         """Subset by boolean mask (N,) or integer indices (M,)."""

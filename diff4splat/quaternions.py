@@ -19,6 +19,7 @@ __all__ = [
 ]
 
 _ZERO_NORM = 1e-12
+"""A quaternion with a smaller norm has no orientation (:func:`quat_normalize` refuses it)."""
 
 
 def quat_normalize(quats: Tensor, name: str = "quats") -> Tensor:

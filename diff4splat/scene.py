@@ -82,8 +82,7 @@ class DynamicGaussians:
             raise ValueError(f"times must lie in [0, 1], got {self.times.tolist()}")
         if T > 1 and not bool((self.times[1:] > self.times[:-1]).all()):
             raise ValueError("times must be strictly increasing")
-        if M and bool((self.d_quats.norm(dim=-1) < 1e-12).any()):
-            raise ValueError("d_quats has a zero-norm quaternion")
+        quat_normalize(self.d_quats, "d_quats")  # zero norm → ValueError naming d_quats
 
     def _check_temporal(self) -> None:
         if self.t_means is None and self.t_scales is None:

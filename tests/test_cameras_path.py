@@ -4,7 +4,16 @@ import math
 import pytest
 import torch
 
-from diff4splat.cameras import CameraPath, camera_rays, center_crop_box, intrinsics_from_focal, invert_rigid
+from diff4splat.cameras import (
+    CameraPath,
+    camera_centers,
+    camera_rays,
+    center_crop_box,
+    intrinsics_from_focal,
+    invert_rigid,
+)
+from diff4splat.cameras.lenses import generate_rays
+from diff4splat.render.stages import color_features
 from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
 
 
@@ -41,6 +50,43 @@ def test_camera_centers_are_fixed_points_of_projection():
     origins, _ = camera_rays(V, p.Ks, 2, 2)
     torch.testing.assert_close(origins[:, 0, 0], c)
     torch.testing.assert_close(invert_rigid(V), torch.linalg.inv(V))
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_camera_centers_match_a_brute_force_inverse(dtype):
+    """c = −Rᵀt is the translation of the inverse viewmat, for any batch shape and (3, 4) blocks."""
+    V = random_viewmats(12, seed=3, dtype=dtype) * torch.tensor([1.0, 1, 1, 5.0], dtype=dtype)  # spread t
+    V[:, 3] = torch.tensor([0.0, 0, 0, 1], dtype=dtype)
+    want = torch.linalg.inv(V.double())[:, :3, 3].to(dtype)
+    tol = {"atol": 1e-12, "rtol": 0} if dtype == torch.float64 else {"atol": 1e-5, "rtol": 1e-5}
+    torch.testing.assert_close(camera_centers(V), want, **tol)
+    torch.testing.assert_close(camera_centers(V.reshape(3, 4, 4, 4)), want.reshape(3, 4, 3), **tol)
+    torch.testing.assert_close(camera_centers(V[:, :3]), want, **tol)
+    torch.testing.assert_close(camera_centers(V[0]), want[0], **tol)
+    assert camera_centers(V).dtype == dtype
+
+
+@pytest.mark.parametrize("bad", [torch.eye(3), torch.zeros(4), "viewmats"])
+def test_camera_centers_refuses_non_transforms(bad):
+    with pytest.raises(ValueError, match="viewmats must be a tensor of shape"):
+        camera_centers(bad)
+
+
+def test_every_camera_centre_user_agrees():
+    """CameraPath, camera_rays, the lens ray generator and the SH viewing direction use the same centre."""
+    p = make_path(3)
+    c = camera_centers(p.viewmats)
+    torch.testing.assert_close(p.camera_centers(), c, atol=0, rtol=0)
+    torch.testing.assert_close(camera_rays(p.viewmats, p.Ks, 2, 2)[0][:, 1, 1], c, atol=0, rtol=0)
+    torch.testing.assert_close(generate_rays(p.viewmats, p.Ks, 2, 2, "fisheye", None)[0][:, 1, 1, 0], c, atol=0, rtol=0)
+    # degree-1 SH with only the y-coefficient set: colour is linear in the unit direction mean − centre
+    means = torch.tensor([[0.3, -0.2, 4.0]], dtype=torch.float64)
+    sh = torch.zeros(1, 4, 3, dtype=torch.float64)
+    sh[0, 1] = 1.0  # Y_1^{-1} ∝ −y
+    feats = color_features(sh, means, p.viewmats, 1)  # (C, 1, 3)
+    d = means[None, 0] - c
+    d = d / d.norm(dim=-1, keepdim=True)
+    torch.testing.assert_close(feats[:, 0, 0], (-0.4886025119029199 * d[:, 1] + 0.5).clamp(min=0))
 
 
 def test_relative_to_first_preserves_relative_poses():

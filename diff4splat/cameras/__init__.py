@@ -2,7 +2,7 @@
 world-to-camera viewmats)."""
 from .intrinsics import center_crop_box, fov_from_intrinsics, intrinsics_from_focal, intrinsics_from_fov
 from .lenses import FisheyeKB, FisheyePolynomial, RollingShutter, ThinLens
-from .path import CameraPath, invert_rigid
+from .path import CameraPath, camera_centers, invert_rigid
 from .rays import camera_rays, pack_plucker, plucker_rays
 from .trajectories import DEFAULT_AMPLITUDES, TRAJECTORIES, look_at, make_trajectory
 
@@ -20,6 +20,7 @@ __all__ = [
     "ThinLens",
     "RollingShutter",
     "invert_rigid",
+    "camera_centers",
     "look_at",
     "make_trajectory",
     "TRAJECTORIES",

@@ -16,7 +16,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from diff4splat.constants import ALPHA_MAX, ALPHA_MIN
+from diff4splat.constants import ALPHA_MAX, ALPHA_MIN, OPACITY_LOG_FLOOR
 from diff4splat.quaternions import quat_to_rotmat
 
 __all__ = [
@@ -275,7 +275,7 @@ def support_extent(covars2d: Tensor, opacities: Tensor) -> Tensor:
     Returns:
         (..., 2) half extents (x, y), pixels; negative where the Gaussian is never visible (o < 1/255).
     """
-    tau = torch.log(torch.clamp(opacities, min=1e-30) / ALPHA_MIN)
+    tau = torch.log(torch.clamp(opacities, min=OPACITY_LOG_FLOOR) / ALPHA_MIN)
     var = torch.stack([covars2d[..., 0], covars2d[..., 2]], dim=-1).clamp(min=0.0)
     ext = torch.sqrt(2.0 * tau.clamp(min=0.0)[..., None] * var) * 1.001 + 1e-3
     return torch.where((tau >= 0)[..., None], ext, torch.full_like(ext, -1.0))

@@ -30,7 +30,7 @@ from torch import Tensor
 
 from diff4splat.cameras.lenses import ThinLens, check_camera, generate_rays
 from diff4splat.cameras.path import camera_centers
-from diff4splat.constants import ALPHA_MAX, ALPHA_MIN, T_MIN
+from diff4splat.constants import ALPHA_MAX, ALPHA_MIN, OPACITY_LOG_FLOOR, T_MIN
 from diff4splat.quaternions import quat_to_rotmat
 from diff4splat.render.defaults import (
     CAMERA_MODEL,
@@ -124,7 +124,7 @@ def composite_rays(
     """
     m2, t = _ray_gaussian_m2(origins, dirs, means, whiten)
     # alpha ≥ 1/255 ⇔ ½m² ≤ ln(255·o): a slightly loose pre-test on every pair, exact test on the hits
-    tau = 2.0 * torch.log(torch.clamp(opacities.detach(), min=1e-30) / ALPHA_MIN) * (1 + 1e-6) + 1e-6
+    tau = 2.0 * torch.log(torch.clamp(opacities.detach(), min=OPACITY_LOG_FLOOR) / ALPHA_MIN) * (1 + 1e-6) + 1e-6
     keep = (m2 <= tau) & (t >= near_plane) & (t <= far_plane)
     R, F = dirs.shape[0], feats.shape[-1]
     k = int(keep.sum(1).max()) if keep.numel() else 0
@@ -154,7 +154,7 @@ def support_radius(scales: Tensor, opacities: Tensor) -> Tensor:
     the radius is max(s)·sqrt(2 ln(255·o)) (the 3D analogue of :func:`.projection.support_extent`).
     (N, 3), (N,) → (N,); −1 where o < 1/255 (never visible).
     """
-    tau = torch.log(torch.clamp(opacities, min=1e-30) / ALPHA_MIN)
+    tau = torch.log(torch.clamp(opacities, min=OPACITY_LOG_FLOOR) / ALPHA_MIN)
     r = scales.amax(-1) * torch.sqrt(2.0 * tau.clamp(min=0.0)) * 1.001 + 1e-9
     return torch.where(tau >= 0, r, torch.full_like(r, -1.0))
 

@@ -1,0 +1,80 @@
+"""Input validation is one function shared by every render entry point: the same bad argument gives the
+same ValueError message from the tile path, the dense reference, the ray path and the gsplat backend."""
+import pytest
+import torch
+
+from diff4splat.cameras import CameraPath, intrinsics_from_focal
+from diff4splat.render import rasterize, rasterize_dense, raytrace
+from diff4splat.render.gsplat_backend import rasterize_gsplat
+from diff4splat.render.validate import RASTERIZE_MODES, RENDER_MODES, validate_inputs
+
+ENTRY_POINTS = [rasterize, rasterize_dense, raytrace, rasterize_gsplat]
+D = torch.float64
+
+
+def _args(n=3, w=8, h=6):
+    g = torch.Generator().manual_seed(0)
+    means = torch.randn(n, 3, generator=g, dtype=D) * 0.2 + torch.tensor([0.0, 0.0, 2.0], dtype=D)
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]] * n, dtype=D)
+    K = torch.tensor([[[10.0, 0, w / 2], [0, 10.0, h / 2], [0, 0, 1]]], dtype=D)
+    return [means, quats, torch.full((n, 3), 0.1, dtype=D), torch.full((n,), 0.5, dtype=D),
+            torch.rand(n, 3, generator=g, dtype=D), torch.eye(4, dtype=D)[None], K, w, h]
+
+
+def _message(fn, args, **kw) -> str:
+    with pytest.raises(ValueError) as e:
+        fn(*args, **kw)
+    return str(e.value)
+
+
+@pytest.mark.parametrize("name, value", [("width", 0), ("width", -3), ("height", 2.5), ("height", True),
+                                         ("tile_size", 0), ("tile_size", "16")])
+def test_bad_size_gives_one_message_from_every_entry_point(name, value):
+    args = _args()
+    kw = {}
+    if name == "width":
+        args[7] = value
+    elif name == "height":
+        args[8] = value
+    else:
+        kw["tile_size"] = value
+    messages = {fn.__name__: _message(fn, args, **kw) for fn in ENTRY_POINTS}
+    want = f"{name} must be a positive int (pixels), got {value!r}"
+    assert messages == {fn.__name__: want for fn in ENTRY_POINTS}
+
+
+@pytest.mark.parametrize("kw, needle", [
+    ({"render_mode": "RGBD"}, "render_mode must be one of"),
+    ({"near_plane": 2.0, "far_plane": 1.0}, "near_plane < far_plane"),
+    ({"eps2d": -1.0}, "eps2d must be >= 0"),
+])
+def test_bad_option_gives_one_message_from_every_entry_point(kw, needle):
+    messages = {_message(fn, _args(), **kw) for fn in ENTRY_POINTS}
+    assert len(messages) == 1 and needle in messages.pop()
+
+
+def test_non_finite_tensor_named_the_same_by_every_entry_point():
+    args = _args()
+    args[0] = args[0].clone()
+    args[0][1, 2] = float("nan")
+    messages = {_message(fn, args) for fn in ENTRY_POINTS}
+    assert messages == {"means contains 1 non-finite value(s) (NaN or inf)"}
+
+
+def test_size_message_matches_the_camera_layer():
+    """The cameras use the same check, so a bad width reads the same wherever it is caught."""
+    K = torch.eye(3, dtype=D)[None]
+    with pytest.raises(ValueError) as cam:
+        CameraPath(torch.eye(4, dtype=D)[None], K, 0, 4)
+    with pytest.raises(ValueError) as intr:
+        intrinsics_from_focal(10.0, 10.0, 0, 4)
+    args = _args()
+    args[7] = 0
+    assert str(cam.value) == str(intr.value) == _message(rasterize, args) == "width must be a positive int (pixels), got 0"
+
+
+def test_validate_inputs_accepts_good_arguments_and_lists_gsplat_modes():
+    validate_inputs(*_args(), near_plane=0.01, far_plane=1e10, eps2d=0.3, sh_degree=None, backgrounds=None,
+                    render_mode="RGB+ED", rasterize_mode="classic", camera_model="pinhole", tile_size=16)
+    assert RENDER_MODES == ("RGB", "D", "ED", "RGB+D", "RGB+ED")
+    assert RASTERIZE_MODES == ("classic", "antialiased")
