@@ -8,7 +8,7 @@ camera projections, adaLN gates; the deformation head) are perturbed, so outputs
 PyTorch call (``torch.no_grad``, torch's default threads) and of the onnxruntime session
 (ORT_ENABLE_ALL, intra-op threads = CPU cores), their ratio, and the max abs difference on the same
 inputs. End to end is ``Diff4SplatPipeline.__call__`` (image + text encoding, all sampler steps,
-LDRM, pruning) with each backend; the rendered video (same PyTorch renderer for both) gives the PSNR.
+LDRM, pruning) with each runtime; the rendered video (same PyTorch renderer for both) gives the PSNR.
 Modules below 1.5× are profiled with onnxruntime's profiler (share of node time per op type).
 The `small` rows double as the small-config export → run → compare check (too slow for the test suite).
 ``--write`` puts the tables into docs/benchmarks.md (section ``onnx``).
@@ -34,7 +34,7 @@ from _common import machine, markdown_table, peak_rss_mb, write_section  # noqa:
 
 from diff4splat.export import export_onnx  # noqa: E402
 from diff4splat.io import load_image  # noqa: E402
-from diff4splat.onnx_runtime import OnnxBackend  # noqa: E402
+from diff4splat.onnx_runtime import OnnxRuntime  # noqa: E402
 from diff4splat.pipeline import Diff4SplatPipeline  # noqa: E402
 from diff4splat.render.sequence import render_path  # noqa: E402
 from models.bundle import Diff4SplatModel, load_config  # noqa: E402
@@ -113,8 +113,8 @@ def max_abs_diff(ref, got: list[np.ndarray]) -> float:
 
 def profile_ops(out_dir: Path, part: str, feeds: dict, runs: int = 10) -> str:
     """Share of onnxruntime node time per op type (top 4), from its profiler's Chrome trace."""
-    backend = OnnxBackend(out_dir, profile_prefix=str(out_dir / f"profile_{part}"))
-    session = backend.sessions[part]
+    runtime = OnnxRuntime(out_dir, profile_prefix=str(out_dir / f"profile_{part}"))
+    session = runtime.sessions[part]
     np_feeds = {k: v.numpy() for k, v in feeds.items()}
     for _ in range(runs):
         session.run(None, np_feeds)
@@ -158,19 +158,19 @@ def bench_config(name: str, frames: int, repeats: int, e2e_repeats: int,
         diffs = {}
         for th in threads:
             torch.set_num_threads(th)  # the pipeline's torch glue (Plücker rays, pruning) as in the eager run
-            backend = OnnxBackend(out, threads=th)
+            runtime = OnnxRuntime(out, threads=th)
             for label, eager, part, feeds in cases:
                 np_feeds = {k: v.numpy() for k, v in feeds.items()}
-                session = backend.sessions[part]
+                session = runtime.sessions[part]
                 t_ort[label, th] = median_ms(lambda: session.run(None, np_feeds), repeats)
                 diffs[label] = max_abs_diff(eager(), session.run(None, np_feeds))
                 if t_torch[label, th] / t_ort[label, th] < TARGET:
                     notes.append(f"{name} {label}, {th} thread(s): {t_torch[label, th] / t_ort[label, th]:.2f}× — "
                                  f"onnxruntime node time by op: {profile_ops(out, part, feeds)}")
-            onnx_pipe = Diff4SplatPipeline(backend)
+            onnx_pipe = Diff4SplatPipeline(runtime)
             t_ort["e2e", th] = median_ms(lambda: results.__setitem__("onnxruntime", onnx_pipe(image, cams, PROMPT)),
                                          e2e_repeats)
-            del backend, onnx_pipe
+            del runtime, onnx_pipe
         torch.set_num_threads(threads[0])
         ref, got = results["torch"], results["onnxruntime"]
         video_psnr = psnr(render_path(got.scene, got.cameras)[0], render_path(ref.scene, ref.cameras)[0])

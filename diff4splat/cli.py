@@ -12,12 +12,16 @@ import warnings
 from importlib.metadata import entry_points
 from pathlib import Path
 
+from .checks import check_positive_int
+
 __all__ = ["main", "build_parser"]
 
 EXIT_USAGE = 2
 PLUGIN_GROUP = "diff4splat.commands"
 """Entry-point group of extra subcommands: ``register(subparsers)`` adds a parser whose defaults hold
-``func(args) -> int``. ``training`` registers ``evaluate`` this way, so this package never imports it."""
+``func(args) -> int``. ``training`` registers ``evaluate`` this way, so this package never imports it.
+Building the parser only lists the names (nothing is loaded); an entry point is loaded when its
+command is chosen (:func:`main`)."""
 
 
 class CLIError(Exception):
@@ -29,7 +33,16 @@ class _Parser(argparse.ArgumentParser):
         raise CLIError(message)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
+    """The ``diff4splat`` argument parser.
+
+    Commands of the :data:`PLUGIN_GROUP` entry points get a placeholder subparser that accepts any
+    arguments, so listing them imports nothing (no ``training``); ``load_command`` names the one whose
+    entry point is loaded to build its real subparser instead.
+
+    Raises:
+        ValueError: ``load_command`` is not a registered entry point.
+    """
     from .cameras import TRAJECTORIES
 
     parser = _Parser(prog="diff4splat", description="One photograph + a camera path + a prompt → a 4D Gaussian scene.")
@@ -54,10 +67,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--config", default=None, help="model config name in configs/ (default: tiny)")
     g.add_argument("--fps", type=int, default=8, help="video frame rate (default: 8)")
     g.add_argument("--device", default="cpu", help="torch device (default: cpu)")
-    g.add_argument("--backend", choices=("torch", "onnxruntime"), default="torch",
+    g.add_argument("--runtime", choices=("torch", "onnxruntime"), default="torch",
                    help="run the networks with PyTorch or with onnxruntime on an --onnx export (default: torch)")
     g.add_argument("--onnx", type=Path, default=None, help="folder written by `diff4splat export-onnx` "
-                   "(with --backend onnxruntime)")
+                   "(with --runtime onnxruntime)")
     g.add_argument("--quiet", action="store_true", help="no progress bars")
     g.add_argument("--out", type=Path, required=True, help="output folder (replaced atomically)")
 
@@ -72,8 +85,16 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--static", action="store_true",
                    help="leave out the deformation network (static scenes only)")
     e.add_argument("--opset", type=int, default=18, help="ONNX opset, >= 18 (default: 18)")
-    for ep in entry_points(group=PLUGIN_GROUP):  # e.g. `evaluate`, registered by the training package
-        ep.load()(sub)
+    plugins = {ep.name: ep for ep in entry_points(group=PLUGIN_GROUP)}  # e.g. `evaluate`, from `training`
+    if load_command is not None and load_command not in plugins:
+        raise ValueError(f"load_command: {load_command!r} is not a {PLUGIN_GROUP} entry point "
+                         f"(known: {sorted(plugins)})")
+    for name, ep in plugins.items():
+        if name == load_command:
+            ep.load()(sub)
+        else:  # placeholder: its arguments are left unparsed until the entry point is loaded
+            placeholder = sub.add_parser(name, add_help=False, help=f"(from {ep.module}; `diff4splat {name} --help`)")
+            placeholder.set_defaults(plugin=name)
     return parser
 
 
@@ -110,91 +131,102 @@ def export_onnx_command(args) -> dict:
                        checkpoint=checkpoint, source=source)
 
 
-def _load_cameras(args, image_shape: tuple[int, int], width: int, height: int):
-    from .cameras import CameraPath
-    from .io import load_cameras_json, load_realestate10k
-
-    path: Path = args.cameras
-    if not path.is_file():
-        raise FileNotFoundError(f"--cameras: {path} does not exist")
-    if path.suffix.lower() == ".json":
-        cams: CameraPath = load_cameras_json(path)
-    else:  # RealEstate10K intrinsics are normalised by the video frame, i.e. by the photograph
-        cams = load_realestate10k(path, image_shape[1], image_shape[0])
-    if args.frames is not None and args.frames != len(cams):
-        raise ValueError(f"--frames {args.frames} differs from the {len(cams)} cameras in {path}")
-    return cams.fitted(width, height)
-
-
-def generate(args) -> dict:
-    """Run ``generate``; returns the meta dict written to meta.json."""
-    import cv2
-    import torch
-
-    from . import __version__
-    from .io import load_image
-    from .io.output import write_scene_folder
-    from .pipeline import Diff4SplatPipeline
-    from .render.sequence import render_path
-
-    t_start = time.perf_counter()
-    image_path = Path(args.image)
-    if not image_path.is_file():
-        raise FileNotFoundError(f"image: {image_path} does not exist")
+def _check_generate_args(args) -> None:
+    """CLI-level checks of ``generate``'s arguments, before any model is loaded (messages name the flags)."""
+    if not Path(args.image).is_file():
+        raise FileNotFoundError(f"image: {args.image} does not exist")
     if args.out.exists() and not args.out.is_dir():
         raise FileExistsError(f"--out: {args.out} is a file")
     for name in ("frames", "steps"):
-        v = getattr(args, name)
-        if v is not None and v < 1:
-            raise ValueError(f"--{name} must be ≥ 1, got {v}")
-    if args.fps < 1:
-        raise ValueError(f"--fps must be ≥ 1, got {args.fps}")
-    versions = {}
-    if args.backend == "onnxruntime":
+        if getattr(args, name) is not None:
+            check_positive_int(f"--{name}", getattr(args, name))
+    check_positive_int("--fps", args.fps)
+    if args.runtime == "onnxruntime":
         if args.onnx is None:
-            raise ValueError("--backend onnxruntime needs --onnx DIR (a folder written by `diff4splat export-onnx`)")
+            raise ValueError("--runtime onnxruntime needs --onnx DIR (a folder written by `diff4splat export-onnx`)")
         if args.checkpoint is not None or args.config is not None or args.device != "cpu":
-            raise ValueError("--checkpoint, --config and --device do not apply to --backend onnxruntime "
+            raise ValueError("--checkpoint, --config and --device do not apply to --runtime onnxruntime "
                              "(the export's manifest fixes the model; onnxruntime picks CUDA or CPU)")
+        if not args.onnx.is_dir():
+            raise FileNotFoundError(f"--onnx: {args.onnx} is not a folder")
+    elif args.onnx is not None:
+        raise ValueError("--onnx needs --runtime onnxruntime")
+
+
+def _load_pipeline(args):
+    """The pipeline over the runtime ``--runtime`` asks for.
+
+    Returns:
+        (pipeline, model source description, seconds taken to load, extra version strings for meta.json).
+    """
+    from .pipeline import Diff4SplatPipeline
+
+    if args.runtime == "onnxruntime":
         import onnxruntime
 
-        from .onnx_runtime import OnnxBackend
+        from .onnx_runtime import OnnxRuntime
 
         t0 = time.perf_counter()
-        backend = OnnxBackend(args.onnx)
+        runtime = OnnxRuntime(args.onnx)
         t_load = time.perf_counter() - t0
-        source = f"onnx:{args.onnx} ({backend.manifest['source']})"
-        versions["onnxruntime"] = onnxruntime.__version__
-        pipe = Diff4SplatPipeline(backend)
+        source = f"onnx:{args.onnx} ({runtime.manifest['source']})"
+        return Diff4SplatPipeline(runtime), source, t_load, {"onnxruntime": onnxruntime.__version__}
+    model, source, t_load = _load_model(args.checkpoint, args.config or "tiny")
+    return Diff4SplatPipeline(model, device=args.device), source, t_load, {}
+
+
+def _load_cameras(path: Path, frames: int | None, photo_shape: tuple[int, int], width: int, height: int):
+    """``--cameras`` file → camera path at the model's ``width`` × ``height``.
+
+    RealEstate10K intrinsics are normalised by the video frame, i.e. by the photograph as displayed:
+    ``photo_shape`` is its (H, W) after EXIF orientation (:func:`diff4splat.io.image.read_image`),
+    the same image that is centre-cropped for the model.
+    """
+    from .io import load_cameras_json, load_realestate10k
+
+    if not path.is_file():
+        raise FileNotFoundError(f"--cameras: {path} does not exist")
+    if path.suffix.lower() == ".json":
+        cams = load_cameras_json(path)
     else:
-        if args.onnx is not None:
-            raise ValueError("--onnx needs --backend onnxruntime")
-        model, source, t_load = _load_model(args.checkpoint, args.config or "tiny")
-        pipe = Diff4SplatPipeline(model, device=args.device)
+        cams = load_realestate10k(path, photo_shape[1], photo_shape[0])
+    if frames is not None and frames != len(cams):
+        raise ValueError(f"--frames {frames} differs from the {len(cams)} cameras in {path}")
+    return cams.fitted(width, height)
+
+
+def _load_inputs(args, pipe):
+    """Decode the photograph once; its displayed shape serves both the centre crop and the camera file.
+
+    Returns:
+        (image (H, W, 3) in [0, 1] at the model resolution, camera path at the model resolution).
+    """
+    from .io.image import preprocess_image, read_image
+
     cfg = pipe.config
     if args.frames is not None:
         cfg.vae.num_latent_frames(args.frames)  # T = 1 + 4k, checked before any work
-
-    raw = cv2.imread(str(image_path), cv2.IMREAD_UNCHANGED)
-    if raw is None:
-        raise ValueError(f"image: OpenCV cannot decode {image_path}")
-    image = load_image(image_path, size=(cfg.height, cfg.width))
+    photo = read_image(args.image)
+    image = preprocess_image(photo, (cfg.height, cfg.width))
     if args.cameras is not None:
-        cameras = _load_cameras(args, raw.shape[:2], cfg.width, cfg.height)
+        cameras = _load_cameras(args.cameras, args.frames, photo.shape[:2], cfg.width, cfg.height)
     else:
         cameras = pipe.default_cameras(args.trajectory or "orbit", args.frames, args.amplitude)
+    return image, cameras
 
-    result = pipe(image, cameras, args.prompt, steps=args.steps, sampler=args.sampler, seed=args.seed,
-                  progress=not args.quiet)
-    t0 = time.perf_counter()
-    colors, depths, alphas = render_path(result.scene, result.cameras, progress=not args.quiet)
-    t_render = time.perf_counter() - t0
 
-    meta = {
+def _meta(args, pipe, result, source: str, versions: dict, timings: dict) -> dict:
+    """meta.json of ``generate``: every setting comes from what the pipeline actually used."""
+    import torch
+
+    from . import __version__
+
+    cfg = pipe.config
+    return {
         "model": source,
         "config": cfg.name,
-        "backend": pipe.backend.name,
-        "image": str(image_path),
+        "runtime": pipe.runtime.name,
+        "image": str(args.image),
         "prompt": args.prompt,
         "trajectory": None if args.cameras is not None else (args.trajectory or "orbit"),
         "cameras_file": None if args.cameras is None else str(args.cameras),
@@ -203,28 +235,51 @@ def generate(args) -> dict:
         "height": cfg.height,
         "fps": args.fps,
         "seed": args.seed,
-        "steps": args.steps if args.steps is not None else cfg.sampling.steps,
-        "sampler": args.sampler or cfg.sampling.sampler,
-        "shift": cfg.sampling.shift,
+        "steps": result.steps,
+        "sampler": result.sampler,
+        "shift": result.shift,
         "static": result.scene.is_static,
         "num_gaussians": result.scene.num_gaussians,
         "prune": result.prune_stats,
-        "timings_s": {"load_model": t_load, **result.timings, "render": t_render},
+        "timings_s": timings,
         "versions": {"diff4splat": __version__, "torch": torch.__version__, "python": platform.python_version(),
                      **versions},
     }
+
+
+def generate(args) -> dict:
+    """Run ``generate``: check arguments → load the runtime → load image and cameras → run the pipeline
+    → render the path → write the output folder. Returns the meta dict written to meta.json."""
+    from .io.output import write_scene_folder
+    from .render.sequence import render_path
+
+    t_start = time.perf_counter()
+    _check_generate_args(args)
+    pipe, source, t_load, versions = _load_pipeline(args)
+    image, cameras = _load_inputs(args, pipe)
+    result = pipe(image, cameras, args.prompt, steps=args.steps, sampler=args.sampler, seed=args.seed,
+                  progress=not args.quiet)
+    t0 = time.perf_counter()
+    colors, depths, alphas = render_path(result.scene, result.cameras, progress=not args.quiet)
+    timings = {"load_model": t_load, **result.timings, "render": time.perf_counter() - t0}
+    meta = _meta(args, pipe, result, source, versions, timings)
     t0 = time.perf_counter()
     write_scene_folder(args.out, result.scene, result.cameras, colors, depths, alphas, meta, fps=args.fps,
-                       depth_fallback=cfg.scene_depth)
-    meta["timings_s"]["write"] = time.perf_counter() - t0
-    meta["timings_s"]["total"] = time.perf_counter() - t_start
+                       depth_fallback=pipe.config.scene_depth)
+    timings["write"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - t_start
     return meta
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``diff4splat`` console script. Returns the exit code."""
     try:
-        args = build_parser().parse_args(argv)
+        parser = build_parser()
+        args, unknown = parser.parse_known_args(argv)
+        if getattr(args, "plugin", None) is not None:  # load that command's entry point, parse again
+            args = build_parser(load_command=args.plugin).parse_args(argv)
+        elif unknown:
+            parser.error(f"unrecognized arguments: {' '.join(unknown)}")
         if args.command == "generate":
             meta = generate(args)
             t = meta["timings_s"]

@@ -384,7 +384,7 @@ def export_onnx(
     check_opset(opset)
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
-        raise FileExistsError(f"--out: {out_dir} is a file")
+        raise FileExistsError(f"out_dir: {out_dir} is a file")
     weights = ({"kind": "checkpoint", "path": str(checkpoint), "sha256": checkpoint_sha256(checkpoint)}
                if checkpoint is not None else {"kind": "state_dict", "sha256": state_dict_sha256(model)})
     model = model.to("cpu", torch.float32).eval()

@@ -1,18 +1,19 @@
-"""Serve an ONNX export (:mod:`diff4splat.export`) with onnxruntime: the pipeline's :class:`Backend`.
+"""Serve an ONNX export (:mod:`diff4splat.export`) with onnxruntime: a pipeline
+:class:`~diff4splat.pipeline.NetworkRuntime`.
 
-``Diff4SplatPipeline(OnnxBackend(dir))`` (or ``Diff4SplatPipeline.from_onnx(dir)``, or
-``diff4splat generate --backend onnxruntime --onnx DIR``) runs image encoding, text encoding, the
+``Diff4SplatPipeline(OnnxRuntime(dir))`` (or ``Diff4SplatPipeline.from_onnx(dir)``, or
+``diff4splat generate --runtime onnxruntime --onnx DIR``) runs image encoding, text encoding, the
 DiT velocity of every sampler step and the LDRM through onnxruntime sessions; the pipeline's own
 code (validation, Plücker rays, noise, sampler, Gaussians, pruning) and the renderer are the same
 as with PyTorch. No ``nn.Module`` is built and no PyTorch weights are read: torch tensors are only
-the glue between sessions, and ``models`` supplies the config dataclasses, the byte tokenizer and
-:func:`models.ldrm.to_gaussians` (pure tensor functions).
+the glue between sessions, and ``models`` supplies the config dataclasses and the byte tokenizer.
 
 Sessions use ``ORT_ENABLE_ALL`` graph optimisations and as many intra-op threads as CPU cores, with
 ``CUDAExecutionProvider`` first when this onnxruntime build offers it, else ``CPUExecutionProvider``.
 
-A request that needs a part the export left out raises ``ValueError``: a non-empty prompt for a
-``--no-text`` export, deformation ``times`` for a ``--static`` export.
+A request that needs a part the export left out raises ``ValueError``: a non-empty prompt for an
+export without the text encoder (``export_onnx(text=False)``), deformation ``times`` for an export
+without the deformation network (``export_onnx(deformation=False)``).
 """
 from __future__ import annotations
 
@@ -31,33 +32,40 @@ from models.text_encoder import ByteTokenizer
 
 from .export import LDRM_OUTPUTS, MANIFEST_FORMAT, MANIFEST_NAME, STATIC_LDRM_OUTPUTS
 
-__all__ = ["OnnxBackend", "load_manifest", "session_options", "default_providers"]
+__all__ = ["OnnxRuntime", "load_manifest", "session_options", "default_providers"]
 
 
 def load_manifest(directory: str | os.PathLike) -> dict:
     """Read and check ``manifest.json`` of an export folder.
 
+    Args:
+        directory: folder written by :func:`diff4splat.export.export_onnx`.
+
+    Returns:
+        The manifest dict (see :func:`diff4splat.export.export_onnx`).
+
     Raises:
-        FileNotFoundError: no folder, no manifest, or a graph file the manifest lists is missing.
+        FileNotFoundError: no folder, no manifest, or a graph file the manifest lists is missing
+            (messages start with ``directory:``).
         ValueError: the manifest is not JSON or not of format :data:`diff4splat.export.MANIFEST_FORMAT`.
     """
     directory = Path(directory)
     path = directory / MANIFEST_NAME
     if not directory.is_dir():
-        raise FileNotFoundError(f"--onnx: {directory} is not a folder")
+        raise FileNotFoundError(f"directory: {directory} is not a folder")
     if not path.is_file():
-        raise FileNotFoundError(f"--onnx: {path} does not exist (not a `diff4splat export-onnx` folder)")
+        raise FileNotFoundError(f"directory: {path} does not exist (not a folder written by export_onnx)")
     try:
         manifest = json.loads(path.read_text())
     except json.JSONDecodeError as e:
-        raise ValueError(f"--onnx: {path} is not valid JSON ({e})") from None
+        raise ValueError(f"directory: {path} is not valid JSON ({e})") from None
     if not isinstance(manifest, dict) or manifest.get("format") != MANIFEST_FORMAT:
         got = manifest.get("format") if isinstance(manifest, dict) else type(manifest).__name__
-        raise ValueError(f"--onnx: {path} has format {got!r}, expected {MANIFEST_FORMAT!r}")
+        raise ValueError(f"directory: {path} has format {got!r}, expected {MANIFEST_FORMAT!r}")
     for name, entry in manifest["files"].items():
         for file in entry["files"]:
             if not (directory / file).is_file():
-                raise FileNotFoundError(f"--onnx: {directory / file} (part {name!r}) does not exist")
+                raise FileNotFoundError(f"directory: {directory / file} (part {name!r}) does not exist")
     return manifest
 
 
@@ -94,8 +102,8 @@ def _numpy(t: Tensor, dtype) -> np.ndarray:
     return np.ascontiguousarray(t.detach().cpu().numpy().astype(dtype, copy=False))
 
 
-class OnnxBackend:
-    """:class:`diff4splat.pipeline.Backend` over an ``export-onnx`` folder (batch 1 per call here;
+class OnnxRuntime:
+    """:class:`diff4splat.pipeline.NetworkRuntime` over an ``export-onnx`` folder (batch 1 per call here;
     the graphs themselves take any batch).
 
     Args:
@@ -158,11 +166,11 @@ class OnnxBackend:
         """Prompt → tokens (1, L, d_text), mask (1, L) via the byte tokenizer and ``text_encoder.onnx``.
 
         Raises:
-            ValueError: the export has no text encoder (``--no-text``).
+            ValueError: the export has no text encoder (``export_onnx(text=False)``).
         """
         if not self.has_text:
-            raise ValueError(f"the ONNX export in {self.directory} was made with --no-text: it has no text encoder "
-                             f"and serves only the empty prompt, got prompt {prompt!r:.60}")
+            raise ValueError(f"prompt: the ONNX export in {self.directory} was made without the text encoder "
+                             f"(text=False) and serves only the empty prompt, got prompt {prompt!r:.60}")
         ids, mask = self.tokenizer([prompt])
         (tokens,) = self._run("text_encoder", {"ids": _numpy(ids, np.int64), "mask": _numpy(mask, np.bool_)})
         return torch.from_numpy(tokens), mask
@@ -186,8 +194,8 @@ class OnnxBackend:
                 text_mask = torch.ones(text.shape[:2], dtype=torch.bool)
             feeds["text"], feeds["text_mask"] = _numpy(text, np.float32), _numpy(text_mask, np.bool_)
         elif text is not None:
-            raise ValueError(f"the ONNX export in {self.directory} was made with --no-text: its DiT has no "
-                             "text inputs")
+            raise ValueError(f"text: the ONNX export in {self.directory} was made without the text encoder "
+                             "(text=False): its DiT has no text inputs")
         (v,) = self._run("dit", feeds)
         return torch.from_numpy(v)
 
@@ -195,13 +203,14 @@ class OnnxBackend:
         """``ldrm.onnx`` → :class:`LDRMOutput` (deformation maps when ``times`` (K,) is given).
 
         Raises:
-            ValueError: ``times`` given to an export without the deformation network (``--static``).
+            ValueError: ``times`` given to an export without the deformation network
+                (``export_onnx(deformation=False)``).
         """
         feeds = {"latents": _numpy(latents, np.float32), "plucker": _numpy(plucker, np.float32)}
         if times is not None:
             if not self.has_deformation:
-                raise ValueError(f"the ONNX export in {self.directory} was made with --static: it has no "
-                                 "deformation network and makes static scenes only (times must be None)")
+                raise ValueError(f"times: the ONNX export in {self.directory} was made without the deformation "
+                                 "network (deformation=False) and makes static scenes only (times must be None)")
             feeds["times"] = _numpy(times, np.float32)
         elif self.has_deformation:  # the dynamic graph needs a times input; its maps are dropped below
             feeds["times"] = np.zeros(1, np.float32)

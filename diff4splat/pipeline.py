@@ -11,10 +11,12 @@ Data flow (DESIGN.md, "Data flow of generate"):
    deformation maps at every distinct frame time → :class:`DynamicGaussians` (static when the
    deformation is the identity), pruned of Gaussians that never contribute.
 
-The networks are reached through a :class:`Backend` (encode_image, encode_text, velocity,
-reconstruct): :class:`TorchBackend` runs the PyTorch modules, ``diff4splat.onnx_runtime.OnnxBackend``
+The networks are reached through a :class:`NetworkRuntime` (encode_image, encode_text, velocity,
+reconstruct): :class:`TorchRuntime` runs the PyTorch modules, ``diff4splat.onnx_runtime.OnnxRuntime``
 runs an ONNX export with onnxruntime. Everything else (validation, Plücker rays, noise, sampler,
-Gaussians, pruning) is this module's single implementation for both.
+turning the LDRM's maps into Gaussians (:func:`to_gaussians`), pruning) is this module's single
+implementation for both. (A *runtime* runs the networks; the renderer's *backend*, gsplat or PyTorch,
+is another choice, made in :mod:`diff4splat.render`.)
 """
 from __future__ import annotations
 
@@ -29,17 +31,66 @@ from torch import Tensor
 
 from models.bundle import WEIGHTS_DIR, Diff4SplatConfig, Diff4SplatModel, load_config
 from models.flow_matching import sample
-from models.ldrm import LDRMOutput, to_gaussians
+from models.ldrm import LDRMOutput
 
-from .cameras import CameraPath, intrinsics_from_fov, make_trajectory, pack_plucker, plucker_rays
+from .checks import check_positive_int
+from .cameras import CameraPath, camera_rays, intrinsics_from_fov, make_trajectory, pack_plucker, plucker_rays
+from .gaussians import Gaussians, rgb_to_sh0
 from .prune import prune_scene
 from .scene import DynamicGaussians
 
-__all__ = ["Diff4SplatPipeline", "GenerationResult", "load_model", "Backend", "TorchBackend"]
+__all__ = ["Diff4SplatPipeline", "GenerationResult", "load_model", "to_gaussians", "NetworkRuntime", "TorchRuntime"]
+
+
+def to_gaussians(
+    out: LDRMOutput,
+    viewmat: Tensor,  # (4, 4) world-to-camera of the reference frame
+    K: Tensor,  # (3, 3) pixels
+    batch_index: int = 0,
+) -> tuple[Gaussians, Tensor | None, Tensor | None, Tensor | None]:
+    """Pixel-aligned Gaussians (one per pixel of frame 0, row-major) and flattened deformation maps.
+
+    μ = o + distance·d with (o, d) the pixel-centre ray of :func:`diff4splat.cameras.camera_rays`;
+    colours are stored as SH degree 0 via ``rgb_to_sh0`` after clamping to [1e-4, 1 − 1e-4].
+
+    Args:
+        out: LDRM output; maps (B, H, W, ·).
+        viewmat: (4, 4) world-to-camera of the reference camera.
+        K: (3, 3) intrinsics of the reference camera at (H, W), pixels.
+        batch_index: which scene of the batch.
+
+    Returns:
+        Gaussians with M = H·W; d_means (K, M, 3), d_quats (K, M, 4), d_scales (K, M, 3), or None.
+
+    Raises:
+        ValueError: ``viewmat``/``K`` of the wrong shape or ``batch_index`` out of range.
+    """
+    B, H, W = out.distance.shape
+    if not -B <= batch_index < B:
+        raise ValueError(f"batch_index {batch_index} out of range for batch size {B}")
+    if tuple(viewmat.shape) != (4, 4):
+        raise ValueError(f"viewmat must have shape (4, 4), got {tuple(viewmat.shape)}")
+    if tuple(K.shape) != (3, 3):
+        raise ValueError(f"K must have shape (3, 3), got {tuple(K.shape)}")
+    dtype = out.distance.dtype
+    origins, dirs = camera_rays(viewmat[None].to(dtype), K[None].to(dtype), W, H)  # (1, H, W, 3)
+    means = origins[0] + out.distance[batch_index, ..., None] * dirs[0]
+    colors = out.colors[batch_index].clamp(1e-4, 1 - 1e-4)
+    gaussians = Gaussians(
+        means=means.reshape(H * W, 3),
+        quats=out.quats[batch_index].reshape(H * W, 4),
+        scales=out.scales[batch_index].reshape(H * W, 3),
+        opacities=out.opacities[batch_index].reshape(H * W),
+        sh=rgb_to_sh0(colors).reshape(H * W, 1, 3),
+    )
+    if out.d_means is None:
+        return gaussians, None, None, None
+    flat = [getattr(out, f)[batch_index].flatten(1, 2) for f in ("d_means", "d_quats", "d_scales")]
+    return gaussians, *flat
 
 
 @runtime_checkable
-class Backend(Protocol):
+class NetworkRuntime(Protocol):
     """What the pipeline needs from the networks (batch 1, float32 tensors in, tensors out).
 
     Attributes:
@@ -67,8 +118,8 @@ class Backend(Protocol):
         """LDRM (+ deformation network when ``times`` (K,) is given) → activated maps."""
 
 
-class TorchBackend:
-    """:class:`Backend` over the PyTorch networks of a :class:`Diff4SplatModel` (eval mode, no grad)."""
+class TorchRuntime:
+    """:class:`NetworkRuntime` over the PyTorch networks of a :class:`Diff4SplatModel` (eval mode, no grad)."""
 
     name = "torch"
     has_deformation = True
@@ -98,6 +149,9 @@ class GenerationResult:
         scene: the 4D scene (world frame = first camera's frame, metres).
         cameras: the camera path used, re-expressed relative to its first camera.
         latents: (1, c, n, h, w) the sampled video latent fed to the LDRM.
+        steps: sampler steps actually run (the argument, or ``config.sampling.steps``).
+        sampler: "euler" or "heun", the sampler actually used (the argument, or ``config.sampling.sampler``).
+        shift: the flow-matching timestep shift used (``config.sampling.shift``).
         timings: seconds per stage ("encode_image", "encode_text", "sample", "reconstruct", "prune").
         prune_stats: counts from :func:`diff4splat.prune.prune_scene`.
     """
@@ -105,6 +159,9 @@ class GenerationResult:
     scene: DynamicGaussians
     cameras: CameraPath
     latents: Tensor
+    steps: int
+    sampler: str
+    shift: float
     timings: dict[str, float] = field(default_factory=dict)
     prune_stats: dict[str, int] = field(default_factory=dict)
 
@@ -143,24 +200,29 @@ class Diff4SplatPipeline:
 
     Args:
         model: the four networks (:class:`models.bundle.Diff4SplatModel`, run by a
-            :class:`TorchBackend`), or any :class:`Backend` (e.g. ``diff4splat.onnx_runtime.OnnxBackend``).
+            :class:`TorchRuntime`), or any :class:`NetworkRuntime` (e.g. ``diff4splat.onnx_runtime.OnnxRuntime``).
         device: torch device of the PyTorch networks and the pipeline's tensors (a non-torch
-            backend takes CPU tensors: use "cpu").
+            runtime takes CPU tensors: use "cpu").
+
+    Attributes:
+        runtime: the :class:`NetworkRuntime` that runs the networks.
+        model: the :class:`Diff4SplatModel`, or None for another runtime.
+        config: the model's :class:`Diff4SplatConfig`.
 
     Raises:
-        TypeError: ``model`` is neither a Diff4SplatModel nor a Backend.
+        TypeError: ``model`` is neither a Diff4SplatModel nor a NetworkRuntime.
     """
 
-    def __init__(self, model: Diff4SplatModel | Backend, device: str | torch.device = "cpu"):
+    def __init__(self, model: Diff4SplatModel | NetworkRuntime, device: str | torch.device = "cpu"):
         if isinstance(model, Diff4SplatModel):
             self.model: Diff4SplatModel | None = model.to(device).eval()
-            self.backend: Backend = TorchBackend(self.model)
-        elif isinstance(model, Backend):
-            self.model, self.backend = None, model
+            self.runtime: NetworkRuntime = TorchRuntime(self.model)
+        elif isinstance(model, NetworkRuntime):
+            self.model, self.runtime = None, model
         else:
-            raise TypeError(f"model must be a Diff4SplatModel or a Backend, got {type(model).__name__}")
+            raise TypeError(f"model must be a Diff4SplatModel or a NetworkRuntime, got {type(model).__name__}")
         self.device = torch.device(device)
-        self.config = self.backend.config
+        self.config = self.runtime.config
 
     @classmethod
     def from_pretrained(cls, checkpoint: str | Path | None = None, config: str = "tiny",
@@ -171,10 +233,10 @@ class Diff4SplatPipeline:
     @classmethod
     def from_onnx(cls, directory: str | Path, providers: list[str] | None = None) -> "Diff4SplatPipeline":
         """Pipeline over an ``export-onnx`` folder served by onnxruntime
-        (:class:`diff4splat.onnx_runtime.OnnxBackend`)."""
-        from .onnx_runtime import OnnxBackend
+        (:class:`diff4splat.onnx_runtime.OnnxRuntime`)."""
+        from .onnx_runtime import OnnxRuntime
 
-        return cls(OnnxBackend(directory, providers=providers))
+        return cls(OnnxRuntime(directory, providers=providers))
 
     def default_cameras(self, trajectory: str = "orbit", num_frames: int | None = None,
                         amplitude: float | None = None) -> CameraPath:
@@ -217,10 +279,10 @@ class Diff4SplatPipeline:
 
         Raises:
             ValueError: wrong image shape or range, cameras at another resolution, T ≠ 1 + 4k,
-                an unknown sampler or steps < 1; a prompt the backend cannot encode (an ONNX
+                an unknown sampler or steps < 1; a prompt the runtime cannot encode (an ONNX
                 export made without the text encoder).
         """
-        cfg, backend = self.config, self.backend
+        cfg, runtime = self.config, self.runtime
         dev = self.device
         if image.dim() != 3 or tuple(image.shape) != (cfg.height, cfg.width, 3):
             raise ValueError(f"image must have shape ({cfg.height}, {cfg.width}, 3), got {tuple(image.shape)}")
@@ -233,20 +295,19 @@ class Diff4SplatPipeline:
         sampler = cfg.sampling.sampler if sampler is None else sampler
         if sampler not in ("euler", "heun"):
             raise ValueError(f"sampler must be 'euler' or 'heun', got {sampler!r}")
-        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-            raise ValueError(f"steps must be an int ≥ 1, got {steps!r}")
+        steps = check_positive_int("steps", steps)
         cameras = cameras.relative_to_first().to(dtype=torch.float32, device=dev)
         timings: dict[str, float] = {}
 
         t0 = time.perf_counter()
         video = (image.to(dev, torch.float32) * 2 - 1).permute(2, 0, 1)[None, :, None]  # (1, 3, 1, H, W)
-        image_latent = backend.encode_image(video)  # (1, c, 1, h, w)
+        image_latent = runtime.encode_image(video)  # (1, c, 1, h, w)
         timings["encode_image"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
         text = text_mask = None
         if prompt.strip():
-            text, text_mask = backend.encode_text(prompt)
+            text, text_mask = runtime.encode_text(prompt)
             text, text_mask = text.to(dev), text_mask.to(dev)
         timings["encode_text"] = time.perf_counter() - t0
 
@@ -258,7 +319,7 @@ class Diff4SplatPipeline:
         noise = torch.randn((1, cfg.vae.latent_channels, n, *image_latent.shape[-2:]), generator=gen).to(dev)
 
         def velocity(x: Tensor, sigma: Tensor) -> Tensor:
-            return backend.velocity(x, sigma.reshape(1).to(x), image_latent, plucker, text, text_mask)
+            return runtime.velocity(x, sigma.reshape(1).to(x), image_latent, plucker, text, text_mask)
 
         latents = sample(velocity, noise, steps, sampler=sampler, shift=cfg.sampling.shift, progress=progress)
         latents = torch.cat([image_latent, latents[:, :, 1:]], dim=2)
@@ -266,8 +327,8 @@ class Diff4SplatPipeline:
 
         t0 = time.perf_counter()
         key_times = torch.unique(cameras.times)
-        # A backend without the deformation network (ONNX --static export) makes static scenes.
-        out = backend.reconstruct(latents, plucker, key_times if backend.has_deformation else None)
+        # A runtime without the deformation network (a static ONNX export) makes static scenes.
+        out = runtime.reconstruct(latents, plucker, key_times if runtime.has_deformation else None)
         gaussians, d_means, d_quats, d_scales = to_gaussians(out, cameras.viewmats[0], cameras.Ks[0])
         times = key_times if d_means is not None else None
         scene = DynamicGaussians(gaussians, times, d_means, d_quats, d_scales).without_deformation(cfg.static_atol)
@@ -276,4 +337,5 @@ class Diff4SplatPipeline:
         t0 = time.perf_counter()
         scene, stats = prune_scene(scene, cameras, min_opacity=cfg.prune_opacity)
         timings["prune"] = time.perf_counter() - t0
-        return GenerationResult(scene=scene, cameras=cameras, latents=latents, timings=timings, prune_stats=stats)
+        return GenerationResult(scene=scene, cameras=cameras, latents=latents, timings=timings, prune_stats=stats,
+                                steps=steps, sampler=sampler, shift=cfg.sampling.shift)

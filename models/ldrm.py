@@ -17,7 +17,8 @@ Architecture (B scenes, latent (B, c, n, h, w), patch p, tokens N = n·(h/p)·(w
 4. The same reference tokens as a (B, D, h/p, w/p) map feed the deformation network.
 
 Gaussians are predicted in the world frame in which the Plücker rays are given (the network
-sees world-frame rays); :func:`to_gaussians` places each pixel's Gaussian on its camera ray.
+sees world-frame rays). The network returns plain tensors (:class:`LDRMOutput`); placing each
+pixel's Gaussian on its camera ray (``diff4splat.pipeline.to_gaussians``) is the pipeline's job.
 """
 from __future__ import annotations
 
@@ -28,14 +29,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from diff4splat.cameras import camera_rays
-from diff4splat.gaussians import Gaussians, rgb_to_sh0
-
 from .deformation import DeformationConfig, DeformationNetwork, soft_clamp, unit_quat_from_raw
 from .layers import Mlp, SelfAttention, patchify
 from .pretrained import PretrainedMixin
 
-__all__ = ["LDRMConfig", "LDRM", "LDRMOutput", "gaussian_activations", "to_gaussians", "sincos_position_3d"]
+__all__ = ["LDRMConfig", "LDRM", "LDRMOutput", "gaussian_activations", "sincos_position_3d"]
 
 RAW_GAUSSIAN_CHANNELS = 12
 """Raw head channels per pixel: distance 1, scales 3, quaternion 4, opacity 1, colour 3."""
@@ -220,53 +218,6 @@ class Block(nn.Module):
         return x + self.mlp(self.norm2(x))
 
 
-def to_gaussians(
-    out: LDRMOutput,
-    viewmat: Tensor,  # (4, 4) world-to-camera of the reference frame
-    K: Tensor,  # (3, 3) pixels
-    batch_index: int = 0,
-) -> tuple[Gaussians, Tensor | None, Tensor | None, Tensor | None]:
-    """Pixel-aligned Gaussians (one per pixel of frame 0, row-major) and flattened deformation maps.
-
-    μ = o + distance·d with (o, d) the pixel-centre ray of :func:`diff4splat.cameras.camera_rays`;
-    colours are stored as SH degree 0 via ``rgb_to_sh0`` after clamping to [1e-4, 1 − 1e-4].
-
-    Args:
-        out: LDRM output; maps (B, H, W, ·).
-        viewmat: (4, 4) world-to-camera of the reference camera.
-        K: (3, 3) intrinsics of the reference camera at (H, W), pixels.
-        batch_index: which scene of the batch.
-
-    Returns:
-        Gaussians with M = H·W; d_means (K, M, 3), d_quats (K, M, 4), d_scales (K, M, 3), or None.
-
-    Raises:
-        ValueError: ``viewmat``/``K`` of the wrong shape or ``batch_index`` out of range.
-    """
-    B, H, W = out.distance.shape
-    if not -B <= batch_index < B:
-        raise ValueError(f"batch_index {batch_index} out of range for batch size {B}")
-    if tuple(viewmat.shape) != (4, 4):
-        raise ValueError(f"viewmat must have shape (4, 4), got {tuple(viewmat.shape)}")
-    if tuple(K.shape) != (3, 3):
-        raise ValueError(f"K must have shape (3, 3), got {tuple(K.shape)}")
-    dtype = out.distance.dtype
-    origins, dirs = camera_rays(viewmat[None].to(dtype), K[None].to(dtype), W, H)  # (1, H, W, 3)
-    means = origins[0] + out.distance[batch_index, ..., None] * dirs[0]
-    colors = out.colors[batch_index].clamp(1e-4, 1 - 1e-4)
-    gaussians = Gaussians(
-        means=means.reshape(H * W, 3),
-        quats=out.quats[batch_index].reshape(H * W, 4),
-        scales=out.scales[batch_index].reshape(H * W, 3),
-        opacities=out.opacities[batch_index].reshape(H * W),
-        sh=rgb_to_sh0(colors).reshape(H * W, 1, 3),
-    )
-    if out.d_means is None:
-        return gaussians, None, None, None
-    flat = [getattr(out, f)[batch_index].flatten(1, 2) for f in ("d_means", "d_quats", "d_scales")]
-    return gaussians, *flat
-
-
 def _tracing() -> bool:
     """True while torch.export / dynamo / jit trace the model (value checks are then skipped)."""
     return torch.compiler.is_exporting() or torch.compiler.is_compiling() or torch.jit.is_tracing()
@@ -351,4 +302,3 @@ class LDRM(nn.Module, PretrainedMixin):
             out.d_means, out.d_quats, out.d_scales = self.deformation(ref, times, cfg.vae_spatial * p)
         return out
 
-    to_gaussians = staticmethod(to_gaussians)

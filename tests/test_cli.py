@@ -1,5 +1,6 @@
 """End to end: `diff4splat generate` on the shipped photograph, every output file, every bad input."""
 import json
+import struct
 import subprocess
 import sys
 
@@ -12,7 +13,9 @@ from plyfile import PlyData
 from helpers import EXAMPLE_IMAGE
 from diff4splat.cli import main
 from diff4splat.io import load_depth_exr, load_ply, load_video, ply_property_names, save_cameras_json
+from diff4splat.io.image import preprocess_image, read_image
 from diff4splat.io.output import load_deformation
+from diff4splat.pipeline import Diff4SplatPipeline
 from diff4splat.quaternions import quat_to_rotmat
 from diff4splat.scene import DynamicGaussians
 
@@ -192,3 +195,86 @@ def test_rgba_grey_and_16bit_images_generate(tmp_path):
                      "--out", str(tmp_path / f"out_{name}")])
         assert code == 0, name
         assert load_video(tmp_path / f"out_{name}" / "video.mp4").shape == (1, 64, 64, 3)
+
+
+def _spy_pipeline(monkeypatch) -> dict:
+    """Record the image the CLI hands to the pipeline and the GenerationResult it gets back."""
+    seen = {}
+    real = Diff4SplatPipeline.__call__
+
+    def spy(self, image, cameras, *args, **kwargs):
+        seen["image"] = image
+        seen["result"] = real(self, image, cameras, *args, **kwargs)
+        return seen["result"]
+
+    monkeypatch.setattr(Diff4SplatPipeline, "__call__", spy)
+    return seen
+
+
+def test_exif_rotated_jpeg_crops_image_and_realestate10k_intrinsics_alike(tmp_path, monkeypatch):
+    """A landscape-stored JPEG tagged Orientation 6 is a 40×80 portrait: the image is cropped from the
+    upright photo and the RealEstate10K intrinsics are de-normalised by that same upright 40×80 size."""
+    stored = np.zeros((40, 80, 3), np.uint8)  # H × W as stored (landscape)
+    stored[:, :40] = (255, 40, 0)
+    stored[:, 40:] = (0, 40, 255)
+    stored[:10] = (0, 255, 0)
+    ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(stored, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 100])
+    tiff = (b"II*\x00" + struct.pack("<I", 8) + struct.pack("<H", 1) + struct.pack("<HHIHH", 0x0112, 3, 1, 6, 0)
+            + struct.pack("<I", 0))
+    app1 = b"\xff\xe1" + struct.pack(">H", 2 + 6 + len(tiff)) + b"Exif\x00\x00" + tiff
+    data = jpg.tobytes()
+    (tmp_path / "plain.jpg").write_bytes(data)
+    photo = tmp_path / "rotated.jpg"
+    photo.write_bytes(data[:2] + app1 + data[2:])
+    # fx, fy, cx, cy normalised by the upright frame (W = 40, H = 80); identity pose
+    (tmp_path / "cams.txt").write_text("https://example.invalid/v\n0 0.6 0.5 0.5 0.5 0 0 "
+                                       "1 0 0 0 0 1 0 0 0 0 1 0\n")
+    seen = _spy_pipeline(monkeypatch)
+    out = tmp_path / "out"
+    assert main(["generate", str(photo), "--cameras", str(tmp_path / "cams.txt"), "--steps", "1", "--quiet",
+                 "--out", str(out)]) == 0
+    upright = np.rot90(read_image(tmp_path / "plain.jpg"), k=-1)  # Orientation 6: rotate 90° clockwise
+    torch.testing.assert_close(seen["image"], preprocess_image(upright, (64, 64)))
+    # intrinsics: fx = 0.6·40, fy = 0.5·80, c = (20, 40); centre crop 40×40 (y0 = 20), scale 64/40
+    K = np.array(json.loads((out / "cameras.json").read_text())["Ks"][0])
+    np.testing.assert_allclose(K, [[0.6 * 40 * 1.6, 0, 32], [0, 0.5 * 80 * 1.6, 32], [0, 0, 1]], atol=1e-4)
+
+
+def test_meta_steps_and_sampler_are_the_ones_the_pipeline_used(tmp_path, monkeypatch):
+    seen = _spy_pipeline(monkeypatch)
+    out = tmp_path / "defaults"
+    assert main(["generate", str(EXAMPLE_IMAGE), "--frames", "1", "--quiet", "--out", str(out)]) == 0
+    meta, result = json.loads((out / "meta.json").read_text()), seen["result"]
+    assert (meta["steps"], meta["sampler"], meta["shift"]) == (result.steps, result.sampler, result.shift)
+    assert meta["runtime"] == "torch" and "backend" not in meta
+    out = tmp_path / "given"
+    assert main(["generate", str(EXAMPLE_IMAGE), "--frames", "1", "--steps", "2", "--sampler", "heun", "--quiet",
+                 "--out", str(out)]) == 0
+    meta = json.loads((out / "meta.json").read_text())
+    assert (meta["steps"], meta["sampler"]) == (seen["result"].steps, seen["result"].sampler) == (2, "heun")
+
+
+def test_building_the_parser_imports_no_training_code():
+    """`diff4splat --help` and `generate` list `evaluate` without importing the training package."""
+    code = ("import sys; from diff4splat.cli import build_parser, main; build_parser(); "
+            "main(['generate', 'missing.png', '--out', 'o']); "
+            "bad = [m for m in sys.modules if m == 'training' or m.startswith('training.')]; assert not bad, bad")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    top = subprocess.run([sys.executable, "-m", "diff4splat.cli", "--help"], capture_output=True, text=True)
+    assert top.returncode == 0 and "evaluate" in top.stdout
+
+
+def test_evaluate_subcommand_is_loaded_when_chosen(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "diff4splat.cli", "evaluate", "--help"], capture_output=True,
+                          text=True)
+    assert proc.returncode == 0 and "--data" in proc.stdout and "--sampling" in proc.stdout, proc.stderr
+    proc = subprocess.run([sys.executable, "-m", "diff4splat.cli", "evaluate"], capture_output=True, text=True)
+    assert proc.returncode == 2 and proc.stderr.strip().count("\n") == 0 and "--data" in proc.stderr
+
+
+def test_unknown_arguments_are_one_line_exit_2(tmp_path, capsys):
+    code = main(["generate", str(EXAMPLE_IMAGE), "--out", str(tmp_path / "o"), "--no-such-flag"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "--no-such-flag" in err[0]
+    assert not (tmp_path / "o").exists()

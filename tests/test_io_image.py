@@ -1,5 +1,6 @@
 """Tests for diff4splat.io.image: decoding every image kind, alpha over white, crop/resize, errors."""
 import struct
+import zlib
 from pathlib import Path
 
 import cv2
@@ -8,6 +9,7 @@ import pytest
 import torch
 
 from diff4splat.io import load_image, preprocess_image
+from diff4splat.io.image import apply_orientation, exif_orientation, read_image
 
 CHELSEA = Path(__file__).resolve().parents[1] / "examples" / "chelsea.png"
 
@@ -153,3 +155,61 @@ def test_load_errors(tmp_path):
         load_image(tmp_path / "empty.png")
     with pytest.raises(ValueError, match="size"):
         load_image(CHELSEA, size=(64, -1))
+
+
+def _exif_tiff(orientation: int) -> bytes:
+    """A little-endian TIFF block whose IFD0 holds only the Orientation tag (SHORT)."""
+    return (b"II*\x00" + struct.pack("<I", 8) + struct.pack("<H", 1)
+            + struct.pack("<HHIHH", 0x0112, 3, 1, orientation, 0) + struct.pack("<I", 0))
+
+
+def _jpeg_with_orientation(rgb: np.ndarray, orientation: int) -> bytes:
+    ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 100])
+    assert ok
+    body = b"Exif\x00\x00" + _exif_tiff(orientation)
+    data = jpg.tobytes()
+    return data[:2] + b"\xff\xe1" + struct.pack(">H", 2 + len(body)) + body + data[2:]
+
+
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_read_image_decodes_once_and_orients_like_opencv(tmp_path, orientation, monkeypatch):
+    """All eight EXIF orientations agree with OpenCV's own oriented decode (IMREAD_COLOR), with one decode."""
+    rng = np.random.default_rng(orientation)
+    rgb = cv2.resize(rng.integers(0, 256, (3, 5, 3), dtype=np.uint8), (40, 24), interpolation=cv2.INTER_NEAREST)
+    path = write_bytes(tmp_path / "o.jpg", _jpeg_with_orientation(rgb, orientation))
+    reference = cv2.cvtColor(cv2.imread(str(path), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    calls = []
+    real = cv2.imdecode
+    monkeypatch.setattr(cv2, "imdecode", lambda *a: calls.append(1) or real(*a))
+    got = read_image(path)
+    assert len(calls) == 1
+    assert exif_orientation(path.read_bytes()) == orientation
+    assert got.shape == reference.shape == ((24, 40, 3) if orientation <= 4 else (40, 24, 3))
+    np.testing.assert_array_equal(got, reference)
+
+
+def test_png_exif_orientation_applies_to_rgba_and_16_bit(tmp_path):
+    """IMREAD_UNCHANGED (needed for alpha and 16 bits) ignores EXIF: the tag is applied after decoding."""
+    rgba = np.zeros((6, 10, 4), np.uint16)
+    rgba[..., 0] = np.arange(10) * 6000  # red ramps left → right
+    rgba[..., 3] = 65535
+    ok, png = cv2.imencode(".png", cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA))
+    assert ok
+    data = png.tobytes()
+    payload = _exif_tiff(8)  # rotate 90° counter-clockwise: the ramp runs bottom → top
+    chunk = struct.pack(">I", len(payload)) + b"eXIf" + payload + struct.pack(">I", zlib.crc32(b"eXIf" + payload))
+    path = write_bytes(tmp_path / "o.png", data[:33] + chunk + data[33:])  # after the 25-byte IHDR chunk
+    got = read_image(path)
+    assert got.dtype == np.uint16 and got.shape == (10, 6, 4)
+    np.testing.assert_array_equal(got, np.rot90(rgba, k=1))
+    assert load_image(path).shape == (10, 6, 3)
+
+
+def test_apply_orientation_inverts_and_rejects_bad_values():
+    a = np.arange(12).reshape(3, 4)
+    np.testing.assert_array_equal(apply_orientation(a, 6), np.rot90(a, k=-1))
+    np.testing.assert_array_equal(apply_orientation(apply_orientation(a, 6), 8), a)
+    np.testing.assert_array_equal(apply_orientation(apply_orientation(a, 5), 5), a)
+    assert exif_orientation(b"not an image") == 1
+    with pytest.raises(ValueError, match="orientation"):
+        apply_orientation(a, 9)

@@ -1,16 +1,18 @@
-"""Tests of models/ldrm.py: shapes, activations, pixel-aligned Gaussians, validation, export."""
+"""Tests of models/ldrm.py: shapes, activations, validation, export, layering."""
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 import torch
 
-from diff4splat.cameras import camera_rays, pack_plucker, plucker_rays
+from diff4splat.cameras import pack_plucker, plucker_rays
 from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
 from models.deformation import DeformationConfig
-from models.ldrm import LDRM, LDRMConfig, LDRMOutput, gaussian_activations, sincos_position_3d, to_gaussians
+from models.ldrm import LDRM, LDRMConfig, LDRMOutput, gaussian_activations, sincos_position_3d
 from models.pretrained import count_parameters
 
 IDENTITY = torch.tensor([1.0, 0.0, 0.0, 0.0])
@@ -164,52 +166,17 @@ def test_activations_extremes_and_monotone():
     assert (depth.diff() > 0).all(), "distance increases with its raw channel"
 
 
-def test_to_gaussians_pixel_aligned():
-    torch.manual_seed(1)
-    model = _model()
-    with torch.no_grad():
-        model.deformation.out_conv.weight.normal_(0.0, 0.3)
-    out = model(*_inputs(), torch.tensor([0.0, 0.4, 1.0]))
-    viewmats, Ks = _cameras()
-    viewmat, K = viewmats[4], Ks[0]  # a non-identity world-to-camera
-    g, dm, dq, ds = to_gaussians(out, viewmat, K)
-    g.validate()
-    M = H * W
-    assert g.num_gaussians == M and g.sh.shape == (M, 1, 3) and dm.shape == (3, M, 3) and dq.shape == (3, M, 4)
-    R, t = viewmat[:3, :3], viewmat[:3, 3]
-    centre = -R.T @ t
-    for i, j in [(0, 0), (5, 40), (63, 63), (31, 2)]:
-        idx = i * W + j
-        d_cam = torch.linalg.solve(K, torch.tensor([j + 0.5, i + 0.5, 1.0]))  # explicit K⁻¹ (u, v, 1)
-        d_world = R.T @ d_cam
-        expect = centre + out.distance[0, i, j] * d_world / d_world.norm()
-        torch.testing.assert_close(g.means[idx], expect, atol=1e-5, rtol=1e-5)
-        torch.testing.assert_close(dm[:, idx], out.d_means[0, :, i, j])
-        torch.testing.assert_close(g.quats[idx], out.quats[0, i, j])
-    # agrees with camera_rays for every pixel
-    o, d = camera_rays(viewmat[None], K[None], W, H)
-    torch.testing.assert_close(g.means, (o[0] + out.distance[0, ..., None] * d[0]).reshape(M, 3))
-    # projecting the means lands on the pixel centres; the ray distance is recovered
-    cam = g.means @ R.T + t
-    uv = (cam @ K.T)[:, :2] / cam[:, 2:3]
-    v, u = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
-    torch.testing.assert_close(uv, torch.stack([u, v], -1).reshape(M, 2), atol=2e-4, rtol=0)
-    torch.testing.assert_close(cam.norm(dim=-1), out.distance[0].reshape(M), atol=1e-5, rtol=1e-5)
-    # colours survive the SH-0 encoding (clamped to [1e-4, 1 − 1e-4])
-    from diff4splat.gaussians import sh0_to_rgb
-    torch.testing.assert_close(sh0_to_rgb(g.sh[:, 0]), out.colors[0].reshape(M, 3).clamp(1e-4, 1 - 1e-4))
-
-
-def test_to_gaussians_static_and_errors():
-    out = _model()(*_inputs())
-    g, dm, dq, ds = LDRM.to_gaussians(out, torch.eye(4), _cameras()[1][0])
-    assert dm is None and dq is None and ds is None and g.num_gaussians == H * W
-    with pytest.raises(ValueError, match="batch_index"):
-        to_gaussians(out, torch.eye(4), torch.eye(3), batch_index=1)
-    with pytest.raises(ValueError, match="viewmat"):
-        to_gaussians(out, torch.eye(3), torch.eye(3))
-    with pytest.raises(ValueError, match="K"):
-        to_gaussians(out, torch.eye(4), torch.eye(4))
+def test_ldrm_returns_tensors_and_imports_no_pipeline_layer():
+    """Layering: the network module builds no Gaussians; turning its maps into a scene is the pipeline's
+    job (``diff4splat.pipeline.to_gaussians``), and importing it loads no pipeline-layer module."""
+    code = ("import sys, models.ldrm as m; "
+            "bad = [k for k in sys.modules if k.split('.')[:2] in (['diff4splat', 'pipeline'], ['diff4splat', 'cli'], "
+            "['diff4splat', 'export'], ['diff4splat', 'onnx_runtime'])]; "
+            "assert not bad, bad; "
+            "assert not hasattr(m, 'to_gaussians') and not hasattr(m, 'Gaussians'), 'models.ldrm builds Gaussians'; "
+            "assert not hasattr(m.LDRM, 'to_gaussians')")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
 
 
 def test_validation_errors():

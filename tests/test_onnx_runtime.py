@@ -1,5 +1,5 @@
 """onnxruntime serving: the pipeline on ONNX sessions vs PyTorch (PSNR of the rendered video), the CLI
-backend, exports without text / deformation refusing what they cannot serve, manifest errors.
+runtime, exports without text / deformation refusing what they cannot serve, manifest errors.
 
 Exports come from tests/test_export.py's session cache (:func:`test_export.exported`).
 """
@@ -20,7 +20,7 @@ from models.bundle import Diff4SplatModel
 from helpers import exported
 
 ort = pytest.importorskip("onnxruntime")
-from diff4splat.onnx_runtime import OnnxBackend, default_providers, load_manifest, session_options  # noqa: E402
+from diff4splat.onnx_runtime import OnnxRuntime, default_providers, load_manifest, session_options  # noqa: E402
 
 FRAMES = 9
 PROMPT = "a cat turns its head"
@@ -52,7 +52,7 @@ def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
 def _no_networks(monkeypatch):
     """Make any nn.Module call or model construction fail: the ONNX path must not need them."""
     def refuse(*a, **k):
-        raise AssertionError("a PyTorch network was used by the onnxruntime backend")
+        raise AssertionError("a PyTorch network was used by the onnxruntime runtime")
 
     monkeypatch.setattr(torch.nn.Module, "__call__", refuse)
     monkeypatch.setattr(Diff4SplatModel, "__init__", refuse)
@@ -69,7 +69,7 @@ def test_onnxruntime_pipeline_matches_pytorch_end_to_end(full, image, prompt, mo
         _no_networks(m)
         onnx_pipe = Diff4SplatPipeline.from_onnx(out)
         got = onnx_pipe(image, cams, prompt, steps=2, seed=3)
-        assert onnx_pipe.model is None and onnx_pipe.backend.name == "onnxruntime"
+        assert onnx_pipe.model is None and onnx_pipe.runtime.name == "onnxruntime"
     got_video = render_path(got.scene, got.cameras)[0]
     noise = torch.randn(ref.latents.shape, generator=torch.Generator().manual_seed(3))  # the pipeline's seed-3 start
     assert float((ref.latents - noise)[:, :, 1:].abs().max()) > 0.1  # v ≠ 0: the sampler moved the latents
@@ -93,12 +93,12 @@ def test_generate_cli_onnxruntime_writes_the_same_folder(full, tmp_path, tmp_pat
     ckpt = tmp_path_factory.getbasetemp() / "onnx_cache" / "checkpoint"
     common = ["generate", str(EXAMPLE_IMAGE), "--frames", "5", "--steps", "2", "--prompt", PROMPT, "--quiet"]
     assert main(common + ["--checkpoint", str(ckpt), "--out", str(tmp_path / "torch")]) == 0
-    assert main(common + ["--backend", "onnxruntime", "--onnx", str(out), "--out", str(tmp_path / "ort")]) == 0
+    assert main(common + ["--runtime", "onnxruntime", "--onnx", str(out), "--out", str(tmp_path / "ort")]) == 0
     a, b = tmp_path / "torch", tmp_path / "ort"
     assert sorted(p.name for p in a.iterdir()) == sorted(p.name for p in b.iterdir())
     meta = json.loads((b / "meta.json").read_text())
-    assert meta["backend"] == "onnxruntime" and meta["model"].startswith("onnx:") and "onnxruntime" in meta["versions"]
-    assert json.loads((a / "meta.json").read_text())["backend"] == "torch"
+    assert meta["runtime"] == "onnxruntime" and meta["model"].startswith("onnx:") and "onnxruntime" in meta["versions"]
+    assert json.loads((a / "meta.json").read_text())["runtime"] == "torch"
     assert (a / "cameras.json").read_text() == (b / "cameras.json").read_text()
     ga, gb = load_ply(a / "scene.ply"), load_ply(b / "scene.ply")
     torch.testing.assert_close(gb.means, ga.means, atol=1e-4, rtol=0)
@@ -123,16 +123,17 @@ def test_no_text_static_export_has_only_what_it_serves(lean):
 
 def test_no_text_static_export_refuses_prompt_and_times(lean, image):
     _, out = lean
-    backend = OnnxBackend(out)
-    pipe = Diff4SplatPipeline(backend)
+    runtime = OnnxRuntime(out)
+    pipe = Diff4SplatPipeline(runtime)
     cams = pipe.default_cameras("orbit", 5)
-    with pytest.raises(ValueError, match="--no-text"):
+    with pytest.raises(ValueError, match="^prompt: .*without the text encoder") as info:
         pipe(image, cams, PROMPT, steps=1)
-    with pytest.raises(ValueError, match="--no-text"):
-        backend.velocity(torch.zeros(1, 4, 2, 8, 8), torch.ones(1), torch.zeros(1, 4, 1, 8, 8),
+    assert "--" not in str(info.value)  # the library names parameters, not CLI flags
+    with pytest.raises(ValueError, match="^text: .*without the text encoder"):
+        runtime.velocity(torch.zeros(1, 4, 2, 8, 8), torch.ones(1), torch.zeros(1, 4, 1, 8, 8),
                          torch.zeros(1, 1536, 2, 8, 8), torch.zeros(1, 3, 64), None)
-    with pytest.raises(ValueError, match="--static"):
-        backend.reconstruct(torch.zeros(1, 4, 2, 8, 8), torch.zeros(1, 1536, 2, 8, 8), torch.tensor([0.0, 1.0]))
+    with pytest.raises(ValueError, match="^times: .*without the deformation network"):
+        runtime.reconstruct(torch.zeros(1, 4, 2, 8, 8), torch.zeros(1, 1536, 2, 8, 8), torch.tensor([0.0, 1.0]))
 
 
 def test_no_text_static_export_serves_the_empty_prompt_as_a_static_scene(lean, image):
@@ -148,33 +149,42 @@ def test_no_text_static_export_serves_the_empty_prompt_as_a_static_scene(lean, i
 def test_cli_prompt_on_a_no_text_export_is_one_line_exit_2(lean, tmp_path, capsys):
     _, out = lean
     code = main(["generate", str(EXAMPLE_IMAGE), "--frames", "5", "--steps", "1", "--quiet", "--prompt", PROMPT,
-                 "--backend", "onnxruntime", "--onnx", str(out), "--out", str(tmp_path / "o")])
+                 "--runtime", "onnxruntime", "--onnx", str(out), "--out", str(tmp_path / "o")])
     err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
-    assert code == 2 and len(err) == 1 and "--no-text" in err[0]
+    assert code == 2 and len(err) == 1 and "without the text encoder" in err[0]
     assert not (tmp_path / "o").exists()
 
 
-@pytest.mark.parametrize("case", ["no_onnx", "onnx_without_backend", "with_checkpoint", "missing_folder"])
-def test_cli_backend_option_errors(tmp_path, capsys, case):
+@pytest.mark.parametrize("case", ["no_onnx", "onnx_without_runtime", "with_checkpoint", "missing_folder"])
+def test_cli_runtime_option_errors(tmp_path, capsys, case):
     args = ["generate", str(EXAMPLE_IMAGE), "--quiet", "--out", str(tmp_path / "o")]
-    args += {"no_onnx": ["--backend", "onnxruntime"],
-             "onnx_without_backend": ["--onnx", str(tmp_path)],
-             "with_checkpoint": ["--backend", "onnxruntime", "--onnx", str(tmp_path), "--checkpoint", str(tmp_path)],
-             "missing_folder": ["--backend", "onnxruntime", "--onnx", str(tmp_path / "none")]}[case]
+    args += {"no_onnx": ["--runtime", "onnxruntime"],
+             "onnx_without_runtime": ["--onnx", str(tmp_path)],
+             "with_checkpoint": ["--runtime", "onnxruntime", "--onnx", str(tmp_path), "--checkpoint", str(tmp_path)],
+             "missing_folder": ["--runtime", "onnxruntime", "--onnx", str(tmp_path / "none")]}[case]
     code = main(args)
     err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert code == 2 and len(err) == 1 and err[0].startswith("diff4splat: error:")
+    flag = {"no_onnx": "--onnx", "onnx_without_runtime": "--runtime", "with_checkpoint": "--checkpoint",
+            "missing_folder": "--onnx"}[case]
+    assert flag in err[0]  # the CLI names its own flags
     assert not (tmp_path / "o").exists()
 
 
 def test_manifest_errors(tmp_path):
-    with pytest.raises(FileNotFoundError, match="not a folder"):
+    """Library errors name the parameter (``directory``), not the CLI's ``--onnx`` flag."""
+    with pytest.raises(FileNotFoundError, match="^directory: .* not a folder"):
         load_manifest(tmp_path / "none")
     with pytest.raises(FileNotFoundError, match="manifest.json"):
         load_manifest(tmp_path)
-    (tmp_path / "manifest.json").write_text(json.dumps({"format": "something-else"}))
-    with pytest.raises(ValueError, match="format"):
+    (tmp_path / "manifest.json").write_text("{not json")
+    with pytest.raises(ValueError, match="^directory: .*not valid JSON") as info:
         load_manifest(tmp_path)
+    assert "--" not in str(info.value)
+    (tmp_path / "manifest.json").write_text(json.dumps({"format": "something-else"}))
+    with pytest.raises(ValueError, match="format") as info:
+        load_manifest(tmp_path)
+    assert "--" not in str(info.value)
     (tmp_path / "manifest.json").write_text(json.dumps({"format": "diff4splat-onnx/1",
                                                         "files": {"dit": {"files": ["dit.onnx"]}}}))
     with pytest.raises(FileNotFoundError, match="dit.onnx"):

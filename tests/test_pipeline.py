@@ -1,10 +1,16 @@
+"""Tests of diff4splat/pipeline.py: generation, LDRM maps → Gaussians, defaults, validation."""
+import math
+
 import pytest
 import torch
 
 from helpers import EXAMPLE_IMAGE, tiny_model
 from diff4splat.cameras import camera_rays
+from diff4splat.gaussians import sh0_to_rgb
 from diff4splat.io import load_image
-from diff4splat.pipeline import Diff4SplatPipeline
+from diff4splat.pipeline import Diff4SplatPipeline, TorchRuntime, to_gaussians
+from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
+from models.ldrm import LDRMOutput
 
 FRAMES = 9
 
@@ -98,6 +104,7 @@ def test_heun_costs_two_evaluations_per_step_but_the_last(image):
 
 @pytest.mark.parametrize("bad", ["image_shape", "image_range", "camera_size", "frames", "sampler", "steps"])
 def test_bad_inputs_raise_value_error(image, bad):
+    """Each bad input raises a ValueError naming the offending parameter."""
     pipe = Diff4SplatPipeline(tiny_model())
     cams = pipe.default_cameras("orbit", FRAMES)
     kw = {"steps": 1}
@@ -113,5 +120,102 @@ def test_bad_inputs_raise_value_error(image, bad):
         kw["sampler"] = "rk4"
     else:
         kw["steps"] = 0
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match={"image_shape": "image", "image_range": "image", "camera_size": "cameras",
+                                          "frames": "T=8", "sampler": "sampler", "steps": "steps"}[bad]):
         pipe(image, cams, "", **kw)
+
+
+def _maps(B=1, K=3, H=12, W=16, seed=0) -> LDRMOutput:
+    """Random activated LDRM maps in their documented ranges (no network needed)."""
+    g = torch.Generator().manual_seed(seed)
+    quats = torch.randn(B, H, W, 4, generator=g)
+    d_quats = torch.randn(B, K, H, W, 4, generator=g)
+    return LDRMOutput(distance=0.5 + 3 * torch.rand(B, H, W, generator=g),
+                      scales=0.01 + 0.05 * torch.rand(B, H, W, 3, generator=g),
+                      quats=quats / quats.norm(dim=-1, keepdim=True),
+                      opacities=torch.rand(B, H, W, generator=g),
+                      colors=torch.rand(B, H, W, 3, generator=g),
+                      d_means=0.1 * torch.randn(B, K, H, W, 3, generator=g),
+                      d_quats=d_quats / d_quats.norm(dim=-1, keepdim=True),
+                      d_scales=0.1 * torch.randn(B, K, H, W, 3, generator=g))
+
+
+def test_to_gaussians_puts_each_pixel_on_its_camera_ray():
+    H, W = 12, 16
+    out = _maps(B=2, H=H, W=W)
+    R = quat_to_rotmat(axis_angle_to_quat(torch.tensor([0.3, 1.0, 0.2]), torch.tensor(math.radians(20.0))))
+    t = torch.tensor([0.2, -0.1, 0.5])
+    viewmat = torch.eye(4)
+    viewmat[:3, :3], viewmat[:3, 3] = R, t  # a non-identity world-to-camera
+    K = torch.tensor([[14.0, 0.0, 8.5], [0.0, 13.0, 5.5], [0.0, 0.0, 1.0]])
+    g, dm, dq, ds = to_gaussians(out, viewmat, K, batch_index=1)
+    g.validate()
+    M = H * W
+    assert g.num_gaussians == M and g.sh.shape == (M, 1, 3)
+    assert dm.shape == (3, M, 3) and dq.shape == (3, M, 4) and ds.shape == (3, M, 3)
+    centre = -R.T @ t
+    for i, j in [(0, 0), (5, 11), (11, 15), (7, 2)]:
+        idx = i * W + j  # row-major pixels of frame 0
+        d_cam = torch.linalg.solve(K, torch.tensor([j + 0.5, i + 0.5, 1.0]))  # explicit K⁻¹ (u, v, 1)
+        d_world = R.T @ d_cam
+        torch.testing.assert_close(g.means[idx], centre + out.distance[1, i, j] * d_world / d_world.norm(),
+                                   atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(dm[:, idx], out.d_means[1, :, i, j])
+        torch.testing.assert_close(g.quats[idx], out.quats[1, i, j])
+    # projecting the means lands on the pixel centres; the ray distance is recovered
+    cam = g.means @ R.T + t
+    uv = (cam @ K.T)[:, :2] / cam[:, 2:3]
+    v, u = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    torch.testing.assert_close(uv, torch.stack([u, v], -1).reshape(M, 2), atol=2e-4, rtol=0)
+    torch.testing.assert_close(cam.norm(dim=-1), out.distance[1].reshape(M), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(g.opacities, out.opacities[1].reshape(M))
+    torch.testing.assert_close(g.scales, out.scales[1].reshape(M, 3))
+    # colours survive the SH-0 encoding (clamped to [1e-4, 1 − 1e-4])
+    torch.testing.assert_close(sh0_to_rgb(g.sh[:, 0]), out.colors[1].reshape(M, 3).clamp(1e-4, 1 - 1e-4))
+
+
+def test_to_gaussians_static_maps_and_errors():
+    out = _maps()
+    out.d_means = out.d_quats = out.d_scales = None
+    K = torch.tensor([[14.0, 0.0, 8.0], [0.0, 14.0, 6.0], [0.0, 0.0, 1.0]])
+    g, dm, dq, ds = to_gaussians(out, torch.eye(4), K)
+    assert dm is None and dq is None and ds is None and g.num_gaussians == 12 * 16
+    with pytest.raises(ValueError, match="batch_index"):
+        to_gaussians(out, torch.eye(4), K, batch_index=1)
+    with pytest.raises(ValueError, match="viewmat"):
+        to_gaussians(out, torch.eye(3), K)
+    with pytest.raises(ValueError, match="K"):
+        to_gaussians(out, torch.eye(4), torch.eye(4))
+
+
+def test_result_reports_the_steps_and_sampler_actually_used(image, monkeypatch):
+    """Defaults are resolved once, by the pipeline: the result carries what ran (config defaults included)."""
+    import diff4splat.pipeline as pipeline
+
+    pipe = Diff4SplatPipeline(tiny_model())
+    assert isinstance(pipe.runtime, TorchRuntime) and pipe.runtime.name == "torch"
+    seen = []
+    real_sample = pipeline.sample
+    monkeypatch.setattr(pipeline, "sample", lambda v, x, steps, sampler, **kw: seen.append((steps, sampler))
+                        or real_sample(v, x, steps, sampler=sampler, **kw))
+    cams = pipe.default_cameras("orbit", 5)
+    pipe.config.sampling.steps, pipe.config.sampling.sampler = 3, "heun"
+    res = pipe(image, cams, "")
+    assert (res.steps, res.sampler, res.shift) == (3, "heun", pipe.config.sampling.shift) and seen[-1] == (3, "heun")
+    res = pipe(image, cams, "", steps=2, sampler="euler")
+    assert (res.steps, res.sampler) == (2, "euler") and seen[-1] == (2, "euler")
+
+
+def test_pipeline_rejects_a_model_that_is_no_runtime():
+    with pytest.raises(TypeError, match="NetworkRuntime"):
+        Diff4SplatPipeline(object())
+
+
+def test_library_value_errors_name_parameters_not_cli_flags(image):
+    """Messages raised to library callers name the parameter (``steps``), never a command-line flag."""
+    pipe = Diff4SplatPipeline(tiny_model())
+    cams = pipe.default_cameras("orbit", 5)
+    for kw in ({"steps": 0}, {"sampler": "rk4"}):
+        with pytest.raises(ValueError) as info:
+            pipe(image, cams, "", **kw)
+        assert "--" not in str(info.value) and next(iter(kw)) in str(info.value)

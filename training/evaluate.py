@@ -26,7 +26,7 @@ along the clip's cameras at the clip's times:
 
 - ``vae_psnr``: PSNR of the VAE's reconstruction of the whole clip (posterior mean, decoded) against
   the clip — the ceiling that the latents put on everything downstream (PyTorch models only; NaN for
-  another backend).
+  another runtime).
 
 With ``--photo IMAGE`` it also reports ``photo_psnr``: the scene generated from a real photograph,
 rendered from the input camera at t = 0, against that photograph.
@@ -250,22 +250,22 @@ def stiffness_profile(pipe: Diff4SplatPipeline, clip: dict, steps: int = 16, sub
     from models.flow_matching import heun_sample, sigma_schedule
 
     cfg = pipe.config
-    backend = pipe.backend
+    runtime = pipe.runtime
     cams = CameraPath(clip["viewmats"].double(), clip["Ks"].double(), cfg.width, cfg.height, clip["times"].double())
     image = clip["video"][:, 0].permute(1, 2, 0)
     captured: dict = {}
-    original = backend.velocity
+    original = runtime.velocity
 
     def recorder(x, sigma, *cond):
         captured.setdefault("cond", cond)
         captured.setdefault("shape", x.shape)
         return original(x, sigma, *cond)
 
-    backend.velocity = recorder
+    runtime.velocity = recorder
     try:
         pipe(image, cams, clip["caption"], steps=1, sampler="euler", seed=seed)
     finally:
-        del backend.velocity  # restore the class method
+        del runtime.velocity  # restore the class method
     cond = captured["cond"]
 
     def v(x: Tensor, sigma: Tensor) -> Tensor:

@@ -11,10 +11,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from diff4splat.pipeline import to_gaussians
 from diff4splat.render import rasterize
 from diff4splat.scene import DynamicGaussians
 from models.bundle import Diff4SplatModel
-from models.ldrm import to_gaussians
 from models.vae import kl_divergence
 
 from .losses import (depth_correlation_loss, depth_smoothness_loss, flow_matching_loss, gather_track_predictions,

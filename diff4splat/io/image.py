@@ -1,4 +1,4 @@
-"""Loading input photographs (OpenCV decoding, centre crop, resize)."""
+"""Loading input photographs (OpenCV decoding once, EXIF orientation, centre crop, resize)."""
 from __future__ import annotations
 
 import os
@@ -11,7 +11,7 @@ from torch import Tensor
 
 from ..cameras.intrinsics import center_crop_box
 
-__all__ = ["load_image", "preprocess_image"]
+__all__ = ["load_image", "read_image", "preprocess_image", "exif_orientation", "apply_orientation"]
 
 
 def _check_size(size: tuple[int, int] | None) -> tuple[int, int] | None:
@@ -89,17 +89,119 @@ def preprocess_image(array: np.ndarray, size: tuple[int, int] | None = None) -> 
     return torch.from_numpy(np.ascontiguousarray(np.clip(color, 0.0, 1.0), dtype=np.float32))
 
 
-def load_image(path: str | os.PathLike, size: tuple[int, int] | None = None) -> Tensor:
-    """Read an image file with OpenCV and preprocess it (:func:`preprocess_image`).
+def exif_orientation(data: bytes) -> int:
+    """The EXIF Orientation tag (0x0112) of an encoded JPEG (APP1 ``Exif``) or PNG (``eXIf`` chunk).
+
+    Args:
+        data: the encoded file's bytes.
+
+    Returns:
+        1…8 as in the EXIF 2.3 specification (1 = stored as displayed); 1 when the file is another
+        format, carries no EXIF block or no Orientation tag, or the value is out of range.
+    """
+    tiff = _exif_tiff_block(data)
+    if tiff is None or len(tiff) < 8 or tiff[:2] not in (b"II", b"MM"):
+        return 1
+    order = "little" if tiff[:2] == b"II" else "big"
+    ifd = int.from_bytes(tiff[4:8], order)
+    if ifd + 2 > len(tiff):
+        return 1
+    for i in range(int.from_bytes(tiff[ifd : ifd + 2], order)):
+        entry = tiff[ifd + 2 + 12 * i : ifd + 14 + 12 * i]
+        if len(entry) < 12:
+            break
+        if int.from_bytes(entry[:2], order) == 0x0112:  # type SHORT: the value sits in the first 2 bytes
+            value = int.from_bytes(entry[8:10], order)
+            return value if 1 <= value <= 8 else 1
+    return 1
+
+
+def _exif_tiff_block(data: bytes) -> bytes | None:
+    """The TIFF-structured EXIF block of a JPEG or PNG file, or None."""
+    if data[:2] == b"\xff\xd8":  # JPEG: marker segments until start of scan
+        pos = 2
+        while pos + 4 <= len(data) and data[pos] == 0xFF:
+            marker = data[pos + 1]
+            if marker == 0xDA:
+                break
+            length = int.from_bytes(data[pos + 2 : pos + 4], "big")
+            if marker == 0xE1 and data[pos + 4 : pos + 10] == b"Exif\x00\x00":
+                return data[pos + 10 : pos + 2 + length]
+            pos += 2 + length
+        return None
+    if data[:8] == b"\x89PNG\r\n\x1a\n":  # PNG: length, type, payload, CRC
+        pos = 8
+        while pos + 8 <= len(data):
+            length = int.from_bytes(data[pos : pos + 4], "big")
+            kind = data[pos + 4 : pos + 8]
+            if kind == b"eXIf":
+                return data[pos + 8 : pos + 8 + length]
+            if kind in (b"IDAT", b"IEND"):
+                break
+            pos += 12 + length
+    return None
+
+
+def apply_orientation(array: np.ndarray, orientation: int) -> np.ndarray:
+    """Transform a stored image (H, W, ...) to its displayed orientation (EXIF Orientation 1…8).
+
+    2: mirror left-right; 3: rotate 180°; 4: mirror top-bottom; 5: transpose; 6: rotate 90° clockwise;
+    7: transverse (transpose, then rotate 180°); 8: rotate 90° counter-clockwise. Orientations 5…8
+    swap H and W.
+
+    Raises:
+        ValueError: ``orientation`` not in 1…8.
+    """
+    if orientation not in range(1, 9):
+        raise ValueError(f"orientation must be an EXIF orientation in 1…8, got {orientation!r}")
+    transposed = np.swapaxes(array, 0, 1)
+    out = {1: array, 2: array[:, ::-1], 3: array[::-1, ::-1], 4: array[::-1],
+           5: transposed, 6: transposed[:, ::-1], 7: transposed[::-1, ::-1], 8: transposed[::-1]}[orientation]
+    return np.ascontiguousarray(out)
+
+
+def read_image(path: str | os.PathLike) -> np.ndarray:
+    """Decode an image file once, as displayed: RGB(A) or grey, EXIF orientation applied.
 
     Any format OpenCV decodes (PNG, JPEG, TIFF, WebP, BMP, …) in 8 or 16 bits, grey, RGB or RGBA.
-    Alpha is composited over white. Images without alpha are decoded a second time with
-    ``IMREAD_ANYDEPTH | IMREAD_ANYCOLOR`` so that the EXIF orientation tag is applied (OpenCV's
-    ``IMREAD_UNCHANGED``, needed to keep alpha and 16 bits, ignores it).
+    The file is decoded once with ``IMREAD_UNCHANGED`` (which keeps alpha and 16 bits but ignores
+    EXIF orientation); the EXIF Orientation tag of a JPEG or PNG (:func:`exif_orientation`) is then
+    applied (:func:`apply_orientation`), so ``array.shape[:2]`` is the displayed (H, W) — the size
+    that camera intrinsics normalised by the photograph (RealEstate10K) refer to.
 
     Args:
         path: image file.
-        size: (height, width) in pixels, or ``None`` to keep the file's size.
+
+    Returns:
+        (H, W) grey, (H, W, 3) RGB or (H, W, 4) RGBA array (channel order RGB, not OpenCV's BGR),
+        uint8 or uint16 (or the float dtype of a float TIFF/EXR).
+
+    Raises:
+        FileNotFoundError: ``path`` is not an existing file.
+        ValueError: the file cannot be decoded as an image.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"image file not found: {path}")
+    data = np.fromfile(path, dtype=np.uint8)
+    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    if img is None:
+        raise ValueError(f"could not decode {path} as an image (OpenCV)")
+    if img.ndim == 3 and img.shape[-1] == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    elif img.ndim == 3 and img.shape[-1] == 4:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGBA)
+    return apply_orientation(img, exif_orientation(data.tobytes()))
+
+
+def load_image(path: str | os.PathLike, size: tuple[int, int] | None = None) -> Tensor:
+    """Read an image file (:func:`read_image`) and preprocess it (:func:`preprocess_image`).
+
+    Alpha is composited over white; the EXIF orientation is applied before the centre crop.
+
+    Args:
+        path: image file.
+        size: (height, width) in pixels, or ``None`` to keep the file's (displayed) size.
 
     Returns:
         (height, width, 3) float32 tensor in [0, 1], RGB.
@@ -108,20 +210,5 @@ def load_image(path: str | os.PathLike, size: tuple[int, int] | None = None) -> 
         FileNotFoundError: ``path`` is not an existing file.
         ValueError: the file cannot be decoded as an image, or a bad ``size``.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"image file not found: {path}")
     size = _check_size(size)
-    data = np.fromfile(path, dtype=np.uint8)
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
-    if img is None:
-        raise ValueError(f"could not decode {path} as an image (OpenCV)")
-    if img.ndim == 2 or img.shape[-1] in (1, 3):
-        oriented = cv2.imdecode(data, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
-        if oriented is not None and oriented.dtype == img.dtype:
-            img = oriented
-    if img.ndim == 3 and img.shape[-1] == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-    elif img.ndim == 3 and img.shape[-1] == 4:
-        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGBA)
-    return preprocess_image(img, size)
+    return preprocess_image(read_image(path), size)
