@@ -24,7 +24,9 @@ K = torch.tensor([[30.0, 0.0, 20.0], [0.0, 24.0, 15.0], [0.0, 0.0, 1.0]], dtype=
 def _point(theta, phi, dist=2.0):
     """Camera-frame point at angle θ from +z, azimuth φ (from +x towards +y), distance ``dist``."""
     theta, phi = torch.as_tensor(theta, dtype=D), torch.as_tensor(phi, dtype=D)
-    return torch.as_tensor(dist, dtype=D)[..., None] * torch.stack([torch.sin(theta) * torch.cos(phi), torch.sin(theta) * torch.sin(phi), torch.cos(theta)], -1)
+    return torch.as_tensor(dist, dtype=D)[...,
+                                          None] * torch.stack([torch.sin(theta) * torch.cos(phi),
+                                                               torch.sin(theta) * torch.sin(phi), torch.cos(theta)], -1)
 
 
 @pytest.mark.parametrize("k", [(0.0, 0.0, 0.0, 0.0), (0.05, -0.01, 0.002, -1e-4)])

@@ -13,8 +13,8 @@ from diff4splat.cameras import (
     invert_rigid,
 )
 from diff4splat.cameras.lenses import generate_rays
-from diff4splat.render.stages import color_features
 from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
+from diff4splat.render.stages import color_features
 
 
 def random_viewmats(T, seed=0, dtype=torch.float64):
@@ -113,7 +113,8 @@ def test_resized_keeps_projection_in_normalised_coordinates():
     uv0 = (p.Ks[0] @ Xc)[:2] / Xc[2]
     uv1 = (q.Ks[0] @ Xc)[:2] / Xc[2]
     # Same point lands at the same fraction of the image width/height.
-    torch.testing.assert_close(uv1 / torch.tensor([64.0, 12.0], dtype=torch.float64), uv0 / torch.tensor([32.0, 24.0], dtype=torch.float64))
+    torch.testing.assert_close(uv1 / torch.tensor([64.0, 12.0], dtype=torch.float64),
+                               uv0 / torch.tensor([32.0, 24.0], dtype=torch.float64))
     with pytest.raises(ValueError, match="height"):
         p.resized(10, 0)
 
@@ -182,7 +183,8 @@ def test_fitted_crop_keeps_a_point_on_the_same_image_content():
     y0, x0, ch, cw = center_crop_box(300, 450, 64, 64)
     assert (y0, x0, ch, cw) == (0, 75, 300, 300)
     uv0 = (K[0] @ X)[:2] / X[2]
-    expected = (uv0 - torch.tensor([x0, y0], dtype=torch.float64)) * torch.tensor([64 / cw, 64 / ch], dtype=torch.float64)
+    expected = (uv0 - torch.tensor([x0, y0], dtype=torch.float64)) * torch.tensor([64 / cw, 64 / ch],
+                                                                                  dtype=torch.float64)
     torch.testing.assert_close((fit.Ks[0] @ X)[:2] / X[2], expected)
     assert (fit.width, fit.height) == (64, 64)
 

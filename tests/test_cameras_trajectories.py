@@ -105,8 +105,9 @@ def test_translation_image_motion_signs():
     uv = {n: project(make_trajectory(n, 3, K, W, H, scene_depth=d), target)[0][-1] for n in _MOVES}
     assert uv["pan-right"][0] < W / 2 and uv["pan-left"][0] > W / 2  # scene slides opposite to the camera
     assert uv["up"][1] > H / 2 and uv["down"][1] < H / 2  # camera up → scene moves down in the image (y down)
-    r0 = (project(make_trajectory("forward", 3, K, W, H, scene_depth=d), off_axis)[0] - torch.tensor([W / 2, H / 2], dtype=torch.float64)).norm(dim=-1)
-    r1 = (project(make_trajectory("backward", 3, K, W, H, scene_depth=d), off_axis)[0] - torch.tensor([W / 2, H / 2], dtype=torch.float64)).norm(dim=-1)
+    centre = torch.tensor([W / 2, H / 2], dtype=torch.float64)
+    r0 = (project(make_trajectory("forward", 3, K, W, H, scene_depth=d), off_axis)[0] - centre).norm(dim=-1)
+    r1 = (project(make_trajectory("backward", 3, K, W, H, scene_depth=d), off_axis)[0] - centre).norm(dim=-1)
     assert r0[2] > r0[1] > r0[0] and r1[2] < r1[1] < r1[0]  # dolly in magnifies, dolly out shrinks
 
 

@@ -19,7 +19,8 @@ def _module_level_numbers(path: Path) -> dict[str, float]:
     """Names assigned a numeric expression at module level (e.g. ``X = 1.0 / 255.0``) → value."""
     out = {}
     for node in ast.parse(path.read_text(), str(path)).body:
-        targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(node, ast.AnnAssign) else []
+        targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(node,
+                                                                                                ast.AnnAssign) else []
         value = getattr(node, "value", None)
         for t in targets:
             if isinstance(t, ast.Name) and value is not None:

@@ -15,11 +15,13 @@ W, H = 64, 48
 def world_path(T=5, seed=0):
     """A float32 path in an arbitrary world frame (first viewmat not identity), non-uniform times."""
     g = torch.Generator().manual_seed(seed)
-    R = quat_to_rotmat(axis_angle_to_quat(torch.randn(T, 3, generator=g, dtype=torch.float64), torch.rand(T, generator=g, dtype=torch.float64) * math.pi))
+    R = quat_to_rotmat(axis_angle_to_quat(torch.randn(T, 3, generator=g, dtype=torch.float64),
+                                          torch.rand(T, generator=g, dtype=torch.float64) * math.pi))
     V = torch.eye(4, dtype=torch.float64).repeat(T, 1, 1)
     V[:, :3, :3] = R
     V[:, :3, 3] = torch.randn(T, 3, generator=g, dtype=torch.float64)
-    K = torch.stack([intrinsics_from_focal(50.0 + i, 52.0, W, H, cx=31.0 + i, cy=25.5, dtype=torch.float64) for i in range(T)])
+    K = torch.stack([intrinsics_from_focal(50.0 + i, 52.0, W, H, cx=31.0 + i, cy=25.5,
+                                           dtype=torch.float64) for i in range(T)])
     times = torch.tensor([0.0, 0.1, 0.35, 0.9, 1.0], dtype=torch.float64)[:T]
     return CameraPath(V.float(), K.float(), W, H, times.float())
 
@@ -97,7 +99,8 @@ def test_realestate10k_parses_the_documented_line_format(tmp_path):
     assert len(p) == 3 and p.viewmats.dtype == torch.float32
     torch.testing.assert_close(p.Ks[0], torch.tensor([[32.0, 0, 32.0], [0, 38.4, 24.0], [0, 0, 1]]))
     assert p.Ks[1, 0, 2].item() == 16.0
-    torch.testing.assert_close(p.viewmats[1], torch.tensor([[0.0, 0, 1, 0.5], [0, 1, 0, 0], [-1, 0, 0, 0], [0, 0, 0, 1]]))
+    torch.testing.assert_close(p.viewmats[1],
+                               torch.tensor([[0.0, 0, 1, 0.5], [0, 1, 0, 0], [-1, 0, 0, 0], [0, 0, 0, 1]]))
     torch.testing.assert_close(p.times, torch.tensor([0.0, 0.25, 1.0]))
     torch.testing.assert_close(p.camera_centers()[2], torch.tensor([0.0, 0.0, -2.0]))
     # relative=True re-expresses in frame 0's coordinates (frame 0 is identity here → unchanged).
@@ -140,7 +143,8 @@ def test_realestate10k_without_url_single_frame(tmp_path):
         ("0 0.5 0.5 0.5 0.5 0.1 0 1 0 0 0 0 1 0 0 0 0 1 0\n", "distortion"),
         ("0 0.5 0.5 0.5 0.5 0 0 1 0 0 0 0 1 0 0 0 0 1 x\n", "numbers"),
         ("url only\n", "no camera lines"),
-        ("5 0.5 0.5 0.5 0.5 0 0 1 0 0 0 0 1 0 0 0 0 1 0\n1 0.5 0.5 0.5 0.5 0 0 1 0 0 0 0 1 0 0 0 0 1 0\n", "non-decreasing"),
+        ("5 0.5 0.5 0.5 0.5 0 0 1 0 0 0 0 1 0 0 0 0 1 0\n1 0.5 0.5 0.5 0.5 0 0 1 0 0 0 0 1 0 0 0 0 1 0\n",
+         "non-decreasing"),
         ("5 0.5 0.5 0.5 0.5 0 0 1 0 0 0 0 1 0 0 0 0 1 0\n5 0.5 0.5 0.5 0.5 0 0 1 0 0 0 0 1 0 0 0 0 1 0\n", "equal"),
         ("0 0.5 0.5 0.5 0.5 0 0 2 0 0 0 0 1 0 0 0 0 1 0\n", r"viewmats\[0\] rotation"),
         ("0 0 0.5 0.5 0.5 0 0 1 0 0 0 0 1 0 0 0 0 1 0\n", r"Ks\[0\] focal"),

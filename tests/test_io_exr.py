@@ -34,7 +34,8 @@ def test_depth_and_alpha_from_torch(tmp_path):
 
 def test_reads_half_float_z_written_elsewhere(tmp_path):
     z = np.array([[1.5, 2.25], [1024.0, 0.125]], dtype=np.float16)
-    OpenEXR.File({"compression": OpenEXR.NO_COMPRESSION, "type": OpenEXR.scanlineimage}, {"Z": z}).write(str(tmp_path / "h.exr"))
+    OpenEXR.File({"compression": OpenEXR.NO_COMPRESSION, "type": OpenEXR.scanlineimage},
+                 {"Z": z}).write(str(tmp_path / "h.exr"))
     d = load_depth_exr(tmp_path / "h.exr")
     assert d.dtype == np.float32 and np.array_equal(d, z.astype(np.float32))
 

@@ -56,10 +56,11 @@ def test_pruning_does_not_change_any_rendered_frame():
     path = _path()
     pruned, stats = prune_scene(scene, path, min_opacity=1 / 255)
     assert stats["after"] < 200 and stats["unseen"] > 0 and stats["low_opacity"] == 20
-    for a, b in zip(render_path(scene, path), render_path(pruned, path)):
+    for a, b in zip(render_path(scene, path), render_path(pruned, path), strict=False):
         torch.testing.assert_close(a, b, atol=1e-12, rtol=0)
 
 
 def test_min_opacity_out_of_range_raises():
     with pytest.raises(ValueError, match="min_opacity"):
-        prune_scene(_scene(torch.zeros(1, 3, dtype=torch.float64) + 1, torch.ones(1, dtype=torch.float64) * 0.5), None, 1.0)
+        prune_scene(_scene(torch.zeros(1, 3, dtype=torch.float64) + 1, torch.ones(1, dtype=torch.float64) * 0.5), None,
+                    1.0)

@@ -3,8 +3,15 @@ import math
 import pytest
 import torch
 
-from diff4splat.quaternions import (axis_angle_to_quat, quat_conjugate, quat_multiply, quat_nlerp,
-                                    quat_normalize, quat_to_rotmat, rotmat_to_quat)
+from diff4splat.quaternions import (
+    axis_angle_to_quat,
+    quat_conjugate,
+    quat_multiply,
+    quat_nlerp,
+    quat_normalize,
+    quat_to_rotmat,
+    rotmat_to_quat,
+)
 
 
 def _rot_z(a):

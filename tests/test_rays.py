@@ -50,7 +50,8 @@ def test_ray_points_project_back_to_their_pixel():
         assert bool((cam[..., 2] > 0).all())
         uv = torch.einsum("cij,chwj->chwi", K, cam)
         uv = uv[..., :2] / uv[..., 2:]
-        jj, ii = torch.meshgrid(torch.arange(W, dtype=torch.float64), torch.arange(H, dtype=torch.float64), indexing="xy")
+        jj, ii = torch.meshgrid(torch.arange(W, dtype=torch.float64), torch.arange(H, dtype=torch.float64),
+                                indexing="xy")
         expect = torch.stack([jj + 0.5, ii + 0.5], -1).expand_as(uv)
         torch.testing.assert_close(uv, expect)
     # The Plücker moment is the same for every point on the ray: (o + s·d) × d = o × d.
@@ -72,6 +73,7 @@ def test_identity_camera_centre_ray_is_optical_axis():
 
 
 @pytest.mark.parametrize("temporal, spatial, T, Hp, Wp", [(4, 8, 9, 16, 24), (2, 2, 5, 4, 6), (1, 1, 3, 2, 2)])
+@pytest.mark.slow
 def test_pack_plucker_matches_explicit_loop(temporal, spatial, T, Hp, Wp):
     B = 2
     rays = torch.randn(B, T, Hp, Wp, 6, generator=torch.Generator().manual_seed(1))

@@ -25,7 +25,8 @@ GSPLAT_RASTERIZATION = {  # gsplat 1.4 ``rasterization`` signature defaults (doc
 
 
 def _defaults(fn) -> dict:
-    return {n: p.default for n, p in inspect.signature(fn).parameters.items() if p.default is not inspect.Parameter.empty}
+    return {n: p.default for n,
+            p in inspect.signature(fn).parameters.items() if p.default is not inspect.Parameter.empty}
 
 
 def _all_entry_points():

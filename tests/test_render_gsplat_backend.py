@@ -20,7 +20,8 @@ def _scene(n=60, seed=0, dtype=torch.float32, device="cpu"):
     g = torch.Generator().manual_seed(seed)
     r = lambda *s: torch.rand(*s, generator=g, dtype=torch.float64)  # noqa: E731
     means = torch.stack([(r(n) - 0.5) * 2.0, (r(n) - 0.5) * 1.5, 2 + 3 * r(n)], -1)
-    args = [means, torch.randn(n, 4, generator=g, dtype=torch.float64), 0.03 + 0.15 * r(n, 3), 0.05 + 0.25 * r(n), r(n, 3),
+    args = [means, torch.randn(n, 4, generator=g, dtype=torch.float64), 0.03 + 0.15 * r(n, 3), 0.05 + 0.25 * r(n),
+            r(n, 3),
             torch.eye(4, dtype=torch.float64)[None],
             torch.tensor([[[W * 0.9, 0, W / 2], [0, W * 0.9, H / 2], [0, 0, 1]]], dtype=torch.float64)]
     return [t.to(dtype=dtype, device=device) for t in args]
@@ -50,7 +51,7 @@ def test_dispatch_passes_the_same_call_to_gsplat(monkeypatch):
               rasterize_mode="antialiased", tile_size=8)
     col, alpha, meta = rasterize(*args, W, H, **kw)
     (got_args, got_kw), = calls
-    assert all(torch.equal(a, b) for a, b in zip(got_args[:7], args)) and got_args[7:] == (W, H)
+    assert all(torch.equal(a, b) for a, b in zip(got_args[:7], args, strict=False)) and got_args[7:] == (W, H)
     assert got_kw == {**kw, "sh_degree": None, "camera_model": "pinhole", "backgrounds": got_kw["backgrounds"]}
     assert torch.equal(got_kw["backgrounds"], bg)
     ref = rasterize_dense(*args, W, H, **kw)
@@ -76,7 +77,8 @@ def test_gsplat_matches_the_pytorch_path(render_mode, sh_degree):
     pytest.importorskip("gsplat")
     args = _scene(seed=1)
     if sh_degree is not None:
-        args[4] = 0.3 * torch.randn(args[0].shape[0], (sh_degree + 1) ** 2, 3, generator=torch.Generator().manual_seed(2))
+        args[4] = 0.3 * torch.randn(args[0].shape[0], (sh_degree + 1) ** 2, 3,
+                                    generator=torch.Generator().manual_seed(2))
     bg = torch.rand(1, 3)
     kw = dict(render_mode=render_mode, sh_degree=sh_degree, backgrounds=None if render_mode == "D" else bg)
     cpu_leaves = [t.clone().requires_grad_() for t in args[:5]]
@@ -93,5 +95,5 @@ def test_gsplat_matches_the_pytorch_path(render_mode, sh_degree):
     assert float(a1.max()) > 0.3
     torch.testing.assert_close(c2, c1, atol=1e-4 * max(1.0, float(c1.abs().max())), rtol=0)
     torch.testing.assert_close(a2, a1, atol=1e-4, rtol=0)
-    for name, x, y in zip(["means", "quats", "scales", "opacities", "colors"], g2, g1):
+    for name, x, y in zip(["means", "quats", "scales", "opacities", "colors"], g2, g1, strict=False):
         torch.testing.assert_close(x, y, atol=1e-3 * float(y.abs().max()), rtol=0, msg=name)

@@ -23,8 +23,11 @@ def _grid_scene(size):
     means = torch.stack([(j - size / 2) / f * z, (i - size / 2) / f * z, z], -1).reshape(-1, 3)
     n = means.shape[0]
     g = torch.Generator().manual_seed(0)
-    return [means, torch.randn(n, 4, generator=g), torch.full((n, 3), 0.5 * 2.0 / f), 0.05 + 0.9 * torch.rand(n, generator=g),
-            torch.rand(n, 3, generator=g), torch.eye(4)[None], torch.tensor([[[f, 0, size / 2], [0, f, size / 2], [0, 0, 1]]]),
+    return [means, torch.randn(n, 4, generator=g), torch.full((n, 3), 0.5 * 2.0 / f),
+            0.05 + 0.9 * torch.rand(n, generator=g),
+            torch.rand(n, 3,
+                       generator=g), torch.eye(4)[None], torch.tensor([[[f, 0, size / 2], [0, f, size / 2],
+                                                                        [0, 0, 1]]]),
             size, size]
 
 

@@ -16,7 +16,8 @@ K = torch.tensor([[50.0, 0, 30.0], [0, 55.0, 26.0], [0, 0, 1]], dtype=D)
 
 def _camera(angle=0.2, t=(0.1, -0.2, 0.3)):
     vm = torch.eye(4, dtype=D)
-    vm[:3, :3] = quat_to_rotmat(axis_angle_to_quat(torch.tensor([0.3, 1.0, 0.2], dtype=D), torch.tensor(angle, dtype=D)))
+    axis = torch.tensor([0.3, 1.0, 0.2], dtype=D)
+    vm[:3, :3] = quat_to_rotmat(axis_angle_to_quat(axis, torch.tensor(angle, dtype=D)))
     vm[:3, 3] = torch.tensor(t, dtype=D)
     return vm
 
@@ -28,10 +29,12 @@ def _project(means, quats, scales, opac, vm, **kw):
 def test_centre_lands_at_K_x_over_z():
     g = torch.Generator().manual_seed(0)
     vm = _camera()
-    pc = torch.stack([torch.rand(20, generator=g, dtype=D) - 0.5, torch.rand(20, generator=g, dtype=D) - 0.5, 1 + 3 * torch.rand(20, generator=g, dtype=D)], -1)
+    pc = torch.stack([torch.rand(20, generator=g, dtype=D) - 0.5, torch.rand(20, generator=g, dtype=D) - 0.5,
+                      1 + 3 * torch.rand(20, generator=g, dtype=D)], -1)
     means = (pc - vm[:3, 3]) @ vm[:3, :3]  # world points whose camera coordinates are pc
     n = len(means)
-    p = _project(means, torch.randn(n, 4, dtype=D), torch.full((n, 3), 0.01, dtype=D), torch.full((n,), 0.5, dtype=D), vm)
+    p = _project(means, torch.randn(n, 4, dtype=D), torch.full((n, 3), 0.01, dtype=D), torch.full((n,), 0.5, dtype=D),
+                 vm)
     uvw = pc @ K.T
     torch.testing.assert_close(p.means2d[0], uvw[:, :2] / uvw[:, 2:], rtol=1e-12, atol=1e-9)
     torch.testing.assert_close(p.depths[0], pc[:, 2])
@@ -44,7 +47,8 @@ def test_isotropic_gaussian_on_axis_has_screen_sigma_f_s_over_z(z, s):
     k[0, 0] = k[1, 1] = 50.0
     eps = 0.3
     means = torch.tensor([[0.0, 0.0, z]], dtype=D)
-    p = project_gaussians(means, torch.randn(1, 4, dtype=D), torch.full((1, 3), s, dtype=D), torch.tensor([0.7], dtype=D),
+    p = project_gaussians(means, torch.randn(1, 4, dtype=D), torch.full((1, 3), s, dtype=D),
+                          torch.tensor([0.7], dtype=D),
                           torch.eye(4, dtype=D)[None], k[None], W, H, eps2d=eps, antialiased=True)
     var = (50.0 * s / z) ** 2
     torch.testing.assert_close(p.covars2d[0, 0], torch.tensor([var + eps, 0.0, var + eps], dtype=D))
@@ -84,7 +88,8 @@ def test_clamp_limits_jacobian_for_wide_gaussian_outside_view():
     assert xz > lim
     mean = torch.tensor([[xz * z, 0.0, z]], dtype=D)
     scales = torch.full((1, 3), 1.0, dtype=D)
-    p = project_gaussians(mean, torch.tensor([[1.0, 0, 0, 0]], dtype=D), scales, torch.tensor([0.5], dtype=D), vm[None], K[None], W, H, eps2d=0.0)
+    p = project_gaussians(mean, torch.tensor([[1.0, 0, 0, 0]], dtype=D), scales, torch.tensor([0.5], dtype=D),
+                          vm[None], K[None], W, H, eps2d=0.0)
     fx, fy = float(K[0, 0]), float(K[1, 1])
     J = torch.tensor([[fx / z, 0, -fx * lim * z / z**2], [0, fy / z, 0]], dtype=D)
     want = J @ J.T
@@ -102,7 +107,8 @@ def test_culling_near_far_and_outside():
         [30.0, 0.0, 2.0],    # far outside the image
     ], dtype=D)
     n = len(means)
-    p = _project(means, torch.randn(n, 4, dtype=D), torch.full((n, 3), 0.05, dtype=D), torch.full((n,), 0.5, dtype=D), vm, far_plane=20.0)
+    p = _project(means, torch.randn(n, 4, dtype=D), torch.full((n, 3), 0.05, dtype=D), torch.full((n,), 0.5, dtype=D),
+                 vm, far_plane=20.0)
     assert p.radii[0].tolist() == [p.radii[0, 0].item(), 0, 0, 0, 0] and p.radii[0, 0] > 0
     for t in (p.means2d, p.conics, p.covars2d, p.opacities, p.depths):
         assert bool(torch.isfinite(t).all()) and bool((t[0, 1:] == 0).all())
@@ -111,14 +117,17 @@ def test_culling_near_far_and_outside():
 def test_zero_norm_quaternion_raises():
     q = torch.tensor([[1.0, 0, 0, 0], [0.0, 0, 0, 0]], dtype=D)
     with pytest.raises(ValueError, match="quats"):
-        _project(torch.tensor([[0, 0, 2.0], [0, 0, 3.0]], dtype=D), q, torch.full((2, 3), 0.1, dtype=D), torch.full((2,), 0.5, dtype=D), torch.eye(4, dtype=D))
+        _project(torch.tensor([[0, 0, 2.0], [0, 0, 3.0]], dtype=D), q, torch.full((2, 3), 0.1, dtype=D),
+                 torch.full((2,), 0.5, dtype=D), torch.eye(4, dtype=D))
 
 
 def test_unknown_camera_model_raises():
     with pytest.raises(ValueError, match="camera_model"):
-        _project(torch.zeros(1, 3, dtype=D), torch.ones(1, 4, dtype=D), torch.ones(1, 3, dtype=D), torch.ones(1, dtype=D), torch.eye(4, dtype=D), camera_model="fisheye")
+        _project(torch.zeros(1, 3, dtype=D), torch.ones(1, 4, dtype=D), torch.ones(1, 3, dtype=D),
+                 torch.ones(1, dtype=D), torch.eye(4, dtype=D), camera_model="fisheye")
 
 
+@pytest.mark.slow
 def test_support_box_contains_every_visible_pixel_and_is_tight():
     g = torch.Generator().manual_seed(1)
     n = 40

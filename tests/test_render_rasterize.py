@@ -22,7 +22,8 @@ def _scene(n=80, c=2, w=32, h=24, seed=0, sh=None, d=3):
     vms = []
     for i in range(c):
         vm = torch.eye(4, dtype=D)
-        vm[:3, :3] = quat_to_rotmat(axis_angle_to_quat(torch.tensor([0.2, 1.0, 0.1], dtype=D), torch.tensor(0.15 * i, dtype=D)))
+        axis = torch.tensor([0.2, 1.0, 0.1], dtype=D)
+        vm[:3, :3] = quat_to_rotmat(axis_angle_to_quat(axis, torch.tensor(0.15 * i, dtype=D)))
         vm[:3, 3] = torch.tensor([0.1 * i, -0.05 * i, 0.2 * i], dtype=D)
         vms.append(vm)
     K = torch.tensor([[w * 0.9, 0, w / 2], [0, w * 0.9, h / 2], [0, 0, 1]], dtype=D).expand(c, 3, 3).clone()
@@ -36,6 +37,7 @@ def _both(args, w=32, h=24, **kw):
 
 
 @pytest.mark.parametrize("render_mode", ["RGB", "D", "ED", "RGB+D", "RGB+ED"])
+@pytest.mark.slow
 def test_fast_matches_dense_every_render_mode(render_mode):
     args = _scene(seed=1)
     bg = torch.rand(2, 3, dtype=D, generator=torch.Generator().manual_seed(5))
@@ -50,11 +52,14 @@ def test_fast_matches_dense_every_render_mode(render_mode):
         torch.testing.assert_close(c1[..., -1:], torch.where(a1 > 0, d_acc / a1.clamp(min=1e-10), 0.0))
 
 
-@pytest.mark.parametrize("sh_degree,mode,tile", [(0, "classic", 16), (1, "antialiased", 4), (2, "classic", 1), (3, "antialiased", 5)])
+@pytest.mark.parametrize("sh_degree,mode,tile",
+                         [(0, "classic", 16), (1, "antialiased", 4), (2, "classic", 1), (3, "antialiased", 5)])
+@pytest.mark.slow
 def test_fast_matches_dense_sh_antialiased_and_any_tile_size(sh_degree, mode, tile):
     args = _scene(n=60, c=3, w=29, h=21, seed=2 + sh_degree, sh=sh_degree)
     bg = torch.rand(3, 3, dtype=D)
-    (c1, a1, m1), (c2, a2, m2) = _both(args, w=29, h=21, sh_degree=sh_degree, rasterize_mode=mode, backgrounds=bg, tile_size=tile)
+    (c1, a1, m1), (c2, a2, m2) = _both(args, w=29, h=21, sh_degree=sh_degree, rasterize_mode=mode, backgrounds=bg,
+                                       tile_size=tile)
     torch.testing.assert_close(c1, c2, atol=1e-5, rtol=0)
     torch.testing.assert_close(a1, a2, atol=1e-5, rtol=0)
     assert torch.equal(m1["radii"], m2["radii"]) and m1["tile_width"] == math.ceil(29 / tile)
@@ -86,7 +91,7 @@ def test_fast_gradients_match_dense_reference(sh_degree, mode):
             weights = torch.rand(col.shape, dtype=D, generator=torch.Generator().manual_seed(0))
         loss = (col * weights).sum() + (alpha ** 2).sum()
         grads.append(torch.autograd.grad(loss, leaves))
-    for name, g1, g2 in zip(["means", "quats", "scales", "opacities", "colors", "backgrounds"], *grads):
+    for name, g1, g2 in zip(["means", "quats", "scales", "opacities", "colors", "backgrounds"], *grads, strict=False):
         assert float(g2.abs().max()) > 0, name
         torch.testing.assert_close(g1, g2, atol=1e-7, rtol=1e-6, msg=name)
 
@@ -104,6 +109,7 @@ def _smooth_scene():
 
 
 @pytest.mark.parametrize("fn", [rasterize, rasterize_dense])
+@pytest.mark.slow
 def test_gradcheck_tiny_scene(fn):
     means, quats, scales, opac, colors, vm, K = _smooth_scene()
     bg = torch.tensor([[0.3, 0.2, 0.1]], dtype=D)
@@ -144,7 +150,8 @@ def test_single_gaussian_closed_form_and_pixel_centres():
     f, z, s, o, eps = 10.0, 2.0, 0.3, 0.8, 0.3
     K = torch.tensor([[[f, 0, 3.2], [0, f, 2.7], [0, 0, 1]]], dtype=D)
     out, alpha, _ = rasterize(torch.tensor([[0.0, 0.0, z]], dtype=D), torch.tensor([[1.0, 0, 0, 0]], dtype=D),
-                              torch.full((1, 3), s, dtype=D), torch.tensor([o], dtype=D), torch.tensor([[1.0]], dtype=D),
+                              torch.full((1, 3), s, dtype=D), torch.tensor([o], dtype=D), torch.tensor([[1.0]],
+                                                                                                       dtype=D),
                               torch.eye(4, dtype=D)[None], K, 7, 6, render_mode="RGB", eps2d=eps)
     var = (f * s / z) ** 2 + eps
     i, j = torch.meshgrid(torch.arange(6, dtype=D), torch.arange(7, dtype=D), indexing="ij")

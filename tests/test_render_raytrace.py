@@ -54,7 +54,8 @@ def test_single_isotropic_gaussian_closed_form_any_camera():
     """Isotropic Gaussian (σ = s) seen from the origin: alpha = o·exp(−½(‖μ‖² − (μ·d)²)/s²) along ray d."""
     mu, s, o = torch.tensor([[0.3, -0.2, 2.0]], dtype=D), 0.15, 0.7
     K = _K(20.0, 12.0, 10.0)
-    for model, params in (("pinhole", None), ("fisheye", FisheyeKB(0.02, -0.01)), ("fisheye", FisheyePolynomial(k1=0.05))):
+    for model, params in (("pinhole", None), ("fisheye", FisheyeKB(0.02, -0.01)),
+                          ("fisheye", FisheyePolynomial(k1=0.05))):
         out, alpha, meta = raytrace(mu, torch.tensor([[1.0, 0, 0, 0]], dtype=D), torch.full((1, 3), s, dtype=D),
                                     torch.tensor([o], dtype=D), torch.ones(1, 1, dtype=D), ID, K, 24, 20,
                                     render_mode="RGB+D", camera_model=model, camera_params=params)
@@ -71,6 +72,7 @@ def test_single_isotropic_gaussian_closed_form_any_camera():
 @pytest.mark.parametrize("model,params", [
     ("pinhole", None), ("pinhole", ThinLens(0.08, 4.0, spp=4)), ("fisheye", FisheyePolynomial(k1=0.06, k2=-2e-4)),
 ])
+@pytest.mark.slow
 def test_culling_and_batching_change_nothing(model, params):
     """Tiles, cone culling and pair batches vs one brute-force composite of every ray with every Gaussian."""
     args = _random(150, 1, lo=(-4, -4, -3), hi=(4, 4, 8), smin=0.05, smax=0.3)
@@ -162,7 +164,8 @@ def test_fisheye_beyond_180_degrees_sees_behind_the_image_plane():
     lens = FisheyePolynomial(k1=k1)
     K = _K(1.0, 32.0, 32.0)
     theta, phi = math.radians(100), math.radians(30)
-    mu = 2.0 * torch.tensor([[math.sin(theta) * math.cos(phi), math.sin(theta) * math.sin(phi), math.cos(theta)]], dtype=D)
+    mu = 2.0 * torch.tensor([[math.sin(theta) * math.cos(phi), math.sin(theta) * math.sin(phi), math.cos(theta)]],
+                            dtype=D)
     g = [mu, torch.tensor([[1.0, 0, 0, 0]], dtype=D), torch.full((1, 3), 0.12, dtype=D), torch.tensor([0.9], dtype=D),
          torch.ones(1, 1, dtype=D)]
     _, alpha, _ = rasterize(*g, ID, K, 64, 64, render_mode="RGB", camera_model="fisheye", camera_params=lens)
@@ -179,6 +182,7 @@ def test_fisheye_beyond_180_degrees_sees_behind_the_image_plane():
     assert float(a_pin.max()) == 0.0
 
 
+@pytest.mark.slow
 def test_rays_beyond_max_angle_give_background_and_no_nan():
     """KB lens with k1 = −0.1 folds back at θ ≈ 104.6°; with f = 12 px the image corners lie past it."""
     lens = FisheyeKB(k1=-0.1)
@@ -193,7 +197,8 @@ def test_rays_beyond_max_angle_give_background_and_no_nan():
     ok = ok[0, ..., 0]
     assert 0 < int((~ok).sum()) < 32 * 32 // 2
     assert bool(torch.isfinite(out).all()) and bool(torch.isfinite(alpha).all())
-    assert bool((alpha[0][~ok] == 0).all()) and bool((out[0][~ok][:, :3] == bg).all()) and bool((out[0][~ok][:, 3] == 0).all())
+    assert bool((alpha[0][~ok] == 0).all()) and bool((out[0][~ok][:, :3] == bg).all())
+    assert bool((out[0][~ok][:, 3] == 0).all())
     assert float(alpha[0][ok].detach().mean()) > 0.3  # Gaussians all around, also behind the camera
     grads = torch.autograd.grad((out * torch.rand(out.shape, generator=g, dtype=D)).sum() + alpha.sum(), args)
     for gr in grads:
@@ -208,11 +213,14 @@ def _flat_plane(z):
     gy, gx = torch.meshgrid(torch.arange(7, dtype=D) - 3.0, torch.arange(8, dtype=D) - 3.5, indexing="ij")
     n = gx.numel()
     means = torch.stack([0.5 * gx.reshape(-1), 0.5 * gy.reshape(-1), torch.full((n,), z, dtype=D)], -1)
-    quats = axis_angle_to_quat(torch.tensor([0.0, 0.0, 1.0], dtype=D).expand(n, 3), torch.rand(n, generator=g, dtype=D) * 3)
+    quats = axis_angle_to_quat(torch.tensor([0.0, 0.0, 1.0], dtype=D).expand(n, 3),
+                               torch.rand(n, generator=g, dtype=D) * 3)
     scales = torch.cat([0.03 + 0.04 * torch.rand(n, 2, generator=g, dtype=D), torch.full((n, 1), 1e-4, dtype=D)], -1)
-    return [means, quats, scales, 0.2 + 0.7 * torch.rand(n, generator=g, dtype=D), torch.rand(n, 3, generator=g, dtype=D)]
+    return [means, quats, scales, 0.2 + 0.7 * torch.rand(n, generator=g, dtype=D),
+            torch.rand(n, 3, generator=g, dtype=D)]
 
 
+@pytest.mark.slow
 def test_in_focus_plane_matches_pinhole_and_spp1_is_pinhole():
     args = _flat_plane(4.0)
     K, bg = _K(30.0, 16.0, 14.0), torch.tensor([[0.0, 0.1, 0.2]], dtype=D)
@@ -237,6 +245,7 @@ def _second_moment_x(alpha):
     return float((w * (xs - m) ** 2).sum() / w.sum())
 
 
+@pytest.mark.slow
 def test_defocus_blur_grows_as_circle_of_confusion_predicts():
     """A point at depth z seen through a thin lens focused at z_f spreads over lens offsets
     δ = f·l·(1/z_f − 1/z) pixels (l the lens point, metres): the image variance grows by
@@ -244,7 +253,8 @@ def test_defocus_blur_grows_as_circle_of_confusion_predicts():
     confusion diameter CoC = 2·f·A·|z − z_f|/(z·z_f)."""
     f, z, zf, s = 40.0, 2.0, 4.0, 0.05
     K = _K(f, 32.0, 32.0)
-    g = [torch.tensor([[0.0, 0.0, z]], dtype=D), torch.tensor([[1.0, 0, 0, 0]], dtype=D), torch.full((1, 3), s, dtype=D),
+    g = [torch.tensor([[0.0, 0.0, z]], dtype=D), torch.tensor([[1.0, 0, 0, 0]], dtype=D),
+         torch.full((1, 3), s, dtype=D),
          torch.tensor([0.5], dtype=D), torch.ones(1, 1, dtype=D)]
     var0 = _second_moment_x(raytrace(*g, ID, K, 64, 64, render_mode="RGB")[1][0, ..., 0])
     for A in (0.2, 0.4):
@@ -257,6 +267,7 @@ def test_defocus_blur_grows_as_circle_of_confusion_predicts():
         assert var - var0 == pytest.approx((coc / 2) ** 2 / 4, rel=0.05)
 
 
+@pytest.mark.slow
 def test_gradcheck_fisheye_and_thin_lens():
     means = torch.tensor([[0.05, -0.02, 2.0], [-0.1, 0.08, 2.5], [0.12, 0.1, 3.0]], dtype=D)
     quats = torch.tensor([[1.0, 0.1, -0.2, 0.05], [0.8, -0.3, 0.1, 0.2], [0.9, 0.0, 0.3, -0.1]], dtype=D)
@@ -266,8 +277,9 @@ def test_gradcheck_fisheye_and_thin_lens():
     K, bg = _K(6.0, 3.0, 3.0), torch.tensor([[0.3, 0.2, 0.1]], dtype=D)
     wts = torch.rand(1, 6, 6, 4, generator=torch.Generator().manual_seed(0), dtype=D)
     for model, params in (("fisheye", FisheyeKB(0.05)), ("pinhole", ThinLens(0.3, 2.5, spp=4))):
-        def fn(m, q, s, o, c):  # a few weighted sums of the image keep the Jacobian small
-            col, alpha, _ = rasterize(m, q, s, o, c, ID, K, 6, 6, backgrounds=bg, camera_model=model, camera_params=params)
+        def fn(m, q, s, o, c, model=model, params=params):  # weighted sums of the image keep the Jacobian small
+            col, alpha, _ = rasterize(m, q, s, o, c, ID, K, 6, 6, backgrounds=bg, camera_model=model,
+                                      camera_params=params)
             return (col * wts).sum((0, 1, 2)), (alpha[..., 0] * wts[..., 0]).sum()
 
         inputs = tuple(t.clone().requires_grad_() for t in (means, quats, scales, opac, colors))
@@ -279,7 +291,8 @@ def test_render_modes_and_backgrounds(mode, channels):
     args = _random(40, 7, smin=0.05, smax=0.2)
     K, bg = _K(30.0, 12.0, 10.0), torch.tensor([[0.2, 0.4, 0.6]], dtype=D)
     lens = FisheyeKB()
-    out, alpha, _ = raytrace(*args, ID, K, 24, 20, render_mode=mode, backgrounds=bg, camera_model="fisheye", camera_params=lens)
+    out, alpha, _ = raytrace(*args, ID, K, 24, 20, render_mode=mode, backgrounds=bg, camera_model="fisheye",
+                             camera_params=lens)
     full, alpha_full, _ = raytrace(*args, ID, K, 24, 20, render_mode="RGB+ED", backgrounds=bg, camera_model="fisheye",
                                    camera_params=lens)
     assert out.shape == (1, 20, 24, channels)
@@ -320,6 +333,7 @@ def test_bad_tensor_on_ray_path_names_it():
         rasterize(*args, ID, _K(30.0, 12.0, 10.0), 24, 20, camera_model="fisheye")
 
 
+@pytest.mark.slow
 def test_float32_far_gaussians_match_float64():
     """Gaussians of 2–5 cm at 20–60 m: ‖o'‖ ~ 10³, where the expanded form ‖o'‖²‖d'‖² − (o'·d')² would
     lose float32; the cross-product form keeps the image within 2e-4 of float64 (measured 1.3e-5)."""

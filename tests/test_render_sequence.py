@@ -12,7 +12,8 @@ def test_each_frame_renders_the_scene_at_its_own_time():
     T = 5
     K = intrinsics_from_fov(W, H, fov_y_deg=60.0, dtype=torch.float64)
     path = CameraPath(torch.eye(4, dtype=torch.float64).repeat(T, 1, 1), K.expand(T, 3, 3).clone(), W, H)
-    g = Gaussians(torch.tensor([[-0.5, 0.0, 2.0]], dtype=torch.float64), torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64),
+    g = Gaussians(torch.tensor([[-0.5, 0.0, 2.0]], dtype=torch.float64),
+                  torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64),
                   torch.full((1, 3), 0.03, dtype=torch.float64), torch.tensor([0.95], dtype=torch.float64),
                   rgb_to_sh0(torch.ones(1, 1, 3, dtype=torch.float64)))
     d_means = torch.zeros(T, 1, 3, dtype=torch.float64)

@@ -9,27 +9,27 @@ from diff4splat.render import rasterize, sh_basis, sh_to_color, spherical_harmon
 from diff4splat.render.sh import num_sh_bases
 
 
-def _legendre(l: int, m: int, x: torch.Tensor) -> torch.Tensor:
+def _legendre(deg: int, m: int, x: torch.Tensor) -> torch.Tensor:
     """Associated Legendre P_l^m(x), m ≥ 0, with the Condon–Shortley phase (standard recurrences)."""
     pmm = torch.ones_like(x)
     somx2 = torch.sqrt((1 - x) * (1 + x))
     for i in range(1, m + 1):
         pmm = -(2 * i - 1) * somx2 * pmm
-    if l == m:
+    if deg == m:
         return pmm
     pmmp1 = x * (2 * m + 1) * pmm
-    for ll in range(m + 2, l + 1):
+    for ll in range(m + 2, deg + 1):
         pmm, pmmp1 = pmmp1, ((2 * ll - 1) * x * pmmp1 - (ll + m - 1) * pmm) / (ll - m)
     return pmmp1
 
 
-def _real_sh_direct(l: int, m: int, dirs: torch.Tensor) -> torch.Tensor:
+def _real_sh_direct(deg: int, m: int, dirs: torch.Tensor) -> torch.Tensor:
     """Orthonormal real SH from spherical coordinates (Sloan 2008 / INRIA sign convention)."""
     x, y, z = dirs.unbind(-1)
     phi = torch.atan2(y, x)
     am = abs(m)
-    norm = math.sqrt((2 * l + 1) / (4 * math.pi) * math.factorial(l - am) / math.factorial(l + am))
-    p = _legendre(l, am, z)
+    norm = math.sqrt((2 * deg + 1) / (4 * math.pi) * math.factorial(deg - am) / math.factorial(deg + am))
+    p = _legendre(deg, am, z)
     if m > 0:
         return math.sqrt(2) * norm * p * torch.cos(m * phi)
     if m < 0:
@@ -46,12 +46,13 @@ def _fibonacci_sphere(n: int) -> torch.Tensor:
 
 
 def test_basis_matches_direct_legendre_formula():
-    dirs = torch.nn.functional.normalize(torch.randn(500, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0)), dim=-1)
+    dirs = torch.nn.functional.normalize(torch.randn(500, 3, dtype=torch.float64,
+                                                     generator=torch.Generator().manual_seed(0)), dim=-1)
     basis = sh_basis(3, dirs)
     k = 0
-    for l in range(4):
-        for m in range(-l, l + 1):
-            torch.testing.assert_close(basis[:, k], _real_sh_direct(l, m, dirs), rtol=1e-12, atol=1e-12)
+    for deg in range(4):
+        for m in range(-deg, deg + 1):
+            torch.testing.assert_close(basis[:, k], _real_sh_direct(deg, m, dirs), rtol=1e-12, atol=1e-12)
             k += 1
     assert k == basis.shape[-1] == 16
 
@@ -100,13 +101,15 @@ def test_renderer_uses_direction_from_camera_centre():
     """Rendering SH equals rendering the colours computed by hand along (mean − camera centre)."""
     g = torch.Generator().manual_seed(3)
     n = 30
-    means = torch.stack([torch.rand(n, generator=g) - 0.5, torch.rand(n, generator=g) - 0.5, 2 + torch.rand(n, generator=g)], -1).double()
+    means = torch.stack([torch.rand(n, generator=g) - 0.5, torch.rand(n, generator=g) - 0.5,
+                         2 + torch.rand(n, generator=g)], -1).double()
     quats = torch.randn(n, 4, generator=g).double()
     scales = (0.05 + 0.1 * torch.rand(n, 3, generator=g)).double()
     opac = (0.2 + 0.7 * torch.rand(n, generator=g)).double()
     sh = 0.4 * torch.randn(n, 16, 3, generator=g).double()
     angle = 0.3
-    R = torch.tensor([[math.cos(angle), 0, math.sin(angle)], [0, 1, 0], [-math.sin(angle), 0, math.cos(angle)]]).double()
+    R = torch.tensor([[math.cos(angle), 0, math.sin(angle)], [0, 1, 0],
+                      [-math.sin(angle), 0, math.cos(angle)]]).double()
     vm = torch.eye(4, dtype=torch.float64)
     vm[:3, :3] = R
     vm[:3, 3] = torch.tensor([0.3, -0.1, 0.2]).double()

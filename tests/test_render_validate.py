@@ -70,7 +70,8 @@ def test_size_message_matches_the_camera_layer():
         intrinsics_from_focal(10.0, 10.0, 0, 4)
     args = _args()
     args[7] = 0
-    assert str(cam.value) == str(intr.value) == _message(rasterize, args) == "width must be a positive int (pixels), got 0"
+    assert str(cam.value) == str(intr.value) == _message(rasterize,
+                                                         args) == "width must be a positive int (pixels), got 0"
 
 
 def test_validate_inputs_accepts_good_arguments_and_lists_gsplat_modes():

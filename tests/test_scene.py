@@ -69,7 +69,8 @@ def test_rotation_offset_is_applied_on_the_left():
 def test_times_outside_key_range_clamp_and_single_key_time():
     g = _gaussians(3)
     d = torch.randn(1, 3, 3, dtype=torch.float64)
-    scene = DynamicGaussians(g, torch.tensor([0.5], dtype=torch.float64), d, _identity_quats(1, 3), torch.zeros(1, 3, 3, dtype=torch.float64))
+    scene = DynamicGaussians(g, torch.tensor([0.5], dtype=torch.float64), d, _identity_quats(1, 3),
+                             torch.zeros(1, 3, 3, dtype=torch.float64))
     torch.testing.assert_close(scene.at(0.0).means, g.means + d[0])
     torch.testing.assert_close(scene.at(1.0).means, g.means + d[0])
 
@@ -98,7 +99,8 @@ def test_identity_deformation_is_dropped():
 def test_invalid_deformation_raises(bad):
     g = _gaussians(2)
     times = torch.tensor([0.0, 1.0], dtype=torch.float64)
-    dm, dq, ds = torch.zeros(2, 2, 3, dtype=torch.float64), _identity_quats(2, 2), torch.zeros(2, 2, 3, dtype=torch.float64)
+    dm, dq, ds = torch.zeros(2, 2, 3, dtype=torch.float64), _identity_quats(2, 2), torch.zeros(2, 2, 3,
+                                                                                               dtype=torch.float64)
     if bad == "partial":
         args = (times, dm, None, ds)
     elif bad == "shape":

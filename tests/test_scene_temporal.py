@@ -68,6 +68,7 @@ def test_opacity_is_multiplied_by_the_unnormalised_marginal():
 
 
 @pytest.mark.parametrize("deform", [False, True])
+@pytest.mark.slow
 def test_temporal_gating_is_exact(deform):
     """Leaving out the Gaussians with o·p(t) < 1/255 changes no pixel (fast and dense renderer)."""
     scene = _temporal_scene(m=80, seed=3, deform=deform)
@@ -92,7 +93,8 @@ def test_gaussian_with_small_time_scale_appears_only_around_its_time():
     T = 9
     path = _path(T)
     g = Gaussians(torch.tensor([[0.0, 0.0, 2.0]], dtype=D), torch.tensor([[1.0, 0, 0, 0]], dtype=D),
-                  torch.full((1, 3), 0.2, dtype=D), torch.tensor([0.9], dtype=D), rgb_to_sh0(torch.ones(1, 1, 3, dtype=D)))
+                  torch.full((1, 3), 0.2, dtype=D), torch.tensor([0.9],
+                                                                 dtype=D), rgb_to_sh0(torch.ones(1, 1, 3, dtype=D)))
     mu, sig = 0.5, 0.05
     scene = DynamicGaussians(g, t_means=torch.tensor([mu], dtype=D), t_scales=torch.tensor([sig], dtype=D))
     _, _, alphas = render_path(scene, path)

@@ -426,7 +426,8 @@ class RollingShutter:
     def band_times(self, height: int, t_frame: float) -> list[float]:
         """Clip time of each band of :meth:`row_bands`: the mean of its rows' times, clamped to [0, 1]."""
         t0 = self.start_time(t_frame)
-        return [min(1.0, max(0.0, t0 + (r0 + r1) / (2.0 * height) * self.duration)) for r0, r1 in self.row_bands(height)]
+        return [min(1.0, max(0.0, t0 + (r0 + r1) / (2.0 * height) * self.duration))
+                for r0, r1 in self.row_bands(height)]
 
 
 def check_camera(camera_model: str, camera_params: object) -> object:

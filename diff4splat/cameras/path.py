@@ -137,7 +137,8 @@ class CameraPath:
         bad = (K64[:, 0, 0] <= 0) | (K64[:, 1, 1] <= 0)
         if bool(bad.any()):
             i = int(bad.nonzero()[0])
-            raise ValueError(f"Ks[{i}] focal lengths must be > 0 pixels, got fx={float(K64[i, 0, 0])}, fy={float(K64[i, 1, 1])}")
+            raise ValueError(f"Ks[{i}] focal lengths must be > 0 pixels, "
+                             f"got fx={float(K64[i, 0, 0])}, fy={float(K64[i, 1, 1])}")
         structure = torch.stack([K64[:, 0, 1], K64[:, 1, 0], K64[:, 2, 0], K64[:, 2, 1], K64[:, 2, 2] - 1.0], -1)
         bad = structure.abs().amax(-1) > 1e-6
         if bool(bad.any()):
@@ -148,7 +149,8 @@ class CameraPath:
             raise ValueError(f"times must lie in [0, 1], got min {float(times.min())}, max {float(times.max())}")
         if T > 1 and bool((times[1:] < times[:-1]).any()):
             i = int((times[1:] < times[:-1]).nonzero()[0]) + 1
-            raise ValueError(f"times must be non-decreasing, but times[{i}]={float(times[i])} < times[{i - 1}]={float(times[i - 1])}")
+            raise ValueError(f"times must be non-decreasing, but times[{i}]={float(times[i])} "
+                             f"< times[{i - 1}]={float(times[i - 1])}")
 
     def camera_centers(self) -> Tensor:
         """(T, 3) camera centres in world coordinates, metres: c = −Rᵀ t (:func:`camera_centers`)."""

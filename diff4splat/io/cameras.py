@@ -64,9 +64,11 @@ def _tensor(data: dict, key: str, shape_tail: tuple[int, ...], path: Path) -> to
     try:
         t = torch.tensor(data[key], dtype=torch.float32)
     except (TypeError, ValueError) as e:
-        raise ValueError(f"{path}: '{key}' must be a nested list of numbers of shape (T, {', '.join(map(str, shape_tail))}): {e}") from None
+        raise ValueError(f"{path}: '{key}' must be a nested list of numbers of shape "
+                         f"(T, {', '.join(map(str, shape_tail))}): {e}") from None
     if t.dim() != 1 + len(shape_tail) or tuple(t.shape[1:]) != shape_tail:
-        raise ValueError(f"{path}: '{key}' must have shape (T, {', '.join(map(str, shape_tail))}), got {tuple(t.shape)}")
+        raise ValueError(f"{path}: '{key}' must have shape (T, {', '.join(map(str, shape_tail))}), "
+                         f"got {tuple(t.shape)}")
     return t
 
 

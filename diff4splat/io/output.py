@@ -37,9 +37,9 @@ __all__ = ["write_scene_folder", "fill_empty_depth", "save_deformation", "load_d
 def fill_empty_depth(depths: Tensor, alphas: Tensor, fallback: float) -> Tensor:
     """Give pixels without geometry the far distance of the scene, so every depth is finite and > 0.
 
-    Empty pixels (alpha < :data:`~diff4splat.constants.ALPHA_MIN` = 1/255) get the largest depth rendered anywhere on the path (the scene's far
-    bound along these views), or ``fallback`` metres if no pixel is covered; the "A" channel of the EXR
-    keeps the coverage so users can mask them.
+    Empty pixels (alpha < :data:`~diff4splat.constants.ALPHA_MIN` = 1/255) get the largest depth rendered
+    anywhere on the path (the scene's far bound along these views), or ``fallback`` metres if no pixel is
+    covered; the "A" channel of the EXR keeps the coverage so users can mask them.
 
     Args:
         depths: (T, H, W) expected depth, metres (0 where empty).

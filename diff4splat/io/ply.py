@@ -111,7 +111,8 @@ def _read_header(f, path: Path) -> tuple[int, np.dtype]:
             n_vertex, current = int(words[2]), words[1]
         elif words[0] == "property":
             if current != "vertex" or len(words) != 3 or words[1] not in _PLY_TYPES:
-                raise ValueError(f"{path}: unsupported PLY property line {line.decode(errors='replace')!r} (list properties are not supported)")
+                raise ValueError(f"{path}: unsupported PLY property line {line.decode(errors='replace')!r} "
+                                 "(list properties are not supported)")
             props.append((words[2], "<" + _PLY_TYPES[words[1]]))
     if fmt != "binary_little_endian":
         raise ValueError(f"{path}: only binary_little_endian PLY is supported, got format {fmt!r}")
@@ -159,7 +160,9 @@ def load_ply(path: str | os.PathLike) -> Gaussians:
         raise ValueError(f"{path}: {len(rest)} f_rest_* properties do not form 3·(K−1) with K a square ≤ 16")
 
     def cols(keys: list[str]) -> torch.Tensor:
-        return torch.from_numpy(np.stack([v[key].astype(np.float64) for key in keys], axis=1)) if keys else torch.zeros(n, 0, dtype=torch.float64)
+        if not keys:
+            return torch.zeros(n, 0, dtype=torch.float64)
+        return torch.from_numpy(np.stack([v[key].astype(np.float64) for key in keys], axis=1))
 
     sh = torch.empty(n, k, 3, dtype=torch.float64)
     sh[:, 0, :] = cols(["f_dc_0", "f_dc_1", "f_dc_2"])

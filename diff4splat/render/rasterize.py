@@ -344,8 +344,10 @@ def rasterize(
             far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, backgrounds=backgrounds, render_mode=render_mode,
             rasterize_mode=rasterize_mode, camera_model=camera_model, camera_params=camera_params, tile_size=tile_size,
         )
-    backend = rasterize_gsplat if use_gsplat(means, camera_model) else functools.partial(render_pipeline, composite_tiles)
-    return backend(  # gsplat's CUDA kernels for CUDA tensors when installed (render/gsplat_backend.py), else the tile path
+    # gsplat's CUDA kernels for CUDA tensors when installed (render/gsplat_backend.py), else the tile path
+    tile_path = functools.partial(render_pipeline, composite_tiles)
+    backend = rasterize_gsplat if use_gsplat(means, camera_model) else tile_path
+    return backend(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height,
         near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, backgrounds=backgrounds,
         render_mode=render_mode, rasterize_mode=rasterize_mode, camera_model=camera_model, tile_size=tile_size,

@@ -270,7 +270,10 @@ def raytrace(
     S = dirs.shape[3]
     spread = params.aperture_radius if isinstance(params, ThinLens) else 0.0
     with_rgb = render_mode in ("RGB", "RGB+D", "RGB+ED")
-    feats = color_features(colors.to(dtype), means, viewmats, sh_degree) if with_rgb else means.new_zeros(C, means.shape[0], 0)
+    if with_rgb:
+        feats = color_features(colors.to(dtype), means, viewmats, sh_degree)
+    else:
+        feats = means.new_zeros(C, means.shape[0], 0)
     bgs = mode_backgrounds(backgrounds, render_mode, C, dtype)
     whiten = whitening(quats, scales)
     radii = support_radius(scales.detach(), opacities.detach())

@@ -80,7 +80,7 @@ def render_rolling_shutter(
     for i in frames:
         K = cameras.Ks[i].to(dtype)
         rows_c, rows_a = [], []
-        for (r0, r1), t in zip(bands, shutter.band_times(H, float(cameras.times[i]))):
+        for (r0, r1), t in zip(bands, shutter.band_times(H, float(cameras.times[i])), strict=False):
             g = scene.at(t)
             vm = cameras.viewmat_at(t) if interpolate_pose else cameras.viewmats[i]
             K_band = K.clone()

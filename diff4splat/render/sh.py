@@ -99,7 +99,8 @@ def spherical_harmonics(degrees_to_use: int, dirs: Tensor, coeffs: Tensor) -> Te
     """
     k = num_sh_bases(degrees_to_use)
     if coeffs.dim() < 2 or coeffs.shape[-2] < k:
-        raise ValueError(f"coeffs must have shape (..., K≥{k}, D) for degree {degrees_to_use}, got {tuple(coeffs.shape)}")
+        raise ValueError(f"coeffs must have shape (..., K≥{k}, D) for degree {degrees_to_use}, "
+                         f"got {tuple(coeffs.shape)}")
     basis = sh_basis(degrees_to_use, F.normalize(dirs, dim=-1))  # (..., k)
     return (basis[..., :, None] * coeffs[..., :k, :]).sum(-2)
 

@@ -23,7 +23,7 @@ def _check_shape(name: str, t: Tensor, shape: tuple) -> None:
     """Raise ValueError naming ``name`` unless ``t`` has ``shape`` (None = any size)."""
     if not isinstance(t, Tensor):
         raise ValueError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
-    ok = t.dim() == len(shape) and all(s is None or s == d for s, d in zip(shape, t.shape))
+    ok = t.dim() == len(shape) and all(s is None or s == d for s, d in zip(shape, t.shape, strict=False))
     if not ok:
         want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
         raise ValueError(f"{name} must have shape {want}, got {tuple(t.shape)}")
@@ -75,7 +75,8 @@ def validate_inputs(
     if rasterize_mode not in RASTERIZE_MODES:
         raise ValueError(f"rasterize_mode must be one of {RASTERIZE_MODES}, got {rasterize_mode!r}")
     if camera_model not in CAMERA_MODELS:
-        raise ValueError(f"camera_model must be one of {CAMERA_MODELS} (others are not supported yet), got {camera_model!r}")
+        raise ValueError(f"camera_model must be one of {CAMERA_MODELS} (others are not supported yet), "
+                         f"got {camera_model!r}")
     for name, t in (("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
                     ("colors", colors), ("viewmats", viewmats), ("Ks", Ks), ("backgrounds", backgrounds)):
         if t is not None:
