@@ -75,8 +75,9 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
     g.add_argument("--out", type=Path, required=True, help="output folder (replaced atomically)")
 
     e = sub.add_parser("export-onnx", help="export the networks to ONNX for onnxruntime serving",
-                       description="Export the VAE encoder/decoder, text encoder, DiT velocity and LDRM (+ deformation) "
-                                   "as ONNX graphs with dynamic batch/frames/resolution, plus manifest.json.")
+                       description="Export the VAE encoder/decoder, text encoder, DiT velocity and LDRM "
+                                   "(+ deformation) as ONNX graphs with dynamic batch/frames/resolution, "
+                                   "plus manifest.json.")
     e.add_argument("--checkpoint", type=Path, default=None,
                    help="model folder (default: the shipped weights of --config)")
     e.add_argument("--config", default="tiny", help="model config name in configs/ (default: tiny)")

@@ -302,7 +302,8 @@ def _export_graph(graph: _Graph, path: Path, opset: int, external_data_bytes: in
     onnx.save(proto, str(path))
     onnx.checker.check_model(str(path))  # by path: works for external data and > 2 GiB
     inputs, outputs = _value_info(proto.graph.input), _value_info(proto.graph.output)
-    if [i["name"] for i in inputs] != list(graph.input_names) or [o["name"] for o in outputs] != list(graph.output_names):
+    names_in, names_out = [i["name"] for i in inputs], [o["name"] for o in outputs]
+    if names_in != list(graph.input_names) or names_out != list(graph.output_names):
         raise RuntimeError(f"{path.name}: exported names {[i['name'] for i in inputs]} → "
                            f"{[o['name'] for o in outputs]} differ from {graph.input_names} → {graph.output_names}")
     files = sorted(p.name for p in path.parent.iterdir() if p.name.startswith(path.name))
@@ -315,7 +316,7 @@ def _name_dims(proto, graph: _Graph) -> None:
     in the graph's inputs, outputs and value infos (in place)."""
     symbol = re.compile(r"\bs\d+\b")
     mapping: dict[str, str] = {}
-    for value, name in zip(proto.graph.input, graph.input_names):
+    for value, name in zip(proto.graph.input, graph.input_names, strict=True):
         for axis, d in graph.dynamic_shapes.get(name, {}).items():
             found = symbol.findall(value.type.tensor_type.shape.dim[axis].dim_param)
             if len(found) == 1:

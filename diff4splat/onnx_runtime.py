@@ -216,7 +216,7 @@ class OnnxRuntime:
             feeds["times"] = np.zeros(1, np.float32)
         outputs = self._run("ldrm", feeds)
         names = LDRM_OUTPUTS if self.has_deformation else STATIC_LDRM_OUTPUTS
-        maps = {name: torch.from_numpy(a) for name, a in zip(names, outputs)}
+        maps = {name: torch.from_numpy(a) for name, a in zip(names, outputs, strict=True)}
         if times is None:  # the dynamic graph always computes them; a static request drops them
             maps = {k: maps[k] for k in STATIC_LDRM_OUTPUTS}
         return LDRMOutput(**maps)

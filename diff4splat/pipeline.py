@@ -33,8 +33,8 @@ from models.bundle import WEIGHTS_DIR, Diff4SplatConfig, Diff4SplatModel, load_c
 from models.flow_matching import sample
 from models.ldrm import LDRMOutput
 
-from .checks import check_positive_int
 from .cameras import CameraPath, camera_rays, intrinsics_from_fov, make_trajectory, pack_plucker, plucker_rays
+from .checks import check_positive_int
 from .gaussians import Gaussians, rgb_to_sh0
 from .prune import prune_scene
 from .scene import DynamicGaussians
@@ -226,12 +226,12 @@ class Diff4SplatPipeline:
 
     @classmethod
     def from_pretrained(cls, checkpoint: str | Path | None = None, config: str = "tiny",
-                        device: str | torch.device = "cpu") -> "Diff4SplatPipeline":
+                        device: str | torch.device = "cpu") -> Diff4SplatPipeline:
         """Pipeline over :func:`load_model` (shipped weights when ``checkpoint`` is None)."""
         return cls(load_model(checkpoint, config)[0], device)
 
     @classmethod
-    def from_onnx(cls, directory: str | Path, providers: list[str] | None = None) -> "Diff4SplatPipeline":
+    def from_onnx(cls, directory: str | Path, providers: list[str] | None = None) -> Diff4SplatPipeline:
         """Pipeline over an ``export-onnx`` folder served by onnxruntime
         (:class:`diff4splat.onnx_runtime.OnnxRuntime`)."""
         from .onnx_runtime import OnnxRuntime
@@ -289,7 +289,8 @@ class Diff4SplatPipeline:
         if not bool(torch.isfinite(image).all()) or float(image.min()) < 0 or float(image.max()) > 1:
             raise ValueError("image values must be finite and lie in [0, 1]")
         if (cameras.width, cameras.height) != (cfg.width, cfg.height):
-            raise ValueError(f"cameras are {cameras.width}×{cameras.height}, the model runs at {cfg.width}×{cfg.height}")
+            raise ValueError(f"cameras are {cameras.width}×{cameras.height}, "
+                             f"the model runs at {cfg.width}×{cfg.height}")
         n = cfg.vae.num_latent_frames(len(cameras))  # raises for T ≠ 1 + 4k
         steps = cfg.sampling.steps if steps is None else steps
         sampler = cfg.sampling.sampler if sampler is None else sampler

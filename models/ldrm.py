@@ -84,7 +84,8 @@ class LDRMConfig:
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"LDRMConfig.{name} must be ≥ 1, got {getattr(self, name)}")
         if self.embed_dim % self.num_heads:
-            raise ValueError(f"LDRMConfig.embed_dim ({self.embed_dim}) must be divisible by num_heads ({self.num_heads})")
+            raise ValueError(f"LDRMConfig.embed_dim ({self.embed_dim}) must be divisible by "
+                             f"num_heads ({self.num_heads})")
         if self.embed_dim < 6:
             raise ValueError(f"LDRMConfig.embed_dim must be ≥ 6 for the 3D position embedding, got {self.embed_dim}")
         if not 0 < self.depth_min < self.default_depth < self.depth_max:
@@ -103,7 +104,7 @@ class LDRMConfig:
         return 6 * self.vae_temporal * self.vae_spatial**2
 
     @classmethod
-    def paper(cls) -> "LDRMConfig":
+    def paper(cls) -> LDRMConfig:
         """Paper-size LDRM (DESIGN.md: 16 blocks, 64-dim tokens; 16 latent channels; 2×2 patches).
 
         Heads (4 × 16 dims), patch size 2, the deformation width 64 and ``scale_base`` = 2e-3
@@ -251,7 +252,8 @@ class LDRM(nn.Module, PretrainedMixin):
         if h % cfg.patch_size or w % cfg.patch_size:
             raise ValueError(f"latents: h, w = {h}, {w} must be multiples of patch_size {cfg.patch_size}")
         if plucker.dim() != 5 or plucker.shape[1] != cfg.plucker_channels:
-            raise ValueError(f"plucker must have shape (B, {cfg.plucker_channels}, n, h, w), got {tuple(plucker.shape)}")
+            raise ValueError(f"plucker must have shape (B, {cfg.plucker_channels}, n, h, w), "
+                             f"got {tuple(plucker.shape)}")
         if plucker.shape[0] != B or tuple(plucker.shape[2:]) != (n, h, w):
             raise ValueError(f"plucker {tuple(plucker.shape)} must match latents {tuple(latents.shape)} in B, n, h, w "
                              "(equal token counts)")

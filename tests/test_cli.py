@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from helpers import EXAMPLE_IMAGE
 from plyfile import PlyData
 
-from helpers import EXAMPLE_IMAGE
 from diff4splat.cli import main
 from diff4splat.io import load_depth_exr, load_ply, load_video, ply_property_names, save_cameras_json
 from diff4splat.io.image import preprocess_image, read_image
@@ -70,6 +70,7 @@ def _check_frames_follow_deformation(out, frames):
     return moved
 
 
+@pytest.mark.slow
 def test_generate_writes_every_file_on_the_shipped_photograph(tmp_path, capsys):
     """The README's command (shorter clip): the shipped trained model, no warning, a dynamic scene."""
     code, out = _generate(tmp_path, "--trajectory", "orbit", "--prompt", "a cat turns its head")
@@ -81,6 +82,7 @@ def test_generate_writes_every_file_on_the_shipped_photograph(tmp_path, capsys):
     assert not any(p.name.startswith(".") for p in tmp_path.iterdir())  # no temp folder left
 
 
+@pytest.mark.slow
 def test_without_shipped_weights_a_seeded_random_model_is_used_with_a_warning(tmp_path, capsys, monkeypatch):
     import diff4splat.pipeline
 
@@ -96,6 +98,7 @@ def test_without_shipped_weights_a_seeded_random_model_is_used_with_a_warning(tm
         torch.testing.assert_close(load_ply(out / "frames" / f"{i:04d}.ply").means, canonical.means)
 
 
+@pytest.mark.slow
 def test_dynamic_checkpoint_frames_differ_only_through_the_deformation(tmp_path, dynamic_checkpoint):
     code, out = _generate(tmp_path, "--checkpoint", str(dynamic_checkpoint), "--trajectory", "spiral", "--frames", "5")
     assert code == 0
@@ -104,6 +107,7 @@ def test_dynamic_checkpoint_frames_differ_only_through_the_deformation(tmp_path,
     assert _check_frames_follow_deformation(out, 5) > 1e-3
 
 
+@pytest.mark.slow
 def test_cameras_file_round_trips_through_generate(tmp_path):
     code, out = _generate(tmp_path, "--trajectory", "pan-left", "--frames", "5")
     assert code == 0
@@ -119,7 +123,8 @@ def test_cameras_file_round_trips_through_generate(tmp_path):
 def _bad_camera_file(tmp_path, kind):
     from diff4splat.cameras import CameraPath, intrinsics_from_fov
 
-    cams = CameraPath(torch.eye(4).repeat(5, 1, 1), intrinsics_from_fov(64, 64, fov_y_deg=50).expand(5, 3, 3).clone(), 64, 64)
+    Ks = intrinsics_from_fov(64, 64, fov_y_deg=50).expand(5, 3, 3).clone()
+    cams = CameraPath(torch.eye(4).repeat(5, 1, 1), Ks, 64, 64)
     path = tmp_path / "cams.json"
     save_cameras_json(path, cams)
     data = json.loads(path.read_text())
@@ -177,6 +182,7 @@ def test_bad_input_one_line_exit_2_and_no_output(tmp_path, capsys, case):
     assert not any(p.name.startswith(".out") for p in tmp_path.iterdir())
 
 
+@pytest.mark.slow
 def test_console_script_runs_as_a_process(tmp_path):
     """The installed entry point (python -m form) exits 2 with one stderr line on a bad image."""
     proc = subprocess.run([sys.executable, "-m", "diff4splat.cli", "generate", str(tmp_path / "x.png"),
@@ -184,6 +190,7 @@ def test_console_script_runs_as_a_process(tmp_path):
     assert proc.returncode == 2 and proc.stderr.strip().count("\n") == 0 and "x.png" in proc.stderr
 
 
+@pytest.mark.slow
 def test_rgba_grey_and_16bit_images_generate(tmp_path):
     img = cv2.imread(str(EXAMPLE_IMAGE), cv2.IMREAD_UNCHANGED)
     variants = {"rgba.png": np.dstack([img, np.full(img.shape[:2], 200, np.uint8)]),
@@ -211,6 +218,7 @@ def _spy_pipeline(monkeypatch) -> dict:
     return seen
 
 
+@pytest.mark.slow
 def test_exif_rotated_jpeg_crops_image_and_realestate10k_intrinsics_alike(tmp_path, monkeypatch):
     """A landscape-stored JPEG tagged Orientation 6 is a 40×80 portrait: the image is cropped from the
     upright photo and the RealEstate10K intrinsics are de-normalised by that same upright 40×80 size."""
@@ -240,6 +248,7 @@ def test_exif_rotated_jpeg_crops_image_and_realestate10k_intrinsics_alike(tmp_pa
     np.testing.assert_allclose(K, [[0.6 * 40 * 1.6, 0, 32], [0, 0.5 * 80 * 1.6, 32], [0, 0, 1]], atol=1e-4)
 
 
+@pytest.mark.slow
 def test_meta_steps_and_sampler_are_the_ones_the_pipeline_used(tmp_path, monkeypatch):
     seen = _spy_pipeline(monkeypatch)
     out = tmp_path / "defaults"
@@ -254,6 +263,7 @@ def test_meta_steps_and_sampler_are_the_ones_the_pipeline_used(tmp_path, monkeyp
     assert (meta["steps"], meta["sampler"]) == (seen["result"].steps, seen["result"].sampler) == (2, "heun")
 
 
+@pytest.mark.slow
 def test_building_the_parser_imports_no_training_code():
     """`diff4splat --help` and `generate` list `evaluate` without importing the training package."""
     code = ("import sys; from diff4splat.cli import build_parser, main; build_parser(); "
@@ -265,6 +275,7 @@ def test_building_the_parser_imports_no_training_code():
     assert top.returncode == 0 and "evaluate" in top.stdout
 
 
+@pytest.mark.slow
 def test_evaluate_subcommand_is_loaded_when_chosen(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "diff4splat.cli", "evaluate", "--help"], capture_output=True,
                           text=True)

@@ -74,7 +74,7 @@ def test_jpeg_and_exif_orientation(tmp_path):
     plain = load_image(write_bytes(tmp_path / "p.jpg", jpg.tobytes()))
     assert plain.shape == (20, 40, 3) and (plain - torch.from_numpy(img) / 255).abs().mean() < 0.03
     # EXIF orientation 6 (display rotated 90° clockwise): left half ends up on top.
-    tiff = b"II*\x00" + struct.pack("<I", 8) + struct.pack("<H", 1) + struct.pack("<HHII", 0x0112, 3, 1, 6) + struct.pack("<I", 0)
+    tiff = _exif_tiff(6)
     app1 = b"\xff\xe1" + struct.pack(">H", 2 + 6 + len(tiff)) + b"Exif\x00\x00" + tiff
     data = jpg.tobytes()
     rotated = load_image(write_bytes(tmp_path / "r.jpg", data[:2] + app1 + data[2:]))

@@ -166,6 +166,7 @@ def test_activations_extremes_and_monotone():
     assert (depth.diff() > 0).all(), "distance increases with its raw channel"
 
 
+@pytest.mark.slow
 def test_ldrm_returns_tensors_and_imports_no_pipeline_layer():
     """Layering: the network module builds no Gaussians; turning its maps into a scene is the pipeline's
     job (``diff4splat.pipeline.to_gaussians``), and importing it loads no pipeline-layer module."""
@@ -218,6 +219,7 @@ def test_position_embedding_unique_and_closed_form():
     assert math.isclose(float(pe[idx, 44 + 10]), math.cos(3.0), rel_tol=1e-6)
 
 
+@pytest.mark.slow
 def test_gradients_reach_every_parameter():
     model = _model()
     with torch.no_grad():
@@ -233,6 +235,7 @@ def test_gradients_reach_every_parameter():
         assert p.grad is not None and p.grad.abs().sum() > 0, f"no gradient for {name}"
 
 
+@pytest.mark.slow
 def test_save_load_round_trip(tmp_path):
     model = _model(patch_size=2, deformation=DeformationConfig(hidden=8, levels=2))
     with torch.no_grad():
@@ -261,6 +264,7 @@ def test_paper_config_on_meta():
     assert tiny < 400_000 < n
 
 
+@pytest.mark.slow
 def test_onnx_export_matches_eager(tmp_path):
     ort = pytest.importorskip("onnxruntime")
     torch.manual_seed(0)
@@ -273,12 +277,12 @@ def test_onnx_export_matches_eager(tmp_path):
     path = tmp_path / "ldrm.onnx"
     torch.onnx.export(model, (latents, plucker, times), str(path), dynamo=True, opset_version=18, verbose=False)
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    feeds = {i.name: x.numpy() for i, x in zip(session.get_inputs(), (latents, plucker, times))}
+    feeds = {i.name: x.numpy() for i, x in zip(session.get_inputs(), (latents, plucker, times), strict=True)}
     got = session.run(None, feeds)
     with torch.no_grad():
         ref = model(latents, plucker, times)
     names = ["distance", "scales", "quats", "opacities", "colors", "d_means", "d_quats", "d_scales"]
     assert len(got) == len(names)
-    for name, value in zip(names, got):
+    for name, value in zip(names, got, strict=True):
         np.testing.assert_allclose(value, getattr(ref, name).numpy(), atol=1e-4, rtol=1e-4, err_msg=name)
     assert isinstance(ref, LDRMOutput)

@@ -9,15 +9,14 @@ import math
 import numpy as np
 import pytest
 import torch
+from helpers import EXAMPLE_IMAGE, exported
 
-from helpers import EXAMPLE_IMAGE
 from diff4splat.cli import main
 from diff4splat.io import load_depth_exr, load_image, load_ply
 from diff4splat.io.output import load_deformation
 from diff4splat.pipeline import Diff4SplatPipeline
 from diff4splat.render.sequence import render_path
 from models.bundle import Diff4SplatModel
-from helpers import exported
 
 ort = pytest.importorskip("onnxruntime")
 from diff4splat.onnx_runtime import OnnxRuntime, default_providers, load_manifest, session_options  # noqa: E402
@@ -59,6 +58,7 @@ def _no_networks(monkeypatch):
 
 
 @pytest.mark.parametrize("prompt", [PROMPT, ""])
+@pytest.mark.slow
 def test_onnxruntime_pipeline_matches_pytorch_end_to_end(full, image, prompt, monkeypatch):
     model, out = full
     torch_pipe = Diff4SplatPipeline(model)
@@ -80,6 +80,7 @@ def test_onnxruntime_pipeline_matches_pytorch_end_to_end(full, image, prompt, mo
     assert _psnr(got_video, ref_video) >= 45.0
 
 
+@pytest.mark.slow
 def test_prompt_changes_the_onnx_sample(full, image):
     _, out = full
     pipe = Diff4SplatPipeline.from_onnx(out)
@@ -88,6 +89,7 @@ def test_prompt_changes_the_onnx_sample(full, image):
     assert float((a.latents - b.latents).abs().max()) > 1e-3
 
 
+@pytest.mark.slow
 def test_generate_cli_onnxruntime_writes_the_same_folder(full, tmp_path, tmp_path_factory):
     model, out = full
     ckpt = tmp_path_factory.getbasetemp() / "onnx_cache" / "checkpoint"
@@ -109,6 +111,7 @@ def test_generate_cli_onnxruntime_writes_the_same_folder(full, tmp_path, tmp_pat
     assert np.median(np.abs(depth_a - depth_b)) < 1e-4
 
 
+@pytest.mark.slow
 def test_no_text_static_export_has_only_what_it_serves(lean):
     _, out = lean
     manifest = load_manifest(out)
@@ -121,6 +124,7 @@ def test_no_text_static_export_has_only_what_it_serves(lean):
     assert [o["name"] for o in ldrm["outputs"]] == ["distance", "scales", "quats", "opacities", "colors"]
 
 
+@pytest.mark.slow
 def test_no_text_static_export_refuses_prompt_and_times(lean, image):
     _, out = lean
     runtime = OnnxRuntime(out)
@@ -136,6 +140,7 @@ def test_no_text_static_export_refuses_prompt_and_times(lean, image):
         runtime.reconstruct(torch.zeros(1, 4, 2, 8, 8), torch.zeros(1, 1536, 2, 8, 8), torch.tensor([0.0, 1.0]))
 
 
+@pytest.mark.slow
 def test_no_text_static_export_serves_the_empty_prompt_as_a_static_scene(lean, image):
     model, out = lean
     cams = Diff4SplatPipeline(model).default_cameras("orbit", FRAMES)
@@ -146,6 +151,7 @@ def test_no_text_static_export_serves_the_empty_prompt_as_a_static_scene(lean, i
     torch.testing.assert_close(got.scene.canonical.means, ref.scene.canonical.means, atol=1e-4, rtol=0)
 
 
+@pytest.mark.slow
 def test_cli_prompt_on_a_no_text_export_is_one_line_exit_2(lean, tmp_path, capsys):
     _, out = lean
     code = main(["generate", str(EXAMPLE_IMAGE), "--frames", "5", "--steps", "1", "--quiet", "--prompt", PROMPT,
