@@ -113,4 +113,4 @@ def test_stiffness_profile_is_exact_for_a_zero_field_and_positive_otherwise(clip
     pipe = Diff4SplatPipeline(tiny_model(active_dit=True))
     rows = stiffness_profile(pipe, clips[0], steps=3, substeps=4)
     assert all(r["local_error"] > 0 and r["lipschitz"] > 0 for r in rows)
-    assert type(pipe.backend).velocity is pipe.backend.velocity.__func__  # the recorder was removed
+    assert type(pipe.runtime).velocity is pipe.runtime.velocity.__func__  # the recorder was removed
