@@ -14,6 +14,7 @@ def test_every_shipped_config_loads_and_fits_together(name):
     cfg.validate()
 
 
+@pytest.mark.slow
 def test_paper_config_on_meta_device_reports_parameter_counts():
     with torch.device("meta"):
         model = Diff4SplatModel(load_config("paper"))

@@ -189,6 +189,7 @@ def test_relative_cameras_and_times(root):
             assert [r.camera_names[j] for j in item["camera_indices"]] == list(spec.cameras)
 
 
+@pytest.mark.slow
 def test_tracks_reproject_onto_images_after_crop_and_resize(root):
     """Closed form: source pixel (u, v) → ((u − x0)·32/cw, (v − y0)·32/ch); the clip image is white there."""
     ds = ClipDataset(root, CFG, num_tracks=6)

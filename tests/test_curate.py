@@ -6,7 +6,7 @@ import math
 import signal
 import subprocess
 import sys
-import time
+import textwrap
 from pathlib import Path
 
 import cv2
@@ -191,6 +191,7 @@ def test_manifest_and_outputs(dataset, tmp_path):
         curate(dataset, out, CONFIG, mode="copy", progress=False)
 
 
+@pytest.mark.slow
 def test_copy_and_none_modes(dataset, tmp_path):
     curate(dataset, tmp_path / "copy", CONFIG, mode="copy", progress=False)
     curate(dataset, tmp_path / "none", CONFIG, mode="none", progress=False)
@@ -232,28 +233,49 @@ def test_rerun_skips_recorded_scenes(dataset, tmp_path, monkeypatch):
     assert _manifest_text(out) == before
 
 
+@pytest.mark.slow
 def test_killed_process_then_rerun_equals_uninterrupted(dataset, tmp_path):
+    """A real SIGKILL at a known point: the child (``data_prep curate --mode copy``) kills itself inside the
+    copy of the second accepted scene (good_multiview), after the records of the five scenes before it
+    (bad_depth … good_dynamic) were written and while that copy sits in its temporary folder. Nothing
+    races: the kill point is fixed by the scene order."""
     cfg = tmp_path / "cfg.yaml"
     cfg.write_text(yaml.safe_dump(CONFIG.to_dict()))
     full, out = tmp_path / "full", tmp_path / "out"
     curate(dataset, full, CONFIG, mode="copy", progress=False)
-    cmd = [sys.executable, "-m", "data_prep.cli", "curate", str(dataset), str(out), "--config", str(cfg),
-           "--workers", "1", "--mode", "copy", "--quiet"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    deadline = time.time() + 60
-    while time.time() < deadline and proc.poll() is None and len(list((out / ".curation").glob("*.json"))) < 2:
-        time.sleep(0.01)
-    proc.send_signal(signal.SIGKILL)
-    assert proc.wait() == -signal.SIGKILL  # killed half way, not finished
-    assert 2 <= len(list((out / ".curation").glob("*.json"))) < len(EXPECTED)
-    for p in out.iterdir():  # whole scenes only: every visible scene folder is valid
-        if p.is_dir() and not p.name.startswith("."):
-            assert validate_scene(p) == []
+    script = textwrap.dedent(f"""
+        import os, shutil, signal, sys, types
+        import data_prep.curate as cm
+        from data_prep.cli import main
+        copies = []
+        def copytree(src, dst, **kw):  # curate's scene copy (shutil's own recursion keeps the real one)
+            shutil.copytree(src, dst, **kw)
+            copies.append(src)
+            if len(copies) == 2:
+                os.kill(os.getpid(), signal.SIGKILL)  # copied, not yet renamed into place
+            return dst
+        cm.shutil = types.SimpleNamespace(**{{**vars(shutil), "copytree": copytree}})
+        sys.exit(main(["curate", {str(dataset)!r}, {str(out)!r}, "--config", {str(cfg)!r}, "--workers", "1",
+                       "--mode", "copy", "--quiet"]))
+    """)
+    proc = subprocess.run([sys.executable, "-c", script], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr  # killed half way, not finished
+    names = sorted(EXPECTED)
+    assert sorted(f.stem for f in (out / ".curation").glob("*.json")) == names[:names.index("good_multiview")]
+    assert not (out / "manifest.jsonl").exists() and not (out / "accepted.txt").exists()
+    assert sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) == ["curation.yaml", "good_dynamic"]
+    assert validate_scene(out / "good_dynamic") == []  # whole scenes only
+    leftovers = [p for p in out.iterdir() if p.name.startswith(".") and p.name != ".curation"]
+    assert len(leftovers) == 1 and "good_multiview" in leftovers[0].name  # the interrupted copy, hidden
     curate(dataset, out, CONFIG, mode="copy", progress=False)  # the rerun (in-process: no second torch import)
     assert _manifest_text(out) == _manifest_text(full)
+    assert (out / "accepted.txt").read_text() == (full / "accepted.txt").read_text()
     assert not [p for p in out.iterdir() if p.name.startswith(".") and p.name != ".curation"]  # leftovers removed
+    for s in sorted(x for x, r in EXPECTED.items() if not r):
+        assert validate_scene(out / s) == []
 
 
+@pytest.mark.slow
 def test_parallel_equals_sequential(dataset, tmp_path):
     seq = curate(dataset, tmp_path / "seq", CONFIG, workers=1, progress=False)
     par = curate(dataset, tmp_path / "par", CONFIG, workers=2, progress=False)

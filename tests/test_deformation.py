@@ -88,9 +88,40 @@ def test_matches_reference_forward():
 
 
 def test_single_level_and_odd_sizes():
-    net = _net(perturb=True, levels=1, in_channels=8, hidden=4)
-    dm, dq, ds = net(torch.randn(1, 8, 3, 5), torch.tensor([0.2]), upsample=2)
-    assert dm.shape == (1, 1, 6, 10, 3) and torch.isfinite(dq).all()
+    net = _net(perturb=True, levels=1, in_channels=8, hidden=4).double()
+    feats, times = torch.randn(1, 8, 3, 5, dtype=torch.float64), torch.tensor([0.2, 0.7], dtype=torch.float64)
+    got = net(feats, times, upsample=2)
+    assert got[0].shape == (1, 2, 6, 10, 3)
+    for g, r in zip(got, _reference_forward(net, feats, times, 2)):
+        torch.testing.assert_close(g, r, atol=1e-10, rtol=1e-10)
+
+
+def test_composition_with_canonical_gaussians_matches_the_brute_force_formula():
+    """The network's offsets applied by DynamicGaussians.at(t) at a sampled time give μ + Δμ,
+    R(q_t) = R(Δq)·R(q) and s·exp(Δs), Gaussian by Gaussian."""
+    from diff4splat.gaussians import Gaussians
+    from diff4splat.quaternions import quat_multiply, quat_normalize, quat_to_rotmat
+    from diff4splat.scene import DynamicGaussians
+
+    D = torch.float64
+    net = _net(perturb=True, in_channels=8, hidden=4).double()
+    times = torch.tensor([0.0, 0.5, 1.0], dtype=D)
+    dm, dq, ds = (x[0].reshape(3, -1, x.shape[-1]) for x in net(torch.randn(1, 8, 2, 3, dtype=D), times, 2))
+    M = dm.shape[1]
+    g = torch.Generator().manual_seed(4)
+    canon = Gaussians(torch.randn(M, 3, generator=g, dtype=D), torch.randn(M, 4, generator=g, dtype=D),
+                      0.05 + torch.rand(M, 3, generator=g, dtype=D), torch.full((M,), 0.5, dtype=D),
+                      torch.rand(M, 1, 3, generator=g, dtype=D))
+    scene = DynamicGaussians(canon, times, dm, dq, ds)
+    for k, t in enumerate(times.tolist()):
+        at = scene.at(t)
+        torch.testing.assert_close(at.means, canon.means + dm[k])
+        torch.testing.assert_close(at.scales, canon.scales * torch.exp(ds[k]))
+        q = quat_normalize(canon.quats)
+        torch.testing.assert_close(quat_to_rotmat(at.quats), quat_to_rotmat(dq[k]) @ quat_to_rotmat(q))
+        torch.testing.assert_close(at.quats, quat_normalize(quat_multiply(dq[k], q)))
+        assert (at.means - canon.means).abs().max() > 1e-4  # the perturbed network really moves them
+    assert (scene.at(0.0).means - scene.at(1.0).means).abs().max() > 1e-4
 
 
 def test_time_embedding_closed_form():

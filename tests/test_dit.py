@@ -68,6 +68,7 @@ def _expected_parameter_count(cfg: VideoDiTConfig) -> int:
     return embed + cfg.depth * block + final
 
 
+@pytest.mark.slow
 def test_parameter_counts_tiny_and_paper_on_meta():
     tiny = VideoDiT(VideoDiTConfig())
     n_tiny = count_parameters(tiny)
@@ -130,6 +131,7 @@ def test_conditioning_channels_layout():
     assert torch.equal(video[:, 2 * C, 1:], torch.zeros(B, N - 1, H, W))
 
 
+@pytest.mark.slow
 def test_zero_camera_projection_makes_plucker_irrelevant():
     model = _model(skip=["camera_embedder"])  # everything non-trivial except the camera branch
     inp = _inputs()
@@ -173,6 +175,7 @@ def test_sigma_conditions_the_output():
     assert not torch.allclose(model(**inp), model(**dict(inp, sigma=1.0 - inp["sigma"])), atol=1e-4)
 
 
+@pytest.mark.slow
 def test_gradients_reach_every_parameter_after_unzeroing():
     model = _model().train()
     inp = _inputs()
@@ -219,6 +222,7 @@ def test_bad_inputs_raise_value_error(change, match):
         model(**kwargs)
 
 
+@pytest.mark.slow
 def test_onnx_export_matches_pytorch(tmp_path):
     ort = pytest.importorskip("onnxruntime")
     model = _model()

@@ -50,6 +50,7 @@ def _close(got: np.ndarray, ref: torch.Tensor, name: str) -> float:
     return diff
 
 
+@pytest.mark.slow
 def test_manifest_records_parts_files_names_shapes_config_and_weight_hashes(full):
     ckpt, out, model, manifest, _ = full
     assert manifest["format"] == "diff4splat-onnx/1" and manifest["opset"] == 18
@@ -75,6 +76,7 @@ def test_manifest_records_parts_files_names_shapes_config_and_weight_hashes(full
     assert not any(p.name.startswith(".") for p in out.parent.iterdir())  # no temp folder left
 
 
+@pytest.mark.slow
 def test_every_graph_passes_the_checker_at_the_requested_opset(full):
     _, out, _, manifest, _ = full
     for entry in manifest["files"].values():
@@ -84,6 +86,7 @@ def test_every_graph_passes_the_checker_at_the_requested_opset(full):
         assert not entry["external_data"]
 
 
+@pytest.mark.slow
 def test_vae_encoder_and_decoder_match_pytorch_for_several_frame_counts(full):
     *_, model, _, sessions = full
     for T in (1, 5, 9):  # exported with 9 frames; 1 is the pipeline's photograph
@@ -99,6 +102,7 @@ def test_vae_encoder_and_decoder_match_pytorch_for_several_frame_counts(full):
         assert got.shape == (2, 3, 1 + 4 * (n - 1), 64, 64)
 
 
+@pytest.mark.slow
 def test_text_encoder_matches_pytorch_with_padding(full):
     *_, model, _, sessions = full
     ids, mask = model.text_encoder.tokenizer(["a cat turns its head", "hi"])
@@ -114,6 +118,7 @@ def _dit_inputs(B, n, h, w, seed=0):
 
 
 @pytest.mark.parametrize("B,n,h,w", [(1, 3, 8, 8), (2, 5, 8, 8), (1, 2, 12, 16)])
+@pytest.mark.slow
 def test_dit_velocity_matches_pytorch_over_batch_frames_and_resolution(full, B, n, h, w):
     *_, model, _, sessions = full
     x, sigma, image_latent, plucker = _dit_inputs(B, n, h, w)
@@ -126,6 +131,7 @@ def test_dit_velocity_matches_pytorch_over_batch_frames_and_resolution(full, B, 
     assert float(ref.abs().max()) > 1e-2
 
 
+@pytest.mark.slow
 def test_all_false_text_mask_is_exactly_the_no_text_dit(full):
     """The unconditional path of a text export: one zero token with mask False == text=None."""
     *_, model, _, sessions = full
@@ -140,6 +146,7 @@ def test_all_false_text_mask_is_exactly_the_no_text_dit(full):
 
 
 @pytest.mark.parametrize("B,n,h,w,K", [(1, 3, 8, 8, 9), (2, 2, 6, 10, 1)])
+@pytest.mark.slow
 def test_ldrm_with_deformation_matches_pytorch(full, B, n, h, w, K):
     *_, model, _, sessions = full
     latents, plucker = _randn(B, 4, n, h, w, seed=1), _randn(B, 1536, n, h, w, seed=2) * 0.5
@@ -151,6 +158,7 @@ def test_ldrm_with_deformation_matches_pytorch(full, B, n, h, w, K):
     assert got[5].shape == (B, K, 8 * h, 8 * w, 3) and float(ref.d_means.abs().max()) > 1e-2
 
 
+@pytest.mark.slow
 def test_external_data_graph_checks_and_runs(tmp_path):
     """Weights at or above the threshold go to ``<file>.onnx.data`` (threshold 0 here; 2 GB by default)."""
     model = tiny_model()

@@ -10,7 +10,7 @@ from helpers import tiny_model
 from diff4splat.cameras import camera_rays
 from diff4splat.gaussians import Gaussians, rgb_to_sh0
 from diff4splat.scene import DynamicGaussians
-from training.losses import LossWeights
+from training.losses import LossWeights, depth_correlation_loss, depth_smoothness_loss, photometric_loss
 from training.objectives import TrainingModule, render_frames, track_query_index
 from training.stages import StageConfig, apply_freezing
 
@@ -127,6 +127,7 @@ CASES = {
 
 
 @pytest.mark.parametrize("case", list(CASES))
+@pytest.mark.slow
 def test_forward_losses_and_gradients_reach_only_the_trainable_networks(clips, case):
     kwargs, keys, trained = CASES[case]
     stage = StageConfig(height=SIZE, width=SIZE, num_frames=FRAMES, render_frames=2, weights=WEIGHTS, **kwargs)
@@ -144,10 +145,8 @@ def test_forward_losses_and_gradients_reach_only_the_trainable_networks(clips, c
         "stage3": lambda l: l["flow"] + 2.0 * l["photo"] + 0.5 * l["depth"] + 0.25 * l["smooth"] + 3.0 * l["motion"],
     }[case](losses)
     torch.testing.assert_close(losses["loss"], expected)
-    values = {k: float(v.detach()) for k, v in losses.items()}
-    assert all(values[k] >= 0 for k in keys), values
     if "motion" in keys:
-        assert values["motion"] > 0  # visible tracks were queried and compared
+        assert float(losses["motion"].detach()) > 1e-3  # visible tracks were queried and compared
     losses["loss"].backward()
     got = {}
     for name, p in model.named_parameters():
@@ -158,6 +157,7 @@ def test_forward_losses_and_gradients_reach_only_the_trainable_networks(clips, c
     assert set(got) == trained and all(v > 0 for v in got.values()), got
 
 
+@pytest.mark.slow
 def test_forward_is_a_function_of_the_generator(clips):
     """Same generator state → the same losses (exact resume relies on it); another seed → new σ, ε."""
     stage = StageConfig(height=SIZE, width=SIZE, num_frames=FRAMES, objectives=("diffusion",), caption_dropout=0.0)
@@ -170,6 +170,7 @@ def test_forward_is_a_function_of_the_generator(clips):
     assert float(a) == float(b) and float(a) != float(c)
 
 
+@pytest.mark.slow
 def test_caption_dropout_trains_the_empty_prompt_path(clips):
     """caption_dropout = 1 gives exactly the loss of an empty caption; with 0 the caption changes it."""
     model = tiny_model(active_dit=True)  # the DiT reads the text through its cross-attention
@@ -185,3 +186,51 @@ def test_caption_dropout_trains_the_empty_prompt_path(clips):
 
     assert flow(batch, 1.0) == pytest.approx(flow(empty, 0.0), abs=1e-7)
     assert abs(flow(batch, 0.0) - flow(empty, 0.0)) > 1e-6
+
+
+@pytest.mark.slow
+def test_reconstruction_losses_equal_a_hand_computation(clips):
+    """The dynamic clip's reconstruction losses recomputed from the networks' outputs: the frames are frame 0
+    plus the generator's randperm draw, photo/depth/smooth come from training.losses on those renders, and the
+    motion loss is the end-point error of each visible track's pixel-aligned Gaussian, found by projecting
+    its frame-0 point by hand (u = fx·x/z + cx, v = fy·y/z + cy)."""
+    from diff4splat.pipeline import to_gaussians
+
+    stage = StageConfig(height=SIZE, width=SIZE, num_frames=FRAMES, render_frames=3, weights=WEIGHTS,
+                        train=("ldrm",), objectives=("reconstruction",), deformation=True, motion=True)
+    model = tiny_model(seed=1, dynamic=True)
+    batch = default_collate(clips[1:])
+    with torch.no_grad():
+        losses = TrainingModule(model, stage).eval()(batch, torch.Generator().manual_seed(0))
+        latents = model.vae.encode_latents(batch["video"] * 2 - 1)
+        times = batch["times"][0]
+        out = model.ldrm(latents, batch["plucker_packed"], times)
+        g, dm, dq, ds = to_gaussians(out, batch["viewmats"][0, 0], batch["Ks"][0, 0])
+        scene = DynamicGaussians(g, times, dm, dq, ds)
+        draw = torch.randperm(FRAMES - 1, generator=torch.Generator().manual_seed(0))[:2] + 1
+        frames = [0] + sorted(draw.tolist())
+        rgb, depth, alpha = render_frames(scene, batch["viewmats"][0], batch["Ks"][0], times, frames, SIZE, SIZE)
+    target = batch["video"][0][:, frames].permute(1, 0, 2, 3)
+    valid = batch["depth_valid"][0][frames] & (alpha > 0.5)
+    torch.testing.assert_close(losses["photo"], photometric_loss(rgb, target, WEIGHTS.ssim))
+    torch.testing.assert_close(losses["depth"], depth_correlation_loss(depth, batch["depth"][0][frames], valid))
+    torch.testing.assert_close(losses["smooth"], depth_smoothness_loss(depth.clamp(min=1e-3), target))
+    # motion by hand, track by track
+    tracks, K = batch["tracks"][0].double(), batch["Ks"][0, 0].double()
+    vis = batch["track_visibility"][0] & batch["track_mask"][0][:, None]
+    errors = []
+    for n in range(tracks.shape[0]):
+        x, y, z = tracks[n, 0].tolist()
+        if not bool(vis[n, 0]) or z <= 1e-6:
+            continue
+        u, v = K[0, 0].item() * x / z + K[0, 2].item(), K[1, 1].item() * y / z + K[1, 2].item()
+        if not (0 <= u < SIZE and 0 <= v < SIZE):
+            continue
+        i = math.floor(v) * SIZE + math.floor(u)
+        for t in range(FRAMES):
+            if bool(vis[n, t]):
+                errors.append(float((g.means[i] + dm[t, i] - tracks[n, t]).norm()))
+    assert len(errors) > 20
+    assert float(losses["motion"]) == pytest.approx(sum(errors) / len(errors), rel=1e-5)
+    weighted = 2.0 * losses["photo"] + 0.5 * losses["depth"] + 0.25 * losses["smooth"] + 3.0 * losses["motion"]
+    torch.testing.assert_close(losses["loss"], weighted)

@@ -58,6 +58,7 @@ def _module_to_dist(module: str) -> str | None:
     return dists[0].lower() if dists else None
 
 
+@pytest.mark.slow
 def test_every_runtime_import_is_a_declared_dependency():
     declared = {_dist_name(r) for r in PYPROJECT["project"]["dependencies"]}
     optional = {_dist_name(r) for reqs in PYPROJECT["project"]["optional-dependencies"].values() for r in reqs}

@@ -78,6 +78,7 @@ def test_tile_lists_are_depth_sorted_and_cover_the_support():
 
 
 @pytest.mark.parametrize("sh_degree,mode", [(None, "classic"), (3, "antialiased")])
+@pytest.mark.slow
 def test_fast_gradients_match_dense_reference(sh_degree, mode):
     args = _scene(n=50, c=2, seed=11, sh=sh_degree)
     bg = torch.rand(2, 3, dtype=D)

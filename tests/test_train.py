@@ -60,6 +60,7 @@ def vae_run(data, tmp_path_factory):
     return code, run
 
 
+@pytest.mark.slow
 def test_vae_stage_trains_only_the_vae_and_calibrates_its_latents(vae_run, data):
     code, run = vae_run
     assert code == 0 and (run / "model" / "config.json").is_file()
@@ -78,6 +79,7 @@ def test_vae_stage_trains_only_the_vae_and_calibrates_its_latents(vae_run, data)
     assert trained.config.vae == trained.vae.config
 
 
+@pytest.mark.slow
 def test_stage1_from_the_vae_run_keeps_the_vae_frozen_and_trains_dit_and_ldrm(vae_run, data, tmp_path, capsys):
     code, vae = vae_run
     assert code == 0
@@ -99,6 +101,7 @@ def test_stage1_from_the_vae_run_keeps_the_vae_frozen_and_trains_dit_and_ldrm(va
     assert (before.config.vae.scaling_factor, before.config.vae.shift_factor) != (1.0, 0.0)
 
 
+@pytest.mark.slow
 def test_build_training_optimises_exactly_the_stage_modules_on_its_scenes(vae_run, data, tmp_path):
     from training.stages import load_stage
     from training.train import build_training
@@ -118,6 +121,7 @@ def test_build_training_optimises_exactly_the_stage_modules_on_its_scenes(vae_ru
     assert model.config.vae == Diff4SplatModel.from_pretrained(vae_run[1] / "model").config.vae
 
 
+@pytest.mark.slow
 def test_calibrate_latent_scaling_standardises_the_calibration_latents(data):
     model = tiny_model(seed=3)
     model.vae.train()

@@ -5,7 +5,9 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import textwrap
+import time
 from pathlib import Path
 
 import pytest
@@ -42,6 +44,7 @@ def test_warmup_cosine_closed_form():
     assert warmup_cosine(20, 4, 20, 0.1) == pytest.approx(0.1)
 
 
+@pytest.mark.slow
 def test_training_reduces_the_loss_and_never_touches_frozen_weights(tmp_path):
     t = _trainer(tmp_path, total_steps=40, checkpoint_every=40, ema_decay=None, lr=5e-2)
     frozen = t.module.frozen.weight.clone()
@@ -74,6 +77,7 @@ def test_signal_stop_then_resume_matches_uninterrupted_run_exactly(tmp_path):
     assert all(torch.equal(ref.ema[k], b.ema[k]) for k in ref.ema)
 
 
+@pytest.mark.slow
 def test_hard_kill_then_resume_from_last_checkpoint_matches(tmp_path):
     ref = _trainer(tmp_path / "ref")
     ref.fit()
@@ -162,7 +166,44 @@ def _free_port():
         return s.getsockname()[1]
 
 
+def _run_two_ranks(script: str, attempts: int = 3) -> None:
+    """Start ranks 0 and 1 of ``script`` (env:// rendezvous, as under torchrun) and wait for both.
+
+    The port is free when picked but another process may take it before rank 0's store binds it; on
+    "address already in use" both ranks are stopped and the run is repeated with a fresh port.
+    """
+    for attempt in range(attempts):
+        port, procs, logs = _free_port(), [], []
+        for rank in range(2):
+            env = {**os.environ, "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port), "WORLD_SIZE": "2",
+                   "RANK": str(rank), "LOCAL_RANK": str(rank), "OMP_NUM_THREADS": "1"}
+            logs.append(tempfile.TemporaryFile("w+"))  # a file, not a pipe: a chatty rank never blocks
+            procs.append(subprocess.Popen([sys.executable, "-c", script], env=env, stderr=logs[-1], text=True))
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and any(p.poll() is None for p in procs):
+            if any(p.poll() not in (None, 0) for p in procs):  # one rank failed: the other would wait forever
+                for p in procs:
+                    if p.poll() is None:
+                        p.kill()
+            time.sleep(0.05)
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+            p.wait()
+        errs = []
+        for log in logs:
+            log.seek(0)
+            errs.append(log.read())
+            log.close()
+        if all(p.returncode == 0 for p in procs):
+            return
+        if not any("address already in use" in e.lower() or "eaddrinuse" in e.lower() for e in errs):
+            break
+    pytest.fail(f"distributed run failed (attempt {attempt + 1}):\n" + "\n".join(errs))
+
+
 @pytest.mark.parametrize("strategy", ["ddp", "fsdp"])
+@pytest.mark.slow
 def test_two_process_distributed_run_keeps_ranks_identical(tmp_path, strategy):
     script = textwrap.dedent(f"""
         import os, sys, torch, torch.distributed as dist
@@ -179,14 +220,7 @@ def test_two_process_distributed_run_keeps_ranks_identical(tmp_path, strategy):
             torch.save(state, {str(tmp_path)!r} + f"/rank{{dist.get_rank()}}.pt")
         dist.destroy_process_group()
     """)
-    port = _free_port()
-    procs = []
-    for rank in range(2):
-        env = {**os.environ, "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port), "WORLD_SIZE": "2",
-               "RANK": str(rank), "LOCAL_RANK": str(rank), "OMP_NUM_THREADS": "1"}
-        procs.append(subprocess.Popen([sys.executable, "-c", script], env=env, stderr=subprocess.PIPE, text=True))
-    errs = [p.communicate(timeout=120)[1] for p in procs]
-    assert all(p.returncode == 0 for p in procs), errs
+    _run_two_ranks(script)
     r0 = torch.load(tmp_path / "rank0.pt")
     if strategy == "ddp":
         r1 = torch.load(tmp_path / "rank1.pt")

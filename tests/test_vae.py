@@ -40,6 +40,7 @@ def _video(t: int, h: int = 16, w: int = 16, b: int = 1, seed: int = 1) -> torch
 
 
 @pytest.mark.parametrize("t, n", [(1, 1), (5, 2), (9, 3)])
+@pytest.mark.slow
 def test_shapes(t, n):
     vae = _vae()
     video = _video(t, 16, 24, b=2)
@@ -52,6 +53,7 @@ def test_shapes(t, n):
     assert vae.config.num_latent_frames(t) == n and vae.config.num_frames(n) == t
 
 
+@pytest.mark.slow
 def test_encoder_is_exactly_causal_per_group():
     # Frame j belongs to latent group ⌈j/4⌉ (group 0 = frame 0, group 1 = frames 1–4, group 2 = frames 5–8).
     vae = _vae(2, randomize=True)
@@ -67,6 +69,7 @@ def test_encoder_is_exactly_causal_per_group():
             assert (mean[:, :, group] - base[:, :, group]).abs().max() > 1e-4, f"frame {j} ignored by its group"
 
 
+@pytest.mark.slow
 def test_decoder_is_exactly_causal():
     vae = _vae(3, randomize=True)
     g = torch.Generator().manual_seed(0)
@@ -82,6 +85,7 @@ def test_decoder_is_exactly_causal():
             assert (out[:, :, first] - base[:, :, first]).abs().max() > 1e-4
 
 
+@pytest.mark.slow
 def test_streaming_prefix_matches_and_first_frame_is_an_image():
     vae = _vae(4, randomize=True)
     video = _video(9)
@@ -113,6 +117,7 @@ def test_building_blocks_against_references():
     assert torch.allclose(norm(v), ref, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_posterior_sampling_and_logvar_clamp():
     vae = _vae(6)
     video = _video(5)
@@ -147,6 +152,7 @@ def test_kl_divergence_matches_torch_distributions():
         kl_divergence(mean, logvar[:, :2])
 
 
+@pytest.mark.slow
 def test_scaling_helpers_invert_each_other():
     cfg = VideoVAEConfig(scaling_factor=0.5, shift_factor=0.25)
     torch.manual_seed(8)
@@ -183,6 +189,7 @@ def test_invalid_inputs_raise():
         VideoVAEConfig(base_channels=6)
 
 
+@pytest.mark.slow
 def test_training_step_reduces_reconstruction_loss():
     # The tiny VAE can fit one small clip (5 frames, 8×8 → a 1×1×2 latent grid): Adam must cut the loss.
     torch.manual_seed(10)
@@ -202,6 +209,7 @@ def test_training_step_reduces_reconstruction_loss():
     assert losses[-1] < 0.3 * losses[0], losses
 
 
+@pytest.mark.slow
 def test_save_from_pretrained_round_trip(tmp_path):
     vae = _vae(11, randomize=True)
     vae.config.scaling_factor = 0.7
@@ -254,6 +262,7 @@ def test_dc_ae_shortcuts_against_explicit_references():
     torch.testing.assert_close(up(z4), causal_repeat(nearest, True))
 
 
+@pytest.mark.slow
 def test_bottleneck_shortcuts_average_and_duplicate_channels():
     vae = _vae(3)
     c, width = vae.config.latent_channels, vae.config.widths[-1]

@@ -22,6 +22,7 @@ def test_shipped_weights_load_without_warning_and_match_the_tiny_config():
     assert model.config == tiny
 
 
+@pytest.mark.slow
 def test_trained_model_reproduces_the_photograph_better_than_the_untrained_one():
     """Model card: 19.32 dB trained vs 15.71 dB untrained (input camera, t = 0, examples/chelsea.png)."""
     from training.evaluate import photo_psnr
