@@ -82,15 +82,22 @@ def test_parameter_counts_tiny_and_paper_on_meta():
     assert all(p.device.type == "meta" for p in paper.parameters())
 
 
-def test_shapes_and_finite_outputs():
+def test_shapes_conditioning_and_batch_independence():
+    """Each conditioning input changes v; every batch element is computed on its own (no leakage)."""
     model = _model()
     inp = _inputs()
     text_mask = torch.tensor([[True] * 5, [True, True, False, False, False]])
-    for kwargs in (dict(inp, text_mask=text_mask), dict(inp, text=None), dict(inp, plucker=None, text=None)):
-        v = model(**kwargs)
-        assert v.shape == (B, C, N, H, W) and v.dtype == torch.float32
-        assert torch.isfinite(v).all()
-    v3 = model(**_inputs(n=3, batch=1))
+    outs = []
+    with torch.no_grad():
+        for kwargs in (dict(inp, text_mask=text_mask), dict(inp, text=None), dict(inp, plucker=None, text=None)):
+            v = model(**kwargs)
+            assert v.shape == (B, C, N, H, W) and v.dtype == torch.float32 and torch.isfinite(v).all()
+            outs.append(v)
+            single = model(**{k: x[1:] for k, x in kwargs.items() if x is not None},
+                           **{k: None for k, x in kwargs.items() if x is None})
+            torch.testing.assert_close(single[0], v[1], atol=1e-5, rtol=1e-5)
+        assert (outs[0] - outs[1]).abs().max() > 1e-4 and (outs[1] - outs[2]).abs().max() > 1e-4
+        v3 = model(**_inputs(n=3, batch=1))
     assert v3.shape == (1, C, 3, H, W)
 
 
