@@ -100,6 +100,7 @@ def test_tracks_land_on_the_rendered_object(rolling_ball):
     assert "rolls to the right" in res.caption
 
 
+@pytest.mark.slow
 def test_generate_is_deterministic_and_seed_dependent(tmp_path):
     a = generate_scene(tmp_path / "a", 3, 11, size=SIZE, frames=T, cameras=2)
     b = generate_scene(tmp_path / "b", 3, 11, size=SIZE, frames=T, cameras=2)
@@ -232,6 +233,7 @@ def test_synthesize_resumes_and_validates(tmp_path):
         synthesize(tmp_path, 1, 0, frames=1)
 
 
+@pytest.mark.slow
 def test_cli_synth(tmp_path, capsys):
     out = tmp_path / "data"
     args = ["synth", "--scenes", "3", "--out", str(out), "--size", "16", "--frames", "3", "--cameras", "2", "--quiet"]

@@ -89,6 +89,7 @@ def test_perturbed_deformation_varies_with_time():
     assert (out.d_scales[:, 1] - out.d_scales[:, 2]).abs().max() > 1e-4
 
 
+@pytest.mark.slow
 def test_static_scene_skips_deformation_network():
     model = _model()
     calls = []
@@ -110,6 +111,7 @@ def test_reference_frame_uses_other_frames():
 
 
 @pytest.mark.parametrize("patch", [1, 2])
+@pytest.mark.slow
 def test_head_reads_reference_frame_patch_locally(patch):
     """With every block an identity (attention and MLP outputs zeroed), pixel (i, j) of frame 0 depends
     only on the latent pixels of its own patch in latent frame 0: checks patchify order, the choice

@@ -99,6 +99,7 @@ def test_culling_and_batching_change_nothing(model, params):
     torch.testing.assert_close(out[0, ..., 3], ref_ed, rtol=0, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_pinhole_ray_path_agrees_with_rasterizer():
     """Small Gaussians (1–5 cm at 5–10 m, ≤ 1.5 px σ) seen through a 56° pinhole, SH degree 2.
 
