@@ -1,6 +1,6 @@
 """Image + camera path + optional prompt → 4D Gaussian scene (Diff4Splat, Pan et al. 2025, Fig. 2).
 
-Data flow (DESIGN.md, "Data flow of generate"):
+Data flow (docs/DESIGN.md, "Data flow of generate"):
 
 1. VAE encoder: the photograph as a one-frame video → first-frame latent (1, c, 1, h, w).
 2. Text encoder: prompt → tokens (1, L, d_text); skipped entirely for an empty prompt.

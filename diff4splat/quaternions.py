@@ -1,6 +1,6 @@
 """Quaternion algebra (wxyz, Hamilton product) shared by the scene, renderer and networks.
 
-Conventions (DESIGN.md): quaternions are stored unnormalised and normalised on use; a
+Conventions (docs/DESIGN.md): quaternions are stored unnormalised and normalised on use; a
 zero-norm quaternion is an error, never a silent NaN.
 """
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 A deformation at key time t_k holds, per Gaussian, an offset of the mean Δμ (metres), a rotation
 Δq (wxyz, identity (1,0,0,0)) and a log-scale offset Δs. Between key times they are interpolated
-linearly (Δq by normalised lerp). The deformed Gaussian (DESIGN.md, "Deformation at time t"):
+linearly (Δq by normalised lerp). The deformed Gaussian (docs/DESIGN.md, "Deformation at time t"):
 
     μ_t = μ + Δμ(t),    q_t = normalize(Δq(t) ⊗ q),    s_t = s · exp(Δs(t)).
 

@@ -2,7 +2,7 @@
 
 Given canonical latent features of the reference frame and query times, it predicts per-pixel
 deformation maps (Δμ, Δq, Δs) that move the pixel-aligned canonical Gaussians to each time
-(DESIGN.md: μ_t = μ + Δμ(t); q_t = normalize(Δq(t) ⊗ q); s_t = s · exp(Δs(t))).
+(docs/DESIGN.md: μ_t = μ + Δμ(t); q_t = normalize(Δq(t) ⊗ q); s_t = s · exp(Δs(t))).
 
 Pipeline (shapes for B scenes, K times, features (B, C, h, w), pixel grid H = u·h, W = u·w):
 

@@ -85,7 +85,7 @@ class VideoDiTConfig:
 
     @classmethod
     def paper(cls) -> "VideoDiTConfig":
-        """Paper size, as fixed in DESIGN.md for Diff4Splat: 32 blocks, hidden 4096, 32 heads
+        """Paper size, as fixed in docs/DESIGN.md for Diff4Splat: 32 blocks, hidden 4096, 32 heads
         (head_dim 128, RoPE split 44/42/42), 16 latent channels, patch 1×2×2, T5-XXL text (4096).
         Only instantiate on ``torch.device("meta")`` on a CPU machine."""
         return cls(latent_channels=16, hidden_size=4096, depth=32, num_heads=32, mlp_ratio=4.0,

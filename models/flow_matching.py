@@ -1,6 +1,6 @@
 """Rectified-flow / flow-matching schedule, training-time σ sampling and ODE samplers.
 
-Convention (DESIGN.md, "Flow matching"): a clean sample ``x0`` and Gaussian noise ``ε`` are joined by
+Convention (docs/DESIGN.md, "Flow matching"): a clean sample ``x0`` and Gaussian noise ``ε`` are joined by
 the straight path
 
     x_σ = (1 − σ)·x0 + σ·ε,        σ ∈ [0, 1],  σ = 1 is pure noise,

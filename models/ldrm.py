@@ -105,7 +105,7 @@ class LDRMConfig:
 
     @classmethod
     def paper(cls) -> LDRMConfig:
-        """Paper-size LDRM (DESIGN.md: 16 blocks, 64-dim tokens; 16 latent channels; 2×2 patches).
+        """Paper-size LDRM (docs/DESIGN.md: 16 blocks, 64-dim tokens; 16 latent channels; 2×2 patches).
 
         Heads (4 × 16 dims), patch size 2, the deformation width 64 and ``scale_base`` = 2e-3
         (≈ 1/focal for a ~500 px focal length at the paper's 480×720-class resolution) are our

@@ -1,7 +1,7 @@
 """Helpers shared by every source converter: axis conventions, pose inversion, depth decoding, frame IO.
 
 Every converter turns a source dataset's native conventions into the scene format's
-(``data_prep/FORMAT.md``, DESIGN.md): metres, OpenCV camera axes (x right, y down, z forward),
+(``data_prep/FORMAT.md``, docs/DESIGN.md): metres, OpenCV camera axes (x right, y down, z forward),
 world-to-camera ``viewmats``, pixel ``Ks``, +inf for invalid depth. The axis changes needed by the
 sources are collected here so that each is written once:
 

@@ -61,7 +61,7 @@ def _default_times(n: int, dtype: torch.dtype, device: torch.device) -> Tensor:
 
 @dataclass
 class CameraPath:
-    """T pinhole cameras along a clip (DESIGN.md conventions: OpenCV frame, x right, y down, z forward).
+    """T pinhole cameras along a clip (docs/DESIGN.md conventions: OpenCV frame, x right, y down, z forward).
 
     Attributes:
         viewmats: (T, 4, 4) world-to-camera rigid transforms [R | t], metres; T ≥ 1.

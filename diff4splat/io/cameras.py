@@ -131,7 +131,7 @@ def load_realestate10k(path: str | os.PathLike, width: int, height: int, relativ
         width: image width W, pixels.
         height: image height H, pixels.
         relative: re-express the poses relative to the first camera (V_i V_0⁻¹, first = I), the
-            DESIGN.md convention; ``False`` keeps the dataset's world frame.
+            docs/DESIGN.md convention; ``False`` keeps the dataset's world frame.
 
     Returns:
         Validated float32 :class:`CameraPath`.

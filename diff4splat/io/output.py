@@ -1,4 +1,4 @@
-"""The output folder of ``diff4splat generate`` (DESIGN.md, "Output folder of generate"), written atomically.
+"""The output folder of ``diff4splat generate`` (docs/DESIGN.md, "Output folder of generate"), written atomically.
 
 ::
 

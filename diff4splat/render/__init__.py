@@ -1,7 +1,7 @@
 """CPU Gaussian-splatting renderer (gsplat-compatible API): projection, SH colours, rasterizers.
 
 ``rasterize`` is the fast tile path, ``rasterize_dense`` the brute-force reference it is tested
-against; both share :mod:`.projection` and :mod:`.sh` (DESIGN.md, "The renderer"). Camera effects
+against; both share :mod:`.projection` and :mod:`.sh` (docs/DESIGN.md, "The renderer"). Camera effects
 (fisheye, thin lens: ``rasterize(..., camera_params=...)``) go through the ray path ``raytrace``;
 ``render_rolling_shutter`` renders row bands of a dynamic scene at their own times.
 """

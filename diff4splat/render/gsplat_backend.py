@@ -3,7 +3,7 @@
 With the ``[cuda]`` extra installed (``pip install diff4splat[cuda]``, gsplat ≥ 1.4) and the tensors
 on a CUDA device, ``rasterize`` hands the call to gsplat's fused CUDA kernels (Ye et al. 2024,
 "gsplat: An Open-Source Library for Gaussian Splatting"); otherwise the PyTorch tile path runs
-(DESIGN.md, "The renderer": the PyTorch path stays the CPU path and the reference). The argument
+(docs/DESIGN.md, "The renderer": the PyTorch path stays the CPU path and the reference). The argument
 names, shapes, render modes ("RGB", "D", "ED", "RGB+D", "RGB+ED"), rasterize modes and camera model
 names are gsplat's own, so they are passed through unchanged after the same input validation.
 

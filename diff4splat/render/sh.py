@@ -4,7 +4,7 @@ The basis and constants are those of the INRIA reference implementation (``sh_ut
 ``forward.cu::computeColorFromSH``, Kerbl et al. 2023 §5), i.e. the orthonormal real SH of
 Sloan, "Stupid Spherical Harmonics (SH) Tricks" (2008), App. A2, with the Condon–Shortley phase,
 evaluated at a unit direction (x, y, z) and ordered l = 0..3, m = −l..l.
-Colour = max(Σ_k c_k·Y_k(dir) + 0.5, 0) (DESIGN.md "Colours").
+Colour = max(Σ_k c_k·Y_k(dir) + 0.5, 0) (docs/DESIGN.md "Colours").
 """
 from __future__ import annotations
 
