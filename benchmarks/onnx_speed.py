@@ -108,7 +108,7 @@ def max_abs_diff(ref, got: list[np.ndarray]) -> float:
                                          "d_means", "d_quats", "d_scales")]
     else:
         ref = [ref]
-    return max(float(np.abs(r.numpy() - o).max()) for r, o in zip(ref, got))
+    return max(float(np.abs(r.numpy() - o).max()) for r, o in zip(ref, got, strict=True))
 
 
 def profile_ops(out_dir: Path, part: str, feeds: dict, runs: int = 10) -> str:
@@ -162,14 +162,15 @@ def bench_config(name: str, frames: int, repeats: int, e2e_repeats: int,
             for label, eager, part, feeds in cases:
                 np_feeds = {k: v.numpy() for k, v in feeds.items()}
                 session = runtime.sessions[part]
-                t_ort[label, th] = median_ms(lambda: session.run(None, np_feeds), repeats)
+                t_ort[label, th] = median_ms(lambda session=session, np_feeds=np_feeds: session.run(None, np_feeds),
+                                             repeats)
                 diffs[label] = max_abs_diff(eager(), session.run(None, np_feeds))
                 if t_torch[label, th] / t_ort[label, th] < TARGET:
                     notes.append(f"{name} {label}, {th} thread(s): {t_torch[label, th] / t_ort[label, th]:.2f}× — "
                                  f"onnxruntime node time by op: {profile_ops(out, part, feeds)}")
             onnx_pipe = Diff4SplatPipeline(runtime)
-            t_ort["e2e", th] = median_ms(lambda: results.__setitem__("onnxruntime", onnx_pipe(image, cams, PROMPT)),
-                                         e2e_repeats)
+            t_ort["e2e", th] = median_ms(
+                lambda pipe=onnx_pipe: results.__setitem__("onnxruntime", pipe(image, cams, PROMPT)), e2e_repeats)
             del runtime, onnx_pipe
         torch.set_num_threads(threads[0])
         ref, got = results["torch"], results["onnxruntime"]

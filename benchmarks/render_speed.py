@@ -139,7 +139,8 @@ def main() -> None:
         f"≈ {d64['fwd_ms'] * scale / 1e3:.0f} s, if the memory existed.",
         f"Targets: {TARGETS}. At 256²: forward {t256['fwd_ms']:.0f} ms "
         f"({'meets' if t256['fwd_ms'] <= 150 else 'misses'} 150 ms), forward+backward {t256['fb_ms']:.0f} ms "
-        f"({'meets' if t256['fb_ms'] <= 600 else 'misses'} 600 ms); smallest speed-up over the dense reference {min_speedup:.0f}×.",
+        f"({'meets' if t256['fb_ms'] <= 600 else 'misses'} 600 ms); "
+        f"smallest speed-up over the dense reference {min_speedup:.0f}×.",
         GAP_NOTE,
     ])
     print(body)

@@ -145,8 +145,9 @@ def main() -> None:
     sec_t, ref = timed(lambda: rasterize(*gargs, sh_degree=3, backgrounds=bg, render_mode="RGB", eps2d=0.0)[0][0],
                        args.repeats)
     add("pinhole path", "tiles", sec_t, ref, ref, "eps2d = 0")
-    sec_r, img = timed(lambda: raytrace(*gargs, sh_degree=3, backgrounds=bg, render_mode="RGB", tile_size=RAY_TILE)[0][0],
-                       args.repeats)
+    sec_r, img = timed(
+        lambda: raytrace(*gargs, sh_degree=3, backgrounds=bg, render_mode="RGB", tile_size=RAY_TILE)[0][0],
+        args.repeats)
     add("pinhole path", "rays", sec_r, img, ref, "vs tiles (EWA)")
 
     with (DOCS / "render_tradeoffs.csv").open("w", newline="") as fh:
@@ -182,7 +183,7 @@ def plot(rows: list[dict], out: Path, size: int) -> None:
 
     effects = ["DoF spp", "rolling chunks", "tile size", "SH degree"]
     fig, axes = plt.subplots(1, 4, figsize=(16, 3.6))
-    for ax, eff in zip(axes, effects):
+    for ax, eff in zip(axes, effects, strict=True):
         rs = [r for r in rows if r["effect"] == eff]
         x = [r["setting"] for r in rs]
         psnr = [min(r["psnr_db"], 99.0) for r in rs]

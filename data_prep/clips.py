@@ -98,7 +98,8 @@ class ClipConfig:
         if self.max_stride < self.min_stride:
             raise ValueError(f"max_stride ({self.max_stride}) must be ≥ min_stride ({self.min_stride})")
         if self.plucker != "raw" and (self.height % 8 or self.width % 8):
-            raise ValueError(f"packed Plücker rays need height and width multiples of 8, got {self.height}×{self.width}")
+            raise ValueError(
+                f"packed Plücker rays need height and width multiples of 8, got {self.height}×{self.width}")
 
     @property
     def span(self) -> int:
@@ -252,7 +253,10 @@ class ClipDataset(Dataset):
         stride = int(rng.integers(cfg.min_stride, min(cfg.max_stride, fit) + 1))
         cams = meta.cameras
         ref = cams[0] if cfg.reference_camera == "first" else cams[int(rng.integers(len(cams)))]
-        targets = [ref] * (T - 1) if cfg.target_cameras == "same" else [cams[int(j)] for j in rng.integers(len(cams), size=T - 1)]
+        if cfg.target_cameras == "same":
+            targets = [ref] * (T - 1)
+        else:
+            targets = [cams[int(j)] for j in rng.integers(len(cams), size=T - 1)]
         frames = tuple(item.start + k * stride for k in range(T))
         return ClipSpec(item.scene, item.start, stride, frames, (ref, *targets))
 
@@ -261,16 +265,17 @@ class ClipDataset(Dataset):
         cfg, spec = self.config, self.sample(index)
         reader, H, W, T = self._reader(spec.scene), cfg.height, cfg.width, cfg.num_frames
         fitted = {c: reader.cameras(c).fitted(W, H).to(torch.float64) for c in set(spec.cameras)}
-        vm = torch.stack([fitted[c].viewmats[f] for c, f in zip(spec.cameras, spec.frames)])
-        Ks = torch.stack([fitted[c].Ks[f] for c, f in zip(spec.cameras, spec.frames)])
+        vm = torch.stack([fitted[c].viewmats[f] for c, f in zip(spec.cameras, spec.frames, strict=True)])
+        Ks = torch.stack([fitted[c].Ks[f] for c, f in zip(spec.cameras, spec.frames, strict=True)])
         times = torch.from_numpy(timestamps_to_times(reader.timestamps()[list(spec.frames)]))
         clip = CameraPath(vm, Ks, W, H, times).relative_to_first()
         world_to_ref = vm[0]  # source world → clip world
 
-        video = torch.stack([preprocess_image(reader.rgb(c, f), (H, W)) for c, f in zip(spec.cameras, spec.frames)])
+        video = torch.stack([preprocess_image(reader.rgb(c, f), (H, W))
+                             for c, f in zip(spec.cameras, spec.frames, strict=True)])
         if reader.has_depth:
             depth = torch.from_numpy(np.stack([resize_depth(reader.depth(c, f), H, W)
-                                               for c, f in zip(spec.cameras, spec.frames)]))
+                                               for c, f in zip(spec.cameras, spec.frames, strict=True)]))
         else:
             depth = torch.full((T, H, W), float("inf"))
         out: dict[str, Any] = {

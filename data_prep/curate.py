@@ -138,7 +138,7 @@ class CurationConfig:
                 raise ValueError(f"curation config field {name!r} is a ratio in [0, 1], got {v!r}")
 
     @classmethod
-    def from_dict(cls, data: Any) -> "CurationConfig":
+    def from_dict(cls, data: Any) -> CurationConfig:
         """Build from a mapping; unknown keys are errors, missing keys take the defaults.
 
         Raises:
@@ -155,7 +155,7 @@ class CurationConfig:
         return cls(**data)
 
     @classmethod
-    def from_yaml(cls, path: str | os.PathLike) -> "CurationConfig":
+    def from_yaml(cls, path: str | os.PathLike) -> CurationConfig:
         """Read a YAML mapping (see ``curation_default.yaml``).
 
         Raises:

@@ -216,7 +216,9 @@ def _robust_sigma(r: np.ndarray) -> float:
     return float(_MAD_TO_SIGMA * np.median(np.abs(r - np.median(r))))
 
 
-def _lmeds(x: np.ndarray, y: np.ndarray, iters: int, rng: np.random.Generator, max_eval: int) -> tuple[float, float] | None:
+def _lmeds(
+    x: np.ndarray, y: np.ndarray, iters: int, rng: np.random.Generator, max_eval: int
+) -> tuple[float, float] | None:
     """Least-median-of-squares over random 2-point samples; ``None`` if no sample was usable."""
     n = x.size
     ev = rng.choice(n, size=max_eval, replace=False) if n > max_eval else np.arange(n)
@@ -363,7 +365,7 @@ def align_video(
             f"relative, metric and masks must have the same number of frames, got {len(rel)}, {len(met)}"
             + ("" if msk is None else f", {len(msk)}")
         )
-    for i, (r, m) in enumerate(zip(rel, met)):
+    for i, (r, m) in enumerate(zip(rel, met, strict=True)):
         if r.shape != m.shape or (msk is not None and msk[i].shape != r.shape):
             raise ValueError(f"frame {i}: relative, metric and mask shapes differ ({r.shape}, {m.shape})")
     if robust_kwargs and not robust:

@@ -27,7 +27,14 @@ import numpy as np
 from torch import Tensor
 
 from diff4splat.cameras import CameraPath
-from diff4splat.io import atomic_output_dir, load_cameras_json, load_depth_exr, save_cameras_json, save_depth_exr, save_image
+from diff4splat.io import (
+    atomic_output_dir,
+    load_cameras_json,
+    load_depth_exr,
+    save_cameras_json,
+    save_depth_exr,
+    save_image,
+)
 
 __all__ = [
     "FORMAT_VERSION",
@@ -153,7 +160,7 @@ class SceneMeta:
         return out
 
     @classmethod
-    def from_dict(cls, data: Any) -> "SceneMeta":
+    def from_dict(cls, data: Any) -> SceneMeta:
         """Parse a ``meta.json`` object.
 
         Raises:
@@ -168,7 +175,7 @@ class SceneMeta:
         return cls(**{k: data[k] for k in cls._KEYS}, extra=extra)
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "SceneMeta":
+    def load(cls, path: str | os.PathLike) -> SceneMeta:
         """Read and parse ``meta.json``.
 
         Raises:
@@ -295,7 +302,7 @@ class SceneWriter:
         self._sizes: dict[str, tuple[int, int]] = {}
         self._written: dict[str, tuple[set[int], set[int]]] = {}
 
-    def __enter__(self) -> "SceneWriter":
+    def __enter__(self) -> SceneWriter:
         self._ctx = atomic_output_dir(self.path, replace=self.replace)
         self._tmp = self._ctx.__enter__()
         return self
@@ -349,14 +356,16 @@ class SceneWriter:
                 timestamps = timestamps.detach().cpu().numpy()
             ts = np.asarray(timestamps, dtype=np.float64)
             if ts.shape != (T,) or not np.isfinite(ts).all() or (T > 1 and (np.diff(ts) < 0).any()):
-                raise ValueError(f"timestamps of {name!r} must be ({T},) finite non-decreasing seconds, got shape {ts.shape}")
+                raise ValueError(f"timestamps of {name!r} must be ({T},) finite non-decreasing seconds, "
+                                 f"got shape {ts.shape}")
             err = np.abs(timestamps_to_times(ts) - times).max()
             if err > TIMES_TOLERANCE:
                 raise ValueError(f"camera {name!r}: times differ from the normalised timestamps by {err:.3g}")
         if self._sizes:
             ref = read_timestamps(root / self.meta.cameras[0] / "cameras.json")
             if np.abs(ref - ts).max() > SYNC_TOLERANCE_S:
-                raise ValueError(f"camera {name!r} is not synchronised with {self.meta.cameras[0]!r} (timestamps differ)")
+                raise ValueError(f"camera {name!r} is not synchronised with {self.meta.cameras[0]!r} "
+                                 "(timestamps differ)")
         cam_file = root / name / "cameras.json"
         save_cameras_json(cam_file, cameras)
         data = json.loads(cam_file.read_text(encoding="utf-8"))
@@ -390,7 +399,8 @@ class SceneWriter:
             raise ValueError(f"rgb of {camera!r} must have shape {(H, W, 3)}, got {tuple(rgb.shape)}")
         has_depth = self.meta.depth_source != "none"
         if has_depth != (depth is not None):
-            raise ValueError(f"depth must be {'given' if has_depth else 'None'} for depth_source={self.meta.depth_source!r}")
+            raise ValueError(f"depth must be {'given' if has_depth else 'None'} "
+                             f"for depth_source={self.meta.depth_source!r}")
         folder = self.tmp_dir / camera
         save_image(folder / "rgb" / frame_name(index, ".png"), rgb)
         self._written[camera][0].add(index)
@@ -566,4 +576,5 @@ def list_scenes(root: str | os.PathLike) -> list[Path]:
     root = Path(root)
     if not root.is_dir():
         raise FileNotFoundError(f"dataset folder not found: {root}")
-    return sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".") and (p / "meta.json").is_file())
+    return sorted(p for p in root.iterdir()
+                  if p.is_dir() and not p.name.startswith(".") and (p / "meta.json").is_file())

@@ -42,8 +42,9 @@ from diff4splat.scene import DynamicGaussians
 from .format import SceneWriter
 from .synth_world import caption_for, sample_scene_spec
 
-__all__ = ["generate_scene", "synthesize", "render_spec", "write_synth_scene", "SynthScene", "build_scene", "build_gaussians", "object_transform", "camera_path",
-           "track_visibility", "scene_name", "MAX_TRACKS", "VISIBILITY_TOL_M", "VISIBILITY_TOL_REL"]
+__all__ = ["generate_scene", "synthesize", "render_spec", "write_synth_scene", "SynthScene", "build_scene",
+           "build_gaussians", "object_transform", "camera_path", "track_visibility", "scene_name", "MAX_TRACKS",
+           "VISIBILITY_TOL_M", "VISIBILITY_TOL_REL"]
 
 MAX_TRACKS = 256
 """Tracked object points per scene (fewer if the objects have fewer Gaussians)."""
@@ -73,7 +74,9 @@ def _tangent_frames(normals: np.ndarray) -> np.ndarray:
     return np.stack([t1, t2, normals], axis=-1)
 
 
-def _texture_rgb(rng: np.random.Generator, tex: dict, base: list[float], uv: np.ndarray, extent: np.ndarray) -> np.ndarray:
+def _texture_rgb(
+    rng: np.random.Generator, tex: dict, base: list[float], uv: np.ndarray, extent: np.ndarray
+) -> np.ndarray:
     """Albedo (N, 3) of a procedural texture at surface coordinates ``uv`` (N, 2) metres, ``extent`` (2,) metres."""
     c1, c2 = np.asarray(base), np.asarray(tex["color2"])
     ca, sa = math.cos(tex["angle"]), math.sin(tex["angle"])
@@ -88,7 +91,7 @@ def _texture_rgb(rng: np.random.Generator, tex: dict, base: list[float], uv: np.
     rgb = c1 * (1 - mix) + c2 * mix
     if tex["kind"] == "noise":
         rel = uv / np.maximum(extent, 1e-6)
-        for c, r, col in zip(tex["blobs"]["centers"], tex["blobs"]["radii"], tex["blobs"]["colors"]):
+        for c, r, col in zip(tex["blobs"]["centers"], tex["blobs"]["radii"], tex["blobs"]["colors"], strict=True):
             w = np.exp(-((rel - np.asarray(c)) ** 2).sum(1) / (2 * r * r))[:, None]
             rgb = rgb * (1 - w) + np.asarray(col) * w
     return rgb + tex["noise"] * rng.standard_normal((len(uv), 1))
@@ -165,8 +168,8 @@ def build_gaussians(spec: dict[str, Any], rng: np.random.Generator) -> tuple[Gau
     pts = np.stack([X, np.full_like(X, gy), Z], 1)
     nrm = np.tile(_UP, (len(X), 1))
     tex = spec["ground"]
-    parts.append((pts, nrm, _shade(_texture_rgb(rng, tex["texture"], tex["color"], pts[:, [0, 2]], np.array([2 * R, 2 * R])),
-                                   nrm, light), sp, 0.97, -1))
+    albedo = _texture_rgb(rng, tex["texture"], tex["color"], pts[:, [0, 2]], np.array([2 * R, 2 * R]))
+    parts.append((pts, nrm, _shade(albedo, nrm, light), sp, 0.97, -1))
     n_arc = int(math.ceil(2 * math.pi * R / (sp * 1.2)))
     th = np.arange(n_arc) * 2 * math.pi / n_arc
     ys = gy - np.arange(sp * 0.6, _WALL_HEIGHT, sp * 1.2)
@@ -175,8 +178,8 @@ def build_gaussians(spec: dict[str, Any], rng: np.random.Generator) -> tuple[Gau
     nrm = -pts * np.array([1.0, 0.0, 1.0]) / R
     tex = spec["wall"]
     uv = np.stack([TH * R, gy - Y], 1)
-    parts.append((pts, nrm, _shade(_texture_rgb(rng, tex["texture"], tex["color"], uv, np.array([2 * math.pi * R, _WALL_HEIGHT])),
-                                   nrm, light), sp * 1.2, 0.97, -1))
+    albedo = _texture_rgb(rng, tex["texture"], tex["color"], uv, np.array([2 * math.pi * R, _WALL_HEIGHT]))
+    parts.append((pts, nrm, _shade(albedo, nrm, light), sp * 1.2, 0.97, -1))
     for k, obj in enumerate(spec["objects"]):
         p, n, uv, extent, osp = _object_surface(obj)
         Ry = _rot_y(obj["yaw"])
@@ -387,7 +390,7 @@ def write_synth_scene(path: str | os.PathLike, result: SynthScene, extra: dict[s
     spec, T = result.spec, result.spec["num_frames"]
     with SceneWriter(path, source="synthetic", dynamic=spec["dynamic"], depth_source="ground_truth", num_frames=T,
                      fps=spec["fps"], extra={"synth": {**(extra or {}), "spec": spec}}, replace=replace) as w:
-        for c, (p, rgb, depth) in enumerate(zip(result.cameras, result.rgb, result.depth)):
+        for c, (p, rgb, depth) in enumerate(zip(result.cameras, result.rgb, result.depth, strict=True)):
             name = f"cam{c:02d}"
             w.add_camera(name, p)
             for i in range(T):

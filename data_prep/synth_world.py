@@ -74,7 +74,9 @@ def direction_word(v_cam: np.ndarray) -> str:
     """Dominant direction of a camera-frame vector (x right, y down, z forward) as a caption phrase."""
     axis = int(np.argmax(np.abs(v_cam)))
     pos = v_cam[axis] > 0
-    return [("to the right", "to the left"), ("downwards", "upwards"), ("away from the camera", "towards the camera")][axis][0 if pos else 1]
+    phrases = [("to the right", "to the left"), ("downwards", "upwards"),
+               ("away from the camera", "towards the camera")]
+    return phrases[axis][0 if pos else 1]
 
 
 def _sample_motion(rng: np.random.Generator, shape: str, center: np.ndarray, room: float) -> dict[str, Any]:
@@ -112,7 +114,8 @@ def _sample_object(rng: np.random.Generator, others: list[dict]) -> dict[str, An
     for _ in range(20):  # rejection sampling of a free spot on the ground
         rho, phi = 1.4 * math.sqrt(rng.random()), rng.uniform(0, 2 * math.pi)
         xz = np.array([rho * math.cos(phi), rho * math.sin(phi)])
-        ok = all(np.linalg.norm(xz - np.asarray(o["center"])[[0, 2]]) > max(half) + max(o["half"]) + 0.1 for o in others)
+        ok = all(np.linalg.norm(xz - np.asarray(o["center"])[[0, 2]]) > max(half) + max(o["half"]) + 0.1
+                 for o in others)
         if ok:
             break
     else:
@@ -255,7 +258,8 @@ def caption_for(spec: dict[str, Any], ref_rotation: np.ndarray) -> str:
     if not spec["dynamic"] or all(o["motion"] is None for o in objs):
         things = _join([_object_phrase(o) for o in objs])
         return f"{_camera_phrase(spec['cameras'][0], True)} a static scene with {things} {floor}"
-    clauses = [f"{_object_phrase(o)} {_motion_phrase(o['motion'], o['shape'], ref_rotation)}" for o in objs if o["motion"]]
+    clauses = [f"{_object_phrase(o)} {_motion_phrase(o['motion'], o['shape'], ref_rotation)}"
+               for o in objs if o["motion"]]
     still = [_object_phrase(o) for o in objs if o["motion"] is None]
     if still:
         clauses.append(f"{_join(still)} {'stays' if len(still) == 1 else 'stay'} still")

@@ -58,7 +58,8 @@ def _check_frames(problems: list[Problem], folder: Path, suffix: str, T: int) ->
     names = {p.name for p in expected}
     for p in sorted(folder.iterdir()):
         if p.name not in names and not p.name.startswith("."):
-            problems.append(Problem(p, f"unexpected file (frames are {frame_name(0, suffix)} … {frame_name(T - 1, suffix)})"))
+            problems.append(Problem(
+                p, f"unexpected file (frames are {frame_name(0, suffix)} … {frame_name(T - 1, suffix)})"))
     present = []
     for p in expected:
         if p.is_file():
@@ -98,7 +99,8 @@ def _check_camera(problems: list[Problem], scene: Path, name: str, meta: SceneMe
         if ts is not None and path is not None and len(path) == T:
             err = float(np.abs(timestamps_to_times(ts) - path.times.double().numpy()).max())
             if err > TIMES_TOLERANCE:
-                problems.append(Problem(cam_file, f"'times' differ from the normalised 'timestamps' by {err:.3g} (> {TIMES_TOLERANCE})"))
+                problems.append(Problem(
+                    cam_file, f"'times' differ from the normalised 'timestamps' by {err:.3g} (> {TIMES_TOLERANCE})"))
         if ts is not None and ref_ts is not None and float(np.abs(ts - ref_ts).max()) > SYNC_TOLERANCE_S:
             problems.append(Problem(cam_file, f"'timestamps' differ from the reference camera {meta.cameras[0]!r} "
                                               f"by {float(np.abs(ts - ref_ts).max()):.3g} s (not synchronised)"))
@@ -110,7 +112,8 @@ def _check_camera(problems: list[Problem], scene: Path, name: str, meta: SceneMe
             problems.append(Problem(f, str(e).replace(str(f), "file")))
             continue
         if size is not None and img.shape[:2] != size:
-            problems.append(Problem(f, f"image is {img.shape[1]}×{img.shape[0]}, cameras.json says {size[1]}×{size[0]}"))
+            problems.append(Problem(
+                f, f"image is {img.shape[1]}×{img.shape[0]}, cameras.json says {size[1]}×{size[0]}"))
 
     depth_dir = folder / "depth"
     if meta.depth_source == "none":

@@ -158,7 +158,7 @@ class Diff4SplatModel(nn.Module):
         return directory
 
     @classmethod
-    def from_pretrained(cls, directory: str | os.PathLike, map_location: str = "cpu") -> "Diff4SplatModel":
+    def from_pretrained(cls, directory: str | os.PathLike, map_location: str = "cpu") -> Diff4SplatModel:
         """Load a folder written by :meth:`save_pretrained`.
 
         Raises:
@@ -182,7 +182,7 @@ class Diff4SplatModel(nn.Module):
         return model
 
     @classmethod
-    def random(cls, config: Diff4SplatConfig, seed: int = 0) -> "Diff4SplatModel":
+    def random(cls, config: Diff4SplatConfig, seed: int = 0) -> Diff4SplatModel:
         """A randomly initialised model, deterministic for ``seed`` (CPU generator)."""
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)

@@ -84,7 +84,7 @@ class VideoDiTConfig:
         return self.hidden_size // self.num_heads
 
     @classmethod
-    def paper(cls) -> "VideoDiTConfig":
+    def paper(cls) -> VideoDiTConfig:
         """Paper size, as fixed in docs/DESIGN.md for Diff4Splat: 32 blocks, hidden 4096, 32 heads
         (head_dim 128, RoPE split 44/42/42), 16 latent channels, patch 1×2×2, T5-XXL text (4096).
         Only instantiate on ``torch.device("meta")`` on a CPU machine."""

@@ -18,8 +18,8 @@ current state ``x`` (any shape, e.g. (B, c, n, h, w) video latents) and a 0-dim 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import torch
 from torch import Tensor
@@ -70,7 +70,7 @@ class FlowMatchingConfig:
             raise ValueError(f"FlowMatchingConfig.logit_normal_std must be > 0, got {self.logit_normal_std}")
 
     @classmethod
-    def paper(cls) -> "FlowMatchingConfig":
+    def paper(cls) -> FlowMatchingConfig:
         """Paper-scale settings (:data:`PAPER_FLOW_MATCHING`)."""
         return cls(**PAPER_FLOW_MATCHING)
 

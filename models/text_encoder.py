@@ -137,7 +137,7 @@ class TextEncoderConfig:
             raise ValueError(f"TextEncoderConfig.max_length must be >= 2, got {self.max_length}")
 
     @classmethod
-    def paper(cls) -> "TextEncoderConfig":
+    def paper(cls) -> TextEncoderConfig:
         """T5-v1.1-XXL encoder shape (:data:`PAPER_TEXT_ENCODER`)."""
         return cls(**PAPER_TEXT_ENCODER)
 

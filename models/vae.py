@@ -126,7 +126,7 @@ class VideoVAEConfig:
         return 1 + self.temporal_factor * (num_latent_frames - 1)
 
     @classmethod
-    def paper(cls) -> "VideoVAEConfig":
+    def paper(cls) -> VideoVAEConfig:
         """Paper-scale configuration (:data:`PAPER_VIDEO_VAE`)."""
         return cls(**PAPER_VIDEO_VAE)
 

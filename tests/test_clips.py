@@ -98,18 +98,21 @@ def _project(V: np.ndarray, K: np.ndarray, X: np.ndarray) -> np.ndarray:
 
 def test_index_and_filtering(root):
     ds = ClipDataset(root, CFG)
-    assert [(it.scene, it.start) for it in ds.items] == [("dyn_a", s) for s in (0, 5, 10, 15)] + [("static_b", 0), ("static_b", 5)]
+    assert [(it.scene, it.start) for it in ds.items] == (
+        [("dyn_a", s) for s in (0, 5, 10, 15)] + [("static_b", 0), ("static_b", 5)])
     assert [it.scene for it in ClipDataset(root, CFG, scenes="dynamic").items] == ["dyn_a"] * 4
     assert [it.scene for it in ClipDataset(root, CFG, scenes="static").items] == ["static_b"] * 2
     assert len(ClipDataset(root, CFG, scene_names=["static_b"])) == 2
     assert [it.start for it in ClipDataset(root, CFG, min_stride=3, window_step=4).items] == [0, 4, 8] + [0]
-    assert bool(ClipDataset(root, CFG, scenes="dynamic")[0]["dynamic"]) and not bool(ClipDataset(root, CFG, scenes="static")[0]["dynamic"])
+    assert bool(ClipDataset(root, CFG, scenes="dynamic")[0]["dynamic"])
+    assert not bool(ClipDataset(root, CFG, scenes="static")[0]["dynamic"])
     with pytest.raises(ValueError, match="no clip"):
         ClipDataset(root, CFG, scenes="static", num_frames=17)
     with pytest.raises(ValueError, match="scene_names"):
         ClipDataset(root, CFG, scene_names=["nope"])
-    for bad, match in [({"num_frames": 4}, "1 \\+ 4k"), ({"max_stride": 0}, "max_stride"), ({"scenes": "moving"}, "scenes"),
-                       ({"height": 30}, "multiples of 8"), ({"num_tracks": -1}, "num_tracks")]:
+    for bad, match in [({"num_frames": 4}, "1 \\+ 4k"), ({"max_stride": 0}, "max_stride"),
+                       ({"scenes": "moving"}, "scenes"), ({"height": 30}, "multiples of 8"),
+                       ({"num_tracks": -1}, "num_tracks")]:
         with pytest.raises(ValueError, match=match):
             ClipDataset(root, CFG, **bad)
     with pytest.raises(ValueError, match="frames"):
@@ -123,7 +126,8 @@ def test_shapes_and_dtypes(root):
     T, H, W = 5, 32, 32
     want = {"video": ((3, T, H, W), torch.float32), "viewmats": ((T, 4, 4), torch.float32),
             "Ks": ((T, 3, 3), torch.float32), "times": ((T,), torch.float32),
-            "plucker": ((T, H, W, 6), torch.float32), "plucker_packed": ((6 * 4 * 64, 2, H // 8, W // 8), torch.float32),
+            "plucker": ((T, H, W, 6), torch.float32),
+            "plucker_packed": ((6 * 4 * 64, 2, H // 8, W // 8), torch.float32),
             "depth": ((T, H, W), torch.float32), "depth_valid": ((T, H, W), torch.bool),
             "tracks": ((4, T, 3), torch.float32), "track_visibility": ((4, T), torch.bool),
             "track_mask": ((4,), torch.bool), "dynamic": ((), torch.bool), "frame_indices": ((T,), torch.int64),
@@ -181,9 +185,10 @@ def test_relative_cameras_and_times(root):
             item, spec = ds[i], ds.sample(i)
             r = SceneReader(root / spec.scene)
             assert torch.equal(item["viewmats"][0], torch.eye(4))
-            src = [r.cameras(c).viewmats[f].double() for c, f in zip(spec.cameras, spec.frames)]
+            src = [r.cameras(c).viewmats[f].double() for c, f in zip(spec.cameras, spec.frames, strict=True)]
             for k in range(5):  # V_k' = V_k · V_0⁻¹: relative poses between clip frames are the source ones
-                torch.testing.assert_close(item["viewmats"][k].double(), src[k] @ invert_rigid(src[0]), atol=1e-5, rtol=0)
+                torch.testing.assert_close(item["viewmats"][k].double(), src[k] @ invert_rigid(src[0]),
+                                           atol=1e-5, rtol=0)
             torch.testing.assert_close(item["times"], torch.linspace(0, 1, 5))
             assert item["frame_indices"].tolist() == list(spec.frames)
             assert [r.camera_names[j] for j in item["camera_indices"]] == list(spec.cameras)
@@ -200,10 +205,11 @@ def test_tracks_reproject_onto_images_after_crop_and_resize(root):
             item, spec = ds[i], ds.sample(i)
             r = SceneReader(root / spec.scene)
             pts, _ = r.tracks()
-            for k, (c, f) in enumerate(zip(spec.cameras, spec.frames)):
+            for k, (c, f) in enumerate(zip(spec.cameras, spec.frames, strict=True)):
                 src = r.cameras(c)
                 y0, x0, ch, cw = center_crop_box(src.height, src.width, 32, 32)
-                uv_src = _project(src.viewmats[f].double().numpy(), src.Ks[f].double().numpy(), pts[:, f].astype(np.float64))
+                uv_src = _project(src.viewmats[f].double().numpy(), src.Ks[f].double().numpy(),
+                                  pts[:, f].astype(np.float64))
                 want = (uv_src - [x0, y0]) * [32 / cw, 32 / ch]
                 X = item["tracks"][:, k].double().numpy()  # the clip world
                 got = _project(item["viewmats"][k].double().numpy(), item["Ks"][k].double().numpy(), X)
@@ -222,7 +228,7 @@ def test_track_visibility_rules(root):
     for i in range(4):
         item, spec = ds[i], ds.sample(i)
         assert item["track_mask"].all()
-        for k, (c, f) in enumerate(zip(spec.cameras, spec.frames)):
+        for k, (c, f) in enumerate(zip(spec.cameras, spec.frames, strict=True)):
             X = item["tracks"][:, k].double().numpy()
             uv = _project(item["viewmats"][k].double().numpy(), item["Ks"][k].double().numpy(), X)
             inside = ((uv >= 0) & (uv < 32)).all(-1)
@@ -261,7 +267,7 @@ def test_depth_is_metric_and_nearest(root):
     for i in range(4):
         item, spec = ds[i], ds.sample(i)
         r = SceneReader(root / spec.scene)
-        for k, (c, f) in enumerate(zip(spec.cameras, spec.frames)):
+        for k, (c, f) in enumerate(zip(spec.cameras, spec.frames, strict=True)):
             np.testing.assert_array_equal(item["depth"][k].numpy(), resize_depth(r.depth(c, f), 32, 32))
         assert torch.equal(item["depth_valid"], torch.isfinite(item["depth"]))
         vals = item["depth"][item["depth_valid"]]

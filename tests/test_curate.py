@@ -16,10 +16,16 @@ import torch
 import yaml
 
 import data_prep.curate as cm
-from data_prep.curate import (
-    DEFAULT_CONFIG_PATH, CurationConfig, curate, judge, laplacian_variance, read_manifest, scene_statistics,
-)
 from data_prep.cli import main as cli_main
+from data_prep.curate import (
+    DEFAULT_CONFIG_PATH,
+    CurationConfig,
+    curate,
+    judge,
+    laplacian_variance,
+    read_manifest,
+    scene_statistics,
+)
 from data_prep.format import SceneReader, SceneWriter, list_scenes
 from data_prep.validate import validate_scene
 from diff4splat.cameras import CameraPath, intrinsics_from_fov
@@ -111,7 +117,8 @@ def _manifest_text(out: Path) -> str:
 def test_laplacian_variance_matches_opencv_reference():
     img = np.random.default_rng(1).random((20, 30, 3)).astype(np.float32)
     grey = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY).astype(np.float64) * 255.0
-    kernel = np.ones((3, 3)); kernel[1, 1] = -8.0
+    kernel = np.ones((3, 3))
+    kernel[1, 1] = -8.0
     ref = cv2.filter2D(grey, -1, kernel, borderType=cv2.BORDER_REFLECT_101)
     assert laplacian_variance(img) == pytest.approx(ref.var(), rel=1e-4)
     assert laplacian_variance(np.full((8, 8, 3), 0.4, np.float32)) == pytest.approx(0.0, abs=1e-6)
@@ -161,7 +168,8 @@ def test_bounds_and_requirements(dataset):
     assert judge(s, CONFIG) == []
     c = CurationConfig(min_frames=10, max_translation_m=0.2, min_rotation_deg=11.0, min_sharpness=1e9)
     assert [r for r, _ in judge(s, c)] == ["min_frames", "max_translation_m", "min_rotation_deg", "min_sharpness"]
-    assert judge(s, CurationConfig(min_frames=9, min_translation_m=0.3 - 1e-6, max_rotation_deg=10.0 + 1e-3, min_sharpness=0)) == []
+    lenient = CurationConfig(min_frames=9, min_translation_m=0.3 - 1e-6, max_rotation_deg=10.0 + 1e-3, min_sharpness=0)
+    assert judge(s, lenient) == []
     nodepth = scene_statistics(SceneReader(dataset / "good_static"), CONFIG).__class__(
         **{**s.__dict__, "valid_depth_ratio": None})
     assert judge(nodepth, CurationConfig(min_frames=9)) == []

@@ -50,7 +50,8 @@ P_WORLD = np.array([0.4, -0.3, 5.0])
 def cv_poses(n=T, shift=(0.0, 0.0, 0.0)):
     """n world-to-camera OpenCV poses looking near P_WORLD from moving centres (rotation + translation)."""
     s = np.asarray(shift)
-    return [look_at_cv(s + [0.15 * i, -0.05 * i, -0.3 * i], s + P_WORLD + [0.25 - 0.1 * i, 0.15, 0.0]) for i in range(n)]
+    return [look_at_cv(s + [0.15 * i, -0.05 * i, -0.3 * i], s + P_WORLD + [0.25 - 0.1 * i, 0.15, 0.0])
+            for i in range(n)]
 
 
 def project_cv(V, P, fx=FX, fy=FY, cx=CX, cy=CY):
@@ -99,6 +100,9 @@ def write_png(path, img):
 
 # --------------------------------------------------------------------------------------- sources
 def make_vkitti2(root: Path) -> tuple[Path, Expect]:
+    def cm(m):  # metres → uint16 centimetres
+        return np.uint16(round(m * 100))
+
     src = root / "Scene01" / "clone"
     intr = ["frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]"]
     extr = ["frame cameraID r1,1 r1,2 r1,3 t1 r2,1 r2,2 r2,3 t2 r3,1 r3,2 r3,3 t3 0 0 0 1"]
@@ -110,8 +114,8 @@ def make_vkitti2(root: Path) -> tuple[Path, Expect]:
             p, zz = project_cv(V, P_WORLD)
             uv[name].append(p)
             z[name].append(zz)
-            cm = lambda m: np.uint16(round(m * 100))  # centimetres
-            write_png(src / "frames" / "depth" / f"Camera_{c}" / f"depth_{i:05d}.png", depth_map(p, zz, cm(BG), cm(zz), np.uint16(65535)))
+            write_png(src / "frames" / "depth" / f"Camera_{c}" / f"depth_{i:05d}.png",
+                      depth_map(p, zz, cm(BG), cm(zz), np.uint16(65535)))
             write_png(src / "frames" / "rgb" / f"Camera_{c}" / f"rgb_{i:05d}.jpg", rgb_image(i))
     (src / "intrinsic.txt").write_text("\n".join(intr) + "\n")
     (src / "extrinsic.txt").write_text("\n".join(extr) + "\n")
@@ -191,7 +195,8 @@ def make_spring(root: Path) -> tuple[Path, Expect]:
             write_png(src / f"frame_{side}" / f"frame_{side}_{i + 1:04d}.png", rgb_image(i))
     (src / "cam_data").mkdir()
     (src / "cam_data" / "intrinsics.txt").write_text("".join(f"{f} {f} {CX} {CY}\n" for f in fx_i))
-    (src / "cam_data" / "extrinsics.txt").write_text("".join(" ".join(f"{v:.12g}" for v in V.reshape(-1)) + "\n" for V in poses))
+    (src / "cam_data" / "extrinsics.txt").write_text(
+        "".join(" ".join(f"{v:.12g}" for v in V.reshape(-1)) + "\n" for V in poses))
     return src, Expect(P_WORLD, uv, z, depth_tol=1e-4)
 
 
@@ -228,6 +233,9 @@ D_P3D = np.diag([-1.0, -1.0, 1.0])
 
 
 def make_dynamic_replica(root: Path) -> tuple[Path, Expect]:
+    def half(m):  # stored ×scale_adjustment = 2, as float16 bits
+        return np.float16(m / 2.0).view(np.uint16)
+
     annots, uv, z = [], {"cam00": [], "cam01": []}, {"cam00": [], "cam01": []}
     s_ndc = min(W, H) / 2.0  # "ndc_isotropic"
     cx, cy = 7.5, 6.5  # off-centre principal point, pixels
@@ -241,7 +249,6 @@ def make_dynamic_replica(root: Path) -> tuple[Path, Expect]:
             p = np.array([W / 2 - ndc[0] * s_ndc, H / 2 - ndc[1] * s_ndc])
             uv[f"cam{k:02d}"].append(p)
             z[f"cam{k:02d}"].append(Xc[2])
-            half = lambda m: np.float16(m / 2.0).view(np.uint16)  # stored ×scale_adjustment = 2
             rel_d, rel_i = f"seq/depths/{side}_{i:04d}.geometric.png", f"seq/images/{side}_{i:04d}.png"
             write_png(root / "train" / rel_d, depth_map(p, Xc[2], half(BG), half(Xc[2]), np.uint16(0)))
             write_png(root / "train" / rel_i, rgb_image(i))
@@ -322,8 +329,9 @@ def make_realestate10k(root: Path) -> tuple[Path, Expect]:
     lines = ["https://www.youtube.com/watch?v=xyz"]
     uv, z = [], []
     rng = np.random.default_rng(0)
-    for i, (ts, V) in enumerate(zip(stamps, cv_poses())):
-        lines.append(" ".join([str(ts)] + [f"{v:.12g}" for v in (FX / W, FY / H, CX / W, CY / H, 0, 0, *V[:3].reshape(-1))]))
+    for i, (ts, V) in enumerate(zip(stamps, cv_poses(), strict=True)):
+        fields = (FX / W, FY / H, CX / W, CY / H, 0, 0, *V[:3].reshape(-1))
+        lines.append(" ".join([str(ts)] + [f"{v:.12g}" for v in fields]))
         p, zz = project_cv(V, P_WORLD)
         uv.append(p)
         z.append(zz)

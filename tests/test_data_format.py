@@ -22,7 +22,7 @@ H, W, T = 6, 8, 3
 
 def _path(name: str = "orbit", width: int = W, height: int = H, times=None) -> CameraPath:
     K = intrinsics_from_fov(width, height, fov_x_deg=60.0)
-    p = make_trajectory(name, T, K, width, height) if name != "pan" else make_trajectory("pan-left", T, K, width, height)
+    p = make_trajectory("pan-left" if name == "pan" else name, T, K, width, height)
     return p if times is None else CameraPath(p.viewmats, p.Ks, width, height, times)
 
 
@@ -143,7 +143,8 @@ def test_existing_scene_is_kept_unless_replace(tmp_path):
 ])
 def test_writer_rejects_bad_depth(tmp_path, depth, match):
     with pytest.raises(ValueError, match=match):
-        with SceneWriter(tmp_path / "s", source="x", dynamic=True, depth_source="ground_truth", num_frames=T, fps=1.0) as w:
+        with SceneWriter(tmp_path / "s", source="x", dynamic=True, depth_source="ground_truth", num_frames=T,
+                         fps=1.0) as w:
             w.add_camera("cam00", _path())
             w.write_frame("cam00", 0, np.zeros((H, W, 3)), depth)
     assert not (tmp_path / "s").exists()

@@ -110,7 +110,7 @@ def test_generate_is_deterministic_and_seed_dependent(tmp_path):
     for f in files:
         assert (a / f).read_bytes() == (b / f).read_bytes(), f
     ra, rb, rc = load_scene(a), load_scene(b), load_scene(c)
-    for x, y in zip(ra.tracks(), rb.tracks()):
+    for x, y in zip(ra.tracks(), rb.tracks(), strict=True):
         np.testing.assert_array_equal(x, y)
     assert not np.array_equal(ra.rgb("cam00", 0), rc.rgb("cam00", 0))
     assert ra.meta.extra["synth"]["spec"] != rc.meta.extra["synth"]["spec"]

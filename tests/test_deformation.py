@@ -83,7 +83,7 @@ def test_matches_reference_forward():
     times = torch.tensor([0.0, 0.3, 1.0], dtype=torch.float64)
     got = net(feats, times, upsample=4)
     ref = _reference_forward(net, feats, times, 4)
-    for g, r in zip(got, ref):
+    for g, r in zip(got, ref, strict=True):
         torch.testing.assert_close(g, r, atol=1e-10, rtol=1e-10)
 
 
@@ -92,7 +92,7 @@ def test_single_level_and_odd_sizes():
     feats, times = torch.randn(1, 8, 3, 5, dtype=torch.float64), torch.tensor([0.2, 0.7], dtype=torch.float64)
     got = net(feats, times, upsample=2)
     assert got[0].shape == (1, 2, 6, 10, 3)
-    for g, r in zip(got, _reference_forward(net, feats, times, 2)):
+    for g, r in zip(got, _reference_forward(net, feats, times, 2), strict=True):
         torch.testing.assert_close(g, r, atol=1e-10, rtol=1e-10)
 
 
@@ -167,13 +167,13 @@ def test_gradients_reach_every_parameter_after_perturbation():
     times = torch.tensor([0.1, 0.9])
     w = [torch.randn(1, 2, 16, 16, c) for c in (3, 4, 3)]
     # at init only the zero-initialised layer receives gradient (its input is non-zero)
-    loss = sum((o * wi).sum() for o, wi in zip(net(feats, times, 4), w))
+    loss = sum((o * wi).sum() for o, wi in zip(net(feats, times, 4), w, strict=True))
     loss.backward()
     assert net.out_conv.weight.grad.abs().sum() > 0
     net.zero_grad()
     with torch.no_grad():
         net.out_conv.weight.normal_(0.0, 0.5)
-    loss = sum((o * wi).sum() for o, wi in zip(net(feats, times, 4), w))
+    loss = sum((o * wi).sum() for o, wi in zip(net(feats, times, 4), w, strict=True))
     loss.backward()
     for name, p in net.named_parameters():
         assert p.grad is not None and p.grad.abs().sum() > 0, f"no gradient for {name}"
@@ -201,5 +201,5 @@ def test_save_load_round_trip(tmp_path):
     net.save_pretrained(tmp_path / "deform")
     loaded = DeformationNetwork.from_pretrained(tmp_path / "deform")
     assert loaded.config == net.config
-    for a, b in zip(net(feats, times, 2), loaded(feats, times, 2)):
+    for a, b in zip(net(feats, times, 2), loaded(feats, times, 2), strict=True):
         assert torch.equal(a, b)

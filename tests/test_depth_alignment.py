@@ -133,7 +133,7 @@ def test_video_shared_fit_equals_concatenated_fit():
         assert len(aligned) == 3 and aligned[2].shape == (6, 12)
         np.testing.assert_allclose(aligned[1], fit.scale * frames_rel[1] + fit.shift)
     # one shared scale differs from per-frame fits (the noise differs per frame)
-    per_frame = [fit_scale_shift(r, m, k_) for r, m, k_ in zip(frames_rel, frames_met, masks)]
+    per_frame = [fit_scale_shift(r, m, k_) for r, m, k_ in zip(frames_rel, frames_met, masks, strict=True)]
     fit, _ = align_video(frames_rel, frames_met, masks, robust=False)
     assert all(abs(p.scale - fit.scale) > 1e-6 for p in per_frame)
 

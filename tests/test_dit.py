@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from models.dit import VideoDiT, VideoDiTConfig
-from models.pretrained import count_parameters
 from models.layers import unpatchify
+from models.pretrained import count_parameters
 
 CFG = VideoDiTConfig()
 B, C, N, H, W = 2, CFG.latent_channels, 2, 4, 6
@@ -244,7 +244,7 @@ def test_onnx_export_matches_pytorch(tmp_path):
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     names = [i.name for i in session.get_inputs()]
     assert names == ["x", "sigma", "image_latent", "plucker", "text", "text_mask"]
-    (out,) = session.run(None, {name: a.numpy() for name, a in zip(names, args)})
+    (out,) = session.run(None, {name: a.numpy() for name, a in zip(names, args, strict=True)})
     assert out.shape == expected.shape
     assert np.abs(out - expected).max() <= 1e-4
     assert np.abs(expected).max() > 1e-2  # a non-trivial output was compared

@@ -2,10 +2,19 @@ import math
 
 import pytest
 import torch
-
 from helpers import tiny_model
+
 from diff4splat.pipeline import Diff4SplatPipeline
-from training.evaluate import DIAGNOSTICS, METRICS, PSNR_CAP, _held_out_clips, _pearson, _psnr, evaluate_clip, sampling_tradeoffs
+from training.evaluate import (
+    DIAGNOSTICS,
+    METRICS,
+    PSNR_CAP,
+    _held_out_clips,
+    _pearson,
+    _psnr,
+    evaluate_clip,
+    sampling_tradeoffs,
+)
 
 
 @pytest.fixture(scope="module")
@@ -44,6 +53,7 @@ def test_metrics_of_a_generated_scene_match_independent_computations(clips):
     −10·log10(MSE), SSIM of frame 0 vs frames 1…, depth correlation by numpy on the covered valid pixels."""
     import kornia
     import numpy as np
+
     from diff4splat.cameras import CameraPath
     from diff4splat.render.sequence import render_path
 

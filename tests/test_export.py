@@ -10,11 +10,18 @@ import numpy as np
 import onnx
 import pytest
 import torch
-
 from helpers import exported, tiny_model
+
 from diff4splat.cli import main
-from diff4splat.export import (LDRM_OUTPUTS, MANIFEST_NAME, _export_graph, _graphs, checkpoint_sha256,
-                               export_onnx, state_dict_sha256)
+from diff4splat.export import (
+    LDRM_OUTPUTS,
+    MANIFEST_NAME,
+    _export_graph,
+    _graphs,
+    checkpoint_sha256,
+    export_onnx,
+    state_dict_sha256,
+)
 from models.bundle import Diff4SplatConfig, Diff4SplatModel
 from models.pretrained import config_from_dict
 
@@ -56,7 +63,8 @@ def test_manifest_records_parts_files_names_shapes_config_and_weight_hashes(full
     assert manifest["format"] == "diff4splat-onnx/1" and manifest["opset"] == 18
     assert all(manifest["parts"].values())
     assert set(manifest["files"]) == {"vae_encoder", "vae_decoder", "text_encoder", "dit", "ldrm"}
-    names = {k: ([i["name"] for i in e["inputs"]], [o["name"] for o in e["outputs"]]) for k, e in manifest["files"].items()}
+    names = {k: ([i["name"] for i in e["inputs"]], [o["name"] for o in e["outputs"]])
+             for k, e in manifest["files"].items()}
     assert names["vae_encoder"] == (["video"], ["latents"])
     assert names["vae_decoder"] == (["latents"], ["video"])
     assert names["text_encoder"] == (["ids", "mask"], ["tokens"])
@@ -72,7 +80,8 @@ def test_manifest_records_parts_files_names_shapes_config_and_weight_hashes(full
     files = {f"{n}/model.safetensors": hashlib.sha256((ckpt / n / "model.safetensors").read_bytes()).hexdigest()
              for n in ("vae", "text_encoder", "dit", "ldrm")}
     assert manifest["weights"] == {"kind": "checkpoint", "path": str(ckpt), "sha256": files}
-    assert sorted(p.name for p in out.iterdir()) == sorted([MANIFEST_NAME] + [e["file"] for e in manifest["files"].values()])
+    written = [MANIFEST_NAME] + [e["file"] for e in manifest["files"].values()]
+    assert sorted(p.name for p in out.iterdir()) == sorted(written)
     assert not any(p.name.startswith(".") for p in out.parent.iterdir())  # no temp folder left
 
 
@@ -153,7 +162,7 @@ def test_ldrm_with_deformation_matches_pytorch(full, B, n, h, w, K):
     times = torch.linspace(0, 1, K) if K > 1 else torch.tensor([0.3])
     got = sessions["ldrm"].run(None, {"latents": latents.numpy(), "plucker": plucker.numpy(), "times": times.numpy()})
     ref = model.ldrm(latents, plucker, times)
-    for name, value in zip(LDRM_OUTPUTS, got):
+    for name, value in zip(LDRM_OUTPUTS, got, strict=True):
         _close(value, getattr(ref, name), f"ldrm.{name}")
     assert got[5].shape == (B, K, 8 * h, 8 * w, 3) and float(ref.d_means.abs().max()) > 1e-2
 
@@ -182,7 +191,8 @@ def test_weight_hashes_follow_the_weights(tmp_path):
     assert state_dict_sha256(a) != state_dict_sha256(b)
     a.save_pretrained(tmp_path / "ck")
     hashes = checkpoint_sha256(tmp_path / "ck")
-    assert hashes["dit/model.safetensors"] == hashlib.sha256((tmp_path / "ck/dit/model.safetensors").read_bytes()).hexdigest()
+    dit_bytes = (tmp_path / "ck/dit/model.safetensors").read_bytes()
+    assert hashes["dit/model.safetensors"] == hashlib.sha256(dit_bytes).hexdigest()
     (tmp_path / "ck/vae/model.safetensors").unlink()
     with pytest.raises(FileNotFoundError):
         checkpoint_sha256(tmp_path / "ck")

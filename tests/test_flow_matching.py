@@ -88,15 +88,15 @@ def test_convergence_orders_euler_1_heun_2(shift):
     steps = [16, 32, 64, 128]  # asymptotic regime (8 steps is still pre-asymptotic for Heun)
     e_euler = [_max_err(euler_sample, n, shift, z, ref) for n in steps]
     e_heun = [_max_err(heun_sample, n, shift, z, ref) for n in steps]
-    order_euler = [math.log2(a / b) for a, b in zip(e_euler, e_euler[1:])]
-    order_heun = [math.log2(a / b) for a, b in zip(e_heun, e_heun[1:])]
+    order_euler = [math.log2(a / b) for a, b in zip(e_euler, e_euler[1:], strict=False)]
+    order_heun = [math.log2(a / b) for a, b in zip(e_heun, e_heun[1:], strict=False)]
     assert all(0.8 < p < 1.25 for p in order_euler), order_euler
     assert all(1.7 < p < 2.4 for p in order_heun), order_heun
     # Heun beats Euler at every step count, and its advantage doubles with every doubling of steps
     # (ratio ∝ h); at 64 and 128 steps Heun's error is below a fifth of Euler's (1/28 and 1/58 at shift 1).
-    ratios = [b / a for a, b in zip(e_euler, e_heun)]
+    ratios = [b / a for a, b in zip(e_euler, e_heun, strict=True)]
     assert all(r < 1 for r in ratios), ratios
-    assert all(r2 < 0.6 * r1 for r1, r2 in zip(ratios, ratios[1:])), ratios
+    assert all(r2 < 0.6 * r1 for r1, r2 in zip(ratios, ratios[1:], strict=False)), ratios
     assert all(r < 0.2 for r in ratios[2:]), ratios
 
 

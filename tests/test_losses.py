@@ -3,8 +3,15 @@ import math
 import pytest
 import torch
 
-from training.losses import (depth_correlation_loss, depth_smoothness_loss, flow_matching_loss,
-                             gather_track_predictions, motion_loss, photometric_loss, sample_training_sigmas)
+from training.losses import (
+    depth_correlation_loss,
+    depth_smoothness_loss,
+    flow_matching_loss,
+    gather_track_predictions,
+    motion_loss,
+    photometric_loss,
+    sample_training_sigmas,
+)
 
 
 def test_flow_matching_loss_is_zero_for_the_exact_velocity_and_closed_form_otherwise():

@@ -4,9 +4,9 @@ import math
 
 import pytest
 import torch
+from helpers import tiny_model
 from torch.utils.data import default_collate
 
-from helpers import tiny_model
 from diff4splat.cameras import camera_rays
 from diff4splat.gaussians import Gaussians, rgb_to_sh0
 from diff4splat.scene import DynamicGaussians
@@ -139,10 +139,12 @@ def test_forward_losses_and_gradients_reach_only_the_trainable_networks(clips, c
     assert set(losses) == keys | {"loss"}
     assert all(v.ndim == 0 and math.isfinite(float(v.detach())) for v in losses.values()), losses
     expected = {
-        "vae": lambda l: l["vae_l1"] + stage.kl_weight * l["vae_kl"],
-        "stage1": lambda l: l["flow"] + 2.0 * l["photo"] + 0.5 * l["depth"] + 0.25 * l["smooth"],
-        "frozen_deformation": lambda l: 2.0 * l["photo"] + 0.5 * l["depth"] + 0.25 * l["smooth"] + 3.0 * l["motion"],
-        "stage3": lambda l: l["flow"] + 2.0 * l["photo"] + 0.5 * l["depth"] + 0.25 * l["smooth"] + 3.0 * l["motion"],
+        "vae": lambda terms: terms["vae_l1"] + stage.kl_weight * terms["vae_kl"],
+        "stage1": lambda terms: terms["flow"] + 2.0 * terms["photo"] + 0.5 * terms["depth"] + 0.25 * terms["smooth"],
+        "frozen_deformation": lambda terms: (2.0 * terms["photo"] + 0.5 * terms["depth"] + 0.25 * terms["smooth"]
+                                             + 3.0 * terms["motion"]),
+        "stage3": lambda terms: (terms["flow"] + 2.0 * terms["photo"] + 0.5 * terms["depth"] + 0.25 * terms["smooth"]
+                                 + 3.0 * terms["motion"]),
     }[case](losses)
     torch.testing.assert_close(losses["loss"], expected)
     if "motion" in keys:

@@ -6,8 +6,8 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
-
 from helpers import tiny_model
+
 from models.bundle import Diff4SplatModel, load_config
 from training.stages import STAGE_CONFIG_DIR
 from training.train import calibrate_latent_scaling, main

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 import torch
-
 from _trainer_toy import ToyData, ToyModel, toy_step
+
 from training.checkpoint import latest_checkpoint, load_checkpoint
 from training.trainer import NonFiniteLossError, Trainer, TrainerConfig, warmup_cosine
 
@@ -72,7 +72,7 @@ def test_signal_stop_then_resume_matches_uninterrupted_run_exactly(tmp_path):
     b = _trainer(tmp_path / "run")
     b.fit(resume=True)
     assert _losses(tmp_path / "run") == _losses(tmp_path / "ref")  # step for step, bit for bit
-    for (k, v), (_, w) in zip(ref.module.state_dict().items(), b.module.state_dict().items()):
+    for (k, v), (_, w) in zip(ref.module.state_dict().items(), b.module.state_dict().items(), strict=True):
         assert torch.equal(v, w), k
     assert all(torch.equal(ref.ema[k], b.ema[k]) for k in ref.ema)
 
@@ -107,7 +107,8 @@ def test_hard_kill_then_resume_from_last_checkpoint_matches(tmp_path):
     assert _losses(run) == _losses(tmp_path / "ref")  # rows after the restored checkpoint were dropped, then redone
     steps = [int(r["step"]) for r in csv.DictReader(open(run / "metrics.csv"))]
     assert steps == list(range(1, 13))
-    assert all(torch.equal(v, w) for v, w in zip(ref.module.state_dict().values(), b.module.state_dict().values()))
+    ref_state, b_state = ref.module.state_dict(), b.module.state_dict()
+    assert all(torch.equal(v, w) for v, w in zip(ref_state.values(), b_state.values(), strict=True))
 
 
 def test_nan_batch_skips_the_step_and_is_logged(tmp_path, capsys):
@@ -197,9 +198,9 @@ def _run_two_ranks(script: str, attempts: int = 3) -> None:
             log.close()
         if all(p.returncode == 0 for p in procs):
             return
-        if not any("address already in use" in e.lower() or "eaddrinuse" in e.lower() for e in errs):
-            break
-    pytest.fail(f"distributed run failed (attempt {attempt + 1}):\n" + "\n".join(errs))
+        port_taken = any("address already in use" in e.lower() or "eaddrinuse" in e.lower() for e in errs)
+        if not port_taken or attempt == attempts - 1:
+            pytest.fail(f"distributed run failed (attempt {attempt + 1}):\n" + "\n".join(errs))
 
 
 @pytest.mark.parametrize("strategy", ["ddp", "fsdp"])

@@ -7,15 +7,15 @@ from torch import nn
 
 from models.pretrained import count_parameters
 from models.vae import (
-    Downsample,
-    Upsample,
-    causal_mean_pool,
-    causal_repeat,
     PAPER_VIDEO_VAE,
     CausalConv3d,
+    Downsample,
     FrameGroupNorm,
+    Upsample,
     VideoVAE,
     VideoVAEConfig,
+    causal_mean_pool,
+    causal_repeat,
     estimate_latent_scaling,
     kl_divergence,
     sample_posterior,

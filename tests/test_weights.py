@@ -2,8 +2,8 @@
 import warnings
 
 import pytest
-
 from helpers import EXAMPLE_IMAGE
+
 from diff4splat.pipeline import Diff4SplatPipeline, load_model
 from models.bundle import WEIGHTS_DIR, Diff4SplatModel, load_config
 

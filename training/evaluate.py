@@ -108,7 +108,8 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
            "psnr_novel": _psnr(pred[1:], gt[1:]) if T > 1 else float("nan"),
            "ssim_novel": _ssim(pred[1:], gt[1:]) if T > 1 else float("nan")}
     valid = clip["depth_valid"] & (alphas > 0.5)
-    out["depth_corr"] = _pearson(depths[valid].double(), clip["depth"][valid].double()) if valid.sum() > 1 else float("nan")
+    out["depth_corr"] = (_pearson(depths[valid].double(), clip["depth"][valid].double())
+                         if valid.sum() > 1 else float("nan"))
     # motion: every Gaussian survives pruning only if seen; map track pixels through the kept indices
     tracks, vis = clip["tracks"], clip["track_visibility"] & clip["track_mask"][:, None]
     idx, ok = track_query_index(tracks[:, 0], clip["Ks"][0], cfg.width, cfg.height, vis[:, 0])

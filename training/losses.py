@@ -27,7 +27,8 @@ __all__ = [
 
 @dataclass
 class LossWeights:
-    """Weights of the reconstruction objective L = λ_rgb·L_photo + λ_depth·L_depth + λ_smooth·L_smooth + λ_motion·L_motion.
+    """Weights of the reconstruction objective
+    L = λ_rgb·L_photo + λ_depth·L_depth + λ_smooth·L_smooth + λ_motion·L_motion.
 
     Attributes:
         ssim: λ of (1 − SSIM) inside the photometric loss; 0.2 as in 3DGS (Kerbl et al. 2023, Eq. 7).
@@ -84,7 +85,8 @@ def photometric_loss(pred: Tensor, target: Tensor, ssim_weight: float = 0.2, win
         ValueError: shapes differ or are not (B, 3, H, W).
     """
     if pred.shape != target.shape or pred.dim() != 4:
-        raise ValueError(f"pred and target must both be (B, C, H, W), got {tuple(pred.shape)} and {tuple(target.shape)}")
+        raise ValueError(
+            f"pred and target must both be (B, C, H, W), got {tuple(pred.shape)} and {tuple(target.shape)}")
     l1 = (pred - target).abs().mean()
     ssim = kornia.metrics.ssim(pred, target, window_size, max_val=1.0).mean()
     return (1 - ssim_weight) * l1 + ssim_weight * (1 - ssim)
@@ -105,7 +107,8 @@ def depth_correlation_loss(pred: Tensor, reference: Tensor, valid: Tensor | None
         Scalar mean over images of 1 − ρ, in [0, 2].
     """
     if pred.shape != reference.shape or pred.dim() != 3:
-        raise ValueError(f"pred and reference must both be (B, H, W), got {tuple(pred.shape)} and {tuple(reference.shape)}")
+        raise ValueError(
+            f"pred and reference must both be (B, H, W), got {tuple(pred.shape)} and {tuple(reference.shape)}")
     if valid is None:
         valid = torch.ones_like(pred, dtype=torch.bool)
     valid = valid & torch.isfinite(reference) & torch.isfinite(pred)

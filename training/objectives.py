@@ -17,8 +17,15 @@ from diff4splat.scene import DynamicGaussians
 from models.bundle import Diff4SplatModel
 from models.vae import kl_divergence
 
-from .losses import (depth_correlation_loss, depth_smoothness_loss, flow_matching_loss, gather_track_predictions,
-                     motion_loss, photometric_loss, sample_training_sigmas)
+from .losses import (
+    depth_correlation_loss,
+    depth_smoothness_loss,
+    flow_matching_loss,
+    gather_track_predictions,
+    motion_loss,
+    photometric_loss,
+    sample_training_sigmas,
+)
 from .stages import StageConfig
 
 __all__ = ["TrainingModule", "render_frames", "track_query_index"]

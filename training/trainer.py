@@ -25,9 +25,10 @@ import os
 import signal
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import torch
 import torch.distributed as dist
@@ -364,7 +365,8 @@ class Trainer:
             self._log(csv_path, record)
             if self.rank == 0:
                 tqdm.write(f"train: non-finite loss/gradient at step {self.step} (epoch {self.epoch}, batch "
-                           f"{self.position - 1}); step skipped ({self.nonfinite}/{cfg.max_nonfinite} in a row)", file=sys.stderr)
+                           f"{self.position - 1}); step skipped ({self.nonfinite}/{cfg.max_nonfinite} in a row)",
+                           file=sys.stderr)
             if self.nonfinite >= cfg.max_nonfinite:
                 raise NonFiniteLossError(
                     f"{self.nonfinite} consecutive non-finite steps at step {self.step}; the last good "

@@ -271,7 +271,8 @@ def read_uint16_png(path: str | os.PathLike) -> np.ndarray:
     p = require_file(path, "depth image")
     img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
     if img is None or img.dtype != np.uint16 or img.ndim != 2:
-        raise ValueError(f"{p} must be a single-channel 16-bit PNG, got {None if img is None else (img.dtype, img.shape)}")
+        got = None if img is None else (img.dtype, img.shape)
+        raise ValueError(f"{p} must be a single-channel 16-bit PNG, got {got}")
     return img
 
 

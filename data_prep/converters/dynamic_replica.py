@@ -132,7 +132,8 @@ def convert_dynamic_replica(src: str | os.PathLike, out: str | os.PathLike, *, s
         for a in (per_side[sides[int(name[3:])]][f] for f in idx):
             raw = read_uint16_png(src / split / a["depth"]["path"])
             depth = float16_bits_to_float(raw) * float(a["depth"].get("scale_adjustment") or 1.0)
-            yield read_rgb_uint8(src / split / a["image"]["path"]), finite_positive_or_inf(np.where(depth < 1e-5, np.inf, depth))
+            yield (read_rgb_uint8(src / split / a["image"]["path"]),
+                   finite_positive_or_inf(np.where(depth < 1e-5, np.inf, depth)))
 
     return write_scene(out, source="dynamic_replica", dynamic=True, depth_source="ground_truth", fps=fps,
                        cameras=cams, timestamps=ts, frames=frames, replace=replace,

@@ -129,4 +129,5 @@ def convert_matrixcity(src: str | os.PathLike, out: str | os.PathLike, *, depth_
 
     return write_scene(out, source="matrixcity", dynamic=False, depth_source="ground_truth" if ddir else "none",
                        fps=fps / stride, cameras=cams, timestamps=ts, frames=frames, replace=replace,
-                       extra={"source_id": src.resolve().name, "source_frames": [str(frames_meta[f]["file_path"]) for f in idx]})
+                       extra={"source_id": src.resolve().name,
+                              "source_frames": [str(frames_meta[f]["file_path"]) for f in idx]})

@@ -124,4 +124,5 @@ def convert_multicamvideo(src: str | os.PathLike, out: str | os.PathLike, *, cam
     return write_scene(out, source="multicamvideo", dynamic=True, depth_source="none", fps=MULTICAMVIDEO_FPS / stride,
                        cameras=paths, timestamps=ts, frames=frames, replace=replace,
                        extra={"source_id": "/".join(src.resolve().parts[-2:]), "source_frames": idx,
-                              "focal_mm": focal_mm, "world_frame": "UE world mirrored (x forward, y left, z up), metres"})
+                              "focal_mm": focal_mm,
+                              "world_frame": "UE world mirrored (x forward, y left, z up), metres"})

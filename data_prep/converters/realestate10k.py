@@ -109,10 +109,11 @@ def convert_realestate10k(src: str | os.PathLike, out: str | os.PathLike, *, cli
     if estimates_dir is not None:
         est = [np.load(require_file(Path(estimates_dir) / f"{stamps[f]}.npy", "depth estimate")) for f in idx]
         ref = [np.load(require_file(Path(reference_dir) / f"{stamps[f]}.npy", "reference depth")) for f in idx]
-        for e, r in zip(est, ref):
+        for e, r in zip(est, ref, strict=True):
             if e.shape != (H, W) or r.shape != (H, W):
-                raise ValueError(f"estimates and references must be ({H}, {W}) like the frames, got {e.shape}, {r.shape}")
-        masks = [valid_depth_mask(r) & np.isfinite(e) for e, r in zip(est, ref)]
+                raise ValueError(
+                    f"estimates and references must be ({H}, {W}) like the frames, got {e.shape}, {r.shape}")
+        masks = [valid_depth_mask(r) & np.isfinite(e) for e, r in zip(est, ref, strict=True)]
         fit, aligned = align_video(est, ref, masks, space=space, robust=True, **robust_kwargs)
         depths = [(a * scale).astype(np.float32) for a in aligned]
         extra.update({"depth_alignment_space": space, "depth_alignment_inliers": fit.num_inliers,

@@ -50,7 +50,8 @@ def decode_stereo4d_tracks(lengths: np.ndarray, indices: np.ndarray, coords: np.
     indices = np.asarray(indices, dtype=np.int64)
     coords = np.asarray(coords, dtype=np.float64)
     if lengths.sum() != indices.size or coords.shape != (indices.size, 3):
-        raise ValueError(f"track_lengths sum to {lengths.sum()} but there are {indices.size} indices / {coords.shape} coordinates")
+        raise ValueError(f"track_lengths sum to {lengths.sum()} but there are {indices.size} indices "
+                         f"/ {coords.shape} coordinates")
     if indices.size and (indices.min() < 0 or indices.max() >= num_frames):
         raise ValueError(f"track_indices must lie in [0, {num_frames})")
     out = np.full((lengths.size, num_frames, 3), np.nan)
@@ -108,7 +109,8 @@ def convert_stereo4d(src: str | os.PathLike, out: str | os.PathLike, *, name: st
 
     tracks = None
     if max_tracks > 0 and "track_lengths" in data:
-        pts = decode_stereo4d_tracks(data["track_lengths"], data["track_indices"], data["track_coordinates"], T_src)[:, idx]
+        pts = decode_stereo4d_tracks(data["track_lengths"], data["track_indices"], data["track_coordinates"],
+                                     T_src)[:, idx]
         keep = np.flatnonzero(np.isfinite(pts).all(axis=(1, 2)))
         if keep.size > max_tracks:
             keep = keep[np.linspace(0, keep.size - 1, max_tracks).round().astype(int)]
@@ -128,4 +130,5 @@ def convert_stereo4d(src: str | os.PathLike, out: str | os.PathLike, *, name: st
     return write_scene(out, source="stereo4d", dynamic=True, depth_source="none", fps=fps, cameras=cams,
                        timestamps=ts, frames=frames, tracks=tracks, replace=replace,
                        extra={"source_id": name, "source_frames": idx, "hfov_deg": hfov_deg,
-                              "tracks_visibility": "in front of the camera and inside the image (no occlusion flag in the source)"})
+                              "tracks_visibility": "in front of the camera and inside the image "
+                                                   "(no occlusion flag in the source)"})

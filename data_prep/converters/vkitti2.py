@@ -6,7 +6,8 @@ README (naverlabs.com, "Virtual KITTI 2 Dataset"). One converted scene = one
 extracted into the same tree::
 
     <IN>/intrinsic.txt                                   header, then: frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]
-    <IN>/extrinsic.txt                                   header, then: frame cameraID r11 r12 r13 t1 r21 r22 r23 t2 r31 r32 r33 t3 0 0 0 1
+    <IN>/extrinsic.txt                                   header, then: frame cameraID r11 r12 r13 t1 r21 r22 r23 t2
+                                                         r31 r32 r33 t3 0 0 0 1
     <IN>/frames/rgb/Camera_<c>/rgb_<%05d>.jpg
     <IN>/frames/depth/Camera_<c>/depth_<%05d>.png        uint16, centimetres; 65535 (655.35 m) = sky / no depth
 

@@ -3,9 +3,9 @@
 Every writer is atomic: it writes a temporary file beside the target and renames it
 (:func:`atomic_output_path`), so a crash never leaves a half-written output.
 """
+from .atomic import atomic_output_dir, atomic_output_path
 from .cameras import load_cameras_json, load_realestate10k, save_cameras_json, save_realestate10k
 from .exr import load_depth_exr, save_depth_exr
-from .atomic import atomic_output_dir, atomic_output_path
 from .image import load_image, preprocess_image
 from .ply import load_ply, ply_property_names, save_ply
 from .video import load_video, save_image, save_video, to_uint8
