@@ -51,7 +51,7 @@ from tqdm import tqdm
 from diff4splat.cameras import camera_centers
 from diff4splat.io import atomic_output_dir, atomic_output_path
 
-from .format import SceneReader, list_scenes
+from .format import SceneReader, list_scenes, parse_text_file
 from .validate import validate_scene
 
 __all__ = [
@@ -161,13 +161,7 @@ class CurationConfig:
         Raises:
             FileNotFoundError: ``path`` does not exist. ValueError: bad YAML or fields (prefixed with the path).
         """
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"curation config not found: {path}")
-        try:
-            return cls.from_dict(yaml.safe_load(path.read_text(encoding="utf-8")))
-        except (yaml.YAMLError, ValueError, TypeError) as e:
-            raise ValueError(f"{path}: {e}") from None
+        return parse_text_file(path, "curation config", yaml.safe_load, cls.from_dict, errors=(yaml.YAMLError,))
 
     def to_dict(self) -> dict[str, Any]:
         """Field: value mapping (YAML/JSON-serialisable)."""

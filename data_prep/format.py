@@ -43,6 +43,7 @@ __all__ = [
     "TIMES_TOLERANCE",
     "SceneMeta",
     "SceneWriter",
+    "parse_text_file",
     "SceneReader",
     "load_scene",
     "list_scenes",
@@ -182,13 +183,29 @@ class SceneMeta:
             FileNotFoundError: ``path`` does not exist.
             ValueError: invalid JSON or an invalid field (message prefixed with the path).
         """
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"scene meta not found: {path}")
-        try:
-            return cls.from_dict(json.loads(path.read_text(encoding="utf-8")))
-        except (json.JSONDecodeError, UnicodeDecodeError, ValueError) as e:
-            raise ValueError(f"{path}: {e}") from None
+        return parse_text_file(path, "scene meta", json.loads, cls.from_dict)
+
+
+def parse_text_file(path: str | os.PathLike, what: str, parse, build, errors: tuple = ()) -> Any:
+    """``build(parse(text))`` of a UTF-8 text file, with every parse or field error prefixed by the path.
+
+    Args:
+        path: the file.
+        what: what the file is, for the not-found message (e.g. ``"scene meta"``).
+        parse: text → data (``json.loads``, ``yaml.safe_load``).
+        build: data → object; raises ``ValueError``/``TypeError`` on bad fields.
+        errors: further exception types of ``parse`` to report (e.g. ``yaml.YAMLError``).
+
+    Raises:
+        FileNotFoundError: ``path`` is not a file. ValueError: ``<path>: <why>``.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} not found: {path}")
+    try:
+        return build(parse(path.read_text(encoding="utf-8")))
+    except (UnicodeDecodeError, ValueError, TypeError, *errors) as e:
+        raise ValueError(f"{path}: {e}") from None
 
 
 def timestamps_to_times(timestamps: np.ndarray) -> np.ndarray:

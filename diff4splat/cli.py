@@ -17,6 +17,7 @@ from .checks import check_positive_int
 __all__ = ["main", "build_parser"]
 
 EXIT_USAGE = 2
+CONFIG_HELP = "shipped model config (tiny, small, paper) or a YAML path (default: tiny)"
 PLUGIN_GROUP = "diff4splat.commands"
 """Entry-point group of extra subcommands: ``register(subparsers)`` adds a parser whose defaults hold
 ``func(args) -> int``. ``training`` registers ``evaluate`` this way, so this package never imports it.
@@ -64,7 +65,7 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
     g.add_argument("--seed", type=int, default=0, help="noise seed (default: 0)")
     g.add_argument("--checkpoint", type=Path, default=None,
                    help="model folder (default: the shipped weights of --config)")
-    g.add_argument("--config", default=None, help="model config name in configs/ (default: tiny)")
+    g.add_argument("--config", default=None, help=CONFIG_HELP)
     g.add_argument("--fps", type=int, default=8, help="video frame rate (default: 8)")
     g.add_argument("--device", default="cpu", help="torch device (default: cpu)")
     g.add_argument("--runtime", choices=("torch", "onnxruntime"), default="torch",
@@ -80,7 +81,7 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
                                    "plus manifest.json.")
     e.add_argument("--checkpoint", type=Path, default=None,
                    help="model folder (default: the shipped weights of --config)")
-    e.add_argument("--config", default="tiny", help="model config name in configs/ (default: tiny)")
+    e.add_argument("--config", default="tiny", help=CONFIG_HELP)
     e.add_argument("--out", type=Path, required=True, help="output folder (replaced atomically)")
     e.add_argument("--no-text", action="store_true", help="leave out the text encoder (empty prompt only)")
     e.add_argument("--static", action="store_true",

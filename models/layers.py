@@ -156,7 +156,27 @@ def unpatchify(tokens: Tensor, patch: tuple[int, int, int], grid: tuple[int, int
     return x.reshape(B, channels, n * pt, h * ph, w * pw)
 
 
-class SelfAttention(nn.Module):
+class _MultiHead(nn.Module):
+    """Head split and per-head QK-norm shared by :class:`SelfAttention` and :class:`CrossAttention`.
+
+    Holds no random parameters (RMSNorm weights start at 1), so the subclasses' projections are initialised
+    from the RNG in the same order as if they were built alone.
+
+    Raises:
+        ValueError: ``dim`` not divisible by ``num_heads``.
+    """
+
+    def __init__(self, dim: int, num_heads: int, qk_norm: bool, eps: float):
+        super().__init__()
+        if dim % num_heads:
+            raise ValueError(f"dim {dim} must be divisible by num_heads {num_heads}")
+        self.num_heads = num_heads
+        self.head_dim = dim // num_heads
+        self.q_norm = nn.RMSNorm(self.head_dim, eps=eps) if qk_norm else nn.Identity()
+        self.k_norm = nn.RMSNorm(self.head_dim, eps=eps) if qk_norm else nn.Identity()
+
+
+class SelfAttention(_MultiHead):
     """Multi-head self-attention with optional QK-norm and rotary positions.
 
     QK-norm: RMSNorm over each head's query and key channels before the dot product, which
@@ -165,14 +185,8 @@ class SelfAttention(nn.Module):
     """
 
     def __init__(self, dim: int, num_heads: int, qk_norm: bool = True, eps: float = 1e-6):
-        super().__init__()
-        if dim % num_heads:
-            raise ValueError(f"dim {dim} must be divisible by num_heads {num_heads}")
-        self.num_heads = num_heads
-        self.head_dim = dim // num_heads
+        super().__init__(dim, num_heads, qk_norm, eps)
         self.qkv = nn.Linear(dim, 3 * dim)
-        self.q_norm = nn.RMSNorm(self.head_dim, eps=eps) if qk_norm else nn.Identity()
-        self.k_norm = nn.RMSNorm(self.head_dim, eps=eps) if qk_norm else nn.Identity()
         self.proj = nn.Linear(dim, dim)
 
     def forward(
@@ -190,7 +204,7 @@ class SelfAttention(nn.Module):
         return self.proj(out.transpose(1, 2).reshape(B, N, D))
 
 
-class CrossAttention(nn.Module):
+class CrossAttention(_MultiHead):
     """Multi-head cross-attention from tokens to a context sequence, with a key padding mask.
 
     Queries come from ``x``; keys/values from ``context`` (e.g. text tokens, as in PixArt-α).
@@ -198,15 +212,9 @@ class CrossAttention(nn.Module):
     """
 
     def __init__(self, dim: int, context_dim: int, num_heads: int, qk_norm: bool = True, eps: float = 1e-6):
-        super().__init__()
-        if dim % num_heads:
-            raise ValueError(f"dim {dim} must be divisible by num_heads {num_heads}")
-        self.num_heads = num_heads
-        self.head_dim = dim // num_heads
+        super().__init__(dim, num_heads, qk_norm, eps)
         self.q = nn.Linear(dim, dim)
         self.kv = nn.Linear(context_dim, 2 * dim)
-        self.q_norm = nn.RMSNorm(self.head_dim, eps=eps) if qk_norm else nn.Identity()
-        self.k_norm = nn.RMSNorm(self.head_dim, eps=eps) if qk_norm else nn.Identity()
         self.proj = nn.Linear(dim, dim)
 
     def forward(
