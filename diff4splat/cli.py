@@ -13,11 +13,15 @@ from importlib.metadata import entry_points
 from pathlib import Path
 
 from .checks import check_positive_int
+from .errors import run_cli
 
 __all__ = ["main", "build_parser"]
 
-EXIT_USAGE = 2
 CONFIG_HELP = "shipped model config (tiny, small, paper) or a YAML path (default: tiny)"
+OUT_HELP = ("output folder, written atomically; an existing one is replaced only if it is empty or an "
+            "earlier output of this command (README, 'Output folders')")
+OVERWRITE_HELP = ("also replace an existing --out that is not an earlier output of this command "
+                  "(never a folder holding the inputs, the current or home directory)")
 PLUGIN_GROUP = "diff4splat.commands"
 """Entry-point group of extra subcommands: ``register(subparsers)`` adds a parser whose defaults hold
 ``func(args) -> int``. ``training`` registers ``evaluate`` this way, so this package never imports it.
@@ -73,7 +77,8 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
     g.add_argument("--onnx", type=Path, default=None, help="folder written by `diff4splat export-onnx` "
                    "(with --runtime onnxruntime)")
     g.add_argument("--quiet", action="store_true", help="no progress bars")
-    g.add_argument("--out", type=Path, required=True, help="output folder (replaced atomically)")
+    g.add_argument("--out", type=Path, required=True, help=OUT_HELP)
+    g.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
 
     e = sub.add_parser("export-onnx", help="export the networks to ONNX for onnxruntime serving",
                        description="Export the VAE encoder/decoder, text encoder, DiT velocity and LDRM "
@@ -82,7 +87,8 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
     e.add_argument("--checkpoint", type=Path, default=None,
                    help="model folder (default: the shipped weights of --config)")
     e.add_argument("--config", default="tiny", help=CONFIG_HELP)
-    e.add_argument("--out", type=Path, required=True, help="output folder (replaced atomically)")
+    e.add_argument("--out", type=Path, required=True, help=OUT_HELP)
+    e.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     e.add_argument("--no-text", action="store_true", help="leave out the text encoder (empty prompt only)")
     e.add_argument("--static", action="store_true",
                    help="leave out the deformation network (static scenes only)")
@@ -122,27 +128,29 @@ def _load_model(checkpoint: Path | None, config: str):
 
 def export_onnx_command(args) -> dict:
     """Run ``export-onnx``; returns the manifest written to ``--out/manifest.json``."""
-    from .export import check_opset, export_onnx
+    from .export import EXPORT_KIND, check_opset, export_onnx
+    from .io.outdir import check_output_dir
 
-    if args.out.exists() and not args.out.is_dir():
-        raise FileExistsError(f"--out: {args.out} is a file")
+    check_output_dir(args.out, inputs=[args.checkpoint], overwrite=args.overwrite, kind=EXPORT_KIND)
     check_opset(args.opset)
     model, source, _ = _load_model(args.checkpoint, args.config)
     checkpoint = None if source.startswith("random:") else Path(source)  # hash the weight files read
     return export_onnx(model, args.out, text=not args.no_text, deformation=not args.static, opset=args.opset,
-                       checkpoint=checkpoint, source=source)
+                       checkpoint=checkpoint, source=source, inputs=[args.checkpoint], overwrite=args.overwrite)
 
 
 def _check_generate_args(args) -> None:
     """CLI-level checks of ``generate``'s arguments, before any model is loaded (messages name the flags)."""
+    from .io.outdir import check_output_dir
+    from .io.video import check_fps
+
     if not Path(args.image).is_file():
         raise FileNotFoundError(f"image: {args.image} does not exist")
-    if args.out.exists() and not args.out.is_dir():
-        raise FileExistsError(f"--out: {args.out} is a file")
+    check_output_dir(args.out, inputs=_generate_inputs(args), overwrite=args.overwrite, kind="generate")
     for name in ("frames", "steps"):
         if getattr(args, name) is not None:
             check_positive_int(f"--{name}", getattr(args, name))
-    check_positive_int("--fps", args.fps)
+    check_fps(check_positive_int("--fps", args.fps), "--fps")
     if args.runtime == "onnxruntime":
         if args.onnx is None:
             raise ValueError("--runtime onnxruntime needs --onnx DIR (a folder written by `diff4splat export-onnx`)")
@@ -153,6 +161,38 @@ def _check_generate_args(args) -> None:
             raise FileNotFoundError(f"--onnx: {args.onnx} is not a folder")
     elif args.onnx is not None:
         raise ValueError("--onnx needs --runtime onnxruntime")
+    else:
+        _check_device("--device", args.device)
+
+
+def _check_device(name: str, device: str) -> None:
+    """Raise ``ValueError`` naming ``name`` unless ``device`` is a torch device this machine can use
+    (checked before any model is loaded: ``cuda`` needs a CUDA build of torch and a GPU, ``cuda:N`` an
+    N-th GPU, ``mps`` Apple's Metal backend, other types their ``torch.<type>.is_available()``)."""
+    import torch
+
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as e:
+        raise ValueError(f"{name}: {device!r} is not a torch device (e.g. cpu, cuda, cuda:1): {e}") from None
+    if dev.type == "cpu":
+        return
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            why = "torch built without CUDA" if torch.version.cuda is None else "no GPU found"
+            raise ValueError(f"{name}: {device} is not available ({why}); use --device cpu")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ValueError(f"{name}: {device} is not available (this machine has "
+                             f"{torch.cuda.device_count()} GPU(s): cuda:0 … cuda:{torch.cuda.device_count() - 1})")
+        return
+    backend = torch.backends.mps if dev.type == "mps" else getattr(torch, dev.type, None)
+    if backend is None or not getattr(backend, "is_available", lambda: False)():
+        raise ValueError(f"{name}: {device} is not available on this machine; use --device cpu")
+
+
+def _generate_inputs(args) -> list:
+    """The paths ``generate`` reads; ``--out`` may not be one of them or hold one."""
+    return [args.image, args.checkpoint, args.cameras, args.onnx]
 
 
 def _load_pipeline(args):
@@ -267,37 +307,37 @@ def generate(args) -> dict:
     meta = _meta(args, pipe, result, source, versions, timings)
     t0 = time.perf_counter()
     write_scene_folder(args.out, result.scene, result.cameras, colors, depths, alphas, meta, fps=args.fps,
-                       depth_fallback=pipe.config.scene_depth)
+                       depth_fallback=pipe.config.scene_depth, inputs=_generate_inputs(args), overwrite=args.overwrite)
     timings["write"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
     return meta
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``diff4splat`` console script. Returns the exit code."""
-    try:
-        parser = build_parser()
-        args, unknown = parser.parse_known_args(argv)
-        if getattr(args, "plugin", None) is not None:  # load that command's entry point, parse again
-            args = build_parser(load_command=args.plugin).parse_args(argv)
-        elif unknown:
-            parser.error(f"unrecognized arguments: {' '.join(unknown)}")
-        if args.command == "generate":
-            meta = generate(args)
-            t = meta["timings_s"]
-            print(f"wrote {args.out} ({meta['frames']} frames, {meta['num_gaussians']} Gaussians, "
-                  f"{'static' if meta['static'] else 'dynamic'}) in {t['total']:.1f} s")
-        elif args.command == "export-onnx":
-            manifest = export_onnx_command(args)
-            print(f"wrote {args.out} ({', '.join(f['file'] for f in manifest['files'].values())}, "
-                  f"opset {manifest['opset']})")
-        elif hasattr(args, "func"):
-            return args.func(args)
-        return 0
-    except (CLIError, ValueError, FileNotFoundError, FileExistsError) as e:
-        msg = " ".join(str(e).split())
-        print(f"diff4splat: error: {msg}", file=sys.stderr)
-        return EXIT_USAGE
+    """Entry point of the ``diff4splat`` console script. Returns the exit code: 0, 2 after an expected
+    failure (one ``diff4splat: error: …`` line, :func:`diff4splat.errors.run_cli`), 130 after Ctrl-C."""
+    return run_cli("diff4splat", lambda: _main(argv), expected=(CLIError,))
+
+
+def _main(argv: list[str] | None) -> int:
+    parser = build_parser()
+    args, unknown = parser.parse_known_args(argv)
+    if getattr(args, "plugin", None) is not None:  # load that command's entry point, parse again
+        args = build_parser(load_command=args.plugin).parse_args(argv)
+    elif unknown:
+        parser.error(f"unrecognized arguments: {' '.join(unknown)}")
+    if args.command == "generate":
+        meta = generate(args)
+        t = meta["timings_s"]
+        print(f"wrote {args.out} ({meta['frames']} frames, {meta['num_gaussians']} Gaussians, "
+              f"{'static' if meta['static'] else 'dynamic'}) in {t['total']:.1f} s")
+    elif args.command == "export-onnx":
+        manifest = export_onnx_command(args)
+        print(f"wrote {args.out} ({', '.join(f['file'] for f in manifest['files'].values())}, "
+              f"opset {manifest['opset']})")
+    elif hasattr(args, "func"):
+        return args.func(args)
+    return 0
 
 
 if __name__ == "__main__":

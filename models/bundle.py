@@ -16,12 +16,12 @@ import torch
 import yaml
 from torch import nn
 
-from diff4splat.io.atomic import atomic_output_dir
+from diff4splat.io.outdir import output_dir
 
 from .dit import VideoDiT, VideoDiTConfig
 from .flow_matching import FlowMatchingConfig
 from .ldrm import LDRM, LDRMConfig
-from .pretrained import CONFIG_NAME, config_from_dict, count_parameters
+from .pretrained import CONFIG_NAME, MODEL_KIND, config_from_dict, count_parameters, read_config_json
 from .text_encoder import TextEncoder, TextEncoderConfig
 from .vae import VideoVAE, VideoVAEConfig
 
@@ -148,13 +148,19 @@ class Diff4SplatModel(nn.Module):
         counts["total"] = sum(counts.values())
         return counts
 
-    def save_pretrained(self, directory: str | os.PathLike) -> Path:
-        """Write ``config.json`` and one sub-folder per network, atomically (temp folder + rename)."""
+    def save_pretrained(self, directory: str | os.PathLike, *, overwrite: bool = False) -> Path:
+        """Write ``config.json`` and one sub-folder per network, atomically (temp folder + rename,
+        :func:`diff4splat.io.output_dir`, kind ``"model"``: an existing folder is replaced only if it is
+        empty or an earlier saved model, or ``overwrite``).
+
+        Raises:
+            OutputDirError: ``directory`` may not be written or replaced.
+        """
         directory = Path(directory)
-        with atomic_output_dir(directory) as tmp:
+        with output_dir(directory, kind=MODEL_KIND, overwrite=overwrite) as tmp:
             (tmp / CONFIG_NAME).write_text(json.dumps(self.config.to_dict(), indent=2))
             for name in _MODULES:
-                getattr(self, name).save_pretrained(tmp / name)
+                getattr(self, name).write_pretrained(tmp / name)
         return directory
 
     @classmethod
@@ -168,7 +174,7 @@ class Diff4SplatModel(nn.Module):
         directory = Path(directory)
         if not (directory / CONFIG_NAME).is_file():
             raise FileNotFoundError(f"checkpoint: {directory / CONFIG_NAME} does not exist")
-        config = config_from_dict(Diff4SplatConfig, json.loads((directory / CONFIG_NAME).read_text()),
+        config = config_from_dict(Diff4SplatConfig, read_config_json(directory / CONFIG_NAME),
                                   str(directory / CONFIG_NAME))
         model = cls.__new__(cls)
         nn.Module.__init__(model)

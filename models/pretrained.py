@@ -10,12 +10,53 @@ from typing import Any, ClassVar, TypeVar
 import torch
 from safetensors.torch import load_file, save_file
 
-from diff4splat.io.atomic import atomic_output_dir
+from diff4splat.io.outdir import output_dir
 
 T = TypeVar("T", bound="PretrainedMixin")
 
 WEIGHTS_NAME = "model.safetensors"
 CONFIG_NAME = "config.json"
+MODEL_KIND = "model"
+"""Output kind of a saved model folder (:data:`diff4splat.io.MARKER`)."""
+
+
+def read_config_json(path: str | os.PathLike) -> dict[str, Any]:
+    """Parse a ``config.json`` that must hold one JSON object.
+
+    Raises:
+        ValueError: naming ``path``: not UTF-8, not valid JSON, or JSON that is not an object (e.g. a list).
+    """
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as e:
+        raise ValueError(f"checkpoint: {path} is not a UTF-8 text file ({e.reason} at byte {e.start})") from None
+    except json.JSONDecodeError as e:
+        raise ValueError(f"checkpoint: {path} is not valid JSON ({e.msg} at line {e.lineno} "
+                         f"column {e.colno})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"checkpoint: {path} must hold a JSON object of config fields, got a JSON "
+                         f"{_JSON_TYPES.get(type(data), type(data).__name__)}")
+    return data
+
+
+_JSON_TYPES = {list: "list", str: "string", int: "number", float: "number", bool: "boolean", type(None): "null"}
+
+
+def load_weights(path: str | os.PathLike, map_location: str = "cpu") -> dict[str, torch.Tensor]:
+    """Read a ``model.safetensors`` file.
+
+    Raises:
+        ValueError: naming ``path`` when the file is truncated or corrupt (safetensors' ``SafetensorError``
+            or a header that is not valid JSON / UTF-8).
+    """
+    from safetensors import SafetensorError
+
+    try:
+        return load_file(str(path), device=map_location)
+    except (SafetensorError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"checkpoint: {path} is not a readable safetensors file (truncated or corrupt: "
+                         f"{' '.join(str(e).split())})") from None
 
 
 def config_from_dict(cls: type, data: dict[str, Any], where: str = "config") -> Any:
@@ -26,8 +67,10 @@ def config_from_dict(cls: type, data: dict[str, Any], where: str = "config") -> 
     tuples where the field is a tuple.
 
     Raises:
-        ValueError: an unknown field name (names the field and ``where``).
+        ValueError: ``data`` is not a dict, or an unknown field name (names the field and ``where``).
     """
+    if not isinstance(data, dict):
+        raise ValueError(f"{where}: expected an object of config fields, got {type(data).__name__} {data!r:.60}")
     fields = {f.name: f for f in dataclasses.fields(cls)}
     kwargs = {}
     for key, value in data.items():
@@ -73,22 +116,33 @@ class PretrainedMixin:
 
     config_class: ClassVar[type]
 
-    def save_pretrained(self, directory: str | os.PathLike) -> Path:
+    def save_pretrained(self, directory: str | os.PathLike, *, overwrite: bool = False) -> Path:
         """Write ``model.safetensors`` and ``config.json`` into ``directory`` atomically.
 
         Files are written into a temporary sibling folder that is renamed over ``directory``
-        (:func:`diff4splat.io.atomic_output_dir`), so a killed save never leaves a half-written model.
+        (:func:`diff4splat.io.output_dir`, kind ``"model"``), so a killed save never leaves a half-written
+        model; an existing ``directory`` is replaced only if it is empty or an earlier saved model (or
+        ``overwrite``).
 
         Returns:
             The directory path.
+
+        Raises:
+            OutputDirError: ``directory`` may not be written or replaced.
         """
         directory = Path(directory)
-        with atomic_output_dir(directory) as tmp:
-            state = {k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}
-            save_file(state, str(tmp / WEIGHTS_NAME), metadata={"class": type(self).__name__})
-            cfg = dataclasses.asdict(self.config)
-            (tmp / CONFIG_NAME).write_text(json.dumps({"class": type(self).__name__, **cfg}, indent=2))
+        with output_dir(directory, kind=MODEL_KIND, overwrite=overwrite) as tmp:
+            self.write_pretrained(tmp)
         return directory
+
+    def write_pretrained(self, folder: Path) -> None:
+        """Write ``model.safetensors`` and ``config.json`` into the existing folder ``folder`` (no policy:
+        the caller owns it, e.g. a sub-folder of a folder being written by :func:`diff4splat.io.output_dir`)."""
+        folder.mkdir(exist_ok=True)
+        state = {k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}
+        save_file(state, str(folder / WEIGHTS_NAME), metadata={"class": type(self).__name__})
+        cfg = dataclasses.asdict(self.config)
+        (folder / CONFIG_NAME).write_text(json.dumps({"class": type(self).__name__, **cfg}, indent=2))
 
     @classmethod
     def from_pretrained(cls: type[T], directory: str | os.PathLike, map_location: str = "cpu") -> T:
@@ -96,20 +150,25 @@ class PretrainedMixin:
 
         Raises:
             FileNotFoundError: ``directory`` lacks config.json or model.safetensors.
-            ValueError: the config names another class or has unknown fields, or weights do not match.
+            ValueError: the config names another class or has unknown fields, or weights do not match;
+                config.json or model.safetensors is corrupt (:func:`read_config_json`, :func:`load_weights`).
         """
         directory = Path(directory)
         for name in (CONFIG_NAME, WEIGHTS_NAME):
             if not (directory / name).is_file():
                 raise FileNotFoundError(f"checkpoint: {directory / name} does not exist")
-        data = json.loads((directory / CONFIG_NAME).read_text())
+        data = read_config_json(directory / CONFIG_NAME)
         saved_class = data.pop("class", cls.__name__)
         if saved_class != cls.__name__:
             raise ValueError(f"checkpoint: {directory} holds a {saved_class}, not a {cls.__name__}")
         config = config_from_dict(cls.config_class, data, str(directory / CONFIG_NAME))
         model = cls(config)
-        state = load_file(str(directory / WEIGHTS_NAME), device=map_location)
-        missing, unexpected = model.load_state_dict(state, strict=False)
+        state = load_weights(directory / WEIGHTS_NAME, map_location)
+        try:
+            missing, unexpected = model.load_state_dict(state, strict=False)
+        except RuntimeError as e:  # tensor shapes that differ from the config's
+            raise ValueError(f"checkpoint: {directory / WEIGHTS_NAME} does not fit {directory / CONFIG_NAME}: "
+                             f"{e}") from None
         if missing or unexpected:
             raise ValueError(f"checkpoint: {directory} weights do not match {cls.__name__}: "
                              f"missing {missing[:5]}, unexpected {unexpected[:5]}")

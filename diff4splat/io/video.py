@@ -9,9 +9,28 @@ import numpy as np
 from torch import Tensor
 
 from ..checks import check_positive
+from ..errors import quiet_c_stderr
 from .atomic import atomic_output_path
 
-__all__ = ["save_video", "load_video", "save_image", "to_uint8"]
+__all__ = ["save_video", "load_video", "save_image", "to_uint8", "check_fps", "MAX_FPS"]
+
+MAX_FPS = 1000
+"""Highest frame rate :func:`save_video` writes. MPEG-4 Part 2 stores the frame rate as a time base of
+at most 65535 ticks per second, so OpenCV's writer fails from 65536 fps on; 1000 fps is far above any
+display and any real camera path (the CLI default is 8)."""
+
+
+def check_fps(fps: object, name: str = "fps") -> float:
+    """Return ``fps`` as a float if it is a finite number in (0, :data:`MAX_FPS`].
+
+    Raises:
+        ValueError: naming ``name`` and the value.
+    """
+    fps = check_positive(name, fps)
+    if fps > MAX_FPS:
+        raise ValueError(f"{name} must be at most {MAX_FPS} frames per second (the MP4 encoder's limit is "
+                         f"65535), got {fps:g}")
+    return fps
 
 
 def to_uint8(images: Tensor | np.ndarray, name: str = "images") -> np.ndarray:
@@ -52,16 +71,16 @@ def save_video(path: str | os.PathLike, frames: Tensor | np.ndarray, fps: float 
             renamed, so the final path never holds a half-written video.
         frames: (T, H, W, 3) RGB, uint8 or float in [0, 1] (clipped, see :func:`to_uint8`), T ≥ 1,
             H and W even.
-        fps: frames per second, > 0.
+        fps: frames per second, in (0, :data:`MAX_FPS`].
 
     Raises:
-        ValueError: naming ``path`` (suffix), ``frames`` (shape, dtype, odd size, NaN) or ``fps``.
+        ValueError: naming ``path`` (suffix), ``frames`` (shape, dtype, odd size, NaN) or ``fps`` (:func:`check_fps`).
         RuntimeError: OpenCV could not open the encoder.
     """
     path = Path(path)
     if path.suffix.lower() != ".mp4":
         raise ValueError(f"path must end in .mp4, got {str(path)!r}")
-    fps = check_positive("fps", fps)
+    fps = check_fps(fps)
     video = to_uint8(frames, "frames")
     if video.ndim != 4 or video.shape[-1] != 3 or video.shape[0] < 1:
         raise ValueError(f"frames must have shape (T, H, W, 3) with T ≥ 1, got {video.shape}")
@@ -95,18 +114,19 @@ def load_video(path: str | os.PathLike) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"video file not found: {path}")
-    cap = cv2.VideoCapture(str(path))
     frames = []
-    try:
-        while True:
-            ok, frame = cap.read()
-            if not ok:
-                break
-            frames.append(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
-    finally:
-        cap.release()
+    with quiet_c_stderr():  # FFmpeg's complaints about a corrupt file; the ValueError below names it
+        cap = cv2.VideoCapture(str(path))
+        try:
+            while True:
+                ok, frame = cap.read()
+                if not ok:
+                    break
+                frames.append(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
+        finally:
+            cap.release()
     if not frames:
-        raise ValueError(f"could not decode any frame from {path}")
+        raise ValueError(f"video file {path}: could not decode any frame (not a video OpenCV reads, or corrupt)")
     return np.stack(frames)
 
 
@@ -135,6 +155,6 @@ def save_image(path: str | os.PathLike, image: Tensor | np.ndarray) -> None:
         raise ValueError(f"image must have shape (H, W), (H, W, 3) or (H, W, 4), got {img.shape}")
     if img.shape[0] == 0 or img.shape[1] == 0:
         raise ValueError(f"image is empty, shape {img.shape}")
-    with atomic_output_path(path) as tmp:
+    with atomic_output_path(path) as tmp, quiet_c_stderr():
         if not cv2.imwrite(tmp, np.ascontiguousarray(img)):
             raise OSError(f"OpenCV failed to write {path}")
