@@ -34,6 +34,12 @@ def _validate(args: argparse.Namespace) -> int:
     from .validate import validate_path
 
     n, problems = validate_path(args.dir)
+    if n == 0:  # nothing was checked: no "problems in scenes" summary; the root-level line is the summary
+        for p in problems:
+            if Path(p.file) != Path(args.dir):
+                print(p)
+        print(f"no scenes found in {args.dir} (a scene is a sub-folder with meta.json): 0 scenes checked")
+        return 1
     for p in problems:
         print(p)
     bad = len({_scene_of(p.file, args.dir) for p in problems})

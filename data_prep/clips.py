@@ -215,8 +215,9 @@ class ClipDataset(Dataset):
             self.metas[p.name] = meta
             items += [ClipItem(p.name, s) for s in range(0, meta.num_frames - cfg.span + 1, step)]
         if not items:
+            which = "scenes" if cfg.scenes == "all" else f"{cfg.scenes} scenes"
             raise ValueError(f"no clip of {cfg.num_frames} frames at stride {cfg.min_stride} fits in the "
-                             f"{cfg.scenes} scenes of {self.root} ({len(self.metas)} scene(s))")
+                             f"{which} of {self.root} ({len(self.metas)} scene(s))")
         self.items: list[ClipItem] = items
         self.epoch = 0
         self._readers: dict[str, SceneReader] = {}

@@ -141,15 +141,22 @@ def export_onnx_command(args) -> dict:
 
 def _check_generate_args(args) -> None:
     """CLI-level checks of ``generate``'s arguments, before any model is loaded (messages name the flags)."""
+    from .io.inputs import check_input_file
     from .io.outdir import check_output_dir
     from .io.video import check_fps
+    from .limits import check_limit
+    from .pipeline import check_prompt, check_seed
 
-    if not Path(args.image).is_file():
-        raise FileNotFoundError(f"image: {args.image} does not exist")
+    check_input_file(args.image, "image")
     check_output_dir(args.out, inputs=_generate_inputs(args), overwrite=args.overwrite, kind="generate")
     for name in ("frames", "steps"):
         if getattr(args, name) is not None:
-            check_positive_int(f"--{name}", getattr(args, name))
+            check_limit(name, check_positive_int(f"--{name}", getattr(args, name)), f"--{name}")
+    check_seed(args.seed, "--seed")
+    check_prompt(args.prompt, "--prompt")
+    if args.amplitude is not None and args.cameras is not None:
+        raise ValueError("--amplitude scales a --trajectory preset; it does not apply to --cameras "
+                         "(the camera file fixes the path)")
     check_fps(check_positive_int("--fps", args.fps), "--fps")
     if args.runtime == "onnxruntime":
         if args.onnx is None:
@@ -225,9 +232,9 @@ def _load_cameras(path: Path, frames: int | None, photo_shape: tuple[int, int], 
     the same image that is centre-cropped for the model.
     """
     from .io import load_cameras_json, load_realestate10k
+    from .io.inputs import check_input_file
 
-    if not path.is_file():
-        raise FileNotFoundError(f"--cameras: {path} does not exist")
+    check_input_file(path, "--cameras")
     if path.suffix.lower() == ".json":
         cams = load_cameras_json(path)
     else:
@@ -293,12 +300,14 @@ def generate(args) -> dict:
     """Run ``generate``: check arguments → load the runtime → load image and cameras → run the pipeline
     → render the path → write the output folder. Returns the meta dict written to meta.json."""
     from .io.output import write_scene_folder
+    from .limits import check_output_size
     from .render.sequence import render_path
 
     t_start = time.perf_counter()
     _check_generate_args(args)
     pipe, source, t_load, versions = _load_pipeline(args)
     image, cameras = _load_inputs(args, pipe)
+    check_output_size(len(cameras), cameras.width, cameras.height)  # before any network runs
     result = pipe(image, cameras, args.prompt, steps=args.steps, sampler=args.sampler, seed=args.seed,
                   progress=not args.quiet)
     t0 = time.perf_counter()

@@ -20,6 +20,7 @@ is another choice, made in :mod:`diff4splat.render`.)
 """
 from __future__ import annotations
 
+import math
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -36,10 +37,48 @@ from models.ldrm import LDRMOutput
 from .cameras import CameraPath, camera_rays, intrinsics_from_fov, make_trajectory, pack_plucker, plucker_rays
 from .checks import check_positive_int
 from .gaussians import Gaussians, rgb_to_sh0
+from .limits import check_limit
 from .prune import prune_scene
 from .scene import DynamicGaussians
 
-__all__ = ["Diff4SplatPipeline", "GenerationResult", "load_model", "to_gaussians", "NetworkRuntime", "TorchRuntime"]
+__all__ = ["Diff4SplatPipeline", "GenerationResult", "load_model", "to_gaussians", "NetworkRuntime", "TorchRuntime",
+           "check_seed", "check_prompt", "SEED_RANGE"]
+
+SEED_RANGE = (-(2**63), 2**64 - 1)
+"""Seeds ``torch.Generator.manual_seed`` accepts (int64 or uint64)."""
+
+
+def check_seed(seed: object, name: str = "seed") -> int:
+    """Return ``seed`` as an int if it lies in :data:`SEED_RANGE`.
+
+    Raises:
+        ValueError: ``seed`` is not an integer or lies outside the range (the message gives the range).
+    """
+    lo, hi = SEED_RANGE
+    if isinstance(seed, bool) or not isinstance(seed, int) or not lo <= seed <= hi:
+        raise ValueError(f"{name} must be an integer in [{lo}, {hi}] (-2**63 … 2**64 − 1), got {seed!r}")
+    return seed
+
+
+def check_prompt(prompt: object, name: str = "prompt") -> str:
+    """Return ``prompt`` if it is a str that encodes as UTF-8.
+
+    Command-line arguments that are not UTF-8 reach Python as lone surrogates (``\\udcff`` for byte
+    0xff); they cannot be tokenised.
+
+    Raises:
+        ValueError: not a str, or not valid UTF-8 (names the first bad byte and its position).
+    """
+    if not isinstance(prompt, str):
+        raise ValueError(f"{name} must be a str, got {type(prompt).__name__}")
+    try:
+        prompt.encode("utf-8")
+    except UnicodeEncodeError as e:
+        bad = prompt[e.start]
+        byte = f"byte {ord(bad) - 0xDC00:#04x}" if 0xDC80 <= ord(bad) <= 0xDCFF else f"character {ord(bad):#06x}"
+        raise ValueError(f"{name}: not valid UTF-8 ({byte} at position {e.start}); "
+                         f"give the text in UTF-8") from None
+    return prompt
 
 
 def to_gaussians(
@@ -195,6 +234,21 @@ def load_model(checkpoint: str | Path | None = None, config: str = "tiny", seed:
     return Diff4SplatModel.random(load_config(config), seed=seed).eval(), random_source
 
 
+def _sees_nothing(cameras: CameraPath, stats: dict[str, int], min_opacity: float) -> str:
+    """The error message when pruning left no Gaussian, naming the likely cause."""
+    msg = (f"the camera path sees none of the scene: all {stats['before']} Gaussians were pruned "
+           f"({stats['unseen']} outside every camera's view, {stats['low_opacity']} with opacity < {min_opacity})")
+    if stats["unseen"] == 0:
+        return msg + "; likely cause: the model's weights (every Gaussian is transparent)"
+    fx, fy = float(cameras.Ks[:, 0, 0].max()), float(cameras.Ks[:, 1, 1].max())
+    fov = math.degrees(2 * math.atan(min(cameras.width / (2 * fx), cameras.height / (2 * fy))))
+    if fov < 1.0:
+        return msg + (f"; likely cause: focal lengths fx={fx:.3g}, fy={fy:.3g} pixels give a field of view "
+                      f"of {fov:.3g}° on a {cameras.width}×{cameras.height} image (check the intrinsics' units)")
+    return msg + ("; likely cause: the cameras look away from the scene (the scene lies in front of the "
+                  "first camera, along its +z axis, OpenCV axes)")
+
+
 class Diff4SplatPipeline:
     """Single image (+ camera path, + prompt) to a 4D Gaussian scene.
 
@@ -244,9 +298,12 @@ class Diff4SplatPipeline:
         amplitudes in units of ``config.scene_depth``.
 
         Raises:
-            ValueError: unknown preset or an invalid frame count.
+            ValueError: unknown preset or an invalid frame count; ``num_frames`` above the ``frames``
+                limit (:class:`diff4splat.limits.LimitError`).
         """
         c = self.config
+        if num_frames is not None:
+            check_limit("frames", num_frames, "frames")
         K = intrinsics_from_fov(c.width, c.height, fov_y_deg=c.fov_y_deg)
         return make_trajectory(trajectory, num_frames or c.num_frames, K, c.width, c.height,
                                scene_depth=c.scene_depth, amplitude=amplitude)
@@ -280,7 +337,10 @@ class Diff4SplatPipeline:
         Raises:
             ValueError: wrong image shape or range, cameras at another resolution, T ≠ 1 + 4k,
                 an unknown sampler or steps < 1; a prompt the runtime cannot encode (an ONNX
-                export made without the text encoder).
+                export made without the text encoder) or that is not valid UTF-8; a seed outside
+                :data:`SEED_RANGE`; steps or T above their limits (:class:`diff4splat.limits.LimitError`,
+                checked before any network runs); a camera path that sees none of the scene (every
+                Gaussian pruned, e.g. focal lengths so long that the field of view is empty).
         """
         cfg, runtime = self.config, self.runtime
         dev = self.device
@@ -296,7 +356,9 @@ class Diff4SplatPipeline:
         sampler = cfg.sampling.sampler if sampler is None else sampler
         if sampler not in ("euler", "heun"):
             raise ValueError(f"sampler must be 'euler' or 'heun', got {sampler!r}")
-        steps = check_positive_int("steps", steps)
+        steps = check_limit("steps", check_positive_int("steps", steps), "steps")
+        check_limit("frames", len(cameras), "cameras: a path of")
+        seed, prompt = check_seed(seed), check_prompt(prompt)
         cameras = cameras.relative_to_first().to(dtype=torch.float32, device=dev)
         timings: dict[str, float] = {}
 
@@ -338,5 +400,7 @@ class Diff4SplatPipeline:
         t0 = time.perf_counter()
         scene, stats = prune_scene(scene, cameras, min_opacity=cfg.prune_opacity)
         timings["prune"] = time.perf_counter() - t0
+        if stats["after"] == 0:
+            raise ValueError(_sees_nothing(cameras, stats, cfg.prune_opacity))
         return GenerationResult(scene=scene, cameras=cameras, latents=latents, timings=timings, prune_stats=stats,
                                 steps=steps, sampler=sampler, shift=cfg.sampling.shift)

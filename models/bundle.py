@@ -21,7 +21,7 @@ from diff4splat.io.outdir import output_dir
 from .dit import VideoDiT, VideoDiTConfig
 from .flow_matching import FlowMatchingConfig
 from .ldrm import LDRM, LDRMConfig
-from .pretrained import CONFIG_NAME, MODEL_KIND, config_from_dict, count_parameters, read_config_json
+from .pretrained import CONFIG_NAME, MODEL_KIND, check_model_size, config_from_dict, count_parameters, read_config_json
 from .text_encoder import TextEncoder, TextEncoderConfig
 from .vae import VideoVAE, VideoVAEConfig
 
@@ -169,13 +169,16 @@ class Diff4SplatModel(nn.Module):
 
         Raises:
             FileNotFoundError: a missing config.json or network sub-folder.
-            ValueError: configs that do not fit together or weights that do not match.
+            ValueError: configs that do not fit together or weights that do not match; a config implying
+                more parameters than the ``parameters`` limit (:class:`diff4splat.limits.LimitError`, counted
+                on the ``meta`` device before any network is built).
         """
         directory = Path(directory)
         if not (directory / CONFIG_NAME).is_file():
             raise FileNotFoundError(f"checkpoint: {directory / CONFIG_NAME} does not exist")
         config = config_from_dict(Diff4SplatConfig, read_config_json(directory / CONFIG_NAME),
                                   str(directory / CONFIG_NAME))
+        check_model_size(lambda: cls(config), str(directory / CONFIG_NAME))  # before any network is built
         model = cls.__new__(cls)
         nn.Module.__init__(model)
         model.config = config
@@ -189,7 +192,13 @@ class Diff4SplatModel(nn.Module):
 
     @classmethod
     def random(cls, config: Diff4SplatConfig, seed: int = 0) -> Diff4SplatModel:
-        """A randomly initialised model, deterministic for ``seed`` (CPU generator)."""
+        """A randomly initialised model, deterministic for ``seed`` (CPU generator).
+
+        Raises:
+            LimitError: ``config`` implies more parameters than the ``parameters`` limit (counted on the
+                ``meta`` device first, :func:`models.pretrained.check_model_size`).
+        """
+        check_model_size(lambda: cls(config), f"config {config.name!r}")
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
             return cls(config)

@@ -11,6 +11,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from diff4splat.io.outdir import output_dir
+from diff4splat.limits import LIMITS, LimitError, check_limit, limit
 
 T = TypeVar("T", bound="PretrainedMixin")
 
@@ -67,8 +68,11 @@ def config_from_dict(cls: type, data: dict[str, Any], where: str = "config") -> 
     tuples where the field is a tuple.
 
     Raises:
-        ValueError: ``data`` is not a dict, or an unknown field name (names the field and ``where``).
+        ValueError: ``data`` is not a dict, an unknown field name, or a non-integer value (e.g. ``1e9``,
+            which JSON and YAML read as a float) for an ``int`` field (names the field and ``where``).
     """
+    import typing
+
     if not isinstance(data, dict):
         raise ValueError(f"{where}: expected an object of config fields, got {type(data).__name__} {data!r:.60}")
     fields = {f.name: f for f in dataclasses.fields(cls)}
@@ -76,6 +80,9 @@ def config_from_dict(cls: type, data: dict[str, Any], where: str = "config") -> 
     for key, value in data.items():
         if key not in fields:
             raise ValueError(f"{where}: unknown field {key!r} for {cls.__name__} (known: {sorted(fields)})")
+        if typing.get_type_hints(cls).get(key) is int and (isinstance(value, bool) or not isinstance(value, int)):
+            raise ValueError(f"{where}: field {key!r} of {cls.__name__} must be an integer, got {value!r} "
+                             f"({type(value).__name__}; write 1000, not 1e3 or 1000.0)")
         f = fields[key]
         sub = _dataclass_type(cls, key)
         if sub is not None and isinstance(value, dict):
@@ -106,6 +113,32 @@ def _dataclass_type(cls: type, name: str) -> type | None:
     hints = typing.get_type_hints(cls)
     t = hints.get(name)
     return t if dataclasses.is_dataclass(t) else None
+
+
+def check_model_size(build: Any, where: str) -> int:
+    """Count the parameters ``build()`` would allocate, on the ``meta`` device (no memory), and check the
+    ``parameters`` limit (:mod:`diff4splat.limits`) before the real model is built.
+
+    Args:
+        build: zero-argument callable that constructs the ``nn.Module`` (called under ``torch.device("meta")``).
+        where: the config's source (a file or config name) for the message.
+
+    Returns:
+        The parameter count.
+
+    Raises:
+        LimitError: more parameters than the limit, or so many that a tensor size overflows (names ``where``).
+    """
+    try:
+        with torch.device("meta"):
+            n = count_parameters(build())
+    except RuntimeError as e:
+        if "overflow" not in str(e).lower():
+            raise
+        raise LimitError(f"{where}: the model this config describes is too large to count (a tensor size "
+                         f"overflows); the limit is {limit('parameters')} parameters "
+                         f"(set {LIMITS['parameters'].env} to raise it)") from None
+    return check_limit("parameters", n, f"{where}: a model of")
 
 
 class PretrainedMixin:
@@ -162,6 +195,7 @@ class PretrainedMixin:
         if saved_class != cls.__name__:
             raise ValueError(f"checkpoint: {directory} holds a {saved_class}, not a {cls.__name__}")
         config = config_from_dict(cls.config_class, data, str(directory / CONFIG_NAME))
+        check_model_size(lambda: cls(config), str(directory / CONFIG_NAME))
         model = cls(config)
         state = load_weights(directory / WEIGHTS_NAME, map_location)
         try:

@@ -80,8 +80,10 @@ def only_stem(folder: Path, pattern: str, option: str, what: str) -> str:
     """Stem of the single file matching ``pattern`` in ``folder`` (the default when ``option`` is not given).
 
     Raises:
+        FileNotFoundError: ``folder`` is not a folder ("source folder not found: <folder>").
         ValueError: zero or several matches ("<option> must be given: <folder> holds N <what>").
     """
+    require_dir(folder, "source")
     found = sorted(folder.glob(pattern))
     if len(found) != 1:
         raise ValueError(f"{option} must be given: {folder} holds {len(found)} {what}")

@@ -28,9 +28,41 @@ import torch
 
 from ..cameras.path import CameraPath
 from ..checks import check_positive, check_positive_int
+from ..limits import LIMITS, LimitError, check_limit, limit
 from .atomic import atomic_output_path
+from .inputs import check_input_file
 
-__all__ = ["save_cameras_json", "load_cameras_json", "load_realestate10k", "save_realestate10k"]
+__all__ = ["save_cameras_json", "load_cameras_json", "load_realestate10k", "save_realestate10k",
+           "CAMERA_FILE_BYTES_PER_FRAME"]
+
+CAMERA_FILE_BYTES_PER_FRAME = 4096
+"""Generous upper bound of the bytes one frame takes in a camera file (an indented ``cameras.json``
+frame is about 1 KB, a RealEstate10K line about 200 bytes): a larger file is refused before it is parsed."""
+
+
+def _read_camera_text(path: str | os.PathLike, what: str) -> tuple[Path, str]:
+    """Check ``path`` (a regular file, not larger than the ``frames`` limit allows) and read it as UTF-8.
+
+    Raises:
+        FileNotFoundError / ValueError: :func:`diff4splat.io.inputs.check_input_file`.
+        LimitError: the file is larger than ``frames`` limit × :data:`CAMERA_FILE_BYTES_PER_FRAME` (+ 64 KB).
+        ValueError: the file is not UTF-8 text (a binary file), naming it.
+    """
+    path = check_input_file(path, what)
+    size, frames = path.stat().st_size, limit("frames")
+    bound = frames * CAMERA_FILE_BYTES_PER_FRAME + (1 << 16)
+    if size > bound:
+        raise LimitError(f"{path}: {size} bytes is too large for a camera path of at most {frames} frames "
+                         f"(limit {bound} bytes; set {LIMITS['frames'].env} to raise it)")
+    try:
+        return path, path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: not a text camera file (byte {e.object[e.start]:#04x} at offset {e.start} "
+                         f"is not UTF-8; is it a binary file?)") from None
+
+
+def _check_frame_count(path: Path, count: int) -> None:
+    check_limit("frames", count, f"{path}: a camera path of")
 
 
 def save_cameras_json(path: str | os.PathLike, camera_path: CameraPath) -> None:
@@ -84,15 +116,16 @@ def load_cameras_json(path: str | os.PathLike) -> CameraPath:
         camera).
 
     Raises:
-        FileNotFoundError: ``path`` is not an existing file.
-        ValueError: invalid JSON, a missing key (named), a value of the wrong type or shape, or a
-            field failing :meth:`CameraPath.validate` (named).
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: ``path`` is not a regular file; not UTF-8 text, invalid JSON, a missing key (named), a
+            value of the wrong type or shape, or a field failing :meth:`CameraPath.validate` (named);
+            more frames than the ``frames`` limit or width × height above the ``image_pixels`` limit
+            (:class:`diff4splat.limits.LimitError`, checked before any tensor is built; the file size
+            is checked before it is parsed).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"camera file not found: {path}")
+    path, text = _read_camera_text(path, "camera file")
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        data = json.loads(text)
     except json.JSONDecodeError as e:
         raise ValueError(f"{path} is not valid JSON: {e}") from None
     if not isinstance(data, dict):
@@ -105,6 +138,11 @@ def load_cameras_json(path: str | os.PathLike) -> CameraPath:
             check_positive_int(f"'{key}'", data[key], "pixels")
         except ValueError as e:
             raise ValueError(f"{path}: {e}") from None
+    check_limit("image_pixels", data["width"] * data["height"],
+                f"{path}: width × height = {data['width']}×{data['height']} =")
+    for key in ("viewmats", "Ks"):
+        if isinstance(data[key], list):
+            _check_frame_count(path, len(data[key]))
     viewmats = _tensor(data, "viewmats", (4, 4), path)
     Ks = _tensor(data, "Ks", (3, 3), path)
     times = None
@@ -137,16 +175,16 @@ def load_realestate10k(path: str | os.PathLike, width: int, height: int, relativ
         Validated float32 :class:`CameraPath`.
 
     Raises:
-        FileNotFoundError: ``path`` is not an existing file.
-        ValueError: naming the line for a wrong number of values, non-numeric values or non-zero
-            distortion; no frames; decreasing timestamps; equal first and last timestamps with
-            T > 1; or a field failing :meth:`CameraPath.validate` (``width``/``height`` included).
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: ``path`` is not a regular UTF-8 text file; naming the line for a wrong number of
+            values, non-numeric values or non-zero distortion; no frames; decreasing timestamps; equal
+            first and last timestamps with T > 1; a field failing :meth:`CameraPath.validate`
+            (``width``/``height`` included); more frames than the ``frames`` limit
+            (:class:`diff4splat.limits.LimitError`; the file size is checked before it is parsed).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"RealEstate10K camera file not found: {path}")
+    path, text = _read_camera_text(path, "RealEstate10K camera file")
     rows, stamps = [], []
-    lines = path.read_text(encoding="utf-8").splitlines()
+    lines = text.splitlines()
     for lineno, line in enumerate(lines, start=1):
         words = line.split()
         if not words:
@@ -166,6 +204,7 @@ def load_realestate10k(path: str | os.PathLike, width: int, height: int, relativ
         rows.append(vals)
     if not rows:
         raise ValueError(f"{path}: no camera lines")
+    _check_frame_count(path, len(rows))
     width, height = check_positive_int("width", width, "pixels"), check_positive_int("height", height, "pixels")
     vals = torch.tensor(rows, dtype=torch.float64)  # (T, 18)
     T = vals.shape[0]

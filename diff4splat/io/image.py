@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -10,8 +9,11 @@ import torch
 from torch import Tensor
 
 from ..cameras.intrinsics import center_crop_box
+from ..limits import check_limit
+from .inputs import check_input_file
 
-__all__ = ["load_image", "read_image", "preprocess_image", "exif_orientation", "apply_orientation"]
+__all__ = ["load_image", "read_image", "preprocess_image", "exif_orientation", "apply_orientation",
+           "header_size"]
 
 
 def _check_size(size: tuple[int, int] | None) -> tuple[int, int] | None:
@@ -142,6 +144,81 @@ def _exif_tiff_block(data: bytes) -> bytes | None:
     return None
 
 
+_JPEG_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}  # start-of-frame markers (not DHT, JPG, DAC)
+
+
+def header_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) in pixels as stored in an encoded image's header, read without decoding.
+
+    Reads the PNG ``IHDR`` chunk, the first JPEG start-of-frame segment (SOF0…SOF15), the BMP info
+    header, the WebP ``VP8 ``/``VP8L``/``VP8X`` chunk, or the TIFF first IFD (tags 256/257): the
+    sizes a decoder would allocate. Stored size, before EXIF orientation (the pixel count is the same).
+
+    Args:
+        data: the encoded file's bytes (a prefix suffices for all but JPEGs with large APP segments).
+
+    Returns:
+        (width, height), or None when the format is another one or the header is truncated.
+    """
+    if data[:8] == b"\x89PNG\r\n\x1a\n":
+        if len(data) >= 24 and data[12:16] == b"IHDR":
+            return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+        return None
+    if data[:2] == b"\xff\xd8":
+        pos = 2
+        while pos + 4 <= len(data):
+            if data[pos] != 0xFF:
+                return None
+            marker = data[pos + 1]
+            if marker == 0xFF:  # fill byte
+                pos += 1
+                continue
+            if marker in (0x01, *range(0xD0, 0xD9)):  # no length field
+                pos += 2
+                continue
+            if marker in _JPEG_SOF:
+                if pos + 9 > len(data):
+                    return None
+                return int.from_bytes(data[pos + 7 : pos + 9], "big"), int.from_bytes(data[pos + 5 : pos + 7], "big")
+            if marker in (0xD9, 0xDA):  # end of image / start of scan before any frame header
+                return None
+            pos += 2 + int.from_bytes(data[pos + 2 : pos + 4], "big")
+        return None
+    if data[:2] == b"BM" and len(data) >= 26:
+        return (abs(int.from_bytes(data[18:22], "little", signed=True)),
+                abs(int.from_bytes(data[22:26], "little", signed=True)))
+    if data[:4] == b"RIFF" and data[8:12] == b"WEBP" and len(data) >= 30:
+        chunk = data[12:16]
+        if chunk == b"VP8X":
+            return int.from_bytes(data[24:27], "little") + 1, int.from_bytes(data[27:30], "little") + 1
+        if chunk == b"VP8L":
+            bits = int.from_bytes(data[21:25], "little")
+            return (bits & 0x3FFF) + 1, ((bits >> 14) & 0x3FFF) + 1
+        if chunk == b"VP8 ":
+            return int.from_bytes(data[26:28], "little") & 0x3FFF, int.from_bytes(data[28:30], "little") & 0x3FFF
+        return None
+    if data[:4] in (b"II*\x00", b"MM\x00*") and len(data) >= 8:
+        order = "little" if data[:2] == b"II" else "big"
+        ifd = int.from_bytes(data[4:8], order)
+        if ifd + 2 > len(data):
+            return None
+        size: dict[int, int] = {}
+        for i in range(int.from_bytes(data[ifd : ifd + 2], order)):
+            entry = data[ifd + 2 + 12 * i : ifd + 14 + 12 * i]
+            if len(entry) < 12:
+                break
+            tag, kind = int.from_bytes(entry[:2], order), int.from_bytes(entry[2:4], order)
+            if tag in (256, 257):
+                size[tag] = int.from_bytes(entry[8:10] if kind == 3 else entry[8:12], order)
+        return (size[256], size[257]) if len(size) == 2 else None
+    return None
+
+
+def check_image_pixels(path: str | os.PathLike, width: int, height: int) -> None:
+    """Raise :class:`diff4splat.limits.LimitError` if ``width`` × ``height`` exceeds the ``image_pixels`` limit."""
+    check_limit("image_pixels", width * height, f"image {path}: {width}×{height} =")
+
+
 def apply_orientation(array: np.ndarray, orientation: int) -> np.ndarray:
     """Transform a stored image (H, W, ...) to its displayed orientation (EXIF Orientation 1…8).
 
@@ -176,22 +253,30 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
         (H, W) grey, (H, W, 3) RGB or (H, W, 4) RGBA array (channel order RGB, not OpenCV's BGR),
         uint8 or uint16 (or the float dtype of a float TIFF/EXR).
 
+    The pixel count is checked against the ``image_pixels`` limit (:mod:`diff4splat.limits`) from the
+    header (:func:`header_size`) before decoding; formats whose header is not parsed are checked after.
+
     Raises:
-        FileNotFoundError: ``path`` is not an existing file.
-        ValueError: the file cannot be decoded as an image.
+        FileNotFoundError: nothing exists at ``path``.
+        ValueError: ``path`` is a folder, FIFO or symlink loop (:func:`diff4splat.io.inputs.check_input_file`),
+            the file cannot be decoded as an image, or it has more pixels than the ``image_pixels`` limit
+            (:class:`diff4splat.limits.LimitError`).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"image file not found: {path}")
+    path = check_input_file(path, "image")
     data = np.fromfile(path, dtype=np.uint8)
+    raw = data.tobytes()
+    stored = header_size(raw)
+    if stored is not None:
+        check_image_pixels(path, *stored)
     img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if img is None:
         raise ValueError(f"could not decode {path} as an image (OpenCV)")
+    check_image_pixels(path, img.shape[1], img.shape[0])
     if img.ndim == 3 and img.shape[-1] == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
     elif img.ndim == 3 and img.shape[-1] == 4:
         img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGBA)
-    return apply_orientation(img, exif_orientation(data.tobytes()))
+    return apply_orientation(img, exif_orientation(raw))
 
 
 def load_image(path: str | os.PathLike, size: tuple[int, int] | None = None) -> Tensor:

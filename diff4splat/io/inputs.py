@@ -1,0 +1,46 @@
+"""Input files the user names: say what the path is when it is not a readable regular file."""
+from __future__ import annotations
+
+import errno
+import os
+import stat
+from pathlib import Path
+
+__all__ = ["check_input_file"]
+
+
+def check_input_file(path: str | os.PathLike, what: str) -> Path:
+    """``Path(path)`` if it is a regular file (or a link to one), else an error saying what it is.
+
+    Args:
+        path: the path the user gave.
+        what: its name as the user knows it, e.g. ``"image"`` or ``"--cameras"``.
+
+    Returns:
+        ``Path(path)``.
+
+    Raises:
+        FileNotFoundError: nothing exists at ``path`` (``"<what>: <path> does not exist"``), or it is a
+            dangling symlink (named as such).
+        ValueError: ``path`` is a folder, a FIFO (named pipe), a socket, a device or a symlink loop
+            (``"<what>: <path> is a folder, not a file"`` …).
+    """
+    p = Path(path)
+    try:
+        mode = os.stat(p).st_mode
+    except FileNotFoundError:
+        if os.path.islink(p):
+            raise FileNotFoundError(f"{what}: {p} is a symlink to a missing file ({os.readlink(p)})") from None
+        raise FileNotFoundError(f"{what}: {p} does not exist") from None
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            raise ValueError(f"{what}: {p} is a symlink loop, not a file") from None
+        if e.errno == errno.ENOTDIR:
+            raise FileNotFoundError(f"{what}: {p} does not exist (a parent is not a folder)") from None
+        raise
+    if stat.S_ISREG(mode):
+        return p
+    kind = ("a folder" if stat.S_ISDIR(mode) else "a FIFO (named pipe)" if stat.S_ISFIFO(mode)
+            else "a socket" if stat.S_ISSOCK(mode) else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
+            else "a special file")
+    raise ValueError(f"{what}: {p} is {kind}, not a file")

@@ -1,0 +1,113 @@
+"""Resource limits checked before anything is allocated: one table, env-var overrides, one message format.
+
+Each limit guards a request that would otherwise exhaust memory or disk long before it failed
+(README, "Limits"). A value above its limit raises :class:`LimitError` (a ``ValueError``) naming
+the value, the limit and the environment variable that raises it, e.g.::
+
+    --steps 1000000000 exceeds the limit of 1000 sampler steps (set DIFF4SPLAT_MAX_STEPS to raise it)
+
+Limits are read from the environment at each check, so a variable set after import applies.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+__all__ = ["Limit", "LIMITS", "LimitError", "limit", "check_limit", "check_output_size", "OUTPUT_BYTES_PER_PIXEL"]
+
+
+@dataclass(frozen=True)
+class Limit:
+    """One limit.
+
+    Attributes:
+        name: key in :data:`LIMITS`.
+        default: value used when ``env`` is unset.
+        env: environment variable that overrides ``default`` (a positive integer).
+        unit: what the value counts, for messages ("sampler steps", "pixels").
+        when: when a real use needs more (README table).
+    """
+
+    name: str
+    default: int
+    env: str
+    unit: str
+    when: str
+
+
+LIMITS: dict[str, Limit] = {lim.name: lim for lim in (
+    Limit("steps", 1000, "DIFF4SPLAT_MAX_STEPS", "sampler steps",
+          "never for sampling quality (the shipped configs use 8-50); only to study the sampler's convergence"),
+    Limit("frames", 1001, "DIFF4SPLAT_MAX_FRAMES", "frames",
+          "camera paths longer than 1001 frames (about 2 min at 8 fps) on a machine with the memory for them"),
+    Limit("image_pixels", 100_000_000, "DIFF4SPLAT_MAX_IMAGE_PIXELS", "pixels",
+          "input photographs above 100 megapixels (the photo is decoded at full size before it is resized)"),
+    Limit("output_bytes", 4 << 30, "DIFF4SPLAT_MAX_OUTPUT_BYTES", "bytes",
+          "long paths at a high model resolution, when the output disk has room for the estimate"),
+    Limit("parameters", 20_000_000_000, "DIFF4SPLAT_MAX_PARAMETERS", "parameters",
+          "model configs larger than the paper's (16.8 billion parameters), on a machine with 4 bytes each"),
+)}
+"""Every limit, by name (README, "Limits", renders this table)."""
+
+OUTPUT_BYTES_PER_PIXEL = 16
+"""Upper bound of what ``generate`` writes per frame pixel: RGB (3) + alpha (1) frames and a float32
+depth (4), with margin for the videos' and PNGs' worst-case (incompressible) size."""
+
+
+class LimitError(ValueError):
+    """A request above a resource limit (the message names the value, the limit and how to raise it)."""
+
+
+def limit(name: str) -> int:
+    """The current value of limit ``name``: its environment variable if set, else its default.
+
+    Raises:
+        KeyError: unknown ``name``.
+        ValueError: the environment variable is set but is not a positive integer (names it).
+    """
+    lim = LIMITS[name]
+    raw = os.environ.get(lim.env)
+    if raw is None or not raw.strip():
+        return lim.default
+    try:
+        value = int(raw.strip().replace("_", ""))
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise ValueError(f"{lim.env} must be a positive integer, got {raw!r}")
+    return value
+
+
+def check_limit(name: str, value: int, what: str) -> int:
+    """Return ``value`` if it is at most limit ``name``, else raise :class:`LimitError`.
+
+    Args:
+        name: key of :data:`LIMITS`.
+        value: the requested amount (an int; may be astronomically large, nothing is allocated).
+        what: the value's name as the user knows it, e.g. ``"--steps"`` or ``"cameras.json: frames"``.
+
+    Raises:
+        LimitError: ``value`` > the limit; one line with the value, the limit and its variable.
+    """
+    lim = LIMITS[name]
+    bound = limit(name)
+    if value > bound:
+        raise LimitError(f"{what} {value} exceeds the limit of {bound} {lim.unit} "
+                         f"(set {lim.env} to raise it)")
+    return value
+
+
+def check_output_size(frames: int, width: int, height: int) -> int:
+    """Estimate the bytes ``generate`` writes for ``frames`` × ``width`` × ``height`` and check the limit.
+
+    The estimate is frames · width · height · :data:`OUTPUT_BYTES_PER_PIXEL` (an upper bound).
+
+    Returns:
+        The estimate, bytes.
+
+    Raises:
+        LimitError: the estimate exceeds the ``output_bytes`` limit (message gives frames and resolution).
+    """
+    estimate = int(frames) * int(width) * int(height) * OUTPUT_BYTES_PER_PIXEL
+    check_limit("output_bytes", estimate, f"output of {frames} frames at {width}×{height}: estimated")
+    return estimate

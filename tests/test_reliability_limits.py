@@ -1,0 +1,345 @@
+"""Issue 11, limits and nonsense input: absurd requests are refused before allocation, in one line with the
+value and the limit (exit 2); nonsense inputs are errors; messages say what is wrong in the user's terms."""
+import json
+import os
+import struct
+import subprocess
+import sys
+import time
+import tracemalloc
+import warnings
+import zlib
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from helpers import EXAMPLE_IMAGE
+
+from data_prep.cli import main as data_prep_main
+from diff4splat.cameras import CameraPath
+from diff4splat.cli import main
+from diff4splat.io import load_cameras_json, load_realestate10k, save_cameras_json
+from diff4splat.io.image import header_size, read_image
+from diff4splat.limits import LIMITS, LimitError, check_limit, check_output_size, limit
+from diff4splat.pipeline import Diff4SplatPipeline, load_model
+from models.bundle import Diff4SplatModel, load_config
+from models.pretrained import config_from_dict
+from models.vae import VideoVAEConfig
+
+
+def _cli(capsys, *args):
+    """Run ``diff4splat`` in-process; (exit code, the stderr lines that are not warnings)."""
+    code = main([str(a) for a in args])
+    err = capsys.readouterr().err
+    return code, [line for line in err.splitlines() if line.strip() and not line.startswith("diff4splat: warning")]
+
+
+def _generate(capsys, tmp_path, *extra, image=EXAMPLE_IMAGE):
+    out = tmp_path / "out"
+    code, lines = _cli(capsys, "generate", image, "--quiet", "--out", out, *extra)
+    assert not out.exists()
+    return code, lines
+
+
+def _zero_png(width: int, height: int, rows: int = 500) -> bytes:
+    """A valid grey 8-bit PNG of zeros, built without compressing width × height bytes: each block of
+    ``rows`` rows is deflated once and ended by a full flush (no back-references across blocks), so the
+    identical compressed block is repeated; the Adler-32 of n zero bytes is (1, n mod 65521)."""
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    assert height % rows == 0
+    block = b"\x00" * ((width + 1) * rows)  # filter byte 0 + zero pixels per row
+    c = zlib.compressobj(9)
+    first = c.compress(block) + c.flush(zlib.Z_FULL_FLUSH)
+    again = c.compress(block) + c.flush(zlib.Z_FULL_FLUSH)
+    adler = (((width + 1) * height % 65521) << 16) | 1
+    idat = first + again * (height // rows - 1) + b"\x03\x00" + struct.pack(">I", adler)  # final empty block
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
+
+
+def _one_line(code, lines, *needles):
+    assert code == 2, lines
+    assert len(lines) == 1 and lines[0].startswith("diff4splat: error:"), lines
+    for n in needles:
+        assert n in lines[0], lines[0]
+
+
+# --------------------------------------------------------------------------- the limits table
+
+def test_limits_read_their_env_var_at_each_check(monkeypatch):
+    assert check_limit("steps", LIMITS["steps"].default, "--steps") == LIMITS["steps"].default
+    monkeypatch.setenv("DIFF4SPLAT_MAX_STEPS", "5")
+    assert check_limit("steps", 5, "--steps") == 5
+    with pytest.raises(LimitError, match=r"--steps 6 exceeds the limit of 5 sampler steps \(set DIFF4SPLAT_MAX_STEPS"):
+        check_limit("steps", 6, "--steps")
+    monkeypatch.setenv("DIFF4SPLAT_MAX_STEPS", "lots")
+    with pytest.raises(ValueError, match="DIFF4SPLAT_MAX_STEPS must be a positive integer, got 'lots'"):
+        limit("steps")
+
+
+def test_output_size_estimate_is_frames_times_resolution():
+    assert check_output_size(17, 64, 64) == 17 * 64 * 64 * 16
+    with pytest.raises(LimitError, match=r"1001 frames at 4096×4096: estimated \d+ exceeds the limit of \d+ bytes"):
+        check_output_size(1001, 4096, 4096)
+
+
+# --------------------------------------------------------------------------- CLI: refused before any work
+
+@pytest.mark.parametrize("flag, value, limit_text", [("--steps", 10**9, "limit of 1000 sampler steps"),
+                                                     ("--frames", 10001, "limit of 1001 frames")])
+def test_steps_and_frames_above_the_limit_exit_2_at_once(tmp_path, capsys, flag, value, limit_text):
+    t0 = time.perf_counter()
+    code, lines = _generate(capsys, tmp_path, flag, value)
+    _one_line(code, lines, f"{flag} {value}", limit_text)
+    assert time.perf_counter() - t0 < 5  # the old code ran (steps: 20 GB in 24 s; frames: wrote ~3 GB)
+
+
+@pytest.mark.slow
+def test_output_size_estimate_is_checked_before_the_networks_run(tmp_path, capsys, monkeypatch):
+    import diff4splat.pipeline as pipeline
+
+    def never(*a, **k):
+        raise AssertionError("the pipeline ran")
+
+    monkeypatch.setattr(pipeline.Diff4SplatPipeline, "__call__", never)
+    monkeypatch.setenv("DIFF4SPLAT_MAX_OUTPUT_BYTES", "100000")
+    code, lines = _generate(capsys, tmp_path, "--frames", "9", "--steps", "1")
+    _one_line(code, lines, "output of 9 frames at 64×64: estimated", "DIFF4SPLAT_MAX_OUTPUT_BYTES")
+
+
+# --------------------------------------------------------------------------- camera files
+
+def test_camera_file_of_a_million_frames_is_refused_unparsed(tmp_path):
+    K, V = "[[100,0,32],[0,100,32],[0,0,1]]", "[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]"
+    path = tmp_path / "cameras.json"  # compact JSON, 74 MB
+    path.write_text(f'{{"width":64,"height":64,"Ks":[{",".join([K] * 10**6)}],"viewmats":[{",".join([V] * 10**6)}]}}')
+    tracemalloc.start()
+    t0 = time.perf_counter()
+    with pytest.raises(LimitError, match=rf"{path}: \d+ bytes is too large for a camera path of at most 1001 "
+                                         r"frames \(limit \d+ bytes; set DIFF4SPLAT_MAX_FRAMES"):
+        load_cameras_json(path)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert time.perf_counter() - t0 < 1 and peak < 10 << 20  # the old code parsed it all (49 GB asked)
+
+
+def _camera_json(T: int) -> dict:
+    K = [[50.0, 0.0, 32.0], [0.0, 50.0, 32.0], [0.0, 0.0, 1.0]]
+    V = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+    return {"width": 64, "height": 64, "Ks": [K] * T, "viewmats": [V] * T}
+
+
+def test_camera_path_longer_than_the_frame_limit_is_refused_before_tensors(tmp_path, capsys):
+    path = tmp_path / "cams.json"
+    path.write_text(json.dumps(_camera_json(1005)))
+    with pytest.raises(LimitError, match=r"a camera path of 1005 exceeds the limit of 1001 frames"):
+        load_cameras_json(path)
+    code, lines = _generate(capsys, tmp_path, "--cameras", path, "--steps", "1")
+    _one_line(code, lines, "1005", "1001", "DIFF4SPLAT_MAX_FRAMES")
+    rows = "\n".join(f"{i} 0.5 0.5 0.5 0.5 0 0 1 0 0 0 0 1 0 0 0 0 1 0" for i in range(1002))
+    (tmp_path / "cams.txt").write_text(rows + "\n")
+    with pytest.raises(LimitError, match="a camera path of 1002 exceeds the limit of 1001 frames"):
+        load_realestate10k(tmp_path / "cams.txt", 64, 64)
+
+
+def test_camera_width_times_height_is_bounded(tmp_path):
+    data = _camera_json(5)
+    data["width"] = data["height"] = 10**15
+    path = tmp_path / "cams.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(LimitError, match=r"width × height = 1000000000000000×1000000000000000 = \d+ exceeds"):
+        load_cameras_json(path)
+
+
+def test_binary_camera_file_names_the_file(tmp_path):
+    path = tmp_path / "cams.json"
+    path.write_bytes(b"\x89PNG\r\n\x1a\n\xff\xfe binary")
+    with pytest.raises(ValueError, match=rf"{path}: not a text camera file \(byte 0x89 at offset 0"):
+        load_cameras_json(path)
+    with pytest.raises(ValueError, match=rf"{path}: not a text camera file"):
+        load_realestate10k(path, 64, 64)
+
+
+# --------------------------------------------------------------------------- images
+
+def test_header_size_reads_every_parsed_format_without_decoding():
+    img = np.zeros((37, 53, 3), np.uint8)
+    for ext, params in [(".png", []), (".jpg", []), (".jpg", [cv2.IMWRITE_JPEG_PROGRESSIVE, 1]), (".bmp", []),
+                        (".webp", []), (".webp", [cv2.IMWRITE_WEBP_QUALITY, 101]), (".tiff", [])]:
+        ok, data = cv2.imencode(ext, img, params)
+        assert ok and header_size(data.tobytes()) == (53, 37), ext
+    assert header_size(b"GIF89a....") is None
+
+
+def test_huge_png_is_refused_from_its_header_fast_and_small(tmp_path, capsys):
+    path = tmp_path / "huge.png"
+    path.write_bytes(_zero_png(30000, 30000))
+    assert path.stat().st_size < 1 << 20  # 0.9 MB that decodes to 900 MB (16 GB peak in the old code)
+    t0 = time.perf_counter()
+    with pytest.raises(LimitError, match=r"30000×30000 = 900000000 exceeds the limit of 100000000 pixels "
+                                         r"\(set DIFF4SPLAT_MAX_IMAGE_PIXELS"):
+        read_image(path)
+    assert time.perf_counter() - t0 < 1
+    code, lines = _generate(capsys, tmp_path, image=path)
+    _one_line(code, lines, "900000000", "100000000")
+
+
+@pytest.mark.slow
+def test_huge_png_refusal_stays_under_200_mb_of_memory(tmp_path):
+    path = tmp_path / "huge.png"
+    path.write_bytes(_zero_png(30000, 30000))
+    script = ("import resource, sys\nfrom diff4splat.io.image import read_image\n"
+              "before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss\n"
+              "try:\n    read_image(sys.argv[1])\nexcept ValueError as e:\n    print(e)\n"
+              "print((resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) // 1024)\n")
+    out = subprocess.run([sys.executable, "-c", script, str(path)], capture_output=True, text=True, timeout=120)
+    message, grown_mb = out.stdout.splitlines()
+    assert "exceeds the limit" in message and int(grown_mb) < 200, out.stdout
+
+
+def test_small_zero_png_from_the_helper_decodes():  # the huge one is the same construction
+    path_bytes = _zero_png(300, 1000)
+    img = cv2.imdecode(np.frombuffer(path_bytes, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert img.shape == (1000, 300) and int(img.max()) == 0
+
+
+@pytest.mark.parametrize("kind, text", [("folder", "is a folder, not a file"), ("fifo", "is a FIFO (named pipe)"),
+                                        ("loop", "is a symlink loop"), ("missing", "does not exist")])
+def test_image_that_is_not_a_file_says_what_it_is(tmp_path, capsys, kind, text):
+    path = tmp_path / "photo.png"
+    if kind == "folder":
+        path.mkdir()
+    elif kind == "fifo":
+        os.mkfifo(path)
+    elif kind == "loop":
+        path.symlink_to(tmp_path / "other.png")
+        (tmp_path / "other.png").symlink_to(path)
+    code, lines = _generate(capsys, tmp_path, image=path)
+    _one_line(code, lines, f"image: {path} {text}")
+    with pytest.raises((ValueError, FileNotFoundError), match=text.replace("(", r"\(").replace(")", r"\)")):
+        read_image(path)
+
+
+# --------------------------------------------------------------------------- models
+
+def _checkpoint(tmp_path, **vae):
+    folder = tmp_path / "ckpt"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        Diff4SplatModel.random(load_config("tiny")).save_pretrained(folder)
+    cfg = json.loads((folder / "config.json").read_text())
+    cfg["vae"].update(vae)
+    (folder / "config.json").write_text(json.dumps(cfg))
+    return folder
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("channels", [10**9, 10**5])
+def test_config_implying_a_huge_model_is_refused_before_allocation(tmp_path, capsys, channels):
+    folder = _checkpoint(tmp_path, base_channels=channels)
+    t0 = time.perf_counter()
+    with pytest.raises(LimitError, match=rf"{folder / 'config.json'}: .*(overflows|exceeds the limit of "
+                                         r"20000000000 parameters).*DIFF4SPLAT_MAX_PARAMETERS"):
+        Diff4SplatModel.from_pretrained(folder)
+    assert time.perf_counter() - t0 < 1  # the old code asked for 324 GB
+    tracemalloc.start()
+    with pytest.raises(LimitError):
+        Diff4SplatModel.from_pretrained(folder)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 50 << 20
+    code, lines = _generate(capsys, tmp_path, "--checkpoint", folder)
+    _one_line(code, lines, "DIFF4SPLAT_MAX_PARAMETERS")
+
+
+def test_float_for_an_int_config_field_is_a_clear_type_error(tmp_path):
+    folder = _checkpoint(tmp_path, base_channels=1e9)
+    with pytest.raises(ValueError, match=r"field 'base_channels' of VideoVAEConfig must be an integer, "
+                                         r"got 1000000000.0 \(float"):
+        Diff4SplatModel.from_pretrained(folder)
+    with pytest.raises(ValueError, match="field 'depth' of LDRMConfig must be an integer, got 1000000000.0"):
+        config_from_dict(load_config("tiny").__class__, {"ldrm": {"depth": 1e9}})  # accepted by the old code
+    assert config_from_dict(VideoVAEConfig, {"base_channels": 16}).base_channels == 16
+
+
+def test_random_model_counts_its_parameters_first(monkeypatch):
+    monkeypatch.setenv("DIFF4SPLAT_MAX_PARAMETERS", "1000")
+    with pytest.raises(LimitError, match=r"config 'tiny': a model of \d+ exceeds the limit of 1000 parameters"):
+        Diff4SplatModel.random(load_config("tiny"))
+
+
+# --------------------------------------------------------------------------- nonsense input
+
+def _pipeline():
+    model, _ = load_model(config="tiny", untrained=True)
+    return Diff4SplatPipeline(model)
+
+
+@pytest.mark.slow
+def test_camera_that_sees_none_of_the_scene_is_an_error(tmp_path, capsys):
+    pipe = _pipeline()
+    cams = pipe.default_cameras("orbit", 5)
+    Ks = cams.Ks.clone()
+    Ks[:, 0, 0] = Ks[:, 1, 1] = 1e30
+    blind = CameraPath(cams.viewmats, Ks, cams.width, cams.height, cams.times)
+    with pytest.raises(ValueError, match=r"the camera path sees none of the scene: all 4096 Gaussians were pruned "
+                                         r".*focal lengths fx=1e\+30, fy=1e\+30 pixels"):
+        pipe(torch.rand(64, 64, 3), blind, steps=1)
+    save_cameras_json(tmp_path / "blind.json", blind)
+    code, lines = _generate(capsys, tmp_path, "--cameras", tmp_path / "blind.json", "--steps", "1")
+    _one_line(code, lines, "sees none of the scene")  # the old code exited 0 with 0 Gaussians
+
+
+def test_amplitude_with_a_camera_file_is_an_error(tmp_path, capsys):
+    path = tmp_path / "cams.json"
+    path.write_text(json.dumps(_camera_json(5)))
+    code, lines = _generate(capsys, tmp_path, "--cameras", path, "--amplitude", "3", "--steps", "1")
+    _one_line(code, lines, "--amplitude", "--cameras")
+
+
+@pytest.mark.parametrize("seed", [10**30, -(2**63) - 1, 2**64])
+def test_seed_out_of_range_gives_the_range(tmp_path, capsys, seed):
+    code, lines = _generate(capsys, tmp_path, "--seed", seed, "--frames", "1", "--steps", "1")
+    _one_line(code, lines, "--seed must be an integer in [-9223372036854775808, 18446744073709551615]", str(seed))
+    with pytest.raises(ValueError, match="seed must be an integer in"):
+        _pipeline()(torch.rand(64, 64, 3), _pipeline().default_cameras("orbit", 1), steps=1, seed=seed)
+
+
+def test_non_utf8_prompt_is_named(tmp_path, capsys):
+    prompt = os.fsdecode(b"a cat \xff jumps")  # what Python makes of a non-UTF-8 argv byte
+    code, lines = _generate(capsys, tmp_path, "--prompt", prompt, "--frames", "1", "--steps", "1")
+    _one_line(code, lines, "--prompt: not valid UTF-8 (byte 0xff at position 6)")
+
+
+# --------------------------------------------------------------------------- data_prep and evaluate wording
+
+def test_validate_on_an_empty_folder_says_no_scenes(tmp_path, capsys):
+    assert data_prep_main(["validate", str(tmp_path)]) == 1
+    out = capsys.readouterr().out.splitlines()
+    assert out == [f"no scenes found in {tmp_path} (a scene is a sub-folder with meta.json): 0 scenes checked"]
+
+
+def test_convert_of_a_missing_folder_says_it_is_missing(tmp_path, capsys):
+    code = data_prep_main(["convert", "realestate10k", str(tmp_path / "nope"), str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert code == 2 and f"source folder not found: {tmp_path / 'nope'}" in err and "must be given" not in err
+
+
+def test_no_clip_message_reads_as_english(tmp_path):
+    from data_prep.clips import ClipConfig, ClipDataset
+
+    with pytest.raises(ValueError, match=rf"fits in the scenes of {tmp_path} \(0 scene"):
+        ClipDataset(tmp_path, ClipConfig(scenes="all"))
+
+
+def test_readme_limits_table_names_every_limit_and_its_default():
+    from pathlib import Path
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    table = readme.split("### Limits", 1)[1].split("\n#", 1)[0]
+    for lim in LIMITS.values():
+        row = next(line for line in table.splitlines() if f"`{lim.env}`" in line)
+        assert f"{lim.default:_}".replace("_", " ") in row or str(lim.default) in row, row
