@@ -145,7 +145,7 @@ def test_preprocess_float_and_validation():
 def test_load_errors(tmp_path):
     with pytest.raises(FileNotFoundError):
         load_image(tmp_path / "missing.png")
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(ValueError, match="is a folder, not a file"):
         load_image(tmp_path)
     (tmp_path / "bad.png").write_bytes(b"not an image at all")
     with pytest.raises(ValueError, match="decode"):
