@@ -49,9 +49,9 @@ import yaml
 from tqdm import tqdm
 
 from diff4splat.cameras import camera_centers
-from diff4splat.io import atomic_output_dir, atomic_output_path
+from diff4splat.io import atomic_output_path, output_dir
 
-from .format import SceneReader, list_scenes, parse_text_file
+from .format import SCENE_KIND, SceneReader, list_scenes, parse_text_file
 from .validate import validate_scene
 
 __all__ = [
@@ -309,7 +309,7 @@ def _place(src: Path, dst: Path, mode: str) -> None:
         os.symlink(src.resolve(), tmp, target_is_directory=True)
         os.replace(tmp, dst)
     else:
-        with atomic_output_dir(dst, replace=False) as tmp:
+        with output_dir(dst, kind=SCENE_KIND, replace=False, parents=True) as tmp:
             shutil.copytree(src, tmp, dirs_exist_ok=True, ignore=shutil.ignore_patterns(".*"))
 
 

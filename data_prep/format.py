@@ -8,7 +8,7 @@ The layout and every field are specified in ``data_prep/FORMAT.md``; in short::
     <scene>/<cam>/depth/00000.exr …       float32 "Z", metric z-depth in metres, +inf = invalid
 
 :class:`SceneWriter` builds a scene in a temporary folder beside the target and renames it into
-place (:func:`diff4splat.io.atomic_output_dir`), so a scene folder is either complete or absent.
+place (:func:`diff4splat.io.output_dir`, kind ``"scene"``), so a scene folder is either complete or absent.
 :class:`SceneReader` (:func:`load_scene`) reads ``meta.json`` on open and everything else on demand.
 Validation of a whole folder is :func:`data_prep.validate.validate_scene`.
 """
@@ -28,9 +28,9 @@ from torch import Tensor
 
 from diff4splat.cameras import CameraPath
 from diff4splat.io import (
-    atomic_output_dir,
     load_cameras_json,
     load_depth_exr,
+    output_dir,
     save_cameras_json,
     save_depth_exr,
     save_image,
@@ -38,6 +38,7 @@ from diff4splat.io import (
 
 __all__ = [
     "FORMAT_VERSION",
+    "SCENE_KIND",
     "DEPTH_SOURCES",
     "SYNC_TOLERANCE_S",
     "TIMES_TOLERANCE",
@@ -56,6 +57,8 @@ __all__ = [
 
 FORMAT_VERSION = 1
 """Version of ``data_prep/FORMAT.md`` written by this module."""
+SCENE_KIND = "scene"
+"""Output kind of a scene folder (:data:`diff4splat.io.MARKER`); ``replace=True`` replaces only these."""
 
 DEPTH_SOURCES: tuple[str, ...] = ("ground_truth", "aligned_estimate", "none")
 """Allowed values of ``meta["depth_source"]``."""
@@ -296,12 +299,14 @@ class SceneWriter:
         source, dynamic, depth_source, num_frames, fps, depth_scale, depth_shift: meta fields
             (:class:`SceneMeta`); ``cameras`` is filled by :meth:`add_camera` in call order.
         extra: additional JSON-serialisable meta keys.
-        replace: replace an existing scene folder (otherwise ``FileExistsError`` on enter).
+        replace: replace an existing scene folder written by this writer (its marker, or empty);
+            otherwise ``FileExistsError`` on enter.
         validate: run the full validator on the finished temporary folder before renaming.
 
     Raises:
         ValueError: invalid meta fields (on construction) or an incomplete/invalid scene (on exit).
         FileExistsError: ``path`` exists and ``replace`` is false.
+        OutputDirError: ``path`` may not be written (a file, a folder that is not a scene written here, …).
     """
 
     def __init__(self, path: str | os.PathLike, *, source: str, dynamic: bool, depth_source: str,
@@ -320,7 +325,7 @@ class SceneWriter:
         self._written: dict[str, tuple[set[int], set[int]]] = {}
 
     def __enter__(self) -> SceneWriter:
-        self._ctx = atomic_output_dir(self.path, replace=self.replace)
+        self._ctx = output_dir(self.path, kind=SCENE_KIND, replace=self.replace, parents=True)
         self._tmp = self._ctx.__enter__()
         return self
 

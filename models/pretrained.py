@@ -164,7 +164,7 @@ class PretrainedMixin:
             OutputDirError: ``directory`` may not be written or replaced.
         """
         directory = Path(directory)
-        with output_dir(directory, kind=MODEL_KIND, overwrite=overwrite) as tmp:
+        with output_dir(directory, kind=MODEL_KIND, overwrite=overwrite, parents=True) as tmp:
             self.write_pretrained(tmp)
         return directory
 

@@ -2,7 +2,7 @@ from pathlib import Path
 
 import pytest
 
-from diff4splat.io import atomic_output_dir, atomic_output_path
+from diff4splat.io import MARKER, OutputDirError, atomic_output_path, output_dir
 
 
 def test_atomic_output_path(tmp_path):
@@ -20,21 +20,25 @@ def test_atomic_output_path(tmp_path):
     assert [p.name for p in target.parent.iterdir()] == ["x.txt"]
 
 
-def test_atomic_output_dir_replaces_only_on_success(tmp_path):
+def test_output_dir_replaces_only_on_success(tmp_path):
     out = tmp_path / "out"
-    with atomic_output_dir(out) as tmp:
+    with output_dir(out, kind="test") as tmp:
         (tmp / "a.txt").write_text("1")
         assert not out.exists()
-    assert (out / "a.txt").read_text() == "1"
+    assert sorted(p.name for p in out.iterdir()) == [MARKER, "a.txt"]
     with pytest.raises(RuntimeError):
-        with atomic_output_dir(out) as tmp:
+        with output_dir(out, kind="test") as tmp:
             (tmp / "b.txt").write_text("half")
             raise RuntimeError("crash")
-    assert sorted(p.name for p in out.iterdir()) == ["a.txt"]
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no temp folder left behind
-    with atomic_output_dir(out) as tmp:
+    assert sorted(p.name for p in out.iterdir()) == [MARKER, "a.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no temp folder or lock file left behind
+    with output_dir(out, kind="test") as tmp:
         (tmp / "c.txt").write_text("2")
-    assert sorted(p.name for p in out.iterdir()) == ["c.txt"]
+    assert sorted(p.name for p in out.iterdir()) == [MARKER, "c.txt"]
     with pytest.raises(FileExistsError):
-        with atomic_output_dir(out, replace=False):
+        with output_dir(out, kind="test", replace=False):
             pass
+    with pytest.raises(OutputDirError, match="'test' output, not 'other'"):
+        with output_dir(out, kind="other"):
+            pass
+    assert sorted(p.name for p in out.iterdir()) == [MARKER, "c.txt"]

@@ -6,7 +6,7 @@ import torch
 
 from diff4splat.cameras import CameraPath, intrinsics_from_fov
 from diff4splat.gaussians import Gaussians
-from diff4splat.io import load_depth_exr, load_ply, load_video
+from diff4splat.io import MARKER, load_depth_exr, load_ply, load_video
 from diff4splat.io.output import fill_empty_depth, load_deformation, write_scene_folder
 from diff4splat.scene import DynamicGaussians
 
@@ -42,7 +42,8 @@ def test_folder_has_every_file_and_frames_follow_the_deformation(tmp_path):
     write_scene_folder(tmp_path / "out", scene, cams, colors, depths, alphas, {"seed": 0})
     out = tmp_path / "out"
     names = sorted(p.name for p in out.iterdir())
-    assert names == ["cameras.json", "deformation.npz", "depth", "frames", "meta.json", "scene.ply", "video.mp4"]
+    assert names == [MARKER, "cameras.json", "deformation.npz", "depth", "frames", "meta.json", "scene.ply",
+                     "video.mp4"]
     assert load_video(out / "video.mp4").shape == (5, 16, 16, 3)
     d = load_deformation(out / "deformation.npz")
     np.testing.assert_allclose(d["d_means"], scene.d_means.numpy())

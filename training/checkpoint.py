@@ -8,9 +8,9 @@ Layout of ``<run>/checkpoints/step_00001000/``::
                          step, epoch, batch position in the epoch, consecutive non-finite count
     meta.json            step, epoch, position, wall time, config
 
-Each checkpoint folder is written to a temporary folder and renamed (:func:`diff4splat.io.atomic_output_dir`);
-``<run>/checkpoints/latest`` is a text file naming the newest complete checkpoint, replaced atomically
-after the folder exists. A killed save leaves the previous checkpoint and ``latest`` untouched.
+Each checkpoint folder is written to a temporary folder and renamed (:func:`diff4splat.io.output_dir`,
+kind ``"checkpoint"``); ``<run>/checkpoints/latest`` is a text file naming the newest complete checkpoint,
+replaced atomically after the folder exists. A killed save leaves the previous checkpoint and ``latest`` untouched.
 """
 from __future__ import annotations
 
@@ -25,7 +25,8 @@ import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 
-from diff4splat.io.atomic import atomic_output_dir, atomic_output_path
+from diff4splat.io.atomic import atomic_output_path
+from diff4splat.io.outdir import output_dir
 
 __all__ = ["save_checkpoint", "load_checkpoint", "latest_checkpoint", "rng_state", "set_rng_state"]
 
@@ -77,7 +78,7 @@ def save_checkpoint(
     """
     root = Path(run_dir) / "checkpoints"
     folder = root / f"step_{step:08d}"
-    with atomic_output_dir(folder) as tmp:
+    with output_dir(folder, kind="checkpoint", parents=True) as tmp:
         save_file({k: v.detach().contiguous().cpu() for k, v in model_state.items()}, str(tmp / "model.safetensors"))
         if ema_state is not None:
             save_file({k: v.detach().contiguous().cpu() for k, v in ema_state.items()}, str(tmp / "ema.safetensors"))

@@ -1,12 +1,14 @@
 """File IO: Gaussians (INRIA PLY), depth (EXR), video/images (OpenCV), camera paths (JSON, RealEstate10K).
 
 Every writer is atomic: it writes a temporary file beside the target and renames it
-(:func:`atomic_output_path`), so a crash never leaves a half-written output.
+(:func:`atomic_output_path`), so a crash never leaves a half-written output. Every output folder is
+written by :func:`output_dir`, which also decides whether an existing folder may be replaced.
 """
-from .atomic import atomic_output_dir, atomic_output_path
+from .atomic import atomic_output_path
 from .cameras import load_cameras_json, load_realestate10k, save_cameras_json, save_realestate10k
 from .exr import load_depth_exr, save_depth_exr
 from .image import load_image, preprocess_image
+from .outdir import MARKER, OutputDirError, check_output_dir, output_dir
 from .ply import load_ply, ply_property_names, save_ply
 from .video import load_video, save_image, save_video, to_uint8
 
@@ -23,7 +25,10 @@ __all__ = [
     "load_image",
     "preprocess_image",
     "atomic_output_path",
-    "atomic_output_dir",
+    "output_dir",
+    "check_output_dir",
+    "OutputDirError",
+    "MARKER",
     "save_cameras_json",
     "load_cameras_json",
     "load_realestate10k",

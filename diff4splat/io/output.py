@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -24,9 +25,10 @@ from torch import Tensor
 from ..cameras.path import CameraPath
 from ..constants import ALPHA_MIN
 from ..scene import DynamicGaussians
-from .atomic import atomic_output_dir, atomic_output_path
+from .atomic import atomic_output_path
 from .cameras import save_cameras_json
 from .exr import save_depth_exr
+from .outdir import output_dir
 from .ply import save_ply
 from .video import save_video
 
@@ -100,21 +102,26 @@ def write_scene_folder(
     *,
     fps: int = 8,
     depth_fallback: float = 1.0,
+    inputs: Iterable[str | os.PathLike | None] = (),
+    overwrite: bool = False,
 ) -> Path:
-    """Write the whole output folder into a temporary folder, then rename it onto ``out_dir``.
+    """Write the whole output folder into a temporary folder, then rename it onto ``out_dir``
+    (:func:`~diff4splat.io.outdir.output_dir`, kind ``"generate"``).
 
-    A failure part-way leaves no ``out_dir`` (or the previous one untouched).
+    A failure part-way leaves no ``out_dir`` (or the previous one untouched). An existing ``out_dir`` is
+    replaced only if it is empty or an earlier ``generate`` output (or ``overwrite``), never if it holds
+    one of ``inputs``.
 
     Raises:
         ValueError: frame counts of colours/depths/alphas/cameras differ.
-        FileExistsError: ``out_dir`` is a file.
+        OutputDirError: ``out_dir`` may not be written (a file, holds inputs, not an output, …).
     """
     T = len(cameras)
     if not (colors.shape[0] == depths.shape[0] == alphas.shape[0] == T):
         raise ValueError(f"colors/depths/alphas must have {T} frames (one per camera), got "
                          f"{colors.shape[0]}/{depths.shape[0]}/{alphas.shape[0]}")
     depths = fill_empty_depth(depths, alphas, depth_fallback)
-    with atomic_output_dir(out_dir) as tmp:
+    with output_dir(out_dir, kind="generate", inputs=inputs, overwrite=overwrite, parents=True) as tmp:
         save_ply(tmp / "scene.ply", scene.canonical)
         if not scene.is_static or scene.has_temporal:
             save_deformation(tmp / "deformation.npz", scene)

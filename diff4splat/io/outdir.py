@@ -1,0 +1,322 @@
+"""The output-folder policy: one implementation for every command that writes a folder.
+
+A folder is written to a temporary sibling and renamed into place, so it appears complete or not at all.
+The rules (README, "Output folders"):
+
+* ``out`` is checked before any work (:func:`check_output_dir`): not ``""``/``.``, not a file, its parent
+  exists and is writable, its name fits the file system (≤ 255 bytes; the temporary name is shortened
+  with a hash when needed, so any legal name works).
+* An existing folder is replaced only if it is empty or an earlier output of the same kind (the marker
+  file :data:`MARKER` this module writes into every folder). ``overwrite=True`` also allows another
+  kind or a folder without the marker, but a folder that holds inputs is never replaced: an input file
+  or folder, the current directory, the home directory, a filesystem root or an ancestor of any of them.
+* A symlink ``out`` is followed: the folder it points to is replaced and the link is kept.
+* The temporary folder ``.<name>.<pid>.<random>.tmp`` is removed when the body raises, on SIGINT
+  (KeyboardInterrupt) and on SIGTERM (exit status 143); one left by a killed run (SIGKILL) is removed by
+  the next run on the same ``out`` once its owner pid is dead (never a live process's).
+* Concurrent writers of one ``out`` are serialised by ``fcntl.flock`` on ``.<name>.lock`` beside it,
+  held only for the check-and-rename at the end; the lock file is removed on release.
+* Folders and files follow the umask (``os.mkdir``, not ``mkdtemp``'s 0700).
+"""
+from __future__ import annotations
+
+import errno
+import fcntl
+import hashlib
+import json
+import os
+import re
+import shutil
+import signal
+import threading
+import uuid
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+__all__ = ["MARKER", "OutputDirError", "check_output_dir", "output_dir", "read_marker", "remove_stale_temps"]
+
+MARKER = ".diff4splat-output.json"
+"""File written into every output folder: ``{"tool": "diff4splat", "kind": <kind>, "format": 1}``."""
+
+_MARKER_FORMAT = 1
+_SHORT_NAME_BYTES = 200  # longer names use a hash in temporary/lock names (suffixes need ≤ 55 bytes)
+EXIT_SIGTERM = 128 + signal.SIGTERM
+
+
+class OutputDirError(ValueError):
+    """``out`` may not be written or replaced; the message names the folder and why."""
+
+
+def _name_max(parent: Path) -> int:
+    try:
+        return int(os.pathconf(parent, "PC_NAME_MAX"))
+    except (OSError, ValueError):
+        return 255
+
+
+def _stem(name: str) -> str:
+    """The part of temporary/lock names that identifies ``name`` (a hash for long names)."""
+    if len(os.fsencode(name)) <= _SHORT_NAME_BYTES:
+        return name
+    return "h" + hashlib.sha256(os.fsencode(name)).hexdigest()[:32]
+
+
+def _resolve(out: Path) -> Path:
+    """Absolute path with symlinks followed (a symlink ``out`` → its target); ``out`` need not exist."""
+    return Path(os.path.realpath(out))
+
+
+def read_marker(folder: Path) -> str | None:
+    """The kind recorded in ``folder``'s marker, or None (no marker or not ours)."""
+    try:
+        data = json.loads((folder / MARKER).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if isinstance(data, dict) and data.get("tool") == "diff4splat" and isinstance(data.get("kind"), str):
+        return data["kind"]
+    return None
+
+
+def _protected(inputs: Iterable[str | os.PathLike | None]) -> list[tuple[Path, str]]:
+    """(resolved path, what it is) of everything an output may never replace or contain."""
+    out = [(_resolve(Path(p)), f"input {p}") for p in inputs if p is not None and str(p) != ""]
+    out.append((_resolve(Path.cwd()), "the current directory"))
+    home = os.environ.get("HOME")
+    if home:
+        out.append((_resolve(Path(home)), "the home directory"))
+    return out
+
+
+def _holds_inputs(target: Path, inputs) -> str | None:
+    if target.parent == target:
+        return "a filesystem root"
+    for p, what in _protected(inputs):
+        if target == p or target in p.parents:
+            return what if target == p else f"it holds {what}"
+    return None
+
+
+def _check_existing(label: str, target: Path, kind: str, overwrite: bool, replace: bool) -> None:
+    """Raise unless the existing folder ``target`` may be replaced (module docstring)."""
+    if not target.is_dir():
+        raise OutputDirError(f"{label} is a file, not a folder")
+    if not replace:
+        raise FileExistsError(f"{label} already exists")
+    try:
+        empty = next(os.scandir(target), None) is None
+    except OSError as e:
+        raise OutputDirError(f"{label} cannot be read: {e.strerror}") from None
+    if empty or overwrite:
+        return
+    found = read_marker(target)
+    if found is None:
+        raise OutputDirError(f"{label} is a non-empty folder not written by diff4splat; refusing to replace it "
+                             "(choose a new folder, or pass --overwrite to replace it)")
+    if found != kind:
+        raise OutputDirError(f"{label} holds a diff4splat {found!r} output, not {kind!r}; refusing to replace it "
+                             "(choose a new folder, or pass --overwrite to replace it)")
+
+
+def check_output_dir(out: str | os.PathLike, *, inputs: Iterable[str | os.PathLike | None] = (),
+                     overwrite: bool = False, kind: str = "generate", replace: bool = True,
+                     parents: bool = False) -> Path:
+    """Check that ``out`` may be written (module docstring) before any work is done; nothing is created.
+
+    Args:
+        out: the output folder as the user gave it.
+        inputs: files/folders the command reads (None entries are skipped); ``out`` may not be one of
+            them or an ancestor of one.
+        overwrite: also replace a folder without the marker or of another kind (never one holding inputs).
+        kind: what the command writes ("generate", "onnx", "model", "checkpoint", "scene", …).
+        replace: False → an existing ``out`` is an error (``FileExistsError``).
+        parents: allow missing parent folders (library writers create them; the CLI asks for an
+            existing parent). The nearest existing ancestor must then be a writable folder.
+
+    Returns:
+        The folder that will be written: ``out`` made absolute with symlinks followed.
+
+    Raises:
+        OutputDirError: (a ValueError) ``out`` is empty, ".", a file, a symlink loop or dangling link,
+            holds inputs, is a non-output folder, has a missing/non-folder/unwritable parent or a name
+            longer than the file system allows.
+        FileExistsError: ``out`` exists and ``replace`` is false.
+    """
+    raw = os.fspath(out)
+    label = f"--out {raw!r}" if raw in ("", ".") else f"output folder {raw}"
+    if raw in ("", "."):
+        raise OutputDirError(f"{label} names the current directory; give a new folder name")
+    path = Path(raw)
+    if path.is_symlink() and not path.exists():
+        raise OutputDirError(f"{label} is a dangling symlink or a symlink loop")
+    target = _resolve(path)
+    why = _holds_inputs(target, inputs)
+    if why is not None:
+        raise OutputDirError(f"{label} is {why}; refusing to replace it (choose a new folder)")
+    parent = target.parent
+    if parents:
+        while not parent.exists() and not parent.is_symlink() and parent.parent != parent:
+            parent = parent.parent
+    elif not parent.exists():
+        if any(p.exists() and not p.is_dir() for p in parent.parents):
+            raise OutputDirError(f"{label}: parent {parent} is inside a file, not a folder")
+        raise OutputDirError(f"{label}: parent folder {parent} does not exist")
+    if not parent.is_dir():
+        raise OutputDirError(f"{label}: parent {parent} is not a folder")
+    name_max = _name_max(parent)
+    if len(os.fsencode(target.name)) > name_max:
+        raise OutputDirError(f"{label}: name is {len(os.fsencode(target.name))} bytes, longer than the "
+                             f"{name_max} the file system allows")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise OutputDirError(f"{label}: parent folder {parent} is not writable")
+    if target.exists():
+        _check_existing(label, target, kind, overwrite, replace)
+    if parent != target.parent:  # missing parents will be created: no probe of the final folder
+        return target
+    probe = parent / _temp_name(target.name, "probe")
+    try:  # the real test of writability (read-only mounts, ACLs) and of the temporary name
+        os.mkdir(probe)
+        os.rmdir(probe)
+    except OSError as e:
+        raise OutputDirError(f"{label}: cannot create a folder in {parent}: {e.strerror}") from None
+    return target
+
+
+def _temp_name(name: str, suffix: str) -> str:
+    return f".{_stem(name)}.{os.getpid()}.{uuid.uuid4().hex[:8]}.{suffix}"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_stale_temps(target: str | os.PathLike) -> list[Path]:
+    """Remove the temporary/aside folders of ``target`` left by killed runs (owner pid dead).
+
+    Matches ``.<name>.<pid>.<8 hex>.tmp`` / ``.old`` beside ``target``; a live owner's folder is kept.
+
+    Returns:
+        The removed paths.
+    """
+    target = Path(target)
+    pattern = re.compile(rf"^\.{re.escape(_stem(target.name))}\.(\d+)\.[0-9a-f]{{8}}\.(tmp|old)$")
+    removed = []
+    try:
+        entries = list(os.scandir(target.parent))
+    except OSError:
+        return removed
+    for entry in entries:
+        m = pattern.match(entry.name)
+        if m and not _pid_alive(int(m.group(1))):
+            shutil.rmtree(entry.path, ignore_errors=True)
+            removed.append(Path(entry.path))
+    return removed
+
+
+@contextmanager
+def _locked(target: Path) -> Iterator[None]:
+    """Hold ``fcntl.flock`` on ``.<name>.lock`` beside ``target``; the file is removed on release."""
+    lock = target.parent / f".{_stem(target.name)}.lock"
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            try:  # the holder before us may have unlinked it: then lock the new file instead
+                same = os.fstat(fd).st_ino == os.stat(lock).st_ino
+            except FileNotFoundError:
+                same = False
+        except BaseException:
+            os.close(fd)
+            raise
+        if same:
+            break
+        os.close(fd)
+    try:
+        yield
+    finally:
+        try:
+            os.unlink(lock)
+        except OSError:
+            pass
+        os.close(fd)
+
+
+def _on_sigterm(signum, frame):
+    raise SystemExit(EXIT_SIGTERM)  # unwinds through output_dir's cleanup
+
+
+@contextmanager
+def _sigterm_cleans_up() -> Iterator[None]:
+    """While the body runs, SIGTERM raises SystemExit(143) (so ``finally`` blocks remove temporaries).
+
+    Installed only in the main thread and only over the default handler (a program's own is kept).
+    """
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) != signal.SIG_DFL:
+        yield
+        return
+    signal.signal(signal.SIGTERM, _on_sigterm)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+@contextmanager
+def output_dir(out: str | os.PathLike, *, kind: str, inputs: Iterable[str | os.PathLike | None] = (),
+               overwrite: bool = False, replace: bool = True, parents: bool = False) -> Iterator[Path]:
+    """Yield a temporary folder beside ``out``; on success it replaces ``out`` (module docstring policy).
+
+    The marker :data:`MARKER` is written into the folder after the body. If the body raises (or SIGINT/
+    SIGTERM arrive) the temporary folder is removed and ``out`` is left as it was.
+
+    Args:
+        out, inputs, overwrite, kind, replace, parents: as :func:`check_output_dir` (checked on enter,
+            and again under the lock just before the rename); missing parents are created if ``parents``.
+
+    Yields:
+        The temporary folder (Path) to write into.
+
+    Raises:
+        OutputDirError, FileExistsError: as :func:`check_output_dir`.
+    """
+    inputs = list(inputs)
+    target = check_output_dir(out, inputs=inputs, overwrite=overwrite, kind=kind, replace=replace, parents=parents)
+    if parents:
+        target.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temps(target)
+    tmp = target.parent / _temp_name(target.name, "tmp")
+    with _sigterm_cleans_up():
+        os.mkdir(tmp)  # mode 0o777 & ~umask
+        try:
+            yield tmp
+            (tmp / MARKER).write_text(json.dumps({"tool": "diff4splat", "kind": kind, "format": _MARKER_FORMAT}))
+            with _locked(target):
+                check_output_dir(out, inputs=inputs, overwrite=overwrite, kind=kind, replace=replace)
+                _swap_into_place(tmp, target)
+        finally:
+            if tmp.exists():
+                shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _swap_into_place(tmp: Path, target: Path) -> None:
+    """Rename ``tmp`` onto ``target``; an existing ``target`` is renamed aside first and then deleted."""
+    try:
+        os.rename(tmp, target)  # fails with ENOTEMPTY/EEXIST when target is a non-empty folder
+        return
+    except OSError as e:
+        if e.errno not in (errno.ENOTEMPTY, errno.EEXIST):
+            raise
+    old = target.parent / _temp_name(target.name, "old")
+    os.rename(target, old)
+    try:
+        os.rename(tmp, target)
+    except BaseException:
+        os.rename(old, target)  # put the previous folder back
+        raise
+    shutil.rmtree(old, ignore_errors=True)
