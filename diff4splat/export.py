@@ -1,6 +1,7 @@
 """ONNX export of the four networks: one graph per module plus ``manifest.json``.
 
-``export_onnx(model, out_dir)`` writes, atomically (temp folder + rename, :func:`diff4splat.io.atomic_output_dir`):
+``export_onnx(model, out_dir)`` writes, atomically (temp folder + rename, :func:`diff4splat.io.output_dir`,
+kind ``"onnx"``):
 
 =====================  =====================================================  ==========================================
 file                   inputs                                                 outputs
@@ -35,7 +36,9 @@ Leaving parts out (CONTRIBUTING, "leave out what a scene does not need"):
 
 ``manifest.json`` records the opset, the parts, every file's input/output names, shapes (symbolic
 dims as strings) and dtypes, the model config, and the SHA-256 of the weights (of each
-``model.safetensors`` of the source checkpoint, or of the state dict of an in-memory model).
+``model.safetensors`` of the source checkpoint, or of the state dict of an in-memory model). Each graph
+also carries its part name, config and dim ranges in its own ONNX metadata (:func:`graph_metadata`), which
+:mod:`diff4splat.onnx_runtime` checks the manifest against.
 """
 from __future__ import annotations
 
@@ -45,6 +48,7 @@ import logging
 import os
 import re
 import warnings
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -55,12 +59,15 @@ from torch.export import Dim
 from models.bundle import Diff4SplatModel
 from models.pretrained import WEIGHTS_NAME
 
-from .io.atomic import atomic_output_dir
+from .io.outdir import check_output_dir, output_dir
 
 __all__ = ["export_onnx", "check_opset", "state_dict_sha256", "checkpoint_sha256", "MANIFEST_NAME", "MANIFEST_FORMAT",
-           "MIN_OPSET", "EXTERNAL_DATA_BYTES", "LDRM_OUTPUTS", "STATIC_LDRM_OUTPUTS"]
+           "MIN_OPSET", "EXTERNAL_DATA_BYTES", "LDRM_OUTPUTS", "STATIC_LDRM_OUTPUTS", "graph_metadata",
+           "GRAPH_METADATA_KEYS"]
 
 MANIFEST_NAME = "manifest.json"
+EXPORT_KIND = "onnx"
+"""Output kind of an export folder (:data:`diff4splat.io.MARKER`); ``generate`` replaces one only with --overwrite."""
 MANIFEST_FORMAT = "diff4splat-onnx/1"
 MIN_OPSET = 18
 """The dynamo exporter emits opset ≥ 18 (LayerNorm, GroupNorm-free decompositions, ``ReduceMean`` axes inputs)."""
@@ -277,8 +284,20 @@ def _value_info(values) -> list[dict]:
     return out
 
 
-def _export_graph(graph: _Graph, path: Path, opset: int, external_data_bytes: int) -> dict:
-    """Trace, translate, save and check one graph; returns its manifest entry."""
+def graph_metadata(part: str, config: dict, dims: dict[str, list[int]]) -> dict[str, str]:
+    """The facts a graph carries about itself in its ONNX ``metadata_props`` (keys :data:`GRAPH_METADATA_KEYS`):
+    its part name, the model config it was exported from (the trained resolution, channels, …) and its
+    dynamic dim ranges, each as canonical JSON. :class:`diff4splat.onnx_runtime.OnnxRuntime` compares them
+    with ``manifest.json``, so an edited manifest cannot make a graph run with another config."""
+    return {"diff4splat.part": part, "diff4splat.config": json.dumps(config, sort_keys=True),
+            "diff4splat.dims": json.dumps(dims, sort_keys=True)}
+
+
+GRAPH_METADATA_KEYS = ("diff4splat.part", "diff4splat.config", "diff4splat.dims")
+
+
+def _export_graph(graph: _Graph, path: Path, opset: int, external_data_bytes: int, config: dict) -> dict:
+    """Trace, translate, save and check one graph (with :func:`graph_metadata`); returns its manifest entry."""
     import onnx
 
     weight_bytes = sum(t.numel() * t.element_size() for t in graph.module.state_dict().values())
@@ -299,6 +318,7 @@ def _export_graph(graph: _Graph, path: Path, opset: int, external_data_bytes: in
     onnx_program.save(str(path), external_data=external)
     proto = onnx.load(str(path), load_external_data=False)  # external tensors keep their file references
     _name_dims(proto, graph)
+    onnx.helper.set_model_props(proto, graph_metadata(graph.name, config, _dim_ranges(graph.dynamic_shapes)))
     onnx.save(proto, str(path))
     onnx.checker.check_model(str(path))  # by path: works for external data and > 2 GiB
     inputs, outputs = _value_info(proto.graph.input), _value_info(proto.graph.output)
@@ -357,6 +377,8 @@ def export_onnx(
     checkpoint: str | os.PathLike | None = None,
     source: str | None = None,
     external_data_bytes: int = EXTERNAL_DATA_BYTES,
+    inputs: Iterable[str | os.PathLike | None] = (),
+    overwrite: bool = False,
 ) -> dict:
     """Export ``model`` to ``out_dir`` (one ``.onnx`` per module + ``manifest.json``), atomically.
 
@@ -370,22 +392,23 @@ def export_onnx(
             the in-memory state dict (:func:`state_dict_sha256`), e.g. for a random model.
         source: free-text description of the weights' origin stored in the manifest.
         external_data_bytes: graphs with at least this many bytes of weights store them externally.
+        inputs: paths the export reads (``checkpoint`` is added); ``out_dir`` may not hold them.
+        overwrite: also replace a folder that is not an earlier ONNX export (:func:`diff4splat.io.output_dir`).
 
     Returns:
         The manifest dict (also written to ``out_dir/manifest.json``).
 
     Raises:
         ValueError: ``opset`` out of range.
-        FileExistsError: ``out_dir`` is a file.
+        OutputDirError: ``out_dir`` may not be written (a file, holds inputs, not an ONNX export, …).
         FileNotFoundError: ``checkpoint`` lacks a network's weights.
         torch._dynamo.exc.UserError: a dynamic dimension cannot be honoured by a network (a bug).
     """
     import onnx
 
     check_opset(opset)
-    out_dir = Path(out_dir)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise FileExistsError(f"out_dir: {out_dir} is a file")
+    inputs = [*inputs, checkpoint]
+    check_output_dir(out_dir, inputs=inputs, overwrite=overwrite, kind=EXPORT_KIND, parents=True)  # before the export
     weights = ({"kind": "checkpoint", "path": str(checkpoint), "sha256": checkpoint_sha256(checkpoint)}
                if checkpoint is not None else {"kind": "state_dict", "sha256": state_dict_sha256(model)})
     model = model.to("cpu", torch.float32).eval()
@@ -402,9 +425,9 @@ def export_onnx(
         "weights": weights,
         "files": {},
     }
-    with atomic_output_dir(out_dir) as tmp:
+    with output_dir(out_dir, kind=EXPORT_KIND, inputs=inputs, overwrite=overwrite, parents=True) as tmp:
         for graph in _graphs(model, text, deformation):
             manifest["files"][graph.name] = _export_graph(graph, tmp / f"{graph.name}.onnx", opset,
-                                                          external_data_bytes)
+                                                          external_data_bytes, manifest["config"])
         (tmp / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2))
     return manifest

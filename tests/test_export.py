@@ -22,6 +22,7 @@ from diff4splat.export import (
     export_onnx,
     state_dict_sha256,
 )
+from diff4splat.io import MARKER
 from models.bundle import Diff4SplatConfig, Diff4SplatModel
 from models.pretrained import config_from_dict
 
@@ -80,7 +81,7 @@ def test_manifest_records_parts_files_names_shapes_config_and_weight_hashes(full
     files = {f"{n}/model.safetensors": hashlib.sha256((ckpt / n / "model.safetensors").read_bytes()).hexdigest()
              for n in ("vae", "text_encoder", "dit", "ldrm")}
     assert manifest["weights"] == {"kind": "checkpoint", "path": str(ckpt), "sha256": files}
-    written = [MANIFEST_NAME] + [e["file"] for e in manifest["files"].values()]
+    written = [MARKER, MANIFEST_NAME] + [e["file"] for e in manifest["files"].values()]
     assert sorted(p.name for p in out.iterdir()) == sorted(written)
     assert not any(p.name.startswith(".") for p in out.parent.iterdir())  # no temp folder left
 
@@ -202,15 +203,16 @@ def test_failed_export_keeps_the_previous_folder_and_leaves_no_temp(tmp_path, mo
     out = tmp_path / "onnx"
     out.mkdir()
     (out / "keep.txt").write_text("previous export")
+    (out / MARKER).write_text(json.dumps({"tool": "diff4splat", "kind": "onnx", "format": 1}))
 
-    def broken(graph, path, opset, external_data_bytes):
+    def broken(graph, path, *args, **kwargs):
         path.write_bytes(b"half-written")
         raise RuntimeError("exporter crashed")
 
     monkeypatch.setattr("diff4splat.export._export_graph", broken)
     with pytest.raises(RuntimeError):
         export_onnx(tiny_model(), out)
-    assert [p.name for p in out.iterdir()] == ["keep.txt"]
+    assert sorted(p.name for p in out.iterdir()) == [MARKER, "keep.txt"]
     assert [p.name for p in tmp_path.iterdir()] == ["onnx"]
 
 
