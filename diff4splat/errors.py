@@ -33,6 +33,8 @@ EXPECTED_ERRNOS = frozenset({errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSP
 quota, name too long, a file where a folder is needed or the reverse, missing or existing entries).
 Other ``OSError`` numbers (``EBADF``, ``EINVAL``, …) point at a bug and keep their traceback."""
 
+_EXPECTED_OS_ERRORS = (FileNotFoundError, FileExistsError, PermissionError, IsADirectoryError, NotADirectoryError)
+
 
 def is_expected(exc: BaseException) -> bool:
     """True when ``exc`` is a failure the user can fix (one line, exit 2) rather than a bug (traceback).
@@ -42,7 +44,7 @@ def is_expected(exc: BaseException) -> bool:
     :data:`EXPECTED_ERRNOS` (``FileNotFoundError``, ``FileExistsError``, ``PermissionError``,
     ``IsADirectoryError``, ``NotADirectoryError`` and ``ENOSPC``/``EROFS``/``ENAMETOOLONG``/… errors).
     """
-    if isinstance(exc, ValueError):
+    if isinstance(exc, (ValueError, *_EXPECTED_OS_ERRORS)):  # these types also when raised with a message only
         return True
     return isinstance(exc, OSError) and exc.errno in EXPECTED_ERRNOS
 

@@ -30,9 +30,14 @@ from models.ldrm import LDRMOutput
 from models.pretrained import config_from_dict
 from models.text_encoder import ByteTokenizer
 
-from .export import LDRM_OUTPUTS, MANIFEST_FORMAT, MANIFEST_NAME, STATIC_LDRM_OUTPUTS
+from .export import GRAPH_METADATA_KEYS, LDRM_OUTPUTS, MANIFEST_FORMAT, MANIFEST_NAME, STATIC_LDRM_OUTPUTS
 
-__all__ = ["OnnxRuntime", "load_manifest", "session_options", "default_providers"]
+__all__ = ["OnnxRuntime", "load_manifest", "check_graph", "session_options", "default_providers"]
+
+_PARTS = ("vae_encoder", "vae_decoder", "text_encoder", "dit", "ldrm")
+_ORT_DTYPES = {"float32": "tensor(float)", "float16": "tensor(float16)", "int64": "tensor(int64)",
+               "int32": "tensor(int32)", "bool": "tensor(bool)"}
+"""Manifest dtype (numpy name) → onnxruntime's type string of a graph input/output."""
 
 
 def load_manifest(directory: str | os.PathLike) -> dict:
@@ -47,7 +52,11 @@ def load_manifest(directory: str | os.PathLike) -> dict:
     Raises:
         FileNotFoundError: no folder, no manifest, or a graph file the manifest lists is missing
             (messages start with ``directory:``).
-        ValueError: the manifest is not JSON or not of format :data:`diff4splat.export.MANIFEST_FORMAT`.
+        ValueError: naming the manifest: not JSON, not of format :data:`diff4splat.export.MANIFEST_FORMAT`,
+            a missing or mistyped key (``config``, ``parts``, ``files`` and each file entry's ``file``,
+            ``files``, ``inputs``, ``outputs``, ``dims``), parts that differ from the files listed, or a
+            file entry that is not a plain name inside ``directory`` (absolute, ``..``, a sub-folder, or a
+            symlink resolving outside it).
     """
     directory = Path(directory)
     path = directory / MANIFEST_NAME
@@ -62,11 +71,108 @@ def load_manifest(directory: str | os.PathLike) -> dict:
     if not isinstance(manifest, dict) or manifest.get("format") != MANIFEST_FORMAT:
         got = manifest.get("format") if isinstance(manifest, dict) else type(manifest).__name__
         raise ValueError(f"directory: {path} has format {got!r}, expected {MANIFEST_FORMAT!r}")
+    _check_manifest_keys(manifest, path)
     for name, entry in manifest["files"].items():
         for file in entry["files"]:
+            _check_confined(directory, file, f"{path}: files.{name}")
             if not (directory / file).is_file():
                 raise FileNotFoundError(f"directory: {directory / file} (part {name!r}) does not exist")
     return manifest
+
+
+def _check_manifest_keys(manifest: dict, path: Path) -> None:
+    """The keys :class:`OnnxRuntime` reads, with their types; the parts agree with the files listed."""
+    def need(obj: dict, key: str, kind: type, where: str):
+        if not isinstance(obj.get(key), kind):
+            got = "missing" if key not in obj else f"a {type(obj[key]).__name__}"
+            raise ValueError(f"{path}: {where}{key} must be a {kind.__name__}, got {got}")
+        return obj[key]
+
+    need(manifest, "config", dict, "")
+    parts = need(manifest, "parts", dict, "")
+    files = need(manifest, "files", dict, "")
+    for part in (*_PARTS, "dit_text_inputs", "deformation"):
+        need(parts, part, bool, "parts.")
+    listed = {p for p in _PARTS if parts[p]}
+    if set(files) != listed:
+        raise ValueError(f"{path}: files lists parts {sorted(files)}, but parts names {sorted(listed)}")
+    for name, entry in files.items():
+        where = f"files.{name}."
+        need(entry, "file", str, where)
+        if entry["file"] not in need(entry, "files", list, where):
+            raise ValueError(f"{path}: {where}file {entry['file']!r} is not among {where}files")
+        for key in ("inputs", "outputs"):
+            for value in need(entry, key, list, where):
+                if not (isinstance(value, dict) and isinstance(value.get("name"), str)
+                        and isinstance(value.get("shape"), list) and value.get("dtype") in _ORT_DTYPES):
+                    raise ValueError(f"{path}: {where}{key} entries must be {{name, shape, dtype}}, got {value!r:.80}")
+        for dim, bounds in need(entry, "dims", dict, where).items():
+            if not (isinstance(bounds, list) and len(bounds) == 2 and all(type(b) is int for b in bounds)
+                    and 0 <= bounds[0] <= bounds[1]):
+                raise ValueError(f"{path}: {where}dims.{dim} must be [min, max] ints, got {bounds!r:.80}")
+
+
+def _check_confined(directory: Path, file: object, where: str) -> None:
+    """``file`` is a plain file name in ``directory`` whose real path (symlinks resolved) stays inside it."""
+    if not isinstance(file, str) or not file or Path(file).name != file or file in (".", ".."):
+        raise ValueError(f"{where}: {file!r} must be a plain file name inside the export folder "
+                         "(no folders, '..' or absolute paths)")
+    real, root = (directory / file).resolve(), directory.resolve()
+    if real.parent != root:
+        raise ValueError(f"{where}: {file!r} resolves to {real}, outside the export folder {root}")
+
+
+def check_graph(name: str, entry: dict, session, manifest: dict, path: str | os.PathLike) -> None:
+    """Check a manifest file entry against the graph's own signature and metadata.
+
+    The graph (an onnxruntime ``InferenceSession``) must have the manifest's input and output names in
+    order, with the same ranks, dtypes and dims (sizes and symbolic names), and carry in its metadata
+    (:func:`diff4splat.export.graph_metadata`) the same part name, model config (resolution, channels, …)
+    and dim ranges as the manifest; the parts flags must match the graph's inputs (``text`` of the DiT,
+    ``times`` of the LDRM).
+
+    Raises:
+        ValueError: naming ``path`` (the graph file) and the first difference.
+    """
+    def signature(values) -> list[tuple]:
+        return [(v.name, [d if isinstance(d, int) else str(d) for d in v.shape], v.type) for v in values]
+
+    for key, values in (("inputs", session.get_inputs()), ("outputs", session.get_outputs())):
+        graph = signature(values)
+        listed = [(v["name"], list(v["shape"]), _ORT_DTYPES[v["dtype"]]) for v in entry[key]]
+        if graph != listed:
+            raise ValueError(f"{path}: the manifest's {key} of part {name!r} {listed} differ from the graph's {graph}")
+    meta = session.get_modelmeta().custom_metadata_map
+    missing = [k for k in GRAPH_METADATA_KEYS if k not in meta]
+    if missing:
+        raise ValueError(f"{path}: graph metadata lacks {missing} (not written by this version's export_onnx)")
+    expected = {"diff4splat.part": name, "diff4splat.config": json.dumps(manifest["config"], sort_keys=True),
+                "diff4splat.dims": json.dumps(entry["dims"], sort_keys=True)}
+    for key, value in expected.items():
+        if meta[key] != value:
+            what = key.split(".", 1)[1]
+            raise ValueError(f"{path}: the manifest's {what} for part {name!r} differs from the one the graph was "
+                             f"exported with (manifest {value:.200}, graph {meta[key]:.200})")
+    names = [v.name for v in session.get_inputs()]
+    parts = manifest["parts"]
+    if name == "dit" and ("text" in names) != parts["dit_text_inputs"]:
+        raise ValueError(f"{path}: parts.dit_text_inputs is {parts['dit_text_inputs']} but the graph's inputs "
+                         f"are {names}")
+    if name == "ldrm" and ("times" in names) != parts["deformation"]:
+        raise ValueError(f"{path}: parts.deformation is {parts['deformation']} but the graph's inputs are {names}")
+
+
+def _session(path: Path, opts, providers: list[str]):
+    """``onnxruntime.InferenceSession`` of ``path``; a graph onnxruntime cannot load is a ``ValueError``."""
+    import onnxruntime as ort
+    from onnxruntime.capi import onnxruntime_pybind11_state as state
+
+    try:
+        return ort.InferenceSession(str(path), sess_options=opts, providers=providers)
+    except (state.Fail, state.InvalidArgument, state.InvalidGraph, state.InvalidProtobuf, state.NoSuchFile,
+            state.NoModel, state.NotImplemented) as e:
+        raise ValueError(f"{path}: onnxruntime cannot load this graph (truncated or corrupt?): "
+                         f"{' '.join(str(e).split()):.300}") from None
 
 
 def default_providers() -> list[str]:
@@ -117,15 +223,15 @@ class OnnxRuntime:
         sessions: {part name: onnxruntime.InferenceSession} for the parts present.
 
     Raises:
-        FileNotFoundError / ValueError: see :func:`load_manifest`; ``ImportError`` without onnxruntime.
+        FileNotFoundError / ValueError: see :func:`load_manifest`; ValueError naming the graph file when
+            onnxruntime cannot load it (truncated, corrupt) or it differs from the manifest (:func:`check_graph`);
+            ``ImportError`` without onnxruntime.
     """
 
     name = "onnxruntime"
 
     def __init__(self, directory: str | os.PathLike, providers: list[str] | None = None,
                  threads: int | None = None, profile_prefix: str | None = None):
-        import onnxruntime as ort
-
         self.directory = Path(directory)
         self.manifest = load_manifest(self.directory)
         self.config: Diff4SplatConfig = config_from_dict(Diff4SplatConfig, self.manifest["config"],
@@ -137,9 +243,11 @@ class OnnxRuntime:
         self.tokenizer = ByteTokenizer(self.config.text_encoder.max_length)
         self.providers = list(providers) if providers is not None else default_providers()
         opts = session_options(threads, profile_prefix)
-        self.sessions = {name: ort.InferenceSession(str(self.directory / entry["file"]), sess_options=opts,
-                                                    providers=self.providers)
-                         for name, entry in self.manifest["files"].items()}
+        self.sessions = {}
+        for name, entry in self.manifest["files"].items():
+            path = self.directory / entry["file"]
+            self.sessions[name] = _session(path, opts, self.providers)
+            check_graph(name, entry, self.sessions[name], self.manifest, path)
 
     def _run(self, part: str, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
         return self.sessions[part].run(None, feeds)
