@@ -4,8 +4,8 @@ Each subcommand is one ``_add_<name>(sub)`` function below that adds its parser 
 ``func=<handler>``; a handler takes the parsed arguments and returns the exit code. To add a
 subcommand, write its two functions and append the adder to :data:`SUBCOMMANDS`.
 
-Bad input (a bad argument, a missing folder, a ``ValueError``) gets one line on stderr
-(``data_prep: error: …``) and exit code 2.
+Bad input (a bad argument, a missing folder, a malformed file, an OS error on a path) gets one line on
+stderr (``data_prep: error: …``) and exit code 2; Ctrl-C exits 130 (:func:`diff4splat.errors.run_cli`).
 """
 from __future__ import annotations
 
@@ -14,9 +14,10 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+from diff4splat.errors import run_cli
+
 __all__ = ["main", "build_parser", "SUBCOMMANDS"]
 
-EXIT_USAGE = 2
 
 
 class CLIError(Exception):
@@ -140,14 +141,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``data_prep`` console script. Returns the exit code (0 ok, 1 problems, 2 bad input)."""
-    try:
+    """Entry point of the ``data_prep`` console script. Returns the exit code (0 ok, 1 problems, 2 bad input,
+    130 after Ctrl-C; :func:`diff4splat.errors.run_cli`)."""
+    def run() -> int:
         args = build_parser().parse_args(argv)
         return int(args.func(args))
-    except (CLIError, ValueError, FileNotFoundError, FileExistsError) as e:
-        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-        print(f"data_prep: error: {msg}", file=sys.stderr)
-        return EXIT_USAGE
+
+    return run_cli("data_prep", run, expected=(CLIError,))
 
 
 if __name__ == "__main__":

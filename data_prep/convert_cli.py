@@ -12,6 +12,8 @@ import json
 import sys
 from pathlib import Path
 
+from diff4splat.errors import run_cli
+
 __all__ = ["register", "parse_options", "main"]
 
 
@@ -67,12 +69,12 @@ def main(argv: list[str] | None = None) -> int:
     """Run ``convert`` alone; errors print one line and return 2."""
     parser = argparse.ArgumentParser(prog="data_prep")
     register(parser.add_subparsers(dest="command", required=True))
-    try:
+
+    def run() -> int:
         args = parser.parse_args(["convert", *(sys.argv[1:] if argv is None else argv)])
         return int(args.func(args))
-    except (ValueError, FileNotFoundError, FileExistsError, ImportError) as e:
-        print(f"data_prep: error: {str(e).splitlines()[0] if str(e) else type(e).__name__}", file=sys.stderr)
-        return 2
+
+    return run_cli("data_prep", run, expected=(ImportError,))  # ImportError: a converter's optional dependency
 
 
 if __name__ == "__main__":

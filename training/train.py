@@ -15,6 +15,8 @@ from pathlib import Path
 
 import torch
 
+from diff4splat.errors import run_cli
+
 __all__ = ["main", "build_training", "calibrate_latent_scaling"]
 
 LATENT_SCALING_CLIPS = 64
@@ -82,6 +84,13 @@ def calibrate_latent_scaling(model, dataset, num_clips: int = LATENT_SCALING_CLI
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``python -m training.train``. Returns the exit code: 0, 2 after an expected failure
+    (one ``train: error: …`` line: bad config, corrupt checkpoint, OS error on the run folder), 130 after
+    Ctrl-C (:func:`diff4splat.errors.run_cli`); a bug keeps its traceback."""
+    return run_cli("train", lambda: _main(argv))
+
+
+def _main(argv: list[str] | None) -> int:
     ap = argparse.ArgumentParser(prog="python -m training.train", description=__doc__.splitlines()[0])
     ap.add_argument("--config", required=True,
                     help="stage config: a shipped name (train_vae, train_stage1..3) or a YAML path")
@@ -93,18 +102,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--resume", action="store_true", help="continue from the run's latest checkpoint")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
     args = ap.parse_args(argv)
-    try:
-        from .stages import load_stage
+    from .stages import load_stage
 
-        trainer_over = {k: v for k, v in {"run_dir": args.run_dir, "total_steps": args.steps,
-                                          "strategy": args.strategy}.items() if v is not None}
-        if args.quiet:
-            trainer_over["progress"] = False
-        stage = load_stage(args.config, data=args.data, init_from=args.init_from, trainer=trainer_over or None)
-        trainer, model, counts = build_training(stage)
-    except (ValueError, FileNotFoundError) as e:
-        print(f"train: error: {' '.join(str(e).split())}", file=sys.stderr)
-        return 2
+    trainer_over = {k: v for k, v in {"run_dir": args.run_dir, "total_steps": args.steps,
+                                      "strategy": args.strategy}.items() if v is not None}
+    if args.quiet:
+        trainer_over["progress"] = False
+    stage = load_stage(args.config, data=args.data, init_from=args.init_from, trainer=trainer_over or None)
+    trainer, model, counts = build_training(stage)
     if trainer.rank == 0:
         print(f"train: stage {stage.name}, trainable {counts}, {len(trainer.dataset)} clips, "
               f"{stage.trainer.total_steps} steps → {trainer.run_dir}", file=sys.stderr)

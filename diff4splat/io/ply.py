@@ -108,6 +108,8 @@ def _read_header(f, path: Path) -> tuple[int, np.dtype]:
                 raise ValueError(f"{path}: only a single 'vertex' element is supported, found {words[1]!r} after it")
             if words[1] != "vertex":
                 raise ValueError(f"{path}: expected element 'vertex', found {words[1]!r}")
+            if not words[2].isdigit():
+                raise ValueError(f"{path}: PLY vertex count must be a non-negative integer, got {words[2]!r}")
             n_vertex, current = int(words[2]), words[1]
         elif words[0] == "property":
             if current != "vertex" or len(words) != 3 or words[1] not in _PLY_TYPES:
@@ -118,6 +120,9 @@ def _read_header(f, path: Path) -> tuple[int, np.dtype]:
         raise ValueError(f"{path}: only binary_little_endian PLY is supported, got format {fmt!r}")
     if n_vertex is None:
         raise ValueError(f"{path}: PLY has no vertex element")
+    names = [name for name, _ in props]
+    if len(set(names)) != len(names):
+        raise ValueError(f"{path}: PLY vertex properties repeat a name: {names}")
     return n_vertex, np.dtype(props)
 
 
@@ -144,8 +149,10 @@ def load_ply(path: str | os.PathLike) -> Gaussians:
         raise FileNotFoundError(f"PLY file not found: {path}")
     with open(path, "rb") as f:
         n, dtype = _read_header(f, path)
-        data = f.read(n * dtype.itemsize)
-    if len(data) < n * dtype.itemsize:
+        size = n * dtype.itemsize
+        left = path.stat().st_size - f.tell()
+        data = f.read(size) if size <= left else b""  # a corrupt count must not allocate its bytes
+    if len(data) < size:
         raise ValueError(f"{path}: truncated PLY, expected {n} vertices of {dtype.itemsize} bytes")
     v = np.frombuffer(data, dtype=dtype, count=n)
     names = set(dtype.names or ())
