@@ -302,3 +302,38 @@ def test_output_folders_and_files_follow_the_umask(tmp_path, umask, dir_mode, fi
     out = tmp_path / "out"
     assert (out.stat().st_mode & 0o777, (out / "sub").stat().st_mode & 0o777) == (dir_mode, dir_mode)
     assert ((out / "a.txt").stat().st_mode & 0o777, (out / MARKER).stat().st_mode & 0o777) == (file_mode, file_mode)
+
+
+def test_every_folder_writer_uses_the_policy(tmp_path):
+    """save_pretrained, training checkpoints and data_prep scenes mark their folders and refuse user folders."""
+    import torch
+    from helpers import tiny_model
+
+    from data_prep.format import SceneWriter
+    from training.checkpoint import save_checkpoint
+
+    user = tmp_path / "user"
+    user.mkdir()
+    (user / "keep.txt").write_text("mine")
+    step = tmp_path / "run" / "checkpoints" / "step_00000001"
+    step.mkdir(parents=True)
+    (step / "keep.txt").write_text("mine")
+    before = _snapshot(user)
+    model = tiny_model()
+    with pytest.raises(OutputDirError, match="not written by diff4splat"):
+        model.save_pretrained(user)
+    with pytest.raises(OutputDirError, match="not written by diff4splat"):
+        with SceneWriter(user, source="synthetic", dynamic=False, depth_source="none", num_frames=1, fps=8.0,
+                         replace=True):
+            pass
+    state = {"w": torch.zeros(2)}
+    with pytest.raises(OutputDirError, match="not written by diff4splat"):
+        save_checkpoint(tmp_path / "run", 1, state, {}, {})
+    assert _snapshot(user) == before and (step / "keep.txt").read_text() == "mine"
+    model.save_pretrained(tmp_path / "model")
+    model.save_pretrained(tmp_path / "model")  # its own earlier output is replaced
+    assert json.loads((tmp_path / "model" / MARKER).read_text())["kind"] == "model"
+    assert not (tmp_path / "model" / "vae" / MARKER).exists()  # one marker per output folder
+    folder = save_checkpoint(tmp_path / "run2", 1, state, {}, {})
+    assert save_checkpoint(tmp_path / "run2", 1, state, {}, {}) == folder  # a resumed run rewrites its step
+    assert json.loads((folder / MARKER).read_text())["kind"] == "checkpoint"
