@@ -147,6 +147,10 @@ def check_output_dir(out: str | os.PathLike, *, inputs: Iterable[str | os.PathLi
     if raw in ("", "."):
         raise OutputDirError(f"{label} names the current directory; give a new folder name")
     path = Path(raw)
+    name = Path(os.path.abspath(path)).name  # checked before any stat: a too-long name fails them all
+    if len(os.fsencode(name)) > 255:
+        raise OutputDirError(f"{label}: name is {len(os.fsencode(name))} bytes, longer than the 255 file "
+                             "systems allow")
     if path.is_symlink() and not path.exists():
         raise OutputDirError(f"{label} is a dangling symlink or a symlink loop")
     target = _resolve(path)
