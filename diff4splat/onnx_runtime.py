@@ -151,8 +151,9 @@ def check_graph(name: str, entry: dict, session, manifest: dict, path: str | os.
     for key, value in expected.items():
         if meta[key] != value:
             what = key.split(".", 1)[1]
+            diff = _differences(json.loads(value), json.loads(meta[key]), what)
             raise ValueError(f"{path}: the manifest's {what} for part {name!r} differs from the one the graph was "
-                             f"exported with (manifest {value:.200}, graph {meta[key]:.200})")
+                             f"exported with: {'; '.join(diff[:3])}")
     names = [v.name for v in session.get_inputs()]
     parts = manifest["parts"]
     if name == "dit" and ("text" in names) != parts["dit_text_inputs"]:
@@ -160,6 +161,14 @@ def check_graph(name: str, entry: dict, session, manifest: dict, path: str | os.
                          f"are {names}")
     if name == "ldrm" and ("times" in names) != parts["deformation"]:
         raise ValueError(f"{path}: parts.deformation is {parts['deformation']} but the graph's inputs are {names}")
+
+
+def _differences(manifest: object, graph: object, where: str) -> list[str]:
+    """``"<key path>: manifest <value>, graph <value>"`` for each leaf where two JSON values differ."""
+    if isinstance(manifest, dict) and isinstance(graph, dict):
+        return [d for k in sorted(set(manifest) | set(graph), key=str)
+                for d in _differences(manifest.get(k), graph.get(k), f"{where}.{k}")]
+    return [] if manifest == graph else [f"{where}: manifest {json.dumps(manifest):.60}, graph {json.dumps(graph):.60}"]
 
 
 def _session(path: Path, opts, providers: list[str]):
@@ -234,8 +243,11 @@ class OnnxRuntime:
                  threads: int | None = None, profile_prefix: str | None = None):
         self.directory = Path(directory)
         self.manifest = load_manifest(self.directory)
-        self.config: Diff4SplatConfig = config_from_dict(Diff4SplatConfig, self.manifest["config"],
-                                                         str(self.directory / MANIFEST_NAME))
+        where = str(self.directory / MANIFEST_NAME)
+        try:
+            self.config: Diff4SplatConfig = config_from_dict(Diff4SplatConfig, self.manifest["config"], where)
+        except ValueError as e:  # the config's own checks do not know the file
+            raise ValueError(str(e) if where in str(e) else f"{where}: config: {e}") from None
         parts = self.manifest["parts"]
         self.has_text = bool(parts["text_encoder"])
         self.dit_text_inputs = bool(parts["dit_text_inputs"])

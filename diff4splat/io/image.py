@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from ..cameras.intrinsics import center_crop_box
+from ..errors import quiet_c_stderr
 from ..limits import check_limit
 from .inputs import check_input_file
 
@@ -268,7 +269,8 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     stored = header_size(raw)
     if stored is not None:
         check_image_pixels(path, *stored)
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    with quiet_c_stderr():  # libpng/libjpeg warnings (e.g. a bad iCCP profile) would add stderr lines
+        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if img is None:
         raise ValueError(f"could not decode {path} as an image (OpenCV)")
     check_image_pixels(path, img.shape[1], img.shape[0])
