@@ -173,7 +173,8 @@ def test_external_data_graph_checks_and_runs(tmp_path):
     """Weights at or above the threshold go to ``<file>.onnx.data`` (threshold 0 here; 2 GB by default)."""
     model = tiny_model()
     graph = next(g for g in _graphs(model, text=True, deformation=True) if g.name == "text_encoder")
-    entry = _export_graph(graph, tmp_path / "text_encoder.onnx", 18, external_data_bytes=0)
+    entry = _export_graph(graph, tmp_path / "text_encoder.onnx", 18, external_data_bytes=0,
+                          config=model.config.to_dict())
     assert entry["external_data"] and len(entry["files"]) == 2
     data = tmp_path / next(f for f in entry["files"] if f != "text_encoder.onnx")
     assert data.stat().st_size >= 0.9 * entry["weight_bytes"] > 0  # tiny tensors may stay inline
@@ -182,6 +183,9 @@ def test_external_data_graph_checks_and_runs(tmp_path):
     ids, mask = model.text_encoder.tokenizer(["a cat", "a dog on a log"])
     session = ort.InferenceSession(str(tmp_path / "text_encoder.onnx"), providers=["CPUExecutionProvider"])
     _close(session.run(None, {"ids": ids.numpy(), "mask": mask.numpy()})[0], model.text_encoder(ids, mask), "external")
+    meta = session.get_modelmeta().custom_metadata_map  # the graph carries its own part, config and dim ranges
+    assert meta["diff4splat.part"] == "text_encoder" and json.loads(meta["diff4splat.config"]) == json.loads(
+        json.dumps(model.config.to_dict())) and json.loads(meta["diff4splat.dims"]) == entry["dims"]
 
 
 def test_weight_hashes_follow_the_weights(tmp_path):

@@ -203,7 +203,8 @@ def test_impossible_out_is_one_line(tmp_path, capsys, monkeypatch, out):
 
 @pytest.mark.slow
 def test_camera_file_with_absurd_width_is_one_line(tmp_path, capsys):
-    cams = {"width": 10 ** 30, "height": 64,  # an int: the float 1e30 was refused already "Ks": [[[50.0, 0, 32], [0, 50.0, 32], [0, 0, 1]]],
+    # an int: the float 1e30 was refused already
+    cams = {"width": 10 ** 30, "height": 64, "Ks": [[[50.0, 0, 32], [0, 50.0, 32], [0, 0, 1]]],
             "viewmats": [np.eye(4).tolist()], "times": [0.0]}
     (tmp_path / "c.json").write_text(json.dumps(cams))
     code = main(["generate", str(EXAMPLE_IMAGE), "--steps", "1", "--quiet", "--cameras", str(tmp_path / "c.json"),
