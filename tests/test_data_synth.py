@@ -106,7 +106,8 @@ def test_generate_is_deterministic_and_seed_dependent(tmp_path):
     b = generate_scene(tmp_path / "b", 3, 11, size=SIZE, frames=T, cameras=2)
     c = generate_scene(tmp_path / "c", 3, 12, size=SIZE, frames=T, cameras=2)
     files = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file() and p.suffix != ".npz")
-    assert len(files) == 2 + 2 * (1 + 2 * T)  # meta, caption, per camera cameras.json + frames (npz: arrays below)
+    # marker, meta, caption, per camera cameras.json + frames (npz: arrays below)
+    assert len(files) == 3 + 2 * (1 + 2 * T) and files[0].name == ".diff4splat-output.json"
     for f in files:
         assert (a / f).read_bytes() == (b / f).read_bytes(), f
     ra, rb, rc = load_scene(a), load_scene(b), load_scene(c)
