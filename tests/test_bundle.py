@@ -54,6 +54,7 @@ def test_unknown_config_name_raises():
     assert (CONFIG_DIR / "tiny.yaml").is_file()
 
 
+@pytest.mark.slow
 def test_save_and_load_round_trip_gives_identical_networks(tmp_path):
     model = Diff4SplatModel.random(Diff4SplatConfig(), seed=3)
     model.save_pretrained(tmp_path / "ckpt")

@@ -266,6 +266,7 @@ MANIFEST_EDITS = {
 }
 
 
+@pytest.mark.slow  # uses the session's ONNX export (tests/helpers.exported)
 @pytest.mark.parametrize("case", sorted(MANIFEST_EDITS))
 def test_edited_manifest_is_refused(tmp_path_factory, tmp_path, case):
     from diff4splat.onnx_runtime import OnnxRuntime
@@ -279,6 +280,7 @@ def test_edited_manifest_is_refused(tmp_path_factory, tmp_path, case):
     assert needle in str(info.value)
 
 
+@pytest.mark.slow  # uses the session's ONNX export (tests/helpers.exported)
 @pytest.mark.parametrize("case", ["parent", "absolute", "subfolder", "symlink_outside"])
 def test_manifest_file_entries_stay_inside_the_export(tmp_path_factory, tmp_path, case):
     from diff4splat.onnx_runtime import load_manifest
