@@ -33,6 +33,13 @@ class CLIError(Exception):
     """A user error reported as one line with exit code 2."""
 
 
+def _out_path(value: str) -> Path:
+    """``--out`` as given: ``Path("")`` would silently mean the current directory."""
+    if not value.strip():
+        raise argparse.ArgumentTypeError(f"empty folder name {value!r}; give a new folder name")
+    return Path(value)
+
+
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # one line, exit 2 (argparse prints usage + message)
         raise CLIError(message)
@@ -77,7 +84,7 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
     g.add_argument("--onnx", type=Path, default=None, help="folder written by `diff4splat export-onnx` "
                    "(with --runtime onnxruntime)")
     g.add_argument("--quiet", action="store_true", help="no progress bars")
-    g.add_argument("--out", type=Path, required=True, help=OUT_HELP)
+    g.add_argument("--out", type=_out_path, required=True, help=OUT_HELP)
     g.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
 
     e = sub.add_parser("export-onnx", help="export the networks to ONNX for onnxruntime serving",
@@ -87,7 +94,7 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
     e.add_argument("--checkpoint", type=Path, default=None,
                    help="model folder (default: the shipped weights of --config)")
     e.add_argument("--config", default="tiny", help=CONFIG_HELP)
-    e.add_argument("--out", type=Path, required=True, help=OUT_HELP)
+    e.add_argument("--out", type=_out_path, required=True, help=OUT_HELP)
     e.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     e.add_argument("--no-text", action="store_true", help="leave out the text encoder (empty prompt only)")
     e.add_argument("--static", action="store_true",

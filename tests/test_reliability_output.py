@@ -64,7 +64,8 @@ def test_generate_into_the_folder_of_its_photo_exits_2_and_leaves_it_byte_identi
                                                                                     overwrite):
     p = _user_folder(tmp_path)
     before = _snapshot(p)
-    _refused(capsys, ["generate", str(p / "cat.png"), "--out", str(p)] + ["--overwrite"] * overwrite, str(p))
+    line = _refused(capsys, ["generate", str(p / "cat.png"), "--out", str(p)] + ["--overwrite"] * overwrite, str(p))
+    assert f"output folder {p} holds input {p / 'cat.png'}; refusing to replace it" in line
     assert _snapshot(p) == before
 
 
@@ -89,12 +90,13 @@ def test_generate_into_a_user_folder_is_refused_without_overwrite(tmp_path, caps
     assert _snapshot(p) == before
 
 
-@pytest.mark.parametrize("out", [".", ""])
-def test_generate_out_dot_or_empty_is_refused(tmp_path, capsys, no_model, monkeypatch, out):
+@pytest.mark.parametrize(("out", "needle"), [(".", "current directory"), ("", "empty folder name ''"),
+                                             ("  ", "empty folder name '  '")])
+def test_generate_out_dot_or_empty_is_refused(tmp_path, capsys, no_model, monkeypatch, out, needle):
     p = _user_folder(tmp_path)
     monkeypatch.chdir(p)
     before = _snapshot(p)
-    _refused(capsys, ["generate", "cat.png", "--out", out, "--overwrite"], "current directory")
+    _refused(capsys, ["generate", "cat.png", "--out", out, "--overwrite"], needle)
     assert _snapshot(p) == before
 
 

@@ -89,11 +89,12 @@ def _protected(inputs: Iterable[str | os.PathLike | None]) -> list[tuple[Path, s
 
 
 def _holds_inputs(target: Path, inputs) -> str | None:
+    """Why ``target`` may not be replaced, as a predicate ("is the home directory", "holds input x.png")."""
     if target.parent == target:
-        return "a filesystem root"
+        return "is a filesystem root"
     for p, what in _protected(inputs):
         if target == p or target in p.parents:
-            return what if target == p else f"it holds {what}"
+            return f"is {what}" if target == p else f"holds {what}"
     return None
 
 
@@ -156,7 +157,7 @@ def check_output_dir(out: str | os.PathLike, *, inputs: Iterable[str | os.PathLi
     target = _resolve(path)
     why = _holds_inputs(target, inputs)
     if why is not None:
-        raise OutputDirError(f"{label} is {why}; refusing to replace it (choose a new folder)")
+        raise OutputDirError(f"{label} {why}; refusing to replace it (choose a new folder)")
     parent = target.parent
     if parents:
         while not parent.exists() and not parent.is_symlink() and parent.parent != parent:
