@@ -91,7 +91,7 @@ def test_generate_into_a_user_folder_is_refused_without_overwrite(tmp_path, caps
 
 
 @pytest.mark.parametrize(("out", "needle"), [(".", "current directory"), ("", "empty folder name ''"),
-                                             ("  ", "empty folder name '  '")])
+                                             ("  ", "argument --out: empty folder name")])
 def test_generate_out_dot_or_empty_is_refused(tmp_path, capsys, no_model, monkeypatch, out, needle):
     p = _user_folder(tmp_path)
     monkeypatch.chdir(p)
