@@ -50,8 +50,9 @@ from tqdm import tqdm
 
 from diff4splat.cameras import camera_centers
 from diff4splat.io import atomic_output_path, output_dir
+from diff4splat.io.structured import read_yaml
 
-from .format import SCENE_KIND, SceneReader, list_scenes, parse_text_file
+from .format import SCENE_KIND, SceneReader, list_scenes
 from .validate import validate_scene
 
 __all__ = [
@@ -161,7 +162,11 @@ class CurationConfig:
         Raises:
             FileNotFoundError: ``path`` does not exist. ValueError: bad YAML or fields (prefixed with the path).
         """
-        return parse_text_file(path, "curation config", yaml.safe_load, cls.from_dict, errors=(yaml.YAMLError,))
+        data = read_yaml(path, "curation config", expect=None)
+        try:
+            return cls.from_dict(data)
+        except (ValueError, TypeError) as e:
+            raise ValueError(f"{path}: {e}") from None
 
     def to_dict(self) -> dict[str, Any]:
         """Field: value mapping (YAML/JSON-serialisable)."""

@@ -35,6 +35,7 @@ from diff4splat.io import (
     save_depth_exr,
     save_image,
 )
+from diff4splat.io.structured import read_json
 
 __all__ = [
     "FORMAT_VERSION",
@@ -44,7 +45,6 @@ __all__ = [
     "TIMES_TOLERANCE",
     "SceneMeta",
     "SceneWriter",
-    "parse_text_file",
     "SceneReader",
     "load_scene",
     "list_scenes",
@@ -186,29 +186,11 @@ class SceneMeta:
             FileNotFoundError: ``path`` does not exist.
             ValueError: invalid JSON or an invalid field (message prefixed with the path).
         """
-        return parse_text_file(path, "scene meta", json.loads, cls.from_dict)
-
-
-def parse_text_file(path: str | os.PathLike, what: str, parse, build, errors: tuple = ()) -> Any:
-    """``build(parse(text))`` of a UTF-8 text file, with every parse or field error prefixed by the path.
-
-    Args:
-        path: the file.
-        what: what the file is, for the not-found message (e.g. ``"scene meta"``).
-        parse: text → data (``json.loads``, ``yaml.safe_load``).
-        build: data → object; raises ``ValueError``/``TypeError`` on bad fields.
-        errors: further exception types of ``parse`` to report (e.g. ``yaml.YAMLError``).
-
-    Raises:
-        FileNotFoundError: ``path`` is not a file. ValueError: ``<path>: <why>``.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{what} not found: {path}")
-    try:
-        return build(parse(path.read_text(encoding="utf-8")))
-    except (UnicodeDecodeError, ValueError, TypeError, *errors) as e:
-        raise ValueError(f"{path}: {e}") from None
+        data = read_json(path, "scene meta", expect=None)
+        try:
+            return cls.from_dict(data)
+        except (ValueError, TypeError) as e:
+            raise ValueError(f"{path}: {e}") from None
 
 
 def timestamps_to_times(timestamps: np.ndarray) -> np.ndarray:
@@ -229,12 +211,7 @@ def read_timestamps(path: str | os.PathLike) -> np.ndarray:
         ValueError: invalid JSON, missing ``timestamps``, not a list of finite numbers, or decreasing.
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"camera file not found: {path}")
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise ValueError(f"{path} is not valid JSON: {e}") from None
+    data = read_json(path, "camera file", expect=None)
     ts = data.get("timestamps") if isinstance(data, dict) else None
     if not isinstance(ts, list) or not all(_is_number(x) for x in ts):
         raise ValueError(f"{path}: 'timestamps' must be a list of finite numbers (seconds), got {str(ts)[:60]}")

@@ -31,6 +31,7 @@ from models.pretrained import config_from_dict
 from models.text_encoder import ByteTokenizer
 
 from .export import GRAPH_METADATA_KEYS, LDRM_OUTPUTS, MANIFEST_FORMAT, MANIFEST_NAME, STATIC_LDRM_OUTPUTS
+from .io.structured import read_json
 
 __all__ = ["OnnxRuntime", "load_manifest", "check_graph", "session_options", "default_providers"]
 
@@ -64,13 +65,9 @@ def load_manifest(directory: str | os.PathLike) -> dict:
         raise FileNotFoundError(f"directory: {directory} is not a folder")
     if not path.is_file():
         raise FileNotFoundError(f"directory: {path} does not exist (not a folder written by export_onnx)")
-    try:
-        manifest = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise ValueError(f"directory: {path} is not valid JSON ({e})") from None
-    if not isinstance(manifest, dict) or manifest.get("format") != MANIFEST_FORMAT:
-        got = manifest.get("format") if isinstance(manifest, dict) else type(manifest).__name__
-        raise ValueError(f"directory: {path} has format {got!r}, expected {MANIFEST_FORMAT!r}")
+    manifest = read_json(path, "directory")
+    if manifest.get("format") != MANIFEST_FORMAT:
+        raise ValueError(f"directory: {path} has format {manifest.get('format')!r}, expected {MANIFEST_FORMAT!r}")
     _check_manifest_keys(manifest, path)
     for name, entry in manifest["files"].items():
         for file in entry["files"]:

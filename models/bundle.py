@@ -13,15 +13,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
-import yaml
 from torch import nn
 
 from diff4splat.io.outdir import output_dir
+from diff4splat.io.structured import read_json, read_yaml
 
 from .dit import VideoDiT, VideoDiTConfig
 from .flow_matching import FlowMatchingConfig
 from .ldrm import LDRM, LDRMConfig
-from .pretrained import CONFIG_NAME, MODEL_KIND, check_model_size, config_from_dict, count_parameters, read_config_json
+from .pretrained import CONFIG_NAME, MODEL_KIND, check_model_size, config_from_dict, count_parameters
 from .text_encoder import TextEncoder, TextEncoderConfig
 from .vae import VideoVAE, VideoVAEConfig
 
@@ -125,10 +125,7 @@ def load_config(name_or_path: str | os.PathLike) -> Diff4SplatConfig:
         path = CONFIG_DIR / f"{name_or_path}.yaml"
     if not path.is_file():
         raise FileNotFoundError(f"config: {str(name_or_path)!r} not found (known: {', '.join(config_names())})")
-    data = yaml.safe_load(path.read_text()) or {}
-    if not isinstance(data, dict):
-        raise ValueError(f"config: {path} must hold a mapping, got {type(data).__name__}")
-    return config_from_dict(Diff4SplatConfig, data, str(path))
+    return config_from_dict(Diff4SplatConfig, read_yaml(path, "config"), str(path))
 
 
 class Diff4SplatModel(nn.Module):
@@ -176,7 +173,7 @@ class Diff4SplatModel(nn.Module):
         directory = Path(directory)
         if not (directory / CONFIG_NAME).is_file():
             raise FileNotFoundError(f"checkpoint: {directory / CONFIG_NAME} does not exist")
-        config = config_from_dict(Diff4SplatConfig, read_config_json(directory / CONFIG_NAME),
+        config = config_from_dict(Diff4SplatConfig, read_json(directory / CONFIG_NAME, "checkpoint"),
                                   str(directory / CONFIG_NAME))
         check_model_size(lambda: cls(config), str(directory / CONFIG_NAME))  # before any network is built
         model = cls.__new__(cls)

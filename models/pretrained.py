@@ -11,6 +11,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from diff4splat.io.outdir import output_dir
+from diff4splat.io.structured import read_json
 from diff4splat.limits import LIMITS, LimitError, check_limit, limit
 
 T = TypeVar("T", bound="PretrainedMixin")
@@ -19,29 +20,6 @@ WEIGHTS_NAME = "model.safetensors"
 CONFIG_NAME = "config.json"
 MODEL_KIND = "model"
 """Output kind of a saved model folder (:data:`diff4splat.io.MARKER`)."""
-
-
-def read_config_json(path: str | os.PathLike) -> dict[str, Any]:
-    """Parse a ``config.json`` that must hold one JSON object.
-
-    Raises:
-        ValueError: naming ``path``: not UTF-8, not valid JSON, or JSON that is not an object (e.g. a list).
-    """
-    path = Path(path)
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except UnicodeDecodeError as e:
-        raise ValueError(f"checkpoint: {path} is not a UTF-8 text file ({e.reason} at byte {e.start})") from None
-    except json.JSONDecodeError as e:
-        raise ValueError(f"checkpoint: {path} is not valid JSON ({e.msg} at line {e.lineno} "
-                         f"column {e.colno})") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"checkpoint: {path} must hold a JSON object of config fields, got a JSON "
-                         f"{_JSON_TYPES.get(type(data), type(data).__name__)}")
-    return data
-
-
-_JSON_TYPES = {list: "list", str: "string", int: "number", float: "number", bool: "boolean", type(None): "null"}
 
 
 def load_weights(path: str | os.PathLike, map_location: str = "cpu") -> dict[str, torch.Tensor]:
@@ -184,13 +162,14 @@ class PretrainedMixin:
         Raises:
             FileNotFoundError: ``directory`` lacks config.json or model.safetensors.
             ValueError: the config names another class or has unknown fields, or weights do not match;
-                config.json or model.safetensors is corrupt (:func:`read_config_json`, :func:`load_weights`).
+                config.json or model.safetensors is corrupt (``diff4splat.io.structured.read_json``,
+                :func:`load_weights`).
         """
         directory = Path(directory)
         for name in (CONFIG_NAME, WEIGHTS_NAME):
             if not (directory / name).is_file():
                 raise FileNotFoundError(f"checkpoint: {directory / name} does not exist")
-        data = read_config_json(directory / CONFIG_NAME)
+        data = read_json(directory / CONFIG_NAME, "checkpoint")
         saved_class = data.pop("class", cls.__name__)
         if saved_class != cls.__name__:
             raise ValueError(f"checkpoint: {directory} holds a {saved_class}, not a {cls.__name__}")

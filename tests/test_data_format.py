@@ -215,31 +215,3 @@ def test_list_scenes(tmp_path):
     with pytest.raises(FileNotFoundError):
         list_scenes(tmp_path / "missing")
 
-
-def test_parse_text_file_prefixes_every_error_with_the_path(tmp_path):
-    import json
-    import re
-
-    import yaml
-
-    from data_prep.format import parse_text_file
-
-    with pytest.raises(FileNotFoundError, match=r"thing not found: .*missing\.json"):
-        parse_text_file(tmp_path / "missing.json", "thing", json.loads, dict)
-    bad_utf8, bad_json, bad_yaml = tmp_path / "a.json", tmp_path / "b.json", tmp_path / "c.yaml"
-    bad_utf8.write_bytes(b"\xff\xfe{")
-    bad_json.write_text("{not json")
-    bad_yaml.write_text("a: [1, 2")
-    for path, parse, errors in ((bad_utf8, json.loads, ()), (bad_json, json.loads, ()),
-                                (bad_yaml, yaml.safe_load, (yaml.YAMLError,))):
-        with pytest.raises(ValueError, match=rf"^{re.escape(str(path))}: "):
-            parse_text_file(path, "thing", parse, dict, errors=errors)
-
-    def build(data):  # a field error from the builder is prefixed too
-        raise TypeError(f"bad field {sorted(data)}")
-
-    ok = tmp_path / "d.json"
-    ok.write_text('{"x": 1}')
-    with pytest.raises(ValueError, match=r"d\.json: bad field \['x'\]"):
-        parse_text_file(ok, "thing", json.loads, build)
-    assert parse_text_file(ok, "thing", json.loads, dict) == {"x": 1}

@@ -157,9 +157,9 @@ def test_camera_width_times_height_is_bounded(tmp_path):
 def test_binary_camera_file_names_the_file(tmp_path):
     path = tmp_path / "cams.json"
     path.write_bytes(b"\x89PNG\r\n\x1a\n\xff\xfe binary")
-    with pytest.raises(ValueError, match=rf"{path}: not a text camera file \(byte 0x89 at offset 0"):
+    with pytest.raises(ValueError, match=rf"camera file: {path} is not UTF-8 text \(byte 0x89 at offset 0"):
         load_cameras_json(path)
-    with pytest.raises(ValueError, match=rf"{path}: not a text camera file"):
+    with pytest.raises(ValueError, match=rf"camera file: {path} is not UTF-8 text"):
         load_realestate10k(path, 64, 64)
 
 

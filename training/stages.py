@@ -16,9 +16,9 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import yaml
 from torch import nn
 
+from diff4splat.io.structured import read_yaml
 from models.pretrained import config_from_dict
 
 from .losses import LossWeights
@@ -116,7 +116,7 @@ def load_stage(name_or_path: str | os.PathLike, **overrides) -> StageConfig:
     if not path.is_file():
         raise FileNotFoundError(f"stage config: {str(name_or_path)!r} not found "
                                 f"(shipped: {', '.join(stage_names())}; or a .yaml path)")
-    data = yaml.safe_load(path.read_text()) or {}
+    data = read_yaml(path, "stage config")
     for k, v in overrides.items():
         if v is None:
             continue

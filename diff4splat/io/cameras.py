@@ -31,6 +31,7 @@ from ..checks import check_positive, check_positive_int
 from ..limits import LIMITS, LimitError, check_limit, limit
 from .atomic import atomic_output_path
 from .inputs import check_input_file
+from .structured import read_json, read_text
 
 __all__ = ["save_cameras_json", "load_cameras_json", "load_realestate10k", "save_realestate10k",
            "CAMERA_FILE_BYTES_PER_FRAME"]
@@ -40,13 +41,12 @@ CAMERA_FILE_BYTES_PER_FRAME = 4096
 frame is about 1 KB, a RealEstate10K line about 200 bytes): a larger file is refused before it is parsed."""
 
 
-def _read_camera_text(path: str | os.PathLike, what: str) -> tuple[Path, str]:
-    """Check ``path`` (a regular file, not larger than the ``frames`` limit allows) and read it as UTF-8.
+def _check_camera_file(path: str | os.PathLike, what: str) -> Path:
+    """Check ``path`` is a regular file no larger than the ``frames`` limit allows, before it is read.
 
     Raises:
         FileNotFoundError / ValueError: :func:`diff4splat.io.inputs.check_input_file`.
         LimitError: the file is larger than ``frames`` limit × :data:`CAMERA_FILE_BYTES_PER_FRAME` (+ 64 KB).
-        ValueError: the file is not UTF-8 text (a binary file), naming it.
     """
     path = check_input_file(path, what)
     size, frames = path.stat().st_size, limit("frames")
@@ -54,11 +54,7 @@ def _read_camera_text(path: str | os.PathLike, what: str) -> tuple[Path, str]:
     if size > bound:
         raise LimitError(f"{path}: {size} bytes is too large for a camera path of at most {frames} frames "
                          f"(limit {bound} bytes; set {LIMITS['frames'].env} to raise it)")
-    try:
-        return path, path.read_text(encoding="utf-8")
-    except UnicodeDecodeError as e:
-        raise ValueError(f"{path}: not a text camera file (byte {e.object[e.start]:#04x} at offset {e.start} "
-                         f"is not UTF-8; is it a binary file?)") from None
+    return path
 
 
 def _check_frame_count(path: Path, count: int) -> None:
@@ -123,13 +119,8 @@ def load_cameras_json(path: str | os.PathLike) -> CameraPath:
             (:class:`diff4splat.limits.LimitError`, checked before any tensor is built; the file size
             is checked before it is parsed).
     """
-    path, text = _read_camera_text(path, "camera file")
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{path} is not valid JSON: {e}") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: top level must be a JSON object, got {type(data).__name__}")
+    path = _check_camera_file(path, "camera file")
+    data = read_json(path, "camera file")
     for key in ("width", "height", "Ks", "viewmats"):
         if key not in data:
             raise ValueError(f"{path}: missing key '{key}'")
@@ -182,7 +173,8 @@ def load_realestate10k(path: str | os.PathLike, width: int, height: int, relativ
             (``width``/``height`` included); more frames than the ``frames`` limit
             (:class:`diff4splat.limits.LimitError`; the file size is checked before it is parsed).
     """
-    path, text = _read_camera_text(path, "RealEstate10K camera file")
+    path = _check_camera_file(path, "RealEstate10K camera file")
+    text = read_text(path, "RealEstate10K camera file")
     rows, stamps = [], []
     lines = text.splitlines()
     for lineno, line in enumerate(lines, start=1):

@@ -1,0 +1,87 @@
+"""Reading text, JSON and YAML files: the one place that turns every decode error into a ``ValueError``
+naming the file, so a corrupt ``config.json``, manifest, stage YAML or scene ``meta.json`` reads the same
+way everywhere (``<what>: <path> is not valid JSON (Expecting value at line 1 column 2)``).
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+__all__ = ["read_text", "read_json", "read_yaml"]
+
+_JSON_TYPES = {dict: "object", list: "list", str: "string", int: "number", float: "number", bool: "boolean",
+               type(None): "null"}
+
+
+def read_text(path: str | os.PathLike, what: str) -> str:
+    """The UTF-8 text of ``path``.
+
+    Args:
+        path: the file.
+        what: what the file is to the caller's user (a parameter name or a description), prefixed to messages.
+
+    Raises:
+        FileNotFoundError: ``path`` is not a file (``<what>: <path> not found``).
+        ValueError: not UTF-8 text, naming the first bad byte and its offset (a binary file, usually).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{what}: {path} not found")
+    try:
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{what}: {path} is not UTF-8 text (byte {e.object[e.start]:#04x} at offset {e.start}; "
+                         "a binary file?)") from None
+
+
+def _check_type(data: Any, expect: type | None, what: str, path: Path, fmt: str) -> Any:
+    if expect is not None and not isinstance(data, expect):
+        name = _JSON_TYPES.get(type(data), type(data).__name__)
+        raise ValueError(f"{what}: {path} must hold a {fmt} {_JSON_TYPES.get(expect, expect.__name__)}, "
+                         f"got a {fmt} {name}")
+    return data
+
+
+def read_json(path: str | os.PathLike, what: str, expect: type | None = dict) -> Any:
+    """Parse a JSON file.
+
+    Args:
+        path: the file.
+        what: prefixed to messages (see :func:`read_text`).
+        expect: the type the top-level value must have (``dict`` = a JSON object), or None for any.
+
+    Raises:
+        FileNotFoundError / ValueError: :func:`read_text`; invalid JSON (message, line, column); a top-level
+            value that is not an ``expect`` (e.g. a list where an object is needed).
+    """
+    path = Path(path)
+    text = read_text(path, what)
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{what}: {path} is not valid JSON ({e.msg} at line {e.lineno} column {e.colno})") from None
+    return _check_type(data, expect, what, path, "JSON")
+
+
+def read_yaml(path: str | os.PathLike, what: str, expect: type | None = dict) -> Any:
+    """Parse a YAML file (``yaml.safe_load``); an empty file is ``{}`` when ``expect`` is ``dict``.
+
+    Raises:
+        FileNotFoundError / ValueError: :func:`read_text`; invalid YAML (the parser's problem and line); a
+            top-level value that is not an ``expect``.
+    """
+    path = Path(path)
+    text = read_text(path, what)
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        raise ValueError(f"{what}: {path} is not valid YAML ({getattr(e, 'problem', None) or e}{where})") from None
+    if data is None and expect is dict:
+        data = {}
+    return _check_type(data, expect, what, path, "YAML")
