@@ -8,6 +8,7 @@ import json
 
 import numpy as np
 import onnx
+import onnxruntime as ort
 import pytest
 import torch
 from helpers import exported, tiny_model
@@ -26,7 +27,6 @@ from diff4splat.io import MARKER
 from models.bundle import Diff4SplatConfig, Diff4SplatModel
 from models.pretrained import config_from_dict
 
-ort = pytest.importorskip("onnxruntime")
 TOL = 1e-4  # float32 max abs difference, ONNX vs eager
 
 

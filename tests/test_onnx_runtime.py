@@ -7,6 +7,7 @@ import json
 import math
 
 import numpy as np
+import onnxruntime as ort
 import pytest
 import torch
 from helpers import EXAMPLE_IMAGE, exported
@@ -14,12 +15,10 @@ from helpers import EXAMPLE_IMAGE, exported
 from diff4splat.cli import main
 from diff4splat.io import load_depth_exr, load_image, load_ply
 from diff4splat.io.output import load_deformation
+from diff4splat.onnx_runtime import OnnxRuntime, default_providers, load_manifest, session_options  # noqa: E402
 from diff4splat.pipeline import Diff4SplatPipeline
 from diff4splat.render.sequence import render_path
 from models.bundle import Diff4SplatModel
-
-ort = pytest.importorskip("onnxruntime")
-from diff4splat.onnx_runtime import OnnxRuntime, default_providers, load_manifest, session_options  # noqa: E402
 
 FRAMES = 9
 PROMPT = "a cat turns its head"
