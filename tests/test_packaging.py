@@ -156,3 +156,17 @@ def test_wheel_holds_configs_weights_and_entry_points(tmp_path):
     assert "models/weights/tiny/ldrm/model.safetensors" in names
     assert "data_prep/curation_default.yaml" in names
     assert "diff4splat = diff4splat.cli:main" in entry_points and "evaluate = " in entry_points
+
+
+def test_every_module_has_a_layer_in_the_import_contract():
+    """A module the layers contract does not name is not checked by lint-imports: every top-level module of
+    ``diff4splat`` (and the three other packages) must be named, itself or through its package."""
+    (contract,) = [c for c in PYPROJECT["tool"]["importlinter"]["contracts"] if c["type"] == "layers"]
+    named = {m.strip() for layer in contract["layers"] for m in re.split(r"[:|]", layer)}
+    assert {"training", "data_prep", "models"} <= named
+    pkg = ROOT / "diff4splat"
+    modules = {f"diff4splat.{p.stem}" for p in pkg.glob("*.py") if p.stem != "__init__"}
+    modules |= {f"diff4splat.{p.name}" for p in pkg.iterdir() if (p / "__init__.py").is_file()}
+    assert modules, pkg
+    missing = sorted(modules - named)
+    assert not missing, f"add to a layer of [tool.importlinter] in pyproject.toml: {missing}"
