@@ -48,6 +48,10 @@ class OutputDirError(ValueError):
     """``out`` may not be written or replaced; the message names the folder and why."""
 
 
+class _ExistingFolderError(OutputDirError):
+    """A refusal that depends on what the existing ``out`` holds (it may be seen mid-swap, unlocked)."""
+
+
 def _name_max(parent: Path) -> int:
     try:
         return int(os.pathconf(parent, "PC_NAME_MAX"))
@@ -101,22 +105,22 @@ def _holds_inputs(target: Path, inputs) -> str | None:
 def _check_existing(label: str, target: Path, kind: str, overwrite: bool, replace: bool) -> None:
     """Raise unless the existing folder ``target`` may be replaced (module docstring)."""
     if not target.is_dir():
-        raise OutputDirError(f"{label} is a file, not a folder")
+        raise _ExistingFolderError(f"{label} is a file, not a folder")
     if not replace:
         raise FileExistsError(f"{label} already exists")
     try:
         empty = next(os.scandir(target), None) is None
     except OSError as e:
-        raise OutputDirError(f"{label} cannot be read: {e.strerror}") from None
+        raise _ExistingFolderError(f"{label} cannot be read: {e.strerror}") from None
     if empty or overwrite:
         return
     found = read_marker(target)
     if found is None:
-        raise OutputDirError(f"{label} is a non-empty folder not written by diff4splat; refusing to replace it "
-                             "(choose a new folder, or pass --overwrite to replace it)")
+        raise _ExistingFolderError(f"{label} is a non-empty folder not written by diff4splat; refusing to "
+                                   "replace it (choose a new folder, or pass --overwrite to replace it)")
     if found != kind:
-        raise OutputDirError(f"{label} holds a diff4splat {found!r} output, not {kind!r}; refusing to replace it "
-                             "(choose a new folder, or pass --overwrite to replace it)")
+        raise _ExistingFolderError(f"{label} holds a diff4splat {found!r} output, not {kind!r}; refusing to "
+                                   "replace it (choose a new folder, or pass --overwrite to replace it)")
 
 
 def check_output_dir(out: str | os.PathLike, *, inputs: Iterable[str | os.PathLike | None] = (),
@@ -144,7 +148,7 @@ def check_output_dir(out: str | os.PathLike, *, inputs: Iterable[str | os.PathLi
         FileExistsError: ``out`` exists and ``replace`` is false.
     """
     raw = os.fspath(out)
-    label = f"--out {raw!r}" if raw in ("", ".") else f"output folder {raw}"
+    label = f"out {raw!r}" if raw in ("", ".") else f"output folder {raw}"
     if raw in ("", "."):
         raise OutputDirError(f"{label} names the current directory; give a new folder name")
     path = Path(raw)
@@ -291,7 +295,7 @@ def output_dir(out: str | os.PathLike, *, kind: str, inputs: Iterable[str | os.P
         OutputDirError, FileExistsError: as :func:`check_output_dir`.
     """
     inputs = list(inputs)
-    target = check_output_dir(out, inputs=inputs, overwrite=overwrite, kind=kind, replace=replace, parents=parents)
+    target = _check_consistent(out, inputs=inputs, overwrite=overwrite, kind=kind, replace=replace, parents=parents)
     if parents:
         target.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temps(target)
@@ -307,6 +311,20 @@ def output_dir(out: str | os.PathLike, *, kind: str, inputs: Iterable[str | os.P
         finally:
             if tmp.exists():
                 shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _check_consistent(out: str | os.PathLike, **kwargs) -> Path:
+    """:func:`check_output_dir`, with a refusal about the existing folder confirmed under the writers' lock.
+
+    The check on enter runs unlocked (a writer holds the lock only while it swaps), so it can see another
+    writer's swap half done (``out`` renamed aside, the new folder not yet in place) and refuse a folder that
+    is in fact an earlier output. Under the lock no swap is in progress; a real refusal is raised from there.
+    """
+    try:
+        return check_output_dir(out, **kwargs)
+    except _ExistingFolderError:
+        with _locked(_resolve(Path(os.fspath(out)))):
+            return check_output_dir(out, **kwargs)
 
 
 def _swap_into_place(tmp: Path, target: Path) -> None:
