@@ -25,12 +25,19 @@ from .pretrained import CONFIG_NAME, MODEL_KIND, check_model_size, config_from_d
 from .text_encoder import TextEncoder, TextEncoderConfig
 from .vae import VideoVAE, VideoVAEConfig
 
-__all__ = ["Diff4SplatConfig", "Diff4SplatModel", "load_config", "config_names", "CONFIG_DIR", "WEIGHTS_DIR"]
+__all__ = ["Diff4SplatConfig", "Diff4SplatModel", "load_config", "config_names", "CONFIG_DIR", "WEIGHTS_DIR",
+           "DEFAULT_CONFIG"]
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 """Model size configs (``tiny``, ``small``, ``paper``), shipped as package data of ``models``."""
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 """Shipped trained weights, one folder per model name."""
+DEFAULT_CONFIG = "tiny"
+"""Name of the model config used when none is named: by ``diff4splat generate`` / ``export-onnx``,
+``diff4splat evaluate``, :func:`diff4splat.pipeline.load_model` / ``Diff4SplatPipeline.from_pretrained``,
+the training stages' ``model_config`` and the benchmarks. One of :func:`config_names`; its shipped
+weights (``WEIGHTS_DIR / DEFAULT_CONFIG``) are what a plain ``generate`` runs. Changed to the new
+default config when that config's trained weights ship."""
 
 _MODULES = {"vae": VideoVAE, "text_encoder": TextEncoder, "dit": VideoDiT, "ldrm": LDRM}
 

@@ -19,6 +19,7 @@ from pathlib import Path
 from torch import nn
 
 from diff4splat.io.structured import read_yaml
+from models.bundle import DEFAULT_CONFIG
 from models.pretrained import config_from_dict
 
 from .losses import LossWeights
@@ -62,7 +63,7 @@ class StageConfig:
     """
 
     name: str = "stage1"
-    model_config: str = "tiny"
+    model_config: str = DEFAULT_CONFIG
     init_from: str | None = None
     data: str = "data/synth_train"
     train: tuple[str, ...] = ("dit", "ldrm")
