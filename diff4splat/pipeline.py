@@ -83,52 +83,48 @@ def check_prompt(prompt: object, name: str = "prompt") -> str:
 
 def to_gaussians(
     out: LDRMOutput,
-    viewmats: Tensor,  # (S, 4, 4) world-to-camera of the source frames
-    Ks: Tensor,  # (S, 3, 3) pixels
+    viewmat: Tensor,  # (4, 4) world-to-camera of the reference frame
+    K: Tensor,  # (3, 3) pixels
     batch_index: int = 0,
 ) -> tuple[Gaussians, Tensor | None, Tensor | None, Tensor | None]:
-    """Pixel-aligned Gaussians (one per pixel of each source frame) and flattened deformation maps.
+    """Pixel-aligned Gaussians (one per pixel of frame 0, row-major) and flattened deformation maps.
 
-    Gaussian order is source-frame-major, then row-major pixels: Gaussian s·H·W + y·W + x sits on the
-    ray through pixel (x, y) of source camera s, μ = o + distance·d with (o, d) the pixel-centre ray of
-    :func:`diff4splat.cameras.camera_rays`; the first H·W Gaussians are the reference frame's. Colours are
-    stored as SH degree 0 via ``rgb_to_sh0`` after clamping to [1e-4, 1 − 1e-4].
+    μ = o + distance·d with (o, d) the pixel-centre ray of :func:`diff4splat.cameras.camera_rays`;
+    colours are stored as SH degree 0 via ``rgb_to_sh0`` after clamping to [1e-4, 1 − 1e-4].
 
     Args:
-        out: LDRM output; maps (B, S, H, W, ·).
-        viewmats: (S, 4, 4) world-to-camera of the S source cameras (``models.ldrm.source_frame_indices``).
-        Ks: (S, 3, 3) intrinsics of the source cameras at (H, W), pixels.
+        out: LDRM output; maps (B, H, W, ·).
+        viewmat: (4, 4) world-to-camera of the reference camera.
+        K: (3, 3) intrinsics of the reference camera at (H, W), pixels.
         batch_index: which scene of the batch.
 
     Returns:
-        Gaussians with M = S·H·W; d_means (K, M, 3), d_quats (K, M, 4), d_scales (K, M, 3), or None.
+        Gaussians with M = H·W; d_means (K, M, 3), d_quats (K, M, 4), d_scales (K, M, 3), or None.
 
     Raises:
-        ValueError: ``viewmats``/``Ks`` not (S, 4, 4)/(S, 3, 3) for the S source frames of ``out``, or
-            ``batch_index`` out of range.
+        ValueError: ``viewmat``/``K`` of the wrong shape or ``batch_index`` out of range.
     """
-    B, S, H, W = out.distance.shape
+    B, H, W = out.distance.shape
     if not -B <= batch_index < B:
         raise ValueError(f"batch_index {batch_index} out of range for batch size {B}")
-    if tuple(viewmats.shape) != (S, 4, 4):
-        raise ValueError(f"viewmats must have shape ({S}, 4, 4) (one per source frame), got {tuple(viewmats.shape)}")
-    if tuple(Ks.shape) != (S, 3, 3):
-        raise ValueError(f"Ks must have shape ({S}, 3, 3) (one per source frame), got {tuple(Ks.shape)}")
+    if tuple(viewmat.shape) != (4, 4):
+        raise ValueError(f"viewmat must have shape (4, 4), got {tuple(viewmat.shape)}")
+    if tuple(K.shape) != (3, 3):
+        raise ValueError(f"K must have shape (3, 3), got {tuple(K.shape)}")
     dtype = out.distance.dtype
-    origins, dirs = camera_rays(viewmats.to(dtype), Ks.to(dtype), W, H)  # (S, H, W, 3)
-    means = origins + out.distance[batch_index, ..., None] * dirs
+    origins, dirs = camera_rays(viewmat[None].to(dtype), K[None].to(dtype), W, H)  # (1, H, W, 3)
+    means = origins[0] + out.distance[batch_index, ..., None] * dirs[0]
     colors = out.colors[batch_index].clamp(1e-4, 1 - 1e-4)
-    M = S * H * W
     gaussians = Gaussians(
-        means=means.reshape(M, 3),
-        quats=out.quats[batch_index].reshape(M, 4),
-        scales=out.scales[batch_index].reshape(M, 3),
-        opacities=out.opacities[batch_index].reshape(M),
-        sh=rgb_to_sh0(colors).reshape(M, 1, 3),
+        means=means.reshape(H * W, 3),
+        quats=out.quats[batch_index].reshape(H * W, 4),
+        scales=out.scales[batch_index].reshape(H * W, 3),
+        opacities=out.opacities[batch_index].reshape(H * W),
+        sh=rgb_to_sh0(colors).reshape(H * W, 1, 3),
     )
     if out.d_means is None:
         return gaussians, None, None, None
-    flat = [getattr(out, f)[batch_index].flatten(1, 3) for f in ("d_means", "d_quats", "d_scales")]
+    flat = [getattr(out, f)[batch_index].flatten(1, 2) for f in ("d_means", "d_quats", "d_scales")]
     return gaussians, *flat
 
 
@@ -157,9 +153,8 @@ class NetworkRuntime(Protocol):
         """VideoDiT velocity: x (1, c, n, h, w), sigma (1,), image_latent (1, c, 1, h, w),
         plucker (1, 1536, n, h, w), text (1, L, d) + mask (1, L) or None → (1, c, n, h, w)."""
 
-    def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None, image: Tensor) -> LDRMOutput:
-        """LDRM (+ deformation network when ``times`` (K,) is given) → activated maps (B, S, H, W, ·);
-        ``image`` (1, 3, H, W) in [−1, 1] is the photograph (used by an LDRM with an image branch)."""
+    def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None) -> LDRMOutput:
+        """LDRM (+ deformation network when ``times`` (K,) is given) → activated maps."""
 
 
 class TorchRuntime:
@@ -181,8 +176,8 @@ class TorchRuntime:
     def velocity(self, x, sigma, image_latent, plucker, text, text_mask) -> Tensor:
         return self.model.dit(x, sigma, image_latent, plucker, text, text_mask)
 
-    def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None, image: Tensor) -> LDRMOutput:
-        return self.model.ldrm(latents, plucker, times, image)
+    def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None) -> LDRMOutput:
+        return self.model.ldrm(latents, plucker, times)
 
 
 @dataclass
