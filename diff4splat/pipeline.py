@@ -32,13 +32,13 @@ from torch import Tensor
 
 from models.bundle import DEFAULT_CONFIG, WEIGHTS_DIR, Diff4SplatConfig, Diff4SplatModel, load_config
 from models.flow_matching import sample
-from models.ldrm import LDRMOutput
+from models.ldrm import LDRMOutput, source_frame_indices
 
 from .cameras import CameraPath, camera_rays, intrinsics_from_fov, make_trajectory, pack_plucker, plucker_rays
 from .checks import check_positive_int
 from .gaussians import Gaussians, rgb_to_sh0
 from .limits import check_limit
-from .prune import prune_scene
+from .prune import duplicate_mask, prune_mask
 from .scene import DynamicGaussians
 
 __all__ = ["Diff4SplatPipeline", "GenerationResult", "load_model", "to_gaussians", "NetworkRuntime", "TorchRuntime",
@@ -83,48 +83,52 @@ def check_prompt(prompt: object, name: str = "prompt") -> str:
 
 def to_gaussians(
     out: LDRMOutput,
-    viewmat: Tensor,  # (4, 4) world-to-camera of the reference frame
-    K: Tensor,  # (3, 3) pixels
+    viewmats: Tensor,  # (S, 4, 4) world-to-camera of the source frames
+    Ks: Tensor,  # (S, 3, 3) pixels
     batch_index: int = 0,
 ) -> tuple[Gaussians, Tensor | None, Tensor | None, Tensor | None]:
-    """Pixel-aligned Gaussians (one per pixel of frame 0, row-major) and flattened deformation maps.
+    """Pixel-aligned Gaussians (one per pixel of each source frame) and flattened deformation maps.
 
-    μ = o + distance·d with (o, d) the pixel-centre ray of :func:`diff4splat.cameras.camera_rays`;
-    colours are stored as SH degree 0 via ``rgb_to_sh0`` after clamping to [1e-4, 1 − 1e-4].
+    Gaussian order is source-frame-major, then row-major pixels: Gaussian s·H·W + y·W + x sits on the
+    ray through pixel (x, y) of source camera s, μ = o + distance·d with (o, d) the pixel-centre ray of
+    :func:`diff4splat.cameras.camera_rays`; the first H·W Gaussians are the reference frame's. Colours are
+    stored as SH degree 0 via ``rgb_to_sh0`` after clamping to [1e-4, 1 − 1e-4].
 
     Args:
-        out: LDRM output; maps (B, H, W, ·).
-        viewmat: (4, 4) world-to-camera of the reference camera.
-        K: (3, 3) intrinsics of the reference camera at (H, W), pixels.
+        out: LDRM output; maps (B, S, H, W, ·).
+        viewmats: (S, 4, 4) world-to-camera of the S source cameras (``models.ldrm.source_frame_indices``).
+        Ks: (S, 3, 3) intrinsics of the source cameras at (H, W), pixels.
         batch_index: which scene of the batch.
 
     Returns:
-        Gaussians with M = H·W; d_means (K, M, 3), d_quats (K, M, 4), d_scales (K, M, 3), or None.
+        Gaussians with M = S·H·W; d_means (K, M, 3), d_quats (K, M, 4), d_scales (K, M, 3), or None.
 
     Raises:
-        ValueError: ``viewmat``/``K`` of the wrong shape or ``batch_index`` out of range.
+        ValueError: ``viewmats``/``Ks`` not (S, 4, 4)/(S, 3, 3) for the S source frames of ``out``, or
+            ``batch_index`` out of range.
     """
-    B, H, W = out.distance.shape
+    B, S, H, W = out.distance.shape
     if not -B <= batch_index < B:
         raise ValueError(f"batch_index {batch_index} out of range for batch size {B}")
-    if tuple(viewmat.shape) != (4, 4):
-        raise ValueError(f"viewmat must have shape (4, 4), got {tuple(viewmat.shape)}")
-    if tuple(K.shape) != (3, 3):
-        raise ValueError(f"K must have shape (3, 3), got {tuple(K.shape)}")
+    if tuple(viewmats.shape) != (S, 4, 4):
+        raise ValueError(f"viewmats must have shape ({S}, 4, 4) (one per source frame), got {tuple(viewmats.shape)}")
+    if tuple(Ks.shape) != (S, 3, 3):
+        raise ValueError(f"Ks must have shape ({S}, 3, 3) (one per source frame), got {tuple(Ks.shape)}")
     dtype = out.distance.dtype
-    origins, dirs = camera_rays(viewmat[None].to(dtype), K[None].to(dtype), W, H)  # (1, H, W, 3)
-    means = origins[0] + out.distance[batch_index, ..., None] * dirs[0]
+    origins, dirs = camera_rays(viewmats.to(dtype), Ks.to(dtype), W, H)  # (S, H, W, 3)
+    means = origins + out.distance[batch_index, ..., None] * dirs
     colors = out.colors[batch_index].clamp(1e-4, 1 - 1e-4)
+    M = S * H * W
     gaussians = Gaussians(
-        means=means.reshape(H * W, 3),
-        quats=out.quats[batch_index].reshape(H * W, 4),
-        scales=out.scales[batch_index].reshape(H * W, 3),
-        opacities=out.opacities[batch_index].reshape(H * W),
-        sh=rgb_to_sh0(colors).reshape(H * W, 1, 3),
+        means=means.reshape(M, 3),
+        quats=out.quats[batch_index].reshape(M, 4),
+        scales=out.scales[batch_index].reshape(M, 3),
+        opacities=out.opacities[batch_index].reshape(M),
+        sh=rgb_to_sh0(colors).reshape(M, 1, 3),
     )
     if out.d_means is None:
         return gaussians, None, None, None
-    flat = [getattr(out, f)[batch_index].flatten(1, 2) for f in ("d_means", "d_quats", "d_scales")]
+    flat = [getattr(out, f)[batch_index].flatten(1, 3) for f in ("d_means", "d_quats", "d_scales")]
     return gaussians, *flat
 
 
@@ -153,8 +157,9 @@ class NetworkRuntime(Protocol):
         """VideoDiT velocity: x (1, c, n, h, w), sigma (1,), image_latent (1, c, 1, h, w),
         plucker (1, 1536, n, h, w), text (1, L, d) + mask (1, L) or None → (1, c, n, h, w)."""
 
-    def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None) -> LDRMOutput:
-        """LDRM (+ deformation network when ``times`` (K,) is given) → activated maps."""
+    def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None, image: Tensor) -> LDRMOutput:
+        """LDRM (+ deformation network when ``times`` (K,) is given) → activated maps (B, S, H, W, ·);
+        ``image`` (1, 3, H, W) in [−1, 1] is the photograph (used by an LDRM with an image branch)."""
 
 
 class TorchRuntime:
@@ -176,8 +181,8 @@ class TorchRuntime:
     def velocity(self, x, sigma, image_latent, plucker, text, text_mask) -> Tensor:
         return self.model.dit(x, sigma, image_latent, plucker, text, text_mask)
 
-    def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None) -> LDRMOutput:
-        return self.model.ldrm(latents, plucker, times)
+    def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None, image: Tensor) -> LDRMOutput:
+        return self.model.ldrm(latents, plucker, times, image)
 
 
 @dataclass
@@ -192,7 +197,12 @@ class GenerationResult:
         sampler: "euler" or "heun", the sampler actually used (the argument, or ``config.sampling.sampler``).
         shift: the flow-matching timestep shift used (``config.sampling.shift``).
         timings: seconds per stage ("encode_image", "encode_text", "sample", "reconstruct", "prune").
-        prune_stats: counts from :func:`diff4splat.prune.prune_scene`.
+        prune_stats: counts from :func:`diff4splat.prune.prune_mask`, plus "duplicates" (Gaussians of a
+            later source frame dropped as near-duplicates, :func:`diff4splat.prune.duplicate_mask`).
+        source_frames: (S,) long, the video frame of each source frame whose rays carry a grid of
+            Gaussians (``models.ldrm.source_frame_indices``).
+        gaussian_index: (M,) long, index of each kept Gaussian in the unpruned S·H·W grid (source-frame-major,
+            then row-major pixels; :func:`to_gaussians`), increasing.
     """
 
     scene: DynamicGaussians
@@ -203,6 +213,8 @@ class GenerationResult:
     shift: float
     timings: dict[str, float] = field(default_factory=dict)
     prune_stats: dict[str, int] = field(default_factory=dict)
+    source_frames: Tensor | None = None
+    gaussian_index: Tensor | None = None
 
 
 def load_model(checkpoint: str | Path | None = None, config: str = DEFAULT_CONFIG, seed: int = 0, *,
@@ -319,6 +331,7 @@ class Diff4SplatPipeline:
         sampler: str | None = None,
         seed: int = 0,
         progress: bool = False,
+        video_latents: Tensor | None = None,
     ) -> GenerationResult:
         """Generate a 4D scene.
 
@@ -330,6 +343,8 @@ class Diff4SplatPipeline:
             sampler: "euler" or "heun" (default: config.sampling.sampler).
             seed: seed of the initial noise.
             progress: tqdm progress bars.
+            video_latents: (1, c, n, h, w) DiT-scaled video latent used instead of sampling one (ablations:
+                pure noise, or the encoded true video); its frame 0 is replaced by the photograph's latent.
 
         Returns:
             :class:`GenerationResult`.
@@ -340,7 +355,8 @@ class Diff4SplatPipeline:
                 export made without the text encoder) or that is not valid UTF-8; a seed outside
                 :data:`SEED_RANGE`; steps or T above their limits (:class:`diff4splat.limits.LimitError`,
                 checked before any network runs); a camera path that sees none of the scene (every
-                Gaussian pruned, e.g. focal lengths so long that the field of view is empty).
+                Gaussian pruned, e.g. focal lengths so long that the field of view is empty); ``video_latents``
+                of another shape than the sampler's.
         """
         cfg, runtime = self.config, self.runtime
         dev = self.device
@@ -384,23 +400,39 @@ class Diff4SplatPipeline:
         def velocity(x: Tensor, sigma: Tensor) -> Tensor:
             return runtime.velocity(x, sigma.reshape(1).to(x), image_latent, plucker, text, text_mask)
 
-        latents = sample(velocity, noise, steps, sampler=sampler, shift=cfg.sampling.shift, progress=progress)
+        if video_latents is None:
+            latents = sample(velocity, noise, steps, sampler=sampler, shift=cfg.sampling.shift, progress=progress)
+        elif tuple(video_latents.shape) != tuple(noise.shape):
+            raise ValueError(f"video_latents must have shape {tuple(noise.shape)}, got {tuple(video_latents.shape)}")
+        else:
+            latents = video_latents.to(noise)
         latents = torch.cat([image_latent, latents[:, :, 1:]], dim=2)
         timings["sample"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
         key_times = torch.unique(cameras.times)
         # A runtime without the deformation network (a static ONNX export) makes static scenes.
-        out = runtime.reconstruct(latents, plucker, key_times if runtime.has_deformation else None)
-        gaussians, d_means, d_quats, d_scales = to_gaussians(out, cameras.viewmats[0], cameras.Ks[0])
+        out = runtime.reconstruct(latents, plucker, key_times if runtime.has_deformation else None, video[:, :, 0])
+        sources = torch.tensor(source_frame_indices(cfg.ldrm.gaussian_frames, n, cfg.vae.temporal_factor))
+        gaussians, d_means, d_quats, d_scales = to_gaussians(out, cameras.viewmats[sources], cameras.Ks[sources])
         times = key_times if d_means is not None else None
         scene = DynamicGaussians(gaussians, times, d_means, d_quats, d_scales).without_deformation(cfg.static_atol)
         timings["reconstruct"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
-        scene, stats = prune_scene(scene, cameras, min_opacity=cfg.prune_opacity)
+        index = torch.arange(scene.num_gaussians)
+        duplicates = 0
+        if len(sources) > 1:
+            grid = torch.arange(len(sources)).repeat_interleave(scene.num_gaussians // len(sources))
+            dup = duplicate_mask(scene, grid, cameras.viewmats[sources], cameras.Ks[sources], cameras.times[sources],
+                                 cfg.width, cfg.height)
+            scene, index, duplicates = scene.select(~dup), index[~dup], int(dup.sum())
+        keep, stats = prune_mask(scene, cameras, min_opacity=cfg.prune_opacity)
+        scene, index = scene.select(keep), index[keep]
+        stats = {**stats, "before": stats["before"] + duplicates, "duplicates": duplicates}
         timings["prune"] = time.perf_counter() - t0
         if stats["after"] == 0:
             raise ValueError(_sees_nothing(cameras, stats, cfg.prune_opacity))
         return GenerationResult(scene=scene, cameras=cameras, latents=latents, timings=timings, prune_stats=stats,
-                                steps=steps, sampler=sampler, shift=cfg.sampling.shift)
+                                steps=steps, sampler=sampler, shift=cfg.sampling.shift, source_frames=sources,
+                                gaussian_index=index)

@@ -1,8 +1,8 @@
 """Latent Dynamic Reconstruction Model (LDRM; Diff4Splat, Pan et al. 2025, LDRM section).
 
 Decodes a video latent plus the camera path (Plücker rays packed to latent resolution) into
-pixel-aligned 3D Gaussians of the reference frame (frame 0) and, when times are given, deformation
-maps at those times (:mod:`models.deformation`).
+pixel-aligned 3D Gaussians along the camera rays of the video's *source frames* and, when times are
+given, deformation maps at those times (:mod:`models.deformation`).
 
 Architecture (B scenes, latent (B, c, n, h, w), patch p, tokens N = n·(h/p)·(w/p), width D):
 
@@ -11,14 +11,26 @@ Architecture (B scenes, latent (B, c, n, h, w), patch p, tokens N = n·(h/p)·(w
    embedding (per axis as in MAE, He et al. 2022; channels split over t, y, x).
 2. ``depth`` pre-norm transformer blocks (ViT/DiT: x += Attn(LN(x)); x += MLP(LN(x))) with
    self-attention over all spatio-temporal tokens, then a final LayerNorm.
-3. Reference latent frame's tokens → (B, D, 1, h/p, w/p) → ``ConvTranspose3d`` with
-   kernel = stride = (1, 8p, 8p) (undoing patching and the VAE's 8×8 spatial compression)
-   → 12 raw channels per pixel of frame 0 → activations (:func:`gaussian_activations`).
-4. The same reference tokens as a (B, D, h/p, w/p) map feed the deformation network.
+3. The tokens as a (B, D, n, h/p, w/p) volume → ``ConvTranspose3d`` (the paper's "3D deconvolutional
+   layer … pixel-level correspondence with source video frames") → 12 raw channels per pixel of each
+   source frame → activations (:func:`gaussian_activations`). Which frames are source frames is
+   ``LDRMConfig.gaussian_frames`` (:func:`source_frame_indices`):
+
+   - ``"latent"`` (default): kernel = stride = (1, 8p, 8p), one H×W grid per latent frame, placed on
+     the rays of the last video frame that latent frame encodes (frames 0, 4, 8, …: S = n);
+   - ``"all"``: kernel = stride = (4, 8p, 8p), one grid per video frame (S = T = 1 + 4(n − 1); the
+     causal first latent frame encodes frame 0 alone, so the first 3 decoded frames are dropped);
+   - ``"reference"``: frame 0 only (S = 1), the design before every-frame decoding (an ablation).
+4. Optional sharp input view (``image_branch`` > 0; ours, beyond the paper): the photograph at full
+   resolution and frame 0's raw head output pass through a small zero-initialised CNN whose output is
+   added to frame 0's raw channels, so the reference frame's Gaussians can carry detail that the VAE's
+   8×8 compression lost.
+5. Each source frame's tokens as a (B, D, h/p, w/p) map feed the deformation network (for ``"all"``,
+   the frames of one latent frame share its map).
 
 Gaussians are predicted in the world frame in which the Plücker rays are given (the network
 sees world-frame rays). The network returns plain tensors (:class:`LDRMOutput`); placing each
-pixel's Gaussian on its camera ray (``diff4splat.pipeline.to_gaussians``) is the pipeline's job.
+pixel's Gaussian on its source camera's ray (``diff4splat.pipeline.to_gaussians``) is the pipeline's job.
 """
 from __future__ import annotations
 
@@ -33,10 +45,35 @@ from .deformation import DeformationConfig, DeformationNetwork, soft_clamp, unit
 from .layers import Mlp, SelfAttention, patchify
 from .pretrained import PretrainedMixin
 
-__all__ = ["LDRMConfig", "LDRM", "LDRMOutput", "gaussian_activations", "sincos_position_3d"]
+__all__ = ["LDRMConfig", "LDRM", "LDRMOutput", "gaussian_activations", "sincos_position_3d", "source_frame_indices",
+           "GAUSSIAN_FRAMES"]
 
 RAW_GAUSSIAN_CHANNELS = 12
 """Raw head channels per pixel: distance 1, scales 3, quaternion 4, opacity 1, colour 3."""
+
+GAUSSIAN_FRAMES = ("latent", "all", "reference")
+"""Values of ``LDRMConfig.gaussian_frames`` (module docstring, step 3)."""
+
+
+def source_frame_indices(gaussian_frames: str, num_latent_frames: int, vae_temporal: int = 4) -> list[int]:
+    """Video frames whose camera rays carry a grid of pixel-aligned Gaussians, in output order.
+
+    ``"latent"``: [0, r, 2r, …, (n−1)r] with r = ``vae_temporal`` (latent frame i ≥ 1 of the causal VAE
+    encodes frames r(i−1)+1 … ri; its grid goes on the last of them, so the path's last frame is one);
+    ``"all"``: every frame 0 … r(n−1); ``"reference"``: [0].
+
+    Raises:
+        ValueError: unknown ``gaussian_frames`` or ``num_latent_frames`` < 1.
+    """
+    if gaussian_frames not in GAUSSIAN_FRAMES:
+        raise ValueError(f"gaussian_frames must be one of {GAUSSIAN_FRAMES}, got {gaussian_frames!r}")
+    if int(num_latent_frames) < 1:
+        raise ValueError(f"num_latent_frames must be ≥ 1, got {num_latent_frames}")
+    if gaussian_frames == "reference":
+        return [0]
+    if gaussian_frames == "latent":
+        return [i * vae_temporal for i in range(num_latent_frames)]
+    return list(range(vae_temporal * (num_latent_frames - 1) + 1))
 
 
 @dataclass
@@ -59,6 +96,9 @@ class LDRMConfig:
             so neighbouring pixel-aligned splats overlap without each covering many pixels.
         scale_log_range: bound of the log-scale adjustment; scales lie within
             distance·scale_base·e^{±scale_log_range}.
+        gaussian_frames: which video frames get a grid of Gaussians: "latent", "all" or "reference"
+            (module docstring, step 3; :func:`source_frame_indices`).
+        image_branch: channels of the sharp-input-view CNN (module docstring, step 4); 0 = no branch.
         deformation: config of the deformation network; its ``in_channels`` must equal ``embed_dim``.
     """
 
@@ -75,6 +115,8 @@ class LDRMConfig:
     default_depth: float = 2.0
     scale_base: float = 0.01
     scale_log_range: float = 4.0
+    gaussian_frames: str = "latent"
+    image_branch: int = 0
     deformation: DeformationConfig = field(default_factory=DeformationConfig)
 
     def __post_init__(self) -> None:
@@ -83,6 +125,11 @@ class LDRMConfig:
         for name in ("latent_channels", "vae_temporal", "vae_spatial", "patch_size", "embed_dim", "depth", "num_heads"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"LDRMConfig.{name} must be ≥ 1, got {getattr(self, name)}")
+        if self.gaussian_frames not in GAUSSIAN_FRAMES:
+            raise ValueError(f"LDRMConfig.gaussian_frames must be one of {GAUSSIAN_FRAMES}, "
+                             f"got {self.gaussian_frames!r}")
+        if int(self.image_branch) < 0:
+            raise ValueError(f"LDRMConfig.image_branch must be ≥ 0, got {self.image_branch}")
         if self.embed_dim % self.num_heads:
             raise ValueError(f"LDRMConfig.embed_dim ({self.embed_dim}) must be divisible by "
                              f"num_heads ({self.num_heads})")
@@ -117,17 +164,20 @@ class LDRMConfig:
 
 @dataclass
 class LDRMOutput:
-    """Activated per-pixel Gaussian maps of the reference frame and optional deformation maps.
+    """Activated per-pixel Gaussian maps of the S source frames and optional deformation maps.
+
+    Source frame j is video frame ``source_frame_indices(config.gaussian_frames, n)[j]``; j = 0 is
+    the reference frame (frame 0).
 
     Attributes:
-        distance: (B, H, W) metres along the pixel's unit ray, in [depth_min, depth_max].
-        scales: (B, H, W, 3) metres, > 0.
-        quats: (B, H, W, 4) unit wxyz, world frame.
-        opacities: (B, H, W) in [0, 1] (open interval except where sigmoid saturates in float).
-        colors: (B, H, W, 3) RGB in [0, 1].
-        d_means: (B, K, H, W, 3) metres, world frame, or None (static: no times asked for).
-        d_quats: (B, K, H, W, 4) unit wxyz (identity (1,0,0,0)), or None.
-        d_scales: (B, K, H, W, 3) log-scale offsets (s_t = s·exp(Δs)), or None.
+        distance: (B, S, H, W) metres along the pixel's unit ray, in [depth_min, depth_max].
+        scales: (B, S, H, W, 3) metres, > 0.
+        quats: (B, S, H, W, 4) unit wxyz, world frame.
+        opacities: (B, S, H, W) in [0, 1] (open interval except where sigmoid saturates in float).
+        colors: (B, S, H, W, 3) RGB in [0, 1].
+        d_means: (B, K, S, H, W, 3) metres, world frame, or None (static: no times asked for).
+        d_quats: (B, K, S, H, W, 4) unit wxyz (identity (1,0,0,0)), or None.
+        d_scales: (B, K, S, H, W, 3) log-scale offsets (s_t = s·exp(Δs)), or None.
     """
 
     distance: Tensor
@@ -224,8 +274,29 @@ def _tracing() -> bool:
     return torch.compiler.is_exporting() or torch.compiler.is_compiling() or torch.jit.is_tracing()
 
 
+class ImageBranch(nn.Module):
+    """Sharp input view (ours, beyond the paper): photo + frame 0's raw head output → a raw-channel residual.
+
+    conv3×3(3 + 12 → C) → GELU → conv3×3(C → C) → GELU → conv1×1(C → 12), the last layer zero-initialised
+    (weights and bias) so a new branch adds exactly 0: the LDRM starts as the paper's and learns from the
+    photograph only what improves the loss (as adaLN-Zero in DiT, Peebles & Xie 2023).
+    """
+
+    def __init__(self, channels: int) -> None:
+        super().__init__()
+        self.conv1 = nn.Conv2d(3 + RAW_GAUSSIAN_CHANNELS, channels, 3, padding=1)
+        self.conv2 = nn.Conv2d(channels, channels, 3, padding=1)
+        self.out = nn.Conv2d(channels, RAW_GAUSSIAN_CHANNELS, 1)
+        nn.init.zeros_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+
+    def forward(self, image: Tensor, raw: Tensor) -> Tensor:  # (B, 3, H, W) in [−1, 1], (B, 12, H, W)
+        x = F.gelu(self.conv1(torch.cat([image.to(raw.dtype), raw], dim=1)))
+        return raw + self.out(F.gelu(self.conv2(x)))  # (B, 12, H, W)
+
+
 class LDRM(nn.Module, PretrainedMixin):
-    """Video latent + camera path → pixel-aligned Gaussians of frame 0 (+ deformation maps)."""
+    """Video latent + camera path (+ photo) → pixel-aligned Gaussians of the source frames (+ deformation maps)."""
 
     config_class = LDRMConfig
 
@@ -237,14 +308,16 @@ class LDRM(nn.Module, PretrainedMixin):
         self.blocks = nn.ModuleList(Block(d, config.num_heads, config.mlp_ratio) for _ in range(config.depth))
         self.norm = nn.LayerNorm(d)
         up = config.vae_spatial * p
-        self.head = nn.ConvTranspose3d(d, RAW_GAUSSIAN_CHANNELS, kernel_size=(1, up, up), stride=(1, up, up))
+        kt = config.vae_temporal if config.gaussian_frames == "all" else 1
+        self.head = nn.ConvTranspose3d(d, RAW_GAUSSIAN_CHANNELS, kernel_size=(kt, up, up), stride=(kt, up, up))
+        self.image_branch = ImageBranch(config.image_branch) if config.image_branch > 0 else None
         self.deformation = DeformationNetwork(config.deformation)
         for module in [self.embed, *self.blocks.modules()]:
             if isinstance(module, nn.Linear):  # ViT/DiT initialisation
                 nn.init.xavier_uniform_(module.weight)
                 nn.init.zeros_(module.bias)
 
-    def _check_inputs(self, latents: Tensor, plucker: Tensor, times: Tensor | None) -> None:
+    def _check_inputs(self, latents: Tensor, plucker: Tensor, times: Tensor | None, image: Tensor | None) -> None:
         cfg = self.config
         if latents.dim() != 5 or latents.shape[1] != cfg.latent_channels:
             raise ValueError(f"latents must have shape (B, {cfg.latent_channels}, n, h, w), got {tuple(latents.shape)}")
@@ -262,31 +335,39 @@ class LDRM(nn.Module, PretrainedMixin):
                 raise ValueError(f"times must have shape (K,) with K ≥ 1, got {tuple(times.shape)}")
             if not _tracing() and not bool(((times >= 0) & (times <= 1)).all()):
                 raise ValueError(f"times must lie in [0, 1], got min {float(times.min())}, max {float(times.max())}")
+        if self.image_branch is not None:
+            H, W = h * cfg.vae_spatial, w * cfg.vae_spatial
+            if image is None or tuple(image.shape) != (B, 3, H, W):
+                got = None if image is None else tuple(image.shape)
+                raise ValueError(f"image must have shape ({B}, 3, {H}, {W}) (this LDRM has an image branch), got {got}")
 
     def forward(
         self,
         latents: Tensor,  # (B, c, n, h, w)
         plucker: Tensor,  # (B, 6·4·8·8, n, h, w) from diff4splat.cameras.pack_plucker
         times: Tensor | None = None,  # (K,) in [0, 1]
+        image: Tensor | None = None,  # (B, 3, H, W) in [−1, 1], the photograph (frame 0)
     ) -> LDRMOutput:
-        """Predict the reference frame's Gaussians (H = 8h, W = 8w pixels) and deformation at ``times``.
+        """Predict the source frames' Gaussians (H = 8h, W = 8w pixels) and their deformation at ``times``.
 
         Args:
             latents: (B, c, n, h, w) video latent, c = ``config.latent_channels``.
             plucker: (B, 6·vae_temporal·vae_spatial², n, h, w) packed Plücker rays (``pack_plucker``).
             times: (K,) clip times in [0, 1], or None for a static scene (the deformation network
                 is then not run and the deformation fields are None).
+            image: (B, 3, H, W) frame 0 in [−1, 1]; required with an image branch, ignored without.
 
         Returns:
-            :class:`LDRMOutput` with activated maps (see :func:`gaussian_activations` for formulas)
-            and deformation maps (B, K, H, W, ·) or None.
+            :class:`LDRMOutput` with activated maps (B, S, H, W, ·) for the S source frames
+            (:func:`source_frame_indices`; formulas in :func:`gaussian_activations`) and deformation
+            maps (B, K, S, H, W, ·) or None.
 
         Raises:
             ValueError: wrong rank/channels of ``latents`` or ``plucker``; ``plucker`` not matching
                 ``latents`` in B, n, h, w; h, w not multiples of patch_size; ``times`` not (K,) or
-                outside [0, 1].
+                outside [0, 1]; ``image`` missing or not (B, 3, H, W) when the LDRM has an image branch.
         """
-        self._check_inputs(latents, plucker, times)
+        self._check_inputs(latents, plucker, times, image)
         cfg = self.config
         p = cfg.patch_size
         B, _, n, h, w = latents.shape
@@ -296,11 +377,27 @@ class LDRM(nn.Module, PretrainedMixin):
         for block in self.blocks:
             x = block(x)
         x = self.norm(x)
-        ref = x[:, : hp * wp].transpose(1, 2).reshape(B, cfg.embed_dim, hp, wp)  # frame-0 tokens
-        raw = self.head(ref[:, :, None])[:, :, 0].permute(0, 2, 3, 1)  # (B, H, W, 12)
+        volume = x.transpose(1, 2).reshape(B, cfg.embed_dim, n, hp, wp)
+        if cfg.gaussian_frames == "reference":
+            volume = volume[:, :, :1]
+        raw = self.head(volume)  # (B, 12, S', H, W)
+        if cfg.gaussian_frames == "all":
+            raw = raw[:, :, cfg.vae_temporal - 1:]  # the causal first latent frame encodes frame 0 only
+        if self.image_branch is not None:
+            raw = torch.cat([self.image_branch(image, raw[:, :, 0])[:, :, None], raw[:, :, 1:]], dim=2)
+        raw = raw.permute(0, 2, 3, 4, 1)  # (B, S, H, W, 12)
         distance, scales, quats, opacities, colors = gaussian_activations(raw, cfg)
         out = LDRMOutput(distance, scales, quats, opacities, colors)
         if times is not None:
-            out.d_means, out.d_quats, out.d_scales = self.deformation(ref, times, cfg.vae_spatial * p)
+            S, nf = raw.shape[1], volume.shape[2]
+            feats = volume.transpose(1, 2).reshape(B * nf, cfg.embed_dim, hp, wp)
+            d = self.deformation(feats, times, cfg.vae_spatial * p)  # each (B·nf, K, H, W, ·)
+            maps = []
+            for m in d:
+                m = m.reshape(B, nf, *m.shape[1:]).transpose(1, 2)  # (B, K, nf, H, W, ·)
+                if cfg.gaussian_frames == "all":  # frame f belongs to latent frame ⌈f / r⌉
+                    index = [-(-f // cfg.vae_temporal) for f in range(S)]
+                    m = m[:, :, index]
+                maps.append(m)
+            out.d_means, out.d_quats, out.d_scales = maps
         return out
-

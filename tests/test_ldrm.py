@@ -12,12 +12,20 @@ import torch
 from diff4splat.cameras import pack_plucker, plucker_rays
 from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
 from models.deformation import DeformationConfig
-from models.ldrm import LDRM, LDRMConfig, LDRMOutput, gaussian_activations, sincos_position_3d
+from models.ldrm import (
+    LDRM,
+    LDRMConfig,
+    LDRMOutput,
+    gaussian_activations,
+    sincos_position_3d,
+    source_frame_indices,
+)
 from models.pretrained import count_parameters
 
 IDENTITY = torch.tensor([1.0, 0.0, 0.0, 0.0])
 H = W = 64
 T = 9  # → n = 3 latent frames
+S = 3  # source frames 0, 4, 8 (gaussian_frames "latent")
 
 
 def _cameras(T: int = T):
@@ -50,16 +58,17 @@ def test_shapes_finite_and_ranges():
     assert plucker.shape == (1, 1536, 3, 8, 8)
     out = model(latents, plucker, torch.linspace(0, 1, T))
     cfg = model.config
-    assert out.distance.shape == (1, H, W) and out.opacities.shape == (1, H, W)
-    assert out.scales.shape == (1, H, W, 3) and out.colors.shape == (1, H, W, 3) and out.quats.shape == (1, H, W, 4)
-    assert out.d_means.shape == (1, T, H, W, 3) and out.d_quats.shape == (1, T, H, W, 4)
-    assert out.d_scales.shape == (1, T, H, W, 3)
+    assert out.distance.shape == (1, S, H, W) and out.opacities.shape == (1, S, H, W)
+    assert out.scales.shape == (1, S, H, W, 3) and out.colors.shape == (1, S, H, W, 3)
+    assert out.quats.shape == (1, S, H, W, 4)
+    assert out.d_means.shape == (1, T, S, H, W, 3) and out.d_quats.shape == (1, T, S, H, W, 4)
+    assert out.d_scales.shape == (1, T, S, H, W, 3)
     for name, value in vars(out).items():
         assert torch.isfinite(value).all(), name
     assert cfg.depth_min <= out.distance.min() and out.distance.max() <= cfg.depth_max
     assert (out.scales > 0).all() and ((out.opacities >= 0) & (out.opacities <= 1)).all()
     assert ((out.colors >= 0) & (out.colors <= 1)).all()
-    torch.testing.assert_close(out.quats.norm(dim=-1), torch.ones(1, H, W))
+    torch.testing.assert_close(out.quats.norm(dim=-1), torch.ones(1, S, H, W))
     assert out.distance.std() > 0, "per-pixel maps must vary across pixels"
 
 
@@ -67,7 +76,7 @@ def test_patch_size_two_and_batch():
     model = _model(patch_size=2)
     latents, plucker = _inputs()
     out = model(latents.repeat(2, 1, 1, 1, 1), plucker.repeat(2, 1, 1, 1, 1), torch.tensor([0.0, 1.0]))
-    assert out.distance.shape == (2, H, W) and out.d_means.shape == (2, 2, H, W, 3)
+    assert out.distance.shape == (2, S, H, W) and out.d_means.shape == (2, 2, S, H, W, 3)
     torch.testing.assert_close(out.distance[0], out.distance[1])
 
 
@@ -104,38 +113,99 @@ def test_reference_frame_uses_other_frames():
     """Frame-0 maps depend on later latent frames through attention over all tokens."""
     model = _model()
     latents, plucker = _inputs()
-    base = model(latents, plucker).distance
+    base = model(latents, plucker).distance[:, 0]
     changed = latents.clone()
     changed[:, :, 2] += 1.0
-    assert (model(changed, plucker).distance - base).abs().max() > 1e-5
+    assert (model(changed, plucker).distance[:, 0] - base).abs().max() > 1e-5
 
 
-@pytest.mark.parametrize("patch", [1, 2])
-@pytest.mark.slow
-def test_head_reads_reference_frame_patch_locally(patch):
-    """With every block an identity (attention and MLP outputs zeroed), pixel (i, j) of frame 0 depends
-    only on the latent pixels of its own patch in latent frame 0: checks patchify order, the choice
-    of the reference frame and the transposed-convolution layout."""
-    model = _model(patch_size=patch)
+def _identity_blocks(model: LDRM) -> LDRM:
+    """Zero every block's residual branches so each token is its own embedding (no attention mixing)."""
     with torch.no_grad():
         for block in model.blocks:
             for layer in (block.attn.proj, block.mlp.fc2):
                 layer.weight.zero_()
                 layer.bias.zero_()
+    return model
+
+
+@pytest.mark.parametrize("patch", [1, 2])
+@pytest.mark.slow
+def test_head_reads_each_source_frame_patch_locally(patch):
+    """With every block an identity, pixel (i, j) of source frame s depends only on the latent pixels of its
+    own patch in latent frame s: checks patchify order, the source-frame layout and the transposed convolution."""
+    model = _identity_blocks(_model(patch_size=patch))
     latents, plucker = _inputs()
-    base = model(latents, plucker).distance[0]
-    later = latents.clone()
-    later[:, :, 1:] += 1.0
-    torch.testing.assert_close(model(later, plucker).distance[0], base, atol=0, rtol=0)
-    r, c = 5, 2
-    poked = latents.clone()
-    poked[:, :, 0, r, c] += 1.0
-    diff = (model(poked, plucker).distance[0] - base).abs() > 0
+    base = model(latents, plucker).distance[0]  # (S, H, W)
     size = 8 * patch
-    expect = torch.zeros(H, W, dtype=torch.bool)
-    r0, c0 = (r // patch) * size, (c // patch) * size
-    expect[r0:r0 + size, c0:c0 + size] = True
-    assert torch.equal(diff, expect)
+    r, c = 5, 2
+    for s in range(S):
+        poked = latents.clone()
+        poked[:, :, s, r, c] += 1.0
+        diff = (model(poked, plucker).distance[0] - base).abs() > 0
+        expect = torch.zeros(S, H, W, dtype=torch.bool)
+        r0, c0 = (r // patch) * size, (c // patch) * size
+        expect[s, r0:r0 + size, c0:c0 + size] = True
+        assert torch.equal(diff, expect), s
+
+
+def test_source_frame_indices_closed_form():
+    assert source_frame_indices("latent", 5) == [0, 4, 8, 12, 16]
+    assert source_frame_indices("all", 3) == list(range(9))
+    assert source_frame_indices("reference", 5) == [0]
+    assert source_frame_indices("latent", 1) == [0] == source_frame_indices("all", 1)
+    with pytest.raises(ValueError, match="gaussian_frames"):
+        source_frame_indices("every", 3)
+    with pytest.raises(ValueError, match="gaussian_frames"):
+        LDRMConfig(gaussian_frames="every")
+    with pytest.raises(ValueError, match="image_branch"):
+        LDRMConfig(image_branch=-1)
+
+
+@pytest.mark.slow
+def test_all_frames_mode_maps_each_frame_to_its_latent_frame():
+    """gaussian_frames="all": S = T grids; video frame f reads latent frame ⌈f/4⌉ (causal: frame 0 alone in
+    latent frame 0, frames 1–4 in latent frame 1, …), and its deformation is that latent frame's."""
+    model = _identity_blocks(_model(gaussian_frames="all"))
+    with torch.no_grad():
+        model.deformation.out_conv.weight.normal_(0.0, 0.5)
+    latents, plucker = _inputs()
+    out = model(latents, plucker, torch.tensor([0.0, 1.0]))
+    assert out.distance.shape == (1, T, H, W) and out.d_means.shape == (1, 2, T, H, W, 3)
+    owner = [-(-f // 4) for f in range(T)]
+    assert owner == [0, 1, 1, 1, 1, 2, 2, 2, 2]
+    for f in range(T):  # frames of one latent frame share its deformation map
+        torch.testing.assert_close(out.d_means[0, :, f], out.d_means[0, :, 4 * owner[f]], atol=0, rtol=0)
+    poked = latents.clone()
+    poked[:, :, 1] += 1.0
+    changed = (model(poked, plucker).distance[0] - out.distance[0]).flatten(1).abs().amax(1) > 0
+    assert changed.tolist() == [o == 1 for o in owner]
+
+
+def test_reference_mode_one_grid():
+    out = _model(gaussian_frames="reference")(*_inputs(), torch.tensor([0.5]))
+    assert out.distance.shape == (1, 1, H, W) and out.d_means.shape == (1, 1, 1, H, W, 3)
+
+
+def test_image_branch_zero_init_then_reads_the_photo_for_frame_0_only():
+    latents, plucker = _inputs()
+    image = torch.rand(1, 3, H, W, generator=torch.Generator().manual_seed(1)) * 2 - 1
+    plain = _model()
+    branched = _model(image_branch=8)
+    missing = branched.load_state_dict(plain.state_dict(), strict=False).missing_keys
+    assert missing and all(k.startswith("image_branch.") for k in missing)
+    a, b = plain(latents, plucker), branched(latents, plucker, image=image)
+    for name in ("distance", "scales", "quats", "opacities", "colors"):
+        assert torch.equal(getattr(a, name), getattr(b, name)), name  # zero-init: exactly the plain LDRM
+    with torch.no_grad():
+        branched.image_branch.out.weight.normal_(0.0, 0.3)
+    c, d = branched(latents, plucker, image=image), branched(latents, plucker, image=-image)
+    assert (c.colors[:, 0] - d.colors[:, 0]).abs().max() > 1e-3, "frame 0 reads the photo"
+    assert torch.equal(c.colors[:, 1:], d.colors[:, 1:]), "later source frames do not"
+    with pytest.raises(ValueError, match="image"):
+        branched(latents, plucker)
+    with pytest.raises(ValueError, match="image"):
+        branched(latents, plucker, image=image[..., :32, :])
 
 
 def test_activations_at_zero_give_defaults():

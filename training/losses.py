@@ -21,6 +21,7 @@ __all__ = [
     "depth_correlation_loss",
     "depth_smoothness_loss",
     "motion_loss",
+    "displacement_loss",
     "gather_track_predictions",
 ]
 
@@ -28,7 +29,7 @@ __all__ = [
 @dataclass
 class LossWeights:
     """Weights of the reconstruction objective
-    L = λ_rgb·L_photo + λ_depth·L_depth + λ_smooth·L_smooth + λ_motion·L_motion.
+    L = λ_rgb·L_photo + λ_depth·L_depth + λ_smooth·L_smooth + λ_motion·L_motion + λ_disp·L_disp.
 
     Attributes:
         ssim: λ of (1 − SSIM) inside the photometric loss; 0.2 as in 3DGS (Kerbl et al. 2023, Eq. 7).
@@ -36,6 +37,8 @@ class LossWeights:
         depth: weight of the depth-correlation loss (Pearson; as in SparseGS / FSGS depth priors).
         smooth: weight of the edge-aware depth smoothness (Godard et al. 2017 use 1e-3 on disparity).
         motion: weight of the track loss (stage 3 only).
+        displacement: weight of the track-displacement loss (:func:`displacement_loss`, stage 3 only): the
+            motion relative to frame 0, which the absolute track loss mixes with the frame-0 depth error.
     """
 
     ssim: float = 0.2
@@ -43,6 +46,7 @@ class LossWeights:
     depth: float = 0.1
     smooth: float = 1e-3
     motion: float = 1.0
+    displacement: float = 0.0
 
 
 def sample_training_sigmas(n: int, mean: float = 0.0, std: float = 1.0, shift: float = 1.0,
@@ -187,3 +191,21 @@ def motion_loss(pred: Tensor, target: Tensor, visibility: Tensor) -> Tensor:
     diff = torch.where(visibility[..., None], pred - target, 0)
     dist = torch.sqrt((diff ** 2).sum(-1) + 1e-12) * v  # eps keeps the gradient finite at 0
     return dist.sum() / v.sum().clamp(min=1)
+
+
+def displacement_loss(pred: Tensor, target: Tensor, visibility: Tensor) -> Tensor:
+    """:func:`motion_loss` of the displacements from frame 0: ‖(x̂_pt − x̂_p0) − (x_pt − x_p0)‖₂ over the
+    (p, t ≥ 1) with the point visible at 0 and at t.
+
+    The absolute track error is dominated by where the scene puts a point at frame 0 (its metric depth);
+    this term sees only the motion, so its gradient reaches the deformation undiluted (ours; the paper
+    supervises absolute tracks).
+
+    Args:
+        pred, target: (B, P, T, 3) metres.  visibility: (B, P, T) bool.
+
+    Returns:
+        Scalar metres; 0 when no pair is visible.
+    """
+    vis = visibility[:, :, 1:] & visibility[:, :, :1]
+    return motion_loss(pred[:, :, 1:] - pred[:, :, :1], target[:, :, 1:] - target[:, :, :1], vis)

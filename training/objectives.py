@@ -15,11 +15,13 @@ from diff4splat.pipeline import to_gaussians
 from diff4splat.render import rasterize
 from diff4splat.scene import DynamicGaussians
 from models.bundle import Diff4SplatModel
+from models.ldrm import source_frame_indices
 from models.vae import kl_divergence
 
 from .losses import (
     depth_correlation_loss,
     depth_smoothness_loss,
+    displacement_loss,
     flow_matching_loss,
     gather_track_predictions,
     motion_loss,
@@ -114,7 +116,7 @@ class TrainingModule(nn.Module):
             w = st.weights
             total = total + w.rgb * rec["photo"] + w.depth * rec["depth"] + w.smooth * rec["smooth"]
             if "motion" in rec:
-                total = total + w.motion * rec["motion"]
+                total = total + w.motion * rec["motion"] + w.displacement * rec["displacement"]
         losses["loss"] = total
         return losses
 
@@ -138,16 +140,23 @@ class TrainingModule(nn.Module):
         m, st = self.model, self.stage
         B, _, T, H, W = batch["video"].shape
         plucker = batch["plucker_packed"]
+        image = batch["video"][:, :, 0] * 2 - 1  # (B, 3, H, W) the photograph, for an image branch
+        if st.latent_noise > 0:
+            sigma = (torch.rand(B, generator=gen) * st.latent_noise).to(latents)[:, None, None, None, None]
+            noisy = (1 - sigma) * latents + sigma * torch.randn(latents.shape, generator=gen).to(latents)
+            latents = torch.cat([latents[:, :, :1], noisy[:, :, 1:]], dim=2)
+        sources = source_frame_indices(m.ldrm.config.gaussian_frames, latents.shape[2], m.config.vae.temporal_factor)
         sums: dict[str, Tensor] = {}
-        outs = None if st.deformation else m.ldrm(latents, plucker, None)
+        outs = None if st.deformation else m.ldrm(latents, plucker, None, image)
         for b in range(B):
             times = batch["times"][b].to(latents.dtype)
+            cams = batch["viewmats"][b, sources], batch["Ks"][b, sources]
             if st.deformation:
-                out = m.ldrm(latents[b:b + 1], plucker[b:b + 1], times)
-                g, dm, dq, ds = to_gaussians(out, batch["viewmats"][b, 0], batch["Ks"][b, 0])
+                out = m.ldrm(latents[b:b + 1], plucker[b:b + 1], times, image[b:b + 1])
+                g, dm, dq, ds = to_gaussians(out, *cams)
                 scene = DynamicGaussians(g, times, dm, dq, ds)
             else:
-                g, *_ = to_gaussians(outs, batch["viewmats"][b, 0], batch["Ks"][b, 0], batch_index=b)
+                g, *_ = to_gaussians(outs, *cams, batch_index=b)
                 scene = DynamicGaussians(g)
             others = torch.randperm(T - 1, generator=gen)[: st.render_frames - 1] + 1
             frames = [0] + sorted(others.tolist())
@@ -162,8 +171,10 @@ class TrainingModule(nn.Module):
             if st.motion:
                 tracks, vis = batch["tracks"][b], batch["track_visibility"][b] & batch["track_mask"][b][:, None]
                 idx, ok = track_query_index(tracks[:, 0], batch["Ks"][b, 0], W, H, vis[:, 0])
+                # idx < H·W: the reference frame's grid comes first (diff4splat.pipeline.to_gaussians)
                 pred = gather_track_predictions(g.means[None], scene.d_means[None], idx[None])[0]  # (N, T, 3)
                 parts["motion"] = motion_loss(pred, tracks, vis & ok[:, None])
+                parts["displacement"] = displacement_loss(pred[None], tracks[None], (vis & ok[:, None])[None])
             for k, v in parts.items():
                 sums[k] = sums.get(k, 0) + v / B
         return sums

@@ -55,6 +55,10 @@ class StageConfig:
             included); fewer frames = faster steps.
         deformation: predict deformation (times passed to the LDRM); off in static stages.
         motion: motion (track) loss on.
+        latent_noise: largest σ of the noise mixed into latent frames 1… before the LDRM sees them,
+            x = (1 − σ)·z + σ·ε with σ ~ U(0, latent_noise) per clip (the flow-matching interpolant), so the
+            LDRM learns to read imperfect, generated latents; frame 0 (the photo's own latent) stays clean.
+            0 = off (ours; Lyra-style training on generated latents costs a sampler run per step).
         weights: loss weights (:class:`training.losses.LossWeights`).
         kl_weight: weight of the VAE KL term (per element, β-VAE style).
         caption_dropout: probability of training the DiT without text (the empty-prompt path).
@@ -75,6 +79,7 @@ class StageConfig:
     render_frames: int = 3
     deformation: bool = False
     motion: bool = False
+    latent_noise: float = 0.0
     weights: LossWeights = field(default_factory=LossWeights)
     kl_weight: float = 1e-6
     caption_dropout: float = 0.1
@@ -94,6 +99,8 @@ class StageConfig:
             raise ValueError("stage.motion needs stage.deformation (tracks move through the deformation)")
         if not 1 <= self.render_frames <= self.num_frames:
             raise ValueError(f"stage.render_frames must lie in [1, num_frames], got {self.render_frames}")
+        if not 0 <= self.latent_noise <= 1:
+            raise ValueError(f"stage.latent_noise must lie in [0, 1], got {self.latent_noise}")
         if not 0 <= self.caption_dropout <= 1:
             raise ValueError(f"stage.caption_dropout must lie in [0, 1], got {self.caption_dropout}")
 
