@@ -1,9 +1,13 @@
+import math
+
 import pytest
 import torch
 
 from diff4splat.cameras import CameraPath, intrinsics_from_fov
 from diff4splat.gaussians import Gaussians
-from diff4splat.prune import prune_scene, visibility_mask
+from diff4splat.prune import duplicate_mask, prune_scene, visibility_mask
+from diff4splat.render import rasterize_dense
+from diff4splat.render.defaults import NEAR_PLANE
 from diff4splat.render.sequence import render_path
 from diff4splat.scene import DynamicGaussians
 
@@ -64,3 +68,235 @@ def test_min_opacity_out_of_range_raises():
     with pytest.raises(ValueError, match="min_opacity"):
         prune_scene(_scene(torch.zeros(1, 3, dtype=torch.float64) + 1, torch.ones(1, dtype=torch.float64) * 0.5), None,
                     1.0)
+
+
+# --- duplicate_mask: near-duplicate Gaussians across source frames ------------------------------------------------
+
+W_DUP = H_DUP = 16
+
+
+def _K(n=1):
+    return intrinsics_from_fov(W_DUP, H_DUP, fov_y_deg=60.0, dtype=torch.float64).expand(n, 3, 3).clone()
+
+
+def _plane(z, rows=range(H_DUP), cols=range(W_DUP), viewmat=None, K=None):
+    """Points on the pixel-centre rays of camera ``viewmat`` (default identity) at camera depth ``z``."""
+    K = _K()[0] if K is None else K
+    vm = torch.eye(4, dtype=torch.float64) if viewmat is None else viewmat
+    pts = []
+    for i in rows:
+        for j in cols:
+            pc = torch.tensor([(j + 0.5 - K[0, 2]) / K[0, 0] * z, (i + 0.5 - K[1, 2]) / K[1, 1] * z, z],
+                              dtype=torch.float64)
+            pts.append(vm[:3, :3].T @ (pc - vm[:3, 3]))  # camera → world
+    return torch.stack(pts)
+
+
+def _gaussians(means, opacity=0.9, scale=0.12, d_means=None, key_times=None):
+    n = means.shape[0]
+    q = torch.zeros(n, 4, dtype=torch.float64)
+    q[:, 0] = 1
+    g = Gaussians(means, q, torch.full((n, 3), scale, dtype=torch.float64),
+                  torch.full((n,), opacity, dtype=torch.float64), torch.zeros(n, 1, 3, dtype=torch.float64))
+    if d_means is None:
+        return DynamicGaussians(g)
+    dq = torch.zeros(*d_means.shape[:2], 4, dtype=torch.float64)
+    dq[..., 0] = 1
+    return DynamicGaussians(g, key_times, d_means, dq, torch.zeros_like(d_means))
+
+
+def _cat(*scenes):
+    return DynamicGaussians(Gaussians(*(torch.cat([getattr(s.canonical, f) for s in scenes])
+                                        for f in ("means", "quats", "scales", "opacities", "sh"))))
+
+
+def _source(*counts):
+    return torch.cat([torch.full((c,), s, dtype=torch.long) for s, c in enumerate(counts)])
+
+
+def _eye(n):
+    return torch.eye(4, dtype=torch.float64).repeat(n, 1, 1)
+
+
+def _times(*t):
+    return torch.tensor(t, dtype=torch.float64)
+
+
+def _rot_y(deg, z=0.0):
+    a = math.radians(deg)
+    vm = torch.eye(4, dtype=torch.float64)
+    vm[0, 0], vm[0, 2], vm[2, 0], vm[2, 2] = math.cos(a), math.sin(a), -math.sin(a), math.cos(a)
+    vm[2, 3] = z
+    return vm
+
+
+def test_same_plane_from_the_same_camera_is_all_duplicate_in_the_later_source():
+    p = _plane(2.0)
+    n = p.shape[0]
+    scene = _cat(_gaussians(p), _gaussians(p + 0.01))  # source 1: the same surface, 1 cm off
+    dup = duplicate_mask(scene, _source(n, n), _eye(2), _K(2), _times(0.0, 0.5), W_DUP, H_DUP)
+    assert dup.dtype == torch.bool and dup.shape == (2 * n,)
+    assert not dup[:n].any()  # source 0 is never a duplicate
+    assert dup[n:].all()
+
+
+def test_a_source_frame_seeing_new_content_is_kept():
+    # source 0 covers only the left half of the image; source 1 covers all of it from the same camera
+    left = _plane(2.0, cols=range(W_DUP // 2))
+    full = _plane(2.0)
+    scene = _cat(_gaussians(left), _gaussians(full))
+    dup = duplicate_mask(scene, _source(len(left), len(full)), _eye(2), _K(2), _times(0.0, 1.0), W_DUP, H_DUP)
+    grid = dup[len(left):].reshape(H_DUP, W_DUP)
+    assert grid[:, :W_DUP // 2 - 1].all()  # already covered
+    assert not grid[:, W_DUP // 2 + 1:].any()  # never covered: A < min_alpha
+    # camera 1 turned around (looking along −z): source 0's plane is behind it, its own plane is new
+    back = _rot_y(180.0)
+    behind = _plane(2.0, viewmat=back)
+    scene = _cat(_gaussians(full), _gaussians(behind))
+    vms = torch.stack([torch.eye(4, dtype=torch.float64), back])
+    dup = duplicate_mask(scene, _source(len(full), len(behind)), vms, _K(2), _times(0.0, 1.0), W_DUP, H_DUP)
+    assert not dup.any()
+
+
+def test_gaussians_in_front_of_or_behind_the_earlier_surface_are_kept():
+    wall = _plane(3.0)
+    rows, cols = range(6, 10), range(6, 10)
+    front, on, back = _plane(2.0, rows, cols), _plane(3.0, rows, cols), _plane(4.0, rows, cols)
+    scene = _cat(_gaussians(wall), _gaussians(front), _gaussians(on), _gaussians(back))
+    source = torch.cat([_source(len(wall)), torch.ones(3 * len(front), dtype=torch.long)])
+    dup = duplicate_mask(scene, source, _eye(2), _K(2), _times(0.0, 1.0), W_DUP, H_DUP)
+    k = len(front)
+    assert not dup[len(wall):len(wall) + k].any()  # 1 m in front: a new occluder
+    assert dup[len(wall) + k:len(wall) + 2 * k].all()  # on the surface: a duplicate
+    assert not dup[len(wall) + 2 * k:].any()  # 1 m behind: hidden surface, kept
+
+
+def _on_world_plane(z_world, row, col, viewmat):
+    """(1, 3) point where the ray through pixel (row, col) of camera ``viewmat`` meets the plane z = z_world."""
+    K = _K()[0]
+    d_cam = torch.tensor([(col + 0.5 - K[0, 2]) / K[0, 0], (row + 0.5 - K[1, 2]) / K[1, 1], 1.0], dtype=torch.float64)
+    R, t = viewmat[:3, :3], viewmat[:3, 3]
+    centre, d = -R.T @ t, R.T @ d_cam
+    return (centre + (z_world - centre[2]) / d[2] * d)[None]
+
+
+def _brute_force(scene, source, viewmats, Ks, times, width, height, min_alpha=0.5, depth_tolerance=0.05,
+                 exclude_duplicates=True):
+    """Per-candidate loop: render the earlier sources' kept Gaussians with the dense reference renderer and
+    test each Gaussian of source s by hand (``exclude_duplicates=False`` is the wrong rule that renders
+    earlier duplicates too)."""
+    M, S = scene.num_gaussians, viewmats.shape[0]
+    dup = [False] * M
+    for s in range(1, S):
+        g = scene.at(float(times[s]), gate=0.0)
+        earlier = [i for i in range(M) if source[i] < s and (not dup[i] or not exclude_duplicates)]
+        if not earlier:
+            continue
+        e = torch.tensor(earlier)
+        out, alpha, _ = rasterize_dense(g.means[e], g.quats[e], g.scales[e], g.opacities[e], g.opacities[e, None],
+                                        viewmats[s:s + 1], Ks[s:s + 1], width, height, render_mode="ED")
+        R, t, K = viewmats[s, :3, :3].tolist(), viewmats[s, :3, 3].tolist(), Ks[s].tolist()
+        for i in range(M):
+            if int(source[i]) != s:
+                continue
+            m = g.means[i].tolist()
+            x, y, z = (sum(R[r][c] * m[c] for c in range(3)) + t[r] for r in range(3))
+            if z <= NEAR_PLANE:
+                continue
+            u, v = K[0][0] * x / z + K[0][2], K[1][1] * y / z + K[1][2]
+            if not (0 <= u < width and 0 <= v < height):
+                continue
+            a, d = float(alpha[0, math.floor(v), math.floor(u), 0]), float(out[0, math.floor(v), math.floor(u), 0])
+            dup[i] = a >= min_alpha and abs(z - d) <= depth_tolerance * d
+    return torch.tensor(dup)
+
+
+def _random_scene(per=160, seed=3):
+    """Three source cameras (turned ±8°, moved ±0.1 m) see the world plane z = 2.5 that moves with time;
+    ``per`` Gaussians each on random pixels' rays, 10 % of them off the plane, random opacities and scales."""
+    gen = torch.Generator().manual_seed(seed)
+    vms = torch.stack([_rot_y(0.0), _rot_y(8.0, 0.1), _rot_y(-6.0, -0.1)])
+    parts = []
+    for s in range(3):
+        rows = torch.randint(0, H_DUP, (per,), generator=gen).tolist()
+        cols = torch.randint(0, W_DUP, (per,), generator=gen).tolist()
+        on = torch.cat([_on_world_plane(2.5, r, c, vms[s]) for r, c in zip(rows, cols, strict=True)])
+        off = torch.where(torch.rand(per, 1, generator=gen) < 0.1,
+                          torch.randn(per, 1, generator=gen, dtype=torch.float64), 0.0)
+        centre = -vms[s, :3, :3].T @ vms[s, :3, 3]
+        parts.append(on + off * (on - centre) / (on - centre).norm(dim=1, keepdim=True))
+    means = torch.cat(parts)
+    M = means.shape[0]
+    d_means = 0.03 * torch.randn(3, M, 3, generator=gen, dtype=torch.float64)  # a common motion + jitter
+    d_means[0] = 0
+    d_means[1:, :, 2] += torch.tensor([[0.2], [0.4]], dtype=torch.float64)
+    scene = _gaussians(means, 0.9, 0.15, d_means, _times(0.0, 0.5, 1.0))
+    scene.canonical.opacities = 0.2 + 0.79 * torch.rand(M, generator=gen, dtype=torch.float64)
+    scene.canonical.scales = 0.04 + 0.08 * torch.rand(M, 3, generator=gen, dtype=torch.float64)
+    return scene, _source(per, per, per), vms, _K(3), _times(0.0, 0.25, 0.75)
+
+
+def test_matches_the_brute_force_on_a_random_dynamic_scene():
+    per = 160
+    scene, source, vms, Ks, times = _random_scene(per)
+    dup = duplicate_mask(scene, source, vms, Ks, times, W_DUP, H_DUP)
+    expected = _brute_force(scene, source, vms, Ks, times, W_DUP, H_DUP)
+    assert dup.tolist() == expected.tolist()
+    assert 10 < int(dup.sum()) < 2 * per - 10  # both outcomes occur
+    # the scene is sensitive to the sequential rule: rendering earlier duplicates too changes the answer
+    assert _brute_force(scene, source, vms, Ks, times, W_DUP, H_DUP, exclude_duplicates=False).tolist() \
+        != expected.tolist()
+
+
+def test_the_deformation_at_the_source_time_is_applied():
+    # source 0's plane is at z = 2 at t = 0 and moves 0.5 m away by t = 1; source 1 (frame at t = 1)
+    # places the same surface at z = 2.5 (static). At t = 1 both lie at 2.5: a duplicate.
+    # (source 0's plane extends 4 pixels past the image at z = 2, so at z = 2.5 it still fills the image)
+    p0, p1 = _plane(2.0, range(-4, H_DUP + 4), range(-4, W_DUP + 4)), _plane(2.5)
+    n0, n1 = p0.shape[0], p1.shape[0]
+    d = torch.zeros(2, n0 + n1, 3, dtype=torch.float64)
+    d[1, :n0, 2] = 0.5
+    both = _cat(_gaussians(p0), _gaussians(p1))
+    scene = DynamicGaussians(both.canonical, _times(0.0, 1.0), d,
+                             torch.tensor([1.0, 0, 0, 0], dtype=torch.float64).expand(2, n0 + n1, 4).clone(),
+                             torch.zeros_like(d))
+    source = _source(n0, n1)
+    assert duplicate_mask(scene, source, _eye(2), _K(2), _times(0.0, 1.0), W_DUP, H_DUP)[n0:].all()
+    # ignoring the time (every source evaluated at t = 0, the canonical positions): source 0 is at z = 2,
+    # 0.5 m in front of source 1's surface, so source 1 is (wrongly) kept as new content behind it
+    assert not duplicate_mask(scene, source, _eye(2), _K(2), _times(0.0, 0.0), W_DUP, H_DUP).any()
+
+
+def test_a_single_source_frame_has_no_duplicates():
+    p = _plane(2.0)
+    dup = duplicate_mask(_gaussians(p), _source(len(p)), _eye(1), _K(1), _times(0.0), W_DUP, H_DUP)
+    assert dup.shape == (len(p),) and not dup.any()
+
+
+@pytest.mark.parametrize("change, match", [
+    ({"source": torch.zeros(3, dtype=torch.long)}, r"source must have shape \(M,\) = \(8,\).*\(3,\)"),
+    ({"source": torch.zeros(8)}, r"source must be an integer tensor.*float32"),
+    ({"source": torch.full((8,), 2)}, r"source must lie in \[0, S\) = \[0, 2\).*\[2, 2\]"),
+    ({"source": torch.full((8,), -1)}, r"source must lie in \[0, S\).*\[-1, -1\]"),
+    ({"viewmats": torch.eye(4, dtype=torch.float64)[None].repeat(0, 1, 1)},
+     r"viewmats must have shape \(S, 4, 4\) with S ≥ 1.*\(0, 4, 4\)"),
+    ({"viewmats": torch.eye(3).repeat(2, 1, 1)}, r"viewmats must have shape.*\(2, 3, 3\)"),
+    ({"Ks": torch.eye(3)[None]}, r"Ks must have shape \(S, 3, 3\) = \(2, 3, 3\).*\(1, 3, 3\)"),
+    ({"times": torch.zeros(3)}, r"times must have shape \(S,\) = \(2,\).*\(3,\)"),
+    ({"times": torch.tensor([0.0, 1.5])}, r"times must lie in \[0, 1\].*1\.5"),
+    ({"times": torch.tensor([0.0, float("nan")])}, r"times contains 1 non-finite"),
+    ({"width": 0}, r"width must be a positive int.*0"),
+    ({"height": 2.5}, r"height must be a positive int.*2\.5"),
+    ({"min_alpha": 0.0}, r"min_alpha must lie in \(0, 1\].*0\.0"),
+    ({"min_alpha": 1.5}, r"min_alpha must lie in \(0, 1\].*1\.5"),
+    ({"min_alpha": float("nan")}, r"min_alpha must lie in \(0, 1\].*nan"),
+    ({"depth_tolerance": 0.0}, r"depth_tolerance must be a positive finite number.*0\.0"),
+    ({"depth_tolerance": -0.1}, r"depth_tolerance must be a positive finite number.*-0\.1"),
+])
+def test_duplicate_mask_bad_inputs_raise(change, match):
+    args = {"scene": _gaussians(_plane(2.0, range(2), range(4))), "source": _source(4, 4), "viewmats": _eye(2),
+            "Ks": _K(2), "times": _times(0.0, 1.0), "width": W_DUP, "height": H_DUP}
+    args.update(change)
+    kw = {k: args.pop(k) for k in ("min_alpha", "depth_tolerance") if k in args}
+    with pytest.raises(ValueError, match=match):
+        duplicate_mask(*args.values(), **kw)
