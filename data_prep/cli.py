@@ -10,6 +10,7 @@ stderr (``data_prep: error: …``) and exit code 2; Ctrl-C exits 130 (:func:`dif
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -73,7 +74,8 @@ def _synth(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     paths = synthesize(args.out, args.scenes, args.seed, size=args.size, frames=args.frames, cameras=args.cameras,
-                       static_ratio=args.static_ratio, workers=args.workers, progress=not args.quiet)
+                       static_ratio=args.static_ratio, texture_ratio=args.texture_ratio, workers=args.workers,
+                       progress=not args.quiet)
     print(f"{len(paths)} scene(s) in {args.out} ({time.perf_counter() - t0:.1f} s)")
     return 0
 
@@ -90,9 +92,23 @@ def _add_synth(sub) -> None:
     p.add_argument("--frames", type=int, default=17, help="frames per camera (default 17)")
     p.add_argument("--cameras", type=int, default=2, help="synchronised cameras per scene (default 2)")
     p.add_argument("--static-ratio", type=float, default=0.3, help="fraction of static scenes in [0, 1] (default 0.3)")
+    p.add_argument("--texture-ratio", type=_unit_float, default=0.5,
+                   help="probability in [0, 1] that a surface gets a crop of a bundled photograph as texture "
+                        "(data_prep/textures/); 0: procedural textures only (default 0.5)")
     p.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_synth)
+
+
+def _unit_float(text: str) -> float:
+    """argparse type: a float in [0, 1]; argparse reports anything else as one line naming the flag and value."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0 <= value <= 1:  # also NaN
+        raise argparse.ArgumentTypeError(f"must be a number in [0, 1], got {text!r}")
+    return value
 
 
 # --------------------------------------------------------------------------- curate

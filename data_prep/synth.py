@@ -3,7 +3,9 @@
 A scene spec (:func:`data_prep.synth_world.sample_scene_spec`) becomes a
 :class:`~diff4splat.scene.DynamicGaussians`: a textured ground disk and cylindrical backdrop wall
 (flat Gaussians on a grid) plus 1–4 objects (flat Gaussians on their surfaces), coloured by a
-procedural texture (checker, stripes, spotted noise blobs, per-Gaussian jitter) times a Lambertian
+procedural texture (checker, stripes, spotted noise blobs) or, with probability ``texture_ratio`` per
+surface, a crop of a bundled real photograph (:mod:`data_prep.textures`; image-textured ground and wall
+get :data:`IMAGE_SPACING` × the Gaussian spacing), plus per-Gaussian jitter, times a Lambertian
 shading term ``ambient + (1 − ambient)·max(0, n·l)`` with a sampled light direction l and tint,
 baked into the degree-0 SH. Object motions (translate/roll, rotate, bounce, deform; formulas in
 :mod:`data_prep.synth_world`) become per-frame deformation maps at the frame times t_i = i/(T−1), so
@@ -17,7 +19,9 @@ and not occluded — its rendered depth at the containing pixel ≥ z − (0.05 
 
 Determinism: scene ``index`` of run ``seed`` samples everything from
 ``numpy.random.default_rng([seed, index])`` and renders with one torch thread, so scenes are
-identical whether made serially, in parallel or on resume.
+identical whether made serially, in parallel or on resume. Image textures are drawn after the procedural
+spec, so ``texture_ratio`` changes only textures (and ground/wall density), and ``texture_ratio`` = 0
+reproduces the procedural-only scenes bit for bit.
 """
 from __future__ import annotations
 
@@ -41,6 +45,7 @@ from diff4splat.scene import DynamicGaussians
 
 from .format import SceneWriter
 from .synth_world import caption_for, sample_scene_spec
+from .textures import image_albedo
 
 __all__ = ["generate_scene", "synthesize", "render_spec", "write_synth_scene", "SynthScene", "build_scene",
            "build_gaussians", "object_transform", "camera_path", "track_visibility", "scene_name", "MAX_TRACKS",
@@ -54,6 +59,9 @@ VISIBILITY_TOL_REL = 0.03
 expected depth averages the depths of the Gaussian centres covering a pixel, weighted front to back,
 so on a curved or slanted surface it lies a few centimetres in front of a surface point (≈ spacing ×
 slope, up to about 0.1 m at 3 m here); back sides of objects lie ≥ 0.3 m behind their front."""
+IMAGE_SPACING = 0.5
+"""Ground and wall Gaussians with an image texture lie this factor closer (4× as many): at the procedural
+spacing (0.25 m at 64 px) a photograph's detail would blur into a few colour blobs."""
 _WALL_HEIGHT = 4.0
 _UP = np.array([0.0, -1.0, 0.0])  # world up (y points down)
 
@@ -75,9 +83,13 @@ def _tangent_frames(normals: np.ndarray) -> np.ndarray:
 
 
 def _texture_rgb(
-    rng: np.random.Generator, tex: dict, base: list[float], uv: np.ndarray, extent: np.ndarray
+    rng: np.random.Generator, tex: dict, base: list[float], uv: np.ndarray, extent: np.ndarray, spacing: float
 ) -> np.ndarray:
-    """Albedo (N, 3) of a procedural texture at surface coordinates ``uv`` (N, 2) metres, ``extent`` (2,) metres."""
+    """Albedo (N, 3) of a texture at surface coordinates ``uv`` (N, 2) metres plus per-Gaussian jitter
+    ``noise``·N(0, 1) (one draw per Gaussian, grey). Procedural kinds use ``base``, ``extent`` (2,) metres;
+    ``"image"`` samples :func:`data_prep.textures.image_albedo` with the Gaussian ``spacing`` (metres)."""
+    if tex["kind"] == "image":
+        return image_albedo(tex, uv, spacing) + tex["noise"] * rng.standard_normal((len(uv), 1))
     c1, c2 = np.asarray(base), np.asarray(tex["color2"])
     ca, sa = math.cos(tex["angle"]), math.sin(tex["angle"])
     u, v = uv[:, 0] * ca + uv[:, 1] * sa, -uv[:, 0] * sa + uv[:, 1] * ca
@@ -151,40 +163,49 @@ def _rot_y(angle: float) -> np.ndarray:
     return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
 
 
+def _density(tex: dict) -> float:
+    """Spacing factor of ground/wall Gaussians: :data:`IMAGE_SPACING` for an image texture, else 1."""
+    return IMAGE_SPACING if tex["kind"] == "image" else 1.0
+
+
 def build_gaussians(spec: dict[str, Any], rng: np.random.Generator) -> tuple[Gaussians, np.ndarray]:
     """Canonical (t = 0) Gaussians of a scene spec.
 
     Returns:
         Gaussians (float32; ground, wall, then objects; flat discs: in-plane σ = 0.7·spacing, normal σ
-        = 0.1 of that), and object_id (M,) int64: −1 for ground/wall, k for ``spec["objects"][k]``.
+        = 0.1 of that; ground/wall spacing 0.25 m·min(1, 64/size)^½ (wall ×1.2), × :data:`IMAGE_SPACING`
+        where image-textured), and object_id (M,) int64: −1 for ground/wall, k for ``spec["objects"][k]``.
     """
     parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, float, float, int]] = []  # pts, nrm, rgb, sigma, opacity, id
     R, gy, light = spec["room_radius"], spec["ground_y"], spec["light"]
     sp = 0.25 * min(1.0, 64 / spec["size"]) ** 0.5
-    g = np.arange(-R, R + 1e-9, sp)
+    sg = sp * _density(spec["ground"]["texture"])
+    g = np.arange(-R, R + 1e-9, sg)
     X, Z = (a.reshape(-1) for a in np.meshgrid(g, g, indexing="ij"))
     keep = X ** 2 + Z ** 2 <= R * R
     X, Z = X[keep], Z[keep]
     pts = np.stack([X, np.full_like(X, gy), Z], 1)
     nrm = np.tile(_UP, (len(X), 1))
     tex = spec["ground"]
-    albedo = _texture_rgb(rng, tex["texture"], tex["color"], pts[:, [0, 2]], np.array([2 * R, 2 * R]))
-    parts.append((pts, nrm, _shade(albedo, nrm, light), sp, 0.97, -1))
-    n_arc = int(math.ceil(2 * math.pi * R / (sp * 1.2)))
+    albedo = _texture_rgb(rng, tex["texture"], tex["color"], pts[:, [0, 2]], np.array([2 * R, 2 * R]), sg)
+    parts.append((pts, nrm, _shade(albedo, nrm, light), sg, 0.97, -1))
+    f = _density(spec["wall"]["texture"])
+    n_arc = int(math.ceil(2 * math.pi * R / (sp * 1.2 * f)))
     th = np.arange(n_arc) * 2 * math.pi / n_arc
-    ys = gy - np.arange(sp * 0.6, _WALL_HEIGHT, sp * 1.2)
+    ys = gy - np.arange(sp * 0.6 * f, _WALL_HEIGHT, sp * 1.2 * f)
     TH, Y = (a.reshape(-1) for a in np.meshgrid(th, ys, indexing="ij"))
     pts = np.stack([R * np.cos(TH), Y, R * np.sin(TH)], 1)
     nrm = -pts * np.array([1.0, 0.0, 1.0]) / R
     tex = spec["wall"]
     uv = np.stack([TH * R, gy - Y], 1)
-    albedo = _texture_rgb(rng, tex["texture"], tex["color"], uv, np.array([2 * math.pi * R, _WALL_HEIGHT]))
-    parts.append((pts, nrm, _shade(albedo, nrm, light), sp * 1.2, 0.97, -1))
+    extent = np.array([2 * math.pi * R, _WALL_HEIGHT])
+    albedo = _texture_rgb(rng, tex["texture"], tex["color"], uv, extent, sp * 1.2 * f)
+    parts.append((pts, nrm, _shade(albedo, nrm, light), sp * 1.2 * f, 0.97, -1))
     for k, obj in enumerate(spec["objects"]):
         p, n, uv, extent, osp = _object_surface(obj)
         Ry = _rot_y(obj["yaw"])
         p, n = p @ Ry.T + np.asarray(obj["center"]), n @ Ry.T
-        albedo = _texture_rgb(rng, obj["texture"], obj["color"], uv, extent)
+        albedo = _texture_rgb(rng, obj["texture"], obj["color"], uv, extent, osp)
         parts.append((p, n, _shade(albedo, n, light), osp, obj["opacity"], k))
     means = np.concatenate([q[0] for q in parts])
     frames = _tangent_frames(np.concatenate([q[1] for q in parts]))
@@ -401,12 +422,14 @@ def write_synth_scene(path: str | os.PathLike, result: SynthScene, extra: dict[s
 
 
 def generate_scene(out_dir: str | os.PathLike, index: int, seed: int, *, size: int = 64, frames: int = 17,
-                   cameras: int = 2, static_ratio: float = 0.3, replace: bool = False) -> Path:
+                   cameras: int = 2, static_ratio: float = 0.3, texture_ratio: float = 0.5,
+                   replace: bool = False) -> Path:
     """Sample, render and write scene ``index`` of run ``seed`` to ``out_dir/scene_{index:05d}`` (atomic).
 
     The scene is static (no object motion) with probability ``static_ratio``, drawn from the scene's
     own generator ``numpy.random.default_rng([seed, index])``, which then samples the spec
-    (:func:`sample_scene_spec`) and drives :func:`render_spec`.
+    (:func:`sample_scene_spec`; each surface gets an image texture with probability ``texture_ratio``)
+    and drives :func:`render_spec`.
 
     Returns:
         The scene folder.
@@ -416,7 +439,8 @@ def generate_scene(out_dir: str | os.PathLike, index: int, seed: int, *, size: i
     """
     rng = np.random.default_rng([seed, index])
     dynamic = bool(rng.random() >= static_ratio)
-    spec = sample_scene_spec(rng, dynamic=dynamic, num_cameras=cameras, size=size, num_frames=frames)
+    spec = sample_scene_spec(rng, dynamic=dynamic, num_cameras=cameras, size=size, num_frames=frames,
+                             texture_ratio=texture_ratio)
     result = render_spec(spec, rng)
     return write_synth_scene(Path(out_dir) / scene_name(index), result, {"seed": seed, "index": index}, replace)
 
@@ -432,7 +456,8 @@ def _init_worker() -> None:
 
 
 def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, size: int = 64, frames: int = 17,
-               cameras: int = 2, static_ratio: float = 0.3, workers: int = 1, progress: bool = True) -> list[Path]:
+               cameras: int = 2, static_ratio: float = 0.3, texture_ratio: float = 0.5, workers: int = 1,
+               progress: bool = True) -> list[Path]:
     """Generate scenes 0 … num_scenes−1 into ``out_dir``, skipping scenes already present (resume).
 
     Each scene is written atomically by :func:`generate_scene`; with ``workers`` > 1 scenes are made
@@ -446,6 +471,8 @@ def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, si
         frames: T ≥ 2 frames per camera.
         cameras: synchronised cameras per scene, ≥ 1.
         static_ratio: probability in [0, 1] of a static scene.
+        texture_ratio: probability in [0, 1] that a surface (ground, wall, object) uses an image texture
+            (:mod:`data_prep.textures`); 0 gives the procedural-only scenes.
         workers: processes, ≥ 1.
         progress: show the progress bar.
 
@@ -463,10 +490,13 @@ def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, si
     _check_int("workers", workers, 1)
     if isinstance(static_ratio, bool) or not isinstance(static_ratio, (int, float)) or not 0 <= static_ratio <= 1:
         raise ValueError(f"static_ratio must be a number in [0, 1], got {static_ratio!r}")
+    if isinstance(texture_ratio, bool) or not isinstance(texture_ratio, (int, float)) or not 0 <= texture_ratio <= 1:
+        raise ValueError(f"texture_ratio must be a number in [0, 1], got {texture_ratio!r}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     todo = [i for i in range(num_scenes) if not (out / scene_name(i) / "meta.json").is_file()]
-    kw = dict(size=size, frames=frames, cameras=cameras, static_ratio=float(static_ratio))
+    kw = dict(size=size, frames=frames, cameras=cameras, static_ratio=float(static_ratio),
+              texture_ratio=float(texture_ratio))
     bar = tqdm(total=num_scenes, initial=num_scenes - len(todo), desc="synth", unit="scene", disable=not progress)
     try:
         if workers == 1 or len(todo) <= 1:

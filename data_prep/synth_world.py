@@ -25,6 +25,8 @@ from typing import Any
 
 import numpy as np
 
+from .textures import IMAGE_TEXTURES, load_texture, texture_names
+
 __all__ = ["COLORS", "SHAPES", "MOTIONS", "CAMERA_MOTIONS", "TEXTURES", "sample_scene_spec", "caption_for",
            "direction_word"]
 
@@ -42,7 +44,8 @@ SHAPES: dict[str, str] = {"sphere": "ball", "box": "box", "ellipsoid": "egg", "b
 MOTIONS: tuple[str, ...] = ("translate", "rotate", "bounce", "deform")
 CAMERA_MOTIONS: tuple[str, ...] = ("orbit", "dolly", "pan", "truck", "static")
 TEXTURES: dict[str, str] = {"plain": "", "checker": "checkered", "stripes": "striped", "noise": "spotted"}
-"""Procedural textures and the adjective used in captions."""
+"""Procedural textures and the adjective used in captions. The fifth kind, ``"image"`` (a crop of a bundled
+photograph, :mod:`data_prep.textures`), takes its adjective from :data:`data_prep.textures.IMAGE_TEXTURES`."""
 
 _MATERIALS = ("wooden", "tiled", "concrete", "carpeted", "grassy", "sandy")
 
@@ -68,6 +71,44 @@ def _texture(rng: np.random.Generator, kinds: tuple[str, ...], base: list[float]
                         "radii": rng.uniform(0.05, 0.2, n).round(4).tolist(),
                         "colors": np.clip(rng.uniform(0, 1, (n, 3)), 0.02, 0.98).round(4).tolist()}
     return tex
+
+
+def _bright(base: list[float]) -> np.ndarray:
+    """A bright version of a base colour (3,): 0.2 + 1.5·base, clipped to [0, 1] (black → dark grey)."""
+    return np.clip(0.2 + 1.5 * np.asarray(base), 0.0, 1.0)
+
+
+def _image_texture(rng: np.random.Generator, base: list[float]) -> dict[str, Any]:
+    """An image texture (fields: :mod:`data_prep.textures`): a random bundled image, a square crop of
+    0.4–1 of its shorter side at a random position, 0.5–3 m of surface per crop width, rotated by a
+    random angle half of the time; grey images tinted by a bright base colour, RGB images by a light
+    tint (weight 0–0.25 of it)."""
+    names = texture_names()
+    name = names[int(rng.integers(len(names)))]
+    img = load_texture(name)
+    h, w = img.shape[:2]
+    c = float(rng.uniform(0.4, 1.0) * min(h, w))
+    crop = [float(rng.uniform(0, w - c)), float(rng.uniform(0, h - c)), c]
+    grey = img.ndim == 2
+    bright = _bright(base)
+    tint = bright if grey else 1 - rng.uniform(0.0, 0.25) * (1 - bright)
+    return {"kind": "image", "file": name, "grey": grey, "crop": np.round(crop, 3).tolist(),
+            "metres": float(rng.uniform(0.5, 3.0)),
+            "angle": float(rng.uniform(0, 2 * math.pi)) if rng.random() < 0.5 else 0.0,
+            "tint": tint.round(4).tolist(), "noise": float(rng.uniform(0.0, 0.04))}
+
+
+def _apply_image_textures(rng: np.random.Generator, spec: dict[str, Any], ratio: float) -> None:
+    """Give the ground, the wall and each object (in this order) an image texture with probability
+    ``ratio`` each, in place; a textured ground's material becomes the image's caption word. Draws
+    nothing when ``ratio`` is 0 (the procedural-only scene, bit for bit)."""
+    if ratio <= 0:
+        return
+    for surface in (spec["ground"], spec["wall"], *spec["objects"]):
+        if rng.random() < ratio:
+            surface["texture"] = _image_texture(rng, surface["color"])
+            if surface is spec["ground"]:
+                surface["material"] = IMAGE_TEXTURES[surface["texture"]["file"]]
 
 
 def direction_word(v_cam: np.ndarray) -> str:
@@ -149,8 +190,13 @@ def _sample_camera(rng: np.random.Generator, fov: float, kind: str) -> dict[str,
 
 
 def sample_scene_spec(rng: np.random.Generator, *, dynamic: bool, num_cameras: int, size: int,
-                      num_frames: int, fps: float = 8.0) -> dict[str, Any]:
+                      num_frames: int, fps: float = 8.0, texture_ratio: float = 0.5) -> dict[str, Any]:
     """Sample a complete scene description.
+
+    The procedural scene is sampled first; then, only if ``texture_ratio`` > 0, each surface (ground,
+    wall, objects) draws whether it gets an image texture instead of its procedural one. So a scene's
+    layout, colours, motions and cameras do not depend on ``texture_ratio``, and ``texture_ratio`` = 0
+    gives exactly the procedural-only specs (and generator state) of earlier versions.
 
     Args:
         rng: the scene's own generator (its seed makes the scene reproducible).
@@ -159,6 +205,7 @@ def sample_scene_spec(rng: np.random.Generator, *, dynamic: bool, num_cameras: i
         size: image width = height, pixels.
         num_frames: T frames per camera.
         fps: frame rate, Hz.
+        texture_ratio: probability in [0, 1] that a surface uses an image texture (:mod:`data_prep.textures`).
 
     Returns:
         JSON-serialisable dict: ``dynamic``, ``size``, ``num_frames``, ``fps``, ``ground_y``,
@@ -166,7 +213,14 @@ def sample_scene_spec(rng: np.random.Generator, *, dynamic: bool, num_cameras: i
         ``ground`` / ``wall`` {material, color_name, color, texture}, ``objects`` (1–4 dicts with
         shape, half extents (3,) metres, center (3,) metres, colour, texture, motion or None) and
         ``cameras`` (dicts with kind, fov_x_deg, azimuth, distance, height, target_height, delta).
+        A texture is procedural (kind plain/checker/stripes/noise, color2, freq, angle, noise, blobs) or
+        an image (kind ``"image"``, file, grey, crop, metres, angle, tint, noise).
+
+    Raises:
+        ValueError: ``texture_ratio`` is not a number in [0, 1].
     """
+    if isinstance(texture_ratio, bool) or not isinstance(texture_ratio, (int, float)) or not 0 <= texture_ratio <= 1:
+        raise ValueError(f"texture_ratio must be a number in [0, 1], got {texture_ratio!r}")
     room = float(rng.uniform(5.0, 6.0))
     ground_y = float(rng.uniform(0.8, 1.5))
     light = rng.normal(size=3)
@@ -200,11 +254,19 @@ def sample_scene_spec(rng: np.random.Generator, *, dynamic: bool, num_cameras: i
     fov = float(rng.uniform(45, 70))
     spec["cameras"] = [_sample_camera(rng, fov, CAMERA_MOTIONS[int(rng.integers(len(CAMERA_MOTIONS)))])
                        for _ in range(num_cameras)]
+    _apply_image_textures(rng, spec, float(texture_ratio))
     return spec
 
 
+def _texture_word(tex: dict[str, Any]) -> str:
+    return IMAGE_TEXTURES[tex["file"]] if tex["kind"] == "image" else TEXTURES[tex["kind"]]
+
+
 def _object_phrase(o: dict[str, Any]) -> str:
-    words = " ".join(w for w in (o["color_name"], TEXTURES[o["texture"]["kind"]], SHAPES[o["shape"]]) if w)
+    """"a red striped ball"; an RGB image texture shows its own colours, so it gets no colour word."""
+    tex = o["texture"]
+    colour = "" if tex["kind"] == "image" and not tex["grey"] else o["color_name"]
+    words = " ".join(w for w in (colour, _texture_word(tex), SHAPES[o["shape"]]) if w)
     return ("an " if words[0] in "aeiou" else "a ") + words
 
 

@@ -3,6 +3,8 @@ scenes, camera/motion directions, variety, resume, CLI."""
 from __future__ import annotations
 
 import copy
+import hashlib
+import json
 import math
 
 import numpy as np
@@ -11,8 +13,10 @@ import pytest
 from data_prep.cli import main
 from data_prep.format import load_scene
 from data_prep.synth import (
+    IMAGE_SPACING,
     VISIBILITY_TOL_M,
     VISIBILITY_TOL_REL,
+    build_gaussians,
     camera_path,
     generate_scene,
     object_transform,
@@ -21,7 +25,9 @@ from data_prep.synth import (
     synthesize,
 )
 from data_prep.synth_world import CAMERA_MOTIONS, MOTIONS, SHAPES, TEXTURES, caption_for, sample_scene_spec
+from data_prep.textures import IMAGE_TEXTURES, image_albedo
 from data_prep.validate import validate_path, validate_scene
+from diff4splat.gaussians import sh0_to_rgb
 
 SIZE, T = 32, 5
 VERBS = {"translate": ("slides", "rolls"), "rotate": ("spins", "tumbles"), "bounce": ("bounces",),
@@ -143,7 +149,11 @@ def test_captions_mention_sampled_motions():
         moving = [o for o in spec["objects"] if o["motion"]]
         assert bool(moving) == spec["dynamic"] and ("static scene" in cap) == (not moving)
         for o in spec["objects"]:
-            assert o["color_name"] in cap and SHAPES[o["shape"]] in cap
+            tex = o["texture"]
+            word = IMAGE_TEXTURES[tex["file"]] if tex["kind"] == "image" else TEXTURES[tex["kind"]]
+            assert word in cap and SHAPES[o["shape"]] in cap
+            if tex["kind"] != "image" or tex["grey"]:  # an RGB photograph shows its own colours: no colour word
+                assert f"{o['color_name']} {word}".strip() in cap
         for o in moving:
             assert any(v in cap for v in VERBS[o["motion"]["kind"]]), (cap, o["motion"])
 
@@ -204,11 +214,14 @@ def test_motion_formulas():
 
 
 def test_specs_are_varied():
-    seen = {"motion": set(), "camera": set(), "shape": set(), "texture": set(), "colour": set(), "n_obj": set()}
+    seen = {"motion": set(), "camera": set(), "shape": set(), "texture": set(), "colour": set(), "n_obj": set(),
+            "image": set()}
     for k in range(60):
         spec = sample_scene_spec(np.random.default_rng([3, k]), dynamic=True, num_cameras=2, size=SIZE, num_frames=T)
         seen["n_obj"].add(len(spec["objects"]))
         seen["camera"].update(c["kind"] for c in spec["cameras"])
+        for o in (*spec["objects"], spec["ground"], spec["wall"]):
+            seen["image"].add(o["texture"].get("file"))
         for o in spec["objects"]:
             seen["shape"].add(o["shape"])
             seen["texture"].add(o["texture"]["kind"])
@@ -216,7 +229,8 @@ def test_specs_are_varied():
             if o["motion"]:
                 seen["motion"].add(o["motion"]["kind"])
     assert seen["motion"] == set(MOTIONS) and seen["camera"] == set(CAMERA_MOTIONS)
-    assert seen["shape"] == set(SHAPES) and seen["texture"] == set(TEXTURES)
+    assert seen["shape"] == set(SHAPES) and seen["texture"] == {*TEXTURES, "image"}
+    assert seen["image"] == {None, *IMAGE_TEXTURES}  # every bundled photograph is used
     assert len(seen["colour"]) >= 10 and seen["n_obj"] == {1, 2, 3, 4}
 
 
@@ -232,6 +246,9 @@ def test_synthesize_resumes_and_validates(tmp_path):
         synthesize(tmp_path, 1, 0, static_ratio=1.5)
     with pytest.raises(ValueError, match="frames"):
         synthesize(tmp_path, 1, 0, frames=1)
+    for bad in (-0.1, 1.5, math.nan, True, "0.5"):
+        with pytest.raises(ValueError, match=r"texture_ratio must be a number in \[0, 1\]"):
+            synthesize(tmp_path, 1, 0, texture_ratio=bad)
 
 
 @pytest.mark.slow
@@ -248,3 +265,99 @@ def test_cli_synth(tmp_path, capsys):
     assert main(["synth", "--scenes", "x", "--out", str(out)]) == 2
     assert main(["synth", "--out", str(out)]) == 2
     assert capsys.readouterr().err.count("\n") == 2
+
+
+# --------------------------------------------------------------------------- image textures (texture_ratio)
+
+OLD_SPEC_SHA256 = ["84a895f8dfc6c3b600ead9088974f0605b20a928dcd9d8f73ac10bc6e7bbaf17",
+                   "e07bcbca3765eed36c4465b5ebae1513154e16b673ef46254d6a28f020662c4e",
+                   "fa2996ab418e0ce9d950189357acd2c3b5ed124188512cda8c043373b4a4495c"]
+"""sha256 of json.dumps(spec, sort_keys=True) of default_rng([7, k]) specs (dynamic, 1 camera, 16 px, 3
+frames), computed by the procedural-only code before image textures existed (commit 4123a18)."""
+
+
+def _spec(seed, k, ratio, size=SIZE):
+    rng = np.random.default_rng([seed, k])
+    return sample_scene_spec(rng, dynamic=True, num_cameras=1, size=size, num_frames=3, texture_ratio=ratio), rng
+
+
+def _surfaces(spec):
+    return [spec["ground"], spec["wall"], *spec["objects"]]
+
+
+def test_texture_ratio_zero_reproduces_the_procedural_scenes():
+    for k, digest in enumerate(OLD_SPEC_SHA256):
+        spec, _ = _spec(7, k, 0.0, size=16)
+        assert hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest() == digest, k
+    spec, rng = _spec(7, 0, 0, size=16)
+    res = render_spec(spec, rng)
+    rgb = np.stack(res.rgb).astype(np.float64)  # the old code's render of this scene (same commit as above)
+    np.testing.assert_allclose([rgb.mean(), rgb.std()], [0.39332248614583576, 0.22421037246051173], rtol=1e-6)
+    assert res.track_ids[:4].tolist() == [3110, 3111, 3112, 3113]
+    assert res.caption == ("a yellow ball rolls towards the camera on a concrete floor, "
+                           "while the camera trucks right")
+
+
+def test_texture_ratio_one_textures_every_surface_and_changes_only_textures():
+    for k in range(8):
+        plain, _ = _spec(8, k, 0.0)
+        full, _ = _spec(8, k, 1.0)
+        half, _ = _spec(8, k, 0.5)
+        assert all(s["texture"]["kind"] == "image" for s in _surfaces(full))
+        assert not any(s["texture"]["kind"] == "image" for s in _surfaces(plain))
+        for s in _surfaces(full):
+            t = s["texture"]
+            assert t["file"] in IMAGE_TEXTURES and 0.5 <= t["metres"] <= 3.0
+            assert 0 <= min(t["tint"]) <= max(t["tint"]) <= 1
+        assert full["ground"]["material"] == IMAGE_TEXTURES[full["ground"]["texture"]["file"]]
+        for other in (full, half):  # layout, colours, motions and cameras do not depend on texture_ratio
+            strip = lambda sp: {**sp, "ground": None, "wall": None,  # noqa: E731
+                                "objects": [{**o, "texture": None} for o in sp["objects"]]}
+            assert strip(other) == strip(plain)
+            for a, b in zip(_surfaces(other), _surfaces(plain), strict=True):
+                assert a["texture"] == b["texture"] or a["texture"]["kind"] == "image"
+    kinds = [s["texture"]["kind"] == "image" for k in range(40) for s in _surfaces(_spec(9, k, 0.5)[0])]
+    assert 0.35 < np.mean(kinds) < 0.65
+    with pytest.raises(ValueError, match="texture_ratio"):
+        _spec(9, 0, 1.01)
+
+
+def test_image_textured_ground_shows_the_photograph():
+    """The ground Gaussians' colours are the image texture at their (x, z), unjittered and unshaded here
+    (noise 0, ambient 1, white light), and image-textured ground is IMAGE_SPACING × as finely sampled."""
+    spec, _ = _spec(10, 0, 0.0, size=64)
+    spec["light"] = {"direction": [0.0, -1.0, 0.0], "ambient": 1.0, "tint": [1.0, 1.0, 1.0]}
+    on_ground = lambda g, ids: (g.means[:, 1] == spec["ground_y"]).numpy() & (ids == -1)  # noqa: E731  (not boxes)
+    n_plain = int(on_ground(*build_gaussians(spec, np.random.default_rng(0))).sum())
+    tex = {"kind": "image", "file": "camera.png", "grey": True, "crop": [10.0, 20.0, 200.0], "metres": 3.0,
+           "angle": 0.4, "tint": [0.9, 0.6, 0.3], "noise": 0.0}
+    spec["ground"]["texture"] = tex
+    g, ids = build_gaussians(spec, np.random.default_rng(0))
+    ground = on_ground(g, ids)
+    assert abs(ground.sum() / n_plain - IMAGE_SPACING ** -2) < 0.3  # (3.8: the disc's rim)
+    xz = g.means[ground][:, [0, 2]].double().numpy()
+    rgb = sh0_to_rgb(g.sh[ground, 0]).double().numpy()
+    expect = image_albedo(tex, xz, 0.25 * IMAGE_SPACING)
+    np.testing.assert_allclose(rgb, expect, atol=1e-5)
+    assert rgb.std(0).max() > 0.1  # the photograph (dark coat, bright sky), not a flat colour
+
+
+def test_image_textured_scenes_are_deterministic(tmp_path):
+    kw = dict(size=SIZE, frames=3, cameras=1, texture_ratio=1.0)
+    a = load_scene(generate_scene(tmp_path / "a", 2, 21, **kw))
+    b = load_scene(generate_scene(tmp_path / "b", 2, 21, **kw))
+    plain = load_scene(generate_scene(tmp_path / "p", 2, 21, **{**kw, "texture_ratio": 0.0}))
+    for i in range(3):
+        assert np.array_equal(a.rgb("cam00", i), b.rgb("cam00", i))
+    assert not np.allclose(a.rgb("cam00", 0), plain.rgb("cam00", 0), atol=0.02)
+    spec = a.meta.extra["synth"]["spec"]
+    assert all(s["texture"]["kind"] == "image" for s in _surfaces(spec))
+    assert spec == b.meta.extra["synth"]["spec"] and validate_scene(tmp_path / "a" / scene_name(2)) == []
+
+
+@pytest.mark.parametrize("value", ["1.5", "-0.1", "nan", "x"])
+def test_cli_bad_texture_ratio_is_one_line_exit_2(tmp_path, capsys, value):
+    assert main(["synth", "--scenes", "1", "--out", str(tmp_path / "d"), "--texture-ratio", value]) == 2
+    err = capsys.readouterr().err
+    assert err == f"data_prep: error: argument --texture-ratio: must be a number in [0, 1], got {value!r}\n"
+    assert not (tmp_path / "d").exists()
