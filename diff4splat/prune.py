@@ -2,6 +2,8 @@
 source frames of a multi-frame reconstruction."""
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -139,7 +141,7 @@ def duplicate_mask(
     """
     S = _check_sources(scene, source, viewmats, Ks, times)
     width, height = check_positive_int("width", width, "pixels"), check_positive_int("height", height, "pixels")
-    if isinstance(min_alpha, bool) or not 0.0 < float(min_alpha) <= 1.0:
+    if isinstance(min_alpha, (bool, str, bytes)) or not 0.0 < _as_float(min_alpha) <= 1.0:
         raise ValueError(f"min_alpha must lie in (0, 1], got {min_alpha!r}")
     depth_tolerance = check_positive("depth_tolerance", depth_tolerance)
     means = scene.canonical.means
@@ -190,3 +192,11 @@ def _check_sources(scene: DynamicGaussians, source: Tensor, viewmats: Tensor, Ks
         lo, hi = int(source.min()), int(source.max())
         raise ValueError(f"source must lie in [0, S) = [0, {S}), got values in [{lo}, {hi}]")
     return S
+
+
+def _as_float(value: object) -> float:
+    """``float(value)``, or NaN (fails every range check) when it is not a number."""
+    try:
+        return float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return math.nan

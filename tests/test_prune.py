@@ -290,6 +290,8 @@ def test_a_single_source_frame_has_no_duplicates():
     ({"min_alpha": 0.0}, r"min_alpha must lie in \(0, 1\].*0\.0"),
     ({"min_alpha": 1.5}, r"min_alpha must lie in \(0, 1\].*1\.5"),
     ({"min_alpha": float("nan")}, r"min_alpha must lie in \(0, 1\].*nan"),
+    ({"min_alpha": "0.5"}, r"min_alpha must lie in \(0, 1\].*'0\.5'"),
+    ({"min_alpha": None}, r"min_alpha must lie in \(0, 1\].*None"),
     ({"depth_tolerance": 0.0}, r"depth_tolerance must be a positive finite number.*0\.0"),
     ({"depth_tolerance": -0.1}, r"depth_tolerance must be a positive finite number.*-0\.1"),
 ])
