@@ -116,3 +116,19 @@ def test_gather_track_predictions_follows_pixel_aligned_gaussians():
     assert out.shape == (1, 3, T, 3)
     for p, m in enumerate(idx[0].tolist()):
         torch.testing.assert_close(out[0, p], means[0, m] + d[0, :, m])
+
+
+def test_displacement_loss_ignores_frame_0_offsets_and_matches_a_loop():
+    """A prediction off by a constant (wrong depth, right motion) has zero displacement loss; otherwise the
+    loss is the mean over (p, t ≥ 1) visible at 0 and at t of ‖(x̂_t − x̂_0) − (x_t − x_0)‖."""
+    from training.losses import displacement_loss
+
+    g = torch.Generator().manual_seed(0)
+    target = torch.randn(1, 5, 4, 3, generator=g)
+    vis = torch.rand(1, 5, 4, generator=g) > 0.3
+    assert float(displacement_loss(target + torch.tensor([0.3, -1.0, 2.0]), target, vis)) < 1e-5
+    pred = torch.randn(1, 5, 4, 3, generator=g)
+    terms = [float(((pred[0, p, t] - pred[0, p, 0]) - (target[0, p, t] - target[0, p, 0])).norm())
+             for p in range(5) for t in range(1, 4) if vis[0, p, 0] and vis[0, p, t]]
+    assert terms
+    assert float(displacement_loss(pred, target, vis)) == pytest.approx(sum(terms) / len(terms), rel=1e-5)

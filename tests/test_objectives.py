@@ -104,7 +104,8 @@ def test_render_frames_uses_each_frames_time_and_camera():
 
 # ----------------------------------------------------------------------------------- TrainingModule
 NETWORKS = ("vae", "text_encoder", "dit", "ldrm", "ldrm.deformation")
-WEIGHTS = LossWeights(ssim=0.2, rgb=2.0, depth=0.5, smooth=0.25, motion=3.0)  # not the defaults: the sum is checked
+# not the defaults: the sum is checked
+WEIGHTS = LossWeights(ssim=0.2, rgb=2.0, depth=0.5, smooth=0.25, motion=3.0, displacement=1.5)
 
 
 def _network(name: str) -> str:
@@ -119,10 +120,10 @@ CASES = {
                {"flow", "photo", "depth", "smooth"}, {"dit", "ldrm"}),
     # the deformation network runs (deformation on) but is frozen: it must get no gradient
     "frozen_deformation": (dict(train=("ldrm",), objectives=("reconstruction",), deformation=True, motion=True),
-                           {"photo", "depth", "smooth", "motion"}, {"ldrm"}),
+                           {"photo", "depth", "smooth", "motion", "displacement"}, {"ldrm"}),
     "stage3": (dict(train=("dit", "ldrm", "ldrm.deformation"), objectives=("diffusion", "reconstruction"),
                     scenes="all", deformation=True, motion=True),
-               {"flow", "photo", "depth", "smooth", "motion"}, {"dit", "ldrm", "ldrm.deformation"}),
+               {"flow", "photo", "depth", "smooth", "motion", "displacement"}, {"dit", "ldrm", "ldrm.deformation"}),
 }
 
 
@@ -142,9 +143,9 @@ def test_forward_losses_and_gradients_reach_only_the_trainable_networks(clips, c
         "vae": lambda terms: terms["vae_l1"] + stage.kl_weight * terms["vae_kl"],
         "stage1": lambda terms: terms["flow"] + 2.0 * terms["photo"] + 0.5 * terms["depth"] + 0.25 * terms["smooth"],
         "frozen_deformation": lambda terms: (2.0 * terms["photo"] + 0.5 * terms["depth"] + 0.25 * terms["smooth"]
-                                             + 3.0 * terms["motion"]),
+                                             + 3.0 * terms["motion"] + 1.5 * terms["displacement"]),
         "stage3": lambda terms: (terms["flow"] + 2.0 * terms["photo"] + 0.5 * terms["depth"] + 0.25 * terms["smooth"]
-                                 + 3.0 * terms["motion"]),
+                                 + 3.0 * terms["motion"] + 1.5 * terms["displacement"]),
     }[case](losses)
     torch.testing.assert_close(losses["loss"], expected)
     if "motion" in keys:
@@ -207,7 +208,8 @@ def test_reconstruction_losses_equal_a_hand_computation(clips):
         latents = model.vae.encode_latents(batch["video"] * 2 - 1)
         times = batch["times"][0]
         out = model.ldrm(latents, batch["plucker_packed"], times)
-        g, dm, dq, ds = to_gaussians(out, batch["viewmats"][0, 0], batch["Ks"][0, 0])
+        sources = [4 * i for i in range(latents.shape[2])]  # gaussian_frames "latent"
+        g, dm, dq, ds = to_gaussians(out, batch["viewmats"][0, sources], batch["Ks"][0, sources])
         scene = DynamicGaussians(g, times, dm, dq, ds)
         draw = torch.randperm(FRAMES - 1, generator=torch.Generator().manual_seed(0))[:2] + 1
         frames = [0] + sorted(draw.tolist())
@@ -220,7 +222,7 @@ def test_reconstruction_losses_equal_a_hand_computation(clips):
     # motion by hand, track by track
     tracks, K = batch["tracks"][0].double(), batch["Ks"][0, 0].double()
     vis = batch["track_visibility"][0] & batch["track_mask"][0][:, None]
-    errors = []
+    errors, moves = [], []
     for n in range(tracks.shape[0]):
         x, y, z = tracks[n, 0].tolist()
         if not bool(vis[n, 0]) or z <= 1e-6:
@@ -232,7 +234,33 @@ def test_reconstruction_losses_equal_a_hand_computation(clips):
         for t in range(FRAMES):
             if bool(vis[n, t]):
                 errors.append(float((g.means[i] + dm[t, i] - tracks[n, t]).norm()))
-    assert len(errors) > 20
+                if t > 0:  # displacement from frame 0 (visible at 0 by the test above)
+                    moves.append(float((dm[t, i] - dm[0, i] - (tracks[n, t] - tracks[n, 0])).norm()))
+    assert len(errors) > 20 and len(moves) > 20
     assert float(losses["motion"]) == pytest.approx(sum(errors) / len(errors), rel=1e-5)
-    weighted = 2.0 * losses["photo"] + 0.5 * losses["depth"] + 0.25 * losses["smooth"] + 3.0 * losses["motion"]
+    assert float(losses["displacement"]) == pytest.approx(sum(moves) / len(moves), rel=1e-4)
+    weighted = (2.0 * losses["photo"] + 0.5 * losses["depth"] + 0.25 * losses["smooth"] + 3.0 * losses["motion"]
+                + 1.5 * losses["displacement"])
     torch.testing.assert_close(losses["loss"], weighted)
+
+
+@pytest.mark.slow
+def test_latent_noise_reaches_frames_after_the_first_only(clips, monkeypatch):
+    """latent_noise > 0: the LDRM sees frame 0's clean latent and noised later frames, (1 − σ)z + σε with
+    σ ≤ latent_noise; latent_noise = 0 passes the encoded video unchanged."""
+    model = tiny_model(seed=1)
+    batch = default_collate(clips[:1])
+    seen = []
+    real = model.ldrm.forward
+    monkeypatch.setattr(model.ldrm, "forward", lambda lat, *a, **k: seen.append(lat) or real(lat, *a, **k))
+    with torch.no_grad():
+        clean = model.vae.encode_latents(batch["video"] * 2 - 1)
+        for noise in (0.0, 0.5):
+            stage = StageConfig(height=SIZE, width=SIZE, num_frames=FRAMES, render_frames=2, train=("ldrm",),
+                                objectives=("reconstruction",), latent_noise=noise)
+            TrainingModule(model, stage)(batch, torch.Generator().manual_seed(0))
+    assert torch.equal(seen[0], clean)
+    assert torch.equal(seen[1][:, :, 0], clean[:, :, 0]) and not torch.allclose(seen[1][:, :, 1:], clean[:, :, 1:])
+    # x = (1 − σ)z + σε with one σ ≤ 0.5 per clip: the residual is a scaled standard normal, far below |z| + |ε|
+    resid = seen[1][:, :, 1:] - clean[:, :, 1:]
+    assert 0 < float(resid.std()) < 0.5 * float((clean[:, :, 1:].std() ** 2 + 1) ** 0.5) * 1.2

@@ -30,12 +30,18 @@ def test_untrained_deformation_gives_a_static_scene_with_pixel_aligned_gaussians
     pipe = Diff4SplatPipeline(tiny_model())
     res = _run(pipe, image)
     assert res.scene.is_static and res.scene.times is None  # zero-init deformation = identity → stored as static
-    assert res.prune_stats["before"] == 64 * 64
+    assert res.source_frames.tolist() == [0, 4, 8]  # FRAMES = 9 → 3 latent frames
+    S = len(res.source_frames)
+    assert res.prune_stats["before"] == S * 64 * 64
+    stats = res.prune_stats
+    assert stats["after"] == stats["before"] - stats["duplicates"] - stats["low_opacity"] - stats["unseen"]
+    assert res.gaussian_index.shape == (res.scene.num_gaussians,) and bool((res.gaussian_index.diff() > 0).all())
     g = res.scene.canonical
     assert torch.isfinite(g.means).all() and (g.scales > 0).all()
-    # the reference camera (identity) sees each Gaussian at its own pixel centre
-    if res.prune_stats["after"] == res.prune_stats["before"]:
-        uv = (res.cameras.Ks[0] @ g.means.T).T
+    # the reference camera (identity) sees each frame-0 Gaussian at its own pixel centre
+    ref = res.gaussian_index < 64 * 64
+    if int(ref.sum()) == 64 * 64:
+        uv = (res.cameras.Ks[0] @ g.means[ref].T).T
         uv = uv[:, :2] / uv[:, 2:]
         _, d = camera_rays(res.cameras.viewmats[:1], res.cameras.Ks[:1], 64, 64)
         jj, ii = torch.meshgrid(torch.arange(64) + 0.5, torch.arange(64) + 0.5, indexing="xy")
@@ -135,49 +141,58 @@ def test_bad_inputs_raise_value_error(image, bad):
         pipe(image, cams, "", **kw)
 
 
-def _maps(B=1, K=3, H=12, W=16, seed=0) -> LDRMOutput:
-    """Random activated LDRM maps in their documented ranges (no network needed)."""
+def _maps(B=1, K=3, S=2, H=12, W=16, seed=0) -> LDRMOutput:
+    """Random activated LDRM maps of S source frames in their documented ranges (no network needed)."""
     g = torch.Generator().manual_seed(seed)
-    quats = torch.randn(B, H, W, 4, generator=g)
-    d_quats = torch.randn(B, K, H, W, 4, generator=g)
-    return LDRMOutput(distance=0.5 + 3 * torch.rand(B, H, W, generator=g),
-                      scales=0.01 + 0.05 * torch.rand(B, H, W, 3, generator=g),
+    quats = torch.randn(B, S, H, W, 4, generator=g)
+    d_quats = torch.randn(B, K, S, H, W, 4, generator=g)
+    return LDRMOutput(distance=0.5 + 3 * torch.rand(B, S, H, W, generator=g),
+                      scales=0.01 + 0.05 * torch.rand(B, S, H, W, 3, generator=g),
                       quats=quats / quats.norm(dim=-1, keepdim=True),
-                      opacities=torch.rand(B, H, W, generator=g),
-                      colors=torch.rand(B, H, W, 3, generator=g),
-                      d_means=0.1 * torch.randn(B, K, H, W, 3, generator=g),
+                      opacities=torch.rand(B, S, H, W, generator=g),
+                      colors=torch.rand(B, S, H, W, 3, generator=g),
+                      d_means=0.1 * torch.randn(B, K, S, H, W, 3, generator=g),
                       d_quats=d_quats / d_quats.norm(dim=-1, keepdim=True),
-                      d_scales=0.1 * torch.randn(B, K, H, W, 3, generator=g))
+                      d_scales=0.1 * torch.randn(B, K, S, H, W, 3, generator=g))
 
 
-def test_to_gaussians_puts_each_pixel_on_its_camera_ray():
-    H, W = 12, 16
-    out = _maps(B=2, H=H, W=W)
-    R = quat_to_rotmat(axis_angle_to_quat(torch.tensor([0.3, 1.0, 0.2]), torch.tensor(math.radians(20.0))))
-    t = torch.tensor([0.2, -0.1, 0.5])
+def _viewmat(axis, degrees, t):
     viewmat = torch.eye(4)
-    viewmat[:3, :3], viewmat[:3, 3] = R, t  # a non-identity world-to-camera
-    K = torch.tensor([[14.0, 0.0, 8.5], [0.0, 13.0, 5.5], [0.0, 0.0, 1.0]])
-    g, dm, dq, ds = to_gaussians(out, viewmat, K, batch_index=1)
+    viewmat[:3, :3] = quat_to_rotmat(axis_angle_to_quat(torch.tensor(axis), torch.tensor(math.radians(degrees))))
+    viewmat[:3, 3] = torch.tensor(t)
+    return viewmat
+
+
+def test_to_gaussians_puts_each_pixel_on_its_source_camera_ray():
+    H, W, S = 12, 16, 2
+    out = _maps(B=2, S=S, H=H, W=W)
+    viewmats = torch.stack([_viewmat([0.3, 1.0, 0.2], 20.0, [0.2, -0.1, 0.5]),
+                            _viewmat([0.0, 1.0, 0.0], -35.0, [-0.4, 0.0, 0.1])])  # non-identity world-to-camera
+    Ks = torch.stack([torch.tensor([[14.0, 0.0, 8.5], [0.0, 13.0, 5.5], [0.0, 0.0, 1.0]]),
+                      torch.tensor([[11.0, 0.0, 7.5], [0.0, 12.0, 6.0], [0.0, 0.0, 1.0]])])
+    g, dm, dq, ds = to_gaussians(out, viewmats, Ks, batch_index=1)
     g.validate()
-    M = H * W
+    M = S * H * W
     assert g.num_gaussians == M and g.sh.shape == (M, 1, 3)
     assert dm.shape == (3, M, 3) and dq.shape == (3, M, 4) and ds.shape == (3, M, 3)
-    centre = -R.T @ t
-    for i, j in [(0, 0), (5, 11), (11, 15), (7, 2)]:
-        idx = i * W + j  # row-major pixels of frame 0
-        d_cam = torch.linalg.solve(K, torch.tensor([j + 0.5, i + 0.5, 1.0]))  # explicit K⁻¹ (u, v, 1)
-        d_world = R.T @ d_cam
-        torch.testing.assert_close(g.means[idx], centre + out.distance[1, i, j] * d_world / d_world.norm(),
-                                   atol=1e-5, rtol=1e-5)
-        torch.testing.assert_close(dm[:, idx], out.d_means[1, :, i, j])
-        torch.testing.assert_close(g.quats[idx], out.quats[1, i, j])
-    # projecting the means lands on the pixel centres; the ray distance is recovered
-    cam = g.means @ R.T + t
-    uv = (cam @ K.T)[:, :2] / cam[:, 2:3]
-    v, u = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
-    torch.testing.assert_close(uv, torch.stack([u, v], -1).reshape(M, 2), atol=2e-4, rtol=0)
-    torch.testing.assert_close(cam.norm(dim=-1), out.distance[1].reshape(M), atol=1e-5, rtol=1e-5)
+    for s in range(S):
+        R, t, K = viewmats[s, :3, :3], viewmats[s, :3, 3], Ks[s]
+        centre = -R.T @ t
+        for i, j in [(0, 0), (5, 11), (11, 15), (7, 2)]:
+            idx = s * H * W + i * W + j  # source-frame-major, then row-major pixels
+            d_cam = torch.linalg.solve(K, torch.tensor([j + 0.5, i + 0.5, 1.0]))  # explicit K⁻¹ (u, v, 1)
+            d_world = R.T @ d_cam
+            torch.testing.assert_close(g.means[idx], centre + out.distance[1, s, i, j] * d_world / d_world.norm(),
+                                       atol=1e-5, rtol=1e-5)
+            torch.testing.assert_close(dm[:, idx], out.d_means[1, :, s, i, j])
+            torch.testing.assert_close(g.quats[idx], out.quats[1, s, i, j])
+        # projecting source s's means into camera s lands on the pixel centres; the ray distance is recovered
+        part = slice(s * H * W, (s + 1) * H * W)
+        cam = g.means[part] @ R.T + t
+        uv = (cam @ K.T)[:, :2] / cam[:, 2:3]
+        v, u = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+        torch.testing.assert_close(uv, torch.stack([u, v], -1).reshape(H * W, 2), atol=2e-4, rtol=0)
+        torch.testing.assert_close(cam.norm(dim=-1), out.distance[1, s].reshape(H * W), atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(g.opacities, out.opacities[1].reshape(M))
     torch.testing.assert_close(g.scales, out.scales[1].reshape(M, 3))
     # colours survive the SH-0 encoding (clamped to [1e-4, 1 − 1e-4])
@@ -185,17 +200,61 @@ def test_to_gaussians_puts_each_pixel_on_its_camera_ray():
 
 
 def test_to_gaussians_static_maps_and_errors():
-    out = _maps()
+    out = _maps(S=1)
     out.d_means = out.d_quats = out.d_scales = None
-    K = torch.tensor([[14.0, 0.0, 8.0], [0.0, 14.0, 6.0], [0.0, 0.0, 1.0]])
-    g, dm, dq, ds = to_gaussians(out, torch.eye(4), K)
+    K = torch.tensor([[14.0, 0.0, 8.0], [0.0, 14.0, 6.0], [0.0, 0.0, 1.0]])[None]
+    g, dm, dq, ds = to_gaussians(out, torch.eye(4)[None], K)
     assert dm is None and dq is None and ds is None and g.num_gaussians == 12 * 16
     with pytest.raises(ValueError, match="batch_index"):
-        to_gaussians(out, torch.eye(4), K, batch_index=1)
-    with pytest.raises(ValueError, match="viewmat"):
-        to_gaussians(out, torch.eye(3), K)
-    with pytest.raises(ValueError, match="K"):
-        to_gaussians(out, torch.eye(4), torch.eye(4))
+        to_gaussians(out, torch.eye(4)[None], K, batch_index=1)
+    with pytest.raises(ValueError, match="viewmats"):
+        to_gaussians(out, torch.eye(4), K)  # no source axis
+    with pytest.raises(ValueError, match="viewmats"):
+        to_gaussians(out, torch.eye(4).repeat(2, 1, 1), K.repeat(2, 1, 1))  # 2 cameras for 1 source frame
+    with pytest.raises(ValueError, match="Ks"):
+        to_gaussians(out, torch.eye(4)[None], torch.eye(4)[None])
+
+
+@pytest.mark.slow
+def test_video_latents_replace_the_sampler_and_reach_the_ldrm(image, monkeypatch):
+    """``video_latents`` skips the DiT; the LDRM receives them with frame 0 replaced by the photo's latent."""
+    model = tiny_model()
+    pipe = Diff4SplatPipeline(model)
+    calls, seen = [], []
+    model.dit.register_forward_hook(lambda *a: calls.append(1))
+    real = pipe.runtime.reconstruct
+    monkeypatch.setattr(pipe.runtime, "reconstruct", lambda lat, *a: seen.append(lat) or real(lat, *a))
+    sampled = _run(pipe, image)
+    assert calls
+    calls.clear()
+    noise = torch.randn(sampled.latents.shape, generator=torch.Generator().manual_seed(5))
+    res = _run(pipe, image, video_latents=noise)
+    assert calls == []
+    assert torch.equal(seen[-1][:, :, 1:], noise[:, :, 1:]) and torch.equal(seen[-1][:, :, 0], sampled.latents[:, :, 0])
+    assert torch.equal(res.latents, seen[-1])
+    with pytest.raises(ValueError, match="video_latents"):
+        _run(pipe, image, video_latents=noise[:, :, :2])
+
+
+@pytest.mark.slow
+def test_every_source_frame_contributes_and_duplicates_are_pruned(image):
+    """A trained-like LDRM (opaque Gaussians on a plane seen by every frame of a small arc): later source
+    frames re-describe what frame 0 placed, so duplicate pruning drops most of them; with gaussian_frames
+    "reference" only frame 0's grid exists."""
+    model = tiny_model()
+    with torch.no_grad():
+        model.ldrm.head.weight.zero_()  # every pixel at the default distance, default scale
+        model.ldrm.head.bias.zero_()
+        model.ldrm.head.bias[8] = 6.0  # opacity σ(6) ≈ 1 (raw channels: distance, scales 3, quaternion 4, opacity)
+    pipe = Diff4SplatPipeline(model)
+    cams = pipe.default_cameras("forward", FRAMES, amplitude=0.02)  # 4 cm: within 5 % of the 2 m distance
+    res = pipe(image, cams, "", steps=1)
+    stats = res.prune_stats
+    assert stats["before"] == 3 * 64 * 64
+    assert stats["duplicates"] > 0.5 * 2 * 64 * 64, stats
+    model.ldrm.config.gaussian_frames = "reference"
+    ref = pipe(image, cams, "", steps=1)
+    assert ref.prune_stats["before"] == 64 * 64 and ref.prune_stats["duplicates"] == 0
 
 
 @pytest.mark.slow
