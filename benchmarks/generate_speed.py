@@ -1,6 +1,6 @@
-"""Wall time of `generate` per stage (tiny config, CPU): median over repeats.
+"""Wall time of `generate` per stage (default model config, CPU): median over repeats.
 
-    python benchmarks/generate_speed.py [--frames 17] [--repeats 5] [--write]
+    python benchmarks/generate_speed.py [--frames 17] [--repeats 5] [--config NAME] [--write]
 
 ``--write`` puts the table into docs/benchmarks.md (section ``generate_speed``).
 """
@@ -22,6 +22,7 @@ from diff4splat.io import load_image  # noqa: E402
 from diff4splat.io.output import write_scene_folder  # noqa: E402
 from diff4splat.pipeline import Diff4SplatPipeline, load_model  # noqa: E402
 from diff4splat.render.sequence import render_path  # noqa: E402
+from models.bundle import DEFAULT_CONFIG  # noqa: E402
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
 
@@ -30,7 +31,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=17)
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--config", default="tiny")
+    ap.add_argument("--config", default=DEFAULT_CONFIG, help=f"model config (default: {DEFAULT_CONFIG})")
     ap.add_argument("--write", action="store_true")
     args = ap.parse_args()
 

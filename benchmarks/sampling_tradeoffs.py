@@ -18,19 +18,20 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, markdown_table, repo_relative, write_section  # noqa: E402
 
 from diff4splat.pipeline import Diff4SplatPipeline, load_model  # noqa: E402
+from models.bundle import DEFAULT_CONFIG  # noqa: E402
 from training.evaluate import _held_out_clips, sampling_tradeoffs, stiffness_profile  # noqa: E402
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--checkpoint", default=None, help="model folder (default: shipped tiny weights)")
+    ap.add_argument("--checkpoint", default=None, help=f"model folder (default: shipped {DEFAULT_CONFIG} weights)")
     ap.add_argument("--data", default=None, help="held-out dataset root (default: synthesise --clips scenes)")
     ap.add_argument("--clips", type=int, default=4)
     ap.add_argument("--write", action="store_true")
     args = ap.parse_args()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        model, source = load_model(args.checkpoint, "tiny")
+        model, source = load_model(args.checkpoint, DEFAULT_CONFIG)
     source = repo_relative(source)
     pipe = Diff4SplatPipeline(model)
     cfg = pipe.config

@@ -17,7 +17,6 @@ from .errors import run_cli
 
 __all__ = ["main", "build_parser"]
 
-CONFIG_HELP = "shipped model config (tiny, small, paper) or a YAML path (default: tiny)"
 OUT_HELP = ("output folder, written atomically; an existing one is replaced only if it is empty or an "
             "earlier output of this command (README, 'Output folders')")
 OVERWRITE_HELP = ("also replace an existing --out that is not an earlier output of this command "
@@ -55,7 +54,11 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
     Raises:
         ValueError: ``load_command`` is not a registered entry point.
     """
-    from .cameras import TRAJECTORIES
+    from models.bundle import DEFAULT_CONFIG
+
+    from .cameras import DEFAULT_AMPLITUDES, DEFAULT_TRAJECTORY, TRAJECTORIES
+
+    config_help = f"shipped model config (tiny, small, paper) or a YAML path (default: {DEFAULT_CONFIG})"
 
     parser = _Parser(prog="diff4splat", description="One photograph + a camera path + a prompt → a 4D Gaussian scene.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -63,12 +66,14 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
                        description="Generate a 4D Gaussian scene from one image and write the output folder.")
     g.add_argument("image", help="input photograph (any format OpenCV reads: RGB, RGBA, grey, 8/16-bit)")
     cam = g.add_mutually_exclusive_group()
-    cam.add_argument("--trajectory", choices=TRAJECTORIES, default=None,
-                     help="camera path preset (default: orbit)")
+    cam.add_argument("--trajectory", choices=TRAJECTORIES, default=DEFAULT_TRAJECTORY,
+                     help=f"camera path preset (default: {DEFAULT_TRAJECTORY}; arc sweeps "
+                          f"{DEFAULT_AMPLITUDES['arc']:g} rad to the right around the scene, orbit a full 360°)")
     cam.add_argument("--cameras", type=Path, default=None,
                      help="camera path file: cameras.json (our format) or RealEstate10K .txt")
     g.add_argument("--amplitude", type=float, default=None,
-                   help="preset amplitude in units of the scene depth (preset default if omitted)")
+                   help="preset amplitude: for arc the sweep angle in radians (negative: to the left), "
+                        "else a length in units of the scene depth (preset default if omitted)")
     g.add_argument("--frames", type=int, default=None, help="number of frames T = 1 + 4k (default: config)")
     g.add_argument("--prompt", default="", help="text describing the motion; empty = no text encoder")
     g.add_argument("--steps", type=int, default=None, help="sampler steps (default: config)")
@@ -76,7 +81,7 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
     g.add_argument("--seed", type=int, default=0, help="noise seed (default: 0)")
     g.add_argument("--checkpoint", type=Path, default=None,
                    help="model folder (default: the shipped weights of --config)")
-    g.add_argument("--config", default=None, help=CONFIG_HELP)
+    g.add_argument("--config", default=None, help=config_help)
     g.add_argument("--fps", type=int, default=8, help="video frame rate (default: 8)")
     g.add_argument("--device", default="cpu", help="torch device (default: cpu)")
     g.add_argument("--runtime", choices=("torch", "onnxruntime"), default="torch",
@@ -93,7 +98,7 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
                                    "plus manifest.json.")
     e.add_argument("--checkpoint", type=Path, default=None,
                    help="model folder (default: the shipped weights of --config)")
-    e.add_argument("--config", default="tiny", help=CONFIG_HELP)
+    e.add_argument("--config", default=DEFAULT_CONFIG, help=config_help)
     e.add_argument("--out", type=_out_path, required=True, help=OUT_HELP)
     e.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     e.add_argument("--no-text", action="store_true", help="leave out the text encoder (empty prompt only)")
@@ -215,6 +220,8 @@ def _load_pipeline(args):
     Returns:
         (pipeline, model source description, seconds taken to load, extra version strings for meta.json).
     """
+    from models.bundle import DEFAULT_CONFIG
+
     from .pipeline import Diff4SplatPipeline
 
     if args.runtime == "onnxruntime":
@@ -227,7 +234,7 @@ def _load_pipeline(args):
         t_load = time.perf_counter() - t0
         source = f"onnx:{args.onnx} ({runtime.manifest['source']})"
         return Diff4SplatPipeline(runtime), source, t_load, {"onnxruntime": onnxruntime.__version__}
-    model, source, t_load = _load_model(args.checkpoint, args.config or "tiny")
+    model, source, t_load = _load_model(args.checkpoint, args.config or DEFAULT_CONFIG)
     return Diff4SplatPipeline(model, device=args.device), source, t_load, {}
 
 
@@ -267,7 +274,7 @@ def _load_inputs(args, pipe):
     if args.cameras is not None:
         cameras = _load_cameras(args.cameras, args.frames, photo.shape[:2], cfg.width, cfg.height)
     else:
-        cameras = pipe.default_cameras(args.trajectory or "orbit", args.frames, args.amplitude)
+        cameras = pipe.default_cameras(args.trajectory, args.frames, args.amplitude)
     return image, cameras
 
 
@@ -284,7 +291,7 @@ def _meta(args, pipe, result, source: str, versions: dict, timings: dict) -> dic
         "runtime": pipe.runtime.name,
         "image": str(args.image),
         "prompt": args.prompt,
-        "trajectory": None if args.cameras is not None else (args.trajectory or "orbit"),
+        "trajectory": None if args.cameras is not None else args.trajectory,
         "cameras_file": None if args.cameras is None else str(args.cameras),
         "frames": len(result.cameras),
         "width": cfg.width,

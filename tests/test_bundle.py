@@ -1,9 +1,19 @@
 import dataclasses
+import inspect
 
 import pytest
 import torch
 
-from models.bundle import CONFIG_DIR, Diff4SplatConfig, Diff4SplatModel, load_config
+from diff4splat.pipeline import Diff4SplatPipeline, load_model
+from models.bundle import (
+    CONFIG_DIR,
+    DEFAULT_CONFIG,
+    WEIGHTS_DIR,
+    Diff4SplatConfig,
+    Diff4SplatModel,
+    config_names,
+    load_config,
+)
 from models.pretrained import count_parameters
 
 
@@ -25,6 +35,19 @@ def test_paper_config_on_meta_device_reports_parameter_counts():
     assert counts["text_encoder"] == 4_762_310_656
     assert counts["dit"] > 10_000_000_000  # 32 blocks × 4096 wide
     assert all(p.device.type == "meta" for p in model.parameters())
+
+
+def test_default_config_is_shipped_with_weights_and_is_every_default():
+    """DEFAULT_CONFIG names a shipped config whose trained weights ship too (a plain `generate` must not
+    fall back to a random model), and it is the default of load_model, from_pretrained and the stages."""
+    from training.stages import StageConfig
+
+    assert DEFAULT_CONFIG in config_names()
+    assert load_config(DEFAULT_CONFIG).name == DEFAULT_CONFIG
+    assert (WEIGHTS_DIR / DEFAULT_CONFIG / "config.json").is_file()
+    assert inspect.signature(load_model).parameters["config"].default == DEFAULT_CONFIG
+    assert inspect.signature(Diff4SplatPipeline.from_pretrained).parameters["config"].default == DEFAULT_CONFIG
+    assert StageConfig().model_config == DEFAULT_CONFIG
 
 
 def test_tiny_yaml_equals_dataclass_defaults():

@@ -65,6 +65,53 @@ def test_orbit_keeps_target_centred_and_closes_the_loop():
     torch.testing.assert_close(p.viewmats[:, 1, :3], torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64).expand(T, 3))
 
 
+@pytest.mark.parametrize("a", [0.5, -0.8, 2.0])
+def test_arc_sweeps_its_angle_on_the_circle_around_the_target(a):
+    T, d = 9, 2.5
+    p = make_trajectory("arc", T, K, W, H, scene_depth=d, amplitude=a)
+    assert len(p) == T and torch.equal(p.viewmats[0], torch.eye(4, dtype=torch.float64))
+    target = torch.tensor([0.0, 0.0, d], dtype=torch.float64)
+    uv, depth = project(p, target)  # every camera looks at c, from distance d
+    torch.testing.assert_close(uv, torch.tensor([[W / 2, H / 2]], dtype=torch.float64).expand(T, 2), atol=1e-9, rtol=0)
+    torch.testing.assert_close(depth, torch.full((T,), d, dtype=torch.float64))
+    c = p.camera_centers()
+    torch.testing.assert_close((c - target).norm(dim=-1), torch.full((T,), d, dtype=torch.float64))
+    torch.testing.assert_close(c[:, 1], torch.zeros(T, dtype=torch.float64), atol=1e-12, rtol=0)
+    # The angle at c between the first and last centres is |a| (chord 2d·sin(|a|/2)), in equal steps.
+    u = (c - target) / d
+    angle = torch.atan2(torch.linalg.cross(u[0], u[-1], dim=-1).norm(), u[0] @ u[-1]).item()
+    assert angle == pytest.approx(abs(a), abs=1e-12)
+    assert (c[-1] - c[0]).norm().item() == pytest.approx(2 * d * math.sin(abs(a) / 2))
+    az = torch.atan2(u[:, 0], -u[:, 2])
+    torch.testing.assert_close(az, a * p.times)
+    # a > 0: the eye moves to the first camera's right (+x); a < 0: to its left. Image stays upright.
+    assert math.copysign(1.0, c[-1, 0].item()) == math.copysign(1.0, a) and abs(c[-1, 0].item()) > 0.1
+    torch.testing.assert_close(p.viewmats[:, 1, :3], torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64).expand(T, 3))
+
+
+def test_arc_default_angle_and_mirror_symmetry():
+    d = 2.0
+    p = make_trajectory("arc", 5, K, W, H, scene_depth=d)
+    assert DEFAULT_AMPLITUDES["arc"] == 0.5
+    c = p.camera_centers()
+    assert (c[-1] - c[0]).norm().item() == pytest.approx(2 * d * math.sin(0.25))
+    mirror = make_trajectory("arc", 5, K, W, H, scene_depth=d, amplitude=-0.5).camera_centers()
+    torch.testing.assert_close(mirror, c * torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64))
+
+
+def test_arc_coincides_with_orbit():
+    """orbit advances 2π/T per frame; arc advances a/(T−1): they agree for a = 2π·(T−1)/T, and the
+    full-turn arc (a = 2π) is orbit of T−1 frames plus the frame that closes the loop."""
+    T, d = 8, 3.0
+    orbit = make_trajectory("orbit", T, K, W, H, scene_depth=d)
+    arc = make_trajectory("arc", T, K, W, H, scene_depth=d, amplitude=2 * math.pi * (T - 1) / T)
+    torch.testing.assert_close(arc.viewmats, orbit.viewmats, atol=1e-12, rtol=0)
+    full = make_trajectory("arc", T, K, W, H, scene_depth=d, amplitude=2 * math.pi)
+    short = make_trajectory("orbit", T - 1, K, W, H, scene_depth=d)
+    torch.testing.assert_close(full.viewmats[:-1], short.viewmats, atol=1e-12, rtol=0)
+    torch.testing.assert_close(full.viewmats[-1], torch.eye(4, dtype=torch.float64), atol=1e-12, rtol=0)
+
+
 def test_spiral_looks_at_target_and_reaches_its_radius():
     T, d, a = 17, 2.0, 0.3
     p = make_trajectory("spiral", T, K, W, H, scene_depth=d, amplitude=a)
@@ -141,6 +188,11 @@ def test_look_at_identity_and_up_direction():
         (dict(scene_depth=-1.0), "scene_depth"),
         (dict(scene_depth=float("inf")), "scene_depth"),
         (dict(name="forward", amplitude=0.0), "amplitude"),
+        (dict(name="forward", amplitude=-0.5), "amplitude"),
+        (dict(name="arc", amplitude=0.0), "amplitude"),
+        (dict(name="arc", amplitude=30.0), "amplitude"),  # degrees by mistake: > 2π
+        (dict(name="arc", amplitude=-6.3), "amplitude"),
+        (dict(name="arc", amplitude=float("nan")), "amplitude"),
         (dict(name="orbit", amplitude=0.5), "amplitude"),
         (dict(K=torch.eye(4)), "K"),
         (dict(K=torch.diag(torch.tensor([-1.0, 1.0, 1.0]))), "Ks"),

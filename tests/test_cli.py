@@ -1,5 +1,7 @@
 """End to end: `diff4splat generate` on the shipped photograph, every output file, every bad input."""
+import inspect
 import json
+import math
 import struct
 import subprocess
 import sys
@@ -11,13 +13,15 @@ import torch
 from helpers import EXAMPLE_IMAGE
 from plyfile import PlyData
 
-from diff4splat.cli import main
+from diff4splat.cameras import DEFAULT_AMPLITUDES, DEFAULT_TRAJECTORY
+from diff4splat.cli import build_parser, main
 from diff4splat.io import load_depth_exr, load_ply, load_video, ply_property_names, save_cameras_json
 from diff4splat.io.image import preprocess_image, read_image
 from diff4splat.io.output import load_deformation
 from diff4splat.pipeline import Diff4SplatPipeline
 from diff4splat.quaternions import quat_to_rotmat
 from diff4splat.scene import DynamicGaussians
+from models.bundle import DEFAULT_CONFIG, load_config
 
 INRIA = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]
          + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)])
@@ -73,7 +77,7 @@ def _check_frames_follow_deformation(out, frames):
 @pytest.mark.slow
 def test_generate_writes_every_file_on_the_shipped_photograph(tmp_path, capsys):
     """The README's command (shorter clip): the shipped trained model, no warning, a dynamic scene."""
-    code, out = _generate(tmp_path, "--trajectory", "orbit", "--prompt", "a cat turns its head")
+    code, out = _generate(tmp_path, "--trajectory", "arc", "--prompt", "a cat turns its head")
     assert code == 0
     assert "warning" not in capsys.readouterr().err
     meta = _check_folder(out, 9)
@@ -87,11 +91,21 @@ def test_without_shipped_weights_a_seeded_random_model_is_used_with_a_warning(tm
     import diff4splat.pipeline
 
     monkeypatch.setattr(diff4splat.pipeline, "WEIGHTS_DIR", tmp_path / "no_weights")
-    code, out = _generate(tmp_path, "--trajectory", "orbit", "--frames", "5")
+    code, out = _generate(tmp_path, "--frames", "5")  # no --trajectory, no --config: the defaults
     assert code == 0
     assert "randomly initialised" in capsys.readouterr().err
     meta = _check_folder(out, 5)
-    assert meta["model"] == "random:tiny:seed=0"
+    assert meta["model"] == f"random:{DEFAULT_CONFIG}:seed=0" and meta["config"] == DEFAULT_CONFIG
+    assert meta["trajectory"] == "arc"
+    # The default path is the arc: the first and last centres are 0.5 rad apart around the scene
+    # centre c, at its distance, and the camera moved to its right.
+    d = load_config(DEFAULT_CONFIG).scene_depth
+    viewmats = torch.tensor(json.loads((out / "cameras.json").read_text())["viewmats"], dtype=torch.float64)
+    centres = -torch.einsum("tji,tj->ti", viewmats[:, :3, :3], viewmats[:, :3, 3])
+    u = centres - torch.tensor([0.0, 0.0, d], dtype=torch.float64)
+    torch.testing.assert_close(u.norm(dim=-1), torch.full((5,), d, dtype=torch.float64), atol=1e-5, rtol=0)
+    angle = math.acos(float(u[0] @ u[-1]) / d**2)
+    assert angle == pytest.approx(0.5, abs=1e-4) and centres[-1, 0] > 0
     assert meta["static"] and not (out / "deformation.npz").exists()  # zero-initialised deformation
     canonical = load_ply(out / "scene.ply")
     for i in range(5):  # static: every frame equals the canonical scene
@@ -114,6 +128,7 @@ def test_cameras_file_round_trips_through_generate(tmp_path):
     code2, out2 = main(["generate", str(EXAMPLE_IMAGE), "--cameras", str(out / "cameras.json"), "--steps", "2",
                         "--quiet", "--out", str(tmp_path / "again")]), tmp_path / "again"
     assert code2 == 0
+    assert json.loads((out2 / "meta.json").read_text())["trajectory"] is None  # not the --trajectory default
     a = json.loads((out / "cameras.json").read_text())
     b = json.loads((out2 / "cameras.json").read_text())
     np.testing.assert_allclose(a["viewmats"], b["viewmats"], atol=1e-6)
@@ -282,6 +297,17 @@ def test_evaluate_subcommand_is_loaded_when_chosen(tmp_path):
     assert proc.returncode == 0 and "--data" in proc.stdout and "--sampling" in proc.stdout, proc.stderr
     proc = subprocess.run([sys.executable, "-m", "diff4splat.cli", "evaluate"], capture_output=True, text=True)
     assert proc.returncode == 2 and proc.stderr.strip().count("\n") == 0 and "--data" in proc.stderr
+
+
+def test_defaults_come_from_their_single_homes():
+    """generate's --trajectory and the pipeline's default_cameras share DEFAULT_TRAJECTORY ('arc', a
+    sweep a single photograph supports); export-onnx's --config is models.bundle.DEFAULT_CONFIG."""
+    assert DEFAULT_TRAJECTORY == "arc" and DEFAULT_AMPLITUDES["arc"] == 0.5
+    parser = build_parser()
+    assert parser.parse_args(["generate", "a.png", "--out", "o"]).trajectory == DEFAULT_TRAJECTORY
+    default = inspect.signature(Diff4SplatPipeline.default_cameras).parameters["trajectory"].default
+    assert default == DEFAULT_TRAJECTORY
+    assert parser.parse_args(["export-onnx", "--out", "o"]).config == DEFAULT_CONFIG
 
 
 def test_unknown_arguments_are_one_line_exit_2(tmp_path, capsys):

@@ -4,7 +4,7 @@ from .intrinsics import center_crop_box, fov_from_intrinsics, intrinsics_from_fo
 from .lenses import FisheyeKB, FisheyePolynomial, RollingShutter, ThinLens
 from .path import CameraPath, camera_centers, invert_rigid
 from .rays import camera_rays, pack_plucker, plucker_rays
-from .trajectories import DEFAULT_AMPLITUDES, TRAJECTORIES, look_at, make_trajectory
+from .trajectories import DEFAULT_AMPLITUDES, DEFAULT_TRAJECTORY, TRAJECTORIES, look_at, make_trajectory
 
 __all__ = [
     "camera_rays",
@@ -24,5 +24,6 @@ __all__ = [
     "look_at",
     "make_trajectory",
     "TRAJECTORIES",
+    "DEFAULT_TRAJECTORY",
     "DEFAULT_AMPLITUDES",
 ]

@@ -5,12 +5,21 @@ which is the world frame of the returned path. The scene is assumed to sit aroun
 c = (0, 0, scene_depth) straight ahead of the first camera. Frame i of T has the clip time
 t_i = i/(T−1) (T = 1 → t = 0, a single identity camera).
 
-Presets (eye = camera centre in world coordinates, d = scene_depth, a = amplitude):
+Presets (eye = camera centre in world coordinates, d = scene_depth, a = amplitude). The amplitude of
+``arc`` is an ANGLE in radians; that of every translation preset and ``spiral`` is a LENGTH in units
+of ``scene_depth``; ``orbit`` takes none.
 
+- ``arc`` (the default path of ``diff4splat generate``): part of the orbit circle, the camera sweeps
+  ``a`` radians in total around c, looking at c: eye_i = c + d·(sin θ_i, 0, −cos θ_i) with
+  θ_i = a·t_i. a > 0 moves the eye to the camera's right (+x), a < 0 to its left; 0 < |a| ≤ 2π.
+  Default a = 0.5 rad (≈ 29°), inside the 20–70° orbit sweeps of the synthetic training clips
+  (``data_prep.synth_world``): a path a single photograph supports. With a = 2π·(T−1)/T it is
+  exactly ``orbit`` of T frames.
 - ``orbit``: a full 360° horizontal circle of radius d around c, looking at c:
   eye_i = c + d·(sin θ_i, 0, −cos θ_i) with θ_i = 2π·i/T, i.e. a seamless loop that starts by
   moving to the camera's right; the last frame is one step (2π/T) before returning to the first.
-  ``amplitude`` does not apply (the radius is fixed by the first camera and c).
+  ``amplitude`` does not apply (the radius is fixed by the first camera and c). Most of a full turn
+  shows what one photograph cannot know (the back of the scene); ``arc`` is the conservative path.
 - ``spiral``: an outward planar spiral of two turns in the first camera's image plane, looking at
   c: eye(t) = a·d·t·(cos 4πt, sin 4πt, 0). Default a = 0.25 (final radius d/4).
 - ``forward`` / ``backward``: dolly along ±z, eye(t) = ±a·d·t·(0, 0, 1). Default a = 0.5.
@@ -18,7 +27,7 @@ Presets (eye = camera centre in world coordinates, d = scene_depth, a = amplitud
 - ``pan-left`` / ``pan-right``: truck along ∓x, eye(t) = ∓a·d·t·(1, 0, 0). Default a = 0.25.
 
 The translation presets keep the orientation of the first camera (R = I, looking along +z);
-``orbit`` and ``spiral`` use :func:`look_at` towards c with "up" = −y of the first camera.
+``arc``, ``orbit`` and ``spiral`` use :func:`look_at` towards c with "up" = −y of the first camera.
 """
 from __future__ import annotations
 
@@ -30,12 +39,17 @@ from torch import Tensor
 from ..checks import check_positive_int
 from .path import CameraPath
 
-__all__ = ["TRAJECTORIES", "DEFAULT_AMPLITUDES", "look_at", "make_trajectory"]
+__all__ = ["TRAJECTORIES", "DEFAULT_TRAJECTORY", "DEFAULT_AMPLITUDES", "look_at", "make_trajectory"]
 
-TRAJECTORIES: tuple[str, ...] = ("orbit", "spiral", "forward", "backward", "up", "down", "pan-left", "pan-right")
+TRAJECTORIES: tuple[str, ...] = ("arc", "orbit", "spiral", "forward", "backward", "up", "down", "pan-left", "pan-right")
 """Names accepted by :func:`make_trajectory`."""
 
+DEFAULT_TRAJECTORY = "arc"
+"""The preset used when no camera path is named (``diff4splat generate``,
+``Diff4SplatPipeline.default_cameras``): a short arc that one photograph supports."""
+
 DEFAULT_AMPLITUDES: dict[str, float] = {
+    "arc": 0.5,
     "spiral": 0.25,
     "forward": 0.5,
     "backward": 0.5,
@@ -44,7 +58,8 @@ DEFAULT_AMPLITUDES: dict[str, float] = {
     "pan-left": 0.25,
     "pan-right": 0.25,
 }
-"""Default ``amplitude`` per preset, in units of ``scene_depth`` (``orbit`` takes none)."""
+"""Default ``amplitude`` per preset: radians for ``arc``, units of ``scene_depth`` for the others
+(``orbit`` takes none)."""
 
 _DIRECTIONS = {
     "forward": (0.0, 0.0, 1.0),
@@ -123,8 +138,10 @@ def make_trajectory(
         width: image width, pixels.
         height: image height, pixels.
         scene_depth: distance d (metres, > 0) from the first camera to the scene centre c.
-        amplitude: motion size in units of ``scene_depth`` (> 0); ``None`` → the preset default.
-            Not accepted for ``orbit``.
+        amplitude: motion size; ``None`` → the preset default (:data:`DEFAULT_AMPLITUDES`). For
+            ``arc`` an angle in RADIANS, the total sweep around c: 0 < |amplitude| ≤ 2π, positive to
+            the camera's right, negative to its left. For every other preset a length in units of
+            ``scene_depth``, > 0. Not accepted for ``orbit``.
 
     Returns:
         :class:`CameraPath` with viewmats (T, 4, 4) (viewmats[0] = I exactly), Ks (T, 3, 3),
@@ -132,8 +149,8 @@ def make_trajectory(
 
     Raises:
         ValueError: naming ``name`` (unknown preset), ``num_frames`` (< 1 or not an int),
-            ``scene_depth`` (≤ 0 or not finite), ``amplitude`` (≤ 0, not finite, or given for
-            ``orbit``), ``K`` (not (3, 3)), or a field of :meth:`CameraPath.validate`.
+            ``scene_depth`` (≤ 0 or not finite), ``amplitude`` (not finite, ≤ 0, for ``arc`` 0 or
+            beyond ±2π, or given for ``orbit``), ``K`` (not (3, 3)), or a field of :meth:`CameraPath.validate`.
     """
     if name not in TRAJECTORIES:
         raise ValueError(f"name must be one of {TRAJECTORIES}, got {name!r}")
@@ -144,8 +161,13 @@ def make_trajectory(
         raise ValueError("amplitude does not apply to 'orbit' (its radius is scene_depth); pass None")
     if amplitude is None:
         amplitude = DEFAULT_AMPLITUDES.get(name, 0.0)
-    elif not isinstance(amplitude, (int, float)) or not math.isfinite(amplitude) or amplitude <= 0:
-        raise ValueError(f"amplitude must be a finite number > 0 (units of scene_depth), got {amplitude!r}")
+    elif not isinstance(amplitude, (int, float)) or not math.isfinite(amplitude):
+        raise ValueError(f"amplitude must be a finite number, got {amplitude!r}")
+    elif name == "arc" and not 0 < abs(amplitude) <= 2.0 * math.pi:
+        raise ValueError(f"amplitude of 'arc' is the sweep angle in radians, 0 < |amplitude| ≤ 2π "
+                         f"(e.g. 0.5 ≈ 29°), got {amplitude!r}")
+    elif name != "arc" and amplitude <= 0:
+        raise ValueError(f"amplitude must be > 0 (units of scene_depth), got {amplitude!r}")
     K = torch.as_tensor(K)
     if tuple(K.shape) != (3, 3):
         raise ValueError(f"K must have shape (3, 3), got {tuple(K.shape)}")
@@ -155,8 +177,8 @@ def make_trajectory(
     f64 = torch.float64
     t = torch.arange(T, dtype=f64) / max(T - 1, 1)
     target = torch.tensor([0.0, 0.0, d], dtype=f64)
-    if name == "orbit":
-        theta = 2.0 * math.pi * torch.arange(T, dtype=f64) / T
+    if name in ("arc", "orbit"):  # azimuth θ around c on the horizontal circle of radius d
+        theta = a * t if name == "arc" else 2.0 * math.pi * torch.arange(T, dtype=f64) / T
         eyes = target + d * torch.stack([torch.sin(theta), torch.zeros_like(theta), -torch.cos(theta)], -1)
         viewmats = look_at(eyes, target)
     elif name == "spiral":
