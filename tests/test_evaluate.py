@@ -4,14 +4,15 @@ import pytest
 import torch
 from helpers import tiny_model
 
-from diff4splat.pipeline import Diff4SplatPipeline
+from diff4splat.pipeline import Diff4SplatPipeline, TorchRuntime
+from training.eval_metrics import PSNR_CAP, ablation_noise, image_psnr, kept_index_map
 from training.evaluate import (
+    BASELINES,
     DIAGNOSTICS,
     METRICS,
-    PSNR_CAP,
     _held_out_clips,
-    _pearson,
-    _psnr,
+    aggregate,
+    binned_keys,
     evaluate_clip,
     sampling_tradeoffs,
 )
@@ -37,16 +38,6 @@ def static_clip(tmp_path_factory):
     return clip
 
 
-def test_pearson_and_psnr_closed_forms():
-    a = torch.arange(10.0)
-    assert _pearson(a, 2 * a + 1) == pytest.approx(1.0)
-    assert _pearson(a, -a) == pytest.approx(-1.0)
-    assert _pearson(a, torch.ones(10)) == 0.0  # constant: no correlation, not NaN
-    img = torch.rand(1, 3, 8, 8)
-    assert _psnr(img, img) == PSNR_CAP
-    assert _psnr(torch.zeros(1, 3, 8, 8), torch.full((1, 3, 8, 8), 0.1)) == pytest.approx(20.0, abs=1e-4)
-
-
 @pytest.mark.slow
 def test_metrics_of_a_generated_scene_match_independent_computations(clips):
     """Each metric recomputed from the same generation (seed 0, 2 steps): PSNR from its closed form
@@ -59,8 +50,9 @@ def test_metrics_of_a_generated_scene_match_independent_computations(clips):
 
     clip = clips[0]
     pipe = Diff4SplatPipeline(tiny_model(dynamic=True))
-    m = evaluate_clip(pipe, clip, steps=2)
-    assert set(m) == set(METRICS + DIAGNOSTICS)
+    e = evaluate_clip(pipe, clip, steps=2)
+    m = e.metrics
+    assert set(m) == set(METRICS + DIAGNOSTICS + BASELINES)
     cams = CameraPath(clip["viewmats"].double(), clip["Ks"].double(), 64, 64, clip["times"].double())
     res = pipe(clip["video"][:, 0].permute(1, 2, 0), cams, clip["caption"], steps=2, seed=0)
     colors, depths, alphas = render_path(res.scene, res.cameras)
@@ -82,17 +74,18 @@ def test_metrics_of_a_generated_scene_match_independent_computations(clips):
         recon, _, _ = pipe.model.vae(clip["video"][None] * 2 - 1, sample_posterior=False)
     expected = psnr(((recon[0] + 1) / 2).clamp(0, 1).permute(1, 0, 2, 3).double(), gt)
     assert m["vae_psnr"] == pytest.approx(expected, abs=1e-3)
-
-
-def test_psnr_of_a_corrupted_prediction_drops_by_the_expected_amount():
-    """Adding uniform error e to a perfect prediction gives MSE e², i.e. −20·log10(e) dB; doubling e costs
-    20·log10(2) ≈ 6.02 dB. Predictions are clamped to [0, 1] before scoring."""
-    gt = 0.25 + 0.5 * torch.rand(2, 3, 16, 16, generator=torch.Generator().manual_seed(0))
-    assert _psnr(gt, gt) == PSNR_CAP
-    a, b = _psnr(gt + 0.05, gt), _psnr(gt - 0.1, gt)
-    assert a == pytest.approx(-20 * math.log10(0.05), abs=1e-3)
-    assert a - b == pytest.approx(20 * math.log10(2), abs=1e-3)
-    assert _psnr(gt.clamp(max=0.5) + 10.0, gt) == pytest.approx(_psnr(torch.ones_like(gt), gt), abs=1e-6)
+    assert m["psnr_novel_repeat"] == pytest.approx(psnr(gt[:1].expand_as(gt[1:]), gt[1:]), abs=1e-6)
+    # the oracle: the scene generated from the encoded true video
+    with torch.no_grad():
+        latents = pipe.model.vae.encode_latents(clip["video"][None] * 2 - 1)
+    oracle = pipe(clip["video"][:, 0].permute(1, 2, 0), cams, clip["caption"], steps=2, seed=0, video_latents=latents)
+    colors, _, _ = render_path(oracle.scene, oracle.cameras)
+    assert m["psnr_novel_gt"] == pytest.approx(psnr(colors[1:].permute(0, 3, 1, 2).clamp(0, 1).double(), gt[1:]),
+                                               abs=1e-6)
+    assert e.dynamic and e.max_angle == pytest.approx(float(e.angles.max())) and e.max_angle > 1.0
+    agg = aggregate([e])
+    assert set(agg) == set(METRICS + DIAGNOSTICS + BASELINES + binned_keys())
+    assert agg["psnr_novel"] == m["psnr_novel"] and sum(agg[k] for k in agg if k.startswith("frames_")) == 8
 
 
 @pytest.mark.slow
@@ -103,24 +96,28 @@ def test_loop_psnr_of_a_static_scene_is_its_orbit_input_view_psnr(static_clip):
     from diff4splat.render.sequence import render_path
 
     pipe = Diff4SplatPipeline(tiny_model())  # zero-initialised deformation: a static scene
-    loop = evaluate_clip(pipe, static_clip, steps=1)["loop_psnr"]
+    loop = evaluate_clip(pipe, static_clip, steps=1).metrics["loop_psnr"]
     depth0 = static_clip["depth"][0][static_clip["depth_valid"][0]]
     orbit = make_trajectory("orbit", 9, static_clip["Ks"][0].double(), 64, 64, scene_depth=float(depth0.median()))
     res = pipe(static_clip["video"][:, 0].permute(1, 2, 0), orbit, static_clip["caption"], steps=1)
     colors, _, _ = render_path(res.scene, res.cameras)
-    expected = _psnr(colors[:1].permute(0, 3, 1, 2), static_clip["video"][:, :1].permute(1, 0, 2, 3))
+    expected = image_psnr(colors[:1].permute(0, 3, 1, 2), static_clip["video"][:, :1].permute(1, 0, 2, 3))
     assert loop < PSNR_CAP and loop == pytest.approx(expected, abs=1e-4)
     # predicted motion moves the loop-closing frame away from the photograph: a different score
-    moving = evaluate_clip(Diff4SplatPipeline(tiny_model(dynamic=True)), static_clip, steps=1)["loop_psnr"]
+    moving = evaluate_clip(Diff4SplatPipeline(tiny_model(dynamic=True)), static_clip, steps=1).metrics["loop_psnr"]
     assert math.isfinite(moving) and abs(moving - loop) > 1e-3
 
 
 @pytest.mark.slow
 def test_motion_diagnostics_of_an_identity_deformation(clips):
-    """No deformation: every time equals frame 0, so the error equals holding the points still."""
-    m = evaluate_clip(Diff4SplatPipeline(tiny_model()), clips[0], steps=1)
+    """No deformation: every time equals frame 0, so the error equals holding the points still, and the
+    displacement error equals the true displacement (the prediction does not move)."""
+    m = evaluate_clip(Diff4SplatPipeline(tiny_model()), clips[0], steps=1).metrics
     assert math.isfinite(m["motion_epe"]) and m["motion_epe"] == pytest.approx(m["motion_epe_hold"], abs=1e-6)
     assert m["motion_epe_t0"] > 1e-3  # the random model's geometry misses the tracked points
+    assert m["motion_disp_hold"] > 1e-3  # a dynamic clip: the tracks move
+    assert m["motion_disp_epe"] == pytest.approx(m["motion_disp_hold"], abs=1e-6)
+    assert m["motion_disp_epe_gt"] == pytest.approx(m["motion_disp_hold"], abs=1e-6)  # the oracle scene too
 
 
 @pytest.mark.slow
@@ -135,18 +132,96 @@ def test_sampling_sweep_reports_each_sampler_and_nfe(clips):
 
 @pytest.mark.slow
 def test_evaluate_cli_through_the_entry_point(clips, tmp_path, capsys):
+    """The CLI prints the per-clip table, the metrics and the model beside its baselines per view-angle bin,
+    appends the aggregate row to the CSV, and refuses a CSV with other columns before evaluating."""
+    import csv
+
+    from data_prep.synth import generate_scene
     from diff4splat.cli import main
 
     root = tmp_path / "data"
-    from data_prep.synth import generate_scene
-
     generate_scene(root, 0, seed=5, size=64, frames=9, cameras=1)
+    table = tmp_path / "eval.csv"
     code = main(["evaluate", "--random", "--data", str(root), "--frames", "9", "--steps", "1",
-                 "--csv", str(tmp_path / "eval.csv")])
+                 "--csv", str(table), "--per-clip"])
     assert code == 0
     out = capsys.readouterr().out
-    assert "psnr_input" in out and (tmp_path / "eval.csv").is_file()
-    assert "| random:tiny:seed=0 |" in out  # the untrained model, not the shipped weights
+    assert "psnr_input" in out and "| random:tiny:seed=0 |" in out  # the untrained model, not the shipped weights
+    assert "| scene_00000 |" in out  # the per-clip table
+    for label in ("model (sampled latents)", "noise latents (ablation)", "true-video latents (oracle)",
+                  "repeat frame 0 |", "repeat frame 0, blurred"):
+        assert label in out
+    with open(table, newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 1 and rows[0]["model"] == "random:tiny:seed=0"
+    assert {"psnr_45_90_noise", "psnr_45_90_repeat", "psnr_novel_gt", "motion_disp_epe"} <= set(rows[0])
+    assert sum(int(float(rows[0][f"frames_{b}"])) for b in ("0_15", "15_45", "45_90", "90_180")) == 8
+    assert (tmp_path / "eval_clips.csv").is_file()
+    other = tmp_path / "other.csv"
+    other.write_text("model,psnr_input\nx,1\n")
+    code = main(["evaluate", "--random", "--data", str(root), "--frames", "9", "--steps", "1", "--csv", str(other)])
+    err = capsys.readouterr()
+    assert code != 0 and "--csv:" in err.err and "other columns" in err.err
+    assert "| model (sampled latents)" not in err.out  # refused before evaluating
+    assert other.read_text() == "model,psnr_input\nx,1\n"
+
+
+class _RecordingRuntime(TorchRuntime):
+    """A PyTorch runtime that records the latents every reconstruction starts from."""
+
+    def __init__(self, model):
+        super().__init__(model)
+        self.latents: list[torch.Tensor] = []
+
+    def reconstruct(self, latents, *args):
+        self.latents.append(latents.clone())
+        return super().reconstruct(latents, *args)
+
+
+@pytest.mark.slow
+def test_noise_ablation_reconstructs_from_the_noise(clips):
+    """The ablation's reconstruction gets the seeded noise with frame 0 replaced by the photograph's latent
+    (not the sampled latents), and psnr_novel_noise is the PSNR of that scene; a runtime without the
+    PyTorch VAE has no oracle (NaN)."""
+    from diff4splat.cameras import CameraPath
+    from diff4splat.render.sequence import render_path
+
+    clip = clips[0]  # dynamic: no loop-closure generation
+    runtime = _RecordingRuntime(tiny_model(dynamic=True, active_dit=True))
+    m = evaluate_clip(Diff4SplatPipeline(runtime), clip, steps=1, seed=3).metrics
+    sampled, ablated = runtime.latents  # the sampled scene, then the ablation (no oracle without pipe.model)
+    noise = ablation_noise(sampled.shape, 3)
+    assert torch.equal(ablated[:, :, :1], sampled[:, :, :1])  # the photograph's latent
+    assert torch.allclose(ablated[:, :, 1:], noise[:, :, 1:])
+    assert not torch.allclose(sampled[:, :, 1:], noise[:, :, 1:], atol=1e-3)
+    cams = CameraPath(clip["viewmats"].double(), clip["Ks"].double(), 64, 64, clip["times"].double())
+    res = Diff4SplatPipeline(tiny_model(dynamic=True, active_dit=True))(
+        clip["video"][:, 0].permute(1, 2, 0), cams, clip["caption"], steps=1, seed=3, video_latents=noise)
+    colors, _, _ = render_path(res.scene, res.cameras)
+    expected = image_psnr(colors[1:].permute(0, 3, 1, 2), clip["video"][:, 1:].permute(1, 0, 2, 3))
+    assert m["psnr_novel_noise"] == pytest.approx(expected, abs=1e-6)
+    assert m["psnr_novel_noise"] != pytest.approx(m["psnr_novel"], abs=1e-4)
+    assert math.isnan(m["psnr_novel_gt"]) and math.isnan(m["motion_epe_gt"])
+
+
+@pytest.mark.slow
+def test_gaussian_index_maps_frame0_pixels_to_their_gaussians(clips):
+    """Through kept_index_map(gaussian_index), each kept frame-0 pixel's Gaussian lies on that pixel's ray
+    of the input camera: its canonical mean projects to the pixel's centre."""
+    from diff4splat.cameras import CameraPath
+
+    clip = clips[0]
+    pipe = Diff4SplatPipeline(tiny_model(dynamic=True))
+    cams = CameraPath(clip["viewmats"].double(), clip["Ks"].double(), 64, 64, clip["times"].double())
+    res = pipe(clip["video"][:, 0].permute(1, 2, 0), cams, clip["caption"], steps=1)
+    kept = kept_index_map(res.gaussian_index, len(res.source_frames) * 64 * 64)[: 64 * 64]
+    pixels = torch.nonzero(kept >= 0)[:, 0]
+    assert 0 < len(pixels) and int(res.source_frames[0]) == 0
+    means = res.scene.canonical.means[kept[pixels]].double()
+    uv = means @ res.cameras.Ks[0].double().T
+    uv = uv[:, :2] / uv[:, 2:]
+    expected = torch.stack([pixels % 64 + 0.5, pixels // 64 + 0.5], -1).double()
+    assert torch.allclose(uv, expected, atol=1e-3)
 
 
 @pytest.mark.slow

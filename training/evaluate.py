@@ -1,18 +1,21 @@
-"""Evaluation on held-out scenes: image, depth and motion metrics of generated 4D scenes, and the
-error against run time of the flow-matching samplers.
+"""Evaluation on held-out scenes: image, depth and motion metrics of generated 4D scenes, baselines and
+ablations that show whether the generator matters, and the error against run time of the samplers.
 
-``diff4splat evaluate --checkpoint DIR --data DIR [--random] [--sampling] [--csv FILE]`` (registered
-through the ``diff4splat.commands`` entry point, so the runtime package never imports ``training``).
+``diff4splat evaluate --checkpoint DIR --data DIR [--random] [--per-clip] [--sampling] [--csv FILE]``
+(registered through the ``diff4splat.commands`` entry point, so the runtime package never imports
+``training``). Metric functions live in :mod:`training.eval_metrics`.
 
 Per held-out clip (reference camera, T frames, model resolution), the scene is *generated* exactly as
 ``generate`` does it — from the clip's first frame, its camera path and its caption — and rendered
 along the clip's cameras at the clip's times:
 
 - ``psnr_input``/``ssim_input``: frame 0 (the input view at t = 0) against the ground truth;
-- ``psnr_novel``/``ssim_novel``: frames 1…T−1 (new views at new times);
+- ``psnr_novel``/``ssim_novel``: frames 1…T−1 (new views at new times); PSNR of the MSE over those frames;
 - ``depth_corr``: Pearson correlation of rendered and true metric depth over valid covered pixels;
 - ``motion_epe``: mean distance (metres) between tracked points predicted by the scene (the Gaussian
-  at the track's frame-0 pixel, deformed to each time) and the true 3D tracks, visible points only;
+  at the track's frame-0 pixel, deformed to each time) and the true 3D tracks, visible points only.
+  It is dominated by the frame-0 depth error (``motion_epe_t0``); the displacement error
+  ``motion_disp_epe`` isolates motion (:func:`training.eval_metrics.motion_errors`);
 - ``loop_psnr``: loop closure on static clips. The scene is generated along a 360° ``orbit`` from the
   clip's first frame with the clip's intrinsics, around the point at the median true depth of that frame
   (the orbit's frames advance 2π/T, so the loop closes at the first camera at t = 1),
@@ -23,10 +26,26 @@ along the clip's cameras at the clip's times:
   Dynamic clips have no ground truth for that view and report NaN (skipped in the mean). Comparing the
   rendered first and last frames with each other instead would reward an identity deformation with a
   perfect score whatever the scene looks like, so it is not used.
-
 - ``vae_psnr``: PSNR of the VAE's reconstruction of the whole clip (posterior mean, decoded) against
   the clip — the ceiling that the latents put on everything downstream (PyTorch models only; NaN for
   another runtime).
+
+Does the generator matter? On the same frames 1…T−1 (:data:`BASELINES`):
+
+- ``psnr_novel_repeat``: the input frame repeated for every later frame (no model at all);
+  ``psnr_novel_repeat_blur``: the same after a Gaussian blur (σ 1.5 px, kernel 7);
+- ``psnr_novel_noise``: noise-latent ablation — the same clip generated with the sampled video latents
+  replaced by pure noise (``video_latents``, :func:`training.eval_metrics.ablation_noise`; frame 0 is still
+  the photograph's latent): what the generated video contributes;
+- ``psnr_novel_gt``: the oracle — the latents of the true video (``vae.encode_latents``) instead of sampled
+  ones (PyTorch models only, NaN for another runtime); with ``motion_epe_gt``/``motion_disp_epe_gt`` the
+  LDRM's motion on ground-truth latents, to compare with its motion on generated latents.
+
+PSNR by view angle (:func:`training.eval_metrics.view_angles`: rotation angle of R_i R_0ᵀ from the input
+camera, which for an orbit is its sweep): the frames 1…T−1 of all clips are split into the bins of
+:data:`training.eval_metrics.ANGLE_BINS` (0–15°, 15–45°, 45–90°, > 90°); each bin's PSNR is that of the
+mean MSE over its frames (:func:`training.eval_metrics.binned_psnr`). Keys ``psnr_<bin>`` (the model),
+``psnr_<bin>_<variant>`` for ``noise``, ``gt``, ``repeat``, ``repeat_blur``, and ``frames_<bin>`` (frame count).
 
 With ``--photo IMAGE`` it also reports ``photo_psnr``: the scene generated from a real photograph,
 rendered from the input camera at t = 0, against that photograph.
@@ -37,50 +56,61 @@ import csv
 import math
 import statistics
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
-import kornia
 import torch
 from torch import Tensor
 
 from diff4splat.cameras import CameraPath, make_trajectory
-from diff4splat.pipeline import Diff4SplatPipeline, load_model
+from diff4splat.pipeline import Diff4SplatPipeline, GenerationResult, load_model
 from diff4splat.render.sequence import render_path
+from models.bundle import DEFAULT_CONFIG
 
+from .eval_metrics import (
+    ANGLE_BINS,
+    ablation_noise,
+    binned_psnr,
+    frame_mse,
+    image_psnr,
+    image_ssim,
+    kept_index_map,
+    motion_errors,
+    pearson,
+    psnr_from_mse,
+    repeat_baselines,
+    view_angles,
+)
 from .objectives import track_query_index
 
-__all__ = ["evaluate_clips", "sampling_tradeoffs", "register", "METRICS", "DIAGNOSTICS"]
+__all__ = ["evaluate_clip", "evaluate_clips", "evaluate_all", "aggregate", "ClipEvaluation", "sampling_tradeoffs",
+           "register", "METRICS", "DIAGNOSTICS", "BASELINES", "VARIANTS", "binned_keys"]
 
 METRICS = ("psnr_input", "ssim_input", "psnr_novel", "ssim_novel", "depth_corr", "motion_epe", "loop_psnr",
            "vae_psnr")
 """Reported metrics; higher is better except ``motion_epe`` (metres)."""
 
-DIAGNOSTICS = ("motion_epe_t0", "motion_epe_hold")
+DIAGNOSTICS = ("motion_epe_t0", "motion_epe_hold", "motion_disp_epe", "motion_disp_hold", "motion_epe_gt",
+               "motion_disp_epe_gt")
 """Reported beside the metrics to split ``motion_epe`` (metres, lower is better): ``motion_epe_t0`` is the
 error at frame 0 alone (geometry: where the scene puts the tracked points before anything moves), and
 ``motion_epe_hold`` the error of holding each point at its frame-0 position (no motion). The predicted motion
-helps where ``motion_epe`` < ``motion_epe_hold``; an identity deformation makes them equal."""
+helps where ``motion_epe`` < ``motion_epe_hold``; an identity deformation makes them equal. The absolute EPE
+is dominated by the frame-0 depth error; ``motion_disp_epe`` (error of the displacement from frame 0) against
+``motion_disp_hold`` (the true displacement, i.e. the error of no motion) isolates the motion.
+``motion_epe_gt``/``motion_disp_epe_gt``: the same for the scene generated from the true video's latents."""
+
+VARIANTS = ("noise", "gt", "repeat", "repeat_blur")
+"""Baselines and ablations scored on the model's novel frames (module docstring)."""
+
+BASELINES = tuple(f"psnr_novel_{v}" for v in VARIANTS)
+"""PSNR (dB) of each variant on frames 1…T−1 (mean over clips, like ``psnr_novel``)."""
 
 
-PSNR_CAP = 100.0
-"""PSNR of identical images (MSE 0) is reported as this many dB instead of infinity."""
-
-
-def _psnr(a: Tensor, b: Tensor) -> float:
-    """PSNR in dB of images in [0, 1] (kornia), (F, 3, H, W); capped at :data:`PSNR_CAP`."""
-    if float(((a.clamp(0, 1) - b) ** 2).mean()) <= 10 ** (-PSNR_CAP / 10):
-        return PSNR_CAP
-    return float(kornia.metrics.psnr(a.clamp(0, 1), b, 1.0))
-
-
-def _ssim(a: Tensor, b: Tensor) -> float:
-    return float(kornia.metrics.ssim(a.clamp(0, 1), b, 11).mean())
-
-
-def _pearson(a: Tensor, b: Tensor) -> float:
-    a, b = a - a.mean(), b - b.mean()
-    den = math.sqrt(float((a * a).sum()) * float((b * b).sum()))
-    return float((a * b).sum()) / den if den > 0 else 0.0
+def binned_keys() -> tuple[str, ...]:
+    """Keys of the view-angle bins: ``psnr_<bin>``, ``psnr_<bin>_<variant>``, ``frames_<bin>`` per bin."""
+    return tuple(k for name, _, _ in ANGLE_BINS
+                 for k in (f"psnr_{name}", *(f"psnr_{name}_{v}" for v in VARIANTS), f"frames_{name}"))
 
 
 def _held_out_clips(data: str | Path, height: int, width: int, num_frames: int, limit: int | None):
@@ -92,48 +122,90 @@ def _held_out_clips(data: str | Path, height: int, width: int, num_frames: int, 
     return [ds[i] for i in range(n)]
 
 
-@torch.no_grad()
-def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = None, sampler: str | None = None,
-                  seed: int = 0) -> dict[str, float]:
-    """Metrics of one held-out clip (module docstring). Returns {metric: value}."""
-    cfg = pipe.config
-    T = clip["video"].shape[1]
-    cams = CameraPath(clip["viewmats"].double(), clip["Ks"].double(), cfg.width, cfg.height, clip["times"].double())
-    image = clip["video"][:, 0].permute(1, 2, 0)
-    res = pipe(image, cams, clip["caption"], steps=steps, sampler=sampler, seed=seed)
-    colors, depths, alphas = render_path(res.scene, res.cameras)
-    pred = colors.permute(0, 3, 1, 2)
-    gt = clip["video"].permute(1, 0, 2, 3)
-    out = {"psnr_input": _psnr(pred[:1], gt[:1]), "ssim_input": _ssim(pred[:1], gt[:1]),
-           "psnr_novel": _psnr(pred[1:], gt[1:]) if T > 1 else float("nan"),
-           "ssim_novel": _ssim(pred[1:], gt[1:]) if T > 1 else float("nan")}
-    valid = clip["depth_valid"] & (alphas > 0.5)
-    out["depth_corr"] = (_pearson(depths[valid].double(), clip["depth"][valid].double())
-                         if valid.sum() > 1 else float("nan"))
-    # motion: every Gaussian survives pruning only if seen; map track pixels through the kept indices
+@dataclass
+class ClipEvaluation:
+    """What :func:`evaluate_clip` measures on one clip.
+
+    Attributes:
+        name: the clip's scene name.  dynamic: whether the scene moves.
+        max_angle: camera motion size, the largest view angle of the clip's cameras (degrees).
+        metrics: {key: value} for :data:`METRICS`, :data:`DIAGNOSTICS` and :data:`BASELINES`.
+        angles: (T−1,) view angles (degrees) of frames 1…T−1.
+        frame_mse: {"model" or variant: (T−1,) float64 MSE of frames 1…T−1} (NaN where not available).
+    """
+
+    name: str
+    dynamic: bool
+    max_angle: float
+    metrics: dict[str, float]
+    angles: Tensor
+    frame_mse: dict[str, Tensor] = field(default_factory=dict)
+
+
+def _scene_motion(pipe: Diff4SplatPipeline, res: GenerationResult, clip: dict) -> dict[str, float]:
+    """:func:`motion_errors` of a generated scene: each track's frame-0 pixel → its kept Gaussian
+    (``res.gaussian_index``; frame 0's Gaussians are the first H·W of the unpruned grid) → its positions
+    at the clip's times."""
+    H, W = pipe.config.height, pipe.config.width
     tracks, vis = clip["tracks"], clip["track_visibility"] & clip["track_mask"][:, None]
-    idx, ok = track_query_index(tracks[:, 0], clip["Ks"][0], cfg.width, cfg.height, vis[:, 0])
-    kept = _kept_pixel_map(pipe, res)
+    idx, ok = track_query_index(tracks[:, 0], clip["Ks"][0], W, H, vis[:, 0])
+    kept = kept_index_map(res.gaussian_index, len(res.source_frames) * H * W)
     g_idx = kept[idx]
     ok = ok & (g_idx >= 0)
-    if bool(ok.any()):
-        pred_pts = torch.stack([res.scene.at(float(t)).means[g_idx.clamp(min=0)] for t in res.cameras.times], 1)
-        m = vis & ok[:, None]
-        err = (pred_pts.float() - tracks).norm(dim=-1)
-        hold = (pred_pts[:, :1].float() - tracks).norm(dim=-1)
-        # a mean over no points is NaN, which evaluate_clips skips
-        out["motion_epe"], out["motion_epe_hold"] = float(err[m].mean()), float(hold[m].mean())
-        out["motion_epe_t0"] = float(err[:, 0][m[:, 0]].mean())
-    else:
-        out["motion_epe"] = out["motion_epe_hold"] = out["motion_epe_t0"] = float("nan")
-    out["loop_psnr"] = _loop_psnr(pipe, image, clip, T, steps=steps, sampler=sampler, seed=seed)
-    out["vae_psnr"] = float("nan")
+    pred = torch.stack([res.scene.at(float(t)).means[g_idx.clamp(min=0)] for t in res.cameras.times], 1)
+    return motion_errors(pred, tracks, vis & ok[:, None])
+
+
+@torch.no_grad()
+def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = None, sampler: str | None = None,
+                  seed: int = 0) -> ClipEvaluation:
+    """Metrics, baselines and ablations of one held-out clip (module docstring).
+
+    Generates the clip's scene three times (sampled latents, noise latents, and — PyTorch models only —
+    the true video's latents) plus the loop-closure orbit of a static clip.
+
+    Raises:
+        ValueError: a clip of fewer than 2 frames (nothing to score as novel views).
+    """
+    cfg = pipe.config
+    T = clip["video"].shape[1]
+    if T < 2:
+        raise ValueError(f"clip must have at least 2 frames, got {T}")
+    cams = CameraPath(clip["viewmats"].double(), clip["Ks"].double(), cfg.width, cfg.height, clip["times"].double())
+    image = clip["video"][:, 0].permute(1, 2, 0)
+    gt = clip["video"].permute(1, 0, 2, 3)
+    gen = dict(steps=steps, sampler=sampler, seed=seed)
+
+    res = pipe(image, cams, clip["caption"], **gen)
+    colors, depths, alphas = render_path(res.scene, res.cameras)
+    pred = colors.permute(0, 3, 1, 2)
+    mse = {"model": frame_mse(pred[1:], gt[1:]), **repeat_baselines(clip["video"])}
+    out = {"psnr_input": image_psnr(pred[:1], gt[:1]), "ssim_input": image_ssim(pred[:1], gt[:1]),
+           "ssim_novel": image_ssim(pred[1:], gt[1:])}
+    valid = clip["depth_valid"] & (alphas > 0.5)
+    out["depth_corr"] = (pearson(depths[valid].double(), clip["depth"][valid].double())
+                         if valid.sum() > 1 else float("nan"))
+    out.update(_scene_motion(pipe, res, clip))
+    out["loop_psnr"] = _loop_psnr(pipe, image, clip, T, **gen)
+
+    noisy = pipe(image, cams, clip["caption"], video_latents=ablation_noise(res.latents.shape, seed), **gen)
+    mse["noise"] = frame_mse(render_path(noisy.scene, noisy.cameras)[0][1:].permute(0, 3, 1, 2), gt[1:])
+    mse["gt"] = torch.full((T - 1,), float("nan"), dtype=torch.float64)
+    out["vae_psnr"] = out["motion_epe_gt"] = out["motion_disp_epe_gt"] = float("nan")
     if pipe.model is not None:
         vae = pipe.model.vae
-        video = clip["video"][None].to(pipe.device) * 2 - 1
-        recon = (vae.decode_latents(vae.encode_latents(video))[0].cpu() + 1) / 2
-        out["vae_psnr"] = _psnr(recon.permute(1, 0, 2, 3), gt)
-    return out
+        latents = vae.encode_latents(clip["video"][None].to(pipe.device) * 2 - 1)
+        recon = (vae.decode_latents(latents)[0].cpu() + 1) / 2
+        out["vae_psnr"] = image_psnr(recon.permute(1, 0, 2, 3), gt)
+        oracle = pipe(image, cams, clip["caption"], video_latents=latents, **gen)
+        mse["gt"] = frame_mse(render_path(oracle.scene, oracle.cameras)[0][1:].permute(0, 3, 1, 2), gt[1:])
+        motion = _scene_motion(pipe, oracle, clip)
+        out["motion_epe_gt"], out["motion_disp_epe_gt"] = motion["motion_epe"], motion["motion_disp_epe"]
+    out["psnr_novel"] = psnr_from_mse(float(mse["model"].mean()))
+    out.update({f"psnr_novel_{v}": psnr_from_mse(float(mse[v].mean())) for v in VARIANTS})
+    angles = view_angles(clip["viewmats"])
+    return ClipEvaluation(name=str(clip.get("scene", "")), dynamic=bool(clip["dynamic"]),
+                          max_angle=float(angles.max()), metrics=out, angles=angles[1:], frame_mse=mse)
 
 
 def _loop_psnr(pipe: Diff4SplatPipeline, image: Tensor, clip: dict, num_frames: int, **kw) -> float:
@@ -149,29 +221,7 @@ def _loop_psnr(pipe: Diff4SplatPipeline, image: Tensor, clip: dict, num_frames: 
                          torch.ones(1, dtype=orbit.viewmats.dtype))
     res = pipe(image, orbit, clip["caption"], **kw)
     colors, _, _ = render_path(res.scene, closing.to(torch.float32))
-    return _psnr(colors.permute(0, 3, 1, 2), clip["video"][:, :1].permute(1, 0, 2, 3))
-
-
-def _kept_pixel_map(pipe: Diff4SplatPipeline, res) -> Tensor:
-    """(H·W,) index of each reference pixel's Gaussian after pruning, −1 where pruned.
-
-    Pixel-aligned Gaussians keep their row-major order through pruning (``select`` with a mask), so
-    the kept pixels are recovered by matching canonical means to the unpruned pixel grid order.
-    """
-    H, W = pipe.config.height, pipe.config.width
-    stats = res.prune_stats
-    kept = torch.full((H * W,), -1, dtype=torch.long)
-    if stats["after"] == stats["before"]:
-        kept[:] = torch.arange(H * W)
-        return kept
-    # pruned: recover kept pixels by projecting the canonical means into the reference camera
-    g = res.scene.canonical
-    K = res.cameras.Ks[0]
-    uv = (K @ g.means.T.to(K)).T
-    u = (uv[:, 0] / uv[:, 2]).floor().long().clamp(0, W - 1)
-    v = (uv[:, 1] / uv[:, 2]).floor().long().clamp(0, H - 1)
-    kept[v * W + u] = torch.arange(g.num_gaussians)
-    return kept
+    return image_psnr(colors.permute(0, 3, 1, 2), clip["video"][:, :1].permute(1, 0, 2, 3))
 
 
 @torch.no_grad()
@@ -187,14 +237,33 @@ def photo_psnr(pipe: Diff4SplatPipeline, image_path: str | Path, prompt: str = "
     first = CameraPath(res.cameras.viewmats[:1], res.cameras.Ks[:1], cfg.width, cfg.height,
                        torch.zeros(1, dtype=res.cameras.viewmats.dtype))
     colors, _, _ = render_path(res.scene, first)
-    return _psnr(colors.permute(0, 3, 1, 2), image.permute(2, 0, 1)[None])
+    return image_psnr(colors.permute(0, 3, 1, 2), image.permute(2, 0, 1)[None])
+
+
+def aggregate(evals: list[ClipEvaluation]) -> dict[str, float]:
+    """Aggregate of clip evaluations: the mean over clips of every metric, diagnostic and baseline (NaNs —
+    e.g. no visible tracks — skipped), and per view-angle bin (:func:`binned_keys`) the PSNR of the mean
+    MSE over the frames 1…T−1 of all clips in the bin (NaN for an empty bin) and the bin's frame count."""
+    out = {k: statistics.fmean([e.metrics[k] for e in evals if not math.isnan(e.metrics[k])] or [float("nan")])
+           for k in METRICS + DIAGNOSTICS + BASELINES}
+    angles = torch.cat([e.angles for e in evals])
+    for variant in ("model", *VARIANTS):
+        bins = binned_psnr(torch.cat([e.frame_mse[variant] for e in evals]), angles)
+        for name, (psnr, count) in bins.items():
+            out[f"psnr_{name}" if variant == "model" else f"psnr_{name}_{variant}"] = psnr
+            out[f"frames_{name}"] = float(count)
+    return out
+
+
+def evaluate_all(pipe: Diff4SplatPipeline, clips: list[dict], **kw) -> list[ClipEvaluation]:
+    """:func:`evaluate_clip` of every clip (keyword arguments passed on)."""
+    return [evaluate_clip(pipe, c, **kw) for c in clips]
 
 
 def evaluate_clips(pipe: Diff4SplatPipeline, clips: list[dict], **kw) -> dict[str, float]:
-    """Mean of every metric and diagnostic over clips (NaNs — e.g. no visible tracks — are skipped)."""
-    rows = [evaluate_clip(pipe, c, **kw) for c in clips]
-    return {k: statistics.fmean([r[k] for r in rows if not math.isnan(r[k])] or [float("nan")])
-            for k in METRICS + DIAGNOSTICS}
+    """:func:`aggregate` of :func:`evaluate_all`: {key: value} for :data:`METRICS`, :data:`DIAGNOSTICS`,
+    :data:`BASELINES` and :func:`binned_keys`."""
+    return aggregate(evaluate_all(pipe, clips, **kw))
 
 
 @torch.no_grad()
@@ -227,7 +296,7 @@ def sampling_tradeoffs(pipe: Diff4SplatPipeline, clips: list[dict], nfes=(1, 2, 
                 ms.append(1000 * (time.perf_counter() - t0))
                 rms.append(float(((res.latents - ref) ** 2).mean().sqrt()))
                 colors, _, _ = render_path(res.scene, res.cameras)
-                psnr.append(_psnr(colors.permute(0, 3, 1, 2), c["video"].permute(1, 0, 2, 3)))
+                psnr.append(image_psnr(colors.permute(0, 3, 1, 2), c["video"].permute(1, 0, 2, 3)))
             rows.append({"sampler": sampler, "nfe": 2 * steps - 1 if sampler == "heun" else steps, "steps": steps,
                          "ms": statistics.median(ms), "latent_rms": statistics.fmean(rms),
                          "psnr": statistics.fmean(psnr)})
@@ -297,6 +366,34 @@ def _print_table(rows: list[dict], header: list[str]) -> str:
     return "\n".join(lines)
 
 
+_VARIANT_LABELS = {"model": "model (sampled latents)", "noise": "noise latents (ablation)",
+                   "gt": "true-video latents (oracle)", "repeat": "repeat frame 0",
+                   "repeat_blur": "repeat frame 0, blurred"}
+
+
+def _per_clip_rows(evals: list[ClipEvaluation]) -> list[dict]:
+    """One row per clip: name, dynamic/static, camera motion size, novel-view PSNR of the model and each
+    variant, displacement error of the model and of no motion."""
+    return [{"clip": e.name, "dynamic": "dynamic" if e.dynamic else "static", "max_angle": e.max_angle,
+             "psnr_novel": e.metrics["psnr_novel"], **{v: e.metrics[f"psnr_novel_{v}"] for v in VARIANTS},
+             "disp_epe": e.metrics["motion_disp_epe"], "disp_hold": e.metrics["motion_disp_hold"]} for e in evals]
+
+
+def _aggregate_tables(agg: dict) -> str:
+    """The headline metrics, the motion split and the model beside its baselines per view-angle bin, from
+    the aggregate row (model, clips, :func:`aggregate`'s keys, optionally photo_psnr)."""
+    metrics = _print_table([agg], ["model", "clips", *METRICS, *(["photo_psnr"] if "photo_psnr" in agg else [])])
+    motion = _print_table([agg], ["motion_epe", *DIAGNOSTICS])
+    bins = {name: f"{lo:g}–{hi:g}° ({int(agg[f'frames_{name}'])} fr)" for name, lo, hi in ANGLE_BINS}
+    rows = []
+    for v in ("model", *VARIANTS):
+        suffix = "" if v == "model" else f"_{v}"
+        rows.append({"novel views, PSNR dB": _VARIANT_LABELS[v], "all": agg[f"psnr_novel{suffix}"],
+                     **{bins[name]: agg[f"psnr_{name}{suffix}"] for name, _, _ in ANGLE_BINS}})
+    versus = _print_table(rows, ["novel views, PSNR dB", "all", *bins.values()])
+    return f"{metrics}\n\nMotion (metres):\n{motion}\n\nBy view angle from the input camera:\n{versus}"
+
+
 def run(args) -> int:
     """``diff4splat evaluate`` (see module docstring)."""
     import warnings
@@ -309,15 +406,26 @@ def run(args) -> int:
     clips = _held_out_clips(args.data, cfg.height, cfg.width, args.frames or cfg.num_frames, args.limit)
     if not clips:
         raise ValueError(f"--data: no clips in {args.data}")
-    metrics = evaluate_clips(pipe, clips, steps=args.steps)
-    row = {"model": source, "clips": len(clips), **metrics}
-    columns = ["model", "clips", *METRICS, *DIAGNOSTICS]
+    columns = ["model", "clips", *METRICS, *DIAGNOSTICS, *BASELINES, *binned_keys()]
+    columns += ["photo_psnr"] if args.photo is not None else []
+    if args.csv:  # refuse before the evaluation runs, not after
+        _check_csv_header(Path(args.csv), columns)
+    evals = evaluate_all(pipe, clips, steps=args.steps)
+    row = {"model": source, "clips": len(clips), **aggregate(evals)}
     if args.photo is not None:
         row["photo_psnr"] = photo_psnr(pipe, args.photo, args.prompt, steps=args.steps)
-        columns.append("photo_psnr")
-    print(_print_table([row], columns))
+    per_clip = _per_clip_rows(evals)
+    if args.per_clip:
+        print(_print_table(per_clip, list(per_clip[0])) + "\n")
+    n_dyn = sum(e.dynamic for e in evals)
+    print(f"{len(evals)} clips ({n_dyn} dynamic, {len(evals) - n_dyn} static); largest view angle per clip "
+          f"{min(e.max_angle for e in evals):.1f}–{max(e.max_angle for e in evals):.1f}°\n")
+    print(_aggregate_tables(row))
     if args.csv:
-        _append_csv(Path(args.csv), row)
+        _append_csv(Path(args.csv), {k: row[k] for k in columns})
+        if args.per_clip:
+            for r in per_clip:
+                _append_csv(Path(args.csv).with_name(Path(args.csv).stem + "_clips.csv"), {"model": source, **r})
     if args.sampling:
         rows = sampling_tradeoffs(pipe, clips[: args.sampling_clips])
         print(_print_table(rows, ["sampler", "nfe", "steps", "ms", "latent_rms", "psnr"]))
@@ -325,6 +433,16 @@ def run(args) -> int:
             for r in rows:
                 _append_csv(Path(args.csv).with_name(Path(args.csv).stem + "_sampling.csv"), {"model": source, **r})
     return 0
+
+
+def _check_csv_header(path: Path, columns: list[str]) -> None:
+    """Raise ValueError if ``path`` exists with other columns than ``columns`` (appending would misalign)."""
+    if path.exists() and path.stat().st_size:
+        with open(path, newline="") as f:
+            header = next(csv.reader(f), [])
+        if header != columns:
+            raise ValueError(f"--csv: {path} has other columns ({len(header)}) than this evaluation writes "
+                             f"({len(columns)}); name a new file")
 
 
 def _append_csv(path: Path, row: dict) -> None:
@@ -339,19 +457,24 @@ def _append_csv(path: Path, row: dict) -> None:
 def register(subparsers) -> None:
     """Add the ``evaluate`` subcommand to ``diff4splat``'s CLI (entry point ``diff4splat.commands``)."""
     e = subparsers.add_parser("evaluate", help="evaluate a model on held-out scenes",
-                              description="Image, depth and motion metrics on held-out scenes; sampler error vs NFE.")
+                              description="Image, depth and motion metrics on held-out scenes beside no-model "
+                                          "baselines and latent ablations; sampler error vs NFE.")
     e.add_argument("--checkpoint", type=Path, default=None, help="model folder (default: shipped weights)")
     e.add_argument("--random", action="store_true", help="evaluate the seeded random (untrained) model")
-    e.add_argument("--config", default="tiny", help="config of the shipped/random model (default: tiny)")
+    e.add_argument("--config", default=DEFAULT_CONFIG,
+                   help=f"config of the shipped/random model (default: {DEFAULT_CONFIG})")
     e.add_argument("--seed", type=int, default=0, help="seed of the random model (default: 0)")
     e.add_argument("--data", type=Path, required=True, help="held-out dataset root (data_prep format)")
     e.add_argument("--frames", type=int, default=None, help="clip length T = 1 + 4k (default: config)")
     e.add_argument("--steps", type=int, default=None, help="sampler steps (default: config)")
     e.add_argument("--limit", type=int, default=None, help="evaluate at most this many clips")
+    e.add_argument("--per-clip", action="store_true",
+                   help="also print a table per clip (dynamic, largest view angle, model vs baselines, motion)")
     e.add_argument("--sampling", action="store_true", help="also measure sampler error vs NFE")
     e.add_argument("--sampling-clips", type=int, default=4, help="clips used for the sampling sweep")
     e.add_argument("--photo", type=Path, default=None,
                    help="also report photo_psnr: the render at the input camera, t = 0, against this photograph")
     e.add_argument("--prompt", default="", help="prompt used with --photo")
-    e.add_argument("--csv", type=Path, default=None, help="append the table rows to this CSV")
+    e.add_argument("--csv", type=Path, default=None,
+                   help="append the aggregate row to this CSV (--per-clip: clip rows to <stem>_clips.csv)")
     e.set_defaults(func=run)

@@ -1,0 +1,160 @@
+import math
+
+import pytest
+import torch
+
+from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
+from training.eval_metrics import (
+    ANGLE_BINS,
+    PSNR_CAP,
+    angle_bin,
+    binned_psnr,
+    frame_mse,
+    image_psnr,
+    kept_index_map,
+    motion_errors,
+    pearson,
+    psnr_from_mse,
+    repeat_baselines,
+    view_angles,
+)
+
+
+def test_pearson_and_psnr_closed_forms():
+    a = torch.arange(10.0)
+    assert pearson(a, 2 * a + 1) == pytest.approx(1.0)
+    assert pearson(a, -a) == pytest.approx(-1.0)
+    assert pearson(a, torch.ones(10)) == 0.0  # constant: no correlation, not NaN
+    img = torch.rand(1, 3, 8, 8)
+    assert image_psnr(img, img) == PSNR_CAP
+    assert image_psnr(torch.zeros(1, 3, 8, 8), torch.full((1, 3, 8, 8), 0.1)) == pytest.approx(20.0, abs=1e-4)
+    assert math.isnan(psnr_from_mse(float("nan")))
+
+
+def test_psnr_of_a_corrupted_prediction_drops_by_the_expected_amount():
+    """Adding uniform error e to a perfect prediction gives MSE e², i.e. −20·log10(e) dB; doubling e costs
+    20·log10(2) ≈ 6.02 dB. Predictions are clamped to [0, 1] before scoring."""
+    gt = 0.25 + 0.5 * torch.rand(2, 3, 16, 16, generator=torch.Generator().manual_seed(0))
+    assert image_psnr(gt, gt) == PSNR_CAP
+    a, b = image_psnr(gt + 0.05, gt), image_psnr(gt - 0.1, gt)
+    assert a == pytest.approx(-20 * math.log10(0.05), abs=1e-3)
+    assert a - b == pytest.approx(20 * math.log10(2), abs=1e-3)
+    assert image_psnr(gt.clamp(max=0.5) + 10.0, gt) == pytest.approx(image_psnr(torch.ones_like(gt), gt), abs=1e-6)
+
+
+def _viewmat(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    vm = torch.eye(4, dtype=torch.float64)
+    vm[:3, :3], vm[:3, 3] = R, t
+    return vm
+
+
+def test_view_angle_of_a_known_rotation_is_its_angle():
+    """Camera i = a rotation by θ about an arbitrary axis composed with an arbitrary first camera (R_i = R(θ)·R_0)
+    and arbitrary translations: the view angle is θ, from 0 through tiny angles to exactly 180°."""
+    g = torch.Generator().manual_seed(0)
+    R0 = quat_to_rotmat(torch.randn(4, generator=g, dtype=torch.float64))
+    axis = torch.tensor([0.3, -0.8, 0.5], dtype=torch.float64)
+    thetas = [0.0, 1e-4, 0.5, 15.0, 44.9, 90.0, 135.0, 179.99, 180.0]
+    vms = [_viewmat(quat_to_rotmat(axis_angle_to_quat(axis, torch.tensor(math.radians(th), dtype=torch.float64)))
+                    @ R0, torch.randn(3, generator=g, dtype=torch.float64)) for th in thetas]
+    angles = view_angles(torch.stack(vms))
+    assert angles.tolist() == pytest.approx(thetas, abs=1e-7)
+    # a pure translation does not change where the camera looks
+    assert float(view_angles(torch.stack([vms[0], _viewmat(R0, torch.ones(3, dtype=torch.float64))]))[1]) < 1e-7
+    with pytest.raises(ValueError, match="viewmats"):
+        view_angles(torch.eye(4))
+
+
+def test_view_angle_of_an_arc_is_its_sweep():
+    """The arc preset orbits the scene centre by a·t: its view angles are the sweep a·t (degrees)."""
+    from diff4splat.cameras import intrinsics_from_fov, make_trajectory
+
+    K = intrinsics_from_fov(32, 32, fov_y_deg=50.0)
+    path = make_trajectory("arc", 9, K.double(), 32, 32, scene_depth=2.0, amplitude=1.2)
+    expected = [math.degrees(1.2 * i / 8) for i in range(9)]
+    assert view_angles(path.viewmats).tolist() == pytest.approx(expected, abs=1e-6)
+
+
+def test_angle_bins_partition_the_frames():
+    """Every angle in [0, 180] falls in exactly one bin (boundaries go to the upper bin, 180° to the last),
+    the counts add up to the frame count, and each bin's PSNR is that of its frames' mean MSE."""
+    g = torch.Generator().manual_seed(1)
+    edges = [0.0, 15.0, 45.0, 90.0, 180.0, 14.999, 45.001, 89.999]
+    uniform = 180 * torch.rand(40, generator=g, dtype=torch.float64)
+    angles = torch.cat([torch.tensor(edges, dtype=torch.float64), uniform])
+    idx = angle_bin(angles)
+    assert idx[:8].tolist() == [0, 1, 2, 3, 3, 0, 2, 2]
+    for a, i in zip(angles.tolist(), idx.tolist(), strict=True):  # brute force against the bins' definition
+        inside = [lo <= a < hi or (hi == 180.0 and a == 180.0) for _, lo, hi in ANGLE_BINS]
+        assert inside.count(True) == 1 and inside.index(True) == i
+    mse = 0.01 + 0.1 * torch.rand(len(angles), generator=g, dtype=torch.float64)
+    bins = binned_psnr(mse, angles)
+    assert list(bins) == [name for name, _, _ in ANGLE_BINS]
+    assert sum(n for _, n in bins.values()) == len(angles)
+    for i, (name, _, _) in enumerate(ANGLE_BINS):
+        assert bins[name][0] == pytest.approx(-10 * math.log10(float(mse[idx == i].mean())), abs=1e-9)
+    empty = binned_psnr(mse[:1], torch.zeros(1, dtype=torch.float64))
+    assert empty["0_15"][1] == 1 and math.isnan(empty["45_90"][0]) and empty["45_90"][1] == 0
+
+
+def test_repeat_baselines_on_a_static_clip_and_a_shifted_one():
+    """Identical frames: repeating frame 0 is exact (PSNR_CAP), and so is its blur when the frames are one
+    colour; frames that brighten by δ per frame have repeat MSE (k·δ)² at frame k."""
+    g = torch.Generator().manual_seed(2)
+    frame = torch.rand(3, 1, 32, 32, generator=g)
+    same = repeat_baselines(frame.expand(3, 5, 32, 32))
+    assert psnr_from_mse(float(same["repeat"].mean())) == PSNR_CAP
+    assert float(same["repeat_blur"].min()) > 0  # blurring a textured frame changes it
+    flat = repeat_baselines(torch.full((3, 5, 32, 32), 0.4))
+    assert psnr_from_mse(float(flat["repeat_blur"].mean())) == PSNR_CAP
+    video = (0.2 + 0.05 * torch.arange(5.0)).reshape(1, 5, 1, 1).expand(3, 5, 16, 16)
+    assert repeat_baselines(video)["repeat"].tolist() == pytest.approx([(0.05 * k) ** 2 for k in range(1, 5)])
+    with pytest.raises(ValueError, match="video"):
+        repeat_baselines(frame)
+
+
+def test_frame_mse_clamps_predictions():
+    gt = torch.full((2, 3, 4, 4), 0.5)
+    assert frame_mse(gt + 2.0, gt).tolist() == pytest.approx([0.25, 0.25])
+    with pytest.raises(ValueError, match="shape"):
+        frame_mse(gt, gt[:1])
+
+
+def test_motion_errors_on_hand_computed_tracks():
+    """Two tracks, three frames. Track 0 moves +x by 1 per frame; the prediction sits 0.5 m too deep (z) and
+    moves +x by 0.5 per frame. Track 1 is visible at frames 0 and 2 only. Track 2 is invisible at frame 0,
+    so it counts for the absolute EPE but not for the displacement metrics."""
+    x, z = torch.tensor([1.0, 0, 0]), torch.tensor([0, 0, 1.0])
+    tracks = torch.stack([torch.stack([z + k * x for k in range(3)]),
+                          torch.stack([z, z + 2 * x, z + 2 * x]),
+                          torch.stack([z, z, z])])
+    pred = torch.stack([torch.stack([1.5 * z + 0.5 * k * x for k in range(3)]),
+                        torch.stack([z, z, z + 3 * x]),
+                        torch.stack([z, z + x, z])])
+    mask = torch.tensor([[True, True, True], [True, False, True], [False, True, True]])
+    m = motion_errors(pred, tracks, mask)
+    # displacement pairs (t ≥ 1, visible at 0 and t): (0,1), (0,2), (1,2)
+    assert m["motion_disp_epe"] == pytest.approx((0.5 + 1.0 + 1.0) / 3)
+    assert m["motion_disp_hold"] == pytest.approx((1.0 + 2.0 + 2.0) / 3)
+    # absolute EPE over the 7 masked pairs: track 0: √(0.25+0.25), √(0.25+1), track 1: 0, 1; track 2: 1, 0
+    t0 = [0.5, math.sqrt(0.25 + 0.25), math.sqrt(0.25 + 1.0)]
+    assert m["motion_epe"] == pytest.approx((sum(t0) + 0 + 1 + 1 + 0) / 7)
+    assert m["motion_epe_t0"] == pytest.approx((0.5 + 0) / 2)
+    hold = [0.5, math.sqrt(0.25 + 1), math.sqrt(0.25 + 4), 0, 2, 0, 0]  # ‖p̂_0 − p_t‖
+    assert m["motion_epe_hold"] == pytest.approx(sum(hold) / 7)
+    none = motion_errors(pred, tracks, torch.zeros(3, 3, dtype=torch.bool))
+    assert all(math.isnan(v) for v in none.values())
+
+
+def test_kept_index_map_inverts_the_pruning_index():
+    g = torch.Generator().manual_seed(3)
+    total = 3 * 8 * 8
+    index = torch.randperm(total, generator=g)[:70].sort().values
+    kept = kept_index_map(index, total)
+    brute = [next((j for j, p in enumerate(index.tolist()) if p == slot), -1) for slot in range(total)]
+    assert kept.tolist() == brute
+    assert (kept >= 0).sum() == 70
+    with pytest.raises(ValueError, match="gaussian_index"):
+        kept_index_map(torch.tensor([0, total]), total)
+    with pytest.raises(ValueError, match="repeated"):
+        kept_index_map(torch.tensor([1, 1]), total)

@@ -1,0 +1,216 @@
+"""Metric functions of ``diff4splat evaluate`` (:mod:`training.evaluate`): PSNR/SSIM/correlation, the
+view angle of a camera and its bins, the no-model baselines, the motion errors and the map from pixels
+to kept Gaussians. Pure functions of tensors; the evaluation itself (generation, rendering) is in
+:mod:`training.evaluate`.
+"""
+from __future__ import annotations
+
+import math
+
+import kornia
+import torch
+from torch import Tensor
+
+__all__ = ["PSNR_CAP", "ANGLE_BINS", "psnr_from_mse", "image_psnr", "image_ssim", "pearson", "frame_mse",
+           "view_angles", "angle_bin", "binned_psnr", "repeat_baselines", "motion_errors", "kept_index_map",
+           "ablation_noise", "BLUR_SIGMA", "BLUR_KERNEL"]
+
+PSNR_CAP = 100.0
+"""PSNR of identical images (MSE 0) is reported as this many dB instead of infinity."""
+
+ANGLE_BINS: tuple[tuple[str, float, float], ...] = (("0_15", 0.0, 15.0), ("15_45", 15.0, 45.0),
+                                                    ("45_90", 45.0, 90.0), ("90_180", 90.0, 180.0))
+"""View-angle bins (name, low, high) in degrees: a frame of view angle θ falls in the bin with
+low ≤ θ < high (the last bin includes 180°). Names give the metric keys ``psnr_<name>``."""
+
+BLUR_SIGMA, BLUR_KERNEL = 1.5, 7
+"""Gaussian blur of the ``repeat_blur`` baseline: σ in pixels, kernel size (``kornia.filters.gaussian_blur2d``)."""
+
+
+def psnr_from_mse(mse: float) -> float:
+    """PSNR in dB of images in [0, 1] from their mean squared error: −10·log10(mse), capped at
+    :data:`PSNR_CAP` (MSE ≤ 10^(−cap/10), e.g. identical images); NaN for a NaN MSE."""
+    if math.isnan(mse):
+        return float("nan")
+    if mse <= 10 ** (-PSNR_CAP / 10):
+        return PSNR_CAP
+    return -10.0 * math.log10(mse)
+
+
+def frame_mse(pred: Tensor, gt: Tensor) -> Tensor:
+    """Per-frame mean squared error (F,) float64 of predictions (F, 3, H, W), clamped to [0, 1] first,
+    against ground truth (F, 3, H, W) in [0, 1]."""
+    if pred.shape != gt.shape:
+        raise ValueError(f"pred has shape {tuple(pred.shape)}, gt {tuple(gt.shape)}: they must match")
+    return ((pred.double().clamp(0, 1) - gt.double()) ** 2).flatten(1).mean(1)
+
+
+def image_psnr(pred: Tensor, gt: Tensor) -> float:
+    """PSNR in dB of predictions (F, 3, H, W) (clamped to [0, 1]) against ground truth in [0, 1], over
+    all frames together (the MSE of every pixel of every frame); capped at :data:`PSNR_CAP`."""
+    return psnr_from_mse(float(frame_mse(pred, gt).mean()))
+
+
+def image_ssim(pred: Tensor, gt: Tensor) -> float:
+    """Mean SSIM (kornia, 11×11 window) of predictions (F, 3, H, W), clamped to [0, 1], against gt."""
+    return float(kornia.metrics.ssim(pred.clamp(0, 1), gt, 11).mean())
+
+
+def pearson(a: Tensor, b: Tensor) -> float:
+    """Pearson correlation of two (N,) tensors; 0 when either is constant."""
+    a, b = a - a.mean(), b - b.mean()
+    den = math.sqrt(float((a * a).sum()) * float((b * b).sum()))
+    return float((a * b).sum()) / den if den > 0 else 0.0
+
+
+def view_angles(viewmats: Tensor) -> Tensor:
+    """View angle of each camera from the first (the input camera), degrees in [0, 180].
+
+    The view angle θ_i of camera i is the rotation angle of R_i R_0ᵀ, R_i = ``viewmats[i, :3, :3]`` the
+    rotation of its world-to-camera matrix (R_i R_0ᵀ maps camera-0 coordinates to camera-i coordinates):
+    θ = arccos((tr(R_i R_0ᵀ) − 1) / 2), computed as atan2(‖v‖, tr − 1) with
+    v = (R₃₂ − R₂₃, R₁₃ − R₃₁, R₂₁ − R₁₂) (‖v‖ = 2 sin θ), accurate near 0° and 180°. It measures where the
+    camera looks, not where it stands: a pure translation has θ = 0. For an orbit about the scene (the
+    camera on a circle around a point, always looking at it: the ``orbit``/``arc`` presets, the synthetic
+    clips' orbit cameras) it equals the orbit's sweep angle up to 180° (360° − sweep beyond).
+
+    Args:
+        viewmats: (T, 4, 4) world-to-camera matrices (OpenCV), T ≥ 1.
+
+    Returns:
+        (T,) float64 degrees; θ_0 = 0.
+
+    Raises:
+        ValueError: ``viewmats`` is not (T, 4, 4) with T ≥ 1.
+    """
+    if viewmats.dim() != 3 or tuple(viewmats.shape[1:]) != (4, 4) or viewmats.shape[0] < 1:
+        raise ValueError(f"viewmats must have shape (T, 4, 4) with T ≥ 1, got {tuple(viewmats.shape)}")
+    R = viewmats[:, :3, :3].double()
+    rel = R @ R[0].T  # (T, 3, 3)
+    trace = rel.diagonal(dim1=-2, dim2=-1).sum(-1)
+    v = torch.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]], -1)
+    return torch.rad2deg(torch.atan2(v.norm(dim=-1), trace - 1.0))
+
+
+def angle_bin(angles: Tensor) -> Tensor:
+    """Index (…,) long into :data:`ANGLE_BINS` of each view angle (…,) in degrees [0, 180]: the bin with
+    low ≤ θ < high, 180° in the last bin. Every angle falls in exactly one bin."""
+    highs = torch.tensor([hi for _, _, hi in ANGLE_BINS[:-1]], dtype=torch.float64)
+    return torch.bucketize(angles.double(), highs, right=True)
+
+
+def binned_psnr(mse: Tensor, angles: Tensor) -> dict[str, tuple[float, int]]:
+    """PSNR per view-angle bin of a set of frames (pooled over clips by the caller).
+
+    The PSNR of a bin is that of the mean MSE over its frames (:func:`psnr_from_mse`), i.e. of all its
+    pixels pooled, as ``psnr_novel`` is for the frames of one clip — not the mean of per-frame PSNRs,
+    which a few near-perfect frames would dominate.
+
+    Args:
+        mse: (F,) per-frame MSE (:func:`frame_mse`).  angles: (F,) view angles, degrees.
+
+    Returns:
+        {bin name: (PSNR dB, NaN for an empty bin; number of frames)} for every bin of :data:`ANGLE_BINS`.
+    """
+    if mse.shape != angles.shape or mse.dim() != 1:
+        raise ValueError(f"mse {tuple(mse.shape)} and angles {tuple(angles.shape)} must be matching (F,) tensors")
+    idx = angle_bin(angles)
+    out = {}
+    for i, (name, _, _) in enumerate(ANGLE_BINS):
+        sel = mse[idx == i]
+        out[name] = (psnr_from_mse(float(sel.mean())) if sel.numel() else float("nan"), int(sel.numel()))
+    return out
+
+
+def repeat_baselines(video: Tensor) -> dict[str, Tensor]:
+    """Per-frame MSE of the no-model baselines on frames 1…T−1 of a clip.
+
+    ``repeat``: the input frame 0 repeated for every later frame; ``repeat_blur``: the same after a
+    Gaussian blur (σ = :data:`BLUR_SIGMA` px, kernel :data:`BLUR_KERNEL`, reflected border,
+    ``kornia.filters.gaussian_blur2d``), which lowers the error where the true frames have moved.
+
+    Args:
+        video: (3, T, H, W) clip in [0, 1], T ≥ 2.
+
+    Returns:
+        {"repeat": (T−1,), "repeat_blur": (T−1,)} float64 MSE (:func:`frame_mse`).
+    """
+    if video.dim() != 4 or video.shape[0] != 3 or video.shape[1] < 2:
+        raise ValueError(f"video must have shape (3, T, H, W) with T ≥ 2, got {tuple(video.shape)}")
+    frames = video.permute(1, 0, 2, 3).float()  # (T, 3, H, W)
+    first, later = frames[:1], frames[1:]
+    blurred = kornia.filters.gaussian_blur2d(first, (BLUR_KERNEL, BLUR_KERNEL), (BLUR_SIGMA, BLUR_SIGMA))
+    return {"repeat": frame_mse(first.expand_as(later), later),
+            "repeat_blur": frame_mse(blurred.expand_as(later), later)}
+
+
+def motion_errors(pred: Tensor, tracks: Tensor, mask: Tensor) -> dict[str, float]:
+    """Errors (metres) of predicted point trajectories against true 3D tracks.
+
+    - ``motion_epe``: mean ‖p̂_t − p_t‖ over the (track, frame) pairs of ``mask`` (all frames, frame 0 too);
+    - ``motion_epe_t0``: the same at frame 0 alone (geometry: where the scene puts the points);
+    - ``motion_epe_hold``: mean ‖p̂_0 − p_t‖ over ``mask``: holding each predicted point still;
+    - ``motion_disp_epe``: mean ‖(p̂_t − p̂_0) − (p_t − p_0)‖ over tracks and frames t ≥ 1 visible at 0 and
+      at t: the error of the predicted *displacement*, free of the frame-0 depth error that dominates the
+      absolute ``motion_epe`` (a point placed 0.3 m too deep that moves exactly right has EPE 0.3 m and
+      displacement error 0);
+    - ``motion_disp_hold``: mean ‖p_t − p_0‖ over the same pairs: the displacement error of no motion.
+
+    A mean over no pairs is NaN.
+
+    Args:
+        pred: (N, T, 3) predicted positions.  tracks: (N, T, 3) true positions.
+        mask: (N, T) bool, the pairs to score (visible and with a predicted point).
+
+    Returns:
+        {key: value} for the five keys above.
+    """
+    if pred.shape != tracks.shape or pred.dim() != 3 or pred.shape[-1] != 3 or mask.shape != pred.shape[:2]:
+        raise ValueError(f"pred {tuple(pred.shape)} and tracks {tuple(tracks.shape)} must be (N, T, 3) and "
+                         f"mask {tuple(mask.shape)} (N, T)")
+    pred, tracks, mask = pred.double(), tracks.double(), mask.bool()
+
+    def mean(x: Tensor, m: Tensor) -> float:
+        return float(x[m].mean()) if bool(m.any()) else float("nan")
+
+    err = (pred - tracks).norm(dim=-1)
+    moved = mask[:, 1:] & mask[:, :1]
+    true_disp = tracks[:, 1:] - tracks[:, :1]
+    return {"motion_epe": mean(err, mask), "motion_epe_t0": mean(err[:, 0], mask[:, 0]),
+            "motion_epe_hold": mean((pred[:, :1] - tracks).norm(dim=-1), mask),
+            "motion_disp_epe": mean((pred[:, 1:] - pred[:, :1] - true_disp).norm(dim=-1), moved),
+            "motion_disp_hold": mean(true_disp.norm(dim=-1), moved)}
+
+
+def kept_index_map(gaussian_index: Tensor, total: int) -> Tensor:
+    """Inverse of the pruning index: (total,) long, the kept Gaussian of each unpruned slot, −1 if pruned.
+
+    Args:
+        gaussian_index: (M,) long, index of each kept Gaussian in the unpruned grid
+            (``GenerationResult.gaussian_index``: S·H·W slots, source-frame-major then row-major pixels,
+            so slots 0…H·W−1 are frame 0's pixels).
+        total: number of unpruned slots (S·H·W).
+
+    Raises:
+        ValueError: an index outside [0, total) or repeated.
+    """
+    idx = gaussian_index.long().reshape(-1)
+    if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= total):
+        raise ValueError(f"gaussian_index must lie in [0, {total}), got [{int(idx.min())}, {int(idx.max())}]")
+    if idx.unique().numel() != idx.numel():
+        raise ValueError("gaussian_index has repeated entries")
+    kept = torch.full((total,), -1, dtype=torch.long)
+    kept[idx] = torch.arange(idx.numel())
+    return kept
+
+
+def ablation_noise(shape: tuple[int, ...] | torch.Size, seed: int) -> Tensor:
+    """Pure-noise latents N(0, I) of ``shape`` for the noise-latent ablation (float32, CPU).
+
+    Drawn from a CPU generator seeded with ``seed`` *after* one draw of the same shape (that first draw
+    is the pipeline's own starting noise for the seed), so the ablation's noise is independent of the
+    sampler's starting point: a sampler that barely moves the noise is not credited with it.
+    """
+    gen = torch.Generator().manual_seed(seed)
+    torch.randn(tuple(shape), generator=gen)  # the sampler's starting noise for this seed
+    return torch.randn(tuple(shape), generator=gen)
