@@ -82,9 +82,10 @@ def _synth(args: argparse.Namespace) -> int:
 
 def _add_synth(sub) -> None:
     p = sub.add_parser("synth", help="generate synthetic dynamic Gaussian scenes",
-                       description="Render procedural scenes (textured room, 1-4 moving objects, synchronised "
-                                   "cameras) with RGB, metric depth, 3D tracks and captions. Scenes already "
-                                   "present are skipped, so a rerun resumes.")
+                       description="Render procedural scenes (room, 1-4 moving objects, synchronised cameras; "
+                                   "surfaces textured procedurally or with crops of the bundled photographs "
+                                   "in data_prep/textures/) with RGB, metric depth, 3D tracks and captions. "
+                                   "Scenes already present are skipped, so a rerun resumes.")
     p.add_argument("--scenes", type=int, required=True, help="number of scenes N (scene_00000 … )")
     p.add_argument("--out", type=Path, required=True, help="dataset root to write")
     p.add_argument("--seed", type=int, default=0, help="global seed ≥ 0 (default 0)")
