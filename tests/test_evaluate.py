@@ -86,6 +86,8 @@ def test_metrics_of_a_generated_scene_match_independent_computations(clips):
     agg = aggregate([e])
     assert set(agg) == set(METRICS + DIAGNOSTICS + BASELINES + binned_keys())
     assert agg["psnr_novel"] == m["psnr_novel"] and sum(agg[k] for k in agg if k.startswith("frames_")) == 8
+    with pytest.raises(ValueError, match="evals"):
+        aggregate([])
 
 
 @pytest.mark.slow

@@ -243,7 +243,13 @@ def photo_psnr(pipe: Diff4SplatPipeline, image_path: str | Path, prompt: str = "
 def aggregate(evals: list[ClipEvaluation]) -> dict[str, float]:
     """Aggregate of clip evaluations: the mean over clips of every metric, diagnostic and baseline (NaNs —
     e.g. no visible tracks — skipped), and per view-angle bin (:func:`binned_keys`) the PSNR of the mean
-    MSE over the frames 1…T−1 of all clips in the bin (NaN for an empty bin) and the bin's frame count."""
+    MSE over the frames 1…T−1 of all clips in the bin (NaN for an empty bin) and the bin's frame count.
+
+    Raises:
+        ValueError: no clip evaluations.
+    """
+    if not evals:
+        raise ValueError("evals: no clip evaluations to aggregate")
     out = {k: statistics.fmean([e.metrics[k] for e in evals if not math.isnan(e.metrics[k])] or [float("nan")])
            for k in METRICS + DIAGNOSTICS + BASELINES}
     angles = torch.cat([e.angles for e in evals])
@@ -384,14 +390,15 @@ def _aggregate_tables(agg: dict) -> str:
     the aggregate row (model, clips, :func:`aggregate`'s keys, optionally photo_psnr)."""
     metrics = _print_table([agg], ["model", "clips", *METRICS, *(["photo_psnr"] if "photo_psnr" in agg else [])])
     motion = _print_table([agg], ["motion_epe", *DIAGNOSTICS])
-    bins = {name: f"{lo:g}–{hi:g}° ({int(agg[f'frames_{name}'])} fr)" for name, lo, hi in ANGLE_BINS}
+    bins = {name: f"{lo:g}–{hi:g}° ({int(agg[f'frames_{name}'])} frames)" for name, lo, hi in ANGLE_BINS}
     rows = []
     for v in ("model", *VARIANTS):
         suffix = "" if v == "model" else f"_{v}"
-        rows.append({"novel views, PSNR dB": _VARIANT_LABELS[v], "all": agg[f"psnr_novel{suffix}"],
+        rows.append({"novel views, PSNR dB": _VARIANT_LABELS[v], "mean of clips": agg[f"psnr_novel{suffix}"],
                      **{bins[name]: agg[f"psnr_{name}{suffix}"] for name, _, _ in ANGLE_BINS}})
-    versus = _print_table(rows, ["novel views, PSNR dB", "all", *bins.values()])
-    return f"{metrics}\n\nMotion (metres):\n{motion}\n\nBy view angle from the input camera:\n{versus}"
+    versus = _print_table(rows, ["novel views, PSNR dB", "mean of clips", *bins.values()])
+    return (f"{metrics}\n\nMotion (metres):\n{motion}\n\nNovel views beside the baselines; by view angle from "
+            f"the input camera, the PSNR of the mean MSE over the bin's frames of all clips:\n{versus}")
 
 
 def run(args) -> int:
