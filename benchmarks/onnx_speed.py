@@ -56,11 +56,13 @@ EXPLANATION = (
 
 
 def perturbed_model(config: str) -> Diff4SplatModel:
-    """Random model with every all-zero DiT tensor and the deformation head's output conv randomised."""
+    """Random model with every all-zero DiT tensor, the deformation head's output conv and the LDRM image
+    branch's last layer (when the config has one) randomised."""
     model = Diff4SplatModel.random(load_config(config), seed=0).eval()
     g = torch.Generator().manual_seed(7)
+    branch = [] if model.ldrm.image_branch is None else [*model.ldrm.image_branch.out.parameters()]
     with torch.no_grad():
-        for p in [*model.dit.parameters(), *model.ldrm.deformation.out_conv.parameters()]:
+        for p in [*model.dit.parameters(), *model.ldrm.deformation.out_conv.parameters(), *branch]:
             if p.abs().sum() == 0:
                 p.copy_(torch.randn(p.shape, generator=g) * 0.05)
     return model
@@ -90,6 +92,10 @@ def module_cases(model: Diff4SplatModel, frames: int):
     ids, mask = model.text_encoder.tokenizer([PROMPT])
     text = model.text_encoder(ids, mask)
     times = torch.linspace(0, 1, frames)
+    photo = video[:, :, 0]  # (1, 3, H, W): an input of ldrm.onnx only with an image branch
+    ldrm_feeds = {"latents": lat, "plucker": plucker, "times": times}
+    if cfg.ldrm.image_branch > 0:
+        ldrm_feeds["image"] = photo
     m = model
     return [
         ("vae_encoder (1 frame)", lambda: m.vae.encode_latents(video), "vae_encoder", {"video": video}),
@@ -97,8 +103,7 @@ def module_cases(model: Diff4SplatModel, frames: int):
         ("text_encoder", lambda: m.text_encoder(ids, mask), "text_encoder", {"ids": ids, "mask": mask}),
         ("dit velocity (1 step)", lambda: m.dit(lat, sigma, image_latent, plucker, text, mask), "dit",
          {"x": lat, "sigma": sigma, "image_latent": image_latent, "plucker": plucker, "text": text, "text_mask": mask}),
-        (f"ldrm + deformation ({frames} times)", lambda: m.ldrm(lat, plucker, times), "ldrm",
-         {"latents": lat, "plucker": plucker, "times": times}),
+        (f"ldrm + deformation ({frames} times)", lambda: m.ldrm(lat, plucker, times, photo), "ldrm", ldrm_feeds),
     ]
 
 

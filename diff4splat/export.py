@@ -12,9 +12,17 @@ file                   inputs                                                 ou
 ``dit.onnx``           x (B, c, n, h, w), sigma (B,), image_latent            velocity (B, c, n, h, w)
                        (B, c, 1, h, w), plucker (B, 1536, n, h, w)
                        [, text (B, L, d_text), text_mask (B, L) bool]
-``ldrm.onnx``          latents (B, c, n, h, w), plucker (B, 1536, n, h, w)    distance, scales, quats, opacities, colors
-                       [, times (K,)]                                         [, d_means, d_quats, d_scales]
+``ldrm.onnx``          latents (B, c, n, h, w), plucker (B, 1536, n, h, w)    distance (B, S, H, W), scales, quats,
+                       [, times (K,)] [, image (B, 3, 8h, 8w) in [−1, 1]]     opacities, colors (B, S, H, W, ·)
+                                                                              [, d_means, d_quats, d_scales
+                                                                              (B, K, S, H, W, ·)]
 =====================  =====================================================  ==========================================
+
+The LDRM's maps have a source-frame axis S (``models.ldrm.source_frame_indices``): S = n for
+``gaussian_frames="latent"``, 1 + 4(n − 1) for ``"all"``, 1 for ``"reference"``; it follows the dynamic
+latent frame count n (a symbolic dim of the outputs, e.g. ``latent_frames``). ``image`` (the photograph,
+frame 0) is an input only when the LDRM has an image branch (``config.ldrm.image_branch`` > 0); the
+manifest records it as ``parts.ldrm_image_input``.
 
 Every graph has dynamic batch B and frame counts (T / n), dynamic resolution (multiples of the VAE
 factor and patch sizes, above a minimum the guards of the traced graph need), dynamic text length L
@@ -33,6 +41,8 @@ Leaving parts out (CONTRIBUTING, "leave out what a scene does not need"):
   against the text=None PyTorch call). One DiT file serves both, so its weights are stored once.
 - ``deformation=False`` (``--static``): ``ldrm.onnx`` has no ``times`` input and no deformation
   outputs (the deformation network is not in the graph); such an export only makes static scenes.
+- The image branch is not optional: an LDRM trained with one needs the photograph, so its graph
+  always has the ``image`` input.
 
 ``manifest.json`` records the opset, the parts, every file's input/output names, shapes (symbolic
 dims as strings) and dtypes, the model config, and the SHA-256 of the weights (of each
@@ -55,6 +65,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 from torch.export import Dim
+from torch.fx.experimental import _config as fx_config
 
 from models.bundle import Diff4SplatModel
 from models.pretrained import WEIGHTS_NAME
@@ -68,7 +79,8 @@ __all__ = ["export_onnx", "check_opset", "state_dict_sha256", "checkpoint_sha256
 MANIFEST_NAME = "manifest.json"
 EXPORT_KIND = "onnx"
 """Output kind of an export folder (:data:`diff4splat.io.MARKER`); ``generate`` replaces one only with --overwrite."""
-MANIFEST_FORMAT = "diff4splat-onnx/1"
+MANIFEST_FORMAT = "diff4splat-onnx/2"
+"""/2: LDRM maps with a source-frame axis S and the optional ``image`` input (/1: maps of frame 0 only)."""
 MIN_OPSET = 18
 """The dynamo exporter emits opset ≥ 18 (LayerNorm, GroupNorm-free decompositions, ``ReduceMean`` axes inputs)."""
 EXTERNAL_DATA_BYTES = 2_000_000_000
@@ -135,28 +147,21 @@ class _PlainDiT(nn.Module):
         return self.dit(x, sigma, image_latent, plucker)
 
 
-class _DynamicLDRM(nn.Module):
-    """LDRM + deformation network: (latents, plucker, times) → the 8 maps of :data:`LDRM_OUTPUTS`."""
+class _LDRM(nn.Module):
+    """LDRM: (latents, plucker[, times][, image]) → the 8 maps of :data:`LDRM_OUTPUTS` with ``times``
+    (the deformation network is in the graph), else the 5 of :data:`STATIC_LDRM_OUTPUTS`.
+
+    An absent input is traced as ``None``: torch.export keeps only tensor inputs, so the graph's inputs
+    are the present ones in this order.
+    """
 
     def __init__(self, model: Diff4SplatModel):
         super().__init__()
         self.ldrm = model.ldrm
 
-    def forward(self, latents, plucker, times):
-        out = self.ldrm(latents, plucker, times)
-        return tuple(getattr(out, name) for name in LDRM_OUTPUTS)
-
-
-class _StaticLDRM(nn.Module):
-    """LDRM without the deformation head: (latents, plucker) → the 5 maps of :data:`STATIC_LDRM_OUTPUTS`."""
-
-    def __init__(self, model: Diff4SplatModel):
-        super().__init__()
-        self.ldrm = model.ldrm
-
-    def forward(self, latents, plucker):
-        out = self.ldrm(latents, plucker)
-        return tuple(getattr(out, name) for name in STATIC_LDRM_OUTPUTS)
+    def forward(self, latents, plucker, times=None, image=None):
+        out = self.ldrm(latents, plucker, times, image)
+        return tuple(getattr(out, name) for name in (STATIC_LDRM_OUTPUTS if times is None else LDRM_OUTPUTS))
 
 
 @dataclass
@@ -167,6 +172,7 @@ class _Graph:
     input_names: tuple[str, ...]
     output_names: tuple[str, ...]
     dynamic_shapes: dict
+    size_oblivious: bool = False  # trace with backed_size_oblivious (see _graphs, the LDRM's image branch)
 
 
 def _graphs(model: Diff4SplatModel, text: bool, deformation: bool) -> list[_Graph]:
@@ -228,14 +234,19 @@ def _graphs(model: Diff4SplatModel, text: bool, deformation: bool) -> list[_Grap
     else:
         graphs.append(_Graph("dit", _PlainDiT(model), dit_args, ("x", "sigma", "image_latent", "plucker"),
                              ("velocity",), dit_ds))
-    ldrm_args = (randn(B, c, n, h, w), randn(B, cfg.ldrm.plucker_channels, n, h, w))
-    ldrm_ds = {"latents": ldrm_lat, "plucker": ldrm_lat}
-    if deformation:
-        graphs.append(_Graph("ldrm", _DynamicLDRM(model), ldrm_args + (torch.linspace(0, 1, K),),
-                             ("latents", "plucker", "times"), LDRM_OUTPUTS, {**ldrm_ds, "times": {0: K_d}}))
-    else:
-        graphs.append(_Graph("ldrm", _StaticLDRM(model), ldrm_args, ("latents", "plucker"),
-                             STATIC_LDRM_OUTPUTS, ldrm_ds))
+    image = cfg.ldrm.image_branch > 0
+    ldrm_args = (randn(B, c, n, h, w), randn(B, cfg.ldrm.plucker_channels, n, h, w),
+                 torch.linspace(0, 1, K) if deformation else None,
+                 randn(B, 3, s * h, s * w).tanh() if image else None)
+    ldrm_ds = {"latents": ldrm_lat, "plucker": ldrm_lat, "times": {0: K_d} if deformation else None,
+               "image": {0: batch, 2: (s * pl) * hr, 3: (s * pl) * wr} if image else None}
+    names = tuple(k for k, a in zip(("latents", "plucker", "times", "image"), ldrm_args, strict=True) if a is not None)
+    # The image branch splices frame 0 back with torch.cat([branch, raw[:, :, 1:]]): the (n − 1)-frame slice
+    # gets a contiguity guard n − 1 ≠ 1 that would leave out n = 2 (5 video frames). Strides are metadata
+    # that ONNX does not have, so the graph is traced size-oblivious (no 0/1 guards); tests/test_export.py
+    # checks it against PyTorch at n = 1, 2 and 3.
+    graphs.append(_Graph("ldrm", _LDRM(model), ldrm_args, names, LDRM_OUTPUTS if deformation else STATIC_LDRM_OUTPUTS,
+                         ldrm_ds, size_oblivious=image))
     return graphs
 
 
@@ -307,8 +318,9 @@ def _export_graph(graph: _Graph, path: Path, opset: int, external_data_bytes: in
         onnx_logger.setLevel(logging.ERROR)  # exporter chatter (missing optional torchvision ops)
         with warnings.catch_warnings(), torch.no_grad():
             warnings.simplefilter("ignore")  # deprecation notices of the tracing stack
-            program = torch.export.export(graph.module.eval(), graph.args, dynamic_shapes=graph.dynamic_shapes,
-                                          strict=False)
+            with fx_config.patch(backed_size_oblivious=graph.size_oblivious):
+                program = torch.export.export(graph.module.eval(), graph.args, dynamic_shapes=graph.dynamic_shapes,
+                                              strict=False)
             onnx_program = torch.onnx.export(program, graph.args, dynamo=True, opset_version=opset,
                                              input_names=list(graph.input_names),
                                              output_names=list(graph.output_names), verbose=False)
@@ -351,7 +363,7 @@ def _dim_ranges(dynamic_shapes: dict) -> dict[str, list[int]]:
     """{root dim name: [min, max]} of a graph's dynamic dims (derived dims like ``4*k + 1`` report k)."""
     out = {}
     for axes in dynamic_shapes.values():
-        for d in axes.values():
+        for d in (axes or {}).values():  # None: an input left out of the graph
             root = getattr(d, "root", d)
             out[root.__name__] = [int(root.min), int(root.max)]
     return dict(sorted(out.items()))
@@ -417,7 +429,8 @@ def export_onnx(
         "opset": opset,
         "exporter": f"torch {torch.__version__} (dynamo), onnx {onnx.__version__}",
         "parts": {"vae_encoder": True, "vae_decoder": True, "text_encoder": text, "dit": True,
-                  "dit_text_inputs": text, "ldrm": True, "deformation": deformation},
+                  "dit_text_inputs": text, "ldrm": True, "deformation": deformation,
+                  "ldrm_image_input": model.config.ldrm.image_branch > 0},
         "dit_unconditional": ("text inputs with one zero token and an all-False mask (exactly zero "
                               "cross-attention)" if text else "graph without text inputs (no cross-attention)"),
         "config": model.config.to_dict(),

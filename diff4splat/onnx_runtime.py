@@ -13,7 +13,8 @@ Sessions use ``ORT_ENABLE_ALL`` graph optimisations and as many intra-op threads
 
 A request that needs a part the export left out raises ``ValueError``: a non-empty prompt for an
 export without the text encoder (``export_onnx(text=False)``), deformation ``times`` for an export
-without the deformation network (``export_onnx(deformation=False)``).
+without the deformation network (``export_onnx(deformation=False)``). The photograph is fed to
+``ldrm.onnx`` when the export's LDRM has an image branch (``parts.ldrm_image_input``).
 """
 from __future__ import annotations
 
@@ -88,7 +89,7 @@ def _check_manifest_keys(manifest: dict, path: Path) -> None:
     need(manifest, "config", dict, "")
     parts = need(manifest, "parts", dict, "")
     files = need(manifest, "files", dict, "")
-    for part in (*_PARTS, "dit_text_inputs", "deformation"):
+    for part in (*_PARTS, "dit_text_inputs", "deformation", "ldrm_image_input"):
         need(parts, part, bool, "parts.")
     listed = {p for p in _PARTS if parts[p]}
     if set(files) != listed:
@@ -126,7 +127,7 @@ def check_graph(name: str, entry: dict, session, manifest: dict, path: str | os.
     order, with the same ranks, dtypes and dims (sizes and symbolic names), and carry in its metadata
     (:func:`diff4splat.export.graph_metadata`) the same part name, model config (resolution, channels, …)
     and dim ranges as the manifest; the parts flags must match the graph's inputs (``text`` of the DiT,
-    ``times`` of the LDRM).
+    ``times`` and ``image`` of the LDRM).
 
     Raises:
         ValueError: naming ``path`` (the graph file) and the first difference.
@@ -158,6 +159,9 @@ def check_graph(name: str, entry: dict, session, manifest: dict, path: str | os.
                          f"are {names}")
     if name == "ldrm" and ("times" in names) != parts["deformation"]:
         raise ValueError(f"{path}: parts.deformation is {parts['deformation']} but the graph's inputs are {names}")
+    if name == "ldrm" and ("image" in names) != parts["ldrm_image_input"]:
+        raise ValueError(f"{path}: parts.ldrm_image_input is {parts['ldrm_image_input']} but the graph's inputs "
+                         f"are {names}")
 
 
 def _differences(manifest: object, graph: object, where: str) -> list[str]:
@@ -225,7 +229,8 @@ class OnnxRuntime:
         profile_prefix: enable onnxruntime profiling (see :func:`session_options`).
 
     Attributes:
-        manifest: the parsed manifest; config: the model config; has_text / has_deformation: the parts.
+        manifest: the parsed manifest; config: the model config; has_text / has_deformation /
+            ldrm_image_input: the parts (``ldrm.onnx`` takes the photograph when the last is True).
         sessions: {part name: onnxruntime.InferenceSession} for the parts present.
 
     Raises:
@@ -249,6 +254,7 @@ class OnnxRuntime:
         self.has_text = bool(parts["text_encoder"])
         self.dit_text_inputs = bool(parts["dit_text_inputs"])
         self.has_deformation = bool(parts["deformation"])
+        self.ldrm_image_input = bool(parts["ldrm_image_input"])
         self.tokenizer = ByteTokenizer(self.config.text_encoder.max_length)
         self.providers = list(providers) if providers is not None else default_providers()
         opts = session_options(threads, profile_prefix)
@@ -316,14 +322,29 @@ class OnnxRuntime:
         (v,) = self._run("dit", feeds)
         return torch.from_numpy(v)
 
-    def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None) -> LDRMOutput:
-        """``ldrm.onnx`` → :class:`LDRMOutput` (deformation maps when ``times`` (K,) is given).
+    def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None, image: Tensor | None) -> LDRMOutput:
+        """``ldrm.onnx`` → :class:`LDRMOutput`: maps (B, S, H, W, ·) of the S source frames
+        (``models.ldrm.source_frame_indices``), deformation maps (B, K, S, H, W, ·) when ``times`` (K,) is given.
+
+        Args:
+            latents: (B, c, n, h, w) DiT latents; plucker: (B, 1536, n, h, w); times: (K,) in [0, 1] or None.
+            image: (B, 3, 8h, 8w) the photograph in [−1, 1]; fed when the export's LDRM has an image
+                branch (``parts.ldrm_image_input``), ignored otherwise.
 
         Raises:
             ValueError: ``times`` given to an export without the deformation network
-                (``export_onnx(deformation=False)``).
+                (``export_onnx(deformation=False)``); ``image`` missing or not (B, 3, 8h, 8w) for an
+                export with an image branch.
         """
         feeds = {"latents": _numpy(latents, np.float32), "plucker": _numpy(plucker, np.float32)}
+        if self.ldrm_image_input:
+            B, _, _, h, w = latents.shape
+            s = self.config.ldrm.vae_spatial
+            if image is None or tuple(image.shape) != (B, 3, s * h, s * w):
+                got = None if image is None else tuple(image.shape)
+                raise ValueError(f"image must have shape ({B}, 3, {s * h}, {s * w}) (the ONNX export in "
+                                 f"{self.directory} has an LDRM image branch), got {got}")
+            feeds["image"] = _numpy(image, np.float32)
         if times is not None:
             if not self.has_deformation:
                 raise ValueError(f"times: the ONNX export in {self.directory} was made without the deformation "

@@ -9,16 +9,23 @@ import torch
 EXAMPLE_IMAGE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
 
 
-def tiny_model(seed: int = 0, dynamic: bool = False, active_dit: bool = False):
+def tiny_model(seed: int = 0, dynamic: bool = False, active_dit: bool = False, image_branch: int = 0):
     """A random tiny Diff4SplatModel.
 
     ``dynamic`` perturbs the zero-initialised deformation head; ``active_dit`` perturbs the DiT's
     zero-initialised layers (final layer, adaLN gates, camera and cross-attention projections), so its
-    velocity is non-zero and depends on every input.
+    velocity is non-zero and depends on every input. ``image_branch`` > 0 gives the LDRM an image branch
+    of that many channels (``LDRMConfig.image_branch``) whose zero-initialised last layer is perturbed,
+    so the photograph changes frame 0's Gaussians.
     """
+    import dataclasses
+
     from models.bundle import Diff4SplatConfig, Diff4SplatModel
 
-    model = Diff4SplatModel.random(Diff4SplatConfig(), seed=seed).eval()
+    config = Diff4SplatConfig()
+    if image_branch:
+        config = dataclasses.replace(config, ldrm=dataclasses.replace(config.ldrm, image_branch=image_branch))
+    model = Diff4SplatModel.random(config, seed=seed).eval()
     if active_dit:
         g = torch.Generator().manual_seed(seed + 2)
         with torch.no_grad():
@@ -31,30 +38,38 @@ def tiny_model(seed: int = 0, dynamic: bool = False, active_dit: bool = False):
         with torch.no_grad():
             conv.weight.copy_(torch.randn(conv.weight.shape, generator=g) * 0.5)
             conv.bias.copy_(torch.randn(conv.bias.shape, generator=g) * 0.1)
+    if image_branch:
+        g = torch.Generator().manual_seed(seed + 3)
+        last = model.ldrm.image_branch.out
+        with torch.no_grad():
+            last.weight.copy_(torch.randn(last.weight.shape, generator=g) * 0.1)
+            last.bias.copy_(torch.randn(last.bias.shape, generator=g) * 0.1)
     return model
 
 
-def parity_model():
+def parity_model(image_branch: int = 0):
     """tiny_model(dynamic=True) with every all-zero DiT tensor randomised: the zero-init final layer,
     cross-attention output projections, camera projection and adaLN gates (a default random model
-    predicts v ≡ 0, which would make the DiT comparison trivial)."""
-    return tiny_model(seed=0, dynamic=True, active_dit=True)
+    predicts v ≡ 0, which would make the DiT comparison trivial); ``image_branch`` as in :func:`tiny_model`."""
+    return tiny_model(seed=0, dynamic=True, active_dit=True, image_branch=image_branch)
 
 
-def exported(tmp_path_factory, *, text=True, deformation=True, cli=False):
+def exported(tmp_path_factory, *, text=True, deformation=True, cli=False, image_branch=0):
     """(checkpoint folder, export folder) of :func:`parity_model`, built once per session.
 
-    ``cli`` makes the export through ``diff4splat export-onnx`` (flags ``--no-text`` / ``--static``).
+    ``cli`` makes the export through ``diff4splat export-onnx`` (flags ``--no-text`` / ``--static``);
+    ``image_branch`` > 0 exports ``parity_model(image_branch)`` (its own checkpoint folder).
     """
     from diff4splat.cli import main
     from diff4splat.export import MANIFEST_NAME, export_onnx
     from models.bundle import Diff4SplatModel
 
     base = tmp_path_factory.getbasetemp() / "onnx_cache"
-    ckpt = base / "checkpoint"
+    suffix = f"_image{image_branch}" if image_branch else ""
+    ckpt = base / f"checkpoint{suffix}"
     if not (ckpt / "config.json").exists():
-        parity_model().save_pretrained(ckpt)
-    out = base / f"export_text{int(text)}_deformation{int(deformation)}"
+        parity_model(image_branch).save_pretrained(ckpt)
+    out = base / f"export_text{int(text)}_deformation{int(deformation)}{suffix}"
     if not (out / MANIFEST_NAME).exists():
         if cli:
             flags = (["--no-text"] if not text else []) + (["--static"] if not deformation else [])

@@ -61,8 +61,10 @@ def _close(got: np.ndarray, ref: torch.Tensor, name: str) -> float:
 @pytest.mark.slow
 def test_manifest_records_parts_files_names_shapes_config_and_weight_hashes(full):
     ckpt, out, model, manifest, _ = full
-    assert manifest["format"] == "diff4splat-onnx/1" and manifest["opset"] == 18
-    assert all(manifest["parts"].values())
+    assert manifest["format"] == "diff4splat-onnx/2" and manifest["opset"] == 18
+    assert manifest["parts"] == {"vae_encoder": True, "vae_decoder": True, "text_encoder": True, "dit": True,
+                                 "dit_text_inputs": True, "ldrm": True, "deformation": True,
+                                 "ldrm_image_input": False}  # no image branch: no image input
     assert set(manifest["files"]) == {"vae_encoder", "vae_decoder", "text_encoder", "dit", "ldrm"}
     names = {k: ([i["name"] for i in e["inputs"]], [o["name"] for o in e["outputs"]])
              for k, e in manifest["files"].items()}
@@ -77,6 +79,11 @@ def test_manifest_records_parts_files_names_shapes_config_and_weight_hashes(full
     assert manifest["files"]["vae_encoder"]["inputs"][0]["shape"] == ["batch", 3, "4*k + 1", "8*h8", "8*w8"]
     assert manifest["files"]["text_encoder"]["inputs"][0]["dtype"] == "int64"
     assert manifest["files"]["vae_decoder"]["dims"]["latent_frames"][0] == 3
+    ldrm_out = {o["name"]: o["shape"] for o in manifest["files"]["ldrm"]["outputs"]}
+    pixels = ["8*ldrm_tokens_h", "8*ldrm_tokens_w"]  # S = n source frames ("latent"): a dynamic axis
+    assert ldrm_out["distance"] == ["batch", "latent_frames", *pixels]
+    assert ldrm_out["colors"] == ["batch", "latent_frames", *pixels, 3]
+    assert ldrm_out["d_means"] == ["batch", "times", "latent_frames", *pixels, 3]
     assert config_from_dict(Diff4SplatConfig, manifest["config"]) == model.config
     files = {f"{n}/model.safetensors": hashlib.sha256((ckpt / n / "model.safetensors").read_bytes()).hexdigest()
              for n in ("vae", "text_encoder", "dit", "ldrm")}
@@ -155,17 +162,60 @@ def test_all_false_text_mask_is_exactly_the_no_text_dit(full):
     _close(got, no_text, "dit all-False mask vs text=None")
 
 
+def _ldrm_inputs(B, n, h, w, K, seed=1):
+    """latents, plucker, times (K,), photo (B, 3, 8h, 8w) in [−1, 1]."""
+    times = torch.linspace(0, 1, K) if K > 1 else torch.tensor([0.3])
+    return (_randn(B, 4, n, h, w, seed=seed), _randn(B, 1536, n, h, w, seed=seed + 1) * 0.5, times,
+            _randn(B, 3, 8 * h, 8 * w, seed=seed + 2).tanh())
+
+
 @pytest.mark.parametrize("B,n,h,w,K", [(1, 3, 8, 8, 9), (2, 2, 6, 10, 1)])
 @pytest.mark.slow
 def test_ldrm_with_deformation_matches_pytorch(full, B, n, h, w, K):
     *_, model, _, sessions = full
-    latents, plucker = _randn(B, 4, n, h, w, seed=1), _randn(B, 1536, n, h, w, seed=2) * 0.5
-    times = torch.linspace(0, 1, K) if K > 1 else torch.tensor([0.3])
+    latents, plucker, times, image = _ldrm_inputs(B, n, h, w, K)
+    assert [i.name for i in sessions["ldrm"].get_inputs()] == ["latents", "plucker", "times"]  # no image branch
     got = sessions["ldrm"].run(None, {"latents": latents.numpy(), "plucker": plucker.numpy(), "times": times.numpy()})
-    ref = model.ldrm(latents, plucker, times)
+    ref = model.ldrm(latents, plucker, times, image)
     for name, value in zip(LDRM_OUTPUTS, got, strict=True):
         _close(value, getattr(ref, name), f"ldrm.{name}")
-    assert got[5].shape == (B, K, 8 * h, 8 * w, 3) and float(ref.d_means.abs().max()) > 1e-2
+    assert got[0].shape == (B, n, 8 * h, 8 * w)  # one grid per latent frame (S = n)
+    assert got[5].shape == (B, K, n, 8 * h, 8 * w, 3) and float(ref.d_means.abs().max()) > 1e-2
+
+
+@pytest.fixture(scope="module")
+def branch(tmp_path_factory):
+    """Export (without text) of parity_model(image_branch=8): gaussian_frames "latent", the branch's
+    zero-init last layer perturbed."""
+    ckpt, out = exported(tmp_path_factory, text=False, image_branch=8)
+    model = Diff4SplatModel.from_pretrained(ckpt).eval()
+    manifest = json.loads((out / MANIFEST_NAME).read_text())
+    session = ort.InferenceSession(str(out / "ldrm.onnx"), providers=["CPUExecutionProvider"])
+    return model, manifest, session
+
+
+@pytest.mark.parametrize("B,n,h,w,K", [(1, 1, 8, 8, 3), (1, 2, 8, 8, 5), (2, 3, 6, 10, 1)])
+@pytest.mark.slow
+def test_ldrm_with_image_branch_takes_the_photo_and_matches_pytorch(branch, B, n, h, w, K):
+    """n = 1, 2, 3: the graph is traced size-oblivious and must hold where the slice of frames 1… has 0 or 1 frames."""
+    model, manifest, session = branch
+    assert model.config.ldrm.image_branch == 8 and model.config.ldrm.gaussian_frames == "latent"
+    assert manifest["parts"]["ldrm_image_input"] is True
+    inputs = {i["name"]: i["shape"] for i in manifest["files"]["ldrm"]["inputs"]}
+    assert list(inputs) == ["latents", "plucker", "times", "image"]
+    assert inputs["image"] == ["batch", 3, "8*ldrm_tokens_h", "8*ldrm_tokens_w"]
+    latents, plucker, times, image = _ldrm_inputs(B, n, h, w, K, seed=n)
+    feeds = {"latents": latents.numpy(), "plucker": plucker.numpy(), "times": times.numpy()}
+    got = session.run(None, {**feeds, "image": image.numpy()})
+    ref = model.ldrm(latents, plucker, times, image)
+    for name, value in zip(LDRM_OUTPUTS, got, strict=True):
+        _close(value, getattr(ref, name), f"ldrm.{name} {B, n, h, w, K}")
+    assert got[0].shape == (B, n, 8 * h, 8 * w)
+    # The branch is not a no-op: another photo moves frame 0's Gaussians, and only frame 0's.
+    other = session.run(None, {**feeds, "image": (-image).numpy()})
+    assert float(np.abs(other[0][:, 0] - got[0][:, 0]).max()) > 1e-3
+    assert np.array_equal(other[0][:, 1:], got[0][:, 1:])
+    _close(other[0], model.ldrm(latents, plucker, times, -image).distance, "ldrm.distance, other photo")
 
 
 @pytest.mark.slow

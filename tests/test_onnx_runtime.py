@@ -5,6 +5,7 @@ Exports come from tests/test_export.py's session cache (:func:`test_export.expor
 """
 import json
 import math
+import shutil
 
 import numpy as np
 import onnxruntime as ort
@@ -16,7 +17,7 @@ from diff4splat.cli import main
 from diff4splat.io import load_depth_exr, load_image, load_ply
 from diff4splat.io.output import load_deformation
 from diff4splat.onnx_runtime import OnnxRuntime, default_providers, load_manifest, session_options  # noqa: E402
-from diff4splat.pipeline import Diff4SplatPipeline
+from diff4splat.pipeline import Diff4SplatPipeline, TorchRuntime
 from diff4splat.render.sequence import render_path
 from models.bundle import Diff4SplatModel
 
@@ -79,6 +80,58 @@ def test_onnxruntime_pipeline_matches_pytorch_end_to_end(full, image, prompt, mo
     assert _psnr(got_video, ref_video) >= 45.0
 
 
+@pytest.fixture(scope="module")
+def branch(tmp_path_factory):
+    """Export (without text) of parity_model(image_branch=8): an LDRM whose perturbed image branch
+    takes the photograph; gaussian_frames "latent"."""
+    ckpt, out = exported(tmp_path_factory, text=False, image_branch=8)
+    return Diff4SplatModel.from_pretrained(ckpt).eval(), out
+
+
+@pytest.mark.slow
+def test_onnxruntime_pipeline_with_image_branch_matches_pytorch_end_to_end(branch, image, monkeypatch):
+    model, out = branch
+    torch_pipe = Diff4SplatPipeline(model)
+    cams = torch_pipe.default_cameras("orbit", FRAMES)
+    ref = torch_pipe(image, cams, "", steps=2, seed=3)
+    with monkeypatch.context() as m:
+        _no_networks(m)
+        got = Diff4SplatPipeline.from_onnx(out)(image, cams, "", steps=2, seed=3)
+    assert got.source_frames.tolist() == ref.source_frames.tolist() == [0, 4, 8]
+    assert float((got.latents - ref.latents).abs().max()) <= 1e-4
+    assert got.scene.num_gaussians == ref.scene.num_gaussians and torch.equal(got.gaussian_index, ref.gaussian_index)
+    torch.testing.assert_close(got.scene.canonical.means, ref.scene.canonical.means, atol=1e-4, rtol=0)
+    assert float((got.scene.d_means - ref.scene.d_means).abs().max()) <= 1e-4
+    assert _psnr(render_path(got.scene, got.cameras)[0], render_path(ref.scene, ref.cameras)[0]) >= 45.0
+    # The photograph reaches the graph: another photo changes the reference frame's Gaussians.
+    runtime = Diff4SplatPipeline.from_onnx(out).runtime
+    lat, plucker = got.latents, torch.zeros(1, 1536, *got.latents.shape[2:])
+    a = runtime.reconstruct(lat, plucker, None, image.permute(2, 0, 1)[None] * 2 - 1)  # the photo in [−1, 1]
+    b = runtime.reconstruct(lat, plucker, None, torch.zeros(1, 3, 64, 64))
+    assert float((a.distance[:, 0] - b.distance[:, 0]).abs().max()) > 1e-3
+    assert torch.equal(a.distance[:, 1:], b.distance[:, 1:])
+    with pytest.raises(ValueError, match=r"^image must have shape \(1, 3, 64, 64\) .*image branch\), got None"):
+        runtime.reconstruct(lat, plucker, None, None)
+
+
+@pytest.mark.slow
+def test_image_input_flag_is_checked_against_the_graph(branch, tmp_path):
+    _, out = branch
+    folder = tmp_path / "copy"
+    shutil.copytree(out, folder)
+    OnnxRuntime(folder)
+    path = folder / "manifest.json"
+    manifest = json.loads(path.read_text())
+    manifest["parts"]["ldrm_image_input"] = False
+    path.write_text(json.dumps(manifest))
+    with pytest.raises(ValueError, match="ldrm.onnx: parts.ldrm_image_input is False but the graph's inputs"):
+        OnnxRuntime(folder)
+    del manifest["parts"]["ldrm_image_input"]
+    path.write_text(json.dumps(manifest))
+    with pytest.raises(ValueError, match="manifest.json: parts.ldrm_image_input must be a bool, got missing"):
+        OnnxRuntime(folder)
+
+
 @pytest.mark.slow
 def test_prompt_changes_the_onnx_sample(full, image):
     _, out = full
@@ -136,7 +189,10 @@ def test_no_text_static_export_refuses_prompt_and_times(lean, image):
         runtime.velocity(torch.zeros(1, 4, 2, 8, 8), torch.ones(1), torch.zeros(1, 4, 1, 8, 8),
                          torch.zeros(1, 1536, 2, 8, 8), torch.zeros(1, 3, 64), None)
     with pytest.raises(ValueError, match="^times: .*without the deformation network"):
-        runtime.reconstruct(torch.zeros(1, 4, 2, 8, 8), torch.zeros(1, 1536, 2, 8, 8), torch.tensor([0.0, 1.0]))
+        runtime.reconstruct(torch.zeros(1, 4, 2, 8, 8), torch.zeros(1, 1536, 2, 8, 8), torch.tensor([0.0, 1.0]),
+                            torch.zeros(1, 3, 64, 64))
+    out = runtime.reconstruct(torch.zeros(1, 4, 2, 8, 8), torch.zeros(1, 1536, 2, 8, 8), None, None)
+    assert out.distance.shape == (1, 2, 64, 64) and out.d_means is None  # no image branch: the photo is not needed
 
 
 @pytest.mark.slow
@@ -147,6 +203,12 @@ def test_no_text_static_export_serves_the_empty_prompt_as_a_static_scene(lean, i
     got = Diff4SplatPipeline.from_onnx(out)(image, cams, "", steps=2, seed=1)
     assert not ref.scene.is_static and got.scene.is_static
     assert float((got.latents - ref.latents).abs().max()) <= 1e-4  # the no-text DiT graph == text=None
+    # Duplicate pruning deforms earlier source frames to later times, so the static scene is compared
+    # with PyTorch asked for no deformation (what the static export serves).
+    static = TorchRuntime(model)
+    static.has_deformation = False
+    ref = Diff4SplatPipeline(static)(image, cams, "", steps=2, seed=1)
+    assert ref.scene.is_static and torch.equal(got.gaussian_index, ref.gaussian_index)
     torch.testing.assert_close(got.scene.canonical.means, ref.scene.canonical.means, atol=1e-4, rtol=0)
 
 
@@ -190,7 +252,7 @@ def test_manifest_errors(tmp_path):
     with pytest.raises(ValueError, match="format") as info:
         load_manifest(tmp_path)
     assert "--" not in str(info.value)
-    (tmp_path / "manifest.json").write_text(json.dumps({"format": "diff4splat-onnx/1",
+    (tmp_path / "manifest.json").write_text(json.dumps({"format": "diff4splat-onnx/2",
                                                         "files": {"dit": {"files": ["dit.onnx"]}}}))
     with pytest.raises(ValueError, match="manifest.json: config must be a dict, got missing"):
         load_manifest(tmp_path)  # the keys are checked (tests/test_reliability_errors.py: each key, missing files)
