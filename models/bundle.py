@@ -180,8 +180,11 @@ class Diff4SplatModel(nn.Module):
         directory = Path(directory)
         if not (directory / CONFIG_NAME).is_file():
             raise FileNotFoundError(f"checkpoint: {directory / CONFIG_NAME} does not exist")
-        config = config_from_dict(Diff4SplatConfig, read_json(directory / CONFIG_NAME, "checkpoint"),
-                                  str(directory / CONFIG_NAME))
+        data = read_json(directory / CONFIG_NAME, "checkpoint")
+        for name, module_cls in _MODULES.items():  # fields that checkpoints written before they existed lack
+            if isinstance(data.get(name), dict):
+                data[name] = {**getattr(module_cls.config_class, "SAVED_DEFAULTS", {}), **data[name]}
+        config = config_from_dict(Diff4SplatConfig, data, str(directory / CONFIG_NAME))
         check_model_size(lambda: cls(config), str(directory / CONFIG_NAME))  # before any network is built
         model = cls.__new__(cls)
         nn.Module.__init__(model)

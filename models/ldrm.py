@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import torch
 import torch.nn.functional as F
@@ -118,6 +119,10 @@ class LDRMConfig:
     gaussian_frames: str = "latent"
     image_branch: int = 0
     deformation: DeformationConfig = field(default_factory=DeformationConfig)
+
+    SAVED_DEFAULTS: ClassVar[dict[str, object]] = {"gaussian_frames": "reference"}
+    """Values of fields missing from a saved ``config.json`` (``PretrainedMixin.from_pretrained``): checkpoints
+    written before every-frame decoding existed decode frame 0 only, and keep doing so."""
 
     def __post_init__(self) -> None:
         if isinstance(self.deformation, dict):

@@ -173,6 +173,7 @@ class PretrainedMixin:
         saved_class = data.pop("class", cls.__name__)
         if saved_class != cls.__name__:
             raise ValueError(f"checkpoint: {directory} holds a {saved_class}, not a {cls.__name__}")
+        data = {**getattr(cls.config_class, "SAVED_DEFAULTS", {}), **data}
         config = config_from_dict(cls.config_class, data, str(directory / CONFIG_NAME))
         check_model_size(lambda: cls(config), str(directory / CONFIG_NAME))
         model = cls(config)

@@ -358,3 +358,20 @@ def test_onnx_export_matches_eager(tmp_path):
     for name, value in zip(names, got, strict=True):
         np.testing.assert_allclose(value, getattr(ref, name).numpy(), atol=1e-4, rtol=1e-4, err_msg=name)
     assert isinstance(ref, LDRMOutput)
+
+
+def test_checkpoint_without_gaussian_frames_loads_as_reference(tmp_path):
+    """A config.json written before every-frame decoding existed keeps its meaning: frame 0 only."""
+    import json
+
+    model = _model()
+    model.save_pretrained(tmp_path / "ldrm")
+    path = tmp_path / "ldrm" / "config.json"
+    data = json.loads(path.read_text())
+    assert data.pop("gaussian_frames") == "latent"
+    path.write_text(json.dumps(data))
+    old = LDRM.from_pretrained(tmp_path / "ldrm")
+    assert old.config.gaussian_frames == "reference"
+    out = old(*_inputs())
+    assert out.distance.shape == (1, 1, H, W)
+    torch.testing.assert_close(out.distance[:, 0], model(*_inputs()).distance[:, 0], atol=0, rtol=0)

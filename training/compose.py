@@ -1,0 +1,104 @@
+"""Assemble a model from networks of several checkpoints: ``python -m training.compose``.
+
+``python -m training.compose --config base --out runs/init/model vae=models/weights/tiny ldrm=runs/ldrm/model``
+builds the model of ``--config`` and replaces each named network (``vae``, ``text_encoder``, ``dit``, ``ldrm``)
+by the one in the given checkpoint folder. Used to warm-start a new default model from an earlier release and to
+join networks trained in separate processes (the DiT's diffusion objective and the LDRM's rendering losses do not
+interact: they can train side by side, one CPU core each, from the same frozen VAE).
+
+A taken network keeps its checkpoint's config (so the VAE keeps its calibrated latent scaling), overridden by the
+fields that the target YAML sets explicitly for that network (e.g. ``ldrm: {image_branch: 16}``). Its weights are
+loaded strictly, except that parameters of zero-initialised layers that the checkpoint lacks (the LDRM's
+``image_branch``) keep their initial values — which is exactly the checkpoint's function, since a zero-initialised
+branch adds 0.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+
+from diff4splat.errors import run_cli
+from diff4splat.io.structured import read_yaml
+from models.bundle import CONFIG_DIR, Diff4SplatModel, load_config
+from models.pretrained import config_from_dict
+
+__all__ = ["compose", "main", "ZERO_INIT_PREFIXES"]
+
+NETWORKS = ("vae", "text_encoder", "dit", "ldrm")
+
+ZERO_INIT_PREFIXES = ("image_branch.",)
+"""Parameter-name prefixes that may be missing from a taken network: layers whose output is exactly 0 at
+initialisation (their last layer is zero-initialised), so leaving them at their initial values keeps the taken
+network's function."""
+
+
+def compose(config: str | Path, sources: dict[str, str | Path], seed: int = 0) -> Diff4SplatModel:
+    """The model of ``config`` with the networks named in ``sources`` taken from those checkpoint folders.
+
+    Args:
+        config: model config name (``models/configs/<name>.yaml``) or YAML path.
+        sources: {network: checkpoint folder}, network in ``vae``, ``text_encoder``, ``dit``, ``ldrm``.
+        seed: seed of the networks not taken (random initialisation).
+
+    Returns:
+        The composed model (eval mode).
+
+    Raises:
+        ValueError: an unknown network name; a taken network whose weights do not fit its config (other shapes,
+            unexpected keys, or missing keys outside :data:`ZERO_INIT_PREFIXES`).
+        FileNotFoundError: a missing config or checkpoint folder.
+    """
+    for name in sources:
+        if name not in NETWORKS:
+            raise ValueError(f"network: unknown network {name!r} (known: {', '.join(NETWORKS)})")
+    path = Path(config) if Path(config).suffix in (".yaml", ".yml") else CONFIG_DIR / f"{config}.yaml"
+    target = load_config(config)
+    explicit = read_yaml(path, "config")
+    for name, folder in sources.items():
+        source = Diff4SplatModel.from_pretrained(folder)
+        merged = {**dataclasses.asdict(getattr(source.config, name)), **explicit.get(name, {})}
+        setattr(target, name, config_from_dict(type(getattr(target, name)), merged, f"{folder}/{name}"))
+    target.validate()
+    model = Diff4SplatModel.random(target, seed=seed)
+    for name, folder in sources.items():
+        state = Diff4SplatModel.from_pretrained(folder).get_submodule(name).state_dict()
+        try:
+            result = getattr(model, name).load_state_dict(state, strict=False)
+        except RuntimeError as e:  # tensor shapes that differ from the composed config's
+            raise ValueError(f"{name} from {folder}: weights do not fit the composed config: {e}") from None
+        missing = [k for k in result.missing_keys if not k.startswith(ZERO_INIT_PREFIXES)]
+        if missing or result.unexpected_keys:
+            raise ValueError(f"{name} from {folder}: weights do not fit the composed config "
+                             f"(missing {missing[:4]}, unexpected {result.unexpected_keys[:4]})")
+    return model.eval()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m training.compose`` (module docstring); exit code 2 with one line on bad input."""
+    return run_cli("compose", lambda: _main(argv))
+
+
+def _main(argv: list[str] | None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m training.compose", description=__doc__.splitlines()[0])
+    ap.add_argument("--config", required=True, help="model config name or YAML path")
+    ap.add_argument("--out", required=True, type=Path, help="output model folder (replaced only if a saved model)")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the networks not taken (default 0)")
+    ap.add_argument("take", nargs="+", metavar="NETWORK=FOLDER", help="network to take from a checkpoint folder")
+    args = ap.parse_args(argv)
+    sources = {}
+    for item in args.take:
+        name, sep, folder = item.partition("=")
+        if not sep or not folder:
+            raise ValueError(f"take: expected NETWORK=FOLDER, got {item!r}")
+        sources[name] = folder
+    model = compose(args.config, sources, seed=args.seed)
+    model.save_pretrained(args.out)
+    counts = model.parameter_counts()
+    print(f"wrote {args.out}: " + ", ".join(f"{k} {v:,}" for k, v in counts.items())
+          + " — taken: " + ", ".join(f"{k} from {v}" for k, v in sources.items()))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
