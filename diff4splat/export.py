@@ -65,7 +65,6 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 from torch.export import Dim
-from torch.fx.experimental import _config as fx_config
 
 from models.bundle import Diff4SplatModel
 from models.pretrained import WEIGHTS_NAME
@@ -172,7 +171,6 @@ class _Graph:
     input_names: tuple[str, ...]
     output_names: tuple[str, ...]
     dynamic_shapes: dict
-    size_oblivious: bool = False  # trace with backed_size_oblivious (see _graphs, the LDRM's image branch)
 
 
 def _graphs(model: Diff4SplatModel, text: bool, deformation: bool) -> list[_Graph]:
@@ -241,12 +239,11 @@ def _graphs(model: Diff4SplatModel, text: bool, deformation: bool) -> list[_Grap
     ldrm_ds = {"latents": ldrm_lat, "plucker": ldrm_lat, "times": {0: K_d} if deformation else None,
                "image": {0: batch, 2: (s * pl) * hr, 3: (s * pl) * wr} if image else None}
     names = tuple(k for k, a in zip(("latents", "plucker", "times", "image"), ldrm_args, strict=True) if a is not None)
-    # The image branch splices frame 0 back with torch.cat([branch, raw[:, :, 1:]]): the (n − 1)-frame slice
-    # gets a contiguity guard n − 1 ≠ 1 that would leave out n = 2 (5 video frames). Strides are metadata
-    # that ONNX does not have, so the graph is traced size-oblivious (no 0/1 guards); tests/test_export.py
-    # checks it against PyTorch at n = 1, 2 and 3.
+    # The image branch writes frame 0 with a torch.where over the frame axis (models/ldrm.py), not a cat with
+    # an (n − 1)-frame slice, which would add a guard n − 1 ≠ 1 leaving out n = 2 (5 video frames);
+    # tests/test_export.py checks the graph against PyTorch at n = 1, 2 and 3.
     graphs.append(_Graph("ldrm", _LDRM(model), ldrm_args, names, LDRM_OUTPUTS if deformation else STATIC_LDRM_OUTPUTS,
-                         ldrm_ds, size_oblivious=image))
+                         ldrm_ds))
     return graphs
 
 
@@ -318,9 +315,8 @@ def _export_graph(graph: _Graph, path: Path, opset: int, external_data_bytes: in
         onnx_logger.setLevel(logging.ERROR)  # exporter chatter (missing optional torchvision ops)
         with warnings.catch_warnings(), torch.no_grad():
             warnings.simplefilter("ignore")  # deprecation notices of the tracing stack
-            with fx_config.patch(backed_size_oblivious=graph.size_oblivious):
-                program = torch.export.export(graph.module.eval(), graph.args, dynamic_shapes=graph.dynamic_shapes,
-                                              strict=False)
+            program = torch.export.export(graph.module.eval(), graph.args, dynamic_shapes=graph.dynamic_shapes,
+                                          strict=False)
             onnx_program = torch.onnx.export(program, graph.args, dynamo=True, opset_version=opset,
                                              input_names=list(graph.input_names),
                                              output_names=list(graph.output_names), verbose=False)

@@ -388,8 +388,9 @@ class LDRM(nn.Module, PretrainedMixin):
         raw = self.head(volume)  # (B, 12, S', H, W)
         if cfg.gaussian_frames == "all":
             raw = raw[:, :, cfg.vae_temporal - 1:]  # the causal first latent frame encodes frame 0 only
-        if self.image_branch is not None:
-            raw = torch.cat([self.image_branch(image, raw[:, :, 0])[:, :, None], raw[:, :, 1:]], dim=2)
+        if self.image_branch is not None:  # frame 0 only; a select, not a cat, keeps S symbolic when exporting
+            first = torch.arange(raw.shape[2], device=raw.device) == 0
+            raw = torch.where(first[:, None, None], self.image_branch(image, raw[:, :, 0])[:, :, None], raw)
         raw = raw.permute(0, 2, 3, 4, 1)  # (B, S, H, W, 12)
         distance, scales, quats, opacities, colors = gaussian_activations(raw, cfg)
         out = LDRMOutput(distance, scales, quats, opacities, colors)
@@ -401,8 +402,8 @@ class LDRM(nn.Module, PretrainedMixin):
             for m in d:
                 m = m.reshape(B, nf, *m.shape[1:]).transpose(1, 2)  # (B, K, nf, H, W, ·)
                 if cfg.gaussian_frames == "all":  # frame f belongs to latent frame ⌈f / r⌉
-                    index = [-(-f // cfg.vae_temporal) for f in range(S)]
-                    m = m[:, :, index]
+                    index = (torch.arange(S, device=m.device) + cfg.vae_temporal - 1) // cfg.vae_temporal
+                    m = m.index_select(2, index)
                 maps.append(m)
             out.d_means, out.d_quats, out.d_scales = maps
         return out

@@ -237,3 +237,19 @@ def test_stiffness_profile_is_exact_for_a_zero_field_and_positive_otherwise(clip
     rows = stiffness_profile(pipe, clips[0], steps=3, substeps=4)
     assert all(r["local_error"] > 0 and r["lipschitz"] > 0 for r in rows)
     assert type(pipe.runtime).velocity is pipe.runtime.velocity.__func__  # the recorder was removed
+
+
+def test_pooled_psnr_is_that_of_the_mean_mse_over_every_bin():
+    """psnr_pooled: the PSNR of the mean MSE over all novel frames of all clips (frame-count weighted bins)."""
+    from training.evaluate import ClipEvaluation
+
+    def clip(mses, angles):
+        mse = torch.tensor(mses, dtype=torch.float64)
+        metrics = {k: 1.0 for k in METRICS + DIAGNOSTICS + BASELINES}
+        return ClipEvaluation(name="c", dynamic=True, max_angle=max(angles), metrics=metrics,
+                              angles=torch.tensor(angles, dtype=torch.float64),
+                              frame_mse={v: mse for v in ("model", "noise", "gt", "repeat", "repeat_blur")})
+
+    agg = aggregate([clip([1e-2, 1e-3], [5.0, 50.0]), clip([0.0], [20.0])])
+    expect = -10 * math.log10((1e-2 + 1e-3 + 0.0) / 3)
+    assert agg["psnr_pooled"] == pytest.approx(expect) and agg["psnr_pooled_repeat"] == pytest.approx(expect)
