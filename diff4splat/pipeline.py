@@ -38,7 +38,7 @@ from .cameras import CameraPath, camera_rays, intrinsics_from_fov, make_trajecto
 from .checks import check_positive_int
 from .gaussians import Gaussians, rgb_to_sh0
 from .limits import check_limit
-from .prune import duplicate_mask, prune_mask
+from .prune import duplicate_mask, occluder_mask, prune_mask
 from .scene import DynamicGaussians
 
 __all__ = ["Diff4SplatPipeline", "GenerationResult", "load_model", "to_gaussians", "NetworkRuntime", "TorchRuntime",
@@ -198,7 +198,9 @@ class GenerationResult:
         shift: the flow-matching timestep shift used (``config.sampling.shift``).
         timings: seconds per stage ("encode_image", "encode_text", "sample", "reconstruct", "prune").
         prune_stats: counts from :func:`diff4splat.prune.prune_mask`, plus "duplicates" (Gaussians of a
-            later source frame dropped as near-duplicates, :func:`diff4splat.prune.duplicate_mask`).
+            later source frame dropped as near-duplicates, :func:`diff4splat.prune.duplicate_mask`) and
+            "occluders" (later-frame Gaussians in front of the photograph's surface at the input view,
+            :func:`diff4splat.prune.occluder_mask`).
         source_frames: (S,) long, the video frame of each source frame whose rays carry a grid of
             Gaussians (``models.ldrm.source_frame_indices``).
         gaussian_index: (M,) long, index of each kept Gaussian in the unpruned S·H·W grid (source-frame-major,
@@ -421,15 +423,19 @@ class Diff4SplatPipeline:
 
         t0 = time.perf_counter()
         index = torch.arange(scene.num_gaussians)
-        duplicates = 0
+        duplicates = occluders = 0
         if len(sources) > 1:
             grid = torch.arange(len(sources)).repeat_interleave(scene.num_gaussians // len(sources))
             dup = duplicate_mask(scene, grid, cameras.viewmats[sources], cameras.Ks[sources], cameras.times[sources],
                                  cfg.width, cfg.height)
             scene, index, duplicates = scene.select(~dup), index[~dup], int(dup.sum())
+            occl = occluder_mask(scene, grid[index], cameras.viewmats[0], cameras.Ks[0], float(cameras.times[0]),
+                                 cfg.width, cfg.height)
+            scene, index, occluders = scene.select(~occl), index[~occl], int(occl.sum())
         keep, stats = prune_mask(scene, cameras, min_opacity=cfg.prune_opacity)
         scene, index = scene.select(keep), index[keep]
-        stats = {**stats, "before": stats["before"] + duplicates, "duplicates": duplicates}
+        stats = {**stats, "before": stats["before"] + duplicates + occluders, "duplicates": duplicates,
+                 "occluders": occluders}
         timings["prune"] = time.perf_counter() - t0
         if stats["after"] == 0:
             raise ValueError(_sees_nothing(cameras, stats, cfg.prune_opacity))

@@ -14,7 +14,7 @@ from .render.projection import project_gaussians
 from .render.rasterize import rasterize
 from .scene import DynamicGaussians
 
-__all__ = ["visibility_mask", "prune_scene", "prune_mask", "duplicate_mask"]
+__all__ = ["visibility_mask", "prune_scene", "prune_mask", "duplicate_mask", "occluder_mask"]
 
 
 def visibility_mask(scene: DynamicGaussians, cameras: CameraPath, near_plane: float = NEAR_PLANE) -> Tensor:
@@ -141,9 +141,7 @@ def duplicate_mask(
     """
     S = _check_sources(scene, source, viewmats, Ks, times)
     width, height = check_positive_int("width", width, "pixels"), check_positive_int("height", height, "pixels")
-    if isinstance(min_alpha, (bool, str, bytes)) or not 0.0 < _as_float(min_alpha) <= 1.0:
-        raise ValueError(f"min_alpha must lie in (0, 1], got {min_alpha!r}")
-    depth_tolerance = check_positive("depth_tolerance", depth_tolerance)
+    depth_tolerance = _check_thresholds(min_alpha, depth_tolerance)
     means = scene.canonical.means
     viewmats, Ks, source = viewmats.to(means), Ks.to(means), source.to(means.device)
     dup = torch.zeros(scene.num_gaussians, dtype=torch.bool, device=means.device)
@@ -153,22 +151,93 @@ def duplicate_mask(
         if cand.numel() == 0 or not bool(earlier.any()):
             continue
         g = scene.at(float(times[s]), gate=0.0)  # all M Gaussians at times[s] (gate 0 drops none)
-        ge = g.select(earlier)
-        out, alpha, _ = rasterize(ge.means, ge.quats, ge.scales, ge.opacities, ge.opacities[:, None],
-                                  viewmats[s:s + 1], Ks[s:s + 1], width, height, render_mode="ED")
-        depth, alpha = out[0, ..., 0], alpha[0, ..., 0]  # (H, W) metres, (H, W)
-        p = g.means[cand] @ viewmats[s, :3, :3].T + viewmats[s, :3, 3]  # (K, 3) camera frame
-        z = p[:, 2]
-        front = z > NEAR_PLANE
-        zs = torch.where(front, z, torch.ones_like(z))
-        u = Ks[s, 0, 0] * p[:, 0] / zs + Ks[s, 0, 2]
-        v = Ks[s, 1, 1] * p[:, 1] / zs + Ks[s, 1, 2]
-        inside = front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
-        row = torch.where(inside, v, 0).floor().long().clamp(0, height - 1)
-        col = torch.where(inside, u, 0).floor().long().clamp(0, width - 1)
-        a, d = alpha[row, col], depth[row, col]
-        dup[cand[inside & (a >= min_alpha) & ((z - d).abs() <= depth_tolerance * d)]] = True
+        covered, z, d = _surface_lookup(g.select(earlier), g.means[cand], viewmats[s], Ks[s], width, height, min_alpha)
+        dup[cand[covered & ((z - d).abs() <= depth_tolerance * d)]] = True
     return dup
+
+
+@torch.no_grad()
+def occluder_mask(
+    scene: DynamicGaussians,  # M Gaussians (deformation optional)
+    source: Tensor,  # (M,) long, source frame index in [0, S)
+    viewmat: Tensor,  # (4, 4) world-to-camera of the input camera (source frame 0)
+    K: Tensor,  # (3, 3) pixels
+    time: float,  # clip time of the input frame, in [0, 1]
+    width: int,
+    height: int,
+    *,
+    min_alpha: float = 0.5,
+    depth_tolerance: float = 0.05,
+) -> Tensor:  # (M,) bool, True = occludes the photograph (drop)
+    """Which Gaussians of later source frames would hide the photograph at the input view.
+
+    The input frame (source 0) is observed: the photograph shows its surface unoccluded at ``time``. The
+    Gaussians of source 0 are rendered from the input camera at ``time`` (accumulated alpha A, expected
+    depth D); a Gaussian of a later source frame, deformed to ``time``, that projects inside the image
+    (z > near plane) to a pixel with A ≥ ``min_alpha`` and lies in front of that surface, z < (1 −
+    ``depth_tolerance``)·D, contradicts the photograph and is dropped. Behind the surface, where A <
+    ``min_alpha`` or outside the input view, it is kept (what the photograph cannot show). Generated
+    frames place such floaters where their content is wrong (e.g. the far side of a 360° orbit seen back
+    at the input camera). Our rule (docs/DESIGN.md, "Data flow of generate"), not the paper's.
+
+    Args:
+        scene: M Gaussians (static or deformed), metres.
+        source: (M,) integer source-frame index of each Gaussian, in [0, S).
+        viewmat: (4, 4) input camera (world-to-camera, OpenCV).  K: (3, 3) its intrinsics, pixels.
+        time: clip time of the photograph, in [0, 1].
+        width, height: image size, pixels (≥ 1).
+        min_alpha: accumulated alpha in (0, 1] above which a pixel counts as covered.
+        depth_tolerance: relative depth margin (> 0).
+
+    Returns:
+        (M,) bool, True = drop; never True for source 0.
+
+    Raises:
+        ValueError: the same argument checks as :func:`duplicate_mask` (one camera, ``time`` as its times).
+    """
+    times = torch.tensor([float(time)], dtype=scene.canonical.means.dtype)
+    _check_sources(scene, torch.zeros_like(source), viewmat[None], K[None], times)
+    width, height = check_positive_int("width", width, "pixels"), check_positive_int("height", height, "pixels")
+    depth_tolerance = _check_thresholds(min_alpha, depth_tolerance)
+    if source.is_floating_point() or source.dtype == torch.bool or (source.numel() and int(source.min()) < 0):
+        raise ValueError("source must be a non-negative integer tensor")
+    means = scene.canonical.means
+    viewmat, K, source = viewmat.to(means), K.to(means), source.to(means.device)
+    out = torch.zeros(scene.num_gaussians, dtype=torch.bool, device=means.device)
+    cand = torch.nonzero(source > 0).squeeze(1)
+    if cand.numel() == 0 or not bool((source == 0).any()):
+        return out
+    g = scene.at(float(time), gate=0.0)
+    covered, z, d = _surface_lookup(g.select(source == 0), g.means[cand], viewmat, K, width, height, min_alpha)
+    out[cand[covered & (z < (1 - depth_tolerance) * d)]] = True
+    return out
+
+
+def _check_thresholds(min_alpha: object, depth_tolerance: object) -> float:
+    """ValueError unless 0 < ``min_alpha`` ≤ 1 and ``depth_tolerance`` > 0 (finite); returns the tolerance."""
+    if isinstance(min_alpha, (bool, str, bytes)) or not 0.0 < _as_float(min_alpha) <= 1.0:
+        raise ValueError(f"min_alpha must lie in (0, 1], got {min_alpha!r}")
+    return check_positive("depth_tolerance", depth_tolerance)
+
+
+def _surface_lookup(surface, points: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int,
+                    min_alpha: float) -> tuple[Tensor, Tensor, Tensor]:
+    """Render ``surface`` (Gaussians) from one camera ("ED": alpha A, expected depth D) and look up each of
+    ``points`` (P, 3) world: its camera z, and whether it projects inside the image (z > near plane) to a
+    pixel (⌊v⌋, ⌊u⌋) with A ≥ ``min_alpha``. Returns covered (P,) bool, z (P,), D at that pixel (P,)."""
+    out, alpha, _ = rasterize(surface.means, surface.quats, surface.scales, surface.opacities,
+                              surface.opacities[:, None], viewmat[None], K[None], width, height, render_mode="ED")
+    depth, alpha = out[0, ..., 0], alpha[0, ..., 0]  # (H, W) metres, (H, W)
+    p = points @ viewmat[:3, :3].T + viewmat[:3, 3]  # (P, 3) camera frame
+    z = p[:, 2]
+    front = z > NEAR_PLANE
+    zs = torch.where(front, z, torch.ones_like(z))
+    u = K[0, 0] * p[:, 0] / zs + K[0, 2]
+    v = K[1, 1] * p[:, 1] / zs + K[1, 2]
+    inside = front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    row = torch.where(inside, v, 0).floor().long().clamp(0, height - 1)
+    col = torch.where(inside, u, 0).floor().long().clamp(0, width - 1)
+    return inside & (alpha[row, col] >= min_alpha), z, depth[row, col]
 
 
 def _check_sources(scene: DynamicGaussians, source: Tensor, viewmats: Tensor, Ks: Tensor, times: Tensor) -> int:

@@ -34,7 +34,8 @@ def test_untrained_deformation_gives_a_static_scene_with_pixel_aligned_gaussians
     S = len(res.source_frames)
     assert res.prune_stats["before"] == S * 64 * 64
     stats = res.prune_stats
-    assert stats["after"] == stats["before"] - stats["duplicates"] - stats["low_opacity"] - stats["unseen"]
+    assert stats["after"] == (stats["before"] - stats["duplicates"] - stats["occluders"] - stats["low_opacity"]
+                              - stats["unseen"])
     assert res.gaussian_index.shape == (res.scene.num_gaussians,) and bool((res.gaussian_index.diff() > 0).all())
     g = res.scene.canonical
     assert torch.isfinite(g.means).all() and (g.scales > 0).all()

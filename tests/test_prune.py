@@ -5,7 +5,7 @@ import torch
 
 from diff4splat.cameras import CameraPath, intrinsics_from_fov
 from diff4splat.gaussians import Gaussians
-from diff4splat.prune import duplicate_mask, prune_scene, visibility_mask
+from diff4splat.prune import duplicate_mask, occluder_mask, prune_scene, visibility_mask
 from diff4splat.render import rasterize_dense
 from diff4splat.render.defaults import NEAR_PLANE
 from diff4splat.render.sequence import render_path
@@ -302,3 +302,52 @@ def test_duplicate_mask_bad_inputs_raise(change, match):
     kw = {k: args.pop(k) for k in ("min_alpha", "depth_tolerance") if k in args}
     with pytest.raises(ValueError, match=match):
         duplicate_mask(*args.values(), **kw)
+
+
+def test_occluder_mask_drops_later_gaussians_in_front_of_the_photo_only():
+    """In front of the input view's surface at the photo's time: dropped; on it, behind it, outside the image or
+    where the input frame covers nothing: kept; source 0 never."""
+    wall = _plane(3.0, cols=range(W_DUP // 2))  # the photo's surface covers the left half
+    rows = range(6, 10)
+    front, on, back = _plane(2.0, rows, range(2, 6)), _plane(3.0, rows, range(2, 6)), _plane(4.0, rows, range(2, 6))
+    uncovered = _plane(2.0, rows, range(W_DUP // 2 + 2, W_DUP // 2 + 6))  # in front of nothing
+    outside = _plane(2.0, rows, range(2, 6), viewmat=_rot_y(180.0))  # behind the input camera
+    parts = (wall, front, on, back, uncovered, outside)
+    scene = _cat(*(_gaussians(p) for p in parts))
+    source = torch.cat([_source(len(wall)), torch.full((sum(len(p) for p in parts[1:]),), 2, dtype=torch.long)])
+    drop = occluder_mask(scene, source, torch.eye(4, dtype=torch.float64), _K()[0], 0.0, W_DUP, H_DUP)
+    sizes = [len(p) for p in parts]
+    chunks = drop.split(sizes)
+    assert [bool(c.all()) for c in chunks] == [False, True, False, False, False, False]
+    assert [bool(c.any()) for c in chunks] == [False, True, False, False, False, False]
+    # brute force: a render of the wall alone, each point projected by hand
+    K = _K()[0]
+    for p, expect in zip(parts[1:], [True, False, False, False, False], strict=True):
+        z = p[:, 2]
+        u, v = K[0, 0] * p[:, 0] / z + K[0, 2], K[1, 1] * p[:, 1] / z + K[1, 2]
+        inside = (z > 0) & (u >= 0) & (u < W_DUP // 2) & (v >= 0) & (v < H_DUP)
+        assert bool((inside & (z < 0.95 * 3.0)).all()) == expect
+
+
+def test_occluder_mask_tests_positions_at_the_photo_time():
+    """A later-frame Gaussian that moves in front of the surface only after t = 0 does not contradict the photo."""
+    wall = _plane(3.0)
+    mover = _plane(3.0, range(6, 10), range(6, 10))
+    key = _times(0.0, 1.0)
+    d = torch.zeros(2, len(mover), 3, dtype=torch.float64)
+    d[1, :, 2] = -1.0  # 1 m towards the camera at t = 1
+    scene = DynamicGaussians(
+        _cat(_gaussians(wall), _gaussians(mover)).canonical, key,
+        torch.cat([torch.zeros(2, len(wall), 3, dtype=torch.float64), d], 1),
+        torch.tensor([1.0, 0, 0, 0], dtype=torch.float64).expand(2, len(wall) + len(mover), 4).clone(),
+        torch.zeros(2, len(wall) + len(mover), 3, dtype=torch.float64))
+    source = _source(len(wall), len(mover))
+    vm, K = torch.eye(4, dtype=torch.float64), _K()[0]
+    assert not occluder_mask(scene, source, vm, K, 0.0, W_DUP, H_DUP).any()
+    assert occluder_mask(scene, source, vm, K, 1.0, W_DUP, H_DUP)[len(wall):].all()
+    with pytest.raises(ValueError, match="min_alpha"):
+        occluder_mask(scene, source, vm, K, 0.0, W_DUP, H_DUP, min_alpha=0.0)
+    with pytest.raises(ValueError, match="depth_tolerance"):
+        occluder_mask(scene, source, vm, K, 0.0, W_DUP, H_DUP, depth_tolerance=-1.0)
+    with pytest.raises(ValueError, match="source"):
+        occluder_mask(scene, source.double(), vm, K, 0.0, W_DUP, H_DUP)
