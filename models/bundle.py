@@ -32,12 +32,12 @@ CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 """Model size configs (``tiny``, ``small``, ``paper``), shipped as package data of ``models``."""
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 """Shipped trained weights, one folder per model name."""
-DEFAULT_CONFIG = "tiny"
+DEFAULT_CONFIG = "base"
 """Name of the model config used when none is named: by ``diff4splat generate`` / ``export-onnx``,
 ``diff4splat evaluate``, :func:`diff4splat.pipeline.load_model` / ``Diff4SplatPipeline.from_pretrained``,
 the training stages' ``model_config`` and the benchmarks. One of :func:`config_names`; its shipped
-weights (``WEIGHTS_DIR / DEFAULT_CONFIG``) are what a plain ``generate`` runs. Changed to the new
-default config when that config's trained weights ship."""
+weights (``WEIGHTS_DIR / DEFAULT_CONFIG``) are what a plain ``generate`` runs (``base``: its model card
+is ``models/weights/base/MODEL_CARD.md``)."""
 
 _MODULES = {"vae": VideoVAE, "text_encoder": TextEncoder, "dit": VideoDiT, "ldrm": LDRM}
 

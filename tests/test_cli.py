@@ -81,7 +81,7 @@ def test_generate_writes_every_file_on_the_shipped_photograph(tmp_path, capsys):
     assert code == 0
     assert "warning" not in capsys.readouterr().err
     meta = _check_folder(out, 9)
-    assert meta["model"].endswith("models/weights/tiny") and not meta["static"]
+    assert meta["model"].endswith(f"models/weights/{DEFAULT_CONFIG}") and not meta["static"]
     assert _check_frames_follow_deformation(out, 9) > 1e-4
     assert not any(p.name.startswith(".") for p in tmp_path.iterdir())  # no temp folder left
 

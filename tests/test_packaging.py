@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from models.bundle import CONFIG_DIR, config_names, load_config
+from models.bundle import CONFIG_DIR, DEFAULT_CONFIG, config_names, load_config
 from training.stages import STAGE_CONFIG_DIR, load_stage, stage_names
 
 tomllib = pytest.importorskip("tomllib")  # Python ≥ 3.11
@@ -153,7 +153,7 @@ def test_wheel_holds_configs_weights_and_entry_points(tmp_path):
         assert f"models/configs/{name}.yaml" in names
     for name in stage_names():
         assert f"training/configs/{name}.yaml" in names
-    assert "models/weights/tiny/ldrm/model.safetensors" in names
+    assert f"models/weights/{DEFAULT_CONFIG}/ldrm/model.safetensors" in names
     assert "data_prep/curation_default.yaml" in names
     assert "diff4splat = diff4splat.cli:main" in entry_points and "evaluate = " in entry_points
 
