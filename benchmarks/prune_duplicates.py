@@ -42,8 +42,8 @@ from diff4splat.render.sequence import render_path  # noqa: E402
 from models.bundle import DEFAULT_CONFIG  # noqa: E402
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
-HEADER = ["path", "seed", "S", "before", "duplicates", "after dup.", "after vis.+opac.", "without dup.: after",
-          "dup. mask ms", "render ms", "render ms without dup.", "speed-up"]
+HEADER = ["path", "seed", "S", "before", "duplicates", "after dup.", "after occluders, vis.+opac.",
+          "without dup.: after", "dup. mask ms", "render ms", "render ms without dup.", "speed-up"]
 
 
 class _Recorder:
