@@ -144,7 +144,7 @@ def test_evaluate_cli_through_the_entry_point(clips, tmp_path, capsys):
     root = tmp_path / "data"
     generate_scene(root, 0, seed=5, size=64, frames=9, cameras=1)
     table = tmp_path / "eval.csv"
-    code = main(["evaluate", "--random", "--data", str(root), "--frames", "9", "--steps", "1",
+    code = main(["evaluate", "--random", "--config", "tiny", "--data", str(root), "--frames", "9", "--steps", "1",
                  "--csv", str(table), "--per-clip"])
     assert code == 0
     out = capsys.readouterr().out
@@ -161,7 +161,8 @@ def test_evaluate_cli_through_the_entry_point(clips, tmp_path, capsys):
     assert (tmp_path / "eval_clips.csv").is_file()
     other = tmp_path / "other.csv"
     other.write_text("model,psnr_input\nx,1\n")
-    code = main(["evaluate", "--random", "--data", str(root), "--frames", "9", "--steps", "1", "--csv", str(other)])
+    code = main(["evaluate", "--random", "--config", "tiny", "--data", str(root), "--frames", "9", "--steps", "1",
+                 "--csv", str(other)])
     err = capsys.readouterr()
     assert code != 0 and "--csv:" in err.err and "other columns" in err.err
     assert "| model (sampled latents)" not in err.out  # refused before evaluating

@@ -103,14 +103,15 @@ def test_configs_are_package_data():
 
 
 def test_model_and_stage_config_names_are_separate():
-    assert config_names() == ["paper", "small", "tiny"]
-    assert stage_names() == ["train_stage1", "train_stage2", "train_stage3", "train_vae"]
+    assert config_names() == ["base", "paper", "small", "tiny"]
+    assert stage_names() == ["train_base_dit", "train_base_ldrm", "train_stage1", "train_stage2", "train_stage3",
+                             "train_vae"]
     assert load_config("small").height == 128
     assert load_stage("train_stage3").deformation
 
 
 def test_unknown_config_lists_the_known_names():
-    with pytest.raises(FileNotFoundError, match=r"'nonesuch' not found \(known: paper, small, tiny\)"):
+    with pytest.raises(FileNotFoundError, match=r"'nonesuch' not found \(known: base, paper, small, tiny\)"):
         load_config("nonesuch")
     with pytest.raises(FileNotFoundError, match=r"train_stage1, train_stage2, train_stage3, train_vae"):
         load_stage("nonesuch")

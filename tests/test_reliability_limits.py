@@ -285,7 +285,8 @@ def test_camera_that_sees_none_of_the_scene_is_an_error(tmp_path, capsys):
     Ks = cams.Ks.clone()
     Ks[:, 0, 0] = Ks[:, 1, 1] = 1e30
     blind = CameraPath(cams.viewmats, Ks, cams.width, cams.height, cams.times)
-    with pytest.raises(ValueError, match=r"the camera path sees none of the scene: all 4096 Gaussians were pruned "
+    # 5 frames → 2 latent frames → 2 source grids of 64×64 Gaussians
+    with pytest.raises(ValueError, match=r"the camera path sees none of the scene: all 8192 Gaussians were pruned "
                                          r".*focal lengths fx=1e\+30, fy=1e\+30 pixels"):
         pipe(torch.rand(64, 64, 3), blind, steps=1)
     save_cameras_json(tmp_path / "blind.json", blind)
