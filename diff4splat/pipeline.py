@@ -34,7 +34,15 @@ from models.bundle import DEFAULT_CONFIG, WEIGHTS_DIR, Diff4SplatConfig, Diff4Sp
 from models.flow_matching import sample
 from models.ldrm import LDRMOutput, source_frame_indices
 
-from .cameras import CameraPath, camera_rays, intrinsics_from_fov, make_trajectory, pack_plucker, plucker_rays
+from .cameras import (
+    DEFAULT_TRAJECTORY,
+    CameraPath,
+    camera_rays,
+    intrinsics_from_fov,
+    make_trajectory,
+    pack_plucker,
+    plucker_rays,
+)
 from .checks import check_positive_int
 from .gaussians import Gaussians, rgb_to_sh0
 from .limits import check_limit
@@ -306,10 +314,10 @@ class Diff4SplatPipeline:
 
         return cls(OnnxRuntime(directory, providers=providers))
 
-    def default_cameras(self, trajectory: str = "arc", num_frames: int | None = None,
+    def default_cameras(self, trajectory: str = DEFAULT_TRAJECTORY, num_frames: int | None = None,
                         amplitude: float | None = None) -> CameraPath:
-        """A preset trajectory at the model's resolution and field of view (``fov_y_deg``), with
-        amplitudes in units of ``config.scene_depth``.
+        """A preset trajectory at the model's resolution and field of view (``fov_y_deg``); ``amplitude`` is in
+        radians for ``arc`` and in units of ``config.scene_depth`` for the other presets.
 
         Raises:
             ValueError: unknown preset or an invalid frame count; ``num_frames`` above the ``frames``
