@@ -33,18 +33,18 @@ def tiny_model(seed: int = 0, dynamic: bool = False, active_dit: bool = False, i
                 if p.abs().sum() == 0:
                     p.copy_(torch.randn(p.shape, generator=g) * 0.05)
     if dynamic:
-        g = torch.Generator().manual_seed(seed + 1)
-        conv = model.ldrm.deformation.out_conv
-        with torch.no_grad():
-            conv.weight.copy_(torch.randn(conv.weight.shape, generator=g) * 0.5)
-            conv.bias.copy_(torch.randn(conv.bias.shape, generator=g) * 0.1)
+        _perturb(model.ldrm.deformation.out_conv, seed + 1, weight_std=0.5)
     if image_branch:
-        g = torch.Generator().manual_seed(seed + 3)
-        last = model.ldrm.image_branch.out
-        with torch.no_grad():
-            last.weight.copy_(torch.randn(last.weight.shape, generator=g) * 0.1)
-            last.bias.copy_(torch.randn(last.bias.shape, generator=g) * 0.1)
+        _perturb(model.ldrm.image_branch.out, seed + 3, weight_std=0.1)
     return model
+
+
+def _perturb(layer, seed: int, weight_std: float, bias_std: float = 0.1) -> None:
+    """Overwrite a zero-initialised layer's weight and bias with seeded normal values (so it is no longer a no-op)."""
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        layer.weight.copy_(torch.randn(layer.weight.shape, generator=g) * weight_std)
+        layer.bias.copy_(torch.randn(layer.bias.shape, generator=g) * bias_std)
 
 
 def parity_model(image_branch: int = 0):
