@@ -25,8 +25,8 @@ from .pretrained import CONFIG_NAME, MODEL_KIND, check_model_size, config_from_d
 from .text_encoder import TextEncoder, TextEncoderConfig
 from .vae import VideoVAE, VideoVAEConfig
 
-__all__ = ["Diff4SplatConfig", "Diff4SplatModel", "load_config", "config_names", "CONFIG_DIR", "WEIGHTS_DIR",
-           "DEFAULT_CONFIG"]
+__all__ = ["Diff4SplatConfig", "Diff4SplatModel", "load_config", "config_path", "config_names", "CONFIG_DIR",
+           "WEIGHTS_DIR", "DEFAULT_CONFIG"]
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 """Model size configs (``tiny``, ``small``, ``paper``), shipped as package data of ``models``."""
@@ -119,6 +119,20 @@ def config_names() -> list[str]:
     return sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
 
 
+def config_path(name_or_path: str | os.PathLike) -> Path:
+    """The YAML file of a model config: ``models/configs/<name>.yaml`` for a name, else the given .yaml path.
+
+    Raises:
+        FileNotFoundError: no such config name or file (the message lists the known names).
+    """
+    path = Path(name_or_path)
+    if path.suffix not in (".yaml", ".yml"):
+        path = CONFIG_DIR / f"{name_or_path}.yaml"
+    if not path.is_file():
+        raise FileNotFoundError(f"config: {str(name_or_path)!r} not found (known: {', '.join(config_names())})")
+    return path
+
+
 def load_config(name_or_path: str | os.PathLike) -> Diff4SplatConfig:
     """Load a model config by name (``models/configs/<name>.yaml``, shipped with the package) or a YAML path,
     over the dataclass defaults.
@@ -127,11 +141,7 @@ def load_config(name_or_path: str | os.PathLike) -> Diff4SplatConfig:
         FileNotFoundError: no such config name or file (the message lists the known names).
         ValueError: unknown fields or inconsistent networks.
     """
-    path = Path(name_or_path)
-    if path.suffix not in (".yaml", ".yml"):
-        path = CONFIG_DIR / f"{name_or_path}.yaml"
-    if not path.is_file():
-        raise FileNotFoundError(f"config: {str(name_or_path)!r} not found (known: {', '.join(config_names())})")
+    path = config_path(name_or_path)
     return config_from_dict(Diff4SplatConfig, read_yaml(path, "config"), str(path))
 
 

@@ -398,12 +398,9 @@ class LDRM(nn.Module, PretrainedMixin):
             S, nf = raw.shape[1], volume.shape[2]
             feats = volume.transpose(1, 2).reshape(B * nf, cfg.embed_dim, hp, wp)
             d = self.deformation(feats, times, cfg.vae_spatial * p)  # each (B·nf, K, H, W, ·)
-            maps = []
-            for m in d:
-                m = m.reshape(B, nf, *m.shape[1:]).transpose(1, 2)  # (B, K, nf, H, W, ·)
-                if cfg.gaussian_frames == "all":  # frame f belongs to latent frame ⌈f / r⌉
-                    index = (torch.arange(S, device=m.device) + cfg.vae_temporal - 1) // cfg.vae_temporal
-                    m = m.index_select(2, index)
-                maps.append(m)
+            maps = [m.reshape(B, nf, *m.shape[1:]).transpose(1, 2) for m in d]  # (B, K, nf, H, W, ·)
+            if cfg.gaussian_frames == "all":  # frame f belongs to latent frame ⌈f / r⌉
+                index = (torch.arange(S, device=raw.device) + cfg.vae_temporal - 1) // cfg.vae_temporal
+                maps = [m.index_select(2, index) for m in maps]
             out.d_means, out.d_quats, out.d_scales = maps
         return out

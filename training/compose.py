@@ -20,7 +20,7 @@ from pathlib import Path
 
 from diff4splat.errors import run_cli
 from diff4splat.io.structured import read_yaml
-from models.bundle import CONFIG_DIR, Diff4SplatModel, load_config
+from models.bundle import Diff4SplatModel, config_path, load_config
 from models.pretrained import config_from_dict
 
 __all__ = ["compose", "main", "ZERO_INIT_PREFIXES"]
@@ -52,17 +52,16 @@ def compose(config: str | Path, sources: dict[str, str | Path], seed: int = 0) -
     for name in sources:
         if name not in NETWORKS:
             raise ValueError(f"network: unknown network {name!r} (known: {', '.join(NETWORKS)})")
-    path = Path(config) if Path(config).suffix in (".yaml", ".yml") else CONFIG_DIR / f"{config}.yaml"
     target = load_config(config)
-    explicit = read_yaml(path, "config")
+    explicit = read_yaml(config_path(config), "config")
+    loaded = {folder: Diff4SplatModel.from_pretrained(folder) for folder in set(map(str, sources.values()))}
     for name, folder in sources.items():
-        source = Diff4SplatModel.from_pretrained(folder)
-        merged = {**dataclasses.asdict(getattr(source.config, name)), **explicit.get(name, {})}
+        merged = {**dataclasses.asdict(getattr(loaded[str(folder)].config, name)), **explicit.get(name, {})}
         setattr(target, name, config_from_dict(type(getattr(target, name)), merged, f"{folder}/{name}"))
     target.validate()
     model = Diff4SplatModel.random(target, seed=seed)
     for name, folder in sources.items():
-        state = Diff4SplatModel.from_pretrained(folder).get_submodule(name).state_dict()
+        state = loaded[str(folder)].get_submodule(name).state_dict()
         try:
             result = getattr(model, name).load_state_dict(state, strict=False)
         except RuntimeError as e:  # tensor shapes that differ from the composed config's
