@@ -31,7 +31,30 @@ from .constants import ALPHA_MIN
 from .gaussians import Gaussians
 from .quaternions import quat_multiply, quat_nlerp, quat_normalize
 
-__all__ = ["DynamicGaussians"]
+__all__ = ["DynamicGaussians", "compose_deformation"]
+
+
+def compose_deformation(
+    means: Tensor,  # (..., 3) metres
+    quats: Tensor,  # (..., 4) wxyz, unnormalised
+    scales: Tensor,  # (..., 3) metres, > 0
+    d_means: Tensor,  # (..., 3) metres
+    d_quats: Tensor,  # (..., 4) wxyz, identity (1, 0, 0, 0), unnormalised
+    d_scales: Tensor,  # (..., 3) log-scale offsets
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Apply a deformation to Gaussians (docs/DESIGN.md, "Conventions": deformation at time t).
+
+    μ_t = μ + Δμ,  q_t = normalize(Δq ⊗ normalize(q)),  s_t = s·exp(Δs). Differentiable; the one place
+    the composition is written (``DynamicGaussians.at``, the HexPlane field and ``fit`` call it).
+
+    Returns:
+        means (..., 3), unit quats (..., 4), scales (..., 3).
+
+    Raises:
+        ValueError: a zero-norm quaternion in ``quats`` or ``d_quats``.
+    """
+    q = quat_multiply(quat_normalize(d_quats, "d_quats"), quat_normalize(quats, "quats"))
+    return means + d_means, q, scales * torch.exp(d_scales)
 
 
 @dataclass
@@ -205,14 +228,8 @@ class DynamicGaussians:
         opacities = g.opacities if idx is None else g.opacities * scene.temporal_opacity(t)
         if self.is_static:
             return g if idx is None else Gaussians(g.means, g.quats, g.scales, opacities, g.sh)
-        d_means, d_quats, d_scales = scene.deformation_at(t)
-        return Gaussians(
-            means=g.means + d_means,
-            quats=quat_multiply(d_quats, quat_normalize(g.quats)),
-            scales=g.scales * torch.exp(d_scales),
-            opacities=opacities,
-            sh=g.sh,
-        )
+        means, quats, scales = compose_deformation(g.means, g.quats, g.scales, *scene.deformation_at(t))
+        return Gaussians(means=means, quats=quats, scales=scales, opacities=opacities, sh=g.sh)
 
     def select(self, index: Tensor) -> DynamicGaussians:
         """Subset of Gaussians by boolean mask (M,) or indices; deformation and temporal arrays follow."""
