@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from diff4splat.cameras import camera_rays, pack_plucker, plucker_rays
+from diff4splat.cameras import camera_rays, pack_plucker, plucker_rays, unproject_depth
 from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
 
 
@@ -58,6 +58,20 @@ def test_ray_points_project_back_to_their_pixel():
     m = plucker_rays(V, K, W, H)[..., :3]
     torch.testing.assert_close(torch.linalg.cross(o + 2.5 * d, d, dim=-1), m)
     torch.testing.assert_close(d.norm(dim=-1), torch.ones(2, H, W, dtype=torch.float64))
+
+
+def test_unproject_depth_projects_back_with_its_z_depth():
+    V, K = make_cameras(seed=5)
+    W, H = 9, 7
+    depth = torch.rand(2, H, W, dtype=torch.float64, generator=torch.Generator().manual_seed(1)) * 5 + 0.1
+    X = unproject_depth(V, K, depth)
+    cam = torch.einsum("cij,chwj->chwi", V[:, :3, :3], X) + V[:, None, None, :3, 3]
+    torch.testing.assert_close(cam[..., 2], depth)  # z-depth, not distance along the ray
+    uv = torch.einsum("cij,chwj->chwi", K, cam)
+    jj, ii = torch.meshgrid(torch.arange(W, dtype=torch.float64), torch.arange(H, dtype=torch.float64), indexing="xy")
+    torch.testing.assert_close(uv[..., :2] / uv[..., 2:], torch.stack([jj + 0.5, ii + 0.5], -1).expand(2, H, W, 2))
+    with pytest.raises(ValueError, match="depth"):
+        unproject_depth(V, K, depth[0])
 
 
 def test_identity_camera_centre_ray_is_optical_axis():

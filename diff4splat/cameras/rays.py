@@ -6,7 +6,7 @@ from torch import Tensor
 
 from .path import camera_centers
 
-__all__ = ["camera_rays", "plucker_rays", "pack_plucker"]
+__all__ = ["camera_rays", "plucker_rays", "pack_plucker", "unproject_depth"]
 
 
 def camera_rays(
@@ -42,6 +42,31 @@ def camera_rays(
     centres = camera_centers(viewmats)  # −Rᵀ t, (C, 3)
     origins = centres[:, None, None, :].expand_as(d_world)
     return origins, d_world
+
+
+def unproject_depth(
+    viewmats: Tensor,  # (C, 4, 4) world-to-camera
+    Ks: Tensor,  # (C, 3, 3) pixels
+    depth: Tensor,  # (C, H, W) z-depth, metres
+) -> Tensor:
+    """World points of every pixel at its z-depth (distance along the optical axis, FORMAT.md depth).
+
+    p = o + d·z / (d · ẑ), with o, d the pixel ray of :func:`camera_rays` and ẑ the camera's optical axis
+    in the world frame (third row of R); equivalently p = Rᵀ(z·K⁻¹(u, v, 1)ᵀ − t). Non-finite depths give
+    non-finite points (mask them with ``torch.isfinite(depth)``).
+
+    Returns:
+        (C, H, W, 3) world points, metres.
+
+    Raises:
+        ValueError: shapes that do not match (C, 4, 4), (C, 3, 3), (C, H, W).
+    """
+    if depth.dim() != 3 or depth.shape[0] != viewmats.shape[0]:
+        raise ValueError(f"depth must have shape ({viewmats.shape[0]}, H, W), got {tuple(depth.shape)}")
+    o, d = camera_rays(viewmats, Ks, depth.shape[2], depth.shape[1])
+    axis = viewmats[:, 2, :3].to(d.dtype)  # (C, 3) optical axis in the world frame
+    cos = (d * axis[:, None, None, :]).sum(-1)
+    return o + d * (depth.to(d.dtype) / cos)[..., None]
 
 
 def plucker_rays(
