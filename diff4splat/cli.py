@@ -1,4 +1,5 @@
-"""``diff4splat`` command line: ``diff4splat generate IMAGE ... --out DIR`` and ``diff4splat export-onnx --out DIR``.
+"""``diff4splat`` command line: ``diff4splat generate IMAGE ... --out DIR``, ``diff4splat export-onnx --out DIR`` and
+``diff4splat render DIR (--cameras FILE | --trajectory NAME) --out OUT`` (:mod:`diff4splat.rerender`).
 
 Bad input gets one line on stderr (``diff4splat: error: …``) and exit code 2, and no output folder.
 """
@@ -105,6 +106,24 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
     e.add_argument("--static", action="store_true",
                    help="leave out the deformation network (static scenes only)")
     e.add_argument("--opset", type=int, default=18, help="ONNX opset, >= 18 (default: 18)")
+    r = sub.add_parser("render", help="re-render an output folder of generate or fit along a camera path",
+                       description="Render the scene of an output folder of generate or fit along any camera path "
+                                   "and time: rgb/0000.png … (lossless), video.mp4, depth/0000.exr …, cameras.json.")
+    r.add_argument("folder", type=Path, help="output folder of `diff4splat generate` or `diff4splat fit`")
+    rcam = r.add_mutually_exclusive_group(required=True)
+    rcam.add_argument("--cameras", type=Path, default=None,
+                      help="cameras.json (used as is, in the scene's world frame: generate's, or a data_prep scene's "
+                           "<cam>/cameras.json) or RealEstate10K .txt (placed at the folder's first camera)")
+    rcam.add_argument("--trajectory", choices=TRAJECTORIES, default=None,
+                      help="camera path preset from the folder's first camera, at its intrinsics")
+    r.add_argument("--amplitude", type=float, default=None, help="preset amplitude (as generate's --amplitude)")
+    r.add_argument("--frames", type=int, default=None, help="preset frame count (default: the folder's)")
+    r.add_argument("--width", type=int, default=None, help="output width, pixels (default: the camera path's)")
+    r.add_argument("--height", type=int, default=None, help="output height, pixels (default: the camera path's)")
+    r.add_argument("--fps", type=int, default=8, help="video frame rate (default: 8)")
+    r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.add_argument("--out", type=_out_path, required=True, help=OUT_HELP)
+    r.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     plugins = {ep.name: ep for ep in entry_points(group=PLUGIN_GROUP)}  # e.g. `evaluate`, from `training`
     if load_command is not None and load_command not in plugins:
         raise ValueError(f"load_command: {load_command!r} is not a {PLUGIN_GROUP} entry point "
@@ -358,6 +377,13 @@ def _main(argv: list[str] | None) -> int:
         manifest = export_onnx_command(args)
         print(f"wrote {args.out} ({', '.join(f['file'] for f in manifest['files'].values())}, "
               f"opset {manifest['opset']})")
+    elif args.command == "render":
+        from .rerender import rerender
+
+        meta = rerender(args.folder, args.out, cameras=args.cameras, trajectory=args.trajectory,
+                        amplitude=args.amplitude, frames=args.frames, width=args.width, height=args.height,
+                        fps=args.fps, overwrite=args.overwrite, progress=not args.quiet)
+        print(f"wrote {args.out} ({meta['frames']} frames, {meta['width']}x{meta['height']})")
     elif hasattr(args, "func"):
         return args.func(args)
     return 0

@@ -1,0 +1,377 @@
+"""``diff4splat render``: re-render an output folder of ``generate`` or ``fit`` along any camera path and time.
+
+Input folder (docs/DESIGN.md, "Output folder of generate"): ``scene.ply`` (canonical Gaussians),
+``deformation.npz`` (optional), ``cameras.json`` (the folder's own path), ``meta.json``, ``depth/0000.exr`` and,
+in a ``fit`` output, ``field.safetensors`` (the HexPlane field, :func:`models.hexplane.load_field`). With a
+field the deformation is queried at exactly the times of the new path (:func:`path_scene`); without one
+``deformation.npz`` is interpolated between its key times as docs/DESIGN.md says
+(:meth:`~diff4splat.scene.DynamicGaussians.at`); a folder with neither is static.
+
+Camera path (:func:`load_camera_file`, :func:`trajectory_cameras`), one of:
+
+* a ``cameras.json`` (``generate``'s, or a data_prep scene's ``<cam>/cameras.json``, whose extra
+  ``timestamps`` key is ignored): used as is, in the scene's world frame, with its own size, intrinsics and times;
+* a RealEstate10K text file: intrinsics de-normalised by the folder's width × height, poses re-expressed
+  relative to the file's first camera and placed at the folder's first camera (the path ``generate --cameras``
+  would have followed from that folder's photograph);
+* a preset trajectory (:func:`diff4splat.cameras.make_trajectory`) at the folder's frame-0 intrinsics and
+  size, placed at the folder's first camera, around the scene centre at :func:`scene_depth` metres ahead.
+
+Frame i is rendered at ``cameras.times[i]`` by :func:`diff4splat.render.sequence.render_path`. The output
+folder (kind ``"render"``, written atomically by :func:`diff4splat.io.outdir.output_dir`, so it never
+replaces a user's folder nor the input)::
+
+    rgb/0000.png …      8-bit RGB, lossless: round(255 · clamp(colour, 0, 1))
+    video.mp4           the same frames (an odd width/height is padded by repeating the last column/row:
+                        MPEG-4 Part 2 needs even sizes)
+    depth/0000.exr …    float32 expected depth "Z" (metres; empty pixels filled as generate does,
+                        :func:`~diff4splat.io.output.fill_empty_depth`) and coverage "A"
+    cameras.json        the path rendered
+    meta.json           source folder, camera source, deformation source, frames, size, fps, timings
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from . import __version__
+from .cameras import TRAJECTORIES, CameraPath, make_trajectory
+from .checks import check_positive_int
+from .io import load_cameras_json, load_depth_exr, load_ply, load_realestate10k, save_cameras_json, save_depth_exr
+from .io.inputs import check_input_file
+from .io.outdir import check_output_dir, output_dir, read_marker
+from .io.output import fill_empty_depth, load_deformation
+from .io.structured import read_json
+from .io.video import check_fps, save_image, save_video, to_uint8
+from .limits import check_limit, check_output_size
+from .render.defaults import BACKGROUND, NEAR_PLANE
+from .render.sequence import render_path
+from .scene import DynamicGaussians
+
+__all__ = ["RENDER_KIND", "FIELD_FILE", "SceneFolder", "load_scene_folder", "scene_depth", "path_scene",
+           "placed_at", "load_camera_file", "trajectory_cameras", "resize_cameras", "rerender"]
+
+RENDER_KIND = "render"
+"""Output-folder kind of ``diff4splat render`` (:data:`diff4splat.io.MARKER`)."""
+FIELD_FILE = "field.safetensors"
+"""The HexPlane field a ``fit`` output folder holds (:func:`models.hexplane.save_field`)."""
+COVERED = 0.5
+"""Pixels of ``depth/0000.exr`` with coverage "A" above this give the scene depth (:func:`scene_depth`)."""
+
+
+@dataclass
+class SceneFolder:
+    """An output folder of ``generate`` or ``fit``, loaded.
+
+    Attributes:
+        path: the folder.
+        scene: canonical Gaussians (M, float32, world frame, metres) with the deformation of
+            ``deformation.npz`` (key times (K,), interpolated between them) and its temporal support, if any.
+        cameras: the folder's own path (``cameras.json``), T cameras.
+        meta: ``meta.json`` ({} if absent).
+        field: the HexPlane field of ``field.safetensors`` (``models.hexplane.HexPlaneField``), or None.
+    """
+
+    path: Path
+    scene: DynamicGaussians
+    cameras: CameraPath
+    meta: dict
+    field: Any = None
+
+    @property
+    def deformation_source(self) -> str:
+        """Where the deformation comes from: ``"field.safetensors"``, ``"deformation.npz"`` or ``"static"``."""
+        if self.field is not None:
+            return FIELD_FILE
+        return "static" if self.scene.is_static and not self.scene.has_temporal else "deformation.npz"
+
+
+def load_scene_folder(folder: str | os.PathLike) -> SceneFolder:
+    """Read an output folder of ``generate`` or ``fit`` (module docstring).
+
+    Raises:
+        FileNotFoundError: ``folder`` does not exist, is not a folder, or lacks ``scene.ply`` or ``cameras.json``
+            (each named).
+        ValueError: a file of the folder is malformed (the reader's message names it); ``deformation.npz``
+            does not fit ``scene.ply`` (Gaussian count, shapes).
+    """
+    path = Path(folder)
+    if not path.exists():
+        raise FileNotFoundError(f"scene folder {path} does not exist")
+    if not path.is_dir():
+        raise FileNotFoundError(f"scene folder {path} is not a folder (give an output folder of generate or fit)")
+    if not (path / "scene.ply").is_file():
+        raise FileNotFoundError(f"scene folder {path} has no scene.ply (not an output folder of generate or fit)")
+    canonical = load_ply(path / "scene.ply")
+    scene = DynamicGaussians(canonical)
+    if (path / "deformation.npz").is_file():
+        arrays = {k: torch.from_numpy(v).float() for k, v in load_deformation(path / "deformation.npz").items()}
+        try:
+            scene = DynamicGaussians(canonical, **arrays)
+        except ValueError as e:
+            raise ValueError(f"{path / 'deformation.npz'} does not fit {path / 'scene.ply'}: {e}") from None
+    if not (path / "cameras.json").is_file():
+        raise FileNotFoundError(f"scene folder {path} has no cameras.json (not an output folder of generate or fit)")
+    cameras = load_cameras_json(path / "cameras.json")
+    meta = read_json(path / "meta.json", "meta.json") if (path / "meta.json").is_file() else {}
+    field = None
+    if (path / FIELD_FILE).is_file():
+        from models.hexplane import load_field
+
+        field = load_field(path / FIELD_FILE)
+    return SceneFolder(path, scene, cameras, meta, field)
+
+
+def scene_depth(folder: SceneFolder) -> float:
+    """Distance from the folder's first camera to the scene centre, metres: where presets look.
+
+    The first of: meta.json's ``scene_depth`` (a finite number > 0); the median depth "Z" of the pixels of
+    ``depth/0000.exr`` whose coverage "A" exceeds :data:`COVERED` (every pixel with a finite Z > 0 if the file
+    has no "A"); the median depth of the canonical Gaussian means in front of the first camera
+    (z > :data:`~diff4splat.render.defaults.NEAR_PLANE`).
+
+    Raises:
+        ValueError: none of the three exists (no depth map and no Gaussian in front of the first camera).
+    """
+    value = folder.meta.get("scene_depth")
+    if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0:
+        return float(value)
+    exr = folder.path / "depth" / "0000.exr"
+    if exr.is_file():
+        z, a = load_depth_exr(exr, return_alpha=True)
+        keep = np.isfinite(z) & (z > 0) & (a > COVERED if a is not None else True)
+        if keep.any():
+            return float(np.median(z[keep]))
+    means = folder.scene.canonical.means.double()
+    vm = folder.cameras.viewmats[0].double()
+    z = means @ vm[2, :3] + vm[2, 3]  # camera-0 depth of each mean
+    z = z[z > NEAR_PLANE]
+    if z.numel():
+        return float(z.median())
+    raise ValueError(f"scene folder {folder.path}: cannot estimate the scene depth (no depth/0000.exr coverage "
+                     "and no Gaussian in front of the first camera)")
+
+
+def path_scene(folder: SceneFolder, times: Tensor) -> DynamicGaussians:
+    """The scene to render at ``times``.
+
+    With a field: its deformation sampled at exactly the distinct values of ``times`` (sorted), so
+    :meth:`DynamicGaussians.at` at each of them returns the field's value there (with the temporal support of
+    ``deformation.npz``, if any). Without: the folder's scene, interpolated between its key times.
+
+    Args:
+        times: (T,) clip times in [0, 1].
+    """
+    if folder.field is None:
+        return folder.scene
+    keys = torch.unique(times.detach().float().cpu())  # sorted, strictly increasing
+    dyn = folder.field.dynamic_gaussians(folder.scene.canonical, keys)
+    s = folder.scene
+    return DynamicGaussians(dyn.canonical, dyn.times, dyn.d_means, dyn.d_quats, dyn.d_scales, s.t_means, s.t_scales)
+
+
+def placed_at(path: CameraPath, first: Tensor) -> CameraPath:
+    """A path given relative to its first camera (viewmats[0] = I), placed at the world-to-camera pose ``first``.
+
+    V_i' = V_i · ``first`` (camera i's pose relative to the first is kept), so V_0' = ``first`` exactly.
+
+    Args:
+        path: T cameras whose world frame is the first camera's.
+        first: (4, 4) world-to-camera pose of the first camera in the target world frame.
+    """
+    first = first.to(path.viewmats.dtype)
+    viewmats = path.viewmats @ first
+    viewmats[0] = first
+    return CameraPath(viewmats, path.Ks.clone(), path.width, path.height, path.times.clone())
+
+
+def load_camera_file(path: str | os.PathLike, folder: SceneFolder) -> CameraPath:
+    """``--cameras``: a ``cameras.json`` as is, or a RealEstate10K text file at the folder's size and first
+    camera (module docstring); any suffix other than ``.json`` is read as RealEstate10K.
+
+    Raises:
+        FileNotFoundError / ValueError: the file is missing, not a regular file or malformed (named).
+    """
+    path = check_input_file(path, "cameras")
+    if path.suffix.lower() == ".json":
+        return load_cameras_json(path)
+    cams = load_realestate10k(path, folder.cameras.width, folder.cameras.height, relative=True)
+    return placed_at(cams, folder.cameras.viewmats[0])
+
+
+def trajectory_cameras(folder: SceneFolder, name: str, frames: int | None = None,
+                       amplitude: float | None = None) -> tuple[CameraPath, float]:
+    """A preset path (:func:`~diff4splat.cameras.make_trajectory`) at the folder's frame-0 intrinsics and size,
+    around the scene centre :func:`scene_depth` metres ahead of the folder's first camera, placed there.
+
+    Args:
+        name: one of :data:`~diff4splat.cameras.TRAJECTORIES`.
+        frames: T ≥ 1 (default: the folder's frame count).
+        amplitude: the preset's amplitude (radians for ``arc``, units of the scene depth otherwise; None → default).
+
+    Returns:
+        (path whose first camera is the folder's first camera, scene depth in metres).
+
+    Raises:
+        ValueError: unknown preset, bad ``frames`` or ``amplitude`` (:func:`make_trajectory`), ``frames`` above
+            the ``frames`` limit (:class:`~diff4splat.limits.LimitError`), no scene depth (:func:`scene_depth`).
+    """
+    if name not in TRAJECTORIES:
+        raise ValueError(f"trajectory must be one of {', '.join(TRAJECTORIES)}, got {name!r}")
+    c = folder.cameras
+    T = len(c) if frames is None else check_positive_int("frames", frames)
+    check_limit("frames", T, "frames")
+    depth = scene_depth(folder)
+    preset = make_trajectory(name, T, c.Ks[0], c.width, c.height, scene_depth=depth, amplitude=amplitude)
+    return placed_at(preset, c.viewmats[0]), depth
+
+
+def resize_cameras(cameras: CameraPath, width: int | None = None, height: int | None = None) -> CameraPath:
+    """The path at ``width`` × ``height`` pixels (:meth:`CameraPath.fitted`: centre crop to the new aspect ratio,
+    then scale); one of them alone keeps the aspect ratio (the other rounded to the nearest even number ≥ 2).
+
+    Raises:
+        ValueError: ``width``/``height`` not a positive int.
+    """
+    if width is None and height is None:
+        return cameras
+    if width is not None:
+        width = check_positive_int("width", width, "pixels")
+    if height is not None:
+        height = check_positive_int("height", height, "pixels")
+    if height is None:
+        height = max(2, 2 * round(width * cameras.height / cameras.width / 2))
+    if width is None:
+        width = max(2, 2 * round(height * cameras.width / cameras.height / 2))
+    return cameras.fitted(width, height)
+
+
+def _background(meta: dict) -> tuple[float, float, float]:
+    """meta.json's ``background`` (3 numbers in [0, 1], the colour the scene was fitted against), else
+    :data:`~diff4splat.render.defaults.BACKGROUND`."""
+    bg = meta.get("background")
+    if (isinstance(bg, list) and len(bg) == 3 and all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                      and 0.0 <= v <= 1.0 for v in bg)):
+        return tuple(float(v) for v in bg)
+    return BACKGROUND
+
+
+def _even(frames: np.ndarray) -> np.ndarray:
+    """(T, H, W, 3) uint8 padded to even H and W by repeating the last row/column (MPEG-4 needs even sizes)."""
+    _, H, W, _ = frames.shape
+    return np.pad(frames, ((0, 0), (0, H % 2), (0, W % 2), (0, 0)), mode="edge")
+
+
+def rerender(
+    folder: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    cameras: str | os.PathLike | None = None,
+    trajectory: str | None = None,
+    amplitude: float | None = None,
+    frames: int | None = None,
+    width: int | None = None,
+    height: int | None = None,
+    fps: float = 8,
+    overwrite: bool = False,
+    progress: bool = False,
+) -> dict:
+    """Render the scene of ``folder`` along a camera path and write the ``render`` output folder ``out``.
+
+    Args:
+        folder: output folder of ``generate`` or ``fit`` (:func:`load_scene_folder`).
+        out: output folder (module docstring); checked before any work, replaced only if empty or an earlier
+            ``render`` output (or ``overwrite``), never ``folder``, the camera file or a folder holding them.
+        cameras: camera file (:func:`load_camera_file`); exactly one of ``cameras`` and ``trajectory``.
+        trajectory: preset name (:func:`trajectory_cameras`).
+        amplitude, frames: the preset's amplitude and frame count (``trajectory`` only).
+        width, height: optional output size in pixels (:func:`resize_cameras`).
+        fps: video frame rate, in (0, 1000].
+        overwrite: also replace an ``out`` that is not a ``render`` output (never one holding the inputs).
+        progress: tqdm progress bar.
+
+    Returns:
+        The dict written to ``out/meta.json``.
+
+    Raises:
+        ValueError: both or neither of ``cameras``/``trajectory``; ``amplitude``/``frames`` with ``cameras``; a bad
+            ``fps``, size or preset argument; an ``out`` that may not be written
+            (:class:`~diff4splat.io.OutputDirError`); frames or output size above their limits
+            (:class:`~diff4splat.limits.LimitError`); a malformed file of ``folder`` or camera file.
+        FileNotFoundError: ``folder``, its ``scene.ply``/``cameras.json`` or the camera file is missing.
+    """
+    t_start = time.perf_counter()
+    if (cameras is None) == (trajectory is None):
+        raise ValueError("give exactly one camera path: cameras (a cameras.json or RealEstate10K file) or "
+                         f"trajectory (a preset name), got {'both' if cameras is not None else 'neither'}")
+    if cameras is not None and (amplitude is not None or frames is not None):
+        raise ValueError("amplitude and frames shape a trajectory preset; they do not apply to a camera file "
+                         "(the file fixes the path)")
+    fps = check_fps(fps)
+    inputs = [folder, cameras]
+    check_output_dir(out, inputs=inputs, overwrite=overwrite, kind=RENDER_KIND)
+    src = load_scene_folder(folder)
+    depth = None
+    if cameras is not None:
+        path = load_camera_file(cameras, src)
+    else:
+        path, depth = trajectory_cameras(src, trajectory, frames, amplitude)
+    path = resize_cameras(path, width, height)
+    check_output_size(len(path), path.width, path.height)
+    scene = path_scene(src, path.times)
+    t_load = time.perf_counter() - t_start
+    t0 = time.perf_counter()
+    background = _background(src.meta)
+    colors, depths, alphas = render_path(scene, path, background=background, progress=progress)
+    t_render = time.perf_counter() - t0
+    if depth is None:
+        try:
+            depth = scene_depth(src)
+        except ValueError:  # only the fill value of pixels that no frame covers
+            depth = 1.0
+    meta = {
+        "source": str(folder),
+        "source_kind": read_marker(Path(folder)),
+        "cameras_file": None if cameras is None else str(cameras),
+        "trajectory": trajectory,
+        "amplitude": amplitude,
+        "scene_depth": depth,
+        "deformation": src.deformation_source,
+        "frames": len(path),
+        "width": path.width,
+        "height": path.height,
+        "fps": fps,
+        "background": list(background),
+        "num_gaussians": src.scene.num_gaussians,
+        "timings_s": {"load": t_load, "render": t_render},
+        "versions": {"diff4splat": __version__, "torch": torch.__version__, "python": platform.python_version()},
+    }
+    _write(out, path, colors, depths, alphas, meta, inputs=inputs, overwrite=overwrite, t_start=t_start)
+    return meta
+
+
+def _write(out, path: CameraPath, colors: Tensor, depths: Tensor, alphas: Tensor, meta: dict, *, inputs: list,
+           overwrite: bool, t_start: float) -> None:
+    """Write the folder (module docstring); meta.json last, with the write and total times."""
+    t0 = time.perf_counter()
+    rgb = to_uint8(colors, "colors")  # (T, H, W, 3)
+    depths = fill_empty_depth(depths, alphas, meta["scene_depth"])
+    with output_dir(out, kind=RENDER_KIND, inputs=inputs, overwrite=overwrite) as tmp:
+        for i in range(len(path)):
+            save_image(tmp / "rgb" / f"{i:04d}.png", rgb[i])
+            save_depth_exr(tmp / "depth" / f"{i:04d}.exr", depths[i].cpu(), alphas[i].clamp(0, 1).cpu())
+        save_video(tmp / "video.mp4", _even(rgb), fps=meta["fps"])
+        save_cameras_json(tmp / "cameras.json", path.to("cpu"))
+        meta["timings_s"]["write"] = time.perf_counter() - t0
+        meta["timings_s"]["total"] = time.perf_counter() - t_start
+        (tmp / "meta.json").write_text(json.dumps(meta, indent=2))

@@ -1,0 +1,336 @@
+"""``diff4splat render`` (diff4splat/rerender.py): re-rendering an output folder along any camera path and time."""
+import json
+import math
+import re
+import sys
+import types
+
+import numpy as np
+import pytest
+import torch
+
+from diff4splat.cameras import CameraPath, intrinsics_from_fov, look_at, make_trajectory
+from diff4splat.cli import main
+from diff4splat.gaussians import Gaussians
+from diff4splat.io import MARKER, OutputDirError, load_cameras_json, load_depth_exr, load_video, save_realestate10k
+from diff4splat.io.image import read_image
+from diff4splat.io.output import fill_empty_depth, write_scene_folder
+from diff4splat.io.video import to_uint8
+from diff4splat.render.sequence import render_path
+from diff4splat.rerender import (
+    SceneFolder,
+    load_scene_folder,
+    path_scene,
+    rerender,
+    resize_cameras,
+    scene_depth,
+)
+from diff4splat.scene import DynamicGaussians
+
+W, H, T, M = 24, 16, 5, 40
+
+
+def _world_pose() -> torch.Tensor:
+    """A world-to-camera pose far from the identity: the world frame of a data_prep scene."""
+    (vm,) = look_at(torch.tensor([[1.5, -0.4, -0.7]], dtype=torch.float64), torch.tensor([0.2, 0.1, 1.8]))
+    return vm.float()
+
+
+def _scene(first: torch.Tensor, dynamic: bool = True, seed: int = 0) -> DynamicGaussians:
+    """M Gaussians about 2 m ahead of the camera ``first`` (world-to-camera), with a deformation at T key times
+    that moves them by ~0.15 m between keys."""
+    g = torch.Generator().manual_seed(seed)
+    cam = torch.randn(M, 3, generator=g) * torch.tensor([0.5, 0.35, 0.2]) + torch.tensor([0.0, 0.0, 2.0])
+    c2w = torch.linalg.inv(first)
+    means = cam @ c2w[:3, :3].T + c2w[:3, 3]
+    gs = Gaussians(means, torch.randn(M, 4, generator=g), torch.rand(M, 3, generator=g) * 0.08 + 0.04,
+                   torch.rand(M, generator=g) * 0.5 + 0.45, torch.randn(M, 1, 3, generator=g))
+    if not dynamic:
+        return DynamicGaussians(gs)
+    dq = torch.zeros(T, M, 4)
+    dq[..., 0] = 1
+    dq[..., 1:] = torch.randn(T, M, 3, generator=g) * 0.2
+    return DynamicGaussians(gs, torch.linspace(0, 1, T), torch.randn(T, M, 3, generator=g) * 0.15, dq,
+                            torch.randn(T, M, 3, generator=g) * 0.2)
+
+
+def _path(first: torch.Tensor, frames: int = T) -> CameraPath:
+    K = intrinsics_from_fov(W, H, fov_y_deg=55.0)
+    rel = make_trajectory("arc", frames, K, W, H, scene_depth=2.0, amplitude=0.4)
+    return CameraPath(rel.viewmats @ first, rel.Ks, W, H, rel.times)  # camera i relative to the first kept
+
+
+def _folder(tmp_path, first=None, dynamic=True, name="gen"):
+    """A generate-like output folder; ``first`` (default I) is the world-to-camera pose of its first camera."""
+    first = torch.eye(4) if first is None else first
+    scene, cams = _scene(first, dynamic), _path(first)
+    colors, depths, alphas = render_path(scene, cams)
+    out = write_scene_folder(tmp_path / name, scene, cams, colors, depths, alphas, {"seed": 0})
+    return out, scene, cams, (colors, depths, alphas)
+
+
+def _rgb(out, n):
+    return np.stack([read_image(out / "rgb" / f"{i:04d}.png") for i in range(n)])
+
+
+def _assert_frames(out, scene, cams, tol=1):
+    """out/rgb equals the quantised render of the in-memory ``scene`` along ``cams`` (within ``tol`` grey levels:
+    scene.ply stores float32 log-scales and logit-opacities), and most pixels exactly."""
+    ref = to_uint8(render_path(scene, cams)[0])
+    got = _rgb(out, len(cams))
+    diff = np.abs(got.astype(int) - ref.astype(int))
+    assert got.shape == ref.shape and diff.max() <= tol and (diff == 0).mean() > 0.99, diff.max()
+
+
+def test_own_cameras_reproduce_the_folder(tmp_path):
+    folder, scene, cams, (colors, depths, alphas) = _folder(tmp_path)
+    meta = rerender(folder, tmp_path / "r", cameras=folder / "cameras.json")
+    out = tmp_path / "r"
+    assert sorted(p.name for p in out.iterdir()) == sorted([MARKER, "cameras.json", "depth", "meta.json", "rgb",
+                                                            "video.mp4"])
+    assert json.loads((out / MARKER).read_text())["kind"] == "render"
+    _assert_frames(out, scene, cams)
+    got = _rgb(out, T)
+    assert np.abs(got.astype(int) - to_uint8(colors).astype(int)).max() <= 1  # the folder's own frames
+    filled = fill_empty_depth(depths, alphas, 1.0)
+    for i in range(T):
+        z, a = load_depth_exr(out / "depth" / f"{i:04d}.exr", return_alpha=True)
+        np.testing.assert_allclose(z, filled[i].numpy(), rtol=1e-4, atol=1e-4)
+        np.testing.assert_allclose(a, alphas[i].numpy(), atol=1e-4)
+    back = load_cameras_json(out / "cameras.json")
+    torch.testing.assert_close(back.viewmats, cams.viewmats)
+    torch.testing.assert_close(back.times, cams.times)
+    assert load_video(out / "video.mp4").shape == (T, H, W, 3)
+    assert json.loads((out / "meta.json").read_text()) == meta
+    assert (meta["frames"], meta["width"], meta["height"], meta["deformation"]) == (T, W, H, "deformation.npz")
+    assert meta["source"] == str(folder) and meta["source_kind"] == "generate"
+    assert set(meta["timings_s"]) == {"load", "render", "write", "total"}
+
+
+def test_static_folder_renders_the_canonical_scene(tmp_path):
+    folder, scene, cams, _ = _folder(tmp_path, dynamic=False)
+    assert rerender(folder, tmp_path / "r", cameras=folder / "cameras.json")["deformation"] == "static"
+    _assert_frames(tmp_path / "r", scene, cams)
+
+
+def _data_prep_cameras(path, cams: CameraPath, seconds: np.ndarray):
+    data = {"width": cams.width, "height": cams.height, "Ks": cams.Ks.double().tolist(),
+            "viewmats": cams.viewmats.double().tolist(), "times": cams.times.double().tolist(),
+            "timestamps": seconds.tolist()}
+    path.write_text(json.dumps(data))
+    return path
+
+
+def test_data_prep_cameras_are_used_as_is_in_the_world_frame(tmp_path):
+    """A scene in a world frame where the first camera is not the identity: the file's poses are used as they are
+    (re-expressing them relative to their first camera would look elsewhere), with their own times."""
+    first = _world_pose()
+    folder, scene, cams, _ = _folder(tmp_path, first)
+    other = _path(first, 3)
+    other = CameraPath(other.viewmats[[2, 1, 0]].contiguous(), other.Ks, W, H, torch.tensor([0.0, 0.5, 1.0]))
+    seconds = 12.5 + np.array([0.0, 0.5, 1.0])
+    cam_file = _data_prep_cameras(tmp_path / "cam01_cameras.json", other, seconds)
+    rerender(folder, tmp_path / "r", cameras=cam_file)
+    _assert_frames(tmp_path / "r", scene, other)
+    wrong = to_uint8(render_path(scene, other.relative_to_first())[0])
+    assert np.abs(_rgb(tmp_path / "r", 3).astype(int) - wrong.astype(int)).max() > 50  # the test can tell
+
+
+def test_times_between_key_times_interpolate(tmp_path):
+    folder, scene, cams, _ = _folder(tmp_path)
+    mid = CameraPath(cams.viewmats[[1, 1, 2, 3]].contiguous(), cams.Ks[:4], W, H, torch.tensor([0.1, 0.3, 0.55, 0.9]))
+    cam_file = _data_prep_cameras(tmp_path / "mid.json", mid, np.array([0.1, 0.3, 0.55, 0.9]))
+    rerender(folder, tmp_path / "r", cameras=cam_file)
+    _assert_frames(tmp_path / "r", scene, mid)  # render_path renders DynamicGaussians.at(t)
+    nearest = CameraPath(mid.viewmats, mid.Ks, W, H, torch.round(mid.times * (T - 1)) / (T - 1))
+    wrong = to_uint8(render_path(scene, nearest)[0])
+    assert np.abs(_rgb(tmp_path / "r", 4).astype(int) - wrong.astype(int)).max() > 20  # nearest key differs
+
+
+class _SineField:
+    """Stands for models.hexplane.HexPlaneField: d_means = amp·sin(2πt) per Gaussian, unnormalised Δq."""
+
+    def __init__(self, m: int):
+        g = torch.Generator().manual_seed(3)
+        self.amp = torch.randn(m, 3, generator=g) * 0.2
+        self.calls = []
+
+    def __call__(self, means, t):
+        t = float(t)
+        d_quats = torch.zeros(means.shape[0], 4)
+        d_quats[:, 0], d_quats[:, 3] = 2.0, math.sin(3 * t)
+        return self.amp * math.sin(2 * math.pi * t), d_quats, self.amp * math.cos(2 * math.pi * t)
+
+    def dynamic_gaussians(self, canonical, times):
+        self.calls.append(times.clone())
+        parts = [self(canonical.means, float(t)) for t in times]
+        return DynamicGaussians(canonical, times, *(torch.stack(p) for p in zip(*parts, strict=True)))
+
+
+def test_field_is_queried_at_exactly_the_path_times(tmp_path):
+    folder, scene, cams, _ = _folder(tmp_path)
+    src = load_scene_folder(folder)
+    field = _SineField(M)
+    with_field = SceneFolder(src.path, src.scene, src.cameras, src.meta, field)
+    times = torch.tensor([0.0, 0.13, 0.13, 0.62, 0.97])
+    dyn = path_scene(with_field, times)
+    torch.testing.assert_close(field.calls[0], torch.tensor([0.0, 0.13, 0.62, 0.97]))  # distinct, sorted
+    for t in times.tolist():
+        d_means, d_quats, d_scales = field(src.scene.canonical.means, t)
+        expect = DynamicGaussians(src.scene.canonical, torch.tensor([0.0]), d_means[None], d_quats[None],
+                                  d_scales[None]).at(0.0)
+        got = dyn.at(t)
+        for name in ("means", "quats", "scales"):
+            torch.testing.assert_close(getattr(got, name), getattr(expect, name))
+    assert path_scene(src, times) is src.scene  # no field: the folder's interpolated deformation
+
+
+def test_field_file_is_loaded_and_used_end_to_end(tmp_path, monkeypatch):
+    """A folder holding field.safetensors renders the field's deformation, not deformation.npz's."""
+    folder, scene, cams, _ = _folder(tmp_path)
+    (folder / "field.safetensors").write_bytes(b"stand-in")
+    field = _SineField(M)
+    loaded = []
+    fake = types.ModuleType("models.hexplane")
+    fake.load_field = lambda path: loaded.append(path) or field
+    monkeypatch.setitem(sys.modules, "models.hexplane", fake)
+    meta = rerender(folder, tmp_path / "r", cameras=folder / "cameras.json")
+    assert loaded == [folder / "field.safetensors"] and meta["deformation"] == "field.safetensors"
+    expect = field.dynamic_gaussians(load_scene_folder(folder).scene.canonical, cams.times)
+    _assert_frames(tmp_path / "r", expect, cams, tol=0)  # same canonical (scene.ply) and times: exact
+
+
+def test_trajectory_starts_at_the_folder_first_camera_around_the_scene_depth(tmp_path):
+    first = _world_pose()
+    folder, scene, cams, (_, depths, alphas) = _folder(tmp_path, first)
+    z, a = load_depth_exr(folder / "depth" / "0000.exr", return_alpha=True)
+    depth = float(np.median(z[a > 0.5]))
+    meta = rerender(folder, tmp_path / "r", trajectory="orbit", frames=4)
+    out = load_cameras_json(tmp_path / "r" / "cameras.json")
+    assert len(out) == 4 and (out.width, out.height) == (W, H) and meta["scene_depth"] == pytest.approx(depth)
+    torch.testing.assert_close(out.viewmats[0], cams.viewmats[0])
+    torch.testing.assert_close(out.Ks, cams.Ks[:1].expand(4, 3, 3))
+    centre = cams.camera_centers()[0] + depth * torch.linalg.inv(cams.viewmats[0])[:3, 2]  # on the optical axis
+    radii = (out.camera_centers() - centre).norm(dim=-1)
+    torch.testing.assert_close(radii, torch.full((4,), depth), atol=1e-4, rtol=1e-4)
+    _assert_frames(tmp_path / "r", scene, out)
+
+
+def test_scene_depth_sources(tmp_path):
+    folder, scene, cams, _ = _folder(tmp_path)
+    src = load_scene_folder(folder)
+    z, a = load_depth_exr(folder / "depth" / "0000.exr", return_alpha=True)
+    assert scene_depth(src) == pytest.approx(float(np.median(z[a > 0.5])))
+    src.meta["scene_depth"] = 3.25
+    assert scene_depth(src) == 3.25
+    src.meta.clear()
+    (folder / "depth" / "0000.exr").unlink()
+    assert scene_depth(src) == pytest.approx(float(scene.canonical.means[:, 2].median()))
+
+
+def test_realestate10k_file_is_placed_at_the_folder_first_camera(tmp_path):
+    first = _world_pose()
+    folder, scene, cams, _ = _folder(tmp_path, first)
+    rel = cams.relative_to_first()
+    save_realestate10k(tmp_path / "path.txt", CameraPath(rel.viewmats[:3], rel.Ks[:3], W, H, rel.times[:3]))
+    rerender(folder, tmp_path / "r", cameras=tmp_path / "path.txt")
+    out = load_cameras_json(tmp_path / "r" / "cameras.json")
+    torch.testing.assert_close(out.viewmats, cams.viewmats[:3], atol=1e-5, rtol=0)
+    torch.testing.assert_close(out.Ks, cams.Ks[:3], atol=1e-3, rtol=0)
+
+
+def test_width_height_resize_the_intrinsics_and_odd_sizes_pad_only_the_video(tmp_path):
+    folder, scene, cams, _ = _folder(tmp_path)
+    assert resize_cameras(cams, width=12).height == 8
+    assert resize_cameras(cams) is cams
+    rerender(folder, tmp_path / "r", cameras=folder / "cameras.json", width=11, height=7)
+    out = load_cameras_json(tmp_path / "r" / "cameras.json")
+    assert (out.width, out.height) == (11, 7)
+    torch.testing.assert_close(out.Ks, cams.fitted(11, 7).Ks)
+    assert read_image(tmp_path / "r" / "rgb" / "0000.png").shape == (7, 11, 3)
+    assert load_video(tmp_path / "r" / "video.mp4").shape == (T, 8, 12, 3)
+    _assert_frames(tmp_path / "r", scene, out)
+
+
+def test_bad_folders_raise_file_not_found_naming_them(tmp_path):
+    (tmp_path / "afile").write_text("x")
+    (tmp_path / "empty").mkdir()
+    for bad in ("missing", "afile", "empty"):
+        with pytest.raises(FileNotFoundError, match=re.escape(str(tmp_path / bad))):
+            load_scene_folder(tmp_path / bad)
+        with pytest.raises(FileNotFoundError, match=re.escape(str(tmp_path / bad))):
+            rerender(tmp_path / bad, tmp_path / "r", trajectory="arc")
+    assert not (tmp_path / "r").exists()
+
+
+def test_output_never_replaces_a_user_folder_or_the_input(tmp_path):
+    folder, *_ = _folder(tmp_path)
+    user = tmp_path / "mine"
+    user.mkdir()
+    (user / "notes.txt").write_text("keep")
+    with pytest.raises(OutputDirError, match="not written by diff4splat"):
+        rerender(folder, user, cameras=folder / "cameras.json")
+    assert sorted(p.name for p in user.iterdir()) == ["notes.txt"]
+    before = sorted(p.name for p in folder.iterdir())
+    for out in (folder, tmp_path):
+        with pytest.raises(OutputDirError, match="input"):
+            rerender(folder, out, cameras=folder / "cameras.json", overwrite=True)
+    assert sorted(p.name for p in folder.iterdir()) == before
+    rerender(folder, tmp_path / "r", cameras=folder / "cameras.json")
+    rerender(folder, tmp_path / "r", trajectory="arc", frames=2)  # an earlier render output is replaced
+    assert len(list((tmp_path / "r" / "rgb").iterdir())) == 2
+
+
+def test_exactly_one_camera_source(tmp_path):
+    folder, *_ = _folder(tmp_path)
+    with pytest.raises(ValueError, match="both"):
+        rerender(folder, tmp_path / "r", cameras=folder / "cameras.json", trajectory="arc")
+    with pytest.raises(ValueError, match="neither"):
+        rerender(folder, tmp_path / "r")
+    with pytest.raises(ValueError, match="do not apply to a camera file"):
+        rerender(folder, tmp_path / "r", cameras=folder / "cameras.json", frames=3)
+    assert not (tmp_path / "r").exists()
+
+
+def test_cli_render_writes_the_folder_and_reports_it(tmp_path, capsys):
+    folder, scene, cams, _ = _folder(tmp_path)
+    out = tmp_path / "r"
+    code = main(["render", str(folder), "--trajectory", "pan-left", "--frames", "3", "--amplitude", "0.1",
+                 "--fps", "4", "--quiet", "--out", str(out)])
+    assert code == 0
+    assert capsys.readouterr().out.strip().splitlines()[-1] == f"wrote {out} (3 frames, {W}x{H})"
+    meta = json.loads((out / "meta.json").read_text())
+    assert (meta["trajectory"], meta["amplitude"], meta["fps"], meta["frames"]) == ("pan-left", 0.1, 4, 3)
+    path = load_cameras_json(out / "cameras.json")
+    torch.testing.assert_close(path.camera_centers()[-1], torch.tensor([-0.1 * meta["scene_depth"], 0.0, 0.0]))
+
+
+@pytest.mark.parametrize("case", ["missing_folder", "both", "neither", "amplitude_with_cameras", "out_is_input",
+                                  "user_folder", "missing_cameras"])
+def test_cli_bad_input_one_line_exit_2(tmp_path, capsys, case):
+    folder, *_ = _folder(tmp_path)
+    out = tmp_path / "r"
+    args = ["render", str(folder), "--cameras", str(folder / "cameras.json"), "--quiet", "--out", str(out)]
+    if case == "missing_folder":
+        args[1] = str(tmp_path / "nope")
+    elif case == "both":
+        args += ["--trajectory", "arc"]
+    elif case == "neither":
+        args = args[:2] + args[4:]
+    elif case == "amplitude_with_cameras":
+        args += ["--amplitude", "0.3"]
+    elif case == "out_is_input":
+        args[-1] = str(folder)
+    elif case == "user_folder":
+        out.mkdir()
+        (out / "notes.txt").write_text("keep")
+    else:
+        args[3] = str(tmp_path / "none.json")
+    before = sorted(p.name for p in folder.iterdir())
+    code = main(args)
+    err = capsys.readouterr().err
+    assert code == 2
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("diff4splat: error:"), err
+    assert sorted(p.name for p in folder.iterdir()) == before
+    assert (sorted(p.name for p in out.iterdir()) == ["notes.txt"]) if case == "user_folder" else not out.exists()
