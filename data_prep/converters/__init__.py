@@ -8,9 +8,12 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from .dnerf import convert_dnerf
 from .dynamic_replica import convert_dynamic_replica
+from .hypernerf import convert_hypernerf
 from .matrixcity import convert_matrixcity
 from .multicamvideo import convert_multicamvideo
+from .n3dv import convert_n3dv
 from .pointodyssey import convert_pointodyssey
 from .realestate10k import convert_realestate10k
 from .spring import convert_spring
@@ -30,6 +33,9 @@ CONVERTERS = {
     "realestate10k": convert_realestate10k,
     "stereo4d": convert_stereo4d,
     "multicamvideo": convert_multicamvideo,
+    "dnerf": convert_dnerf,
+    "n3dv": convert_n3dv,
+    "hypernerf": convert_hypernerf,
 }
 """Source name → ``convert_<source>(src, out, **options) -> Path``."""
 

@@ -13,6 +13,9 @@ sources are collected here so that each is written once:
   ``opencv_from_cameras_projection``).
 - NED body axes (x forward, y right, z down; AirSim / TartanAir) → OpenCV: x_cv = y_ned,
   y_cv = z_ned, z_cv = x_ned.
+- LLFF camera-to-world columns (down, right, backward; ``poses_bounds.npy``) → OpenGL (right, up,
+  backward) by the column permutation [1, −0, 2] of LLFF's ``load_llff.py`` and 4DGaussians'
+  ``neural_3D_dataset_NDC.py``, then → OpenCV as above.
 
 All pose arithmetic is float64 numpy; :func:`camera_path` builds the float64
 :class:`~diff4splat.cameras.CameraPath` (validated: proper rotations, positive focal lengths).
@@ -41,6 +44,7 @@ __all__ = [
     "invert",
     "c2w_gl_to_viewmat",
     "c2w_cv_to_viewmat",
+    "c2w_llff_to_gl",
     "quat_xyzw_to_rotmat",
     "normalize_rotation",
     "intrinsics",
@@ -51,6 +55,9 @@ __all__ = [
     "finite_positive_or_inf",
     "read_rgb_uint8",
     "read_uint16_png",
+    "check_downscale",
+    "downscale_rgb",
+    "downscaled_intrinsics",
     "iter_video_frames",
     "select_frames",
     "write_scene",
@@ -127,6 +134,16 @@ def c2w_gl_to_viewmat(c2w: np.ndarray) -> np.ndarray:
     c2w = np.array(c2w, dtype=np.float64)
     c2w[..., :3, :3] = c2w[..., :3, :3] @ GL_TO_CV
     return invert(c2w)
+
+
+def c2w_llff_to_gl(c2w_llff: np.ndarray) -> np.ndarray:
+    """(..., 3, 4) LLFF camera-to-world [down | right | backward | t] → (..., 4, 4) OpenGL camera-to-world.
+
+    Columns reordered to [right, up, backward] = [c1, −c0, c2] (module docstring); feed the result to
+    :func:`c2w_gl_to_viewmat`.
+    """
+    P = np.asarray(c2w_llff, dtype=np.float64)
+    return rigid(np.stack([P[..., 1], -P[..., 0], P[..., 2]], axis=-1), P[..., 3])
 
 
 def quat_xyzw_to_rotmat(q: np.ndarray) -> np.ndarray:
@@ -276,6 +293,41 @@ def read_uint16_png(path: str | os.PathLike) -> np.ndarray:
         got = None if img is None else (img.dtype, img.shape)
         raise ValueError(f"{p} must be a single-channel 16-bit PNG, got {got}")
     return img
+
+
+def check_downscale(factor, width: int, height: int) -> int:
+    """``factor`` if it is an int in [1, min(width, height)], else ValueError naming ``downscale``."""
+    if isinstance(factor, bool) or not isinstance(factor, int) or not 1 <= factor <= min(width, height):
+        raise ValueError(f"downscale must be an int in [1, {min(width, height)}] for {width}×{height} images, "
+                         f"got {factor!r}")
+    return factor
+
+
+def downscale_rgb(rgb: np.ndarray, factor: int) -> np.ndarray:
+    """(H, W, 3) uint8 → (H // factor, W // factor, 3) uint8 by area averaging (``cv2.INTER_AREA``).
+
+    ``factor`` 1 returns ``rgb`` unchanged. The matching intrinsics are :func:`downscaled_intrinsics`.
+    """
+    if factor == 1:
+        return rgb
+    h, w = rgb.shape[:2]
+    return cv2.resize(rgb, (w // factor, h // factor), interpolation=cv2.INTER_AREA)
+
+
+def downscaled_intrinsics(K: np.ndarray, width: int, height: int, factor: int) -> tuple[np.ndarray, int, int]:
+    """Pixel intrinsics (..., 3, 3) of ``width``×``height`` images resized by :func:`downscale_rgb`.
+
+    The resize maps continuous pixel coordinates (pixel centres at +0.5) by sx = (W // f) / W and
+    sy = (H // f) / H, so fx, cx scale by sx and fy, cy by sy.
+
+    Returns:
+        (K', W // factor, H // factor).
+    """
+    w2, h2 = width // factor, height // factor
+    K2 = np.array(K, dtype=np.float64)
+    K2[..., 0, :] *= w2 / width
+    K2[..., 1, :] *= h2 / height
+    return K2, w2, h2
 
 
 def iter_video_frames(path: str | os.PathLike, indices: list[int]) -> Iterator[np.ndarray]:
