@@ -82,7 +82,7 @@ def read_dnerf_rgb(path: str | os.PathLike, background: float) -> np.ndarray:
 
 def _image_path(src: Path, file_path: str) -> Path:
     p = src / file_path
-    return p if p.suffix.lower() == ".png" and p.is_file() else p.with_name(p.name + ".png")
+    return p if p.suffix.lower() == ".png" else p.with_name(p.name + ".png")
 
 
 def convert_dnerf(src: str | os.PathLike, out: str | os.PathLike, *, split: str = "train",
