@@ -109,13 +109,14 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
     r = sub.add_parser("render", help="re-render an output folder of generate or fit along a camera path",
                        description="Render the scene of an output folder of generate or fit along any camera path "
                                    "and time: rgb/0000.png … (lossless), video.mp4, depth/0000.exr …, cameras.json.")
-    r.add_argument("folder", type=Path, help="output folder of `diff4splat generate` or `diff4splat fit`")
+    r.add_argument("folder", type=Path, metavar="DIR", help="output folder of `diff4splat generate` or `fit`")
     rcam = r.add_mutually_exclusive_group(required=True)
-    rcam.add_argument("--cameras", type=Path, default=None,
+    rcam.add_argument("--cameras", type=Path, default=None, metavar="FILE",
                       help="cameras.json (used as is, in the scene's world frame: generate's, or a data_prep scene's "
                            "<cam>/cameras.json) or RealEstate10K .txt (placed at the folder's first camera)")
-    rcam.add_argument("--trajectory", choices=TRAJECTORIES, default=None,
-                      help="camera path preset from the folder's first camera, at its intrinsics")
+    rcam.add_argument("--trajectory", choices=TRAJECTORIES, default=None, metavar="NAME",
+                      help=f"camera path preset from the folder's first camera, at its intrinsics: "
+                           f"{', '.join(TRAJECTORIES)}")
     r.add_argument("--amplitude", type=float, default=None, help="preset amplitude (as generate's --amplitude)")
     r.add_argument("--frames", type=int, default=None, help="preset frame count (default: the folder's)")
     r.add_argument("--width", type=int, default=None, help="output width, pixels (default: the camera path's)")
