@@ -1,9 +1,6 @@
 """``diff4splat render`` (diff4splat/rerender.py): re-rendering an output folder along any camera path and time."""
 import json
-import math
 import re
-import sys
-import types
 
 import numpy as np
 import pytest
@@ -26,6 +23,7 @@ from diff4splat.rerender import (
     scene_depth,
 )
 from diff4splat.scene import DynamicGaussians
+from models.hexplane import HexPlaneConfig, HexPlaneField, save_field
 
 W, H, T, M = 24, 16, 5, 40
 
@@ -147,57 +145,50 @@ def test_times_between_key_times_interpolate(tmp_path):
     assert np.abs(_rgb(tmp_path / "r", 4).astype(int) - wrong.astype(int)).max() > 20  # nearest key differs
 
 
-class _SineField:
-    """Stands for models.hexplane.HexPlaneField: d_means = amp·sin(2πt) per Gaussian, unnormalised Δq."""
-
-    def __init__(self, m: int):
-        g = torch.Generator().manual_seed(3)
-        self.amp = torch.randn(m, 3, generator=g) * 0.2
-        self.calls = []
-
-    def __call__(self, means, t):
-        t = float(t)
-        d_quats = torch.zeros(means.shape[0], 4)
-        d_quats[:, 0], d_quats[:, 3] = 2.0, math.sin(3 * t)
-        return self.amp * math.sin(2 * math.pi * t), d_quats, self.amp * math.cos(2 * math.pi * t)
-
-    def dynamic_gaussians(self, canonical, times):
-        self.calls.append(times.clone())
-        parts = [self(canonical.means, float(t)) for t in times]
-        return DynamicGaussians(canonical, times, *(torch.stack(p) for p in zip(*parts, strict=True)))
+def _field(canonical: Gaussians, seed: int = 0) -> HexPlaneField:
+    """A small HexPlane field over the box of ``canonical`` whose deformation varies with time (head outputs and
+    time planes perturbed; a new field is the identity)."""
+    g = torch.Generator().manual_seed(seed)
+    cfg = HexPlaneConfig(feature_dim=4, resolution=(4, 4, 4, 5), multires=(1,), net_width=16)
+    bounds = torch.stack([canonical.means.min(0).values, canonical.means.max(0).values])
+    field = HexPlaneField(cfg, bounds)
+    with torch.no_grad():
+        for p in field.parameters():
+            p.add_(torch.randn(p.shape, generator=g) * 0.3)
+    return field
 
 
-def test_field_is_queried_at_exactly_the_path_times(tmp_path):
+def test_field_is_sampled_at_exactly_the_distinct_path_times(tmp_path):
     folder, scene, cams, _ = _folder(tmp_path)
     src = load_scene_folder(folder)
-    field = _SineField(M)
-    with_field = SceneFolder(src.path, src.scene, src.cameras, src.meta, field)
+    field = _field(src.scene.canonical)
     times = torch.tensor([0.0, 0.13, 0.13, 0.62, 0.97])
-    dyn = path_scene(with_field, times)
-    torch.testing.assert_close(field.calls[0], torch.tensor([0.0, 0.13, 0.62, 0.97]))  # distinct, sorted
+    dyn = path_scene(SceneFolder(src.path, src.scene, src.cameras, src.meta, field), times)
+    torch.testing.assert_close(dyn.times, torch.tensor([0.0, 0.13, 0.62, 0.97]))  # distinct, sorted
     for t in times.tolist():
         d_means, d_quats, d_scales = field(src.scene.canonical.means, t)
-        expect = DynamicGaussians(src.scene.canonical, torch.tensor([0.0]), d_means[None], d_quats[None],
-                                  d_scales[None]).at(0.0)
+        expect = DynamicGaussians(src.scene.canonical, torch.tensor([t]), d_means[None], d_quats[None],
+                                  d_scales[None]).at(t)
         got = dyn.at(t)
         for name in ("means", "quats", "scales"):
             torch.testing.assert_close(getattr(got, name), getattr(expect, name))
     assert path_scene(src, times) is src.scene  # no field: the folder's interpolated deformation
 
 
-def test_field_file_is_loaded_and_used_end_to_end(tmp_path, monkeypatch):
-    """A folder holding field.safetensors renders the field's deformation, not deformation.npz's."""
+def test_fit_folder_renders_its_field_safetensors_at_the_path_times(tmp_path):
+    """A folder holding field.safetensors (as fit writes it) renders field.dynamic_gaussians at the path's times,
+    also between the key times of its deformation.npz, not the npz's interpolation."""
     folder, scene, cams, _ = _folder(tmp_path)
-    (folder / "field.safetensors").write_bytes(b"stand-in")
-    field = _SineField(M)
-    loaded = []
-    fake = types.ModuleType("models.hexplane")
-    fake.load_field = lambda path: loaded.append(path) or field
-    monkeypatch.setitem(sys.modules, "models.hexplane", fake)
-    meta = rerender(folder, tmp_path / "r", cameras=folder / "cameras.json")
-    assert loaded == [folder / "field.safetensors"] and meta["deformation"] == "field.safetensors"
-    expect = field.dynamic_gaussians(load_scene_folder(folder).scene.canonical, cams.times)
-    _assert_frames(tmp_path / "r", expect, cams, tol=0)  # same canonical (scene.ply) and times: exact
+    canonical = load_scene_folder(folder).scene.canonical
+    field = _field(canonical)
+    save_field(folder / "field.safetensors", field)
+    mid = CameraPath(cams.viewmats[[0, 2, 4]].contiguous(), cams.Ks[:3], W, H, torch.tensor([0.1, 0.37, 0.8]))
+    cam_file = _data_prep_cameras(tmp_path / "mid.json", mid, np.array([0.1, 0.37, 0.8]))
+    meta = rerender(folder, tmp_path / "r", cameras=cam_file)
+    assert meta["deformation"] == "field.safetensors"
+    _assert_frames(tmp_path / "r", field.dynamic_gaussians(canonical, mid.times), mid, tol=0)
+    npz = to_uint8(render_path(scene, mid)[0])
+    assert np.abs(_rgb(tmp_path / "r", 3).astype(int) - npz.astype(int)).max() > 20  # the test can tell
 
 
 def test_trajectory_starts_at_the_folder_first_camera_around_the_scene_depth(tmp_path):
