@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +32,7 @@ from .outdir import output_dir
 from .ply import save_ply
 from .video import save_video
 
-__all__ = ["write_scene_folder", "fill_empty_depth", "save_deformation", "load_deformation"]
+__all__ = ["write_scene_folder", "fill_empty_depth", "save_deformation", "load_deformation", "json_default"]
 
 
 
@@ -104,9 +104,14 @@ def write_scene_folder(
     depth_fallback: float = 1.0,
     inputs: Iterable[str | os.PathLike | None] = (),
     overwrite: bool = False,
+    kind: str = "generate",
+    extra: Callable[[Path], None] | None = None,
 ) -> Path:
     """Write the whole output folder into a temporary folder, then rename it onto ``out_dir``
-    (:func:`~diff4splat.io.outdir.output_dir`, kind ``"generate"``).
+    (:func:`~diff4splat.io.outdir.output_dir`, marker kind ``kind``: "generate", or "fit" for
+    ``diff4splat fit``, whose ``extra`` writes field.safetensors and metrics.json).
+
+    ``extra(tmp)`` is called with the temporary folder after the standard files, to add files of its own.
 
     A failure part-way leaves no ``out_dir`` (or the previous one untouched). An existing ``out_dir`` is
     replaced only if it is empty or an earlier ``generate`` output (or ``overwrite``), never if it holds
@@ -121,7 +126,7 @@ def write_scene_folder(
         raise ValueError(f"colors/depths/alphas must have {T} frames (one per camera), got "
                          f"{colors.shape[0]}/{depths.shape[0]}/{alphas.shape[0]}")
     depths = fill_empty_depth(depths, alphas, depth_fallback)
-    with output_dir(out_dir, kind="generate", inputs=inputs, overwrite=overwrite, parents=True) as tmp:
+    with output_dir(out_dir, kind=kind, inputs=inputs, overwrite=overwrite, parents=True) as tmp:
         save_ply(tmp / "scene.ply", scene.canonical)
         if not scene.is_static or scene.has_temporal:
             save_deformation(tmp / "deformation.npz", scene)
@@ -130,11 +135,14 @@ def write_scene_folder(
             save_depth_exr(tmp / "depth" / f"{i:04d}.exr", depths[i].cpu(), alphas[i].clamp(0, 1).cpu())
         save_video(tmp / "video.mp4", colors.cpu(), fps=fps)
         save_cameras_json(tmp / "cameras.json", cameras.to("cpu"))
-        (tmp / "meta.json").write_text(json.dumps(meta, indent=2, default=_json_default))
+        (tmp / "meta.json").write_text(json.dumps(meta, indent=2, default=json_default))
+        if extra is not None:
+            extra(tmp)
     return Path(out_dir)
 
 
-def _json_default(obj):
+def json_default(obj):
+    """``json.dumps`` ``default=``: numpy scalars → Python numbers, paths → strings."""
     if isinstance(obj, (np.generic,)):
         return obj.item()
     if isinstance(obj, Path):

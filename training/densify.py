@@ -1,0 +1,229 @@
+"""Adaptive density control of 3D Gaussian Splatting (Kerbl et al. 2023, §5.2), as ``diff4splat fit`` uses it.
+
+Every ``interval`` iterations between ``start`` and ``until``:
+
+- **clone** Gaussians whose view-space positional gradient, averaged over the views that saw them, is
+  ≥ ``grad_threshold`` and whose largest scale is ≤ ``percent_dense`` × scene extent (under-reconstruction);
+- **split** those above the threshold and larger than that into ``split_n`` = 2 Gaussians sampled from the
+  original (position ~ N(μ, Σ)), each with scales / (0.8·split_n) (over-reconstruction);
+- **prune** Gaussians with opacity < ``min_opacity`` and, after the first opacity reset, those larger than
+  ``max_screen_size`` pixels in a view or ``max_world_size`` × extent in the world;
+- every ``opacity_reset_interval`` iterations opacities are reset to min(o, 0.01).
+
+The gradient is the reference's (``add_densification_stats``): the norm of ∂L/∂(projected mean) in NDC units,
+i.e. the pixel gradient × (W/2, H/2) as gsplat's default strategy computes it, accumulated per view in
+which the Gaussian is visible (radius > 0). Thresholds are the reference's (``arguments/__init__.py``:
+densify_grad_threshold 0.0002, percent_dense 0.01, min opacity 0.005, screen size 20 px, world size 0.1,
+opacity reset 3000); ``start``/``until``/``interval`` are scaled to our short fits in :class:`DensifyConfig`.
+
+Parameters live in a dict ``{name: nn.Parameter}`` with one Adam group per name (``group["name"]``), as the
+reference's ``GaussianModel``: these functions replace each parameter and its Adam moments together.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from diff4splat.quaternions import quat_to_rotmat
+
+__all__ = ["DensifyConfig", "DensityStats", "densify_and_prune", "prune", "reset_opacity", "replace_params",
+           "inverse_sigmoid"]
+
+
+@dataclass
+class DensifyConfig:
+    """Adaptive density control (3DGS §5.2; reference ``arguments/__init__.py``).
+
+    Attributes:
+        start: first iteration that densifies (3DGS: 500).
+        until: last iteration that densifies (3DGS: 15,000 of 30,000; ours: half the stage).
+        interval: iterations between densifications (3DGS: 100).
+        grad_threshold: mean NDC positional gradient norm that triggers clone/split (3DGS: 0.0002).
+        percent_dense: clone/split boundary, fraction of the scene extent (3DGS: 0.01).
+        min_opacity: prune below this opacity (3DGS: 0.005).
+        max_screen_size: prune above this 2D radius, pixels, after the first opacity reset (3DGS: 20).
+        max_world_size: prune above this largest scale, fraction of the extent, likewise (3DGS: 0.1).
+        opacity_reset_interval: iterations between opacity resets to ≤ 0.01 (3DGS: 3000); 0 = never.
+        split_n: Gaussians a split makes (3DGS: 2).
+        max_gaussians: cap on the count; candidates beyond it are taken by largest gradient first.
+    """
+
+    start: int = 500
+    until: int = 15000
+    interval: int = 100
+    grad_threshold: float = 2e-4
+    percent_dense: float = 0.01
+    min_opacity: float = 0.005
+    max_screen_size: float = 20.0
+    max_world_size: float = 0.1
+    opacity_reset_interval: int = 3000
+    split_n: int = 2
+    max_gaussians: int = 200_000
+
+    def __post_init__(self) -> None:
+        for name in ("start", "until", "interval", "opacity_reset_interval", "split_n", "max_gaussians"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 0:
+                raise ValueError(f"densify.{name} must be an int ≥ 0, got {v!r}")
+        if self.interval < 1 or self.split_n < 2 or self.max_gaussians < 1:
+            raise ValueError(f"densify: interval ≥ 1, split_n ≥ 2, max_gaussians ≥ 1 required, got "
+                             f"{self.interval}, {self.split_n}, {self.max_gaussians}")
+        for name in ("grad_threshold", "percent_dense", "min_opacity", "max_screen_size", "max_world_size"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not v >= 0:
+                raise ValueError(f"densify.{name} must be a number ≥ 0, got {v!r}")
+
+    def active(self, iteration: int) -> bool:
+        """True when ``iteration`` (1-based count of steps taken) densifies."""
+        return self.start < iteration <= self.until and iteration % self.interval == 0
+
+
+def inverse_sigmoid(x: Tensor) -> Tensor:
+    """logit(x) = log(x / (1 − x)), the inverse of the opacity activation."""
+    return torch.log(x / (1 - x))
+
+
+class DensityStats:
+    """Accumulated view-space gradient norms and the largest 2D radius of every Gaussian.
+
+    Args:
+        n: number of Gaussians.
+    """
+
+    def __init__(self, n: int) -> None:
+        self.grad_accum = torch.zeros(n)
+        self.denom = torch.zeros(n)
+        self.max_radii = torch.zeros(n)
+
+    def update(self, means2d_grad: Tensor, radii: Tensor, width: int, height: int) -> None:
+        """Add one view's statistics.
+
+        Args:
+            means2d_grad: (N, 2) ∂L/∂(projected mean), per pixel.
+            radii: (N,) 2D radius in pixels, 0 where the Gaussian was culled in this view.
+            width, height: image size, pixels (the pixel → NDC factor is (W/2, H/2)).
+        """
+        vis = radii > 0
+        g = means2d_grad.detach() * means2d_grad.new_tensor([width / 2.0, height / 2.0])
+        self.grad_accum[vis] += g[vis].norm(dim=-1)
+        self.denom[vis] += 1
+        self.max_radii[vis] = torch.maximum(self.max_radii[vis], radii[vis].float())
+
+    def mean_grad(self) -> Tensor:
+        """(N,) accumulated gradient norm / views that saw the Gaussian (0 if none)."""
+        return torch.where(self.denom > 0, self.grad_accum / self.denom.clamp_min(1), 0.0)
+
+
+def replace_params(params: dict[str, nn.Parameter], optimizer: torch.optim.Optimizer,
+                   new: dict[str, Tensor], keep: Tensor | None) -> dict[str, nn.Parameter]:
+    """Replace every parameter by ``cat(param[keep], new[name])`` and its Adam moments likewise (new rows
+    start at zero moments), as the reference's ``_prune_optimizer`` + ``cat_tensors_to_optimizer``.
+
+    Args:
+        params: name → (N, ...) parameter, each the only parameter of the Adam group named ``name``.
+        new: name → (M, ...) rows appended (every name of ``params``; M may be 0).
+        keep: (N,) bool rows kept, or None for all.
+
+    Returns:
+        The new parameter dict (the optimizer's groups point at the new parameters).
+    """
+    out = {}
+    for group in optimizer.param_groups:
+        name = group["name"]
+        old = group["params"][0]
+        kept = old.detach() if keep is None else old.detach()[keep]
+        p = nn.Parameter(torch.cat([kept, new[name].to(old.dtype)]))
+        state = optimizer.state.pop(old, None)
+        if state:
+            for key in ("exp_avg", "exp_avg_sq"):
+                s = state[key] if keep is None else state[key][keep]
+                state[key] = torch.cat([s, torch.zeros_like(new[name], dtype=s.dtype)])
+            optimizer.state[p] = state
+        group["params"][0] = p
+        out[name] = p
+    missing = set(params) - set(out)
+    if missing:
+        raise ValueError(f"parameters without an Adam group: {sorted(missing)}")
+    return out
+
+
+def prune(params: dict[str, nn.Parameter], optimizer: torch.optim.Optimizer, remove: Tensor,
+          stats: DensityStats | None = None) -> dict[str, nn.Parameter]:
+    """Remove the Gaussians where ``remove`` (N,) bool is true (parameters, moments and ``stats``)."""
+    keep = ~remove
+    out = replace_params(params, optimizer, {k: v.detach()[:0] for k, v in params.items()}, keep)
+    if stats is not None:
+        stats.grad_accum, stats.denom = stats.grad_accum[keep], stats.denom[keep]
+        stats.max_radii = stats.max_radii[keep]
+    return out
+
+
+def densify_and_prune(params: dict[str, nn.Parameter], optimizer: torch.optim.Optimizer, stats: DensityStats,
+                      config: DensifyConfig, extent: float, prune_large: bool,
+                      generator: torch.Generator) -> tuple[dict[str, nn.Parameter], dict[str, int]]:
+    """One densification step (module docstring): clone, split, then prune; statistics are reset.
+
+    Args:
+        params: "means" (N,3), "scales" (N,3) log, "quats" (N,4), "opacities" (N,) logit, and colour
+            parameters (any other names, copied as they are).
+        extent: scene extent, metres (:func:`training.fit_data.scene_extent`).
+        prune_large: also prune by screen/world size (true after the first opacity reset, as 3DGS).
+        generator: draws the split positions.
+
+    Returns:
+        (new params, counts {"cloned", "split", "pruned"}); ``stats`` is reset to the new count.
+    """
+    grad = stats.mean_grad()
+    scales = params["scales"].detach().exp()
+    big = scales.max(dim=1).values > config.percent_dense * extent
+    hot = grad >= config.grad_threshold
+    room = max(config.max_gaussians - grad.shape[0], 0)
+    clone, split = hot & ~big, hot & big
+    if int(clone.sum()) + int(split.sum()) * (config.split_n - 1) > room:  # cap: largest gradients first
+        order = torch.argsort(torch.where(hot, grad, -1.0), descending=True)
+        cost = torch.where(big, config.split_n - 1, 1)[order]
+        take = torch.zeros_like(hot)
+        take[order[(torch.cumsum(cost, 0) <= room) & hot[order]]] = True
+        clone, split = clone & take, split & take
+    n_clone, n_split = int(clone.sum()), int(split.sum())
+    new = {k: v.detach()[clone] for k, v in params.items()}
+    if n_split:
+        n = config.split_n
+        std = scales[split].repeat(n, 1)
+        R = quat_to_rotmat(params["quats"].detach()[split]).repeat(n, 1, 1)
+        sample = torch.randn(std.shape, generator=generator, dtype=std.dtype) * std
+        split_rows = {k: v.detach()[split].repeat(n, *([1] * (v.dim() - 1))) for k, v in params.items()}
+        split_rows["means"] = split_rows["means"] + (R @ sample[..., None])[..., 0]
+        split_rows["scales"] = torch.log(std / (0.8 * n))
+        new = {k: torch.cat([new[k], split_rows[k]]) for k in params}
+    params = replace_params(params, optimizer, new, None)
+    N = params["means"].shape[0]
+    originals = torch.cat([split, torch.zeros(N - split.shape[0], dtype=torch.bool)])
+    opac = torch.sigmoid(params["opacities"].detach())
+    remove = originals | (opac < config.min_opacity)
+    if prune_large:
+        radii = torch.cat([stats.max_radii, torch.zeros(N - stats.max_radii.shape[0])])
+        world = params["scales"].detach().exp().max(dim=1).values
+        remove |= (radii > config.max_screen_size) | (world > config.max_world_size * extent)
+    n_pruned = int(remove.sum()) - n_split
+    params = prune(params, optimizer, remove)
+    stats.__init__(params["means"].shape[0])
+    return params, {"cloned": n_clone, "split": n_split, "pruned": n_pruned}
+
+
+def reset_opacity(params: dict[str, nn.Parameter], optimizer: torch.optim.Optimizer,
+                  value: float = 0.01) -> dict[str, nn.Parameter]:
+    """Opacities → min(o, ``value``) with zeroed Adam moments for them (3DGS ``reset_opacity``)."""
+    for group in optimizer.param_groups:
+        if group["name"] == "opacities":
+            old = group["params"][0]
+            p = nn.Parameter(torch.minimum(old.detach(), inverse_sigmoid(torch.tensor(value))))
+            state = optimizer.state.pop(old, None)
+            if state:
+                state["exp_avg"], state["exp_avg_sq"] = torch.zeros_like(p), torch.zeros_like(p)
+                optimizer.state[p] = state
+            group["params"][0] = p
+            return {**params, "opacities": p}
+    raise ValueError("no Adam group named 'opacities'")

@@ -1,0 +1,364 @@
+"""Per-scene fitting of a 4D Gaussian scene to multi-view video (4D Gaussian Splatting, Wu et al., CVPR 2024).
+
+``fit_scene`` optimises canonical 3D Gaussians and a HexPlane deformation field (:mod:`models.hexplane`)
+against every frame of the training cameras of a scene folder (data_prep format):
+
+1. **Initialisation** (:mod:`training.fit_data`): back-projected metric depth (frame 0 of every training
+   camera for a dynamic scene — the canonical state — every frame for a static one), a random box without
+   depth, or a ``generate`` output (``init``).
+2. **Coarse stage** (4DGS §3.3, "coarse"): static 3D Gaussians, ``coarse_iterations`` steps.
+3. **Fine stage**: the field deforms every Gaussian to the view's time (μ + Δμ, normalize(Δq ⊗ q),
+   s·exp(Δs), :func:`diff4splat.scene.compose_deformation`); its regularisers are added to the loss.
+   A static scene (``meta.dynamic`` false, or one frame) has no fine stage and no field.
+
+Loss per view: (1 − λ)·L1 + λ·(1 − SSIM) (3DGS Eq. 7, :func:`training.losses.photometric_loss`, λ = 0.2) +
+``depth_weight`` · mean |D̂ − D| / extent over pixels with valid depth (when the scene has depth) + the field's
+regularisers. Adam with 3DGS's per-parameter learning rates; positions (and the field, 4DGS) decay
+exponentially (:func:`expon_lr`). Adaptive density control: :mod:`training.densify`. One view per step, in a
+seeded random order without replacement per epoch (as the reference's view stack).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass
+from dataclasses import field as dc_field
+
+import kornia
+import numpy as np
+import torch
+from torch import Tensor, nn
+from tqdm import tqdm
+
+from diff4splat.gaussians import Gaussians, rgb_to_sh0
+from diff4splat.render import rasterize
+from diff4splat.scene import DynamicGaussians, compose_deformation
+from models.hexplane import HexPlaneConfig, HexPlaneField
+from training.densify import DensifyConfig, DensityStats, densify_and_prune, inverse_sigmoid, prune, reset_opacity
+from training.fit_data import View, knn_scales
+from training.losses import photometric_loss
+
+__all__ = ["FitConfig", "LearningRates", "FitState", "expon_lr", "init_state", "fit_steps", "evaluate_views",
+           "to_scene", "psnr_from_mse"]
+
+
+@dataclass
+class LearningRates:
+    """Adam learning rates (3DGS ``arguments/__init__.py``; field rates from 4DGS's D-NeRF config).
+
+    position_init/final are multiplied by the scene extent (``spatial_lr_scale``), as the reference does;
+    positions, the field's network and its planes decay exponentially from init to final over the stage
+    (:func:`expon_lr`, delay multiplier 0.01 for positions).
+    """
+
+    position_init: float = 1.6e-4
+    position_final: float = 1.6e-6
+    position_delay_mult: float = 0.01
+    sh0: float = 2.5e-3
+    shN: float = 2.5e-3 / 20
+    opacities: float = 0.05
+    scales: float = 5e-3
+    quats: float = 1e-3
+    deformation_init: float = 1.6e-4
+    deformation_final: float = 1.6e-5
+    grid_init: float = 1.6e-3
+    grid_final: float = 1.6e-4
+
+
+@dataclass
+class FitConfig:
+    """Settings of :func:`fit_steps` (CLI: ``diff4splat fit``).
+
+    Attributes:
+        iterations: total optimisation steps (coarse + fine).
+        coarse_iterations: steps of the static coarse stage (4DGS: 3000 of 14,000–20,000; scaled down).
+        sh_degree: largest SH degree; 3DGS starts at 0 and adds one every ``sh_interval`` steps.
+        sh_interval: steps between SH degree increases (3DGS: 1000).
+        init_points: at most this many depth points initialise the Gaussians.
+        random_points: points of the random-box initialisation (no depth).
+        ssim_weight: λ of the D-SSIM term (3DGS: 0.2).
+        depth_weight: weight of the depth L1 (divided by the extent, so unitless); 0 turns it off.
+        densify: adaptive density control (:class:`training.densify.DensifyConfig`).
+        field: the HexPlane field (:class:`models.hexplane.HexPlaneConfig`).
+        lr: learning rates.
+    """
+
+    iterations: int = 3000
+    coarse_iterations: int = 500
+    sh_degree: int = 1
+    sh_interval: int = 1000
+    init_points: int = 30_000
+    random_points: int = 20_000
+    ssim_weight: float = 0.2
+    depth_weight: float = 0.1
+    densify: DensifyConfig = dc_field(default_factory=lambda: DensifyConfig(start=300, until=2000, interval=100))
+    field: HexPlaneConfig = dc_field(default_factory=HexPlaneConfig)
+    lr: LearningRates = dc_field(default_factory=LearningRates)
+
+    def __post_init__(self) -> None:
+        for name in ("iterations", "coarse_iterations", "sh_degree", "sh_interval", "init_points", "random_points"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 0:
+                raise ValueError(f"{name} must be an int ≥ 0, got {v!r}")
+        if self.iterations < 1 or self.sh_interval < 1 or self.init_points < 1 or self.random_points < 1:
+            raise ValueError(f"iterations, sh_interval, init_points and random_points must be ≥ 1, got "
+                             f"{self.iterations}, {self.sh_interval}, {self.init_points}, {self.random_points}")
+        if self.sh_degree > 3:
+            raise ValueError(f"sh_degree must be in 0 … 3, got {self.sh_degree}")
+        for name in ("ssim_weight", "depth_weight"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or not 0 <= v <= (1 if name == "ssim_weight" else math.inf):
+                raise ValueError(f"{name} must be a number ≥ 0 (ssim_weight ≤ 1), got {v!r}")
+
+
+def expon_lr(step: int, lr_init: float, lr_final: float, max_steps: int, delay_steps: int = 0,
+             delay_mult: float = 1.0) -> float:
+    """Log-linear decay from ``lr_init`` to ``lr_final`` over ``max_steps`` with an optional sine warm-up
+    multiplier (3DGS ``get_expon_lr_func``, from Plenoxels/JaxNeRF)."""
+    if step < 0 or (lr_init == 0.0 and lr_final == 0.0):
+        return 0.0
+    delay = 1.0
+    if delay_steps > 0:
+        delay = delay_mult + (1 - delay_mult) * math.sin(0.5 * math.pi * min(max(step / delay_steps, 0.0), 1.0))
+    t = min(max(step / max(max_steps, 1), 0.0), 1.0)
+    return delay * math.exp(math.log(lr_init) * (1 - t) + math.log(lr_final) * t)
+
+
+@dataclass
+class FitState:
+    """Everything a fit needs to continue: parameters, optimizer, field, statistics, counters.
+
+    ``params``: "means" (N,3) metres, "scales" (N,3) log metres, "quats" (N,4) wxyz unnormalised,
+    "opacities" (N,) logits, "sh0" (N,1,3), "shN" (N,K−1,3) (K = (sh_degree+1)²).
+    """
+
+    params: dict[str, nn.Parameter]
+    optimizer: torch.optim.Adam
+    stats: DensityStats
+    extent: float
+    dynamic: bool
+    field: HexPlaneField | None = None
+    field_optimizer: torch.optim.Adam | None = None
+    step: int = 0
+    generator: torch.Generator = dc_field(default_factory=torch.Generator)
+    order: list[int] = dc_field(default_factory=list)
+    train_time: float = 0.0
+    history: list[dict] = dc_field(default_factory=list)
+    counts: dict[str, int] = dc_field(default_factory=lambda: {"cloned": 0, "split": 0, "pruned": 0})
+
+    @property
+    def num_gaussians(self) -> int:
+        return self.params["means"].shape[0]
+
+
+def gaussian_adam(params: dict[str, nn.Parameter], lr: LearningRates, extent: float) -> torch.optim.Adam:
+    rates = {"means": lr.position_init * extent, "sh0": lr.sh0, "shN": lr.shN, "opacities": lr.opacities,
+             "scales": lr.scales, "quats": lr.quats}
+    return torch.optim.Adam([{"params": [p], "lr": rates[k], "name": k} for k, p in params.items()],
+                            lr=0.0, eps=1e-15)
+
+
+def init_state(means: Tensor, colors: Tensor, config: FitConfig, extent: float, dynamic: bool, seed: int,
+               scales: Tensor | None = None, quats: Tensor | None = None, opacities: Tensor | None = None,
+               sh: Tensor | None = None) -> FitState:
+    """Gaussians from points (3DGS ``create_from_pcd``): SH DC from ``colors``, higher SH zero, kNN scales,
+    identity rotation, opacity 0.1 — or the given ``scales``/``quats``/``opacities``/``sh`` (a ``generate``
+    initialisation).
+
+    Args:
+        means: (N, 3) metres. colors: (N, 3) in [0, 1]. extent: scene extent, metres. seed: the fit's seed.
+    """
+    n = means.shape[0]
+    K = (config.sh_degree + 1) ** 2
+    sh_full = torch.zeros(n, K, 3)
+    if sh is not None:
+        k = min(K, sh.shape[1])
+        sh_full[:, :k] = sh[:, :k]
+    else:
+        sh_full[:, 0] = rgb_to_sh0(colors)
+    params = {
+        "means": means.float(),
+        "scales": torch.log(knn_scales(means.float()) if scales is None else scales.float()),
+        "quats": torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(n, 1) if quats is None else quats.float(),
+        "opacities": inverse_sigmoid(torch.full((n,), 0.1) if opacities is None
+                                     else opacities.float().clamp(1e-4, 1 - 1e-4)),
+        "sh0": sh_full[:, :1],
+        "shN": sh_full[:, 1:],
+    }
+    params = {k: nn.Parameter(v.contiguous()) for k, v in params.items()}
+    state = FitState(params, gaussian_adam(params, config.lr, extent), DensityStats(n), extent, dynamic)
+    state.generator.manual_seed(seed)
+    return state
+
+
+def _activated(params: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    return (params["means"], params["quats"], params["scales"].exp(), torch.sigmoid(params["opacities"]),
+            torch.cat([params["sh0"], params["shN"]], dim=1))
+
+
+def _deformed(state: FitState, t: float, means: Tensor, quats: Tensor, scales: Tensor):
+    if state.field is None:
+        return means, quats, scales
+    return compose_deformation(means, quats, scales, *state.field(means, t))
+
+
+def render_view(state: FitState, view: View, sh_degree: int, with_depth: bool):
+    """Render one view with the current parameters (deformed to the view's time in the fine stage).
+
+    Returns:
+        (rgb (H, W, 3), depth (H, W) or None, alpha (H, W), rasterize meta).
+    """
+    means, quats, scales, opac, sh = _activated(state.params)
+    means, quats, scales = _deformed(state, view.time, means, quats, scales)
+    colors, alphas, meta = rasterize(means, quats, scales, opac, sh, view.viewmat[None], view.K[None],
+                                     view.width, view.height, sh_degree=sh_degree,
+                                     render_mode="RGB+ED" if with_depth else "RGB")
+    depth = colors[0, ..., 3] if with_depth else None
+    return colors[0, ..., :3], depth, alphas[0, ..., 0], meta
+
+
+def start_fine_stage(state: FitState, config: FitConfig) -> None:
+    """Create the field on the Gaussians' bounding box (4DGS sets the box from the point cloud)."""
+    means = state.params["means"].detach()
+    bounds = torch.stack([means.min(0).values, means.max(0).values])
+    state.field = HexPlaneField(config.field, bounds)
+    grids = [p for n, p in state.field.named_parameters() if "grid" in n or "plane" in n]
+    ids = {id(p) for p in grids}
+    mlp = [p for p in state.field.parameters() if id(p) not in ids]
+    state.field_optimizer = torch.optim.Adam(
+        [{"params": mlp, "lr": config.lr.deformation_init * state.extent, "name": "deformation"},
+         {"params": grids, "lr": config.lr.grid_init * state.extent, "name": "grid"}], lr=0.0, eps=1e-15)
+
+
+def _set_lrs(state: FitState, config: FitConfig) -> None:
+    lr, step = config.lr, state.step
+    fine = state.field_optimizer is not None
+    stage_step = step - config.coarse_iterations if fine else step
+    stage_len = config.iterations - config.coarse_iterations if fine else max(config.coarse_iterations, 1)
+    for g in state.optimizer.param_groups:
+        if g["name"] == "means":
+            g["lr"] = expon_lr(stage_step, lr.position_init * state.extent, lr.position_final * state.extent,
+                               stage_len)
+    if fine:
+        for g in state.field_optimizer.param_groups:
+            init, final = ((lr.deformation_init, lr.deformation_final) if g["name"] == "deformation"
+                           else (lr.grid_init, lr.grid_final))
+            g["lr"] = expon_lr(stage_step, init * state.extent, final * state.extent, stage_len, 0, 0.01)
+
+
+def fit_steps(state: FitState, views: list[View], config: FitConfig, until: int, *, progress: bool = False,
+              should_stop=lambda: False, on_step=None) -> FitState:
+    """Run optimisation steps until ``state.step == until`` (or ``should_stop()``).
+
+    Args:
+        views: training views (not empty).
+        until: step count to reach (≤ ``config.iterations``).
+        should_stop: polled after every step (SIGTERM → checkpoint and return).
+        on_step: ``on_step(state)`` after every step (checkpoints, evaluation).
+    """
+    with_depth = config.depth_weight > 0 and views[0].depth is not None
+    bar = tqdm(total=until, initial=state.step, desc="fit", disable=not progress, dynamic_ncols=True)
+    ema_psnr = None
+    while state.step < until and not should_stop():
+        t0 = time.perf_counter()
+        if state.dynamic and state.field is None and state.step >= config.coarse_iterations:
+            start_fine_stage(state, config)
+        if not state.order:
+            state.order = torch.randperm(len(views), generator=state.generator).tolist()
+        view = views[state.order.pop()]
+        _set_lrs(state, config)
+        degree = min(config.sh_degree, state.step // config.sh_interval)
+        rgb, depth, _, meta = render_view(state, view, degree, with_depth)
+        meta["means2d"].retain_grad()
+        target = view.image
+        loss = photometric_loss(rgb.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None], config.ssim_weight)
+        if with_depth:
+            valid = torch.isfinite(view.depth)
+            if bool(valid.any()):
+                loss = loss + config.depth_weight * (depth[valid] - view.depth[valid]).abs().mean() / state.extent
+        if state.field is not None:
+            loss = loss + state.field.regularization()
+        loss.backward()
+        state.step += 1
+        with torch.no_grad():
+            state.stats.update(meta["means2d"].grad[0], meta["radii"][0], view.width, view.height)
+            state.optimizer.step()
+            state.optimizer.zero_grad(set_to_none=True)
+            if state.field_optimizer is not None:
+                state.field_optimizer.step()
+                state.field_optimizer.zero_grad(set_to_none=True)
+            _density_control(state, config)
+        mse = float(((rgb.detach().clamp(0, 1) - target) ** 2).mean())
+        psnr = psnr_from_mse(mse)
+        ema_psnr = psnr if ema_psnr is None else 0.9 * ema_psnr + 0.1 * psnr
+        state.train_time += time.perf_counter() - t0
+        bar.update(1)
+        bar.set_postfix(psnr=f"{ema_psnr:.2f}", gaussians=state.num_gaussians,
+                        stage="fine" if state.field is not None else "coarse")
+        if on_step is not None:
+            on_step(state)
+    bar.close()
+    return state
+
+
+def _density_control(state: FitState, config: FitConfig) -> None:
+    d, step = config.densify, state.step
+    if d.active(step):
+        state.params, counts = densify_and_prune(
+            state.params, state.optimizer, state.stats, d, state.extent,
+            prune_large=d.opacity_reset_interval > 0 and step > d.opacity_reset_interval,
+            generator=state.generator)
+        for k, v in counts.items():
+            state.counts[k] += v
+    if d.opacity_reset_interval and step % d.opacity_reset_interval == 0 and step <= d.until:
+        state.params = reset_opacity(state.params, state.optimizer)
+
+
+def psnr_from_mse(mse: float) -> float:
+    """PSNR = 10·log10(1 / MSE) for images in [0, 1] (∞ for MSE = 0)."""
+    return math.inf if mse <= 0 else 10.0 * math.log10(1.0 / mse)
+
+
+@torch.no_grad()
+def evaluate_views(state: FitState, views: list[View], sh_degree: int) -> dict[str, float]:
+    """PSNR of the mean squared error over all ``views`` (every pixel of every frame pooled) and the mean
+    SSIM (kornia, window 11), renders clamped to [0, 1].
+
+    Returns:
+        {"psnr", "ssim", "mse", "views"}.
+    """
+    se, n, ssim = 0.0, 0, 0.0
+    for v in views:
+        rgb = render_view(state, v, sh_degree, False)[0].clamp(0, 1)
+        se += float(((rgb - v.image) ** 2).sum())
+        n += rgb.numel()
+        ssim += float(kornia.metrics.ssim(rgb.permute(2, 0, 1)[None], v.image.permute(2, 0, 1)[None], 11).mean())
+    mse = se / max(n, 1)
+    return {"psnr": psnr_from_mse(mse), "ssim": ssim / max(len(views), 1), "mse": mse, "views": len(views)}
+
+
+@torch.no_grad()
+def to_scene(state: FitState, times: Tensor | None) -> DynamicGaussians:
+    """The fitted scene: activated canonical Gaussians (those with opacity < 1/255, which can never pass
+    the renderer's alpha test, removed) plus the field sampled at ``times`` (T,) when there is a field."""
+    from diff4splat.constants import ALPHA_MIN
+
+    keep = torch.sigmoid(state.params["opacities"]) >= ALPHA_MIN
+    if not bool(keep.all()):
+        state.params = prune(state.params, state.optimizer, ~keep, state.stats)
+    means, quats, scales, opac, sh = (x.detach() for x in _activated(state.params))
+    canonical = Gaussians(means, quats, scales, opac, sh)
+    if state.field is None or times is None:
+        return DynamicGaussians(canonical)
+    return state.field.dynamic_gaussians(canonical, times.float())
+
+
+def config_dict(config: FitConfig) -> dict:
+    """JSON-ready settings (meta.json / checkpoints)."""
+    return asdict(config)
+
+
+def numpy_history(state: FitState) -> np.ndarray:
+    """History rows (step, train seconds, Gaussians, held-out PSNR) as an (R, 4) array."""
+    return np.array([[h["step"], h["train_time_s"], h["num_gaussians"], h.get("holdout_psnr", np.nan)]
+                     for h in state.history], dtype=np.float64).reshape(-1, 4)

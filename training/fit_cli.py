@@ -1,0 +1,272 @@
+"""``diff4splat fit SCENE_DIR --out DIR``: fit a 4D Gaussian scene to a scene folder (:mod:`training.fit`).
+
+Registered through the ``diff4splat.commands`` entry point (like ``evaluate``), so ``diff4splat`` never imports
+``training``. The output folder has the layout of ``generate`` (docs/DESIGN.md, "Output folder of generate";
+marker kind "fit"), rendered along the scene's reference camera in the scene's world frame, plus
+``field.safetensors`` (the HexPlane field, :func:`models.hexplane.save_field`; absent for a static fit) and
+``metrics.json``. Checkpoints go to ``DIR.checkpoints/`` (:mod:`training.checkpoint`): every
+``--checkpoint-every`` steps and on SIGTERM/SIGINT; ``--resume`` continues from the newest one, and the
+folder is removed when the output is written.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+import signal
+import time
+from pathlib import Path
+
+import torch
+
+from data_prep.format import load_scene
+from diff4splat.io import load_ply
+from diff4splat.io.outdir import check_output_dir
+from diff4splat.io.output import load_deformation, write_scene_folder
+from diff4splat.quaternions import quat_multiply, rotmat_to_quat
+from diff4splat.render.sequence import render_path
+from diff4splat.scene import DynamicGaussians
+from models.hexplane import save_field
+from training.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from training.densify import DensityStats
+from training.fit import (
+    FitConfig,
+    FitState,
+    config_dict,
+    evaluate_views,
+    fit_steps,
+    gaussian_adam,
+    init_state,
+    start_fine_stage,
+    to_scene,
+)
+from training.fit_data import depth_points, load_views, random_box_points, scene_extent, split_cameras
+
+__all__ = ["register", "run", "run_fit", "FitInterrupted"]
+
+
+class FitInterrupted(Exception):
+    """SIGTERM/SIGINT stopped the fit after a checkpoint was written (rerun with ``--resume``)."""
+
+
+def _moves(views) -> bool:
+    V = torch.stack([v.viewmat for v in views])
+    return bool((V - V[0]).abs().max() > 1e-6)
+
+
+def _generate_init(init_dir: Path, scene, ref_camera: str):
+    """Gaussians of a ``generate`` output at t = 0 in the scene's world frame: generate's world is its first
+    camera's frame, taken to be the scene's reference camera at frame 0; its scale is matched to the scene's
+    depth (median of frame 0's valid depth over the median depth of the Gaussians in that camera) when the
+    scene has depth."""
+    if not (init_dir / "scene.ply").is_file():
+        raise FileNotFoundError(f"--init: {init_dir / 'scene.ply'} does not exist (give a generate output folder)")
+    canonical = load_ply(init_dir / "scene.ply")
+    arrays = load_deformation(init_dir / "deformation.npz") if (init_dir / "deformation.npz").is_file() else {}
+    g = DynamicGaussians(canonical, **{k: torch.from_numpy(v) for k, v in arrays.items()}).at(0.0)
+    scale = 1.0
+    if scene.has_depth:
+        depth = torch.from_numpy(scene.depth(ref_camera, 0))
+        z = g.means[:, 2][g.means[:, 2] > 0]
+        if bool(torch.isfinite(depth).any()) and z.numel():
+            scale = float(depth[torch.isfinite(depth)].median() / z.median())
+    c2w = torch.linalg.inv(scene.cameras(ref_camera).viewmats[0].double()).float()
+    means = g.means * scale @ c2w[:3, :3].T + c2w[:3, 3]
+    quats = quat_multiply(rotmat_to_quat(c2w[:3, :3])[None], g.quats)
+    return means, quats, g.scales * scale, g.opacities, g.sh
+
+
+def _state_from_checkpoint(folder: Path, config: FitConfig, dynamic: bool, run: dict) -> FitState:
+    weights, saved, _ = load_checkpoint(folder)
+    if saved.get("run") != run:
+        raise ValueError(f"--resume: the checkpoint in {folder} is of another fit ({saved.get('run')}), not {run}")
+    names = ("means", "scales", "quats", "opacities", "sh0", "shN")
+    params = {k: torch.nn.Parameter(weights[k]) for k in names}
+    extent = saved["extent"]
+    state = FitState(params, gaussian_adam(params, config.lr, extent), DensityStats(0), extent, dynamic)
+    state.optimizer.load_state_dict(saved["optimizer"])
+    state.stats.grad_accum, state.stats.denom, state.stats.max_radii = saved["stats"]
+    if saved["field_optimizer"] is not None:
+        start_fine_stage(state, config)
+        state.field.load_state_dict({k[len("field."):]: v for k, v in weights.items() if k.startswith("field.")})
+        state.field_optimizer.load_state_dict(saved["field_optimizer"])
+    state.step, state.order, state.train_time = saved["step"], saved["order"], saved["train_time"]
+    state.history, state.counts = saved["history"], saved["counts"]
+    state.generator.set_state(saved["generator"])
+    return state
+
+
+def _save(run_dir: Path, state: FitState, config: FitConfig, run: dict) -> None:
+    weights = {k: v.detach() for k, v in state.params.items()}
+    if state.field is not None:
+        weights.update({f"field.{k}": v for k, v in state.field.state_dict().items()})
+    saved = {"optimizer": state.optimizer.state_dict(), "extent": state.extent,
+             "stats": (state.stats.grad_accum, state.stats.denom, state.stats.max_radii),
+             "field_optimizer": None if state.field_optimizer is None else state.field_optimizer.state_dict(),
+             "step": state.step, "order": list(state.order), "train_time": state.train_time,
+             "history": state.history, "counts": state.counts, "generator": state.generator.get_state(),
+             "run": run}
+    save_checkpoint(run_dir, state.step, weights, saved, {"config": config_dict(config)}, keep=1)
+
+
+def run_fit(scene_dir: Path, out: Path, config: FitConfig, *, holdout_camera: int | None = None, seed: int = 0,
+            init: Path | None = None, resume: bool = False, eval_every: int = 250, checkpoint_every: int = 500,
+            fps: int = 8, progress: bool = False, overwrite: bool = False) -> dict:
+    """Fit ``scene_dir`` and write the output folder ``out`` (module docstring). Returns metrics.json's dict.
+
+    Raises:
+        FileNotFoundError: the scene or ``init`` is missing. ValueError: bad arguments, a scene that cannot
+            be fitted (one camera that does not move and no depth), ``resume`` without a checkpoint.
+        FitInterrupted: SIGTERM/SIGINT (a checkpoint was written first).
+    """
+    t_start = time.perf_counter()
+    scene = load_scene(scene_dir)
+    check_output_dir(out, inputs=[scene_dir, init], overwrite=overwrite, kind="fit")
+    torch.manual_seed(seed)
+    train_names, holdout_names = split_cameras(scene, holdout_camera)
+    train = load_views(scene, train_names)
+    holdout = load_views(scene, holdout_names)
+    dynamic = bool(scene.meta.dynamic) and scene.num_frames > 1
+    if len(train_names) == 1 and not _moves(train) and not scene.has_depth:
+        raise ValueError(f"{scene_dir}: cannot fit: one camera that does not move and no depth give no parallax "
+                         "to place anything (add cameras or depth)")
+    run_dir = Path(str(out) + ".checkpoints")
+    run = {"scene": str(Path(scene_dir).resolve()), "holdout_camera": holdout_camera, "seed": seed,
+           "init": None if init is None else str(Path(init).resolve()), "config": config_dict(config)}
+    if resume:
+        folder = latest_checkpoint(run_dir)
+        if folder is None:
+            raise ValueError(f"--resume: no checkpoint in {run_dir}")
+        state = _state_from_checkpoint(folder, config, dynamic, run)
+    else:
+        gen = torch.Generator().manual_seed(seed)
+        if init is not None:
+            means, quats, scales, opac, sh = _generate_init(Path(init), scene, scene.camera_names[0])
+            state = init_state(means, torch.zeros_like(means), config, scene_extent(train, means), dynamic, seed,
+                               scales=scales, quats=quats, opacities=opac, sh=sh)
+        else:
+            if scene.has_depth:
+                init_views = [v for v in train if v.frame == 0] if dynamic else train
+                means, colors = depth_points(init_views, config.init_points, gen)
+            else:
+                means, colors = random_box_points(train, config.random_points, gen)
+            state = init_state(means, colors, config, scene_extent(train, means), dynamic, seed)
+    degree = lambda s: min(config.sh_degree, s.step // config.sh_interval)  # noqa: E731
+
+    def on_step(s: FitState) -> None:
+        if holdout and (s.step % eval_every == 0 or s.step == config.iterations):
+            s.history.append({"step": s.step, "train_time_s": s.train_time, "num_gaussians": s.num_gaussians,
+                              "holdout_psnr": evaluate_views(s, holdout, degree(s))["psnr"]})
+        if checkpoint_every and s.step % checkpoint_every == 0 and s.step < config.iterations:
+            _save(run_dir, s, config, run)
+
+    stop = {"flag": False}
+    handlers = {}
+    try:
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            handlers[sig] = signal.signal(sig, lambda *_: stop.update(flag=True))
+    except ValueError:  # not the main thread
+        pass
+    try:
+        fit_steps(state, train, config, config.iterations, progress=progress, should_stop=lambda: stop["flag"],
+                  on_step=on_step)
+    finally:
+        for sig, h in handlers.items():
+            signal.signal(sig, h)
+    if stop["flag"] and state.step < config.iterations:
+        _save(run_dir, state, config, run)
+        raise FitInterrupted(f"stopped at step {state.step}; checkpoint in {run_dir}; rerun with --resume")
+    return _write_output(scene, out, state, config, train, holdout, dict(
+        scene=str(scene_dir), holdout_camera=holdout_camera, seed=seed, init=None if init is None else str(init),
+        fps=fps, overwrite=overwrite, t_start=t_start, run_dir=run_dir, progress=progress))
+
+
+def _write_output(scene, out: Path, state: FitState, config: FitConfig, train, holdout, opts: dict) -> dict:
+    deg = min(config.sh_degree, state.step // config.sh_interval)
+    ref = scene.cameras(scene.camera_names[0])
+    fitted = to_scene(state, ref.times if state.field is not None else None)
+    train_eval = evaluate_views(state, train, deg)
+    held = evaluate_views(state, holdout, deg) if holdout else None
+    colors, depths, alphas = render_path(fitted, ref, progress=opts["progress"])
+    metrics = {
+        "train_psnr": train_eval["psnr"], "train_ssim": train_eval["ssim"],
+        "holdout_psnr": None if held is None else held["psnr"], "holdout_ssim": None if held is None else held["ssim"],
+        "holdout_camera": None if not holdout else holdout[0].camera, "iterations": state.step,
+        "wall_time_s": time.perf_counter() - opts["t_start"], "train_time_s": state.train_time,
+        "ms_per_iteration": 1000 * state.train_time / max(state.step, 1),
+        "num_gaussians": fitted.num_gaussians, "static": fitted.is_static, "densify": state.counts,
+        "history": state.history,
+    }
+    meta = {"command": "fit", "scene": opts["scene"], "init": opts["init"], "seed": opts["seed"],
+            "holdout_camera": opts["holdout_camera"], "train_cameras": sorted({v.camera for v in train}),
+            "frames": len(ref), "width": ref.width, "height": ref.height, "fps": opts["fps"],
+            "static": fitted.is_static, "num_gaussians": fitted.num_gaussians, "sh_degree": deg,
+            "config": config_dict(config), "cameras": f"{scene.camera_names[0]} (scene world frame)"}
+
+    def extra(tmp: Path) -> None:
+        if state.field is not None:
+            save_field(tmp / "field.safetensors", state.field)
+        (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2))
+
+    write_scene_folder(out, fitted, ref, colors, depths, alphas, meta, fps=opts["fps"],
+                       inputs=[opts["scene"], opts["init"]], overwrite=opts["overwrite"], kind="fit", extra=extra)
+    if latest_checkpoint(opts["run_dir"]) is not None or (opts["run_dir"] / "checkpoints").is_dir():
+        shutil.rmtree(opts["run_dir"], ignore_errors=True)
+    return metrics
+
+
+def register(subparsers) -> None:
+    """Add ``fit`` to ``diff4splat``'s CLI (entry point ``diff4splat.commands``)."""
+    d = FitConfig()
+    p = subparsers.add_parser("fit", help="fit a 4D Gaussian scene to a multi-view video scene folder (4DGS)",
+                              description="Optimise canonical Gaussians + a HexPlane deformation field "
+                                          "(4D Gaussian Splatting, Wu et al. 2024) on a data_prep scene folder.")
+    p.add_argument("scene", type=Path, help="scene folder (data_prep format: synthetic or a converter's output)")
+    p.add_argument("--out", type=Path, required=True, help="output folder (generate's layout + field.safetensors, "
+                   "metrics.json), written atomically; replaces only an earlier fit output")
+    p.add_argument("--iterations", type=int, default=d.iterations, help=f"total steps (default {d.iterations})")
+    p.add_argument("--coarse-iterations", type=int, default=d.coarse_iterations,
+                   help=f"static coarse-stage steps (default {d.coarse_iterations})")
+    p.add_argument("--holdout-camera", type=int, default=None,
+                   help="camera index never trained on; its frames give holdout_psnr/holdout_ssim")
+    p.add_argument("--seed", type=int, default=0, help="seed (initial subset, view order, splits; default 0)")
+    p.add_argument("--max-gaussians", type=int, default=d.densify.max_gaussians,
+                   help=f"cap on the Gaussian count (default {d.densify.max_gaussians})")
+    p.add_argument("--init-points", type=int, default=d.init_points,
+                   help=f"at most this many back-projected depth points initialise the fit (default {d.init_points})")
+    p.add_argument("--sh-degree", type=int, default=d.sh_degree, help=f"largest SH degree (default {d.sh_degree})")
+    p.add_argument("--init", type=Path, default=None,
+                   help="initialise from a generate output folder (made from the reference camera's frame 0)")
+    p.add_argument("--eval-every", type=int, default=250, help="held-out evaluation interval, steps (default 250)")
+    p.add_argument("--checkpoint-every", type=int, default=500, help="checkpoint interval, steps (0: only on "
+                   "SIGTERM; default 500)")
+    p.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in OUT.checkpoints")
+    p.add_argument("--fps", type=int, default=8, help="video frame rate (default 8)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--overwrite", action="store_true", help="also replace an --out that is not an earlier fit output")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    """The ``fit`` command: one summary line; 143 after SIGTERM/SIGINT (checkpoint written)."""
+    import dataclasses
+    import sys
+
+    for name in ("iterations", "eval_every", "fps", "max_gaussians", "init_points"):
+        if getattr(args, name) < 1:
+            raise ValueError(f"--{name.replace('_', '-')} must be ≥ 1, got {getattr(args, name)}")
+    d = FitConfig()
+    config = FitConfig(iterations=args.iterations, coarse_iterations=args.coarse_iterations,
+                       sh_degree=args.sh_degree, init_points=args.init_points,
+                       densify=dataclasses.replace(d.densify, max_gaussians=args.max_gaussians))
+    try:
+        m = run_fit(args.scene, args.out, config, holdout_camera=args.holdout_camera, seed=args.seed,
+                    init=args.init, resume=args.resume, eval_every=args.eval_every,
+                    checkpoint_every=args.checkpoint_every, fps=args.fps, progress=not args.quiet,
+                    overwrite=args.overwrite)
+    except FitInterrupted as e:
+        print(f"diff4splat fit: {e}", file=sys.stderr)
+        return 143
+    held = "" if m["holdout_psnr"] is None else f", held-out {m['holdout_psnr']:.2f} dB"
+    print(f"wrote {args.out} ({m['num_gaussians']} Gaussians, {'static' if m['static'] else 'dynamic'}, "
+          f"train {m['train_psnr']:.2f} dB{held}) in {m['wall_time_s']:.1f} s")
+    return 0

@@ -1,0 +1,161 @@
+"""What ``diff4splat fit`` reads from a scene folder: training/held-out views and the initial Gaussians.
+
+A *view* is one frame of one camera (image, optional metric depth, viewmat, K, time). Initialisation
+follows 3DGS (Kerbl et al. 2023, §5.1): points with colours, isotropic scales from the mean squared
+distance to the 3 nearest neighbours, opacity 0.1, identity rotation; 4DGS (Wu et al. 2024) uses the same
+initialisation for its canonical Gaussians. Our points come from the scene's metric depth (back-projected
+pixels) instead of SfM, or from a random box when the scene has no depth.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from data_prep.format import SceneReader
+from diff4splat.cameras import camera_centers, unproject_depth
+
+__all__ = ["View", "load_views", "split_cameras", "depth_points", "random_box_points", "knn_scales",
+           "scene_extent"]
+
+
+@dataclass
+class View:
+    """One training or evaluation frame.
+
+    Attributes:
+        image: (H, W, 3) float32 RGB in [0, 1].
+        depth: (H, W) float32 metric z-depth (+inf where invalid), or None.
+        viewmat: (4, 4) world-to-camera (OpenCV).
+        K: (3, 3) pixels.
+        time: clip time in [0, 1].
+        camera: camera folder name.
+        frame: frame index in the camera.
+    """
+
+    image: Tensor
+    depth: Tensor | None
+    viewmat: Tensor
+    K: Tensor
+    time: float
+    camera: str
+    frame: int
+
+    @property
+    def width(self) -> int:
+        return self.image.shape[1]
+
+    @property
+    def height(self) -> int:
+        return self.image.shape[0]
+
+
+def split_cameras(scene: SceneReader, holdout_camera: int | None) -> tuple[list[str], list[str]]:
+    """Training and held-out camera names: camera ``holdout_camera`` (index into ``meta["cameras"]``) is
+    never trained on.
+
+    Raises:
+        ValueError: ``holdout_camera`` outside [0, number of cameras), or no camera left to train on.
+    """
+    names = scene.camera_names
+    if holdout_camera is None:
+        return names, []
+    if not 0 <= holdout_camera < len(names):
+        raise ValueError(f"--holdout-camera: {holdout_camera} is not a camera index of {scene.path} "
+                         f"(it has {len(names)} camera(s): 0 … {len(names) - 1})")
+    if len(names) == 1:
+        raise ValueError(f"--holdout-camera: {scene.path} has one camera; holding it out leaves nothing to fit")
+    return [n for i, n in enumerate(names) if i != holdout_camera], [names[holdout_camera]]
+
+
+def load_views(scene: SceneReader, cameras: list[str], frames: list[int] | None = None) -> list[View]:
+    """Every frame (or ``frames``) of ``cameras`` as :class:`View` (depth when the scene has it)."""
+    out = []
+    for name in cameras:
+        path = scene.cameras(name)
+        for i in range(scene.num_frames) if frames is None else frames:
+            depth = torch.from_numpy(scene.depth(name, i)) if scene.has_depth else None
+            out.append(View(torch.from_numpy(scene.rgb(name, i)), depth, path.viewmats[i].float(),
+                            path.Ks[i].float(), float(path.times[i]), name, i))
+    return out
+
+
+def depth_points(views: list[View], max_points: int, generator: torch.Generator) -> tuple[Tensor, Tensor]:
+    """Back-project every valid depth pixel of ``views`` (:func:`diff4splat.cameras.unproject_depth`) and
+    keep a uniform random subset of at most ``max_points``.
+
+    Returns:
+        means (N, 3) metres, colours (N, 3) in [0, 1].
+
+    Raises:
+        ValueError: a view has no depth, or no pixel has a finite depth.
+    """
+    pts, cols = [], []
+    for v in views:
+        if v.depth is None:
+            raise ValueError(f"view {v.camera}/{v.frame} has no depth")
+        valid = torch.isfinite(v.depth)
+        p = unproject_depth(v.viewmat[None], v.K[None], torch.where(valid, v.depth, 1.0)[None])[0]
+        pts.append(p[valid])
+        cols.append(v.image[valid])
+    means, colors = torch.cat(pts), torch.cat(cols)
+    if means.shape[0] == 0:
+        raise ValueError("no pixel of the training views has a finite depth; cannot initialise from depth")
+    if means.shape[0] > max_points:
+        keep = torch.randperm(means.shape[0], generator=generator)[:max_points]
+        means, colors = means[keep], colors[keep]
+    return means.float(), colors.float()
+
+
+def random_box_points(views: list[View], num_points: int, generator: torch.Generator) -> tuple[Tensor, Tensor]:
+    """Uniform random points with random colours in the box the cameras look into (3DGS's random
+    initialisation for scenes without SfM points): centred on the camera centres' mean pushed one
+    camera-spread (at least 1 m) along the mean viewing direction, half-size that spread (at least 1 m).
+
+    Returns:
+        means (num_points, 3) metres, colours (num_points, 3) in [0, 1].
+    """
+    V = torch.stack([v.viewmat for v in views]).double()
+    centres = camera_centers(V)
+    forward = V[:, 2, :3].mean(0)
+    forward = forward / forward.norm().clamp_min(1e-12)
+    spread = max(float((centres - centres.mean(0)).norm(dim=-1).max()), 1.0)
+    centre = centres.mean(0) + spread * forward
+    u = torch.rand(num_points, 3, generator=generator, dtype=torch.float64) * 2 - 1
+    return (centre + spread * u).float(), torch.rand(num_points, 3, generator=generator)
+
+
+def knn_scales(means: Tensor, k: int = 3, chunk: int = 1024) -> Tensor:
+    """3DGS initial scale: sqrt of the mean squared distance to the ``k`` nearest other points
+    (``distCUDA2`` in the reference code), the same on the three axes; clamped to ≥ 1e-7 m² before sqrt.
+
+    Args:
+        means: (N, 3) metres, N ≥ 2.
+
+    Returns:
+        (N, 3) scales, metres, > 0.
+    """
+    N = means.shape[0]
+    if N < 2:
+        return torch.full((N, 3), 1e-2, dtype=means.dtype)
+    k = min(k, N - 1)
+    out = torch.empty(N, dtype=means.dtype)
+    for s in range(0, N, chunk):
+        d2 = torch.cdist(means[s:s + chunk], means).square()
+        d2[torch.arange(d2.shape[0]), torch.arange(s, s + d2.shape[0])] = float("inf")  # not itself
+        out[s:s + chunk] = d2.topk(k, dim=1, largest=False).values.mean(1)
+    return out.clamp_min(1e-7).sqrt()[:, None].expand(N, 3).clone()
+
+
+def scene_extent(views: list[View], points: Tensor | None = None) -> float:
+    """The scene scale of 3DGS (``getNerfppNorm``): 1.1 × the largest distance of a camera centre from
+    their mean, metres. Cameras that (almost) do not move give ~0, so the result is at least 10 % of the
+    diagonal of ``points``' bounding box (when given), and at least 1e-3 m.
+    """
+    centres = camera_centers(torch.stack([v.viewmat for v in views]).double())
+    radius = 1.1 * float((centres - centres.mean(0)).norm(dim=-1).max())
+    if points is not None and points.shape[0]:
+        radius = max(radius, 0.1 * float((points.max(0).values - points.min(0).values).norm()))
+    return max(radius, 1e-3)
+
