@@ -111,15 +111,16 @@ def depth_points(views: list[View], max_points: int, generator: torch.Generator)
 def random_box_points(views: list[View], num_points: int, generator: torch.Generator) -> tuple[Tensor, Tensor]:
     """Uniform random points with random colours in the box the cameras look into (3DGS's random
     initialisation for scenes without SfM points): centred on the camera centres' mean pushed one
-    camera-spread (at least 1 m) along the mean viewing direction, half-size that spread (at least 1 m).
+    camera-spread (at least 1 m) times the mean of the unit viewing directions (not normalised: its length
+    is 1 for parallel cameras and ~0 for a ring of cameras looking inwards, whose centre is then kept),
+    half-size that spread (at least 1 m).
 
     Returns:
         means (num_points, 3) metres, colours (num_points, 3) in [0, 1].
     """
     V = torch.stack([v.viewmat for v in views]).double()
     centres = camera_centers(V)
-    forward = V[:, 2, :3].mean(0)
-    forward = forward / forward.norm().clamp_min(1e-12)
+    forward = V[:, 2, :3].mean(0)  # (3,), length ≤ 1
     spread = max(float((centres - centres.mean(0)).norm(dim=-1).max()), 1.0)
     centre = centres.mean(0) + spread * forward
     u = torch.rand(num_points, 3, generator=generator, dtype=torch.float64) * 2 - 1
