@@ -278,10 +278,12 @@ def fit_steps(state: FitState, views: list[View], config: FitConfig, until: int,
                 loss = loss + config.depth_weight * (depth[valid] - view.depth[valid]).abs().mean() / state.extent
         if state.field is not None:
             loss = loss + state.field.regularization()
-        loss.backward()
+        if loss.requires_grad:  # a view that sees no Gaussian renders a constant: no graph, no gradient
+            loss.backward()
         state.step += 1
         with torch.no_grad():
-            state.stats.update(meta["means2d"].grad[0], meta["radii"][0], view.width, view.height)
+            if meta["means2d"].grad is not None:
+                state.stats.update(meta["means2d"].grad[0], meta["radii"][0], view.width, view.height)
             state.optimizer.step()
             state.optimizer.zero_grad(set_to_none=True)
             if state.field_optimizer is not None:
