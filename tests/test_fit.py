@@ -271,3 +271,26 @@ def test_a_view_that_sees_nothing_gives_a_finite_loss(coarse):
     for k, v in state.params.items():
         assert torch.isfinite(v).all()
         assert torch.equal(v.detach(), before[k])  # no gradient reached them
+
+
+def test_gaussians_that_leave_the_field_box_stay_finite():
+    config = _config(iterations=6, coarse_iterations=0)
+    state = _blob(config=config)
+    g = torch.Generator().manual_seed(4)
+    views = [_view(torch.rand(12, 16, 3, generator=g), time=t) for t in (0.0, 0.5, 1.0)]
+    fit_steps(state, views, config, 1)  # the field is made on the Gaussians' box
+    _perturb_heads(state.field)
+    with torch.no_grad():
+        state.params["means"][:4] += torch.tensor([0.0, 0.0, 40.0])  # behind the box, still in view
+        state.params["means"][4:8] += torch.tensor([3.0, -2.0, 1.0])  # beside it, partly in view
+        state.params["means"][8:10] = torch.tensor([1e4, -1e4, 1e4])  # far away
+    lo, hi = state.field.bounds
+    assert ((state.params["means"] < lo) | (state.params["means"] > hi)).any(1)[:10].all()
+    fit_steps(state, views, config, 6)
+    assert state.step == 6
+    for k, v in state.params.items():
+        assert torch.isfinite(v).all(), k
+    for name, p in state.field.named_parameters():
+        assert torch.isfinite(p).all(), name
+    with torch.no_grad():
+        assert torch.isfinite(render_view(state, views[1], 0, True)[0]).all()

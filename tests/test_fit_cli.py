@@ -1,0 +1,292 @@
+"""Tests of training/fit_cli.py: ``run_fit`` and ``diff4splat fit`` — the output folder, held-out metrics that
+``diff4splat render`` reproduces, static fits, scenes that cannot be fitted, checkpoints and exact resume,
+extreme scene scales, and the command's errors."""
+import dataclasses
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from data_prep.format import SceneWriter, load_scene, read_rgb
+from data_prep.synth import generate_scene
+from diff4splat.cameras import CameraPath
+from diff4splat.cli import main
+from diff4splat.io import load_ply
+from diff4splat.io.outdir import read_marker
+from diff4splat.io.output import load_deformation
+from models.hexplane import HexPlaneConfig, load_field
+from training import fit_cli
+from training.densify import DensifyConfig
+from training.fit import FitConfig
+from training.fit_cli import FitInterrupted, run_fit
+
+CONFIG = FitConfig(iterations=10, coarse_iterations=4, init_points=150, random_points=150, sh_degree=1,
+                   sh_interval=5, densify=DensifyConfig(start=2, until=8, interval=3, opacity_reset_interval=6,
+                                                        grad_threshold=1e-5),
+                   field=HexPlaneConfig(feature_dim=4, resolution=(4, 4, 4, 3), multires=(1,), net_width=8))
+SEED = 3
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)  # tiny tensors: threads only add overhead on a busy 2-core machine
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def dynamic_scene(tmp_path_factory):
+    return generate_scene(tmp_path_factory.mktemp("scenes"), 0, 0, size=16, frames=3, cameras=2, static_ratio=0.0)
+
+
+@pytest.fixture(scope="module")
+def dynamic_fit(dynamic_scene, tmp_path_factory):
+    """(output folder, metrics) of an uninterrupted fit of ``dynamic_scene`` holding camera 1 out."""
+    out = tmp_path_factory.mktemp("fits") / "dyn"
+    return out, run_fit(dynamic_scene, out, CONFIG, holdout_camera=1, seed=SEED, eval_every=4, checkpoint_every=0)
+
+
+def _rewrite(src, dst, *, scale=1.0, cameras=None, depth=True, frames=None, static_camera=False):
+    """A copy of scene ``src`` with its world scaled by ``scale`` (camera positions and depth), only
+    ``cameras`` / the first ``frames`` frames, optionally without depth, or with every frame seen from the
+    first frame's pose."""
+    s = load_scene(src)
+    names = cameras or s.camera_names
+    T = frames or s.num_frames
+    with SceneWriter(dst, source="test", dynamic=bool(s.meta.dynamic), depth_source="ground_truth" if depth
+                     else "none", num_frames=T, fps=s.meta.fps) as w:
+        for name in names:
+            path = s.cameras(name)
+            V = path.viewmats[:T].clone()
+            if static_camera:
+                V[:] = V[0]
+            V[:, :3, 3] *= scale
+            w.add_camera(name, CameraPath(V, path.Ks[:T], path.width, path.height,
+                                          None if T == 1 else path.times[:T] / path.times[T - 1]))
+            for i in range(T):
+                w.write_frame(name, i, s.rgb(name, i), s.depth(name, i) * scale if depth else None)
+    return dst
+
+
+def _param_tensors(out):
+    g = load_ply(out / "scene.ply")
+    return [g.means, g.quats, g.scales, g.opacities, g.sh]
+
+
+def _assert_same_fit(out_a, metrics_a, out_b, metrics_b):
+    for a, b in zip(_param_tensors(out_a), _param_tensors(out_b), strict=True):
+        assert torch.equal(a, b)
+    for k in ("train_psnr", "holdout_psnr", "holdout_ssim", "num_gaussians", "iterations", "densify"):
+        assert metrics_a[k] == metrics_b[k], k
+    strip = lambda h: [{k: v for k, v in r.items() if k != "train_time_s"} for r in h]  # noqa: E731
+    assert strip(metrics_a["history"]) == strip(metrics_b["history"])
+    if (out_a / "field.safetensors").exists():
+        fa, fb = load_field(out_a / "field.safetensors"), load_field(out_b / "field.safetensors")
+        for (k, a), (_, b) in zip(fa.state_dict().items(), fb.state_dict().items(), strict=True):
+            assert torch.equal(a, b), k
+
+
+def _sigterm_at(monkeypatch, step):
+    """Make run_fit's optimisation send SIGTERM to this process right after ``step`` (its handler then
+    stops the loop and checkpoints)."""
+    real = fit_cli.fit_steps
+
+    def patched(state, views, config, until, *, on_step=None, **kw):
+        def hook(s):
+            on_step(s)
+            if s.step == step:
+                os.kill(os.getpid(), signal.SIGTERM)
+        return real(state, views, config, until, on_step=hook, **kw)
+
+    monkeypatch.setattr(fit_cli, "fit_steps", patched)
+
+
+class _Killed(Exception):
+    pass
+
+
+def _die_at(monkeypatch, step):
+    """Make run_fit's optimisation stop dead after ``step`` as a SIGKILL would: no checkpoint of its own."""
+    real = fit_cli.fit_steps
+
+    def patched(state, views, config, until, *, on_step=None, **kw):
+        def hook(s):
+            on_step(s)
+            if s.step == step:
+                raise _Killed
+        return real(state, views, config, until, on_step=hook, **kw)
+
+    monkeypatch.setattr(fit_cli, "fit_steps", patched)
+
+
+def test_output_folder_of_a_dynamic_fit(dynamic_scene, dynamic_fit):
+    out, metrics = dynamic_fit
+    scene = load_scene(dynamic_scene)
+    T = scene.num_frames
+    assert read_marker(out) == "fit"
+    assert {p.name for p in out.iterdir()} >= {"scene.ply", "deformation.npz", "frames", "video.mp4", "depth",
+                                               "cameras.json", "meta.json", "field.safetensors", "metrics.json"}
+    assert sorted(p.name for p in (out / "frames").iterdir()) == [f"{i:04d}.ply" for i in range(T)]
+    assert sorted(p.name for p in (out / "depth").iterdir()) == [f"{i:04d}.exr" for i in range(T)]
+    assert json.loads((out / "metrics.json").read_text()) == json.loads(json.dumps(metrics))
+    for k in ("train_psnr", "holdout_psnr", "holdout_ssim", "wall_time_s"):
+        assert math.isfinite(metrics[k]), k
+    assert metrics["iterations"] == CONFIG.iterations and metrics["holdout_camera"] == "cam01"
+    assert 0 < metrics["holdout_ssim"] <= 1 and metrics["static"] is False
+    canonical = load_ply(out / "scene.ply")
+    assert metrics["num_gaussians"] == canonical.means.shape[0]
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["command"] == "fit" and meta["train_cameras"] == ["cam00"] and meta["seed"] == SEED
+    # the deformation at the reference camera's frame times is the saved field's
+    arrays = load_deformation(out / "deformation.npz")
+    times = scene.cameras("cam00").times
+    np.testing.assert_allclose(arrays["times"], times.numpy(), rtol=0, atol=1e-7)
+    field = load_field(out / "field.safetensors")
+    with torch.no_grad():
+        for k, t in enumerate(times.tolist()):
+            d_means, _, d_scales = field(canonical.means, t)
+            np.testing.assert_allclose(arrays["d_means"][k], d_means.numpy(), atol=1e-5)
+            np.testing.assert_allclose(arrays["d_scales"][k], d_scales.numpy(), atol=1e-5)
+    assert not (out.parent / (out.name + ".checkpoints")).exists()
+
+
+def test_render_reproduces_the_held_out_psnr(dynamic_scene, dynamic_fit, tmp_path, capsys):
+    out, metrics = dynamic_fit
+    scene = load_scene(dynamic_scene)
+    R = tmp_path / "R"
+    assert main(["render", str(out), "--cameras", str(dynamic_scene / "cam01" / "cameras.json"), "--out", str(R),
+                 "--quiet"]) == 0
+    se, n = 0.0, 0
+    for i in range(scene.num_frames):
+        rendered = read_rgb(R / "rgb" / f"{i:04d}.png").astype(np.float64)
+        truth = scene.rgb("cam01", i).astype(np.float64)
+        se += float(((rendered - truth) ** 2).sum())
+        n += truth.size
+    assert 10 * math.log10(n / se) == pytest.approx(metrics["holdout_psnr"], abs=0.1)
+
+
+def test_one_frame_gives_a_static_fit(dynamic_scene, tmp_path):
+    one = _rewrite(dynamic_scene, tmp_path / "one", frames=1)
+    assert load_scene(one).meta.dynamic  # the scene says dynamic, but one frame has no motion to fit
+    out = tmp_path / "out"
+    config = dataclasses.replace(CONFIG, iterations=3)
+    metrics = run_fit(one, out, config, holdout_camera=0, seed=0, checkpoint_every=0)
+    assert metrics["static"] is True and math.isfinite(metrics["holdout_psnr"])
+    assert not (out / "field.safetensors").exists() and not (out / "deformation.npz").exists()
+    assert (out / "scene.ply").is_file() and (out / "metrics.json").is_file() and read_marker(out) == "fit"
+
+
+def test_one_static_camera_without_depth_cannot_be_fitted(dynamic_scene, tmp_path):
+    blind = _rewrite(dynamic_scene, tmp_path / "blind", cameras=["cam00"], depth=False, static_camera=True)
+    with pytest.raises(ValueError, match="one camera that does not move and no depth"):
+        run_fit(blind, tmp_path / "out", CONFIG)
+    assert not (tmp_path / "out").exists()
+    # a moving camera without depth is fitted from the random box
+    moving = _rewrite(dynamic_scene, tmp_path / "moving", cameras=["cam00"], depth=False)
+    metrics = run_fit(moving, tmp_path / "out2", dataclasses.replace(CONFIG, iterations=2), checkpoint_every=0)
+    assert metrics["iterations"] == 2 and math.isfinite(metrics["train_psnr"]) and metrics["holdout_psnr"] is None
+
+
+@pytest.mark.parametrize("stop", [3, 7])  # in the coarse stage, in the fine stage
+def test_resume_after_sigterm_is_exact(dynamic_scene, dynamic_fit, tmp_path, monkeypatch, stop):
+    out = tmp_path / "fit"
+    handler = signal.getsignal(signal.SIGTERM)
+    _sigterm_at(monkeypatch, stop)
+    with pytest.raises(FitInterrupted, match=f"stopped at step {stop}"):
+        run_fit(dynamic_scene, out, CONFIG, holdout_camera=1, seed=SEED, eval_every=4, checkpoint_every=5)
+    ckpt = tmp_path / "fit.checkpoints"
+    assert (ckpt / "checkpoints" / f"step_{stop:08d}").is_dir() and not out.exists()
+    assert signal.getsignal(signal.SIGTERM) is handler  # run_fit put the previous handler back
+    monkeypatch.undo()
+    metrics = run_fit(dynamic_scene, out, CONFIG, holdout_camera=1, seed=SEED, eval_every=4, checkpoint_every=5,
+                      resume=True)
+    _assert_same_fit(*dynamic_fit, out, metrics)
+    assert not ckpt.exists()  # removed once the output is written
+
+
+def test_resume_after_a_hard_kill_continues_from_the_last_periodic_checkpoint(dynamic_scene, dynamic_fit, tmp_path,
+                                                                               monkeypatch):
+    out = tmp_path / "fit"
+    _die_at(monkeypatch, 7)
+    with pytest.raises(_Killed):
+        run_fit(dynamic_scene, out, CONFIG, holdout_camera=1, seed=SEED, eval_every=4, checkpoint_every=3)
+    assert [p.name for p in (tmp_path / "fit.checkpoints" / "checkpoints").glob("step_*")] == ["step_00000006"]
+    monkeypatch.undo()
+    metrics = run_fit(dynamic_scene, out, CONFIG, holdout_camera=1, seed=SEED, eval_every=4, checkpoint_every=3,
+                      resume=True)
+    _assert_same_fit(*dynamic_fit, out, metrics)
+
+
+def test_resume_errors(dynamic_scene, tmp_path, monkeypatch, capsys):
+    with pytest.raises(ValueError, match="--resume: no checkpoint"):
+        run_fit(dynamic_scene, tmp_path / "fit", CONFIG, resume=True)
+    _sigterm_at(monkeypatch, 2)
+    with pytest.raises(FitInterrupted):
+        run_fit(dynamic_scene, tmp_path / "fit", CONFIG, holdout_camera=1, seed=SEED, checkpoint_every=0)
+    monkeypatch.undo()
+    for other in (dict(holdout_camera=1, seed=SEED + 1), dict(holdout_camera=None, seed=SEED)):
+        with pytest.raises(ValueError, match="checkpoint .* is of another fit"):
+            run_fit(dynamic_scene, tmp_path / "fit", CONFIG, resume=True, **other)
+    with pytest.raises(ValueError, match="of another fit"):
+        run_fit(dynamic_scene, tmp_path / "fit", dataclasses.replace(CONFIG, iterations=12), holdout_camera=1,
+                seed=SEED, resume=True)
+    capsys.readouterr()
+    assert main(["fit", str(dynamic_scene), "--out", str(tmp_path / "other"), "--resume", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--resume: no checkpoint" in err[0]
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1e3])
+def test_extreme_scene_scales_stay_finite(dynamic_scene, tmp_path, scale):
+    scaled = _rewrite(dynamic_scene, tmp_path / "scaled", scale=scale)
+    out = tmp_path / "out"
+    config = dataclasses.replace(CONFIG, iterations=6, coarse_iterations=2,
+                                 densify=DensifyConfig(start=1, until=5, interval=2, grad_threshold=0.0))
+    metrics = run_fit(scaled, out, config, holdout_camera=1, seed=0, checkpoint_every=0)
+    assert all(math.isfinite(metrics[k]) for k in ("train_psnr", "holdout_psnr", "holdout_ssim"))
+    for t in _param_tensors(out):
+        assert torch.isfinite(t).all()
+    for k, v in load_deformation(out / "deformation.npz").items():
+        assert np.isfinite(v).all(), k
+
+
+def test_cli_errors_are_one_line(dynamic_scene, tmp_path, capsys):
+    for argv, needle in (([str(dynamic_scene), "--iterations", "0"], "--iterations must be ≥ 1"),
+                         ([str(dynamic_scene), "--holdout-camera", "5"], "--holdout-camera: 5"),
+                         ([str(tmp_path / "missing")], "missing")):
+        capsys.readouterr()
+        assert main(["fit", *argv, "--out", str(tmp_path / "out"), "--quiet"]) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("diff4splat: error:") and needle in err[0], err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.slow
+def test_cli_sigterm_then_resume(dynamic_scene, tmp_path):
+    """The real command in a subprocess: SIGTERM once a checkpoint exists → exit 143; --resume → 0."""
+    out = tmp_path / "fit"
+    argv = [sys.executable, "-m", "diff4splat.cli", "fit", str(dynamic_scene), "--out", str(out), "--iterations",
+            "30", "--coarse-iterations", "2", "--init-points", "100", "--checkpoint-every", "1", "--quiet",
+            "--holdout-camera", "1"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen(argv, env=env, stderr=subprocess.PIPE, text=True)
+    latest = tmp_path / "fit.checkpoints" / "checkpoints" / "latest"
+    deadline = time.monotonic() + 120
+    while not latest.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, err
+    assert "rerun with --resume" in err and not out.exists()
+    done = subprocess.run([*argv, "--resume"], env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["iterations"] == 30 and math.isfinite(metrics["holdout_psnr"])
