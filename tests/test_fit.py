@@ -294,3 +294,16 @@ def test_gaussians_that_leave_the_field_box_stay_finite():
         assert torch.isfinite(p).all(), name
     with torch.no_grad():
         assert torch.isfinite(render_view(state, views[1], 0, True)[0]).all()
+
+
+def test_a_static_fit_decays_the_position_rate_over_all_its_iterations():
+    config = _config(iterations=12, coarse_iterations=3)
+    state = _blob(dynamic=False, config=config)
+    views = [_view(torch.rand(12, 16, 3, generator=torch.Generator().manual_seed(0)))]
+    lr = LearningRates()
+    for until in (2, 6, 12):
+        fit_steps(state, views, config, until)
+        rate = next(g["lr"] for g in state.optimizer.param_groups if g["name"] == "means")
+        # static: no fine stage, so the coarse stage is the whole fit (the rate of step until − 1)
+        assert rate == pytest.approx(expon_lr(until - 1, lr.position_init, lr.position_final, 12)), until
+    assert state.field is None

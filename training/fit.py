@@ -234,7 +234,8 @@ def _set_lrs(state: FitState, config: FitConfig) -> None:
     lr, step = config.lr, state.step
     fine = state.field_optimizer is not None
     stage_step = step - config.coarse_iterations if fine else step
-    stage_len = config.iterations - config.coarse_iterations if fine else max(config.coarse_iterations, 1)
+    coarse_len = config.coarse_iterations if state.dynamic else config.iterations  # static: one stage, the whole fit
+    stage_len = config.iterations - config.coarse_iterations if fine else max(coarse_len, 1)
     for g in state.optimizer.param_groups:
         if g["name"] == "means":
             g["lr"] = expon_lr(stage_step, lr.position_init * state.extent, lr.position_final * state.extent,
