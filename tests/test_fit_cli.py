@@ -18,14 +18,17 @@ from data_prep.format import SceneWriter, load_scene, read_rgb
 from data_prep.synth import generate_scene
 from diff4splat.cameras import CameraPath
 from diff4splat.cli import main
-from diff4splat.io import load_ply
+from diff4splat.gaussians import Gaussians
+from diff4splat.io import load_ply, save_ply
 from diff4splat.io.outdir import read_marker
 from diff4splat.io.output import load_deformation
+from diff4splat.quaternions import quat_multiply, quat_normalize, rotmat_to_quat
 from models.hexplane import HexPlaneConfig, load_field
 from training import fit_cli
 from training.densify import DensifyConfig
 from training.fit import FitConfig
 from training.fit_cli import FitInterrupted, run_fit
+from training.fit_data import depth_points, load_views
 
 CONFIG = FitConfig(iterations=10, coarse_iterations=4, init_points=150, random_points=150, sh_degree=1,
                    sh_interval=5, densify=DensifyConfig(start=2, until=8, interval=3, opacity_reset_interval=6,
@@ -171,6 +174,33 @@ def test_render_reproduces_the_held_out_psnr(dynamic_scene, dynamic_fit, tmp_pat
         se += float(((rendered - truth) ** 2).sum())
         n += truth.size
     assert 10 * math.log10(n / se) == pytest.approx(metrics["holdout_psnr"], abs=0.1)
+
+
+def test_generate_init_is_placed_in_the_scene_world_at_the_depth_scale(dynamic_scene, tmp_path):
+    # a generate output made from cam00's frame 0: its world is that camera's frame, at half the true scale
+    scene = load_scene(dynamic_scene)
+    view = load_views(scene, ["cam00"], frames=[0])[0]
+    world, colors = depth_points([view], 10**6, torch.Generator())
+    n = world.shape[0]
+    R, t = view.viewmat[:3, :3].double(), view.viewmat[:3, 3].double()
+    q_world = quat_normalize(torch.randn(n, 4, generator=torch.Generator().manual_seed(0)))
+    cam = Gaussians(((world.double() @ R.T + t) / 2).float(), quat_multiply(rotmat_to_quat(R.float())[None], q_world),
+                    torch.full((n, 3), 0.01), torch.full((n,), 0.7), torch.rand(n, 4, 3))
+    init = tmp_path / "generated"
+    init.mkdir()
+    save_ply(init / "scene.ply", cam)
+    means, quats, scales, opac, sh = fit_cli._generate_init(init, scene, "cam00")
+    torch.testing.assert_close(means, world, atol=1e-4, rtol=0)  # the median depth ratio (2) undoes the scale
+    torch.testing.assert_close(scales, torch.full((n, 3), 0.02), atol=1e-6, rtol=0)
+    same = (quats * q_world).sum(-1).abs()  # q and −q are one rotation
+    torch.testing.assert_close(same, torch.ones(n), atol=1e-5, rtol=0)
+    torch.testing.assert_close(opac, torch.full((n,), 0.7), atol=1e-6, rtol=0)
+    torch.testing.assert_close(sh, cam.sh, atol=1e-6, rtol=0)
+    metrics = run_fit(dynamic_scene, tmp_path / "out", dataclasses.replace(CONFIG, iterations=2), init=init,
+                      checkpoint_every=0)
+    assert metrics["iterations"] == 2 and json.loads((tmp_path / "out" / "meta.json").read_text())["init"] == str(init)
+    with pytest.raises(FileNotFoundError, match="--init"):
+        run_fit(dynamic_scene, tmp_path / "out3", CONFIG, init=tmp_path / "nothing")
 
 
 def test_one_frame_gives_a_static_fit(dynamic_scene, tmp_path):
