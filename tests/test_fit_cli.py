@@ -196,7 +196,7 @@ def test_generate_init_is_placed_in_the_scene_world_at_the_depth_scale(dynamic_s
     torch.testing.assert_close(same, torch.ones(n), atol=1e-5, rtol=0)
     torch.testing.assert_close(opac, torch.full((n,), 0.7), atol=1e-6, rtol=0)
     torch.testing.assert_close(sh, cam.sh, atol=1e-6, rtol=0)
-    metrics = run_fit(dynamic_scene, tmp_path / "out", dataclasses.replace(CONFIG, iterations=2), init=init,
+    metrics = run_fit(dynamic_scene, tmp_path / "out", dataclasses.replace(CONFIG, iterations=2, coarse_iterations=1), init=init,
                       checkpoint_every=0)
     assert metrics["iterations"] == 2 and json.loads((tmp_path / "out" / "meta.json").read_text())["init"] == str(init)
     with pytest.raises(FileNotFoundError, match="--init"):
@@ -221,7 +221,7 @@ def test_one_static_camera_without_depth_cannot_be_fitted(dynamic_scene, tmp_pat
     assert not (tmp_path / "out").exists()
     # a moving camera without depth is fitted from the random box
     moving = _rewrite(dynamic_scene, tmp_path / "moving", cameras=["cam00"], depth=False)
-    metrics = run_fit(moving, tmp_path / "out2", dataclasses.replace(CONFIG, iterations=2), checkpoint_every=0)
+    metrics = run_fit(moving, tmp_path / "out2", dataclasses.replace(CONFIG, iterations=2, coarse_iterations=1), checkpoint_every=0)
     assert metrics["iterations"] == 2 and math.isfinite(metrics["train_psnr"]) and metrics["holdout_psnr"] is None
 
 
@@ -320,3 +320,41 @@ def test_cli_sigterm_then_resume(dynamic_scene, tmp_path):
     assert done.returncode == 0, done.stderr
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["iterations"] == 30 and math.isfinite(metrics["holdout_psnr"])
+
+
+def test_a_dynamic_scene_needs_a_fine_stage(dynamic_scene, tmp_path):
+    with pytest.raises(ValueError, match="coarse-iterations 4 leaves no fine stage"):
+        run_fit(dynamic_scene, tmp_path / "out", dataclasses.replace(CONFIG, iterations=4), checkpoint_every=0)
+    assert not (tmp_path / "out").exists()
+
+
+def test_placed_generate_output_moves_like_the_original(dynamic_scene, tmp_path):
+    # a generate scene with a deformation, in cam00's frame: placed in the world, every time's Gaussians are the
+    # similarity transform (scale s, c2w) of the original's at that time
+    from diff4splat.io.output import save_deformation
+    from diff4splat.quaternions import quat_to_rotmat
+    from diff4splat.scene import DynamicGaussians
+
+    scene = load_scene(dynamic_scene)
+    g = torch.Generator().manual_seed(3)
+    n, T = 50, 3
+    means = torch.randn(n, 3, generator=g) * 0.3 + torch.tensor([0.0, 0.0, 3.0])
+    cam = DynamicGaussians(
+        Gaussians(means, quat_normalize(torch.randn(n, 4, generator=g)), torch.full((n, 3), 0.05),
+                  torch.full((n,), 0.5), torch.rand(n, 1, 3, generator=g)),
+        torch.linspace(0, 1, T), torch.randn(T, n, 3, generator=g) * 0.1,
+        quat_normalize(torch.randn(T, n, 4, generator=g) * 0.2 + torch.tensor([1.0, 0, 0, 0])),
+        torch.randn(T, n, 3, generator=g) * 0.1)
+    init = tmp_path / "gen"
+    init.mkdir()
+    save_ply(init / "scene.ply", cam.canonical)
+    save_deformation(init / "deformation.npz", cam)
+    placed = fit_cli.place_generate_output(init, scene, "cam00")
+    c2w = torch.linalg.inv(scene.cameras("cam00").viewmats[0].double()).float()
+    depth = torch.from_numpy(scene.depth("cam00", 0))
+    s = float(depth[torch.isfinite(depth)].median() / means[:, 2].median())
+    for t in (0.0, 0.3, 1.0):
+        a, b = cam.at(t), placed.at(t)
+        torch.testing.assert_close(b.means, a.means * s @ c2w[:3, :3].T + c2w[:3, 3], atol=1e-4, rtol=0)
+        torch.testing.assert_close(quat_to_rotmat(b.quats), c2w[:3, :3] @ quat_to_rotmat(a.quats), atol=1e-5, rtol=0)
+        torch.testing.assert_close(b.scales, a.scales * s, atol=1e-6, rtol=1e-5)

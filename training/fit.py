@@ -79,7 +79,9 @@ class FitConfig:
         ssim_weight: λ of the D-SSIM term (3DGS: 0.2).
         depth_weight: weight of the depth L1 (divided by the extent, so unitless); 0 turns it off.
         densify: adaptive density control (:class:`training.densify.DensifyConfig`).
-        field: the HexPlane field (:class:`models.hexplane.HexPlaneConfig`).
+        field: the HexPlane field (:class:`models.hexplane.HexPlaneConfig`); default: the reference's D-NeRF
+            config with 16 channels and 32² base planes instead of 32 and 64² (376 k parameters instead of
+            2.44 M; backward of the sampling ~2× faster on a CPU), for fits of minutes at 64².
         lr: learning rates.
     """
 
@@ -92,7 +94,8 @@ class FitConfig:
     ssim_weight: float = 0.2
     depth_weight: float = 0.1
     densify: DensifyConfig = dc_field(default_factory=lambda: DensifyConfig(start=300, until=2000, interval=100))
-    field: HexPlaneConfig = dc_field(default_factory=HexPlaneConfig)
+    field: HexPlaneConfig = dc_field(
+        default_factory=lambda: HexPlaneConfig(feature_dim=16, resolution=(32, 32, 32, 25)))
     lr: LearningRates = dc_field(default_factory=LearningRates)
 
     def __post_init__(self) -> None:

@@ -19,10 +19,11 @@ from pathlib import Path
 import torch
 
 from data_prep.format import load_scene
+from diff4splat.gaussians import Gaussians
 from diff4splat.io import load_ply
 from diff4splat.io.outdir import check_output_dir
 from diff4splat.io.output import load_deformation, write_scene_folder
-from diff4splat.quaternions import quat_multiply, rotmat_to_quat
+from diff4splat.quaternions import quat_conjugate, quat_multiply, rotmat_to_quat
 from diff4splat.render.sequence import render_path
 from diff4splat.scene import DynamicGaussians
 from models.hexplane import save_field
@@ -41,7 +42,7 @@ from training.fit import (
 )
 from training.fit_data import depth_points, load_views, random_box_points, scene_extent, split_cameras
 
-__all__ = ["register", "run", "run_fit", "FitInterrupted"]
+__all__ = ["register", "run", "run_fit", "FitInterrupted", "place_generate_output"]
 
 
 class FitInterrupted(Exception):
@@ -53,16 +54,23 @@ def _moves(views) -> bool:
     return bool((V - V[0]).abs().max() > 1e-6)
 
 
-def _generate_init(init_dir: Path, scene, ref_camera: str):
-    """Gaussians of a ``generate`` output at t = 0 in the scene's world frame: generate's world is its first
-    camera's frame, taken to be the scene's reference camera at frame 0; its scale is matched to the scene's
-    depth (median of frame 0's valid depth over the median depth of the Gaussians in that camera) when the
-    scene has depth."""
+def place_generate_output(init_dir: Path, scene, ref_camera: str) -> DynamicGaussians:
+    """A ``generate`` output folder's scene in the scene folder's world frame.
+
+    generate's world is its first camera's frame, taken to be ``ref_camera`` at frame 0 (c2w = [R | c]); its
+    scale is matched to the scene's depth when the scene has depth: s = median of frame 0's valid depth /
+    median camera-space depth of the Gaussians in front of that camera. Means → s·R μ + c, quats → q_R ⊗ q,
+    scales → s·scales; the deformation follows: Δμ → s·R Δμ, Δq → q_R ⊗ Δq ⊗ q_R⁻¹ (so the composition
+    of docs/DESIGN.md gives the moved Gaussians), Δs unchanged.
+
+    Raises:
+        FileNotFoundError: ``init_dir`` has no scene.ply.
+    """
     if not (init_dir / "scene.ply").is_file():
         raise FileNotFoundError(f"--init: {init_dir / 'scene.ply'} does not exist (give a generate output folder)")
-    canonical = load_ply(init_dir / "scene.ply")
+    g = load_ply(init_dir / "scene.ply")
     arrays = load_deformation(init_dir / "deformation.npz") if (init_dir / "deformation.npz").is_file() else {}
-    g = DynamicGaussians(canonical, **{k: torch.from_numpy(v) for k, v in arrays.items()}).at(0.0)
+    arrays = {k: torch.from_numpy(v) for k, v in arrays.items()}
     scale = 1.0
     if scene.has_depth:
         depth = torch.from_numpy(scene.depth(ref_camera, 0))
@@ -70,9 +78,19 @@ def _generate_init(init_dir: Path, scene, ref_camera: str):
         if bool(torch.isfinite(depth).any()) and z.numel():
             scale = float(depth[torch.isfinite(depth)].median() / z.median())
     c2w = torch.linalg.inv(scene.cameras(ref_camera).viewmats[0].double()).float()
-    means = g.means * scale @ c2w[:3, :3].T + c2w[:3, 3]
-    quats = quat_multiply(rotmat_to_quat(c2w[:3, :3])[None], g.quats)
-    return means, quats, g.scales * scale, g.opacities, g.sh
+    R, q_r = c2w[:3, :3], rotmat_to_quat(c2w[:3, :3])
+    canonical = Gaussians(g.means * scale @ R.T + c2w[:3, 3], quat_multiply(q_r[None], g.quats),
+                          g.scales * scale, g.opacities, g.sh)
+    if "d_means" in arrays:
+        arrays["d_means"] = arrays["d_means"] * scale @ R.T
+        arrays["d_quats"] = quat_multiply(quat_multiply(q_r, arrays["d_quats"]), quat_conjugate(q_r))
+    return DynamicGaussians(canonical, **arrays)
+
+
+def _generate_init(init_dir: Path, scene, ref_camera: str):
+    """(means, quats, scales, opacities, sh) of :func:`place_generate_output` at t = 0."""
+    g = place_generate_output(init_dir, scene, ref_camera).at(0.0)
+    return g.means, g.quats, g.scales, g.opacities, g.sh
 
 
 def _state_from_checkpoint(folder: Path, config: FitConfig, dynamic: bool, run: dict) -> FitState:
@@ -126,6 +144,9 @@ def run_fit(scene_dir: Path, out: Path, config: FitConfig, *, holdout_camera: in
     train = load_views(scene, train_names)
     holdout = load_views(scene, holdout_names)
     dynamic = bool(scene.meta.dynamic) and scene.num_frames > 1
+    if dynamic and config.coarse_iterations >= config.iterations:
+        raise ValueError(f"--coarse-iterations {config.coarse_iterations} leaves no fine stage for the dynamic scene "
+                         f"{scene_dir} (--iterations {config.iterations}); give fewer coarse iterations")
     if len(train_names) == 1 and not _moves(train) and not scene.has_depth:
         raise ValueError(f"{scene_dir}: cannot fit: one camera that does not move and no depth give no parallax "
                          "to place anything (add cameras or depth)")
@@ -159,6 +180,9 @@ def run_fit(scene_dir: Path, out: Path, config: FitConfig, *, holdout_camera: in
         if checkpoint_every and s.step % checkpoint_every == 0 and s.step < config.iterations:
             _save(run_dir, s, config, run)
 
+    if holdout and not resume:  # the starting point (for a generate init: generate's Gaussians at t = 0)
+        state.history.append({"step": 0, "train_time_s": 0.0, "num_gaussians": state.num_gaussians,
+                              "holdout_psnr": evaluate_views(state, holdout, 0)["psnr"]})
     stop = {"flag": False}
     handlers = {}
     try:

@@ -1,0 +1,140 @@
+"""Held-out PSNR of ``diff4splat fit`` against run time (4D Gaussian Splatting on this CPU).
+
+For every scene of a held-out synthetic dataset (``data_prep synth``, a seed not used for development) and
+``--holdout-camera 1`` (camera 1 never trained on), three ways to get a 4D scene:
+
+(a) ``fit`` from the depth initialisation;
+(b) ``fit`` initialised from ``generate`` (the default model run on camera 0's first frame along camera 0's
+    path; Gaussians moved into the scene's world frame and scaled to its depth, ``training.fit_cli``);
+(c) ``generate`` alone: the same placed Gaussians and deformation, evaluated before any fitting step.
+
+Each fit records the held-out PSNR (pooled MSE over all frames of camera 1) every ``--eval-every`` steps
+against the optimisation time (evaluation excluded), the Gaussian count, and ms per step; the wall time
+includes loading, initialisation and writing the output folder.
+
+    python benchmarks/fit_tradeoffs.py --data data/fit_eval --iterations 3000 --write
+
+writes a table and docs/fit_tradeoffs.png into docs/benchmarks.md (section ``fit_tradeoffs``).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import machine, markdown_table, write_section  # noqa: E402
+
+from data_prep.format import list_scenes, load_scene  # noqa: E402
+from training.fit import FitConfig  # noqa: E402
+from training.fit_cli import run_fit  # noqa: E402
+
+DOCS = Path(__file__).resolve().parent.parent / "docs"
+
+
+def generate_for(scene_dir: Path, out: Path) -> float:
+    """``diff4splat generate`` on camera 0's first frame along camera 0's path; returns seconds."""
+    from diff4splat.cli import main
+
+    scene = load_scene(scene_dir)
+    cam = scene.camera_names[0]
+    t0 = time.perf_counter()
+    rc = main(["generate", str(scene_dir / cam / "rgb" / "00000.png"), "--cameras", str(scene_dir / cam / "cameras.json"),
+               "--quiet", "--out", str(out)])
+    if rc != 0:
+        raise RuntimeError(f"generate failed on {scene_dir}")
+    return time.perf_counter() - t0
+
+
+def run(data: Path, iterations: int, coarse: int, eval_every: int, limit: int | None, seed: int,
+        with_generate: bool) -> list[dict]:
+    rows = []
+    scenes = list_scenes(data)[:limit]
+    with tempfile.TemporaryDirectory() as tmp:
+        for scene_dir in scenes:
+            meta = load_scene(scene_dir).meta
+            methods = [("depth init", None)]
+            if with_generate and meta.dynamic:
+                gen_out = Path(tmp) / f"{scene_dir.name}_gen"
+                gen_s = generate_for(scene_dir, gen_out)
+                methods.append(("generate init", gen_out))
+            for name, init in methods:
+                config = FitConfig(iterations=iterations, coarse_iterations=coarse if meta.dynamic else 0)
+                m = run_fit(scene_dir, Path(tmp) / f"{scene_dir.name}_{len(rows)}", config, holdout_camera=1,
+                            seed=seed, init=init, eval_every=eval_every, checkpoint_every=0)
+                rows.append({"scene": scene_dir.name, "dynamic": meta.dynamic, "method": name, **m,
+                             "generate_s": gen_s if init is not None else None})
+                print(json.dumps({k: v for k, v in rows[-1].items() if k != "history"}), flush=True)
+    return rows
+
+
+def tables(rows: list[dict], budgets=(30, 60, 120, 300, 600)) -> str:
+    final = [[r["scene"], "dynamic" if r["dynamic"] else "static", r["method"], r["iterations"],
+              f"{r['wall_time_s']:.0f}", f"{r['ms_per_iteration']:.0f}", f"{r['num_gaussians']:,}",
+              f"{r['history'][0]['holdout_psnr']:.2f}" if r["history"] and r["history"][0]["step"] == 0 else "—",
+              f"{r['holdout_psnr']:.2f}", f"{r['holdout_ssim']:.3f}", f"{r['train_psnr']:.2f}"] for r in rows]
+    out = markdown_table(["scene", "kind", "method", "steps", "wall s", "ms/step", "Gaussians",
+                          "PSNR at step 0 (c: generate alone)", "held-out PSNR", "SSIM", "train PSNR"], final)
+    curve = []
+    for r in rows:
+        cells = []
+        for b in budgets:
+            done = [h for h in r["history"] if h["train_time_s"] <= b]
+            cells.append(f"{done[-1]['holdout_psnr']:.2f} ({done[-1]['num_gaussians']:,})" if done else "—")
+        curve.append([r["scene"], r["method"], *cells])
+    out += "\n\nHeld-out PSNR dB (Gaussians) after a given optimisation time (evaluation excluded):\n\n"
+    out += markdown_table(["scene", "method", *[f"≤ {b} s" for b in budgets]], curve)
+    return out
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for r in rows:
+        h = [x for x in r["history"]]
+        ax.plot([x["train_time_s"] for x in h], [x["holdout_psnr"] for x in h],
+                "-" if r["method"] == "depth init" else "--", label=f"{r['scene']} {r['method']}")
+    ax.set_xlabel("optimisation time, s (2-core CPU)")
+    ax.set_ylabel("held-out camera PSNR, dB")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", type=Path, required=True, help="held-out dataset root (data_prep synth, ≥ 2 cameras)")
+    p.add_argument("--iterations", type=int, default=3000)
+    p.add_argument("--coarse", type=int, default=500, help="coarse steps of dynamic scenes")
+    p.add_argument("--eval-every", type=int, default=250)
+    p.add_argument("--limit", type=int, default=None)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-generate", action="store_true", help="skip (b) and (c)")
+    p.add_argument("--json", type=Path, default=None, help="also write the rows (with histories) here")
+    p.add_argument("--write", action="store_true", help="write the table into docs/benchmarks.md")
+    args = p.parse_args()
+    rows = run(args.data, args.iterations, args.coarse, args.eval_every, args.limit, args.seed, not args.no_generate)
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1))
+    body = tables(rows)
+    print(body)
+    if args.write:
+        plot(rows, DOCS / "fit_tradeoffs.png")
+        write_section("fit_tradeoffs", f"Machine: {machine()}. Command: `python benchmarks/fit_tradeoffs.py "
+                      f"--data {args.data} --iterations {args.iterations} --write`.\n\n{body}\n\n"
+                      "![held-out PSNR against time](fit_tradeoffs.png)")
+
+
+if __name__ == "__main__":
+    torch.manual_seed(0)
+    main()
