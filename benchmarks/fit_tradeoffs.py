@@ -44,8 +44,8 @@ def generate_for(scene_dir: Path, out: Path) -> float:
     scene = load_scene(scene_dir)
     cam = scene.camera_names[0]
     t0 = time.perf_counter()
-    rc = main(["generate", str(scene_dir / cam / "rgb" / "00000.png"), "--cameras", str(scene_dir / cam / "cameras.json"),
-               "--quiet", "--out", str(out)])
+    rc = main(["generate", str(scene_dir / cam / "rgb" / "00000.png"),
+               "--cameras", str(scene_dir / cam / "cameras.json"), "--quiet", "--out", str(out)])
     if rc != 0:
         raise RuntimeError(f"generate failed on {scene_dir}")
     return time.perf_counter() - t0

@@ -196,7 +196,8 @@ def test_generate_init_is_placed_in_the_scene_world_at_the_depth_scale(dynamic_s
     torch.testing.assert_close(same, torch.ones(n), atol=1e-5, rtol=0)
     torch.testing.assert_close(opac, torch.full((n,), 0.7), atol=1e-6, rtol=0)
     torch.testing.assert_close(sh, cam.sh, atol=1e-6, rtol=0)
-    metrics = run_fit(dynamic_scene, tmp_path / "out", dataclasses.replace(CONFIG, iterations=2, coarse_iterations=1), init=init,
+    metrics = run_fit(dynamic_scene, tmp_path / "out",
+        dataclasses.replace(CONFIG, iterations=2, coarse_iterations=1), init=init,
                       checkpoint_every=0)
     assert metrics["iterations"] == 2 and json.loads((tmp_path / "out" / "meta.json").read_text())["init"] == str(init)
     with pytest.raises(FileNotFoundError, match="--init"):
@@ -221,7 +222,8 @@ def test_one_static_camera_without_depth_cannot_be_fitted(dynamic_scene, tmp_pat
     assert not (tmp_path / "out").exists()
     # a moving camera without depth is fitted from the random box
     moving = _rewrite(dynamic_scene, tmp_path / "moving", cameras=["cam00"], depth=False)
-    metrics = run_fit(moving, tmp_path / "out2", dataclasses.replace(CONFIG, iterations=2, coarse_iterations=1), checkpoint_every=0)
+    metrics = run_fit(moving, tmp_path / "out2",
+        dataclasses.replace(CONFIG, iterations=2, coarse_iterations=1), checkpoint_every=0)
     assert metrics["iterations"] == 2 and math.isfinite(metrics["train_psnr"]) and metrics["holdout_psnr"] is None
 
 
