@@ -51,10 +51,10 @@ def generate_for(scene_dir: Path, out: Path) -> float:
     return time.perf_counter() - t0
 
 
-def run(data: Path, iterations: int, coarse: int, eval_every: int, limit: int | None, seed: int,
+def run(data: Path, iterations: int, coarse: int, eval_every: int, names: list[str] | None, seed: int,
         with_generate: bool) -> list[dict]:
     rows = []
-    scenes = list_scenes(data)[:limit]
+    scenes = [s for s in list_scenes(data) if names is None or s.name in names]
     with tempfile.TemporaryDirectory() as tmp:
         for scene_dir in scenes:
             meta = load_scene(scene_dir).meta
@@ -117,13 +117,19 @@ def main() -> None:
     p.add_argument("--iterations", type=int, default=3000)
     p.add_argument("--coarse", type=int, default=500, help="coarse steps of dynamic scenes")
     p.add_argument("--eval-every", type=int, default=250)
-    p.add_argument("--limit", type=int, default=None)
+    p.add_argument("--scenes", nargs="*", default=None, help="scene names (default: all)")
+    p.add_argument("--merge", type=Path, nargs="*", default=None,
+                   help="do not fit: read the rows of earlier --json files (e.g. two runs in parallel) and write them")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-generate", action="store_true", help="skip (b) and (c)")
     p.add_argument("--json", type=Path, default=None, help="also write the rows (with histories) here")
     p.add_argument("--write", action="store_true", help="write the table into docs/benchmarks.md")
     args = p.parse_args()
-    rows = run(args.data, args.iterations, args.coarse, args.eval_every, args.limit, args.seed, not args.no_generate)
+    if args.merge:
+        rows = [r for f in args.merge for r in json.loads(f.read_text())]
+    else:
+        rows = run(args.data, args.iterations, args.coarse, args.eval_every, args.scenes, args.seed,
+                   not args.no_generate)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
     body = tables(rows)
@@ -137,4 +143,5 @@ def main() -> None:
 
 if __name__ == "__main__":
     torch.manual_seed(0)
+    torch.set_num_threads(int(__import__("os").environ.get("FIT_THREADS", torch.get_num_threads())))
     main()

@@ -75,6 +75,9 @@ class FitConfig:
         sh_degree: largest SH degree; 3DGS starts at 0 and adds one every ``sh_interval`` steps.
         sh_interval: steps between SH degree increases (3DGS: 1000).
         init_points: at most this many depth points initialise the Gaussians.
+        init_first_frame: a dynamic scene is initialised from frame 0 of each training camera only (the
+            canonical state) instead of every frame (which covers what moving cameras reveal later, and puts
+            moving objects at several places until density control prunes the extra copies).
         random_points: points of the random-box initialisation (no depth).
         ssim_weight: λ of the D-SSIM term (3DGS: 0.2).
         depth_weight: weight of the depth L1 (divided by the extent, so unitless); 0 turns it off.
@@ -90,6 +93,7 @@ class FitConfig:
     sh_degree: int = 1
     sh_interval: int = 1000
     init_points: int = 30_000
+    init_first_frame: bool = False
     random_points: int = 20_000
     ssim_weight: float = 0.2
     depth_weight: float = 0.1

@@ -166,7 +166,7 @@ def run_fit(scene_dir: Path, out: Path, config: FitConfig, *, holdout_camera: in
                                scales=scales, quats=quats, opacities=opac, sh=sh)
         else:
             if scene.has_depth:
-                init_views = [v for v in train if v.frame == 0] if dynamic else train
+                init_views = [v for v in train if v.frame == 0] if dynamic and config.init_first_frame else train
                 means, colors = depth_points(init_views, config.init_points, gen)
             else:
                 means, colors = random_box_points(train, config.random_points, gen)
