@@ -52,7 +52,8 @@ def generate_for(scene_dir: Path, out: Path) -> float:
 
 
 def run(data: Path, iterations: int, coarse: int, eval_every: int, names: list[str] | None, seed: int,
-        with_generate: bool) -> list[dict]:
+        with_generate: bool, json_path: Path | None = None) -> list[dict]:
+    """Fit every scene (module docstring); rows are appended to ``json_path`` as they finish."""
     rows = []
     scenes = [s for s in list_scenes(data) if names is None or s.name in names]
     with tempfile.TemporaryDirectory() as tmp:
@@ -70,6 +71,8 @@ def run(data: Path, iterations: int, coarse: int, eval_every: int, names: list[s
                 rows.append({"scene": scene_dir.name, "dynamic": meta.dynamic, "method": name, **m,
                              "generate_s": gen_s if init is not None else None})
                 print(json.dumps({k: v for k, v in rows[-1].items() if k != "history"}), flush=True)
+                if json_path is not None:
+                    json_path.write_text(json.dumps(rows, indent=1))
     return rows
 
 
@@ -114,8 +117,8 @@ def plot(rows: list[dict], path: Path) -> None:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, required=True, help="held-out dataset root (data_prep synth, ≥ 2 cameras)")
-    p.add_argument("--iterations", type=int, default=3000)
-    p.add_argument("--coarse", type=int, default=500, help="coarse steps of dynamic scenes")
+    p.add_argument("--iterations", type=int, default=FitConfig().iterations)
+    p.add_argument("--coarse", type=int, default=FitConfig().coarse_iterations, help="coarse steps of dynamic scenes")
     p.add_argument("--eval-every", type=int, default=250)
     p.add_argument("--scenes", nargs="*", default=None, help="scene names (default: all)")
     p.add_argument("--merge", type=Path, nargs="*", default=None,
@@ -129,9 +132,7 @@ def main() -> None:
         rows = [r for f in args.merge for r in json.loads(f.read_text())]
     else:
         rows = run(args.data, args.iterations, args.coarse, args.eval_every, args.scenes, args.seed,
-                   not args.no_generate)
-    if args.json:
-        args.json.write_text(json.dumps(rows, indent=1))
+                   not args.no_generate, args.json)
     body = tables(rows)
     print(body)
     if args.write:

@@ -22,12 +22,7 @@ CFG = DensifyConfig(grad_threshold=1e-3, percent_dense=0.01, min_opacity=0.005, 
                     max_world_size=0.1)  # clone/split boundary 0.02 m, world-size prune above 0.2 m
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)  # tiny tensors: threads only add overhead on a busy 2-core machine
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 def _params(means, scales, quats=None, opacities=None, seed=0):

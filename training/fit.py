@@ -81,15 +81,16 @@ class FitConfig:
         random_points: points of the random-box initialisation (no depth).
         ssim_weight: λ of the D-SSIM term (3DGS: 0.2).
         depth_weight: weight of the depth L1 (divided by the extent, so unitless); 0 turns it off.
-        densify: adaptive density control (:class:`training.densify.DensifyConfig`).
+        densify: adaptive density control (:class:`training.densify.DensifyConfig`); default: from step 300 to
+            1200 every 100, at most 25,000 Gaussians (a CPU budget: a step's cost grows with the count).
         field: the HexPlane field (:class:`models.hexplane.HexPlaneConfig`); default: the reference's D-NeRF
             config with 16 channels and 32² base planes instead of 32 and 64² (376 k parameters instead of
             2.44 M; backward of the sampling ~2× faster on a CPU), for fits of minutes at 64².
         lr: learning rates.
     """
 
-    iterations: int = 3000
-    coarse_iterations: int = 500
+    iterations: int = 1800
+    coarse_iterations: int = 300
     sh_degree: int = 1
     sh_interval: int = 1000
     init_points: int = 30_000
@@ -97,7 +98,8 @@ class FitConfig:
     random_points: int = 20_000
     ssim_weight: float = 0.2
     depth_weight: float = 0.1
-    densify: DensifyConfig = dc_field(default_factory=lambda: DensifyConfig(start=300, until=2000, interval=100))
+    densify: DensifyConfig = dc_field(
+        default_factory=lambda: DensifyConfig(start=300, until=1200, interval=100, max_gaussians=25_000))
     field: HexPlaneConfig = dc_field(
         default_factory=lambda: HexPlaneConfig(feature_dim=16, resolution=(32, 32, 32, 25)))
     lr: LearningRates = dc_field(default_factory=LearningRates)
