@@ -93,7 +93,7 @@ class FitConfig:
     coarse_iterations: int = 300
     sh_degree: int = 1
     sh_interval: int = 1000
-    init_points: int = 30_000
+    init_points: int = 15_000
     init_first_frame: bool = False
     random_points: int = 20_000
     ssim_weight: float = 0.2
