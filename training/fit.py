@@ -25,11 +25,11 @@ from dataclasses import asdict, dataclass
 from dataclasses import field as dc_field
 
 import kornia
-import numpy as np
 import torch
 from torch import Tensor, nn
 from tqdm import tqdm
 
+from diff4splat.constants import ALPHA_MIN
 from diff4splat.gaussians import Gaussians, rgb_to_sh0
 from diff4splat.render import rasterize
 from diff4splat.scene import DynamicGaussians, compose_deformation
@@ -39,7 +39,7 @@ from training.fit_data import View, knn_scales
 from training.losses import photometric_loss
 
 __all__ = ["FitConfig", "LearningRates", "FitState", "expon_lr", "init_state", "fit_steps", "evaluate_views",
-           "to_scene", "psnr_from_mse"]
+           "to_scene", "psnr_from_mse", "render_view", "start_fine_stage", "gaussian_adam", "config_dict"]
 
 
 @dataclass
@@ -353,8 +353,6 @@ def evaluate_views(state: FitState, views: list[View], sh_degree: int) -> dict[s
 def to_scene(state: FitState, times: Tensor | None) -> DynamicGaussians:
     """The fitted scene: activated canonical Gaussians (those with opacity < 1/255, which can never pass
     the renderer's alpha test, removed) plus the field sampled at ``times`` (T,) when there is a field."""
-    from diff4splat.constants import ALPHA_MIN
-
     keep = torch.sigmoid(state.params["opacities"]) >= ALPHA_MIN
     if not bool(keep.all()):
         state.params = prune(state.params, state.optimizer, ~keep, state.stats)
@@ -369,8 +367,3 @@ def config_dict(config: FitConfig) -> dict:
     """JSON-ready settings (meta.json / checkpoints)."""
     return asdict(config)
 
-
-def numpy_history(state: FitState) -> np.ndarray:
-    """History rows (step, train seconds, Gaussians, held-out PSNR) as an (R, 4) array."""
-    return np.array([[h["step"], h["train_time_s"], h["num_gaussians"], h.get("holdout_psnr", np.nan)]
-                     for h in state.history], dtype=np.float64).reshape(-1, 4)
