@@ -161,6 +161,13 @@ class FitState:
 
 
 def gaussian_adam(params: dict[str, nn.Parameter], lr: LearningRates, extent: float) -> torch.optim.Adam:
+    """Adam over the Gaussian parameters, one group per name (``group["name"]``, what :mod:`training.densify`
+    edits), with 3DGS's rates (``GaussianModel.training_setup``): positions × ``extent`` (metres), eps 1e-15.
+
+    Args:
+        params: the :class:`FitState` parameter dict ("means" (N,3), "scales", "quats", "opacities", "sh0", "shN").
+        extent: scene extent, metres (:func:`training.fit_data.scene_extent`).
+    """
     rates = {"means": lr.position_init * extent, "sh0": lr.sh0, "shN": lr.shN, "opacities": lr.opacities,
              "scales": lr.scales, "quats": lr.quats}
     return torch.optim.Adam([{"params": [p], "lr": rates[k], "name": k} for k, p in params.items()],
@@ -227,7 +234,9 @@ def render_view(state: FitState, view: View, sh_degree: int, with_depth: bool):
 
 
 def start_fine_stage(state: FitState, config: FitConfig) -> None:
-    """Create the field on the Gaussians' bounding box (4DGS sets the box from the point cloud)."""
+    """Start the fine stage: a new (identity) HexPlane field on the Gaussians' current bounding box (metres; 4DGS
+    sets the box from the point cloud) and its Adam with two groups, "deformation" (MLP) and "grid" (planes),
+    at 4DGS's initial rates × the extent (``deformation_lr_init``, ``grid_lr_init``), decayed by ``fit_steps``."""
     means = state.params["means"].detach()
     bounds = torch.stack([means.min(0).values, means.max(0).values])
     state.field = HexPlaneField(config.field, bounds)
