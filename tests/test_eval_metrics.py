@@ -9,9 +9,11 @@ from training.eval_metrics import (
     PSNR_CAP,
     angle_bin,
     binned_psnr,
+    covisible_mask,
     frame_mse,
     image_psnr,
     kept_index_map,
+    masked_psnr,
     motion_errors,
     pearson,
     psnr_from_mse,
@@ -158,3 +160,63 @@ def test_kept_index_map_inverts_the_pruning_index():
         kept_index_map(torch.tensor([0, total]), total)
     with pytest.raises(ValueError, match="repeated"):
         kept_index_map(torch.tensor([1, 1]), total)
+
+
+def _translated(x: float) -> torch.Tensor:
+    """World-to-camera of a camera at (x, 0, 0) looking down +z (identity rotation)."""
+    v = torch.eye(4)
+    v[0, 3] = -x
+    return v
+
+
+def test_covisible_mask_of_a_plane_seen_by_a_shifted_camera():
+    """Plane z = 5, evaluated camera at the origin, training camera 1 m to the right: a pixel's point
+    projects f·1/5 = 6.4 px further left in the training view, so columns with centre u + 0.5 < 6.4 (the
+    first 6) fall outside it, all others are seen."""
+    H, W, f = 8, 64, 32.0
+    K = torch.tensor([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]])
+    depth = torch.full((H, W), 5.0)
+    m = covisible_mask(depth, torch.eye(4), K, depth[None], _translated(1.0)[None], K[None])
+    expected = torch.zeros(H, W, dtype=torch.bool)
+    expected[:, 6:] = True
+    assert torch.equal(m, expected)
+    # an occluder at 2 m covering the training view's right half hides the points that land there:
+    # column u lands at u − 6.4 ≥ 32 for centres ≥ 38.4, i.e. columns 38 …
+    occluded = depth.clone()
+    occluded[:, W // 2:] = 2.0
+    m = covisible_mask(depth, torch.eye(4), K, occluded[None], _translated(1.0)[None], K[None])
+    expected[:, 38:] = False
+    assert torch.equal(m, expected)
+    # a second training camera 1 m to the left sees columns 0 … 57 (centre + 6.4 < 64): the union
+    m = covisible_mask(depth, torch.eye(4), K, torch.stack([occluded, depth]),
+                       torch.stack([_translated(1.0), _translated(-1.0)]), torch.stack([K, K]))
+    assert bool(m[:, :58].all()) and not bool(m[:, 58:].any())
+    # unknown depth is never dropped; a training camera facing away sees nothing
+    depth[0, 0] = math.inf
+    back = torch.diag(torch.tensor([-1.0, 1.0, -1.0, 1.0]))  # rotated 180° about y
+    m = covisible_mask(depth, torch.eye(4), K, depth[None], back[None], K[None])
+    assert bool(m[0, 0]) and int(m.sum()) == 1
+
+
+def test_covisible_mask_tolerance_and_errors():
+    """A point 2 % behind the training view's surface counts as seen (rel_tol 3 %), 4 % behind does not."""
+    K = torch.tensor([[4.0, 0, 2], [0, 4.0, 2], [0, 0, 1.0]])
+    depth = torch.full((4, 4), 1.02)
+    assert bool(covisible_mask(depth, torch.eye(4), K, torch.ones(1, 4, 4), torch.eye(4)[None], K[None]).all())
+    depth = torch.full((4, 4), 1.04)
+    assert not bool(covisible_mask(depth, torch.eye(4), K, torch.ones(1, 4, 4), torch.eye(4)[None], K[None]).any())
+    with pytest.raises(ValueError, match="train_depths"):
+        covisible_mask(depth, torch.eye(4), K, torch.ones(4, 4), torch.eye(4)[None], K[None])
+
+
+def test_masked_psnr_closed_form():
+    gt = torch.full((2, 4, 4, 3), 0.5)
+    pred = gt.clone()
+    mask = torch.zeros(2, 4, 4, dtype=torch.bool)
+    mask[:, :2] = True
+    pred[mask] += 0.1  # error 0.1 where masked (20 dB) ...
+    pred[~mask] += 0.4  # ... and a large error elsewhere, which the masked PSNR ignores
+    assert masked_psnr(pred, gt, mask) == pytest.approx(20.0, abs=1e-5)
+    assert math.isnan(masked_psnr(pred, gt, torch.zeros_like(mask)))
+    with pytest.raises(ValueError, match="mask"):
+        masked_psnr(pred, gt, mask[0])

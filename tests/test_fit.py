@@ -15,6 +15,7 @@ from diff4splat.constants import ALPHA_MIN
 from diff4splat.scene import compose_deformation
 from models.hexplane import HexPlaneConfig
 from training.densify import DensifyConfig
+from training.eval_metrics import PSNR_CAP
 from training.fit import (
     FitConfig,
     LearningRates,
@@ -222,7 +223,19 @@ def test_evaluate_views_psnr_of_the_pooled_mse():
         float(((render_view(state, v, 0, False)[0].detach().clamp(0, 1) - v.image) ** 2).mean()) for v in views)])
     assert abs(out["psnr"] - mean_of_psnrs) > 1e-3
     assert out["ssim"] == pytest.approx(np.mean(ssim), rel=1e-5)
-    assert psnr_from_mse(0.0) == math.inf and psnr_from_mse(0.01) == pytest.approx(20.0)
+    assert math.isnan(out["masked_psnr"]) and math.isnan(out["covisible"])
+    assert psnr_from_mse(0.0) == PSNR_CAP and psnr_from_mse(0.01) == pytest.approx(20.0)  # finite: JSON-safe
+    # masked: the pooled squared error of the masked pixels only, and their share of all pixels
+    masks = [torch.rand(12, 16, generator=g) < 0.5, torch.zeros(6, 9, dtype=torch.bool)]
+    masks[1][0, :2] = True
+    out = evaluate_views(state, views, 0, masks)
+    se_m, n_m = 0.0, 0
+    for v, m in zip(views, masks, strict=True):
+        rgb = render_view(state, v, 0, False)[0].detach().clamp(0, 1)
+        se_m += float(((rgb.double() - v.image.double()) ** 2)[m].sum())
+        n_m += int(m.sum()) * 3
+    assert out["masked_psnr"] == pytest.approx(10 * math.log10(n_m / se_m), abs=1e-4)
+    assert out["covisible"] == pytest.approx(n_m / n)
 
 
 def test_to_scene_prunes_invisible_gaussians_and_samples_the_field():

@@ -139,6 +139,8 @@ def test_output_folder_of_a_dynamic_fit(dynamic_scene, dynamic_fit):
         assert math.isfinite(metrics[k]), k
     assert metrics["iterations"] == CONFIG.iterations and metrics["holdout_camera"] == "cam01"
     assert 0 < metrics["holdout_ssim"] <= 1 and metrics["static"] is False
+    assert 0 < metrics["holdout_covisible"] <= 1 and math.isfinite(metrics["holdout_masked_psnr"])  # it has depth
+    assert all(math.isfinite(h["holdout_masked_psnr"]) for h in metrics["history"])
     canonical = load_ply(out / "scene.ply")
     assert metrics["num_gaussians"] == canonical.means.shape[0]
     meta = json.loads((out / "meta.json").read_text())

@@ -11,6 +11,7 @@ from data_prep.synth import generate_scene
 from diff4splat.cameras.trajectories import look_at
 from training.fit_data import (
     View,
+    covisible_masks,
     depth_points,
     knn_scales,
     load_views,
@@ -196,3 +197,17 @@ def test_load_views(scene):
     assert torch.equal(v.viewmat, path.viewmats[1].float()) and torch.equal(v.K, path.Ks[1].float())
     assert v.time == float(path.times[1]) == 1.0
     assert [(v.camera, v.frame) for v in load_views(scene, ["cam01"], frames=[1])] == [("cam01", 1)]
+
+
+def test_covisible_masks_use_the_same_time_for_a_dynamic_scene():
+    """A training view at frame 0 facing the surface, one at frame 1 facing away: a held-out view at frame 1
+    sees nothing co-visible in a dynamic scene (only frame 1 counts) and everything in a static one."""
+    depth = torch.full((9, 13), 3.0)
+    away = torch.diag(torch.tensor([-1.0, 1.0, -1.0, 1.0]))
+    train = [View(torch.zeros(9, 13, 3), depth, torch.eye(4), K, 0.0, "a", 0),
+             View(torch.zeros(9, 13, 3), depth, away, K, 1.0, "a", 1)]
+    held = [View(torch.zeros(9, 13, 3), depth, torch.eye(4), K, 1.0, "h", 1)]
+    assert not bool(covisible_masks(held, train, static=False)[0].any())
+    assert bool(covisible_masks(held, train, static=True)[0].all())
+    assert covisible_masks(held, [View(torch.zeros(9, 13, 3), None, torch.eye(4), K, 0.0, "a", 0)], True) is None
+    assert covisible_masks([], train, True) is None

@@ -11,9 +11,11 @@ import kornia
 import torch
 from torch import Tensor
 
+from diff4splat.cameras import unproject_depth
+
 __all__ = ["PSNR_CAP", "ANGLE_BINS", "psnr_from_mse", "image_psnr", "image_ssim", "pearson", "frame_mse",
            "view_angles", "angle_bin", "binned_psnr", "repeat_baselines", "motion_errors", "kept_index_map",
-           "ablation_noise", "BLUR_SIGMA", "BLUR_KERNEL"]
+           "ablation_noise", "BLUR_SIGMA", "BLUR_KERNEL", "covisible_mask", "masked_psnr"]
 
 PSNR_CAP = 100.0
 """PSNR of identical images (MSE 0) is reported as this many dB instead of infinity."""
@@ -214,3 +216,68 @@ def ablation_noise(shape: tuple[int, ...] | torch.Size, seed: int) -> Tensor:
     gen = torch.Generator().manual_seed(seed)
     torch.randn(tuple(shape), generator=gen)  # the sampler's starting noise for this seed
     return torch.randn(tuple(shape), generator=gen)
+
+
+def covisible_mask(
+    depth: Tensor,  # (H, W) z-depth of the evaluated view, metres (+inf where unknown)
+    viewmat: Tensor,  # (4, 4) world-to-camera of the evaluated view (OpenCV)
+    K: Tensor,  # (3, 3) pixels
+    train_depths: Tensor,  # (N, H', W') z-depth of the training views at the same time, metres
+    train_viewmats: Tensor,  # (N, 4, 4)
+    train_Ks: Tensor,  # (N, 3, 3)
+    rel_tol: float = 0.03,
+) -> Tensor:
+    """Pixels of an evaluation view whose surface point some training view sees (co-visibility).
+
+    DyCheck (Gao et al. 2022, "Monocular Dynamic View Synthesis: A Reality Check", §4) scores novel views
+    only where the test pixel is co-visible in the training views (mPSNR), because no method can know
+    what no training camera saw. Here a pixel is co-visible when its back-projected point (the ground-truth
+    depth) projects inside some training view (pixel centres at integer + 0.5) with z > 0 and is not
+    occluded there: its z-depth in that view is at most ``(1 + rel_tol)`` times the training view's depth
+    at the nearest pixel. Pixels with unknown depth (non-finite) count as co-visible, so they are never
+    dropped from a masked metric.
+
+    Returns:
+        (H, W) bool.
+
+    Raises:
+        ValueError: shapes that do not match the comments above.
+    """
+    if depth.dim() != 2 or train_depths.dim() != 3 or train_viewmats.shape[0] != train_depths.shape[0] \
+            or train_Ks.shape[0] != train_depths.shape[0]:
+        raise ValueError(f"depth must be (H, W) and train_depths (N, H', W') with N viewmats and Ks, got "
+                         f"{tuple(depth.shape)}, {tuple(train_depths.shape)}, {tuple(train_viewmats.shape)}, "
+                         f"{tuple(train_Ks.shape)}")
+    finite = torch.isfinite(depth)
+    pts = unproject_depth(viewmat[None].double(), K[None].double(), depth[None].double())[0].reshape(-1, 3)
+    pts = torch.where(finite.reshape(-1, 1), pts, torch.zeros_like(pts))
+    seen = ~finite.reshape(-1)
+    h, w = train_depths.shape[1:]
+    for d, vm, k in zip(train_depths, train_viewmats.double(), train_Ks.double(), strict=True):
+        cam = pts @ vm[:3, :3].T + vm[:3, 3]
+        z = cam[:, 2]
+        uv = (cam @ k.T)[:, :2] / z.clamp_min(1e-12)[:, None]
+        col, row = torch.floor(uv[:, 0]), torch.floor(uv[:, 1])
+        inside = (z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        ref = d.double()[row.clamp(0, h - 1).long(), col.clamp(0, w - 1).long()]
+        seen |= inside & (z <= ref * (1.0 + rel_tol))
+    return seen.reshape(depth.shape)
+
+
+def masked_psnr(pred: Tensor, gt: Tensor, mask: Tensor) -> float:
+    """PSNR (:func:`psnr_from_mse`) of the squared error over the pixels where ``mask`` is true (DyCheck's
+    mPSNR), every channel of every masked pixel of every frame pooled.
+
+    Args:
+        pred: (F, H, W, 3) clamped to [0, 1] first.  gt: (F, H, W, 3) in [0, 1].  mask: (F, H, W) bool.
+
+    Returns:
+        dB; NaN when the mask is empty.
+    """
+    if pred.shape != gt.shape or mask.shape != pred.shape[:-1]:
+        raise ValueError(f"pred {tuple(pred.shape)}, gt {tuple(gt.shape)} and mask {tuple(mask.shape)} "
+                         "must be (F, H, W, 3), (F, H, W, 3), (F, H, W)")
+    if not bool(mask.any()):
+        return float("nan")
+    se = ((pred.double().clamp(0, 1) - gt.double()) ** 2)[mask]
+    return psnr_from_mse(float(se.mean()))

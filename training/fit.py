@@ -35,6 +35,7 @@ from diff4splat.render import rasterize
 from diff4splat.scene import DynamicGaussians, compose_deformation
 from models.hexplane import HexPlaneConfig, HexPlaneField
 from training.densify import DensifyConfig, DensityStats, densify_and_prune, inverse_sigmoid, prune, reset_opacity
+from training.eval_metrics import psnr_from_mse
 from training.fit_data import View, knn_scales
 from training.losses import photometric_loss
 
@@ -335,27 +336,32 @@ def _density_control(state: FitState, config: FitConfig) -> None:
         state.params = reset_opacity(state.params, state.optimizer)
 
 
-def psnr_from_mse(mse: float) -> float:
-    """PSNR = 10·log10(1 / MSE) for images in [0, 1] (∞ for MSE = 0)."""
-    return math.inf if mse <= 0 else 10.0 * math.log10(1.0 / mse)
-
-
 @torch.no_grad()
-def evaluate_views(state: FitState, views: list[View], sh_degree: int) -> dict[str, float]:
-    """PSNR of the mean squared error over all ``views`` (every pixel of every frame pooled) and the mean
-    SSIM (kornia, window 11), renders clamped to [0, 1].
+def evaluate_views(state: FitState, views: list[View], sh_degree: int,
+                   masks: list[Tensor] | None = None) -> dict[str, float]:
+    """PSNR of the mean squared error over all ``views`` (every pixel of every frame pooled; capped as
+    :func:`training.eval_metrics.psnr_from_mse`) and the mean SSIM (kornia, window 11), renders clamped to
+    [0, 1]; with ``masks`` ((H, W) bool per view, :func:`training.fit_data.covisible_masks`) also the PSNR
+    over the masked pixels only (DyCheck's mPSNR) and the masked fraction.
 
     Returns:
-        {"psnr", "ssim", "mse", "views"}.
+        {"psnr", "ssim", "mse", "views", "masked_psnr" (NaN without masks or with empty ones),
+        "covisible" (fraction of masked pixels; NaN without masks)}.
     """
-    se, n, ssim = 0.0, 0, 0.0
-    for v in views:
+    se, n, ssim, mse_m, n_m = 0.0, 0, 0.0, 0.0, 0
+    for i, v in enumerate(views):
         rgb = render_view(state, v, sh_degree, False)[0].clamp(0, 1)
-        se += float(((rgb - v.image) ** 2).sum())
+        err = (rgb - v.image) ** 2
+        se += float(err.sum())
         n += rgb.numel()
+        if masks is not None:
+            mse_m += float(err[masks[i]].sum())
+            n_m += int(masks[i].sum()) * 3
         ssim += float(kornia.metrics.ssim(rgb.permute(2, 0, 1)[None], v.image.permute(2, 0, 1)[None], 11).mean())
     mse = se / max(n, 1)
-    return {"psnr": psnr_from_mse(mse), "ssim": ssim / max(len(views), 1), "mse": mse, "views": len(views)}
+    return {"psnr": psnr_from_mse(mse), "ssim": ssim / max(len(views), 1), "mse": mse, "views": len(views),
+            "masked_psnr": psnr_from_mse(mse_m / n_m) if n_m else math.nan,
+            "covisible": n_m / max(n, 1) if masks is not None else math.nan}
 
 
 @torch.no_grad()

@@ -11,6 +11,7 @@ folder is removed when the output is written.
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import signal
 import time
@@ -40,7 +41,14 @@ from training.fit import (
     start_fine_stage,
     to_scene,
 )
-from training.fit_data import depth_points, load_views, random_box_points, scene_extent, split_cameras
+from training.fit_data import (
+    covisible_masks,
+    depth_points,
+    load_views,
+    random_box_points,
+    scene_extent,
+    split_cameras,
+)
 
 __all__ = ["register", "run", "run_fit", "FitInterrupted", "place_generate_output"]
 
@@ -144,6 +152,7 @@ def run_fit(scene_dir: Path, out: Path, config: FitConfig, *, holdout_camera: in
     train = load_views(scene, train_names)
     holdout = load_views(scene, holdout_names)
     dynamic = bool(scene.meta.dynamic) and scene.num_frames > 1
+    masks = covisible_masks(holdout, train, static=not dynamic)
     if dynamic and config.coarse_iterations >= config.iterations:
         raise ValueError(f"--coarse-iterations {config.coarse_iterations} leaves no fine stage for the dynamic scene "
                          f"{scene_dir} (--iterations {config.iterations}); give fewer coarse iterations")
@@ -175,14 +184,12 @@ def run_fit(scene_dir: Path, out: Path, config: FitConfig, *, holdout_camera: in
 
     def on_step(s: FitState) -> None:
         if holdout and (s.step % eval_every == 0 or s.step == config.iterations):
-            s.history.append({"step": s.step, "train_time_s": s.train_time, "num_gaussians": s.num_gaussians,
-                              "holdout_psnr": evaluate_views(s, holdout, degree(s))["psnr"]})
+            s.history.append(_history_entry(s, holdout, degree(s), masks))
         if checkpoint_every and s.step % checkpoint_every == 0 and s.step < config.iterations:
             _save(run_dir, s, config, run)
 
     if holdout and not resume:  # the starting point (for a generate init: generate's Gaussians at t = 0)
-        state.history.append({"step": 0, "train_time_s": 0.0, "num_gaussians": state.num_gaussians,
-                              "holdout_psnr": evaluate_views(state, holdout, 0)["psnr"]})
+        state.history.append(_history_entry(state, holdout, 0, masks))
     stop = {"flag": False}
     handlers = {}
     try:
@@ -199,21 +206,33 @@ def run_fit(scene_dir: Path, out: Path, config: FitConfig, *, holdout_camera: in
     if stop["flag"] and state.step < config.iterations:
         _save(run_dir, state, config, run)
         raise FitInterrupted(f"stopped at step {state.step}; checkpoint in {run_dir}; rerun with --resume")
-    return _write_output(scene, out, state, config, train, holdout, dict(
+    return _write_output(scene, out, state, config, train, holdout, masks, dict(
         scene=str(scene_dir), holdout_camera=holdout_camera, seed=seed, init=None if init is None else str(init),
         fps=fps, overwrite=overwrite, t_start=t_start, run_dir=run_dir, progress=progress))
 
 
-def _write_output(scene, out: Path, state: FitState, config: FitConfig, train, holdout, opts: dict) -> dict:
+def _history_entry(state: FitState, holdout, sh_degree: int, masks) -> dict:
+    held = evaluate_views(state, holdout, sh_degree, masks)
+    return {"step": state.step, "train_time_s": state.train_time, "num_gaussians": state.num_gaussians,
+            "holdout_psnr": held["psnr"], "holdout_masked_psnr": _number(held["masked_psnr"])}
+
+
+def _number(x: float) -> float | None:
+    return None if math.isnan(x) else x
+
+
+def _write_output(scene, out: Path, state: FitState, config: FitConfig, train, holdout, masks, opts: dict) -> dict:
     deg = min(config.sh_degree, state.step // config.sh_interval)
     ref = scene.cameras(scene.camera_names[0])
     fitted = to_scene(state, ref.times if state.field is not None else None)
     train_eval = evaluate_views(state, train, deg)
-    held = evaluate_views(state, holdout, deg) if holdout else None
+    held = evaluate_views(state, holdout, deg, masks) if holdout else None
     colors, depths, alphas = render_path(fitted, ref, progress=opts["progress"])
     metrics = {
         "train_psnr": train_eval["psnr"], "train_ssim": train_eval["ssim"],
         "holdout_psnr": None if held is None else held["psnr"], "holdout_ssim": None if held is None else held["ssim"],
+        "holdout_masked_psnr": None if held is None else _number(held["masked_psnr"]),
+        "holdout_covisible": None if held is None else _number(held["covisible"]),
         "holdout_camera": None if not holdout else holdout[0].camera, "iterations": state.step,
         "wall_time_s": time.perf_counter() - opts["t_start"], "train_time_s": state.train_time,
         "ms_per_iteration": 1000 * state.train_time / max(state.step, 1),
@@ -251,7 +270,8 @@ def register(subparsers) -> None:
     p.add_argument("--coarse-iterations", type=int, default=d.coarse_iterations,
                    help=f"static coarse-stage steps (default {d.coarse_iterations})")
     p.add_argument("--holdout-camera", type=int, default=None,
-                   help="camera index never trained on; its frames give holdout_psnr/holdout_ssim")
+                   help="camera index never trained on; its frames give holdout_psnr/holdout_ssim (and, with depth, "
+                        "holdout_masked_psnr over the pixels some training view sees)")
     p.add_argument("--seed", type=int, default=0, help="seed (initial subset, view order, splits; default 0)")
     p.add_argument("--max-gaussians", type=int, default=d.densify.max_gaussians,
                    help=f"cap on the Gaussian count (default {d.densify.max_gaussians})")
@@ -291,6 +311,8 @@ def run(args) -> int:
         print(f"diff4splat fit: {e}", file=sys.stderr)
         return 143
     held = "" if m["holdout_psnr"] is None else f", held-out {m['holdout_psnr']:.2f} dB"
+    if m["holdout_masked_psnr"] is not None:
+        held += f" (co-visible pixels {m['holdout_masked_psnr']:.2f} dB)"
     print(f"wrote {args.out} ({m['num_gaussians']} Gaussians, {'static' if m['static'] else 'dynamic'}, "
           f"train {m['train_psnr']:.2f} dB{held}) in {m['wall_time_s']:.1f} s")
     return 0

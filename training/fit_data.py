@@ -15,9 +15,10 @@ from torch import Tensor
 
 from data_prep.format import SceneReader
 from diff4splat.cameras import camera_centers, unproject_depth
+from training.eval_metrics import covisible_mask
 
 __all__ = ["View", "load_views", "split_cameras", "depth_points", "random_box_points", "knn_scales",
-           "scene_extent"]
+           "scene_extent", "covisible_masks"]
 
 
 @dataclass
@@ -160,3 +161,20 @@ def scene_extent(views: list[View], points: Tensor | None = None) -> float:
         radius = max(radius, 0.1 * float((points.max(0).values - points.min(0).values).norm()))
     return max(radius, 1e-3)
 
+
+
+def covisible_masks(holdout: list[View], train: list[View], static: bool) -> list[Tensor] | None:
+    """Co-visibility mask (H, W) bool of every held-out view (:func:`training.eval_metrics.covisible_mask`,
+    DyCheck's mPSNR mask): the pixels whose surface point a training view sees — every training view for a
+    static scene, those of the same frame (the same time) for a dynamic one. None without depth."""
+    if not holdout or any(v.depth is None for v in holdout + train):
+        return None
+    out = []
+    for v in holdout:
+        src = train if static else [t for t in train if t.frame == v.frame]
+        if not src:
+            out.append(torch.zeros(v.depth.shape, dtype=torch.bool))
+            continue
+        out.append(covisible_mask(v.depth, v.viewmat, v.K, torch.stack([t.depth for t in src]),
+                                  torch.stack([t.viewmat for t in src]), torch.stack([t.K for t in src])))
+    return out
