@@ -9,7 +9,9 @@ For every scene of a held-out synthetic dataset (``data_prep synth``, a seed not
 (c) ``generate`` alone: the same placed Gaussians with generate's own deformation, rendered at the held-out
     frames (``PSNR at step 0`` of (b) is those Gaussians at t = 0 held still, the fit's starting point).
 
-Each fit records the held-out PSNR (pooled MSE over all frames of camera 1) every ``--eval-every`` steps
+Each fit records the held-out PSNR (pooled MSE over all frames of camera 1; also over only its co-visible
+pixels, those whose surface point a training view sees — DyCheck's mPSNR, ``holdout_masked_psnr``) every
+``--eval-every`` steps
 against the optimisation time (evaluation excluded), the Gaussian count, and ms per step; the wall time
 includes loading, initialisation and writing the output folder.
 
@@ -52,25 +54,29 @@ def generate_for(scene_dir: Path, out: Path) -> float:
     return time.perf_counter() - t0
 
 
-def generate_alone_psnr(scene_dir: Path, gen_out: Path) -> float:
+def generate_alone_psnr(scene_dir: Path, gen_out: Path) -> tuple[float, float | None]:
     """(c): the generate output placed in the scene's world (``place_generate_output``, deformation included),
-    rendered at every held-out frame at its time; PSNR of the pooled MSE."""
+    rendered at every held-out frame at its time; PSNR of the pooled MSE, and over the co-visible pixels
+    (``training.fit_data.covisible_masks``, as the fits' ``holdout_masked_psnr``; None without depth)."""
     from diff4splat.render import rasterize
-    from training.fit import psnr_from_mse
+    from training.eval_metrics import masked_psnr, psnr_from_mse
     from training.fit_cli import place_generate_output
-    from training.fit_data import load_views
+    from training.fit_data import covisible_masks, load_views, split_cameras
 
     scene = load_scene(scene_dir)
     placed = place_generate_output(gen_out, scene, scene.camera_names[0])
-    se, n = 0.0, 0
+    train_names, held_names = split_cameras(scene, 1)
+    held = load_views(scene, held_names)
+    masks = covisible_masks(held, load_views(scene, train_names), static=not scene.meta.dynamic)
+    preds = []
     with torch.no_grad():
-        for v in load_views(scene, [scene.camera_names[1]]):
+        for v in held:
             g = placed.at(v.time)
-            rgb = rasterize(g.means, g.quats, g.scales, g.opacities, g.sh, v.viewmat[None], v.K[None], v.width,
-                            v.height, sh_degree=g.sh_degree, render_mode="RGB")[0][0].clamp(0, 1)
-            se += float(((rgb - v.image) ** 2).sum())
-            n += rgb.numel()
-    return psnr_from_mse(se / n)
+            preds.append(rasterize(g.means, g.quats, g.scales, g.opacities, g.sh, v.viewmat[None], v.K[None],
+                                   v.width, v.height, sh_degree=g.sh_degree, render_mode="RGB")[0][0].clamp(0, 1))
+    pred, gt = torch.stack(preds), torch.stack([v.image for v in held])
+    full = psnr_from_mse(float(((pred.double() - gt.double()) ** 2).mean()))
+    return full, None if masks is None else masked_psnr(pred, gt, torch.stack(masks))
 
 
 def run(data: Path, iterations: int, coarse: int, eval_every: int, names: list[str] | None, seed: int,
@@ -85,7 +91,7 @@ def run(data: Path, iterations: int, coarse: int, eval_every: int, names: list[s
             if with_generate and meta.dynamic:
                 gen_out = Path(tmp) / f"{scene_dir.name}_gen"
                 gen_s = generate_for(scene_dir, gen_out)
-                gen_psnr = generate_alone_psnr(scene_dir, gen_out)
+                gen_psnr, gen_masked = generate_alone_psnr(scene_dir, gen_out)
                 methods.append(("generate init", gen_out))
             for name, init in methods:
                 config = FitConfig(iterations=iterations, coarse_iterations=coarse if meta.dynamic else 0)
@@ -93,21 +99,29 @@ def run(data: Path, iterations: int, coarse: int, eval_every: int, names: list[s
                             seed=seed, init=init, eval_every=eval_every, checkpoint_every=0)
                 rows.append({"scene": scene_dir.name, "dynamic": meta.dynamic, "method": name, **m,
                              "generate_s": gen_s if init is not None else None,
-                             "generate_psnr": gen_psnr if init is not None else None})
+                             "generate_psnr": gen_psnr if init is not None else None,
+                             "generate_masked_psnr": gen_masked if init is not None else None})
                 print(json.dumps({k: v for k, v in rows[-1].items() if k != "history"}), flush=True)
                 if json_path is not None:
                     json_path.write_text(json.dumps(rows, indent=1))
     return rows
 
 
+def _db(x) -> str:
+    return "—" if x is None else f"{x:.2f}"
+
+
 def tables(rows: list[dict], budgets=(30, 60, 120, 300, 600)) -> str:
     final = [[r["scene"], "dynamic" if r["dynamic"] else "static", r["method"], r["iterations"],
               f"{r['wall_time_s']:.0f}", f"{r['ms_per_iteration']:.0f}", f"{r['num_gaussians']:,}",
               f"{r['history'][0]['holdout_psnr']:.2f}" if r["history"] and r["history"][0]["step"] == 0 else "—",
-              f"{r['generate_psnr']:.2f}" if r.get("generate_psnr") is not None else "—",
-              f"{r['holdout_psnr']:.2f}", f"{r['holdout_ssim']:.3f}", f"{r['train_psnr']:.2f}"] for r in rows]
+              _db(r.get("generate_psnr")) + " / " + _db(r.get("generate_masked_psnr")),
+              f"{r['holdout_psnr']:.2f}", _db(r.get("holdout_masked_psnr")),
+              "—" if r.get("holdout_covisible") is None else f"{100 * r['holdout_covisible']:.1f} %",
+              f"{r['holdout_ssim']:.3f}", f"{r['train_psnr']:.2f}"] for r in rows]
     out = markdown_table(["scene", "kind", "method", "steps", "wall s", "ms/step", "Gaussians",
-                          "PSNR at step 0", "(c) generate alone", "held-out PSNR", "SSIM", "train PSNR"], final)
+                          "PSNR at step 0", "(c) generate alone: all / co-visible", "held-out PSNR",
+                          "co-visible PSNR", "co-visible pixels", "SSIM", "train PSNR"], final)
     curve = []
     for r in rows:
         cells = []
@@ -163,7 +177,8 @@ def main() -> None:
                     if r["method"] == "generate init" and r.get("generate_psnr") is None:
                         gen_out = Path(tmp) / r["scene"]
                         generate_for(args.data / r["scene"], gen_out)
-                        r["generate_psnr"] = generate_alone_psnr(args.data / r["scene"], gen_out)
+                        r["generate_psnr"], r["generate_masked_psnr"] = generate_alone_psnr(args.data / r["scene"],
+                                                                                             gen_out)
     else:
         rows = run(args.data, args.iterations, args.coarse, args.eval_every, args.scenes, args.seed,
                    not args.no_generate, args.json)
