@@ -1,5 +1,6 @@
 """``diff4splat`` command line: ``diff4splat generate IMAGE ... --out DIR``, ``diff4splat export-onnx --out DIR`` and
-``diff4splat render DIR (--cameras FILE | --trajectory NAME) --out OUT`` (:mod:`diff4splat.rerender`).
+``diff4splat render DIR (--cameras FILE | --trajectory NAME) --out OUT`` (:mod:`diff4splat.rerender`) and
+``diff4splat view DIR [--port P]`` (:mod:`diff4splat.view`).
 
 Bad input gets one line on stderr (``diff4splat: error: …``) and exit code 2, and no output folder.
 """
@@ -125,6 +126,12 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.add_argument("--out", type=_out_path, required=True, help=OUT_HELP)
     r.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
+    v = sub.add_parser("view", help="serve an output folder's interactive 4D viewer on 127.0.0.1",
+                       description="Serve DIR's viewer (the full scene, never the size-reduced embedded copy) on "
+                                   "127.0.0.1 only, and print the address; Ctrl-C stops. viewer.html in DIR "
+                                   "also opens without a server (double click).")
+    v.add_argument("folder", type=Path, metavar="DIR", help="output folder of `diff4splat generate`, `fit` or `render`")
+    v.add_argument("--port", type=int, default=8000, help="TCP port on 127.0.0.1 (default: 8000; 0: any free port)")
     plugins = {ep.name: ep for ep in entry_points(group=PLUGIN_GROUP)}  # e.g. `evaluate`, from `training`
     if load_command is not None and load_command not in plugins:
         raise ValueError(f"load_command: {load_command!r} is not a {PLUGIN_GROUP} entry point "
@@ -385,6 +392,10 @@ def _main(argv: list[str] | None) -> int:
                         amplitude=args.amplitude, frames=args.frames, width=args.width, height=args.height,
                         fps=args.fps, overwrite=args.overwrite, progress=not args.quiet)
         print(f"wrote {args.out} ({meta['frames']} frames, {meta['width']}x{meta['height']})")
+    elif args.command == "view":
+        from .view import serve
+
+        return serve(args.folder, args.port)
     elif hasattr(args, "func"):
         return args.func(args)
     return 0

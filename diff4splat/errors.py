@@ -28,9 +28,10 @@ EXIT_INTERRUPTED = 130
 """Exit code after Ctrl-C (128 + SIGINT, as shells report it)."""
 
 EXPECTED_ERRNOS = frozenset({errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT, errno.ENAMETOOLONG,
-                             errno.ENOTDIR, errno.EEXIST, errno.ENOENT, errno.EISDIR})
+                             errno.ENOTDIR, errno.EEXIST, errno.ENOENT, errno.EISDIR, errno.EADDRINUSE})
 """``OSError`` numbers that describe the user's paths or machine (permissions, read-only or full disk,
-quota, name too long, a file where a folder is needed or the reverse, missing or existing entries).
+quota, name too long, a file where a folder is needed or the reverse, missing or existing entries, a TCP port
+already in use by ``diff4splat view``).
 Other ``OSError`` numbers (``EBADF``, ``EINVAL``, …) point at a bug and keep their traceback."""
 
 _EXPECTED_OS_ERRORS = (FileNotFoundError, FileExistsError, PermissionError, IsADirectoryError, NotADirectoryError)

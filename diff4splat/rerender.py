@@ -27,6 +27,7 @@ replaces a user's folder nor the input)::
     depth/0000.exr …    float32 expected depth "Z" (metres; empty pixels filled as generate does,
                         :func:`~diff4splat.io.output.fill_empty_depth`) and coverage "A"
     cameras.json        the path rendered
+    viewer.html         the interactive viewer of the source scene, opening at the path's first camera
     meta.json           source folder, camera source, deformation source, frames, size, fps, timings
 """
 from __future__ import annotations
@@ -54,9 +55,10 @@ from .io.output import fill_empty_depth, load_deformation
 from .io.structured import read_json
 from .io.video import check_fps, save_image, save_video, to_uint8
 from .limits import check_limit, check_output_size
-from .render.defaults import BACKGROUND, NEAR_PLANE
+from .render.defaults import NEAR_PLANE, meta_background
 from .render.sequence import render_path
 from .scene import DynamicGaussians
+from .viewer.page import VIEWER_NAME, write_viewer
 
 __all__ = ["RENDER_KIND", "FIELD_FILE", "SceneFolder", "load_scene_folder", "scene_depth", "path_scene",
            "placed_at", "load_camera_file", "trajectory_cameras", "resize_cameras", "rerender"]
@@ -256,16 +258,6 @@ def resize_cameras(cameras: CameraPath, width: int | None = None, height: int | 
     return cameras.fitted(width, height)
 
 
-def _background(meta: dict) -> tuple[float, float, float]:
-    """meta.json's ``background`` (3 numbers in [0, 1], the colour the scene was fitted against), else
-    :data:`~diff4splat.render.defaults.BACKGROUND`."""
-    bg = meta.get("background")
-    if (isinstance(bg, list) and len(bg) == 3 and all(isinstance(v, (int, float)) and not isinstance(v, bool)
-                                                      and 0.0 <= v <= 1.0 for v in bg)):
-        return tuple(float(v) for v in bg)
-    return BACKGROUND
-
-
 def _even(frames: np.ndarray) -> np.ndarray:
     """(T, H, W, 3) uint8 padded to even H and W by repeating the last row/column (MPEG-4 needs even sizes)."""
     _, H, W, _ = frames.shape
@@ -331,7 +323,7 @@ def rerender(
     scene = path_scene(src, path.times)
     t_load = time.perf_counter() - t_start
     t0 = time.perf_counter()
-    background = _background(src.meta)
+    background = meta_background(src.meta)
     colors, depths, alphas = render_path(scene, path, background=background, progress=progress)
     t_render = time.perf_counter() - t0
     if depth is None:
@@ -356,12 +348,12 @@ def rerender(
         "timings_s": {"load": t_load, "render": t_render},
         "versions": {"diff4splat": __version__, "torch": torch.__version__, "python": platform.python_version()},
     }
-    _write(out, path, colors, depths, alphas, meta, inputs=inputs, overwrite=overwrite, t_start=t_start)
+    _write(out, path, scene, colors, depths, alphas, meta, inputs=inputs, overwrite=overwrite, t_start=t_start)
     return meta
 
 
-def _write(out, path: CameraPath, colors: Tensor, depths: Tensor, alphas: Tensor, meta: dict, *, inputs: list,
-           overwrite: bool, t_start: float) -> None:
+def _write(out, path: CameraPath, scene: DynamicGaussians, colors: Tensor, depths: Tensor, alphas: Tensor,
+           meta: dict, *, inputs: list, overwrite: bool, t_start: float) -> None:
     """Write the folder (module docstring); meta.json last, with the write and total times."""
     t0 = time.perf_counter()
     rgb = to_uint8(colors, "colors")  # (T, H, W, 3)
@@ -372,6 +364,7 @@ def _write(out, path: CameraPath, colors: Tensor, depths: Tensor, alphas: Tensor
             save_depth_exr(tmp / "depth" / f"{i:04d}.exr", depths[i].cpu(), alphas[i].clamp(0, 1).cpu())
         save_video(tmp / "video.mp4", _even(rgb), fps=meta["fps"])
         save_cameras_json(tmp / "cameras.json", path.to("cpu"))
+        write_viewer(tmp / VIEWER_NAME, scene, path.to("cpu"), fps=meta["fps"], background=meta_background(meta))
         meta["timings_s"]["write"] = time.perf_counter() - t0
         meta["timings_s"]["total"] = time.perf_counter() - t_start
         (tmp / "meta.json").write_text(json.dumps(meta, indent=2))

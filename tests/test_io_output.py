@@ -43,7 +43,7 @@ def test_folder_has_every_file_and_frames_follow_the_deformation(tmp_path):
     out = tmp_path / "out"
     names = sorted(p.name for p in out.iterdir())
     assert names == [MARKER, "cameras.json", "deformation.npz", "depth", "frames", "meta.json", "scene.ply",
-                     "video.mp4"]
+                     "video.mp4", "viewer.html"]
     assert load_video(out / "video.mp4").shape == (5, 16, 16, 3)
     d = load_deformation(out / "deformation.npz")
     np.testing.assert_allclose(d["d_means"], scene.d_means.numpy())

@@ -85,7 +85,7 @@ def test_own_cameras_reproduce_the_folder(tmp_path):
     meta = rerender(folder, tmp_path / "r", cameras=folder / "cameras.json")
     out = tmp_path / "r"
     assert sorted(p.name for p in out.iterdir()) == sorted([MARKER, "cameras.json", "depth", "meta.json", "rgb",
-                                                            "video.mp4"])
+                                                            "video.mp4", "viewer.html"])
     assert json.loads((out / MARKER).read_text())["kind"] == "render"
     _assert_frames(out, scene, cams)
     got = _rgb(out, T)

@@ -9,6 +9,7 @@
     video.mp4           RGB along the camera path
     depth/0000.exr …    float32 expected depth "Z" (metres) and coverage "A"
     cameras.json        Ks, viewmats, width, height, times
+    viewer.html         the interactive 4D viewer, self-contained (diff4splat.viewer)
     meta.json           model, seed, steps, timings, counts
 """
 from __future__ import annotations
@@ -24,7 +25,9 @@ from torch import Tensor
 
 from ..cameras.path import CameraPath
 from ..constants import ALPHA_MIN
+from ..render.defaults import meta_background
 from ..scene import DynamicGaussians
+from ..viewer.page import VIEWER_NAME, write_viewer
 from .atomic import atomic_output_path
 from .cameras import save_cameras_json
 from .exr import save_depth_exr
@@ -135,6 +138,7 @@ def write_scene_folder(
             save_depth_exr(tmp / "depth" / f"{i:04d}.exr", depths[i].cpu(), alphas[i].clamp(0, 1).cpu())
         save_video(tmp / "video.mp4", colors.cpu(), fps=fps)
         save_cameras_json(tmp / "cameras.json", cameras.to("cpu"))
+        write_viewer(tmp / VIEWER_NAME, scene, cameras.to("cpu"), fps=fps, background=meta_background(meta))
         (tmp / "meta.json").write_text(json.dumps(meta, indent=2, default=json_default))
         if extra is not None:
             extra(tmp)

@@ -30,7 +30,7 @@ from ..constants import OPACITY_EPS
 from ..gaussians import Gaussians
 from .atomic import atomic_output_path
 
-__all__ = ["save_ply", "load_ply", "ply_property_names"]
+__all__ = ["save_ply", "ply_bytes", "load_ply", "ply_property_names"]
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -48,13 +48,9 @@ def ply_property_names(sh_coeffs: int) -> list[str]:
     return names
 
 
-def save_ply(path: str | os.PathLike, gaussians: Gaussians) -> None:
-    """Write Gaussians to a binary little-endian PLY in the INRIA layout (module docstring), atomically.
-
-    Args:
-        path: output file (``.ply``); written to a temporary file beside it, then renamed.
-        gaussians: N activated Gaussians (scales > 0 metres, opacities in [0, 1], SH (N, K, 3)).
-            Tensors are detached and moved to the CPU; values are stored as float32.
+def ply_bytes(gaussians: Gaussians) -> bytes:
+    """The whole binary PLY file (module docstring) of N activated Gaussians, as bytes (what :func:`save_ply`
+    writes; the viewer embeds it).
 
     Raises:
         ValueError: ``gaussians`` fails :meth:`Gaussians.validate`.
@@ -80,10 +76,24 @@ def save_ply(path: str | os.PathLike, gaussians: Gaussians) -> None:
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
     header += [f"property float {name}" for name in names]
     header += ["end_header"]
+    return ("\n".join(header) + "\n").encode("ascii") + vertices.tobytes()
+
+
+def save_ply(path: str | os.PathLike, gaussians: Gaussians) -> None:
+    """Write Gaussians to a binary little-endian PLY in the INRIA layout (module docstring), atomically.
+
+    Args:
+        path: output file (``.ply``); written to a temporary file beside it, then renamed.
+        gaussians: N activated Gaussians (scales > 0 metres, opacities in [0, 1], SH (N, K, 3)).
+            Tensors are detached and moved to the CPU; values are stored as float32.
+
+    Raises:
+        ValueError: ``gaussians`` fails :meth:`Gaussians.validate`.
+    """
+    data = ply_bytes(gaussians)
     with atomic_output_path(path) as tmp:
         with open(tmp, "wb") as f:
-            f.write(("\n".join(header) + "\n").encode("ascii"))
-            f.write(vertices.tobytes())
+            f.write(data)
 
 
 def _read_header(f, path: Path) -> tuple[int, np.dtype]:

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 __all__ = [
     "NEAR_PLANE", "FAR_PLANE", "EPS2D", "SH_DEGREE", "RENDER_MODE", "RASTERIZE_MODE", "CAMERA_MODEL", "TILE_SIZE",
-    "BACKGROUND",
+    "BACKGROUND", "meta_background",
 ]
 
 NEAR_PLANE = 0.01
@@ -34,3 +34,13 @@ TILE_SIZE = 16
 """Tile edge, pixels (gsplat 16); a performance knob, the image does not depend on it."""
 BACKGROUND = (0.0, 0.0, 0.0)
 """RGB in [0, 1] behind the Gaussians for the scene renderers (render_path, render_rolling_shutter)."""
+
+
+def meta_background(meta: dict) -> tuple[float, float, float]:
+    """An output folder's meta.json ``background`` (3 numbers in [0, 1], the colour the scene was fitted
+    against), else :data:`BACKGROUND`."""
+    bg = meta.get("background")
+    if (isinstance(bg, list) and len(bg) == 3 and all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                      and 0.0 <= v <= 1.0 for v in bg)):
+        return tuple(float(v) for v in bg)
+    return BACKGROUND

@@ -1,0 +1,227 @@
+"""What the 4D viewer shows, computed in Python (the page only interpolates; docs/DESIGN.md, "Viewer").
+
+A viewer payload is the canonical Gaussians as INRIA PLY bytes (:func:`diff4splat.io.ply_bytes`: colours,
+opacities, SH) and, for a scene that changes with time, **absolute** keyframes: for each key time t the
+means (N, 3) metres, quats (N, 4) wxyz, scales (N, 3) metres — and opacities (N,) when the scene has temporal
+support — of :meth:`DynamicGaussians.at` (t, gate 0), the same code that writes ``frames/NNNN.ply``. The page
+interpolates linearly between keyframes (nlerp for quaternions), which is exact for the means at the
+deformation's own key times (μ + Δμ is affine in the linearly interpolated Δμ).
+
+Keyframes are stored as float16 when rounding the means to float16 moves no Gaussian by more than
+:data:`FLOAT16_MAX_PX` pixels in any camera of the path (measured, :func:`float16_error_px`), else float32.
+Size per Gaussian per keyframe: 10 values (11 with temporal support) × 2 or 4 bytes, × 4/3 once base64-
+encoded into ``viewer.html``. Above :data:`VIEWER_BUDGET_BYTES` of embedded data the page gets a reduced
+scene (:func:`viewer_payload`: SH degree 0, then fewer keyframes, then the most opaque Gaussians) and says
+so on screen; ``diff4splat view`` serves the full one.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..cameras.path import CameraPath
+from ..gaussians import Gaussians
+from ..io.ply import ply_bytes
+from ..render.defaults import BACKGROUND, NEAR_PLANE
+from ..scene import DynamicGaussians
+
+__all__ = ["VIEWER_BUDGET_BYTES", "FLOAT16_MAX_PX", "NEAR", "ViewerPayload", "keyframe_times", "keyframes",
+           "float16_error_px", "encode_keyframes", "decode_keyframes", "viewer_payload", "payload_bytes"]
+
+VIEWER_BUDGET_BYTES = 50 * 2**20
+"""Most bytes of data (PLY + keyframes, before base64) embedded in one viewer.html."""
+
+FLOAT16_MAX_PX = 0.5
+"""Keyframes are float16 only if float16 means reproject within this many pixels of the float32 ones."""
+
+NEAR = NEAR_PLANE
+"""Near plane of the page's camera, metres (the CPU renderer's)."""
+
+
+@dataclass
+class ViewerPayload:
+    """Everything the page needs.
+
+    Attributes:
+        config: JSON-ready dict read by the page (counts, cameras, key times, dtype, note …).
+        ply: INRIA PLY bytes of the (possibly reduced) canonical Gaussians.
+        frames: keyframe bytes (layout in :func:`encode_keyframes`), or None for a static scene.
+    """
+
+    config: dict
+    ply: bytes
+    frames: bytes | None = None
+    reductions: list[str] = field(default_factory=list)
+
+
+def keyframe_times(scene: DynamicGaussians, cameras: CameraPath) -> Tensor | None:
+    """Key times (F,) in [0, 1]: the deformation's own times for a deforming scene, the path's frame times for
+    a scene with temporal support only, None for a static scene (no time controls)."""
+    if not scene.is_static:
+        return scene.times.detach().cpu().double()
+    if scene.has_temporal:
+        return cameras.times.detach().cpu().double()
+    return None
+
+
+@torch.no_grad()
+def keyframes(scene: DynamicGaussians, times: Tensor) -> dict[str, Tensor]:
+    """Absolute Gaussians at every key time (:meth:`DynamicGaussians.at` with gate 0, so all N in order).
+
+    Returns:
+        {"means": (F, N, 3), "quats": (F, N, 4) unit wxyz, "scales": (F, N, 3), and "opacities": (F, N) when
+        the scene has temporal support}, float32 on the CPU.
+    """
+    gs = [scene.at(float(t), gate=0.0) for t in times]
+    out = {"means": torch.stack([g.means for g in gs]), "quats": torch.stack([g.quats for g in gs]),
+           "scales": torch.stack([g.scales for g in gs])}
+    out["quats"] = out["quats"] / out["quats"].norm(dim=-1, keepdim=True)
+    if scene.has_temporal:
+        out["opacities"] = torch.stack([g.opacities for g in gs])
+    return {k: v.detach().cpu().float() for k, v in out.items()}
+
+
+def float16_error_px(
+    means: Tensor,  # (F, N, 3) world, metres
+    viewmats: Tensor,  # (C, 4, 4) world-to-camera (OpenCV)
+    Ks: Tensor,  # (C, 3, 3) pixels
+    near: float = NEAR,
+) -> float:
+    """Largest image-plane displacement, pixels, caused by rounding ``means`` to float16, over every camera and
+    every Gaussian in front of it (z > ``near``) whose projection lies within the image's 2× neighbourhood;
+    0.0 when no Gaussian is in view."""
+    pts = means.reshape(-1, 3).double()
+    half = pts.half().double()
+    worst = 0.0
+    for vm, K in zip(viewmats.double(), Ks.double(), strict=True):
+        a, b = pts @ vm[:3, :3].T + vm[:3, 3], half @ vm[:3, :3].T + vm[:3, 3]
+        ok = (a[:, 2] > near) & (b[:, 2] > near)
+        if not bool(ok.any()):
+            continue
+        pa = (a[ok] @ K.T)[:, :2] / a[ok, 2:3]
+        pb = (b[ok] @ K.T)[:, :2] / b[ok, 2:3]
+        lim = 4 * float(max(K[0, 2], K[1, 2]))  # ignore Gaussians far outside the image (grazing angles)
+        keep = (pa.abs() < lim).all(1)
+        if bool(keep.any()):
+            worst = max(worst, float((pa[keep] - pb[keep]).norm(dim=1).max()))
+    return worst
+
+
+def encode_keyframes(frames: dict[str, Tensor], dtype: str) -> bytes:
+    """Little-endian bytes, keyframe by keyframe: means (N·3), quats (N·4, wxyz), scales (N·3), then
+    opacities (N) if present — ``dtype`` "float16" or "float32". The page's ``splitFrames`` reads this."""
+    if dtype not in ("float16", "float32"):
+        raise ValueError(f"dtype must be 'float16' or 'float32', got {dtype!r}")
+    keys = ["means", "quats", "scales"] + (["opacities"] if "opacities" in frames else [])
+    F = frames["means"].shape[0]
+    parts = [frames[k].reshape(F, -1) for k in keys]
+    flat = torch.cat(parts, dim=1).numpy().astype("<f2" if dtype == "float16" else "<f4")
+    return flat.tobytes()
+
+
+def payload_bytes(num_gaussians: int, sh_degree: int, num_frames: int, temporal: bool, itemsize: int) -> int:
+    """Bytes of embedded data (before base64): PLY rows of (17 + 3·((d+1)² − 1)) float32 plus keyframes."""
+    ply = num_gaussians * 4 * (17 + 3 * ((sh_degree + 1) ** 2 - 1))
+    return ply + num_frames * num_gaussians * (11 if temporal else 10) * itemsize
+
+
+def _camera_list(cameras: CameraPath) -> list[dict]:
+    V, K, t = cameras.viewmats.detach().cpu().double(), cameras.Ks.detach().cpu().double(), cameras.times
+    return [{"viewmat": V[i].reshape(-1).tolist(), "K": K[i].reshape(-1).tolist(), "time": float(t[i])}
+            for i in range(len(cameras))]
+
+
+def _target_distance(means: Tensor, viewmat: Tensor) -> float:
+    """Median z-depth of the Gaussians in front of the first camera (the orbit centre's distance), metres."""
+    z = (means.double() @ viewmat[:3, :3].double().T + viewmat[:3, 3].double())[:, 2]
+    z = z[z > NEAR]
+    return float(z.median()) if z.numel() else 1.0
+
+
+def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float = 8.0,
+                   budget: int | None = VIEWER_BUDGET_BYTES,
+                   background: tuple[float, float, float] = BACKGROUND) -> ViewerPayload:
+    """The data of one viewer page (module docstring), reduced to at most ``budget`` bytes (None: never).
+
+    Reductions, in order, each only while over budget: SH degree → 0; keyframes subsampled (first and last
+    kept, at least 2); the most opaque Gaussians kept. Each one taken is listed in ``config["note"]``.
+    ``background``: RGB in [0, 1] behind the Gaussians (as the CPU renderer composites it).
+
+    Raises:
+        ValueError: an empty camera path or fps ≤ 0.
+    """
+    if len(cameras) == 0:
+        raise ValueError("cameras: the viewer needs at least one camera")
+    if not fps > 0:
+        raise ValueError(f"fps must be > 0, got {fps}")
+    scene = scene.to("cpu")
+    times = keyframe_times(scene, cameras)
+    canonical: Gaussians = scene.canonical
+    degree = canonical.sh_degree
+    n, temporal = canonical.num_gaussians, scene.has_temporal
+    reductions: list[str] = []
+    frames = keyframes(scene, times) if times is not None else None
+    dtype, err = "float32", None
+    if frames is not None:
+        err = float16_error_px(frames["means"], cameras.viewmats.detach().cpu(), cameras.Ks.detach().cpu())
+        dtype = "float16" if err <= FLOAT16_MAX_PX else "float32"
+    itemsize = 2 if dtype == "float16" else 4
+    F = 0 if times is None else times.shape[0]
+    size = lambda: payload_bytes(n, degree, F, temporal, itemsize)  # noqa: E731
+    if budget is not None and size() > budget and degree > 0:
+        reductions.append(f"SH degree {degree} → 0")
+        degree = 0
+    if budget is not None and size() > budget and F > 2:
+        per_frame = n * (11 if temporal else 10) * itemsize
+        keep_f = int(min(F, max(2, (budget - payload_bytes(n, degree, 0, temporal, itemsize)) // max(per_frame, 1))))
+        if keep_f < F:
+            idx = torch.linspace(0, F - 1, keep_f).round().long().unique()
+            reductions.append(f"{F} → {idx.numel()} keyframes")
+            times, frames = times[idx], {k: v[idx] for k, v in frames.items()}
+            F = idx.numel()
+    keep = None
+    if budget is not None and size() > budget:
+        per = payload_bytes(1, degree, F, temporal, itemsize)
+        m = max(1, budget // per)
+        keep = torch.argsort(canonical.opacities.detach().cpu(), descending=True)[:m].sort().values
+        reductions.append(f"{n:,} → {m:,} Gaussians (the most opaque)")
+        n = int(m)
+    g = canonical if keep is None else canonical.select(keep)
+    if degree < canonical.sh_degree:
+        g = Gaussians(g.means, g.quats, g.scales, g.opacities, g.sh[:, :1])
+    if frames is not None and keep is not None:
+        frames = {k: v[:, keep] for k, v in frames.items()}
+    first = frames["means"][0] if frames is not None else g.means.detach()
+    config = {
+        "numGaussians": n, "shDegree": degree, "dynamic": frames is not None, "temporal": temporal,
+        "times": [] if times is None else [float(t) for t in times],
+        "dtype": dtype, "float16ErrorPx": err, "width": cameras.width, "height": cameras.height,
+        "duration": (len(cameras) - 1) / fps if len(cameras) > 1 else 1.0 / fps,
+        "cameras": _camera_list(cameras), "near": NEAR, "background": [float(c) for c in background],
+        "far": max(100.0, 10 * float(first.double().norm(dim=1).max()) if first.numel() else 100.0),
+        "targetDistance": _target_distance(first, cameras.viewmats[0].detach().cpu()),
+        "note": ("reduced to fit the viewer's size budget: " + "; ".join(reductions) +
+                 " — run `diff4splat view DIR` for the full scene") if reductions else "",
+        "bytesPerGaussianPerFrame": (11 if temporal else 10) * itemsize if frames is not None else 0,
+    }
+    if not math.isfinite(config["far"]):
+        config["far"] = 1e4
+    return ViewerPayload(config, ply_bytes(g), None if frames is None else encode_keyframes(frames, dtype),
+                         reductions)
+
+
+def decode_keyframes(data: bytes, config: dict) -> dict[str, np.ndarray]:
+    """Inverse of :func:`encode_keyframes` given the page config (tests and tools)."""
+    n, F = config["numGaussians"], len(config["times"])
+    cols = 11 if config["temporal"] else 10
+    flat = np.frombuffer(data, dtype="<f2" if config["dtype"] == "float16" else "<f4").astype(np.float32)
+    flat = flat.reshape(F, n * cols)
+    out = {"means": flat[:, :3 * n].reshape(F, n, 3), "quats": flat[:, 3 * n:7 * n].reshape(F, n, 4),
+           "scales": flat[:, 7 * n:10 * n].reshape(F, n, 3)}
+    if config["temporal"]:
+        out["opacities"] = flat[:, 10 * n:]
+    return out

@@ -1,0 +1,89 @@
+"""``viewer.html``: one self-contained page (code and data embedded, opens from disk through ``file://``).
+
+The page is this module's HTML, the bundled renderer (``assets/viewer.js``: the sources in ``viewer/`` at the
+repository root — three.js and Spark, built with esbuild; licences in ``assets/LICENSES.txt``) and the
+payload of :mod:`diff4splat.viewer.data` as base64 text in ``<script type="application/octet-stream">``
+elements (a page on ``file://`` may not ``fetch`` a sibling file). docs/DESIGN.md, "Viewer".
+"""
+from __future__ import annotations
+
+import base64
+import html
+import json
+import os
+from importlib import resources
+
+from ..cameras.path import CameraPath
+from ..io.atomic import atomic_output_path
+from ..render.defaults import BACKGROUND
+from ..scene import DynamicGaussians
+from .data import VIEWER_BUDGET_BYTES, ViewerPayload, viewer_payload
+
+__all__ = ["viewer_html", "write_viewer", "bundle_js", "VIEWER_NAME"]
+
+VIEWER_NAME = "viewer.html"
+"""File name of the page in every output folder."""
+
+_STYLE = """
+html, body { margin: 0; background: #111; color: #ddd; font: 13px system-ui, sans-serif; overflow: hidden; }
+#view { display: block; margin: 0 auto; }
+#ui { position: fixed; left: 0; right: 0; bottom: 0; padding: 6px 10px; background: rgba(0,0,0,.6);
+      display: flex; gap: 10px; align-items: center; flex-wrap: wrap; }
+#time { flex: 1; min-width: 120px; }
+#note { color: #fc6; }
+"""
+
+
+def bundle_js() -> str:
+    """The bundled page code (three.js + Spark + the viewer), shipped as package data."""
+    return resources.files("diff4splat.viewer").joinpath("assets/viewer.js").read_text(encoding="utf-8")
+
+
+def _script(kind: str, ident: str, text: str) -> str:
+    return f'<script type="{kind}" id="{ident}">{text}</script>\n'
+
+
+def viewer_html(payload: ViewerPayload, title: str = "diff4splat viewer", *, full_url: str | None = None,
+                embed: bool = True) -> str:
+    """The page (module docstring). ``full_url``: where ``diff4splat view`` serves the data (``scene.ply``,
+    ``frames.bin``), which the page then fetches over http instead of reading the embedded copy; ``embed``
+    false leaves the data out of the page (it must then be served at ``full_url``)."""
+    if not embed and full_url is None:
+        raise ValueError("embed=False needs full_url (the page must get its data somewhere)")
+    config = dict(payload.config, fullUrl=full_url)
+    # "</" cannot occur in base64; JSON gets "<" escaped so nothing closes the script element early
+    cfg = json.dumps(config).replace("<", "\\u003c")
+    parts = [
+        "<!doctype html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><link rel=\"icon\" href=\"data:,\">",
+        f"<title>{html.escape(title)}</title><style>{_STYLE}</style></head><body>\n",
+        '<canvas id="view"></canvas>\n<div id="ui" hidden>',
+        '<select id="camera" title="jump to a camera of the path"></select>',
+        '<span id="timecontrols"><button id="play">play</button>',
+        '<input id="time" type="range" min="0" max="1000" value="0"><span id="tlabel"></span></span>',
+        f'<span>{payload.config["numGaussians"]:,} Gaussians</span><span id="note"></span></div>\n',
+        _script("application/json", "d4s-config", cfg),
+    ]
+    if embed:
+        parts.append(_script("application/octet-stream", "d4s-ply", base64.b64encode(payload.ply).decode("ascii")))
+    if embed and payload.frames is not None:
+        frames = base64.b64encode(payload.frames).decode("ascii")
+        parts.append(_script("application/octet-stream", "d4s-frames", frames))
+    parts.append("<script>\n" + bundle_js().replace("</script", "<\\/script") + "\n</script>\n</body></html>\n")
+    return "".join(parts)
+
+
+def write_viewer(path: str | os.PathLike, scene: DynamicGaussians, cameras: CameraPath, *, fps: float = 8.0,
+                 budget: int | None = VIEWER_BUDGET_BYTES, title: str = "diff4splat viewer",
+                 background: tuple[float, float, float] = BACKGROUND) -> ViewerPayload:
+    """Write ``viewer.html`` for ``scene`` seen along ``cameras`` (the first one is where it opens),
+    atomically. Returns the payload (its ``config`` holds the sizes and any reduction).
+
+    Raises:
+        ValueError: see :func:`diff4splat.viewer.data.viewer_payload`.
+    """
+    payload = viewer_payload(scene, cameras, fps=fps, budget=budget, background=background)
+    text = viewer_html(payload, title)
+    with atomic_output_path(path) as tmp:
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text)
+    return payload

@@ -1,0 +1,221 @@
+// diff4splat 4D viewer: the page half of diff4splat/viewer (docs/DESIGN.md, "Viewer").
+//
+// Reads what diff4splat/viewer/page.py embedded in viewer.html (or, under `diff4splat view`, fetches the
+// full-size data): the canonical Gaussians as INRIA PLY bytes (colours, opacities, SH) and, for a dynamic
+// scene, absolute per-keyframe means/quats(wxyz)/scales (and opacities when the scene has temporal
+// support) computed in Python by DynamicGaussians.at(). The page never re-implements the deformation: it
+// linearly interpolates the keyframes (nlerp for quaternions) and writes the result into Spark's
+// PackedSplats with setSplat + needsUpdate.
+//
+// Conventions: the scene's world and cameras.json use OpenCV world-to-camera matrices (x right, y down,
+// z forward); three.js cameras are OpenGL (x right, y up, looking down −z), so c2w_gl = inv(viewmat) ·
+// diag(1, −1, −1, 1). The projection matrix is built from K (fx, fy, cx, cy in pixels), not from a fov.
+import * as THREE from "three";
+import { OrbitControls } from "three/addons/controls/OrbitControls.js";
+import { SparkRenderer, SplatMesh, SplatFileType } from "@sparkjsdev/spark";
+
+const state = { ready: false, error: null, numGaussians: 0, time: 0, frames: 0, playing: false, renders: 0 };
+window.d4s = state;
+window.addEventListener("error", (e) => { state.error = String(e.message || e); });
+window.addEventListener("unhandledrejection", (e) => { state.error = String(e.reason); });
+
+function bytesOf(id) {
+  const text = document.getElementById(id).textContent.trim();
+  const bin = atob(text);
+  const out = new Uint8Array(bin.length);
+  for (let i = 0; i < bin.length; i++) out[i] = bin.charCodeAt(i);
+  return out;
+}
+
+// IEEE half → float, through a 65536-entry table.
+const HALF = (() => {
+  const t = new Float32Array(65536);
+  for (let h = 0; h < 65536; h++) {
+    const s = h & 0x8000 ? -1 : 1, e = (h >> 10) & 0x1f, m = h & 0x3ff;
+    t[h] = e === 0 ? s * 2 ** -14 * (m / 1024) : e === 31 ? (m ? NaN : s * Infinity) : s * 2 ** (e - 15) * (1 + m / 1024);
+  }
+  return t;
+})();
+
+function decodeFloats(bytes, dtype) {
+  const buf = bytes.buffer.slice(bytes.byteOffset, bytes.byteOffset + bytes.byteLength);
+  if (dtype === "float32") return new Float32Array(buf);
+  const h = new Uint16Array(buf), out = new Float32Array(h.length);
+  for (let i = 0; i < h.length; i++) out[i] = HALF[h[i]];
+  return out;
+}
+
+// Keyframe array layout (little endian, dtype of cfg.dtype): for each keyframe f, means (N, 3), quats
+// (N, 4) wxyz, scales (N, 3), then opacities (N) when cfg.temporal.
+function splitFrames(flat, cfg) {
+  const n = cfg.numGaussians, per = n * (cfg.temporal ? 11 : 10), frames = [];
+  for (let f = 0; f < cfg.times.length; f++) {
+    const o = f * per;
+    frames.push({
+      means: flat.subarray(o, o + 3 * n), quats: flat.subarray(o + 3 * n, o + 7 * n),
+      scales: flat.subarray(o + 7 * n, o + 10 * n), opacities: cfg.temporal ? flat.subarray(o + 10 * n, o + 11 * n) : null,
+    });
+  }
+  return frames;
+}
+
+function projectionFromK(K, w, h, near, far) {
+  const [fx, , cx, , fy, cy] = K;
+  const m = new THREE.Matrix4();
+  m.set(2 * fx / w, 0, 1 - 2 * cx / w, 0,
+        0, 2 * fy / h, 2 * cy / h - 1, 0,
+        0, 0, -(far + near) / (far - near), -2 * far * near / (far - near),
+        0, 0, -1, 0);
+  return m;
+}
+
+function glPose(viewmat) {  // viewmat: 16 numbers, row-major OpenCV world-to-camera → OpenGL camera-to-world
+  const w2c = new THREE.Matrix4().set(...viewmat);
+  const c2w = w2c.clone().invert().multiply(new THREE.Matrix4().makeScale(1, -1, -1));
+  const pos = new THREE.Vector3(), quat = new THREE.Quaternion(), scl = new THREE.Vector3();
+  c2w.decompose(pos, quat, scl);
+  const up = new THREE.Vector3(0, 1, 0).applyQuaternion(quat);
+  const fwd = new THREE.Vector3(0, 0, -1).applyQuaternion(quat);
+  return { pos, quat, up, fwd };
+}
+
+async function loadData(cfg) {
+  if (cfg.fullUrl && location.protocol.startsWith("http")) {  // served by `diff4splat view`: the full scene
+    const get = (name) => fetch(cfg.fullUrl + name).then((r) => {
+      if (!r.ok) throw new Error(`viewer: ${cfg.fullUrl + name}: HTTP ${r.status}`);
+      return r.arrayBuffer();
+    });
+    const [ply, frames] = await Promise.all([get("scene.ply"), cfg.dynamic ? get("frames.bin") : null]);
+    return { cfg, ply: new Uint8Array(ply), frames: frames && new Uint8Array(frames) };
+  }
+  return { cfg, ply: bytesOf("d4s-ply"), frames: cfg.dynamic ? bytesOf("d4s-frames") : null };
+}
+
+async function main() {
+  const { cfg, ply, frames: frameBytes } = await loadData(JSON.parse(document.getElementById("d4s-config").textContent));
+  state.config = cfg;
+  const view = document.getElementById("view");
+  const renderer = new THREE.WebGLRenderer({ canvas: view, antialias: false, preserveDrawingBuffer: true });
+  renderer.setPixelRatio(1);
+  const bg = cfg.background || [0, 0, 0];  // the colour behind the Gaussians, as the CPU renderer composites it
+  renderer.setClearColor(new THREE.Color().setRGB(bg[0], bg[1], bg[2], THREE.SRGBColorSpace), 1);
+  const scene = new THREE.Scene();
+  // Our renderer's conventions: 0.3 px² screen-space dilation (EPS2D), 3σ support, alpha ≥ 1/255.
+  const spark = new SparkRenderer({ renderer, preBlurAmount: 0.3, maxStdDev: 3.0, minAlpha: 1 / 255 });
+  scene.add(spark);
+  const splats = new SplatMesh({ fileBytes: ply, fileType: SplatFileType.PLY, lod: false });
+  scene.add(splats);
+  await splats.initialized;
+  const packed = splats.packedSplats;
+  const n = packed.numSplats;
+  if (n !== cfg.numGaussians) throw new Error(`viewer: PLY has ${n} Gaussians, config says ${cfg.numGaussians}`);
+  state.numGaussians = n;
+
+  const cams = cfg.cameras, W = cfg.width, H = cfg.height;
+  const camera = new THREE.PerspectiveCamera(50, W / H, cfg.near, cfg.far);
+  function resize() {
+    const s = Math.min(window.innerWidth / W, (window.innerHeight - 64) / H);
+    const w = Math.max(1, Math.floor(W * s)), h = Math.max(1, Math.floor(H * s));
+    renderer.setSize(w, h, true);
+    // K at the canvas size: scale focal lengths and principal point with the image
+    const k = cams[0].K.map((v, i) => (i === 0 || i === 2 ? v * w / W : i === 4 || i === 5 ? v * h / H : v));
+    camera.projectionMatrix.copy(projectionFromK(k, w, h, cfg.near, cfg.far));
+    camera.projectionMatrixInverse.copy(camera.projectionMatrix).invert();
+  }
+  const controls = new OrbitControls(camera, view);
+  function goTo(index) {
+    const p = glPose(cams[index].viewmat);
+    camera.up.copy(p.up);
+    camera.position.copy(p.pos);
+    camera.quaternion.copy(p.quat);
+    controls.target.copy(p.pos).addScaledVector(p.fwd, cfg.targetDistance);
+    controls.update();
+    camera.quaternion.copy(p.quat);  // keep the exact pose (controls.update re-aims at the target, the same direction)
+  }
+  resize();
+  goTo(0);
+  window.addEventListener("resize", resize);
+
+  // per-Gaussian colour and opacity as loaded (setSplat rewrites all of a splat's packed fields)
+  const colors = [], opac = new Float32Array(n);
+  for (let i = 0; i < n; i++) { const s = packed.getSplat(i); colors.push(s.color.clone()); opac[i] = s.opacity; }
+  const frames = cfg.dynamic ? splitFrames(decodeFloats(frameBytes, cfg.dtype), cfg) : null;
+  const c = new THREE.Vector3(), sc = new THREE.Vector3(), q = new THREE.Quaternion();
+  function setTime(t) {
+    state.time = t;
+    if (!frames) return;
+    const ts = cfg.times;
+    let k = 0;
+    while (k < ts.length - 2 && t > ts[k + 1]) k++;
+    const k1 = Math.min(k + 1, ts.length - 1);
+    const w = k1 === k ? 0 : Math.min(1, Math.max(0, (t - ts[k]) / (ts[k1] - ts[k])));
+    const a = frames[k], b = frames[k1];
+    for (let i = 0; i < n; i++) {
+      const i3 = 3 * i, i4 = 4 * i;
+      c.set(a.means[i3] + w * (b.means[i3] - a.means[i3]), a.means[i3 + 1] + w * (b.means[i3 + 1] - a.means[i3 + 1]),
+            a.means[i3 + 2] + w * (b.means[i3 + 2] - a.means[i3 + 2]));
+      sc.set(a.scales[i3] + w * (b.scales[i3] - a.scales[i3]), a.scales[i3 + 1] + w * (b.scales[i3 + 1] - a.scales[i3 + 1]),
+             a.scales[i3 + 2] + w * (b.scales[i3 + 2] - a.scales[i3 + 2]));
+      // nlerp on the shorter arc; wxyz in the data, THREE.Quaternion is (x, y, z, w)
+      const d = a.quats[i4] * b.quats[i4] + a.quats[i4 + 1] * b.quats[i4 + 1] + a.quats[i4 + 2] * b.quats[i4 + 2] + a.quats[i4 + 3] * b.quats[i4 + 3];
+      const sb = d < 0 ? -w : w, sa = 1 - w;
+      q.set(sa * a.quats[i4 + 1] + sb * b.quats[i4 + 1], sa * a.quats[i4 + 2] + sb * b.quats[i4 + 2],
+            sa * a.quats[i4 + 3] + sb * b.quats[i4 + 3], sa * a.quats[i4] + sb * b.quats[i4]).normalize();
+      const o = a.opacities ? a.opacities[i] + w * (b.opacities[i] - a.opacities[i]) : opac[i];
+      packed.setSplat(i, c, sc, q, o, colors[i]);
+    }
+    packed.needsUpdate = true;
+    splats.updateVersion?.();
+  }
+
+  // UI: time slider + play/pause for a dynamic scene only; the path cameras; the frame time
+  const ui = document.getElementById("ui");
+  const camSelect = document.getElementById("camera");
+  cams.forEach((cam, i) => {
+    const o = document.createElement("option");
+    o.value = String(i);
+    o.textContent = `camera ${i}` + (cfg.dynamic && cam.time !== undefined ? ` (t = ${cam.time.toFixed(3)})` : "");
+    camSelect.appendChild(o);
+  });
+  const slider = document.getElementById("time"), play = document.getElementById("play"), label = document.getElementById("tlabel");
+  const t0 = cfg.dynamic ? cfg.times[0] : 0, t1 = cfg.dynamic ? cfg.times[cfg.times.length - 1] : 0;
+  const showTime = (t) => { label.textContent = `t = ${t.toFixed(3)} (${(t * cfg.duration).toFixed(2)} s)`; };
+  camSelect.addEventListener("change", () => {
+    const i = Number(camSelect.value);
+    goTo(i);
+    if (cfg.dynamic && cams[i].time !== undefined) { setTime(cams[i].time); slider.value = String(Math.round(1000 * (cams[i].time - t0) / Math.max(t1 - t0, 1e-9))); showTime(cams[i].time); }
+  });
+  if (cfg.dynamic) {
+    slider.addEventListener("input", () => { const t = t0 + (t1 - t0) * Number(slider.value) / 1000; setTime(t); showTime(t); });
+    play.addEventListener("click", () => { state.playing = !state.playing; play.textContent = state.playing ? "pause" : "play"; });
+    setTime(t0);
+    showTime(t0);
+  } else {
+    document.getElementById("timecontrols").remove();
+  }
+  if (cfg.note) document.getElementById("note").textContent = cfg.note;
+  ui.hidden = false;
+
+  let last = performance.now(), warm = 0;
+  state.setTime = (t) => {
+    setTime(t);
+    if (cfg.dynamic) { slider.value = String(Math.round(1000 * (t - t0) / Math.max(t1 - t0, 1e-9))); showTime(t); }
+  };
+  state.goTo = goTo;
+  renderer.setAnimationLoop((now) => {
+    if (state.playing && cfg.dynamic) {
+      let t = state.time + (now - last) / 1000 / Math.max(cfg.duration, 1e-6);
+      if (t > t1) t = t0 + (t - t1);
+      setTime(t);
+      slider.value = String(Math.round(1000 * (t - t0) / Math.max(t1 - t0, 1e-9)));
+      showTime(t);
+    }
+    last = now;
+    controls.update();
+    renderer.render(scene, camera);
+    state.renders++;
+    if (!state.ready && ++warm >= 10) state.ready = true;  // Spark sorts in a worker: let a few frames settle
+  });
+}
+
+main().catch((e) => { state.error = String(e && e.stack || e); document.getElementById("note").textContent = "viewer error: " + e; });
