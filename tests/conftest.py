@@ -18,3 +18,31 @@ def dynamic_checkpoint(tmp_path_factory):
     path = tmp_path_factory.mktemp("ckpt") / "dynamic"
     tiny_model(seed=0, dynamic=True).save_pretrained(path)
     return path
+
+
+CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--enable-unsafe-swiftshader", "--use-angle=swiftshader"]
+"""Software WebGL (SwiftShader) in headless Chromium: no GPU needed."""
+
+
+def _chromium_path():
+    import os
+    import shutil
+
+    return os.environ.get("DIFF4SPLAT_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+@pytest.fixture(scope="session")
+def browser():
+    """Headless system Chromium driven by Playwright (Playwright's own browser download is not used). Skips,
+    saying how to install it, where Chromium or Playwright is missing; .ci/run installs both."""
+    path = _chromium_path()
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        pytest.skip("browser tests need Playwright: pip install -e '.[test]' (and apt-get install chromium)")
+    if path is None:
+        pytest.skip("browser tests need Chromium: apt-get install chromium (or set DIFF4SPLAT_CHROMIUM to its path)")
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=path, args=CHROMIUM_FLAGS)
+        yield b
+        b.close()

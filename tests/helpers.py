@@ -78,3 +78,42 @@ def exported(tmp_path_factory, *, text=True, deformation=True, cli=False, image_
             model = Diff4SplatModel.from_pretrained(ckpt).eval()
             export_onnx(model, out, text=text, deformation=deformation, checkpoint=ckpt, source=str(ckpt))
     return ckpt, out
+
+
+def moving_patch_scene(n: int = 400, frames: int = 5, shift: float = 0.6, sh_degree: int = 0, temporal: bool = False,
+                       width: int = 128, height: int = 96, seed: int = 0):
+    """A 1 m square patch of n random-coloured Gaussians 2.9–3.1 m in front of an identity camera (f = 80 px), moving
+    ``shift`` metres along +x (to the right in the image) over the clip; ``shift`` 0 gives a static scene.
+
+    Returns:
+        (DynamicGaussians, CameraPath of ``frames`` identical cameras).
+    """
+    import torch
+
+    from diff4splat.cameras.path import CameraPath
+    from diff4splat.gaussians import Gaussians, rgb_to_sh0
+    from diff4splat.scene import DynamicGaussians
+
+    g = torch.Generator().manual_seed(seed)
+    means = torch.cat([torch.rand(n, 2, generator=g) - 0.5, 3.0 + 0.2 * torch.rand(n, 1, generator=g) - 0.1], 1)
+    sh = torch.zeros(n, (sh_degree + 1) ** 2, 3)
+    sh[:, 0] = rgb_to_sh0(0.2 + 0.8 * torch.rand(n, 3, generator=g))
+    if sh_degree:
+        sh[:, 1:] = 0.1 * torch.randn(n, (sh_degree + 1) ** 2 - 1, 3, generator=g)
+    identity = torch.tensor([1.0, 0, 0, 0])
+    canon = Gaussians(means, identity.repeat(n, 1), torch.full((n, 3), 0.04), torch.full((n,), 0.9), sh)
+    temporal_args = {}
+    if temporal:
+        temporal_args = {"t_means": torch.rand(n, generator=g), "t_scales": torch.full((n,), 0.3)}
+    times = torch.linspace(0, 1, frames)
+    if shift == 0:
+        scene = DynamicGaussians(canon, **temporal_args)
+    else:
+        d_means = torch.zeros(frames, n, 3)
+        d_means[..., 0] = times[:, None] * shift
+        d_quats = identity.repeat(frames, n, 1)
+        d_quats[..., 3] = times[:, None] * 0.3  # a rotation about z growing with time (normalised on use)
+        d_scales = times[:, None, None].expand(frames, n, 3) * 0.2
+        scene = DynamicGaussians(canon, times, d_means, d_quats, d_scales.clone(), **temporal_args)
+    K = torch.tensor([[80.0, 0, width / 2], [0, 80.0, height / 2], [0, 0, 1]])
+    return scene, CameraPath(torch.eye(4).repeat(frames, 1, 1), K.repeat(frames, 1, 1), width, height)

@@ -27,8 +27,7 @@ VIEWER_NAME = "viewer.html"
 _STYLE = """
 html, body { margin: 0; background: #111; color: #ddd; font: 13px system-ui, sans-serif; overflow: hidden; }
 #view { display: block; margin: 0 auto; }
-#ui { position: fixed; left: 0; right: 0; bottom: 0; padding: 6px 10px; background: rgba(0,0,0,.6);
-      display: flex; gap: 10px; align-items: center; flex-wrap: wrap; }
+#ui { padding: 6px 10px; display: flex; gap: 10px; align-items: center; flex-wrap: wrap; }
 #time { flex: 1; min-width: 120px; }
 #note { color: #fc6; }
 """

@@ -100,8 +100,9 @@ async function main() {
   const bg = cfg.background || [0, 0, 0];  // the colour behind the Gaussians, as the CPU renderer composites it
   renderer.setClearColor(new THREE.Color().setRGB(bg[0], bg[1], bg[2], THREE.SRGBColorSpace), 1);
   const scene = new THREE.Scene();
-  // Our renderer's conventions: 0.3 px² screen-space dilation (EPS2D), 3σ support, alpha ≥ 1/255.
-  const spark = new SparkRenderer({ renderer, preBlurAmount: 0.3, maxStdDev: 3.0, minAlpha: 1 / 255 });
+  // Our renderer's conventions: 0.3 px² screen-space dilation (EPS2D), 3σ support, alpha ≥ 1/255, and
+  // Gaussians sorted by view-space z as 3DGS does (Spark's default sorts by distance from the eye).
+  const spark = new SparkRenderer({ renderer, preBlurAmount: 0.3, maxStdDev: 3.0, minAlpha: 1 / 255, sortRadial: false });
   scene.add(spark);
   const splats = new SplatMesh({ fileBytes: ply, fileType: SplatFileType.PLY, lod: false });
   scene.add(splats);
@@ -114,7 +115,7 @@ async function main() {
   const cams = cfg.cameras, W = cfg.width, H = cfg.height;
   const camera = new THREE.PerspectiveCamera(50, W / H, cfg.near, cfg.far);
   function resize() {
-    const s = Math.min(window.innerWidth / W, (window.innerHeight - 64) / H);
+    const s = Math.min(window.innerWidth / W, (window.innerHeight - document.getElementById("ui").offsetHeight) / H);
     const w = Math.max(1, Math.floor(W * s)), h = Math.max(1, Math.floor(H * s));
     renderer.setSize(w, h, true);
     // K at the canvas size: scale focal lengths and principal point with the image
@@ -132,6 +133,7 @@ async function main() {
     controls.update();
     camera.quaternion.copy(p.quat);  // keep the exact pose (controls.update re-aims at the target, the same direction)
   }
+  document.getElementById("ui").hidden = false;
   resize();
   goTo(0);
   window.addEventListener("resize", resize);
@@ -194,7 +196,7 @@ async function main() {
     document.getElementById("timecontrols").remove();
   }
   if (cfg.note) document.getElementById("note").textContent = cfg.note;
-  ui.hidden = false;
+  resize();  // the controls' final height
 
   let last = performance.now(), warm = 0;
   state.setTime = (t) => {

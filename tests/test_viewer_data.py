@@ -1,0 +1,132 @@
+"""Tests of diff4splat/viewer/data.py: keyframes are DynamicGaussians.at's, the byte layout round-trips, the
+float16 error has its closed form, and the size budget's reductions (brute-force references, closed forms)."""
+import math
+
+import numpy as np
+import pytest
+import torch
+from helpers import moving_patch_scene
+
+from diff4splat.cameras.path import CameraPath
+from diff4splat.io import load_ply
+from diff4splat.viewer.data import (
+    FLOAT16_MAX_PX,
+    decode_keyframes,
+    encode_keyframes,
+    float16_error_px,
+    keyframe_times,
+    keyframes,
+    payload_bytes,
+    viewer_payload,
+)
+
+
+def test_keyframes_are_the_scene_at_its_key_times():
+    scene, cams = moving_patch_scene(n=50, frames=4, temporal=True)
+    times = keyframe_times(scene, cams)
+    assert torch.equal(times, scene.times.double())
+    frames = keyframes(scene, times)
+    for k, t in enumerate(times.tolist()):
+        g = scene.at(t, gate=0.0)
+        torch.testing.assert_close(frames["means"][k], g.means)
+        torch.testing.assert_close(frames["quats"][k], g.quats / g.quats.norm(dim=-1, keepdim=True))
+        torch.testing.assert_close(frames["scales"][k], g.scales)
+        torch.testing.assert_close(frames["opacities"][k], g.opacities)  # temporal support: p(t)·o
+    assert float((frames["means"][-1, :, 0] - frames["means"][0, :, 0]).mean()) == pytest.approx(0.6)
+
+
+def test_key_times_of_static_and_temporal_only_scenes():
+    static, cams = moving_patch_scene(n=10, shift=0.0)
+    assert keyframe_times(static, cams) is None
+    temporal, cams = moving_patch_scene(n=10, shift=0.0, temporal=True)
+    assert torch.equal(keyframe_times(temporal, cams), cams.times.double())  # opacity changes with time
+    p = viewer_payload(static, cams)
+    assert p.frames is None and p.config["dynamic"] is False and p.config["times"] == []
+
+
+@pytest.mark.parametrize("dtype", ["float16", "float32"])
+def test_encode_decode_round_trip(dtype):
+    scene, cams = moving_patch_scene(n=30, frames=3, temporal=True)
+    frames = keyframes(scene, keyframe_times(scene, cams))
+    data = encode_keyframes(frames, dtype)
+    assert len(data) == 3 * 30 * 11 * (2 if dtype == "float16" else 4)
+    back = decode_keyframes(data, {"numGaussians": 30, "times": [0, 0.5, 1], "temporal": True, "dtype": dtype})
+    for k, v in frames.items():
+        ref = v.numpy().astype(np.float16).astype(np.float32) if dtype == "float16" else v.numpy()
+        np.testing.assert_array_equal(back[k], ref)
+    with pytest.raises(ValueError, match="dtype"):
+        encode_keyframes(frames, "int8")
+
+
+def test_float16_error_closed_form():
+    """x = 1.0004 m rounds to 1.0 in float16 (spacing 2⁻¹⁰ near 1); at z = 1 m with f = 1000 px the point moves
+    1000 · 0.0004 = 0.4 px. Points behind the camera do not count."""
+    K = torch.tensor([[1000.0, 0, 500], [0, 1000.0, 500], [0, 0, 1]])
+    means = torch.tensor([[[1.0004, 0.0, 1.0], [5.0, 0.0, -1.0]]], dtype=torch.float64)
+    assert float16_error_px(means, torch.eye(4)[None], K[None]) == pytest.approx(0.4, rel=1e-3)
+    assert float16_error_px(means[:, 1:], torch.eye(4)[None], K[None]) == 0.0
+
+
+def test_float32_where_float16_would_move_points_by_more_than_half_a_pixel():
+    scene, cams = moving_patch_scene(n=20)
+    assert viewer_payload(scene, cams).config["dtype"] == "float16"
+    # the same scene 1 km away, seen through a long lens: float16 spacing there is 0.5 m
+    far = torch.eye(4)
+    far[2, 3] = -1000.0
+    s = scene.canonical
+    moved = type(scene)(type(s)(s.means + torch.tensor([0, 0, 1000.0]), s.quats, s.scales, s.opacities, s.sh),
+                        scene.times, scene.d_means, scene.d_quats, scene.d_scales)
+    tele = CameraPath(far.repeat(len(cams), 1, 1), cams.Ks * torch.tensor([1000.0, 1000.0, 1.0])[:, None],
+                      cams.width, cams.height)
+    p = viewer_payload(moved, tele)
+    assert p.config["float16ErrorPx"] > FLOAT16_MAX_PX and p.config["dtype"] == "float32"
+
+
+def test_ply_is_the_canonical_scene(tmp_path):
+    scene, cams = moving_patch_scene(n=25, sh_degree=2)
+    p = viewer_payload(scene, cams)
+    (tmp_path / "v.ply").write_bytes(p.ply)
+    g = load_ply(tmp_path / "v.ply")
+    torch.testing.assert_close(g.means, scene.canonical.means)
+    torch.testing.assert_close(g.sh, scene.canonical.sh)
+    assert p.config["shDegree"] == 2 and p.config["numGaussians"] == 25 and p.config["note"] == ""
+    assert p.config["bytesPerGaussianPerFrame"] == 20  # 10 float16 values
+    assert len(p.ply) - p.ply.index(b"end_header\n") - 11 + len(p.frames) == payload_bytes(25, 2, 5, False, 2)
+
+
+def test_budget_reductions_in_order():
+    scene, cams = moving_patch_scene(n=200, frames=9, sh_degree=3)
+    full = payload_bytes(200, 3, 9, False, 2)
+    assert viewer_payload(scene, cams, budget=full).reductions == []
+    # just under: SH 3 → 0 is enough
+    p = viewer_payload(scene, cams, budget=full - 1)
+    assert p.reductions == ["SH degree 3 → 0"] and p.config["shDegree"] == 0 and "reduced" in p.config["note"]
+    # a budget for the PLY at SH 0 plus 3 keyframes: 9 → 3 keyframes, the first and the last kept
+    budget = payload_bytes(200, 0, 3, False, 2)
+    p = viewer_payload(scene, cams, budget=budget)
+    assert p.reductions == ["SH degree 3 → 0", "9 → 3 keyframes"]
+    assert p.config["times"] == pytest.approx([0.0, 0.5, 1.0])
+    assert len(p.frames) == 3 * 200 * 10 * 2
+    # room for 50 Gaussians at 2 keyframes: the 50 most opaque are kept
+    opac = torch.linspace(0.1, 0.9, 200)
+    c = scene.canonical
+    scene = type(scene)(type(c)(c.means, c.quats, c.scales, opac, c.sh), scene.times, scene.d_means,
+                        scene.d_quats, scene.d_scales)
+    p = viewer_payload(scene, cams, budget=payload_bytes(50, 0, 2, False, 2))
+    assert p.config["numGaussians"] == 50 and len(p.reductions) == 3
+    assert payload_bytes(50, 0, 2, False, 2) >= len(p.frames) + 50 * 17 * 4
+    decoded = decode_keyframes(p.frames, p.config)
+    kept = torch.arange(150, 200)
+    np.testing.assert_allclose(decoded["means"][0], scene.at(0.0).means[kept].numpy(), atol=2e-3)
+
+
+def test_config_cameras_and_errors():
+    scene, cams = moving_patch_scene(n=10)
+    p = viewer_payload(scene, cams, fps=4.0, background=(0.1, 0.2, 0.3))
+    c = p.config
+    assert len(c["cameras"]) == 5 and c["cameras"][0]["viewmat"] == torch.eye(4).reshape(-1).tolist()
+    assert c["cameras"][0]["K"] == cams.Ks[0].reshape(-1).tolist() and c["background"] == pytest.approx([0.1, 0.2, 0.3])
+    assert c["duration"] == 1.0 and c["targetDistance"] == pytest.approx(3.0)  # 4 frame steps at 4 fps; z = 3 m
+    assert math.isfinite(c["far"]) and c["far"] >= 100
+    with pytest.raises(ValueError, match="fps"):
+        viewer_payload(scene, cams, fps=0)
