@@ -1,0 +1,124 @@
+"""Size and load time of ``viewer.html`` (the self-contained 4D viewer, diff4splat/viewer).
+
+Rows: the shipped example (``diff4splat generate examples/chelsea.png``, default model) and synthetic dynamic
+scenes (random Gaussians, 17 keyframes) of 10,000 and 65,536 Gaussians at SH degree 0 and 3. Columns: the
+keyframe bytes per Gaussian per frame (float16 or float32, chosen by the measured float16 error), that error
+in pixels, the embedded PLY and keyframe sizes, the whole file, whether the size budget reduced the scene,
+and — when Chromium and Playwright are installed — the time from navigation until the page reports ready
+(headless Chromium, software WebGL, this machine) and the milliseconds one change of time takes in the page
+(interpolating every Gaussian between two keyframes and writing it into Spark's PackedSplats).
+
+    python benchmarks/viewer_size.py --write
+"""
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import machine, markdown_table, write_section  # noqa: E402
+
+from diff4splat.cameras.path import CameraPath  # noqa: E402
+from diff4splat.gaussians import Gaussians  # noqa: E402
+from diff4splat.scene import DynamicGaussians  # noqa: E402
+from diff4splat.viewer.data import viewer_payload  # noqa: E402
+from diff4splat.viewer.page import write_viewer  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def synthetic(n: int, sh_degree: int, frames: int = 17, seed: int = 0) -> tuple[DynamicGaussians, CameraPath]:
+    """n Gaussians in a 2 m box 2–4 m ahead, each drifting up to 0.2 m over the clip; 512×512, f = 500 px."""
+    g = torch.Generator().manual_seed(seed)
+    means = torch.rand(n, 3, generator=g) * 2 - 1 + torch.tensor([0, 0, 3.0])
+    quats = torch.randn(n, 4, generator=g)
+    sh = 0.3 * torch.randn(n, (sh_degree + 1) ** 2, 3, generator=g)
+    canon = Gaussians(means, quats / quats.norm(dim=1, keepdim=True), 0.01 + 0.02 * torch.rand(n, 3, generator=g),
+                      torch.rand(n, generator=g), sh)
+    times = torch.linspace(0, 1, frames)
+    d_means = times[:, None, None] * (0.2 * torch.randn(1, n, 3, generator=g))
+    d_quats = torch.tensor([1.0, 0, 0, 0]).repeat(frames, n, 1)
+    scene = DynamicGaussians(canon, times, d_means, d_quats, torch.zeros(frames, n, 3))
+    K = torch.tensor([[500.0, 0, 256], [0, 500.0, 256], [0, 0, 1]])
+    return scene, CameraPath(torch.eye(4).repeat(frames, 1, 1), K.repeat(frames, 1, 1), 512, 512)
+
+
+def load_seconds(path: Path) -> tuple[float, float] | None:
+    """(seconds until the page reports ready, ms of one time change: interpolating every Gaussian and
+    writing it into Spark's PackedSplats, median of 5), or None without Chromium/Playwright."""
+    chromium = shutil.which("chromium")
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        return None
+    if chromium is None:
+        return None
+    with sync_playwright() as p:
+        flags = ["--headless", "--no-sandbox", "--enable-unsafe-swiftshader", "--use-angle=swiftshader"]
+        b = p.chromium.launch(executable_path=chromium, args=flags)
+        page = b.new_page(viewport={"width": 640, "height": 560})
+        t0 = time.perf_counter()
+        page.goto(path.as_uri())
+        page.wait_for_function("window.d4s && (window.d4s.ready || window.d4s.error)", timeout=300_000)
+        dt = time.perf_counter() - t0
+        err = page.evaluate("d4s.error")
+        js = ("(() => { if (!d4s.config.dynamic) return null; const ms = []; for (let i = 0; i < 5; i++) {"
+              " const t = performance.now(); d4s.setTime(0.1 + 0.2 * i); ms.push(performance.now() - t); }"
+              " return ms.sort((a, b) => a - b)[2]; })()")
+        step = None if err else page.evaluate(js)
+        b.close()
+    if err:
+        raise RuntimeError(f"{path}: {err}")
+    return dt, step
+
+
+def row(name: str, path: Path, payload) -> list:
+    c = payload.config
+    mb = lambda x: f"{x / 2**20:.2f}"  # noqa: E731
+    t = load_seconds(path)
+    ready, step = (None, None) if t is None else t
+    return [name, f"{c['numGaussians']:,}", c["shDegree"], len(c["times"]), c["dtype"],
+            "—" if c["float16ErrorPx"] is None else f"{c['float16ErrorPx']:.3f}",
+            c["bytesPerGaussianPerFrame"], f"{c['bytesPerGaussianPerFrame'] * 4 / 3:.1f}",
+            mb(len(payload.ply)), mb(len(payload.frames or b"")), mb(path.stat().st_size),
+            "; ".join(payload.reductions) or "no", "—" if ready is None else f"{ready:.1f}",
+            "—" if step is None else f"{step:.0f}"]
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--write", action="store_true", help="write the table into docs/benchmarks.md")
+    args = p.parse_args()
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        from diff4splat.cli import main as cli
+        from diff4splat.rerender import load_scene_folder
+
+        gen = Path(tmp) / "gen"
+        if cli(["generate", str(ROOT / "examples" / "chelsea.png"), "--quiet", "--out", str(gen)]) != 0:
+            raise RuntimeError("generate failed")
+        src = load_scene_folder(gen)  # the payload generate embedded (recomputed from the folder's files)
+        rows.append(row("examples/chelsea.png (generate)", gen / "viewer.html",
+                        viewer_payload(src.scene, src.cameras, fps=src.meta.get("fps", 8))))
+        for n in (10_000, 65_536):
+            for d in (0, 3):
+                scene, cams = synthetic(n, d)
+                path = Path(tmp) / f"s{n}_{d}.html"
+                rows.append(row("synthetic, 17 keyframes", path, write_viewer(path, scene, cams)))
+    body = markdown_table(["scene", "Gaussians", "SH", "keyframes", "dtype", "float16 error px",
+                           "bytes / Gaussian / frame", "in the page (base64)", "PLY MiB", "keyframes MiB",
+                           "viewer.html MiB", "reduced", "ready s", "time change ms"], rows)
+    print(body)
+    if args.write:
+        write_section("viewer_size", f"Machine: {machine()}; headless Chromium with SwiftShader (software WebGL). "
+                      f"Command: `python benchmarks/viewer_size.py --write`.\n\n{body}")
+
+
+if __name__ == "__main__":
+    main()
