@@ -156,6 +156,7 @@ def test_wheel_holds_configs_weights_and_entry_points(tmp_path):
         assert f"training/configs/{name}.yaml" in names
     assert f"models/weights/{DEFAULT_CONFIG}/ldrm/model.safetensors" in names
     assert "data_prep/curation_default.yaml" in names
+    assert {"diff4splat/viewer/assets/viewer.js", "diff4splat/viewer/assets/LICENSES.txt"} <= names  # the viewer
     assert "diff4splat = diff4splat.cli:main" in entry_points and "evaluate = " in entry_points
 
 
