@@ -19,6 +19,7 @@ from training.eval_metrics import PSNR_CAP
 from training.fit import (
     FitConfig,
     LearningRates,
+    default_depth_weight,
     evaluate_views,
     expon_lr,
     fit_steps,
@@ -45,7 +46,7 @@ def static_scene(tmp_path_factory):
 
 def _config(**kw) -> FitConfig:
     base = dict(iterations=10, coarse_iterations=0, init_points=64, sh_degree=0, field=TINY_FIELD,
-                densify=DensifyConfig(start=1000, until=1000))
+                densify=DensifyConfig(start=1000, until=1000), depth_weight=0.1)
     return FitConfig(**{**base, **kw})
 
 
@@ -315,3 +316,12 @@ def test_a_static_fit_decays_the_position_rate_over_all_its_iterations():
         # static: no fine stage, so the coarse stage is the whole fit (the rate of step until − 1)
         assert rate == pytest.approx(expon_lr(until - 1, lr.position_init, lr.position_final, 12)), until
     assert state.field is None
+
+
+def test_default_depth_weight_by_depth_source():
+    assert default_depth_weight("ground_truth") == 1.0 and default_depth_weight("aligned_estimate") == 0.1
+    assert default_depth_weight("none") == 0.0
+    with pytest.raises(ValueError, match="depth_source"):
+        default_depth_weight("lidar")
+    with pytest.raises(ValueError, match="depth_weight is None"):  # fit_steps needs it resolved
+        fit_steps(None, [], FitConfig(), 1)

@@ -74,6 +74,10 @@ def _rewrite(src, dst, *, scale=1.0, cameras=None, depth=True, frames=None, stat
     return dst
 
 
+def meta_config_depth_weight(out):
+    return json.loads((out / "meta.json").read_text())["config"]["depth_weight"]
+
+
 def _param_tensors(out):
     g = load_ply(out / "scene.ply")
     return [g.means, g.quats, g.scales, g.opacities, g.sh]
@@ -140,6 +144,7 @@ def test_output_folder_of_a_dynamic_fit(dynamic_scene, dynamic_fit):
     assert metrics["iterations"] == CONFIG.iterations and metrics["holdout_camera"] == "cam01"
     assert 0 < metrics["holdout_ssim"] <= 1 and metrics["static"] is False
     assert 0 < metrics["holdout_covisible"] <= 1 and math.isfinite(metrics["holdout_masked_psnr"])  # it has depth
+    assert CONFIG.depth_weight is None and meta_config_depth_weight(out) == 1.0  # ground-truth depth: trusted
     assert all(math.isfinite(h["holdout_masked_psnr"]) for h in metrics["history"])
     canonical = load_ply(out / "scene.ply")
     assert metrics["num_gaussians"] == canonical.means.shape[0]

@@ -80,6 +80,12 @@ def test_float32_where_float16_would_move_points_by_more_than_half_a_pixel():
                       cams.width, cams.height)
     p = viewer_payload(moved, tele)
     assert p.config["float16ErrorPx"] > FLOAT16_MAX_PX and p.config["dtype"] == "float32"
+    # one Gaussian beyond float16's range (|x| > 65504 m, out of every view) also needs float32
+    huge = type(scene)(type(s)(s.means.clone().index_put_((torch.tensor([0]), torch.tensor([2])), torch.tensor(7e4)),
+                               s.quats, s.scales, s.opacities, s.sh),
+                       scene.times, scene.d_means, scene.d_quats, scene.d_scales)
+    p = viewer_payload(huge, cams)
+    assert p.config["float16ErrorPx"] <= FLOAT16_MAX_PX and p.config["dtype"] == "float32"
 
 
 def test_ply_is_the_canonical_scene(tmp_path):

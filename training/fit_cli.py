@@ -10,6 +10,7 @@ folder is removed when the output is written.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import shutil
@@ -31,9 +32,11 @@ from models.hexplane import save_field
 from training.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from training.densify import DensityStats
 from training.fit import (
+    DEPTH_WEIGHTS,
     FitConfig,
     FitState,
     config_dict,
+    default_depth_weight,
     evaluate_views,
     fit_steps,
     gaussian_adam,
@@ -153,6 +156,8 @@ def run_fit(scene_dir: Path, out: Path, config: FitConfig, *, holdout_camera: in
     holdout = load_views(scene, holdout_names)
     dynamic = bool(scene.meta.dynamic) and scene.num_frames > 1
     masks = covisible_masks(holdout, train, static=not dynamic)
+    if config.depth_weight is None:  # stored resolved: meta.json, checkpoints
+        config = dataclasses.replace(config, depth_weight=default_depth_weight(scene.meta.depth_source))
     if dynamic and config.coarse_iterations >= config.iterations:
         raise ValueError(f"--coarse-iterations {config.coarse_iterations} leaves no fine stage for the dynamic scene "
                          f"{scene_dir} (--iterations {config.iterations}); give fewer coarse iterations")
@@ -278,6 +283,9 @@ def register(subparsers) -> None:
     p.add_argument("--init-points", type=int, default=d.init_points,
                    help=f"at most this many back-projected depth points initialise the fit (default {d.init_points})")
     p.add_argument("--sh-degree", type=int, default=d.sh_degree, help=f"largest SH degree (default {d.sh_degree})")
+    p.add_argument("--depth-weight", type=float, default=None,
+                   help="weight of the depth L1 (0: off; default: by the scene's depth source, "
+                        + ", ".join(f"{k} {v:g}" for k, v in DEPTH_WEIGHTS.items() if k != "none") + ")")
     p.add_argument("--init", type=Path, default=None,
                    help="initialise from a generate output folder (made from the reference camera's frame 0)")
     p.add_argument("--eval-every", type=int, default=250, help="held-out evaluation interval, steps (default 250)")
@@ -292,7 +300,6 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     """The ``fit`` command: one summary line; 143 after SIGTERM/SIGINT (checkpoint written)."""
-    import dataclasses
     import sys
 
     for name in ("iterations", "eval_every", "fps", "max_gaussians", "init_points"):
@@ -300,7 +307,7 @@ def run(args) -> int:
             raise ValueError(f"--{name.replace('_', '-')} must be ≥ 1, got {getattr(args, name)}")
     d = FitConfig()
     config = FitConfig(iterations=args.iterations, coarse_iterations=args.coarse_iterations,
-                       sh_degree=args.sh_degree, init_points=args.init_points,
+                       sh_degree=args.sh_degree, init_points=args.init_points, depth_weight=args.depth_weight,
                        densify=dataclasses.replace(d.densify, max_gaussians=args.max_gaussians))
     try:
         m = run_fit(args.scene, args.out, config, holdout_camera=args.holdout_camera, seed=args.seed,

@@ -8,7 +8,8 @@ interpolates linearly between keyframes (nlerp for quaternions), which is exact 
 deformation's own key times (μ + Δμ is affine in the linearly interpolated Δμ).
 
 Keyframes are stored as float16 when rounding the means to float16 moves no Gaussian by more than
-:data:`FLOAT16_MAX_PX` pixels in any camera of the path (measured, :func:`float16_error_px`), else float32.
+:data:`FLOAT16_MAX_PX` pixels in any camera of the path (measured, :func:`float16_error_px`) and every value
+is within float16's range (|x| ≤ 65504), else float32.
 Size per Gaussian per keyframe: 10 values (11 with temporal support) × 2 or 4 bytes, × 4/3 once base64-
 encoded into ``viewer.html``. Above :data:`VIEWER_BUDGET_BYTES` of embedded data the page gets a reduced
 scene (:func:`viewer_payload`: SH degree 0, then fewer keyframes, then the most opaque Gaussians) and says
@@ -176,7 +177,8 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
     dtype, err = "float32", None
     if frames is not None:
         err = float16_error_px(frames["means"], cameras.viewmats.detach().cpu(), cameras.Ks.detach().cpu())
-        dtype = "float16" if err <= FLOAT16_MAX_PX else "float32"
+        in_range = all(bool(torch.isfinite(v.half()).all()) for v in frames.values())  # |x| ≤ 65504
+        dtype = "float16" if err <= FLOAT16_MAX_PX and in_range else "float32"
     itemsize = 2 if dtype == "float16" else 4
     F = 0 if times is None else times.shape[0]
     size = lambda: payload_bytes(n, degree, F, temporal, itemsize)  # noqa: E731
