@@ -51,6 +51,7 @@ class ViewerPayload:
         config: JSON-ready dict read by the page (counts, cameras, key times, dtype, note …).
         ply: INRIA PLY bytes of the (possibly reduced) canonical Gaussians.
         frames: keyframe bytes (layout in :func:`encode_keyframes`), or None for a static scene.
+        reductions: what the size budget took away (empty: the full scene), as stated on the page.
     """
 
     config: dict
