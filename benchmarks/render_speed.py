@@ -1,4 +1,5 @@
-"""Speed of the CPU renderer on LDRM-sized scenes: the tile path vs the dense reference.
+"""Speed of the CPU renderer on LDRM-sized scenes: the fused compositor, the pure-PyTorch tile path and the
+dense reference.
 
 Scenes are what the LDRM outputs: one Gaussian per pixel of a W×W reference view, unprojected onto a
 smooth depth map (2–3 m), standard deviations 0.3–0.7 × the pixel footprint z/f (screen radius
@@ -6,7 +7,9 @@ smooth depth map (2–3 m), standard deviations 0.3–0.7 × the pixel footprint
 from the reference camera in "RGB+ED" mode. Each configuration runs in its own subprocess so the
 peak RSS is per configuration. Times are medians after one warm-up run; "pairs/s" counts the
 (pixel, Gaussian) pairs evaluated (``meta["per_camera"][0]["n_pairs"]`` for the tile path, every
-pixel × every visible Gaussian for the dense reference) per second of forward time.
+pixel × every visible Gaussian for the dense reference) per second of forward time. For the fused path,
+"GB/s" estimates the memory traffic as BYTES_PER_PAIR × pairs / forward time (module constant), to show
+the distance to the machine's bandwidth; the thread rows rerun it at 1 and 2 threads.
 
     python benchmarks/render_speed.py            # print the table
     python benchmarks/render_speed.py --write    # also replace the "render_speed" section of docs/benchmarks.md
@@ -29,24 +32,20 @@ from _common import machine, markdown_table, peak_rss_mb, write_section  # noqa:
 
 CONFIGS = [  # (renderer, image size, runs, with backward)
     ("dense", 32, 3, True),
-    ("tile", 32, 5, True),
+    ("torch", 32, 5, True),
+    ("fused", 32, 5, True),
     ("dense", 64, 2, False),  # the dense backward is O(P·N²) (one P×N gradient per Gaussian): forward only
-    ("tile", 64, 5, True),
-    ("tile", 256, 5, True),
-    ("tile", 512, 3, True),
+    ("torch", 64, 5, True),
+    ("fused", 64, 5, True),
+    ("torch", 256, 5, True),
+    ("fused", 256, 5, True),
+    ("torch", 512, 3, True),
+    ("fused", 512, 3, True),
 ]
-TARGETS = "forward ≤ 150 ms and forward+backward ≤ 600 ms at 256²/65,536; tile ≥ 5× the dense reference"
-GAP_NOTE = (
-    "Where the forward time goes (torch.profiler self time, one 256² forward, 1 thread, after the change "
-    "below): per-pair gathers (index_select/index of the Gaussian parameters, features, pixel centres) 26 %, "
-    "scatters 8 %, projection matmuls 6 %, the per-pair elementwise alpha/transmittance chain and its "
-    "allocations ≈ 57 % (about 40 full passes over the 1.5 M pairs, each a fresh tensor). Tried: the chunk "
-    "budget 2²¹ → 2¹⁸ pairs (kept: forward ~350 → ~250 ms, forward+backward ~740 → ~530 ms, per-pair arrays "
-    "stay cache-sized). Load matters: with other jobs on the 2 cores, torch's 2-thread pool is several times "
-    "slower (1.8 s forward at 256² measured under load average ≈ 5; ~230 ms with 1 thread), so compare runs "
-    "only at the load average stated above. Not done: fusing the per-pair chain into one loop (torch.compile "
-    "or a C++ extension), the next step for speed."
-)
+TARGETS = "forward ≤ 40 ms and forward+backward ≤ 120 ms at 256²/65,536 (issue 15)"
+BYTES_PER_PAIR = 81
+"""Per-pixel state the fused forward reads and writes per pair: T (float64, 16 B), 4 feature sums (64 B), the
+stop flag (1 B); the Gaussian's parameters are read once per tile row and amortised."""
 
 
 def ldrm_scene(size: int, seed: int = 0) -> list[torch.Tensor]:
@@ -68,9 +67,11 @@ def ldrm_scene(size: int, seed: int = 0) -> list[torch.Tensor]:
 
 def run_one(renderer: str, size: int, runs: int, backward: bool = True) -> dict:
     """Time one configuration in this process; returns a JSON-able dict."""
+    import functools
+
     from diff4splat.render import rasterize, rasterize_dense
 
-    fn = rasterize if renderer == "tile" else rasterize_dense
+    fn = rasterize_dense if renderer == "dense" else functools.partial(rasterize, compositor=renderer)
     scene = ldrm_scene(size)
     fwd, fb, n_pairs = [], [], 0
     for k in range(runs + 1):  # the first run is the warm-up
@@ -89,11 +90,12 @@ def run_one(renderer: str, size: int, runs: int, backward: bool = True) -> dict:
             if k:
                 fb.append(t3 - t2)
     n_vis = int((meta["radii"] > 0).sum())
-    n_pairs = int(meta["per_camera"][0]["n_pairs"]) if renderer == "tile" else size * size * n_vis
+    n_pairs = size * size * n_vis if renderer == "dense" else int(meta["per_camera"][0]["n_pairs"])
     f_med = statistics.median(fwd)
     return {"renderer": renderer, "size": size, "gaussians": size * size, "visible": n_vis, "n_pairs": n_pairs,
             "fwd_ms": 1e3 * f_med, "fb_ms": 1e3 * statistics.median(fb) if fb else None, "pairs_per_s": n_pairs / f_med,
-            "coverage": float(alpha.detach().mean()), "peak_rss_mb": peak_rss_mb(), "runs": runs}
+            "coverage": float(alpha.detach().mean()), "peak_rss_mb": peak_rss_mb(), "runs": runs,
+            "threads": torch.get_num_threads()}
 
 
 def main() -> None:
@@ -108,40 +110,46 @@ def main() -> None:
         print(json.dumps(run_one(args.one[0], int(args.one[1]), int(args.one[2]), args.one[3] == "1")))
         return
     results = []
-    for renderer, size, runs, backward in CONFIGS:
+    configs = [(*c, args.threads) for c in CONFIGS] + [("fused", 256, 5, True, t) for t in (1, 2)]
+    for renderer, size, runs, backward, threads in configs:
         cmd = [sys.executable, __file__, "--one", renderer, str(size), str(runs), str(int(backward))]
-        if args.threads:
-            cmd += ["--threads", str(args.threads)]
+        if threads:
+            cmd += ["--threads", str(threads)]
         out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
         results.append(json.loads(out.strip().splitlines()[-1]))
         print(results[-1], flush=True)
-    by = {(r["renderer"], r["size"]): r for r in results}
+    main_rows, thread_rows = results[:len(CONFIGS)], results[len(CONFIGS):]
+    by = {(r["renderer"], r["size"]): r for r in main_rows}
+    gbs = lambda r: f"{BYTES_PER_PAIR * r['pairs_per_s'] / 1e9:.2f}" if r["renderer"] == "fused" else "—"  # noqa: E731
     rows = [[r["renderer"], f"{r['size']}²", f"{r['gaussians']:,}", f"{r['n_pairs']:,}", f"{r['fwd_ms']:.1f}",
-             "—" if r["fb_ms"] is None else f"{r['fb_ms']:.1f}", f"{r['pairs_per_s'] / 1e6:.2f}",
-             f"{r['peak_rss_mb']:.0f}"] for r in results]
-    d32, t32, d64, t64, t256 = by["dense", 32], by["tile", 32], by["dense", 64], by["tile", 64], by["tile", 256]
-    min_speedup = min(d32["fwd_ms"] / t32["fwd_ms"], d32["fb_ms"] / t32["fb_ms"], d64["fwd_ms"] / t64["fwd_ms"])
+             "—" if r["fb_ms"] is None else f"{r['fb_ms']:.1f}", f"{r['pairs_per_s'] / 1e6:.2f}", gbs(r),
+             f"{r['peak_rss_mb']:.0f}"] for r in main_rows]
+    trows = [[r["threads"], f"{r['fwd_ms']:.1f}", f"{r['fb_ms']:.1f}", f"{r['pairs_per_s'] / 1e6:.1f}"]
+             for r in thread_rows]
+    d32, d64 = by["dense", 32], by["dense", 64]
+    t256, f256 = by["torch", 256], by["fused", 256]
     scale = (256 * 256) ** 2 / (d64["size"] ** 2 * d64["gaussians"])
     body = "\n\n".join([
         f"### CPU renderer speed (LDRM-sized scenes, one Gaussian per pixel, RGB+ED, 1 camera)\n\n"
         f"`python benchmarks/render_speed.py --write`; median of the runs column after one warm-up, each "
         f"configuration in its own process. Machine: {machine()}; load average while measuring "
-        f"{os.getloadavg()[0]:.1f} (other jobs shared the cores).",
+        f"{os.getloadavg()[0]:.1f}. \"fused\" is the default compositor (diff4splat/render/fused.py, numba), "
+        f"\"torch\" the pure-PyTorch tile path (its reference and fallback), \"dense\" the brute-force reference.",
         markdown_table(["renderer", "image", "Gaussians", "pairs evaluated", "forward ms", "fwd+bwd ms",
-                        "M pairs/s (fwd)", "peak RSS MiB"], rows),
-        f"Speed-up of the tile path over the dense reference at equal size: 32²/1,024 forward "
-        f"{d32['fwd_ms'] / t32['fwd_ms']:.0f}×, forward+backward {d32['fb_ms'] / t32['fb_ms']:.0f}×; 64²/4,096 forward "
-        f"{d64['fwd_ms'] / t64['fwd_ms']:.0f}× (the dense backward at 64² is not measured: autograd through its "
-        f"one-Gaussian-at-a-time loop writes a P×N gradient per Gaussian, O(P·N²), minutes). "
+                        "M pairs/s (fwd)", "GB/s (est.)", "peak RSS MiB"], rows),
+        "Thread scaling of the fused path at 256²/65,536:\n\n"
+        + markdown_table(["threads", "forward ms", "fwd+bwd ms", "M pairs/s"], trows),
+        f"Speed-ups at equal size: fused over torch at 256² forward {t256['fwd_ms'] / f256['fwd_ms']:.1f}×, "
+        f"forward+backward {t256['fb_ms'] / f256['fb_ms']:.1f}×; torch over dense at 32² forward "
+        f"{d32['fwd_ms'] / by['torch', 32]['fwd_ms']:.0f}×, "
+        f"64² forward {d64['fwd_ms'] / by['torch', 64]['fwd_ms']:.0f}×. "
         f"The dense reference is not run at 256²: it evaluates every pixel × every Gaussian "
-        f"(65,536² = 4.3·10⁹ pairs, a {4 * 65536 ** 2 / 2 ** 30:.0f} GiB float32 alpha matrix, over the "
-        f"machine's memory); scaling its 64² forward time by the pair count ({scale:.0f}×) would give "
-        f"≈ {d64['fwd_ms'] * scale / 1e3:.0f} s, if the memory existed.",
-        f"Targets: {TARGETS}. At 256²: forward {t256['fwd_ms']:.0f} ms "
-        f"({'meets' if t256['fwd_ms'] <= 150 else 'misses'} 150 ms), forward+backward {t256['fb_ms']:.0f} ms "
-        f"({'meets' if t256['fb_ms'] <= 600 else 'misses'} 600 ms); "
-        f"smallest speed-up over the dense reference {min_speedup:.0f}×.",
-        GAP_NOTE,
+        f"(65,536² = 4.3·10⁹ pairs, a {4 * 65536 ** 2 / 2 ** 30:.0f} GiB float32 alpha matrix); scaling its 64² "
+        f"forward time by the pair count ({scale:.0f}×) would give ≈ {d64['fwd_ms'] * scale / 1e3:.0f} s.",
+        f"Targets: {TARGETS}. Fused at 256²: forward {f256['fwd_ms']:.0f} ms "
+        f"({'meets' if f256['fwd_ms'] <= 40 else 'misses'} 40 ms), forward+backward {f256['fb_ms']:.0f} ms "
+        f"({'meets' if f256['fb_ms'] <= 120 else 'misses'} 120 ms). The forward+backward time includes the "
+        f"projection, SH and the autograd graph around the compositor, which the fused path does not change.",
     ])
     print(body)
     if args.write:

@@ -46,3 +46,14 @@ def browser():
         b = p.chromium.launch(executable_path=path, args=CHROMIUM_FLAGS)
         yield b
         b.close()
+
+
+@pytest.fixture(params=["fused", "torch"])
+def each_compositor(request, monkeypatch):
+    """Run a renderer test once per CPU compositor (diff4splat.render.rasterize.COMPOSITORS): the fused JIT
+    path and the pure-PyTorch reference, which must give the same results."""
+    import importlib
+
+    module = importlib.import_module("diff4splat.render.rasterize")  # the package exports a function of that name
+    monkeypatch.setattr(module, "DEFAULT_COMPOSITOR", request.param)
+    return request.param

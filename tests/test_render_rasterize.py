@@ -7,6 +7,8 @@ import torch
 from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
 from diff4splat.render import rasterize, rasterize_dense
 
+pytestmark = pytest.mark.usefixtures("each_compositor")  # every test on both CPU compositors
+
 D = torch.float64
 
 

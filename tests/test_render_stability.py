@@ -23,6 +23,8 @@ import torch
 
 from diff4splat.render import rasterize, rasterize_dense
 
+pytestmark = pytest.mark.usefixtures("each_compositor")  # every test on both CPU compositors
+
 D = torch.float64
 W, H = 32, 24
 F = 28.8

@@ -3,9 +3,9 @@
 :func:`render_pipeline` validates (:mod:`.validate`), projects (:mod:`.projection`), builds the
 per-Gaussian features (:func:`color_features`, depth channel), hands each camera's visible Gaussians to
 a compositor and applies the render mode (:func:`mode_backgrounds`, :func:`expected_depth`). The tile
-rasterizer (:func:`diff4splat.render.rasterize.composite_tiles`) and the dense reference
-(:func:`diff4splat.render.reference.composite_dense`) are two compositors of this one pipeline, so they
-differ only in how Gaussians are composited. :func:`compute_dtype` and :func:`full_precision` fix the
+rasterizers (:func:`diff4splat.render.fused.composite_fused`, :func:`diff4splat.render.tiles.composite_tiles`)
+and the dense reference (:func:`diff4splat.render.reference.composite_dense`) are compositors of this one
+pipeline, so they differ only in how Gaussians are composited. :func:`compute_dtype` and :func:`full_precision` fix the
 precision every path computes in.
 """
 from __future__ import annotations

@@ -1,0 +1,240 @@
+"""The pure-PyTorch tile compositor: the reference and fallback of the fused one (:mod:`.fused`).
+
+Organised like gsplat's CUDA pipeline (Kerbl et al. 2023 §6): per camera the visible Gaussians are sorted
+once by depth, binned into tile_size × tile_size tiles (each tile's list stays depth-sorted), and tiles are
+composited in chunks. Inside a chunk only the (pixel, Gaussian) pairs where the pixel lies in the Gaussian's
+visible support box are evaluated — small splats cost a handful of pairs, not a whole tile — and each
+pixel's pairs are composited front to back with segmented prefix sums. The compositing step is a
+``torch.autograd.Function`` with the analytic backward of gsplat's ``rasterize_to_pixels_bwd``.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from diff4splat.constants import ALPHA_MAX, T_MIN
+from diff4splat.render.projection import splat_alpha, splat_sigma, support_extent
+
+__all__ = ["bin_tiles", "composite_tiles", "PAIR_BUDGET"]
+
+_LOG_T_MIN = math.log(T_MIN)
+PAIR_BUDGET = 1 << 18
+"""Most (pixel, Gaussian) pairs composited at once (bounds the transient memory of a chunk). 2¹⁸ keeps a
+chunk's per-pair arrays (~1 MiB each) cache-sized: at 256²/65,536 it was ~30 % faster, forward and
+backward, than 2²¹ on the benchmark machine (benchmarks/render_speed.py)."""
+
+
+@torch.no_grad()
+def bin_tiles(
+    means2d: Tensor,  # (M, 2)
+    covars2d: Tensor,  # (M, 3)
+    opacities: Tensor,  # (M,)
+    depths: Tensor,  # (M,)
+    width: int,
+    height: int,
+    tile_size: int,
+) -> dict:
+    """Bin screen Gaussians into the tiles overlapped by their visible support, depth-sorted per tile.
+
+    The support is the opacity-aware box of :func:`support_extent` (where alpha ≥ 1/255 can hold),
+    clipped to the image, so every pixel a Gaussian can affect lies in one of its tiles and the
+    image does not depend on ``tile_size``. Gaussians are sorted by depth once (stable), their
+    tile intersections generated in that order and grouped by tile with a stable sort, so each
+    tile's list is front to back (gsplat ``isect_tiles`` + ``isect_offset_encode``).
+
+    Returns:
+        dict — tiles_x, tiles_y; box (M, 4) int64 inclusive pixel box (x0, y0, x1, y1);
+        tiles_per_gauss (M,); flatten_ids (I,) Gaussian index of each intersection, grouped by tile
+        (tile id = ty·tiles_x + tx ascending), depth order inside a tile; isect_tiles (I,) their
+        tile ids; tile_counts (T,) and isect_offsets (T,) list length and start of each tile.
+    """
+    tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
+    ext = support_extent(covars2d, opacities)
+    lo = torch.ceil(means2d - ext - 0.5).clamp(min=0)  # first pixel index whose centre can be inside
+    hi = torch.floor(means2d + ext - 0.5)
+    x0, y0 = lo[:, 0].long(), lo[:, 1].long()
+    x1, y1 = hi[:, 0].clamp(max=width - 1).long(), hi[:, 1].clamp(max=height - 1).long()
+    ok = (x0 <= x1) & (y0 <= y1) & (ext[:, 0] >= 0)
+    tx0, ty0 = x0 // tile_size, y0 // tile_size
+    tw = torch.where(ok, x1 // tile_size - tx0 + 1, 0)
+    per_gauss = tw * torch.where(ok, y1 // tile_size - ty0 + 1, 0)
+    order = torch.argsort(depths, stable=True)
+    n_sorted = per_gauss[order]
+    gid = torch.repeat_interleave(order, n_sorted)
+    local = torch.arange(len(gid)) - torch.repeat_interleave(torch.cumsum(n_sorted, 0) - n_sorted, n_sorted)
+    tw_g = tw[gid]
+    tile_ids = (ty0[gid] + local // tw_g) * tiles_x + tx0[gid] + local % tw_g
+    perm = torch.argsort(tile_ids, stable=True)
+    counts = torch.bincount(tile_ids, minlength=tiles_x * tiles_y)
+    return {
+        "tiles_x": tiles_x, "tiles_y": tiles_y, "box": torch.stack([x0, y0, x1, y1], -1),
+        "tiles_per_gauss": per_gauss, "flatten_ids": gid[perm], "isect_tiles": tile_ids[perm],
+        "tile_counts": counts, "isect_offsets": torch.cumsum(counts, 0) - counts,
+    }
+
+
+def _stable_argsort_small(keys: Tensor, n_keys: int) -> Tensor:
+    """Stable argsort of non-negative int keys < n_keys (radix sort via numpy when they fit 16 bits)."""
+    if n_keys <= 1 << 16:
+        return torch.from_numpy(np.argsort(keys.numpy().astype(np.uint16), kind="stable"))
+    return torch.argsort(keys, stable=True)
+
+
+class _CompositePairs(torch.autograd.Function):
+    """Front-to-back compositing of (pixel, Gaussian) pairs sorted by pixel, then depth.
+
+    Forward: alpha_i by :func:`splat_alpha`; per pixel segment, log T before pair i is the
+    exclusive prefix sum of log(1 − alpha) (float64 accumulation); pair i is included iff
+    T_i·(1 − alpha_i) ≥ 1e-4 (a prefix of the segment, the 3DGS stop rule); w_i = alpha_i·T_i;
+    colour = Σ w·feat + (1 − Σ w)·bg, alpha = Σ w.
+    Backward (gsplat ``rasterize_to_pixels_bwd``): with v_i = feat_i·∂L/∂colour + ∂L/∂alpha −
+    bg·∂L/∂colour, ∂L/∂alpha_i = T_i·v_i − (Σ_{j>i} w_j v_j)/(1 − alpha_i) for included pairs;
+    alpha = o·exp(−σ) gives ∂/∂o = exp(−σ), ∂/∂σ = −alpha (zero where skipped or clamped at
+    0.99); σ = ½(a dx² + c dy²) + b dx dy with dx = px − μx gives the mean and conic gradients.
+    """
+
+    @staticmethod
+    def forward(ctx, params, feats, background, gid, px, py, pix, n_pix):  # noqa: D102
+        # params (M, 6) = [μx, μy, a, b, c, o]; feats (M, F); gid, pix (P,) int64; px, py (P,) pixel centres
+        prm = params.t().contiguous().index_select(1, gid)  # (6, P), contiguous rows
+        dx, dy = px - prm[0], py - prm[1]
+        alpha = splat_alpha(dx, dy, prm[2:5].t(), prm[5])
+        counts = torch.bincount(pix, minlength=n_pix)
+        starts = torch.cumsum(counts, 0) - counts
+        log_1ma = torch.log1p(-alpha)
+        excl = torch.cumsum(log_1ma, 0, dtype=torch.float64) - log_1ma  # float64: no cancellation
+        log_T = (excl - excl.index_select(0, starts.index_select(0, pix))).to(alpha.dtype)
+        incl = (log_T + log_1ma) >= _LOG_T_MIN  # next_T ≥ 1e-4
+        T = torch.exp(log_T)
+        w = torch.where(incl, alpha * T, 0.0)
+        f = feats.index_select(0, gid)
+        out = feats.new_zeros(n_pix, feats.shape[1]).index_add_(0, pix, w[:, None] * f)
+        acc = w.new_zeros(n_pix).index_add_(0, pix, w)
+        if background is not None:
+            out = out + (1.0 - acc)[:, None] * background
+        ctx.save_for_backward(params, feats, background, gid, pix, dx, dy, alpha, T, w, incl, acc, starts + counts - 1)
+        return out, acc
+
+    @staticmethod
+    def backward(ctx, grad_out, grad_acc):  # noqa: D102
+        params, feats, background, gid, pix, dx, dy, alpha, T, w, incl, acc, last = ctx.saved_tensors
+        grad_out = grad_out.contiguous()
+        g_acc = grad_acc if background is None else grad_acc - (grad_out * background).sum(-1)
+        go = grad_out.index_select(0, pix)  # (P, F)
+        f = feats.index_select(0, gid)
+        v = (f * go).sum(-1) + g_acc.index_select(0, pix)
+        cwv = torch.cumsum((w * v).double(), 0)
+        after = (cwv.index_select(0, last.index_select(0, pix)) - cwv).to(v.dtype)  # Σ_{j>i} w_j v_j
+        d_alpha = torch.where(incl & (alpha > 0), T * v - after / (1.0 - alpha), 0.0)
+        prm = params.index_select(0, gid)
+        sigma = splat_sigma(dx, dy, prm[:, 2:5])
+        vis = torch.exp(-sigma)
+        raw = prm[:, 5] * vis
+        d_raw = torch.where(raw <= ALPHA_MAX, d_alpha, 0.0)
+        d_sigma = -d_raw * raw
+        a, b, c = prm[:, 2], prm[:, 3], prm[:, 4]
+        grads = torch.stack(
+            [
+                -d_sigma * (a * dx + b * dy),
+                -d_sigma * (b * dx + c * dy),
+                0.5 * d_sigma * dx * dx,
+                d_sigma * dx * dy,
+                0.5 * d_sigma * dy * dy,
+                d_raw * vis,
+            ],
+            dim=-1,
+        )
+        grad_params = torch.zeros_like(params).index_add_(0, gid, grads)
+        grad_feats = torch.zeros_like(feats).index_add_(0, gid, w[:, None] * go)
+        grad_bg = None
+        if background is not None and ctx.needs_input_grad[2]:
+            grad_bg = ((1.0 - acc)[:, None] * grad_out).sum(0)
+        return grad_params, grad_feats, grad_bg, None, None, None, None, None
+
+
+def composite_tiles(
+    means2d: Tensor,  # (M, 2)
+    conics: Tensor,  # (M, 3)
+    opacities: Tensor,  # (M,)
+    depths: Tensor,  # (M,)
+    feats: Tensor,  # (M, F)
+    covars2d: Tensor,  # (M, 3)
+    background: Tensor | None,  # (F,)
+    width: int,
+    height: int,
+    tile_size: int,
+    *,
+    budget: int | None = None,
+) -> tuple[Tensor, Tensor, dict]:
+    """Composite one camera tile by tile; same result as :func:`reference.composite_dense`.
+
+    Tiles (from :func:`bin_tiles`) are taken in raster order in chunks of consecutive tiles holding
+    at most ``budget`` (default :data:`PAIR_BUDGET`) pairs and 65,536 pixels. For each chunk the
+    pairs (intersection × pixels of the Gaussian's box inside the tile) are generated, stably
+    sorted by pixel (radix sort; the depth order of the tile lists is kept) and composited by
+    :class:`_CompositePairs`. Pixels no Gaussian reaches get the background and alpha 0.
+
+    Returns:
+        colors (H·W, F), alphas (H·W,), info dict (tile binning of :func:`bin_tiles`; indices
+        refer to the M input Gaussians; n_pairs = pairs evaluated).
+    """
+    budget = PAIR_BUDGET if budget is None else budget
+    dtype, n_feat, n_pix = means2d.dtype, feats.shape[-1], width * height
+    s, s2 = tile_size, tile_size * tile_size
+    info = bin_tiles(means2d.detach(), covars2d.detach(), opacities.detach(), depths.detach(), width, height, s)
+    tiles_x, n_tiles = info["tiles_x"], info["tiles_x"] * info["tiles_y"]
+    flat, itile, box = info["flatten_ids"], info["isect_tiles"], info["box"][info["flatten_ids"]]
+    # Rectangle of each intersection: the Gaussian's pixel box clipped to its tile.
+    tx, ty = itile % tiles_x * s, itile // tiles_x * s
+    rx0, ry0 = torch.maximum(box[:, 0], tx), torch.maximum(box[:, 1], ty)
+    rw = torch.minimum(box[:, 2], tx + s - 1) - rx0 + 1
+    n_rect = rw * (torch.minimum(box[:, 3], ty + s - 1) - ry0 + 1)
+    # chunk-independent part of each pair's key: tile's first pixel index + rect offset in the tile
+    base = (itile * s2 + (ry0 - ty) * s + (rx0 - tx)).to(torch.int32)
+    rw32 = rw.to(torch.int32)
+    cum_pairs = torch.cumsum(torch.zeros(n_tiles, dtype=torch.long).index_add_(0, itile, n_rect), 0)
+    cum_isect = torch.cumsum(info["tile_counts"], 0)
+    params = torch.cat([means2d, conics, opacities[:, None]], dim=-1)  # (M, 6)
+    max_tiles = max(1, (1 << 16) // s2)
+    ids, cols, accs = [], [], []
+    t0, done_pairs, n_pairs_total = 0, 0, int(cum_pairs[-1]) if n_tiles else 0
+    while t0 < n_tiles and done_pairs < n_pairs_total:
+        t1 = int(torch.searchsorted(cum_pairs, done_pairs + budget, right=True))
+        t1 = min(max(t1, t0 + 1), t0 + max_tiles, n_tiles)
+        i0 = int(cum_isect[t0 - 1]) if t0 else 0
+        i1 = int(cum_isect[t1 - 1])
+        n_chunk_pix = (t1 - t0) * s2
+        n = n_rect[i0:i1]
+        # Pixel index within the chunk of every pair (int32): rect origin + (row, column) in the rect.
+        start = torch.cumsum(n, 0, dtype=torch.int32) - n.to(torch.int32)
+        local = torch.arange(int(n.sum()), dtype=torch.int32) - torch.repeat_interleave(start, n)
+        rw_p = torch.repeat_interleave(rw32[i0:i1], n)
+        row = torch.div(local, rw_p, rounding_mode="floor")
+        key = torch.repeat_interleave(base[i0:i1] - t0 * s2, n) + row * s + (local - row * rw_p)
+        perm = _stable_argsort_small(key, n_chunk_pix)
+        key = key[perm].long()
+        gid = torch.repeat_interleave(flat[i0:i1], n)[perm]
+        q = torch.arange(n_chunk_pix)
+        qt = t0 + q // s2
+        qx, qy = qt % tiles_x * s + q % s, qt // tiles_x * s + (q % s2) // s
+        col, acc = _CompositePairs.apply(
+            params, feats, background, gid, (qx.to(dtype) + 0.5)[key], (qy.to(dtype) + 0.5)[key], key, n_chunk_pix
+        )
+        inside = (qx < width) & (qy < height)
+        ids.append((qy * width + qx)[inside])
+        cols.append(col[inside])
+        accs.append(acc[inside])
+        done_pairs = int(cum_pairs[t1 - 1])
+        t0 = t1
+    out = torch.zeros(n_pix, n_feat, dtype=dtype) if background is None else background.expand(n_pix, n_feat)
+    acc_img = torch.zeros(n_pix, dtype=dtype)
+    if ids:
+        all_ids = torch.cat(ids)
+        out = out.index_copy(0, all_ids, torch.cat(cols))
+        acc_img = acc_img.index_copy(0, all_ids, torch.cat(accs))
+    del info["box"]
+    info["n_pairs"] = n_pairs_total
+    return out, acc_img, info
