@@ -37,6 +37,13 @@ try:  # optional at import time: the tile path is the fallback
     from numba import njit, prange
 except ImportError:  # pragma: no cover - exercised by monkeypatching fused_available in the tests
     numba = None
+else:
+    import os
+
+    if "NUMBA_THREADING_LAYER" not in os.environ:
+        # numba's own thread pool: its OpenMP layer shares libgomp with torch and resets torch's thread count
+        # (torch.set_num_threads(1) read back 2 after one parallel launch)
+        numba.config.THREADING_LAYER = "workqueue"
 
 _WARNED = [False]
 
@@ -50,7 +57,7 @@ if numba is not None:
 
     @njit(parallel=True, cache=True)
     def _forward_kernel(params, feats, bg, has_bg, ids, offsets, counts, box, width, height, tile, tiles_x,
-                        out, acc, t_final, last):  # pragma: no cover - compiled
+                        out, acc, t_final, last, pairs):  # pragma: no cover - compiled
         n_tiles = counts.shape[0]
         n_feat = feats.shape[1]
         for t in prange(n_tiles):
@@ -63,15 +70,17 @@ if numba is not None:
             lst = np.full(tile * tile, -1, np.int64)
             done = np.zeros(tile * tile, np.bool_)
             n_done = 0
+            n_pairs = 0
             start = offsets[t]
             for k in range(start, start + counts[t]):
-                if n_done == tw * th:
-                    break
                 g = ids[k]
                 x0 = max(box[g, 0], tx0)
                 x1 = min(box[g, 2], tx0 + tw - 1)
                 y0 = max(box[g, 1], ty0)
                 y1 = min(box[g, 3], ty0 + th - 1)
+                n_pairs += max(0, x1 - x0 + 1) * max(0, y1 - y0 + 1)
+                if n_done == tw * th:
+                    continue  # every pixel has stopped: only count the pairs (the tile path's n_pairs)
                 mx, my, a, b, c, o = params[g, 0], params[g, 1], params[g, 2], params[g, 3], params[g, 4], params[g, 5]
                 for y in range(y0, y1 + 1):
                     dy = y + 0.5 - my
@@ -105,6 +114,7 @@ if numba is not None:
                     acc[q] = 1.0 - T[p]
                     t_final[q] = T[p]
                     last[q] = lst[p]
+            pairs[t] = n_pairs
 
     @njit(parallel=True, cache=True)
     def _backward_kernel(params, feats, bg, has_bg, ids, offsets, counts, box, width, height, tile, tiles_x,
@@ -190,16 +200,18 @@ class _FusedComposite(torch.autograd.Function):
         bg = np.zeros(n_feat) if background is None else _np(background.double())
         out, acc = np.empty((n_pix, n_feat)), np.empty(n_pix)
         t_final, last = np.empty(n_pix), np.empty(n_pix, np.int64)
+        pairs = np.zeros(counts.shape[0], np.int64)
         _forward_kernel(p64, f64, bg, background is not None, _np(ids), _np(offsets), _np(counts), _np(box),
-                        width, height, tile, tiles_x, out, acc, t_final, last)
+                        width, height, tile, tiles_x, out, acc, t_final, last, pairs)
+        ctx.n_pairs = int(pairs.sum())
         ctx.save_for_backward(params, feats, background, ids, offsets, counts, box)
         ctx.arrays = (p64, f64, bg, t_final, last)
         ctx.sizes = (width, height, tile, tiles_x)
         dtype = params.dtype
-        return torch.from_numpy(out).to(dtype), torch.from_numpy(acc).to(dtype)
+        return torch.from_numpy(out).to(dtype), torch.from_numpy(acc).to(dtype), torch.tensor(ctx.n_pairs)
 
     @staticmethod
-    def backward(ctx, grad_out, grad_acc):  # noqa: D102
+    def backward(ctx, grad_out, grad_acc, _):  # noqa: D102
         params, feats, background, ids, offsets, counts, box = ctx.saved_tensors
         p64, f64, bg, t_final, last = ctx.arrays
         width, height, tile, tiles_x = ctx.sizes
@@ -250,12 +262,8 @@ def composite_fused(
                      tile_size)
     params = torch.cat([means2d, conics, opacities[:, None]], dim=-1)  # (M, 6)
     box = info.pop("box")
-    colors, alphas = _FusedComposite.apply(params, feats, background, info["flatten_ids"], info["isect_offsets"],
-                                           info["tile_counts"], box, width, height, tile_size, info["tiles_x"])
-    b = box[info["flatten_ids"]]
-    tx = info["isect_tiles"] % info["tiles_x"] * tile_size
-    ty = info["isect_tiles"] // info["tiles_x"] * tile_size
-    w = (torch.minimum(b[:, 2], tx + tile_size - 1) - torch.maximum(b[:, 0], tx) + 1).clamp(min=0)
-    h = (torch.minimum(b[:, 3], ty + tile_size - 1) - torch.maximum(b[:, 1], ty) + 1).clamp(min=0)
-    info["n_pairs"] = int((w * h).sum())
+    colors, alphas, n_pairs = _FusedComposite.apply(params, feats, background, info["flatten_ids"],
+                                                    info["isect_offsets"], info["tile_counts"], box, width, height,
+                                                    tile_size, info["tiles_x"])
+    info["n_pairs"] = int(n_pairs)
     return colors, alphas, info
