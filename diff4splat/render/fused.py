@@ -55,16 +55,25 @@ def fused_available() -> bool:
 
 if numba is not None:
 
+    @njit(cache=True, inline="always")
+    def _tile_rect(t, tiles_x, tile, width, height):  # pragma: no cover - compiled
+        """Origin (x, y) and size (w, h) of tile t, clipped to the image."""
+        tx0 = (t % tiles_x) * tile
+        ty0 = (t // tiles_x) * tile
+        return tx0, ty0, min(tile, width - tx0), min(tile, height - ty0)
+
+    @njit(cache=True, inline="always")
+    def _clip_box(box, g, tx0, ty0, tw, th):  # pragma: no cover - compiled
+        """Gaussian g's inclusive pixel box (x0, y0, x1, y1) clipped to the tile (empty when x0 > x1 or y0 > y1)."""
+        return max(box[g, 0], tx0), max(box[g, 1], ty0), min(box[g, 2], tx0 + tw - 1), min(box[g, 3], ty0 + th - 1)
+
     @njit(parallel=True, cache=True)
     def _forward_kernel(params, feats, bg, has_bg, ids, offsets, counts, box, width, height, tile, tiles_x,
                         out, acc, t_final, last, pairs):  # pragma: no cover - compiled
         n_tiles = counts.shape[0]
         n_feat = feats.shape[1]
         for t in prange(n_tiles):
-            tx0 = (t % tiles_x) * tile
-            ty0 = (t // tiles_x) * tile
-            tw = min(tile, width - tx0)
-            th = min(tile, height - ty0)
+            tx0, ty0, tw, th = _tile_rect(t, tiles_x, tile, width, height)
             T = np.ones(tile * tile)
             col = np.zeros((tile * tile, n_feat))
             lst = np.full(tile * tile, -1, np.int64)
@@ -74,10 +83,7 @@ if numba is not None:
             start = offsets[t]
             for k in range(start, start + counts[t]):
                 g = ids[k]
-                x0 = max(box[g, 0], tx0)
-                x1 = min(box[g, 2], tx0 + tw - 1)
-                y0 = max(box[g, 1], ty0)
-                y1 = min(box[g, 3], ty0 + th - 1)
+                x0, y0, x1, y1 = _clip_box(box, g, tx0, ty0, tw, th)
                 n_pairs += max(0, x1 - x0 + 1) * max(0, y1 - y0 + 1)
                 if n_done == tw * th:
                     continue  # every pixel has stopped: only count the pairs (the tile path's n_pairs)
@@ -122,10 +128,7 @@ if numba is not None:
         n_tiles = counts.shape[0]
         n_feat = feats.shape[1]
         for t in prange(n_tiles):
-            tx0 = (t % tiles_x) * tile
-            ty0 = (t // tiles_x) * tile
-            tw = min(tile, width - tx0)
-            th = min(tile, height - ty0)
+            tx0, ty0, tw, th = _tile_rect(t, tiles_x, tile, width, height)
             T = np.empty(tile * tile)
             after = np.zeros(tile * tile)
             lst = np.full(tile * tile, -1, np.int64)
@@ -146,10 +149,7 @@ if numba is not None:
             start = offsets[t]
             for k in range(start + counts[t] - 1, start - 1, -1):
                 g = ids[k]
-                x0 = max(box[g, 0], tx0)
-                x1 = min(box[g, 2], tx0 + tw - 1)
-                y0 = max(box[g, 1], ty0)
-                y1 = min(box[g, 3], ty0 + th - 1)
+                x0, y0, x1, y1 = _clip_box(box, g, tx0, ty0, tw, th)
                 mx, my, a, b, c, o = params[g, 0], params[g, 1], params[g, 2], params[g, 3], params[g, 4], params[g, 5]
                 for y in range(y0, y1 + 1):
                     dy = y + 0.5 - my
