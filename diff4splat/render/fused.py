@@ -27,162 +27,30 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from diff4splat.constants import ALPHA_MAX, ALPHA_MIN, T_MIN
 from diff4splat.render.tiles import bin_tiles, composite_tiles
 
 __all__ = ["composite_fused", "fused_available"]
 
-try:  # optional at import time: the tile path is the fallback
-    import numba
-    from numba import njit, prange
-except ImportError:  # pragma: no cover - exercised by monkeypatching fused_available in the tests
-    numba = None
-else:
-    import os
-
-    if "NUMBA_THREADING_LAYER" not in os.environ:
-        # numba's own thread pool: its OpenMP layer shares libgomp with torch and resets torch's thread count
-        # (torch.set_num_threads(1) read back 2 after one parallel launch)
-        numba.config.THREADING_LAYER = "workqueue"
-
+_UNSET = object()
+_KERNELS = _UNSET
 _WARNED = [False]
+
+
+def _kernels():
+    """:mod:`diff4splat.render.fused_kernels` (imported on first use), or None without numba."""
+    global _KERNELS
+    if _KERNELS is _UNSET:
+        try:
+            from diff4splat.render import fused_kernels
+        except ImportError:
+            fused_kernels = None
+        _KERNELS = fused_kernels
+    return _KERNELS
 
 
 def fused_available() -> bool:
     """True when numba imports (the fused kernels can be compiled)."""
-    return numba is not None
-
-
-if numba is not None:
-
-    @njit(cache=True, inline="always")
-    def _tile_rect(t, tiles_x, tile, width, height):  # pragma: no cover - compiled
-        """Origin (x, y) and size (w, h) of tile t, clipped to the image."""
-        tx0 = (t % tiles_x) * tile
-        ty0 = (t // tiles_x) * tile
-        return tx0, ty0, min(tile, width - tx0), min(tile, height - ty0)
-
-    @njit(cache=True, inline="always")
-    def _clip_box(box, g, tx0, ty0, tw, th):  # pragma: no cover - compiled
-        """Gaussian g's inclusive pixel box (x0, y0, x1, y1) clipped to the tile (empty when x0 > x1 or y0 > y1)."""
-        return max(box[g, 0], tx0), max(box[g, 1], ty0), min(box[g, 2], tx0 + tw - 1), min(box[g, 3], ty0 + th - 1)
-
-    @njit(parallel=True, cache=True)
-    def _forward_kernel(params, feats, bg, has_bg, ids, offsets, counts, box, width, height, tile, tiles_x,
-                        out, acc, t_final, last, pairs):  # pragma: no cover - compiled
-        n_tiles = counts.shape[0]
-        n_feat = feats.shape[1]
-        for t in prange(n_tiles):
-            tx0, ty0, tw, th = _tile_rect(t, tiles_x, tile, width, height)
-            T = np.ones(tile * tile)
-            col = np.zeros((tile * tile, n_feat))
-            lst = np.full(tile * tile, -1, np.int64)
-            done = np.zeros(tile * tile, np.bool_)
-            n_done = 0
-            n_pairs = 0
-            start = offsets[t]
-            for k in range(start, start + counts[t]):
-                g = ids[k]
-                x0, y0, x1, y1 = _clip_box(box, g, tx0, ty0, tw, th)
-                n_pairs += max(0, x1 - x0 + 1) * max(0, y1 - y0 + 1)
-                if n_done == tw * th:
-                    continue  # every pixel has stopped: only count the pairs (the tile path's n_pairs)
-                mx, my, a, b, c, o = params[g, 0], params[g, 1], params[g, 2], params[g, 3], params[g, 4], params[g, 5]
-                for y in range(y0, y1 + 1):
-                    dy = y + 0.5 - my
-                    for x in range(x0, x1 + 1):
-                        p = (y - ty0) * tile + (x - tx0)
-                        if done[p]:
-                            continue
-                        dx = x + 0.5 - mx
-                        sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
-                        if sigma < 0.0:
-                            continue
-                        alpha = min(ALPHA_MAX, o * np.exp(-sigma))
-                        if alpha < ALPHA_MIN:
-                            continue
-                        next_t = T[p] * (1.0 - alpha)
-                        if next_t < T_MIN:
-                            done[p] = True
-                            n_done += 1
-                            continue
-                        w = alpha * T[p]
-                        for f in range(n_feat):
-                            col[p, f] += w * feats[g, f]
-                        T[p] = next_t
-                        lst[p] = k
-            for y in range(th):
-                for x in range(tw):
-                    p = y * tile + x
-                    q = (ty0 + y) * width + tx0 + x
-                    for f in range(n_feat):
-                        out[q, f] = col[p, f] + (T[p] * bg[f] if has_bg else 0.0)
-                    acc[q] = 1.0 - T[p]
-                    t_final[q] = T[p]
-                    last[q] = lst[p]
-            pairs[t] = n_pairs
-
-    @njit(parallel=True, cache=True)
-    def _backward_kernel(params, feats, bg, has_bg, ids, offsets, counts, box, width, height, tile, tiles_x,
-                         t_final, last, grad_out, grad_acc, g_params, g_feats):  # pragma: no cover - compiled
-        n_tiles = counts.shape[0]
-        n_feat = feats.shape[1]
-        for t in prange(n_tiles):
-            tx0, ty0, tw, th = _tile_rect(t, tiles_x, tile, width, height)
-            T = np.empty(tile * tile)
-            after = np.zeros(tile * tile)
-            lst = np.full(tile * tile, -1, np.int64)
-            go = np.zeros((tile * tile, n_feat))
-            gacc = np.zeros(tile * tile)
-            for y in range(th):
-                for x in range(tw):
-                    p = y * tile + x
-                    q = (ty0 + y) * width + tx0 + x
-                    T[p] = t_final[q]
-                    lst[p] = last[q]
-                    s = 0.0
-                    for f in range(n_feat):
-                        go[p, f] = grad_out[q, f]
-                        if has_bg:
-                            s += grad_out[q, f] * bg[f]
-                    gacc[p] = grad_acc[q] - s
-            start = offsets[t]
-            for k in range(start + counts[t] - 1, start - 1, -1):
-                g = ids[k]
-                x0, y0, x1, y1 = _clip_box(box, g, tx0, ty0, tw, th)
-                mx, my, a, b, c, o = params[g, 0], params[g, 1], params[g, 2], params[g, 3], params[g, 4], params[g, 5]
-                for y in range(y0, y1 + 1):
-                    dy = y + 0.5 - my
-                    for x in range(x0, x1 + 1):
-                        p = (y - ty0) * tile + (x - tx0)
-                        if k > lst[p]:
-                            continue
-                        dx = x + 0.5 - mx
-                        sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
-                        if sigma < 0.0:
-                            continue
-                        vis = np.exp(-sigma)
-                        raw = o * vis
-                        alpha = min(ALPHA_MAX, raw)
-                        if alpha < ALPHA_MIN:
-                            continue
-                        T[p] = T[p] / (1.0 - alpha)
-                        v = gacc[p]
-                        for f in range(n_feat):
-                            v += feats[g, f] * go[p, f]
-                        w = alpha * T[p]
-                        d_alpha = T[p] * v - after[p] / (1.0 - alpha)
-                        after[p] += w * v
-                        for f in range(n_feat):
-                            g_feats[k, f] += w * go[p, f]
-                        d_raw = d_alpha if raw <= ALPHA_MAX else 0.0
-                        d_sigma = -d_raw * raw
-                        g_params[k, 0] += -d_sigma * (a * dx + b * dy)
-                        g_params[k, 1] += -d_sigma * (b * dx + c * dy)
-                        g_params[k, 2] += 0.5 * d_sigma * dx * dx
-                        g_params[k, 3] += d_sigma * dx * dy
-                        g_params[k, 4] += 0.5 * d_sigma * dy * dy
-                        g_params[k, 5] += d_raw * vis
+    return _kernels() is not None
 
 
 def _np(x: Tensor) -> np.ndarray:
@@ -201,7 +69,7 @@ class _FusedComposite(torch.autograd.Function):
         out, acc = np.empty((n_pix, n_feat)), np.empty(n_pix)
         t_final, last = np.empty(n_pix), np.empty(n_pix, np.int64)
         pairs = np.zeros(counts.shape[0], np.int64)
-        _forward_kernel(p64, f64, bg, background is not None, _np(ids), _np(offsets), _np(counts), _np(box),
+        _kernels().forward_kernel(p64, f64, bg, background is not None, _np(ids), _np(offsets), _np(counts), _np(box),
                         width, height, tile, tiles_x, out, acc, t_final, last, pairs)
         ctx.n_pairs = int(pairs.sum())
         ctx.save_for_backward(params, feats, background, ids, offsets, counts, box)
@@ -217,7 +85,7 @@ class _FusedComposite(torch.autograd.Function):
         width, height, tile, tiles_x = ctx.sizes
         n_isect = ids.shape[0]
         g_params, g_feats = np.zeros((n_isect, 6)), np.zeros((n_isect, f64.shape[1]))
-        _backward_kernel(p64, f64, bg, background is not None, _np(ids), _np(offsets), _np(counts), _np(box),
+        _kernels().backward_kernel(p64, f64, bg, background is not None, _np(ids), _np(offsets), _np(counts), _np(box),
                          width, height, tile, tiles_x, t_final, last, _np(grad_out.double()),
                          _np(grad_acc.double()), g_params, g_feats)
         dtype = params.dtype
@@ -257,7 +125,7 @@ def composite_fused(
             _WARNED[0] = True
         return composite_tiles(means2d, conics, opacities, depths, feats, covars2d, background, width, height,
                                tile_size)
-    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+    _kernels().set_threads(torch.get_num_threads())
     info = bin_tiles(means2d.detach(), covars2d.detach(), opacities.detach(), depths.detach(), width, height,
                      tile_size)
     params = torch.cat([means2d, conics, opacities[:, None]], dim=-1)  # (M, 6)
