@@ -39,9 +39,9 @@ def folder_payload(folder: str | os.PathLike) -> ViewerPayload:
     from .rerender import load_scene_folder
 
     src = load_scene_folder(folder)
-    fps = src.meta.get("fps", 8) if isinstance(src.meta.get("fps", 8), (int, float)) else 8
-    return viewer_payload(src.scene, src.cameras, fps=fps if fps > 0 else 8, budget=None,
-                          background=meta_background(src.meta))
+    fps = src.meta.get("fps")
+    fps = fps if isinstance(fps, (int, float)) and not isinstance(fps, bool) and fps > 0 else 8
+    return viewer_payload(src.scene, src.cameras, fps=fps, budget=None, background=meta_background(src.meta))
 
 
 class _Handler(SimpleHTTPRequestHandler):
