@@ -1,5 +1,6 @@
 """Tests of diff4splat/render/fused.py: the fused compositor against the pure-PyTorch tile path (images and
-gradients), finite differences (gradcheck, float64), determinism over thread counts, the fallback."""
+gradients), its binning against bin_tiles, finite differences (gradcheck, float64), determinism over thread
+counts, torch's thread count left alone, the fallback."""
 import warnings
 
 import pytest
@@ -7,8 +8,8 @@ import torch
 
 import diff4splat.render.fused as fused
 from diff4splat.render import rasterize
-from diff4splat.render.fused import composite_fused
-from diff4splat.render.tiles import composite_tiles
+from diff4splat.render.fused import bin_tiles_fused, composite_fused
+from diff4splat.render.tiles import bin_tiles, composite_tiles
 
 pytestmark = pytest.mark.skipif(not fused.fused_available(), reason="numba is not installed")
 
@@ -92,6 +93,34 @@ def test_same_result_for_any_thread_count():
         torch.set_num_threads(n)
     for a, b in zip(one[0] + one[1], two[0] + two[1], strict=True):
         assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("tile,W,H", [(16, 45, 37), (8, 33, 20), (4, 64, 48)])
+def test_binning_equals_bin_tiles(tile, W, H):
+    """The counting sort gives bin_tiles' dict exactly: same lists, same depth order inside each tile (ties in
+    depth included: stable by index), Gaussians off the image or never visible in no tile."""
+    means2d, _, opacities, depths, _, covars2d, _ = _screen(M=400, W=W, H=H)
+    means2d[:20] += torch.tensor([W + 100.0, 0.0])  # far off the image to the right
+    opacities[20:30] = 1e-3  # alpha < 1/255 everywhere
+    depths[30:60] = 2.0  # ties
+    ref, fast = bin_tiles(means2d, covars2d, opacities, depths, W, H, tile), \
+        bin_tiles_fused(means2d, covars2d, opacities, depths, W, H, tile)
+    assert ref.keys() == fast.keys()
+    for k, v in ref.items():
+        assert torch.equal(fast[k], v) if torch.is_tensor(v) else fast[k] == v, k
+    assert int(ref["tiles_per_gauss"][:30].sum()) == 0 and int(ref["tile_counts"].sum()) > 400
+
+
+def test_torch_thread_count_is_left_alone():
+    """numba's OpenMP layer shares torch's pool and sets its thread count at each launch; it is restored."""
+    xs = _screen(M=200, W=40, H=30)
+    n = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        _run(composite_fused, xs, 40, 30, 16)
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(n)
 
 
 def test_falls_back_to_the_tile_path_without_numba(monkeypatch):

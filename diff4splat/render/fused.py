@@ -14,7 +14,7 @@ T and the sums are float64. The backward pass (gsplat ``rasterize_to_pixels_bwd`
 back to front from each pixel's last included Gaussian, recovering T_i = T_{i+1}/(1 − alpha_i), with
 ∂L/∂alpha_i = T_i·v_i − (Σ_{j>i} w_j v_j)/(1 − alpha_i), v_i = feat_i·∂L/∂colour + ∂L/∂alpha − bg·∂L/∂colour,
 and writes each pair's gradient into its intersection's own slot; slots are summed per Gaussian afterwards
-(``index_add_`` in intersection order), so the backward is deterministic too.
+(serially, in intersection order), so the backward is deterministic too.
 
 numba (a PyPI wheel, no compiler needed) compiles the kernels on first use and caches them on disk. Without
 numba the tile path is used, with one warning.
@@ -27,9 +27,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from diff4splat.render.tiles import bin_tiles, composite_tiles
+from diff4splat.render.tiles import composite_tiles, tile_boxes
 
-__all__ = ["composite_fused", "fused_available"]
+__all__ = ["composite_fused", "fused_available", "bin_tiles_fused"]
 
 _UNSET = object()
 _KERNELS = _UNSET
@@ -69,8 +69,10 @@ class _FusedComposite(torch.autograd.Function):
         out, acc = np.empty((n_pix, n_feat)), np.empty(n_pix)
         t_final, last = np.empty(n_pix), np.empty(n_pix, np.int64)
         pairs = np.zeros(counts.shape[0], np.int64)
-        _kernels().forward_kernel(p64, f64, bg, background is not None, _np(ids), _np(offsets), _np(counts), _np(box),
-                        width, height, tile, tiles_x, out, acc, t_final, last, pairs)
+        kernels = _kernels()
+        with kernels.threads(torch.get_num_threads()):
+            kernels.forward_kernel(p64, f64, bg, background is not None, _np(ids), _np(offsets), _np(counts),
+                                   _np(box), width, height, tile, tiles_x, out, acc, t_final, last, pairs)
         ctx.n_pairs = int(pairs.sum())
         ctx.save_for_backward(params, feats, background, ids, offsets, counts, box)
         ctx.arrays = (p64, f64, bg, t_final, last)
@@ -85,18 +87,48 @@ class _FusedComposite(torch.autograd.Function):
         width, height, tile, tiles_x = ctx.sizes
         n_isect = ids.shape[0]
         g_params, g_feats = np.zeros((n_isect, 6)), np.zeros((n_isect, f64.shape[1]))
-        _kernels().backward_kernel(p64, f64, bg, background is not None, _np(ids), _np(offsets), _np(counts), _np(box),
-                         width, height, tile, tiles_x, t_final, last, _np(grad_out.double()),
-                         _np(grad_acc.double()), g_params, g_feats)
+        kernels = _kernels()
+        with kernels.threads(torch.get_num_threads()):
+            kernels.backward_kernel(p64, f64, bg, background is not None, _np(ids), _np(offsets), _np(counts),
+                                    _np(box), width, height, tile, tiles_x, t_final, last, _np(grad_out.double()),
+                                    _np(grad_acc.double()), g_params, g_feats)
+        grad_params, grad_feats = np.zeros(params.shape), np.zeros(feats.shape)
+        kernels.gather_kernel(_np(ids), g_params, grad_params)
+        kernels.gather_kernel(_np(ids), g_feats, grad_feats)
         dtype = params.dtype
-        grad_params = torch.zeros(params.shape, dtype=torch.float64).index_add_(0, ids, torch.from_numpy(g_params))
-        grad_feats = torch.zeros(feats.shape, dtype=torch.float64).index_add_(0, ids, torch.from_numpy(g_feats))
         grad_bg = None
         if background is not None and ctx.needs_input_grad[2]:
             t = torch.from_numpy(t_final).to(grad_out.dtype)
             grad_bg = (t[:, None] * grad_out).sum(0)
-        return (grad_params.to(dtype), grad_feats.to(dtype), grad_bg, None, None, None, None, None, None, None,
-                None)
+        return (torch.from_numpy(grad_params).to(dtype), torch.from_numpy(grad_feats).to(dtype), grad_bg, None, None,
+                None, None, None, None, None, None)
+
+
+@torch.no_grad()
+def bin_tiles_fused(
+    means2d: Tensor,  # (M, 2)
+    covars2d: Tensor,  # (M, 3)
+    opacities: Tensor,  # (M,)
+    depths: Tensor,  # (M,)
+    width: int,
+    height: int,
+    tile_size: int,
+) -> dict:
+    """:func:`diff4splat.render.tiles.bin_tiles` (same dict, equal tensors) with its grouping done by a counting
+    sort (``fused_kernels.bin_kernel``) instead of a second argsort and the repeat/gather chain. Needs numba."""
+    tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
+    box, per_gauss = tile_boxes(means2d, covars2d, opacities, width, height, tile_size)
+    order = torch.argsort(depths, stable=True)
+    n_isect = int(per_gauss.sum())
+    counts = np.zeros(tiles_x * tiles_y, np.int64)
+    flatten_ids, isect_tiles = np.empty(n_isect, np.int64), np.empty(n_isect, np.int64)
+    _kernels().bin_kernel(_np(order), _np(box), _np(per_gauss), tile_size, tiles_x, counts, flatten_ids, isect_tiles)
+    counts_t = torch.from_numpy(counts)
+    return {
+        "tiles_x": tiles_x, "tiles_y": tiles_y, "box": box, "tiles_per_gauss": per_gauss,
+        "flatten_ids": torch.from_numpy(flatten_ids), "isect_tiles": torch.from_numpy(isect_tiles),
+        "tile_counts": counts_t, "isect_offsets": torch.cumsum(counts_t, 0) - counts_t,
+    }
 
 
 def composite_fused(
@@ -125,9 +157,8 @@ def composite_fused(
             _WARNED[0] = True
         return composite_tiles(means2d, conics, opacities, depths, feats, covars2d, background, width, height,
                                tile_size)
-    _kernels().set_threads(torch.get_num_threads())
-    info = bin_tiles(means2d.detach(), covars2d.detach(), opacities.detach(), depths.detach(), width, height,
-                     tile_size)
+    info = bin_tiles_fused(means2d.detach(), covars2d.detach(), opacities.detach(), depths.detach(), width, height,
+                           tile_size)
     params = torch.cat([means2d, conics, opacities[:, None]], dim=-1)  # (M, 6)
     box = info.pop("box")
     colors, alphas, n_pairs = _FusedComposite.apply(params, feats, background, info["flatten_ids"],

@@ -23,15 +23,17 @@ from diff4splat.render.defaults import (
     TILE_SIZE,
 )
 from diff4splat.render.fused import composite_fused
+from diff4splat.render.fused_projection import project_fused
 from diff4splat.render.gsplat_backend import rasterize_gsplat, use_gsplat
+from diff4splat.render.projection import project_gaussians
 from diff4splat.render.raytrace import raytrace
 from diff4splat.render.stages import render_pipeline
 from diff4splat.render.tiles import composite_tiles
 
 __all__ = ["rasterize", "COMPOSITORS", "DEFAULT_COMPOSITOR"]
 
-COMPOSITORS = {"fused": composite_fused, "torch": composite_tiles}
-"""CPU compositors of the tile path by name: the fused JIT loop (numba) and the pure-PyTorch reference."""
+COMPOSITORS = {"fused": (project_fused, composite_fused), "torch": (project_gaussians, composite_tiles)}
+"""CPU tile paths by name, (projection, compositor): the fused JIT loops (numba) and the pure-PyTorch reference."""
 DEFAULT_COMPOSITOR = "fused"
 """What ``compositor=None`` uses (the fused path falls back to "torch", warning once, without numba)."""
 
@@ -88,9 +90,10 @@ def rasterize(
             rendered by the ray path :func:`diff4splat.render.raytrace.raytrace` (its docstring lists
             the differences: exact ray response, eps2d ignored, depth = distance along the ray, meta
             keys). Rolling shutter needs a dynamic scene: :func:`diff4splat.render.render_rolling_shutter`.
-        compositor: CPU tile compositor, "fused" (:mod:`diff4splat.render.fused`) or "torch"
-            (:mod:`diff4splat.render.tiles`, the reference); None: :data:`DEFAULT_COMPOSITOR`. Same image
-            either way (float rounding; tests/test_render_fused.py).
+        compositor: CPU tile path, "fused" (projection :mod:`diff4splat.render.fused_projection`, compositing
+            :mod:`diff4splat.render.fused`) or "torch" (:mod:`diff4splat.render.projection`,
+            :mod:`diff4splat.render.tiles`: the reference); None: :data:`DEFAULT_COMPOSITOR`. Same image and
+            gradients either way (float rounding; tests/test_render_fused.py, test_render_fused_projection.py).
 
     Rules (3DGS, Kerbl et al. 2023; gsplat CUDA kernels): EWA projection and culling as
     :func:`diff4splat.render.projection.project_gaussians`; alpha = min(0.99, o·exp(−σ)), skipped
@@ -130,7 +133,8 @@ def rasterize(
     name = DEFAULT_COMPOSITOR if compositor is None else compositor
     if name not in COMPOSITORS:
         raise ValueError(f"compositor must be one of {sorted(COMPOSITORS)} or None, got {compositor!r}")
-    tile_path = functools.partial(render_pipeline, COMPOSITORS[name])
+    project, composite = COMPOSITORS[name]
+    tile_path = functools.partial(render_pipeline, composite, project=project)
     backend = rasterize_gsplat if use_gsplat(means, camera_model) else tile_path
     return backend(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height,

@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from diff4splat.cameras.path import camera_centers
-from diff4splat.render.projection import project_gaussians
+from diff4splat.render.projection import Projection, project_gaussians
 from diff4splat.render.sh import sh_to_color, spherical_harmonics
 from diff4splat.render.validate import validate_inputs
 
@@ -106,6 +106,7 @@ def render_pipeline(
     viewmats: Tensor, Ks: Tensor, width: int, height: int, *,
     near_plane: float, far_plane: float, eps2d: float, sh_degree: int | None, backgrounds: Tensor | None,
     render_mode: str, rasterize_mode: str, camera_model: str, tile_size: int,
+    project: Callable[..., Projection] = project_gaussians,
 ) -> tuple[Tensor, Tensor, dict]:
     """Validate, project, build per-Gaussian features, composite each camera, apply the render mode.
 
@@ -113,7 +114,9 @@ def render_pipeline(
     then max(·+0.5, 0)); "D"/"ED" replace them by camera-space depth z, "RGB+D"/"RGB+ED" append it;
     the depth channel's background is 0. "ED" divides the accumulated depth by max(alpha, 1e-10)
     (so it is 0 where alpha is 0). Arguments as in :func:`diff4splat.render.rasterize`;
-    ``compositor`` composites one camera (:data:`Compositor`).
+    ``compositor`` composites one camera (:data:`Compositor`); ``project`` is
+    :func:`~diff4splat.render.projection.project_gaussians` or a drop-in replacement with its signature
+    (:func:`diff4splat.render.fused_projection.project_fused`).
     """
     validate_inputs(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height,
@@ -123,7 +126,7 @@ def render_pipeline(
     dtype = compute_dtype(means.dtype)  # autocast is off here (full_precision)
     means, quats, scales, opacities = means.to(dtype), quats.to(dtype), scales.to(dtype), opacities.to(dtype)
     viewmats, Ks = viewmats.to(dtype), Ks.to(dtype)
-    proj = project_gaussians(
+    proj = project(
         means, quats, scales, opacities, viewmats, Ks, width, height, near_plane=near_plane,
         far_plane=far_plane, eps2d=eps2d, antialiased=rasterize_mode == "antialiased", camera_model=camera_model,
     )

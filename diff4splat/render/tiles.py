@@ -18,13 +18,42 @@ from torch import Tensor
 from diff4splat.constants import ALPHA_MAX, T_MIN
 from diff4splat.render.projection import splat_alpha, splat_sigma, support_extent
 
-__all__ = ["bin_tiles", "composite_tiles", "PAIR_BUDGET"]
+__all__ = ["tile_boxes", "bin_tiles", "composite_tiles", "PAIR_BUDGET"]
 
 _LOG_T_MIN = math.log(T_MIN)
 PAIR_BUDGET = 1 << 18
 """Most (pixel, Gaussian) pairs composited at once (bounds the transient memory of a chunk). 2¹⁸ keeps a
 chunk's per-pair arrays (~1 MiB each) cache-sized: at 256²/65,536 it was ~30 % faster, forward and
 backward, than 2²¹ on the benchmark machine (benchmarks/render_speed.py)."""
+
+
+@torch.no_grad()
+def tile_boxes(
+    means2d: Tensor,  # (M, 2)
+    covars2d: Tensor,  # (M, 3)
+    opacities: Tensor,  # (M,)
+    width: int,
+    height: int,
+    tile_size: int,
+) -> tuple[Tensor, Tensor]:
+    """Each Gaussian's pixel box and its number of tiles (the first step of :func:`bin_tiles`).
+
+    The box holds every pixel whose centre lies inside the opacity-aware support of :func:`support_extent`
+    (where alpha ≥ 1/255 can hold), clipped to the image.
+
+    Returns:
+        box (M, 4) int64 inclusive pixel box (x0, y0, x1, y1); tiles_per_gauss (M,) int64 tiles it overlaps
+        (0 when the box is empty or the Gaussian is never visible).
+    """
+    ext = support_extent(covars2d, opacities)
+    lo = torch.ceil(means2d - ext - 0.5).clamp(min=0)  # first pixel index whose centre can be inside
+    hi = torch.floor(means2d + ext - 0.5)
+    x0, y0 = lo[:, 0].long(), lo[:, 1].long()
+    x1, y1 = hi[:, 0].clamp(max=width - 1).long(), hi[:, 1].clamp(max=height - 1).long()
+    ok = (x0 <= x1) & (y0 <= y1) & (ext[:, 0] >= 0)
+    tw = torch.where(ok, x1 // tile_size - x0 // tile_size + 1, 0)
+    per_gauss = tw * torch.where(ok, y1 // tile_size - y0 // tile_size + 1, 0)
+    return torch.stack([x0, y0, x1, y1], -1), per_gauss
 
 
 @torch.no_grad()
@@ -39,9 +68,8 @@ def bin_tiles(
 ) -> dict:
     """Bin screen Gaussians into the tiles overlapped by their visible support, depth-sorted per tile.
 
-    The support is the opacity-aware box of :func:`support_extent` (where alpha ≥ 1/255 can hold),
-    clipped to the image, so every pixel a Gaussian can affect lies in one of its tiles and the
-    image does not depend on ``tile_size``. Gaussians are sorted by depth once (stable), their
+    The support is the pixel box of :func:`tile_boxes`, so every pixel a Gaussian can affect lies in one
+    of its tiles and the image does not depend on ``tile_size``. Gaussians are sorted by depth once (stable), their
     tile intersections generated in that order and grouped by tile with a stable sort, so each
     tile's list is front to back (gsplat ``isect_tiles`` + ``isect_offset_encode``).
 
@@ -52,15 +80,9 @@ def bin_tiles(
         tile ids; tile_counts (T,) and isect_offsets (T,) list length and start of each tile.
     """
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
-    ext = support_extent(covars2d, opacities)
-    lo = torch.ceil(means2d - ext - 0.5).clamp(min=0)  # first pixel index whose centre can be inside
-    hi = torch.floor(means2d + ext - 0.5)
-    x0, y0 = lo[:, 0].long(), lo[:, 1].long()
-    x1, y1 = hi[:, 0].clamp(max=width - 1).long(), hi[:, 1].clamp(max=height - 1).long()
-    ok = (x0 <= x1) & (y0 <= y1) & (ext[:, 0] >= 0)
-    tx0, ty0 = x0 // tile_size, y0 // tile_size
-    tw = torch.where(ok, x1 // tile_size - tx0 + 1, 0)
-    per_gauss = tw * torch.where(ok, y1 // tile_size - ty0 + 1, 0)
+    box, per_gauss = tile_boxes(means2d, covars2d, opacities, width, height, tile_size)
+    tx0, ty0 = box[:, 0] // tile_size, box[:, 1] // tile_size
+    tw = box[:, 2] // tile_size - tx0 + 1
     order = torch.argsort(depths, stable=True)
     n_sorted = per_gauss[order]
     gid = torch.repeat_interleave(order, n_sorted)
@@ -70,7 +92,7 @@ def bin_tiles(
     perm = torch.argsort(tile_ids, stable=True)
     counts = torch.bincount(tile_ids, minlength=tiles_x * tiles_y)
     return {
-        "tiles_x": tiles_x, "tiles_y": tiles_y, "box": torch.stack([x0, y0, x1, y1], -1),
+        "tiles_x": tiles_x, "tiles_y": tiles_y, "box": box,
         "tiles_per_gauss": per_gauss, "flatten_ids": gid[perm], "isect_tiles": tile_ids[perm],
         "tile_counts": counts, "isect_offsets": torch.cumsum(counts, 0) - counts,
     }
