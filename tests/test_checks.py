@@ -47,6 +47,14 @@ def test_check_finite_counts_bad_values_and_ignores_integer_and_empty_tensors():
     check_finite("empty", torch.empty(0, 3))
 
 
+def test_check_finite_accepts_finite_values_whose_sum_overflows():
+    """The fast path is a sum; finite values summing to inf take the exact test and pass."""
+    check_finite("big", torch.tensor([1e308, 1e308, -1e308 / 3], dtype=torch.float64))
+    check_finite("big32", torch.full((1000,), 3e38))
+    with pytest.raises(ValueError, match="big contains 1 non-finite"):
+        check_finite("big", torch.tensor([1e308, 1e308, math.nan], dtype=torch.float64))
+
+
 def test_check_finite_has_one_home():
     """gaussians.py used to define its own copy; now every module uses the function of diff4splat.checks."""
     import diff4splat.cameras.path as path

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from diff4splat.render.tiles import composite_tiles, tile_boxes
+from diff4splat.render.tiles import composite_tiles
 
 __all__ = ["composite_fused", "fused_available", "bin_tiles_fused"]
 
@@ -114,18 +114,26 @@ def bin_tiles_fused(
     height: int,
     tile_size: int,
 ) -> dict:
-    """:func:`diff4splat.render.tiles.bin_tiles` (same dict, equal tensors) with its grouping done by a counting
-    sort (``fused_kernels.bin_kernel``) instead of a second argsort and the repeat/gather chain. Needs numba."""
+    """:func:`diff4splat.render.tiles.bin_tiles` (same dict) by two kernels: ``box_kernel`` (the boxes of
+    :func:`~diff4splat.render.tiles.tile_boxes`, in float64: for float32 inputs a box edge can differ where
+    the float32 extent rounds across a pixel centre, ~10⁻⁷ px) and ``bin_kernel`` (a counting sort by tile,
+    then each tile's list sorted by depth, tiles in parallel) instead of two global argsorts and the
+    repeat/gather chain. Needs numba."""
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
-    box, per_gauss = tile_boxes(means2d, covars2d, opacities, width, height, tile_size)
-    order = torch.argsort(depths, stable=True)
-    n_isect = int(per_gauss.sum())
-    counts = np.zeros(tiles_x * tiles_y, np.int64)
-    flatten_ids, isect_tiles = np.empty(n_isect, np.int64), np.empty(n_isect, np.int64)
-    _kernels().bin_kernel(_np(order), _np(box), _np(per_gauss), tile_size, tiles_x, counts, flatten_ids, isect_tiles)
+    m = means2d.shape[0]
+    box, tbox, per_gauss = np.empty((m, 4), np.int64), np.empty((m, 4), np.int64), np.empty(m, np.int64)
+    kernels = _kernels()
+    with kernels.threads(torch.get_num_threads()):
+        kernels.box_kernel(_np(means2d), _np(covars2d), _np(opacities), width, height, tile_size, box, tbox,
+                           per_gauss)
+        n_isect = int(per_gauss.sum())
+        counts = np.zeros(tiles_x * tiles_y, np.int64)
+        flatten_ids, isect_tiles = np.empty(n_isect, np.int64), np.empty(n_isect, np.int64)
+        kernels.bin_kernel(tbox, per_gauss, _np(depths), tiles_x, counts, flatten_ids, isect_tiles)
     counts_t = torch.from_numpy(counts)
     return {
-        "tiles_x": tiles_x, "tiles_y": tiles_y, "box": box, "tiles_per_gauss": per_gauss,
+        "tiles_x": tiles_x, "tiles_y": tiles_y, "box": torch.from_numpy(box),
+        "tiles_per_gauss": torch.from_numpy(per_gauss),
         "flatten_ids": torch.from_numpy(flatten_ids), "isect_tiles": torch.from_numpy(isect_tiles),
         "tile_counts": counts_t, "isect_offsets": torch.cumsum(counts_t, 0) - counts_t,
     }

@@ -45,8 +45,9 @@ class _FusedProjection(torch.autograd.Function):
     def forward(ctx, means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d,  # noqa: D102
                 antialiased):
         C, N = viewmats.shape[0], means.shape[0]
-        out = (np.zeros((C, N, 2)), np.zeros((C, N)), np.zeros((C, N, 3)), np.zeros((C, N, 3)), np.zeros((C, N)))
-        radii, comps = np.zeros((C, N), np.int32), np.zeros((C, N))
+        dt = torch.empty(0, dtype=means.dtype).numpy().dtype  # outputs written in the input dtype (no copies)
+        out = [np.zeros(shape, dt) for shape in ((C, N, 2), (C, N), (C, N, 3), (C, N, 3), (C, N))]
+        radii, comps = np.zeros((C, N), np.int32), np.zeros((C, N), dt)
         arrays = [_np64(x) for x in (means, quats, scales, opacities, viewmats, Ks)]
         kernels = _kernels()
         with kernels.threads(torch.get_num_threads()):
@@ -58,8 +59,7 @@ class _FusedProjection(torch.autograd.Function):
         ctx.dtype = means.dtype
         radii_t = torch.from_numpy(radii)
         ctx.mark_non_differentiable(radii_t)
-        dtype = means.dtype
-        return (*(torch.from_numpy(x).to(dtype) for x in out), radii_t, torch.from_numpy(comps).to(dtype))
+        return (*(torch.from_numpy(x) for x in out), radii_t, torch.from_numpy(comps))
 
     @staticmethod
     def backward(ctx, *grads):  # noqa: D102

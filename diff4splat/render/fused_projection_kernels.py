@@ -11,9 +11,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
-from diff4splat.render.fused_kernels import threads
+from diff4splat.render.fused_kernels import KERNEL, threads
 from diff4splat.render.projection import RADIUS_MAX
 
 __all__ = ["project_forward", "project_backward", "threads"]
@@ -22,7 +22,7 @@ _BLOCK = 256
 """Gaussians per parallel work item (one set of scratch matrices each)."""
 
 
-@njit(cache=True, inline="always")
+@KERNEL(inline="always")
 def _mm(a, b, out, ta, tb):  # pragma: no cover - compiled
     """out = op(a) @ op(b) for 3×3 matrices, op = transpose where ta / tb."""
     for r in range(3):
@@ -33,7 +33,7 @@ def _mm(a, b, out, ta, tb):  # pragma: no cover - compiled
             out[r, c] = s
 
 
-@njit(cache=True, inline="always")
+@KERNEL(inline="always")
 def _rotmat(q, r):  # pragma: no cover - compiled
     """r = rotation of the unit wxyz quaternion q (quaternions.quat_to_rotmat)."""
     w, x, y, z = q[0], q[1], q[2], q[3]
@@ -42,7 +42,7 @@ def _rotmat(q, r):  # pragma: no cover - compiled
     r[2, 0], r[2, 1], r[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
 
 
-@njit(cache=True, inline="always")
+@KERNEL(inline="always")
 def _camera_frame(rot, s, mean, view, m, cov, tmp, cc):  # pragma: no cover - compiled
     """m = R·diag(s); cov = m mᵀ (3DGS eq. 6); cc = Rv cov Rvᵀ; returns the camera-frame centre Rv μ + t."""
     for r in range(3):
@@ -57,7 +57,7 @@ def _camera_frame(rot, s, mean, view, m, cov, tmp, cc):  # pragma: no cover - co
     return x, y, z
 
 
-@njit(cache=True, inline="always")
+@KERNEL(inline="always")
 def _limits(k, width, height):  # pragma: no cover - compiled
     """fx, fy, cx, cy and gsplat's clamp of x/z and y/z: [−(c/f + 0.3·tan½fov), (W − c)/f + 0.3·tan½fov]."""
     fx, fy, cx, cy = k[0, 0], k[1, 1], k[0, 2], k[1, 2]
@@ -66,7 +66,7 @@ def _limits(k, width, height):  # pragma: no cover - compiled
             (height - cy) / fy + 0.3 * ty)
 
 
-@njit(cache=True, inline="always")
+@KERNEL(inline="always")
 def _screen_cov(cc, j00, j02, j11, j12):  # pragma: no cover - compiled
     """Σ2d = J Σc Jᵀ with J = [[j00, 0, j02], [0, j11, j12]] (EWA eq. 31); returns s00, s01, s10, s11."""
     s00 = j00 * (j00 * cc[0, 0] + j02 * cc[2, 0]) + j02 * (j00 * cc[0, 2] + j02 * cc[2, 2])
@@ -76,7 +76,7 @@ def _screen_cov(cc, j00, j02, j11, j12):  # pragma: no cover - compiled
     return s00, s01, s10, s11
 
 
-@njit(parallel=True, cache=True)
+@KERNEL(parallel=True)
 def project_forward(means, quats, scales, opacities, viewmats, ks, width, height, near, far, eps2d, antialiased,
                     means2d, depths, covars2d, conics, opac_out, radii, comps):  # pragma: no cover - compiled
     n_cam, n = viewmats.shape[0], means.shape[0]
@@ -114,7 +114,7 @@ def project_forward(means, quats, scales, opacities, viewmats, ks, width, height
                 comps[c, i] = comp
 
 
-@njit(parallel=True, cache=True)
+@KERNEL(parallel=True)
 def project_backward(means, quats, scales, opacities, viewmats, ks, width, height, eps2d, antialiased, radii,
                      g_means2d, g_depths, g_covars2d, g_conics, g_opac, g_comps,
                      v_means, v_quats, v_scales, v_opac):  # pragma: no cover - compiled

@@ -142,9 +142,14 @@ def render_pipeline(
     out_colors, out_alphas, infos = [], [], []
     for c in range(C):
         vis = torch.nonzero(proj.radii[c] > 0).squeeze(1)
+        every = len(vis) == N  # then camera c's rows as they are: views, no gathers
+
+        def visible(t: Tensor, c=c, vis=vis, every=every) -> Tensor:
+            return t[c] if every else t[c, vis]
+
         col, alpha, info = compositor(
-            proj.means2d[c, vis], proj.conics[c, vis], proj.opacities[c, vis], proj.depths[c, vis],
-            feats[c, vis], proj.covars2d[c, vis], None if bgs is None else bgs[c], width, height, tile_size,
+            visible(proj.means2d), visible(proj.conics), visible(proj.opacities), visible(proj.depths),
+            visible(feats), visible(proj.covars2d), None if bgs is None else bgs[c], width, height, tile_size,
         )
         info["gaussian_ids"] = vis
         out_colors.append(col.reshape(height, width, -1))
