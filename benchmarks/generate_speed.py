@@ -27,6 +27,50 @@ from models.bundle import DEFAULT_CONFIG  # noqa: E402
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
 
 
+def render_split(res, repeats: int) -> dict[str, float]:
+    """Median ms of the render stage's parts: ``scene.at`` for every frame time, and the rasterize calls of
+    :func:`render_path` on those precomputed Gaussians."""
+    from diff4splat.render import rasterize
+
+    cams, scene = res.cameras, res.scene
+    bg = torch.ones(1, 3)
+    deform, raster = [], []
+    for _ in range(repeats + 1):
+        t0 = time.perf_counter()
+        frames = [scene.at(float(t)) for t in cams.times]
+        t1 = time.perf_counter()
+        with torch.no_grad():
+            for i, g in enumerate(frames):
+                rasterize(g.means, g.quats, g.scales, g.opacities, g.sh, cams.viewmats[i:i + 1], cams.Ks[i:i + 1],
+                          cams.width, cams.height, sh_degree=g.sh_degree, backgrounds=bg, render_mode="RGB+ED")
+        t2 = time.perf_counter()
+        deform.append(t1 - t0)
+        raster.append(t2 - t1)
+    n = len(cams)
+    return {f"deformation alone ({n} × scene.at)": 1000 * statistics.median(deform[1:]),
+            f"rasterizer alone ({n} calls)": 1000 * statistics.median(raster[1:])}
+
+
+FIRST_CALL = """
+import time, torch
+from diff4splat.render import rasterize
+args = (torch.rand(500, 3) + torch.tensor([0, 0, 2.0]), torch.randn(500, 4), torch.full((500, 3), 0.02),
+        torch.rand(500), torch.rand(500, 3), torch.eye(4)[None],
+        torch.tensor([[[60.0, 0, 32], [0, 60.0, 32], [0, 0, 1]]]), 64, 64)
+t0 = time.perf_counter(); rasterize(*args); t1 = time.perf_counter(); rasterize(*args); t2 = time.perf_counter()
+print(1000 * ((t1 - t0) - (t2 - t1)))
+"""
+
+
+def first_call_ms() -> float:
+    """Extra ms of the first render in a fresh process (median of 3 processes), numba's kernels cached."""
+    import subprocess
+
+    runs = [float(subprocess.run([sys.executable, "-c", FIRST_CALL], capture_output=True, text=True,
+                                 check=True).stdout.split()[-1]) for _ in range(3)]
+    return statistics.median(runs)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=17)
@@ -62,11 +106,21 @@ def main() -> None:
     totals = [sum(vals[i] for vals in stages.values()) for i in range(args.repeats)]
     rows = [[k, f"{1000 * statistics.median(v):.1f}"] for k, v in stages.items()]
     rows.append(["**total**", f"**{1000 * statistics.median(totals):.1f}**"])
+    split = render_split(res, args.repeats)
+    render_ms = 1000 * statistics.median(stages["render"])
+    split_rows = [[k, f"{v:.1f}"] for k, v in split.items()] + [
+        ["render stage ÷ rasterizer alone", f"{render_ms / split['rasterizer alone (17 calls)']:.2f}×"]]
+    first = first_call_ms()
     body = (f"### `generate` wall time per stage ({args.config}, {cfg.width}×{cfg.height}, {args.frames} frames, "
             f"{cfg.sampling.steps} Euler steps, {res.scene.num_gaussians} Gaussians, weights: {source})\n\n"
             f"Median of {args.repeats} runs after a warm-up; `python benchmarks/generate_speed.py --write`. "
             f"Machine: {machine()}. Peak RSS {peak_rss_mb():.0f} MiB.\n\n"
-            + markdown_table(["stage", "ms"], rows))
+            + markdown_table(["stage", "ms"], rows)
+            + f"\n\nThe render stage ({render_ms:.1f} ms, `render_path`) split: the deformation to each frame's "
+            f"time alone, and the rasterizer alone on those precomputed Gaussians (the same calls), medians of "
+            f"{args.repeats}:\n\n" + markdown_table(["part", "ms"], split_rows)
+            + f"\n\nNot in the table (the warm-up run takes it): the first render in a new process costs "
+            f"{first:.0f} ms more than the next one (importing numba and loading its cached kernels).")
     print(body)
     if args.write:
         write_section("generate_speed", body)
