@@ -18,6 +18,7 @@ from training.fit_data import (
     random_box_points,
     scene_extent,
     split_cameras,
+    voxel_subsample,
 )
 
 K = torch.tensor([[10.0, 0.0, 6.5], [0.0, 11.0, 4.5], [0.0, 0.0, 1.0]])
@@ -78,11 +79,27 @@ def test_depth_points_subsample_a_random_subset_of_at_most_max_points():
     views = _coded_views()
     a, ca = depth_points(views, 37, torch.Generator().manual_seed(1))
     b, cb = depth_points(views, 37, torch.Generator().manual_seed(2))
-    assert a.shape == (37, 3) and b.shape == (37, 3)
+    assert 30 <= a.shape[0] <= 37 and 30 <= b.shape[0] <= 37 and a.shape[1] == 3
     assert not torch.equal(a, b)  # the generator picks the subset
     _check_reprojection(views, a, ca)
     again, _ = depth_points(views, 37, torch.Generator().manual_seed(1))
     assert torch.equal(a, again)
+
+
+def test_voxel_subsample_spreads_points_over_space():
+    """A dense cluster (20,000 points in a 1 cm cube) beside a sparse plane (500 points over 4 m²): a uniform
+    random 1,000 would keep ~24 plane points; one point per grid cell keeps most of the plane."""
+    g = torch.Generator().manual_seed(0)
+    cluster = 0.01 * torch.rand(20_000, 3, generator=g)
+    plane = torch.cat([2 * torch.rand(500, 2, generator=g) - 1, torch.full((500, 1), 3.0)], 1)
+    pts = torch.cat([cluster, plane])
+    keep = voxel_subsample(pts, 1000, torch.Generator().manual_seed(1))
+    assert 900 <= keep.numel() <= 1000 and keep.unique().numel() == keep.numel()
+    assert int((keep >= 20_000).sum()) >= 400  # most of the plane
+    again = voxel_subsample(pts, 1000, torch.Generator().manual_seed(1))
+    other = voxel_subsample(pts, 1000, torch.Generator().manual_seed(2))
+    assert torch.equal(keep, again) and not torch.equal(keep, other)  # the generator picks within cells
+    assert voxel_subsample(torch.ones(50, 3), 10, g).numel() == 10  # all points equal: a random 10
 
 
 def test_depth_points_errors():

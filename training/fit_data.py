@@ -84,7 +84,7 @@ def load_views(scene: SceneReader, cameras: list[str], frames: list[int] | None 
 
 def depth_points(views: list[View], max_points: int, generator: torch.Generator) -> tuple[Tensor, Tensor]:
     """Back-project every valid depth pixel of ``views`` (:func:`diff4splat.cameras.unproject_depth`) and
-    keep a uniform random subset of at most ``max_points``.
+    keep at most ``max_points``, spread over space (:func:`voxel_subsample`).
 
     Returns:
         means (N, 3) metres, colours (N, 3) in [0, 1].
@@ -104,9 +104,45 @@ def depth_points(views: list[View], max_points: int, generator: torch.Generator)
     if means.shape[0] == 0:
         raise ValueError("no pixel of the training views has a finite depth; cannot initialise from depth")
     if means.shape[0] > max_points:
-        keep = torch.randperm(means.shape[0], generator=generator)[:max_points]
+        keep = voxel_subsample(means, max_points, generator)
         means, colors = means[keep], colors[keep]
     return means.float(), colors.float()
+
+
+def voxel_subsample(points: Tensor, max_points: int, generator: torch.Generator) -> Tensor:
+    """Indices of at most ``max_points`` of ``points`` (P, 3), one random point per occupied cell of the
+    finest cubic grid that has at most ``max_points`` occupied cells (cell edge found by bisection).
+
+    A uniform random subset of back-projected pixels follows pixel density: surfaces that many views see
+    up close get most of the points, and a surface seen only at grazing angles or from far away gets
+    almost none, so its Gaussians start sparse. One point per grid cell spreads them over the surfaces
+    (the voxel-grid downsampling of point-cloud initialisations).
+
+    Returns:
+        (K,) int64 indices, K ≤ max_points.
+    """
+    perm = torch.randperm(points.shape[0], generator=generator)
+    pts = points[perm].double()
+    lo, span = pts.min(0).values, float((pts.max(0).values - pts.min(0).values).max())
+    if span <= 0:
+        return perm[:max_points]
+
+    def cells(edge: float) -> tuple[Tensor, int]:
+        q = ((pts - lo) / edge).floor().long()  # < 2²⁰ per axis for edge ≥ span·1e-6: one int64 key
+        _, inverse = torch.unique((q[:, 0] << 40) | (q[:, 1] << 20) | q[:, 2], return_inverse=True)
+        return inverse, int(inverse.max()) + 1
+
+    small, big = span * 1e-6, span  # big has 1 occupied cell; small at least as many as max_points allows
+    for _ in range(20):
+        mid = (small * big) ** 0.5
+        if cells(mid)[1] > max_points:
+            small = mid
+        else:
+            big = mid
+    inverse, n = cells(big)
+    first = torch.full((n,), pts.shape[0], dtype=torch.long).scatter_reduce_(
+        0, inverse, torch.arange(pts.shape[0]), reduce="amin")  # a random point per cell (perm is random)
+    return perm[first.sort().values]
 
 
 def random_box_points(views: list[View], num_points: int, generator: torch.Generator) -> tuple[Tensor, Tensor]:
