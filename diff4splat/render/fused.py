@@ -124,12 +124,13 @@ def bin_tiles_fused(
     box, tbox, per_gauss = np.empty((m, 4), np.int64), np.empty((m, 4), np.int64), np.empty(m, np.int64)
     kernels = _kernels()
     with kernels.threads(torch.get_num_threads()):
-        kernels.box_kernel(_np(means2d), _np(covars2d), _np(opacities), width, height, tile_size, box, tbox,
-                           per_gauss)
+        # float64 inputs (exact for float32): one compiled signature per kernel (a cold compile costs seconds)
+        kernels.box_kernel(_np(means2d.double()), _np(covars2d.double()), _np(opacities.double()), width, height,
+                           tile_size, box, tbox, per_gauss)
         n_isect = int(per_gauss.sum())
         counts = np.zeros(tiles_x * tiles_y, np.int64)
         flatten_ids, isect_tiles = np.empty(n_isect, np.int64), np.empty(n_isect, np.int64)
-        kernels.bin_kernel(tbox, per_gauss, _np(depths), tiles_x, counts, flatten_ids, isect_tiles)
+        kernels.bin_kernel(tbox, per_gauss, _np(depths.double()), tiles_x, counts, flatten_ids, isect_tiles)
     counts_t = torch.from_numpy(counts)
     return {
         "tiles_x": tiles_x, "tiles_y": tiles_y, "box": torch.from_numpy(box),
