@@ -129,6 +129,8 @@ def test_falls_back_to_the_tile_path_without_numba(monkeypatch):
     monkeypatch.setattr(fused, "_WARNED", [False])
     with pytest.warns(RuntimeWarning, match="numba is not installed"):
         (c1, _), _, _ = _run(composite_fused, xs, 20, 16, 16)
+    with pytest.raises(RuntimeError, match="needs numba"):
+        bin_tiles_fused(xs[0], xs[5], xs[2], xs[3], 20, 16, 16)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # once only
         _run(composite_fused, xs, 20, 16, 16)

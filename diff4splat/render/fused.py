@@ -118,7 +118,13 @@ def bin_tiles_fused(
     :func:`~diff4splat.render.tiles.tile_boxes`, in float64: for float32 inputs a box edge can differ where
     the float32 extent rounds across a pixel centre, ~10⁻⁷ px) and ``bin_kernel`` (a counting sort by tile,
     then each tile's list sorted by depth, tiles in parallel) instead of two global argsorts and the
-    repeat/gather chain. Needs numba."""
+    repeat/gather chain.
+
+    Raises:
+        RuntimeError: numba is not installed (use :func:`~diff4splat.render.tiles.bin_tiles`).
+    """
+    if not fused_available():
+        raise RuntimeError("bin_tiles_fused needs numba (pip install numba); tiles.bin_tiles does the same without")
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
     m = means2d.shape[0]
     box, tbox, per_gauss = np.empty((m, 4), np.int64), np.empty((m, 4), np.int64), np.empty(m, np.int64)

@@ -13,8 +13,6 @@ CUDA tensors, no numba) uses the reference, so results never depend on which pat
 """
 from __future__ import annotations
 
-import importlib
-
 import numpy as np
 import torch
 from torch import Tensor
@@ -25,13 +23,11 @@ from diff4splat.render.projection import Projection, project_gaussians
 
 __all__ = ["project_fused"]
 
-_MODULE = []
-
-
 def _kernels():
-    if not _MODULE:
-        _MODULE.append(importlib.import_module("diff4splat.render.fused_projection_kernels"))
-    return _MODULE[0]
+    """:mod:`.fused_projection_kernels`, imported on first use (keeps numba out of ``import diff4splat``)."""
+    from diff4splat.render import fused_projection_kernels
+
+    return fused_projection_kernels
 
 
 def _np64(x: Tensor) -> np.ndarray:

@@ -142,14 +142,10 @@ def render_pipeline(
     out_colors, out_alphas, infos = [], [], []
     for c in range(C):
         vis = torch.nonzero(proj.radii[c] > 0).squeeze(1)
-        every = len(vis) == N  # then camera c's rows as they are: views, no gathers
-
-        def visible(t: Tensor, c=c, vis=vis, every=every) -> Tensor:
-            return t[c] if every else t[c, vis]
-
+        sel = slice(None) if len(vis) == N else vis  # every Gaussian visible: views of camera c's rows, no gathers
         col, alpha, info = compositor(
-            visible(proj.means2d), visible(proj.conics), visible(proj.opacities), visible(proj.depths),
-            visible(feats), visible(proj.covars2d), None if bgs is None else bgs[c], width, height, tile_size,
+            proj.means2d[c, sel], proj.conics[c, sel], proj.opacities[c, sel], proj.depths[c, sel],
+            feats[c, sel], proj.covars2d[c, sel], None if bgs is None else bgs[c], width, height, tile_size,
         )
         info["gaussian_ids"] = vis
         out_colors.append(col.reshape(height, width, -1))
