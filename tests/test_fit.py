@@ -17,12 +17,14 @@ from models.hexplane import HexPlaneConfig
 from training.densify import DensifyConfig
 from training.eval_metrics import PSNR_CAP
 from training.fit import (
+    BACKGROUNDS,
     FitConfig,
     LearningRates,
     default_depth_weight,
     evaluate_views,
     expon_lr,
     fit_steps,
+    init_background,
     init_state,
     psnr_from_mse,
     render_view,
@@ -325,3 +327,39 @@ def test_default_depth_weight_by_depth_source():
         default_depth_weight("lidar")
     with pytest.raises(ValueError, match="depth_weight is None"):  # fit_steps needs it resolved
         fit_steps(None, [], FitConfig(), 1)
+
+
+def test_init_background_learned_or_fixed():
+    state = _blob(dynamic=False)
+    torch.testing.assert_close(state.background_rgb().detach(), torch.tensor(BACKGROUNDS["learned"]))
+    assert state.background.requires_grad and state.background_optimizer is not None
+    for name in ("black", "white"):
+        init_background(state, _config(background=name))
+        assert state.background_optimizer is None and not state.background.requires_grad
+        assert state.background_rgb().tolist() == list(BACKGROUNDS[name])
+    with pytest.raises(ValueError, match="background"):
+        _config(background="green")
+
+
+@pytest.mark.parametrize("background", ["learned", "white"])
+def test_the_background_is_composited_behind_the_gaussians(background):
+    state = _blob(dynamic=False, config=_config(background=background))
+    rgb, _, alpha, _ = render_view(state, _view(), 0, False)
+    black = _blob(dynamic=False, config=_config(background="black"))
+    rgb0 = render_view(black, _view(), 0, False)[0]
+    bg = state.background_rgb().detach()
+    assert float(alpha.detach().min()) < 0.5  # the image has background showing
+    torch.testing.assert_close(rgb.detach(), rgb0.detach() + (1 - alpha.detach())[..., None] * bg)
+
+
+def test_a_learned_background_fits_the_backdrop_colour():
+    """Views of the blob over a backdrop colour: the learned colour (starting at grey, no depth) reaches it."""
+    backdrop = torch.tensor([0.2, 0.7, 0.4])
+    config = _config(iterations=300, coarse_iterations=300)
+    state = _blob(dynamic=False, config=config)
+    with torch.no_grad():
+        rgb, _, alpha, _ = render_view(_blob(dynamic=False, config=_config(background="black")), _view(), 0, False)
+        target = rgb + (1 - alpha)[..., None] * backdrop
+    assert float((1 - alpha).mean()) > 0.2
+    fit_steps(state, [_view(target)], config, 300)
+    torch.testing.assert_close(state.background_rgb().detach(), backdrop, atol=0.03, rtol=0)

@@ -150,6 +150,9 @@ def test_output_folder_of_a_dynamic_fit(dynamic_scene, dynamic_fit):
     assert metrics["num_gaussians"] == canonical.means.shape[0]
     meta = json.loads((out / "meta.json").read_text())
     assert meta["command"] == "fit" and meta["train_cameras"] == ["cam00"] and meta["seed"] == SEED
+    # the learned background moved from its grey start; the frames were composited over it
+    assert len(meta["background"]) == 3 and all(0 <= c <= 1 for c in meta["background"])
+    assert max(abs(c - 0.5) for c in meta["background"]) > 1e-3 and meta["config"]["background"] == "learned"
     # the deformation at the reference camera's frame times is the saved field's
     arrays = load_deformation(out / "deformation.npz")
     times = scene.cameras("cam00").times

@@ -32,6 +32,7 @@ from models.hexplane import save_field
 from training.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from training.densify import DensityStats
 from training.fit import (
+    BACKGROUNDS,
     DEPTH_WEIGHTS,
     FitConfig,
     FitState,
@@ -40,6 +41,7 @@ from training.fit import (
     evaluate_views,
     fit_steps,
     gaussian_adam,
+    init_background,
     init_state,
     start_fine_stage,
     to_scene,
@@ -113,6 +115,11 @@ def _state_from_checkpoint(folder: Path, config: FitConfig, dynamic: bool, run: 
     extent = saved["extent"]
     state = FitState(params, gaussian_adam(params, config.lr, extent), DensityStats(0), extent, dynamic)
     state.optimizer.load_state_dict(saved["optimizer"])
+    init_background(state, config)
+    with torch.no_grad():
+        state.background.copy_(weights["background"])
+    if state.background_optimizer is not None:
+        state.background_optimizer.load_state_dict(saved["background_optimizer"])
     state.stats.grad_accum, state.stats.denom, state.stats.max_radii = saved["stats"]
     if saved["field_optimizer"] is not None:
         start_fine_stage(state, config)
@@ -126,11 +133,14 @@ def _state_from_checkpoint(folder: Path, config: FitConfig, dynamic: bool, run: 
 
 def _save(run_dir: Path, state: FitState, config: FitConfig, run: dict) -> None:
     weights = {k: v.detach() for k, v in state.params.items()}
+    weights["background"] = state.background.detach()
     if state.field is not None:
         weights.update({f"field.{k}": v for k, v in state.field.state_dict().items()})
     saved = {"optimizer": state.optimizer.state_dict(), "extent": state.extent,
              "stats": (state.stats.grad_accum, state.stats.denom, state.stats.max_radii),
              "field_optimizer": None if state.field_optimizer is None else state.field_optimizer.state_dict(),
+             "background_optimizer": None if state.background_optimizer is None
+             else state.background_optimizer.state_dict(),
              "step": state.step, "order": list(state.order), "train_time": state.train_time,
              "history": state.history, "counts": state.counts, "generator": state.generator.get_state(),
              "run": run}
@@ -232,7 +242,8 @@ def _write_output(scene, out: Path, state: FitState, config: FitConfig, train, h
     fitted = to_scene(state, ref.times if state.field is not None else None)
     train_eval = evaluate_views(state, train, deg)
     held = evaluate_views(state, holdout, deg, masks) if holdout else None
-    colors, depths, alphas = render_path(fitted, ref, progress=opts["progress"])
+    background = tuple(float(c) for c in state.background_rgb().detach())
+    colors, depths, alphas = render_path(fitted, ref, background=background, progress=opts["progress"])
     metrics = {
         "train_psnr": train_eval["psnr"], "train_ssim": train_eval["ssim"],
         "holdout_psnr": None if held is None else held["psnr"], "holdout_ssim": None if held is None else held["ssim"],
@@ -248,6 +259,7 @@ def _write_output(scene, out: Path, state: FitState, config: FitConfig, train, h
             "holdout_camera": opts["holdout_camera"], "train_cameras": sorted({v.camera for v in train}),
             "frames": len(ref), "width": ref.width, "height": ref.height, "fps": opts["fps"],
             "static": fitted.is_static, "num_gaussians": fitted.num_gaussians, "sh_degree": deg,
+            "background": list(background),
             "config": config_dict(config), "cameras": f"{scene.camera_names[0]} (scene world frame)"}
 
     def extra(tmp: Path) -> None:
@@ -286,6 +298,9 @@ def register(subparsers) -> None:
     p.add_argument("--depth-weight", type=float, default=None,
                    help="weight of the depth L1 (0: off; default: by the scene's depth source, "
                         + ", ".join(f"{k} {v:g}" for k, v in DEPTH_WEIGHTS.items() if k != "none") + ")")
+    p.add_argument("--background", choices=sorted(BACKGROUNDS), default=d.background,
+                   help="colour behind the Gaussians: learned (one RGB optimised with the fit, written to meta.json), "
+                        f"black or white (default {d.background})")
     p.add_argument("--init", type=Path, default=None,
                    help="initialise from a generate output folder (made from the reference camera's frame 0)")
     p.add_argument("--eval-every", type=int, default=250, help="held-out evaluation interval, steps (default 250)")
@@ -308,6 +323,7 @@ def run(args) -> int:
     d = FitConfig()
     config = FitConfig(iterations=args.iterations, coarse_iterations=args.coarse_iterations,
                        sh_degree=args.sh_degree, init_points=args.init_points, depth_weight=args.depth_weight,
+                       background=args.background,
                        densify=dataclasses.replace(d.densify, max_gaussians=args.max_gaussians))
     try:
         m = run_fit(args.scene, args.out, config, holdout_camera=args.holdout_camera, seed=args.seed,
