@@ -210,8 +210,9 @@ def init_background(state: FitState, config: FitConfig) -> None:
     0.5 grey with an Adam at ``config.lr.background``; fixed, the colour.
 
     A start at the median colour of the training pixels with +inf depth (the sky) was tried on development
-    scenes; the co-visible held-out PSNR (grey / sky start) was 28.84 / 29.12, 22.07 / 21.66, 36.86 / 26.52 and 29.16 / 29.67 dB (seed 9191 scene_00001/2,
-    seed 7373 scene_00001/5): no better on average, and it needs a rule for what +inf depth means in other data."""
+    scenes; the co-visible held-out PSNR (grey / sky start) was 28.84 / 29.12, 22.07 / 21.66, 36.86 / 26.52 and
+    29.16 / 29.67 dB (seed 9191 scene_00001/2, seed 7373 scene_00001/5): no better on average, and it needs a
+    rule for what +inf depth means in other data."""
     rgb = torch.tensor(BACKGROUNDS[config.background])
     if config.background == "learned":
         state.background = nn.Parameter(torch.logit(rgb))
