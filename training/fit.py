@@ -117,7 +117,8 @@ class FitConfig:
             Gaussians, sigmoid of 3 logits starting at 0.5 grey, Adam at ``lr.background``; written to meta.json so
             ``render``/``view`` composite over it), "black" or "white" (fixed). A per-scene fit has no Gaussians at
             infinity: where the training views see the sky or a constant backdrop (synthetic scenes, D-NeRF's
-            white), a fixed black background makes any view that sees it there from a new angle black.
+            white), over a fixed black background only Gaussians inside the scene can produce its colour, and a
+            new view sees black wherever those Gaussians do not cover it.
         lr: learning rates.
     """
 
