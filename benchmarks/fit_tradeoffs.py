@@ -15,9 +15,12 @@ pixels, those whose surface point a training view sees — DyCheck's mPSNR, ``ho
 against the optimisation time (evaluation excluded), the Gaussian count, and ms per step; the wall time
 includes loading, initialisation and writing the output folder.
 
-    python benchmarks/fit_tradeoffs.py --data data/fit_eval --iterations 3000 --write
+    data_prep synth --scenes 6 --cameras 10 --seed 80808 --static-ratio 0.5 --out data/fit_eval
+    pip install -e ".[bench]"   # matplotlib, for the plot
+    python benchmarks/fit_tradeoffs.py --data data/fit_eval --iterations 1800 --write
 
-writes a table and docs/fit_tradeoffs.png into docs/benchmarks.md (section ``fit_tradeoffs``).
+writes a table and docs/fit_tradeoffs.png into docs/benchmarks.md (section ``fit_tradeoffs``). Use a fresh seed
+for a new measurement: one looked at while changing the fit is development data.
 """
 from __future__ import annotations
 
