@@ -15,6 +15,7 @@ from importlib.metadata import entry_points
 from pathlib import Path
 
 from .checks import check_positive_int
+from .devices import AUTO, DEVICE_HELP, resolve_device
 from .errors import run_cli
 
 __all__ = ["main", "build_parser"]
@@ -85,7 +86,7 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
                    help="model folder (default: the shipped weights of --config)")
     g.add_argument("--config", default=None, help=config_help)
     g.add_argument("--fps", type=int, default=8, help="video frame rate (default: 8)")
-    g.add_argument("--device", default="cpu", help="torch device (default: cpu)")
+    g.add_argument("--device", default=AUTO, help=DEVICE_HELP)
     g.add_argument("--runtime", choices=("torch", "onnxruntime"), default="torch",
                    help="run the networks with PyTorch or with onnxruntime on an --onnx export (default: torch)")
     g.add_argument("--onnx", type=Path, default=None, help="folder written by `diff4splat export-onnx` "
@@ -123,6 +124,7 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
     r.add_argument("--width", type=int, default=None, help="output width, pixels (default: the camera path's)")
     r.add_argument("--height", type=int, default=None, help="output height, pixels (default: the camera path's)")
     r.add_argument("--fps", type=int, default=8, help="video frame rate (default: 8)")
+    r.add_argument("--device", default=AUTO, help=DEVICE_HELP + "; where the scene is rendered")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.add_argument("--out", type=_out_path, required=True, help=OUT_HELP)
     r.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
@@ -200,7 +202,7 @@ def _check_generate_args(args) -> None:
     if args.runtime == "onnxruntime":
         if args.onnx is None:
             raise ValueError("--runtime onnxruntime needs --onnx DIR (a folder written by `diff4splat export-onnx`)")
-        if args.checkpoint is not None or args.config is not None or args.device != "cpu":
+        if args.checkpoint is not None or args.config is not None or args.device != AUTO:
             raise ValueError("--checkpoint, --config and --device do not apply to --runtime onnxruntime "
                              "(the export's manifest fixes the model; onnxruntime picks CUDA or CPU)")
         if not args.onnx.is_dir():
@@ -208,32 +210,7 @@ def _check_generate_args(args) -> None:
     elif args.onnx is not None:
         raise ValueError("--onnx needs --runtime onnxruntime")
     else:
-        _check_device("--device", args.device)
-
-
-def _check_device(name: str, device: str) -> None:
-    """Raise ``ValueError`` naming ``name`` unless ``device`` is a torch device this machine can use
-    (checked before any model is loaded: ``cuda`` needs a CUDA build of torch and a GPU, ``cuda:N`` an
-    N-th GPU, ``mps`` Apple's Metal backend, other types their ``torch.<type>.is_available()``)."""
-    import torch
-
-    try:
-        dev = torch.device(device)
-    except (RuntimeError, TypeError) as e:
-        raise ValueError(f"{name}: {device!r} is not a torch device (e.g. cpu, cuda, cuda:1): {e}") from None
-    if dev.type == "cpu":
-        return
-    if dev.type == "cuda":
-        if not torch.cuda.is_available():
-            why = "torch built without CUDA" if torch.version.cuda is None else "no GPU found"
-            raise ValueError(f"{name}: {device} is not available ({why}); use --device cpu")
-        if dev.index is not None and dev.index >= torch.cuda.device_count():
-            raise ValueError(f"{name}: {device} is not available (this machine has "
-                             f"{torch.cuda.device_count()} GPU(s): cuda:0 … cuda:{torch.cuda.device_count() - 1})")
-        return
-    backend = torch.backends.mps if dev.type == "mps" else getattr(torch, dev.type, None)
-    if backend is None or not getattr(backend, "is_available", lambda: False)():
-        raise ValueError(f"{name}: {device} is not available on this machine; use --device cpu")
+        args.device = resolve_device(args.device, "--device")  # before any model is loaded
 
 
 def _generate_inputs(args) -> list:
@@ -390,7 +367,8 @@ def _main(argv: list[str] | None) -> int:
 
         meta = rerender(args.folder, args.out, cameras=args.cameras, trajectory=args.trajectory,
                         amplitude=args.amplitude, frames=args.frames, width=args.width, height=args.height,
-                        fps=args.fps, overwrite=args.overwrite, progress=not args.quiet)
+                        fps=args.fps, overwrite=args.overwrite, progress=not args.quiet,
+                        device=resolve_device(args.device, "--device"))
         print(f"wrote {args.out} ({meta['frames']} frames, {meta['width']}x{meta['height']})")
     elif args.command == "view":
         from .view import serve

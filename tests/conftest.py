@@ -1,7 +1,41 @@
-"""Shared fixtures (session-scoped checkpoints); plain helpers live in tests/helpers.py."""
+"""Shared fixtures (devices, session-scoped checkpoints); plain helpers live in tests/helpers.py."""
 import pytest
 import torch
 from helpers import tiny_model
+
+CUDA = torch.cuda.is_available()
+DEVICES = [pytest.param("cpu", id="cpu"),
+           pytest.param("cuda", id="cuda", marks=pytest.mark.cuda)]
+"""The ``device`` fixture's values: the CPU always, CUDA where torch sees a GPU (skipped elsewhere)."""
+
+
+def pytest_collection_modifyitems(config, items):
+    """Tests marked ``cuda`` (the ``device`` fixture's CUDA case included) skip cleanly without a GPU;
+    ``python -m pytest -m cuda`` runs only them."""
+    if CUDA:
+        return
+    skip = pytest.mark.skip(reason="needs CUDA (torch.cuda.is_available() is False)")
+    for item in items:
+        if "cuda" in item.keywords:
+            item.add_marker(skip)
+
+
+@pytest.fixture(params=DEVICES)
+def device(request):
+    """The device a test runs on: ``cpu``, and ``cuda`` on a machine with a GPU (docs/DESIGN.md "Devices")."""
+    return torch.device(request.param)
+
+
+@pytest.fixture
+def no_implicit_device():
+    """For the test's body, tensors created without ``device=`` land on the ``meta`` device: code that makes a
+    tensor on the default device beside CPU inputs then fails (mixed devices, or a meta value read) on a
+    CPU-only machine, as it would beside CUDA inputs on a GPU. Build models and inputs before using it."""
+    torch.set_default_device("meta")
+    try:
+        yield
+    finally:
+        torch.set_default_device(None)
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,69 @@
+"""Which device runs what: the one rule every module follows, and the helpers that apply it.
+
+The rule (docs/DESIGN.md, "Devices"):
+
+- Every tensor is created on the device of the inputs it belongs with (``device=x.device``, ``x.new_*``,
+  ``torch.*_like``). A factory call without ``device=`` says why on its line (``# device: …``); the suite
+  checks this (tests/test_devices.py).
+- numpy and the numba kernels see CPU tensors only: a ``.numpy()`` follows a ``.cpu()`` in the same
+  expression, or the line says why it is already on the CPU (``# device: …``).
+- Random draws use a CPU ``torch.Generator`` and are moved afterwards, so a seed gives the same numbers on
+  every device (diffusers' ``randn_tensor`` does the same).
+- Commands take ``--device`` (default ``auto``: the first CUDA GPU when torch sees one, else the CPU);
+  :func:`resolve_device` turns it into a ``torch.device`` or one clear error naming the flag.
+"""
+from __future__ import annotations
+
+import torch
+
+__all__ = ["AUTO", "DEVICE_HELP", "resolve_device", "synchronize"]
+
+AUTO = "auto"
+"""The device name that means "CUDA when present, else the CPU" (every command's ``--device`` default)."""
+DEVICE_HELP = "torch device: auto (CUDA when present, else cpu), cpu, cuda, cuda:N (default: auto)"
+"""The ``--device`` help text shared by every command."""
+
+
+def resolve_device(device: str | torch.device | None = AUTO, name: str = "device") -> torch.device:
+    """The ``torch.device`` that ``device`` names, checked to be usable on this machine.
+
+    Args:
+        device: ``"auto"`` or None (``cuda`` when ``torch.cuda.is_available()``, else ``cpu``), a device
+            string (``cpu``, ``cuda``, ``cuda:1``, ``mps``, …) or a ``torch.device``.
+        name: what the caller's user calls it (``--device``, ``trainer.device``), used in the message.
+
+    Returns:
+        The device; ``cuda`` without an index stays index-less (the current CUDA device).
+
+    Raises:
+        ValueError: not a device name, or a device this machine does not have (a CPU-only build of
+            torch, no GPU, ``cuda:N`` beyond the GPU count, an unavailable backend), naming ``name``.
+    """
+    if device is None or (isinstance(device, str) and device.strip().lower() == AUTO):
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as e:
+        raise ValueError(f"{name}: {device!r} is not a torch device (auto, cpu, cuda, cuda:1, …): {e}") from None
+    if dev.type == "cpu":
+        return dev
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            why = "torch built without CUDA" if torch.version.cuda is None else "no GPU found"
+            raise ValueError(f"{name}: {device} is not available ({why}); use cpu")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ValueError(f"{name}: {device} is not available (this machine has "
+                             f"{torch.cuda.device_count()} GPU(s): cuda:0 … cuda:{torch.cuda.device_count() - 1})")
+        return dev
+    backend = torch.backends.mps if dev.type == "mps" else getattr(torch, dev.type, None)
+    if backend is None or not getattr(backend, "is_available", lambda: False)():
+        raise ValueError(f"{name}: {device} is not available on this machine; use cpu")
+    return dev
+
+
+def synchronize(device: str | torch.device) -> None:
+    """Wait for the work queued on ``device`` (CUDA kernels run asynchronously), so that a wall-clock
+    reading after it includes that work; nothing on the CPU."""
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)
