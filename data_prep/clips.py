@@ -278,7 +278,7 @@ class ClipDataset(Dataset):
             depth = torch.from_numpy(np.stack([resize_depth(reader.depth(c, f), H, W)
                                                for c, f in zip(spec.cameras, spec.frames, strict=True)]))
         else:
-            depth = torch.full((T, H, W), float("inf"))
+            depth = torch.full((T, H, W), float("inf"), device="cpu")  # items are CPU tensors (DataLoader)
         out: dict[str, Any] = {
             "video": video.permute(3, 0, 1, 2).contiguous(),
             "viewmats": clip.viewmats.float(),
@@ -296,11 +296,12 @@ class ClipDataset(Dataset):
         meta = reader.meta
         out.update({
             "caption": reader.caption or "",
-            "dynamic": torch.tensor(meta.dynamic),
-            "frame_indices": torch.tensor(spec.frames, dtype=torch.int64),
-            "camera_indices": torch.tensor([meta.cameras.index(c) for c in spec.cameras], dtype=torch.int64),
+            "dynamic": torch.tensor(meta.dynamic, device="cpu"),
+            "frame_indices": torch.tensor(spec.frames, dtype=torch.int64, device="cpu"),
+            "camera_indices": torch.tensor([meta.cameras.index(c) for c in spec.cameras], dtype=torch.int64,
+                                           device="cpu"),
             "scene": spec.scene,
-            "index": torch.tensor(index, dtype=torch.int64),
+            "index": torch.tensor(index, dtype=torch.int64, device="cpu"),
         })
         return out
 
@@ -308,9 +309,9 @@ class ClipDataset(Dataset):
                 depth: Tensor, rng: np.random.Generator) -> dict[str, Tensor]:
         """Tracks of the clip: N sampled points in the clip world with per-frame visibility and a pad mask."""
         N, T, H, W = self.config.num_tracks, len(spec.frames), clip.height, clip.width
-        tracks = torch.zeros(N, T, 3)
-        visible = torch.zeros(N, T, dtype=torch.bool)
-        mask = torch.zeros(N, dtype=torch.bool)
+        tracks = torch.zeros(N, T, 3, device="cpu")
+        visible = torch.zeros(N, T, dtype=torch.bool, device="cpu")
+        mask = torch.zeros(N, dtype=torch.bool, device="cpu")
         data = reader.tracks()
         if data is None or N == 0:
             return {"tracks": tracks, "track_visibility": visible, "track_mask": mask}
@@ -326,10 +327,10 @@ class ClipDataset(Dataset):
         inside = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < W) & (uv[..., 1] >= 0) & (uv[..., 1] < H)
         col = uv[..., 0].floor().clamp(0, W - 1).long()
         row = uv[..., 1].floor().clamp(0, H - 1).long()
-        d = depth[torch.arange(T)[None, :].expand_as(row), row, col].double()
+        d = depth[torch.arange(T, device="cpu")[None, :].expand_as(row), row, col].double()
         unoccluded = d >= z - torch.clamp(OCCLUSION_TOL_REL * z, min=OCCLUSION_TOL_M)
         stored = torch.from_numpy(vis[ids][:, frames])
-        is_ref = torch.tensor([c == reader.meta.cameras[0] for c in spec.cameras])
+        is_ref = torch.tensor([c == reader.meta.cameras[0] for c in spec.cameras], device="cpu")
         ok = torch.where(is_ref[None, :], stored, unoccluded if reader.has_depth else torch.ones_like(stored))
         n = len(ids)
         tracks[:n] = X.float()

@@ -233,10 +233,10 @@ def scene_statistics(scene: SceneReader, config: CurationConfig) -> SceneStats:
         ValueError / FileNotFoundError / OSError: an unreadable file of the scene.
     """
     T, names = scene.num_frames, scene.camera_names
-    ref = scene.cameras(names[0]).viewmats[0].double().numpy()
+    ref = scene.cameras(names[0]).viewmats[0].double().cpu().numpy()
     trans, rot = 0.0, 0.0
     for name in names:
-        vm = scene.cameras(name).viewmats.double().numpy()  # (T, 4, 4) world-to-camera
+        vm = scene.cameras(name).viewmats.double().cpu().numpy()  # (T, 4, 4) world-to-camera
         centres = camera_centers(torch.from_numpy(vm)).numpy()  # −Rᵀt
         ref_centre = camera_centers(torch.from_numpy(ref)).numpy()
         trans = max(trans, float(np.linalg.norm(centres - ref_centre, axis=-1).max()))

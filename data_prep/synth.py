@@ -214,8 +214,8 @@ def build_gaussians(spec: dict[str, Any], rng: np.random.Generator) -> tuple[Gau
     scales = np.stack([sig, sig, 0.1 * sig], 1)
     opac = np.concatenate([np.full(len(q[0]), q[4]) for q in parts])
     ids = np.concatenate([np.full(len(q[0]), q[5], dtype=np.int64) for q in parts])
-    f32 = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
-    quats = rotmat_to_quat(torch.as_tensor(frames, dtype=torch.float64)).float()
+    f32 = lambda a: torch.as_tensor(a, dtype=torch.float32, device="cpu")  # noqa: E731
+    quats = rotmat_to_quat(torch.as_tensor(frames, dtype=torch.float64, device="cpu")).float()
     return Gaussians(f32(means), quats, f32(scales), f32(opac), rgb_to_sh0(f32(rgb))[:, None, :]), ids
 
 
@@ -251,8 +251,9 @@ def object_transform(obj: dict[str, Any], t: float) -> tuple[np.ndarray, np.ndar
 
 
 def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
-    q = axis_angle_to_quat(torch.as_tensor(axis, dtype=torch.float64), torch.tensor(float(angle), dtype=torch.float64))
-    return quat_to_rotmat(q).numpy()
+    q = axis_angle_to_quat(torch.as_tensor(axis, dtype=torch.float64, device="cpu"),
+                           torch.tensor(float(angle), dtype=torch.float64, device="cpu"))
+    return quat_to_rotmat(q).cpu().numpy()
 
 
 def build_scene(spec: dict[str, Any], rng: np.random.Generator) -> tuple[DynamicGaussians, np.ndarray]:
@@ -268,15 +269,15 @@ def build_scene(spec: dict[str, Any], rng: np.random.Generator) -> tuple[Dynamic
     d_means = np.zeros((T, M, 3))
     d_quats = np.tile(np.array([1.0, 0, 0, 0]), (T, M, 1))
     d_scales = np.zeros((T, M, 3))
-    means = canon.means.double().numpy()
+    means = canon.means.double().cpu().numpy()
     for k in movers:
         sel = ids == k
         for i, t in enumerate(times):
             p0, d, R, S = object_transform(spec["objects"][k], float(t))
             d_means[i, sel] = p0 + d + ((means[sel] - p0) * S) @ R.T - means[sel]
-            d_quats[i, sel] = rotmat_to_quat(torch.as_tensor(R)).numpy()
+            d_quats[i, sel] = rotmat_to_quat(torch.as_tensor(R, device="cpu")).numpy()  # device: made on the CPU
             d_scales[i, sel] = np.log(S).mean()  # isotropic approximation of the Gaussian's shape; means exact
-    f32 = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
+    f32 = lambda a: torch.as_tensor(a, dtype=torch.float32, device="cpu")  # noqa: E731
     return DynamicGaussians(canon, f32(times), f32(d_means), f32(d_quats), f32(d_scales)), ids
 
 
@@ -308,7 +309,8 @@ def camera_path(spec: dict[str, Any], cam: dict[str, Any]) -> CameraPath:
         fwd, side = (to * f).sum(1, keepdims=True), (to * r).sum(1, keepdims=True)
         rest = to - fwd * f - side * r
         targets = eyes + rest + (fwd * np.cos(a) - side * np.sin(a)) * f + (fwd * np.sin(a) + side * np.cos(a)) * r
-    viewmats = look_at(torch.as_tensor(eyes), torch.as_tensor(targets), up=tuple(_UP)).float()
+    cpu = lambda a: torch.as_tensor(a, device="cpu")  # noqa: E731
+    viewmats = look_at(cpu(eyes), cpu(targets), up=tuple(_UP)).float()
     K = intrinsics_from_fov(size, size, fov_x_deg=cam["fov_x_deg"])
     return CameraPath(viewmats, K.expand(T, 3, 3).clone(), size, size)
 
@@ -326,8 +328,8 @@ def track_visibility(points: np.ndarray, cameras: CameraPath, depth: np.ndarray)
         cameras: the reference camera's T cameras.
         depth: (T, H, W) its rendered z-depth, metres (+inf where empty).
     """
-    V = cameras.viewmats.double().numpy()
-    K = cameras.Ks.double().numpy()
+    V = cameras.viewmats.double().cpu().numpy()
+    K = cameras.Ks.double().cpu().numpy()
     cam = np.einsum("tij,ptj->pti", V[:, :3, :3], points.astype(np.float64)) + V[None, :, :3, 3]
     z = cam[..., 2]
     zs = np.where(z > 1e-9, z, 1.0)
@@ -384,20 +386,20 @@ def render_spec(spec: dict[str, Any], rng: np.random.Generator) -> SynthScene:
         rgbs, depths = [], []
         for p in paths:
             rgb, ed, alpha = render_path(scene, p, background=tuple(spec["background"]))
-            rgbs.append(rgb.numpy())
-            depths.append(torch.where(alpha >= 0.5, ed, torch.inf).numpy())
+            rgbs.append(rgb.cpu().numpy())
+            depths.append(torch.where(alpha >= 0.5, ed, torch.inf).cpu().numpy())
     finally:
         torch.set_num_threads(threads)
     obj = np.flatnonzero(ids >= 0)
     pick = np.sort(rng.choice(obj, size=min(MAX_TRACKS, len(obj)), replace=False))
-    base = scene.canonical.means.numpy()[pick]  # (P, 3)
+    base = scene.canonical.means.cpu().numpy()[pick]  # (P, 3)
     if scene.is_static:
         points = np.repeat(base[:, None], spec["num_frames"], axis=1)
     else:  # exactly the means scene.at(t_i) renders (key times are the frame times)
-        points = base[:, None] + scene.d_means.numpy()[:, pick].transpose(1, 0, 2)
+        points = base[:, None] + scene.d_means.cpu().numpy()[:, pick].transpose(1, 0, 2)
     points = points.astype(np.float32)
     visibility = track_visibility(points, paths[0], depths[0])
-    caption = caption_for(spec, paths[0].viewmats[0, :3, :3].double().numpy())
+    caption = caption_for(spec, paths[0].viewmats[0, :3, :3].double().cpu().numpy())
     return SynthScene(spec, scene, ids, paths, rgbs, depths, pick, points, visibility, caption)
 
 

@@ -97,7 +97,7 @@ def _check_camera(problems: list[Problem], scene: Path, name: str, meta: SceneMe
             problems.append(Problem(cam_file, f"'timestamps' has {ts.size} values, num_frames is {T}"))
             ts = None
         if ts is not None and path is not None and len(path) == T:
-            err = float(np.abs(timestamps_to_times(ts) - path.times.double().numpy()).max())
+            err = float(np.abs(timestamps_to_times(ts) - path.times.double().cpu().numpy()).max())
             if err > TIMES_TOLERANCE:
                 problems.append(Problem(
                     cam_file, f"'times' differ from the normalised 'timestamps' by {err:.3g} (> {TIMES_TOLERANCE})"))

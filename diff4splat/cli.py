@@ -87,6 +87,12 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
     g.add_argument("--config", default=None, help=config_help)
     g.add_argument("--fps", type=int, default=8, help="video frame rate (default: 8)")
     g.add_argument("--device", default=AUTO, help=DEVICE_HELP)
+    g.add_argument("--dtype", choices=("float32", "bfloat16", "float16"), default="float32",
+                   help="weight dtype of the networks (bfloat16 halves a GPU's memory use; default: float32); "
+                        "sampling, Gaussians and rendering stay float32")
+    g.add_argument("--offload", choices=("none", "model"), default="none",
+                   help="model: keep the networks in CPU memory and move one at a time to --device while it runs "
+                        "(the paper-size model within 25 GB of GPU memory); default: none")
     g.add_argument("--runtime", choices=("torch", "onnxruntime"), default="torch",
                    help="run the networks with PyTorch or with onnxruntime on an --onnx export (default: torch)")
     g.add_argument("--onnx", type=Path, default=None, help="folder written by `diff4splat export-onnx` "
@@ -98,7 +104,8 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
     e = sub.add_parser("export-onnx", help="export the networks to ONNX for onnxruntime serving",
                        description="Export the VAE encoder/decoder, text encoder, DiT velocity and LDRM "
                                    "(+ deformation) as ONNX graphs with dynamic batch/frames/resolution, "
-                                   "plus manifest.json.")
+                                   "plus manifest.json. The export runs on the CPU in float32 (it has no "
+                                   "--device); the graphs run on any onnxruntime provider, CUDA included.")
     e.add_argument("--checkpoint", type=Path, default=None,
                    help="model folder (default: the shipped weights of --config)")
     e.add_argument("--config", default=DEFAULT_CONFIG, help=config_help)
@@ -202,8 +209,10 @@ def _check_generate_args(args) -> None:
     if args.runtime == "onnxruntime":
         if args.onnx is None:
             raise ValueError("--runtime onnxruntime needs --onnx DIR (a folder written by `diff4splat export-onnx`)")
-        if args.checkpoint is not None or args.config is not None or args.device != AUTO:
-            raise ValueError("--checkpoint, --config and --device do not apply to --runtime onnxruntime "
+        if (args.checkpoint is not None or args.config is not None or args.device != AUTO
+                or args.dtype != "float32" or args.offload != "none"):
+            raise ValueError("--checkpoint, --config, --device, --dtype and --offload do not apply to --runtime "
+                             "onnxruntime "
                              "(the export's manifest fixes the model; onnxruntime picks CUDA or CPU)")
         if not args.onnx.is_dir():
             raise FileNotFoundError(f"--onnx: {args.onnx} is not a folder")
@@ -226,7 +235,7 @@ def _load_pipeline(args):
     """
     from models.bundle import DEFAULT_CONFIG
 
-    from .pipeline import Diff4SplatPipeline
+    from .pipeline import DTYPES, Diff4SplatPipeline
 
     if args.runtime == "onnxruntime":
         import onnxruntime
@@ -239,7 +248,8 @@ def _load_pipeline(args):
         source = f"onnx:{args.onnx} ({runtime.manifest['source']})"
         return Diff4SplatPipeline(runtime), source, t_load, {"onnxruntime": onnxruntime.__version__}
     model, source, t_load = _load_model(args.checkpoint, args.config or DEFAULT_CONFIG)
-    return Diff4SplatPipeline(model, device=args.device), source, t_load, {}
+    return (Diff4SplatPipeline(model, device=args.device, dtype=DTYPES[args.dtype], offload=args.offload), source,
+            t_load, {})
 
 
 def _load_cameras(path: Path, frames: int | None, photo_shape: tuple[int, int], width: int, height: int):
@@ -293,6 +303,9 @@ def _meta(args, pipe, result, source: str, versions: dict, timings: dict) -> dic
         "model": source,
         "config": cfg.name,
         "runtime": pipe.runtime.name,
+        "device": str(pipe.device),
+        "dtype": None if args.runtime != "torch" else args.dtype,
+        "offload": None if args.runtime != "torch" else args.offload,
         "image": str(args.image),
         "prompt": args.prompt,
         "trajectory": None if args.cameras is not None else args.trajectory,

@@ -14,9 +14,11 @@ The rule (docs/DESIGN.md, "Devices"):
 """
 from __future__ import annotations
 
+import time
+
 import torch
 
-__all__ = ["AUTO", "DEVICE_HELP", "resolve_device", "synchronize"]
+__all__ = ["AUTO", "DEVICE_HELP", "resolve_device", "synchronize", "Stopwatch"]
 
 AUTO = "auto"
 """The device name that means "CUDA when present, else the CPU" (every command's ``--device`` default)."""
@@ -67,3 +69,23 @@ def synchronize(device: str | torch.device) -> None:
     dev = torch.device(device)
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
+
+
+class Stopwatch:
+    """Wall-clock laps that include the device's queued work (:func:`synchronize` before each reading).
+
+    Args:
+        device: the device whose work the laps time.
+    """
+
+    def __init__(self, device: str | torch.device):
+        self.device = torch.device(device)
+        synchronize(self.device)
+        self._last = time.perf_counter()
+
+    def lap(self) -> float:
+        """Seconds since the previous lap (or since construction)."""
+        synchronize(self.device)
+        now = time.perf_counter()
+        elapsed, self._last = now - self._last, now
+        return elapsed

@@ -192,7 +192,7 @@ def _graphs(model: Diff4SplatModel, text: bool, deformation: bool) -> list[_Grap
     B, n, K, L = 2, 3, 5, 7
 
     def randn(*shape):
-        return torch.randn(shape, generator=gen)
+        return torch.randn(shape, generator=gen, device="cpu")  # the export traces on the CPU
 
     batch = Dim("batch", min=1, max=_MAX)
     k = Dim("k", min=0, max=_MAX)  # T = 1 + 4k frames
@@ -216,11 +216,11 @@ def _graphs(model: Diff4SplatModel, text: bool, deformation: bool) -> list[_Grap
                {"latents": {0: batch, 2: Dim("latent_frames", min=3, max=_MAX), 3: hl, 4: wl}}),
     ]
     if text:
-        ids = torch.randint(3, cfg.text_encoder.vocab_size, (B, L), generator=gen)
-        mask = torch.tensor([[True] * L, [True] * (L - 3) + [False] * 3])
+        ids = torch.randint(3, cfg.text_encoder.vocab_size, (B, L), generator=gen, device="cpu")
+        mask = torch.tensor([[True] * L, [True] * (L - 3) + [False] * 3], device="cpu")
         graphs.append(_Graph("text_encoder", _TextEncoder(model), (ids, mask), ("ids", "mask"), ("tokens",),
                              {"ids": {0: batch, 1: L_d}, "mask": {0: batch, 1: L_d}}))
-    dit_args = (randn(B, c, n, h, w), torch.rand(B, generator=gen), randn(B, c, 1, h, w),
+    dit_args = (randn(B, c, n, h, w), torch.rand(B, generator=gen, device="cpu"), randn(B, c, 1, h, w),
                 randn(B, cfg.dit.camera_channels, n, h, w))
     dit_ds = {"x": dit_lat, "sigma": {0: batch}, "image_latent": {0: batch, 3: ph * ht, 4: pw * wt},
               "plucker": dit_lat}
@@ -234,7 +234,7 @@ def _graphs(model: Diff4SplatModel, text: bool, deformation: bool) -> list[_Grap
                              ("velocity",), dit_ds))
     image = cfg.ldrm.image_branch > 0
     ldrm_args = (randn(B, c, n, h, w), randn(B, cfg.ldrm.plucker_channels, n, h, w),
-                 torch.linspace(0, 1, K) if deformation else None,
+                 torch.linspace(0, 1, K, device="cpu") if deformation else None,
                  randn(B, 3, s * h, s * w).tanh() if image else None)
     ldrm_ds = {"latents": ldrm_lat, "plucker": ldrm_lat, "times": {0: K_d} if deformation else None,
                "image": {0: batch, 2: (s * pl) * hr, 3: (s * pl) * wr} if image else None}
@@ -254,7 +254,7 @@ def state_dict_sha256(module: nn.Module) -> str:
     for key, value in sorted(module.state_dict().items()):
         t = value.detach().cpu().contiguous()
         digest.update(f"{key}|{t.dtype}|{tuple(t.shape)}|".encode())
-        digest.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+        digest.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")  # device: t is a CPU copy
     return digest.hexdigest()
 
 
@@ -391,7 +391,10 @@ def export_onnx(
     """Export ``model`` to ``out_dir`` (one ``.onnx`` per module + ``manifest.json``), atomically.
 
     Args:
-        model: the four networks (moved to CPU float32 for tracing; eval mode).
+        model: the four networks. The export runs on the CPU in float32, whatever device the model was on:
+            ``model`` is moved there (in place, as ``nn.Module.to`` does) and left in eval mode; move it
+            back with ``model.to(device)`` to go on using it on a GPU. The graphs run on any onnxruntime
+            provider (CUDA included) all the same.
         out_dir: output folder; replaced only when the whole export succeeded.
         text: include the text encoder and the text-conditioned DiT (False = ``--no-text``).
         deformation: include the deformation network in the LDRM graph (False = ``--static``).

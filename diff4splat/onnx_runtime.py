@@ -311,10 +311,10 @@ class OnnxRuntime:
         if self.dit_text_inputs:
             B = x.shape[0]
             if text is None:
-                text = torch.zeros(B, 1, self.config.dit.text_dim)
-                text_mask = torch.zeros(B, 1, dtype=torch.bool)
+                text = torch.zeros(B, 1, self.config.dit.text_dim, device=x.device)
+                text_mask = torch.zeros(B, 1, dtype=torch.bool, device=x.device)
             elif text_mask is None:
-                text_mask = torch.ones(text.shape[:2], dtype=torch.bool)
+                text_mask = torch.ones(text.shape[:2], dtype=torch.bool, device=text.device)
             feeds["text"], feeds["text_mask"] = _numpy(text, np.float32), _numpy(text_mask, np.bool_)
         elif text is not None:
             raise ValueError(f"text: the ONNX export in {self.directory} was made without the text encoder "

@@ -21,16 +21,16 @@ is another choice, made in :mod:`diff4splat.render`.)
 from __future__ import annotations
 
 import math
-import time
 import warnings
-from dataclasses import dataclass, field
+from contextlib import contextmanager
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Protocol, runtime_checkable
 
 import torch
 from torch import Tensor
 
-from models.bundle import DEFAULT_CONFIG, WEIGHTS_DIR, Diff4SplatConfig, Diff4SplatModel, load_config
+from models.bundle import DEFAULT_CONFIG, NETWORKS, WEIGHTS_DIR, Diff4SplatConfig, Diff4SplatModel, load_config
 from models.flow_matching import sample
 from models.ldrm import LDRMOutput, source_frame_indices
 
@@ -44,8 +44,10 @@ from .cameras import (
     plucker_rays,
 )
 from .checks import check_positive_int
+from .devices import Stopwatch
 from .gaussians import Gaussians, rgb_to_sh0
 from .limits import check_limit
+from .offload import ModelOffload
 from .prune import duplicate_mask, occluder_mask, prune_mask
 from .scene import DynamicGaussians
 
@@ -170,27 +172,82 @@ class NetworkRuntime(Protocol):
         ``image`` (1, 3, H, W) in [−1, 1] is the photograph (used by an LDRM with an image branch)."""
 
 
+OFFLOAD_MODES = ("none", "model")
+"""``offload`` values: ``none`` keeps every network on the device; ``model`` keeps them in CPU memory and moves
+one at a time to the device while it runs (:class:`diff4splat.offload.ModelOffload`)."""
+DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}
+"""Weight dtypes a :class:`TorchRuntime` runs in, by name (``generate --dtype``)."""
+
+
 class TorchRuntime:
-    """:class:`NetworkRuntime` over the PyTorch networks of a :class:`Diff4SplatModel` (eval mode, no grad)."""
+    """:class:`NetworkRuntime` over the PyTorch networks of a :class:`Diff4SplatModel` (eval mode, no grad).
+
+    Args:
+        model: the networks; moved to ``device`` (or, with ``offload="model"``, to the CPU) and cast to
+            ``dtype``, in place.
+        device: where the networks run.
+        dtype: weight dtype (float32, bfloat16 or float16; None keeps the model's). The networks compute in it;
+            inputs are cast to it and every output is returned in float32, so the sampler integrates and the
+            Gaussians are built in float32 whatever the weights.
+        offload: one of :data:`OFFLOAD_MODES`.
+
+    Raises:
+        ValueError: an unknown ``offload`` or a non-floating ``dtype``.
+    """
 
     name = "torch"
     has_deformation = True
 
-    def __init__(self, model: Diff4SplatModel):
-        self.model = model.eval()
+    def __init__(self, model: Diff4SplatModel, device: str | torch.device = "cpu", *,
+                 dtype: torch.dtype | None = None, offload: str = "none"):
+        if offload not in OFFLOAD_MODES:
+            raise ValueError(f"offload must be one of {OFFLOAD_MODES}, got {offload!r}")
+        if dtype is not None and dtype not in DTYPES.values():
+            raise ValueError(f"dtype must be one of {sorted(DTYPES)} (torch dtypes), got {dtype!r}")
+        self.device = torch.device(device)
+        self.model = model.eval() if dtype is None else model.to(dtype).eval()
         self.config = model.config
+        self.dtype = next(model.dit.parameters()).dtype
+        self.offload = ModelOffload({n: getattr(model, n) for n in NETWORKS}, self.device) if offload == "model" \
+            else None
+        if self.offload is None:
+            model.to(self.device)
+
+    @contextmanager
+    def _use(self, name: str):
+        """The network ``name`` on the device (moved there first with ``offload="model"``)."""
+        if self.offload is None:
+            yield getattr(self.model, name)
+        else:
+            with self.offload.use(name) as net:
+                yield net
+
+    def release(self) -> None:
+        """Free the device memory of an offloaded network (nothing without offload)."""
+        if self.offload is not None:
+            self.offload.release()
 
     def encode_image(self, video: Tensor) -> Tensor:
-        return self.model.vae.encode_latents(video)
+        with self._use("vae") as vae:
+            return vae.encode_latents(video.to(self.dtype)).float()
 
     def encode_text(self, prompt: str) -> tuple[Tensor, Tensor]:
-        return self.model.text_encoder.encode([prompt])
+        with self._use("text_encoder") as encoder:
+            tokens, mask = encoder.encode([prompt])
+        return tokens.float(), mask
 
     def velocity(self, x, sigma, image_latent, plucker, text, text_mask) -> Tensor:
-        return self.model.dit(x, sigma, image_latent, plucker, text, text_mask)
+        dt = self.dtype
+        with self._use("dit") as dit:
+            return dit(x.to(dt), sigma.to(dt), image_latent.to(dt), plucker.to(dt),
+                       None if text is None else text.to(dt), text_mask).float()
 
     def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None, image: Tensor) -> LDRMOutput:
-        return self.model.ldrm(latents, plucker, times, image)
+        dt = self.dtype
+        with self._use("ldrm") as ldrm:
+            out = ldrm(latents.to(dt), plucker.to(dt), None if times is None else times.to(dt), image.to(dt))
+        return LDRMOutput(**{f.name: None if getattr(out, f.name) is None else getattr(out, f.name).float()
+                             for f in fields(out)})
 
 
 @dataclass
@@ -279,6 +336,11 @@ class Diff4SplatPipeline:
             :class:`TorchRuntime`), or any :class:`NetworkRuntime` (e.g. ``diff4splat.onnx_runtime.OnnxRuntime``).
         device: torch device of the PyTorch networks and the pipeline's tensors (a non-torch
             runtime takes CPU tensors: use "cpu").
+        dtype: weight dtype of the PyTorch networks (:class:`TorchRuntime`; e.g. ``torch.bfloat16`` on a GPU);
+            None keeps the model's. Sampling, Gaussians and rendering stay float32.
+        offload: ``"model"`` keeps the PyTorch networks in CPU memory and moves one at a time to ``device``
+            while it runs (the peak is the largest network, not all four: how a paper-size model fits a
+            25 GB budget); ``"none"`` (default) keeps them all on ``device``.
 
     Attributes:
         runtime: the :class:`NetworkRuntime` that runs the networks.
@@ -289,10 +351,11 @@ class Diff4SplatPipeline:
         TypeError: ``model`` is neither a Diff4SplatModel nor a NetworkRuntime.
     """
 
-    def __init__(self, model: Diff4SplatModel | NetworkRuntime, device: str | torch.device = "cpu"):
+    def __init__(self, model: Diff4SplatModel | NetworkRuntime, device: str | torch.device = "cpu", *,
+                 dtype: torch.dtype | None = None, offload: str = "none"):
         if isinstance(model, Diff4SplatModel):
-            self.model: Diff4SplatModel | None = model.to(device).eval()
-            self.runtime: NetworkRuntime = TorchRuntime(self.model)
+            self.model: Diff4SplatModel | None = model
+            self.runtime: NetworkRuntime = TorchRuntime(model, device, dtype=dtype, offload=offload)
         elif isinstance(model, NetworkRuntime):
             self.model, self.runtime = None, model
         else:
@@ -388,24 +451,23 @@ class Diff4SplatPipeline:
         cameras = cameras.relative_to_first().to(dtype=torch.float32, device=dev)
         timings: dict[str, float] = {}
 
-        t0 = time.perf_counter()
+        clock = Stopwatch(dev)
         video = (image.to(dev, torch.float32) * 2 - 1).permute(2, 0, 1)[None, :, None]  # (1, 3, 1, H, W)
         image_latent = runtime.encode_image(video)  # (1, c, 1, h, w)
-        timings["encode_image"] = time.perf_counter() - t0
+        timings["encode_image"] = clock.lap()
 
-        t0 = time.perf_counter()
         text = text_mask = None
         if prompt.strip():
             text, text_mask = runtime.encode_text(prompt)
             text, text_mask = text.to(dev), text_mask.to(dev)
-        timings["encode_text"] = time.perf_counter() - t0
+        timings["encode_text"] = clock.lap()
 
         plucker = pack_plucker(plucker_rays(cameras.viewmats, cameras.Ks, cfg.width, cfg.height)[None],
                                cfg.vae.temporal_factor, cfg.vae.spatial_factor)  # (1, 1536, n, h, w)
 
-        t0 = time.perf_counter()
-        gen = torch.Generator(device="cpu").manual_seed(seed)
-        noise = torch.randn((1, cfg.vae.latent_channels, n, *image_latent.shape[-2:]), generator=gen).to(dev)
+        gen = torch.Generator(device="cpu").manual_seed(seed)  # CPU draws: the same noise on every device
+        noise = torch.randn((1, cfg.vae.latent_channels, n, *image_latent.shape[-2:]), generator=gen,
+                            device="cpu").to(dev)
 
         def velocity(x: Tensor, sigma: Tensor) -> Tensor:
             return runtime.velocity(x, sigma.reshape(1).to(x), image_latent, plucker, text, text_mask)
@@ -417,23 +479,23 @@ class Diff4SplatPipeline:
         else:
             latents = video_latents.to(noise)
         latents = torch.cat([image_latent, latents[:, :, 1:]], dim=2)
-        timings["sample"] = time.perf_counter() - t0
+        timings["sample"] = clock.lap()
 
-        t0 = time.perf_counter()
         key_times = torch.unique(cameras.times)
         # A runtime without the deformation network (a static ONNX export) makes static scenes.
         out = runtime.reconstruct(latents, plucker, key_times if runtime.has_deformation else None, video[:, :, 0])
-        sources = torch.tensor(source_frame_indices(cfg.ldrm.gaussian_frames, n, cfg.vae.temporal_factor))
+        if isinstance(runtime, TorchRuntime):
+            runtime.release()  # the networks are done: an offloaded one leaves the device before pruning renders
+        sources = torch.tensor(source_frame_indices(cfg.ldrm.gaussian_frames, n, cfg.vae.temporal_factor), device=dev)
         gaussians, d_means, d_quats, d_scales = to_gaussians(out, cameras.viewmats[sources], cameras.Ks[sources])
         times = key_times if d_means is not None else None
         scene = DynamicGaussians(gaussians, times, d_means, d_quats, d_scales).without_deformation(cfg.static_atol)
-        timings["reconstruct"] = time.perf_counter() - t0
+        timings["reconstruct"] = clock.lap()
 
-        t0 = time.perf_counter()
-        index = torch.arange(scene.num_gaussians)
+        index = torch.arange(scene.num_gaussians, device=dev)
         duplicates = occluders = 0
         if len(sources) > 1:
-            grid = torch.arange(len(sources)).repeat_interleave(scene.num_gaussians // len(sources))
+            grid = torch.arange(len(sources), device=dev).repeat_interleave(scene.num_gaussians // len(sources))
             dup = duplicate_mask(scene, grid, cameras.viewmats[sources], cameras.Ks[sources], cameras.times[sources],
                                  cfg.width, cfg.height)
             scene, index, duplicates = scene.select(~dup), index[~dup], int(dup.sum())
@@ -444,7 +506,7 @@ class Diff4SplatPipeline:
         scene, index = scene.select(keep), index[keep]
         stats = {**stats, "before": stats["before"] + duplicates + occluders, "duplicates": duplicates,
                  "occluders": occluders}
-        timings["prune"] = time.perf_counter() - t0
+        timings["prune"] = clock.lap()
         if stats["after"] == 0:
             raise ValueError(_sees_nothing(cameras, stats, cfg.prune_opacity))
         return GenerationResult(scene=scene, cameras=cameras, latents=latents, timings=timings, prune_stats=stats,

@@ -195,13 +195,13 @@ def occluder_mask(
     Raises:
         ValueError: the same argument checks as :func:`duplicate_mask` (one camera, ``time`` as its times).
     """
-    times = torch.tensor([float(time)], dtype=scene.canonical.means.dtype)
+    means = scene.canonical.means
+    times = torch.tensor([float(time)], dtype=means.dtype, device=means.device)
     _check_sources(scene, torch.zeros_like(source), viewmat[None], K[None], times)
     width, height = check_positive_int("width", width, "pixels"), check_positive_int("height", height, "pixels")
     depth_tolerance = _check_thresholds(min_alpha, depth_tolerance)
     if source.is_floating_point() or source.dtype == torch.bool or (source.numel() and int(source.min()) < 0):
         raise ValueError("source must be a non-negative integer tensor")
-    means = scene.canonical.means
     viewmat, K, source = viewmat.to(means), K.to(means), source.to(means.device)
     out = torch.zeros(scene.num_gaussians, dtype=torch.bool, device=means.device)
     cand = torch.nonzero(source > 0).squeeze(1)

@@ -201,7 +201,7 @@ class DynamicGaussians:
         elif t >= float(times[-1]):
             k, w = times.shape[0] - 2, 1.0
         else:
-            k = int(torch.searchsorted(times, torch.tensor(t, dtype=times.dtype), right=True)) - 1
+            k = int(torch.searchsorted(times, torch.tensor(t, dtype=times.dtype, device=times.device), right=True)) - 1
             w = (t - float(times[k])) / float(times[k + 1] - times[k])
         k1 = min(k + 1, times.shape[0] - 1)
         lerp = lambda a: (1 - w) * a[k] + w * a[k1]  # noqa: E731

@@ -26,7 +26,7 @@ from .text_encoder import TextEncoder, TextEncoderConfig
 from .vae import VideoVAE, VideoVAEConfig
 
 __all__ = ["Diff4SplatConfig", "Diff4SplatModel", "load_config", "config_path", "config_names", "CONFIG_DIR",
-           "WEIGHTS_DIR", "DEFAULT_CONFIG"]
+           "WEIGHTS_DIR", "DEFAULT_CONFIG", "NETWORKS"]
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 """Model size configs (``tiny``, ``small``, ``paper``), shipped as package data of ``models``."""
@@ -40,6 +40,8 @@ weights (``WEIGHTS_DIR / DEFAULT_CONFIG``) are what a plain ``generate`` runs (`
 is ``models/weights/base/MODEL_CARD.md``)."""
 
 _MODULES = {"vae": VideoVAE, "text_encoder": TextEncoder, "dit": VideoDiT, "ldrm": LDRM}
+NETWORKS = tuple(_MODULES)
+"""The four networks' attribute names on :class:`Diff4SplatModel`, in the order data flows through them."""
 
 
 @dataclass
@@ -208,14 +210,30 @@ class Diff4SplatModel(nn.Module):
         return model
 
     @classmethod
-    def random(cls, config: Diff4SplatConfig, seed: int = 0) -> Diff4SplatModel:
-        """A randomly initialised model, deterministic for ``seed`` (CPU generator).
+    def random(cls, config: Diff4SplatConfig, seed: int = 0, *, device: str | torch.device = "cpu",
+               dtype: torch.dtype | None = None) -> Diff4SplatModel:
+        """A randomly initialised model, deterministic for ``seed`` on a given device.
+
+        Args:
+            config: the model's configuration.
+            seed: seed of the initialisation (the CPU generator by default; ``device``'s own generator when the
+                weights are built on another device, so the values differ from the CPU's).
+            device: where the weights are created. Building a paper-size model directly on a GPU skips the CPU
+                copy and the minutes of initialising 16 B parameters on a CPU.
+            dtype: floating dtype the weights are created in (None: float32), e.g. ``torch.bfloat16`` to build a
+                paper-size model in half the memory.
 
         Raises:
             LimitError: ``config`` implies more parameters than the ``parameters`` limit (counted on the
                 ``meta`` device first, :func:`models.pretrained.check_model_size`).
         """
         check_model_size(lambda: cls(config), f"config {config.name!r}")
-        with torch.random.fork_rng(devices=[]):
+        device = torch.device(device)
+        previous = torch.get_default_dtype()
+        with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []), device:
             torch.manual_seed(seed)
-            return cls(config)
+            try:
+                torch.set_default_dtype(dtype or torch.float32)
+                return cls(config)
+            finally:
+                torch.set_default_dtype(previous)

@@ -123,7 +123,7 @@ def sigma_schedule(steps: int, shift: float = 1.0, *, dtype: torch.dtype = torch
     """Sampling grid: ``steps + 1`` noise levels from 1 to 0, uniform in σ before the shift.
 
     σ_i = shift_sigmas(1 − i/steps, shift), i = 0..steps, so σ_0 = 1 (pure noise) and σ_steps = 0
-    (data). Computed in float64 and cast to ``dtype``.
+    (data). Computed in float64 on the CPU (the same bits on every device), then cast to ``dtype`` on ``device``.
 
     Returns:
         (steps + 1,) strictly decreasing tensor.
@@ -132,7 +132,7 @@ def sigma_schedule(steps: int, shift: float = 1.0, *, dtype: torch.dtype = torch
         ValueError: ``steps`` is not an int ≥ 1, or ``shift`` is not > 0.
     """
     _check_steps(steps)
-    base = torch.linspace(1.0, 0.0, steps + 1, dtype=torch.float64)
+    base = torch.linspace(1.0, 0.0, steps + 1, dtype=torch.float64, device="cpu")  # the same grid on every device
     return shift_sigmas(base, shift).to(dtype=dtype, device=device)
 
 

@@ -67,7 +67,8 @@ class ByteTokenizer:
             padding: ``"longest"`` or ``"max_length"``.
 
         Returns:
-            ids: (B, L) int64 token ids; mask: (B, L) bool, True on real tokens (bos/bytes/eos).
+            ids: (B, L) int64 token ids; mask: (B, L) bool, True on real tokens (bos/bytes/eos); both on the
+            CPU, as tokenizers return them (move them to the encoder's device).
 
         Raises:
             ValueError: ``prompts`` is empty or not a list of str; unknown ``padding``.
@@ -83,9 +84,9 @@ class ByteTokenizer:
             body = [b + self.offset for b in p.encode("utf-8")[: self.max_length - 2]]
             seqs.append([self.bos_id, *body, self.eos_id])
         length = self.max_length if padding == "max_length" else max(len(s) for s in seqs)
-        ids = torch.full((len(seqs), length), self.pad_id, dtype=torch.long)
+        ids = torch.full((len(seqs), length), self.pad_id, dtype=torch.long, device="cpu")  # as tokenizers do
         for i, s in enumerate(seqs):
-            ids[i, : len(s)] = torch.tensor(s, dtype=torch.long)
+            ids[i, : len(s)] = torch.tensor(s, dtype=torch.long, device="cpu")
         return ids, ids != self.pad_id
 
     def decode(self, ids: Tensor) -> list[str]:
@@ -183,7 +184,7 @@ class RMSNorm(nn.Module):
     def __init__(self, dim: int, eps: float = 1e-6):
         super().__init__()
         self.eps = eps
-        self.weight = nn.Parameter(torch.ones(dim))
+        self.weight = nn.Parameter(torch.ones(dim))  # device: the construction context's (torch.device(…), meta)
 
     def forward(self, x: Tensor) -> Tensor:
         var = x.float().pow(2).mean(-1, keepdim=True)

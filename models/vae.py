@@ -200,10 +200,13 @@ class ResBlock3d(nn.Module):
 def causal_mean_pool(x: Tensor, temporal: bool) -> Tensor:
     """DC-AE down shortcut: 2×2 spatial mean, and with ``temporal`` frame 0 alone then means of frame
     pairs (2i − 1, 2i), so output i sees only frames ≤ 2i. (B, C, T, H, W) → (B, C, T', H/2, W/2),
-    T' = 1 + (T − 1)/2 if temporal else T."""
+    T' = 1 + (T − 1)/2 if temporal else T. Half-precision inputs are pooled in float32 (the CPU has no
+    bfloat16 ``avg_pool3d``) and returned in their dtype."""
     if temporal and x.shape[2] > 1:
         b, c, t, h, w = x.shape
         x = torch.cat([x[:, :, :1], x[:, :, 1:].reshape(b, c, (t - 1) // 2, 2, h, w).mean(3)], dim=2)
+    if x.dtype in (torch.float16, torch.bfloat16):
+        return F.avg_pool3d(x.float(), (1, 2, 2)).to(x.dtype)
     return F.avg_pool3d(x, (1, 2, 2))
 
 

@@ -98,11 +98,11 @@ def convert_realestate10k(src: str | os.PathLike, out: str | os.PathLike, *, cli
     frame_dir = require_dir(src / clip, "RealEstate10K frames")
     H, W = read_rgb_uint8(_frame_file(frame_dir, stamps[idx[0]])).shape[:2]
     full = load_realestate10k(cam_file, W, H, relative=False)
-    V = full.viewmats.double().numpy()[idx].copy()
+    V = full.viewmats.double().cpu().numpy()[idx].copy()
     scale = 1.0 if metres_per_unit is None else float(metres_per_unit)
     V[:, :3, 3] *= scale
     ts = np.asarray([stamps[f] for f in idx], dtype=np.float64) * 1e-6
-    cams = {"cam00": camera_path(V, full.Ks.double().numpy()[idx], W, H, ts)}
+    cams = {"cam00": camera_path(V, full.Ks.double().cpu().numpy()[idx], W, H, ts)}
     extra = {"source_id": clip, "source_frames": [stamps[f] for f in idx], "metric_scale": metres_per_unit is not None,
              "units": "metres" if metres_per_unit is not None else "RealEstate10K SfM units (not metres)"}
     depths, fit = None, None

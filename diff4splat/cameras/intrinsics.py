@@ -32,6 +32,7 @@ def intrinsics_from_focal(
     cx: float | None = None,
     cy: float | None = None,
     dtype: torch.dtype = torch.float32,
+    device: torch.device | str = "cpu",
 ) -> Tensor:
     """Pinhole intrinsic matrix from focal lengths in pixels.
 
@@ -44,6 +45,7 @@ def intrinsics_from_focal(
             (off-centre crops put it outside the image).
         cy: principal point y, pixels; ``None`` → H/2.
         dtype: floating dtype of the result.
+        device: device of the result.
 
     Returns:
         (3, 3) K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels.
@@ -61,7 +63,7 @@ def intrinsics_from_focal(
     for name, v in (("cx", cx), ("cy", cy)):
         if not math.isfinite(v):
             raise ValueError(f"{name} must be finite, got {v!r}")
-    return torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=dtype)
+    return torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=dtype, device=device)
 
 
 def intrinsics_from_fov(
@@ -71,6 +73,7 @@ def intrinsics_from_fov(
     fov_x_deg: float | None = None,
     fov_y_deg: float | None = None,
     dtype: torch.dtype = torch.float32,
+    device: torch.device | str = "cpu",
 ) -> Tensor:
     """Pinhole intrinsic matrix from a field of view, principal point at the image centre.
 
@@ -84,6 +87,7 @@ def intrinsics_from_fov(
         fov_x_deg: horizontal field of view in degrees, in (0, 180).
         fov_y_deg: vertical field of view in degrees, in (0, 180).
         dtype: floating dtype of the result.
+        device: device of the result.
 
     Returns:
         (3, 3) K in pixels with (cx, cy) = (W/2, H/2).
@@ -103,7 +107,7 @@ def intrinsics_from_fov(
         fy = (height / 2.0) / math.tan(math.radians(_check_fov("fov_y_deg", fov_y_deg)) / 2.0)
     fx = fy if fx is None else fx
     fy = fx if fy is None else fy
-    return intrinsics_from_focal(fx, fy, width, height, dtype=dtype)
+    return intrinsics_from_focal(fx, fy, width, height, dtype=dtype, device=device)
 
 
 def fov_from_intrinsics(K: Tensor, width: int, height: int) -> tuple[float, float]:

@@ -298,14 +298,14 @@ class FisheyeKB:
         return torch.stack([u, v], dim=-1), valid
 
 
-def hammersley(n: int, dtype: torch.dtype = torch.float64) -> Tensor:
-    """Centred 2-D Hammersley points ((i + ½)/n, φ₂(i) + ½/n), i < n; (n, 2) in (0, 1)².
+def hammersley(n: int, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu") -> Tensor:
+    """Centred 2-D Hammersley points ((i + ½)/n, φ₂(i) + ½/n), i < n; (n, 2) in (0, 1)², on ``device``.
 
     φ₂ is the base-2 radical inverse (van der Corput). For n a power of two the points form a
     (0, m, 2)-net with each point centred in its stratum (PBRT 3rd ed. §7.4.1).
     """
-    i = torch.arange(n, dtype=torch.int64)
-    inv = torch.zeros(n, dtype=torch.float64)
+    i = torch.arange(n, dtype=torch.int64, device=device)
+    inv = torch.zeros(n, dtype=torch.float64, device=device)
     bits, scale = i.clone(), 0.5
     while bool((bits > 0).any()):
         inv = inv + (bits & 1).double() * scale
@@ -362,9 +362,9 @@ class ThinLens:
         _check_number("ThinLens", "focus_distance", self.focus_distance, lo=0.0, lo_open=True)
         check_positive_int("ThinLens.spp", self.spp)
 
-    def aperture_samples(self, dtype: torch.dtype = torch.float64) -> Tensor:
+    def aperture_samples(self, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu") -> Tensor:
         """(spp, 2) lens points (x, y) in the camera frame, metres, inside the aperture disk."""
-        return self.aperture_radius * concentric_disk(hammersley(self.spp, torch.float64)).to(dtype)
+        return self.aperture_radius * concentric_disk(hammersley(self.spp, torch.float64, device)).to(dtype)
 
 
 @dataclass(frozen=True)
@@ -406,9 +406,9 @@ class RollingShutter:
         """t0 of the readout of a frame at clip time ``t_frame`` (unclamped)."""
         return float(t_frame) - (0.5 * self.duration if self.anchor == "center" else 0.0)
 
-    def row_times(self, height: int, t_frame: float) -> Tensor:
-        """(H,) float64 capture time of every row, clip units in [0, 1]."""
-        i = torch.arange(height, dtype=torch.float64)
+    def row_times(self, height: int, t_frame: float, device: torch.device | str = "cpu") -> Tensor:
+        """(H,) float64 capture time of every row, clip units in [0, 1], on ``device``."""
+        i = torch.arange(height, dtype=torch.float64, device=device)
         return (self.start_time(t_frame) + (i + 0.5) / height * self.duration).clamp(0.0, 1.0)
 
     def row_bands(self, height: int) -> list[tuple[int, int]]:
@@ -483,26 +483,26 @@ def generate_rays(
         ValueError: as :func:`check_camera`.
     """
     params = check_camera(camera_model, camera_params)
-    dtype, C = viewmats.dtype, viewmats.shape[0]
+    dtype, C, dev = viewmats.dtype, viewmats.shape[0], viewmats.device
     R = viewmats[:, :3, :3]
     centres = camera_centers(viewmats)  # (C, 3)
     if params is None:
         o, d = camera_rays(viewmats, Ks, width, height)
-        return o[:, :, :, None], d[:, :, :, None], torch.ones(C, height, width, 1, dtype=torch.bool)
+        return o[:, :, :, None], d[:, :, :, None], torch.ones(C, height, width, 1, dtype=torch.bool, device=dev)
     if isinstance(params, ThinLens):
-        eye = torch.eye(4, dtype=dtype).expand(C, 4, 4)
+        eye = torch.eye(4, dtype=dtype, device=dev).expand(C, 4, 4)
         _, d_pin = camera_rays(eye, Ks, width, height)  # (C, H, W, 3) camera frame, z > 0
-        lens = params.aperture_samples(dtype)  # (S, 2)
+        lens = params.aperture_samples(dtype, dev)  # (S, 2)
         lens3 = torch.cat([lens, torch.zeros_like(lens[:, :1])], dim=-1)  # (S, 3)
         p_f = d_pin * (params.focus_distance / d_pin[..., 2:3])
         d_cam = p_f[:, :, :, None, :] - lens3  # (C, H, W, S, 3)
         d_cam = d_cam / d_cam.norm(dim=-1, keepdim=True)
         dirs = torch.einsum("cji,chwsj->chwsi", R, d_cam)
         origins = centres[:, None, None, None, :] + torch.einsum("cji,sj->csi", R, lens3)[:, None, None]
-        valid = torch.ones(dirs.shape[:-1], dtype=torch.bool)
+        valid = torch.ones(dirs.shape[:-1], dtype=torch.bool, device=dev)
         return origins.expand_as(dirs), dirs, valid
-    v, u = torch.meshgrid(torch.arange(height, dtype=dtype) + 0.5, torch.arange(width, dtype=dtype) + 0.5,
-                          indexing="ij")
+    v, u = torch.meshgrid(torch.arange(height, dtype=dtype, device=dev) + 0.5,
+                          torch.arange(width, dtype=dtype, device=dev) + 0.5, indexing="ij")
     pix = torch.stack([u, v], dim=-1)  # (H, W, 2)
     dirs, valid = [], []
     for c in range(C):

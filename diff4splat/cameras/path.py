@@ -178,7 +178,7 @@ class CameraPath:
         if not math.isfinite(t):
             raise ValueError(f"t must be finite, got {t}")
         times = self.times.detach().double()
-        k = int(torch.searchsorted(times, torch.tensor(t, dtype=torch.float64), right=True)) - 1
+        k = int(torch.searchsorted(times, torch.tensor(t, dtype=torch.float64, device=times.device), right=True)) - 1
         if k < 0 or t == float(times[k]) or k == len(self) - 1:
             return self.viewmats[max(k, 0)]
         w = (t - float(times[k])) / float(times[k + 1] - times[k])

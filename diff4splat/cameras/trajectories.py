@@ -168,17 +168,18 @@ def make_trajectory(
                          f"(e.g. 0.5 ≈ 29°), got {amplitude!r}")
     elif name != "arc" and amplitude <= 0:
         raise ValueError(f"amplitude must be > 0 (units of scene_depth), got {amplitude!r}")
-    K = torch.as_tensor(K)
+    K = torch.as_tensor(K)  # device: a tensor K keeps its own; a nested list is a CPU constant
     if tuple(K.shape) != (3, 3):
         raise ValueError(f"K must have shape (3, 3), got {tuple(K.shape)}")
     dtype = K.dtype if K.is_floating_point() else torch.float32
 
     T, d, a = num_frames, float(scene_depth), float(amplitude)
     f64 = torch.float64
-    t = torch.arange(T, dtype=f64) / max(T - 1, 1)
-    target = torch.tensor([0.0, 0.0, d], dtype=f64)
+    dev = K.device
+    t = torch.arange(T, dtype=f64, device=dev) / max(T - 1, 1)
+    target = torch.tensor([0.0, 0.0, d], dtype=f64, device=dev)
     if name in ("arc", "orbit"):  # azimuth θ around c on the horizontal circle of radius d
-        theta = a * t if name == "arc" else 2.0 * math.pi * torch.arange(T, dtype=f64) / T
+        theta = a * t if name == "arc" else 2.0 * math.pi * torch.arange(T, dtype=f64, device=dev) / T
         eyes = target + d * torch.stack([torch.sin(theta), torch.zeros_like(theta), -torch.cos(theta)], -1)
         viewmats = look_at(eyes, target)
     elif name == "spiral":
@@ -186,9 +187,9 @@ def make_trajectory(
         eyes = a * d * t[:, None] * torch.stack([torch.cos(phi), torch.sin(phi), torch.zeros_like(phi)], -1)
         viewmats = look_at(eyes, target)
     else:
-        eyes = a * d * t[:, None] * torch.tensor(_DIRECTIONS[name], dtype=f64)
-        viewmats = torch.eye(4, dtype=f64).repeat(T, 1, 1)
+        eyes = a * d * t[:, None] * torch.tensor(_DIRECTIONS[name], dtype=f64, device=dev)
+        viewmats = torch.eye(4, dtype=f64, device=dev).repeat(T, 1, 1)
         viewmats[:, :3, 3] = -eyes  # R = I → t = −eye
-    viewmats[0] = torch.eye(4, dtype=f64)  # exact identity (look_at gives it up to rounding)
+    viewmats[0] = torch.eye(4, dtype=f64, device=dev)  # exact identity (look_at gives it up to rounding)
     Ks = K.to(dtype).expand(T, 3, 3).clone()
     return CameraPath(viewmats.to(dtype), Ks, width, height, t.to(dtype))

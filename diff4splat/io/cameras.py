@@ -90,7 +90,7 @@ def save_cameras_json(path: str | os.PathLike, camera_path: CameraPath) -> None:
 
 def _tensor(data: dict, key: str, shape_tail: tuple[int, ...], path: Path) -> torch.Tensor:
     try:
-        t = torch.tensor(data[key], dtype=torch.float32)
+        t = torch.tensor(data[key], dtype=torch.float32, device="cpu")  # files load onto the CPU
     except (TypeError, ValueError) as e:
         raise ValueError(f"{path}: '{key}' must be a nested list of numbers of shape "
                          f"(T, {', '.join(map(str, shape_tail))}): {e}") from None
@@ -139,7 +139,7 @@ def load_cameras_json(path: str | os.PathLike) -> CameraPath:
     times = None
     if data.get("times") is not None:
         try:
-            times = torch.tensor(data["times"], dtype=torch.float32)
+            times = torch.tensor(data["times"], dtype=torch.float32, device="cpu")
         except (TypeError, ValueError) as e:
             raise ValueError(f"{path}: 'times' must be a list of numbers: {e}") from None
     try:
@@ -198,19 +198,19 @@ def load_realestate10k(path: str | os.PathLike, width: int, height: int, relativ
         raise ValueError(f"{path}: no camera lines")
     _check_frame_count(path, len(rows))
     width, height = check_positive_int("width", width, "pixels"), check_positive_int("height", height, "pixels")
-    vals = torch.tensor(rows, dtype=torch.float64)  # (T, 18)
+    vals = torch.tensor(rows, dtype=torch.float64, device="cpu")  # (T, 18); files load onto the CPU
     T = vals.shape[0]
-    Ks = torch.zeros(T, 3, 3, dtype=torch.float64)
+    Ks = torch.zeros(T, 3, 3, dtype=torch.float64, device="cpu")
     Ks[:, 0, 0], Ks[:, 1, 1] = vals[:, 0] * width, vals[:, 1] * height
     Ks[:, 0, 2], Ks[:, 1, 2], Ks[:, 2, 2] = vals[:, 2] * width, vals[:, 3] * height, 1.0
-    viewmats = torch.eye(4, dtype=torch.float64).repeat(T, 1, 1)
+    viewmats = torch.eye(4, dtype=torch.float64, device="cpu").repeat(T, 1, 1)
     viewmats[:, :3, :] = vals[:, 6:].reshape(T, 3, 4)
-    ts = torch.tensor(stamps, dtype=torch.float64)
+    ts = torch.tensor(stamps, dtype=torch.float64, device="cpu")
     if T > 1 and bool((ts[1:] < ts[:-1]).any()):
         raise ValueError(f"{path}: timestamps must be non-decreasing")
     if T > 1 and ts[-1] == ts[0]:
         raise ValueError(f"{path}: first and last timestamps are equal; times cannot be normalised")
-    times = (ts - ts[0]) / (ts[-1] - ts[0]) if T > 1 else torch.zeros(1, dtype=torch.float64)
+    times = (ts - ts[0]) / (ts[-1] - ts[0]) if T > 1 else torch.zeros(1, dtype=torch.float64, device="cpu")
     try:
         cam = CameraPath(viewmats, Ks, width, height, times)
     except ValueError as e:

@@ -61,14 +61,14 @@ def ply_bytes(gaussians: Gaussians) -> bytes:
     opac = g.opacities.clamp(OPACITY_EPS, 1.0 - OPACITY_EPS)
     columns = [
         g.means,
-        torch.zeros(n, 3, dtype=torch.float64),
+        torch.zeros(n, 3, dtype=torch.float64, device="cpu"),
         g.sh[:, 0, :],
         g.sh[:, 1:, :].transpose(1, 2).reshape(n, 3 * (k - 1)),  # channel-major rest coefficients
         torch.log(opac / (1.0 - opac))[:, None],
         torch.log(g.scales),
         g.quats,
     ]
-    values = torch.cat(columns, dim=1).numpy().astype("<f4")
+    values = torch.cat(columns, dim=1).numpy().astype("<f4")  # device: g was moved to the CPU above
     names = ply_property_names(k)
     vertices = np.empty(n, dtype=[(name, "<f4") for name in names])
     for i, name in enumerate(names):
@@ -178,10 +178,10 @@ def load_ply(path: str | os.PathLike) -> Gaussians:
 
     def cols(keys: list[str]) -> torch.Tensor:
         if not keys:
-            return torch.zeros(n, 0, dtype=torch.float64)
+            return torch.zeros(n, 0, dtype=torch.float64, device="cpu")  # files load onto the CPU
         return torch.from_numpy(np.stack([v[key].astype(np.float64) for key in keys], axis=1))
 
-    sh = torch.empty(n, k, 3, dtype=torch.float64)
+    sh = torch.empty(n, k, 3, dtype=torch.float64, device="cpu")
     sh[:, 0, :] = cols(["f_dc_0", "f_dc_1", "f_dc_2"])
     sh[:, 1:, :] = cols(rest).reshape(n, 3, k - 1).transpose(1, 2)
     g = Gaussians(

@@ -101,9 +101,10 @@ def float16_error_px(
     random subset of ``max_points`` points and ``max_cameras`` evenly spaced cameras (first and last kept)."""
     pts = means.reshape(-1, 3).double()
     if pts.shape[0] > max_points:
-        pts = pts[torch.randperm(pts.shape[0], generator=torch.Generator().manual_seed(0))[:max_points]]
+        pick = torch.randperm(pts.shape[0], generator=torch.Generator().manual_seed(0), device="cpu")[:max_points]
+        pts = pts[pick.to(pts.device)]  # drawn on the CPU generator: the same subset on every device
     if viewmats.shape[0] > max_cameras:
-        pick = torch.linspace(0, viewmats.shape[0] - 1, max_cameras).round().long()
+        pick = torch.linspace(0, viewmats.shape[0] - 1, max_cameras, device=viewmats.device).round().long()
         viewmats, Ks = viewmats[pick], Ks[pick]
     half = pts.half().double()
     worst = 0.0
@@ -129,7 +130,7 @@ def encode_keyframes(frames: dict[str, Tensor], dtype: str) -> bytes:
     keys = ["means", "quats", "scales"] + (["opacities"] if "opacities" in frames else [])
     F = frames["means"].shape[0]
     parts = [frames[k].reshape(F, -1) for k in keys]
-    flat = torch.cat(parts, dim=1).numpy().astype("<f2" if dtype == "float16" else "<f4")
+    flat = torch.cat(parts, dim=1).cpu().numpy().astype("<f2" if dtype == "float16" else "<f4")
     return flat.tobytes()
 
 
@@ -190,7 +191,7 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
         per_frame = n * (11 if temporal else 10) * itemsize
         keep_f = int(min(F, max(2, (budget - payload_bytes(n, degree, 0, temporal, itemsize)) // max(per_frame, 1))))
         if keep_f < F:
-            idx = torch.linspace(0, F - 1, keep_f).round().long().unique()
+            idx = torch.linspace(0, F - 1, keep_f, device=times.device).round().long().unique()
             reductions.append(f"{F} → {idx.numel()} keyframes")
             times, frames = times[idx], {k: v[idx] for k, v in frames.items()}
             F = idx.numel()

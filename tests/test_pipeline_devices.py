@@ -1,0 +1,123 @@
+"""The generation pipeline on every device, in bfloat16 and with model CPU offload (diff4splat/offload.py)."""
+import pytest
+import torch
+from helpers import tiny_model
+
+from diff4splat.offload import ModelOffload
+from diff4splat.pipeline import Diff4SplatPipeline, TorchRuntime
+from models.bundle import Diff4SplatModel, load_config
+
+PROMPT = "a cat turns its head"
+
+
+@pytest.fixture(scope="module")
+def image():
+    return torch.rand(64, 64, 3, generator=torch.Generator().manual_seed(0), device="cpu")
+
+
+def _run(image, device="cpu", **kw):
+    pipe = Diff4SplatPipeline(tiny_model(dynamic=True, active_dit=True), device, **kw)
+    return pipe, pipe(image, pipe.default_cameras("arc", 5), PROMPT, steps=2)
+
+
+def _close_scenes(a, b, atol):
+    ga, gb = a.scene.canonical, b.scene.canonical
+    assert ga.means.shape == gb.means.shape
+    for name in ("means", "quats", "scales", "opacities", "sh"):
+        torch.testing.assert_close(getattr(ga, name).cpu(), getattr(gb, name).cpu(), atol=atol, rtol=0, msg=name)
+    torch.testing.assert_close(a.scene.d_means.cpu(), b.scene.d_means.cpu(), atol=atol, rtol=0)
+
+
+@pytest.mark.slow
+def test_generate_on_each_device_matches_the_cpu(image, device):
+    """The CUDA run starts from the same noise (CPU generator) and gives the CPU's scene to float32 accuracy;
+    every output lives on the pipeline's device."""
+    _, ref = _run(image)
+    pipe, res = _run(image, device)
+    assert res.scene.canonical.means.device.type == device.type and res.latents.device.type == device.type
+    assert res.scene.d_means is not None
+    torch.testing.assert_close(res.latents.cpu(), ref.latents, atol=1e-4, rtol=0)
+    if device.type == "cpu":
+        assert torch.equal(res.scene.canonical.means, ref.scene.canonical.means)
+    else:
+        _close_scenes(res, ref, atol=1e-3)
+
+
+@pytest.fixture
+def cpu_pipe():
+    return Diff4SplatPipeline(tiny_model(dynamic=True, active_dit=True), "cpu")
+
+
+@pytest.mark.slow
+def test_the_pipeline_creates_no_tensor_on_the_default_device(image, cpu_pipe, no_implicit_device):
+    """Every tensor the pipeline makes is placed beside its inputs: with the default device set to ``meta`` a
+    CPU run still completes (a CPU-made tensor beside CUDA inputs crashed `generate --device cuda`)."""
+    pipe = cpu_pipe
+    res = pipe(image, pipe.default_cameras("arc", 5), PROMPT, steps=2)
+    assert res.scene.canonical.means.device.type == "cpu" and res.scene.num_gaussians > 0
+
+
+@pytest.mark.slow
+def test_model_offload_gives_the_same_scene_and_leaves_the_networks_on_the_cpu(image, device):
+    _, ref = _run(image, device)
+    pipe, res = _run(image, device, offload="model")
+    assert torch.equal(res.latents, ref.latents)
+    assert torch.equal(res.scene.canonical.means, ref.scene.canonical.means)
+    assert pipe.runtime.offload.resident is None  # released after the LDRM
+    assert {p.device.type for p in pipe.model.parameters()} == {"cpu"}
+
+
+@pytest.mark.slow
+def test_bfloat16_weights_stay_close_to_float32(image):
+    """bfloat16 weights (8 bits of mantissa): the latents move by a few 1e-3 after two steps on the tiny
+    model; everything the pipeline returns is float32."""
+    _, ref = _run(image)
+    pipe, res = _run(image, dtype=torch.bfloat16)
+    assert {p.dtype for p in pipe.model.parameters()} == {torch.bfloat16}
+    assert res.latents.dtype == torch.float32 and res.scene.canonical.means.dtype == torch.float32
+    err = float((res.latents - ref.latents).abs().max())
+    assert 0 < err < 0.05
+
+
+def test_offload_moves_one_network_at_a_time_and_restores_the_cpu_copies():
+    """On the CPU nothing moves; the bookkeeping (one resident at a time, release) is the same everywhere."""
+    a, b = torch.nn.Linear(2, 2), torch.nn.Linear(2, 3)
+    off = ModelOffload({"a": a, "b": b}, "cpu")
+    w = a.weight.data_ptr()
+    with off.use("a") as net:
+        assert net is a and off.resident is None  # on the CPU nothing is ever resident elsewhere
+    assert a.weight.data_ptr() == w
+    with pytest.raises(KeyError):
+        with off.use("c"):
+            pass
+
+
+@pytest.mark.cuda
+def test_offload_on_cuda_moves_the_weights_and_back():
+    a, b = torch.nn.Linear(2, 2), torch.nn.Linear(2, 3)
+    off = ModelOffload({"a": a, "b": b}, "cuda")
+    assert a.weight.is_pinned()
+    with off.use("a"):
+        assert a.weight.is_cuda and not b.weight.is_cuda
+    with off.use("b"):
+        assert b.weight.is_cuda and not a.weight.is_cuda and off.resident == "b"
+    off.release()
+    assert not b.weight.is_cuda and off.resident is None
+
+
+def test_runtime_rejects_unknown_offload_and_dtype():
+    with pytest.raises(ValueError, match="offload must be one of"):
+        TorchRuntime(tiny_model(), offload="disk")
+    with pytest.raises(ValueError, match="dtype must be one of"):
+        TorchRuntime(tiny_model(), dtype=torch.int8)
+
+
+def test_random_models_are_built_in_the_dtype_and_on_the_device_asked_for():
+    cfg = load_config("tiny")
+    m = Diff4SplatModel.random(cfg, seed=0, dtype=torch.bfloat16)
+    assert {p.dtype for p in m.parameters()} == {torch.bfloat16} and torch.get_default_dtype() == torch.float32
+    again = Diff4SplatModel.random(cfg, seed=0, dtype=torch.bfloat16)
+    assert all(torch.equal(p, q) for p, q in zip(again.parameters(), m.parameters(), strict=True))
+    meta = Diff4SplatModel.random(load_config("paper"), device="meta", dtype=torch.bfloat16)
+    dit = sum(p.numel() for p in meta.dit.parameters())
+    assert meta.dit.blocks[0].attn.qkv.weight.dtype == torch.bfloat16 and dit > 11e9
