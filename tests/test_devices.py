@@ -69,7 +69,7 @@ def test_resolve_device():
     assert resolve_device("cpu") == torch.device("cpu")
     assert resolve_device(torch.device("cpu")) == torch.device("cpu")
     expected = torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    assert resolve_device("auto") == expected and resolve_device(None) == expected and resolve_device(" AUTO ") == expected
+    assert resolve_device("auto") == resolve_device(None) == resolve_device(" AUTO ") == expected
     with pytest.raises(ValueError, match="--device: 'gpu' is not a torch device"):
         resolve_device("gpu", "--device")
     with pytest.raises(ValueError, match="trainer.device: cuda:99 is not available"):

@@ -168,7 +168,7 @@ def make_trajectory(
                          f"(e.g. 0.5 ≈ 29°), got {amplitude!r}")
     elif name != "arc" and amplitude <= 0:
         raise ValueError(f"amplitude must be > 0 (units of scene_depth), got {amplitude!r}")
-    K = torch.as_tensor(K)  # device: a tensor K keeps its own; a nested list is a CPU constant
+    K = K if isinstance(K, Tensor) else torch.as_tensor(K, device="cpu")  # a nested list is a CPU constant
     if tuple(K.shape) != (3, 3):
         raise ValueError(f"K must have shape (3, 3), got {tuple(K.shape)}")
     dtype = K.dtype if K.is_floating_point() else torch.float32

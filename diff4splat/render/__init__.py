@@ -1,9 +1,13 @@
-"""CPU Gaussian-splatting renderer (gsplat-compatible API): projection, SH colours, rasterizers.
+"""Gaussian-splatting renderer (gsplat-compatible API): projection, SH colours, rasterizers.
 
 ``rasterize`` is the fast tile path, ``rasterize_dense`` the brute-force reference it is tested
 against; both share :mod:`.projection` and :mod:`.sh` (docs/DESIGN.md, "The renderer"). Camera effects
 (fisheye, thin lens: ``rasterize(..., camera_params=...)``) go through the ray path ``raytrace``;
 ``render_rolling_shutter`` renders row bands of a dynamic scene at their own times.
+
+Every entry point runs on the device of its inputs: on the CPU ``rasterize`` uses the fused numba path,
+on CUDA gsplat when installed, else the pure-PyTorch tile path (:func:`.rasterize.choose_path`); numpy and
+numba only ever see CPU tensors (diff4splat/devices.py, the device rule).
 """
 from diff4splat.render.projection import Projection, project_gaussians
 from diff4splat.render.rasterize import rasterize

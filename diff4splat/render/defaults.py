@@ -6,8 +6,8 @@ gsplat's ``rasterization`` argument list (so calls port unchanged) and take thei
 here; :func:`~diff4splat.render.sequence.render_path` and
 :func:`~diff4splat.render.render_rolling_shutter` take :data:`BACKGROUND` and :data:`NEAR_PLANE`.
 
-The values are gsplat 1.4's ``rasterization`` defaults, except :data:`RENDER_MODE`: this project renders
-colour and expected depth together ("RGB+ED") by default, where gsplat's default is "RGB".
+The values are gsplat's ``rasterization`` defaults (the same in 1.4.0 … 1.5.3), except :data:`RENDER_MODE`:
+this project renders colour and expected depth together ("RGB+ED") by default, where gsplat's default is "RGB".
 """
 from __future__ import annotations
 

@@ -18,6 +18,10 @@ and writes each pair's gradient into its intersection's own slot; slots are summ
 
 numba (a PyPI wheel, no compiler needed) compiles the kernels on first use and caches them on disk. Without
 numba the tile path is used, with one warning.
+
+CPU only (diff4splat/devices.py, the device rule): numpy and numba see CPU tensors only, so every array here
+comes from a CPU tensor and every result tensor is made on the CPU. :func:`diff4splat.render.rasterize.choose_path`
+never sends non-CPU tensors here, and :func:`composite_fused` / :func:`bin_tiles_fused` refuse them.
 """
 from __future__ import annotations
 
@@ -54,7 +58,15 @@ def fused_available() -> bool:
 
 
 def _np(x: Tensor) -> np.ndarray:
-    return x.detach().contiguous().numpy()
+    """The CPU tensor ``x`` as a contiguous numpy array (``.cpu()`` is a no-op here: the path is CPU-only)."""
+    return x.detach().cpu().contiguous().numpy()
+
+
+def _check_cpu(what: str, x: Tensor) -> None:
+    """Raise ValueError unless ``x`` is a CPU tensor (the fused path is numba on the CPU)."""
+    if x.device.type != "cpu":
+        raise ValueError(f"{what} runs on the CPU only (numba), got a tensor on {x.device}; use the PyTorch "
+                         "tile path (diff4splat.render.tiles, rasterize(compositor='torch'))")
 
 
 class _FusedComposite(torch.autograd.Function):
@@ -78,7 +90,8 @@ class _FusedComposite(torch.autograd.Function):
         ctx.arrays = (p64, f64, bg, t_final, last)
         ctx.sizes = (width, height, tile, tiles_x)
         dtype = params.dtype
-        return torch.from_numpy(out).to(dtype), torch.from_numpy(acc).to(dtype), torch.tensor(ctx.n_pairs)
+        n_pairs = torch.tensor(ctx.n_pairs, device="cpu")  # the fused path is CPU-only, like its inputs
+        return torch.from_numpy(out).to(dtype), torch.from_numpy(acc).to(dtype), n_pairs
 
     @staticmethod
     def backward(ctx, grad_out, grad_acc, _):  # noqa: D102
@@ -122,7 +135,9 @@ def bin_tiles_fused(
 
     Raises:
         RuntimeError: numba is not installed (use :func:`~diff4splat.render.tiles.bin_tiles`).
+        ValueError: non-CPU tensors.
     """
+    _check_cpu("bin_tiles_fused", means2d)
     if not fused_available():
         raise RuntimeError("bin_tiles_fused needs numba (pip install numba); tiles.bin_tiles does the same without")
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
@@ -164,7 +179,12 @@ def composite_fused(
     Returns:
         colors (H·W, F), alphas (H·W,) = 1 − T_final, info dict (the binning of :func:`bin_tiles`;
         n_pairs = pairs inside the support boxes).
+
+    Raises:
+        ValueError: non-CPU tensors (numba runs on the CPU; :func:`~diff4splat.render.tiles.composite_tiles`
+            runs on every device).
     """
+    _check_cpu("composite_fused", means2d)
     if not fused_available():
         if not _WARNED[0]:
             warnings.warn("numba is not installed: the renderer uses the slower pure-PyTorch tile path "

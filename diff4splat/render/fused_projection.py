@@ -31,7 +31,8 @@ def _kernels():
 
 
 def _np64(x: Tensor) -> np.ndarray:
-    return x.detach().to(torch.float64).contiguous().numpy()
+    """The CPU tensor ``x`` as a contiguous float64 numpy array (``.cpu()``: a no-op, this path is CPU-only)."""
+    return x.detach().cpu().to(torch.float64).contiguous().numpy()
 
 
 class _FusedProjection(torch.autograd.Function):
@@ -41,14 +42,15 @@ class _FusedProjection(torch.autograd.Function):
     def forward(ctx, means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d,  # noqa: D102
                 antialiased):
         C, N = viewmats.shape[0], means.shape[0]
-        dt = torch.empty(0, dtype=means.dtype).numpy().dtype  # outputs written in the input dtype (no copies)
+        # outputs written in the input dtype (no copies)
+        dt = torch.empty(0, dtype=means.dtype, device="cpu").numpy().dtype  # device: a CPU tensor, its dtype read
         out = [np.zeros(shape, dt) for shape in ((C, N, 2), (C, N), (C, N, 3), (C, N, 3), (C, N))]
         radii, comps = np.zeros((C, N), np.int32), np.zeros((C, N), dt)
         arrays = [_np64(x) for x in (means, quats, scales, opacities, viewmats, Ks)]
         kernels = _kernels()
         with kernels.threads(torch.get_num_threads()):
             # the planes rounded to the input dtype, as the reference compares z with them in that dtype
-            planes = [float(torch.tensor(p, dtype=means.dtype)) for p in (near, far)]
+            planes = [float(torch.tensor(p, dtype=means.dtype, device="cpu")) for p in (near, far)]
             kernels.project_forward(*arrays, width, height, *planes, float(eps2d), antialiased, *out, radii, comps)
         ctx.arrays, ctx.radii = arrays, radii
         ctx.sizes = (width, height, float(eps2d), antialiased)

@@ -1,9 +1,18 @@
-"""``rasterize``: the CPU Gaussian rasterizer's entry point (gsplat ``rasterization`` signature).
+"""``rasterize``: the Gaussian rasterizer's entry point (gsplat ``rasterization`` signature), and its dispatch.
 
 Same rules and outputs as the dense reference (:mod:`diff4splat.render.reference`): all are compositors of
-:func:`diff4splat.render.stages.render_pipeline`. The compositor is the fused JIT one
-(:func:`diff4splat.render.fused.composite_fused`) by default, or the pure-PyTorch tile path
-(:func:`diff4splat.render.tiles.composite_tiles`), its reference and fallback; ``compositor=`` picks.
+:func:`diff4splat.render.stages.render_pipeline`. Which path renders a call is decided by :func:`choose_path`
+(docs/DESIGN.md "The renderer", diff4splat/devices.py "the device rule"):
+
+- "ray": a non-pinhole camera model or a camera effect (:func:`diff4splat.render.raytrace.raytrace`), any
+  device and dtype;
+- "gsplat": pinhole, non-CPU, not float64, gsplat installed, ``compositor=None``
+  (:mod:`diff4splat.render.gsplat_backend`);
+- "fused": the numba JIT path (:func:`diff4splat.render.fused.composite_fused`), CPU tensors only — numpy and
+  numba never see a device tensor;
+- "torch": the pure-PyTorch tile path (:func:`diff4splat.render.tiles.composite_tiles`), the reference and
+  fallback, on every device (the default for non-CPU tensors without gsplat, and for float64 there).
+
 Everything before compositing (projection, SH, gathers) is plain autograd.
 """
 from __future__ import annotations
@@ -30,12 +39,54 @@ from diff4splat.render.raytrace import raytrace
 from diff4splat.render.stages import render_pipeline
 from diff4splat.render.tiles import composite_tiles
 
-__all__ = ["rasterize", "COMPOSITORS", "DEFAULT_COMPOSITOR"]
+__all__ = ["rasterize", "choose_path", "COMPOSITORS", "DEFAULT_COMPOSITOR", "DEVICE_COMPOSITOR", "PATHS"]
 
 COMPOSITORS = {"fused": (project_fused, composite_fused), "torch": (project_gaussians, composite_tiles)}
-"""CPU tile paths by name, (projection, compositor): the fused JIT loops (numba) and the pure-PyTorch reference."""
+"""Tile paths by name, (projection, compositor): the fused JIT loops (numba, CPU only) and the pure-PyTorch
+reference (any device)."""
 DEFAULT_COMPOSITOR = "fused"
-"""What ``compositor=None`` uses (the fused path falls back to "torch", warning once, without numba)."""
+"""What ``compositor=None`` uses for CPU tensors (the fused path falls back to "torch", warning once, without
+numba)."""
+DEVICE_COMPOSITOR = "torch"
+"""What ``compositor=None`` uses for non-CPU tensors that gsplat does not take (float64, or gsplat absent)."""
+PATHS = ("ray", "gsplat", *COMPOSITORS)
+"""The names :func:`choose_path` returns."""
+
+
+def choose_path(means: Tensor, camera_model: str = CAMERA_MODEL, camera_params: object = None,
+                compositor: str | None = None) -> str:
+    """Which path renders a :func:`rasterize` call (a pure decision: nothing is computed or imported).
+
+    Args:
+        means: (N, 3) the call's centres; only ``device`` and ``dtype`` are read (a meta tensor will do).
+        camera_model, camera_params, compositor: as :func:`rasterize`.
+
+    Returns:
+        One of :data:`PATHS`: "ray" for a non-pinhole ``camera_model`` or any ``camera_params`` (every device);
+        else "gsplat" for ``compositor=None`` when :func:`~diff4splat.render.gsplat_backend.use_gsplat` holds
+        (non-CPU, not float64, gsplat importable); else the compositor named, or for None
+        :data:`DEFAULT_COMPOSITOR` ("fused") on the CPU and :data:`DEVICE_COMPOSITOR` ("torch") elsewhere.
+        An explicit "torch" is honoured on every device (the PyTorch reference on CUDA, even with gsplat).
+
+    Raises:
+        ValueError: ``compositor`` not None/"fused"/"torch"; or "fused" with non-CPU ``means`` (numba runs on
+            the CPU only: pass ``compositor="torch"`` or None).
+    """
+    if compositor is not None and compositor not in COMPOSITORS:
+        raise ValueError(f"compositor must be one of {sorted(COMPOSITORS)} or None, got {compositor!r}")
+    if camera_model != "pinhole" or camera_params is not None:  # camera effects only when asked for
+        return "ray"
+    device = getattr(means, "device", None)  # not a tensor: the input validation of the path says so
+    on_cpu = device is None or device.type == "cpu"
+    if compositor == "fused" and not on_cpu:
+        raise ValueError(f"compositor='fused' runs on the CPU only (numba), got tensors on {device}; "
+                         "use compositor='torch' or None (gsplat when installed, else the PyTorch tile path)")
+    if compositor is None:
+        if device is not None and use_gsplat(means, camera_model):
+            return "gsplat"
+        return DEFAULT_COMPOSITOR if on_cpu else DEVICE_COMPOSITOR
+    return compositor
+
 
 def rasterize(
     means: Tensor,  # (N, 3)
@@ -60,7 +111,7 @@ def rasterize(
     camera_params: object = None,
     compositor: str | None = None,
 ) -> tuple[Tensor, Tensor, dict]:
-    """Render 3D Gaussians into C cameras (gsplat ``rasterization`` signature), CPU tile path.
+    """Render 3D Gaussians into C cameras (gsplat ``rasterization`` signature) on the tensors' device.
 
     Args:
         means: (N, 3) centres, metres, world frame.
@@ -90,10 +141,12 @@ def rasterize(
             rendered by the ray path :func:`diff4splat.render.raytrace.raytrace` (its docstring lists
             the differences: exact ray response, eps2d ignored, depth = distance along the ray, meta
             keys). Rolling shutter needs a dynamic scene: :func:`diff4splat.render.render_rolling_shutter`.
-        compositor: CPU tile path, "fused" (projection :mod:`diff4splat.render.fused_projection`, compositing
-            :mod:`diff4splat.render.fused`) or "torch" (:mod:`diff4splat.render.projection`,
-            :mod:`diff4splat.render.tiles`: the reference); None: :data:`DEFAULT_COMPOSITOR`. Same image and
-            gradients either way (float rounding; tests/test_render_fused.py, test_render_fused_projection.py).
+        compositor: tile path, "fused" (projection :mod:`diff4splat.render.fused_projection`, compositing
+            :mod:`diff4splat.render.fused`; CPU tensors only) or "torch" (:mod:`diff4splat.render.projection`,
+            :mod:`diff4splat.render.tiles`: the reference, any device); None: gsplat for CUDA tensors when
+            installed, else :data:`DEFAULT_COMPOSITOR` on the CPU, :data:`DEVICE_COMPOSITOR` elsewhere
+            (:func:`choose_path`). Same image and gradients either way (float rounding;
+            tests/test_render_fused.py, test_render_fused_projection.py, test_render_devices.py).
 
     Rules (3DGS, Kerbl et al. 2023; gsplat CUDA kernels): EWA projection and culling as
     :func:`diff4splat.render.projection.project_gaussians`; alpha = min(0.99, o·exp(−σ)), skipped
@@ -106,9 +159,10 @@ def rasterize(
     float32 then) — with ``torch.autocast`` turned off inside, forward and backward, so a bfloat16
     autocast region gives exactly the float32 result (tolerances: tests/test_render_stability.py).
 
-    Backend: CUDA tensors (not float64) with gsplat installed (extra ``[cuda]``) are rendered by
-    ``gsplat.rasterization`` (:mod:`diff4splat.render.gsplat_backend`, which lists the differences, e.g.
-    gsplat's 0.999 alpha clamp); everything else by this PyTorch tile path.
+    Backend (:func:`choose_path`): CUDA tensors (not float64) with gsplat installed (extra ``[cuda]``) and
+    ``compositor=None`` are rendered by ``gsplat.rasterization`` (:mod:`diff4splat.render.gsplat_backend`,
+    which lists the differences, e.g. gsplat's 0.999 alpha clamp); other non-CPU tensors by the PyTorch tile
+    path on their device; CPU tensors by the fused path. Outputs are on the device of ``means``.
 
     Returns:
         render_colors: (C, H, W, D) for "RGB", (C, H, W, 1) for "D"/"ED", (C, H, W, D + 1) otherwise.
@@ -121,21 +175,21 @@ def rasterize(
 
     Raises:
         ValueError: wrong shapes (naming the argument), non-finite inputs (naming the tensor),
-            zero-norm quaternions, unknown render/rasterize mode or camera model, bad sizes.
+            zero-norm quaternions, unknown render/rasterize mode or camera model, bad sizes, tensors on
+            different devices, an unknown ``compositor`` or ``compositor="fused"`` with non-CPU tensors.
     """
-    if camera_model != "pinhole" or camera_params is not None:  # camera effects only when asked for
+    path = choose_path(means, camera_model, camera_params, compositor)
+    if path == "ray":
         return raytrace(
             means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane=near_plane,
             far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, backgrounds=backgrounds, render_mode=render_mode,
             rasterize_mode=rasterize_mode, camera_model=camera_model, camera_params=camera_params, tile_size=tile_size,
         )
-    # gsplat's CUDA kernels for CUDA tensors when installed (render/gsplat_backend.py), else the tile path
-    name = DEFAULT_COMPOSITOR if compositor is None else compositor
-    if name not in COMPOSITORS:
-        raise ValueError(f"compositor must be one of {sorted(COMPOSITORS)} or None, got {compositor!r}")
-    project, composite = COMPOSITORS[name]
-    tile_path = functools.partial(render_pipeline, composite, project=project)
-    backend = rasterize_gsplat if use_gsplat(means, camera_model) else tile_path
+    if path == "gsplat":
+        backend = rasterize_gsplat
+    else:
+        project, composite = COMPOSITORS[path]
+        backend = functools.partial(render_pipeline, composite, project=project)
     return backend(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height,
         near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, backgrounds=backgrounds,

@@ -19,7 +19,9 @@ hit that would bring T below T_MIN. Colours and backgrounds follow
 Everything is batched tensor code (no loop over Gaussians): rays are grouped by pixel tiles, each
 tile keeps only the Gaussians whose alpha ≥ 1/255 support sphere can meet one of its rays (a cone
 test, :func:`cull_tiles`), and each tile's (ray × Gaussian) matrix is evaluated in batches of at
-most ``budget`` pairs. Plain autograd gives the gradients.
+most ``budget`` pairs. Plain autograd gives the gradients. Every tensor is made on the device of the
+inputs, so the ray path runs on CUDA as on the CPU (any dtype; it is the path for camera effects on
+every device).
 """
 from __future__ import annotations
 
@@ -183,12 +185,12 @@ def cull_tiles(
     """
     d = dirs.double()
     v = valid.double()[:, None]
-    axis = torch.zeros(n_tiles, 3, dtype=torch.float64).index_add_(0, tile_of_ray, d * v)
-    count = torch.zeros(n_tiles, dtype=torch.float64).index_add_(0, tile_of_ray, v[:, 0])
+    axis = d.new_zeros(n_tiles, 3).index_add_(0, tile_of_ray, d * v)
+    count = d.new_zeros(n_tiles).index_add_(0, tile_of_ray, v[:, 0])
     norm = axis.norm(dim=-1)
     axis = axis / norm.clamp(min=1e-300)[:, None]
     cos = torch.where(valid, (d * axis[tile_of_ray]).sum(-1), torch.full_like(v[:, 0], 2.0))
-    cos_b = torch.full((n_tiles,), 2.0, dtype=torch.float64).scatter_reduce(0, tile_of_ray, cos, "amin")
+    cos_b = d.new_full((n_tiles,), 2.0).scatter_reduce(0, tile_of_ray, cos, "amin")
     beta = torch.acos(cos_b.clamp(-1.0, 1.0))
     beta = torch.where(norm < 1e-9 * count.clamp(min=1), torch.full_like(beta, math.pi), beta)
     rel = means.double() - centre.double()
@@ -279,11 +281,12 @@ def raytrace(
     radii = support_radius(scales.detach(), opacities.detach())
     # rays ordered by pixel tile: ray r = (pixel p, sample s), p = i·W + j
     tiles_x = -(-width // tile_size)
-    i, j = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
+    device = means.device
+    i, j = torch.meshgrid(torch.arange(height, device=device), torch.arange(width, device=device), indexing="ij")
     pix_tile = ((i // tile_size) * tiles_x + j // tile_size).reshape(-1)
     n_tiles = tiles_x * -(-height // tile_size)
     pix_order = torch.argsort(pix_tile, stable=True)
-    ray_order = (pix_order[:, None] * S + torch.arange(S)).reshape(-1)
+    ray_order = (pix_order[:, None] * S + torch.arange(S, device=device)).reshape(-1)
     tile_of_ray = pix_tile.repeat_interleave(S)[ray_order]
     tile_ends = torch.cumsum(torch.bincount(tile_of_ray, minlength=n_tiles), 0).tolist()
     n_rays = height * width * S

@@ -49,21 +49,25 @@ def composite_dense(
     alpha·T·feat and T = next_T. Finally colour += T·background, alpha = 1 − T (gsplat
     ``rasterize_to_pixels_fwd``; 3DGS eq. 3).
 
+    The loop runs over the depth-sorted Gaussians (this is the brute-force oracle, for tests and tiny
+    images); every tensor is made on the device of ``means2d``, so it runs on any device.
+
     Returns:
         colors: (H·W, F), alphas: (H·W,), info {} (no tiles).
     """
-    dtype = means2d.dtype
+    dtype, device = means2d.dtype, means2d.device
     order = torch.argsort(depths, stable=True)
     ys, xs = torch.meshgrid(
-        torch.arange(height, dtype=dtype) + 0.5, torch.arange(width, dtype=dtype) + 0.5, indexing="ij"
+        torch.arange(height, dtype=dtype, device=device) + 0.5, torch.arange(width, dtype=dtype, device=device) + 0.5,
+        indexing="ij",
     )
     px, py = xs.reshape(-1, 1), ys.reshape(-1, 1)  # (P, 1)
     m2, cn, op, ft = means2d[order], conics[order], opacities[order], feats[order]
     alphas = splat_alpha(px - m2[None, :, 0], py - m2[None, :, 1], cn[None], op[None])  # (P, M)
     n_pix = px.shape[0]
-    T = torch.ones(n_pix, dtype=dtype)
-    done = torch.zeros(n_pix, dtype=torch.bool)
-    out = torch.zeros(n_pix, feats.shape[-1], dtype=dtype)
+    T = torch.ones(n_pix, dtype=dtype, device=device)
+    done = torch.zeros(n_pix, dtype=torch.bool, device=device)
+    out = torch.zeros(n_pix, feats.shape[-1], dtype=dtype, device=device)
     for i in range(alphas.shape[1]):
         a = alphas[:, i]
         next_T = T * (1.0 - a)

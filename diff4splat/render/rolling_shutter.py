@@ -58,7 +58,7 @@ def render_rolling_shutter(
 
     Returns:
         colors (F, H, W, 3) clamped to [0, 1], expected distance along the ray (F, H, W) metres (0
-        where alpha = 0), alphas (F, H, W).
+        where alpha = 0), alphas (F, H, W); on the scene's device.
 
     Raises:
         ValueError: ``frames`` out of range, ``shutter.chunks`` > H, ``render_mode`` in
@@ -74,18 +74,19 @@ def render_rolling_shutter(
             raise ValueError(f"frames holds {f}, outside 0..{len(cameras) - 1}")
     H, W = cameras.height, cameras.width
     bands = shutter.row_bands(H)
-    dtype = scene.canonical.means.dtype
-    bg = torch.tensor([background], dtype=dtype)
+    dtype, device = scene.canonical.means.dtype, scene.canonical.means.device
+    bg = torch.tensor([background], dtype=dtype, device=device)
     colors, depths, alphas = [], [], []
     for i in frames:
-        K = cameras.Ks[i].to(dtype)
+        K = cameras.Ks[i].to(device=device, dtype=dtype)
         rows_c, rows_a = [], []
         for (r0, r1), t in zip(bands, shutter.band_times(H, float(cameras.times[i])), strict=False):
             g = scene.at(t)
             vm = cameras.viewmat_at(t) if interpolate_pose else cameras.viewmats[i]
             K_band = K.clone()
             K_band[1, 2] = K[1, 2] - r0
-            out, alpha, _ = raytrace(g.means, g.quats, g.scales, g.opacities, g.sh, vm[None].to(dtype), K_band[None],
+            vm = vm.to(device=device, dtype=dtype)
+            out, alpha, _ = raytrace(g.means, g.quats, g.scales, g.opacities, g.sh, vm[None], K_band[None],
                                      W, r1 - r0, sh_degree=g.sh_degree, backgrounds=bg, render_mode="RGB+ED",
                                      **rasterize_kwargs)
             rows_c.append(out[0])

@@ -6,6 +6,10 @@ composited in chunks. Inside a chunk only the (pixel, Gaussian) pairs where the 
 visible support box are evaluated — small splats cost a handful of pairs, not a whole tile — and each
 pixel's pairs are composited front to back with segmented prefix sums. The compositing step is a
 ``torch.autograd.Function`` with the analytic backward of gsplat's ``rasterize_to_pixels_bwd``.
+
+Runs on every device (the path ``rasterize`` takes for CUDA tensors without gsplat, and for float64 there):
+every tensor is made on the device of the inputs, there is no loop over Gaussians (only over chunks of
+tiles), and numpy is used only for the CPU's radix sort (:func:`_stable_argsort_small`).
 """
 from __future__ import annotations
 
@@ -18,13 +22,28 @@ from torch import Tensor
 from diff4splat.constants import ALPHA_MAX, T_MIN
 from diff4splat.render.projection import splat_alpha, splat_sigma, support_extent
 
-__all__ = ["tile_boxes", "bin_tiles", "composite_tiles", "PAIR_BUDGET"]
+__all__ = ["tile_boxes", "bin_tiles", "composite_tiles", "pair_budget", "PAIR_BUDGET", "PAIR_BUDGET_DEVICE",
+           "CHUNK_PIXELS", "CHUNK_PIXELS_DEVICE"]
 
 _LOG_T_MIN = math.log(T_MIN)
 PAIR_BUDGET = 1 << 18
-"""Most (pixel, Gaussian) pairs composited at once (bounds the transient memory of a chunk). 2¹⁸ keeps a
-chunk's per-pair arrays (~1 MiB each) cache-sized: at 256²/65,536 it was ~30 % faster, forward and
+"""Most (pixel, Gaussian) pairs composited at once on the CPU (bounds the transient memory of a chunk). 2¹⁸
+keeps a chunk's per-pair arrays (~1 MiB each) cache-sized: at 256²/65,536 it was ~30 % faster, forward and
 backward, than 2²¹ on the benchmark machine (benchmarks/render_speed.py)."""
+PAIR_BUDGET_DEVICE = 1 << 22
+"""The same bound on a non-CPU device (CUDA). There the cost of a chunk is its ~40 kernel launches and the
+host synchronisations of the chunk loop (``int(…)`` of sizes), not cache misses, so chunks are 16× larger:
+fewer chunks, each pair array ~16 MiB (float32), a few hundred MiB of transients per chunk."""
+CHUNK_PIXELS = 1 << 16
+"""Most pixels per chunk on the CPU: the pixel keys of a chunk fit 16 bits, for the numpy radix sort."""
+CHUNK_PIXELS_DEVICE = 1 << 22
+"""Most pixels per chunk on a non-CPU device (keys are sorted by ``torch.sort(stable=True)``, any size)."""
+
+
+def pair_budget(device: torch.device) -> int:
+    """Default most (pixel, Gaussian) pairs per chunk on ``device``: :data:`PAIR_BUDGET` on the CPU,
+    :data:`PAIR_BUDGET_DEVICE` elsewhere."""
+    return PAIR_BUDGET if device.type == "cpu" else PAIR_BUDGET_DEVICE
 
 
 @torch.no_grad()
@@ -86,7 +105,8 @@ def bin_tiles(
     order = torch.argsort(depths, stable=True)
     n_sorted = per_gauss[order]
     gid = torch.repeat_interleave(order, n_sorted)
-    local = torch.arange(len(gid)) - torch.repeat_interleave(torch.cumsum(n_sorted, 0) - n_sorted, n_sorted)
+    first = torch.repeat_interleave(torch.cumsum(n_sorted, 0) - n_sorted, n_sorted)  # each Gaussian's first slot
+    local = torch.arange(len(gid), device=gid.device) - first
     tw_g = tw[gid]
     tile_ids = (ty0[gid] + local // tw_g) * tiles_x + tx0[gid] + local % tw_g
     perm = torch.argsort(tile_ids, stable=True)
@@ -99,9 +119,13 @@ def bin_tiles(
 
 
 def _stable_argsort_small(keys: Tensor, n_keys: int) -> Tensor:
-    """Stable argsort of non-negative int keys < n_keys (radix sort via numpy when they fit 16 bits)."""
-    if n_keys <= 1 << 16:
-        return torch.from_numpy(np.argsort(keys.numpy().astype(np.uint16), kind="stable"))
+    """Stable argsort of non-negative int keys < n_keys, (P,) → (P,) int64 on the keys' device.
+
+    On the CPU, keys that fit 16 bits are sorted by numpy's radix sort (faster than torch's merge sort);
+    elsewhere (or wider keys) by ``torch.argsort(stable=True)``, so device tensors never reach numpy.
+    """
+    if keys.device.type == "cpu" and n_keys <= 1 << 16:
+        return torch.from_numpy(np.argsort(keys.cpu().numpy().astype(np.uint16), kind="stable"))
     return torch.argsort(keys, stable=True)
 
 
@@ -194,16 +218,26 @@ def composite_tiles(
     """Composite one camera tile by tile; same result as :func:`reference.composite_dense`.
 
     Tiles (from :func:`bin_tiles`) are taken in raster order in chunks of consecutive tiles holding
-    at most ``budget`` (default :data:`PAIR_BUDGET`) pairs and 65,536 pixels. For each chunk the
-    pairs (intersection × pixels of the Gaussian's box inside the tile) are generated, stably
-    sorted by pixel (radix sort; the depth order of the tile lists is kept) and composited by
-    :class:`_CompositePairs`. Pixels no Gaussian reaches get the background and alpha 0.
+    at most ``budget`` pairs and :data:`CHUNK_PIXELS` pixels (:data:`CHUNK_PIXELS_DEVICE` off the CPU). For
+    each chunk the pairs (intersection × pixels of the Gaussian's box inside the tile) are generated, stably
+    sorted by pixel (:func:`_stable_argsort_small`; the depth order of the tile lists is kept) and composited
+    by :class:`_CompositePairs`. Pixels no Gaussian reaches get the background and alpha 0. Runs on the
+    device of the inputs (all on one device); the chunking does not change the result.
+
+    Args:
+        means2d, conics, opacities, depths, feats, covars2d: the M visible Gaussians of one camera (pixels,
+            1/pixels², (0, 1), metres, any features, pixels²), as :data:`diff4splat.render.stages.Compositor`.
+        background: (F,) behind the Gaussians, or None (0).
+        width, height, tile_size: pixels.
+        budget: most pairs per chunk; default :func:`pair_budget` of the device (:data:`PAIR_BUDGET` on the
+            CPU, :data:`PAIR_BUDGET_DEVICE` elsewhere).
 
     Returns:
         colors (H·W, F), alphas (H·W,), info dict (tile binning of :func:`bin_tiles`; indices
         refer to the M input Gaussians; n_pairs = pairs evaluated).
     """
-    budget = PAIR_BUDGET if budget is None else budget
+    device = means2d.device
+    budget = pair_budget(device) if budget is None else budget
     dtype, n_feat, n_pix = means2d.dtype, feats.shape[-1], width * height
     s, s2 = tile_size, tile_size * tile_size
     info = bin_tiles(means2d.detach(), covars2d.detach(), opacities.detach(), depths.detach(), width, height, s)
@@ -217,10 +251,10 @@ def composite_tiles(
     # chunk-independent part of each pair's key: tile's first pixel index + rect offset in the tile
     base = (itile * s2 + (ry0 - ty) * s + (rx0 - tx)).to(torch.int32)
     rw32 = rw.to(torch.int32)
-    cum_pairs = torch.cumsum(torch.zeros(n_tiles, dtype=torch.long).index_add_(0, itile, n_rect), 0)
+    cum_pairs = torch.cumsum(torch.zeros(n_tiles, dtype=torch.long, device=device).index_add_(0, itile, n_rect), 0)
     cum_isect = torch.cumsum(info["tile_counts"], 0)
     params = torch.cat([means2d, conics, opacities[:, None]], dim=-1)  # (M, 6)
-    max_tiles = max(1, (1 << 16) // s2)
+    max_tiles = max(1, (CHUNK_PIXELS if device.type == "cpu" else CHUNK_PIXELS_DEVICE) // s2)
     ids, cols, accs = [], [], []
     t0, done_pairs, n_pairs_total = 0, 0, int(cum_pairs[-1]) if n_tiles else 0
     while t0 < n_tiles and done_pairs < n_pairs_total:
@@ -232,14 +266,14 @@ def composite_tiles(
         n = n_rect[i0:i1]
         # Pixel index within the chunk of every pair (int32): rect origin + (row, column) in the rect.
         start = torch.cumsum(n, 0, dtype=torch.int32) - n.to(torch.int32)
-        local = torch.arange(int(n.sum()), dtype=torch.int32) - torch.repeat_interleave(start, n)
+        local = torch.arange(int(n.sum()), dtype=torch.int32, device=device) - torch.repeat_interleave(start, n)
         rw_p = torch.repeat_interleave(rw32[i0:i1], n)
         row = torch.div(local, rw_p, rounding_mode="floor")
         key = torch.repeat_interleave(base[i0:i1] - t0 * s2, n) + row * s + (local - row * rw_p)
         perm = _stable_argsort_small(key, n_chunk_pix)
         key = key[perm].long()
         gid = torch.repeat_interleave(flat[i0:i1], n)[perm]
-        q = torch.arange(n_chunk_pix)
+        q = torch.arange(n_chunk_pix, device=device)
         qt = t0 + q // s2
         qx, qy = qt % tiles_x * s + q % s, qt // tiles_x * s + (q % s2) // s
         col, acc = _CompositePairs.apply(
@@ -251,8 +285,8 @@ def composite_tiles(
         accs.append(acc[inside])
         done_pairs = int(cum_pairs[t1 - 1])
         t0 = t1
-    out = torch.zeros(n_pix, n_feat, dtype=dtype) if background is None else background.expand(n_pix, n_feat)
-    acc_img = torch.zeros(n_pix, dtype=dtype)
+    out = means2d.new_zeros(n_pix, n_feat) if background is None else background.expand(n_pix, n_feat)
+    acc_img = means2d.new_zeros(n_pix)
     if ids:
         all_ids = torch.cat(ids)
         out = out.index_copy(0, all_ids, torch.cat(cols))

@@ -37,7 +37,8 @@ def validate_inputs(
 
     Checked, in order: shapes of means (N, 3), quats (N, 4), scales (N, 3), opacities (N,), colors
     ((N, D), or (N, K, 3) with K ≥ (sh_degree+1)²), viewmats (C, 4, 4), Ks (C, 3, 3), backgrounds
-    (C, D); width, height, tile_size positive ints (pixels); 0 ≤ near_plane < far_plane (metres);
+    (C, D); every tensor on the device of ``means`` (no path moves tensors between devices); width,
+    height, tile_size positive ints (pixels); 0 ≤ near_plane < far_plane (metres);
     eps2d ≥ 0 (pixels²); render_mode in :data:`RENDER_MODES`, rasterize_mode in
     :data:`RASTERIZE_MODES`, camera_model in :data:`~diff4splat.render.projection.CAMERA_MODELS`;
     every tensor floating point and finite. Every entry point (tile path, dense reference, ray path,
@@ -63,6 +64,10 @@ def validate_inputs(
     _check_shape("Ks", Ks, (c, 3, 3))
     if backgrounds is not None:
         _check_shape("backgrounds", backgrounds, (c, colors.shape[-1]))
+    for name, t in (("quats", quats), ("scales", scales), ("opacities", opacities), ("colors", colors),
+                    ("viewmats", viewmats), ("Ks", Ks), ("backgrounds", backgrounds)):
+        if t is not None and t.device != means.device:
+            raise ValueError(f"{name} is on {t.device} but means on {means.device}: pass every tensor on one device")
     check_positive_int("width", width, "pixels")
     check_positive_int("height", height, "pixels")
     check_positive_int("tile_size", tile_size, "pixels")
