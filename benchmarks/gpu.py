@@ -1,0 +1,266 @@
+"""GPU figures: the renderer, `generate` per stage with peak memory, and training steps per second.
+
+Three parts, each small enough for one 10-minute command on one GPU:
+
+- ``render``: gsplat (``compositor=None`` on CUDA), our pure-PyTorch tile path on CUDA (``compositor="torch"``)
+  and the fused CPU path (``compositor="fused"``) on the LDRM-sized scenes of benchmarks/render_speed.py (one
+  Gaussian per pixel) at 256² and 1024²: forward and forward+backward, median after warm-up.
+- ``generate``: the pipeline's stages (synchronised, :class:`diff4splat.devices.Stopwatch`) and the render along
+  the path, with the peak of ``torch.cuda.max_memory_allocated``, for ``base`` (shipped weights, 17 frames, 64²),
+  ``small`` (random, 17 frames, 128²) and ``paper`` (random weights built directly in bfloat16 on the GPU —
+  nothing is downloaded; 49 frames, 512², 50 Euler steps), the paper model with model CPU offload and a prompt,
+  with offload and no prompt, and without offload and no prompt. Goal (issue 26, the paper's figures): paper-size
+  `generate` end to end ≤ 30 s and ≤ 25 GB.
+- ``train``: optimizer steps per second and peak memory of ``train_base_dit``, ``train_base_ldrm`` and
+  ``train_stage1`` with the ``small`` model on synthetic data made here (``data_prep synth``), on the trainer's
+  defaults for the device (bf16 autocast and TF32 on CUDA).
+
+    python benchmarks/gpu.py --part render|generate|train|all [--write]
+    python benchmarks/gpu.py --device cpu --quick --part all     # a dry run of the code paths, no figures
+
+``--write`` replaces the sections ``gpu_render``, ``gpu_generate`` and ``gpu_train`` of docs/benchmarks.md; every
+table names the device it ran on. Without CUDA the script exits with one line and code 2 unless ``--device cpu``.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import machine, markdown_table, peak_rss_mb, write_section  # noqa: E402
+from render_speed import ldrm_scene  # noqa: E402
+
+from diff4splat.devices import Stopwatch, resolve_device  # noqa: E402
+from diff4splat.io import load_image  # noqa: E402
+from diff4splat.pipeline import Diff4SplatPipeline, load_model  # noqa: E402
+from diff4splat.render import rasterize  # noqa: E402
+from diff4splat.render.gsplat_backend import gsplat_available  # noqa: E402
+from diff4splat.render.sequence import render_path  # noqa: E402
+from models.bundle import Diff4SplatModel, load_config  # noqa: E402
+
+EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
+PROMPT = "a cat turns its head"
+GOAL = "paper-size generate (49 frames, 512², 50 steps) end to end ≤ 30 s and ≤ 25 GB peak (issue 26)"
+
+
+def device_name(device: torch.device) -> str:
+    """The GPU's name and memory, or the CPU line of :func:`_common.machine`."""
+    if device.type == "cuda":
+        p = torch.cuda.get_device_properties(device)
+        return (f"{p.name} ({p.total_memory / 2**30:.0f} GiB), CUDA {torch.version.cuda}, torch {torch.__version__}, "
+                f"host: {machine()}")
+    return machine()
+
+
+def reset_peak(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.empty_cache()
+        torch.cuda.reset_peak_memory_stats(device)
+
+
+def peak_gb(device: torch.device) -> str:
+    """Peak allocated memory since :func:`reset_peak`: GPU memory on CUDA (GB = 10⁹ bytes), else the process's
+    peak RSS."""
+    if device.type == "cuda":
+        return f"{torch.cuda.max_memory_allocated(device) / 1e9:.2f}"
+    return f"{peak_rss_mb() * 2**20 / 1e9:.2f} (RSS)"
+
+
+# --------------------------------------------------------------------------------------------------- render
+def time_render(compositor: str | None, device: torch.device, size: int, runs: int) -> dict[str, float]:
+    """Median forward and forward+backward ms of one camera, RGB+ED, on ``device``."""
+    scene = [t.to(device) for t in ldrm_scene(size)]
+    clock = Stopwatch(device)
+    fwd, fb = [], []
+    for k in range(runs + 2):  # two warm-ups: kernels compile / load and allocators settle
+        clock.lap()
+        with torch.no_grad():
+            rasterize(*scene, size, size, render_mode="RGB+ED", compositor=compositor)
+        t_f = clock.lap()
+        leaves = [t.clone().requires_grad_() for t in scene[:5]]
+        clock.lap()
+        col, alpha, _ = rasterize(*leaves, *scene[5:], size, size, render_mode="RGB+ED", compositor=compositor)
+        (col.sum() + alpha.sum()).backward()
+        t_fb = clock.lap()
+        if k >= 2:
+            fwd.append(t_f)
+            fb.append(t_fb)
+    return {"fwd_ms": 1e3 * statistics.median(fwd), "fb_ms": 1e3 * statistics.median(fb)}
+
+
+def part_render(device: torch.device, quick: bool) -> str:
+    sizes = (64,) if quick else (256, 1024)
+    rows = []
+    for size in sizes:
+        paths = [("fused (CPU, numba)", "fused", torch.device("cpu"))]
+        if device.type != "cpu":
+            paths.insert(0, ("PyTorch tile path", "torch", device))
+            if gsplat_available():
+                paths.insert(0, ("gsplat", None, device))
+            else:
+                rows.append(["gsplat", str(device), f"{size}²", "not installed", "—"])
+        for label, compositor, dev in paths:
+            runs = 2 if quick else (3 if dev.type == "cpu" and size > 256 else 10)
+            r = time_render(compositor, dev, size, runs)
+            rows.append([label, str(dev), f"{size}²", f"{r['fwd_ms']:.2f}", f"{r['fb_ms']:.2f}"])
+            print(rows[-1], flush=True)
+    return (f"### Renderer on the GPU (LDRM-sized scenes, one Gaussian per pixel, RGB+ED, 1 camera)\n\n"
+            f"`python benchmarks/gpu.py --part render --write`; median after two warm-ups, CUDA synchronised. "
+            f"Device: {device_name(device)}. The CPU row uses torch's {torch.get_num_threads()} threads.\n\n"
+            + markdown_table(["path", "device", "image", "forward ms", "fwd+bwd ms"], rows))
+
+
+# ------------------------------------------------------------------------------------------------- generate
+GENERATE = [  # (label, config, frames, dtype, offload, prompt)
+    ("base (shipped weights)", "base", None, torch.float32, "none", PROMPT),
+    ("small (random)", "small", None, torch.float32, "none", PROMPT),
+    ("paper, bf16, offload model, prompt", "paper", 49, torch.bfloat16, "model", PROMPT),
+    ("paper, bf16, offload model, no prompt", "paper", 49, torch.bfloat16, "model", ""),
+    ("paper, bf16, no offload, no prompt", "paper", 49, torch.bfloat16, "none", ""),
+]
+STAGES = ("encode_image", "encode_text", "sample", "reconstruct", "prune", "render")
+
+
+def build_model(config: str, dtype: torch.dtype, device: torch.device, quick: bool):
+    """Shipped weights where they exist; otherwise a seeded random model built directly on ``device`` in
+    ``dtype`` (a paper-size model never passes through CPU float32)."""
+    if config == "base":
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return load_model(None, config)[0]
+    cfg = load_config("tiny" if quick else config)
+    return Diff4SplatModel.random(cfg, seed=0, device=device, dtype=dtype)
+
+
+def run_generate(pipe: Diff4SplatPipeline, frames: int | None, prompt: str, steps: int | None) -> dict[str, float]:
+    cfg = pipe.config
+    image = load_image(EXAMPLE, size=(cfg.height, cfg.width))
+    cams = pipe.default_cameras("arc", frames)
+    res = pipe(image, cams, prompt, steps=steps)
+    clock = Stopwatch(pipe.device)
+    render_path(res.scene, res.cameras)
+    return {**res.timings, "render": clock.lap(), "gaussians": res.scene.num_gaussians,
+            "frames": len(res.cameras), "steps": res.steps, "size": f"{cfg.width}²"}
+
+
+def part_generate(device: torch.device, quick: bool) -> str:
+    rows, paper_total, paper_peak = [], None, None
+    models: dict[tuple, object] = {}
+    for label, config, frames, dtype, offload, prompt in GENERATE:
+        key = (config, dtype)
+        try:
+            if key not in models:
+                models.clear()  # one paper model at a time
+                reset_peak(device)
+                models[key] = build_model(config, dtype, device, quick)
+            model = models[key]
+            pipe = Diff4SplatPipeline(model, device, dtype=dtype, offload=offload)
+            run_generate(pipe, 5 if quick else frames, prompt, 1)  # warm-up: kernels, allocator
+            reset_peak(device)
+            t = run_generate(pipe, 5 if quick else frames, prompt, 2 if quick else None)
+        except torch.OutOfMemoryError as e:
+            rows.append([label, "out of memory: " + str(e).splitlines()[0][:80]] + [""] * (len(STAGES) + 3))
+            models.clear()
+            continue
+        total = sum(t[s] for s in STAGES)
+        peak = peak_gb(device)
+        rows.append([label, f"{t['size']}, {t['frames']} fr, {t['steps']} st", f"{t['gaussians']:,}"]
+                    + [f"{t[s]:.2f}" for s in STAGES] + [f"**{total:.2f}**", peak])
+        print(rows[-1], flush=True)
+        if config == "paper" and offload == "model" and prompt:
+            paper_total, paper_peak = total, peak
+    verdict = ("" if paper_total is None or quick else
+               f"\n\nGoal: {GOAL}. Paper with offload and a prompt: {paper_total:.1f} s "
+               f"({'meets' if paper_total <= 30 else 'misses'} 30 s), peak {paper_peak} GB "
+               f"({'meets' if float(paper_peak.split()[0]) <= 25 else 'misses'} 25 GB).")
+    return (f"### `generate` on the GPU per stage, seconds, with peak memory\n\n"
+            f"`python benchmarks/gpu.py --part generate --write`; one run after a one-step warm-up, stages "
+            f"synchronised. The paper model holds random weights built in bfloat16 on the GPU (no download); "
+            f"\"offload model\" keeps the networks in pinned CPU memory and moves one at a time to the GPU "
+            f"(diff4splat/offload.py), so its `sample` includes copying the DiT there. Peak = "
+            f"`torch.cuda.max_memory_allocated` over the run, GB = 10⁹ bytes. Device: {device_name(device)}.\n\n"
+            + markdown_table(["model", "run", "Gaussians", *STAGES, "total s", "peak GB"], rows) + verdict)
+
+
+# ---------------------------------------------------------------------------------------------------- train
+TRAIN = ("train_base_dit", "train_base_ldrm", "train_stage1")
+
+
+def part_train(device: torch.device, quick: bool) -> str:
+    import csv
+
+    from training.stages import load_stage
+    from training.train import build_training
+
+    steps, warm = (3, 1) if quick else (30, 5)
+    config = "tiny" if quick else "small"
+    cfg = load_config(config)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        data = Path(tmp) / "data"
+        subprocess.run([sys.executable, "-m", "data_prep.cli", "synth", "--scenes", "8", "--size", str(cfg.width),
+                        "--frames", "17", "--cameras", "2", "--workers", "8", "--quiet", "--out", str(data)],
+                       check=True)
+        for name in TRAIN:
+            run = Path(tmp) / name
+            stage = load_stage(name, data=str(data), init_from=None, model_config=config,
+                               height=cfg.height if name != "train_stage1" else cfg.height // 2,
+                               width=cfg.width if name != "train_stage1" else cfg.width // 2,
+                               trainer={"run_dir": str(run), "total_steps": steps, "checkpoint_every": 10**6,
+                                        "progress": False, "device": str(device)})
+            reset_peak(device)
+            trainer, _, counts = build_training(stage)
+            trainer.fit()
+            with open(run / "metrics.csv") as f:
+                secs = [float(r["seconds"]) for r in csv.DictReader(f) if r["skipped"] == "0"][warm:]
+            sps = 1 / statistics.median(secs)
+            rows.append([name, f"{config}, {stage.width}², {stage.num_frames} fr, batch {stage.trainer.batch_size}",
+                         f"{sum(counts.values()):,}", str(trainer.autocast_dtype), f"{sps:.2f}", peak_gb(device)])
+            print(rows[-1], flush=True)
+    return (f"### Training on the GPU: steps per second and peak memory\n\n"
+            f"`python benchmarks/gpu.py --part train --write`; {steps} optimizer steps on 8 synthetic scenes "
+            f"(`data_prep synth`), median step time after {warm} warm-up steps (metrics.csv `seconds`), the "
+            f"trainer's defaults for the device. Device: {device_name(device)}.\n\n"
+            + markdown_table(["stage", "clips", "trainable parameters", "autocast", "steps/s", "peak GB"], rows))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--part", choices=("render", "generate", "train", "all"), default="all")
+    ap.add_argument("--device", default="cuda", help="cuda (default) or cpu for a dry run of the code paths")
+    ap.add_argument("--quick", action="store_true", help="tiny sizes: checks that every path runs, no figures")
+    ap.add_argument("--write", action="store_true", help="write the tables into docs/benchmarks.md")
+    args = ap.parse_args()
+    try:
+        device = resolve_device(args.device, "--device")
+    except ValueError as e:
+        print(f"gpu.py: error: {e} (this benchmark needs a CUDA GPU; --device cpu --quick is a dry run)",
+              file=sys.stderr)
+        return 2
+    if args.write and (args.quick or device.type != "cuda"):
+        print("gpu.py: error: --write needs a full run on CUDA (no --quick)", file=sys.stderr)
+        return 2
+    if device.type == "cuda":
+        torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
+    parts = ("render", "generate", "train") if args.part == "all" else (args.part,)
+    for part in parts:
+        t0 = time.perf_counter()
+        body = {"render": part_render, "generate": part_generate, "train": part_train}[part](device, args.quick)
+        print(body + f"\n\n({part}: {time.perf_counter() - t0:.0f} s)\n", flush=True)
+        if args.write:
+            write_section(f"gpu_{part}", body)
+    return 0
+
+
+if __name__ == "__main__":
+    with contextlib.suppress(KeyboardInterrupt):
+        sys.exit(main())
