@@ -207,12 +207,12 @@ def part_train(device: torch.device, quick: bool) -> str:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         data = Path(tmp) / "data"
-        subprocess.run([sys.executable, "-m", "data_prep.cli", "synth", "--scenes", "8", "--size", str(cfg.width),
-                        "--frames", "17", "--cameras", "2", "--workers", "8", "--quiet", "--out", str(data)],
-                       check=True)
+        subprocess.run([sys.executable, "-m", "data_prep.cli", "synth", "--scenes", "16", "--static-ratio", "0.5",
+                        "--size", str(cfg.width), "--frames", "17", "--cameras", "2", "--workers", "8", "--quiet",
+                        "--out", str(data)], check=True)
         for name in TRAIN:
             run = Path(tmp) / name
-            stage = load_stage(name, data=str(data), init_from=None, model_config=config,
+            stage = load_stage(name, data=str(data), init_from="", model_config=config,  # "": a random model
                                height=cfg.height if name != "train_stage1" else cfg.height // 2,
                                width=cfg.width if name != "train_stage1" else cfg.width // 2,
                                trainer={"run_dir": str(run), "total_steps": steps, "checkpoint_every": 10**6,
@@ -224,12 +224,12 @@ def part_train(device: torch.device, quick: bool) -> str:
                 secs = [float(r["seconds"]) for r in csv.DictReader(f) if r["skipped"] == "0"][warm:]
             sps = 1 / statistics.median(secs)
             rows.append([name, f"{config}, {stage.width}², {stage.num_frames} fr, batch {stage.trainer.batch_size}",
-                         f"{sum(counts.values()):,}", str(trainer.autocast_dtype), f"{sps:.2f}", peak_gb(device)])
+                         f"{sum(counts.values()):,}", "bf16" if trainer.bf16 else "off", f"{sps:.2f}", peak_gb(device)])
             print(rows[-1], flush=True)
     return (f"### Training on the GPU: steps per second and peak memory\n\n"
-            f"`python benchmarks/gpu.py --part train --write`; {steps} optimizer steps on 8 synthetic scenes "
-            f"(`data_prep synth`), median step time after {warm} warm-up steps (metrics.csv `seconds`), the "
-            f"trainer's defaults for the device. Device: {device_name(device)}.\n\n"
+            f"`python benchmarks/gpu.py --part train --write`; {steps} optimizer steps on 16 synthetic scenes "
+            f"(half static, `data_prep synth`), median step time after {warm} warm-up step(s) (metrics.csv "
+            f"`seconds`), the trainer's defaults for the device. Device: {device_name(device)}.\n\n"
             + markdown_table(["stage", "clips", "trainable parameters", "autocast", "steps/s", "peak GB"], rows))
 
 

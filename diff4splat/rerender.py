@@ -17,7 +17,9 @@ Camera path (:func:`load_camera_file`, :func:`trajectory_cameras`), one of:
 * a preset trajectory (:func:`diff4splat.cameras.make_trajectory`) at the folder's frame-0 intrinsics and
   size, placed at the folder's first camera, around the scene centre at :func:`scene_depth` metres ahead.
 
-Frame i is rendered at ``cameras.times[i]`` by :func:`diff4splat.render.sequence.render_path`. The output
+Frame i is rendered at ``cameras.times[i]`` by :func:`diff4splat.render.sequence.render_path`, on the device
+:func:`rerender` is given (``render --device``, default ``auto`` on the command line, the CPU in the library): the
+scene, the field and the cameras are moved there, and the files are written from CPU copies. The output
 folder (kind ``"render"``, written atomically by :func:`diff4splat.io.outdir.output_dir`, so it never
 replaces a user's folder nor the input)::
 
@@ -28,7 +30,7 @@ replaces a user's folder nor the input)::
                         :func:`~diff4splat.io.output.fill_empty_depth`) and coverage "A"
     cameras.json        the path rendered
     viewer.html         the interactive viewer of the source scene, opening at the path's first camera
-    meta.json           source folder, camera source, deformation source, frames, size, fps, timings
+    meta.json           source folder, camera source, deformation source, frames, size, fps, device, timings
 """
 from __future__ import annotations
 
@@ -48,6 +50,7 @@ from torch import Tensor
 from . import __version__
 from .cameras import TRAJECTORIES, CameraPath, make_trajectory
 from .checks import check_positive_int
+from .devices import resolve_device
 from .io import load_cameras_json, load_depth_exr, load_ply, load_realestate10k, save_cameras_json, save_depth_exr
 from .io.inputs import check_input_file
 from .io.outdir import check_output_dir, output_dir, read_marker
@@ -78,10 +81,12 @@ class SceneFolder:
     Attributes:
         path: the folder.
         scene: canonical Gaussians (M, float32, world frame, metres) with the deformation of
-            ``deformation.npz`` (key times (K,), interpolated between them) and its temporal support, if any.
-        cameras: the folder's own path (``cameras.json``), T cameras.
+            ``deformation.npz`` (key times (K,), interpolated between them) and its temporal support, if any;
+            on the device :func:`load_scene_folder` was given.
+        cameras: the folder's own path (``cameras.json``), T cameras, on the CPU.
         meta: ``meta.json`` ({} if absent).
-        field: the HexPlane field of ``field.safetensors`` (``models.hexplane.HexPlaneField``), or None.
+        field: the HexPlane field of ``field.safetensors`` (``models.hexplane.HexPlaneField``), or None; on the
+            scene's device.
     """
 
     path: Path
@@ -98,8 +103,9 @@ class SceneFolder:
         return "static" if self.scene.is_static and not self.scene.has_temporal else "deformation.npz"
 
 
-def load_scene_folder(folder: str | os.PathLike) -> SceneFolder:
-    """Read an output folder of ``generate`` or ``fit`` (module docstring).
+def load_scene_folder(folder: str | os.PathLike, device: str | torch.device = "cpu") -> SceneFolder:
+    """Read an output folder of ``generate`` or ``fit`` (module docstring), the scene and field onto ``device``
+    (the camera path stays on the CPU).
 
     Raises:
         FileNotFoundError: ``folder`` does not exist, is not a folder, or lacks ``scene.ply`` or ``cameras.json``
@@ -130,8 +136,8 @@ def load_scene_folder(folder: str | os.PathLike) -> SceneFolder:
     if (path / FIELD_FILE).is_file():
         from models.hexplane import load_field
 
-        field = load_field(path / FIELD_FILE)
-    return SceneFolder(path, scene, cameras, meta, field)
+        field = load_field(path / FIELD_FILE, map_location=device)
+    return SceneFolder(path, scene.to(device), cameras, meta, field)
 
 
 def scene_depth(folder: SceneFolder) -> float:
@@ -155,7 +161,7 @@ def scene_depth(folder: SceneFolder) -> float:
         if keep.any():
             return float(np.median(z[keep]))
     means = folder.scene.canonical.means.double()
-    vm = folder.cameras.viewmats[0].double()
+    vm = folder.cameras.viewmats[0].to(means)
     z = means @ vm[2, :3] + vm[2, 3]  # camera-0 depth of each mean
     z = z[z > NEAR_PLANE]
     if z.numel():
@@ -172,11 +178,14 @@ def path_scene(folder: SceneFolder, times: Tensor) -> DynamicGaussians:
     ``deformation.npz``, if any). Without: the folder's scene, interpolated between its key times.
 
     Args:
-        times: (T,) clip times in [0, 1].
+        times: (T,) clip times in [0, 1], on any device.
+
+    Returns:
+        The scene on the device of ``folder.scene`` (and its field).
     """
     if folder.field is None:
         return folder.scene
-    keys = torch.unique(times.detach().float().cpu())  # sorted, strictly increasing
+    keys = torch.unique(times.detach().float().cpu())  # sorted, strictly increasing; moved by dynamic_gaussians
     dyn = folder.field.dynamic_gaussians(folder.scene.canonical, keys)
     s = folder.scene
     return DynamicGaussians(dyn.canonical, dyn.times, dyn.d_means, dyn.d_quats, dyn.d_scales, s.t_means, s.t_scales)
@@ -277,6 +286,7 @@ def rerender(
     fps: float = 8,
     overwrite: bool = False,
     progress: bool = False,
+    device: str | torch.device = "cpu",
 ) -> dict:
     """Render the scene of ``folder`` along a camera path and write the ``render`` output folder ``out``.
 
@@ -291,6 +301,11 @@ def rerender(
         fps: video frame rate, in (0, 1000].
         overwrite: also replace an ``out`` that is not a ``render`` output (never one holding the inputs).
         progress: tqdm progress bar.
+        device: where the scene is rendered: ``"cpu"`` (default), ``"cuda"``, ``"cuda:N"``, ``"auto"`` (CUDA when
+            torch sees a GPU, else the CPU) or a ``torch.device``; checked first
+            (:func:`diff4splat.devices.resolve_device`). The scene, the field and the cameras are moved there; the
+            files are written from CPU copies. On CUDA the renderer may be gsplat (docs/DESIGN.md, "The renderer"),
+            whose images differ slightly from the CPU's.
 
     Returns:
         The dict written to ``out/meta.json``.
@@ -299,10 +314,12 @@ def rerender(
         ValueError: both or neither of ``cameras``/``trajectory``; ``amplitude``/``frames`` with ``cameras``; a bad
             ``fps``, size or preset argument; an ``out`` that may not be written
             (:class:`~diff4splat.io.OutputDirError`); frames or output size above their limits
-            (:class:`~diff4splat.limits.LimitError`); a malformed file of ``folder`` or camera file.
+            (:class:`~diff4splat.limits.LimitError`); a malformed file of ``folder`` or camera file; a ``device``
+            this machine does not have.
         FileNotFoundError: ``folder``, its ``scene.ply``/``cameras.json`` or the camera file is missing.
     """
     t_start = time.perf_counter()
+    device = resolve_device(device, "device")
     if (cameras is None) == (trajectory is None):
         raise ValueError("give exactly one camera path: cameras (a cameras.json or RealEstate10K file) or "
                          f"trajectory (a preset name), got {'both' if cameras is not None else 'neither'}")
@@ -312,7 +329,7 @@ def rerender(
     fps = check_fps(fps)
     inputs = [folder, cameras]
     check_output_dir(out, inputs=inputs, overwrite=overwrite, kind=RENDER_KIND)
-    src = load_scene_folder(folder)
+    src = load_scene_folder(folder, device)
     depth = None
     if cameras is not None:
         path = load_camera_file(cameras, src)
@@ -324,7 +341,8 @@ def rerender(
     t_load = time.perf_counter() - t_start
     t0 = time.perf_counter()
     background = meta_background(src.meta)
-    colors, depths, alphas = render_path(scene, path, background=background, progress=progress)
+    colors, depths, alphas = render_path(scene, path.to(device), background=background, progress=progress)
+    colors, depths, alphas = colors.cpu(), depths.cpu(), alphas.cpu()  # waits for the device: in t_render
     t_render = time.perf_counter() - t0
     if depth is None:
         try:
@@ -345,16 +363,18 @@ def rerender(
         "fps": fps,
         "background": list(background),
         "num_gaussians": src.scene.num_gaussians,
+        "device": str(device),
         "timings_s": {"load": t_load, "render": t_render},
         "versions": {"diff4splat": __version__, "torch": torch.__version__, "python": platform.python_version()},
     }
-    _write(out, path, scene, colors, depths, alphas, meta, inputs=inputs, overwrite=overwrite, t_start=t_start)
+    _write(out, path, scene.to("cpu"), colors, depths, alphas, meta, inputs=inputs, overwrite=overwrite,
+           t_start=t_start)
     return meta
 
 
 def _write(out, path: CameraPath, scene: DynamicGaussians, colors: Tensor, depths: Tensor, alphas: Tensor,
            meta: dict, *, inputs: list, overwrite: bool, t_start: float) -> None:
-    """Write the folder (module docstring); meta.json last, with the write and total times."""
+    """Write the folder (module docstring) from CPU tensors; meta.json last, with the write and total times."""
     t0 = time.perf_counter()
     rgb = to_uint8(colors, "colors")  # (T, H, W, 3)
     depths = fill_empty_depth(depths, alphas, meta["scene_depth"])

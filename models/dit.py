@@ -11,6 +11,11 @@ Self-attention runs over all video tokens with 3D RoPE (``models.rope``) and QK-
 
 The network predicts the flow-matching velocity v = ε − x0 for x_σ = (1 − σ)·x0 + σ·ε
 (rectified flow, Liu et al. 2023; SD3 Esser et al. 2024 Eq. 1–3).
+
+Gradient checkpointing (Chen et al. 2016) is a runtime switch, not part of the saved config:
+``dit.gradient_checkpointing = True`` (set by the trainer's ``gradient_checkpointing`` option) recomputes each
+block's activations in the backward pass (``torch.utils.checkpoint``, non-reentrant) while the module is
+training with gradients enabled; the loss and the gradients are those of the plain forward.
 """
 from __future__ import annotations
 
@@ -18,6 +23,7 @@ from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
+from torch.utils.checkpoint import checkpoint
 
 from models.layers import CrossAttention, Mlp, SelfAttention, TimestepEmbedder, modulate, patchify, unpatchify
 from models.pretrained import PretrainedMixin
@@ -147,6 +153,10 @@ class VideoDiT(nn.Module, PretrainedMixin):
 
     Build with a :class:`VideoDiTConfig`; ``save_pretrained`` / ``from_pretrained`` from
     :class:`models.pretrained.PretrainedMixin`.
+
+    Attributes:
+        gradient_checkpointing: recompute each block in the backward pass (training with gradients only);
+            False after construction and after loading (a runtime setting, never saved).
     """
 
     config_class = VideoDiTConfig
@@ -166,6 +176,7 @@ class VideoDiT(nn.Module, PretrainedMixin):
             for _ in range(config.depth)
         )
         self.final_layer = FinalLayer(D, patch_volume, c, config.norm_eps)
+        self.gradient_checkpointing = False
         self.initialize_weights()
 
     def initialize_weights(self) -> None:
@@ -245,8 +256,12 @@ class VideoDiT(nn.Module, PretrainedMixin):
         emb = self.t_embedder(sigma * SIGMA_SCALE)  # (B, D)
         rope = rope_3d(*grid, cfg.head_dim, cfg.rope_theta, dtype=tokens.dtype, device=x.device)
         context = self.text_embedder(text.to(tokens.dtype)) if text is not None else None
+        recompute = self.gradient_checkpointing and self.training and torch.is_grad_enabled()
         for block in self.blocks:
-            tokens = block(tokens, emb, rope, context, text_mask)
+            if recompute:  # activations of the block are recomputed in the backward pass (memory for compute)
+                tokens = checkpoint(block, tokens, emb, rope, context, text_mask, use_reentrant=False)
+            else:
+                tokens = block(tokens, emb, rope, context, text_mask)
         out = self.final_layer(tokens, emb)  # (B, N, pt·ph·pw·c)
         return unpatchify(out, cfg.patch_size, grid, c)
 

@@ -257,7 +257,8 @@ def time_l1(plane: Tensor) -> Tensor:
 
 
 def _check_bounds(bounds: Tensor) -> Tensor:
-    bounds = torch.as_tensor(bounds)
+    if not isinstance(bounds, Tensor):  # a nested sequence of numbers: read on the CPU
+        bounds = torch.as_tensor(bounds, device="cpu")
     if tuple(bounds.shape) != (2, 3) or not bounds.is_floating_point():
         raise ValueError(f"bounds must be a float tensor of shape (2, 3) = [min, max] metres, "
                          f"got {bounds.dtype} {tuple(bounds.shape)}")
@@ -268,8 +269,9 @@ def _check_bounds(bounds: Tensor) -> Tensor:
     return bounds
 
 
-def _head(width: int, out: int) -> nn.Sequential:
-    return nn.Sequential(nn.ReLU(), nn.Linear(width, width), nn.ReLU(), nn.Linear(width, out))
+def _head(width: int, out: int, device: torch.device) -> nn.Sequential:
+    return nn.Sequential(nn.ReLU(), nn.Linear(width, width, device=device), nn.ReLU(),
+                         nn.Linear(width, out, device=device))
 
 
 class HexPlaneField(nn.Module):
@@ -281,7 +283,11 @@ class HexPlaneField(nn.Module):
         bounds: (2, 3) float tensor [min, max] of the scene box, metres, finite, max ≥ min per axis. An axis
             with max − min < :data:`MIN_EXTENT` (a planar or single-point scene) is treated as
             :data:`MIN_EXTENT` wide about its centre instead of dividing by zero. Stored as the buffer
-            ``bounds`` (saved and loaded with the state dict).
+            ``bounds`` (float32, saved and loaded with the state dict).
+        device: where the parameters and ``bounds`` are made (default: ``bounds``' device). The random
+            initialisation draws from that device's default generator (``torch.manual_seed`` seeds them all,
+            but CUDA draws other numbers than the CPU): to get the same field on every device, make it on the
+            CPU and move it (``HexPlaneField(config, bounds, device="cpu").to(dev)``, as ``fit`` does).
 
     Attributes:
         grids: ``grids[s][i]`` the plane :data:`PLANE_AXES` ``[i]`` of scale s, (1, F, res_b, res_a).
@@ -291,18 +297,20 @@ class HexPlaneField(nn.Module):
         ValueError: bad ``bounds`` (shape, non-finite, max < min).
     """
 
-    def __init__(self, config: HexPlaneConfig, bounds: Tensor) -> None:
+    def __init__(self, config: HexPlaneConfig, bounds: Tensor, device: str | torch.device | None = None) -> None:
         super().__init__()
         if not isinstance(config, HexPlaneConfig):
             raise ValueError(f"config must be a HexPlaneConfig, got {type(config).__name__}")
         self.config = config
-        self.register_buffer("bounds", _check_bounds(bounds).detach().to(torch.float32).clone())
+        bounds = _check_bounds(bounds)
+        device = bounds.device if device is None else torch.device(device)
+        self.register_buffer("bounds", bounds.detach().to(device=device, dtype=torch.float32).clone())
         self.grids = nn.ModuleList()
         for mult in config.multires:
             res = [r * mult for r in config.resolution[:3]] + [config.resolution[3]]
             planes = nn.ParameterList()
             for a, b in PLANE_AXES:
-                p = nn.Parameter(torch.empty(1, config.feature_dim, res[b], res[a]))  # (1, F, res_b, res_a)
+                p = nn.Parameter(torch.empty(1, config.feature_dim, res[b], res[a], device=device))  # (1, F, rb, ra)
                 if b == 3:
                     nn.init.ones_(p)
                 else:
@@ -310,13 +318,13 @@ class HexPlaneField(nn.Module):
                 planes.append(p)
             self.grids.append(planes)
         W = config.net_width
-        layers: list[nn.Module] = [nn.Linear(config.feature_channels, W)]
+        layers: list[nn.Module] = [nn.Linear(config.feature_channels, W, device=device)]
         for _ in range(config.trunk_depth):
-            layers += [nn.ReLU(), nn.Linear(W, W)]
+            layers += [nn.ReLU(), nn.Linear(W, W, device=device)]
         self.trunk = nn.Sequential(*layers)
-        self.d_means_head = _head(W, 3)
-        self.d_quats_head = _head(W, 4)
-        self.d_scales_head = _head(W, 3)
+        self.d_means_head = _head(W, 3, device)
+        self.d_quats_head = _head(W, 4, device)
+        self.d_scales_head = _head(W, 3, device)
         for m in self.modules():  # reference deformation.py initialize_weights: Xavier weights, default biases
             if isinstance(m, nn.Linear):
                 nn.init.xavier_uniform_(m.weight, gain=1.0)
@@ -491,7 +499,10 @@ def save_field(path: str | os.PathLike, field: HexPlaneField) -> None:
 
 
 def load_field(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> HexPlaneField:
-    """Read a field written by :func:`save_field` (in the dtype it was saved in).
+    """Read a field written by :func:`save_field` (in the dtype it was saved in) onto ``map_location``.
+
+    The file's tensors are read on the CPU and become the field's (nothing is initialised at random: the global
+    random state is left as it was), then moved to ``map_location``.
 
     Raises:
         FileNotFoundError: no file at ``path``.
@@ -524,9 +535,9 @@ def load_field(path: str | os.PathLike, map_location: str | torch.device = "cpu"
         raise ValueError(f"HexPlane field: {path} holds no 'bounds' tensor")
     bounds = tensors["bounds"]
     check_limit("parameters", config.num_parameters, f"HexPlane field: {path}: a field of")
-    field = HexPlaneField(config, bounds).to(bounds.dtype)
+    field = HexPlaneField(config, bounds, device="meta")  # shapes only: the file's tensors are assigned below
     try:
-        field.load_state_dict(tensors, strict=True)
+        field.load_state_dict(tensors, strict=True, assign=True)
     except RuntimeError as e:
         raise ValueError(f"HexPlane field: {path} does not match its config ({' '.join(str(e).split())})") from None
-    return field.to(map_location)
+    return field.to(device=map_location, dtype=bounds.dtype)

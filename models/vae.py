@@ -323,7 +323,8 @@ def sample_posterior(mean: Tensor, logvar: Tensor, generator: torch.Generator | 
 
     Args:
         mean, logvar: (B, c, n, h, w) posterior parameters (same shape).
-        generator: optional generator for ε (on the tensors' device).
+        generator: optional generator for ε; ε is drawn on the generator's device (a CPU generator gives the
+            same ε on every device) and moved to ``mean``'s. None: the default generator of ``mean``'s device.
 
     Returns:
         (B, c, n, h, w) latent sample; differentiable in mean and logvar.
@@ -333,7 +334,8 @@ def sample_posterior(mean: Tensor, logvar: Tensor, generator: torch.Generator | 
     """
     if mean.shape != logvar.shape:
         raise ValueError(f"logvar shape {tuple(logvar.shape)} must equal mean shape {tuple(mean.shape)}")
-    eps = torch.randn(mean.shape, generator=generator, device=mean.device, dtype=mean.dtype)
+    device = mean.device if generator is None else generator.device
+    eps = torch.randn(mean.shape, generator=generator, device=device, dtype=mean.dtype).to(mean.device)
     return mean + torch.exp(0.5 * logvar) * eps
 
 

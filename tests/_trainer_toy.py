@@ -1,6 +1,14 @@
-"""A toy regression problem for trainer tests (importable by spawned processes)."""
+"""A toy regression problem for trainer tests (importable by spawned processes), and a launcher of two ranks
+(env:// rendezvous, as under torchrun) for the distributed tests."""
 import math
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
 
+import pytest
 import torch
 from torch import nn
 from torch.utils.data import Dataset
@@ -32,17 +40,67 @@ class ToyData(Dataset):
 
 
 class ToyModel(nn.Module):
-    def __init__(self):
+    """A small MLP with a frozen output layer. ``dropout`` draws from the device's own RNG (0 for runs that must
+    match across devices); ``fsdp_units`` lists the layers FSDP shards one by one (as TrainingModule's blocks)."""
+
+    def __init__(self, dropout=0.1):
         super().__init__()
-        self.net = nn.Sequential(nn.Linear(8, 16), nn.Dropout(0.1), nn.GELU(), nn.Linear(16, 3))
+        self.net = nn.Sequential(nn.Linear(8, 16), nn.Dropout(dropout), nn.GELU(), nn.Linear(16, 3))
         self.frozen = nn.Linear(3, 3)
         self.frozen.requires_grad_(False)
 
     def forward(self, x):
         return self.frozen(self.net(x))
 
+    def fsdp_units(self):
+        return [self.net[0], self.net[3]]
+
 
 def toy_step(model, batch, generator):
-    noise = torch.randn(batch["x"].shape, generator=generator) * 0.01  # uses the step generator
-    pred = model(batch["x"] + noise)
+    x = batch["x"]
+    # the step generator is on the CPU: draw there, then move (the same numbers on every device)
+    noise = torch.randn(x.shape, generator=generator, device=generator.device).to(x) * 0.01
+    pred = model(x + noise)
     return {"loss": ((pred - batch["y"]) ** 2).mean(), "mae": (pred - batch["y"]).abs().mean()}
+
+
+def free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def run_two_ranks(script: str, attempts: int = 3, timeout: float = 120) -> None:
+    """Start ranks 0 and 1 of ``script`` (env:// rendezvous, as under torchrun) and wait for both.
+
+    The port is free when picked but another process may take it before rank 0's store binds it; on
+    "address already in use" both ranks are stopped and the run is repeated with a fresh port.
+    """
+    for attempt in range(attempts):
+        port, procs, logs = free_port(), [], []
+        for rank in range(2):
+            env = {**os.environ, "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port), "WORLD_SIZE": "2",
+                   "RANK": str(rank), "LOCAL_RANK": str(rank), "OMP_NUM_THREADS": "1"}
+            logs.append(tempfile.TemporaryFile("w+"))  # a file, not a pipe: a chatty rank never blocks
+            procs.append(subprocess.Popen([sys.executable, "-c", script], env=env, stderr=logs[-1], text=True))
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and any(p.poll() is None for p in procs):
+            if any(p.poll() not in (None, 0) for p in procs):  # one rank failed: the other would wait forever
+                for p in procs:
+                    if p.poll() is None:
+                        p.kill()
+            time.sleep(0.05)
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+            p.wait()
+        errs = []
+        for log in logs:
+            log.seek(0)
+            errs.append(log.read())
+            log.close()
+        if all(p.returncode == 0 for p in procs):
+            return
+        port_taken = any("address already in use" in e.lower() or "eaddrinuse" in e.lower() for e in errs)
+        if not port_taken or attempt == attempts - 1:
+            pytest.fail(f"distributed run failed (attempt {attempt + 1}):\n" + "\n".join(errs))

@@ -1,5 +1,5 @@
 """Tests of training/densify.py: 3DGS adaptive density control (clone, split, prune, opacity reset) and the
-surgery on Adam's moments that goes with it."""
+surgery on Adam's moments that goes with it, on each device and without tensors made on the default device."""
 import math
 
 import pytest
@@ -25,10 +25,10 @@ CFG = DensifyConfig(grad_threshold=1e-3, percent_dense=0.01, min_opacity=0.005, 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
-def _params(means, scales, quats=None, opacities=None, seed=0):
+def _params(means, scales, quats=None, opacities=None, seed=0, device="cpu"):
     """Gaussian parameters as fit.py keeps them (log scales, logit opacities) and an Adam with one named
     group per parameter whose moments are non-zero and differ per row (one step taken, then the values
-    put back)."""
+    put back); on ``device`` (drawn on the CPU)."""
     n = means.shape[0]
     g = torch.Generator().manual_seed(seed)
     params = {
@@ -39,10 +39,10 @@ def _params(means, scales, quats=None, opacities=None, seed=0):
         "sh0": torch.rand(n, 1, 3, generator=g),
         "shN": torch.rand(n, 3, 3, generator=g),
     }
-    params = {k: nn.Parameter(v.contiguous()) for k, v in params.items()}
+    params = {k: nn.Parameter(v.contiguous().to(device)) for k, v in params.items()}
     opt = torch.optim.Adam([{"params": [p], "lr": 1e-3, "name": k} for k, p in params.items()], eps=1e-15)
     for p in params.values():
-        p.grad = torch.randn(p.shape, generator=g)
+        p.grad = torch.randn(p.shape, generator=g).to(device)
     values = {k: v.detach().clone() for k, v in params.items()}
     opt.step()
     opt.zero_grad(set_to_none=True)
@@ -242,3 +242,66 @@ def test_active_schedule():
 def test_densify_config_rejects_bad_fields(field, value):
     with pytest.raises(ValueError, match=field):
         DensifyConfig(**{field: value})
+
+
+def _densify_inputs(device):
+    """(params, optimizer, means2d gradients (6, 2), per-axis radii (6, 2)) on ``device``, for :func:`_densify`."""
+    g = torch.Generator().manual_seed(1)
+    means = torch.rand(6, 3, generator=g)
+    scales = torch.tensor([[0.01] * 3, [0.3] * 3, [0.01] * 3, [0.05] * 3, [0.01] * 3, [0.01] * 3])
+    opac = torch.tensor([0.5, 0.5, 0.5, 0.5, 0.001, 0.5])
+    params, opt = _params(means, scales, opacities=opac, device=device)
+    grads = torch.tensor([[1e-3, 0.0], [1e-3, 1e-3], [0.0, 0.0], [2e-3, 0.0], [0.0, 0.0], [0.0, 1e-5]])
+    radii = torch.tensor([[2, 3], [4, 1], [0, 0], [5, 5], [1, 1], [30, 2]])  # per-axis (gsplat ≥ 1.5); 5 too large
+    return params, opt, grads.to(device), radii.to(device)
+
+
+def _densify(params, opt, grads, radii):
+    """Statistics from one view, then clone (0), split (1, 3), prune by opacity (4) and screen size (5), an
+    opacity reset: (params, counts, stats, optimizer)."""
+    stats = DensityStats(6, grads.device)
+    stats.update(grads, radii, 40, 20)
+    out, counts = densify_and_prune(params, opt, stats, CFG, EXTENT, True, torch.Generator().manual_seed(5))
+    return reset_opacity(out, opt), counts, stats, opt
+
+
+def test_densify_on_each_device(device):
+    """The same statistics, clones, split draws (a CPU generator) and prunes on every device."""
+    out, counts, stats, opt = _densify(*_densify_inputs(device))
+    ref, ref_counts, _, _ = _densify(*_densify_inputs("cpu"))
+    assert counts == ref_counts == {"cloned": 1, "split": 2, "pruned": 2}
+    assert stats.device.type == device.type and stats.grad_accum.shape == (out["means"].shape[0],)
+    for k, p in out.items():
+        assert p.device.type == device.type
+        assert all(m.device.type == device.type for key, m in opt.state[p].items() if key != "step")
+        torch.testing.assert_close(p.detach().cpu(), ref[k].detach(), rtol=1e-6, atol=1e-6)
+
+
+def test_density_stats_take_the_larger_of_per_axis_radii():
+    a, b = DensityStats(3), DensityStats(3)
+    grads = torch.tensor([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]])
+    a.update(grads, torch.tensor([[0, 0], [2, 5], [0, 1]]), 10, 10)
+    b.update(grads, torch.tensor([0, 5, 1]), 10, 10)
+    for x, y in ((a.grad_accum, b.grad_accum), (a.denom, b.denom), (a.max_radii, b.max_radii)):
+        assert torch.equal(x, y)
+    assert a.denom.tolist() == [0.0, 1.0, 1.0]
+
+
+def test_densify_makes_nothing_on_the_default_device(no_implicit_device):
+    """With torch's default device "meta" (tests/conftest.py) density control on CPU tensors stays on the CPU:
+    statistics, clone, split, prune (opacity and size), the cap, an opacity reset and a plain prune."""
+    with torch.device("cpu"):
+        means = torch.rand(6, 3, generator=torch.Generator().manual_seed(2))
+        capped, capped_opt = _params(means, 0.5)
+        remove = torch.tensor([True, False, False, False, False, True])
+        inputs = _densify_inputs("cpu")
+    out, counts, stats, opt = _densify(*inputs)
+    assert counts["split"] == 2 and {p.device.type for p in out.values()} == {"cpu"}
+    assert {stats.grad_accum.device.type, stats.max_radii.device.type} == {"cpu"}
+    cap_stats = DensityStats(6)
+    cap_stats.grad_accum, cap_stats.denom = cap_stats.grad_accum + 1.0, cap_stats.denom + 1.0
+    cfg = DensifyConfig(grad_threshold=1e-3, max_gaussians=8)
+    capped, capped_counts = densify_and_prune(capped, capped_opt, cap_stats, cfg, EXTENT, False, torch.Generator())
+    assert capped_counts["split"] == 2 and capped["means"].device.type == "cpu"
+    pruned = prune(capped, capped_opt, torch.cat([remove, remove[:2]]), cap_stats)
+    assert pruned["means"].shape[0] == 8 - 3 and cap_stats.denom.device.type == "cpu"

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 
+import models.dit as dit_module
 from models.dit import VideoDiT, VideoDiTConfig
 from models.layers import unpatchify
 from models.pretrained import count_parameters
@@ -248,3 +249,39 @@ def test_onnx_export_matches_pytorch(tmp_path):
     assert out.shape == expected.shape
     assert np.abs(out - expected).max() <= 1e-4
     assert np.abs(expected).max() > 1e-2  # a non-trivial output was compared
+
+
+# ---------------------------------------------------------------------------------- gradient checkpointing
+
+def _loss_and_grads(model, inputs):
+    model.zero_grad(set_to_none=True)
+    mask = torch.tensor([[True] * 5, [True, True, True, False, False]])
+    loss = (model(**inputs, text_mask=mask) ** 2).mean()
+    loss.backward()
+    return loss.detach(), {n: p.grad.clone() for n, p in model.named_parameters()}
+
+
+def test_gradient_checkpointing_gives_the_same_loss_and_gradients(monkeypatch):
+    """dit.gradient_checkpointing recomputes each block in the backward pass (one checkpoint call per block, only
+    while training with gradients): the loss and every gradient equal the plain forward's; it is a runtime
+    switch, off after construction and never saved in the config."""
+    model = _model().train()
+    assert model.gradient_checkpointing is False and "gradient_checkpointing" not in vars(model.config)
+    inputs = _inputs()
+    plain_loss, plain_grads = _loss_and_grads(model, inputs)
+    calls = []
+    real = dit_module.checkpoint
+    monkeypatch.setattr(dit_module, "checkpoint", lambda *a, **k: calls.append(k) or real(*a, **k))
+    model.gradient_checkpointing = True
+    loss, grads = _loss_and_grads(model, inputs)
+    assert len(calls) == CFG.depth and all(k == {"use_reentrant": False} for k in calls)
+    torch.testing.assert_close(loss, plain_loss, rtol=0, atol=0)
+    assert plain_grads.keys() == grads.keys() and all(g.abs().sum() > 0 for g in grads.values())
+    for name, g in grads.items():
+        assert torch.equal(g, plain_grads[name]), name  # the same kernels on the same values: bit for bit
+    calls.clear()
+    with torch.no_grad():  # no gradients, or eval mode: nothing to save memory for, blocks run plainly
+        model(**inputs)
+    model.eval()
+    model(**inputs)
+    assert calls == []

@@ -1,3 +1,5 @@
+"""Tests of training/eval_metrics.py: closed forms of every metric, on each device, and without tensors made on
+torch's default device."""
 import math
 
 import pytest
@@ -7,11 +9,13 @@ from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
 from training.eval_metrics import (
     ANGLE_BINS,
     PSNR_CAP,
+    ablation_noise,
     angle_bin,
     binned_psnr,
     covisible_mask,
     frame_mse,
     image_psnr,
+    image_ssim,
     kept_index_map,
     masked_psnr,
     motion_errors,
@@ -220,3 +224,56 @@ def test_masked_psnr_closed_form():
     assert math.isnan(masked_psnr(pred, gt, torch.zeros_like(mask)))
     with pytest.raises(ValueError, match="mask"):
         masked_psnr(pred, gt, mask[0])
+
+
+def _metric_inputs(device):
+    """Inputs of every metric function, drawn on the CPU and moved to ``device``."""
+    g = torch.Generator().manual_seed(7)
+    K = torch.tensor([[16.0, 0, 8], [0, 16.0, 6], [0, 0, 1.0]])
+    depth = 2.0 + torch.rand(12, 16, generator=g)
+    depth[0, :3] = math.inf
+    x = dict(pred=torch.rand(3, 3, 12, 16, generator=g), gt=torch.rand(3, 3, 12, 16, generator=g),
+             video=torch.rand(3, 5, 12, 16, generator=g), a=torch.rand(50, generator=g), b=torch.rand(50, generator=g),
+             viewmats=torch.stack([torch.eye(4), _translated(0.3), _translated(-0.2)]), K=K, depth=depth,
+             tracks=torch.rand(6, 3, 3, generator=g), track_pred=torch.rand(6, 3, 3, generator=g),
+             track_mask=torch.rand(6, 3, generator=g) < 0.7, index=torch.tensor([3, 0, 7, 5]),
+             mask=torch.rand(3, 12, 16, generator=g) < 0.5, angles=torch.tensor([0.0, 10.0, 50.0, 120.0, 180.0]))
+    return {k: v.to(device) for k, v in x.items()}
+
+
+def _all_metrics(x):
+    """Every metric function of the module on the inputs of :func:`_metric_inputs`, as CPU tensors and floats."""
+    binned = binned_psnr(frame_mse(x["pred"], x["gt"]), x["angles"][:3].double())
+    out = {"psnr": image_psnr(x["pred"], x["gt"]), "ssim": image_ssim(x["pred"], x["gt"]),
+           "pearson": pearson(x["a"], x["b"]), "frame_mse": frame_mse(x["pred"], x["gt"]),
+           "angles": view_angles(x["viewmats"]), "bins": angle_bin(x["angles"]),
+           **{f"binned_{k}": v for k, v in binned.items()},
+           "kept": kept_index_map(x["index"], 9), "noise": ablation_noise((2, 3), 4, x["a"].device),
+           "covisible": covisible_mask(x["depth"], x["viewmats"][0], x["K"], x["depth"][None].expand(2, 12, 16),
+                                       x["viewmats"][1:], x["K"][None].expand(2, 3, 3)),
+           "masked": masked_psnr(x["pred"].permute(0, 2, 3, 1), x["gt"].permute(0, 2, 3, 1), x["mask"]),
+           **{f"repeat_{k}": v for k, v in repeat_baselines(x["video"]).items()},
+           **{f"motion_{k}": v for k, v in motion_errors(x["track_pred"], x["tracks"], x["track_mask"]).items()}}
+    return out
+
+
+def test_metrics_on_each_device(device):
+    """Every metric is computed on its inputs' device and equals the CPU value (the noise: the same draws)."""
+    got, ref = _all_metrics(_metric_inputs(device)), _all_metrics(_metric_inputs("cpu"))
+    for k, v in got.items():
+        if isinstance(v, torch.Tensor):
+            assert v.device.type == device.type, k
+            torch.testing.assert_close(v.cpu(), ref[k], rtol=1e-5, atol=1e-6, msg=k)
+        else:
+            assert v == pytest.approx(ref[k], rel=1e-5, abs=1e-6, nan_ok=True), k
+
+
+def test_metrics_make_nothing_on_the_default_device(no_implicit_device):
+    """With torch's default device "meta" (tests/conftest.py) every metric of CPU inputs is computed on the CPU."""
+    with torch.device("cpu"):
+        x = _metric_inputs("cpu")
+    out = _all_metrics(x)
+    for k, v in out.items():
+        if isinstance(v, torch.Tensor):
+            assert v.device.type == "cpu", k
+    assert math.isfinite(out["psnr"]) and 0 < out["ssim"] < 1 and out["kept"].tolist()[:4] == [1, -1, -1, 0]

@@ -1,3 +1,5 @@
+"""Tests of training/evaluate.py: every metric against an independent computation, baselines and ablations, the
+sampler sweep, the CLI, and devices (``--device``, nothing made on torch's default device)."""
 import math
 
 import pytest
@@ -254,3 +256,58 @@ def test_pooled_psnr_is_that_of_the_mean_mse_over_every_bin():
     agg = aggregate([clip([1e-2, 1e-3], [5.0, 50.0]), clip([0.0], [20.0])])
     expect = -10 * math.log10((1e-2 + 1e-3 + 0.0) / 3)
     assert agg["psnr_pooled"] == pytest.approx(expect) and agg["psnr_pooled_repeat"] == pytest.approx(expect)
+
+
+@pytest.mark.slow
+def test_evaluate_clip_makes_nothing_on_the_default_device(clips, no_implicit_device):
+    """With torch's default device "meta" (tests/conftest.py) a CPU pipeline evaluates a dynamic clip on the CPU:
+    generation, the three scenes' renders, motion, baselines and the oracle."""
+    with torch.device("cpu"):
+        pipe = Diff4SplatPipeline(tiny_model(dynamic=True), device="cpu")
+    e = evaluate_clip(pipe, clips[0], steps=1)
+    assert math.isfinite(e.metrics["psnr_novel"]) and math.isfinite(e.metrics["motion_epe"])
+    assert all(v.device.type == "cpu" for v in e.frame_mse.values())
+
+
+@pytest.mark.slow
+def test_loop_psnr_makes_nothing_on_the_default_device(static_clip, no_implicit_device):
+    """The loop-closure orbit of a static clip under torch's default device "meta" stays on the CPU."""
+    with torch.device("cpu"):
+        pipe = Diff4SplatPipeline(tiny_model(), device="cpu")
+    assert math.isfinite(evaluate_clip(pipe, static_clip, steps=1).metrics["loop_psnr"])
+
+
+@pytest.mark.slow
+def test_evaluate_cli_on_each_device(clips, tmp_path, device, capsys):
+    """``diff4splat evaluate --device``: the pipeline generates and renders there, the metrics come out on the CPU
+    (on CUDA close to the CPU's: the same noise, slightly different arithmetic)."""
+    import csv
+
+    from data_prep.synth import generate_scene
+    from diff4splat.cli import main
+
+    root = tmp_path / "data"
+    generate_scene(root, 0, seed=5, size=64, frames=9, cameras=1, static_ratio=0.0)
+    rows = {}
+    for dev in dict.fromkeys(["cpu", str(device)]):
+        table = tmp_path / f"{dev}.csv"
+        assert main(["evaluate", "--random", "--config", "tiny", "--data", str(root), "--frames", "9", "--steps", "1",
+                     "--limit", "1", "--device", dev, "--csv", str(table)]) == 0
+        with open(table, newline="") as f:
+            (rows[dev],) = list(csv.DictReader(f))
+    capsys.readouterr()
+    got, ref = rows[str(device)], rows["cpu"]
+    assert math.isfinite(float(got["psnr_novel"])) and math.isfinite(float(got["motion_epe"]))
+    for k in ("psnr_input", "psnr_novel", "psnr_novel_noise", "psnr_novel_gt", "vae_psnr"):
+        assert float(got[k]) == pytest.approx(float(ref[k]), abs=1.0 if device.type == "cuda" else 0.0), k
+    assert [k for k in got if got[k] == "nan"] == [k for k in ref if ref[k] == "nan"]
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
+def test_evaluate_on_a_missing_device_is_one_line_exit_2(tmp_path, capsys):
+    """The device is checked first: before the model and the data (which does not exist here) are read."""
+    from diff4splat.cli import main
+
+    code = main(["evaluate", "--random", "--config", "tiny", "--data", str(tmp_path / "none"), "--device", "cuda"])
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert code == 2 and len(err) == 1 and err[0].startswith("diff4splat: error: --device: cuda is not available")

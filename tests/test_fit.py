@@ -1,6 +1,7 @@
 """Tests of training/fit.py: learning-rate schedule, gradients through the HexPlane field against finite
 differences (float64), the identity of a new field, optimisation progress, held-out metrics by hand, the
-fitted scene, and views that see nothing."""
+fitted scene, views that see nothing, and the device rule (a fit on each device; nothing made on the default
+device)."""
 import math
 
 import kornia
@@ -52,11 +53,12 @@ def _config(**kw) -> FitConfig:
     return FitConfig(**{**base, **kw})
 
 
-def _blob(n: int = 20, seed: int = 1, dynamic: bool = True, config: FitConfig | None = None):
-    """A FitState of ``n`` Gaussians 3 m in front of the identity camera."""
+def _blob(n: int = 20, seed: int = 1, dynamic: bool = True, config: FitConfig | None = None, device="cpu"):
+    """A FitState of ``n`` Gaussians 3 m in front of the identity camera, on ``device`` (drawn on the CPU)."""
     g = torch.Generator().manual_seed(seed)
     means = (torch.rand(n, 3, generator=g) - 0.5) * torch.tensor([1.0, 1.0, 0.6]) + torch.tensor([0.0, 0.0, 3.0])
-    state = init_state(means, torch.rand(n, 3, generator=g), config or _config(), 1.0, dynamic, seed)
+    state = init_state(means.to(device), torch.rand(n, 3, generator=g).to(device), config or _config(), 1.0, dynamic,
+                       seed)
     with torch.no_grad():
         state.params["opacities"].fill_(0.0)  # 0.5
         state.params["scales"].add_(0.5)
@@ -363,3 +365,72 @@ def test_a_learned_background_fits_the_backdrop_colour():
     assert float((1 - alpha).mean()) > 0.2
     fit_steps(state, [_view(target)], config, 300)
     torch.testing.assert_close(state.background_rgb().detach(), backdrop, atol=0.03, rtol=0)
+
+
+def _target_view(time=0.4, seed=7) -> View:
+    """A view of another blob (the fit's target) with its expected depth where it is covered (+inf elsewhere)."""
+    with torch.no_grad():
+        rgb, depth, alpha, _ = render_view(_blob(seed=seed, dynamic=False, config=_config(background="black")),
+                                           _view(), 0, True)
+    depth = torch.where(alpha > 0.5, depth, math.inf)
+    return View(rgb.detach(), depth.detach(), torch.eye(4), K, time, "c", 0)
+
+
+def _device_fit(device, steps=8):
+    """(per-step losses, state) of a fit of a blob to ``_target_view`` on ``device``: 3 coarse steps, then the
+    fine stage (its field made at step 3), depth loss on, one view."""
+    config = _config(iterations=steps, coarse_iterations=3)
+    state = _blob(config=config, device=device)
+    with torch.no_grad():  # opacity 0.25 < 0.35: gsplat's 3σ tiles drop no rim (diff4splat/render/gsplat_backend.py)
+        state.params["opacities"].fill_(math.log(0.25 / 0.75))
+    losses = []
+    fit_steps(state, [_target_view().to(device)], config, steps, on_step=lambda s: losses.append(float(s.loss)))
+    return losses, state
+
+
+def test_a_few_fit_steps_on_each_device(device):
+    losses, state = _device_fit(device)
+    assert len(losses) == 8 and all(math.isfinite(x) for x in losses)
+    assert losses[-1] < losses[0]
+    tensors = [*state.params.values(), state.background, state.stats.grad_accum, state.stats.max_radii,
+               *state.field.parameters(), state.field.bounds]
+    assert {t.device.type for t in tensors} == {device.type} and state.device.type == device.type
+    if device.type == "cuda":  # the same draws (CPU generators, the field made on the CPU): the same first steps
+        cpu, cpu_state = _device_fit(torch.device("cpu"))
+        np.testing.assert_allclose(losses[:4], cpu[:4], rtol=1e-3)
+        for name, p in state.field.named_parameters():
+            assert p.shape == dict(cpu_state.field.named_parameters())[name].shape
+
+
+def test_a_new_field_is_the_same_on_every_device(device):
+    """The fine stage's field is drawn on the CPU from torch's seeded generator and moved."""
+    fields = []
+    for dev in ("cpu", device):
+        state = _blob(device=dev)
+        torch.manual_seed(11)
+        start_fine_stage(state, _config())
+        fields.append(state.field)
+    assert fields[1].bounds.device.type == device.type
+    for (name, a), b in zip(fields[0].state_dict().items(), fields[1].state_dict().values(), strict=True):
+        torch.testing.assert_close(b.cpu(), a, rtol=0, atol=1e-6, msg=name)
+
+
+def test_fit_steps_make_nothing_on_the_default_device(no_implicit_device):
+    """Inputs made on the CPU, then a fit while torch's default device is "meta" (tests/conftest.py): a coarse step,
+    the fine stage (a new field), the depth loss, densification (clone, split, prune), an opacity reset, the
+    progress bar, evaluation and the fitted scene all stay on the CPU."""
+    with torch.device("cpu"):
+        config = _config(iterations=5, coarse_iterations=1, densify=DensifyConfig(
+            start=1, until=5, interval=2, grad_threshold=0.0, opacity_reset_interval=3))
+        state = _blob(config=config)
+        views = [_target_view(0.0), _target_view(1.0, seed=8)]
+        masks = [torch.rand(12, 16, generator=torch.Generator().manual_seed(0)) < 0.5] * 2
+        times = torch.tensor([0.0, 0.5, 1.0])
+    fit_steps(state, views, config, 5, progress=True)
+    assert state.step == 5 and state.field is not None and state.counts["split"] + state.counts["cloned"] > 0
+    assert {p.device.type for p in [*state.params.values(), *state.field.parameters()]} == {"cpu"}
+    assert math.isfinite(float(state.loss)) and state.loss.device.type == "cpu"
+    out = evaluate_views(state, views, 0, masks)
+    assert all(math.isfinite(out[k]) for k in ("psnr", "ssim", "masked_psnr", "covisible"))
+    scene = to_scene(state, times)
+    assert scene.canonical.means.device.type == "cpu" and scene.d_means.device.type == "cpu"

@@ -1,6 +1,7 @@
 """Tests of training/fit_cli.py: ``run_fit`` and ``diff4splat fit`` — the output folder, held-out metrics that
 ``diff4splat render`` reproduces, static fits, scenes that cannot be fitted, checkpoints and exact resume,
-extreme scene scales, and the command's errors."""
+extreme scene scales, the command's errors, and devices (``--device``, checkpoints that resume on another
+device, nothing made on torch's default device)."""
 import dataclasses
 import json
 import math
@@ -171,7 +172,7 @@ def test_render_reproduces_the_held_out_psnr(dynamic_scene, dynamic_fit, tmp_pat
     scene = load_scene(dynamic_scene)
     R = tmp_path / "R"
     assert main(["render", str(out), "--cameras", str(dynamic_scene / "cam01" / "cameras.json"), "--out", str(R),
-                 "--quiet"]) == 0
+                 "--quiet", "--device", "cpu"]) == 0  # the CPU, as the fit that measured holdout_psnr
     se, n = 0.0, 0
     for i in range(scene.num_frames):
         rendered = read_rgb(R / "rgb" / f"{i:04d}.png").astype(np.float64)
@@ -365,3 +366,82 @@ def test_placed_generate_output_moves_like_the_original(dynamic_scene, tmp_path)
         torch.testing.assert_close(b.means, a.means * s @ c2w[:3, :3].T + c2w[:3, 3], atol=1e-4, rtol=0)
         torch.testing.assert_close(quat_to_rotmat(b.quats), c2w[:3, :3] @ quat_to_rotmat(a.quats), atol=1e-5, rtol=0)
         torch.testing.assert_close(b.scales, a.scales * s, atol=1e-6, rtol=1e-5)
+
+
+def _tensors(obj):
+    """Every tensor in ``obj`` (dicts, lists, tuples)."""
+    if isinstance(obj, torch.Tensor):
+        return [obj]
+    if isinstance(obj, dict):
+        return [t for v in obj.values() for t in _tensors(v)]
+    if isinstance(obj, (list, tuple)):
+        return [t for v in obj for t in _tensors(v)]
+    return []
+
+
+def test_fit_cli_on_each_device(dynamic_scene, tmp_path, device, capsys):
+    """``diff4splat fit --device``: the metrics and meta record the device; on CUDA the fit matches the CPU's
+    (the same draws; the renderers differ slightly, so a loose PSNR tolerance)."""
+    out = tmp_path / "fit"
+    argv = ["fit", str(dynamic_scene), "--out", str(out), "--iterations", "6", "--coarse-iterations", "2",
+            "--init-points", "120", "--holdout-camera", "1", "--checkpoint-every", "0", "--seed", str(SEED),
+            "--quiet"]
+    assert main([*argv, "--device", str(device)]) == 0
+    assert capsys.readouterr().out.strip().endswith(f"on {device}")
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["device"] == str(device) and json.loads((out / "meta.json").read_text())["device"] == str(device)
+    assert metrics["iterations"] == 6 and all(math.isfinite(metrics[k]) for k in ("train_psnr", "holdout_psnr"))
+    if device.type == "cuda":
+        assert main([*argv[:3], str(tmp_path / "cpu"), *argv[4:], "--device", "cpu"]) == 0
+        cpu = json.loads((tmp_path / "cpu" / "metrics.json").read_text())
+        assert metrics["num_gaussians"] == cpu["num_gaussians"]
+        for k in ("train_psnr", "holdout_psnr"):
+            assert metrics[k] == pytest.approx(cpu[k], abs=0.25), k
+
+
+@pytest.mark.parametrize("written, resumed", [
+    ("cpu", "cpu"),
+    pytest.param("cuda", "cpu", marks=pytest.mark.cuda, id="cuda-cpu"),
+    pytest.param("cpu", "cuda", marks=pytest.mark.cuda, id="cpu-cuda"),
+])
+def test_a_checkpoint_resumes_on_another_device(dynamic_scene, tmp_path, monkeypatch, written, resumed):
+    """A checkpoint holds CPU tensors only (and the device that wrote it), so a fit stopped on one device
+    continues on another; the same device gives the uninterrupted fit exactly (test_resume_after_sigterm_is_exact)."""
+    out = tmp_path / "fit"
+    _sigterm_at(monkeypatch, 7)  # in the fine stage: field, field optimizer
+    with pytest.raises(FitInterrupted):
+        run_fit(dynamic_scene, out, CONFIG, holdout_camera=1, seed=SEED, eval_every=4, checkpoint_every=0,
+                device=written)
+    folder = tmp_path / "fit.checkpoints" / "checkpoints" / "step_00000007"
+    saved = torch.load(folder / "state.pt", weights_only=False)  # no map_location: tensors as they were saved
+    assert {t.device.type for t in _tensors(saved)} == {"cpu"}
+    assert json.loads((folder / "meta.json").read_text())["device"].startswith(written)
+    monkeypatch.undo()
+    metrics = run_fit(dynamic_scene, out, CONFIG, holdout_camera=1, seed=SEED, eval_every=4, checkpoint_every=0,
+                      resume=True, device=resumed)
+    assert metrics["iterations"] == CONFIG.iterations and metrics["device"].startswith(resumed)
+    assert all(math.isfinite(metrics[k]) for k in ("train_psnr", "holdout_psnr", "holdout_ssim"))
+
+
+def test_run_fit_makes_nothing_on_the_default_device(dynamic_scene, tmp_path, monkeypatch, no_implicit_device):
+    """With torch's default device "meta" (tests/conftest.py) a whole fit runs on the CPU: views, initial points,
+    both stages, densification, held-out evaluation, a checkpoint after SIGTERM, the resume and the output."""
+    out = tmp_path / "fit"
+    _sigterm_at(monkeypatch, 5)
+    with pytest.raises(FitInterrupted):
+        run_fit(dynamic_scene, out, CONFIG, holdout_camera=1, seed=SEED, eval_every=4, checkpoint_every=0)
+    monkeypatch.undo()
+    metrics = run_fit(dynamic_scene, out, CONFIG, holdout_camera=1, seed=SEED, eval_every=4, checkpoint_every=0,
+                      resume=True)
+    assert metrics["device"] == "cpu" and metrics["iterations"] == CONFIG.iterations
+    assert math.isfinite(metrics["holdout_masked_psnr"]) and (out / "field.safetensors").is_file()
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
+def test_fit_on_a_missing_device_is_one_line_exit_2(dynamic_scene, tmp_path, capsys):
+    code = main(["fit", str(dynamic_scene), "--out", str(tmp_path / "out"), "--quiet", "--device", "cuda"])
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert code == 2 and len(err) == 1 and err[0].startswith("diff4splat: error: --device: cuda is not available")
+    assert not (tmp_path / "out").exists()
+    with pytest.raises(ValueError, match="device: cuda is not available"):
+        run_fit(dynamic_scene, tmp_path / "out", CONFIG, device="cuda")

@@ -228,3 +228,45 @@ def test_covisible_masks_use_the_same_time_for_a_dynamic_scene():
     assert bool(covisible_masks(held, train, static=True)[0].all())
     assert covisible_masks(held, [View(torch.zeros(9, 13, 3), None, torch.eye(4), K, 0.0, "a", 0)], True) is None
     assert covisible_masks([], train, True) is None
+
+
+def test_views_and_initial_points_on_each_device(scene, device):
+    """Views on ``device``; the initial points made there from the same CPU draws as on the CPU."""
+    views = load_views(scene, ["cam00", "cam01"], device=device)
+    cpu = load_views(scene, ["cam00", "cam01"])
+    assert {t.device.type for v in views for t in (v.image, v.depth, v.viewmat, v.K)} == {device.type}
+    assert all(v.device.type == device.type and v.to("cpu").device.type == "cpu" for v in views)
+    means, colors = depth_points(views, 10**6, torch.Generator().manual_seed(0))  # every point: no subsample
+    ref_means, ref_colors = depth_points(cpu, 10**6, torch.Generator().manual_seed(0))
+    assert means.device.type == device.type and colors.device.type == device.type
+    torch.testing.assert_close(means.cpu(), ref_means, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(colors.cpu(), ref_colors, rtol=0, atol=0)
+    keep = voxel_subsample(ref_means.to(device), 40, torch.Generator().manual_seed(3))
+    assert keep.device.type == device.type
+    assert torch.equal(keep.cpu(), voxel_subsample(ref_means, 40, torch.Generator().manual_seed(3)))
+    box, box_colors = random_box_points(views, 50, torch.Generator().manual_seed(4))
+    ref_box, ref_box_colors = random_box_points(cpu, 50, torch.Generator().manual_seed(4))
+    assert box.device.type == device.type
+    torch.testing.assert_close(box.cpu(), ref_box, rtol=1e-6, atol=1e-6)
+    assert torch.equal(box_colors.cpu(), ref_box_colors)
+    scales = knn_scales(ref_means[:200].to(device), chunk=64)
+    assert scales.device.type == device.type
+    torch.testing.assert_close(scales.cpu(), knn_scales(ref_means[:200]), rtol=1e-4, atol=1e-6)
+    masks = covisible_masks(views[2:], views[:2], static=False)
+    assert masks[0].device.type == device.type
+    assert torch.equal(masks[0].cpu(), covisible_masks(cpu[2:], cpu[:2], static=False)[0])
+
+
+def test_fit_data_makes_nothing_on_the_default_device(no_implicit_device):
+    """With torch's default device "meta" (tests/conftest.py), CPU views give CPU points, scales and masks."""
+    with torch.device("cpu"):
+        views = _coded_views(3)
+        held = [View(views[0].image, views[0].depth, views[0].viewmat, K, 0.0, "h", 5)]  # no training view at frame 5
+    means, colors = depth_points(views, 30, torch.Generator().manual_seed(0))  # subsampled
+    box, box_colors = random_box_points(views, 20, torch.Generator().manual_seed(1))
+    scales, one = knn_scales(means, chunk=7), knn_scales(means[:1])
+    masks = covisible_masks(held + views[1:2], views, static=False)
+    out = [means, colors, box, box_colors, scales, one, *masks]
+    assert {t.device.type for t in out} == {"cpu"}
+    assert means.shape[0] <= 30 and torch.isfinite(scales).all() and not bool(masks[0].any())
+    assert scene_extent(views, means) > 0

@@ -1,4 +1,5 @@
-"""Tests of models/hexplane.py: the 4DGS HexPlane deformation field, its regularisers and its file."""
+"""Tests of models/hexplane.py: the 4DGS HexPlane deformation field, its regularisers and its file, on each device
+and without tensors made on torch's default device."""
 import math
 
 import pytest
@@ -359,3 +360,55 @@ def test_bad_times_and_means_raise():
     g = Gaussians(means, torch.randn(4, 4), torch.ones(4, 3), torch.full((4,), 0.5), torch.zeros(4, 1, 3))
     with pytest.raises(ValueError, match="times"):
         field.dynamic_gaussians(g, torch.tensor([0.5, 1.5]))
+
+
+def test_field_on_each_device(tmp_path, device):
+    """A field made on the CPU and moved, made from bounds on the device, or loaded onto it: the same numbers
+    (on CUDA within float32 tolerance); its deformation stays on the device of its inputs."""
+    field = _perturbed(HexPlaneConfig(**TINY), seed=5)
+    means = _points(30)
+    ref = field(means, 0.3)
+    moved = _perturbed(HexPlaneConfig(**TINY), seed=5).to(device)
+    save_field(tmp_path / "f.safetensors", field)
+    loaded = load_field(tmp_path / "f.safetensors", map_location=device)
+    for f in (moved, loaded):
+        assert {p.device.type for p in [*f.parameters(), *f.buffers()]} == {device.type}
+        out = f(means.to(device), torch.full((30,), 0.3, device=device))
+        for a, b in zip(out, ref, strict=True):
+            assert a.device.type == device.type
+            torch.testing.assert_close(a.cpu(), b, rtol=1e-5, atol=1e-6)
+        assert f.regularization().device.type == device.type
+        canonical = Gaussians(means, quat_normalize(torch.randn(30, 4)), torch.full((30, 3), 0.1),
+                              torch.full((30,), 0.5), torch.zeros(30, 1, 3)).to(device)
+        dyn = f.dynamic_gaussians(canonical, torch.tensor([0.0, 0.3]))
+        assert dyn.times.device.type == device.type and dyn.d_means.device.type == device.type
+        torch.testing.assert_close(dyn.d_means[1].cpu(), ref[0], rtol=1e-5, atol=1e-6)
+    made = HexPlaneField(HexPlaneConfig(**TINY), BOX.to(device))  # default: the bounds' device
+    assert {p.device.type for p in made.parameters()} == {device.type}
+    on_cpu = HexPlaneField(HexPlaneConfig(**TINY), BOX.to(device), device="cpu")
+    assert {p.device.type for p in [*on_cpu.parameters(), *on_cpu.buffers()]} == {"cpu"}
+
+
+def test_load_field_leaves_the_random_state_alone(tmp_path):
+    save_field(tmp_path / "f.safetensors", _perturbed(HexPlaneConfig(**TINY)))
+    state = torch.get_rng_state()
+    load_field(tmp_path / "f.safetensors")
+    assert torch.equal(torch.get_rng_state(), state)
+
+
+def test_field_makes_nothing_on_the_default_device(tmp_path, no_implicit_device):
+    """With torch's default device "meta" (tests/conftest.py) a field on CPU bounds is made, run, regularised,
+    sampled, saved and loaded on the CPU."""
+    with torch.device("cpu"):
+        bounds, means, times = BOX.clone(), _points(10), torch.tensor([0.0, 0.5, 1.0])
+        canonical = Gaussians(means, torch.tensor([[1.0, 0, 0, 0]]).expand(10, 4), torch.full((10, 3), 0.1),
+                              torch.full((10,), 0.5), torch.zeros(10, 1, 3))
+    field = HexPlaneField(HexPlaneConfig(**TINY), bounds)
+    assert {p.device.type for p in [*field.parameters(), *field.buffers()]} == {"cpu"}
+    out = [*field(means, 0.5), field.regularization(), field.dynamic_gaussians(canonical, times).d_quats]
+    assert {t.device.type for t in out} == {"cpu"}
+    assert HexPlaneField(HexPlaneConfig(**TINY), [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]).bounds.device.type == "cpu"
+    save_field(tmp_path / "f.safetensors", field)
+    loaded = load_field(tmp_path / "f.safetensors")
+    assert {p.device.type for p in [*loaded.parameters(), *loaded.buffers()]} == {"cpu"}
+    assert torch.equal(loaded(means, 0.5)[0], out[0])

@@ -264,3 +264,36 @@ def test_latent_noise_reaches_frames_after_the_first_only(clips, monkeypatch):
     # x = (1 − σ)z + σε with one σ ≤ 0.5 per clip: the residual is a scaled standard normal, far below |z| + |ε|
     resid = seen[1][:, :, 1:] - clean[:, :, 1:]
     assert 0 < float(resid.std()) < 0.5 * float((clean[:, :, 1:].std() ** 2 + 1) ** 0.5) * 1.2
+
+
+# ----------------------------------------------------------------------------------- devices
+NO_IMPLICIT_DEVICE_CASES = {
+    "vae": (dict(train=("vae",), objectives=("vae",)), 0),
+    "diffusion": (dict(objectives=("diffusion",), caption_dropout=0.5), 0),
+    "reconstruction": (dict(train=("ldrm",), objectives=("reconstruction",), latent_noise=0.5), 0),
+    "reconstruction_motion": (dict(train=("ldrm", "ldrm.deformation"), objectives=("reconstruction",),
+                                   scenes="all", deformation=True, motion=True), 1),
+}
+
+
+@pytest.mark.parametrize("case", list(NO_IMPLICIT_DEVICE_CASES))
+@pytest.mark.slow
+def test_forward_creates_every_tensor_on_the_inputs_device(clips, case, no_implicit_device):
+    """The device rule in TrainingModule: with torch's default device "meta" (the fixture), a tensor made
+    without device= (a draw on the CPU step generator left unmoved, a mask built on the default device) lands on
+    meta beside the CPU batch and fails — as it failed beside CUDA batches on a GPU ("cuda:0 and cpu"). The
+    forward and backward run, with the losses of the same forward made with the CPU as the default device."""
+    kwargs, clip = NO_IMPLICIT_DEVICE_CASES[case]
+    with torch.device("cpu"):  # the model, the batch and the reference losses: explicitly on the CPU
+        stage = StageConfig(height=SIZE, width=SIZE, num_frames=FRAMES, render_frames=2, **kwargs)
+        model = tiny_model(seed=1, dynamic=True, active_dit=True)
+        apply_freezing(model, stage.train)
+        module = TrainingModule(model, stage).train()
+        batch = default_collate(clips[clip:clip + 1])
+        expected = {k: float(v.detach()) for k, v in module(batch, torch.Generator().manual_seed(4)).items()}
+        gen = torch.Generator().manual_seed(4)
+    losses = module(batch, gen)
+    losses["loss"].backward()
+    assert all(v.device.type == "cpu" for v in losses.values())
+    assert {k: float(v.detach()) for k, v in losses.items()} == pytest.approx(expected, rel=1e-6, abs=1e-7)
+    assert any(p.grad is not None and p.grad.device.type == "cpu" for p in model.parameters())

@@ -325,3 +325,71 @@ def test_cli_bad_input_one_line_exit_2(tmp_path, capsys, case):
     assert len(lines) == 1 and lines[0].startswith("diff4splat: error:"), err
     assert sorted(p.name for p in folder.iterdir()) == before
     assert (sorted(p.name for p in out.iterdir()) == ["notes.txt"]) if case == "user_folder" else not out.exists()
+
+
+def _fit_like_folder(tmp_path):
+    """A folder with a deformation.npz and a field.safetensors (what fit writes), and a camera file of 3 cameras at
+    times between the npz's key times."""
+    folder, scene, cams, _ = _folder(tmp_path)
+    field = _field(load_scene_folder(folder).scene.canonical)
+    save_field(folder / "field.safetensors", field)
+    mid = CameraPath(cams.viewmats[[0, 2, 4]].contiguous(), cams.Ks[:3], W, H, torch.tensor([0.1, 0.37, 0.8]))
+    return folder, field, _data_prep_cameras(tmp_path / "mid.json", mid, np.array([0.1, 0.37, 0.8]))
+
+
+def test_rerender_on_each_device(tmp_path, device):
+    """The scene, its field and the cameras are moved to ``device``; the frames equal the CPU's (on CUDA within
+    a few grey levels: gsplat, docs/DESIGN.md "The renderer") and the files are written as on the CPU."""
+    folder, _, cam_file = _fit_like_folder(tmp_path)
+    meta = rerender(folder, tmp_path / "dev", cameras=cam_file, device=device)
+    rerender(folder, tmp_path / "cpu", cameras=cam_file, device="cpu")
+    assert meta["device"] == str(device) and meta["deformation"] == "field.safetensors"
+    got, ref = _rgb(tmp_path / "dev", 3).astype(int), _rgb(tmp_path / "cpu", 3).astype(int)
+    diff = np.abs(got - ref)
+    if device.type == "cpu":
+        assert diff.max() == 0
+    else:
+        assert diff.max() <= 3 and (diff == 0).mean() > 0.9, diff.max()
+    for i in range(3):
+        z, a = load_depth_exr(tmp_path / "dev" / "depth" / f"{i:04d}.exr", return_alpha=True)
+        z0, a0 = load_depth_exr(tmp_path / "cpu" / "depth" / f"{i:04d}.exr", return_alpha=True)
+        np.testing.assert_allclose(a, a0, atol=0 if device.type == "cpu" else 0.02)
+    src = load_scene_folder(folder, device)
+    assert src.scene.canonical.means.device.type == device.type and src.cameras.viewmats.device.type == "cpu"
+    assert next(src.field.parameters()).device.type == device.type
+    dyn = path_scene(src, torch.tensor([0.1, 0.8]))
+    assert dyn.d_means.device.type == device.type
+
+
+def test_load_path_scene_and_rerender_make_nothing_on_the_default_device(tmp_path, no_implicit_device):
+    """With torch's default device "meta" (tests/conftest.py) a folder is read, its field sampled at the path's
+    times and the scene rendered and written, all on the CPU."""
+    with torch.device("cpu"):
+        folder, field, cam_file = _fit_like_folder(tmp_path)
+        times = torch.tensor([0.1, 0.37, 0.8])
+    src = load_scene_folder(folder)
+    assert src.scene.canonical.means.device.type == "cpu" and next(src.field.parameters()).device.type == "cpu"
+    dyn = path_scene(src, times)
+    assert dyn.d_means.device.type == "cpu" and dyn.times.device.type == "cpu"
+    assert scene_depth(src) > 0
+    meta = rerender(folder, tmp_path / "r", cameras=cam_file, device="cpu")
+    assert meta["frames"] == 3 and meta["device"] == "cpu"
+
+
+def test_a_preset_path_makes_nothing_on_the_default_device(tmp_path, no_implicit_device):
+    """A preset trajectory (scene depth, placement) under torch's default device "meta" stays on the CPU."""
+    with torch.device("cpu"):
+        folder, *_ = _folder(tmp_path)
+    assert rerender(folder, tmp_path / "t", trajectory="orbit", frames=2)["frames"] == 2
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
+def test_cli_render_on_a_missing_device_is_one_line_exit_2(tmp_path, capsys):
+    folder, *_ = _folder(tmp_path)
+    code = main(["render", str(folder), "--trajectory", "arc", "--quiet", "--device", "cuda", "--out",
+                 str(tmp_path / "r")])
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert code == 2 and len(err) == 1 and err[0].startswith("diff4splat: error: --device: cuda is not available")
+    assert not (tmp_path / "r").exists()
+    with pytest.raises(ValueError, match="device: cuda is not available"):
+        rerender(folder, tmp_path / "r", trajectory="arc", device="cuda")

@@ -1,6 +1,7 @@
 """Tests of training/train.py: the VAE stage and a stage-1 stage run end to end through ``main`` on a tiny
 generated dataset and chain through ``--init-from``; the VAE's latent scaling is calibrated (closed form);
-bad input is one ``train: error:`` line and exit code 2."""
+bad input is one ``train: error:`` line and exit code 2. The runs are on the CPU (``--device cpu``) on every machine:
+the closed-form checks compare with CPU computations (tests/test_train_devices.py covers CUDA)."""
 from pathlib import Path
 
 import pytest
@@ -56,7 +57,8 @@ def vae_run(data, tmp_path_factory):
     tmp = tmp_path_factory.mktemp("vae_stage")
     cfg = _stage_yaml(tmp, "vae", height=SIZE, width=SIZE, trainer={"batch_size": 2, "checkpoint_every": 100})
     run = tmp / "run"
-    code = main(["--config", str(cfg), "--data", str(data), "--run-dir", str(run), "--steps", "2", "--quiet"])
+    code = main(["--config", str(cfg), "--data", str(data), "--run-dir", str(run), "--steps", "2", "--quiet",
+                 "--device", "cpu"])
     return code, run
 
 
@@ -87,7 +89,7 @@ def test_stage1_from_the_vae_run_keeps_the_vae_frozen_and_trains_dit_and_ldrm(va
                       trainer={"batch_size": 2, "checkpoint_every": 100})
     run = tmp_path / "run"
     code = main(["--config", str(cfg), "--data", str(data), "--init-from", str(vae / "model"),
-                 "--run-dir", str(run), "--steps", "2", "--quiet"])
+                 "--run-dir", str(run), "--steps", "2", "--quiet", "--device", "cpu"])
     assert code == 0, capsys.readouterr().err
     before = Diff4SplatModel.from_pretrained(vae / "model")
     after = Diff4SplatModel.from_pretrained(run / "model")
@@ -107,7 +109,7 @@ def test_build_training_optimises_exactly_the_stage_modules_on_its_scenes(vae_ru
     from training.train import build_training
 
     stage = load_stage(_stage_yaml(tmp_path, "stage1", num_frames=FRAMES), data=str(data),
-                       init_from=str(vae_run[1] / "model"), trainer={"run_dir": str(tmp_path / "run")})
+                       init_from=str(vae_run[1] / "model"), trainer={"run_dir": str(tmp_path / "run"), "device": "cpu"})
     trainer, model, counts = build_training(stage)
     optimised = {id(p) for group in trainer.optimizer.param_groups for p in group["params"]}
     for name, p in model.named_parameters():

@@ -1,23 +1,46 @@
+"""Tests of training/trainer.py on the toy problem (tests/_trainer_toy.py): schedule, exact resume after a signal
+or a kill, non-finite steps, EMA, bf16, devices (the ``device`` fixture: the CPU, and CUDA where present, always
+passed explicitly), TF32 flags, gradient checkpointing, and two-process DDP/FSDP runs on gloo."""
 import csv
 import math
 import os
 import signal
-import socket
 import subprocess
 import sys
-import tempfile
 import textwrap
-import time
 from pathlib import Path
 
 import pytest
 import torch
-from _trainer_toy import ToyData, ToyModel, toy_step
+from _trainer_toy import ToyData, ToyModel, run_two_ranks, toy_step
 
 from training.checkpoint import latest_checkpoint, load_checkpoint
-from training.trainer import NonFiniteLossError, Trainer, TrainerConfig, warmup_cosine
+from training.trainer import (
+    NonFiniteLossError,
+    Trainer,
+    TrainerConfig,
+    resolve_bf16,
+    training_device,
+    warmup_cosine,
+)
 
 TESTS = Path(__file__).resolve().parent
+
+
+def _tf32_flags():
+    return torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
+
+
+def _set_tf32_flags(matmul, cudnn):
+    torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = matmul, cudnn
+
+
+@pytest.fixture(autouse=True)
+def _restore_tf32_flags():
+    """A trainer on CUDA sets the process-wide TF32 flags: the tests after this one see them as they were."""
+    flags = _tf32_flags()
+    yield
+    _set_tf32_flags(*flags)
 
 
 def _cfg(run_dir, **kw):
@@ -27,9 +50,10 @@ def _cfg(run_dir, **kw):
     return TrainerConfig(**base)
 
 
-def _trainer(run_dir, data=None, **kw):
+def _trainer(run_dir, device, data=None, model=None, **kw):
+    """A toy trainer on ``device`` (explicit: the CPU case is the CPU on a GPU machine too)."""
     torch.manual_seed(0)
-    return Trainer(ToyModel(), data or ToyData(), toy_step, _cfg(run_dir, **kw))
+    return Trainer(model or ToyModel(), data or ToyData(), toy_step, _cfg(run_dir, **kw), device=device)
 
 
 def _losses(run_dir):
@@ -45,8 +69,8 @@ def test_warmup_cosine_closed_form():
 
 
 @pytest.mark.slow
-def test_training_reduces_the_loss_and_never_touches_frozen_weights(tmp_path):
-    t = _trainer(tmp_path, total_steps=40, checkpoint_every=40, ema_decay=None, lr=5e-2)
+def test_training_reduces_the_loss_and_never_touches_frozen_weights(tmp_path, device):
+    t = _trainer(tmp_path, device, total_steps=40, checkpoint_every=40, ema_decay=None, lr=5e-2)
     frozen = t.module.frozen.weight.clone()
     t.fit()
     losses = _losses(tmp_path)
@@ -54,8 +78,8 @@ def test_training_reduces_the_loss_and_never_touches_frozen_weights(tmp_path):
     assert torch.equal(t.module.frozen.weight, frozen)
 
 
-def test_signal_stop_then_resume_matches_uninterrupted_run_exactly(tmp_path):
-    ref = _trainer(tmp_path / "ref")
+def test_signal_stop_then_resume_matches_uninterrupted_run_exactly(tmp_path, device):
+    ref = _trainer(tmp_path / "ref", device)
     ref.fit()
     calls = {"n": 0}
 
@@ -66,10 +90,10 @@ def test_signal_stop_then_resume_matches_uninterrupted_run_exactly(tmp_path):
         return toy_step(model, batch, gen)
 
     torch.manual_seed(0)
-    a = Trainer(ToyModel(), ToyData(), stopping_step, _cfg(tmp_path / "run"))
+    a = Trainer(ToyModel(), ToyData(), stopping_step, _cfg(tmp_path / "run"), device=device)
     out = a.fit()
     assert out["stopped"] and out["step"] == 6
-    b = _trainer(tmp_path / "run")
+    b = _trainer(tmp_path / "run", device)
     b.fit(resume=True)
     assert _losses(tmp_path / "run") == _losses(tmp_path / "ref")  # step for step, bit for bit
     for (k, v), (_, w) in zip(ref.module.state_dict().items(), b.module.state_dict().items(), strict=True):
@@ -78,14 +102,14 @@ def test_signal_stop_then_resume_matches_uninterrupted_run_exactly(tmp_path):
 
 
 @pytest.mark.slow
-def test_hard_kill_then_resume_from_last_checkpoint_matches(tmp_path):
-    ref = _trainer(tmp_path / "ref")
+def test_hard_kill_then_resume_from_last_checkpoint_matches(tmp_path, device):
+    ref = _trainer(tmp_path / "ref", device)
     ref.fit()
     run = tmp_path / "run"
     script = textwrap.dedent(f"""
         import os, signal, sys, torch
         sys.path.insert(0, {str(TESTS)!r})
-        from _trainer_toy import ToyData, ToyModel, toy_step
+        from _trainer_toy import ToyData, ToyModel, run_two_ranks, toy_step
         from training.trainer import Trainer, TrainerConfig
         n = 0
         def step(model, batch, gen):
@@ -97,12 +121,12 @@ def test_hard_kill_then_resume_from_last_checkpoint_matches(tmp_path):
         torch.manual_seed(0)
         cfg = TrainerConfig(run_dir={str(run)!r}, total_steps=12, batch_size=4, lr=1e-2, warmup_steps=3,
                             checkpoint_every=4, progress=False, seed=7, ema_decay=0.9)
-        Trainer(ToyModel(), ToyData(), step, cfg).fit()
+        Trainer(ToyModel(), ToyData(), step, cfg, device={str(device)!r}).fit()
     """)
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
     assert proc.returncode == -signal.SIGKILL, proc.stderr
     assert latest_checkpoint(run).name == "step_00000004"
-    b = _trainer(run)
+    b = _trainer(run, device)
     b.fit(resume=True)
     assert _losses(run) == _losses(tmp_path / "ref")  # rows after the restored checkpoint were dropped, then redone
     steps = [int(r["step"]) for r in csv.DictReader(open(run / "metrics.csv"))]
@@ -111,10 +135,10 @@ def test_hard_kill_then_resume_from_last_checkpoint_matches(tmp_path):
     assert all(torch.equal(v, w) for v, w in zip(ref_state.values(), b_state.values(), strict=True))
 
 
-def test_nan_batch_skips_the_step_and_is_logged(tmp_path, capsys):
+def test_nan_batch_skips_the_step_and_is_logged(tmp_path, capsys, device):
     data = ToyData(nan_at=range(32))
     clean = ToyData()
-    t = _trainer(tmp_path, data=clean, total_steps=6, checkpoint_every=100)
+    t = _trainer(tmp_path, device, data=clean, total_steps=6, checkpoint_every=100)
     # poison exactly one batch: the second batch of epoch 0
     order = t._epoch_batches()
     data.nan_at = set(order[1])
@@ -126,8 +150,8 @@ def test_nan_batch_skips_the_step_and_is_logged(tmp_path, capsys):
     assert "non-finite" in capsys.readouterr().err
 
 
-def test_k_nonfinite_in_a_row_stops_and_keeps_last_good_checkpoint(tmp_path):
-    t = _trainer(tmp_path, total_steps=100, checkpoint_every=2, max_nonfinite=3)
+def test_k_nonfinite_in_a_row_stops_and_keeps_last_good_checkpoint(tmp_path, device):
+    t = _trainer(tmp_path, device, total_steps=100, checkpoint_every=2, max_nonfinite=3)
     order = t._epoch_batches()
     t.dataset = ToyData(nan_at=[i for b in order[4:] for i in b])  # batches 4.. are poisoned
     with pytest.raises(NonFiniteLossError, match="3 consecutive"):
@@ -138,8 +162,8 @@ def test_k_nonfinite_in_a_row_stops_and_keeps_last_good_checkpoint(tmp_path):
     assert state["step"] == 4 and all(torch.isfinite(v).all() for v in model_state.values())
 
 
-def test_ema_follows_its_recursion(tmp_path):
-    t = _trainer(tmp_path, total_steps=1, checkpoint_every=100, ema_decay=0.5)
+def test_ema_follows_its_recursion(tmp_path, device):
+    t = _trainer(tmp_path, device, total_steps=1, checkpoint_every=100, ema_decay=0.5)
     before = {n: p.detach().clone() for n, p in t.module.named_parameters() if p.requires_grad}
     t.fit()
     for n, p in t.module.named_parameters():
@@ -148,10 +172,106 @@ def test_ema_follows_its_recursion(tmp_path):
     assert "frozen.weight" not in t.ema
 
 
-def test_bf16_autocast_trains(tmp_path):
-    t = _trainer(tmp_path, total_steps=3, checkpoint_every=100, bf16=True)
+def test_bf16_autocast_trains(tmp_path, device):
+    t = _trainer(tmp_path, device, total_steps=3, checkpoint_every=100, bf16=True)
+    assert t.bf16 is True
     t.fit()
     assert all(math.isfinite(v) for v in _losses(tmp_path).values())
+    assert all(p.dtype == torch.float32 for p in t.module.parameters())  # autocast: float32 weights, EMA, state
+    assert all(v.dtype == torch.float32 for v in t.ema.values())
+
+
+def test_bf16_auto_is_on_for_cuda_and_off_for_the_cpu():
+    assert TrainerConfig().bf16 is None and TrainerConfig(bf16="auto").bf16 is None  # the default: auto
+    assert resolve_bf16(None, "cpu") is False and resolve_bf16(None, torch.device("cpu")) is False
+    assert resolve_bf16(None, "cuda") is True and resolve_bf16(None, torch.device("cuda", 1)) is True
+    assert resolve_bf16(True, "cpu") is True and resolve_bf16(False, "cuda:0") is False  # a setting wins
+    with pytest.raises(ValueError, match="trainer.bf16"):
+        TrainerConfig(bf16="yes")
+
+
+def test_cpu_trainer_trains_in_float32_with_pageable_batches_and_leaves_tf32_alone(tmp_path):
+    for tf32 in (True, False):
+        _set_tf32_flags(not tf32, not tf32)  # what a CUDA trainer would overwrite
+        t = _trainer(tmp_path / str(tf32), "cpu", tf32=tf32)
+        assert _tf32_flags() == (not tf32, not tf32)
+    assert t.device == torch.device("cpu") and t.bf16 is False
+    loader = t._loader(t._epoch_batches())
+    assert loader.pin_memory is False
+    batch = t._to_device(next(iter(loader)))
+    assert batch["x"].device.type == "cpu" and batch["x"].shape == (4, 8)
+
+
+@pytest.mark.cuda
+def test_cuda_trainer_sets_tf32_autocasts_and_pins_batches(tmp_path):
+    for tf32 in (True, False):
+        _set_tf32_flags(not tf32, not tf32)
+        t = _trainer(tmp_path / str(tf32), "cuda", tf32=tf32)
+        assert _tf32_flags() == (tf32, tf32)
+    assert t.device == torch.device("cuda", torch.cuda.current_device()) and t.bf16 is True  # auto: on for CUDA
+    loader = t._loader(t._epoch_batches())
+    assert loader.pin_memory is True
+    batch = t._to_device(next(iter(loader)))
+    assert batch["x"].device == t.device and torch.isfinite(batch["x"]).all()
+    assert all(p.device == t.device for p in t.module.parameters())
+
+
+@pytest.mark.cuda
+def test_cuda_gives_the_cpu_losses_in_float32(tmp_path):
+    """bf16 and TF32 off, no dropout (it draws from each device's own RNG): the toy run's losses on CUDA are the
+    CPU's to float32 rounding, the step generator's noise being the same numbers on both devices."""
+    losses = {}
+    for device in ("cpu", "cuda"):
+        torch.manual_seed(0)
+        model = ToyModel(dropout=0.0)
+        _trainer(tmp_path / device, device, model=model, total_steps=3, checkpoint_every=100, bf16=False,
+                 tf32=False).fit()
+        losses[device] = _losses(tmp_path / device)
+    assert sorted(losses["cuda"]) == sorted(losses["cpu"]) == [1, 2, 3]
+    for step, loss in losses["cpu"].items():
+        assert losses["cuda"][step] == pytest.approx(loss, rel=1e-4, abs=1e-7), step
+
+
+def test_device_comes_from_the_config_unless_given(tmp_path, monkeypatch):
+    """trainer.device decides the device, checked with one ValueError naming it; an explicit device= wins."""
+    torch.manual_seed(0)
+    t = Trainer(ToyModel(), ToyData(), toy_step, _cfg(tmp_path, device="cpu"))
+    assert t.device == torch.device("cpu")
+    with pytest.raises(ValueError, match="trainer.device: cuda:99 is not available"):
+        Trainer(ToyModel(), ToyData(), toy_step, _cfg(tmp_path, device="cuda:99"))
+    with pytest.raises(ValueError, match="trainer.device: 'gpu' is not a torch device"):
+        Trainer(ToyModel(), ToyData(), toy_step, _cfg(tmp_path, device="gpu"))
+    t = Trainer(ToyModel(), ToyData(), toy_step, _cfg(tmp_path, device="cuda:99"), device="cpu")
+    assert t.device == torch.device("cpu")
+    with pytest.raises(ValueError, match="device: cuda:99 is not available"):
+        Trainer(ToyModel(), ToyData(), toy_step, _cfg(tmp_path, device="cpu"), device="cuda:99")
+    with pytest.raises(ValueError, match="trainer.device"):
+        TrainerConfig(device=3)
+    assert TrainerConfig(device=torch.device("cpu")).device == "cpu"
+    monkeypatch.setenv("LOCAL_RANK", "1")
+    assert training_device("cpu") == torch.device("cpu")
+    if not torch.cuda.is_available():
+        assert training_device("auto") == torch.device("cpu")  # no GPU: the CPU, whatever the local rank
+
+
+@pytest.mark.cuda
+def test_auto_device_under_torchrun_is_the_local_rank_gpu(monkeypatch):
+    monkeypatch.setenv("LOCAL_RANK", "0")
+    assert training_device("auto") == torch.device("cuda", 0) and training_device("cuda") == torch.device("cuda", 0)
+    monkeypatch.setenv("LOCAL_RANK", str(torch.cuda.device_count()))  # one rank more than the GPUs
+    with pytest.raises(ValueError, match="trainer.device: cuda:"):
+        training_device("auto")
+
+
+def test_gradient_checkpointing_switch_reaches_the_modules_that_support_it(tmp_path):
+    model = ToyModel()
+    model.net.gradient_checkpointing = False  # as models.dit.VideoDiT declares it
+    _trainer(tmp_path, "cpu", model=model)
+    assert model.net.gradient_checkpointing is False  # off by default
+    t = _trainer(tmp_path, "cpu", model=model, gradient_checkpointing=True)
+    assert model.net.gradient_checkpointing is True and t.module is model
+    with pytest.raises(ValueError, match="gradient_checkpointing: no module"):
+        _trainer(tmp_path, "cpu", gradient_checkpointing=True)  # the plain ToyModel has no such module
 
 
 def test_bad_config_raises():
@@ -161,70 +281,56 @@ def test_bad_config_raises():
         TrainerConfig(total_steps=0)
 
 
-def _free_port():
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _run_two_ranks(script: str, attempts: int = 3) -> None:
-    """Start ranks 0 and 1 of ``script`` (env:// rendezvous, as under torchrun) and wait for both.
-
-    The port is free when picked but another process may take it before rank 0's store binds it; on
-    "address already in use" both ranks are stopped and the run is repeated with a fresh port.
-    """
-    for attempt in range(attempts):
-        port, procs, logs = _free_port(), [], []
-        for rank in range(2):
-            env = {**os.environ, "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port), "WORLD_SIZE": "2",
-                   "RANK": str(rank), "LOCAL_RANK": str(rank), "OMP_NUM_THREADS": "1"}
-            logs.append(tempfile.TemporaryFile("w+"))  # a file, not a pipe: a chatty rank never blocks
-            procs.append(subprocess.Popen([sys.executable, "-c", script], env=env, stderr=logs[-1], text=True))
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and any(p.poll() is None for p in procs):
-            if any(p.poll() not in (None, 0) for p in procs):  # one rank failed: the other would wait forever
-                for p in procs:
-                    if p.poll() is None:
-                        p.kill()
-            time.sleep(0.05)
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-            p.wait()
-        errs = []
-        for log in logs:
-            log.seek(0)
-            errs.append(log.read())
-            log.close()
-        if all(p.returncode == 0 for p in procs):
-            return
-        port_taken = any("address already in use" in e.lower() or "eaddrinuse" in e.lower() for e in errs)
-        if not port_taken or attempt == attempts - 1:
-            pytest.fail(f"distributed run failed (attempt {attempt + 1}):\n" + "\n".join(errs))
-
-
-@pytest.mark.parametrize("strategy", ["ddp", "fsdp"])
+@pytest.mark.parametrize("strategy, bf16", [("ddp", False), ("fsdp", False), ("fsdp", True)])
 @pytest.mark.slow
-def test_two_process_distributed_run_keeps_ranks_identical(tmp_path, strategy):
+def test_two_process_distributed_run_keeps_ranks_identical(tmp_path, strategy, bf16):
+    """Two gloo ranks on the CPU: DDP keeps the ranks' weights identical; FSDP2 shards the model's fsdp_units
+    (ToyModel: its two Linear layers) one by one before the root, with bfloat16 weights inside those units only
+    when bf16 is on (the root's frozen layer stays float32), gathers full weights and EMA for the checkpoint and
+    the final weights, and resumes from its checkpoint."""
     script = textwrap.dedent(f"""
         import os, sys, torch, torch.distributed as dist
         sys.path.insert(0, {str(TESTS)!r})
+        from torch.distributed.fsdp import FSDPModule
         from _trainer_toy import ToyData, ToyModel, toy_step
         from training.trainer import Trainer, TrainerConfig
+        strategy, bf16 = {strategy!r}, {bf16!r}
         torch.manual_seed(0)
-        cfg = TrainerConfig(run_dir={str(tmp_path / 'run')!r}, total_steps=4, batch_size=4, lr=1e-2, warmup_steps=1,
-                            checkpoint_every=100, progress=False, seed=3, strategy={strategy!r})
-        t = Trainer(ToyModel(), ToyData(), toy_step, cfg)
+        cfg = dict(run_dir={str(tmp_path / 'run')!r}, total_steps=4, batch_size=4, lr=1e-2, warmup_steps=1,
+                   checkpoint_every=100, progress=False, seed=3, strategy=strategy, device="cpu", bf16=bf16,
+                   ema_decay=0.9)
+        t = Trainer(ToyModel(), ToyData(), toy_step, TrainerConfig(**cfg))
+        net = t.module.net
+        assert all(isinstance(m, FSDPModule) == (strategy == "fsdp") for m in (t.module, net[0], net[3]))
+        seen = {{}}
+        def record(name):  # the dtype of a layer's weight while it runs (FSDP's own hook runs first)
+            return lambda m, args: None if seen.setdefault(name, m.weight.dtype) else None
+        net[3].register_forward_pre_hook(record("unit"))
+        t.module.frozen.register_forward_pre_hook(record("root"))
         t.fit()
-        state = t._model_state()
-        if dist.get_rank() == 0 or {strategy!r} == "ddp":
-            torch.save(state, {str(tmp_path)!r} + f"/rank{{dist.get_rank()}}.pt")
+        if strategy == "fsdp":
+            assert seen == {{"unit": torch.bfloat16 if bf16 else torch.float32, "root": torch.float32}}, seen
+        state, ema = t._model_state(), t.ema_state_dict()  # collective under FSDP
+        rank = dist.get_rank()
+        if rank == 0 or strategy == "ddp":
+            torch.save((state, ema), {str(tmp_path)!r} + f"/rank{{rank}}.pt")
+        t2 = Trainer(ToyModel(), ToyData(), toy_step, TrainerConfig(**{{**cfg, "total_steps": 6}}))
+        t2.fit(resume=True)
+        assert t2.step == 6
         dist.destroy_process_group()
     """)
-    _run_two_ranks(script)
-    r0 = torch.load(tmp_path / "rank0.pt")
+    run_two_ranks(script)
+    r0, ema0 = torch.load(tmp_path / "rank0.pt")
     if strategy == "ddp":
-        r1 = torch.load(tmp_path / "rank1.pt")
-        assert all(torch.equal(r0[k], r1[k]) for k in r0)
-    assert latest_checkpoint(tmp_path / "run").name == "step_00000004"
-    assert all(torch.isfinite(v).all() for v in r0.values())
+        r1, ema1 = torch.load(tmp_path / "rank1.pt")
+        assert all(torch.equal(r0[k], r1[k]) for k in r0) and all(torch.equal(ema0[k], ema1[k]) for k in ema0)
+    full = ToyModel().state_dict()
+    assert {k: v.shape for k, v in r0.items()} == {k: v.shape for k, v in full.items()}  # whole tensors
+    assert {k: v.shape for k, v in ema0.items()} == {k: v.shape for k, v in full.items()}
+    assert not torch.equal(ema0["net.0.weight"], r0["net.0.weight"])  # the EMA, not the weights
+    assert all(torch.isfinite(v).all() for v in [*r0.values(), *ema0.values()])
+    assert latest_checkpoint(tmp_path / "run").name == "step_00000006"
+    rows = list(csv.DictReader(open(tmp_path / "run" / "metrics.csv")))
+    assert [int(r["step"]) for r in rows] == list(range(1, 7))
+    _, _, saved_ema = load_checkpoint(tmp_path / "run" / "checkpoints" / "step_00000006")
+    assert {k: v.shape for k, v in saved_ema.items()} == {k: v.shape for k, v in full.items() if "frozen" not in k}

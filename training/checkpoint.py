@@ -105,7 +105,8 @@ def latest_checkpoint(run_dir: str | os.PathLike) -> Path | None:
 def load_checkpoint(
     folder: str | os.PathLike,
 ) -> tuple[dict[str, torch.Tensor], dict[str, Any], dict[str, torch.Tensor] | None]:
-    """Read (model_state, training_state, ema_state or None) from a checkpoint folder.
+    """Read (model_state, training_state, ema_state or None) from a checkpoint folder, every tensor on the CPU
+    (a checkpoint written on a GPU resumes on a CPU-only machine; the trainer copies the states onto its device).
 
     Raises:
         FileNotFoundError: the folder lacks model.safetensors or state.pt.
@@ -115,4 +116,5 @@ def load_checkpoint(
         if not (folder / name).is_file():
             raise FileNotFoundError(f"checkpoint: {folder / name} does not exist")
     ema = load_file(str(folder / "ema.safetensors")) if (folder / "ema.safetensors").is_file() else None
-    return load_file(str(folder / "model.safetensors")), torch.load(folder / "state.pt", weights_only=False), ema
+    state = torch.load(folder / "state.pt", map_location="cpu", weights_only=False)
+    return load_file(str(folder / "model.safetensors"), device="cpu"), state, ema

@@ -90,26 +90,40 @@ class DensityStats:
 
     Args:
         n: number of Gaussians.
+        device: where the statistics live: the Gaussians' device.
+
+    Attributes:
+        grad_accum: (N,) float32 sum of the NDC gradient norms over the views that saw each Gaussian.
+        denom: (N,) float32 number of those views.
+        max_radii: (N,) float32 largest 2D radius, pixels.
     """
 
-    def __init__(self, n: int) -> None:
-        self.grad_accum = torch.zeros(n)
-        self.denom = torch.zeros(n)
-        self.max_radii = torch.zeros(n)
+    def __init__(self, n: int, device: str | torch.device = "cpu") -> None:
+        self.grad_accum = torch.zeros(n, device=device)
+        self.denom = torch.zeros(n, device=device)
+        self.max_radii = torch.zeros(n, device=device)
+
+    @property
+    def device(self) -> torch.device:
+        return self.grad_accum.device
 
     def update(self, means2d_grad: Tensor, radii: Tensor, width: int, height: int) -> None:
-        """Add one view's statistics.
+        """Add one view's statistics (no host synchronisation: masked updates are ``torch.where``).
 
         Args:
             means2d_grad: (N, 2) ∂L/∂(projected mean), per pixel.
-            radii: (N,) 2D radius in pixels, 0 where the Gaussian was culled in this view.
+            radii: (N,) 2D radius in pixels, 0 where the Gaussian was culled in this view; or (N, 2) per-axis
+                radii (gsplat ≥ 1.5), of which the larger is taken.
             width, height: image size, pixels (the pixel → NDC factor is (W/2, H/2)).
         """
+        if radii.dim() == 2:
+            radii = radii.amax(dim=-1)
+        radii = radii.float()
         vis = radii > 0
         g = means2d_grad.detach() * means2d_grad.new_tensor([width / 2.0, height / 2.0])
-        self.grad_accum[vis] += g[vis].norm(dim=-1)
-        self.denom[vis] += 1
-        self.max_radii[vis] = torch.maximum(self.max_radii[vis], radii[vis].float())
+        self.grad_accum = torch.where(vis, self.grad_accum + g.norm(dim=-1), self.grad_accum)
+        self.denom = torch.where(vis, self.denom + 1, self.denom)
+        self.max_radii = torch.where(vis, torch.maximum(self.max_radii, radii), self.max_radii)
 
     def mean_grad(self) -> Tensor:
         """(N,) accumulated gradient norm / views that saw the Gaussian (0 if none)."""
@@ -193,23 +207,25 @@ def densify_and_prune(params: dict[str, nn.Parameter], optimizer: torch.optim.Op
         n = config.split_n
         std = scales[split].repeat(n, 1)
         R = quat_to_rotmat(params["quats"].detach()[split]).repeat(n, 1, 1)
-        sample = torch.randn(std.shape, generator=generator, dtype=std.dtype) * std
+        # drawn by the (CPU) generator, then moved: a seed splits alike on every device
+        sample = torch.randn(std.shape, generator=generator, dtype=std.dtype, device=generator.device).to(std.device)
+        sample = sample * std
         split_rows = {k: v.detach()[split].repeat(n, *([1] * (v.dim() - 1))) for k, v in params.items()}
         split_rows["means"] = split_rows["means"] + (R @ sample[..., None])[..., 0]
         split_rows["scales"] = torch.log(std / (0.8 * n))
         new = {k: torch.cat([new[k], split_rows[k]]) for k in params}
     params = replace_params(params, optimizer, new, None)
     N = params["means"].shape[0]
-    originals = torch.cat([split, torch.zeros(N - split.shape[0], dtype=torch.bool)])
+    originals = torch.cat([split, torch.zeros(N - split.shape[0], dtype=torch.bool, device=split.device)])
     opac = torch.sigmoid(params["opacities"].detach())
     remove = originals | (opac < config.min_opacity)
     if prune_large:
-        radii = torch.cat([stats.max_radii, torch.zeros(N - stats.max_radii.shape[0])])
+        radii = torch.cat([stats.max_radii, stats.max_radii.new_zeros(N - stats.max_radii.shape[0])])
         world = params["scales"].detach().exp().max(dim=1).values
         remove |= (radii > config.max_screen_size) | (world > config.max_world_size * extent)
     n_pruned = int(remove.sum()) - n_split
     params = prune(params, optimizer, remove)
-    stats.__init__(params["means"].shape[0])
+    stats.__init__(params["means"].shape[0], device=params["means"].device)
     return params, {"cloned": n_clone, "split": n_split, "pruned": n_pruned}
 
 
@@ -219,7 +235,7 @@ def reset_opacity(params: dict[str, nn.Parameter], optimizer: torch.optim.Optimi
     for group in optimizer.param_groups:
         if group["name"] == "opacities":
             old = group["params"][0]
-            p = nn.Parameter(torch.minimum(old.detach(), inverse_sigmoid(torch.tensor(value))))
+            p = nn.Parameter(torch.minimum(old.detach(), inverse_sigmoid(torch.tensor(value, device=old.device))))
             state = optimizer.state.pop(old, None)
             if state:
                 state["exp_avg"], state["exp_avg_sq"] = torch.zeros_like(p), torch.zeros_like(p)

@@ -1,7 +1,7 @@
 """Metric functions of ``diff4splat evaluate`` (:mod:`training.evaluate`): PSNR/SSIM/correlation, the
 view angle of a camera and its bins, the no-model baselines, the motion errors and the map from pixels
-to kept Gaussians. Pure functions of tensors; the evaluation itself (generation, rendering) is in
-:mod:`training.evaluate`.
+to kept Gaussians. Pure functions of tensors, computed on the device of their inputs (which must share one);
+the evaluation itself (generation, rendering) is in :mod:`training.evaluate`.
 """
 from __future__ import annotations
 
@@ -97,7 +97,7 @@ def view_angles(viewmats: Tensor) -> Tensor:
 def angle_bin(angles: Tensor) -> Tensor:
     """Index (…,) long into :data:`ANGLE_BINS` of each view angle (…,) in degrees [0, 180]: the bin with
     low ≤ θ < high, 180° in the last bin. Every angle falls in exactly one bin."""
-    highs = torch.tensor([hi for _, _, hi in ANGLE_BINS[:-1]], dtype=torch.float64)
+    highs = torch.tensor([hi for _, _, hi in ANGLE_BINS[:-1]], dtype=torch.float64, device=angles.device)
     return torch.bucketize(angles.double(), highs, right=True)
 
 
@@ -141,7 +141,9 @@ def repeat_baselines(video: Tensor) -> dict[str, Tensor]:
         raise ValueError(f"video must have shape (3, T, H, W) with T ≥ 2, got {tuple(video.shape)}")
     frames = video.permute(1, 0, 2, 3).float()  # (T, 3, H, W)
     first, later = frames[:1], frames[1:]
-    blurred = kornia.filters.gaussian_blur2d(first, (BLUR_KERNEL, BLUR_KERNEL), (BLUR_SIGMA, BLUR_SIGMA))
+    # σ as a tensor on the frames' device (kornia makes a tuple's check tensor on torch's default device)
+    sigma = torch.tensor([[BLUR_SIGMA, BLUR_SIGMA]], dtype=first.dtype, device=first.device)
+    blurred = kornia.filters.gaussian_blur2d(first, (BLUR_KERNEL, BLUR_KERNEL), sigma)
     return {"repeat": frame_mse(first.expand_as(later), later),
             "repeat_blur": frame_mse(blurred.expand_as(later), later)}
 
@@ -193,6 +195,9 @@ def kept_index_map(gaussian_index: Tensor, total: int) -> Tensor:
             so slots 0…H·W−1 are frame 0's pixels).
         total: number of unpruned slots (S·H·W).
 
+    Returns:
+        (total,) int64 on ``gaussian_index``' device.
+
     Raises:
         ValueError: an index outside [0, total) or repeated.
     """
@@ -201,21 +206,22 @@ def kept_index_map(gaussian_index: Tensor, total: int) -> Tensor:
         raise ValueError(f"gaussian_index must lie in [0, {total}), got [{int(idx.min())}, {int(idx.max())}]")
     if idx.unique().numel() != idx.numel():
         raise ValueError("gaussian_index has repeated entries")
-    kept = torch.full((total,), -1, dtype=torch.long)
-    kept[idx] = torch.arange(idx.numel())
+    kept = torch.full((total,), -1, dtype=torch.long, device=idx.device)
+    kept[idx] = torch.arange(idx.numel(), device=idx.device)
     return kept
 
 
-def ablation_noise(shape: tuple[int, ...] | torch.Size, seed: int) -> Tensor:
-    """Pure-noise latents N(0, I) of ``shape`` for the noise-latent ablation (float32, CPU).
+def ablation_noise(shape: tuple[int, ...] | torch.Size, seed: int, device: str | torch.device = "cpu") -> Tensor:
+    """Pure-noise latents N(0, I) of ``shape`` for the noise-latent ablation (float32, on ``device``).
 
     Drawn from a CPU generator seeded with ``seed`` *after* one draw of the same shape (that first draw
     is the pipeline's own starting noise for the seed), so the ablation's noise is independent of the
-    sampler's starting point: a sampler that barely moves the noise is not credited with it.
+    sampler's starting point: a sampler that barely moves the noise is not credited with it. The draws are
+    made on the CPU and moved, so they are the same numbers on every device.
     """
-    gen = torch.Generator().manual_seed(seed)
-    torch.randn(tuple(shape), generator=gen)  # the sampler's starting noise for this seed
-    return torch.randn(tuple(shape), generator=gen)
+    gen = torch.Generator(device="cpu").manual_seed(seed)
+    torch.randn(tuple(shape), generator=gen, device=gen.device)  # the sampler's starting noise for this seed
+    return torch.randn(tuple(shape), generator=gen, device=gen.device).to(device)
 
 
 def covisible_mask(
@@ -238,7 +244,7 @@ def covisible_mask(
     dropped from a masked metric.
 
     Returns:
-        (H, W) bool.
+        (H, W) bool on ``depth``'s device (all inputs on one device).
 
     Raises:
         ValueError: shapes that do not match the comments above.

@@ -49,6 +49,10 @@ mean MSE over its frames (:func:`training.eval_metrics.binned_psnr`). Keys ``psn
 
 With ``--photo IMAGE`` it also reports ``photo_psnr``: the scene generated from a real photograph,
 rendered from the input camera at t = 0, against that photograph.
+
+Devices: the pipeline (generation and rendering) runs on ``pipe.device`` (``--device``, default ``auto``: CUDA
+when torch sees a GPU, else the CPU); the clips stay on the CPU and every metric is computed there, from CPU
+copies of the renders and of the generated scene's points.
 """
 from __future__ import annotations
 
@@ -56,16 +60,21 @@ import csv
 import math
 import statistics
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
+from data_prep.clips import ClipConfig, ClipDataset
 from diff4splat.cameras import CameraPath, make_trajectory
+from diff4splat.devices import AUTO, DEVICE_HELP, resolve_device, synchronize
+from diff4splat.io import load_image
 from diff4splat.pipeline import Diff4SplatPipeline, GenerationResult, load_model
 from diff4splat.render.sequence import render_path
 from models.bundle import DEFAULT_CONFIG
+from models.flow_matching import heun_sample, sigma_schedule
 
 from .eval_metrics import (
     ANGLE_BINS,
@@ -116,8 +125,6 @@ def binned_keys() -> tuple[str, ...]:
 
 
 def _held_out_clips(data: str | Path, height: int, width: int, num_frames: int, limit: int | None):
-    from data_prep.clips import ClipConfig, ClipDataset
-
     ds = ClipDataset(data, ClipConfig(num_frames=num_frames, height=height, width=width, scenes="all",
                                       reference_camera="first", target_cameras="same", plucker="raw", seed=0))
     n = len(ds) if limit is None else min(limit, len(ds))
@@ -147,15 +154,21 @@ class ClipEvaluation:
 def _scene_motion(pipe: Diff4SplatPipeline, res: GenerationResult, clip: dict) -> dict[str, float]:
     """:func:`motion_errors` of a generated scene: each track's frame-0 pixel → its kept Gaussian
     (``res.gaussian_index``; frame 0's Gaussians are the first H·W of the unpruned grid) → its positions
-    at the clip's times."""
+    at the clip's times. Computed on the CPU (the clip's device) from CPU copies of the scene's points."""
     H, W = pipe.config.height, pipe.config.width
     tracks, vis = clip["tracks"], clip["track_visibility"] & clip["track_mask"][:, None]
     idx, ok = track_query_index(tracks[:, 0], clip["Ks"][0], W, H, vis[:, 0])
-    kept = kept_index_map(res.gaussian_index, len(res.source_frames) * H * W)
+    kept = kept_index_map(res.gaussian_index.cpu(), len(res.source_frames) * H * W)
     g_idx = kept[idx]
     ok = ok & (g_idx >= 0)
-    pred = torch.stack([res.scene.at(float(t)).means[g_idx.clamp(min=0)] for t in res.cameras.times], 1)
+    pred = torch.stack([res.scene.at(t).means.cpu()[g_idx.clamp(min=0)] for t in res.cameras.times.tolist()], 1)
     return motion_errors(pred, tracks, vis & ok[:, None])
+
+
+def _render(scene, cameras: CameraPath) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`render_path` on the scene's device (the cameras moved there), returned as CPU tensors."""
+    out = render_path(scene, cameras.to(scene.canonical.means.device))
+    return out[0].cpu(), out[1].cpu(), out[2].cpu()
 
 
 @torch.no_grad()
@@ -164,7 +177,8 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
     """Metrics, baselines and ablations of one held-out clip (module docstring).
 
     Generates the clip's scene three times (sampled latents, noise latents, and — PyTorch models only —
-    the true video's latents) plus the loop-closure orbit of a static clip.
+    the true video's latents) plus the loop-closure orbit of a static clip, on ``pipe.device``; ``clip``'s
+    tensors are CPU tensors (:func:`_held_out_clips`) and the metrics are computed on the CPU.
 
     Raises:
         ValueError: a clip of fewer than 2 frames (nothing to score as novel views).
@@ -179,7 +193,7 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
     gen = dict(steps=steps, sampler=sampler, seed=seed)
 
     res = pipe(image, cams, clip["caption"], **gen)
-    colors, depths, alphas = render_path(res.scene, res.cameras)
+    colors, depths, alphas = _render(res.scene, res.cameras)
     pred = colors.permute(0, 3, 1, 2)
     mse = {"model": frame_mse(pred[1:], gt[1:]), **repeat_baselines(clip["video"])}
     out = {"psnr_input": image_psnr(pred[:1], gt[:1]), "ssim_input": image_ssim(pred[:1], gt[:1]),
@@ -191,8 +205,8 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
     out["loop_psnr"] = _loop_psnr(pipe, image, clip, T, **gen)
 
     noisy = pipe(image, cams, clip["caption"], video_latents=ablation_noise(res.latents.shape, seed), **gen)
-    mse["noise"] = frame_mse(render_path(noisy.scene, noisy.cameras)[0][1:].permute(0, 3, 1, 2), gt[1:])
-    mse["gt"] = torch.full((T - 1,), float("nan"), dtype=torch.float64)
+    mse["noise"] = frame_mse(_render(noisy.scene, noisy.cameras)[0][1:].permute(0, 3, 1, 2), gt[1:])
+    mse["gt"] = torch.full((T - 1,), float("nan"), dtype=torch.float64, device="cpu")
     out["vae_psnr"] = out["motion_epe_gt"] = out["motion_disp_epe_gt"] = float("nan")
     if pipe.model is not None:
         vae = pipe.model.vae
@@ -200,7 +214,7 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
         recon = (vae.decode_latents(latents)[0].cpu() + 1) / 2
         out["vae_psnr"] = image_psnr(recon.permute(1, 0, 2, 3), gt)
         oracle = pipe(image, cams, clip["caption"], video_latents=latents, **gen)
-        mse["gt"] = frame_mse(render_path(oracle.scene, oracle.cameras)[0][1:].permute(0, 3, 1, 2), gt[1:])
+        mse["gt"] = frame_mse(_render(oracle.scene, oracle.cameras)[0][1:].permute(0, 3, 1, 2), gt[1:])
         motion = _scene_motion(pipe, oracle, clip)
         out["motion_epe_gt"], out["motion_disp_epe_gt"] = motion["motion_epe"], motion["motion_disp_epe"]
     out["psnr_novel"] = psnr_from_mse(float(mse["model"].mean()))
@@ -220,9 +234,9 @@ def _loop_psnr(pipe: Diff4SplatPipeline, image: Tensor, clip: dict, num_frames: 
     radius = float(clip["depth"][0][valid].median()) if bool(valid.any()) else cfg.scene_depth
     orbit = make_trajectory("orbit", num_frames, clip["Ks"][0].double(), cfg.width, cfg.height, scene_depth=radius)
     closing = CameraPath(orbit.viewmats[:1], orbit.Ks[:1], orbit.width, orbit.height,
-                         torch.ones(1, dtype=orbit.viewmats.dtype))
+                         torch.ones(1, dtype=orbit.viewmats.dtype, device=orbit.viewmats.device))
     res = pipe(image, orbit, clip["caption"], **kw)
-    colors, _, _ = render_path(res.scene, closing.to(torch.float32))
+    colors, _, _ = _render(res.scene, closing.to(torch.float32))
     return image_psnr(colors.permute(0, 3, 1, 2), clip["video"][:, :1].permute(1, 0, 2, 3))
 
 
@@ -231,14 +245,12 @@ def photo_psnr(pipe: Diff4SplatPipeline, image_path: str | Path, prompt: str = "
                seed: int = 0) -> float:
     """PSNR (dB) of the generated scene rendered from the input camera at t = 0 against the photograph
     itself (centre-cropped and resized to the model resolution, as ``generate`` reads it)."""
-    from diff4splat.io import load_image
-
     cfg = pipe.config
     image = load_image(image_path, size=(cfg.height, cfg.width))
     res = pipe(image, pipe.default_cameras("orbit", cfg.num_frames), prompt, steps=steps, seed=seed)
     first = CameraPath(res.cameras.viewmats[:1], res.cameras.Ks[:1], cfg.width, cfg.height,
-                       torch.zeros(1, dtype=res.cameras.viewmats.dtype))
-    colors, _, _ = render_path(res.scene, first)
+                       torch.zeros(1, dtype=res.cameras.viewmats.dtype, device=res.cameras.viewmats.device))
+    colors, _, _ = _render(res.scene, first)
     return image_psnr(colors.permute(0, 3, 1, 2), image.permute(2, 0, 1)[None])
 
 
@@ -286,7 +298,8 @@ def sampling_tradeoffs(pipe: Diff4SplatPipeline, clips: list[dict], nfes=(1, 2, 
     For each clip, the DiT's ODE is integrated with ``reference_steps`` Heun steps as the reference;
     each sampler at each NFE (Euler: steps = NFE; Heun: steps = ⌈(NFE+1)/2⌉, NFE = 2·steps − 1) is
     compared by the RMS latent distance to the reference, its wall time, and the PSNR of the
-    generated scene's renders against the ground-truth clip.
+    generated scene's renders against the ground-truth clip. The clock is read after
+    :func:`diff4splat.devices.synchronize` (the device's queued work counted).
 
     Returns:
         Rows {sampler, nfe, steps, ms, latent_rms, psnr}.
@@ -303,11 +316,13 @@ def sampling_tradeoffs(pipe: Diff4SplatPipeline, clips: list[dict], nfes=(1, 2, 
             steps = nfe if sampler == "euler" else max(1, math.ceil((nfe + 1) / 2))
             ms, rms, psnr = [], [], []
             for c, cams, image, ref in refs:
+                synchronize(pipe.device)
                 t0 = time.perf_counter()
                 res = pipe(image, cams, c["caption"], steps=steps, sampler=sampler)
+                synchronize(pipe.device)
                 ms.append(1000 * (time.perf_counter() - t0))
                 rms.append(float(((res.latents - ref) ** 2).mean().sqrt()))
-                colors, _, _ = render_path(res.scene, res.cameras)
+                colors, _, _ = _render(res.scene, res.cameras)
                 psnr.append(image_psnr(colors.permute(0, 3, 1, 2), c["video"].permute(1, 0, 2, 3)))
             rows.append({"sampler": sampler, "nfe": 2 * steps - 1 if sampler == "heun" else steps, "steps": steps,
                          "ms": statistics.median(ms), "latent_rms": statistics.fmean(rms),
@@ -329,8 +344,6 @@ def stiffness_profile(pipe: Diff4SplatPipeline, clip: dict, steps: int = 16, sub
     Returns:
         Rows {step, sigma, sigma_next, local_error, lipschitz}.
     """
-    from models.flow_matching import heun_sample, sigma_schedule
-
     cfg = pipe.config
     runtime = pipe.runtime
     cams = CameraPath(clip["viewmats"].double(), clip["Ks"].double(), cfg.width, cfg.height, clip["times"].double())
@@ -353,16 +366,18 @@ def stiffness_profile(pipe: Diff4SplatPipeline, clip: dict, steps: int = 16, sub
     def v(x: Tensor, sigma: Tensor) -> Tensor:
         return original(x, sigma.reshape(1).to(x), *cond)
 
-    gen = torch.Generator().manual_seed(seed)
-    x = torch.randn(captured["shape"], generator=gen)
+    dev = pipe.device
+    gen = torch.Generator(device="cpu").manual_seed(seed)  # CPU draws, moved: the same numbers on every device
+    x = torch.randn(captured["shape"], generator=gen, device=gen.device).to(dev)
     sig = sigma_schedule(steps, cfg.sampling.shift, dtype=torch.float64)
     rows = []
     for i in range(steps):
         s0, s1 = sig[i], sig[i + 1]
-        fine = heun_sample(v, x, torch.linspace(float(s0), float(s1), substeps + 1, dtype=torch.float64))
+        sigmas = torch.linspace(float(s0), float(s1), substeps + 1, dtype=torch.float64, device=sig.device)
+        fine = heun_sample(v, x, sigmas)
         v0 = v(x, s0)
         euler = x + (s1 - s0).to(x) * v0
-        delta = torch.randn(x.shape, generator=gen)
+        delta = torch.randn(x.shape, generator=gen, device=gen.device).to(dev)
         delta = delta * (1e-3 * x.norm() / delta.norm())
         lip = float((v(x + delta, s0) - v0).norm() / delta.norm())
         rows.append({"step": i, "sigma": float(s0), "sigma_next": float(s1),
@@ -409,13 +424,17 @@ def _aggregate_tables(agg: dict) -> str:
 
 
 def run(args) -> int:
-    """``diff4splat evaluate`` (see module docstring)."""
-    import warnings
+    """``diff4splat evaluate`` (see module docstring).
 
+    Raises:
+        ValueError: ``--device`` naming a device this machine does not have (checked before any work), no clips
+            in ``--data``, a ``--csv`` with other columns.
+    """
+    device = resolve_device(args.device, "--device")  # before any model is loaded
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         model, source = load_model(args.checkpoint, args.config, seed=args.seed, untrained=args.random)
-    pipe = Diff4SplatPipeline(model)
+    pipe = Diff4SplatPipeline(model, device=device)
     cfg = pipe.config
     clips = _held_out_clips(args.data, cfg.height, cfg.width, args.frames or cfg.num_frames, args.limit)
     if not clips:
@@ -489,6 +508,8 @@ def register(subparsers) -> None:
     e.add_argument("--photo", type=Path, default=None,
                    help="also report photo_psnr: the render at the input camera, t = 0, against this photograph")
     e.add_argument("--prompt", default="", help="prompt used with --photo")
+    e.add_argument("--device", default=AUTO, help=DEVICE_HELP + "; where the model generates and renders "
+                   "(metrics are computed on the CPU)")
     e.add_argument("--csv", type=Path, default=None,
                    help="append the aggregate row to this CSV (--per-clip: clip rows to <stem>_clips.csv)")
     e.set_defaults(func=run)

@@ -17,6 +17,14 @@ regularisers. The background behind the Gaussians is one learned RGB colour by d
 Adam with 3DGS's per-parameter learning rates; positions (and the field, 4DGS) decay
 exponentially (:func:`expon_lr`). Adaptive density control: :mod:`training.densify`. One view per step, in a
 seeded random order without replacement per epoch (as the reference's view stack).
+
+Devices (docs/DESIGN.md, "Devices"): the Gaussians, the field, the background and the statistics live on the
+device of the initial points given to :func:`init_state` (the views must be there too,
+:func:`training.fit_data.load_views`); every random draw (view order, split positions, the field's
+initialisation) is made on the CPU and moved, so a seed gives the same draws on every device. A step reads
+nothing back from the device itself (the depth loss and the density statistics are masked with ``torch.where``,
+the progress bar's PSNR is read every :data:`POSTFIX_EVERY` steps) apart from the renderer's own reads and, in the
+fine stage, the field's NaN check of the means (:meth:`models.hexplane.HexPlaneField.features`).
 """
 from __future__ import annotations
 
@@ -31,19 +39,23 @@ from torch import Tensor, nn
 from tqdm import tqdm
 
 from diff4splat.constants import ALPHA_MIN
+from diff4splat.devices import synchronize
 from diff4splat.gaussians import Gaussians, rgb_to_sh0
 from diff4splat.render import rasterize
 from diff4splat.scene import DynamicGaussians, compose_deformation
 from models.hexplane import HexPlaneConfig, HexPlaneField
 from training.densify import DensifyConfig, DensityStats, densify_and_prune, inverse_sigmoid, prune, reset_opacity
-from training.eval_metrics import psnr_from_mse
+from training.eval_metrics import PSNR_CAP, psnr_from_mse
 from training.fit_data import View, knn_scales
 from training.losses import photometric_loss
 
 __all__ = ["BACKGROUNDS", "init_background",
            "DEPTH_WEIGHTS", "default_depth_weight", "FitConfig", "LearningRates", "FitState", "expon_lr",
            "init_state", "fit_steps", "evaluate_views", "to_scene", "psnr_from_mse", "render_view", "start_fine_stage",
-           "gaussian_adam", "config_dict"]
+           "gaussian_adam", "config_dict", "POSTFIX_EVERY"]
+
+POSTFIX_EVERY = 10
+"""Steps between readings of the training PSNR for the progress bar (each reading waits for the device)."""
 
 
 @dataclass
@@ -178,7 +190,9 @@ class FitState:
     ``params``: "means" (N,3) metres, "scales" (N,3) log metres, "quats" (N,4) wxyz unnormalised,
     "opacities" (N,) logits, "sh0" (N,1,3), "shN" (N,K−1,3) (K = (sh_degree+1)²). ``background``: (3,) logits
     of a learned background colour (with ``background_optimizer``), or the fixed RGB in [0, 1]; read it with
-    :meth:`background_rgb`.
+    :meth:`background_rgb`. All of them, the field and ``stats`` on :attr:`device`; ``generator`` is a CPU
+    generator (every random draw of the fit). ``loss``: the last step's loss, a detached 0-d tensor on the device
+    (None before the first step; not checkpointed).
     """
 
     params: dict[str, nn.Parameter]
@@ -188,7 +202,7 @@ class FitState:
     dynamic: bool
     field: HexPlaneField | None = None
     field_optimizer: torch.optim.Adam | None = None
-    background: Tensor = dc_field(default_factory=lambda: torch.zeros(3))
+    background: Tensor = dc_field(default_factory=lambda: torch.zeros(3, device="cpu"))  # init_background sets it
     background_optimizer: torch.optim.Adam | None = None
     step: int = 0
     generator: torch.Generator = dc_field(default_factory=torch.Generator)
@@ -196,10 +210,16 @@ class FitState:
     train_time: float = 0.0
     history: list[dict] = dc_field(default_factory=list)
     counts: dict[str, int] = dc_field(default_factory=lambda: {"cloned": 0, "split": 0, "pruned": 0})
+    loss: Tensor | None = None
 
     @property
     def num_gaussians(self) -> int:
         return self.params["means"].shape[0]
+
+    @property
+    def device(self) -> torch.device:
+        """Where the fit runs: the device of the Gaussians (and the field, the background, the statistics)."""
+        return self.params["means"].device
 
     def background_rgb(self) -> Tensor:
         """(3,) RGB in [0, 1] behind the Gaussians (differentiable when learned)."""
@@ -213,8 +233,8 @@ def init_background(state: FitState, config: FitConfig) -> None:
     A start at the median colour of the training pixels with +inf depth (the sky) was tried on development
     scenes; the co-visible held-out PSNR (grey / sky start) was 28.84 / 29.12, 22.07 / 21.66, 36.86 / 26.52 and
     29.16 / 29.67 dB (seed 9191 scene_00001/2, seed 7373 scene_00001/5): no better on average, and it needs a
-    rule for what +inf depth means in other data."""
-    rgb = torch.tensor(BACKGROUNDS[config.background])
+    rule for what +inf depth means in other data. On the Gaussians' device."""
+    rgb = torch.tensor(BACKGROUNDS[config.background], device=state.device)
     if config.background == "learned":
         state.background = nn.Parameter(torch.logit(rgb))
         state.background_optimizer = torch.optim.Adam([state.background], lr=config.lr.background)
@@ -244,27 +264,29 @@ def init_state(means: Tensor, colors: Tensor, config: FitConfig, extent: float, 
     initialisation).
 
     Args:
-        means: (N, 3) metres. colors: (N, 3) in [0, 1]. extent: scene extent, metres. seed: the fit's seed.
+        means: (N, 3) metres, on the device the fit runs on (every other input is moved there).
+        colors: (N, 3) in [0, 1]. extent: scene extent, metres. seed: the fit's seed (the CPU generator's).
     """
-    n = means.shape[0]
+    n, dev = means.shape[0], means.device
     K = (config.sh_degree + 1) ** 2
-    sh_full = torch.zeros(n, K, 3)
+    sh_full = torch.zeros(n, K, 3, device=dev)
     if sh is not None:
         k = min(K, sh.shape[1])
-        sh_full[:, :k] = sh[:, :k]
+        sh_full[:, :k] = sh[:, :k].to(dev)
     else:
-        sh_full[:, 0] = rgb_to_sh0(colors)
+        sh_full[:, 0] = rgb_to_sh0(colors.to(dev))
     params = {
         "means": means.float(),
-        "scales": torch.log(knn_scales(means.float()) if scales is None else scales.float()),
-        "quats": torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(n, 1) if quats is None else quats.float(),
-        "opacities": inverse_sigmoid(torch.full((n,), 0.1) if opacities is None
-                                     else opacities.float().clamp(1e-4, 1 - 1e-4)),
+        "scales": torch.log(knn_scales(means.float()) if scales is None else scales.to(dev).float()),
+        "quats": (torch.tensor([1.0, 0.0, 0.0, 0.0], device=dev).repeat(n, 1) if quats is None
+                  else quats.to(dev).float()),
+        "opacities": inverse_sigmoid(torch.full((n,), 0.1, device=dev) if opacities is None
+                                     else opacities.to(dev).float().clamp(1e-4, 1 - 1e-4)),
         "sh0": sh_full[:, :1],
         "shN": sh_full[:, 1:],
     }
     params = {k: nn.Parameter(v.contiguous()) for k, v in params.items()}
-    state = FitState(params, gaussian_adam(params, config.lr, extent), DensityStats(n), extent, dynamic)
+    state = FitState(params, gaussian_adam(params, config.lr, extent), DensityStats(n, dev), extent, dynamic)
     init_background(state, config)
     state.generator.manual_seed(seed)
     return state
@@ -300,10 +322,13 @@ def render_view(state: FitState, view: View, sh_degree: int, with_depth: bool):
 def start_fine_stage(state: FitState, config: FitConfig) -> None:
     """Start the fine stage: a new (identity) HexPlane field on the Gaussians' current bounding box (metres; 4DGS
     sets the box from the point cloud) and its Adam with two groups, "deformation" (MLP) and "grid" (planes),
-    at 4DGS's initial rates × the extent (``deformation_lr_init``, ``grid_lr_init``), decayed by ``fit_steps``."""
+    at 4DGS's initial rates × the extent (``deformation_lr_init``, ``grid_lr_init``), decayed by ``fit_steps``.
+
+    The field is initialised on the CPU (from torch's seeded global generator) and moved to the Gaussians'
+    device, so a seed gives the same field on every device."""
     means = state.params["means"].detach()
     bounds = torch.stack([means.min(0).values, means.max(0).values])
-    state.field = HexPlaneField(config.field, bounds)
+    state.field = HexPlaneField(config.field, bounds, device="cpu").to(state.device)
     grids = [p for n, p in state.field.named_parameters() if "grid" in n or "plane" in n]
     ids = {id(p) for p in grids}
     mlp = [p for p in state.field.parameters() if id(p) not in ids]
@@ -333,9 +358,13 @@ def fit_steps(state: FitState, views: list[View], config: FitConfig, until: int,
               should_stop=lambda: False, on_step=None) -> FitState:
     """Run optimisation steps until ``state.step == until`` (or ``should_stop()``).
 
+    ``state.train_time`` adds the wall time of the steps; on CUDA the queued work is waited for once at the
+    end (not per step), so it is exact when this returns and may lag by the work in flight in between.
+
     Args:
-        views: training views (not empty).
+        views: training views (not empty), on ``state.device``.
         until: step count to reach (≤ ``config.iterations``).
+        progress: a tqdm bar (its PSNR, an exponential moving average, is read every :data:`POSTFIX_EVERY` steps).
         should_stop: polled after every step (SIGTERM → checkpoint and return).
         on_step: ``on_step(state)`` after every step (checkpoints, evaluation).
     """
@@ -343,13 +372,14 @@ def fit_steps(state: FitState, views: list[View], config: FitConfig, until: int,
         raise ValueError("depth_weight is None: resolve it first (default_depth_weight of the scene's depth source)")
     with_depth = config.depth_weight > 0 and views[0].depth is not None
     bar = tqdm(total=until, initial=state.step, desc="fit", disable=not progress, dynamic_ncols=True)
-    ema_psnr = None
+    ema_psnr = None  # a 0-d tensor on the device: read for the bar only every POSTFIX_EVERY steps
     while state.step < until and not should_stop():
         t0 = time.perf_counter()
         if state.dynamic and state.field is None and state.step >= config.coarse_iterations:
             start_fine_stage(state, config)
         if not state.order:
-            state.order = torch.randperm(len(views), generator=state.generator).tolist()
+            g = state.generator
+            state.order = torch.randperm(len(views), generator=g, device=g.device).tolist()
         view = views[state.order.pop()]
         _set_lrs(state, config)
         degree = min(config.sh_degree, state.step // config.sh_interval)
@@ -357,14 +387,15 @@ def fit_steps(state: FitState, views: list[View], config: FitConfig, until: int,
         meta["means2d"].retain_grad()
         target = view.image
         loss = photometric_loss(rgb.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None], config.ssim_weight)
-        if with_depth:
+        if with_depth:  # mean |D̂ − D| over the valid pixels (0 without any), masked without a host sync
             valid = torch.isfinite(view.depth)
-            if bool(valid.any()):
-                loss = loss + config.depth_weight * (depth[valid] - view.depth[valid]).abs().mean() / state.extent
+            err = torch.where(valid, depth - view.depth, 0.0).abs().sum() / valid.sum().clamp_min(1)
+            loss = loss + config.depth_weight * err / state.extent
         if state.field is not None:
             loss = loss + state.field.regularization()
         if loss.requires_grad:  # a view that sees no Gaussian renders a constant: no graph, no gradient
             loss.backward()
+        state.loss = loss.detach()
         state.step += 1
         with torch.no_grad():
             if meta["means2d"].grad is not None:
@@ -376,15 +407,21 @@ def fit_steps(state: FitState, views: list[View], config: FitConfig, until: int,
                     opt.step()
                     opt.zero_grad(set_to_none=True)
             _density_control(state, config)
-        mse = float(((rgb.detach().clamp(0, 1) - target) ** 2).mean())
-        psnr = psnr_from_mse(mse)
-        ema_psnr = psnr if ema_psnr is None else 0.9 * ema_psnr + 0.1 * psnr
+        if progress:
+            with torch.no_grad():
+                mse = ((rgb.detach().clamp(0, 1) - target) ** 2).mean()
+                psnr = -10.0 * torch.log10(mse.clamp_min(10 ** (-PSNR_CAP / 10)))  # psnr_from_mse, on the device
+                ema_psnr = psnr if ema_psnr is None else 0.9 * ema_psnr + 0.1 * psnr
         state.train_time += time.perf_counter() - t0
         bar.update(1)
-        bar.set_postfix(psnr=f"{ema_psnr:.2f}", gaussians=state.num_gaussians,
-                        stage="fine" if state.field is not None else "coarse")
+        if progress and (state.step % POSTFIX_EVERY == 0 or state.step == until):
+            bar.set_postfix(psnr=f"{float(ema_psnr):.2f}", gaussians=state.num_gaussians,
+                            stage="fine" if state.field is not None else "coarse")
         if on_step is not None:
             on_step(state)
+    t0 = time.perf_counter()
+    synchronize(state.device)  # the queued steps' work counts in train_time
+    state.train_time += time.perf_counter() - t0
     bar.close()
     return state
 
@@ -410,20 +447,24 @@ def evaluate_views(state: FitState, views: list[View], sh_degree: int,
     [0, 1]; with ``masks`` ((H, W) bool per view, :func:`training.fit_data.covisible_masks`) also the PSNR
     over the masked pixels only (DyCheck's mPSNR) and the masked fraction.
 
+    Views and masks on ``state.device``; the sums are kept there (float64) and read once at the end.
+
     Returns:
         {"psnr", "ssim", "mse", "views", "masked_psnr" (NaN without masks or with empty ones),
         "covisible" (fraction of masked pixels; NaN without masks)}.
     """
-    se, n, ssim, mse_m, n_m = 0.0, 0, 0.0, 0.0, 0
+    zero = torch.zeros((), dtype=torch.float64, device=state.device)
+    se, ssim, mse_m, n_m, n = zero, zero, zero, zero, 0
     for i, v in enumerate(views):
         rgb = render_view(state, v, sh_degree, False)[0].clamp(0, 1)
         err = (rgb - v.image) ** 2
-        se += float(err.sum())
+        se = se + err.sum().double()
         n += rgb.numel()
         if masks is not None:
-            mse_m += float(err[masks[i]].sum())
-            n_m += int(masks[i].sum()) * 3
-        ssim += float(kornia.metrics.ssim(rgb.permute(2, 0, 1)[None], v.image.permute(2, 0, 1)[None], 11).mean())
+            mse_m = mse_m + torch.where(masks[i][..., None], err, 0.0).sum().double()
+            n_m = n_m + masks[i].sum().double() * 3
+        ssim = ssim + kornia.metrics.ssim(rgb.permute(2, 0, 1)[None], v.image.permute(2, 0, 1)[None], 11).mean()
+    se, ssim, mse_m, n_m = torch.stack([se, ssim, mse_m, n_m]).tolist()  # one read of the device
     mse = se / max(n, 1)
     return {"psnr": psnr_from_mse(mse), "ssim": ssim / max(len(views), 1), "mse": mse, "views": len(views),
             "masked_psnr": psnr_from_mse(mse_m / n_m) if n_m else math.nan,
@@ -433,7 +474,8 @@ def evaluate_views(state: FitState, views: list[View], sh_degree: int,
 @torch.no_grad()
 def to_scene(state: FitState, times: Tensor | None) -> DynamicGaussians:
     """The fitted scene: activated canonical Gaussians (those with opacity < 1/255, which can never pass
-    the renderer's alpha test, removed) plus the field sampled at ``times`` (T,) when there is a field."""
+    the renderer's alpha test, removed) plus the field sampled at ``times`` (T,) when there is a field; on
+    ``state.device``."""
     keep = torch.sigmoid(state.params["opacities"]) >= ALPHA_MIN
     if not bool(keep.all()):
         state.params = prune(state.params, state.optimizer, ~keep, state.stats)

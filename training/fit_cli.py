@@ -7,6 +7,12 @@ marker kind "fit"), rendered along the scene's reference camera in the scene's w
 ``metrics.json``. Checkpoints go to ``DIR.checkpoints/`` (:mod:`training.checkpoint`): every
 ``--checkpoint-every`` steps and on SIGTERM/SIGINT; ``--resume`` continues from the newest one, and the
 folder is removed when the output is written.
+
+``--device`` (default ``auto``: CUDA when torch sees a GPU, else the CPU) is where the Gaussians, the field, the
+views and the background live. Checkpoints hold CPU tensors only, so a fit checkpointed on one device resumes on
+another; the random draws come from CPU generators, so ``--seed`` gives the same draws on every device (the
+renderers differ slightly: gsplat on CUDA, docs/DESIGN.md "The renderer"). ``metrics.json`` and ``meta.json``
+record the device.
 """
 from __future__ import annotations
 
@@ -15,12 +21,14 @@ import json
 import math
 import shutil
 import signal
+import sys
 import time
 from pathlib import Path
 
 import torch
 
 from data_prep.format import load_scene
+from diff4splat.devices import AUTO, DEVICE_HELP, resolve_device
 from diff4splat.gaussians import Gaussians
 from diff4splat.io import load_ply
 from diff4splat.io.outdir import check_output_dir
@@ -106,21 +114,35 @@ def _generate_init(init_dir: Path, scene, ref_camera: str):
     return g.means, g.quats, g.scales, g.opacities, g.sh
 
 
-def _state_from_checkpoint(folder: Path, config: FitConfig, dynamic: bool, run: dict) -> FitState:
+def _cpu(obj):
+    """``obj`` with every tensor in it (dicts, lists, tuples) on the CPU: what a checkpoint holds."""
+    if isinstance(obj, torch.Tensor):
+        return obj.detach().cpu()
+    if isinstance(obj, dict):
+        return {k: _cpu(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(_cpu(v) for v in obj)
+    return obj
+
+
+def _state_from_checkpoint(folder: Path, config: FitConfig, dynamic: bool, run: dict,
+                           device: torch.device) -> FitState:
+    """The :class:`FitState` of checkpoint ``folder`` on ``device`` (whatever device wrote it: its tensors are
+    CPU tensors; Adam's ``load_state_dict`` moves the moments to their parameters' device)."""
     weights, saved, _ = load_checkpoint(folder)
     if saved.get("run") != run:
         raise ValueError(f"--resume: the checkpoint in {folder} is of another fit ({saved.get('run')}), not {run}")
     names = ("means", "scales", "quats", "opacities", "sh0", "shN")
-    params = {k: torch.nn.Parameter(weights[k]) for k in names}
+    params = {k: torch.nn.Parameter(weights[k].to(device)) for k in names}
     extent = saved["extent"]
-    state = FitState(params, gaussian_adam(params, config.lr, extent), DensityStats(0), extent, dynamic)
+    state = FitState(params, gaussian_adam(params, config.lr, extent), DensityStats(0, device), extent, dynamic)
     state.optimizer.load_state_dict(saved["optimizer"])
     init_background(state, config)
     with torch.no_grad():
         state.background.copy_(weights["background"])
     if state.background_optimizer is not None:
         state.background_optimizer.load_state_dict(saved["background_optimizer"])
-    state.stats.grad_accum, state.stats.denom, state.stats.max_radii = saved["stats"]
+    state.stats.grad_accum, state.stats.denom, state.stats.max_radii = (t.to(device) for t in saved["stats"])
     if saved["field_optimizer"] is not None:
         start_fine_stage(state, config)
         state.field.load_state_dict({k[len("field."):]: v for k, v in weights.items() if k.startswith("field.")})
@@ -132,6 +154,8 @@ def _state_from_checkpoint(folder: Path, config: FitConfig, dynamic: bool, run: 
 
 
 def _save(run_dir: Path, state: FitState, config: FitConfig, run: dict) -> None:
+    """Checkpoint ``state`` with CPU tensors only (weights, optimizer moments, statistics), so that it loads on
+    any device; meta.json records the device that wrote it."""
     weights = {k: v.detach() for k, v in state.params.items()}
     weights["background"] = state.background.detach()
     if state.field is not None:
@@ -144,26 +168,34 @@ def _save(run_dir: Path, state: FitState, config: FitConfig, run: dict) -> None:
              "step": state.step, "order": list(state.order), "train_time": state.train_time,
              "history": state.history, "counts": state.counts, "generator": state.generator.get_state(),
              "run": run}
-    save_checkpoint(run_dir, state.step, weights, saved, {"config": config_dict(config)}, keep=1)
+    save_checkpoint(run_dir, state.step, _cpu(weights), _cpu(saved),
+                    {"config": config_dict(config), "device": str(state.device)}, keep=1)
 
 
 def run_fit(scene_dir: Path, out: Path, config: FitConfig, *, holdout_camera: int | None = None, seed: int = 0,
             init: Path | None = None, resume: bool = False, eval_every: int = 250, checkpoint_every: int = 500,
-            fps: int = 8, progress: bool = False, overwrite: bool = False) -> dict:
+            fps: int = 8, progress: bool = False, overwrite: bool = False,
+            device: str | torch.device = "cpu") -> dict:
     """Fit ``scene_dir`` and write the output folder ``out`` (module docstring). Returns metrics.json's dict.
+
+    Args:
+        device: where the fit runs (``"auto"``, ``"cpu"``, ``"cuda"``, a ``torch.device``;
+            :func:`diff4splat.devices.resolve_device`), checked before any work; the CLI's default is ``auto``.
 
     Raises:
         FileNotFoundError: the scene or ``init`` is missing. ValueError: bad arguments, a scene that cannot
-            be fitted (one camera that does not move and no depth), ``resume`` without a checkpoint.
+            be fitted (one camera that does not move and no depth), ``resume`` without a checkpoint, a
+            ``device`` this machine does not have.
         FitInterrupted: SIGTERM/SIGINT (a checkpoint was written first).
     """
     t_start = time.perf_counter()
+    device = resolve_device(device, "device")
     scene = load_scene(scene_dir)
     check_output_dir(out, inputs=[scene_dir, init], overwrite=overwrite, kind="fit")
     torch.manual_seed(seed)
     train_names, holdout_names = split_cameras(scene, holdout_camera)
-    train = load_views(scene, train_names)
-    holdout = load_views(scene, holdout_names)
+    train = load_views(scene, train_names, device=device)
+    holdout = load_views(scene, holdout_names, device=device)
     dynamic = bool(scene.meta.dynamic) and scene.num_frames > 1
     masks = covisible_masks(holdout, train, static=not dynamic)
     if config.depth_weight is None:  # stored resolved: meta.json, checkpoints
@@ -181,11 +213,12 @@ def run_fit(scene_dir: Path, out: Path, config: FitConfig, *, holdout_camera: in
         folder = latest_checkpoint(run_dir)
         if folder is None:
             raise ValueError(f"--resume: no checkpoint in {run_dir}")
-        state = _state_from_checkpoint(folder, config, dynamic, run)
+        state = _state_from_checkpoint(folder, config, dynamic, run, device)
     else:
-        gen = torch.Generator().manual_seed(seed)
+        gen = torch.Generator(device="cpu").manual_seed(seed)
         if init is not None:
-            means, quats, scales, opac, sh = _generate_init(Path(init), scene, scene.camera_names[0])
+            means, quats, scales, opac, sh = (x.to(device) for x in
+                                              _generate_init(Path(init), scene, scene.camera_names[0]))
             state = init_state(means, torch.zeros_like(means), config, scene_extent(train, means), dynamic, seed,
                                scales=scales, quats=quats, opacities=opac, sh=sh)
         else:
@@ -223,7 +256,7 @@ def run_fit(scene_dir: Path, out: Path, config: FitConfig, *, holdout_camera: in
         raise FitInterrupted(f"stopped at step {state.step}; checkpoint in {run_dir}; rerun with --resume")
     return _write_output(scene, out, state, config, train, holdout, masks, dict(
         scene=str(scene_dir), holdout_camera=holdout_camera, seed=seed, init=None if init is None else str(init),
-        fps=fps, overwrite=overwrite, t_start=t_start, run_dir=run_dir, progress=progress))
+        fps=fps, overwrite=overwrite, t_start=t_start, run_dir=run_dir, progress=progress, device=str(device)))
 
 
 def _history_entry(state: FitState, holdout, sh_degree: int, masks) -> dict:
@@ -242,8 +275,10 @@ def _write_output(scene, out: Path, state: FitState, config: FitConfig, train, h
     fitted = to_scene(state, ref.times if state.field is not None else None)
     train_eval = evaluate_views(state, train, deg)
     held = evaluate_views(state, holdout, deg, masks) if holdout else None
-    background = tuple(float(c) for c in state.background_rgb().detach())
-    colors, depths, alphas = render_path(fitted, ref, background=background, progress=opts["progress"])
+    background = tuple(state.background_rgb().detach().tolist())
+    colors, depths, alphas = (x.cpu() for x in render_path(fitted, ref.to(state.device), background=background,
+                                                           progress=opts["progress"]))
+    fitted = fitted.to("cpu")  # the files are written from CPU copies
     metrics = {
         "train_psnr": train_eval["psnr"], "train_ssim": train_eval["ssim"],
         "holdout_psnr": None if held is None else held["psnr"], "holdout_ssim": None if held is None else held["ssim"],
@@ -253,13 +288,13 @@ def _write_output(scene, out: Path, state: FitState, config: FitConfig, train, h
         "wall_time_s": time.perf_counter() - opts["t_start"], "train_time_s": state.train_time,
         "ms_per_iteration": 1000 * state.train_time / max(state.step, 1),
         "num_gaussians": fitted.num_gaussians, "static": fitted.is_static, "densify": state.counts,
-        "history": state.history,
+        "device": opts["device"], "history": state.history,
     }
     meta = {"command": "fit", "scene": opts["scene"], "init": opts["init"], "seed": opts["seed"],
             "holdout_camera": opts["holdout_camera"], "train_cameras": sorted({v.camera for v in train}),
             "frames": len(ref), "width": ref.width, "height": ref.height, "fps": opts["fps"],
             "static": fitted.is_static, "num_gaussians": fitted.num_gaussians, "sh_degree": deg,
-            "background": list(background),
+            "background": list(background), "device": opts["device"],
             "config": config_dict(config), "cameras": f"{scene.camera_names[0]} (scene world frame)"}
 
     def extra(tmp: Path) -> None:
@@ -308,15 +343,20 @@ def register(subparsers) -> None:
                    "SIGTERM; default 500)")
     p.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in OUT.checkpoints")
     p.add_argument("--fps", type=int, default=8, help="video frame rate (default 8)")
+    p.add_argument("--device", default=AUTO, help=DEVICE_HELP + "; where the Gaussians, the field and the views "
+                   "live (a checkpoint resumes on any device)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--overwrite", action="store_true", help="also replace an --out that is not an earlier fit output")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    """The ``fit`` command: one summary line; 143 after SIGTERM/SIGINT (checkpoint written)."""
-    import sys
+    """The ``fit`` command: one summary line; 143 after SIGTERM/SIGINT (checkpoint written).
 
+    Raises:
+        ValueError: a bad argument, ``--device`` naming a device this machine does not have (checked first).
+    """
+    device = resolve_device(args.device, "--device")  # before any work
     for name in ("iterations", "eval_every", "fps", "max_gaussians", "init_points"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')} must be ≥ 1, got {getattr(args, name)}")
@@ -329,7 +369,7 @@ def run(args) -> int:
         m = run_fit(args.scene, args.out, config, holdout_camera=args.holdout_camera, seed=args.seed,
                     init=args.init, resume=args.resume, eval_every=args.eval_every,
                     checkpoint_every=args.checkpoint_every, fps=args.fps, progress=not args.quiet,
-                    overwrite=args.overwrite)
+                    overwrite=args.overwrite, device=device)
     except FitInterrupted as e:
         print(f"diff4splat fit: {e}", file=sys.stderr)
         return 143
@@ -337,5 +377,5 @@ def run(args) -> int:
     if m["holdout_masked_psnr"] is not None:
         held += f" (co-visible pixels {m['holdout_masked_psnr']:.2f} dB)"
     print(f"wrote {args.out} ({m['num_gaussians']} Gaussians, {'static' if m['static'] else 'dynamic'}, "
-          f"train {m['train_psnr']:.2f} dB{held}) in {m['wall_time_s']:.1f} s")
+          f"train {m['train_psnr']:.2f} dB{held}) in {m['wall_time_s']:.1f} s on {m['device']}")
     return 0

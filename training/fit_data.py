@@ -1,6 +1,9 @@
 """What ``diff4splat fit`` reads from a scene folder: training/held-out views and the initial Gaussians.
 
-A *view* is one frame of one camera (image, optional metric depth, viewmat, K, time). Initialisation
+A *view* is one frame of one camera (image, optional metric depth, viewmat, K, time), on the device the fit
+runs on (:func:`load_views`); everything here makes its tensors on the device of its inputs, and random draws
+come from a CPU ``torch.Generator`` and are moved, so a seed gives the same draws on every device
+(docs/DESIGN.md, "Devices"). Initialisation
 follows 3DGS (Kerbl et al. 2023, §5.1): points with colours, isotropic scales from the mean squared
 distance to the 3 nearest neighbours, opacity 0.1, identity rotation; 4DGS (Wu et al. 2024) uses the same
 initialisation for its canonical Gaussians. Our points come from the scene's metric depth (back-projected
@@ -48,6 +51,15 @@ class View:
         return self.image.shape[1]
 
     @property
+    def device(self) -> torch.device:
+        return self.image.device
+
+    def to(self, device: str | torch.device) -> View:
+        """The view with its tensors on ``device``."""
+        return View(self.image.to(device), None if self.depth is None else self.depth.to(device),
+                    self.viewmat.to(device), self.K.to(device), self.time, self.camera, self.frame)
+
+    @property
     def height(self) -> int:
         return self.image.shape[0]
 
@@ -70,15 +82,16 @@ def split_cameras(scene: SceneReader, holdout_camera: int | None) -> tuple[list[
     return [n for i, n in enumerate(names) if i != holdout_camera], [names[holdout_camera]]
 
 
-def load_views(scene: SceneReader, cameras: list[str], frames: list[int] | None = None) -> list[View]:
-    """Every frame (or ``frames``) of ``cameras`` as :class:`View` (depth when the scene has it)."""
+def load_views(scene: SceneReader, cameras: list[str], frames: list[int] | None = None,
+               device: str | torch.device = "cpu") -> list[View]:
+    """Every frame (or ``frames``) of ``cameras`` as :class:`View` (depth when the scene has it), on ``device``."""
     out = []
     for name in cameras:
         path = scene.cameras(name)
         for i in range(scene.num_frames) if frames is None else frames:
             depth = torch.from_numpy(scene.depth(name, i)) if scene.has_depth else None
             out.append(View(torch.from_numpy(scene.rgb(name, i)), depth, path.viewmats[i].float(),
-                            path.Ks[i].float(), float(path.times[i]), name, i))
+                            path.Ks[i].float(), float(path.times[i]), name, i).to(device))
     return out
 
 
@@ -86,8 +99,12 @@ def depth_points(views: list[View], max_points: int, generator: torch.Generator)
     """Back-project every valid depth pixel of ``views`` (:func:`diff4splat.cameras.unproject_depth`) and
     keep at most ``max_points``, spread over space (:func:`voxel_subsample`).
 
+    Args:
+        views: views with depth, on one device (the result's).
+        generator: a CPU generator (the subsample's random order).
+
     Returns:
-        means (N, 3) metres, colours (N, 3) in [0, 1].
+        means (N, 3) metres, colours (N, 3) in [0, 1], on the views' device.
 
     Raises:
         ValueError: a view has no depth, or no pixel has a finite depth.
@@ -118,10 +135,14 @@ def voxel_subsample(points: Tensor, max_points: int, generator: torch.Generator)
     almost none, so its Gaussians start sparse. One point per grid cell spreads them over the surfaces
     (the voxel-grid downsampling of point-cloud initialisations).
 
+    Args:
+        points: (P, 3) on any device.
+        generator: a CPU generator: the random order is drawn there and moved, so it is the same on every device.
+
     Returns:
-        (K,) int64 indices, K ≤ max_points.
+        (K,) int64 indices on ``points``' device, K ≤ max_points.
     """
-    perm = torch.randperm(points.shape[0], generator=generator)
+    perm = torch.randperm(points.shape[0], generator=generator, device=generator.device).to(points.device)
     pts = points[perm].double()
     lo, span = pts.min(0).values, float((pts.max(0).values - pts.min(0).values).max())
     if span <= 0:
@@ -140,8 +161,8 @@ def voxel_subsample(points: Tensor, max_points: int, generator: torch.Generator)
         else:
             big = mid
     inverse, n = cells(big)
-    first = torch.full((n,), pts.shape[0], dtype=torch.long).scatter_reduce_(
-        0, inverse, torch.arange(pts.shape[0]), reduce="amin")  # a random point per cell (perm is random)
+    first = torch.full((n,), pts.shape[0], dtype=torch.long, device=pts.device).scatter_reduce_(
+        0, inverse, torch.arange(pts.shape[0], device=pts.device), reduce="amin")  # a random point per cell
     return perm[first.sort().values]
 
 
@@ -152,16 +173,20 @@ def random_box_points(views: list[View], num_points: int, generator: torch.Gener
     is 1 for parallel cameras and ~0 for a ring of cameras looking inwards, whose centre is then kept),
     half-size that spread (at least 1 m).
 
+    Args:
+        generator: a CPU generator (the draws are moved to the views' device).
+
     Returns:
-        means (num_points, 3) metres, colours (num_points, 3) in [0, 1].
+        means (num_points, 3) metres, colours (num_points, 3) in [0, 1], on the views' device.
     """
     V = torch.stack([v.viewmat for v in views]).double()
     centres = camera_centers(V)
     forward = V[:, 2, :3].mean(0)  # (3,), length ≤ 1
     spread = max(float((centres - centres.mean(0)).norm(dim=-1).max()), 1.0)
     centre = centres.mean(0) + spread * forward
-    u = torch.rand(num_points, 3, generator=generator, dtype=torch.float64) * 2 - 1
-    return (centre + spread * u).float(), torch.rand(num_points, 3, generator=generator)
+    dev = generator.device
+    u = torch.rand(num_points, 3, generator=generator, dtype=torch.float64, device=dev).to(V.device) * 2 - 1
+    return (centre + spread * u).float(), torch.rand(num_points, 3, generator=generator, device=dev).to(V.device)
 
 
 def knn_scales(means: Tensor, k: int = 3, chunk: int = 1024) -> Tensor:
@@ -172,16 +197,17 @@ def knn_scales(means: Tensor, k: int = 3, chunk: int = 1024) -> Tensor:
         means: (N, 3) metres, N ≥ 2.
 
     Returns:
-        (N, 3) scales, metres, > 0.
+        (N, 3) scales, metres, > 0, on ``means``' device.
     """
-    N = means.shape[0]
+    N, dev = means.shape[0], means.device
     if N < 2:
-        return torch.full((N, 3), 1e-2, dtype=means.dtype)
+        return torch.full((N, 3), 1e-2, dtype=means.dtype, device=dev)
     k = min(k, N - 1)
-    out = torch.empty(N, dtype=means.dtype)
+    out = torch.empty(N, dtype=means.dtype, device=dev)
     for s in range(0, N, chunk):
         d2 = torch.cdist(means[s:s + chunk], means).square()
-        d2[torch.arange(d2.shape[0]), torch.arange(s, s + d2.shape[0])] = float("inf")  # not itself
+        rows = torch.arange(d2.shape[0], device=dev)
+        d2[rows, rows + s] = float("inf")  # not itself
         out[s:s + chunk] = d2.topk(k, dim=1, largest=False).values.mean(1)
     return out.clamp_min(1e-7).sqrt()[:, None].expand(N, 3).clone()
 
@@ -198,18 +224,18 @@ def scene_extent(views: list[View], points: Tensor | None = None) -> float:
     return max(radius, 1e-3)
 
 
-
 def covisible_masks(holdout: list[View], train: list[View], static: bool) -> list[Tensor] | None:
     """Co-visibility mask (H, W) bool of every held-out view (:func:`training.eval_metrics.covisible_mask`,
     DyCheck's mPSNR mask): the pixels whose surface point a training view sees — every training view for a
-    static scene, those of the same frame (the same time) for a dynamic one. None without depth."""
+    static scene, those of the same frame (the same time) for a dynamic one. None without depth. On the views'
+    device."""
     if not holdout or any(v.depth is None for v in holdout + train):
         return None
     out = []
     for v in holdout:
         src = train if static else [t for t in train if t.frame == v.frame]
         if not src:
-            out.append(torch.zeros(v.depth.shape, dtype=torch.bool))
+            out.append(torch.zeros(v.depth.shape, dtype=torch.bool, device=v.depth.device))
             continue
         out.append(covisible_mask(v.depth, v.viewmat, v.K, torch.stack([t.depth for t in src]),
                                   torch.stack([t.viewmat for t in src]), torch.stack([t.K for t in src])))

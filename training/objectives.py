@@ -5,6 +5,11 @@ gradients as usual. Batches are :class:`data_prep.clips.ClipDataset` items colla
 collate (``video`` (B,3,T,H,W) in [0,1], ``viewmats``/``Ks`` (B,T,4,4)/(B,T,3,3), ``times`` (B,T),
 ``plucker_packed`` (B,1536,n,h,w), ``depth``/``depth_valid`` (B,T,H,W), ``tracks`` (B,N,T,3),
 ``track_visibility`` (B,N,T), ``track_mask`` (B,N), ``caption`` list[str]).
+
+Devices (diff4splat/devices.py): the batch and the model may be on any one device; the step generator is a CPU
+``torch.Generator`` (the trainer's), so every draw (caption dropout, σ, ε, latent noise, rendered frames) is
+made on the generator's device and then moved to the data, and a seed gives the same numbers on every device.
+Under bf16 autocast the VAE latents, the flow-matching targets, are kept in the batch's precision (float32).
 """
 from __future__ import annotations
 
@@ -94,19 +99,28 @@ class TrainingModule(nn.Module):
         self.model = model
         self.stage = stage
 
+    def fsdp_units(self) -> list[nn.Module]:
+        """The modules FSDP shards one by one before the root (:class:`training.trainer.Trainer`): the transformer
+        blocks of the DiT, the LDRM and the text encoder, each gathered only while it runs. The rest (VAE,
+        embedders, heads, deformation network) is sharded with the root."""
+        m = self.model
+        return [*m.dit.blocks, *m.ldrm.blocks, *m.text_encoder.blocks]
+
     def forward(self, batch: dict, generator: torch.Generator) -> dict[str, Tensor]:
         st, m = self.stage, self.model
         video = batch["video"] * 2 - 1  # (B, 3, T, H, W) in [−1, 1]
         losses: dict[str, Tensor] = {}
         total = video.new_zeros(())
-        if "vae" in st.objectives:
-            recon, mean, logvar = m.vae(video, sample_posterior=True, generator=generator)
+        if "vae" in st.objectives:  # m.vae(video, sample_posterior=True), with ε drawn on the CPU generator
+            mean, logvar = m.vae.encode(video)
+            eps = torch.randn(mean.shape, generator=generator, device=generator.device).to(mean)
+            recon = m.vae.decode(mean + torch.exp(0.5 * logvar) * eps)
             losses["vae_l1"] = (recon - video).abs().mean()
             losses["vae_kl"] = kl_divergence(mean, logvar).mean() / mean[0].numel()
             total = total + losses["vae_l1"] + st.kl_weight * losses["vae_kl"]
         if "diffusion" in st.objectives or "reconstruction" in st.objectives:
             with torch.no_grad():  # the VAE is frozen after its own stage
-                latents = m.vae.encode_latents(video)
+                latents = m.vae.encode_latents(video).to(video.dtype)  # float32 targets under bf16 autocast
         if "diffusion" in st.objectives:
             losses["flow"] = self._diffusion(latents, batch, generator)
             total = total + losses["flow"]
@@ -121,35 +135,40 @@ class TrainingModule(nn.Module):
         return losses
 
     def _diffusion(self, latents: Tensor, batch: dict, gen: torch.Generator) -> Tensor:
+        """Flow-matching loss of the DiT on ``latents`` (B, c, n, h, w); ``gen``: the (CPU) step generator."""
         m, st = self.model, self.stage
-        B = latents.shape[0]
+        B, dev = latents.shape[0], latents.device
         captions = list(batch["caption"])
         with torch.no_grad():  # frozen text encoder (as the paper's frozen T5)
             ids, mask = m.text_encoder.tokenizer(captions)
-            text = m.text_encoder(ids.to(latents.device), mask.to(latents.device))
-        drop = torch.rand(B, generator=gen) < st.caption_dropout
-        keep = ~drop.to(mask.device) & torch.tensor([bool(c.strip()) for c in captions], device=mask.device)
-        mask = mask.to(latents.device) & keep[:, None]  # an all-false mask is exactly the no-text path
+            ids, mask = ids.to(dev), mask.to(dev)
+            text = m.text_encoder(ids, mask)
+        drop = (torch.rand(B, generator=gen, device=gen.device) < st.caption_dropout).to(dev)
+        has_text = torch.tensor([bool(c.strip()) for c in captions], device=dev)
+        mask = mask & (~drop & has_text)[:, None]  # an all-false mask is exactly the no-text path
         image_latent = latents[:, :, :1]
-        sigma = sample_training_sigmas(B, shift=st.flow_shift, generator=gen).to(latents)
-        noise = torch.randn(latents.shape, generator=gen).to(latents)
+        sigma = sample_training_sigmas(B, shift=st.flow_shift, generator=gen, device=gen.device).to(latents)
+        noise = torch.randn(latents.shape, generator=gen, device=gen.device).to(latents)
         plucker = batch["plucker_packed"]
         return flow_matching_loss(lambda x, s: m.dit(x, s, image_latent, plucker, text, mask), latents, noise, sigma)
 
     def _reconstruction(self, latents: Tensor, batch: dict, gen: torch.Generator) -> dict[str, Tensor]:
+        """Rendering losses of the LDRM's scenes, averaged over the batch; ``gen``: the (CPU) step generator."""
         m, st = self.model, self.stage
         B, _, T, H, W = batch["video"].shape
         plucker = batch["plucker_packed"]
         image = batch["video"][:, :, 0] * 2 - 1  # (B, 3, H, W) the photograph, for an image branch
         if st.latent_noise > 0:
-            sigma = (torch.rand(B, generator=gen) * st.latent_noise).to(latents)[:, None, None, None, None]
-            noisy = (1 - sigma) * latents + sigma * torch.randn(latents.shape, generator=gen).to(latents)
+            sigma = (torch.rand(B, generator=gen, device=gen.device) * st.latent_noise).to(latents)
+            sigma = sigma[:, None, None, None, None]
+            eps = torch.randn(latents.shape, generator=gen, device=gen.device).to(latents)
+            noisy = (1 - sigma) * latents + sigma * eps
             latents = torch.cat([latents[:, :, :1], noisy[:, :, 1:]], dim=2)
         sources = source_frame_indices(m.ldrm.config.gaussian_frames, latents.shape[2], m.config.vae.temporal_factor)
         sums: dict[str, Tensor] = {}
         outs = None if st.deformation else m.ldrm(latents, plucker, None, image)
         for b in range(B):
-            times = batch["times"][b].to(latents.dtype)
+            times = batch["times"][b].to(torch.promote_types(latents.dtype, torch.float32))  # never bf16
             cams = batch["viewmats"][b, sources], batch["Ks"][b, sources]
             if st.deformation:
                 out = m.ldrm(latents[b:b + 1], plucker[b:b + 1], times, image[b:b + 1])
@@ -158,7 +177,7 @@ class TrainingModule(nn.Module):
             else:
                 g, *_ = to_gaussians(outs, *cams, batch_index=b)
                 scene = DynamicGaussians(g)
-            others = torch.randperm(T - 1, generator=gen)[: st.render_frames - 1] + 1
+            others = torch.randperm(T - 1, generator=gen, device=gen.device)[: st.render_frames - 1] + 1
             frames = [0] + sorted(others.tolist())
             rgb, depth, alpha = render_frames(scene, batch["viewmats"][b], batch["Ks"][b], times, frames, W, H)
             target = batch["video"][b][:, frames].permute(1, 0, 2, 3)  # (F, 3, H, W)

@@ -63,7 +63,9 @@ class StageConfig:
         kl_weight: weight of the VAE KL term (per element, β-VAE style).
         caption_dropout: probability of training the DiT without text (the empty-prompt path).
         flow_shift: timestep shift of the logit-normal training σ.
-        trainer: optimisation settings (:class:`training.trainer.TrainerConfig`).
+        trainer: optimisation, device and precision settings (:class:`training.trainer.TrainerConfig`: ``device``
+            auto/cpu/cuda[:N], ``bf16`` auto = on for CUDA, ``tf32``, ``gradient_checkpointing`` of the DiT,
+            ``strategy`` ddp/fsdp under torchrun).
     """
 
     name: str = "stage1"

@@ -1,10 +1,17 @@
-"""Train one stage: ``python -m training.train --config train_stage1 [--resume]``.
+"""Train one stage: ``python -m training.train --config train_stage1 [--resume] [--device cuda]``.
 
-Distributed: ``torchrun --nproc_per_node N -m training.train --config ...`` (DDP, gloo on CPU and nccl on
-CUDA; ``--strategy fsdp`` for paper-size models). At the end rank 0 writes the trained model to
-``<run_dir>/model`` (``Diff4SplatModel.save_pretrained``; EMA weights when EMA is on), the
+Devices: ``--device`` (default: the YAML's ``trainer.device``, ``auto`` = CUDA when present, else the CPU)
+overrides the stage's ``trainer.device``; on CUDA the step runs under bfloat16 autocast and TF32 matmuls
+unless the YAML says ``bf16: false`` / ``tf32: false`` (:class:`training.trainer.TrainerConfig`);
+``trainer.gradient_checkpointing: true`` recomputes the DiT's blocks in the backward pass.
+
+Distributed: ``torchrun --nproc_per_node N -m training.train --config ...`` (one process per GPU,
+``cuda:$LOCAL_RANK``; DDP, NCCL on CUDA and gloo on the CPU; ``--strategy fsdp`` shards paper-size models
+block by block with FSDP2). At the end rank 0 writes the trained model to ``<run_dir>/model``
+(``Diff4SplatModel.save_pretrained``; EMA weights when EMA is on; gathered from every rank under FSDP), the
 ``init_from`` of the next stage; after a VAE stage the latent scaling is calibrated first
-(:func:`calibrate_latent_scaling`). Bad input: one line on stderr, exit code 2.
+(:func:`calibrate_latent_scaling`). Bad input (a bad config, a device this machine lacks): one line on stderr,
+exit code 2.
 """
 from __future__ import annotations
 
@@ -15,7 +22,16 @@ from pathlib import Path
 
 import torch
 
+from data_prep.clips import ClipConfig, ClipDataset
+from diff4splat.devices import resolve_device
 from diff4splat.errors import run_cli
+from models.bundle import Diff4SplatModel, load_config
+from models.vae import estimate_latent_scaling
+
+from . import stages
+from .objectives import TrainingModule
+from .stages import StageConfig, apply_freezing
+from .trainer import Trainer
 
 __all__ = ["main", "build_training", "calibrate_latent_scaling"]
 
@@ -23,15 +39,21 @@ LATENT_SCALING_CLIPS = 64
 """Training clips whose posterior means set the VAE's latent scaling after its stage."""
 
 
-def build_training(stage, seed: int | None = None):
-    """Model (+ freezing), dataset and :class:`Trainer` for a :class:`StageConfig`."""
-    from data_prep.clips import ClipConfig, ClipDataset
-    from models.bundle import Diff4SplatModel, load_config
+def build_training(stage: StageConfig, seed: int | None = None) -> tuple[Trainer, Diff4SplatModel, dict[str, int]]:
+    """Model (+ freezing), dataset and :class:`Trainer` for a :class:`StageConfig`.
 
-    from .objectives import TrainingModule
-    from .stages import apply_freezing
-    from .trainer import Trainer
+    The trainer runs on ``stage.trainer.device`` (checked first, before the model is built). ``seed`` is unused
+    (the stage's ``trainer.seed`` seeds the model, the data and the steps).
 
+    Returns:
+        (trainer, the Diff4SplatModel it trains (on the trainer's device, inside a TrainingModule), trainable
+        parameter count per module).
+
+    Raises:
+        ValueError: an unusable ``trainer.device``, a clip size off the model's pixel grid, no clips.
+        FileNotFoundError: ``init_from`` or ``data`` is not a folder of the right kind.
+    """
+    resolve_device(stage.trainer.device, "trainer.device")
     if stage.init_from:
         if not (Path(stage.init_from) / "config.json").is_file():
             raise FileNotFoundError(f"init_from: {stage.init_from} is not a model folder (no config.json)")
@@ -69,16 +91,15 @@ def calibrate_latent_scaling(model, dataset, num_clips: int = LATENT_SCALING_CLI
     Raises:
         ValueError: an empty dataset.
     """
-    from models.vae import estimate_latent_scaling
-
     if len(dataset) == 0:
         raise ValueError("dataset: no clips to estimate the latent scaling from")
     vae = model.vae
+    device = next(vae.parameters()).device  # the clips come on the CPU; the VAE may be on a GPU
     was_training = vae.training
     vae.eval()
-    means = [vae.encode(dataset[i]["video"][None] * 2 - 1)[0] for i in range(min(num_clips, len(dataset)))]
+    means = [vae.encode(dataset[i]["video"][None].to(device) * 2 - 1)[0] for i in range(min(num_clips, len(dataset)))]
     vae.train(was_training)
-    a, b = estimate_latent_scaling(torch.cat([m.flatten() for m in means]))
+    a, b = estimate_latent_scaling(torch.cat([m.flatten() for m in means]).float().cpu())
     vae.config.scaling_factor, vae.config.shift_factor = a, b  # the same object as model.config.vae
     return a, b
 
@@ -99,33 +120,48 @@ def _main(argv: list[str] | None) -> int:
     ap.add_argument("--init-from", default=None, help="model folder to start from (overrides the YAML)")
     ap.add_argument("--steps", type=int, default=None, help="total optimizer steps (overrides the YAML)")
     ap.add_argument("--strategy", choices=("ddp", "fsdp"), default=None, help="distributed strategy")
+    ap.add_argument("--device", default=None,
+                    help="torch device: auto (CUDA when present, else cpu), cpu, cuda, cuda:N; overrides "
+                         "trainer.device (default: the YAML's, auto)")
     ap.add_argument("--resume", action="store_true", help="continue from the run's latest checkpoint")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
     args = ap.parse_args(argv)
-    from .stages import load_stage
-
+    if args.device is not None:
+        resolve_device(args.device, "--device")  # a device this machine lacks: one error naming the flag
     trainer_over = {k: v for k, v in {"run_dir": args.run_dir, "total_steps": args.steps,
-                                      "strategy": args.strategy}.items() if v is not None}
+                                      "strategy": args.strategy, "device": args.device}.items() if v is not None}
     if args.quiet:
         trainer_over["progress"] = False
-    stage = load_stage(args.config, data=args.data, init_from=args.init_from, trainer=trainer_over or None)
+    stage = stages.load_stage(args.config, data=args.data, init_from=args.init_from, trainer=trainer_over or None)
     trainer, model, counts = build_training(stage)
     if trainer.rank == 0:
         print(f"train: stage {stage.name}, trainable {counts}, {len(trainer.dataset)} clips, "
-              f"{stage.trainer.total_steps} steps → {trainer.run_dir}", file=sys.stderr)
+              f"{stage.trainer.total_steps} steps on {trainer.device}{' (bf16)' if trainer.bf16 else ''}"
+              f"{f' × {trainer.world} processes' if trainer.distributed else ''} → {trainer.run_dir}",
+              file=sys.stderr)
     summary = trainer.fit(resume=args.resume)
-    if trainer.rank == 0 and not summary["stopped"]:
-        ema = trainer.ema_state_dict()
-        if ema is not None:  # keys of the TrainingModule: "model.<network>..."
-            model.load_state_dict({k[len("model."):]: v for k, v in ema.items()})
-        if "vae" in stage.objectives:
-            a, b = calibrate_latent_scaling(model, trainer.dataset)
-            print(f"train: VAE latent scaling_factor {a:.6g}, shift_factor {b:.6g}", file=sys.stderr)
-        model.save_pretrained(Path(trainer.run_dir) / "model")
-        print(f"train: wrote {Path(trainer.run_dir) / 'model'}", file=sys.stderr)
+    if not summary["stopped"]:
+        # EMA weights, or the full weights of the shards (collective under FSDP: every rank takes part)
+        state = trainer.final_state_dict() if trainer.ema is not None or trainer.sharded else None
+        if trainer.rank == 0:
+            _write_model(trainer, model, stage, state)
     if torch.distributed.is_available() and torch.distributed.is_initialized():
         torch.distributed.destroy_process_group()
     return 0
+
+
+def _write_model(trainer: Trainer, model: Diff4SplatModel, stage: StageConfig, state: dict | None) -> None:
+    """Rank 0: ``<run_dir>/model`` from ``state`` (keys of the TrainingModule, ``model.<network>…``; None = the
+    model's own weights), after calibrating the latent scaling of a VAE stage."""
+    if trainer.sharded:  # the trained model holds this rank's shards only: a plain one takes the full weights
+        model = Diff4SplatModel(model.config)
+    if state is not None:
+        model.load_state_dict({k[len("model."):]: v for k, v in state.items()})
+    if "vae" in stage.objectives:
+        a, b = calibrate_latent_scaling(model, trainer.dataset)
+        print(f"train: VAE latent scaling_factor {a:.6g}, shift_factor {b:.6g}", file=sys.stderr)
+    model.save_pretrained(Path(trainer.run_dir) / "model")
+    print(f"train: wrote {Path(trainer.run_dir) / 'model'}", file=sys.stderr)
 
 
 if __name__ == "__main__":

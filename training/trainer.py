@@ -2,20 +2,44 @@
 
 The trainer is generic: a *step function* ``step_fn(model, batch, generator) -> {"loss": scalar, ...}``
 computes the objective of a stage (see :mod:`training.objectives`); the trainer owns optimisation,
-data order, checkpoints, logging and distribution.
+data order, checkpoints, logging, devices and distribution.
 
 Guarantees:
 - **Exact resume.** Data order is a function of (seed, epoch) (``DistributedSampler`` permutation,
   ``dataset.set_epoch``), the position inside the epoch is checkpointed, and every random state
   (torch, numpy, python, the step generator handed to ``step_fn``, the loader's own generator) is
   saved, so ``--resume`` produces the same losses step for step as an uninterrupted run.
+- **Same numbers on every device.** The step generator is a CPU ``torch.Generator``; step functions draw
+  on it and move the draw to the data (``torch.randn(shape, generator=gen, device=gen.device).to(x)``),
+  so a seed gives the same noise on the CPU and on CUDA, and a float32 run (``bf16: false``,
+  ``tf32: false``) gives the CPU's losses to float32 rounding.
 - **Non-finite losses** (or gradients) skip the optimizer step and are logged; ``max_nonfinite`` in a
   row stop the run with :class:`NonFiniteLossError`, leaving the last good checkpoint intact.
 - **SIGTERM / SIGINT** finish the current step, save a checkpoint and return cleanly.
-- **Distributed.** Under ``torchrun`` (``WORLD_SIZE`` > 1) the process group is initialised (gloo on
-  CPU, nccl on CUDA), the model is wrapped in DDP (``strategy="ddp"``) or FSDP2 ``fully_shard``
-  (``strategy="fsdp"``, for paper-size models), data is split by ``DistributedSampler``, and rank 0
-  alone writes checkpoints and logs.
+
+Devices and precision (``trainer:`` section of a stage YAML, or ``python -m training.train --device``):
+- ``device: auto`` (default) trains on CUDA when torch sees a GPU — ``cuda:$LOCAL_RANK`` under torchrun —
+  else on the CPU; ``cpu``, ``cuda``, ``cuda:N`` name one (a device this machine lacks is a ValueError
+  naming ``trainer.device``). Batches are copied to it with ``non_blocking=True`` from pinned memory
+  (``pin_memory`` on CUDA).
+- ``bf16`` (default None = auto: on for CUDA, off for the CPU) runs the step function under
+  ``torch.autocast(dtype=bfloat16)``; weights, optimizer state and EMA stay float32. Set ``bf16: false`` on
+  GPUs without bfloat16 units (before Ampere), ``bf16: true`` to autocast on the CPU as well.
+- ``tf32`` (default True) lets float32 matmuls and cuDNN convolutions on CUDA use TF32 tensor cores
+  (``torch.backends.cuda.matmul.allow_tf32``, ``torch.backends.cudnn.allow_tf32``; process-wide, set when
+  a trainer is built on CUDA; ``tf32: false`` gives full float32). No effect on the CPU.
+- ``gradient_checkpointing`` (default False) sets ``gradient_checkpointing = True`` on every module of the
+  model that has that attribute (:class:`models.dit.VideoDiT`): its blocks' activations are recomputed in
+  the backward pass instead of stored (same loss and gradients, less memory, ~⅓ more compute).
+
+Distributed: under ``torchrun`` (``WORLD_SIZE`` > 1) each process first selects its GPU
+(``torch.cuda.set_device(cuda:$LOCAL_RANK)``), then joins the process group (NCCL on CUDA, with
+``device_id``; gloo on the CPU). ``strategy="ddp"`` wraps the model in DDP; ``strategy="fsdp"`` shards it
+with FSDP2 ``fully_shard``: first every module of ``model.fsdp_units()`` when the model defines it (the
+DiT, LDRM and text-encoder blocks of :class:`training.objectives.TrainingModule`), each with
+``MixedPrecisionPolicy(param_dtype=bfloat16, reduce_dtype=float32)`` when bf16 is on, then the root in
+float32 (so the batch's cameras and depths are never cast). Data is split by ``DistributedSampler``; rank 0
+alone writes checkpoints and logs; full (unsharded) weights are gathered for every checkpoint.
 """
 from __future__ import annotations
 
@@ -36,11 +60,13 @@ from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset, DistributedSampler
 from tqdm.auto import tqdm
 
+from diff4splat.devices import AUTO, resolve_device
 from diff4splat.io.atomic import atomic_output_path
 
 from .checkpoint import latest_checkpoint, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 
-__all__ = ["TrainerConfig", "Trainer", "NonFiniteLossError", "warmup_cosine", "StepFn"]
+__all__ = ["TrainerConfig", "Trainer", "NonFiniteLossError", "warmup_cosine", "StepFn", "resolve_bf16",
+           "training_device"]
 
 StepFn = Callable[[nn.Module, Any, torch.Generator], dict[str, Tensor]]
 
@@ -63,7 +89,12 @@ class TrainerConfig:
         min_lr_ratio: the cosine decays to ``lr·min_lr_ratio`` at ``total_steps``.
         grad_clip: max global gradient norm (0 = off).
         ema_decay: EMA of weights (e.g. 0.999) or None.
-        bf16: autocast to bfloat16 where the device supports it.
+        device: ``auto`` (CUDA when present — ``cuda:$LOCAL_RANK`` under torchrun — else ``cpu``), ``cpu``,
+            ``cuda`` or ``cuda:N`` (:func:`training_device`); checked when the :class:`Trainer` is built.
+        bf16: autocast the step to bfloat16; None (``auto``) = on for CUDA, off for the CPU (:func:`resolve_bf16`).
+        tf32: allow TF32 matmuls and cuDNN convolutions when training on CUDA (no effect on the CPU).
+        gradient_checkpointing: recompute the activations of modules that support it (a
+            ``gradient_checkpointing`` attribute: the DiT's blocks) in the backward pass.
         seed: seed of data order and of the step generator.
         checkpoint_every: steps between checkpoints (a final one is always written).
         keep_checkpoints: newest checkpoints kept.
@@ -73,6 +104,10 @@ class TrainerConfig:
         strategy: "ddp" or "fsdp" when distributed.
         find_unused_parameters: DDP option for stages where some trainable modules may be unused.
         progress: show a tqdm bar.
+
+    Raises:
+        ValueError: a count < 1, lr ≤ 0, an unknown strategy, ema_decay outside (0, 1), a device that is not a
+            string, or a bf16 that is not true, false, null or ``auto`` (each naming ``trainer.<field>``).
     """
 
     run_dir: str = "runs/default"
@@ -85,7 +120,10 @@ class TrainerConfig:
     min_lr_ratio: float = 0.1
     grad_clip: float = 1.0
     ema_decay: float | None = None
-    bf16: bool = False
+    device: str = AUTO
+    bf16: bool | None = None
+    tf32: bool = True
+    gradient_checkpointing: bool = False
     seed: int = 0
     checkpoint_every: int = 50
     keep_checkpoints: int = 3
@@ -106,7 +144,45 @@ class TrainerConfig:
             raise ValueError(f"trainer.strategy must be 'ddp' or 'fsdp', got {self.strategy!r}")
         if self.ema_decay is not None and not 0 < self.ema_decay < 1:
             raise ValueError(f"trainer.ema_decay must lie in (0, 1), got {self.ema_decay}")
+        if isinstance(self.device, torch.device):
+            self.device = str(self.device)
+        if not isinstance(self.device, str) or not self.device.strip():
+            raise ValueError(f"trainer.device must be a device name (auto, cpu, cuda, cuda:1, …), got {self.device!r}")
+        if isinstance(self.bf16, str) and self.bf16.strip().lower() == AUTO:
+            self.bf16 = None
+        if self.bf16 is not None and not isinstance(self.bf16, bool):
+            raise ValueError(f"trainer.bf16 must be true, false or null/auto (on for CUDA), got {self.bf16!r}")
         self.betas = tuple(self.betas)
+
+
+def resolve_bf16(bf16: bool | None, device: str | torch.device) -> bool:
+    """Whether a trainer on ``device`` autocasts to bfloat16: ``bf16`` when it is set, else (None = auto)
+    True for a CUDA device and False for any other (the CPU's bfloat16 matmuls are slower than float32)."""
+    if bf16 is None:
+        return torch.device(device).type == "cuda"
+    return bool(bf16)
+
+
+def training_device(device: str | torch.device | None = AUTO, name: str = "trainer.device") -> torch.device:
+    """The device one training process runs on.
+
+    Args:
+        device: as :func:`diff4splat.devices.resolve_device` takes it (``auto``/None, ``cpu``, ``cuda``,
+            ``cuda:N``, a ``torch.device``).
+        name: what the user calls the setting, for the error message.
+
+    Returns:
+        The device, with a CUDA index: ``auto``/``cuda`` become ``cuda:$LOCAL_RANK`` under torchrun (one GPU
+        per process), else the current CUDA device.
+
+    Raises:
+        ValueError: not a device, or one this machine lacks (no GPU, LOCAL_RANK ≥ the GPU count), naming ``name``.
+    """
+    dev = resolve_device(device, name)
+    if dev.type == "cuda" and dev.index is None:
+        local = os.environ.get("LOCAL_RANK")
+        dev = resolve_device(f"cuda:{int(local) if local is not None else torch.cuda.current_device()}", name)
+    return dev
 
 
 def warmup_cosine(step: int, warmup: int, total: int, min_ratio: float) -> float:
@@ -124,17 +200,28 @@ def _dist_info() -> tuple[int, int, bool]:
     return 0, 1, False
 
 
+def _full_tensor(t: Tensor) -> Tensor:
+    """The whole tensor of an FSDP2 shard (a DTensor; collective: every rank calls it), else ``t``."""
+    return t.full_tensor() if hasattr(t, "full_tensor") else t
+
+
 class Trainer:
     """Train ``model`` on ``dataset`` with ``step_fn`` (see module docstring).
 
     Args:
-        model: the module; parameters with ``requires_grad=False`` are frozen (not optimised).
+        model: the module; parameters with ``requires_grad=False`` are frozen (not optimised). Under
+            ``strategy="fsdp"`` a ``model.fsdp_units()`` method, if any, lists the sub-modules sharded one by one.
         dataset: map-style dataset; ``set_epoch(epoch)`` is called if it exists.
-        step_fn: ``(model, batch, generator) -> {"loss": scalar, other scalars...}``.
+        step_fn: ``(model, batch, generator) -> {"loss": scalar, other scalars...}``; ``generator`` is a CPU
+            ``torch.Generator`` (draw on it, then move the draw to the batch's device).
         config: :class:`TrainerConfig`.
         collate_fn: DataLoader collate function.
-        device: torch device (default: CUDA with the local rank if available, else CPU).
+        device: torch device; when given it wins over ``config.device`` (see :func:`training_device`).
         extra_meta: JSON-able description stored in every checkpoint (e.g. the stage config).
+
+    Raises:
+        ValueError: an unusable device (naming ``device`` or ``trainer.device``), a model with no trainable
+            parameter, or ``gradient_checkpointing`` for a model without a module that supports it.
     """
 
     def __init__(self, model: nn.Module, dataset: Dataset, step_fn: StepFn, config: TrainerConfig,
@@ -145,11 +232,18 @@ class Trainer:
         self.step_fn = step_fn
         self.collate_fn = collate_fn
         self.extra_meta = extra_meta or {}
-        self._init_distributed()
+        self.device = (training_device(config.device, "trainer.device") if device is None
+                       else training_device(device, "device"))
+        self.bf16 = resolve_bf16(config.bf16, self.device)
+        if self.device.type == "cuda":  # before the process group and the model: NCCL and FSDP use this GPU
+            torch.cuda.set_device(self.device)
+            torch.backends.cuda.matmul.allow_tf32 = config.tf32
+            torch.backends.cudnn.allow_tf32 = config.tf32
+        self._init_distributed(self.device)
         self.rank, self.world, self.distributed = _dist_info()
-        if device is None:
-            device = f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}" if torch.cuda.is_available() else "cpu"
-        self.device = torch.device(device)
+        self.sharded = self.distributed and config.strategy == "fsdp"
+        if config.gradient_checkpointing:
+            self._enable_gradient_checkpointing(model)
         self.module = model.to(self.device)
         self.model = self._wrap(self.module)
         params = [p for p in self.model.parameters() if p.requires_grad]
@@ -158,6 +252,7 @@ class Trainer:
         self.optimizer = torch.optim.AdamW(params, lr=config.lr, betas=config.betas, weight_decay=config.weight_decay)
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(
             self.optimizer, lambda s: warmup_cosine(s, config.warmup_steps, config.total_steps, config.min_lr_ratio))
+        # EMA of the trainable weights, float32 on the device (FSDP: of this rank's shards)
         self.ema = ({n: p.detach().clone().float() for n, p in self.module.named_parameters() if p.requires_grad}
                     if config.ema_decay else None)
         self.generator = torch.Generator().manual_seed(config.seed + 1000 * self.rank)
@@ -169,53 +264,88 @@ class Trainer:
         self._stop = False
         self.run_dir = Path(config.run_dir)
 
-    # ----------------------------------------------------------------- distribution
+    # ----------------------------------------------------------------- devices and distribution
     @staticmethod
-    def _init_distributed() -> None:
+    def _enable_gradient_checkpointing(model: nn.Module) -> None:
+        found = [m for m in model.modules() if hasattr(m, "gradient_checkpointing")]
+        if not found:
+            raise ValueError(f"trainer.gradient_checkpointing: no module of the {type(model).__name__} supports it "
+                             "(a `gradient_checkpointing` attribute, as models.dit.VideoDiT has)")
+        for m in found:
+            m.gradient_checkpointing = True
+
+    @staticmethod
+    def _init_distributed(device: torch.device) -> None:
         if int(os.environ.get("WORLD_SIZE", "1")) > 1 and dist.is_available() and not dist.is_initialized():
-            dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+            if device.type == "cuda":
+                dist.init_process_group("nccl", device_id=device)
+            else:
+                dist.init_process_group("gloo")
 
     def _wrap(self, module: nn.Module) -> nn.Module:
         if not self.distributed:
             return module
-        if self.config.strategy == "fsdp":
-            from torch.distributed.fsdp import fully_shard
+        if self.sharded:
+            # torch.distributed.fsdp / device_mesh exist only in builds with torch.distributed
+            from torch.distributed.device_mesh import init_device_mesh
+            from torch.distributed.fsdp import MixedPrecisionPolicy, fully_shard
 
-            return fully_shard(module)
+            mesh = init_device_mesh(self.device.type, (self.world,))  # not FSDP's default: CUDA whenever present
+            blocks = (MixedPrecisionPolicy(param_dtype=torch.bfloat16, reduce_dtype=torch.float32) if self.bf16
+                      else MixedPrecisionPolicy())
+            units = module.fsdp_units() if hasattr(module, "fsdp_units") else []
+            for unit in units:  # inner units first: each block's weights are gathered only while it runs
+                fully_shard(unit, mesh=mesh, mp_policy=blocks)
+            return fully_shard(module, mesh=mesh)
         ids = [self.device.index] if self.device.type == "cuda" else None
         return nn.parallel.DistributedDataParallel(module, device_ids=ids,
                                                    find_unused_parameters=self.config.find_unused_parameters)
 
     def _model_state(self) -> dict[str, Tensor]:
-        if self.distributed and self.config.strategy == "fsdp":
+        """Full weights (collective under FSDP, where rank 0 gets them on the CPU and the other ranks ``{}``)."""
+        if self.sharded:
             from torch.distributed.checkpoint.state_dict import StateDictOptions, get_model_state_dict
 
             return get_model_state_dict(self.model, options=StateDictOptions(full_state_dict=True, cpu_offload=True))
         return self.module.state_dict()
 
+    def _ema_state(self) -> dict[str, Tensor] | None:
+        """Full EMA weights (collective under FSDP: every rank calls it), or None without EMA."""
+        if self.ema is None:
+            return None
+        return {k: _full_tensor(v) for k, v in self.ema.items()}
+
     def _optimizer_state(self) -> dict:
-        if self.distributed and self.config.strategy == "fsdp":
+        if self.sharded:
             from torch.distributed.checkpoint.state_dict import StateDictOptions, get_optimizer_state_dict
 
             return get_optimizer_state_dict(self.model, self.optimizer,
                                             options=StateDictOptions(full_state_dict=True, cpu_offload=True))
         return self.optimizer.state_dict()
 
-    def _load_states(self, model_state: dict, optim_state: dict) -> None:
-        if self.distributed and self.config.strategy == "fsdp":
+    def _load_states(self, model_state: dict, optim_state: dict, ema: dict[str, Tensor] | None) -> None:
+        if self.sharded:
             from torch.distributed.checkpoint.state_dict import StateDictOptions, set_state_dict
+            from torch.distributed.tensor import distribute_tensor
 
             set_state_dict(self.model, self.optimizer, model_state_dict=model_state, optim_state_dict=optim_state,
                            options=StateDictOptions(full_state_dict=True, broadcast_from_rank0=False))
-        else:
-            self.module.load_state_dict(model_state)
-            self.optimizer.load_state_dict(optim_state)
+            if ema is not None and self.ema is not None:  # this rank's shard of each full EMA tensor
+                self.ema = {k: distribute_tensor(ema[k].to(self.device, torch.float32), v.device_mesh, v.placements)
+                            if hasattr(v, "device_mesh") else ema[k].to(self.device, torch.float32)
+                            for k, v in self.ema.items()}
+            return
+        self.module.load_state_dict(model_state)
+        self.optimizer.load_state_dict(optim_state)
+        if ema is not None and self.ema is not None:
+            self.ema = {k: v.to(self.device, torch.float32) for k, v in ema.items()}
 
     # ----------------------------------------------------------------- checkpoints
     def save(self) -> Path | None:
         """Write a checkpoint (rank 0; other ranks wait at a barrier). Returns its folder on rank 0."""
         model_state = self._model_state()
         optim_state = self._optimizer_state()
+        ema_state = self._ema_state()
         folder = None
         if self.rank == 0:
             state = {"optimizer": optim_state, "scheduler": self.scheduler.state_dict(),
@@ -223,7 +353,7 @@ class Trainer:
                      "step": self.step, "epoch": self.epoch, "position": self.position, "nonfinite": self.nonfinite}
             meta = {"epoch": self.epoch, "position": self.position, "time": time.time(),
                     "trainer": asdict(self.config), **self.extra_meta}
-            folder = save_checkpoint(self.run_dir, self.step, model_state, state, meta, self.ema,
+            folder = save_checkpoint(self.run_dir, self.step, model_state, state, meta, ema_state,
                                      self.config.keep_checkpoints)
         if self.distributed:
             dist.barrier()
@@ -235,7 +365,7 @@ class Trainer:
         if folder is None:
             return False
         model_state, state, ema = load_checkpoint(folder)
-        self._load_states(model_state, state["optimizer"])
+        self._load_states(model_state, state["optimizer"], ema)
         self.scheduler.load_state_dict(state["scheduler"])
         set_rng_state(state["rng"], self.generator)
         if self.distributed:  # each rank continues its own step-generator stream
@@ -243,8 +373,6 @@ class Trainer:
         self.loader_generator.set_state(state["loader_generator"])
         self.step, self.epoch, self.position = state["step"], state["epoch"], state["position"]
         self.nonfinite = state.get("nonfinite", 0)
-        if ema is not None and self.ema is not None:
-            self.ema = {k: v.float() for k, v in ema.items()}
         self._truncate_metrics()
         return True
 
@@ -279,15 +407,18 @@ class Trainer:
         if hasattr(self.dataset, "set_epoch"):
             self.dataset.set_epoch(self.epoch)
         return DataLoader(self.dataset, batch_sampler=batches, num_workers=self.config.num_workers,
-                          collate_fn=self.collate_fn, generator=self.loader_generator)
+                          collate_fn=self.collate_fn, generator=self.loader_generator,
+                          pin_memory=self.device.type == "cuda")
 
     # ----------------------------------------------------------------- loop
     def _request_stop(self, signum, frame) -> None:  # noqa: ARG002
         self._stop = True
 
     def _to_device(self, batch):
+        """``batch`` (tensors in nested dicts, lists and tuples) on the trainer's device; other leaves unchanged.
+        The copies are asynchronous from pinned memory (ordered before the step's kernels on the same stream)."""
         if isinstance(batch, Tensor):
-            return batch.to(self.device)
+            return batch.to(self.device, non_blocking=True)
         if isinstance(batch, dict):
             return {k: self._to_device(v) for k, v in batch.items()}
         if isinstance(batch, (list, tuple)):
@@ -345,8 +476,7 @@ class Trainer:
         cfg = self.config
         self.model.train()
         t0 = time.perf_counter()
-        autocast = torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.bf16)
-        with autocast:
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
             losses = self.step_fn(self.model, batch, self.generator)
         loss = losses["loss"]
         self.position += 1
@@ -416,10 +546,20 @@ class Trainer:
             w.writerow(record)
 
     def ema_state_dict(self) -> dict[str, Tensor] | None:
-        """EMA weights merged into a full state dict (frozen weights as they are), or None."""
+        """EMA weights merged into a full state dict (frozen weights as they are), or None without EMA.
+
+        Under FSDP it is collective (every rank calls it) and the dict is complete, on the CPU, on rank 0 only
+        (the other ranks get ``{}``)."""
         if self.ema is None:
             return None
-        state = {k: v.clone() for k, v in self.module.state_dict().items()}
-        for k, v in self.ema.items():
-            state[k] = v.to(state[k].dtype)
+        state = {k: v.clone() for k, v in self._model_state().items()}
+        for k, v in self._ema_state().items():
+            if k in state:
+                state[k] = v.to(state[k])  # the weight's dtype and device
         return state
+
+    def final_state_dict(self) -> dict[str, Tensor]:
+        """The weights to publish after training: :meth:`ema_state_dict` when EMA is on, else the model's own,
+        full (unsharded). Collective under FSDP, complete on rank 0 (as :meth:`ema_state_dict`)."""
+        ema = self.ema_state_dict()
+        return ema if ema is not None else self._model_state()
