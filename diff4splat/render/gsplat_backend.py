@@ -1,6 +1,6 @@
 """Optional CUDA backend: gsplat's ``rasterization`` serving :func:`diff4splat.render.rasterize` calls.
 
-With the ``[cuda]`` extra installed (``pip install diff4splat[cuda]``, gsplat ≥ 1.4; written against the
+With the ``[cuda]`` extra installed (``pip install diff4splat[cuda]``, gsplat 1.5.x; written against the
 sources of gsplat 1.4.0 … 1.5.3) and the tensors on a CUDA device, ``rasterize(compositor=None)`` hands
 pinhole calls to gsplat's fused CUDA kernels (Ye et al. 2024, "gsplat: An Open-Source Library for Gaussian
 Splatting"); otherwise the PyTorch paths run (docs/DESIGN.md, "The renderer": the PyTorch tile path is the
