@@ -111,10 +111,8 @@ class TrainingModule(nn.Module):
         video = batch["video"] * 2 - 1  # (B, 3, T, H, W) in [−1, 1]
         losses: dict[str, Tensor] = {}
         total = video.new_zeros(())
-        if "vae" in st.objectives:  # m.vae(video, sample_posterior=True), with ε drawn on the CPU generator
-            mean, logvar = m.vae.encode(video)
-            eps = torch.randn(mean.shape, generator=generator, device=generator.device).to(mean)
-            recon = m.vae.decode(mean + torch.exp(0.5 * logvar) * eps)
+        if "vae" in st.objectives:  # ε on the CPU step generator, moved (vae.sample_posterior)
+            recon, mean, logvar = m.vae(video, sample_posterior=True, generator=generator)
             losses["vae_l1"] = (recon - video).abs().mean()
             losses["vae_kl"] = kl_divergence(mean, logvar).mean() / mean[0].numel()
             total = total + losses["vae_l1"] + st.kl_weight * losses["vae_kl"]
