@@ -146,7 +146,7 @@ def test_generate_cli_onnxruntime_writes_the_same_folder(full, tmp_path, tmp_pat
     model, out = full
     ckpt = tmp_path_factory.getbasetemp() / "onnx_cache" / "checkpoint"
     common = ["generate", str(EXAMPLE_IMAGE), "--frames", "5", "--steps", "2", "--prompt", PROMPT, "--quiet"]
-    assert main(common + ["--checkpoint", str(ckpt), "--out", str(tmp_path / "torch")]) == 0
+    assert main(common + ["--checkpoint", str(ckpt), "--device", "cpu", "--out", str(tmp_path / "torch")]) == 0
     assert main(common + ["--runtime", "onnxruntime", "--onnx", str(out), "--out", str(tmp_path / "ort")]) == 0
     a, b = tmp_path / "torch", tmp_path / "ort"
     assert sorted(p.name for p in a.iterdir()) == sorted(p.name for p in b.iterdir())
