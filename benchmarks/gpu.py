@@ -169,7 +169,9 @@ def part_generate(device: torch.device, quick: bool) -> str:
             t = run_generate(pipe, 5 if quick else frames, prompt, 2 if quick else None)
         except torch.OutOfMemoryError as e:
             rows.append([label, "out of memory: " + str(e).splitlines()[0][:80]] + [""] * (len(STAGES) + 3))
+            pipe = model = None  # noqa: F841 - drop every reference before freeing the cache
             models.clear()
+            reset_peak(device)
             continue
         total = sum(t[s] for s in STAGES)
         peak = peak_gb(device)

@@ -44,7 +44,7 @@ from .cameras import (
     plucker_rays,
 )
 from .checks import check_positive_int
-from .devices import Stopwatch
+from .devices import Stopwatch, autocast_off
 from .gaussians import Gaussians, rgb_to_sh0
 from .limits import check_limit
 from .offload import ModelOffload
@@ -111,7 +111,9 @@ def to_gaussians(
         batch_index: which scene of the batch.
 
     Returns:
-        Gaussians with M = S·H·W; d_means (K, M, 3), d_quats (K, M, 4), d_scales (K, M, 3), or None.
+        Gaussians with M = S·H·W; d_means (K, M, 3), d_quats (K, M, 4), d_scales (K, M, 3), or None. Computed in
+        float32 at least with autocast off (a bfloat16 region would round the ray directions to ~0.2 %, a pixel
+        at 512²), whatever the maps' dtype.
 
     Raises:
         ValueError: ``viewmats``/``Ks`` not (S, 4, 4)/(S, 3, 3) for the S source frames of ``out``, or
@@ -124,21 +126,23 @@ def to_gaussians(
         raise ValueError(f"viewmats must have shape ({S}, 4, 4) (one per source frame), got {tuple(viewmats.shape)}")
     if tuple(Ks.shape) != (S, 3, 3):
         raise ValueError(f"Ks must have shape ({S}, 3, 3) (one per source frame), got {tuple(Ks.shape)}")
-    dtype = out.distance.dtype
-    origins, dirs = camera_rays(viewmats.to(dtype), Ks.to(dtype), W, H)  # (S, H, W, 3)
-    means = origins + out.distance[batch_index, ..., None] * dirs
-    colors = out.colors[batch_index].clamp(1e-4, 1 - 1e-4)
-    M = S * H * W
-    gaussians = Gaussians(
-        means=means.reshape(M, 3),
-        quats=out.quats[batch_index].reshape(M, 4),
-        scales=out.scales[batch_index].reshape(M, 3),
-        opacities=out.opacities[batch_index].reshape(M),
-        sh=rgb_to_sh0(colors).reshape(M, 1, 3),
-    )
+    dtype = torch.promote_types(out.distance.dtype, torch.float32)
+    get = lambda name: getattr(out, name)[batch_index].to(dtype)  # noqa: E731
+    with autocast_off():
+        origins, dirs = camera_rays(viewmats.to(dtype), Ks.to(dtype), W, H)  # (S, H, W, 3)
+        means = origins + get("distance")[..., None] * dirs
+        colors = get("colors").clamp(1e-4, 1 - 1e-4)
+        M = S * H * W
+        gaussians = Gaussians(
+            means=means.reshape(M, 3),
+            quats=get("quats").reshape(M, 4),
+            scales=get("scales").reshape(M, 3),
+            opacities=get("opacities").reshape(M),
+            sh=rgb_to_sh0(colors).reshape(M, 1, 3),
+        )
     if out.d_means is None:
         return gaussians, None, None, None
-    flat = [getattr(out, f)[batch_index].flatten(1, 3) for f in ("d_means", "d_quats", "d_scales")]
+    flat = [get(f).flatten(1, 3) for f in ("d_means", "d_quats", "d_scales")]
     return gaussians, *flat
 
 
@@ -239,7 +243,7 @@ class TorchRuntime:
     def velocity(self, x, sigma, image_latent, plucker, text, text_mask) -> Tensor:
         dt = self.dtype
         with self._use("dit") as dit:
-            return dit(x.to(dt), sigma.to(dt), image_latent.to(dt), plucker.to(dt),
+            return dit(x.to(dt), sigma.float(), image_latent.to(dt), plucker.to(dt),  # σ float32: its embedding casts
                        None if text is None else text.to(dt), text_mask).float()
 
     def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None, image: Tensor) -> LDRMOutput:

@@ -213,12 +213,17 @@ def gaussian_activations(raw: Tensor, config: LDRMConfig) -> tuple[Tensor, Tenso
     opacities = σ(r_o) in [0, 1] (3DGS, Kerbl et al. 2023).
     colors = σ(r_c) in [0, 1].
 
+    Computed in float32 at least (half-precision weights or a bfloat16 autocast region would quantise the
+    distance to ~1 %, i.e. centimetres at metres).
+
     Args:
         raw: (..., 12) in channel order distance, scales (3), quaternion (4), opacity, colour (3).
 
     Returns:
-        distance (...), scales (..., 3), quats (..., 4), opacities (...), colors (..., 3).
+        distance (...), scales (..., 3), quats (..., 4), opacities (...), colors (..., 3); float32 (float64 for
+        float64 input).
     """
+    raw = raw.to(torch.promote_types(raw.dtype, torch.float32))
     r_d, r_s, r_q, r_o, r_c = raw.split([1, 3, 4, 1, 3], dim=-1)
     lo, hi = math.log(config.depth_min), math.log(config.depth_max)
     frac = (math.log(config.default_depth) - lo) / (hi - lo)

@@ -132,3 +132,28 @@ def test_displacement_loss_ignores_frame_0_offsets_and_matches_a_loop():
              for p in range(5) for t in range(1, 4) if vis[0, p, 0] and vis[0, p, t]]
     assert terms
     assert float(displacement_loss(pred, target, vis)) == pytest.approx(sum(terms) / len(terms), rel=1e-5)
+
+
+def test_photometric_loss_is_float32_inside_a_bfloat16_autocast_region(monkeypatch):
+    """SSIM's variances (E[x²] − μ², ~1e-3 here) would drown in bfloat16 rounding under the trainer's autocast:
+    the loss runs SSIM with autocast off (on every device type) on float32 images, and so returns the float32
+    value."""
+    import kornia
+
+    seen = []
+    real = kornia.metrics.ssim
+
+    def spy(x, y, *a, **k):
+        seen.append((torch.is_autocast_enabled("cpu"), torch.is_autocast_enabled("cuda"), x.dtype, y.dtype))
+        return real(x, y, *a, **k)
+
+    monkeypatch.setattr(kornia.metrics, "ssim", spy)
+    g = torch.Generator().manual_seed(0)
+    a = torch.rand(2, 3, 24, 24, generator=g)
+    b = (a + 0.05 * torch.randn(2, 3, 24, 24, generator=g)).clamp(0, 1)
+    ref = photometric_loss(a, b)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        got = photometric_loss(a.bfloat16(), b)
+    assert seen[-1] == (False, False, torch.float32, torch.float32)
+    assert got.dtype == torch.float32
+    torch.testing.assert_close(got, ref, atol=1e-3, rtol=0)  # only a's bfloat16 rounding remains

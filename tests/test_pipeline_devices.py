@@ -1,4 +1,5 @@
 """The generation pipeline on every device, in bfloat16 and with model CPU offload (diff4splat/offload.py)."""
+import numpy as np
 import pytest
 import torch
 from helpers import tiny_model
@@ -20,16 +21,32 @@ def _run(image, device="cpu", **kw):
     return pipe, pipe(image, pipe.default_cameras("arc", 5), PROMPT, steps=2)
 
 
+@pytest.fixture
+def full_float32():
+    """TF32 off for the body (cuDNN convolutions default to TF32 on Ampere and later: 10-bit mantissas, latents
+    off by ~5e-4), so a CUDA run is compared with the CPU's float32 arithmetic."""
+    flags = torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = False
+    yield
+    torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = flags
+
+
 def _close_scenes(a, b, atol):
+    """The Gaussians both runs kept (matched by ``gaussian_index``) agree to ``atol``; pruning decisions at its
+    thresholds may differ for a few Gaussians (≤ 0.5 %) whose values sit on the boundary."""
+    ia, ib = a.gaussian_index.cpu(), b.gaussian_index.cpu()
+    common = torch.from_numpy(np.intersect1d(ia.numpy(), ib.numpy()))
+    assert len(common) >= 0.995 * max(len(ia), len(ib))
+    pa, pb = torch.searchsorted(ia, common), torch.searchsorted(ib, common)
     ga, gb = a.scene.canonical, b.scene.canonical
-    assert ga.means.shape == gb.means.shape
     for name in ("means", "quats", "scales", "opacities", "sh"):
-        torch.testing.assert_close(getattr(ga, name).cpu(), getattr(gb, name).cpu(), atol=atol, rtol=0, msg=name)
-    torch.testing.assert_close(a.scene.d_means.cpu(), b.scene.d_means.cpu(), atol=atol, rtol=0)
+        torch.testing.assert_close(getattr(ga, name).cpu()[pa], getattr(gb, name).cpu()[pb], atol=atol, rtol=0,
+                                   msg=name)
+    torch.testing.assert_close(a.scene.d_means.cpu()[:, pa], b.scene.d_means.cpu()[:, pb], atol=atol, rtol=0)
 
 
 @pytest.mark.slow
-def test_generate_on_each_device_matches_the_cpu(image, device):
+def test_generate_on_each_device_matches_the_cpu(image, device, full_float32):
     """The CUDA run starts from the same noise (CPU generator) and gives the CPU's scene to float32 accuracy;
     every output lives on the pipeline's device."""
     _, ref = _run(image)
@@ -121,3 +138,24 @@ def test_random_models_are_built_in_the_dtype_and_on_the_device_asked_for():
     meta = Diff4SplatModel.random(load_config("paper"), device="meta", dtype=torch.bfloat16)
     dit = sum(p.numel() for p in meta.dit.parameters())
     assert meta.dit.blocks[0].attn.qkv.weight.dtype == torch.bfloat16 and dit > 11e9
+
+
+def test_gaussians_are_built_in_float32_inside_a_bfloat16_autocast_region():
+    """Training renders the LDRM's maps under bf16 autocast: the ray geometry, the Gaussians and the LDRM's
+    activations stay float32 (a bfloat16 einsum would move centres by ~0.2 % of their distance)."""
+    from diff4splat.cameras import intrinsics_from_fov
+    from diff4splat.pipeline import to_gaussians
+    from models.ldrm import LDRMConfig, LDRMOutput, gaussian_activations
+
+    g = torch.Generator().manual_seed(0)
+    raw = torch.randn(1, 2, 8, 8, 12, generator=g, device="cpu")
+    out = LDRMOutput(*gaussian_activations(raw.to(torch.bfloat16), LDRMConfig()))
+    assert out.distance.dtype == torch.float32
+    torch.testing.assert_close(out.distance, gaussian_activations(raw.to(torch.bfloat16).float(), LDRMConfig())[0])
+    viewmats = torch.eye(4, device="cpu").repeat(2, 1, 1)
+    viewmats[1, 0, 3] = 0.3
+    Ks = intrinsics_from_fov(8, 8, fov_y_deg=50.0).expand(2, 3, 3)
+    ref, *_ = to_gaussians(out, viewmats, Ks)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        got, *_ = to_gaussians(out, viewmats, Ks)
+    assert got.means.dtype == torch.float32 and torch.equal(got.means, ref.means)

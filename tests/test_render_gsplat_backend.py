@@ -7,8 +7,8 @@ import types
 import pytest
 import torch
 
-from diff4splat.render import rasterize, rasterize_dense
-from diff4splat.render.gsplat_backend import gsplat_available, use_gsplat
+from diff4splat.render import gsplat_backend, rasterize, rasterize_dense
+from diff4splat.render.gsplat_backend import NO_GSPLAT_ENV, gsplat_available, use_gsplat
 from diff4splat.render.rasterize import choose_path
 
 rasterize_module = importlib.import_module("diff4splat.render.rasterize")  # the package re-exports the function
@@ -33,6 +33,41 @@ def test_cpu_and_float64_tensors_use_the_pytorch_path():
     assert not use_gsplat(torch.zeros(3, 3, dtype=torch.float64))
     if not torch.cuda.is_available():
         assert not gsplat_available()
+
+
+@pytest.mark.parametrize("extension", ["none", "raises", "loads"])
+def test_gsplat_is_used_only_when_its_cuda_extension_loads(monkeypatch, extension):
+    """gsplat builds its CUDA extension on first use; where the build fails (gsplat then sets ``_C = None`` or
+    raises) renders fall back to the PyTorch tile path with one warning instead of failing at the first call.
+    Stand-in ``gsplat`` modules and a CUDA that reports itself available: nothing here needs a GPU."""
+    backend = types.ModuleType("gsplat.cuda._backend")
+    if extension == "raises":
+        def __getattr__(name):  # noqa: N807 - a module-level __getattr__: importing _C fails like a failed build
+            raise RuntimeError("Error building extension 'gsplat_cuda'")
+        backend.__getattr__ = __getattr__
+    else:
+        backend._C = object() if extension == "loads" else None
+    pkg = types.ModuleType("gsplat")
+    pkg.__path__ = []
+    cuda = types.ModuleType("gsplat.cuda")
+    cuda.__path__ = []
+    monkeypatch.setitem(sys.modules, "gsplat", pkg)
+    monkeypatch.setitem(sys.modules, "gsplat.cuda", cuda)
+    monkeypatch.setitem(sys.modules, "gsplat.cuda._backend", backend)
+    monkeypatch.setattr(gsplat_backend.importlib.util, "find_spec", lambda name: object())
+    monkeypatch.setattr(gsplat_backend.torch.cuda, "is_available", lambda: True)
+    gsplat_available.cache_clear()
+    try:
+        if extension == "loads":
+            assert gsplat_available()
+            monkeypatch.setenv(NO_GSPLAT_ENV, "1")
+            gsplat_available.cache_clear()
+            assert not gsplat_available()
+        else:
+            with pytest.warns(UserWarning, match="CUDA extension could not be loaded"):
+                assert not gsplat_available()
+    finally:
+        gsplat_available.cache_clear()
 
 
 def test_dispatch_passes_the_same_call_to_gsplat(monkeypatch):

@@ -11,6 +11,7 @@ import kornia
 import torch
 from torch import Tensor
 
+from diff4splat.devices import autocast_off
 from models.flow_matching import add_noise, sample_logit_normal, shift_sigmas, velocity_target
 
 __all__ = [
@@ -91,8 +92,11 @@ def photometric_loss(pred: Tensor, target: Tensor, ssim_weight: float = 0.2, win
     if pred.shape != target.shape or pred.dim() != 4:
         raise ValueError(
             f"pred and target must both be (B, C, H, W), got {tuple(pred.shape)} and {tuple(target.shape)}")
-    l1 = (pred - target).abs().mean()
-    ssim = kornia.metrics.ssim(pred, target, window_size, max_val=1.0).mean()
+    with autocast_off():  # SSIM's variances E[x²] − μ² are ~1e-3: bfloat16 rounding would swamp them
+        dt = torch.promote_types(pred.dtype, torch.float32)
+        pred, target = pred.to(dt), target.to(dt)
+        l1 = (pred - target).abs().mean()
+        ssim = kornia.metrics.ssim(pred, target, window_size, max_val=1.0).mean()
     return (1 - ssim_weight) * l1 + ssim_weight * (1 - ssim)
 
 

@@ -57,10 +57,13 @@ from __future__ import annotations
 
 import functools
 import importlib.util
+import os
+import warnings
 
 import torch
 from torch import Tensor
 
+from diff4splat.devices import full_precision
 from diff4splat.quaternions import quat_normalize
 from diff4splat.render.defaults import (
     CAMERA_MODEL,
@@ -72,16 +75,39 @@ from diff4splat.render.defaults import (
     SH_DEGREE,
     TILE_SIZE,
 )
-from diff4splat.render.stages import compute_dtype, full_precision, mode_backgrounds
+from diff4splat.render.stages import compute_dtype, mode_backgrounds
 from diff4splat.render.validate import validate_inputs
 
-__all__ = ["gsplat_available", "use_gsplat", "rasterize_gsplat"]
+__all__ = ["gsplat_available", "use_gsplat", "rasterize_gsplat", "NO_GSPLAT_ENV"]
+
+
+NO_GSPLAT_ENV = "DIFF4SPLAT_NO_GSPLAT"
+"""Environment variable: set to a value other than ``0`` to keep gsplat out even where it is installed (the
+PyTorch tile path then renders CUDA tensors)."""
 
 
 @functools.lru_cache(maxsize=1)
 def gsplat_available() -> bool:
-    """True when the ``gsplat`` package can be found and CUDA is available (checked once; nothing imported)."""
-    return importlib.util.find_spec("gsplat") is not None and torch.cuda.is_available()
+    """Whether gsplat can render here, checked once per process: the package is installed, torch sees a GPU,
+    :data:`NO_GSPLAT_ENV` is unset, and gsplat's CUDA extension loads. gsplat builds that extension on first use
+    (about 85 s on an H100, then cached by torch's extension cache); when the build or the load fails (no CUDA
+    toolkit, a compiler the CUDA release refuses) this warns once and returns False, so renders fall back to the
+    PyTorch tile path instead of failing at the first ``rasterize``."""
+    if os.environ.get(NO_GSPLAT_ENV, "0") not in ("", "0"):
+        return False
+    if importlib.util.find_spec("gsplat") is None or not torch.cuda.is_available():
+        return False
+    try:
+        from gsplat.cuda._backend import _C  # builds the extension the first time
+    except Exception as e:  # noqa: BLE001 - any build or load error means: no gsplat here
+        _C, why = None, f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
+    else:
+        why = "gsplat reported no CUDA extension"
+    if _C is None:
+        warnings.warn(f"gsplat is installed but its CUDA extension could not be loaded ({why}); CUDA tensors are "
+                      f"rendered by the PyTorch tile path (set {NO_GSPLAT_ENV}=1 to skip gsplat)", stacklevel=2)
+        return False
+    return True
 
 
 def use_gsplat(means: Tensor, camera_model: str = CAMERA_MODEL) -> bool:

@@ -5,25 +5,24 @@ per-Gaussian features (:func:`color_features`, depth channel), hands each camera
 a compositor and applies the render mode (:func:`mode_backgrounds`, :func:`expected_depth`). The tile
 rasterizers (:func:`diff4splat.render.fused.composite_fused`, :func:`diff4splat.render.tiles.composite_tiles`)
 and the dense reference (:func:`diff4splat.render.reference.composite_dense`) are compositors of this one
-pipeline, so they differ only in how Gaussians are composited. :func:`compute_dtype` and :func:`full_precision` fix the
-precision every path computes in.
+pipeline, so they differ only in how Gaussians are composited. :func:`compute_dtype` and
+:func:`diff4splat.devices.full_precision` fix the precision every path computes in.
 """
 from __future__ import annotations
 
-import contextlib
-import functools
 from collections.abc import Callable
 
 import torch
 from torch import Tensor
 
 from diff4splat.cameras.path import camera_centers
+from diff4splat.devices import full_precision
 from diff4splat.render.projection import Projection, project_gaussians
 from diff4splat.render.sh import sh_to_color, spherical_harmonics
 from diff4splat.render.validate import validate_inputs
 
 __all__ = [
-    "Compositor", "LOW_PRECISION", "compute_dtype", "full_precision", "color_features", "mode_backgrounds",
+    "Compositor", "LOW_PRECISION", "compute_dtype", "color_features", "mode_backgrounds",
     "expected_depth", "render_pipeline",
 ]
 
@@ -41,24 +40,10 @@ def compute_dtype(dtype: torch.dtype) -> torch.dtype:
     return torch.float32 if dtype in LOW_PRECISION else dtype
 
 
-def full_precision(fn: Callable) -> Callable:
-    """Decorator: run ``fn`` with autocast disabled (CPU, and CUDA when available).
-
-    Under ``torch.autocast(dtype=bfloat16)`` the projection's matmuls/einsums would run in bfloat16
-    (8-bit mantissa: depth errors of metres, wrong culling); the renderer instead computes in the
-    dtype of its inputs (float32 for float16/bfloat16 inputs, :func:`compute_dtype`), as gsplat's
-    kernels compute in float32 whatever the autocast state.
-    """
-
-    @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
-        with contextlib.ExitStack() as stack:
-            stack.enter_context(torch.autocast("cpu", enabled=False))
-            if torch.cuda.is_available():
-                stack.enter_context(torch.autocast("cuda", enabled=False))
-            return fn(*args, **kwargs)
-
-    return wrapper
+# Under ``torch.autocast(dtype=bfloat16)`` the projection's matmuls/einsums would run in bfloat16 (8-bit mantissa:
+# depth errors of metres, wrong culling); the renderer runs under :func:`diff4splat.devices.full_precision` and
+# computes in the dtype of its inputs (float32 for float16/bfloat16 inputs, :func:`compute_dtype`), as gsplat's
+# kernels compute in float32 whatever the autocast state.
 
 
 def color_features(
