@@ -1,0 +1,247 @@
+"""The photo layer: the input photograph as Gaussians at the output resolution — observed, not generated.
+
+Single-image 3D systems that look right (Splatter Image, Flash3D, 3D photos) keep the observed pixels and predict
+geometry for them; generation is for what the photograph cannot show. :func:`photo_layer` places one Gaussian per
+pixel of the photograph on its camera ray at a given depth, so that rendering the layer alone at the input camera
+reproduces the photograph (≥ 40 dB, tests/test_photo.py), and a camera that moves a little sees the photograph
+reprojected by that depth.
+
+Two layers of pixel Gaussians, because two needs conflict under a 3DGS renderer (eps2d screen-space dilation,
+front-to-back compositing):
+
+- **front**: thin disks facing the camera, in-plane σ = :data:`FRONT_SCALE_PX` of a pixel, opacity
+  :data:`PHOTO_OPACITY` (alpha 0.99 at the pixel centre). Small, so a neighbour in front bleeds little into a pixel
+  (alpha 0.99·exp(−½/σ²_eff) at one pixel, σ²_eff = σ² + eps2d); the colours are then solved so that the render
+  equals the photograph (:func:`refine_colors`, a fixed-point iteration with the renderer itself).
+- **backing**: the same pixels' rays, σ = :data:`BACKING_SCALE_PX`, the photograph's own colours, at the largest
+  z-depth of the 5×5 pixels around (the disk's reach) times 1 + :data:`BACKING_OFFSET`: behind every front disk it
+  can overlap, so at the input camera the front disks hide it (they leave ≤ 1 % of each pixel). It fills the gaps
+  between the front disks that a sub-pixel camera motion would otherwise open (alpha ≥ 0.97 at half-pixel shifts
+  instead of 0.5).
+
+Scenes holding a photo layer are rendered with :data:`PHOTO_EPS2D` = 0.1 px² instead of 3DGS's 0.3 (Mip-Splatting's
+2D filter value): with 0.3 a neighbour bleeds 19 % into a pixel and detailed photographs stop at ~30–38 dB.
+
+The layer's depth comes from the network at the model resolution, upsampled with the photograph as the guide
+(:func:`upsample_depth`, joint bilateral upsampling: depth edges follow colour edges), or from the user (``generate
+--depth``).
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from .cameras import camera_rays
+from .gaussians import Gaussians, rgb_to_sh0
+from .quaternions import rotmat_to_quat
+from .render import rasterize
+
+__all__ = ["PHOTO_EPS2D", "FRONT_SCALE_PX", "BACKING_SCALE_PX", "BACKING_OFFSET", "PHOTO_OPACITY", "THICKNESS",
+           "REFINE_STEPS", "photo_layer", "refine_colors", "upsample_depth", "render_input_view"]
+
+PHOTO_EPS2D = 0.1
+"""Screen-space dilation, pixels², of scenes with a photo layer (module docstring; meta.json ``eps2d``)."""
+FRONT_SCALE_PX = 0.25
+"""In-plane standard deviation of a front disk, pixels at the input camera."""
+BACKING_SCALE_PX = 0.5
+"""In-plane standard deviation of a backing disk, pixels at the input camera."""
+BACKING_OFFSET = 0.01
+"""The backing layer lies this fraction behind the deepest front disk it can overlap (module docstring)."""
+BACKING_REACH = 2
+"""Pixels around a backing disk whose front disks it must stay behind (its 3σ_eff reach at the input camera)."""
+PHOTO_OPACITY = 0.995
+"""Opacity of every photo Gaussian (the renderer clamps alpha at 0.99)."""
+THICKNESS = 0.1
+"""Standard deviation along the ray as a fraction of the in-plane one (thin disks facing the input camera)."""
+REFINE_STEPS = 3
+"""Fixed-point steps of :func:`refine_colors` (each one render at the output resolution)."""
+
+
+def _check(image: Tensor, depth: Tensor, viewmat: Tensor, K: Tensor) -> tuple[int, int]:
+    if image.dim() != 3 or image.shape[-1] != 3:
+        raise ValueError(f"image must have shape (H, W, 3), got {tuple(image.shape)}")
+    H, W = image.shape[:2]
+    if tuple(depth.shape) != (H, W):
+        raise ValueError(f"depth must have shape ({H}, {W}) like the image, got {tuple(depth.shape)}")
+    if not bool(torch.isfinite(image).all()) or float(image.min()) < 0 or float(image.max()) > 1:
+        raise ValueError("image values must be finite and lie in [0, 1]")
+    if not bool(torch.isfinite(depth).all()) or float(depth.min()) <= 0:
+        raise ValueError("depth must be finite and > 0 metres everywhere (fill holes first)")
+    if tuple(viewmat.shape) != (4, 4) or tuple(K.shape) != (3, 3):
+        raise ValueError(f"viewmat must be (4, 4) and K (3, 3), got {tuple(viewmat.shape)} and {tuple(K.shape)}")
+    return H, W
+
+
+def _disk_frames(dirs: Tensor, viewmat: Tensor) -> Tensor:
+    """(N, 4) wxyz rotations whose local z axis is each unit ray direction ``dirs`` (N, 3) (world frame) and whose
+    local x axis is the camera's x axis made orthogonal to it."""
+    cam_x = viewmat[0, :3].to(dirs)  # the camera's x axis in world coordinates (first row of R)
+    x = cam_x - (dirs @ cam_x)[:, None] * dirs
+    x = x / x.norm(dim=-1, keepdim=True)
+    y = torch.linalg.cross(dirs, x, dim=-1)
+    return rotmat_to_quat(torch.stack([x, y, dirs], dim=-1))  # columns: local x, y, z in world coordinates
+
+
+def render_input_view(layer: Gaussians, viewmat: Tensor, K: Tensor, width: int, height: int,
+                      eps2d: float = PHOTO_EPS2D) -> Tensor:
+    """The layer (or any Gaussians) rendered at one camera over black: (H, W, 3) colour, linear (not clamped)."""
+    out, _, _ = rasterize(layer.means, layer.quats, layer.scales, layer.opacities, layer.sh, viewmat[None], K[None],
+                          width, height, eps2d=eps2d, sh_degree=layer.sh_degree, render_mode="RGB")
+    return out[0]
+
+
+@torch.no_grad()
+def refine_colors(layer: Gaussians, image: Tensor, viewmat: Tensor, K: Tensor, num_front: int,
+                  steps: int = REFINE_STEPS, eps2d: float = PHOTO_EPS2D) -> tuple[Gaussians, list[float]]:
+    """Solve the front layer's colours so that the render at the input camera equals ``image``.
+
+    The render is linear in the colours (the weights do not depend on them), R(c) = W c, and W is close to the
+    identity (a pixel's own disk has weight ≈ 0.99·T, neighbours in front a few %), so the fixed-point iteration
+    c ← c + (image − R(c)) converges quickly; the renderer's clamp of colours at 0 bounds what it can undo next
+    to strong edges. The first ``num_front`` Gaussians of ``layer`` (one per pixel, row-major) are solved.
+
+    Args:
+        layer: the Gaussians (SH degree 0), their first H·W the front disks.
+        image: (H, W, 3) in [0, 1], the target.
+        viewmat: (4, 4), K: (3, 3) the input camera.
+        num_front: H·W.
+        steps: fixed-point steps (each one render).
+        eps2d: the dilation the scene is rendered with.
+
+    Returns:
+        The layer with solved front colours, and the PSNR (dB) of the input-view render before each step and
+        after the last (``steps + 1`` values).
+    """
+    H, W = image.shape[:2]
+    target = image.reshape(-1, 3).to(layer.means)
+    colors = target.clone()
+    rest = layer.sh[num_front:]
+    history = []
+    for k in range(steps + 1):
+        sh = torch.cat([rgb_to_sh0(colors)[:, None], rest])
+        current = Gaussians(layer.means, layer.quats, layer.scales, layer.opacities, sh)
+        rendered = render_input_view(current, viewmat, K, W, H, eps2d).reshape(-1, 3)
+        mse = float(((rendered.clamp(0, 1) - target) ** 2).mean())
+        history.append(-10 * math.log10(max(mse, 1e-20)))
+        if k < steps:
+            colors = colors + (target - rendered)
+    return current, history
+
+
+def photo_layer(
+    image: Tensor,  # (H, W, 3) in [0, 1]
+    depth: Tensor,  # (H, W) z-depth, metres
+    viewmat: Tensor,  # (4, 4) world-to-camera of the input camera
+    K: Tensor,  # (3, 3) pixels, at H × W
+    *,
+    refine_steps: int = REFINE_STEPS,
+    eps2d: float = PHOTO_EPS2D,
+) -> tuple[Gaussians, list[float]]:
+    """The photograph as 2·H·W Gaussians (front disks row-major, then the backing disks; module docstring).
+
+    Pixel (i, j) at z-depth z sits at o + d·z/(d·ẑ) on its ray (o, d) (:func:`diff4splat.cameras.camera_rays`,
+    pixel centres), a disk facing the camera (thin axis along d) with in-plane σ = scale·z/f (f = fx along the
+    camera x axis, fy along y) and thickness :data:`THICKNESS`·σ, opacity :data:`PHOTO_OPACITY`, SH degree 0.
+
+    Args:
+        image: (H, W, 3) the photograph in [0, 1] at the output resolution.
+        depth: (H, W) z-depth of each pixel, metres, finite and > 0.
+        viewmat: (4, 4) world-to-camera of the input camera (OpenCV).
+        K: (3, 3) its intrinsics at H × W, pixels.
+        refine_steps: colour fixed-point steps (:func:`refine_colors`); 0 keeps the photograph's colours.
+        eps2d: the dilation the scene will be rendered with (:data:`PHOTO_EPS2D`).
+
+    Returns:
+        (Gaussians (2·H·W) on ``image``'s device in float32, input-view PSNR history of :func:`refine_colors`).
+
+    Raises:
+        ValueError: shapes that do not match, image values outside [0, 1], depth not finite and positive.
+    """
+    H, W = _check(image, depth, viewmat, K)
+    dev = image.device
+    viewmat, K, depth = viewmat.to(dev, torch.float32), K.to(dev, torch.float32), depth.to(dev, torch.float32)
+    origins, dirs = camera_rays(viewmat[None], K[None], W, H)
+    origins, dirs = origins[0].reshape(-1, 3), dirs[0].reshape(-1, 3)
+    z = depth.reshape(-1)
+    dist = z / (dirs @ viewmat[2, :3])  # d·ẑ = cos of the angle to the optical axis
+    quats = _disk_frames(dirs, viewmat)
+    fx, fy = float(K[0, 0]), float(K[1, 1])
+
+    def disks(scale_px: float, zs: Tensor) -> tuple[Tensor, Tensor]:
+        means = origins + (dist * zs / z)[:, None] * dirs
+        sx, sy = scale_px * zs / fx, scale_px * zs / fy
+        return means, torch.stack([sx, sy, THICKNESS * torch.minimum(sx, sy)], dim=-1)
+
+    reach = 2 * BACKING_REACH + 1
+    z_back = F.max_pool2d(depth[None, None], reach, stride=1, padding=BACKING_REACH)[0, 0].reshape(-1)
+    m_front, s_front = disks(FRONT_SCALE_PX, z)
+    m_back, s_back = disks(BACKING_SCALE_PX, z_back * (1 + BACKING_OFFSET))
+    rgb = image.reshape(-1, 3).to(torch.float32)
+    sh = rgb_to_sh0(torch.cat([rgb, rgb]))[:, None]
+    layer = Gaussians(torch.cat([m_front, m_back]), torch.cat([quats, quats]), torch.cat([s_front, s_back]),
+                      torch.full((2 * H * W,), PHOTO_OPACITY, device=dev), sh)
+    return refine_colors(layer, image, viewmat, K, H * W, refine_steps, eps2d)
+
+
+UPSAMPLE_SIGMA_SPATIAL = 1.0
+"""Spatial standard deviation of :func:`upsample_depth`, in low-resolution cells."""
+UPSAMPLE_SIGMA_COLOR = 0.1
+"""Colour standard deviation of :func:`upsample_depth` (RGB distance, photograph in [0, 1])."""
+UPSAMPLE_FLOOR = 1e-3
+"""Range weight floor of :func:`upsample_depth`: a pixel unlike every nearby cell falls back to spatial weights."""
+
+
+def upsample_depth(depth: Tensor, guide: Tensor) -> Tensor:
+    """Edge-aware upsampling of a low-resolution depth map to the guide photograph's resolution: joint bilateral
+    upsampling (Kopf et al. 2007, "Joint bilateral upsampling", Eq. 2) in log-depth.
+
+    Each output pixel p averages the log-depths of the 4×4 low-resolution cells q around it with weights
+    exp(−‖p − q‖² / 2σ_s²) · (exp(−‖I(p) − Ĩ(q)‖² / 2σ_c²) + floor), distances in cells, I the photograph at p and Ĩ
+    the photograph area-averaged over cell q. A cell that straddles a colour edge looks like neither side, so
+    depth edges land on the photograph's colour edges instead of being smeared over the upsampling factor
+    (bilinear). σ_s = :data:`UPSAMPLE_SIGMA_SPATIAL`, σ_c = :data:`UPSAMPLE_SIGMA_COLOR`, floor
+    :data:`UPSAMPLE_FLOOR`.
+
+    Args:
+        depth: (h, w) z-depth, metres, finite and > 0.
+        guide: (H, W, 3) the photograph in [0, 1], H ≥ h, W ≥ w.
+
+    Returns:
+        (H, W) z-depth, metres, > 0, on ``depth``'s device and dtype (a copy of ``depth`` when the sizes are equal).
+
+    Raises:
+        ValueError: wrong shapes, a guide smaller than the depth map, or depth not finite and positive.
+    """
+    if depth.dim() != 2 or guide.dim() != 3 or guide.shape[-1] != 3:
+        raise ValueError(f"depth must be (h, w) and guide (H, W, 3), got {tuple(depth.shape)}, {tuple(guide.shape)}")
+    if not bool(torch.isfinite(depth).all()) or float(depth.min()) <= 0:
+        raise ValueError("depth must be finite and > 0 metres")
+    (h, w), (H, W) = depth.shape, guide.shape[:2]
+    if H < h or W < w:
+        raise ValueError(f"guide ({H}×{W}) must be at least as large as depth ({h}×{w})")
+    if (H, W) == (h, w):
+        return depth.clone()
+    dev, dt = depth.device, torch.float32
+    log_d = depth.to(dt).log()
+    guide = guide.to(dev, dt)
+    cells = F.interpolate(guide.permute(2, 0, 1)[None], size=(h, w), mode="area")[0].permute(1, 2, 0)  # (h, w, 3)
+    cy = (torch.arange(H, device=dev, dtype=dt) + 0.5) * (h / H) - 0.5  # low-res coordinates of the pixel centres
+    cx = (torch.arange(W, device=dev, dtype=dt) + 0.5) * (w / W) - 0.5
+    by, bx = cy.floor().long(), cx.floor().long()
+    num = torch.zeros(H, W, device=dev, dtype=dt)
+    den = torch.zeros(H, W, device=dev, dtype=dt)
+    for dy in (-1, 0, 1, 2):
+        qy = (by + dy).clamp(0, h - 1)
+        wy = torch.exp(-0.5 * ((cy - qy.to(dt)) / UPSAMPLE_SIGMA_SPATIAL) ** 2)
+        for dx in (-1, 0, 1, 2):
+            qx = (bx + dx).clamp(0, w - 1)
+            wx = torch.exp(-0.5 * ((cx - qx.to(dt)) / UPSAMPLE_SIGMA_SPATIAL) ** 2)
+            diff = guide - cells[qy][:, qx]  # (H, W, 3)
+            wr = torch.exp(-0.5 * (diff * diff).sum(-1) / UPSAMPLE_SIGMA_COLOR**2) + UPSAMPLE_FLOOR
+            wgt = wy[:, None] * wx[None, :] * wr
+            num += wgt * log_d[qy][:, qx]
+            den += wgt
+    return (num / den).exp().to(depth.dtype)
