@@ -115,7 +115,7 @@ def test_edge_aware_upsampling_puts_depth_edges_on_colour_edges():
     ramp = torch.linspace(0.0, 1.0, 16)[None].expand(16, 16).exp()  # no colour edge: log-linear depth stays so
     flat = upsample_depth(ramp, torch.full((128, 128, 3), 0.5))
     reference = F.interpolate(ramp.log()[None, None], size=(128, 128), mode="bilinear", align_corners=False)[0, 0]
-    assert float((flat.log() - reference)[24:-24, 24:-24].abs().max()) < 2e-3  # 3 cells from the clamped borders
+    assert float((flat.log() - reference)[24:-24, 24:-24].abs().max()) < 5e-4  # 3 cells from the clamped borders
     torch.testing.assert_close(upsample_depth(low, guide[:8, :8]), low)  # no upsampling: the same map
 
 
