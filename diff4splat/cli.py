@@ -59,7 +59,9 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
     """
     from models.bundle import DEFAULT_CONFIG
 
+    from .assemble import DEPTH_KINDS
     from .cameras import DEFAULT_AMPLITUDES, DEFAULT_TRAJECTORY, TRAJECTORIES
+    from .pipeline import DEFAULT_RESOLUTION
 
     config_help = f"shipped model config (tiny, small, paper) or a YAML path (default: {DEFAULT_CONFIG})"
 
@@ -78,6 +80,15 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
                    help="preset amplitude: for arc the sweep angle in radians (negative: to the left), "
                         "else a length in units of the scene depth (preset default if omitted)")
     g.add_argument("--frames", type=int, default=None, help="number of frames T = 1 + 4k (default: config)")
+    g.add_argument("--resolution", type=int, default=None,
+                   help=f"output height in pixels (the photo layer keeps the photograph at this resolution; default: "
+                        f"{DEFAULT_RESOLUTION}, or the model's height if larger)")
+    g.add_argument("--depth", type=Path, default=None, metavar="FILE",
+                   help="a depth map of the photograph for its Gaussians instead of the network's: EXR (channel Z), "
+                        ".npy, or a 16-bit PNG/TIFF (millimetres); NaN/inf/0 pixels are filled from the network")
+    g.add_argument("--depth-kind", choices=DEPTH_KINDS, default="metric",
+                   help="metric (z-depth in metres, used as given), relative (depth up to scale and shift) or inverse "
+                        "(disparity up to scale and shift), both fitted to the network's depth (default: metric)")
     g.add_argument("--prompt", default="", help="text describing the motion; empty = no text encoder")
     g.add_argument("--steps", type=int, default=None, help="sampler steps (default: config)")
     g.add_argument("--sampler", choices=("euler", "heun"), default=None, help="ODE sampler (default: config)")
@@ -197,9 +208,11 @@ def _check_generate_args(args) -> None:
 
     check_input_file(args.image, "image")
     check_output_dir(args.out, inputs=_generate_inputs(args), overwrite=args.overwrite, kind="generate")
-    for name in ("frames", "steps"):
+    for name in ("frames", "steps", "resolution"):
         if getattr(args, name) is not None:
             check_limit(name, check_positive_int(f"--{name}", getattr(args, name)), f"--{name}")
+    if args.depth is not None:
+        check_input_file(args.depth, "--depth")
     check_seed(args.seed, "--seed")
     check_prompt(args.prompt, "--prompt")
     if args.amplitude is not None and args.cameras is not None:
@@ -224,7 +237,7 @@ def _check_generate_args(args) -> None:
 
 def _generate_inputs(args) -> list:
     """The paths ``generate`` reads; ``--out`` may not be one of them or hold one."""
-    return [args.image, args.checkpoint, args.cameras, args.onnx]
+    return [args.image, args.checkpoint, args.cameras, args.onnx, args.depth]
 
 
 def _load_pipeline(args):
@@ -273,23 +286,35 @@ def _load_cameras(path: Path, frames: int | None, photo_shape: tuple[int, int], 
 
 
 def _load_inputs(args, pipe):
-    """Decode the photograph once; its displayed shape serves both the centre crop and the camera file.
+    """Decode the photograph once; its displayed shape serves the centre crop, the camera file and the depth map.
 
     Returns:
-        (image (H, W, 3) in [0, 1] at the model resolution, camera path at the model resolution).
+        (image (H, W, 3) in [0, 1] at the output resolution, camera path at the output resolution, the depth map
+        (H, W) or None).
     """
+    from .io.depth_maps import fit_depth_map, read_depth_map
     from .io.image import preprocess_image, read_image
+    from .pipeline import DEFAULT_RESOLUTION
 
     cfg = pipe.config
     if args.frames is not None:
         cfg.vae.num_latent_frames(args.frames)  # T = 1 + 4k, checked before any work
+    resolution = args.resolution if args.resolution is not None else max(DEFAULT_RESOLUTION, cfg.height)
+    width, height = pipe.output_size(resolution)
+    depth = None
+    if args.depth is not None:  # read before the photo is decoded: a bad file costs nothing
+        raw_depth = read_depth_map(args.depth, args.depth_kind)
     photo = read_image(args.image)
-    image = preprocess_image(photo, (cfg.height, cfg.width))
+    image = preprocess_image(photo, (height, width))
+    if args.depth is not None:
+        depth, note = fit_depth_map(raw_depth, photo.shape[:2], (height, width))
+        if note is not None and not args.quiet:
+            print(f"diff4splat: note: --depth: {note}", file=sys.stderr)
     if args.cameras is not None:
-        cameras = _load_cameras(args.cameras, args.frames, photo.shape[:2], cfg.width, cfg.height)
+        cameras = _load_cameras(args.cameras, args.frames, photo.shape[:2], width, height)
     else:
-        cameras = pipe.default_cameras(args.trajectory, args.frames, args.amplitude)
-    return image, cameras
+        cameras = pipe.default_cameras(args.trajectory, args.frames, args.amplitude, resolution=resolution)
+    return image, cameras, depth
 
 
 def _meta(args, pipe, result, source: str, versions: dict, timings: dict) -> dict:
@@ -311,8 +336,14 @@ def _meta(args, pipe, result, source: str, versions: dict, timings: dict) -> dic
         "trajectory": None if args.cameras is not None else args.trajectory,
         "cameras_file": None if args.cameras is None else str(args.cameras),
         "frames": len(result.cameras),
-        "width": cfg.width,
-        "height": cfg.height,
+        "width": result.cameras.width,
+        "height": result.cameras.height,
+        "model_width": cfg.width,
+        "model_height": cfg.height,
+        "eps2d": result.eps2d,
+        "photo_psnr_db": result.photo_psnr_db,
+        "depth_file": None if args.depth is None else str(args.depth),
+        "depth_kind": None if args.depth is None else args.depth_kind,
         "fps": args.fps,
         "seed": args.seed,
         "steps": result.steps,
@@ -337,12 +368,12 @@ def generate(args) -> dict:
     t_start = time.perf_counter()
     _check_generate_args(args)
     pipe, source, t_load, versions = _load_pipeline(args)
-    image, cameras = _load_inputs(args, pipe)
+    image, cameras, depth = _load_inputs(args, pipe)
     check_output_size(len(cameras), cameras.width, cameras.height)  # before any network runs
     result = pipe(image, cameras, args.prompt, steps=args.steps, sampler=args.sampler, seed=args.seed,
-                  progress=not args.quiet)
+                  progress=not args.quiet, depth=depth, depth_kind=args.depth_kind)
     t0 = time.perf_counter()
-    colors, depths, alphas = render_path(result.scene, result.cameras, progress=not args.quiet)
+    colors, depths, alphas = render_path(result.scene, result.cameras, eps2d=result.eps2d, progress=not args.quiet)
     timings = {"load_model": t_load, **result.timings, "render": time.perf_counter() - t0}
     meta = _meta(args, pipe, result, source, versions, timings)
     t0 = time.perf_counter()

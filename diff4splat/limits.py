@@ -40,6 +40,9 @@ LIMITS: dict[str, Limit] = {lim.name: lim for lim in (
           "never for sampling quality (the shipped configs use 8-50); only to study the sampler's convergence"),
     Limit("frames", 1001, "DIFF4SPLAT_MAX_FRAMES", "frames",
           "camera paths longer than 1001 frames (about 2 min at 8 fps) on a machine with the memory for them"),
+    Limit("resolution", 2048, "DIFF4SPLAT_MAX_RESOLUTION", "pixels of output height",
+          "output videos taller than 2048 pixels (the photo layer holds 2 Gaussians per output pixel: 8.4 M at "
+          "2048², about 1 GB with its deformation) on a machine with the memory for them"),
     Limit("image_pixels", 100_000_000, "DIFF4SPLAT_MAX_IMAGE_PIXELS", "pixels",
           "input photographs above 100 megapixels (the photo is decoded at full size before it is resized)"),
     Limit("output_bytes", 4 << 30, "DIFF4SPLAT_MAX_OUTPUT_BYTES", "bytes",

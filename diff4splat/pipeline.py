@@ -2,21 +2,26 @@
 
 Data flow (docs/DESIGN.md, "Data flow of generate"):
 
+The photograph and the camera path come at the *output* resolution; the networks run at the model resolution
+(the photograph area-resized, the intrinsics scaled).
+
 1. VAE encoder: the photograph as a one-frame video → first-frame latent (1, c, 1, h, w).
 2. Text encoder: prompt → tokens (1, L, d_text); skipped entirely for an empty prompt.
 3. Plücker rays (T, H, W, 6) of the path → packed to the latent grid (1, 1536, n, h, w).
 4. VideoDiT + flow-matching sampler (Euler/Heun, NFE steps): noise → video latent (1, c, n, h, w);
    the sampled first latent frame is replaced by the photograph's own latent, which is known exactly.
-5. LDRM(video latent, Plücker rays, frame times) → one Gaussian per pixel of the reference frame +
-   deformation maps at every distinct frame time → :class:`DynamicGaussians` (static when the
-   deformation is the identity), pruned of Gaussians that never contribute.
+5. LDRM(video latent, Plücker rays, frame times) → pixel-aligned maps of the source frames + deformation maps at
+   every distinct frame time.
+6. :func:`diff4splat.assemble.assemble_scene`: the photograph itself as the reference frame's Gaussians at the
+   output resolution (the photo layer, on the LDRM's depth or the user's), the LDRM's Gaussians for the other
+   source frames → :class:`DynamicGaussians` (static when the deformation is the identity), pruned of Gaussians
+   that repeat a surface, hide the photograph at the input view or never contribute.
 
 The networks are reached through a :class:`NetworkRuntime` (encode_image, encode_text, velocity,
 reconstruct): :class:`TorchRuntime` runs the PyTorch modules, ``diff4splat.onnx_runtime.OnnxRuntime``
-runs an ONNX export with onnxruntime. Everything else (validation, Plücker rays, noise, sampler,
-turning the LDRM's maps into Gaussians (:func:`to_gaussians`), pruning) is this module's single
-implementation for both. (A *runtime* runs the networks; the renderer's *backend*, gsplat or PyTorch,
-is another choice, made in :mod:`diff4splat.render`.)
+runs an ONNX export with onnxruntime. Everything else (validation, Plücker rays, noise, sampler, the scene's
+assembly, pruning) is this module's single implementation for both. (A *runtime* runs the networks; the
+renderer's *backend*, gsplat or PyTorch, is another choice, made in :mod:`diff4splat.render`.)
 """
 from __future__ import annotations
 
@@ -28,31 +33,36 @@ from pathlib import Path
 from typing import Protocol, runtime_checkable
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from models.bundle import DEFAULT_CONFIG, NETWORKS, WEIGHTS_DIR, Diff4SplatConfig, Diff4SplatModel, load_config
 from models.flow_matching import sample
 from models.ldrm import LDRMOutput, source_frame_indices
 
+from .assemble import DEPTH_KINDS, assemble_scene
 from .cameras import (
     DEFAULT_TRAJECTORY,
     CameraPath,
-    camera_rays,
     intrinsics_from_fov,
     make_trajectory,
     pack_plucker,
     plucker_rays,
 )
 from .checks import check_positive_int
-from .devices import Stopwatch, autocast_off
-from .gaussians import Gaussians, rgb_to_sh0
+from .devices import Stopwatch
 from .limits import check_limit
 from .offload import ModelOffload
+from .photo import PHOTO_EPS2D
 from .prune import duplicate_mask, occluder_mask, prune_mask
 from .scene import DynamicGaussians
 
-__all__ = ["Diff4SplatPipeline", "GenerationResult", "load_model", "to_gaussians", "NetworkRuntime", "TorchRuntime",
-           "check_seed", "check_prompt", "SEED_RANGE"]
+__all__ = ["Diff4SplatPipeline", "GenerationResult", "load_model", "NetworkRuntime", "TorchRuntime",
+           "check_seed", "check_prompt", "SEED_RANGE", "DEFAULT_RESOLUTION", "DTYPES", "OFFLOAD_MODES"]
+
+DEFAULT_RESOLUTION = 256
+"""Output height, pixels, of ``generate`` when ``--resolution`` is not given (or the model's height if larger): the
+photo layer keeps the photograph at this resolution whatever the model's (base: 64²)."""
 
 SEED_RANGE = (-(2**63), 2**64 - 1)
 """Seeds ``torch.Generator.manual_seed`` accepts (int64 or uint64)."""
@@ -89,61 +99,6 @@ def check_prompt(prompt: object, name: str = "prompt") -> str:
         raise ValueError(f"{name}: not valid UTF-8 ({byte} at position {e.start}); "
                          f"give the text in UTF-8") from None
     return prompt
-
-
-def to_gaussians(
-    out: LDRMOutput,
-    viewmats: Tensor,  # (S, 4, 4) world-to-camera of the source frames
-    Ks: Tensor,  # (S, 3, 3) pixels
-    batch_index: int = 0,
-) -> tuple[Gaussians, Tensor | None, Tensor | None, Tensor | None]:
-    """Pixel-aligned Gaussians (one per pixel of each source frame) and flattened deformation maps.
-
-    Gaussian order is source-frame-major, then row-major pixels: Gaussian s·H·W + y·W + x sits on the
-    ray through pixel (x, y) of source camera s, μ = o + distance·d with (o, d) the pixel-centre ray of
-    :func:`diff4splat.cameras.camera_rays`; the first H·W Gaussians are the reference frame's. Colours are
-    stored as SH degree 0 via ``rgb_to_sh0`` after clamping to [1e-4, 1 − 1e-4].
-
-    Args:
-        out: LDRM output; maps (B, S, H, W, ·).
-        viewmats: (S, 4, 4) world-to-camera of the S source cameras (``models.ldrm.source_frame_indices``).
-        Ks: (S, 3, 3) intrinsics of the source cameras at (H, W), pixels.
-        batch_index: which scene of the batch.
-
-    Returns:
-        Gaussians with M = S·H·W; d_means (K, M, 3), d_quats (K, M, 4), d_scales (K, M, 3), or None. Computed in
-        float32 at least with autocast off (a bfloat16 region would round the ray directions to ~0.2 %, a pixel
-        at 512²), whatever the maps' dtype.
-
-    Raises:
-        ValueError: ``viewmats``/``Ks`` not (S, 4, 4)/(S, 3, 3) for the S source frames of ``out``, or
-            ``batch_index`` out of range.
-    """
-    B, S, H, W = out.distance.shape
-    if not -B <= batch_index < B:
-        raise ValueError(f"batch_index {batch_index} out of range for batch size {B}")
-    if tuple(viewmats.shape) != (S, 4, 4):
-        raise ValueError(f"viewmats must have shape ({S}, 4, 4) (one per source frame), got {tuple(viewmats.shape)}")
-    if tuple(Ks.shape) != (S, 3, 3):
-        raise ValueError(f"Ks must have shape ({S}, 3, 3) (one per source frame), got {tuple(Ks.shape)}")
-    dtype = torch.promote_types(out.distance.dtype, torch.float32)
-    get = lambda name: getattr(out, name)[batch_index].to(dtype)  # noqa: E731
-    with autocast_off():
-        origins, dirs = camera_rays(viewmats.to(dtype), Ks.to(dtype), W, H)  # (S, H, W, 3)
-        means = origins + get("distance")[..., None] * dirs
-        colors = get("colors").clamp(1e-4, 1 - 1e-4)
-        M = S * H * W
-        gaussians = Gaussians(
-            means=means.reshape(M, 3),
-            quats=get("quats").reshape(M, 4),
-            scales=get("scales").reshape(M, 3),
-            opacities=get("opacities").reshape(M),
-            sh=rgb_to_sh0(colors).reshape(M, 1, 3),
-        )
-    if out.d_means is None:
-        return gaussians, None, None, None
-    flat = [get(f).flatten(1, 3) for f in ("d_means", "d_quats", "d_scales")]
-    return gaussians, *flat
 
 
 @runtime_checkable
@@ -259,8 +214,9 @@ class GenerationResult:
     """What :meth:`Diff4SplatPipeline.__call__` returns.
 
     Attributes:
-        scene: the 4D scene (world frame = first camera's frame, metres).
-        cameras: the camera path used, re-expressed relative to its first camera.
+        scene: the 4D scene (world frame = first camera's frame, metres); its first ``photo_gaussians`` are the
+            photo layer (:mod:`diff4splat.photo`) where not pruned.
+        cameras: the camera path used, re-expressed relative to its first camera, at the output resolution.
         latents: (1, c, n, h, w) the sampled video latent fed to the LDRM.
         steps: sampler steps actually run (the argument, or ``config.sampling.steps``).
         sampler: "euler" or "heun", the sampler actually used (the argument, or ``config.sampling.sampler``).
@@ -272,8 +228,12 @@ class GenerationResult:
             :func:`diff4splat.prune.occluder_mask`).
         source_frames: (S,) long, the video frame of each source frame whose rays carry a grid of
             Gaussians (``models.ldrm.source_frame_indices``).
-        gaussian_index: (M,) long, index of each kept Gaussian in the unpruned S·H·W grid (source-frame-major,
-            then row-major pixels; :func:`to_gaussians`), increasing.
+        gaussian_index: (M,) long, index of each kept Gaussian in the unpruned scene, increasing: the photo
+            layer's 2·H_o·W_o (front disks row-major, then backing disks; output resolution), then source frames
+            1…S−1 with h·w each (model resolution, row-major; :func:`diff4splat.assemble.assemble_scene`).
+        eps2d: the screen-space dilation, pixels², the scene is rendered with (meta.json ``eps2d``).
+        photo_psnr_db: PSNR of the photo layer alone rendered at the input camera against the photograph.
+        photo_gaussians: 2·H_o·W_o, the photo layer's share of the unpruned scene.
     """
 
     scene: DynamicGaussians
@@ -286,6 +246,9 @@ class GenerationResult:
     prune_stats: dict[str, int] = field(default_factory=dict)
     source_frames: Tensor | None = None
     gaussian_index: Tensor | None = None
+    eps2d: float = PHOTO_EPS2D
+    photo_psnr_db: float = float("nan")
+    photo_gaussians: int = 0
 
 
 def load_model(checkpoint: str | Path | None = None, config: str = DEFAULT_CONFIG, seed: int = 0, *,
@@ -381,26 +344,45 @@ class Diff4SplatPipeline:
 
         return cls(OnnxRuntime(directory, providers=providers))
 
-    def default_cameras(self, trajectory: str = DEFAULT_TRAJECTORY, num_frames: int | None = None,
-                        amplitude: float | None = None) -> CameraPath:
-        """A preset trajectory at the model's resolution and field of view (``fov_y_deg``); ``amplitude`` is in
-        radians for ``arc`` and in units of ``config.scene_depth`` for the other presets.
+    def output_size(self, resolution: int | None = None) -> tuple[int, int]:
+        """(width, height) of the output for ``resolution`` pixels of height (None: the model resolution): the
+        model's aspect ratio at that height.
 
         Raises:
-            ValueError: unknown preset or an invalid frame count; ``num_frames`` above the ``frames``
+            ValueError: ``resolution`` not a positive int, or one at which the model's aspect ratio gives no whole
+                width; above the ``resolution`` limit (:class:`diff4splat.limits.LimitError`).
+        """
+        c = self.config
+        if resolution is None:
+            return c.width, c.height
+        resolution = check_limit("resolution", check_positive_int("resolution", resolution), "resolution")
+        if (resolution * c.width) % c.height:
+            raise ValueError(f"resolution {resolution}: the model's {c.width}×{c.height} aspect ratio gives no whole "
+                             f"width at that height")
+        return resolution * c.width // c.height, resolution
+
+    def default_cameras(self, trajectory: str = DEFAULT_TRAJECTORY, num_frames: int | None = None,
+                        amplitude: float | None = None, resolution: int | None = None) -> CameraPath:
+        """A preset trajectory at the model's field of view (``fov_y_deg``) and ``resolution`` pixels of height
+        (:meth:`output_size`; None: the model resolution); ``amplitude`` is in radians for ``arc`` and in units of
+        ``config.scene_depth`` for the other presets.
+
+        Raises:
+            ValueError: unknown preset or an invalid frame count or resolution; ``num_frames`` above the ``frames``
                 limit (:class:`diff4splat.limits.LimitError`).
         """
         c = self.config
         if num_frames is not None:
             check_limit("frames", num_frames, "frames")
-        K = intrinsics_from_fov(c.width, c.height, fov_y_deg=c.fov_y_deg)
-        return make_trajectory(trajectory, num_frames or c.num_frames, K, c.width, c.height,
+        width, height = self.output_size(resolution)
+        K = intrinsics_from_fov(width, height, fov_y_deg=c.fov_y_deg)
+        return make_trajectory(trajectory, num_frames or c.num_frames, K, width, height,
                                scene_depth=c.scene_depth, amplitude=amplitude)
 
     @torch.no_grad()
     def __call__(
         self,
-        image: Tensor,  # (H, W, 3) in [0, 1] at the model resolution
+        image: Tensor,  # (H, W, 3) in [0, 1] at the output resolution
         cameras: CameraPath,
         prompt: str = "",
         *,
@@ -409,12 +391,16 @@ class Diff4SplatPipeline:
         seed: int = 0,
         progress: bool = False,
         video_latents: Tensor | None = None,
+        depth: Tensor | None = None,
+        depth_kind: str = "metric",
     ) -> GenerationResult:
         """Generate a 4D scene.
 
         Args:
-            image: (H, W, 3) float in [0, 1], H×W = the model resolution (see :func:`diff4splat.io.load_image`).
-            cameras: T = 1 + 4k cameras at the model resolution; re-expressed relative to the first.
+            image: (H, W, 3) float in [0, 1] at the output resolution, the model's aspect ratio (H×W = the model
+                resolution, or e.g. :meth:`output_size`; see :func:`diff4splat.io.load_image`). The networks see it
+                area-resized to the model resolution; the photo layer keeps every pixel.
+            cameras: T = 1 + 4k cameras at the output resolution (W × H); re-expressed relative to the first.
             prompt: text describing the motion; "" runs no text encoder.
             steps: sampler steps (default: config.sampling.steps).
             sampler: "euler" or "heun" (default: config.sampling.sampler).
@@ -422,28 +408,39 @@ class Diff4SplatPipeline:
             progress: tqdm progress bars.
             video_latents: (1, c, n, h, w) DiT-scaled video latent used instead of sampling one (ablations:
                 pure noise, or the encoded true video); its frame 0 is replaced by the photograph's latent.
+            depth: (H, W) a depth map of the photograph for the photo layer instead of the network's (NaN/inf or
+                ≤ 0 pixels are holes the network's depth fills); ``depth_kind``: "metric" (z-depth, metres, used as
+                given), "relative" or "inverse" (aligned to the network's depth;
+                :func:`diff4splat.assemble.photo_depth`).
 
         Returns:
             :class:`GenerationResult`.
 
         Raises:
-            ValueError: wrong image shape or range, cameras at another resolution, T ≠ 1 + 4k,
-                an unknown sampler or steps < 1; a prompt the runtime cannot encode (an ONNX
-                export made without the text encoder) or that is not valid UTF-8; a seed outside
-                :data:`SEED_RANGE`; steps or T above their limits (:class:`diff4splat.limits.LimitError`,
-                checked before any network runs); a camera path that sees none of the scene (every
-                Gaussian pruned, e.g. focal lengths so long that the field of view is empty); ``video_latents``
-                of another shape than the sampler's.
+            ValueError: wrong image shape or range (not the model's aspect ratio), cameras at another resolution
+                than the image, T ≠ 1 + 4k, an unknown sampler or steps < 1; a prompt the runtime cannot encode (an
+                ONNX export made without the text encoder) or that is not valid UTF-8; a seed outside
+                :data:`SEED_RANGE`; steps, T or the resolution above their limits
+                (:class:`diff4splat.limits.LimitError`, checked before any network runs); a camera path that sees
+                none of the scene (every Gaussian pruned, e.g. focal lengths so long that the field of view is
+                empty); ``video_latents`` of another shape than the sampler's; a depth map that is not (H, W), has
+                no valid pixel or cannot be aligned; an unknown ``depth_kind``.
         """
         cfg, runtime = self.config, self.runtime
         dev = self.device
-        if image.dim() != 3 or tuple(image.shape) != (cfg.height, cfg.width, 3):
-            raise ValueError(f"image must have shape ({cfg.height}, {cfg.width}, 3), got {tuple(image.shape)}")
+        if image.dim() != 3 or image.shape[-1] != 3 or image.shape[0] * cfg.width != image.shape[1] * cfg.height:
+            raise ValueError(f"image must have shape (H, W, 3) with the model's aspect ratio {cfg.width}:{cfg.height} "
+                             f"(e.g. ({cfg.height}, {cfg.width}, 3)), got {tuple(image.shape)}")
+        H_o, W_o = int(image.shape[0]), int(image.shape[1])
+        self.output_size(H_o)  # the resolution limit
         if not bool(torch.isfinite(image).all()) or float(image.min()) < 0 or float(image.max()) > 1:
             raise ValueError("image values must be finite and lie in [0, 1]")
-        if (cameras.width, cameras.height) != (cfg.width, cfg.height):
-            raise ValueError(f"cameras are {cameras.width}×{cameras.height}, "
-                             f"the model runs at {cfg.width}×{cfg.height}")
+        if (cameras.width, cameras.height) != (W_o, H_o):
+            raise ValueError(f"cameras are {cameras.width}×{cameras.height}, the image is {W_o}×{H_o}")
+        if depth_kind not in DEPTH_KINDS:
+            raise ValueError(f"depth_kind must be one of {DEPTH_KINDS}, got {depth_kind!r}")
+        if depth is not None and tuple(depth.shape) != (H_o, W_o):
+            raise ValueError(f"depth must have shape ({H_o}, {W_o}) like the image, got {tuple(depth.shape)}")
         n = cfg.vae.num_latent_frames(len(cameras))  # raises for T ≠ 1 + 4k
         steps = cfg.sampling.steps if steps is None else steps
         sampler = cfg.sampling.sampler if sampler is None else sampler
@@ -453,10 +450,15 @@ class Diff4SplatPipeline:
         check_limit("frames", len(cameras), "cameras: a path of")
         seed, prompt = check_seed(seed), check_prompt(prompt)
         cameras = cameras.relative_to_first().to(dtype=torch.float32, device=dev)
+        cameras_model = cameras.resized(cfg.width, cfg.height)
+        image = image.to(dev, torch.float32)
         timings: dict[str, float] = {}
 
         clock = Stopwatch(dev)
-        video = (image.to(dev, torch.float32) * 2 - 1).permute(2, 0, 1)[None, :, None]  # (1, 3, 1, H, W)
+        small = image.permute(2, 0, 1)[None]
+        if (H_o, W_o) != (cfg.height, cfg.width):
+            small = F.interpolate(small, size=(cfg.height, cfg.width), mode="area")
+        video = (small * 2 - 1)[:, :, None]  # (1, 3, 1, h·8, w·8) in [−1, 1]
         image_latent = runtime.encode_image(video)  # (1, c, 1, h, w)
         timings["encode_image"] = clock.lap()
 
@@ -466,7 +468,7 @@ class Diff4SplatPipeline:
             text, text_mask = text.to(dev), text_mask.to(dev)
         timings["encode_text"] = clock.lap()
 
-        plucker = pack_plucker(plucker_rays(cameras.viewmats, cameras.Ks, cfg.width, cfg.height)[None],
+        plucker = pack_plucker(plucker_rays(cameras_model.viewmats, cameras_model.Ks, cfg.width, cfg.height)[None],
                                cfg.vae.temporal_factor, cfg.vae.spatial_factor)  # (1, 1536, n, h, w)
 
         gen = torch.Generator(device="cpu").manual_seed(seed)  # CPU draws: the same noise on every device
@@ -491,20 +493,20 @@ class Diff4SplatPipeline:
         if isinstance(runtime, TorchRuntime):
             runtime.release()  # the networks are done: an offloaded one leaves the device before pruning renders
         sources = torch.tensor(source_frame_indices(cfg.ldrm.gaussian_frames, n, cfg.vae.temporal_factor), device=dev)
-        gaussians, d_means, d_quats, d_scales = to_gaussians(out, cameras.viewmats[sources], cameras.Ks[sources])
-        times = key_times if d_means is not None else None
-        scene = DynamicGaussians(gaussians, times, d_means, d_quats, d_scales).without_deformation(cfg.static_atol)
+        times = key_times if out.d_means is not None else None
+        scene, grid, photo = assemble_scene(out, sources, cameras_model, cameras, image, times, depth=depth,
+                                            depth_kind=depth_kind)
+        scene = scene.without_deformation(cfg.static_atol)
         timings["reconstruct"] = clock.lap()
 
         index = torch.arange(scene.num_gaussians, device=dev)
         duplicates = occluders = 0
         if len(sources) > 1:
-            grid = torch.arange(len(sources), device=dev).repeat_interleave(scene.num_gaussians // len(sources))
             dup = duplicate_mask(scene, grid, cameras.viewmats[sources], cameras.Ks[sources], cameras.times[sources],
-                                 cfg.width, cfg.height)
+                                 W_o, H_o)
             scene, index, duplicates = scene.select(~dup), index[~dup], int(dup.sum())
             occl = occluder_mask(scene, grid[index], cameras.viewmats[0], cameras.Ks[0], float(cameras.times[0]),
-                                 cfg.width, cfg.height)
+                                 W_o, H_o)
             scene, index, occluders = scene.select(~occl), index[~occl], int(occl.sum())
         keep, stats = prune_mask(scene, cameras, min_opacity=cfg.prune_opacity)
         scene, index = scene.select(keep), index[keep]
@@ -515,4 +517,5 @@ class Diff4SplatPipeline:
             raise ValueError(_sees_nothing(cameras, stats, cfg.prune_opacity))
         return GenerationResult(scene=scene, cameras=cameras, latents=latents, timings=timings, prune_stats=stats,
                                 steps=steps, sampler=sampler, shift=cfg.sampling.shift, source_frames=sources,
-                                gaussian_index=index)
+                                gaussian_index=index, eps2d=PHOTO_EPS2D, photo_psnr_db=photo["photo_psnr_db"],
+                                photo_gaussians=photo["photo_gaussians"])

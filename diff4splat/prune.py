@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import math
 
+import cv2
+import numpy as np
 import torch
 from torch import Tensor
 
 from .cameras.path import CameraPath
 from .checks import check_finite, check_positive, check_positive_int
-from .render.defaults import NEAR_PLANE
+from .render.defaults import EPS2D, NEAR_PLANE
 from .render.projection import project_gaussians
 from .render.rasterize import rasterize
 from .scene import DynamicGaussians
@@ -169,16 +171,20 @@ def occluder_mask(
     min_alpha: float = 0.5,
     depth_tolerance: float = 0.05,
 ) -> Tensor:  # (M,) bool, True = occludes the photograph (drop)
-    """Which Gaussians of later source frames would hide the photograph at the input view.
+    """Which Gaussians of later source frames would cover the photograph at the input view.
 
-    The input frame (source 0) is observed: the photograph shows its surface unoccluded at ``time``. The
-    Gaussians of source 0 are rendered from the input camera at ``time`` (accumulated alpha A, expected
-    depth D); a Gaussian of a later source frame, deformed to ``time``, that projects inside the image
-    (z > near plane) to a pixel with A ≥ ``min_alpha`` and lies in front of that surface, z < (1 −
-    ``depth_tolerance``)·D, contradicts the photograph and is dropped. Behind the surface, where A <
-    ``min_alpha`` or outside the input view, it is kept (what the photograph cannot show). Generated
-    frames place such floaters where their content is wrong (e.g. the far side of a 360° orbit seen back
-    at the input camera). Our rule (docs/DESIGN.md, "Data flow of generate"), not the paper's.
+    The input frame (source 0, the photo layer) is observed: the photograph shows its surface unoccluded at
+    ``time``. The Gaussians of source 0 are rendered from the input camera at ``time`` (accumulated alpha A,
+    expected depth D). A Gaussian of a later source frame, deformed to ``time``, is tested over its whole screen
+    footprint, not only its centre: the square of half-width r = 3·(largest scale)·f/z + 3√eps2d pixels around
+    its projected centre (an upper bound of its 3σ ellipse), clipped to the image. If that square holds a pixel
+    with A ≥ ``min_alpha`` whose surface the Gaussian's centre is not clearly behind, z < (1 +
+    ``depth_tolerance``)·D, it would be composited over (in front) or into (on) the photograph there and is
+    dropped: what it describes there, the photograph already shows. Gaussians wholly behind the surface, over
+    uncovered pixels, outside the image or behind the camera are kept (what the photograph cannot show:
+    disocclusions, the far side). The largest covered D over the square comes from a grey dilation of the depth
+    map (:func:`_footprint_max`, squares up to 20 % larger), so the test is conservative. Our rule
+    (docs/DESIGN.md, "Data flow of generate"), not the paper's.
 
     Args:
         scene: M Gaussians (static or deformed), metres.
@@ -208,9 +214,50 @@ def occluder_mask(
     if cand.numel() == 0 or not bool((source == 0).any()):
         return out
     g = scene.at(float(time), gate=0.0)
-    covered, z, d = _surface_lookup(g.select(source == 0), g.means[cand], viewmat, K, width, height, min_alpha)
-    out[cand[covered & (z < (1 - depth_tolerance) * d)]] = True
+    surface = g.select(source == 0)
+    rendered, alpha, _ = rasterize(surface.means, surface.quats, surface.scales, surface.opacities,
+                                   surface.opacities[:, None], viewmat[None], K[None], width, height, render_mode="ED")
+    depth = torch.where(alpha[0, ..., 0] >= min_alpha, rendered[0, ..., 0], 0.0)  # (H, W), 0: uncovered
+    p = g.means[cand] @ viewmat[:3, :3].T + viewmat[:3, 3]
+    z = p[:, 2]
+    front = z > NEAR_PLANE
+    zs = torch.where(front, z, torch.ones_like(z))
+    u, v = K[0, 0] * p[:, 0] / zs + K[0, 2], K[1, 1] * p[:, 1] / zs + K[1, 2]
+    f = torch.maximum(K[0, 0], K[1, 1])
+    r = 3.0 * g.scales[cand].max(dim=1).values * f / zs + 3.0 * math.sqrt(EPS2D)
+    d_max = _footprint_max(depth, u, v, r)
+    out[cand[front & (z < (1 + depth_tolerance) * d_max)]] = True
     return out
+
+
+def _footprint_max(depth: Tensor, u: Tensor, v: Tensor, r: Tensor) -> Tensor:
+    """An upper bound of ``depth`` (H, W) over the square of half-width ``r`` around each (u, v) (P,) (pixel
+    coordinates, pixel (i, j) centred at (j + 0.5, i + 0.5)), within the image; 0 where the square misses it.
+
+    The half-widths are rounded up to a geometric ladder (at most 19 % larger) and each rung is one grey dilation
+    (OpenCV's van Herk/Gil-Werman ``cv2.dilate``, O(1) per pixel whatever the square) read at the pixel nearest
+    the centre inside the image (a square around it holds the part of the original square inside the image).
+    """
+    H, W = depth.shape
+    hit = (u + r >= 0) & (u - r < W) & (v + r >= 0) & (v - r < H)
+    col = u.floor().clamp(0, W - 1).long()
+    row = v.floor().clamp(0, H - 1).long()
+    cap = float(H + W)
+    rung = torch.ceil(torch.log(r.clamp(1.0, cap)) / math.log(_RUNG)).long()  # r ≤ _RUNG**rung
+    out = torch.zeros_like(u)
+    host = depth.detach().cpu().numpy()
+    for k in torch.unique(rung[hit]).tolist():
+        half = int(math.ceil(min(_RUNG**k, cap)))
+        size = 2 * half + 1
+        dilated = torch.from_numpy(cv2.dilate(host, np.ones((size, size), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                                              borderValue=0.0)).to(depth)
+        sel = torch.nonzero(hit & (rung == k)).squeeze(1)
+        out[sel] = dilated[row[sel], col[sel]].to(out.dtype)
+    return out
+
+
+_RUNG = 1.2
+"""Ratio between successive half-widths of :func:`_footprint_max` (its over-estimate of a footprint, ≤ 20 %)."""
 
 
 def _check_thresholds(min_alpha: object, depth_tolerance: object) -> float:

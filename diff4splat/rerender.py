@@ -58,7 +58,7 @@ from .io.output import fill_empty_depth, load_deformation
 from .io.structured import read_json
 from .io.video import check_fps, save_image, save_video, to_uint8
 from .limits import check_limit, check_output_size
-from .render.defaults import NEAR_PLANE, meta_background
+from .render.defaults import NEAR_PLANE, meta_background, meta_eps2d
 from .render.sequence import render_path
 from .scene import DynamicGaussians
 from .viewer.page import VIEWER_NAME, write_viewer
@@ -340,8 +340,9 @@ def rerender(
     scene = path_scene(src, path.times)
     t_load = time.perf_counter() - t_start
     t0 = time.perf_counter()
-    background = meta_background(src.meta)
-    colors, depths, alphas = render_path(scene, path.to(device), background=background, progress=progress)
+    background, eps2d = meta_background(src.meta), meta_eps2d(src.meta)
+    colors, depths, alphas = render_path(scene, path.to(device), background=background, eps2d=eps2d,
+                                         progress=progress)
     colors, depths, alphas = colors.cpu(), depths.cpu(), alphas.cpu()  # waits for the device: in t_render
     t_render = time.perf_counter() - t0
     if depth is None:
@@ -362,6 +363,7 @@ def rerender(
         "height": path.height,
         "fps": fps,
         "background": list(background),
+        "eps2d": eps2d,
         "num_gaussians": src.scene.num_gaussians,
         "device": str(device),
         "timings_s": {"load": t_load, "render": t_render},
@@ -384,7 +386,8 @@ def _write(out, path: CameraPath, scene: DynamicGaussians, colors: Tensor, depth
             save_depth_exr(tmp / "depth" / f"{i:04d}.exr", depths[i].cpu(), alphas[i].clamp(0, 1).cpu())
         save_video(tmp / "video.mp4", _even(rgb), fps=meta["fps"])
         save_cameras_json(tmp / "cameras.json", path.to("cpu"))
-        write_viewer(tmp / VIEWER_NAME, scene, path.to("cpu"), fps=meta["fps"], background=meta_background(meta))
+        write_viewer(tmp / VIEWER_NAME, scene, path.to("cpu"), fps=meta["fps"], background=meta_background(meta),
+                     eps2d=meta_eps2d(meta))
         meta["timings_s"]["write"] = time.perf_counter() - t0
         meta["timings_s"]["total"] = time.perf_counter() - t_start
         (tmp / "meta.json").write_text(json.dumps(meta, indent=2))

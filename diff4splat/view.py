@@ -18,7 +18,7 @@ import threading
 from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
-from .render.defaults import meta_background
+from .render.defaults import meta_background, meta_eps2d
 from .viewer.data import ViewerPayload, viewer_payload
 from .viewer.page import VIEWER_NAME, viewer_html
 
@@ -41,7 +41,8 @@ def folder_payload(folder: str | os.PathLike) -> ViewerPayload:
     src = load_scene_folder(folder)
     fps = src.meta.get("fps")
     fps = fps if isinstance(fps, (int, float)) and not isinstance(fps, bool) and fps > 0 else 8
-    return viewer_payload(src.scene, src.cameras, fps=fps, budget=None, background=meta_background(src.meta))
+    return viewer_payload(src.scene, src.cameras, fps=fps, budget=None, background=meta_background(src.meta),
+                          eps2d=meta_eps2d(src.meta))
 
 
 class _Handler(SimpleHTTPRequestHandler):

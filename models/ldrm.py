@@ -30,7 +30,7 @@ Architecture (B scenes, latent (B, c, n, h, w), patch p, tokens N = n·(h/p)·(w
 
 Gaussians are predicted in the world frame in which the Plücker rays are given (the network
 sees world-frame rays). The network returns plain tensors (:class:`LDRMOutput`); placing each
-pixel's Gaussian on its source camera's ray (``diff4splat.pipeline.to_gaussians``) is the pipeline's job.
+pixel's Gaussian on its source camera's ray (``diff4splat.assemble.to_gaussians``) is the pipeline's job.
 """
 from __future__ import annotations
 

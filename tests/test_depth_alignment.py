@@ -1,8 +1,8 @@
-"""Tests for data_prep.depth_alignment: exact recovery, robustness to outliers, shared video fit, errors."""
+"""Tests for diff4splat.depth_alignment: exact recovery, robustness to outliers, shared video fit, errors."""
 import numpy as np
 import pytest
 
-from data_prep.depth_alignment import (
+from diff4splat.depth_alignment import (
     DepthAlignment,
     align_video,
     fit_scale_shift,

@@ -197,7 +197,7 @@ def test_reconstruction_losses_equal_a_hand_computation(clips):
     plus the generator's randperm draw, photo/depth/smooth come from training.losses on those renders, and the
     motion loss is the end-point error of each visible track's pixel-aligned Gaussian, found by projecting
     its frame-0 point by hand (u = fx·x/z + cx, v = fy·y/z + cy)."""
-    from diff4splat.pipeline import to_gaussians
+    from diff4splat.assemble import to_gaussians
 
     stage = StageConfig(height=SIZE, width=SIZE, num_frames=FRAMES, render_frames=3, weights=WEIGHTS,
                         train=("ldrm",), objectives=("reconstruction",), deformation=True, motion=True)

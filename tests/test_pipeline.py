@@ -5,10 +5,11 @@ import pytest
 import torch
 from helpers import EXAMPLE_IMAGE, tiny_model
 
+from diff4splat.assemble import to_gaussians
 from diff4splat.cameras import camera_rays
 from diff4splat.gaussians import sh0_to_rgb
 from diff4splat.io import load_image
-from diff4splat.pipeline import Diff4SplatPipeline, TorchRuntime, to_gaussians
+from diff4splat.pipeline import Diff4SplatPipeline, TorchRuntime
 from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
 from models.ldrm import LDRMOutput
 

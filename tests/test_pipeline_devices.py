@@ -143,8 +143,8 @@ def test_random_models_are_built_in_the_dtype_and_on_the_device_asked_for():
 def test_gaussians_are_built_in_float32_inside_a_bfloat16_autocast_region():
     """Training renders the LDRM's maps under bf16 autocast: the ray geometry, the Gaussians and the LDRM's
     activations stay float32 (a bfloat16 einsum would move centres by ~0.2 % of their distance)."""
+    from diff4splat.assemble import to_gaussians
     from diff4splat.cameras import intrinsics_from_fov
-    from diff4splat.pipeline import to_gaussians
     from models.ldrm import LDRMConfig, LDRMOutput, gaussian_activations
 
     g = torch.Generator().manual_seed(0)

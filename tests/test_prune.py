@@ -5,7 +5,7 @@ import torch
 
 from diff4splat.cameras import CameraPath, intrinsics_from_fov
 from diff4splat.gaussians import Gaussians
-from diff4splat.prune import duplicate_mask, occluder_mask, prune_scene, visibility_mask
+from diff4splat.prune import _footprint_max, duplicate_mask, occluder_mask, prune_scene, visibility_mask
 from diff4splat.render import rasterize_dense
 from diff4splat.render.defaults import NEAR_PLANE
 from diff4splat.render.sequence import render_path
@@ -304,35 +304,75 @@ def test_duplicate_mask_bad_inputs_raise(change, match):
         duplicate_mask(*args.values(), **kw)
 
 
-def test_occluder_mask_drops_later_gaussians_in_front_of_the_photo_only():
-    """In front of the input view's surface at the photo's time: dropped; on it, behind it, outside the image or
+def test_occluder_mask_drops_later_gaussians_in_front_of_or_on_the_photo_only():
+    """In front of the input view's surface at the photo's time or on it: dropped; behind it, outside the image or
     where the input frame covers nothing: kept; source 0 never."""
     wall = _plane(3.0, cols=range(W_DUP // 2))  # the photo's surface covers the left half
     rows = range(6, 10)
     front, on, back = _plane(2.0, rows, range(2, 6)), _plane(3.0, rows, range(2, 6)), _plane(4.0, rows, range(2, 6))
-    uncovered = _plane(2.0, rows, range(W_DUP // 2 + 2, W_DUP // 2 + 6))  # in front of nothing
+    uncovered = _plane(2.0, rows, range(W_DUP // 2 + 4, W_DUP // 2 + 7))  # in front of nothing
     outside = _plane(2.0, rows, range(2, 6), viewmat=_rot_y(180.0))  # behind the input camera
     parts = (wall, front, on, back, uncovered, outside)
-    scene = _cat(*(_gaussians(p) for p in parts))
+    # small candidates (2 cm: a 2-pixel footprint here), so that "uncovered" reaches no covered pixel
+    scene = _cat(_gaussians(wall), *(_gaussians(p, scale=0.02) for p in parts[1:]))
     source = torch.cat([_source(len(wall)), torch.full((sum(len(p) for p in parts[1:]),), 2, dtype=torch.long)])
     drop = occluder_mask(scene, source, torch.eye(4, dtype=torch.float64), _K()[0], 0.0, W_DUP, H_DUP)
     sizes = [len(p) for p in parts]
     chunks = drop.split(sizes)
-    assert [bool(c.all()) for c in chunks] == [False, True, False, False, False, False]
-    assert [bool(c.any()) for c in chunks] == [False, True, False, False, False, False]
+    assert [bool(c.all()) for c in chunks] == [False, True, True, False, False, False]
+    assert [bool(c.any()) for c in chunks] == [False, True, True, False, False, False]
     # brute force: a render of the wall alone, each point projected by hand
     K = _K()[0]
-    for p, expect in zip(parts[1:], [True, False, False, False, False], strict=True):
+    for p, expect in zip(parts[1:], [True, True, False, False, False], strict=True):
         z = p[:, 2]
         u, v = K[0, 0] * p[:, 0] / z + K[0, 2], K[1, 1] * p[:, 1] / z + K[1, 2]
         inside = (z > 0) & (u >= 0) & (u < W_DUP // 2) & (v >= 0) & (v < H_DUP)
-        assert bool((inside & (z < 0.95 * 3.0)).all()) == expect
+        assert bool((inside & (z < 1.05 * 3.0)).all()) == expect
+
+
+def test_occluder_mask_tests_the_whole_footprint():
+    """A large Gaussian behind the near half of the photo's surface but in front of its far half, which its
+    footprint reaches, would cover the photograph there: dropped. Small at the same place: kept."""
+    near, far = _plane(2.0, cols=range(W_DUP // 2)), _plane(4.0, cols=range(W_DUP // 2, W_DUP))
+    point = _plane(3.0, range(7, 8), range(3, 4))  # behind the near half at its centre pixel (column 3)
+    scene = _cat(_gaussians(near), _gaussians(far), _gaussians(point, scale=0.5), _gaussians(point, scale=0.01))
+    source = torch.cat([_source(len(near) + len(far)), torch.full((2,), 1, dtype=torch.long)])
+    drop = occluder_mask(scene, source, torch.eye(4, dtype=torch.float64), _K()[0], 0.0, W_DUP, H_DUP)
+    assert drop.tolist()[-2:] == [True, False] and not drop[:-2].any()
+
+
+def test_footprint_max_bounds_the_brute_force_maximum():
+    """At least the exact maximum over the square within the image, at most the maximum over a square 20 % wider;
+    0 where the square misses the image."""
+    g = torch.Generator().manual_seed(0)
+    depth = torch.rand(37, 53, generator=g, dtype=torch.float64) + 1
+    u = torch.rand(400, generator=g, dtype=torch.float64) * 90 - 20
+    v = torch.rand(400, generator=g, dtype=torch.float64) * 70 - 20
+    r = torch.rand(400, generator=g, dtype=torch.float64) * 15
+    got = _footprint_max(depth, u, v, r)
+
+    def box_max(i, rr, clamp=False):
+        cu = min(max(float(u[i]), 0.5), 52.5) if clamp else float(u[i])
+        cv = min(max(float(v[i]), 0.5), 36.5) if clamp else float(v[i])
+        cols = [j for j in range(53) if abs(j + 0.5 - cu) <= rr + 0.5]
+        rows = [j for j in range(37) if abs(j + 0.5 - cv) <= rr + 0.5]
+        return float(depth[rows][:, cols].max()) if rows and cols else 0.0
+
+    hits = 0
+    for i in range(400):
+        exact = box_max(i, float(r[i]))
+        if exact == 0.0:
+            assert got[i] == 0.0
+            continue
+        hits += 1
+        assert exact <= got[i] <= box_max(i, math.ceil(1.2 * max(float(r[i]), 1.0)) + 1.0, clamp=True)
+    assert hits > 200
 
 
 def test_occluder_mask_tests_positions_at_the_photo_time():
     """A later-frame Gaussian that moves in front of the surface only after t = 0 does not contradict the photo."""
     wall = _plane(3.0)
-    mover = _plane(3.0, range(6, 10), range(6, 10))
+    mover = _plane(3.5, range(6, 10), range(6, 10))  # behind the wall at t = 0
     key = _times(0.0, 1.0)
     d = torch.zeros(2, len(mover), 3, dtype=torch.float64)
     d[1, :, 2] = -1.0  # 1 m towards the camera at t = 1

@@ -16,7 +16,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from diff4splat.pipeline import to_gaussians
+from diff4splat.assemble import to_gaussians
 from diff4splat.render import rasterize
 from diff4splat.scene import DynamicGaussians
 from models.bundle import Diff4SplatModel
@@ -188,7 +188,7 @@ class TrainingModule(nn.Module):
             if st.motion:
                 tracks, vis = batch["tracks"][b], batch["track_visibility"][b] & batch["track_mask"][b][:, None]
                 idx, ok = track_query_index(tracks[:, 0], batch["Ks"][b, 0], W, H, vis[:, 0])
-                # idx < H·W: the reference frame's grid comes first (diff4splat.pipeline.to_gaussians)
+                # idx < H·W: the reference frame's grid comes first (diff4splat.assemble.to_gaussians)
                 pred = gather_track_predictions(g.means[None], scene.d_means[None], idx[None])[0]  # (N, T, 3)
                 parts["motion"] = motion_loss(pred, tracks, vis & ok[:, None])
                 parts["displacement"] = displacement_loss(pred[None], tracks[None], (vis & ok[:, None])[None])

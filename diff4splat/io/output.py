@@ -25,7 +25,7 @@ from torch import Tensor
 
 from ..cameras.path import CameraPath
 from ..constants import ALPHA_MIN
-from ..render.defaults import meta_background
+from ..render.defaults import meta_background, meta_eps2d
 from ..scene import DynamicGaussians
 from ..viewer.page import VIEWER_NAME, write_viewer
 from .atomic import atomic_output_path
@@ -138,7 +138,8 @@ def write_scene_folder(
             save_depth_exr(tmp / "depth" / f"{i:04d}.exr", depths[i].cpu(), alphas[i].clamp(0, 1).cpu())
         save_video(tmp / "video.mp4", colors.cpu(), fps=fps)
         save_cameras_json(tmp / "cameras.json", cameras.to("cpu"))
-        write_viewer(tmp / VIEWER_NAME, scene, cameras.to("cpu"), fps=fps, background=meta_background(meta))
+        write_viewer(tmp / VIEWER_NAME, scene, cameras.to("cpu"), fps=fps, background=meta_background(meta),
+                     eps2d=meta_eps2d(meta))
         (tmp / "meta.json").write_text(json.dumps(meta, indent=2, default=json_default))
         if extra is not None:
             extra(tmp)

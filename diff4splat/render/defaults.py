@@ -13,7 +13,7 @@ from __future__ import annotations
 
 __all__ = [
     "NEAR_PLANE", "FAR_PLANE", "EPS2D", "SH_DEGREE", "RENDER_MODE", "RASTERIZE_MODE", "CAMERA_MODEL", "TILE_SIZE",
-    "BACKGROUND", "meta_background",
+    "BACKGROUND", "meta_background", "meta_eps2d",
 ]
 
 NEAR_PLANE = 0.01
@@ -44,3 +44,12 @@ def meta_background(meta: dict) -> tuple[float, float, float]:
                                                       and 0.0 <= v <= 1.0 for v in bg)):
         return tuple(float(v) for v in bg)
     return BACKGROUND
+
+
+def meta_eps2d(meta: dict) -> float:
+    """An output folder's meta.json ``eps2d`` (the screen-space dilation, pixels², its scene is rendered with: 0.1
+    for a ``generate`` scene with a photo layer, :mod:`diff4splat.photo`), else :data:`EPS2D`."""
+    eps = meta.get("eps2d")
+    if isinstance(eps, (int, float)) and not isinstance(eps, bool) and 0.0 <= eps <= 10.0:
+        return float(eps)
+    return EPS2D

@@ -27,7 +27,7 @@ from torch import Tensor
 from ..cameras.path import CameraPath
 from ..gaussians import Gaussians
 from ..io.ply import ply_bytes
-from ..render.defaults import BACKGROUND, NEAR_PLANE
+from ..render.defaults import BACKGROUND, EPS2D, NEAR_PLANE
 from ..scene import DynamicGaussians
 
 __all__ = ["VIEWER_BUDGET_BYTES", "FLOAT16_MAX_PX", "NEAR", "ViewerPayload", "keyframe_times", "keyframes",
@@ -155,12 +155,13 @@ def _target_distance(means: Tensor, viewmat: Tensor) -> float:
 
 def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float = 8.0,
                    budget: int | None = VIEWER_BUDGET_BYTES,
-                   background: tuple[float, float, float] = BACKGROUND) -> ViewerPayload:
+                   background: tuple[float, float, float] = BACKGROUND, eps2d: float = EPS2D) -> ViewerPayload:
     """The data of one viewer page (module docstring), reduced to at most ``budget`` bytes (None: never).
 
     Reductions, in order, each only while over budget: SH degree → 0; keyframes subsampled (first and last
     kept, at least 2); the most opaque Gaussians kept. Each one taken is listed in ``config["note"]``.
-    ``background``: RGB in [0, 1] behind the Gaussians (as the CPU renderer composites it).
+    ``background``: RGB in [0, 1] behind the Gaussians (as the CPU renderer composites it); ``eps2d``: the scene's
+    screen-space dilation, pixels² (Spark's ``preBlurAmount``; meta.json ``eps2d``).
 
     Raises:
         ValueError: an empty camera path or fps ≤ 0.
@@ -214,6 +215,7 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
         "dtype": dtype, "float16ErrorPx": err, "width": cameras.width, "height": cameras.height,
         "duration": (len(cameras) - 1) / fps if len(cameras) > 1 else 1.0 / fps,
         "cameras": _camera_list(cameras), "near": NEAR, "background": [float(c) for c in background],
+        "eps2d": float(eps2d),
         "far": max(100.0, 10 * float(first.double().norm(dim=1).max()) if first.numel() else 100.0),
         "targetDistance": _target_distance(first, cameras.viewmats[0].detach().cpu()),
         "note": ("reduced to fit the viewer's size budget: " + "; ".join(reductions) +

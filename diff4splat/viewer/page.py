@@ -15,7 +15,7 @@ from importlib import resources
 
 from ..cameras.path import CameraPath
 from ..io.atomic import atomic_output_path
-from ..render.defaults import BACKGROUND
+from ..render.defaults import BACKGROUND, EPS2D
 from ..scene import DynamicGaussians
 from .data import VIEWER_BUDGET_BYTES, ViewerPayload, viewer_payload
 
@@ -73,14 +73,14 @@ def viewer_html(payload: ViewerPayload, title: str = "diff4splat viewer", *, ful
 
 def write_viewer(path: str | os.PathLike, scene: DynamicGaussians, cameras: CameraPath, *, fps: float = 8.0,
                  budget: int | None = VIEWER_BUDGET_BYTES, title: str = "diff4splat viewer",
-                 background: tuple[float, float, float] = BACKGROUND) -> ViewerPayload:
+                 background: tuple[float, float, float] = BACKGROUND, eps2d: float = EPS2D) -> ViewerPayload:
     """Write ``viewer.html`` for ``scene`` seen along ``cameras`` (the first one is where it opens),
     atomically. Returns the payload (its ``config`` holds the sizes and any reduction).
 
     Raises:
         ValueError: see :func:`diff4splat.viewer.data.viewer_payload`.
     """
-    payload = viewer_payload(scene, cameras, fps=fps, budget=budget, background=background)
+    payload = viewer_payload(scene, cameras, fps=fps, budget=budget, background=background, eps2d=eps2d)
     text = viewer_html(payload, title)
     with atomic_output_path(path) as tmp:
         with open(tmp, "w", encoding="utf-8") as f:

@@ -100,9 +100,11 @@ async function main() {
   const bg = cfg.background || [0, 0, 0];  // the colour behind the Gaussians, as the CPU renderer composites it
   renderer.setClearColor(new THREE.Color().setRGB(bg[0], bg[1], bg[2], THREE.SRGBColorSpace), 1);
   const scene = new THREE.Scene();
-  // Our renderer's conventions: 0.3 px² screen-space dilation (EPS2D), 3σ support, alpha ≥ 1/255, and
-  // Gaussians sorted by view-space z as 3DGS does (Spark's default sorts by distance from the eye).
-  const spark = new SparkRenderer({ renderer, preBlurAmount: 0.3, maxStdDev: 3.0, minAlpha: 1 / 255, sortRadial: false });
+  // Our renderer's conventions: the scene's screen-space dilation (meta.json eps2d; 0.3 px² by default, 0.1 for a
+  // photo layer), 3σ support, alpha ≥ 1/255, and Gaussians sorted by view-space z as 3DGS does (Spark's default
+  // sorts by distance from the eye).
+  const eps2d = typeof cfg.eps2d === "number" ? cfg.eps2d : 0.3;
+  const spark = new SparkRenderer({ renderer, preBlurAmount: eps2d, maxStdDev: 3.0, minAlpha: 1 / 255, sortRadial: false });
   scene.add(spark);
   const splats = new SplatMesh({ fileBytes: ply, fileType: SplatFileType.PLY, lod: false });
   scene.add(splats);

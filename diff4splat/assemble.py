@@ -1,0 +1,226 @@
+"""From the LDRM's maps to a 4D scene: the photograph as observed, the network's Gaussians for what it cannot show.
+
+:func:`assemble_scene` (docs/DESIGN.md, "Data flow of generate", steps 7–8):
+
+- **The reference frame is the photo layer** (:mod:`diff4splat.photo`) at the *output* resolution: the photograph's
+  own pixels on the depth of the LDRM's reference grid (its ray distances at the model resolution, made z-depth and
+  upsampled with the photograph as the guide, :func:`photo_depth`), or on the user's depth map (``depth=``), and
+  the reference grid's deformation maps upsampled bilinearly, re-based so that the layer is exactly the observation
+  at the photograph's time (:func:`rebase_deformation`). The LDRM's own colours, opacities and scales of the
+  reference frame are not used.
+- **The other source frames** (video frames 4, 8, …) keep the network's pixel-aligned Gaussians at the model
+  resolution (:func:`to_gaussians`): what the generated video shows that the photograph does not. Which of them
+  survive is the pipeline's pruning (:mod:`diff4splat.prune`): none that re-describes a surface already placed,
+  none in front of the photo layer at the input view.
+
+Gaussian order of the assembled scene: the photo layer's 2·H_o·W_o (front disks row-major, then the backing disks),
+then source frames 1…S−1, H·W each at the model resolution, row-major.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from models.ldrm import LDRMOutput
+
+from .cameras import CameraPath, camera_rays
+from .depth_alignment import fit_scale_shift
+from .devices import autocast_off
+from .gaussians import Gaussians, rgb_to_sh0
+from .photo import PHOTO_EPS2D, photo_layer, upsample_depth
+from .quaternions import quat_conjugate, quat_multiply, quat_normalize
+from .scene import DynamicGaussians
+
+__all__ = ["DEPTH_KINDS", "to_gaussians", "photo_depth", "rebase_deformation", "assemble_scene"]
+
+DEPTH_KINDS = ("metric", "relative", "inverse")
+"""What a user's depth map holds (``generate --depth-kind``): metric z-depth in metres (used as given: the camera
+path is metric too), relative depth (affine: scale and shift fitted to the network's depth by least squares), or
+relative inverse depth / disparity (affine in 1/z, as MiDaS-style estimators output)."""
+
+
+def to_gaussians(
+    out: LDRMOutput,
+    viewmats: Tensor,  # (S, 4, 4) world-to-camera of the source frames
+    Ks: Tensor,  # (S, 3, 3) pixels
+    batch_index: int = 0,
+) -> tuple[Gaussians, Tensor | None, Tensor | None, Tensor | None]:
+    """Pixel-aligned Gaussians (one per pixel of each source frame) and flattened deformation maps.
+
+    Gaussian order is source-frame-major, then row-major pixels: Gaussian s·H·W + y·W + x sits on the
+    ray through pixel (x, y) of source camera s, μ = o + distance·d with (o, d) the pixel-centre ray of
+    :func:`diff4splat.cameras.camera_rays`; the first H·W Gaussians are the reference frame's. Colours are
+    stored as SH degree 0 via ``rgb_to_sh0`` after clamping to [1e-4, 1 − 1e-4].
+
+    Args:
+        out: LDRM output; maps (B, S, H, W, ·).
+        viewmats: (S, 4, 4) world-to-camera of the S source cameras (``models.ldrm.source_frame_indices``).
+        Ks: (S, 3, 3) intrinsics of the source cameras at (H, W), pixels.
+        batch_index: which scene of the batch.
+
+    Returns:
+        Gaussians with M = S·H·W; d_means (K, M, 3), d_quats (K, M, 4), d_scales (K, M, 3), or None. Computed in
+        float32 at least with autocast off (a bfloat16 region would round the ray directions to ~0.2 %, a pixel
+        at 512²), whatever the maps' dtype.
+
+    Raises:
+        ValueError: ``viewmats``/``Ks`` not (S, 4, 4)/(S, 3, 3) for the S source frames of ``out``, or
+            ``batch_index`` out of range.
+    """
+    B, S, H, W = out.distance.shape
+    if not -B <= batch_index < B:
+        raise ValueError(f"batch_index {batch_index} out of range for batch size {B}")
+    if tuple(viewmats.shape) != (S, 4, 4):
+        raise ValueError(f"viewmats must have shape ({S}, 4, 4) (one per source frame), got {tuple(viewmats.shape)}")
+    if tuple(Ks.shape) != (S, 3, 3):
+        raise ValueError(f"Ks must have shape ({S}, 3, 3) (one per source frame), got {tuple(Ks.shape)}")
+    dtype = torch.promote_types(out.distance.dtype, torch.float32)
+    get = lambda name: getattr(out, name)[batch_index].to(dtype)  # noqa: E731
+    with autocast_off():
+        origins, dirs = camera_rays(viewmats.to(dtype), Ks.to(dtype), W, H)  # (S, H, W, 3)
+        means = origins + get("distance")[..., None] * dirs
+        colors = get("colors").clamp(1e-4, 1 - 1e-4)
+        M = S * H * W
+        gaussians = Gaussians(
+            means=means.reshape(M, 3),
+            quats=get("quats").reshape(M, 4),
+            scales=get("scales").reshape(M, 3),
+            opacities=get("opacities").reshape(M),
+            sh=rgb_to_sh0(colors).reshape(M, 1, 3),
+        )
+    if out.d_means is None:
+        return gaussians, None, None, None
+    flat = [get(f).flatten(1, 3) for f in ("d_means", "d_quats", "d_scales")]
+    return gaussians, *flat
+
+
+def _align(user: Tensor, network: Tensor, kind: str) -> Tensor:
+    """``user`` (H, W) aligned to ``network`` (H, W) metres by kind (:data:`DEPTH_KINDS`); non-finite where invalid."""
+    if kind == "metric":
+        return user
+    valid = torch.isfinite(user) & (user > 0 if kind == "inverse" else torch.isfinite(user))
+    x = user.detach().double().cpu().numpy()
+    y = network.detach().double().cpu().numpy()
+    mask = valid.cpu().numpy()
+    if kind == "relative":
+        fit = fit_scale_shift(x, y, mask, space="depth")
+    else:
+        fit = fit_scale_shift(x, y, mask, space="disparity")
+    return torch.from_numpy(fit.apply(np.where(mask, x, np.nan))).to(user)
+
+
+def photo_depth(
+    distance: Tensor,  # (h, w) metres along the reference rays, model resolution
+    viewmat: Tensor,  # (4, 4)
+    K: Tensor,  # (3, 3) at the model resolution
+    image: Tensor,  # (H, W, 3) the photograph at the output resolution
+    depth: Tensor | None = None,  # (H, W) the user's depth map
+    depth_kind: str = "metric",
+) -> Tensor:
+    """The photo layer's z-depth at the output resolution.
+
+    The network's: ray distance × cos(angle to the optical axis) = z-depth at the model resolution, upsampled by
+    :func:`diff4splat.photo.upsample_depth` with the photograph as the guide. A user's ``depth`` replaces it,
+    aligned by ``depth_kind`` (:data:`DEPTH_KINDS`; relative and inverse maps are fitted to the network's depth
+    by least squares, ``diff4splat.depth_alignment.fit_scale_shift``); its non-finite or non-positive pixels
+    (holes) take the network's depth.
+
+    Returns:
+        (H, W) z-depth, metres, finite and > 0, on ``image``'s device.
+
+    Raises:
+        ValueError: ``depth`` not (H, W); an unknown ``depth_kind``; a depth map with no valid pixel, or one
+            whose fit to the network's depth is degenerate (constant, or a negative scale).
+    """
+    if depth_kind not in DEPTH_KINDS:
+        raise ValueError(f"depth_kind must be one of {DEPTH_KINDS}, got {depth_kind!r}")
+    h, w = distance.shape
+    H, W = image.shape[:2]
+    _, dirs = camera_rays(viewmat[None].float(), K[None].float(), w, h)
+    z_model = distance.float() * (dirs[0] @ viewmat[2, :3].float())
+    z_net = upsample_depth(z_model, image)
+    if depth is None:
+        return z_net
+    if tuple(depth.shape) != (H, W):
+        raise ValueError(f"depth must have shape ({H}, {W}) (the output resolution), got {tuple(depth.shape)}")
+    depth = depth.to(z_net)
+    if not bool((torch.isfinite(depth) & (depth > 0 if depth_kind != "relative" else True)).any()):
+        raise ValueError("depth: no valid pixel (every value is NaN, infinite or not positive)")
+    aligned = _align(depth, z_net, depth_kind)
+    good = torch.isfinite(aligned) & (aligned > 0)
+    return torch.where(good, aligned, z_net)
+
+
+def rebase_deformation(d_means: Tensor, d_quats: Tensor, d_scales: Tensor, reference: tuple[Tensor, Tensor, Tensor]
+                       ) -> tuple[Tensor, Tensor, Tensor]:
+    """Deformations (K, M, ·) made relative to ``reference`` (M, ·), the deformation at the photograph's time:
+    Δμ' = Δμ − Δμ₀, Δq' = Δq ⊗ Δq₀⁻¹, Δs' = Δs − Δs₀, so the deformed Gaussians at that time are the canonical ones
+    exactly (docs/DESIGN.md, "Deformation at time t": q_t = Δq ⊗ q)."""
+    m0, q0, s0 = reference
+    q0 = quat_normalize(q0, "d_quats")
+    return d_means - m0, quat_multiply(quat_normalize(d_quats, "d_quats"), quat_conjugate(q0)), d_scales - s0
+
+
+def _upsample_maps(maps: Tensor, size: tuple[int, int]) -> Tensor:
+    """(K, h, w, C) → (K, H, W, C) bilinear."""
+    return F.interpolate(maps.permute(0, 3, 1, 2), size=size, mode="bilinear", align_corners=False).permute(0, 2, 3, 1)
+
+
+def assemble_scene(
+    out: LDRMOutput,
+    sources: Tensor,  # (S,) video frame of each source frame
+    cameras_model: CameraPath,  # the path at the model resolution (h × w)
+    cameras: CameraPath,  # the path at the output resolution (W × H)
+    image: Tensor,  # (H, W, 3) in [0, 1], the photograph at the output resolution
+    times: Tensor | None,  # (K,) key times of the deformation maps, or None (static)
+    *,
+    depth: Tensor | None = None,
+    depth_kind: str = "metric",
+    eps2d: float = PHOTO_EPS2D,
+) -> tuple[DynamicGaussians, Tensor, dict]:
+    """The scene of one generation (module docstring).
+
+    Args:
+        out: the LDRM's maps for batch 1, (1, S, h, w, ·), deformation (1, K, S, h, w, ·) or None.
+        sources: (S,) long, the video frame of each source frame; sources[0] = 0, the photograph.
+        cameras_model, cameras: the same path at the model and at the output resolution.
+        image: (H, W, 3) the photograph at the output resolution.
+        times: (K,) the deformation's key times, or None for a static prediction.
+        depth, depth_kind: a user's depth map for the photo layer (:func:`photo_depth`).
+        eps2d: the dilation the scene is rendered with (the photo layer's colours are solved for it).
+
+    Returns:
+        (scene, source (M,) long: the source frame of each Gaussian — 0 for the photo layer —, stats dict with
+        ``photo_psnr_db`` (the layer alone at the input camera, after the colour solve) and ``photo_gaussians``).
+
+    Raises:
+        ValueError: as :func:`photo_depth` and :func:`diff4splat.photo.photo_layer`.
+    """
+    S, h, w = out.distance.shape[1:4]
+    H, W = image.shape[:2]
+    dev = image.device
+    gaussians, d_means, d_quats, d_scales = to_gaussians(out, cameras_model.viewmats[sources],
+                                                         cameras_model.Ks[sources])
+    z = photo_depth(out.distance[0, 0], cameras_model.viewmats[0], cameras_model.Ks[0], image, depth, depth_kind)
+    layer, history = photo_layer(image, z, cameras.viewmats[0].float(), cameras.Ks[0].float(), eps2d=eps2d)
+    n_photo, n_grid = layer.num_gaussians, h * w
+    generated = gaussians.select(torch.arange(n_grid, S * n_grid, device=dev))
+    canonical = Gaussians(*(torch.cat([getattr(layer, f), getattr(generated, f)])
+                            for f in ("means", "quats", "scales", "opacities", "sh")))
+    source = torch.cat([torch.zeros(n_photo, dtype=torch.long, device=dev),
+                        torch.arange(1, S, device=dev).repeat_interleave(n_grid)])
+    stats = {"photo_psnr_db": history[-1], "photo_gaussians": n_photo}
+    if d_means is None:
+        return DynamicGaussians(canonical), source, stats
+    K = d_means.shape[0]
+    ref = [m[:, :n_grid].reshape(K, h, w, -1) for m in (d_means, d_quats, d_scales)]
+    up = [_upsample_maps(m, (H, W)).reshape(K, H * W, -1) for m in ref]
+    up = [torch.cat([m, m], dim=1) for m in up]  # front and backing disks share their pixel's motion
+    photo = DynamicGaussians(layer, times, *up)
+    t0 = float(cameras.times[0])
+    up = rebase_deformation(*up, photo.deformation_at(t0))
+    rest = [m[:, n_grid:] for m in (d_means, d_quats, d_scales)]
+    deform = [torch.cat([a, b], dim=1) for a, b in zip(up, rest, strict=True)]
+    return DynamicGaussians(canonical, times, *deform), source, stats
