@@ -93,7 +93,7 @@ def main() -> None:
     for r in range(args.repeats + 1):  # first run is warm-up
         res = pipe(image, cams, "a cat turns its head", seed=r)
         t0 = time.perf_counter()
-        colors, depths, alphas = render_path(res.scene, res.cameras)
+        colors, depths, alphas = render_path(res.scene, res.cameras, eps2d=res.eps2d)
         t_render = time.perf_counter() - t0
         with tempfile.TemporaryDirectory() as tmp:
             t0 = time.perf_counter()

@@ -147,7 +147,7 @@ def run_generate(pipe: Diff4SplatPipeline, frames: int | None, prompt: str, step
     cams = pipe.default_cameras("arc", frames)
     res = pipe(image, cams, prompt, steps=steps)
     clock = Stopwatch(pipe.device)
-    render_path(res.scene, res.cameras)
+    render_path(res.scene, res.cameras, eps2d=res.eps2d)
     return {**res.timings, "render": clock.lap(), "gaussians": res.scene.num_gaussians,
             "frames": len(res.cameras), "steps": res.steps, "size": f"{cfg.width}²"}
 

@@ -179,7 +179,8 @@ def bench_config(name: str, frames: int, repeats: int, e2e_repeats: int,
             del runtime, onnx_pipe
         torch.set_num_threads(threads[0])
         ref, got = results["torch"], results["onnxruntime"]
-        video_psnr = psnr(render_path(got.scene, got.cameras)[0], render_path(ref.scene, ref.cameras)[0])
+        video_psnr = psnr(render_path(got.scene, got.cameras, eps2d=got.eps2d)[0],
+                          render_path(ref.scene, ref.cameras, eps2d=ref.eps2d)[0])
         diffs["e2e"] = float((got.latents - ref.latents).abs().max())
         labels = [(label, label) for label, *_ in cases]
         labels.append(("e2e", f"**end to end** ({cfg.sampling.steps} steps, prompt, no render)"))

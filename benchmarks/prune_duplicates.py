@@ -81,7 +81,7 @@ def run(pipe: Diff4SplatPipeline, image: torch.Tensor, trajectory: str, seed: in
         without = res.scene
     else:
         without, _ = prune_scene(rec.scene, res.cameras, min_opacity=pipe.config.prune_opacity)
-    render_path(res.scene, res.cameras)  # warm-up
+    render_path(res.scene, res.cameras, eps2d=res.eps2d)  # warm-up
     ms_with = _median_render_ms(res.scene, res.cameras, repeats)
     ms_without = _median_render_ms(without, res.cameras, repeats)
     dups = stats.get("duplicates", 0)

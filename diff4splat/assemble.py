@@ -193,7 +193,8 @@ def assemble_scene(
 
     Returns:
         (scene, source (M,) long: the source frame of each Gaussian — 0 for the photo layer —, stats dict with
-        ``photo_psnr_db`` (the layer alone at the input camera, after the colour solve) and ``photo_gaussians``).
+        ``photo_psnr_db`` (the layer alone at the input camera, after the colour solve), ``photo_gaussians`` and
+        ``photo_depth`` (H, W), the layer's z-depth at the photograph's time).
 
     Raises:
         ValueError: as :func:`photo_depth` and :func:`diff4splat.photo.photo_layer`.
@@ -211,7 +212,7 @@ def assemble_scene(
                             for f in ("means", "quats", "scales", "opacities", "sh")))
     source = torch.cat([torch.zeros(n_photo, dtype=torch.long, device=dev),
                         torch.arange(1, S, device=dev).repeat_interleave(n_grid)])
-    stats = {"photo_psnr_db": history[-1], "photo_gaussians": n_photo}
+    stats = {"photo_psnr_db": history[-1], "photo_gaussians": n_photo, "photo_depth": z}
     if d_means is None:
         return DynamicGaussians(canonical), source, stats
     K = d_means.shape[0]

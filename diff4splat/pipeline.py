@@ -280,17 +280,28 @@ def load_model(checkpoint: str | Path | None = None, config: str = DEFAULT_CONFI
     return Diff4SplatModel.random(load_config(config), seed=seed).eval(), random_source
 
 
-def _sees_nothing(cameras: CameraPath, stats: dict[str, int], min_opacity: float) -> str:
+MIN_FOV_DEG = 0.1
+"""Narrowest field of view, degrees, a camera of the path may have (a 0.1° view is a ~20 m lens on a full-frame
+sensor: smaller means intrinsics in the wrong units)."""
+
+
+def _check_field_of_view(cameras: CameraPath) -> None:
+    """ValueError when a camera's field of view is narrower than :data:`MIN_FOV_DEG` (focal lengths in the wrong
+    units: nothing but a point of the photograph would be seen)."""
+    fx, fy = float(cameras.Ks[:, 0, 0].max()), float(cameras.Ks[:, 1, 1].max())
+    fov = math.degrees(2 * math.atan(min(cameras.width / (2 * fx), cameras.height / (2 * fy))))
+    if fov < MIN_FOV_DEG:
+        raise ValueError(f"cameras: focal lengths fx={fx:.3g}, fy={fy:.3g} pixels give a field of view of {fov:.3g}° "
+                         f"on a {cameras.width}×{cameras.height} image, below {MIN_FOV_DEG}° (check the intrinsics' "
+                         f"units)")
+
+
+def _sees_nothing(stats: dict[str, int], min_opacity: float) -> str:
     """The error message when pruning left no Gaussian, naming the likely cause."""
     msg = (f"the camera path sees none of the scene: all {stats['before']} Gaussians were pruned "
            f"({stats['unseen']} outside every camera's view, {stats['low_opacity']} with opacity < {min_opacity})")
     if stats["unseen"] == 0:
         return msg + "; likely cause: the model's weights (every Gaussian is transparent)"
-    fx, fy = float(cameras.Ks[:, 0, 0].max()), float(cameras.Ks[:, 1, 1].max())
-    fov = math.degrees(2 * math.atan(min(cameras.width / (2 * fx), cameras.height / (2 * fy))))
-    if fov < 1.0:
-        return msg + (f"; likely cause: focal lengths fx={fx:.3g}, fy={fy:.3g} pixels give a field of view "
-                      f"of {fov:.3g}° on a {cameras.width}×{cameras.height} image (check the intrinsics' units)")
     return msg + ("; likely cause: the cameras look away from the scene (the scene lies in front of the "
                   "first camera, along its +z axis, OpenCV axes)")
 
@@ -448,6 +459,7 @@ class Diff4SplatPipeline:
             raise ValueError(f"sampler must be 'euler' or 'heun', got {sampler!r}")
         steps = check_limit("steps", check_positive_int("steps", steps), "steps")
         check_limit("frames", len(cameras), "cameras: a path of")
+        _check_field_of_view(cameras)
         seed, prompt = check_seed(seed), check_prompt(prompt)
         cameras = cameras.relative_to_first().to(dtype=torch.float32, device=dev)
         cameras_model = cameras.resized(cfg.width, cfg.height)
@@ -506,7 +518,7 @@ class Diff4SplatPipeline:
                                  W_o, H_o)
             scene, index, duplicates = scene.select(~dup), index[~dup], int(dup.sum())
             occl = occluder_mask(scene, grid[index], cameras.viewmats[0], cameras.Ks[0], float(cameras.times[0]),
-                                 W_o, H_o)
+                                 W_o, H_o, surface_depth=photo["photo_depth"])
             scene, index, occluders = scene.select(~occl), index[~occl], int(occl.sum())
         keep, stats = prune_mask(scene, cameras, min_opacity=cfg.prune_opacity)
         scene, index = scene.select(keep), index[keep]
@@ -514,7 +526,7 @@ class Diff4SplatPipeline:
                  "occluders": occluders}
         timings["prune"] = clock.lap()
         if stats["after"] == 0:
-            raise ValueError(_sees_nothing(cameras, stats, cfg.prune_opacity))
+            raise ValueError(_sees_nothing(stats, cfg.prune_opacity))
         return GenerationResult(scene=scene, cameras=cameras, latents=latents, timings=timings, prune_stats=stats,
                                 steps=steps, sampler=sampler, shift=cfg.sampling.shift, source_frames=sources,
                                 gaussian_index=index, eps2d=PHOTO_EPS2D, photo_psnr_db=photo["photo_psnr_db"],

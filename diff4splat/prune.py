@@ -11,7 +11,7 @@ from torch import Tensor
 
 from .cameras.path import CameraPath
 from .checks import check_finite, check_positive, check_positive_int
-from .render.defaults import EPS2D, NEAR_PLANE
+from .render.defaults import NEAR_PLANE
 from .render.projection import project_gaussians
 from .render.rasterize import rasterize
 from .scene import DynamicGaussians
@@ -170,14 +170,18 @@ def occluder_mask(
     *,
     min_alpha: float = 0.5,
     depth_tolerance: float = 0.05,
+    surface_depth: Tensor | None = None,  # (H, W) z-depth of the photograph's surface, metres
 ) -> Tensor:  # (M,) bool, True = occludes the photograph (drop)
     """Which Gaussians of later source frames would cover the photograph at the input view.
 
     The input frame (source 0, the photo layer) is observed: the photograph shows its surface unoccluded at
     ``time``. The Gaussians of source 0 are rendered from the input camera at ``time`` (accumulated alpha A,
     expected depth D). A Gaussian of a later source frame, deformed to ``time``, is tested over its whole screen
-    footprint, not only its centre: the square of half-width r = 3·(largest scale)·f/z + 3√eps2d pixels around
-    its projected centre (an upper bound of its 3σ ellipse), clipped to the image. If that square holds a pixel
+    footprint, not only its centre: the renderer's own projection (:func:`diff4splat.render.project_gaussians`)
+    gives its centre and 3σ radius; the square of half-width 10/9 of that radius + 1 pixel (the renderer's
+    opacity-aware support reaches 3.33σ) around the centre, clipped to the image, is its footprint; a Gaussian
+    the projection culls (behind the near plane, footprint outside the image) cannot cover the photograph and is
+    kept. If that square holds a pixel
     with A ≥ ``min_alpha`` whose surface the Gaussian's centre is not clearly behind, z < (1 +
     ``depth_tolerance``)·D, it would be composited over (in front) or into (on) the photograph there and is
     dropped: what it describes there, the photograph already shows. Gaussians wholly behind the surface, over
@@ -194,12 +198,16 @@ def occluder_mask(
         width, height: image size, pixels (≥ 1).
         min_alpha: accumulated alpha in (0, 1] above which a pixel counts as covered.
         depth_tolerance: relative depth margin (> 0).
+        surface_depth: (H, W) the surface's z-depth at every pixel when it is known exactly (the photo layer's
+            depth map, :func:`diff4splat.assemble.photo_depth`), used instead of rendering source 0 (whose expected
+            depth blends neighbouring pixels where the depth varies from pixel to pixel).
 
     Returns:
         (M,) bool, True = drop; never True for source 0.
 
     Raises:
-        ValueError: the same argument checks as :func:`duplicate_mask` (one camera, ``time`` as its times).
+        ValueError: the same argument checks as :func:`duplicate_mask` (one camera, ``time`` as its times);
+            ``surface_depth`` not (height, width).
     """
     means = scene.canonical.means
     times = torch.tensor([float(time)], dtype=means.dtype, device=means.device)
@@ -214,19 +222,23 @@ def occluder_mask(
     if cand.numel() == 0 or not bool((source == 0).any()):
         return out
     g = scene.at(float(time), gate=0.0)
-    surface = g.select(source == 0)
-    rendered, alpha, _ = rasterize(surface.means, surface.quats, surface.scales, surface.opacities,
-                                   surface.opacities[:, None], viewmat[None], K[None], width, height, render_mode="ED")
-    depth = torch.where(alpha[0, ..., 0] >= min_alpha, rendered[0, ..., 0], 0.0)  # (H, W), 0: uncovered
-    p = g.means[cand] @ viewmat[:3, :3].T + viewmat[:3, 3]
-    z = p[:, 2]
-    front = z > NEAR_PLANE
-    zs = torch.where(front, z, torch.ones_like(z))
-    u, v = K[0, 0] * p[:, 0] / zs + K[0, 2], K[1, 1] * p[:, 1] / zs + K[1, 2]
-    f = torch.maximum(K[0, 0], K[1, 1])
-    r = 3.0 * g.scales[cand].max(dim=1).values * f / zs + 3.0 * math.sqrt(EPS2D)
-    d_max = _footprint_max(depth, u, v, r)
-    out[cand[front & (z < (1 + depth_tolerance) * d_max)]] = True
+    if surface_depth is not None:
+        if tuple(surface_depth.shape) != (height, width):
+            raise ValueError(f"surface_depth must have shape ({height}, {width}), got {tuple(surface_depth.shape)}")
+        depth = surface_depth.to(means)
+    else:
+        surface = g.select(source == 0)
+        rendered, alpha, _ = rasterize(surface.means, surface.quats, surface.scales, surface.opacities,
+                                       surface.opacities[:, None], viewmat[None], K[None], width, height,
+                                       render_mode="ED")
+        depth = torch.where(alpha[0, ..., 0] >= min_alpha, rendered[0, ..., 0], 0.0)  # (H, W), 0: uncovered
+    c = g.select(cand)
+    proj = project_gaussians(c.means, c.quats, c.scales, c.opacities, viewmat[None], K[None], width, height)
+    radii = proj.radii[0].to(depth.dtype)
+    seen = radii > 0
+    z = proj.depths[0]
+    d_max = _footprint_max(depth, proj.means2d[0, :, 0], proj.means2d[0, :, 1], radii * (10 / 9) + 1)
+    out[cand[seen & (z < (1 + depth_tolerance) * d_max)]] = True
     return out
 
 

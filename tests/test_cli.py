@@ -15,9 +15,10 @@ from plyfile import PlyData
 
 from diff4splat.cameras import DEFAULT_AMPLITUDES, DEFAULT_TRAJECTORY
 from diff4splat.cli import build_parser, main
-from diff4splat.io import load_depth_exr, load_ply, load_video, ply_property_names, save_cameras_json
+from diff4splat.io import load_depth_exr, load_image, load_ply, load_video, ply_property_names, save_cameras_json
 from diff4splat.io.image import preprocess_image, read_image
 from diff4splat.io.output import load_deformation
+from diff4splat.photo import PHOTO_EPS2D
 from diff4splat.pipeline import Diff4SplatPipeline
 from diff4splat.quaternions import quat_to_rotmat
 from diff4splat.scene import DynamicGaussians
@@ -27,29 +28,33 @@ INRIA = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacit
          + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)])
 
 
-def _generate(tmp_path, *extra, frames=9):
+def _generate(tmp_path, *extra, frames=9, resolution=64):
+    """``generate`` on the example photo; ``resolution`` None: the default (256), else that output height (64 keeps
+    the test fast)."""
     out = tmp_path / "out"
+    size = [] if resolution is None else ["--resolution", str(resolution)]
     code = main(["generate", str(EXAMPLE_IMAGE), "--frames", str(frames), "--steps", "2", "--quiet",
-                 "--out", str(out), *extra])
+                 "--out", str(out), *size, *extra])
     return code, out
 
 
-def _check_folder(out, frames):
+def _check_folder(out, frames, size=64):
     meta = json.loads((out / "meta.json").read_text())
-    assert meta["frames"] == frames and meta["width"] == meta["height"] == 64
+    assert meta["frames"] == frames and meta["width"] == meta["height"] == size
+    assert meta["model_width"] == meta["model_height"] == 64 and meta["eps2d"] == PHOTO_EPS2D
     assert set(meta["timings_s"]) >= {"load_model", "encode_image", "encode_text", "sample", "reconstruct", "render"}
     ply = PlyData.read(str(out / "scene.ply"))
     names = [p.name for p in ply["vertex"].properties]
     assert names == ply_property_names(1) and set(INRIA) <= set(names)
     assert len(ply["vertex"]) == meta["num_gaussians"] > 0
     video = load_video(out / "video.mp4")
-    assert video.shape == (frames, 64, 64, 3)
+    assert video.shape == (frames, size, size, 3)
     for i in range(frames):
         depth, alpha = load_depth_exr(out / "depth" / f"{i:04d}.exr", return_alpha=True)
-        assert depth.shape == (64, 64) and np.isfinite(depth).all() and (depth > 0).all()
+        assert depth.shape == (size, size) and np.isfinite(depth).all() and (depth > 0).all()
         assert alpha is not None and (alpha >= 0).all() and (alpha <= 1).all()
     cams = json.loads((out / "cameras.json").read_text())
-    assert len(cams["viewmats"]) == frames and cams["width"] == 64
+    assert len(cams["viewmats"]) == frames and cams["width"] == size
     np.testing.assert_allclose(cams["viewmats"][0], np.eye(4), atol=1e-6)
     return meta
 
@@ -76,11 +81,16 @@ def _check_frames_follow_deformation(out, frames):
 
 @pytest.mark.slow
 def test_generate_writes_every_file_on_the_shipped_photograph(tmp_path, capsys):
-    """The README's command (shorter clip): the shipped trained model, no warning, a dynamic scene."""
-    code, out = _generate(tmp_path, "--trajectory", "arc", "--prompt", "a cat turns its head")
+    """The README's command (shorter clip, default resolution 256): the shipped trained model, no warning, a dynamic
+    scene whose first frame is the photograph (≥ 30 dB after the video codec)."""
+    code, out = _generate(tmp_path, "--trajectory", "arc", "--prompt", "a cat turns its head", resolution=None)
     assert code == 0
     assert "warning" not in capsys.readouterr().err
-    meta = _check_folder(out, 9)
+    meta = _check_folder(out, 9, size=256)
+    assert meta["photo_psnr_db"] >= 40.0
+    photo = load_image(EXAMPLE_IMAGE, size=(256, 256))
+    first = torch.from_numpy(load_video(out / "video.mp4")[0]).float() / 255
+    assert float(-10 * torch.log10(((first - photo) ** 2).mean())) >= 30.0
     assert meta["model"].endswith(f"models/weights/{DEFAULT_CONFIG}") and not meta["static"]
     assert _check_frames_follow_deformation(out, 9) > 1e-4
     assert not any(p.name.startswith(".") for p in tmp_path.iterdir())  # no temp folder left
@@ -126,7 +136,7 @@ def test_cameras_file_round_trips_through_generate(tmp_path):
     code, out = _generate(tmp_path, "--trajectory", "pan-left", "--frames", "5")
     assert code == 0
     code2, out2 = main(["generate", str(EXAMPLE_IMAGE), "--cameras", str(out / "cameras.json"), "--steps", "2",
-                        "--quiet", "--out", str(tmp_path / "again")]), tmp_path / "again"
+                        "--quiet", "--resolution", "64", "--out", str(tmp_path / "again")]), tmp_path / "again"
     assert code2 == 0
     assert json.loads((out2 / "meta.json").read_text())["trajectory"] is None  # not the --trajectory default
     a = json.loads((out / "cameras.json").read_text())
@@ -214,7 +224,7 @@ def test_rgba_grey_and_16bit_images_generate(tmp_path):
     for name, arr in variants.items():
         cv2.imwrite(str(tmp_path / name), arr)
         code = main(["generate", str(tmp_path / name), "--frames", "1", "--steps", "1", "--quiet",
-                     "--out", str(tmp_path / f"out_{name}")])
+                     "--resolution", "64", "--out", str(tmp_path / f"out_{name}")])
         assert code == 0, name
         assert load_video(tmp_path / f"out_{name}" / "video.mp4").shape == (1, 64, 64, 3)
 
@@ -255,7 +265,7 @@ def test_exif_rotated_jpeg_crops_image_and_realestate10k_intrinsics_alike(tmp_pa
     seen = _spy_pipeline(monkeypatch)
     out = tmp_path / "out"
     assert main(["generate", str(photo), "--cameras", str(tmp_path / "cams.txt"), "--steps", "1", "--quiet",
-                 "--out", str(out)]) == 0
+                 "--resolution", "64", "--out", str(out)]) == 0
     upright = np.rot90(read_image(tmp_path / "plain.jpg"), k=-1)  # Orientation 6: rotate 90° clockwise
     torch.testing.assert_close(seen["image"], preprocess_image(upright, (64, 64)))
     # intrinsics: fx = 0.6·40, fy = 0.5·80, c = (20, 40); centre crop 40×40 (y0 = 20), scale 64/40

@@ -33,14 +33,15 @@ def test_untrained_deformation_gives_a_static_scene_with_pixel_aligned_gaussians
     assert res.scene.is_static and res.scene.times is None  # zero-init deformation = identity → stored as static
     assert res.source_frames.tolist() == [0, 4, 8]  # FRAMES = 9 → 3 latent frames
     S = len(res.source_frames)
-    assert res.prune_stats["before"] == S * 64 * 64
+    assert res.photo_gaussians == 2 * 64 * 64  # the photo layer: front and backing disks at the output resolution
+    assert res.prune_stats["before"] == res.photo_gaussians + (S - 1) * 64 * 64
     stats = res.prune_stats
     assert stats["after"] == (stats["before"] - stats["duplicates"] - stats["occluders"] - stats["low_opacity"]
                               - stats["unseen"])
     assert res.gaussian_index.shape == (res.scene.num_gaussians,) and bool((res.gaussian_index.diff() > 0).all())
     g = res.scene.canonical
     assert torch.isfinite(g.means).all() and (g.scales > 0).all()
-    # the reference camera (identity) sees each frame-0 Gaussian at its own pixel centre
+    # the reference camera (identity) sees each front disk of the photo layer at its own pixel centre
     ref = res.gaussian_index < 64 * 64
     if int(ref.sum()) == 64 * 64:
         uv = (res.cameras.Ks[0] @ g.means[ref].T).T
@@ -252,11 +253,11 @@ def test_every_source_frame_contributes_and_duplicates_are_pruned(image):
     cams = pipe.default_cameras("forward", FRAMES, amplitude=0.02)  # 4 cm: within 5 % of the 2 m distance
     res = pipe(image, cams, "", steps=1)
     stats = res.prune_stats
-    assert stats["before"] == 3 * 64 * 64
+    assert stats["before"] == 2 * 64 * 64 + 2 * 64 * 64  # the photo layer, then source frames 4 and 8
     assert stats["duplicates"] > 0.5 * 2 * 64 * 64, stats
     model.ldrm.config.gaussian_frames = "reference"
     ref = pipe(image, cams, "", steps=1)
-    assert ref.prune_stats["before"] == 64 * 64 and ref.prune_stats["duplicates"] == 0
+    assert ref.prune_stats["before"] == 2 * 64 * 64 and ref.prune_stats["duplicates"] == 0
 
 
 @pytest.mark.slow

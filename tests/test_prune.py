@@ -310,7 +310,7 @@ def test_occluder_mask_drops_later_gaussians_in_front_of_or_on_the_photo_only():
     wall = _plane(3.0, cols=range(W_DUP // 2))  # the photo's surface covers the left half
     rows = range(6, 10)
     front, on, back = _plane(2.0, rows, range(2, 6)), _plane(3.0, rows, range(2, 6)), _plane(4.0, rows, range(2, 6))
-    uncovered = _plane(2.0, rows, range(W_DUP // 2 + 4, W_DUP // 2 + 7))  # in front of nothing
+    uncovered = _plane(2.0, rows, range(W_DUP // 2 + 5, W_DUP))  # in front of nothing
     outside = _plane(2.0, rows, range(2, 6), viewmat=_rot_y(180.0))  # behind the input camera
     parts = (wall, front, on, back, uncovered, outside)
     # small candidates (2 cm: a 2-pixel footprint here), so that "uncovered" reaches no covered pixel
@@ -339,6 +339,21 @@ def test_occluder_mask_tests_the_whole_footprint():
     source = torch.cat([_source(len(near) + len(far)), torch.full((2,), 1, dtype=torch.long)])
     drop = occluder_mask(scene, source, torch.eye(4, dtype=torch.float64), _K()[0], 0.0, W_DUP, H_DUP)
     assert drop.tolist()[-2:] == [True, False] and not drop[:-2].any()
+
+
+def test_occluder_mask_takes_an_exact_surface_depth():
+    """With the surface's depth map given, a Gaussian just in front of its own pixel's surface is dropped even where
+    rendering the surface would blend a much nearer neighbour into the expected depth (a rough depth map)."""
+    near = _plane(1.0, cols=range(0, W_DUP, 2))  # every other column near, the others far: a comb
+    far = _plane(3.0, cols=range(1, W_DUP, 2))
+    point = _plane(2.9, range(7, 8), range(5, 6))  # just in front of the far surface at column 5
+    scene = _cat(_gaussians(near), _gaussians(far), _gaussians(point, scale=0.005))
+    source = torch.cat([_source(len(near) + len(far)), torch.ones(1, dtype=torch.long)])
+    depth = torch.where(torch.arange(W_DUP) % 2 == 0, 1.0, 3.0).to(torch.float64).expand(H_DUP, W_DUP)
+    vm, K = torch.eye(4, dtype=torch.float64), _K()[0]
+    assert occluder_mask(scene, source, vm, K, 0.0, W_DUP, H_DUP, surface_depth=depth)[-1]
+    with pytest.raises(ValueError, match="surface_depth must have shape"):
+        occluder_mask(scene, source, vm, K, 0.0, W_DUP, H_DUP, surface_depth=depth[1:])
 
 
 def test_footprint_max_bounds_the_brute_force_maximum():

@@ -107,7 +107,7 @@ def test_output_size_estimate_is_checked_before_the_networks_run(tmp_path, capsy
     monkeypatch.setattr(pipeline.Diff4SplatPipeline, "__call__", never)
     monkeypatch.setenv("DIFF4SPLAT_MAX_OUTPUT_BYTES", "100000")
     code, lines = _generate(capsys, tmp_path, "--frames", "9", "--steps", "1")
-    _one_line(code, lines, "output of 9 frames at 64×64: estimated", "DIFF4SPLAT_MAX_OUTPUT_BYTES")
+    _one_line(code, lines, "output of 9 frames at 256×256: estimated", "DIFF4SPLAT_MAX_OUTPUT_BYTES")
 
 
 # --------------------------------------------------------------------------- camera files
@@ -285,13 +285,12 @@ def test_camera_that_sees_none_of_the_scene_is_an_error(tmp_path, capsys):
     Ks = cams.Ks.clone()
     Ks[:, 0, 0] = Ks[:, 1, 1] = 1e30
     blind = CameraPath(cams.viewmats, Ks, cams.width, cams.height, cams.times)
-    # 5 frames → 2 latent frames → 2 source grids of 64×64 Gaussians
-    with pytest.raises(ValueError, match=r"the camera path sees none of the scene: all 8192 Gaussians were pruned "
-                                         r".*focal lengths fx=1e\+30, fy=1e\+30 pixels"):
+    with pytest.raises(ValueError, match=r"cameras: focal lengths fx=1e\+30, fy=1e\+30 pixels give a field of view "
+                                         r"of .* below 0.1°"):
         pipe(torch.rand(64, 64, 3), blind, steps=1)
     save_cameras_json(tmp_path / "blind.json", blind)
     code, lines = _generate(capsys, tmp_path, "--cameras", tmp_path / "blind.json", "--steps", "1")
-    _one_line(code, lines, "sees none of the scene")  # the old code exited 0 with 0 Gaussians
+    _one_line(code, lines, "field of view", "below 0.1°")  # before any network runs
 
 
 def test_amplitude_with_a_camera_file_is_an_error(tmp_path, capsys):

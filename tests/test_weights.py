@@ -25,13 +25,13 @@ def test_shipped_weights_load_without_warning_and_match_the_base_config():
 
 
 @pytest.mark.slow
-def test_trained_model_reproduces_the_photograph_better_than_the_untrained_one():
-    """Model card: 18.19 dB trained vs 14.92 dB untrained (input camera, t = 0, examples/chelsea.png, scene
-    generated along the 360° orbit as ``evaluate --photo`` does)."""
+def test_the_photograph_is_kept_whatever_the_weights():
+    """The photograph is observed, not generated: rendered from the input camera at t = 0 (the scene generated
+    along the 360° orbit, as ``evaluate --photo`` does), the shipped model and an untrained one both give it back
+    (the photo layer, and no generated Gaussian over it); the model card's figure is 93.8 dB."""
     from training.evaluate import photo_psnr
 
     trained = photo_psnr(Diff4SplatPipeline.from_pretrained(), EXAMPLE_IMAGE, "a cat turns its head")
     untrained = photo_psnr(Diff4SplatPipeline(Diff4SplatModel.random(load_config("base"), seed=0)), EXAMPLE_IMAGE,
                            "a cat turns its head")
-    assert trained == pytest.approx(18.19, abs=0.05) and untrained == pytest.approx(14.92, abs=0.05)
-    assert trained > untrained + 3.0
+    assert trained >= 40.0 and untrained >= 40.0

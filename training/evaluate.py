@@ -165,9 +165,11 @@ def _scene_motion(pipe: Diff4SplatPipeline, res: GenerationResult, clip: dict) -
     return motion_errors(pred, tracks, vis & ok[:, None])
 
 
-def _render(scene, cameras: CameraPath) -> tuple[Tensor, Tensor, Tensor]:
-    """:func:`render_path` on the scene's device (the cameras moved there), returned as CPU tensors."""
-    out = render_path(scene, cameras.to(scene.canonical.means.device))
+def _render(res: GenerationResult, cameras: CameraPath | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`render_path` of a generated scene on its device (the cameras, default its own path, moved there) with
+    the scene's dilation (``res.eps2d``), returned as CPU tensors."""
+    cameras = res.cameras if cameras is None else cameras
+    out = render_path(res.scene, cameras.to(res.scene.canonical.means.device), eps2d=res.eps2d)
     return out[0].cpu(), out[1].cpu(), out[2].cpu()
 
 
@@ -193,7 +195,7 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
     gen = dict(steps=steps, sampler=sampler, seed=seed)
 
     res = pipe(image, cams, clip["caption"], **gen)
-    colors, depths, alphas = _render(res.scene, res.cameras)
+    colors, depths, alphas = _render(res)
     pred = colors.permute(0, 3, 1, 2)
     mse = {"model": frame_mse(pred[1:], gt[1:]), **repeat_baselines(clip["video"])}
     out = {"psnr_input": image_psnr(pred[:1], gt[:1]), "ssim_input": image_ssim(pred[:1], gt[:1]),
@@ -205,7 +207,7 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
     out["loop_psnr"] = _loop_psnr(pipe, image, clip, T, **gen)
 
     noisy = pipe(image, cams, clip["caption"], video_latents=ablation_noise(res.latents.shape, seed), **gen)
-    mse["noise"] = frame_mse(_render(noisy.scene, noisy.cameras)[0][1:].permute(0, 3, 1, 2), gt[1:])
+    mse["noise"] = frame_mse(_render(noisy)[0][1:].permute(0, 3, 1, 2), gt[1:])
     mse["gt"] = torch.full((T - 1,), float("nan"), dtype=torch.float64, device="cpu")
     out["vae_psnr"] = out["motion_epe_gt"] = out["motion_disp_epe_gt"] = float("nan")
     if pipe.model is not None:
@@ -214,7 +216,7 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
         recon = (vae.decode_latents(latents)[0].cpu() + 1) / 2
         out["vae_psnr"] = image_psnr(recon.permute(1, 0, 2, 3), gt)
         oracle = pipe(image, cams, clip["caption"], video_latents=latents, **gen)
-        mse["gt"] = frame_mse(_render(oracle.scene, oracle.cameras)[0][1:].permute(0, 3, 1, 2), gt[1:])
+        mse["gt"] = frame_mse(_render(oracle)[0][1:].permute(0, 3, 1, 2), gt[1:])
         motion = _scene_motion(pipe, oracle, clip)
         out["motion_epe_gt"], out["motion_disp_epe_gt"] = motion["motion_epe"], motion["motion_disp_epe"]
     out["psnr_novel"] = psnr_from_mse(float(mse["model"].mean()))
@@ -236,7 +238,7 @@ def _loop_psnr(pipe: Diff4SplatPipeline, image: Tensor, clip: dict, num_frames: 
     closing = CameraPath(orbit.viewmats[:1], orbit.Ks[:1], orbit.width, orbit.height,
                          torch.ones(1, dtype=orbit.viewmats.dtype, device=orbit.viewmats.device))
     res = pipe(image, orbit, clip["caption"], **kw)
-    colors, _, _ = _render(res.scene, closing.to(torch.float32))
+    colors, _, _ = _render(res, closing.to(torch.float32))
     return image_psnr(colors.permute(0, 3, 1, 2), clip["video"][:, :1].permute(1, 0, 2, 3))
 
 
@@ -250,7 +252,7 @@ def photo_psnr(pipe: Diff4SplatPipeline, image_path: str | Path, prompt: str = "
     res = pipe(image, pipe.default_cameras("orbit", cfg.num_frames), prompt, steps=steps, seed=seed)
     first = CameraPath(res.cameras.viewmats[:1], res.cameras.Ks[:1], cfg.width, cfg.height,
                        torch.zeros(1, dtype=res.cameras.viewmats.dtype, device=res.cameras.viewmats.device))
-    colors, _, _ = _render(res.scene, first)
+    colors, _, _ = _render(res, first)
     return image_psnr(colors.permute(0, 3, 1, 2), image.permute(2, 0, 1)[None])
 
 
@@ -322,7 +324,7 @@ def sampling_tradeoffs(pipe: Diff4SplatPipeline, clips: list[dict], nfes=(1, 2, 
                 synchronize(pipe.device)
                 ms.append(1000 * (time.perf_counter() - t0))
                 rms.append(float(((res.latents - ref) ** 2).mean().sqrt()))
-                colors, _, _ = _render(res.scene, res.cameras)
+                colors, _, _ = _render(res)
                 psnr.append(image_psnr(colors.permute(0, 3, 1, 2), c["video"].permute(1, 0, 2, 3)))
             rows.append({"sampler": sampler, "nfe": 2 * steps - 1 if sampler == "heun" else steps, "steps": steps,
                          "ms": statistics.median(ms), "latent_rms": statistics.fmean(rms),
