@@ -190,10 +190,10 @@ def kept_index_map(gaussian_index: Tensor, total: int) -> Tensor:
     """Inverse of the pruning index: (total,) long, the kept Gaussian of each unpruned slot, −1 if pruned.
 
     Args:
-        gaussian_index: (M,) long, index of each kept Gaussian in the unpruned grid
-            (``GenerationResult.gaussian_index``: S·H·W slots, source-frame-major then row-major pixels,
-            so slots 0…H·W−1 are frame 0's pixels).
-        total: number of unpruned slots (S·H·W).
+        gaussian_index: (M,) long, index of each kept Gaussian in the unpruned scene
+            (``GenerationResult.gaussian_index``: the photo layer's 2·H·W slots first, front disks row-major, so
+            slots 0…H·W−1 are the photograph's pixels; then the generated source frames).
+        total: number of unpruned slots.
 
     Returns:
         (total,) int64 on ``gaussian_index``' device.

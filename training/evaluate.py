@@ -152,13 +152,15 @@ class ClipEvaluation:
 
 
 def _scene_motion(pipe: Diff4SplatPipeline, res: GenerationResult, clip: dict) -> dict[str, float]:
-    """:func:`motion_errors` of a generated scene: each track's frame-0 pixel → its kept Gaussian
-    (``res.gaussian_index``; frame 0's Gaussians are the first H·W of the unpruned grid) → its positions
-    at the clip's times. Computed on the CPU (the clip's device) from CPU copies of the scene's points."""
-    H, W = pipe.config.height, pipe.config.width
+    """:func:`motion_errors` of a generated scene: each track's frame-0 pixel → its front disk of the photo layer
+    (``res.gaussian_index``; the photo layer's front disks are the first H·W slots of the unpruned scene, at the
+    output resolution, which is the clip's) → its positions at the clip's times. Computed on the CPU (the clip's
+    device) from CPU copies of the scene's points."""
+    H, W = res.cameras.height, res.cameras.width
     tracks, vis = clip["tracks"], clip["track_visibility"] & clip["track_mask"][:, None]
     idx, ok = track_query_index(tracks[:, 0], clip["Ks"][0], W, H, vis[:, 0])
-    kept = kept_index_map(res.gaussian_index.cpu(), len(res.source_frames) * H * W)
+    slots = res.photo_gaussians + (len(res.source_frames) - 1) * pipe.config.height * pipe.config.width
+    kept = kept_index_map(res.gaussian_index.cpu(), slots)
     g_idx = kept[idx]
     ok = ok & (g_idx >= 0)
     pred = torch.stack([res.scene.at(t).means.cpu()[g_idx.clamp(min=0)] for t in res.cameras.times.tolist()], 1)
