@@ -13,8 +13,8 @@
   survive is the pipeline's pruning (:mod:`diff4splat.prune`): none that re-describes a surface already placed,
   none in front of the photo layer at the input view.
 
-Gaussian order of the assembled scene: the photo layer's 2·H_o·W_o (front disks row-major, then the backing disks),
-then source frames 1…S−1, H·W each at the model resolution, row-major.
+Gaussian order of the assembled scene: the photo layer's H_o·W_o front disks then ⌈H_o/2⌉·⌈W_o/2⌉ backing disks (each
+row-major), then source frames 1…S−1, h·w each at the model resolution, row-major.
 """
 from __future__ import annotations
 
@@ -215,13 +215,15 @@ def assemble_scene(
     stats = {"photo_psnr_db": history[-1], "photo_gaussians": n_photo, "photo_depth": z}
     if d_means is None:
         return DynamicGaussians(canonical), source, stats
-    K = d_means.shape[0]
-    ref = [m[:, :n_grid].reshape(K, h, w, -1) for m in (d_means, d_quats, d_scales)]
-    up = [_upsample_maps(m, (H, W)).reshape(K, H * W, -1) for m in ref]
-    up = [torch.cat([m, m], dim=1) for m in up]  # front and backing disks share their pixel's motion
-    photo = DynamicGaussians(layer, times, *up)
-    t0 = float(cameras.times[0])
-    up = rebase_deformation(*up, photo.deformation_at(t0))
+    # The reference grid's maps, re-based to the photograph's time at the model resolution (identity there, which
+    # bilinear upsampling keeps exactly), then upsampled; front and backing disks share their pixel's motion.
+    K, t0 = d_means.shape[0], float(cameras.times[0])
+    ref = DynamicGaussians(gaussians.select(torch.arange(n_grid, device=dev)), times,
+                           *(m[:, :n_grid] for m in (d_means, d_quats, d_scales)))
+    ref = rebase_deformation(ref.d_means, ref.d_quats, ref.d_scales, ref.deformation_at(t0))
+    size_back = (-(-H // 2), -(-W // 2))  # the backing disks' half-resolution grid
+    up = [torch.cat([_upsample_maps(m.reshape(K, h, w, -1), size).reshape(K, size[0] * size[1], -1)
+                     for size in ((H, W), size_back)], dim=1) for m in ref]
     rest = [m[:, n_grid:] for m in (d_means, d_quats, d_scales)]
     deform = [torch.cat([a, b], dim=1) for a, b in zip(up, rest, strict=True)]
     return DynamicGaussians(canonical, times, *deform), source, stats

@@ -82,8 +82,9 @@ class Gaussians:
         quat_normalize(self.quats, "quats")  # zero norm → ValueError naming quats
 
     def select(self, index: Tensor) -> Gaussians:
-        """Subset by boolean mask (N,) or integer indices (M,)."""
-        return Gaussians(*(getattr(self, f.name)[index] for f in fields(self)))
+        """Subset by boolean mask (N,) or integer indices (M,). Not validated again: a subset of valid Gaussians is
+        valid (every check is per Gaussian), and scenes of a million Gaussians are subset several times."""
+        return _unchecked(Gaussians, {f.name: getattr(self, f.name)[index] for f in fields(self)})
 
     def to(self, *args, **kwargs) -> Gaussians:
         """Move/cast every tensor (``Tensor.to`` arguments)."""
@@ -91,3 +92,12 @@ class Gaussians:
 
     def detach(self) -> Gaussians:
         return Gaussians(*(getattr(self, f.name).detach() for f in fields(self)))
+
+
+def _unchecked(cls, values: dict):
+    """An instance of the dataclass ``cls`` holding ``values`` without running ``__post_init__`` (for results
+    derived from a validated instance in a way that keeps every checked property, e.g. a subset)."""
+    obj = object.__new__(cls)
+    for f in fields(cls):
+        setattr(obj, f.name, values.get(f.name))
+    return obj

@@ -6,18 +6,19 @@ pixel of the photograph on its camera ray at a given depth, so that rendering th
 reproduces the photograph (≥ 40 dB, tests/test_photo.py), and a camera that moves a little sees the photograph
 reprojected by that depth.
 
-Two layers of pixel Gaussians, because two needs conflict under a 3DGS renderer (eps2d screen-space dilation,
+Two layers of Gaussians, because two needs conflict under a 3DGS renderer (eps2d screen-space dilation,
 front-to-back compositing):
 
 - **front**: thin disks facing the camera, in-plane σ = :data:`FRONT_SCALE_PX` of a pixel, opacity
   :data:`PHOTO_OPACITY` (alpha 0.99 at the pixel centre). Small, so a neighbour in front bleeds little into a pixel
   (alpha 0.99·exp(−½/σ²_eff) at one pixel, σ²_eff = σ² + eps2d); the colours are then solved so that the render
   equals the photograph (:func:`refine_colors`, a fixed-point iteration with the renderer itself).
-- **backing**: the same pixels' rays, σ = :data:`BACKING_SCALE_PX`, the photograph's own colours, at the largest
-  z-depth of the 5×5 pixels around (the disk's reach) times 1 + :data:`BACKING_OFFSET`: behind every front disk it
-  can overlap, so at the input camera the front disks hide it (they leave ≤ 1 % of each pixel). It fills the gaps
-  between the front disks that a sub-pixel camera motion would otherwise open (alpha ≥ 0.97 at half-pixel shifts
-  instead of 0.5).
+- **backing**: one disk per 2×2 block of pixels (⌈H/2⌉·⌈W/2⌉), on the ray through the block's centre, σ =
+  :data:`BACKING_SCALE_PX` pixels, the block's mean colour, at the largest z-depth of the front disks it can reach
+  (±:data:`BACKING_REACH` pixels) times 1 + :data:`BACKING_OFFSET`: behind every front disk it overlaps, so at the
+  input camera the front disks hide it (they leave ≤ 1 % of each pixel). It fills the gaps between the front disks
+  that a sub-pixel camera motion would otherwise open (alpha ≥ 0.97 at every sub-pixel shift instead of 0.5), at a
+  quarter of the front layer's count.
 
 Scenes holding a photo layer are rendered with :data:`PHOTO_EPS2D` = 0.1 px² instead of 3DGS's 0.3 (Mip-Splatting's
 2D filter value): with 0.3 a neighbour bleeds 19 % into a pixel and detailed photographs stop at ~30–38 dB.
@@ -46,17 +47,18 @@ PHOTO_EPS2D = 0.1
 """Screen-space dilation, pixels², of scenes with a photo layer (module docstring; meta.json ``eps2d``)."""
 FRONT_SCALE_PX = 0.25
 """In-plane standard deviation of a front disk, pixels at the input camera."""
-BACKING_SCALE_PX = 0.5
-"""In-plane standard deviation of a backing disk, pixels at the input camera."""
+BACKING_SCALE_PX = 1.2
+"""In-plane standard deviation of a backing disk (one per 2×2 pixels), pixels at the input camera."""
 BACKING_OFFSET = 0.01
 """The backing layer lies this fraction behind the deepest front disk it can overlap (module docstring)."""
-BACKING_REACH = 2
-"""Pixels around a backing disk whose front disks it must stay behind (its 3σ_eff reach at the input camera)."""
+BACKING_REACH = 4
+"""Pixels on each side of a backing disk's centre whose front disks it must stay behind (its 3σ_eff reach at the
+input camera, 3·√(1.2² + 0.1) ≈ 3.7)."""
 PHOTO_OPACITY = 0.995
 """Opacity of every photo Gaussian (the renderer clamps alpha at 0.99)."""
 THICKNESS = 0.1
 """Standard deviation along the ray as a fraction of the in-plane one (thin disks facing the input camera)."""
-REFINE_STEPS = 3
+REFINE_STEPS = 2
 """Fixed-point steps of :func:`refine_colors` (each one render at the output resolution)."""
 
 
@@ -140,7 +142,7 @@ def photo_layer(
     refine_steps: int = REFINE_STEPS,
     eps2d: float = PHOTO_EPS2D,
 ) -> tuple[Gaussians, list[float]]:
-    """The photograph as 2·H·W Gaussians (front disks row-major, then the backing disks; module docstring).
+    """The photograph as H·W front disks (row-major) then ⌈H/2⌉·⌈W/2⌉ backing disks (row-major; module docstring).
 
     Pixel (i, j) at z-depth z sits at o + d·z/(d·ẑ) on its ray (o, d) (:func:`diff4splat.cameras.camera_rays`,
     pixel centres), a disk facing the camera (thin axis along d) with in-plane σ = scale·z/f (f = fx along the
@@ -155,7 +157,8 @@ def photo_layer(
         eps2d: the dilation the scene will be rendered with (:data:`PHOTO_EPS2D`).
 
     Returns:
-        (Gaussians (2·H·W) on ``image``'s device in float32, input-view PSNR history of :func:`refine_colors`).
+        (Gaussians (H·W + ⌈H/2⌉·⌈W/2⌉) on ``image``'s device in float32, input-view PSNR history of
+        :func:`refine_colors`).
 
     Raises:
         ValueError: shapes that do not match, image values outside [0, 1], depth not finite and positive.
@@ -163,26 +166,31 @@ def photo_layer(
     H, W = _check(image, depth, viewmat, K)
     dev = image.device
     viewmat, K, depth = viewmat.to(dev, torch.float32), K.to(dev, torch.float32), depth.to(dev, torch.float32)
-    origins, dirs = camera_rays(viewmat[None], K[None], W, H)
-    origins, dirs = origins[0].reshape(-1, 3), dirs[0].reshape(-1, 3)
-    z = depth.reshape(-1)
-    dist = z / (dirs @ viewmat[2, :3])  # d·ẑ = cos of the angle to the optical axis
-    quats = _disk_frames(dirs, viewmat)
     fx, fy = float(K[0, 0]), float(K[1, 1])
 
-    def disks(scale_px: float, zs: Tensor) -> tuple[Tensor, Tensor]:
-        means = origins + (dist * zs / z)[:, None] * dirs
-        sx, sy = scale_px * zs / fx, scale_px * zs / fy
-        return means, torch.stack([sx, sy, THICKNESS * torch.minimum(sx, sy)], dim=-1)
+    def disks(K: Tensor, width: int, height: int, z: Tensor, scale_px: float) -> tuple[Tensor, Tensor, Tensor]:
+        """Disks on the pixel-centre rays of a (height × width) grid of intrinsics K at z-depths z (height, width)."""
+        origins, dirs = camera_rays(viewmat[None], K[None], width, height)
+        origins, dirs, z = origins[0].reshape(-1, 3), dirs[0].reshape(-1, 3), z.reshape(-1)
+        means = origins + (z / (dirs @ viewmat[2, :3]))[:, None] * dirs  # d·ẑ: cos of the angle to the axis
+        sx, sy = scale_px * z / fx, scale_px * z / fy
+        return means, _disk_frames(dirs, viewmat), torch.stack([sx, sy, THICKNESS * torch.minimum(sx, sy)], dim=-1)
 
-    reach = 2 * BACKING_REACH + 1
-    z_back = F.max_pool2d(depth[None, None], reach, stride=1, padding=BACKING_REACH)[0, 0].reshape(-1)
-    m_front, s_front = disks(FRONT_SCALE_PX, z)
-    m_back, s_back = disks(BACKING_SCALE_PX, z_back * (1 + BACKING_OFFSET))
-    rgb = image.reshape(-1, 3).to(torch.float32)
-    sh = rgb_to_sh0(torch.cat([rgb, rgb]))[:, None]
-    layer = Gaussians(torch.cat([m_front, m_back]), torch.cat([quats, quats]), torch.cat([s_front, s_back]),
-                      torch.full((2 * H * W,), PHOTO_OPACITY, device=dev), sh)
+    front = disks(K, W, H, depth, FRONT_SCALE_PX)
+    # The backing grid: pixel (i, j) of a half-resolution image is the 2×2 block whose centre is the full-resolution
+    # point (2j + 1, 2i + 1), i.e. the intrinsics halved; its depth: the deepest front disk within ±BACKING_REACH.
+    W2, H2 = -(-W // 2), -(-H // 2)
+    K2 = K.clone()
+    K2[:2] = K[:2] / 2
+    reach = 2 * BACKING_REACH
+    z_back = F.max_pool2d(depth[None, None], reach, stride=2, padding=BACKING_REACH - 1, ceil_mode=True)[0, 0]
+    back = disks(K2, W2, H2, z_back[:H2, :W2] * (1 + BACKING_OFFSET), BACKING_SCALE_PX)
+    rgb = image.to(torch.float32)
+    block = F.avg_pool2d(rgb.permute(2, 0, 1)[None], 2, ceil_mode=True)[0].permute(1, 2, 0)
+    sh = rgb_to_sh0(torch.cat([rgb.reshape(-1, 3), block.reshape(-1, 3)]))[:, None]
+    n = H * W + H2 * W2
+    layer = Gaussians(*(torch.cat([a, b]) for a, b in zip(front, back, strict=True)),
+                      torch.full((n,), PHOTO_OPACITY, device=dev), sh)
     return refine_colors(layer, image, viewmat, K, H * W, refine_steps, eps2d)
 
 

@@ -229,11 +229,11 @@ class GenerationResult:
         source_frames: (S,) long, the video frame of each source frame whose rays carry a grid of
             Gaussians (``models.ldrm.source_frame_indices``).
         gaussian_index: (M,) long, index of each kept Gaussian in the unpruned scene, increasing: the photo
-            layer's 2·H_o·W_o (front disks row-major, then backing disks; output resolution), then source frames
-            1…S−1 with h·w each (model resolution, row-major; :func:`diff4splat.assemble.assemble_scene`).
+            layer's H_o·W_o front disks then ⌈H_o/2⌉·⌈W_o/2⌉ backing disks (row-major; output resolution), then
+            source frames 1…S−1 with h·w each (model resolution, row-major; :func:`diff4splat.assemble.assemble_scene`).
         eps2d: the screen-space dilation, pixels², the scene is rendered with (meta.json ``eps2d``).
         photo_psnr_db: PSNR of the photo layer alone rendered at the input camera against the photograph.
-        photo_gaussians: 2·H_o·W_o, the photo layer's share of the unpruned scene.
+        photo_gaussians: H_o·W_o + ⌈H_o/2⌉·⌈W_o/2⌉, the photo layer's share of the unpruned scene.
     """
 
     scene: DynamicGaussians
@@ -520,7 +520,12 @@ class Diff4SplatPipeline:
             occl = occluder_mask(scene, grid[index], cameras.viewmats[0], cameras.Ks[0], float(cameras.times[0]),
                                  W_o, H_o, surface_depth=photo["photo_depth"])
             scene, index, occluders = scene.select(~occl), index[~occl], int(occl.sum())
-        keep, stats = prune_mask(scene, cameras, min_opacity=cfg.prune_opacity)
+        # The photo layer is opaque and pixel-aligned to the first camera (seen by construction): only the
+        # generated Gaussians need the opacity and visibility tests.
+        generated = grid[index] > 0
+        keep = torch.ones(scene.num_gaussians, dtype=torch.bool, device=dev)
+        keep[generated], stats = prune_mask(scene.select(generated), cameras, min_opacity=cfg.prune_opacity)
+        stats = {**stats, "before": scene.num_gaussians, "after": int(keep.sum())}
         scene, index = scene.select(keep), index[keep]
         stats = {**stats, "before": stats["before"] + duplicates + occluders, "duplicates": duplicates,
                  "occluders": occluders}

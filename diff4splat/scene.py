@@ -28,7 +28,7 @@ from torch import Tensor
 
 from .checks import check_finite
 from .constants import ALPHA_MIN
-from .gaussians import Gaussians
+from .gaussians import Gaussians, _unchecked
 from .quaternions import quat_multiply, quat_nlerp, quat_normalize
 
 __all__ = ["DynamicGaussians", "compose_deformation"]
@@ -218,8 +218,12 @@ class DynamicGaussians:
             t: time in [0, 1].
             gate: temporal gate (see :meth:`active_indices`); ignored without temporal support.
 
+        The result is not validated as a whole again: the means are sums of finite values and the rotations unit
+        quaternions of non-zero ones (:func:`compose_deformation`); only the scales s·exp(Δs), which can overflow
+        or underflow, are checked.
+
         Raises:
-            ValueError: t outside [0, 1] or not finite, gate < 0.
+            ValueError: t outside [0, 1] or not finite, gate < 0; a deformed scale that is not finite or not > 0.
         """
         t = _check_time(t)
         idx = self.active_indices(t, gate)
@@ -229,17 +233,23 @@ class DynamicGaussians:
         if self.is_static:
             return g if idx is None else Gaussians(g.means, g.quats, g.scales, opacities, g.sh)
         means, quats, scales = compose_deformation(g.means, g.quats, g.scales, *scene.deformation_at(t))
-        return Gaussians(means=means, quats=quats, scales=scales, opacities=opacities, sh=g.sh)
+        check_finite("scales", scales)
+        if scales.numel() and not bool((scales > 0).all()):
+            raise ValueError(f"deformed scales must be > 0 metres at t = {t} (a log-scale offset underflows)")
+        return _unchecked(Gaussians, {"means": means, "quats": quats, "scales": scales, "opacities": opacities,
+                                      "sh": g.sh})
 
     def select(self, index: Tensor) -> DynamicGaussians:
-        """Subset of Gaussians by boolean mask (M,) or indices; deformation and temporal arrays follow."""
-        temporal = {} if not self.has_temporal else {"t_means": self.t_means[index], "t_scales": self.t_scales[index]}
-        if self.is_static:
-            return DynamicGaussians(self.canonical.select(index), **temporal)
-        return DynamicGaussians(
-            self.canonical.select(index), self.times,
-            self.d_means[:, index], self.d_quats[:, index], self.d_scales[:, index], **temporal,
-        )
+        """Subset of Gaussians by boolean mask (M,) or indices; deformation and temporal arrays follow. Not
+        validated again (every check holds per Gaussian or for the shared key times, so a subset of a valid scene
+        is valid)."""
+        values = {"canonical": self.canonical.select(index), "times": self.times}
+        if self.has_temporal:
+            values.update(t_means=self.t_means[index], t_scales=self.t_scales[index])
+        if not self.is_static:
+            values.update(d_means=self.d_means[:, index], d_quats=self.d_quats[:, index],
+                          d_scales=self.d_scales[:, index])
+        return _unchecked(DynamicGaussians, values)
 
     def without_deformation(self, atol: float = 0.0) -> DynamicGaussians:
         """Drop the deformation if it is the identity within ``atol`` (metres / quaternion / log-scale)."""

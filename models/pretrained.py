@@ -1,9 +1,11 @@
 """`save_pretrained` / `from_pretrained` for every network: safetensors weights + config.json."""
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, ClassVar, TypeVar
 
@@ -93,9 +95,26 @@ def _dataclass_type(cls: type, name: str) -> type | None:
     return t if dataclasses.is_dataclass(t) else None
 
 
+@contextlib.contextmanager
+def skip_init() -> Iterator[None]:
+    """Within the block, ``torch.nn.init``'s in-place initialisers return their tensor untouched: building a model
+    on the ``meta`` device to count its parameters does not run (or import torch._dynamo for) initialisation on
+    tensors that hold no data (the same idea as transformers' ``no_init_weights``)."""
+    names = [n for n in dir(torch.nn.init) if n.endswith("_") and not n.startswith("_")]
+    saved = {n: getattr(torch.nn.init, n) for n in names}
+    try:
+        for n in names:
+            setattr(torch.nn.init, n, lambda tensor, *args, **kwargs: tensor)
+        yield
+    finally:
+        for n, fn in saved.items():
+            setattr(torch.nn.init, n, fn)
+
+
 def check_model_size(build: Any, where: str) -> int:
-    """Count the parameters ``build()`` would allocate, on the ``meta`` device (no memory), and check the
-    ``parameters`` limit (:mod:`diff4splat.limits`) before the real model is built.
+    """Count the parameters ``build()`` would allocate, on the ``meta`` device (no memory) and without running
+    initialisers (:func:`skip_init`), and check the ``parameters`` limit (:mod:`diff4splat.limits`) before the
+    real model is built.
 
     Args:
         build: zero-argument callable that constructs the ``nn.Module`` (called under ``torch.device("meta")``).
@@ -108,7 +127,7 @@ def check_model_size(build: Any, where: str) -> int:
         LimitError: more parameters than the limit, or so many that a tensor size overflows (names ``where``).
     """
     try:
-        with torch.device("meta"):
+        with torch.device("meta"), skip_init():
             n = count_parameters(build())
     except RuntimeError as e:
         if "overflow" not in str(e).lower():

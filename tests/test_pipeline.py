@@ -33,7 +33,7 @@ def test_untrained_deformation_gives_a_static_scene_with_pixel_aligned_gaussians
     assert res.scene.is_static and res.scene.times is None  # zero-init deformation = identity → stored as static
     assert res.source_frames.tolist() == [0, 4, 8]  # FRAMES = 9 → 3 latent frames
     S = len(res.source_frames)
-    assert res.photo_gaussians == 2 * 64 * 64  # the photo layer: front and backing disks at the output resolution
+    assert res.photo_gaussians == 64 * 64 + 32 * 32  # the photo layer: front disks, backing disks per 2×2 pixels
     assert res.prune_stats["before"] == res.photo_gaussians + (S - 1) * 64 * 64
     stats = res.prune_stats
     assert stats["after"] == (stats["before"] - stats["duplicates"] - stats["occluders"] - stats["low_opacity"]
@@ -253,11 +253,11 @@ def test_every_source_frame_contributes_and_duplicates_are_pruned(image):
     cams = pipe.default_cameras("forward", FRAMES, amplitude=0.02)  # 4 cm: within 5 % of the 2 m distance
     res = pipe(image, cams, "", steps=1)
     stats = res.prune_stats
-    assert stats["before"] == 2 * 64 * 64 + 2 * 64 * 64  # the photo layer, then source frames 4 and 8
+    assert stats["before"] == 64 * 64 + 32 * 32 + 2 * 64 * 64  # the photo layer, then source frames 4 and 8
     assert stats["duplicates"] > 0.5 * 2 * 64 * 64, stats
     model.ldrm.config.gaussian_frames = "reference"
     ref = pipe(image, cams, "", steps=1)
-    assert ref.prune_stats["before"] == 2 * 64 * 64 and ref.prune_stats["duplicates"] == 0
+    assert ref.prune_stats["before"] == 64 * 64 + 32 * 32 and ref.prune_stats["duplicates"] == 0
 
 
 @pytest.mark.slow

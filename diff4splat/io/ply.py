@@ -68,15 +68,14 @@ def ply_bytes(gaussians: Gaussians) -> bytes:
         torch.log(g.scales),
         g.quats,
     ]
-    values = torch.cat(columns, dim=1).numpy().astype("<f4")  # device: g was moved to the CPU above
+    # Every property is a little-endian float32 in file order: the vertex records are the rows of one C-contiguous
+    # (N, P) float32 array.
+    values = np.ascontiguousarray(torch.cat(columns, dim=1).numpy(), dtype="<f4")  # device: g is a CPU copy
     names = ply_property_names(k)
-    vertices = np.empty(n, dtype=[(name, "<f4") for name in names])
-    for i, name in enumerate(names):
-        vertices[name] = values[:, i]
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
     header += [f"property float {name}" for name in names]
     header += ["end_header"]
-    return ("\n".join(header) + "\n").encode("ascii") + vertices.tobytes()
+    return ("\n".join(header) + "\n").encode("ascii") + values.tobytes()
 
 
 def save_ply(path: str | os.PathLike, gaussians: Gaussians) -> None:

@@ -98,11 +98,11 @@ def float16_error_px(
     """Largest image-plane displacement, pixels, caused by rounding ``means`` to float16, over the cameras and
     the Gaussians in front of them (z > ``near``) whose projection lies within 4× the principal point's
     distance from the image origin; 0.0 when no Gaussian is in view. Large inputs are measured on a seeded
-    random subset of ``max_points`` points and ``max_cameras`` evenly spaced cameras (first and last kept)."""
+    evenly spaced subset of ``max_points`` points and ``max_cameras`` evenly spaced cameras (first and last kept)."""
     pts = means.reshape(-1, 3).double()
     if pts.shape[0] > max_points:
-        pick = torch.randperm(pts.shape[0], generator=torch.Generator().manual_seed(0), device="cpu")[:max_points]
-        pts = pts[pick.to(pts.device)]  # drawn on the CPU generator: the same subset on every device
+        pick = torch.linspace(0, pts.shape[0] - 1, max_points, device=pts.device).round().long()
+        pts = pts[pick]  # evenly spaced: the same subset on every device, no permutation of millions
     if viewmats.shape[0] > max_cameras:
         pick = torch.linspace(0, viewmats.shape[0] - 1, max_cameras, device=viewmats.device).round().long()
         viewmats, Ks = viewmats[pick], Ks[pick]
