@@ -8,13 +8,15 @@
   the reference grid's deformation maps upsampled bilinearly, re-based so that the layer is exactly the observation
   at the photograph's time (:func:`rebase_deformation`). The LDRM's own colours, opacities and scales of the
   reference frame are not used.
+- **The backdrop** (:func:`diff4splat.photo.backdrop_layer`): the photograph continued beyond its borders, blurred,
+  behind everything; static.
 - **The other source frames** (video frames 4, 8, …) keep the network's pixel-aligned Gaussians at the model
   resolution (:func:`to_gaussians`): what the generated video shows that the photograph does not. Which of them
   survive is the pipeline's pruning (:mod:`diff4splat.prune`): none that re-describes a surface already placed,
   none in front of the photo layer at the input view.
 
 Gaussian order of the assembled scene: the photo layer's H_o·W_o front disks then ⌈H_o/2⌉·⌈W_o/2⌉ backing disks (each
-row-major), then source frames 1…S−1, h·w each at the model resolution, row-major.
+row-major), the backdrop, then source frames 1…S−1, h·w each at the model resolution, row-major.
 """
 from __future__ import annotations
 
@@ -29,7 +31,7 @@ from .cameras import CameraPath, camera_rays
 from .depth_alignment import fit_scale_shift
 from .devices import autocast_off
 from .gaussians import Gaussians, rgb_to_sh0
-from .photo import PHOTO_EPS2D, photo_layer, upsample_depth
+from .photo import PHOTO_EPS2D, backdrop_layer, photo_layer, upsample_depth
 from .quaternions import quat_conjugate, quat_multiply, quat_normalize
 from .scene import DynamicGaussians
 
@@ -192,9 +194,11 @@ def assemble_scene(
         eps2d: the dilation the scene is rendered with (the photo layer's colours are solved for it).
 
     Returns:
-        (scene, source (M,) long: the source frame of each Gaussian — 0 for the photo layer —, stats dict with
-        ``photo_psnr_db`` (the layer alone at the input camera, after the colour solve), ``photo_gaussians`` and
-        ``photo_depth`` (H, W), the layer's z-depth at the photograph's time).
+        (scene, source (M,) long: the source frame of each Gaussian — 0 for the photo layer and the backdrop —,
+        stats dict with ``photo_psnr_db`` (the layer alone at the input camera, after the colour solve),
+        ``photo_gaussians``, ``backdrop_gaussians``, ``photo_depth`` (H, W), the layer's z-depth at the
+        photograph's time, and ``background``, the photograph's mean colour (RGB in [0, 1]) for the scene's
+        background).
 
     Raises:
         ValueError: as :func:`photo_depth` and :func:`diff4splat.photo.photo_layer`.
@@ -205,14 +209,17 @@ def assemble_scene(
     gaussians, d_means, d_quats, d_scales = to_gaussians(out, cameras_model.viewmats[sources],
                                                          cameras_model.Ks[sources])
     z = photo_depth(out.distance[0, 0], cameras_model.viewmats[0], cameras_model.Ks[0], image, depth, depth_kind)
-    layer, history = photo_layer(image, z, cameras.viewmats[0].float(), cameras.Ks[0].float(), eps2d=eps2d)
-    n_photo, n_grid = layer.num_gaussians, h * w
+    viewmat, K0 = cameras.viewmats[0].float(), cameras.Ks[0].float()
+    layer, history = photo_layer(image, z, viewmat, K0, eps2d=eps2d)
+    backdrop = backdrop_layer(image, z, viewmat, K0)
+    n_photo, n_back, n_grid = layer.num_gaussians, backdrop.num_gaussians, h * w
     generated = gaussians.select(torch.arange(n_grid, S * n_grid, device=dev))
-    canonical = Gaussians(*(torch.cat([getattr(layer, f), getattr(generated, f)])
+    canonical = Gaussians(*(torch.cat([getattr(layer, f), getattr(backdrop, f), getattr(generated, f)])
                             for f in ("means", "quats", "scales", "opacities", "sh")))
-    source = torch.cat([torch.zeros(n_photo, dtype=torch.long, device=dev),
+    source = torch.cat([torch.zeros(n_photo + n_back, dtype=torch.long, device=dev),
                         torch.arange(1, S, device=dev).repeat_interleave(n_grid)])
-    stats = {"photo_psnr_db": history[-1], "photo_gaussians": n_photo, "photo_depth": z}
+    stats = {"photo_psnr_db": history[-1], "photo_gaussians": n_photo, "backdrop_gaussians": n_back,
+             "photo_depth": z, "background": tuple(float(c) for c in image.reshape(-1, 3).mean(0))}
     if d_means is None:
         return DynamicGaussians(canonical), source, stats
     # The reference grid's maps, re-based to the photograph's time at the model resolution (identity there, which
@@ -224,6 +231,9 @@ def assemble_scene(
     size_back = (-(-H // 2), -(-W // 2))  # the backing disks' half-resolution grid
     up = [torch.cat([_upsample_maps(m.reshape(K, h, w, -1), size).reshape(K, size[0] * size[1], -1)
                      for size in ((H, W), size_back)], dim=1) for m in ref]
+    identity = torch.zeros(K, n_back, 10, device=dev, dtype=up[0].dtype)
+    identity[..., 3] = 1.0  # the backdrop does not move: Δμ = 0, Δq = (1, 0, 0, 0), Δs = 0
+    up = [torch.cat([m, part], dim=1) for m, part in zip(up, identity.split([3, 4, 3], dim=-1), strict=True)]
     rest = [m[:, n_grid:] for m in (d_means, d_quats, d_scales)]
     deform = [torch.cat([a, b], dim=1) for a, b in zip(up, rest, strict=True)]
     return DynamicGaussians(canonical, times, *deform), source, stats

@@ -341,6 +341,7 @@ def _meta(args, pipe, result, source: str, versions: dict, timings: dict) -> dic
         "model_width": cfg.width,
         "model_height": cfg.height,
         "eps2d": result.eps2d,
+        "background": list(result.background),
         "photo_psnr_db": result.photo_psnr_db,
         "depth_file": None if args.depth is None else str(args.depth),
         "depth_kind": None if args.depth is None else args.depth_kind,
@@ -373,7 +374,8 @@ def generate(args) -> dict:
     result = pipe(image, cameras, args.prompt, steps=args.steps, sampler=args.sampler, seed=args.seed,
                   progress=not args.quiet, depth=depth, depth_kind=args.depth_kind)
     t0 = time.perf_counter()
-    colors, depths, alphas = render_path(result.scene, result.cameras, eps2d=result.eps2d, progress=not args.quiet)
+    colors, depths, alphas = render_path(result.scene, result.cameras, eps2d=result.eps2d,
+                                         background=result.background, progress=not args.quiet)
     timings = {"load_model": t_load, **result.timings, "render": time.perf_counter() - t0}
     meta = _meta(args, pipe, result, source, versions, timings)
     t0 = time.perf_counter()

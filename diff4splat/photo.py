@@ -26,11 +26,16 @@ Scenes holding a photo layer are rendered with :data:`PHOTO_EPS2D` = 0.1 px² in
 The layer's depth comes from the network at the model resolution, upsampled with the photograph as the guide
 (:func:`upsample_depth`, joint bilateral upsampling: depth edges follow colour edges), or from the user (``generate
 --depth``).
+
+Behind everything, :func:`backdrop_layer` continues the photograph beyond its borders, blurred, far away: what
+neither the photograph nor the generated frames show is filled with the photograph's surroundings (the "repeat the
+input frame, blurred" baseline, but in 3D) instead of the background colour.
 """
 from __future__ import annotations
 
 import math
 
+import cv2
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -41,7 +46,8 @@ from .quaternions import rotmat_to_quat
 from .render import rasterize
 
 __all__ = ["PHOTO_EPS2D", "FRONT_SCALE_PX", "BACKING_SCALE_PX", "BACKING_OFFSET", "PHOTO_OPACITY", "THICKNESS",
-           "REFINE_STEPS", "photo_layer", "refine_colors", "upsample_depth", "render_input_view"]
+           "REFINE_STEPS", "BACKDROP_CELLS", "BACKDROP_EXTEND", "BACKDROP_DEPTH", "photo_layer", "refine_colors",
+           "upsample_depth", "render_input_view", "backdrop_layer"]
 
 PHOTO_EPS2D = 0.1
 """Screen-space dilation, pixels², of scenes with a photo layer (module docstring; meta.json ``eps2d``)."""
@@ -60,6 +66,12 @@ THICKNESS = 0.1
 """Standard deviation along the ray as a fraction of the in-plane one (thin disks facing the input camera)."""
 REFINE_STEPS = 2
 """Fixed-point steps of :func:`refine_colors` (each one render at the output resolution)."""
+BACKDROP_CELLS = 16
+"""Backdrop Gaussians per image height (:func:`backdrop_layer`)."""
+BACKDROP_EXTEND = 2
+"""Image sizes the backdrop reaches beyond each border of the photograph."""
+BACKDROP_DEPTH = 1.5
+"""The backdrop lies this many times farther than the photo layer's farthest pixel."""
 
 
 def _check(image: Tensor, depth: Tensor, viewmat: Tensor, K: Tensor) -> tuple[int, int]:
@@ -192,6 +204,51 @@ def photo_layer(
     layer = Gaussians(*(torch.cat([a, b]) for a, b in zip(front, back, strict=True)),
                       torch.full((n,), PHOTO_OPACITY, device=dev), sh)
     return refine_colors(layer, image, viewmat, K, H * W, refine_steps, eps2d)
+
+
+def backdrop_layer(
+    image: Tensor,  # (H, W, 3) in [0, 1]
+    depth: Tensor,  # (H, W) the photo layer's z-depth, metres
+    viewmat: Tensor,  # (4, 4)
+    K: Tensor,  # (3, 3) at H × W
+) -> Gaussians:
+    """The photograph's surroundings: a far, blurred continuation of it beyond its borders.
+
+    The photograph is extended by :data:`BACKDROP_EXTEND` image sizes on every side by mirroring
+    (``cv2.copyMakeBorder``, BORDER_REFLECT), blurred (Gaussian, σ = one cell) and area-averaged to cells of H /
+    :data:`BACKDROP_CELLS` pixels; one Gaussian per cell sits on the ray through the cell's centre at z =
+    :data:`BACKDROP_DEPTH` × the photo layer's largest depth, a disk facing the camera of σ = 0.8 cell, opacity
+    :data:`PHOTO_OPACITY`. At the input camera the photo layer hides it; a moving camera sees it where neither
+    the photograph nor the generated frames have anything.
+
+    Returns:
+        Gaussians ((1 + 2·extend)² · cells²-ish, SH degree 0) on ``image``'s device, float32.
+
+    Raises:
+        ValueError: as :func:`photo_layer`.
+    """
+    H, W = _check(image, depth, viewmat, K)
+    dev = image.device
+    viewmat, K = viewmat.to(dev, torch.float32), K.to(dev, torch.float32)
+    cell = max(1, round(H / BACKDROP_CELLS))
+    pad = BACKDROP_EXTEND * max(H, W)
+    host = image.detach().float().cpu().numpy()
+    big = cv2.GaussianBlur(cv2.copyMakeBorder(host, pad, pad, pad, pad, cv2.BORDER_REFLECT), (0, 0), float(cell))
+    h, w = big.shape[0] // cell, big.shape[1] // cell
+    small = torch.from_numpy(cv2.resize(big[:h * cell, :w * cell], (w, h), interpolation=cv2.INTER_AREA)).to(dev)
+    Kb = K.clone()
+    Kb[0, 2], Kb[1, 2] = K[0, 2] + pad, K[1, 2] + pad
+    Kb[:2] = Kb[:2] / cell
+    origins, dirs = camera_rays(viewmat[None], Kb[None], w, h)
+    origins, dirs = origins[0].reshape(-1, 3), dirs[0].reshape(-1, 3)
+    z = BACKDROP_DEPTH * float(depth.max())
+    means = origins + (z / (dirs @ viewmat[2, :3]))[:, None] * dirs
+    sigma = 0.8 * cell * z / float(torch.minimum(K[0, 0], K[1, 1]))
+    n = means.shape[0]
+    scales = torch.tensor([sigma, sigma, THICKNESS * sigma], device=dev).expand(n, 3).contiguous()
+    colors = small.reshape(-1, 3).clamp(1e-4, 1 - 1e-4)
+    return Gaussians(means, _disk_frames(dirs, viewmat), scales, torch.full((n,), PHOTO_OPACITY, device=dev),
+                     rgb_to_sh0(colors)[:, None])
 
 
 UPSAMPLE_SIGMA_SPATIAL = 0.75

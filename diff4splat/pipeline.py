@@ -232,8 +232,11 @@ class GenerationResult:
             layer's H_o·W_o front disks then ⌈H_o/2⌉·⌈W_o/2⌉ backing disks (row-major; output resolution), then
             source frames 1…S−1 with h·w each (model resolution, row-major; :func:`diff4splat.assemble.assemble_scene`).
         eps2d: the screen-space dilation, pixels², the scene is rendered with (meta.json ``eps2d``).
+        background: RGB in [0, 1] behind the scene: the photograph's mean colour (meta.json ``background``).
         photo_psnr_db: PSNR of the photo layer alone rendered at the input camera against the photograph.
-        photo_gaussians: H_o·W_o + ⌈H_o/2⌉·⌈W_o/2⌉, the photo layer's share of the unpruned scene.
+        photo_gaussians: H_o·W_o + ⌈H_o/2⌉·⌈W_o/2⌉, the photo layer's share of the unpruned scene (the backdrop
+            follows it, :func:`diff4splat.assemble.assemble_scene`).
+        num_slots: the unpruned scene's size, the range of ``gaussian_index``.
     """
 
     scene: DynamicGaussians
@@ -247,7 +250,9 @@ class GenerationResult:
     source_frames: Tensor | None = None
     gaussian_index: Tensor | None = None
     eps2d: float = PHOTO_EPS2D
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     photo_psnr_db: float = float("nan")
+    num_slots: int = 0
     photo_gaussians: int = 0
 
 
@@ -521,8 +526,8 @@ class Diff4SplatPipeline:
                                  W_o, H_o, surface_depth=photo["photo_depth"])
             scene, index, occluders = scene.select(~occl), index[~occl], int(occl.sum())
         # The photo layer is opaque and pixel-aligned to the first camera (seen by construction): only the
-        # generated Gaussians need the opacity and visibility tests.
-        generated = grid[index] > 0
+        # backdrop and the generated Gaussians need the opacity and visibility tests.
+        generated = index >= photo["photo_gaussians"]
         keep = torch.ones(scene.num_gaussians, dtype=torch.bool, device=dev)
         keep[generated], stats = prune_mask(scene.select(generated), cameras, min_opacity=cfg.prune_opacity)
         stats = {**stats, "before": scene.num_gaussians, "after": int(keep.sum())}
@@ -534,5 +539,6 @@ class Diff4SplatPipeline:
             raise ValueError(_sees_nothing(stats, cfg.prune_opacity))
         return GenerationResult(scene=scene, cameras=cameras, latents=latents, timings=timings, prune_stats=stats,
                                 steps=steps, sampler=sampler, shift=cfg.sampling.shift, source_frames=sources,
-                                gaussian_index=index, eps2d=PHOTO_EPS2D, photo_psnr_db=photo["photo_psnr_db"],
+                                gaussian_index=index, eps2d=PHOTO_EPS2D, background=photo["background"],
+                                photo_psnr_db=photo["photo_psnr_db"], num_slots=int(grid.shape[0]),
                                 photo_gaussians=photo["photo_gaussians"])

@@ -57,7 +57,7 @@ def test_metrics_of_a_generated_scene_match_independent_computations(clips):
     assert set(m) == set(METRICS + DIAGNOSTICS + BASELINES)
     cams = CameraPath(clip["viewmats"].double(), clip["Ks"].double(), 64, 64, clip["times"].double())
     res = pipe(clip["video"][:, 0].permute(1, 2, 0), cams, clip["caption"], steps=2, seed=0)
-    colors, depths, alphas = render_path(res.scene, res.cameras, eps2d=res.eps2d)
+    colors, depths, alphas = render_path(res.scene, res.cameras, eps2d=res.eps2d, background=res.background)
     pred, gt = colors.permute(0, 3, 1, 2).clamp(0, 1).double(), clip["video"].permute(1, 0, 2, 3).double()
     psnr = lambda a, b: -10 * math.log10(float(((a - b) ** 2).mean()))  # noqa: E731
     assert m["psnr_input"] == pytest.approx(psnr(pred[:1], gt[:1]), abs=1e-3)
@@ -81,7 +81,7 @@ def test_metrics_of_a_generated_scene_match_independent_computations(clips):
     with torch.no_grad():
         latents = pipe.model.vae.encode_latents(clip["video"][None] * 2 - 1)
     oracle = pipe(clip["video"][:, 0].permute(1, 2, 0), cams, clip["caption"], steps=2, seed=0, video_latents=latents)
-    colors, _, _ = render_path(oracle.scene, oracle.cameras, eps2d=oracle.eps2d)
+    colors, _, _ = render_path(oracle.scene, oracle.cameras, eps2d=oracle.eps2d, background=oracle.background)
     assert m["psnr_novel_gt"] == pytest.approx(psnr(colors[1:].permute(0, 3, 1, 2).clamp(0, 1).double(), gt[1:]),
                                                abs=1e-6)
     assert e.dynamic and e.max_angle == pytest.approx(float(e.angles.max())) and e.max_angle > 1.0
@@ -105,7 +105,7 @@ def test_loop_psnr_of_a_static_scene_is_its_orbit_input_view_psnr(static_clip):
     depth0 = static_clip["depth"][0][static_clip["depth_valid"][0]]
     orbit = make_trajectory("orbit", 9, static_clip["Ks"][0].double(), 64, 64, scene_depth=float(depth0.median()))
     res = pipe(static_clip["video"][:, 0].permute(1, 2, 0), orbit, static_clip["caption"], steps=1)
-    colors, _, _ = render_path(res.scene, res.cameras, eps2d=res.eps2d)
+    colors, _, _ = render_path(res.scene, res.cameras, eps2d=res.eps2d, background=res.background)
     expected = image_psnr(colors[:1].permute(0, 3, 1, 2), static_clip["video"][:, :1].permute(1, 0, 2, 3))
     assert loop == pytest.approx(expected, abs=1e-4) and loop >= 40.0
     # predicted motion moves the loop-closing frame away from the photograph: a different score
@@ -203,7 +203,7 @@ def test_noise_ablation_reconstructs_from_the_noise(clips):
     cams = CameraPath(clip["viewmats"].double(), clip["Ks"].double(), 64, 64, clip["times"].double())
     res = Diff4SplatPipeline(tiny_model(dynamic=True, active_dit=True))(
         clip["video"][:, 0].permute(1, 2, 0), cams, clip["caption"], steps=1, seed=3, video_latents=noise)
-    colors, _, _ = render_path(res.scene, res.cameras, eps2d=res.eps2d)
+    colors, _, _ = render_path(res.scene, res.cameras, eps2d=res.eps2d, background=res.background)
     expected = image_psnr(colors[1:].permute(0, 3, 1, 2), clip["video"][:, 1:].permute(1, 0, 2, 3))
     assert m["psnr_novel_noise"] == pytest.approx(expected, abs=1e-6)
     assert m["psnr_novel_noise"] != pytest.approx(m["psnr_novel"], abs=1e-4)
@@ -220,8 +220,7 @@ def test_gaussian_index_maps_frame0_pixels_to_their_gaussians(clips):
     pipe = Diff4SplatPipeline(tiny_model(dynamic=True))
     cams = CameraPath(clip["viewmats"].double(), clip["Ks"].double(), 64, 64, clip["times"].double())
     res = pipe(clip["video"][:, 0].permute(1, 2, 0), cams, clip["caption"], steps=1)
-    slots = res.photo_gaussians + (len(res.source_frames) - 1) * 64 * 64
-    kept = kept_index_map(res.gaussian_index, slots)[: 64 * 64]  # the photo layer's front disks
+    kept = kept_index_map(res.gaussian_index, res.num_slots)[: 64 * 64]  # the photo layer's front disks
     pixels = torch.nonzero(kept >= 0)[:, 0]
     assert 0 < len(pixels) and int(res.source_frames[0]) == 0
     means = res.scene.canonical.means[kept[pixels]].double()

@@ -151,3 +151,31 @@ def test_the_layer_is_built_beside_its_inputs(device, no_implicit_device):
     layer, history = photo_layer(image, depth, torch.eye(4, device=device), K)
     assert layer.means.device.type == device.type and history[-1] >= 40.0
     assert upsample_depth(depth[::4, ::4], image).device.type == device.type
+
+
+def test_the_backdrop_hides_behind_the_photo_and_fills_what_it_cannot_show():
+    """Behind the photo layer the backdrop changes nothing at the input camera; alone it is the photograph blurred
+    (close to it at the input view), and a camera turned 40° away still sees it everywhere (coverage ≥ 0.99),
+    far behind the photo layer."""
+    from diff4splat.gaussians import Gaussians
+    from diff4splat.photo import BACKDROP_DEPTH, backdrop_layer
+
+    H = W = 48
+    image = load_image(EXAMPLE_IMAGE, size=(H, W))
+    K = intrinsics_from_fov(W, H, fov_y_deg=50.0)
+    eye = torch.eye(4)
+    depth = _depths(H, W)["tilted"]
+    layer, _ = photo_layer(image, depth, eye, K)
+    back = backdrop_layer(image, depth, eye, K)
+    both = Gaussians(*(torch.cat([getattr(layer, f), getattr(back, f)]) for f in ("means", "quats", "scales",
+                                                                                   "opacities", "sh")))
+    assert _psnr(render_input_view(both, eye, K, W, H).clamp(0, 1), image) >= 40.0
+    alone = render_input_view(back, eye, K, W, H).clamp(0, 1)
+    assert 18.0 < _psnr(alone, image) < 35.0  # blurred, not the photograph
+    z = back.means[:, 2]
+    torch.testing.assert_close(z, torch.full_like(z, BACKDROP_DEPTH * float(depth.max())))
+    turned = eye.clone()
+    turned[:3, :3] = quat_to_rotmat(torch.tensor([math.cos(math.radians(20)), 0.0, math.sin(math.radians(20)), 0.0]))
+    _, alpha, _ = rasterize(back.means, back.quats, back.scales, back.opacities, back.sh, turned[None], K[None], W, H,
+                            eps2d=PHOTO_EPS2D, sh_degree=0, render_mode="RGB")
+    assert float(alpha.min()) >= 0.99

@@ -9,6 +9,7 @@ from diff4splat.assemble import to_gaussians
 from diff4splat.cameras import camera_rays
 from diff4splat.gaussians import sh0_to_rgb
 from diff4splat.io import load_image
+from diff4splat.photo import BACKDROP_CELLS, BACKDROP_EXTEND
 from diff4splat.pipeline import Diff4SplatPipeline, TorchRuntime
 from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
 from models.ldrm import LDRMOutput
@@ -34,7 +35,8 @@ def test_untrained_deformation_gives_a_static_scene_with_pixel_aligned_gaussians
     assert res.source_frames.tolist() == [0, 4, 8]  # FRAMES = 9 → 3 latent frames
     S = len(res.source_frames)
     assert res.photo_gaussians == 64 * 64 + 32 * 32  # the photo layer: front disks, backing disks per 2×2 pixels
-    assert res.prune_stats["before"] == res.photo_gaussians + (S - 1) * 64 * 64
+    backdrop = (1 + 2 * BACKDROP_EXTEND) ** 2 * BACKDROP_CELLS**2  # 64 px: 4-pixel cells over 5 × 5 image sizes
+    assert res.prune_stats["before"] == res.num_slots == res.photo_gaussians + backdrop + (S - 1) * 64 * 64
     stats = res.prune_stats
     assert stats["after"] == (stats["before"] - stats["duplicates"] - stats["occluders"] - stats["low_opacity"]
                               - stats["unseen"])
@@ -253,11 +255,12 @@ def test_every_source_frame_contributes_and_duplicates_are_pruned(image):
     cams = pipe.default_cameras("forward", FRAMES, amplitude=0.02)  # 4 cm: within 5 % of the 2 m distance
     res = pipe(image, cams, "", steps=1)
     stats = res.prune_stats
-    assert stats["before"] == 64 * 64 + 32 * 32 + 2 * 64 * 64  # the photo layer, then source frames 4 and 8
+    backdrop = (1 + 2 * BACKDROP_EXTEND) ** 2 * BACKDROP_CELLS**2
+    assert stats["before"] == 64 * 64 + 32 * 32 + backdrop + 2 * 64 * 64  # photo layer, backdrop, frames 4 and 8
     assert stats["duplicates"] > 0.5 * 2 * 64 * 64, stats
     model.ldrm.config.gaussian_frames = "reference"
     ref = pipe(image, cams, "", steps=1)
-    assert ref.prune_stats["before"] == 64 * 64 + 32 * 32 and ref.prune_stats["duplicates"] == 0
+    assert ref.prune_stats["before"] == 64 * 64 + 32 * 32 + backdrop and ref.prune_stats["duplicates"] == 0
 
 
 @pytest.mark.slow

@@ -159,8 +159,7 @@ def _scene_motion(pipe: Diff4SplatPipeline, res: GenerationResult, clip: dict) -
     H, W = res.cameras.height, res.cameras.width
     tracks, vis = clip["tracks"], clip["track_visibility"] & clip["track_mask"][:, None]
     idx, ok = track_query_index(tracks[:, 0], clip["Ks"][0], W, H, vis[:, 0])
-    slots = res.photo_gaussians + (len(res.source_frames) - 1) * pipe.config.height * pipe.config.width
-    kept = kept_index_map(res.gaussian_index.cpu(), slots)
+    kept = kept_index_map(res.gaussian_index.cpu(), res.num_slots)
     g_idx = kept[idx]
     ok = ok & (g_idx >= 0)
     pred = torch.stack([res.scene.at(t).means.cpu()[g_idx.clamp(min=0)] for t in res.cameras.times.tolist()], 1)
@@ -169,9 +168,10 @@ def _scene_motion(pipe: Diff4SplatPipeline, res: GenerationResult, clip: dict) -
 
 def _render(res: GenerationResult, cameras: CameraPath | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`render_path` of a generated scene on its device (the cameras, default its own path, moved there) with
-    the scene's dilation (``res.eps2d``), returned as CPU tensors."""
+    the scene's dilation and background (``res.eps2d``, ``res.background``), returned as CPU tensors."""
     cameras = res.cameras if cameras is None else cameras
-    out = render_path(res.scene, cameras.to(res.scene.canonical.means.device), eps2d=res.eps2d)
+    out = render_path(res.scene, cameras.to(res.scene.canonical.means.device), eps2d=res.eps2d,
+                      background=res.background)
     return out[0].cpu(), out[1].cpu(), out[2].cpu()
 
 
