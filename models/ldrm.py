@@ -11,10 +11,13 @@ Architecture (B scenes, latent (B, c, n, h, w), patch p, tokens N = n·(h/p)·(w
    embedding (per axis as in MAE, He et al. 2022; channels split over t, y, x).
 2. ``depth`` pre-norm transformer blocks (ViT/DiT: x += Attn(LN(x)); x += MLP(LN(x))) with
    self-attention over all spatio-temporal tokens, then a final LayerNorm.
-3. The tokens as a (B, D, n, h/p, w/p) volume → ``ConvTranspose3d`` (the paper's "3D deconvolutional
-   layer … pixel-level correspondence with source video frames") → 12 raw channels per pixel of each
-   source frame → activations (:func:`gaussian_activations`). Which frames are source frames is
-   ``LDRMConfig.gaussian_frames`` (:func:`source_frame_indices`):
+3. The tokens as a (B, D, n, h/p, w/p) volume → the head → 12 raw channels per pixel of each source frame →
+   activations (:func:`gaussian_activations`). ``LDRMConfig.head``: ``"upsample"`` (default) decodes each frame's
+   token map with overlapping 3×3 convolutions and ×2 pixel shuffles (:class:`UpsampleHead`: neighbouring tokens
+   meet in every output pixel, no 8×8 blocks); ``"deconv"`` is the paper's "3D deconvolutional layer … pixel-level
+   correspondence with source video frames", a ``ConvTranspose3d`` with kernel = stride, which decodes every token
+   into its own block of pixels (checkpoints written before the switch existed load with it). Which frames are
+   source frames is ``LDRMConfig.gaussian_frames`` (:func:`source_frame_indices`):
 
    - ``"latent"`` (default): kernel = stride = (1, 8p, 8p), one H×W grid per latent frame, placed on
      the rays of the last video frame that latent frame encodes (frames 0, 4, 8, …: S = n);
@@ -54,6 +57,8 @@ RAW_GAUSSIAN_CHANNELS = 12
 
 GAUSSIAN_FRAMES = ("latent", "all", "reference")
 """Values of ``LDRMConfig.gaussian_frames`` (module docstring, step 3)."""
+HEADS = ("upsample", "deconv")
+"""Values of ``LDRMConfig.head`` (module docstring, step 3)."""
 
 
 def source_frame_indices(gaussian_frames: str, num_latent_frames: int, vae_temporal: int = 4) -> list[int]:
@@ -99,6 +104,9 @@ class LDRMConfig:
             distance·scale_base·e^{±scale_log_range}.
         gaussian_frames: which video frames get a grid of Gaussians: "latent", "all" or "reference"
             (module docstring, step 3; :func:`source_frame_indices`).
+        head: "upsample" (overlapping convolutions and pixel shuffles, :class:`UpsampleHead`) or "deconv" (the
+            paper's non-overlapping transposed convolution); "upsample" needs ``gaussian_frames`` ≠ "all".
+        head_channels: channels of the first upsampling stage (halved at each ×2 stage, at least 16).
         image_branch: channels of the sharp-input-view CNN (module docstring, step 4); 0 = no branch.
         deformation: config of the deformation network; its ``in_channels`` must equal ``embed_dim``.
     """
@@ -117,12 +125,15 @@ class LDRMConfig:
     scale_base: float = 0.01
     scale_log_range: float = 4.0
     gaussian_frames: str = "latent"
+    head: str = "upsample"
+    head_channels: int = 32
     image_branch: int = 0
     deformation: DeformationConfig = field(default_factory=DeformationConfig)
 
-    SAVED_DEFAULTS: ClassVar[dict[str, object]] = {"gaussian_frames": "reference"}
+    SAVED_DEFAULTS: ClassVar[dict[str, object]] = {"gaussian_frames": "reference", "head": "deconv"}
     """Values of fields missing from a saved ``config.json`` (``PretrainedMixin.from_pretrained``): checkpoints
-    written before every-frame decoding existed decode frame 0 only, and keep doing so."""
+    written before every-frame decoding existed decode frame 0 only, and those written before the upsampling head
+    existed keep their transposed convolution."""
 
     def __post_init__(self) -> None:
         if isinstance(self.deformation, dict):
@@ -135,6 +146,16 @@ class LDRMConfig:
                              f"got {self.gaussian_frames!r}")
         if int(self.image_branch) < 0:
             raise ValueError(f"LDRMConfig.image_branch must be ≥ 0, got {self.image_branch}")
+        if self.head not in HEADS:
+            raise ValueError(f"LDRMConfig.head must be one of {HEADS}, got {self.head!r}")
+        if self.head == "upsample" and self.gaussian_frames == "all":
+            raise ValueError("LDRMConfig.head 'upsample' decodes one grid per latent frame; gaussian_frames 'all' "
+                             "needs head 'deconv'")
+        up = self.vae_spatial * self.patch_size
+        if self.head == "upsample" and up & (up - 1):
+            raise ValueError(f"LDRMConfig.head 'upsample' needs vae_spatial·patch_size a power of two, got {up}")
+        if int(self.head_channels) < 1:
+            raise ValueError(f"LDRMConfig.head_channels must be ≥ 1, got {self.head_channels}")
         if self.embed_dim % self.num_heads:
             raise ValueError(f"LDRMConfig.embed_dim ({self.embed_dim}) must be divisible by "
                              f"num_heads ({self.num_heads})")
@@ -284,6 +305,28 @@ def _tracing() -> bool:
     return torch.compiler.is_exporting() or torch.compiler.is_compiling() or torch.jit.is_tracing()
 
 
+class UpsampleHead(nn.Module):
+    """Token map → raw Gaussian channels per pixel, with overlap (ours; replaces the paper's kernel = stride
+    transposed convolution, which decodes every token into its own f×f block of pixels and shows those blocks).
+
+    log₂ f stages of [3×3 conv C_k → 4·C_{k+1}, ×2 pixel shuffle (Shi et al. 2016), GELU] with C_0 = ``channels``
+    and C_{k+1} = max(16, C_k / 2), then a 3×3 conv to 12 channels: every output pixel mixes the 3×3 neighbourhood
+    of tokens around it at every scale. (N, D, h, w) → (N, 12, f·h, f·w).
+    """
+
+    def __init__(self, dim: int, factor: int, channels: int) -> None:
+        super().__init__()
+        stages, c_in, c = [], dim, channels
+        for _ in range(int(round(math.log2(factor)))):
+            stages += [nn.Conv2d(c_in, 4 * c, 3, padding=1), nn.PixelShuffle(2), nn.GELU()]
+            c_in, c = c, max(16, c // 2)
+        self.stages = nn.Sequential(*stages)
+        self.out = nn.Conv2d(c_in, RAW_GAUSSIAN_CHANNELS, 3, padding=1)
+
+    def forward(self, x: Tensor) -> Tensor:  # (N, D, h, w) → (N, 12, f·h, f·w)
+        return self.out(self.stages(x))
+
+
 class ImageBranch(nn.Module):
     """Sharp input view (ours, beyond the paper): photo + frame 0's raw head output → a raw-channel residual.
 
@@ -319,7 +362,10 @@ class LDRM(nn.Module, PretrainedMixin):
         self.norm = nn.LayerNorm(d)
         up = config.vae_spatial * p
         kt = config.vae_temporal if config.gaussian_frames == "all" else 1
-        self.head = nn.ConvTranspose3d(d, RAW_GAUSSIAN_CHANNELS, kernel_size=(kt, up, up), stride=(kt, up, up))
+        if config.head == "deconv":
+            self.head = nn.ConvTranspose3d(d, RAW_GAUSSIAN_CHANNELS, kernel_size=(kt, up, up), stride=(kt, up, up))
+        else:
+            self.head = UpsampleHead(d, up, config.head_channels)
         self.image_branch = ImageBranch(config.image_branch) if config.image_branch > 0 else None
         self.deformation = DeformationNetwork(config.deformation)
         for module in [self.embed, *self.blocks.modules()]:
@@ -390,7 +436,12 @@ class LDRM(nn.Module, PretrainedMixin):
         volume = x.transpose(1, 2).reshape(B, cfg.embed_dim, n, hp, wp)
         if cfg.gaussian_frames == "reference":
             volume = volume[:, :, :1]
-        raw = self.head(volume)  # (B, 12, S', H, W)
+        if self.config.head == "deconv":
+            raw = self.head(volume)  # (B, 12, S', H, W)
+        else:  # each latent frame's token map decoded on its own: (B·n', D, hp, wp) → (B·n', 12, H, W)
+            nv = volume.shape[2]
+            frames = self.head(volume.transpose(1, 2).reshape(B * nv, cfg.embed_dim, hp, wp))
+            raw = frames.reshape(B, nv, RAW_GAUSSIAN_CHANNELS, *frames.shape[-2:]).transpose(1, 2)
         if cfg.gaussian_frames == "all":
             raw = raw[:, :, cfg.vae_temporal - 1:]  # the causal first latent frame encodes frame 0 only
         if self.image_branch is not None:  # frame 0 only; a select, not a cat, keeps S symbolic when exporting

@@ -131,10 +131,10 @@ def _identity_blocks(model: LDRM) -> LDRM:
 
 @pytest.mark.parametrize("patch", [1, 2])
 @pytest.mark.slow
-def test_head_reads_each_source_frame_patch_locally(patch):
+def test_deconv_head_reads_each_source_frame_patch_locally(patch):
     """With every block an identity, pixel (i, j) of source frame s depends only on the latent pixels of its
     own patch in latent frame s: checks patchify order, the source-frame layout and the transposed convolution."""
-    model = _identity_blocks(_model(patch_size=patch))
+    model = _identity_blocks(_model(patch_size=patch, head="deconv"))
     latents, plucker = _inputs()
     base = model(latents, plucker).distance[0]  # (S, H, W)
     size = 8 * patch
@@ -149,6 +149,31 @@ def test_head_reads_each_source_frame_patch_locally(patch):
         assert torch.equal(diff, expect), s
 
 
+@pytest.mark.parametrize("patch", [1, 2])
+@pytest.mark.slow
+def test_upsample_head_overlaps_neighbouring_tokens_within_its_receptive_field(patch):
+    """The upsampling head: a poked token changes its own f×f block (f = 8p) and, unlike the transposed
+    convolution, pixels of the neighbouring blocks — but nothing in other source frames and nothing beyond the
+    closed-form receptive field: a 3×3 conv at scale 2^k adds f/2^k output pixels per side, the last one 1 pixel,
+    so f + f/2 + … + 2 + 1 = 2f − 1 pixels around the block."""
+    model = _identity_blocks(_model(patch_size=patch))
+    latents, plucker = _inputs()
+    base = model(latents, plucker).distance[0]  # (S, H, W)
+    f = 8 * patch
+    r, c = 5, 2
+    for s in range(S):
+        poked = latents.clone()
+        poked[:, :, s, r, c] += 1.0
+        diff = (model(poked, plucker).distance[0] - base).abs() > 0
+        r0, c0 = (r // patch) * f, (c // patch) * f
+        inside = torch.zeros(S, H, W, dtype=torch.bool)
+        inside[s, max(0, r0 - 2 * f + 1):r0 + 3 * f - 1, max(0, c0 - 2 * f + 1):c0 + 3 * f - 1] = True
+        assert not (diff & ~inside).any(), s
+        assert diff[s, r0:r0 + f, c0:c0 + f].all(), s
+        assert diff[s, r0 + f:r0 + f + f // 2, c0:c0 + f].any(), "no overlap with the next block down"
+        assert diff[s, r0 - f:r0, c0:c0 + f].any(), "no overlap with the block above"
+
+
 def test_source_frame_indices_closed_form():
     assert source_frame_indices("latent", 5) == [0, 4, 8, 12, 16]
     assert source_frame_indices("all", 3) == list(range(9))
@@ -160,13 +185,21 @@ def test_source_frame_indices_closed_form():
         LDRMConfig(gaussian_frames="every")
     with pytest.raises(ValueError, match="image_branch"):
         LDRMConfig(image_branch=-1)
+    with pytest.raises(ValueError, match="head"):
+        LDRMConfig(head="pixelshuffle")
+    with pytest.raises(ValueError, match="gaussian_frames 'all'"):
+        LDRMConfig(gaussian_frames="all")  # the upsampling head decodes latent frames; "all" needs "deconv"
+    with pytest.raises(ValueError, match="power of two"):
+        LDRMConfig(vae_spatial=6)
+    with pytest.raises(ValueError, match="head_channels"):
+        LDRMConfig(head_channels=0)
 
 
 @pytest.mark.slow
 def test_all_frames_mode_maps_each_frame_to_its_latent_frame():
     """gaussian_frames="all": S = T grids; video frame f reads latent frame ⌈f/4⌉ (causal: frame 0 alone in
     latent frame 0, frames 1–4 in latent frame 1, …), and its deformation is that latent frame's."""
-    model = _identity_blocks(_model(gaussian_frames="all"))
+    model = _identity_blocks(_model(gaussian_frames="all", head="deconv"))
     with torch.no_grad():
         model.deformation.out_conv.weight.normal_(0.0, 0.5)
     latents, plucker = _inputs()
@@ -361,17 +394,18 @@ def test_onnx_export_matches_eager(tmp_path):
 
 
 def test_checkpoint_without_gaussian_frames_loads_as_reference(tmp_path):
-    """A config.json written before every-frame decoding existed keeps its meaning: frame 0 only."""
+    """A config.json written before every-frame decoding and the upsampling head existed keeps its meaning:
+    frame 0 only, through the transposed convolution its weights were trained with."""
     import json
 
-    model = _model()
+    model = _model(head="deconv")
     model.save_pretrained(tmp_path / "ldrm")
     path = tmp_path / "ldrm" / "config.json"
     data = json.loads(path.read_text())
-    assert data.pop("gaussian_frames") == "latent"
+    assert data.pop("gaussian_frames") == "latent" and data.pop("head") == "deconv"
     path.write_text(json.dumps(data))
     old = LDRM.from_pretrained(tmp_path / "ldrm")
-    assert old.config.gaussian_frames == "reference"
+    assert old.config.gaussian_frames == "reference" and old.config.head == "deconv"
     out = old(*_inputs())
     assert out.distance.shape == (1, 1, H, W)
     torch.testing.assert_close(out.distance[:, 0], model(*_inputs()).distance[:, 0], atol=0, rtol=0)

@@ -248,9 +248,9 @@ def test_every_source_frame_contributes_and_duplicates_are_pruned(image):
     "reference" only frame 0's grid exists."""
     model = tiny_model()
     with torch.no_grad():
-        model.ldrm.head.weight.zero_()  # every pixel at the default distance, default scale
-        model.ldrm.head.bias.zero_()
-        model.ldrm.head.bias[8] = 6.0  # opacity σ(6) ≈ 1 (raw channels: distance, scales 3, quaternion 4, opacity)
+        model.ldrm.head.out.weight.zero_()  # every pixel at the default distance, default scale
+        model.ldrm.head.out.bias.zero_()
+        model.ldrm.head.out.bias[8] = 6.0  # opacity σ(6) ≈ 1 (raw channels: distance, scales 3, quaternion 4, opacity)
     pipe = Diff4SplatPipeline(model)
     cams = pipe.default_cameras("forward", FRAMES, amplitude=0.02)  # 4 cm: within 5 % of the 2 m distance
     res = pipe(image, cams, "", steps=1)
