@@ -1,16 +1,17 @@
 """How well `generate` reproduces real photographs at the input view, against a thumbnail baseline.
 
-    python benchmarks/photo_fidelity.py [PHOTO ...] [--checkpoint DIR] [--config NAME] [--prompt TEXT] [--write]
+    python benchmarks/photo_fidelity.py [PHOTO ...] [--checkpoint DIR] [--config NAME] [--prompt TEXT]
+                                        [--resolution PX] [--write]
 
 For each photograph (default: the shipped examples/chelsea.png), ``diff4splat generate`` runs exactly as a user
-runs it (default trajectory and frames, into a temporary folder), and frame 0 of the ``video.mp4`` it wrote is
-compared with the photograph as ``generate`` reads it (centre crop, resized to the model resolution). Also:
+runs it (default trajectory and frames, ``--resolution`` pixels of height, into a temporary folder), and frame 0
+of the ``video.mp4`` it wrote is compared with the photograph as ``generate`` reads it (centre crop, resized to the
+output resolution). Also (``training.evaluate.photo_fidelity``):
 
-- ``render``: the scene rendered at the input camera, t = 0, before video encoding (``training.evaluate.photo_psnr``);
-- ``no branch``: the same with the LDRM's image branch switched off at inference (its output layer zeroed), the
-  model's own ablation of the sharp input view (the rest of the model was trained with the branch on);
-- ``thumbnail``: the photograph reduced to 8×8 (area average: 3 numbers per 8×8 block at 64 px) and upsampled
-  bilinearly — what the VAE's spatial compression would keep at best without learning anything.
+- ``render``: the scene rendered at the input camera, t = 0, before video encoding, at the output resolution and
+  area-averaged to the model resolution (64² for ``base``);
+- ``thumbnail``: the photograph reduced to 8×8 (area average) and upsampled bilinearly — what the VAE's spatial
+  compression would keep at best without learning anything — at both resolutions.
 
 PSNR in dB (kornia) of images in [0, 1]. ``--write`` puts the table into docs/benchmarks.md (``photo_fidelity``).
 Photos must not be training images (docs/DESIGN.md, "Training"): chelsea.png is the demo; keep other unseen
@@ -26,17 +27,16 @@ from pathlib import Path
 
 import cv2
 import torch
-import torch.nn.functional as F
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, markdown_table, repo_relative, write_section  # noqa: E402
 
 from diff4splat.cli import main as cli_main  # noqa: E402
 from diff4splat.io import load_image  # noqa: E402
-from diff4splat.pipeline import Diff4SplatPipeline, load_model  # noqa: E402
+from diff4splat.pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, load_model  # noqa: E402
 from models.bundle import DEFAULT_CONFIG  # noqa: E402
 from training.eval_metrics import image_psnr  # noqa: E402
-from training.evaluate import photo_psnr  # noqa: E402
+from training.evaluate import photo_fidelity  # noqa: E402
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
 
@@ -44,7 +44,8 @@ EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
 def video_frame0_psnr(photo: Path, target: torch.Tensor, args) -> float:
     """PSNR of frame 0 of the video.mp4 that ``diff4splat generate`` writes, against ``target`` (H, W, 3)."""
     with tempfile.TemporaryDirectory() as tmp:
-        argv = ["generate", str(photo), "--out", f"{tmp}/out", "--quiet", "--prompt", args.prompt]
+        argv = ["generate", str(photo), "--out", f"{tmp}/out", "--quiet", "--prompt", args.prompt,
+                "--resolution", str(args.resolution)]
         argv += ["--checkpoint", str(args.checkpoint)] if args.checkpoint else ["--config", args.config]
         if cli_main(argv) != 0:
             raise RuntimeError(f"generate failed on {photo}")
@@ -55,19 +56,13 @@ def video_frame0_psnr(photo: Path, target: torch.Tensor, args) -> float:
     return image_psnr(rgb.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None])
 
 
-def thumbnail_psnr(target: torch.Tensor, size: int = 8) -> float:
-    """PSNR of the ``size``×``size`` area-averaged thumbnail upsampled bilinearly, against ``target`` (H, W, 3)."""
-    x = target.permute(2, 0, 1)[None]
-    thumb = F.interpolate(F.adaptive_avg_pool2d(x, size), size=x.shape[-2:], mode="bilinear", align_corners=False)
-    return image_psnr(thumb, x)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("photos", nargs="*", type=Path, default=[EXAMPLE])
     ap.add_argument("--checkpoint", type=Path, default=None)
     ap.add_argument("--config", default=DEFAULT_CONFIG)
     ap.add_argument("--prompt", default="")
+    ap.add_argument("--resolution", type=int, default=DEFAULT_RESOLUTION)
     ap.add_argument("--write", action="store_true")
     args = ap.parse_args()
     with warnings.catch_warnings():
@@ -75,30 +70,22 @@ def main() -> None:
         model, source = load_model(args.checkpoint, args.config)
     pipe = Diff4SplatPipeline(model)
     cfg = pipe.config
+    width, height = pipe.output_size(args.resolution)
     rows = []
     for photo in args.photos:
-        target = load_image(photo, size=(cfg.height, cfg.width))
-        row = [photo.name, f"{video_frame0_psnr(photo, target, args):.2f}",
-               f"{photo_psnr(pipe, photo, args.prompt):.2f}"]
-        branch = model.ldrm.image_branch
-        if branch is not None:
-            saved = branch.out.weight.detach().clone(), branch.out.bias.detach().clone()
-            with torch.no_grad():
-                branch.out.weight.zero_()
-                branch.out.bias.zero_()
-            row.append(f"{photo_psnr(pipe, photo, args.prompt):.2f}")
-            with torch.no_grad():
-                branch.out.weight.copy_(saved[0])
-                branch.out.bias.copy_(saved[1])
-        else:
-            row.append("—")
-        row.append(f"{thumbnail_psnr(target):.2f}")
+        target = load_image(photo, size=(height, width))
+        fid = photo_fidelity(pipe, photo, args.prompt, resolution=args.resolution)
+        row = [photo.name, f"{video_frame0_psnr(photo, target, args):.2f}", f"{fid['photo_psnr']:.2f}",
+               f"{fid['photo_thumbnail']:.2f}", f"{fid['photo_psnr_model']:.2f}", f"{fid['photo_thumbnail_model']:.2f}"]
         rows.append(row)
         print(" | ".join(row), flush=True)
-    table = markdown_table(["photo", "video.mp4 frame 0", "render", "no branch", "thumbnail 8×8"], rows)
-    body = (f"### Input-view fidelity on real photographs ({repo_relative(source)}, {cfg.width}×{cfg.height}, "
-            f"prompt {args.prompt!r})\n\n`python benchmarks/photo_fidelity.py {' '.join(sys.argv[1:])}` on "
-            f"{machine()}. PSNR (dB) against the photograph as `generate` reads it.\n\n{table}\n")
+    table = markdown_table(["photo", f"video.mp4 frame 0, {width}×{height}", f"render, {width}×{height}",
+                            f"thumbnail 8×8, {width}×{height}", f"render, {cfg.width}×{cfg.height}",
+                            f"thumbnail 8×8, {cfg.width}×{cfg.height}"], rows)
+    body = (f"### Input-view fidelity on real photographs ({repo_relative(source)}, output {width}×{height}, model "
+            f"{cfg.width}×{cfg.height}, prompt {args.prompt!r})\n\n`python benchmarks/photo_fidelity.py "
+            f"{' '.join(sys.argv[1:])}` on {machine()}. PSNR (dB) against the photograph as `generate` reads it.\n\n"
+            f"{table}\n")
     print(body)
     if args.write:
         write_section("photo_fidelity", body)

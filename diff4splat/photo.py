@@ -82,7 +82,7 @@ def _check(image: Tensor, depth: Tensor, viewmat: Tensor, K: Tensor) -> tuple[in
         raise ValueError(f"depth must have shape ({H}, {W}) like the image, got {tuple(depth.shape)}")
     if not bool(torch.isfinite(image).all()) or float(image.min()) < 0 or float(image.max()) > 1:
         raise ValueError("image values must be finite and lie in [0, 1]")
-    if not bool(torch.isfinite(depth).all()) or float(depth.min()) <= 0:
+    if not bool(torch.isfinite(depth.detach()).all()) or float(depth.detach().min()) <= 0:
         raise ValueError("depth must be finite and > 0 metres everywhere (fill holes first)")
     if tuple(viewmat.shape) != (4, 4) or tuple(K.shape) != (3, 3):
         raise ValueError(f"viewmat must be (4, 4) and K (3, 3), got {tuple(viewmat.shape)} and {tuple(K.shape)}")
@@ -241,7 +241,7 @@ def backdrop_layer(
     Kb[:2] = Kb[:2] / cell
     origins, dirs = camera_rays(viewmat[None], Kb[None], w, h)
     origins, dirs = origins[0].reshape(-1, 3), dirs[0].reshape(-1, 3)
-    z = BACKDROP_DEPTH * float(depth.max())
+    z = BACKDROP_DEPTH * float(depth.detach().max())
     means = origins + (z / (dirs @ viewmat[2, :3]))[:, None] * dirs
     sigma = 0.8 * cell * z / float(torch.minimum(K[0, 0], K[1, 1]))
     n = means.shape[0]
@@ -285,7 +285,7 @@ def upsample_depth(depth: Tensor, guide: Tensor) -> Tensor:
     """
     if depth.dim() != 2 or guide.dim() != 3 or guide.shape[-1] != 3:
         raise ValueError(f"depth must be (h, w) and guide (H, W, 3), got {tuple(depth.shape)}, {tuple(guide.shape)}")
-    if not bool(torch.isfinite(depth).all()) or float(depth.min()) <= 0:
+    if not bool(torch.isfinite(depth.detach()).all()) or float(depth.detach().min()) <= 0:
         raise ValueError("depth must be finite and > 0 metres")
     (h, w), (H, W) = depth.shape, guide.shape[:2]
     if H < h or W < w:

@@ -54,7 +54,7 @@ from .devices import Stopwatch
 from .limits import check_limit
 from .offload import ModelOffload
 from .photo import PHOTO_EPS2D
-from .prune import duplicate_mask, occluder_mask, prune_mask
+from .prune import prune_mask, redundant_mask
 from .scene import DynamicGaussians
 
 __all__ = ["Diff4SplatPipeline", "GenerationResult", "load_model", "NetworkRuntime", "TorchRuntime",
@@ -517,14 +517,8 @@ class Diff4SplatPipeline:
         timings["reconstruct"] = clock.lap()
 
         index = torch.arange(scene.num_gaussians, device=dev)
-        duplicates = occluders = 0
-        if len(sources) > 1:
-            dup = duplicate_mask(scene, grid, cameras.viewmats[sources], cameras.Ks[sources], cameras.times[sources],
-                                 W_o, H_o)
-            scene, index, duplicates = scene.select(~dup), index[~dup], int(dup.sum())
-            occl = occluder_mask(scene, grid[index], cameras.viewmats[0], cameras.Ks[0], float(cameras.times[0]),
-                                 W_o, H_o, surface_depth=photo["photo_depth"])
-            scene, index, occluders = scene.select(~occl), index[~occl], int(occl.sum())
+        drop, duplicates, occluders = redundant_mask(scene, grid, cameras, sources, photo["photo_depth"])
+        scene, index = scene.select(~drop), index[~drop]
         # The photo layer is opaque and pixel-aligned to the first camera (seen by construction): only the
         # backdrop and the generated Gaussians need the opacity and visibility tests.
         generated = index >= photo["photo_gaussians"]

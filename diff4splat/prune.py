@@ -16,7 +16,7 @@ from .render.projection import project_gaussians
 from .render.rasterize import rasterize
 from .scene import DynamicGaussians
 
-__all__ = ["visibility_mask", "prune_scene", "prune_mask", "duplicate_mask", "occluder_mask"]
+__all__ = ["visibility_mask", "prune_scene", "prune_mask", "duplicate_mask", "occluder_mask", "redundant_mask"]
 
 
 def visibility_mask(scene: DynamicGaussians, cameras: CameraPath, near_plane: float = NEAR_PLANE) -> Tensor:
@@ -240,6 +240,39 @@ def occluder_mask(
     d_max = _footprint_max(depth, proj.means2d[0, :, 0], proj.means2d[0, :, 1], radii * (10 / 9) + 1)
     out[cand[seen & (z < (1 + depth_tolerance) * d_max)]] = True
     return out
+
+
+@torch.no_grad()
+def redundant_mask(
+    scene: DynamicGaussians,  # M Gaussians: the photo layer and backdrop (source 0), then generated frames
+    source: Tensor,  # (M,) long, source frame index in [0, S)
+    cameras: CameraPath,  # the clip's path at the scene's image size
+    sources: Tensor,  # (S,) long, the video frame of each source frame
+    surface_depth: Tensor,  # (H, W) z-depth of the photo layer at the input view, metres
+) -> tuple[Tensor, int, int]:
+    """Generated Gaussians that add nothing to what the photograph shows (docs/DESIGN.md, "Data flow of
+    generate"): near-duplicates of a surface an earlier source frame placed (:func:`duplicate_mask`), then, among
+    the rest, those that would cover the photograph at the input view (:func:`occluder_mask` against the photo
+    layer's exact ``surface_depth``). One rule for generation and training (``training.objectives``).
+
+    Returns:
+        ((M,) bool on the scene's device, True = drop, never for source 0; number of duplicates; number of
+        occluders).
+
+    Raises:
+        ValueError: as :func:`duplicate_mask` and :func:`occluder_mask`.
+    """
+    drop = torch.zeros(scene.num_gaussians, dtype=torch.bool, device=scene.canonical.means.device)
+    if len(sources) < 2:
+        return drop, 0, 0
+    W, H = cameras.width, cameras.height
+    dup = duplicate_mask(scene, source, cameras.viewmats[sources], cameras.Ks[sources], cameras.times[sources], W, H)
+    rest = torch.nonzero(~dup).squeeze(1)
+    occl = occluder_mask(scene.select(rest), source[rest], cameras.viewmats[0], cameras.Ks[0],
+                         float(cameras.times[0]), W, H, surface_depth=surface_depth)
+    drop |= dup
+    drop[rest[occl]] = True
+    return drop, int(dup.sum()), int(occl.sum())
 
 
 def _footprint_max(depth: Tensor, u: Tensor, v: Tensor, r: Tensor) -> Tensor:

@@ -19,6 +19,7 @@ from training.eval_metrics import (
     kept_index_map,
     masked_psnr,
     motion_errors,
+    thumbnail,
     pearson,
     psnr_from_mse,
     repeat_baselines,
@@ -277,3 +278,17 @@ def test_metrics_make_nothing_on_the_default_device(no_implicit_device):
         if isinstance(v, torch.Tensor):
             assert v.device.type == "cpu", k
     assert math.isfinite(out["psnr"]) and 0 < out["ssim"] < 1 and out["kept"].tolist()[:4] == [1, -1, -1, 0]
+
+
+def test_thumbnail_keeps_constants_and_interior_ramps_and_nothing_finer():
+    """Area average to 8×8 then bilinear back: a constant image exactly; a linear ramp exactly away from the
+    borders (cell means are the ramp at the cell centres, which bilinear interpolation joins linearly); detail
+    finer than a cell (a one-pixel checkerboard) is averaged away to its mean."""
+    const = torch.full((1, 3, 64, 48), 0.3)
+    torch.testing.assert_close(thumbnail(const), const)
+    x = torch.arange(64, dtype=torch.float32)
+    ramp = (x / 64).expand(1, 3, 64, 64).contiguous()
+    inner = slice(8, 56)
+    torch.testing.assert_close(thumbnail(ramp)[..., inner, inner], ramp[..., inner, inner])
+    checker = ((x[:, None] + x[None, :]) % 2).expand(1, 3, 64, 64)
+    torch.testing.assert_close(thumbnail(checker), torch.full_like(checker, 0.5))

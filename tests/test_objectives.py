@@ -193,11 +193,15 @@ def test_caption_dropout_trains_the_empty_prompt_path(clips):
 
 @pytest.mark.slow
 def test_reconstruction_losses_equal_a_hand_computation(clips):
-    """The dynamic clip's reconstruction losses recomputed from the networks' outputs: the frames are frame 0
-    plus the generator's randperm draw, photo/depth/smooth come from training.losses on those renders, and the
-    motion loss is the end-point error of each visible track's pixel-aligned Gaussian, found by projecting
-    its frame-0 point by hand (u = fx·x/z + cx, v = fy·y/z + cy)."""
-    from diff4splat.assemble import to_gaussians
+    """The dynamic clip's reconstruction losses recomputed from the networks' outputs: the scene is generate's
+    (photo layer of frame 0 on the predicted depth, backdrop, later source frames without the redundant ones),
+    the frames are frame 0 plus the generator's randperm draw, photo/depth/smooth come from training.losses on
+    those renders over the photograph's mean colour, and the motion loss is the end-point error of each visible
+    track's photo-layer disk, found by projecting its frame-0 point by hand (u = fx·x/z + cx, v = fy·y/z + cy)."""
+    from diff4splat.assemble import assemble_scene
+    from diff4splat.cameras.path import CameraPath
+    from diff4splat.photo import PHOTO_EPS2D
+    from diff4splat.prune import redundant_mask
 
     stage = StageConfig(height=SIZE, width=SIZE, num_frames=FRAMES, render_frames=3, weights=WEIGHTS,
                         train=("ldrm",), objectives=("reconstruction",), deformation=True, motion=True)
@@ -208,12 +212,20 @@ def test_reconstruction_losses_equal_a_hand_computation(clips):
         latents = model.vae.encode_latents(batch["video"] * 2 - 1)
         times = batch["times"][0]
         out = model.ldrm(latents, batch["plucker_packed"], times)
-        sources = [4 * i for i in range(latents.shape[2])]  # gaussian_frames "latent"
-        g, dm, dq, ds = to_gaussians(out, batch["viewmats"][0, sources], batch["Ks"][0, sources])
-        scene = DynamicGaussians(g, times, dm, dq, ds)
+        sources = torch.tensor([4 * i for i in range(latents.shape[2])])  # gaussian_frames "latent"
+        cams = CameraPath(batch["viewmats"][0], batch["Ks"][0], SIZE, SIZE, times)
+        photo = batch["video"][0, :, 0].permute(1, 2, 0)
+        full, grid, info = assemble_scene(out, sources, cams, cams, photo, times)
+        drop, dups, occluders = redundant_mask(full, grid, cams, sources, info["photo_depth"])
+        assert 0 < int(drop.sum()) == dups + occluders < int((grid > 0).sum())
+        scene = full.select(~drop)
+        g, dm = scene.canonical, scene.d_means
         draw = torch.randperm(FRAMES - 1, generator=torch.Generator().manual_seed(0))[:2] + 1
         frames = [0] + sorted(draw.tolist())
-        rgb, depth, alpha = render_frames(scene, batch["viewmats"][0], batch["Ks"][0], times, frames, SIZE, SIZE)
+        rgb, depth, alpha = render_frames(scene, batch["viewmats"][0], batch["Ks"][0], times, frames, SIZE, SIZE,
+                                          eps2d=PHOTO_EPS2D, background=torch.tensor(info["background"]))
+    mse0 = float(((rgb[0] - photo.permute(2, 0, 1)) ** 2).mean())
+    assert -10 * math.log10(mse0) >= 35.0, "frame 0 must be the photograph whatever the network predicts"
     target = batch["video"][0][:, frames].permute(1, 0, 2, 3)
     valid = batch["depth_valid"][0][frames] & (alpha > 0.5)
     torch.testing.assert_close(losses["photo"], photometric_loss(rgb, target, WEIGHTS.ssim))
@@ -233,7 +245,7 @@ def test_reconstruction_losses_equal_a_hand_computation(clips):
         i = math.floor(v) * SIZE + math.floor(u)
         for t in range(FRAMES):
             if bool(vis[n, t]):
-                errors.append(float((g.means[i] + dm[t, i] - tracks[n, t]).norm()))
+                errors.append(float((g.means[i] + dm[t, i] - tracks[n, t]).norm()))  # rebased: dm[0] = 0
                 if t > 0:  # displacement from frame 0 (visible at 0 by the test above)
                     moves.append(float((dm[t, i] - dm[0, i] - (tracks[n, t] - tracks[n, 0])).norm()))
     assert len(errors) > 20 and len(moves) > 20

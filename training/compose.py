@@ -11,6 +11,10 @@ fields that the target YAML sets explicitly for that network (e.g. ``ldrm: {imag
 loaded strictly, except that parameters of zero-initialised layers that the checkpoint lacks (the LDRM's
 ``image_branch``) keep their initial values — which is exactly the checkpoint's function, since a zero-initialised
 branch adds 0.
+
+``--reinit ldrm.head`` starts the named parameters (a network name, a dot, a parameter-name prefix) from their
+initialisation instead: the taken checkpoint's parameters under that prefix are dropped, for a layer the composed
+config replaces (the LDRM's transposed-convolution head by the upsampling head, ``ldrm: {head: upsample}``).
 """
 from __future__ import annotations
 
@@ -33,20 +37,23 @@ initialisation (their last layer is zero-initialised), so leaving them at their 
 network's function."""
 
 
-def compose(config: str | Path, sources: dict[str, str | Path], seed: int = 0) -> Diff4SplatModel:
+def compose(config: str | Path, sources: dict[str, str | Path], seed: int = 0, reinit: tuple[str, ...] = ()
+            ) -> Diff4SplatModel:
     """The model of ``config`` with the networks named in ``sources`` taken from those checkpoint folders.
 
     Args:
         config: model config name (``models/configs/<name>.yaml``) or YAML path.
         sources: {network: checkpoint folder}, network in ``vae``, ``text_encoder``, ``dit``, ``ldrm``.
         seed: seed of the networks not taken (random initialisation).
+        reinit: "network.prefix" entries: the taken network's parameters under the prefix are not loaded and
+            keep their initialisation (module docstring).
 
     Returns:
         The composed model (eval mode).
 
     Raises:
         ValueError: an unknown network name; a taken network whose weights do not fit its config (other shapes,
-            unexpected keys, or missing keys outside :data:`ZERO_INIT_PREFIXES`).
+            unexpected keys, or missing keys outside :data:`ZERO_INIT_PREFIXES` and ``reinit``).
         FileNotFoundError: a missing config or checkpoint folder.
     """
     for name in sources:
@@ -61,12 +68,14 @@ def compose(config: str | Path, sources: dict[str, str | Path], seed: int = 0) -
     target.validate()
     model = Diff4SplatModel.random(target, seed=seed)
     for name, folder in sources.items():
-        state = loaded[str(folder)].get_submodule(name).state_dict()
+        fresh = tuple(r.partition(".")[2] for r in reinit if r.partition(".")[0] == name)
+        state = {k: v for k, v in loaded[str(folder)].get_submodule(name).state_dict().items()
+                 if not k.startswith(fresh or ("\0",))}
         try:
             result = getattr(model, name).load_state_dict(state, strict=False)
         except RuntimeError as e:  # tensor shapes that differ from the composed config's
             raise ValueError(f"{name} from {folder}: weights do not fit the composed config: {e}") from None
-        missing = [k for k in result.missing_keys if not k.startswith(ZERO_INIT_PREFIXES)]
+        missing = [k for k in result.missing_keys if not k.startswith(ZERO_INIT_PREFIXES + fresh)]
         if missing or result.unexpected_keys:
             raise ValueError(f"{name} from {folder}: weights do not fit the composed config "
                              f"(missing {missing[:4]}, unexpected {result.unexpected_keys[:4]})")
@@ -83,6 +92,8 @@ def _main(argv: list[str] | None) -> int:
     ap.add_argument("--config", required=True, help="model config name or YAML path")
     ap.add_argument("--out", required=True, type=Path, help="output model folder (replaced only if a saved model)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the networks not taken (default 0)")
+    ap.add_argument("--reinit", action="append", default=[], metavar="NETWORK.PREFIX",
+                    help="parameters to start from their initialisation, e.g. ldrm.head (repeatable)")
     ap.add_argument("take", nargs="+", metavar="NETWORK=FOLDER", help="network to take from a checkpoint folder")
     args = ap.parse_args(argv)
     sources = {}
@@ -91,7 +102,10 @@ def _main(argv: list[str] | None) -> int:
         if not sep or not folder:
             raise ValueError(f"take: expected NETWORK=FOLDER, got {item!r}")
         sources[name] = folder
-    model = compose(args.config, sources, seed=args.seed)
+    for item in args.reinit:
+        if item.partition(".")[0] not in sources or not item.partition(".")[2]:
+            raise ValueError(f"--reinit: expected NETWORK.PREFIX of a taken network, got {item!r}")
+    model = compose(args.config, sources, seed=args.seed, reinit=tuple(args.reinit))
     model.save_pretrained(args.out)
     counts = model.parameter_counts()
     print(f"wrote {args.out}: " + ", ".join(f"{k} {v:,}" for k, v in counts.items())

@@ -9,11 +9,12 @@ import math
 
 import kornia
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from diff4splat.cameras import unproject_depth
 
-__all__ = ["PSNR_CAP", "ANGLE_BINS", "psnr_from_mse", "image_psnr", "image_ssim", "pearson", "frame_mse",
+__all__ = ["PSNR_CAP", "ANGLE_BINS", "psnr_from_mse", "image_psnr", "image_ssim", "thumbnail", "pearson", "frame_mse",
            "view_angles", "angle_bin", "binned_psnr", "repeat_baselines", "motion_errors", "kept_index_map",
            "ablation_noise", "BLUR_SIGMA", "BLUR_KERNEL", "covisible_mask", "masked_psnr"]
 
@@ -51,6 +52,13 @@ def image_psnr(pred: Tensor, gt: Tensor) -> float:
     """PSNR in dB of predictions (F, 3, H, W) (clamped to [0, 1]) against ground truth in [0, 1], over
     all frames together (the MSE of every pixel of every frame); capped at :data:`PSNR_CAP`."""
     return psnr_from_mse(float(frame_mse(pred, gt).mean()))
+
+
+def thumbnail(x: Tensor, size: int = 8) -> Tensor:
+    """The thumbnail baseline of images (F, 3, H, W): area-averaged to ``size``×``size`` and upsampled bilinearly
+    back to H×W — what an 8×8-compressing decoder would keep of the photograph without learning anything."""
+    small = F.adaptive_avg_pool2d(x, size)
+    return F.interpolate(small, size=x.shape[-2:], mode="bilinear", align_corners=False)
 
 
 def image_ssim(pred: Tensor, gt: Tensor) -> float:

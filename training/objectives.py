@@ -16,11 +16,16 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from diff4splat.assemble import to_gaussians
+from diff4splat.assemble import assemble_scene
+from diff4splat.cameras.path import CameraPath
+from diff4splat.devices import autocast_off
+from diff4splat.photo import PHOTO_EPS2D
+from diff4splat.prune import redundant_mask
 from diff4splat.render import rasterize
+from diff4splat.render.defaults import EPS2D
 from diff4splat.scene import DynamicGaussians
 from models.bundle import Diff4SplatModel
-from models.ldrm import source_frame_indices
+from models.ldrm import LDRMOutput, source_frame_indices
 from models.vae import kl_divergence
 
 from .losses import (
@@ -39,30 +44,34 @@ __all__ = ["TrainingModule", "render_frames", "track_query_index"]
 
 
 def render_frames(scene: DynamicGaussians, viewmats: Tensor, Ks: Tensor, times: Tensor, frames: list[int],
-                  width: int, height: int) -> tuple[Tensor, Tensor, Tensor]:
+                  width: int, height: int, *, eps2d: float = EPS2D, background: Tensor | None = None
+                  ) -> tuple[Tensor, Tensor, Tensor]:
     """Differentiable renders of the chosen frames, each with the scene at its own time.
 
     Args:
         scene: the (possibly static) scene.
         viewmats: (T, 4, 4), Ks: (T, 3, 3), times: (T,) of the clip.
         frames: frame indices to render.
+        eps2d: the screen-space dilation, pixels² (the scene's: :data:`diff4splat.photo.PHOTO_EPS2D` with a photo
+            layer).
+        background: (3,) RGB in [0, 1] behind the Gaussians, or None (black).
 
     Returns:
         rgb (F, 3, H, W), expected depth (F, H, W) metres, alpha (F, H, W).
     """
+    bg = None if background is None else background.to(viewmats)[None]  # (1, 3)
+
+    def draw(g, vm: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
+        out, alpha, _ = rasterize(g.means, g.quats, g.scales, g.opacities, g.sh, vm, K, width, height,
+                                  sh_degree=g.sh_degree, render_mode="RGB+ED", eps2d=eps2d,
+                                  backgrounds=None if bg is None else bg.expand(len(vm), 3))
+        return out, alpha
+
     if scene.is_static:  # one call, all cameras
-        g = scene.canonical
-        out, alpha, _ = rasterize(g.means, g.quats, g.scales, g.opacities, g.sh, viewmats[frames], Ks[frames],
-                                  width, height, sh_degree=g.sh_degree, render_mode="RGB+ED")
+        out, alpha = draw(scene.canonical, viewmats[frames], Ks[frames])
     else:
-        outs, alphas = [], []
-        for f in frames:
-            g = scene.at(float(times[f]))
-            o, a, _ = rasterize(g.means, g.quats, g.scales, g.opacities, g.sh, viewmats[f:f + 1], Ks[f:f + 1],
-                                width, height, sh_degree=g.sh_degree, render_mode="RGB+ED")
-            outs.append(o)
-            alphas.append(a)
-        out, alpha = torch.cat(outs), torch.cat(alphas)
+        parts = [draw(scene.at(float(times[f])), viewmats[f:f + 1], Ks[f:f + 1]) for f in frames]
+        out, alpha = torch.cat([o for o, _ in parts]), torch.cat([a for _, a in parts])
     return out[..., :3].permute(0, 3, 1, 2), out[..., 3], alpha[..., 0]
 
 
@@ -150,6 +159,21 @@ class TrainingModule(nn.Module):
         plucker = batch["plucker_packed"]
         return flow_matching_loss(lambda x, s: m.dit(x, s, image_latent, plucker, text, mask), latents, noise, sigma)
 
+    def _assemble(self, out: LDRMOutput, sources: Tensor, batch: dict, b: int, times: Tensor | None
+                  ) -> tuple[DynamicGaussians, dict]:
+        """Clip b's scene as ``generate`` builds it (:func:`diff4splat.assemble.assemble_scene`): the photo layer
+        (frame 0's pixels on the predicted depth: the depth gets the gradient, the colours are observed), the
+        backdrop and the other source frames' Gaussians without those :func:`diff4splat.prune.redundant_mask`
+        drops (chosen without gradient), so the LDRM learns depth and what the photograph cannot show."""
+        H, W = batch["video"].shape[-2:]
+        with autocast_off():
+            cams = CameraPath(batch["viewmats"][b].float(), batch["Ks"][b].float(), W, H, batch["times"][b].float())
+            image = batch["video"][b, :, 0].permute(1, 2, 0).float().clamp(0, 1)  # (H, W, 3)
+            scene, grid, photo = assemble_scene(out, sources, cams, cams, image, times)
+            drop, _, _ = redundant_mask(scene, grid, cams, sources, photo["photo_depth"].detach())
+        photo["background"] = torch.tensor(photo["background"], device=image.device)
+        return scene.select(~drop), photo
+
     def _reconstruction(self, latents: Tensor, batch: dict, gen: torch.Generator) -> dict[str, Tensor]:
         """Rendering losses of the LDRM's scenes, averaged over the batch; ``gen``: the (CPU) step generator."""
         m, st = self.model, self.stage
@@ -162,22 +186,21 @@ class TrainingModule(nn.Module):
             eps = torch.randn(latents.shape, generator=gen, device=gen.device).to(latents)
             noisy = (1 - sigma) * latents + sigma * eps
             latents = torch.cat([latents[:, :, :1], noisy[:, :, 1:]], dim=2)
-        sources = source_frame_indices(m.ldrm.config.gaussian_frames, latents.shape[2], m.config.vae.temporal_factor)
+        sources = torch.tensor(source_frame_indices(m.ldrm.config.gaussian_frames, latents.shape[2],
+                                                    m.config.vae.temporal_factor), device=latents.device)
         sums: dict[str, Tensor] = {}
         outs = None if st.deformation else m.ldrm(latents, plucker, None, image)
         for b in range(B):
             times = batch["times"][b].to(torch.promote_types(latents.dtype, torch.float32))  # never bf16
-            cams = batch["viewmats"][b, sources], batch["Ks"][b, sources]
             if st.deformation:
                 out = m.ldrm(latents[b:b + 1], plucker[b:b + 1], times, image[b:b + 1])
-                g, dm, dq, ds = to_gaussians(out, *cams)
-                scene = DynamicGaussians(g, times, dm, dq, ds)
             else:
-                g, *_ = to_gaussians(outs, *cams, batch_index=b)
-                scene = DynamicGaussians(g)
+                out = LDRMOutput(**{k: None if v is None else v[b:b + 1] for k, v in vars(outs).items()})
+            scene, photo = self._assemble(out, sources, batch, b, times if st.deformation else None)
             others = torch.randperm(T - 1, generator=gen, device=gen.device)[: st.render_frames - 1] + 1
             frames = [0] + sorted(others.tolist())
-            rgb, depth, alpha = render_frames(scene, batch["viewmats"][b], batch["Ks"][b], times, frames, W, H)
+            rgb, depth, alpha = render_frames(scene, batch["viewmats"][b], batch["Ks"][b], times, frames, W, H,
+                                              eps2d=PHOTO_EPS2D, background=photo["background"])
             target = batch["video"][b][:, frames].permute(1, 0, 2, 3)  # (F, 3, H, W)
             gt_depth, valid = batch["depth"][b][frames], batch["depth_valid"][b][frames]
             parts = {
@@ -188,8 +211,8 @@ class TrainingModule(nn.Module):
             if st.motion:
                 tracks, vis = batch["tracks"][b], batch["track_visibility"][b] & batch["track_mask"][b][:, None]
                 idx, ok = track_query_index(tracks[:, 0], batch["Ks"][b, 0], W, H, vis[:, 0])
-                # idx < H·W: the reference frame's grid comes first (diff4splat.assemble.to_gaussians)
-                pred = gather_track_predictions(g.means[None], scene.d_means[None], idx[None])[0]  # (N, T, 3)
+                # idx < H·W: the photo layer's front disks come first (diff4splat.assemble.assemble_scene)
+                pred = gather_track_predictions(scene.canonical.means[None], scene.d_means[None], idx[None])[0]
                 parts["motion"] = motion_loss(pred, tracks, vis & ok[:, None])
                 parts["displacement"] = displacement_loss(pred[None], tracks[None], (vis & ok[:, None])[None])
             for k, v in parts.items():

@@ -1,0 +1,102 @@
+"""Blockiness of the LDRM's decoded maps: gradient energy on the latent grid's block borders against inside.
+
+    python benchmarks/blockiness.py --data DIR [--checkpoint LABEL=DIR ...] [--clips N] [--write]
+
+Each checkpoint's LDRM decodes the held-out clips' true-video latents (its VAE; no sampling, so every checkpoint
+reads the same kind of input) into per-pixel maps of every source frame: log ray distance, colour and opacity.
+For a map x (S, H, W[, C]) and the decoder's block size f (``vae_spatial``·``patch_size`` = 8 pixels: one token),
+the squared finite differences between horizontally and vertically adjacent pixels are split into those that
+cross a block border (columns/rows j with (j + 1) mod f = 0) and all others:
+
+    blockiness = mean(Δ² across borders) / mean(Δ² inside blocks)
+
+1 means the borders are no different from anywhere else; a decoder that paints every token into its own f×f block
+(the paper's kernel = stride transposed convolution) puts the steps between tokens on the borders and is ≫ 1.
+The maps of source frame 0 are included (the photo layer uses frame 0's distance). ``--write`` puts the table into
+docs/benchmarks.md (``blockiness``).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import warnings
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import machine, markdown_table, write_section  # noqa: E402
+
+from data_prep.clips import ClipConfig, ClipDataset  # noqa: E402
+from diff4splat.devices import resolve_device  # noqa: E402
+from diff4splat.pipeline import load_model  # noqa: E402
+
+
+def blockiness(x: torch.Tensor, block: int) -> float:
+    """Border/inside ratio of squared neighbour differences of ``x`` (..., H, W) for blocks of ``block`` pixels
+    (module docstring); channels, if any, must come before H, W."""
+    dx = (x[..., :, 1:] - x[..., :, :-1]) ** 2  # (..., H, W − 1): between columns j and j + 1
+    dy = (x[..., 1:, :] - x[..., :-1, :]) ** 2
+    bx = (torch.arange(dx.shape[-1], device=x.device) + 1) % block == 0
+    by = (torch.arange(dy.shape[-2], device=x.device) + 1) % block == 0
+    border = torch.cat([dx[..., bx].flatten(), dy[..., by, :].flatten()])
+    inside = torch.cat([dx[..., ~bx].flatten(), dy[..., ~by, :].flatten()])
+    return float(border.mean() / inside.mean().clamp_min(1e-20))
+
+
+@torch.no_grad()
+def measure(checkpoint: Path, data: Path, clips: int, device: torch.device) -> dict[str, float]:
+    """Blockiness of the log distance, colour and opacity maps, pooled over ``clips`` held-out clips."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model, _ = load_model(checkpoint, None)
+    model = model.to(device).eval()
+    cfg = model.config
+    ds = ClipDataset(data, ClipConfig(num_frames=cfg.num_frames, height=cfg.height, width=cfg.width,
+                                      reference_camera="first", plucker="packed"))
+    maps: dict[str, list[torch.Tensor]] = {"log distance": [], "colour": [], "opacity": []}
+    for i in range(min(clips, len(ds))):
+        item = ds[i]
+        video = item["video"][None].to(device)
+        latents = model.vae.encode_latents(video * 2 - 1)
+        out = model.ldrm(latents, item["plucker_packed"][None].to(device), None, video[:, :, 0] * 2 - 1)
+        maps["log distance"].append(out.distance[0].log())  # (S, H, W)
+        maps["colour"].append(out.colors[0].permute(0, 3, 1, 2))  # (S, 3, H, W)
+        maps["opacity"].append(out.opacities[0])
+    block = model.ldrm.config.vae_spatial * model.ldrm.config.patch_size
+    return {k: blockiness(torch.stack(v), block) for k, v in maps.items()}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", type=Path, required=True, help="held-out scenes (data_prep synth)")
+    ap.add_argument("--checkpoint", action="append", default=[], metavar="LABEL=DIR",
+                    help="checkpoint to measure (repeatable; default: shipped=models/weights/base)")
+    ap.add_argument("--clips", type=int, default=24)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--write", action="store_true")
+    args = ap.parse_args()
+    device = resolve_device(args.device)
+    checkpoints = args.checkpoint or ["shipped=models/weights/base"]
+    rows = []
+    for item in checkpoints:
+        label, _, folder = item.partition("=")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            model, _ = load_model(Path(folder), None)
+        head = model.ldrm.config.head
+        result = measure(Path(folder), args.data, args.clips, device)
+        rows.append([label, head, *(f"{v:.2f}" for v in result.values())])
+        print(" | ".join(rows[-1]), flush=True)
+    table = markdown_table(["checkpoint", "LDRM head", "log distance", "colour", "opacity"], rows)
+    body = (f"### Blockiness of the LDRM's decoded maps ({args.clips} held-out clips, true-video latents)\n\n"
+            f"`python benchmarks/blockiness.py {' '.join(sys.argv[1:])}` on {machine()}. Mean squared neighbour "
+            f"difference across the 8-pixel token borders ÷ inside the blocks, over every source frame; "
+            f"1 = no blocks.\n\n{table}\n")
+    print(body)
+    if args.write:
+        write_section("blockiness", body)
+
+
+if __name__ == "__main__":
+    main()
