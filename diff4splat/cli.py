@@ -370,7 +370,8 @@ def generate(args) -> dict:
     _check_generate_args(args)
     pipe, source, t_load, versions = _load_pipeline(args)
     image, cameras, depth = _load_inputs(args, pipe)
-    check_output_size(len(cameras), cameras.width, cameras.height)  # before any network runs
+    check_output_size(len(cameras), cameras.width, cameras.height,  # before any network runs
+                      pipe.scene_slots(cameras.width, cameras.height, len(cameras)))
     result = pipe(image, cameras, args.prompt, steps=args.steps, sampler=args.sampler, seed=args.seed,
                   progress=not args.quiet, depth=depth, depth_kind=args.depth_kind)
     t0 = time.perf_counter()

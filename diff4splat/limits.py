@@ -13,7 +13,8 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 
-__all__ = ["Limit", "LIMITS", "LimitError", "limit", "check_limit", "check_output_size", "OUTPUT_BYTES_PER_PIXEL"]
+__all__ = ["Limit", "LIMITS", "LimitError", "limit", "check_limit", "check_output_size", "OUTPUT_BYTES_PER_PIXEL",
+           "OUTPUT_BYTES_PER_GAUSSIAN"]
 
 
 @dataclass(frozen=True)
@@ -55,6 +56,11 @@ LIMITS: dict[str, Limit] = {lim.name: lim for lim in (
 OUTPUT_BYTES_PER_PIXEL = 16
 """Upper bound of what ``generate`` writes per frame pixel: RGB (3) + alpha (1) frames and a float32
 depth (4), with margin for the videos' and PNGs' worst-case (incompressible) size."""
+
+
+OUTPUT_BYTES_PER_GAUSSIAN = 112
+"""Upper bound of what ``generate`` writes per Gaussian and frame: a float32 PLY row of SH degree 0 with normals
+(17 × 4 bytes) plus its deformation (Δμ 3, Δq 4, Δs 3: 10 × 4 bytes), with margin for headers."""
 
 
 class LimitError(ValueError):
@@ -100,10 +106,13 @@ def check_limit(name: str, value: int, what: str) -> int:
     return value
 
 
-def check_output_size(frames: int, width: int, height: int) -> int:
-    """Estimate the bytes ``generate`` writes for ``frames`` × ``width`` × ``height`` and check the limit.
+def check_output_size(frames: int, width: int, height: int, gaussians: int = 0) -> int:
+    """Estimate the bytes ``generate`` (or ``render``) writes for ``frames`` × ``width`` × ``height`` and a scene of
+    up to ``gaussians`` Gaussians, and check the limit.
 
-    The estimate is frames · width · height · :data:`OUTPUT_BYTES_PER_PIXEL` (an upper bound).
+    The estimate is frames · width · height · :data:`OUTPUT_BYTES_PER_PIXEL` for the images plus
+    (frames + 1) · gaussians · :data:`OUTPUT_BYTES_PER_GAUSSIAN` for ``scene.ply``, the per-frame PLYs and the
+    deformation maps (an upper bound: pruning only lowers the count, and a static scene writes no deformation).
 
     Returns:
         The estimate, bytes.
@@ -112,5 +121,6 @@ def check_output_size(frames: int, width: int, height: int) -> int:
         LimitError: the estimate exceeds the ``output_bytes`` limit (message gives frames and resolution).
     """
     estimate = int(frames) * int(width) * int(height) * OUTPUT_BYTES_PER_PIXEL
+    estimate += (int(frames) + 1) * int(gaussians) * OUTPUT_BYTES_PER_GAUSSIAN
     check_limit("output_bytes", estimate, f"output of {frames} frames at {width}×{height}: estimated")
     return estimate

@@ -47,7 +47,7 @@ from .render import rasterize
 
 __all__ = ["PHOTO_EPS2D", "FRONT_SCALE_PX", "BACKING_SCALE_PX", "BACKING_OFFSET", "PHOTO_OPACITY", "THICKNESS",
            "REFINE_STEPS", "BACKDROP_CELLS", "BACKDROP_EXTEND", "BACKDROP_DEPTH", "photo_layer", "refine_colors",
-           "upsample_depth", "render_input_view", "backdrop_layer"]
+           "upsample_depth", "render_input_view", "backdrop_layer", "layer_sizes"]
 
 PHOTO_EPS2D = 0.1
 """Screen-space dilation, pixels², of scenes with a photo layer (module docstring; meta.json ``eps2d``)."""
@@ -206,6 +206,20 @@ def photo_layer(
     return refine_colors(layer, image, viewmat, K, H * W, refine_steps, eps2d)
 
 
+def _backdrop_grid(width: int, height: int) -> tuple[int, int, int, int]:
+    """(cell size px, border px, rows, columns) of the backdrop of a width × height photograph."""
+    cell = max(1, round(height / BACKDROP_CELLS))
+    pad = BACKDROP_EXTEND * max(height, width)
+    return cell, pad, (height + 2 * pad) // cell, (width + 2 * pad) // cell
+
+
+def layer_sizes(width: int, height: int) -> tuple[int, int]:
+    """Gaussian counts of :func:`photo_layer` (W·H front + ⌈H/2⌉·⌈W/2⌉ backing disks) and of
+    :func:`backdrop_layer` for a ``width`` × ``height`` photograph (pixels)."""
+    _, _, rows, cols = _backdrop_grid(width, height)
+    return width * height + (-(-height // 2)) * (-(-width // 2)), rows * cols
+
+
 def backdrop_layer(
     image: Tensor,  # (H, W, 3) in [0, 1]
     depth: Tensor,  # (H, W) the photo layer's z-depth, metres
@@ -230,11 +244,9 @@ def backdrop_layer(
     H, W = _check(image, depth, viewmat, K)
     dev = image.device
     viewmat, K = viewmat.to(dev, torch.float32), K.to(dev, torch.float32)
-    cell = max(1, round(H / BACKDROP_CELLS))
-    pad = BACKDROP_EXTEND * max(H, W)
+    cell, pad, h, w = _backdrop_grid(W, H)
     host = image.detach().float().cpu().numpy()
     big = cv2.GaussianBlur(cv2.copyMakeBorder(host, pad, pad, pad, pad, cv2.BORDER_REFLECT), (0, 0), float(cell))
-    h, w = big.shape[0] // cell, big.shape[1] // cell
     small = torch.from_numpy(cv2.resize(big[:h * cell, :w * cell], (w, h), interpolation=cv2.INTER_AREA)).to(dev)
     Kb = K.clone()
     Kb[0, 2], Kb[1, 2] = K[0, 2] + pad, K[1, 2] + pad

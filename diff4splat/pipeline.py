@@ -53,7 +53,7 @@ from .checks import check_positive_int
 from .devices import Stopwatch
 from .limits import check_limit
 from .offload import ModelOffload
-from .photo import PHOTO_EPS2D
+from .photo import PHOTO_EPS2D, layer_sizes
 from .prune import prune_mask, redundant_mask
 from .scene import DynamicGaussians
 
@@ -359,6 +359,15 @@ class Diff4SplatPipeline:
         from .onnx_runtime import OnnxRuntime
 
         return cls(OnnxRuntime(directory, providers=providers))
+
+    def scene_slots(self, width: int, height: int, num_frames: int) -> int:
+        """Gaussians of the unpruned scene for a ``width`` × ``height`` output and ``num_frames`` frames: the photo
+        layer and backdrop (:func:`diff4splat.photo.layer_sizes`) plus h·w per later source frame at the model
+        resolution (``GenerationResult.num_slots``; an upper bound of the kept count)."""
+        c = self.config
+        n = (num_frames - 1) // c.vae.temporal_factor + 1
+        sources = source_frame_indices(c.ldrm.gaussian_frames, n, c.vae.temporal_factor)
+        return sum(layer_sizes(width, height)) + (len(sources) - 1) * c.height * c.width
 
     def output_size(self, resolution: int | None = None) -> tuple[int, int]:
         """(width, height) of the output for ``resolution`` pixels of height (None: the model resolution): the

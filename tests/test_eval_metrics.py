@@ -19,10 +19,10 @@ from training.eval_metrics import (
     kept_index_map,
     masked_psnr,
     motion_errors,
-    thumbnail,
     pearson,
     psnr_from_mse,
     repeat_baselines,
+    thumbnail,
     view_angles,
 )
 

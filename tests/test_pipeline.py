@@ -37,6 +37,7 @@ def test_untrained_deformation_gives_a_static_scene_with_pixel_aligned_gaussians
     assert res.photo_gaussians == 64 * 64 + 32 * 32  # the photo layer: front disks, backing disks per 2×2 pixels
     backdrop = (1 + 2 * BACKDROP_EXTEND) ** 2 * BACKDROP_CELLS**2  # 64 px: 4-pixel cells over 5 × 5 image sizes
     assert res.prune_stats["before"] == res.num_slots == res.photo_gaussians + backdrop + (S - 1) * 64 * 64
+    assert pipe.scene_slots(64, 64, FRAMES) == res.num_slots  # what generate's output-size check counts
     stats = res.prune_stats
     assert stats["after"] == (stats["before"] - stats["duplicates"] - stats["occluders"] - stats["low_opacity"]
                               - stats["unseen"])

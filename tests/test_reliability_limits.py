@@ -21,7 +21,7 @@ from diff4splat.cameras import CameraPath
 from diff4splat.cli import main
 from diff4splat.io import load_cameras_json, load_realestate10k, save_cameras_json
 from diff4splat.io.image import header_size, read_image
-from diff4splat.limits import LIMITS, LimitError, check_limit, check_output_size, limit
+from diff4splat.limits import LIMITS, OUTPUT_BYTES_PER_GAUSSIAN, LimitError, check_limit, check_output_size, limit
 from diff4splat.pipeline import Diff4SplatPipeline, load_model
 from models.bundle import Diff4SplatModel, load_config
 from models.pretrained import config_from_dict
@@ -82,6 +82,9 @@ def test_limits_read_their_env_var_at_each_check(monkeypatch):
 
 def test_output_size_estimate_is_frames_times_resolution():
     assert check_output_size(17, 64, 64) == 17 * 64 * 64 * 16
+    # with the scene: scene.ply plus one PLY row and one deformation row per Gaussian and frame (17 + 10 float32)
+    assert check_output_size(17, 64, 64, gaussians=1000) == 17 * 64 * 64 * 16 + 18 * 1000 * 112
+    assert OUTPUT_BYTES_PER_GAUSSIAN >= (17 + 10) * 4
     with pytest.raises(LimitError, match=r"1001 frames at 4096×4096: estimated \d+ exceeds the limit of \d+ bytes"):
         check_output_size(1001, 4096, 4096)
 
