@@ -1,0 +1,104 @@
+"""Novel views with the true depth given (`generate --depth`), against the renderer's own oracle.
+
+    python benchmarks/true_depth.py --data DIR [--checkpoint DIR] [--limit N] [--write]
+
+For each held-out clip (its first frame, cameras and caption, as ``diff4splat evaluate`` reads them), frames 1…T−1
+are rendered and compared with the ground truth (PSNR of the mean MSE over all novel frames, and by view angle
+from the input camera, :data:`training.eval_metrics.ANGLE_BINS`):
+
+- ``oracle``: the photo layer alone (:func:`diff4splat.photo.photo_layer`) built from the true first frame and its
+  true depth (invalid pixels at the largest valid depth), static, rendered with the scene's dilation over the
+  photograph's mean colour: pixel-aligned Gaussians of what was observed, moved by the true geometry;
+- ``generate, true depth``: the pipeline given the true depth map (``depth=``, metric; invalid pixels are holes
+  the network's depth fills), sampled latents, rendered as ``generate`` renders it;
+- ``generate``: the same without the depth map (the network's depth);
+- ``repeat frame 0``: the input frame for every later frame.
+
+``--write`` puts the table into docs/benchmarks.md (``true_depth``).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import warnings
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import machine, markdown_table, repo_relative, write_section  # noqa: E402
+
+from diff4splat.cameras import CameraPath  # noqa: E402
+from diff4splat.photo import PHOTO_EPS2D, photo_layer  # noqa: E402
+from diff4splat.pipeline import Diff4SplatPipeline, load_model  # noqa: E402
+from diff4splat.render.sequence import render_path  # noqa: E402
+from diff4splat.scene import DynamicGaussians  # noqa: E402
+from models.bundle import DEFAULT_CONFIG  # noqa: E402
+from training.eval_metrics import ANGLE_BINS, binned_psnr, frame_mse, psnr_from_mse, repeat_baselines, view_angles  # noqa: E402
+from training.evaluate import _held_out_clips  # noqa: E402
+
+VARIANTS = ("oracle", "generate, true depth", "generate", "repeat frame 0")
+
+
+@torch.no_grad()
+def clip_mse(pipe: Diff4SplatPipeline, clip: dict) -> dict[str, torch.Tensor]:
+    """(T − 1,) per-frame MSE of the novel frames of one clip for each of :data:`VARIANTS`."""
+    T, H, W = clip["video"].shape[1:]
+    cams = CameraPath(clip["viewmats"].double(), clip["Ks"].double(), W, H, clip["times"].double())
+    image = clip["video"][:, 0].permute(1, 2, 0)
+    gt = clip["video"].permute(1, 0, 2, 3)[1:]
+    ok = clip["depth_valid"][0]
+    depth = clip["depth"][0]
+    background = tuple(float(c) for c in image.reshape(-1, 3).mean(0))
+    filled = torch.where(ok, depth, depth[ok].max() if ok.any() else torch.tensor(10.0))
+    rel = cams.relative_to_first().to(dtype=torch.float32)
+    layer, _ = photo_layer(image, filled.float(), rel.viewmats[0], rel.Ks[0])
+    out = {"oracle": render_path(DynamicGaussians(layer), rel, eps2d=PHOTO_EPS2D, background=background)[0]}
+    for name, given in (("generate, true depth", torch.where(ok, depth, float("nan")).float()), ("generate", None)):
+        res = pipe(image, cams, clip["caption"], depth=given)
+        out[name] = render_path(res.scene, res.cameras, eps2d=res.eps2d, background=res.background)[0]
+    mse = {k: frame_mse(v[1:].permute(0, 3, 1, 2), gt) for k, v in out.items()}
+    mse["repeat frame 0"] = repeat_baselines(clip["video"])["repeat"]
+    return mse
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", type=Path, required=True)
+    ap.add_argument("--checkpoint", type=Path, default=None)
+    ap.add_argument("--config", default=DEFAULT_CONFIG)
+    ap.add_argument("--limit", type=int, default=None)
+    ap.add_argument("--write", action="store_true")
+    args = ap.parse_args()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model, source = load_model(args.checkpoint, args.config)
+    pipe = Diff4SplatPipeline(model)
+    cfg = pipe.config
+    clips = _held_out_clips(args.data, cfg.height, cfg.width, cfg.num_frames, args.limit)
+    acc: dict[str, list[torch.Tensor]] = {k: [] for k in VARIANTS}
+    angles = []
+    for clip in clips:
+        for k, v in clip_mse(pipe, clip).items():
+            acc[k].append(v)
+        angles.append(view_angles(clip["viewmats"])[1:])
+    A = torch.cat(angles)
+    rows = []
+    for k in VARIANTS:
+        m = torch.cat(acc[k])
+        bins = binned_psnr(m, A)
+        rows.append([k, f"{psnr_from_mse(float(m.mean())):.2f}",
+                     *(f"{bins[name][0]:.2f}" for name, _, _ in ANGLE_BINS if bins[name][1])])
+    names = [f"{lo:g}–{hi:g}° ({binned_psnr(torch.cat(acc['oracle']), A)[n][1]})" for n, lo, hi in ANGLE_BINS
+             if binned_psnr(torch.cat(acc["oracle"]), A)[n][1]]
+    table = markdown_table(["novel views, PSNR dB", f"all frames ({len(A)})", *names], rows)
+    body = (f"### Novel views with the true depth given ({repo_relative(source)}, {len(clips)} clips of "
+            f"{args.data.name})\n\n`python benchmarks/true_depth.py {' '.join(sys.argv[1:])}` on {machine()}. PSNR "
+            f"of the mean MSE over the novel frames, by view angle from the input camera (frame count).\n\n{table}\n")
+    print(body)
+    if args.write:
+        write_section("true_depth", body)
+
+
+if __name__ == "__main__":
+    main()
