@@ -49,6 +49,8 @@ def _check_folder(out, frames, size=64):
     assert len(ply["vertex"]) == meta["num_gaussians"] > 0
     video = load_video(out / "video.mp4")
     assert video.shape == (frames, size, size, 3)
+    rgb = [cv2.imread(str(out / "rgb" / f"{i:04d}.png"))[..., ::-1] for i in range(frames)]  # lossless frames
+    assert all(f.shape == (size, size, 3) for f in rgb) and np.abs(video.astype(float) - np.stack(rgb)).mean() < 8
     for i in range(frames):
         depth, alpha = load_depth_exr(out / "depth" / f"{i:04d}.exr", return_alpha=True)
         assert depth.shape == (size, size) and np.isfinite(depth).all() and (depth > 0).all()
@@ -91,6 +93,8 @@ def test_generate_writes_every_file_on_the_shipped_photograph(tmp_path, capsys):
     photo = load_image(EXAMPLE_IMAGE, size=(256, 256))
     first = torch.from_numpy(load_video(out / "video.mp4")[0]).float() / 255
     assert float(-10 * torch.log10(((first - photo) ** 2).mean())) >= 30.0
+    lossless = torch.from_numpy(cv2.imread(str(out / "rgb" / "0000.png"))[..., ::-1].copy()).float() / 255
+    assert float(-10 * torch.log10(((lossless - photo) ** 2).mean())) >= 40.0  # only 8-bit rounding left
     assert meta["model"].endswith(f"models/weights/{DEFAULT_CONFIG}") and not meta["static"]
     assert _check_frames_follow_deformation(out, 9) > 1e-4
     assert not any(p.name.startswith(".") for p in tmp_path.iterdir())  # no temp folder left

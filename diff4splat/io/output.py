@@ -33,7 +33,7 @@ from .cameras import save_cameras_json
 from .exr import save_depth_exr
 from .outdir import output_dir
 from .ply import save_ply
-from .video import save_video
+from .video import save_image, save_video, to_uint8
 
 __all__ = ["write_scene_folder", "fill_empty_depth", "save_deformation", "load_deformation", "json_default"]
 
@@ -129,6 +129,7 @@ def write_scene_folder(
         raise ValueError(f"colors/depths/alphas must have {T} frames (one per camera), got "
                          f"{colors.shape[0]}/{depths.shape[0]}/{alphas.shape[0]}")
     depths = fill_empty_depth(depths, alphas, depth_fallback)
+    rgb = to_uint8(colors.cpu(), "colors")  # (T, H, W, 3): rgb/*.png lossless beside the lossy video
     with output_dir(out_dir, kind=kind, inputs=inputs, overwrite=overwrite, parents=True) as tmp:
         save_ply(tmp / "scene.ply", scene.canonical)
         if not scene.is_static or scene.has_temporal:
@@ -136,7 +137,8 @@ def write_scene_folder(
         for i in range(T):
             save_ply(tmp / "frames" / f"{i:04d}.ply", scene.at(float(cameras.times[i])))
             save_depth_exr(tmp / "depth" / f"{i:04d}.exr", depths[i].cpu(), alphas[i].clamp(0, 1).cpu())
-        save_video(tmp / "video.mp4", colors.cpu(), fps=fps)
+            save_image(tmp / "rgb" / f"{i:04d}.png", rgb[i])
+        save_video(tmp / "video.mp4", rgb, fps=fps)
         save_cameras_json(tmp / "cameras.json", cameras.to("cpu"))
         write_viewer(tmp / VIEWER_NAME, scene, cameras.to("cpu"), fps=fps, background=meta_background(meta),
                      eps2d=meta_eps2d(meta))
