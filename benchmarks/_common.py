@@ -5,6 +5,7 @@ import os
 import platform
 import re
 import resource
+import sys
 from pathlib import Path
 
 import torch
@@ -55,3 +56,15 @@ def write_section(name: str, body: str, path: Path = BENCHMARKS_MD) -> None:
     tmp = path.with_suffix(".md.tmp")
     tmp.write_text(text)
     tmp.replace(path)
+
+
+def publish(name: str, title: str, note: str, table: str, write: bool) -> str:
+    """Print a section — ``### title``, the command line that made it, the machine, ``note``, the table — and with
+    ``write`` put it into docs/benchmarks.md (:func:`write_section`); returns its body."""
+    script = Path(sys.argv[0]).name
+    body = (f"### {title}\n\n`python benchmarks/{script} {' '.join(sys.argv[1:])}` on {machine()}. {note}\n\n"
+            f"{table}\n")
+    print(body)
+    if write:
+        write_section(name, body)
+    return body

@@ -25,7 +25,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine, markdown_table, write_section  # noqa: E402
+from _common import markdown_table, publish  # noqa: E402
 
 from data_prep.clips import ClipConfig, ClipDataset  # noqa: E402
 from diff4splat.devices import resolve_device  # noqa: E402
@@ -89,14 +89,9 @@ def main() -> None:
         rows.append([label, head, *(f"{v:.2f}" for v in result.values())])
         print(" | ".join(rows[-1]), flush=True)
     table = markdown_table(["checkpoint", "LDRM head", "log distance", "colour", "opacity"], rows)
-    body = (f"### Blockiness of the LDRM's decoded maps ({args.clips} held-out clips, true-video latents)\n\n"
-            f"`python benchmarks/blockiness.py {' '.join(sys.argv[1:])}` on {machine()}. Mean squared neighbour "
-            f"difference across the 8-pixel token borders ÷ inside the blocks, over every source frame; "
-            f"1 = no blocks.\n\n{table}\n")
-    print(body)
-    if args.write:
-        write_section("blockiness", body)
-
+    publish("blockiness", f"Blockiness of the LDRM's decoded maps ({args.clips} held-out clips, true-video "
+            "latents)", "Mean squared neighbour difference across the 8-pixel token borders ÷ inside the blocks, "
+            "over every source frame; 1 = no blocks.", table, args.write)
 
 if __name__ == "__main__":
     main()

@@ -29,7 +29,7 @@ import cv2
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine, markdown_table, repo_relative, write_section  # noqa: E402
+from _common import markdown_table, publish, repo_relative  # noqa: E402
 
 from diff4splat.cli import main as cli_main  # noqa: E402
 from diff4splat.io import load_image  # noqa: E402
@@ -82,14 +82,9 @@ def main() -> None:
     table = markdown_table(["photo", f"video.mp4 frame 0, {width}×{height}", f"render, {width}×{height}",
                             f"thumbnail 8×8, {width}×{height}", f"render, {cfg.width}×{cfg.height}",
                             f"thumbnail 8×8, {cfg.width}×{cfg.height}"], rows)
-    body = (f"### Input-view fidelity on real photographs ({repo_relative(source)}, output {width}×{height}, model "
-            f"{cfg.width}×{cfg.height}, prompt {args.prompt!r})\n\n`python benchmarks/photo_fidelity.py "
-            f"{' '.join(sys.argv[1:])}` on {machine()}. PSNR (dB) against the photograph as `generate` reads it.\n\n"
-            f"{table}\n")
-    print(body)
-    if args.write:
-        write_section("photo_fidelity", body)
-
+    publish("photo_fidelity", f"Input-view fidelity on real photographs ({repo_relative(source)}, output "
+            f"{width}×{height}, model {cfg.width}×{cfg.height}, prompt {args.prompt!r})",
+            "PSNR (dB) against the photograph as `generate` reads it.", table, args.write)
 
 if __name__ == "__main__":
     main()

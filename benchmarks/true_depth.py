@@ -26,7 +26,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine, markdown_table, repo_relative, write_section  # noqa: E402
+from _common import markdown_table, publish, repo_relative  # noqa: E402
 
 from diff4splat.cameras import CameraPath  # noqa: E402
 from diff4splat.photo import PHOTO_EPS2D, photo_layer  # noqa: E402
@@ -92,13 +92,9 @@ def main() -> None:
     names = [f"{lo:g}–{hi:g}° ({binned_psnr(torch.cat(acc['oracle']), A)[n][1]})" for n, lo, hi in ANGLE_BINS
              if binned_psnr(torch.cat(acc["oracle"]), A)[n][1]]
     table = markdown_table(["novel views, PSNR dB", f"all frames ({len(A)})", *names], rows)
-    body = (f"### Novel views with the true depth given ({repo_relative(source)}, {len(clips)} clips of "
-            f"{args.data.name})\n\n`python benchmarks/true_depth.py {' '.join(sys.argv[1:])}` on {machine()}. PSNR "
-            f"of the mean MSE over the novel frames, by view angle from the input camera (frame count).\n\n{table}\n")
-    print(body)
-    if args.write:
-        write_section("true_depth", body)
-
+    publish("true_depth", f"Novel views with the true depth given ({repo_relative(source)}, {len(clips)} clips of "
+            f"{args.data.name})", "PSNR of the mean MSE over the novel frames, by view angle from the input camera "
+            "(frame count).", table, args.write)
 
 if __name__ == "__main__":
     main()

@@ -30,8 +30,9 @@ __all__ = ["StageConfig", "load_stage", "stage_names", "apply_freezing", "MODULE
 STAGE_CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 """The shipped stage configs (``train_vae``, ``train_stage1`` … ``train_stage3``), package data of ``training``."""
 
-MODULES = ("vae", "text_encoder", "dit", "ldrm", "ldrm.deformation")
-"""Module names a stage can train (``ldrm.deformation`` is the LDRM's deformation network)."""
+MODULES = ("vae", "text_encoder", "dit", "ldrm", "ldrm.deformation", "ldrm.head", "ldrm.image_branch")
+"""Module names a stage can train (``ldrm.deformation`` is the LDRM's deformation network; ``ldrm.head`` and
+``ldrm.image_branch`` alone train a new head on the LDRM's features, which the deformation network also reads)."""
 
 OBJECTIVES = ("vae", "diffusion", "reconstruction")
 
