@@ -50,3 +50,29 @@ def test_mismatched_weights_and_bad_names_raise(checkpoints, tmp_path, capsys):
     assert main(["--config", str(config), "--out", str(tmp_path / "o"), "dit"]) == 2
     assert "NETWORK=FOLDER" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_reinit_starts_a_replaced_head_from_its_initialisation(tmp_path, capsys):
+    """A deconv-head LDRM taken into an upsampling-head config: refused without --reinit (the head's weights do not
+    fit), and with ``--reinit ldrm.head`` every other LDRM weight is the checkpoint's and the head is the seeded
+    initialisation."""
+    src = tiny_model(seed=3)
+    src.ldrm.config.head = "deconv"
+    deconv = Diff4SplatModel.random(src.config, seed=3)
+    deconv.save_pretrained(tmp_path / "deconv")
+    target = tmp_path / "up.yaml"
+    target.write_text("name: up\nldrm: {head: upsample}\n")
+    with pytest.raises(ValueError, match="ldrm from .*do not fit"):
+        compose(target, {"ldrm": tmp_path / "deconv"})
+    model = compose(target, {"ldrm": tmp_path / "deconv"}, seed=7, reinit=("ldrm.head",))
+    assert model.config.ldrm.head == "upsample"
+    mine, theirs = model.ldrm.state_dict(), deconv.ldrm.state_dict()
+    for key, value in theirs.items():
+        if not key.startswith("head."):
+            assert torch.equal(mine[key], value), key
+    fresh = Diff4SplatModel.random(model.config, seed=7)
+    for (n, p), q in zip(model.ldrm.head.named_parameters(), fresh.ldrm.head.parameters(), strict=True):
+        assert torch.equal(p, q), n
+    assert main(["--config", str(target), "--out", str(tmp_path / "o"), "--reinit", "dit.x", "ldrm=" +
+                 str(tmp_path / "deconv")]) == 2
+    assert "--reinit" in capsys.readouterr().err and not (tmp_path / "o").exists()

@@ -103,6 +103,18 @@ def test_apply_freezing_leaves_exactly_the_listed_modules_trainable(model, train
         assert counts["ldrm.deformation"] == deformation
 
 
+def test_a_new_head_trains_alone_and_absent_parts_train_nothing(model):
+    """``ldrm.head`` (and ``ldrm.image_branch``) alone: only the head's parameters train — the LDRM's blocks and
+    its deformation network, which reads their features, stay as they are; a model without an image branch counts
+    0 for it."""
+    counts = apply_freezing(model, ("ldrm.head", "ldrm.image_branch"))
+    head = {f"ldrm.head.{n}" for n, _ in model.ldrm.head.named_parameters()}
+    assert {n for n, p in model.named_parameters() if p.requires_grad} == head
+    assert counts["ldrm.head"] == sum(p.numel() for p in model.ldrm.head.parameters()) > 0
+    assert counts["ldrm.image_branch"] == (0 if model.ldrm.image_branch is None else
+                                           sum(p.numel() for p in model.ldrm.image_branch.parameters()))
+
+
 BASE = "name: s\ntrain: [dit, ldrm]\nobjectives: [diffusion, reconstruction]\nnum_frames: 9\n"
 
 

@@ -151,8 +151,10 @@ def apply_freezing(model: nn.Module, train: tuple[str, ...]) -> dict[str, int]:
     for name in train:
         if name == "ldrm" and "ldrm.deformation" not in train:
             params = [p for n, p in model.ldrm.named_parameters() if not n.startswith("deformation.")]
-        else:
-            params = list(model.get_submodule(name).parameters())
+        else:  # an optional part the model does not have (an LDRM without image branch) trains nothing
+            parent, _, leaf = name.rpartition(".")
+            module = getattr(model.get_submodule(parent), leaf, None) if parent else model.get_submodule(name)
+            params = [] if module is None else list(module.parameters())
         for p in params:
             p.requires_grad_(True)
         counts[name] = sum(p.numel() for p in params)
