@@ -1,6 +1,10 @@
 """Wall time of `generate` per stage (default model config, CPU): median over repeats.
 
-    python benchmarks/generate_speed.py [--frames 17] [--repeats 5] [--config NAME] [--write]
+    python benchmarks/generate_speed.py [--frames 17] [--repeats 5] [--resolution PX] [--config NAME] [--write]
+
+Stages of the pipeline at the output resolution (default 256, as ``generate``), and the wall time of the whole
+command ``diff4splat generate examples/chelsea.png --out DIR`` as a user runs it (a fresh process: imports and
+model loading included; median of 3).
 
 ``--write`` puts the table into docs/benchmarks.md (section ``generate_speed``).
 """
@@ -20,7 +24,7 @@ from _common import machine, markdown_table, peak_rss_mb, repo_relative, write_s
 
 from diff4splat.io import load_image  # noqa: E402
 from diff4splat.io.output import write_scene_folder  # noqa: E402
-from diff4splat.pipeline import Diff4SplatPipeline, load_model  # noqa: E402
+from diff4splat.pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, load_model  # noqa: E402
 from diff4splat.render.sequence import render_path  # noqa: E402
 from models.bundle import DEFAULT_CONFIG  # noqa: E402
 
@@ -33,7 +37,7 @@ def render_split(res, repeats: int) -> dict[str, float]:
     from diff4splat.render import rasterize
 
     cams, scene = res.cameras, res.scene
-    bg = torch.ones(1, 3)
+    bg = torch.tensor([res.background])
     deform, raster = [], []
     for _ in range(repeats + 1):
         t0 = time.perf_counter()
@@ -42,7 +46,8 @@ def render_split(res, repeats: int) -> dict[str, float]:
         with torch.no_grad():
             for i, g in enumerate(frames):
                 rasterize(g.means, g.quats, g.scales, g.opacities, g.sh, cams.viewmats[i:i + 1], cams.Ks[i:i + 1],
-                          cams.width, cams.height, sh_degree=g.sh_degree, backgrounds=bg, render_mode="RGB+ED")
+                          cams.width, cams.height, sh_degree=g.sh_degree, backgrounds=bg, render_mode="RGB+ED",
+                          eps2d=res.eps2d)
         t2 = time.perf_counter()
         deform.append(t1 - t0)
         raster.append(t2 - t1)
@@ -71,11 +76,27 @@ def first_call_ms() -> float:
     return statistics.median(runs)
 
 
+def command_wall_s(resolution: int) -> list[float]:
+    """Wall seconds of 3 runs of ``diff4splat generate`` on the example in fresh processes."""
+    import subprocess
+    import tempfile
+
+    runs = []
+    for _ in range(3):
+        with tempfile.TemporaryDirectory() as tmp:
+            t0 = time.perf_counter()
+            subprocess.run(["diff4splat", "generate", str(EXAMPLE), "--out", f"{tmp}/o", "--quiet", "--resolution",
+                            str(resolution)], check=True, capture_output=True)
+            runs.append(time.perf_counter() - t0)
+    return runs
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=17)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--config", default=DEFAULT_CONFIG, help=f"model config (default: {DEFAULT_CONFIG})")
+    ap.add_argument("--resolution", type=int, default=DEFAULT_RESOLUTION)
     ap.add_argument("--write", action="store_true")
     args = ap.parse_args()
 
@@ -85,15 +106,16 @@ def main() -> None:
     source = repo_relative(source)
     pipe = Diff4SplatPipeline(model)
     cfg = pipe.config
-    image = load_image(EXAMPLE, size=(cfg.height, cfg.width))
-    cams = pipe.default_cameras("orbit", args.frames)
+    width, height = pipe.output_size(args.resolution)
+    image = load_image(EXAMPLE, size=(height, width))
+    cams = pipe.default_cameras("orbit", args.frames, resolution=args.resolution)
     stages: dict[str, list[float]] = {}
     import tempfile
 
     for r in range(args.repeats + 1):  # first run is warm-up
         res = pipe(image, cams, "a cat turns its head", seed=r)
         t0 = time.perf_counter()
-        colors, depths, alphas = render_path(res.scene, res.cameras, eps2d=res.eps2d)
+        colors, depths, alphas = render_path(res.scene, res.cameras, eps2d=res.eps2d, background=res.background)
         t_render = time.perf_counter() - t0
         with tempfile.TemporaryDirectory() as tmp:
             t0 = time.perf_counter()
@@ -111,9 +133,14 @@ def main() -> None:
     split_rows = [[k, f"{v:.1f}"] for k, v in split.items()] + [
         ["render stage ÷ rasterizer alone", f"{render_ms / split['rasterizer alone (17 calls)']:.2f}×"]]
     first = first_call_ms()
-    body = (f"### `generate` wall time per stage ({args.config}, {cfg.width}×{cfg.height}, {args.frames} frames, "
+    wall = command_wall_s(args.resolution)
+    body = (f"### `generate` wall time per stage ({args.config}, output {width}×{height}, model "
+            f"{cfg.width}×{cfg.height}, {args.frames} frames, "
             f"{cfg.sampling.steps} Euler steps, {res.scene.num_gaussians} Gaussians, weights: {source})\n\n"
-            f"Median of {args.repeats} runs after a warm-up; `python benchmarks/generate_speed.py --write`. "
+            f"The whole command `diff4splat generate examples/chelsea.png --out DIR` (default resolution, a fresh "
+            f"process: imports and model loading included): **{statistics.median(wall):.2f} s** wall, median of 3 "
+            f"({min(wall):.2f}–{max(wall):.2f} s).\n\n"
+            f"Stages: median of {args.repeats} runs after a warm-up; `python benchmarks/generate_speed.py --write`. "
             f"Machine: {machine()}. Peak RSS {peak_rss_mb():.0f} MiB.\n\n"
             + markdown_table(["stage", "ms"], rows)
             + f"\n\nThe render stage ({render_ms:.1f} ms, `render_path`) split: the deformation to each frame's "
