@@ -6,9 +6,12 @@ import platform
 import re
 import resource
 import sys
+import warnings
 from pathlib import Path
 
 import torch
+
+from diff4splat.pipeline import Diff4SplatPipeline, load_model
 
 BENCHMARKS_MD = Path(__file__).resolve().parent.parent / "docs" / "benchmarks.md"
 
@@ -68,3 +71,12 @@ def publish(name: str, title: str, note: str, table: str, write: bool) -> str:
     if write:
         write_section(name, body)
     return body
+
+
+def load_pipeline(checkpoint, config: str):
+    """``(Diff4SplatPipeline, weights source)`` of ``--checkpoint`` (None: the shipped weights of ``--config``),
+    without the warnings of a missing checkpoint."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model, source = load_model(checkpoint, config)
+    return Diff4SplatPipeline(model), source

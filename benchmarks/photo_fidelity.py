@@ -22,18 +22,17 @@ from __future__ import annotations
 import argparse
 import sys
 import tempfile
-import warnings
 from pathlib import Path
 
 import cv2
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import markdown_table, publish, repo_relative  # noqa: E402
+from _common import load_pipeline, markdown_table, publish, repo_relative  # noqa: E402
 
 from diff4splat.cli import main as cli_main  # noqa: E402
 from diff4splat.io import load_image  # noqa: E402
-from diff4splat.pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, load_model  # noqa: E402
+from diff4splat.pipeline import DEFAULT_RESOLUTION  # noqa: E402
 from models.bundle import DEFAULT_CONFIG  # noqa: E402
 from training.eval_metrics import image_psnr  # noqa: E402
 from training.evaluate import photo_fidelity  # noqa: E402
@@ -65,10 +64,7 @@ def main() -> None:
     ap.add_argument("--resolution", type=int, default=DEFAULT_RESOLUTION)
     ap.add_argument("--write", action="store_true")
     args = ap.parse_args()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        model, source = load_model(args.checkpoint, args.config)
-    pipe = Diff4SplatPipeline(model)
+    pipe, source = load_pipeline(args.checkpoint, args.config)
     cfg = pipe.config
     width, height = pipe.output_size(args.resolution)
     rows = []

@@ -20,17 +20,16 @@ from __future__ import annotations
 
 import argparse
 import sys
-import warnings
 from pathlib import Path
 
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import markdown_table, publish, repo_relative  # noqa: E402
+from _common import load_pipeline, markdown_table, publish, repo_relative  # noqa: E402
 
 from diff4splat.cameras import CameraPath  # noqa: E402
 from diff4splat.photo import PHOTO_EPS2D, photo_layer  # noqa: E402
-from diff4splat.pipeline import Diff4SplatPipeline, load_model  # noqa: E402
+from diff4splat.pipeline import Diff4SplatPipeline  # noqa: E402
 from diff4splat.render.sequence import render_path  # noqa: E402
 from diff4splat.scene import DynamicGaussians  # noqa: E402
 from models.bundle import DEFAULT_CONFIG  # noqa: E402
@@ -70,10 +69,7 @@ def main() -> None:
     ap.add_argument("--limit", type=int, default=None)
     ap.add_argument("--write", action="store_true")
     args = ap.parse_args()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        model, source = load_model(args.checkpoint, args.config)
-    pipe = Diff4SplatPipeline(model)
+    pipe, source = load_pipeline(args.checkpoint, args.config)
     cfg = pipe.config
     clips = _held_out_clips(args.data, cfg.height, cfg.width, cfg.num_frames, args.limit)
     acc: dict[str, list[torch.Tensor]] = {k: [] for k in VARIANTS}
