@@ -129,20 +129,24 @@ def _identity_blocks(model: LDRM) -> LDRM:
     return model
 
 
+def _poked(model: LDRM, r: int, c: int):
+    """For each latent frame s: where (S, H, W) the distance maps change when latent pixel (r, c) of frame s moves."""
+    latents, plucker = _inputs()
+    base = model(latents, plucker).distance[0]
+    for s in range(S):
+        poked = latents.clone()
+        poked[:, :, s, r, c] += 1.0
+        yield (model(poked, plucker).distance[0] - base).abs() > 0
+
+
 @pytest.mark.parametrize("patch", [1, 2])
 @pytest.mark.slow
 def test_deconv_head_reads_each_source_frame_patch_locally(patch):
     """With every block an identity, pixel (i, j) of source frame s depends only on the latent pixels of its
     own patch in latent frame s: checks patchify order, the source-frame layout and the transposed convolution."""
-    model = _identity_blocks(_model(patch_size=patch, head="deconv"))
-    latents, plucker = _inputs()
-    base = model(latents, plucker).distance[0]  # (S, H, W)
     size = 8 * patch
     r, c = 5, 2
-    for s in range(S):
-        poked = latents.clone()
-        poked[:, :, s, r, c] += 1.0
-        diff = (model(poked, plucker).distance[0] - base).abs() > 0
+    for s, diff in enumerate(_poked(_identity_blocks(_model(patch_size=patch, head="deconv")), r, c)):
         expect = torch.zeros(S, H, W, dtype=torch.bool)
         r0, c0 = (r // patch) * size, (c // patch) * size
         expect[s, r0:r0 + size, c0:c0 + size] = True
@@ -156,15 +160,9 @@ def test_upsample_head_overlaps_neighbouring_tokens_within_its_receptive_field(p
     convolution, pixels of the neighbouring blocks — but nothing in other source frames and nothing beyond the
     closed-form receptive field: a 3×3 conv at scale 2^k adds f/2^k output pixels per side, the last one 1 pixel,
     so f + f/2 + … + 2 + 1 = 2f − 1 pixels around the block."""
-    model = _identity_blocks(_model(patch_size=patch))
-    latents, plucker = _inputs()
-    base = model(latents, plucker).distance[0]  # (S, H, W)
     f = 8 * patch
     r, c = 5, 2
-    for s in range(S):
-        poked = latents.clone()
-        poked[:, :, s, r, c] += 1.0
-        diff = (model(poked, plucker).distance[0] - base).abs() > 0
+    for s, diff in enumerate(_poked(_identity_blocks(_model(patch_size=patch)), r, c)):
         r0, c0 = (r // patch) * f, (c // patch) * f
         inside = torch.zeros(S, H, W, dtype=torch.bool)
         inside[s, max(0, r0 - 2 * f + 1):r0 + 3 * f - 1, max(0, c0 - 2 * f + 1):c0 + 3 * f - 1] = True
