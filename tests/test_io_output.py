@@ -1,5 +1,6 @@
 import json
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -42,9 +43,11 @@ def test_folder_has_every_file_and_frames_follow_the_deformation(tmp_path):
     write_scene_folder(tmp_path / "out", scene, cams, colors, depths, alphas, {"seed": 0})
     out = tmp_path / "out"
     names = sorted(p.name for p in out.iterdir())
-    assert names == [MARKER, "cameras.json", "deformation.npz", "depth", "frames", "meta.json", "scene.ply",
+    assert names == [MARKER, "cameras.json", "deformation.npz", "depth", "frames", "meta.json", "rgb", "scene.ply",
                      "video.mp4", "viewer.html"]
     assert load_video(out / "video.mp4").shape == (5, 16, 16, 3)
+    lossless = np.stack([cv2.imread(str(out / "rgb" / f"{i:04d}.png"))[..., ::-1] for i in range(5)])
+    np.testing.assert_array_equal(lossless, np.round(colors.clamp(0, 1).numpy() * 255).astype(np.uint8))
     d = load_deformation(out / "deformation.npz")
     np.testing.assert_allclose(d["d_means"], scene.d_means.numpy())
     for i in range(5):
