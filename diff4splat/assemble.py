@@ -103,9 +103,9 @@ def _align(user: Tensor, network: Tensor, kind: str) -> Tensor:
     if kind == "metric":
         return user
     valid = torch.isfinite(user) & (user > 0 if kind == "inverse" else torch.isfinite(user))
-    x = user.detach().double().cpu().numpy()
-    y = network.detach().double().cpu().numpy()
-    mask = valid.cpu().numpy()
+    x = user.detach().double().cpu().numpy()  # device: depth_alignment fits in numpy; result moved back
+    y = network.detach().double().cpu().numpy()  # device: as above
+    mask = valid.cpu().numpy()  # device: as above
     if kind == "relative":
         fit = fit_scale_shift(x, y, mask, space="depth")
     else:

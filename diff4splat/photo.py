@@ -245,7 +245,7 @@ def backdrop_layer(
     dev = image.device
     viewmat, K = viewmat.to(dev, torch.float32), K.to(dev, torch.float32)
     cell, pad, h, w = _backdrop_grid(W, H)
-    host = image.detach().float().cpu().numpy()
+    host = image.detach().float().cpu().numpy()  # device: cv2 pads and blurs on the host; moved back below
     big = cv2.GaussianBlur(cv2.copyMakeBorder(host, pad, pad, pad, pad, cv2.BORDER_REFLECT), (0, 0), float(cell))
     small = torch.from_numpy(cv2.resize(big[:h * cell, :w * cell], (w, h), interpolation=cv2.INTER_AREA)).to(dev)
     Kb = K.clone()

@@ -363,9 +363,13 @@ class Diff4SplatPipeline:
     def scene_slots(self, width: int, height: int, num_frames: int) -> int:
         """Gaussians of the unpruned scene for a ``width`` × ``height`` output and ``num_frames`` frames: the photo
         layer and backdrop (:func:`diff4splat.photo.layer_sizes`) plus h·w per later source frame at the model
-        resolution (``GenerationResult.num_slots``; an upper bound of the kept count)."""
+        resolution (``GenerationResult.num_slots``; an upper bound of the kept count).
+
+        Raises:
+            ValueError: ``num_frames`` not 1 + 4k (the VAE's grouping).
+        """
         c = self.config
-        n = (num_frames - 1) // c.vae.temporal_factor + 1
+        n = c.vae.num_latent_frames(num_frames)
         sources = source_frame_indices(c.ldrm.gaussian_frames, n, c.vae.temporal_factor)
         return sum(layer_sizes(width, height)) + (len(sources) - 1) * c.height * c.width
 

@@ -290,7 +290,7 @@ def _footprint_max(depth: Tensor, u: Tensor, v: Tensor, r: Tensor) -> Tensor:
     cap = float(H + W)
     rung = torch.ceil(torch.log(r.clamp(1.0, cap)) / math.log(_RUNG)).long()  # r ≤ _RUNG**rung
     out = torch.zeros_like(u)
-    host = depth.detach().cpu().numpy()
+    host = depth.detach().cpu().numpy()  # device: cv2.dilate runs on the host; result moved back
     for k in torch.unique(rung[hit]).tolist():
         half = int(math.ceil(min(_RUNG**k, cap)))
         size = 2 * half + 1

@@ -70,7 +70,7 @@ def compose(config: str | Path, sources: dict[str, str | Path], seed: int = 0, r
     for name, folder in sources.items():
         fresh = tuple(r.partition(".")[2] for r in reinit if r.partition(".")[0] == name)
         state = {k: v for k, v in loaded[str(folder)].get_submodule(name).state_dict().items()
-                 if not k.startswith(fresh or ("\0",))}
+                 if not k.startswith(fresh)}  # startswith(()) is False: nothing dropped
         try:
             result = getattr(model, name).load_state_dict(state, strict=False)
         except RuntimeError as e:  # tensor shapes that differ from the composed config's
