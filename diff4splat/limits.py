@@ -50,6 +50,18 @@ LIMITS: dict[str, Limit] = {lim.name: lim for lim in (
           "long paths at a high model resolution, when the output disk has room for the estimate"),
     Limit("parameters", 20_000_000_000, "DIFF4SPLAT_MAX_PARAMETERS", "parameters",
           "model configs larger than the paper's (16.8 billion parameters), on a machine with 4 bytes each"),
+    Limit("iterations", 100_000, "DIFF4SPLAT_MAX_ITERATIONS", "optimisation steps",
+          "fits longer than 100 000 steps (fit's default is 1800; 4DGS trains 14 000-20 000, 3DGS 30 000), which "
+          "take hours on a GPU and days on a CPU"),
+    Limit("gaussians", 10_000_000, "DIFF4SPLAT_MAX_GAUSSIANS", "Gaussians",
+          "fits of more than 10 million Gaussians (3DGS's largest scenes hold about 6 million; each costs about 1 KB "
+          "of parameters, gradients and Adam moments) on a machine with the memory for them"),
+    Limit("scenes", 100_000, "DIFF4SPLAT_MAX_SCENES", "scenes",
+          "synthetic datasets of more than 100 000 scenes (about 100 GB of disk and 40 core-hours at the default "
+          "64², 17 frames, 2 cameras)"),
+    Limit("synth_bytes", 4 << 30, "DIFF4SPLAT_MAX_SYNTH_BYTES", "bytes",
+          "synthetic scenes with long or large camera paths, on a machine with the memory for one such scene per "
+          "--workers process"),
 )}
 """Every limit, by name (README, "Limits", renders this table)."""
 
