@@ -61,6 +61,7 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
 
     from .assemble import DEPTH_KINDS
     from .cameras import DEFAULT_AMPLITUDES, DEFAULT_TRAJECTORY, TRAJECTORIES
+    from .cameras.trajectories import amplitude_help
     from .pipeline import DEFAULT_RESOLUTION
 
     config_help = f"shipped model config (tiny, small, paper) or a YAML path (default: {DEFAULT_CONFIG})"
@@ -77,8 +78,8 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
     cam.add_argument("--cameras", type=Path, default=None,
                      help="camera path file: cameras.json (our format) or RealEstate10K .txt")
     g.add_argument("--amplitude", type=float, default=None,
-                   help="preset amplitude: for arc the sweep angle in radians (negative: to the left), "
-                        "else a length in units of the scene depth (preset default if omitted)")
+                   help=f"size of the --trajectory preset's motion (its default if omitted). {amplitude_help()}; "
+                        "a scene depth is the model config's scene_depth (2 m for the shipped ones)")
     g.add_argument("--frames", type=int, default=None, help="number of frames T = 1 + 4k (default: config)")
     g.add_argument("--resolution", type=int, default=None,
                    help=f"output height in pixels (the photo layer keeps the photograph at this resolution; default: "
@@ -200,6 +201,7 @@ def export_onnx_command(args) -> dict:
 
 def _check_generate_args(args) -> None:
     """CLI-level checks of ``generate``'s arguments, before any model is loaded (messages name the flags)."""
+    from .cameras.trajectories import check_amplitude
     from .io.inputs import check_input_file
     from .io.outdir import check_output_dir
     from .io.video import check_fps
@@ -218,6 +220,8 @@ def _check_generate_args(args) -> None:
     if args.amplitude is not None and args.cameras is not None:
         raise ValueError("--amplitude scales a --trajectory preset; it does not apply to --cameras "
                          "(the camera file fixes the path)")
+    if args.cameras is None:
+        check_amplitude(args.trajectory, args.amplitude, "--amplitude")
     check_fps(check_positive_int("--fps", args.fps), "--fps")
     if args.runtime == "onnxruntime":
         if args.onnx is None:

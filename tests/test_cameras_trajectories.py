@@ -12,6 +12,7 @@ from diff4splat.cameras import (
     look_at,
     make_trajectory,
 )
+from diff4splat.cameras.trajectories import AMPLITUDE_LIMITS, amplitude_help, check_amplitude
 
 W, H = 64, 48
 K = intrinsics_from_fov(W, H, fov_x_deg=60.0, dtype=torch.float64)
@@ -209,3 +210,69 @@ def test_float32_intrinsics_give_float32_path():
     p = make_trajectory("orbit", 9, K.float(), W, H)
     assert p.viewmats.dtype == p.Ks.dtype == p.times.dtype == torch.float32
     assert torch.equal(p.viewmats[0], torch.eye(4))
+
+
+# --- amplitude ranges (issue 28): every preset refuses what it cannot show, naming the flag, range and unit ---
+
+
+@pytest.mark.parametrize("name", [n for n in TRAJECTORIES if n != "orbit"])
+def test_every_preset_is_a_finite_path_up_to_its_amplitude_limit(name):
+    limit = AMPLITUDE_LIMITS[name]
+    assert 0 < DEFAULT_AMPLITUDES[name] <= limit
+    assert check_amplitude(name, None) == DEFAULT_AMPLITUDES[name] and check_amplitude(name, limit) == limit
+    for a in (limit, limit * 1e-6) + ((-limit,) if name == "arc" else ()):
+        p = make_trajectory(name, 9, K.float(), W, H, scene_depth=2.0, amplitude=a)
+        assert bool(torch.isfinite(p.viewmats).all())
+        torch.testing.assert_close(p.camera_centers()[-1].double().norm(),  # the last eye moves as far as asked
+                                   torch.tensor(2.0 * (2 * math.sin(abs(a) / 2) if name == "arc" else abs(a)),
+                                                dtype=torch.float64), rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", [n for n in TRAJECTORIES if n != "orbit"])
+@pytest.mark.parametrize("bad", ["just_above", "huge", "zero", "negative", "nan", "inf", "string", "bool"])
+def test_amplitude_outside_the_preset_range_names_flag_preset_range_and_unit(name, bad):
+    limit = AMPLITUDE_LIMITS[name]
+    value = {"just_above": limit * (1 + 1e-9), "huge": 1e30, "zero": 0.0, "negative": -limit * 1.01,
+             "nan": math.nan, "inf": math.inf, "string": "0.5", "bool": True}[bad]
+    if name != "arc" and bad == "negative":
+        value = -0.1  # arc accepts negative angles (to the left); the others accept none
+    unit = "radians" if name == "arc" else "scene depths"
+    with pytest.raises(ValueError) as info:
+        check_amplitude(name, value, "--amplitude")
+    msg = str(info.value)
+    assert msg.startswith("--amplitude ") and f" for {name} must be in " in msg and unit in msg, msg
+    assert ("2π ≈ 6.283" if name == "arc" else f"(0, {limit:g}]") in msg, msg
+    assert f"default {DEFAULT_AMPLITUDES[name]:g}" in msg and "\n" not in msg
+    with pytest.raises(ValueError, match=f"^amplitude .* for {name} must be in"):  # the library's own name
+        make_trajectory(name, 5, K, W, H, amplitude=value)
+
+
+def test_huge_amplitudes_no_longer_surface_as_geometry_errors():
+    """The messages users saw before: non-finite means (forward) and a parallel up vector (spiral)."""
+    for name in ("forward", "spiral", "backward", "pan-left"):
+        with pytest.raises(ValueError, match="--amplitude 1e\\+30 for") as info:
+            check_amplitude(name, 1e30, "--amplitude")
+        assert "up" not in str(info.value).split(";")[0] and "non-finite" not in str(info.value)
+
+
+def test_arc_in_degrees_by_mistake_is_converted_in_the_message():
+    with pytest.raises(ValueError, match="30° would be 0.524 rad"):
+        check_amplitude("arc", 30, "--amplitude")
+
+
+def test_orbit_amplitude_explains_itself_without_api_jargon():
+    assert check_amplitude("orbit", None) is None
+    with pytest.raises(ValueError) as info:
+        check_amplitude("orbit", 1.0, "--amplitude")
+    msg = str(info.value)
+    assert msg.startswith("--amplitude does not apply to orbit") and "360°" in msg and "leave --amplitude out" in msg
+    assert "None" not in msg
+    with pytest.raises(ValueError, match="unknown|must be one of"):
+        check_amplitude("loop", 1.0)
+
+
+def test_amplitude_help_lists_every_range():
+    text = amplitude_help()
+    for name, limit in AMPLITUDE_LIMITS.items():
+        assert name in text and (f"(0, {limit:g}]" in text or name == "arc")
+    assert "2π" in text and "orbit takes none" in text

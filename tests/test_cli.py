@@ -329,3 +329,29 @@ def test_unknown_arguments_are_one_line_exit_2(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "--no-such-flag" in err[0]
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("trajectory, amplitude, needles", [
+    ("forward", "1e30", ["--amplitude 1e+30 for forward", "(0, 1] scene depths"]),
+    ("spiral", "1e30", ["--amplitude 1e+30 for spiral", "(0, 1] scene depths"]),
+    ("backward", "-1", ["--amplitude -1 for backward", "(0, 4] scene depths"]),
+    ("arc", "30", ["--amplitude 30 for arc", "radians", "30° would be 0.524 rad"]),
+    ("orbit", "1", ["--amplitude does not apply to orbit", "leave --amplitude out"]),
+])
+def test_amplitude_out_of_range_is_one_line_before_the_model_loads(tmp_path, capsys, monkeypatch, trajectory,
+                                                                     amplitude, needles):
+    import diff4splat.pipeline as pipeline
+
+    def no_model(*a, **k):
+        raise AssertionError("the model was loaded before --amplitude was checked")
+
+    monkeypatch.setattr(pipeline, "load_model", no_model)
+    out = tmp_path / "out"
+    code = main(["generate", str(EXAMPLE_IMAGE), "--trajectory", trajectory, "--amplitude", amplitude, "--quiet",
+                 "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and err[0].startswith("diff4splat: error: "), err
+    for needle in needles:
+        assert needle in err[0], (needle, err[0])
+    assert "pass None" not in err[0] and "non-finite" not in err[0] and "parallel" not in err[0]
+    assert not out.exists()

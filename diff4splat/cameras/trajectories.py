@@ -7,11 +7,13 @@ t_i = i/(T−1) (T = 1 → t = 0, a single identity camera).
 
 Presets (eye = camera centre in world coordinates, d = scene_depth, a = amplitude). The amplitude of
 ``arc`` is an ANGLE in radians; that of every translation preset and ``spiral`` is a LENGTH in units
-of ``scene_depth``; ``orbit`` takes none.
+of ``scene_depth``; ``orbit`` takes none. Each preset accepts the amplitudes of :data:`AMPLITUDE_LIMITS`
+(:func:`check_amplitude`): beyond them the path leaves what one photograph can show.
 
 - ``arc`` (the default path of ``diff4splat generate``): part of the orbit circle, the camera sweeps
   ``a`` radians in total around c, looking at c: eye_i = c + d·(sin θ_i, 0, −cos θ_i) with
-  θ_i = a·t_i. a > 0 moves the eye to the camera's right (+x), a < 0 to its left; 0 < |a| ≤ 2π.
+  θ_i = a·t_i. a > 0 moves the eye to the camera's right (+x), a < 0 to its left; 0 < |a| ≤ 2π
+  (a full turn: more would repeat it).
   Default a = 0.5 rad (≈ 29°), inside the 20–70° orbit sweeps of the synthetic training clips
   (``data_prep.synth_world``): a path a single photograph supports. With a = 2π·(T−1)/T it is
   exactly ``orbit`` of T frames.
@@ -21,10 +23,15 @@ of ``scene_depth``; ``orbit`` takes none.
   ``amplitude`` does not apply (the radius is fixed by the first camera and c). Most of a full turn
   shows what one photograph cannot know (the back of the scene); ``arc`` is the conservative path.
 - ``spiral``: an outward planar spiral of two turns in the first camera's image plane, looking at
-  c: eye(t) = a·d·t·(cos 4πt, sin 4πt, 0). Default a = 0.25 (final radius d/4).
-- ``forward`` / ``backward``: dolly along ±z, eye(t) = ±a·d·t·(0, 0, 1). Default a = 0.5.
+  c: eye(t) = a·d·t·(cos 4πt, sin 4πt, 0). Default a = 0.25 (final radius d/4); 0 < a ≤ 1 (at 1 the
+  last camera sees c from 45° off the first camera's axis).
+- ``forward`` / ``backward``: dolly along ±z, eye(t) = ±a·d·t·(0, 0, 1). Default a = 0.5. Forward
+  0 < a ≤ 1: at 1 the camera reaches c, further it would pass through the scene. Backward 0 < a ≤ 4: at 4
+  the photograph (about d away) spans a fifth of the frame, the rest is the blurred backdrop.
 - ``up`` / ``down``: pedestal along ∓y (y points down), eye(t) = ∓a·d·t·(0, 1, 0). Default a = 0.25.
 - ``pan-left`` / ``pan-right``: truck along ∓x, eye(t) = ∓a·d·t·(1, 0, 0). Default a = 0.25.
+  ``up``/``down``/``pan-*``: 0 < a ≤ 1; a shift of one scene depth takes the photograph (nearly) out of
+  a 50° view (the shipped models' field of view), leaving only the blurred backdrop.
 
 The translation presets keep the orientation of the first camera (R = I, looking along +z);
 ``arc``, ``orbit`` and ``spiral`` use :func:`look_at` towards c with "up" = −y of the first camera.
@@ -32,6 +39,7 @@ The translation presets keep the orientation of the first camera (R = I, looking
 from __future__ import annotations
 
 import math
+from numbers import Real
 
 import torch
 from torch import Tensor
@@ -39,7 +47,8 @@ from torch import Tensor
 from ..checks import check_positive_int
 from .path import CameraPath
 
-__all__ = ["TRAJECTORIES", "DEFAULT_TRAJECTORY", "DEFAULT_AMPLITUDES", "look_at", "make_trajectory"]
+__all__ = ["TRAJECTORIES", "DEFAULT_TRAJECTORY", "DEFAULT_AMPLITUDES", "AMPLITUDE_LIMITS", "check_amplitude",
+           "amplitude_help", "look_at", "make_trajectory"]
 
 TRAJECTORIES: tuple[str, ...] = ("arc", "orbit", "spiral", "forward", "backward", "up", "down", "pan-left", "pan-right")
 """Names accepted by :func:`make_trajectory`."""
@@ -61,6 +70,28 @@ DEFAULT_AMPLITUDES: dict[str, float] = {
 """Default ``amplitude`` per preset: radians for ``arc``, units of ``scene_depth`` for the others
 (``orbit`` takes none)."""
 
+AMPLITUDE_LIMITS: dict[str, float] = {
+    "arc": 2.0 * math.pi,
+    "spiral": 1.0,
+    "forward": 1.0,
+    "backward": 4.0,
+    "up": 1.0,
+    "down": 1.0,
+    "pan-left": 1.0,
+    "pan-right": 1.0,
+}
+"""Largest ``amplitude`` per preset (``orbit`` takes none): ``arc`` accepts 0 < |a| ≤ 2π radians (negative
+sweeps left), every other preset 0 < a ≤ limit, in units of ``scene_depth``. The module docstring says why."""
+
+_LIMIT_REASONS = {
+    "arc": "a full turn; more would repeat it",
+    "spiral": "at 1 the last camera sees the scene centre from 45° off the first camera's axis",
+    "forward": "at 1 the camera reaches the scene centre; further it would pass through the scene",
+    "backward": "at 4 the photograph spans about a fifth of the frame",
+    **dict.fromkeys(("up", "down", "pan-left", "pan-right"),
+                    "at 1 the photograph has (nearly) left the frame of a 50° camera"),
+}
+
 _DIRECTIONS = {
     "forward": (0.0, 0.0, 1.0),
     "backward": (0.0, 0.0, -1.0),
@@ -69,6 +100,61 @@ _DIRECTIONS = {
     "pan-left": (-1.0, 0.0, 0.0),
     "pan-right": (1.0, 0.0, 0.0),
 }
+
+
+def check_amplitude(trajectory: str, amplitude: object, name: str = "amplitude") -> float | None:
+    """The amplitude ``trajectory`` will use: ``amplitude`` checked against the preset's range, or its default.
+
+    Called by :func:`make_trajectory` and, before any work, by the command line (``name="--amplitude"``).
+
+    Args:
+        trajectory: one of :data:`TRAJECTORIES`.
+        amplitude: the requested amplitude (radians for ``arc``, scene depths otherwise), or None for the
+            preset's default (:data:`DEFAULT_AMPLITUDES`).
+        name: the parameter's name in messages, as the caller's user knows it.
+
+    Returns:
+        The amplitude as a float; None for ``orbit`` (which takes none).
+
+    Raises:
+        ValueError: naming ``trajectory`` (unknown preset), or ``name``, the preset, the accepted range and unit
+            (:data:`AMPLITUDE_LIMITS`) when ``amplitude`` is not a finite number in that range, or is given for
+            ``orbit``.
+    """
+    if trajectory not in TRAJECTORIES:
+        raise ValueError(f"trajectory must be one of {TRAJECTORIES}, got {trajectory!r}")
+    if trajectory == "orbit":
+        if amplitude is not None:
+            raise ValueError(f"{name} does not apply to orbit: it is the full 360° circle around the scene centre, "
+                             f"whose radius is the scene depth; leave {name} out (for part of the circle use arc, "
+                             f"whose amplitude is the sweep angle in radians)")
+        return None
+    if amplitude is None:
+        return DEFAULT_AMPLITUDES[trajectory]
+    limit = AMPLITUDE_LIMITS[trajectory]
+    number = isinstance(amplitude, Real) and not isinstance(amplitude, bool)
+    value = float(amplitude) if number else math.nan
+    bad = not math.isfinite(value) or value == 0 or abs(value) > limit or (value < 0 and trajectory != "arc")
+    if not bad:
+        return value
+    shown = f"{value:g}" if number else repr(amplitude)
+    if trajectory == "arc":
+        allowed, extra = f"[-2π, 0) or (0, 2π] radians, 2π ≈ {limit:.4g}", "; negative sweeps left"
+        if 2 * math.pi < abs(value) <= 360:
+            extra += f"; {shown}° would be {math.radians(value):.3g} rad"
+    else:
+        allowed, extra = f"(0, {limit:g}] scene depths", ""
+    raise ValueError(f"{name} {shown} for {trajectory} must be in {allowed} ({_LIMIT_REASONS[trajectory]}); "
+                     f"default {DEFAULT_AMPLITUDES[trajectory]:g}{extra}")
+
+
+def amplitude_help() -> str:
+    """One line describing every preset's amplitude range and default (the ``--amplitude`` help)."""
+    arc = (f"arc: the sweep angle in radians, 0 < |A| ≤ 2π, negative sweeps left (default "
+           f"{DEFAULT_AMPLITUDES['arc']:g})")
+    others = ", ".join(f"{n} (0, {AMPLITUDE_LIMITS[n]:g}] (default {DEFAULT_AMPLITUDES[n]:g})"
+                       for n in AMPLITUDE_LIMITS if n != "arc")
+    return f"{arc}; in scene depths: {others}; orbit takes none"
 
 
 def look_at(
@@ -141,7 +227,8 @@ def make_trajectory(
         amplitude: motion size; ``None`` → the preset default (:data:`DEFAULT_AMPLITUDES`). For
             ``arc`` an angle in RADIANS, the total sweep around c: 0 < |amplitude| ≤ 2π, positive to
             the camera's right, negative to its left. For every other preset a length in units of
-            ``scene_depth``, > 0. Not accepted for ``orbit``.
+            ``scene_depth`` in (0, :data:`AMPLITUDE_LIMITS`]. Not accepted for ``orbit``
+            (:func:`check_amplitude`).
 
     Returns:
         :class:`CameraPath` with viewmats (T, 4, 4) (viewmats[0] = I exactly), Ks (T, 3, 3),
@@ -149,31 +236,21 @@ def make_trajectory(
 
     Raises:
         ValueError: naming ``name`` (unknown preset), ``num_frames`` (< 1 or not an int),
-            ``scene_depth`` (≤ 0 or not finite), ``amplitude`` (not finite, ≤ 0, for ``arc`` 0 or
-            beyond ±2π, or given for ``orbit``), ``K`` (not (3, 3)), or a field of :meth:`CameraPath.validate`.
+            ``scene_depth`` (≤ 0 or not finite), ``amplitude`` (outside the preset's range or given for
+            ``orbit``, :func:`check_amplitude`), ``K`` (not (3, 3)), or a field of :meth:`CameraPath.validate`.
     """
     if name not in TRAJECTORIES:
         raise ValueError(f"name must be one of {TRAJECTORIES}, got {name!r}")
     num_frames = check_positive_int("num_frames", num_frames)
     if not isinstance(scene_depth, (int, float)) or not math.isfinite(scene_depth) or scene_depth <= 0:
         raise ValueError(f"scene_depth must be a finite number > 0 metres, got {scene_depth!r}")
-    if name == "orbit" and amplitude is not None:
-        raise ValueError("amplitude does not apply to 'orbit' (its radius is scene_depth); pass None")
-    if amplitude is None:
-        amplitude = DEFAULT_AMPLITUDES.get(name, 0.0)
-    elif not isinstance(amplitude, (int, float)) or not math.isfinite(amplitude):
-        raise ValueError(f"amplitude must be a finite number, got {amplitude!r}")
-    elif name == "arc" and not 0 < abs(amplitude) <= 2.0 * math.pi:
-        raise ValueError(f"amplitude of 'arc' is the sweep angle in radians, 0 < |amplitude| ≤ 2π "
-                         f"(e.g. 0.5 ≈ 29°), got {amplitude!r}")
-    elif name != "arc" and amplitude <= 0:
-        raise ValueError(f"amplitude must be > 0 (units of scene_depth), got {amplitude!r}")
+    amplitude = check_amplitude(name, amplitude)
     K = K if isinstance(K, Tensor) else torch.as_tensor(K, device="cpu")  # a nested list is a CPU constant
     if tuple(K.shape) != (3, 3):
         raise ValueError(f"K must have shape (3, 3), got {tuple(K.shape)}")
     dtype = K.dtype if K.is_floating_point() else torch.float32
 
-    T, d, a = num_frames, float(scene_depth), float(amplitude)
+    T, d, a = num_frames, float(scene_depth), float(amplitude or 0.0)
     f64 = torch.float64
     dev = K.device
     t = torch.arange(T, dtype=f64, device=dev) / max(T - 1, 1)
