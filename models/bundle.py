@@ -116,35 +116,59 @@ class Diff4SplatConfig:
         return dataclasses.asdict(self)
 
 
+_KINDS = {str: "string", list: "list", int: "number", float: "number", bool: "boolean"}
+
+
 def config_names() -> list[str]:
     """Names of the shipped model configs, sorted (``["paper", "small", "tiny"]``)."""
     return sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
 
 
 def config_path(name_or_path: str | os.PathLike) -> Path:
-    """The YAML file of a model config: ``models/configs/<name>.yaml`` for a name, else the given .yaml path.
+    """The file of a model config: ``models/configs/<name>.yaml`` for a shipped name, else the given file.
+
+    A shipped name wins over a file of the same name in the current directory.
 
     Raises:
-        FileNotFoundError: no such config name or file (the message lists the known names).
+        FileNotFoundError: neither a shipped config name nor an existing file (the message lists the names).
+        IsADirectoryError: a folder (a model folder goes to ``--checkpoint``/``from_pretrained``).
     """
-    path = Path(name_or_path)
-    if path.suffix not in (".yaml", ".yml"):
-        path = CONFIG_DIR / f"{name_or_path}.yaml"
+    text = os.fspath(name_or_path)
+    if text in config_names():
+        return CONFIG_DIR / f"{text}.yaml"
+    path = Path(text)
+    known = ", ".join(config_names())
+    if path.is_dir():
+        raise IsADirectoryError(f"config: {path} is a folder, not a model config file (YAML or JSON); a model "
+                                f"folder is a checkpoint, not a config")
     if not path.is_file():
-        raise FileNotFoundError(f"config: {str(name_or_path)!r} not found (known: {', '.join(config_names())})")
+        if path.suffix or os.sep in text:
+            raise FileNotFoundError(f"config: no file {text!r} (or give a shipped config: {known})")
+        raise FileNotFoundError(f"config: {text!r} not found (known: {known}) and no file of that name")
     return path
 
 
 def load_config(name_or_path: str | os.PathLike) -> Diff4SplatConfig:
-    """Load a model config by name (``models/configs/<name>.yaml``, shipped with the package) or a YAML path,
-    over the dataclass defaults.
+    """Load a model config by name (``models/configs/<name>.yaml``, shipped with the package) or from a YAML or
+    JSON file (a mapping of :class:`Diff4SplatConfig` fields, e.g. a checkpoint's ``config.json``), over the
+    dataclass defaults; an empty file is the defaults.
 
     Raises:
-        FileNotFoundError: no such config name or file (the message lists the known names).
-        ValueError: unknown fields or inconsistent networks.
+        FileNotFoundError, IsADirectoryError: no such config (:func:`config_path`).
+        ValueError: naming the file when it is not a model config: not UTF-8 text, not valid YAML/JSON, not a
+            mapping of fields; unknown fields or inconsistent networks.
     """
     path = config_path(name_or_path)
-    return config_from_dict(Diff4SplatConfig, read_yaml(path, "config"), str(path))
+    fmt = "JSON" if path.suffix.lower() == ".json" else "YAML"  # not YAML for JSON: YAML 1.1 reads 1e-06 as text
+    data = (read_json if fmt == "JSON" else read_yaml)(path, "config", expect=None)
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        fields = ", ".join(f.name for f in dataclasses.fields(Diff4SplatConfig)[:4])
+        raise ValueError(f"config: {path} is not a model config: it holds a {fmt} "
+                         f"{_KINDS.get(type(data), type(data).__name__)}, not a mapping of fields; a model config is a "
+                         f"YAML or JSON mapping of fields such as {fields} (see {CONFIG_DIR / 'tiny.yaml'})")
+    return config_from_dict(Diff4SplatConfig, data, str(path))
 
 
 class Diff4SplatModel(nn.Module):

@@ -1,9 +1,12 @@
 import dataclasses
 import inspect
+import json
 
 import pytest
 import torch
+from helpers import EXAMPLE_IMAGE
 
+from diff4splat.cli import main
 from diff4splat.pipeline import Diff4SplatPipeline, load_model
 from models.bundle import (
     CONFIG_DIR,
@@ -75,6 +78,47 @@ def test_unknown_config_name_raises():
     with pytest.raises(FileNotFoundError, match="nonexistent"):
         load_config("nonexistent")
     assert (CONFIG_DIR / "tiny.yaml").is_file()
+
+
+def test_missing_config_says_whether_a_name_or_a_file_was_missing(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"'smal' not found \(known: .*tiny\) and no file of that name"):
+        load_config("smal")
+    with pytest.raises(FileNotFoundError, match="no file '.*gone.yaml'"):
+        load_config(tmp_path / "gone.yaml")
+    with pytest.raises(IsADirectoryError, match=f"{tmp_path} is a folder, not a model config file"):
+        load_config(tmp_path)
+
+
+@pytest.mark.parametrize("content, why", [
+    ("root:x:0:0:root:/root:/bin/bash\ndaemon:x:1:1:daemon:/usr/sbin:/usr/sbin/nologin\n",
+     "is not a model config: it holds a YAML string"),  # --config /etc/passwd
+    ("- 1\n- 2\n", "is not a model config: it holds a YAML list"),
+    ("height: [unclosed\n", "is not valid YAML"),
+    (b"\x7fELF\x02\x01\x01\x00\xd0", "is not UTF-8 text"),
+])
+def test_an_existing_file_that_is_no_model_config_is_named_with_what_is_wrong(tmp_path, content, why):
+    path = tmp_path / "passwd"  # no .yaml suffix: an existing file is read whatever its name
+    path.write_bytes(content if isinstance(content, bytes) else content.encode())
+    with pytest.raises(ValueError, match=f"config: {path} {why}"):
+        load_config(path)
+
+
+def test_a_json_config_loads_like_its_yaml(tmp_path):
+    """A checkpoint's config.json is a model config; read as JSON (YAML 1.1 would read 1e-06 as a string)."""
+    config = load_config("small")
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps(config.to_dict()))
+    assert "e-" in path.read_text()  # a float such as 1e-06 that YAML 1.1 would read as text
+    assert load_config(path) == config
+
+
+def test_cli_config_that_is_no_model_config_is_one_line(tmp_path, capsys):
+    path = tmp_path / "passwd"
+    path.write_text("root:x:0:0:root:/root:/bin/bash\n")
+    code = main(["generate", str(EXAMPLE_IMAGE), "--config", str(path), "--quiet", "--out", str(tmp_path / "o")])
+    err = [line for line in capsys.readouterr().err.splitlines() if not line.startswith("diff4splat: warning")]
+    assert code == 2 and len(err) == 1 and f"{path} is not a model config" in err[0], err
+    assert not (tmp_path / "o").exists()
 
 
 @pytest.mark.slow
