@@ -17,12 +17,14 @@ import torch
 
 from data_prep.format import SceneWriter, load_scene, read_rgb
 from data_prep.synth import generate_scene
+from data_prep.validate import validate_scene
 from diff4splat.cameras import CameraPath
 from diff4splat.cli import main
 from diff4splat.gaussians import Gaussians
 from diff4splat.io import load_ply, save_ply
 from diff4splat.io.outdir import read_marker
 from diff4splat.io.output import load_deformation
+from diff4splat.limits import LimitError
 from diff4splat.quaternions import quat_multiply, quat_normalize, rotmat_to_quat
 from models.hexplane import HexPlaneConfig, load_field
 from training import fit_cli
@@ -273,9 +275,15 @@ def test_resume_errors(dynamic_scene, tmp_path, monkeypatch, capsys):
     for other in (dict(holdout_camera=1, seed=SEED + 1), dict(holdout_camera=None, seed=SEED)):
         with pytest.raises(ValueError, match="checkpoint .* is of another fit"):
             run_fit(dynamic_scene, tmp_path / "fit", CONFIG, resume=True, **other)
-    with pytest.raises(ValueError, match="of another fit"):
-        run_fit(dynamic_scene, tmp_path / "fit", dataclasses.replace(CONFIG, iterations=12), holdout_camera=1,
-                seed=SEED, resume=True)
+    with pytest.raises(ValueError, match="of another fit") as e:
+        run_fit(dynamic_scene, tmp_path / "fit", dataclasses.replace(CONFIG, iterations=12, sh_degree=2),
+                holdout_camera=1, seed=SEED, resume=True)
+    # issue 28: only the settings that differ, not both configs (a 2,305-character line before)
+    assert e.value.args[0].endswith("of another fit: iterations 10 in the checkpoint vs 12 now; sh_degree 1 in the "
+                                    "checkpoint vs 2 now (resume with the checkpoint's settings, or fit into a new "
+                                    "--out)")
+    with pytest.raises(ValueError, match=r"of another fit: seed 3 in the checkpoint vs 4 now \(resume"):
+        run_fit(dynamic_scene, tmp_path / "fit", CONFIG, holdout_camera=1, seed=SEED + 1, resume=True)
     capsys.readouterr()
     assert main(["fit", str(dynamic_scene), "--out", str(tmp_path / "other"), "--resume", "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -296,8 +304,74 @@ def test_extreme_scene_scales_stay_finite(dynamic_scene, tmp_path, scale):
         assert np.isfinite(v).all(), k
 
 
+def test_run_differences_names_each_differing_setting_once():
+    run = {"scene": "/s", "seed": 3, "config": {"iterations": 300, "densify": {"max_gaussians": 5, "start": 2},
+                                               "field": {"resolution": (4, 4, 4, 3)}}}
+    assert fit_cli.run_differences(run, json.loads(json.dumps(run))) == []  # tuples stored as lists are equal
+    other = {"scene": "/t", "seed": 3, "config": {"iterations": 500, "densify": {"max_gaussians": 6, "start": 2},
+                                                 "field": {"resolution": [4, 4, 4, 3]}, "new": 1}}
+    assert fit_cli.run_differences(run, other) == [
+        "scene /s in the checkpoint vs /t now", "iterations 300 in the checkpoint vs 500 now",
+        "densify.max_gaussians 5 in the checkpoint vs 6 now", "new (absent) in the checkpoint vs 1 now"]
+    assert fit_cli.run_differences(None, {"seed": 1}) == ["seed (absent) in the checkpoint vs 1 now"]
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--iterations", "0"], "--iterations must be a positive int, got 0"),
+    (["--checkpoint-every", "-1"], "--checkpoint-every must be a positive int, got -1"),  # issue 28: accepted before
+    (["--checkpoint-every", "0"], "--checkpoint-every must be a positive int, got 0"),
+    (["--eval-every", "0"], "--eval-every must be a positive int, got 0"),
+    (["--iterations", "1000000000000"], "--iterations 1000000000000 exceeds the limit of 100000 optimisation steps "
+                                        "(set DIFF4SPLAT_MAX_ITERATIONS to raise it)"),  # ran until killed before
+    (["--max-gaussians", "1000000000"], "--max-gaussians 1000000000 exceeds the limit of 10000000 Gaussians "
+                                        "(set DIFF4SPLAT_MAX_GAUSSIANS"),
+    (["--init-points", "1000000000"], "--init-points 1000000000 exceeds the limit of 10000000 Gaussians"),
+    (["--seed", str(10**30)], "--seed must be an integer in"),
+    (["--fps", "100000"], "--fps must be at most 1000 frames per second"),
+])
+def test_bad_arguments_are_refused_before_the_scene_is_read(dynamic_scene, tmp_path, capsys, monkeypatch, argv,
+                                                            needle):
+    monkeypatch.setattr(fit_cli, "load_scene", None)  # reading the scene would fail: the refusal comes first
+    assert main(["fit", str(dynamic_scene), "--out", str(tmp_path / "out"), "--quiet", *argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"diff4splat: error: {needle}"] or (len(err) == 1 and needle in err[0]), err
+    assert not (tmp_path / "out").exists() and not (tmp_path / "out.checkpoints").exists()
+
+
+def test_fit_config_holds_iterations_and_gaussians_to_their_limits(monkeypatch):
+    with pytest.raises(LimitError, match="iterations 1000000000000 exceeds the limit of 100000"):
+        FitConfig(iterations=10**12)
+    with pytest.raises(LimitError, match="densify.max_gaussians 100000000 exceeds the limit of 10000000 Gaussians"):
+        FitConfig(densify=DensifyConfig(max_gaussians=10**8))
+    with pytest.raises(ValueError, match="checkpoint_every must be a positive int .*got -1"):
+        run_fit("no-scene", "no-out", FitConfig(iterations=10), checkpoint_every=-1)  # before the scene is read
+    monkeypatch.setenv("DIFF4SPLAT_MAX_GAUSSIANS", "1000")
+    with pytest.raises(LimitError, match="init_points 15000 exceeds the limit of 1000 Gaussians"):
+        FitConfig()
+
+
+def test_out_inside_an_input_folder_is_refused(dynamic_scene, tmp_path, capsys):
+    """issue 28: ``fit SCENE --out SCENE/fitout`` wrote into the scene (then ``data_prep validate SCENE`` failed)."""
+    link = tmp_path / "link"
+    link.symlink_to(dynamic_scene, target_is_directory=True)
+    before = sorted(p.relative_to(dynamic_scene) for p in dynamic_scene.rglob("*"))
+    for out in (dynamic_scene / "fitout", link / "cam00" / "fitout"):
+        assert main(["fit", str(dynamic_scene), "--out", str(out), "--quiet"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err == [f"diff4splat: error: --out {out} is inside the scene folder {dynamic_scene}: the fit would "
+                       "write into its own input; choose a folder outside it"], err
+        with pytest.raises(ValueError, match="is inside the scene folder"):
+            run_fit(dynamic_scene, out, CONFIG, checkpoint_every=0)
+    init = tmp_path / "gen"
+    init.mkdir()
+    with pytest.raises(ValueError, match=f"--out {init / 'fit'} is inside the --init folder {init}"):
+        run_fit(dynamic_scene, init / "fit", CONFIG, init=init, checkpoint_every=0)
+    assert sorted(p.relative_to(dynamic_scene) for p in dynamic_scene.rglob("*")) == before
+    assert validate_scene(dynamic_scene) == []
+
+
 def test_cli_errors_are_one_line(dynamic_scene, tmp_path, capsys):
-    for argv, needle in (([str(dynamic_scene), "--iterations", "0"], "--iterations must be ≥ 1"),
+    for argv, needle in (([str(dynamic_scene), "--iterations", "0"], "--iterations must be a positive int"),
                          ([str(dynamic_scene), "--holdout-camera", "5"], "--holdout-camera: 5"),
                          ([str(tmp_path / "missing")], "missing")):
         capsys.readouterr()
@@ -384,7 +458,7 @@ def test_fit_cli_on_each_device(dynamic_scene, tmp_path, device, capsys):
     (the same draws; the renderers differ slightly, so a loose PSNR tolerance)."""
     out = tmp_path / "fit"
     argv = ["fit", str(dynamic_scene), "--out", str(out), "--iterations", "6", "--coarse-iterations", "2",
-            "--init-points", "120", "--holdout-camera", "1", "--checkpoint-every", "0", "--seed", str(SEED),
+            "--init-points", "120", "--holdout-camera", "1", "--checkpoint-every", "100", "--seed", str(SEED),
             "--quiet"]
     assert main([*argv, "--device", str(device)]) == 0
     assert capsys.readouterr().out.strip().endswith(f"on {device}")

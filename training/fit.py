@@ -41,6 +41,7 @@ from tqdm import tqdm
 from diff4splat.constants import ALPHA_MIN
 from diff4splat.devices import synchronize
 from diff4splat.gaussians import Gaussians, rgb_to_sh0
+from diff4splat.limits import check_limit
 from diff4splat.render import rasterize
 from diff4splat.scene import DynamicGaussians, compose_deformation
 from models.hexplane import HexPlaneConfig, HexPlaneField
@@ -132,6 +133,11 @@ class FitConfig:
             white), over a fixed black background only Gaussians inside the scene can produce its colour, and a
             new view sees black wherever those Gaussians do not cover it.
         lr: learning rates.
+
+    Raises:
+        ValueError: a field out of range (named). :class:`diff4splat.limits.LimitError` (a ValueError):
+            ``iterations`` above the ``iterations`` limit, or ``init_points``, ``random_points`` or
+            ``densify.max_gaussians`` above the ``gaussians`` limit.
     """
 
     iterations: int = 1800
@@ -162,6 +168,10 @@ class FitConfig:
                              f"{self.iterations}, {self.sh_interval}, {self.init_points}, {self.random_points}")
         if self.sh_degree > 3:
             raise ValueError(f"sh_degree must be in 0 … 3, got {self.sh_degree}")
+        check_limit("iterations", self.iterations, "iterations")
+        for name, value in (("init_points", self.init_points), ("random_points", self.random_points),
+                            ("densify.max_gaussians", self.densify.max_gaussians)):
+            check_limit("gaussians", value, name)
         for name in ("ssim_weight", "depth_weight"):
             v = getattr(self, name)
             if v is None and name == "depth_weight":

@@ -5,8 +5,11 @@ Registered through the ``diff4splat.commands`` entry point (like ``evaluate``), 
 marker kind "fit"), rendered along the scene's reference camera in the scene's world frame, plus
 ``field.safetensors`` (the HexPlane field, :func:`models.hexplane.save_field`; absent for a static fit) and
 ``metrics.json``. Checkpoints go to ``DIR.checkpoints/`` (:mod:`training.checkpoint`): every
-``--checkpoint-every`` steps and on SIGTERM/SIGINT; ``--resume`` continues from the newest one, and the
-folder is removed when the output is written.
+``--checkpoint-every`` steps and on SIGTERM/SIGINT; ``--resume`` continues from the newest one (a checkpoint of
+another fit is refused, naming the settings that differ), and the folder is removed when the output is written.
+``--out`` may not lie inside the scene folder or the ``--init`` folder (the fit would write into its own input).
+Every argument is checked, against the limits too (``iterations``, ``gaussians``; :mod:`diff4splat.limits`),
+before the scene is read.
 
 ``--device`` (default ``auto``: CUDA when torch sees a GPU, else the CPU) is where the Gaussians, the field, the
 views and the background live. Checkpoints hold CPU tensors only, so a fit checkpointed on one device resumes on
@@ -28,11 +31,14 @@ from pathlib import Path
 import torch
 
 from data_prep.format import load_scene
+from diff4splat.checks import check_positive_int
 from diff4splat.devices import AUTO, DEVICE_HELP, resolve_device
 from diff4splat.gaussians import Gaussians
-from diff4splat.io import load_ply
 from diff4splat.io.outdir import check_output_dir
-from diff4splat.io.output import load_deformation, write_scene_folder
+from diff4splat.io.output import DEFORMATION_ARRAYS, load_output_scene, write_scene_folder
+from diff4splat.io.video import check_fps
+from diff4splat.limits import check_limit
+from diff4splat.pipeline import check_seed
 from diff4splat.quaternions import quat_conjugate, quat_multiply, rotmat_to_quat
 from diff4splat.render.sequence import render_path
 from diff4splat.scene import DynamicGaussians
@@ -63,7 +69,11 @@ from training.fit_data import (
     split_cameras,
 )
 
-__all__ = ["register", "run", "run_fit", "FitInterrupted", "place_generate_output"]
+__all__ = ["register", "run", "run_fit", "FitInterrupted", "place_generate_output", "run_differences",
+           "check_out_outside_inputs"]
+
+MAX_LISTED_DIFFERENCES = 6
+"""Settings named in the message of a refused ``--resume`` (the rest are counted)."""
 
 
 class FitInterrupted(Exception):
@@ -86,12 +96,14 @@ def place_generate_output(init_dir: Path, scene, ref_camera: str) -> DynamicGaus
 
     Raises:
         FileNotFoundError: ``init_dir`` has no scene.ply.
+        ValueError: a malformed, corrupt or inconsistent file of ``init_dir``, named
+            (:func:`diff4splat.io.output.load_output_scene`).
     """
     if not (init_dir / "scene.ply").is_file():
         raise FileNotFoundError(f"--init: {init_dir / 'scene.ply'} does not exist (give a generate output folder)")
-    g = load_ply(init_dir / "scene.ply")
-    arrays = load_deformation(init_dir / "deformation.npz") if (init_dir / "deformation.npz").is_file() else {}
-    arrays = {k: torch.from_numpy(v) for k, v in arrays.items()}
+    loaded, _ = load_output_scene(init_dir)  # scene.ply, deformation.npz and meta.json checked as input
+    g = loaded.canonical
+    arrays = {k: getattr(loaded, k) for k in DEFORMATION_ARRAYS if getattr(loaded, k) is not None}
     scale = 1.0
     if scene.has_depth:
         depth = torch.from_numpy(scene.depth(ref_camera, 0))
@@ -125,13 +137,43 @@ def _cpu(obj):
     return obj
 
 
+def _plain(value):
+    """``value`` as JSON would store it (tuples as lists), so that equal settings compare equal."""
+    return json.loads(json.dumps(value))
+
+
+def run_differences(saved: dict | None, now: dict, prefix: str = "") -> list[str]:
+    """The settings in which a checkpoint's run (``saved``) and this run (``now``) differ, one phrase each:
+    ``"iterations 300 in the checkpoint vs 500 now"``. Nested dicts are walked with dotted names
+    (``densify.max_gaussians``); the fit config's fields are named without their ``config.`` prefix."""
+    saved, now = _plain(saved or {}), _plain(now)
+    out = []
+    for key in [*now, *(k for k in saved if k not in now)]:
+        a, b = saved.get(key, "(absent)"), now.get(key, "(absent)")
+        name = "" if (prefix, key) == ("", "config") else f"{prefix}{key}."
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += run_differences(a, b, name)
+        elif a != b:
+            out.append(f"{prefix}{key} {a} in the checkpoint vs {b} now")
+    return out
+
+
 def _state_from_checkpoint(folder: Path, config: FitConfig, dynamic: bool, run: dict,
                            device: torch.device) -> FitState:
     """The :class:`FitState` of checkpoint ``folder`` on ``device`` (whatever device wrote it: its tensors are
-    CPU tensors; Adam's ``load_state_dict`` moves the moments to their parameters' device)."""
+    CPU tensors; Adam's ``load_state_dict`` moves the moments to their parameters' device).
+
+    Raises:
+        ValueError: the checkpoint is of another fit (names the settings that differ, at most
+            :data:`MAX_LISTED_DIFFERENCES` of them).
+    """
     weights, saved, _ = load_checkpoint(folder)
-    if saved.get("run") != run:
-        raise ValueError(f"--resume: the checkpoint in {folder} is of another fit ({saved.get('run')}), not {run}")
+    differences = run_differences(saved.get("run"), run)
+    if differences:
+        more = len(differences) - MAX_LISTED_DIFFERENCES
+        listed = "; ".join(differences[:MAX_LISTED_DIFFERENCES]) + (f"; and {more} more" if more > 0 else "")
+        raise ValueError(f"--resume: the checkpoint in {folder} is of another fit: {listed} (resume with the "
+                         "checkpoint's settings, or fit into a new --out)")
     names = ("means", "scales", "quats", "opacities", "sh0", "shN")
     params = {k: torch.nn.Parameter(weights[k].to(device)) for k in names}
     extent = saved["extent"]
@@ -172,6 +214,21 @@ def _save(run_dir: Path, state: FitState, config: FitConfig, run: dict) -> None:
                     {"config": config_dict(config), "device": str(state.device)}, keep=1)
 
 
+def check_out_outside_inputs(out: str | Path, scene_dir: str | Path, init: str | Path | None = None) -> None:
+    """Refuse an output folder inside the scene folder or the ``init`` folder (symlinks followed): the fit would
+    add files to its own input (a scene folder then fails ``data_prep validate``). ``out`` equal to one of them
+    or an ancestor is :func:`diff4splat.io.outdir.check_output_dir`'s refusal.
+
+    Raises:
+        ValueError: ``out`` lies inside ``scene_dir`` or ``init``.
+    """
+    target = Path(out).resolve()
+    for what, folder in (("the scene folder", scene_dir), ("the --init folder", init)):
+        if folder is not None and target != Path(folder).resolve() and target.is_relative_to(Path(folder).resolve()):
+            raise ValueError(f"--out {out} is inside {what} {folder}: the fit would write into its own input; "
+                             "choose a folder outside it")
+
+
 def run_fit(scene_dir: Path, out: Path, config: FitConfig, *, holdout_camera: int | None = None, seed: int = 0,
             init: Path | None = None, resume: bool = False, eval_every: int = 250, checkpoint_every: int = 500,
             fps: int = 8, progress: bool = False, overwrite: bool = False,
@@ -179,18 +236,24 @@ def run_fit(scene_dir: Path, out: Path, config: FitConfig, *, holdout_camera: in
     """Fit ``scene_dir`` and write the output folder ``out`` (module docstring). Returns metrics.json's dict.
 
     Args:
+        checkpoint_every: steps between checkpoints, ≥ 1; 0: only on SIGTERM/SIGINT.
         device: where the fit runs (``"auto"``, ``"cpu"``, ``"cuda"``, a ``torch.device``;
             :func:`diff4splat.devices.resolve_device`), checked before any work; the CLI's default is ``auto``.
 
     Raises:
-        FileNotFoundError: the scene or ``init`` is missing. ValueError: bad arguments, a scene that cannot
-            be fitted (one camera that does not move and no depth), ``resume`` without a checkpoint, a
-            ``device`` this machine does not have.
+        FileNotFoundError: the scene or ``init`` is missing. ValueError: bad arguments (``checkpoint_every`` < 0,
+            ``eval_every`` < 1, an ``out`` inside the scene or ``init`` folder, …), a scene that cannot
+            be fitted (one camera that does not move and no depth), ``resume`` without a checkpoint or with one
+            of another fit, a ``device`` this machine does not have.
         FitInterrupted: SIGTERM/SIGINT (a checkpoint was written first).
     """
     t_start = time.perf_counter()
     device = resolve_device(device, "device")
+    check_positive_int("eval_every", eval_every)
+    if checkpoint_every != 0:
+        check_positive_int("checkpoint_every", checkpoint_every, "steps; 0: only on SIGTERM")
     scene = load_scene(scene_dir)
+    check_out_outside_inputs(out, scene_dir, init)
     check_output_dir(out, inputs=[scene_dir, init], overwrite=overwrite, kind="fit")
     torch.manual_seed(seed)
     train_names, holdout_names = split_cameras(scene, holdout_camera)
@@ -339,8 +402,8 @@ def register(subparsers) -> None:
     p.add_argument("--init", type=Path, default=None,
                    help="initialise from a generate output folder (made from the reference camera's frame 0)")
     p.add_argument("--eval-every", type=int, default=250, help="held-out evaluation interval, steps (default 250)")
-    p.add_argument("--checkpoint-every", type=int, default=500, help="checkpoint interval, steps (0: only on "
-                   "SIGTERM; default 500)")
+    p.add_argument("--checkpoint-every", type=int, default=500, help="checkpoint interval, steps, ≥ 1 (one "
+                   "larger than --iterations: only on SIGTERM; default 500)")
     p.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in OUT.checkpoints")
     p.add_argument("--fps", type=int, default=8, help="video frame rate (default 8)")
     p.add_argument("--device", default=AUTO, help=DEVICE_HELP + "; where the Gaussians, the field and the views "
@@ -354,12 +417,20 @@ def run(args) -> int:
     """The ``fit`` command: one summary line; 143 after SIGTERM/SIGINT (checkpoint written).
 
     Raises:
-        ValueError: a bad argument, ``--device`` naming a device this machine does not have (checked first).
+        ValueError: a bad argument (named by its flag), one above a limit (:class:`diff4splat.limits.LimitError`:
+            ``--iterations``, ``--max-gaussians``, ``--init-points``), ``--device`` naming a device this machine
+            does not have (checked first), an ``--out`` inside the scene or ``--init`` folder.
     """
     device = resolve_device(args.device, "--device")  # before any work
-    for name in ("iterations", "eval_every", "fps", "max_gaussians", "init_points"):
-        if getattr(args, name) < 1:
-            raise ValueError(f"--{name.replace('_', '-')} must be ≥ 1, got {getattr(args, name)}")
+    flag = lambda name: "--" + name.replace("_", "-")  # noqa: E731
+    for name in ("iterations", "eval_every", "checkpoint_every", "fps", "max_gaussians", "init_points"):
+        check_positive_int(flag(name), getattr(args, name))
+    check_limit("iterations", args.iterations, "--iterations")
+    for name in ("max_gaussians", "init_points"):
+        check_limit("gaussians", getattr(args, name), flag(name))
+    check_fps(args.fps, "--fps")
+    check_seed(args.seed, "--seed")
+    check_out_outside_inputs(args.out, args.scene, args.init)
     d = FitConfig()
     config = FitConfig(iterations=args.iterations, coarse_iterations=args.coarse_iterations,
                        sh_degree=args.sh_degree, init_points=args.init_points, depth_weight=args.depth_weight,
