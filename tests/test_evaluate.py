@@ -312,3 +312,61 @@ def test_evaluate_on_a_missing_device_is_one_line_exit_2(tmp_path, capsys):
     code = main(["evaluate", "--random", "--config", "tiny", "--data", str(tmp_path / "none"), "--device", "cuda"])
     err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert code == 2 and len(err) == 1 and err[0].startswith("diff4splat: error: --device: cuda is not available")
+
+
+# --------------------------------------------------------------------------- issue 28: refused before evaluating
+
+def _refusals(tmp_path):
+    """(extra arguments, expected message) of runs ``evaluate`` must refuse before any model loads."""
+    text = tmp_path / "text.png"
+    text.write_text("not an image")
+    taken = tmp_path / "taken.csv"
+    taken.write_text("model,psnr_input\nx,1\n")
+    (tmp_path / "ok_clips.csv").write_text("model,clip\nx,y\n")
+    (tmp_path / "ok_sampling.csv").write_text("model,nfe\nx,1\n")
+    return [
+        (["--csv", tmp_path / "nodir" / "x.csv"],
+         f"--csv: {tmp_path / 'nodir' / 'x.csv'}: folder {tmp_path / 'nodir'} does not exist"),
+        (["--csv", tmp_path], f"--csv: {tmp_path} is a folder, not a file"),
+        (["--csv", taken], f"--csv: {taken} has other columns (2) than this evaluation writes"),
+        (["--csv", tmp_path / "ok.csv", "--per-clip"], f"--csv: {tmp_path / 'ok_clips.csv'} has other columns"),
+        (["--csv", tmp_path / "ok.csv", "--sampling"], f"--csv: {tmp_path / 'ok_sampling.csv'} has other columns"),
+        (["--photo", text], f"--photo: could not decode {text} as an image"),
+        (["--photo", tmp_path / "missing.png"], f"--photo: {tmp_path / 'missing.png'} does not exist"),
+        (["--limit", "0"], "--limit must be a positive int, got 0"),
+        (["--sampling", "--sampling-clips", "0"], "--sampling-clips must be a positive int, got 0"),
+        (["--steps", "1000000"], "--steps 1000000 exceeds the limit of 1000 sampler steps"),
+        (["--frames", "0"], "--frames must be a positive int, got 0"),
+        (["--photo", text, "--resolution", "100000"], "--resolution 100000 exceeds the limit of 2048"),
+    ]
+
+
+def test_bad_arguments_and_outputs_are_refused_before_the_model_loads(tmp_path, capsys, monkeypatch):
+    """Before issue 28 ``--csv nodir/x.csv`` and ``--photo text.png`` failed after the whole evaluation, ``--limit 0``
+    blamed ``--data`` and ``--sampling-clips 0`` said "no median for empty data"."""
+    import training.evaluate
+    from diff4splat.cli import main
+
+    monkeypatch.setattr(training.evaluate, "load_model", None)  # loading a model would fail: refusals come first
+    for extra, message in _refusals(tmp_path):
+        before = sorted(tmp_path.rglob("*"))
+        code = main(["evaluate", "--random", "--config", "tiny", "--data", str(tmp_path), *map(str, extra)])
+        err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+        assert code == 2 and len(err) == 1 and err[0].startswith(f"diff4splat: error: {message}"), (extra, err)
+        assert sorted(tmp_path.rglob("*")) == before  # nothing written
+
+
+def test_csv_outputs_are_appended_with_one_header(tmp_path):
+    from training.eval_csv import append_csv, check_csv_outputs, csv_outputs
+
+    outputs = csv_outputs(tmp_path / "e.csv", ["model", "a"], ["model", "clip"], None)
+    assert outputs == {"aggregate": (tmp_path / "e.csv", ["model", "a"]),
+                       "clips": (tmp_path / "e_clips.csv", ["model", "clip"])}
+    check_csv_outputs(outputs)  # new files in a writable folder
+    (tmp_path / "e.csv").touch()  # an empty file gets the header too
+    for _ in range(2):
+        append_csv(tmp_path / "e.csv", {"model": "m", "a": 1.5})
+    assert (tmp_path / "e.csv").read_text().splitlines() == ["model,a", "m,1.5", "m,1.5"]
+    check_csv_outputs(outputs)  # same columns: appendable
+    with pytest.raises(ValueError, match="other columns"):
+        check_csv_outputs(csv_outputs(tmp_path / "e.csv", ["model", "b"], None, None))

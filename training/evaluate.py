@@ -52,13 +52,15 @@ output resolution (``--resolution``, default 256), rendered from the input camer
 photograph there and at the model resolution, beside the 8×8 thumbnail. The held-out clips are evaluated at
 their own resolution (the model's: the data is 64²), which is then also the output resolution.
 
+Every argument, the ``--photo`` (decoded once) and every CSV file it will append to (:mod:`training.eval_csv`)
+are checked before any model loads, so a run that would fail at its end is refused at its start.
+
 Devices: the pipeline (generation and rendering) runs on ``pipe.device`` (``--device``, default ``auto``: CUDA
 when torch sees a GPU, else the CPU); the clips stay on the CPU and every metric is computed there, from CPU
 copies of the renders and of the generated scene's points.
 """
 from __future__ import annotations
 
-import csv
 import math
 import statistics
 import time
@@ -72,13 +74,18 @@ from torch import Tensor
 
 from data_prep.clips import ClipConfig, ClipDataset
 from diff4splat.cameras import CameraPath, make_trajectory
+from diff4splat.checks import check_positive_int
 from diff4splat.devices import AUTO, DEVICE_HELP, resolve_device, synchronize
 from diff4splat.io import load_image
+from diff4splat.io.image import read_image
+from diff4splat.io.inputs import check_input_file
+from diff4splat.limits import check_limit
 from diff4splat.pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, GenerationResult, load_model
 from diff4splat.render.sequence import render_path
 from models.bundle import DEFAULT_CONFIG
 from models.flow_matching import heun_sample, sigma_schedule
 
+from .eval_csv import append_csv, check_csv_outputs, csv_outputs
 from .eval_metrics import (
     ANGLE_BINS,
     ablation_noise,
@@ -424,12 +431,19 @@ _VARIANT_LABELS = {"model": "model (sampled latents)", "noise": "noise latents (
                    "repeat_blur": "repeat frame 0, blurred"}
 
 
+CLIP_COLUMNS = ("clip", "dynamic", "max_angle", "psnr_novel", *VARIANTS, "disp_epe", "disp_hold")
+"""Columns of a row of :func:`_per_clip_rows` (``--per-clip``)."""
+SAMPLING_COLUMNS = ("sampler", "nfe", "steps", "ms", "latent_rms", "psnr")
+"""Columns of a row of :func:`sampling_tradeoffs` (``--sampling``)."""
+
+
 def _per_clip_rows(evals: list[ClipEvaluation]) -> list[dict]:
-    """One row per clip: name, dynamic/static, camera motion size, novel-view PSNR of the model and each
-    variant, displacement error of the model and of no motion."""
-    return [{"clip": e.name, "dynamic": "dynamic" if e.dynamic else "static", "max_angle": e.max_angle,
-             "psnr_novel": e.metrics["psnr_novel"], **{v: e.metrics[f"psnr_novel_{v}"] for v in VARIANTS},
-             "disp_epe": e.metrics["motion_disp_epe"], "disp_hold": e.metrics["motion_disp_hold"]} for e in evals]
+    """One row per clip (:data:`CLIP_COLUMNS`): name, dynamic/static, camera motion size, novel-view PSNR of the
+    model and each variant, displacement error of the model and of no motion."""
+    return [dict(zip(CLIP_COLUMNS, (e.name, "dynamic" if e.dynamic else "static", e.max_angle,
+                                    e.metrics["psnr_novel"], *(e.metrics[f"psnr_novel_{v}"] for v in VARIANTS),
+                                    e.metrics["motion_disp_epe"], e.metrics["motion_disp_hold"]), strict=True))
+            for e in evals]
 
 
 def _aggregate_tables(agg: dict) -> str:
@@ -452,14 +466,47 @@ def _aggregate_tables(agg: dict) -> str:
             f"the input camera, the PSNR of the mean MSE over the bin's frames of all clips:\n{versus}")
 
 
+def _check_args(args) -> dict:
+    """Every check that needs no model, before anything loads (messages name the flags); returns the CSV outputs
+    (:func:`training.eval_csv.csv_outputs`; none without ``--csv``), each checked to be appendable.
+
+    Raises:
+        ValueError: a count that is not a positive integer (``--limit``, ``--sampling-clips``, ``--frames``,
+            ``--steps``, ``--resolution``) or above its limit; a ``--photo`` that is not a decodable image; a CSV
+            output that could not be appended to (:func:`training.eval_csv.check_csv_outputs`).
+        FileNotFoundError: ``--photo`` does not exist.
+    """
+    for name in ("limit", "frames", "steps", "resolution", "sampling_clips"):
+        value = getattr(args, name)
+        if value is not None:
+            check_positive_int("--" + name.replace("_", "-"), value)
+            if name in ("frames", "steps", "resolution"):
+                check_limit(name, value, f"--{name}")
+    if args.photo is not None:
+        check_input_file(args.photo, "--photo")
+        try:
+            read_image(args.photo)  # decoded once now: an undecodable photo fails before the evaluation
+        except ValueError as e:
+            raise ValueError(f"--photo: {e}") from None
+    if not args.csv:
+        return {}
+    columns = ["model", "clips", *METRICS, *DIAGNOSTICS, *BASELINES, *binned_keys()]
+    columns += list(PHOTO_KEYS) if args.photo is not None else []
+    outputs = csv_outputs(Path(args.csv), columns, ["model", *CLIP_COLUMNS] if args.per_clip else None,
+                          ["model", *SAMPLING_COLUMNS] if args.sampling else None)
+    check_csv_outputs(outputs)
+    return outputs
+
+
 def run(args) -> int:
     """``diff4splat evaluate`` (see module docstring).
 
     Raises:
-        ValueError: ``--device`` naming a device this machine does not have (checked before any work), no clips
-            in ``--data``, a ``--csv`` with other columns.
+        ValueError: ``--device`` naming a device this machine does not have, a bad argument or output file
+            (:func:`_check_args`), all checked before any model loads; no clips in ``--data``.
     """
     device = resolve_device(args.device, "--device")  # before any model is loaded
+    outputs = _check_args(args)  # refuse before the evaluation runs, not after
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         model, source = load_model(args.checkpoint, args.config, seed=args.seed, untrained=args.random)
@@ -468,52 +515,28 @@ def run(args) -> int:
     clips = _held_out_clips(args.data, cfg.height, cfg.width, args.frames or cfg.num_frames, args.limit)
     if not clips:
         raise ValueError(f"--data: no clips in {args.data}")
-    columns = ["model", "clips", *METRICS, *DIAGNOSTICS, *BASELINES, *binned_keys()]
-    columns += list(PHOTO_KEYS) if args.photo is not None else []
-    if args.csv:  # refuse before the evaluation runs, not after
-        _check_csv_header(Path(args.csv), columns)
     evals = evaluate_all(pipe, clips, steps=args.steps)
     row = {"model": source, "clips": len(clips), **aggregate(evals)}
     if args.photo is not None:
         row.update(photo_fidelity(pipe, args.photo, args.prompt, resolution=args.resolution, steps=args.steps))
     per_clip = _per_clip_rows(evals)
     if args.per_clip:
-        print(_print_table(per_clip, list(per_clip[0])) + "\n")
+        print(_print_table(per_clip, list(CLIP_COLUMNS)) + "\n")
     n_dyn = sum(e.dynamic for e in evals)
     print(f"{len(evals)} clips ({n_dyn} dynamic, {len(evals) - n_dyn} static); largest view angle per clip "
           f"{min(e.max_angle for e in evals):.1f}–{max(e.max_angle for e in evals):.1f}°\n")
     print(_aggregate_tables(row))
-    if args.csv:
-        _append_csv(Path(args.csv), {k: row[k] for k in columns})
-        if args.per_clip:
-            for r in per_clip:
-                _append_csv(Path(args.csv).with_name(Path(args.csv).stem + "_clips.csv"), {"model": source, **r})
+    if "aggregate" in outputs:
+        path, columns = outputs["aggregate"]
+        append_csv(path, {k: row[k] for k in columns})
+    for r in per_clip if "clips" in outputs else []:
+        append_csv(outputs["clips"][0], {"model": source, **r})
     if args.sampling:
         rows = sampling_tradeoffs(pipe, clips[: args.sampling_clips])
-        print(_print_table(rows, ["sampler", "nfe", "steps", "ms", "latent_rms", "psnr"]))
-        if args.csv:
-            for r in rows:
-                _append_csv(Path(args.csv).with_name(Path(args.csv).stem + "_sampling.csv"), {"model": source, **r})
+        print(_print_table(rows, list(SAMPLING_COLUMNS)))
+        for r in rows if "sampling" in outputs else []:
+            append_csv(outputs["sampling"][0], {"model": source, **r})
     return 0
-
-
-def _check_csv_header(path: Path, columns: list[str]) -> None:
-    """Raise ValueError if ``path`` exists with other columns than ``columns`` (appending would misalign)."""
-    if path.exists() and path.stat().st_size:
-        with open(path, newline="") as f:
-            header = next(csv.reader(f), [])
-        if header != columns:
-            raise ValueError(f"--csv: {path} has other columns ({len(header)}) than this evaluation writes "
-                             f"({len(columns)}); name a new file")
-
-
-def _append_csv(path: Path, row: dict) -> None:
-    new = not path.exists()
-    with open(path, "a", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(row))
-        if new:
-            w.writeheader()
-        w.writerow(row)
 
 
 def register(subparsers) -> None:
