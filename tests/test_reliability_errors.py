@@ -416,3 +416,179 @@ def test_a_bug_keeps_its_traceback_and_exit_1(tmp_path):
     assert "Traceback (most recent call last)" in err and "RuntimeError: boom from inside the pipeline" in err
     assert "diff4splat: error" not in err
     assert not (tmp_path / "o").exists()
+
+
+# --- issue 28: a full disk names the file (`<path>: No space left on device`), whichever writer hit it ---------
+
+DEV_FULL = Path("/dev/full")  # every write() fails with ENOSPC, and Python's OSError then names no file
+NO_SPACE = "No space left on device"
+
+
+def test_naming_os_errors_names_the_file_a_write_error_left_anonymous(tmp_path):
+    from diff4splat.io.atomic import naming_os_errors
+
+    final, temp = tmp_path / "out", tmp_path / ".out.123.abc.tmp"
+    with pytest.raises(OSError) as info, naming_os_errors(final / "scene.ply"):
+        raise OSError(errno.ENOSPC, NO_SPACE)  # what f.write() raises on a full disk
+    assert one_line(info.value) == f"{final / 'scene.ply'}: {NO_SPACE}" and info.value.errno == errno.ENOSPC
+    with pytest.raises(OSError) as info, naming_os_errors(final, temp):  # a file in the temporary folder
+        raise OSError(errno.EDQUOT, "Disk quota exceeded", str(temp / "rgb" / "0000.png"))
+    assert one_line(info.value) == f"{final / 'rgb' / '0000.png'}: Disk quota exceeded"
+    with pytest.raises(PermissionError) as info, naming_os_errors(final, temp):  # the rename onto out
+        raise OSError(errno.EACCES, "Permission denied", str(temp), None, str(final))
+    assert one_line(info.value) == f"{final}: Permission denied"
+    with pytest.raises(OSError) as info, naming_os_errors(final, temp):  # another file: kept
+        raise OSError(errno.EROFS, "Read-only file system", "/elsewhere")
+    assert one_line(info.value) == "/elsewhere: Read-only file system"
+    with pytest.raises(ValueError, match="bad input"), naming_os_errors(final):  # not a write error
+        raise ValueError("bad input")
+    with pytest.raises(RuntimeError, match="a bug"), naming_os_errors(tmp_path):  # this disk has room: unchanged
+        raise RuntimeError("a bug")
+
+
+def test_a_library_error_on_a_full_disk_becomes_enospc_naming_the_file(tmp_path, monkeypatch):
+    """OpenEXR and safetensors raise RuntimeError-like errors; the file system tells whether the disk was full."""
+    import diff4splat.io.atomic as atomic
+
+    monkeypatch.setattr(atomic, "disk_full_error", lambda where: OSError(errno.ENOSPC, NO_SPACE))
+    with pytest.raises(OSError) as info, atomic.naming_os_errors(tmp_path / "field.safetensors"):
+        raise RuntimeError("Error while serializing: I/O error: No space left on device (os error 28)")
+    assert one_line(info.value) == f"{tmp_path / 'field.safetensors'}: {NO_SPACE}"
+    assert isinstance(info.value.__cause__, RuntimeError)
+
+
+def _fill_with_dev_full(monkeypatch, module):
+    """``module``'s atomic_output_path, with the temporary file a link to /dev/full: real ENOSPC on every write."""
+    from contextlib import contextmanager
+
+    from diff4splat.io.atomic import atomic_output_path
+
+    @contextmanager
+    def full(path):
+        with atomic_output_path(path) as tmp:
+            os.symlink(DEV_FULL, tmp)
+            yield tmp
+
+    monkeypatch.setattr(module, "atomic_output_path", full)
+
+
+def _writers():
+    import torch
+
+    from diff4splat.cameras import make_trajectory
+    from diff4splat.gaussians import Gaussians
+    from diff4splat.io import cameras, exr, ply, video
+
+    rng = np.random.default_rng(0)
+    img = (rng.random((32, 32, 3)) * 255).astype(np.uint8)
+    n = 50
+    g = Gaussians(torch.randn(n, 3), torch.nn.functional.normalize(torch.randn(n, 4), dim=-1),
+                  torch.rand(n, 3) * 0.1 + 0.01, torch.rand(n) * 0.9 + 0.05, torch.rand(n, 1, 3))
+    path = make_trajectory("arc", 3, [[30.0, 0, 16], [0, 30.0, 16], [0, 0, 1]], 32, 32)
+    return {  # name: (module whose atomic_output_path it uses, file name, write(path), C library that hides errno)
+        "ply": (ply, "scene.ply", lambda p: ply.save_ply(p, g), False),
+        "png": (video, "0000.png", lambda p: video.save_image(p, img), False),
+        "cameras": (cameras, "cameras.json", lambda p: cameras.save_cameras_json(p, path), False),
+        "mp4": (video, "video.mp4", lambda p: video.save_video(p, np.stack([img] * 4)), True),
+        "exr": (exr, "0000.exr", lambda p: exr.save_depth_exr(p, rng.random((32, 32)) + 1), True),
+    }
+
+
+@pytest.mark.skipif(not DEV_FULL.exists(), reason="needs /dev/full")
+@pytest.mark.parametrize("writer", ["ply", "png", "cameras", "mp4", "exr"])
+def test_every_writer_on_a_full_disk_names_its_file_and_leaves_nothing(tmp_path, monkeypatch, writer):
+    import diff4splat.io.atomic as atomic
+
+    module, name, write, c_library = _writers()[writer]
+    _fill_with_dev_full(monkeypatch, module)
+    if c_library:  # OpenCV / OpenEXR say nothing of errno: the probe of the disk (here: not full) must answer
+        monkeypatch.setattr(atomic, "disk_full_error", lambda where: OSError(errno.ENOSPC, NO_SPACE))
+    target = tmp_path / name
+    with pytest.raises(OSError) as info:
+        write(target)
+    assert is_expected(info.value) and one_line(info.value) == f"{target}: {NO_SPACE}"
+    assert list(tmp_path.iterdir()) == []  # no temporary file, no half-written target
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not DEV_FULL.exists(), reason="needs /dev/full")
+def test_disk_full_during_generate_is_one_line_naming_the_file(tmp_path, capsys, monkeypatch):
+    """scene.ply's write() hits ENOSPC, which names no file: the line names out/scene.ply, not a temporary."""
+    import diff4splat.io.ply as ply
+
+    _fill_with_dev_full(monkeypatch, ply)
+    out = tmp_path / "o"
+    code = main(["generate", str(EXAMPLE_IMAGE), *FAST, "--out", str(out)])
+    line = _one_line_exit_2(code, capsys.readouterr().err)
+    assert line == f"diff4splat: error: {out / 'scene.ply'}: {NO_SPACE}"
+    assert list(tmp_path.iterdir()) == []
+
+
+_FULL_DISK_SCRIPT = r"""
+import os, sys
+import numpy as np
+from diff4splat.errors import is_expected, one_line
+from diff4splat.io.exr import save_depth_exr
+from diff4splat.io.outdir import output_dir
+from diff4splat.io.video import save_image, save_video
+
+root, slack = sys.argv[1], int(sys.argv[2])
+fd = os.open(os.path.join(root, "filler"), os.O_WRONLY | os.O_CREAT)
+try:
+    while True:
+        os.write(fd, bytes(65536))
+except OSError:
+    pass
+os.ftruncate(fd, max(os.fstat(fd).st_size - slack, 0))  # leave `slack` bytes: the writers fill them, then fail
+os.close(fd)
+rng = np.random.default_rng(0)
+img = (rng.random((256, 256, 3)) * 255).astype(np.uint8)
+
+def meta(tmp):
+    (tmp / "meta.json").write_text("x" * 300000)
+
+def in_folder(tmp):
+    save_image(tmp / "rgb" / "0000.png", img)
+
+def folder(body):
+    def write(out):
+        with output_dir(out, kind="generate") as tmp:
+            body(tmp)
+    return write
+
+writers = {"a.png": lambda p: save_image(p, img), "a.mp4": lambda p: save_video(p, np.stack([img] * 8)),
+           "a.exr": lambda p: save_depth_exr(p, rng.random((256, 256)) + 1), "out1": folder(meta),
+           "out2": folder(in_folder)}
+for name, write in writers.items():
+    try:
+        write(os.path.join(root, name))
+        print("written", name)
+    except Exception as e:
+        print(("expected " if is_expected(e) else "BUG ") + one_line(e))
+    print("left", sorted(p for p in os.listdir(root) if p != "filler"))
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("slack", [0, 20000])
+def test_a_really_full_file_system_is_named_by_every_writer(tmp_path, slack):
+    """A 512 KiB tmpfs filled up, in a user and mount namespace (skipped where unprivileged namespaces are off)."""
+    mnt = tmp_path / "mnt"
+    mnt.mkdir()
+    script = tmp_path / "fill.py"
+    script.write_text(_FULL_DISK_SCRIPT)
+    shell = f"mount -t tmpfs -o size=512k none {mnt} && exec {sys.executable} {script} {mnt} {slack}"
+    try:
+        run = subprocess.run(["unshare", "-r", "-m", "sh", "-c", shell], capture_output=True, text=True, timeout=120,
+                             cwd=REPO)
+    except FileNotFoundError:
+        pytest.skip("no unshare")
+    if run.returncode != 0 and "mount" in run.stderr + run.stdout and "expected" not in run.stdout:
+        pytest.skip(f"cannot mount a tmpfs in a user namespace here: {run.stderr.strip()[:200]}")
+    assert run.returncode == 0, run.stderr
+    lines = run.stdout.splitlines()
+    expect = [f"expected {mnt / 'a.png'}: {NO_SPACE}", f"expected {mnt / 'a.mp4'}: {NO_SPACE}",
+              f"expected {mnt / 'a.exr'}: {NO_SPACE}", f"expected {mnt / 'out1'}: {NO_SPACE}",
+              f"expected {mnt / 'out2' / 'rgb' / '0000.png'}: {NO_SPACE}"]
+    assert lines[0::2] == expect, run.stdout
+    assert lines[1::2] == ["left []"] * len(expect), run.stdout  # nothing half-written or temporary left behind

@@ -1,13 +1,113 @@
-"""Atomic file writes: a file appears complete or not at all (folders: :mod:`diff4splat.io.outdir`)."""
+"""Atomic file writes: a file appears complete or not at all (folders: :mod:`diff4splat.io.outdir`); and the
+errors of writing, named after the file the user asked for.
+
+A write that fails for a reason of the disk (full, quota, read-only, permissions) must reach the user as
+``<path>: <reason>`` (README, "Errors"; :func:`diff4splat.errors.one_line`). Python's ``write()`` raises
+``OSError(ENOSPC)`` *without* a file name, OpenCV returns ``False`` or writes a short file, OpenEXR and
+safetensors raise ``RuntimeError``-like errors whose text mentions the reason: :func:`naming_os_errors` turns
+each into ``OSError(errno, strerror, <path>)``, asking the file system (:func:`disk_full_error`) when a
+library does not say why.
+"""
 from __future__ import annotations
 
+import errno
 import os
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["atomic_output_path"]
+__all__ = ["atomic_output_path", "naming_os_errors", "disk_full_error"]
+
+_SPACE_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
+
+
+def disk_full_error(where: str | os.PathLike) -> OSError | None:
+    """The ``OSError`` (``ENOSPC`` or ``EDQUOT``) the file system gives for one more block in ``where``'s folder,
+    or None when it has room (or cannot tell).
+
+    The check after a writer failed without saying why: a write that ran out of space leaves the disk full
+    (the kernel writes what fits), so allocating one block beside it fails the same way. A probe file
+    ``.<random>.space`` is created in the folder (``where`` if it is one, else its parent) and removed.
+
+    Returns:
+        ``OSError(errno, strerror)`` without a file name (the caller names the file), or None.
+    """
+    where = Path(where)
+    folder = where if where.is_dir() else where.parent
+    probe = folder / f".{uuid.uuid4().hex[:12]}.space"
+    try:
+        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except OSError as e:
+        return OSError(e.errno, e.strerror) if e.errno in _SPACE_ERRNOS else None
+    try:
+        block = max(os.fstatvfs(fd).f_bsize, 4096)
+        if hasattr(os, "posix_fallocate"):
+            os.posix_fallocate(fd, 0, block)
+        else:  # macOS: no posix_fallocate
+            os.write(fd, bytes(block))
+            os.fsync(fd)
+    except OSError as e:
+        return OSError(e.errno, e.strerror) if e.errno in _SPACE_ERRNOS else None
+    finally:
+        os.close(fd)
+        os.unlink(probe)
+    return None
+
+
+def _renamed(name: str | bytes | os.PathLike | None, temp: str | None, final: str) -> str | None:
+    """``name`` with the temporary path ``temp`` (a file, or a folder and everything in it) shown as ``final``."""
+    if name is None:
+        return None
+    text = os.fsdecode(name)
+    if temp is not None and (text == temp or text.startswith(temp + os.sep)):
+        return final + text[len(temp):]
+    return text
+
+
+@contextmanager
+def naming_os_errors(path: str | os.PathLike, temp: str | os.PathLike | None = None) -> Iterator[None]:
+    """Re-raise the write errors of the block as ``OSError``\\ s naming ``path``.
+
+    * An ``OSError`` without a file name (``write()`` on a full disk) → ``OSError(errno, strerror, path)``.
+    * An ``OSError`` naming ``temp`` (the temporary file or folder standing in for ``path``) or a file in it
+      → the same error naming ``path`` (or the file at the same place under ``path``); a rename's second name
+      is dropped when it is the same file.
+    * Any other exception but ``ValueError`` (a library's ``RuntimeError``, e.g. OpenEXR's or safetensors'
+      "No space left on device") → ``OSError(ENOSPC/EDQUOT, strerror, path)`` when :func:`disk_full_error`
+      finds ``path``'s disk full; else unchanged.
+
+    The original error is chained as ``__cause__``. ``ValueError`` (bad input), ``KeyboardInterrupt`` and
+    ``SystemExit`` pass unchanged.
+
+    Args:
+        path: the file or folder the user asked for, as they gave it.
+        temp: the temporary path written in its place, if any.
+
+    Raises:
+        OSError: as above; any other exception of the block unchanged.
+    """
+    final = os.fspath(path)
+    temp = None if temp is None else os.fspath(temp)
+    try:
+        yield
+    except OSError as e:
+        if e.errno is None:  # a message only: nothing to name
+            raise
+        name = _renamed(e.filename, temp, final) if e.filename is not None else final
+        name2 = _renamed(e.filename2, temp, final)
+        if name2 is not None and os.path.realpath(name2) == os.path.realpath(name):
+            name2 = None
+        if (name, name2) == (e.filename, e.filename2):
+            raise
+        raise OSError(e.errno, e.strerror, name, None, name2) from e
+    except ValueError:
+        raise
+    except Exception as e:
+        full = disk_full_error(temp if temp is not None else final)
+        if full is None:
+            raise
+        raise OSError(full.errno, full.strerror, final) from e
 
 
 @contextmanager
@@ -17,22 +117,30 @@ def atomic_output_path(path: str | os.PathLike) -> Iterator[str]:
     The temporary name keeps the final suffix (writers such as OpenCV pick the container from it):
     ``<folder>/.<name>.<random>.tmp<suffix>``. If the body raises, the temporary file is removed and
     ``path`` is left untouched, so readers never see a half-written file. Missing parent folders
-    are created.
+    are created. Write errors name ``path``, not the temporary file (:func:`naming_os_errors`).
 
     Args:
         path: final file path.
 
     Yields:
         The temporary path (str) to write to.
+
+    Raises:
+        OSError: naming ``path`` (disk full, read-only, permissions, …; :func:`naming_os_errors`); the body's
+            other exceptions unchanged.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.parent / f".{path.name}.{uuid.uuid4().hex[:12]}.tmp{path.suffix}"
     try:
-        yield str(tmp)
-        if not tmp.is_file():
-            raise OSError(f"writer produced no file at {tmp} for {path}")
-        os.replace(tmp, path)
+        with naming_os_errors(path, tmp):
+            path.parent.mkdir(parents=True, exist_ok=True)
+            yield str(tmp)
+            if not tmp.is_file():
+                full = disk_full_error(path.parent)
+                if full is not None:
+                    raise full
+                raise OSError(f"writer produced no file at {tmp} for {path}")
+            os.replace(tmp, path)
     finally:
         if tmp.exists():
             tmp.unlink()

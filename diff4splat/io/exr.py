@@ -42,6 +42,9 @@ def save_depth_exr(
     Raises:
         ValueError: naming ``depth`` (shape, NaN, negative values) or ``alpha`` (shape mismatch,
             non-finite, outside [0, 1]).
+        OSError: naming ``path`` when the disk is full (or the quota spent), read-only or not writable
+            (:func:`~diff4splat.io.atomic.naming_os_errors`).
+        RuntimeError: OpenEXR wrote a file that does not read back.
     """
     z = _as_float32_map("depth", depth)
     if np.isnan(z).any():
@@ -57,9 +60,16 @@ def save_depth_exr(
             raise ValueError("alpha must be finite and lie in [0, 1]")
         channels["A"] = a
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    with atomic_output_path(path) as tmp:
+    with atomic_output_path(path) as tmp:  # its RuntimeErrors become OSError(ENOSPC, …, path) on a full disk
         with OpenEXR.File(header, channels) as f:
             f.write(tmp)
+        try:  # OpenEXR may miss a failed last flush: read the file back (a few ms) rather than keep a short one
+            with OpenEXR.File(tmp, separate_channels=True) as f:
+                complete = all(np.array(ch.pixels).shape == z.shape for ch in f.channels().values())
+        except Exception as e:
+            raise RuntimeError(f"OpenEXR wrote an unreadable {path}: {e}") from e
+        if not complete:
+            raise RuntimeError(f"OpenEXR wrote an incomplete {path}")
 
 
 def load_depth_exr(

@@ -17,6 +17,8 @@ The rules (README, "Output folders"):
 * Concurrent writers of one ``out`` are serialised by ``fcntl.flock`` on ``.<name>.lock`` beside it,
   held only for the check-and-rename at the end; the lock file is removed on release.
 * Folders and files follow the umask (``os.mkdir``, not ``mkdtemp``'s 0700).
+* Write errors name the file as it will be under ``out`` (``out/scene.ply: No space left on device``), never
+  the temporary folder (:func:`~diff4splat.io.atomic.naming_os_errors`).
 """
 from __future__ import annotations
 
@@ -33,6 +35,8 @@ import uuid
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+
+from .atomic import naming_os_errors
 
 __all__ = ["MARKER", "OutputDirError", "check_output_dir", "output_dir", "read_marker", "remove_stale_temps"]
 
@@ -293,6 +297,9 @@ def output_dir(out: str | os.PathLike, *, kind: str, inputs: Iterable[str | os.P
 
     Raises:
         OutputDirError, FileExistsError: as :func:`check_output_dir`.
+        OSError: writing failed (disk full, read-only, permissions, …), naming the file as it will be under
+            ``out`` (``out/scene.ply``), or ``out`` itself when the error named no file
+            (:func:`~diff4splat.io.atomic.naming_os_errors`).
     """
     inputs = list(inputs)
     target = _check_consistent(out, inputs=inputs, overwrite=overwrite, kind=kind, replace=replace, parents=parents)
@@ -301,13 +308,15 @@ def output_dir(out: str | os.PathLike, *, kind: str, inputs: Iterable[str | os.P
     remove_stale_temps(target)
     tmp = target.parent / _temp_name(target.name, "tmp")
     with _sigterm_cleans_up():
-        os.mkdir(tmp)  # mode 0o777 & ~umask
+        with naming_os_errors(out, tmp):
+            os.mkdir(tmp)  # mode 0o777 & ~umask
         try:
-            yield tmp
-            (tmp / MARKER).write_text(json.dumps({"tool": "diff4splat", "kind": kind, "format": _MARKER_FORMAT}))
-            with _locked(target):
-                check_output_dir(out, inputs=inputs, overwrite=overwrite, kind=kind, replace=replace)
-                _swap_into_place(tmp, target)
+            with naming_os_errors(out, tmp):  # inside: a full disk is seen before tmp is removed
+                yield tmp
+                (tmp / MARKER).write_text(json.dumps({"tool": "diff4splat", "kind": kind, "format": _MARKER_FORMAT}))
+                with _locked(target):
+                    check_output_dir(out, inputs=inputs, overwrite=overwrite, kind=kind, replace=replace)
+                    _swap_into_place(tmp, target)
         finally:
             if tmp.exists():
                 shutil.rmtree(tmp, ignore_errors=True)

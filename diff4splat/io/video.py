@@ -75,7 +75,9 @@ def save_video(path: str | os.PathLike, frames: Tensor | np.ndarray, fps: float 
 
     Raises:
         ValueError: naming ``path`` (suffix), ``frames`` (shape, dtype, odd size, NaN) or ``fps`` (:func:`check_fps`).
-        RuntimeError: OpenCV could not open the encoder.
+        OSError: naming ``path`` when the disk is full (or the quota spent), read-only or not writable
+            (:func:`~diff4splat.io.atomic.naming_os_errors`).
+        RuntimeError: OpenCV could not open the encoder, or the file it wrote does not hold every frame.
     """
     path = Path(path)
     if path.suffix.lower() != ".mp4":
@@ -87,7 +89,7 @@ def save_video(path: str | os.PathLike, frames: Tensor | np.ndarray, fps: float 
     T, H, W, _ = video.shape
     if H % 2 or W % 2 or H == 0 or W == 0:
         raise ValueError(f"frames height and width must be positive and even for MP4, got {H}×{W}")
-    with atomic_output_path(path) as tmp:
+    with atomic_output_path(path) as tmp:  # its RuntimeErrors become OSError(ENOSPC, …, path) on a full disk
         writer = cv2.VideoWriter(tmp, cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (W, H))
         if not writer.isOpened():
             raise RuntimeError(f"OpenCV could not open an mp4v video writer for {path}")
@@ -96,6 +98,19 @@ def save_video(path: str | os.PathLike, frames: Tensor | np.ndarray, fps: float 
                 writer.write(np.ascontiguousarray(frame[..., ::-1]))  # RGB → BGR
         finally:
             writer.release()
+        written = _frame_count(tmp)
+        if written != T:  # OpenCV reports no write error: a disk that filled up leaves a short, unreadable file
+            raise RuntimeError(f"OpenCV wrote {written} of {T} frames to {path}")
+
+
+def _frame_count(path: str) -> int:
+    """Frames the container at ``path`` says it holds (0 when it cannot be opened, e.g. truncated)."""
+    with quiet_c_stderr():  # FFmpeg's "moov atom not found" on a truncated file
+        cap = cv2.VideoCapture(path)
+        try:
+            return int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) if cap.isOpened() else 0
+        finally:
+            cap.release()
 
 
 def load_video(path: str | os.PathLike) -> np.ndarray:
@@ -138,8 +153,9 @@ def save_image(path: str | os.PathLike, image: Tensor | np.ndarray) -> None:
         image: (H, W, 3) RGB, (H, W, 4) RGBA or (H, W) grey; uint8 or float in [0, 1] (clipped).
 
     Raises:
-        ValueError: naming ``path`` (suffix OpenCV cannot write) or ``image`` (shape, dtype, NaN).
-        OSError: OpenCV failed to write the file.
+        ValueError: naming ``path`` (suffix OpenCV cannot write) or ``image`` (shape, dtype, NaN, or a format the
+            suffix's encoder refuses).
+        OSError: naming ``path`` (disk full, read-only, permissions; :func:`~diff4splat.io.atomic.atomic_output_path`).
     """
     path = Path(path)
     if not cv2.haveImageWriter(str(path)):
@@ -155,6 +171,9 @@ def save_image(path: str | os.PathLike, image: Tensor | np.ndarray) -> None:
         raise ValueError(f"image must have shape (H, W), (H, W, 3) or (H, W, 4), got {img.shape}")
     if img.shape[0] == 0 or img.shape[1] == 0:
         raise ValueError(f"image is empty, shape {img.shape}")
-    with atomic_output_path(path) as tmp, quiet_c_stderr():
-        if not cv2.imwrite(tmp, np.ascontiguousarray(img)):
-            raise OSError(f"OpenCV failed to write {path}")
+    with quiet_c_stderr():
+        ok, data = cv2.imencode(path.suffix, np.ascontiguousarray(img))
+    if not ok:
+        raise ValueError(f"image: OpenCV cannot encode a {img.shape} {img.dtype} image as {path.suffix}")
+    with atomic_output_path(path) as tmp, open(tmp, "wb") as f:  # Python's write reports a full disk; imwrite does not
+        f.write(data.tobytes())
