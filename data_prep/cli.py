@@ -11,14 +11,20 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 
 from diff4splat.errors import run_cli
 
-__all__ = ["main", "build_parser", "SUBCOMMANDS"]
+from .convert_cli import register as _add_convert  # data_prep convert SOURCE IN OUT
+from .curate import DEFAULT_CONFIG_PATH, CurationConfig, curate
+from .synth import check_synth_request, synthesize
+from .validate import summarize, validate_path
 
+__all__ = ["main", "build_parser", "SUBCOMMANDS"]
 
 
 class CLIError(Exception):
@@ -33,8 +39,6 @@ class _Parser(argparse.ArgumentParser):
 # --------------------------------------------------------------------------- validate
 
 def _validate(args: argparse.Namespace) -> int:
-    from .validate import validate_path
-
     n, problems = validate_path(args.dir)
     if n == 0:  # nothing was checked: no "problems in scenes" summary; the root-level line is the summary
         for p in problems:
@@ -44,17 +48,8 @@ def _validate(args: argparse.Namespace) -> int:
         return 1
     for p in problems:
         print(p)
-    bad = len({_scene_of(p.file, args.dir) for p in problems})
-    print(f"{n} scene(s) checked: " + (f"{len(problems)} problem(s) in {bad} scene(s)" if problems else "all valid"))
+    print(summarize(n, problems))
     return 1 if problems else 0
-
-
-def _scene_of(file: Path, root: Path) -> Path:
-    try:
-        rel = Path(file).relative_to(root)
-    except ValueError:
-        return Path(file)
-    return root / rel.parts[0] if rel.parts else root
 
 
 def _add_validate(sub) -> None:
@@ -68,10 +63,9 @@ def _add_validate(sub) -> None:
 # --------------------------------------------------------------------------- synth
 
 def _synth(args: argparse.Namespace) -> int:
-    import time
-
-    from .synth import synthesize
-
+    check_synth_request(args.scenes, args.seed, size=args.size, frames=args.frames, cameras=args.cameras,
+                        workers=args.workers, static_ratio=args.static_ratio, texture_ratio=args.texture_ratio,
+                        flags=True)  # the messages name the flags
     t0 = time.perf_counter()
     paths = synthesize(args.out, args.scenes, args.seed, size=args.size, frames=args.frames, cameras=args.cameras,
                        static_ratio=args.static_ratio, texture_ratio=args.texture_ratio, workers=args.workers,
@@ -115,8 +109,6 @@ def _unit_float(text: str) -> float:
 # --------------------------------------------------------------------------- curate
 
 def _curate(args: argparse.Namespace) -> int:
-    from .curate import DEFAULT_CONFIG_PATH, CurationConfig, curate
-
     config = CurationConfig.from_yaml(args.config or DEFAULT_CONFIG_PATH)
     records = curate(args.input, args.output, config, workers=args.workers, mode=args.mode, progress=not args.quiet)
     n_ok = sum(r["accepted"] for r in records)
@@ -126,8 +118,6 @@ def _curate(args: argparse.Namespace) -> int:
 
 
 def _add_curate(sub) -> None:
-    import os
-
     p = sub.add_parser("curate", help="filter scenes; write a manifest and the accepted scenes",
                        description="Measure and filter the scenes of IN (data_prep/curate.py); write "
                                    "OUT/manifest.jsonl, OUT/accepted.txt and the accepted scenes. A rerun "
@@ -142,8 +132,6 @@ def _add_curate(sub) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_curate)
 
-
-from .convert_cli import register as _add_convert  # noqa: E402  (data_prep convert SOURCE IN OUT)
 
 SUBCOMMANDS: list[Callable] = [_add_validate, _add_synth, _add_curate, _add_convert]
 """Parser adders, one per subcommand, in help order."""

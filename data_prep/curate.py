@@ -451,7 +451,7 @@ def curate(in_root: str | os.PathLike, out_root: str | os.PathLike, config: Cura
                 curate_scene(s, out_root, config, mode)
                 bar.update()
         else:
-            with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"),
+            with ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=get_context("spawn"),
                                      initializer=_init_worker) as pool:
                 futures = [pool.submit(curate_scene, s, out_root, config, mode) for s in todo]
                 for fut in as_completed(futures):

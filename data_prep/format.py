@@ -10,19 +10,17 @@ The layout and every field are specified in ``data_prep/FORMAT.md``; in short::
 :class:`SceneWriter` builds a scene in a temporary folder beside the target and renames it into
 place (:func:`diff4splat.io.output_dir`, kind ``"scene"``), so a scene folder is either complete or absent.
 :class:`SceneReader` (:func:`load_scene`) reads ``meta.json`` on open and everything else on demand.
-Validation of a whole folder is :func:`data_prep.validate.validate_scene`.
+Validation of a whole folder is :func:`data_prep.validate.validate_scene`. The format's constants, ``meta.json``
+and the single-file readers live in :mod:`data_prep.scene_files` (below :mod:`data_prep.validate`, which this
+module uses) and are re-exported here.
 """
 from __future__ import annotations
 
 import json
-import math
 import os
-import re
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 from torch import Tensor
 
@@ -35,7 +33,22 @@ from diff4splat.io import (
     save_depth_exr,
     save_image,
 )
-from diff4splat.io.structured import read_json
+
+from .scene_files import (
+    DEPTH_SOURCES,
+    FORMAT_VERSION,
+    SYNC_TOLERANCE_S,
+    TIMES_TOLERANCE,
+    SceneMeta,
+    check_camera_name,
+    frame_name,
+    is_int,
+    list_scenes,
+    read_rgb,
+    read_timestamps,
+    timestamps_to_times,
+)
+from .validate import validate_scene
 
 __all__ = [
     "FORMAT_VERSION",
@@ -55,189 +68,8 @@ __all__ = [
     "timestamps_to_times",
 ]
 
-FORMAT_VERSION = 1
-"""Version of ``data_prep/FORMAT.md`` written by this module."""
 SCENE_KIND = "scene"
 """Output kind of a scene folder (:data:`diff4splat.io.MARKER`); ``replace=True`` replaces only these."""
-
-DEPTH_SOURCES: tuple[str, ...] = ("ground_truth", "aligned_estimate", "none")
-"""Allowed values of ``meta["depth_source"]``."""
-
-SYNC_TOLERANCE_S = 1e-3
-"""Cameras are synchronised when their timestamps agree within this many seconds."""
-
-TIMES_TOLERANCE = 1e-4
-"""``times`` must equal the normalised ``timestamps`` within this (times are in [0, 1])."""
-
-_CAMERA_NAME = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9_.-]*$")
-
-
-def check_camera_name(name: Any) -> str:
-    """Return ``name`` if it is a valid camera folder name ([A-Za-z0-9_.-]+, no leading '.'), else ValueError."""
-    if not isinstance(name, str) or not _CAMERA_NAME.match(name):
-        raise ValueError(f"cameras: {name!r} is not a valid camera folder name ([A-Za-z0-9_.-]+, no leading '.')")
-    return name
-
-
-def frame_name(index: int, suffix: str) -> str:
-    """File name of frame ``index``: ``f"{index:05d}{suffix}"`` (e.g. ``00017.png``)."""
-    return f"{index:05d}{suffix}"
-
-
-def _is_int(v: Any) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
-def _is_number(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-
-
-@dataclass
-class SceneMeta:
-    """The typed content of ``meta.json`` (FORMAT.md, "meta.json").
-
-    Attributes:
-        source: dataset name, e.g. ``"synthetic"``, ``"pointodyssey"``.
-        dynamic: anything in the scene moves (False: static world, only cameras move).
-        depth_source: one of :data:`DEPTH_SOURCES`.
-        num_frames: T ≥ 1 frames per camera.
-        cameras: camera folder names, reference camera first, unique.
-        fps: nominal frame rate of the stored frames, Hz, > 0.
-        depth_scale: > 0; metric = depth_scale·estimate + depth_shift was applied (1 for ground truth).
-        depth_shift: metres (0 for ground truth).
-        format_version: must be :data:`FORMAT_VERSION`.
-        extra: any other keys, kept as is (JSON-serialisable).
-
-    Raises:
-        ValueError: naming the field and the value, on construction.
-    """
-
-    source: str
-    dynamic: bool
-    depth_source: str
-    num_frames: int
-    cameras: list[str]
-    fps: float
-    depth_scale: float = 1.0
-    depth_shift: float = 0.0
-    format_version: int = FORMAT_VERSION
-    extra: dict[str, Any] = field(default_factory=dict)
-
-    _KEYS = ("format_version", "source", "dynamic", "depth_source", "depth_scale", "depth_shift",
-             "num_frames", "cameras", "fps")
-
-    def __post_init__(self) -> None:
-        self.validate()
-
-    def validate(self) -> None:
-        """Check every field's type and value (FORMAT.md table). Raises ValueError naming the field."""
-        if not _is_int(self.format_version) or self.format_version != FORMAT_VERSION:
-            raise ValueError(f"format_version must be {FORMAT_VERSION}, got {self.format_version!r}")
-        if not isinstance(self.source, str) or not self.source.strip():
-            raise ValueError(f"source must be a non-empty string, got {self.source!r}")
-        if not isinstance(self.dynamic, bool):
-            raise ValueError(f"dynamic must be true or false, got {self.dynamic!r}")
-        if self.depth_source not in DEPTH_SOURCES:
-            raise ValueError(f"depth_source must be one of {list(DEPTH_SOURCES)}, got {self.depth_source!r}")
-        if not _is_number(self.depth_scale) or self.depth_scale <= 0:
-            raise ValueError(f"depth_scale must be a finite number > 0, got {self.depth_scale!r}")
-        if not _is_number(self.depth_shift):
-            raise ValueError(f"depth_shift must be a finite number (metres), got {self.depth_shift!r}")
-        if not _is_int(self.num_frames) or self.num_frames < 1:
-            raise ValueError(f"num_frames must be an integer ≥ 1, got {self.num_frames!r}")
-        if not _is_number(self.fps) or self.fps <= 0:
-            raise ValueError(f"fps must be a finite number > 0, got {self.fps!r}")
-        if not isinstance(self.cameras, list) or not self.cameras:
-            raise ValueError(f"cameras must be a non-empty list of camera folder names, got {self.cameras!r}")
-        for name in self.cameras:
-            check_camera_name(name)
-        if len(set(self.cameras)) != len(self.cameras):
-            raise ValueError(f"cameras must be unique, got {self.cameras}")
-        if not isinstance(self.extra, dict) or any(k in self._KEYS for k in self.extra):
-            raise ValueError("extra must be a dict whose keys are not standard meta keys")
-
-    def to_dict(self) -> dict[str, Any]:
-        """The JSON object of ``meta.json`` (standard keys first, then ``extra``)."""
-        out = {k: getattr(self, k) for k in self._KEYS}
-        out["cameras"] = list(self.cameras)
-        out.update(self.extra)
-        return out
-
-    @classmethod
-    def from_dict(cls, data: Any) -> SceneMeta:
-        """Parse a ``meta.json`` object.
-
-        Raises:
-            ValueError: not an object, a missing key (named) or a field failing :meth:`validate`.
-        """
-        if not isinstance(data, dict):
-            raise ValueError(f"meta must be a JSON object, got {type(data).__name__}")
-        missing = [k for k in cls._KEYS if k not in data]
-        if missing:
-            raise ValueError(f"missing key(s) {missing}")
-        extra = {k: v for k, v in data.items() if k not in cls._KEYS}
-        return cls(**{k: data[k] for k in cls._KEYS}, extra=extra)
-
-    @classmethod
-    def load(cls, path: str | os.PathLike) -> SceneMeta:
-        """Read and parse ``meta.json``.
-
-        Raises:
-            FileNotFoundError: ``path`` does not exist.
-            ValueError: invalid JSON or an invalid field (message prefixed with the path).
-        """
-        data = read_json(path, "scene meta", expect=None)
-        try:
-            return cls.from_dict(data)
-        except (ValueError, TypeError) as e:
-            raise ValueError(f"{path}: {e}") from None
-
-
-def timestamps_to_times(timestamps: np.ndarray) -> np.ndarray:
-    """Clip times t_i = (ts_i − ts_0)/(ts_{T−1} − ts_0) in [0, 1] of timestamps (T,) seconds.
-
-    T = 1, or equal first and last timestamps, gives all zeros. Returns float64 (T,).
-    """
-    ts = np.asarray(timestamps, dtype=np.float64)
-    span = ts[-1] - ts[0] if ts.size else 0.0
-    return (ts - ts[0]) / span if span > 0 else np.zeros_like(ts)
-
-
-def read_timestamps(path: str | os.PathLike) -> np.ndarray:
-    """The ``"timestamps"`` (T,) float64 seconds of a scene camera's ``cameras.json``.
-
-    Raises:
-        FileNotFoundError: ``path`` does not exist.
-        ValueError: invalid JSON, missing ``timestamps``, not a list of finite numbers, or decreasing.
-    """
-    path = Path(path)
-    data = read_json(path, "camera file", expect=None)
-    ts = data.get("timestamps") if isinstance(data, dict) else None
-    if not isinstance(ts, list) or not all(_is_number(x) for x in ts):
-        raise ValueError(f"{path}: 'timestamps' must be a list of finite numbers (seconds), got {str(ts)[:60]}")
-    ts = np.asarray(ts, dtype=np.float64)
-    if ts.size > 1 and bool((np.diff(ts) < 0).any()):
-        raise ValueError(f"{path}: 'timestamps' must be non-decreasing")
-    return ts
-
-
-def read_rgb(path: str | os.PathLike) -> np.ndarray:
-    """Decode an 8-bit 3-channel RGB image file (OpenCV) to (H, W, 3) float32 in [0, 1] (value/255).
-
-    Raises:
-        FileNotFoundError: ``path`` does not exist.
-        ValueError: OpenCV cannot decode it, or it is not 8-bit with exactly 3 channels.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"image not found: {path}")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise ValueError(f"could not decode {path} as an image")
-    if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
-        ch = img.shape[2] if img.ndim == 3 else 1
-        raise ValueError(f"{path} must be 8-bit RGB (3 channels), got dtype {img.dtype} with {ch} channel(s)")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
 
 
 def _check_depth(depth: Tensor | np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -391,7 +223,7 @@ class SceneWriter:
         """
         if camera not in self._sizes:
             raise ValueError(f"unknown camera {camera!r}; call add_camera first")
-        if not _is_int(index) or not 0 <= index < self.meta.num_frames:
+        if not is_int(index) or not 0 <= index < self.meta.num_frames:
             raise ValueError(f"frame index must be an int in [0, {self.meta.num_frames}), got {index!r}")
         H, W = self._sizes[camera]
         if tuple(rgb.shape) != (H, W, 3):
@@ -445,8 +277,6 @@ class SceneWriter:
         self.meta.validate()
         (self.tmp_dir / "meta.json").write_text(json.dumps(self.meta.to_dict(), indent=1) + "\n", encoding="utf-8")
         if self.validate:
-            from .validate import validate_scene  # validate imports this module
-
             problems = validate_scene(self.tmp_dir)
             if problems:
                 raise ValueError(f"scene {self.path} is invalid: " + "; ".join(str(p) for p in problems[:5]))
@@ -496,7 +326,7 @@ class SceneReader:
 
     def _frame(self, camera: str, index: int, sub: str, suffix: str) -> Path:
         folder = self._cam(camera)
-        if not _is_int(index) or not 0 <= index < self.num_frames:
+        if not is_int(index) or not 0 <= index < self.num_frames:
             raise ValueError(f"frame index must be an int in [0, {self.num_frames}), got {index!r}")
         return folder / sub / frame_name(index, suffix)
 
@@ -564,16 +394,3 @@ class SceneReader:
 def load_scene(path: str | os.PathLike) -> SceneReader:
     """Open a scene folder lazily (:class:`SceneReader`); only ``meta.json`` is read and checked."""
     return SceneReader(path)
-
-
-def list_scenes(root: str | os.PathLike) -> list[Path]:
-    """Scene folders of a dataset root: sorted sub-folders holding ``meta.json``, hidden ones skipped.
-
-    Raises:
-        FileNotFoundError: ``root`` is not a folder.
-    """
-    root = Path(root)
-    if not root.is_dir():
-        raise FileNotFoundError(f"dataset folder not found: {root}")
-    return sorted(p for p in root.iterdir()
-                  if p.is_dir() and not p.name.startswith(".") and (p / "meta.json").is_file())

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 import os
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
@@ -39,6 +39,7 @@ from tqdm.auto import tqdm
 
 from diff4splat.cameras import CameraPath, intrinsics_from_fov, look_at
 from diff4splat.gaussians import Gaussians, rgb_to_sh0
+from diff4splat.limits import check_limit
 from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat, rotmat_to_quat
 from diff4splat.render.sequence import render_path
 from diff4splat.scene import DynamicGaussians
@@ -49,7 +50,8 @@ from .textures import image_albedo
 
 __all__ = ["generate_scene", "synthesize", "render_spec", "write_synth_scene", "SynthScene", "build_scene",
            "build_gaussians", "object_transform", "camera_path", "track_visibility", "scene_name", "MAX_TRACKS",
-           "VISIBILITY_TOL_M", "VISIBILITY_TOL_REL"]
+           "VISIBILITY_TOL_M", "VISIBILITY_TOL_REL", "check_synth_request", "max_gaussians", "scene_bytes",
+           "BYTES_PER_PIXEL", "BYTES_PER_GAUSSIAN_FRAME"]
 
 MAX_TRACKS = 256
 """Tracked object points per scene (fewer if the objects have fewer Gaussians)."""
@@ -63,6 +65,12 @@ IMAGE_SPACING = 0.5
 """Ground and wall Gaussians with an image texture lie this factor closer (4× as many): at the procedural
 spacing (0.25 m at 64 px) a photograph's detail would blur into a few colour blobs."""
 _WALL_HEIGHT = 4.0
+BYTES_PER_PIXEL = 24
+"""Memory of a scene per pixel of every camera and frame: the float32 RGB (12 bytes) and depth (4) kept until the
+scene is written, and the renderer's expected depth and alpha (8) of the camera being rendered."""
+BYTES_PER_GAUSSIAN_FRAME = 120
+"""Memory of a dynamic scene per Gaussian and frame: its float64 deformation (Δμ 3, Δq 4, Δs 3: 80 bytes) and the
+float32 copy the scene holds (40)."""
 _UP = np.array([0.0, -1.0, 0.0])  # world up (y points down)
 
 
@@ -453,6 +461,55 @@ def _check_int(name: str, v: Any, lo: int) -> int:
     return v
 
 
+def max_gaussians(size: int) -> int:
+    """An upper bound of the Gaussians of any scene of ``size`` pixels (:func:`build_gaussians`).
+
+    Ground and wall Gaussians lie on grids of spacing sp = 0.25 m·min(1, 64/size)^½, halved where image-textured
+    (:data:`IMAGE_SPACING`): at most π·6²/(sp/2)² on the ground disk of radius ≤ 6 m and 2π·6·4/(0.6·sp)² on the
+    4 m wall, together 13 940·max(1, size/64); at most 4 objects of ≤ 800 surface samples each add 3 200.
+    """
+    return 14_000 * max(1, math.ceil(size / 64)) + 3_200
+
+
+def scene_bytes(size: int, frames: int, cameras: int) -> int:
+    """Estimated memory of one synthetic scene while it is made: cameras · frames · size² · :data:`BYTES_PER_PIXEL`
+    plus frames · :func:`max_gaussians` · :data:`BYTES_PER_GAUSSIAN_FRAME`."""
+    return cameras * frames * size * size * BYTES_PER_PIXEL + frames * max_gaussians(size) * BYTES_PER_GAUSSIAN_FRAME
+
+
+_FLAGS = {"num_scenes": "--scenes", "seed": "--seed", "size": "--size", "frames": "--frames", "cameras": "--cameras",
+          "workers": "--workers", "static_ratio": "--static-ratio", "texture_ratio": "--texture-ratio"}
+"""The ``data_prep synth`` flag of each :func:`synthesize` argument (the CLI's messages name the flags)."""
+
+
+def check_synth_request(num_scenes: int, seed: int, *, size: int, frames: int, cameras: int, workers: int,
+                        static_ratio: float, texture_ratio: float, flags: bool = False) -> None:
+    """Check :func:`synthesize`'s arguments and limits before anything is created or allocated.
+
+    Args:
+        flags: name the arguments by their ``data_prep synth`` flags (``--scenes``, ``--size``, …) instead of
+            their parameter names.
+
+    Raises:
+        ValueError: an argument out of range (named). :class:`diff4splat.limits.LimitError` (a ValueError):
+            ``num_scenes`` above the ``scenes`` limit, ``size`` above ``resolution``, ``frames`` above ``frames``,
+            or :func:`scene_bytes` above ``synth_bytes``.
+    """
+    name = _FLAGS.get if flags else str
+    check_limit("scenes", _check_int(name("num_scenes"), num_scenes, 1), name("num_scenes"))
+    _check_int(name("seed"), seed, 0)
+    check_limit("resolution", _check_int(name("size"), size, 8), name("size"))
+    check_limit("frames", _check_int(name("frames"), frames, 2), name("frames"))
+    _check_int(name("cameras"), cameras, 1)
+    _check_int(name("workers"), workers, 1)
+    for key, value in (("static_ratio", static_ratio), ("texture_ratio", texture_ratio)):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= 1:
+            raise ValueError(f"{name(key)} must be a number in [0, 1], got {value!r}")
+    check_limit("synth_bytes", scene_bytes(size, frames, cameras),
+                f"one scene of {name('cameras')} {cameras} × {name('frames')} {frames} at {name('size')} {size}: "
+                "estimated")
+
+
 def _init_worker() -> None:
     torch.set_num_threads(1)
 
@@ -462,15 +519,19 @@ def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, si
                progress: bool = True) -> list[Path]:
     """Generate scenes 0 … num_scenes−1 into ``out_dir``, skipping scenes already present (resume).
 
-    Each scene is written atomically by :func:`generate_scene`; with ``workers`` > 1 scenes are made
-    in that many processes (spawned, one torch thread each). A tqdm bar counts finished scenes.
+    Every argument and limit is checked first (:func:`check_synth_request`): a refused request creates nothing.
+    Scenes are then made in index order, the existing ones skipped as they come (the first new scene is written
+    without looking at the later ones first). Each scene is written atomically by :func:`generate_scene`; with
+    ``workers`` > 1 scenes are made in that many processes (spawned, one torch thread each, at most 2 scenes
+    queued per process). A tqdm bar counts finished and skipped scenes. ``out_dir`` is created when missing, and
+    removed again if the run fails before anything was written into it.
 
     Args:
         out_dir: dataset root (created).
-        num_scenes: ≥ 1.
+        num_scenes: ≥ 1, at most the ``scenes`` limit.
         seed: global seed (any int ≥ 0).
-        size: image width = height, pixels, ≥ 8.
-        frames: T ≥ 2 frames per camera.
+        size: image width = height, pixels, in [8, the ``resolution`` limit].
+        frames: T frames per camera, in [2, the ``frames`` limit].
         cameras: synchronised cameras per scene, ≥ 1.
         static_ratio: probability in [0, 1] of a static scene.
         texture_ratio: probability in [0, 1] that a surface (ground, wall, object) uses an image texture
@@ -482,35 +543,54 @@ def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, si
         The scene folders of all ``num_scenes`` scenes, in index order.
 
     Raises:
-        ValueError: naming the argument that is out of range.
+        ValueError: naming the argument that is out of range; :class:`diff4splat.limits.LimitError` for a request
+            above a limit (:func:`check_synth_request`).
     """
-    _check_int("num_scenes", num_scenes, 1)
-    _check_int("seed", seed, 0)
-    _check_int("size", size, 8)
-    _check_int("frames", frames, 2)
-    _check_int("cameras", cameras, 1)
-    _check_int("workers", workers, 1)
-    if isinstance(static_ratio, bool) or not isinstance(static_ratio, (int, float)) or not 0 <= static_ratio <= 1:
-        raise ValueError(f"static_ratio must be a number in [0, 1], got {static_ratio!r}")
-    if isinstance(texture_ratio, bool) or not isinstance(texture_ratio, (int, float)) or not 0 <= texture_ratio <= 1:
-        raise ValueError(f"texture_ratio must be a number in [0, 1], got {texture_ratio!r}")
+    check_synth_request(num_scenes, seed, size=size, frames=frames, cameras=cameras, workers=workers,
+                        static_ratio=static_ratio, texture_ratio=texture_ratio)
     out = Path(out_dir)
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
-    todo = [i for i in range(num_scenes) if not (out / scene_name(i) / "meta.json").is_file()]
     kw = dict(size=size, frames=frames, cameras=cameras, static_ratio=float(static_ratio),
               texture_ratio=float(texture_ratio))
-    bar = tqdm(total=num_scenes, initial=num_scenes - len(todo), desc="synth", unit="scene", disable=not progress)
+    bar = tqdm(total=num_scenes, desc="synth", unit="scene", disable=not progress)
+
+    def todo():
+        for i in range(num_scenes):
+            if (out / scene_name(i) / "meta.json").is_file():
+                bar.update()
+            else:
+                yield i
+
     try:
-        if workers == 1 or len(todo) <= 1:
-            for i in todo:
+        if workers == 1 or num_scenes == 1:
+            for i in todo():
                 generate_scene(out, i, seed, **kw)
                 bar.update()
         else:
-            with ProcessPoolExecutor(min(workers, len(todo)), mp_context=get_context("spawn"),
+            with ProcessPoolExecutor(min(workers, num_scenes), mp_context=get_context("spawn"),
                                      initializer=_init_worker) as pool:
-                for fut in as_completed([pool.submit(generate_scene, out, i, seed, **kw) for i in todo]):
-                    fut.result()
-                    bar.update()
+                running: set = set()
+                for i in todo():
+                    running.add(pool.submit(generate_scene, out, i, seed, **kw))
+                    while len(running) >= 2 * workers:
+                        running = _collect(running, bar)
+                while running:
+                    running = _collect(running, bar)
+    except BaseException:
+        if created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
+        raise
     finally:
         bar.close()
     return [out / scene_name(i) for i in range(num_scenes)]
+
+
+def _collect(running: set, bar) -> set:
+    """Wait until a scene of ``running`` is finished; re-raise its failure or count it on ``bar``. Returns the
+    futures still running."""
+    done, pending = wait(running, return_when=FIRST_COMPLETED)
+    for fut in done:
+        fut.result()
+        bar.update()
+    return pending

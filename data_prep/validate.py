@@ -1,19 +1,23 @@
 """Validation of scene folders against ``data_prep/FORMAT.md`` (``data_prep validate DIR``).
 
 :func:`validate_scene` decodes every file of a scene and returns a list of :class:`Problem`, each
-naming the offending file; an empty list means the scene is valid. It never raises for a bad scene.
+naming the offending file once; an empty list means the scene is valid. It never raises for a bad scene.
+A path that is there but is not a regular file (a FIFO, a folder, a symlink loop or a dangling link) is
+reported as what it is, not as missing, and is never opened (reading a FIFO would block).
+:func:`summarize` is the one-line count the CLI prints after the problems.
 """
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from diff4splat.io import load_cameras_json, load_depth_exr
+from diff4splat.io.inputs import check_input_file
 
-from .format import (
+from .scene_files import (
     SYNC_TOLERANCE_S,
     TIMES_TOLERANCE,
     SceneMeta,
@@ -24,7 +28,7 @@ from .format import (
     timestamps_to_times,
 )
 
-__all__ = ["Problem", "validate_scene", "validate_path", "is_scene_dir"]
+__all__ = ["Problem", "validate_scene", "validate_path", "is_scene_dir", "summarize"]
 
 STATIC_TRACK_TOLERANCE_M = 1e-6
 """A static scene's tracks may move by at most this many metres."""
@@ -32,10 +36,15 @@ STATIC_TRACK_TOLERANCE_M = 1e-6
 
 @dataclass(frozen=True)
 class Problem:
-    """One violation of the format: the file (or folder) concerned and what is wrong with it."""
+    """One violation of the format: the file (or folder) concerned and what is wrong with it.
+
+    ``scene`` is the scene folder the problem belongs to (set by :func:`validate_scene`); None for a problem of a
+    dataset root itself (a sub-folder that is not a scene). It is not compared.
+    """
 
     file: Path
     message: str
+    scene: Path | None = field(default=None, compare=False)
 
     def __str__(self) -> str:
         return f"{self.file}: {self.message}"
@@ -47,6 +56,40 @@ def is_scene_dir(path: str | os.PathLike) -> bool:
     if (path / "meta.json").is_file():
         return True
     return any(c.is_dir() and (c / "cameras.json").is_file() for c in path.iterdir()) if path.is_dir() else False
+
+
+def _reason(e: Exception, path: Path) -> str:
+    """``e``'s message without the ``<path>: `` or ``<what>: <path> `` it starts with (a :class:`Problem` names the
+    file); a path elsewhere in it becomes "file"."""
+    text, name = str(e), str(path)
+    if text.startswith(f"{name}: "):
+        return text[len(name) + 2:]
+    what, sep, rest = text.partition(f": {name} ")
+    if sep and ":" not in what:
+        return rest.removeprefix("is ") if rest.startswith("is not ") else rest
+    return text.replace(name, "file")
+
+
+def _file_problem(path: Path, missing: str = "missing file") -> str | None:
+    """Why ``path`` cannot be read as a file, or None when it is a regular file (or a link to one).
+
+    ``missing`` when nothing is there; else what it is, from :func:`diff4splat.io.inputs.check_input_file`:
+    "is a FIFO (named pipe), not a regular file", "is a symlink loop, not a regular file", "is a folder, not a
+    regular file", "is a symlink to a missing file (<target>)".
+    """
+    try:
+        check_input_file(path, "file")
+    except FileNotFoundError as e:
+        reason = _reason(e, path)
+        return missing if reason.startswith("does not exist") else reason
+    except ValueError as e:
+        return _reason(e, path).replace("not a file", "not a regular file")
+    return None
+
+
+def _present(path: Path) -> bool:
+    """Something is at ``path`` (a file, a folder, a FIFO, a symlink, also a dangling one or a loop)."""
+    return path.exists() or path.is_symlink()
 
 
 def _check_frames(problems: list[Problem], folder: Path, suffix: str, T: int) -> list[Path]:
@@ -62,10 +105,11 @@ def _check_frames(problems: list[Problem], folder: Path, suffix: str, T: int) ->
                 p, f"unexpected file (frames are {frame_name(0, suffix)} … {frame_name(T - 1, suffix)})"))
     present = []
     for p in expected:
-        if p.is_file():
+        why = _file_problem(p, "missing frame")
+        if why is None:
             present.append(p)
         else:
-            problems.append(Problem(p, "missing frame"))
+            problems.append(Problem(p, why))
     return present
 
 
@@ -78,21 +122,23 @@ def _check_camera(problems: list[Problem], scene: Path, name: str, meta: SceneMe
         return None
     cam_file = folder / "cameras.json"
     size, ts = None, None
-    if not cam_file.is_file():
-        problems.append(Problem(cam_file, "missing file"))
+    why = _file_problem(cam_file)
+    if why is not None:
+        problems.append(Problem(cam_file, why))
     else:
         try:
             path = load_cameras_json(cam_file)
             size = (path.height, path.width)
             if len(path) != T:
                 problems.append(Problem(cam_file, f"has {len(path)} cameras, meta.json num_frames is {T}"))
-        except (ValueError, FileNotFoundError) as e:
-            problems.append(Problem(cam_file, str(e).removeprefix(f"{cam_file}: ")))
+        except (ValueError, FileNotFoundError) as e:  # the file is reported once: its timestamps are not read
+            problems.append(Problem(cam_file, _reason(e, cam_file)))
             path = None
-        try:
-            ts = read_timestamps(cam_file)
-        except ValueError as e:
-            problems.append(Problem(cam_file, str(e).removeprefix(f"{cam_file}: ")))
+        if path is not None:
+            try:
+                ts = read_timestamps(cam_file)
+            except ValueError as e:
+                problems.append(Problem(cam_file, _reason(e, cam_file)))
         if ts is not None and ts.shape != (T,):
             problems.append(Problem(cam_file, f"'timestamps' has {ts.size} values, num_frames is {T}"))
             ts = None
@@ -109,7 +155,7 @@ def _check_camera(problems: list[Problem], scene: Path, name: str, meta: SceneMe
         try:
             img = read_rgb(f)
         except ValueError as e:
-            problems.append(Problem(f, str(e).replace(str(f), "file")))
+            problems.append(Problem(f, _reason(e, f)))
             continue
         if size is not None and img.shape[:2] != size:
             problems.append(Problem(
@@ -124,7 +170,7 @@ def _check_camera(problems: list[Problem], scene: Path, name: str, meta: SceneMe
         try:
             z = load_depth_exr(f)
         except ValueError as e:
-            problems.append(Problem(f, str(e).replace(str(f), "file")))
+            problems.append(Problem(f, _reason(e, f)))
             continue
         if size is not None and z.shape != size:
             problems.append(Problem(f, f"depth is {z.shape[1]}×{z.shape[0]}, cameras.json says {size[1]}×{size[0]}"))
@@ -180,18 +226,27 @@ def validate_scene(path: str | os.PathLike) -> list[Problem]:
         only that problem is reported (T and the cameras are unknown).
     """
     scene = Path(path)
+    return [replace(p, scene=scene) for p in _scene_problems(scene)]
+
+
+def _scene_problems(scene: Path) -> list[Problem]:
+    """:func:`validate_scene` before each problem is given its scene."""
     if not scene.is_dir():
         return [Problem(scene, "not a folder")]
     meta_file = scene / "meta.json"
-    if not meta_file.is_file():
-        return [Problem(meta_file, "missing file")]
+    why = _file_problem(meta_file)
+    if why is not None:
+        return [Problem(meta_file, why)]
     try:
         meta = SceneMeta.load(meta_file)
     except ValueError as e:
-        return [Problem(meta_file, str(e).removeprefix(f"{meta_file}: "))]
+        return [Problem(meta_file, _reason(e, meta_file))]
     problems: list[Problem] = []
     cap = scene / "caption.txt"
-    if cap.exists():
+    why = _file_problem(cap) if _present(cap) else None
+    if why is not None:
+        problems.append(Problem(cap, why))
+    elif _present(cap):
         try:
             text = cap.read_bytes().decode("utf-8").strip()
             if not text or "\n" in text or "\r" in text:
@@ -206,8 +261,12 @@ def validate_scene(path: str | os.PathLike) -> list[Problem]:
     for c in sorted(scene.iterdir()):
         if c.is_dir() and c.name not in meta.cameras and (c / "cameras.json").exists():
             problems.append(Problem(c, "camera folder not listed in meta.json 'cameras'"))
-    if (scene / "tracks.npz").exists():
-        _check_tracks(problems, scene / "tracks.npz", meta)
+    tracks = scene / "tracks.npz"
+    why = _file_problem(tracks) if _present(tracks) else None
+    if why is not None:
+        problems.append(Problem(tracks, why))
+    elif _present(tracks):
+        _check_tracks(problems, tracks, meta)
     return problems
 
 
@@ -215,7 +274,7 @@ def validate_path(path: str | os.PathLike) -> tuple[int, list[Problem]]:
     """Validate a single scene folder or every scene of a dataset root (:func:`is_scene_dir` decides).
 
     In a dataset root, non-hidden sub-folders without ``meta.json`` are reported as problems
-    (a scene whose meta.json is lost), and an empty root is a problem.
+    (a scene whose meta.json is lost; their :attr:`Problem.scene` is None), and an empty root is a problem.
 
     Returns:
         (number of scenes checked, problems).
@@ -232,9 +291,25 @@ def validate_path(path: str | os.PathLike) -> tuple[int, list[Problem]]:
     problems: list[Problem] = []
     for d in sorted(path.iterdir()):
         if d.is_dir() and not d.name.startswith(".") and d not in scenes:
-            problems.append(Problem(d / "meta.json", "missing file (sub-folder of a dataset root is not a scene)"))
+            why = _file_problem(d / "meta.json")
+            problems.append(Problem(d / "meta.json", f"{why} (sub-folder of a dataset root is not a scene)"))
     if not scenes and not problems:
         problems.append(Problem(path, "no scene folders (sub-folders with meta.json) found"))
     for s in scenes:
         problems.extend(validate_scene(s))
     return len(scenes), problems
+
+
+def summarize(num_scenes: int, problems: list[Problem]) -> str:
+    """The summary line of ``data_prep validate`` after :func:`validate_path` checked ``num_scenes`` scenes.
+
+    Counts agree with the problems printed: problems in scenes, the scenes they are in (each scene once, by
+    :attr:`Problem.scene`), and apart from them the sub-folders of a dataset root that are not scenes, e.g.
+    ``2 scene(s) checked: 3 problem(s) in 1 scene(s); 1 sub-folder(s) not a scene``.
+    """
+    in_scenes = [p for p in problems if p.scene is not None]
+    bad = len({p.scene for p in in_scenes})
+    text = f"{num_scenes} scene(s) checked: " + (f"{len(in_scenes)} problem(s) in {bad} scene(s)" if in_scenes
+                                                 else "all valid")
+    others = len(problems) - len(in_scenes)
+    return text + (f"; {others} sub-folder(s) not a scene" if others else "")

@@ -3,10 +3,14 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import signal
+import struct
 import subprocess
 import sys
 import textwrap
+import time
+import zlib
 from pathlib import Path
 
 import cv2
@@ -328,3 +332,30 @@ def test_cli_subcommand(dataset, tmp_path, capsys):
     assert "not found" in capsys.readouterr().err
     assert cli_main(["curate", str(dataset), str(tmp_path / "o3"), "--mode", "hardlink"]) == 2
     assert "mode" in capsys.readouterr().err
+
+
+def _png_header(width: int, height: int) -> bytes:
+    """The signature and IHDR chunk of an 8-bit RGB PNG of ``width`` × ``height`` (no pixel data: a truncated
+    file whose header alone promises the size)."""
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + b"IHDR" + ihdr + struct.pack(">I", zlib.crc32(b"IHDR" + ihdr))
+
+
+@pytest.mark.parametrize("kind", ["huge", "fifo"])
+def test_a_frame_too_large_or_not_a_file_is_rejected_before_decoding(tmp_path, kind):
+    """issue 28: a frame whose header promises 100 000² pixels is refused by the image_pixels limit before any
+    decoding (40 GB), and a FIFO frame is named as such instead of blocking the reader; the scene is rejected."""
+    scene = make_scene(tmp_path / "in", "s", T=9)
+    frame = scene / "cam00" / "rgb" / "00004.png"  # one of the 3 sampled frames (0, 4, 8)
+    frame.unlink()
+    if kind == "huge":
+        frame.write_bytes(_png_header(100_000, 100_000))
+    else:
+        os.mkfifo(frame)
+    t0 = time.perf_counter()
+    (record,) = curate(tmp_path / "in", tmp_path / "out", CONFIG, progress=False)
+    assert time.perf_counter() - t0 < 5
+    assert not record["accepted"] and record["reasons"] == ["error"]
+    expected = ("100000×100000 = 10000000000 exceeds the limit of 100000000 pixels" if kind == "huge"
+                else "is a FIFO (named pipe), not a file")
+    assert expected in record["messages"][0] and str(frame) in record["messages"][0], record["messages"]

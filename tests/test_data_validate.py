@@ -1,8 +1,11 @@
 """Validator: every corruption of a valid scene is reported against the right file; CLI exit codes."""
 from __future__ import annotations
 
+import ast
 import json
+import os
 import shutil
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -11,7 +14,7 @@ import pytest
 
 from data_prep.cli import main
 from data_prep.format import SceneWriter
-from data_prep.validate import Problem, validate_path, validate_scene
+from data_prep.validate import Problem, summarize, validate_path, validate_scene
 from diff4splat.cameras import intrinsics_from_fov, make_trajectory
 from diff4splat.io import save_depth_exr, save_image
 
@@ -192,3 +195,102 @@ def test_cli_validate(tmp_path, valid_scene, capsys):
     assert main(["validate", str(tmp_path / "missing")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("data_prep: error: not a folder") and err.count("\n") == 1
+
+
+# --------------------------------------------------------------------------- issue 28
+
+@pytest.mark.parametrize("content", [b"", b'{"width": 8, "height": 6, "Ks": [[[1'], ids=["empty", "truncated"])
+def test_unreadable_cameras_json_is_one_problem(valid_scene, tmp_path, capsys, content):
+    """A 0-byte or truncated cameras.json was reported twice (as cameras and as timestamps) and counted as 2."""
+    scene = tmp_path / "scene"
+    shutil.copytree(valid_scene, scene)
+    (scene / "cam00" / "cameras.json").write_bytes(content)
+    problems = validate_scene(scene)
+    assert len(problems) == 1 and problems[0].file == scene / "cam00" / "cameras.json", problems
+    assert problems[0].message.startswith("not valid JSON (Expecting") and str(scene) not in problems[0].message
+    assert main(["validate", str(scene)]) == 1
+    assert capsys.readouterr().out.splitlines() == [str(problems[0]), "1 scene(s) checked: 1 problem(s) in 1 scene(s)"]
+
+
+def _fifo(path):
+    path.unlink(missing_ok=True)
+    os.mkfifo(path)
+
+
+def _loop(path):
+    path.unlink(missing_ok=True)
+    other = path.with_name(path.name + ".other")
+    path.symlink_to(other)
+    other.symlink_to(path)
+
+
+def _dangling(path):
+    path.unlink(missing_ok=True)
+    path.symlink_to(path.with_name("gone"))
+
+
+@pytest.mark.parametrize("file", ["cam00/rgb/00001.png", "cam01/depth/00002.exr", "cam00/cameras.json", "meta.json",
+                                  "caption.txt", "tracks.npz"])
+@pytest.mark.parametrize("make, message", [
+    (_fifo, "is a FIFO (named pipe), not a regular file"), (_loop, "is a symlink loop, not a regular file"),
+    (_dangling, "is a symlink to a missing file"),
+    (lambda p: (p.unlink(), p.mkdir()), "is a folder, not a regular file"),
+], ids=["fifo", "loop", "dangling", "folder"])
+def test_a_path_that_is_not_a_regular_file_says_what_it_is(valid_scene, tmp_path, file, make, message):
+    """A FIFO frame was a "missing frame", a symlink-loop cameras.json a "missing file" (a FIFO caption.txt or
+    tracks.npz would have blocked the validator, which opened it)."""
+    scene = tmp_path / "scene"
+    shutil.copytree(valid_scene, scene)
+    make(scene / file)
+    hits = [p for p in validate_scene(scene) if p.file == scene / file]
+    assert len(hits) == 1 and hits[0].message.startswith(message), hits
+
+
+def test_summary_counts_agree_with_the_problems(tmp_path, valid_scene, capsys):
+    """One scene with problems in two cameras read "1 scene(s) checked: 2 problem(s) in 2 scene(s)"."""
+    scene = tmp_path / "root" / "a"
+    shutil.copytree(valid_scene, scene)
+    (scene / "cam00" / "rgb" / "00000.png").unlink()
+    (scene / "cam01" / "rgb" / "00000.png").unlink()
+    assert main(["validate", str(scene)]) == 1
+    assert capsys.readouterr().out.splitlines()[-1] == "1 scene(s) checked: 2 problem(s) in 1 scene(s)"
+    shutil.copytree(valid_scene, tmp_path / "root" / "b")
+    (tmp_path / "root" / "notes").mkdir()  # not a scene: a problem of the root, not of a scene
+    assert main(["validate", str(tmp_path / "root")]) == 1
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 4
+    assert lines[-1] == "2 scene(s) checked: 2 problem(s) in 1 scene(s); 1 sub-folder(s) not a scene"
+    shutil.rmtree(scene)
+    assert main(["validate", str(tmp_path / "root")]) == 1
+    assert capsys.readouterr().out.splitlines()[-1] == "1 scene(s) checked: all valid; 1 sub-folder(s) not a scene"
+    n, problems = validate_path(tmp_path / "root")
+    assert summarize(n, problems) == "1 scene(s) checked: all valid; 1 sub-folder(s) not a scene"
+    assert [p.scene for p in problems] == [None]
+
+
+def _imports(module):
+    """(module imported, whether at the top level) for every import of ``module``'s source (relative ones resolved
+    within data_prep)."""
+    tree = ast.parse(Path(module.__file__).read_text())
+    top = {id(node) for node in tree.body}
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            name = ("data_prep." + (node.module or "")) if node.level else node.module
+            out.append((name, id(node) in top))
+        elif isinstance(node, ast.Import):
+            out += [(a.name, id(node) in top) for a in node.names]
+    return out
+
+
+def test_validate_and_format_import_each_other_no_more():
+    """data_prep.format (the writer) validates with data_prep.validate; validate imported format back (the circle
+    was dodged with an import inside a function). Now validate and format share data_prep.scene_files."""
+    import data_prep.format
+    import data_prep.scene_files
+    import data_prep.validate
+
+    for module in (data_prep.validate, data_prep.scene_files):
+        assert not [n for n, _ in _imports(module) if n == "data_prep.format"], module.__name__
+    assert ("data_prep.validate", True) in _imports(data_prep.format)
+    assert all(top for _, top in _imports(data_prep.format))  # no import inside a function

@@ -331,6 +331,35 @@ def test_convert_of_a_missing_folder_says_it_is_missing(tmp_path, capsys):
     assert code == 2 and f"source folder not found: {tmp_path / 'nope'}" in err and "must be given" not in err
 
 
+@pytest.mark.parametrize("kind, text", [("fifo", "is a FIFO (named pipe), not a folder"),
+                                        ("loop", "is a symlink loop, not a folder"),
+                                        ("file", "is a regular file, not a folder")])
+def test_convert_source_that_is_not_a_folder_says_what_it_is(tmp_path, capsys, kind, text):
+    """issue 28: a FIFO source was "source folder not found"."""
+    src = tmp_path / "src"
+    if kind == "fifo":
+        os.mkfifo(src)
+    elif kind == "loop":
+        src.symlink_to(tmp_path / "other")
+        (tmp_path / "other").symlink_to(src)
+    else:
+        src.write_text("x")
+    code = data_prep_main(["convert", "realestate10k", str(src), str(tmp_path / "out")])
+    err = capsys.readouterr().err.splitlines()
+    assert code == 2 and err == [f"data_prep: error: source folder: {src} {text}"], err
+    assert not (tmp_path / "out").exists()
+
+
+def test_convert_of_an_empty_camera_file_names_it(tmp_path, capsys):
+    """issue 28: an empty RealEstate10K ``clip.txt`` said "the source sequence has no frames" without naming it."""
+    (tmp_path / "src").mkdir()
+    (tmp_path / "src" / "clip.txt").write_text("")
+    code = data_prep_main(["convert", "realestate10k", str(tmp_path / "src"), str(tmp_path / "out")])
+    err = capsys.readouterr().err.splitlines()
+    assert code == 2 and err == [f"data_prep: error: {tmp_path / 'src' / 'clip.txt'} has no frames"], err
+    assert not (tmp_path / "out").exists()
+
+
 def test_no_clip_message_reads_as_english(tmp_path):
     from data_prep.clips import ClipConfig, ClipDataset
 

@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from diff4splat.cameras import CameraPath, invert_rigid
+from diff4splat.io.inputs import check_input_file
 from diff4splat.quaternions import quat_to_rotmat
 
 from ..format import SceneWriter, timestamps_to_times
@@ -76,11 +77,21 @@ NED_TO_CV = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
 
 
 def require_file(path: str | os.PathLike, what: str) -> Path:
-    """``Path(path)`` if it is a file, else FileNotFoundError naming ``what`` and the path."""
+    """``Path(path)`` if it is a regular file (or a link to one).
+
+    Raises:
+        FileNotFoundError: nothing is there (``"<what> not found: <path>"``) or a dangling link (named).
+        ValueError: ``path`` is a folder, a FIFO, a socket, a device or a symlink loop, said as such
+            (:func:`diff4splat.io.inputs.check_input_file`, e.g. ``"<what>: <path> is a FIFO (named pipe), not
+            a file"``).
+    """
     p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"{what} not found: {p}")
-    return p
+    try:
+        return check_input_file(p, what)
+    except FileNotFoundError as e:
+        if os.path.islink(p):
+            raise
+        raise FileNotFoundError(f"{what} not found: {p}") from e
 
 
 def only_stem(folder: Path, pattern: str, option: str, what: str) -> str:
@@ -98,11 +109,25 @@ def only_stem(folder: Path, pattern: str, option: str, what: str) -> str:
 
 
 def require_dir(path: str | os.PathLike, what: str) -> Path:
-    """``Path(path)`` if it is a folder, else FileNotFoundError naming ``what`` and the path."""
+    """``Path(path)`` if it is a folder (or a link to one).
+
+    Raises:
+        FileNotFoundError: nothing is there (``"<what> folder not found: <path>"``) or a dangling link (named).
+        ValueError: ``path`` is something else, said as such: ``"<what> folder: <path> is a FIFO (named pipe),
+            not a folder"``, ``… is a symlink loop, not a folder``, ``… is a regular file, not a folder``.
+    """
     p = Path(path)
-    if not p.is_dir():
-        raise FileNotFoundError(f"{what} folder not found: {p}")
-    return p
+    if p.is_dir():
+        return p
+    try:  # what is there instead (the same words as for files), or nothing
+        check_input_file(p, f"{what} folder")
+    except FileNotFoundError as e:
+        if os.path.islink(p):
+            raise
+        raise FileNotFoundError(f"{what} folder not found: {p}") from e
+    except ValueError as e:
+        raise ValueError(str(e).replace("not a file", "not a folder")) from None
+    raise ValueError(f"{what} folder: {p} is a regular file, not a folder")
 
 
 def rigid(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -360,14 +385,19 @@ def iter_video_frames(path: str | os.PathLike, indices: list[int]) -> Iterator[n
         cap.release()
 
 
-def select_frames(total: int, start: int = 0, stride: int = 1, max_frames: int | None = None) -> list[int]:
+def select_frames(total: int, start: int = 0, stride: int = 1, max_frames: int | None = None, *,
+                  source: str | os.PathLike | None = None) -> list[int]:
     """Source frame indices start, start+stride, … (< total), at most ``max_frames`` of them.
 
+    Args:
+        source: the file or folder the ``total`` frames were counted in, named when it has none.
+
     Raises:
-        ValueError: ``total`` < 1, ``start`` outside [0, total), ``stride`` < 1, ``max_frames`` < 1.
+        ValueError: ``total`` < 1 (``"<source> has no frames"``), ``start`` outside [0, total), ``stride`` < 1,
+            ``max_frames`` < 1.
     """
     if total < 1:
-        raise ValueError("the source sequence has no frames")
+        raise ValueError(f"{'the source sequence' if source is None else source} has no frames")
     if not isinstance(start, int) or not 0 <= start < total:
         raise ValueError(f"start must be an int in [0, {total}), got {start!r}")
     if not isinstance(stride, int) or stride < 1:

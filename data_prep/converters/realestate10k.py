@@ -94,7 +94,7 @@ def convert_realestate10k(src: str | os.PathLike, out: str | os.PathLike, *, cli
         raise ValueError("estimates_dir needs reference_dir: RealEstate10K has no metric reference, an unaligned "
                          "estimate cannot be stored as depth (convert without estimates for depth_source='none')")
     stamps = read_realestate10k_timestamps(cam_file)
-    idx = select_frames(len(stamps), start, stride, max_frames)
+    idx = select_frames(len(stamps), start, stride, max_frames, source=cam_file)
     frame_dir = require_dir(src / clip, "RealEstate10K frames")
     H, W = read_rgb_uint8(_frame_file(frame_dir, stamps[idx[0]])).shape[:2]
     full = load_realestate10k(cam_file, W, H, relative=False)

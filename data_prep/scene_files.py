@@ -1,0 +1,230 @@
+"""What a scene folder holds, file by file (``data_prep/FORMAT.md``): the format's constants, ``meta.json``
+(:class:`SceneMeta`), frame file names, and the readers of single files (timestamps, RGB frames).
+
+The lowest module of the format: :mod:`data_prep.validate` checks scenes with it, and :mod:`data_prep.format`
+(the scene writer and reader) builds on both and re-exports the names of the format, so ``from data_prep.format import
+SceneMeta`` keeps working.
+"""
+from __future__ import annotations
+
+import math
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from diff4splat.io.image import read_image
+from diff4splat.io.structured import read_json
+
+__all__ = [
+    "FORMAT_VERSION",
+    "DEPTH_SOURCES",
+    "SYNC_TOLERANCE_S",
+    "TIMES_TOLERANCE",
+    "SceneMeta",
+    "list_scenes",
+    "frame_name",
+    "check_camera_name",
+    "read_rgb",
+    "read_timestamps",
+    "timestamps_to_times",
+    "is_int",
+]
+
+FORMAT_VERSION = 1
+"""Version of ``data_prep/FORMAT.md`` written by this module."""
+DEPTH_SOURCES: tuple[str, ...] = ("ground_truth", "aligned_estimate", "none")
+"""Allowed values of ``meta["depth_source"]``."""
+
+SYNC_TOLERANCE_S = 1e-3
+"""Cameras are synchronised when their timestamps agree within this many seconds."""
+
+TIMES_TOLERANCE = 1e-4
+"""``times`` must equal the normalised ``timestamps`` within this (times are in [0, 1])."""
+
+_CAMERA_NAME = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9_.-]*$")
+
+
+def check_camera_name(name: Any) -> str:
+    """Return ``name`` if it is a valid camera folder name ([A-Za-z0-9_.-]+, no leading '.'), else ValueError."""
+    if not isinstance(name, str) or not _CAMERA_NAME.match(name):
+        raise ValueError(f"cameras: {name!r} is not a valid camera folder name ([A-Za-z0-9_.-]+, no leading '.')")
+    return name
+
+
+def frame_name(index: int, suffix: str) -> str:
+    """File name of frame ``index``: ``f"{index:05d}{suffix}"`` (e.g. ``00017.png``)."""
+    return f"{index:05d}{suffix}"
+
+
+def is_int(v: Any) -> bool:
+    """True for an ``int`` that is not a ``bool``."""
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+@dataclass
+class SceneMeta:
+    """The typed content of ``meta.json`` (FORMAT.md, "meta.json").
+
+    Attributes:
+        source: dataset name, e.g. ``"synthetic"``, ``"pointodyssey"``.
+        dynamic: anything in the scene moves (False: static world, only cameras move).
+        depth_source: one of :data:`DEPTH_SOURCES`.
+        num_frames: T ≥ 1 frames per camera.
+        cameras: camera folder names, reference camera first, unique.
+        fps: nominal frame rate of the stored frames, Hz, > 0.
+        depth_scale: > 0; metric = depth_scale·estimate + depth_shift was applied (1 for ground truth).
+        depth_shift: metres (0 for ground truth).
+        format_version: must be :data:`FORMAT_VERSION`.
+        extra: any other keys, kept as is (JSON-serialisable).
+
+    Raises:
+        ValueError: naming the field and the value, on construction.
+    """
+
+    source: str
+    dynamic: bool
+    depth_source: str
+    num_frames: int
+    cameras: list[str]
+    fps: float
+    depth_scale: float = 1.0
+    depth_shift: float = 0.0
+    format_version: int = FORMAT_VERSION
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    _KEYS = ("format_version", "source", "dynamic", "depth_source", "depth_scale", "depth_shift",
+             "num_frames", "cameras", "fps")
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Check every field's type and value (FORMAT.md table). Raises ValueError naming the field."""
+        if not is_int(self.format_version) or self.format_version != FORMAT_VERSION:
+            raise ValueError(f"format_version must be {FORMAT_VERSION}, got {self.format_version!r}")
+        if not isinstance(self.source, str) or not self.source.strip():
+            raise ValueError(f"source must be a non-empty string, got {self.source!r}")
+        if not isinstance(self.dynamic, bool):
+            raise ValueError(f"dynamic must be true or false, got {self.dynamic!r}")
+        if self.depth_source not in DEPTH_SOURCES:
+            raise ValueError(f"depth_source must be one of {list(DEPTH_SOURCES)}, got {self.depth_source!r}")
+        if not _is_number(self.depth_scale) or self.depth_scale <= 0:
+            raise ValueError(f"depth_scale must be a finite number > 0, got {self.depth_scale!r}")
+        if not _is_number(self.depth_shift):
+            raise ValueError(f"depth_shift must be a finite number (metres), got {self.depth_shift!r}")
+        if not is_int(self.num_frames) or self.num_frames < 1:
+            raise ValueError(f"num_frames must be an integer ≥ 1, got {self.num_frames!r}")
+        if not _is_number(self.fps) or self.fps <= 0:
+            raise ValueError(f"fps must be a finite number > 0, got {self.fps!r}")
+        if not isinstance(self.cameras, list) or not self.cameras:
+            raise ValueError(f"cameras must be a non-empty list of camera folder names, got {self.cameras!r}")
+        for name in self.cameras:
+            check_camera_name(name)
+        if len(set(self.cameras)) != len(self.cameras):
+            raise ValueError(f"cameras must be unique, got {self.cameras}")
+        if not isinstance(self.extra, dict) or any(k in self._KEYS for k in self.extra):
+            raise ValueError("extra must be a dict whose keys are not standard meta keys")
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON object of ``meta.json`` (standard keys first, then ``extra``)."""
+        out = {k: getattr(self, k) for k in self._KEYS}
+        out["cameras"] = list(self.cameras)
+        out.update(self.extra)
+        return out
+
+    @classmethod
+    def from_dict(cls, data: Any) -> SceneMeta:
+        """Parse a ``meta.json`` object.
+
+        Raises:
+            ValueError: not an object, a missing key (named) or a field failing :meth:`validate`.
+        """
+        if not isinstance(data, dict):
+            raise ValueError(f"meta must be a JSON object, got {type(data).__name__}")
+        missing = [k for k in cls._KEYS if k not in data]
+        if missing:
+            raise ValueError(f"missing key(s) {missing}")
+        extra = {k: v for k, v in data.items() if k not in cls._KEYS}
+        return cls(**{k: data[k] for k in cls._KEYS}, extra=extra)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> SceneMeta:
+        """Read and parse ``meta.json``.
+
+        Raises:
+            FileNotFoundError: ``path`` does not exist.
+            ValueError: invalid JSON or an invalid field (message prefixed with the path).
+        """
+        data = read_json(path, "scene meta", expect=None)
+        try:
+            return cls.from_dict(data)
+        except (ValueError, TypeError) as e:
+            raise ValueError(f"{path}: {e}") from None
+
+
+def timestamps_to_times(timestamps: np.ndarray) -> np.ndarray:
+    """Clip times t_i = (ts_i − ts_0)/(ts_{T−1} − ts_0) in [0, 1] of timestamps (T,) seconds.
+
+    T = 1, or equal first and last timestamps, gives all zeros. Returns float64 (T,).
+    """
+    ts = np.asarray(timestamps, dtype=np.float64)
+    span = ts[-1] - ts[0] if ts.size else 0.0
+    return (ts - ts[0]) / span if span > 0 else np.zeros_like(ts)
+
+
+def read_timestamps(path: str | os.PathLike) -> np.ndarray:
+    """The ``"timestamps"`` (T,) float64 seconds of a scene camera's ``cameras.json``.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: invalid JSON, missing ``timestamps``, not a list of finite numbers, or decreasing.
+    """
+    path = Path(path)
+    data = read_json(path, "camera file", expect=None)
+    ts = data.get("timestamps") if isinstance(data, dict) else None
+    if not isinstance(ts, list) or not all(_is_number(x) for x in ts):
+        raise ValueError(f"{path}: 'timestamps' must be a list of finite numbers (seconds), got {str(ts)[:60]}")
+    ts = np.asarray(ts, dtype=np.float64)
+    if ts.size > 1 and bool((np.diff(ts) < 0).any()):
+        raise ValueError(f"{path}: 'timestamps' must be non-decreasing")
+    return ts
+
+
+def read_rgb(path: str | os.PathLike) -> np.ndarray:
+    """Decode an 8-bit 3-channel RGB image file to (H, W, 3) float32 in [0, 1] (value/255).
+
+    Decoded by :func:`diff4splat.io.image.read_image`: its pixel count is checked against the ``image_pixels``
+    limit from the header before decoding, and a path that is not a regular file is named as what it is.
+
+    Raises:
+        FileNotFoundError: nothing exists at ``path``.
+        ValueError: ``path`` is a folder, a FIFO or a symlink loop; the file cannot be decoded, has more pixels
+            than the ``image_pixels`` limit (:class:`diff4splat.limits.LimitError`), or is not 8-bit with exactly
+            3 channels.
+    """
+    img = read_image(path)
+    if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
+        ch = img.shape[2] if img.ndim == 3 else 1
+        raise ValueError(f"{path} must be 8-bit RGB (3 channels), got dtype {img.dtype} with {ch} channel(s)")
+    return img.astype(np.float32) / 255.0
+
+
+def list_scenes(root: str | os.PathLike) -> list[Path]:
+    """Scene folders of a dataset root: sorted sub-folders holding ``meta.json``, hidden ones skipped.
+
+    Raises:
+        FileNotFoundError: ``root`` is not a folder.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"dataset folder not found: {root}")
+    return sorted(p for p in root.iterdir()
+                  if p.is_dir() and not p.name.startswith(".") and (p / "meta.json").is_file())
