@@ -5,7 +5,9 @@ Input folder (docs/DESIGN.md, "Output folder of generate"): ``scene.ply`` (canon
 in a ``fit`` output, ``field.safetensors`` (the HexPlane field, :func:`models.hexplane.load_field`). With a
 field the deformation is queried at exactly the times of the new path (:func:`path_scene`); without one
 ``deformation.npz`` is interpolated between its key times as docs/DESIGN.md says
-(:meth:`~diff4splat.scene.DynamicGaussians.at`); a folder with neither is static.
+(:meth:`~diff4splat.scene.DynamicGaussians.at`); a folder with neither is static. Every file is read as
+untrusted input (:func:`load_scene_folder`): a malformed, corrupt or inconsistent one is a ``ValueError`` naming
+it (``deformation.npz`` missing while ``meta.json`` says ``"static": false`` included).
 
 Camera path (:func:`load_camera_file`, :func:`trajectory_cameras`), one of:
 
@@ -35,7 +37,6 @@ replaces a user's folder nor the input)::
 from __future__ import annotations
 
 import json
-import math
 import os
 import platform
 import time
@@ -48,14 +49,15 @@ import torch
 from torch import Tensor
 
 from . import __version__
-from .cameras import TRAJECTORIES, CameraPath, make_trajectory
+from .cameras import CameraPath, make_trajectory
+from .cameras.trajectories import check_amplitude
 from .checks import check_positive_int
+from .constants import ALPHA_MIN
 from .devices import resolve_device
-from .io import load_cameras_json, load_depth_exr, load_ply, load_realestate10k, save_cameras_json, save_depth_exr
+from .io import load_cameras_json, load_depth_exr, load_realestate10k, save_cameras_json, save_depth_exr
 from .io.inputs import check_input_file
-from .io.outdir import check_output_dir, output_dir, read_marker
-from .io.output import fill_empty_depth, load_deformation
-from .io.structured import read_json
+from .io.outdir import MARKER, check_output_dir, output_dir, read_marker
+from .io.output import fill_empty_depth, folder_file, load_output_scene
 from .io.video import check_fps, save_image, save_video, to_uint8
 from .limits import check_limit, check_output_size
 from .render.defaults import NEAR_PLANE, meta_background, meta_eps2d
@@ -104,59 +106,45 @@ class SceneFolder:
 
 
 def load_scene_folder(folder: str | os.PathLike, device: str | torch.device = "cpu") -> SceneFolder:
-    """Read an output folder of ``generate`` or ``fit`` (module docstring), the scene and field onto ``device``
-    (the camera path stays on the CPU).
+    """Read an output folder of ``generate`` or ``fit`` (module docstring) as untrusted input, the scene and field
+    onto ``device`` (the camera path stays on the CPU): ``scene.ply``, ``deformation.npz`` and ``meta.json`` by
+    :func:`diff4splat.io.output.load_output_scene`, ``cameras.json`` by :func:`diff4splat.io.load_cameras_json`,
+    ``field.safetensors`` by :func:`models.hexplane.load_field`.
 
     Raises:
         FileNotFoundError: ``folder`` does not exist, is not a folder, or lacks ``scene.ply`` or ``cameras.json``
             (each named).
-        ValueError: a file of the folder is malformed (the reader's message names it); ``deformation.npz``
-            does not fit ``scene.ply`` (Gaussian count, shapes).
+        ValueError: a file of the folder is malformed or corrupt, or the files disagree (the message names the
+            file; :func:`~diff4splat.io.output.load_output_scene`): a truncated or garbage ``deformation.npz`` or
+            ``scene.ply``, wrong keys, shapes or dtypes, NaN/inf, ``deformation.npz`` missing while ``meta.json``
+            says ``"static": false``, ``meta.json`` not a JSON object, a bad ``cameras.json`` or
+            ``field.safetensors``; a file that is a folder, a FIFO or a dangling symlink.
     """
     path = Path(folder)
-    if not path.exists():
-        raise FileNotFoundError(f"scene folder {path} does not exist")
-    if not path.is_dir():
-        raise FileNotFoundError(f"scene folder {path} is not a folder (give an output folder of generate or fit)")
-    if not (path / "scene.ply").is_file():
-        raise FileNotFoundError(f"scene folder {path} has no scene.ply (not an output folder of generate or fit)")
-    canonical = load_ply(path / "scene.ply")
-    scene = DynamicGaussians(canonical)
-    if (path / "deformation.npz").is_file():
-        arrays = {k: torch.from_numpy(v).float() for k, v in load_deformation(path / "deformation.npz").items()}
-        try:
-            scene = DynamicGaussians(canonical, **arrays)
-        except ValueError as e:
-            raise ValueError(f"{path / 'deformation.npz'} does not fit {path / 'scene.ply'}: {e}") from None
-    if not (path / "cameras.json").is_file():
+    scene, meta = load_output_scene(path)
+    cameras_file = folder_file(path, "cameras.json")
+    if cameras_file is None:
         raise FileNotFoundError(f"scene folder {path} has no cameras.json (not an output folder of generate or fit)")
-    cameras = load_cameras_json(path / "cameras.json")
-    meta = read_json(path / "meta.json", "meta.json") if (path / "meta.json").is_file() else {}
+    cameras = load_cameras_json(cameras_file)
+    field_file = folder_file(path, FIELD_FILE)
     field = None
-    if (path / FIELD_FILE).is_file():
+    if field_file is not None:
         from models.hexplane import load_field
 
-        field = load_field(path / FIELD_FILE, map_location=device)
+        field = load_field(field_file, map_location=device)
     return SceneFolder(path, scene.to(device), cameras, meta, field)
 
 
-def scene_depth(folder: SceneFolder) -> float:
-    """Distance from the folder's first camera to the scene centre, metres: where presets look.
-
-    The first of: meta.json's ``scene_depth`` (a finite number > 0); the median depth "Z" of the pixels of
-    ``depth/0000.exr`` whose coverage "A" exceeds :data:`COVERED` (every pixel with a finite Z > 0 if the file
-    has no "A"); the median depth of the canonical Gaussian means in front of the first camera
-    (z > :data:`~diff4splat.render.defaults.NEAR_PLANE`).
-
-    Raises:
-        ValueError: none of the three exists (no depth map and no Gaussian in front of the first camera).
-    """
-    value = folder.meta.get("scene_depth")
-    if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0:
+def _depth_estimate(folder: SceneFolder) -> float | None:
+    """:func:`scene_depth`, or None when none of its sources exists."""
+    value = folder.meta.get("scene_depth")  # checked by load_output_scene: a finite number > 0, or absent
+    if value is not None:
         return float(value)
-    exr = folder.path / "depth" / "0000.exr"
-    if exr.is_file():
+    exr = folder_file(folder.path, "depth/0000.exr")
+    if exr is not None:
         z, a = load_depth_exr(exr, return_alpha=True)
+        if a is not None and a.shape != z.shape:
+            raise ValueError(f"{exr}: channels 'Z' {z.shape} and 'A' {a.shape} differ in size")
         keep = np.isfinite(z) & (z > 0) & (a > COVERED if a is not None else True)
         if keep.any():
             return float(np.median(z[keep]))
@@ -164,10 +152,25 @@ def scene_depth(folder: SceneFolder) -> float:
     vm = folder.cameras.viewmats[0].to(means)
     z = means @ vm[2, :3] + vm[2, 3]  # camera-0 depth of each mean
     z = z[z > NEAR_PLANE]
-    if z.numel():
-        return float(z.median())
-    raise ValueError(f"scene folder {folder.path}: cannot estimate the scene depth (no depth/0000.exr coverage "
-                     "and no Gaussian in front of the first camera)")
+    return float(z.median()) if z.numel() else None
+
+
+def scene_depth(folder: SceneFolder) -> float:
+    """Distance from the folder's first camera to the scene centre, metres: where presets look.
+
+    The first of: meta.json's ``scene_depth``; the median depth "Z" of the pixels of ``depth/0000.exr`` whose
+    coverage "A" exceeds :data:`COVERED` (every pixel with a finite Z > 0 if the file has no "A"); the median depth
+    of the canonical Gaussian means in front of the first camera (z > :data:`~diff4splat.render.defaults.NEAR_PLANE`).
+
+    Raises:
+        ValueError: none of the three exists (no depth map and no Gaussian in front of the first camera); a
+            ``depth/0000.exr`` that is not a readable EXR with a "Z" channel (naming it).
+    """
+    depth = _depth_estimate(folder)
+    if depth is None:
+        raise ValueError(f"scene folder {folder.path}: cannot estimate the scene depth (no depth/0000.exr coverage "
+                         "and no Gaussian in front of the first camera)")
+    return depth
 
 
 def path_scene(folder: SceneFolder, times: Tensor) -> DynamicGaussians:
@@ -234,17 +237,20 @@ def trajectory_cameras(folder: SceneFolder, name: str, frames: int | None = None
         (path whose first camera is the folder's first camera, scene depth in metres).
 
     Raises:
-        ValueError: unknown preset, bad ``frames`` or ``amplitude`` (:func:`make_trajectory`), ``frames`` above
-            the ``frames`` limit (:class:`~diff4splat.limits.LimitError`), no scene depth (:func:`scene_depth`).
+        ValueError: unknown preset, bad ``amplitude`` (:func:`make_trajectory`: the checks of ``generate``'s presets),
+            ``frames`` not a positive int or above the ``frames`` limit (:class:`~diff4splat.limits.LimitError`), no
+            scene depth (:func:`scene_depth`).
     """
-    if name not in TRAJECTORIES:
-        raise ValueError(f"trajectory must be one of {', '.join(TRAJECTORIES)}, got {name!r}")
     c = folder.cameras
-    T = len(c) if frames is None else check_positive_int("frames", frames)
-    check_limit("frames", T, "frames")
+    T = _check_frames(len(c) if frames is None else frames)
     depth = scene_depth(folder)
     preset = make_trajectory(name, T, c.Ks[0], c.width, c.height, scene_depth=depth, amplitude=amplitude)
     return placed_at(preset, c.viewmats[0]), depth
+
+
+def _check_frames(frames: object) -> int:
+    """``frames`` if it is a positive int within the ``frames`` limit (:func:`diff4splat.limits.check_limit`)."""
+    return check_limit("frames", check_positive_int("frames", frames), "frames")
 
 
 def resize_cameras(cameras: CameraPath, width: int | None = None, height: int | None = None) -> CameraPath:
@@ -314,8 +320,11 @@ def rerender(
         ValueError: both or neither of ``cameras``/``trajectory``; ``amplitude``/``frames`` with ``cameras``; a bad
             ``fps``, size or preset argument; an ``out`` that may not be written
             (:class:`~diff4splat.io.OutputDirError`); frames or output size above their limits
-            (:class:`~diff4splat.limits.LimitError`); a malformed file of ``folder`` or camera file; a ``device``
-            this machine does not have.
+            (:class:`~diff4splat.limits.LimitError`); a malformed file of ``folder`` or camera file
+            (:func:`load_scene_folder`); an unknown preset or an ``amplitude`` outside the preset's range
+            (:func:`diff4splat.cameras.trajectories.check_amplitude`, as ``generate``), checked before the folder is
+            read; a path none of whose frames sees the scene (every pixel background, as ``generate`` refuses it),
+            checked after rendering and before anything is written; a ``device`` this machine does not have.
         FileNotFoundError: ``folder``, its ``scene.ply``/``cameras.json`` or the camera file is missing.
     """
     t_start = time.perf_counter()
@@ -327,6 +336,10 @@ def rerender(
         raise ValueError("amplitude and frames shape a trajectory preset; they do not apply to a camera file "
                          "(the file fixes the path)")
     fps = check_fps(fps)
+    if trajectory is not None:  # before the scene is read: generate's checks of a preset
+        check_amplitude(trajectory, amplitude)
+    if frames is not None:
+        _check_frames(frames)
     inputs = [folder, cameras]
     check_output_dir(out, inputs=inputs, overwrite=overwrite, kind=RENDER_KIND)
     src = load_scene_folder(folder, device)
@@ -338,6 +351,8 @@ def rerender(
     path = resize_cameras(path, width, height)
     check_output_size(len(path), path.width, path.height)
     scene = path_scene(src, path.times)
+    if depth is None:
+        depth = _depth_estimate(src)  # only the fill value of pixels that no frame covers (1 m without one)
     t_load = time.perf_counter() - t_start
     t0 = time.perf_counter()
     background, eps2d = meta_background(src.meta), meta_eps2d(src.meta)
@@ -345,14 +360,11 @@ def rerender(
                                          progress=progress)
     colors, depths, alphas = colors.cpu(), depths.cpu(), alphas.cpu()  # waits for the device: in t_render
     t_render = time.perf_counter() - t0
-    if depth is None:
-        try:
-            depth = scene_depth(src)
-        except ValueError:  # only the fill value of pixels that no frame covers
-            depth = 1.0
+    _check_path_sees_the_scene(alphas, trajectory)
+    depth = 1.0 if depth is None else depth
     meta = {
         "source": str(folder),
-        "source_kind": read_marker(Path(folder)),
+        "source_kind": read_marker(src.path) if folder_file(src.path, MARKER) is not None else None,
         "cameras_file": None if cameras is None else str(cameras),
         "trajectory": trajectory,
         "amplitude": amplitude,
@@ -372,6 +384,18 @@ def rerender(
     _write(out, path, scene.to("cpu"), colors, depths, alphas, meta, inputs=inputs, overwrite=overwrite,
            t_start=t_start)
     return meta
+
+
+def _check_path_sees_the_scene(alphas: Tensor, trajectory: str | None) -> None:
+    """ValueError when no frame covers a pixel (every alpha < 1/255: the render would be the background alone),
+    naming the likely cause, as ``generate`` refuses a path that sees none of its scene (README, "Limits")."""
+    if bool((alphas >= ALPHA_MIN).any()):
+        return
+    cause = ("the folder's first camera does not look at its scene (a cameras.json of another folder?)"
+             if trajectory is not None else "the cameras look away from the scene (a camera file in another world "
+                                            "frame, or intrinsics in other units)")
+    raise ValueError(f"the camera path sees none of the scene: all {len(alphas)} frames would show only the "
+                     f"background; likely cause: {cause}")
 
 
 def _write(out, path: CameraPath, scene: DynamicGaussians, colors: Tensor, depths: Tensor, alphas: Tensor,

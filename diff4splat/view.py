@@ -3,72 +3,116 @@
 The page at ``/`` (and ``/viewer.html``) is the viewer (:mod:`diff4splat.viewer`) with the folder's **full**
 scene, never reduced to the size budget of the embedded ``viewer.html``: the page fetches the canonical
 Gaussians and the keyframes from ``/__diff4splat__/scene.ply`` and ``/__diff4splat__/frames.bin``, which are
-computed once at start from the folder's scene.ply, deformation.npz, cameras.json and meta.json
-(:func:`diff4splat.rerender.load_scene_folder`). A folder without scene.ply (a ``render`` output) is served
-as it is, its own viewer.html at ``/``. Every other path is a file of the folder.
+computed once at start from the folder's scene.ply, deformation.npz, cameras.json and meta.json, each checked as
+input (:func:`diff4splat.rerender.load_scene_folder`). A folder without scene.ply (a ``render`` output) is served
+as it is, its own viewer.html at ``/``.
+
+Besides these, only the files of the output-folder layout are served (:func:`diff4splat.io.output.is_layout_file`:
+scene.ply, video.mp4, rgb/NNNN.png, depth/NNNN.exr, …), matched on the raw request path, so a percent-encoded
+name (``%2e%2e/``, ``%2F``, ``%00``), a backslash or ``..`` is never one; and only when the file, every symlink
+resolved, lies inside the folder and is a regular file. Anything else is 404.
 
 The server binds 127.0.0.1 (loopback only: nothing on another interface can reach it); Ctrl-C stops it.
 """
 from __future__ import annotations
 
-import functools
+import errno
 import os
+import shutil
 import signal
 import threading
-from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
+from .io.output import is_layout_file
 from .render.defaults import meta_background, meta_eps2d
+from .rerender import load_scene_folder
 from .viewer.data import ViewerPayload, viewer_payload
 from .viewer.page import VIEWER_NAME, viewer_html
 
-__all__ = ["HOST", "DATA_PREFIX", "make_server", "folder_payload"]
+__all__ = ["HOST", "DATA_PREFIX", "make_server", "folder_payload", "served_file", "serve"]
 
 HOST = "127.0.0.1"
 """The only address the server listens on."""
 DATA_PREFIX = "/__diff4splat__/"
 """URL prefix of the full-size data the served page fetches."""
+_CONTENT_TYPES = {".html": "text/html; charset=utf-8", ".json": "application/json", ".png": "image/png",
+                  ".mp4": "video/mp4"}
+"""Content types of the layout's files; the others (PLY, EXR, NPZ, safetensors) are application/octet-stream."""
 
 
 def folder_payload(folder: str | os.PathLike) -> ViewerPayload:
     """The unreduced viewer payload of an output folder of generate, fit or render-with-scene.
 
     Raises:
-        FileNotFoundError / ValueError: as :func:`diff4splat.rerender.load_scene_folder`.
+        FileNotFoundError / ValueError: as :func:`diff4splat.rerender.load_scene_folder` (a malformed or corrupt
+            file of the folder, named).
     """
-    from .rerender import load_scene_folder
-
     src = load_scene_folder(folder)
-    fps = src.meta.get("fps")
-    fps = fps if isinstance(fps, (int, float)) and not isinstance(fps, bool) and fps > 0 else 8
-    return viewer_payload(src.scene, src.cameras, fps=fps, budget=None, background=meta_background(src.meta),
-                          eps2d=meta_eps2d(src.meta))
+    fps = src.meta.get("fps")  # checked by load_scene_folder when present
+    return viewer_payload(src.scene, src.cameras, fps=8 if fps is None else fps, budget=None,
+                          background=meta_background(src.meta), eps2d=meta_eps2d(src.meta))
 
 
-class _Handler(SimpleHTTPRequestHandler):
+def served_file(root: Path, url_path: str) -> Path | None:
+    """The file of the folder ``root`` (resolved, absolute) that the raw request path ``url_path`` (no query) names,
+    or None: ``url_path`` is ``/`` + a layout file (:func:`~diff4splat.io.output.is_layout_file`; ``/`` is
+    ``viewer.html``), and that file, symlinks resolved, is a regular file inside ``root``."""
+    name = VIEWER_NAME if url_path == "/" else url_path[1:] if url_path.startswith("/") else ""
+    if not is_layout_file(name):
+        return None
+    try:
+        target = (root / name).resolve(strict=True)
+    except (OSError, RuntimeError):  # missing, a symlink loop, …
+        return None
+    return target if target.is_relative_to(root) and target.is_file() else None
+
+
+class _Handler(BaseHTTPRequestHandler):
+    root: Path  # the folder, resolved (set by make_server's subclass)
     page: bytes | None = None
     data: dict[str, bytes] = {}
 
     def log_message(self, format, *args):  # noqa: A002 (the base class's name): quiet
         pass
 
-    def _send(self, body: bytes, kind: str) -> None:
+    def _headers(self, size: int, kind: str) -> None:
         self.send_response(200)
         self.send_header("Content-Type", kind)
-        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Content-Length", str(size))
         self.send_header("Cache-Control", "no-store")
+        self.send_header("X-Content-Type-Options", "nosniff")
         self.end_headers()
-        self.wfile.write(body)
+
+    def _respond(self, body: bool) -> None:
+        path = self.path.split("?", 1)[0].split("#", 1)[0]
+        if self.page is not None and path in ("/", "/" + VIEWER_NAME):
+            blob, kind = self.page, "text/html; charset=utf-8"
+        elif path.startswith(DATA_PREFIX) and path[len(DATA_PREFIX):] in self.data:
+            blob, kind = self.data[path[len(DATA_PREFIX):]], "application/octet-stream"
+        else:
+            file = served_file(self.root, path)
+            if file is None:
+                return self.send_error(404)
+            try:
+                f = open(file, "rb")
+            except OSError:
+                return self.send_error(404)
+            with f:
+                self._headers(os.fstat(f.fileno()).st_size, _CONTENT_TYPES.get(file.suffix, "application/octet-stream"))
+                if body:
+                    shutil.copyfileobj(f, self.wfile)
+            return None
+        self._headers(len(blob), kind)
+        if body:
+            self.wfile.write(blob)
+        return None
 
     def do_GET(self):  # noqa: N802 (http.server's name)
-        path = self.path.split("?", 1)[0]
-        if self.page is not None and path in ("/", "/" + VIEWER_NAME):
-            return self._send(self.page, "text/html; charset=utf-8")
-        if path.startswith(DATA_PREFIX) and path[len(DATA_PREFIX):] in self.data:
-            return self._send(self.data[path[len(DATA_PREFIX):]], "application/octet-stream")
-        if path == "/" and self.page is None:
-            self.path = "/" + VIEWER_NAME
-        return super().do_GET()
+        self._respond(body=True)
+
+    def do_HEAD(self):  # noqa: N802 (http.server's name)
+        self._respond(body=False)
 
 
 def make_server(folder: str | os.PathLike, port: int = 0) -> ThreadingHTTPServer:
@@ -77,8 +121,10 @@ def make_server(folder: str | os.PathLike, port: int = 0) -> ThreadingHTTPServer
 
     Raises:
         FileNotFoundError: ``folder`` is not a folder, or holds neither scene.ply nor viewer.html.
-        ValueError: ``port`` outside 0 … 65535; a malformed file of the folder.
-        OSError: the port is taken.
+        ValueError: ``port`` outside 0 … 65535; a malformed file of the folder (named;
+            :func:`diff4splat.rerender.load_scene_folder`).
+        OSError: the port is taken (``EADDRINUSE``) or needs privileges (``EACCES``); the message names the port
+            and suggests ``--port 0``.
     """
     root = Path(folder)
     if not root.is_dir():
@@ -86,15 +132,24 @@ def make_server(folder: str | os.PathLike, port: int = 0) -> ThreadingHTTPServer
     if not 0 <= port <= 65535:
         raise ValueError(f"--port must be in 0 … 65535, got {port}")
     page, data = None, {}
-    if (root / "scene.ply").is_file():
+    if (root / "scene.ply").exists() or (root / "scene.ply").is_symlink():
         payload = folder_payload(root)
         page = viewer_html(payload, f"diff4splat · {root.resolve().name}", full_url=DATA_PREFIX,
                            embed=False).encode("utf-8")
         data = {"scene.ply": payload.ply, **({"frames.bin": payload.frames} if payload.frames is not None else {})}
-    elif not (root / VIEWER_NAME).is_file():
+    elif served_file(root.resolve(), "/") is None:
         raise FileNotFoundError(f"DIR: {root} has neither scene.ply nor {VIEWER_NAME} (not an output folder)")
-    handler = type("Handler", (_Handler,), {"page": page, "data": data})
-    return ThreadingHTTPServer((HOST, port), functools.partial(handler, directory=str(root)))
+    handler = type("Handler", (_Handler,), {"root": root.resolve(), "page": page, "data": data})
+    try:
+        return ThreadingHTTPServer((HOST, port), handler)
+    except OSError as e:
+        if e.errno == errno.EADDRINUSE:
+            why = "already in use (another server?); choose another --port, or --port 0 for any free one"
+        elif e.errno == errno.EACCES:
+            why = "permission denied (ports below 1024 need privileges); choose --port 0 for any free one"
+        else:
+            raise
+        raise OSError(e.errno, why, f"--port {port} ({HOST}:{port})") from None
 
 
 def _interrupt(signum, frame):

@@ -1,4 +1,6 @@
 import json
+import os
+import signal
 
 import cv2
 import numpy as np
@@ -7,8 +9,15 @@ import torch
 
 from diff4splat.cameras import CameraPath, intrinsics_from_fov
 from diff4splat.gaussians import Gaussians
-from diff4splat.io import MARKER, load_depth_exr, load_ply, load_video
-from diff4splat.io.output import fill_empty_depth, load_deformation, write_scene_folder
+from diff4splat.io import MARKER, load_depth_exr, load_ply, load_video, save_ply
+from diff4splat.io.output import (
+    DEFORMATION_ARRAYS,
+    fill_empty_depth,
+    is_layout_file,
+    load_deformation,
+    load_output_scene,
+    write_scene_folder,
+)
 from diff4splat.scene import DynamicGaussians
 
 
@@ -71,3 +80,197 @@ def test_failure_part_way_leaves_no_folder(tmp_path):
     assert list(tmp_path.iterdir()) == []
     with pytest.raises(ValueError, match="frames"):
         write_scene_folder(tmp_path / "out", scene, cams, colors[:2], depths, alphas, {})
+
+
+# --- reading an output folder back as input: every file checked, every message starting with the file ---------
+
+def _npz(path, **arrays):
+    with open(path, "wb") as f:
+        np.savez(f, **arrays)
+    return path
+
+
+def _arrays(T=5, M=10):
+    scene, *_ = _inputs(T=T, M=M)
+    return {k: getattr(scene, k).numpy() for k in ("times", "d_means", "d_quats", "d_scales")}
+
+
+def _refused(path, fn, *args, match=""):
+    """``fn(*args)`` raises one ValueError line that starts with ``path`` (and contains ``match``)."""
+    with pytest.raises(ValueError) as e:
+        fn(*args)
+    message = str(e.value)
+    assert message.startswith(f"{path}: ") and "\n" not in message and match in message, message
+    return message
+
+
+class _Pickled:
+    loaded = 0
+
+    def __reduce__(self):
+        return (_Pickled._mark, ())
+
+    @staticmethod
+    def _mark():
+        _Pickled.loaded += 1
+        return 0.0
+
+
+@pytest.mark.parametrize("case", ["truncated", "random_bytes", "npy_not_npz", "pickled_object_array", "unknown_key",
+                                  "partial_group", "int_dtype", "complex_dtype", "wrong_trailing_dim", "K_differs",
+                                  "M_differs_from_the_ply", "bad_crc", "empty_archive", "npy_header_garbage"])
+def test_load_deformation_refuses_corrupt_files_naming_them(tmp_path, case):
+    path = tmp_path / "deformation.npz"
+    a = _arrays()
+    if case == "truncated":
+        data = _npz(path, **a).read_bytes()
+        for cut in (0, 10, len(data) // 2, len(data) - 30):
+            path.write_bytes(data[:cut])
+            _refused(path, load_deformation, path, 10)
+        return
+    if case == "random_bytes":
+        path.write_bytes(np.random.default_rng(0).bytes(5000))
+    elif case == "npy_not_npz":
+        np.save(open(path, "wb"), a["times"])
+    elif case == "pickled_object_array":
+        _npz(path, **{**a, "times": np.array([_Pickled()] * 5, dtype=object)})
+    elif case == "unknown_key":
+        _npz(path, **a, extra=np.zeros(3, np.float32))
+    elif case == "partial_group":
+        _npz(path, **{k: v for k, v in a.items() if k != "d_scales"})
+    elif case == "int_dtype":
+        _npz(path, **{**a, "d_means": a["d_means"].astype(np.int32)})
+    elif case == "complex_dtype":
+        _npz(path, **{**a, "d_quats": a["d_quats"].astype(np.complex64)})
+    elif case == "wrong_trailing_dim":
+        _npz(path, **{**a, "d_quats": a["d_quats"][..., :3]})
+    elif case == "K_differs":
+        _npz(path, **{**a, "d_scales": a["d_scales"][:4]})
+    elif case == "M_differs_from_the_ply":
+        _npz(path, **a)
+        _refused(path, load_deformation, path, 11, match="M=11")
+        assert load_deformation(path, 10).keys() == a.keys()  # the same file fits 10 Gaussians
+        return
+    elif case == "bad_crc":
+        data = bytearray(_npz(path, **a).read_bytes())
+        at = data.index(a["d_means"].tobytes()[:16])  # a byte of d_means' data (stored uncompressed)
+        data[at] ^= 0xFF
+        path.write_bytes(bytes(data))
+    elif case == "empty_archive":
+        _npz(path)
+    elif case == "npy_header_garbage":
+        import zipfile
+
+        with zipfile.ZipFile(path, "w") as zf:
+            zf.writestr("times.npy", b"\x93NUMPY\x01\x00\x10\x00{not a dict}    \n")
+    _refused(path, load_deformation, path, 10)
+    assert _Pickled.loaded == 0  # nothing in the file was ever unpickled
+
+
+def test_load_deformation_round_trip_and_frames_limit(tmp_path, monkeypatch):
+    a = _arrays()
+    path = _npz(tmp_path / "deformation.npz", **{k: v.astype(np.float64) for k, v in a.items()})
+    got = load_deformation(path)
+    assert got.keys() == a.keys() and all(v.dtype == np.float32 for v in got.values())
+    np.testing.assert_array_equal(got["d_means"], a["d_means"])
+    monkeypatch.setenv("DIFF4SPLAT_MAX_FRAMES", "4")  # K = 5 key times: checked from the header, before reading
+    _refused(path, load_deformation, path, match="exceeds the limit of 4 frames")
+
+
+def _folder(tmp_path, dynamic=True, meta=None):
+    scene, cams, colors, depths, alphas = _inputs(dynamic=dynamic)
+    meta = {"static": scene.is_static, "fps": 8, "background": [0.1, 0.2, 0.3], "eps2d": 0.1} if meta is None else meta
+    return write_scene_folder(tmp_path / "out", scene, cams, colors, depths, alphas, meta), scene
+
+
+def test_load_output_scene_reads_what_write_scene_folder_wrote(tmp_path):
+    out, scene = _folder(tmp_path)
+    got, meta = load_output_scene(out)
+    assert meta["eps2d"] == 0.1 and not got.is_static
+    for k in DEFORMATION_ARRAYS[:4]:
+        torch.testing.assert_close(getattr(got, k), getattr(scene, k))
+    torch.testing.assert_close(got.canonical.means, scene.canonical.means)
+    static, _ = _folder(tmp_path / "s", dynamic=False)
+    assert load_output_scene(static)[0].is_static
+
+
+def test_deformation_missing_while_meta_says_the_scene_moves(tmp_path):
+    """Before: the scene was silently rendered static (exit 0)."""
+    out, _ = _folder(tmp_path)
+    (out / "deformation.npz").unlink()
+    message = _refused(out / "deformation.npz", load_output_scene, out, match="is missing")
+    assert str(out / "meta.json") in message and '"static": false' in message
+    _npz(out / "deformation.npz", t_means=np.zeros(10, np.float32), t_scales=np.ones(10, np.float32))
+    _refused(out / "deformation.npz", load_output_scene, out, match="holds no deformation")
+    (out / "meta.json").write_text(json.dumps({"static": True}))
+    load_output_scene(out)  # temporal support alone: static, as meta says
+    _npz(out / "deformation.npz", **_arrays())
+    _refused(out / "deformation.npz", load_output_scene, out, match='"static": true')
+
+
+@pytest.mark.parametrize("meta, match", [
+    ({"static": "no"}, '"static" must be true or false'),
+    ({"static": False, "fps": -1}, '"fps"'),
+    ({"static": False, "fps": "8"}, '"fps"'),
+    ({"static": False, "background": "red"}, '"background"'),
+    ({"static": False, "background": [0, 0, 2]}, '"background"'),
+    ({"static": False, "eps2d": 99}, '"eps2d"'),
+    ({"static": False, "eps2d": True}, '"eps2d"'),
+    ({"static": False, "scene_depth": -1}, '"scene_depth"'),
+])
+def test_bad_meta_fields_name_meta_json(tmp_path, meta, match):
+    out, _ = _folder(tmp_path, meta=meta)
+    _refused(out / "meta.json", load_output_scene, out, match=match)
+
+
+@pytest.mark.parametrize("text, match", [("[1, 2]", "must hold a JSON object"), ("{", "is not valid JSON"),
+                                         ("\ud800".encode("utf-8", "surrogatepass"), "not UTF-8")])
+def test_meta_json_not_an_object(tmp_path, text, match):
+    out, _ = _folder(tmp_path)
+    (out / "meta.json").write_bytes(text if isinstance(text, bytes) else text.encode())
+    with pytest.raises(ValueError, match=match) as e:
+        load_output_scene(out)
+    assert str(out / "meta.json") in str(e.value) and "\n" not in str(e.value)
+
+
+def test_scene_ply_errors_name_it_and_an_empty_scene_is_refused(tmp_path):
+    out, scene = _folder(tmp_path)
+    data = bytearray((out / "scene.ply").read_bytes())
+    body = data.index(b"end_header\n") + len(b"end_header\n")
+    data[body:body + 4] = np.float32(np.inf).tobytes()
+    (out / "scene.ply").write_bytes(bytes(data))
+    _refused(out / "scene.ply", load_output_scene, out, match="means contains 1 non-finite")
+    save_ply(out / "scene.ply", scene.canonical.select(torch.zeros(10, dtype=torch.bool)))
+    _refused(out / "scene.ply", load_output_scene, out, match="holds no Gaussians")
+
+
+def test_a_fifo_or_folder_in_place_of_a_file_is_refused_without_reading_it(tmp_path):
+    out, _ = _folder(tmp_path)
+    (out / "deformation.npz").unlink()
+    os.mkfifo(out / "deformation.npz")  # opening it would block until a writer came
+    signal.alarm(20)  # a wrong implementation fails instead of hanging
+    try:
+        with pytest.raises(ValueError, match="FIFO") as e:
+            load_output_scene(out)
+    finally:
+        signal.alarm(0)
+    assert str(out / "deformation.npz") in str(e.value)
+    (out / "deformation.npz").unlink()
+    (out / "deformation.npz").mkdir()
+    with pytest.raises(ValueError, match="is a folder"):
+        load_output_scene(out)
+    with pytest.raises(FileNotFoundError, match="has no scene.ply"):
+        load_output_scene(tmp_path)
+
+
+@pytest.mark.parametrize("name, ok", [
+    ("scene.ply", True), ("viewer.html", True), ("video.mp4", True), ("cameras.json", True), ("meta.json", True),
+    ("deformation.npz", True), ("field.safetensors", True), ("metrics.json", True), ("rgb/0000.png", True),
+    ("depth/0012.exr", True), ("frames/10000.ply", True), ("rgb/000.png", False), ("rgb/0000.exr", False),
+    ("rgb/00a0.png", False), ("rgb/٠٠٠٠.png", False), ("../scene.ply", False), ("rgb/../meta.json", False),
+    ("/scene.ply", False), ("a/rgb/0000.png", False), ("notes.txt", False), (MARKER, False), ("", False),
+    ("%2e%2e/scene.ply", False), ("rgb%2F0000.png", False), ("scene.ply%00", False), ("rgb\\0000.png", False),
+    ("scene.ply/", False), ("rgb//0000.png", False),
+])
+def test_is_layout_file(name, ok):
+    assert is_layout_file(name) is ok

@@ -139,3 +139,51 @@ def test_load_errors(tmp_path):
     plyfile.PlyData([plyfile.PlyElement.describe(arr, "vertex")]).write(str(tmp_path / "m.ply"))
     with pytest.raises(ValueError, match="f_dc_0"):
         load_ply(tmp_path / "m.ply")
+
+
+def _corrupt_ply(path, case):
+    """A PLY of 10 Gaussians (SH degree 0) damaged as ``case`` says."""
+    save_ply(path, random_gaussians(n=10, degree=0))
+    data = bytearray(path.read_bytes())
+    body = data.index(b"end_header\n") + len(b"end_header\n")
+    row = len(ply_property_names(1)) * 4
+    names = ply_property_names(1)
+    if case == "nan_mean":
+        data[body + 5 * row:body + 5 * row + 4] = np.float32(np.nan).tobytes()  # x of Gaussian 5
+    elif case == "nan_scale":
+        i = names.index("scale_1")
+        data[body + i * 4:body + i * 4 + 4] = np.float32(np.nan).tobytes()
+    elif case == "scale_overflows_float32":
+        i = names.index("scale_0")  # exp(100) is finite in float64, inf in float32
+        data[body + i * 4:body + i * 4 + 4] = np.float32(100.0).tobytes()
+    elif case == "zero_quaternion":
+        i = names.index("rot_0")
+        data[body + i * 4:body + i * 4 + 16] = np.zeros(4, np.float32).tobytes()
+    elif case == "truncated_body":
+        data = data[:body + 3 * row + 7]
+    elif case == "truncated_header":
+        data = data[:body - 30]
+    elif case == "garbage":
+        data = bytearray(np.random.default_rng(0).bytes(4096))
+    elif case == "magic_then_garbage_without_line_breaks":
+        data = bytearray(b"ply\n" + bytes(range(11, 256)) * 4000)
+    elif case == "f_rest_name_not_a_number":
+        data = data.replace(b"property float f_dc_2\n", b"property float f_dc_2\nproperty float f_rest_x\n")
+    path.write_bytes(bytes(data))
+    return path
+
+
+@pytest.mark.parametrize("case", ["nan_mean", "nan_scale", "scale_overflows_float32",
+                                  "zero_quaternion", "truncated_body", "truncated_header", "garbage",
+                                  "magic_then_garbage_without_line_breaks", "f_rest_name_not_a_number"])
+def test_every_load_error_starts_with_the_file(tmp_path, case):
+    """A corrupt PLY is one ValueError line that starts with its path (the CLI prints it as is)."""
+    path = _corrupt_ply(tmp_path / "scene.ply", case)
+    with pytest.raises(ValueError) as e:
+        load_ply(path)
+    message = str(e.value)
+    assert message.startswith(f"{path}: ") and "\n" not in message, message
+    if case == "nan_mean":
+        assert "means contains 1 non-finite" in message
+    if case == "magic_then_garbage_without_line_breaks":
+        assert "longer than" in message

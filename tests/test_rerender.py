@@ -13,6 +13,7 @@ from diff4splat.io import MARKER, OutputDirError, load_cameras_json, load_depth_
 from diff4splat.io.image import read_image
 from diff4splat.io.output import fill_empty_depth, write_scene_folder
 from diff4splat.io.video import to_uint8
+from diff4splat.limits import LimitError
 from diff4splat.render.sequence import render_path
 from diff4splat.rerender import (
     SceneFolder,
@@ -393,3 +394,150 @@ def test_cli_render_on_a_missing_device_is_one_line_exit_2(tmp_path, capsys):
     assert not (tmp_path / "r").exists()
     with pytest.raises(ValueError, match="device: cuda is not available"):
         rerender(folder, tmp_path / "r", trajectory="arc", device="cuda")
+
+
+# --- the folder is input: every file checked, named in one line (issue 28) ------------------------------------------
+
+def _set_meta(folder, **fields):
+    meta = json.loads((folder / "meta.json").read_text())
+    (folder / "meta.json").write_text(json.dumps({**meta, **fields}))
+
+
+def _patch_npz(folder, **changes):
+    with np.load(folder / "deformation.npz") as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays.update(changes)
+    arrays = {k: v for k, v in arrays.items() if v is not None}
+    with open(folder / "deformation.npz", "wb") as f:
+        np.savez(f, **arrays)
+
+
+def _first_vertex(folder, value):
+    data = bytearray((folder / "scene.ply").read_bytes())
+    body = data.index(b"end_header\n") + len(b"end_header\n")
+    data[body:body + 4] = np.float32(value).tobytes()
+    (folder / "scene.ply").write_bytes(bytes(data))
+
+
+CORRUPTIONS = {  # case: (damage, the file the message starts with, a word it contains)
+    "npz_truncated": (lambda f: (f / "deformation.npz").write_bytes((f / "deformation.npz").read_bytes()[:700]),
+                      "deformation.npz", "not a readable .npz"),
+    "npz_random_bytes": (lambda f: (f / "deformation.npz").write_bytes(np.random.default_rng(0).bytes(4000)),
+                         "deformation.npz", "not a readable .npz"),
+    "npz_pickled_objects": (lambda f: _patch_npz(f, times=np.array([0.0, 0.25, 0.5, 0.75, 1.0], dtype=object)),
+                            "deformation.npz", "dtype object"),
+    "npz_wrong_key": (lambda f: _patch_npz(f, d_means=None, offsets=np.zeros((T, M, 3), np.float32)),
+                      "deformation.npz", "unexpected entries"),
+    "npz_wrong_shape": (lambda f: _patch_npz(f, d_means=np.zeros((T, M - 1, 3), np.float32)),
+                        "deformation.npz", "must have shape"),
+    "npz_wrong_dtype": (lambda f: _patch_npz(f, d_scales=np.zeros((T, M, 3), np.int64)),
+                        "deformation.npz", "floating-point"),
+    "npz_nan": (lambda f: _patch_npz(f, d_means=np.full((T, M, 3), np.nan, np.float32)),
+                "deformation.npz", "non-finite"),
+    "npz_times_decreasing": (lambda f: _patch_npz(f, times=np.linspace(1, 0, T, dtype=np.float32)),
+                             "deformation.npz", "increasing"),
+    "npz_missing_but_meta_says_dynamic": (lambda f: (f / "deformation.npz").unlink(), "deformation.npz",
+                                          '"static": false'),
+    "npz_present_but_meta_says_static": (lambda f: _set_meta(f, static=True), "deformation.npz", '"static": true'),
+    "ply_nan": (lambda f: _first_vertex(f, np.nan), "scene.ply", "non-finite"),
+    "ply_truncated": (lambda f: (f / "scene.ply").write_bytes((f / "scene.ply").read_bytes()[:900]),
+                      "scene.ply", "truncated"),
+    "ply_garbage": (lambda f: (f / "scene.ply").write_bytes(np.random.default_rng(1).bytes(3000)),
+                    "scene.ply", "not a PLY"),
+    "meta_bad_field": (lambda f: _set_meta(f, background="red"), "meta.json", '"background"'),
+    "cameras_missing_key": (lambda f: (f / "cameras.json").write_text('{"width": 24, "height": 16}'),
+                            "cameras.json", "missing key"),
+    "cameras_bad_shape": (lambda f: (f / "cameras.json").write_text(
+        '{"width": 24, "height": 16, "Ks": [[1, 2]], "viewmats": [[1]]}'), "cameras.json", "shape"),
+    "depth_exr_garbage": (lambda f: (f / "depth" / "0000.exr").write_bytes(b"not an exr"), "depth/0000.exr", "EXR"),
+}
+
+
+@pytest.mark.parametrize("camera_source", ["trajectory", "cameras"])
+@pytest.mark.parametrize("case", sorted(CORRUPTIONS))
+def test_cli_corrupt_folder_is_one_line_naming_the_file(tmp_path, capsys, case, camera_source):
+    """Before: BadZipFile/pickle tracebacks, messages without the file, and a dynamic folder without its
+    deformation.npz rendered static with exit 0."""
+    folder, *_ = _folder(tmp_path)
+    _set_meta(folder, static=False)
+    cam_file = tmp_path / "path.json"  # an intact camera file: the folder's own, copied before the damage
+    cam_file.write_bytes((folder / "cameras.json").read_bytes())
+    damage, name, word = CORRUPTIONS[case]
+    damage(folder)
+    out = tmp_path / "r"
+    source = ["--trajectory", "arc"] if camera_source == "trajectory" else ["--cameras", str(cam_file)]
+    code = main(["render", str(folder), *source, "--quiet", "--out", str(out)])
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1, lines
+    assert str(folder / name) in lines[0] and word in lines[0], lines[0]
+    if not case.startswith(("meta", "cameras", "depth")):  # JSON/EXR readers say "<what>: <path> …"
+        assert lines[0].startswith(f"diff4splat: error: {folder / name}: "), lines[0]
+    assert not out.exists()
+
+
+def test_the_folder_readers_share_the_checks(tmp_path):
+    """render, view and fit --init read a folder through one validated reader."""
+    from diff4splat.view import folder_payload, make_server
+    from training.fit_cli import place_generate_output
+
+    folder, *_ = _folder(tmp_path)
+    (folder / "deformation.npz").write_bytes(b"PK\x03\x04 truncated")
+    readers = [load_scene_folder, folder_payload, lambda f: make_server(f, 0),
+               lambda f: place_generate_output(f, None, "cam00")]  # fails on the folder before the scene is used
+    for read in readers:
+        with pytest.raises(ValueError) as e:
+            read(folder)
+        assert str(e.value).startswith(f"{folder / 'deformation.npz'}: not a readable .npz archive"), e.value
+
+
+def test_amplitude_is_checked_as_generate_checks_it(tmp_path, capsys):
+    """Before: --trajectory forward --amplitude 1e30 wrote black frames with exit 0. The preset's amplitude goes
+    through generate's check (diff4splat.cameras.trajectories.check_amplitude) before the folder is read."""
+    from diff4splat.cameras.trajectories import check_amplitude
+    from diff4splat.errors import one_line
+
+    folder, *_ = _folder(tmp_path)
+    (folder / "scene.ply").write_bytes(b"garbage")  # never read: the amplitude is refused first
+    for trajectory, amplitude in (("forward", "1e30"), ("arc", "10"), ("pan-left", "-0.1"), ("orbit", "0.3"),
+                                  ("spiral", "nan")):
+        with pytest.raises(ValueError) as want:
+            check_amplitude(trajectory, float(amplitude))
+        code = main(["render", str(folder), "--trajectory", trajectory, "--amplitude", amplitude, "--quiet",
+                     "--out", str(tmp_path / "r")])
+        err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+        assert code == 2 and err == [f"diff4splat: error: {one_line(want.value)}"], err
+    assert not (tmp_path / "r").exists()
+
+
+def test_frames_and_output_size_go_through_the_limits(tmp_path, monkeypatch):
+    folder, *_ = _folder(tmp_path)
+    monkeypatch.setenv("DIFF4SPLAT_MAX_FRAMES", "3")
+    (folder / "scene.ply").write_bytes(b"garbage")  # never read: the frame count is refused first
+    with pytest.raises(LimitError, match="frames 4 exceeds the limit of 3 frames"):
+        rerender(folder, tmp_path / "r", trajectory="arc", frames=4)
+    folder, *_ = _folder(tmp_path, name="gen2")
+    with pytest.raises(LimitError, match="deformation.npz: a deformation of 5 exceeds"):  # its 5 key times
+        rerender(folder, tmp_path / "r", trajectory="arc", frames=2)
+    static, *_ = _folder(tmp_path, dynamic=False, name="static")
+    with pytest.raises(LimitError, match="cameras.json: a camera path of 5 exceeds"):
+        rerender(static, tmp_path / "r", trajectory="arc", frames=2)
+    monkeypatch.delenv("DIFF4SPLAT_MAX_FRAMES")
+    monkeypatch.setenv("DIFF4SPLAT_MAX_OUTPUT_BYTES", str(T * W * H * 16 - 1))
+    with pytest.raises(LimitError, match=f"output of {T} frames at {W}×{H}"):
+        rerender(folder, tmp_path / "r", cameras=folder / "cameras.json")
+    with pytest.raises(LimitError, match="output of 2 frames at 2000×1000"):
+        rerender(folder, tmp_path / "r", trajectory="arc", frames=2, width=2000, height=1000)
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_path_that_sees_none_of_the_scene_is_refused(tmp_path):
+    """As generate refuses a camera path that sees none of its scene: every frame would be the background."""
+    folder, _, cams, _ = _folder(tmp_path)
+    away = cams.viewmats.clone()
+    away[:, :3, :] = -away[:, :3, :]  # turned around: the scene is behind every camera
+    away[:, 1, :] = -away[:, 1, :]  # (a rotation, det +1)
+    cam_file = _data_prep_cameras(tmp_path / "away.json", CameraPath(away, cams.Ks, W, H, cams.times),
+                                  np.zeros(T))
+    with pytest.raises(ValueError, match="sees none of the scene: all 5 frames"):
+        rerender(folder, tmp_path / "r", cameras=cam_file)
+    assert not (tmp_path / "r").exists()

@@ -1,5 +1,7 @@
 """Tests of diff4splat/view.py (``diff4splat view``): served on 127.0.0.1 only, the full scene (not the
 size-reduced embedded copy), files of the folder, clear errors, Ctrl-C stops it."""
+import errno
+import http.client
 import json
 import os
 import signal
@@ -8,10 +10,12 @@ import subprocess
 import sys
 import threading
 import urllib.request
+from pathlib import Path
 
 import pytest
 from helpers import moving_patch_scene
 
+from diff4splat.cli import main
 from diff4splat.io.output import write_scene_folder
 from diff4splat.view import DATA_PREFIX, HOST, folder_payload, make_server
 
@@ -128,3 +132,109 @@ def test_cli_prints_the_address_and_stops_on_ctrl_c(tmp_path):
     finally:
         proc.kill()
     assert proc.returncode == 0 and stdout.strip() == "stopped" and stderr == ""
+
+
+# --- only the scene: the layout's files, inside the folder (issue 28) ------------------------------------------------
+
+def _raw(port, path, method="GET"):
+    """(status, body) of a request whose path is sent byte for byte (urllib would normalise it)."""
+    conn = http.client.HTTPConnection(HOST, port, timeout=10)
+    try:
+        conn.putrequest(method, path, skip_host=False, skip_accept_encoding=True)
+        conn.endheaders()
+        r = conn.getresponse()
+        return r.status, r.read()
+    finally:
+        conn.close()
+
+
+def test_serves_the_layout_files_of_the_folder(served):
+    out, _, port = served
+    for name in ("cameras.json", "meta.json", "video.mp4", "scene.ply", "deformation.npz", "rgb/0000.png",
+                 "rgb/0004.png", "depth/0002.exr", "frames/0003.ply"):
+        assert _raw(port, "/" + name) == (200, (out / name).read_bytes()), name
+    assert _raw(port, "/rgb/0001.png?v=3") == (200, (out / "rgb" / "0001.png").read_bytes())  # a query is ignored
+    status, body = _raw(port, "/video.mp4", "HEAD")
+    assert status == 200 and body == b""
+    assert _raw(port, "/viewer.html")[1] == _raw(port, "/")[1] != (out / "viewer.html").read_bytes()  # the full page
+
+
+def test_a_render_output_is_served_with_its_own_viewer_html(tmp_path):
+    out, _ = _folder(tmp_path)
+    (out / "scene.ply").unlink()  # a render output: viewer.html, rgb/, … but no scene
+    server = make_server(out, 0)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        port = server.server_address[1]
+        assert _raw(port, "/") == (200, (out / "viewer.html").read_bytes())
+        assert _raw(port, "/rgb/0000.png") == (200, (out / "rgb" / "0000.png").read_bytes())
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_unknown_files_of_the_folder_are_not_served(served):
+    """Before: every file of the folder was served (SimpleHTTPRequestHandler)."""
+    out, _, port = served
+    (out / "notes.txt").write_text("private")
+    (out / "rgb" / "notes.png").write_bytes(b"private")
+    (out / "sub").mkdir()
+    (out / "sub" / "scene.ply").write_bytes(b"private")
+    for path in ("/notes.txt", "/rgb/notes.png", "/sub/scene.ply", "/.diff4splat-output.json", "/rgb/", "/rgb",
+                 "/frames/0000.png", "/rgb/000.png", "/rgb/00000.png"):
+        assert _raw(port, path)[0] == 404, path
+
+
+def test_symlinks_out_of_the_folder_are_not_followed(served, tmp_path):
+    """Before: DIR/leak.txt -> /etc/passwd was served."""
+    out, _, port = served
+    secret = tmp_path / "secret.png"
+    secret.write_bytes(b"secret")
+    (out / "leak.txt").symlink_to("/etc/passwd")
+    (out / "rgb" / "0004.png").unlink()
+    (out / "rgb" / "0004.png").symlink_to(secret)  # a layout name, pointing out of the folder
+    (out / "depth" / "0004.exr").unlink()
+    (out / "depth" / "0004.exr").symlink_to(out / "depth" / "0003.exr")  # inside the folder: served
+    (out / "rgb" / "0003.png").unlink()
+    (out / "rgb" / "0003.png").symlink_to(out / "rgb" / "0003.png")  # a loop
+    assert _raw(port, "/leak.txt")[0] == 404
+    assert _raw(port, "/rgb/0004.png")[0] == 404
+    assert _raw(port, "/rgb/0003.png")[0] == 404
+    assert _raw(port, "/depth/0004.exr") == (200, (out / "depth" / "0003.exr").read_bytes())
+
+
+@pytest.mark.parametrize("path", [
+    "/%2e%2e/secret.png", "/rgb/%2e%2e/meta.json", "/rgb%2F0000.png", "/rgb%2f0000.png", "/%72gb/0000.png",
+    "/meta.json%00", "/meta.json%00.png", "/rgb\\0000.png", "/..\\secret.png", "/../secret.png", "/rgb/../meta.json",
+    "//etc/passwd", "/./meta.json", "/rgb/./0000.png", "/meta.json/", "/META.JSON", "/%2fetc/passwd",
+    "/" + str(Path("/etc/passwd")), "http://127.0.0.1/../secret.png",
+])
+def test_encoded_and_traversal_paths_are_404(served, tmp_path, path):
+    out, _, port = served
+    (tmp_path / "secret.png").write_bytes(b"secret")
+    assert _raw(port, path)[0] == 404
+
+
+def test_a_taken_port_is_one_line_naming_it(tmp_path, capsys):
+    """Before: "[Errno 98] Address already in use"."""
+    out, _ = _folder(tmp_path)
+    with socket.socket() as s:
+        s.bind((HOST, 0))
+        s.listen()
+        port = s.getsockname()[1]
+        with pytest.raises(OSError) as e:
+            make_server(out, port)
+        assert e.value.errno == errno.EADDRINUSE and "--port 0" in str(e.value)
+        assert main(["view", str(out), "--port", str(port)]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and err[0].startswith(f"diff4splat: error: --port {port} ({HOST}:{port}): already in use")
+    assert "--port 0" in err[0] and "Errno" not in err[0]
+
+
+def test_a_corrupt_folder_is_refused_naming_the_file(tmp_path, capsys):
+    out, _ = _folder(tmp_path)
+    (out / "deformation.npz").write_bytes(b"\x00" * 100)
+    assert main(["view", str(out), "--port", "0"]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert err == [f"diff4splat: error: {out / 'deformation.npz'}: not a readable .npz archive (File is not a zip "
+                   "file)"]

@@ -95,14 +95,23 @@ def save_ply(path: str | os.PathLike, gaussians: Gaussians) -> None:
             f.write(data)
 
 
+_MAX_HEADER_LINE = 1024
+"""Bytes a PLY header line may take (the longest of the INRIA layout is about 30): a binary file mistaken for a
+PLY must not be read whole looking for a line break."""
+_MAX_HEADER_LINES = 4096
+"""Lines a PLY header may take (the INRIA layout at SH degree 3 has 65)."""
+
+
 def _read_header(f, path: Path) -> tuple[int, np.dtype]:
-    if f.readline().strip() != b"ply":
-        raise ValueError(f"{path} is not a PLY file (missing 'ply' magic)")
+    if f.readline(_MAX_HEADER_LINE).strip() != b"ply":
+        raise ValueError(f"{path}: not a PLY file (missing 'ply' magic)")
     n_vertex, props, current, fmt = None, [], None, None
-    while True:
-        line = f.readline()
+    for _ in range(_MAX_HEADER_LINES):
+        line = f.readline(_MAX_HEADER_LINE)
         if not line:
-            raise ValueError(f"{path}: PLY header has no end_header")
+            raise ValueError(f"{path}: PLY header has no end_header (truncated file?)")
+        if not line.endswith(b"\n"):
+            raise ValueError(f"{path}: PLY header line longer than {_MAX_HEADER_LINE - 1} bytes (not a PLY header)")
         words = line.decode("ascii", errors="replace").split()
         if not words or words[0] in ("comment", "obj_info"):
             continue
@@ -125,6 +134,8 @@ def _read_header(f, path: Path) -> tuple[int, np.dtype]:
                 raise ValueError(f"{path}: unsupported PLY property line {line.decode(errors='replace')!r} "
                                  "(list properties are not supported)")
             props.append((words[2], "<" + _PLY_TYPES[words[1]]))
+    else:
+        raise ValueError(f"{path}: PLY header has no end_header within {_MAX_HEADER_LINES} lines")
     if fmt != "binary_little_endian":
         raise ValueError(f"{path}: only binary_little_endian PLY is supported, got format {fmt!r}")
     if n_vertex is None:
@@ -149,31 +160,34 @@ def load_ply(path: str | os.PathLike) -> Gaussians:
 
     Raises:
         FileNotFoundError: ``path`` is not an existing file.
-        ValueError: not a binary little-endian PLY, a required property missing, a number of
-            f_rest_* that is not 3·(K−1) for K ∈ {1, 4, 9, 16}, truncated data, or values failing
-            :meth:`Gaussians.validate`.
+        ValueError: every message starts with ``path``: not a binary little-endian PLY (a header line over
+            1 KB, no ``end_header``), a required property missing, a number of f_rest_* that is not 3·(K−1) for
+            K ∈ {1, 4, 9, 16}, truncated data, or values failing :meth:`Gaussians.validate` (NaN/inf, a scale that
+            over- or underflows float32, a zero quaternion).
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"PLY file not found: {path}")
     with open(path, "rb") as f:
         n, dtype = _read_header(f, path)
+        names = set(dtype.names or ())
+        required = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]
+        required += [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)]
+        missing = [r for r in required if r not in names]
+        if missing:
+            raise ValueError(f"{path}: missing PLY vertex properties {missing}")
+        found = {p for p in names if p.startswith("f_rest_")}
+        rest = [f"f_rest_{i}" for i in range(len(found))]  # INRIA's order: by index
+        k = 1 + len(rest) // 3
+        if len(rest) % 3 or math.isqrt(k) ** 2 != k or k > 16 or set(rest) != found:
+            raise ValueError(f"{path}: {len(rest)} f_rest_* properties do not form f_rest_0 … f_rest_{{3·(K−1)−1}} "
+                             "with K a square ≤ 16")
         size = n * dtype.itemsize
         left = path.stat().st_size - f.tell()
         data = f.read(size) if size <= left else b""  # a corrupt count must not allocate its bytes
     if len(data) < size:
         raise ValueError(f"{path}: truncated PLY, expected {n} vertices of {dtype.itemsize} bytes")
     v = np.frombuffer(data, dtype=dtype, count=n)
-    names = set(dtype.names or ())
-    required = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]
-    required += [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)]
-    missing = [r for r in required if r not in names]
-    if missing:
-        raise ValueError(f"{path}: missing PLY vertex properties {missing}")
-    rest = sorted((p for p in names if p.startswith("f_rest_")), key=lambda p: int(p.split("_")[-1]))
-    k = 1 + len(rest) // 3
-    if len(rest) % 3 or math.isqrt(k) ** 2 != k or k > 16 or rest != [f"f_rest_{i}" for i in range(len(rest))]:
-        raise ValueError(f"{path}: {len(rest)} f_rest_* properties do not form 3·(K−1) with K a square ≤ 16")
 
     def cols(keys: list[str]) -> torch.Tensor:
         if not keys:
@@ -183,11 +197,13 @@ def load_ply(path: str | os.PathLike) -> Gaussians:
     sh = torch.empty(n, k, 3, dtype=torch.float64, device="cpu")
     sh[:, 0, :] = cols(["f_dc_0", "f_dc_1", "f_dc_2"])
     sh[:, 1:, :] = cols(rest).reshape(n, 3, k - 1).transpose(1, 2)
-    g = Gaussians(
-        means=cols(["x", "y", "z"]),
-        quats=cols([f"rot_{i}" for i in range(4)]),
-        scales=torch.exp(cols([f"scale_{i}" for i in range(3)])),
-        opacities=torch.sigmoid(cols(["opacity"])[:, 0]),
-        sh=sh,
-    )
-    return g.to(torch.float32)
+    try:  # validated in float64, then again in float32 (a log-scale of 100 overflows float32)
+        return Gaussians(
+            means=cols(["x", "y", "z"]),
+            quats=cols([f"rot_{i}" for i in range(4)]),
+            scales=torch.exp(cols([f"scale_{i}" for i in range(3)])),
+            opacities=torch.sigmoid(cols(["opacity"])[:, 0]),
+            sh=sh,
+        ).to(torch.float32)
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None
