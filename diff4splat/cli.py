@@ -367,7 +367,7 @@ def generate(args) -> dict:
     """Run ``generate``: check arguments → load the runtime → load image and cameras → run the pipeline
     → render the path → write the output folder. Returns the meta dict written to meta.json."""
     from .io.output import write_scene_folder
-    from .limits import check_output_size
+    from .limits import check_memory, check_output_size
     from .render.sequence import render_path
 
     t_start = time.perf_counter()
@@ -376,6 +376,8 @@ def generate(args) -> dict:
     image, cameras, depth = _load_inputs(args, pipe)
     check_output_size(len(cameras), cameras.width, cameras.height,  # before any network runs
                       pipe.scene_slots(cameras.width, cameras.height, len(cameras)))
+    check_memory(pipe.memory_estimate(cameras.width, cameras.height, len(cameras)),
+                 f"{len(cameras)} frames at {cameras.width}×{cameras.height}", "--frames or --resolution")
     result = pipe(image, cameras, args.prompt, steps=args.steps, sampler=args.sampler, seed=args.seed,
                   progress=not args.quiet, depth=depth, depth_kind=args.depth_kind)
     t0 = time.perf_counter()

@@ -13,8 +13,8 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 
-__all__ = ["Limit", "LIMITS", "LimitError", "limit", "check_limit", "check_output_size", "OUTPUT_BYTES_PER_PIXEL",
-           "OUTPUT_BYTES_PER_GAUSSIAN"]
+__all__ = ["Limit", "LIMITS", "LimitError", "limit", "check_limit", "check_output_size", "check_memory",
+           "OUTPUT_BYTES_PER_PIXEL", "OUTPUT_BYTES_PER_GAUSSIAN"]
 
 
 @dataclass(frozen=True)
@@ -48,6 +48,9 @@ LIMITS: dict[str, Limit] = {lim.name: lim for lim in (
           "input photographs above 100 megapixels (the photo is decoded at full size before it is resized)"),
     Limit("output_bytes", 4 << 30, "DIFF4SPLAT_MAX_OUTPUT_BYTES", "bytes",
           "long paths at a high model resolution, when the output disk has room for the estimate"),
+    Limit("memory_bytes", 8 << 30, "DIFF4SPLAT_MAX_MEMORY_BYTES", "bytes of memory",
+          "long paths or high resolutions on a machine with more free memory than a laptop's 8 GiB (the estimate is "
+          "an upper bound, 1.2-1.5x the measured peak; docs/benchmarks.md, 'Memory of generate')"),
     Limit("parameters", 20_000_000_000, "DIFF4SPLAT_MAX_PARAMETERS", "parameters",
           "model configs larger than the paper's (16.8 billion parameters), on a machine with 4 bytes each"),
     Limit("iterations", 100_000, "DIFF4SPLAT_MAX_ITERATIONS", "optimisation steps",
@@ -135,4 +138,26 @@ def check_output_size(frames: int, width: int, height: int, gaussians: int = 0) 
     estimate = int(frames) * int(width) * int(height) * OUTPUT_BYTES_PER_PIXEL
     estimate += (int(frames) + 1) * int(gaussians) * OUTPUT_BYTES_PER_GAUSSIAN
     check_limit("output_bytes", estimate, f"output of {frames} frames at {width}×{height}: estimated")
+    return estimate
+
+
+def check_memory(estimate: int, request: str, knobs: str) -> int:
+    """Check an estimate of a command's peak memory against the ``memory_bytes`` limit, before anything heavy runs.
+
+    Args:
+        estimate: bytes (an upper bound, e.g. :meth:`diff4splat.pipeline.Diff4SplatPipeline.memory_estimate`).
+        request: what was asked for, as the user wrote it, e.g. ``"--frames 401 at 256×256"``.
+        knobs: the arguments that lower the estimate, e.g. ``"--frames or --resolution"``.
+
+    Returns:
+        ``estimate``.
+
+    Raises:
+        LimitError: one line with the request, the estimate and the limit in GiB, the knobs and the variable.
+    """
+    lim = LIMITS["memory_bytes"]
+    bound = limit("memory_bytes")
+    if estimate > bound:
+        raise LimitError(f"{request}: estimated peak memory {estimate / 2**30:.1f} GiB exceeds the limit of "
+                         f"{bound / 2**30:.1f} GiB (lower {knobs}, or set {lim.env} to raise it)")
     return estimate

@@ -131,6 +131,15 @@ class NetworkRuntime(Protocol):
         ``image`` (1, 3, H, W) in [−1, 1] is the photograph (used by an LDRM with an image branch)."""
 
 
+MEMORY_BASE_BYTES = 640 << 20
+"""The ``generate`` process before its tensors: Python, torch, numba, OpenCV (measured 0.57 GB with the base model)."""
+MEMORY_SCENE_COPIES = 3
+"""Copies of the unpruned scene's deformation alive at once, at most (:meth:`Diff4SplatPipeline.memory_estimate`)."""
+MEMORY_MAP_COPIES = 2
+"""Copies of the LDRM's deformation maps alive at once, at most (the network's output and its flattened view)."""
+MEMORY_BYTES_PER_GAUSSIAN = 600
+"""Memory per Gaussian slot besides its deformation: attributes, pruning masks, the renderer's tile lists."""
+
 OFFLOAD_MODES = ("none", "model")
 """``offload`` values: ``none`` keeps every network on the device; ``model`` keeps them in CPU memory and moves
 one at a time to the device while it runs (:class:`diff4splat.offload.ModelOffload`)."""
@@ -372,6 +381,32 @@ class Diff4SplatPipeline:
         n = c.vae.num_latent_frames(num_frames)
         sources = source_frame_indices(c.ldrm.gaussian_frames, n, c.vae.temporal_factor)
         return sum(layer_sizes(width, height)) + (len(sources) - 1) * c.height * c.width
+
+    def memory_estimate(self, width: int, height: int, num_frames: int) -> int:
+        """Upper bound of ``generate``'s peak memory, bytes, for a ``width`` × ``height`` output of ``num_frames``
+        frames, from the config alone (nothing is allocated; checked against the ``memory_bytes`` limit before the
+        networks run, :func:`diff4splat.limits.check_memory`).
+
+        Sum of: the process and the weights; the deformation of the unpruned scene, (:meth:`scene_slots` × K key
+        times × 10 floats) × :data:`MEMORY_SCENE_COPIES` (the LDRM's flattened maps, re-based, pruned copies, the
+        viewer's keyframes); the LDRM's deformation maps, n latent frames × K × the model grid × 10 floats ×
+        :data:`MEMORY_MAP_COPIES`; :data:`MEMORY_BYTES_PER_GAUSSIAN` per slot (attributes, renderer tile lists);
+        the rendered frames, T × H × W × 5 floats, twice (floats and encoded). The deformation terms vanish for a
+        runtime without the deformation network. Measured against the peak resident memory of ``generate`` on the
+        CPU in docs/benchmarks.md ("Memory of generate": 1.2-1.5× the measured peak at 17-149 frames, 64²-512²).
+
+        Raises:
+            ValueError: ``num_frames`` not 1 + 4k.
+        """
+        c = self.config
+        n = c.vae.num_latent_frames(num_frames)
+        slots = self.scene_slots(width, height, num_frames)
+        keys = num_frames if self.runtime.has_deformation else 0
+        weights = sum(p.numel() * p.element_size() for p in self.runtime.model.parameters()) \
+            if isinstance(self.runtime, TorchRuntime) else 0
+        return int(MEMORY_BASE_BYTES + weights + MEMORY_BYTES_PER_GAUSSIAN * slots
+                   + 40 * keys * (MEMORY_SCENE_COPIES * slots + MEMORY_MAP_COPIES * n * c.height * c.width)
+                   + 2 * 20 * num_frames * width * height)
 
     def output_size(self, resolution: int | None = None) -> tuple[int, int]:
         """(width, height) of the output for ``resolution`` pixels of height (None: the model resolution): the

@@ -26,6 +26,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from .layers import tracing
 from .pretrained import PretrainedMixin
 
 __all__ = [
@@ -36,10 +37,15 @@ __all__ = [
     "unit_quat_from_raw",
     "deformation_activations",
     "RAW_DEFORMATION_CHANNELS",
+    "CHUNK_ELEMENTS",
 ]
 
 RAW_DEFORMATION_CHANNELS = 10
 """Raw output channels: Δμ (3), Δq (4), Δs (3), in this order."""
+
+CHUNK_ELEMENTS = 1 << 24
+"""Hidden values (B · k · F · h · w) of one chunk of key times in :meth:`DeformationNetwork.forward`: 64 MiB in
+float32, a few times that with the conv's output and GELU (ours: bounds memory for long camera paths)."""
 
 _IDENTITY_QUAT = (1.0, 0.0, 0.0, 0.0)
 
@@ -163,6 +169,23 @@ class DeformationNetwork(nn.Module, PretrainedMixin):
         nn.init.zeros_(self.out_conv.weight)
         nn.init.zeros_(self.out_conv.bias)
 
+    def _raw(self, pyramid: list[Tensor], film: Tensor, upsample: int) -> Tensor:
+        """Raw channels (B, k, u·h, u·w, 10) of k key times from the levels (each (B, F, h, w)) and their FiLM
+        parameters (k, levels, 2, F, 1, 1)."""
+        B, _, h, w = pyramid[0].shape
+        k = film.shape[0]
+        # Per-time FiLM: bilinear weights sum to 1, so up(f)·(1+γ)+β = up(f·(1+γ)+β); modulating
+        # after upsampling is the same and lets the levels share one (B, k, F, h, w) sum.
+        agg = pyramid[0].new_zeros(())
+        for i, feat in enumerate(pyramid):
+            gamma, beta = film[:, i, 0], film[:, i, 1]  # (k, F, 1, 1)
+            agg = agg + feat[:, None] * (1 + gamma[None]) + beta[None]  # (B, k, F, h, w)
+        x = F.gelu(self.fuse(agg.reshape(B * k, self.config.hidden, h, w)))
+        # 1×1 conv then bilinear upsampling equals upsampling then the 1×1 conv (both linear,
+        # bilinear weights sum to 1 so the bias commutes too) at u² less cost.
+        raw = F.interpolate(self.out_conv(x), scale_factor=upsample, mode="bilinear", align_corners=False)
+        return raw.reshape(B, k, RAW_DEFORMATION_CHANNELS, h * upsample, w * upsample).permute(0, 1, 3, 4, 2)
+
     def forward(
         self,
         features: Tensor,  # (B, C, h, w) canonical features of the reference latent frame
@@ -200,18 +223,19 @@ class DeformationNetwork(nn.Module, PretrainedMixin):
         for down in self.down:
             level = F.gelu(down(level))
             pyramid.append(F.interpolate(level, size=(h, w), mode="bilinear", align_corners=False))
-        # Per-time FiLM: bilinear weights sum to 1, so up(f)·(1+γ)+β = up(f·(1+γ)+β); modulating
-        # after upsampling is the same and lets the levels share one (B, K, F, h, w) sum.
         film = self.time_mlp(time_embedding(times.to(features.dtype), cfg.time_frequencies))
         film = film.reshape(K, cfg.levels, 2, cfg.hidden, 1, 1)
-        agg = features.new_zeros(())
-        for i, feat in enumerate(pyramid):
-            gamma, beta = film[:, i, 0], film[:, i, 1]  # (K, F, 1, 1)
-            agg = agg + feat[:, None] * (1 + gamma[None]) + beta[None]  # (B, K, F, h, w)
-        x = F.gelu(self.fuse(agg.reshape(B * K, cfg.hidden, h, w)))
-        # 1×1 conv then bilinear upsampling equals upsampling then the 1×1 conv (both linear,
-        # bilinear weights sum to 1 so the bias commutes too) at u² less cost.
-        raw = self.out_conv(x)  # (B·K, 10, h, w)
-        raw = F.interpolate(raw, scale_factor=int(upsample), mode="bilinear", align_corners=False)
-        raw = raw.reshape(B, K, RAW_DEFORMATION_CHANNELS, h * upsample, w * upsample).permute(0, 1, 3, 4, 2)
-        return deformation_activations(raw, cfg.max_offset, cfg.max_log_scale)
+        # The (B, k, F, h, w) hidden maps are the network's largest tensors: key times go through in chunks of at
+        # most CHUNK_ELEMENTS hidden values, each written into the outputs, so memory grows with K only through the
+        # 10 output channels. One chunk while tracing (the exported graph keeps K symbolic). Chunking changes no
+        # value: each key time is computed on its own.
+        k = K if tracing() else max(1, CHUNK_ELEMENTS // (B * cfg.hidden * h * w))
+        u = int(upsample)
+        if k >= K:
+            return deformation_activations(self._raw(pyramid, film, u), cfg.max_offset, cfg.max_log_scale)
+        outs = tuple(features.new_empty(B, K, h * u, w * u, c) for c in (3, 4, 3))
+        for i in range(0, K, k):
+            parts = deformation_activations(self._raw(pyramid, film[i:i + k], u), cfg.max_offset, cfg.max_log_scale)
+            for out, part in zip(outs, parts, strict=True):
+                out[:, i:i + k] = part
+        return outs

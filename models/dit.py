@@ -25,7 +25,7 @@ import torch
 from torch import Tensor, nn
 from torch.utils.checkpoint import checkpoint
 
-from models.layers import CrossAttention, Mlp, SelfAttention, TimestepEmbedder, modulate, patchify, unpatchify
+from models.layers import CrossAttention, Mlp, SelfAttention, TimestepEmbedder, modulate, patchify, tracing, unpatchify
 from models.pretrained import PretrainedMixin
 from models.rope import rope_3d, rope_split
 
@@ -291,11 +291,7 @@ class VideoDiT(nn.Module, PretrainedMixin):
             if text_mask is not None and (text_mask.shape != text.shape[:2] or text_mask.dtype != torch.bool):
                 raise ValueError(f"text_mask must be a bool tensor of shape {tuple(text.shape[:2])}, "
                                  f"got {text_mask.dtype} {tuple(text_mask.shape)}")
-        if not _tracing() and bool((~((sigma >= 0) & (sigma <= 1))).any()):
+        if not tracing() and bool((~((sigma >= 0) & (sigma <= 1))).any()):
             raise ValueError(f"sigma must lie in [0, 1] (no NaN), got {sigma.tolist()}")
 
-
-def _tracing() -> bool:
-    """True while torch.jit / torch.compile / torch.export / torch.onnx trace the model."""
-    return bool(torch.jit.is_tracing() or torch.compiler.is_compiling() or torch.onnx.is_in_onnx_export())
 

@@ -24,7 +24,15 @@ __all__ = [
     "unpatchify",
     "SelfAttention",
     "CrossAttention",
+    "tracing",
 ]
+
+
+def tracing() -> bool:
+    """True while torch.jit / torch.compile / torch.export / torch.onnx trace a model: value-dependent checks and
+    Python loops over data-dependent sizes are then left out, so the graph stays general."""
+    return bool(torch.jit.is_tracing() or torch.compiler.is_compiling() or torch.compiler.is_exporting()
+                or torch.onnx.is_in_onnx_export())
 
 
 def timestep_embedding(t: Tensor, dim: int, max_period: float = 10000.0) -> Tensor:

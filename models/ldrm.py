@@ -46,7 +46,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .deformation import DeformationConfig, DeformationNetwork, soft_clamp, unit_quat_from_raw
-from .layers import Mlp, SelfAttention, patchify
+from .layers import Mlp, SelfAttention, patchify, tracing
 from .pretrained import PretrainedMixin
 
 __all__ = ["LDRMConfig", "LDRM", "LDRMOutput", "gaussian_activations", "sincos_position_3d", "source_frame_indices",
@@ -300,10 +300,6 @@ class Block(nn.Module):
         return x + self.mlp(self.norm2(x))
 
 
-def _tracing() -> bool:
-    """True while torch.export / dynamo / jit trace the model (value checks are then skipped)."""
-    return torch.compiler.is_exporting() or torch.compiler.is_compiling() or torch.jit.is_tracing()
-
 
 class UpsampleHead(nn.Module):
     """Token map → raw Gaussian channels per pixel, with overlap (ours; replaces the paper's kernel = stride
@@ -389,7 +385,7 @@ class LDRM(nn.Module, PretrainedMixin):
         if times is not None:
             if times.dim() != 1 or times.shape[0] < 1:
                 raise ValueError(f"times must have shape (K,) with K ≥ 1, got {tuple(times.shape)}")
-            if not _tracing() and not bool(((times >= 0) & (times <= 1)).all()):
+            if not tracing() and not bool(((times >= 0) & (times <= 1)).all()):
                 raise ValueError(f"times must lie in [0, 1], got min {float(times.min())}, max {float(times.max())}")
         if self.image_branch is not None:
             H, W = h * cfg.vae_spatial, w * cfg.vae_spatial

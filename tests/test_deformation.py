@@ -7,6 +7,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+import models.deformation as deformation
 from models.deformation import (
     DeformationConfig,
     DeformationNetwork,
@@ -85,6 +86,22 @@ def test_matches_reference_forward():
     ref = _reference_forward(net, feats, times, 4)
     for g, r in zip(got, ref, strict=True):
         torch.testing.assert_close(g, r, atol=1e-10, rtol=1e-10)
+
+
+def test_key_times_in_chunks_equal_one_pass_values_and_gradients(monkeypatch):
+    """Chunking over key times (bounded hidden memory for long paths) changes no value and no gradient."""
+    net = _net(perturb=True)
+    feats = torch.randn(2, 64, 4, 6, requires_grad=True)
+    times = torch.linspace(0, 1, 7)
+    whole = net(feats, times, upsample=4)
+    grads = torch.autograd.grad(sum((o * torch.arange(o.numel()).reshape(o.shape).cos()).sum() for o in whole), feats)
+    for k in (1, 3):  # key times per chunk (3 leaves a remainder of 1 of the 7); hidden values at B = 2, F = 32, 4×6
+        monkeypatch.setattr(deformation, "CHUNK_ELEMENTS", k * 2 * 32 * 4 * 6 + 5)
+        parts = net(feats, times, upsample=4)
+        for a, b in zip(parts, whole, strict=True):
+            torch.testing.assert_close(a, b, rtol=0, atol=1e-6)
+        loss = sum((o * torch.arange(o.numel()).reshape(o.shape).cos()).sum() for o in parts)
+        torch.testing.assert_close(torch.autograd.grad(loss, feats)[0], grads[0], rtol=1e-5, atol=1e-6)
 
 
 def test_single_level_and_odd_sizes():

@@ -21,8 +21,16 @@ from diff4splat.cameras import CameraPath
 from diff4splat.cli import main
 from diff4splat.io import load_cameras_json, load_realestate10k, save_cameras_json
 from diff4splat.io.image import header_size, read_image
-from diff4splat.limits import LIMITS, OUTPUT_BYTES_PER_GAUSSIAN, LimitError, check_limit, check_output_size, limit
-from diff4splat.pipeline import Diff4SplatPipeline, load_model
+from diff4splat.limits import (
+    LIMITS,
+    OUTPUT_BYTES_PER_GAUSSIAN,
+    LimitError,
+    check_limit,
+    check_memory,
+    check_output_size,
+    limit,
+)
+from diff4splat.pipeline import Diff4SplatPipeline, TorchRuntime, load_model
 from models.bundle import Diff4SplatModel, load_config
 from models.pretrained import config_from_dict
 from models.vae import VideoVAEConfig
@@ -111,6 +119,51 @@ def test_output_size_estimate_is_checked_before_the_networks_run(tmp_path, capsy
     monkeypatch.setenv("DIFF4SPLAT_MAX_OUTPUT_BYTES", "100000")
     code, lines = _generate(capsys, tmp_path, "--frames", "9", "--steps", "1")
     _one_line(code, lines, "output of 9 frames at 256×256: estimated", "DIFF4SPLAT_MAX_OUTPUT_BYTES")
+
+
+@pytest.mark.slow
+def test_memory_estimate_is_checked_before_the_networks_run_and_names_the_knobs(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(Diff4SplatPipeline, "__call__", _never)
+    monkeypatch.setenv("DIFF4SPLAT_MAX_OUTPUT_BYTES", str(1 << 40))  # the output check would refuse 401 frames first
+    code, lines = _generate(capsys, tmp_path, "--frames", "401")
+    _one_line(code, lines, "401 frames at 256×256: estimated peak memory", "GiB exceeds the limit of 8.0 GiB",
+              "lower --frames or --resolution", "DIFF4SPLAT_MAX_MEMORY_BYTES")
+
+
+PEAK_OF_MAIN = ("import resource, sys; from diff4splat.cli import main; code = main(sys.argv[1:]); "
+                "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss); raise SystemExit(code)")
+"""A child running ``diff4splat`` that prints its own peak resident memory (KiB) last."""
+
+
+def _never(*args, **kwargs):
+    raise AssertionError("the pipeline ran")
+
+
+def test_memory_estimate_grows_with_key_times_times_slots():
+    """The deformation of the unpruned scene (key times × slots) dominates long paths: doubling the path about
+    quadruples the excess over the fixed part; a runtime without deformation leaves the key-time terms out."""
+    pipe = Diff4SplatPipeline(TorchRuntime(Diff4SplatModel(load_config("tiny"))))
+    c = pipe.config
+    fixed = pipe.memory_estimate(c.width, c.height, 1)
+    grow = [pipe.memory_estimate(c.width, c.height, t) - fixed for t in (201, 401)]
+    assert 3.5 < grow[1] / grow[0] < 4.5
+    pipe.runtime.has_deformation = False
+    assert pipe.memory_estimate(c.width, c.height, 401) - fixed < grow[1] / 10
+    with pytest.raises(LimitError, match="GiB exceeds the limit of 8.0 GiB"):
+        check_memory(pipe.memory_estimate(1024, 1024, 1001), "x", "y")
+
+
+@pytest.mark.slow
+def test_memory_estimate_bounds_the_measured_peak_of_generate(tmp_path):
+    """The whole command in a child process (peak resident memory ``ru_maxrss``) stays under the estimate that
+    ``generate`` checks, and the estimate is not so loose that it refuses what runs (≤ 2× the peak)."""
+    frames, res = 65, 64
+    run = subprocess.run([sys.executable, "-c", PEAK_OF_MAIN, "generate", str(EXAMPLE_IMAGE), "--frames", str(frames),
+                          "--resolution", str(res), "--quiet", "--out", str(tmp_path / "o")],
+                         check=True, capture_output=True, text=True)
+    peak = int(run.stdout.split()[-1]) * 1024
+    estimate = Diff4SplatPipeline.from_pretrained().memory_estimate(res, res, frames)
+    assert peak <= estimate <= 2 * peak, (peak, estimate)
 
 
 # --------------------------------------------------------------------------- camera files

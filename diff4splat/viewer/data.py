@@ -78,13 +78,18 @@ def keyframes(scene: DynamicGaussians, times: Tensor) -> dict[str, Tensor]:
         {"means": (F, N, 3), "quats": (F, N, 4) unit wxyz, "scales": (F, N, 3), and "opacities": (F, N) when
         the scene has temporal support}, float32 on the CPU.
     """
-    gs = [scene.at(float(t), gate=0.0) for t in times]
-    out = {"means": torch.stack([g.means for g in gs]), "quats": torch.stack([g.quats for g in gs]),
-           "scales": torch.stack([g.scales for g in gs])}
-    out["quats"] = out["quats"] / out["quats"].norm(dim=-1, keepdim=True)
+    F, N = len(times), scene.num_gaussians
+    cpu = torch.device("cpu")  # the payload is bytes for the page: built on the host
+    out = {"means": torch.empty(F, N, 3, device=cpu), "quats": torch.empty(F, N, 4, device=cpu),
+           "scales": torch.empty(F, N, 3, device=cpu)}
     if scene.has_temporal:
-        out["opacities"] = torch.stack([g.opacities for g in gs])
-    return {k: v.detach().cpu().float() for k, v in out.items()}
+        out["opacities"] = torch.empty(F, N, device=cpu)
+    for i, t in enumerate(times):  # one time at a time into the outputs: memory F·N·10 floats, not twice that
+        g = scene.at(float(t), gate=0.0)
+        for key, dst in out.items():
+            src = getattr(g, key).detach()
+            dst[i] = (src / src.norm(dim=-1, keepdim=True) if key == "quats" else src).to("cpu", torch.float32)
+    return out
 
 
 def float16_error_px(

@@ -1,0 +1,84 @@
+"""Peak memory of ``diff4splat generate`` against its estimate (``Diff4SplatPipeline.memory_estimate``).
+
+Runs the real command once per (frames, resolution) in a child process that reports its own peak resident set
+size (``ru_maxrss``); the estimate is what the CLI checks against the ``memory_bytes`` limit before any network
+runs. Also lists the longest path each resolution allows within the default output and memory limits.
+
+    python benchmarks/generate_memory.py [--write] [--cases 17x256 49x256 ...]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+from _common import markdown_table, publish
+
+from diff4splat.limits import LIMITS, LimitError, check_memory, check_output_size
+from diff4splat.pipeline import Diff4SplatPipeline
+
+EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
+PEAK_OF_MAIN = ("import resource, sys; from diff4splat.cli import main; code = main(sys.argv[1:]); "
+                "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss); raise SystemExit(code)")
+"""A child running ``diff4splat`` that prints its own peak resident memory (KiB) last."""
+CASES = ["17x256", "49x256", "149x256", "49x64", "101x64", "25x512"]
+
+
+def peak_of_generate(frames: int, resolution: int) -> tuple[float, int]:
+    """(peak RSS of one ``generate`` child, bytes; its Gaussian count)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "o"
+        run = subprocess.run([sys.executable, "-c", PEAK_OF_MAIN, "generate", str(EXAMPLE), "--frames", str(frames),
+                              "--resolution", str(resolution), "--out", str(out), "--quiet"], check=True,
+                             capture_output=True, text=True,
+                             env={**os.environ, "DIFF4SPLAT_MAX_MEMORY_BYTES": str(1 << 40),
+                                  "DIFF4SPLAT_MAX_OUTPUT_BYTES": str(1 << 40)})
+        count = int(json.loads((out / "meta.json").read_text())["num_gaussians"])
+    return int(run.stdout.split()[-1]) * 1024.0, count
+
+
+def longest_path(pipe: Diff4SplatPipeline, resolution: int) -> int:
+    """The most frames (1 + 4k) whose output and memory estimates pass generate's checks (the limits as set)."""
+    best = 0
+    for frames in range(1, LIMITS["frames"].default + 1, 4):
+        try:
+            check_output_size(frames, resolution, resolution, pipe.scene_slots(resolution, resolution, frames))
+            check_memory(pipe.memory_estimate(resolution, resolution, frames), "", "")
+        except LimitError:
+            break
+        best = frames
+    return best
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cases", nargs="+", default=CASES, help="FRAMESxRESOLUTION, run in increasing peak order")
+    ap.add_argument("--write", action="store_true", help="write the table into docs/benchmarks.md")
+    args = ap.parse_args()
+    pipe = Diff4SplatPipeline.from_pretrained()
+    cases = sorted(((int(f), int(r)) for f, r in (c.split("x") for c in args.cases)),
+                   key=lambda c: pipe.memory_estimate(c[1], c[1], c[0]))
+    rows = []
+    for frames, res in cases:
+        peak, count = peak_of_generate(frames, res)
+        est = pipe.memory_estimate(res, res, frames)
+        rows.append([frames, f"{res}²", f"{count:,}", f"{peak / 2**30:.2f}", f"{est / 2**30:.2f}", f"{est / peak:.2f}"])
+    table = markdown_table(["frames", "output", "Gaussians kept", "peak RSS GiB", "estimate GiB", "estimate / peak"],
+                           rows)
+    longest = markdown_table(["output", "most frames within the default output (4 GiB) and memory (8 GiB) limits"],
+                             [[f"{r}²", longest_path(pipe, r)] for r in (64, 128, 256, 512, 1024)])
+    publish("generate_memory", "Memory of generate",
+            "Shipped base model, `arc` preset, examples/chelsea.png; peak resident memory of the whole command "
+            "(`ru_maxrss` of the child) against the estimate that `generate` checks before any network runs. The "
+            "estimate must stay ≥ the peak (it is an upper bound) and within ~1.5× of it. The deformation of the "
+            "unpruned scene grows with key times × Gaussian slots, both ∝ frames, so memory grows with frames²: "
+            "the second table lists the longest path each output size allows under the default limits.",
+            table + "\n\n" + longest, args.write)
+
+
+if __name__ == "__main__":
+    main()
