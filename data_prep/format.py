@@ -25,6 +25,7 @@ import numpy as np
 from torch import Tensor
 
 from diff4splat.cameras import CameraPath
+from diff4splat.checks import is_int
 from diff4splat.io import (
     load_cameras_json,
     load_depth_exr,
@@ -42,7 +43,6 @@ from .scene_files import (
     SceneMeta,
     check_camera_name,
     frame_name,
-    is_int,
     list_scenes,
     read_rgb,
     read_timestamps,

@@ -7,7 +7,6 @@ SceneMeta`` keeps working.
 """
 from __future__ import annotations
 
-import math
 import os
 import re
 from dataclasses import dataclass, field
@@ -16,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from diff4splat.checks import check_int, check_number, is_int, is_number
 from diff4splat.io.image import read_image
 from diff4splat.io.structured import read_json
 
@@ -31,7 +31,6 @@ __all__ = [
     "read_rgb",
     "read_timestamps",
     "timestamps_to_times",
-    "is_int",
 ]
 
 FORMAT_VERSION = 1
@@ -58,15 +57,6 @@ def check_camera_name(name: Any) -> str:
 def frame_name(index: int, suffix: str) -> str:
     """File name of frame ``index``: ``f"{index:05d}{suffix}"`` (e.g. ``00017.png``)."""
     return f"{index:05d}{suffix}"
-
-
-def is_int(v: Any) -> bool:
-    """True for an ``int`` that is not a ``bool``."""
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
-def _is_number(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
 @dataclass
@@ -107,23 +97,22 @@ class SceneMeta:
         self.validate()
 
     def validate(self) -> None:
-        """Check every field's type and value (FORMAT.md table). Raises ValueError naming the field."""
+        """Check every field's type and value (FORMAT.md table) with :mod:`diff4splat.checks`; numbers are kept
+        as Python ``int``/``float`` (numpy scalars are accepted and converted, so ``meta.json`` can be written).
+        Raises ValueError naming the field."""
         if not is_int(self.format_version) or self.format_version != FORMAT_VERSION:
             raise ValueError(f"format_version must be {FORMAT_VERSION}, got {self.format_version!r}")
+        self.format_version = FORMAT_VERSION
         if not isinstance(self.source, str) or not self.source.strip():
             raise ValueError(f"source must be a non-empty string, got {self.source!r}")
         if not isinstance(self.dynamic, bool):
             raise ValueError(f"dynamic must be true or false, got {self.dynamic!r}")
         if self.depth_source not in DEPTH_SOURCES:
             raise ValueError(f"depth_source must be one of {list(DEPTH_SOURCES)}, got {self.depth_source!r}")
-        if not _is_number(self.depth_scale) or self.depth_scale <= 0:
-            raise ValueError(f"depth_scale must be a finite number > 0, got {self.depth_scale!r}")
-        if not _is_number(self.depth_shift):
-            raise ValueError(f"depth_shift must be a finite number (metres), got {self.depth_shift!r}")
-        if not is_int(self.num_frames) or self.num_frames < 1:
-            raise ValueError(f"num_frames must be an integer ≥ 1, got {self.num_frames!r}")
-        if not _is_number(self.fps) or self.fps <= 0:
-            raise ValueError(f"fps must be a finite number > 0, got {self.fps!r}")
+        self.depth_scale = check_number("depth_scale", self.depth_scale, lo=0, lo_open=True)
+        self.depth_shift = check_number("depth_shift", self.depth_shift, what="metres")
+        self.num_frames = check_int("num_frames", self.num_frames, 1)
+        self.fps = check_number("fps", self.fps, lo=0, lo_open=True)
         if not isinstance(self.cameras, list) or not self.cameras:
             raise ValueError(f"cameras must be a non-empty list of camera folder names, got {self.cameras!r}")
         for name in self.cameras:
@@ -190,7 +179,7 @@ def read_timestamps(path: str | os.PathLike) -> np.ndarray:
     path = Path(path)
     data = read_json(path, "camera file", expect=None)
     ts = data.get("timestamps") if isinstance(data, dict) else None
-    if not isinstance(ts, list) or not all(_is_number(x) for x in ts):
+    if not isinstance(ts, list) or not all(is_number(x) for x in ts):
         raise ValueError(f"{path}: 'timestamps' must be a list of finite numbers (seconds), got {str(ts)[:60]}")
     ts = np.asarray(ts, dtype=np.float64)
     if ts.size > 1 and bool((np.diff(ts) < 0).any()):

@@ -38,6 +38,7 @@ import torch
 from tqdm.auto import tqdm
 
 from diff4splat.cameras import CameraPath, intrinsics_from_fov, look_at
+from diff4splat.checks import check_int, check_number
 from diff4splat.gaussians import Gaussians, rgb_to_sh0
 from diff4splat.limits import check_limit
 from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat, rotmat_to_quat
@@ -455,12 +456,6 @@ def generate_scene(out_dir: str | os.PathLike, index: int, seed: int, *, size: i
     return write_synth_scene(Path(out_dir) / scene_name(index), result, {"seed": seed, "index": index}, replace)
 
 
-def _check_int(name: str, v: Any, lo: int) -> int:
-    if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-        raise ValueError(f"{name} must be an integer ≥ {lo}, got {v!r}")
-    return v
-
-
 def max_gaussians(size: int) -> int:
     """An upper bound of the Gaussians of any scene of ``size`` pixels (:func:`build_gaussians`).
 
@@ -496,15 +491,14 @@ def check_synth_request(num_scenes: int, seed: int, *, size: int, frames: int, c
             or :func:`scene_bytes` above ``synth_bytes``.
     """
     name = _FLAGS.get if flags else str
-    check_limit("scenes", _check_int(name("num_scenes"), num_scenes, 1), name("num_scenes"))
-    _check_int(name("seed"), seed, 0)
-    check_limit("resolution", _check_int(name("size"), size, 8), name("size"))
-    check_limit("frames", _check_int(name("frames"), frames, 2), name("frames"))
-    _check_int(name("cameras"), cameras, 1)
-    _check_int(name("workers"), workers, 1)
+    check_limit("scenes", check_int(name("num_scenes"), num_scenes, 1), name("num_scenes"))
+    check_int(name("seed"), seed, 0)
+    check_limit("resolution", check_int(name("size"), size, 8), name("size"))
+    check_limit("frames", check_int(name("frames"), frames, 2), name("frames"))
+    check_int(name("cameras"), cameras, 1)
+    check_int(name("workers"), workers, 1)
     for key, value in (("static_ratio", static_ratio), ("texture_ratio", texture_ratio)):
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= 1:
-            raise ValueError(f"{name(key)} must be a number in [0, 1], got {value!r}")
+        check_number(name(key), value, lo=0, hi=1)
     check_limit("synth_bytes", scene_bytes(size, frames, cameras),
                 f"one scene of {name('cameras')} {cameras} × {name('frames')} {frames} at {name('size')} {size}: "
                 "estimated")
@@ -548,6 +542,8 @@ def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, si
     """
     check_synth_request(num_scenes, seed, size=size, frames=frames, cameras=cameras, workers=workers,
                         static_ratio=static_ratio, texture_ratio=texture_ratio)
+    # numpy integers pass the checks; Python ints go on (the seed is written to meta.json)
+    num_scenes, seed, size, frames, cameras, workers = map(int, (num_scenes, seed, size, frames, cameras, workers))
     out = Path(out_dir)
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)

@@ -188,10 +188,10 @@ def path_scene(folder: SceneFolder, times: Tensor) -> DynamicGaussians:
     """
     if folder.field is None:
         return folder.scene
-    keys = torch.unique(times.detach().float().cpu())  # sorted, strictly increasing; moved by dynamic_gaussians
-    dyn = folder.field.dynamic_gaussians(folder.scene.canonical, keys)
     s = folder.scene
-    return DynamicGaussians(dyn.canonical, dyn.times, dyn.d_means, dyn.d_quats, dyn.d_scales, s.t_means, s.t_scales)
+    keys = torch.unique(times.detach().float().cpu()).to(s.canonical.means)  # sorted, strictly increasing
+    d_means, d_quats, d_scales = folder.field.deformations_at(s.canonical.means, keys)
+    return DynamicGaussians(s.canonical, keys, d_means, d_quats, d_scales, s.t_means, s.t_scales)
 
 
 def placed_at(path: CameraPath, first: Tensor) -> CameraPath:

@@ -45,7 +45,7 @@ def compose_deformation(
     """Apply a deformation to Gaussians (docs/DESIGN.md, "Conventions": deformation at time t).
 
     μ_t = μ + Δμ,  q_t = normalize(Δq ⊗ normalize(q)),  s_t = s·exp(Δs). Differentiable; the one place
-    the composition is written (``DynamicGaussians.at``, the HexPlane field and ``fit`` call it).
+    the composition is written (``DynamicGaussians.at`` and ``fit`` call it).
 
     Returns:
         means (..., 3), unit quats (..., 4), scales (..., 3).

@@ -1,7 +1,9 @@
 """HexPlane deformation field of 4D Gaussian Splatting (Wu et al., CVPR 2024, §3.2).
 
-A Gaussian's canonical mean μ and a time t ∈ [0, 1] give a deformation (Δμ, Δq, Δs), composed with the
-canonical Gaussian by :func:`diff4splat.scene.compose_deformation` (docs/DESIGN.md, "Conventions").
+A Gaussian's canonical mean μ and a time t ∈ [0, 1] give a deformation (Δμ, Δq, Δs). The field returns these
+tensors only (:meth:`HexPlaneField.forward` at one time, :meth:`HexPlaneField.deformations_at` at T key times); the
+``diff4splat`` layer composes them with the canonical Gaussians (:func:`diff4splat.scene.compose_deformation`,
+:class:`diff4splat.scene.DynamicGaussians`; docs/DESIGN.md, "Conventions" and "Layers").
 Public reference code: hustvl/4DGaussians ``scene/hexplane.py`` (planes, sampling), ``scene/deformation.py``
 (MLP), ``scene/regulation.py`` + ``scene/gaussian_model.py`` (regularisers), defaults from
 ``arguments/__init__.py`` (``ModelHiddenParams``) overridden by ``arguments/dnerf/dnerf_default.py``.
@@ -47,8 +49,6 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import json
-import math
-import numbers
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,11 +57,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from diff4splat.checks import check_finite
-from diff4splat.gaussians import Gaussians
+from diff4splat.checks import check_finite, check_int, check_number, check_positive_int, is_int
 from diff4splat.io.atomic import atomic_output_path
 from diff4splat.limits import check_limit
-from diff4splat.scene import DynamicGaussians, compose_deformation
 
 from .pretrained import config_from_dict
 
@@ -132,25 +130,22 @@ class HexPlaneConfig:
     plane_reg: str = "smoothness"
 
     def __post_init__(self) -> None:
-        def is_int(v: object, lo: int) -> bool:
-            return isinstance(v, int) and not isinstance(v, bool) and v >= lo
-
+        # diff4splat.checks; integers and numbers are stored as Python int / float (the config is saved as JSON)
         for name in ("feature_dim", "net_width"):
-            if not is_int(getattr(self, name), 1):
-                raise ValueError(f"{name} must be a positive int, got {getattr(self, name)!r}")
-        if not is_int(self.trunk_depth, 0):
-            raise ValueError(f"trunk_depth must be an int >= 0, got {self.trunk_depth!r}")
+            setattr(self, name, check_positive_int(name, getattr(self, name)))
+        self.trunk_depth = check_int("trunk_depth", self.trunk_depth, 0)
         self.resolution = tuple(self.resolution) if isinstance(self.resolution, (list, tuple)) else self.resolution
         if not (isinstance(self.resolution, tuple) and len(self.resolution) == 4
-                and all(is_int(r, 3) for r in self.resolution)):
+                and all(is_int(r) and r >= 3 for r in self.resolution)):
             raise ValueError(f"resolution must be 4 ints >= 3 (x, y, z, t), got {self.resolution!r}")
+        self.resolution = tuple(int(r) for r in self.resolution)
         self.multires = tuple(self.multires) if isinstance(self.multires, (list, tuple)) else self.multires
-        if not (isinstance(self.multires, tuple) and self.multires and all(is_int(m, 1) for m in self.multires)):
+        if not (isinstance(self.multires, tuple) and self.multires
+                and all(is_int(m) and m >= 1 for m in self.multires)):
             raise ValueError(f"multires must be a non-empty sequence of positive ints, got {self.multires!r}")
+        self.multires = tuple(int(m) for m in self.multires)
         for name in ("plane_tv_weight", "time_smoothness_weight", "l1_time_planes"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+            setattr(self, name, check_number(name, getattr(self, name), lo=0))
         if self.plane_reg not in _PLANE_REGS:
             raise ValueError(f"plane_reg must be one of {_PLANE_REGS}, got {self.plane_reg!r}")
 
@@ -355,9 +350,7 @@ class HexPlaneField(nn.Module):
             if n and not bool(((t >= 0) & (t <= 1)).all()):
                 raise ValueError(f"t must lie in [0, 1], got values from {float(t.min())} to {float(t.max())}")
             return (2.0 * t - 1.0).unsqueeze(1)
-        if isinstance(t, bool) or not isinstance(t, numbers.Real) or not 0.0 <= float(t) <= 1.0:
-            raise ValueError(f"t must be a number in [0, 1], got {t!r}")
-        return like.new_full((n, 1), 2.0 * float(t) - 1.0)
+        return like.new_full((n, 1), 2.0 * check_number("t", t, lo=0, hi=1) - 1.0)
 
     def features(self, means: Tensor, t: float | Tensor) -> Tensor:
         """Plane features of points at time ``t``.
@@ -408,50 +401,43 @@ class HexPlaneField(nn.Module):
         d_quats = self.d_quats_head(h) + h.new_tensor(_IDENTITY_QUAT)
         return self.d_means_head(h), d_quats, self.d_scales_head(h)
 
-    def deform(self, means: Tensor, quats: Tensor, scales: Tensor, t: float | Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Deformed Gaussians at ``t``: :func:`diff4splat.scene.compose_deformation` of :meth:`forward`.
-
-        Args:
-            means: (N, 3) metres; quats: (N, 4) wxyz; scales: (N, 3) metres > 0; t: as :meth:`forward`.
-
-        Returns:
-            means (N, 3), unit quats (N, 4), scales (N, 3).
-        """
-        return compose_deformation(means, quats, scales, *self(means, t))
-
     @torch.no_grad()
-    def dynamic_gaussians(self, canonical: Gaussians, times: Tensor, chunk: int = 65536) -> DynamicGaussians:
-        """Sample the field at key times into an ordinary :class:`~diff4splat.scene.DynamicGaussians`.
+    def deformations_at(self, means: Tensor, times: Tensor, chunk: int = 65536) -> tuple[Tensor, Tensor, Tensor]:
+        """The deformation of M points at each of T key times, evaluated ``chunk`` points at a time (no gradient).
+
+        The tensors of :class:`~diff4splat.scene.DynamicGaussians` (which the caller builds:
+        ``DynamicGaussians(canonical, times, *field.deformations_at(canonical.means, times))``).
 
         Args:
-            canonical: M canonical Gaussians (their means are the field's input).
-            times: (T,) key times in [0, 1], strictly increasing (checked by ``DynamicGaussians``).
+            means: (M, 3) canonical means, metres, on any device and of any float dtype (evaluated on the
+                field's device in its dtype), M ≥ 0.
+            times: (T,) key times in [0, 1], T ≥ 1 (a tensor on any device, or a sequence of numbers).
             chunk: points per field evaluation (bounds memory), ≥ 1.
 
         Returns:
-            ``DynamicGaussians(canonical, times, d_means (T, M, 3), d_quats (T, M, 4), d_scales (T, M, 3))``,
-            deformation arrays exactly :meth:`forward` at each key time, on ``canonical``'s device and dtype.
+            d_means (T, M, 3) metres, d_quats (T, M, 4) wxyz unnormalised, d_scales (T, M, 3) log-scale
+            offsets: exactly :meth:`forward` at each key time, on ``means``' device and dtype.
 
         Raises:
-            ValueError: ``times`` not (T,) with T ≥ 1 / outside [0, 1] / not increasing; chunk < 1.
+            ValueError: ``times`` not (T,) with T ≥ 1, non-finite or outside [0, 1]; ``chunk`` < 1; ``means``
+                not (M, 3) or holding NaN (:meth:`features`).
         """
-        if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
-            raise ValueError(f"chunk must be a positive int, got {chunk!r}")
-        times = torch.as_tensor(times, dtype=canonical.means.dtype, device=canonical.means.device)
+        check_positive_int("chunk", chunk)
+        times = torch.as_tensor(times, dtype=means.dtype, device=means.device)
         if times.dim() != 1 or times.shape[0] < 1:
             raise ValueError(f"times must have shape (T,) with T >= 1, got {tuple(times.shape)}")
         check_finite("times", times)
         p = next(self.parameters())
-        means = canonical.means.to(device=p.device, dtype=p.dtype)
+        pts = means.to(device=p.device, dtype=p.dtype)
         out: tuple[list[Tensor], list[Tensor], list[Tensor]] = ([], [], [])
         for t in times.tolist():
             if not 0.0 <= t <= 1.0:
                 raise ValueError(f"times must lie in [0, 1], got {times.tolist()}")
-            parts = [self(means[i:i + chunk], t) for i in range(0, means.shape[0], chunk)] or [self(means, t)]
+            parts = [self(pts[i:i + chunk], t) for i in range(0, pts.shape[0], chunk)] or [self(pts, t)]
             for k, acc in enumerate(out):
                 acc.append(torch.cat([pt[k] for pt in parts], dim=0))
-        d_means, d_quats, d_scales = (torch.stack(a).to(canonical.means) for a in out)
-        return DynamicGaussians(canonical, times, d_means, d_quats, d_scales)
+        d_means, d_quats, d_scales = (torch.stack(a).to(means) for a in out)
+        return d_means, d_quats, d_scales
 
     def regularization(self) -> Tensor:
         """Weighted regulariser of the planes (reference ``gaussian_model.py`` ``compute_regulation``).

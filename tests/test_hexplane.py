@@ -8,6 +8,7 @@ from safetensors.torch import save_file
 
 from diff4splat.gaussians import Gaussians
 from diff4splat.quaternions import quat_normalize
+from diff4splat.scene import DynamicGaussians, compose_deformation
 from models.hexplane import (
     MIN_EXTENT,
     PLANE_AXES,
@@ -75,7 +76,7 @@ def test_identity_at_init():
         assert torch.equal(d_quats, torch.tensor([[1.0, 0.0, 0.0, 0.0]]).expand(51, 4))
         assert torch.equal(d_scales, torch.zeros(51, 3))
     quats, scales = torch.randn(51, 4), torch.rand(51, 3) + 0.1
-    m, q, s = field.deform(means, quats, scales, 0.5)
+    m, q, s = compose_deformation(means, quats, scales, *field(means, 0.5))
     assert torch.equal(m, means) and torch.equal(s, scales)
     torch.testing.assert_close(q, quat_normalize(quats))
     # the features do reach the trunk: only the heads' last layers are zero
@@ -256,9 +257,8 @@ def test_empty_input():
     d_means, d_quats, d_scales = field(means, 0.5)
     assert (d_means.shape, d_quats.shape, d_scales.shape) == ((0, 3), (0, 4), (0, 3))
     (d_means.sum() + d_quats.sum() + d_scales.sum()).backward()
-    empty = Gaussians(torch.zeros(0, 3), torch.zeros(0, 4), torch.zeros(0, 3), torch.zeros(0), torch.zeros(0, 1, 3))
-    dyn = field.dynamic_gaussians(empty, torch.tensor([0.0, 1.0]))
-    assert tuple(dyn.d_quats.shape) == (2, 0, 4)
+    d_means, d_quats, d_scales = field.deformations_at(torch.zeros(0, 3), torch.tensor([0.0, 1.0]))
+    assert (d_means.shape, d_quats.shape, d_scales.shape) == ((2, 0, 3), (2, 0, 4), (2, 0, 3))
 
 
 @pytest.mark.parametrize("bounds", [
@@ -292,22 +292,25 @@ def test_degenerate_axis_gets_min_extent():
         torch.testing.assert_close(a, b)
 
 
-def test_dynamic_gaussians_equals_field_at_key_times():
+def test_deformations_at_equals_field_at_key_times():
+    """deformations_at returns tensors only; DynamicGaussians built from them deforms as compose_deformation of the
+    field's output at each key time."""
     field = _perturbed(HexPlaneConfig(**TINY), seed=7)
     n = 23
     torch.manual_seed(0)
     canonical = Gaussians(_points(n), torch.randn(n, 4), torch.rand(n, 3) + 0.05, torch.rand(n) * 0.9,
                           torch.randn(n, 1, 3))
     times = torch.tensor([0.0, 0.3, 0.65, 1.0])
-    dyn = field.dynamic_gaussians(canonical, times, chunk=5)
-    assert torch.equal(dyn.times, times) and dyn.canonical is canonical
+    sampled = field.deformations_at(canonical.means, times, chunk=5)
+    assert all(isinstance(x, torch.Tensor) for x in sampled)
+    dyn = DynamicGaussians(canonical, times, *sampled)
     for k, t in enumerate(times.tolist()):
         d_means, d_quats, d_scales = field(canonical.means, t)
         torch.testing.assert_close(dyn.d_means[k], d_means, rtol=0, atol=1e-6)
         torch.testing.assert_close(dyn.d_quats[k], d_quats, rtol=0, atol=1e-6)
         torch.testing.assert_close(dyn.d_scales[k], d_scales, rtol=0, atol=1e-6)
         g = dyn.at(t)
-        m, q, s = field.deform(canonical.means, canonical.quats, canonical.scales, t)
+        m, q, s = compose_deformation(canonical.means, canonical.quats, canonical.scales, d_means, d_quats, d_scales)
         torch.testing.assert_close(g.means, m, rtol=0, atol=1e-6)
         torch.testing.assert_close(g.quats, q, rtol=0, atol=1e-6)
         torch.testing.assert_close(g.scales, s, rtol=1e-6, atol=0)
@@ -357,9 +360,12 @@ def test_bad_times_and_means_raise():
         field(torch.tensor([[0.0, float("nan"), 0.0]]), 0.5)
     with pytest.raises(ValueError, match="dtype"):
         field(means.double(), 0.5)
-    g = Gaussians(means, torch.randn(4, 4), torch.ones(4, 3), torch.full((4,), 0.5), torch.zeros(4, 1, 3))
-    with pytest.raises(ValueError, match="times"):
-        field.dynamic_gaussians(g, torch.tensor([0.5, 1.5]))
+    for times, match in ((torch.tensor([0.5, 1.5]), r"times must lie in \[0, 1\]"), (torch.zeros(0), "times"),
+                         (torch.zeros(2, 1), "times"), (torch.tensor([0.5, math.inf]), "times")):
+        with pytest.raises(ValueError, match=match):
+            field.deformations_at(means, times)
+    with pytest.raises(ValueError, match="chunk must be a positive int"):
+        field.deformations_at(means, torch.tensor([0.5]), chunk=0)
 
 
 def test_field_on_each_device(tmp_path, device):
@@ -380,9 +386,9 @@ def test_field_on_each_device(tmp_path, device):
         assert f.regularization().device.type == device.type
         canonical = Gaussians(means, quat_normalize(torch.randn(30, 4)), torch.full((30, 3), 0.1),
                               torch.full((30,), 0.5), torch.zeros(30, 1, 3)).to(device)
-        dyn = f.dynamic_gaussians(canonical, torch.tensor([0.0, 0.3]))
-        assert dyn.times.device.type == device.type and dyn.d_means.device.type == device.type
-        torch.testing.assert_close(dyn.d_means[1].cpu(), ref[0], rtol=1e-5, atol=1e-6)
+        d_means = f.deformations_at(canonical.means, torch.tensor([0.0, 0.3]))[0]  # times on the CPU
+        assert d_means.device.type == device.type
+        torch.testing.assert_close(d_means[1].cpu(), ref[0], rtol=1e-5, atol=1e-6)
     made = HexPlaneField(HexPlaneConfig(**TINY), BOX.to(device))  # default: the bounds' device
     assert {p.device.type for p in made.parameters()} == {device.type}
     on_cpu = HexPlaneField(HexPlaneConfig(**TINY), BOX.to(device), device="cpu")
@@ -405,7 +411,7 @@ def test_field_makes_nothing_on_the_default_device(tmp_path, no_implicit_device)
                               torch.full((10,), 0.5), torch.zeros(10, 1, 3))
     field = HexPlaneField(HexPlaneConfig(**TINY), bounds)
     assert {p.device.type for p in [*field.parameters(), *field.buffers()]} == {"cpu"}
-    out = [*field(means, 0.5), field.regularization(), field.dynamic_gaussians(canonical, times).d_quats]
+    out = [*field(means, 0.5), field.regularization(), field.deformations_at(canonical.means, times)[1]]
     assert {t.device.type for t in out} == {"cpu"}
     assert HexPlaneField(HexPlaneConfig(**TINY), [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]).bounds.device.type == "cpu"
     save_field(tmp_path / "f.safetensors", field)

@@ -177,7 +177,7 @@ def test_field_is_sampled_at_exactly_the_distinct_path_times(tmp_path):
 
 
 def test_fit_folder_renders_its_field_safetensors_at_the_path_times(tmp_path):
-    """A folder holding field.safetensors (as fit writes it) renders field.dynamic_gaussians at the path's times,
+    """A folder holding field.safetensors (as fit writes it) renders the field sampled at the path's times,
     also between the key times of its deformation.npz, not the npz's interpolation."""
     folder, scene, cams, _ = _folder(tmp_path)
     canonical = load_scene_folder(folder).scene.canonical
@@ -187,7 +187,8 @@ def test_fit_folder_renders_its_field_safetensors_at_the_path_times(tmp_path):
     cam_file = _data_prep_cameras(tmp_path / "mid.json", mid, np.array([0.1, 0.37, 0.8]))
     meta = rerender(folder, tmp_path / "r", cameras=cam_file)
     assert meta["deformation"] == "field.safetensors"
-    _assert_frames(tmp_path / "r", field.dynamic_gaussians(canonical, mid.times), mid, tol=0)
+    sampled = DynamicGaussians(canonical, mid.times, *field.deformations_at(canonical.means, mid.times))
+    _assert_frames(tmp_path / "r", sampled, mid, tol=0)
     npz = to_uint8(render_path(scene, mid)[0])
     assert np.abs(_rgb(tmp_path / "r", 3).astype(int) - npz.astype(int)).max() > 20  # the test can tell
 

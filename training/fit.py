@@ -493,7 +493,8 @@ def to_scene(state: FitState, times: Tensor | None) -> DynamicGaussians:
     canonical = Gaussians(means, quats, scales, opac, sh)
     if state.field is None or times is None:
         return DynamicGaussians(canonical)
-    return state.field.dynamic_gaussians(canonical, times.float())
+    times = times.to(canonical.means)
+    return DynamicGaussians(canonical, times, *state.field.deformations_at(canonical.means, times))
 
 
 def config_dict(config: FitConfig) -> dict:

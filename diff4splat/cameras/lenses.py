@@ -30,7 +30,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..checks import check_positive_int
+from ..checks import check_number, check_positive_int
 from .path import camera_centers
 from .rays import camera_rays
 
@@ -99,15 +99,6 @@ def _polyval(coeffs: tuple[float, ...], x: Tensor) -> Tensor:
     return out
 
 
-def _check_number(owner: str, name: str, value: object, *, lo: float | None = None, lo_open: bool = False) -> float:
-    """Float value of a finite real; ValueError naming ``owner.name`` otherwise or below ``lo``."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise ValueError(f"{owner}.{name} must be a finite number, got {value!r}")
-    if lo is not None and (value <= lo if lo_open else value < lo):
-        raise ValueError(f"{owner}.{name} must be {'>' if lo_open else '>='} {lo}, got {value!r}")
-    return float(value)
-
-
 def _pixel_offsets(pixels: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
     """(u − cx, v − cy) of pixel positions (..., 2) for intrinsics K (3, 3)."""
     return pixels[..., 0] - K[0, 2], pixels[..., 1] - K[1, 2]
@@ -160,7 +151,7 @@ class FisheyePolynomial:
 
     def __post_init__(self) -> None:
         for name in ("k0", "k1", "k2", "k3", "k4"):
-            _check_number("FisheyePolynomial", name, getattr(self, name))
+            check_number(f"FisheyePolynomial.{name}", getattr(self, name))
         if self.k0 != 0.0:
             raise ValueError(f"FisheyePolynomial.k0 must be 0 (r = 0 is the optical axis), got {self.k0!r}")
         if not self.k1 > 0:
@@ -254,7 +245,7 @@ class FisheyeKB:
 
     def __post_init__(self) -> None:
         for name in ("k1", "k2", "k3", "k4"):
-            _check_number("FisheyeKB", name, getattr(self, name))
+            check_number(f"FisheyeKB.{name}", getattr(self, name))
         x_turn = _smallest_positive_root([1.0, 3 * self.k1, 5 * self.k2, 7 * self.k3, 9 * self.k4])
         theta_max = min(math.pi, math.sqrt(x_turn))
         object.__setattr__(self, "theta_max", theta_max)
@@ -358,8 +349,8 @@ class ThinLens:
     spp: int = 16
 
     def __post_init__(self) -> None:
-        _check_number("ThinLens", "aperture_radius", self.aperture_radius, lo=0.0)
-        _check_number("ThinLens", "focus_distance", self.focus_distance, lo=0.0, lo_open=True)
+        check_number("ThinLens.aperture_radius", self.aperture_radius, lo=0, what="metres")
+        check_number("ThinLens.focus_distance", self.focus_distance, lo=0, lo_open=True, what="metres")
         check_positive_int("ThinLens.spp", self.spp)
 
     def aperture_samples(self, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu") -> Tensor:
@@ -394,9 +385,7 @@ class RollingShutter:
     anchor: str = "center"
 
     def __post_init__(self) -> None:
-        d = _check_number("RollingShutter", "duration", self.duration, lo=0.0)
-        if d > 1.0:
-            raise ValueError(f"RollingShutter.duration must be <= 1 (clip-time units), got {self.duration!r}")
+        check_number("RollingShutter.duration", self.duration, lo=0, hi=1, what="clip-time units")
         if self.chunks is not None:
             check_positive_int("RollingShutter.chunks", self.chunks)
         if self.anchor not in ("center", "start"):
