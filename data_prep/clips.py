@@ -35,6 +35,7 @@ from torch import Tensor
 from torch.utils.data import Dataset
 
 from diff4splat.cameras import CameraPath, center_crop_box, pack_plucker, plucker_rays
+from diff4splat.checks import check_int
 from diff4splat.io import preprocess_image
 
 from .format import SceneMeta, SceneReader, list_scenes, timestamps_to_times
@@ -91,8 +92,7 @@ class ClipConfig:
                     raise ValueError(f"{f.name} must be one of {list(_CHOICES[f.name])}, got {v!r}")
             elif not (v is None and f.name == "window_step"):
                 low = 0 if f.name in ("num_tracks", "seed") else 1
-                if isinstance(v, bool) or not isinstance(v, int) or v < low:
-                    raise ValueError(f"{f.name} must be an integer ≥ {low}, got {v!r}")
+                check_int(f.name, v, low)
         if (self.num_frames - 1) % 4:
             raise ValueError(f"num_frames must be 1 + 4k (1, 5, 9, 13, 17, …), got {self.num_frames}")
         if self.max_stride < self.min_stride:
@@ -227,9 +227,7 @@ class ClipDataset(Dataset):
 
     def set_epoch(self, epoch: int) -> None:
         """Select the per-epoch randomness (stride, cameras, tracks) of every item; ``epoch`` ≥ 0."""
-        if isinstance(epoch, bool) or not isinstance(epoch, int) or epoch < 0:
-            raise ValueError(f"epoch must be an integer ≥ 0, got {epoch!r}")
-        self.epoch = epoch
+        self.epoch = check_int("epoch", epoch, 0)
 
     def _rng(self, index: int, stream: int) -> np.random.Generator:
         """Generator of item ``index`` in this epoch; stream 0: stride and cameras, 1: tracks."""

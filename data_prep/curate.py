@@ -49,6 +49,7 @@ import yaml
 from tqdm import tqdm
 
 from diff4splat.cameras import camera_centers
+from diff4splat.checks import check_int
 from diff4splat.io import atomic_output_path, output_dir
 from diff4splat.io.structured import read_yaml
 
@@ -422,8 +423,7 @@ def curate(in_root: str | os.PathLike, out_root: str | os.PathLike, config: Cura
     """
     config = config or CurationConfig()
     in_root, out_root = Path(in_root), Path(out_root)
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers must be an integer ≥ 1, got {workers!r}")
+    workers = check_int("workers", workers, 1)
     if mode not in MODES:
         raise ValueError(f"mode must be one of {list(MODES)}, got {mode!r}")
     scenes = list_scenes(in_root)

@@ -25,6 +25,8 @@ from typing import Any
 
 import numpy as np
 
+from diff4splat.checks import check_number
+
 from .textures import IMAGE_TEXTURES, load_texture, texture_names
 
 __all__ = ["COLORS", "SHAPES", "MOTIONS", "CAMERA_MOTIONS", "TEXTURES", "sample_scene_spec", "caption_for",
@@ -219,8 +221,7 @@ def sample_scene_spec(rng: np.random.Generator, *, dynamic: bool, num_cameras: i
     Raises:
         ValueError: ``texture_ratio`` is not a number in [0, 1].
     """
-    if isinstance(texture_ratio, bool) or not isinstance(texture_ratio, (int, float)) or not 0 <= texture_ratio <= 1:
-        raise ValueError(f"texture_ratio must be a number in [0, 1], got {texture_ratio!r}")
+    check_number("texture_ratio", texture_ratio, lo=0, hi=1)
     room = float(rng.uniform(5.0, 6.0))
     ground_y = float(rng.uniform(0.8, 1.5))
     light = rng.normal(size=3)

@@ -34,6 +34,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .checks import check_int
+
 __all__ = [
     "DepthAlignment",
     "SPACES",
@@ -288,9 +290,8 @@ def fit_scale_shift_robust(
     space = _check_space(space)
     if loss not in _LOSSES:
         raise ValueError(f"loss must be one of {_LOSSES}, got {loss!r}")
-    for name, v, lo in (("ransac_iters", ransac_iters, 0), ("irls_iters", irls_iters, 1), ("max_eval", max_eval, 2)):
-        if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-            raise ValueError(f"{name} must be an integer ≥ {lo}, got {v!r}")
+    ransac_iters, irls_iters, max_eval = (check_int(name, v, lo) for name, v, lo in (
+        ("ransac_iters", ransac_iters, 0), ("irls_iters", irls_iters, 1), ("max_eval", max_eval, 2)))
     x, y = _samples(relative, metric, mask, space)
     rng = np.random.default_rng(seed)
     start = _lmeds(x, y, ransac_iters, rng, max_eval) if ransac_iters > 0 else None
