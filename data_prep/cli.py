@@ -125,7 +125,7 @@ def _add_curate(sub) -> None:
     p.add_argument("input", type=Path, help="dataset root (folder of scene folders)")
     p.add_argument("output", type=Path, help="output folder (created; must differ from IN)")
     p.add_argument("--config", type=Path, default=None,
-                   help="YAML thresholds (default: data_prep/curation_default.yaml)")
+                   help="YAML thresholds (default: configs/data_prep/curation_default.yaml)")
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="worker processes (default: CPU count)")
     p.add_argument("--mode", default="symlink",
                    help="accepted scenes in OUT as absolute symlinks, full copies, or not at all (default: symlink)")

@@ -5,7 +5,7 @@
 
 For every scene of the dataset root ``IN`` (:func:`data_prep.format.list_scenes`) it computes
 :class:`SceneStats`, judges them against the thresholds of a :class:`CurationConfig` (YAML; the
-shipped defaults are ``data_prep/curation_default.yaml``) and writes into ``OUT``:
+shipped defaults are ``configs/data_prep/curation_default.yaml``) and writes into ``OUT``:
 
 ``OUT/manifest.jsonl``
     one JSON object per scene, sorted by scene id: ``{"scene", "accepted", "reasons", "messages",
@@ -50,6 +50,7 @@ from tqdm import tqdm
 
 from diff4splat.cameras import camera_centers
 from diff4splat.checks import check_int
+from diff4splat.config_files import CURATION_DEFAULT
 from diff4splat.io import atomic_output_path, output_dir
 from diff4splat.io.structured import read_yaml
 
@@ -69,7 +70,7 @@ __all__ = [
     "read_manifest",
 ]
 
-DEFAULT_CONFIG_PATH = Path(__file__).resolve().parent / "curation_default.yaml"
+DEFAULT_CONFIG_PATH = CURATION_DEFAULT
 """The shipped YAML; it holds exactly the defaults of :class:`CurationConfig` (a test checks this)."""
 
 MODES: tuple[str, ...] = ("symlink", "copy", "none")

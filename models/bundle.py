@@ -2,7 +2,7 @@
 
 A checkpoint folder holds ``config.json`` (this module's :class:`Diff4SplatConfig`) and one
 sub-folder per network (``vae/``, ``text_encoder/``, ``dit/``, ``ldrm/``), each written by that
-network's ``save_pretrained``. ``models/configs/<name>.yaml`` files override the dataclass defaults.
+network's ``save_pretrained``. ``configs/models/<name>.yaml`` files override the dataclass defaults.
 """
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from diff4splat.config_files import MODEL_CONFIGS
 from diff4splat.io.outdir import output_dir
 from diff4splat.io.structured import read_json, read_yaml
 
@@ -28,8 +29,9 @@ from .vae import VideoVAE, VideoVAEConfig
 __all__ = ["Diff4SplatConfig", "Diff4SplatModel", "load_config", "config_path", "config_names", "CONFIG_DIR",
            "WEIGHTS_DIR", "DEFAULT_CONFIG", "NETWORKS"]
 
-CONFIG_DIR = Path(__file__).resolve().parent / "configs"
-"""Model size configs (``tiny``, ``small``, ``paper``), shipped as package data of ``models``."""
+CONFIG_DIR = MODEL_CONFIGS
+"""Model size configs (``base``, ``tiny``, ``small``, ``paper``): ``configs/models/``
+(:mod:`diff4splat.config_files`)."""
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 """Shipped trained weights, one folder per model name."""
 DEFAULT_CONFIG = "base"
@@ -125,7 +127,7 @@ def config_names() -> list[str]:
 
 
 def config_path(name_or_path: str | os.PathLike) -> Path:
-    """The file of a model config: ``models/configs/<name>.yaml`` for a shipped name, else the given file.
+    """The file of a model config: ``configs/models/<name>.yaml`` for a shipped name, else the given file.
 
     A shipped name wins over a file of the same name in the current directory.
 
@@ -149,7 +151,7 @@ def config_path(name_or_path: str | os.PathLike) -> Path:
 
 
 def load_config(name_or_path: str | os.PathLike) -> Diff4SplatConfig:
-    """Load a model config by name (``models/configs/<name>.yaml``, shipped with the package) or from a YAML or
+    """Load a model config by name (``configs/models/<name>.yaml``, shipped with the package) or from a YAML or
     JSON file (a mapping of :class:`Diff4SplatConfig` fields, e.g. a checkpoint's ``config.json``), over the
     dataclass defaults; an empty file is the defaults.
 

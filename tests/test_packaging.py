@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+from diff4splat.config_files import CONFIGS_DIR
 from models.bundle import CONFIG_DIR, DEFAULT_CONFIG, config_names, load_config
 from training.stages import STAGE_CONFIG_DIR, load_stage, stage_names
 
@@ -90,16 +91,19 @@ def test_optional_imports_are_guarded():
 
 
 def test_configs_are_package_data():
-    """Every shipped YAML lies inside its package and matches a package-data glob of pyproject.toml."""
-    package_data = PYPROJECT["tool"]["setuptools"]["package-data"]
-    for directory, package in ((CONFIG_DIR, "models"), (STAGE_CONFIG_DIR, "training")):
-        assert directory.parent == ROOT / package
-        files = sorted(directory.glob("*.yaml"))
-        assert files, directory
-        for f in files:
-            rel = f.relative_to(ROOT / package)
-            assert any(rel.match(g) for g in package_data[package]), f"{f} is not package data"
-    assert not (ROOT / "configs").exists(), "configs/ at the repository root is not installed with the package"
+    """Every shipped YAML lies in the top-level configs/ (one home), reached from the package through the
+    diff4splat/configs link, and matches a package-data glob of diff4splat in pyproject.toml."""
+    package_data = PYPROJECT["tool"]["setuptools"]["package-data"]["diff4splat"]
+    assert (ROOT / "diff4splat" / "configs").is_symlink() and CONFIGS_DIR.resolve() == ROOT / "configs"
+    assert CONFIG_DIR.resolve() == ROOT / "configs" / "models"
+    assert STAGE_CONFIG_DIR.resolve() == ROOT / "configs" / "training"
+    files = sorted((ROOT / "configs").rglob("*.yaml"))
+    assert {f.parent.name for f in files} == {"models", "training", "data_prep"}
+    for f in files:
+        rel = (CONFIGS_DIR / f.relative_to(ROOT / "configs")).relative_to(ROOT / "diff4splat")
+        assert any(rel.match(g) for g in package_data), f"{f} is not package data"
+    for package in ("models", "training", "data_prep"):  # the old homes are gone
+        assert not list((ROOT / package).rglob("*.yaml")), package
 
 
 def test_model_and_stage_config_names_are_separate():
@@ -151,11 +155,11 @@ def test_wheel_holds_configs_weights_and_entry_points(tmp_path):
         names = set(z.namelist())
         entry_points = next(z.read(n).decode() for n in names if n.endswith("entry_points.txt"))
     for name in config_names():
-        assert f"models/configs/{name}.yaml" in names
+        assert f"diff4splat/configs/models/{name}.yaml" in names
     for name in stage_names():
-        assert f"training/configs/{name}.yaml" in names
+        assert f"diff4splat/configs/training/{name}.yaml" in names
     assert f"models/weights/{DEFAULT_CONFIG}/ldrm/model.safetensors" in names
-    assert "data_prep/curation_default.yaml" in names
+    assert "diff4splat/configs/data_prep/curation_default.yaml" in names
     assert {"diff4splat/viewer/assets/viewer.js", "diff4splat/viewer/assets/LICENSES.txt"} <= names  # the viewer
     assert "diff4splat = diff4splat.cli:main" in entry_points and "evaluate = " in entry_points
 

@@ -42,7 +42,7 @@ def compose(config: str | Path, sources: dict[str, str | Path], seed: int = 0, r
     """The model of ``config`` with the networks named in ``sources`` taken from those checkpoint folders.
 
     Args:
-        config: model config name (``models/configs/<name>.yaml``) or YAML path.
+        config: model config name (``configs/models/<name>.yaml``) or YAML path.
         sources: {network: checkpoint folder}, network in ``vae``, ``text_encoder``, ``dit``, ``ldrm``.
         seed: seed of the networks not taken (random initialisation).
         reinit: "network.prefix" entries: the taken network's parameters under the prefix are not loaded and

@@ -7,7 +7,7 @@ video VAE (``vae`` stage); the VAE then stays frozen, as the text encoder always
 uses a frozen T5; the tiny text encoder is a frozen randomly initialised T5-style network whose
 features the DiT's cross-attention learns to read).
 
-``training/configs/train_<stage>.yaml`` files (package data; :func:`load_stage` takes their names, e.g.
+``configs/training/train_<stage>.yaml`` files (package data; :func:`load_stage` takes their names, e.g.
 ``train_stage1``) override :class:`StageConfig`'s defaults.
 """
 from __future__ import annotations
@@ -18,6 +18,7 @@ from pathlib import Path
 
 from torch import nn
 
+from diff4splat.config_files import STAGE_CONFIGS
 from diff4splat.io.structured import read_yaml
 from models.bundle import DEFAULT_CONFIG
 from models.pretrained import config_from_dict
@@ -27,8 +28,9 @@ from .trainer import TrainerConfig
 
 __all__ = ["StageConfig", "load_stage", "stage_names", "apply_freezing", "MODULES", "STAGE_CONFIG_DIR"]
 
-STAGE_CONFIG_DIR = Path(__file__).resolve().parent / "configs"
-"""The shipped stage configs (``train_vae``, ``train_stage1`` … ``train_stage3``), package data of ``training``."""
+STAGE_CONFIG_DIR = STAGE_CONFIGS
+"""The shipped stage configs (``train_vae``, ``train_stage1`` … ``train_stage3``): ``configs/training/``
+(:mod:`diff4splat.config_files`)."""
 
 MODULES = ("vae", "text_encoder", "dit", "ldrm", "ldrm.deformation", "ldrm.head", "ldrm.image_branch")
 """Module names a stage can train (``ldrm.deformation`` is the LDRM's deformation network; ``ldrm.head`` and
@@ -114,7 +116,7 @@ def stage_names() -> list[str]:
 
 
 def load_stage(name_or_path: str | os.PathLike, **overrides) -> StageConfig:
-    """Load a stage config by name (``training/configs/<name>.yaml``, e.g. ``train_stage1``) or a YAML path;
+    """Load a stage config by name (``configs/training/<name>.yaml``, e.g. ``train_stage1``) or a YAML path;
     ``overrides`` replace top-level fields (``trainer`` may be a dict of trainer fields).
 
     Raises:
