@@ -1,17 +1,34 @@
 """The render entry points take their default values from one home, diff4splat.render.defaults, and those
-are gsplat's ``rasterization`` defaults (except the render mode, "RGB+ED" in this project)."""
+are gsplat's ``rasterization`` defaults (except the render mode, "RGB+ED" in this project). The public entry
+points keep gsplat's keyword list and pack it into one RasterSettings, which every function behind them takes."""
+import ast
+import importlib
 import inspect
 import itertools
+from pathlib import Path
 
 import pytest
+import torch
 
+import diff4splat
+from diff4splat.cameras.lenses import ThinLens
 from diff4splat.prune import prune_scene, visibility_mask
 from diff4splat.render import defaults, rasterize, rasterize_dense, raytrace, render_rolling_shutter
+from diff4splat.render.fused_projection import project_fused
 from diff4splat.render.gsplat_backend import rasterize_gsplat, use_gsplat
+from diff4splat.render.projection import project_gaussians
+from diff4splat.render.rasterize import choose_path
+from diff4splat.render.raytrace import render_rays
 from diff4splat.render.sequence import render_path
+from diff4splat.render.settings import GSPLAT_KEYWORDS, RasterSettings
+from diff4splat.render.stages import render_pipeline
+from diff4splat.render.validate import validate_inputs
 
-RENDERERS = {"rasterize": rasterize, "rasterize_dense": rasterize_dense, "raytrace": raytrace,
-             "rasterize_gsplat": rasterize_gsplat}
+RENDERERS = {"rasterize": rasterize, "rasterize_dense": rasterize_dense, "raytrace": raytrace}
+"""The public entry points with gsplat's keyword list (users call them)."""
+SETTINGS_TAKERS = {"rasterize_gsplat": rasterize_gsplat, "render_pipeline": render_pipeline,
+                   "render_rays": render_rays, "validate_inputs": validate_inputs}
+"""The functions behind them: they take one RasterSettings instead of the keywords."""
 SCENE_RENDERERS = {"render_path": render_path, "render_rolling_shutter": render_rolling_shutter}
 HOME = {
     "near_plane": "NEAR_PLANE", "far_plane": "FAR_PLANE", "eps2d": "EPS2D", "sh_degree": "SH_DEGREE",
@@ -31,7 +48,8 @@ def _defaults(fn) -> dict:
 
 def _all_entry_points():
     return {**RENDERERS, **SCENE_RENDERERS, "use_gsplat": use_gsplat, "visibility_mask": visibility_mask,
-            "prune_scene": prune_scene}
+            "prune_scene": prune_scene, "RasterSettings": RasterSettings, "project_gaussians": project_gaussians,
+            "project_fused": project_fused, "choose_path": choose_path}
 
 
 def test_every_shared_parameter_has_the_same_default_everywhere():
@@ -67,3 +85,80 @@ def test_defaults_are_gsplats_except_the_render_mode():
         p: v for p, v in GSPLAT_RASTERIZATION.items() if p != "render_mode"}
     assert defaults.RENDER_MODE == "RGB+ED"  # this project's choice: colour + expected depth
     assert defaults.BACKGROUND == (0.0, 0.0, 0.0)
+
+
+def test_functions_behind_the_entry_points_take_the_settings_not_the_keywords():
+    for name, fn in SETTINGS_TAKERS.items():
+        params = inspect.signature(fn).parameters
+        assert "settings" in params, name
+        assert not set(params) & (set(HOME) | set(GSPLAT_KEYWORDS)), f"{name} re-lists renderer keywords"
+
+
+def test_settings_fields_are_gsplats_keywords_plus_camera_params():
+    fields = list(inspect.signature(RasterSettings).parameters)
+    assert fields == [*GSPLAT_KEYWORDS, "camera_params"]
+    assert set(_defaults(rasterize)) - {"compositor"} == set(fields)
+    s = RasterSettings()
+    assert s.gsplat_keywords() == {k: getattr(defaults, HOME[k]) if k in HOME else None for k in GSPLAT_KEYWORDS}
+    assert not s.antialiased and RasterSettings(rasterize_mode="antialiased").antialiased
+    assert set(s.projection_keywords()) == set(_defaults(project_gaussians))
+
+
+CUSTOM = dict(near_plane=0.5, far_plane=20.0, eps2d=0.2, sh_degree=0, render_mode="RGB+D",
+              rasterize_mode="antialiased", tile_size=8)
+
+
+@pytest.mark.parametrize("entry, module, inner, extra", [
+    (rasterize, "diff4splat.render.rasterize", "render_pipeline", {}),
+    (rasterize, "diff4splat.render.rasterize", "render_rays", {"camera_model": "fisheye"}),
+    (rasterize, "diff4splat.render.rasterize", "render_rays", {"camera_params": ThinLens(0.05, 3.0)}),
+    (rasterize_dense, "diff4splat.render.reference", "render_pipeline", {}),
+    (raytrace, "diff4splat.render.raytrace", "render_rays", {"camera_params": ThinLens(0.05, 3.0)}),
+])
+def test_each_entry_point_packs_every_keyword_into_the_settings(monkeypatch, entry, module, inner, extra):
+    """Every keyword given to a public entry point reaches the function behind it, once, in the settings."""
+    seen = []
+    monkeypatch.setattr(importlib.import_module(module), inner, lambda *a, **kw: seen.append(a) or "done")
+    args = [torch.zeros(s) for s in ((2, 3), (2, 4), (2, 3), (2,), (2, 3), (1, 4, 4), (1, 3, 3))]
+    bg = torch.ones(1, 3)
+    assert entry(*args, 8, 6, backgrounds=bg, **CUSTOM, **extra) == "done"
+    (got,) = seen
+    settings = got[-1]
+    assert isinstance(settings, RasterSettings) and got[-2:-1] == (6,)
+    want = {**{k: v for k, v in RasterSettings().__dict__.items()}, **CUSTOM, "backgrounds": bg, **extra}
+    assert settings.__dict__ == want
+
+
+def _literal_defaults(path: Path):
+    """(function or class, parameter or field) of every default written as a literal in ``path`` for a
+    parameter named like a render setting (HOME); a name (``NEAR_PLANE``, ``defaults.EPS2D``) is not a literal."""
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            a = node.args
+            pos = a.posonlyargs + a.args
+            pairs = [*zip(pos[len(pos) - len(a.defaults):], a.defaults, strict=True),
+                     *((k, d) for k, d in zip(a.kwonlyargs, a.kw_defaults, strict=True) if d is not None)]
+            for arg, default in pairs:
+                if arg.arg in HOME and not isinstance(default, (ast.Name, ast.Attribute)):
+                    yield node.name, arg.arg
+        elif isinstance(node, ast.ClassDef):
+            for st in node.body:
+                if (isinstance(st, ast.AnnAssign) and isinstance(st.target, ast.Name) and st.target.id in HOME
+                        and st.value is not None and not isinstance(st.value, (ast.Name, ast.Attribute))):
+                    yield node.name, st.target.id
+
+
+OUTSIDE_THE_RENDER_PACKAGE = {  # not yet taken from the home (issue 29, item 5: what remains)
+    ("cameras/lenses.py", "generate_rays", "camera_model"),  # cameras sit below render: cannot import its defaults
+    ("pipeline.py", "GenerationResult", "background"),
+}
+
+
+def test_no_default_is_written_anywhere_but_the_home():
+    """A render setting's default written as a literal anywhere in the library (a signature's ``0.01``, a
+    dataclass field's ``"pinhole"``) fails here: defaults live in diff4splat/render/defaults.py only."""
+    root = Path(diff4splat.__file__).parent
+    found = {(str(path.relative_to(root)), fn, p) for path in sorted(root.rglob("*.py"))
+             if path.name != "defaults.py" for fn, p in _literal_defaults(path)}
+    assert found == OUTSIDE_THE_RENDER_PACKAGE
+    assert not any(f.startswith("render/") for f, _, _ in found)

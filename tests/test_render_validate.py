@@ -6,9 +6,17 @@ import torch
 from diff4splat.cameras import CameraPath, intrinsics_from_focal
 from diff4splat.render import rasterize, rasterize_dense, raytrace
 from diff4splat.render.gsplat_backend import rasterize_gsplat
+from diff4splat.render.settings import RasterSettings
 from diff4splat.render.validate import RASTERIZE_MODES, RENDER_MODES, validate_inputs
 
-ENTRY_POINTS = [rasterize, rasterize_dense, raytrace, rasterize_gsplat]
+
+def gsplat_backend(*args, **keywords):
+    """The gsplat backend as ``rasterize`` calls it: the keywords packed into one RasterSettings (it validates
+    before importing gsplat, so this runs without it)."""
+    return rasterize_gsplat(*args, RasterSettings(**keywords))
+
+
+ENTRY_POINTS = [rasterize, rasterize_dense, raytrace, gsplat_backend]
 D = torch.float64
 
 
@@ -75,7 +83,11 @@ def test_size_message_matches_the_camera_layer():
 
 
 def test_validate_inputs_accepts_good_arguments_and_lists_gsplat_modes():
-    validate_inputs(*_args(), near_plane=0.01, far_plane=1e10, eps2d=0.3, sh_degree=None, backgrounds=None,
-                    render_mode="RGB+ED", rasterize_mode="classic", camera_model="pinhole", tile_size=16)
+    validate_inputs(*_args(), RasterSettings())
+    validate_inputs(*_args(), RasterSettings(near_plane=0.5, far_plane=9.0, eps2d=0.0, rasterize_mode="antialiased",
+                                             render_mode="RGB", tile_size=4))
+    validate_inputs(*_args(), RasterSettings(camera_model="fisheye"), camera_models=("pinhole", "fisheye"))
+    with pytest.raises(ValueError, match="camera_model must be one of"):
+        validate_inputs(*_args(), RasterSettings(camera_model="fisheye"))
     assert RENDER_MODES == ("RGB", "D", "ED", "RGB+D", "RGB+ED")
     assert RASTERIZE_MODES == ("classic", "antialiased")

@@ -1,9 +1,10 @@
 """Default arguments of the render entry points (one home for each value).
 
-:func:`~diff4splat.render.rasterize`, :func:`~diff4splat.render.rasterize_dense`,
-:func:`~diff4splat.render.raytrace` and :func:`~diff4splat.render.gsplat_backend.rasterize_gsplat` keep
-gsplat's ``rasterization`` argument list (so calls port unchanged) and take their default values from
-here; :func:`~diff4splat.render.sequence.render_path` and
+:func:`~diff4splat.render.rasterize`, :func:`~diff4splat.render.rasterize_dense` and
+:func:`~diff4splat.render.raytrace` keep gsplat's ``rasterization`` argument list (so calls port unchanged) and
+take their default values from here, as do :class:`~diff4splat.render.settings.RasterSettings` (which carries
+them behind those entry points) and :func:`~diff4splat.render.projection.project_gaussians`;
+:func:`~diff4splat.render.sequence.render_path` and
 :func:`~diff4splat.render.render_rolling_shutter` take :data:`BACKGROUND` and :data:`NEAR_PLANE`.
 
 The values are gsplat's ``rasterization`` defaults (the same in 1.4.0 … 1.5.3), except :data:`RENDER_MODE`:

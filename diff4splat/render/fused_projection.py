@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from diff4splat.quaternions import quat_normalize
+from diff4splat.render.defaults import CAMERA_MODEL, EPS2D, FAR_PLANE, NEAR_PLANE
 from diff4splat.render.fused import fused_available
 from diff4splat.render.projection import Projection, project_gaussians
 
@@ -85,11 +86,11 @@ def project_fused(
     width: int,
     height: int,
     *,
-    near_plane: float = 0.01,
-    far_plane: float = 1e10,
-    eps2d: float = 0.3,
+    near_plane: float = NEAR_PLANE,
+    far_plane: float = FAR_PLANE,
+    eps2d: float = EPS2D,
     antialiased: bool = False,
-    camera_model: str = "pinhole",
+    camera_model: str = CAMERA_MODEL,
 ) -> Projection:
     """:func:`~diff4splat.render.projection.project_gaussians` (same arguments, rules, outputs and errors) by
     the fused kernels (module docstring), or by that reference where they do not apply: no numba, a

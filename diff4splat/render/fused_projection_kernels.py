@@ -14,7 +14,7 @@ import numpy as np
 from numba import prange
 
 from diff4splat.render.fused_kernels import KERNEL, threads
-from diff4splat.render.projection import RADIUS_MAX
+from diff4splat.render.projection import EIGEN_FLOOR, FOV_MARGIN, RADIUS_MAX
 
 __all__ = ["project_forward", "project_backward", "threads"]
 
@@ -59,11 +59,12 @@ def _camera_frame(rot, s, mean, view, m, cov, tmp, cc):  # pragma: no cover - co
 
 @KERNEL(inline="always")
 def _limits(k, width, height):  # pragma: no cover - compiled
-    """fx, fy, cx, cy and gsplat's clamp of x/z and y/z: [−(c/f + 0.3·tan½fov), (W − c)/f + 0.3·tan½fov]."""
+    """fx, fy, cx, cy and gsplat's clamp of x/z and y/z: [−(c/f + m·tan½fov), (W − c)/f + m·tan½fov],
+    m = FOV_MARGIN (:mod:`diff4splat.render.projection`)."""
     fx, fy, cx, cy = k[0, 0], k[1, 1], k[0, 2], k[1, 2]
     tx, ty = 0.5 * width / fx, 0.5 * height / fy
-    return (fx, fy, cx, cy, -(cx / fx + 0.3 * tx), (width - cx) / fx + 0.3 * tx, -(cy / fy + 0.3 * ty),
-            (height - cy) / fy + 0.3 * ty)
+    mx, my = FOV_MARGIN * tx, FOV_MARGIN * ty
+    return (fx, fy, cx, cy, -(cx / fx + mx), (width - cx) / fx + mx, -(cy / fy + my), (height - cy) / fy + my)
 
 
 @KERNEL(inline="always")
@@ -100,7 +101,7 @@ def project_forward(means, quats, scales, opacities, viewmats, ks, width, height
                 if not det > 0:
                     continue
                 b = 0.5 * (sxx + syy)
-                radius = np.ceil(3.0 * math.sqrt(max(b + math.sqrt(max(b * b - det, 0.01)), 0.0)))
+                radius = np.ceil(3.0 * math.sqrt(max(b + math.sqrt(max(b * b - det, EIGEN_FLOOR)), 0.0)))
                 mx, my = fx * x * rz + cx, fy * y * rz + cy
                 if not (radius > 0 and mx + radius > 0 and mx - radius < width and my + radius > 0
                         and my - radius < height):

@@ -65,16 +65,8 @@ from torch import Tensor
 
 from diff4splat.devices import full_precision
 from diff4splat.quaternions import quat_normalize
-from diff4splat.render.defaults import (
-    CAMERA_MODEL,
-    EPS2D,
-    FAR_PLANE,
-    NEAR_PLANE,
-    RASTERIZE_MODE,
-    RENDER_MODE,
-    SH_DEGREE,
-    TILE_SIZE,
-)
+from diff4splat.render.defaults import CAMERA_MODEL
+from diff4splat.render.settings import RasterSettings
 from diff4splat.render.stages import compute_dtype, mode_backgrounds
 from diff4splat.render.validate import validate_inputs
 
@@ -120,27 +112,11 @@ def use_gsplat(means: Tensor, camera_model: str = CAMERA_MODEL) -> bool:
 
 @full_precision
 def rasterize_gsplat(
-    means: Tensor,  # (N, 3)
-    quats: Tensor,  # (N, 4)
-    scales: Tensor,  # (N, 3)
-    opacities: Tensor,  # (N,)
-    colors: Tensor,  # (N, D) or (N, K, 3) with sh_degree
-    viewmats: Tensor,  # (C, 4, 4)
-    Ks: Tensor,  # (C, 3, 3)
-    width: int,
-    height: int,
-    *,
-    near_plane: float = NEAR_PLANE,
-    far_plane: float = FAR_PLANE,
-    eps2d: float = EPS2D,
-    sh_degree: int | None = SH_DEGREE,
-    backgrounds: Tensor | None = None,
-    render_mode: str = RENDER_MODE,
-    rasterize_mode: str = RASTERIZE_MODE,
-    camera_model: str = CAMERA_MODEL,
-    tile_size: int = TILE_SIZE,
+    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, viewmats: Tensor, Ks: Tensor,
+    width: int, height: int, settings: RasterSettings,
 ) -> tuple[Tensor, Tensor, dict]:
-    """Render with ``gsplat.rasterization``; arguments and outputs as :func:`diff4splat.render.rasterize`.
+    """Render with ``gsplat.rasterization``; arguments and outputs as :func:`diff4splat.render.rasterize`,
+    whose keywords ``settings`` holds (:class:`~diff4splat.render.settings.RasterSettings`).
 
     Inputs are validated exactly as on the PyTorch path (same ``ValueError`` messages: shapes, devices,
     non-finite values, zero-norm quaternions, modes), then cast to float32 and passed to gsplat with autocast
@@ -148,8 +124,11 @@ def rasterize_gsplat(
     docstring, which also lists the differences of the result).
 
     Args:
-        means … tile_size: as :func:`diff4splat.render.rasterize` (metres, pixels; CUDA tensors).
-        backgrounds: (C, D) colour behind the Gaussians, or None; the depth channel's background is 0.
+        means … height: as :func:`diff4splat.render.rasterize` (metres, pixels; CUDA tensors): means (N, 3),
+            quats (N, 4), scales (N, 3), opacities (N,), colors (N, D) or (N, K, 3) SH, viewmats (C, 4, 4),
+            Ks (C, 3, 3).
+        settings: the call's keywords; ``settings.backgrounds`` (C, D) or None is composited here, with the
+            depth channel's background 0.
 
     Returns:
         render_colors (C, H, W, D[+1]) float32, render_alphas (C, H, W, 1) float32 = 1 − T_final, gsplat's
@@ -159,11 +138,7 @@ def rasterize_gsplat(
         ValueError: as :func:`diff4splat.render.rasterize`.
         ImportError: gsplat is not installed.
     """
-    validate_inputs(
-        means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-        near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, backgrounds=backgrounds,
-        render_mode=render_mode, rasterize_mode=rasterize_mode, camera_model=camera_model, tile_size=tile_size,
-    )
+    validate_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, settings)
     quat_normalize(quats)  # zero-norm → ValueError naming quats (gsplat would return NaN)
     from gsplat import rasterization  # optional dependency (extra [cuda])
 
@@ -171,11 +146,10 @@ def rasterize_gsplat(
     cast = lambda t: t.to(dtype)  # noqa: E731
     render_colors, render_alphas, meta = rasterization(
         cast(means), cast(quats), cast(scales), cast(opacities), cast(colors), cast(viewmats), cast(Ks), width, height,
-        near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, backgrounds=None,
-        render_mode=render_mode, rasterize_mode=rasterize_mode, camera_model=camera_model, tile_size=tile_size,
-        packed=False,
+        **{**settings.gsplat_keywords(), "backgrounds": None}, packed=False,
     )
-    bgs = mode_backgrounds(backgrounds, render_mode, viewmats.shape[0], dtype)  # (C, F): colour, then 0 for depth
+    # (C, F): colour, then 0 for depth
+    bgs = mode_backgrounds(settings.backgrounds, settings.render_mode, viewmats.shape[0], dtype)
     if bgs is not None:
         render_colors = render_colors + (1.0 - render_alphas) * bgs[:, None, None, :]
     return render_colors, render_alphas, meta

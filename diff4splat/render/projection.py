@@ -18,9 +18,12 @@ from torch import Tensor
 
 from diff4splat.constants import ALPHA_MAX, ALPHA_MIN, OPACITY_LOG_FLOOR
 from diff4splat.quaternions import quat_to_rotmat
+from diff4splat.render.defaults import CAMERA_MODEL, EPS2D, FAR_PLANE, NEAR_PLANE
 
 __all__ = [
     "RADIUS_MAX",
+    "FOV_MARGIN",
+    "EIGEN_FLOOR",
     "CAMERA_MODELS",
     "Projection",
     "covariance_3d",
@@ -36,6 +39,11 @@ __all__ = [
 
 RADIUS_MAX = 1 << 30
 """Screen radii are clamped to this (pixels) before the int32 cast (exact in float32)."""
+FOV_MARGIN = 0.3
+"""gsplat's ``persp_proj`` clamps x/z (y/z) for the Jacobian to the field of view widened by this fraction of
+tan½fov on each side (a constant of the projection, not a setting; the fused kernels use it too)."""
+EIGEN_FLOOR = 0.01
+"""Floor of b² − det under the square root of the larger eigenvalue of Σ2d, pixels⁴ (gsplat's 3σ radius)."""
 CAMERA_MODELS = ("pinhole",)
 """Camera models the projection supports."""
 
@@ -138,8 +146,9 @@ def persp_proj(
 
     mean2d = (fx·x/z + cx, fy·y/z + cy); Σ2d = J Σc Jᵀ with the perspective Jacobian
     J = [[fx/z, 0, −fx·tx/z²], [0, fy/z, −fy·ty/z²]] (EWA splatting eq. 29–31), where, as in
-    gsplat's ``persp_proj``, tx/z is clamped to [−(cx/fx + 0.3·tan½fovx), (W−cx)/fx + 0.3·tan½fovx]
-    (tan½fovx = W/(2fx); for a centred principal point this is ±1.3·tan½fovx), same for y.
+    gsplat's ``persp_proj``, tx/z is clamped to [−(cx/fx + m·tan½fovx), (W−cx)/fx + m·tan½fovx] with
+    m = :data:`FOV_MARGIN` = 0.3 (tan½fovx = W/(2fx); for a centred principal point this is ±1.3·tan½fovx),
+    same for y.
 
     Args:
         means_c: (C, N, 3) camera-frame centres, metres; z must be non-zero.
@@ -156,8 +165,9 @@ def persp_proj(
     tan_fovx = 0.5 * width / fx
     tan_fovy = 0.5 * height / fy
     rz = 1.0 / z
-    tx = z * torch.clamp(x * rz, min=-(cx / fx + 0.3 * tan_fovx), max=(width - cx) / fx + 0.3 * tan_fovx)
-    ty = z * torch.clamp(y * rz, min=-(cy / fy + 0.3 * tan_fovy), max=(height - cy) / fy + 0.3 * tan_fovy)
+    lim_x, lim_y = FOV_MARGIN * tan_fovx, FOV_MARGIN * tan_fovy
+    tx = z * torch.clamp(x * rz, min=-(cx / fx + lim_x), max=(width - cx) / fx + lim_x)
+    ty = z * torch.clamp(y * rz, min=-(cy / fy + lim_y), max=(height - cy) / fy + lim_y)
     zeros = torch.zeros_like(z)
     J = torch.stack(
         [fx * rz, zeros, -fx * tx * rz * rz, zeros, fy * rz, -fy * ty * rz * rz], dim=-1
@@ -190,18 +200,19 @@ def project_gaussians(
     width: int,
     height: int,
     *,
-    near_plane: float = 0.01,
-    far_plane: float = 1e10,
-    eps2d: float = 0.3,
+    near_plane: float = NEAR_PLANE,
+    far_plane: float = FAR_PLANE,
+    eps2d: float = EPS2D,
     antialiased: bool = False,
-    camera_model: str = "pinhole",
+    camera_model: str = CAMERA_MODEL,
 ) -> Projection:
     """Project Gaussians into C cameras and cull them, as gsplat's ``fully_fused_projection``.
 
     Steps (gsplat CUDA kernel order): camera-frame centre; cull z < near_plane or z > far_plane;
     Σ2d by :func:`persp_proj`; dilation Σ2d + eps2d·I with compensation
     sqrt(max(0, det Σ2d / det(Σ2d + eps2d·I))) (Mip-Splatting eq. 9, used when ``antialiased``);
-    cull det ≤ 0; conic = (Σ2d + eps2d·I)⁻¹; radius = ceil(3·sqrt(b + sqrt(max(0.01, b² − det))))
+    cull det ≤ 0; conic = (Σ2d + eps2d·I)⁻¹; radius = ceil(3·sqrt(b + sqrt(max(0.01, b² − det)))) (0.01:
+    :data:`EIGEN_FLOOR`)
     with b = ½ trace; cull radius ≤ 0 and Gaussians whose radius box lies fully outside the image.
 
     Culled Gaussians get radius 0 and zeros in every other output; their values are computed from
@@ -211,7 +222,7 @@ def project_gaussians(
         means, quats, scales, opacities: Gaussians (metres; wxyz; metres; (0, 1)).
         viewmats: (C, 4, 4) world-to-camera, OpenCV.  Ks: (C, 3, 3) pixels.
         width, height: image size, pixels.
-        near_plane, far_plane: depth range kept, metres.
+        near_plane, far_plane: depth range kept, metres (defaults: :mod:`diff4splat.render.defaults`).
         eps2d: screen-space dilation, pixels².
         antialiased: multiply opacities by the compensation (gsplat ``rasterize_mode="antialiased"``).
         camera_model: only "pinhole" for now.
@@ -239,7 +250,7 @@ def project_gaussians(
     compensations = torch.sqrt(torch.clamp(det_orig / safe_det, min=0.0)) if antialiased else None
     with torch.no_grad():
         b = 0.5 * (sxx + syy)
-        v1 = b + torch.sqrt(torch.clamp(b * b - det, min=0.01))
+        v1 = b + torch.sqrt(torch.clamp(b * b - det, min=EIGEN_FLOOR))
         radius = torch.ceil(3.0 * torch.sqrt(torch.clamp(v1, min=0.0)))
         mx, my = means2d[..., 0], means2d[..., 1]
         inside = (mx + radius > 0) & (mx - radius < width) & (my + radius > 0) & (my - radius < height)

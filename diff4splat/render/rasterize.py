@@ -13,7 +13,8 @@ Same rules and outputs as the dense reference (:mod:`diff4splat.render.reference
 - "torch": the pure-PyTorch tile path (:func:`diff4splat.render.tiles.composite_tiles`), the reference and
   fallback, on every device (the default for non-CPU tensors without gsplat, and for float64 there).
 
-Everything before compositing (projection, SH, gathers) is plain autograd.
+Everything before compositing (projection, SH, gathers) is plain autograd. :func:`rasterize` packs its keywords
+into one :class:`~diff4splat.render.settings.RasterSettings`, which every path takes.
 """
 from __future__ import annotations
 
@@ -35,7 +36,8 @@ from diff4splat.render.fused import composite_fused
 from diff4splat.render.fused_projection import project_fused
 from diff4splat.render.gsplat_backend import rasterize_gsplat, use_gsplat
 from diff4splat.render.projection import project_gaussians
-from diff4splat.render.raytrace import raytrace
+from diff4splat.render.raytrace import render_rays
+from diff4splat.render.settings import RasterSettings
 from diff4splat.render.stages import render_pipeline
 from diff4splat.render.tiles import composite_tiles
 
@@ -178,20 +180,15 @@ def rasterize(
             zero-norm quaternions, unknown render/rasterize mode or camera model, bad sizes, tensors on
             different devices, an unknown ``compositor`` or ``compositor="fused"`` with non-CPU tensors.
     """
+    settings = RasterSettings(near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree,
+                              backgrounds=backgrounds, render_mode=render_mode, rasterize_mode=rasterize_mode,
+                              camera_model=camera_model, tile_size=tile_size, camera_params=camera_params)
     path = choose_path(means, camera_model, camera_params, compositor)
     if path == "ray":
-        return raytrace(
-            means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane=near_plane,
-            far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, backgrounds=backgrounds, render_mode=render_mode,
-            rasterize_mode=rasterize_mode, camera_model=camera_model, camera_params=camera_params, tile_size=tile_size,
-        )
-    if path == "gsplat":
+        backend = render_rays
+    elif path == "gsplat":
         backend = rasterize_gsplat
     else:
         project, composite = COMPOSITORS[path]
         backend = functools.partial(render_pipeline, composite, project=project)
-    return backend(
-        means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-        near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, backgrounds=backgrounds,
-        render_mode=render_mode, rasterize_mode=rasterize_mode, camera_model=camera_model, tile_size=tile_size,
-    )
+    return backend(means, quats, scales, opacities, colors, viewmats, Ks, width, height, settings)

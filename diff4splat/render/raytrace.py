@@ -30,7 +30,7 @@ import math
 import torch
 from torch import Tensor
 
-from diff4splat.cameras.lenses import ThinLens, check_camera, generate_rays
+from diff4splat.cameras.lenses import RAY_CAMERA_MODELS, ThinLens, check_camera, generate_rays
 from diff4splat.cameras.path import camera_centers
 from diff4splat.constants import ALPHA_MAX, ALPHA_MIN, OPACITY_LOG_FLOOR, T_MIN
 from diff4splat.quaternions import quat_to_rotmat
@@ -44,11 +44,12 @@ from diff4splat.render.defaults import (
     SH_DEGREE,
     TILE_SIZE,
 )
+from diff4splat.render.settings import RasterSettings
 from diff4splat.render.stages import color_features, expected_depth, mode_backgrounds
 from diff4splat.render.validate import validate_inputs
 
-__all__ = ["raytrace", "whitening", "ray_gaussian_response", "composite_rays", "support_radius", "cull_tiles",
-           "RAY_PAIR_BUDGET"]
+__all__ = ["raytrace", "render_rays", "whitening", "ray_gaussian_response", "composite_rays", "support_radius",
+           "cull_tiles", "RAY_PAIR_BUDGET"]
 
 RAY_PAIR_BUDGET = 1 << 20
 """Most (ray, Gaussian) pairs evaluated at once (bounds the transient memory of a batch)."""
@@ -256,14 +257,26 @@ def raytrace(
         ValueError: as ``rasterize``; unknown camera model or mismatched ``camera_params``;
             ``rasterize_mode="antialiased"`` (a screen-space filter with no ray counterpart).
     """
-    params = check_camera(camera_model, camera_params)
-    validate_inputs(
-        means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane=near_plane,
-        far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, backgrounds=backgrounds, render_mode=render_mode,
-        rasterize_mode=rasterize_mode, camera_model="pinhole", tile_size=tile_size,
-    )
-    if rasterize_mode != "classic":
-        raise ValueError(f"rasterize_mode must be 'classic' on the ray path, got {rasterize_mode!r}")
+    settings = RasterSettings(near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree,
+                              backgrounds=backgrounds, render_mode=render_mode, rasterize_mode=rasterize_mode,
+                              camera_model=camera_model, tile_size=tile_size, camera_params=camera_params)
+    return render_rays(means, quats, scales, opacities, colors, viewmats, Ks, width, height, settings, budget=budget)
+
+
+def render_rays(
+    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, viewmats: Tensor, Ks: Tensor,
+    width: int, height: int, settings: RasterSettings, *, budget: int | None = None,
+) -> tuple[Tensor, Tensor, dict]:
+    """:func:`raytrace` with its keywords in ``settings`` (:class:`~diff4splat.render.settings.RasterSettings`):
+    what :func:`raytrace` and :func:`diff4splat.render.rasterize` call. Arguments, outputs and errors as
+    :func:`raytrace`."""
+    params = check_camera(settings.camera_model, settings.camera_params)
+    validate_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, settings,
+                    camera_models=RAY_CAMERA_MODELS)
+    if settings.rasterize_mode != "classic":
+        raise ValueError(f"rasterize_mode must be 'classic' on the ray path, got {settings.rasterize_mode!r}")
+    near_plane, far_plane, tile_size = settings.near_plane, settings.far_plane, settings.tile_size
+    render_mode, camera_model = settings.render_mode, settings.camera_model
     budget = RAY_PAIR_BUDGET if budget is None else int(budget)
     dtype = means.dtype
     viewmats, Ks = viewmats.to(dtype), Ks.to(dtype)
@@ -273,10 +286,10 @@ def raytrace(
     spread = params.aperture_radius if isinstance(params, ThinLens) else 0.0
     with_rgb = render_mode in ("RGB", "RGB+D", "RGB+ED")
     if with_rgb:
-        feats = color_features(colors.to(dtype), means, viewmats, sh_degree)
+        feats = color_features(colors.to(dtype), means, viewmats, settings.sh_degree)
     else:
         feats = means.new_zeros(C, means.shape[0], 0)
-    bgs = mode_backgrounds(backgrounds, render_mode, C, dtype)
+    bgs = mode_backgrounds(settings.backgrounds, render_mode, C, dtype)
     whiten = whitening(quats, scales)
     radii = support_radius(scales.detach(), opacities.detach())
     # rays ordered by pixel tile: ray r = (pixel p, sample s), p = i·W + j

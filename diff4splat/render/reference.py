@@ -24,6 +24,7 @@ from diff4splat.render.defaults import (
     TILE_SIZE,
 )
 from diff4splat.render.projection import splat_alpha
+from diff4splat.render.settings import RasterSettings
 from diff4splat.render.stages import render_pipeline
 
 __all__ = ["rasterize_dense", "composite_dense"]
@@ -116,8 +117,8 @@ def rasterize_dense(
     Raises:
         ValueError: as :func:`diff4splat.render.rasterize`.
     """
-    return render_pipeline(
-        composite_dense, means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-        near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, backgrounds=backgrounds,
-        render_mode=render_mode, rasterize_mode=rasterize_mode, camera_model=camera_model, tile_size=tile_size,
-    )
+    settings = RasterSettings(near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree,
+                              backgrounds=backgrounds, render_mode=render_mode, rasterize_mode=rasterize_mode,
+                              camera_model=camera_model, tile_size=tile_size)
+    return render_pipeline(composite_dense, means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+                           settings)

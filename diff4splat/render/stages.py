@@ -18,6 +18,7 @@ from torch import Tensor
 from diff4splat.cameras.path import camera_centers
 from diff4splat.devices import full_precision
 from diff4splat.render.projection import Projection, project_gaussians
+from diff4splat.render.settings import RasterSettings
 from diff4splat.render.sh import sh_to_color, spherical_harmonics
 from diff4splat.render.validate import validate_inputs
 
@@ -88,9 +89,7 @@ def expected_depth(render_colors: Tensor, render_alphas: Tensor, render_mode: st
 def render_pipeline(
     compositor: Compositor,
     means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor,
-    viewmats: Tensor, Ks: Tensor, width: int, height: int, *,
-    near_plane: float, far_plane: float, eps2d: float, sh_degree: int | None, backgrounds: Tensor | None,
-    render_mode: str, rasterize_mode: str, camera_model: str, tile_size: int,
+    viewmats: Tensor, Ks: Tensor, width: int, height: int, settings: RasterSettings, *,
     project: Callable[..., Projection] = project_gaussians,
 ) -> tuple[Tensor, Tensor, dict]:
     """Validate, project, build per-Gaussian features, composite each camera, apply the render mode.
@@ -98,23 +97,24 @@ def render_pipeline(
     Features follow gsplat's ``rasterization``: colours (SH evaluated along mean − camera centre,
     then max(·+0.5, 0)); "D"/"ED" replace them by camera-space depth z, "RGB+D"/"RGB+ED" append it;
     the depth channel's background is 0. "ED" divides the accumulated depth by max(alpha, 1e-10)
-    (so it is 0 where alpha is 0). Arguments as in :func:`diff4splat.render.rasterize`;
+    (so it is 0 where alpha is 0). ``means`` … ``height`` as in :func:`diff4splat.render.rasterize`,
+    ``settings`` its keywords (:class:`~diff4splat.render.settings.RasterSettings`);
     ``compositor`` composites one camera (:data:`Compositor`); ``project`` is
     :func:`~diff4splat.render.projection.project_gaussians` or a drop-in replacement with its signature
     (:func:`diff4splat.render.fused_projection.project_fused`).
+
+    Returns:
+        render_colors (C, H, W, F), render_alphas (C, H, W, 1), meta (see :func:`diff4splat.render.rasterize`).
+
+    Raises:
+        ValueError: as :func:`~diff4splat.render.validate.validate_inputs`.
     """
-    validate_inputs(
-        means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-        near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, backgrounds=backgrounds,
-        render_mode=render_mode, rasterize_mode=rasterize_mode, camera_model=camera_model, tile_size=tile_size,
-    )
+    validate_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, settings)
+    sh_degree, render_mode, tile_size = settings.sh_degree, settings.render_mode, settings.tile_size
     dtype = compute_dtype(means.dtype)  # autocast is off here (full_precision)
     means, quats, scales, opacities = means.to(dtype), quats.to(dtype), scales.to(dtype), opacities.to(dtype)
     viewmats, Ks = viewmats.to(dtype), Ks.to(dtype)
-    proj = project(
-        means, quats, scales, opacities, viewmats, Ks, width, height, near_plane=near_plane,
-        far_plane=far_plane, eps2d=eps2d, antialiased=rasterize_mode == "antialiased", camera_model=camera_model,
-    )
+    proj = project(means, quats, scales, opacities, viewmats, Ks, width, height, **settings.projection_keywords())
     C, N = proj.depths.shape
     feats = []
     if render_mode in ("RGB", "RGB+D", "RGB+ED"):
@@ -122,7 +122,7 @@ def render_pipeline(
     if render_mode != "RGB":
         feats.append(proj.depths[..., None])
     feats = torch.cat(feats, dim=-1)  # (C, N, F)
-    bgs = mode_backgrounds(backgrounds, render_mode, C, dtype)
+    bgs = mode_backgrounds(settings.backgrounds, render_mode, C, dtype)
 
     out_colors, out_alphas, infos = [], [], []
     for c in range(C):

@@ -1,7 +1,8 @@
 """Input validation shared by every render entry point (tile path, dense reference, ray path, gsplat).
 
-One function, :func:`validate_inputs`, checks the gsplat-style argument list; the render modes and
-rasterize modes the renderer accepts are listed here.
+One function, :func:`validate_inputs`, checks the tensors, the image size and the
+:class:`~diff4splat.render.settings.RasterSettings` of a call; the render modes and rasterize modes the renderer
+accepts are listed here.
 """
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from torch import Tensor
 
 from diff4splat.checks import check_finite, check_positive_int
 from diff4splat.render.projection import CAMERA_MODELS
+from diff4splat.render.settings import RasterSettings
 from diff4splat.render.sh import num_sh_bases
 
 __all__ = ["RENDER_MODES", "RASTERIZE_MODES", "validate_inputs"]
@@ -30,23 +32,29 @@ def _check_shape(name: str, t: Tensor, shape: tuple) -> None:
 
 
 def validate_inputs(
-    means, quats, scales, opacities, colors, viewmats, Ks, width, height, *,
-    near_plane, far_plane, eps2d, sh_degree, backgrounds, render_mode, rasterize_mode, camera_model, tile_size,
+    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, viewmats: Tensor, Ks: Tensor,
+    width: int, height: int, settings: RasterSettings, *, camera_models: tuple[str, ...] = CAMERA_MODELS,
 ) -> None:
     """Check every argument of ``rasterize``; raise one ``ValueError`` naming the first bad one.
+
+    ``means`` … ``height`` are as in :func:`diff4splat.render.rasterize`; ``settings`` holds its keywords
+    (``camera_params`` is the ray path's to check); ``camera_models`` lists the camera models accepted.
 
     Checked, in order: shapes of means (N, 3), quats (N, 4), scales (N, 3), opacities (N,), colors
     ((N, D), or (N, K, 3) with K ≥ (sh_degree+1)²), viewmats (C, 4, 4), Ks (C, 3, 3), backgrounds
     (C, D); every tensor on the device of ``means`` (no path moves tensors between devices); width,
     height, tile_size positive ints (pixels); 0 ≤ near_plane < far_plane (metres);
     eps2d ≥ 0 (pixels²); render_mode in :data:`RENDER_MODES`, rasterize_mode in
-    :data:`RASTERIZE_MODES`, camera_model in :data:`~diff4splat.render.projection.CAMERA_MODELS`;
+    :data:`RASTERIZE_MODES`, camera_model in ``camera_models``;
     every tensor floating point and finite. Every entry point (tile path, dense reference, ray path,
     gsplat backend) calls this, so the same bad argument gives the same message from each.
 
     Raises:
         ValueError: naming the first bad argument and its value (or shape).
     """
+    sh_degree, backgrounds, tile_size = settings.sh_degree, settings.backgrounds, settings.tile_size
+    near_plane, far_plane, eps2d = settings.near_plane, settings.far_plane, settings.eps2d
+    render_mode, rasterize_mode, camera_model = settings.render_mode, settings.rasterize_mode, settings.camera_model
     _check_shape("means", means, (None, 3))
     n = means.shape[0]
     _check_shape("quats", quats, (n, 4))
@@ -79,8 +87,8 @@ def validate_inputs(
         raise ValueError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
     if rasterize_mode not in RASTERIZE_MODES:
         raise ValueError(f"rasterize_mode must be one of {RASTERIZE_MODES}, got {rasterize_mode!r}")
-    if camera_model not in CAMERA_MODELS:
-        raise ValueError(f"camera_model must be one of {CAMERA_MODELS} (others are not supported yet), "
+    if camera_model not in camera_models:
+        raise ValueError(f"camera_model must be one of {camera_models} (others are not supported yet), "
                          f"got {camera_model!r}")
     for name, t in (("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
                     ("colors", colors), ("viewmats", viewmats), ("Ks", Ks), ("backgrounds", backgrounds)):
