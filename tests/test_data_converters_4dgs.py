@@ -135,6 +135,9 @@ def test_dnerf_downscale_black_background_and_refused_times(tmp_path):
 
 def test_dnerf_bad_inputs(tmp_path):
     root = tmp_path / "lego"
+    with pytest.raises(FileNotFoundError, match="source folder not found"):
+        convert("dnerf", root, tmp_path / "o")
+    root.mkdir()
     with pytest.raises(FileNotFoundError, match="transforms_train.json"):
         convert("dnerf", root, tmp_path / "o")
     make_dnerf(root)
@@ -324,6 +327,7 @@ def test_hypernerf_split_scale_and_normalisation(tmp_path):
 
 def test_hypernerf_bad_inputs(tmp_path):
     root = tmp_path / "broom"
+    root.mkdir()
     with pytest.raises(FileNotFoundError, match="dataset.json"):
         convert("hypernerf", root, tmp_path / "o")
     make_hypernerf(root)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from .common import require_dir
 from .dnerf import convert_dnerf
 from .dynamic_replica import convert_dynamic_replica
 from .hypernerf import convert_hypernerf
@@ -50,9 +51,11 @@ def convert(source: str, src: str | os.PathLike, out: str | os.PathLike, **optio
         **options: passed to the source's converter.
 
     Raises:
-        ValueError: unknown ``source``, or the converter's errors.
-        FileNotFoundError: missing source files.
+        ValueError: unknown ``source``; ``src`` is not a folder but a FIFO, a symlink loop, a file, … (said as
+            such, :func:`.common.require_dir`, before the converter looks for its files); the converter's errors.
+        FileNotFoundError: no ``src`` (``"source folder not found: <src>"``), missing source files.
     """
     if source not in CONVERTERS:
         raise ValueError(f"unknown source {source!r}; known: {sorted(CONVERTERS)}")
+    require_dir(src, "source")
     return CONVERTERS[source](src, out, **options)

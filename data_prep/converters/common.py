@@ -22,9 +22,16 @@ All pose arithmetic is float64 numpy; :func:`camera_path` builds the float64
 """
 from __future__ import annotations
 
+import gzip
+import json
 import os
+import pickle
+import warnings
+import zipfile
+import zlib
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -32,6 +39,7 @@ import torch
 
 from diff4splat.cameras import CameraPath, invert_rigid
 from diff4splat.io.inputs import check_input_file
+from diff4splat.io.structured import read_json
 from diff4splat.quaternions import quat_to_rotmat
 
 from ..format import SceneWriter, timestamps_to_times
@@ -64,6 +72,11 @@ __all__ = [
     "write_scene",
     "require_file",
     "require_dir",
+    "load_npy",
+    "load_npz",
+    "load_number_rows",
+    "load_json_file",
+    "load_gzip_json",
 ]
 
 GL_TO_CV = np.diag([1.0, -1.0, -1.0])
@@ -128,6 +141,118 @@ def require_dir(path: str | os.PathLike, what: str) -> Path:
     except ValueError as e:
         raise ValueError(str(e).replace("not a file", "not a folder")) from None
     raise ValueError(f"{what} folder: {p} is a regular file, not a folder")
+
+
+_NUMPY_READ_ERRORS = (EOFError, ValueError, zipfile.BadZipFile, pickle.UnpicklingError, zlib.error)
+"""What ``np.load`` raises on a truncated, empty or foreign file (``allow_pickle=False``); an ``OSError`` of the
+path itself (permission, …) is left to the CLI's ``<path>: <reason>``."""
+
+
+def _why(e: BaseException) -> str:
+    """``np.load``'s complaint in the user's terms (numpy's pickle message suggests ``allow_pickle=``)."""
+    if "allow_pickle" in str(e) or isinstance(e, pickle.UnpicklingError):
+        return "it holds pickled Python objects, which are never loaded; arrays of numbers are expected"
+    return str(e) or type(e).__name__
+
+
+def load_npy(path: str | os.PathLike, what: str) -> np.ndarray:
+    """The array of the ``.npy`` file ``path`` (never unpickled).
+
+    Raises:
+        FileNotFoundError / ValueError: :func:`require_file`.
+        ValueError: ``path`` is empty, truncated, not a ``.npy`` file or a ``.npz`` archive, named
+            (``"<what>: <path> is not a readable .npy array (<why>)"``).
+    """
+    p = require_file(path, what)
+    try:
+        arr = np.load(p, allow_pickle=False)
+    except _NUMPY_READ_ERRORS as e:
+        raise ValueError(f"{what}: {p} is not a readable .npy array ({_why(e)})") from None
+    if not isinstance(arr, np.ndarray):
+        arr.close()
+        raise ValueError(f"{what}: {p} is a .npz archive, not a .npy array")
+    return arr
+
+
+def load_npz(path: str | os.PathLike, what: str, required: Iterable[str],
+             optional: Iterable[str] = ()) -> dict[str, np.ndarray]:
+    """The ``required`` arrays and those of ``optional`` present in the ``.npz`` archive ``path`` (never unpickled).
+
+    Raises:
+        FileNotFoundError / ValueError: :func:`require_file`.
+        ValueError: ``path`` is empty, truncated or not a ``.npz`` archive (``"<what>: <path> is not a readable
+            .npz archive (<why>)"``), misses a required array (``"<what>: <path> misses [...]"``), or an array
+            cannot be read (corrupt member, pickled objects), each naming the file.
+    """
+    p = require_file(path, what)
+    try:
+        z = np.load(p, allow_pickle=False)
+    except _NUMPY_READ_ERRORS as e:
+        raise ValueError(f"{what}: {p} is not a readable .npz archive ({_why(e)})") from None
+    if not isinstance(z, np.lib.npyio.NpzFile):
+        raise ValueError(f"{what}: {p} is a .npy array, not a .npz archive")
+    required = list(required)
+    with z:
+        missing = [k for k in required if k not in z.files]
+        if missing:
+            raise ValueError(f"{what}: {p} misses {missing} (it holds {z.files})")
+        out = {}
+        for k in [*required, *(k for k in optional if k in z.files and k not in required)]:
+            try:
+                out[k] = np.asarray(z[k])
+            except _NUMPY_READ_ERRORS as e:
+                raise ValueError(f"{what}: {p}: {k!r} is not a readable array ({_why(e)})") from None
+    return out
+
+
+def load_number_rows(path: str | os.PathLike, what: str, ncols: int, columns: str = "") -> np.ndarray:
+    """The (N, ``ncols``) float64 rows of a whitespace-separated text file of numbers (``#`` comments allowed).
+
+    Raises:
+        FileNotFoundError / ValueError: :func:`require_file`.
+        ValueError: an empty file (``"<path>: no lines of numbers (an empty file)"``), a line that is not
+            numbers, or rows of another width than ``ncols`` (``columns`` names them), each naming the file.
+    """
+    p = require_file(path, what)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # numpy's "input contained no data": said below
+            rows = np.loadtxt(p, ndmin=2, dtype=np.float64)
+    except (ValueError, UnicodeDecodeError) as e:
+        raise ValueError(f"{p}: {e}") from None
+    if rows.size == 0:
+        raise ValueError(f"{p}: no lines of numbers (an empty file)")
+    if rows.shape[1] != ncols:
+        raise ValueError(f"{p}: expected {ncols} values per line{f' ({columns})' if columns else ''}, "
+                         f"got {rows.shape[1]}")
+    return rows
+
+
+def load_json_file(path: str | os.PathLike, what: str, expect: type | None = dict) -> Any:
+    """:func:`diff4splat.io.structured.read_json` (empty, truncated, non-UTF-8 or non-JSON files named)."""
+    return read_json(require_file(path, what), what, expect)
+
+
+def load_gzip_json(path: str | os.PathLike, what: str, expect: type | None = None) -> Any:
+    """The JSON value of a gzip-compressed file (``.jgz``).
+
+    Raises:
+        FileNotFoundError / ValueError: :func:`require_file`.
+        ValueError: not gzip, truncated, not UTF-8 or not JSON, or a top-level value that is not an ``expect``,
+            each naming the file (``"<what>: <path> is not gzip-compressed JSON (<why>)"``).
+    """
+    p = require_file(path, what)
+    try:
+        with gzip.open(p, "rt", encoding="utf8") as f:
+            data = json.load(f)
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{what}: {p} is not valid JSON ({e.msg} at line {e.lineno} column {e.colno})") from None
+    except (gzip.BadGzipFile, EOFError, zlib.error, UnicodeDecodeError) as e:
+        raise ValueError(f"{what}: {p} is not gzip-compressed JSON ({_why(e)})") from None
+    if expect is not None and not isinstance(data, expect):
+        raise ValueError(f"{what}: {p} must hold a JSON {'object' if expect is dict else expect.__name__}, "
+                         f"got {type(data).__name__}")
+    return data
 
 
 def rigid(R: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -19,8 +19,6 @@ metric); values < 1e-5 are invalid.
 """
 from __future__ import annotations
 
-import gzip
-import json
 import os
 from collections import defaultdict
 from pathlib import Path
@@ -33,6 +31,7 @@ from .common import (
     finite_positive_or_inf,
     float16_bits_to_float,
     intrinsics,
+    load_gzip_json,
     read_rgb_uint8,
     read_uint16_png,
     require_file,
@@ -47,8 +46,7 @@ __all__ = ["convert_dynamic_replica", "pytorch3d_to_opencv", "load_frame_annotat
 def load_frame_annotations(root: str | os.PathLike, split: str) -> list[dict]:
     """The list of frame annotations of ``<root>/frame_annotations_<split>.jgz`` (gzipped JSON)."""
     p = require_file(Path(root) / f"frame_annotations_{split}.jgz", "Dynamic Replica annotations")
-    with gzip.open(p, "rt", encoding="utf8") as f:
-        data = json.load(f)
+    data = load_gzip_json(p, "Dynamic Replica annotations")
     if not isinstance(data, list):
         raise ValueError(f"{p}: expected a JSON list of frame annotations")
     return data

@@ -17,7 +17,6 @@ files (whose positions are in units of 100 m: pass ``metres_per_unit=100``). The
 """
 from __future__ import annotations
 
-import json
 import math
 import os
 from pathlib import Path
@@ -30,6 +29,7 @@ from .common import (
     camera_path,
     finite_positive_or_inf,
     intrinsics,
+    load_json_file,
     normalize_rotation,
     read_rgb_uint8,
     require_dir,
@@ -100,7 +100,7 @@ def convert_matrixcity(src: str | os.PathLike, out: str | os.PathLike, *, depth_
             not a uniformly scaled rotation, or images of another size than ``w``×``h``.
     """
     src = Path(src)
-    meta = json.loads(require_file(src / transforms, "MatrixCity transforms.json").read_text())
+    meta = load_json_file(src / transforms, "MatrixCity transforms.json")
     frames_meta = meta.get("frames") or []
     W, H = (int(meta["w"]), int(meta["h"])) if "w" in meta and "h" in meta else (None, None)
     idx = select_frames(len(frames_meta), start, stride, max_frames)

@@ -20,7 +20,6 @@ ReCamMaster's (F cancels in V_i·V_0⁻¹). No depth is provided.
 """
 from __future__ import annotations
 
-import json
 import os
 import re
 from pathlib import Path
@@ -32,7 +31,7 @@ from .common import (
     camera_path,
     intrinsics,
     iter_video_frames,
-    require_file,
+    load_json_file,
     rigid,
     select_frames,
     write_scene,
@@ -94,7 +93,7 @@ def convert_multicamvideo(src: str | os.PathLike, out: str | os.PathLike, *, cam
         FileNotFoundError: missing JSON or video.
     """
     src = Path(src)
-    data = json.loads(require_file(src / "cameras" / "camera_extrinsics.json", "camera_extrinsics.json").read_text())
+    data = load_json_file(src / "cameras" / "camera_extrinsics.json", "camera_extrinsics.json")
     n_total = sum(1 for k in data if re.fullmatch(r"frame\d+", k))
     if focal_mm is None:
         m = re.match(r"f(\d+(?:\.\d+)?)_", src.resolve().parent.name)

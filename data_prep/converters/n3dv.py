@@ -41,6 +41,7 @@ from .common import (
     downscaled_intrinsics,
     intrinsics,
     iter_video_frames,
+    load_npy,
     require_file,
     select_frames,
     write_scene,
@@ -61,10 +62,7 @@ def read_poses_bounds(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, 
             non-positive h, w or focal.
     """
     p = require_file(path, "poses_bounds.npy")
-    try:
-        arr = np.load(p, allow_pickle=False)
-    except (OSError, ValueError) as e:
-        raise ValueError(f"could not read {p} as a .npy array: {e}") from None
+    arr = load_npy(p, "poses_bounds.npy")
     if arr.ndim != 2 or arr.shape[1] != 17 or arr.shape[0] < 1 or not np.issubdtype(arr.dtype, np.number):
         raise ValueError(f"{p} must be an (N_cams, 17) numeric array, got shape {arr.shape} dtype {arr.dtype}")
     arr = arr.astype(np.float64)

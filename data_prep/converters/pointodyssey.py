@@ -23,9 +23,9 @@ import numpy as np
 from .common import (
     camera_path,
     decode_scaled_uint16,
+    load_npz,
     read_rgb_uint8,
     read_uint16_png,
-    require_file,
     select_frames,
     write_scene,
 )
@@ -72,11 +72,7 @@ def convert_pointodyssey(src: str | os.PathLike, out: str | os.PathLike, *, star
         ValueError: ``anno.npz`` misses a key (named) or has inconsistent frame counts.
     """
     src = Path(src)
-    with np.load(require_file(src / "anno.npz", "PointOdyssey anno.npz")) as z:
-        missing = [k for k in _ANNO_KEYS if k not in z.files]
-        if missing:
-            raise ValueError(f"{src / 'anno.npz'} misses {missing}")
-        anno = {k: np.asarray(z[k]) for k in _ANNO_KEYS}
+    anno = load_npz(src / "anno.npz", "PointOdyssey anno.npz", _ANNO_KEYS)
     T_src = anno["extrinsics"].shape[0]
     for k in _ANNO_KEYS:
         if anno[k].shape[0] != T_src:

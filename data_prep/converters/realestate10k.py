@@ -33,20 +33,31 @@ import numpy as np
 
 from diff4splat.depth_alignment import align_video, valid_depth_mask
 from diff4splat.io import load_realestate10k
+from diff4splat.io.cameras import read_realestate10k_lines
 
-from .common import camera_path, only_stem, read_rgb_uint8, require_dir, require_file, select_frames, write_scene
+from .common import (
+    camera_path,
+    load_npy,
+    only_stem,
+    read_rgb_uint8,
+    require_dir,
+    require_file,
+    select_frames,
+    write_scene,
+)
 
 __all__ = ["convert_realestate10k", "read_realestate10k_timestamps"]
 
 
 def read_realestate10k_timestamps(path: str | os.PathLike) -> list[int]:
-    """The integer timestamps (µs) of the frame lines of a RealEstate10K camera file, in file order."""
-    stamps = []
-    for line in require_file(path, "RealEstate10K camera file").read_text().splitlines():
-        words = line.split()
-        if len(words) == 19:
-            stamps.append(int(words[0]))
-    return stamps
+    """The integer timestamps (µs) of the frame lines of a RealEstate10K camera file, in file order.
+
+    Raises:
+        FileNotFoundError / ValueError: :func:`diff4splat.io.cameras.read_realestate10k_lines` (the rules of
+            :func:`diff4splat.io.load_realestate10k`: a FIFO or loop, non-UTF-8 text, a truncated line, a timestamp
+            that is not an integer, each naming the file and line).
+    """
+    return read_realestate10k_lines(require_file(path, "RealEstate10K camera file"))[0]
 
 
 def _frame_file(folder: Path, stamp: int) -> Path:
@@ -107,8 +118,8 @@ def convert_realestate10k(src: str | os.PathLike, out: str | os.PathLike, *, cli
              "units": "metres" if metres_per_unit is not None else "RealEstate10K SfM units (not metres)"}
     depths, fit = None, None
     if estimates_dir is not None:
-        est = [np.load(require_file(Path(estimates_dir) / f"{stamps[f]}.npy", "depth estimate")) for f in idx]
-        ref = [np.load(require_file(Path(reference_dir) / f"{stamps[f]}.npy", "reference depth")) for f in idx]
+        est = [load_npy(Path(estimates_dir) / f"{stamps[f]}.npy", "depth estimate") for f in idx]
+        ref = [load_npy(Path(reference_dir) / f"{stamps[f]}.npy", "reference depth") for f in idx]
         for e, r in zip(est, ref, strict=True):
             if e.shape != (H, W) or r.shape != (H, W):
                 raise ValueError(

@@ -28,6 +28,7 @@ from .common import (
     camera_path,
     disparity_to_depth,
     intrinsics,
+    load_number_rows,
     read_rgb_uint8,
     require_file,
     select_frames,
@@ -62,10 +63,7 @@ def read_dsp5(path: str | os.PathLike) -> np.ndarray:
 
 
 def _read_rows(path: Path, ncols: int) -> np.ndarray:
-    rows = np.loadtxt(require_file(path, "Spring camera file"), ndmin=2, dtype=np.float64)
-    if rows.shape[1] != ncols:
-        raise ValueError(f"{path}: expected {ncols} values per line, got {rows.shape[1]}")
-    return rows
+    return load_number_rows(path, "Spring camera file", ncols)
 
 
 def convert_spring(src: str | os.PathLike, out: str | os.PathLike, *, sides: tuple[str, ...] = ("left", "right"),

@@ -28,8 +28,8 @@ from .common import (
     camera_path,
     intrinsics,
     iter_video_frames,
+    load_npz,
     only_stem,
-    require_file,
     select_frames,
     write_scene,
 )
@@ -86,12 +86,8 @@ def convert_stereo4d(src: str | os.PathLike, out: str | os.PathLike, *, name: st
     src = Path(src)
     if name is None:
         name = only_stem(src, "*.npz", "name", ".npz files")
-    with np.load(require_file(src / f"{name}.npz", "Stereo4D npz"), allow_pickle=False) as z:
-        missing = [k for k in ("camera2world", "timestamps") if k not in z.files]
-        if missing:
-            raise ValueError(f"{name}.npz misses {missing}")
-        data = {k: np.asarray(z[k]) for k in z.files if k in ("camera2world", "timestamps", "track_lengths",
-                                                              "track_indices", "track_coordinates")}
+    data = load_npz(src / f"{name}.npz", "Stereo4D npz", ("camera2world", "timestamps"),
+                    ("track_lengths", "track_indices", "track_coordinates"))
     c2w = data["camera2world"].astype(np.float64)
     if c2w.shape[1:] == (3, 4):
         c2w = np.concatenate([c2w, np.broadcast_to([[[0.0, 0.0, 0.0, 1.0]]], (c2w.shape[0], 1, 4))], axis=1)

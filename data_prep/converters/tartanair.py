@@ -27,9 +27,10 @@ from .common import (
     camera_path,
     finite_positive_or_inf,
     intrinsics,
+    load_npy,
+    load_number_rows,
     quat_xyzw_to_rotmat,
     read_rgb_uint8,
-    require_file,
     rigid,
     select_frames,
     write_scene,
@@ -50,13 +51,7 @@ def read_tartanair_poses(path: str | os.PathLike) -> np.ndarray:
     Raises:
         FileNotFoundError: missing file. ValueError: a line without 7 numbers or a zero quaternion.
     """
-    p = require_file(path, "TartanAir pose file")
-    try:
-        rows = np.loadtxt(p, ndmin=2, dtype=np.float64)
-    except ValueError as e:
-        raise ValueError(f"{p}: {e}") from None
-    if rows.shape[1] != 7:
-        raise ValueError(f"{p}: expected 7 values per line (tx ty tz qx qy qz qw), got {rows.shape[1]}")
+    rows = load_number_rows(path, "TartanAir pose file", 7, "tx ty tz qx qy qz qw")
     R_ned = quat_xyzw_to_rotmat(rows[:, 3:])  # camera body (NED) → world (NED)
     return c2w_cv_to_viewmat(rigid(R_ned @ NED_TO_CV.T, rows[:, :3]))
 
@@ -94,7 +89,7 @@ def convert_tartanair(src: str | os.PathLike, out: str | os.PathLike, *, sides: 
     def frames(name: str):
         s = sides[int(name[3:])]
         for f in idx:
-            depth = np.load(require_file(src / f"depth_{s}" / f"{f:06d}_{s}_depth.npy", "TartanAir depth"))
+            depth = load_npy(src / f"depth_{s}" / f"{f:06d}_{s}_depth.npy", "TartanAir depth")
             if depth.shape != (H, W):
                 raise ValueError(f"TartanAir depth frame {f} ({s}) has shape {depth.shape}, images are {(H, W)}")
             yield (read_rgb_uint8(src / f"image_{s}" / f"{f:06d}_{s}.png"),

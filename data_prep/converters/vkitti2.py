@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from diff4splat.io.structured import read_text
+
 from .common import (
     camera_path,
     decode_scaled_uint16,
@@ -62,7 +64,7 @@ def read_vkitti2_table(path: str | os.PathLike, ncols: int) -> dict[tuple[int, i
     """
     p = require_file(path, "VKITTI2 table")
     table = {}
-    for lineno, line in enumerate(p.read_text().splitlines()[1:], start=2):
+    for lineno, line in enumerate(read_text(p, "VKITTI2 table").splitlines()[1:], start=2):
         words = line.split()
         if not words:
             continue

@@ -33,8 +33,8 @@ from .atomic import atomic_output_path
 from .inputs import check_input_file
 from .structured import read_json, read_text
 
-__all__ = ["save_cameras_json", "load_cameras_json", "load_realestate10k", "save_realestate10k",
-           "CAMERA_FILE_BYTES_PER_FRAME"]
+__all__ = ["save_cameras_json", "load_cameras_json", "load_realestate10k", "read_realestate10k_lines",
+           "save_realestate10k", "CAMERA_FILE_BYTES_PER_FRAME"]
 
 CAMERA_FILE_BYTES_PER_FRAME = 4096
 """Generous upper bound of the bytes one frame takes in a camera file (an indented ``cameras.json``
@@ -148,6 +148,43 @@ def load_cameras_json(path: str | os.PathLike) -> CameraPath:
         raise ValueError(f"{path}: {e}") from None
 
 
+def read_realestate10k_lines(path: str | os.PathLike) -> tuple[list[int], list[list[float]]]:
+    """The frame lines of a RealEstate10K camera file (module docstring): integer timestamps (µs) and the 18
+    numbers after each, in file order; no frames is an empty list (the caller names what that means).
+
+    :func:`load_realestate10k` reads through this; a converter that needs the timestamps before it knows the
+    image size (``data_prep``'s RealEstate10K converter) too, so both hold a file to the same rules.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: ``path`` is not a regular UTF-8 text file; naming the line for a wrong number of values,
+            non-numeric values or non-zero distortion; more frames than the ``frames`` limit
+            (:class:`diff4splat.limits.LimitError`; the file size is checked before it is read).
+    """
+    path = _check_camera_file(path, "RealEstate10K camera file")
+    text = read_text(path, "RealEstate10K camera file")
+    rows, stamps = [], []
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        words = line.split()
+        if not words:
+            continue
+        if lineno == 1 and not _is_number(words[0]):
+            continue  # URL line
+        if len(words) != 19:
+            raise ValueError(f"{path}:{lineno}: expected 19 values per frame, got {len(words)}")
+        try:
+            stamp = int(words[0])
+            vals = [float(w) for w in words[1:]]
+        except ValueError:
+            raise ValueError(f"{path}:{lineno}: values must be numbers (an integer timestamp first)") from None
+        if vals[4] != 0.0 or vals[5] != 0.0:
+            raise ValueError(f"{path}:{lineno}: non-zero distortion ({vals[4]}, {vals[5]}) is not supported")
+        stamps.append(stamp)
+        rows.append(vals)
+    _check_frame_count(path, len(rows))
+    return stamps, rows
+
+
 def load_realestate10k(path: str | os.PathLike, width: int, height: int, relative: bool = True) -> CameraPath:
     """Read a RealEstate10K camera file (module docstring) for images of ``width`` × ``height``.
 
@@ -173,30 +210,9 @@ def load_realestate10k(path: str | os.PathLike, width: int, height: int, relativ
             (``width``/``height`` included); more frames than the ``frames`` limit
             (:class:`diff4splat.limits.LimitError`; the file size is checked before it is parsed).
     """
-    path = _check_camera_file(path, "RealEstate10K camera file")
-    text = read_text(path, "RealEstate10K camera file")
-    rows, stamps = [], []
-    lines = text.splitlines()
-    for lineno, line in enumerate(lines, start=1):
-        words = line.split()
-        if not words:
-            continue
-        if lineno == 1 and not _is_number(words[0]):
-            continue  # URL line
-        if len(words) != 19:
-            raise ValueError(f"{path}:{lineno}: expected 19 values per frame, got {len(words)}")
-        try:
-            stamp = int(words[0])
-            vals = [float(w) for w in words[1:]]
-        except ValueError:
-            raise ValueError(f"{path}:{lineno}: values must be numbers (an integer timestamp first)") from None
-        if vals[4] != 0.0 or vals[5] != 0.0:
-            raise ValueError(f"{path}:{lineno}: non-zero distortion ({vals[4]}, {vals[5]}) is not supported")
-        stamps.append(stamp)
-        rows.append(vals)
+    stamps, rows = read_realestate10k_lines(path)
     if not rows:
         raise ValueError(f"{path}: no camera lines")
-    _check_frame_count(path, len(rows))
     width, height = check_positive_int("width", width, "pixels"), check_positive_int("height", height, "pixels")
     vals = torch.tensor(rows, dtype=torch.float64, device="cpu")  # (T, 18); files load onto the CPU
     T = vals.shape[0]
