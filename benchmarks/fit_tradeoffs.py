@@ -37,6 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, markdown_table, write_section  # noqa: E402
 
 from data_prep.format import list_scenes, load_scene  # noqa: E402
+from diff4splat.generate import generate, write  # noqa: E402
 from training.fit import FitConfig  # noqa: E402
 from training.fit_cli import run_fit  # noqa: E402
 
@@ -45,15 +46,10 @@ DOCS = Path(__file__).resolve().parent.parent / "docs"
 
 def generate_for(scene_dir: Path, out: Path) -> float:
     """``diff4splat generate`` on camera 0's first frame along camera 0's path; returns seconds."""
-    from diff4splat.cli import main
-
     scene = load_scene(scene_dir)
     cam = scene.camera_names[0]
     t0 = time.perf_counter()
-    rc = main(["generate", str(scene_dir / cam / "rgb" / "00000.png"),
-               "--cameras", str(scene_dir / cam / "cameras.json"), "--quiet", "--out", str(out)])
-    if rc != 0:
-        raise RuntimeError(f"generate failed on {scene_dir}")
+    write(generate(scene_dir / cam / "rgb" / "00000.png", scene_dir / cam / "cameras.json"), out)
     return time.perf_counter() - t0
 
 

@@ -1,8 +1,8 @@
 """Peak memory of ``diff4splat generate`` against its estimate (``Diff4SplatPipeline.memory_estimate``).
 
-Runs the real command once per (frames, resolution) in a child process that reports its own peak resident set
-size (``ru_maxrss``); the estimate is what the CLI checks against the ``memory_bytes`` limit before any network
-runs. Also lists the longest path each resolution allows within the default output and memory limits.
+Runs the real command once per (frames, resolution) in a child process and reads that child's peak resident set
+size (``ru_maxrss`` of ``os.wait4``); the estimate is what the CLI checks against the ``memory_bytes`` limit before
+any network runs. Also lists the longest path each resolution allows within the default output and memory limits.
 
     python benchmarks/generate_memory.py [--write] [--cases 17x256 49x256 ...]
 """
@@ -22,9 +22,6 @@ from diff4splat.limits import LIMITS, LimitError, check_memory, check_output_siz
 from diff4splat.pipeline import Diff4SplatPipeline
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
-PEAK_OF_MAIN = ("import resource, sys; from diff4splat.cli import main; code = main(sys.argv[1:]); "
-                "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss); raise SystemExit(code)")
-"""A child running ``diff4splat`` that prints its own peak resident memory (KiB) last."""
 CASES = ["17x256", "49x256", "149x256", "49x64", "101x64", "25x512"]
 
 
@@ -32,13 +29,26 @@ def peak_of_generate(frames: int, resolution: int) -> tuple[float, int]:
     """(peak RSS of one ``generate`` child, bytes; its Gaussian count)."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "o"
-        run = subprocess.run([sys.executable, "-c", PEAK_OF_MAIN, "generate", str(EXAMPLE), "--frames", str(frames),
-                              "--resolution", str(resolution), "--out", str(out), "--quiet"], check=True,
-                             capture_output=True, text=True,
-                             env={**os.environ, "DIFF4SPLAT_MAX_MEMORY_BYTES": str(1 << 40),
-                                  "DIFF4SPLAT_MAX_OUTPUT_BYTES": str(1 << 40)})
+        peak = peak_memory_of([sys.executable, "-m", "diff4splat.cli", "generate", str(EXAMPLE), "--frames",
+                               str(frames), "--resolution", str(resolution), "--out", str(out), "--quiet"],
+                              env={**os.environ, "DIFF4SPLAT_MAX_MEMORY_BYTES": str(1 << 40),
+                                   "DIFF4SPLAT_MAX_OUTPUT_BYTES": str(1 << 40)})
         count = int(json.loads((out / "meta.json").read_text())["num_gaussians"])
-    return int(run.stdout.split()[-1]) * 1024.0, count
+    return peak, count
+
+
+def peak_memory_of(argv: list[str], env: dict | None = None) -> float:
+    """Run ``argv`` to its end; its own peak resident memory, bytes (``os.wait4``'s rusage of that child).
+
+    Raises:
+        RuntimeError: the command failed.
+    """
+    child = subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL)
+    _, status, usage = os.wait4(child.pid, 0)
+    child.returncode = os.waitstatus_to_exitcode(status)
+    if child.returncode != 0:
+        raise RuntimeError(f"{' '.join(argv)} exited with {child.returncode}")
+    return usage.ru_maxrss * 1024.0
 
 
 def longest_path(pipe: Diff4SplatPipeline, resolution: int) -> int:

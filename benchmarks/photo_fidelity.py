@@ -20,6 +20,7 @@ photos outside the repo for development and pass them as arguments.
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 import tempfile
 from pathlib import Path
@@ -30,7 +31,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import load_pipeline, markdown_table, publish, repo_relative  # noqa: E402
 
-from diff4splat.cli import main as cli_main  # noqa: E402
+from diff4splat.generate import generate, write  # noqa: E402
+from diff4splat.generate import load_pipeline as load_generate_pipeline  # noqa: E402
 from diff4splat.io import load_image  # noqa: E402
 from diff4splat.pipeline import DEFAULT_RESOLUTION  # noqa: E402
 from models.bundle import DEFAULT_CONFIG  # noqa: E402
@@ -43,11 +45,8 @@ EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
 def video_frame0_psnr(photo: Path, target: torch.Tensor, args) -> float:
     """PSNR of frame 0 of the video.mp4 that ``diff4splat generate`` writes, against ``target`` (H, W, 3)."""
     with tempfile.TemporaryDirectory() as tmp:
-        argv = ["generate", str(photo), "--out", f"{tmp}/out", "--quiet", "--prompt", args.prompt,
-                "--resolution", str(args.resolution)]
-        argv += ["--checkpoint", str(args.checkpoint)] if args.checkpoint else ["--config", args.config]
-        if cli_main(argv) != 0:
-            raise RuntimeError(f"generate failed on {photo}")
+        loader = functools.partial(load_generate_pipeline, args.checkpoint, None if args.checkpoint else args.config)
+        write(generate(photo, pipeline=loader, prompt=args.prompt, resolution=args.resolution), f"{tmp}/out")
         ok, frame = cv2.VideoCapture(f"{tmp}/out/video.mp4").read()
         if not ok:
             raise RuntimeError(f"could not read frame 0 of the video of {photo}")

@@ -26,6 +26,8 @@ from _common import machine, markdown_table, write_section  # noqa: E402
 
 from diff4splat.cameras.path import CameraPath  # noqa: E402
 from diff4splat.gaussians import Gaussians  # noqa: E402
+from diff4splat.generate import generate, write  # noqa: E402
+from diff4splat.rerender import load_scene_folder  # noqa: E402
 from diff4splat.scene import DynamicGaussians  # noqa: E402
 from diff4splat.viewer.data import viewer_payload  # noqa: E402
 from diff4splat.viewer.page import write_viewer  # noqa: E402
@@ -97,12 +99,8 @@ def main() -> None:
     args = p.parse_args()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        from diff4splat.cli import main as cli
-        from diff4splat.rerender import load_scene_folder
-
         gen = Path(tmp) / "gen"
-        if cli(["generate", str(ROOT / "examples" / "chelsea.png"), "--quiet", "--out", str(gen)]) != 0:
-            raise RuntimeError("generate failed")
+        write(generate(ROOT / "examples" / "chelsea.png"), gen)
         src = load_scene_folder(gen)  # the payload generate embedded (recomputed from the folder's files)
         rows.append(row("examples/chelsea.png (generate)", gen / "viewer.html",
                         viewer_payload(src.scene, src.cameras, fps=src.meta.get("fps", 8))))

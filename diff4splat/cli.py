@@ -7,16 +7,26 @@ Bad input gets one line on stderr (``diff4splat: error: …``) and exit code 2, 
 from __future__ import annotations
 
 import argparse
-import platform
 import sys
-import time
 import warnings
 from importlib.metadata import entry_points
 from pathlib import Path
 
+from models.bundle import DEFAULT_CONFIG
+
+from .assemble import DEPTH_KINDS
+from .cameras import DEFAULT_AMPLITUDES, DEFAULT_TRAJECTORY, TRAJECTORIES
+from .cameras.trajectories import amplitude_help
 from .checks import check_positive_int
 from .devices import AUTO, DEVICE_HELP, resolve_device
 from .errors import run_cli
+from .export import EXPORT_KIND, check_opset, export_onnx
+from .generate import generate, load_pipeline, write
+from .io.outdir import check_output_dir
+from .io.video import check_fps
+from .pipeline import DEFAULT_RESOLUTION, load_model
+from .rerender import rerender
+from .view import serve
 
 __all__ = ["main", "build_parser"]
 
@@ -57,13 +67,6 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
     Raises:
         ValueError: ``load_command`` is not a registered entry point.
     """
-    from models.bundle import DEFAULT_CONFIG
-
-    from .assemble import DEPTH_KINDS
-    from .cameras import DEFAULT_AMPLITUDES, DEFAULT_TRAJECTORY, TRAJECTORIES
-    from .cameras.trajectories import amplitude_help
-    from .pipeline import DEFAULT_RESOLUTION
-
     config_help = f"shipped model config (tiny, small, paper) or a YAML path (default: {DEFAULT_CONFIG})"
 
     parser = _Parser(prog="diff4splat", description="One photograph + a camera path + a prompt → a 4D Gaussian scene.")
@@ -166,231 +169,44 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
-def _load_model(checkpoint: Path | None, config: str):
-    """``load_model`` with its warnings (e.g. the random-model notice) printed as one line each on stderr.
-
-    Returns:
-        (model, source description, seconds taken).
-    """
-    from .pipeline import load_model
-
-    if checkpoint is not None and not checkpoint.is_dir():
-        raise FileNotFoundError(f"--checkpoint: {checkpoint} is not a folder")
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        t0 = time.perf_counter()
-        model, source = load_model(checkpoint, config, seed=0)
-        t_load = time.perf_counter() - t0
-    for w in caught:
-        print(f"diff4splat: warning: {w.message}", file=sys.stderr)
-    return model, source, t_load
-
-
 def export_onnx_command(args) -> dict:
     """Run ``export-onnx``; returns the manifest written to ``--out/manifest.json``."""
-    from .export import EXPORT_KIND, check_opset, export_onnx
-    from .io.outdir import check_output_dir
-
     check_output_dir(args.out, inputs=[args.checkpoint], overwrite=args.overwrite, kind=EXPORT_KIND)
     check_opset(args.opset)
-    model, source, _ = _load_model(args.checkpoint, args.config)
+    if args.checkpoint is not None and not args.checkpoint.is_dir():
+        raise FileNotFoundError(f"--checkpoint: {args.checkpoint} is not a folder")
+    model, source = _quietly_warned(load_model, args.checkpoint, args.config, seed=0)
     checkpoint = None if source.startswith("random:") else Path(source)  # hash the weight files read
     return export_onnx(model, args.out, text=not args.no_text, deformation=not args.static, opset=args.opset,
                        checkpoint=checkpoint, source=source, inputs=[args.checkpoint], overwrite=args.overwrite)
 
 
-def _check_generate_args(args) -> None:
-    """CLI-level checks of ``generate``'s arguments, before any model is loaded (messages name the flags)."""
-    from .cameras.trajectories import check_amplitude
-    from .io.inputs import check_input_file
-    from .io.outdir import check_output_dir
-    from .io.video import check_fps
-    from .limits import check_limit
-    from .pipeline import check_prompt, check_seed
-
-    check_input_file(args.image, "image")
-    check_output_dir(args.out, inputs=_generate_inputs(args), overwrite=args.overwrite, kind="generate")
-    for name in ("frames", "steps", "resolution"):
-        if getattr(args, name) is not None:
-            check_limit(name, check_positive_int(f"--{name}", getattr(args, name)), f"--{name}")
-    if args.depth is not None:
-        check_input_file(args.depth, "--depth")
-    check_seed(args.seed, "--seed")
-    check_prompt(args.prompt, "--prompt")
-    if args.amplitude is not None and args.cameras is not None:
-        raise ValueError("--amplitude scales a --trajectory preset; it does not apply to --cameras "
-                         "(the camera file fixes the path)")
-    if args.cameras is None:
-        check_amplitude(args.trajectory, args.amplitude, "--amplitude")
+def generate_command(args) -> dict:
+    """Run ``generate``: the output folder checked first, then :func:`diff4splat.generate.generate` (its own
+    checks before the model loads) and :func:`diff4splat.generate.write`. Returns the meta dict of meta.json."""
+    check_output_dir(args.out, inputs=[args.image, args.checkpoint, args.cameras, args.onnx, args.depth],
+                     overwrite=args.overwrite, kind="generate")
     check_fps(check_positive_int("--fps", args.fps), "--fps")
-    if args.runtime == "onnxruntime":
-        if args.onnx is None:
-            raise ValueError("--runtime onnxruntime needs --onnx DIR (a folder written by `diff4splat export-onnx`)")
-        if (args.checkpoint is not None or args.config is not None or args.device != AUTO
-                or args.dtype != "float32" or args.offload != "none"):
-            raise ValueError("--checkpoint, --config, --device, --dtype and --offload do not apply to --runtime "
-                             "onnxruntime "
-                             "(the export's manifest fixes the model; onnxruntime picks CUDA or CPU)")
-        if not args.onnx.is_dir():
-            raise FileNotFoundError(f"--onnx: {args.onnx} is not a folder")
-    elif args.onnx is not None:
-        raise ValueError("--onnx needs --runtime onnxruntime")
-    else:
-        args.device = resolve_device(args.device, "--device")  # before any model is loaded
+    generation = generate(
+        args.image, args.cameras, pipeline=lambda: _quietly_warned(
+            load_pipeline, args.checkpoint, args.config, runtime=args.runtime, onnx=args.onnx, device=args.device,
+            dtype=args.dtype, offload=args.offload),
+        trajectory=args.trajectory, amplitude=args.amplitude, frames=args.frames, resolution=args.resolution,
+        prompt=args.prompt, steps=args.steps, sampler=args.sampler, seed=args.seed, depth=args.depth,
+        depth_kind=args.depth_kind, progress=not args.quiet,
+        notes=None if args.quiet else lambda note: print(f"diff4splat: note: {note}", file=sys.stderr))
+    return write(generation, args.out, fps=args.fps, overwrite=args.overwrite)
 
 
-def _generate_inputs(args) -> list:
-    """The paths ``generate`` reads; ``--out`` may not be one of them or hold one."""
-    return [args.image, args.checkpoint, args.cameras, args.onnx, args.depth]
-
-
-def _load_pipeline(args):
-    """The pipeline over the runtime ``--runtime`` asks for.
-
-    Returns:
-        (pipeline, model source description, seconds taken to load, extra version strings for meta.json).
-    """
-    from models.bundle import DEFAULT_CONFIG
-
-    from .pipeline import DTYPES, Diff4SplatPipeline
-
-    if args.runtime == "onnxruntime":
-        import onnxruntime
-
-        from .onnx_runtime import OnnxRuntime
-
-        t0 = time.perf_counter()
-        runtime = OnnxRuntime(args.onnx)
-        t_load = time.perf_counter() - t0
-        source = f"onnx:{args.onnx} ({runtime.manifest['source']})"
-        return Diff4SplatPipeline(runtime), source, t_load, {"onnxruntime": onnxruntime.__version__}
-    model, source, t_load = _load_model(args.checkpoint, args.config or DEFAULT_CONFIG)
-    return (Diff4SplatPipeline(model, device=args.device, dtype=DTYPES[args.dtype], offload=args.offload), source,
-            t_load, {})
-
-
-def _load_cameras(path: Path, frames: int | None, photo_shape: tuple[int, int], width: int, height: int):
-    """``--cameras`` file → camera path at the model's ``width`` × ``height``.
-
-    RealEstate10K intrinsics are normalised by the video frame, i.e. by the photograph as displayed:
-    ``photo_shape`` is its (H, W) after EXIF orientation (:func:`diff4splat.io.image.read_image`),
-    the same image that is centre-cropped for the model.
-    """
-    from .io import load_cameras_json, load_realestate10k
-    from .io.inputs import check_input_file
-
-    check_input_file(path, "--cameras")
-    if path.suffix.lower() == ".json":
-        cams = load_cameras_json(path)
-    else:
-        cams = load_realestate10k(path, photo_shape[1], photo_shape[0])
-    if frames is not None and frames != len(cams):
-        raise ValueError(f"--frames {frames} differs from the {len(cams)} cameras in {path}")
-    return cams.fitted(width, height)
-
-
-def _load_inputs(args, pipe):
-    """Decode the photograph once; its displayed shape serves the centre crop, the camera file and the depth map.
-
-    Returns:
-        (image (H, W, 3) in [0, 1] at the output resolution, camera path at the output resolution, the depth map
-        (H, W) or None).
-    """
-    from .io.depth_maps import fit_depth_map, read_depth_map
-    from .io.image import preprocess_image, read_image
-    from .pipeline import DEFAULT_RESOLUTION
-
-    cfg = pipe.config
-    if args.frames is not None:
-        cfg.vae.num_latent_frames(args.frames)  # T = 1 + 4k, checked before any work
-    resolution = args.resolution if args.resolution is not None else max(DEFAULT_RESOLUTION, cfg.height)
-    width, height = pipe.output_size(resolution)
-    depth = None
-    if args.depth is not None:  # read before the photo is decoded: a bad file costs nothing
-        raw_depth = read_depth_map(args.depth, args.depth_kind)
-    photo = read_image(args.image)
-    image = preprocess_image(photo, (height, width))
-    if args.depth is not None:
-        depth, note = fit_depth_map(raw_depth, photo.shape[:2], (height, width))
-        if note is not None and not args.quiet:
-            print(f"diff4splat: note: --depth: {note}", file=sys.stderr)
-    if args.cameras is not None:
-        cameras = _load_cameras(args.cameras, args.frames, photo.shape[:2], width, height)
-    else:
-        cameras = pipe.default_cameras(args.trajectory, args.frames, args.amplitude, resolution=resolution)
-    return image, cameras, depth
-
-
-def _meta(args, pipe, result, source: str, versions: dict, timings: dict) -> dict:
-    """meta.json of ``generate``: every setting comes from what the pipeline actually used."""
-    import torch
-
-    from . import __version__
-
-    cfg = pipe.config
-    return {
-        "model": source,
-        "config": cfg.name,
-        "runtime": pipe.runtime.name,
-        "device": str(pipe.device),
-        "dtype": None if args.runtime != "torch" else args.dtype,
-        "offload": None if args.runtime != "torch" else args.offload,
-        "image": str(args.image),
-        "prompt": args.prompt,
-        "trajectory": None if args.cameras is not None else args.trajectory,
-        "cameras_file": None if args.cameras is None else str(args.cameras),
-        "frames": len(result.cameras),
-        "width": result.cameras.width,
-        "height": result.cameras.height,
-        "model_width": cfg.width,
-        "model_height": cfg.height,
-        "eps2d": result.eps2d,
-        "background": list(result.background),
-        "photo_psnr_db": result.photo_psnr_db,
-        "depth_file": None if args.depth is None else str(args.depth),
-        "depth_kind": None if args.depth is None else args.depth_kind,
-        "fps": args.fps,
-        "seed": args.seed,
-        "steps": result.steps,
-        "sampler": result.sampler,
-        "shift": result.shift,
-        "static": result.scene.is_static,
-        "num_gaussians": result.scene.num_gaussians,
-        "prune": result.prune_stats,
-        "timings_s": timings,
-        "versions": {"diff4splat": __version__, "torch": torch.__version__, "python": platform.python_version(),
-                     **versions},
-    }
-
-
-def generate(args) -> dict:
-    """Run ``generate``: check arguments → load the runtime → load image and cameras → run the pipeline
-    → render the path → write the output folder. Returns the meta dict written to meta.json."""
-    from .io.output import write_scene_folder
-    from .limits import check_memory, check_output_size
-    from .render.sequence import render_path
-
-    t_start = time.perf_counter()
-    _check_generate_args(args)
-    pipe, source, t_load, versions = _load_pipeline(args)
-    image, cameras, depth = _load_inputs(args, pipe)
-    check_output_size(len(cameras), cameras.width, cameras.height,  # before any network runs
-                      pipe.scene_slots(cameras.width, cameras.height, len(cameras)))
-    check_memory(pipe.memory_estimate(cameras.width, cameras.height, len(cameras)),
-                 f"{len(cameras)} frames at {cameras.width}×{cameras.height}", "--frames or --resolution")
-    result = pipe(image, cameras, args.prompt, steps=args.steps, sampler=args.sampler, seed=args.seed,
-                  progress=not args.quiet, depth=depth, depth_kind=args.depth_kind)
-    t0 = time.perf_counter()
-    colors, depths, alphas = render_path(result.scene, result.cameras, eps2d=result.eps2d,
-                                         background=result.background, progress=not args.quiet)
-    timings = {"load_model": t_load, **result.timings, "render": time.perf_counter() - t0}
-    meta = _meta(args, pipe, result, source, versions, timings)
-    t0 = time.perf_counter()
-    write_scene_folder(args.out, result.scene, result.cameras, colors, depths, alphas, meta, fps=args.fps,
-                       depth_fallback=pipe.config.scene_depth, inputs=_generate_inputs(args), overwrite=args.overwrite)
-    timings["write"] = time.perf_counter() - t0
-    timings["total"] = time.perf_counter() - t_start
-    return meta
+def _quietly_warned(load, *args, **kwargs):
+    """``load(*args, **kwargs)`` with its warnings (e.g. the random-model notice) printed as one
+    ``diff4splat: warning: …`` line each on stderr."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = load(*args, **kwargs)
+    for w in caught:
+        print(f"diff4splat: warning: {w.message}", file=sys.stderr)
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -407,7 +223,7 @@ def _main(argv: list[str] | None) -> int:
     elif unknown:
         parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     if args.command == "generate":
-        meta = generate(args)
+        meta = generate_command(args)
         t = meta["timings_s"]
         print(f"wrote {args.out} ({meta['frames']} frames, {meta['num_gaussians']} Gaussians, "
               f"{'static' if meta['static'] else 'dynamic'}) in {t['total']:.1f} s")
@@ -416,16 +232,12 @@ def _main(argv: list[str] | None) -> int:
         print(f"wrote {args.out} ({', '.join(f['file'] for f in manifest['files'].values())}, "
               f"opset {manifest['opset']})")
     elif args.command == "render":
-        from .rerender import rerender
-
         meta = rerender(args.folder, args.out, cameras=args.cameras, trajectory=args.trajectory,
                         amplitude=args.amplitude, frames=args.frames, width=args.width, height=args.height,
                         fps=args.fps, overwrite=args.overwrite, progress=not args.quiet,
                         device=resolve_device(args.device, "--device"))
         print(f"wrote {args.out} ({meta['frames']} frames, {meta['width']}x{meta['height']})")
     elif args.command == "view":
-        from .view import serve
-
         return serve(args.folder, args.port)
     elif hasattr(args, "func"):
         return args.func(args)

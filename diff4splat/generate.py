@@ -1,0 +1,356 @@
+"""``generate`` as a library function: a photograph (+ a camera path, a prompt) → a 4D scene rendered along the path
+(:func:`generate`), and its output folder (:func:`write`). The ``diff4splat generate`` command parses its arguments
+and calls these two; benchmarks and scripts call them directly::
+
+    from diff4splat.generate import generate, load_pipeline, write
+
+    gen = generate("photo.jpg", prompt="the cat turns its head", frames=17, seed=0)   # shipped model, auto device
+    write(gen, "out")                                                                # scene.ply, video.mp4, …
+
+Every argument is checked once, by the function that first uses it, before anything heavy runs: the files and
+numbers the request names before the model loads (``pipeline`` may be a loader that is only called then), the
+output size and the peak memory (:mod:`diff4splat.limits`) before the networks run.
+"""
+from __future__ import annotations
+
+import os
+import platform
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from models.bundle import DEFAULT_CONFIG
+
+from . import __version__
+from .assemble import DEPTH_KINDS
+from .cameras import DEFAULT_TRAJECTORY, TRAJECTORIES, CameraPath
+from .cameras.trajectories import check_amplitude
+from .checks import check_positive_int
+from .devices import AUTO, resolve_device
+from .io import load_cameras_json, load_realestate10k
+from .io.depth_maps import fit_depth_map, read_depth_map
+from .io.image import preprocess_image, read_image
+from .io.inputs import check_input_file
+from .io.outdir import check_output_dir
+from .io.output import write_scene_folder
+from .io.video import check_fps
+from .limits import check_limit, check_memory, check_output_size
+from .pipeline import DEFAULT_RESOLUTION, DTYPES, Diff4SplatPipeline, GenerationResult, check_prompt, check_seed
+from .pipeline import load_model as _load_model
+from .render.sequence import render_path
+
+__all__ = ["LoadedPipeline", "Generation", "load_pipeline", "generate", "write", "RUNTIMES"]
+
+RUNTIMES = ("torch", "onnxruntime")
+"""What runs the networks: PyTorch, or onnxruntime over an ``export-onnx`` folder."""
+
+
+@dataclass(frozen=True)
+class LoadedPipeline:
+    """A pipeline and what meta.json records of where it came from.
+
+    Attributes:
+        pipeline: the :class:`~diff4splat.pipeline.Diff4SplatPipeline`.
+        source: the weights' folder, ``random:<config>:seed=<s>``, or ``onnx:<folder> (<its source>)``.
+        load_seconds: wall time of loading, seconds.
+        dtype: weight dtype name of a torch runtime ("float32", "bfloat16", "float16"), None for onnxruntime.
+        offload: offload mode of a torch runtime, None for onnxruntime.
+        versions: extra package versions for meta.json (e.g. onnxruntime's).
+        files: the folders the networks were read from (an output folder may not be one of them or hold one).
+    """
+
+    pipeline: Diff4SplatPipeline
+    source: str
+    load_seconds: float = 0.0
+    dtype: str | None = "float32"
+    offload: str | None = "none"
+    versions: dict = field(default_factory=dict)
+    files: tuple[Path, ...] = ()
+
+
+def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | None = None, *, runtime: str = "torch",
+                  onnx: str | os.PathLike | None = None, device: str | torch.device = AUTO, dtype: str = "float32",
+                  offload: str = "none") -> LoadedPipeline:
+    """Load the networks ``generate`` runs.
+
+    Args:
+        checkpoint: a model folder (None: the shipped weights of ``config``; a random model with a warning when
+            none ship).
+        config: shipped config name or YAML path (None: :data:`models.bundle.DEFAULT_CONFIG`).
+        runtime: one of :data:`RUNTIMES`; "onnxruntime" runs the export in ``onnx`` (checkpoint, config, device,
+            dtype and offload then do not apply: the export's manifest fixes the model).
+        device: "auto" (CUDA when present, else the CPU), "cpu", "cuda", "cuda:1", …
+        dtype: weight dtype name (:data:`diff4splat.pipeline.DTYPES`).
+        offload: "none" or "model" (:data:`diff4splat.pipeline.OFFLOAD_MODES`).
+
+    Raises:
+        ValueError: an unknown runtime or dtype, options that do not apply to the runtime, an unavailable device,
+            a malformed model folder or export.
+        FileNotFoundError: ``checkpoint`` or ``onnx`` is not a folder; an unknown config name.
+    """
+    if runtime not in RUNTIMES:
+        raise ValueError(f"--runtime must be one of {RUNTIMES}, got {runtime!r}")
+    if runtime == "onnxruntime":
+        if onnx is None:
+            raise ValueError("--runtime onnxruntime needs --onnx DIR (a folder written by `diff4splat export-onnx`)")
+        if checkpoint is not None or config is not None or device != AUTO or dtype != "float32" or offload != "none":
+            raise ValueError("--checkpoint, --config, --device, --dtype and --offload do not apply to --runtime "
+                             "onnxruntime (the export's manifest fixes the model; onnxruntime picks CUDA or CPU)")
+        if not Path(onnx).is_dir():
+            raise FileNotFoundError(f"--onnx: {onnx} is not a folder")
+        import onnxruntime  # optional dependency (the `onnx` extra)
+
+        from .onnx_runtime import OnnxRuntime
+
+        t0 = time.perf_counter()
+        ort = OnnxRuntime(onnx)
+        return LoadedPipeline(Diff4SplatPipeline(ort), f"onnx:{onnx} ({ort.manifest['source']})",
+                              time.perf_counter() - t0, None, None, {"onnxruntime": onnxruntime.__version__},
+                              (Path(onnx),))
+    if onnx is not None:
+        raise ValueError("--onnx needs --runtime onnxruntime")
+    if dtype not in DTYPES:
+        raise ValueError(f"--dtype must be one of {sorted(DTYPES)}, got {dtype!r}")
+    device = resolve_device(device, "--device")  # before any model is loaded
+    if checkpoint is not None and not Path(checkpoint).is_dir():
+        raise FileNotFoundError(f"--checkpoint: {checkpoint} is not a folder")
+    t0 = time.perf_counter()
+    model, source = _load_model(checkpoint, config or DEFAULT_CONFIG, seed=0)
+    pipe = Diff4SplatPipeline(model, device=device, dtype=DTYPES[dtype], offload=offload)
+    return LoadedPipeline(pipe, source, time.perf_counter() - t0, dtype, offload,
+                          files=() if checkpoint is None else (Path(checkpoint),))
+
+
+@dataclass
+class Generation:
+    """What :func:`generate` made: the scene, its rendering along the path, and the meta.json of the request.
+
+    Attributes:
+        result: the pipeline's :class:`~diff4splat.pipeline.GenerationResult` (scene, cameras, latents, timings).
+        colors: (T, H, W, 3) in [0, 1], the scene rendered along ``result.cameras``.
+        depths: (T, H, W) z-depth, metres (0 where nothing is seen).
+        alphas: (T, H, W) in [0, 1].
+        meta: meta.json (settings the run actually used, timings in seconds).
+        inputs: the files the request read (an output folder may not be one of them or hold one).
+        depth_fallback: depth written where nothing is seen, metres (the config's scene depth).
+        seconds: wall time of :func:`generate`, seconds.
+    """
+
+    result: GenerationResult
+    colors: Tensor
+    depths: Tensor
+    alphas: Tensor
+    meta: dict
+    inputs: list[Path]
+    depth_fallback: float
+    seconds: float
+
+
+def _check_request(image, cameras, trajectory, amplitude, frames, resolution, steps, seed, prompt, depth,
+                   depth_kind) -> None:
+    """The request's own checks, made before any model loads (messages name the command's flags)."""
+    if isinstance(image, (str, os.PathLike)):
+        check_input_file(image, "image")
+    for name, value in (("frames", frames), ("steps", steps), ("resolution", resolution)):
+        if value is not None:
+            check_limit(name, check_positive_int(f"--{name}", value), f"--{name}")
+    if isinstance(depth, (str, os.PathLike)):
+        check_input_file(depth, "--depth")
+    if depth_kind not in DEPTH_KINDS:
+        raise ValueError(f"--depth-kind must be one of {DEPTH_KINDS}, got {depth_kind!r}")
+    check_seed(seed, "--seed")
+    check_prompt(prompt, "--prompt")
+    if cameras is not None:
+        if amplitude is not None:
+            raise ValueError("--amplitude scales a --trajectory preset; it does not apply to --cameras "
+                             "(the camera file fixes the path)")
+        if isinstance(cameras, (str, os.PathLike)):
+            check_input_file(cameras, "--cameras")
+    else:
+        if trajectory not in TRAJECTORIES:
+            raise ValueError(f"--trajectory must be one of {TRAJECTORIES}, got {trajectory!r}")
+        check_amplitude(trajectory, amplitude, "--amplitude")
+
+
+def _cameras_from_file(path: Path, frames: int | None, photo_shape: tuple[int, int], width: int,
+                       height: int) -> CameraPath:
+    """``--cameras`` file → camera path at ``width`` × ``height``. RealEstate10K intrinsics are normalised by the
+    photograph as displayed (``photo_shape`` (H, W) after EXIF orientation), the image that is centre-cropped."""
+    if path.suffix.lower() == ".json":
+        cams = load_cameras_json(path)
+    else:
+        cams = load_realestate10k(path, photo_shape[1], photo_shape[0])
+    if frames is not None and frames != len(cams):
+        raise ValueError(f"--frames {frames} differs from the {len(cams)} cameras in {path}")
+    return cams.fitted(width, height)
+
+
+def generate(
+    image: str | os.PathLike | Tensor,  # a photo file, or (H, W, 3) in [0, 1] at the output resolution
+    cameras: str | os.PathLike | CameraPath | None = None,
+    *,
+    pipeline: LoadedPipeline | Diff4SplatPipeline | Callable[[], LoadedPipeline] | None = None,
+    trajectory: str = DEFAULT_TRAJECTORY,
+    amplitude: float | None = None,
+    frames: int | None = None,
+    resolution: int | None = None,
+    prompt: str = "",
+    steps: int | None = None,
+    sampler: str | None = None,
+    seed: int = 0,
+    depth: str | os.PathLike | Tensor | None = None,
+    depth_kind: str = "metric",
+    progress: bool = False,
+    notes: Callable[[str], None] | None = None,
+) -> Generation:
+    """A 4D scene from one photograph, rendered along its camera path (the ``diff4splat generate`` command).
+
+    Args:
+        image: the photograph: a file (any format OpenCV reads; EXIF orientation applied, centre-cropped to the
+            model's aspect ratio and resized to the output resolution) or an (H, W, 3) tensor in [0, 1] already at
+            the output resolution and the model's aspect ratio.
+        cameras: a camera file (``cameras.json``, or RealEstate10K ``.txt``), a :class:`CameraPath` at the output
+            resolution, or None for the ``trajectory`` preset.
+        pipeline: the networks: a :class:`LoadedPipeline` (:func:`load_pipeline`), a bare pipeline, a zero-argument
+            loader called after the request's checks, or None for the shipped model on the ``auto`` device.
+        trajectory, amplitude: the camera path preset and its size (:func:`diff4splat.cameras.make_trajectory`).
+        frames: T = 1 + 4k frames (default: the config's); with a camera file, its count must match.
+        resolution: output height, pixels (default: 256, or the model's height if larger).
+        prompt: text describing the motion; "" runs no text encoder.
+        steps, sampler, seed: the flow-matching sampler's (defaults: the config's; seed 0).
+        depth: a depth map of the photograph for the photo layer: a file (EXR channel Z, .npy, 16-bit PNG/TIFF in
+            millimetres) or an (H, W) tensor at the output resolution; ``depth_kind``: "metric", "relative" or
+            "inverse" (:data:`diff4splat.assemble.DEPTH_KINDS`).
+        progress: tqdm progress bars.
+        notes: called with one-line notes for the user (e.g. a depth map resized); default: ignored.
+
+    Returns:
+        :class:`Generation`; write it with :func:`write`.
+
+    Raises:
+        ValueError: any argument out of range or a limit exceeded (:class:`diff4splat.limits.LimitError`, before
+            the networks run), a malformed photo, camera or depth file (the message names it), a camera path that
+            sees none of the scene; everything :class:`~diff4splat.pipeline.Diff4SplatPipeline` raises.
+        FileNotFoundError: a missing input file.
+    """
+    t_start = time.perf_counter()
+    _check_request(image, cameras, trajectory, amplitude, frames, resolution, steps, seed, prompt, depth, depth_kind)
+    files = {"image": image, "cameras_file": cameras, "depth_file": depth}  # as given, for meta.json
+    loaded = pipeline() if callable(pipeline) and not isinstance(pipeline, Diff4SplatPipeline) else pipeline
+    if loaded is None:
+        loaded = load_pipeline()
+    elif isinstance(loaded, Diff4SplatPipeline):
+        loaded = LoadedPipeline(loaded, "pipeline", dtype=None, offload=None)
+    pipe, cfg = loaded.pipeline, loaded.pipeline.config
+    if frames is not None:
+        cfg.vae.num_latent_frames(frames)  # T = 1 + 4k, before any decoding
+    if isinstance(image, Tensor):
+        height, width = int(image.shape[0]), int(image.shape[1])
+        pipe.output_size(height)  # the resolution limit
+        photo_shape = (height, width)
+    else:
+        res = resolution if resolution is not None else max(DEFAULT_RESOLUTION, cfg.height)
+        width, height = pipe.output_size(res)
+    raw_depth = read_depth_map(depth, depth_kind) if isinstance(depth, (str, os.PathLike)) else None  # before the photo
+    if not isinstance(image, Tensor):
+        photo = read_image(image)
+        photo_shape = photo.shape[:2]
+        image = preprocess_image(photo, (height, width))
+    if raw_depth is not None:
+        depth, note = fit_depth_map(raw_depth, photo_shape, (height, width))
+        if note is not None and notes is not None:
+            notes(f"--depth: {note}")
+    if cameras is None:
+        path = pipe.default_cameras(trajectory, frames, amplitude, resolution=height)
+    elif isinstance(cameras, CameraPath):
+        path = cameras
+    else:
+        path = _cameras_from_file(Path(cameras), frames, photo_shape, width, height)
+    check_output_size(len(path), path.width, path.height,  # before any network runs
+                      pipe.scene_slots(path.width, path.height, len(path)))
+    check_memory(pipe.memory_estimate(path.width, path.height, len(path)),
+                 f"{len(path)} frames at {path.width}×{path.height}", "--frames or --resolution")
+    result = pipe(image, path, prompt, steps=steps, sampler=sampler, seed=seed, progress=progress,
+                  depth=depth if isinstance(depth, Tensor) else None, depth_kind=depth_kind)
+    t0 = time.perf_counter()
+    colors, depths, alphas = render_path(result.scene, result.cameras, eps2d=result.eps2d,
+                                         background=result.background, progress=progress)
+    timings = {"load_model": loaded.load_seconds, **result.timings, "render": time.perf_counter() - t0}
+    meta = _meta(loaded, result, prompt, None if cameras is not None else trajectory, files, depth_kind, seed,
+                 timings)
+    inputs = [Path(p) for p in files.values() if isinstance(p, (str, os.PathLike))] + list(loaded.files)
+    return Generation(result, colors, depths, alphas, meta, inputs, cfg.scene_depth, time.perf_counter() - t_start)
+
+
+def _meta(loaded: LoadedPipeline, result: GenerationResult, prompt: str, trajectory: str | None, files: dict,
+          depth_kind: str, seed: int, timings: dict) -> dict:
+    """meta.json of ``generate``: every setting comes from what the pipeline actually used."""
+    pipe, cfg = loaded.pipeline, loaded.pipeline.config
+    path = lambda v: str(v) if isinstance(v, (str, os.PathLike)) else None  # noqa: E731
+    return {
+        "model": loaded.source,
+        "config": cfg.name,
+        "runtime": pipe.runtime.name,
+        "device": str(pipe.device),
+        "dtype": loaded.dtype,
+        "offload": loaded.offload,
+        "image": path(files["image"]),
+        "prompt": prompt,
+        "trajectory": trajectory,
+        "cameras_file": path(files["cameras_file"]),
+        "frames": len(result.cameras),
+        "width": result.cameras.width,
+        "height": result.cameras.height,
+        "model_width": cfg.width,
+        "model_height": cfg.height,
+        "eps2d": result.eps2d,
+        "background": list(result.background),
+        "photo_psnr_db": result.photo_psnr_db,
+        "depth_file": path(files["depth_file"]),
+        "depth_kind": depth_kind if files["depth_file"] is not None else None,
+        "fps": None,
+        "seed": seed,
+        "steps": result.steps,
+        "sampler": result.sampler,
+        "shift": result.shift,
+        "static": result.scene.is_static,
+        "num_gaussians": result.scene.num_gaussians,
+        "prune": result.prune_stats,
+        "timings_s": timings,
+        "versions": {"diff4splat": __version__, "torch": torch.__version__, "python": platform.python_version(),
+                     **loaded.versions},
+    }
+
+
+def write(generation: Generation, out_dir: str | os.PathLike, *, fps: int = 8, overwrite: bool = False) -> dict:
+    """Write ``generate``'s output folder (README, "Output folders"; :func:`diff4splat.io.output.write_scene_folder`:
+    atomic, an existing folder replaced only if it is an earlier output or with ``overwrite``).
+
+    Args:
+        generation: what :func:`generate` returned.
+        out_dir: the folder; never one of the request's input files or a folder holding one.
+        fps: frame rate of video.mp4 (and the viewer's playback), 1 … 1000.
+
+    Returns:
+        The meta dict written to meta.json (with the write and total timings).
+
+    Raises:
+        ValueError: a bad ``fps``; an ``out_dir`` that may not be written
+            (:class:`diff4splat.io.outdir.OutputDirError`).
+        OSError: writing failed (``<path>: <reason>``); nothing half-written is left.
+    """
+    check_fps(check_positive_int("--fps", fps), "--fps")
+    check_output_dir(out_dir, inputs=generation.inputs, overwrite=overwrite, kind="generate")
+    meta = dict(generation.meta, fps=fps, timings_s=dict(generation.meta["timings_s"]))
+    t0 = time.perf_counter()
+    result = generation.result
+    write_scene_folder(out_dir, result.scene, result.cameras, generation.colors, generation.depths,
+                       generation.alphas, meta, fps=fps, depth_fallback=generation.depth_fallback,
+                       inputs=generation.inputs, overwrite=overwrite)
+    meta["timings_s"]["write"] = time.perf_counter() - t0
+    meta["timings_s"]["total"] = generation.seconds + meta["timings_s"]["write"]
+    return meta
