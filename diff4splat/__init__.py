@@ -8,6 +8,7 @@ the networks. The generation pipeline, which does, is imported from its module::
 
     from diff4splat.pipeline import Diff4SplatPipeline
 """
+from . import devices  # noqa: F401  first: sets the OpenMP runtime's environment before torch loads it
 from .gaussians import Gaussians
 from .render import rasterize, rasterize_dense
 from .scene import DynamicGaussians

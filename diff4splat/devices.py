@@ -11,17 +11,53 @@ The rule (docs/DESIGN.md, "Devices"):
   every device (diffusers' ``randn_tensor`` does the same).
 - Commands take ``--device`` (default ``auto``: the first CUDA GPU when torch sees one, else the CPU);
   :func:`resolve_device` turns it into a ``torch.device`` or one clear error naming the flag.
+
+CPU thread pools: torch, its MKL and the numba kernels (threading layer ``omp``) share one OpenMP runtime, the
+libgomp that torch loads. By default its idle threads spin for up to 300 000 iterations (milliseconds) after
+every parallel region, which is free while one process has the machine; two runs at once each spin on the cores
+the other one needs (two ``generate`` runs at once on 2 cores took 3.4× one alone; 1.75–1.9× with passive waiting,
+docs/benchmarks.md, "Concurrent runs"). :data:`THREAD_ENV` makes them sleep instead (``OMP_WAIT_POLICY=PASSIVE``).
+libgomp reads its environment once, when it is loaded, so this module sets it *before* importing torch, and
+``diff4splat`` imports this module first; a program that imported torch before diff4splat keeps the runtime it had. The
+thread counts stay torch's, numba's and OpenCV's defaults: the processors this process may run on
+(``os.sched_getaffinity``: ``taskset -c 0`` gives one thread each).
 """
 from __future__ import annotations
 
 import contextlib
 import functools
+import os
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, MutableMapping
 
-import torch
+THREAD_ENV = {"OMP_WAIT_POLICY": "PASSIVE"}
+"""Environment :func:`set_thread_env` gives the OpenMP runtime (module docstring): idle threads sleep rather than
+spin, so concurrent runs share the cores."""
+USER_THREAD_VARIABLES = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
+"""Variables that mean the user chose the waiting policy: when any is set, :func:`set_thread_env` sets nothing
+(``GOMP_SPINCOUNT=300000`` restores libgomp's default spinning)."""
 
-__all__ = ["AUTO", "DEVICE_HELP", "resolve_device", "synchronize", "Stopwatch", "autocast_off", "full_precision"]
+
+def set_thread_env(environ: MutableMapping[str, str] = os.environ) -> dict[str, str]:
+    """Put :data:`THREAD_ENV` into ``environ`` unless a :data:`USER_THREAD_VARIABLES` variable is set there.
+
+    Takes effect only for an OpenMP runtime loaded afterwards (this module calls it before importing torch).
+
+    Returns:
+        The variables it set (empty when the user chose).
+    """
+    if any(name in environ for name in USER_THREAD_VARIABLES):
+        return {}
+    environ.update(THREAD_ENV)
+    return dict(THREAD_ENV)
+
+
+set_thread_env()  # before torch loads libgomp (module docstring)
+
+import torch  # noqa: E402  (after set_thread_env)
+
+__all__ = ["AUTO", "DEVICE_HELP", "THREAD_ENV", "USER_THREAD_VARIABLES", "set_thread_env", "resolve_device",
+           "synchronize", "Stopwatch", "autocast_off", "full_precision"]
 
 AUTO = "auto"
 """The device name that means "CUDA when present, else the CPU" (every command's ``--device`` default)."""
