@@ -340,12 +340,13 @@ def test_unknown_arguments_are_one_line_exit_2(tmp_path, capsys):
 ])
 def test_amplitude_out_of_range_is_one_line_before_the_model_loads(tmp_path, capsys, monkeypatch, trajectory,
                                                                      amplitude, needles):
-    import diff4splat.pipeline as pipeline
+    from models.bundle import Diff4SplatModel
 
     def no_model(*a, **k):
         raise AssertionError("the model was loaded before --amplitude was checked")
 
-    monkeypatch.setattr(pipeline, "load_model", no_model)
+    for how in ("from_pretrained", "random"):  # every way a model is built
+        monkeypatch.setattr(Diff4SplatModel, how, no_model)
     out = tmp_path / "out"
     code = main(["generate", str(EXAMPLE_IMAGE), "--trajectory", trajectory, "--amplitude", amplitude, "--quiet",
                  "--out", str(out)])
