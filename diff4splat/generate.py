@@ -271,7 +271,7 @@ def generate(
     else:
         path = _cameras_from_file(Path(cameras), frames, photo_shape, width, height)
     check_output_size(len(path), path.width, path.height,  # before any network runs
-                      pipe.scene_slots(path.width, path.height, len(path)))
+                      pipe.scene_slots(path.width, path.height, len(path)), knobs="--frames or --resolution")
     check_memory(pipe.memory_estimate(path.width, path.height, len(path)),
                  f"{len(path)} frames at {path.width}×{path.height}", "--frames or --resolution")
     result = pipe(image, path, prompt, steps=steps, sampler=sampler, seed=seed, progress=progress,

@@ -121,7 +121,8 @@ def check_limit(name: str, value: int, what: str) -> int:
     return value
 
 
-def check_output_size(frames: int, width: int, height: int, gaussians: int = 0) -> int:
+def check_output_size(frames: int, width: int, height: int, gaussians: int = 0,
+                      knobs: str = "--frames or the resolution") -> int:
     """Estimate the bytes ``generate`` (or ``render``) writes for ``frames`` × ``width`` × ``height`` and a scene of
     up to ``gaussians`` Gaussians, and check the limit.
 
@@ -133,11 +134,17 @@ def check_output_size(frames: int, width: int, height: int, gaussians: int = 0) 
         The estimate, bytes.
 
     Raises:
-        LimitError: the estimate exceeds the ``output_bytes`` limit (message gives frames and resolution).
+        LimitError: the estimate exceeds the ``output_bytes`` limit (message gives frames and resolution, the
+            estimate and the limit, and ``knobs``: the arguments that lower it).
     """
     estimate = int(frames) * int(width) * int(height) * OUTPUT_BYTES_PER_PIXEL
     estimate += (int(frames) + 1) * int(gaussians) * OUTPUT_BYTES_PER_GAUSSIAN
-    check_limit("output_bytes", estimate, f"output of {frames} frames at {width}×{height}: estimated")
+    lim = LIMITS["output_bytes"]
+    bound = limit("output_bytes")
+    if estimate > bound:
+        raise LimitError(f"output of {frames} frames at {width}×{height}: estimated {estimate / 2**30:.1f} GiB "
+                         f"exceeds the limit of {bound / 2**30:.1f} GiB ({bound} bytes; lower {knobs}, or set "
+                         f"{lim.env} to raise it)")
     return estimate
 
 

@@ -250,7 +250,7 @@ def trajectory_cameras(folder: SceneFolder, name: str, frames: int | None = None
 
 def _check_frames(frames: object) -> int:
     """``frames`` if it is a positive int within the ``frames`` limit (:func:`diff4splat.limits.check_limit`)."""
-    return check_limit("frames", check_positive_int("frames", frames), "frames")
+    return check_limit("frames", check_positive_int("--frames", frames), "--frames")
 
 
 def resize_cameras(cameras: CameraPath, width: int | None = None, height: int | None = None) -> CameraPath:
@@ -263,9 +263,9 @@ def resize_cameras(cameras: CameraPath, width: int | None = None, height: int | 
     if width is None and height is None:
         return cameras
     if width is not None:
-        width = check_positive_int("width", width, "pixels")
+        width = check_positive_int("--width", width, "pixels")
     if height is not None:
-        height = check_positive_int("height", height, "pixels")
+        height = check_positive_int("--height", height, "pixels")
     if height is None:
         height = max(2, 2 * round(width * cameras.height / cameras.width / 2))
     if width is None:
@@ -333,11 +333,11 @@ def rerender(
         raise ValueError("give exactly one camera path: cameras (a cameras.json or RealEstate10K file) or "
                          f"trajectory (a preset name), got {'both' if cameras is not None else 'neither'}")
     if cameras is not None and (amplitude is not None or frames is not None):
-        raise ValueError("amplitude and frames shape a trajectory preset; they do not apply to a camera file "
+        raise ValueError("--amplitude and --frames shape a trajectory preset; they do not apply to --cameras "
                          "(the file fixes the path)")
-    fps = check_fps(fps)
+    fps = check_fps(fps, "--fps")
     if trajectory is not None:  # before the scene is read: generate's checks of a preset
-        check_amplitude(trajectory, amplitude)
+        check_amplitude(trajectory, amplitude, "--amplitude")
     if frames is not None:
         _check_frames(frames)
     inputs = [folder, cameras]
@@ -349,7 +349,7 @@ def rerender(
     else:
         path, depth = trajectory_cameras(src, trajectory, frames, amplitude)
     path = resize_cameras(path, width, height)
-    check_output_size(len(path), path.width, path.height)
+    check_output_size(len(path), path.width, path.height, knobs="--frames, --width or --height")
     scene = path_scene(src, path.times)
     if depth is None:
         depth = _depth_estimate(src)  # only the fill value of pixels that no frame covers (1 m without one)

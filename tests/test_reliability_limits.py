@@ -95,8 +95,10 @@ def test_output_size_estimate_is_frames_times_resolution():
     # with the scene: scene.ply plus one PLY row and one deformation row per Gaussian and frame (17 + 10 float32)
     assert check_output_size(17, 64, 64, gaussians=1000) == 17 * 64 * 64 * 16 + 18 * 1000 * 112
     assert OUTPUT_BYTES_PER_GAUSSIAN >= (17 + 10) * 4
-    with pytest.raises(LimitError, match=r"1001 frames at 4096×4096: estimated \d+ exceeds the limit of \d+ bytes"):
-        check_output_size(1001, 4096, 4096)
+    with pytest.raises(LimitError, match=r"1001 frames at 4096×4096: estimated 250.2 GiB exceeds the limit of 4.0 GiB "
+                                         r"\(4294967296 bytes; lower --frames or --resolution, or set "
+                                         r"DIFF4SPLAT_MAX_OUTPUT_BYTES to raise it\)"):
+        check_output_size(1001, 4096, 4096, knobs="--frames or --resolution")
 
 
 # --------------------------------------------------------------------------- CLI: refused before any work

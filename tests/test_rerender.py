@@ -7,7 +7,9 @@ import pytest
 import torch
 
 from diff4splat.cameras import CameraPath, intrinsics_from_fov, look_at, make_trajectory
+from diff4splat.cameras.trajectories import check_amplitude
 from diff4splat.cli import main
+from diff4splat.errors import one_line
 from diff4splat.gaussians import Gaussians
 from diff4splat.io import MARKER, OutputDirError, load_cameras_json, load_depth_exr, load_video, save_realestate10k
 from diff4splat.io.image import read_image
@@ -280,7 +282,7 @@ def test_exactly_one_camera_source(tmp_path):
         rerender(folder, tmp_path / "r", cameras=folder / "cameras.json", trajectory="arc")
     with pytest.raises(ValueError, match="neither"):
         rerender(folder, tmp_path / "r")
-    with pytest.raises(ValueError, match="do not apply to a camera file"):
+    with pytest.raises(ValueError, match="do not apply to --cameras"):
         rerender(folder, tmp_path / "r", cameras=folder / "cameras.json", frames=3)
     assert not (tmp_path / "r").exists()
 
@@ -494,15 +496,13 @@ def test_the_folder_readers_share_the_checks(tmp_path):
 def test_amplitude_is_checked_as_generate_checks_it(tmp_path, capsys):
     """Before: --trajectory forward --amplitude 1e30 wrote black frames with exit 0. The preset's amplitude goes
     through generate's check (diff4splat.cameras.trajectories.check_amplitude) before the folder is read."""
-    from diff4splat.cameras.trajectories import check_amplitude
-    from diff4splat.errors import one_line
 
     folder, *_ = _folder(tmp_path)
     (folder / "scene.ply").write_bytes(b"garbage")  # never read: the amplitude is refused first
     for trajectory, amplitude in (("forward", "1e30"), ("arc", "10"), ("pan-left", "-0.1"), ("orbit", "0.3"),
                                   ("spiral", "nan")):
         with pytest.raises(ValueError) as want:
-            check_amplitude(trajectory, float(amplitude))
+            check_amplitude(trajectory, float(amplitude), "--amplitude")
         code = main(["render", str(folder), "--trajectory", trajectory, "--amplitude", amplitude, "--quiet",
                      "--out", str(tmp_path / "r")])
         err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
