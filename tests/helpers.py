@@ -2,6 +2,7 @@
 session-cached ONNX export. Test modules import from here, never from each other or from conftest."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import torch
@@ -117,3 +118,18 @@ def moving_patch_scene(n: int = 400, frames: int = 5, shift: float = 0.6, sh_deg
         scene = DynamicGaussians(canon, times, d_means, d_quats, d_scales.clone(), **temporal_args)
     K = torch.tensor([[80.0, 0, width / 2], [0, 80.0, height / 2], [0, 0, 1]])
     return scene, CameraPath(torch.eye(4).repeat(frames, 1, 1), K.repeat(frames, 1, 1), width, height)
+
+
+def not_a_folder(path: Path, kind: str) -> Path:
+    """Make ``path`` something that is not a folder: a FIFO ("fifo"), a symlink loop ("loop", through a sibling
+    ``other``) or a regular file ("file"). Returns ``path``."""
+    if kind == "fifo":
+        os.mkfifo(path)
+    elif kind == "loop":
+        path.symlink_to(path.parent / "other")
+        (path.parent / "other").symlink_to(path)
+    elif kind == "file":
+        path.write_text("x")
+    else:
+        raise ValueError(f"kind must be fifo, loop or file, got {kind!r}")
+    return path

@@ -20,7 +20,10 @@ import cv2
 import numpy as np
 import OpenEXR
 import pytest
+from helpers import not_a_folder
 
+from data_prep.cli import main
+from data_prep.converters import CONVERTERS
 from data_prep.format import load_scene
 
 W, H = 16, 12
@@ -524,7 +527,6 @@ def test_convert_cli(tmp_path, capsys):
 
 
 def test_data_prep_cli_has_convert(tmp_path):
-    from data_prep.cli import main
 
     src, _ = make_pointodyssey(tmp_path / "po")
     assert main(["convert", "pointodyssey", str(src), str(tmp_path / "out"), "--option", "max_tracks=1"]) == 0
@@ -544,17 +546,7 @@ def _only_error_line(capsys) -> str:
 def test_every_converter_names_a_source_that_is_not_a_folder(tmp_path, capsys, kind, text):
     """issue 28: only realestate10k/stereo4d said a FIFO or looping source was one; the others looked for their
     first file inside it ("D-NeRF transforms: fifo/transforms_train.json not found")."""
-    import os
-
-    from data_prep.cli import main
-    from data_prep.converters import CONVERTERS
-
-    src = tmp_path / "src"
-    if kind == "fifo":
-        os.mkfifo(src)
-    elif kind == "loop":
-        src.symlink_to(tmp_path / "other")
-        (tmp_path / "other").symlink_to(src)
+    src = tmp_path / "src" if kind == "missing" else not_a_folder(tmp_path / "src", kind)
     for source in sorted(CONVERTERS):
         assert main(["convert", source, str(src), str(tmp_path / "out")]) == 2, source
         line = _only_error_line(capsys)
@@ -620,7 +612,6 @@ def test_an_empty_truncated_or_foreign_source_file_is_one_line_naming_it(tmp_pat
     was an ``EOFError`` traceback, a 0-byte MatrixCity/MultiCamVideo/Dynamic Replica JSON "Expecting value: line 1
     column 1 (char 0)" with no file, a RealEstate10K ``clip.txt`` of random bytes a bare ``'utf-8' codec …``, a
     truncated line "has no frames", an empty TartanAir/Spring file a numpy warning and "got 1" value."""
-    from data_prep.cli import main
 
     src = tmp_path / "src"
     path = src / name

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from helpers import EXAMPLE_IMAGE
+from helpers import EXAMPLE_IMAGE, not_a_folder
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_leaves
 
@@ -409,14 +409,7 @@ def test_convert_of_a_missing_folder_says_it_is_missing(tmp_path, capsys):
                                         ("file", "is a regular file, not a folder")])
 def test_convert_source_that_is_not_a_folder_says_what_it_is(tmp_path, capsys, kind, text):
     """issue 28: a FIFO source was "source folder not found"."""
-    src = tmp_path / "src"
-    if kind == "fifo":
-        os.mkfifo(src)
-    elif kind == "loop":
-        src.symlink_to(tmp_path / "other")
-        (tmp_path / "other").symlink_to(src)
-    else:
-        src.write_text("x")
+    src = not_a_folder(tmp_path / "src", kind)
     code = data_prep_main(["convert", "realestate10k", str(src), str(tmp_path / "out")])
     err = capsys.readouterr().err.splitlines()
     assert code == 2 and err == [f"data_prep: error: source folder: {src} {text}"], err
