@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, markdown_table, peak_rss_mb, repo_relative, write_section  # noqa: E402
 
 from diff4splat.io import load_image  # noqa: E402
-from diff4splat.io.output import write_scene_folder  # noqa: E402
+from diff4splat.io.scene_folder import write_scene_folder  # noqa: E402
 from diff4splat.pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, load_model  # noqa: E402
 from diff4splat.render.sequence import render_path  # noqa: E402
 from models.bundle import DEFAULT_CONFIG  # noqa: E402

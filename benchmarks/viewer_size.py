@@ -27,7 +27,7 @@ from _common import machine, markdown_table, write_section  # noqa: E402
 from diff4splat.cameras.path import CameraPath  # noqa: E402
 from diff4splat.gaussians import Gaussians  # noqa: E402
 from diff4splat.generate import generate, write  # noqa: E402
-from diff4splat.rerender import load_scene_folder  # noqa: E402
+from diff4splat.io.scene_folder import load_scene_folder  # noqa: E402
 from diff4splat.scene import DynamicGaussians  # noqa: E402
 from diff4splat.viewer.data import viewer_payload  # noqa: E402
 from diff4splat.viewer.page import write_viewer  # noqa: E402

@@ -1,6 +1,6 @@
 """``diff4splat`` command line: ``diff4splat generate IMAGE ... --out DIR``, ``diff4splat export-onnx --out DIR`` and
-``diff4splat render DIR (--cameras FILE | --trajectory NAME) --out OUT`` (:mod:`diff4splat.rerender`) and
-``diff4splat view DIR [--port P]`` (:mod:`diff4splat.view`).
+``diff4splat render DIR (--cameras FILE | --trajectory NAME) --out OUT`` (:mod:`diff4splat.render_command`) and
+``diff4splat view DIR [--port P]`` (:mod:`diff4splat.viewer_server`).
 
 Bad input gets one line on stderr (``diff4splat: error: …``) and exit code 2, and no output folder.
 """
@@ -22,11 +22,11 @@ from .devices import AUTO, DEVICE_HELP, resolve_device
 from .errors import run_cli
 from .export import EXPORT_KIND, check_opset, export_onnx
 from .generate import generate, load_pipeline, write
-from .io.outdir import check_output_dir
+from .io.output_dir import check_output_dir
 from .io.video import check_fps
 from .pipeline import DEFAULT_RESOLUTION, load_model
-from .rerender import rerender
-from .view import serve
+from .render_command import rerender
+from .viewer_server import serve
 
 __all__ = ["main", "build_parser"]
 

@@ -69,7 +69,7 @@ from torch.export import Dim
 from models.bundle import Diff4SplatModel
 from models.pretrained import WEIGHTS_NAME
 
-from .io.outdir import check_output_dir, output_dir
+from .io.output_dir import check_output_dir, output_dir
 
 __all__ = ["export_onnx", "check_opset", "state_dict_sha256", "checkpoint_sha256", "MANIFEST_NAME", "MANIFEST_FORMAT",
            "MIN_OPSET", "EXTERNAL_DATA_BYTES", "LDRM_OUTPUTS", "STATIC_LDRM_OUTPUTS", "graph_metadata",

@@ -14,7 +14,6 @@ output size and the peak memory (:mod:`diff4splat.limits`) before the networks r
 from __future__ import annotations
 
 import os
-import platform
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -25,7 +24,6 @@ from torch import Tensor
 
 from models.bundle import DEFAULT_CONFIG
 
-from . import __version__
 from .assemble import DEPTH_KINDS
 from .cameras import DEFAULT_TRAJECTORY, TRAJECTORIES, CameraPath
 from .cameras.trajectories import check_amplitude
@@ -35,8 +33,8 @@ from .io import load_cameras_json, load_realestate10k
 from .io.depth_maps import fit_depth_map, read_depth_map
 from .io.image import preprocess_image, read_image
 from .io.inputs import check_input_file
-from .io.outdir import check_output_dir
-from .io.output import write_scene_folder
+from .io.output_dir import check_output_dir
+from .io.scene_folder import scene_meta, write_scene_folder
 from .io.video import check_fps
 from .limits import check_limit, check_memory, check_output_size
 from .pipeline import DEFAULT_RESOLUTION, DTYPES, Diff4SplatPipeline, GenerationResult, check_prompt, check_seed
@@ -302,33 +300,26 @@ def _meta(loaded: LoadedPipeline, result: GenerationResult, prompt: str, traject
         "prompt": prompt,
         "trajectory": trajectory,
         "cameras_file": path(files["cameras_file"]),
-        "frames": len(result.cameras),
-        "width": result.cameras.width,
-        "height": result.cameras.height,
         "model_width": cfg.width,
         "model_height": cfg.height,
-        "eps2d": result.eps2d,
-        "background": list(result.background),
         "photo_psnr_db": result.photo_psnr_db,
         "depth_file": path(files["depth_file"]),
         "depth_kind": depth_kind if files["depth_file"] is not None else None,
-        "fps": None,
         "seed": seed,
         "steps": result.steps,
         "sampler": result.sampler,
         "shift": result.shift,
-        "static": result.scene.is_static,
-        "num_gaussians": result.scene.num_gaussians,
         "prune": result.prune_stats,
         "timings_s": timings,
-        "versions": {"diff4splat": __version__, "torch": torch.__version__, "python": platform.python_version(),
-                     **loaded.versions},
+        **scene_meta(result.scene, result.cameras, fps=None, background=result.background, eps2d=result.eps2d,
+                     versions=loaded.versions),
     }
 
 
 def write(generation: Generation, out_dir: str | os.PathLike, *, fps: int = 8, overwrite: bool = False) -> dict:
-    """Write ``generate``'s output folder (README, "Output folders"; :func:`diff4splat.io.output.write_scene_folder`:
-    atomic, an existing folder replaced only if it is an earlier output or with ``overwrite``).
+    """Write ``generate``'s output folder (README, "Output folders";
+    :func:`diff4splat.io.scene_folder.write_scene_folder`: atomic, an existing folder replaced only if it is an
+    earlier output or with ``overwrite``).
 
     Args:
         generation: what :func:`generate` returned.
@@ -340,7 +331,7 @@ def write(generation: Generation, out_dir: str | os.PathLike, *, fps: int = 8, o
 
     Raises:
         ValueError: a bad ``fps``; an ``out_dir`` that may not be written
-            (:class:`diff4splat.io.outdir.OutputDirError`).
+            (:class:`diff4splat.io.output_dir.OutputDirError`).
         OSError: writing failed (``<path>: <reason>``); nothing half-written is left.
     """
     check_fps(check_positive_int("--fps", fps), "--fps")

@@ -22,155 +22,57 @@ Camera path (:func:`load_camera_file`, :func:`trajectory_cameras`), one of:
 Frame i is rendered at ``cameras.times[i]`` by :func:`diff4splat.render.sequence.render_path`, on the device
 :func:`rerender` is given (``render --device``, default ``auto`` on the command line, the CPU in the library): the
 scene, the field and the cameras are moved there, and the files are written from CPU copies. The output
-folder (kind ``"render"``, written atomically by :func:`diff4splat.io.outdir.output_dir`, so it never
+folder (kind ``"render"``, written atomically by :func:`diff4splat.io.output_dir.output_dir`, so it never
 replaces a user's folder nor the input)::
 
     rgb/0000.png …      8-bit RGB, lossless: round(255 · clamp(colour, 0, 1))
     video.mp4           the same frames (an odd width/height is padded by repeating the last column/row:
                         MPEG-4 Part 2 needs even sizes)
     depth/0000.exr …    float32 expected depth "Z" (metres; empty pixels filled as generate does,
-                        :func:`~diff4splat.io.output.fill_empty_depth`) and coverage "A"
+                        :func:`~diff4splat.io.scene_folder.fill_empty_depth`) and coverage "A"
     cameras.json        the path rendered
     viewer.html         the interactive viewer of the source scene, opening at the path's first camera
     meta.json           source folder, camera source, deformation source, frames, size, fps, device, timings
 """
 from __future__ import annotations
 
-import json
 import os
-import platform
 import time
-from dataclasses import dataclass
-from pathlib import Path
-from typing import Any
 
-import numpy as np
 import torch
 from torch import Tensor
 
-from . import __version__
+from models.hexplane import load_field
+
 from .cameras import CameraPath, make_trajectory
 from .cameras.trajectories import check_amplitude
 from .checks import check_positive_int
 from .constants import ALPHA_MIN
 from .devices import resolve_device
-from .io import load_cameras_json, load_depth_exr, load_realestate10k, save_cameras_json, save_depth_exr
+from .io import load_cameras_json, load_realestate10k
 from .io.inputs import check_input_file
-from .io.outdir import MARKER, check_output_dir, output_dir, read_marker
-from .io.output import fill_empty_depth, folder_file, load_output_scene
-from .io.video import check_fps, save_image, save_video, to_uint8
+from .io.output_dir import MARKER, check_output_dir, read_marker
+from .io.scene_folder import (
+    SceneFolder,
+    estimate_scene_depth,
+    folder_file,
+    load_scene_folder,
+    meta_background,
+    meta_eps2d,
+    scene_depth,
+    scene_meta,
+    write_scene_folder,
+)
+from .io.video import check_fps
 from .limits import check_limit, check_output_size
-from .render.defaults import NEAR_PLANE, meta_background, meta_eps2d
 from .render.sequence import render_path
 from .scene import DynamicGaussians
-from .viewer.page import VIEWER_NAME, write_viewer
 
-__all__ = ["RENDER_KIND", "FIELD_FILE", "SceneFolder", "load_scene_folder", "scene_depth", "path_scene",
-           "placed_at", "load_camera_file", "trajectory_cameras", "resize_cameras", "rerender"]
+__all__ = ["RENDER_KIND", "path_scene", "placed_at", "load_camera_file", "trajectory_cameras", "resize_cameras",
+           "rerender"]
 
 RENDER_KIND = "render"
 """Output-folder kind of ``diff4splat render`` (:data:`diff4splat.io.MARKER`)."""
-FIELD_FILE = "field.safetensors"
-"""The HexPlane field a ``fit`` output folder holds (:func:`models.hexplane.save_field`)."""
-COVERED = 0.5
-"""Pixels of ``depth/0000.exr`` with coverage "A" above this give the scene depth (:func:`scene_depth`)."""
-
-
-@dataclass
-class SceneFolder:
-    """An output folder of ``generate`` or ``fit``, loaded.
-
-    Attributes:
-        path: the folder.
-        scene: canonical Gaussians (M, float32, world frame, metres) with the deformation of
-            ``deformation.npz`` (key times (K,), interpolated between them) and its temporal support, if any;
-            on the device :func:`load_scene_folder` was given.
-        cameras: the folder's own path (``cameras.json``), T cameras, on the CPU.
-        meta: ``meta.json`` ({} if absent).
-        field: the HexPlane field of ``field.safetensors`` (``models.hexplane.HexPlaneField``), or None; on the
-            scene's device.
-    """
-
-    path: Path
-    scene: DynamicGaussians
-    cameras: CameraPath
-    meta: dict
-    field: Any = None
-
-    @property
-    def deformation_source(self) -> str:
-        """Where the deformation comes from: ``"field.safetensors"``, ``"deformation.npz"`` or ``"static"``."""
-        if self.field is not None:
-            return FIELD_FILE
-        return "static" if self.scene.is_static and not self.scene.has_temporal else "deformation.npz"
-
-
-def load_scene_folder(folder: str | os.PathLike, device: str | torch.device = "cpu") -> SceneFolder:
-    """Read an output folder of ``generate`` or ``fit`` (module docstring) as untrusted input, the scene and field
-    onto ``device`` (the camera path stays on the CPU): ``scene.ply``, ``deformation.npz`` and ``meta.json`` by
-    :func:`diff4splat.io.output.load_output_scene`, ``cameras.json`` by :func:`diff4splat.io.load_cameras_json`,
-    ``field.safetensors`` by :func:`models.hexplane.load_field`.
-
-    Raises:
-        FileNotFoundError: ``folder`` does not exist, is not a folder, or lacks ``scene.ply`` or ``cameras.json``
-            (each named).
-        ValueError: a file of the folder is malformed or corrupt, or the files disagree (the message names the
-            file; :func:`~diff4splat.io.output.load_output_scene`): a truncated or garbage ``deformation.npz`` or
-            ``scene.ply``, wrong keys, shapes or dtypes, NaN/inf, ``deformation.npz`` missing while ``meta.json``
-            says ``"static": false``, ``meta.json`` not a JSON object, a bad ``cameras.json`` or
-            ``field.safetensors``; a file that is a folder, a FIFO or a dangling symlink.
-    """
-    path = Path(folder)
-    scene, meta = load_output_scene(path)
-    cameras_file = folder_file(path, "cameras.json")
-    if cameras_file is None:
-        raise FileNotFoundError(f"scene folder {path} has no cameras.json (not an output folder of generate or fit)")
-    cameras = load_cameras_json(cameras_file)
-    field_file = folder_file(path, FIELD_FILE)
-    field = None
-    if field_file is not None:
-        from models.hexplane import load_field
-
-        field = load_field(field_file, map_location=device)
-    return SceneFolder(path, scene.to(device), cameras, meta, field)
-
-
-def _depth_estimate(folder: SceneFolder) -> float | None:
-    """:func:`scene_depth`, or None when none of its sources exists."""
-    value = folder.meta.get("scene_depth")  # checked by load_output_scene: a finite number > 0, or absent
-    if value is not None:
-        return float(value)
-    exr = folder_file(folder.path, "depth/0000.exr")
-    if exr is not None:
-        z, a = load_depth_exr(exr, return_alpha=True)
-        if a is not None and a.shape != z.shape:
-            raise ValueError(f"{exr}: channels 'Z' {z.shape} and 'A' {a.shape} differ in size")
-        keep = np.isfinite(z) & (z > 0) & (a > COVERED if a is not None else True)
-        if keep.any():
-            return float(np.median(z[keep]))
-    means = folder.scene.canonical.means.double()
-    vm = folder.cameras.viewmats[0].to(means)
-    z = means @ vm[2, :3] + vm[2, 3]  # camera-0 depth of each mean
-    z = z[z > NEAR_PLANE]
-    return float(z.median()) if z.numel() else None
-
-
-def scene_depth(folder: SceneFolder) -> float:
-    """Distance from the folder's first camera to the scene centre, metres: where presets look.
-
-    The first of: meta.json's ``scene_depth``; the median depth "Z" of the pixels of ``depth/0000.exr`` whose
-    coverage "A" exceeds :data:`COVERED` (every pixel with a finite Z > 0 if the file has no "A"); the median depth
-    of the canonical Gaussian means in front of the first camera (z > :data:`~diff4splat.render.defaults.NEAR_PLANE`).
-
-    Raises:
-        ValueError: none of the three exists (no depth map and no Gaussian in front of the first camera); a
-            ``depth/0000.exr`` that is not a readable EXR with a "Z" channel (naming it).
-    """
-    depth = _depth_estimate(folder)
-    if depth is None:
-        raise ValueError(f"scene folder {folder.path}: cannot estimate the scene depth (no depth/0000.exr coverage "
-                         "and no Gaussian in front of the first camera)")
-    return depth
 
 
 def path_scene(folder: SceneFolder, times: Tensor) -> DynamicGaussians:
@@ -273,12 +175,6 @@ def resize_cameras(cameras: CameraPath, width: int | None = None, height: int | 
     return cameras.fitted(width, height)
 
 
-def _even(frames: np.ndarray) -> np.ndarray:
-    """(T, H, W, 3) uint8 padded to even H and W by repeating the last row/column (MPEG-4 needs even sizes)."""
-    _, H, W, _ = frames.shape
-    return np.pad(frames, ((0, 0), (0, H % 2), (0, W % 2), (0, 0)), mode="edge")
-
-
 def rerender(
     folder: str | os.PathLike,
     out: str | os.PathLike,
@@ -342,7 +238,7 @@ def rerender(
         _check_frames(frames)
     inputs = [folder, cameras]
     check_output_dir(out, inputs=inputs, overwrite=overwrite, kind=RENDER_KIND)
-    src = load_scene_folder(folder, device)
+    src = load_scene_folder(folder, device, load_field=load_field)
     depth = None
     if cameras is not None:
         path = load_camera_file(cameras, src)
@@ -352,7 +248,7 @@ def rerender(
     check_output_size(len(path), path.width, path.height, knobs="--frames, --width or --height")
     scene = path_scene(src, path.times)
     if depth is None:
-        depth = _depth_estimate(src)  # only the fill value of pixels that no frame covers (1 m without one)
+        depth = estimate_scene_depth(src)  # only the fill value of pixels that no frame covers (1 m without one)
     t_load = time.perf_counter() - t_start
     t0 = time.perf_counter()
     background, eps2d = meta_background(src.meta), meta_eps2d(src.meta)
@@ -370,19 +266,18 @@ def rerender(
         "amplitude": amplitude,
         "scene_depth": depth,
         "deformation": src.deformation_source,
-        "frames": len(path),
-        "width": path.width,
-        "height": path.height,
-        "fps": fps,
-        "background": list(background),
-        "eps2d": eps2d,
-        "num_gaussians": src.scene.num_gaussians,
         "device": str(device),
         "timings_s": {"load": t_load, "render": t_render},
-        "versions": {"diff4splat": __version__, "torch": torch.__version__, "python": platform.python_version()},
+        **scene_meta(scene, path, fps=fps, background=background, eps2d=eps2d),
     }
-    _write(out, path, scene.to("cpu"), colors, depths, alphas, meta, inputs=inputs, overwrite=overwrite,
-           t_start=t_start)
+    t0 = time.perf_counter()
+
+    def timings(_tmp) -> None:  # before meta.json, which is written last
+        meta["timings_s"]["write"] = time.perf_counter() - t0
+        meta["timings_s"]["total"] = time.perf_counter() - t_start
+
+    write_scene_folder(out, scene.to("cpu"), path, colors, depths, alphas, meta, fps=fps, depth_fallback=depth,
+                       inputs=inputs, overwrite=overwrite, kind=RENDER_KIND, extra=timings, with_scene=False)
     return meta
 
 
@@ -396,22 +291,3 @@ def _check_path_sees_the_scene(alphas: Tensor, trajectory: str | None) -> None:
                                             "frame, or intrinsics in other units)")
     raise ValueError(f"the camera path sees none of the scene: all {len(alphas)} frames would show only the "
                      f"background; likely cause: {cause}")
-
-
-def _write(out, path: CameraPath, scene: DynamicGaussians, colors: Tensor, depths: Tensor, alphas: Tensor,
-           meta: dict, *, inputs: list, overwrite: bool, t_start: float) -> None:
-    """Write the folder (module docstring) from CPU tensors; meta.json last, with the write and total times."""
-    t0 = time.perf_counter()
-    rgb = to_uint8(colors, "colors")  # (T, H, W, 3)
-    depths = fill_empty_depth(depths, alphas, meta["scene_depth"])
-    with output_dir(out, kind=RENDER_KIND, inputs=inputs, overwrite=overwrite) as tmp:
-        for i in range(len(path)):
-            save_image(tmp / "rgb" / f"{i:04d}.png", rgb[i])
-            save_depth_exr(tmp / "depth" / f"{i:04d}.exr", depths[i].cpu(), alphas[i].clamp(0, 1).cpu())
-        save_video(tmp / "video.mp4", _even(rgb), fps=meta["fps"])
-        save_cameras_json(tmp / "cameras.json", path.to("cpu"))
-        write_viewer(tmp / VIEWER_NAME, scene, path.to("cpu"), fps=meta["fps"], background=meta_background(meta),
-                     eps2d=meta_eps2d(meta))
-        meta["timings_s"]["write"] = time.perf_counter() - t0
-        meta["timings_s"]["total"] = time.perf_counter() - t_start
-        (tmp / "meta.json").write_text(json.dumps(meta, indent=2))

@@ -4,10 +4,10 @@ The page at ``/`` (and ``/viewer.html``) is the viewer (:mod:`diff4splat.viewer`
 scene, never reduced to the size budget of the embedded ``viewer.html``: the page fetches the canonical
 Gaussians and the keyframes from ``/__diff4splat__/scene.ply`` and ``/__diff4splat__/frames.bin``, which are
 computed once at start from the folder's scene.ply, deformation.npz, cameras.json and meta.json, each checked as
-input (:func:`diff4splat.rerender.load_scene_folder`). A folder without scene.ply (a ``render`` output) is served
+input (:func:`diff4splat.io.scene_folder.load_scene_folder`). A folder without scene.ply (a ``render`` output) is served
 as it is, its own viewer.html at ``/``.
 
-Besides these, only the files of the output-folder layout are served (:func:`diff4splat.io.output.is_layout_file`:
+Besides these, only the files of the output-folder layout are served (:func:`diff4splat.io.scene_folder.is_layout_file`:
 scene.ply, video.mp4, rgb/NNNN.png, depth/NNNN.exr, …), matched on the raw request path, so a percent-encoded
 name (``%2e%2e/``, ``%2F``, ``%00``), a backslash or ``..`` is never one; and only when the file, every symlink
 resolved, lies inside the folder and is a regular file. Anything else is 404.
@@ -24,9 +24,9 @@ import threading
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
-from .io.output import is_layout_file
-from .render.defaults import meta_background, meta_eps2d
-from .rerender import load_scene_folder
+from models.hexplane import load_field
+
+from .io.scene_folder import is_layout_file, load_scene_folder, meta_background, meta_eps2d
 from .viewer.data import ViewerPayload, viewer_payload
 from .viewer.page import VIEWER_NAME, viewer_html
 
@@ -45,10 +45,10 @@ def folder_payload(folder: str | os.PathLike) -> ViewerPayload:
     """The unreduced viewer payload of an output folder of generate, fit or render-with-scene.
 
     Raises:
-        FileNotFoundError / ValueError: as :func:`diff4splat.rerender.load_scene_folder` (a malformed or corrupt
+        FileNotFoundError / ValueError: as :func:`diff4splat.io.scene_folder.load_scene_folder` (a malformed or corrupt
             file of the folder, named).
     """
-    src = load_scene_folder(folder)
+    src = load_scene_folder(folder, load_field=load_field)
     fps = src.meta.get("fps")  # checked by load_scene_folder when present
     return viewer_payload(src.scene, src.cameras, fps=8 if fps is None else fps, budget=None,
                           background=meta_background(src.meta), eps2d=meta_eps2d(src.meta))
@@ -56,7 +56,7 @@ def folder_payload(folder: str | os.PathLike) -> ViewerPayload:
 
 def served_file(root: Path, url_path: str) -> Path | None:
     """The file of the folder ``root`` (resolved, absolute) that the raw request path ``url_path`` (no query) names,
-    or None: ``url_path`` is ``/`` + a layout file (:func:`~diff4splat.io.output.is_layout_file`; ``/`` is
+    or None: ``url_path`` is ``/`` + a layout file (:func:`~diff4splat.io.scene_folder.is_layout_file`; ``/`` is
     ``viewer.html``), and that file, symlinks resolved, is a regular file inside ``root``."""
     name = VIEWER_NAME if url_path == "/" else url_path[1:] if url_path.startswith("/") else ""
     if not is_layout_file(name):
@@ -122,7 +122,7 @@ def make_server(folder: str | os.PathLike, port: int = 0) -> ThreadingHTTPServer
     Raises:
         FileNotFoundError: ``folder`` is not a folder, or holds neither scene.ply nor viewer.html.
         ValueError: ``port`` outside 0 … 65535; a malformed file of the folder (named;
-            :func:`diff4splat.rerender.load_scene_folder`).
+            :func:`diff4splat.io.scene_folder.load_scene_folder`).
         OSError: the port is taken (``EADDRINUSE``) or needs privileges (``EACCES``); the message names the port
             and suggests ``--port 0``.
     """

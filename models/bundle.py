@@ -16,7 +16,7 @@ import torch
 from torch import nn
 
 from diff4splat.config_files import MODEL_CONFIGS
-from diff4splat.io.outdir import output_dir
+from diff4splat.io.output_dir import output_dir
 from diff4splat.io.structured import read_json, read_yaml
 
 from .dit import VideoDiT, VideoDiTConfig

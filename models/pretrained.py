@@ -12,7 +12,7 @@ from typing import Any, ClassVar, TypeVar
 import torch
 from safetensors.torch import load_file, save_file
 
-from diff4splat.io.outdir import output_dir
+from diff4splat.io.output_dir import output_dir
 from diff4splat.io.structured import read_json
 from diff4splat.limits import LIMITS, LimitError, check_limit, limit
 

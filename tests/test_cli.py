@@ -17,7 +17,7 @@ from diff4splat.cameras import DEFAULT_AMPLITUDES, DEFAULT_TRAJECTORY
 from diff4splat.cli import build_parser, main
 from diff4splat.io import load_depth_exr, load_image, load_ply, load_video, ply_property_names, save_cameras_json
 from diff4splat.io.image import preprocess_image, read_image
-from diff4splat.io.output import load_deformation
+from diff4splat.io.scene_folder import load_deformation
 from diff4splat.photo import PHOTO_EPS2D
 from diff4splat.pipeline import Diff4SplatPipeline
 from diff4splat.quaternions import quat_to_rotmat

@@ -8,7 +8,7 @@ import torch
 
 from diff4splat import constants
 from diff4splat.constants import ALPHA_MAX, ALPHA_MIN, OPACITY_EPS, T_MIN
-from diff4splat.io.output import fill_empty_depth
+from diff4splat.io.scene_folder import fill_empty_depth
 from diff4splat.render.projection import splat_alpha
 
 ROOT = Path(__file__).resolve().parent.parent

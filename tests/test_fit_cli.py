@@ -22,8 +22,8 @@ from diff4splat.cameras import CameraPath
 from diff4splat.cli import main
 from diff4splat.gaussians import Gaussians
 from diff4splat.io import load_ply, save_ply
-from diff4splat.io.outdir import read_marker
-from diff4splat.io.output import load_deformation
+from diff4splat.io.output_dir import read_marker
+from diff4splat.io.scene_folder import load_deformation
 from diff4splat.limits import LimitError
 from diff4splat.quaternions import quat_multiply, quat_normalize, rotmat_to_quat
 from models.hexplane import HexPlaneConfig, load_field
@@ -413,7 +413,7 @@ def test_a_dynamic_scene_needs_a_fine_stage(dynamic_scene, tmp_path):
 def test_placed_generate_output_moves_like_the_original(dynamic_scene, tmp_path):
     # a generate scene with a deformation, in cam00's frame: placed in the world, every time's Gaussians are the
     # similarity transform (scale s, c2w) of the original's at that time
-    from diff4splat.io.output import save_deformation
+    from diff4splat.io.scene_folder import save_deformation
     from diff4splat.quaternions import quat_to_rotmat
     from diff4splat.scene import DynamicGaussians
 

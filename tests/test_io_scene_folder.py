@@ -10,7 +10,7 @@ import torch
 from diff4splat.cameras import CameraPath, intrinsics_from_fov
 from diff4splat.gaussians import Gaussians
 from diff4splat.io import MARKER, load_depth_exr, load_ply, load_video, save_ply
-from diff4splat.io.output import (
+from diff4splat.io.scene_folder import (
     DEFORMATION_ARRAYS,
     fill_empty_depth,
     is_layout_file,

@@ -15,7 +15,7 @@ from helpers import EXAMPLE_IMAGE, exported
 
 from diff4splat.cli import main
 from diff4splat.io import load_depth_exr, load_image, load_ply
-from diff4splat.io.output import load_deformation
+from diff4splat.io.scene_folder import load_deformation
 from diff4splat.onnx_runtime import OnnxRuntime, default_providers, load_manifest, session_options  # noqa: E402
 from diff4splat.pipeline import Diff4SplatPipeline, TorchRuntime
 from diff4splat.render.sequence import render_path

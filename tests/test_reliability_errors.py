@@ -178,7 +178,7 @@ def test_fps_1000_still_writes_a_video(tmp_path, capsys):
                                              (errno.EACCES, "Permission denied")])
 def test_os_errors_while_writing_are_one_line_naming_the_path(tmp_path, capsys, monkeypatch, code_, strerror):
     """Disk full, read-only file system, permissions (faked: the tests may run as root): the error names the path."""
-    import diff4splat.io.output as output
+    import diff4splat.io.scene_folder as output
 
     def fail(path, *a, **k):
         raise OSError(code_, strerror, str(path))
@@ -529,7 +529,7 @@ import os, sys
 import numpy as np
 from diff4splat.errors import is_expected, one_line
 from diff4splat.io.exr import save_depth_exr
-from diff4splat.io.outdir import output_dir
+from diff4splat.io.output_dir import output_dir
 from diff4splat.io.video import save_image, save_video
 
 root, slack = sys.argv[1], int(sys.argv[2])

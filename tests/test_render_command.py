@@ -1,4 +1,5 @@
-"""``diff4splat render`` (diff4splat/rerender.py): re-rendering an output folder along any camera path and time."""
+"""``diff4splat render`` (diff4splat/render_command.py): re-rendering an output folder along any camera path and
+time."""
 import json
 import re
 
@@ -13,20 +14,20 @@ from diff4splat.errors import one_line
 from diff4splat.gaussians import Gaussians
 from diff4splat.io import MARKER, OutputDirError, load_cameras_json, load_depth_exr, load_video, save_realestate10k
 from diff4splat.io.image import read_image
-from diff4splat.io.output import fill_empty_depth, write_scene_folder
+from diff4splat.io.scene_folder import SceneFolder, fill_empty_depth, scene_depth, write_scene_folder
+from diff4splat.io.scene_folder import load_scene_folder as _load_scene_folder
 from diff4splat.io.video import to_uint8
 from diff4splat.limits import LimitError
 from diff4splat.render.sequence import render_path
-from diff4splat.rerender import (
-    SceneFolder,
-    load_scene_folder,
-    path_scene,
-    rerender,
-    resize_cameras,
-    scene_depth,
-)
+from diff4splat.render_command import path_scene, rerender, resize_cameras
 from diff4splat.scene import DynamicGaussians
-from models.hexplane import HexPlaneConfig, HexPlaneField, save_field
+from models.hexplane import HexPlaneConfig, HexPlaneField, load_field, save_field
+
+
+def load_scene_folder(folder, device="cpu"):
+    """The folder as ``render`` reads it: with its field (models.hexplane.load_field)."""
+    return _load_scene_folder(folder, device, load_field=load_field)
+
 
 W, H, T, M = 24, 16, 5, 40
 
@@ -480,7 +481,7 @@ def test_cli_corrupt_folder_is_one_line_naming_the_file(tmp_path, capsys, case, 
 
 def test_the_folder_readers_share_the_checks(tmp_path):
     """render, view and fit --init read a folder through one validated reader."""
-    from diff4splat.view import folder_payload, make_server
+    from diff4splat.viewer_server import folder_payload, make_server
     from training.fit_cli import place_generate_output
 
     folder, *_ = _folder(tmp_path)

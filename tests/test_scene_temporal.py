@@ -10,7 +10,7 @@ import diff4splat.render.sequence as render_sequence_module
 from diff4splat.cameras import CameraPath, intrinsics_from_fov
 from diff4splat.constants import ALPHA_MIN
 from diff4splat.gaussians import Gaussians, rgb_to_sh0
-from diff4splat.io.output import load_deformation, save_deformation
+from diff4splat.io.scene_folder import load_deformation, save_deformation
 from diff4splat.prune import prune_scene
 from diff4splat.render import rasterize, rasterize_dense
 from diff4splat.render.sequence import render_path

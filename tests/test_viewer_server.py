@@ -1,4 +1,4 @@
-"""Tests of diff4splat/view.py (``diff4splat view``): served on 127.0.0.1 only, the full scene (not the
+"""Tests of diff4splat/viewer_server.py (``diff4splat view``): served on 127.0.0.1 only, the full scene (not the
 size-reduced embedded copy), files of the folder, clear errors, Ctrl-C stops it."""
 import errno
 import http.client
@@ -16,8 +16,8 @@ import pytest
 from helpers import moving_patch_scene
 
 from diff4splat.cli import main
-from diff4splat.io.output import write_scene_folder
-from diff4splat.view import DATA_PREFIX, HOST, folder_payload, make_server
+from diff4splat.io.scene_folder import load_scene_folder, write_scene_folder
+from diff4splat.viewer_server import DATA_PREFIX, HOST, folder_payload, make_server
 
 
 def _folder(tmp_path, **kw):
@@ -76,7 +76,6 @@ def test_listens_on_loopback_127_0_0_1_only(served):
 
 
 def test_full_scene_even_when_the_page_on_disk_is_reduced(tmp_path):
-    from diff4splat.rerender import load_scene_folder
     from diff4splat.viewer.data import payload_bytes
     from diff4splat.viewer.page import write_viewer
 

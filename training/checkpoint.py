@@ -26,7 +26,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from diff4splat.io.atomic import atomic_output_path
-from diff4splat.io.outdir import output_dir
+from diff4splat.io.output_dir import output_dir
 
 __all__ = ["save_checkpoint", "load_checkpoint", "latest_checkpoint", "rng_state", "set_rng_state"]
 

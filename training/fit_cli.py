@@ -34,8 +34,8 @@ from data_prep.format import load_scene
 from diff4splat.checks import check_positive_int
 from diff4splat.devices import AUTO, DEVICE_HELP, resolve_device
 from diff4splat.gaussians import Gaussians
-from diff4splat.io.outdir import check_output_dir
-from diff4splat.io.output import DEFORMATION_ARRAYS, load_output_scene, write_scene_folder
+from diff4splat.io.output_dir import check_output_dir
+from diff4splat.io.scene_folder import DEFORMATION_ARRAYS, load_output_scene, scene_meta, write_scene_folder
 from diff4splat.io.video import check_fps
 from diff4splat.limits import check_limit
 from diff4splat.pipeline import check_seed
@@ -97,7 +97,7 @@ def place_generate_output(init_dir: Path, scene, ref_camera: str) -> DynamicGaus
     Raises:
         FileNotFoundError: ``init_dir`` has no scene.ply.
         ValueError: a malformed, corrupt or inconsistent file of ``init_dir``, named
-            (:func:`diff4splat.io.output.load_output_scene`).
+            (:func:`diff4splat.io.scene_folder.load_output_scene`).
     """
     if not (init_dir / "scene.ply").is_file():
         raise FileNotFoundError(f"--init: {init_dir / 'scene.ply'} does not exist (give a generate output folder)")
@@ -217,7 +217,7 @@ def _save(run_dir: Path, state: FitState, config: FitConfig, run: dict) -> None:
 def check_out_outside_inputs(out: str | Path, scene_dir: str | Path, init: str | Path | None = None) -> None:
     """Refuse an output folder inside the scene folder or the ``init`` folder (symlinks followed): the fit would
     add files to its own input (a scene folder then fails ``data_prep validate``). ``out`` equal to one of them
-    or an ancestor is :func:`diff4splat.io.outdir.check_output_dir`'s refusal.
+    or an ancestor is :func:`diff4splat.io.output_dir.check_output_dir`'s refusal.
 
     Raises:
         ValueError: ``out`` lies inside ``scene_dir`` or ``init``.
@@ -355,10 +355,9 @@ def _write_output(scene, out: Path, state: FitState, config: FitConfig, train, h
     }
     meta = {"command": "fit", "scene": opts["scene"], "init": opts["init"], "seed": opts["seed"],
             "holdout_camera": opts["holdout_camera"], "train_cameras": sorted({v.camera for v in train}),
-            "frames": len(ref), "width": ref.width, "height": ref.height, "fps": opts["fps"],
-            "static": fitted.is_static, "num_gaussians": fitted.num_gaussians, "sh_degree": deg,
-            "background": list(background), "device": opts["device"],
-            "config": config_dict(config), "cameras": f"{scene.camera_names[0]} (scene world frame)"}
+            "sh_degree": deg, "device": opts["device"],
+            "config": config_dict(config), "cameras": f"{scene.camera_names[0]} (scene world frame)",
+            **scene_meta(fitted, ref, fps=opts["fps"], background=background)}
 
     def extra(tmp: Path) -> None:
         if state.field is not None:

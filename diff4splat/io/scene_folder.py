@@ -1,5 +1,8 @@
-"""The output folder of ``diff4splat generate`` (docs/DESIGN.md, "Output folder of generate"), written atomically
-(:func:`write_scene_folder`), and read back as input, every file checked (:func:`load_output_scene`)::
+"""The scene folder: the one home of the output folder of ``generate``, ``fit`` and ``render`` (docs/DESIGN.md,
+"Output folder of generate"): its layout (:data:`LAYOUT_FILES`, :func:`is_layout_file`), writing, atomically
+(:func:`write_scene_folder`; the folder policy is :mod:`diff4splat.io.output_dir`'s), the fields of ``meta.json``
+every folder shares (:func:`scene_meta`, :func:`meta_background`, :func:`meta_eps2d`), and reading it back as
+input, every file checked (:func:`load_output_scene`, :func:`load_scene_folder`, :func:`scene_depth`)::
 
     scene.ply           canonical Gaussians, INRIA layout
     deformation.npz     times (T,), d_means (T,M,3), d_quats (T,M,4), d_scales (T,M,3) (absent if static),
@@ -14,46 +17,97 @@
     field.safetensors   (``fit`` only) the HexPlane field;  metrics.json (``fit`` only)
 
 A ``render`` output holds rgb/, video.mp4, depth/, cameras.json, viewer.html and meta.json of the same layout
-(:func:`is_layout_file` names every file of it).
+(:func:`is_layout_file` names every file of it; :func:`write_scene_folder` with ``with_scene=False``).
 """
 from __future__ import annotations
 
 import json
 import math
 import os
+import platform
 import zipfile
 import zlib
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from .. import __version__
 from ..cameras.path import CameraPath
 from ..checks import check_positive
 from ..constants import ALPHA_MIN
 from ..limits import check_limit
-from ..render.defaults import meta_background, meta_eps2d
+from ..render.defaults import BACKGROUND, EPS2D, NEAR_PLANE
 from ..scene import DynamicGaussians
 from ..viewer.page import VIEWER_NAME, write_viewer
 from .atomic import atomic_output_path
-from .cameras import save_cameras_json
-from .exr import save_depth_exr
+from .cameras import load_cameras_json, save_cameras_json
+from .exr import load_depth_exr, save_depth_exr
 from .inputs import check_input_file
-from .outdir import output_dir
+from .output_dir import output_dir
 from .ply import load_ply, save_ply
 from .structured import read_json
 from .video import check_fps, save_image, save_video, to_uint8
 
 __all__ = ["write_scene_folder", "fill_empty_depth", "save_deformation", "load_deformation", "json_default",
-           "load_output_scene", "folder_file", "DEFORMATION_ARRAYS", "is_layout_file", "LAYOUT_FILES", "LAYOUT_FRAMES"]
+           "load_output_scene", "folder_file", "DEFORMATION_ARRAYS", "is_layout_file", "LAYOUT_FILES", "LAYOUT_FRAMES",
+           "FIELD_FILE", "SceneFolder", "load_scene_folder", "scene_depth", "estimate_scene_depth", "scene_meta",
+           "meta_background", "meta_eps2d"]
 
 LAYOUT_FILES = ("scene.ply", "deformation.npz", "cameras.json", "meta.json", "video.mp4", VIEWER_NAME,
                 "field.safetensors", "metrics.json")
 """The files at the top of an output folder of generate, fit or render (module docstring)."""
 LAYOUT_FRAMES = {"frames": ".ply", "rgb": ".png", "depth": ".exr"}
 """The per-frame sub-folders of an output folder and the suffix of their files ``NNNN<suffix>`` (4+ digits)."""
+FIELD_FILE = "field.safetensors"
+"""The HexPlane field a ``fit`` output folder holds (:func:`models.hexplane.save_field`)."""
+COVERED = 0.5
+"""Pixels of ``depth/0000.exr`` with coverage "A" above this give the scene depth (:func:`scene_depth`)."""
+
+
+def meta_background(meta: dict) -> tuple[float, float, float]:
+    """An output folder's meta.json ``background`` (3 numbers in [0, 1], the colour the scene was fitted
+    against), else :data:`~diff4splat.render.defaults.BACKGROUND`."""
+    bg = meta.get("background")
+    if (isinstance(bg, list) and len(bg) == 3 and all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                      and 0.0 <= v <= 1.0 for v in bg)):
+        return tuple(float(v) for v in bg)
+    return BACKGROUND
+
+
+def meta_eps2d(meta: dict) -> float:
+    """An output folder's meta.json ``eps2d`` (the screen-space dilation, pixels², its scene is rendered with: 0.1
+    for a ``generate`` scene with a photo layer, :mod:`diff4splat.photo`), else
+    :data:`~diff4splat.render.defaults.EPS2D`."""
+    eps = meta.get("eps2d")
+    if isinstance(eps, (int, float)) and not isinstance(eps, bool) and 0.0 <= eps <= 10.0:
+        return float(eps)
+    return EPS2D
+
+
+def scene_meta(scene: DynamicGaussians, cameras: CameraPath, *, fps: float | None,
+               background: Iterable[float] = BACKGROUND, eps2d: float = EPS2D,
+               versions: dict | None = None) -> dict:
+    """The fields of ``meta.json`` that every output folder (generate, fit, render) writes, built here once:
+    ``frames``, ``width``, ``height`` (of ``cameras``, the path rendered), ``fps``, ``static``, ``num_gaussians``,
+    ``background`` (RGB in [0, 1], :func:`meta_background` reads it), ``eps2d`` (pixels², :func:`meta_eps2d`) and
+    ``versions`` (diff4splat, torch, python, plus ``versions``). Each command adds its own settings."""
+    return {
+        "frames": len(cameras),
+        "width": cameras.width,
+        "height": cameras.height,
+        "fps": fps,
+        "static": scene.is_static,
+        "num_gaussians": scene.num_gaussians,
+        "background": [float(v) for v in background],
+        "eps2d": float(eps2d),
+        "versions": {"diff4splat": __version__, "torch": torch.__version__, "python": platform.python_version(),
+                     **(versions or {})},
+    }
 
 
 def fill_empty_depth(depths: Tensor, alphas: Tensor, fallback: float) -> Tensor:
@@ -198,21 +252,25 @@ def write_scene_folder(
     alphas: Tensor,  # (T, H, W)
     meta: dict,
     *,
-    fps: int = 8,
+    fps: float = 8,
     depth_fallback: float = 1.0,
     inputs: Iterable[str | os.PathLike | None] = (),
     overwrite: bool = False,
     kind: str = "generate",
     extra: Callable[[Path], None] | None = None,
+    with_scene: bool = True,
 ) -> Path:
     """Write the whole output folder into a temporary folder, then rename it onto ``out_dir``
-    (:func:`~diff4splat.io.outdir.output_dir`, marker kind ``kind``: "generate", or "fit" for
-    ``diff4splat fit``, whose ``extra`` writes field.safetensors and metrics.json).
+    (:func:`~diff4splat.io.output_dir.output_dir`, marker kind ``kind``: "generate", "fit" for ``diff4splat fit``,
+    whose ``extra`` writes field.safetensors and metrics.json, or "render" for ``diff4splat render``).
 
-    ``extra(tmp)`` is called with the temporary folder after the standard files, to add files of its own.
+    ``extra(tmp)`` is called with the temporary folder after the other files and before ``meta.json`` (written
+    last, so ``extra`` may still add to ``meta``), to add files of its own. ``with_scene=False`` (a ``render``
+    output) leaves out scene.ply, deformation.npz and frames/, and pads an odd-sized video.mp4 to even sizes by
+    repeating the last column/row (MPEG-4 Part 2 needs even sizes); ``out_dir``'s parents must then exist.
 
     A failure part-way leaves no ``out_dir`` (or the previous one untouched). An existing ``out_dir`` is
-    replaced only if it is empty or an earlier ``generate`` output (or ``overwrite``), never if it holds
+    replaced only if it is empty or an earlier output of ``kind`` (or ``overwrite``), never if it holds
     one of ``inputs``.
 
     Raises:
@@ -225,22 +283,30 @@ def write_scene_folder(
                          f"{colors.shape[0]}/{depths.shape[0]}/{alphas.shape[0]}")
     depths = fill_empty_depth(depths, alphas, depth_fallback)
     rgb = to_uint8(colors.cpu(), "colors")  # (T, H, W, 3): rgb/*.png lossless beside the lossy video
-    with output_dir(out_dir, kind=kind, inputs=inputs, overwrite=overwrite, parents=True) as tmp:
-        save_ply(tmp / "scene.ply", scene.canonical)
-        if not scene.is_static or scene.has_temporal:
-            save_deformation(tmp / "deformation.npz", scene)
+    with output_dir(out_dir, kind=kind, inputs=inputs, overwrite=overwrite, parents=with_scene) as tmp:
+        if with_scene:
+            save_ply(tmp / "scene.ply", scene.canonical)
+            if not scene.is_static or scene.has_temporal:
+                save_deformation(tmp / "deformation.npz", scene)
         for i in range(T):
-            save_ply(tmp / "frames" / f"{i:04d}.ply", scene.at(float(cameras.times[i])))
+            if with_scene:
+                save_ply(tmp / "frames" / f"{i:04d}.ply", scene.at(float(cameras.times[i])))
             save_depth_exr(tmp / "depth" / f"{i:04d}.exr", depths[i].cpu(), alphas[i].clamp(0, 1).cpu())
             save_image(tmp / "rgb" / f"{i:04d}.png", rgb[i])
-        save_video(tmp / "video.mp4", rgb, fps=fps)
+        save_video(tmp / "video.mp4", rgb if with_scene else _even(rgb), fps=fps)
         save_cameras_json(tmp / "cameras.json", cameras.to("cpu"))
         write_viewer(tmp / VIEWER_NAME, scene, cameras.to("cpu"), fps=fps, background=meta_background(meta),
                      eps2d=meta_eps2d(meta))
-        (tmp / "meta.json").write_text(json.dumps(meta, indent=2, default=json_default))
         if extra is not None:
             extra(tmp)
+        (tmp / "meta.json").write_text(json.dumps(meta, indent=2, default=json_default))
     return Path(out_dir)
+
+
+def _even(frames: np.ndarray) -> np.ndarray:
+    """(T, H, W, 3) uint8 padded to even H and W by repeating the last row/column (MPEG-4 needs even sizes)."""
+    _, H, W, _ = frames.shape
+    return np.pad(frames, ((0, 0), (0, H % 2), (0, W % 2), (0, 0)), mode="edge")
 
 
 def json_default(obj):
@@ -307,7 +373,7 @@ def load_output_scene(folder: str | os.PathLike) -> tuple[DynamicGaussians, dict
     ``scene.ply`` (:func:`~diff4splat.io.ply.load_ply`), ``deformation.npz`` (:func:`load_deformation`, checked
     against ``scene.ply``) and ``meta.json`` (a JSON object whose ``static``, ``fps``, ``background``, ``eps2d`` and
     ``scene_depth``, where present and not null, are valid; its ``static`` must agree with ``deformation.npz``).
-    The camera path and a fit's field are the caller's (:func:`diff4splat.rerender.load_scene_folder`).
+    The camera path and a fit's field are :func:`load_scene_folder`'s.
 
     Returns:
         (canonical Gaussians with the deformation and temporal support of ``deformation.npz``, on the CPU;
@@ -354,3 +420,102 @@ def load_output_scene(folder: str | os.PathLike) -> tuple[DynamicGaussians, dict
     if meta.get("static") is True and not scene.is_static:
         raise ValueError(f"{npz}: holds a deformation, but {meta_path} says the scene is static (\"static\": true)")
     return scene, meta
+
+
+@dataclass
+class SceneFolder:
+    """An output folder of ``generate`` or ``fit``, loaded (:func:`load_scene_folder`).
+
+    Attributes:
+        path: the folder.
+        scene: canonical Gaussians (M, float32, world frame, metres) with the deformation of
+            ``deformation.npz`` (key times (K,), interpolated between them) and its temporal support, if any;
+            on the device :func:`load_scene_folder` was given.
+        cameras: the folder's own path (``cameras.json``), T cameras, on the CPU.
+        meta: ``meta.json`` ({} if absent).
+        field: the HexPlane field of ``field.safetensors`` (``models.hexplane.HexPlaneField``), or None; on the
+            scene's device.
+    """
+
+    path: Path
+    scene: DynamicGaussians
+    cameras: CameraPath
+    meta: dict
+    field: Any = None
+
+    @property
+    def deformation_source(self) -> str:
+        """Where the deformation comes from: ``"field.safetensors"``, ``"deformation.npz"`` or ``"static"``."""
+        if self.field is not None:
+            return FIELD_FILE
+        return "static" if self.scene.is_static and not self.scene.has_temporal else "deformation.npz"
+
+
+def load_scene_folder(folder: str | os.PathLike, device: str | torch.device = "cpu", *,
+                      load_field: Callable[..., Any] | None = None) -> SceneFolder:
+    """Read an output folder of ``generate`` or ``fit`` (module docstring) as untrusted input, the scene and field
+    onto ``device`` (the camera path stays on the CPU): ``scene.ply``, ``deformation.npz`` and ``meta.json`` by
+    :func:`load_output_scene`, ``cameras.json`` by :func:`diff4splat.io.load_cameras_json`, ``field.safetensors``
+    by ``load_field(path, map_location=device)``.
+
+    Args:
+        load_field: the reader of a fit's ``field.safetensors`` (:func:`models.hexplane.load_field`: the ``io``
+            layer does not import ``models``, so the commands above it pass it); None leaves the file unread and
+            ``field`` None.
+
+    Raises:
+        FileNotFoundError: ``folder`` does not exist, is not a folder, or lacks ``scene.ply`` or ``cameras.json``
+            (each named).
+        ValueError: a file of the folder is malformed or corrupt, or the files disagree (the message names the
+            file; :func:`load_output_scene`): a truncated or garbage ``deformation.npz`` or ``scene.ply``, wrong
+            keys, shapes or dtypes, NaN/inf, ``deformation.npz`` missing while ``meta.json`` says
+            ``"static": false``, ``meta.json`` not a JSON object, a bad ``cameras.json`` or ``field.safetensors``;
+            a file that is a folder, a FIFO or a dangling symlink.
+    """
+    path = Path(folder)
+    scene, meta = load_output_scene(path)
+    cameras_file = folder_file(path, "cameras.json")
+    if cameras_file is None:
+        raise FileNotFoundError(f"scene folder {path} has no cameras.json (not an output folder of generate or fit)")
+    cameras = load_cameras_json(cameras_file)
+    field_file = folder_file(path, FIELD_FILE) if load_field is not None else None
+    field = None if field_file is None else load_field(field_file, map_location=device)
+    return SceneFolder(path, scene.to(device), cameras, meta, field)
+
+
+def estimate_scene_depth(folder: SceneFolder) -> float | None:
+    """:func:`scene_depth`, or None when none of its sources exists."""
+    value = folder.meta.get("scene_depth")  # checked by load_output_scene: a finite number > 0, or absent
+    if value is not None:
+        return float(value)
+    exr = folder_file(folder.path, "depth/0000.exr")
+    if exr is not None:
+        z, a = load_depth_exr(exr, return_alpha=True)
+        if a is not None and a.shape != z.shape:
+            raise ValueError(f"{exr}: channels 'Z' {z.shape} and 'A' {a.shape} differ in size")
+        keep = np.isfinite(z) & (z > 0) & (a > COVERED if a is not None else True)
+        if keep.any():
+            return float(np.median(z[keep]))
+    means = folder.scene.canonical.means.double()
+    vm = folder.cameras.viewmats[0].to(means)
+    z = means @ vm[2, :3] + vm[2, 3]  # camera-0 depth of each mean
+    z = z[z > NEAR_PLANE]
+    return float(z.median()) if z.numel() else None
+
+
+def scene_depth(folder: SceneFolder) -> float:
+    """Distance from the folder's first camera to the scene centre, metres: where presets look.
+
+    The first of: meta.json's ``scene_depth``; the median depth "Z" of the pixels of ``depth/0000.exr`` whose
+    coverage "A" exceeds :data:`COVERED` (every pixel with a finite Z > 0 if the file has no "A"); the median depth
+    of the canonical Gaussian means in front of the first camera (z > :data:`~diff4splat.render.defaults.NEAR_PLANE`).
+
+    Raises:
+        ValueError: none of the three exists (no depth map and no Gaussian in front of the first camera); a
+            ``depth/0000.exr`` that is not a readable EXR with a "Z" channel (naming it).
+    """
+    depth = estimate_scene_depth(folder)
+    if depth is None:
+        raise ValueError(f"scene folder {folder.path}: cannot estimate the scene depth (no depth/0000.exr coverage "
+                         "and no Gaussian in front of the first camera)")
+    return depth

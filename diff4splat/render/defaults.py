@@ -14,7 +14,7 @@ from __future__ import annotations
 
 __all__ = [
     "NEAR_PLANE", "FAR_PLANE", "EPS2D", "SH_DEGREE", "RENDER_MODE", "RASTERIZE_MODE", "CAMERA_MODEL", "TILE_SIZE",
-    "BACKGROUND", "meta_background", "meta_eps2d",
+    "BACKGROUND",
 ]
 
 NEAR_PLANE = 0.01
@@ -34,23 +34,6 @@ CAMERA_MODEL = "pinhole"
 TILE_SIZE = 16
 """Tile edge, pixels (gsplat 16); a performance knob, the image does not depend on it."""
 BACKGROUND = (0.0, 0.0, 0.0)
-"""RGB in [0, 1] behind the Gaussians for the scene renderers (render_path, render_rolling_shutter)."""
+"""RGB in [0, 1] behind the Gaussians for the scene renderers (render_path, render_rolling_shutter); an output
+folder's own colour is :func:`diff4splat.io.scene_folder.meta_background`."""
 
-
-def meta_background(meta: dict) -> tuple[float, float, float]:
-    """An output folder's meta.json ``background`` (3 numbers in [0, 1], the colour the scene was fitted
-    against), else :data:`BACKGROUND`."""
-    bg = meta.get("background")
-    if (isinstance(bg, list) and len(bg) == 3 and all(isinstance(v, (int, float)) and not isinstance(v, bool)
-                                                      and 0.0 <= v <= 1.0 for v in bg)):
-        return tuple(float(v) for v in bg)
-    return BACKGROUND
-
-
-def meta_eps2d(meta: dict) -> float:
-    """An output folder's meta.json ``eps2d`` (the screen-space dilation, pixels², its scene is rendered with: 0.1
-    for a ``generate`` scene with a photo layer, :mod:`diff4splat.photo`), else :data:`EPS2D`."""
-    eps = meta.get("eps2d")
-    if isinstance(eps, (int, float)) and not isinstance(eps, bool) and 0.0 <= eps <= 10.0:
-        return float(eps)
-    return EPS2D
