@@ -8,7 +8,7 @@ The layout and every field are specified in ``data_prep/FORMAT.md``; in short::
     <scene>/<cam>/depth/00000.exr …       float32 "Z", metric z-depth in metres, +inf = invalid
 
 :class:`SceneWriter` builds a scene in a temporary folder beside the target and renames it into
-place (:func:`diff4splat.io.output_dir`, kind ``"scene"``), so a scene folder is either complete or absent.
+place (:func:`diff4splat.io.output_folders`, kind ``"scene"``), so a scene folder is either complete or absent.
 :class:`SceneReader` (:func:`load_scene`) reads ``meta.json`` on open and everything else on demand.
 Validation of a whole folder is :func:`data_prep.validate.validate_scene`. The format's constants, ``meta.json``
 and the single-file readers live in :mod:`data_prep.scene_files` (below :mod:`data_prep.validate`, which this

@@ -22,7 +22,7 @@ from .devices import AUTO, DEVICE_HELP, resolve_device
 from .errors import run_cli
 from .export import EXPORT_KIND, check_opset, export_onnx
 from .generate import generate, load_pipeline, write
-from .io.output_dir import check_output_dir
+from .io.output_folders import check_output_dir
 from .io.video import check_fps
 from .pipeline import DEFAULT_RESOLUTION, load_model
 from .render_command import rerender

@@ -1,6 +1,6 @@
 """ONNX export of the four networks: one graph per module plus ``manifest.json``.
 
-``export_onnx(model, out_dir)`` writes, atomically (temp folder + rename, :func:`diff4splat.io.output_dir`,
+``export_onnx(model, out_dir)`` writes, atomically (temp folder + rename, :func:`diff4splat.io.output_folders`,
 kind ``"onnx"``):
 
 =====================  =====================================================  ==========================================
@@ -69,7 +69,7 @@ from torch.export import Dim
 from models.bundle import Diff4SplatModel
 from models.pretrained import WEIGHTS_NAME
 
-from .io.output_dir import check_output_dir, output_dir
+from .io.output_folders import check_output_dir, output_dir
 
 __all__ = ["export_onnx", "check_opset", "state_dict_sha256", "checkpoint_sha256", "MANIFEST_NAME", "MANIFEST_FORMAT",
            "MIN_OPSET", "EXTERNAL_DATA_BYTES", "LDRM_OUTPUTS", "STATIC_LDRM_OUTPUTS", "graph_metadata",
@@ -404,7 +404,7 @@ def export_onnx(
         source: free-text description of the weights' origin stored in the manifest.
         external_data_bytes: graphs with at least this many bytes of weights store them externally.
         inputs: paths the export reads (``checkpoint`` is added); ``out_dir`` may not hold them.
-        overwrite: also replace a folder that is not an earlier ONNX export (:func:`diff4splat.io.output_dir`).
+        overwrite: also replace a folder that is not an earlier ONNX export (:func:`diff4splat.io.output_folders`).
 
     Returns:
         The manifest dict (also written to ``out_dir/manifest.json``).

@@ -33,7 +33,7 @@ from .io import load_cameras_json, load_realestate10k
 from .io.depth_maps import fit_depth_map, read_depth_map
 from .io.image import preprocess_image, read_image
 from .io.inputs import check_input_file
-from .io.output_dir import check_output_dir
+from .io.output_folders import check_output_dir
 from .io.scene_folder import scene_meta, write_scene_folder
 from .io.video import check_fps
 from .limits import check_limit, check_memory, check_output_size
@@ -331,7 +331,7 @@ def write(generation: Generation, out_dir: str | os.PathLike, *, fps: int = 8, o
 
     Raises:
         ValueError: a bad ``fps``; an ``out_dir`` that may not be written
-            (:class:`diff4splat.io.output_dir.OutputDirError`).
+            (:class:`diff4splat.io.output_folders.OutputDirError`).
         OSError: writing failed (``<path>: <reason>``); nothing half-written is left.
     """
     check_fps(check_positive_int("--fps", fps), "--fps")

@@ -22,7 +22,7 @@ Camera path (:func:`load_camera_file`, :func:`trajectory_cameras`), one of:
 Frame i is rendered at ``cameras.times[i]`` by :func:`diff4splat.render.sequence.render_path`, on the device
 :func:`rerender` is given (``render --device``, default ``auto`` on the command line, the CPU in the library): the
 scene, the field and the cameras are moved there, and the files are written from CPU copies. The output
-folder (kind ``"render"``, written atomically by :func:`diff4splat.io.output_dir.output_dir`, so it never
+folder (kind ``"render"``, written atomically by :func:`diff4splat.io.output_folders.output_dir`, so it never
 replaces a user's folder nor the input)::
 
     rgb/0000.png …      8-bit RGB, lossless: round(255 · clamp(colour, 0, 1))
@@ -51,7 +51,7 @@ from .constants import ALPHA_MIN
 from .devices import resolve_device
 from .io import load_cameras_json, load_realestate10k
 from .io.inputs import check_input_file
-from .io.output_dir import MARKER, check_output_dir, read_marker
+from .io.output_folders import MARKER, check_output_dir, read_marker
 from .io.scene_folder import (
     SceneFolder,
     estimate_scene_depth,

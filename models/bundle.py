@@ -16,7 +16,7 @@ import torch
 from torch import nn
 
 from diff4splat.config_files import MODEL_CONFIGS
-from diff4splat.io.output_dir import output_dir
+from diff4splat.io.output_folders import output_dir
 from diff4splat.io.structured import read_json, read_yaml
 
 from .dit import VideoDiT, VideoDiTConfig
@@ -192,7 +192,7 @@ class Diff4SplatModel(nn.Module):
 
     def save_pretrained(self, directory: str | os.PathLike, *, overwrite: bool = False) -> Path:
         """Write ``config.json`` and one sub-folder per network, atomically (temp folder + rename,
-        :func:`diff4splat.io.output_dir`, kind ``"model"``: an existing folder is replaced only if it is
+        :func:`diff4splat.io.output_folders`, kind ``"model"``: an existing folder is replaced only if it is
         empty or an earlier saved model, or ``overwrite``).
 
         Raises:

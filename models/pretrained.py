@@ -12,7 +12,7 @@ from typing import Any, ClassVar, TypeVar
 import torch
 from safetensors.torch import load_file, save_file
 
-from diff4splat.io.output_dir import output_dir
+from diff4splat.io.output_folders import output_dir
 from diff4splat.io.structured import read_json
 from diff4splat.limits import LIMITS, LimitError, check_limit, limit
 
@@ -150,7 +150,7 @@ class PretrainedMixin:
         """Write ``model.safetensors`` and ``config.json`` into ``directory`` atomically.
 
         Files are written into a temporary sibling folder that is renamed over ``directory``
-        (:func:`diff4splat.io.output_dir`, kind ``"model"``), so a killed save never leaves a half-written
+        (:func:`diff4splat.io.output_folders`, kind ``"model"``), so a killed save never leaves a half-written
         model; an existing ``directory`` is replaced only if it is empty or an earlier saved model (or
         ``overwrite``).
 
@@ -167,7 +167,7 @@ class PretrainedMixin:
 
     def write_pretrained(self, folder: Path) -> None:
         """Write ``model.safetensors`` and ``config.json`` into the existing folder ``folder`` (no policy:
-        the caller owns it, e.g. a sub-folder of a folder being written by :func:`diff4splat.io.output_dir`)."""
+        the caller owns it, e.g. a sub-folder of a folder being written by :func:`diff4splat.io.output_folders`)."""
         folder.mkdir(exist_ok=True)
         state = {k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}
         save_file(state, str(folder / WEIGHTS_NAME), metadata={"class": type(self).__name__})

@@ -22,7 +22,7 @@ from diff4splat.cameras import CameraPath
 from diff4splat.cli import main
 from diff4splat.gaussians import Gaussians
 from diff4splat.io import load_ply, save_ply
-from diff4splat.io.output_dir import read_marker
+from diff4splat.io.output_folders import read_marker
 from diff4splat.io.scene_folder import load_deformation
 from diff4splat.limits import LimitError
 from diff4splat.quaternions import quat_multiply, quat_normalize, rotmat_to_quat

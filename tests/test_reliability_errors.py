@@ -529,7 +529,7 @@ import os, sys
 import numpy as np
 from diff4splat.errors import is_expected, one_line
 from diff4splat.io.exr import save_depth_exr
-from diff4splat.io.output_dir import output_dir
+from diff4splat.io.output_folders import output_dir
 from diff4splat.io.video import save_image, save_video
 
 root, slack = sys.argv[1], int(sys.argv[2])

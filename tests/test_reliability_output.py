@@ -1,5 +1,5 @@
 """Issue 11, output folders (defects 1, 4, 5, 6): `--out` never destroys a user's files, is checked before
-any compute, leaves no temporaries after signals or races, and follows the umask (diff4splat/io/output_dir.py)."""
+any compute, leaves no temporaries after signals or races, and follows the umask (diff4splat/io/output_folders.py)."""
 import hashlib
 import json
 import os
@@ -17,7 +17,7 @@ from helpers import EXAMPLE_IMAGE
 
 from diff4splat.cli import main
 from diff4splat.io import MARKER, OutputDirError, check_output_dir, output_dir
-from diff4splat.io.output_dir import remove_stale_temps
+from diff4splat.io.output_folders import remove_stale_temps
 
 
 def _snapshot(root: Path) -> dict:

@@ -8,7 +8,7 @@ Layout of ``<run>/checkpoints/step_00001000/``::
                          step, epoch, batch position in the epoch, consecutive non-finite count
     meta.json            step, epoch, position, wall time, config
 
-Each checkpoint folder is written to a temporary folder and renamed (:func:`diff4splat.io.output_dir`,
+Each checkpoint folder is written to a temporary folder and renamed (:func:`diff4splat.io.output_folders`,
 kind ``"checkpoint"``); ``<run>/checkpoints/latest`` is a text file naming the newest complete checkpoint,
 replaced atomically after the folder exists. A killed save leaves the previous checkpoint and ``latest`` untouched.
 """
@@ -26,7 +26,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from diff4splat.io.atomic import atomic_output_path
-from diff4splat.io.output_dir import output_dir
+from diff4splat.io.output_folders import output_dir
 
 __all__ = ["save_checkpoint", "load_checkpoint", "latest_checkpoint", "rng_state", "set_rng_state"]
 

@@ -34,7 +34,7 @@ from data_prep.format import load_scene
 from diff4splat.checks import check_positive_int
 from diff4splat.devices import AUTO, DEVICE_HELP, resolve_device
 from diff4splat.gaussians import Gaussians
-from diff4splat.io.output_dir import check_output_dir
+from diff4splat.io.output_folders import check_output_dir
 from diff4splat.io.scene_folder import DEFORMATION_ARRAYS, load_output_scene, scene_meta, write_scene_folder
 from diff4splat.io.video import check_fps
 from diff4splat.limits import check_limit
@@ -217,7 +217,7 @@ def _save(run_dir: Path, state: FitState, config: FitConfig, run: dict) -> None:
 def check_out_outside_inputs(out: str | Path, scene_dir: str | Path, init: str | Path | None = None) -> None:
     """Refuse an output folder inside the scene folder or the ``init`` folder (symlinks followed): the fit would
     add files to its own input (a scene folder then fails ``data_prep validate``). ``out`` equal to one of them
-    or an ancestor is :func:`diff4splat.io.output_dir.check_output_dir`'s refusal.
+    or an ancestor is :func:`diff4splat.io.output_folders.check_output_dir`'s refusal.
 
     Raises:
         ValueError: ``out`` lies inside ``scene_dir`` or ``init``.

@@ -8,7 +8,7 @@ from .atomic import atomic_output_path
 from .cameras import load_cameras_json, load_realestate10k, save_cameras_json, save_realestate10k
 from .exr import load_depth_exr, save_depth_exr
 from .image import load_image, preprocess_image
-from .output_dir import MARKER, OutputDirError, check_output_dir, output_dir
+from .output_folders import MARKER, OutputDirError, check_output_dir, output_dir
 from .ply import load_ply, ply_bytes, ply_property_names, save_ply
 from .video import load_video, save_image, save_video, to_uint8
 

@@ -1,4 +1,4 @@
-"""Atomic file writes: a file appears complete or not at all (folders: :mod:`diff4splat.io.output_dir`); and the
+"""Atomic file writes: a file appears complete or not at all (folders: :mod:`diff4splat.io.output_folders`); and the
 errors of writing, named after the file the user asked for.
 
 A write that fails for a reason of the disk (full, quota, read-only, permissions) must reach the user as

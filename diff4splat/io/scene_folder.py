@@ -1,6 +1,6 @@
 """The scene folder: the one home of the output folder of ``generate``, ``fit`` and ``render`` (docs/DESIGN.md,
 "Output folder of generate"): its layout (:data:`LAYOUT_FILES`, :func:`is_layout_file`), writing, atomically
-(:func:`write_scene_folder`; the folder policy is :mod:`diff4splat.io.output_dir`'s), the fields of ``meta.json``
+(:func:`write_scene_folder`; the folder policy is :mod:`diff4splat.io.output_folders`'s), the fields of ``meta.json``
 every folder shares (:func:`scene_meta`, :func:`meta_background`, :func:`meta_eps2d`), and reading it back as
 input, every file checked (:func:`load_output_scene`, :func:`load_scene_folder`, :func:`scene_depth`)::
 
@@ -48,7 +48,7 @@ from .atomic import atomic_output_path
 from .cameras import load_cameras_json, save_cameras_json
 from .exr import load_depth_exr, save_depth_exr
 from .inputs import check_input_file
-from .output_dir import output_dir
+from .output_folders import output_dir
 from .ply import load_ply, save_ply
 from .structured import read_json
 from .video import check_fps, save_image, save_video, to_uint8
@@ -261,7 +261,7 @@ def write_scene_folder(
     with_scene: bool = True,
 ) -> Path:
     """Write the whole output folder into a temporary folder, then rename it onto ``out_dir``
-    (:func:`~diff4splat.io.output_dir.output_dir`, marker kind ``kind``: "generate", "fit" for ``diff4splat fit``,
+    (:func:`~diff4splat.io.output_folders.output_dir`, marker kind ``kind``: "generate", "fit" for ``diff4splat fit``,
     whose ``extra`` writes field.safetensors and metrics.json, or "render" for ``diff4splat render``).
 
     ``extra(tmp)`` is called with the temporary folder after the other files and before ``meta.json`` (written
