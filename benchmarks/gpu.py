@@ -200,7 +200,7 @@ TRAIN = ("train_base_dit", "train_base_ldrm", "train_stage1")
 def part_train(device: torch.device, quick: bool) -> str:
     import csv
 
-    from training.stages import load_stage
+    from training.stage_config import load_stage
     from training.train import build_training
 
     steps, warm = (3, 1) if quick else (30, 5)

@@ -43,7 +43,7 @@ def test_paper_config_on_meta_device_reports_parameter_counts():
 def test_default_config_is_shipped_with_weights_and_is_every_default():
     """DEFAULT_CONFIG names a shipped config whose trained weights ship too (a plain `generate` must not
     fall back to a random model), and it is the default of load_model, from_pretrained and the stages."""
-    from training.stages import StageConfig
+    from training.stage_config import StageConfig
 
     assert DEFAULT_CONFIG in config_names()
     assert load_config(DEFAULT_CONFIG).name == DEFAULT_CONFIG

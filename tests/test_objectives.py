@@ -12,7 +12,7 @@ from diff4splat.gaussians import Gaussians, rgb_to_sh0
 from diff4splat.scene import DynamicGaussians
 from training.losses import LossWeights, depth_correlation_loss, depth_smoothness_loss, photometric_loss
 from training.objectives import TrainingModule, render_frames, track_query_index
-from training.stages import StageConfig, apply_freezing
+from training.stage_config import StageConfig, apply_freezing
 
 SIZE, FRAMES = 32, 9
 

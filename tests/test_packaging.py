@@ -16,7 +16,7 @@ import pytest
 
 from diff4splat.config_files import CONFIGS_DIR
 from models.bundle import CONFIG_DIR, DEFAULT_CONFIG, config_names, load_config
-from training.stages import STAGE_CONFIG_DIR, load_stage, stage_names
+from training.stage_config import STAGE_CONFIG_DIR, load_stage, stage_names
 
 tomllib = pytest.importorskip("tomllib")  # Python ≥ 3.11
 

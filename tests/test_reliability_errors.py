@@ -354,7 +354,7 @@ def test_data_prep_os_error_and_ctrl_c(tmp_path, capsys, monkeypatch):
 
 
 def test_train_os_error_bug_and_ctrl_c(tmp_path, capsys, monkeypatch):
-    import training.stages
+    import training.stage_config
     from training.train import main as train_main
 
     for exc, expect in ((OSError(errno.EROFS, "Read-only file system", "/runs/r"), None),
@@ -362,7 +362,7 @@ def test_train_os_error_bug_and_ctrl_c(tmp_path, capsys, monkeypatch):
         def load_stage(*a, exc=exc, **k):
             raise exc
 
-        monkeypatch.setattr(training.stages, "load_stage", load_stage)
+        monkeypatch.setattr(training.stage_config, "load_stage", load_stage)
         if expect is TypeError:
             with pytest.raises(TypeError, match="a bug"):
                 train_main(["--config", "train_vae"])

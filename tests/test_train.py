@@ -10,7 +10,7 @@ import yaml
 from helpers import tiny_model
 
 from models.bundle import Diff4SplatModel, load_config
-from training.stages import STAGE_CONFIG_DIR
+from training.stage_config import STAGE_CONFIG_DIR
 from training.train import calibrate_latent_scaling, main
 
 CONFIGS = STAGE_CONFIG_DIR
@@ -105,7 +105,7 @@ def test_stage1_from_the_vae_run_keeps_the_vae_frozen_and_trains_dit_and_ldrm(va
 
 @pytest.mark.slow
 def test_build_training_optimises_exactly_the_stage_modules_on_its_scenes(vae_run, data, tmp_path):
-    from training.stages import load_stage
+    from training.stage_config import load_stage
     from training.train import build_training
 
     stage = load_stage(_stage_yaml(tmp_path, "stage1", num_frames=FRAMES), data=str(data),

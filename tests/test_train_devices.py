@@ -21,7 +21,7 @@ from data_prep.synth import generate_scene
 from diff4splat.render import rasterize
 from models.bundle import Diff4SplatModel, load_config
 from training.checkpoint import latest_checkpoint, load_checkpoint
-from training.stages import StageConfig
+from training.stage_config import StageConfig
 from training.train import build_training, calibrate_latent_scaling, main
 from training.trainer import TrainerConfig
 

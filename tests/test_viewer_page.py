@@ -60,7 +60,7 @@ def test_licences_and_versions_are_shipped():
     from pathlib import Path
 
     text = resources.files("diff4splat.viewer").joinpath("assets/LICENSES.txt").read_text(encoding="utf-8")
-    package = json.loads((Path(__file__).resolve().parent.parent / "viewer" / "package.json").read_text())
+    package = json.loads((Path(__file__).resolve().parent.parent / "viewer_js" / "package.json").read_text())
     for name, version in package["dependencies"].items():
         assert f"{name} {version} (MIT)" in text
     assert "esbuild" in package["scripts"]["build"]

@@ -38,7 +38,7 @@ from .losses import (
     photometric_loss,
     sample_training_sigmas,
 )
-from .stages import StageConfig
+from .stage_config import StageConfig
 
 __all__ = ["TrainingModule", "render_frames", "track_query_index"]
 

@@ -28,9 +28,9 @@ from diff4splat.errors import run_cli
 from models.bundle import Diff4SplatModel, load_config
 from models.vae import estimate_latent_scaling
 
-from . import stages
+from . import stage_config
 from .objectives import TrainingModule
-from .stages import StageConfig, apply_freezing
+from .stage_config import StageConfig, apply_freezing
 from .trainer import Trainer
 
 __all__ = ["main", "build_training", "calibrate_latent_scaling"]
@@ -132,7 +132,7 @@ def _main(argv: list[str] | None) -> int:
                                       "strategy": args.strategy, "device": args.device}.items() if v is not None}
     if args.quiet:
         trainer_over["progress"] = False
-    stage = stages.load_stage(args.config, data=args.data, init_from=args.init_from, trainer=trainer_over or None)
+    stage = stage_config.load_stage(args.config, data=args.data, init_from=args.init_from, trainer=trainer_over or None)
     trainer, model, counts = build_training(stage)
     if trainer.rank == 0:
         print(f"train: stage {stage.name}, trainable {counts}, {len(trainer.dataset)} clips, "

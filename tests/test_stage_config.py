@@ -1,11 +1,11 @@
-"""Tests of training/stages.py: the shipped stage configs follow the paper's progressive schedule,
+"""Tests of training/stage_config.py: the shipped stage configs follow the paper's progressive schedule,
 apply_freezing leaves exactly the listed networks trainable, and bad stage YAML fails with one ValueError."""
 from pathlib import Path
 
 import pytest
 
 from models.bundle import Diff4SplatModel, load_config
-from training.stages import MODULES, STAGE_CONFIG_DIR, StageConfig, apply_freezing, load_stage
+from training.stage_config import MODULES, STAGE_CONFIG_DIR, StageConfig, apply_freezing, load_stage
 
 CONFIGS = STAGE_CONFIG_DIR
 STAGES = ("vae", "stage1", "stage2", "stage3")
