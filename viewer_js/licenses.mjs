@@ -8,7 +8,7 @@ for (const input of Object.keys(meta.inputs)) {
   const m = input.match(/node_modules\/((?:@[^/]+\/)?[^/]+)\//);
   if (m) pkgs.add(m[1]);
 }
-let out = "Third-party code bundled into diff4splat/viewer/assets/viewer.js (built from viewer/ by `npm ci && npm run build`).\n";
+let out = "Third-party code bundled into diff4splat/viewer/assets/viewer.js (built from viewer_js/ by `npm ci && npm run build`).\n";
 for (const name of [...pkgs].sort()) {
   const pj = JSON.parse(readFileSync(`node_modules/${name}/package.json`, "utf8"));
   const text = readFileSync(`node_modules/${name}/LICENSE`, "utf8");
