@@ -55,6 +55,7 @@ from .limits import check_limit
 from .offload import ModelOffload
 from .photo import PHOTO_EPS2D, layer_sizes
 from .prune import prune_mask, redundant_mask
+from .render.defaults import BACKGROUND
 from .scene import DynamicGaussians
 
 __all__ = ["Diff4SplatPipeline", "GenerationResult", "load_model", "NetworkRuntime", "TorchRuntime",
@@ -259,7 +260,7 @@ class GenerationResult:
     source_frames: Tensor | None = None
     gaussian_index: Tensor | None = None
     eps2d: float = PHOTO_EPS2D
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    background: tuple[float, float, float] = BACKGROUND
     photo_psnr_db: float = float("nan")
     num_slots: int = 0
     photo_gaussians: int = 0

@@ -150,7 +150,6 @@ def _literal_defaults(path: Path):
 
 OUTSIDE_THE_RENDER_PACKAGE = {  # not yet taken from the home (issue 29, item 5: what remains)
     ("cameras/lenses.py", "generate_rays", "camera_model"),  # cameras sit below render: cannot import its defaults
-    ("pipeline.py", "GenerationResult", "background"),
 }
 
 
