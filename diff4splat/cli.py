@@ -8,23 +8,18 @@ from __future__ import annotations
 
 import argparse
 import sys
-import warnings
 from importlib.metadata import entry_points
 from pathlib import Path
 
 from models.bundle import DEFAULT_CONFIG
 
-from .assemble import DEPTH_KINDS
-from .cameras import DEFAULT_AMPLITUDES, DEFAULT_TRAJECTORY, TRAJECTORIES
-from .cameras.trajectories import amplitude_help
-from .checks import check_positive_int
+from .cameras import TRAJECTORIES
 from .devices import AUTO, DEVICE_HELP, resolve_device
-from .errors import run_cli
+from .errors import print_warnings, run_cli
 from .export import EXPORT_KIND, check_opset, export_onnx
-from .generate import generate, load_pipeline, write
+from .generate_cli import add_generate_parser, generate_command
 from .io.output_folders import check_output_dir
-from .io.video import check_fps
-from .pipeline import DEFAULT_RESOLUTION, load_model
+from .pipeline import load_model
 from .render_command import rerender
 from .viewer_server import serve
 
@@ -71,51 +66,8 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
 
     parser = _Parser(prog="diff4splat", description="One photograph + a camera path + a prompt → a 4D Gaussian scene.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
-    g = sub.add_parser("generate", help="generate a 4D scene from an image",
-                       description="Generate a 4D Gaussian scene from one image and write the output folder.")
-    g.add_argument("image", help="input photograph (any format OpenCV reads: RGB, RGBA, grey, 8/16-bit)")
-    cam = g.add_mutually_exclusive_group()
-    cam.add_argument("--trajectory", choices=TRAJECTORIES, default=DEFAULT_TRAJECTORY,
-                     help=f"camera path preset (default: {DEFAULT_TRAJECTORY}; arc sweeps "
-                          f"{DEFAULT_AMPLITUDES['arc']:g} rad to the right around the scene, orbit a full 360°)")
-    cam.add_argument("--cameras", type=Path, default=None,
-                     help="camera path file: cameras.json (our format) or RealEstate10K .txt")
-    g.add_argument("--amplitude", type=float, default=None,
-                   help=f"size of the --trajectory preset's motion (its default if omitted). {amplitude_help()}; "
-                        "a scene depth is the model config's scene_depth (2 m for the shipped ones)")
-    g.add_argument("--frames", type=int, default=None, help="number of frames T = 1 + 4k (default: config)")
-    g.add_argument("--resolution", type=int, default=None,
-                   help=f"output height in pixels (the photo layer keeps the photograph at this resolution; default: "
-                        f"{DEFAULT_RESOLUTION}, or the model's height if larger)")
-    g.add_argument("--depth", type=Path, default=None, metavar="FILE",
-                   help="a depth map of the photograph for its Gaussians instead of the network's: EXR (channel Z), "
-                        ".npy, or a 16-bit PNG/TIFF (millimetres); NaN/inf/0 pixels are filled from the network")
-    g.add_argument("--depth-kind", choices=DEPTH_KINDS, default="metric",
-                   help="metric (z-depth in metres, used as given), relative (depth up to scale and shift) or inverse "
-                        "(disparity up to scale and shift), both fitted to the network's depth (default: metric)")
-    g.add_argument("--prompt", default="", help="text describing the motion; empty = no text encoder")
-    g.add_argument("--steps", type=int, default=None, help="sampler steps (default: config)")
-    g.add_argument("--sampler", choices=("euler", "heun"), default=None, help="ODE sampler (default: config)")
-    g.add_argument("--seed", type=int, default=0, help="noise seed (default: 0)")
-    g.add_argument("--checkpoint", type=Path, default=None,
-                   help="model folder (default: the shipped weights of --config)")
-    g.add_argument("--config", default=None, help=config_help)
-    g.add_argument("--fps", type=int, default=8, help="video frame rate (default: 8)")
-    g.add_argument("--device", default=AUTO, help=DEVICE_HELP)
-    g.add_argument("--dtype", choices=("float32", "bfloat16", "float16"), default="float32",
-                   help="weight dtype of the networks (bfloat16 halves a GPU's memory use; default: float32); "
-                        "sampling, Gaussians and rendering stay float32")
-    g.add_argument("--offload", choices=("none", "model"), default="none",
-                   help="model: keep the networks in CPU memory and move one at a time to --device while it runs "
-                        "(the paper-size model within 25 GB of GPU memory); default: none")
-    g.add_argument("--runtime", choices=("torch", "onnxruntime"), default="torch",
-                   help="run the networks with PyTorch or with onnxruntime on an --onnx export (default: torch)")
-    g.add_argument("--onnx", type=Path, default=None, help="folder written by `diff4splat export-onnx` "
-                   "(with --runtime onnxruntime)")
-    g.add_argument("--quiet", action="store_true", help="no progress bars")
-    g.add_argument("--out", type=_out_path, required=True, help=OUT_HELP)
-    g.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
-
+    add_generate_parser(sub, out_type=_out_path, out_help=OUT_HELP, overwrite_help=OVERWRITE_HELP,
+                        config_help=config_help)
     e = sub.add_parser("export-onnx", help="export the networks to ONNX for onnxruntime serving",
                        description="Export the VAE encoder/decoder, text encoder, DiT velocity and LDRM "
                                    "(+ deformation) as ONNX graphs with dynamic batch/frames/resolution, "
@@ -175,38 +127,10 @@ def export_onnx_command(args) -> dict:
     check_opset(args.opset)
     if args.checkpoint is not None and not args.checkpoint.is_dir():
         raise FileNotFoundError(f"--checkpoint: {args.checkpoint} is not a folder")
-    model, source = _quietly_warned(load_model, args.checkpoint, args.config, seed=0)
+    model, source = print_warnings(load_model, args.checkpoint, args.config, seed=0)
     checkpoint = None if source.startswith("random:") else Path(source)  # hash the weight files read
     return export_onnx(model, args.out, text=not args.no_text, deformation=not args.static, opset=args.opset,
                        checkpoint=checkpoint, source=source, inputs=[args.checkpoint], overwrite=args.overwrite)
-
-
-def generate_command(args) -> dict:
-    """Run ``generate``: the output folder checked first, then :func:`diff4splat.generate.generate` (its own
-    checks before the model loads) and :func:`diff4splat.generate.write`. Returns the meta dict of meta.json."""
-    check_output_dir(args.out, inputs=[args.image, args.checkpoint, args.cameras, args.onnx, args.depth],
-                     overwrite=args.overwrite, kind="generate")
-    check_fps(check_positive_int("--fps", args.fps), "--fps")
-    generation = generate(
-        args.image, args.cameras, pipeline=lambda: _quietly_warned(
-            load_pipeline, args.checkpoint, args.config, runtime=args.runtime, onnx=args.onnx, device=args.device,
-            dtype=args.dtype, offload=args.offload),
-        trajectory=args.trajectory, amplitude=args.amplitude, frames=args.frames, resolution=args.resolution,
-        prompt=args.prompt, steps=args.steps, sampler=args.sampler, seed=args.seed, depth=args.depth,
-        depth_kind=args.depth_kind, progress=not args.quiet,
-        notes=None if args.quiet else lambda note: print(f"diff4splat: note: {note}", file=sys.stderr))
-    return write(generation, args.out, fps=args.fps, overwrite=args.overwrite)
-
-
-def _quietly_warned(load, *args, **kwargs):
-    """``load(*args, **kwargs)`` with its warnings (e.g. the random-model notice) printed as one
-    ``diff4splat: warning: …`` line each on stderr."""
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        out = load(*args, **kwargs)
-    for w in caught:
-        print(f"diff4splat: warning: {w.message}", file=sys.stderr)
-    return out
 
 
 def main(argv: list[str] | None = None) -> int:

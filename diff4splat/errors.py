@@ -17,9 +17,10 @@ import contextlib
 import errno
 import os
 import sys
+import warnings
 from collections.abc import Callable, Iterator
 
-__all__ = ["EXIT_USAGE", "EXIT_INTERRUPTED", "EXPECTED_ERRNOS", "is_expected", "one_line", "run_cli",
+__all__ = ["print_warnings", "EXIT_USAGE", "EXIT_INTERRUPTED", "EXPECTED_ERRNOS", "is_expected", "one_line", "run_cli",
            "quiet_c_stderr"]
 
 EXIT_USAGE = 2
@@ -117,3 +118,14 @@ def quiet_c_stderr() -> Iterator[None]:
     finally:
         os.dup2(saved, 2)
         os.close(saved)
+
+
+def print_warnings(call: Callable, *args, prog: str = "diff4splat", **kwargs):
+    """``call(*args, **kwargs)`` with the warnings it raises (e.g. the random-model notice) printed as one
+    ``<prog>: warning: …`` line each on stderr, the command line's form. Returns what ``call`` returns."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = call(*args, **kwargs)
+    for w in caught:
+        print(f"{prog}: warning: {w.message}", file=sys.stderr)
+    return out

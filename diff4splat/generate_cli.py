@@ -1,0 +1,91 @@
+"""The ``diff4splat generate`` command: its arguments and the call of :func:`diff4splat.generate.generate` and
+:func:`diff4splat.generate.write` (the library does the work and every check; this module only maps flags)."""
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+from .assemble import DEPTH_KINDS
+from .cameras import DEFAULT_AMPLITUDES, DEFAULT_TRAJECTORY, TRAJECTORIES
+from .cameras.trajectories import amplitude_help
+from .checks import check_positive_int
+from .devices import AUTO, DEVICE_HELP
+from .errors import print_warnings
+from .generate import generate, load_pipeline, write
+from .io.output_folders import check_output_dir
+from .io.video import check_fps
+from .pipeline import DEFAULT_RESOLUTION
+
+__all__ = ["add_generate_parser", "generate_command"]
+
+
+def add_generate_parser(subparsers, *, out_type: Callable[[str], Path], out_help: str, overwrite_help: str,
+                        config_help: str) -> argparse.ArgumentParser:
+    """Add ``generate`` and its flags to the ``diff4splat`` subparsers; returns its parser."""
+    g = subparsers.add_parser("generate", help="generate a 4D scene from an image",
+                       description="Generate a 4D Gaussian scene from one image and write the output folder.")
+    g.add_argument("image", help="input photograph (any format OpenCV reads: RGB, RGBA, grey, 8/16-bit)")
+    cam = g.add_mutually_exclusive_group()
+    cam.add_argument("--trajectory", choices=TRAJECTORIES, default=DEFAULT_TRAJECTORY,
+                     help=f"camera path preset (default: {DEFAULT_TRAJECTORY}; arc sweeps "
+                          f"{DEFAULT_AMPLITUDES['arc']:g} rad to the right around the scene, orbit a full 360°)")
+    cam.add_argument("--cameras", type=Path, default=None,
+                     help="camera path file: cameras.json (our format) or RealEstate10K .txt")
+    g.add_argument("--amplitude", type=float, default=None,
+                   help=f"size of the --trajectory preset's motion (its default if omitted). {amplitude_help()}; "
+                        "a scene depth is the model config's scene_depth (2 m for the shipped ones)")
+    g.add_argument("--frames", type=int, default=None, help="number of frames T = 1 + 4k (default: config)")
+    g.add_argument("--resolution", type=int, default=None,
+                   help=f"output height in pixels (the photo layer keeps the photograph at this resolution; default: "
+                        f"{DEFAULT_RESOLUTION}, or the model's height if larger)")
+    g.add_argument("--depth", type=Path, default=None, metavar="FILE",
+                   help="a depth map of the photograph for its Gaussians instead of the network's: EXR (channel Z), "
+                        ".npy, or a 16-bit PNG/TIFF (millimetres); NaN/inf/0 pixels are filled from the network")
+    g.add_argument("--depth-kind", choices=DEPTH_KINDS, default="metric",
+                   help="metric (z-depth in metres, used as given), relative (depth up to scale and shift) or inverse "
+                        "(disparity up to scale and shift), both fitted to the network's depth (default: metric)")
+    g.add_argument("--prompt", default="", help="text describing the motion; empty = no text encoder")
+    g.add_argument("--steps", type=int, default=None, help="sampler steps (default: config)")
+    g.add_argument("--sampler", choices=("euler", "heun"), default=None, help="ODE sampler (default: config)")
+    g.add_argument("--seed", type=int, default=0, help="noise seed (default: 0)")
+    g.add_argument("--checkpoint", type=Path, default=None,
+                   help="model folder (default: the shipped weights of --config)")
+    g.add_argument("--config", default=None, help=config_help)
+    g.add_argument("--fps", type=int, default=8, help="video frame rate (default: 8)")
+    g.add_argument("--device", default=AUTO, help=DEVICE_HELP)
+    g.add_argument("--dtype", choices=("float32", "bfloat16", "float16"), default="float32",
+                   help="weight dtype of the networks (bfloat16 halves a GPU's memory use; default: float32); "
+                        "sampling, Gaussians and rendering stay float32")
+    g.add_argument("--offload", choices=("none", "model"), default="none",
+                   help="model: keep the networks in CPU memory and move one at a time to --device while it runs "
+                        "(the paper-size model within 25 GB of GPU memory); default: none")
+    g.add_argument("--runtime", choices=("torch", "onnxruntime"), default="torch",
+                   help="run the networks with PyTorch or with onnxruntime on an --onnx export (default: torch)")
+    g.add_argument("--onnx", type=Path, default=None, help="folder written by `diff4splat export-onnx` "
+                   "(with --runtime onnxruntime)")
+    g.add_argument("--quiet", action="store_true", help="no progress bars")
+    g.add_argument("--out", type=out_type, required=True, help=out_help)
+    g.add_argument("--overwrite", action="store_true", help=overwrite_help)
+
+    return g
+
+
+def generate_command(args) -> dict:
+    """Run ``generate``: the output folder checked first, then :func:`diff4splat.generate.generate` (its own
+    checks before the model loads) and :func:`diff4splat.generate.write`. Returns the meta dict of meta.json."""
+    check_output_dir(args.out, inputs=[args.image, args.checkpoint, args.cameras, args.onnx, args.depth],
+                     overwrite=args.overwrite, kind="generate")
+    check_fps(check_positive_int("--fps", args.fps), "--fps")
+    generation = generate(
+        args.image, args.cameras, pipeline=lambda: print_warnings(
+            load_pipeline, args.checkpoint, args.config, runtime=args.runtime, onnx=args.onnx, device=args.device,
+            dtype=args.dtype, offload=args.offload),
+        trajectory=args.trajectory, amplitude=args.amplitude, frames=args.frames, resolution=args.resolution,
+        prompt=args.prompt, steps=args.steps, sampler=args.sampler, seed=args.seed, depth=args.depth,
+        depth_kind=args.depth_kind, progress=not args.quiet,
+        notes=None if args.quiet else lambda note: print(f"diff4splat: note: {note}", file=sys.stderr))
+    return write(generation, args.out, fps=args.fps, overwrite=args.overwrite)
+
+
