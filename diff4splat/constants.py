@@ -5,7 +5,7 @@ gsplat's ``rasterize_to_pixels``; every module compares against these names, nev
 """
 from __future__ import annotations
 
-__all__ = ["ALPHA_MAX", "ALPHA_MIN", "T_MIN", "OPACITY_EPS", "OPACITY_LOG_FLOOR"]
+__all__ = ["ALPHA_MAX", "ALPHA_MIN", "T_MIN", "OPACITY_EPS", "OPACITY_LOG_FLOOR", "CAMERA_MODEL"]
 
 ALPHA_MAX = 0.99
 """Per-Gaussian alpha is clamped to this (INRIA 3DGS ``min(0.99f, …)``)."""
@@ -19,3 +19,7 @@ OPACITY_EPS = 1e-6
 OPACITY_LOG_FLOOR = 1e-30
 """Opacities are clamped to at least this before ln(o / ALPHA_MIN) (support radii, ray pre-test), so a zero
 opacity gives a finite, very negative value (never visible) instead of −inf."""
+
+CAMERA_MODEL = "pinhole"
+"""Default camera model of the renderer and of the ray path's cameras (gsplat "pinhole"); re-exported as
+``diff4splat.render.defaults.CAMERA_MODEL``."""

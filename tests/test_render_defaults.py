@@ -148,10 +148,6 @@ def _literal_defaults(path: Path):
                     yield node.name, st.target.id
 
 
-OUTSIDE_THE_RENDER_PACKAGE = {  # not yet taken from the home (issue 29, item 5: what remains)
-    ("cameras/lenses.py", "generate_rays", "camera_model"),  # cameras sit below render: cannot import its defaults
-}
-
 
 def test_no_default_is_written_anywhere_but_the_home():
     """A render setting's default written as a literal anywhere in the library (a signature's ``0.01``, a
@@ -159,5 +155,4 @@ def test_no_default_is_written_anywhere_but_the_home():
     root = Path(diff4splat.__file__).parent
     found = {(str(path.relative_to(root)), fn, p) for path in sorted(root.rglob("*.py"))
              if path.name != "defaults.py" for fn, p in _literal_defaults(path)}
-    assert found == OUTSIDE_THE_RENDER_PACKAGE
-    assert not any(f.startswith("render/") for f, _, _ in found)
+    assert found == set(), found

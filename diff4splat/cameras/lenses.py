@@ -31,6 +31,7 @@ import torch
 from torch import Tensor
 
 from ..checks import check_number, check_positive_int
+from ..constants import CAMERA_MODEL
 from .path import camera_centers
 from .rays import camera_rays
 
@@ -449,7 +450,7 @@ def generate_rays(
     Ks: Tensor,  # (C, 3, 3) pixels
     width: int,
     height: int,
-    camera_model: str = "pinhole",
+    camera_model: str = CAMERA_MODEL,
     camera_params: object = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """World-frame rays of every pixel (centre (j + ½, i + ½)) for a camera model of the ray path.

@@ -12,6 +12,8 @@ this project renders colour and expected depth together ("RGB+ED") by default, w
 """
 from __future__ import annotations
 
+from ..constants import CAMERA_MODEL
+
 __all__ = [
     "NEAR_PLANE", "FAR_PLANE", "EPS2D", "SH_DEGREE", "RENDER_MODE", "RASTERIZE_MODE", "CAMERA_MODEL", "TILE_SIZE",
     "BACKGROUND",
@@ -29,8 +31,8 @@ RENDER_MODE = "RGB+ED"
 """Colour plus expected depth as the last channel (gsplat's default is "RGB"; this project's is "RGB+ED")."""
 RASTERIZE_MODE = "classic"
 """No Mip-Splatting opacity compensation (gsplat "classic")."""
-CAMERA_MODEL = "pinhole"
-"""Pinhole projection (gsplat "pinhole")."""
+# CAMERA_MODEL: pinhole projection (gsplat "pinhole"); its home is diff4splat.constants because the camera models
+# (diff4splat.cameras.lenses), below the renderer, default to it too.
 TILE_SIZE = 16
 """Tile edge, pixels (gsplat 16); a performance knob, the image does not depend on it."""
 BACKGROUND = (0.0, 0.0, 0.0)
