@@ -49,7 +49,25 @@ def _defaults(fn) -> dict:
 def _all_entry_points():
     return {**RENDERERS, **SCENE_RENDERERS, "use_gsplat": use_gsplat, "visibility_mask": visibility_mask,
             "prune_scene": prune_scene, "RasterSettings": RasterSettings, "project_gaussians": project_gaussians,
-            "project_fused": project_fused, "choose_path": choose_path}
+            "choose_path": choose_path}
+
+
+def test_the_fused_projection_takes_the_reference_signature_as_its_own():
+    """project_fused's settings are project_gaussians' keywords with its defaults (one home): an unknown keyword is
+    refused as the reference refuses it, and omitted ones take the reference's defaults."""
+    g = torch.Generator().manual_seed(0)
+    f64 = {"generator": g, "dtype": torch.float64}
+    K = torch.tensor([[[30.0, 0, 16], [0, 30.0, 12], [0, 0, 1]]], dtype=torch.float64)
+    args = (torch.randn(20, 3, **f64) * 0.3 + torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64),
+            torch.nn.functional.normalize(torch.randn(20, 4, **f64), dim=-1), torch.rand(20, 3, **f64) * 0.05 + 0.01,
+            torch.rand(20, **f64), torch.eye(4, dtype=torch.float64)[None], K, 32, 24)
+    with pytest.raises(TypeError, match="near"):
+        project_fused(*args, near=0.5)
+    explicit = {n: p.default for n, p in inspect.signature(project_gaussians).parameters.items()
+                if p.default is not inspect.Parameter.empty}
+    a, b = project_fused(*args), project_fused(*args, **explicit)
+    torch.testing.assert_close(a.means2d, b.means2d, rtol=0, atol=0)
+    torch.testing.assert_close(a.conics, b.conics, rtol=0, atol=0)
 
 
 def test_every_shared_parameter_has_the_same_default_everywhere():

@@ -13,12 +13,13 @@ CUDA tensors, no numba) uses the reference, so results never depend on which pat
 """
 from __future__ import annotations
 
+import inspect
+
 import numpy as np
 import torch
 from torch import Tensor
 
 from diff4splat.quaternions import quat_normalize
-from diff4splat.render.defaults import CAMERA_MODEL, EPS2D, FAR_PLANE, NEAR_PLANE
 from diff4splat.render.fused import fused_available
 from diff4splat.render.projection import Projection, project_gaussians
 
@@ -76,6 +77,9 @@ class _FusedProjection(torch.autograd.Function):
         return (*(torch.from_numpy(x).to(ctx.dtype) for x in v), None, None, None, None, None, None, None, None)
 
 
+_REFERENCE = inspect.signature(project_gaussians)
+
+
 def project_fused(
     means: Tensor,  # (N, 3)
     quats: Tensor,  # (N, 4)
@@ -85,28 +89,27 @@ def project_fused(
     Ks: Tensor,  # (C, 3, 3)
     width: int,
     height: int,
-    *,
-    near_plane: float = NEAR_PLANE,
-    far_plane: float = FAR_PLANE,
-    eps2d: float = EPS2D,
-    antialiased: bool = False,
-    camera_model: str = CAMERA_MODEL,
+    **settings,
 ) -> Projection:
-    """:func:`~diff4splat.render.projection.project_gaussians` (same arguments, rules, outputs and errors) by
-    the fused kernels (module docstring), or by that reference where they do not apply: no numba, a
-    non-pinhole model, non-CPU tensors, or ``viewmats``/``Ks`` requiring gradients.
+    """:func:`~diff4splat.render.projection.project_gaussians` by the fused kernels (module docstring), or by that
+    reference where they do not apply: no numba, a non-pinhole model, non-CPU tensors, or ``viewmats``/``Ks``
+    requiring gradients. ``settings`` are the reference's keyword arguments with its defaults (``near_plane``,
+    ``far_plane``, ``eps2d``, ``antialiased``, ``camera_model``): its signature is the one home of both.
 
     Returns:
         :class:`~diff4splat.render.projection.Projection`, in the dtype of ``means`` (computed in float64).
 
     Raises:
+        TypeError: a keyword the reference does not take.
         ValueError: unknown camera model or zero-norm quaternion (from the reference's checks).
     """
-    if (camera_model != "pinhole" or not fused_available() or means.device.type != "cpu"
+    bound = _REFERENCE.bind(means, quats, scales, opacities, viewmats, Ks, width, height, **settings)
+    bound.apply_defaults()
+    a = bound.arguments
+    if (a["camera_model"] != "pinhole" or not fused_available() or means.device.type != "cpu"
             or viewmats.requires_grad or Ks.requires_grad):
-        return project_gaussians(means, quats, scales, opacities, viewmats, Ks, width, height,
-                                 near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, antialiased=antialiased,
-                                 camera_model=camera_model)
+        return project_gaussians(*bound.args, **bound.kwargs)
+    near_plane, far_plane, eps2d, antialiased = a["near_plane"], a["far_plane"], a["eps2d"], a["antialiased"]
     means2d, depths, covars2d, conics, opac, radii, comps = _FusedProjection.apply(
         means, quat_normalize(quats), scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d,
         antialiased)
