@@ -137,8 +137,9 @@ _SHAPES = {"times": ("K",), "d_means": ("K", "M", 3), "d_quats": ("K", "M", 4), 
 """Shape of each array of ``deformation.npz``: K key times, M Gaussians."""
 DEFORMATION_ARRAYS = tuple(_SHAPES)
 """The arrays ``deformation.npz`` may hold, the keyword arguments of ``DynamicGaussians`` after the canonical ones."""
-_NPZ_ERRORS = (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, zlib.error, NotImplementedError, RuntimeError,
-               ValueError, KeyError, OSError)
+_NPZ_ERRORS = (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, zlib.error,
+               NotImplementedError,  # zipfile's error for a compression method it does not support: not a stub
+               RuntimeError, ValueError, KeyError, OSError)
 """What zipfile and numpy's header parser raise on a corrupt archive or member (not a zip file, a bad CRC, a
 truncated member, an unsupported compression or encryption, a malformed ``.npy`` header)."""
 
@@ -161,7 +162,7 @@ def save_deformation(path: str | os.PathLike, scene: DynamicGaussians) -> None:
     if scene.is_static and not scene.has_temporal:
         raise ValueError("a static scene without temporal support has no deformation to save")
     keys = (() if scene.is_static else _DEFORMATION_KEYS) + (_TEMPORAL_KEYS if scene.has_temporal else ())
-    arrays = {k: getattr(scene, k).detach().cpu().float().numpy() for k in keys}
+    arrays = {k: getattr(scene, k).detach().cpu().float().numpy() for k in keys}  # device: np.savez writes host arrays
     with atomic_output_path(Path(path)) as tmp:
         with open(tmp, "wb") as f:
             np.savez(f, **arrays)
