@@ -1,0 +1,178 @@
+"""What the pipeline and the training stages need from a video backbone: VAE + text encoder + a
+camera-conditioned video transformer (docs/DESIGN.md, "Backbones").
+
+Three implementations: our own networks (:mod:`models.backbones.ours`, the CPU default), Wan2.2-TI2V-5B
+(:mod:`models.backbones.wan`) and CogVideoX-5B-I2V (:mod:`models.backbones.cogvideox`), the last two built from
+diffusers' modules (the optional extra ``diff4splat[diffusers]``).
+
+Conventions every backbone obeys, whatever its own:
+
+- **Latents** are the transformer's inputs: the VAE's posterior mean *normalised the backbone's way* (ours
+  ``a·(z − b)``, Wan ``(z − mean)/std`` per channel, CogVideoX ``z·scaling_factor``), shape (B, c, n, h, w)
+  channel-first with n = 1 + (T − 1)/t latent frames, h = H/s, w = W/s (:class:`LatentFormat`).
+- **Flow matching, σ convention**: ``x_σ = (1 − σ)·x0 + σ·ε`` with σ = 1 pure noise, and :meth:`Backbone.velocity`
+  returns ``v = ε − x0`` (models/flow_matching.py). Wan is trained in exactly this convention (timestep = 1000·σ);
+  CogVideoX is a v-prediction DDPM whose prediction is converted (:func:`vpred_to_flow`): a DDIM (η = 0) step
+  between two of its timesteps is an Euler step of this ODE between their σ, so our samplers reproduce its
+  scheduler's latents.
+- **First-frame conditioning** happens inside :meth:`Backbone.velocity` from ``image_latent`` (B, c, 1, h, w),
+  the backbone's way (ours: concatenated with a frame mask; Wan: latent frame 0 replaced and its tokens given
+  timestep 0; CogVideoX: the image latent concatenated on channels, zero after frame 0).
+- **Camera conditioning**: ``plucker`` (B, 6·t·s², n, h, w) Plücker rays packed onto the latent grid
+  (:func:`diff4splat.cameras.pack_plucker`). The diffusers transformers see them as extra input channels of their
+  patch embedding, whose new weights start at zero (:class:`CameraPatchConv`): an untrained camera branch leaves
+  the pretrained transformer exactly as it was.
+"""
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+__all__ = ["LatentFormat", "Backbone", "CameraPatchConv", "vpred_to_flow", "BACKBONE_KINDS"]
+
+BACKBONE_KINDS = ("ours", "wan2.2-ti2v", "cogvideox-i2v")
+"""The backbones: our networks, Wan2.2-TI2V-5B, CogVideoX-5B-I2V."""
+
+
+@dataclass(frozen=True)
+class LatentFormat:
+    """How a backbone's VAE maps video to latents.
+
+    Attributes:
+        latent_channels: c (ours 4–16, Wan2.2 48, CogVideoX 16).
+        temporal_factor: t, frames per latent frame after the first (4 for all three).
+        spatial_factor: s, pixels per latent pixel along each side (ours and CogVideoX 8, Wan2.2 16).
+    """
+
+    latent_channels: int
+    temporal_factor: int
+    spatial_factor: int
+
+    @property
+    def camera_channels(self) -> int:
+        """Channels of the packed Plücker rays on this latent grid: 6·t·s²."""
+        return 6 * self.temporal_factor * self.spatial_factor ** 2
+
+    def num_latent_frames(self, num_frames: int) -> int:
+        """n = 1 + (T − 1)/t. Raises ValueError for T ≠ 1 + t·k."""
+        if isinstance(num_frames, bool) or not isinstance(num_frames, int) or num_frames < 1 \
+                or (num_frames - 1) % self.temporal_factor:
+            raise ValueError(f"frames must be 1 + {self.temporal_factor}·k, got {num_frames!r}")
+        return 1 + (num_frames - 1) // self.temporal_factor
+
+    def num_frames(self, num_latent_frames: int) -> int:
+        """T = 1 + t·(n − 1)."""
+        return 1 + self.temporal_factor * (num_latent_frames - 1)
+
+
+def vpred_to_flow(x_t: Tensor, v: Tensor, alpha: Tensor, sigma_ddpm: Tensor) -> Tensor:
+    """A v-prediction (Salimans & Ho 2022, §4: ``v = α·ε − σ·x0``) as the flow-matching velocity ``ε − x0``.
+
+    With α² + σ² = 1: ``x0 = α·x_t − σ·v`` and ``ε = σ·x_t + α·v``.
+
+    Args:
+        x_t: (B, ...) the DDPM state ``α·x0 + σ·ε``.
+        v: (B, ...) the network's v-prediction.
+        alpha, sigma_ddpm: (B,) √ᾱ_t and √(1 − ᾱ_t) of each sample's timestep.
+
+    Returns:
+        (B, ...) ``ε − x0`` = ``(σ − α)·x_t + (α + σ)·v``.
+    """
+    shape = (-1,) + (1,) * (x_t.dim() - 1)
+    a, s = alpha.reshape(shape).to(x_t), sigma_ddpm.reshape(shape).to(x_t)
+    return (s - a) * x_t + (a + s) * v
+
+
+class CameraPatchConv(nn.Module):
+    """A transformer's patch-embedding convolution widened by ``camera_channels`` input channels whose weights
+    start at zero (the authors' code, paulpanwang/Diff4Splat: Plücker rays as extra patch-embedding channels).
+
+    The input is ``cat([x, plucker], dim=1)``: the first ``in_channels`` go through the pretrained ``weight`` and
+    ``bias``, the rest through ``camera_weight`` (no bias); the sum is the widened convolution (a convolution is
+    linear in its input channels). Kept as two weights so that ``weight``/``bias`` keep the pretrained checkpoint's
+    key names (``patch_embedding.weight``; the transformer folder stays loadable by diffusers) and, with
+    ``camera_weight`` at zero, the output is the pretrained convolution's bit for bit (adding +0.0).
+
+    Args:
+        conv: the pretrained ``nn.Conv2d`` or ``nn.Conv3d`` (kernel = stride, no padding); its parameters are
+            taken over, not copied.
+        camera_channels: extra input channels (6·t·s²).
+    """
+
+    def __init__(self, conv: nn.Conv2d | nn.Conv3d, camera_channels: int):
+        super().__init__()
+        if not isinstance(conv, (nn.Conv2d, nn.Conv3d)):
+            raise TypeError(f"conv must be an nn.Conv2d or nn.Conv3d, got {type(conv).__name__}")
+        self.in_channels, self.camera_channels = conv.in_channels, camera_channels
+        self.stride, self.padding = conv.stride, conv.padding
+        self.weight, self.bias = conv.weight, conv.bias
+        self._conv = F.conv3d if isinstance(conv, nn.Conv3d) else F.conv2d
+        # Zero-init: the pretrained transformer is unchanged until the camera branch is trained.
+        self.camera_weight = nn.Parameter(torch.zeros(conv.out_channels, camera_channels, *conv.kernel_size,
+                                                      device=conv.weight.device, dtype=conv.weight.dtype))
+
+    def forward(self, x: Tensor) -> Tensor:  # (B, in + camera, [T,] H, W)
+        if x.shape[1] != self.in_channels + self.camera_channels:
+            raise ValueError(f"CameraPatchConv: expected {self.in_channels} + {self.camera_channels} channels, "
+                             f"got {x.shape[1]}")
+        out = self._conv(x[:, :self.in_channels], self.weight, self.bias, self.stride, self.padding)
+        return out + self._conv(x[:, self.in_channels:], self.camera_weight, None, self.stride, self.padding)
+
+
+class Backbone(nn.Module, abc.ABC):
+    """VAE + text encoder + camera-conditioned video transformer (module docstring: conventions).
+
+    Attributes:
+        kind: one of :data:`BACKBONE_KINDS`.
+        latent: the :class:`LatentFormat`.
+    """
+
+    kind: str
+    latent: LatentFormat
+
+    @abc.abstractmethod
+    def encode_video(self, video: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """(B, 3, T, H, W) pixels in [−1, 1], T = 1 + t·k → normalised latents (B, c, n, h, w): the posterior
+        mean, or a posterior sample drawn with ``generator`` when given."""
+
+    @abc.abstractmethod
+    def decode_latents(self, latents: Tensor) -> Tensor:
+        """Normalised latents (B, c, n, h, w) → video (B, 3, T, H, W) in about [−1, 1]."""
+
+    @abc.abstractmethod
+    def encode_text(self, prompts: list[str]) -> tuple[Tensor, Tensor]:
+        """Prompts → tokens (B, L, d_text) and mask (B, L) bool (True = a token the transformer attends to)."""
+
+    @abc.abstractmethod
+    def velocity(self, x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor,
+                 text: Tensor | None, text_mask: Tensor | None) -> Tensor:
+        """Flow-matching velocity ``ε − x0`` (module docstring).
+
+        Args:
+            x: (B, c, n, h, w) the state at ``sigma``.
+            sigma: (B,) σ in [0, 1] (float32).
+            image_latent: (B, c, 1, h, w) the photograph's normalised latent.
+            plucker: (B, 6·t·s², n, h, w) packed Plücker rays.
+            text, text_mask: (B, L, d_text), (B, L) bool, or None for no prompt (a backbone trained with a text
+                embedding of the empty prompt encodes "" itself).
+
+        Returns:
+            (B, c, n, h, w), float32.
+        """
+
+    @abc.abstractmethod
+    def sigmas(self, steps: int) -> Tensor:
+        """The inference schedule: (steps + 1,) float64 σ, decreasing from 1 to 0 (the backbone scheduler's)."""
+
+    @abc.abstractmethod
+    def training_sigmas(self, n: int, generator: torch.Generator) -> Tensor:
+        """(n,) σ drawn for a training step on ``generator``'s device (a backbone with discrete timesteps returns
+        σ of its timesteps)."""
+
+    @abc.abstractmethod
+    def transformer_blocks(self) -> list[nn.Module]:
+        """The transformer's blocks (FSDP units, gradient checkpointing)."""

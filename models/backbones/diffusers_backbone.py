@@ -1,0 +1,150 @@
+"""What the two diffusers backbones share: their components, the camera-widened patch embedding, and the Hub
+folder layout they are loaded from and saved to (docs/DESIGN.md, "Backbones").
+
+A backbone folder is the diffusers layout of the Hub repositories (``model_index.json``, ``transformer/``,
+``vae/``, ``text_encoder/``, ``tokenizer/``, ``scheduler/``: ``Wan-AI/Wan2.2-TI2V-5B-Diffusers``,
+``THUDM/CogVideoX-5b-I2V``), loaded by the diffusers pipeline class itself, plus ``camera/model.safetensors``: the
+zero-initialised camera weights of the patch embedding (:class:`models.backbones.base.CameraPatchConv`), absent in a
+folder fresh from the Hub (then they start at zero). ``transformer/`` keeps the checkpoint's own key names, so the
+folder we write is still loadable by diffusers alone.
+
+This module imports diffusers: it is only imported when a diffusers backbone is used (``diff4splat[diffusers]``).
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Iterator
+from pathlib import Path
+from typing import ClassVar
+
+import torch
+from diffusers import DiffusionPipeline
+from safetensors.torch import load_file, save_file
+from torch import nn
+
+from .base import Backbone, CameraPatchConv, LatentFormat
+
+__all__ = ["DiffusersBackbone", "CAMERA_FOLDER", "CAMERA_WEIGHTS"]
+
+CAMERA_FOLDER = "camera"
+CAMERA_WEIGHTS = "model.safetensors"
+"""``camera/model.safetensors``: the patch embedding's camera weights, key ``<patch_conv_path>.camera_weight``."""
+
+
+def _get(module: nn.Module, path: str) -> nn.Module:
+    for name in path.split("."):
+        module = getattr(module, name)
+    return module
+
+
+def _set(module: nn.Module, path: str, value: nn.Module) -> None:
+    *parents, last = path.split(".")
+    for name in parents:
+        module = getattr(module, name)
+    setattr(module, last, value)
+
+
+class DiffusersBackbone(Backbone):
+    """A :class:`Backbone` over a diffusers pipeline's components.
+
+    Subclasses set ``pipeline_class`` (the diffusers pipeline whose folder layout and helpers they use),
+    ``pipeline_names`` (``_class_name`` values of ``model_index.json`` they accept), ``patch_conv_path`` (the
+    transformer's patch-embedding convolution) and ``latent_format(vae)``.
+
+    Args:
+        transformer, vae, text_encoder, tokenizer, scheduler: the pipeline's components; the transformer's patch
+            embedding is replaced by a :class:`CameraPatchConv` (camera weights zero) in place.
+    """
+
+    pipeline_class: ClassVar[type[DiffusionPipeline]]
+    pipeline_names: ClassVar[tuple[str, ...]]
+    patch_conv_path: ClassVar[str]
+
+    def __init__(self, transformer: nn.Module, vae: nn.Module, text_encoder: nn.Module, tokenizer, scheduler):
+        super().__init__()
+        self.latent = self.latent_format(vae)
+        conv = _get(transformer, self.patch_conv_path)
+        if not isinstance(conv, CameraPatchConv):
+            _set(transformer, self.patch_conv_path, CameraPatchConv(conv, self.latent.camera_channels))
+        self.transformer, self.vae, self.text_encoder = transformer, vae, text_encoder
+        self.tokenizer, self.scheduler = tokenizer, scheduler
+
+    @staticmethod
+    def latent_format(vae: nn.Module) -> LatentFormat:
+        raise NotImplementedError
+
+    @property
+    def camera_conv(self) -> CameraPatchConv:
+        return _get(self.transformer, self.patch_conv_path)
+
+    @contextlib.contextmanager
+    def hub_transformer(self) -> Iterator[nn.Module]:
+        """The transformer with its pretrained patch embedding back (an ``nn.Conv2d``/``nn.Conv3d`` sharing the
+        weights): what diffusers itself would run, for saving in the Hub layout and for comparisons."""
+        cam = self.camera_conv
+        conv_cls = nn.Conv3d if cam.weight.dim() == 5 else nn.Conv2d
+        with torch.device("meta"):
+            plain = conv_cls(cam.in_channels, cam.weight.shape[0], tuple(cam.weight.shape[2:]), stride=cam.stride,
+                             padding=cam.padding, bias=cam.bias is not None)
+        plain.weight, plain.bias = cam.weight, cam.bias
+        _set(self.transformer, self.patch_conv_path, plain)
+        try:
+            yield self.transformer
+        finally:
+            _set(self.transformer, self.patch_conv_path, cam)
+
+    def components(self) -> dict:
+        """The pipeline's components by name (the transformer as is)."""
+        return {"transformer": self.transformer, "vae": self.vae, "text_encoder": self.text_encoder,
+                "tokenizer": self.tokenizer, "scheduler": self.scheduler}
+
+    def pipeline(self, **kwargs) -> DiffusionPipeline:
+        """The diffusers pipeline over these components, the transformer as diffusers runs it (its own patch
+        embedding: call inside :meth:`hub_transformer`). ``kwargs``: the pipeline's other arguments."""
+        return self.pipeline_class(**self.components(), **kwargs)
+
+    def write_pretrained(self, folder: Path) -> None:
+        """Write the Hub layout and ``camera/`` into the existing folder ``folder`` (the caller owns it)."""
+        with self.hub_transformer():
+            self.pipeline(**self.pipeline_kwargs()).save_pretrained(folder, safe_serialization=True)
+        (folder / CAMERA_FOLDER).mkdir(exist_ok=True)
+        key = f"{self.patch_conv_path}.camera_weight"
+        save_file({key: self.camera_conv.camera_weight.detach().contiguous().cpu()},
+                  str(folder / CAMERA_FOLDER / CAMERA_WEIGHTS), metadata={"backbone": self.kind})
+
+    def pipeline_kwargs(self) -> dict:
+        """Pipeline arguments other than the components written to ``model_index.json`` (e.g. Wan2.2's
+        ``expand_timesteps=True``)."""
+        return {}
+
+    @classmethod
+    def from_pretrained(cls, directory: str | os.PathLike, torch_dtype: torch.dtype | None = None
+                        ) -> DiffusersBackbone:
+        """Load a Hub-layout folder (and its ``camera/`` weights when present) from a local path; nothing is
+        downloaded.
+
+        Raises:
+            FileNotFoundError: no ``model_index.json``.
+            ValueError: a folder of another pipeline, or camera weights of the wrong shape.
+        """
+        directory = Path(directory)
+        pipe = cls.pipeline_class.from_pretrained(directory, torch_dtype=torch_dtype, local_files_only=True)
+        parts = {k: v for k, v in pipe.components.items() if k in ("transformer", "vae", "text_encoder",
+                                                                    "tokenizer", "scheduler")}
+        backbone = cls(**parts)
+        camera = directory / CAMERA_FOLDER / CAMERA_WEIGHTS
+        if camera.is_file():
+            state = load_file(str(camera))
+            key = f"{cls.patch_conv_path}.camera_weight"
+            weight = backbone.camera_conv.camera_weight
+            if set(state) != {key} or state[key].shape != weight.shape:
+                raise ValueError(f"checkpoint: {camera} holds {sorted(state)} "
+                                 f"{[tuple(v.shape) for v in state.values()]}, expected {key} {tuple(weight.shape)}")
+            with torch.no_grad():
+                weight.copy_(state[key])
+        return backbone
+
+    def transformer_blocks(self) -> list[nn.Module]:
+        return list(self.transformer.transformer_blocks if hasattr(self.transformer, "transformer_blocks")
+                    else self.transformer.blocks)
