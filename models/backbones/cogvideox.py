@@ -1,0 +1,265 @@
+"""CogVideoX-5B-I2V (Yang et al. 2024, "CogVideoX: Text-to-Video Diffusion Models with An Expert Transformer") as a
+:class:`models.backbones.base.Backbone`, over diffusers' components (``THUDM/CogVideoX-5b-I2V``: the
+``CogVideoXTransformer3DModel``, ``AutoencoderKLCogVideoX``, the T5-XXL encoder and tokenizer, the
+``CogVideoXDDIMScheduler``), loaded from and saved to the Hub folder layout (:mod:`.diffusers_backbone`).
+
+**CogVideoX in our flow-matching variables.** CogVideoX is a v-prediction DDPM (Salimans & Ho 2022, "Progressive
+Distillation for Fast Sampling of Diffusion Models", §4): ``x_t = α·x0 + s·ε`` with ``α = √ᾱ_t``,
+``s = √(1 − ᾱ_t)`` (1000 discrete timesteps, scaled-linear betas rescaled to zero terminal SNR, Lin et al. 2024,
+"Common Diffusion Noise Schedules and Sample Steps are Flawed", so ᾱ_999 = 0) and the network predicts
+``v = α·ε − s·x0``. Dividing by ``α + s``,
+
+    x = x_t/(α + s) = (1 − σ)·x0 + σ·ε,    σ = s/(α + s),
+
+is our straight path (models/flow_matching.py), and the v-prediction gives its velocity ``ε − x0``
+(:func:`models.backbones.base.vpred_to_flow`). A DDIM step with η = 0 (diffusers'
+``CogVideoXDDIMScheduler.step``: ``x_t' = a·x_t + b·x̂0``, ``a = s'/s``, ``b = α' − α·s'/s``) maps the predicted
+``x̂0``, ``ε̂`` to ``α'·x̂0 + s'·ε̂``, and an Euler step of ``dx/dσ = ε̂ − x̂0`` from σ to σ' maps them to
+``(1 − σ')·x̂0 + σ'·ε̂``: the same point, so our Euler sampler over :meth:`CogVideoXBackbone.sigmas` reproduces the
+diffusers pipeline's DDIM latents (σ = 1 at t = 999 where the states coincide, σ = 0 at the end).
+
+This module imports diffusers (``diff4splat[diffusers]``).
+"""
+from __future__ import annotations
+
+import torch
+from diffusers import AutoencoderKLCogVideoX, CogVideoXImageToVideoPipeline
+from torch import Tensor, nn
+
+from .base import LatentFormat, vpred_to_flow
+from .diffusers_backbone import DiffusersBackbone
+
+__all__ = ["CogVideoXBackbone"]
+
+
+def _check_int(name: str, value: int, low: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
+
+
+class CogVideoXBackbone(DiffusersBackbone):
+    """CogVideoX-5B-I2V with a camera-widened patch embedding (module docstring: the σ ↔ timestep map).
+
+    The transformer's input per latent frame is, on channels, ``[x_t, image latent, Plücker rays]``: the image
+    latent in frame 0 and zeros after it (``CogVideoXImageToVideoPipeline.prepare_latents``), the rays through the
+    zero-initialised camera weights of ``patch_embed.proj`` (:class:`models.backbones.base.CameraPatchConv`).
+
+    Args:
+        transformer: a CogVideoX 1.0 ``CogVideoXTransformer3DModel`` (``patch_size_t`` None: a Conv2d patch
+            embedding) with ``in_channels = 2·latent_channels`` (noisy latent + image latent).
+        vae: ``AutoencoderKLCogVideoX``.
+        text_encoder, tokenizer: T5 (``T5EncoderModel``, ``T5Tokenizer``).
+        scheduler: a v-prediction scheduler with ``alphas_cumprod`` (``CogVideoXDDIMScheduler``): its discrete
+            timesteps define :meth:`sigmas` and :meth:`training_sigmas`.
+
+    Attributes:
+        max_sequence_length: text tokens, the transformer's ``max_text_seq_length`` (226 for CogVideoX).
+
+    Raises:
+        ValueError: a CogVideoX 1.5 transformer (``patch_size_t`` set: its patch embedding is a Linear over
+            2×2×2 patches, not supported), channels that do not match the VAE, or a scheduler that is not
+            v-prediction.
+    """
+
+    kind = "cogvideox-i2v"
+    pipeline_class = CogVideoXImageToVideoPipeline
+    pipeline_names = ("CogVideoXImageToVideoPipeline",)
+    patch_conv_path = "patch_embed.proj"
+
+    def __init__(self, transformer: nn.Module, vae: nn.Module, text_encoder: nn.Module, tokenizer, scheduler):
+        cfg = transformer.config
+        if cfg.patch_size_t is not None:
+            raise ValueError(f"CogVideoX 1.5 transformers (patch_size_t={cfg.patch_size_t}: a Linear patch "
+                             "embedding over temporal patches) are not supported; use CogVideoX-5B-I2V (1.0)")
+        if getattr(scheduler.config, "prediction_type", None) != "v_prediction" \
+                or not hasattr(scheduler, "alphas_cumprod"):
+            raise ValueError(f"the scheduler must be a v-prediction DDPM scheduler with alphas_cumprod "
+                             f"(CogVideoXDDIMScheduler), got {type(scheduler).__name__} with prediction_type="
+                             f"{getattr(scheduler.config, 'prediction_type', None)!r}")
+        c = self.latent_format(vae).latent_channels
+        if cfg.in_channels != 2 * c or cfg.out_channels != c:
+            raise ValueError(f"the transformer takes {cfg.in_channels} channels and returns {cfg.out_channels}; "
+                             f"the VAE's latents need {2 * c} (noisy latent + image latent) and {c}")
+        super().__init__(transformer, vae, text_encoder, tokenizer, scheduler)  # widens the patch conv in place
+        self.max_sequence_length = int(cfg.max_text_seq_length)
+        abar = scheduler.alphas_cumprod.detach().to("cpu", torch.float64)
+        alpha, s = abar ** 0.5, (1.0 - abar) ** 0.5  # the scheduler's own float64 expressions
+        # (3, num_train_timesteps) float64 on the CPU, t = 0..T-1: α = √ᾱ_t, s = √(1 − ᾱ_t), σ = s/(α + s).
+        self._schedule = torch.stack([alpha, s, s / (alpha + s)])
+        self._empty_text: Tensor | None = None
+
+    @staticmethod
+    def latent_format(vae: nn.Module) -> LatentFormat:
+        """From ``AutoencoderKLCogVideoX``'s config: c = ``latent_channels``, t = ``temporal_compression_ratio``,
+        s = 2^(len(``block_out_channels``) − 1) (the pipeline's ``vae_scale_factor_spatial``); 16, 4, 8 for
+        CogVideoX.
+
+        Raises:
+            TypeError: ``vae`` is not an ``AutoencoderKLCogVideoX``.
+        """
+        if not isinstance(vae, AutoencoderKLCogVideoX):
+            raise TypeError(f"vae must be an AutoencoderKLCogVideoX, got {type(vae).__name__}")
+        c = vae.config
+        return LatentFormat(int(c.latent_channels), int(c.temporal_compression_ratio),
+                            2 ** (len(c.block_out_channels) - 1))
+
+    # ---------------------------------------------------------------------------------------------- VAE, text
+
+    def encode_video(self, video: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """(B, 3, T, H, W) pixels in [−1, 1], T = 1 + 4k, H and W multiples of 8 → latents
+        ``scaling_factor·z`` (B, c, n, h, w) float32: z the posterior mean, or ``latent_dist.sample(generator)``
+        when ``generator`` is given (the pipeline's ``prepare_latents`` samples the image posterior with its
+        generator: the same seed gives its image latent; for B > 1 we draw the batch at once where the pipeline
+        draws image by image).
+
+        These are the latents CogVideoX denoises (the pipeline's ``decode_latents`` divides by
+        ``scaling_factor``) whatever ``invert_scale_latents`` says; that flag concerns only the image conditioning
+        and is applied in :meth:`velocity`.
+
+        Raises:
+            ValueError: not (B, 3, T, H, W), T ≠ 1 + 4k, or H, W not multiples of 8.
+        """
+        s = self.latent.spatial_factor
+        if video.dim() != 5 or video.shape[1] != 3 or video.shape[3] % s or video.shape[4] % s:
+            raise ValueError(f"video must be (B, 3, T, H, W) with H, W multiples of {s}, got {tuple(video.shape)}")
+        self.latent.num_latent_frames(video.shape[2])
+        dist = self.vae.encode(video.to(self.vae.dtype)).latent_dist
+        z = dist.mode() if generator is None else dist.sample(generator)
+        return self.vae.config.scaling_factor * z.float()
+
+    def decode_latents(self, latents: Tensor) -> Tensor:
+        """Latents (B, c, n, h, w) → video (B, 3, 1 + 4(n − 1), 8h, 8w) float32 in about [−1, 1]
+        (the pipeline's ``decode_latents``: ``1/scaling_factor·latents`` through the VAE decoder)."""
+        z = 1 / self.vae.config.scaling_factor * latents.to(self.vae.dtype)
+        return self.vae.decode(z).sample.float()
+
+    def encode_text(self, prompts: list[str]) -> tuple[Tensor, Tensor]:
+        """Prompts → T5 embeddings (B, :attr:`max_sequence_length`, d_text) in the text encoder's dtype and an
+        all-True mask (B, L): diffusers' ``CogVideoXImageToVideoPipeline.encode_prompt`` (padded to the full
+        length, truncated beyond it); CogVideoX attends to all its text tokens, padding included.
+
+        Raises:
+            TypeError: ``prompts`` not a list of str.
+        """
+        if not isinstance(prompts, list) or not all(isinstance(p, str) for p in prompts):
+            raise TypeError(f"prompts must be a list of str, got {prompts!r}")
+        embeds, _ = self.pipeline().encode_prompt(prompts, do_classifier_free_guidance=False,
+                                                  max_sequence_length=self.max_sequence_length,
+                                                  device=self.text_encoder.device)
+        return embeds, torch.ones(embeds.shape[:2], dtype=torch.bool, device=embeds.device)
+
+    def empty_text(self, batch: int, device: torch.device) -> Tensor:
+        """The embedding of "" (1 → ``batch``, L, d_text) on ``device``: CogVideoX's unconditional input (its
+        pipeline's negative prompt). Encoded once and kept (the text encoder is frozen)."""
+        if self._empty_text is None:
+            with torch.no_grad():
+                self._empty_text = self.encode_text([""])[0]
+        return self._empty_text.to(device).expand(batch, -1, -1)
+
+    # ---------------------------------------------------------------------------------------------- schedule
+
+    def timesteps(self, sigma: Tensor) -> Tensor:
+        """σ (B,) → the discrete timesteps t (B,) int64 on σ's device whose σ_t = s/(α + s) is nearest (σ of
+        :meth:`sigmas` and :meth:`training_sigmas` map to their own t exactly; pass σ in float32 or float64:
+        neighbouring σ_t differ by 4e-4 near σ = 1)."""
+        table = self._schedule[2].to(sigma.device)
+        return (table[None, :] - sigma.to(torch.float64)[:, None]).abs().argmin(dim=1)
+
+    def ddpm_coefficients(self, t: Tensor) -> tuple[Tensor, Tensor]:
+        """Timesteps t (B,) → (α, s) = (√ᾱ_t, √(1 − ᾱ_t)), each (B,) float64 on t's device."""
+        table = self._schedule.to(t.device)
+        return table[0, t], table[1, t]
+
+    def sigmas(self, steps: int) -> Tensor:
+        """The inference schedule (steps + 1,) float64 on the CPU: σ_t of the scheduler's own timesteps
+        (``set_timesteps(steps)`` on a copy: CogVideoX's "trailing" spacing, t = 999, …), then 0.
+
+        σ_0 = 1 (t = 999, ᾱ = 0 by the zero-terminal-SNR rescale). The last step goes to σ = 0 (ᾱ = 1: the
+        scheduler's ``set_alpha_to_one``). An Euler step from σ_t to σ_t' equals the DDIM step from t to t'
+        (module docstring); diffusers' DDIM steps from t to ``t − 1000 // steps``, which is the next listed
+        timestep when ``steps`` divides 1000 (then our samples equal the pipeline's). Otherwise (e.g. 3 steps:
+        999, 666, 332) DDIM steps to t − 333 (666, 333) but evaluates the model at the listed ones; this grid
+        follows the listed timesteps.
+
+        Raises:
+            ValueError: ``steps`` not an int in [1, num_train_timesteps].
+        """
+        _check_int("steps", steps, 1)
+        scheduler = type(self.scheduler).from_config(self.scheduler.config)
+        scheduler.set_timesteps(steps, device="cpu")
+        sig = self._schedule[2][scheduler.timesteps.long()]
+        return torch.cat([sig, sig.new_zeros(1)])
+
+    def training_sigmas(self, n: int, generator: torch.Generator) -> Tensor:
+        """(n,) float32 σ_t of timesteps t drawn uniformly from {0, …, T − 1} on ``generator``'s device (how
+        CogVideoX was trained: uniform discrete timesteps, v-prediction loss).
+
+        Raises:
+            ValueError: ``n`` not an int ≥ 1.
+        """
+        _check_int("n", n, 1)
+        t = torch.randint(0, self._schedule.shape[1], (n,), generator=generator, device=generator.device)
+        return self._schedule[2].to(generator.device)[t].float()
+
+    # ---------------------------------------------------------------------------------------------- transformer
+
+    def velocity(self, x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor,
+                 text: Tensor | None, text_mask: Tensor | None) -> Tensor:
+        """Flow-matching velocity ``ε − x0`` from CogVideoX's v-prediction.
+
+        σ → its timestep t (:meth:`timesteps`), ``x_t = (α + s)·x``; the transformer runs as
+        ``CogVideoXImageToVideoPipeline.__call__`` runs it: ``hidden_states`` (B, n, C, h, w) with channels
+        ``[x_t, image latent | zeros, plucker]``, ``timestep`` t per sample, rotary embeddings from the pipeline's
+        ``_prepare_rotary_positional_embeddings``, ``ofs`` 2.0 where the transformer has an ofs embedding; the
+        prediction (in float32) goes through :func:`models.backbones.base.vpred_to_flow`. The transformer runs
+        in its own dtype. With learned positional embeddings (CogVideoX-5B-I2V) and a frame count other than the
+        transformer's ``sample_frames`` (49 frames, 13 latent frames), diffusers' patch embedding substitutes
+        sin-cos embeddings for the learned ones, in its pipeline as here.
+
+        Args:
+            x: (B, c, n, h, w) the state at σ (float32 recommended).
+            sigma: (B,) σ in [0, 1], float32 or float64.
+            image_latent: (B, c, 1, h, w) :meth:`encode_video` of the photograph (divided by scaling_factor² when
+                the VAE's ``invert_scale_latents`` is set, as the pipeline scales the image latent).
+            plucker: (B, 6·4·8², n, h, w) packed Plücker rays.
+            text: (B, L, d_text) :meth:`encode_text` tokens, L = :attr:`max_sequence_length`, or None for the
+                embedding of "" (:meth:`empty_text`).
+            text_mask: ignored (CogVideoX attends to all L tokens).
+
+        Returns:
+            (B, c, n, h, w) float32.
+
+        Raises:
+            ValueError: inconsistent shapes, or (h, w) other than the transformer's ``sample_height``,
+                ``sample_width`` when its positional embeddings are learned (CogVideoX-5B-I2V: 60×90 latents,
+                480×720 pixels).
+        """
+        b, c, n, h, w = x.shape
+        cfg = self.transformer.config
+        if c != self.latent.latent_channels or sigma.shape != (b,) or image_latent.shape != (b, c, 1, h, w) \
+                or plucker.shape != (b, self.latent.camera_channels, n, h, w):
+            raise ValueError(f"velocity: x {tuple(x.shape)}, sigma {tuple(sigma.shape)}, image_latent "
+                             f"{tuple(image_latent.shape)}, plucker {tuple(plucker.shape)} are inconsistent "
+                             f"(c = {self.latent.latent_channels}, camera channels {self.latent.camera_channels})")
+        if cfg.use_learned_positional_embeddings and (h, w) != (cfg.sample_height, cfg.sample_width):
+            raise ValueError(f"this CogVideoX transformer has learned positional embeddings for "
+                             f"{cfg.sample_height}x{cfg.sample_width} latents; got {h}x{w}")
+        t = self.timesteps(sigma)
+        alpha, s = self.ddpm_coefficients(t)
+        x_t = (alpha + s).float().view(-1, 1, 1, 1, 1) * x.float()
+        if text is None:
+            text = self.empty_text(b, x.device)
+        image = image_latent.float()
+        if getattr(self.vae.config, "invert_scale_latents", False):
+            image = image / self.vae.config.scaling_factor ** 2  # sf·z → z/sf, the pipeline's image scaling
+        image = torch.cat([image, image.new_zeros(b, c, n - 1, h, w)], dim=2)
+        dtype = self.transformer.dtype
+        hidden = torch.cat([x_t, image, plucker.float()], dim=1).to(dtype).permute(0, 2, 1, 3, 4)
+        pipe = self.pipeline()
+        scale = pipe.vae_scale_factor_spatial
+        rotary = (pipe._prepare_rotary_positional_embeddings(h * scale, w * scale, n, x.device)
+                  if cfg.use_rotary_positional_embeddings else None)
+        ofs = None if cfg.ofs_embed_dim is None else hidden.new_full((1,), fill_value=2.0)
+        v = self.transformer(hidden_states=hidden, encoder_hidden_states=text.to(dtype), timestep=t, ofs=ofs,
+                             image_rotary_emb=rotary, return_dict=False)[0]
+        return vpred_to_flow(x_t, v.float().permute(0, 2, 1, 3, 4), alpha, s)
