@@ -117,7 +117,7 @@ def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | Non
     if checkpoint is not None and not Path(checkpoint).is_dir():
         raise FileNotFoundError(f"--checkpoint: {checkpoint} is not a folder")
     t0 = time.perf_counter()
-    model, source = _load_model(checkpoint, config or DEFAULT_CONFIG, seed=0)
+    model, source = _load_model(checkpoint, config or DEFAULT_CONFIG, seed=0, dtype=DTYPES[dtype])
     pipe = Diff4SplatPipeline(model, device=device, dtype=DTYPES[dtype], offload=offload)
     return LoadedPipeline(pipe, source, time.perf_counter() - t0, dtype, offload,
                           files=() if checkpoint is None else (Path(checkpoint),))

@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 from models.bundle import Diff4SplatConfig
+from models.flow_matching import sigma_schedule
 from models.ldrm import LDRMOutput
 from models.pretrained import config_from_dict
 from models.text_encoder import ByteTokenizer
@@ -240,6 +241,7 @@ class OnnxRuntime:
     """
 
     name = "onnxruntime"
+    encodes_empty_prompt = False  # our text encoder: no prompt, no text tokens
 
     def __init__(self, directory: str | os.PathLike, providers: list[str] | None = None,
                  threads: int | None = None, profile_prefix: str | None = None):
@@ -256,6 +258,7 @@ class OnnxRuntime:
         self.has_deformation = bool(parts["deformation"])
         self.ldrm_image_input = bool(parts["ldrm_image_input"])
         self.tokenizer = ByteTokenizer(self.config.text_encoder.max_length)
+        self.latent = self.config.vae.latent_format
         self.providers = list(providers) if providers is not None else default_providers()
         opts = session_options(threads, profile_prefix)
         self.sessions = {}
@@ -266,6 +269,10 @@ class OnnxRuntime:
 
     def _run(self, part: str, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
         return self.sessions[part].run(None, feeds)
+
+    def sigmas(self, steps: int) -> Tensor:
+        """The exported model's σ schedule (:func:`models.flow_matching.sigma_schedule`, the config's shift)."""
+        return sigma_schedule(steps, self.config.sampling.shift, dtype=torch.float64)
 
     def encode_image(self, video: Tensor) -> Tensor:
         """(B, 3, T, H, W) in [−1, 1] → (B, c, n, h, w) DiT latents (``vae_encoder.onnx``)."""

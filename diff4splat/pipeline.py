@@ -6,9 +6,11 @@ The photograph and the camera path come at the *output* resolution; the networks
 (the photograph area-resized, the intrinsics scaled).
 
 1. VAE encoder: the photograph as a one-frame video → first-frame latent (1, c, 1, h, w).
-2. Text encoder: prompt → tokens (1, L, d_text); skipped entirely for an empty prompt.
-3. Plücker rays (T, H, W, 6) of the path → packed to the latent grid (1, 1536, n, h, w).
-4. VideoDiT + flow-matching sampler (Euler/Heun, NFE steps): noise → video latent (1, c, n, h, w);
+2. Text encoder: prompt → tokens (1, L, d_text); skipped entirely for an empty prompt (a pretrained backbone
+   encodes "", its unconditional input).
+3. Plücker rays (T, H, W, 6) of the path → packed to the latent grid (1, 6·t·s², n, h, w).
+4. Video transformer + flow-matching sampler (Euler/Heun over the backbone's σ schedule, NFE steps): noise →
+   video latent (1, c, n, h, w);
    the sampled first latent frame is replaced by the photograph's own latent, which is known exactly.
 5. LDRM(video latent, Plücker rays, frame times) → pixel-aligned maps of the source frames + deformation maps at
    every distinct frame time.
@@ -18,7 +20,8 @@ The photograph and the camera path come at the *output* resolution; the networks
    that repeat a surface, hide the photograph at the input view or never contribute.
 
 The networks are reached through a :class:`NetworkRuntime` (encode_image, encode_text, velocity,
-reconstruct): :class:`TorchRuntime` runs the PyTorch modules, ``diff4splat.onnx_runtime.OnnxRuntime``
+reconstruct): :class:`TorchRuntime` runs the PyTorch modules (our networks or a pretrained diffusers backbone,
+through :class:`models.backbones.base.Backbone`), ``diff4splat.onnx_runtime.OnnxRuntime``
 runs an ONNX export with onnxruntime. Everything else (validation, Plücker rays, noise, sampler, the scene's
 assembly, pruning) is this module's single implementation for both. (A *runtime* runs the networks; the
 renderer's *backend*, gsplat or PyTorch, is another choice, made in :mod:`diff4splat.render`.)
@@ -36,8 +39,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from models.bundle import DEFAULT_CONFIG, NETWORKS, WEIGHTS_DIR, Diff4SplatConfig, Diff4SplatModel, load_config
-from models.flow_matching import sample
+from models.backbones.base import LatentFormat
+from models.backbones.model import INDEX_FILE, BackboneModel, BackboneModelConfig
+from models.bundle import DEFAULT_CONFIG, WEIGHTS_DIR, Diff4SplatConfig, Diff4SplatModel, load_config
+from models.flow_matching import euler_sample, heun_sample
 from models.ldrm import LDRMOutput, source_frame_indices
 
 from .assemble import DEPTH_KINDS, assemble_scene
@@ -107,14 +112,24 @@ class NetworkRuntime(Protocol):
     """What the pipeline needs from the networks (batch 1, float32 tensors in, tensors out).
 
     Attributes:
-        config: the model's :class:`Diff4SplatConfig` (resolution, VAE factors, sampling defaults).
+        config: the model's :class:`Diff4SplatConfig` or :class:`models.backbones.model.BackboneModelConfig`
+            (resolution, LDRM, sampling defaults).
+        latent: the VAE's :class:`models.backbones.base.LatentFormat` (channels, temporal and spatial factors).
         has_deformation: whether :meth:`reconstruct` can predict deformation maps (times not None).
+        encodes_empty_prompt: whether the transformer needs the empty prompt's text embedding (a pretrained
+            backbone's unconditional input) rather than no text at all.
         name: "torch" or "onnxruntime" (written to meta.json).
     """
 
-    config: Diff4SplatConfig
+    config: Diff4SplatConfig | BackboneModelConfig
+    latent: LatentFormat
     has_deformation: bool
+    encodes_empty_prompt: bool
     name: str
+
+    def sigmas(self, steps: int) -> Tensor:
+        """The sampler's σ schedule: (steps + 1,) float64 from 1 to 0
+        (:meth:`models.backbones.base.Backbone.sigmas`)."""
 
     def encode_image(self, video: Tensor) -> Tensor:
         """(1, 3, 1, H, W) pixels in [−1, 1] → (1, c, 1, h, w) DiT-scaled latent (posterior mean)."""
@@ -124,8 +139,8 @@ class NetworkRuntime(Protocol):
 
     def velocity(self, x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor,
                  text: Tensor | None, text_mask: Tensor | None) -> Tensor:
-        """VideoDiT velocity: x (1, c, n, h, w), sigma (1,), image_latent (1, c, 1, h, w),
-        plucker (1, 1536, n, h, w), text (1, L, d) + mask (1, L) or None → (1, c, n, h, w)."""
+        """Flow-matching velocity ε − x0: x (1, c, n, h, w), sigma (1,), image_latent (1, c, 1, h, w),
+        plucker (1, 6·t·s², n, h, w), text (1, L, d) + mask (1, L) or None → (1, c, n, h, w)."""
 
     def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None, image: Tensor) -> LDRMOutput:
         """LDRM (+ deformation network when ``times`` (K,) is given) → activated maps (B, S, H, W, ·);
@@ -149,11 +164,14 @@ DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch
 
 
 class TorchRuntime:
-    """:class:`NetworkRuntime` over the PyTorch networks of a :class:`Diff4SplatModel` (eval mode, no grad).
+    """:class:`NetworkRuntime` over PyTorch networks (eval mode, no grad): our :class:`Diff4SplatModel` or a
+    pretrained diffusers backbone with our LDRM (:class:`models.backbones.model.BackboneModel`), both through their
+    :class:`models.backbones.base.Backbone`.
 
     Args:
         model: the networks; moved to ``device`` (or, with ``offload="model"``, to the CPU) and cast to
-            ``dtype``, in place.
+            ``dtype``, in place. A backbone model's text encoder (umT5-XXL / T5-XXL, 11 / 9.5 GB in bf16) stays in
+            CPU memory and visits the device only to encode the prompt.
         device: where the networks run.
         dtype: weight dtype (float32, bfloat16 or float16; None keeps the model's). The networks compute in it;
             inputs are cast to it and every output is returned in float32, so the sampler integrates and the
@@ -167,7 +185,7 @@ class TorchRuntime:
     name = "torch"
     has_deformation = True
 
-    def __init__(self, model: Diff4SplatModel, device: str | torch.device = "cpu", *,
+    def __init__(self, model: Diff4SplatModel | BackboneModel, device: str | torch.device = "cpu", *,
                  dtype: torch.dtype | None = None, offload: str = "none"):
         if offload not in OFFLOAD_MODES:
             raise ValueError(f"offload must be one of {OFFLOAD_MODES}, got {offload!r}")
@@ -176,40 +194,56 @@ class TorchRuntime:
         self.device = torch.device(device)
         self.model = model.eval() if dtype is None else model.to(dtype).eval()
         self.config = model.config
-        self.dtype = next(model.dit.parameters()).dtype
-        self.offload = ModelOffload({n: getattr(model, n) for n in NETWORKS}, self.device) if offload == "model" \
-            else None
+        self.backbone = model.backbone
+        self.latent = self.backbone.latent
+        self.encodes_empty_prompt = self.backbone.encodes_empty_prompt
+        self.networks = model.networks()
+        self.dtype = next(self.networks["dit"].parameters()).dtype
+        self.offload = ModelOffload(self.networks, self.device) if offload == "model" else None
+        # A pretrained backbone's text encoder visits the device only while it encodes.
+        self.text_visits = isinstance(model, BackboneModel) and self.offload is None
         if self.offload is None:
-            model.to(self.device)
+            for name, net in self.networks.items():
+                net.to("cpu" if self.text_visits and name == "text_encoder" else self.device)
 
     @contextmanager
     def _use(self, name: str):
-        """The network ``name`` on the device (moved there first with ``offload="model"``)."""
-        if self.offload is None:
-            yield getattr(self.model, name)
-        else:
+        """The network ``name`` on the device (moved there first with ``offload="model"``, and for a backbone's
+        text encoder; moved back after)."""
+        if self.offload is not None:
             with self.offload.use(name) as net:
                 yield net
+        elif name == "text_encoder" and self.text_visits:
+            net = self.networks[name].to(self.device)
+            try:
+                yield net
+            finally:
+                net.to("cpu")
+        else:
+            yield self.networks[name]
 
     def release(self) -> None:
         """Free the device memory of an offloaded network (nothing without offload)."""
         if self.offload is not None:
             self.offload.release()
 
+    def sigmas(self, steps: int) -> Tensor:
+        return self.model.backbone.sigmas(steps)  # ours: the config's shift as it is now
+
     def encode_image(self, video: Tensor) -> Tensor:
-        with self._use("vae") as vae:
-            return vae.encode_latents(video.to(self.dtype)).float()
+        with self._use("vae"):
+            return self.backbone.encode_video(video.to(self.dtype)).float()
 
     def encode_text(self, prompt: str) -> tuple[Tensor, Tensor]:
-        with self._use("text_encoder") as encoder:
-            tokens, mask = encoder.encode([prompt])
-        return tokens.float(), mask
+        with self._use("text_encoder"):
+            tokens, mask = self.backbone.encode_text([prompt])
+        return tokens.float().to(self.device), mask.to(self.device)
 
     def velocity(self, x, sigma, image_latent, plucker, text, text_mask) -> Tensor:
         dt = self.dtype
-        with self._use("dit") as dit:
-            return dit(x.to(dt), sigma.float(), image_latent.to(dt), plucker.to(dt),  # σ float32: its embedding casts
-                       None if text is None else text.to(dt), text_mask).float()
+        with self._use("dit"):  # σ float32: its embedding casts
+            return self.backbone.velocity(x.to(dt), sigma.float(), image_latent.to(dt), plucker.to(dt),
+                                          None if text is None else text.to(dt), text_mask).float()
 
     def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None, image: Tensor) -> LDRMOutput:
         dt = self.dtype
@@ -267,17 +301,22 @@ class GenerationResult:
 
 
 def load_model(checkpoint: str | Path | None = None, config: str = DEFAULT_CONFIG, seed: int = 0, *,
-               untrained: bool = False) -> tuple[Diff4SplatModel, str]:
+               untrained: bool = False, dtype: torch.dtype | None = None
+               ) -> tuple[Diff4SplatModel | BackboneModel, str]:
     """Load a checkpoint folder, else the shipped weights of ``config``, else a seeded random model.
 
-    ``untrained=True`` skips checkpoint and shipped weights and returns the seeded random model
-    without a warning (the baseline that evaluations compare against).
+    A checkpoint folder is ours (``config.json``: :meth:`Diff4SplatModel.from_pretrained`) or a pretrained diffusers
+    backbone's (``model_index.json``: :meth:`models.backbones.model.BackboneModel.from_pretrained`, loaded directly
+    in ``dtype``, e.g. bfloat16, never as a float32 copy first). ``untrained=True`` skips checkpoint and shipped
+    weights and returns the seeded random model without a warning (the baseline that evaluations compare against).
 
     Returns:
         (model in eval mode, a description of where the weights came from).
 
     Raises:
         FileNotFoundError: ``checkpoint`` given but missing, or an unknown config name.
+        ValueError: a folder that is neither format (one line naming both marker files).
+        ModuleNotFoundError: a diffusers folder without ``diff4splat[diffusers]`` installed.
     """
     random_source = f"random:{config}:seed={seed}"
     if untrained:
@@ -286,6 +325,11 @@ def load_model(checkpoint: str | Path | None = None, config: str = DEFAULT_CONFI
         path = Path(checkpoint)
         if not path.is_dir():
             raise FileNotFoundError(f"checkpoint: {path} is not a folder")
+        if (path / INDEX_FILE).is_file():
+            return BackboneModel.from_pretrained(path, torch_dtype=dtype, seed=seed).eval(), str(path)
+        if not (path / "config.json").is_file():
+            raise ValueError(f"checkpoint: {path} is neither a diff4splat model (config.json) nor a diffusers backbone "
+                             f"folder ({INDEX_FILE}, e.g. Wan-AI/Wan2.2-TI2V-5B-Diffusers)")
         return Diff4SplatModel.from_pretrained(path).eval(), str(path)
     shipped = WEIGHTS_DIR / config
     if (shipped / "config.json").is_file():
@@ -337,22 +381,24 @@ class Diff4SplatPipeline:
 
     Attributes:
         runtime: the :class:`NetworkRuntime` that runs the networks.
-        model: the :class:`Diff4SplatModel`, or None for another runtime.
-        config: the model's :class:`Diff4SplatConfig`.
+        model: the :class:`Diff4SplatModel` or :class:`models.backbones.model.BackboneModel`, or None for another
+            runtime.
+        config: the model's :class:`Diff4SplatConfig` or :class:`models.backbones.model.BackboneModelConfig`.
 
     Raises:
-        TypeError: ``model`` is neither a Diff4SplatModel nor a NetworkRuntime.
+        TypeError: ``model`` is neither a Diff4SplatModel, a BackboneModel nor a NetworkRuntime.
     """
 
-    def __init__(self, model: Diff4SplatModel | NetworkRuntime, device: str | torch.device = "cpu", *,
-                 dtype: torch.dtype | None = None, offload: str = "none"):
-        if isinstance(model, Diff4SplatModel):
-            self.model: Diff4SplatModel | None = model
+    def __init__(self, model: Diff4SplatModel | BackboneModel | NetworkRuntime, device: str | torch.device = "cpu",
+                 *, dtype: torch.dtype | None = None, offload: str = "none"):
+        if isinstance(model, (Diff4SplatModel, BackboneModel)):
+            self.model: Diff4SplatModel | BackboneModel | None = model
             self.runtime: NetworkRuntime = TorchRuntime(model, device, dtype=dtype, offload=offload)
         elif isinstance(model, NetworkRuntime):
             self.model, self.runtime = None, model
         else:
-            raise TypeError(f"model must be a Diff4SplatModel or a NetworkRuntime, got {type(model).__name__}")
+            raise TypeError(f"model must be a Diff4SplatModel, a BackboneModel or a NetworkRuntime, got "
+                            f"{type(model).__name__}")
         self.device = torch.device(device)
         self.config = self.runtime.config
 
@@ -379,8 +425,9 @@ class Diff4SplatPipeline:
             ValueError: ``num_frames`` not 1 + 4k (the VAE's grouping).
         """
         c = self.config
-        n = c.vae.num_latent_frames(num_frames)
-        sources = source_frame_indices(c.ldrm.gaussian_frames, n, c.vae.temporal_factor)
+        latent = self.runtime.latent
+        n = latent.num_latent_frames(num_frames)
+        sources = source_frame_indices(c.ldrm.gaussian_frames, n, latent.temporal_factor)
         return sum(layer_sizes(width, height)) + (len(sources) - 1) * c.height * c.width
 
     def memory_estimate(self, width: int, height: int, num_frames: int) -> int:
@@ -400,7 +447,7 @@ class Diff4SplatPipeline:
             ValueError: ``num_frames`` not 1 + 4k.
         """
         c = self.config
-        n = c.vae.num_latent_frames(num_frames)
+        n = self.runtime.latent.num_latent_frames(num_frames)
         slots = self.scene_slots(width, height, num_frames)
         keys = num_frames if self.runtime.has_deformation else 0
         weights = sum(p.numel() * p.element_size() for p in self.runtime.model.parameters()) \
@@ -506,7 +553,7 @@ class Diff4SplatPipeline:
             raise ValueError(f"depth_kind must be one of {DEPTH_KINDS}, got {depth_kind!r}")
         if depth is not None and tuple(depth.shape) != (H_o, W_o):
             raise ValueError(f"depth must have shape ({H_o}, {W_o}) like the image, got {tuple(depth.shape)}")
-        n = cfg.vae.num_latent_frames(len(cameras))  # raises for T ≠ 1 + 4k
+        n = runtime.latent.num_latent_frames(len(cameras))  # raises for T ≠ 1 + t·k
         steps = cfg.sampling.steps if steps is None else steps
         sampler = cfg.sampling.sampler if sampler is None else sampler
         if sampler not in ("euler", "heun"):
@@ -529,23 +576,24 @@ class Diff4SplatPipeline:
         timings["encode_image"] = clock.lap()
 
         text = text_mask = None
-        if prompt.strip():
+        if prompt.strip() or runtime.encodes_empty_prompt:
             text, text_mask = runtime.encode_text(prompt)
             text, text_mask = text.to(dev), text_mask.to(dev)
         timings["encode_text"] = clock.lap()
 
         plucker = pack_plucker(plucker_rays(cameras_model.viewmats, cameras_model.Ks, cfg.width, cfg.height)[None],
-                               cfg.vae.temporal_factor, cfg.vae.spatial_factor)  # (1, 1536, n, h, w)
+                               runtime.latent.temporal_factor, runtime.latent.spatial_factor)  # (1, 6·t·s², n, h, w)
 
         gen = torch.Generator(device="cpu").manual_seed(seed)  # CPU draws: the same noise on every device
-        noise = torch.randn((1, cfg.vae.latent_channels, n, *image_latent.shape[-2:]), generator=gen,
+        noise = torch.randn((1, runtime.latent.latent_channels, n, *image_latent.shape[-2:]), generator=gen,
                             device="cpu").to(dev)
 
         def velocity(x: Tensor, sigma: Tensor) -> Tensor:
             return runtime.velocity(x, sigma.reshape(1).to(x), image_latent, plucker, text, text_mask)
 
         if video_latents is None:
-            latents = sample(velocity, noise, steps, sampler=sampler, shift=cfg.sampling.shift, progress=progress)
+            integrate = euler_sample if sampler == "euler" else heun_sample
+            latents = integrate(velocity, noise, runtime.sigmas(steps), progress=progress)
         elif tuple(video_latents.shape) != tuple(noise.shape):
             raise ValueError(f"video_latents must have shape {tuple(noise.shape)}, got {tuple(video_latents.shape)}")
         else:
@@ -558,7 +606,8 @@ class Diff4SplatPipeline:
         out = runtime.reconstruct(latents, plucker, key_times if runtime.has_deformation else None, video[:, :, 0])
         if isinstance(runtime, TorchRuntime):
             runtime.release()  # the networks are done: an offloaded one leaves the device before pruning renders
-        sources = torch.tensor(source_frame_indices(cfg.ldrm.gaussian_frames, n, cfg.vae.temporal_factor), device=dev)
+        sources = torch.tensor(source_frame_indices(cfg.ldrm.gaussian_frames, n, runtime.latent.temporal_factor),
+                               device=dev)
         times = key_times if out.d_means is not None else None
         scene, grid, photo = assemble_scene(out, sources, cameras_model, cameras, image, times, depth=depth,
                                             depth_kind=depth_kind)

@@ -19,6 +19,7 @@ from diff4splat.config_files import MODEL_CONFIGS
 from diff4splat.io.output_folders import output_dir
 from diff4splat.io.structured import read_json, read_yaml
 
+from .backbones.ours import OursBackbone
 from .dit import VideoDiT, VideoDiTConfig
 from .flow_matching import FlowMatchingConfig
 from .ldrm import LDRM, LDRMConfig
@@ -183,6 +184,16 @@ class Diff4SplatModel(nn.Module):
         self.text_encoder = TextEncoder(config.text_encoder)
         self.dit = VideoDiT(config.dit)
         self.ldrm = LDRM(config.ldrm)
+
+    @property
+    def backbone(self) -> OursBackbone:
+        """The VAE, text encoder and DiT as a :class:`models.backbones.base.Backbone` (a view: the modules are
+        this model's; not a sub-module, so the state dict keeps its keys), with the config's sampling shift."""
+        return OursBackbone(self.vae, self.text_encoder, self.dit, self.config.sampling.shift)
+
+    def networks(self) -> dict[str, nn.Module]:
+        """The four networks by name (:data:`NETWORKS`)."""
+        return {name: getattr(self, name) for name in _MODULES}
 
     def parameter_counts(self) -> dict[str, int]:
         """Parameters per network and in total (works on the meta device)."""

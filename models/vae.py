@@ -36,6 +36,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from models.backbones.base import LatentFormat
 from models.pretrained import PretrainedMixin
 
 __all__ = ["VideoVAEConfig", "PAPER_VIDEO_VAE", "VideoVAE", "CausalConv3d", "FrameGroupNorm", "ResBlock3d",
@@ -114,16 +115,20 @@ class VideoVAEConfig:
         """Temporal compression of frames after the first (4 for two temporal downsamples)."""
         return 2 ** sum(self.temporal_downsample)
 
+    @property
+    def latent_format(self) -> LatentFormat:
+        """Channels and compression as a :class:`models.backbones.base.LatentFormat` (the one home of the frame
+        grouping arithmetic)."""
+        return LatentFormat(self.latent_channels, self.temporal_factor, self.spatial_factor)
+
     def num_latent_frames(self, num_frames: int) -> int:
-        """n = 1 + (T − 1)/temporal_factor. Raises ValueError unless T = 1 + temporal_factor·k, k ≥ 0."""
-        if num_frames < 1 or (num_frames - 1) % self.temporal_factor:
-            raise ValueError(f"video: T={num_frames} frames; T must be 1 + {self.temporal_factor}·k "
-                             f"(1, {1 + self.temporal_factor}, {1 + 2 * self.temporal_factor}, …)")
-        return 1 + (num_frames - 1) // self.temporal_factor
+        """n = 1 + (T − 1)/temporal_factor (:meth:`LatentFormat.num_latent_frames`). Raises ValueError unless
+        T = 1 + temporal_factor·k, k ≥ 0."""
+        return self.latent_format.num_latent_frames(num_frames)
 
     def num_frames(self, num_latent_frames: int) -> int:
         """T = 1 + temporal_factor·(n − 1), the decoded length of n ≥ 1 latent frames."""
-        return 1 + self.temporal_factor * (num_latent_frames - 1)
+        return self.latent_format.num_frames(num_latent_frames)
 
     @classmethod
     def paper(cls) -> VideoVAEConfig:

@@ -272,9 +272,10 @@ def test_result_reports_the_steps_and_sampler_actually_used(image, monkeypatch):
     pipe = Diff4SplatPipeline(tiny_model())
     assert isinstance(pipe.runtime, TorchRuntime) and pipe.runtime.name == "torch"
     seen = []
-    real_sample = pipeline.sample
-    monkeypatch.setattr(pipeline, "sample", lambda v, x, steps, sampler, **kw: seen.append((steps, sampler))
-                        or real_sample(v, x, steps, sampler=sampler, **kw))
+    for name in ("euler", "heun"):
+        real = getattr(pipeline, f"{name}_sample")
+        monkeypatch.setattr(pipeline, f"{name}_sample", lambda v, x, sigmas, real=real, name=name, **kw:
+                            seen.append((len(sigmas) - 1, name)) or real(v, x, sigmas, **kw))
     cams = pipe.default_cameras("orbit", 5)
     pipe.config.sampling.steps, pipe.config.sampling.sampler = 3, "heun"
     res = pipe(image, cams, "")

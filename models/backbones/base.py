@@ -58,14 +58,14 @@ class LatentFormat:
         return 6 * self.temporal_factor * self.spatial_factor ** 2
 
     def num_latent_frames(self, num_frames: int) -> int:
-        """n = 1 + (T − 1)/t. Raises ValueError for T ≠ 1 + t·k."""
-        if isinstance(num_frames, bool) or not isinstance(num_frames, int) or num_frames < 1 \
-                or (num_frames - 1) % self.temporal_factor:
-            raise ValueError(f"frames must be 1 + {self.temporal_factor}·k, got {num_frames!r}")
-        return 1 + (num_frames - 1) // self.temporal_factor
+        """n = 1 + (T − 1)/t. Raises ValueError unless T = 1 + t·k, k ≥ 0."""
+        t = self.temporal_factor
+        if num_frames < 1 or (num_frames - 1) % t:  # no isinstance: an ONNX export traces T as a SymInt
+            raise ValueError(f"video: T={num_frames} frames; T must be 1 + {t}·k (1, {1 + t}, {1 + 2 * t}, …)")
+        return 1 + (num_frames - 1) // t
 
     def num_frames(self, num_latent_frames: int) -> int:
-        """T = 1 + t·(n − 1)."""
+        """T = 1 + t·(n − 1), the decoded length of n ≥ 1 latent frames."""
         return 1 + self.temporal_factor * (num_latent_frames - 1)
 
 
@@ -129,10 +129,14 @@ class Backbone(nn.Module, abc.ABC):
     Attributes:
         kind: one of :data:`BACKBONE_KINDS`.
         latent: the :class:`LatentFormat`.
+        encodes_empty_prompt: True when the transformer was trained with the empty prompt's text embedding as its
+            unconditional input (the pretrained backbones), so the pipeline encodes "" when there is no prompt;
+            False (ours): no prompt means no text tokens, and no text encoder runs.
     """
 
     kind: str
     latent: LatentFormat
+    encodes_empty_prompt: bool = False
 
     @abc.abstractmethod
     def encode_video(self, video: Tensor, generator: torch.Generator | None = None) -> Tensor:

@@ -23,6 +23,8 @@ from diffusers import DiffusionPipeline
 from safetensors.torch import load_file, save_file
 from torch import nn
 
+from diff4splat.io.structured import read_json
+
 from .base import Backbone, CameraPatchConv, LatentFormat
 
 __all__ = ["DiffusersBackbone", "CAMERA_FOLDER", "CAMERA_WEIGHTS"]
@@ -57,6 +59,7 @@ class DiffusersBackbone(Backbone):
             embedding is replaced by a :class:`CameraPatchConv` (camera weights zero) in place.
     """
 
+    encodes_empty_prompt = True  # both were trained with T5/umT5("") as the unconditional text
     pipeline_class: ClassVar[type[DiffusionPipeline]]
     pipeline_names: ClassVar[tuple[str, ...]]
     patch_conv_path: ClassVar[str]
@@ -129,7 +132,13 @@ class DiffusersBackbone(Backbone):
             ValueError: a folder of another pipeline, or camera weights of the wrong shape.
         """
         directory = Path(directory)
-        pipe = cls.pipeline_class.from_pretrained(directory, torch_dtype=torch_dtype, local_files_only=True)
+        index = directory / "model_index.json"
+        if not index.is_file():
+            raise FileNotFoundError(f"checkpoint: {index} does not exist")
+        name = read_json(index, "checkpoint").get("_class_name")
+        if name not in cls.pipeline_names:
+            raise ValueError(f"checkpoint: {index} is a {name!r} folder, not one of {', '.join(cls.pipeline_names)}")
+        pipe = cls.pipeline_class.from_pretrained(str(directory), torch_dtype=torch_dtype, local_files_only=True)
         parts = {k: v for k, v in pipe.components.items() if k in ("transformer", "vae", "text_encoder",
                                                                     "tokenizer", "scheduler")}
         backbone = cls(**parts)

@@ -1,0 +1,230 @@
+"""A pretrained diffusers backbone with our LDRM: the model ``generate --checkpoint DIR`` runs for a diffusers folder.
+
+A folder (docs/DESIGN.md, "Backbones") is the Hub layout of the backbone (``model_index.json``, ``transformer/``,
+``vae/``, ``text_encoder/``, ``tokenizer/``, ``scheduler/``; :mod:`models.backbones.diffusers_backbone`) plus our
+``camera/`` (the patch embedding's camera weights), ``ldrm/`` (:class:`models.ldrm.LDRM`) and ``diff4splat.json``
+(:class:`BackboneModelConfig`). A folder fresh from the Hub has none of ours: the camera weights start at zero, the
+config takes the backbone's defaults (:data:`DEFAULTS`) and the LDRM is random (with a warning).
+
+Only :func:`backbone_class` imports a backbone module, and with it diffusers: the CPU default never does.
+"""
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import json
+import os
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from diff4splat.io.output_folders import output_dir
+from diff4splat.io.structured import read_json
+
+from ..flow_matching import FlowMatchingConfig
+from ..ldrm import LDRM, LDRMConfig
+from ..pretrained import MODEL_KIND, config_from_dict, count_parameters
+from .base import Backbone, LatentFormat
+
+__all__ = ["BackboneModel", "BackboneModelConfig", "backbone_class", "folder_backbone", "DEFAULTS",
+           "CONFIG_FILE", "INDEX_FILE", "PIPELINES"]
+
+INDEX_FILE = "model_index.json"
+CONFIG_FILE = "diff4splat.json"
+LDRM_FOLDER = "ldrm"
+
+PIPELINES = {
+    "WanPipeline": "wan2.2-ti2v",
+    "WanImageToVideoPipeline": "wan2.2-ti2v",
+    "CogVideoXImageToVideoPipeline": "cogvideox-i2v",
+}
+"""``model_index.json`` ``_class_name`` → backbone kind."""
+_MODULES = {"wan2.2-ti2v": ("models.backbones.wan", "WanBackbone"),
+            "cogvideox-i2v": ("models.backbones.cogvideox", "CogVideoXBackbone")}
+
+DEFAULTS = {
+    # Wan2.2-TI2V-5B: 720p-class video, 1280×704, 121 frames at 24 fps (Wan-Video/Wan2.2 README; its diffusers
+    # example uses height 704, width 1280, num_frames 121).
+    "wan2.2-ti2v": dict(name="wan2.2-ti2v-5b", height=704, width=1280, num_frames=121),
+    # CogVideoX-5B-I2V: 720×480, 49 frames at 8 fps (THUDM/CogVideoX-5b-I2V model card).
+    "cogvideox-i2v": dict(name="cogvideox-5b-i2v", height=480, width=720, num_frames=49),
+}
+"""Model resolution and clip length of each backbone as released (what a folder without ``diff4splat.json`` uses)."""
+
+
+@dataclass
+class BackboneModelConfig:
+    """A backbone model's configuration (``diff4splat.json``): the fields of :class:`models.bundle.Diff4SplatConfig`
+    the pipeline reads, with the backbone in place of our VAE, text encoder and DiT.
+
+    Attributes:
+        name: model name (meta.json ``config``).
+        backbone: one of the kinds of :data:`PIPELINES`.
+        height, width: model resolution in pixels (multiples of the VAE's spatial factor × the patch sizes).
+        num_frames: default clip length T = 1 + 4k.
+        fov_y_deg, scene_depth, prune_opacity, static_atol: as :class:`models.bundle.Diff4SplatConfig`.
+        vae: the backbone VAE's :class:`LatentFormat` (taken from the loaded VAE; a saved one must agree).
+        ldrm: the LDRM's config on the backbone's latents (``latent_channels``, ``vae_temporal``, ``vae_spatial``
+            from ``vae``); the paper's sizes (:meth:`LDRMConfig.paper`) by default.
+        sampling: ``steps`` and ``sampler`` of our sampler; ``shift`` is informational (the σ schedule is the
+            backbone scheduler's, :meth:`Backbone.sigmas`).
+    """
+
+    name: str = "wan2.2-ti2v-5b"
+    backbone: str = "wan2.2-ti2v"
+    height: int = 704
+    width: int = 1280
+    num_frames: int = 121
+    fov_y_deg: float = 50.0
+    scene_depth: float = 2.0
+    prune_opacity: float = 0.005
+    static_atol: float = 1e-6
+    vae: LatentFormat = field(default_factory=lambda: LatentFormat(48, 4, 16))
+    ldrm: LDRMConfig = field(default_factory=LDRMConfig.paper)
+    sampling: FlowMatchingConfig = field(default_factory=lambda: FlowMatchingConfig(steps=50))
+
+    def __post_init__(self) -> None:
+        if isinstance(self.vae, dict):
+            self.vae = LatentFormat(**self.vae)
+        if self.backbone not in _MODULES:
+            raise ValueError(f"backbone must be one of {sorted(_MODULES)}, got {self.backbone!r}")
+        v, ld = self.vae, self.ldrm
+        if (ld.latent_channels, ld.vae_temporal, ld.vae_spatial) != (v.latent_channels, v.temporal_factor,
+                                                                     v.spatial_factor):
+            raise ValueError(f"ldrm (latent_channels, vae_temporal, vae_spatial) = ({ld.latent_channels}, "
+                             f"{ld.vae_temporal}, {ld.vae_spatial}) must match the backbone VAE's "
+                             f"({v.latent_channels}, {v.temporal_factor}, {v.spatial_factor})")
+        unit = v.spatial_factor * max(2, ld.patch_size)  # the transformers' 2×2 patches
+        for name in ("height", "width"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value <= 0 or value % unit:
+                raise ValueError(f"{name} must be a positive multiple of {unit} pixels, got {value!r}")
+        v.num_latent_frames(self.num_frames)
+
+    @classmethod
+    def for_backbone(cls, kind: str, latent: LatentFormat, **overrides) -> BackboneModelConfig:
+        """The released defaults of backbone ``kind`` (:data:`DEFAULTS`) on ``latent``, the paper's LDRM sizes."""
+        ldrm = dataclasses.replace(LDRMConfig.paper(), latent_channels=latent.latent_channels,
+                                   vae_temporal=latent.temporal_factor, vae_spatial=latent.spatial_factor)
+        return cls(**{**DEFAULTS[kind], "backbone": kind, "vae": latent, "ldrm": ldrm, **overrides})
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def folder_backbone(directory: str | os.PathLike) -> str:
+    """The backbone kind of a diffusers folder, from ``model_index.json``'s ``_class_name``.
+
+    Raises:
+        FileNotFoundError: no ``model_index.json``.
+        ValueError: an unreadable index or a pipeline that is not one of :data:`PIPELINES`.
+    """
+    index = Path(directory) / INDEX_FILE
+    if not index.is_file():
+        raise FileNotFoundError(f"checkpoint: {index} does not exist")
+    name = read_json(index, "checkpoint").get("_class_name")
+    if name not in PIPELINES:
+        raise ValueError(f"checkpoint: {index} is a {name!r} folder; diff4splat runs {', '.join(sorted(PIPELINES))}")
+    return PIPELINES[name]
+
+
+def backbone_class(kind: str) -> type[Backbone]:
+    """The :class:`Backbone` subclass of ``kind``, imported on demand (it imports diffusers).
+
+    Raises:
+        ValueError: an unknown kind.
+        ModuleNotFoundError: diffusers or transformers missing (the message names ``diff4splat[diffusers]``).
+    """
+    if kind not in _MODULES:
+        raise ValueError(f"backbone must be one of {sorted(_MODULES)}, got {kind!r}")
+    module, name = _MODULES[kind]
+    try:
+        return getattr(importlib.import_module(module), name)
+    except ModuleNotFoundError as e:
+        raise ModuleNotFoundError(f"the {kind} backbone needs {e.name}: pip install 'diff4splat[diffusers]'"
+                                  ) from None
+
+
+class BackboneModel(nn.Module):
+    """A diffusers backbone (:class:`Backbone`) and our LDRM under one :class:`BackboneModelConfig`.
+
+    Args:
+        backbone: the video backbone (VAE, text encoder, camera-conditioned transformer).
+        ldrm: the LDRM on its latents.
+        config: the model config (``config.vae`` must be ``backbone.latent``).
+    """
+
+    def __init__(self, backbone: Backbone, ldrm: LDRM, config: BackboneModelConfig):
+        super().__init__()
+        if backbone.latent != config.vae:
+            raise ValueError(f"config.vae {config.vae} differs from the backbone's {backbone.latent}")
+        self.backbone, self.ldrm, self.config = backbone, ldrm, config
+
+    def networks(self) -> dict[str, nn.Module]:
+        """The four networks by the pipeline's names (``vae``, ``text_encoder``, ``dit``: the transformer,
+        ``ldrm``)."""
+        b = self.backbone
+        return {"vae": b.vae, "text_encoder": b.text_encoder, "dit": b.transformer, "ldrm": self.ldrm}
+
+    def parameter_counts(self) -> dict[str, int]:
+        """Parameters per network and in total (works on the meta device)."""
+        counts = {name: count_parameters(net) for name, net in self.networks().items()}
+        counts["total"] = sum(counts.values())
+        return counts
+
+    def save_pretrained(self, directory: str | os.PathLike, *, overwrite: bool = False) -> Path:
+        """Write the Hub layout, ``camera/``, ``ldrm/`` and ``diff4splat.json`` atomically (temp folder + rename,
+        :func:`diff4splat.io.output_folders.output_dir`, kind ``"model"``).
+
+        Raises:
+            OutputDirError: ``directory`` may not be written or replaced.
+        """
+        directory = Path(directory)
+        with output_dir(directory, kind=MODEL_KIND, overwrite=overwrite, parents=True) as tmp:
+            self.backbone.write_pretrained(tmp)
+            self.ldrm.write_pretrained(tmp / LDRM_FOLDER)
+            (tmp / CONFIG_FILE).write_text(json.dumps(self.config.to_dict(), indent=2))
+        return directory
+
+    @classmethod
+    def from_pretrained(cls, directory: str | os.PathLike, torch_dtype: torch.dtype | None = None,
+                        seed: int = 0) -> BackboneModel:
+        """Load a backbone folder from a local path (nothing is downloaded).
+
+        Args:
+            directory: the folder (module docstring).
+            torch_dtype: dtype the networks are loaded in (e.g. ``torch.bfloat16``); None: as saved.
+            seed: seed of the random LDRM of a folder without ``ldrm/``.
+
+        Raises:
+            FileNotFoundError: no ``model_index.json``.
+            ValueError: another pipeline's folder; a ``diff4splat.json`` or ``ldrm/`` that does not fit the backbone.
+            ModuleNotFoundError: diffusers missing (:func:`backbone_class`).
+        """
+        directory = Path(directory)
+        kind = folder_backbone(directory)
+        backbone = backbone_class(kind).from_pretrained(directory, torch_dtype=torch_dtype)
+        if (directory / CONFIG_FILE).is_file():
+            data = read_json(directory / CONFIG_FILE, "checkpoint")
+            config = config_from_dict(BackboneModelConfig, data, str(directory / CONFIG_FILE))
+            if config.backbone != kind or config.vae != backbone.latent:
+                raise ValueError(f"checkpoint: {directory / CONFIG_FILE} describes a {config.backbone} backbone with "
+                                 f"{config.vae}; the folder holds a {kind} with {backbone.latent}")
+        else:
+            config = BackboneModelConfig.for_backbone(kind, backbone.latent)
+        if (directory / LDRM_FOLDER).is_dir():
+            ldrm = LDRM.from_pretrained(directory / LDRM_FOLDER)
+            if ldrm.config != config.ldrm:
+                raise ValueError(f"checkpoint: {directory / LDRM_FOLDER} config differs from {directory / CONFIG_FILE}")
+        else:
+            warnings.warn(f"{directory} has no {LDRM_FOLDER}/: using a randomly initialised LDRM (seed {seed}); "
+                          f"train it (docs/DESIGN.md, 'Backbones') before judging its scenes", stacklevel=2)
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(seed)
+                ldrm = LDRM(config.ldrm)
+        if torch_dtype is not None:
+            ldrm = ldrm.to(torch_dtype)
+        return cls(backbone, ldrm, config)

@@ -1,0 +1,61 @@
+"""Our own networks as a :class:`models.backbones.base.Backbone`: the video VAE, the byte-level T5 text encoder
+and the VideoDiT of a :class:`models.bundle.Diff4SplatModel` (the CPU default), unchanged: every method is a call
+of the network's own method, so outputs are bit-identical to calling the networks directly."""
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from ..dit import VideoDiT
+from ..flow_matching import sample_logit_normal, shift_sigmas, sigma_schedule
+from ..text_encoder import TextEncoder
+from ..vae import VideoVAE
+from .base import Backbone
+
+__all__ = ["OursBackbone"]
+
+
+class OursBackbone(Backbone):
+    """Backbone over our VAE, text encoder and DiT (their modules are shared, not copied).
+
+    Args:
+        vae, text_encoder, dit: the networks of a :class:`models.bundle.Diff4SplatModel`.
+        shift: the flow-matching timestep shift of the inference schedule and of :meth:`training_sigmas`
+            (``config.sampling.shift``; a training stage passes its ``flow_shift``).
+    """
+
+    kind = "ours"
+
+    def __init__(self, vae: VideoVAE, text_encoder: TextEncoder, dit: VideoDiT, shift: float = 1.0):
+        super().__init__()
+        self.vae, self.text_encoder, self.dit, self.shift = vae, text_encoder, dit, shift
+        self.latent = vae.config.latent_format
+
+    def encode_video(self, video: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """:meth:`VideoVAE.encode_latents`: the posterior mean, or a sample drawn with ``generator``."""
+        return self.vae.encode_latents(video, sample_posterior=generator is not None, generator=generator)
+
+    def decode_latents(self, latents: Tensor) -> Tensor:
+        return self.vae.decode_latents(latents)
+
+    def encode_text(self, prompts: list[str]) -> tuple[Tensor, Tensor]:
+        """:meth:`TextEncoder.encode` (byte tokens, zeros at padding)."""
+        return self.text_encoder.encode(prompts)
+
+    def velocity(self, x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor,
+                 text: Tensor | None, text_mask: Tensor | None) -> Tensor:
+        """:meth:`VideoDiT.forward` (the image latent concatenated with a frame-0 mask; no prompt: no text
+        tokens, the text encoder does not run)."""
+        return self.dit(x, sigma, image_latent, plucker, text, text_mask)
+
+    def sigmas(self, steps: int) -> Tensor:
+        """:func:`models.flow_matching.sigma_schedule` with :attr:`shift`, float64."""
+        return sigma_schedule(steps, self.shift, dtype=torch.float64)
+
+    def training_sigmas(self, n: int, generator: torch.Generator) -> Tensor:
+        """Logit-normal σ (SD3 §3.1) shifted by :attr:`shift`, on ``generator``'s device
+        (``training.losses.sample_training_sigmas``' draw)."""
+        return shift_sigmas(sample_logit_normal(n, generator=generator, device=generator.device), self.shift)
+
+    def transformer_blocks(self) -> list[nn.Module]:
+        return list(self.dit.blocks)
