@@ -1,0 +1,97 @@
+"""`diff4splat generate --checkpoint DIR` end to end on tiny diffusers backbone folders (issue 30, test (e)): a Hub
+layout written by the backbone, plus our ``ldrm/``, ``camera/`` and ``diff4splat.json``, loaded and run on the CPU."""
+import importlib
+import json
+
+import pytest
+import torch
+
+pytest.importorskip("diffusers", reason="the diffusers backbones need diff4splat[diffusers]")
+
+from helpers import EXAMPLE_IMAGE  # noqa: E402
+
+from diff4splat.cli import main  # noqa: E402
+from diff4splat.pipeline import Diff4SplatPipeline, load_model  # noqa: E402
+from models.backbones.model import BackboneModel, BackboneModelConfig  # noqa: E402
+from models.deformation import DeformationConfig  # noqa: E402
+from models.flow_matching import FlowMatchingConfig  # noqa: E402
+from models.ldrm import LDRM, LDRMConfig  # noqa: E402
+
+FIXTURES = {"cogvideox": "tiny_cogvideox", "wan": "tiny_wan"}
+
+
+def _fixture(kind: str):
+    try:
+        return importlib.import_module(FIXTURES[kind])
+    except ModuleNotFoundError as e:
+        pytest.skip(f"{FIXTURES[kind]} not available: {e}")
+
+
+def tiny_backbone_model(kind: str, seed: int = 0) -> BackboneModel:
+    """The tiny backbone of ``kind`` with non-zero camera weights and a tiny random LDRM on its latents."""
+    fixture = _fixture(kind)
+    backbone = fixture.tiny_backbone(seed, camera_std=0.02)
+    lat = backbone.latent
+    ldrm_cfg = LDRMConfig(latent_channels=lat.latent_channels, vae_temporal=lat.temporal_factor,
+                          vae_spatial=lat.spatial_factor, patch_size=1, embed_dim=32, depth=1, num_heads=2,
+                          head_channels=16, deformation=DeformationConfig(in_channels=32, hidden=32))
+    torch.manual_seed(seed)
+    config = BackboneModelConfig(name=f"tiny-{kind}", backbone=backbone.kind, height=fixture.HEIGHT,
+                                 width=fixture.WIDTH, num_frames=fixture.FRAMES, vae=lat, ldrm=ldrm_cfg,
+                                 sampling=FlowMatchingConfig(steps=2))
+    return BackboneModel(backbone, LDRM(ldrm_cfg), config).eval()
+
+
+@pytest.fixture(params=sorted(FIXTURES))
+def folder(request, tmp_path):
+    model = tiny_backbone_model(request.param)
+    path = tmp_path / f"tiny-{request.param}"
+    model.save_pretrained(path)
+    return path, model
+
+
+@pytest.mark.slow
+def test_saved_folder_reloads_to_the_same_scene(folder):
+    """save → load_model (detected by model_index.json) → the same latents and Gaussians as the model in memory."""
+    path, model = folder
+    loaded, source = load_model(path)
+    assert isinstance(loaded, BackboneModel) and source == str(path) and loaded.config == model.config
+    results = []
+    for m in (model, loaded):
+        pipe = Diff4SplatPipeline(m)
+        cams = pipe.default_cameras("orbit", m.config.num_frames)
+        image = torch.rand(m.config.height, m.config.width, 3, generator=torch.Generator().manual_seed(1))
+        results.append(pipe(image, cams, "a cat walking", seed=3))
+    a, b = results
+    torch.testing.assert_close(a.latents, b.latents, rtol=0, atol=1e-6)
+    torch.testing.assert_close(a.scene.canonical.means, b.scene.canonical.means, rtol=0, atol=1e-5)
+
+
+@pytest.mark.slow
+def test_generate_cli_runs_a_backbone_folder(folder, tmp_path):
+    """`diff4splat generate photo --checkpoint DIR` writes a whole output folder; meta.json names the model."""
+    path, model = folder
+    out = tmp_path / "out"
+    code = main(["generate", str(EXAMPLE_IMAGE), "--checkpoint", str(path), "--frames", str(model.config.num_frames),
+                 "--resolution", "64", "--prompt", "waves on the beach", "--quiet", "--out", str(out)])
+    assert code == 0
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["config"] == model.config.name and meta["frames"] == model.config.num_frames
+    assert (meta["model_width"], meta["model_height"]) == (model.config.width, model.config.height)
+    assert meta["num_gaussians"] > 0 and (out / "scene.ply").is_file() and (out / "video.mp4").is_file()
+
+
+def test_a_folder_of_neither_format_is_one_clear_error(tmp_path, capsys):
+    (tmp_path / "ckpt").mkdir()
+    (tmp_path / "ckpt" / "weights.bin").write_bytes(b"x")
+    code = main(["generate", str(EXAMPLE_IMAGE), "--checkpoint", str(tmp_path / "ckpt"), "--quiet",
+                 "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "config.json" in err[0] and "model_index.json" in err[0]
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_folder_of_another_pipeline_is_refused(tmp_path):
+    (tmp_path / "model_index.json").write_text(json.dumps({"_class_name": "StableDiffusionPipeline"}))
+    with pytest.raises(ValueError, match="StableDiffusionPipeline"):
+        load_model(tmp_path)
