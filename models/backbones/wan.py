@@ -1,0 +1,330 @@
+"""Wan2.2-TI2V-5B as a :class:`models.backbones.base.Backbone`: diffusers' ``AutoencoderKLWan`` (48 channels,
+4×16×16 compression), the UMT5-XXL text encoder and ``WanTransformer3DModel`` with its patch embedding widened by the
+camera channels (docs/DESIGN.md, "Backbones").
+
+Sources: the Wan report (Wan Team, "Wan: Open and Advanced Large-Scale Video Generative Models", arXiv 2503.20314)
+and the Wan2.2 repository (github.com/Wan-Video/Wan2.2, ``wan/textimage2video.py``, ``wan/configs/wan_ti2v_5B.py``);
+in diffusers, ``pipelines/wan/pipeline_wan_i2v.py`` (``WanImageToVideoPipeline``: ``prepare_latents`` and the
+denoising loop of ``__call__`` with ``expand_timesteps=True``, the path the diffusers docs and tests run TI2V-5B
+image-to-video with), ``pipelines/wan/pipeline_wan.py`` (``WanPipeline.encode_prompt``, ``_get_t5_prompt_embeds``)
+and ``schedulers/scheduling_flow_match_euler_discrete.py`` / ``scheduling_unipc_multistep.py``.
+
+The Hub folder ``Wan-AI/Wan2.2-TI2V-5B-Diffusers`` is a ``WanPipeline`` folder (``model_index.json``:
+``"_class_name": "WanPipeline"``, ``"expand_timesteps": true``, no ``transformer_2``, a ``UniPCMultistepScheduler``
+with flow sigmas and ``flow_shift`` 5.0); we load and save it with ``WanImageToVideoPipeline``, the class whose
+``expand_timesteps`` path is the image-conditioned one (a ``WanPipeline`` folder loads with it unchanged; the folder
+we write says ``WanImageToVideoPipeline``, and both names are accepted).
+
+Imports diffusers, transformers and ftfy (diffusers' Wan prompt cleaning, ``pipeline_wan.prompt_clean``, calls
+``ftfy.fix_text``: without ftfy ``encode_prompt`` fails with a NameError, so its absence fails here, at import).
+"""
+from __future__ import annotations
+
+import copy
+import os
+from pathlib import Path
+
+import ftfy  # noqa: F401  (needed by diffusers' Wan prompt cleaning; see the module docstring)
+import torch
+from diffusers import AutoencoderKLWan, WanImageToVideoPipeline
+from torch import Tensor, nn
+
+from diff4splat.io.structured import read_json
+
+from ..flow_matching import sample_logit_normal, shift_sigmas
+from .base import LatentFormat
+from .diffusers_backbone import DiffusersBackbone
+
+__all__ = ["WanBackbone"]
+
+INDEX_FILE = "model_index.json"
+
+
+class WanBackbone(DiffusersBackbone):
+    """Wan2.2-TI2V-5B: ``AutoencoderKLWan`` + UMT5 + ``WanTransformer3DModel`` (camera-widened patch embedding).
+
+    Conventions (module :mod:`models.backbones.base`):
+
+    - **Latents**: ``(z − latents_mean)/latents_std`` per channel of the VAE's posterior (the pipeline's
+      ``prepare_latents`` writes it ``(z − mean)·(1/std)``, and so do we, for the same bits), (B, 48, n, H/16, W/16).
+    - **Velocity**: Wan's transformer predicts exactly our ``ε − x0`` at timestep ``1000·σ``; nothing is converted.
+      From the scheduler code: ``FlowMatchEulerDiscreteScheduler.scale_noise`` builds ``σ·noise + (1 − σ)·sample``
+      (our ``x_σ``), its ``step`` is ``x + (σ_next − σ)·model_output`` (an Euler step of dx/dσ = model_output, so the
+      output is dx_σ/dσ = ε − x0) with ``timesteps = sigmas·num_train_timesteps``; ``UniPCMultistepScheduler`` with
+      ``prediction_type="flow_prediction"`` (the Hub folder's) recovers ``x0 = sample − σ·model_output``
+      (``convert_model_output``), the same statement, as in Wan2.2's own ``wan/utils/fm_solvers_unipc.py``.
+    - **First frame** (TI2V, ``expand_timesteps=True``): latent frame 0 of the transformer input is the photograph's
+      latent and its tokens get timestep 0; the other tokens get ``1000·σ`` (a per-token timestep (B, seq_len)).
+    - **Text**: UMT5 embeddings of the prompt, zeroed after its last token and padded to
+      :attr:`max_sequence_length` (512) tokens, all of which the transformer attends to (Wan has no text mask).
+
+    Args: as :class:`DiffusersBackbone` (``from_pretrained`` for a folder).
+
+    Raises:
+        TypeError: ``vae`` is not an ``AutoencoderKLWan``.
+        ValueError: a transformer that is not a TI2V one (input/output channels ≠ the VAE's ``z_dim``, or image
+            embeddings: Wan2.1 I2V), or a VAE config without its scale factors.
+    """
+
+    kind = "wan2.2-ti2v"
+    pipeline_class = WanImageToVideoPipeline
+    pipeline_names = ("WanPipeline", "WanImageToVideoPipeline")
+    patch_conv_path = "patch_embedding"
+    max_sequence_length: int = 512
+    """Text tokens (the pipelines' ``max_sequence_length`` default, Wan2.2's ``text_len``); longer prompts are cut."""
+
+    def __init__(self, transformer: nn.Module, vae: nn.Module, text_encoder: nn.Module, tokenizer, scheduler):
+        c, z = transformer.config, getattr(getattr(vae, "config", None), "z_dim", None)
+        if c.in_channels != z or c.out_channels != z or c.image_dim is not None or len(c.patch_size) != 3:
+            raise ValueError(f"WanBackbone runs a TI2V transformer ({z} latent channels in and out, no image "
+                             f"embeddings); got in_channels {c.in_channels}, out_channels {c.out_channels}, "
+                             f"image_dim {c.image_dim}, patch_size {c.patch_size}")
+        super().__init__(transformer, vae, text_encoder, tokenizer, scheduler)
+        self._empty_text: Tensor | None = None  # cached embedding of "" (the text encoder is frozen)
+
+    @staticmethod
+    def latent_format(vae: nn.Module) -> LatentFormat:
+        """``LatentFormat(z_dim, scale_factor_temporal, scale_factor_spatial)`` of an ``AutoencoderKLWan`` config
+        (48, 4, 16 for Wan2.2's VAE; 16, 4, 8 for Wan2.1's).
+
+        Raises:
+            TypeError: not an ``AutoencoderKLWan``.
+            ValueError: a scale factor missing from its config.
+        """
+        if not isinstance(vae, AutoencoderKLWan):
+            raise TypeError(f"vae must be an AutoencoderKLWan, got {type(vae).__name__}")
+        c = vae.config
+        if not isinstance(c.scale_factor_temporal, int) or not isinstance(c.scale_factor_spatial, int):
+            raise ValueError(f"the VAE config needs scale_factor_temporal and scale_factor_spatial, got "
+                             f"{c.scale_factor_temporal!r}, {c.scale_factor_spatial!r}")
+        return LatentFormat(c.z_dim, c.scale_factor_temporal, c.scale_factor_spatial)
+
+    def pipeline_kwargs(self) -> dict:
+        """``expand_timesteps=True``: the TI2V path (first latent frame = the image, its tokens at timestep 0)."""
+        return {"expand_timesteps": True}
+
+    @classmethod
+    def from_pretrained(cls, directory: str | os.PathLike, torch_dtype: torch.dtype | None = None) -> WanBackbone:
+        """Load a Wan2.2-TI2V folder (the Hub's ``WanPipeline`` one or ours) from a local path; nothing is
+        downloaded. As :meth:`DiffusersBackbone.from_pretrained`, after checking ``model_index.json``.
+
+        Raises:
+            FileNotFoundError: no ``model_index.json``.
+            ValueError: ``_class_name`` not in :attr:`pipeline_names`; not a TI2V folder (``expand_timesteps`` not
+                true, or a ``transformer_2``: Wan2.1 or Wan2.2-A14B); camera weights of the wrong shape.
+        """
+        index = Path(directory) / INDEX_FILE
+        if not index.is_file():
+            raise FileNotFoundError(f"checkpoint: {index} does not exist")
+        data = read_json(index, "checkpoint")
+        name = data.get("_class_name")
+        if name not in cls.pipeline_names:
+            raise ValueError(f"checkpoint: {index} is a {name!r} folder; {cls.__name__} loads "
+                             f"{', '.join(cls.pipeline_names)}")
+        second = data.get("transformer_2")
+        if data.get("expand_timesteps") is not True or second not in (None, [None, None]):
+            raise ValueError(f"checkpoint: {index} is not a Wan2.2-TI2V folder (expand_timesteps "
+                             f"{data.get('expand_timesteps')!r}, transformer_2 {second!r}; expected true and none)")
+        return super().from_pretrained(directory, torch_dtype=torch_dtype)
+
+    # ---------------------------------------------------------------- VAE
+
+    def _latent_stats(self, device: torch.device) -> tuple[Tensor, Tensor]:
+        """(1, c, 1, 1, 1) float32 ``latents_mean`` and ``1/latents_std``, computed as ``prepare_latents`` does."""
+        c = self.vae.config
+        mean = torch.tensor(c.latents_mean, dtype=torch.float32, device=device).view(1, c.z_dim, 1, 1, 1)
+        inv_std = 1.0 / torch.tensor(c.latents_std, dtype=torch.float32, device=device).view(1, c.z_dim, 1, 1, 1)
+        return mean, inv_std
+
+    def encode_video(self, video: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """Pixels → normalised latents: ``(z − latents_mean)·(1/latents_std)`` per channel, z the posterior's mode
+        (``retrieve_latents(..., sample_mode="argmax")`` in ``prepare_latents``), or a posterior sample drawn with
+        ``generator``.
+
+        Args:
+            video: (B, 3, T, H, W) in [−1, 1], T = 1 + 4k, H and W multiples of 16 (the spatial factor).
+            generator: draw a posterior sample instead of taking the mode.
+
+        Returns:
+            (B, 48, n, H/16, W/16) float32 on ``video``'s device, n = 1 + (T − 1)/4.
+
+        Raises:
+            ValueError: a video of the wrong shape.
+        """
+        s = self.latent.spatial_factor
+        if video.dim() != 5 or video.shape[1] != 3 or video.shape[3] % s or video.shape[4] % s:
+            raise ValueError(f"video must be (B, 3, T, H, W) with H, W multiples of {s}, got {tuple(video.shape)}")
+        self.latent.num_latent_frames(video.shape[2])
+        dist = self.vae.encode(video.to(self.vae.dtype)).latent_dist
+        z = dist.mode() if generator is None else dist.sample(generator)
+        mean, inv_std = self._latent_stats(video.device)
+        return (z.to(device=video.device, dtype=torch.float32) - mean) * inv_std
+
+    def decode_latents(self, latents: Tensor) -> Tensor:
+        """Normalised latents (B, 48, n, h, w) → video (B, 3, 1 + 4(n − 1), 16h, 16w) float32 in [−1, 1] (the VAE
+        clamps): ``z = latents / (1/latents_std) + latents_mean`` then ``vae.decode`` (``__call__``'s decoding).
+
+        Raises:
+            ValueError: not (B, 48, n, h, w).
+        """
+        if latents.dim() != 5 or latents.shape[1] != self.latent.latent_channels:
+            raise ValueError(f"latents must be (B, {self.latent.latent_channels}, n, h, w), "
+                             f"got {tuple(latents.shape)}")
+        mean, inv_std = self._latent_stats(latents.device)
+        z = latents.to(torch.float32) / inv_std + mean
+        return self.vae.decode(z.to(self.vae.dtype), return_dict=False)[0].to(torch.float32)
+
+    # ---------------------------------------------------------------- text
+
+    def encode_text(self, prompts: list[str]) -> tuple[Tensor, Tensor]:
+        """Prompts → UMT5 embeddings with diffusers' own ``WanPipeline.encode_prompt`` (``prompt_clean``: ftfy +
+        whitespace; tokens up to :attr:`max_sequence_length`; the hidden states after each prompt's last token set to
+        zero).
+
+        Args:
+            prompts: B strings ("" is the unconditional prompt).
+
+        Returns:
+            embeds (B, L, d_text) float32 (L = :attr:`max_sequence_length`, d_text 4096 for UMT5-XXL) on the text
+            encoder's device, and mask (B, L) bool, all True: Wan's transformer attends to all L tokens, zeros
+            included (it has no text mask).
+
+        Raises:
+            TypeError: ``prompts`` is not a list of strings.
+            ValueError: an empty list.
+        """
+        if not isinstance(prompts, (list, tuple)) or not all(isinstance(p, str) for p in prompts):
+            raise TypeError(f"prompts must be a list of strings, got {prompts!r}")
+        if not prompts:
+            raise ValueError("prompts must not be empty")
+        device = next(self.text_encoder.parameters()).device
+        embeds, _ = self.pipeline().encode_prompt(list(prompts), do_classifier_free_guidance=False,
+                                                  max_sequence_length=self.max_sequence_length, device=device,
+                                                  dtype=torch.float32)
+        return embeds, torch.ones(embeds.shape[:2], dtype=torch.bool, device=device)
+
+    def _empty_prompt(self, device: torch.device) -> Tensor:
+        """(1, L, d_text) embedding of "", computed once (without gradients) and cached."""
+        cached = self._empty_text
+        if cached is None or (cached.is_inference() and not torch.is_inference_mode_enabled()):
+            with torch.no_grad():
+                cached = self.encode_text([""])[0]
+            self._empty_text = cached
+        return cached.to(device)
+
+    # ---------------------------------------------------------------- transformer
+
+    def velocity(self, x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor,
+                 text: Tensor | None, text_mask: Tensor | None) -> Tensor:
+        """Flow-matching velocity ``ε − x0`` from the camera-conditioned transformer, the way
+        ``WanImageToVideoPipeline.__call__`` calls it with ``expand_timesteps=True``: latent frame 0 of ``x``
+        replaced by ``image_latent``; per-token timesteps (B, seq_len), 0 for the tokens of latent frame 0 and
+        ``σ·num_train_timesteps`` for the others (tokens in the transformer's (frame, height, width) patch order,
+        the pipeline's ``first_frame_mask[:, ::2, ::2]`` with the transformer's own patch size); the Plücker rays as
+        the patch embedding's extra input channels. Inputs are cast to the transformer's dtype; the timesteps stay
+        float32, as in the pipeline.
+
+        Args:
+            x: (B, 48, n, h, w) the state at ``sigma``; its frame 0 is not read.
+            sigma: (B,) σ in [0, 1].
+            image_latent: (B, 48, 1, h, w) the photograph's normalised latent.
+            plucker: (B, 6·4·16², n, h, w) packed Plücker rays.
+            text: (B, L, d_text) from :meth:`encode_text`, or None: the embedding of "" — the prompt diffusers'
+                Wan pipelines feed as the unconditional input (``encode_prompt``: ``negative_prompt or ""``), the
+                pretrained model's prompt-free condition (Wan2.2's own scripts default to a long negative prompt,
+                ``sample_neg_prompt`` in ``wan/configs/shared_config.py``: a guidance choice, not "no prompt");
+                computed once and cached.
+            text_mask: not used (Wan attends to every text token; :meth:`encode_text` returns all True).
+
+        Returns:
+            (B, 48, n, h, w) float32. Frame 0 is the transformer's output for the conditioning tokens (timestep 0),
+            which nothing uses: samplers set latent frame 0 to ``image_latent`` at the end (as the pipeline does
+            after its loop) and training losses leave it out.
+
+        Raises:
+            ValueError: shapes that disagree, or h, w, n not multiples of the transformer's patch size.
+        """
+        b, c, n, h, w = x.shape if x.dim() == 5 else (None,) * 5
+        p_t, p_h, p_w = self.transformer.config.patch_size
+        cam = self.latent.camera_channels
+        if x.dim() != 5 or c != self.latent.latent_channels or n % p_t or h % p_h or w % p_w:
+            raise ValueError(f"x must be (B, {self.latent.latent_channels}, n, h, w) with (n, h, w) multiples of the "
+                             f"patch size {(p_t, p_h, p_w)}, got {tuple(x.shape)}")
+        if sigma.shape != (b,):
+            raise ValueError(f"sigma must have shape ({b},), got {tuple(sigma.shape)}")
+        if image_latent.shape != (b, c, 1, h, w):
+            raise ValueError(f"image_latent must have shape {(b, c, 1, h, w)}, got {tuple(image_latent.shape)}")
+        if plucker.shape != (b, cam, n, h, w):
+            raise ValueError(f"plucker must have shape {(b, cam, n, h, w)}, got {tuple(plucker.shape)}")
+        if text is None:
+            text = self._empty_prompt(x.device).expand(b, -1, -1)
+        elif text.dim() != 3 or text.shape[0] != b:
+            raise ValueError(f"text must be (B={b}, L, d_text), got {tuple(text.shape)}")
+        if text_mask is not None and text_mask.shape != text.shape[:2]:
+            raise ValueError(f"text_mask must have shape {tuple(text.shape[:2])}, got {tuple(text_mask.shape)}")
+
+        dtype = self.transformer.dtype
+        x_in = torch.cat([image_latent.to(x.dtype), x[:, :, 1:]], dim=2)
+        first_frame_mask = torch.ones(n, h, w, dtype=torch.float32, device=x.device)
+        first_frame_mask[0] = 0
+        t = sigma.to(torch.float32).reshape(b, 1) * self.scheduler.config.num_train_timesteps
+        timestep = first_frame_mask[::p_t, ::p_h, ::p_w].flatten().unsqueeze(0) * t  # (B, seq_len)
+        out = self.transformer(hidden_states=torch.cat([x_in, plucker.to(x_in.dtype)], dim=1).to(dtype),
+                               timestep=timestep, encoder_hidden_states=text.to(dtype), return_dict=False)[0]
+        return out.to(torch.float32)
+
+    # ---------------------------------------------------------------- schedule
+
+    @property
+    def shift(self) -> float:
+        """The scheduler's timestep shift: ``shift`` (``FlowMatchEulerDiscreteScheduler``) or ``flow_shift``
+        (``UniPCMultistepScheduler``; 5.0 in the Hub folder, Wan2.2's ``sample_shift`` for TI2V-5B).
+
+        Raises:
+            ValueError: a scheduler with neither.
+        """
+        config = self.scheduler.config
+        for key in ("shift", "flow_shift"):
+            if key in config:
+                return float(config[key])
+        raise ValueError(f"{type(self.scheduler).__name__} has no shift or flow_shift in its config")
+
+    def sigmas(self, steps: int) -> Tensor:
+        """The scheduler's own σ grid: ``set_timesteps(steps)`` on a deep copy (the backbone's scheduler is not
+        touched), its ``sigmas`` as float64.
+
+        Returns:
+            (steps + 1,) float64 on the CPU, strictly decreasing from about 1 (1 for the flow-matching Euler
+            scheduler; 1 − 1e-6 for UniPC's flow sigmas) to 0. Checked: the scheduler's timesteps are
+            ``σ·num_train_timesteps``, the timestep :meth:`velocity` gives the transformer (exactly for the
+            flow-matching Euler scheduler; UniPC truncates them to integers, so its pipeline's timesteps are up to
+            1 lower than ours: 1/1000 of the range).
+
+        Raises:
+            ValueError: ``steps`` not an int ≥ 1; a scheduler whose grid is not such a flow-matching one.
+        """
+        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+            raise ValueError(f"steps must be an int >= 1, got {steps!r}")
+        scheduler = copy.deepcopy(self.scheduler)
+        scheduler.set_timesteps(steps, device="cpu")
+        if getattr(scheduler, "sigmas", None) is None:
+            raise ValueError(f"{type(self.scheduler).__name__} has no sigmas: not a flow-matching scheduler")
+        sig = torch.as_tensor(scheduler.sigmas, device="cpu").detach().to(torch.float64)
+        ts = torch.as_tensor(scheduler.timesteps, device="cpu").detach().to(torch.float64)
+        n_train = scheduler.config.num_train_timesteps
+        if sig.shape != (steps + 1,) or ts.shape != (steps,) or sig[-1] != 0 or not 0 < sig[0] <= 1 \
+                or bool((sig[1:] >= sig[:-1]).any()) or bool(((ts - sig[:-1] * n_train).abs() >= 1).any()):
+            raise ValueError(f"{type(self.scheduler).__name__}: not a flow-matching grid (sigmas {sig.tolist()}, "
+                             f"timesteps {ts.tolist()}; expected {steps + 1} sigmas from at most 1 down to 0 and "
+                             f"timesteps sigma·{n_train})")
+        return sig
+
+    def training_sigmas(self, n: int, generator: torch.Generator) -> Tensor:
+        """(n,) float32 σ on ``generator``'s device: logit-normal(0, 1) (:func:`sample_logit_normal`; the Wan report
+        trains its rectified flow with logit-normal t) shifted by :attr:`shift` (:func:`shift_sigmas`), as the
+        inference grid is.
+
+        Raises:
+            ValueError: ``n`` < 1; a scheduler without a shift.
+        """
+        return shift_sigmas(sample_logit_normal(n, generator=generator, device=generator.device), self.shift)
