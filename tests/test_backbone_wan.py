@@ -7,7 +7,7 @@ import json
 import pytest
 
 pytest.importorskip("diffusers", reason="the Wan backbone needs diff4splat[diffusers]")
-pytest.importorskip("ftfy", reason="the Wan backbone needs diff4splat[diffusers]")
+pytest.importorskip("ftfy", reason="diffusers' Wan prompt cleaning needs ftfy (diff4splat[diffusers])")
 
 import diffusers  # noqa: E402
 import numpy as np  # noqa: E402

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 diffusers = pytest.importorskip("diffusers", reason="the diffusers backbones need diff4splat[diffusers]")
-pytest.importorskip("ftfy", reason="the diffusers backbones need diff4splat[diffusers]")
+pytest.importorskip("ftfy", reason="diffusers' Wan prompt cleaning needs ftfy (diff4splat[diffusers])")
 
 import torch  # noqa: E402
 from tiny_backbones import tiny_tokenizer  # noqa: E402
