@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["CONFIGS_DIR", "MODEL_CONFIGS", "STAGE_CONFIGS", "CURATION_DEFAULT"]
+__all__ = ["CONFIGS_DIR", "MODEL_CONFIGS", "STAGE_CONFIGS", "CURATION_DEFAULT", "BACKBONE_CONFIGS"]
 
 CONFIGS_DIR = Path(__file__).resolve().parent / "configs"
 """Every shipped YAML config, by kind in the sub-folders below."""
@@ -19,3 +19,6 @@ STAGE_CONFIGS = CONFIGS_DIR / "training"
 """Training stage configs (``train_vae``, ``train_stage1`` … ``train_stage3``, ``train_base_*``)."""
 CURATION_DEFAULT = CONFIGS_DIR / "data_prep" / "curation_default.yaml"
 """The curation thresholds ``data_prep curate`` uses by default."""
+BACKBONE_CONFIGS = CONFIGS_DIR / "backbones"
+"""The pretrained backbones' Hub configurations, ``<name>.json`` (``wan2.2-ti2v-5b``, ``cogvideox-5b-i2v``): what
+:mod:`models.backbones.sizes` instantiates on the meta device."""
