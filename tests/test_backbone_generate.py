@@ -30,7 +30,10 @@ def _fixture(kind: str):
 def tiny_backbone_model(kind: str, seed: int = 0) -> BackboneModel:
     """The tiny backbone of ``kind`` with non-zero camera weights and a tiny random LDRM on its latents."""
     fixture = _fixture(kind)
-    backbone = fixture.tiny_backbone(seed, camera_std=0.02)
+    backbone = fixture.tiny_wan(seed) if kind == "wan" else fixture.tiny_backbone(seed)
+    weight = backbone.camera_conv.camera_weight  # a trained camera branch: non-zero
+    with torch.no_grad():
+        weight.copy_(torch.randn(weight.shape, generator=torch.Generator().manual_seed(seed + 9)) * 0.02)
     lat = backbone.latent
     ldrm_cfg = LDRMConfig(latent_channels=lat.latent_channels, vae_temporal=lat.temporal_factor,
                           vae_spatial=lat.spatial_factor, patch_size=1, embed_dim=32, depth=1, num_heads=2,

@@ -129,16 +129,21 @@ class DiffusersBackbone(Backbone):
 
         Raises:
             FileNotFoundError: no ``model_index.json``.
-            ValueError: a folder of another pipeline, or camera weights of the wrong shape.
+            ValueError: ``_class_name`` not one of :attr:`pipeline_names` or another check of :meth:`check_index`
+                failed; camera weights of the wrong shape.
         """
         directory = Path(directory)
         index = directory / "model_index.json"
         if not index.is_file():
             raise FileNotFoundError(f"checkpoint: {index} does not exist")
-        name = read_json(index, "checkpoint").get("_class_name")
+        data = read_json(index, "checkpoint")
+        name = data.get("_class_name")
         if name not in cls.pipeline_names:
-            raise ValueError(f"checkpoint: {index} is a {name!r} folder, not one of {', '.join(cls.pipeline_names)}")
-        pipe = cls.pipeline_class.from_pretrained(str(directory), torch_dtype=torch_dtype, local_files_only=True)
+            raise ValueError(f"checkpoint: {index} is a {name!r} folder; {cls.__name__} loads "
+                             f"{', '.join(cls.pipeline_names)}")
+        cls.check_index(data, index)
+        dtype = {} if torch_dtype is None else {"dtype": torch_dtype}
+        pipe = cls.pipeline_class.from_pretrained(str(directory), local_files_only=True, **dtype)
         parts = {k: v for k, v in pipe.components.items() if k in ("transformer", "vae", "text_encoder",
                                                                     "tokenizer", "scheduler")}
         backbone = cls(**parts)
@@ -153,6 +158,11 @@ class DiffusersBackbone(Backbone):
             with torch.no_grad():
                 weight.copy_(state[key])
         return backbone
+
+    @classmethod
+    def check_index(cls, index: dict, path: Path) -> None:
+        """Further checks of a folder's ``model_index.json`` (``index``, read from ``path``) before anything loads;
+        ValueError naming ``path`` when the folder is not this backbone's. Nothing by default."""
 
     def transformer_blocks(self) -> list[nn.Module]:
         return list(self.transformer.transformer_blocks if hasattr(self.transformer, "transformer_blocks")

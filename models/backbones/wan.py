@@ -21,15 +21,12 @@ Imports diffusers, transformers and ftfy (diffusers' Wan prompt cleaning, ``pipe
 from __future__ import annotations
 
 import copy
-import os
 from pathlib import Path
 
 import ftfy  # noqa: F401  (needed by diffusers' Wan prompt cleaning; see the module docstring)
 import torch
 from diffusers import AutoencoderKLWan, WanImageToVideoPipeline
 from torch import Tensor, nn
-
-from diff4splat.io.structured import read_json
 
 from ..flow_matching import sample_logit_normal, shift_sigmas
 from .base import LatentFormat
@@ -104,28 +101,16 @@ class WanBackbone(DiffusersBackbone):
         return {"expand_timesteps": True}
 
     @classmethod
-    def from_pretrained(cls, directory: str | os.PathLike, torch_dtype: torch.dtype | None = None) -> WanBackbone:
-        """Load a Wan2.2-TI2V folder (the Hub's ``WanPipeline`` one or ours) from a local path; nothing is
-        downloaded. As :meth:`DiffusersBackbone.from_pretrained`, after checking ``model_index.json``.
+    def check_index(cls, index: dict, path: Path) -> None:
+        """A Wan2.2-TI2V folder: ``expand_timesteps`` true and no ``transformer_2`` (not Wan2.1 or Wan2.2-A14B).
 
         Raises:
-            FileNotFoundError: no ``model_index.json``.
-            ValueError: ``_class_name`` not in :attr:`pipeline_names`; not a TI2V folder (``expand_timesteps`` not
-                true, or a ``transformer_2``: Wan2.1 or Wan2.2-A14B); camera weights of the wrong shape.
+            ValueError: naming ``path`` and the two fields.
         """
-        index = Path(directory) / INDEX_FILE
-        if not index.is_file():
-            raise FileNotFoundError(f"checkpoint: {index} does not exist")
-        data = read_json(index, "checkpoint")
-        name = data.get("_class_name")
-        if name not in cls.pipeline_names:
-            raise ValueError(f"checkpoint: {index} is a {name!r} folder; {cls.__name__} loads "
-                             f"{', '.join(cls.pipeline_names)}")
-        second = data.get("transformer_2")
-        if data.get("expand_timesteps") is not True or second not in (None, [None, None]):
-            raise ValueError(f"checkpoint: {index} is not a Wan2.2-TI2V folder (expand_timesteps "
-                             f"{data.get('expand_timesteps')!r}, transformer_2 {second!r}; expected true and none)")
-        return super().from_pretrained(directory, torch_dtype=torch_dtype)
+        second = index.get("transformer_2")
+        if index.get("expand_timesteps") is not True or second not in (None, [None, None]):
+            raise ValueError(f"checkpoint: {path} is not a Wan2.2-TI2V folder (expand_timesteps "
+                             f"{index.get('expand_timesteps')!r}, transformer_2 {second!r}; expected true and none)")
 
     # ---------------------------------------------------------------- VAE
 
