@@ -108,8 +108,9 @@ def test_configs_are_package_data():
 
 def test_model_and_stage_config_names_are_separate():
     assert config_names() == ["base", "paper", "small", "tiny"]
-    assert stage_names() == ["train_base_dit", "train_base_ldrm", "train_stage1", "train_stage2", "train_stage3",
-                             "train_vae"]
+    assert stage_names() == ["train_base_dit", "train_base_ldrm", "train_cogvideox_stage1", "train_cogvideox_stage2",
+                             "train_cogvideox_stage3", "train_stage1", "train_stage2", "train_stage3", "train_vae",
+                             "train_wan_stage1", "train_wan_stage2", "train_wan_stage3"]
     assert load_config("small").height == 128
     assert load_stage("train_stage3").deformation
 
@@ -128,9 +129,9 @@ def test_readme_starts_with_the_two_commands_ci_runs():
     lines = block.group(1).strip().splitlines()
     assert len(lines) == 2
     assert "diff4splat generate examples/" in lines[0]
-    assert lines[1] == 'pip install -e ".[test]" && python -m pytest'
+    assert lines[1] == 'pip install -e ".[test,diffusers]" && python -m pytest'  # the backbone tests run, not skip
     ci = (ROOT / ".ci" / "run").read_text()
-    assert "grep -m1 -F 'pip install -e \".[test]\"' README.md" in ci and 'eval "$test_cmd"' in ci
+    assert "grep -m1 -F 'pip install -e \".[test' README.md" in ci and 'eval "$test_cmd"' in ci
     assert "-m venv" in ci and "torch==2.13.0" in ci
 
 

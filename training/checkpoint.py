@@ -2,7 +2,8 @@
 
 Layout of ``<run>/checkpoints/step_00001000/``::
 
-    model.safetensors    model weights (state_dict, CPU)
+    model.safetensors    model weights (state_dict, CPU; only the trained ones when the model's frozen
+                         weights come from elsewhere: ``checkpoint_frozen``, training.trainer.Trainer)
     ema.safetensors      EMA weights (if EMA is on)
     state.pt             optimizer, scheduler, RNG states (torch, numpy, python, step generator),
                          step, epoch, batch position in the epoch, consecutive non-finite count

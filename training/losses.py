@@ -57,22 +57,25 @@ def sample_training_sigmas(n: int, mean: float = 0.0, std: float = 1.0, shift: f
     return shift_sigmas(sample_logit_normal(n, mean, std, generator, device=device), shift)
 
 
-def flow_matching_loss(velocity_fn, x0: Tensor, noise: Tensor, sigma: Tensor) -> Tensor:
+def flow_matching_loss(velocity_fn, x0: Tensor, noise: Tensor, sigma: Tensor, from_frame: int = 0) -> Tensor:
     """Conditional flow-matching loss (Lipman et al. 2023; rectified flow, Liu et al. 2023).
 
     x_σ = (1−σ)·x0 + σ·ε; the network predicts v = ε − x0; L = mean ‖v_θ(x_σ, σ) − (ε − x0)‖².
 
     Args:
         velocity_fn: ``f(x_sigma, sigma (B,)) -> v`` with the shape of ``x0``.
-        x0: (B, ...) clean latents.
+        x0: (B, ...) clean latents; (B, c, n, h, w) when ``from_frame`` > 0.
         noise: (B, ...) standard normal ε.
         sigma: (B,) noise levels in [0, 1].
+        from_frame: first latent frame (dim 2) of the mean: a network that replaces the first frames of its input
+            by a condition (Wan2.2-TI2V's image latent) has no velocity target there.
 
     Returns:
-        Scalar mean squared error over every element.
+        Scalar mean squared error over every element (of frames ``from_frame`` … n − 1).
     """
     x_sigma = add_noise(x0, noise, sigma)
-    return torch.mean((velocity_fn(x_sigma, sigma) - velocity_target(x0, noise)) ** 2)
+    err = velocity_fn(x_sigma, sigma) - velocity_target(x0, noise)
+    return torch.mean((err[:, :, from_frame:] if from_frame else err) ** 2)
 
 
 def photometric_loss(pred: Tensor, target: Tensor, ssim_weight: float = 0.2, window_size: int = 11) -> Tensor:

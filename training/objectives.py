@@ -1,15 +1,24 @@
 """The training objectives of each stage, as one module whose ``forward(batch, generator)`` returns losses.
 
 Computing the objective inside ``forward`` lets DDP / FSDP wrap :class:`TrainingModule` and synchronise
-gradients as usual. Batches are :class:`data_prep.clips.ClipDataset` items collated by the default
+gradients as usual. The video networks are reached through a :class:`models.backbones.base.Backbone`
+(``encode_video``, ``encode_text``, ``velocity``, ``training_sigmas``), so the same objectives train our networks
+(:class:`models.bundle.Diff4SplatModel`, through :class:`models.backbones.ours.OursBackbone`: the networks' own calls,
+σ shifted by the stage's ``flow_shift``) and a pretrained diffusers backbone with our LDRM
+(:class:`models.backbones.model.BackboneModel`; LoRA, freezing, loading and saving in
+:mod:`training.backbone_training`). Batches are :class:`data_prep.clips.ClipDataset` items collated by the default
 collate (``video`` (B,3,T,H,W) in [0,1], ``viewmats``/``Ks`` (B,T,4,4)/(B,T,3,3), ``times`` (B,T),
-``plucker_packed`` (B,1536,n,h,w), ``depth``/``depth_valid`` (B,T,H,W), ``tracks`` (B,N,T,3),
-``track_visibility`` (B,N,T), ``track_mask`` (B,N), ``caption`` list[str]).
+``plucker_packed`` (B,1536,n,h,w) and/or ``plucker`` (B,T,H,W,6), ``depth``/``depth_valid`` (B,T,H,W),
+``tracks`` (B,N,T,3), ``track_visibility`` (B,N,T), ``track_mask`` (B,N), ``caption`` list[str]).
 
 Devices (diff4splat/devices.py): the batch and the model may be on any one device; the step generator is a CPU
 ``torch.Generator`` (the trainer's), so every draw (caption dropout, σ, ε, latent noise, rendered frames) is
 made on the generator's device and then moved to the data, and a seed gives the same numbers on every device.
 Under bf16 autocast the VAE latents, the flow-matching targets, are kept in the batch's precision (float32).
+
+Camera conditioning: ``plucker_packed`` is packed for the 4×8×8 grid of our VAE (and CogVideoX's); for a backbone with
+another latent grid (Wan2.2: 4×16×16) the rays (``plucker`` (B,T,H,W,6) when the dataset gives them, else from
+``viewmats``/``Ks``) are packed for the backbone's :class:`models.backbones.base.LatentFormat`.
 """
 from __future__ import annotations
 
@@ -17,6 +26,7 @@ import torch
 from torch import Tensor, nn
 
 from diff4splat.assemble import assemble_scene
+from diff4splat.cameras import pack_plucker, plucker_rays
 from diff4splat.cameras.path import CameraPath
 from diff4splat.devices import autocast_off
 from diff4splat.photo import PHOTO_EPS2D
@@ -24,6 +34,9 @@ from diff4splat.prune import redundant_mask
 from diff4splat.render import rasterize
 from diff4splat.render.defaults import EPS2D
 from diff4splat.scene import DynamicGaussians
+from models.backbones.base import Backbone, LatentFormat
+from models.backbones.model import BackboneModel
+from models.backbones.ours import OursBackbone
 from models.bundle import Diff4SplatModel
 from models.ldrm import LDRMOutput, source_frame_indices
 from models.vae import kl_divergence
@@ -36,11 +49,15 @@ from .losses import (
     gather_track_predictions,
     motion_loss,
     photometric_loss,
-    sample_training_sigmas,
 )
 from .stage_config import StageConfig
 
-__all__ = ["TrainingModule", "render_frames", "track_query_index"]
+__all__ = ["TrainingModule", "render_frames", "track_query_index", "FLOW_LOSS_FROM_FRAME"]
+
+FLOW_LOSS_FROM_FRAME = {"wan2.2-ti2v": 1}
+"""First latent frame of the flow-matching loss per backbone kind (0 when absent): Wan2.2-TI2V's velocity replaces
+latent frame 0 by the photograph's latent, its tokens at timestep 0 (:mod:`models.backbones.wan`), so its output
+there has no target; our DiT and CogVideoX (the image latent on extra channels) denoise frame 0 as the others."""
 
 
 def render_frames(scene: DynamicGaussians, viewmats: Tensor, Ks: Tensor, times: Tensor, frames: list[int],
@@ -96,24 +113,62 @@ def track_query_index(tracks0: Tensor, K: Tensor, width: int, height: int, valid
 
 
 class TrainingModule(nn.Module):
-    """Wraps a :class:`Diff4SplatModel` with a stage's objectives.
+    """Wraps a :class:`Diff4SplatModel` or a :class:`BackboneModel` with a stage's objectives.
 
     ``forward(batch, generator)`` returns ``{"loss": total, <component>: value, ...}``; components:
-    ``vae_l1``, ``vae_kl`` (vae objective), ``flow`` (diffusion), ``photo``, ``depth``, ``smooth``,
+    ``vae_l1``, ``vae_kl`` (vae objective, our VAE only), ``flow`` (diffusion), ``photo``, ``depth``, ``smooth``,
     ``motion`` (reconstruction).
     """
 
-    def __init__(self, model: Diff4SplatModel, stage: StageConfig):
+    def __init__(self, model: Diff4SplatModel | BackboneModel, stage: StageConfig):
         super().__init__()
         self.model = model
         self.stage = stage
 
-    def fsdp_units(self) -> list[nn.Module]:
-        """The modules FSDP shards one by one before the root (:class:`training.trainer.Trainer`): the transformer
-        blocks of the DiT, the LDRM and the text encoder, each gathered only while it runs. The rest (VAE,
-        embedders, heads, deformation network) is sharded with the root."""
+    def backbone(self) -> Backbone:
+        """The model's video backbone: a diffusers model's own, or our VAE, text encoder and DiT as an
+        :class:`OursBackbone` whose training σ are shifted by the stage's ``flow_shift`` (a view, built per call:
+        it shares the networks and is no sub-module, so the state dict keeps its keys)."""
         m = self.model
+        if isinstance(m, BackboneModel):
+            return m.backbone
+        return OursBackbone(m.vae, m.text_encoder, m.dit, shift=self.stage.flow_shift)
+
+    @property
+    def checkpoint_frozen(self) -> bool:
+        """Whether checkpoints hold the frozen weights too (:class:`training.trainer.Trainer`): ours do; a diffusers
+        backbone model's frozen weights are those of its ``init_from`` folder, rebuilt on resume, so its checkpoints
+        hold only what trains (LoRA, camera weights, LDRM) instead of ~20 GB of unchanged weights each."""
+        return not isinstance(self.model, BackboneModel)
+
+    def fsdp_units(self) -> list[nn.Module]:
+        """The modules FSDP shards one by one before the root (:class:`training.trainer.Trainer`), each gathered only
+        while it runs: the blocks of the video transformer, of the LDRM and of the text encoder (ours; a diffusers
+        backbone's T5/umT5 ``encoder.block``). The rest (VAE, embedders, heads, the patch embedding's camera weights,
+        the deformation network) is sharded with the root."""
+        m = self.model
+        if isinstance(m, BackboneModel):
+            b = m.backbone
+            text_blocks = getattr(getattr(b.text_encoder, "encoder", None), "block", None) or []
+            return [*b.transformer_blocks(), *m.ldrm.blocks, *text_blocks]
         return [*m.dit.blocks, *m.ldrm.blocks, *m.text_encoder.blocks]
+
+    def enable_gradient_checkpointing(self) -> None:
+        """Recompute the video transformer's blocks in the backward pass (``trainer.gradient_checkpointing``): our
+        DiT's ``gradient_checkpointing`` flag, a diffusers transformer's ``enable_gradient_checkpointing()``."""
+        if isinstance(self.model, BackboneModel):
+            self.model.backbone.transformer.enable_gradient_checkpointing()
+        else:
+            self.model.dit.gradient_checkpointing = True
+
+    def train(self, mode: bool = True) -> TrainingModule:
+        """As :meth:`nn.Module.train`, except that a diffusers backbone's frozen VAE and text encoder stay in eval
+        mode (umT5/T5 have dropout 0.1: training mode would perturb the text condition)."""
+        super().train(mode)
+        if isinstance(self.model, BackboneModel):
+            self.model.backbone.vae.eval()
+            self.model.backbone.text_encoder.eval()
+        return self
 
     def forward(self, batch: dict, generator: torch.Generator) -> dict[str, Tensor]:
         st, m = self.stage, self.model
@@ -126,13 +181,15 @@ class TrainingModule(nn.Module):
             losses["vae_kl"] = kl_divergence(mean, logvar).mean() / mean[0].numel()
             total = total + losses["vae_l1"] + st.kl_weight * losses["vae_kl"]
         if "diffusion" in st.objectives or "reconstruction" in st.objectives:
+            backbone = self.backbone()
             with torch.no_grad():  # the VAE is frozen after its own stage
-                latents = m.vae.encode_latents(video).to(video.dtype)  # float32 targets under bf16 autocast
+                latents = backbone.encode_video(video).to(video.dtype)  # float32 targets under bf16 autocast
+            plucker = self._plucker(batch, backbone.latent, tuple(latents.shape[2:]))
         if "diffusion" in st.objectives:
-            losses["flow"] = self._diffusion(latents, batch, generator)
+            losses["flow"] = self._diffusion(backbone, latents, plucker, batch, generator)
             total = total + losses["flow"]
         if "reconstruction" in st.objectives:
-            rec = self._reconstruction(latents, batch, generator)
+            rec = self._reconstruction(backbone.latent, latents, plucker, batch, generator)
             losses.update(rec)
             w = st.weights
             total = total + w.rgb * rec["photo"] + w.depth * rec["depth"] + w.smooth * rec["smooth"]
@@ -141,23 +198,45 @@ class TrainingModule(nn.Module):
         losses["loss"] = total
         return losses
 
-    def _diffusion(self, latents: Tensor, batch: dict, gen: torch.Generator) -> Tensor:
-        """Flow-matching loss of the DiT on ``latents`` (B, c, n, h, w); ``gen``: the (CPU) step generator."""
-        m, st = self.model, self.stage
+    @staticmethod
+    def _plucker(batch: dict, latent: LatentFormat, grid: tuple[int, int, int]) -> Tensor:
+        """The clips' Plücker rays on the latent grid ``grid`` = (n, h, w): (B, 6·t·s², n, h, w). The dataset's
+        ``plucker_packed`` when it is packed for ``latent`` (module docstring), else packed here (float32)."""
+        packed = batch.get("plucker_packed")
+        if packed is not None and packed.shape[1] == latent.camera_channels and tuple(packed.shape[2:]) == grid:
+            return packed
+        with autocast_off():
+            rays = batch.get("plucker")  # (B, T, H, W, 6)
+            if rays is None:
+                (B, T), (H, W) = batch["viewmats"].shape[:2], batch["video"].shape[-2:]
+                rays = plucker_rays(batch["viewmats"].flatten(0, 1).float(), batch["Ks"].flatten(0, 1).float(), W, H)
+                rays = rays.reshape(B, T, H, W, 6)
+            return pack_plucker(rays.float(), latent.temporal_factor, latent.spatial_factor)
+
+    def _diffusion(self, backbone: Backbone, latents: Tensor, plucker: Tensor, batch: dict, gen: torch.Generator
+                   ) -> Tensor:
+        """Flow-matching loss of the backbone's transformer on ``latents`` (B, c, n, h, w) with ``plucker``
+        (B, 6·t·s², n, h, w); ``gen``: the (CPU) step generator. Draws, in order: caption dropout (B,), σ (B,)
+        (:meth:`Backbone.training_sigmas`), ε (the latents' shape)."""
+        st = self.stage
         B, dev = latents.shape[0], latents.device
         captions = list(batch["caption"])
-        with torch.no_grad():  # frozen text encoder (as the paper's frozen T5)
-            ids, mask = m.text_encoder.tokenizer(captions)
-            ids, mask = ids.to(dev), mask.to(dev)
-            text = m.text_encoder(ids, mask)
         drop = (torch.rand(B, generator=gen, device=gen.device) < st.caption_dropout).to(dev)
         has_text = torch.tensor([bool(c.strip()) for c in captions], device=dev)
-        mask = mask & (~drop & has_text)[:, None]  # an all-false mask is exactly the no-text path
+        keep = ~drop & has_text
+        with torch.no_grad():  # frozen text encoder (as the paper's frozen T5)
+            if backbone.encodes_empty_prompt:  # its unconditional input: the embedding of "" (velocity's text=None)
+                prompts = [c if k else "" for c, k in zip(captions, keep.tolist(), strict=True)]
+                text, mask = backbone.encode_text(prompts)
+            else:  # ours: no prompt is no text tokens, and an all-false mask is exactly that path
+                text, mask = backbone.encode_text(captions)
+                mask = mask.to(dev) & keep[:, None]
+        text, mask = text.to(dev), mask.to(dev)
         image_latent = latents[:, :, :1]
-        sigma = sample_training_sigmas(B, shift=st.flow_shift, generator=gen, device=gen.device).to(latents)
+        sigma = backbone.training_sigmas(B, gen).to(latents)
         noise = torch.randn(latents.shape, generator=gen, device=gen.device).to(latents)
-        plucker = batch["plucker_packed"]
-        return flow_matching_loss(lambda x, s: m.dit(x, s, image_latent, plucker, text, mask), latents, noise, sigma)
+        return flow_matching_loss(lambda x, s: backbone.velocity(x, s, image_latent, plucker, text, mask), latents,
+                                  noise, sigma, from_frame=FLOW_LOSS_FROM_FRAME.get(backbone.kind, 0))
 
     def _assemble(self, out: LDRMOutput, sources: Tensor, batch: dict, b: int, times: Tensor | None
                   ) -> tuple[DynamicGaussians, dict]:
@@ -174,11 +253,12 @@ class TrainingModule(nn.Module):
         photo["background"] = torch.tensor(photo["background"], device=image.device)
         return scene.select(~drop), photo
 
-    def _reconstruction(self, latents: Tensor, batch: dict, gen: torch.Generator) -> dict[str, Tensor]:
-        """Rendering losses of the LDRM's scenes, averaged over the batch; ``gen``: the (CPU) step generator."""
+    def _reconstruction(self, latent: LatentFormat, latents: Tensor, plucker: Tensor, batch: dict,
+                        gen: torch.Generator) -> dict[str, Tensor]:
+        """Rendering losses of the LDRM's scenes from ``latents`` (B, c, n, h, w) in ``latent``'s format and
+        ``plucker`` (B, 6·t·s², n, h, w), averaged over the batch; ``gen``: the (CPU) step generator."""
         m, st = self.model, self.stage
         B, _, T, H, W = batch["video"].shape
-        plucker = batch["plucker_packed"]
         image = batch["video"][:, :, 0] * 2 - 1  # (B, 3, H, W) the photograph, for an image branch
         if st.latent_noise > 0:
             sigma = (torch.rand(B, generator=gen, device=gen.device) * st.latent_noise).to(latents)
@@ -187,7 +267,7 @@ class TrainingModule(nn.Module):
             noisy = (1 - sigma) * latents + sigma * eps
             latents = torch.cat([latents[:, :, :1], noisy[:, :, 1:]], dim=2)
         sources = torch.tensor(source_frame_indices(m.ldrm.config.gaussian_frames, latents.shape[2],
-                                                    m.config.vae.temporal_factor), device=latents.device)
+                                                    latent.temporal_factor), device=latents.device)
         sums: dict[str, Tensor] = {}
         outs = None if st.deformation else m.ldrm(latents, plucker, None, image)
         for b in range(B):

@@ -7,8 +7,13 @@ video VAE (``vae`` stage); the VAE then stays frozen, as the text encoder always
 uses a frozen T5; the tiny text encoder is a frozen randomly initialised T5-style network whose
 features the DiT's cross-attention learns to read).
 
+The same stages train a pretrained diffusers backbone (``backbone: wan2.2-ti2v`` or ``cogvideox-i2v``, ``init_from``
+a diffusers folder; :mod:`training.backbone_training`): its VAE and text encoder frozen, its transformer through LoRA
+adapters (``lora:``, :class:`LoraSettings`) plus the zero-initialised camera weights of its patch embedding, our
+LDRM in full.
+
 ``configs/training/train_<stage>.yaml`` files (package data; :func:`load_stage` takes their names, e.g.
-``train_stage1``) override :class:`StageConfig`'s defaults.
+``train_stage1``, ``train_wan_stage1``) override :class:`StageConfig`'s defaults.
 """
 from __future__ import annotations
 
@@ -20,23 +25,66 @@ from torch import nn
 
 from diff4splat.config_files import STAGE_CONFIGS
 from diff4splat.io.structured import read_yaml
+from models.backbones.base import BACKBONE_KINDS
 from models.bundle import DEFAULT_CONFIG
 from models.pretrained import config_from_dict
 
 from .losses import LossWeights
 from .trainer import TrainerConfig
 
-__all__ = ["StageConfig", "load_stage", "stage_names", "apply_freezing", "MODULES", "STAGE_CONFIG_DIR"]
+__all__ = ["StageConfig", "LoraSettings", "load_stage", "stage_names", "apply_freezing", "MODULES", "STAGE_CONFIG_DIR",
+           "LORA_TARGETS", "BACKBONE_DTYPES"]
 
 STAGE_CONFIG_DIR = STAGE_CONFIGS
-"""The shipped stage configs (``train_vae``, ``train_stage1`` … ``train_stage3``): ``configs/training/``
+"""The shipped stage configs (``train_vae``, ``train_stage1`` … ``train_stage3``, ``train_wan_stage1`` … and
+``train_cogvideox_stage1`` …): ``configs/training/``
 (:mod:`diff4splat.config_files`)."""
 
 MODULES = ("vae", "text_encoder", "dit", "ldrm", "ldrm.deformation", "ldrm.head", "ldrm.image_branch")
 """Module names a stage can train (``ldrm.deformation`` is the LDRM's deformation network; ``ldrm.head`` and
-``ldrm.image_branch`` alone train a new head on the LDRM's features, which the deformation network also reads)."""
+``ldrm.image_branch`` alone train a new head on the LDRM's features, which the deformation network also reads;
+``dit`` of a diffusers backbone is its transformer's LoRA adapters and camera weights)."""
 
 OBJECTIVES = ("vae", "diffusion", "reconstruction")
+
+LORA_TARGETS = ("to_q", "to_k", "to_v", "to_out.0", "net.0.proj", "net.2")
+"""LoRA target modules (peft suffix match) of both diffusers transformers: the self- and cross-attention projections
+(``blocks.N.attn1|attn2.to_q|to_k|to_v|to_out.0`` of ``WanTransformer3DModel``,
+``transformer_blocks.N.attn1.to_*`` of ``CogVideoXTransformer3DModel``) and the feed-forward layers
+(``blocks.N.ffn.net.0.proj|net.2``, ``transformer_blocks.N.ff.net.0.proj|net.2``); nothing outside the blocks
+(embeddings, patch embedding, adaLN, output projection) matches."""
+
+BACKBONE_DTYPES = ("float32", "bfloat16")
+
+
+@dataclass
+class LoraSettings:
+    """LoRA adapters (Hu et al. 2022, "LoRA: Low-Rank Adaptation of Large Language Models") on a diffusers
+    backbone's transformer: W x + (α/r)·B A x with A (r, in) random, B (out, r) zero, so training starts from the
+    pretrained transformer exactly.
+
+    Attributes:
+        rank: r ≥ 1.
+        alpha: α > 0 (the update is scaled by α/r).
+        dropout: dropout on the adapters' input, in [0, 1) (drawn from torch's global RNG, which checkpoints save).
+        target_modules: module-name suffixes that get adapters (:data:`LORA_TARGETS`: attention and FFN linears).
+    """
+
+    rank: int = 64
+    alpha: float = 64.0
+    dropout: float = 0.0
+    target_modules: tuple[str, ...] = LORA_TARGETS
+
+    def __post_init__(self) -> None:
+        if self.rank < 1:
+            raise ValueError(f"stage.lora.rank must be ≥ 1, got {self.rank}")
+        if not self.alpha > 0:
+            raise ValueError(f"stage.lora.alpha must be > 0, got {self.alpha}")
+        if not 0 <= self.dropout < 1:
+            raise ValueError(f"stage.lora.dropout must lie in [0, 1), got {self.dropout}")
+        self.target_modules = tuple(self.target_modules)
+        if not self.target_modules or not all(isinstance(t, str) and t for t in self.target_modules):
+            raise ValueError(f"stage.lora.target_modules must be module names, got {self.target_modules!r}")
 
 
 @dataclass
@@ -65,7 +113,18 @@ class StageConfig:
         weights: loss weights (:class:`training.losses.LossWeights`).
         kl_weight: weight of the VAE KL term (per element, β-VAE style).
         caption_dropout: probability of training the DiT without text (the empty-prompt path).
-        flow_shift: timestep shift of the logit-normal training σ.
+        flow_shift: timestep shift of the logit-normal training σ of our DiT (a diffusers backbone draws σ its own
+            way: :meth:`models.backbones.base.Backbone.training_sigmas`).
+        backbone: ``ours`` (our VAE, text encoder and DiT) or a diffusers backbone (``wan2.2-ti2v``,
+            ``cogvideox-i2v``), which ``init_from`` must then hold (a folder with ``model_index.json``). A diffusers
+            backbone's ``train`` may list ``dit`` (its transformer through LoRA, plus the camera weights of the
+            patch embedding) and the LDRM's parts; its VAE and text encoder stay frozen, and it has no ``vae``
+            objective.
+        lora: the LoRA adapters of a diffusers backbone's transformer (:class:`LoraSettings`; YAML ``lora:
+            {rank: 64, alpha: 64}``); required when such a stage trains ``dit``, refused for ``ours``.
+        backbone_dtype: ``float32`` or ``bfloat16``: the dtype a diffusers backbone's frozen weights are loaded and
+            kept in (``bfloat16`` halves their memory; it needs ``trainer.bf16``). The trained weights (LoRA,
+            camera, LDRM) are float32 either way.
         trainer: optimisation, device and precision settings (:class:`training.trainer.TrainerConfig`: ``device``
             auto/cpu/cuda[:N], ``bf16`` auto = on for CUDA, ``tf32``, ``gradient_checkpointing`` of the DiT,
             ``strategy`` ddp/fsdp under torchrun).
@@ -89,6 +148,9 @@ class StageConfig:
     kl_weight: float = 1e-6
     caption_dropout: float = 0.1
     flow_shift: float = 1.0
+    backbone: str = "ours"
+    lora: LoraSettings | None = None
+    backbone_dtype: str = "float32"
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
 
     def __post_init__(self) -> None:
@@ -108,6 +170,31 @@ class StageConfig:
             raise ValueError(f"stage.latent_noise must lie in [0, 1], got {self.latent_noise}")
         if not 0 <= self.caption_dropout <= 1:
             raise ValueError(f"stage.caption_dropout must lie in [0, 1], got {self.caption_dropout}")
+        if isinstance(self.lora, dict):
+            self.lora = config_from_dict(LoraSettings, self.lora, "stage.lora")
+        self._check_backbone()
+
+    def _check_backbone(self) -> None:
+        if self.backbone not in BACKBONE_KINDS:
+            raise ValueError(f"stage.backbone must be one of {BACKBONE_KINDS}, got {self.backbone!r}")
+        if self.backbone_dtype not in BACKBONE_DTYPES:
+            raise ValueError(f"stage.backbone_dtype must be one of {BACKBONE_DTYPES}, got {self.backbone_dtype!r}")
+        if self.backbone == "ours":
+            if self.lora is not None:
+                raise ValueError("stage.lora: LoRA adapts a diffusers backbone's transformer; stage.backbone is ours "
+                                 "(its DiT trains in full)")
+            if self.backbone_dtype != "float32":
+                raise ValueError("stage.backbone_dtype applies to a diffusers backbone; stage.backbone is ours")
+            return
+        frozen = sorted({"vae", "text_encoder"} & set(self.train))
+        if frozen:
+            raise ValueError(f"stage.train: the {self.backbone} backbone's {' and '.join(frozen)} cannot train "
+                             "(trainable: dit through LoRA, ldrm and its parts)")
+        if "vae" in self.objectives:
+            raise ValueError(f"stage.objectives: the {self.backbone} backbone's VAE is pretrained (no vae objective)")
+        if ("dit" in self.train) != (self.lora is not None):
+            raise ValueError(f"stage.lora: the {self.backbone} transformer trains through LoRA: give a lora: section "
+                             "exactly when stage.train lists dit")
 
 
 def stage_names() -> list[str]:
@@ -143,7 +230,9 @@ def load_stage(name_or_path: str | os.PathLike, **overrides) -> StageConfig:
 def apply_freezing(model: nn.Module, train: tuple[str, ...]) -> dict[str, int]:
     """Freeze every parameter except those of the modules in ``train``.
 
-    ``"ldrm"`` without ``"ldrm.deformation"`` trains the LDRM with its deformation network frozen.
+    ``"ldrm"`` without ``"ldrm.deformation"`` trains the LDRM with its deformation network frozen. (A diffusers
+    backbone model's ``"dit"`` is its LoRA and camera weights:
+    :func:`training.backbone_training.apply_backbone_freezing`, which calls this for the rest.)
 
     Returns:
         Trainable parameter count per module name.

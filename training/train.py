@@ -5,6 +5,12 @@ overrides the stage's ``trainer.device``; on CUDA the step runs under bfloat16 a
 unless the YAML says ``bf16: false`` / ``tf32: false`` (:class:`training.trainer.TrainerConfig`);
 ``trainer.gradient_checkpointing: true`` recomputes the DiT's blocks in the backward pass.
 
+Backbones: a stage with ``backbone: wan2.2-ti2v`` or ``cogvideox-i2v`` (``configs/training/train_wan_stage1.yaml``
+…) trains a pretrained diffusers backbone from ``init_from`` (a diffusers folder) with LoRA on its transformer, its
+camera weights and our LDRM (:mod:`training.backbone_training`; ``pip install 'diff4splat[diffusers]'``: peft); its
+``<run_dir>/model`` is a diffusers folder with the LoRA merged, which ``generate --checkpoint`` runs and the next
+stage starts from.
+
 Distributed: ``torchrun --nproc_per_node N -m training.train --config ...`` (one process per GPU,
 ``cuda:$LOCAL_RANK``; DDP, NCCL on CUDA and gloo on the CPU; ``--strategy fsdp`` shards paper-size models
 block by block with FSDP2). At the end rank 0 writes the trained model to ``<run_dir>/model``
@@ -17,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib
 import sys
 from pathlib import Path
 
@@ -25,56 +32,92 @@ import torch
 from data_prep.clips import ClipConfig, ClipDataset
 from diff4splat.devices import resolve_device
 from diff4splat.errors import run_cli
+from models.backbones.model import INDEX_FILE, BackboneModel
 from models.bundle import Diff4SplatModel, load_config
 from models.vae import estimate_latent_scaling
 
 from . import stage_config
 from .objectives import TrainingModule
 from .stage_config import StageConfig, apply_freezing
-from .trainer import Trainer
+from .trainer import Trainer, resolve_bf16, training_device
 
-__all__ = ["main", "build_training", "calibrate_latent_scaling"]
+__all__ = ["main", "build_training", "calibrate_latent_scaling", "backbone_training"]
 
 LATENT_SCALING_CLIPS = 64
 """Training clips whose posterior means set the VAE's latent scaling after its stage."""
 
 
-def build_training(stage: StageConfig, seed: int | None = None) -> tuple[Trainer, Diff4SplatModel, dict[str, int]]:
+def build_training(stage: StageConfig, seed: int | None = None
+                   ) -> tuple[Trainer, Diff4SplatModel | BackboneModel, dict[str, int]]:
     """Model (+ freezing), dataset and :class:`Trainer` for a :class:`StageConfig`.
 
     The trainer runs on ``stage.trainer.device`` (checked first, before the model is built). ``seed`` is unused
-    (the stage's ``trainer.seed`` seeds the model, the data and the steps).
+    (the stage's ``trainer.seed`` seeds the model, the LoRA adapters, the data and the steps). Our networks get
+    clips with ``plucker_packed`` rays (4×8×8); a diffusers backbone gets the raw rays, which
+    :class:`TrainingModule` packs for its latent grid.
 
     Returns:
-        (trainer, the Diff4SplatModel it trains (on the trainer's device, inside a TrainingModule), trainable
-        parameter count per module).
+        (trainer, the Diff4SplatModel or BackboneModel it trains (on the trainer's device, inside a TrainingModule),
+        trainable parameter count per module).
 
     Raises:
-        ValueError: an unusable ``trainer.device``, a clip size off the model's pixel grid, no clips.
+        ValueError: an unusable ``trainer.device``, a clip size off the model's pixel grid, a clip length that is not
+            1 + t·k, no clips; ``init_from`` of the wrong kind for ``stage.backbone``; ``backbone_dtype: bfloat16``
+            without bf16 autocast.
         FileNotFoundError: ``init_from`` or ``data`` is not a folder of the right kind.
+        ModuleNotFoundError: a diffusers backbone stage without peft / diffusers installed.
     """
-    resolve_device(stage.trainer.device, "trainer.device")
-    if stage.init_from:
-        if not (Path(stage.init_from) / "config.json").is_file():
-            raise FileNotFoundError(f"init_from: {stage.init_from} is not a model folder (no config.json)")
-        model = Diff4SplatModel.from_pretrained(stage.init_from)
+    device = resolve_device(stage.trainer.device, "trainer.device")
+    if stage.backbone == "ours":
+        model = _ours_model(stage)
+        counts, unit, plucker = apply_freezing(model, stage.train), model.config.pixel_multiple, "packed"
     else:
-        model = Diff4SplatModel.random(load_config(stage.model_config), seed=stage.trainer.seed)
-    unit = model.config.pixel_multiple
+        if stage.backbone_dtype != "float32" and not resolve_bf16(stage.trainer.bf16, training_device(device)):
+            raise ValueError(f"stage.backbone_dtype: {stage.backbone_dtype} weights need bf16 autocast "
+                             "(trainer.bf16: true, or auto on CUDA)")
+        tools = backbone_training()
+        model = tools.load_backbone_model(stage)
+        counts, unit, plucker = tools.apply_backbone_freezing(model, stage.train), tools.pixel_multiple(model), "raw"
+        model.backbone.latent.num_latent_frames(stage.num_frames)  # T = 1 + t·k
     for name in ("height", "width"):  # a stage may train below the model resolution, on the same grid
         if getattr(stage, name) % unit:
             raise ValueError(f"{name} must be a multiple of {unit} pixels for this model, got {getattr(stage, name)}")
-    counts = apply_freezing(model, stage.train)
     if not Path(stage.data).is_dir():
         raise FileNotFoundError(f"data: {stage.data} is not a folder")
     dataset = ClipDataset(stage.data, ClipConfig(num_frames=stage.num_frames, height=stage.height, width=stage.width,
-                                                 scenes=stage.scenes, plucker="packed", seed=stage.trainer.seed))
+                                                 scenes=stage.scenes, plucker=plucker, seed=stage.trainer.seed))
     if len(dataset) == 0:
         raise ValueError(f"data: no {stage.scenes} clips of {stage.num_frames} frames in {stage.data}")
     module = TrainingModule(model, stage)
     trainer = Trainer(module, dataset, lambda mod, batch, gen: mod(batch, gen), stage.trainer,
                       extra_meta={"stage": dataclasses.asdict(stage), "trainable": counts})
     return trainer, model, counts
+
+
+def _ours_model(stage: StageConfig) -> Diff4SplatModel:
+    """``init_from`` (a :meth:`Diff4SplatModel.save_pretrained` folder), else a random model of ``model_config``."""
+    if not stage.init_from:
+        return Diff4SplatModel.random(load_config(stage.model_config), seed=stage.trainer.seed)
+    folder = Path(stage.init_from)
+    if (folder / INDEX_FILE).is_file():
+        raise ValueError(f"init_from: {folder} is a diffusers backbone folder ({INDEX_FILE}); set stage.backbone "
+                         "(wan2.2-ti2v or cogvideox-i2v) and a lora: section to train it")
+    if not (folder / "config.json").is_file():
+        raise FileNotFoundError(f"init_from: {stage.init_from} is not a model folder (no config.json)")
+    return Diff4SplatModel.from_pretrained(folder)
+
+
+def backbone_training():
+    """:mod:`training.backbone_training`, imported on demand (it imports peft; diffusers through the backbones).
+
+    Raises:
+        ModuleNotFoundError: peft or diffusers missing (the message says what to install).
+    """
+    try:
+        return importlib.import_module("training.backbone_training")
+    except ModuleNotFoundError as e:
+        raise ModuleNotFoundError(f"training a diffusers backbone needs {e.name}: pip install 'diff4splat[diffusers]'"
+                                  ) from None
 
 
 @torch.no_grad()
@@ -114,7 +157,8 @@ def main(argv: list[str] | None = None) -> int:
 def _main(argv: list[str] | None) -> int:
     ap = argparse.ArgumentParser(prog="python -m training.train", description=__doc__.splitlines()[0])
     ap.add_argument("--config", required=True,
-                    help="stage config: a shipped name (train_vae, train_stage1..3) or a YAML path")
+                    help="stage config: a shipped name (train_vae, train_stage1..3, train_wan_stage1..3, "
+                         "train_cogvideox_stage1..3) or a YAML path")
     ap.add_argument("--data", default=None, help="dataset root (overrides the YAML)")
     ap.add_argument("--run-dir", default=None, help="run folder (overrides trainer.run_dir)")
     ap.add_argument("--init-from", default=None, help="model folder to start from (overrides the YAML)")
@@ -150,17 +194,23 @@ def _main(argv: list[str] | None) -> int:
     return 0
 
 
-def _write_model(trainer: Trainer, model: Diff4SplatModel, stage: StageConfig, state: dict | None) -> None:
+def _write_model(trainer: Trainer, model: Diff4SplatModel | BackboneModel, stage: StageConfig,
+                 state: dict | None) -> None:
     """Rank 0: ``<run_dir>/model`` from ``state`` (keys of the TrainingModule, ``model.<network>…``; None = the
-    model's own weights), after calibrating the latent scaling of a VAE stage."""
+    model's own weights), after calibrating the latent scaling of a VAE stage; a backbone model with its LoRA merged
+    (:func:`training.backbone_training.save_backbone_model`)."""
+    ours = stage.backbone == "ours"
     if trainer.sharded:  # the trained model holds this rank's shards only: a plain one takes the full weights
-        model = Diff4SplatModel(model.config)
+        model = Diff4SplatModel(model.config) if ours else backbone_training().load_backbone_model(stage)
     if state is not None:
         model.load_state_dict({k[len("model."):]: v for k, v in state.items()})
     if "vae" in stage.objectives:
         a, b = calibrate_latent_scaling(model, trainer.dataset)
         print(f"train: VAE latent scaling_factor {a:.6g}, shift_factor {b:.6g}", file=sys.stderr)
-    model.save_pretrained(Path(trainer.run_dir) / "model")
+    if ours:
+        model.save_pretrained(Path(trainer.run_dir) / "model")
+    else:
+        backbone_training().save_backbone_model(model, Path(trainer.run_dir) / "model")
     print(f"train: wrote {Path(trainer.run_dir) / 'model'}", file=sys.stderr)
 
 

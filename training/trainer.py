@@ -28,9 +28,11 @@ Devices and precision (``trainer:`` section of a stage YAML, or ``python -m trai
 - ``tf32`` (default True) lets float32 matmuls and cuDNN convolutions on CUDA use TF32 tensor cores
   (``torch.backends.cuda.matmul.allow_tf32``, ``torch.backends.cudnn.allow_tf32``; process-wide, set when
   a trainer is built on CUDA; ``tf32: false`` gives full float32). No effect on the CPU.
-- ``gradient_checkpointing`` (default False) sets ``gradient_checkpointing = True`` on every module of the
-  model that has that attribute (:class:`models.dit.VideoDiT`): its blocks' activations are recomputed in
-  the backward pass instead of stored (same loss and gradients, less memory, ~⅓ more compute).
+- ``gradient_checkpointing`` (default False) calls the model's ``enable_gradient_checkpointing()`` when it has
+  one (:class:`training.objectives.TrainingModule`: our DiT, or a diffusers transformer through diffusers' own
+  switch), else sets ``gradient_checkpointing = True`` on every module of the model that has that attribute
+  (:class:`models.dit.VideoDiT`): the blocks' activations are recomputed in the backward pass instead of stored
+  (same loss and gradients, less memory, ~⅓ more compute).
 
 Distributed: under ``torchrun`` (``WORLD_SIZE`` > 1) each process first selects its GPU
 (``torch.cuda.set_device(cuda:$LOCAL_RANK)``), then joins the process group (NCCL on CUDA, with
@@ -93,8 +95,9 @@ class TrainerConfig:
             ``cuda`` or ``cuda:N`` (:func:`training_device`); checked when the :class:`Trainer` is built.
         bf16: autocast the step to bfloat16; None (``auto``) = on for CUDA, off for the CPU (:func:`resolve_bf16`).
         tf32: allow TF32 matmuls and cuDNN convolutions when training on CUDA (no effect on the CPU).
-        gradient_checkpointing: recompute the activations of modules that support it (a
-            ``gradient_checkpointing`` attribute: the DiT's blocks) in the backward pass.
+        gradient_checkpointing: recompute activations in the backward pass: the model's own
+            ``enable_gradient_checkpointing()`` if it has one, else every module with a ``gradient_checkpointing``
+            attribute (the DiT's blocks).
         seed: seed of data order and of the step generator.
         checkpoint_every: steps between checkpoints (a final one is always written).
         keep_checkpoints: newest checkpoints kept.
@@ -211,6 +214,8 @@ class Trainer:
     Args:
         model: the module; parameters with ``requires_grad=False`` are frozen (not optimised). Under
             ``strategy="fsdp"`` a ``model.fsdp_units()`` method, if any, lists the sub-modules sharded one by one.
+            A ``model.checkpoint_frozen`` attribute False leaves the frozen parameters out of checkpoints (they must
+            then be rebuilt identically before :meth:`resume`: a pretrained backbone's, read from its folder).
         dataset: map-style dataset; ``set_epoch(epoch)`` is called if it exists.
         step_fn: ``(model, batch, generator) -> {"loss": scalar, other scalars...}``; ``generator`` is a CPU
             ``torch.Generator`` (draw on it, then move the draw to the batch's device).
@@ -244,6 +249,7 @@ class Trainer:
         self.sharded = self.distributed and config.strategy == "fsdp"
         if config.gradient_checkpointing:
             self._enable_gradient_checkpointing(model)
+        self.checkpoint_frozen = bool(getattr(model, "checkpoint_frozen", True))
         self.module = model.to(self.device)
         self.model = self._wrap(self.module)
         params = [p for p in self.model.parameters() if p.requires_grad]
@@ -267,6 +273,10 @@ class Trainer:
     # ----------------------------------------------------------------- devices and distribution
     @staticmethod
     def _enable_gradient_checkpointing(model: nn.Module) -> None:
+        hook = getattr(model, "enable_gradient_checkpointing", None)
+        if callable(hook):  # the model picks its modules (TrainingModule: the video transformer, ours or diffusers')
+            hook()
+            return
         found = [m for m in model.modules() if hasattr(m, "gradient_checkpointing")]
         if not found:
             raise ValueError(f"trainer.gradient_checkpointing: no module of the {type(model).__name__} supports it "
@@ -301,13 +311,22 @@ class Trainer:
         return nn.parallel.DistributedDataParallel(module, device_ids=ids,
                                                    find_unused_parameters=self.config.find_unused_parameters)
 
-    def _model_state(self) -> dict[str, Tensor]:
-        """Full weights (collective under FSDP, where rank 0 gets them on the CPU and the other ranks ``{}``)."""
+    def _model_state(self, frozen: bool = True) -> dict[str, Tensor]:
+        """Full weights (collective under FSDP, where rank 0 gets them on the CPU and the other ranks ``{}``);
+        without the frozen parameters when ``frozen`` is False."""
         if self.sharded:
             from torch.distributed.checkpoint.state_dict import StateDictOptions, get_model_state_dict
 
-            return get_model_state_dict(self.model, options=StateDictOptions(full_state_dict=True, cpu_offload=True))
-        return self.module.state_dict()
+            state = get_model_state_dict(self.model, options=StateDictOptions(
+                full_state_dict=True, cpu_offload=True, ignore_frozen_params=not frozen))
+        else:
+            state = self.module.state_dict()
+        # every name of a frozen parameter (get_model_state_dict keeps the second name of a tied one)
+        return state if frozen else {k: v for k, v in state.items() if k not in self._frozen_names()}
+
+    def _frozen_names(self) -> set[str]:
+        """State-dict names of the frozen parameters (every name of a shared one)."""
+        return {n for n, p in self.module.named_parameters(remove_duplicate=False) if not p.requires_grad}
 
     def _ema_state(self) -> dict[str, Tensor] | None:
         """Full EMA weights (collective under FSDP: every rank calls it), or None without EMA."""
@@ -329,13 +348,18 @@ class Trainer:
             from torch.distributed.tensor import distribute_tensor
 
             set_state_dict(self.model, self.optimizer, model_state_dict=model_state, optim_state_dict=optim_state,
-                           options=StateDictOptions(full_state_dict=True, broadcast_from_rank0=False))
+                           options=StateDictOptions(full_state_dict=True, broadcast_from_rank0=False,
+                                                    strict=self.checkpoint_frozen))
             if ema is not None and self.ema is not None:  # this rank's shard of each full EMA tensor
                 self.ema = {k: distribute_tensor(ema[k].to(self.device, torch.float32), v.device_mesh, v.placements)
                             if hasattr(v, "device_mesh") else ema[k].to(self.device, torch.float32)
                             for k, v in self.ema.items()}
             return
-        self.module.load_state_dict(model_state)
+        result = self.module.load_state_dict(model_state, strict=self.checkpoint_frozen)
+        missing = set(result.missing_keys) - self._frozen_names()
+        if missing or result.unexpected_keys:  # only frozen weights may be absent (checkpoint_frozen False)
+            raise RuntimeError(f"checkpoint: weights missing {sorted(missing)[:5]}, unexpected "
+                               f"{sorted(result.unexpected_keys)[:5]}")
         self.optimizer.load_state_dict(optim_state)
         if ema is not None and self.ema is not None:
             self.ema = {k: v.to(self.device, torch.float32) for k, v in ema.items()}
@@ -343,7 +367,7 @@ class Trainer:
     # ----------------------------------------------------------------- checkpoints
     def save(self) -> Path | None:
         """Write a checkpoint (rank 0; other ranks wait at a barrier). Returns its folder on rank 0."""
-        model_state = self._model_state()
+        model_state = self._model_state(frozen=self.checkpoint_frozen)
         optim_state = self._optimizer_state()
         ema_state = self._ema_state()
         folder = None
