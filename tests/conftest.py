@@ -9,6 +9,18 @@ DEVICES = [pytest.param("cpu", id="cpu"),
 """The ``device`` fixture's values: the CPU always, CUDA where torch sees a GPU (skipped elsewhere)."""
 
 
+DIFFUSERS_TESTS = ("test_backbone_*.py", "test_training_backbone.py")
+"""The pretrained-backbone tests: every test in them is ``slow`` (module ``pytestmark``), because importing diffusers
+and transformers alone takes ~8 s on 2 cores; the fast loop does not even collect them."""
+
+
+def pytest_ignore_collect(collection_path, config):
+    """``-m "not slow"`` skips collecting :data:`DIFFUSERS_TESTS` (their imports would cost the fast loop ~8 s)."""
+    if "not slow" in (config.getoption("markexpr") or "") and any(collection_path.match(p) for p in DIFFUSERS_TESTS):
+        return True
+    return None
+
+
 def pytest_collection_modifyitems(config, items):
     """Tests marked ``cuda`` (the ``device`` fixture's CUDA case included) skip cleanly without a GPU;
     ``python -m pytest -m cuda`` runs only them."""

@@ -36,7 +36,8 @@ from models.flow_matching import euler_sample  # noqa: E402
 
 PROMPT = "a cat"
 
-pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py: tiny tensors
+pytestmark = [pytest.mark.usefixtures("one_thread"),  # tests/conftest.py: tiny tensors
+              pytest.mark.slow]  # every test here: diffusers costs ~8 s to import (tests/conftest.py)
 
 
 @pytest.fixture(scope="module")

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 pytest.importorskip("diffusers", reason="the diffusers backbones need diff4splat[diffusers]")
+pytestmark = pytest.mark.slow  # every test here: diffusers costs ~8 s to import (tests/conftest.py)
 
 from helpers import EXAMPLE_IMAGE  # noqa: E402
 

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 pytest.importorskip("diffusers", reason="the backbone sizes build diffusers models (diff4splat[diffusers])")
+pytestmark = pytest.mark.slow  # every test here: diffusers costs ~8 s to import (tests/conftest.py)
 pytest.importorskip("ftfy", reason="the Wan backbone module needs ftfy (diff4splat[diffusers])")
 
 from diff4splat.config_files import BACKBONE_CONFIGS  # noqa: E402

@@ -7,6 +7,7 @@ import json
 import pytest
 
 pytest.importorskip("diffusers", reason="the Wan backbone needs diff4splat[diffusers]")
+pytestmark = pytest.mark.slow  # every test here: diffusers costs ~8 s to import (tests/conftest.py)
 pytest.importorskip("ftfy", reason="diffusers' Wan prompt cleaning needs ftfy (diff4splat[diffusers])")
 
 import diffusers  # noqa: E402

@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 pytest.importorskip("diffusers", reason="training a diffusers backbone needs diff4splat[diffusers]")
+pytestmark = pytest.mark.slow  # every test here: diffusers costs ~8 s to import (tests/conftest.py)
 pytest.importorskip("peft", reason="training a diffusers backbone needs peft")
 
 import torch  # noqa: E402
