@@ -6,6 +6,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import textwrap
 import time
 
 import pytest
@@ -68,6 +69,22 @@ def free_port():
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def fsdp_stage_script(config: os.PathLike | str, checks: str) -> str:
+    """A rank's script for :func:`run_two_ranks`: ``training.train`` on ``config`` with ``--strategy fsdp`` on the CPU,
+    keeping what ``build_training`` built (``trainer``, ``model``), then ``checks`` (Python lines at the left margin
+    that may use them and ``FSDPModule``), exiting with the run's code."""
+    head = f"""import sys
+import training.train as train
+from torch.distributed.fsdp import FSDPModule
+built = []
+real = train.build_training
+train.build_training = lambda stage, seed=None: built.append(real(stage, seed)) or built[-1]
+code = train.main(["--config", {str(config)!r}, "--strategy", "fsdp", "--device", "cpu", "--quiet"])
+trainer, model, _ = built[0]
+"""
+    return head + textwrap.dedent(checks) + "sys.exit(code)\n"
 
 
 def run_two_ranks(script: str, attempts: int = 3, timeout: float = 120) -> None:

@@ -6,13 +6,12 @@ import csv
 import dataclasses
 import functools
 import json
-import textwrap
 from pathlib import Path
 
 import pytest
 import torch
 import yaml
-from _trainer_toy import run_two_ranks
+from _trainer_toy import fsdp_stage_script, run_two_ranks
 from helpers import tiny_model
 
 import training.objectives as objectives
@@ -118,19 +117,10 @@ def test_fsdp_on_two_gloo_ranks_trains_a_stage_block_by_block(data, tmp_path):
     trains, and rank 0 writes the full model, whose weights are the checkpoint's EMA."""
     stage = _stage("stage3", data, tmp_path / "run", total_steps=2, ema_decay=0.9, gradient_checkpointing=True)
     cfg = _yaml(stage, tmp_path / "stage.yaml")
-    script = textwrap.dedent(f"""
-        import sys
-        import training.train as train
-        from torch.distributed.fsdp import FSDPModule
-        built = []
-        real = train.build_training
-        train.build_training = lambda stage, seed=None: built.append(real(stage, seed)) or built[-1]
-        code = train.main(["--config", {str(cfg)!r}, "--strategy", "fsdp", "--device", "cpu", "--quiet"])
-        trainer, model, _ = built[0]
+    script = fsdp_stage_script(cfg, """
         units = [*model.dit.blocks, *model.ldrm.blocks, *model.text_encoder.blocks]
         assert trainer.sharded and all(isinstance(b, FSDPModule) for b in units)
         assert not isinstance(model.vae, FSDPModule) and model.dit.gradient_checkpointing
-        sys.exit(code)
     """)
     run_two_ranks(script, timeout=300)
     rows = _metrics(tmp_path / "run")

@@ -11,7 +11,6 @@ import csv
 import dataclasses
 import json
 import shutil
-import textwrap
 from pathlib import Path
 
 import pytest
@@ -22,7 +21,7 @@ pytest.importorskip("peft", reason="training a diffusers backbone needs peft")
 
 import torch  # noqa: E402
 import yaml  # noqa: E402
-from _trainer_toy import run_two_ranks  # noqa: E402
+from _trainer_toy import fsdp_stage_script, run_two_ranks  # noqa: E402
 from helpers import EXAMPLE_IMAGE  # noqa: E402
 from safetensors import safe_open  # noqa: E402
 from tiny_cogvideox import tiny_backbone as tiny_cogvideox  # noqa: E402
@@ -230,20 +229,11 @@ def test_fsdp_on_two_gloo_ranks_shards_the_backbone_block_by_block(data, tmp_pat
                    checkpoint_every=1)
     cfg = tmp_path / "stage.yaml"
     cfg.write_text(yaml.safe_dump(json.loads(json.dumps(dataclasses.asdict(stage)))))
-    script = textwrap.dedent(f"""
-        import sys
-        import training.train as train
-        from torch.distributed.fsdp import FSDPModule
-        built = []
-        real = train.build_training
-        train.build_training = lambda stage, seed=None: built.append(real(stage, seed)) or built[-1]
-        code = train.main(["--config", {str(cfg)!r}, "--strategy", "fsdp", "--device", "cpu", "--quiet"])
-        trainer, model, _ = built[0]
+    script = fsdp_stage_script(cfg, """
         b = model.backbone
         units = [*b.transformer_blocks(), *model.ldrm.blocks, *b.text_encoder.encoder.block]
         assert trainer.sharded and all(isinstance(u, FSDPModule) for u in units)
         assert b.transformer.gradient_checkpointing and not isinstance(b.vae, FSDPModule)
-        sys.exit(code)
     """)
     run_two_ranks(script, timeout=300)
     weights, _, ema = load_checkpoint(latest_checkpoint(tmp_path / "run"))

@@ -119,13 +119,7 @@ class CogVideoXBackbone(DiffusersBackbone):
         Raises:
             ValueError: not (B, 3, T, H, W), T ≠ 1 + 4k, or H, W not multiples of 8.
         """
-        s = self.latent.spatial_factor
-        if video.dim() != 5 or video.shape[1] != 3 or video.shape[3] % s or video.shape[4] % s:
-            raise ValueError(f"video must be (B, 3, T, H, W) with H, W multiples of {s}, got {tuple(video.shape)}")
-        self.latent.num_latent_frames(video.shape[2])
-        dist = self.vae.encode(video.to(self.vae.dtype)).latent_dist
-        z = dist.mode() if generator is None else dist.sample(generator)
-        return self.vae.config.scaling_factor * z.float()
+        return self.vae.config.scaling_factor * self.posterior(video, generator)
 
     def decode_latents(self, latents: Tensor) -> Tensor:
         """Latents (B, c, n, h, w) → video (B, 3, 1 + 4(n − 1), 8h, 8w) float32 in about [−1, 1]

@@ -21,7 +21,7 @@ from typing import ClassVar
 import torch
 from diffusers import DiffusionPipeline
 from safetensors.torch import load_file, save_file
-from torch import nn
+from torch import Tensor, nn
 
 from diff4splat.io.structured import read_json
 
@@ -76,6 +76,27 @@ class DiffusersBackbone(Backbone):
     @staticmethod
     def latent_format(vae: nn.Module) -> LatentFormat:
         raise NotImplementedError
+
+    def posterior(self, video: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """The VAE's raw latent of ``video``: its posterior's mode (the pipelines' ``retrieve_latents(...,
+        sample_mode="argmax")``), or a sample drawn with ``generator``; float32 on the video's device.
+
+        Args:
+            video: (B, 3, T, H, W) in [−1, 1], T = 1 + t·k, H and W multiples of the spatial factor s.
+
+        Returns:
+            (B, c, n, H/s, W/s) before the backbone's normalisation.
+
+        Raises:
+            ValueError: a video of another shape, T ≠ 1 + t·k, or H, W not multiples of s.
+        """
+        s = self.latent.spatial_factor
+        if video.dim() != 5 or video.shape[1] != 3 or video.shape[3] % s or video.shape[4] % s:
+            raise ValueError(f"video must be (B, 3, T, H, W) with H, W multiples of {s}, got {tuple(video.shape)}")
+        self.latent.num_latent_frames(video.shape[2])
+        dist = self.vae.encode(video.to(self.vae.dtype)).latent_dist
+        z = dist.mode() if generator is None else dist.sample(generator)
+        return z.to(device=video.device, dtype=torch.float32)
 
     @property
     def camera_conv(self) -> CameraPatchConv:

@@ -24,6 +24,7 @@ from torch import nn
 from diff4splat.io.output_folders import output_dir
 from diff4splat.io.structured import read_json
 
+from ..bundle import Diff4SplatConfig
 from ..flow_matching import FlowMatchingConfig
 from ..ldrm import LDRM, LDRMConfig
 from ..pretrained import MODEL_KIND, config_from_dict, count_parameters
@@ -78,10 +79,10 @@ class BackboneModelConfig:
     height: int = 704
     width: int = 1280
     num_frames: int = 121
-    fov_y_deg: float = 50.0
-    scene_depth: float = 2.0
-    prune_opacity: float = 0.005
-    static_atol: float = 1e-6
+    fov_y_deg: float = Diff4SplatConfig.fov_y_deg  # one home: our model's defaults
+    scene_depth: float = Diff4SplatConfig.scene_depth
+    prune_opacity: float = Diff4SplatConfig.prune_opacity
+    static_atol: float = Diff4SplatConfig.static_atol
     vae: LatentFormat = field(default_factory=lambda: LatentFormat(48, 4, 16))
     ldrm: LDRMConfig = field(default_factory=LDRMConfig.paper)
     sampling: FlowMatchingConfig = field(default_factory=lambda: FlowMatchingConfig(steps=50))

@@ -136,14 +136,8 @@ class WanBackbone(DiffusersBackbone):
         Raises:
             ValueError: a video of the wrong shape.
         """
-        s = self.latent.spatial_factor
-        if video.dim() != 5 or video.shape[1] != 3 or video.shape[3] % s or video.shape[4] % s:
-            raise ValueError(f"video must be (B, 3, T, H, W) with H, W multiples of {s}, got {tuple(video.shape)}")
-        self.latent.num_latent_frames(video.shape[2])
-        dist = self.vae.encode(video.to(self.vae.dtype)).latent_dist
-        z = dist.mode() if generator is None else dist.sample(generator)
         mean, inv_std = self._latent_stats(video.device)
-        return (z.to(device=video.device, dtype=torch.float32) - mean) * inv_std
+        return (self.posterior(video, generator) - mean) * inv_std
 
     def decode_latents(self, latents: Tensor) -> Tensor:
         """Normalised latents (B, 48, n, h, w) → video (B, 3, 1 + 4(n − 1), 16h, 16w) float32 in [−1, 1] (the VAE
