@@ -37,9 +37,10 @@ from .io.output_folders import check_output_dir
 from .io.scene_folder import scene_meta, write_scene_folder
 from .io.video import check_fps
 from .limits import check_limit, check_memory, check_output_size
-from .pipeline import DEFAULT_RESOLUTION, DTYPES, Diff4SplatPipeline, GenerationResult, check_prompt, check_seed
+from .pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, GenerationResult, check_prompt, check_seed
 from .pipeline import load_model as _load_model
 from .render.sequence import render_path
+from .runtime import DTYPES
 
 __all__ = ["LoadedPipeline", "Generation", "load_pipeline", "generate", "write", "RUNTIMES"]
 
@@ -82,8 +83,8 @@ def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | Non
         runtime: one of :data:`RUNTIMES`; "onnxruntime" runs the export in ``onnx`` (checkpoint, config, device,
             dtype and offload then do not apply: the export's manifest fixes the model).
         device: "auto" (CUDA when present, else the CPU), "cpu", "cuda", "cuda:1", …
-        dtype: weight dtype name (:data:`diff4splat.pipeline.DTYPES`).
-        offload: "none" or "model" (:data:`diff4splat.pipeline.OFFLOAD_MODES`).
+        dtype: weight dtype name (:data:`diff4splat.runtime.DTYPES`).
+        offload: "none" or "model" (:data:`diff4splat.runtime.OFFLOAD_MODES`).
 
     Raises:
         ValueError: an unknown runtime or dtype, options that do not apply to the runtime, an unavailable device,

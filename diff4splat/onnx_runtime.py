@@ -1,5 +1,5 @@
 """Serve an ONNX export (:mod:`diff4splat.export`) with onnxruntime: a pipeline
-:class:`~diff4splat.pipeline.NetworkRuntime`.
+:class:`~diff4splat.runtime.NetworkRuntime`.
 
 ``Diff4SplatPipeline(OnnxRuntime(dir))`` (or ``Diff4SplatPipeline.from_onnx(dir)``, or
 ``diff4splat generate --runtime onnxruntime --onnx DIR``) runs image encoding, text encoding, the
@@ -220,7 +220,7 @@ def _numpy(t: Tensor, dtype) -> np.ndarray:
 
 
 class OnnxRuntime:
-    """:class:`diff4splat.pipeline.NetworkRuntime` over an ``export-onnx`` folder (batch 1 per call here;
+    """:class:`diff4splat.runtime.NetworkRuntime` over an ``export-onnx`` folder (batch 1 per call here;
     the graphs themselves take any batch).
 
     Args:

@@ -6,7 +6,8 @@ import pytest
 import torch
 from helpers import tiny_model
 
-from diff4splat.pipeline import Diff4SplatPipeline, TorchRuntime
+from diff4splat.pipeline import Diff4SplatPipeline
+from diff4splat.runtime import TorchRuntime
 from training.eval_metrics import ablation_noise, image_psnr, kept_index_map
 from training.evaluate import (
     BASELINES,

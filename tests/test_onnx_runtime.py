@@ -17,8 +17,9 @@ from diff4splat.cli import main
 from diff4splat.io import load_depth_exr, load_image, load_ply
 from diff4splat.io.scene_folder import load_deformation
 from diff4splat.onnx_runtime import OnnxRuntime, default_providers, load_manifest, session_options  # noqa: E402
-from diff4splat.pipeline import Diff4SplatPipeline, TorchRuntime
+from diff4splat.pipeline import Diff4SplatPipeline
 from diff4splat.render.sequence import render_path
+from diff4splat.runtime import TorchRuntime
 from models.bundle import Diff4SplatModel
 
 FRAMES = 9

@@ -10,8 +10,9 @@ from diff4splat.cameras import camera_rays
 from diff4splat.gaussians import sh0_to_rgb
 from diff4splat.io import load_image
 from diff4splat.photo import BACKDROP_CELLS, BACKDROP_EXTEND
-from diff4splat.pipeline import Diff4SplatPipeline, TorchRuntime
+from diff4splat.pipeline import Diff4SplatPipeline
 from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
+from diff4splat.runtime import TorchRuntime
 from models.ldrm import LDRMOutput
 
 FRAMES = 9

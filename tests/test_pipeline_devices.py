@@ -5,7 +5,8 @@ import torch
 from helpers import tiny_model
 
 from diff4splat.offload import ModelOffload
-from diff4splat.pipeline import Diff4SplatPipeline, TorchRuntime
+from diff4splat.pipeline import Diff4SplatPipeline
+from diff4splat.runtime import TorchRuntime
 from models.bundle import Diff4SplatModel, load_config
 
 PROMPT = "a cat turns its head"

@@ -32,7 +32,8 @@ from diff4splat.limits import (
     check_output_size,
     limit,
 )
-from diff4splat.pipeline import Diff4SplatPipeline, TorchRuntime, load_model
+from diff4splat.pipeline import Diff4SplatPipeline, load_model
+from diff4splat.runtime import TorchRuntime
 from models.bundle import Diff4SplatModel, load_config
 from models.pretrained import config_from_dict
 from models.vae import VideoVAEConfig

@@ -1,0 +1,159 @@
+"""How the pipeline reaches the networks: the :class:`NetworkRuntime` protocol, and :class:`TorchRuntime`, which runs
+PyTorch networks — our :class:`models.bundle.Diff4SplatModel` or a pretrained diffusers backbone with our LDRM
+(:class:`models.backbones.model.BackboneModel`) — through their :class:`models.backbones.base.Backbone`
+(``diff4splat.onnx_runtime.OnnxRuntime`` is the other runtime). Batch 1, float32 tensors in and out.
+"""
+from __future__ import annotations
+
+from contextlib import contextmanager
+from dataclasses import fields
+from typing import Protocol, runtime_checkable
+
+import torch
+from torch import Tensor
+
+from models.backbones.base import LatentFormat
+from models.backbones.model import BackboneModel, BackboneModelConfig
+from models.bundle import Diff4SplatConfig, Diff4SplatModel
+from models.ldrm import LDRMOutput
+
+from .offload import ModelOffload
+
+__all__ = ["NetworkRuntime", "TorchRuntime", "OFFLOAD_MODES", "DTYPES"]
+
+
+@runtime_checkable
+class NetworkRuntime(Protocol):
+    """What the pipeline needs from the networks (batch 1, float32 tensors in, tensors out).
+
+    Attributes:
+        config: the model's :class:`Diff4SplatConfig` or :class:`models.backbones.model.BackboneModelConfig`
+            (resolution, LDRM, sampling defaults).
+        latent: the VAE's :class:`models.backbones.base.LatentFormat` (channels, temporal and spatial factors).
+        has_deformation: whether :meth:`reconstruct` can predict deformation maps (times not None).
+        encodes_empty_prompt: whether the transformer needs the empty prompt's text embedding (a pretrained
+            backbone's unconditional input) rather than no text at all.
+        name: "torch" or "onnxruntime" (written to meta.json).
+    """
+
+    config: Diff4SplatConfig | BackboneModelConfig
+    latent: LatentFormat
+    has_deformation: bool
+    encodes_empty_prompt: bool
+    name: str
+
+    def sigmas(self, steps: int) -> Tensor:
+        """The sampler's σ schedule: (steps + 1,) float64 from 1 to 0
+        (:meth:`models.backbones.base.Backbone.sigmas`)."""
+
+    def encode_image(self, video: Tensor) -> Tensor:
+        """(1, 3, 1, H, W) pixels in [−1, 1] → (1, c, 1, h, w) DiT-scaled latent (posterior mean)."""
+
+    def encode_text(self, prompt: str) -> tuple[Tensor, Tensor]:
+        """Non-empty prompt → tokens (1, L, d_text), mask (1, L) bool. ValueError if it cannot."""
+
+    def velocity(self, x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor,
+                 text: Tensor | None, text_mask: Tensor | None) -> Tensor:
+        """Flow-matching velocity ε − x0: x (1, c, n, h, w), sigma (1,), image_latent (1, c, 1, h, w),
+        plucker (1, 6·t·s², n, h, w), text (1, L, d) + mask (1, L) or None → (1, c, n, h, w)."""
+
+    def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None, image: Tensor) -> LDRMOutput:
+        """LDRM (+ deformation network when ``times`` (K,) is given) → activated maps (B, S, H, W, ·);
+        ``image`` (1, 3, H, W) in [−1, 1] is the photograph (used by an LDRM with an image branch)."""
+
+
+OFFLOAD_MODES = ("none", "model")
+"""``offload`` values: ``none`` keeps every network on the device; ``model`` keeps them in CPU memory and moves
+one at a time to the device while it runs (:class:`diff4splat.offload.ModelOffload`)."""
+DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}
+"""Weight dtypes a :class:`TorchRuntime` runs in, by name (``generate --dtype``)."""
+
+
+class TorchRuntime:
+    """:class:`NetworkRuntime` over PyTorch networks (eval mode, no grad): our :class:`Diff4SplatModel` or a
+    pretrained diffusers backbone with our LDRM (:class:`models.backbones.model.BackboneModel`), both through their
+    :class:`models.backbones.base.Backbone`.
+
+    Args:
+        model: the networks; moved to ``device`` (or, with ``offload="model"``, to the CPU) and cast to
+            ``dtype``, in place. A backbone model's text encoder (umT5-XXL / T5-XXL, 11 / 9.5 GB in bf16) stays in
+            CPU memory and visits the device only to encode the prompt.
+        device: where the networks run.
+        dtype: weight dtype (float32, bfloat16 or float16; None keeps the model's). The networks compute in it;
+            inputs are cast to it and every output is returned in float32, so the sampler integrates and the
+            Gaussians are built in float32 whatever the weights.
+        offload: one of :data:`OFFLOAD_MODES`.
+
+    Raises:
+        ValueError: an unknown ``offload`` or a non-floating ``dtype``.
+    """
+
+    name = "torch"
+    has_deformation = True
+
+    def __init__(self, model: Diff4SplatModel | BackboneModel, device: str | torch.device = "cpu", *,
+                 dtype: torch.dtype | None = None, offload: str = "none"):
+        if offload not in OFFLOAD_MODES:
+            raise ValueError(f"offload must be one of {OFFLOAD_MODES}, got {offload!r}")
+        if dtype is not None and dtype not in DTYPES.values():
+            raise ValueError(f"dtype must be one of {sorted(DTYPES)} (torch dtypes), got {dtype!r}")
+        self.device = torch.device(device)
+        self.model = model.eval() if dtype is None else model.to(dtype).eval()
+        self.config = model.config
+        self.backbone = model.backbone
+        self.latent = self.backbone.latent
+        self.encodes_empty_prompt = self.backbone.encodes_empty_prompt
+        self.networks = model.networks()
+        self.dtype = next(self.networks["dit"].parameters()).dtype
+        self.offload = ModelOffload(self.networks, self.device) if offload == "model" else None
+        # A pretrained backbone's text encoder visits the device only while it encodes.
+        self.text_visits = isinstance(model, BackboneModel) and self.offload is None
+        if self.offload is None:
+            for name, net in self.networks.items():
+                net.to("cpu" if self.text_visits and name == "text_encoder" else self.device)
+
+    @contextmanager
+    def _use(self, name: str):
+        """The network ``name`` on the device (moved there first with ``offload="model"``, and for a backbone's
+        text encoder; moved back after)."""
+        if self.offload is not None:
+            with self.offload.use(name) as net:
+                yield net
+        elif name == "text_encoder" and self.text_visits:
+            net = self.networks[name].to(self.device)
+            try:
+                yield net
+            finally:
+                net.to("cpu")
+        else:
+            yield self.networks[name]
+
+    def release(self) -> None:
+        """Free the device memory of an offloaded network (nothing without offload)."""
+        if self.offload is not None:
+            self.offload.release()
+
+    def sigmas(self, steps: int) -> Tensor:
+        return self.model.backbone.sigmas(steps)  # ours: the config's shift as it is now
+
+    def encode_image(self, video: Tensor) -> Tensor:
+        with self._use("vae"):
+            return self.backbone.encode_video(video.to(self.dtype)).float()
+
+    def encode_text(self, prompt: str) -> tuple[Tensor, Tensor]:
+        with self._use("text_encoder"):
+            tokens, mask = self.backbone.encode_text([prompt])
+        return tokens.float().to(self.device), mask.to(self.device)
+
+    def velocity(self, x, sigma, image_latent, plucker, text, text_mask) -> Tensor:
+        dt = self.dtype
+        with self._use("dit"):  # σ float32: its embedding casts
+            return self.backbone.velocity(x.to(dt), sigma.float(), image_latent.to(dt), plucker.to(dt),
+                                          None if text is None else text.to(dt), text_mask).float()
+
+    def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None, image: Tensor) -> LDRMOutput:
+        dt = self.dtype
+        with self._use("ldrm") as ldrm:
+            out = ldrm(latents.to(dt), plucker.to(dt), None if times is None else times.to(dt), image.to(dt))
+        return LDRMOutput(**{f.name: None if getattr(out, f.name) is None else getattr(out, f.name).float()
+                             for f in fields(out)})
