@@ -90,6 +90,28 @@ def test_optional_imports_are_guarded():
                 assert not optional_modules & {n.split(".")[0] for n in names}, f"{path}: top-level optional import"
 
 
+DIFFUSERS_EXTRA = ("diffusers", "transformers", "peft", "sentencepiece", "ftfy")
+"""The ``diffusers`` extra (pretrained backbones, models/backbones/)."""
+
+
+@pytest.mark.slow
+def test_the_default_paths_never_import_the_diffusers_extra():
+    """The CPU default (generate with our networks, training our stages, ONNX export) imports none of the
+    ``diffusers`` extra's packages: only a diffusers folder or a backbone stage loads them
+    (``models.backbones.model.backbone_class``, ``training.backbone_training``)."""
+    code = ("import sys, diff4splat.cli, diff4splat.generate, diff4splat.export, models.backbones.model, "
+            "training.train, training.objectives, training.evaluate; "
+            f"print(sorted(m for m in {DIFFUSERS_EXTRA!r} if m in sys.modules))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "[]"
+
+
+def test_the_diffusers_extra_is_declared():
+    extras = PYPROJECT["project"]["optional-dependencies"]
+    assert {re.split(r"[<>=!~ ]", r)[0] for r in extras["diffusers"]} == set(DIFFUSERS_EXTRA)
+
+
 def test_configs_are_package_data():
     """Every shipped YAML lies in the top-level configs/ (one home), reached from the package through the
     diff4splat/configs link, and matches a package-data glob of diff4splat in pyproject.toml."""
