@@ -99,3 +99,17 @@ def test_a_folder_of_another_pipeline_is_refused(tmp_path):
     (tmp_path / "model_index.json").write_text(json.dumps({"_class_name": "StableDiffusionPipeline"}))
     with pytest.raises(ValueError, match="StableDiffusionPipeline"):
         load_model(tmp_path)
+
+
+def test_a_folder_fresh_from_the_hub_gets_the_released_config_zero_camera_and_a_random_ldrm(tmp_path):
+    """A Hub folder has none of ours: camera weights zero (the pretrained transformer exactly), the backbone's
+    released resolution and frames (models.backbones.model.DEFAULTS), the paper-size LDRM on its latents, random,
+    with a warning naming the missing ldrm/."""
+    fixture = _fixture("cogvideox")
+    fixture.tiny_backbone(0).write_pretrained(tmp_path)
+    with pytest.warns(UserWarning, match="ldrm/"):
+        model = BackboneModel.from_pretrained(tmp_path)
+    c = model.config
+    assert (c.backbone, c.height, c.width, c.num_frames) == ("cogvideox-i2v", 480, 720, 49)
+    assert (c.ldrm.latent_channels, c.ldrm.vae_spatial) == (4, 8) and c.ldrm.depth == LDRMConfig.paper().depth
+    assert not model.backbone.camera_conv.camera_weight.any()
