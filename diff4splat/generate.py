@@ -23,6 +23,7 @@ import torch
 from torch import Tensor
 
 from models.bundle import DEFAULT_CONFIG
+from models.flow_matching import check_guidance
 
 from .assemble import DEPTH_KINDS
 from .cameras import DEFAULT_TRAJECTORY, TRAJECTORIES, CameraPath
@@ -150,7 +151,7 @@ class Generation:
 
 
 def _check_request(image, cameras, trajectory, amplitude, frames, resolution, steps, seed, prompt, depth,
-                   depth_kind) -> None:
+                   depth_kind, guidance) -> None:
     """The request's own checks, made before any model loads (messages name the command's flags)."""
     if isinstance(image, (str, os.PathLike)):
         check_input_file(image, "image")
@@ -163,6 +164,8 @@ def _check_request(image, cameras, trajectory, amplitude, frames, resolution, st
         raise ValueError(f"--depth-kind must be one of {DEPTH_KINDS}, got {depth_kind!r}")
     check_seed(seed, "--seed")
     check_prompt(prompt, "--prompt")
+    if guidance is not None:
+        check_guidance(guidance, "--guidance")
     if cameras is not None:
         if amplitude is not None:
             raise ValueError("--amplitude scales a --trajectory preset; it does not apply to --cameras "
@@ -200,6 +203,7 @@ def generate(
     prompt: str = "",
     steps: int | None = None,
     sampler: str | None = None,
+    guidance: float | None = None,
     seed: int = 0,
     depth: str | os.PathLike | Tensor | None = None,
     depth_kind: str = "metric",
@@ -221,6 +225,7 @@ def generate(
         resolution: output height, pixels (default: 256, or the model's height if larger).
         prompt: text describing the motion; "" runs no text encoder.
         steps, sampler, seed: the flow-matching sampler's (defaults: the config's; seed 0).
+        guidance: classifier-free guidance scale (default: the config's; :meth:`Diff4SplatPipeline.__call__`).
         depth: a depth map of the photograph for the photo layer: a file (EXR channel Z, .npy, 16-bit PNG/TIFF in
             millimetres) or an (H, W) tensor at the output resolution; ``depth_kind``: "metric", "relative" or
             "inverse" (:data:`diff4splat.assemble.DEPTH_KINDS`).
@@ -237,7 +242,8 @@ def generate(
         FileNotFoundError: a missing input file.
     """
     t_start = time.perf_counter()
-    _check_request(image, cameras, trajectory, amplitude, frames, resolution, steps, seed, prompt, depth, depth_kind)
+    _check_request(image, cameras, trajectory, amplitude, frames, resolution, steps, seed, prompt, depth, depth_kind,
+                   guidance)
     files = {"image": image, "cameras_file": cameras, "depth_file": depth}  # as given, for meta.json
     loaded = pipeline() if callable(pipeline) and not isinstance(pipeline, Diff4SplatPipeline) else pipeline
     if loaded is None:
@@ -273,7 +279,7 @@ def generate(
                       pipe.scene_slots(path.width, path.height, len(path)), knobs="--frames or --resolution")
     check_memory(pipe.memory_estimate(path.width, path.height, len(path)),
                  f"{len(path)} frames at {path.width}×{path.height}", "--frames or --resolution")
-    result = pipe(image, path, prompt, steps=steps, sampler=sampler, seed=seed, progress=progress,
+    result = pipe(image, path, prompt, steps=steps, sampler=sampler, guidance=guidance, seed=seed, progress=progress,
                   depth=depth if isinstance(depth, Tensor) else None, depth_kind=depth_kind)
     t0 = time.perf_counter()
     colors, depths, alphas = render_path(result.scene, result.cameras, eps2d=result.eps2d,
@@ -309,6 +315,7 @@ def _meta(loaded: LoadedPipeline, result: GenerationResult, prompt: str, traject
         "seed": seed,
         "steps": result.steps,
         "sampler": result.sampler,
+        "guidance": result.guidance,
         "shift": result.shift,
         "prune": result.prune_stats,
         "timings_s": timings,

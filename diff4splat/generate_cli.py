@@ -49,6 +49,9 @@ def add_generate_parser(subparsers, *, out_type: Callable[[str], Path], out_help
     g.add_argument("--prompt", default="", help="text describing the motion; empty = no text encoder")
     g.add_argument("--steps", type=int, default=None, help="sampler steps (default: config)")
     g.add_argument("--sampler", choices=("euler", "heun"), default=None, help="ODE sampler (default: config)")
+    g.add_argument("--guidance", type=float, default=None,
+                   help="classifier-free guidance scale with a prompt, ≥ 0; 1 = off (default: config: 1 for ours, 5 "
+                        "for Wan2.2, 6 for CogVideoX)")
     g.add_argument("--seed", type=int, default=0, help="noise seed (default: 0)")
     g.add_argument("--checkpoint", type=Path, default=None,
                    help="model folder (default: the shipped weights of --config)")
@@ -83,8 +86,8 @@ def generate_command(args) -> dict:
             load_pipeline, args.checkpoint, args.config, runtime=args.runtime, onnx=args.onnx, device=args.device,
             dtype=args.dtype, offload=args.offload),
         trajectory=args.trajectory, amplitude=args.amplitude, frames=args.frames, resolution=args.resolution,
-        prompt=args.prompt, steps=args.steps, sampler=args.sampler, seed=args.seed, depth=args.depth,
-        depth_kind=args.depth_kind, progress=not args.quiet,
+        prompt=args.prompt, steps=args.steps, sampler=args.sampler, guidance=args.guidance, seed=args.seed,
+        depth=args.depth, depth_kind=args.depth_kind, progress=not args.quiet,
         notes=None if args.quiet else lambda note: print(f"diff4splat: note: {note}", file=sys.stderr))
     return write(generation, args.out, fps=args.fps, overwrite=args.overwrite)
 

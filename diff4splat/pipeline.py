@@ -39,7 +39,7 @@ from torch import Tensor
 
 from models.backbones.model import INDEX_FILE, BackboneModel
 from models.bundle import DEFAULT_CONFIG, WEIGHTS_DIR, Diff4SplatModel, load_config
-from models.flow_matching import euler_sample, heun_sample
+from models.flow_matching import check_guidance, euler_sample, heun_sample
 from models.ldrm import source_frame_indices
 
 from .assemble import DEPTH_KINDS, assemble_scene
@@ -125,6 +125,8 @@ class GenerationResult:
         steps: sampler steps actually run (the argument, or ``config.sampling.steps``).
         sampler: "euler" or "heun", the sampler actually used (the argument, or ``config.sampling.sampler``).
         shift: the flow-matching timestep shift used (``config.sampling.shift``).
+        guidance: the classifier-free guidance scale applied (the argument, or ``config.sampling.guidance``; 1 when
+            there is no prompt: nothing to guide towards).
         timings: seconds per stage ("encode_image", "encode_text", "sample", "reconstruct", "prune").
         prune_stats: counts from :func:`diff4splat.prune.prune_mask`, plus "duplicates" (Gaussians of a
             later source frame dropped as near-duplicates, :func:`diff4splat.prune.duplicate_mask`) and
@@ -148,6 +150,7 @@ class GenerationResult:
     latents: Tensor
     steps: int
     sampler: str
+    guidance: float
     shift: float
     timings: dict[str, float] = field(default_factory=dict)
     prune_stats: dict[str, int] = field(default_factory=dict)
@@ -360,6 +363,7 @@ class Diff4SplatPipeline:
         *,
         steps: int | None = None,
         sampler: str | None = None,
+        guidance: float | None = None,
         seed: int = 0,
         progress: bool = False,
         video_latents: Tensor | None = None,
@@ -376,6 +380,10 @@ class Diff4SplatPipeline:
             prompt: text describing the motion; "" runs no text encoder.
             steps: sampler steps (default: config.sampling.steps).
             sampler: "euler" or "heun" (default: config.sampling.sampler).
+            guidance: classifier-free guidance scale g ≥ 0 (default: config.sampling.guidance): with a prompt, each
+                step runs the transformer with the prompt and with the unconditional input (no text for ours, the
+                empty prompt's embedding for a pretrained backbone) and integrates v_u + g·(v_p − v_u) (Ho &
+                Salimans 2022); g = 1 is one call per step.
             seed: seed of the initial noise.
             progress: tqdm progress bars.
             video_latents: (1, c, n, h, w) DiT-scaled video latent used instead of sampling one (ablations:
@@ -419,6 +427,7 @@ class Diff4SplatPipeline:
         if sampler not in ("euler", "heun"):
             raise ValueError(f"sampler must be 'euler' or 'heun', got {sampler!r}")
         steps = check_limit("steps", check_positive_int("steps", steps), "steps")
+        guidance = check_guidance(cfg.sampling.guidance if guidance is None else guidance)
         check_limit("frames", len(cameras), "cameras: a path of")
         _check_field_of_view(cameras)
         seed, prompt = check_seed(seed), check_prompt(prompt)
@@ -435,10 +444,15 @@ class Diff4SplatPipeline:
         image_latent = runtime.encode_image(video)  # (1, c, 1, h, w)
         timings["encode_image"] = clock.lap()
 
-        text = text_mask = None
+        text = text_mask = uncond = uncond_mask = None
         if prompt.strip() or runtime.encodes_empty_prompt:
             text, text_mask = runtime.encode_text(prompt)
             text, text_mask = text.to(dev), text_mask.to(dev)
+        if not prompt.strip():
+            guidance = 1.0  # the prompt is the unconditional input: nothing to guide towards
+        elif guidance != 1.0 and runtime.encodes_empty_prompt:
+            uncond, uncond_mask = runtime.encode_text("")
+            uncond, uncond_mask = uncond.to(dev), uncond_mask.to(dev)
         timings["encode_text"] = clock.lap()
 
         plucker = pack_plucker(plucker_rays(cameras_model.viewmats, cameras_model.Ks, cfg.width, cfg.height)[None],
@@ -449,7 +463,12 @@ class Diff4SplatPipeline:
                             device="cpu").to(dev)
 
         def velocity(x: Tensor, sigma: Tensor) -> Tensor:
-            return runtime.velocity(x, sigma.reshape(1).to(x), image_latent, plucker, text, text_mask)
+            sigma = sigma.reshape(1).to(x)
+            v = runtime.velocity(x, sigma, image_latent, plucker, text, text_mask)
+            if guidance == 1.0:
+                return v
+            v_uncond = runtime.velocity(x, sigma, image_latent, plucker, uncond, uncond_mask)
+            return v_uncond + guidance * (v - v_uncond)
 
         if video_latents is None:
             integrate = euler_sample if sampler == "euler" else heun_sample
@@ -490,7 +509,8 @@ class Diff4SplatPipeline:
         if stats["after"] == 0:
             raise ValueError(_sees_nothing(stats, cfg.prune_opacity))
         return GenerationResult(scene=scene, cameras=cameras, latents=latents, timings=timings, prune_stats=stats,
-                                steps=steps, sampler=sampler, shift=cfg.sampling.shift, source_frames=sources,
+                                steps=steps, sampler=sampler, guidance=guidance, shift=cfg.sampling.shift,
+                                source_frames=sources,
                                 gaussian_index=index, eps2d=PHOTO_EPS2D, background=photo["background"],
                                 photo_psnr_db=photo["photo_psnr_db"], num_slots=int(grid.shape[0]),
                                 photo_gaussians=photo["photo_gaussians"])

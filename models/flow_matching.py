@@ -27,6 +27,7 @@ from tqdm.auto import tqdm
 
 __all__ = [
     "FlowMatchingConfig",
+    "check_guidance",
     "PAPER_FLOW_MATCHING",
     "SAMPLERS",
     "shift_sigmas",
@@ -54,6 +55,9 @@ class FlowMatchingConfig:
         steps: number of integration steps ≥ 1.
         logit_normal_mean: mean m of the logit-normal training σ distribution (SD3 §3.1).
         logit_normal_std: standard deviation s > 0 of the logit-normal distribution.
+        guidance: classifier-free guidance scale g ≥ 0 (Ho & Salimans 2022, Eq. 6, in velocity form:
+            v = v_uncond + g·(v_text − v_uncond)); 1 = no guidance (one network call per step). Applied only when
+            there is a prompt.
     """
 
     shift: float = 1.0
@@ -61,6 +65,7 @@ class FlowMatchingConfig:
     steps: int = 8
     logit_normal_mean: float = 0.0
     logit_normal_std: float = 1.0
+    guidance: float = 1.0
 
     def __post_init__(self) -> None:
         _check_shift(self.shift)
@@ -68,6 +73,7 @@ class FlowMatchingConfig:
         _check_steps(self.steps)
         if not self.logit_normal_std > 0:
             raise ValueError(f"FlowMatchingConfig.logit_normal_std must be > 0, got {self.logit_normal_std}")
+        check_guidance(self.guidance, "FlowMatchingConfig.guidance")
 
     @classmethod
     def paper(cls) -> FlowMatchingConfig:
@@ -79,6 +85,14 @@ PAPER_FLOW_MATCHING: dict = dict(shift=3.0, sampler="euler", steps=50, logit_nor
 """Paper-scale schedule copied by ``configs/paper.yaml``: shift 3.0 and logit-normal(0, 1) are the
 SD3 defaults for high-resolution training (Esser et al. 2024, §3.1 and §5.3.2); 50 Euler steps is the
 usual sampling budget of flow-matching video DiTs. These are our choices, not numbers from Diff4Splat."""
+
+
+def check_guidance(guidance: float, name: str = "guidance") -> float:
+    """``guidance`` as a float; ValueError (naming ``name``) unless it is a finite number ≥ 0."""
+    if isinstance(guidance, bool) or not isinstance(guidance, (int, float)) or not math.isfinite(guidance) \
+            or guidance < 0:
+        raise ValueError(f"{name} must be a finite number ≥ 0 (1 = no guidance), got {guidance!r}")
+    return float(guidance)
 
 
 def _check_shift(shift: float) -> None:

@@ -113,3 +113,33 @@ def test_a_folder_fresh_from_the_hub_gets_the_released_config_zero_camera_and_a_
     assert (c.backbone, c.height, c.width, c.num_frames) == ("cogvideox-i2v", 480, 720, 49)
     assert (c.ldrm.latent_channels, c.ldrm.vae_spatial) == (4, 8) and c.ldrm.depth == LDRMConfig.paper().depth
     assert not model.backbone.camera_conv.camera_weight.any()
+
+
+def test_guided_generation_reproduces_the_diffusers_pipeline_with_guidance(tmp_path):
+    """Diff4SplatPipeline on a Wan backbone (camera weights zero: the pretrained model) with guidance 5 and a prompt:
+    its sampled latents are WanImageToVideoPipeline's with ``guidance_scale=5`` (negative prompt "") for the same
+    noise and photo — classifier-free guidance, conditioning and first-frame replacement as the pretrained model's."""
+    fixture = _fixture("wan")
+    backbone = fixture.tiny_wan(0)
+    config = BackboneModelConfig.for_backbone("wan2.2-ti2v", backbone.latent, height=fixture.HEIGHT,
+                                              width=fixture.WIDTH, num_frames=fixture.FRAMES,
+                                              sampling=FlowMatchingConfig(steps=3, guidance=5.0))
+    config.ldrm = LDRMConfig(latent_channels=48, vae_temporal=4, vae_spatial=16, embed_dim=32, depth=1, num_heads=2,
+                             head_channels=16, deformation=DeformationConfig(in_channels=32, hidden=32))
+    model = BackboneModel(backbone, LDRM(config.ldrm), config).eval()
+    pipe = Diff4SplatPipeline(model)
+    image = torch.rand(fixture.HEIGHT, fixture.WIDTH, 3, generator=torch.Generator().manual_seed(2))
+    cams = pipe.default_cameras("orbit", fixture.FRAMES)
+    prompt = "waves on the beach at sunset"
+    ours = pipe(image, cams, prompt, seed=4)
+    assert ours.guidance == 5.0
+    noise = torch.randn(ours.latents.shape, generator=torch.Generator().manual_seed(4))  # the pipeline's draw
+    with torch.no_grad(), backbone.hub_transformer():
+        reference = backbone.pipeline(**backbone.pipeline_kwargs())(
+            image=image.permute(2, 0, 1)[None], prompt=prompt, height=fixture.HEIGHT, width=fixture.WIDTH,
+            num_frames=fixture.FRAMES, num_inference_steps=3, guidance_scale=5.0, latents=noise.clone(),
+            output_type="latent", return_dict=False)[0]
+    torch.testing.assert_close(ours.latents, reference, atol=1e-5, rtol=1e-5)
+    unguided = pipe(image, cams, prompt, seed=4, guidance=1.0)
+    assert (unguided.latents - ours.latents).abs().max() > 1e-3  # guidance changed the result
+    assert pipe(image, cams, "", seed=4).guidance == 1.0  # no prompt: nothing to guide towards

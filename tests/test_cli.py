@@ -13,6 +13,7 @@ import torch
 from helpers import EXAMPLE_IMAGE
 from plyfile import PlyData
 
+import diff4splat.generate as generate_module
 from diff4splat.cameras import DEFAULT_AMPLITUDES, DEFAULT_TRAJECTORY
 from diff4splat.cli import build_parser, main
 from diff4splat.io import load_depth_exr, load_image, load_ply, load_video, ply_property_names, save_cameras_json
@@ -356,3 +357,16 @@ def test_amplitude_out_of_range_is_one_line_before_the_model_loads(tmp_path, cap
         assert needle in err[0], (needle, err[0])
     assert "pass None" not in err[0] and "non-finite" not in err[0] and "parallel" not in err[0]
     assert not out.exists()
+
+
+@pytest.mark.parametrize("value", ["-1", "nan", "inf"])
+def test_a_bad_guidance_is_one_line_exit_2_before_the_model_loads(tmp_path, capsys, value, monkeypatch):
+    monkeypatch.setattr(generate_module, "load_pipeline", lambda *a, **k: pytest.fail("the model loaded"))
+    code = main(["generate", str(EXAMPLE_IMAGE), "--guidance", value, "--quiet", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "--guidance" in err[0] and not (tmp_path / "o").exists()
+
+
+def test_guidance_is_recorded_in_meta(tmp_path):
+    code, out = _generate(tmp_path, "--prompt", "a cat turns its head", "--guidance", "2.5", frames=5)
+    assert code == 0 and json.loads((out / "meta.json").read_text())["guidance"] == 2.5

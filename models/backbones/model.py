@@ -49,11 +49,13 @@ _MODULES = {"wan2.2-ti2v": ("models.backbones.wan", "WanBackbone"),
 DEFAULTS = {
     # Wan2.2-TI2V-5B: 720p-class video, 1280×704, 121 frames at 24 fps (Wan-Video/Wan2.2 README; its diffusers
     # example uses height 704, width 1280, num_frames 121).
-    "wan2.2-ti2v": dict(name="wan2.2-ti2v-5b", height=704, width=1280, num_frames=121),
+    "wan2.2-ti2v": dict(name="wan2.2-ti2v-5b", height=704, width=1280, num_frames=121, guidance=5.0),
     # CogVideoX-5B-I2V: 720×480, 49 frames at 8 fps (THUDM/CogVideoX-5b-I2V model card).
-    "cogvideox-i2v": dict(name="cogvideox-5b-i2v", height=480, width=720, num_frames=49),
+    "cogvideox-i2v": dict(name="cogvideox-5b-i2v", height=480, width=720, num_frames=49, guidance=6.0),
 }
-"""Model resolution and clip length of each backbone as released (what a folder without ``diff4splat.json`` uses)."""
+"""Model resolution, clip length and classifier-free guidance scale of each backbone as released (what a folder without
+``diff4splat.json`` uses; the guidance is the default ``guidance_scale`` of diffusers' ``WanImageToVideoPipeline``
+and ``CogVideoXImageToVideoPipeline``)."""
 
 
 @dataclass
@@ -110,7 +112,9 @@ class BackboneModelConfig:
         """The released defaults of backbone ``kind`` (:data:`DEFAULTS`) on ``latent``, the paper's LDRM sizes."""
         ldrm = dataclasses.replace(LDRMConfig.paper(), latent_channels=latent.latent_channels,
                                    vae_temporal=latent.temporal_factor, vae_spatial=latent.spatial_factor)
-        return cls(**{**DEFAULTS[kind], "backbone": kind, "vae": latent, "ldrm": ldrm, **overrides})
+        released = dict(DEFAULTS[kind])
+        sampling = FlowMatchingConfig(steps=50, guidance=released.pop("guidance"))
+        return cls(**{**released, "backbone": kind, "vae": latent, "ldrm": ldrm, "sampling": sampling, **overrides})
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
