@@ -25,6 +25,7 @@ import torch
 from torch import Tensor, nn
 from torch.utils.checkpoint import checkpoint
 
+from models.backbones.base import check_velocity_inputs
 from models.layers import CrossAttention, Mlp, SelfAttention, TimestepEmbedder, modulate, patchify, tracing, unpatchify
 from models.pretrained import PretrainedMixin
 from models.rope import rope_3d, rope_split
@@ -268,20 +269,8 @@ class VideoDiT(nn.Module, PretrainedMixin):
     def _check_inputs(self, x, sigma, image_latent, plucker, text, text_mask) -> None:
         """Shape checks (static under tracing) and, in eager mode only, the σ range."""
         cfg = self.config
-        pt, ph, pw = cfg.patch_size
-        if x.dim() != 5 or x.shape[1] != cfg.latent_channels:
-            raise ValueError(f"x must have shape (B, {cfg.latent_channels}, n, h, w), got {tuple(x.shape)}")
-        B, c, n, h, w = x.shape
-        if n % pt or h % ph or w % pw:
-            raise ValueError(f"x: latent size (n, h, w) = {(n, h, w)} must be divisible by "
-                             f"patch_size {cfg.patch_size}")
-        if sigma.shape != (B,):
-            raise ValueError(f"sigma must have shape ({B},), got {tuple(sigma.shape)}")
-        if image_latent.shape != (B, c, 1, h, w):
-            raise ValueError(f"image_latent must have shape {(B, c, 1, h, w)}, got {tuple(image_latent.shape)}")
-        if plucker is not None and plucker.shape != (B, cfg.camera_channels, n, h, w):
-            raise ValueError(f"plucker must have shape {(B, cfg.camera_channels, n, h, w)}, "
-                             f"got {tuple(plucker.shape)}")
+        check_velocity_inputs(x, sigma, image_latent, plucker, cfg.latent_channels, cfg.camera_channels, cfg.patch_size)
+        B = x.shape[0]
         if text is None:
             if text_mask is not None:
                 raise ValueError("text_mask was given without text")

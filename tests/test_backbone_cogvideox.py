@@ -149,7 +149,7 @@ def test_invert_scale_latents_divides_the_image_latent_by_scaling_factor_squared
 
 def test_velocity_rejects_bad_shapes_and_sizes_other_than_the_learned_embeddings(backbone):
     inp = tiny_inputs(backbone)
-    with pytest.raises(ValueError, match="inconsistent"):
+    with pytest.raises(ValueError, match="sigma must have shape"):
         backbone.velocity(inp["x"], torch.tensor([0.5, 0.5]), inp["image_latent"], inp["plucker"], None, None)
     big = {k: torch.zeros(*v.shape[:3], 4, 4) for k, v in inp.items()}
     with pytest.raises(ValueError, match="learned positional embeddings"):

@@ -193,7 +193,7 @@ def test_velocity_shape_errors(backbone):
         backbone.velocity(x, sigma, image_latent[:, :, :, :2], plucker, None, None)
     with pytest.raises(ValueError, match="plucker"):
         backbone.velocity(x, sigma, image_latent, plucker[:, :6], None, None)
-    with pytest.raises(ValueError, match="patch size"):
+    with pytest.raises(ValueError, match="patch_size"):
         backbone.velocity(x[..., :1], sigma, image_latent[..., :1], plucker[..., :1], None, None)
     with pytest.raises(ValueError, match="text"):
         backbone.velocity(x, sigma, image_latent, plucker, torch.zeros(1, 512, 16), None)

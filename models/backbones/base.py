@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-__all__ = ["LatentFormat", "Backbone", "CameraPatchConv", "vpred_to_flow", "BACKBONE_KINDS"]
+__all__ = ["LatentFormat", "Backbone", "CameraPatchConv", "vpred_to_flow", "check_velocity_inputs", "BACKBONE_KINDS"]
 
 BACKBONE_KINDS = ("ours", "wan2.2-ti2v", "cogvideox-i2v")
 """The backbones: our networks, Wan2.2-TI2V-5B, CogVideoX-5B-I2V."""
@@ -67,6 +67,30 @@ class LatentFormat:
     def num_frames(self, num_latent_frames: int) -> int:
         """T = 1 + t·(n − 1), the decoded length of n ≥ 1 latent frames."""
         return 1 + self.temporal_factor * (num_latent_frames - 1)
+
+
+def check_velocity_inputs(x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor | None,
+                          latent_channels: int, camera_channels: int, patch_size: tuple[int, int, int]) -> None:
+    """The shape checks every :meth:`Backbone.velocity` makes (static: safe under tracing).
+
+    Args:
+        x: (B, c, n, h, w) with c = ``latent_channels`` and (n, h, w) divisible by ``patch_size`` (p_t, p_h, p_w).
+        sigma: (B,).  image_latent: (B, c, 1, h, w).  plucker: (B, ``camera_channels``, n, h, w) or None.
+
+    Raises:
+        ValueError: naming the first argument whose shape does not fit.
+    """
+    if x.dim() != 5 or x.shape[1] != latent_channels:
+        raise ValueError(f"x must have shape (B, {latent_channels}, n, h, w), got {tuple(x.shape)}")
+    B, c, n, h, w = x.shape
+    if n % patch_size[0] or h % patch_size[1] or w % patch_size[2]:
+        raise ValueError(f"x: latent size (n, h, w) = {(n, h, w)} must be divisible by patch_size {tuple(patch_size)}")
+    if sigma.shape != (B,):
+        raise ValueError(f"sigma must have shape ({B},), got {tuple(sigma.shape)}")
+    if image_latent.shape != (B, c, 1, h, w):
+        raise ValueError(f"image_latent must have shape {(B, c, 1, h, w)}, got {tuple(image_latent.shape)}")
+    if plucker is not None and plucker.shape != (B, camera_channels, n, h, w):
+        raise ValueError(f"plucker must have shape {(B, camera_channels, n, h, w)}, got {tuple(plucker.shape)}")
 
 
 def vpred_to_flow(x_t: Tensor, v: Tensor, alpha: Tensor, sigma_ddpm: Tensor) -> Tensor:

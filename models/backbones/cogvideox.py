@@ -26,7 +26,7 @@ import torch
 from diffusers import AutoencoderKLCogVideoX, CogVideoXImageToVideoPipeline
 from torch import Tensor, nn
 
-from .base import LatentFormat, vpred_to_flow
+from .base import LatentFormat, check_velocity_inputs, vpred_to_flow
 from .diffusers_backbone import DiffusersBackbone
 
 __all__ = ["CogVideoXBackbone"]
@@ -228,13 +228,10 @@ class CogVideoXBackbone(DiffusersBackbone):
                 ``sample_width`` when its positional embeddings are learned (CogVideoX-5B-I2V: 60×90 latents,
                 480×720 pixels).
         """
-        b, c, n, h, w = x.shape
         cfg = self.transformer.config
-        if c != self.latent.latent_channels or sigma.shape != (b,) or image_latent.shape != (b, c, 1, h, w) \
-                or plucker.shape != (b, self.latent.camera_channels, n, h, w):
-            raise ValueError(f"velocity: x {tuple(x.shape)}, sigma {tuple(sigma.shape)}, image_latent "
-                             f"{tuple(image_latent.shape)}, plucker {tuple(plucker.shape)} are inconsistent "
-                             f"(c = {self.latent.latent_channels}, camera channels {self.latent.camera_channels})")
+        check_velocity_inputs(x, sigma, image_latent, plucker, self.latent.latent_channels,
+                              self.latent.camera_channels, (1, cfg.patch_size, cfg.patch_size))
+        b, c, n, h, w = x.shape
         if cfg.use_learned_positional_embeddings and (h, w) != (cfg.sample_height, cfg.sample_width):
             raise ValueError(f"this CogVideoX transformer has learned positional embeddings for "
                              f"{cfg.sample_height}x{cfg.sample_width} latents; got {h}x{w}")

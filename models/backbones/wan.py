@@ -29,7 +29,7 @@ from diffusers import AutoencoderKLWan, WanImageToVideoPipeline
 from torch import Tensor, nn
 
 from ..flow_matching import sample_logit_normal, shift_sigmas
-from .base import LatentFormat
+from .base import LatentFormat, check_velocity_inputs
 from .diffusers_backbone import DiffusersBackbone
 
 __all__ = ["WanBackbone"]
@@ -223,18 +223,10 @@ class WanBackbone(DiffusersBackbone):
         Raises:
             ValueError: shapes that disagree, or h, w, n not multiples of the transformer's patch size.
         """
-        b, c, n, h, w = x.shape if x.dim() == 5 else (None,) * 5
         p_t, p_h, p_w = self.transformer.config.patch_size
-        cam = self.latent.camera_channels
-        if x.dim() != 5 or c != self.latent.latent_channels or n % p_t or h % p_h or w % p_w:
-            raise ValueError(f"x must be (B, {self.latent.latent_channels}, n, h, w) with (n, h, w) multiples of the "
-                             f"patch size {(p_t, p_h, p_w)}, got {tuple(x.shape)}")
-        if sigma.shape != (b,):
-            raise ValueError(f"sigma must have shape ({b},), got {tuple(sigma.shape)}")
-        if image_latent.shape != (b, c, 1, h, w):
-            raise ValueError(f"image_latent must have shape {(b, c, 1, h, w)}, got {tuple(image_latent.shape)}")
-        if plucker.shape != (b, cam, n, h, w):
-            raise ValueError(f"plucker must have shape {(b, cam, n, h, w)}, got {tuple(plucker.shape)}")
+        check_velocity_inputs(x, sigma, image_latent, plucker, self.latent.latent_channels,
+                              self.latent.camera_channels, (p_t, p_h, p_w))
+        b, c, n, h, w = x.shape
         if text is None:
             text = self._empty_prompt(x.device).expand(b, -1, -1)
         elif text.dim() != 3 or text.shape[0] != b:
