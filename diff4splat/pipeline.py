@@ -459,8 +459,8 @@ class Diff4SplatPipeline:
                                runtime.latent.temporal_factor, runtime.latent.spatial_factor)  # (1, 6·t·s², n, h, w)
 
         gen = torch.Generator(device="cpu").manual_seed(seed)  # CPU draws: the same noise on every device
-        noise = torch.randn((1, runtime.latent.latent_channels, n, *image_latent.shape[-2:]), generator=gen,
-                            device="cpu").to(dev)
+        noise = torch.randn((1, runtime.latent.latent_channels, n, *image_latent.shape[-2:]),  # CPU draw, moved
+                            generator=gen, device="cpu").to(dev)
 
         def velocity(x: Tensor, sigma: Tensor) -> Tensor:
             sigma = sigma.reshape(1).to(x)
@@ -485,8 +485,8 @@ class Diff4SplatPipeline:
         out = runtime.reconstruct(latents, plucker, key_times if runtime.has_deformation else None, video[:, :, 0])
         if isinstance(runtime, TorchRuntime):
             runtime.release()  # the networks are done: an offloaded one leaves the device before pruning renders
-        sources = torch.tensor(source_frame_indices(cfg.ldrm.gaussian_frames, n, runtime.latent.temporal_factor),
-                               device=dev)
+        frames = source_frame_indices(cfg.ldrm.gaussian_frames, n, runtime.latent.temporal_factor)
+        sources = torch.tensor(frames, device=dev)
         times = key_times if out.d_means is not None else None
         scene, grid, photo = assemble_scene(out, sources, cameras_model, cameras, image, times, depth=depth,
                                             depth_kind=depth_kind)

@@ -136,8 +136,8 @@ class CameraPatchConv(nn.Module):
         self.weight, self.bias = conv.weight, conv.bias
         self._conv = F.conv3d if isinstance(conv, nn.Conv3d) else F.conv2d
         # Zero-init: the pretrained transformer is unchanged until the camera branch is trained.
-        self.camera_weight = nn.Parameter(torch.zeros(conv.out_channels, camera_channels, *conv.kernel_size,
-                                                      device=conv.weight.device, dtype=conv.weight.dtype))
+        shape = (conv.out_channels, camera_channels, *conv.kernel_size)
+        self.camera_weight = nn.Parameter(torch.zeros(shape, device=conv.weight.device, dtype=conv.weight.dtype))
 
     def forward(self, x: Tensor) -> Tensor:  # (B, in + camera, [T,] H, W)
         if x.shape[1] != self.in_channels + self.camera_channels:

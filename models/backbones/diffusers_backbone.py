@@ -12,6 +12,7 @@ This module imports diffusers: it is only imported when a diffusers backbone is 
 """
 from __future__ import annotations
 
+import abc
 import contextlib
 import os
 from collections.abc import Iterator
@@ -74,8 +75,9 @@ class DiffusersBackbone(Backbone):
         self.tokenizer, self.scheduler = tokenizer, scheduler
 
     @staticmethod
+    @abc.abstractmethod
     def latent_format(vae: nn.Module) -> LatentFormat:
-        raise NotImplementedError
+        """The :class:`LatentFormat` of ``vae`` (from its diffusers config)."""
 
     def posterior(self, video: Tensor, generator: torch.Generator | None = None) -> Tensor:
         """The VAE's raw latent of ``video``: its posterior's mode (the pipelines' ``retrieve_latents(...,
