@@ -393,6 +393,40 @@ class LDRM(nn.Module, PretrainedMixin):
                 got = None if image is None else tuple(image.shape)
                 raise ValueError(f"image must have shape ({B}, 3, {H}, {W}) (this LDRM has an image branch), got {got}")
 
+    def features(
+        self,
+        latents: Tensor,  # (B, c, n, h, w)
+        plucker: Tensor,  # (B, 6·4·8·8, n, h, w)
+    ) -> Tensor:  # (B, D, n', h/p, w/p)
+        """The transformer's token volume: (B, D, n', h/p, w/p) with D = ``embed_dim``, n' = n, or 1 when
+        ``gaussian_frames`` is "reference" (Pan et al. 2025 §3.2: latent and Plücker tokens, transformer blocks).
+        Inputs as :meth:`forward` (not checked here)."""
+        cfg = self.config
+        p = cfg.patch_size
+        B, _, n, h, w = latents.shape
+        hp, wp = h // p, w // p
+        tokens = torch.cat([patchify(latents, (1, p, p)), patchify(plucker.to(latents.dtype), (1, p, p))], dim=-1)
+        x = self.embed(tokens) + sincos_position_3d(n, hp, wp, cfg.embed_dim, latents.device, latents.dtype)
+        for block in self.blocks:
+            x = block(x)
+        x = self.norm(x)
+        volume = x.transpose(1, 2).reshape(B, cfg.embed_dim, n, hp, wp)
+        return volume[:, :, :1] if cfg.gaussian_frames == "reference" else volume
+
+    def head_maps(self, volume: Tensor) -> Tensor:  # (B, D, n', h', w') → (B, 12, S, H, W)
+        """The head's raw Gaussian channels (before :func:`gaussian_activations` and the image branch) of the S
+        source frames, H = h'·p·f, W = w'·p·f pixels, from a :meth:`features` volume."""
+        cfg = self.config
+        B, D, nv, hp, wp = volume.shape
+        if cfg.head == "deconv":
+            raw = self.head(volume)  # (B, 12, S', H, W)
+        else:  # each latent frame's token map decoded on its own: (B·n', D, hp, wp) → (B·n', 12, H, W)
+            frames = self.head(volume.transpose(1, 2).reshape(B * nv, D, hp, wp))
+            raw = frames.reshape(B, nv, RAW_GAUSSIAN_CHANNELS, *frames.shape[-2:]).transpose(1, 2)
+        if cfg.gaussian_frames == "all":
+            raw = raw[:, :, cfg.vae_temporal - 1:]  # the causal first latent frame encodes frame 0 only
+        return raw
+
     def forward(
         self,
         latents: Tensor,  # (B, c, n, h, w)
@@ -421,25 +455,8 @@ class LDRM(nn.Module, PretrainedMixin):
         """
         self._check_inputs(latents, plucker, times, image)
         cfg = self.config
-        p = cfg.patch_size
-        B, _, n, h, w = latents.shape
-        hp, wp = h // p, w // p
-        tokens = torch.cat([patchify(latents, (1, p, p)), patchify(plucker.to(latents.dtype), (1, p, p))], dim=-1)
-        x = self.embed(tokens) + sincos_position_3d(n, hp, wp, cfg.embed_dim, latents.device, latents.dtype)
-        for block in self.blocks:
-            x = block(x)
-        x = self.norm(x)
-        volume = x.transpose(1, 2).reshape(B, cfg.embed_dim, n, hp, wp)
-        if cfg.gaussian_frames == "reference":
-            volume = volume[:, :, :1]
-        if self.config.head == "deconv":
-            raw = self.head(volume)  # (B, 12, S', H, W)
-        else:  # each latent frame's token map decoded on its own: (B·n', D, hp, wp) → (B·n', 12, H, W)
-            nv = volume.shape[2]
-            frames = self.head(volume.transpose(1, 2).reshape(B * nv, cfg.embed_dim, hp, wp))
-            raw = frames.reshape(B, nv, RAW_GAUSSIAN_CHANNELS, *frames.shape[-2:]).transpose(1, 2)
-        if cfg.gaussian_frames == "all":
-            raw = raw[:, :, cfg.vae_temporal - 1:]  # the causal first latent frame encodes frame 0 only
+        volume = self.features(latents, plucker)
+        raw = self.head_maps(volume)
         if self.image_branch is not None:  # frame 0 only; a select, not a cat, keeps S symbolic when exporting
             first = torch.arange(raw.shape[2], device=raw.device) == 0
             raw = torch.where(first[:, None, None], self.image_branch(image, raw[:, :, 0])[:, :, None], raw)
@@ -448,8 +465,9 @@ class LDRM(nn.Module, PretrainedMixin):
         out = LDRMOutput(distance, scales, quats, opacities, colors)
         if times is not None:
             S, nf = raw.shape[1], volume.shape[2]
+            B, _, _, hp, wp = volume.shape
             feats = volume.transpose(1, 2).reshape(B * nf, cfg.embed_dim, hp, wp)
-            d = self.deformation(feats, times, cfg.vae_spatial * p)  # each (B·nf, K, H, W, ·)
+            d = self.deformation(feats, times, cfg.vae_spatial * cfg.patch_size)  # each (B·nf, K, H, W, ·)
             maps = [m.reshape(B, nf, *m.shape[1:]).transpose(1, 2) for m in d]  # (B, K, nf, H, W, ·)
             if cfg.gaussian_frames == "all":  # frame f belongs to latent frame ⌈f / r⌉
                 index = (torch.arange(S, device=raw.device) + cfg.vae_temporal - 1) // cfg.vae_temporal

@@ -172,6 +172,22 @@ def test_upsample_head_overlaps_neighbouring_tokens_within_its_receptive_field(p
         assert diff[s, r0 - f:r0, c0:c0 + f].any(), "no overlap with the block above"
 
 
+@pytest.mark.parametrize("head", ["upsample", "deconv"])
+def test_features_and_head_maps_are_the_forward_before_activation(head):
+    """forward = gaussian_activations of head_maps(features(·)) (no image branch); features is the token volume
+    (B, D, n, h, w) and head_maps gives (B, 12, S, H, W)."""
+    model = _model(head=head)
+    latents, plucker = _inputs()
+    volume = model.features(latents, plucker)
+    assert volume.shape == (1, model.config.embed_dim, 3, H // 8, W // 8)
+    raw = model.head_maps(volume)
+    assert raw.shape == (1, 12, S, H, W)
+    out = model(latents, plucker)
+    for got, want in zip(gaussian_activations(raw.permute(0, 2, 3, 4, 1), model.config),
+                         (out.distance, out.scales, out.quats, out.opacities, out.colors), strict=True):
+        torch.testing.assert_close(got, want)
+
+
 def test_source_frame_indices_closed_form():
     assert source_frame_indices("latent", 5) == [0, 4, 8, 12, 16]
     assert source_frame_indices("all", 3) == list(range(9))

@@ -2,12 +2,14 @@ import math
 
 import pytest
 import torch
+import torch.nn.functional as F
 
 from training.losses import (
     depth_correlation_loss,
     depth_smoothness_loss,
     flow_matching_loss,
     gather_track_predictions,
+    head_distillation_loss,
     motion_loss,
     photometric_loss,
     sample_training_sigmas,
@@ -157,3 +159,44 @@ def test_photometric_loss_is_float32_inside_a_bfloat16_autocast_region(monkeypat
     assert seen[-1] == (False, False, torch.float32, torch.float32)
     assert got.dtype == torch.float32
     torch.testing.assert_close(got, ref, atol=1e-3, rtol=0)  # only a's bfloat16 rounding remains
+
+
+def _blur_by_hand(x: torch.Tensor, sigma: float) -> torch.Tensor:
+    """(N, C, H, W) blurred by a normalised Gaussian of radius ⌈3σ⌉, borders replicated, as two 1-D passes."""
+    r = math.ceil(3 * sigma)
+    k = torch.exp(-torch.arange(-r, r + 1, dtype=x.dtype) ** 2 / (2 * sigma**2))
+    k = k / k.sum()
+    C = x.shape[1]
+    x = F.conv2d(F.pad(x, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1).expand(C, 1, 1, -1), groups=C)
+    return F.conv2d(F.pad(x, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1).expand(C, 1, -1, 1), groups=C)
+
+
+def test_head_distillation_loss_closed_form_and_blur():
+    g = torch.Generator().manual_seed(0)
+    student, teacher = torch.randn(2, 12, 3, 16, 16, generator=g), torch.randn(2, 12, 3, 16, 16, generator=g)
+    torch.testing.assert_close(head_distillation_loss(student, teacher, 0.0), ((student - teacher) ** 2).mean())
+    assert head_distillation_loss(teacher, teacher, 0.0) == 0
+    sigma = 1.3
+    blurred = _blur_by_hand(teacher.transpose(1, 2).reshape(6, 12, 16, 16), sigma).reshape(2, 3, 12, 16, 16)
+    blurred = blurred.transpose(1, 2)
+    torch.testing.assert_close(head_distillation_loss(student, teacher, sigma), ((student - blurred) ** 2).mean())
+    assert head_distillation_loss(blurred, teacher, sigma) < 1e-10
+    # an 8×8 block pattern: the blurred target has a smaller jump across a block border than the teacher
+    blocks = torch.randn(1, 12, 1, 2, 2, generator=g).repeat_interleave(8, -1).repeat_interleave(8, -2)
+    target = _blur_by_hand(blocks[:, :, 0], sigma)
+    assert (target[..., 8] - target[..., 7]).abs().mean() < 0.5 * (blocks[..., 8] - blocks[..., 7]).abs().mean()
+    student.requires_grad_(True)
+    head_distillation_loss(student, teacher.requires_grad_(True), sigma).backward()
+    assert teacher.grad is None and student.grad.abs().sum() > 0, "the teacher's maps are a target, not trained"
+
+
+@pytest.mark.parametrize("sigma", [-0.5, float("nan"), float("inf")])
+def test_head_distillation_loss_rejects_bad_sigma(sigma):
+    x = torch.zeros(1, 12, 1, 8, 8)
+    with pytest.raises(ValueError, match="sigma"):
+        head_distillation_loss(x, x, sigma)
+
+
+def test_head_distillation_loss_rejects_mismatched_maps():
+    with pytest.raises(ValueError, match="one shape"):
+        head_distillation_loss(torch.zeros(1, 12, 1, 8, 8), torch.zeros(1, 12, 2, 8, 8), 1.0)

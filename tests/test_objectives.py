@@ -1,5 +1,7 @@
 """Tests of training/objectives.py: the track query pixel (closed form), the frame renders of static and
 moving scenes, and TrainingModule's losses and gradient flow for every stage's objective set."""
+import copy
+import dataclasses
 import math
 
 import pytest
@@ -7,10 +9,20 @@ import torch
 from helpers import tiny_model
 from torch.utils.data import default_collate
 
+from diff4splat.assemble import assemble_scene, to_gaussians
 from diff4splat.cameras import camera_rays
+from diff4splat.cameras.path import CameraPath
 from diff4splat.gaussians import Gaussians, rgb_to_sh0
+from diff4splat.photo import PHOTO_EPS2D
+from diff4splat.prune import redundant_mask
 from diff4splat.scene import DynamicGaussians
-from training.losses import LossWeights, depth_correlation_loss, depth_smoothness_loss, photometric_loss
+from training.losses import (
+    LossWeights,
+    depth_correlation_loss,
+    depth_smoothness_loss,
+    head_distillation_loss,
+    photometric_loss,
+)
 from training.objectives import TrainingModule, render_frames, track_query_index
 from training.stage_config import StageConfig, apply_freezing
 
@@ -191,47 +203,10 @@ def test_caption_dropout_trains_the_empty_prompt_path(clips):
     assert abs(flow(batch, 0.0) - flow(empty, 0.0)) > 1e-6
 
 
-@pytest.mark.slow
-def test_reconstruction_losses_equal_a_hand_computation(clips):
-    """The dynamic clip's reconstruction losses recomputed from the networks' outputs: the scene is generate's
-    (photo layer of frame 0 on the predicted depth, backdrop, later source frames without the redundant ones),
-    the frames are frame 0 plus the generator's randperm draw, photo/depth/smooth come from training.losses on
-    those renders over the photograph's mean colour, and the motion loss is the end-point error of each visible
-    track's photo-layer disk, found by projecting its frame-0 point by hand (u = fx·x/z + cx, v = fy·y/z + cy)."""
-    from diff4splat.assemble import assemble_scene
-    from diff4splat.cameras.path import CameraPath
-    from diff4splat.photo import PHOTO_EPS2D
-    from diff4splat.prune import redundant_mask
-
-    stage = StageConfig(height=SIZE, width=SIZE, num_frames=FRAMES, render_frames=3, weights=WEIGHTS,
-                        train=("ldrm",), objectives=("reconstruction",), deformation=True, motion=True)
-    model = tiny_model(seed=1, dynamic=True)
-    batch = default_collate(clips[1:])
-    with torch.no_grad():
-        losses = TrainingModule(model, stage).eval()(batch, torch.Generator().manual_seed(0))
-        latents = model.vae.encode_latents(batch["video"] * 2 - 1)
-        times = batch["times"][0]
-        out = model.ldrm(latents, batch["plucker_packed"], times)
-        sources = torch.tensor([4 * i for i in range(latents.shape[2])])  # gaussian_frames "latent"
-        cams = CameraPath(batch["viewmats"][0], batch["Ks"][0], SIZE, SIZE, times)
-        photo = batch["video"][0, :, 0].permute(1, 2, 0)
-        full, grid, info = assemble_scene(out, sources, cams, cams, photo, times)
-        drop, dups, occluders = redundant_mask(full, grid, cams, sources, info["photo_depth"])
-        assert 0 < int(drop.sum()) == dups + occluders < int((grid > 0).sum())
-        scene = full.select(~drop)
-        g, dm = scene.canonical, scene.d_means
-        draw = torch.randperm(FRAMES - 1, generator=torch.Generator().manual_seed(0))[:2] + 1
-        frames = [0] + sorted(draw.tolist())
-        rgb, depth, alpha = render_frames(scene, batch["viewmats"][0], batch["Ks"][0], times, frames, SIZE, SIZE,
-                                          eps2d=PHOTO_EPS2D, background=torch.tensor(info["background"]))
-    mse0 = float(((rgb[0] - photo.permute(2, 0, 1)) ** 2).mean())
-    assert -10 * math.log10(mse0) >= 35.0, "frame 0 must be the photograph whatever the network predicts"
-    target = batch["video"][0][:, frames].permute(1, 0, 2, 3)
-    valid = batch["depth_valid"][0][frames] & (alpha > 0.5)
-    torch.testing.assert_close(losses["photo"], photometric_loss(rgb, target, WEIGHTS.ssim))
-    torch.testing.assert_close(losses["depth"], depth_correlation_loss(depth, batch["depth"][0][frames], valid))
-    torch.testing.assert_close(losses["smooth"], depth_smoothness_loss(depth.clamp(min=1e-3), target))
-    # motion by hand, track by track
+def _hand_motion(batch, g, dm) -> tuple[list[float], list[float]]:
+    """Track end-point errors and displacement errors of clip 0, each visible track's frame-0 Gaussian found by
+    projecting its frame-0 point by hand (u = fx·x/z + cx, v = fy·y/z + cy; the first H·W Gaussians are frame 0's
+    pixel grid)."""
     tracks, K = batch["tracks"][0].double(), batch["Ks"][0, 0].double()
     vis = batch["track_visibility"][0] & batch["track_mask"][0][:, None]
     errors, moves = [], []
@@ -245,15 +220,117 @@ def test_reconstruction_losses_equal_a_hand_computation(clips):
         i = math.floor(v) * SIZE + math.floor(u)
         for t in range(FRAMES):
             if bool(vis[n, t]):
-                errors.append(float((g.means[i] + dm[t, i] - tracks[n, t]).norm()))  # rebased: dm[0] = 0
+                errors.append(float((g.means[i] + dm[t, i] - tracks[n, t]).norm()))
                 if t > 0:  # displacement from frame 0 (visible at 0 by the test above)
                     moves.append(float((dm[t, i] - dm[0, i] - (tracks[n, t] - tracks[n, 0])).norm()))
     assert len(errors) > 20 and len(moves) > 20
+    return errors, moves
+
+
+def _check_losses(losses, batch, frames, rgb, depth, alpha, g, dm) -> None:
+    """losses equal training.losses on the hand renders (frames of clip 0) and the hand motion terms, weighted."""
+    target = batch["video"][0][:, frames].permute(1, 0, 2, 3)
+    valid = batch["depth_valid"][0][frames] & (alpha > 0.5)
+    torch.testing.assert_close(losses["photo"], photometric_loss(rgb, target, WEIGHTS.ssim))
+    torch.testing.assert_close(losses["depth"], depth_correlation_loss(depth, batch["depth"][0][frames], valid))
+    torch.testing.assert_close(losses["smooth"], depth_smoothness_loss(depth.clamp(min=1e-3), target))
+    errors, moves = _hand_motion(batch, g, dm)
     assert float(losses["motion"]) == pytest.approx(sum(errors) / len(errors), rel=1e-5)
     assert float(losses["displacement"]) == pytest.approx(sum(moves) / len(moves), rel=1e-4)
     weighted = (2.0 * losses["photo"] + 0.5 * losses["depth"] + 0.25 * losses["smooth"] + 3.0 * losses["motion"]
                 + 1.5 * losses["displacement"])
     torch.testing.assert_close(losses["loss"], weighted)
+
+
+def _reconstruction_case(clips, scene: str):
+    """The dynamic clip's losses under ``stage.scene`` = scene, and what a hand computation needs."""
+    stage = StageConfig(height=SIZE, width=SIZE, num_frames=FRAMES, render_frames=3, weights=WEIGHTS, scene=scene,
+                        train=("ldrm",), objectives=("reconstruction",), deformation=True, motion=True)
+    model = tiny_model(seed=1, dynamic=True)
+    batch = default_collate(clips[1:])
+    with torch.no_grad():
+        losses = TrainingModule(model, stage).eval()(batch, torch.Generator().manual_seed(0))
+        latents = model.vae.encode_latents(batch["video"] * 2 - 1)
+        times = batch["times"][0]
+        out = model.ldrm(latents, batch["plucker_packed"], times)
+    sources = torch.tensor([4 * i for i in range(latents.shape[2])])  # gaussian_frames "latent"
+    draw = torch.randperm(FRAMES - 1, generator=torch.Generator().manual_seed(0))[:2] + 1
+    return losses, batch, times, out, sources, [0] + sorted(draw.tolist())
+
+
+@pytest.mark.slow
+def test_assembled_reconstruction_losses_equal_a_hand_computation(clips):
+    """``scene: assembled``: the scene is generate's (photo layer of frame 0 on the predicted depth, backdrop, later
+    source frames without the redundant ones), the frames are frame 0 plus the generator's randperm draw,
+    photo/depth/smooth come from training.losses on those renders over the photograph's mean colour, and the motion
+    loss is the end-point error of each visible track's photo-layer disk."""
+    losses, batch, times, out, sources, frames = _reconstruction_case(clips, "assembled")
+    with torch.no_grad():
+        cams = CameraPath(batch["viewmats"][0], batch["Ks"][0], SIZE, SIZE, times)
+        photo = batch["video"][0, :, 0].permute(1, 2, 0)
+        full, grid, info = assemble_scene(out, sources, cams, cams, photo, times)
+        drop, dups, occluders = redundant_mask(full, grid, cams, sources, info["photo_depth"])
+        assert 0 < int(drop.sum()) == dups + occluders < int((grid > 0).sum())
+        scene = full.select(~drop)
+        rgb, depth, alpha = render_frames(scene, batch["viewmats"][0], batch["Ks"][0], times, frames, SIZE, SIZE,
+                                          eps2d=PHOTO_EPS2D, background=torch.tensor(info["background"]))
+    mse0 = float(((rgb[0] - photo.permute(2, 0, 1)) ** 2).mean())
+    assert -10 * math.log10(mse0) >= 35.0, "frame 0 must be the photograph whatever the network predicts"
+    _check_losses(losses, batch, frames, rgb, depth, alpha, scene.canonical, scene.d_means)  # rebased: dm[0] = 0
+
+
+@pytest.mark.slow
+def test_decoded_reconstruction_losses_equal_a_hand_computation(clips):
+    """``scene: decoded`` (the default, the paper's LDRM objective): every source frame's pixel-aligned Gaussians,
+    built by hand here (μ = camera centre + distance · unit ray through the pixel centre, colour and opacity as
+    decoded), rendered alone over black with the default eps2d; frame 0 is then the network's, not the photograph."""
+    losses, batch, times, out, sources, frames = _reconstruction_case(clips, "decoded")
+    assert StageConfig().scene == "decoded"
+    with torch.no_grad():
+        S = len(sources)
+        origins, dirs = camera_rays(batch["viewmats"][0][sources], batch["Ks"][0][sources], SIZE, SIZE)
+        means = (origins + out.distance[0][..., None] * dirs).reshape(S * SIZE * SIZE, 3)
+        g, dm, dq, ds = to_gaussians(out, batch["viewmats"][0][sources], batch["Ks"][0][sources])
+        torch.testing.assert_close(g.means, means)
+        scene = DynamicGaussians(g, times, dm, dq, ds)
+        rgb, depth, alpha = render_frames(scene, batch["viewmats"][0], batch["Ks"][0], times, frames, SIZE, SIZE)
+    mse0 = float(((rgb[0] - batch["video"][0][:, 0]) ** 2).mean())
+    assert -10 * math.log10(mse0) < 35.0, "an untrained LDRM's frame 0 is not the photograph"
+    _check_losses(losses, batch, frames, rgb, depth, alpha, g, dm)
+
+
+@pytest.mark.slow
+def test_distill_objective_follows_the_teacher_and_trains_only_the_head(clips):
+    """``distill``: 0 when the teacher is the student itself (no blur); against another LDRM it equals
+    head_distillation_loss of the two heads' raw maps on the same noised latents (σ then ε drawn from the step
+    generator, frame 0 clean), and only the trained head gets gradients (the teacher none)."""
+    stage = StageConfig(height=SIZE, width=SIZE, num_frames=FRAMES, train=("ldrm.head",), objectives=("distill",),
+                        teacher="unused", distill_sigma=1.0, latent_noise=0.3)
+    model = tiny_model(seed=1)
+    apply_freezing(model, stage.train)
+    batch = default_collate(clips)
+    with torch.no_grad():
+        same = TrainingModule(model, dataclasses.replace(stage, distill_sigma=0.0), copy.deepcopy(model.ldrm))
+        assert float(same(batch, torch.Generator())["loss"]) == 0
+    teacher = tiny_model(seed=2).ldrm
+    losses = TrainingModule(model, stage, teacher)(batch, torch.Generator().manual_seed(3))
+    assert set(losses) == {"distill", "loss"}
+    with torch.no_grad():
+        latents = model.vae.encode_latents(batch["video"] * 2 - 1)
+        gen = torch.Generator().manual_seed(3)
+        sigma = (torch.rand(2, generator=gen) * 0.3)[:, None, None, None, None]
+        noisy = (1 - sigma) * latents + sigma * torch.randn(latents.shape, generator=gen)
+        noisy[:, :, 0] = latents[:, :, 0]
+        plucker = batch["plucker_packed"]
+        want = head_distillation_loss(model.ldrm.head_maps(model.ldrm.features(noisy, plucker)),
+                                      teacher.head_maps(teacher.features(noisy, plucker)), 1.0)
+    torch.testing.assert_close(losses["distill"], want)
+    losses["loss"].backward()
+    trained = {n for n, p in model.named_parameters() if p.grad is not None and p.grad.abs().sum() > 0}
+    assert trained == {f"ldrm.head.{n}" for n, _ in model.ldrm.head.named_parameters()}
+    assert all(p.grad is None for p in teacher.parameters())
+    with pytest.raises(ValueError, match="teacher"):
+        TrainingModule(model, stage)
 
 
 @pytest.mark.slow

@@ -131,6 +131,10 @@ BASE = "name: s\ntrain: [dit, ldrm]\nobjectives: [diffusion, reconstruction]\nnu
     ("trainer: {lr: 0}", "trainer.lr"),
     ("trainer: {optimiser: sgd}", "'optimiser'"),
     ("weights: {rgb: 1.0, colour: 2.0}", "'colour'"),
+    ("scene: photo", "stage.scene"),
+    ("objectives: [distill]", "stage.teacher"),  # distill without a teacher
+    ("teacher: runs/previous/model", "stage.teacher"),  # a teacher without distill
+    ("distill_sigma: -1", "stage.distill_sigma"),
 ])
 def test_bad_stage_yaml_raises_value_error_naming_the_field(tmp_path, bad, field):
     good = tmp_path / "good.yaml"

@@ -5,6 +5,7 @@ standard value of the work the term comes from, named in each docstring (:class:
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import kornia
@@ -24,6 +25,7 @@ __all__ = [
     "motion_loss",
     "displacement_loss",
     "gather_track_predictions",
+    "head_distillation_loss",
 ]
 
 
@@ -216,3 +218,39 @@ def displacement_loss(pred: Tensor, target: Tensor, visibility: Tensor) -> Tenso
     """
     vis = visibility[:, :, 1:] & visibility[:, :, :1]
     return motion_loss(pred[:, :, 1:] - pred[:, :, :1], target[:, :, 1:] - target[:, :, :1], vis)
+
+
+def head_distillation_loss(student: Tensor, teacher: Tensor, sigma: float) -> Tensor:
+    """Mean squared error between a student head's raw Gaussian maps and a teacher's, low-passed
+    (knowledge distillation, Hinton et al. 2015, on the regression outputs).
+
+    The teacher (the paper's non-overlapping transposed convolution, :class:`models.ldrm.LDRM` ``head: deconv``)
+    decodes each token into its own f×f block, so its maps step at every block border; blurring them with a
+    Gaussian of ``sigma`` pixels (kornia, borders replicated) keeps what the teacher learned and drops the seams the
+    student (the overlapping upsampler) should not copy. ``sigma`` = 0: the teacher's maps as they are.
+
+    Args:
+        student: (B, 12, S, H, W) raw maps (:meth:`models.ldrm.LDRM.head_maps`).
+        teacher: (B, 12, S, H, W) the teacher's raw maps on the same inputs (no gradient needed).
+        sigma: blur standard deviation, pixels, ≥ 0.
+
+    Returns:
+        scalar loss, mean over every channel, frame and pixel.
+
+    Raises:
+        ValueError: shapes differ, or ``sigma`` negative or not finite.
+    """
+    if student.shape != teacher.shape or student.dim() != 5:
+        raise ValueError(f"student {tuple(student.shape)} and teacher {tuple(teacher.shape)} must both be "
+                         "(B, C, S, H, W) maps of one shape")
+    if not (sigma >= 0 and math.isfinite(sigma)):
+        raise ValueError(f"sigma must be a finite number ≥ 0 (pixels), got {sigma}")
+    B, C, S, H, W = teacher.shape
+    target = teacher.detach()
+    if sigma > 0:
+        radius = max(1, math.ceil(3 * sigma))
+        flat = target.transpose(1, 2).reshape(B * S, C, H, W)
+        flat = kornia.filters.gaussian_blur2d(flat, (2 * radius + 1, 2 * radius + 1), (sigma, sigma),
+                                              border_type="replicate")
+        target = flat.reshape(B, S, C, H, W).transpose(1, 2)
+    return (student - target).square().mean()

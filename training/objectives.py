@@ -25,7 +25,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from diff4splat.assemble import assemble_scene
+from diff4splat.assemble import assemble_scene, to_gaussians
 from diff4splat.cameras import pack_plucker, plucker_rays
 from diff4splat.cameras.path import CameraPath
 from diff4splat.devices import autocast_off
@@ -38,7 +38,7 @@ from models.backbones.base import Backbone, LatentFormat
 from models.backbones.model import BackboneModel
 from models.backbones.ours import OursBackbone
 from models.bundle import Diff4SplatModel
-from models.ldrm import LDRMOutput, source_frame_indices
+from models.ldrm import LDRM, LDRMOutput, source_frame_indices
 from models.vae import kl_divergence
 
 from .losses import (
@@ -47,6 +47,7 @@ from .losses import (
     displacement_loss,
     flow_matching_loss,
     gather_track_predictions,
+    head_distillation_loss,
     motion_loss,
     photometric_loss,
 )
@@ -117,13 +118,17 @@ class TrainingModule(nn.Module):
 
     ``forward(batch, generator)`` returns ``{"loss": total, <component>: value, ...}``; components:
     ``vae_l1``, ``vae_kl`` (vae objective, our VAE only), ``flow`` (diffusion), ``photo``, ``depth``, ``smooth``,
-    ``motion`` (reconstruction).
+    ``motion`` (reconstruction), ``distill``. ``teacher``: the frozen LDRM the ``distill`` objective follows (a
+    sub-module, so it moves with the module; the trained model, ``self.model``, does not hold it).
     """
 
-    def __init__(self, model: Diff4SplatModel | BackboneModel, stage: StageConfig):
+    def __init__(self, model: Diff4SplatModel | BackboneModel, stage: StageConfig, teacher: LDRM | None = None):
         super().__init__()
         self.model = model
         self.stage = stage
+        if ("distill" in stage.objectives) != (teacher is not None):
+            raise ValueError("teacher: the distill objective needs a teacher LDRM, and only it uses one")
+        self.teacher = None if teacher is None else teacher.requires_grad_(False).eval()
 
     def backbone(self) -> Backbone:
         """The model's video backbone: a diffusers model's own, or our VAE, text encoder and DiT as an
@@ -162,9 +167,11 @@ class TrainingModule(nn.Module):
             self.model.dit.gradient_checkpointing = True
 
     def train(self, mode: bool = True) -> TrainingModule:
-        """As :meth:`nn.Module.train`, except that a diffusers backbone's frozen VAE and text encoder stay in eval
-        mode (umT5/T5 have dropout 0.1: training mode would perturb the text condition)."""
+        """As :meth:`nn.Module.train`, except that a diffusers backbone's frozen VAE and text encoder and the
+        teacher stay in eval mode (umT5/T5 have dropout 0.1: training mode would perturb the text condition)."""
         super().train(mode)
+        if self.teacher is not None:
+            self.teacher.eval()
         if isinstance(self.model, BackboneModel):
             self.model.backbone.vae.eval()
             self.model.backbone.text_encoder.eval()
@@ -180,7 +187,7 @@ class TrainingModule(nn.Module):
             losses["vae_l1"] = (recon - video).abs().mean()
             losses["vae_kl"] = kl_divergence(mean, logvar).mean() / mean[0].numel()
             total = total + losses["vae_l1"] + st.kl_weight * losses["vae_kl"]
-        if "diffusion" in st.objectives or "reconstruction" in st.objectives:
+        if {"diffusion", "reconstruction", "distill"} & set(st.objectives):
             backbone = self.backbone()
             with torch.no_grad():  # the VAE is frozen after its own stage
                 latents = backbone.encode_video(video).to(video.dtype)  # float32 targets under bf16 autocast
@@ -188,6 +195,9 @@ class TrainingModule(nn.Module):
         if "diffusion" in st.objectives:
             losses["flow"] = self._diffusion(backbone, latents, plucker, batch, generator)
             total = total + losses["flow"]
+        if "distill" in st.objectives:
+            losses["distill"] = self._distill(latents, plucker, generator)
+            total = total + losses["distill"]
         if "reconstruction" in st.objectives:
             rec = self._reconstruction(backbone.latent, latents, plucker, batch, generator)
             losses.update(rec)
@@ -253,6 +263,39 @@ class TrainingModule(nn.Module):
         photo["background"] = torch.tensor(photo["background"], device=image.device)
         return scene.select(~drop), photo
 
+    def _decoded(self, out: LDRMOutput, sources: Tensor, batch: dict, b: int, times: Tensor) -> DynamicGaussians:
+        """Clip b's decoded scene (``stage.scene: decoded``): the LDRM's pixel-aligned Gaussians of every source frame
+        on its source camera (:func:`diff4splat.assemble.to_gaussians`), deforming when the stage predicts
+        deformation."""
+        with autocast_off():
+            g, d_means, d_quats, d_scales = to_gaussians(out, batch["viewmats"][b][sources].float(),
+                                                         batch["Ks"][b][sources].float())
+        if d_means is None:
+            return DynamicGaussians(g)
+        return DynamicGaussians(g, times, d_means, d_quats, d_scales)
+
+    def _noised(self, latents: Tensor, gen: torch.Generator) -> Tensor:
+        """``latents`` (B, c, n, h, w) with frames 1… mixed with noise, (1 − σ)z + σε, σ ~ U(0, stage.latent_noise)
+        per clip (:class:`StageConfig` ``latent_noise``); unchanged when it is 0. Draws σ (B,) then ε."""
+        if self.stage.latent_noise <= 0:
+            return latents
+        B = latents.shape[0]
+        sigma = (torch.rand(B, generator=gen, device=gen.device) * self.stage.latent_noise).to(latents)
+        sigma = sigma[:, None, None, None, None]
+        eps = torch.randn(latents.shape, generator=gen, device=gen.device).to(latents)
+        noisy = (1 - sigma) * latents + sigma * eps
+        return torch.cat([latents[:, :, :1], noisy[:, :, 1:]], dim=2)
+
+    def _distill(self, latents: Tensor, plucker: Tensor, gen: torch.Generator) -> Tensor:
+        """The ``distill`` objective: the LDRM head's raw maps on the (noised) ``latents`` (B, c, n, h, w) and
+        ``plucker`` against the teacher's own on the same inputs (:func:`training.losses.head_distillation_loss`,
+        blur ``stage.distill_sigma``)."""
+        ldrm, latents = self.model.ldrm, self._noised(latents, gen)
+        with torch.no_grad():
+            target = self.teacher.head_maps(self.teacher.features(latents, plucker))
+        return head_distillation_loss(ldrm.head_maps(ldrm.features(latents, plucker)), target,
+                                      self.stage.distill_sigma)
+
     def _reconstruction(self, latent: LatentFormat, latents: Tensor, plucker: Tensor, batch: dict,
                         gen: torch.Generator) -> dict[str, Tensor]:
         """Rendering losses of the LDRM's scenes from ``latents`` (B, c, n, h, w) in ``latent``'s format and
@@ -260,12 +303,7 @@ class TrainingModule(nn.Module):
         m, st = self.model, self.stage
         B, _, T, H, W = batch["video"].shape
         image = batch["video"][:, :, 0] * 2 - 1  # (B, 3, H, W) the photograph, for an image branch
-        if st.latent_noise > 0:
-            sigma = (torch.rand(B, generator=gen, device=gen.device) * st.latent_noise).to(latents)
-            sigma = sigma[:, None, None, None, None]
-            eps = torch.randn(latents.shape, generator=gen, device=gen.device).to(latents)
-            noisy = (1 - sigma) * latents + sigma * eps
-            latents = torch.cat([latents[:, :, :1], noisy[:, :, 1:]], dim=2)
+        latents = self._noised(latents, gen)
         sources = torch.tensor(source_frame_indices(m.ldrm.config.gaussian_frames, latents.shape[2],
                                                     latent.temporal_factor), device=latents.device)
         sums: dict[str, Tensor] = {}
@@ -276,11 +314,15 @@ class TrainingModule(nn.Module):
                 out = m.ldrm(latents[b:b + 1], plucker[b:b + 1], times, image[b:b + 1])
             else:
                 out = LDRMOutput(**{k: None if v is None else v[b:b + 1] for k, v in vars(outs).items()})
-            scene, photo = self._assemble(out, sources, batch, b, times if st.deformation else None)
+            if st.scene == "assembled":
+                scene, photo = self._assemble(out, sources, batch, b, times if st.deformation else None)
+                eps2d, background = PHOTO_EPS2D, photo["background"]
+            else:
+                scene, eps2d, background = self._decoded(out, sources, batch, b, times), EPS2D, None
             others = torch.randperm(T - 1, generator=gen, device=gen.device)[: st.render_frames - 1] + 1
             frames = [0] + sorted(others.tolist())
             rgb, depth, alpha = render_frames(scene, batch["viewmats"][b], batch["Ks"][b], times, frames, W, H,
-                                              eps2d=PHOTO_EPS2D, background=photo["background"])
+                                              eps2d=eps2d, background=background)
             target = batch["video"][b][:, frames].permute(1, 0, 2, 3)  # (F, 3, H, W)
             gt_depth, valid = batch["depth"][b][frames], batch["depth_valid"][b][frames]
             parts = {
@@ -291,7 +333,8 @@ class TrainingModule(nn.Module):
             if st.motion:
                 tracks, vis = batch["tracks"][b], batch["track_visibility"][b] & batch["track_mask"][b][:, None]
                 idx, ok = track_query_index(tracks[:, 0], batch["Ks"][b, 0], W, H, vis[:, 0])
-                # idx < H·W: the photo layer's front disks come first (diff4splat.assemble.assemble_scene)
+                # idx < H·W: frame 0's grid comes first, the photo layer's front disks in an assembled scene
+                # (diff4splat.assemble.assemble_scene), the reference frame's Gaussians in a decoded one (to_gaussians)
                 pred = gather_track_predictions(scene.canonical.means[None], scene.d_means[None], idx[None])[0]
                 parts["motion"] = motion_loss(pred, tracks, vis & ok[:, None])
                 parts["displacement"] = displacement_loss(pred[None], tracks[None], (vis & ok[:, None])[None])

@@ -33,7 +33,7 @@ from .losses import LossWeights
 from .trainer import TrainerConfig
 
 __all__ = ["StageConfig", "LoraSettings", "load_stage", "stage_names", "apply_freezing", "MODULES", "STAGE_CONFIG_DIR",
-           "LORA_TARGETS", "BACKBONE_DTYPES"]
+           "LORA_TARGETS", "BACKBONE_DTYPES", "RENDERED_SCENES"]
 
 STAGE_CONFIG_DIR = STAGE_CONFIGS
 """The shipped stage configs (``train_vae``, ``train_stage1`` … ``train_stage3``, ``train_wan_stage1`` … and
@@ -45,7 +45,10 @@ MODULES = ("vae", "text_encoder", "dit", "ldrm", "ldrm.deformation", "ldrm.head"
 ``ldrm.image_branch`` alone train a new head on the LDRM's features, which the deformation network also reads;
 ``dit`` of a diffusers backbone is its transformer's LoRA adapters and camera weights)."""
 
-OBJECTIVES = ("vae", "diffusion", "reconstruction")
+OBJECTIVES = ("vae", "diffusion", "reconstruction", "distill")
+
+RENDERED_SCENES = ("decoded", "assembled")
+"""What the reconstruction objective renders (:attr:`StageConfig.scene`)."""
 
 LORA_TARGETS = ("to_q", "to_k", "to_v", "to_out.0", "net.0.proj", "net.2")
 """LoRA target modules (peft suffix match) of both diffusers transformers: the self- and cross-attention projections
@@ -99,11 +102,19 @@ class StageConfig:
         data: dataset root in data_prep's format.
         train: modules whose parameters are optimised (others frozen); see :data:`MODULES`.
         objectives: subset of ``vae`` (reconstruction + KL), ``diffusion`` (flow matching of the DiT),
-            ``reconstruction`` (rendering losses of the LDRM).
+            ``reconstruction`` (rendering losses of the LDRM), ``distill`` (the LDRM head's raw maps regressed onto a
+            teacher LDRM's, low-passed: :func:`training.losses.head_distillation_loss`; a new head learns what an
+            older one knew before the rendering losses refine it).
         scenes: ``static``, ``dynamic`` or ``all`` (ClipDataset filter).
         height, width, num_frames: clip size (pixels, frames T = 1 + 4k).
         render_frames: target frames rendered per clip for the rendering losses (frame 0 always
             included); fewer frames = faster steps.
+        scene: what the rendering losses render. ``decoded``: the LDRM's pixel-aligned Gaussians of every source
+            frame alone, over black (the paper's LDRM objective, Pan et al. 2025 §3.3: every source frame's
+            Gaussians must explain the views, so later frames learn to read their latents). ``assembled``: the scene
+            ``generate`` builds (:func:`diff4splat.assemble.assemble_scene`: the photo layer of frame 0 on the
+            predicted depth, the backdrop, the non-redundant later-frame Gaussians over the photo's mean colour),
+            where later frames are seen only through disocclusions.
         deformation: predict deformation (times passed to the LDRM); off in static stages.
         motion: motion (track) loss on.
         latent_noise: largest σ of the noise mixed into latent frames 1… before the LDRM sees them,
@@ -125,6 +136,9 @@ class StageConfig:
         backbone_dtype: ``float32`` or ``bfloat16``: the dtype a diffusers backbone's frozen weights are loaded and
             kept in (``bfloat16`` halves their memory; it needs ``trainer.bf16``). The trained weights (LoRA,
             camera, LDRM) are float32 either way.
+        teacher: the model folder whose LDRM the ``distill`` objective follows (required by it, refused otherwise);
+            its own transformer reads the same (noised) latents, so the student's trunk may differ.
+        distill_sigma: blur of the teacher's maps in the ``distill`` objective, pixels (≥ 0).
         trainer: optimisation, device and precision settings (:class:`training.trainer.TrainerConfig`: ``device``
             auto/cpu/cuda[:N], ``bf16`` auto = on for CUDA, ``tf32``, ``gradient_checkpointing`` of the DiT,
             ``strategy`` ddp/fsdp under torchrun).
@@ -141,6 +155,7 @@ class StageConfig:
     width: int = 32
     num_frames: int = 17
     render_frames: int = 3
+    scene: str = "decoded"
     deformation: bool = False
     motion: bool = False
     latent_noise: float = 0.0
@@ -151,6 +166,8 @@ class StageConfig:
     backbone: str = "ours"
     lora: LoraSettings | None = None
     backbone_dtype: str = "float32"
+    teacher: str | None = None
+    distill_sigma: float = 1.0
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
 
     def __post_init__(self) -> None:
@@ -162,6 +179,8 @@ class StageConfig:
                 raise ValueError(f"stage.objectives: unknown objective {o!r} (known: {OBJECTIVES})")
         if self.scenes not in ("static", "dynamic", "all"):
             raise ValueError(f"stage.scenes must be static, dynamic or all, got {self.scenes!r}")
+        if self.scene not in RENDERED_SCENES:
+            raise ValueError(f"stage.scene must be one of {RENDERED_SCENES}, got {self.scene!r}")
         if self.motion and not self.deformation:
             raise ValueError("stage.motion needs stage.deformation (tracks move through the deformation)")
         if not 1 <= self.render_frames <= self.num_frames:
@@ -170,6 +189,10 @@ class StageConfig:
             raise ValueError(f"stage.latent_noise must lie in [0, 1], got {self.latent_noise}")
         if not 0 <= self.caption_dropout <= 1:
             raise ValueError(f"stage.caption_dropout must lie in [0, 1], got {self.caption_dropout}")
+        if ("distill" in self.objectives) != (self.teacher is not None):
+            raise ValueError("stage.teacher: the distill objective needs a teacher model folder, and only it uses one")
+        if not self.distill_sigma >= 0:
+            raise ValueError(f"stage.distill_sigma must be ≥ 0 pixels, got {self.distill_sigma}")
         if isinstance(self.lora, dict):
             self.lora = config_from_dict(LoraSettings, self.lora, "stage.lora")
         self._check_backbone()
@@ -190,6 +213,9 @@ class StageConfig:
         if frozen:
             raise ValueError(f"stage.train: the {self.backbone} backbone's {' and '.join(frozen)} cannot train "
                              "(trainable: dit through LoRA, ldrm and its parts)")
+        if "distill" in self.objectives:
+            raise ValueError("stage.objectives: distill follows a teacher model of our networks (backbone ours), "
+                             f"not {self.backbone}")
         if "vae" in self.objectives:
             raise ValueError(f"stage.objectives: the {self.backbone} backbone's VAE is pretrained (no vae objective)")
         if ("dit" in self.train) != (self.lora is not None):

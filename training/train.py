@@ -34,6 +34,7 @@ from diff4splat.devices import resolve_device
 from diff4splat.errors import run_cli
 from models.backbones.model import INDEX_FILE, BackboneModel
 from models.bundle import Diff4SplatModel, load_config
+from models.ldrm import LDRM
 from models.vae import estimate_latent_scaling
 
 from . import stage_config
@@ -88,7 +89,7 @@ def build_training(stage: StageConfig, seed: int | None = None
                                                  scenes=stage.scenes, plucker=plucker, seed=stage.trainer.seed))
     if len(dataset) == 0:
         raise ValueError(f"data: no {stage.scenes} clips of {stage.num_frames} frames in {stage.data}")
-    module = TrainingModule(model, stage)
+    module = TrainingModule(model, stage, _teacher(stage))
     trainer = Trainer(module, dataset, lambda mod, batch, gen: mod(batch, gen), stage.trainer,
                       extra_meta={"stage": dataclasses.asdict(stage), "trainable": counts})
     return trainer, model, counts
@@ -105,6 +106,19 @@ def _ours_model(stage: StageConfig) -> Diff4SplatModel:
     if not (folder / "config.json").is_file():
         raise FileNotFoundError(f"init_from: {stage.init_from} is not a model folder (no config.json)")
     return Diff4SplatModel.from_pretrained(folder)
+
+
+def _teacher(stage: StageConfig) -> LDRM | None:
+    """The ``distill`` objective's teacher: the LDRM of the ``stage.teacher`` model folder (None without one).
+
+    Raises:
+        FileNotFoundError: ``stage.teacher`` is not a model folder.
+    """
+    if stage.teacher is None:
+        return None
+    if not (Path(stage.teacher) / "config.json").is_file():
+        raise FileNotFoundError(f"teacher: {stage.teacher} is not a model folder (no config.json)")
+    return Diff4SplatModel.from_pretrained(stage.teacher).ldrm
 
 
 def backbone_training():
