@@ -222,7 +222,8 @@ def generate(
             loader called after the request's checks, or None for the shipped model on the ``auto`` device.
         trajectory, amplitude: the camera path preset and its size (:func:`diff4splat.cameras.make_trajectory`).
         frames: T = 1 + 4k frames (default: the config's); with a camera file, its count must match.
-        resolution: output height, pixels (default: 256, or the model's height if larger).
+        resolution: output height, pixels (default: 256, or the model's height if larger); with a tensor image,
+            None or the tensor's height.
         prompt: text describing the motion; "" runs no text encoder.
         steps, sampler, seed: the flow-matching sampler's (defaults: the config's; seed 0).
         guidance: classifier-free guidance scale (default: the config's; :meth:`Diff4SplatPipeline.__call__`).
@@ -244,6 +245,9 @@ def generate(
     t_start = time.perf_counter()
     _check_request(image, cameras, trajectory, amplitude, frames, resolution, steps, seed, prompt, depth, depth_kind,
                    guidance)
+    if isinstance(image, Tensor) and resolution is not None and resolution != image.shape[0]:
+        raise ValueError(f"resolution={resolution} but the image tensor is {image.shape[0]} pixels high: a tensor "
+                         "is used at its own resolution (resize it, or pass a photo file)")
     files = {"image": image, "cameras_file": cameras, "depth_file": depth}  # as given, for meta.json
     loaded = pipeline() if callable(pipeline) and not isinstance(pipeline, Diff4SplatPipeline) else pipeline
     if loaded is None:

@@ -37,6 +37,11 @@ def test_a_missing_photo_is_named_before_the_model_loads():
         generate(EXAMPLE_IMAGE.parent / "nonesuch.png", pipeline=_never)
 
 
+def test_a_tensor_image_at_another_resolution_is_refused_before_the_model_loads():
+    with pytest.raises(ValueError, match="resolution=128 but the image tensor is 64 pixels high"):
+        generate(torch.rand(64, 64, 3), resolution=128, pipeline=_never)
+
+
 @pytest.mark.slow
 def test_generate_then_write_is_what_the_command_writes(tmp_path):
     """The library call and `diff4splat generate` give the same scene and meta.json settings (the command is a

@@ -10,6 +10,7 @@ from training.losses import (
     flow_matching_loss,
     gather_track_predictions,
     head_distillation_loss,
+    log_depth_loss,
     motion_loss,
     photometric_loss,
     sample_training_sigmas,
@@ -81,6 +82,33 @@ def test_depth_correlation_ignores_invalid_pixels():
     ref_bad = ref.clone()
     ref_bad[0, 0, 0] = math.inf
     assert float(depth_correlation_loss(pred_bad, ref_bad, valid)) == pytest.approx(0.0, abs=1e-5)
+
+
+def test_log_depth_loss_weighs_the_scale_error_by_one_minus_lambda():
+    g = torch.Generator().manual_seed(0)
+    ref = torch.rand(2, 8, 8, generator=g) * 5 + 0.5
+    for lam in (0.0, 0.5, 1.0):  # a pure scale error c: g = log c everywhere, L = (1 − λ)·log²c
+        assert float(log_depth_loss(1.3 * ref, ref, lam=lam)) == pytest.approx((1 - lam) * math.log(1.3) ** 2,
+                                                                              abs=1e-6)
+    pred = ref * torch.exp(torch.randn(2, 8, 8, generator=g) * 0.3)
+    valid = torch.rand(2, 8, 8, generator=g) > 0.3
+    valid[1] = False  # an image with no valid pixel contributes 0 to the mean over images
+    pred[0, 0, 0] = float("nan")  # left out: not finite
+    valid[0, 0, 0] = True
+    d = (pred[0].log() - ref[0].log())[valid[0] & torch.isfinite(pred[0])].double()
+    expected = ((d ** 2).mean() - 0.5 * d.mean() ** 2) / 2  # brute force, one loop-free line per image
+    assert float(log_depth_loss(pred, ref, valid, lam=0.5)) == pytest.approx(float(expected), rel=1e-5)
+
+
+def test_log_depth_loss_gradient_is_finite_at_invalid_pixels_and_rejects_bad_input():
+    pred = torch.tensor([[[1.0, 0.0], [-2.0, 3.0]]], requires_grad=True)
+    ref = torch.tensor([[[2.0, 1.0], [1.0, 0.0]]])
+    log_depth_loss(pred, ref).backward()
+    assert torch.isfinite(pred.grad).all() and float(pred.grad[0, 0, 1]) == 0.0
+    with pytest.raises(ValueError, match="lam"):
+        log_depth_loss(pred, ref, lam=1.5)
+    with pytest.raises(ValueError, match="B, H, W"):
+        log_depth_loss(pred[0], ref[0])
 
 
 def test_smoothness_zero_for_constant_depth_and_down_weighted_at_image_edges():

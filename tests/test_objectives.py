@@ -21,6 +21,7 @@ from training.losses import (
     depth_correlation_loss,
     depth_smoothness_loss,
     head_distillation_loss,
+    log_depth_loss,
     photometric_loss,
 )
 from training.objectives import TrainingModule, render_frames, track_query_index
@@ -117,7 +118,7 @@ def test_render_frames_uses_each_frames_time_and_camera():
 # ----------------------------------------------------------------------------------- TrainingModule
 NETWORKS = ("vae", "text_encoder", "dit", "ldrm", "ldrm.deformation")
 # not the defaults: the sum is checked
-WEIGHTS = LossWeights(ssim=0.2, rgb=2.0, depth=0.5, smooth=0.25, motion=3.0, displacement=1.5)
+WEIGHTS = LossWeights(ssim=0.2, rgb=2.0, depth=0.5, metric_depth=0.75, smooth=0.25, motion=3.0, displacement=1.5)
 
 
 def _network(name: str) -> str:
@@ -129,13 +130,14 @@ CASES = {
     "vae": (dict(name="vae", train=("vae",), objectives=("vae",), scenes="all", kl_weight=0.01),
             {"vae_l1", "vae_kl"}, {"vae"}),
     "stage1": (dict(train=("dit", "ldrm"), objectives=("diffusion", "reconstruction")),
-               {"flow", "photo", "depth", "smooth"}, {"dit", "ldrm"}),
+               {"flow", "photo", "depth", "metric_depth", "smooth"}, {"dit", "ldrm"}),
     # the deformation network runs (deformation on) but is frozen: it must get no gradient
     "frozen_deformation": (dict(train=("ldrm",), objectives=("reconstruction",), deformation=True, motion=True),
-                           {"photo", "depth", "smooth", "motion", "displacement"}, {"ldrm"}),
+                           {"photo", "depth", "metric_depth", "smooth", "motion", "displacement"}, {"ldrm"}),
     "stage3": (dict(train=("dit", "ldrm", "ldrm.deformation"), objectives=("diffusion", "reconstruction"),
                     scenes="all", deformation=True, motion=True),
-               {"flow", "photo", "depth", "smooth", "motion", "displacement"}, {"dit", "ldrm", "ldrm.deformation"}),
+               {"flow", "photo", "depth", "metric_depth", "smooth", "motion", "displacement"},
+               {"dit", "ldrm", "ldrm.deformation"}),
 }
 
 
@@ -151,13 +153,14 @@ def test_forward_losses_and_gradients_reach_only_the_trainable_networks(clips, c
     losses = module(batch, torch.Generator().manual_seed(0))
     assert set(losses) == keys | {"loss"}
     assert all(v.ndim == 0 and math.isfinite(float(v.detach())) for v in losses.values()), losses
+    rendering = lambda t: (2.0 * t["photo"] + 0.5 * t["depth"] + 0.75 * t["metric_depth"]  # noqa: E731
+                           + 0.25 * t["smooth"])
     expected = {
         "vae": lambda terms: terms["vae_l1"] + stage.kl_weight * terms["vae_kl"],
-        "stage1": lambda terms: terms["flow"] + 2.0 * terms["photo"] + 0.5 * terms["depth"] + 0.25 * terms["smooth"],
-        "frozen_deformation": lambda terms: (2.0 * terms["photo"] + 0.5 * terms["depth"] + 0.25 * terms["smooth"]
-                                             + 3.0 * terms["motion"] + 1.5 * terms["displacement"]),
-        "stage3": lambda terms: (terms["flow"] + 2.0 * terms["photo"] + 0.5 * terms["depth"] + 0.25 * terms["smooth"]
-                                 + 3.0 * terms["motion"] + 1.5 * terms["displacement"]),
+        "stage1": lambda terms: terms["flow"] + rendering(terms),
+        "frozen_deformation": lambda terms: rendering(terms) + 3.0 * terms["motion"] + 1.5 * terms["displacement"],
+        "stage3": lambda terms: (terms["flow"] + rendering(terms) + 3.0 * terms["motion"]
+                                 + 1.5 * terms["displacement"]),
     }[case](losses)
     torch.testing.assert_close(losses["loss"], expected)
     if "motion" in keys:
@@ -234,11 +237,12 @@ def _check_losses(losses, batch, frames, rgb, depth, alpha, g, dm) -> None:
     torch.testing.assert_close(losses["photo"], photometric_loss(rgb, target, WEIGHTS.ssim))
     torch.testing.assert_close(losses["depth"], depth_correlation_loss(depth, batch["depth"][0][frames], valid))
     torch.testing.assert_close(losses["smooth"], depth_smoothness_loss(depth.clamp(min=1e-3), target))
+    torch.testing.assert_close(losses["metric_depth"], log_depth_loss(depth, batch["depth"][0][frames], valid))
     errors, moves = _hand_motion(batch, g, dm)
     assert float(losses["motion"]) == pytest.approx(sum(errors) / len(errors), rel=1e-5)
     assert float(losses["displacement"]) == pytest.approx(sum(moves) / len(moves), rel=1e-4)
-    weighted = (2.0 * losses["photo"] + 0.5 * losses["depth"] + 0.25 * losses["smooth"] + 3.0 * losses["motion"]
-                + 1.5 * losses["displacement"])
+    weighted = (2.0 * losses["photo"] + 0.5 * losses["depth"] + 0.75 * losses["metric_depth"]
+                + 0.25 * losses["smooth"] + 3.0 * losses["motion"] + 1.5 * losses["displacement"])
     torch.testing.assert_close(losses["loss"], weighted)
 
 

@@ -22,6 +22,7 @@ __all__ = [
     "photometric_loss",
     "depth_correlation_loss",
     "depth_smoothness_loss",
+    "log_depth_loss",
     "motion_loss",
     "displacement_loss",
     "gather_track_predictions",
@@ -38,6 +39,9 @@ class LossWeights:
         ssim: λ of (1 − SSIM) inside the photometric loss; 0.2 as in 3DGS (Kerbl et al. 2023, Eq. 7).
         rgb: weight of the photometric loss.
         depth: weight of the depth-correlation loss (Pearson; as in SparseGS / FSGS depth priors).
+        metric_depth: weight of the scale-invariant log loss (:func:`log_depth_loss`, λ = 0.5), which unlike the
+            correlation keeps a share of the depth's scale: for metric reference depth. 0 (the default, and with a
+            relative reference) leaves it out; the correlation alone lets the predicted scale drift.
         smooth: weight of the edge-aware depth smoothness (Godard et al. 2017 use 1e-3 on disparity).
         motion: weight of the track loss (stage 3 only).
         displacement: weight of the track-displacement loss (:func:`displacement_loss`, stage 3 only): the
@@ -47,6 +51,7 @@ class LossWeights:
     ssim: float = 0.2
     rgb: float = 1.0
     depth: float = 0.1
+    metric_depth: float = 0.0
     smooth: float = 1e-3
     motion: float = 1.0
     displacement: float = 0.0
@@ -136,6 +141,41 @@ def depth_correlation_loss(pred: Tensor, reference: Tensor, valid: Tensor | None
     rho = cov / torch.sqrt(((pc ** 2).sum(1) / safe_n + eps) * ((rc ** 2).sum(1) / safe_n + eps))
     loss = torch.where(n >= 2, 1 - rho, torch.zeros_like(rho))
     return loss.mean()
+
+
+def log_depth_loss(pred: Tensor, reference: Tensor, valid: Tensor | None = None, lam: float = 0.5) -> Tensor:
+    """Scale-invariant log error of metric depth (Eigen, Puhrsch & Fergus 2014, Eq. 4), per image.
+
+    With g = log pred − log reference over the n valid pixels, L = mean(g²) − λ·mean(g)²: λ = 0 is the mean squared
+    log error, λ = 1 is invariant to the depth's scale, and 0 < λ < 1 (the paper trains with 0.5) weighs the scale
+    error by 1 − λ while the shape error keeps its full weight.
+
+    Args:
+        pred, reference: (B, H, W) depths in the same units (metres), > 0 where valid; pixels where either is not
+            finite or ≤ 0 are left out.
+        valid: (B, H, W) bool, or None for all pixels; images with no valid pixel contribute 0.
+        lam: λ in [0, 1].
+
+    Returns:
+        Scalar mean over images, ≥ 0 (mean(g²) ≥ mean(g)² ≥ λ·mean(g)²).
+
+    Raises:
+        ValueError: shapes not both (B, H, W), or λ outside [0, 1].
+    """
+    if pred.shape != reference.shape or pred.dim() != 3:
+        raise ValueError(
+            f"pred and reference must both be (B, H, W), got {tuple(pred.shape)} and {tuple(reference.shape)}")
+    if not 0.0 <= lam <= 1.0:
+        raise ValueError(f"lam must lie in [0, 1], got {lam}")
+    if valid is None:
+        valid = torch.ones_like(pred, dtype=torch.bool)
+    valid = valid & torch.isfinite(pred) & torch.isfinite(reference) & (pred > 0) & (reference > 0)
+    g = torch.where(valid, torch.log(torch.where(valid, pred, 1)) - torch.log(torch.where(valid, reference, 1)), 0)
+    n = valid.flatten(1).sum(1)
+    safe_n = n.clamp(min=1).to(g.dtype)
+    mean_g = g.flatten(1).sum(1) / safe_n
+    loss = (g ** 2).flatten(1).sum(1) / safe_n - lam * mean_g ** 2
+    return torch.where(n > 0, loss, torch.zeros_like(loss)).mean()
 
 
 def depth_smoothness_loss(depth: Tensor, image: Tensor) -> Tensor:

@@ -48,6 +48,7 @@ from .losses import (
     flow_matching_loss,
     gather_track_predictions,
     head_distillation_loss,
+    log_depth_loss,
     motion_loss,
     photometric_loss,
 )
@@ -118,8 +119,9 @@ class TrainingModule(nn.Module):
 
     ``forward(batch, generator)`` returns ``{"loss": total, <component>: value, ...}``; components:
     ``vae_l1``, ``vae_kl`` (vae objective, our VAE only), ``flow`` (diffusion), ``photo``, ``depth``, ``smooth``,
-    ``motion`` (reconstruction), ``distill``. ``teacher``: the frozen LDRM the ``distill`` objective follows (a
-    sub-module, so it moves with the module; the trained model, ``self.model``, does not hold it).
+    ``motion``, ``displacement``, ``metric_depth`` (reconstruction; the last only with a weight > 0), ``distill``.
+    ``teacher``: the frozen LDRM the ``distill`` objective follows (a sub-module, so it moves with the module; the
+    trained model, ``self.model``, does not hold it).
     """
 
     def __init__(self, model: Diff4SplatModel | BackboneModel, stage: StageConfig, teacher: LDRM | None = None):
@@ -203,6 +205,8 @@ class TrainingModule(nn.Module):
             losses.update(rec)
             w = st.weights
             total = total + w.rgb * rec["photo"] + w.depth * rec["depth"] + w.smooth * rec["smooth"]
+            if "metric_depth" in rec:
+                total = total + w.metric_depth * rec["metric_depth"]
             if "motion" in rec:
                 total = total + w.motion * rec["motion"] + w.displacement * rec["displacement"]
         losses["loss"] = total
@@ -330,6 +334,8 @@ class TrainingModule(nn.Module):
                 "depth": depth_correlation_loss(depth, gt_depth, valid & (alpha > 0.5)),
                 "smooth": depth_smoothness_loss(depth.clamp(min=1e-3), target),
             }
+            if st.weights.metric_depth > 0:
+                parts["metric_depth"] = log_depth_loss(depth, gt_depth, valid & (alpha > 0.5))
             if st.motion:
                 tracks, vis = batch["tracks"][b], batch["track_visibility"][b] & batch["track_mask"][b][:, None]
                 idx, ok = track_query_index(tracks[:, 0], batch["Ks"][b, 0], W, H, vis[:, 0])
