@@ -13,6 +13,7 @@ from training.eval_metrics import (
     angle_bin,
     binned_psnr,
     covisible_mask,
+    depth_errors,
     frame_mse,
     image_psnr,
     image_ssim,
@@ -25,6 +26,16 @@ from training.eval_metrics import (
     thumbnail,
     view_angles,
 )
+
+
+def test_depth_errors_see_the_scale_that_pearson_does_not():
+    true = torch.tensor([1.0, 2.0, 4.0, 8.0])
+    assert pearson(0.5 * true, true) == pytest.approx(1.0)  # blind to a scene placed at half the distance
+    assert depth_errors(0.5 * true, true) == pytest.approx({"depth_abs_rel": 0.5, "depth_scale": 0.5})
+    pred = torch.tensor([1.0, 3.0, 4.0, 4.0])  # relative errors 0, 0.5, 0, 0.5; ratios 1, 1.5, 1, 0.5
+    assert depth_errors(pred, true)["depth_abs_rel"] == pytest.approx(0.25)
+    assert depth_errors(pred, true)["depth_scale"] == 1.0  # torch's median: the lower of the two middle values
+    assert all(math.isnan(v) for v in depth_errors(torch.ones(0), torch.ones(0)).values())
 
 
 def test_pearson_and_psnr_closed_forms():

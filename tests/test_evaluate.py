@@ -11,6 +11,7 @@ from diff4splat.runtime import TorchRuntime
 from training.eval_metrics import ablation_noise, image_psnr, kept_index_map
 from training.evaluate import (
     BASELINES,
+    DEPTH_DIAGNOSTICS,
     DIAGNOSTICS,
     METRICS,
     _held_out_clips,
@@ -55,7 +56,7 @@ def test_metrics_of_a_generated_scene_match_independent_computations(clips):
     pipe = Diff4SplatPipeline(tiny_model(dynamic=True))
     e = evaluate_clip(pipe, clip, steps=2)
     m = e.metrics
-    assert set(m) == set(METRICS + DIAGNOSTICS + BASELINES)
+    assert set(m) == set(METRICS + DIAGNOSTICS + DEPTH_DIAGNOSTICS + BASELINES)
     cams = CameraPath(clip["viewmats"].double(), clip["Ks"].double(), 64, 64, clip["times"].double())
     res = pipe(clip["video"][:, 0].permute(1, 2, 0), cams, clip["caption"], steps=2, seed=0)
     colors, depths, alphas = render_path(res.scene, res.cameras, eps2d=res.eps2d, background=res.background)
@@ -87,7 +88,7 @@ def test_metrics_of_a_generated_scene_match_independent_computations(clips):
                                                abs=1e-6)
     assert e.dynamic and e.max_angle == pytest.approx(float(e.angles.max())) and e.max_angle > 1.0
     agg = aggregate([e])
-    assert set(agg) == set(METRICS + DIAGNOSTICS + BASELINES + binned_keys())
+    assert set(agg) == set(METRICS + DIAGNOSTICS + DEPTH_DIAGNOSTICS + BASELINES + binned_keys())
     assert agg["psnr_novel"] == m["psnr_novel"] and sum(agg[k] for k in agg if k.startswith("frames_")) == 8
     with pytest.raises(ValueError, match="evals"):
         aggregate([])
@@ -250,7 +251,7 @@ def test_pooled_psnr_is_that_of_the_mean_mse_over_every_bin():
 
     def clip(mses, angles):
         mse = torch.tensor(mses, dtype=torch.float64)
-        metrics = {k: 1.0 for k in METRICS + DIAGNOSTICS + BASELINES}
+        metrics = {k: 1.0 for k in METRICS + DIAGNOSTICS + DEPTH_DIAGNOSTICS + BASELINES}
         return ClipEvaluation(name="c", dynamic=True, max_angle=max(angles), metrics=metrics,
                               angles=torch.tensor(angles, dtype=torch.float64),
                               frame_mse={v: mse for v in ("model", "noise", "gt", "repeat", "repeat_blur")})

@@ -14,9 +14,9 @@ from torch import Tensor
 
 from diff4splat.cameras import unproject_depth
 
-__all__ = ["PSNR_CAP", "ANGLE_BINS", "psnr_from_mse", "image_psnr", "image_ssim", "thumbnail", "pearson", "frame_mse",
-           "view_angles", "angle_bin", "binned_psnr", "repeat_baselines", "motion_errors", "kept_index_map",
-           "ablation_noise", "BLUR_SIGMA", "BLUR_KERNEL", "covisible_mask", "masked_psnr"]
+__all__ = ["PSNR_CAP", "ANGLE_BINS", "psnr_from_mse", "image_psnr", "image_ssim", "thumbnail", "pearson",
+           "depth_errors", "frame_mse", "view_angles", "angle_bin", "binned_psnr", "repeat_baselines", "motion_errors",
+           "kept_index_map", "ablation_noise", "BLUR_SIGMA", "BLUR_KERNEL", "covisible_mask", "masked_psnr"]
 
 PSNR_CAP = 100.0
 """PSNR of identical images (MSE 0) is reported as this many dB instead of infinity."""
@@ -71,6 +71,25 @@ def pearson(a: Tensor, b: Tensor) -> float:
     a, b = a - a.mean(), b - b.mean()
     den = math.sqrt(float((a * a).sum()) * float((b * b).sum()))
     return float((a * b).sum()) / den if den > 0 else 0.0
+
+
+def depth_errors(pred: Tensor, true: Tensor) -> dict[str, float]:
+    """Metric depth errors that :func:`pearson` cannot see: its correlation ignores the depth's scale.
+
+    ``depth_abs_rel``: mean |pred − true| / true, the AbsRel of monocular depth benchmarks (Eigen, Puhrsch & Fergus
+    2014); ``depth_scale``: median of pred / true, 1 for the right scale (< 1: the scene placed too near, which
+    exaggerates the parallax of every novel view).
+
+    Args:
+        pred, true: (N,) z-depths in metres, true > 0 (the valid pixels only).
+
+    Returns:
+        {"depth_abs_rel": ≥ 0, "depth_scale": > 0}; NaN for both when N = 0.
+    """
+    if pred.numel() == 0:
+        return {"depth_abs_rel": float("nan"), "depth_scale": float("nan")}
+    pred, true = pred.double(), true.double()
+    return {"depth_abs_rel": float(((pred - true).abs() / true).mean()), "depth_scale": float((pred / true).median())}
 
 
 def view_angles(viewmats: Tensor) -> Tensor:

@@ -11,7 +11,9 @@ along the clip's cameras at the clip's times:
 
 - ``psnr_input``/``ssim_input``: frame 0 (the input view at t = 0) against the ground truth;
 - ``psnr_novel``/``ssim_novel``: frames 1…T−1 (new views at new times); PSNR of the MSE over those frames;
-- ``depth_corr``: Pearson correlation of rendered and true metric depth over valid covered pixels;
+- ``depth_corr``: Pearson correlation of rendered and true metric depth over valid covered pixels; beside it
+  (:data:`DEPTH_DIAGNOSTICS`) on the same pixels the scale it cannot see: ``depth_abs_rel`` and ``depth_scale``
+  (:func:`training.eval_metrics.depth_errors`);
 - ``motion_epe``: mean distance (metres) between tracked points predicted by the scene (the Gaussian
   at the track's frame-0 pixel, deformed to each time) and the true 3D tracks, visible points only.
   It is dominated by the frame-0 depth error (``motion_epe_t0``); the displacement error
@@ -90,6 +92,7 @@ from .eval_metrics import (
     ANGLE_BINS,
     ablation_noise,
     binned_psnr,
+    depth_errors,
     frame_mse,
     image_psnr,
     image_ssim,
@@ -104,7 +107,7 @@ from .eval_metrics import (
 from .objectives import track_query_index
 
 __all__ = ["evaluate_clip", "evaluate_clips", "evaluate_all", "aggregate", "ClipEvaluation", "sampling_tradeoffs",
-           "register", "METRICS", "DIAGNOSTICS", "BASELINES", "VARIANTS", "binned_keys"]
+           "register", "METRICS", "DIAGNOSTICS", "DEPTH_DIAGNOSTICS", "BASELINES", "VARIANTS", "binned_keys"]
 
 METRICS = ("psnr_input", "ssim_input", "psnr_novel", "ssim_novel", "depth_corr", "motion_epe", "loop_psnr",
            "vae_psnr")
@@ -119,6 +122,10 @@ helps where ``motion_epe`` < ``motion_epe_hold``; an identity deformation makes 
 is dominated by the frame-0 depth error; ``motion_disp_epe`` (error of the displacement from frame 0) against
 ``motion_disp_hold`` (the true displacement, i.e. the error of no motion) isolates the motion.
 ``motion_epe_gt``/``motion_disp_epe_gt``: the same for the scene generated from the true video's latents."""
+
+DEPTH_DIAGNOSTICS = ("depth_abs_rel", "depth_scale")
+"""Reported beside ``depth_corr`` on the same pixels (:func:`training.eval_metrics.depth_errors`): the mean
+relative error (lower is better) and the median ratio of rendered to true depth (1 is right)."""
 
 VARIANTS = ("noise", "gt", "repeat", "repeat_blur")
 """Baselines and ablations scored on the model's novel frames (module docstring)."""
@@ -149,7 +156,8 @@ class ClipEvaluation:
     Attributes:
         name: the clip's scene name.  dynamic: whether the scene moves.
         max_angle: camera motion size, the largest view angle of the clip's cameras (degrees).
-        metrics: {key: value} for :data:`METRICS`, :data:`DIAGNOSTICS` and :data:`BASELINES`.
+        metrics: {key: value} for :data:`METRICS`, :data:`DIAGNOSTICS`, :data:`DEPTH_DIAGNOSTICS` and
+            :data:`BASELINES`.
         angles: (T−1,) view angles (degrees) of frames 1…T−1.
         frame_mse: {"model" or variant: (T−1,) float64 MSE of frames 1…T−1} (NaN where not available).
     """
@@ -216,6 +224,7 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
     valid = clip["depth_valid"] & (alphas > 0.5)
     out["depth_corr"] = (pearson(depths[valid].double(), clip["depth"][valid].double())
                          if valid.sum() > 1 else float("nan"))
+    out.update(depth_errors(depths[valid], clip["depth"][valid]))
     out.update(_scene_motion(pipe, res, clip))
     out["loop_psnr"] = _loop_psnr(pipe, image, clip, T, **gen)
 
@@ -300,7 +309,7 @@ def aggregate(evals: list[ClipEvaluation]) -> dict[str, float]:
     if not evals:
         raise ValueError("evals: no clip evaluations to aggregate")
     out = {k: statistics.fmean([e.metrics[k] for e in evals if not math.isnan(e.metrics[k])] or [float("nan")])
-           for k in METRICS + DIAGNOSTICS + BASELINES}
+           for k in METRICS + DIAGNOSTICS + DEPTH_DIAGNOSTICS + BASELINES}
     angles = torch.cat([e.angles for e in evals])
     for variant in ("model", *VARIANTS):
         mse = torch.cat([e.frame_mse[variant] for e in evals])
@@ -319,7 +328,7 @@ def evaluate_all(pipe: Diff4SplatPipeline, clips: list[dict], **kw) -> list[Clip
 
 def evaluate_clips(pipe: Diff4SplatPipeline, clips: list[dict], **kw) -> dict[str, float]:
     """:func:`aggregate` of :func:`evaluate_all`: {key: value} for :data:`METRICS`, :data:`DIAGNOSTICS`,
-    :data:`BASELINES` and :func:`binned_keys`."""
+    :data:`DEPTH_DIAGNOSTICS`, :data:`BASELINES` and :func:`binned_keys`."""
     return aggregate(evaluate_all(pipe, clips, **kw))
 
 
@@ -447,12 +456,13 @@ def _per_clip_rows(evals: list[ClipEvaluation]) -> list[dict]:
 
 
 def _aggregate_tables(agg: dict) -> str:
-    """The headline metrics, the motion split and the model beside its baselines per view-angle bin, from
+    """The headline metrics, the depth and motion splits and the model beside its baselines per view-angle bin, from
     the aggregate row (model, clips, :func:`aggregate`'s keys, optionally photo_psnr)."""
     metrics = _print_table([agg], ["model", "clips", *METRICS])
     if "photo_psnr" in agg:
         metrics += "\n\nThe photograph at the input view (output resolution, and area-averaged to the model's):\n"
         metrics += _print_table([agg], list(PHOTO_KEYS))
+    depth = _print_table([agg], ["depth_corr", *DEPTH_DIAGNOSTICS])
     motion = _print_table([agg], ["motion_epe", *DIAGNOSTICS])
     bins = {name: f"{lo:g}–{hi:g}° ({int(agg[f'frames_{name}'])} frames)" for name, lo, hi in ANGLE_BINS}
     rows = []
@@ -462,8 +472,9 @@ def _aggregate_tables(agg: dict) -> str:
                      "all frames, pooled": agg[f"psnr_pooled{suffix}"],
                      **{bins[name]: agg[f"psnr_{name}{suffix}"] for name, _, _ in ANGLE_BINS}})
     versus = _print_table(rows, ["novel views, PSNR dB", "mean of clips", "all frames, pooled", *bins.values()])
-    return (f"{metrics}\n\nMotion (metres):\n{motion}\n\nNovel views beside the baselines; by view angle from "
-            f"the input camera, the PSNR of the mean MSE over the bin's frames of all clips:\n{versus}")
+    return (f"{metrics}\n\nDepth (rendered against true, covered valid pixels):\n{depth}\n\nMotion (metres):\n"
+            f"{motion}\n\nNovel views beside the baselines; by view angle from the input camera, the PSNR of the "
+            f"mean MSE over the bin's frames of all clips:\n{versus}")
 
 
 def _check_args(args) -> dict:
@@ -490,7 +501,7 @@ def _check_args(args) -> dict:
             raise ValueError(f"--photo: {e}") from None
     if not args.csv:
         return {}
-    columns = ["model", "clips", *METRICS, *DIAGNOSTICS, *BASELINES, *binned_keys()]
+    columns = ["model", "clips", *METRICS, *DIAGNOSTICS, *DEPTH_DIAGNOSTICS, *BASELINES, *binned_keys()]
     columns += list(PHOTO_KEYS) if args.photo is not None else []
     outputs = csv_outputs(Path(args.csv), columns, ["model", *CLIP_COLUMNS] if args.per_clip else None,
                           ["model", *SAMPLING_COLUMNS] if args.sampling else None)
