@@ -11,7 +11,9 @@
 - **The backdrop** (:func:`diff4splat.photo.backdrop_layer`): the photograph continued beyond its borders, blurred,
   behind everything; static.
 - **The other source frames** (video frames 4, 8, …) keep the network's pixel-aligned Gaussians at the model
-  resolution (:func:`to_gaussians`): what the generated video shows that the photograph does not. Which of them
+  resolution (:func:`to_gaussians`): what the generated video shows that the photograph does not. With ``video=``
+  (config ``generated_colors: video``) their colours are the decoded generated video's pixels
+  (:func:`video_colors`) rather than the LDRM's. Which of them
   survive is the pipeline's pruning (:mod:`diff4splat.prune`): none that re-describes a surface already placed,
   none in front of the photo layer at the input view.
 
@@ -19,6 +21,8 @@ Gaussian order of the assembled scene: the photo layer's H_o·W_o front disks th
 row-major), the backdrop, then source frames 1…S−1, h·w each at the model resolution, row-major.
 """
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import torch
@@ -35,7 +39,7 @@ from .photo import PHOTO_EPS2D, backdrop_layer, photo_layer, upsample_depth
 from .quaternions import quat_conjugate, quat_multiply, quat_normalize
 from .scene import DynamicGaussians
 
-__all__ = ["DEPTH_KINDS", "to_gaussians", "photo_depth", "rebase_deformation", "assemble_scene"]
+__all__ = ["DEPTH_KINDS", "to_gaussians", "video_colors", "photo_depth", "rebase_deformation", "assemble_scene"]
 
 DEPTH_KINDS = ("metric", "relative", "inverse")
 """What a user's depth map holds (``generate --depth-kind``): metric z-depth in metres (used as given: the camera
@@ -170,6 +174,39 @@ def _upsample_maps(maps: Tensor, size: tuple[int, int]) -> Tensor:
     return F.interpolate(maps.permute(0, 3, 1, 2), size=size, mode="bilinear", align_corners=False).permute(0, 2, 3, 1)
 
 
+def video_colors(
+    out: LDRMOutput,
+    video: Tensor,  # (1, 3, T, h, w) the decoded generated video, about [−1, 1]
+    sources: Tensor,  # (S,) video frame of each source frame
+) -> LDRMOutput:
+    """``out`` with the colours of source frames 1… replaced by the video's pixels at those frames.
+
+    The LDRM is trained to re-draw the latents' content through its colour maps; a small one draws it blurred (base
+    model card, "This release"). Taking the generated frame's own pixel for each of its pixel-aligned Gaussians
+    keeps what the generator drew, as the photo layer keeps the photograph; the LDRM still places, sizes and moves
+    them. Source frame 0 (the photograph's grid, replaced by the photo layer) and every other map are unchanged.
+
+    Args:
+        out: the LDRM's maps, colours (1, S, h, w, 3) in [0, 1].
+        video: (1, 3, T, h, w) pixels in [−1, 1] (the VAE decoder's range; clamped), T > max(sources).
+        sources: (S,) long, the video frame of each source frame.
+
+    Returns:
+        An :class:`LDRMOutput` sharing every other tensor with ``out``; colours in [0, 1].
+
+    Raises:
+        ValueError: ``video`` not (1, 3, T, h, w) at the maps' grid, or a source frame outside it.
+    """
+    S, h, w = out.colors.shape[1:4]
+    if video.dim() != 5 or tuple(video.shape[:2]) != (1, 3) or tuple(video.shape[-2:]) != (h, w):
+        raise ValueError(f"video must have shape (1, 3, T, {h}, {w}), got {tuple(video.shape)}")
+    if len(sources) != S or int(sources.max()) >= video.shape[2]:
+        raise ValueError(f"sources {sources.tolist()} must name {S} frames of the video's {video.shape[2]}")
+    frames = ((video[0, :, sources.to(video.device)].permute(1, 2, 3, 0) + 1) / 2).clamp(0, 1)  # (S, h, w, 3)
+    colors = torch.cat([out.colors[:, :1], frames[None, 1:].to(out.colors)], dim=1)
+    return dataclasses.replace(out, colors=colors)
+
+
 def assemble_scene(
     out: LDRMOutput,
     sources: Tensor,  # (S,) video frame of each source frame
@@ -181,6 +218,7 @@ def assemble_scene(
     depth: Tensor | None = None,
     depth_kind: str = "metric",
     eps2d: float = PHOTO_EPS2D,
+    video: Tensor | None = None,
 ) -> tuple[DynamicGaussians, Tensor, dict]:
     """The scene of one generation (module docstring).
 
@@ -192,6 +230,8 @@ def assemble_scene(
         times: (K,) the deformation's key times, or None for a static prediction.
         depth, depth_kind: a user's depth map for the photo layer (:func:`photo_depth`).
         eps2d: the dilation the scene is rendered with (the photo layer's colours are solved for it).
+        video: (1, 3, T, h, w) the decoded generated video in [−1, 1]: source frames 1… take its pixels as their
+            colours (:func:`video_colors`); None keeps the LDRM's colours.
 
     Returns:
         (scene, source (M,) long: the source frame of each Gaussian — 0 for the photo layer and the backdrop —,
@@ -201,8 +241,10 @@ def assemble_scene(
         background).
 
     Raises:
-        ValueError: as :func:`photo_depth` and :func:`diff4splat.photo.photo_layer`.
+        ValueError: as :func:`photo_depth`, :func:`diff4splat.photo.photo_layer` and :func:`video_colors`.
     """
+    if video is not None:
+        out = video_colors(out, video, sources)
     S, h, w = out.distance.shape[1:4]
     H, W = image.shape[:2]
     dev = image.device

@@ -280,17 +280,22 @@ class OnnxRuntime:
         return torch.from_numpy(z)
 
     def decode_latents(self, latents: Tensor) -> Tensor:
-        """(B, c, n, h, w) DiT latents → (B, 3, 1 + 4(n − 1), 8h, 8w) pixels (``vae_decoder.onnx``).
+        """(B, c, n, h, w) DiT latents → (B, 3, 1 + 4(n − 1), 8h, 8w) pixels (``vae_decoder.onnx``), on the latents'
+        device.
+
+        Fewer latent frames than the graph was traced for (manifest ``dims``) are padded with copies of the last one
+        and the output cut back: the decoder is causal (no output frame depends on a later latent frame,
+        :class:`models.vae.VideoVAE`), so the padding changes nothing.
 
         Raises:
-            ValueError: fewer latent frames than the decoder graph was traced for (manifest ``dims``).
+            ValueError: latents not 5-D.
         """
-        n_min = self.manifest["files"]["vae_decoder"]["dims"]["latent_frames"][0]
-        if latents.dim() != 5 or latents.shape[2] < n_min:
-            raise ValueError(f"latents must have shape (B, c, n ≥ {n_min}, h, w) for the exported decoder, "
-                             f"got {tuple(latents.shape)}")
-        (video,) = self._run("vae_decoder", {"latents": _numpy(latents, np.float32)})
-        return torch.from_numpy(video)
+        if latents.dim() != 5:
+            raise ValueError(f"latents must have shape (B, c, n, h, w), got {tuple(latents.shape)}")
+        n, n_min = latents.shape[2], self.manifest["files"]["vae_decoder"]["dims"]["latent_frames"][0]
+        padded = torch.cat([latents] + [latents[:, :, -1:]] * max(0, n_min - n), dim=2)
+        (video,) = self._run("vae_decoder", {"latents": _numpy(padded, np.float32)})
+        return torch.from_numpy(video[:, :, : 1 + self.latent.temporal_factor * (n - 1)]).to(latents.device)
 
     def encode_text(self, prompt: str) -> tuple[Tensor, Tensor]:
         """Prompt → tokens (1, L, d_text), mask (1, L) via the byte tokenizer and ``text_encoder.onnx``.

@@ -483,13 +483,16 @@ class Diff4SplatPipeline:
         key_times = torch.unique(cameras.times)
         # A runtime without the deformation network (a static ONNX export) makes static scenes.
         out = runtime.reconstruct(latents, plucker, key_times if runtime.has_deformation else None, video[:, :, 0])
+        frames = source_frame_indices(cfg.ldrm.gaussian_frames, n, runtime.latent.temporal_factor)
+        decoded = None
+        if cfg.generated_colors == "video" and len(frames) > 1:  # the generated frames' pixels (assemble.video_colors)
+            decoded = runtime.decode_latents(latents).to(dev)
         if isinstance(runtime, TorchRuntime):
             runtime.release()  # the networks are done: an offloaded one leaves the device before pruning renders
-        frames = source_frame_indices(cfg.ldrm.gaussian_frames, n, runtime.latent.temporal_factor)
         sources = torch.tensor(frames, device=dev)
         times = key_times if out.d_means is not None else None
         scene, grid, photo = assemble_scene(out, sources, cameras_model, cameras, image, times, depth=depth,
-                                            depth_kind=depth_kind)
+                                            depth_kind=depth_kind, video=decoded)
         scene = scene.without_deformation(cfg.static_atol)
         timings["reconstruct"] = clock.lap()
 

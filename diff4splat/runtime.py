@@ -61,6 +61,10 @@ class NetworkRuntime(Protocol):
         """LDRM (+ deformation network when ``times`` (K,) is given) → activated maps (B, S, H, W, ·);
         ``image`` (1, 3, H, W) in [−1, 1] is the photograph (used by an LDRM with an image branch)."""
 
+    def decode_latents(self, latents: Tensor) -> Tensor:
+        """(1, c, n, h, w) DiT-scaled latents → (1, 3, 1 + t·(n − 1), h·s, w·s) pixels in about [−1, 1] (the VAE
+        decoder; :meth:`models.backbones.base.Backbone.decode_latents`)."""
+
 
 OFFLOAD_MODES = ("none", "model")
 """``offload`` values: ``none`` keeps every network on the device; ``model`` keeps them in CPU memory and moves
@@ -150,6 +154,10 @@ class TorchRuntime:
         with self._use("dit"):  # σ float32: its embedding casts
             return self.backbone.velocity(x.to(dt), sigma.float(), image_latent.to(dt), plucker.to(dt),
                                           None if text is None else text.to(dt), text_mask).float()
+
+    def decode_latents(self, latents: Tensor) -> Tensor:
+        with self._use("vae"):
+            return self.backbone.decode_latents(latents.to(self.dtype)).float()
 
     def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None, image: Tensor) -> LDRMOutput:
         dt = self.dtype

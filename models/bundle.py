@@ -28,7 +28,7 @@ from .text_encoder import TextEncoder, TextEncoderConfig
 from .vae import VideoVAE, VideoVAEConfig
 
 __all__ = ["Diff4SplatConfig", "Diff4SplatModel", "load_config", "config_path", "config_names", "CONFIG_DIR",
-           "WEIGHTS_DIR", "DEFAULT_CONFIG", "NETWORKS"]
+           "WEIGHTS_DIR", "DEFAULT_CONFIG", "NETWORKS", "GENERATED_COLORS", "check_generated_colors"]
 
 CONFIG_DIR = MODEL_CONFIGS
 """Model size configs (``base``, ``tiny``, ``small``, ``paper``): ``configs/models/``
@@ -59,6 +59,10 @@ class Diff4SplatConfig:
         scene_depth: nominal distance to the scene centre, metres; unit of trajectory amplitudes.
         prune_opacity: Gaussians with opacity below this are pruned from generated scenes.
         static_atol: deformations below this (metres / quaternion / log-scale) count as static.
+        generated_colors: where the Gaussians of source frames 1… take their colours (one of
+            :data:`GENERATED_COLORS`): ``"ldrm"``, the LDRM's colour maps (the paper, Sec. 3.2); ``"video"``, the
+            generated video decoded by the VAE at each Gaussian's pixel (:func:`diff4splat.assemble.video_colors`:
+            the LDRM places what the generator drew, as the photo layer places the photograph).
         vae, text_encoder, dit, ldrm, sampling: the networks' and the sampler's configs.
     """
 
@@ -70,6 +74,7 @@ class Diff4SplatConfig:
     scene_depth: float = 2.0
     prune_opacity: float = 0.005
     static_atol: float = 1e-6
+    generated_colors: str = "ldrm"
     vae: VideoVAEConfig = field(default_factory=VideoVAEConfig)
     text_encoder: TextEncoderConfig = field(default_factory=TextEncoderConfig)
     dit: VideoDiTConfig = field(default_factory=lambda: VideoDiTConfig(latent_channels=4, text_dim=64))
@@ -108,6 +113,7 @@ class Diff4SplatConfig:
         for name in ("fov_y_deg", "scene_depth"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        check_generated_colors(self.generated_colors)
 
     @property
     def pixel_multiple(self) -> int:
@@ -117,6 +123,16 @@ class Diff4SplatConfig:
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
+
+
+GENERATED_COLORS = ("ldrm", "video")
+"""Values of ``generated_colors`` (:class:`Diff4SplatConfig`, :class:`models.backbones.model.BackboneModelConfig`)."""
+
+
+def check_generated_colors(value: object) -> None:
+    """Raises ValueError unless ``value`` is one of :data:`GENERATED_COLORS`."""
+    if value not in GENERATED_COLORS:
+        raise ValueError(f"generated_colors must be one of {GENERATED_COLORS}, got {value!r}")
 
 
 _KINDS = {str: "string", list: "list", int: "number", float: "number", bool: "boolean"}

@@ -113,6 +113,28 @@ def test_onnxruntime_pipeline_with_image_branch_matches_pytorch_end_to_end(branc
     assert torch.equal(a.distance[:, 1:], b.distance[:, 1:])
     with pytest.raises(ValueError, match=r"^image must have shape \(1, 3, 64, 64\) .*image branch\), got None"):
         runtime.reconstruct(lat, plucker, None, None)
+    # generated_colors "video": the exported VAE decoder colours the generated frames as the PyTorch one does.
+    monkeypatch.setattr(model.config, "generated_colors", "video")
+    ref_v = torch_pipe(image, cams, "", steps=2, seed=3)
+    with monkeypatch.context() as m:
+        _no_networks(m)
+        onnx_pipe = Diff4SplatPipeline.from_onnx(out)
+        m.setattr(onnx_pipe.config, "generated_colors", "video")
+        got_v = onnx_pipe(image, cams, "", steps=2, seed=3)
+    assert torch.equal(got_v.gaussian_index, ref_v.gaussian_index)
+    generated = ref_v.gaussian_index >= ref_v.num_slots - 2 * 64 * 64  # source frames 4 and 8
+    assert int(generated.sum()) > 100
+    torch.testing.assert_close(got_v.scene.canonical.sh[generated], ref_v.scene.canonical.sh[generated], atol=1e-4,
+                               rtol=0)
+    video_rgb = render_path(ref_v.scene, ref_v.cameras)[0]
+    assert _psnr(render_path(got_v.scene, got_v.cameras)[0], video_rgb) >= 45.0
+    assert _psnr(video_rgb, render_path(ref.scene, ref.cameras)[0]) < 45.0  # the colours did change
+    # Fewer latent frames than the decoder graph was traced for (3): padded, exact, as the causal decoder is.
+    z = got.latents[:, :, :2]
+    with torch.no_grad():
+        want = model.vae.decode_latents(z)
+    assert want.shape == (1, 3, 5, 64, 64)
+    torch.testing.assert_close(runtime.decode_latents(z), want, atol=1e-4, rtol=0)
 
 
 @pytest.mark.slow

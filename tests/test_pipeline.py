@@ -5,7 +5,7 @@ import pytest
 import torch
 from helpers import EXAMPLE_IMAGE, tiny_model
 
-from diff4splat.assemble import to_gaussians
+from diff4splat.assemble import to_gaussians, video_colors
 from diff4splat.cameras import camera_rays, pack_plucker, plucker_rays
 from diff4splat.gaussians import sh0_to_rgb
 from diff4splat.io import load_image
@@ -340,3 +340,60 @@ def _packed_plucker(pipe, cams):
     model_cams = cams.relative_to_first().resized(c.width, c.height)
     return pack_plucker(plucker_rays(model_cams.viewmats, model_cams.Ks, c.width, c.height)[None],
                         lat.temporal_factor, lat.spatial_factor)
+
+
+def test_video_colors_replace_the_later_frames_colours_only():
+    """Source frames 1… take the video's pixels at their own video frame, mapped from [−1, 1] to [0, 1] and clamped;
+    frame 0's colours and every other map stay; a video at another grid or too short is refused."""
+    g = torch.Generator().manual_seed(0)
+    S, h, w, T = 3, 4, 5, 9
+    out = LDRMOutput(distance=torch.rand(1, S, h, w, generator=g), scales=torch.rand(1, S, h, w, 3, generator=g),
+                     quats=torch.rand(1, S, h, w, 4, generator=g), opacities=torch.rand(1, S, h, w, generator=g),
+                     colors=torch.rand(1, S, h, w, 3, generator=g))
+    video = torch.rand(1, 3, T, h, w, generator=g) * 2.4 - 1.2  # beyond [−1, 1]: the clamp
+    sources = torch.tensor([0, 4, 8])
+    got = video_colors(out, video, sources)
+    assert torch.equal(got.colors[:, 0], out.colors[:, 0]) and got.distance is out.distance
+    for j, t in enumerate(sources.tolist()[1:], start=1):
+        for y, x in ((0, 0), (3, 4), (2, 1)):
+            want = ((video[0, :, t, y, x] + 1) / 2).clamp(0, 1)
+            torch.testing.assert_close(got.colors[0, j, y, x], want, atol=0, rtol=0)
+    with pytest.raises(ValueError, match="video must have shape"):
+        video_colors(out, video[..., :4], sources)
+    with pytest.raises(ValueError, match="sources"):
+        video_colors(out, video[:, :, :8], sources)
+
+
+@pytest.mark.slow
+def test_generated_colors_video_colours_the_generated_gaussians_with_the_decoded_video(image, monkeypatch):
+    """Config ``generated_colors: video``: every kept Gaussian of source frame j ≥ 1 carries the decoded generated
+    video's pixel of its own grid cell at video frame sources[j]; with "ldrm" the decoder never runs and they carry
+    the LDRM's colours (which differ, so the check can fail)."""
+    pipe = Diff4SplatPipeline(tiny_model())
+    decoded, maps = [], []
+    real_decode, real_reconstruct = pipe.runtime.decode_latents, pipe.runtime.reconstruct
+    monkeypatch.setattr(pipe.runtime, "decode_latents", lambda lat: decoded.append(real_decode(lat)) or decoded[-1])
+    monkeypatch.setattr(pipe.runtime, "reconstruct", lambda *a: maps.append(real_reconstruct(*a)) or maps[-1])
+
+    def generated_colours(res):
+        hw = 64 * 64
+        offset = res.num_slots - (len(res.source_frames) - 1) * hw
+        gen = res.gaussian_index >= offset
+        k = res.gaussian_index[gen] - offset
+        assert int(gen.sum()) > 100
+        return sh0_to_rgb(res.scene.canonical.sh[gen, 0]), k // hw + 1, k % hw
+
+    res = _run(pipe, image)
+    assert decoded == []
+    got, j, pix = generated_colours(res)
+    ldrm = maps[-1].colors[0].reshape(len(res.source_frames), -1, 3)[j, pix].clamp(1e-4, 1 - 1e-4)
+    torch.testing.assert_close(got, ldrm, atol=1e-5, rtol=0)
+    monkeypatch.setattr(pipe.config, "generated_colors", "video")
+    res = _run(pipe, image)
+    assert len(decoded) == 1 and decoded[0].shape == (1, 3, FRAMES, 64, 64)
+    got, j, pix = generated_colours(res)
+    frames = decoded[0][0].permute(1, 2, 3, 0).reshape(FRAMES, -1, 3)
+    want = ((frames[res.source_frames[j], pix] + 1) / 2).clamp(1e-4, 1 - 1e-4)
+    torch.testing.assert_close(got, want, atol=1e-5, rtol=0)
+    ldrm = maps[-1].colors[0].reshape(len(res.source_frames), -1, 3)[j, pix].clamp(1e-4, 1 - 1e-4)
+    assert float((want - ldrm).abs().max()) > 0.05  # the LDRM's own colours are not the video's
