@@ -12,8 +12,9 @@ cross a block border (columns/rows j with (j + 1) mod f = 0) and all others:
 
 1 means the borders are no different from anywhere else; a decoder that paints every token into its own f×f block
 (the paper's kernel = stride transposed convolution) puts the steps between tokens on the borders and is ≫ 1.
-The maps of source frame 0 are included (the photo layer uses frame 0's distance). ``--write`` puts the table into
-docs/benchmarks.md (``blockiness``).
+The maps of source frame 0 are included (the photo layer uses frame 0's distance). "scene colour" is the colour the
+scene's later source frames carry: the LDRM's, or for ``generated_colors: video`` the VAE-decoded video's
+(:func:`diff4splat.assemble.video_colors`). ``--write`` puts the table into docs/benchmarks.md (``blockiness``).
 """
 from __future__ import annotations
 
@@ -28,8 +29,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import markdown_table, publish  # noqa: E402
 
 from data_prep.clips import ClipConfig, ClipDataset  # noqa: E402
+from diff4splat.assemble import video_colors  # noqa: E402
 from diff4splat.devices import resolve_device  # noqa: E402
 from diff4splat.pipeline import load_model  # noqa: E402
+from models.ldrm import source_frame_indices  # noqa: E402
 
 
 def blockiness(x: torch.Tensor, block: int) -> float:
@@ -46,7 +49,9 @@ def blockiness(x: torch.Tensor, block: int) -> float:
 
 @torch.no_grad()
 def measure(checkpoint: Path, data: Path, clips: int, device: torch.device) -> dict[str, float]:
-    """Blockiness of the log distance, colour and opacity maps, pooled over ``clips`` held-out clips."""
+    """Blockiness of the log distance, colour and opacity maps, pooled over ``clips`` held-out clips, and of the
+    colours the scene's later source frames carry (the LDRM's, or the decoded video's for ``generated_colors:
+    video``)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         model, _ = load_model(checkpoint, None)
@@ -54,7 +59,9 @@ def measure(checkpoint: Path, data: Path, clips: int, device: torch.device) -> d
     cfg = model.config
     ds = ClipDataset(data, ClipConfig(num_frames=cfg.num_frames, height=cfg.height, width=cfg.width,
                                       reference_camera="first", plucker="packed"))
-    maps: dict[str, list[torch.Tensor]] = {"log distance": [], "colour": [], "opacity": []}
+    maps: dict[str, list[torch.Tensor]] = {"log distance": [], "colour": [], "opacity": [], "scene colour": []}
+    sources = torch.tensor(source_frame_indices(model.ldrm.config.gaussian_frames, cfg.vae.num_latent_frames(
+        cfg.num_frames), cfg.vae.temporal_factor), device=device)
     for i in range(min(clips, len(ds))):
         item = ds[i]
         video = item["video"][None].to(device)
@@ -63,6 +70,9 @@ def measure(checkpoint: Path, data: Path, clips: int, device: torch.device) -> d
         maps["log distance"].append(out.distance[0].log())  # (S, H, W)
         maps["colour"].append(out.colors[0].permute(0, 3, 1, 2))  # (S, 3, H, W)
         maps["opacity"].append(out.opacities[0])
+        if cfg.generated_colors == "video":  # what generate's later source frames carry (assemble.video_colors)
+            out = video_colors(out, model.vae.decode_latents(latents), sources)
+        maps["scene colour"].append(out.colors[0, 1:].permute(0, 3, 1, 2))  # (S − 1, 3, H, W)
     block = model.ldrm.config.vae_spatial * model.ldrm.config.patch_size
     return {k: blockiness(torch.stack(v), block) for k, v in maps.items()}
 
@@ -88,7 +98,8 @@ def main() -> None:
         result = measure(Path(folder), args.data, args.clips, device)
         rows.append([label, head, *(f"{v:.2f}" for v in result.values())])
         print(" | ".join(rows[-1]), flush=True)
-    table = markdown_table(["checkpoint", "LDRM head", "log distance", "colour", "opacity"], rows)
+    table = markdown_table(["checkpoint", "LDRM head", "log distance", "colour", "opacity",
+                            "scene colour (frames 1…)"], rows)
     publish("blockiness", f"Blockiness of the LDRM's decoded maps ({args.clips} held-out clips, true-video "
             "latents)", "Mean squared neighbour difference across the 8-pixel token borders ÷ inside the blocks, "
             "over every source frame; 1 = no blocks.", table, args.write)
