@@ -127,7 +127,8 @@ class GenerationResult:
         shift: the flow-matching timestep shift used (``config.sampling.shift``).
         guidance: the classifier-free guidance scale applied (the argument, or ``config.sampling.guidance``; 1 when
             there is no prompt: nothing to guide towards).
-        timings: seconds per stage ("encode_image", "encode_text", "sample", "reconstruct", "prune").
+        timings: seconds per stage ("encode_image", "encode_text", "sample", "reconstruct", "prune");
+            "reconstruct" includes the VAE decode of ``generated_colors: video`` and the scene's assembly.
         prune_stats: counts from :func:`diff4splat.prune.prune_mask`, plus "duplicates" (Gaussians of a
             later source frame dropped as near-duplicates, :func:`diff4splat.prune.duplicate_mask`) and
             "occluders" (later-frame Gaussians in front of the photograph's surface at the input view,
@@ -486,7 +487,7 @@ class Diff4SplatPipeline:
         frames = source_frame_indices(cfg.ldrm.gaussian_frames, n, runtime.latent.temporal_factor)
         decoded = None
         if cfg.generated_colors == "video" and len(frames) > 1:  # the generated frames' pixels (assemble.video_colors)
-            decoded = runtime.decode_latents(latents).to(dev)
+            decoded = runtime.decode_latents(latents)
         if isinstance(runtime, TorchRuntime):
             runtime.release()  # the networks are done: an offloaded one leaves the device before pruning renders
         sources = torch.tensor(frames, device=dev)
