@@ -1,8 +1,9 @@
 """Novel views with the true depth given (`generate --depth`), against the renderer's own oracle.
 
-    python benchmarks/true_depth.py --data DIR [--checkpoint DIR] [--limit N] [--write]
+    python benchmarks/true_depth.py --data DIR [DIR …] [--checkpoint DIR] [--limit N] [--write]
 
-For each held-out clip (its first frame, cameras and caption, as ``diff4splat evaluate`` reads them), frames 1…T−1
+For each held-out set (one group of rows per ``--data`` directory) and each of its clips (its first frame,
+cameras and caption, as ``diff4splat evaluate`` reads them), frames 1…T−1
 are rendered and compared with the ground truth (PSNR of the mean MSE over all novel frames, and by view angle
 from the input camera, :data:`training.eval_metrics.ANGLE_BINS`):
 
@@ -63,7 +64,7 @@ def clip_mse(pipe: Diff4SplatPipeline, clip: dict) -> dict[str, torch.Tensor]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", type=Path, required=True)
+    ap.add_argument("--data", type=Path, nargs="+", required=True, help="held-out dataset roots, one row group each")
     ap.add_argument("--checkpoint", type=Path, default=None)
     ap.add_argument("--config", default=DEFAULT_CONFIG)
     ap.add_argument("--limit", type=int, default=None)
@@ -71,26 +72,31 @@ def main() -> None:
     args = ap.parse_args()
     pipe, source = load_pipeline(args.checkpoint, args.config)
     cfg = pipe.config
-    clips = _held_out_clips(args.data, cfg.height, cfg.width, cfg.num_frames, args.limit)
-    acc: dict[str, list[torch.Tensor]] = {k: [] for k in VARIANTS}
-    angles = []
-    for clip in clips:
-        for k, v in clip_mse(pipe, clip).items():
-            acc[k].append(v)
-        angles.append(view_angles(clip["viewmats"])[1:])
-    A = torch.cat(angles)
     rows = []
-    for k in VARIANTS:
-        m = torch.cat(acc[k])
-        bins = binned_psnr(m, A)
-        rows.append([k, f"{psnr_from_mse(float(m.mean())):.2f}",
-                     *(f"{bins[name][0]:.2f}" for name, _, _ in ANGLE_BINS if bins[name][1])])
-    names = [f"{lo:g}–{hi:g}° ({binned_psnr(torch.cat(acc['oracle']), A)[n][1]})" for n, lo, hi in ANGLE_BINS
-             if binned_psnr(torch.cat(acc["oracle"]), A)[n][1]]
-    table = markdown_table(["novel views, PSNR dB", f"all frames ({len(A)})", *names], rows)
-    publish("true_depth", f"Novel views with the true depth given ({repo_relative(source)}, {len(clips)} clips of "
-            f"{args.data.name})", "PSNR of the mean MSE over the novel frames, by view angle from the input camera "
-            "(frame count).", table, args.write)
+    for data in args.data:
+        clips = _held_out_clips(data, cfg.height, cfg.width, cfg.num_frames, args.limit)
+        acc: dict[str, list[torch.Tensor]] = {k: [] for k in VARIANTS}
+        angles = []
+        for clip in clips:
+            for k, v in clip_mse(pipe, clip).items():
+                acc[k].append(v)
+            angles.append(view_angles(clip["viewmats"])[1:])
+        A = torch.cat(angles)
+        counts = binned_psnr(torch.cat(acc["oracle"]), A)
+        for k in VARIANTS:
+            m = torch.cat(acc[k])
+            bins = binned_psnr(m, A)
+            rows.append([f"{data.name} ({len(clips)} clips)", k, f"{psnr_from_mse(float(m.mean())):.2f} ({len(A)})",
+                         *(f"{bins[n][0]:.2f} ({counts[n][1]})" if counts[n][1] else "–" for n, _, _ in ANGLE_BINS)])
+    used = [i for i in range(len(ANGLE_BINS)) if any(r[3 + i] != "–" for r in rows)]  # bins some set has frames in
+    names = [f"{ANGLE_BINS[i][1]:g}–{ANGLE_BINS[i][2]:g}°" for i in used]
+    rows = [r[:3] + [r[3 + i] for i in used] for r in rows]
+    table = markdown_table(["held-out set", "novel views, PSNR dB (frames)", "all frames", *names], rows)
+    sets = ", ".join(d.name for d in args.data)
+    publish("true_depth", f"Novel views with the true depth given ({repo_relative(source)}; {sets})",
+            "PSNR of the mean MSE over the novel frames, by view angle from the input camera (frame count; – : no "
+            "frame in that bin).", table, args.write)
+
 
 if __name__ == "__main__":
     main()
