@@ -3,9 +3,9 @@
     python benchmarks/true_depth.py --data DIR [DIR …] [--checkpoint DIR] [--limit N] [--write]
 
 For each held-out set (one group of rows per ``--data`` directory) and each of its clips (its first frame,
-cameras and caption, as ``diff4splat evaluate`` reads them), frames 1…T−1
-are rendered and compared with the ground truth (PSNR of the mean MSE over all novel frames, and by view angle
-from the input camera, :data:`training.eval_metrics.ANGLE_BINS`):
+cameras and caption, as ``diff4splat evaluate`` reads them), frames 1…T−1 are rendered and compared with the
+ground truth (PSNR of the mean MSE over all novel frames, and by view angle from the input camera,
+:data:`training.eval_metrics.ANGLE_BINS`):
 
 - ``oracle``: the photo layer alone (:func:`diff4splat.photo.photo_layer`) built from the true first frame and its
   true depth (invalid pixels at the largest valid depth), static, rendered with the scene's dilation over the
@@ -82,12 +82,11 @@ def main() -> None:
                 acc[k].append(v)
             angles.append(view_angles(clip["viewmats"])[1:])
         A = torch.cat(angles)
-        counts = binned_psnr(torch.cat(acc["oracle"]), A)
         for k in VARIANTS:
             m = torch.cat(acc[k])
             bins = binned_psnr(m, A)
             rows.append([f"{data.name} ({len(clips)} clips)", k, f"{psnr_from_mse(float(m.mean())):.2f} ({len(A)})",
-                         *(f"{bins[n][0]:.2f} ({counts[n][1]})" if counts[n][1] else "–" for n, _, _ in ANGLE_BINS)])
+                         *(f"{bins[n][0]:.2f} ({bins[n][1]})" if bins[n][1] else "–" for n, _, _ in ANGLE_BINS)])
     used = [i for i in range(len(ANGLE_BINS)) if any(r[3 + i] != "–" for r in rows)]  # bins some set has frames in
     names = [f"{ANGLE_BINS[i][1]:g}–{ANGLE_BINS[i][2]:g}°" for i in used]
     rows = [r[:3] + [r[3 + i] for i in used] for r in rows]
