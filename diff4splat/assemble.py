@@ -248,8 +248,9 @@ def assemble_scene(
     S, h, w = out.distance.shape[1:4]
     H, W = image.shape[:2]
     dev = image.device
-    gaussians, d_means, d_quats, d_scales = to_gaussians(out, cameras_model.viewmats[sources],
-                                                         cameras_model.Ks[sources])
+    # The deformation is left out of to_gaussians: written below straight into the scene's tensors.
+    gaussians, *_ = to_gaussians(dataclasses.replace(out, d_means=None, d_quats=None, d_scales=None),
+                                 cameras_model.viewmats[sources], cameras_model.Ks[sources])
     z = photo_depth(out.distance[0, 0], cameras_model.viewmats[0], cameras_model.Ks[0], image, depth, depth_kind)
     viewmat, K0 = cameras.viewmats[0].float(), cameras.Ks[0].float()
     layer, history = photo_layer(image, z, viewmat, K0, eps2d=eps2d)
@@ -262,20 +263,40 @@ def assemble_scene(
                         torch.arange(1, S, device=dev).repeat_interleave(n_grid)])
     stats = {"photo_psnr_db": history[-1], "photo_gaussians": n_photo, "backdrop_gaussians": n_back,
              "photo_depth": z, "background": tuple(float(c) for c in image.reshape(-1, 3).mean(0))}
-    if d_means is None:
+    if out.d_means is None:
         return DynamicGaussians(canonical), source, stats
-    # The reference grid's maps, re-based to the photograph's time at the model resolution (identity there, which
-    # bilinear upsampling keeps exactly), then upsampled; front and backing disks share their pixel's motion.
-    K, t0 = d_means.shape[0], float(cameras.times[0])
-    ref = DynamicGaussians(gaussians.select(torch.arange(n_grid, device=dev)), times,
-                           *(m[:, :n_grid] for m in (d_means, d_quats, d_scales)))
+    return DynamicGaussians(canonical, times, *_deformation(out, gaussians.select(torch.arange(n_grid, device=dev)),
+                                                              times, float(cameras.times[0]), (H, W), n_back)), \
+        source, stats
+
+
+def _deformation(out: LDRMOutput, grid: Gaussians, times: Tensor, t0: float, size: tuple[int, int],
+                 n_back: int) -> list[Tensor]:
+    """The assembled scene's d_means (K, N, 3), d_quats (K, N, 4), d_scales (K, N, 3), N = photo layer + backdrop +
+    generated Gaussians in :func:`assemble_scene`'s order: the reference grid's maps (``grid``: its canonical
+    Gaussians) re-based to the photograph's time ``t0`` at the model resolution (identity there, which bilinear
+    upsampling keeps exactly), then upsampled to the front disks' ``size`` and the backing disks' half grid (front
+    and backing disks share their pixel's motion); the identity for the ``n_back`` backdrop Gaussians (it does not
+    move); the other source frames' own maps. Each field is one tensor allocated once and filled in place: at 49
+    frames, 512² the deformation is ~7 GB per copy, and concatenated pieces held three copies at once (28 GB).
+    dtype: float32, or float64 for float64 maps (as :func:`to_gaussians`)."""
+    raw = [getattr(out, f)[0] for f in ("d_means", "d_quats", "d_scales")]  # (K, S, h, w, c)
+    K, S, h, w = raw[0].shape[:4]
+    dtype = torch.promote_types(out.distance.dtype, torch.float32)
+    ref = DynamicGaussians(grid, times, *(m[:, 0].reshape(K, h * w, -1).to(dtype) for m in raw))
     ref = rebase_deformation(ref.d_means, ref.d_quats, ref.d_scales, ref.deformation_at(t0))
-    size_back = (-(-H // 2), -(-W // 2))  # the backing disks' half-resolution grid
-    up = [torch.cat([_upsample_maps(m.reshape(K, h, w, -1), size).reshape(K, size[0] * size[1], -1)
-                     for size in ((H, W), size_back)], dim=1) for m in ref]
-    identity = torch.zeros(K, n_back, 10, device=dev, dtype=up[0].dtype)
-    identity[..., 3] = 1.0  # the backdrop does not move: Δμ = 0, Δq = (1, 0, 0, 0), Δs = 0
-    up = [torch.cat([m, part], dim=1) for m, part in zip(up, identity.split([3, 4, 3], dim=-1), strict=True)]
-    rest = [m[:, n_grid:] for m in (d_means, d_quats, d_scales)]
-    deform = [torch.cat([a, b], dim=1) for a, b in zip(up, rest, strict=True)]
-    return DynamicGaussians(canonical, times, *deform), source, stats
+    size_back = (-(-size[0] // 2), -(-size[1] // 2))  # the backing disks' half-resolution grid
+    n_photo = size[0] * size[1] + size_back[0] * size_back[1]
+    deform = []
+    for m, r, identity in zip(raw, ref, ((0.0,) * 3, (1.0, 0.0, 0.0, 0.0), (0.0,) * 3), strict=True):
+        c = len(identity)
+        d = torch.empty(K, n_photo + n_back + (S - 1) * h * w, c, device=grid.means.device, dtype=dtype)
+        start = 0
+        for grid_size in (size, size_back):
+            n = grid_size[0] * grid_size[1]
+            d[:, start:start + n] = _upsample_maps(r.reshape(K, h, w, c), grid_size).reshape(K, n, c)
+            start += n
+        d[:, n_photo:n_photo + n_back] = torch.tensor(identity, dtype=dtype, device=d.device)
+        d[:, n_photo + n_back:].view(K, S - 1, h, w, c).copy_(m[:, 1:])  # converts the dtype while copying
+        deform.append(d)
+    return deform

@@ -10,6 +10,7 @@ from torch import Tensor
 
 __all__ = [
     "quat_normalize",
+    "quat_norms",
     "quat_multiply",
     "quat_conjugate",
     "quat_to_rotmat",
@@ -35,13 +36,25 @@ def quat_normalize(quats: Tensor, name: str = "quats") -> Tensor:
     Raises:
         ValueError: if any quaternion has norm below 1e-12 (orientation undefined).
     """
+    return quats / quat_norms(quats, name)[..., None]
+
+
+def quat_norms(quats: Tensor, name: str = "quats") -> Tensor:
+    """The norms of quaternions, checked: (..., 4) wxyz → (...,), each ≥ 1e-12.
+
+    The check of :func:`quat_normalize` without its (..., 4) result: a validation of a large deformation
+    (K × N quaternions) holds one value per quaternion instead of a normalised copy.
+
+    Raises:
+        ValueError: last dimension not 4, or a quaternion with norm below 1e-12 (orientation undefined).
+    """
     if quats.shape[-1] != 4:
         raise ValueError(f"{name} must have last dimension 4 (wxyz), got shape {tuple(quats.shape)}")
-    norm = quats.norm(dim=-1, keepdim=True)
+    norm = torch.linalg.vector_norm(quats, dim=-1)
     if quats.numel() and bool((norm < _ZERO_NORM).any()):
         idx = int((norm.reshape(-1) < _ZERO_NORM).nonzero()[0])
         raise ValueError(f"{name} has a zero-norm quaternion at flat index {idx}")
-    return quats / norm
+    return norm
 
 
 def quat_multiply(a: Tensor, b: Tensor) -> Tensor:

@@ -29,7 +29,7 @@ from torch import Tensor
 from .checks import check_finite
 from .constants import ALPHA_MIN
 from .gaussians import Gaussians, _unchecked
-from .quaternions import quat_multiply, quat_nlerp, quat_normalize
+from .quaternions import quat_multiply, quat_nlerp, quat_normalize, quat_norms
 
 __all__ = ["DynamicGaussians", "compose_deformation"]
 
@@ -105,7 +105,7 @@ class DynamicGaussians:
             raise ValueError(f"times must lie in [0, 1], got {self.times.tolist()}")
         if T > 1 and not bool((self.times[1:] > self.times[:-1]).all()):
             raise ValueError("times must be strictly increasing")
-        quat_normalize(self.d_quats, "d_quats")  # zero norm → ValueError naming d_quats
+        quat_norms(self.d_quats, "d_quats")  # zero norm → ValueError naming d_quats
 
     def _check_temporal(self) -> None:
         if self.t_means is None and self.t_scales is None:
@@ -255,19 +255,30 @@ class DynamicGaussians:
         """Drop the deformation if it is the identity within ``atol`` (metres / quaternion / log-scale)."""
         if self.is_static:
             return self
-        ident = self.d_quats.new_tensor([1.0, 0.0, 0.0, 0.0])
-        dq = quat_normalize(self.d_quats, "d_quats")
-        dq = torch.where(dq[..., :1] < 0, -dq, dq)
-        if (self.d_means.abs().max() <= atol and (dq - ident).abs().max() <= atol
-                and self.d_scales.abs().max() <= atol) if self.num_gaussians else True:
-            return DynamicGaussians(self.canonical, t_means=self.t_means, t_scales=self.t_scales)
-        return self
+        if self.num_gaussians and not (_within(self.d_means, atol) and _within(self.d_scales, atol)
+                                       and _identity_rotations(self.d_quats, atol)):
+            return self
+        return DynamicGaussians(self.canonical, t_means=self.t_means, t_scales=self.t_scales)
 
     def to(self, *args, **kwargs) -> DynamicGaussians:
         """Move/cast every tensor, temporal arrays included (``Tensor.to`` arguments)."""
         mv = lambda x: None if x is None else x.to(*args, **kwargs)  # noqa: E731
         return DynamicGaussians(self.canonical.to(*args, **kwargs), mv(self.times), mv(self.d_means),
                                 mv(self.d_quats), mv(self.d_scales), mv(self.t_means), mv(self.t_scales))
+
+
+def _within(x: Tensor, atol: float) -> bool:
+    """max |x| ≤ atol, without an |x| copy (the deformation of a large scene is gigabytes)."""
+    lo, hi = torch.aminmax(x)
+    return bool(torch.maximum(-lo, hi) <= atol)
+
+
+def _identity_rotations(quats: Tensor, atol: float) -> bool:
+    """Every (..., 4) wxyz quaternion, normalised and sign-fixed to w ≥ 0, within ``atol`` of (1, 0, 0, 0) in each
+    component: |1 − |w|/‖q‖| ≤ atol and |x|, |y|, |z| ≤ atol·‖q‖ (the sign of q does not change a rotation)."""
+    norm = quat_norms(quats, "d_quats")
+    return (bool(((quats[..., 0].abs() / norm) - 1).abs().max() <= atol)
+            and all(_within(quats[..., i] / norm, atol) for i in (1, 2, 3)))
 
 
 def _check_time(t: float) -> float:

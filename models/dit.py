@@ -16,6 +16,12 @@ Gradient checkpointing (Chen et al. 2016) is a runtime switch, not part of the s
 ``dit.gradient_checkpointing = True`` (set by the trainer's ``gradient_checkpointing`` option) recomputes each
 block's activations in the backward pass (``torch.utils.checkpoint``, non-reentrant) while the module is
 training with gradients enabled; the loss and the gradients are those of the plain forward.
+
+Feed-forward chunking (diffusers' ``enable_forward_chunking``) is another runtime switch:
+``dit.ff_chunk_tokens = n`` runs each block's MLP over at most n tokens at a time. The MLP acts on every token
+alone, so the output is the same; the peak of its hidden activations (N × 4D, twice: before and after the GELU)
+is divided by ⌈N / n⌉. :class:`diff4splat.runtime.TorchRuntime` sets it for sampling (at 49 frames, 512² the
+paper model's hidden activations are 0.87 GB of a 25 GB budget).
 """
 from __future__ import annotations
 
@@ -125,13 +131,18 @@ class VideoDiTBlock(nn.Module):
         rope: tuple[Tensor, Tensor],  # cos, sin: (N, head_dim/2)
         context: Tensor | None = None,  # (B, L, D) projected text tokens
         context_mask: Tensor | None = None,  # (B, L) bool, True = real token
+        ff_chunk_tokens: int | None = None,  # the MLP over at most this many tokens at a time (None: all)
     ) -> Tensor:
         shift_msa, scale_msa, gate_msa, shift_mlp, scale_mlp, gate_mlp = self.adaLN_modulation(c).chunk(6, dim=1)
         x = x + gate_msa.unsqueeze(1) * self.attn(modulate(self.norm1(x), shift_msa, scale_msa), rope)
         if context is not None:  # a None check on an argument, not on tensor values: exportable
             x = x + self.cross_attn(self.norm2(x), context, context_mask)
-        x = x + gate_mlp.unsqueeze(1) * self.mlp(modulate(self.norm3(x), shift_mlp, scale_mlp))
-        return x
+        h = modulate(self.norm3(x), shift_mlp, scale_mlp)
+        if ff_chunk_tokens is not None and h.shape[1] > ff_chunk_tokens:
+            h = torch.cat([self.mlp(part) for part in h.split(ff_chunk_tokens, dim=1)], dim=1)
+        else:
+            h = self.mlp(h)
+        return x + gate_mlp.unsqueeze(1) * h
 
 
 class FinalLayer(nn.Module):
@@ -158,6 +169,8 @@ class VideoDiT(nn.Module, PretrainedMixin):
     Attributes:
         gradient_checkpointing: recompute each block in the backward pass (training with gradients only);
             False after construction and after loading (a runtime setting, never saved).
+        ff_chunk_tokens: run each block's MLP over at most this many tokens at a time (same output, less peak
+            memory); None (all at once) after construction and after loading (a runtime setting, never saved).
     """
 
     config_class = VideoDiTConfig
@@ -178,6 +191,7 @@ class VideoDiT(nn.Module, PretrainedMixin):
         )
         self.final_layer = FinalLayer(D, patch_volume, c, config.norm_eps)
         self.gradient_checkpointing = False
+        self.ff_chunk_tokens: int | None = None
         self.initialize_weights()
 
     def initialize_weights(self) -> None:
@@ -260,9 +274,10 @@ class VideoDiT(nn.Module, PretrainedMixin):
         recompute = self.gradient_checkpointing and self.training and torch.is_grad_enabled()
         for block in self.blocks:
             if recompute:  # activations of the block are recomputed in the backward pass (memory for compute)
-                tokens = checkpoint(block, tokens, emb, rope, context, text_mask, use_reentrant=False)
+                tokens = checkpoint(block, tokens, emb, rope, context, text_mask, self.ff_chunk_tokens,
+                                    use_reentrant=False)
             else:
-                tokens = block(tokens, emb, rope, context, text_mask)
+                tokens = block(tokens, emb, rope, context, text_mask, self.ff_chunk_tokens)
         out = self.final_layer(tokens, emb)  # (B, N, pt·ph·pw·c)
         return unpatchify(out, cfg.patch_size, grid, c)
 

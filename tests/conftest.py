@@ -50,6 +50,29 @@ def no_implicit_device():
         torch.set_default_device(None)
 
 
+@pytest.fixture
+def full_float32():
+    """TF32 off for the body (cuDNN convolutions default to TF32 on Ampere and later: 10-bit mantissas, results
+    off by ~5e-4), so a CUDA run is compared with the CPU's float32 arithmetic."""
+    flags = torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = False
+    yield
+    torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = flags
+
+
+@pytest.fixture
+def torch_tile_path(monkeypatch):
+    """For the test's body, CUDA tensors render through our PyTorch tile path even where gsplat is installed
+    (``DIFF4SPLAT_NO_GSPLAT``): a CPU/CUDA comparison then compares the same arithmetic, not two rasterizers."""
+    from diff4splat.render.gsplat_backend import NO_GSPLAT_ENV, gsplat_available
+
+    monkeypatch.setenv(NO_GSPLAT_ENV, "1")
+    gsplat_available.cache_clear()
+    yield
+    monkeypatch.undo()
+    gsplat_available.cache_clear()
+
+
 @pytest.fixture(scope="module")
 def one_thread():
     """torch on one thread for a module of tiny tensors: threads only add overhead on a busy 2-core machine."""

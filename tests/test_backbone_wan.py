@@ -217,7 +217,7 @@ def test_tensors_are_made_on_the_inputs_device(backbone, request):
     assert torch.equal(outputs[1], expected)
 
 
-def test_on_the_device(backbone, device):
+def test_on_the_device(backbone, device, full_float32):
     """The backbone on ``device`` (CUDA where present) agrees with the CPU; outputs on the inputs' device."""
     x, image_latent, plucker = _inputs(backbone, batch=1)
     sigma = torch.tensor([0.7])
@@ -231,7 +231,11 @@ def test_on_the_device(backbone, device):
                backbone.velocity(*args, text, mask)]
         sig = backbone.training_sigmas(8, torch.Generator(device).manual_seed(0))
     assert text.device == mask.device == sig.device == out[0].device == out[1].device
-    assert out[0].device.type == device.type and torch.equal(out[0], out[2])
+    assert out[0].device.type == device.type
+    if device.type == "cpu":
+        assert torch.equal(out[0], out[2])
+    else:  # None uses "" encoded once (here on the CPU, first call above); the GPU's encoding differs by rounding
+        torch.testing.assert_close(out[0], out[2], atol=1e-5, rtol=1e-5)
     for a, b in zip(out[:2], cpu, strict=True):
         torch.testing.assert_close(a.cpu(), b, atol=1e-4, rtol=1e-4)
 

@@ -6,6 +6,8 @@ import pytest
 import torch
 
 import models.dit as dit_module
+from diff4splat.runtime import FF_CHUNK_TOKENS, TorchRuntime
+from models.bundle import Diff4SplatModel, load_config
 from models.dit import VideoDiT, VideoDiTConfig
 from models.layers import unpatchify
 from models.pretrained import count_parameters
@@ -285,3 +287,32 @@ def test_gradient_checkpointing_gives_the_same_loss_and_gradients(monkeypatch):
     model.eval()
     model(**inputs)
     assert calls == []
+
+
+def test_feed_forward_chunking_gives_the_same_velocity_in_fewer_tokens_at_a_time():
+    """dit.ff_chunk_tokens runs each block's MLP over at most that many tokens (N = 2·2·3 = 12 here: chunks of 5,
+    5, 2); the velocity is the unchunked one (the MLP acts on each token alone) and so are the gradients. A
+    runtime switch, off after construction; TorchRuntime turns it on for sampling."""
+    model = _model()
+    assert model.ff_chunk_tokens is None and "ff_chunk_tokens" not in vars(model.config)
+    inputs = _inputs()
+    with torch.no_grad():
+        plain = model(**inputs)
+    seen = []
+    hooks = [b.mlp.register_forward_hook(lambda m, args, out: seen.append(args[0].shape[1])) for b in model.blocks]
+    model.ff_chunk_tokens = 5
+    with torch.no_grad():
+        chunked = model(**inputs)
+    for h in hooks:
+        h.remove()
+    assert seen == [5, 5, 2] * CFG.depth
+    torch.testing.assert_close(chunked, plain, rtol=1e-5, atol=1e-6)
+    model.ff_chunk_tokens = None
+    plain_loss, plain_grads = _loss_and_grads(model.train(), inputs)
+    model.ff_chunk_tokens = 5
+    loss, grads = _loss_and_grads(model, inputs)
+    torch.testing.assert_close(loss, plain_loss, rtol=1e-5, atol=1e-6)
+    for name, g in grads.items():
+        torch.testing.assert_close(g, plain_grads[name], rtol=1e-4, atol=1e-6, msg=name)
+    runtime = TorchRuntime(Diff4SplatModel.random(load_config("tiny")))
+    assert runtime.networks["dit"].ff_chunk_tokens == FF_CHUNK_TOKENS

@@ -22,34 +22,26 @@ def _run(image, device="cpu", **kw):
     return pipe, pipe(image, pipe.default_cameras("arc", 5), PROMPT, steps=2)
 
 
-@pytest.fixture
-def full_float32():
-    """TF32 off for the body (cuDNN convolutions default to TF32 on Ampere and later: 10-bit mantissas, latents
-    off by ~5e-4), so a CUDA run is compared with the CPU's float32 arithmetic."""
-    flags = torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
-    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = False
-    yield
-    torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = flags
-
-
-def _close_scenes(a, b, atol):
-    """The Gaussians both runs kept (matched by ``gaussian_index``) agree to ``atol``; pruning decisions at its
-    thresholds may differ for a few Gaussians (≤ 0.5 %) whose values sit on the boundary."""
+def _close_scenes(a, b, atol, sh_atol):
+    """The Gaussians both runs kept (matched by ``gaussian_index``) agree to ``atol``, their SH to ``sh_atol``;
+    pruning decisions at its thresholds may differ for a few Gaussians (≤ 0.5 %) whose values sit on the
+    boundary."""
     ia, ib = a.gaussian_index.cpu(), b.gaussian_index.cpu()
     common = torch.from_numpy(np.intersect1d(ia.numpy(), ib.numpy()))
     assert len(common) >= 0.995 * max(len(ia), len(ib))
     pa, pb = torch.searchsorted(ia, common), torch.searchsorted(ib, common)
     ga, gb = a.scene.canonical, b.scene.canonical
     for name in ("means", "quats", "scales", "opacities", "sh"):
-        torch.testing.assert_close(getattr(ga, name).cpu()[pa], getattr(gb, name).cpu()[pb], atol=atol, rtol=0,
-                                   msg=name)
+        torch.testing.assert_close(getattr(ga, name).cpu()[pa], getattr(gb, name).cpu()[pb], rtol=0,
+                                   atol=sh_atol if name == "sh" else atol, msg=lambda m, name=name: f"{name}: {m}")
     torch.testing.assert_close(a.scene.d_means.cpu()[:, pa], b.scene.d_means.cpu()[:, pb], atol=atol, rtol=0)
 
 
 @pytest.mark.slow
-def test_generate_on_each_device_matches_the_cpu(image, device, full_float32):
+def test_generate_on_each_device_matches_the_cpu(image, device, full_float32, torch_tile_path):
     """The CUDA run starts from the same noise (CPU generator) and gives the CPU's scene to float32 accuracy;
-    every output lives on the pipeline's device."""
+    every output lives on the pipeline's device. Both render through our rasterizer (the photo layer's colours
+    are solved through renders at the input camera); gsplat's run is checked below."""
     _, ref = _run(image)
     pipe, res = _run(image, device)
     assert res.scene.canonical.means.device.type == device.type and res.latents.device.type == device.type
@@ -57,8 +49,28 @@ def test_generate_on_each_device_matches_the_cpu(image, device, full_float32):
     torch.testing.assert_close(res.latents.cpu(), ref.latents, atol=1e-4, rtol=0)
     if device.type == "cpu":
         assert torch.equal(res.scene.canonical.means, ref.scene.canonical.means)
-    else:
-        _close_scenes(res, ref, atol=1e-3)
+    else:  # the photo layer's colours are solved through renders (photo.refine_colors), whose fixed point moves
+        # with the geometry's rounding: on an H100, 2 % of them by 1e-3 to 6.5e-3 in SH (2e-3 in RGB)
+        _close_scenes(res, ref, atol=1e-3, sh_atol=1e-2)
+        assert res.photo_psnr_db == pytest.approx(ref.photo_psnr_db, abs=0.05)
+
+
+@pytest.mark.cuda
+@pytest.mark.slow
+def test_generate_on_cuda_with_gsplat_keeps_the_cpus_geometry_and_photo_fidelity(image, full_float32):
+    """With gsplat rendering (where installed) the networks' geometry is the CPU's and the photo layer, whose
+    colours are solved through gsplat's renders, reproduces the photo as well as on the CPU (±0.5 dB): the
+    rasterizers differ by their documented differences only (tests/test_render_gsplat_backend.py)."""
+    _, ref = _run(image)
+    _, res = _run(image, "cuda")
+    torch.testing.assert_close(res.latents.cpu(), ref.latents, atol=1e-4, rtol=0)
+    ia, ib = res.gaussian_index.cpu(), ref.gaussian_index.cpu()
+    common = torch.from_numpy(np.intersect1d(ia.numpy(), ib.numpy()))
+    common = common[common < ref.photo_gaussians]  # the photo layer: its geometry is the networks' depth
+    assert len(common) >= 0.9 * int((ib < ref.photo_gaussians).sum())
+    pa, pb = torch.searchsorted(ia, common), torch.searchsorted(ib, common)
+    torch.testing.assert_close(res.scene.canonical.means.cpu()[pa], ref.scene.canonical.means[pb], atol=1e-3, rtol=0)
+    assert res.photo_psnr_db == pytest.approx(ref.photo_psnr_db, abs=0.5)
 
 
 @pytest.fixture
