@@ -22,6 +22,7 @@ __all__ = [
     "modulate",
     "patchify",
     "unpatchify",
+    "QKNorm",
     "SelfAttention",
     "CrossAttention",
     "tracing",
@@ -164,6 +165,19 @@ def unpatchify(tokens: Tensor, patch: tuple[int, int, int], grid: tuple[int, int
     return x.reshape(B, channels, n * pt, h * ph, w * pw)
 
 
+class QKNorm(nn.RMSNorm):
+    """RMSNorm over one head's channels (QK-norm) computed in the input's dtype: under bf16 autocast the queries
+    and keys arrive in bfloat16, and a float32 weight keeps torch from its fused kernel (it warns "Mismatch dtype
+    between input and weight" and falls back to the unfused composite); the weight (ones at init) is cast to
+    the input's dtype instead. Identical to :class:`torch.nn.RMSNorm` when the dtypes already agree.
+
+    x: (..., head_dim) → (..., head_dim), same dtype.
+    """
+
+    def forward(self, x: Tensor) -> Tensor:
+        return F.rms_norm(x, self.normalized_shape, self.weight.to(x.dtype), self.eps)
+
+
 class _MultiHead(nn.Module):
     """Head split and per-head QK-norm shared by :class:`SelfAttention` and :class:`CrossAttention`.
 
@@ -180,8 +194,8 @@ class _MultiHead(nn.Module):
             raise ValueError(f"dim {dim} must be divisible by num_heads {num_heads}")
         self.num_heads = num_heads
         self.head_dim = dim // num_heads
-        self.q_norm = nn.RMSNorm(self.head_dim, eps=eps) if qk_norm else nn.Identity()
-        self.k_norm = nn.RMSNorm(self.head_dim, eps=eps) if qk_norm else nn.Identity()
+        self.q_norm = QKNorm(self.head_dim, eps=eps) if qk_norm else nn.Identity()
+        self.k_norm = QKNorm(self.head_dim, eps=eps) if qk_norm else nn.Identity()
 
 
 class SelfAttention(_MultiHead):

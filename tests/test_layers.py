@@ -5,7 +5,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from models.layers import CrossAttention, SelfAttention, modulate, patchify, timestep_embedding, unpatchify
+from models.layers import CrossAttention, QKNorm, SelfAttention, modulate, patchify, timestep_embedding, unpatchify
 from models.rope import apply_rope, rope_3d
 
 
@@ -79,3 +79,19 @@ def test_cross_attention_mask_matches_reference_and_empty_rows_are_zero():
 
 
 # ---------------------------------------------------------------------------------------------- VideoDiT
+
+
+def test_qk_norm_is_rmsnorm_and_runs_bf16_inputs_without_the_fallback_warning(recwarn):
+    """QKNorm equals torch's RMSNorm (same weight) in float32, bit for bit; a bfloat16 input (bf16 autocast) is
+    normalised in bfloat16 by the fused kernel (no "Mismatch dtype" fallback warning) to the float32 result within
+    bfloat16 rounding."""
+    g = torch.Generator().manual_seed(0)
+    norm, ref = QKNorm(16, eps=1e-6), torch.nn.RMSNorm(16, eps=1e-6)
+    with torch.no_grad():
+        norm.weight.copy_(torch.rand(16, generator=g) + 0.5)
+        ref.weight.copy_(norm.weight)
+    x = torch.randn(3, 5, 16, generator=g)
+    assert torch.equal(norm(x), ref(x))
+    out = norm(x.bfloat16())
+    assert out.dtype == torch.bfloat16 and not [w for w in recwarn if "Mismatch dtype" in str(w.message)]
+    torch.testing.assert_close(out.float(), ref(x), rtol=2e-2, atol=2e-2)
