@@ -21,7 +21,7 @@ Feed-forward chunking (diffusers' ``enable_forward_chunking``) is another runtim
 ``dit.ff_chunk_tokens = n`` runs each block's MLP over at most n tokens at a time. The MLP acts on every token
 alone, so the output is the same; the peak of its hidden activations (N × 4D, twice: before and after the GELU)
 is divided by ⌈N / n⌉. :class:`diff4splat.runtime.TorchRuntime` sets it for sampling (at 49 frames, 512² the
-paper model's hidden activations are 0.87 GB of a 25 GB budget).
+paper model's hidden activations are 0.87 GB; benchmarks/dit_memory.py).
 """
 from __future__ import annotations
 
