@@ -96,13 +96,13 @@ def main() -> int:
     predicted = m["params"] + m["act"] + PLUCKER_GB  # the sampling run's chunk (the last row)
     note = (f"The DiT built in bfloat16 under `FakeTensorMode` (no storage allocated), one no-grad forward at the "
             f"config's frames and size with a full-length prompt under torch's `MemTracker`. GB = 10⁹ bytes; a "
-            f"module's column is the peak of live activations while it runs (the largest over the blocks). On an H100 "
-            f"the paper model's sampling step measured {H100_SAMPLE_PEAK_GB} GB, of which the pipeline's Plücker rays "
-            f"(0.33 GB float32, and 0.16 GB as the DiT's bfloat16 copy) come on top of the DiT's share below: "
-            f"{predicted:.2f} GB predicted in all ({100 * (predicted / H100_SAMPLE_PEAK_GB - 1):+.1f} % against the "
-            f"measurement). The step's peak is in "
-            f"self-attention (the fused q/k/v projection's 0.33 GB output alive beside the normalised and rotated "
-            f"queries and keys); chunking the MLP lowers only the MLP's own peak.")
+            f"module's column is the peak of live activations while it runs (the largest over the blocks). "
+            f"Calibration: on an H100 the paper model's sampling step measured {H100_SAMPLE_PEAK_GB} GB with the "
+            f"attention of main at b6d5327 (one fused q/k/v output), for which this script gave 25.34 GB + the "
+            f"pipeline's Plücker rays ({PLUCKER_GB:.2f} GB: float32, and the DiT's bfloat16 copy) = 25.83 GB, 1.3 % "
+            f"high. Self-attention now projects q, k and v one at a time, so the fused 0.33 GB output never exists "
+            f"(self-attention's peak 1.49 → 1.27 GB): {predicted:.2f} GB predicted with the Plücker rays, about "
+            f"{predicted / 1.013:.2f} GB on the H100 after the same correction (not measured yet).")
     publish("dit_memory", "Memory of one DiT sampling step (fake tensors, any machine)", note,
             markdown_table(["DiT", "MLP chunk (tokens)", "weights GB", "activations GB", "total GB",
                             *[f"in {k}" for k in MODULES]], rows), args.write)

@@ -75,8 +75,9 @@ DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch
 
 FF_CHUNK_TOKENS = 8192
 """Our DiT's feed-forward chunk while sampling (``VideoDiT.ff_chunk_tokens``): the paper model's 13,312 tokens
-(49 frames, 512²) run its MLP in two halves: 0.34 GB less while the MLP runs (benchmarks/dit_memory.py; the step's
-peak is in self-attention); smaller models (the shipped base model has 80 tokens) are one chunk, unchanged."""
+(49 frames, 512²) run its MLP in two halves: the MLP's activation peak 1.38 → 1.04 GB, the step's 1.38 → 1.27 GB
+(then self- and cross-attention's; benchmarks/dit_memory.py); smaller models (the shipped base model has 80 tokens)
+are one chunk, unchanged."""
 
 
 class TorchRuntime:
