@@ -163,6 +163,9 @@ def test_evaluate_cli_through_the_entry_point(clips, tmp_path, capsys):
     assert len(rows) == 1 and rows[0]["model"] == "random:tiny:seed=0"
     assert {"psnr_45_90_noise", "psnr_45_90_repeat", "psnr_novel_gt", "motion_disp_epe"} <= set(rows[0])
     assert sum(int(float(rows[0][f"frames_{b}"])) for b in ("0_15", "15_45", "45_90", "90_180")) == 8
+    empty = [b for b in ("0_15", "15_45", "45_90", "90_180") if float(rows[0][f"frames_{b}"]) == 0]
+    assert empty and rows[0][f"psnr_{empty[0]}"] == "nan"  # the CSV keeps NaN for a bin with no frames …
+    assert "nan" not in out and "| — |" in out  # … the printed tables show "—"
     assert (tmp_path / "eval_clips.csv").is_file()
     other = tmp_path / "other.csv"
     other.write_text("model,psnr_input\nx,1\n")

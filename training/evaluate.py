@@ -428,10 +428,18 @@ def stiffness_profile(pipe: Diff4SplatPipeline, clip: dict, steps: int = 16, sub
     return rows
 
 
+def _cell(value: object) -> str:
+    """A table cell: floats to 4 significant digits, "—" for NaN (a bin with no frames, a metric a clip does not
+    have; the CSV keeps NaN)."""
+    if isinstance(value, float):
+        return "—" if math.isnan(value) else f"{value:.4g}"
+    return str(value)
+
+
 def _print_table(rows: list[dict], header: list[str]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     for r in rows:
-        lines.append("| " + " | ".join(f"{r[h]:.4g}" if isinstance(r[h], float) else str(r[h]) for h in header) + " |")
+        lines.append("| " + " | ".join(_cell(r[h]) for h in header) + " |")
     return "\n".join(lines)
 
 
