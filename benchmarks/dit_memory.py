@@ -35,9 +35,9 @@ from models.dit import VideoDiT  # noqa: E402
 
 H100_SAMPLE_PEAK_GB = 25.49
 """The paper model's measured peak during sampling on an H100 (docs/benchmarks.md, "GPU"), GB = 10⁹ bytes."""
-PLUCKER_GB = 0.33 + 0.16
-"""The pipeline's packed Plücker rays at 49 frames, 512² (1, 1536, 13, 64, 64): float32, and the bfloat16 copy the
-runtime hands the DiT (GB)."""
+PLUCKER_GB = 0.16
+"""The pipeline's packed Plücker rays at 49 frames, 512² (1, 1536, 13, 64, 64), made once in the runtime's input
+dtype (bfloat16; GB). In the measured run they were held in float32 too: 0.33 GB more."""
 MODULES = ("attn", "cross_attn", "mlp", "camera_embedder", "final_layer")
 
 
@@ -98,11 +98,12 @@ def main() -> int:
             f"config's frames and size with a full-length prompt under torch's `MemTracker`. GB = 10⁹ bytes; a "
             f"module's column is the peak of live activations while it runs (the largest over the blocks). "
             f"Calibration: on an H100 the paper model's sampling step measured {H100_SAMPLE_PEAK_GB} GB with the "
-            f"attention of main at b6d5327 (one fused q/k/v output), for which this script gave 25.34 GB + the "
-            f"pipeline's Plücker rays ({PLUCKER_GB:.2f} GB: float32, and the DiT's bfloat16 copy) = 25.83 GB, 1.3 % "
-            f"high. Self-attention now projects q, k and v one at a time, so the fused 0.33 GB output never exists "
-            f"(self-attention's peak 1.49 → 1.27 GB): {predicted:.2f} GB predicted with the Plücker rays, about "
-            f"{predicted / 1.013:.2f} GB on the H100 after the same correction (not measured yet).")
+            f"code of main at b6d5327 (one fused q/k/v output; Plücker rays held in float32 and cast at every call), "
+            f"for which this script gave 25.34 GB + 0.49 GB of Plücker rays = 25.83 GB, 1.3 % high. Since then "
+            f"self-attention projects q, k and v one at a time, so the fused 0.33 GB output never exists "
+            f"(self-attention's peak 1.49 → 1.27 GB), and the pipeline makes the Plücker rays once in bfloat16 "
+            f"({PLUCKER_GB:.2f} GB): {predicted:.2f} GB predicted, about {predicted / 1.013:.2f} GB on the H100 "
+            f"after the same correction (not measured yet).")
     publish("dit_memory", "Memory of one DiT sampling step (fake tensors, any machine)", note,
             markdown_table(["DiT", "MLP chunk (tokens)", "weights GB", "activations GB", "total GB",
                             *[f"in {k}" for k in MODULES]], rows), args.write)

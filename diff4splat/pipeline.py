@@ -458,6 +458,7 @@ class Diff4SplatPipeline:
 
         plucker = pack_plucker(plucker_rays(cameras_model.viewmats, cameras_model.Ks, cfg.width, cfg.height)[None],
                                runtime.latent.temporal_factor, runtime.latent.spatial_factor)  # (1, 6·t·s², n, h, w)
+        plucker = plucker.to(runtime.input_dtype)  # cast once: the networks see the same values, no float32 copy
 
         gen = torch.Generator(device="cpu").manual_seed(seed)  # CPU draws: the same noise on every device
         noise = torch.randn((1, runtime.latent.latent_channels, n, *image_latent.shape[-2:]),  # CPU draw, moved

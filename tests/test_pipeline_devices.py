@@ -5,6 +5,7 @@ import torch
 from helpers import tiny_model
 
 from diff4splat.offload import ModelOffload
+from diff4splat.onnx_runtime import OnnxRuntime
 from diff4splat.pipeline import Diff4SplatPipeline
 from diff4splat.runtime import TorchRuntime
 from models.bundle import Diff4SplatModel, load_config
@@ -107,6 +108,26 @@ def test_bfloat16_weights_stay_close_to_float32(image):
     assert res.latents.dtype == torch.float32 and res.scene.canonical.means.dtype == torch.float32
     err = float((res.latents - ref.latents).abs().max())
     assert 0 < err < 0.05
+
+
+def test_the_plucker_rays_are_made_once_in_the_runtimes_input_dtype(image, monkeypatch):
+    """The pipeline casts its largest input once (runtime.input_dtype: the weights' dtype for TorchRuntime,
+    float32 for onnxruntime's graphs): every velocity call and the reconstruction get the same bfloat16 tensor,
+    with no float32 copy held beside it, and the scene is the one of casting at every call."""
+    pipe = Diff4SplatPipeline(tiny_model(dynamic=True, active_dit=True), "cpu", dtype=torch.bfloat16)
+    assert pipe.runtime.input_dtype == torch.bfloat16 and OnnxRuntime.input_dtype == torch.float32
+    seen = []
+    for name in ("velocity", "reconstruct"):
+        real = getattr(pipe.runtime, name)
+        monkeypatch.setattr(pipe.runtime, name,
+                            lambda *a, real=real, **k: seen.append(a[3] if len(a) > 4 else a[1]) or real(*a, **k))
+    res = pipe(image, pipe.default_cameras("arc", 5), PROMPT, steps=2)
+    assert len(seen) == 3 and all(p is seen[0] for p in seen) and seen[0].dtype == torch.bfloat16
+    monkeypatch.undo()
+    pipe.runtime.input_dtype = torch.float32  # the networks cast it themselves: the same values
+    again = pipe(image, pipe.default_cameras("arc", 5), PROMPT, steps=2)
+    assert torch.equal(res.latents, again.latents)
+    assert torch.equal(res.scene.canonical.means, again.scene.canonical.means)
 
 
 def test_offload_moves_one_network_at_a_time_and_restores_the_cpu_copies():
