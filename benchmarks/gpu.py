@@ -148,7 +148,11 @@ def run_generate(pipe: Diff4SplatPipeline, frames: int | None, prompt: str, step
     res = pipe(image, cams, prompt, steps=steps)
     clock = Stopwatch(pipe.device)
     render_path(res.scene, res.cameras, eps2d=res.eps2d)
-    return {**res.timings, "render": clock.lap(), "gaussians": res.scene.num_gaussians,
+    timings = {**res.timings, "render": clock.lap()}
+    high_water = {**res.high_water, **dict(zip(["render"], clock.high_water, strict=False))}
+    # the stage that set the peak: the first whose running maximum reached the final one
+    peak_stage = next((k for k, v in high_water.items() if v == max(high_water.values())), "")
+    return {**timings, "peak_stage": peak_stage, "gaussians": res.scene.num_gaussians,
             "frames": len(res.cameras), "steps": res.steps, "size": f"{cfg.width}²"}
 
 
@@ -168,7 +172,7 @@ def part_generate(device: torch.device, quick: bool) -> str:
             reset_peak(device)
             t = run_generate(pipe, 5 if quick else frames, prompt, 2 if quick else None)
         except torch.OutOfMemoryError as e:
-            rows.append([label, "out of memory: " + str(e).splitlines()[0][:80]] + [""] * (len(STAGES) + 3))
+            rows.append([label, "out of memory: " + str(e).splitlines()[0][:80]] + [""] * (len(STAGES) + 4))
             pipe = model = None  # noqa: F841 - drop every reference before freeing the cache
             models.clear()
             reset_peak(device)
@@ -176,7 +180,7 @@ def part_generate(device: torch.device, quick: bool) -> str:
         total = sum(t[s] for s in STAGES)
         peak = peak_gb(device)
         rows.append([label, f"{t['size']}, {t['frames']} fr, {t['steps']} st", f"{t['gaussians']:,}"]
-                    + [f"{t[s]:.2f}" for s in STAGES] + [f"**{total:.2f}**", peak])
+                    + [f"{t[s]:.2f}" for s in STAGES] + [f"**{total:.2f}**", peak, t["peak_stage"]])
         print(rows[-1], flush=True)
         if config == "paper" and offload == "model" and prompt:
             paper_total, paper_peak = total, peak
@@ -186,11 +190,12 @@ def part_generate(device: torch.device, quick: bool) -> str:
                f"({'meets' if float(paper_peak.split()[0]) <= 25 else 'misses'} 25 GB).")
     return (f"### `generate` on the GPU per stage, seconds, with peak memory\n\n"
             f"`python benchmarks/gpu.py --part generate --write`; one run after a one-step warm-up, stages "
-            f"synchronised. The paper model holds random weights built in bfloat16 on the GPU (no download); "
+            f"synchronised; \"peak in\" is the stage that set the peak (`GenerationResult.high_water`). The paper "
+            f"model holds random weights built in bfloat16 on the GPU (no download); "
             f"\"offload model\" keeps the networks in pinned CPU memory and moves one at a time to the GPU "
             f"(diff4splat/offload.py), so its `sample` includes copying the DiT there. Peak = "
             f"`torch.cuda.max_memory_allocated` over the run, GB = 10⁹ bytes. Device: {device_name(device)}.\n\n"
-            + markdown_table(["model", "run", "Gaussians", *STAGES, "total s", "peak GB"], rows) + verdict)
+            + markdown_table(["model", "run", "Gaussians", *STAGES, "total s", "peak GB", "peak in"], rows) + verdict)
 
 
 # ---------------------------------------------------------------------------------------------------- train

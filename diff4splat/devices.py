@@ -115,10 +115,16 @@ class Stopwatch:
 
     Args:
         device: the device whose work the laps time.
+
+    Attributes:
+        high_water: on CUDA, ``torch.cuda.max_memory_allocated`` (bytes) read at each lap: the device's peak
+            since the process started or the caller's last ``torch.cuda.reset_peak_memory_stats``, so the lap at
+            which it last grew is the stage that set the peak. Read only, never reset here. Empty elsewhere.
     """
 
     def __init__(self, device: str | torch.device):
         self.device = torch.device(device)
+        self.high_water: list[int] = []
         synchronize(self.device)
         self._last = time.perf_counter()
 
@@ -127,6 +133,8 @@ class Stopwatch:
         synchronize(self.device)
         now = time.perf_counter()
         elapsed, self._last = now - self._last, now
+        if self.device.type == "cuda":
+            self.high_water.append(torch.cuda.max_memory_allocated(self.device))
         return elapsed
 
 

@@ -323,6 +323,8 @@ def _meta(loaded: LoadedPipeline, result: GenerationResult, prompt: str, traject
         "shift": result.shift,
         "prune": result.prune_stats,
         "timings_s": timings,
+        # the device's running peak at the end of each stage (GenerationResult.high_water); CUDA only
+        "peak_memory_gb": {k: round(v / 1e9, 3) for k, v in result.high_water.items()} or None,
         **scene_meta(result.scene, result.cameras, fps=None, background=result.background, eps2d=result.eps2d,
                      versions=loaded.versions),
     }

@@ -129,6 +129,10 @@ class GenerationResult:
             there is no prompt: nothing to guide towards).
         timings: seconds per stage ("encode_image", "encode_text", "sample", "reconstruct", "prune");
             "reconstruct" includes the VAE decode of ``generated_colors: video`` and the scene's assembly.
+        high_water: on CUDA, the device's peak allocated memory (bytes, ``torch.cuda.max_memory_allocated``) at
+            the end of each stage of ``timings``: a running maximum since the caller's last
+            ``torch.cuda.reset_peak_memory_stats``, so the first stage that reaches the last value set the peak
+            (:class:`diff4splat.devices.Stopwatch`). Empty on other devices.
         prune_stats: counts from :func:`diff4splat.prune.prune_mask`, plus "duplicates" (Gaussians of a
             later source frame dropped as near-duplicates, :func:`diff4splat.prune.duplicate_mask`) and
             "occluders" (later-frame Gaussians in front of the photograph's surface at the input view,
@@ -154,6 +158,7 @@ class GenerationResult:
     guidance: float
     shift: float
     timings: dict[str, float] = field(default_factory=dict)
+    high_water: dict[str, int] = field(default_factory=dict)
     prune_stats: dict[str, int] = field(default_factory=dict)
     source_frames: Tensor | None = None
     gaussian_index: Tensor | None = None
@@ -513,7 +518,8 @@ class Diff4SplatPipeline:
         timings["prune"] = clock.lap()
         if stats["after"] == 0:
             raise ValueError(_sees_nothing(stats, cfg.prune_opacity))
-        return GenerationResult(scene=scene, cameras=cameras, latents=latents, timings=timings, prune_stats=stats,
+        return GenerationResult(scene=scene, cameras=cameras, latents=latents, timings=timings,
+                                high_water=dict(zip(timings, clock.high_water, strict=False)), prune_stats=stats,
                                 steps=steps, sampler=sampler, guidance=guidance, shift=cfg.sampling.shift,
                                 source_frames=sources,
                                 gaussian_index=index, eps2d=PHOTO_EPS2D, background=photo["background"],

@@ -44,6 +44,10 @@ def _check_folder(out, frames, size=64):
     assert meta["frames"] == frames and meta["width"] == meta["height"] == size
     assert meta["model_width"] == meta["model_height"] == 64 and meta["eps2d"] == PHOTO_EPS2D
     assert set(meta["timings_s"]) >= {"load_model", "encode_image", "encode_text", "sample", "reconstruct", "render"}
+    if meta["device"].startswith("cuda"):  # --device auto on a GPU machine: the pipeline's stages, in GB
+        assert list(meta["peak_memory_gb"]) == ["encode_image", "encode_text", "sample", "reconstruct", "prune"]
+    else:
+        assert meta["peak_memory_gb"] is None  # the CPU has no allocator statistics
     ply = PlyData.read(str(out / "scene.ply"))
     names = [p.name for p in ply["vertex"].properties]
     assert names == ply_property_names(1) and set(INRIA) <= set(names)

@@ -193,3 +193,18 @@ def test_gaussians_are_built_in_float32_inside_a_bfloat16_autocast_region():
     with torch.autocast("cpu", dtype=torch.bfloat16):
         got, *_ = to_gaussians(out, viewmats, Ks)
     assert got.means.dtype == torch.float32 and torch.equal(got.means, ref.means)
+
+
+@pytest.mark.slow
+def test_high_water_names_the_stage_that_set_the_peak(image, device):
+    """GenerationResult.high_water: on CUDA, the device's running peak (bytes) at the end of each timed stage,
+    never decreasing, reaching the peak torch reports; empty on the CPU (no allocator statistics)."""
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    _, res = _run(image, device)
+    if device.type == "cpu":
+        assert res.high_water == {}
+        return
+    values = list(res.high_water.values())
+    assert list(res.high_water) == list(res.timings) and values == sorted(values) and values[0] > 0
+    assert values[-1] <= torch.cuda.max_memory_allocated(device)
