@@ -3,6 +3,8 @@ import pytest
 import torch
 from helpers import tiny_model
 
+from diff4splat.render.gsplat_backend import NO_GSPLAT_ENV, gsplat_available
+
 CUDA = torch.cuda.is_available()
 DEVICES = [pytest.param("cpu", id="cpu"),
            pytest.param("cuda", id="cuda", marks=pytest.mark.cuda)]
@@ -64,8 +66,6 @@ def full_float32():
 def torch_tile_path(monkeypatch):
     """For the test's body, CUDA tensors render through our PyTorch tile path even where gsplat is installed
     (``DIFF4SPLAT_NO_GSPLAT``): a CPU/CUDA comparison then compares the same arithmetic, not two rasterizers."""
-    from diff4splat.render.gsplat_backend import NO_GSPLAT_ENV, gsplat_available
-
     monkeypatch.setenv(NO_GSPLAT_ENV, "1")
     gsplat_available.cache_clear()
     yield
