@@ -265,9 +265,9 @@ def assemble_scene(
              "photo_depth": z, "background": tuple(float(c) for c in image.reshape(-1, 3).mean(0))}
     if out.d_means is None:
         return DynamicGaussians(canonical), source, stats
-    return DynamicGaussians(canonical, times, *_deformation(out, gaussians.select(torch.arange(n_grid, device=dev)),
-                                                              times, float(cameras.times[0]), (H, W), n_back)), \
-        source, stats
+    reference_grid = gaussians.select(torch.arange(n_grid, device=dev))
+    deform = _deformation(out, reference_grid, times, float(cameras.times[0]), (H, W), n_back)
+    return DynamicGaussians(canonical, times, *deform), source, stats
 
 
 def _deformation(out: LDRMOutput, grid: Gaussians, times: Tensor, t0: float, size: tuple[int, int],

@@ -277,7 +277,7 @@ def _identity_rotations(quats: Tensor, atol: float) -> bool:
     """Every (..., 4) wxyz quaternion, normalised and sign-fixed to w ≥ 0, within ``atol`` of (1, 0, 0, 0) in each
     component: |1 − |w|/‖q‖| ≤ atol and |x|, |y|, |z| ≤ atol·‖q‖ (the sign of q does not change a rotation)."""
     norm = quat_norms(quats, "d_quats")
-    return (bool(((quats[..., 0].abs() / norm) - 1).abs().max() <= atol)
+    return (_within(quats[..., 0].abs() / norm - 1, atol)
             and all(_within(quats[..., i] / norm, atol) for i in (1, 2, 3)))
 
 
