@@ -41,7 +41,7 @@ from .limits import check_limit, check_memory, check_output_size
 from .pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, GenerationResult, check_prompt, check_seed
 from .pipeline import load_model as _load_model
 from .render.sequence import render_path
-from .runtime import DTYPES
+from .runtime import ATTENTION_KERNELS, DTYPES
 
 __all__ = ["LoadedPipeline", "Generation", "load_pipeline", "generate", "write", "RUNTIMES"]
 
@@ -74,7 +74,7 @@ class LoadedPipeline:
 
 def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | None = None, *, runtime: str = "torch",
                   onnx: str | os.PathLike | None = None, device: str | torch.device = AUTO, dtype: str = "float32",
-                  offload: str = "none") -> LoadedPipeline:
+                  offload: str = "none", attention: str = "auto") -> LoadedPipeline:
     """Load the networks ``generate`` runs.
 
     Args:
@@ -82,10 +82,11 @@ def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | Non
             none ship).
         config: shipped config name or YAML path (None: :data:`models.bundle.DEFAULT_CONFIG`).
         runtime: one of :data:`RUNTIMES`; "onnxruntime" runs the export in ``onnx`` (checkpoint, config, device,
-            dtype and offload then do not apply: the export's manifest fixes the model).
+            dtype, offload and attention then do not apply: the export's manifest fixes the model).
         device: "auto" (CUDA when present, else the CPU), "cpu", "cuda", "cuda:1", …
         dtype: weight dtype name (:data:`diff4splat.runtime.DTYPES`).
         offload: "none" or "model" (:data:`diff4splat.runtime.OFFLOAD_MODES`).
+        attention: the attention kernel tried first (:data:`diff4splat.runtime.ATTENTION_KERNELS`).
 
     Raises:
         ValueError: an unknown runtime or dtype, options that do not apply to the runtime, an unavailable device,
@@ -97,9 +98,11 @@ def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | Non
     if runtime == "onnxruntime":
         if onnx is None:
             raise ValueError("--runtime onnxruntime needs --onnx DIR (a folder written by `diff4splat export-onnx`)")
-        if checkpoint is not None or config is not None or device != AUTO or dtype != "float32" or offload != "none":
-            raise ValueError("--checkpoint, --config, --device, --dtype and --offload do not apply to --runtime "
-                             "onnxruntime (the export's manifest fixes the model; onnxruntime picks CUDA or CPU)")
+        if (checkpoint is not None or config is not None or device != AUTO or dtype != "float32" or offload != "none"
+                or attention != "auto"):
+            raise ValueError("--checkpoint, --config, --device, --dtype, --offload and --attention do not apply to "
+                             "--runtime onnxruntime (the export's manifest fixes the model; onnxruntime picks CUDA "
+                             "or CPU)")
         if not Path(onnx).is_dir():
             raise FileNotFoundError(f"--onnx: {onnx} is not a folder")
         import onnxruntime  # optional dependency (the `onnx` extra)
@@ -115,12 +118,15 @@ def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | Non
         raise ValueError("--onnx needs --runtime onnxruntime")
     if dtype not in DTYPES:
         raise ValueError(f"--dtype must be one of {sorted(DTYPES)}, got {dtype!r}")
+    if attention not in ATTENTION_KERNELS:
+        raise ValueError(f"--attention must be one of {tuple(ATTENTION_KERNELS)}, got {attention!r}")
     device = resolve_device(device, "--device")  # before any model is loaded
     if checkpoint is not None and not Path(checkpoint).is_dir():
         raise FileNotFoundError(f"--checkpoint: {checkpoint} is not a folder")
     t0 = time.perf_counter()
     model, source = _load_model(checkpoint, config or DEFAULT_CONFIG, seed=0, dtype=DTYPES[dtype])
-    pipe = Diff4SplatPipeline(model, device=device, dtype=DTYPES[dtype], offload=offload)
+    pipe = Diff4SplatPipeline(model, device=device, dtype=DTYPES[dtype], offload=offload,
+                              attention=attention)
     return LoadedPipeline(pipe, source, time.perf_counter() - t0, dtype, offload,
                           files=() if checkpoint is None else (Path(checkpoint),))
 
@@ -307,6 +313,7 @@ def _meta(loaded: LoadedPipeline, result: GenerationResult, prompt: str, traject
         "device": str(pipe.device),
         "dtype": loaded.dtype,
         "offload": loaded.offload,
+        "attention": pipe.runtime.attention,
         "image": path(files["image"]),
         "prompt": prompt,
         "trajectory": trajectory,

@@ -17,6 +17,7 @@ from .generate import generate, load_pipeline, write
 from .io.output_folders import check_output_dir
 from .io.video import check_fps
 from .pipeline import DEFAULT_RESOLUTION
+from .runtime import ATTENTION_KERNELS
 
 __all__ = ["add_generate_parser", "generate_command"]
 
@@ -64,6 +65,9 @@ def add_generate_parser(subparsers, *, out_type: Callable[[str], Path], out_help
     g.add_argument("--offload", choices=("none", "model"), default="none",
                    help="model: keep the networks in CPU memory and move one at a time to --device while it runs "
                         "(the paper-size model within 25 GB of GPU memory); default: none")
+    g.add_argument("--attention", choices=tuple(ATTENTION_KERNELS), default="auto",
+                   help="fused attention kernel the networks try first (cudnn: cuDNN's, tuned for Hopper GPUs; the "
+                        "others stay behind it); default: auto, torch's own order")
     g.add_argument("--runtime", choices=("torch", "onnxruntime"), default="torch",
                    help="run the networks with PyTorch or with onnxruntime on an --onnx export (default: torch)")
     g.add_argument("--onnx", type=Path, default=None, help="folder written by `diff4splat export-onnx` "
@@ -84,7 +88,7 @@ def generate_command(args) -> dict:
     generation = generate(
         args.image, args.cameras, pipeline=lambda: print_warnings(
             load_pipeline, args.checkpoint, args.config, runtime=args.runtime, onnx=args.onnx, device=args.device,
-            dtype=args.dtype, offload=args.offload),
+            dtype=args.dtype, offload=args.offload, attention=args.attention),
         trajectory=args.trajectory, amplitude=args.amplitude, frames=args.frames, resolution=args.resolution,
         prompt=args.prompt, steps=args.steps, sampler=args.sampler, guidance=args.guidance, seed=args.seed,
         depth=args.depth, depth_kind=args.depth_kind, progress=not args.quiet,

@@ -243,6 +243,7 @@ class OnnxRuntime:
     name = "onnxruntime"
     encodes_empty_prompt = False  # our text encoder: no prompt, no text tokens
     input_dtype = torch.float32  # the graphs' inputs
+    attention = None  # onnxruntime picks its own attention kernels
 
     def __init__(self, directory: str | os.PathLike, providers: list[str] | None = None,
                  threads: int | None = None, profile_prefix: str | None = None):

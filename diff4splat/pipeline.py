@@ -247,6 +247,8 @@ class Diff4SplatPipeline:
         offload: ``"model"`` keeps the PyTorch networks in CPU memory and moves one at a time to ``device``
             while it runs (the peak is the largest network, not all four: how a paper-size model fits a
             25 GB budget); ``"none"`` (default) keeps them all on ``device``.
+        attention: the fused attention kernel the PyTorch networks try first
+            (:data:`diff4splat.runtime.ATTENTION_KERNELS`; default ``"auto"``, torch's order).
 
     Attributes:
         runtime: the :class:`NetworkRuntime` that runs the networks.
@@ -259,10 +261,11 @@ class Diff4SplatPipeline:
     """
 
     def __init__(self, model: Diff4SplatModel | BackboneModel | NetworkRuntime, device: str | torch.device = "cpu",
-                 *, dtype: torch.dtype | None = None, offload: str = "none"):
+                 *, dtype: torch.dtype | None = None, offload: str = "none", attention: str = "auto"):
         if isinstance(model, (Diff4SplatModel, BackboneModel)):
             self.model: Diff4SplatModel | BackboneModel | None = model
-            self.runtime: NetworkRuntime = TorchRuntime(model, device, dtype=dtype, offload=offload)
+            self.runtime: NetworkRuntime = TorchRuntime(model, device, dtype=dtype, offload=offload,
+                                                         attention=attention)
         elif isinstance(model, NetworkRuntime):
             self.model, self.runtime = None, model
         else:

@@ -5,12 +5,13 @@ PyTorch networks — our :class:`models.bundle.Diff4SplatModel` or a pretrained 
 """
 from __future__ import annotations
 
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import fields
 from typing import Protocol, runtime_checkable
 
 import torch
 from torch import Tensor
+from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from models.backbones.base import LatentFormat
 from models.backbones.model import BackboneModel, BackboneModelConfig
@@ -20,7 +21,8 @@ from models.ldrm import LDRMOutput
 
 from .offload import ModelOffload
 
-__all__ = ["NetworkRuntime", "TorchRuntime", "OFFLOAD_MODES", "DTYPES", "FF_CHUNK_TOKENS"]
+__all__ = ["NetworkRuntime", "TorchRuntime", "OFFLOAD_MODES", "DTYPES", "FF_CHUNK_TOKENS", "ATTENTION_KERNELS",
+           "attention_priority"]
 
 
 @runtime_checkable
@@ -38,6 +40,8 @@ class NetworkRuntime(Protocol):
         input_dtype: the dtype every input is cast to before the networks see it; the pipeline makes its largest
             input, the Plücker rays (1, 6·t·s², n, h, w), in it once instead of holding a float32 copy beside the
             cast of every call (0.33 GB float32 at 49 frames, 512²).
+        attention: the fused attention kernel tried first (:data:`ATTENTION_KERNELS`; written to meta.json), None
+            for a runtime that does not run torch's attention.
     """
 
     config: Diff4SplatConfig | BackboneModelConfig
@@ -46,6 +50,7 @@ class NetworkRuntime(Protocol):
     encodes_empty_prompt: bool
     name: str
     input_dtype: torch.dtype
+    attention: str | None
 
     def sigmas(self, steps: int) -> Tensor:
         """The sampler's σ schedule: (steps + 1,) float64 from 1 to 0
@@ -83,6 +88,31 @@ FF_CHUNK_TOKENS = 8192
 (then self- and cross-attention's; benchmarks/dit_memory.py); smaller models (the shipped base model has 80 tokens)
 are one chunk, unchanged."""
 
+ATTENTION_KERNELS = {"auto": None, "cudnn": SDPBackend.CUDNN_ATTENTION, "flash": SDPBackend.FLASH_ATTENTION,
+                     "efficient": SDPBackend.EFFICIENT_ATTENTION, "math": SDPBackend.MATH}
+"""``attention`` values of a :class:`TorchRuntime` (``generate --attention``): the kernel that every
+``F.scaled_dot_product_attention`` of the networks tries first. ``auto`` keeps torch's own order (FlashAttention-2
+first on CUDA); ``cudnn`` puts cuDNN's fused attention first, which torch leaves last unless
+``TORCH_CUDNN_SDPA_PREFERRED`` is set, and which NVIDIA tunes for Hopper (sm90). The others stay enabled behind the
+first, so a kernel that cannot take a call (the CPU has no cuDNN attention; some masks, dtypes or head sizes) hands it
+on and every choice runs everywhere. All compute the same attention up to floating-point rounding."""
+
+_FALLBACK_ORDER = (SDPBackend.FLASH_ATTENTION, SDPBackend.EFFICIENT_ATTENTION, SDPBackend.CUDNN_ATTENTION,
+                   SDPBackend.MATH)  # behind the preferred kernel; math last: it takes every call
+
+
+def attention_priority(name: str) -> list[SDPBackend] | None:
+    """The SDPA kernel order of ``attention`` value ``name`` (:data:`ATTENTION_KERNELS`): the named kernel, then
+    the others; None for ``auto`` (torch's order untouched).
+
+    Raises:
+        ValueError: an unknown name.
+    """
+    if name not in ATTENTION_KERNELS:
+        raise ValueError(f"attention must be one of {tuple(ATTENTION_KERNELS)}, got {name!r}")
+    first = ATTENTION_KERNELS[name]
+    return None if first is None else [first, *(b for b in _FALLBACK_ORDER if b != first)]
+
 
 class TorchRuntime:
     """:class:`NetworkRuntime` over PyTorch networks (eval mode, no grad): our :class:`Diff4SplatModel` or a
@@ -98,18 +128,21 @@ class TorchRuntime:
             inputs are cast to it and every output is returned in float32, so the sampler integrates and the
             Gaussians are built in float32 whatever the weights.
         offload: one of :data:`OFFLOAD_MODES`.
+        attention: one of :data:`ATTENTION_KERNELS`: the fused attention kernel every network call tries first.
 
     Raises:
-        ValueError: an unknown ``offload`` or a non-floating ``dtype``.
+        ValueError: an unknown ``offload`` or ``attention``, or a non-floating ``dtype``.
     """
 
     name = "torch"
     has_deformation = True
 
     def __init__(self, model: Diff4SplatModel | BackboneModel, device: str | torch.device = "cpu", *,
-                 dtype: torch.dtype | None = None, offload: str = "none"):
+                 dtype: torch.dtype | None = None, offload: str = "none", attention: str = "auto"):
         if offload not in OFFLOAD_MODES:
             raise ValueError(f"offload must be one of {OFFLOAD_MODES}, got {offload!r}")
+        self.attention_order = attention_priority(attention)
+        self.attention = attention
         if dtype is not None and dtype not in DTYPES.values():
             raise ValueError(f"dtype must be one of {sorted(DTYPES)} (torch dtypes), got {dtype!r}")
         self.device = torch.device(device)
@@ -133,18 +166,20 @@ class TorchRuntime:
     @contextmanager
     def _use(self, name: str):
         """The network ``name`` on the device (moved there first with ``offload="model"``, and for a backbone's
-        text encoder; moved back after)."""
-        if self.offload is not None:
-            with self.offload.use(name) as net:
-                yield net
-        elif name == "text_encoder" and self.text_visits:
-            net = self.networks[name].to(self.device)
-            try:
-                yield net
-            finally:
-                net.to("cpu")
-        else:
-            yield self.networks[name]
+        text encoder; moved back after), its attention calls under the runtime's kernel order."""
+        order = self.attention_order
+        with nullcontext() if order is None else sdpa_kernel(order, set_priority=True):
+            if self.offload is not None:
+                with self.offload.use(name) as net:
+                    yield net
+            elif name == "text_encoder" and self.text_visits:
+                net = self.networks[name].to(self.device)
+                try:
+                    yield net
+                finally:
+                    net.to("cpu")
+            else:
+                yield self.networks[name]
 
     def release(self) -> None:
         """Free the device memory of an offloaded network (nothing without offload)."""

@@ -289,12 +289,13 @@ def test_meta_steps_and_sampler_are_the_ones_the_pipeline_used(tmp_path, monkeyp
     assert main(["generate", str(EXAMPLE_IMAGE), "--frames", "1", "--quiet", "--out", str(out)]) == 0
     meta, result = json.loads((out / "meta.json").read_text()), seen["result"]
     assert (meta["steps"], meta["sampler"], meta["shift"]) == (result.steps, result.sampler, result.shift)
-    assert meta["runtime"] == "torch" and "backend" not in meta
+    assert meta["runtime"] == "torch" and "backend" not in meta and meta["attention"] == "auto"
     out = tmp_path / "given"
     assert main(["generate", str(EXAMPLE_IMAGE), "--frames", "1", "--steps", "2", "--sampler", "heun", "--quiet",
-                 "--out", str(out)]) == 0
+                 "--attention", "math", "--out", str(out)]) == 0
     meta = json.loads((out / "meta.json").read_text())
     assert (meta["steps"], meta["sampler"]) == (seen["result"].steps, seen["result"].sampler) == (2, "heun")
+    assert meta["attention"] == "math"
 
 
 @pytest.mark.slow

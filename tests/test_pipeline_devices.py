@@ -7,7 +7,7 @@ from helpers import tiny_model
 from diff4splat.offload import ModelOffload
 from diff4splat.onnx_runtime import OnnxRuntime
 from diff4splat.pipeline import Diff4SplatPipeline
-from diff4splat.runtime import TorchRuntime
+from diff4splat.runtime import ATTENTION_KERNELS, TorchRuntime, attention_priority
 from models.bundle import Diff4SplatModel, load_config
 
 PROMPT = "a cat turns its head"
@@ -161,6 +161,69 @@ def test_runtime_rejects_unknown_offload_and_dtype():
         TorchRuntime(tiny_model(), offload="disk")
     with pytest.raises(ValueError, match="dtype must be one of"):
         TorchRuntime(tiny_model(), dtype=torch.int8)
+
+
+def test_attention_priority_puts_the_named_kernel_first_and_keeps_the_others():
+    from torch.nn.attention import SDPBackend
+
+    assert attention_priority("auto") is None
+    every = {SDPBackend.CUDNN_ATTENTION, SDPBackend.FLASH_ATTENTION, SDPBackend.EFFICIENT_ATTENTION, SDPBackend.MATH}
+    for name, first in ATTENTION_KERNELS.items():
+        if first is not None:
+            order = attention_priority(name)
+            assert order[0] == first and set(order) == every and len(order) == 4
+            assert first == SDPBackend.MATH or order[-1] == SDPBackend.MATH  # it takes every call: last
+    with pytest.raises(ValueError, match="attention must be one of"):
+        attention_priority("flash3")
+    with pytest.raises(ValueError, match="attention must be one of"):
+        TorchRuntime(tiny_model(), attention="xformers")
+
+
+@pytest.mark.slow
+def test_each_attention_kernel_runs_under_its_order_and_gives_the_same_scene(image, device, monkeypatch):
+    """Every attention call of the networks sees the runtime's kernel order (read from torch at call time), every
+    kernel stays enabled behind the first, torch's order is restored after the run, and the scene is the same
+    up to the kernels' rounding (a kernel that cannot take a call hands it on: the CPU has no cuDNN attention)."""
+    import models.layers
+    import models.text_encoder
+
+    real, seen = torch.nn.functional.scaled_dot_product_attention, []
+
+    def spy(*a, **k):
+        seen.append(tuple(torch._C._get_sdp_priority_order())[:4])
+        return real(*a, **k)
+
+    for module in (models.layers, models.text_encoder):
+        monkeypatch.setattr(module.F, "scaled_dot_product_attention", spy)
+    before = tuple(torch._C._get_sdp_priority_order())
+    _, ref = _run(image, device)
+    assert seen and all(o == before[:4] for o in seen)
+    for name in ("cudnn", "math"):
+        seen.clear()
+        pipe, res = _run(image, device, attention=name)
+        assert pipe.runtime.attention == name
+        assert seen and all(o == tuple(int(b) for b in attention_priority(name)) for o in seen)
+        assert tuple(torch._C._get_sdp_priority_order()) == before
+        assert torch.backends.cuda.flash_sdp_enabled() and torch.backends.cuda.math_sdp_enabled()
+        torch.testing.assert_close(res.latents, ref.latents, atol=1e-4, rtol=0)
+
+
+@pytest.mark.cuda
+def test_cudnn_attention_matches_the_math_kernel_on_the_dits_layout():
+    """cuDNN's fused attention, where the GPU takes it (sm80+; torch prefers FlashAttention-2), on the layout our
+    attention hands it ((B, heads, N, head_dim) views of (B, N, heads, head_dim), head_dim 128 as in the paper
+    model) in bfloat16 agrees with float32 math attention to bfloat16 rounding, and is the kernel chosen."""
+    from torch.nn.attention import SDPBackend, sdpa_kernel
+
+    g = torch.Generator("cuda").manual_seed(0)
+    q, k, v = (torch.randn(1, 2048, 4, 128, generator=g, device="cuda", dtype=torch.bfloat16).transpose(1, 2)
+               for _ in range(3))
+    ref = torch.nn.functional.scaled_dot_product_attention(q.float(), k.float(), v.float())
+    with sdpa_kernel(attention_priority("cudnn"), set_priority=True):
+        if torch.cuda.get_device_capability() >= (9, 0):
+            assert torch._fused_sdp_choice(q, k, v) == int(SDPBackend.CUDNN_ATTENTION)
+        out = torch.nn.functional.scaled_dot_product_attention(q, k, v)
+    torch.testing.assert_close(out.float(), ref, atol=2e-2, rtol=2e-2)
 
 
 def test_random_models_are_built_in_the_dtype_and_on_the_device_asked_for():
