@@ -27,8 +27,7 @@ Architecture (B scenes, latent (B, c, n, h, w), patch p, tokens N = n·(h/p)·(w
 4. Optional sharp input view (``image_branch`` > 0; ours, beyond the paper): the photograph at full
    resolution and frame 0's raw head output pass through a small zero-initialised CNN whose output is
    added to frame 0's raw channels, so the reference frame's Gaussians can carry detail that the VAE's
-   8×8 compression lost; with ``image_context`` > 0 a zero-initialised U-Net (``models.context_unet``) gives
-   that CNN a whole-image view for frame 0's depth.
+   8×8 compression lost.
 5. Each source frame's tokens as a (B, D, h/p, w/p) map feed the deformation network (for ``"all"``,
    the frames of one latent frame share its map).
 
@@ -46,7 +45,6 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .context_unet import ContextUNet
 from .deformation import DeformationConfig, DeformationNetwork, soft_clamp, unit_quat_from_raw
 from .layers import Mlp, SelfAttention, patchify, tracing
 from .pretrained import PretrainedMixin
@@ -110,8 +108,6 @@ class LDRMConfig:
             paper's non-overlapping transposed convolution); "upsample" needs ``gaussian_frames`` ≠ "all".
         head_channels: channels of the first upsampling stage (halved at each ×2 stage, at least 16).
         image_branch: channels of the sharp-input-view CNN (module docstring, step 4); 0 = no branch.
-        image_context: levels of the image branch's context path (:class:`models.context_unet.ContextUNet`, a
-            zero-initialised U-Net that gives each pixel the whole image); 0 = none. Needs ``image_branch`` > 0.
         deformation: config of the deformation network; its ``in_channels`` must equal ``embed_dim``.
     """
 
@@ -132,7 +128,6 @@ class LDRMConfig:
     head: str = "upsample"
     head_channels: int = 32
     image_branch: int = 0
-    image_context: int = 0
     deformation: DeformationConfig = field(default_factory=DeformationConfig)
 
     SAVED_DEFAULTS: ClassVar[dict[str, object]] = {"gaussian_frames": "reference", "head": "deconv"}
@@ -151,9 +146,6 @@ class LDRMConfig:
                              f"got {self.gaussian_frames!r}")
         if int(self.image_branch) < 0:
             raise ValueError(f"LDRMConfig.image_branch must be ≥ 0, got {self.image_branch}")
-        if int(self.image_context) < 0 or (self.image_context and not self.image_branch):
-            raise ValueError(f"LDRMConfig.image_context must be ≥ 0 and needs image_branch > 0, got "
-                             f"image_context {self.image_context}, image_branch {self.image_branch}")
         if self.head not in HEADS:
             raise ValueError(f"LDRMConfig.head must be one of {HEADS}, got {self.head!r}")
         if self.head == "upsample" and self.gaussian_frames == "all":
@@ -334,17 +326,14 @@ class UpsampleHead(nn.Module):
 class ImageBranch(nn.Module):
     """Sharp input view (ours, beyond the paper): photo + frame 0's raw head output → a raw-channel residual.
 
-    conv3×3(3 + 12 → C) → GELU → [+ context path] → conv3×3(C → C) → GELU → conv1×1(C → 12), the last layer
-    zero-initialised (weights and bias) so a new branch adds exactly 0: the LDRM starts as the paper's and learns
-    from the photograph only what improves the loss (as adaLN-Zero in DiT, Peebles & Xie 2023). With
-    ``context_levels`` > 0 a :class:`models.context_unet.ContextUNet` (itself zero at initialisation) adds a
-    whole-image view to the first layer's features, so adding it to a trained branch keeps the branch's function.
+    conv3×3(3 + 12 → C) → GELU → conv3×3(C → C) → GELU → conv1×1(C → 12), the last layer zero-initialised
+    (weights and bias) so a new branch adds exactly 0: the LDRM starts as the paper's and learns from the
+    photograph only what improves the loss (as adaLN-Zero in DiT, Peebles & Xie 2023).
     """
 
-    def __init__(self, channels: int, context_levels: int = 0) -> None:
+    def __init__(self, channels: int) -> None:
         super().__init__()
         self.conv1 = nn.Conv2d(3 + RAW_GAUSSIAN_CHANNELS, channels, 3, padding=1)
-        self.context = ContextUNet(channels, context_levels) if context_levels else None
         self.conv2 = nn.Conv2d(channels, channels, 3, padding=1)
         self.out = nn.Conv2d(channels, RAW_GAUSSIAN_CHANNELS, 1)
         nn.init.zeros_(self.out.weight)
@@ -352,8 +341,6 @@ class ImageBranch(nn.Module):
 
     def forward(self, image: Tensor, raw: Tensor) -> Tensor:  # (B, 3, H, W) in [−1, 1], (B, 12, H, W)
         x = F.gelu(self.conv1(torch.cat([image.to(raw.dtype), raw], dim=1)))
-        if self.context is not None:
-            x = x + self.context(x)
         return raw + self.out(F.gelu(self.conv2(x)))  # (B, 12, H, W)
 
 
@@ -375,8 +362,7 @@ class LDRM(nn.Module, PretrainedMixin):
             self.head = nn.ConvTranspose3d(d, RAW_GAUSSIAN_CHANNELS, kernel_size=(kt, up, up), stride=(kt, up, up))
         else:
             self.head = UpsampleHead(d, up, config.head_channels)
-        branch = config.image_branch > 0
-        self.image_branch = ImageBranch(config.image_branch, config.image_context) if branch else None
+        self.image_branch = ImageBranch(config.image_branch) if config.image_branch > 0 else None
         self.deformation = DeformationNetwork(config.deformation)
         for module in [self.embed, *self.blocks.modules()]:
             if isinstance(module, nn.Linear):  # ViT/DiT initialisation
