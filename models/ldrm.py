@@ -27,7 +27,8 @@ Architecture (B scenes, latent (B, c, n, h, w), patch p, tokens N = n·(h/p)·(w
 4. Optional sharp input view (``image_branch`` > 0; ours, beyond the paper): the photograph at full
    resolution and frame 0's raw head output pass through a small zero-initialised CNN whose output is
    added to frame 0's raw channels, so the reference frame's Gaussians can carry detail that the VAE's
-   8×8 compression lost.
+   8×8 compression lost. With ``image_depth`` > 0, frame 0's raw distance channel is instead drawn by a
+   monocular depth network from the photograph alone (``models.mono_depth``), trained on metric depth.
 5. Each source frame's tokens as a (B, D, h/p, w/p) map feed the deformation network (for ``"all"``,
    the frames of one latent frame share its map).
 
@@ -47,10 +48,11 @@ from torch import Tensor, nn
 
 from .deformation import DeformationConfig, DeformationNetwork, soft_clamp, unit_quat_from_raw
 from .layers import Mlp, SelfAttention, patchify, tracing
+from .mono_depth import MonoDepth
 from .pretrained import PretrainedMixin
 
-__all__ = ["LDRMConfig", "LDRM", "LDRMOutput", "gaussian_activations", "sincos_position_3d", "source_frame_indices",
-           "GAUSSIAN_FRAMES"]
+__all__ = ["LDRMConfig", "LDRM", "LDRMOutput", "distance_activation", "gaussian_activations", "sincos_position_3d",
+           "source_frame_indices", "GAUSSIAN_FRAMES"]
 
 RAW_GAUSSIAN_CHANNELS = 12
 """Raw head channels per pixel: distance 1, scales 3, quaternion 4, opacity 1, colour 3."""
@@ -108,6 +110,8 @@ class LDRMConfig:
             paper's non-overlapping transposed convolution); "upsample" needs ``gaussian_frames`` ≠ "all".
         head_channels: channels of the first upsampling stage (halved at each ×2 stage, at least 16).
         image_branch: channels of the sharp-input-view CNN (module docstring, step 4); 0 = no branch.
+        image_depth: channels of the monocular depth network that draws frame 0's distance from the photograph
+            (:class:`models.mono_depth.MonoDepth`, module docstring step 4); 0 = none. Needs ``image_branch`` > 0.
         deformation: config of the deformation network; its ``in_channels`` must equal ``embed_dim``.
     """
 
@@ -128,6 +132,7 @@ class LDRMConfig:
     head: str = "upsample"
     head_channels: int = 32
     image_branch: int = 0
+    image_depth: int = 0
     deformation: DeformationConfig = field(default_factory=DeformationConfig)
 
     SAVED_DEFAULTS: ClassVar[dict[str, object]] = {"gaussian_frames": "reference", "head": "deconv"}
@@ -146,6 +151,9 @@ class LDRMConfig:
                              f"got {self.gaussian_frames!r}")
         if int(self.image_branch) < 0:
             raise ValueError(f"LDRMConfig.image_branch must be ≥ 0, got {self.image_branch}")
+        if int(self.image_depth) < 0 or (self.image_depth and not self.image_branch):
+            raise ValueError(f"LDRMConfig.image_depth must be ≥ 0 and needs image_branch > 0, got image_depth "
+                             f"{self.image_depth}, image_branch {self.image_branch}")
         if self.head not in HEADS:
             raise ValueError(f"LDRMConfig.head must be one of {HEADS}, got {self.head!r}")
         if self.head == "upsample" and self.gaussian_frames == "all":
@@ -221,6 +229,16 @@ class LDRMOutput:
 torch.export.register_dataclass(LDRMOutput, serialized_type_name="diff4splat.LDRMOutput")
 
 
+def distance_activation(r_d: Tensor, config: LDRMConfig) -> Tensor:
+    """The raw distance channel (...) → ray distance (...), metres in [d_min, d_max] (:func:`gaussian_activations`);
+    float32 at least."""
+    r_d = r_d.to(torch.promote_types(r_d.dtype, torch.float32))
+    lo, hi = math.log(config.depth_min), math.log(config.depth_max)
+    frac = (math.log(config.default_depth) - lo) / (hi - lo)
+    bias = math.log(frac / (1 - frac))  # logit: σ(0 + bias) = frac → distance = default_depth
+    return torch.exp(lo + torch.sigmoid(r_d + bias) * (hi - lo))
+
+
 def gaussian_activations(raw: Tensor, config: LDRMConfig) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Map the 12 raw head channels (..., 12) to activated Gaussian parameters; finite for any finite input.
 
@@ -246,10 +264,7 @@ def gaussian_activations(raw: Tensor, config: LDRMConfig) -> tuple[Tensor, Tenso
     """
     raw = raw.to(torch.promote_types(raw.dtype, torch.float32))
     r_d, r_s, r_q, r_o, r_c = raw.split([1, 3, 4, 1, 3], dim=-1)
-    lo, hi = math.log(config.depth_min), math.log(config.depth_max)
-    frac = (math.log(config.default_depth) - lo) / (hi - lo)
-    bias = math.log(frac / (1 - frac))  # logit: σ(0 + bias) = frac → distance = default_depth
-    distance = torch.exp(lo + torch.sigmoid(r_d[..., 0] + bias) * (hi - lo))
+    distance = distance_activation(r_d[..., 0], config)
     scales = distance[..., None] * config.scale_base * torch.exp(soft_clamp(r_s, config.scale_log_range))
     return distance, scales, unit_quat_from_raw(r_q), torch.sigmoid(r_o[..., 0]), torch.sigmoid(r_c)
 
@@ -363,6 +378,7 @@ class LDRM(nn.Module, PretrainedMixin):
         else:
             self.head = UpsampleHead(d, up, config.head_channels)
         self.image_branch = ImageBranch(config.image_branch) if config.image_branch > 0 else None
+        self.image_depth = MonoDepth(config.image_depth) if config.image_depth > 0 else None
         self.deformation = DeformationNetwork(config.deformation)
         for module in [self.embed, *self.blocks.modules()]:
             if isinstance(module, nn.Linear):  # ViT/DiT initialisation
@@ -459,7 +475,10 @@ class LDRM(nn.Module, PretrainedMixin):
         raw = self.head_maps(volume)
         if self.image_branch is not None:  # frame 0 only; a select, not a cat, keeps S symbolic when exporting
             first = torch.arange(raw.shape[2], device=raw.device) == 0
-            raw = torch.where(first[:, None, None], self.image_branch(image, raw[:, :, 0])[:, :, None], raw)
+            frame0 = self.image_branch(image, raw[:, :, 0])  # (B, 12, H, W)
+            if self.image_depth is not None:  # frame 0's distance from the photograph alone
+                frame0 = torch.cat([self.image_depth(image.to(raw.dtype))[:, None], frame0[:, 1:]], dim=1)
+            raw = torch.where(first[:, None, None], frame0[:, :, None], raw)
         raw = raw.permute(0, 2, 3, 4, 1)  # (B, S, H, W, 12)
         distance, scales, quats, opacities, colors = gaussian_activations(raw, cfg)
         out = LDRMOutput(distance, scales, quats, opacities, colors)

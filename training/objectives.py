@@ -26,7 +26,7 @@ import torch
 from torch import Tensor, nn
 
 from diff4splat.assemble import assemble_scene, to_gaussians
-from diff4splat.cameras import pack_plucker, plucker_rays
+from diff4splat.cameras import camera_rays, pack_plucker, plucker_rays
 from diff4splat.cameras.path import CameraPath
 from diff4splat.devices import autocast_off
 from diff4splat.photo import PHOTO_EPS2D
@@ -38,7 +38,7 @@ from models.backbones.base import Backbone, LatentFormat
 from models.backbones.model import BackboneModel
 from models.backbones.ours import OursBackbone
 from models.bundle import Diff4SplatModel
-from models.ldrm import LDRM, LDRMOutput, source_frame_indices
+from models.ldrm import LDRM, LDRMOutput, distance_activation, source_frame_indices
 from models.vae import kl_divergence
 
 from .losses import (
@@ -119,7 +119,8 @@ class TrainingModule(nn.Module):
 
     ``forward(batch, generator)`` returns ``{"loss": total, <component>: value, ...}``; components:
     ``vae_l1``, ``vae_kl`` (vae objective, our VAE only), ``flow`` (diffusion), ``photo``, ``depth``, ``smooth``,
-    ``motion``, ``displacement``, ``metric_depth`` (reconstruction; the last only with a weight > 0), ``distill``.
+    ``motion``, ``displacement``, ``metric_depth`` (reconstruction; the last only with a weight > 0), ``distill``,
+    ``mono_depth`` (depth).
     ``teacher``: the frozen LDRM the ``distill`` objective follows (a sub-module, so it moves with the module; the
     trained model, ``self.model``, does not hold it).
     """
@@ -209,8 +210,33 @@ class TrainingModule(nn.Module):
                 total = total + w.metric_depth * rec["metric_depth"]
             if "motion" in rec:
                 total = total + w.motion * rec["motion"] + w.displacement * rec["displacement"]
+        if "depth" in st.objectives:
+            losses["mono_depth"] = self._mono_depth(batch)
+            total = total + losses["mono_depth"]
         losses["loss"] = total
         return losses
+
+    def _mono_depth(self, batch: dict) -> Tensor:
+        """Scale-invariant log loss (λ 0.5) of the LDRM's monocular depth network (``ldrm.image_depth``) on every
+        frame of the clips: its ray distance, activated as the LDRM's (:func:`models.ldrm.distance_activation`)
+        and turned into z-depth by each pixel's ray (cos of its angle to the optical axis), against the frame's
+        metric depth where valid.
+
+        Raises:
+            ValueError: the LDRM has no monocular depth network (``image_depth`` 0).
+        """
+        ldrm = self.model.ldrm
+        if ldrm.image_depth is None:
+            raise ValueError("the depth objective trains ldrm.image_depth; this LDRM has none (image_depth: 0)")
+        B, _, T, H, W = batch["video"].shape
+        frames = batch["video"].transpose(1, 2).flatten(0, 1) * 2 - 1  # (B·T, 3, H, W) in [−1, 1]
+        distance = distance_activation(ldrm.image_depth(frames), ldrm.config)  # (B·T, H, W) metres
+        with autocast_off():
+            Ks = batch["Ks"].flatten(0, 1).float()
+            eye = torch.eye(4, device=Ks.device).expand(len(Ks), 4, 4)
+            _, dirs = camera_rays(eye, Ks, W, H)  # camera frame: the z component is cos θ
+            z = distance.float() * dirs[..., 2]
+            return log_depth_loss(z, batch["depth"].flatten(0, 1).float(), batch["depth_valid"].flatten(0, 1))
 
     @staticmethod
     def _plucker(batch: dict, latent: LatentFormat, grid: tuple[int, int, int]) -> Tensor:

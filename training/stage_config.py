@@ -40,12 +40,14 @@ STAGE_CONFIG_DIR = STAGE_CONFIGS
 ``train_cogvideox_stage1`` …): ``configs/training/``
 (:mod:`diff4splat.config_files`)."""
 
-MODULES = ("vae", "text_encoder", "dit", "ldrm", "ldrm.deformation", "ldrm.head", "ldrm.image_branch")
+MODULES = ("vae", "text_encoder", "dit", "ldrm", "ldrm.deformation", "ldrm.head", "ldrm.image_branch",
+           "ldrm.image_depth")
 """Module names a stage can train (``ldrm.deformation`` is the LDRM's deformation network; ``ldrm.head`` and
 ``ldrm.image_branch`` alone train a new head on the LDRM's features, which the deformation network also reads;
+``ldrm.image_depth`` is the monocular depth network of frame 0, :class:`models.mono_depth.MonoDepth`;
 ``dit`` of a diffusers backbone is its transformer's LoRA adapters and camera weights)."""
 
-OBJECTIVES = ("vae", "diffusion", "reconstruction", "distill")
+OBJECTIVES = ("vae", "diffusion", "reconstruction", "distill", "depth")
 
 RENDERED_SCENES = ("decoded", "assembled")
 """What the reconstruction objective renders (:attr:`StageConfig.scene`)."""
@@ -104,7 +106,9 @@ class StageConfig:
         objectives: subset of ``vae`` (reconstruction + KL), ``diffusion`` (flow matching of the DiT),
             ``reconstruction`` (rendering losses of the LDRM), ``distill`` (the LDRM head's raw maps regressed onto a
             teacher LDRM's, low-passed: :func:`training.losses.head_distillation_loss`; a new head learns what an
-            older one knew before the rendering losses refine it).
+            older one knew before the rendering losses refine it), ``depth`` (the LDRM's monocular depth network,
+            ``ldrm.image_depth``, on every frame of the clips against their metric depth: the scale-invariant log
+            loss, λ 0.5, :func:`training.losses.log_depth_loss`).
         scenes: ``static``, ``dynamic`` or ``all`` (ClipDataset filter).
         height, width, num_frames: clip size (pixels, frames T = 1 + 4k).
         render_frames: target frames rendered per clip for the rendering losses (frame 0 always

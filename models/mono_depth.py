@@ -1,0 +1,69 @@
+"""The photo layer's monocular depth network: photograph → frame 0's raw ray-distance channel (ours).
+
+The LDRM reads the photograph through the video VAE's 8×8 compression and a small image branch with a 5×5 window
+(``models.ldrm``); the frame-0 depth it draws is mostly a floor-like gradient (base model card). Single-image 3D
+systems that place the observed pixels on predicted geometry take that geometry from a dedicated monocular depth
+network (Flash3D, Szymanowicz et al. 2024, builds on a pretrained UniDepth); ours is a small U-Net (Ronneberger et
+al. 2015) trained directly on our data's metric depth (``training.objectives``, objective ``depth``):
+
+    conv block(3 → C) → ``levels`` × [stride-2 conv block, channels ×2] → + 1×1 conv of the image's mean feature
+    (global context, ParseNet, Liu et al. 2015) → ``levels`` × [×2 bilinear, concat skip, conv block] → conv3×3(C → 1)
+
+A conv block is conv3×3 → GELU → conv3×3 → GELU. The output is the LDRM's raw distance channel (before
+``models.ldrm.gaussian_activations``: distance = exp(log d_min + σ(r + b)·(log d_max − log d_min))), so the LDRM's
+bounds and activation stay the one definition of distance; the last convolution starts at zero, i.e. at the
+config's ``default_depth`` everywhere.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+__all__ = ["MonoDepth"]
+
+
+def _conv_block(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(c_in, c_out, 3, stride=stride, padding=1), nn.GELU(),
+                         nn.Conv2d(c_out, c_out, 3, padding=1), nn.GELU())
+
+
+class MonoDepth(nn.Module):
+    """(B, 3, H, W) photograph in [−1, 1] → (B, H, W) raw ray-distance channel (module docstring).
+
+    Args:
+        channels: C, the full-resolution width; level i has C·2^i channels at (H, W) / 2^i.
+        levels: encoder stages (≥ 1); H and W must be divisible by 2^levels.
+
+    Raises:
+        ValueError: ``channels`` or ``levels`` < 1; (in forward) an image that is not (B, 3, H, W) with H and W
+            divisible by 2^levels.
+    """
+
+    def __init__(self, channels: int, levels: int = 3) -> None:
+        super().__init__()
+        if channels < 1 or levels < 1:
+            raise ValueError(f"MonoDepth needs channels ≥ 1 and levels ≥ 1, got {channels}, {levels}")
+        widths = [channels * 2 ** i for i in range(levels + 1)]
+        self.levels = levels
+        self.stem = _conv_block(3, channels)
+        self.down = nn.ModuleList(_conv_block(widths[i], widths[i + 1], stride=2) for i in range(levels))
+        self.global_context = nn.Conv2d(widths[-1], widths[-1], 1)
+        self.up = nn.ModuleList(_conv_block(widths[i + 1] + widths[i], widths[i]) for i in reversed(range(levels)))
+        self.out = nn.Conv2d(channels, 1, 3, padding=1)
+        nn.init.zeros_(self.out.weight)  # starts at the default depth everywhere (module docstring)
+        nn.init.zeros_(self.out.bias)
+
+    def forward(self, image: Tensor) -> Tensor:  # (B, 3, H, W) → (B, H, W)
+        f = 2 ** self.levels
+        if image.dim() != 4 or image.shape[1] != 3 or image.shape[-2] % f or image.shape[-1] % f:
+            raise ValueError(f"image must be (B, 3, H, W) with H and W divisible by {f}, got {tuple(image.shape)}")
+        skips = [self.stem(image)]
+        for down in self.down:
+            skips.append(down(skips[-1]))
+        y = skips.pop()
+        y = y + self.global_context(y.mean(dim=(-2, -1), keepdim=True))  # every pixel sees the whole image
+        for up in self.up:
+            skip = skips.pop()
+            y = up(torch.cat([F.interpolate(y, size=skip.shape[-2:], mode="bilinear", align_corners=False), skip], 1))
+        return self.out(y)[:, 0]
