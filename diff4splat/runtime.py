@@ -141,7 +141,7 @@ class TorchRuntime:
                  dtype: torch.dtype | None = None, offload: str = "none", attention: str = "auto"):
         if offload not in OFFLOAD_MODES:
             raise ValueError(f"offload must be one of {OFFLOAD_MODES}, got {offload!r}")
-        self.attention_order = attention_priority(attention)
+        attention_priority(attention)  # an unknown name fails here, before any model moves
         self.attention = attention
         if dtype is not None and dtype not in DTYPES.values():
             raise ValueError(f"dtype must be one of {sorted(DTYPES)} (torch dtypes), got {dtype!r}")
@@ -167,7 +167,7 @@ class TorchRuntime:
     def _use(self, name: str):
         """The network ``name`` on the device (moved there first with ``offload="model"``, and for a backbone's
         text encoder; moved back after), its attention calls under the runtime's kernel order."""
-        order = self.attention_order
+        order = attention_priority(self.attention)
         with nullcontext() if order is None else sdpa_kernel(order, set_priority=True):
             if self.offload is not None:
                 with self.offload.use(name) as net:

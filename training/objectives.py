@@ -228,7 +228,7 @@ class TrainingModule(nn.Module):
         ldrm = self.model.ldrm
         if ldrm.image_depth is None:
             raise ValueError("the depth objective trains ldrm.image_depth; this LDRM has none (image_depth: 0)")
-        B, _, T, H, W = batch["video"].shape
+        H, W = batch["video"].shape[-2:]
         frames = batch["video"].transpose(1, 2).flatten(0, 1) * 2 - 1  # (B·T, 3, H, W) in [−1, 1]
         distance = distance_activation(ldrm.image_depth(frames), ldrm.config)  # (B·T, H, W) metres
         with autocast_off():
