@@ -112,6 +112,8 @@ class LDRMConfig:
         image_branch: channels of the sharp-input-view CNN (module docstring, step 4); 0 = no branch.
         image_depth: channels of the monocular depth network that draws frame 0's distance from the photograph
             (:class:`models.mono_depth.MonoDepth`, module docstring step 4); 0 = none. Needs ``image_branch`` > 0.
+        image_depth_grid: cells per side over which that network's output is averaged and interpolated back
+            (``MonoDepth`` ``grid``: the coarse layout only); 0 = every pixel.
         deformation: config of the deformation network; its ``in_channels`` must equal ``embed_dim``.
     """
 
@@ -133,6 +135,7 @@ class LDRMConfig:
     head_channels: int = 32
     image_branch: int = 0
     image_depth: int = 0
+    image_depth_grid: int = 0
     deformation: DeformationConfig = field(default_factory=DeformationConfig)
 
     SAVED_DEFAULTS: ClassVar[dict[str, object]] = {"gaussian_frames": "reference", "head": "deconv"}
@@ -154,6 +157,8 @@ class LDRMConfig:
         if int(self.image_depth) < 0 or (self.image_depth and not self.image_branch):
             raise ValueError(f"LDRMConfig.image_depth must be ≥ 0 and needs image_branch > 0, got image_depth "
                              f"{self.image_depth}, image_branch {self.image_branch}")
+        if int(self.image_depth_grid) < 0:
+            raise ValueError(f"LDRMConfig.image_depth_grid must be ≥ 0, got {self.image_depth_grid}")
         if self.head not in HEADS:
             raise ValueError(f"LDRMConfig.head must be one of {HEADS}, got {self.head!r}")
         if self.head == "upsample" and self.gaussian_frames == "all":
@@ -378,7 +383,8 @@ class LDRM(nn.Module, PretrainedMixin):
         else:
             self.head = UpsampleHead(d, up, config.head_channels)
         self.image_branch = ImageBranch(config.image_branch) if config.image_branch > 0 else None
-        self.image_depth = MonoDepth(config.image_depth) if config.image_depth > 0 else None
+        self.image_depth = (MonoDepth(config.image_depth, grid=config.image_depth_grid) if config.image_depth > 0
+                            else None)
         self.deformation = DeformationNetwork(config.deformation)
         for module in [self.embed, *self.blocks.modules()]:
             if isinstance(module, nn.Linear):  # ViT/DiT initialisation

@@ -13,6 +13,10 @@ A conv block is conv3×3 → GELU → conv3×3 → GELU. The output is the LDRM'
 ``models.ldrm.gaussian_activations``: distance = exp(log d_min + σ(r + b)·(log d_max − log d_min))), so the LDRM's
 bounds and activation stay the one definition of distance; the last convolution starts at zero, i.e. at the
 config's ``default_depth`` everywhere.
+
+With ``grid`` = g > 0 the output is averaged over a g×g grid of cells and interpolated bilinearly back to (H, W):
+a depth that can carry the scene's coarse layout but not follow the photograph's texture (on our synthetic data
+the views gain from the coarse layout, not from edges or detail: base model card).
 """
 from __future__ import annotations
 
@@ -34,16 +38,19 @@ class MonoDepth(nn.Module):
     Args:
         channels: C, the full-resolution width; level i has C·2^i channels at (H, W) / 2^i.
         levels: encoder stages (≥ 1); H and W must be divisible by 2^levels.
+        grid: g > 0 averages the output over g×g cells and interpolates it back bilinearly (module docstring);
+            0 keeps every pixel.
 
     Raises:
-        ValueError: ``channels`` or ``levels`` < 1; (in forward) an image that is not (B, 3, H, W) with H and W
-            divisible by 2^levels.
+        ValueError: ``channels`` or ``levels`` < 1, ``grid`` < 0; (in forward) an image that is not (B, 3, H, W)
+            with H and W divisible by 2^levels.
     """
 
-    def __init__(self, channels: int, levels: int = 3) -> None:
+    def __init__(self, channels: int, levels: int = 3, grid: int = 0) -> None:
         super().__init__()
-        if channels < 1 or levels < 1:
-            raise ValueError(f"MonoDepth needs channels ≥ 1 and levels ≥ 1, got {channels}, {levels}")
+        if channels < 1 or levels < 1 or grid < 0:
+            raise ValueError(f"MonoDepth needs channels ≥ 1, levels ≥ 1 and grid ≥ 0, got {channels}, {levels}, {grid}")
+        self.grid = grid
         widths = [channels * 2 ** i for i in range(levels + 1)]
         self.levels = levels
         self.stem = _conv_block(3, channels)
@@ -66,4 +73,8 @@ class MonoDepth(nn.Module):
         for up in self.up:
             skip = skips.pop()
             y = up(torch.cat([F.interpolate(y, size=skip.shape[-2:], mode="bilinear", align_corners=False), skip], 1))
-        return self.out(y)[:, 0]
+        y = self.out(y)
+        if self.grid:  # the coarse layout only (module docstring)
+            y = F.interpolate(F.adaptive_avg_pool2d(y, self.grid), size=y.shape[-2:], mode="bilinear",
+                              align_corners=False)
+        return y[:, 0]

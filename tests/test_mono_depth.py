@@ -74,6 +74,37 @@ def test_frame_0_depth_reads_the_photograph_alone_and_the_whole_of_it():
     assert bool((far.abs() > 0).any())  # one corner of the photo reaches the opposite corner (global context)
 
 
+def _bilinear_reference(cells: np.ndarray, size: int) -> np.ndarray:
+    """(g, g) cell values → (size, size) by separable linear interpolation between cell centres, clamped at the
+    borders (align_corners False), written out per pixel."""
+    g = len(cells)
+    weights = np.zeros((size, g))
+    for p in range(size):
+        x = min(max((p + 0.5) * g / size - 0.5, 0.0), g - 1.0)
+        i = min(int(x), g - 2) if g > 1 else 0
+        f = x - i
+        weights[p, i] += 1 - f
+        if g > 1:
+            weights[p, i + 1] += f
+    return weights @ cells @ weights.T
+
+
+@pytest.mark.parametrize("grid", [1, 2, 4])
+def test_a_depth_grid_is_the_bilinear_interpolation_of_the_cell_means(grid):
+    """``grid`` g: the full-resolution output averaged over g×g cells (a loop over the cells here), interpolated
+    bilinearly back (a per-pixel reference here); g = 1 is the image's mean everywhere."""
+    full, coarse = MonoDepth(8), MonoDepth(8, grid=grid)
+    _randomise(full, 4, std=0.05)
+    coarse.load_state_dict(full.state_dict())
+    image = _inputs()[2]
+    with torch.no_grad():
+        y, c = full(image)[0].double().numpy(), coarse(image)[0].double().numpy()
+    s = H // grid
+    means = np.array([[y[i * s:(i + 1) * s, j * s:(j + 1) * s].mean() for j in range(grid)] for i in range(grid)])
+    np.testing.assert_allclose(c, _bilinear_reference(means, H), rtol=1e-5, atol=1e-5 * np.abs(y).max())
+    assert np.abs(y - c).max() > 1e-3 * np.abs(y).max()  # not the full-resolution output
+
+
 def test_distance_activation_is_the_one_of_gaussian_activations():
     cfg = LDRMConfig()
     raw = torch.randn(5, 7, 12, generator=torch.Generator().manual_seed(3)) * 4
@@ -93,6 +124,11 @@ def test_errors_and_parameter_count():
         MonoDepth(8)(torch.zeros(1, 4, 16, 16))
     with pytest.raises(ValueError, match="needs image_branch"):
         LDRMConfig(image_depth=8)
+    with pytest.raises(ValueError, match="grid ≥ 0"):
+        MonoDepth(8, grid=-1)
+    with pytest.raises(ValueError, match="image_depth_grid must be ≥ 0"):
+        LDRMConfig(image_branch=8, image_depth=8, image_depth_grid=-2)
+    assert LDRM(LDRMConfig(image_branch=8, image_depth=8, image_depth_grid=4)).image_depth.grid == 4
     # closed form: stem 3·3·(3·C + C²) + 2C; encoder i: 3·3·(w_i·w_{i+1} + w_{i+1}²) + 2·w_{i+1}; global 1×1:
     # w_L² + w_L; decoder i: 3·3·((w_{i+1} + w_i)·w_i + w_i²) + 2·w_i; last 3×3: 9·C + 1
     C, L = 16, 3
