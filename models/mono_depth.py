@@ -15,8 +15,9 @@ bounds and activation stay the one definition of distance; the last convolution 
 config's ``default_depth`` everywhere.
 
 With ``grid`` = g > 0 the output is averaged over a g×g grid of cells and interpolated bilinearly back to (H, W):
-a depth that can carry the scene's coarse layout but not follow the photograph's texture (on our synthetic data
-the views gain from the coarse layout, not from edges or detail: base model card).
+a depth that can carry the scene's coarse layout but not follow the photograph's texture; g = 1 is one distance
+per photograph, a photo layer facing the camera that cannot bend (``train_base_depth_scale``). Neither is shipped:
+the base model card has what each does to held-out synthetic views and to real photographs.
 """
 from __future__ import annotations
 
