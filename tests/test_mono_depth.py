@@ -35,9 +35,9 @@ def _randomise(module: torch.nn.Module, seed: int, std: float = 0.2) -> None:
             p.copy_(torch.randn(p.shape, generator=g) * std)
 
 
-def _ldrm(image_depth: int, seed: int = 0) -> LDRM:
+def _ldrm(image_depth: int, seed: int = 0, grid: int = 0) -> LDRM:
     torch.manual_seed(seed)
-    model = LDRM(LDRMConfig(image_branch=8, image_depth=image_depth))
+    model = LDRM(LDRMConfig(image_branch=8, image_depth=image_depth, image_depth_grid=grid))
     _randomise(model.image_branch, 1)  # a trained branch: non-zero residuals on every channel
     return model
 
@@ -198,10 +198,11 @@ def test_the_depth_objective_needs_a_depth_network(batch):
 
 
 @pytest.mark.slow
-def test_ldrm_with_a_depth_network_exports_to_onnx(tmp_path):
+@pytest.mark.parametrize("grid", [0, 4])
+def test_ldrm_with_a_depth_network_exports_to_onnx(tmp_path, grid):
     import onnxruntime as ort
 
-    model = _ldrm(4).eval()
+    model = _ldrm(4, grid=grid).eval()
     _randomise(model.image_depth, 6)
     latents, plucker, image = _inputs()
     path = tmp_path / "ldrm.onnx"
