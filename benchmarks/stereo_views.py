@@ -1,9 +1,9 @@
 """Novel views of a real photograph against the second view of a calibrated stereo pair (issue 27).
 
     python benchmarks/stereo_views.py LEFT RIGHT DISPARITY [--checkpoint DIR ...] [--device DEV] [--write]
-    # scikit-image's Middlebury 2014 "Motorcycle" pair (its calibration is the default): from the files of the
-    # scikit-image wheel (pip download scikit-image --no-deps), skimage/data/motorcycle_{left,right}.png and
-    # skimage/data/motorcycle_disp.npz
+    # scikit-image's Middlebury 2014 "Motorcycle" pair, whose calibration (MOTORCYCLE) the script uses: from the
+    # files of the scikit-image wheel (pip download scikit-image --no-deps), skimage/data/motorcycle_left.png,
+    # motorcycle_right.png and motorcycle_disp.npz
 
 The held-out synthetic clips score novel views, but the photographs users give have no second view, so whether a
 photo-layer depth that helps synthetic views also holds on real photographs was judged by eye. A rectified stereo
@@ -34,6 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import markdown_table, publish, repo_relative  # noqa: E402
 
 from diff4splat.cameras import CameraPath  # noqa: E402
+from diff4splat.devices import AUTO, DEVICE_HELP  # noqa: E402
 from diff4splat.generate import generate, load_pipeline  # noqa: E402
 from diff4splat.io import load_image  # noqa: E402
 from training.eval_metrics import image_psnr  # noqa: E402
@@ -49,7 +50,10 @@ SIZE, BORDER = 256, 16
 
 def stereo_path(shape: tuple[int, int], calib: dict) -> CameraPath:
     """Left camera, then the right camera at each of :data:`SCALES` × the baseline, all at t = 0, for the left image
-    of ``shape`` (H, W) centre-cropped to a square and resized to :data:`SIZE` (as ``generate`` reads it)."""
+    of ``shape`` (H, W) pixels centre-cropped to a square and resized to :data:`SIZE` (as ``generate`` reads it).
+
+    ``calib`` holds the keys of :data:`MOTORCYCLE` (pixels of the full image; baseline in metres). Returns
+    1 + len(SCALES) cameras at SIZE², float64, world frame = the left camera's."""
     H, W = shape
     side = min(H, W)
     s = SIZE / side
@@ -83,7 +87,7 @@ def main() -> None:
     ap.add_argument("disparity", type=Path, help="left image's disparity, pixels (.npz first array, or .npy)")
     ap.add_argument("--checkpoint", type=Path, action="append", default=None,
                     help="model folder (repeat for several; default: the shipped weights)")
-    ap.add_argument("--device", default="auto")
+    ap.add_argument("--device", default=AUTO, help=DEVICE_HELP)
     ap.add_argument("--write", action="store_true")
     args = ap.parse_args()
     calib = MOTORCYCLE
