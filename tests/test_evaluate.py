@@ -14,6 +14,7 @@ from training.evaluate import (
     DEPTH_DIAGNOSTICS,
     DIAGNOSTICS,
     METRICS,
+    VARIANTS,
     _held_out_clips,
     aggregate,
     binned_keys,
@@ -79,6 +80,11 @@ def test_metrics_of_a_generated_scene_match_independent_computations(clips):
     expected = psnr(((recon[0] + 1) / 2).clamp(0, 1).permute(1, 0, 2, 3).double(), gt)
     assert m["vae_psnr"] == pytest.approx(expected, abs=1e-3)
     assert m["psnr_novel_repeat"] == pytest.approx(psnr(gt[:1].expand_as(gt[1:]), gt[1:]), abs=1e-6)
+    # the generated video itself: the sampled latents through the VAE decoder, no 3D
+    with torch.no_grad():
+        video = ((pipe.model.vae.decode_latents(res.latents)[0] + 1) / 2).clamp(0, 1).permute(1, 0, 2, 3)
+    assert m["psnr_novel_video"] == pytest.approx(psnr(video[1:].double(), gt[1:]), abs=1e-4)
+    assert m["psnr_novel_video"] != pytest.approx(m["psnr_novel"], abs=1e-2)
     # the oracle: the scene generated from the encoded true video
     with torch.no_grad():
         latents = pipe.model.vae.encode_latents(clip["video"][None] * 2 - 1)
@@ -257,7 +263,7 @@ def test_pooled_psnr_is_that_of_the_mean_mse_over_every_bin():
         metrics = {k: 1.0 for k in METRICS + DIAGNOSTICS + DEPTH_DIAGNOSTICS + BASELINES}
         return ClipEvaluation(name="c", dynamic=True, max_angle=max(angles), metrics=metrics,
                               angles=torch.tensor(angles, dtype=torch.float64),
-                              frame_mse={v: mse for v in ("model", "noise", "gt", "repeat", "repeat_blur")})
+                              frame_mse={v: mse for v in ("model", *VARIANTS)})
 
     agg = aggregate([clip([1e-2, 1e-3], [5.0, 50.0]), clip([0.0], [20.0])])
     expect = -10 * math.log10((1e-2 + 1e-3 + 0.0) / 3)

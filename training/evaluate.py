@@ -41,13 +41,18 @@ Does the generator matter? On the same frames 1…T−1 (:data:`BASELINES`):
   the photograph's latent): what the generated video contributes;
 - ``psnr_novel_gt``: the oracle — the latents of the true video (``vae.encode_latents``) instead of sampled
   ones (PyTorch models only, NaN for another runtime); with ``motion_epe_gt``/``motion_disp_epe_gt`` the
-  LDRM's motion on ground-truth latents, to compare with its motion on generated latents.
+  LDRM's motion on ground-truth latents, to compare with its motion on generated latents;
+- ``psnr_novel_video``: the generated video itself — the sampled latents decoded by the VAE
+  (``runtime.decode_latents``, clamped to [0, 1]), frame i against true frame i, no 3D at all: what the
+  generator alone shows at each camera, against which the scene's renders (which keep the photograph's pixels
+  and must be one consistent 4D scene) and ``vae_psnr`` (the decoder's ceiling) are read.
 
 PSNR by view angle (:func:`training.eval_metrics.view_angles`: rotation angle of R_i R_0ᵀ from the input
 camera, which for an orbit is its sweep): the frames 1…T−1 of all clips are split into the bins of
 :data:`training.eval_metrics.ANGLE_BINS` (0–15°, 15–45°, 45–90°, > 90°); each bin's PSNR is that of the
 mean MSE over its frames (:func:`training.eval_metrics.binned_psnr`). Keys ``psnr_<bin>`` (the model),
-``psnr_<bin>_<variant>`` for ``noise``, ``gt``, ``repeat``, ``repeat_blur``, and ``frames_<bin>`` (frame count).
+``psnr_<bin>_<variant>`` for ``noise``, ``gt``, ``video``, ``repeat``, ``repeat_blur``, and ``frames_<bin>``
+(frame count).
 
 With ``--photo IMAGE`` it also reports :func:`photo_fidelity`: the scene generated from a real photograph at the
 output resolution (``--resolution``, default 256), rendered from the input camera at t = 0, against that
@@ -127,7 +132,7 @@ DEPTH_DIAGNOSTICS = ("depth_abs_rel", "depth_scale")
 """Reported beside ``depth_corr`` on the same pixels (:func:`training.eval_metrics.depth_errors`): the mean
 relative error (lower is better) and the median ratio of rendered to true depth (1 is right)."""
 
-VARIANTS = ("noise", "gt", "repeat", "repeat_blur")
+VARIANTS = ("noise", "gt", "video", "repeat", "repeat_blur")
 """Baselines and ablations scored on the model's novel frames (module docstring)."""
 
 BASELINES = tuple(f"psnr_novel_{v}" for v in VARIANTS)
@@ -200,7 +205,8 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
     """Metrics, baselines and ablations of one held-out clip (module docstring).
 
     Generates the clip's scene three times (sampled latents, noise latents, and — PyTorch models only —
-    the true video's latents) plus the loop-closure orbit of a static clip, on ``pipe.device``; ``clip``'s
+    the true video's latents) plus the loop-closure orbit of a static clip, and decodes the sampled latents once
+    (``psnr_novel_video``), on ``pipe.device``; ``clip``'s
     tensors are CPU tensors (:func:`_held_out_clips`) and the metrics are computed on the CPU.
 
     Raises:
@@ -219,6 +225,8 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
     colors, depths, alphas = _render(res)
     pred = colors.permute(0, 3, 1, 2)
     mse = {"model": frame_mse(pred[1:], gt[1:]), **repeat_baselines(clip["video"])}
+    video = ((pipe.runtime.decode_latents(res.latents)[0].float().cpu() + 1) / 2).clamp(0, 1)  # (3, T, h, w)
+    mse["video"] = frame_mse(video.permute(1, 0, 2, 3)[1:], gt[1:])
     out = {"psnr_input": image_psnr(pred[:1], gt[:1]), "ssim_input": image_ssim(pred[:1], gt[:1]),
            "ssim_novel": image_ssim(pred[1:], gt[1:])}
     valid = clip["depth_valid"] & (alphas > 0.5)
@@ -444,7 +452,8 @@ def _print_table(rows: list[dict], header: list[str]) -> str:
 
 
 _VARIANT_LABELS = {"model": "model (sampled latents)", "noise": "noise latents (ablation)",
-                   "gt": "true-video latents (oracle)", "repeat": "repeat frame 0",
+                   "gt": "true-video latents (oracle)", "video": "generated video, decoded (no 3D)",
+                   "repeat": "repeat frame 0",
                    "repeat_blur": "repeat frame 0, blurred"}
 
 
