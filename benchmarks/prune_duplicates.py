@@ -2,16 +2,17 @@
 
 For each camera preset and seed, ``generate`` runs on the example photograph and the table reports the
 Gaussians of the unpruned S·H·W grid, those :func:`diff4splat.prune.duplicate_mask` drops, those left after
-it, and those left after the opacity/visibility pruning (``GenerationResult.prune_stats``); then the same
+it, the later-frame Gaussians that covered the photograph and slid behind it (``slid``), and those left after the
+occluder and opacity/visibility pruning (``GenerationResult.prune_stats``); then the same
 opacity/visibility pruning without the duplicate pruning, for comparison. Render times are medians of
 :func:`diff4splat.render.sequence.render_path` over the whole path (CPU), with and without the duplicate
 pruning. With a random model (no trained weights for the config) the counts show the code path working,
 not what a trained LDRM's overlap is.
 
-The pipeline applies the duplicate pruning itself and has no switch to turn it off, so this script
-intercepts ``diff4splat.pipeline.duplicate_mask``: it records the unpruned scene and the source cameras
-the pipeline passes, calls :func:`~diff4splat.prune.duplicate_mask` on them itself (timed), and hands the
-mask back to the pipeline. The scene without duplicate pruning is the recorded unpruned scene after the
+The pipeline applies the duplicate pruning itself (:func:`diff4splat.prune.settle_generated`) and has no switch to
+turn it off, so this script intercepts ``diff4splat.prune.duplicate_mask``: it records the unpruned scene and
+the source cameras the pipeline passes, calls :func:`~diff4splat.prune.duplicate_mask` on them itself (timed),
+and hands the mask back to the pipeline. The scene without duplicate pruning is the recorded unpruned scene after the
 pipeline's own opacity/visibility pruning (:func:`diff4splat.prune.prune_scene`, ``config.prune_opacity``).
 
     python benchmarks/prune_duplicates.py [--config tiny] [--checkpoint DIR | --untrained] [--seeds 0 1 2]
@@ -34,7 +35,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, markdown_table, peak_rss_mb, repo_relative, write_section  # noqa: E402
 
-import diff4splat.pipeline as pipeline_module  # noqa: E402
+import diff4splat.prune as prune_module  # noqa: E402
 from diff4splat.io import load_image  # noqa: E402
 from diff4splat.pipeline import Diff4SplatPipeline, load_model  # noqa: E402
 from diff4splat.prune import duplicate_mask, prune_scene  # noqa: E402
@@ -42,7 +43,7 @@ from diff4splat.render.sequence import render_path  # noqa: E402
 from models.bundle import DEFAULT_CONFIG  # noqa: E402
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
-HEADER = ["path", "seed", "S", "before", "duplicates", "after dup.", "after occluders, vis.+opac.",
+HEADER = ["path", "seed", "S", "before", "duplicates", "after dup.", "slid", "after occluders, vis.+opac.",
           "without dup.: after", "dup. mask ms", "render ms", "render ms without dup.", "speed-up"]
 
 
@@ -74,7 +75,7 @@ def run(pipe: Diff4SplatPipeline, image: torch.Tensor, trajectory: str, seed: in
         repeats: int) -> list:
     """One table row: generate with the recorder in place, then render with and without duplicate pruning."""
     rec = _Recorder()
-    with mock.patch.object(pipeline_module, "duplicate_mask", rec):
+    with mock.patch.object(prune_module, "duplicate_mask", rec):
         res = pipe(image, pipe.default_cameras(trajectory), prompt, seed=seed)
     stats, S = res.prune_stats, len(res.source_frames)
     if rec.scene is None:  # one source frame: the pipeline has nothing to deduplicate
@@ -85,7 +86,7 @@ def run(pipe: Diff4SplatPipeline, image: torch.Tensor, trajectory: str, seed: in
     ms_with = _median_render_ms(res.scene, res.cameras, repeats)
     ms_without = _median_render_ms(without, res.cameras, repeats)
     dups = stats.get("duplicates", 0)
-    return [trajectory, seed, S, stats["before"], dups, stats["before"] - dups, stats["after"],
+    return [trajectory, seed, S, stats["before"], dups, stats["before"] - dups, stats.get("slid", 0), stats["after"],
             without.num_gaussians, f"{1000 * rec.seconds:.1f}", f"{ms_with:.1f}", f"{ms_without:.1f}",
             f"{ms_without / ms_with:.2f}×"]
 

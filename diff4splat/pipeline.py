@@ -55,7 +55,7 @@ from .checks import check_positive_int
 from .devices import Stopwatch
 from .limits import check_limit
 from .photo import PHOTO_EPS2D, layer_sizes
-from .prune import prune_mask, redundant_mask
+from .prune import prune_mask, settle_generated
 from .render.defaults import BACKGROUND
 from .runtime import NetworkRuntime, TorchRuntime
 from .scene import DynamicGaussians
@@ -134,9 +134,10 @@ class GenerationResult:
             ``torch.cuda.reset_peak_memory_stats``, so the first stage that reaches the last value set the peak
             (:class:`diff4splat.devices.Stopwatch`). Empty on other devices.
         prune_stats: counts from :func:`diff4splat.prune.prune_mask`, plus "duplicates" (Gaussians of a
-            later source frame dropped as near-duplicates, :func:`diff4splat.prune.duplicate_mask`) and
-            "occluders" (later-frame Gaussians in front of the photograph's surface at the input view,
-            :func:`diff4splat.prune.occluder_mask`).
+            later source frame dropped as near-duplicates, :func:`diff4splat.prune.duplicate_mask`), "slid"
+            (later-frame Gaussians that covered the photograph at the input view, moved back along their source
+            rays, :func:`diff4splat.prune.slide_behind`) and "occluders" (those dropped because no slide freed
+            them; :func:`diff4splat.prune.settle_generated`).
         source_frames: (S,) long, the video frame of each source frame whose rays carry a grid of
             Gaussians (``models.ldrm.source_frame_indices``).
         gaussian_index: (M,) long, index of each kept Gaussian in the unpruned scene, increasing: the photo
@@ -507,7 +508,7 @@ class Diff4SplatPipeline:
         timings["reconstruct"] = clock.lap()
 
         index = torch.arange(scene.num_gaussians, device=dev)
-        drop, duplicates, occluders = redundant_mask(scene, grid, cameras, sources, photo["photo_depth"])
+        scene, drop, settled = settle_generated(scene, grid, cameras, sources, photo["photo_depth"])
         scene, index = scene.select(~drop), index[~drop]
         # The photo layer is opaque and pixel-aligned to the first camera (seen by construction): only the
         # backdrop and the generated Gaussians need the opacity and visibility tests.
@@ -516,8 +517,7 @@ class Diff4SplatPipeline:
         keep[generated], stats = prune_mask(scene.select(generated), cameras, min_opacity=cfg.prune_opacity)
         stats = {**stats, "before": scene.num_gaussians, "after": int(keep.sum())}
         scene, index = scene.select(keep), index[keep]
-        stats = {**stats, "before": stats["before"] + duplicates + occluders, "duplicates": duplicates,
-                 "occluders": occluders}
+        stats = {**stats, "before": stats["before"] + settled["duplicates"] + settled["occluders"], **settled}
         timings["prune"] = clock.lap()
         if stats["after"] == 0:
             raise ValueError(_sees_nothing(stats, cfg.prune_opacity))

@@ -2,6 +2,7 @@
 source frames of a multi-frame reconstruction."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import cv2
@@ -11,12 +12,14 @@ from torch import Tensor
 
 from .cameras.path import CameraPath
 from .checks import check_finite, check_positive, check_positive_int
+from .gaussians import Gaussians
 from .render.defaults import NEAR_PLANE
 from .render.projection import project_gaussians
 from .render.rasterize import rasterize
 from .scene import DynamicGaussians
 
-__all__ = ["visibility_mask", "prune_scene", "prune_mask", "duplicate_mask", "occluder_mask", "redundant_mask"]
+__all__ = ["visibility_mask", "prune_scene", "prune_mask", "duplicate_mask", "occluder_mask", "SLIDE_FACTORS",
+           "slide_behind", "settle_generated"]
 
 
 def visibility_mask(scene: DynamicGaussians, cameras: CameraPath, near_plane: float = NEAR_PLANE) -> Tensor:
@@ -233,46 +236,131 @@ def occluder_mask(
                                        render_mode="ED")
         depth = torch.where(alpha[0, ..., 0] >= min_alpha, rendered[0, ..., 0], 0.0)  # (H, W), 0: uncovered
     c = g.select(cand)
-    proj = project_gaussians(c.means, c.quats, c.scales, c.opacities, viewmat[None], K[None], width, height)
-    radii = proj.radii[0].to(depth.dtype)
-    seen = radii > 0
-    z = proj.depths[0]
-    d_max = _footprint_max(depth, proj.means2d[0, :, 0], proj.means2d[0, :, 1], radii * (10 / 9) + 1)
-    out[cand[seen & (z < (1 + depth_tolerance) * d_max)]] = True
+    covers = _covers(c.means, c.quats, c.scales, c.opacities, viewmat, K, width, height, depth, depth_tolerance)
+    out[cand[covers]] = True
     return out
 
 
-@torch.no_grad()
-def redundant_mask(
+def _covers(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmat: Tensor, K: Tensor, width: int,
+            height: int, depth: Tensor, depth_tolerance: float) -> Tensor:
+    """:func:`occluder_mask`'s test of P Gaussians (positions at the photograph's time) against the surface's
+    z-depth ``depth`` (H, W; 0 = uncovered): (P,) bool, True where the footprint square holds a covered pixel whose
+    surface the centre is not clearly behind."""
+    proj = project_gaussians(means, quats, scales, opacities, viewmat[None], K[None], width, height)
+    radii = proj.radii[0].to(depth.dtype)
+    d_max = _footprint_max(depth, proj.means2d[0, :, 0], proj.means2d[0, :, 1], radii * (10 / 9) + 1)
+    return (radii > 0) & (proj.depths[0] < (1 + depth_tolerance) * d_max)
+
+
+SLIDE_FACTORS: tuple[float, ...] = tuple(1.05 * 1.12 ** k for k in range(14))
+"""Distance factors λ :func:`slide_behind` tries, in order: 1.05 to 4.1, 12 % apart."""
+
+
+def slide_behind(
+    scene: DynamicGaussians,  # M Gaussians (deformation optional)
+    index: Tensor,  # (P,) long, the Gaussians to move
+    origins: Tensor,  # (P, 3) centre of each one's source camera, metres
+    viewmat: Tensor,  # (4, 4) world-to-camera of the input camera
+    K: Tensor,  # (3, 3) pixels
+    time: float,  # clip time of the photograph, in [0, 1]
+    width: int,
+    height: int,
+    surface_depth: Tensor,  # (H, W) z-depth of the photograph's surface at the input view, metres
+    *,
+    factors: tuple[float, ...] = SLIDE_FACTORS,
+    depth_tolerance: float = 0.05,
+) -> tuple[DynamicGaussians, Tensor]:
+    """Move Gaussians back along the rays from their source cameras until they no longer cover the photograph.
+
+    Gaussian i of ``index`` goes to o + λ·(μ − o) with scales λ·s (o: its source camera's centre, μ, s: its
+    canonical mean and scales; deformation offsets kept): seen from o it keeps its direction and its angular size,
+    i.e. its pixel and footprint in its source frame, while its depth there grows by λ. λ is the first of
+    ``factors`` at which, deformed to ``time``, it passes :func:`occluder_mask`'s test against ``surface_depth``
+    (its footprint at the input view covers no pixel whose surface it is not clearly behind); a Gaussian for which
+    no factor does stays where it is and is reported. Where a generated frame and the photograph disagree about a
+    surface, the photograph (observed) keeps the input view and the generated Gaussian keeps its own view, at the
+    nearest depth consistent with both. Our rule (docs/DESIGN.md, "Data flow of generate").
+
+    Returns:
+        (the scene with the moved Gaussians — new tensors, differentiable in the canonical means and scales at the
+        chosen λ; the input scene is not modified —, (P,) bool: True = moved, False = no factor frees it).
+
+    Raises:
+        ValueError: ``index`` and ``origins`` not (P,) and (P, 3); a factor ≤ 1; ``surface_depth`` not
+            (height, width); the checks of :func:`occluder_mask`.
+    """
+    if index.dim() != 1 or tuple(origins.shape) != (index.shape[0], 3):
+        raise ValueError(f"index (P,) and origins (P, 3) must match, got {tuple(index.shape)} and "
+                         f"{tuple(origins.shape)}")
+    if not factors or min(factors) <= 1.0:
+        raise ValueError(f"factors must be > 1, got {factors!r}")
+    width, height = check_positive_int("width", width, "pixels"), check_positive_int("height", height, "pixels")
+    depth_tolerance = _check_thresholds(1.0, depth_tolerance)
+    if tuple(surface_depth.shape) != (height, width):
+        raise ValueError(f"surface_depth must have shape ({height}, {width}), got {tuple(surface_depth.shape)}")
+    canonical = scene.canonical
+    means = canonical.means
+    index, origins = index.to(means.device), origins.to(means)
+    viewmat, K, depth = viewmat.to(means), K.to(means), surface_depth.to(means)
+    found = torch.zeros(index.shape[0], dtype=torch.bool, device=means.device)
+    lam = torch.ones(index.shape[0], dtype=means.dtype, device=means.device)
+    with torch.no_grad():
+        sub = scene.select(index)
+        g = sub.at(float(time), gate=0.0)
+        mu, offset = sub.canonical.means, g.means - sub.canonical.means  # deformation offset at the photo's time
+        for f in factors:
+            i = torch.nonzero(~found).squeeze(1)
+            if i.numel() == 0:
+                break
+            pos = origins[i] + f * (mu[i] - origins[i]) + offset[i]
+            free = i[~_covers(pos, g.quats[i], g.scales[i] * f, g.opacities[i], viewmat, K, width, height, depth,
+                              depth_tolerance)]
+            lam[free], found[free] = f, True
+    moved, lam = index[found], lam[found, None].detach()
+    new_means, new_scales = means.clone(), canonical.scales.clone()
+    new_means[moved] = origins[found] + lam * (means[moved] - origins[found])
+    new_scales[moved] = canonical.scales[moved] * lam
+    slid = Gaussians(new_means, canonical.quats, new_scales, canonical.opacities, canonical.sh)
+    return dataclasses.replace(scene, canonical=slid), found
+
+
+def settle_generated(
     scene: DynamicGaussians,  # M Gaussians: the photo layer and backdrop (source 0), then generated frames
     source: Tensor,  # (M,) long, source frame index in [0, S)
     cameras: CameraPath,  # the clip's path at the scene's image size
     sources: Tensor,  # (S,) long, the video frame of each source frame
     surface_depth: Tensor,  # (H, W) z-depth of the photo layer at the input view, metres
-) -> tuple[Tensor, int, int]:
-    """Generated Gaussians that add nothing to what the photograph shows (docs/DESIGN.md, "Data flow of
-    generate"): near-duplicates of a surface an earlier source frame placed (:func:`duplicate_mask`), then, among
-    the rest, those that would cover the photograph at the input view (:func:`occluder_mask` against the photo
-    layer's exact ``surface_depth``). One rule for generation and training (``training.objectives``).
+) -> tuple[DynamicGaussians, Tensor, dict[str, int]]:
+    """Generated Gaussians made to add only what the photograph does not show (docs/DESIGN.md, "Data flow of
+    generate"): near-duplicates of a surface an earlier source frame placed are dropped (:func:`duplicate_mask`);
+    of the rest, those that would cover the photograph at the input view (:func:`occluder_mask` against the photo
+    layer's exact ``surface_depth``) slide back along their source camera's rays until they do not
+    (:func:`slide_behind`), and are dropped only where no factor frees them. One rule for generation and training
+    (``training.objectives``).
 
     Returns:
-        ((M,) bool on the scene's device, True = drop, never for source 0; number of duplicates; number of
-        occluders).
+        (the scene with the slid Gaussians moved, (M,) bool on the scene's device: True = drop, never for source 0,
+        counts {"duplicates", "slid", "occluders": dropped as covering the photograph}).
 
     Raises:
-        ValueError: as :func:`duplicate_mask` and :func:`occluder_mask`.
+        ValueError: as :func:`duplicate_mask`, :func:`occluder_mask` and :func:`slide_behind`.
     """
     drop = torch.zeros(scene.num_gaussians, dtype=torch.bool, device=scene.canonical.means.device)
     if len(sources) < 2:
-        return drop, 0, 0
+        return scene, drop, {"duplicates": 0, "slid": 0, "occluders": 0}
     W, H = cameras.width, cameras.height
+    t0 = float(cameras.times[0])
     dup = duplicate_mask(scene, source, cameras.viewmats[sources], cameras.Ks[sources], cameras.times[sources], W, H)
     rest = torch.nonzero(~dup).squeeze(1)
-    occl = occluder_mask(scene.select(rest), source[rest], cameras.viewmats[0], cameras.Ks[0],
-                         float(cameras.times[0]), W, H, surface_depth=surface_depth)
+    occl = rest[occluder_mask(scene.select(rest), source[rest], cameras.viewmats[0], cameras.Ks[0], t0, W, H,
+                              surface_depth=surface_depth)]
+    viewmats = cameras.viewmats[sources].to(scene.canonical.means)
+    centres = -(viewmats[:, :3, :3].transpose(1, 2) @ viewmats[:, :3, 3:])[..., 0]  # (S, 3) camera centres
+    scene, moved = slide_behind(scene, occl, centres[source[occl].to(centres.device)], cameras.viewmats[0],
+                                cameras.Ks[0], t0, W, H, surface_depth)
     drop |= dup
-    drop[rest[occl]] = True
-    return drop, int(dup.sum()), int(occl.sum())
+    drop[occl[~moved]] = True
+    return scene, drop, {"duplicates": int(dup.sum()), "slid": int(moved.sum()), "occluders": int((~moved).sum())}
 
 
 def _footprint_max(depth: Tensor, u: Tensor, v: Tensor, r: Tensor) -> Tensor:

@@ -14,7 +14,7 @@ from diff4splat.cameras import camera_rays
 from diff4splat.cameras.path import CameraPath
 from diff4splat.gaussians import Gaussians, rgb_to_sh0
 from diff4splat.photo import PHOTO_EPS2D
-from diff4splat.prune import redundant_mask
+from diff4splat.prune import settle_generated
 from diff4splat.scene import DynamicGaussians
 from training.losses import (
     LossWeights,
@@ -273,8 +273,8 @@ def test_assembled_reconstruction_losses_equal_a_hand_computation(clips):
         cams = CameraPath(batch["viewmats"][0], batch["Ks"][0], SIZE, SIZE, times)
         photo = batch["video"][0, :, 0].permute(1, 2, 0)
         full, grid, info = assemble_scene(out, sources, cams, cams, photo, times)
-        drop, dups, occluders = redundant_mask(full, grid, cams, sources, info["photo_depth"])
-        assert 0 < int(drop.sum()) == dups + occluders < int((grid > 0).sum())
+        full, drop, counts = settle_generated(full, grid, cams, sources, info["photo_depth"])
+        assert 0 < int(drop.sum()) == counts["duplicates"] + counts["occluders"] < int((grid > 0).sum())
         scene = full.select(~drop)
         rgb, depth, alpha = render_frames(scene, batch["viewmats"][0], batch["Ks"][0], times, frames, SIZE, SIZE,
                                           eps2d=PHOTO_EPS2D, background=torch.tensor(info["background"]))

@@ -5,7 +5,16 @@ import torch
 
 from diff4splat.cameras import CameraPath, intrinsics_from_fov
 from diff4splat.gaussians import Gaussians
-from diff4splat.prune import _footprint_max, duplicate_mask, occluder_mask, prune_scene, visibility_mask
+from diff4splat.prune import (
+    SLIDE_FACTORS,
+    _footprint_max,
+    duplicate_mask,
+    occluder_mask,
+    prune_scene,
+    settle_generated,
+    slide_behind,
+    visibility_mask,
+)
 from diff4splat.render import rasterize_dense
 from diff4splat.render.defaults import NEAR_PLANE
 from diff4splat.render.sequence import render_path
@@ -354,6 +363,111 @@ def test_occluder_mask_takes_an_exact_surface_depth():
     assert occluder_mask(scene, source, vm, K, 0.0, W_DUP, H_DUP, surface_depth=depth)[-1]
     with pytest.raises(ValueError, match="surface_depth must have shape"):
         occluder_mask(scene, source, vm, K, 0.0, W_DUP, H_DUP, surface_depth=depth[1:])
+
+
+def _slid(scene, index, origin, factors):
+    """Brute force: every Gaussian of ``index`` moved by each factor (one scene per factor)."""
+    out = []
+    for f in factors:
+        means, scales = scene.canonical.means.clone(), scene.canonical.scales.clone()
+        means[index] = origin + f * (means[index] - origin)
+        scales[index] = scales[index] * f
+        g = scene.canonical
+        out.append(DynamicGaussians(Gaussians(means, g.quats, scales, g.opacities, g.sh), scene.times, scene.d_means,
+                                    scene.d_quats, scene.d_scales))
+    return out
+
+
+def test_slide_behind_moves_occluders_along_their_source_rays_to_the_first_free_factor():
+    """Gaussians of a side camera in front of the photo's surface move along their own rays (same direction and
+    angular size from that camera) to the first factor at which occluder_mask, against the exact surface depth,
+    no longer drops them — checked against occluder_mask on every factor's scene; the input is not modified; the
+    moved means carry the gradient λ; with factors too small nothing moves."""
+    vm1 = torch.eye(4, dtype=torch.float64)
+    vm1[0, 3] = -0.4  # camera 1 at x = 0.4 m
+    origin = torch.tensor([0.4, 0.0, 0.0], dtype=torch.float64)
+    wall = _plane(3.0)
+    pts = torch.cat([_plane(z, range(6, 10), range(4, 8), viewmat=vm1) for z in (1.2, 1.8, 2.6)])
+    scene = _cat(_gaussians(wall), _gaussians(pts, scale=0.02))
+    source = torch.cat([_source(len(wall)), torch.ones(len(pts), dtype=torch.long)])
+    idx = torch.arange(len(wall), len(wall) + len(pts))
+    depth = torch.full((H_DUP, W_DUP), 3.0, dtype=torch.float64)
+    vm0, K = torch.eye(4, dtype=torch.float64), _K()[0]
+    assert occluder_mask(scene, source, vm0, K, 0.0, W_DUP, H_DUP, surface_depth=depth)[idx].all()
+    before = scene.canonical.means.clone()
+    out, moved = slide_behind(scene, idx, origin.expand(len(idx), 3), vm0, K, 0.0, W_DUP, H_DUP, depth)
+    assert moved.all() and torch.equal(scene.canonical.means, before)
+    assert not occluder_mask(out, source, vm0, K, 0.0, W_DUP, H_DUP, surface_depth=depth).any()
+    covers = torch.stack([occluder_mask(s, source, vm0, K, 0.0, W_DUP, H_DUP, surface_depth=depth)[idx]
+                          for s in _slid(scene, idx, origin, SLIDE_FACTORS)])  # (F, P)
+    first = torch.tensor(SLIDE_FACTORS, dtype=torch.float64)[(~covers).double().argmax(0)]
+    ray0, ray1 = before[idx] - origin, out.canonical.means[idx] - origin
+    torch.testing.assert_close(ray1.norm(dim=1) / ray0.norm(dim=1), first)
+    torch.testing.assert_close(torch.linalg.cross(ray0, ray1).norm(dim=1), torch.zeros(len(idx), dtype=torch.float64),
+                               atol=1e-12, rtol=0)
+    torch.testing.assert_close(out.canonical.scales[idx], 0.02 * first[:, None].expand(-1, 3))
+    assert len(set(first.tolist())) == 3  # the three depths need three different factors
+    torch.testing.assert_close(out.canonical.means[:len(wall)], wall)
+    means = scene.canonical.means.clone().requires_grad_(True)
+    g = scene.canonical
+    s_grad = DynamicGaussians(Gaussians(means, g.quats, g.scales, g.opacities, g.sh))
+    out2, _ = slide_behind(s_grad, idx, origin.expand(len(idx), 3), vm0, K, 0.0, W_DUP, H_DUP, depth)
+    out2.canonical.means[idx].sum().backward()
+    torch.testing.assert_close(means.grad[idx], first[:, None].expand(-1, 3))
+    stuck, none = slide_behind(scene, idx, origin.expand(len(idx), 3), vm0, K, 0.0, W_DUP, H_DUP, depth,
+                               factors=(1.01,))
+    assert not none.any() and torch.equal(stuck.canonical.means, before)
+
+
+def test_slide_behind_tests_positions_at_the_photo_time():
+    """A Gaussian whose deformation pushes it 1 m back at t = 1 needs a smaller factor when the photograph is at
+    t = 1 (λ·1.5 + 1 ≥ 3.15 → 1.475) than at t = 0 (λ·1.5 ≥ 3.15 → 2.32); its deformation is kept."""
+    wall = _plane(3.0)
+    pt = _plane(1.5, range(8, 9), range(8, 9))
+    d = torch.zeros(2, len(wall) + 1, 3, dtype=torch.float64)
+    d[1, -1, 2] = 1.0
+    scene = _gaussians(torch.cat([wall, pt]), scale=0.01, d_means=d, key_times=_times(0.0, 1.0))
+    depth = torch.full((H_DUP, W_DUP), 3.0, dtype=torch.float64)
+    idx, origin = torch.tensor([len(wall)]), torch.zeros(1, 3, dtype=torch.float64)
+    for t, lam in ((0.0, 1.05 * 1.12**7), (1.0, 1.05 * 1.12**3)):
+        out, moved = slide_behind(scene, idx, origin, torch.eye(4, dtype=torch.float64), _K()[0], t, W_DUP, H_DUP,
+                                  depth)
+        assert moved.all()
+        torch.testing.assert_close(out.canonical.means[-1], lam * pt[0])
+        assert torch.equal(out.d_means, scene.d_means)
+
+
+def test_slide_behind_rejects_bad_arguments_and_moves_nothing_unasked():
+    scene = _gaussians(_plane(3.0))
+    depth = torch.full((H_DUP, W_DUP), 3.0, dtype=torch.float64)
+    args = (torch.eye(4, dtype=torch.float64), _K()[0], 0.0, W_DUP, H_DUP)
+    out, moved = slide_behind(scene, torch.zeros(0, dtype=torch.long), torch.zeros(0, 3), *args, depth)
+    assert moved.shape == (0,) and torch.equal(out.canonical.means, scene.canonical.means)
+    with pytest.raises(ValueError, match="origins"):
+        slide_behind(scene, torch.tensor([0, 1]), torch.zeros(3, 3), *args, depth)
+    with pytest.raises(ValueError, match="factors"):
+        slide_behind(scene, torch.tensor([0]), torch.zeros(1, 3), *args, depth, factors=(0.9, 1.2))
+    with pytest.raises(ValueError, match="surface_depth"):
+        slide_behind(scene, torch.tensor([0]), torch.zeros(1, 3), *args, depth[1:])
+
+
+def test_settle_generated_drops_duplicates_and_slides_occluders():
+    """settle_generated: a later frame's copy of the photo's surface is dropped as duplicate, its Gaussians in front
+    of the surface slide behind it (none dropped), and the counts add up; source 0 is untouched."""
+    wall = _plane(3.0)
+    path = CameraPath(torch.eye(4, dtype=torch.float64).repeat(2, 1, 1), _K(2), W_DUP, H_DUP,
+                      torch.tensor([0.0, 1.0], dtype=torch.float64))
+    copy, front = _plane(3.0, range(0, 4)), _plane(1.5, range(8, 12), range(4, 8))
+    scene = _cat(_gaussians(wall), _gaussians(copy), _gaussians(front, scale=0.01))
+    source = _source(len(wall), len(copy) + len(front))
+    depth = torch.full((H_DUP, W_DUP), 3.0, dtype=torch.float64)
+    out, drop, counts = settle_generated(scene, source, path, torch.tensor([0, 1]), depth)
+    assert counts == {"duplicates": len(copy), "slid": len(front), "occluders": 0}
+    assert drop.tolist() == [False] * len(wall) + [True] * len(copy) + [False] * len(front)
+    assert not occluder_mask(out.select(~drop), source[~drop], torch.eye(4, dtype=torch.float64), _K()[0], 0.0, W_DUP,
+                             H_DUP, surface_depth=depth).any()
+    n = len(wall) + len(copy)
+    torch.testing.assert_close(out.canonical.means[:n], scene.canonical.means[:n])
 
 
 def test_footprint_max_bounds_the_brute_force_maximum():

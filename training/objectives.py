@@ -30,7 +30,7 @@ from diff4splat.cameras import camera_rays, pack_plucker, plucker_rays
 from diff4splat.cameras.path import CameraPath
 from diff4splat.devices import autocast_off
 from diff4splat.photo import PHOTO_EPS2D
-from diff4splat.prune import redundant_mask
+from diff4splat.prune import settle_generated
 from diff4splat.render import rasterize
 from diff4splat.render.defaults import EPS2D
 from diff4splat.scene import DynamicGaussians
@@ -282,14 +282,15 @@ class TrainingModule(nn.Module):
                   ) -> tuple[DynamicGaussians, dict]:
         """Clip b's scene as ``generate`` builds it (:func:`diff4splat.assemble.assemble_scene`): the photo layer
         (frame 0's pixels on the predicted depth: the depth gets the gradient, the colours are observed), the
-        backdrop and the other source frames' Gaussians without those :func:`diff4splat.prune.redundant_mask`
-        drops (chosen without gradient), so the LDRM learns depth and what the photograph cannot show."""
+        backdrop and the other source frames' Gaussians as :func:`diff4splat.prune.settle_generated` leaves them
+        (which to drop and how far to slide chosen without gradient), so the LDRM learns depth and what the
+        photograph cannot show."""
         H, W = batch["video"].shape[-2:]
         with autocast_off():
             cams = CameraPath(batch["viewmats"][b].float(), batch["Ks"][b].float(), W, H, batch["times"][b].float())
             image = batch["video"][b, :, 0].permute(1, 2, 0).float().clamp(0, 1)  # (H, W, 3)
             scene, grid, photo = assemble_scene(out, sources, cams, cams, image, times)
-            drop, _, _ = redundant_mask(scene, grid, cams, sources, photo["photo_depth"].detach())
+            scene, drop, _ = settle_generated(scene, grid, cams, sources, photo["photo_depth"].detach())
         photo["background"] = torch.tensor(photo["background"], device=image.device)
         return scene.select(~drop), photo
 
