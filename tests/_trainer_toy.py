@@ -2,6 +2,7 @@
 (env:// rendezvous, as under torchrun) for the distributed tests."""
 import math
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -91,7 +92,10 @@ def run_two_ranks(script: str, attempts: int = 3, timeout: float = 120) -> None:
     """Start ranks 0 and 1 of ``script`` (env:// rendezvous, as under torchrun) and wait for both.
 
     The port is free when picked but another process may take it before rank 0's store binds it; on
-    "address already in use" both ranks are stopped and the run is repeated with a fresh port.
+    "address already in use" both ranks are stopped and the run is repeated with a fresh port. The same retry
+    covers a rank that aborts in C++ with "terminate called without an active exception" and no Python traceback:
+    Gloo's worker threads torn down with the interpreter (seen once in 2,000 CI tests on a loaded 2-core machine;
+    pytorch/pytorch#179291 describes the race) — not an error of the code under test, which raises a traceback.
     """
     for attempt in range(attempts):
         port, procs, logs = free_port(), [], []
@@ -119,5 +123,7 @@ def run_two_ranks(script: str, attempts: int = 3, timeout: float = 120) -> None:
         if all(p.returncode == 0 for p in procs):
             return
         port_taken = any("address already in use" in e.lower() or "eaddrinuse" in e.lower() for e in errs)
-        if not port_taken or attempt == attempts - 1:
+        teardown = any(p.returncode == -signal.SIGABRT and "terminate called without an active exception" in e
+                       and "Traceback" not in e for p, e in zip(procs, errs, strict=True))
+        if not (port_taken or teardown) or attempt == attempts - 1:
             pytest.fail(f"distributed run failed (attempt {attempt + 1}):\n" + "\n".join(errs))
