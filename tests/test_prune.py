@@ -470,6 +470,27 @@ def test_settle_generated_drops_duplicates_and_slides_occluders():
     torch.testing.assert_close(out.canonical.means[:n], scene.canonical.means[:n])
 
 
+def test_settle_generated_on_each_device_matches_the_cpu(device):
+    """The same drops, slides and counts on every device, everything made on the scene's device."""
+    wall = _plane(3.0)
+    vm1 = torch.eye(4, dtype=torch.float64)
+    vm1[0, 3] = -0.4  # camera 1 at x = 0.4 m
+    path = CameraPath(torch.stack([torch.eye(4, dtype=torch.float64), vm1]), _K(2), W_DUP, H_DUP,
+                      torch.tensor([0.0, 1.0], dtype=torch.float64))
+    front = torch.cat([_plane(z, range(6, 10), range(4, 8), viewmat=vm1) for z in (1.2, 2.6)])
+    scene = _cat(_gaussians(wall), _gaussians(_plane(3.0, range(0, 4))), _gaussians(front, scale=0.02))
+    source = _source(len(wall), 16 * 4 + len(front))
+    depth = torch.full((H_DUP, W_DUP), 3.0, dtype=torch.float64)
+    ref = settle_generated(scene, source, path, torch.tensor([0, 1]), depth)
+    dev = torch.device(device)
+    out, drop, counts = settle_generated(scene.to(dev), source.to(dev), path.to(dev), torch.tensor([0, 1], device=dev),
+                                         depth.to(dev))
+    assert out.canonical.means.device.type == drop.device.type == dev.type
+    assert counts == ref[2] and counts["slid"] >= len(front) and torch.equal(drop.cpu(), ref[1])
+    torch.testing.assert_close(out.canonical.means.cpu(), ref[0].canonical.means)
+    torch.testing.assert_close(out.canonical.scales.cpu(), ref[0].canonical.scales)
+
+
 def test_footprint_max_bounds_the_brute_force_maximum():
     """At least the exact maximum over the square within the image, at most the maximum over a square 20 % wider;
     0 where the square misses the image."""
