@@ -305,15 +305,16 @@ def slide_behind(
     found = torch.zeros(index.shape[0], dtype=torch.bool, device=means.device)
     lam = torch.ones(index.shape[0], dtype=means.dtype, device=means.device)
     with torch.no_grad():
-        sub = scene.select(index)
-        g = sub.at(float(time), gate=0.0)
-        mu, offset = sub.canonical.means, g.means - sub.canonical.means  # deformation offset at the photo's time
+        # the whole scene at the photo's time (M rows), not a select of the P Gaussians (K·P deformation rows)
+        g = scene.at(float(time), gate=0.0)
+        mu = means[index]
+        offset, quats, scales, opacities = g.means[index] - mu, g.quats[index], g.scales[index], g.opacities[index]
         for f in factors:
             i = torch.nonzero(~found).squeeze(1)
             if i.numel() == 0:
                 break
             pos = origins[i] + f * (mu[i] - origins[i]) + offset[i]
-            free = i[~_covers(pos, g.quats[i], g.scales[i] * f, g.opacities[i], viewmat, K, width, height, depth,
+            free = i[~_covers(pos, quats[i], scales[i] * f, opacities[i], viewmat, K, width, height, depth,
                               depth_tolerance)]
             lam[free], found[free] = f, True
     moved, lam = index[found], lam[found, None].detach()
