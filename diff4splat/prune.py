@@ -352,9 +352,10 @@ def settle_generated(
     W, H = cameras.width, cameras.height
     t0 = float(cameras.times[0])
     dup = duplicate_mask(scene, source, cameras.viewmats[sources], cameras.Ks[sources], cameras.times[sources], W, H)
-    rest = torch.nonzero(~dup).squeeze(1)
-    occl = rest[occluder_mask(scene.select(rest), source[rest], cameras.viewmats[0], cameras.Ks[0], t0, W, H,
-                              surface_depth=surface_depth)]
+    # Against the exact surface depth each Gaussian's test is its own: run on the whole scene (no select, which would
+    # copy the deformation of nearly every Gaussian) and keep the non-duplicates.
+    covers = occluder_mask(scene, source, cameras.viewmats[0], cameras.Ks[0], t0, W, H, surface_depth=surface_depth)
+    occl = torch.nonzero(covers & ~dup).squeeze(1)
     viewmats = cameras.viewmats[sources].to(scene.canonical.means)
     centres = -(viewmats[:, :3, :3].transpose(1, 2) @ viewmats[:, :3, 3:])[..., 0]  # (S, 3) camera centres
     scene, moved = slide_behind(scene, occl, centres[source[occl].to(centres.device)], cameras.viewmats[0],
