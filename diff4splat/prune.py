@@ -331,13 +331,16 @@ def settle_generated(
     cameras: CameraPath,  # the clip's path at the scene's image size
     sources: Tensor,  # (S,) long, the video frame of each source frame
     surface_depth: Tensor,  # (H, W) z-depth of the photo layer at the input view, metres
+    *,
+    factors: tuple[float, ...] = SLIDE_FACTORS,
 ) -> tuple[DynamicGaussians, Tensor, dict[str, int]]:
     """Generated Gaussians made to add only what the photograph does not show (docs/DESIGN.md, "Data flow of
     generate"): near-duplicates of a surface an earlier source frame placed are dropped (:func:`duplicate_mask`);
     of the rest, those that would cover the photograph at the input view (:func:`occluder_mask` against the photo
     layer's exact ``surface_depth``) slide back along their source camera's rays until they do not
-    (:func:`slide_behind`), and are dropped only where no factor frees them. One rule for generation and training
-    (``training.objectives``).
+    (:func:`slide_behind` with ``factors``; ``()`` drops them all, the rule before the slide), and are dropped only
+    where no factor frees them. One rule for generation and training (``training.objectives``); the ladder's cost
+    and effect: ``benchmarks/slide_ladder.py``.
 
     Returns:
         (the scene with the slid Gaussians moved, (M,) bool on the scene's device: True = drop, never for source 0,
@@ -358,8 +361,11 @@ def settle_generated(
     occl = torch.nonzero(covers & ~dup).squeeze(1)
     viewmats = cameras.viewmats[sources].to(scene.canonical.means)
     centres = -(viewmats[:, :3, :3].transpose(1, 2) @ viewmats[:, :3, 3:])[..., 0]  # (S, 3) camera centres
-    scene, moved = slide_behind(scene, occl, centres[source[occl].to(centres.device)], cameras.viewmats[0],
-                                cameras.Ks[0], t0, W, H, surface_depth)
+    if factors:
+        scene, moved = slide_behind(scene, occl, centres[source[occl].to(centres.device)], cameras.viewmats[0],
+                                    cameras.Ks[0], t0, W, H, surface_depth, factors=factors)
+    else:
+        moved = torch.zeros(occl.shape[0], dtype=torch.bool, device=occl.device)
     drop |= dup
     drop[occl[~moved]] = True
     return scene, drop, {"duplicates": int(dup.sum()), "slid": int(moved.sum()), "occluders": int((~moved).sum())}

@@ -468,6 +468,11 @@ def test_settle_generated_drops_duplicates_and_slides_occluders():
                              H_DUP, surface_depth=depth).any()
     n = len(wall) + len(copy)
     torch.testing.assert_close(out.canonical.means[:n], scene.canonical.means[:n])
+    # factors=(): the rule before the slide, every occluder dropped, nothing moved
+    same, drop0, counts0 = settle_generated(scene, source, path, torch.tensor([0, 1]), depth, factors=())
+    assert counts0 == {"duplicates": len(copy), "slid": 0, "occluders": len(front)}
+    assert drop0.tolist() == [False] * len(wall) + [True] * (len(copy) + len(front))
+    assert torch.equal(same.canonical.means, scene.canonical.means)
 
 
 def test_settle_generated_on_each_device_matches_the_cpu(device):
