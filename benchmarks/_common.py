@@ -1,6 +1,7 @@
 """Shared by the benchmark scripts: machine description and writing a table into docs/benchmarks.md."""
 from __future__ import annotations
 
+import argparse
 import os
 import platform
 import re
@@ -12,6 +13,7 @@ from pathlib import Path
 import torch
 
 from diff4splat.pipeline import Diff4SplatPipeline, load_model
+from models.bundle import DEFAULT_CONFIG
 
 BENCHMARKS_MD = Path(__file__).resolve().parent.parent / "docs" / "benchmarks.md"
 
@@ -80,3 +82,16 @@ def load_pipeline(checkpoint, config: str):
         warnings.simplefilter("ignore")
         model, source = load_model(checkpoint, config)
     return Diff4SplatPipeline(model), source
+
+
+def held_out_run(description: str, data_help: str) -> tuple[argparse.Namespace, Diff4SplatPipeline, str]:
+    """The command line of a benchmark over held-out sets (``--data DIR …``, ``--checkpoint``, ``--config``,
+    ``--limit``, ``--write``) parsed, and its pipeline: ``(args, pipeline, weights source)``."""
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("--data", type=Path, nargs="+", required=True, help=data_help)
+    ap.add_argument("--checkpoint", type=Path, default=None)
+    ap.add_argument("--config", default=DEFAULT_CONFIG)
+    ap.add_argument("--limit", type=int, default=None)
+    ap.add_argument("--write", action="store_true")
+    args = ap.parse_args()
+    return (args, *load_pipeline(args.checkpoint, args.config))

@@ -16,7 +16,6 @@ on ``examples/chelsea.png`` at 256² (5 runs after a warm-up).
 """
 from __future__ import annotations
 
-import argparse
 import functools
 import statistics
 import sys
@@ -26,14 +25,13 @@ from unittest import mock
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import load_pipeline, markdown_table, publish, repo_relative  # noqa: E402
+from _common import held_out_run, markdown_table, publish, repo_relative  # noqa: E402
 
 import diff4splat.pipeline as pipeline_module  # noqa: E402
 from diff4splat.cameras import CameraPath  # noqa: E402
 from diff4splat.io import load_image  # noqa: E402
 from diff4splat.prune import SLIDE_FACTORS, settle_generated  # noqa: E402
 from diff4splat.render.sequence import render_path  # noqa: E402
-from models.bundle import DEFAULT_CONFIG  # noqa: E402
 from training.eval_metrics import ablation_noise, binned_psnr, frame_mse, psnr_from_mse, view_angles  # noqa: E402
 from training.evaluate import _held_out_clips  # noqa: E402
 
@@ -79,14 +77,7 @@ def _prune_ms(pipe, runs: int = 5) -> float:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", type=Path, nargs="+", required=True, help="held-out dataset roots")
-    ap.add_argument("--checkpoint", type=Path, default=None)
-    ap.add_argument("--config", default=DEFAULT_CONFIG)
-    ap.add_argument("--limit", type=int, default=None)
-    ap.add_argument("--write", action="store_true")
-    args = ap.parse_args()
-    pipe, source = load_pipeline(args.checkpoint, args.config)
+    args, pipe, source = held_out_run(__doc__.splitlines()[0], "held-out dataset roots")
     cfg = pipe.config
     sets = {d: _held_out_clips(d, cfg.height, cfg.width, cfg.num_frames, args.limit) for d in args.data}
     rows = []

@@ -19,21 +19,19 @@ ground truth (PSNR of the mean MSE over all novel frames, and by view angle from
 """
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import load_pipeline, markdown_table, publish, repo_relative  # noqa: E402
+from _common import held_out_run, markdown_table, publish, repo_relative  # noqa: E402
 
 from diff4splat.cameras import CameraPath  # noqa: E402
 from diff4splat.photo import PHOTO_EPS2D, photo_layer  # noqa: E402
 from diff4splat.pipeline import Diff4SplatPipeline  # noqa: E402
 from diff4splat.render.sequence import render_path  # noqa: E402
 from diff4splat.scene import DynamicGaussians  # noqa: E402
-from models.bundle import DEFAULT_CONFIG  # noqa: E402
 from training.eval_metrics import ANGLE_BINS, binned_psnr, frame_mse, psnr_from_mse, repeat_baselines, view_angles  # noqa: E402
 from training.evaluate import _held_out_clips  # noqa: E402
 
@@ -63,14 +61,7 @@ def clip_mse(pipe: Diff4SplatPipeline, clip: dict) -> dict[str, torch.Tensor]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", type=Path, nargs="+", required=True, help="held-out dataset roots, one row group each")
-    ap.add_argument("--checkpoint", type=Path, default=None)
-    ap.add_argument("--config", default=DEFAULT_CONFIG)
-    ap.add_argument("--limit", type=int, default=None)
-    ap.add_argument("--write", action="store_true")
-    args = ap.parse_args()
-    pipe, source = load_pipeline(args.checkpoint, args.config)
+    args, pipe, source = held_out_run(__doc__.splitlines()[0], "held-out dataset roots, one row group each")
     cfg = pipe.config
     rows = []
     for data in args.data:
