@@ -359,13 +359,12 @@ def settle_generated(
     # copy the deformation of nearly every Gaussian) and keep the non-duplicates.
     covers = occluder_mask(scene, source, cameras.viewmats[0], cameras.Ks[0], t0, W, H, surface_depth=surface_depth)
     occl = torch.nonzero(covers & ~dup).squeeze(1)
-    viewmats = cameras.viewmats[sources].to(scene.canonical.means)
-    centres = -(viewmats[:, :3, :3].transpose(1, 2) @ viewmats[:, :3, 3:])[..., 0]  # (S, 3) camera centres
+    moved = torch.zeros(occl.shape[0], dtype=torch.bool, device=occl.device)
     if factors:
+        viewmats = cameras.viewmats[sources].to(scene.canonical.means)
+        centres = -(viewmats[:, :3, :3].transpose(1, 2) @ viewmats[:, :3, 3:])[..., 0]  # (S, 3) camera centres
         scene, moved = slide_behind(scene, occl, centres[source[occl].to(centres.device)], cameras.viewmats[0],
                                     cameras.Ks[0], t0, W, H, surface_depth, factors=factors)
-    else:
-        moved = torch.zeros(occl.shape[0], dtype=torch.bool, device=occl.device)
     drop |= dup
     drop[occl[~moved]] = True
     return scene, drop, {"duplicates": int(dup.sum()), "slid": int(moved.sum()), "occluders": int((~moved).sum())}
