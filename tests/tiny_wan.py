@@ -43,8 +43,10 @@ def tiny_wan_components(seed: int = 0) -> dict:
         temperal_downsample=[False, True, True])
     tokenizer = tiny_tokenizer()
     torch.manual_seed(seed + 2)
+    # 64 rows, or one per piece where the tokenizer has more: sentencepiece 0.2.3 trains 59 pieces, 0.2.2 trains 68
+    # (an id beyond the table is an IndexError in the encoder's embedding).
     text_encoder = UMT5EncoderModel(UMT5Config(
-        vocab_size=64, d_model=TEXT_DIM, d_kv=8, d_ff=32, num_layers=2, num_heads=2,
+        vocab_size=max(64, len(tokenizer)), d_model=TEXT_DIM, d_kv=8, d_ff=32, num_layers=2, num_heads=2,
         relative_attention_num_buckets=8, relative_attention_max_distance=16, pad_token_id=0, eos_token_id=1,
         decoder_start_token_id=0))
     scheduler = diffusers.FlowMatchEulerDiscreteScheduler(shift=5.0)
