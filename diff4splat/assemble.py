@@ -13,7 +13,9 @@
 - **The other source frames** (video frames 4, 8, …) keep the network's pixel-aligned Gaussians at the model
   resolution (:func:`to_gaussians`): what the generated video shows that the photograph does not. With ``video=``
   (config ``generated_colors: video``) their colours are the decoded generated video's pixels
-  (:func:`video_colors`) rather than the LDRM's. Which of them
+  (:func:`video_colors`) rather than the LDRM's. With ``footprint="pixel"`` (config ``generated_footprint: pixel``)
+  they are opaque disks facing their source camera that tile its frame (:func:`pixel_footprint`), as the photo
+  layer tiles the photograph, instead of the LDRM's opacities, rotations and scales. Which of them
   survive is the pipeline's pruning (:mod:`diff4splat.prune`): none that re-describes a surface already placed,
   none in front of the photo layer at the input view.
 
@@ -29,22 +31,29 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from models.bundle import GENERATED_FOOTPRINTS
 from models.ldrm import LDRMOutput
 
 from .cameras import CameraPath, camera_rays
 from .depth_alignment import fit_scale_shift
 from .devices import autocast_off
 from .gaussians import Gaussians, rgb_to_sh0
-from .photo import PHOTO_EPS2D, backdrop_layer, photo_layer, upsample_depth
+from .photo import PHOTO_EPS2D, PHOTO_OPACITY, backdrop_layer, photo_layer, pixel_disks, upsample_depth
 from .quaternions import quat_conjugate, quat_multiply, quat_normalize
 from .scene import DynamicGaussians
 
-__all__ = ["DEPTH_KINDS", "to_gaussians", "video_colors", "photo_depth", "rebase_deformation", "assemble_scene"]
+__all__ = ["DEPTH_KINDS", "GENERATED_SCALE_PX", "to_gaussians", "video_colors", "pixel_footprint", "photo_depth",
+           "rebase_deformation", "assemble_scene"]
 
 DEPTH_KINDS = ("metric", "relative", "inverse")
 """What a user's depth map holds (``generate --depth-kind``): metric z-depth in metres (used as given: the camera
 path is metric too), relative depth (affine: scale and shift fitted to the network's depth by least squares), or
 relative inverse depth / disparity (affine in 1/z, as MiDaS-style estimators output)."""
+GENERATED_SCALE_PX = 0.5
+"""In-plane σ, pixels at its source camera, of a generated frame's disk under :func:`pixel_footprint`: with the
+scene's dilation (σ_eff² = 0.25 + 0.1 px²) a pixel's four neighbours reach alpha 0.70 half a pixel from their
+centres, so the disks tile the frame without the photo layer's backing disks or colour solve; a neighbour in front
+bleeds alpha 0.24 into a pixel (a slight blur; the photo layer keeps its sharper σ = 0.25 px)."""
 
 
 def to_gaussians(
@@ -207,6 +216,40 @@ def video_colors(
     return dataclasses.replace(out, colors=colors)
 
 
+def pixel_footprint(
+    gaussians: Gaussians,  # (S·h·w) one per pixel of S source frames, camera-major then row-major (to_gaussians)
+    viewmats: Tensor,  # (S, 4, 4) world-to-camera of the source frames
+    Ks: Tensor,  # (S, 3, 3) pixels, at h × w
+    width: int,
+    height: int,
+) -> Gaussians:
+    """``gaussians`` with the footprint of a pixel: each an opaque disk facing its source camera, in-plane σ =
+    :data:`GENERATED_SCALE_PX` pixels there (:func:`diff4splat.photo.pixel_disks` at its own z-depth), opacity
+    :data:`diff4splat.photo.PHOTO_OPACITY`; means and colours unchanged.
+
+    Rendered alone at its own camera, a source frame's disks then reproduce its colours edge to edge
+    (tests/test_assemble.py), as the photo layer reproduces the photograph: what the generated frame drew is what
+    its view of the scene shows where nothing nearer covers it. The LDRM's opacities, rotations and scales are
+    not used (a small LDRM learns low opacities that leave a generated frame's disocclusions mostly to the
+    backdrop: base model card).
+
+    Raises:
+        ValueError: not S·height·width Gaussians for the S cameras, or a Gaussian at or behind its camera's plane.
+    """
+    S = viewmats.shape[0]
+    if gaussians.num_gaussians != S * height * width or tuple(Ks.shape) != (S, 3, 3):
+        raise ValueError(f"expected {S}·{height}·{width} Gaussians and Ks of shape ({S}, 3, 3), got "
+                         f"{gaussians.num_gaussians} and {tuple(Ks.shape)}")
+    means = gaussians.means.reshape(S, height * width, 3)
+    viewmats = viewmats.to(means)
+    z = (means * viewmats[:, None, 2, :3]).sum(-1) + viewmats[:, None, 2, 3]  # (S, h·w) z-depth at its camera
+    if not bool((z > 0).all()):
+        raise ValueError("every Gaussian must lie in front of its source camera (z-depth > 0)")
+    _, quats, scales = pixel_disks(viewmats, Ks, width, height, z.reshape(S, height, width), GENERATED_SCALE_PX)
+    opacities = torch.full_like(gaussians.opacities, PHOTO_OPACITY)
+    return Gaussians(gaussians.means, quats, scales, opacities, gaussians.sh)
+
+
 def assemble_scene(
     out: LDRMOutput,
     sources: Tensor,  # (S,) video frame of each source frame
@@ -219,6 +262,7 @@ def assemble_scene(
     depth_kind: str = "metric",
     eps2d: float = PHOTO_EPS2D,
     video: Tensor | None = None,
+    footprint: str = "ldrm",
 ) -> tuple[DynamicGaussians, Tensor, dict]:
     """The scene of one generation (module docstring).
 
@@ -232,6 +276,8 @@ def assemble_scene(
         eps2d: the dilation the scene is rendered with (the photo layer's colours are solved for it).
         video: (1, 3, T, h, w) the decoded generated video in [−1, 1]: source frames 1… take its pixels as their
             colours (:func:`video_colors`); None keeps the LDRM's colours.
+        footprint: ``"ldrm"`` keeps the LDRM's opacities, rotations and scales of source frames 1…, ``"pixel"``
+            makes them pixel disks (:func:`pixel_footprint`).
 
     Returns:
         (scene, source (M,) long: the source frame of each Gaussian — 0 for the photo layer and the backdrop —,
@@ -241,8 +287,11 @@ def assemble_scene(
         background).
 
     Raises:
-        ValueError: as :func:`photo_depth`, :func:`diff4splat.photo.photo_layer` and :func:`video_colors`.
+        ValueError: as :func:`photo_depth`, :func:`diff4splat.photo.photo_layer`, :func:`video_colors` and
+            :func:`pixel_footprint`; an unknown ``footprint``.
     """
+    if footprint not in GENERATED_FOOTPRINTS:
+        raise ValueError(f"footprint must be one of {GENERATED_FOOTPRINTS}, got {footprint!r}")
     if video is not None:
         out = video_colors(out, video, sources)
     S, h, w = out.distance.shape[1:4]
@@ -257,6 +306,8 @@ def assemble_scene(
     backdrop = backdrop_layer(image, z, viewmat, K0)
     n_photo, n_back, n_grid = layer.num_gaussians, backdrop.num_gaussians, h * w
     generated = gaussians.select(torch.arange(n_grid, S * n_grid, device=dev))
+    if footprint == "pixel" and S > 1:
+        generated = pixel_footprint(generated, cameras_model.viewmats[sources[1:]], cameras_model.Ks[sources[1:]], w, h)
     canonical = Gaussians(*(torch.cat([getattr(layer, f), getattr(backdrop, f), getattr(generated, f)])
                             for f in ("means", "quats", "scales", "opacities", "sh")))
     source = torch.cat([torch.zeros(n_photo + n_back, dtype=torch.long, device=dev),

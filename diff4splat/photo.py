@@ -46,8 +46,8 @@ from .quaternions import rotmat_to_quat
 from .render import rasterize
 
 __all__ = ["PHOTO_EPS2D", "FRONT_SCALE_PX", "BACKING_SCALE_PX", "BACKING_OFFSET", "PHOTO_OPACITY", "THICKNESS",
-           "REFINE_STEPS", "BACKDROP_CELLS", "BACKDROP_EXTEND", "BACKDROP_DEPTH", "photo_layer", "refine_colors",
-           "upsample_depth", "render_input_view", "backdrop_layer", "layer_sizes"]
+           "REFINE_STEPS", "BACKDROP_CELLS", "BACKDROP_EXTEND", "BACKDROP_DEPTH", "pixel_disks", "photo_layer",
+           "refine_colors", "upsample_depth", "render_input_view", "backdrop_layer", "layer_sizes"]
 
 PHOTO_EPS2D = 0.1
 """Screen-space dilation, pixels², of scenes with a photo layer (module docstring; meta.json ``eps2d``)."""
@@ -89,14 +89,44 @@ def _check(image: Tensor, depth: Tensor, viewmat: Tensor, K: Tensor) -> tuple[in
     return H, W
 
 
-def _disk_frames(dirs: Tensor, viewmat: Tensor) -> Tensor:
+def _disk_frames(dirs: Tensor, cam_x: Tensor) -> Tensor:
     """(N, 4) wxyz rotations whose local z axis is each unit ray direction ``dirs`` (N, 3) (world frame) and whose
-    local x axis is the camera's x axis made orthogonal to it."""
-    cam_x = viewmat[0, :3].to(dirs)  # the camera's x axis in world coordinates (first row of R)
-    x = cam_x - (dirs @ cam_x)[:, None] * dirs
+    local x axis is the camera's x axis ``cam_x`` ((3,) or (N, 3), world frame) made orthogonal to it."""
+    cam_x = cam_x.to(dirs)
+    x = cam_x - (dirs * cam_x).sum(-1, keepdim=True) * dirs
     x = x / x.norm(dim=-1, keepdim=True)
     y = torch.linalg.cross(dirs, x, dim=-1)
     return rotmat_to_quat(torch.stack([x, y, dirs], dim=-1))  # columns: local x, y, z in world coordinates
+
+
+def pixel_disks(
+    viewmats: Tensor,  # (S, 4, 4) world-to-camera (OpenCV)
+    Ks: Tensor,  # (S, 3, 3) pixels, at height × width
+    width: int,
+    height: int,
+    z: Tensor,  # (S, height, width) z-depth of each pixel, metres, > 0
+    scale_px: float,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """One thin disk per pixel of S cameras: ``(means, quats, scales)``, (S·height·width, 3 / 4 / 3), camera-major,
+    then row-major pixels.
+
+    Pixel (i, j) of camera s at z-depth z sits at o + d·z/(d·ẑ) on its pixel-centre ray (o, d)
+    (:func:`diff4splat.cameras.camera_rays`), a disk facing the camera (local z axis along d, local x along the
+    camera's x axis) with in-plane σ = ``scale_px``·z/f (f = fx along x, fy along y: ``scale_px`` pixels at that
+    camera) and σ = :data:`THICKNESS`·min(σx, σy) along the ray. Dtype and device: ``z``'s.
+    """
+    viewmats, Ks = viewmats.to(z), Ks.to(z)
+    origins, dirs = camera_rays(viewmats, Ks, width, height)  # (S, height, width, 3)
+    S = z.shape[0]
+    origins, dirs = origins.reshape(S, -1, 3), dirs.reshape(S, -1, 3)
+    z = z.reshape(S, -1)
+    cos = (dirs * viewmats[:, None, 2, :3]).sum(-1)  # d·ẑ: cos of the angle to the optical axis
+    means = origins + (z / cos)[..., None] * dirs
+    sx, sy = scale_px * z / Ks[:, None, 0, 0], scale_px * z / Ks[:, None, 1, 1]
+    cam_x = viewmats[:, None, 0, :3].expand_as(dirs)  # each camera's x axis in world coordinates (first row of R)
+    quats = _disk_frames(dirs.reshape(-1, 3), cam_x.reshape(-1, 3))
+    scales = torch.stack([sx, sy, THICKNESS * torch.minimum(sx, sy)], dim=-1)
+    return means.reshape(-1, 3), quats, scales.reshape(-1, 3)
 
 
 def render_input_view(layer: Gaussians, viewmat: Tensor, K: Tensor, width: int, height: int,
@@ -156,9 +186,8 @@ def photo_layer(
 ) -> tuple[Gaussians, list[float]]:
     """The photograph as H·W front disks (row-major) then ⌈H/2⌉·⌈W/2⌉ backing disks (row-major; module docstring).
 
-    Pixel (i, j) at z-depth z sits at o + d·z/(d·ẑ) on its ray (o, d) (:func:`diff4splat.cameras.camera_rays`,
-    pixel centres), a disk facing the camera (thin axis along d) with in-plane σ = scale·z/f (f = fx along the
-    camera x axis, fy along y) and thickness :data:`THICKNESS`·σ, opacity :data:`PHOTO_OPACITY`, SH degree 0.
+    Each is a :func:`pixel_disks` disk (front: :data:`FRONT_SCALE_PX`, backing: :data:`BACKING_SCALE_PX` on the
+    half-resolution grid), opacity :data:`PHOTO_OPACITY`, SH degree 0.
 
     Args:
         image: (H, W, 3) the photograph in [0, 1] at the output resolution.
@@ -178,17 +207,7 @@ def photo_layer(
     H, W = _check(image, depth, viewmat, K)
     dev = image.device
     viewmat, K, depth = viewmat.to(dev, torch.float32), K.to(dev, torch.float32), depth.to(dev, torch.float32)
-    fx, fy = float(K[0, 0]), float(K[1, 1])
-
-    def disks(K: Tensor, width: int, height: int, z: Tensor, scale_px: float) -> tuple[Tensor, Tensor, Tensor]:
-        """Disks on the pixel-centre rays of a (height × width) grid of intrinsics K at z-depths z (height, width)."""
-        origins, dirs = camera_rays(viewmat[None], K[None], width, height)
-        origins, dirs, z = origins[0].reshape(-1, 3), dirs[0].reshape(-1, 3), z.reshape(-1)
-        means = origins + (z / (dirs @ viewmat[2, :3]))[:, None] * dirs  # d·ẑ: cos of the angle to the axis
-        sx, sy = scale_px * z / fx, scale_px * z / fy
-        return means, _disk_frames(dirs, viewmat), torch.stack([sx, sy, THICKNESS * torch.minimum(sx, sy)], dim=-1)
-
-    front = disks(K, W, H, depth, FRONT_SCALE_PX)
+    front = pixel_disks(viewmat[None], K[None], W, H, depth[None], FRONT_SCALE_PX)
     # The backing grid: pixel (i, j) of a half-resolution image is the 2×2 block whose centre is the full-resolution
     # point (2j + 1, 2i + 1), i.e. the intrinsics halved; its depth: the deepest front disk within ±BACKING_REACH.
     W2, H2 = -(-W // 2), -(-H // 2)
@@ -196,7 +215,8 @@ def photo_layer(
     K2[:2] = K[:2] / 2
     reach = 2 * BACKING_REACH
     z_back = F.max_pool2d(depth[None, None], reach, stride=2, padding=BACKING_REACH - 1, ceil_mode=True)[0, 0]
-    back = disks(K2, W2, H2, z_back[:H2, :W2] * (1 + BACKING_OFFSET), BACKING_SCALE_PX)
+    back = pixel_disks(viewmat[None], K2[None], W2, H2, z_back[None, :H2, :W2] * (1 + BACKING_OFFSET),
+                       BACKING_SCALE_PX / 2)  # half-resolution pixels: σ = BACKING_SCALE_PX input-camera pixels
     rgb = image.to(torch.float32)
     block = F.avg_pool2d(rgb.permute(2, 0, 1)[None], 2, ceil_mode=True)[0].permute(1, 2, 0)
     sh = rgb_to_sh0(torch.cat([rgb.reshape(-1, 3), block.reshape(-1, 3)]))[:, None]
@@ -259,7 +279,7 @@ def backdrop_layer(
     n = means.shape[0]
     scales = torch.tensor([sigma, sigma, THICKNESS * sigma], device=dev).expand(n, 3).contiguous()
     colors = small.reshape(-1, 3).clamp(1e-4, 1 - 1e-4)
-    return Gaussians(means, _disk_frames(dirs, viewmat), scales, torch.full((n,), PHOTO_OPACITY, device=dev),
+    return Gaussians(means, _disk_frames(dirs, viewmat[0, :3]), scales, torch.full((n,), PHOTO_OPACITY, device=dev),
                      rgb_to_sh0(colors)[:, None])
 
 

@@ -503,7 +503,7 @@ class Diff4SplatPipeline:
         sources = torch.tensor(frames, device=dev)
         times = key_times if out.d_means is not None else None
         scene, grid, photo = assemble_scene(out, sources, cameras_model, cameras, image, times, depth=depth,
-                                            depth_kind=depth_kind, video=decoded)
+                                            depth_kind=depth_kind, video=decoded, footprint=cfg.generated_footprint)
         scene = scene.without_deformation(cfg.static_atol)
         timings["reconstruct"] = clock.lap()
 

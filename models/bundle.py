@@ -28,7 +28,7 @@ from .text_encoder import TextEncoder, TextEncoderConfig
 from .vae import VideoVAE, VideoVAEConfig
 
 __all__ = ["Diff4SplatConfig", "Diff4SplatModel", "load_config", "config_path", "config_names", "CONFIG_DIR",
-           "WEIGHTS_DIR", "DEFAULT_CONFIG", "NETWORKS", "GENERATED_COLORS", "check_generated_colors"]
+           "WEIGHTS_DIR", "DEFAULT_CONFIG", "NETWORKS", "GENERATED_COLORS", "GENERATED_FOOTPRINTS", "check_generated"]
 
 CONFIG_DIR = MODEL_CONFIGS
 """Model size configs (``base``, ``tiny``, ``small``, ``paper``): ``configs/models/``
@@ -63,6 +63,10 @@ class Diff4SplatConfig:
             :data:`GENERATED_COLORS`): ``"ldrm"``, the LDRM's colour maps (the paper, Sec. 3.2); ``"video"``, the
             generated video decoded by the VAE at each Gaussian's pixel (:func:`diff4splat.assemble.video_colors`:
             the LDRM places what the generator drew, as the photo layer places the photograph).
+        generated_footprint: the opacity, rotation and scale of those Gaussians (one of
+            :data:`GENERATED_FOOTPRINTS`): ``"ldrm"``, the LDRM's maps (the paper, Sec. 3.2); ``"pixel"``, opaque
+            disks facing their source camera that tile its frame, as the photo layer tiles the photograph
+            (:func:`diff4splat.assemble.pixel_footprint`; the LDRM still places them).
         vae, text_encoder, dit, ldrm, sampling: the networks' and the sampler's configs.
     """
 
@@ -75,6 +79,7 @@ class Diff4SplatConfig:
     prune_opacity: float = 0.005
     static_atol: float = 1e-6
     generated_colors: str = "ldrm"
+    generated_footprint: str = "ldrm"
     vae: VideoVAEConfig = field(default_factory=VideoVAEConfig)
     text_encoder: TextEncoderConfig = field(default_factory=TextEncoderConfig)
     dit: VideoDiTConfig = field(default_factory=lambda: VideoDiTConfig(latent_channels=4, text_dim=64))
@@ -113,7 +118,7 @@ class Diff4SplatConfig:
         for name in ("fov_y_deg", "scene_depth"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        check_generated_colors(self.generated_colors)
+        check_generated(self)
 
     @property
     def pixel_multiple(self) -> int:
@@ -127,12 +132,17 @@ class Diff4SplatConfig:
 
 GENERATED_COLORS = ("ldrm", "video")
 """Values of ``generated_colors`` (:class:`Diff4SplatConfig`, :class:`models.backbones.model.BackboneModelConfig`)."""
+GENERATED_FOOTPRINTS = ("ldrm", "pixel")
+"""Values of ``generated_footprint`` (:class:`Diff4SplatConfig`,
+:class:`models.backbones.model.BackboneModelConfig`)."""
 
 
-def check_generated_colors(value: object) -> None:
-    """Raises ValueError unless ``value`` is one of :data:`GENERATED_COLORS`."""
-    if value not in GENERATED_COLORS:
-        raise ValueError(f"generated_colors must be one of {GENERATED_COLORS}, got {value!r}")
+def check_generated(config: object) -> None:
+    """Raises ValueError unless ``config.generated_colors`` is one of :data:`GENERATED_COLORS` and
+    ``config.generated_footprint`` one of :data:`GENERATED_FOOTPRINTS`."""
+    for name, values in (("generated_colors", GENERATED_COLORS), ("generated_footprint", GENERATED_FOOTPRINTS)):
+        if getattr(config, name) not in values:
+            raise ValueError(f"{name} must be one of {values}, got {getattr(config, name)!r}")
 
 
 _KINDS = {str: "string", list: "list", int: "number", float: "number", bool: "boolean"}

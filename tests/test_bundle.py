@@ -65,6 +65,7 @@ def test_tiny_yaml_equals_dataclass_defaults():
     ({"num_frames": 16}, "1 \\+ 4"),
     ({"bogus": 1}, "unknown field 'bogus'"),
     ({"generated_colors": "decoded"}, "generated_colors must be one of"),
+    ({"generated_footprint": "disk"}, "generated_footprint must be one of"),
 ])
 def test_inconsistent_configs_raise(tmp_path, override, match):
     import yaml

@@ -11,7 +11,14 @@ from helpers import EXAMPLE_IMAGE
 from diff4splat.cameras import camera_rays, intrinsics_from_fov
 from diff4splat.gaussians import sh0_to_rgb
 from diff4splat.io import load_image
-from diff4splat.photo import PHOTO_EPS2D, photo_layer, render_input_view, upsample_depth
+from diff4splat.photo import (
+    BACKING_SCALE_PX,
+    FRONT_SCALE_PX,
+    PHOTO_EPS2D,
+    photo_layer,
+    render_input_view,
+    upsample_depth,
+)
 from diff4splat.quaternions import quat_to_rotmat
 from diff4splat.render import rasterize
 
@@ -98,6 +105,9 @@ def test_disks_sit_on_their_rays_at_the_depth_and_face_the_camera():
     assert bool((layer.scales[: H * W, 2] < 0.2 * layer.scales[: H * W, 0]).all())
     back = layer.means[H * W:] @ viewmat[:3, :3].T + viewmat[:3, 3]
     assert back.shape[0] == (H // 2) * (W // 2)
+    # σ in pixels of the input camera (the backing grid's too: its half-resolution intrinsics do not halve it)
+    torch.testing.assert_close(layer.scales[: H * W, 0], FRONT_SCALE_PX * depth.reshape(-1) / K[0, 0])
+    torch.testing.assert_close(layer.scales[H * W:, 1], BACKING_SCALE_PX * back[:, 2] / K[1, 1])
     uv = back[:, :2] / back[:, 2:] @ K[:2, :2].T + K[:2, 2]
     v, u = torch.meshgrid(2 * torch.arange(H // 2) + 1.0, 2 * torch.arange(W // 2) + 1.0, indexing="ij")
     torch.testing.assert_close(uv, torch.stack([u, v], -1).reshape(-1, 2), atol=1e-4, rtol=0)  # 2×2 block centres

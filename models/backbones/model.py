@@ -24,7 +24,7 @@ from torch import nn
 from diff4splat.io.output_folders import output_dir
 from diff4splat.io.structured import read_json
 
-from ..bundle import Diff4SplatConfig, check_generated_colors
+from ..bundle import Diff4SplatConfig, check_generated
 from ..flow_matching import FlowMatchingConfig
 from ..ldrm import LDRM, LDRMConfig
 from ..pretrained import MODEL_KIND, config_from_dict, count_parameters
@@ -68,7 +68,7 @@ class BackboneModelConfig:
         backbone: one of the kinds of :data:`PIPELINES`.
         height, width: model resolution in pixels (multiples of the VAE's spatial factor × the patch sizes).
         num_frames: default clip length T = 1 + 4k.
-        fov_y_deg, scene_depth, prune_opacity, static_atol, generated_colors: as
+        fov_y_deg, scene_depth, prune_opacity, static_atol, generated_colors, generated_footprint: as
             :class:`models.bundle.Diff4SplatConfig`.
         vae: the backbone VAE's :class:`LatentFormat` (taken from the loaded VAE; a saved one must agree).
         ldrm: the LDRM's config on the backbone's latents (``latent_channels``, ``vae_temporal``, ``vae_spatial``
@@ -87,6 +87,7 @@ class BackboneModelConfig:
     prune_opacity: float = Diff4SplatConfig.prune_opacity
     static_atol: float = Diff4SplatConfig.static_atol
     generated_colors: str = Diff4SplatConfig.generated_colors
+    generated_footprint: str = Diff4SplatConfig.generated_footprint
     vae: LatentFormat = field(default_factory=lambda: LatentFormat(48, 4, 16))
     ldrm: LDRMConfig = field(default_factory=LDRMConfig.paper)
     sampling: FlowMatchingConfig = field(default_factory=lambda: FlowMatchingConfig(steps=50))
@@ -108,7 +109,7 @@ class BackboneModelConfig:
             if not isinstance(value, int) or value <= 0 or value % unit:
                 raise ValueError(f"{name} must be a positive multiple of {unit} pixels, got {value!r}")
         v.num_latent_frames(self.num_frames)
-        check_generated_colors(self.generated_colors)
+        check_generated(self)
 
     @classmethod
     def for_backbone(cls, kind: str, latent: LatentFormat, **overrides) -> BackboneModelConfig:
