@@ -25,7 +25,8 @@ def _cameras(S: int) -> tuple[torch.Tensor, torch.Tensor]:
     """S cameras 2 m from the origin, rotated about y by 0, 0.35, 0.7… rad: (S, 4, 4) viewmats, (S, 3, 3) Ks."""
     viewmats = torch.eye(4, device="cpu").repeat(S, 1, 1)
     for s in range(S):
-        R = quat_to_rotmat(axis_angle_to_quat(torch.tensor([0.0, 1.0, 0.0], device="cpu"), torch.tensor(0.35 * s)))
+        axis, angle = torch.tensor([0.0, 1.0, 0.0], device="cpu"), torch.tensor(0.35 * s, device="cpu")
+        R = quat_to_rotmat(axis_angle_to_quat(axis, angle))
         viewmats[s, :3, :3] = R
         viewmats[s, :3, 3] = torch.tensor([0.1 * s, 0.0, 2.0], device="cpu")
     return viewmats, intrinsics_from_fov(W, H, fov_y_deg=50.0).repeat(S, 1, 1)
@@ -35,11 +36,13 @@ def _ldrm_out(S: int, colors: torch.Tensor, seed: int = 0) -> LDRMOutput:
     """LDRM maps (1, S, H, W, ·) with ``colors`` (S, H, W, 3) and the footprint a small LDRM learns: low opacities,
     random small scales and rotations; ray distances about 2 m with a depth step."""
     g = torch.Generator().manual_seed(seed)
-    xx = torch.linspace(-1, 1, W).expand(S, H, W)
-    distance = 2.0 + 0.3 * xx + 0.5 * (xx > 0.3).float() + 0.05 * torch.rand(S, H, W, generator=g)
-    quats = torch.nn.functional.normalize(torch.randn(S, H, W, 4, generator=g), dim=-1)
-    return LDRMOutput(distance=distance[None], scales=0.004 * torch.rand(1, S, H, W, 3, generator=g) + 1e-4,
-                      quats=quats[None], opacities=0.2 * torch.rand(1, S, H, W, generator=g), colors=colors[None])
+    xx = torch.linspace(-1, 1, W, device="cpu").expand(S, H, W)
+    distance = 2.0 + 0.3 * xx + 0.5 * (xx > 0.3).float() + 0.05 * torch.rand(S, H, W, generator=g, device="cpu")
+    quats = torch.nn.functional.normalize(torch.randn(S, H, W, 4, generator=g, device="cpu"), dim=-1)
+    scales = 0.004 * torch.rand(1, S, H, W, 3, generator=g, device="cpu") + 1e-4
+    opacities = 0.2 * torch.rand(1, S, H, W, generator=g, device="cpu")
+    return LDRMOutput(distance=distance[None], scales=scales, quats=quats[None], opacities=opacities,
+                      colors=colors[None])
 
 
 def _render_alone(g, viewmat, K):
@@ -139,3 +142,16 @@ def test_assemble_scene_footprint_changes_only_the_generated_frames_footprint():
     with pytest.raises(ValueError, match="footprint must be one of"):
         assemble_scene(out, sources, cams, cams, image, None, footprint="disk")
     assert isinstance(cams, CameraPath)
+
+
+def test_the_footprint_is_made_beside_its_inputs(device, no_implicit_device):
+    """Every tensor on the Gaussians' device (nothing on the default one); the same values as on the CPU."""
+    S = 2
+    viewmats, Ks = _cameras(S)
+    colors = torch.rand(S, H, W, 3, generator=torch.Generator().manual_seed(4), device="cpu")
+    cpu, *_ = to_gaussians(_ldrm_out(S, colors), viewmats, Ks)
+    got = pixel_footprint(cpu.to(device), viewmats.to(device), Ks.to(device), W, H)
+    want = pixel_footprint(cpu, viewmats, Ks, W, H)
+    for f in ("means", "quats", "scales", "opacities", "sh"):
+        assert getattr(got, f).device.type == device.type
+        torch.testing.assert_close(getattr(got, f).cpu(), getattr(want, f), atol=1e-6, rtol=1e-5)

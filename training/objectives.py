@@ -284,7 +284,8 @@ class TrainingModule(nn.Module):
         (frame 0's pixels on the predicted depth: the depth gets the gradient, the colours are observed), the
         backdrop and the other source frames' Gaussians as :func:`diff4splat.prune.settle_generated` leaves them
         (which to drop and how far to slide chosen without gradient), so the LDRM learns depth and what the
-        photograph cannot show."""
+        photograph cannot show. Those Gaussians keep the LDRM's own opacities and scales, which this trains
+        (``generated_footprint: pixel`` replaces them in ``generate`` only: base model card)."""
         H, W = batch["video"].shape[-2:]
         with autocast_off():
             cams = CameraPath(batch["viewmats"][b].float(), batch["Ks"][b].float(), W, H, batch["times"][b].float())
