@@ -2,11 +2,13 @@
 
 For each photo: ``generate`` (the library call of the command, shipped model, default settings) and ``write``; the
 folder's viewer.html opened from disk in headless Chromium (Playwright, software WebGL as the browser tests use it)
-at a viewport whose canvas has the output's aspect; the canvas at t = 0 from the input camera area-averaged to the
-output resolution, against the photograph as the output shows it (centre-cropped, resized) — and, as baselines, the
-8×8 thumbnail of the photograph and the CPU render of frame 0 (``rgb/0000.png``) against the same photograph.
+at viewports whose canvas is the output's size magnified s = 1 and 3 times (``--scales``, odd); the canvas at t = 0
+from the input camera read at the centres of the output's pixels (canvas pixel s·i + (s − 1)/2: where the CPU
+renderer samples) and, for s > 1, also area-averaged to the output resolution (what the eye sees of the magnified
+splats), against the photograph as the output shows it (centre-cropped, resized) — and, as baselines, the 8×8
+thumbnail of the photograph and the CPU render of frame 0 (``rgb/0000.png``) against the same photograph.
 
-    python benchmarks/viewer_fidelity.py [PHOTO ...] [--write]   # default: examples/chelsea.png
+    python benchmarks/viewer_fidelity.py [PHOTO ...] [--scales 1 3] [--write]   # default: examples/chelsea.png
 """
 from __future__ import annotations
 
@@ -37,9 +39,10 @@ def _chw(rgb: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1)[None].float()
 
 
-def canvas_at_input_camera(browser, viewer: Path, width: int, height: int) -> np.ndarray:
-    """viewer.html's canvas (t = 0, input camera) area-averaged to width × height, RGB float in [0, 1]."""
-    page = browser.new_page(viewport={"width": 3 * width, "height": 3 * height + 120})
+def canvas_at_input_camera(browser, viewer: Path, width: int, height: int, scale: int = 1) -> np.ndarray:
+    """viewer.html's canvas (t = 0, input camera) in a viewport that fits ``scale`` × (width × height):
+    (scale·height, scale·width, 3) RGB float in [0, 1]."""
+    page = browser.new_page(viewport={"width": scale * width, "height": scale * height + 120})
     page.goto(viewer.as_uri())
     page.wait_for_function("window.d4s && (window.d4s.ready || window.d4s.error)", timeout=120_000)
     if page.evaluate("d4s.error") is not None:
@@ -48,14 +51,21 @@ def canvas_at_input_camera(browser, viewer: Path, width: int, height: int) -> np
     png = page.locator("#view").screenshot()
     page.close()
     img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[..., ::-1].astype(np.float32) / 255
-    return cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA)
+    if img.shape[:2] != (scale * height, scale * width):
+        raise RuntimeError(f"{viewer}: canvas {img.shape[1]}×{img.shape[0]}, expected {scale * width}×{scale * height}")
+    return img
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("photos", nargs="*", type=Path, default=[EXAMPLE])
+    ap.add_argument("--scales", type=int, nargs="+", default=[1, 3],
+                    help="canvas pixels per output pixel, odd (default: 1 3)")
     ap.add_argument("--write", action="store_true", help="write the table into docs/benchmarks.md")
     args = ap.parse_args()
+    if any(s < 1 or s % 2 == 0 for s in args.scales):
+        ap.error(f"--scales must be odd positive integers (an output pixel's centre is a canvas pixel's), "
+                 f"got {args.scales}")
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
     if chromium is None:
         raise SystemExit("viewer_fidelity: needs Chromium (apt-get install chromium)")
@@ -68,19 +78,29 @@ def main() -> None:
             write(gen, out)
             H, W = gen.colors.shape[1:3]
             target = preprocess_image(read_image(photo), (H, W)).permute(2, 0, 1)[None].float()  # as generate frames it
-            canvas = _chw(canvas_at_input_camera(browser, out / "viewer.html", W, H))
+            cells = []
+            for s in args.scales:
+                canvas = canvas_at_input_camera(browser, out / "viewer.html", W, H, s)
+                cells.append(f"{image_psnr(_chw(canvas[s // 2::s, s // 2::s]), target):.2f}")
+                if s > 1:
+                    area = cv2.resize(canvas, (W, H), interpolation=cv2.INTER_AREA)
+                    cells.append(f"{image_psnr(_chw(area), target):.2f}")
             frame0 = _chw(cv2.imread(str(out / "rgb" / "0000.png"))[..., ::-1].astype(np.float32) / 255)
-            rows.append([photo.name, f"{W}×{H}", f"{image_psnr(canvas, target):.2f}",
+            rows.append([photo.name, f"{W}×{H}", *cells,
                          f"{image_psnr(frame0, target):.2f}", f"{image_psnr(thumbnail(target), target):.2f}"])
         browser.close()
-    table = markdown_table(["photo", "output", "viewer canvas dB", "frame 0 (rgb/0000.png) dB", "8×8 thumbnail dB"],
-                           rows)
+    heads = []
+    for s in args.scales:
+        heads += [f"viewer {s}×, pixel centres dB"] + ([f"viewer {s}×, area-averaged dB"] if s > 1 else [])
+    table = markdown_table(["photo", "output", *heads, "frame 0 (rgb/0000.png) dB", "8×8 thumbnail dB"], rows)
     publish("viewer_fidelity", "The photo in the browser: viewer.html at the input camera",
             "Shipped base model, `generate` defaults (arc, 17 frames, 256²). The canvas of viewer.html opened from "
-            "disk (headless Chromium, SwiftShader WebGL, Spark renderer) at t = 0 from the input camera, area-averaged "
-            "to the output size, against the photograph as the output frames it (centre crop, area resize); frame 0 "
+            "disk (headless Chromium, SwiftShader WebGL, Spark renderer) at t = 0 from the input camera, in a window "
+            "that shows the output magnified s times, read at the output pixels' centres (where the CPU renderer "
+            "samples) and, magnified, also area-averaged to the output size (the magnified splats as the eye "
+            "averages them), against the photograph as the output frames it (centre crop, area resize); frame 0 "
             "of the CPU renderer and the photo's 8×8 thumbnail against the same photograph. Photos other than the "
-            "demo are scikit-image samples that are not among the training textures.", table, args.write)
+            "demo are scikit-image and matplotlib samples that are not among the training textures.", table, args.write)
 
 
 if __name__ == "__main__":

@@ -100,11 +100,16 @@ async function main() {
   const bg = cfg.background || [0, 0, 0];  // the colour behind the Gaussians, as the CPU renderer composites it
   renderer.setClearColor(new THREE.Color().setRGB(bg[0], bg[1], bg[2], THREE.SRGBColorSpace), 1);
   const scene = new THREE.Scene();
-  // Our renderer's conventions: the scene's screen-space dilation (meta.json eps2d; 0.3 px² by default, 0.1 for a
-  // photo layer), 3σ support, alpha ≥ 1/255, and Gaussians sorted by view-space z as 3DGS does (Spark's default
-  // sorts by distance from the eye).
+  // Our renderer's conventions: the scene's screen-space dilation (meta.json eps2d, in pixels² of the output
+  // frames; 0.3 by default, 0.1 for a photo layer) added to the 2D covariance without changing opacities (the classic
+  // 3DGS rasterization that made the frames: Spark's preBlurAmount, set in resize() in pixels² of the canvas; its
+  // blurAmount, 0.3 px² by default, is the antialiased mode's filter that also scales opacities down, which would
+  // turn the opaque photo layer translucent: off), 3σ support, alpha ≥ 1/255, and Gaussians sorted by view-space z
+  // as 3DGS does (Spark's default sorts by distance from the eye).
   const eps2d = typeof cfg.eps2d === "number" ? cfg.eps2d : 0.3;
-  const spark = new SparkRenderer({ renderer, preBlurAmount: eps2d, maxStdDev: 3.0, minAlpha: 1 / 255, sortRadial: false });
+  const spark = new SparkRenderer({
+    renderer, preBlurAmount: eps2d, blurAmount: 0, maxStdDev: 3.0, minAlpha: 1 / 255, sortRadial: false,
+  });
   scene.add(spark);
   const splats = new SplatMesh({ fileBytes: ply, fileType: SplatFileType.PLY, lod: false });
   scene.add(splats);
@@ -120,6 +125,11 @@ async function main() {
     const s = Math.min(window.innerWidth / W, (window.innerHeight - document.getElementById("ui").offsetHeight) / H);
     const w = Math.max(1, Math.floor(W * s)), h = Math.max(1, Math.floor(H * s));
     renderer.setSize(w, h, true);
+    // The canvas shows the output frames magnified w / W times: the dilation scales with it (pixels² of the output →
+    // of the canvas), so the photo layer's colours, solved at the output resolution with eps2d, stay exact in a
+    // larger window instead of sharpening and ringing; in a smaller one it stays eps2d canvas pixels² (a low-pass
+    // against aliasing, as at the output's size).
+    spark.preBlurAmount = eps2d * Math.max(1, (w / W) * (h / H));
     // K at the canvas size: scale focal lengths and principal point with the image
     const k = cams[0].K.map((v, i) => (i === 0 || i === 2 ? v * w / W : i === 4 || i === 5 ? v * h / H : v));
     camera.projectionMatrix.copy(projectionFromK(k, w, h, cfg.near, cfg.far));
