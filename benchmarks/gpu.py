@@ -8,8 +8,9 @@ Three parts, each small enough for one 10-minute command on one GPU:
 - ``generate``: the pipeline's stages (synchronised, :class:`diff4splat.devices.Stopwatch`) and the render along
   the path, with the peak of ``torch.cuda.max_memory_allocated``, for ``base`` (shipped weights, 17 frames, 64²),
   ``small`` (random, 17 frames, 128²) and ``paper`` (random weights built directly in bfloat16 on the GPU —
-  nothing is downloaded; 49 frames, 512², 50 Euler steps), the paper model with model CPU offload and a prompt,
-  with offload and no prompt, and without offload and no prompt. Goal (issue 26, the paper's figures): paper-size
+  nothing is downloaded; 49 frames, 512², 50 Euler steps), the paper model with model CPU offload and a prompt
+  (eager, with its transformer blocks ``torch.compile``-d, and with cuDNN attention), with offload and no prompt,
+  and without offload and no prompt. Goal (issue 26, the paper's figures): paper-size
   `generate` end to end ≤ 30 s and ≤ 25 GB.
 - ``train``: optimizer steps per second and peak memory of ``train_base_dit``, ``train_base_ldrm`` and
   ``train_stage1`` with the ``small`` model on synthetic data made here (``data_prep synth``), on the trainer's
@@ -120,13 +121,16 @@ def part_render(device: torch.device, quick: bool) -> str:
 
 
 # ------------------------------------------------------------------------------------------------- generate
-GENERATE = [  # (label, config, frames, dtype, offload, prompt, attention)
-    ("base (shipped weights)", "base", None, torch.float32, "none", PROMPT, "auto"),
-    ("small (random)", "small", None, torch.float32, "none", PROMPT, "auto"),
-    ("paper, bf16, offload model, prompt", "paper", 49, torch.bfloat16, "model", PROMPT, "auto"),
-    ("paper, bf16, offload model, prompt, cuDNN attention", "paper", 49, torch.bfloat16, "model", PROMPT, "cudnn"),
-    ("paper, bf16, offload model, no prompt", "paper", 49, torch.bfloat16, "model", "", "auto"),
-    ("paper, bf16, no offload, no prompt", "paper", 49, torch.bfloat16, "none", "", "auto"),
+GENERATE = [  # (label, config, frames, dtype, offload, prompt, attention, compile)
+    ("base (shipped weights)", "base", None, torch.float32, "none", PROMPT, "auto", False),
+    ("small (random)", "small", None, torch.float32, "none", PROMPT, "auto", False),
+    ("paper, bf16, offload model, prompt", "paper", 49, torch.bfloat16, "model", PROMPT, "auto", False),
+    ("paper, bf16, offload model, prompt, compiled blocks", "paper", 49, torch.bfloat16, "model", PROMPT, "auto",
+     True),
+    ("paper, bf16, offload model, prompt, cuDNN attention", "paper", 49, torch.bfloat16, "model", PROMPT, "cudnn",
+     False),
+    ("paper, bf16, offload model, no prompt", "paper", 49, torch.bfloat16, "model", "", "auto", False),
+    ("paper, bf16, no offload, no prompt", "paper", 49, torch.bfloat16, "none", "", "auto", False),
 ]
 STAGES = ("encode_image", "encode_text", "sample", "reconstruct", "prune", "render")
 
@@ -160,20 +164,23 @@ def run_generate(pipe: Diff4SplatPipeline, frames: int | None, prompt: str, step
 def part_generate(device: torch.device, quick: bool) -> str:
     rows, verdicts = [], []
     models: dict[tuple, object] = {}
-    for label, config, frames, dtype, offload, prompt, attention in GENERATE:
-        key = (config, dtype)
+    for label, config, frames, dtype, offload, prompt, attention, compile in GENERATE:
+        key = (config, dtype, compile)  # compiling changes the model's blocks in place: a model of its own
         try:
             if key not in models:
                 models.clear()  # one paper model at a time
                 reset_peak(device)
                 models[key] = build_model(config, dtype, device, quick)
             model = models[key]
-            pipe = Diff4SplatPipeline(model, device, dtype=dtype, offload=offload, attention=attention)
-            run_generate(pipe, 5 if quick else frames, prompt, 1)  # warm-up: kernels, allocator
+            pipe = Diff4SplatPipeline(model, device, dtype=dtype, offload=offload, attention=attention,
+                                      compile=compile)
+            t_warm = time.perf_counter()
+            run_generate(pipe, 5 if quick else frames, prompt, 1)  # warm-up: kernels, allocator, compilation
+            warm = time.perf_counter() - t_warm
             reset_peak(device)
             t = run_generate(pipe, 5 if quick else frames, prompt, 2 if quick else None)
         except torch.OutOfMemoryError as e:
-            rows.append([label, "out of memory: " + str(e).splitlines()[0][:80]] + [""] * (len(STAGES) + 4))
+            rows.append([label, "out of memory: " + str(e).splitlines()[0][:80]] + [""] * (len(STAGES) + 5))
             pipe = model = None  # noqa: F841 - drop every reference before freeing the cache
             models.clear()
             reset_peak(device)
@@ -181,21 +188,24 @@ def part_generate(device: torch.device, quick: bool) -> str:
         total = sum(t[s] for s in STAGES)
         peak = peak_gb(device)
         rows.append([label, f"{t['size']}, {t['frames']} fr, {t['steps']} st", f"{t['gaussians']:,}"]
-                    + [f"{t[s]:.2f}" for s in STAGES] + [f"**{total:.2f}**", peak, t["peak_stage"]])
+                    + [f"{t[s]:.2f}" for s in STAGES] + [f"**{total:.2f}**", peak, t["peak_stage"], f"{warm:.1f}"])
         print(rows[-1], flush=True)
         if config == "paper" and offload == "model" and prompt and not quick:
             verdicts.append(f"{label}: {total:.1f} s ({'meets' if total <= 30 else 'misses'} 30 s), peak {peak} GB "
                             f"({'meets' if float(peak.split()[0]) <= 25 else 'misses'} 25 GB).")
     verdict = "".join(f"\n\n{v}" for v in ([f"Goal: {GOAL}."] + verdicts if verdicts else []))
     return (f"### `generate` on the GPU per stage, seconds, with peak memory\n\n"
-            f"`python benchmarks/gpu.py --part generate --write`; one run after a one-step warm-up, stages "
+            f"`python benchmarks/gpu.py --part generate --write`; one run after a one-step warm-up (its wall time "
+            f"is the last column: model moves, kernel loads and, for \"compiled blocks\", `torch.compile` of one "
+            f"transformer block, `--compile`), stages "
             f"synchronised; \"peak in\" is the stage that set the peak (`GenerationResult.high_water`). The paper "
             f"model holds random weights built in bfloat16 on the GPU (no download); "
             f"\"offload model\" keeps the networks in pinned CPU memory and moves one at a time to the GPU "
             f"(diff4splat/offload.py), so its `sample` includes copying the DiT there; \"cuDNN attention\" runs "
             f"`--attention cudnn` (cuDNN's fused attention tried first; torch tries FlashAttention-2 first). Peak = "
             f"`torch.cuda.max_memory_allocated` over the run, GB = 10⁹ bytes. Device: {device_name(device)}.\n\n"
-            + markdown_table(["model", "run", "Gaussians", *STAGES, "total s", "peak GB", "peak in"], rows) + verdict)
+            + markdown_table(["model", "run", "Gaussians", *STAGES, "total s", "peak GB", "peak in", "warm-up s"],
+                             rows) + verdict)
 
 
 # ---------------------------------------------------------------------------------------------------- train

@@ -74,7 +74,7 @@ class LoadedPipeline:
 
 def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | None = None, *, runtime: str = "torch",
                   onnx: str | os.PathLike | None = None, device: str | torch.device = AUTO, dtype: str = "float32",
-                  offload: str = "none", attention: str = "auto") -> LoadedPipeline:
+                  offload: str = "none", attention: str = "auto", compile: bool = False) -> LoadedPipeline:
     """Load the networks ``generate`` runs.
 
     Args:
@@ -82,11 +82,12 @@ def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | Non
             none ship).
         config: shipped config name or YAML path (None: :data:`models.bundle.DEFAULT_CONFIG`).
         runtime: one of :data:`RUNTIMES`; "onnxruntime" runs the export in ``onnx`` (checkpoint, config, device,
-            dtype, offload and attention then do not apply: the export's manifest fixes the model).
+            dtype, offload, attention and compile then do not apply: the export's manifest fixes the model).
         device: "auto" (CUDA when present, else the CPU), "cpu", "cuda", "cuda:1", …
         dtype: weight dtype name (:data:`diff4splat.runtime.DTYPES`).
         offload: "none" or "model" (:data:`diff4splat.runtime.OFFLOAD_MODES`).
         attention: the attention kernel tried first (:data:`diff4splat.runtime.ATTENTION_KERNELS`).
+        compile: ``torch.compile`` the transformer's blocks (:class:`diff4splat.runtime.TorchRuntime`).
 
     Raises:
         ValueError: an unknown runtime or dtype, options that do not apply to the runtime, an unavailable device,
@@ -99,10 +100,10 @@ def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | Non
         if onnx is None:
             raise ValueError("--runtime onnxruntime needs --onnx DIR (a folder written by `diff4splat export-onnx`)")
         if (checkpoint is not None or config is not None or device != AUTO or dtype != "float32" or offload != "none"
-                or attention != "auto"):
-            raise ValueError("--checkpoint, --config, --device, --dtype, --offload and --attention do not apply to "
-                             "--runtime onnxruntime (the export's manifest fixes the model; onnxruntime picks CUDA "
-                             "or CPU)")
+                or attention != "auto" or compile):
+            raise ValueError("--checkpoint, --config, --device, --dtype, --offload, --attention and --compile do not "
+                             "apply to --runtime onnxruntime (the export's manifest fixes the model; onnxruntime "
+                             "picks CUDA or CPU)")
         if not Path(onnx).is_dir():
             raise FileNotFoundError(f"--onnx: {onnx} is not a folder")
         import onnxruntime  # optional dependency (the `onnx` extra)
@@ -126,7 +127,7 @@ def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | Non
     t0 = time.perf_counter()
     model, source = _load_model(checkpoint, config or DEFAULT_CONFIG, seed=0, dtype=DTYPES[dtype])
     pipe = Diff4SplatPipeline(model, device=device, dtype=DTYPES[dtype], offload=offload,
-                              attention=attention)
+                              attention=attention, compile=compile)
     return LoadedPipeline(pipe, source, time.perf_counter() - t0, dtype, offload,
                           files=() if checkpoint is None else (Path(checkpoint),))
 
@@ -314,6 +315,7 @@ def _meta(loaded: LoadedPipeline, result: GenerationResult, prompt: str, traject
         "dtype": loaded.dtype,
         "offload": loaded.offload,
         "attention": pipe.runtime.attention,
+        "compile": pipe.runtime.compiled,
         "image": path(files["image"]),
         "prompt": prompt,
         "trajectory": trajectory,

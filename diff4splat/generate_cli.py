@@ -68,6 +68,10 @@ def add_generate_parser(subparsers, *, out_type: Callable[[str], Path], out_help
     g.add_argument("--attention", choices=tuple(ATTENTION_KERNELS), default="auto",
                    help="fused attention kernel the networks try first (cudnn: cuDNN's, tuned for Hopper GPUs; the "
                         "others stay behind it); default: auto, torch's own order")
+    g.add_argument("--compile", action="store_true",
+                   help="torch.compile the transformer's blocks (regional compilation): the first sampling step "
+                        "compiles, the later ones run fused kernels (for long runs on a GPU; needs a C++ compiler "
+                        "on the CPU)")
     g.add_argument("--runtime", choices=("torch", "onnxruntime"), default="torch",
                    help="run the networks with PyTorch or with onnxruntime on an --onnx export (default: torch)")
     g.add_argument("--onnx", type=Path, default=None, help="folder written by `diff4splat export-onnx` "
@@ -88,7 +92,7 @@ def generate_command(args) -> dict:
     generation = generate(
         args.image, args.cameras, pipeline=lambda: print_warnings(
             load_pipeline, args.checkpoint, args.config, runtime=args.runtime, onnx=args.onnx, device=args.device,
-            dtype=args.dtype, offload=args.offload, attention=args.attention),
+            dtype=args.dtype, offload=args.offload, attention=args.attention, compile=args.compile),
         trajectory=args.trajectory, amplitude=args.amplitude, frames=args.frames, resolution=args.resolution,
         prompt=args.prompt, steps=args.steps, sampler=args.sampler, guidance=args.guidance, seed=args.seed,
         depth=args.depth, depth_kind=args.depth_kind, progress=not args.quiet,

@@ -244,6 +244,7 @@ class OnnxRuntime:
     encodes_empty_prompt = False  # our text encoder: no prompt, no text tokens
     input_dtype = torch.float32  # the graphs' inputs
     attention = None  # onnxruntime picks its own attention kernels
+    compiled = False  # nothing runs torch.compile (onnxruntime optimises the graph itself)
 
     def __init__(self, directory: str | os.PathLike, providers: list[str] | None = None,
                  threads: int | None = None, profile_prefix: str | None = None):

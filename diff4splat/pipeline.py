@@ -250,6 +250,7 @@ class Diff4SplatPipeline:
             25 GB budget); ``"none"`` (default) keeps them all on ``device``.
         attention: the fused attention kernel the PyTorch networks try first
             (:data:`diff4splat.runtime.ATTENTION_KERNELS`; default ``"auto"``, torch's order).
+        compile: ``torch.compile`` the transformer's blocks (:class:`TorchRuntime`; default False).
 
     Attributes:
         runtime: the :class:`NetworkRuntime` that runs the networks.
@@ -262,11 +263,12 @@ class Diff4SplatPipeline:
     """
 
     def __init__(self, model: Diff4SplatModel | BackboneModel | NetworkRuntime, device: str | torch.device = "cpu",
-                 *, dtype: torch.dtype | None = None, offload: str = "none", attention: str = "auto"):
+                 *, dtype: torch.dtype | None = None, offload: str = "none", attention: str = "auto",
+                 compile: bool = False):
         if isinstance(model, (Diff4SplatModel, BackboneModel)):
             self.model: Diff4SplatModel | BackboneModel | None = model
             self.runtime: NetworkRuntime = TorchRuntime(model, device, dtype=dtype, offload=offload,
-                                                         attention=attention)
+                                                         attention=attention, compile=compile)
         elif isinstance(model, NetworkRuntime):
             self.model, self.runtime = None, model
         else:

@@ -42,6 +42,8 @@ class NetworkRuntime(Protocol):
             cast of every call (0.33 GB float32 at 49 frames, 512²).
         attention: the fused attention kernel tried first (:data:`ATTENTION_KERNELS`; written to meta.json), None
             for a runtime that does not run torch's attention.
+        compiled: whether the transformer's blocks run ``torch.compile``-d
+            (:meth:`models.backbones.base.Backbone.compile_blocks`; written to meta.json).
     """
 
     config: Diff4SplatConfig | BackboneModelConfig
@@ -51,6 +53,7 @@ class NetworkRuntime(Protocol):
     name: str
     input_dtype: torch.dtype
     attention: str | None
+    compiled: bool
 
     def sigmas(self, steps: int) -> Tensor:
         """The sampler's σ schedule: (steps + 1,) float64 from 1 to 0
@@ -129,6 +132,9 @@ class TorchRuntime:
             Gaussians are built in float32 whatever the weights.
         offload: one of :data:`OFFLOAD_MODES`.
         attention: one of :data:`ATTENTION_KERNELS`: the fused attention kernel every network call tries first.
+        compile: ``torch.compile`` the transformer's blocks (regional compilation,
+            :meth:`models.backbones.base.Backbone.compile_blocks`): the first sampling step compiles, the later
+            ones run fused kernels (``benchmarks/gpu.py`` measures both on a GPU).
 
     Raises:
         ValueError: an unknown ``offload`` or ``attention``, or a non-floating ``dtype``.
@@ -138,7 +144,8 @@ class TorchRuntime:
     has_deformation = True
 
     def __init__(self, model: Diff4SplatModel | BackboneModel, device: str | torch.device = "cpu", *,
-                 dtype: torch.dtype | None = None, offload: str = "none", attention: str = "auto"):
+                 dtype: torch.dtype | None = None, offload: str = "none", attention: str = "auto",
+                 compile: bool = False):
         if offload not in OFFLOAD_MODES:
             raise ValueError(f"offload must be one of {OFFLOAD_MODES}, got {offload!r}")
         attention_priority(attention)  # an unknown name fails here, before any model moves
@@ -162,6 +169,9 @@ class TorchRuntime:
         if self.offload is None:
             for name, net in self.networks.items():
                 net.to("cpu" if self.text_visits and name == "text_encoder" else self.device)
+        self.compiled = bool(compile)
+        if self.compiled:
+            self.backbone.compile_blocks()
 
     @contextmanager
     def _use(self, name: str):

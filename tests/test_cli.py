@@ -290,6 +290,7 @@ def test_meta_steps_and_sampler_are_the_ones_the_pipeline_used(tmp_path, monkeyp
     meta, result = json.loads((out / "meta.json").read_text()), seen["result"]
     assert (meta["steps"], meta["sampler"], meta["shift"]) == (result.steps, result.sampler, result.shift)
     assert meta["runtime"] == "torch" and "backend" not in meta and meta["attention"] == "auto"
+    assert meta["compile"] is False
     out = tmp_path / "given"
     assert main(["generate", str(EXAMPLE_IMAGE), "--frames", "1", "--steps", "2", "--sampler", "heun", "--quiet",
                  "--attention", "math", "--out", str(out)]) == 0

@@ -175,7 +175,7 @@ def test_generate_cli_onnxruntime_writes_the_same_folder(full, tmp_path, tmp_pat
     assert sorted(p.name for p in a.iterdir()) == sorted(p.name for p in b.iterdir())
     meta = json.loads((b / "meta.json").read_text())
     assert meta["runtime"] == "onnxruntime" and meta["model"].startswith("onnx:") and "onnxruntime" in meta["versions"]
-    assert meta["attention"] is None
+    assert meta["attention"] is None and meta["compile"] is False
     assert json.loads((a / "meta.json").read_text())["runtime"] == "torch"
     assert (a / "cameras.json").read_text() == (b / "cameras.json").read_text()
     ga, gb = load_ply(a / "scene.ply"), load_ply(b / "scene.ply")
@@ -247,19 +247,20 @@ def test_cli_prompt_on_a_no_text_export_is_one_line_exit_2(lean, tmp_path, capsy
 
 
 @pytest.mark.parametrize("case", ["no_onnx", "onnx_without_runtime", "with_checkpoint", "with_attention",
-                                  "missing_folder"])
+                                  "with_compile", "missing_folder"])
 def test_cli_runtime_option_errors(tmp_path, capsys, case):
     args = ["generate", str(EXAMPLE_IMAGE), "--quiet", "--out", str(tmp_path / "o")]
     args += {"no_onnx": ["--runtime", "onnxruntime"],
              "onnx_without_runtime": ["--onnx", str(tmp_path)],
              "with_checkpoint": ["--runtime", "onnxruntime", "--onnx", str(tmp_path), "--checkpoint", str(tmp_path)],
              "with_attention": ["--runtime", "onnxruntime", "--onnx", str(tmp_path), "--attention", "cudnn"],
+             "with_compile": ["--runtime", "onnxruntime", "--onnx", str(tmp_path), "--compile"],
              "missing_folder": ["--runtime", "onnxruntime", "--onnx", str(tmp_path / "none")]}[case]
     code = main(args)
     err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert code == 2 and len(err) == 1 and err[0].startswith("diff4splat: error:")
     flag = {"no_onnx": "--onnx", "onnx_without_runtime": "--runtime", "with_checkpoint": "--checkpoint",
-            "with_attention": "--attention", "missing_folder": "--onnx"}[case]
+            "with_attention": "--attention", "with_compile": "--compile", "missing_folder": "--onnx"}[case]
     assert flag in err[0]  # the CLI names its own flags
     assert not (tmp_path / "o").exists()
 

@@ -208,6 +208,28 @@ def test_each_attention_kernel_runs_under_its_order_and_gives_the_same_scene(ima
         torch.testing.assert_close(res.latents, ref.latents, atol=1e-4, rtol=0)
 
 
+@pytest.mark.slow
+def test_compiled_blocks_give_the_eager_scene(image, device):
+    """``compile=True`` compiles every transformer block in place (regional compilation, the rest of the DiT
+    eager); the sampled latents equal the eager run's to float32 rounding; the identical blocks share their graphs
+    and the steps (a new σ each) reuse them: a second generation compiles nothing."""
+    from torch._dynamo.utils import counters
+
+    _, ref = _run(image, device)
+    torch._dynamo.reset()
+    counters.clear()
+    pipe = Diff4SplatPipeline(tiny_model(dynamic=True, active_dit=True), device, compile=True)
+    blocks = pipe.runtime.backbone.transformer_blocks()
+    assert pipe.runtime.compiled and len(blocks) == 2 and all(b._compiled_call_impl is not None for b in blocks)
+    res = pipe(image, pipe.default_cameras("arc", 5), PROMPT, steps=2)
+    torch.testing.assert_close(res.latents, ref.latents, atol=1e-4, rtol=0)
+    graphs = counters["stats"]["unique_graphs"]
+    assert 1 <= graphs <= 2  # with text; and at most one recompile (σ as a dynamic input)
+    again = pipe(image, pipe.default_cameras("arc", 5), PROMPT, steps=2)
+    assert counters["stats"]["unique_graphs"] == graphs
+    torch.testing.assert_close(again.latents, res.latents, atol=0, rtol=0)
+
+
 @pytest.mark.cuda
 def test_cudnn_attention_matches_the_math_kernel_on_the_dits_layout():
     """cuDNN's fused attention, where the GPU takes it (sm80+; torch prefers FlashAttention-2), on the layout our
