@@ -33,18 +33,7 @@ from diff4splat.assemble import video_colors  # noqa: E402
 from diff4splat.devices import resolve_device  # noqa: E402
 from diff4splat.pipeline import load_model  # noqa: E402
 from models.ldrm import source_frame_indices  # noqa: E402
-
-
-def blockiness(x: torch.Tensor, block: int) -> float:
-    """Border/inside ratio of squared neighbour differences of ``x`` (..., H, W) for blocks of ``block`` pixels
-    (module docstring); channels, if any, must come before H, W."""
-    dx = (x[..., :, 1:] - x[..., :, :-1]) ** 2  # (..., H, W − 1): between columns j and j + 1
-    dy = (x[..., 1:, :] - x[..., :-1, :]) ** 2
-    bx = (torch.arange(dx.shape[-1], device=x.device) + 1) % block == 0
-    by = (torch.arange(dy.shape[-2], device=x.device) + 1) % block == 0
-    border = torch.cat([dx[..., bx].flatten(), dy[..., by, :].flatten()])
-    inside = torch.cat([dx[..., ~bx].flatten(), dy[..., ~by, :].flatten()])
-    return float(border.mean() / inside.mean().clamp_min(1e-20))
+from training.eval_metrics import blockiness  # noqa: E402
 
 
 @torch.no_grad()

@@ -19,10 +19,17 @@ A simplified CogVideoX / Wan-style video VAE (Yang et al. 2024, "CogVideoX", §2
 - **Residual shortcuts** (DC-AE, Chen et al. 2025, "Deep Compression Autoencoder for Efficient
   High-Resolution Diffusion Models", §3.2 "residual autoencoding"): every down/upsampling block adds a
   parameter-free path to its learned convolution — space-to-channel averaging (a causal 2×2(×2) mean
-  pool) going down, nearest duplication going up — and the bottleneck adds channel averaging
+  pool) going down, duplication going up — and the bottleneck adds channel averaging
   (encoder → mean) and channel duplication (latent → decoder). The untrained network then already
   passes a block-averaged image through the latent, and training learns the residual; without them
   the tiny VAE stays at the per-image mean colour for hundreds of steps (see the model card).
+
+- **Spatial upsampling** in the decoder (``VideoVAEConfig.upsample``): ``nearest`` (SD / Wan: each feature
+  copied into 2×2 before the convolution) or ``bilinear``. With the residual shortcuts, nearest duplication three
+  times over copies every latent pixel's features into its own 8×8 block, and a small decoder keeps those blocks:
+  the shipped tiny VAE's reconstructions carry 2.5× the squared neighbour differences across the 8-pixel borders
+  as inside them (true frames: 1.05; ``benchmarks/blockiness.py``). Bilinear upsampling overlaps neighbouring
+  latents on both paths, so no block structure exists to be learned away.
 
 Simplifications against the published VAEs: no attention in the middle block, no feature cache
 (the whole clip is encoded at once), no tiling. Tensors are channel-first ``(B, C, T, H, W)``,
@@ -40,10 +47,14 @@ from models.backbones.base import LatentFormat
 from models.pretrained import PretrainedMixin
 
 __all__ = ["VideoVAEConfig", "PAPER_VIDEO_VAE", "VideoVAE", "CausalConv3d", "FrameGroupNorm", "ResBlock3d",
-           "kl_divergence", "sample_posterior", "estimate_latent_scaling", "LOGVAR_RANGE"]
+           "kl_divergence", "sample_posterior", "estimate_latent_scaling", "LOGVAR_RANGE", "UPSAMPLE_MODES",
+           "upsample2x"]
 
 LOGVAR_RANGE = (-30.0, 20.0)
 """Clamp of the posterior log-variance (Stable Diffusion ``DiagonalGaussianDistribution``)."""
+
+UPSAMPLE_MODES = ("nearest", "bilinear")
+"""The decoder's spatial upsampling (``VideoVAEConfig.upsample``)."""
 
 
 @dataclass
@@ -62,6 +73,9 @@ class VideoVAEConfig:
         norm_groups: GroupNorm groups; must divide every level width.
         shortcuts: DC-AE residual shortcuts (module docstring); parameter-free. Needs
             ``latent_channels`` to divide the deepest width.
+        upsample: the decoder's spatial 2× upsampling, one of :data:`UPSAMPLE_MODES` (module docstring):
+            ``nearest`` (default, the published VAEs') or ``bilinear`` (no 8×8 blocks). Weights are the same
+            either way: a decoder trained with one runs with the other, changed.
         scaling_factor: a in z_dit = a·(z − b), applied by :meth:`VideoVAE.encode_latents` so the DiT
             sees roughly unit-variance latents; set after VAE training with :func:`estimate_latent_scaling`.
         shift_factor: b in the same formula (latent mean).
@@ -75,6 +89,7 @@ class VideoVAEConfig:
     num_res_blocks: int = 1
     norm_groups: int = 4
     shortcuts: bool = True
+    upsample: str = "nearest"
     scaling_factor: float = 1.0
     shift_factor: float = 0.0
 
@@ -97,6 +112,8 @@ class VideoVAEConfig:
         if self.shortcuts and self.widths[-1] % self.latent_channels:
             raise ValueError(f"VideoVAEConfig.latent_channels={self.latent_channels} must divide the deepest width "
                              f"{self.widths[-1]} for the channel-averaging shortcuts (or set shortcuts=False)")
+        if self.upsample not in UPSAMPLE_MODES:
+            raise ValueError(f"VideoVAEConfig.upsample must be one of {UPSAMPLE_MODES}, got {self.upsample!r}")
         if not self.scaling_factor > 0:
             raise ValueError(f"VideoVAEConfig.scaling_factor must be > 0, got {self.scaling_factor}")
 
@@ -238,21 +255,32 @@ class Downsample(nn.Module):
         return y + causal_mean_pool(x, self.temporal) if self.shortcut else y
 
 
+def upsample2x(x: Tensor, mode: str) -> Tensor:
+    """(B, C, T, H, W) → (B, C, T, 2H, 2W), each frame on its own: ``nearest`` copies every value into 2×2;
+    ``bilinear`` interpolates between pixel centres (half-pixel, ``align_corners=False``; edges clamped), i.e.
+    weights 3/4 and 1/4 of the two nearest inputs per axis (trilinear with time scale 1: frames never mix)."""
+    if mode not in UPSAMPLE_MODES:
+        raise ValueError(f"mode must be one of {UPSAMPLE_MODES}, got {mode!r}")
+    return F.interpolate(x, scale_factor=(1.0, 2.0, 2.0), mode="trilinear" if mode == "bilinear" else "nearest",
+                         **({"align_corners": False} if mode == "bilinear" else {}))
+
+
 class Upsample(nn.Module):
-    """Nearest 2× in H, W, then a causal conv; temporal: T=n → 1 + 2(n − 1) by time pixel-shuffle.
+    """2× in H, W (:func:`upsample2x`, ``mode``), then a causal conv; temporal: T=n → 1 + 2(n − 1) by time
+    pixel-shuffle.
 
     With ``temporal`` the conv outputs 2C channels: frame 0 keeps the first C (the first frame stays
     alone), every later frame i becomes frames 2i − 1 (first C) and 2i (last C). With ``shortcut`` the
-    nearest-upsampled input, repeated in time by :func:`causal_repeat`, is added.
+    upsampled input, repeated in time by :func:`causal_repeat`, is added.
     """
 
-    def __init__(self, channels: int, temporal: bool, shortcut: bool = True):
+    def __init__(self, channels: int, temporal: bool, shortcut: bool = True, mode: str = "nearest"):
         super().__init__()
-        self.temporal, self.shortcut = temporal, shortcut
+        self.temporal, self.shortcut, self.mode = temporal, shortcut, mode
         self.conv = CausalConv3d(channels, channels * (2 if temporal else 1))
 
     def forward(self, x: Tensor) -> Tensor:
-        x = F.interpolate(x, scale_factor=(1.0, 2.0, 2.0), mode="nearest")
+        x = upsample2x(x, self.mode)
         y = self.conv(x)
         if self.temporal:
             b, c2, n, h, w = y.shape
@@ -311,7 +339,7 @@ class Decoder(nn.Module):
                 layers.append(ResBlock3d(cin, widths[i], g))
                 cin = widths[i]
             if i > 0:
-                layers.append(Upsample(cin, config.temporal_downsample[i - 1], config.shortcuts))
+                layers.append(Upsample(cin, config.temporal_downsample[i - 1], config.shortcuts, config.upsample))
         self.layers = nn.Sequential(*layers)
         self.norm_out = FrameGroupNorm(g, cin)
         self.conv_out = CausalConv3d(cin, config.in_channels)

@@ -12,6 +12,7 @@ from training.eval_metrics import (
     ablation_noise,
     angle_bin,
     binned_psnr,
+    blockiness,
     covisible_mask,
     depth_errors,
     frame_mse,
@@ -303,3 +304,17 @@ def test_thumbnail_keeps_constants_and_interior_ramps_and_nothing_finer():
     torch.testing.assert_close(thumbnail(ramp)[..., inner, inner], ramp[..., inner, inner])
     checker = ((x[:, None] + x[None, :]) % 2).expand(1, 3, 64, 64)
     torch.testing.assert_close(thumbnail(checker), torch.full_like(checker, 0.5))
+
+
+
+def test_blockiness_closed_forms():
+    """On a 32×32 grid with 8-pixel blocks (3 border and 28 inside differences per row and column): a ramp (a
+    difference of 1 everywhere along x) scores 1; constant 8×8 blocks have differences on the borders only; a step
+    after every 4th column puts 3 steps on the 3 border columns and 4 on the 28 inside ones: (3/6) / (4/56) = 7."""
+    ramp = torch.arange(32.0).repeat(32, 1)
+    assert blockiness(ramp, 8) == pytest.approx(1.0)
+    blocks = torch.randn(3, 4, 4, generator=torch.Generator().manual_seed(0))
+    blocks = blocks.repeat_interleave(8, 1).repeat_interleave(8, 2)  # (3, 32, 32)
+    assert blockiness(blocks, 8) > 1e15
+    steps = (torch.arange(32) // 4).float().repeat(32, 1)
+    assert blockiness(steps, 8) == pytest.approx(7.0)

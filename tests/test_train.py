@@ -104,6 +104,29 @@ def test_stage1_from_the_vae_run_keeps_the_vae_frozen_and_trains_dit_and_ldrm(va
 
 
 @pytest.mark.slow
+def test_a_decoder_stage_trains_the_vae_decoder_alone_and_keeps_the_latents(vae_run, data, tmp_path, capsys):
+    """``train: [vae.decoder]`` (the shipped base decoder stage at 32², from the VAE run's model): the decoder
+    changes; the encoder, the other networks and the latent scaling stay bit-identical (no calibration after a
+    decoder-only stage), so every latent the DiT and the LDRM were trained on is the same."""
+    code, vae = vae_run
+    assert code == 0
+    cfg = _stage_yaml(tmp_path, "base_vae_decoder", height=SIZE, width=SIZE, num_frames=FRAMES,
+                      trainer={"batch_size": 2, "checkpoint_every": 100})
+    run = tmp_path / "run"
+    code = main(["--config", str(cfg), "--data", str(data), "--init-from", str(vae / "model"),
+                 "--run-dir", str(run), "--steps", "2", "--quiet", "--device", "cpu"])
+    assert code == 0, capsys.readouterr().err
+    before = Diff4SplatModel.from_pretrained(vae / "model")
+    after = Diff4SplatModel.from_pretrained(run / "model")
+    old = before.state_dict()
+    changed = {k for k, v in after.state_dict().items() if not torch.equal(v, old[k])}
+    assert changed and all(k.startswith("vae.decoder.") for k in changed)
+    assert after.config.vae == before.config.vae
+    clips = _clips(data)
+    assert torch.equal(_latents(after, clips), _latents(before, clips))
+
+
+@pytest.mark.slow
 def test_build_training_optimises_exactly_the_stage_modules_on_its_scenes(vae_run, data, tmp_path):
     from training.stage_config import load_stage
     from training.train import build_training

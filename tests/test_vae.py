@@ -19,7 +19,9 @@ from models.vae import (
     estimate_latent_scaling,
     kl_divergence,
     sample_posterior,
+    upsample2x,
 )
+from training.eval_metrics import blockiness
 
 
 def _vae(seed: int = 0, randomize: bool = False) -> VideoVAE:
@@ -291,3 +293,41 @@ def test_shortcuts_can_be_switched_off_and_need_divisible_widths():
     with pytest.raises(ValueError, match="latent_channels=3 must divide"):
         VideoVAEConfig(latent_channels=3)
     VideoVAEConfig(latent_channels=3, shortcuts=False)  # no channel averaging: any count
+
+
+def test_upsample2x_against_closed_forms():
+    """nearest copies each value into 2×2; bilinear (half-pixel centres) gives 3/4 of the nearer and 1/4 of the
+    farther input per axis, edges clamped; frames never mix; an unknown mode raises."""
+    x = torch.randn(2, 3, 4, 5, 6, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(upsample2x(x, "nearest"), x.repeat_interleave(2, 3).repeat_interleave(2, 4))
+
+    def axis(v: torch.Tensor, dim: int) -> torch.Tensor:  # 1D half-pixel linear 2× along dim
+        n = v.shape[dim]
+        prev = v.index_select(dim, torch.tensor([0, *range(n - 1)]))
+        nxt = v.index_select(dim, torch.tensor([*range(1, n), n - 1]))
+        even, odd = 0.75 * v + 0.25 * prev, 0.75 * v + 0.25 * nxt  # outputs 2i and 2i + 1
+        return torch.stack([even, odd], dim + 1).flatten(dim, dim + 1)
+
+    torch.testing.assert_close(upsample2x(x, "bilinear"), axis(axis(x, 3), 4))
+    with pytest.raises(ValueError, match="mode must be one of"):
+        upsample2x(x, "bicubic")
+    with pytest.raises(ValueError, match="upsample must be one of"):
+        VideoVAEConfig(upsample="bicubic")
+
+
+@pytest.mark.slow
+def test_bilinear_decoder_has_no_8x8_blocks_where_nearest_has():
+    """The same random weights decoding the same random latents: with nearest upsampling the shortcuts copy every
+    latent pixel into its own 8×8 block (the border/inside ratio of squared neighbour differences ≫ 1); with
+    bilinear upsampling the borders are like anywhere else. The weights are the same tensors either way."""
+    z = torch.randn(2, 4, 2, 4, 4, generator=torch.Generator().manual_seed(3))
+    ratios = {}
+    for mode in ("nearest", "bilinear"):
+        torch.manual_seed(0)
+        vae = VideoVAE(VideoVAEConfig(upsample=mode)).eval()
+        with torch.no_grad():
+            ratios[mode] = blockiness(vae.decode(z), 8)
+    assert ratios["nearest"] > 2.0 and ratios["bilinear"] < 1.3, ratios
+    a, b = VideoVAE(VideoVAEConfig()), VideoVAE(VideoVAEConfig(upsample="bilinear"))
+    assert a.state_dict().keys() == b.state_dict().keys()
+    assert all(v.shape == b.state_dict()[k].shape for k, v in a.state_dict().items())

@@ -16,7 +16,8 @@ from diff4splat.cameras import unproject_depth
 
 __all__ = ["PSNR_CAP", "ANGLE_BINS", "psnr_from_mse", "image_psnr", "image_ssim", "thumbnail", "pearson",
            "depth_errors", "frame_mse", "view_angles", "angle_bin", "binned_psnr", "repeat_baselines", "motion_errors",
-           "kept_index_map", "ablation_noise", "BLUR_SIGMA", "BLUR_KERNEL", "covisible_mask", "masked_psnr"]
+           "kept_index_map", "ablation_noise", "BLUR_SIGMA", "BLUR_KERNEL", "covisible_mask", "masked_psnr",
+           "blockiness"]
 
 PSNR_CAP = 100.0
 """PSNR of identical images (MSE 0) is reported as this many dB instead of infinity."""
@@ -314,3 +315,25 @@ def masked_psnr(pred: Tensor, gt: Tensor, mask: Tensor) -> float:
         return float("nan")
     se = ((pred.double().clamp(0, 1) - gt.double()) ** 2)[mask]
     return psnr_from_mse(float(se.mean()))
+
+
+def blockiness(x: Tensor, block: int) -> float:
+    """How much a decoder paints its tokens into blocks: the mean squared difference of horizontally and vertically
+    adjacent pixels across the borders of a ``block``-pixel grid (columns / rows j with (j + 1) mod block = 0),
+    divided by the same mean inside the blocks. 1: the borders are like anywhere else (natural images: ≈ 1); a
+    decoder that paints every token into its own block puts the steps on the borders (≫ 1).
+
+    Args:
+        x: (..., H, W) maps, channels (if any) before H and W.
+        block: the grid's pitch in pixels (a decoder's token size, 8 for an 8×8-compressing VAE).
+
+    Returns:
+        The ratio (≥ 0; the inside mean is floored at 1e-20).
+    """
+    dx = (x[..., :, 1:] - x[..., :, :-1]) ** 2  # (..., H, W − 1): between columns j and j + 1
+    dy = (x[..., 1:, :] - x[..., :-1, :]) ** 2
+    bx = (torch.arange(dx.shape[-1], device=x.device) + 1) % block == 0
+    by = (torch.arange(dy.shape[-2], device=x.device) + 1) % block == 0
+    border = torch.cat([dx[..., bx].flatten(), dy[..., by, :].flatten()])
+    inside = torch.cat([dx[..., ~bx].flatten(), dy[..., ~by, :].flatten()])
+    return float(border.mean() / inside.mean().clamp_min(1e-20))

@@ -40,9 +40,11 @@ STAGE_CONFIG_DIR = STAGE_CONFIGS
 ``train_cogvideox_stage1`` …): ``configs/training/``
 (:mod:`diff4splat.config_files`)."""
 
-MODULES = ("vae", "text_encoder", "dit", "ldrm", "ldrm.deformation", "ldrm.head", "ldrm.image_branch",
-           "ldrm.image_depth")
-"""Module names a stage can train (``ldrm.deformation`` is the LDRM's deformation network; ``ldrm.head`` and
+MODULES = ("vae", "vae.decoder", "text_encoder", "dit", "ldrm", "ldrm.deformation", "ldrm.head",
+           "ldrm.image_branch", "ldrm.image_depth")
+"""Module names a stage can train (``vae.decoder`` is the VAE's decoder alone: the encoder, hence every latent the
+DiT and the LDRM were trained on, and the latent scaling stay as they are; ``ldrm.deformation`` is the LDRM's
+deformation network; ``ldrm.head`` and
 ``ldrm.image_branch`` alone train a new head on the LDRM's features, which the deformation network also reads;
 ``ldrm.image_depth`` is the monocular depth network of frame 0, :class:`models.mono_depth.MonoDepth`;
 ``dit`` of a diffusers backbone is its transformer's LoRA adapters and camera weights)."""
@@ -213,7 +215,7 @@ class StageConfig:
             if self.backbone_dtype != "float32":
                 raise ValueError("stage.backbone_dtype applies to a diffusers backbone; stage.backbone is ours")
             return
-        frozen = sorted({"vae", "text_encoder"} & set(self.train))
+        frozen = sorted({"vae", "vae.decoder", "text_encoder"} & set(self.train))
         if frozen:
             raise ValueError(f"stage.train: the {self.backbone} backbone's {' and '.join(frozen)} cannot train "
                              "(trainable: dit through LoRA, ldrm and its parts)")

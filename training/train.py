@@ -15,7 +15,8 @@ Distributed: ``torchrun --nproc_per_node N -m training.train --config ...`` (one
 ``cuda:$LOCAL_RANK``; DDP, NCCL on CUDA and gloo on the CPU; ``--strategy fsdp`` shards paper-size models
 block by block with FSDP2). At the end rank 0 writes the trained model to ``<run_dir>/model``
 (``Diff4SplatModel.save_pretrained``; EMA weights when EMA is on; gathered from every rank under FSDP), the
-``init_from`` of the next stage; after a VAE stage the latent scaling is calibrated first
+``init_from`` of the next stage; after a stage that trains the VAE's encoder (``train: [vae]``; not
+``vae.decoder``, which leaves the latents as they are) the latent scaling is calibrated first
 (:func:`calibrate_latent_scaling`). Bad input (a bad config, a device this machine lacks): one line on stderr,
 exit code 2.
 """
@@ -218,7 +219,7 @@ def _write_model(trainer: Trainer, model: Diff4SplatModel | BackboneModel, stage
         model = Diff4SplatModel(model.config) if ours else backbone_training().load_backbone_model(stage)
     if state is not None:
         model.load_state_dict({k[len("model."):]: v for k, v in state.items()})
-    if "vae" in stage.objectives:
+    if "vae" in stage.train:  # the encoder trained: new latents, new scaling (a decoder-only stage keeps both)
         a, b = calibrate_latent_scaling(model, trainer.dataset)
         print(f"train: VAE latent scaling_factor {a:.6g}, shift_factor {b:.6g}", file=sys.stderr)
     if ours:
