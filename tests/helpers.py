@@ -10,8 +10,9 @@ import torch
 EXAMPLE_IMAGE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
 
 
-def tiny_model(seed: int = 0, dynamic: bool = False, active_dit: bool = False, image_branch: int = 0):
-    """A random tiny Diff4SplatModel.
+def tiny_model(seed: int = 0, dynamic: bool = False, active_dit: bool = False, image_branch: int = 0,
+               vae_upsample: str = "nearest"):
+    """A random tiny Diff4SplatModel (``vae_upsample``: its VAE decoder's ``VideoVAEConfig.upsample``).
 
     ``dynamic`` perturbs the zero-initialised deformation head; ``active_dit`` perturbs the DiT's
     zero-initialised layers (final layer, adaLN gates, camera and cross-attention projections), so its
@@ -24,6 +25,7 @@ def tiny_model(seed: int = 0, dynamic: bool = False, active_dit: bool = False, i
     from models.bundle import Diff4SplatConfig, Diff4SplatModel
 
     config = Diff4SplatConfig()
+    config = dataclasses.replace(config, vae=dataclasses.replace(config.vae, upsample=vae_upsample))
     if image_branch:
         config = dataclasses.replace(config, ldrm=dataclasses.replace(config.ldrm, image_branch=image_branch))
     model = Diff4SplatModel.random(config, seed=seed).eval()
@@ -51,8 +53,10 @@ def _perturb(layer, seed: int, weight_std: float, bias_std: float = 0.1) -> None
 def parity_model(image_branch: int = 0):
     """tiny_model(dynamic=True) with every all-zero DiT tensor randomised: the zero-init final layer,
     cross-attention output projections, camera projection and adaLN gates (a default random model
-    predicts v ≡ 0, which would make the DiT comparison trivial); ``image_branch`` as in :func:`tiny_model`."""
-    return tiny_model(seed=0, dynamic=True, active_dit=True, image_branch=image_branch)
+    predicts v ≡ 0, which would make the DiT comparison trivial); ``image_branch`` as in :func:`tiny_model`, and
+    then the shipped base model's layout: bilinear VAE upsampling too."""
+    return tiny_model(seed=0, dynamic=True, active_dit=True, image_branch=image_branch,
+                      vae_upsample="bilinear" if image_branch else "nearest")
 
 
 def exported(tmp_path_factory, *, text=True, deformation=True, cli=False, image_branch=0):

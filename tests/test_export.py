@@ -219,6 +219,21 @@ def test_ldrm_with_image_branch_takes_the_photo_and_matches_pytorch(branch, B, n
 
 
 @pytest.mark.slow
+def test_bilinear_vae_decoder_exports_and_matches_pytorch(branch, tmp_path_factory):
+    """The base model's layout (the image-branch export: ``VideoVAEConfig.upsample = "bilinear"``): the decoder's
+    trilinear resize exports (ONNX ``Resize``, half-pixel) and matches PyTorch at several frame counts and sizes."""
+    model, manifest, _ = branch
+    assert model.config.vae.upsample == "bilinear"
+    out = exported(tmp_path_factory, text=False, image_branch=8)[1]
+    session = ort.InferenceSession(str(out / manifest["files"]["vae_decoder"]["file"]),
+                                   providers=["CPUExecutionProvider"])
+    for n, h, w in ((1, 8, 8), (3, 6, 10)):
+        z = _randn(2, 4, n, h, w, seed=n)
+        (got,) = session.run(None, {"latents": z.numpy()})
+        _close(got, model.vae.decode_latents(z), f"vae_decoder n={n} {h}×{w}")
+
+
+@pytest.mark.slow
 def test_external_data_graph_checks_and_runs(tmp_path):
     """Weights at or above the threshold go to ``<file>.onnx.data`` (threshold 0 here; 2 GB by default)."""
     model = tiny_model()
