@@ -49,11 +49,14 @@ DEPTH_KINDS = ("metric", "relative", "inverse")
 """What a user's depth map holds (``generate --depth-kind``): metric z-depth in metres (used as given: the camera
 path is metric too), relative depth (affine: scale and shift fitted to the network's depth by least squares), or
 relative inverse depth / disparity (affine in 1/z, as MiDaS-style estimators output)."""
-GENERATED_SCALE_PX = 0.5
-"""In-plane σ, pixels at its source camera, of a generated frame's disk under :func:`pixel_footprint`: with the
-scene's dilation (σ_eff² = 0.25 + 0.1 px²) a pixel's four neighbours reach alpha 0.70 half a pixel from their
-centres, so the disks tile the frame without the photo layer's backing disks or colour solve; a neighbour in front
-bleeds alpha 0.24 into a pixel (a slight blur; the photo layer keeps its sharper σ = 0.25 px)."""
+GENERATED_SCALE_PX = 0.7
+"""In-plane σ, pixels at its source camera, of a generated frame's disk under :func:`pixel_footprint`. The disks
+must tile their frame at any output resolution, where the scene's dilation (0.1 px² of the *output*) no longer
+widens them: the generated frames are at the model resolution (64²), the output at 256² or more. Without the
+dilation, σ = 0.7 leaves alpha ≥ 0.98 at the corner between four pixels (0.995·e^(−0.25/σ²) = 0.60 from each of the
+four); σ = 0.5 left alpha 0.87 there, a lattice of holes through which what lies behind showed at 4×
+magnification (tests/test_assemble.py). A neighbour in front bleeds alpha 0.60 into a pixel's edge (a slight blur;
+the photo layer keeps its sharp σ = 0.25 px with backing disks and solved colours)."""
 
 
 def to_gaussians(

@@ -45,17 +45,22 @@ def _ldrm_out(S: int, colors: torch.Tensor, seed: int = 0) -> LDRMOutput:
                       colors=colors[None])
 
 
-def _render_alone(g, viewmat, K):
-    rgb, alpha, _ = rasterize(g.means, g.quats, g.scales, g.opacities, g.sh, viewmat[None], K[None], W, H,
+def _render_alone(g, viewmat, K, up: int = 1):
+    """Render at the frame's camera, magnified ``up`` times (K and size scaled: the output at a higher resolution
+    than the model's frames, as `generate` renders them)."""
+    Ku = K.clone()
+    Ku[:2] *= up
+    rgb, alpha, _ = rasterize(g.means, g.quats, g.scales, g.opacities, g.sh, viewmat[None], Ku[None], up * W, up * H,
                               eps2d=PHOTO_EPS2D, sh_degree=0, render_mode="RGB")
     return rgb[0], alpha[0, ..., 0]
 
 
 @pytest.mark.parametrize("photo", ["chelsea", "grass"])
 def test_a_source_frames_disks_cover_it_and_reproduce_its_colours_at_its_own_camera(photo):
-    """Each source frame's disks alone at its own camera: alpha ≥ 0.97 on every pixel off the 2-pixel border,
-    colours ≥ 27 dB against the frame (29–30 dB here: σ = 0.5 px blurs slightly); the LDRM footprint they replace
-    (a small LDRM's low opacities) covers a tenth of the frame and scores ~7 dB."""
+    """Each source frame's disks alone at its own camera: alpha ≥ 0.98 on every pixel off the 2-pixel border, at
+    the frame's resolution and magnified 4× (as a 64² frame in a 256² output: σ = 0.5 px left 0.87 at the corners
+    there), colours ≥ 24 dB against the frame (24.9–25.4 here; 29–30 with σ = 0.5 px, which left the holes); the
+    LDRM footprint they replace (a small LDRM's low opacities) covers a tenth of the frame and scores ~7 dB."""
     image = load_image(EXAMPLE_IMAGE if photo == "chelsea" else TEXTURE, size=(H, W))
     S = 3
     colors = torch.stack([image, image.flip(1), image.flip(0)])  # (S, H, W, 3) a different frame per camera
@@ -65,9 +70,11 @@ def test_a_source_frames_disks_cover_it_and_reproduce_its_colours_at_its_own_cam
     for s in range(S):
         own = torch.arange(s * H * W, (s + 1) * H * W)
         rgb, alpha = _render_alone(disks.select(own), viewmats[s], Ks[s])
-        assert float(alpha[2:-2, 2:-2].min()) >= 0.97, s
+        assert float(alpha[2:-2, 2:-2].min()) >= 0.98, s
         psnr = float(-10 * torch.log10(((rgb[2:-2, 2:-2].clamp(0, 1) - colors[s, 2:-2, 2:-2]) ** 2).mean()))
-        assert psnr >= 27.0, (s, psnr)
+        assert psnr >= 24.0, (s, psnr)
+        _, alpha4 = _render_alone(disks.select(own), viewmats[s], Ks[s], up=4)
+        assert float(alpha4[8:-8, 8:-8].min()) >= 0.98, s
         rgb_ldrm, alpha_ldrm = _render_alone(gaussians.select(own), viewmats[s], Ks[s])
         assert float(alpha_ldrm.mean()) < 0.5
         assert float(-10 * torch.log10(((rgb_ldrm.clamp(0, 1) - colors[s]) ** 2).mean())) < psnr - 5
