@@ -51,6 +51,17 @@ def _latents(model, clips) -> torch.Tensor:
                           for i in range(len(clips))])
 
 
+def _two_steps_from(init: Path, cfg: Path, data: Path, run: Path, capsys):
+    """Two CPU steps of stage ``cfg`` from the model folder ``init`` through ``main``: (model before, model after,
+    names of the parameters that changed)."""
+    code = main(["--config", str(cfg), "--data", str(data), "--init-from", str(init),
+                 "--run-dir", str(run), "--steps", "2", "--quiet", "--device", "cpu"])
+    assert code == 0, capsys.readouterr().err
+    before, after = Diff4SplatModel.from_pretrained(init), Diff4SplatModel.from_pretrained(run / "model")
+    old = before.state_dict()
+    return before, after, {k for k, v in after.state_dict().items() if not torch.equal(v, old[k])}
+
+
 @pytest.fixture(scope="module")
 def vae_run(data, tmp_path_factory):
     """The VAE stage (shipped config at 32², batch 2) for 2 steps through ``main``."""
@@ -87,15 +98,8 @@ def test_stage1_from_the_vae_run_keeps_the_vae_frozen_and_trains_dit_and_ldrm(va
     assert code == 0
     cfg = _stage_yaml(tmp_path, "stage1", num_frames=FRAMES, render_frames=2,
                       trainer={"batch_size": 2, "checkpoint_every": 100})
-    run = tmp_path / "run"
-    code = main(["--config", str(cfg), "--data", str(data), "--init-from", str(vae / "model"),
-                 "--run-dir", str(run), "--steps", "2", "--quiet", "--device", "cpu"])
-    assert code == 0, capsys.readouterr().err
-    before = Diff4SplatModel.from_pretrained(vae / "model")
-    after = Diff4SplatModel.from_pretrained(run / "model")
-    old = before.state_dict()
-    changed = {k for k, v in after.state_dict().items() if not torch.equal(v, old[k])}
-    frozen = [k for k in old if k.startswith(("vae.", "text_encoder.", "ldrm.deformation."))]
+    before, after, changed = _two_steps_from(vae / "model", cfg, data, tmp_path / "run", capsys)
+    frozen = [k for k in before.state_dict() if k.startswith(("vae.", "text_encoder.", "ldrm.deformation."))]
     assert frozen and not changed & set(frozen)  # VAE, text encoder and deformation bit-identical
     assert any(k.startswith("dit.") for k in changed)
     assert any(k.startswith("ldrm.") for k in changed)
@@ -112,14 +116,7 @@ def test_a_decoder_stage_trains_the_vae_decoder_alone_and_keeps_the_latents(vae_
     assert code == 0
     cfg = _stage_yaml(tmp_path, "base_vae_decoder", height=SIZE, width=SIZE, num_frames=FRAMES,
                       trainer={"batch_size": 2, "checkpoint_every": 100})
-    run = tmp_path / "run"
-    code = main(["--config", str(cfg), "--data", str(data), "--init-from", str(vae / "model"),
-                 "--run-dir", str(run), "--steps", "2", "--quiet", "--device", "cpu"])
-    assert code == 0, capsys.readouterr().err
-    before = Diff4SplatModel.from_pretrained(vae / "model")
-    after = Diff4SplatModel.from_pretrained(run / "model")
-    old = before.state_dict()
-    changed = {k for k, v in after.state_dict().items() if not torch.equal(v, old[k])}
+    before, after, changed = _two_steps_from(vae / "model", cfg, data, tmp_path / "run", capsys)
     assert changed and all(k.startswith("vae.decoder.") for k in changed)
     assert after.config.vae == before.config.vae
     clips = _clips(data)
