@@ -55,8 +55,8 @@ must tile their frame at any output resolution, where the scene's dilation (0.1 
 widens them: the generated frames are at the model resolution (64²), the output at 256² or more. Without the
 dilation, σ = 0.7 leaves alpha ≥ 0.98 at the corner between four pixels (0.995·e^(−0.25/σ²) = 0.60 from each of the
 four); σ = 0.5 left alpha 0.87 there, a lattice of holes through which what lies behind showed at 4×
-magnification (tests/test_assemble.py). A neighbour in front bleeds alpha 0.60 into a pixel's edge (a slight blur;
-the photo layer keeps its sharp σ = 0.25 px with backing disks and solved colours)."""
+magnification (tests/test_assemble.py). A neighbour in front reaches alpha 0.77 at the shared edge and 0.36 at the
+pixel's centre (a slight blur; the photo layer keeps its sharp σ = 0.25 px with backing disks and solved colours)."""
 
 
 def to_gaussians(

@@ -28,7 +28,7 @@ A simplified CogVideoX / Wan-style video VAE (Yang et al. 2024, "CogVideoX", §2
   copied into 2×2 before the convolution) or ``bilinear``. With the residual shortcuts, nearest duplication three
   times over copies every latent pixel's features into its own 8×8 block, and a small decoder keeps those blocks:
   the shipped tiny VAE's reconstructions carry 2.5× the squared neighbour differences across the 8-pixel borders
-  as inside them (true frames: 1.05; ``benchmarks/blockiness.py``). Bilinear upsampling overlaps neighbouring
+  as inside them (true frames ≈ 1.05; ``benchmarks/blockiness.py``). Bilinear upsampling overlaps neighbouring
   latents on both paths, so no block structure exists to be learned away.
 
 Simplifications against the published VAEs: no attention in the middle block, no feature cache
@@ -258,7 +258,11 @@ class Downsample(nn.Module):
 def upsample2x(x: Tensor, mode: str) -> Tensor:
     """(B, C, T, H, W) → (B, C, T, 2H, 2W), each frame on its own: ``nearest`` copies every value into 2×2;
     ``bilinear`` interpolates between pixel centres (half-pixel, ``align_corners=False``; edges clamped), i.e.
-    weights 3/4 and 1/4 of the two nearest inputs per axis (trilinear with time scale 1: frames never mix)."""
+    weights 3/4 and 1/4 of the two nearest inputs per axis (trilinear with time scale 1: frames never mix).
+
+    Raises:
+        ValueError: ``mode`` is not one of :data:`UPSAMPLE_MODES`.
+    """
     if mode not in UPSAMPLE_MODES:
         raise ValueError(f"mode must be one of {UPSAMPLE_MODES}, got {mode!r}")
     return F.interpolate(x, scale_factor=(1.0, 2.0, 2.0), mode="trilinear" if mode == "bilinear" else "nearest",
