@@ -16,6 +16,7 @@ from training.eval_metrics import (
     covisible_mask,
     depth_errors,
     frame_mse,
+    gap_intervals,
     image_psnr,
     image_ssim,
     kept_index_map,
@@ -114,6 +115,41 @@ def test_angle_bins_partition_the_frames():
         assert bins[name][0] == pytest.approx(-10 * math.log10(float(mse[idx == i].mean())), abs=1e-9)
     empty = binned_psnr(mse[:1], torch.zeros(1, dtype=torch.float64))
     assert empty["0_15"][1] == 1 and math.isnan(empty["45_90"][0]) and empty["45_90"][1] == 0
+
+
+def test_gap_intervals_pool_frames_and_resample_whole_clips():
+    """The gap is binned_psnr's PSNR difference; the interval resamples clips, not frames: one clip gives a point,
+    and two clips give exactly the gaps of (clip 0 twice) and (clip 1 twice) as the 5 % and 95 % quantiles
+    (each of those two resamplings has probability 1/4), where a bootstrap of frames would spread between them."""
+    g = torch.Generator().manual_seed(7)
+    angles = [torch.tensor([3.0, 20.0, 50.0]), torch.tensor([10.0, 30.0]), torch.tensor([5.0, 60.0, 70.0, 100.0])]
+    model = [0.01 + 0.05 * torch.rand(len(a), generator=g, dtype=torch.float64) for a in angles]
+    other = [0.01 + 0.05 * torch.rand(len(a), generator=g, dtype=torch.float64) for a in angles]
+    gaps = gap_intervals(model, other, angles)
+    assert list(gaps) == ["all"] + [name for name, _, _ in ANGLE_BINS]
+    bm, bo = binned_psnr(torch.cat(model), torch.cat(angles)), binned_psnr(torch.cat(other), torch.cat(angles))
+    for name, _, _ in ANGLE_BINS:
+        assert gaps[name][0] == pytest.approx(bm[name][0] - bo[name][0], abs=1e-9)
+    assert gaps["all"][0] == pytest.approx(10 * math.log10(float(torch.cat(other).sum() / torch.cat(model).sum())))
+    assert [gaps[n][3] for n in gaps] == [3, 3, 2, 2, 1]  # clips with frames in each bin
+    assert gap_intervals(model, other, angles) == gaps  # seeded
+
+    one = gap_intervals(model[:1], other[:1], angles[:1])
+    assert all(lo == pytest.approx(p) and hi == pytest.approx(p) for p, lo, hi, n in one.values() if n)
+    assert math.isnan(one["90_180"][0]) and math.isnan(one["90_180"][1]) and one["90_180"][3] == 0
+
+    a2 = [torch.full((4,), 5.0), torch.full((2,), 5.0)]
+    m2 = [torch.tensor([0.01, 0.02, 0.01, 0.03], dtype=torch.float64), torch.tensor([0.02, 0.04], dtype=torch.float64)]
+    o2 = [torch.tensor([0.04, 0.02, 0.05, 0.03], dtype=torch.float64), torch.tensor([0.03, 0.05], dtype=torch.float64)]
+    same = [10 * math.log10(float(o.sum() / m.sum())) for m, o in zip(m2, o2, strict=True)]  # 3.80, 1.25 dB
+    point, lo, hi, n = gap_intervals(m2, o2, a2)["0_15"]
+    assert n == 2 and lo == pytest.approx(min(same)) and hi == pytest.approx(max(same))
+    assert point == pytest.approx(10 * math.log10(float((o2[0].sum() + o2[1].sum()) / (m2[0].sum() + m2[1].sum()))))
+    for bad in [([], [], []), (model, other[:2], angles), (model, other, [angles[0], angles[1], angles[1]])]:
+        with pytest.raises(ValueError):
+            gap_intervals(*bad)
+    with pytest.raises(ValueError, match="draws"):
+        gap_intervals(model, other, angles, draws=0)
 
 
 def test_repeat_baselines_on_a_static_clip_and_a_shifted_one():

@@ -164,6 +164,8 @@ def test_evaluate_cli_through_the_entry_point(clips, tmp_path, capsys):
     for label in ("model (sampled latents)", "noise latents (ablation)", "true-video latents (oracle)",
                   "repeat frame 0 |", "repeat frame 0, blurred"):
         assert label in out
+    gap_rows = out.split("bootstrap resamplings of the clips:")[1]  # the gap table, after the views table
+    assert "| noise latents (ablation) | " in gap_rows and "(1 clip)" in gap_rows and " [" in gap_rows
     with open(table, newline="") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == 1 and rows[0]["model"] == "random:tiny:seed=0"

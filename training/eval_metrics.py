@@ -17,7 +17,7 @@ from diff4splat.cameras import unproject_depth
 __all__ = ["PSNR_CAP", "ANGLE_BINS", "psnr_from_mse", "image_psnr", "image_ssim", "thumbnail", "pearson",
            "depth_errors", "frame_mse", "view_angles", "angle_bin", "binned_psnr", "repeat_baselines", "motion_errors",
            "kept_index_map", "ablation_noise", "BLUR_SIGMA", "BLUR_KERNEL", "covisible_mask", "masked_psnr",
-           "blockiness"]
+           "blockiness", "BOOTSTRAP_DRAWS", "BOOTSTRAP_INTERVAL", "gap_intervals"]
 
 PSNR_CAP = 100.0
 """PSNR of identical images (MSE 0) is reported as this many dB instead of infinity."""
@@ -149,6 +149,78 @@ def binned_psnr(mse: Tensor, angles: Tensor) -> dict[str, tuple[float, int]]:
     for i, (name, _, _) in enumerate(ANGLE_BINS):
         sel = mse[idx == i]
         out[name] = (psnr_from_mse(float(sel.mean())) if sel.numel() else float("nan"), int(sel.numel()))
+    return out
+
+
+BOOTSTRAP_DRAWS = 2000
+"""Resamplings of the clips in :func:`gap_intervals`."""
+BOOTSTRAP_INTERVAL = (0.05, 0.95)
+"""Quantiles of :func:`gap_intervals`' percentile interval (a 90 % interval)."""
+
+
+def gap_intervals(
+    mse_model: list[Tensor],  # per clip: (F_c,) frame MSE of the model
+    mse_other: list[Tensor],  # per clip: (F_c,) frame MSE of a baseline or ablation on the same frames
+    angles: list[Tensor],  # per clip: (F_c,) view angles, degrees
+    *,
+    draws: int = BOOTSTRAP_DRAWS,
+    seed: int = 0,
+) -> dict[str, tuple[float, float, float, int]]:
+    """PSNR gap of the model over another variant per view-angle bin, with a bootstrap interval over clips.
+
+    The gap of a set of frames is PSNR(model) − PSNR(other) of their pooled MSEs (:func:`binned_psnr`'s
+    convention), 10·log10(Σ mse_other / Σ mse_model). A bin holding a few frames of one or two clips says little:
+    the interval resamples the *clips* with replacement (the frames of a clip are not independent: they share its
+    scene and its generation; Efron & Tibshirani 1993, the percentile bootstrap) ``draws`` times from a CPU
+    generator seeded with ``seed``, and reports the :data:`BOOTSTRAP_INTERVAL` quantiles of the draws' gaps (draws
+    whose clips have no frame in the bin are left out). Sums are float64 on the CPU.
+
+    Args:
+        mse_model, mse_other, angles: one (F_c,) tensor per clip, matching shapes, on any one device.
+        draws: bootstrap resamplings, ≥ 1.  seed: the generator's seed.
+
+    Returns:
+        {``"all"`` and every bin name of :data:`ANGLE_BINS`: (gap dB, interval low, interval high, clips with
+        frames there)}; NaN gap and interval for a bin with no frame. Gaps of capped PSNRs are not capped: a zero
+        MSE gives ±inf.
+
+    Raises:
+        ValueError: no clips, lists of different lengths or a clip whose three tensors differ in shape, draws < 1.
+    """
+    if not mse_model or not len(mse_model) == len(mse_other) == len(angles):
+        raise ValueError(f"need one tensor per clip in each list, got {len(mse_model)}, {len(mse_other)}, "
+                         f"{len(angles)}")
+    if any(not a.shape == b.shape == c.shape for a, b, c in zip(mse_model, mse_other, angles, strict=True)):
+        raise ValueError("each clip's mse_model, mse_other and angles must have the same (F_c,) shape")
+    if draws < 1:
+        raise ValueError(f"draws must be ≥ 1, got {draws}")
+    names = ["all"] + [name for name, _, _ in ANGLE_BINS]
+    # (C, bins) sums of each variant's MSE and frame counts; column 0 pools every frame.
+    sums = torch.zeros(2, len(mse_model), len(names), dtype=torch.float64)
+    counts = torch.zeros(len(mse_model), len(names), dtype=torch.float64)
+    for c, (m, o, a) in enumerate(zip(mse_model, mse_other, angles, strict=True)):
+        idx = angle_bin(a.detach().cpu()) + 1
+        for k, x in enumerate((m, o)):
+            x = x.detach().cpu().double()
+            sums[k, c, 0] = x.sum()
+            sums[k, c].index_add_(0, idx, x)
+        counts[c, 0] = a.numel()
+        counts[c].index_add_(0, idx, torch.ones(a.numel(), dtype=torch.float64))
+    gen = torch.Generator(device="cpu").manual_seed(seed)
+    picks = torch.randint(len(mse_model), (draws, len(mse_model)), generator=gen)
+    weights = torch.zeros(draws, len(mse_model), dtype=torch.float64).scatter_add_(
+        1, picks, torch.ones(picks.shape, dtype=torch.float64))  # (draws, C): how often each clip was drawn
+    gaps = 10 * torch.log10((weights @ sums[1]) / (weights @ sums[0]))  # (draws, bins)
+    gaps[(weights @ counts) == 0] = float("nan")
+    lo, hi = BOOTSTRAP_INTERVAL
+    out = {}
+    for b, name in enumerate(names):
+        n = counts[:, b].sum()
+        point = float(10 * torch.log10(sums[1, :, b].sum() / sums[0, :, b].sum())) if n else float("nan")
+        g = gaps[:, b]
+        g = g[~g.isnan()]
+        q = torch.quantile(g, torch.tensor([lo, hi], dtype=torch.float64)).tolist() if g.numel() else [math.nan] * 2
+        out[name] = (point, q[0], q[1], int((counts[:, b] > 0).sum()))
     return out
 
 

@@ -95,10 +95,13 @@ from models.flow_matching import heun_sample, sigma_schedule
 from .eval_csv import append_csv, check_csv_outputs, csv_outputs
 from .eval_metrics import (
     ANGLE_BINS,
+    BOOTSTRAP_DRAWS,
+    BOOTSTRAP_INTERVAL,
     ablation_noise,
     binned_psnr,
     depth_errors,
     frame_mse,
+    gap_intervals,
     image_psnr,
     image_ssim,
     kept_index_map,
@@ -494,6 +497,31 @@ def _aggregate_tables(agg: dict) -> str:
             f"mean MSE over the bin's frames of all clips:\n{versus}")
 
 
+def _gap_table(evals: list[ClipEvaluation]) -> str:
+    """The model's PSNR minus each variant's, over all frames and per view-angle bin, with the bootstrap interval
+    over clips (:func:`training.eval_metrics.gap_intervals`) and the number of clips with frames in each bin; a
+    variant this runtime could not score (NaN frames: the true-video latents of an ONNX export) is left out."""
+    model, angles = [e.frame_mse["model"] for e in evals], [e.angles for e in evals]
+    rows, header = [], None
+    for v in VARIANTS:
+        other = [e.frame_mse[v] for e in evals]
+        if any(bool(o.isnan().any()) for o in other):
+            continue
+        gaps = gap_intervals(model, other, angles)
+        if header is None:
+            header = {}
+            for name, (*_, clips) in gaps.items():
+                label = "all frames" if name == "all" else f"{name.replace('_', '–')}°"
+                header[name] = f"{label} ({clips} clip{'' if clips == 1 else 's'})"
+        rows.append({"model minus": _VARIANT_LABELS[v],
+                     **{header[name]: "—" if math.isnan(g) else f"{g:+.2f} [{lo:+.2f}, {hi:+.2f}]"
+                        for name, (g, lo, hi, _) in gaps.items()}})
+    lo, hi = BOOTSTRAP_INTERVAL
+    return (f"The model's PSNR minus each variant's, dB, pooled over the frames (all, and by view angle), with the "
+            f"{round(100 * lo)}–{round(100 * hi)} % interval of {BOOTSTRAP_DRAWS} bootstrap resamplings of the clips:\n"
+            + _print_table(rows, ["model minus", *header.values()]))
+
+
 def _check_args(args) -> dict:
     """Every check that needs no model, before anything loads (messages name the flags); returns the CSV outputs
     (:func:`training.eval_csv.csv_outputs`; none without ``--csv``), each checked to be appendable.
@@ -554,6 +582,7 @@ def run(args) -> int:
     print(f"{len(evals)} clips ({n_dyn} dynamic, {len(evals) - n_dyn} static); largest view angle per clip "
           f"{min(e.max_angle for e in evals):.1f}–{max(e.max_angle for e in evals):.1f}°\n")
     print(_aggregate_tables(row))
+    print("\n" + _gap_table(evals))
     if "aggregate" in outputs:
         path, columns = outputs["aggregate"]
         append_csv(path, {k: row[k] for k in columns})
