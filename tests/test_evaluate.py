@@ -158,7 +158,9 @@ def test_evaluate_cli_through_the_entry_point(clips, tmp_path, capsys):
     code = main(["evaluate", "--random", "--config", "tiny", "--data", str(root), "--frames", "9", "--steps", "1",
                  "--csv", str(table), "--per-clip"])
     assert code == 0
-    out = capsys.readouterr().out
+    captured = capsys.readouterr()
+    out = captured.out
+    assert "evaluate: 100%" in captured.err and "1/1" in captured.err  # the progress bar over clips, on stderr
     assert "psnr_input" in out and "| random:tiny:seed=0 |" in out  # the untrained model, not the shipped weights
     assert "| scene_00000 |" in out  # the per-clip table
     for label in ("model (sampled latents)", "noise latents (ablation)", "true-video latents (oracle)",
@@ -306,10 +308,10 @@ def test_evaluate_cli_on_each_device(clips, tmp_path, device, capsys):
     for dev in dict.fromkeys(["cpu", str(device)]):
         table = tmp_path / f"{dev}.csv"
         assert main(["evaluate", "--random", "--config", "tiny", "--data", str(root), "--frames", "9", "--steps", "1",
-                     "--limit", "1", "--device", dev, "--csv", str(table)]) == 0
+                     "--limit", "1", "--device", dev, "--csv", str(table), "--quiet"]) == 0
         with open(table, newline="") as f:
             (rows[dev],) = list(csv.DictReader(f))
-    capsys.readouterr()
+    assert "evaluate:" not in capsys.readouterr().err  # --quiet: no progress bar
     got, ref = rows[str(device)], rows["cpu"]
     assert math.isfinite(float(got["psnr_novel"])) and math.isfinite(float(got["motion_epe"]))
     for k in ("psnr_input", "psnr_novel", "psnr_novel_noise", "psnr_novel_gt", "vae_psnr"):

@@ -78,6 +78,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+from tqdm.auto import tqdm
 
 from data_prep.clips import ClipConfig, ClipDataset
 from diff4splat.cameras import CameraPath, make_trajectory
@@ -332,9 +333,12 @@ def aggregate(evals: list[ClipEvaluation]) -> dict[str, float]:
     return out
 
 
-def evaluate_all(pipe: Diff4SplatPipeline, clips: list[dict], **kw) -> list[ClipEvaluation]:
-    """:func:`evaluate_clip` of every clip (keyword arguments passed on)."""
-    return [evaluate_clip(pipe, c, **kw) for c in clips]
+def evaluate_all(pipe: Diff4SplatPipeline, clips: list[dict], *, progress: bool = False, **kw
+                 ) -> list[ClipEvaluation]:
+    """:func:`evaluate_clip` of every clip (keyword arguments passed on); ``progress``: a tqdm bar over the clips
+    on stderr (an evaluation of 120 clips takes ~25 min on a 2-core CPU)."""
+    return [evaluate_clip(pipe, c, **kw) for c in tqdm(clips, desc="evaluate", unit="clip", disable=not progress,
+                                                        dynamic_ncols=True)]
 
 
 def evaluate_clips(pipe: Diff4SplatPipeline, clips: list[dict], **kw) -> dict[str, float]:
@@ -571,7 +575,7 @@ def run(args) -> int:
     clips = _held_out_clips(args.data, cfg.height, cfg.width, args.frames or cfg.num_frames, args.limit)
     if not clips:
         raise ValueError(f"--data: no clips in {args.data}")
-    evals = evaluate_all(pipe, clips, steps=args.steps)
+    evals = evaluate_all(pipe, clips, steps=args.steps, progress=not args.quiet)
     row = {"model": source, "clips": len(clips), **aggregate(evals)}
     if args.photo is not None:
         row.update(photo_fidelity(pipe, args.photo, args.prompt, resolution=args.resolution, steps=args.steps))
@@ -621,6 +625,7 @@ def register(subparsers) -> None:
                    help=f"output height in pixels of the --photo scene (default {DEFAULT_RESOLUTION})")
     e.add_argument("--device", default=AUTO, help=DEVICE_HELP + "; where the model generates and renders "
                    "(metrics are computed on the CPU)")
+    e.add_argument("--quiet", action="store_true", help="no progress bar")
     e.add_argument("--csv", type=Path, default=None,
                    help="append the aggregate row to this CSV (--per-clip: clip rows to <stem>_clips.csv)")
     e.set_defaults(func=run)
