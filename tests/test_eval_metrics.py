@@ -152,6 +152,20 @@ def test_gap_intervals_pool_frames_and_resample_whole_clips():
         gap_intervals(model, other, angles, draws=0)
 
 
+def test_gap_intervals_take_inputs_on_any_device(device, no_implicit_device):
+    """Frame MSEs on ``device``: the statistics are made on the CPU, never on torch's default device."""
+    with torch.device("cpu"):
+        angles = [torch.tensor([3.0, 50.0]), torch.tensor([20.0])]
+        model = [torch.tensor([0.01, 0.02], dtype=torch.float64), torch.tensor([0.03], dtype=torch.float64)]
+        other = [torch.tensor([0.02, 0.05], dtype=torch.float64), torch.tensor([0.04], dtype=torch.float64)]
+        ref = gap_intervals(model, other, angles, draws=50)
+    moved = [[t.to(device) for t in x] for x in (model, other, angles)]
+    got = gap_intervals(*moved, draws=50)
+    assert list(got) == list(ref) and ref["all"][1] < ref["all"][2]
+    for name in ref:
+        assert got[name] == pytest.approx(ref[name], nan_ok=True)
+
+
 def test_repeat_baselines_on_a_static_clip_and_a_shifted_one():
     """Identical frames: repeating frame 0 is exact (PSNR_CAP), and so is its blur when the frames are one
     colour; frames that brighten by δ per frame have repeat MSE (k·δ)² at frame k."""

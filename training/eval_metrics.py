@@ -195,9 +195,10 @@ def gap_intervals(
     if draws < 1:
         raise ValueError(f"draws must be ≥ 1, got {draws}")
     names = ["all"] + [name for name, _, _ in ANGLE_BINS]
-    # (C, bins) sums of each variant's MSE and frame counts; column 0 pools every frame.
-    sums = torch.zeros(2, len(mse_model), len(names), dtype=torch.float64)
-    counts = torch.zeros(len(mse_model), len(names), dtype=torch.float64)
+    # (C, bins) sums of each variant's MSE and frame counts; column 0 pools every frame. Statistics on the CPU.
+    cpu = torch.device("cpu")
+    sums = torch.zeros(2, len(mse_model), len(names), dtype=torch.float64, device=cpu)
+    counts = torch.zeros(len(mse_model), len(names), dtype=torch.float64, device=cpu)
     for c, (m, o, a) in enumerate(zip(mse_model, mse_other, angles, strict=True)):
         idx = angle_bin(a.detach().cpu()) + 1
         for k, x in enumerate((m, o)):
@@ -205,11 +206,11 @@ def gap_intervals(
             sums[k, c, 0] = x.sum()
             sums[k, c].index_add_(0, idx, x)
         counts[c, 0] = a.numel()
-        counts[c].index_add_(0, idx, torch.ones(a.numel(), dtype=torch.float64))
-    gen = torch.Generator(device="cpu").manual_seed(seed)
-    picks = torch.randint(len(mse_model), (draws, len(mse_model)), generator=gen)
-    weights = torch.zeros(draws, len(mse_model), dtype=torch.float64).scatter_add_(
-        1, picks, torch.ones(picks.shape, dtype=torch.float64))  # (draws, C): how often each clip was drawn
+        counts[c].index_add_(0, idx, torch.ones(a.numel(), dtype=torch.float64, device=cpu))
+    gen = torch.Generator(device=cpu).manual_seed(seed)
+    picks = torch.randint(len(mse_model), (draws, len(mse_model)), generator=gen, device=cpu)
+    weights = torch.zeros(draws, len(mse_model), dtype=torch.float64, device=cpu).scatter_add_(
+        1, picks, torch.ones(picks.shape, dtype=torch.float64, device=cpu))  # (draws, C): how often each clip was drawn
     gaps = 10 * torch.log10((weights @ sums[1]) / (weights @ sums[0]))  # (draws, bins)
     gaps[(weights @ counts) == 0] = float("nan")
     lo, hi = BOOTSTRAP_INTERVAL
@@ -219,7 +220,8 @@ def gap_intervals(
         point = float(10 * torch.log10(sums[1, :, b].sum() / sums[0, :, b].sum())) if n else float("nan")
         g = gaps[:, b]
         g = g[~g.isnan()]
-        q = torch.quantile(g, torch.tensor([lo, hi], dtype=torch.float64)).tolist() if g.numel() else [math.nan] * 2
+        levels = torch.tensor([lo, hi], dtype=torch.float64, device=cpu)
+        q = torch.quantile(g, levels).tolist() if g.numel() else [math.nan] * 2
         out[name] = (point, q[0], q[1], int((counts[:, b] > 0).sum()))
     return out
 
