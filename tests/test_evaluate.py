@@ -1,5 +1,6 @@
-"""Tests of training/evaluate.py: every metric against an independent computation, baselines and ablations, the
-sampler sweep, the CLI, and devices (``--device``, nothing made on torch's default device)."""
+"""Tests of training/evaluate.py and its command (training/evaluate_cli.py): every metric against an independent
+computation, baselines and ablations, the sampler sweep, the CLI, and devices (``--device``, nothing made on torch's
+default device)."""
 import math
 
 import pytest
@@ -359,10 +360,10 @@ def _refusals(tmp_path):
 def test_bad_arguments_and_outputs_are_refused_before_the_model_loads(tmp_path, capsys, monkeypatch):
     """Before issue 28 ``--csv nodir/x.csv`` and ``--photo text.png`` failed after the whole evaluation, ``--limit 0``
     blamed ``--data`` and ``--sampling-clips 0`` said "no median for empty data"."""
-    import training.evaluate
+    import training.evaluate_cli
     from diff4splat.cli import main
 
-    monkeypatch.setattr(training.evaluate, "load_model", None)  # loading a model would fail: refusals come first
+    monkeypatch.setattr(training.evaluate_cli, "load_model", None)  # loading a model would fail: refusals come first
     for extra, message in _refusals(tmp_path):
         before = sorted(tmp_path.rglob("*"))
         code = main(["evaluate", "--random", "--config", "tiny", "--data", str(tmp_path), *map(str, extra)])

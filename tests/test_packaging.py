@@ -100,7 +100,7 @@ def test_the_default_paths_never_import_the_diffusers_extra():
     ``diffusers`` extra's packages: only a diffusers folder or a backbone stage loads them
     (``models.backbones.model.backbone_class``, ``training.backbone_training``)."""
     code = ("import sys, diff4splat.cli, diff4splat.generate, diff4splat.export, models.backbones.model, "
-            "training.train, training.objectives, training.evaluate; "
+            "training.train, training.objectives, training.evaluate_cli; "
             f"print(sorted(m for m in {DIFFUSERS_EXTRA!r} if m in sys.modules))")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr

@@ -1,0 +1,235 @@
+"""``diff4splat evaluate``: the command over :mod:`training.evaluate` — its arguments, checked before any model loads,
+and the tables it prints and appends.
+
+``diff4splat evaluate --checkpoint DIR --data DIR [--random] [--per-clip] [--sampling] [--csv FILE] [--quiet]``
+(registered through the ``diff4splat.commands`` entry point, like ``fit``, so the runtime package never imports
+``training``). What is measured, and how: :mod:`training.evaluate`; the metric functions:
+:mod:`training.eval_metrics`.
+
+Every argument, the ``--photo`` (decoded once) and every CSV file it will append to (:mod:`training.eval_csv`)
+are checked before any model loads, so a run that would fail at its end is refused at its start. It prints the
+per-clip table (``--per-clip``), the headline metrics, the depth and motion splits, the model beside its baselines
+and ablations per view-angle bin, and the model's gap over each with a bootstrap interval over clips
+(:func:`training.eval_metrics.gap_intervals`); a tqdm bar counts the clips on stderr unless ``--quiet``.
+"""
+from __future__ import annotations
+
+import math
+import warnings
+from pathlib import Path
+
+from diff4splat.checks import check_positive_int
+from diff4splat.devices import AUTO, DEVICE_HELP, resolve_device
+from diff4splat.io.image import read_image
+from diff4splat.io.inputs import check_input_file
+from diff4splat.limits import check_limit
+from diff4splat.pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, load_model
+from models.bundle import DEFAULT_CONFIG
+
+from .eval_csv import append_csv, check_csv_outputs, csv_outputs
+from .eval_metrics import ANGLE_BINS, BOOTSTRAP_DRAWS, BOOTSTRAP_INTERVAL, gap_intervals
+from .evaluate import (
+    BASELINES,
+    DEPTH_DIAGNOSTICS,
+    DIAGNOSTICS,
+    METRICS,
+    PHOTO_KEYS,
+    VARIANTS,
+    ClipEvaluation,
+    _held_out_clips,
+    aggregate,
+    binned_keys,
+    evaluate_all,
+    photo_fidelity,
+    sampling_tradeoffs,
+)
+
+__all__ = ["register", "run", "CLIP_COLUMNS", "SAMPLING_COLUMNS"]
+
+
+def _cell(value: object) -> str:
+    """A table cell: floats to 4 significant digits, "—" for NaN (a bin with no frames, a metric a clip does not
+    have; the CSV keeps NaN)."""
+    if isinstance(value, float):
+        return "—" if math.isnan(value) else f"{value:.4g}"
+    return str(value)
+
+
+def _print_table(rows: list[dict], header: list[str]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    for r in rows:
+        lines.append("| " + " | ".join(_cell(r[h]) for h in header) + " |")
+    return "\n".join(lines)
+
+
+_VARIANT_LABELS = {"model": "model (sampled latents)", "noise": "noise latents (ablation)",
+                   "gt": "true-video latents (oracle)", "video": "generated video, decoded (no 3D)",
+                   "repeat": "repeat frame 0",
+                   "repeat_blur": "repeat frame 0, blurred"}
+
+
+CLIP_COLUMNS = ("clip", "dynamic", "max_angle", "psnr_novel", *VARIANTS, "disp_epe", "disp_hold")
+"""Columns of a row of :func:`_per_clip_rows` (``--per-clip``)."""
+SAMPLING_COLUMNS = ("sampler", "nfe", "steps", "ms", "latent_rms", "psnr")
+"""Columns of a row of :func:`sampling_tradeoffs` (``--sampling``)."""
+
+
+def _per_clip_rows(evals: list[ClipEvaluation]) -> list[dict]:
+    """One row per clip (:data:`CLIP_COLUMNS`): name, dynamic/static, camera motion size, novel-view PSNR of the
+    model and each variant, displacement error of the model and of no motion."""
+    return [dict(zip(CLIP_COLUMNS, (e.name, "dynamic" if e.dynamic else "static", e.max_angle,
+                                    e.metrics["psnr_novel"], *(e.metrics[f"psnr_novel_{v}"] for v in VARIANTS),
+                                    e.metrics["motion_disp_epe"], e.metrics["motion_disp_hold"]), strict=True))
+            for e in evals]
+
+
+def _aggregate_tables(agg: dict) -> str:
+    """The headline metrics, the depth and motion splits and the model beside its baselines per view-angle bin, from
+    the aggregate row (model, clips, :func:`aggregate`'s keys, optionally photo_psnr)."""
+    metrics = _print_table([agg], ["model", "clips", *METRICS])
+    if "photo_psnr" in agg:
+        metrics += "\n\nThe photograph at the input view (output resolution, and area-averaged to the model's):\n"
+        metrics += _print_table([agg], list(PHOTO_KEYS))
+    depth = _print_table([agg], ["depth_corr", *DEPTH_DIAGNOSTICS])
+    motion = _print_table([agg], ["motion_epe", *DIAGNOSTICS])
+    bins = {name: f"{lo:g}–{hi:g}° ({int(agg[f'frames_{name}'])} frames)" for name, lo, hi in ANGLE_BINS}
+    rows = []
+    for v in ("model", *VARIANTS):
+        suffix = "" if v == "model" else f"_{v}"
+        rows.append({"novel views, PSNR dB": _VARIANT_LABELS[v], "mean of clips": agg[f"psnr_novel{suffix}"],
+                     "all frames, pooled": agg[f"psnr_pooled{suffix}"],
+                     **{bins[name]: agg[f"psnr_{name}{suffix}"] for name, _, _ in ANGLE_BINS}})
+    versus = _print_table(rows, ["novel views, PSNR dB", "mean of clips", "all frames, pooled", *bins.values()])
+    return (f"{metrics}\n\nDepth (rendered against true, covered valid pixels):\n{depth}\n\nMotion (metres):\n"
+            f"{motion}\n\nNovel views beside the baselines; by view angle from the input camera, the PSNR of the "
+            f"mean MSE over the bin's frames of all clips:\n{versus}")
+
+
+def _gap_table(evals: list[ClipEvaluation]) -> str:
+    """The model's PSNR minus each variant's, over all frames and per view-angle bin, with the bootstrap interval
+    over clips (:func:`training.eval_metrics.gap_intervals`) and the number of clips with frames in each bin; a
+    variant this runtime could not score (NaN frames: the true-video latents of an ONNX export) is left out."""
+    model, angles = [e.frame_mse["model"] for e in evals], [e.angles for e in evals]
+    rows, header = [], None
+    for v in VARIANTS:
+        other = [e.frame_mse[v] for e in evals]
+        if any(bool(o.isnan().any()) for o in other):
+            continue
+        gaps = gap_intervals(model, other, angles)
+        if header is None:
+            header = {}
+            for name, (*_, clips) in gaps.items():
+                label = "all frames" if name == "all" else f"{name.replace('_', '–')}°"
+                header[name] = f"{label} ({clips} clip{'' if clips == 1 else 's'})"
+        rows.append({"model minus": _VARIANT_LABELS[v],
+                     **{header[name]: "—" if math.isnan(g) else f"{g:+.2f} [{lo:+.2f}, {hi:+.2f}]"
+                        for name, (g, lo, hi, _) in gaps.items()}})
+    lo, hi = BOOTSTRAP_INTERVAL
+    return (f"The model's PSNR minus each variant's, dB, pooled over the frames (all, and by view angle), with the "
+            f"{round(100 * lo)}–{round(100 * hi)} % interval of {BOOTSTRAP_DRAWS} bootstrap resamplings of the clips:\n"
+            + _print_table(rows, ["model minus", *header.values()]))
+
+
+def _check_args(args) -> dict:
+    """Every check that needs no model, before anything loads (messages name the flags); returns the CSV outputs
+    (:func:`training.eval_csv.csv_outputs`; none without ``--csv``), each checked to be appendable.
+
+    Raises:
+        ValueError: a count that is not a positive integer (``--limit``, ``--sampling-clips``, ``--frames``,
+            ``--steps``, ``--resolution``) or above its limit; a ``--photo`` that is not a decodable image; a CSV
+            output that could not be appended to (:func:`training.eval_csv.check_csv_outputs`).
+        FileNotFoundError: ``--photo`` does not exist.
+    """
+    for name in ("limit", "frames", "steps", "resolution", "sampling_clips"):
+        value = getattr(args, name)
+        if value is not None:
+            check_positive_int("--" + name.replace("_", "-"), value)
+            if name in ("frames", "steps", "resolution"):
+                check_limit(name, value, f"--{name}")
+    if args.photo is not None:
+        check_input_file(args.photo, "--photo")
+        try:
+            read_image(args.photo)  # decoded once now: an undecodable photo fails before the evaluation
+        except ValueError as e:
+            raise ValueError(f"--photo: {e}") from None
+    if not args.csv:
+        return {}
+    columns = ["model", "clips", *METRICS, *DIAGNOSTICS, *DEPTH_DIAGNOSTICS, *BASELINES, *binned_keys()]
+    columns += list(PHOTO_KEYS) if args.photo is not None else []
+    outputs = csv_outputs(Path(args.csv), columns, ["model", *CLIP_COLUMNS] if args.per_clip else None,
+                          ["model", *SAMPLING_COLUMNS] if args.sampling else None)
+    check_csv_outputs(outputs)
+    return outputs
+
+
+def run(args) -> int:
+    """``diff4splat evaluate`` (see module docstring).
+
+    Raises:
+        ValueError: ``--device`` naming a device this machine does not have, a bad argument or output file
+            (:func:`_check_args`), all checked before any model loads; no clips in ``--data``.
+    """
+    device = resolve_device(args.device, "--device")  # before any model is loaded
+    outputs = _check_args(args)  # refuse before the evaluation runs, not after
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model, source = load_model(args.checkpoint, args.config, seed=args.seed, untrained=args.random)
+    pipe = Diff4SplatPipeline(model, device=device)
+    cfg = pipe.config
+    clips = _held_out_clips(args.data, cfg.height, cfg.width, args.frames or cfg.num_frames, args.limit)
+    if not clips:
+        raise ValueError(f"--data: no clips in {args.data}")
+    evals = evaluate_all(pipe, clips, steps=args.steps, progress=not args.quiet)
+    row = {"model": source, "clips": len(clips), **aggregate(evals)}
+    if args.photo is not None:
+        row.update(photo_fidelity(pipe, args.photo, args.prompt, resolution=args.resolution, steps=args.steps))
+    per_clip = _per_clip_rows(evals)
+    if args.per_clip:
+        print(_print_table(per_clip, list(CLIP_COLUMNS)) + "\n")
+    n_dyn = sum(e.dynamic for e in evals)
+    print(f"{len(evals)} clips ({n_dyn} dynamic, {len(evals) - n_dyn} static); largest view angle per clip "
+          f"{min(e.max_angle for e in evals):.1f}–{max(e.max_angle for e in evals):.1f}°\n")
+    print(_aggregate_tables(row))
+    print("\n" + _gap_table(evals))
+    if "aggregate" in outputs:
+        path, columns = outputs["aggregate"]
+        append_csv(path, {k: row[k] for k in columns})
+    for r in per_clip if "clips" in outputs else []:
+        append_csv(outputs["clips"][0], {"model": source, **r})
+    if args.sampling:
+        rows = sampling_tradeoffs(pipe, clips[: args.sampling_clips])
+        print(_print_table(rows, list(SAMPLING_COLUMNS)))
+        for r in rows if "sampling" in outputs else []:
+            append_csv(outputs["sampling"][0], {"model": source, **r})
+    return 0
+
+
+def register(subparsers) -> None:
+    """Add the ``evaluate`` subcommand to ``diff4splat``'s CLI (entry point ``diff4splat.commands``)."""
+    e = subparsers.add_parser("evaluate", help="evaluate a model on held-out scenes",
+                              description="Image, depth and motion metrics on held-out scenes beside no-model "
+                                          "baselines and latent ablations; sampler error vs NFE.")
+    e.add_argument("--checkpoint", type=Path, default=None, help="model folder (default: shipped weights)")
+    e.add_argument("--random", action="store_true", help="evaluate the seeded random (untrained) model")
+    e.add_argument("--config", default=DEFAULT_CONFIG,
+                   help=f"config of the shipped/random model (default: {DEFAULT_CONFIG})")
+    e.add_argument("--seed", type=int, default=0, help="seed of the random model (default: 0)")
+    e.add_argument("--data", type=Path, required=True, help="held-out dataset root (data_prep format)")
+    e.add_argument("--frames", type=int, default=None, help="clip length T = 1 + 4k (default: config)")
+    e.add_argument("--steps", type=int, default=None, help="sampler steps (default: config)")
+    e.add_argument("--limit", type=int, default=None, help="evaluate at most this many clips")
+    e.add_argument("--per-clip", action="store_true",
+                   help="also print a table per clip (dynamic, largest view angle, model vs baselines, motion)")
+    e.add_argument("--sampling", action="store_true", help="also measure sampler error vs NFE")
+    e.add_argument("--sampling-clips", type=int, default=4, help="clips used for the sampling sweep")
+    e.add_argument("--photo", type=Path, default=None,
+                   help="also report photo_psnr: the render at the input camera, t = 0, against this photograph")
+    e.add_argument("--prompt", default="", help="prompt used with --photo")
+    e.add_argument("--resolution", type=int, default=DEFAULT_RESOLUTION,
+                   help=f"output height in pixels of the --photo scene (default {DEFAULT_RESOLUTION})")
+    e.add_argument("--device", default=AUTO, help=DEVICE_HELP + "; where the model generates and renders "
+                   "(metrics are computed on the CPU)")
+    e.add_argument("--quiet", action="store_true", help="no progress bar")
+    e.add_argument("--csv", type=Path, default=None,
+                   help="append the aggregate row to this CSV (--per-clip: clip rows to <stem>_clips.csv)")
+    e.set_defaults(func=run)
