@@ -2,6 +2,7 @@
 (env:// rendezvous, as under torchrun) for the distributed tests."""
 import math
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -9,6 +10,7 @@ import sys
 import tempfile
 import textwrap
 import time
+from pathlib import Path
 
 import pytest
 import torch
@@ -88,7 +90,7 @@ trainer, model, _ = built[0]
     return head + textwrap.dedent(checks) + "sys.exit(code)\n"
 
 
-def run_two_ranks(script: str, attempts: int = 3, timeout: float = 120) -> None:
+def run_two_ranks(script: str, attempts: int = 3, timeout: float = 120, fresh: tuple[Path, ...] = ()) -> None:
     """Start ranks 0 and 1 of ``script`` (env:// rendezvous, as under torchrun) and wait for both.
 
     The port is free when picked but another process may take it before rank 0's store binds it; on
@@ -96,8 +98,14 @@ def run_two_ranks(script: str, attempts: int = 3, timeout: float = 120) -> None:
     covers a rank that aborts in C++ with "terminate called without an active exception" and no Python traceback:
     Gloo's worker threads torn down with the interpreter (seen once in 2,000 CI tests on a loaded 2-core machine;
     pytorch/pytorch#179291 describes the race) — not an error of the code under test, which raises a traceback.
+
+    ``fresh``: the folders the script writes (its run folder). They are removed before a repeated attempt, which
+    must start where the first did: a run repeated into the first attempt's folder appended its metrics to the
+    first attempt's (steps 1…4 twice, seen once in CI).
     """
     for attempt in range(attempts):
+        for folder in fresh if attempt else ():
+            shutil.rmtree(folder, ignore_errors=True)
         port, procs, logs = free_port(), [], []
         for rank in range(2):
             env = {**os.environ, "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port), "WORLD_SIZE": "2",

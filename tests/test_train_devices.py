@@ -122,7 +122,7 @@ def test_fsdp_on_two_gloo_ranks_trains_a_stage_block_by_block(data, tmp_path):
         assert trainer.sharded and all(isinstance(b, FSDPModule) for b in units)
         assert not isinstance(model.vae, FSDPModule) and model.dit.gradient_checkpointing
     """)
-    run_two_ranks(script, timeout=300)
+    run_two_ranks(script, timeout=300, fresh=(tmp_path / "run",))
     rows = _metrics(tmp_path / "run")
     assert sorted(rows) == [1, 2] and all(torch.isfinite(torch.tensor(list(r.values()))).all() for r in rows.values())
     assert {"flow", "photo", "motion", "displacement"} <= set(rows[1])

@@ -319,7 +319,7 @@ def test_two_process_distributed_run_keeps_ranks_identical(tmp_path, strategy, b
         assert t2.step == 6
         dist.destroy_process_group()
     """)
-    run_two_ranks(script)
+    run_two_ranks(script, fresh=(tmp_path / "run",))
     r0, ema0 = torch.load(tmp_path / "rank0.pt")
     if strategy == "ddp":
         r1, ema1 = torch.load(tmp_path / "rank1.pt")
@@ -334,3 +334,25 @@ def test_two_process_distributed_run_keeps_ranks_identical(tmp_path, strategy, b
     assert [int(r["step"]) for r in rows] == list(range(1, 7))
     _, _, saved_ema = load_checkpoint(tmp_path / "run" / "checkpoints" / "step_00000006")
     assert {k: v.shape for k, v in saved_ema.items()} == {k: v.shape for k, v in full.items() if "frozen" not in k}
+
+
+def test_run_two_ranks_repeats_an_aborted_run_from_a_fresh_run_folder(tmp_path):
+    """A rank torn down by Gloo's exit race (SIGABRT, "terminate called …", no traceback) is run again, and the run
+    folder named ``fresh`` is removed first: the repeat must not find the first attempt's files (in CI a repeated
+    run appended its metrics to the first attempt's)."""
+    run, marker = tmp_path / "run", tmp_path / "aborted"
+    script = textwrap.dedent(f"""
+        import os, pathlib, sys
+        run, marker = pathlib.Path({str(run)!r}), pathlib.Path({str(marker)!r})
+        rank = os.environ["RANK"]
+        assert not (run / f"rank{{rank}}").exists(), "the first attempt's files are still there"
+        run.mkdir(exist_ok=True)
+        (run / f"rank{{rank}}").touch()
+        if rank == "0" and not marker.exists():  # the first attempt: die as Gloo's teardown does
+            marker.touch()
+            sys.stderr.write("terminate called without an active exception\\n")
+            sys.stderr.flush()
+            os.abort()
+    """)
+    run_two_ranks(script, fresh=(run,))
+    assert marker.exists() and (run / "rank0").exists()  # aborted once, then run again to the end

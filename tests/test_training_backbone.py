@@ -235,7 +235,7 @@ def test_fsdp_on_two_gloo_ranks_shards_the_backbone_block_by_block(data, tmp_pat
         assert trainer.sharded and all(isinstance(u, FSDPModule) for u in units)
         assert b.transformer.gradient_checkpointing and not isinstance(b.vae, FSDPModule)
     """)
-    run_two_ranks(script, timeout=300)
+    run_two_ranks(script, timeout=300, fresh=(tmp_path / "run",))
     weights, _, ema = load_checkpoint(latest_checkpoint(tmp_path / "run"))
     trainable = {f"model.{n}" for n, p in load_backbone_model(stage).named_parameters() if "lora_" in n
                  or n.endswith("camera_weight") or (n.startswith("ldrm.") and not n.startswith("ldrm.deformation."))}
