@@ -213,14 +213,13 @@ def gap_intervals(
         1, picks, torch.ones(picks.shape, dtype=torch.float64, device=cpu))  # (draws, C): how often each clip was drawn
     gaps = 10 * torch.log10((weights @ sums[1]) / (weights @ sums[0]))  # (draws, bins)
     gaps[(weights @ counts) == 0] = float("nan")
-    lo, hi = BOOTSTRAP_INTERVAL
+    levels = torch.tensor(BOOTSTRAP_INTERVAL, dtype=torch.float64, device=cpu)
     out = {}
     for b, name in enumerate(names):
         n = counts[:, b].sum()
         point = float(10 * torch.log10(sums[1, :, b].sum() / sums[0, :, b].sum())) if n else float("nan")
         g = gaps[:, b]
         g = g[~g.isnan()]
-        levels = torch.tensor([lo, hi], dtype=torch.float64, device=cpu)
         q = torch.quantile(g, levels).tolist() if g.numel() else [math.nan] * 2
         out[name] = (point, q[0], q[1], int((counts[:, b] > 0).sum()))
     return out

@@ -68,6 +68,9 @@ _VARIANT_LABELS = {"model": "model (sampled latents)", "noise": "noise latents (
                    "repeat_blur": "repeat frame 0, blurred"}
 
 
+_BIN_LABELS = {name: f"{lo:g}–{hi:g}°" for name, lo, hi in ANGLE_BINS}
+"""Column label of each view-angle bin of :data:`training.eval_metrics.ANGLE_BINS`."""
+
 CLIP_COLUMNS = ("clip", "dynamic", "max_angle", "psnr_novel", *VARIANTS, "disp_epe", "disp_hold")
 """Columns of a row of :func:`_per_clip_rows` (``--per-clip``)."""
 SAMPLING_COLUMNS = ("sampler", "nfe", "steps", "ms", "latent_rms", "psnr")
@@ -92,7 +95,7 @@ def _aggregate_tables(agg: dict) -> str:
         metrics += _print_table([agg], list(PHOTO_KEYS))
     depth = _print_table([agg], ["depth_corr", *DEPTH_DIAGNOSTICS])
     motion = _print_table([agg], ["motion_epe", *DIAGNOSTICS])
-    bins = {name: f"{lo:g}–{hi:g}° ({int(agg[f'frames_{name}'])} frames)" for name, lo, hi in ANGLE_BINS}
+    bins = {name: f"{_BIN_LABELS[name]} ({int(agg[f'frames_{name}'])} frames)" for name, _, _ in ANGLE_BINS}
     rows = []
     for v in ("model", *VARIANTS):
         suffix = "" if v == "model" else f"_{v}"
@@ -110,20 +113,15 @@ def _gap_table(evals: list[ClipEvaluation]) -> str:
     over clips (:func:`training.eval_metrics.gap_intervals`) and the number of clips with frames in each bin; a
     variant this runtime could not score (NaN frames: the true-video latents of an ONNX export) is left out."""
     model, angles = [e.frame_mse["model"] for e in evals], [e.angles for e in evals]
-    rows, header = [], None
-    for v in VARIANTS:
-        other = [e.frame_mse[v] for e in evals]
-        if any(bool(o.isnan().any()) for o in other):
-            continue
-        gaps = gap_intervals(model, other, angles)
-        if header is None:
-            header = {}
-            for name, (*_, clips) in gaps.items():
-                label = "all frames" if name == "all" else f"{name.replace('_', '–')}°"
-                header[name] = f"{label} ({clips} clip{'' if clips == 1 else 's'})"
-        rows.append({"model minus": _VARIANT_LABELS[v],
-                     **{header[name]: "—" if math.isnan(g) else f"{g:+.2f} [{lo:+.2f}, {hi:+.2f}]"
-                        for name, (g, lo, hi, _) in gaps.items()}})
+    others = {v: [e.frame_mse[v] for e in evals] for v in VARIANTS}
+    gaps = {v: gap_intervals(model, other, angles) for v, other in others.items()
+            if not any(bool(o.isnan().any()) for o in other)}
+    clips = {name: n for name, (*_, n) in gaps["repeat"].items()}  # the same for every variant: the angles' bins
+    header = {name: f"{_BIN_LABELS.get(name, 'all frames')} ({n} clip{'' if n == 1 else 's'})"
+              for name, n in clips.items()}
+    rows = [{"model minus": _VARIANT_LABELS[v],
+             **{header[name]: "—" if math.isnan(g) else f"{g:+.2f} [{lo:+.2f}, {hi:+.2f}]"
+                for name, (g, lo, hi, _) in by_bin.items()}} for v, by_bin in gaps.items()]
     lo, hi = BOOTSTRAP_INTERVAL
     return (f"The model's PSNR minus each variant's, dB, pooled over the frames (all, and by view angle), with the "
             f"{round(100 * lo)}–{round(100 * hi)} % interval of {BOOTSTRAP_DRAWS} bootstrap resamplings of the clips:\n"
