@@ -38,8 +38,11 @@ from _common import machine, markdown_table, write_section  # noqa: E402
 
 from data_prep.format import list_scenes, load_scene  # noqa: E402
 from diff4splat.generate import generate, write  # noqa: E402
+from diff4splat.render import rasterize  # noqa: E402
+from training.eval_metrics import masked_psnr, psnr_from_mse  # noqa: E402
 from training.fit import FitConfig  # noqa: E402
-from training.fit_cli import run_fit  # noqa: E402
+from training.fit_cli import place_generate_output, run_fit  # noqa: E402
+from training.fit_data import covisible_masks, load_views, split_cameras  # noqa: E402
 
 DOCS = Path(__file__).resolve().parent.parent / "docs"
 
@@ -57,10 +60,6 @@ def generate_alone_psnr(scene_dir: Path, gen_out: Path) -> tuple[float, float | 
     """(c): the generate output placed in the scene's world (``place_generate_output``, deformation included),
     rendered at every held-out frame at its time; PSNR of the pooled MSE, and over the co-visible pixels
     (``training.fit_data.covisible_masks``, as the fits' ``holdout_masked_psnr``; None without depth)."""
-    from diff4splat.render import rasterize
-    from training.eval_metrics import masked_psnr, psnr_from_mse
-    from training.fit_cli import place_generate_output
-    from training.fit_data import covisible_masks, load_views, split_cameras
 
     scene = load_scene(scene_dir)
     placed = place_generate_output(gen_out, scene, scene.camera_names[0])

@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import subprocess
 import sys
+import tempfile
 import time
 import warnings
 from pathlib import Path
@@ -25,6 +27,7 @@ from _common import machine, markdown_table, peak_rss_mb, repo_relative, write_s
 from diff4splat.io import load_image  # noqa: E402
 from diff4splat.io.scene_folder import write_scene_folder  # noqa: E402
 from diff4splat.pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, load_model  # noqa: E402
+from diff4splat.render import rasterize  # noqa: E402
 from diff4splat.render.sequence import render_path  # noqa: E402
 from models.bundle import DEFAULT_CONFIG  # noqa: E402
 
@@ -34,8 +37,6 @@ EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
 def render_split(res, repeats: int) -> dict[str, float]:
     """Median ms of the render stage's parts: ``scene.at`` for every frame time, and the rasterize calls of
     :func:`render_path` on those precomputed Gaussians."""
-    from diff4splat.render import rasterize
-
     cams, scene = res.cameras, res.scene
     bg = torch.tensor([res.background])
     deform, raster = [], []
@@ -69,8 +70,6 @@ print(1000 * ((t1 - t0) - (t2 - t1)))
 
 def first_call_ms() -> float:
     """Extra ms of the first render in a fresh process (median of 3 processes), numba's kernels cached."""
-    import subprocess
-
     runs = [float(subprocess.run([sys.executable, "-c", FIRST_CALL], capture_output=True, text=True,
                                  check=True).stdout.split()[-1]) for _ in range(3)]
     return statistics.median(runs)
@@ -78,9 +77,6 @@ def first_call_ms() -> float:
 
 def command_wall_s(resolution: int) -> list[float]:
     """Wall seconds of 3 runs of ``diff4splat generate`` on the example in fresh processes."""
-    import subprocess
-    import tempfile
-
     runs = []
     for _ in range(3):
         with tempfile.TemporaryDirectory() as tmp:
@@ -110,8 +106,6 @@ def main() -> None:
     image = load_image(EXAMPLE, size=(height, width))
     cams = pipe.default_cameras("orbit", args.frames, resolution=args.resolution)
     stages: dict[str, list[float]] = {}
-    import tempfile
-
     for r in range(args.repeats + 1):  # first run is warm-up
         res = pipe(image, cams, "a cat turns its head", seed=r)
         t0 = time.perf_counter()

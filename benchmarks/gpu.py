@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import csv
 import statistics
 import subprocess
 import sys
@@ -47,6 +48,8 @@ from diff4splat.render import rasterize  # noqa: E402
 from diff4splat.render.gsplat_backend import gsplat_available  # noqa: E402
 from diff4splat.render.sequence import render_path  # noqa: E402
 from models.bundle import Diff4SplatModel, load_config  # noqa: E402
+from training.stage_config import load_stage  # noqa: E402
+from training.train import build_training  # noqa: E402
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
 PROMPT = "a cat turns its head"
@@ -213,10 +216,6 @@ TRAIN = ("train_base_dit", "train_base_ldrm", "train_stage1")
 
 
 def part_train(device: torch.device, quick: bool) -> str:
-    import csv
-
-    from training.stage_config import load_stage
-    from training.train import build_training
 
     steps, warm = (3, 1) if quick else (30, 5)
     config = "tiny" if quick else "small"

@@ -27,6 +27,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
+import onnxruntime
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -208,7 +209,6 @@ def main() -> None:
     ap.add_argument("--e2e-repeats", type=int, default=3)
     ap.add_argument("--write", action="store_true")
     args = ap.parse_args()
-    import onnxruntime
 
     threads = tuple(dict.fromkeys((os.cpu_count() or 1, 1)))  # all cores (the default), and one
     parts, notes = [], []

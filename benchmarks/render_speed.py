@@ -18,6 +18,8 @@ times the fused forward's stages at 256².
 from __future__ import annotations
 
 import argparse
+import functools
+import importlib
 import json
 import os
 import statistics
@@ -30,6 +32,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, markdown_table, peak_rss_mb, write_section  # noqa: E402
+
+from diff4splat.render import rasterize, rasterize_dense  # noqa: E402
 
 CONFIGS = [  # (renderer, image size, runs, with backward)
     ("dense", 32, 3, True),
@@ -68,10 +72,6 @@ def ldrm_scene(size: int, seed: int = 0) -> list[torch.Tensor]:
 
 def run_one(renderer: str, size: int, runs: int, backward: bool = True) -> dict:
     """Time one configuration in this process; returns a JSON-able dict."""
-    import functools
-
-    from diff4splat.render import rasterize, rasterize_dense
-
     fn = rasterize_dense if renderer == "dense" else functools.partial(rasterize, compositor=renderer)
     scene = ldrm_scene(size)
     fwd, fb, n_pairs = [], [], 0
@@ -110,10 +110,6 @@ PROFILE_STAGES = [  # (label, module, attribute): the fused forward's stages, ti
 def stage_profile(size: int, runs: int) -> dict:
     """Median ms per forward stage of the fused path (each stage's function wrapped with a timer); "rest" is
     the pipeline around them (features, render mode, per-camera glue)."""
-    import importlib
-
-    from diff4splat.render import rasterize
-
     times: dict[str, list[float]] = {label: [] for label, _, _ in PROFILE_STAGES}
     for label, module, attr in PROFILE_STAGES:
         owner = importlib.import_module(module)

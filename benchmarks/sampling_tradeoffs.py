@@ -17,6 +17,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, markdown_table, repo_relative, write_section  # noqa: E402
 
+from data_prep.synth import synthesize  # noqa: E402
 from diff4splat.pipeline import Diff4SplatPipeline, load_model  # noqa: E402
 from models.bundle import DEFAULT_CONFIG  # noqa: E402
 from training.evaluate import _held_out_clips, sampling_tradeoffs, stiffness_profile  # noqa: E402
@@ -38,8 +39,6 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         data = args.data
         if data is None:
-            from data_prep.synth import synthesize
-
             synthesize(tmp, args.clips, seed=777, size=cfg.width, frames=cfg.num_frames, cameras=1, progress=False)
             data = tmp
         clips = _held_out_clips(data, cfg.height, cfg.width, cfg.num_frames, args.clips)

@@ -14,6 +14,8 @@ from pathlib import Path
 
 from diff4splat.errors import run_cli
 
+from .converters import CONVERTERS, convert
+
 __all__ = ["register", "parse_options", "main"]
 
 
@@ -37,8 +39,6 @@ def parse_options(items: list[str]) -> dict:
 
 
 def _convert(args: argparse.Namespace) -> int:
-    from .converters import convert
-
     opts = parse_options(args.option)
     opts.update(start=args.start, stride=args.stride, max_frames=args.max_frames, replace=args.replace)
     out = convert(args.source, args.input, args.output, **opts)
@@ -48,8 +48,6 @@ def _convert(args: argparse.Namespace) -> int:
 
 def register(sub) -> None:
     """Add the ``convert`` subparser to an argparse sub-parsers object (sets ``func``)."""
-    from .converters import CONVERTERS
-
     p = sub.add_parser("convert", help="convert a source dataset scene to the scene format",
                        description="Read one scene/sequence of SOURCE in its published layout (data_prep/"
                                    "CONVERTERS.md) and write a validated scene folder OUT.")

@@ -106,9 +106,9 @@ def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | Non
                              "picks CUDA or CPU)")
         if not Path(onnx).is_dir():
             raise FileNotFoundError(f"--onnx: {onnx} is not a folder")
-        import onnxruntime  # optional dependency (the `onnx` extra)
+        import onnxruntime  # lazy: ~0.1 s at every command's start; only --runtime onnxruntime needs it
 
-        from .onnx_runtime import OnnxRuntime
+        from .onnx_runtime import OnnxRuntime  # lazy: as onnxruntime
 
         t0 = time.perf_counter()
         ort = OnnxRuntime(onnx)

@@ -23,7 +23,9 @@ import os
 from pathlib import Path
 
 import numpy as np
+import onnxruntime as ort
 import torch
+from onnxruntime.capi import onnxruntime_pybind11_state as state
 from torch import Tensor
 
 from models.bundle import Diff4SplatConfig
@@ -175,9 +177,6 @@ def _differences(manifest: object, graph: object, where: str) -> list[str]:
 
 def _session(path: Path, opts, providers: list[str]):
     """``onnxruntime.InferenceSession`` of ``path``; a graph onnxruntime cannot load is a ``ValueError``."""
-    import onnxruntime as ort
-    from onnxruntime.capi import onnxruntime_pybind11_state as state
-
     try:
         return ort.InferenceSession(str(path), sess_options=opts, providers=providers)
     except (state.Fail, state.InvalidArgument, state.InvalidGraph, state.InvalidProtobuf, state.NoSuchFile,
@@ -188,8 +187,6 @@ def _session(path: Path, opts, providers: list[str]):
 
 def default_providers() -> list[str]:
     """``["CUDAExecutionProvider", "CPUExecutionProvider"]`` when CUDA is available to onnxruntime, else CPU only."""
-    import onnxruntime as ort
-
     available = ort.get_available_providers()
     return [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in available]
 
@@ -201,8 +198,6 @@ def session_options(threads: int | None = None, profile_prefix: str | None = Non
     ``profile_prefix`` turns on onnxruntime's profiler (a Chrome-trace JSON per session, written by
     ``session.end_profiling()``).
     """
-    import onnxruntime as ort
-
     opts = ort.SessionOptions()
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     opts.intra_op_num_threads = int(threads or os.cpu_count() or 1)

@@ -55,6 +55,8 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
+from safetensors import SafetensorError, safe_open
+from safetensors.torch import save_file
 from torch import Tensor, nn
 
 from diff4splat.checks import check_finite, check_int, check_number, check_positive_int, is_int
@@ -473,8 +475,6 @@ def save_field(path: str | os.PathLike, field: HexPlaneField) -> None:
     Raises:
         ValueError: ``field`` is not a :class:`HexPlaneField`.
     """
-    from safetensors.torch import save_file
-
     if not isinstance(field, HexPlaneField):
         raise ValueError(f"field must be a HexPlaneField, got {type(field).__name__}")
     tensors = {k: v.detach().contiguous().cpu() for k, v in field.state_dict().items()}
@@ -496,8 +496,6 @@ def load_field(path: str | os.PathLike, map_location: str | torch.device = "cpu"
             a bad config, or tensors that do not match the config.
         diff4splat.limits.LimitError: the config describes more parameters than the ``parameters`` limit.
     """
-    from safetensors import SafetensorError, safe_open
-
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"HexPlane field: no file at {path}")

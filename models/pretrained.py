@@ -7,9 +7,10 @@ import json
 import os
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, ClassVar, TypeVar
+from typing import Any, ClassVar, TypeVar, get_type_hints
 
 import torch
+from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from diff4splat.io.output_folders import output_dir
@@ -31,8 +32,6 @@ def load_weights(path: str | os.PathLike, map_location: str = "cpu") -> dict[str
         ValueError: naming ``path`` when the file is truncated or corrupt (safetensors' ``SafetensorError``
             or a header that is not valid JSON / UTF-8).
     """
-    from safetensors import SafetensorError
-
     try:
         return load_file(str(path), device=map_location)
     except (SafetensorError, UnicodeDecodeError, json.JSONDecodeError) as e:
@@ -51,8 +50,6 @@ def config_from_dict(cls: type, data: dict[str, Any], where: str = "config") -> 
         ValueError: ``data`` is not a dict, an unknown field name, or a non-integer value (e.g. ``1e9``,
             which JSON and YAML read as a float) for an ``int`` field (names the field and ``where``).
     """
-    import typing
-
     if not isinstance(data, dict):
         raise ValueError(f"{where}: expected an object of config fields, got {type(data).__name__} {data!r:.60}")
     fields = {f.name: f for f in dataclasses.fields(cls)}
@@ -60,7 +57,7 @@ def config_from_dict(cls: type, data: dict[str, Any], where: str = "config") -> 
     for key, value in data.items():
         if key not in fields:
             raise ValueError(f"{where}: unknown field {key!r} for {cls.__name__} (known: {sorted(fields)})")
-        if typing.get_type_hints(cls).get(key) is int and (isinstance(value, bool) or not isinstance(value, int)):
+        if get_type_hints(cls).get(key) is int and (isinstance(value, bool) or not isinstance(value, int)):
             raise ValueError(f"{where}: field {key!r} of {cls.__name__} must be an integer, got {value!r} "
                              f"({type(value).__name__}; write 1000, not 1e3 or 1000.0)")
         f = fields[key]
@@ -88,9 +85,7 @@ def _shallow_asdict(obj: Any) -> dict[str, Any]:
 
 
 def _dataclass_type(cls: type, name: str) -> type | None:
-    import typing
-
-    hints = typing.get_type_hints(cls)
+    hints = get_type_hints(cls)
     t = hints.get(name)
     return t if dataclasses.is_dataclass(t) else None
 

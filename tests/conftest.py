@@ -1,4 +1,8 @@
 """Shared fixtures (devices, session-scoped checkpoints); plain helpers live in tests/helpers.py."""
+import importlib
+import os
+import shutil
+
 import pytest
 import torch
 from helpers import tiny_model
@@ -94,9 +98,6 @@ CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--enable-unsafe-swiftshader", "
 
 
 def _chromium_path():
-    import os
-    import shutil
-
     return os.environ.get("DIFF4SPLAT_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
 
 
@@ -121,8 +122,6 @@ def browser():
 def each_compositor(request, monkeypatch):
     """Run a renderer test once per CPU compositor (diff4splat.render.rasterize.COMPOSITORS): the fused JIT
     path and the pure-PyTorch reference, which must give the same results."""
-    import importlib
-
     module = importlib.import_module("diff4splat.render.rasterize")  # the package exports a function of that name
     monkeypatch.setattr(module, "DEFAULT_COMPOSITOR", request.param)
     return request.param

@@ -2,10 +2,18 @@
 session-cached ONNX export. Test modules import from here, never from each other or from conftest."""
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 
 import torch
+
+from diff4splat.cameras.path import CameraPath
+from diff4splat.cli import main
+from diff4splat.export import MANIFEST_NAME, export_onnx
+from diff4splat.gaussians import Gaussians, rgb_to_sh0
+from diff4splat.scene import DynamicGaussians
+from models.bundle import Diff4SplatConfig, Diff4SplatModel
 
 EXAMPLE_IMAGE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
 
@@ -20,10 +28,6 @@ def tiny_model(seed: int = 0, dynamic: bool = False, active_dit: bool = False, i
     of that many channels (``LDRMConfig.image_branch``) whose zero-initialised last layer is perturbed,
     so the photograph changes frame 0's Gaussians.
     """
-    import dataclasses
-
-    from models.bundle import Diff4SplatConfig, Diff4SplatModel
-
     config = Diff4SplatConfig()
     config = dataclasses.replace(config, vae=dataclasses.replace(config.vae, upsample=vae_upsample))
     if image_branch:
@@ -65,10 +69,6 @@ def exported(tmp_path_factory, *, text=True, deformation=True, cli=False, image_
     ``cli`` makes the export through ``diff4splat export-onnx`` (flags ``--no-text`` / ``--static``);
     ``image_branch`` > 0 exports ``parity_model(image_branch)`` (its own checkpoint folder).
     """
-    from diff4splat.cli import main
-    from diff4splat.export import MANIFEST_NAME, export_onnx
-    from models.bundle import Diff4SplatModel
-
     base = tmp_path_factory.getbasetemp() / "onnx_cache"
     suffix = f"_image{image_branch}" if image_branch else ""
     ckpt = base / f"checkpoint{suffix}"
@@ -93,12 +93,6 @@ def moving_patch_scene(n: int = 400, frames: int = 5, shift: float = 0.6, sh_deg
     Returns:
         (DynamicGaussians, CameraPath of ``frames`` identical cameras).
     """
-    import torch
-
-    from diff4splat.cameras.path import CameraPath
-    from diff4splat.gaussians import Gaussians, rgb_to_sh0
-    from diff4splat.scene import DynamicGaussians
-
     g = torch.Generator().manual_seed(seed)
     means = torch.cat([torch.rand(n, 2, generator=g) - 0.5, 3.0 + 0.2 * torch.rand(n, 1, generator=g) - 0.1], 1)
     sh = torch.zeros(n, (sh_degree + 1) ** 2, 3)

@@ -4,6 +4,7 @@ import json
 
 import pytest
 import torch
+import yaml
 from helpers import EXAMPLE_IMAGE
 
 from diff4splat.cli import main
@@ -18,6 +19,7 @@ from models.bundle import (
     load_config,
 )
 from models.pretrained import count_parameters
+from training.stage_config import StageConfig
 
 
 @pytest.mark.parametrize("name", ["tiny", "small", "paper"])
@@ -43,8 +45,6 @@ def test_paper_config_on_meta_device_reports_parameter_counts():
 def test_default_config_is_shipped_with_weights_and_is_every_default():
     """DEFAULT_CONFIG names a shipped config whose trained weights ship too (a plain `generate` must not
     fall back to a random model), and it is the default of load_model, from_pretrained and the stages."""
-    from training.stage_config import StageConfig
-
     assert DEFAULT_CONFIG in config_names()
     assert load_config(DEFAULT_CONFIG).name == DEFAULT_CONFIG
     assert (WEIGHTS_DIR / DEFAULT_CONFIG / "config.json").is_file()
@@ -68,8 +68,6 @@ def test_tiny_yaml_equals_dataclass_defaults():
     ({"generated_footprint": "disk"}, "generated_footprint must be one of"),
 ])
 def test_inconsistent_configs_raise(tmp_path, override, match):
-    import yaml
-
     path = tmp_path / "bad.yaml"
     path.write_text(yaml.safe_dump(override))
     with pytest.raises(ValueError, match=match):

@@ -7,6 +7,15 @@ import numpy as np
 import pytest
 import torch
 
+import data_prep.format as data_format
+import data_prep.scene_files as scene_files
+import data_prep.synth as synth
+import diff4splat.cameras.lenses as lenses
+import diff4splat.cameras.path as path
+import diff4splat.gaussians as gaussians
+import diff4splat.render.validate as validate
+import diff4splat.scene as scene
+import models.hexplane as hexplane
 from diff4splat.checks import (
     check_finite,
     check_int,
@@ -66,11 +75,6 @@ def test_check_finite_accepts_finite_values_whose_sum_overflows():
 
 def test_check_finite_has_one_home():
     """gaussians.py used to define its own copy; now every module uses the function of diff4splat.checks."""
-    import diff4splat.cameras.path as path
-    import diff4splat.gaussians as gaussians
-    import diff4splat.render.validate as validate
-    import diff4splat.scene as scene
-
     for module in (gaussians, scene, path, validate):
         assert module.check_finite is check_finite, module.__name__
 
@@ -118,12 +122,6 @@ def test_check_number_returns_python_float(value):
 
 def test_small_checkers_have_one_home():
     """data_prep, models.hexplane and cameras.lenses used to write their own int/number checkers."""
-    import data_prep.format as data_format
-    import data_prep.scene_files as scene_files
-    import data_prep.synth as synth
-    import diff4splat.cameras.lenses as lenses
-    import models.hexplane as hexplane
-
     assert data_format.is_int is is_int and scene_files.check_int is check_int and synth.check_int is check_int
     assert lenses.check_number is check_number and hexplane.check_number is check_number
     for module, name in ((scene_files, "_is_number"), (synth, "_check_int"), (lenses, "_check_number")):

@@ -14,7 +14,8 @@ from helpers import EXAMPLE_IMAGE
 from plyfile import PlyData
 
 import diff4splat.generate as generate_module
-from diff4splat.cameras import DEFAULT_AMPLITUDES, DEFAULT_TRAJECTORY
+import diff4splat.pipeline
+from diff4splat.cameras import DEFAULT_AMPLITUDES, DEFAULT_TRAJECTORY, CameraPath, intrinsics_from_fov
 from diff4splat.cli import build_parser, main
 from diff4splat.io import load_depth_exr, load_image, load_ply, load_video, ply_property_names, save_cameras_json
 from diff4splat.io.image import preprocess_image, read_image
@@ -23,7 +24,7 @@ from diff4splat.photo import PHOTO_EPS2D
 from diff4splat.pipeline import Diff4SplatPipeline
 from diff4splat.quaternions import quat_to_rotmat
 from diff4splat.scene import DynamicGaussians
-from models.bundle import DEFAULT_CONFIG, load_config
+from models.bundle import DEFAULT_CONFIG, Diff4SplatModel, load_config
 
 INRIA = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]
          + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)])
@@ -107,8 +108,6 @@ def test_generate_writes_every_file_on_the_shipped_photograph(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_without_shipped_weights_a_seeded_random_model_is_used_with_a_warning(tmp_path, capsys, monkeypatch):
-    import diff4splat.pipeline
-
     monkeypatch.setattr(diff4splat.pipeline, "WEIGHTS_DIR", tmp_path / "no_weights")
     code, out = _generate(tmp_path, "--frames", "5")  # no --trajectory, no --config: the defaults
     assert code == 0
@@ -155,8 +154,6 @@ def test_cameras_file_round_trips_through_generate(tmp_path):
 
 
 def _bad_camera_file(tmp_path, kind):
-    from diff4splat.cameras import CameraPath, intrinsics_from_fov
-
     Ks = intrinsics_from_fov(64, 64, fov_y_deg=50).expand(5, 3, 3).clone()
     cams = CameraPath(torch.eye(4).repeat(5, 1, 1), Ks, 64, 64)
     path = tmp_path / "cams.json"
@@ -347,8 +344,6 @@ def test_unknown_arguments_are_one_line_exit_2(tmp_path, capsys):
 ])
 def test_amplitude_out_of_range_is_one_line_before_the_model_loads(tmp_path, capsys, monkeypatch, trajectory,
                                                                      amplitude, needles):
-    from models.bundle import Diff4SplatModel
-
     def no_model(*a, **k):
         raise AssertionError("the model was loaded before --amplitude was checked")
 

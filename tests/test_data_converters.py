@@ -11,20 +11,35 @@ equal to the point's depth, and that background / invalid pixels decode to the r
 from __future__ import annotations
 
 import gzip
+import io
 import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
+import h5py
 import numpy as np
 import OpenEXR
 import pytest
+import torch
 from helpers import not_a_folder
 
 from data_prep.cli import main
-from data_prep.converters import CONVERTERS
+from data_prep.convert_cli import main as convert_main
+from data_prep.convert_cli import parse_options
+from data_prep.converters import CONVERTERS, convert
+from data_prep.converters.common import (
+    decode_scaled_uint16,
+    disparity_to_depth,
+    float16_bits_to_float,
+    normalize_rotation,
+    select_frames,
+)
+from data_prep.converters.multicamvideo import parse_ue_matrix
+from data_prep.converters.stereo4d import decode_stereo4d_tracks
 from data_prep.format import load_scene
+from diff4splat.quaternions import rotmat_to_quat
 
 W, H = 16, 12
 FX = FY = 20.0
@@ -144,10 +159,6 @@ def make_pointodyssey(root: Path) -> tuple[Path, Expect]:
 
 
 def make_tartanair(root: Path) -> tuple[Path, Expect]:
-    import torch
-
-    from diff4splat.quaternions import rotmat_to_quat
-
     src = root / "P000"
     fx, fy, cx, cy, w, h = 320.0, 320.0, 320.0, 240.0, 640, 480  # TartanAir's fixed camera
     uv, z = {}, {}
@@ -175,7 +186,6 @@ def make_tartanair(root: Path) -> tuple[Path, Expect]:
 
 
 def make_spring(root: Path) -> tuple[Path, Expect]:
-    import h5py
     src = root / "0001"
     poses = cv_poses()
     B = 0.065
@@ -370,8 +380,6 @@ SOURCES = {
 # ----------------------------------------------------------------------------------------- checks
 @pytest.mark.parametrize("source", sorted(SOURCES))
 def test_known_point_reprojects_with_metric_depth(source, tmp_path):
-    from data_prep.converters import convert
-
     src, exp = SOURCES[source](tmp_path / "native")
     out = convert(source, src, tmp_path / "scene", **exp.kwargs)
     scene = load_scene(out)
@@ -408,8 +416,6 @@ def test_known_point_reprojects_with_metric_depth(source, tmp_path):
 
 # ------------------------------------------------------------------------- per-source details
 def test_realestate10k_alignment_and_units(tmp_path):
-    from data_prep.converters import convert
-
     src, exp = make_realestate10k(tmp_path / "native")
     scene = load_scene(convert("realestate10k", src, tmp_path / "aligned", **exp.kwargs))
     m = scene.meta
@@ -431,8 +437,6 @@ def test_realestate10k_alignment_and_units(tmp_path):
 
 
 def test_pointodyssey_tracks_keep_source_visibility(tmp_path):
-    from data_prep.converters import convert
-
     src, _ = make_pointodyssey(tmp_path / "native")
     pts, vis = load_scene(convert("pointodyssey", src, tmp_path / "s")).tracks()
     assert pts.shape == (2, T, 3)  # the NaN track is dropped
@@ -442,9 +446,6 @@ def test_pointodyssey_tracks_keep_source_visibility(tmp_path):
 
 
 def test_stereo4d_tracks_and_decoding(tmp_path):
-    from data_prep.converters import convert
-    from data_prep.converters.stereo4d import decode_stereo4d_tracks
-
     src, _ = make_stereo4d(tmp_path / "native")
     scene = load_scene(convert("stereo4d", src, tmp_path / "s"))
     pts, vis = scene.tracks()
@@ -461,8 +462,6 @@ def test_stereo4d_tracks_and_decoding(tmp_path):
 
 
 def test_frame_selection_stride_and_fps(tmp_path):
-    from data_prep.converters import convert
-
     src, exp = make_vkitti2(tmp_path / "native")
     scene = load_scene(convert("vkitti2", src, tmp_path / "s", stride=2, cameras=(1,)))
     assert scene.num_frames == 2 and scene.meta.fps == 5.0 and scene.meta.extra["source_frames"] == [0, 2]
@@ -473,10 +472,6 @@ def test_frame_selection_stride_and_fps(tmp_path):
 
 
 def test_bad_inputs_raise(tmp_path):
-    from data_prep.converters import convert
-    from data_prep.converters.common import normalize_rotation, select_frames
-    from data_prep.converters.multicamvideo import parse_ue_matrix
-
     with pytest.raises(ValueError, match="unknown source"):
         convert("kitti", tmp_path, tmp_path / "o")
     with pytest.raises(FileNotFoundError):
@@ -497,8 +492,6 @@ def test_bad_inputs_raise(tmp_path):
 
 
 def test_depth_decoders():
-    from data_prep.converters.common import decode_scaled_uint16, disparity_to_depth, float16_bits_to_float
-
     raw = np.array([[0, 100, 65535]], np.uint16)
     d = decode_scaled_uint16(raw, 0.01, invalid=(0, 65535))
     assert np.isposinf(d[0, 0]) and d[0, 1] == np.float32(1.0) and np.isposinf(d[0, 2])
@@ -511,15 +504,13 @@ def test_depth_decoders():
 
 
 def test_convert_cli(tmp_path, capsys):
-    from data_prep.convert_cli import main, parse_options
-
     src, _ = make_dynamic_replica(tmp_path / "dr")
-    rc = main(["dynamic_replica", str(src), str(tmp_path / "out"), "--option", "sequence=seq",
-               "--option", 'sides=["left"]', "--max-frames", "2"])
+    rc = convert_main(["dynamic_replica", str(src), str(tmp_path / "out"), "--option", "sequence=seq",
+                       "--option", 'sides=["left"]', "--max-frames", "2"])
     assert rc == 0 and "converted" in capsys.readouterr().out
     scene = load_scene(tmp_path / "out")
     assert scene.camera_names == ["cam00"] and scene.num_frames == 2
-    assert main(["dynamic_replica", str(src), str(tmp_path / "out2")]) == 2  # ambiguous sequence
+    assert convert_main(["dynamic_replica", str(src), str(tmp_path / "out2")]) == 2  # ambiguous sequence
     assert "sequence must be given" in capsys.readouterr().err
     assert parse_options(["a=1", "b=x", "c=[1, 2]"]) == {"a": 1, "b": "x", "c": (1, 2)}
     with pytest.raises(ValueError, match="KEY=VALUE"):
@@ -560,24 +551,18 @@ def _gz(data: bytes) -> bytes:
 
 
 def _truncated_npz() -> bytes:
-    import io
-
     buf = io.BytesIO()
     np.savez(buf, a=np.zeros((4, 4)))
     return buf.getvalue()[:40]
 
 
 def _pickled_npy() -> bytes:
-    import io
-
     buf = io.BytesIO()
     np.save(buf, np.array([{"x": 1}], dtype=object), allow_pickle=True)
     return buf.getvalue()
 
 
 def _plain_npy() -> bytes:
-    import io
-
     buf = io.BytesIO()
     np.save(buf, np.zeros(3))
     return buf.getvalue()

@@ -18,7 +18,9 @@ import cv2
 import numpy as np
 import pytest
 
+from data_prep.convert_cli import main
 from data_prep.converters import convert
+from data_prep.converters.hypernerf import undistort_rgb
 from data_prep.format import load_scene
 from data_prep.validate import validate_scene
 
@@ -357,8 +359,6 @@ def test_hypernerf_bad_inputs(tmp_path):
 def test_hypernerf_undistort_samples_the_distorted_pixel():
     """Output pixel centre (u, v) takes the source value at nerfies' distorted projection of its ray. On a
     linear ramp bilinear sampling is exact, so a half-pixel convention error (≈ 0.1 px here) shows."""
-    from data_prep.converters.hypernerf import undistort_rgb
-
     K = np.array([[HN_F, 0, HN_C[0]], [0, HN_F * HN_RATIO, HN_C[1]], [0, 0, 1]])
     (k1, k2, k3), (p1, p2) = RADIAL, TANGENTIAL
     u, v = np.meshgrid(np.arange(HN_W) + 0.5, np.arange(HN_H) + 0.5)
@@ -378,8 +378,6 @@ def test_hypernerf_undistort_samples_the_distorted_pixel():
 
 
 def test_convert_cli_runs_the_new_sources(tmp_path):
-    from data_prep.convert_cli import main
-
     root = tmp_path / "n3dv"
     root.mkdir()
     make_n3dv(root, n_cams=2)

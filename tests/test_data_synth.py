@@ -8,6 +8,7 @@ import json
 import math
 import time
 import tracemalloc
+from concurrent.futures import Future
 
 import numpy as np
 import pytest
@@ -356,8 +357,6 @@ class _InlinePool:
         return False
 
     def submit(self, fn, *args, **kwargs):
-        from concurrent.futures import Future
-
         fut = Future()
         try:
             fut.set_result(fn(*args, **kwargs))

@@ -12,6 +12,9 @@ import numpy as np
 import OpenEXR
 import pytest
 
+import data_prep.format
+import data_prep.scene_files
+import data_prep.validate
 from data_prep.cli import main
 from data_prep.format import SceneWriter
 from data_prep.validate import Problem, summarize, validate_path, validate_scene
@@ -286,10 +289,6 @@ def _imports(module):
 def test_validate_and_format_import_each_other_no_more():
     """data_prep.format (the writer) validates with data_prep.validate; validate imported format back (the circle
     was dodged with an import inside a function). Now validate and format share data_prep.scene_files."""
-    import data_prep.format
-    import data_prep.scene_files
-    import data_prep.validate
-
     for module in (data_prep.validate, data_prep.scene_files):
         assert not [n for n, _ in _imports(module) if n == "data_prep.format"], module.__name__
     assert ("data_prep.validate", True) in _imports(data_prep.format)

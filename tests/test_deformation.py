@@ -8,6 +8,9 @@ import torch
 import torch.nn.functional as F
 
 import models.deformation as deformation
+from diff4splat.gaussians import Gaussians
+from diff4splat.quaternions import quat_multiply, quat_normalize, quat_to_rotmat
+from diff4splat.scene import DynamicGaussians
 from models.deformation import (
     DeformationConfig,
     DeformationNetwork,
@@ -116,10 +119,6 @@ def test_single_level_and_odd_sizes():
 def test_composition_with_canonical_gaussians_matches_the_brute_force_formula():
     """The network's offsets applied by DynamicGaussians.at(t) at a sampled time give μ + Δμ,
     R(q_t) = R(Δq)·R(q) and s·exp(Δs), Gaussian by Gaussian."""
-    from diff4splat.gaussians import Gaussians
-    from diff4splat.quaternions import quat_multiply, quat_normalize, quat_to_rotmat
-    from diff4splat.scene import DynamicGaussians
-
     D = torch.float64
     net = _net(perturb=True, in_channels=8, hidden=4).double()
     times = torch.tensor([0.0, 0.5, 1.0], dtype=D)

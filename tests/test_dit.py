@@ -2,6 +2,7 @@
 import math
 
 import numpy as np
+import onnxruntime as ort
 import pytest
 import torch
 
@@ -234,7 +235,6 @@ def test_bad_inputs_raise_value_error(change, match):
 
 @pytest.mark.slow
 def test_onnx_export_matches_pytorch(tmp_path):
-    import onnxruntime as ort
     model = _model()
     inp = _inputs(batch=1)
     args = (inp["x"], inp["sigma"], inp["image_latent"], inp["plucker"], inp["text"],

@@ -5,6 +5,7 @@ import math
 import pytest
 import torch
 
+from diff4splat.cameras import intrinsics_from_fov, make_trajectory
 from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
 from training.eval_metrics import (
     ANGLE_BINS,
@@ -87,8 +88,6 @@ def test_view_angle_of_a_known_rotation_is_its_angle():
 
 def test_view_angle_of_an_arc_is_its_sweep():
     """The arc preset orbits the scene centre by a·t: its view angles are the sweep a·t (degrees)."""
-    from diff4splat.cameras import intrinsics_from_fov, make_trajectory
-
     K = intrinsics_from_fov(32, 32, fov_y_deg=50.0)
     path = make_trajectory("arc", 9, K.double(), 32, 32, scene_depth=2.0, amplitude=1.2)
     expected = [math.degrees(1.2 * i / 8) for i in range(9)]

@@ -1,14 +1,23 @@
 """Tests of training/evaluate.py and its command (training/evaluate_cli.py): every metric against an independent
 computation, baselines and ablations, the sampler sweep, the CLI, and devices (``--device``, nothing made on torch's
 default device)."""
+import csv
 import math
 
+import kornia
+import numpy as np
 import pytest
 import torch
 from helpers import tiny_model
 
+import training.evaluate_cli
+from data_prep.synth import generate_scene
+from diff4splat.cameras import CameraPath, make_trajectory
+from diff4splat.cli import main
 from diff4splat.pipeline import Diff4SplatPipeline
+from diff4splat.render.sequence import render_path
 from diff4splat.runtime import TorchRuntime
+from training.eval_csv import append_csv, check_csv_outputs, csv_outputs
 from training.eval_metrics import ablation_noise, image_psnr, kept_index_map
 from training.evaluate import (
     BASELINES,
@@ -16,18 +25,18 @@ from training.evaluate import (
     DIAGNOSTICS,
     METRICS,
     VARIANTS,
+    ClipEvaluation,
     _held_out_clips,
     aggregate,
     binned_keys,
     evaluate_clip,
     sampling_tradeoffs,
+    stiffness_profile,
 )
 
 
 @pytest.fixture(scope="module")
 def clips(tmp_path_factory):
-    from data_prep.synth import generate_scene
-
     root = tmp_path_factory.mktemp("heldout")
     generate_scene(root, 0, seed=123, size=64, frames=9, cameras=1, static_ratio=0.0)
     return _held_out_clips(root, 64, 64, 9, None)
@@ -35,8 +44,6 @@ def clips(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def static_clip(tmp_path_factory):
-    from data_prep.synth import generate_scene
-
     root = tmp_path_factory.mktemp("heldout_static")
     generate_scene(root, 0, seed=124, size=64, frames=9, cameras=1, static_ratio=1.0)
     (clip,) = _held_out_clips(root, 64, 64, 9, None)
@@ -48,12 +55,6 @@ def static_clip(tmp_path_factory):
 def test_metrics_of_a_generated_scene_match_independent_computations(clips):
     """Each metric recomputed from the same generation (seed 0, 2 steps): PSNR from its closed form
     −10·log10(MSE), SSIM of frame 0 vs frames 1…, depth correlation by numpy on the covered valid pixels."""
-    import kornia
-    import numpy as np
-
-    from diff4splat.cameras import CameraPath
-    from diff4splat.render.sequence import render_path
-
     clip = clips[0]
     pipe = Diff4SplatPipeline(tiny_model(dynamic=True))
     e = evaluate_clip(pipe, clip, steps=2)
@@ -106,9 +107,6 @@ def test_loop_psnr_of_a_static_scene_is_its_orbit_input_view_psnr(static_clip):
     """With an identity deformation the loop-closing frame (first camera, t = 1) is the orbit's first
     frame, so loop_psnr must equal that frame's PSNR against the ground-truth first frame: the photograph, kept by
     the photo layer with nothing generated over it (≥ 40 dB)."""
-    from diff4splat.cameras import make_trajectory
-    from diff4splat.render.sequence import render_path
-
     pipe = Diff4SplatPipeline(tiny_model())  # zero-initialised deformation: a static scene
     loop = evaluate_clip(pipe, static_clip, steps=1).metrics["loop_psnr"]
     depth0 = static_clip["depth"][0][static_clip["depth_valid"][0]]
@@ -148,11 +146,6 @@ def test_sampling_sweep_reports_each_sampler_and_nfe(clips):
 def test_evaluate_cli_through_the_entry_point(clips, tmp_path, capsys):
     """The CLI prints the per-clip table, the metrics and the model beside its baselines per view-angle bin,
     appends the aggregate row to the CSV, and refuses a CSV with other columns before evaluating."""
-    import csv
-
-    from data_prep.synth import generate_scene
-    from diff4splat.cli import main
-
     root = tmp_path / "data"
     generate_scene(root, 0, seed=5, size=64, frames=9, cameras=1)
     table = tmp_path / "eval.csv"
@@ -205,9 +198,6 @@ def test_noise_ablation_reconstructs_from_the_noise(clips):
     """The ablation's reconstruction gets the seeded noise with frame 0 replaced by the photograph's latent
     (not the sampled latents), and psnr_novel_noise is the PSNR of that scene; a runtime without the
     PyTorch VAE has no oracle (NaN)."""
-    from diff4splat.cameras import CameraPath
-    from diff4splat.render.sequence import render_path
-
     clip = clips[0]  # dynamic: no loop-closure generation
     runtime = _RecordingRuntime(tiny_model(dynamic=True, active_dit=True))
     m = evaluate_clip(Diff4SplatPipeline(runtime), clip, steps=1, seed=3).metrics
@@ -230,8 +220,6 @@ def test_noise_ablation_reconstructs_from_the_noise(clips):
 def test_gaussian_index_maps_frame0_pixels_to_their_gaussians(clips):
     """Through kept_index_map(gaussian_index), each kept frame-0 pixel's Gaussian lies on that pixel's ray
     of the input camera: its canonical mean projects to the pixel's centre."""
-    from diff4splat.cameras import CameraPath
-
     clip = clips[0]
     pipe = Diff4SplatPipeline(tiny_model(dynamic=True))
     cams = CameraPath(clip["viewmats"].double(), clip["Ks"].double(), 64, 64, clip["times"].double())
@@ -248,8 +236,6 @@ def test_gaussian_index_maps_frame0_pixels_to_their_gaussians(clips):
 
 @pytest.mark.slow
 def test_stiffness_profile_is_exact_for_a_zero_field_and_positive_otherwise(clips):
-    from training.evaluate import stiffness_profile
-
     zero = stiffness_profile(Diff4SplatPipeline(tiny_model()), clips[0], steps=3, substeps=2)
     assert [r["step"] for r in zero] == [0, 1, 2] and zero[0]["sigma"] == 1.0 and zero[-1]["sigma_next"] == 0.0
     assert all(r["local_error"] == 0.0 and r["lipschitz"] == 0.0 for r in zero)  # v ≡ 0 at zero init
@@ -261,8 +247,6 @@ def test_stiffness_profile_is_exact_for_a_zero_field_and_positive_otherwise(clip
 
 def test_pooled_psnr_is_that_of_the_mean_mse_over_every_bin():
     """psnr_pooled: the PSNR of the mean MSE over all novel frames of all clips (frame-count weighted bins)."""
-    from training.evaluate import ClipEvaluation
-
     def clip(mses, angles):
         mse = torch.tensor(mses, dtype=torch.float64)
         metrics = {k: 1.0 for k in METRICS + DIAGNOSTICS + DEPTH_DIAGNOSTICS + BASELINES}
@@ -298,11 +282,6 @@ def test_loop_psnr_makes_nothing_on_the_default_device(static_clip, no_implicit_
 def test_evaluate_cli_on_each_device(clips, tmp_path, device, capsys):
     """``diff4splat evaluate --device``: the pipeline generates and renders there, the metrics come out on the CPU
     (on CUDA close to the CPU's: the same noise, slightly different arithmetic)."""
-    import csv
-
-    from data_prep.synth import generate_scene
-    from diff4splat.cli import main
-
     root = tmp_path / "data"
     generate_scene(root, 0, seed=5, size=64, frames=9, cameras=1, static_ratio=0.0)
     rows = {}
@@ -323,8 +302,6 @@ def test_evaluate_cli_on_each_device(clips, tmp_path, device, capsys):
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
 def test_evaluate_on_a_missing_device_is_one_line_exit_2(tmp_path, capsys):
     """The device is checked first: before the model and the data (which does not exist here) are read."""
-    from diff4splat.cli import main
-
     code = main(["evaluate", "--random", "--config", "tiny", "--data", str(tmp_path / "none"), "--device", "cuda"])
     err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert code == 2 and len(err) == 1 and err[0].startswith("diff4splat: error: --device: cuda is not available")
@@ -360,9 +337,6 @@ def _refusals(tmp_path):
 def test_bad_arguments_and_outputs_are_refused_before_the_model_loads(tmp_path, capsys, monkeypatch):
     """Before issue 28 ``--csv nodir/x.csv`` and ``--photo text.png`` failed after the whole evaluation, ``--limit 0``
     blamed ``--data`` and ``--sampling-clips 0`` said "no median for empty data"."""
-    import training.evaluate_cli
-    from diff4splat.cli import main
-
     monkeypatch.setattr(training.evaluate_cli, "load_model", None)  # loading a model would fail: refusals come first
     for extra, message in _refusals(tmp_path):
         before = sorted(tmp_path.rglob("*"))
@@ -373,8 +347,6 @@ def test_bad_arguments_and_outputs_are_refused_before_the_model_loads(tmp_path, 
 
 
 def test_csv_outputs_are_appended_with_one_header(tmp_path):
-    from training.eval_csv import append_csv, check_csv_outputs, csv_outputs
-
     outputs = csv_outputs(tmp_path / "e.csv", ["model", "a"], ["model", "clip"], None)
     assert outputs == {"aggregate": (tmp_path / "e.csv", ["model", "a"]),
                        "clips": (tmp_path / "e_clips.csv", ["model", "clip"])}

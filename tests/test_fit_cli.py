@@ -24,9 +24,10 @@ from diff4splat.cli import main
 from diff4splat.gaussians import Gaussians
 from diff4splat.io import load_ply, save_ply
 from diff4splat.io.output_folders import read_marker
-from diff4splat.io.scene_folder import load_deformation
+from diff4splat.io.scene_folder import load_deformation, save_deformation
 from diff4splat.limits import LimitError
-from diff4splat.quaternions import quat_multiply, quat_normalize, rotmat_to_quat
+from diff4splat.quaternions import quat_multiply, quat_normalize, quat_to_rotmat, rotmat_to_quat
+from diff4splat.scene import DynamicGaussians
 from models.hexplane import HexPlaneConfig, load_field
 from training import fit_cli
 from training.densify import DensifyConfig
@@ -414,9 +415,6 @@ def test_a_dynamic_scene_needs_a_fine_stage(dynamic_scene, tmp_path):
 def test_placed_generate_output_moves_like_the_original(dynamic_scene, tmp_path):
     # a generate scene with a deformation, in cam00's frame: placed in the world, every time's Gaussians are the
     # similarity transform (scale s, c2w) of the original's at that time
-    from diff4splat.io.scene_folder import save_deformation
-    from diff4splat.quaternions import quat_to_rotmat
-    from diff4splat.scene import DynamicGaussians
 
     scene = load_scene(dynamic_scene)
     g = torch.Generator().manual_seed(3)

@@ -1,6 +1,7 @@
 import json
 import os
 import signal
+import zipfile
 
 import cv2
 import numpy as np
@@ -159,8 +160,6 @@ def test_load_deformation_refuses_corrupt_files_naming_them(tmp_path, case):
     elif case == "empty_archive":
         _npz(path)
     elif case == "npy_header_garbage":
-        import zipfile
-
         with zipfile.ZipFile(path, "w") as zf:
             zf.writestr("times.npy", b"\x93NUMPY\x01\x00\x10\x00{not a dict}    \n")
     _refused(path, load_deformation, path, 10)

@@ -1,11 +1,13 @@
 """Tests of models/ldrm.py: shapes, activations, validation, export, layering."""
 from __future__ import annotations
 
+import json
 import math
 import subprocess
 import sys
 
 import numpy as np
+import onnxruntime as ort
 import pytest
 import torch
 
@@ -385,7 +387,6 @@ def test_paper_config_on_meta():
 
 @pytest.mark.slow
 def test_onnx_export_matches_eager(tmp_path):
-    import onnxruntime as ort
     torch.manual_seed(0)
     model = _model().eval()
     with torch.no_grad():
@@ -410,8 +411,6 @@ def test_onnx_export_matches_eager(tmp_path):
 def test_checkpoint_without_gaussian_frames_loads_as_reference(tmp_path):
     """A config.json written before every-frame decoding and the upsampling head existed keeps its meaning:
     frame 0 only, through the transposed convolution its weights were trained with."""
-    import json
-
     model = _model(head="deconv")
     model.save_pretrained(tmp_path / "ldrm")
     path = tmp_path / "ldrm" / "config.json"

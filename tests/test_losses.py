@@ -1,5 +1,6 @@
 import math
 
+import kornia
 import pytest
 import torch
 import torch.nn.functional as F
@@ -7,6 +8,7 @@ import torch.nn.functional as F
 from training.losses import (
     depth_correlation_loss,
     depth_smoothness_loss,
+    displacement_loss,
     flow_matching_loss,
     gather_track_predictions,
     head_distillation_loss,
@@ -49,7 +51,6 @@ def test_photometric_loss_closed_forms():
     l1_only = photometric_loss(img, img + c, ssim_weight=0.0)
     assert float(l1_only) == pytest.approx(c, rel=1e-5)
     # pure SSIM term equals 1 − kornia's mean SSIM
-    import kornia
 
     torch.testing.assert_close(photometric_loss(img, img * 0.5, ssim_weight=1.0),
                                1 - kornia.metrics.ssim(img, img * 0.5, 11).mean())
@@ -151,8 +152,6 @@ def test_gather_track_predictions_follows_pixel_aligned_gaussians():
 def test_displacement_loss_ignores_frame_0_offsets_and_matches_a_loop():
     """A prediction off by a constant (wrong depth, right motion) has zero displacement loss; otherwise the
     loss is the mean over (p, t ≥ 1) visible at 0 and at t of ‖(x̂_t − x̂_0) − (x_t − x_0)‖."""
-    from training.losses import displacement_loss
-
     g = torch.Generator().manual_seed(0)
     target = torch.randn(1, 5, 4, 3, generator=g)
     vis = torch.rand(1, 5, 4, generator=g) > 0.3
@@ -168,8 +167,6 @@ def test_photometric_loss_is_float32_inside_a_bfloat16_autocast_region(monkeypat
     """SSIM's variances (E[x²] − μ², ~1e-3 here) would drown in bfloat16 rounding under the trainer's autocast:
     the loss runs SSIM with autocast off (on every device type) on float32 images, and so returns the float32
     value."""
-    import kornia
-
     seen = []
     real = kornia.metrics.ssim
 

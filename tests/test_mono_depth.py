@@ -6,11 +6,14 @@ import dataclasses
 import math
 
 import numpy as np
+import onnxruntime as ort
 import pytest
 import torch
 from helpers import tiny_model
 from torch.utils.data import default_collate
 
+from data_prep.clips import ClipConfig, ClipDataset
+from data_prep.synth import generate_scene
 from diff4splat.cameras import camera_rays
 from models.ldrm import LDRM, LDRMConfig, distance_activation, gaussian_activations
 from models.mono_depth import MonoDepth
@@ -144,9 +147,6 @@ SIZE, FRAMES = 32, 5
 
 @pytest.fixture(scope="module")
 def batch(tmp_path_factory):
-    from data_prep.clips import ClipConfig, ClipDataset
-    from data_prep.synth import generate_scene
-
     root = tmp_path_factory.mktemp("mono_depth_data")
     generate_scene(root, 0, seed=5, size=SIZE, frames=FRAMES, cameras=1, static_ratio=0.0)
     ds = ClipDataset(root, ClipConfig(num_frames=FRAMES, height=SIZE, width=SIZE, scenes="all", seed=0))
@@ -200,8 +200,6 @@ def test_the_depth_objective_needs_a_depth_network(batch):
 @pytest.mark.slow
 @pytest.mark.parametrize("grid", [0, 4])
 def test_ldrm_with_a_depth_network_exports_to_onnx(tmp_path, grid):
-    import onnxruntime as ort
-
     model = _ldrm(4, grid=grid).eval()
     _randomise(model.image_depth, 6)
     latents, plucker, image = _inputs()

@@ -9,6 +9,8 @@ import torch
 from helpers import tiny_model
 from torch.utils.data import default_collate
 
+from data_prep.clips import ClipConfig, ClipDataset
+from data_prep.synth import generate_scene
 from diff4splat.assemble import assemble_scene, to_gaussians
 from diff4splat.cameras import camera_rays
 from diff4splat.cameras.path import CameraPath
@@ -33,9 +35,6 @@ SIZE, FRAMES = 32, 9
 @pytest.fixture(scope="module")
 def clips(tmp_path_factory):
     """One static and one dynamic 32² clip of 9 frames, as build_training's ClipDataset yields them."""
-    from data_prep.clips import ClipConfig, ClipDataset
-    from data_prep.synth import generate_scene
-
     root = tmp_path_factory.mktemp("objectives_data")
     generate_scene(root, 0, seed=11, size=SIZE, frames=FRAMES, cameras=1, static_ratio=1.0)
     generate_scene(root, 1, seed=11, size=SIZE, frames=FRAMES, cameras=1, static_ratio=0.0)

@@ -5,6 +5,7 @@ Exports come from tests/test_export.py's session cache (:func:`test_export.expor
 """
 import json
 import math
+import os
 import shutil
 
 import numpy as np
@@ -286,8 +287,6 @@ def test_manifest_errors(tmp_path):
 
 
 def test_session_settings():
-    import os
-
     opts = session_options()
     assert opts.graph_optimization_level == ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     assert opts.intra_op_num_threads == os.cpu_count()

@@ -9,12 +9,14 @@ import torch.nn.functional as F
 from helpers import EXAMPLE_IMAGE
 
 from diff4splat.cameras import camera_rays, intrinsics_from_fov
-from diff4splat.gaussians import sh0_to_rgb
+from diff4splat.gaussians import Gaussians, sh0_to_rgb
 from diff4splat.io import load_image
 from diff4splat.photo import (
+    BACKDROP_DEPTH,
     BACKING_SCALE_PX,
     FRONT_SCALE_PX,
     PHOTO_EPS2D,
+    backdrop_layer,
     photo_layer,
     render_input_view,
     upsample_depth,
@@ -167,9 +169,6 @@ def test_the_backdrop_hides_behind_the_photo_and_fills_what_it_cannot_show():
     """Behind the photo layer the backdrop changes nothing at the input camera; alone it is the photograph blurred
     (close to it at the input view), and a camera turned 40° away still sees it everywhere (coverage ≥ 0.99),
     far behind the photo layer."""
-    from diff4splat.gaussians import Gaussians
-    from diff4splat.photo import BACKDROP_DEPTH, backdrop_layer
-
     H = W = 48
     image = load_image(EXAMPLE_IMAGE, size=(H, W))
     K = intrinsics_from_fov(W, H, fov_y_deg=50.0)

@@ -5,6 +5,7 @@ import pytest
 import torch
 from helpers import EXAMPLE_IMAGE, tiny_model
 
+import diff4splat.pipeline as pipeline
 from diff4splat.assemble import to_gaussians, video_colors
 from diff4splat.cameras import camera_rays, pack_plucker, plucker_rays
 from diff4splat.gaussians import sh0_to_rgb
@@ -269,8 +270,6 @@ def test_every_source_frame_contributes_and_duplicates_are_pruned(image):
 @pytest.mark.slow
 def test_result_reports_the_steps_and_sampler_actually_used(image, monkeypatch):
     """Defaults are resolved once, by the pipeline: the result carries what ran (config defaults included)."""
-    import diff4splat.pipeline as pipeline
-
     pipe = Diff4SplatPipeline(tiny_model())
     assert isinstance(pipe.runtime, TorchRuntime) and pipe.runtime.name == "torch"
     seen = []

@@ -3,12 +3,19 @@ import numpy as np
 import pytest
 import torch
 from helpers import tiny_model
+from torch._dynamo.utils import counters
+from torch.nn.attention import SDPBackend, sdpa_kernel
 
+import models.layers
+import models.text_encoder
+from diff4splat.assemble import to_gaussians
+from diff4splat.cameras import intrinsics_from_fov
 from diff4splat.offload import ModelOffload
 from diff4splat.onnx_runtime import OnnxRuntime
 from diff4splat.pipeline import Diff4SplatPipeline
 from diff4splat.runtime import ATTENTION_KERNELS, TorchRuntime, attention_priority
 from models.bundle import Diff4SplatModel, load_config
+from models.ldrm import LDRMConfig, LDRMOutput, gaussian_activations
 
 PROMPT = "a cat turns its head"
 
@@ -164,8 +171,6 @@ def test_runtime_rejects_unknown_offload_and_dtype():
 
 
 def test_attention_priority_puts_the_named_kernel_first_and_keeps_the_others():
-    from torch.nn.attention import SDPBackend
-
     assert attention_priority("auto") is None
     every = {SDPBackend.CUDNN_ATTENTION, SDPBackend.FLASH_ATTENTION, SDPBackend.EFFICIENT_ATTENTION, SDPBackend.MATH}
     for name, first in ATTENTION_KERNELS.items():
@@ -184,9 +189,6 @@ def test_each_attention_kernel_runs_under_its_order_and_gives_the_same_scene(ima
     """Every attention call of the networks sees the runtime's kernel order (read from torch at call time), every
     kernel stays enabled behind the first, torch's order is restored after the run, and the scene is the same
     up to the kernels' rounding (a kernel that cannot take a call hands it on: the CPU has no cuDNN attention)."""
-    import models.layers
-    import models.text_encoder
-
     real, seen = torch.nn.functional.scaled_dot_product_attention, []
 
     def spy(*a, **k):
@@ -213,8 +215,6 @@ def test_compiled_blocks_give_the_eager_scene(image, device):
     """``compile=True`` compiles every transformer block in place (regional compilation, the rest of the DiT
     eager); the sampled latents equal the eager run's to float32 rounding; the identical blocks share their graphs
     and the steps (a new σ each) reuse them: a second generation compiles nothing."""
-    from torch._dynamo.utils import counters
-
     _, ref = _run(image, device)
     torch._dynamo.reset()
     counters.clear()
@@ -235,8 +235,6 @@ def test_cudnn_attention_matches_the_math_kernel_on_the_dits_layout():
     """cuDNN's fused attention, where the GPU takes it (sm80+; torch prefers FlashAttention-2), on the layout our
     attention hands it ((B, heads, N, head_dim) views of (B, N, heads, head_dim), head_dim 128 as in the paper
     model) in bfloat16 agrees with float32 math attention to bfloat16 rounding, and is the kernel chosen."""
-    from torch.nn.attention import SDPBackend, sdpa_kernel
-
     g = torch.Generator("cuda").manual_seed(0)
     q, k, v = (torch.randn(1, 2048, 4, 128, generator=g, device="cuda", dtype=torch.bfloat16).transpose(1, 2)
                for _ in range(3))
@@ -262,10 +260,6 @@ def test_random_models_are_built_in_the_dtype_and_on_the_device_asked_for():
 def test_gaussians_are_built_in_float32_inside_a_bfloat16_autocast_region():
     """Training renders the LDRM's maps under bf16 autocast: the ray geometry, the Gaussians and the LDRM's
     activations stay float32 (a bfloat16 einsum would move centres by ~0.2 % of their distance)."""
-    from diff4splat.assemble import to_gaussians
-    from diff4splat.cameras import intrinsics_from_fov
-    from models.ldrm import LDRMConfig, LDRMOutput, gaussian_activations
-
     g = torch.Generator().manual_seed(0)
     raw = torch.randn(1, 2, 8, 8, 12, generator=g, device="cpu")
     out = LDRMOutput(*gaussian_activations(raw.to(torch.bfloat16), LDRMConfig()))

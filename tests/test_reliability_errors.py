@@ -12,15 +12,29 @@ import struct
 import subprocess
 import sys
 import zlib
+from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+import torch
 from helpers import EXAMPLE_IMAGE, exported
 
+import data_prep.cli as dcli
+import diff4splat.io.atomic as atomic
+import diff4splat.io.scene_folder as output
+import diff4splat.pipeline
+import training.stage_config
+from diff4splat.cameras import make_trajectory
 from diff4splat.cli import main
 from diff4splat.errors import EXIT_INTERRUPTED, EXIT_USAGE, is_expected, one_line, quiet_c_stderr, run_cli
+from diff4splat.gaussians import Gaussians
+from diff4splat.io import cameras, exr, ply, video
+from diff4splat.io.atomic import atomic_output_path, naming_os_errors
+from diff4splat.io.image import read_image
+from diff4splat.onnx_runtime import OnnxRuntime, load_manifest
+from training.train import main as train_main
 
 REPO = Path(__file__).resolve().parent.parent
 FAST = ["--frames", "1", "--steps", "1", "--quiet"]
@@ -107,8 +121,6 @@ def test_quiet_c_stderr_silences_fd_2_and_restores_it(capfd):
 
 
 def test_libpng_warning_of_a_bad_iccp_chunk_is_silenced(tmp_path, capfd):
-    from diff4splat.io.image import read_image
-
     photo = _png_with_bad_iccp(tmp_path / "cat.png")
     cv2.imread(str(photo))
     assert "libpng warning" in capfd.readouterr().err  # the file really makes libpng talk
@@ -141,11 +153,8 @@ def test_corrupt_checkpoint_is_one_line(tmp_path_factory, tmp_path, capsys, case
 @pytest.mark.parametrize("device, needle", [("cuda:99", "cuda:99 is not available"), ("gpu", "not a torch device"),
                                             ("cuda", "cuda is not available")])
 def test_unavailable_device_is_one_line_before_any_work(tmp_path, capsys, monkeypatch, device, needle):
-    import torch
-
     if device == "cuda" and torch.cuda.is_available():
         pytest.skip("this machine has a GPU")
-    import diff4splat.pipeline
 
     def no_model(*a, **k):
         raise AssertionError("the model was loaded before the device was checked")
@@ -158,8 +167,6 @@ def test_unavailable_device_is_one_line_before_any_work(tmp_path, capsys, monkey
 
 @pytest.mark.parametrize("fps", ["1001", "65536"])
 def test_fps_beyond_the_mp4_time_base_is_refused_up_front(tmp_path, capsys, monkeypatch, fps):
-    import diff4splat.pipeline
-
     monkeypatch.setattr(diff4splat.pipeline, "load_model", lambda *a, **k: pytest.fail("model loaded"))
     code = main(["generate", str(EXAMPLE_IMAGE), *FAST, "--fps", fps, "--out", str(tmp_path / "o")])
     _one_line_exit_2(code, capsys.readouterr().err, "--fps", "1000", fps)
@@ -178,8 +185,6 @@ def test_fps_1000_still_writes_a_video(tmp_path, capsys):
                                              (errno.EACCES, "Permission denied")])
 def test_os_errors_while_writing_are_one_line_naming_the_path(tmp_path, capsys, monkeypatch, code_, strerror):
     """Disk full, read-only file system, permissions (faked: the tests may run as root): the error names the path."""
-    import diff4splat.io.scene_folder as output
-
     def fail(path, *a, **k):
         raise OSError(code_, strerror, str(path))
 
@@ -269,8 +274,6 @@ MANIFEST_EDITS = {
 @pytest.mark.slow  # uses the session's ONNX export (tests/helpers.exported)
 @pytest.mark.parametrize("case", sorted(MANIFEST_EDITS))
 def test_edited_manifest_is_refused(tmp_path_factory, tmp_path, case):
-    from diff4splat.onnx_runtime import OnnxRuntime
-
     edit, needle = MANIFEST_EDITS[case]
     folder = _export(tmp_path_factory, tmp_path)
     OnnxRuntime(folder)  # the copy itself is fine
@@ -283,8 +286,6 @@ def test_edited_manifest_is_refused(tmp_path_factory, tmp_path, case):
 @pytest.mark.slow  # uses the session's ONNX export (tests/helpers.exported)
 @pytest.mark.parametrize("case", ["parent", "absolute", "subfolder", "symlink_outside"])
 def test_manifest_file_entries_stay_inside_the_export(tmp_path_factory, tmp_path, case):
-    from diff4splat.onnx_runtime import load_manifest
-
     folder = _export(tmp_path_factory, tmp_path)
     outside = tmp_path / "elsewhere.onnx"
     shutil.copy(folder / "dit.onnx", outside)
@@ -336,8 +337,6 @@ def test_evaluate_with_corrupt_weights_is_one_line(tmp_path_factory, tmp_path, c
 
 
 def test_data_prep_os_error_and_ctrl_c(tmp_path, capsys, monkeypatch):
-    import data_prep.cli as dcli
-
     def full(args):
         raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "scene"))
 
@@ -354,9 +353,6 @@ def test_data_prep_os_error_and_ctrl_c(tmp_path, capsys, monkeypatch):
 
 
 def test_train_os_error_bug_and_ctrl_c(tmp_path, capsys, monkeypatch):
-    import training.stage_config
-    from training.train import main as train_main
-
     for exc, expect in ((OSError(errno.EROFS, "Read-only file system", "/runs/r"), None),
                         (KeyboardInterrupt(), EXIT_INTERRUPTED), (TypeError("a bug"), TypeError)):
         def load_stage(*a, exc=exc, **k):
@@ -425,8 +421,6 @@ NO_SPACE = "No space left on device"
 
 
 def test_naming_os_errors_names_the_file_a_write_error_left_anonymous(tmp_path):
-    from diff4splat.io.atomic import naming_os_errors
-
     final, temp = tmp_path / "out", tmp_path / ".out.123.abc.tmp"
     with pytest.raises(OSError) as info, naming_os_errors(final / "scene.ply"):
         raise OSError(errno.ENOSPC, NO_SPACE)  # what f.write() raises on a full disk
@@ -448,8 +442,6 @@ def test_naming_os_errors_names_the_file_a_write_error_left_anonymous(tmp_path):
 
 def test_a_library_error_on_a_full_disk_becomes_enospc_naming_the_file(tmp_path, monkeypatch):
     """OpenEXR and safetensors raise RuntimeError-like errors; the file system tells whether the disk was full."""
-    import diff4splat.io.atomic as atomic
-
     monkeypatch.setattr(atomic, "disk_full_error", lambda where: OSError(errno.ENOSPC, NO_SPACE))
     with pytest.raises(OSError) as info, atomic.naming_os_errors(tmp_path / "field.safetensors"):
         raise RuntimeError("Error while serializing: I/O error: No space left on device (os error 28)")
@@ -459,10 +451,6 @@ def test_a_library_error_on_a_full_disk_becomes_enospc_naming_the_file(tmp_path,
 
 def _fill_with_dev_full(monkeypatch, module):
     """``module``'s atomic_output_path, with the temporary file a link to /dev/full: real ENOSPC on every write."""
-    from contextlib import contextmanager
-
-    from diff4splat.io.atomic import atomic_output_path
-
     @contextmanager
     def full(path):
         with atomic_output_path(path) as tmp:
@@ -473,12 +461,6 @@ def _fill_with_dev_full(monkeypatch, module):
 
 
 def _writers():
-    import torch
-
-    from diff4splat.cameras import make_trajectory
-    from diff4splat.gaussians import Gaussians
-    from diff4splat.io import cameras, exr, ply, video
-
     rng = np.random.default_rng(0)
     img = (rng.random((32, 32, 3)) * 255).astype(np.uint8)
     n = 50
@@ -497,8 +479,6 @@ def _writers():
 @pytest.mark.skipif(not DEV_FULL.exists(), reason="needs /dev/full")
 @pytest.mark.parametrize("writer", ["ply", "png", "cameras", "mp4", "exr"])
 def test_every_writer_on_a_full_disk_names_its_file_and_leaves_nothing(tmp_path, monkeypatch, writer):
-    import diff4splat.io.atomic as atomic
-
     module, name, write, c_library = _writers()[writer]
     _fill_with_dev_full(monkeypatch, module)
     if c_library:  # OpenCV / OpenEXR say nothing of errno: the probe of the disk (here: not full) must answer
@@ -514,8 +494,6 @@ def test_every_writer_on_a_full_disk_names_its_file_and_leaves_nothing(tmp_path,
 @pytest.mark.skipif(not DEV_FULL.exists(), reason="needs /dev/full")
 def test_disk_full_during_generate_is_one_line_naming_the_file(tmp_path, capsys, monkeypatch):
     """scene.ply's write() hits ENOSPC, which names no file: the line names out/scene.ply, not a temporary."""
-    import diff4splat.io.ply as ply
-
     _fill_with_dev_full(monkeypatch, ply)
     out = tmp_path / "o"
     code = main(["generate", str(EXAMPLE_IMAGE), *FAST, "--out", str(out)])

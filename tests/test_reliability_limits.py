@@ -9,6 +9,7 @@ import time
 import tracemalloc
 import warnings
 import zlib
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -18,7 +19,9 @@ from helpers import EXAMPLE_IMAGE, not_a_folder
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_leaves
 
+import diff4splat.pipeline as pipeline
 from data_prep.cli import main as data_prep_main
+from data_prep.clips import ClipConfig, ClipDataset
 from diff4splat.cameras import CameraPath
 from diff4splat.cli import main
 from diff4splat.io import load_cameras_json, load_realestate10k, save_cameras_json
@@ -115,8 +118,6 @@ def test_steps_and_frames_above_the_limit_exit_2_at_once(tmp_path, capsys, flag,
 
 @pytest.mark.slow
 def test_output_size_estimate_is_checked_before_the_networks_run(tmp_path, capsys, monkeypatch):
-    import diff4splat.pipeline as pipeline
-
     def never(*a, **k):
         raise AssertionError("the pipeline ran")
 
@@ -431,15 +432,11 @@ def test_convert_of_an_empty_camera_file_names_it(tmp_path, capsys):
 
 
 def test_no_clip_message_reads_as_english(tmp_path):
-    from data_prep.clips import ClipConfig, ClipDataset
-
     with pytest.raises(ValueError, match=rf"fits in the scenes of {tmp_path} \(0 scene"):
         ClipDataset(tmp_path, ClipConfig(scenes="all"))
 
 
 def test_readme_limits_table_names_every_limit_and_its_default():
-    from pathlib import Path
-
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
     table = readme.split("### Limits", 1)[1].split("\n#", 1)[0]
     for lim in LIMITS.values():

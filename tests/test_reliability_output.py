@@ -13,11 +13,14 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import EXAMPLE_IMAGE
+import torch
+from helpers import EXAMPLE_IMAGE, tiny_model
 
+from data_prep.format import SceneWriter
 from diff4splat.cli import main
 from diff4splat.io import MARKER, OutputDirError, check_output_dir, output_dir
 from diff4splat.io.output_folders import remove_stale_temps
+from training.checkpoint import save_checkpoint
 
 
 def _snapshot(root: Path) -> dict:
@@ -308,12 +311,6 @@ def test_output_folders_and_files_follow_the_umask(tmp_path, umask, dir_mode, fi
 
 def test_every_folder_writer_uses_the_policy(tmp_path):
     """save_pretrained, training checkpoints and data_prep scenes mark their folders and refuse user folders."""
-    import torch
-    from helpers import tiny_model
-
-    from data_prep.format import SceneWriter
-    from training.checkpoint import save_checkpoint
-
     user = tmp_path / "user"
     user.mkdir()
     (user / "keep.txt").write_text("mine")

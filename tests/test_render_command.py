@@ -21,7 +21,9 @@ from diff4splat.limits import LimitError
 from diff4splat.render.sequence import render_path
 from diff4splat.render_command import path_scene, rerender, resize_cameras
 from diff4splat.scene import DynamicGaussians
+from diff4splat.viewer_server import folder_payload, make_server
 from models.hexplane import HexPlaneConfig, HexPlaneField, load_field, save_field
+from training.fit_cli import place_generate_output
 
 
 def load_scene_folder(folder, device="cpu"):
@@ -481,9 +483,6 @@ def test_cli_corrupt_folder_is_one_line_naming_the_file(tmp_path, capsys, case, 
 
 def test_the_folder_readers_share_the_checks(tmp_path):
     """render, view and fit --init read a folder through one validated reader."""
-    from diff4splat.viewer_server import folder_payload, make_server
-    from training.fit_cli import place_generate_output
-
     folder, *_ = _folder(tmp_path)
     (folder / "deformation.npz").write_bytes(b"PK\x03\x04 truncated")
     readers = [load_scene_folder, folder_payload, lambda f: make_server(f, 0),

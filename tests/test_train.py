@@ -9,9 +9,11 @@ import torch
 import yaml
 from helpers import tiny_model
 
+from data_prep.clips import ClipConfig, ClipDataset
+from data_prep.synth import generate_scene
 from models.bundle import Diff4SplatModel, load_config
-from training.stage_config import STAGE_CONFIG_DIR
-from training.train import calibrate_latent_scaling, main
+from training.stage_config import STAGE_CONFIG_DIR, load_stage
+from training.train import build_training, calibrate_latent_scaling, main
 
 CONFIGS = STAGE_CONFIG_DIR
 SIZE, FRAMES = 32, 9
@@ -20,8 +22,6 @@ SIZE, FRAMES = 32, 9
 @pytest.fixture(scope="module")
 def data(tmp_path_factory):
     """Two static scenes (stages 1–2 train on them) and one dynamic scene; one camera, 9 frames."""
-    from data_prep.synth import generate_scene
-
     root = tmp_path_factory.mktemp("train_data")
     for i, ratio in enumerate((1.0, 1.0, 0.0)):
         generate_scene(root, i, seed=21, size=SIZE, frames=FRAMES, cameras=1, static_ratio=ratio)
@@ -30,8 +30,6 @@ def data(tmp_path_factory):
 
 def _clips(root, scenes="all"):
     """The clips build_training samples from ``root`` at the test size."""
-    from data_prep.clips import ClipConfig, ClipDataset
-
     return ClipDataset(root, ClipConfig(num_frames=FRAMES, height=SIZE, width=SIZE, scenes=scenes, plucker="packed"))
 
 
@@ -125,9 +123,6 @@ def test_a_decoder_stage_trains_the_vae_decoder_alone_and_keeps_the_latents(vae_
 
 @pytest.mark.slow
 def test_build_training_optimises_exactly_the_stage_modules_on_its_scenes(vae_run, data, tmp_path):
-    from training.stage_config import load_stage
-    from training.train import build_training
-
     stage = load_stage(_stage_yaml(tmp_path, "stage1", num_frames=FRAMES), data=str(data),
                        init_from=str(vae_run[1] / "model"), trainer={"run_dir": str(tmp_path / "run"), "device": "cpu"})
     trainer, model, counts = build_training(stage)

@@ -6,6 +6,8 @@ import base64
 import json
 import math
 import re
+from importlib import resources
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -13,7 +15,10 @@ import pytest
 import torch
 from helpers import moving_patch_scene
 
+from diff4splat.cli import main
+from diff4splat.io import load_cameras_json, load_ply
 from diff4splat.render import rasterize
+from diff4splat.scene import DynamicGaussians
 from diff4splat.viewer.data import payload_bytes, viewer_payload
 from diff4splat.viewer.page import bundle_js, viewer_html, write_viewer
 
@@ -56,9 +61,6 @@ def test_json_cannot_close_the_script_element():
 
 
 def test_licences_and_versions_are_shipped():
-    from importlib import resources
-    from pathlib import Path
-
     text = resources.files("diff4splat.viewer").joinpath("assets/LICENSES.txt").read_text(encoding="utf-8")
     package = json.loads((Path(__file__).resolve().parent.parent / "viewer_js" / "package.json").read_text())
     for name, version in package["dependencies"].items():
@@ -221,12 +223,6 @@ def test_generate_output_of_the_shipped_photo_in_the_browser(browser, tmp_path):
     4×-downsampled images) and, at the last frame's time, the last frame (the same against frames/0004.ply); at
     the input camera, in a window of the output's size and in one 3× larger, the canvas at the output pixels'
     centres matches frame 0 (rgb/0000.png) at full resolution (≥ 40 dB)."""
-    from pathlib import Path
-
-    from diff4splat.cli import main
-    from diff4splat.io import load_cameras_json, load_ply
-    from diff4splat.scene import DynamicGaussians
-
     photo = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
     out = tmp_path / "gen"
     assert main(["generate", str(photo), "--frames", "5", "--quiet", "--out", str(out)]) == 0

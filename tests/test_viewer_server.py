@@ -13,16 +13,17 @@ import urllib.request
 from pathlib import Path
 
 import pytest
+import torch
 from helpers import moving_patch_scene
 
 from diff4splat.cli import main
 from diff4splat.io.scene_folder import load_scene_folder, write_scene_folder
+from diff4splat.viewer.data import payload_bytes
+from diff4splat.viewer.page import write_viewer
 from diff4splat.viewer_server import DATA_PREFIX, HOST, folder_payload, make_server
 
 
 def _folder(tmp_path, **kw):
-    import torch
-
     scene, cams = moving_patch_scene(n=120, **kw)
     T, H, W = len(cams), cams.height, cams.width
     out = tmp_path / "out"
@@ -76,9 +77,6 @@ def test_listens_on_loopback_127_0_0_1_only(served):
 
 
 def test_full_scene_even_when_the_page_on_disk_is_reduced(tmp_path):
-    from diff4splat.viewer.data import payload_bytes
-    from diff4splat.viewer.page import write_viewer
-
     out, scene = _folder(tmp_path, sh_degree=2)
     src = load_scene_folder(out)
     small = write_viewer(out / "viewer.html", src.scene, src.cameras, budget=payload_bytes(120, 0, 5, False, 2))

@@ -6,6 +6,7 @@ from helpers import EXAMPLE_IMAGE
 
 from diff4splat.pipeline import Diff4SplatPipeline, load_model
 from models.bundle import DEFAULT_CONFIG, WEIGHTS_DIR, Diff4SplatModel, load_config
+from training.evaluate import photo_fidelity
 
 
 def test_shipped_weights_load_without_warning_and_match_the_base_config():
@@ -29,8 +30,6 @@ def test_the_photograph_is_kept_whatever_the_weights():
     """The photograph is observed, not generated: rendered from the input camera at t = 0 (the scene generated
     along the 360° orbit, as ``evaluate --photo`` does), the shipped model and an untrained one both give it back
     (the photo layer, and no generated Gaussian over it); the model card's figure is 93.8 dB."""
-    from training.evaluate import photo_fidelity
-
     trained = photo_fidelity(Diff4SplatPipeline.from_pretrained(), EXAMPLE_IMAGE, "a cat turns its head")
     untrained = photo_fidelity(Diff4SplatPipeline(Diff4SplatModel.random(load_config("base"), seed=0)),
                                EXAMPLE_IMAGE, "a cat turns its head", resolution=96)

@@ -22,6 +22,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from .common import (
@@ -48,13 +49,8 @@ def read_dsp5(path: str | os.PathLike) -> np.ndarray:
     """Read a Spring ``.dsp5`` disparity file (HDF5 dataset ``"disparity"``) as float32 (2H, 2W).
 
     Raises:
-        ImportError: h5py is not installed. FileNotFoundError: missing file.
-        ValueError: no ``"disparity"`` dataset.
+        FileNotFoundError: missing file. ValueError: no ``"disparity"`` dataset.
     """
-    try:
-        import h5py
-    except ImportError as e:  # optional dependency, only needed for Spring
-        raise ImportError("reading Spring .dsp5 files needs h5py (pip install h5py)") from e
     p = require_file(path, "Spring disparity")
     with h5py.File(p, "r") as f:
         if "disparity" not in f:
@@ -83,7 +79,7 @@ def convert_spring(src: str | os.PathLike, out: str | os.PathLike, *, sides: tup
         The scene folder (dynamic, ground-truth depth from disparity).
 
     Raises:
-        FileNotFoundError / ImportError / ValueError: missing files, no h5py, malformed camera files,
+        FileNotFoundError / ValueError: missing files, malformed camera files,
             or a disparity map that is not twice the image size.
     """
     src = Path(src)

@@ -45,7 +45,7 @@ def _kernels():
     global _KERNELS
     if _KERNELS is _UNSET:
         try:
-            from diff4splat.render import fused_kernels
+            from diff4splat.render import fused_kernels  # lazy: numba, ~0.2 s; absent → the PyTorch path
         except ImportError:
             fused_kernels = None
         _KERNELS = fused_kernels
