@@ -216,7 +216,6 @@ TRAIN = ("train_base_dit", "train_base_ldrm", "train_stage1")
 
 
 def part_train(device: torch.device, quick: bool) -> str:
-
     steps, warm = (3, 1) if quick else (30, 5)
     config = "tiny" if quick else "small"
     cfg = load_config(config)

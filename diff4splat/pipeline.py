@@ -225,6 +225,15 @@ def _check_field_of_view(cameras: CameraPath) -> None:
                          f"units)")
 
 
+def _without_full_mask(text: Tensor, mask: Tensor, device: torch.device) -> tuple[Tensor, Tensor | None]:
+    """Text tokens (1, L, d) and their mask (1, L) bool on ``device``; a mask that marks every token real is
+    None, which means the same to every runtime (``VideoDiT.forward``: None = all tokens real): the DiT's
+    cross-attention then runs unmasked (FlashAttention on CUDA; a mask sends it to another kernel) and skips its
+    guard for samples without real tokens. One prompt, right-padded to its own length, has no padding."""
+    text, mask = text.to(device), mask.to(device)
+    return text, None if bool(mask.all()) else mask
+
+
 def _sees_nothing(stats: dict[str, int], min_opacity: float) -> str:
     """The error message when pruning left no Gaussian, naming the likely cause."""
     msg = (f"the camera path sees none of the scene: all {stats['before']} Gaussians were pruned "
@@ -458,13 +467,11 @@ class Diff4SplatPipeline:
 
         text = text_mask = uncond = uncond_mask = None
         if prompt.strip() or runtime.encodes_empty_prompt:
-            text, text_mask = runtime.encode_text(prompt)
-            text, text_mask = text.to(dev), text_mask.to(dev)
+            text, text_mask = _without_full_mask(*runtime.encode_text(prompt), dev)
         if not prompt.strip():
             guidance = 1.0  # the prompt is the unconditional input: nothing to guide towards
         elif guidance != 1.0 and runtime.encodes_empty_prompt:
-            uncond, uncond_mask = runtime.encode_text("")
-            uncond, uncond_mask = uncond.to(dev), uncond_mask.to(dev)
+            uncond, uncond_mask = _without_full_mask(*runtime.encode_text(""), dev)
         timings["encode_text"] = clock.lap()
 
         plucker = pack_plucker(plucker_rays(cameras_model.viewmats, cameras_model.Ks, cfg.width, cfg.height)[None],

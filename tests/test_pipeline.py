@@ -86,14 +86,7 @@ def test_empty_prompt_never_calls_the_text_encoder(image, monkeypatch):
 
 @pytest.mark.slow
 def test_prompt_conditions_the_sample_once_cross_attention_is_trained(image):
-    model = tiny_model()
-    with torch.no_grad():  # un-zero the cross-attention output projections (zero-init at construction)
-        for name, p in model.dit.named_parameters():
-            if "cross" in name and p.dim() == 2 and p.abs().sum() == 0:
-                p.normal_(0, 0.2)
-        for p in model.dit.parameters():  # and the final layer, so v ≠ 0
-            if p.abs().sum() == 0:
-                p.normal_(0, 0.05)
+    model = _trained_cross_attention(tiny_model())
     pipe = Diff4SplatPipeline(model)
     calls = []
     model.text_encoder.register_forward_hook(lambda *a: calls.append(1))
@@ -102,6 +95,41 @@ def test_prompt_conditions_the_sample_once_cross_attention_is_trained(image):
     c = _run(pipe, image, prompt="")
     assert len(calls) == 2
     assert not torch.allclose(a.latents, b.latents) and not torch.allclose(a.latents, c.latents)
+
+
+def _trained_cross_attention(model):
+    with torch.no_grad():  # un-zero the cross-attention output projections (zero-init at construction)
+        for name, p in model.dit.named_parameters():
+            if "cross" in name and p.dim() == 2 and p.abs().sum() == 0:
+                p.normal_(0, 0.2)
+        for p in model.dit.parameters():  # and the final layer, so v ≠ 0
+            if p.abs().sum() == 0:
+                p.normal_(0, 0.05)
+    return model
+
+
+@pytest.mark.slow
+def test_a_mask_of_only_real_tokens_is_dropped_and_padding_stays_masked(image, monkeypatch):
+    """One prompt has no padding: its all-True mask reaches the DiT as None (unmasked cross-attention); a mask
+    with padding is kept, and padded junk changes nothing."""
+    pipe = Diff4SplatPipeline(_trained_cross_attention(tiny_model()))
+    runtime = pipe.runtime
+    seen, velocity, encode = [], runtime.velocity, runtime.encode_text
+    monkeypatch.setattr(runtime, "velocity", lambda *a: seen.append(a[-1]) or velocity(*a))
+    plain = _run(pipe, image, prompt="a cat turns its head")
+    assert seen and all(m is None for m in seen)
+
+    def padded(prompt):  # the same tokens and three junk tokens marked as padding
+        text, mask = encode(prompt)
+        junk = torch.randn(1, 3, text.shape[-1], generator=torch.Generator().manual_seed(0))
+        return torch.cat([text, junk], 1), torch.cat([mask, torch.zeros(1, 3, dtype=torch.bool)], 1)
+
+    monkeypatch.setattr(runtime, "encode_text", padded)
+    seen.clear()
+    masked = _run(pipe, image, prompt="a cat turns its head")
+    L = len("a cat turns its head") + 2  # the byte tokenizer: bos, one token per byte, eos
+    assert seen and all(m is not None and m.shape == (1, L + 3) and int(m.sum()) == L for m in seen)
+    torch.testing.assert_close(masked.latents, plain.latents, atol=1e-5, rtol=1e-5)
 
 
 @pytest.mark.slow

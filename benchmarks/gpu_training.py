@@ -1,0 +1,169 @@
+"""Held-out metrics per GPU-minute of bf16 training: the base recipe's DiT stage on a GPU (issue 26).
+
+``train_base_dit`` (flow matching of the video latents, the base model's data) continues from the shipped weights on
+the device with the trainer's defaults there (bf16 autocast and TF32 on CUDA), a checkpoint every ``--every`` steps,
+all kept; the shipped model and each checkpoint's DiT (the VAE, text encoder and LDRM shipped) then go through
+``diff4splat evaluate`` on the held-out set. The table: steps, minutes of training (the summed step times of
+metrics.csv), the flow loss over the last interval, novel-view PSNR over all frames and per view-angle bin, and the
+gap over repeating frame 0. Three parts share ``--work`` (each fits one 10-minute command on one H100; ``all`` runs
+them in turn):
+
+    python benchmarks/gpu_training.py --part data  --work runs/gpu_training    # the base data: seeds 1 and 777
+    python benchmarks/gpu_training.py --part train --work runs/gpu_training --steps 6000 --every 1000
+    python benchmarks/gpu_training.py --part eval  --work runs/gpu_training --write
+    python benchmarks/gpu_training.py --device cpu --quick --work /tmp/gt   # a dry run of the code paths, no figures
+
+``--write`` replaces the section ``gpu_training`` of docs/benchmarks.md (CUDA and no ``--quick`` only). The data
+are the model card's ("Data": 300 training scenes of seed 1, 24 held-out scenes of seed 777, 40 % static).
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+import yaml
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import markdown_table, write_section  # noqa: E402
+from gpu import device_name  # noqa: E402
+
+from diff4splat.devices import resolve_device  # noqa: E402
+from models.bundle import Diff4SplatModel  # noqa: E402
+from models.pretrained import load_weights  # noqa: E402
+from training.stage_config import STAGE_CONFIG_DIR  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+SHIPPED = ROOT / "models" / "weights" / "base"
+STAGE = "train_base_dit"
+DATA = {"train": ("300", "1"), "heldout": ("24", "777")}
+"""Folder → (scenes, seed) of ``data_prep synth`` (the model card's "Data")."""
+BINS = ("0_15", "15_45", "45_90")
+
+
+def _run(cmd: list[str]) -> None:
+    print("$", " ".join(cmd), flush=True)
+    subprocess.run(cmd, check=True, cwd=ROOT)
+
+
+def part_data(work: Path, quick: bool) -> None:
+    """The training and held-out scenes (``data_prep synth``), skipped where the folder is already there."""
+    for name, (scenes, seed) in DATA.items():
+        out = work / name
+        if out.is_dir():
+            print(f"{out}: there already", flush=True)
+            continue
+        _run([sys.executable, "-m", "data_prep.cli", "synth", "--scenes", "4" if quick else scenes, "--seed", seed,
+              "--static-ratio", "0.4", "--workers", "8", "--quiet", "--out", str(out)])
+
+
+def part_train(work: Path, device: torch.device, steps: int, every: int) -> None:
+    """``train_base_dit`` from the shipped weights, ``steps`` steps, every ``every``-th step's checkpoint kept."""
+    stage = yaml.safe_load((STAGE_CONFIG_DIR / f"{STAGE}.yaml").read_text())
+    stage["trainer"].update(total_steps=steps, checkpoint_every=every, keep_checkpoints=steps // every + 1,
+                            run_dir=str(work / "dit"), device=str(device), progress=False)
+    stage.update(init_from=str(SHIPPED), data=str(work / "train"))
+    config = work / f"{STAGE}.yaml"
+    config.write_text(yaml.safe_dump(stage, sort_keys=False))
+    if (work / "dit").exists():
+        shutil.rmtree(work / "dit")  # this script's own earlier run
+    _run([sys.executable, "-m", "training.train", "--config", str(config), "--quiet"])
+
+
+def _model_at(checkpoint: Path, out: Path) -> Path:
+    """The shipped model with the checkpoint's weights (the trainer saves the whole model as ``model.…``)."""
+    model = Diff4SplatModel.from_pretrained(SHIPPED)
+    state = {k[len("model."):]: v for k, v in load_weights(checkpoint / "model.safetensors").items()}
+    model.load_state_dict(state)  # strict: every weight of the model, nothing else
+    model.save_pretrained(out)
+    return out
+
+
+def _metrics(run: Path) -> list[dict]:
+    with open(run / "metrics.csv") as f:
+        return [r for r in csv.DictReader(f) if r["skipped"] == "0"]
+
+
+def part_eval(work: Path, device: torch.device, quick: bool) -> str:
+    """Each checkpoint (and the shipped model, step 0) through ``diff4splat evaluate`` → the table."""
+    rows_csv = work / "eval.csv"
+    rows_csv.unlink(missing_ok=True)
+    points = [(0, SHIPPED)]
+    for ckpt in sorted((work / "dit" / "checkpoints").glob("step_*")):
+        points.append((int(ckpt.name.split("_")[1]), _model_at(ckpt, work / "models" / ckpt.name)))
+    for _, model in points:
+        _run(["diff4splat", "evaluate", "--data", str(work / "heldout"), "--checkpoint", str(model), "--device",
+              str(device), "--quiet", "--csv", str(rows_csv)] + (["--limit", "2", "--steps", "2"] if quick else []))
+    with open(rows_csv) as f:
+        evals = list(csv.DictReader(f))
+    log = _metrics(work / "dit")
+    rows, last = [], 0
+    for (step, _), e in zip(points, evals, strict=True):
+        done = [r for r in log if last < int(r["step"]) <= step]
+        minutes = sum(float(r["seconds"]) for r in log if int(r["step"]) <= step) / 60
+        flow = sum(float(r["flow"]) for r in done) / len(done) if done else float("nan")
+        psnr = [float(e["psnr_novel"])] + [float(e[f"psnr_{b}"]) for b in BINS]
+        gap = float(e["psnr_novel"]) - float(e["psnr_novel_repeat"])
+        rows.append([f"{step:,}", f"{minutes:.1f}", f"{flow:.3f}", *[f"{p:.2f}" for p in psnr], f"{gap:+.2f}",
+                     f"{float(e['psnr_novel_noise']):.2f}"])
+        last = step
+    clips = evals[0]["clips"]
+    return (f"### bf16 training on the GPU: held-out metrics per GPU-minute\n\n"
+            f"`python benchmarks/gpu_training.py --part data|train|eval`: `{STAGE}` continued from the shipped "
+            f"weights (`models/weights/base`) on the trainer's defaults for the device, a checkpoint every "
+            f"{points[1][0] if len(points) > 1 else '–'} steps; each checkpoint's DiT with the shipped VAE, text "
+            f"encoder and LDRM through `diff4splat evaluate` on the {clips} held-out clips of seed 777. Minutes: the "
+            f"summed step times of metrics.csv; flow: the flow-matching loss's mean since the previous row; PSNR of "
+            f"the novel views (dB), all frames and per view-angle bin; gap: over repeating frame 0; noise: the "
+            f"noise-latent ablation. Device: {device_name(device)}.\n\n"
+            + markdown_table(["steps", "minutes", "flow", "novel PSNR", "0–15°", "15–45°", "45–90°",
+                              "vs repeat frame 0", "noise latents"], rows))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--part", choices=("data", "train", "eval", "all"), default="all")
+    ap.add_argument("--work", type=Path, required=True, help="folder the parts share (data, run, models, eval.csv)")
+    ap.add_argument("--steps", type=int, default=6000, help="training steps (default 6000, the recipe's)")
+    ap.add_argument("--every", type=int, default=1000, help="steps between evaluated checkpoints (default 1000)")
+    ap.add_argument("--device", default="cuda", help="cuda (default) or cpu for a dry run of the code paths")
+    ap.add_argument("--quick", action="store_true", help="4 scenes, 4 steps, 2 clips: the code paths, no figures")
+    ap.add_argument("--write", action="store_true", help="write the table into docs/benchmarks.md")
+    args = ap.parse_args()
+    try:
+        device = resolve_device(args.device, "--device")
+    except ValueError as e:
+        print(f"gpu_training.py: error: {e} (this benchmark needs a CUDA GPU; --device cpu --quick is a dry run)",
+              file=sys.stderr)
+        return 2
+    if args.write and (args.quick or device.type != "cuda"):
+        print("gpu_training.py: error: --write needs a full run on CUDA (no --quick)", file=sys.stderr)
+        return 2
+    steps, every = (4, 2) if args.quick else (args.steps, args.every)
+    if steps < 1 or every < 1:
+        print("gpu_training.py: error: --steps and --every must be ≥ 1", file=sys.stderr)
+        return 2
+    args.work.mkdir(parents=True, exist_ok=True)
+    parts = ("data", "train", "eval") if args.part == "all" else (args.part,)
+    for part in parts:
+        t0 = time.perf_counter()
+        if part == "data":
+            part_data(args.work, args.quick)
+        elif part == "train":
+            part_train(args.work, device, steps, every)
+        else:
+            body = part_eval(args.work, device, args.quick)
+            print(body, flush=True)
+            if args.write:
+                write_section("gpu_training", body)
+        print(f"({part}: {time.perf_counter() - t0:.0f} s)", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
