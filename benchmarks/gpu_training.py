@@ -97,8 +97,9 @@ def part_eval(work: Path, device: torch.device, quick: bool) -> str:
     for ckpt in sorted((work / "dit" / "checkpoints").glob("step_*")):
         points.append((int(ckpt.name.split("_")[1]), _model_at(ckpt, work / "models" / ckpt.name)))
     for _, model in points:
-        _run(["diff4splat", "evaluate", "--data", str(work / "heldout"), "--checkpoint", str(model), "--device",
-              str(device), "--quiet", "--csv", str(rows_csv)] + (["--limit", "2", "--steps", "2"] if quick else []))
+        _run([sys.executable, "-m", "diff4splat.cli", "evaluate", "--data", str(work / "heldout"), "--checkpoint",
+              str(model), "--device", str(device), "--quiet", "--csv", str(rows_csv)]
+             + (["--limit", "2", "--steps", "2"] if quick else []))
     with open(rows_csv) as f:
         evals = list(csv.DictReader(f))
     log = _metrics(work / "dit")
