@@ -248,21 +248,36 @@ def part_train(device: torch.device, quick: bool) -> str:
             + markdown_table(["stage", "clips", "trainable parameters", "autocast", "steps/s", "peak GB"], rows))
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--part", choices=("render", "generate", "train", "all"), default="all")
+def add_gpu_arguments(ap: argparse.ArgumentParser, quick_help: str) -> None:
+    """``--device`` (default cuda), ``--quick`` (a dry run) and ``--write`` of the GPU benchmarks."""
     ap.add_argument("--device", default="cuda", help="cuda (default) or cpu for a dry run of the code paths")
-    ap.add_argument("--quick", action="store_true", help="tiny sizes: checks that every path runs, no figures")
+    ap.add_argument("--quick", action="store_true", help=quick_help)
     ap.add_argument("--write", action="store_true", help="write the tables into docs/benchmarks.md")
-    args = ap.parse_args()
+
+
+def gpu_device(args: argparse.Namespace) -> torch.device | None:
+    """The device of :func:`add_gpu_arguments`' flags, or None after one line on stderr (exit 2): a device torch
+    does not have, or ``--write`` without a full run on CUDA."""
+    script = Path(sys.argv[0]).name
     try:
         device = resolve_device(args.device, "--device")
     except ValueError as e:
-        print(f"gpu.py: error: {e} (this benchmark needs a CUDA GPU; --device cpu --quick is a dry run)",
+        print(f"{script}: error: {e} (this benchmark needs a CUDA GPU; --device cpu --quick is a dry run)",
               file=sys.stderr)
-        return 2
+        return None
     if args.write and (args.quick or device.type != "cuda"):
-        print("gpu.py: error: --write needs a full run on CUDA (no --quick)", file=sys.stderr)
+        print(f"{script}: error: --write needs a full run on CUDA (no --quick)", file=sys.stderr)
+        return None
+    return device
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--part", choices=("render", "generate", "train", "all"), default="all")
+    add_gpu_arguments(ap, "tiny sizes: checks that every path runs, no figures")
+    args = ap.parse_args()
+    device = gpu_device(args)
+    if device is None:
         return 2
     if device.type == "cuda":
         torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True

@@ -31,9 +31,8 @@ import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import markdown_table, write_section  # noqa: E402
-from gpu import device_name  # noqa: E402
+from gpu import add_gpu_arguments, device_name, gpu_device  # noqa: E402
 
-from diff4splat.devices import resolve_device  # noqa: E402
 from models.bundle import Diff4SplatModel  # noqa: E402
 from models.pretrained import load_weights  # noqa: E402
 from training.stage_config import STAGE_CONFIG_DIR  # noqa: E402
@@ -132,18 +131,10 @@ def main() -> int:
     ap.add_argument("--work", type=Path, required=True, help="folder the parts share (data, run, models, eval.csv)")
     ap.add_argument("--steps", type=int, default=6000, help="training steps (default 6000, the recipe's)")
     ap.add_argument("--every", type=int, default=1000, help="steps between evaluated checkpoints (default 1000)")
-    ap.add_argument("--device", default="cuda", help="cuda (default) or cpu for a dry run of the code paths")
-    ap.add_argument("--quick", action="store_true", help="4 scenes, 4 steps, 2 clips: the code paths, no figures")
-    ap.add_argument("--write", action="store_true", help="write the table into docs/benchmarks.md")
+    add_gpu_arguments(ap, "4 scenes, 4 steps, 2 clips: the code paths, no figures")
     args = ap.parse_args()
-    try:
-        device = resolve_device(args.device, "--device")
-    except ValueError as e:
-        print(f"gpu_training.py: error: {e} (this benchmark needs a CUDA GPU; --device cpu --quick is a dry run)",
-              file=sys.stderr)
-        return 2
-    if args.write and (args.quick or device.type != "cuda"):
-        print("gpu_training.py: error: --write needs a full run on CUDA (no --quick)", file=sys.stderr)
+    device = gpu_device(args)
+    if device is None:
         return 2
     steps, every = (4, 2) if args.quick else (args.steps, args.every)
     if steps < 1 or every < 1:
