@@ -106,6 +106,9 @@ def check_prompt(prompt: object, name: str = "prompt") -> str:
 
 MEMORY_BASE_BYTES = 640 << 20
 """The ``generate`` process before its tensors: Python, torch, numba, OpenCV (measured 0.57 GB with the base model)."""
+MEMORY_CUDA_BUILD_BYTES = 320 << 20
+"""What a CUDA build of torch adds to that process, GPU in use or not: the host memory of its CUDA libraries (288 MiB
+more resident after ``import torch`` with torch 2.14.1+cu130 than with 2.13.0+cpu, on a machine without a GPU)."""
 MEMORY_SCENE_COPIES = 3
 """Copies of the unpruned scene's deformation alive at once, at most (:meth:`Diff4SplatPipeline.memory_estimate`)."""
 MEMORY_MAP_COPIES = 2
@@ -319,9 +322,10 @@ class Diff4SplatPipeline:
         frames, from the config alone (nothing is allocated; checked against the ``memory_bytes`` limit before the
         networks run, :func:`diff4splat.limits.check_memory`).
 
-        Sum of: the process and the weights; the deformation of the unpruned scene, (:meth:`scene_slots` × K key
-        times × 10 floats) × :data:`MEMORY_SCENE_COPIES` (the LDRM's flattened maps, re-based, pruned copies, the
-        viewer's keyframes); the LDRM's deformation maps, n latent frames × K × the model grid × 10 floats ×
+        Sum of: the process (more with a CUDA build of torch, :data:`MEMORY_CUDA_BUILD_BYTES`) and the weights; the
+        deformation of the unpruned scene, (:meth:`scene_slots` × K key times × 10 floats) ×
+        :data:`MEMORY_SCENE_COPIES` (the LDRM's flattened maps, re-based, pruned copies, the viewer's keyframes); the
+        LDRM's deformation maps, n latent frames × K × the model grid × 10 floats ×
         :data:`MEMORY_MAP_COPIES`; :data:`MEMORY_BYTES_PER_GAUSSIAN` per slot (attributes, renderer tile lists);
         the rendered frames, T × H × W × 5 floats, twice (floats and encoded). The deformation terms vanish for a
         runtime without the deformation network. Measured against the peak resident memory of ``generate`` on the
@@ -336,7 +340,8 @@ class Diff4SplatPipeline:
         keys = num_frames if self.runtime.has_deformation else 0
         weights = sum(p.numel() * p.element_size() for p in self.runtime.model.parameters()) \
             if isinstance(self.runtime, TorchRuntime) else 0
-        return int(MEMORY_BASE_BYTES + weights + MEMORY_BYTES_PER_GAUSSIAN * slots
+        base = MEMORY_BASE_BYTES + (MEMORY_CUDA_BUILD_BYTES if torch.backends.cuda.is_built() else 0)
+        return int(base + weights + MEMORY_BYTES_PER_GAUSSIAN * slots
                    + 40 * keys * (MEMORY_SCENE_COPIES * slots + MEMORY_MAP_COPIES * n * c.height * c.width)
                    + 2 * 20 * num_frames * width * height)
 
