@@ -1,4 +1,4 @@
-"""Where imports sit (docs/DESIGN.md, "Style"): at the top of the module. An import inside a function or method
+"""Where imports sit (docs/DESIGN.md, "Conventions"): at the top of the module. An import inside a function or method
 is either of an optional dependency — a package of one of pyproject.toml's extras, which the base install may
 lack, or a ``torch.distributed`` submodule, which torch builds without distributed support lack — or its lines
 say why (``# lazy: …``, e.g. a cost every command would pay at start-up). Checked over the library, the
@@ -18,6 +18,9 @@ IMPORT_NAMES = {"import-linter": "importlinter", "opencv-contrib-python-headless
 """Distribution → top-level import name where the two differ."""
 OPTIONAL_SUBMODULES = ("torch.distributed.",)
 """Modules a torch build may lack (``torch.distributed.is_available()`` is False there)."""
+MAYBE_NESTED_IMPORT = re.compile(r"(^[ \t]+|:[ \t]*)(import|from)[ \t]", re.M)
+"""An import that may sit inside a function: indented, or after a colon (``def f(): import x``); a source without
+one is not parsed."""
 
 
 def optional_modules() -> frozenset[str]:
@@ -35,21 +38,26 @@ def _is_optional(node: ast.Import | ast.ImportFrom, optional: frozenset[str]) ->
     return bool(names) and all(n.split(".")[0] in optional or n.startswith(OPTIONAL_SUBMODULES) for n in names)
 
 
+def _imports_in_functions(node: ast.AST, inside: bool = False):
+    """Every import statement under ``node`` that sits inside a function or method (one pass over the tree)."""
+    for child in ast.iter_child_nodes(node):
+        if inside and isinstance(child, ast.Import | ast.ImportFrom):
+            yield child
+        yield from _imports_in_functions(child, inside or isinstance(child, ast.FunctionDef | ast.AsyncFunctionDef))
+
+
 def misplaced_imports(source: str, optional: frozenset[str], filename: str = "<string>") -> list[str]:
     """``file:line: import …`` for each import inside a function that is neither of an optional module nor
     carries a ``# lazy:`` reason on one of its lines."""
+    if not MAYBE_NESTED_IMPORT.search(source):
+        return []
     lines = source.splitlines()
-    out: set[tuple[int, str]] = set()  # a nested function's import is found from each enclosing function
-    for fn in ast.walk(ast.parse(source, filename)):
-        if not isinstance(fn, ast.FunctionDef | ast.AsyncFunctionDef):
-            continue
-        for node in ast.walk(fn):
-            if not isinstance(node, ast.Import | ast.ImportFrom) or _is_optional(node, optional):
-                continue
-            span = lines[node.lineno - 1:node.end_lineno]
-            if not any(REASON in line for line in span):
-                out.add((node.lineno, span[0].strip()))
-    return [f"{filename}:{line}: {text}" for line, text in sorted(out)]
+    out = []
+    for node in _imports_in_functions(ast.parse(source, filename)):
+        span = lines[node.lineno - 1:node.end_lineno]
+        if not _is_optional(node, optional) and not any(REASON in line for line in span):
+            out.append(f"{filename}:{node.lineno}: {span[0].strip()}")
+    return out
 
 
 def test_the_check_finds_what_it_should():
@@ -57,8 +65,10 @@ def test_the_check_finds_what_it_should():
     bad = ("def f():\n    import json\n"
            "class A:\n    def g(self):\n        from .x import y\n"
            "def h():\n    def inner():\n        from torch.nn import functional\n    return inner\n"
-           "def k():\n    from torch.distributed import fsdp\n")  # the package itself is not the optional part
-    assert [v.split(":")[1] for v in misplaced_imports(bad, optional)] == ["2", "5", "8", "11"]
+           "def k():\n    from torch.distributed import fsdp\n"  # the package itself is not the optional part
+           "def m(): import os\n")
+    assert [v.split(":")[1] for v in misplaced_imports(bad, optional)] == ["2", "5", "8", "11", "12"]
+    assert misplaced_imports("def m(): import os\n", optional) == ["<string>:1: def m(): import os"]  # no indent
     good = ("import json\nfrom torch import nn\n"
             "def f():\n    import gsplat\n    from gsplat.cuda import _backend\n"
             "def g():\n    from torch.distributed.fsdp import fully_shard\n"
