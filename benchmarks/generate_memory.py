@@ -86,7 +86,11 @@ def main() -> None:
             "(`ru_maxrss` of the child) against the estimate that `generate` checks before any network runs. The "
             "estimate must stay ≥ the peak (it is an upper bound) and within ~1.5× of it. The deformation of the "
             "unpruned scene grows with key times × Gaussian slots, both ∝ frames, so memory grows with frames²: "
-            "the second table lists the longest path each output size allows under the default limits.",
+            "the second table lists the longest path each output size allows under the default limits."
+            " A CUDA build of torch holds more before any tensor (288 MiB more resident after `import torch` with "
+            "2.14.1+cu130 than with 2.13.0+cpu, no GPU in use), so the estimate adds 320 MiB for one "
+            "(`MEMORY_CUDA_BUILD_BYTES`): without it, 65 frames at 64² with `--device cpu` peaked at 1.72 GB "
+            "against a 1.70 GB estimate there. The rows below are the CPU build's.",
             table + "\n\n" + longest, args.write)
 
 

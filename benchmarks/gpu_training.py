@@ -63,14 +63,18 @@ def part_data(work: Path, quick: bool) -> None:
 
 def part_train(work: Path, device: torch.device, steps: int, every: int) -> None:
     """``train_base_dit`` from the shipped weights, ``steps`` steps, every ``every``-th step's checkpoint kept."""
+    run = work / "dit"
     stage = yaml.safe_load((STAGE_CONFIG_DIR / f"{STAGE}.yaml").read_text())
     stage["trainer"].update(total_steps=steps, checkpoint_every=every, keep_checkpoints=steps // every + 1,
-                            run_dir=str(work / "dit"), device=str(device), progress=False)
+                            run_dir=str(run), device=str(device), progress=False)
     stage.update(init_from=str(SHIPPED), data=str(work / "train"))
     config = work / f"{STAGE}.yaml"
     config.write_text(yaml.safe_dump(stage, sort_keys=False))
-    if (work / "dit").exists():
-        shutil.rmtree(work / "dit")  # this script's own earlier run
+    if run.exists():  # replaced only when it is a training run (this script's own earlier one), never other files
+        if not (run / "metrics.csv").is_file():
+            print(f"gpu_training.py: error: {run} exists and is not a training run; not replacing it", file=sys.stderr)
+            raise SystemExit(2)
+        shutil.rmtree(run)
     _run([sys.executable, "-m", "training.train", "--config", str(config), "--quiet"])
 
 
