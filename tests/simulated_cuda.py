@@ -1,0 +1,252 @@
+"""A simulated CUDA device for CPU-only machines: tensors that say ``cuda:0`` and compute on the CPU.
+
+Inside :func:`simulated_cuda`, ``torch.cuda.is_available()`` is True, a tensor created with ``device="cuda"``
+or moved with ``.to("cuda")`` / ``.cuda()`` is a :class:`SimulatedCudaTensor` (its values are a CPU tensor,
+its ``device`` is ``cuda:0``), and every ATen op checks its tensor arguments' devices the way PyTorch's CUDA
+kernels do (CPU tensors of zero dimensions may join a CUDA op, index tensors and copies may cross devices)
+before it runs on the CPU values. So the library's code paths for CUDA run on CI, and what breaks on a GPU
+for device reasons breaks here with PyTorch's own message:
+
+* an op mixing a CUDA tensor with a CPU tensor made without ``device=`` → ``RuntimeError: Expected all
+  tensors to be on the same device, but found at least two devices, cuda:0 and cpu!``;
+* ``.numpy()`` of a CUDA tensor → ``TypeError: can't convert cuda:0 device type tensor to numpy``.
+
+The values are the CPU kernels' (no TF32; ``torch.autocast("cuda")`` casts as on a GPU, then the CPU computes
+in that dtype; SDPA runs the CPU's kernel), so a run on the simulated device can be compared with the CPU run
+of the same code path. What the simulation cannot run: autograd (torch needs a CUDA build to record a graph of
+CUDA tensors: an op on a tensor that requires grad raises, so forwards run under ``torch.no_grad()``), moving
+a tensor in place (``tensor.data = cuda_tensor``, as model offload does: raises), CUDA-only kernels (gsplat:
+the PyTorch tile path renders), streams, memory figures (reported as 0) and speed. Nothing leaks out of the
+block: the patches are undone and a simulated tensor used after it raises.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+from unittest import mock
+
+import torch
+from torch.overrides import TorchFunctionMode
+from torch.utils._python_dispatch import TorchDispatchMode
+from torch.utils._pytree import tree_leaves, tree_map
+
+from diff4splat.render.gsplat_backend import NO_GSPLAT_ENV, gsplat_available
+
+CUDA = torch.device("cuda", 0)
+CPU = torch.device("cpu")
+CROSS_DEVICE_OPS = frozenset({
+    torch.ops.aten.copy_.default, torch.ops.aten._to_copy.default, torch.ops.aten.copy.default,
+    torch.ops.aten._copy_from.default, torch.ops.aten._copy_from_and_resize.default,
+})
+"""Ops that move values between devices: their arguments may sit on different devices."""
+INDEX_OPS = frozenset({
+    torch.ops.aten.index.Tensor, torch.ops.aten.index_put_.default, torch.ops.aten.index_put.default,
+    torch.ops.aten._index_put_impl_.default,
+})
+"""Ops whose index tensors (argument 1, a list) may be CPU tensors indexing a CUDA tensor."""
+SCALAR_VALUE_OPS = INDEX_OPS | frozenset({
+    torch.ops.aten.masked_fill_.Tensor, torch.ops.aten.masked_fill.Tensor, torch.ops.aten.fill_.Tensor,
+    torch.ops.aten.fill.Tensor,
+})
+"""Ops beside the elementwise ones whose value may be a CPU tensor of zero dimensions (read as a number)."""
+
+
+class SimulatedCudaTensor(torch.Tensor):
+    """A tensor whose ``device`` is ``cuda:0`` and whose values are the CPU tensor ``elem``."""
+
+    elem: torch.Tensor
+    __slots__ = ("elem",)
+
+    @staticmethod
+    def __new__(cls, elem: torch.Tensor):
+        assert elem.device.type == "cpu" and not isinstance(elem, SimulatedCudaTensor)
+        out = torch.Tensor._make_wrapper_subclass(
+            cls, elem.size(), strides=elem.stride(), storage_offset=elem.storage_offset(), dtype=elem.dtype,
+            layout=elem.layout, requires_grad=elem.requires_grad, device=CUDA)
+        out.elem = elem
+        return out
+
+    def __repr__(self):
+        return f"SimulatedCudaTensor({self.elem!r})"
+
+    def numpy(self, *args, **kwargs):
+        raise TypeError("can't convert cuda:0 device type tensor to numpy. Use Tensor.cpu() to copy the tensor "
+                        "to host memory first.")
+
+    __torch_function__ = torch._C._disabled_torch_function_impl
+
+    @classmethod
+    def __torch_dispatch__(cls, func, types, args=(), kwargs=None):
+        raise RuntimeError(f"{func}: a simulated CUDA tensor used outside simulated_cuda()")
+
+
+def _is_cuda(device) -> bool:
+    return device is not None and torch.device(device).type == "cuda"
+
+
+def _check_devices(func, args, kwargs) -> torch.device | None:
+    """The common device of ``func``'s tensor arguments (None if it has none), raising PyTorch's error where a
+    CUDA kernel would: tensors on different devices, except the arguments of :data:`CROSS_DEVICE_OPS`, the
+    index tensors of :data:`INDEX_OPS`, and CPU tensors of zero dimensions in elementwise ops (TensorIterator's
+    CPU scalars: ops tagged ``pointwise``) and in :data:`SCALAR_VALUE_OPS`."""
+    flat = []
+    for i, a in enumerate(args):
+        if func in INDEX_OPS and i == 1:
+            continue  # indices: CPU or the tensor's device
+        flat.extend(x for x in tree_leaves(a) if isinstance(x, torch.Tensor))
+    flat.extend(x for x in tree_leaves(kwargs) if isinstance(x, torch.Tensor))
+    scalars_ok = torch.Tag.pointwise in getattr(func, "tags", ()) or func in SCALAR_VALUE_OPS
+    devices = {CUDA if isinstance(x, SimulatedCudaTensor) else x.device for x in flat
+               if isinstance(x, SimulatedCudaTensor) or x.dim() > 0 or not scalars_ok}
+    if func not in CROSS_DEVICE_OPS and len(devices) > 1:
+        raise RuntimeError("Expected all tensors to be on the same device, but found at least two devices, "
+                           f"{', '.join(sorted(str(d) for d in devices))}! (simulated CUDA, in {func})")
+    if any(isinstance(x, SimulatedCudaTensor) for x in flat):
+        return CUDA
+    return CPU if flat else None
+
+
+class _Dispatch(TorchDispatchMode):
+    """Runs every ATen op on the CPU values after :func:`_check_devices`; outputs land on the device that
+    CUDA would give them (the ``device=`` keyword, else the inputs' common device)."""
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = dict(kwargs or {})
+        common = _check_devices(func, args, kwargs)
+        if func is torch.ops.aten._pin_memory.default:
+            return args[0]
+        if func is torch.ops.aten.is_pinned.default:
+            return False
+        to_cuda = common == CUDA
+        if "device" in kwargs:
+            to_cuda = _is_cuda(kwargs["device"])
+            kwargs["device"] = CPU if to_cuda else kwargs["device"]
+        wrappers = {id(x.elem): x for x in tree_leaves((args, kwargs)) if isinstance(x, SimulatedCudaTensor)}
+        result = func(*tree_map(_unwrap, args), **tree_map(_unwrap, kwargs))
+
+        def back(x):  # an in-place op's (or out=) result is its argument; a new CPU tensor goes to CUDA if due
+            if isinstance(x, torch.Tensor) and id(x) in wrappers:
+                return wrappers[id(x)]
+            return _wrap(x) if to_cuda else x
+
+        return tree_map(back, result)
+
+
+ON_VALUES = frozenset({
+    torch.Tensor.nonzero, torch.nonzero, torch.Tensor.item, torch.Tensor.tolist, torch.Tensor.__int__,
+    torch.Tensor.__float__, torch.Tensor.__bool__, torch.Tensor.__index__, torch.Tensor.__format__,
+    torch.Tensor.new_tensor, torch.Tensor.__invert__, torch.Tensor.contiguous,
+    torch.nn.functional.scaled_dot_product_attention,
+})
+"""Functions called on the CPU values: tensor methods whose Python bindings enter the tensor's device before
+any ATen op (so a CPU-only build refuses ``cuda``), and SDPA, which would otherwise pick its kernel by the
+device (the math kernel: not the CPU's arithmetic)."""
+
+
+NO_GRAPH = frozenset({
+    "__get__", "__set__", "numel", "nelement", "element_size", "dim", "size", "stride", "storage_offset",
+    "is_contiguous", "is_floating_point", "is_complex", "data_ptr", "__len__", "__hash__", "__repr__",
+    "requires_grad_", "detach", "detach_",
+})
+"""Tensor functions that record no autograd graph (metadata, ``.detach()``): allowed on a tensor that requires
+grad outside ``torch.no_grad()``."""
+
+
+class _Functions(TorchFunctionMode):
+    """What a CPU-only build refuses before an ATen op is dispatched (``Tensor.to("cuda")``, ``.cuda()``,
+    ``torch.tensor(…, device="cuda")``, indexing, ``copy_``, ``pin_memory`` and :data:`ON_VALUES`), written as the
+    ops they stand for on the CPU values; and the two things the simulation cannot do, refused with a message."""
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        if torch.is_grad_enabled() and getattr(func, "__name__", "") not in NO_GRAPH and any(
+                isinstance(x, SimulatedCudaTensor) and x.requires_grad for x in tree_leaves((args, kwargs))):
+            raise RuntimeError(f"simulated CUDA has no autograd (torch aborts on it): {func} of a tensor that "
+                               "requires grad; run the forward under torch.no_grad()")
+        if getattr(func, "__name__", "") == "__set__" and types and isinstance(args[1], SimulatedCudaTensor) \
+                and not isinstance(args[0], SimulatedCudaTensor):
+            raise NotImplementedError("simulated CUDA cannot move a CPU tensor in place (tensor.data = "
+                                      "cuda_tensor, as model offload does); only new tensors are simulated")
+        if func is torch.Tensor.cuda:
+            return _move(args[0], CUDA, kwargs.get("non_blocking", False))
+        if func is torch.Tensor.to:
+            device, dtype, non_blocking, _ = torch._C._nn._parse_to(*args[1:], **kwargs)
+            if device is not None and _is_cuda(device):
+                out = _move(args[0], CUDA, non_blocking)
+                return out if dtype is None else out.to(dtype)
+        if func in (torch.tensor, torch.as_tensor) and _is_cuda(kwargs.get("device")):
+            if isinstance(args[0], SimulatedCudaTensor):
+                return args[0] if func is torch.as_tensor and kwargs.get("dtype") in (None, args[0].dtype) \
+                    else args[0].to(kwargs.get("dtype") or args[0].dtype, copy=func is torch.tensor)
+            return _wrap(func(*args, **{**kwargs, "device": CPU}))
+        if func is torch.Tensor.copy_:  # any devices: a copy
+            _unwrap(args[0]).copy_(_unwrap(args[1]), *args[2:], **kwargs)
+            return args[0]
+        if func is torch.Tensor.pin_memory:
+            return args[0]
+        if func is torch.Tensor.__getitem__ and isinstance(args[0], SimulatedCudaTensor):
+            return _wrap(args[0].elem[_index(args[1])])
+        if func is torch.Tensor.__setitem__ and isinstance(args[0], SimulatedCudaTensor):
+            value = args[2]
+            if isinstance(value, torch.Tensor) and not isinstance(value, SimulatedCudaTensor) and value.dim() > 0:
+                _check_devices(torch.ops.aten.index_put_.default, (args[0], None, value), {})
+            args[0].elem[_index(args[1])] = _unwrap(value)
+            return None
+        if func in ON_VALUES and any(isinstance(a, SimulatedCudaTensor) for a in args):
+            _check_devices(func, args, kwargs)
+            to_cuda = _is_cuda(kwargs.pop("device", CUDA))
+            out = func(*tree_map(_unwrap, args), **tree_map(_unwrap, kwargs))
+            return tree_map(_wrap, out) if to_cuda else out
+        return func(*args, **kwargs)
+
+
+def _unwrap(x):
+    return x.elem if isinstance(x, SimulatedCudaTensor) else x
+
+
+def _wrap(x):
+    return SimulatedCudaTensor(x) if isinstance(x, torch.Tensor) and x.device == CPU else x
+
+
+def _index(index):
+    """A Python index (int, slice, None, Ellipsis, tensors, or a tuple of them) with its tensors' CPU values:
+    CUDA indexing takes index tensors on the CPU or on the indexed tensor's device."""
+    return tuple(_unwrap(i) for i in index) if isinstance(index, tuple) else _unwrap(index)
+
+
+def _move(t: torch.Tensor, device: torch.device, non_blocking: bool) -> torch.Tensor:
+    if isinstance(t, SimulatedCudaTensor):
+        return t
+    return torch.ops.aten._to_copy.default(t, device=device, non_blocking=non_blocking)
+
+
+@contextlib.contextmanager
+def simulated_cuda():
+    """Within this block ``cuda`` is a device of this machine: see the module's docstring."""
+    zero = lambda *a, **k: 0  # noqa: E731
+    stack = contextlib.ExitStack()
+    patches = [
+        mock.patch("torch.cuda.is_available", lambda: True),
+        mock.patch("torch.cuda._lazy_init", lambda: None),
+        mock.patch("torch.cuda.device_count", lambda: 1),
+        mock.patch("torch.cuda.current_device", lambda: 0),
+        mock.patch("torch.cuda.synchronize", lambda *a, **k: None),
+        mock.patch("torch.cuda.max_memory_allocated", zero),
+        mock.patch("torch.cuda.memory_allocated", zero),
+        mock.patch("torch.cuda.reset_peak_memory_stats", lambda *a, **k: None),
+        mock.patch("torch.cuda.empty_cache", lambda: None),
+        mock.patch("torch.cuda.get_device_name", lambda *a: "simulated CUDA (CPU)"),
+        mock.patch("torch.cuda.is_bf16_supported", lambda *a, **k: True),
+        mock.patch.dict(os.environ, {NO_GSPLAT_ENV: "1"}),  # gsplat's kernels need a real GPU
+    ]
+    gsplat_available.cache_clear()
+    stack.callback(gsplat_available.cache_clear)
+    overwrite = torch.__future__.get_overwrite_module_params_on_conversion()
+    torch.__future__.set_overwrite_module_params_on_conversion(True)  # Module.to: new Parameters, not .data =
+    stack.callback(torch.__future__.set_overwrite_module_params_on_conversion, overwrite)
+    with stack:
+        for p in patches:
+            stack.enter_context(p)
+        stack.enter_context(_Functions())
+        stack.enter_context(_Dispatch())
+        yield
