@@ -1,5 +1,6 @@
 """`diff4splat generate --checkpoint DIR` end to end on tiny diffusers backbone folders (issue 30, test (e)): a Hub
 layout written by the backbone, plus our ``ldrm/``, ``camera/`` and ``diff4splat.json``, loaded and run on the CPU."""
+import contextlib
 import importlib
 import json
 
@@ -10,6 +11,7 @@ pytest.importorskip("diffusers", reason="the diffusers backbones need diff4splat
 pytestmark = pytest.mark.slow  # every test here: diffusers costs ~8 s to import (tests/conftest.py)
 
 from helpers import EXAMPLE_IMAGE  # noqa: E402
+from simulated_cuda import SimulatedCudaTensor, simulated_cuda  # noqa: E402
 
 from diff4splat.cli import main  # noqa: E402
 from diff4splat.pipeline import Diff4SplatPipeline, load_model  # noqa: E402
@@ -19,6 +21,7 @@ from models.flow_matching import FlowMatchingConfig  # noqa: E402
 from models.ldrm import LDRM, LDRMConfig  # noqa: E402
 
 FIXTURES = {"cogvideox": "tiny_cogvideox", "wan": "tiny_wan"}
+RASTERIZE = importlib.import_module("diff4splat.render.rasterize")  # the package exports its function by that name
 
 
 def _fixture(kind: str):
@@ -69,6 +72,27 @@ def test_saved_folder_reloads_to_the_same_scene(folder):
     a, b = results
     torch.testing.assert_close(a.latents, b.latents, rtol=0, atol=1e-6)
     torch.testing.assert_close(a.scene.canonical.means, b.scene.canonical.means, rtol=0, atol=1e-5)
+
+
+@pytest.mark.slow
+def test_a_backbone_generates_on_simulated_cuda_as_on_the_cpu(folder, monkeypatch):
+    """The backbone pipeline (prompt, text encoder visiting the device) on "cuda" (tests/simulated_cuda.py, on a
+    CPU-only machine) keeps its outputs there and gives the CPU's latents and Gaussians (both rendering through
+    the PyTorch tile path)."""
+    path, _ = folder
+    monkeypatch.setattr(RASTERIZE, "DEFAULT_COMPOSITOR", RASTERIZE.DEVICE_COMPOSITOR)
+    results = {}
+    for dev in ("cpu", "cuda"):
+        model, _ = load_model(path)
+        with simulated_cuda() if dev == "cuda" else contextlib.nullcontext():
+            pipe = Diff4SplatPipeline(model, dev)
+            cams = pipe.default_cameras("orbit", model.config.num_frames)
+            image = torch.rand(model.config.height, model.config.width, 3, generator=torch.Generator().manual_seed(1))
+            results[dev] = pipe(image, cams, "a cat walking", seed=3)
+    cpu, cuda = results["cpu"], results["cuda"]
+    assert isinstance(cuda.latents, SimulatedCudaTensor) and isinstance(cuda.scene.canonical.means, SimulatedCudaTensor)
+    torch.testing.assert_close(cuda.latents.elem, cpu.latents, rtol=0, atol=1e-5)
+    torch.testing.assert_close(cuda.scene.canonical.means.elem, cpu.scene.canonical.means, rtol=0, atol=1e-4)
 
 
 @pytest.mark.slow

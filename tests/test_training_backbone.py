@@ -9,6 +9,7 @@ loss recomputed by hand, the shipped backbone stage configs, the stage fields' e
 packing for the backbone's grid."""
 import csv
 import dataclasses
+import importlib
 import json
 import shutil
 from pathlib import Path
@@ -24,6 +25,7 @@ import yaml  # noqa: E402
 from _trainer_toy import fsdp_stage_script, run_two_ranks  # noqa: E402
 from helpers import EXAMPLE_IMAGE  # noqa: E402
 from safetensors import safe_open  # noqa: E402
+from simulated_cuda import simulated_cuda  # noqa: E402
 from tiny_cogvideox import tiny_backbone as tiny_cogvideox  # noqa: E402
 from tiny_wan import tiny_wan  # noqa: E402
 from torch.utils.data import default_collate  # noqa: E402
@@ -375,6 +377,30 @@ def test_flow_loss_is_the_backbones_velocity_error_with_the_empty_prompt_for_dro
     expected = ((v - (noise - x0))[:, :, first:] ** 2).mean()
     torch.testing.assert_close(flow, expected, rtol=1e-5, atol=1e-6)
     assert first == 0 or abs(float(flow) - float(((v - (noise - x0)) ** 2).mean())) > 1e-4
+
+
+@pytest.mark.parametrize("name", list(BACKBONES))
+def test_stage1_forward_on_simulated_cuda_gives_the_cpus_losses(data, name, tmp_path, monkeypatch):
+    """Stage 1 of a backbone (LoRA, diffusion and rendering objectives) on "cuda" (tests/simulated_cuda.py, on a
+    CPU-only machine): the forward of a static and a dynamic clip gives the CPU's losses, both rendering through
+    the PyTorch tile path. The backward is not simulated."""
+    monkeypatch.setattr(importlib.import_module("diff4splat.render.rasterize"), "DEFAULT_COMPOSITOR", "torch")
+    stage = _stage(name, _init_folder(name, tmp_path / "init", camera_std=0.02), data, tmp_path / "run")
+    clips = ClipDataset(data, ClipConfig(num_frames=FRAMES, height=stage.height, width=stage.width, plucker="raw"))
+    batch = default_collate([clips[0], clips[2]])
+
+    def losses(device):
+        module = TrainingModule(load_backbone_model(stage), stage).train().to(device)
+        with torch.no_grad():
+            out = module({k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()},
+                         torch.Generator().manual_seed(5))
+            assert {v.device.type for v in out.values()} == {torch.device(device).type}
+            return {k: float(v) for k, v in out.items()}
+
+    ref = losses("cpu")
+    with simulated_cuda():
+        got = losses("cuda")
+    assert set(ref) >= {"flow", "photo"} and got == pytest.approx(ref, rel=1e-5, abs=1e-7)
 
 
 def test_rays_are_packed_for_the_backbones_latent_grid(data):
