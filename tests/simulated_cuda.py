@@ -12,17 +12,20 @@ for device reasons breaks here with PyTorch's own message:
 * ``.numpy()`` of a CUDA tensor → ``TypeError: can't convert cuda:0 device type tensor to numpy``.
 
 The values are the CPU kernels' (no TF32; ``torch.autocast("cuda")`` casts as on a GPU, then the CPU computes
-in that dtype; SDPA runs the CPU's kernel), so a run on the simulated device can be compared with the CPU run
-of the same code path. What the simulation cannot run: autograd (torch needs a CUDA build to record a graph of
-CUDA tensors: an op on a tensor that requires grad raises, so forwards run under ``torch.no_grad()``), moving
-a tensor in place (``tensor.data = cuda_tensor``, as model offload does: raises), CUDA-only kernels (gsplat:
-the PyTorch tile path renders), streams, memory figures (reported as 0) and speed. Nothing leaks out of the
-block: the patches are undone and a simulated tensor used after it raises.
+in that dtype; SDPA runs the CPU's kernel; draws on "cuda" come from the CPU's generator), so a run on the
+simulated device can be compared with the CPU run of the same code path. Model offload's in-place moves
+(``tensor.data = cuda_tensor`` and back) are simulated too. What the simulation cannot run: autograd (torch
+needs a CUDA build to record a graph of CUDA tensors: an op on a tensor that requires grad raises here, so
+forwards run under ``torch.no_grad()``), CUDA-only kernels (gsplat: the PyTorch tile path renders), streams,
+memory figures (reported as 0) and speed. Nothing leaks out of the block: the patches are undone and a
+simulated tensor used after it raises.
 """
 from __future__ import annotations
 
 import contextlib
+import inspect
 import os
+import types
 from unittest import mock
 
 import torch
@@ -32,6 +35,8 @@ from torch.utils._pytree import tree_leaves, tree_map
 
 from diff4splat.render.gsplat_backend import NO_GSPLAT_ENV, gsplat_available
 
+NAME = "simulated CUDA (CPU)"
+"""``torch.cuda.get_device_name()`` inside :func:`simulated_cuda`."""
 CUDA = torch.device("cuda", 0)
 CPU = torch.device("cpu")
 CROSS_DEVICE_OPS = frozenset({
@@ -54,8 +59,7 @@ SCALAR_VALUE_OPS = INDEX_OPS | frozenset({
 class SimulatedCudaTensor(torch.Tensor):
     """A tensor whose ``device`` is ``cuda:0`` and whose values are the CPU tensor ``elem``."""
 
-    elem: torch.Tensor
-    __slots__ = ("elem",)
+    elem: torch.Tensor  # no __slots__: a CPU tensor moved in place takes this class (:func:`_set_data`)
 
     @staticmethod
     def __new__(cls, elem: torch.Tensor):
@@ -146,10 +150,11 @@ device (the math kernel: not the CPU's arithmetic)."""
 NO_GRAPH = frozenset({
     "__get__", "__set__", "numel", "nelement", "element_size", "dim", "size", "stride", "storage_offset",
     "is_contiguous", "is_floating_point", "is_complex", "data_ptr", "__len__", "__hash__", "__repr__",
-    "requires_grad_", "detach", "detach_",
+    "requires_grad_", "detach", "detach_", "_has_compatible_shallow_copy_type",
 })
 """Tensor functions that record no autograd graph (metadata, ``.detach()``): allowed on a tensor that requires
-grad outside ``torch.no_grad()``."""
+grad outside ``torch.no_grad()``. (Functions written in Python, such as ``nn.init.normal_``, are not checked
+themselves: the ops they call are, in the grad mode they set.)"""
 
 
 class _Functions(TorchFunctionMode):
@@ -159,14 +164,12 @@ class _Functions(TorchFunctionMode):
 
     def __torch_function__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
-        if torch.is_grad_enabled() and getattr(func, "__name__", "") not in NO_GRAPH and any(
-                isinstance(x, SimulatedCudaTensor) and x.requires_grad for x in tree_leaves((args, kwargs))):
+        if torch.is_grad_enabled() and not inspect.isfunction(func) and getattr(func, "__name__", "") not in NO_GRAPH \
+                and any(isinstance(x, SimulatedCudaTensor) and x.requires_grad for x in tree_leaves((args, kwargs))):
             raise RuntimeError(f"simulated CUDA has no autograd (torch aborts on it): {func} of a tensor that "
                                "requires grad; run the forward under torch.no_grad()")
-        if getattr(func, "__name__", "") == "__set__" and types and isinstance(args[1], SimulatedCudaTensor) \
-                and not isinstance(args[0], SimulatedCudaTensor):
-            raise NotImplementedError("simulated CUDA cannot move a CPU tensor in place (tensor.data = "
-                                      "cuda_tensor, as model offload does); only new tensors are simulated")
+        if getattr(func, "__name__", "") == "__set__" and getattr(func, "__self__", None) is DATA:
+            return _set_data(*args)
         if func is torch.Tensor.cuda:
             return _move(args[0], CUDA, kwargs.get("non_blocking", False))
         if func is torch.Tensor.to:
@@ -198,6 +201,34 @@ class _Functions(TorchFunctionMode):
             out = func(*tree_map(_unwrap, args), **tree_map(_unwrap, kwargs))
             return tree_map(_wrap, out) if to_cuda else out
         return func(*args, **kwargs)
+
+
+DATA = torch._C.TensorBase.__dict__["data"]
+"""The ``tensor.data`` descriptor: its ``__set__`` moves a tensor in place (model offload)."""
+
+
+def _set_data(target: torch.Tensor, value: torch.Tensor) -> None:
+    """``target.data = value`` where either side may be a simulated CUDA tensor. torch copies ``value``'s
+    metadata (device, dispatch keys) into ``target``; the simulation then gives ``target`` the class and values
+    that go with them: a CPU tensor moved to "cuda" becomes a :class:`SimulatedCudaTensor` (its own class kept
+    to return to), and one moved back returns to its class."""
+    DATA.__set__(target, value)
+    if isinstance(value, SimulatedCudaTensor):
+        if not isinstance(target, SimulatedCudaTensor):
+            target.__dict__["_simulated_from"] = type(target), getattr(target, "_is_param", None)
+            target._is_param = isinstance(target, torch.nn.Parameter)  # isinstance(…, Parameter) stays true
+            target.__class__ = SimulatedCudaTensor
+        target.elem = value.elem
+    elif isinstance(target, SimulatedCudaTensor):
+        if "_simulated_from" not in target.__dict__:
+            raise NotImplementedError("simulated CUDA: a tensor made on cuda cannot be moved to the CPU in place")
+        cls, is_param = target.__dict__.pop("_simulated_from")
+        del target.elem
+        target.__class__ = cls
+        if is_param is None:
+            del target._is_param
+        else:
+            target._is_param = is_param
 
 
 def _unwrap(x):
@@ -235,8 +266,17 @@ def simulated_cuda():
         mock.patch("torch.cuda.memory_allocated", zero),
         mock.patch("torch.cuda.reset_peak_memory_stats", lambda *a, **k: None),
         mock.patch("torch.cuda.empty_cache", lambda: None),
-        mock.patch("torch.cuda.get_device_name", lambda *a: "simulated CUDA (CPU)"),
+        mock.patch("torch.cuda.get_device_name", lambda *a: NAME),
+        mock.patch("torch.cuda.get_device_properties", lambda *a: types.SimpleNamespace(
+            name=NAME, total_memory=0, major=0, minor=0, multi_processor_count=0)),
         mock.patch("torch.cuda.is_bf16_supported", lambda *a, **k: True),
+        # CUDA's generators: draws on "cuda" come from the CPU's (the ops run there); their states are empty
+        mock.patch("torch.cuda.get_rng_state", lambda *a, **k: torch.empty(0, dtype=torch.uint8, device="cpu")),
+        mock.patch("torch.cuda.get_rng_state_all", lambda: [torch.empty(0, dtype=torch.uint8, device="cpu")]),
+        mock.patch("torch.cuda.set_rng_state", lambda *a, **k: None),
+        mock.patch("torch.cuda.set_rng_state_all", lambda *a, **k: None),
+        mock.patch("torch.cuda.manual_seed", lambda *a, **k: None),
+        mock.patch("torch.cuda.manual_seed_all", lambda *a, **k: None),
         mock.patch.dict(os.environ, {NO_GSPLAT_ENV: "1"}),  # gsplat's kernels need a real GPU
     ]
     gsplat_available.cache_clear()

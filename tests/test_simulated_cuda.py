@@ -6,8 +6,11 @@ means something; the issue-26 tracebacks it reproduces are named there."""
 import contextlib
 import csv
 import importlib
+import importlib.util
 import json
 import math
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -29,6 +32,7 @@ from training.stage_config import StageConfig, apply_freezing
 
 pytestmark = pytest.mark.slow  # the first dispatch mode of a process imports torch._dynamo (1.5 s)
 PROMPT = "a cat turns its head"
+ROOT = Path(__file__).resolve().parent.parent
 RASTERIZE = importlib.import_module("diff4splat.render.rasterize")  # the package exports its function by that name
 
 
@@ -106,16 +110,24 @@ def cpu_tile_path(monkeypatch):
     monkeypatch.setattr(RASTERIZE, "DEFAULT_COMPOSITOR", RASTERIZE.DEVICE_COMPOSITOR)
 
 
-@pytest.mark.parametrize("case", ["dynamic_prompt", "static_bfloat16"])
+GENERATE_CASES = {  # dynamic, prompt, pipeline keywords
+    "dynamic_prompt": (True, PROMPT, {}),
+    "static_bfloat16": (False, "", dict(dtype=torch.bfloat16)),
+    "offload_model_prompt": (True, PROMPT, dict(offload="model")),
+}
+
+
+@pytest.mark.parametrize("case", list(GENERATE_CASES))
 def test_generate_on_simulated_cuda_gives_the_cpus_scene(case, cpu_tile_path):
-    """The pipeline on "cuda" keeps every output there and gives the CPU's latents and geometry exactly (the same
-    kernels; the duplicate and photo-layer steps take their non-CPU code paths, so the photo layer's colours,
-    solved through renders, agree to 1e-4)."""
-    dynamic, prompt, dtype = (True, PROMPT, None) if case == "dynamic_prompt" else (False, "", torch.bfloat16)
+    """The pipeline on "cuda" (in bfloat16; with model offload: networks moved in place between the CPU and the
+    device) keeps every output there and gives the CPU's latents and geometry exactly (the same kernels; the
+    duplicate and photo-layer steps take their non-CPU code paths, so the photo layer's colours, solved through
+    renders, agree to 1e-4)."""
+    dynamic, prompt, kwargs = GENERATE_CASES[case]
     image = torch.rand(64, 64, 3, generator=torch.Generator().manual_seed(0), device="cpu")
 
     def run(device):
-        pipe = Diff4SplatPipeline(tiny_model(dynamic=dynamic, active_dit=True), device, dtype=dtype)
+        pipe = Diff4SplatPipeline(tiny_model(dynamic=dynamic, active_dit=True), device, **kwargs)
         return pipe(image, pipe.default_cameras("arc", 5), prompt, steps=2)
 
     ref = run("cpu")
@@ -190,6 +202,20 @@ def test_generate_render_and_evaluate_commands_on_simulated_cuda(tmp_path, cpu_t
     assert json.loads((tmp_path / "cuda" / "f" / "meta.json").read_text())["deformation"] == "field.safetensors"
     for k in ("psnr_input", "psnr_novel", "psnr_novel_noise", "psnr_novel_gt", "vae_psnr", "motion_epe"):
         assert float(cuda_row[k]) == pytest.approx(float(cpu_row[k]), abs=0.02), k
+
+
+def test_the_gpu_benchmarks_generate_part_runs_on_simulated_cuda(monkeypatch, capsys):
+    """``benchmarks/gpu.py --part generate --quick --device cuda`` (every row: offload, compiled blocks, cuDNN
+    attention, no prompt; tiny sizes) runs its CUDA branches to the end: what a GPU session runs first."""
+    spec = importlib.util.spec_from_file_location("gpu_benchmark", ROOT / "benchmarks" / "gpu.py")
+    gpu = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gpu)
+    monkeypatch.setattr(sys, "argv", ["gpu.py", "--device", "cuda", "--quick", "--part", "generate"])
+    with simulated_cuda():
+        assert gpu.main() == 0
+    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| ") and "**" in line]
+    assert len(rows) == len(gpu.GENERATE) and not any("out of memory" in r for r in rows)
+    assert all(float(r.split("**")[1]) > 0 for r in rows)
 
 
 TRAINING_CASES = {
