@@ -23,7 +23,6 @@ simulated tensor used after it raises.
 from __future__ import annotations
 
 import contextlib
-import inspect
 import os
 import types
 from unittest import mock
@@ -153,8 +152,7 @@ NO_GRAPH = frozenset({
     "requires_grad_", "detach", "detach_", "_has_compatible_shallow_copy_type",
 })
 """Tensor functions that record no autograd graph (metadata, ``.detach()``): allowed on a tensor that requires
-grad outside ``torch.no_grad()``. (Functions written in Python, such as ``nn.init.normal_``, are not checked
-themselves: the ops they call are, in the grad mode they set.)"""
+grad outside ``torch.no_grad()``; so are ``torch.nn.init``'s functions (they run under ``torch.no_grad()``)."""
 
 
 class _Functions(TorchFunctionMode):
@@ -164,7 +162,8 @@ class _Functions(TorchFunctionMode):
 
     def __torch_function__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
-        if torch.is_grad_enabled() and not inspect.isfunction(func) and getattr(func, "__name__", "") not in NO_GRAPH \
+        if torch.is_grad_enabled() and getattr(func, "__name__", "") not in NO_GRAPH \
+                and getattr(func, "__module__", "") != "torch.nn.init" \
                 and any(isinstance(x, SimulatedCudaTensor) and x.requires_grad for x in tree_leaves((args, kwargs))):
             raise RuntimeError(f"simulated CUDA has no autograd (torch aborts on it): {func} of a tensor that "
                                "requires grad; run the forward under torch.no_grad()")
