@@ -14,6 +14,17 @@ from diff4splat.export import MANIFEST_NAME, export_onnx
 from diff4splat.gaussians import Gaussians, rgb_to_sh0
 from diff4splat.scene import DynamicGaussians
 from models.bundle import Diff4SplatConfig, Diff4SplatModel
+from models.hexplane import HexPlaneConfig, HexPlaneField
+
+OBJECTIVE_CASES = {
+    "vae": (dict(train=("vae",), objectives=("vae",)), 0),
+    "diffusion": (dict(objectives=("diffusion",), caption_dropout=0.5), 0),
+    "reconstruction": (dict(train=("ldrm",), objectives=("reconstruction",), latent_noise=0.5), 0),
+    "reconstruction_motion": (dict(train=("ldrm", "ldrm.deformation"), objectives=("reconstruction",),
+                                   scenes="all", deformation=True, motion=True), 1),
+}
+"""The objective sets of the shipped stages as ``StageConfig`` keywords, with the clip each is run on (0: a static
+clip, 1: a dynamic one), for the tiny model at 32² and 9 frames."""
 
 EXAMPLE_IMAGE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
 
@@ -116,6 +127,21 @@ def moving_patch_scene(n: int = 400, frames: int = 5, shift: float = 0.6, sh_deg
         scene = DynamicGaussians(canon, times, d_means, d_quats, d_scales.clone(), **temporal_args)
     K = torch.tensor([[80.0, 0, width / 2], [0, 80.0, height / 2], [0, 0, 1]])
     return scene, CameraPath(torch.eye(4).repeat(frames, 1, 1), K.repeat(frames, 1, 1), width, height)
+
+
+def perturbed_field(means: torch.Tensor, seed: int = 0) -> HexPlaneField:
+    """A small HexPlane field over the box of ``means`` (N, 3) whose deformation varies with time (every parameter
+    perturbed by N(0, 0.3²); a new field is the identity), the same for a seed whatever torch's global generator
+    holds (its initialisation draws from it)."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        field = HexPlaneField(HexPlaneConfig(feature_dim=4, resolution=(4, 4, 4, 5), multires=(1,), net_width=16),
+                              torch.stack([means.min(0).values, means.max(0).values]))
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in field.parameters():
+            p.add_(torch.randn(p.shape, generator=g) * 0.3)
+    return field
 
 
 def not_a_folder(path: Path, kind: str) -> Path:

@@ -6,7 +6,7 @@ import math
 
 import pytest
 import torch
-from helpers import tiny_model
+from helpers import OBJECTIVE_CASES, tiny_model
 from torch.utils.data import default_collate
 
 from data_prep.clips import ClipConfig, ClipDataset
@@ -359,23 +359,14 @@ def test_latent_noise_reaches_frames_after_the_first_only(clips, monkeypatch):
 
 
 # ----------------------------------------------------------------------------------- devices
-NO_IMPLICIT_DEVICE_CASES = {
-    "vae": (dict(train=("vae",), objectives=("vae",)), 0),
-    "diffusion": (dict(objectives=("diffusion",), caption_dropout=0.5), 0),
-    "reconstruction": (dict(train=("ldrm",), objectives=("reconstruction",), latent_noise=0.5), 0),
-    "reconstruction_motion": (dict(train=("ldrm", "ldrm.deformation"), objectives=("reconstruction",),
-                                   scenes="all", deformation=True, motion=True), 1),
-}
-
-
-@pytest.mark.parametrize("case", list(NO_IMPLICIT_DEVICE_CASES))
+@pytest.mark.parametrize("case", list(OBJECTIVE_CASES))
 @pytest.mark.slow
 def test_forward_creates_every_tensor_on_the_inputs_device(clips, case, no_implicit_device):
     """The device rule in TrainingModule: with torch's default device "meta" (the fixture), a tensor made
     without device= (a draw on the CPU step generator left unmoved, a mask built on the default device) lands on
     meta beside the CPU batch and fails — as it failed beside CUDA batches on a GPU ("cuda:0 and cpu"). The
     forward and backward run, with the losses of the same forward made with the CPU as the default device."""
-    kwargs, clip = NO_IMPLICIT_DEVICE_CASES[case]
+    kwargs, clip = OBJECTIVE_CASES[case]
     with torch.device("cpu"):  # the model, the batch and the reference losses: explicitly on the CPU
         stage = StageConfig(height=SIZE, width=SIZE, num_frames=FRAMES, render_frames=2, **kwargs)
         model = tiny_model(seed=1, dynamic=True, active_dit=True)

@@ -6,6 +6,7 @@ import re
 import numpy as np
 import pytest
 import torch
+from helpers import perturbed_field
 
 from diff4splat.cameras import CameraPath, intrinsics_from_fov, look_at, make_trajectory
 from diff4splat.cameras.trajectories import check_amplitude
@@ -22,7 +23,7 @@ from diff4splat.render.sequence import render_path
 from diff4splat.render_command import path_scene, rerender, resize_cameras
 from diff4splat.scene import DynamicGaussians
 from diff4splat.viewer_server import folder_payload, make_server
-from models.hexplane import HexPlaneConfig, HexPlaneField, load_field, save_field
+from models.hexplane import load_field, save_field
 from training.fit_cli import place_generate_output
 
 
@@ -151,23 +152,10 @@ def test_times_between_key_times_interpolate(tmp_path):
     assert np.abs(_rgb(tmp_path / "r", 4).astype(int) - wrong.astype(int)).max() > 20  # nearest key differs
 
 
-def _field(canonical: Gaussians, seed: int = 0) -> HexPlaneField:
-    """A small HexPlane field over the box of ``canonical`` whose deformation varies with time (head outputs and
-    time planes perturbed; a new field is the identity)."""
-    g = torch.Generator().manual_seed(seed)
-    cfg = HexPlaneConfig(feature_dim=4, resolution=(4, 4, 4, 5), multires=(1,), net_width=16)
-    bounds = torch.stack([canonical.means.min(0).values, canonical.means.max(0).values])
-    field = HexPlaneField(cfg, bounds)
-    with torch.no_grad():
-        for p in field.parameters():
-            p.add_(torch.randn(p.shape, generator=g) * 0.3)
-    return field
-
-
 def test_field_is_sampled_at_exactly_the_distinct_path_times(tmp_path):
     folder, scene, cams, _ = _folder(tmp_path)
     src = load_scene_folder(folder)
-    field = _field(src.scene.canonical)
+    field = perturbed_field(src.scene.canonical.means)
     times = torch.tensor([0.0, 0.13, 0.13, 0.62, 0.97])
     dyn = path_scene(SceneFolder(src.path, src.scene, src.cameras, src.meta, field), times)
     torch.testing.assert_close(dyn.times, torch.tensor([0.0, 0.13, 0.62, 0.97]))  # distinct, sorted
@@ -186,7 +174,7 @@ def test_fit_folder_renders_its_field_safetensors_at_the_path_times(tmp_path):
     also between the key times of its deformation.npz, not the npz's interpolation."""
     folder, scene, cams, _ = _folder(tmp_path)
     canonical = load_scene_folder(folder).scene.canonical
-    field = _field(canonical)
+    field = perturbed_field(canonical.means)
     save_field(folder / "field.safetensors", field)
     mid = CameraPath(cams.viewmats[[0, 2, 4]].contiguous(), cams.Ks[:3], W, H, torch.tensor([0.1, 0.37, 0.8]))
     cam_file = _data_prep_cameras(tmp_path / "mid.json", mid, np.array([0.1, 0.37, 0.8]))
@@ -338,7 +326,7 @@ def _fit_like_folder(tmp_path):
     """A folder with a deformation.npz and a field.safetensors (what fit writes), and a camera file of 3 cameras at
     times between the npz's key times."""
     folder, scene, cams, _ = _folder(tmp_path)
-    field = _field(load_scene_folder(folder).scene.canonical)
+    field = perturbed_field(load_scene_folder(folder).scene.canonical.means)
     save_field(folder / "field.safetensors", field)
     mid = CameraPath(cams.viewmats[[0, 2, 4]].contiguous(), cams.Ks[:3], W, H, torch.tensor([0.1, 0.37, 0.8]))
     return folder, field, _data_prep_cameras(tmp_path / "mid.json", mid, np.array([0.1, 0.37, 0.8]))

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from helpers import EXAMPLE_IMAGE, tiny_model
+from helpers import EXAMPLE_IMAGE, OBJECTIVE_CASES, perturbed_field, tiny_model
 from simulated_cuda import SimulatedCudaTensor, simulated_cuda
 from torch.utils.data import default_collate
 
@@ -26,7 +26,7 @@ from diff4splat.devices import resolve_device
 from diff4splat.io.image import read_image
 from diff4splat.io.scene_folder import load_scene_folder
 from diff4splat.pipeline import Diff4SplatPipeline
-from models.hexplane import HexPlaneConfig, HexPlaneField, save_field
+from models.hexplane import save_field
 from training.objectives import TrainingModule
 from training.stage_config import StageConfig, apply_freezing
 
@@ -146,20 +146,6 @@ def test_generate_on_simulated_cuda_gives_the_cpus_scene(case, cpu_tile_path):
     assert res.photo_psnr_db == pytest.approx(ref.photo_psnr_db, abs=1e-3)
 
 
-def _field(means: torch.Tensor) -> HexPlaneField:
-    """A small HexPlane field over the box of ``means`` whose deformation varies with time (parameters
-    perturbed; a new field is the identity)."""
-    g = torch.Generator().manual_seed(0)
-    with torch.random.fork_rng(devices=[]):  # its initialisation draws from the global generator
-        torch.manual_seed(0)
-        field = HexPlaneField(HexPlaneConfig(feature_dim=4, resolution=(4, 4, 4, 5), multires=(1,), net_width=16),
-                              torch.stack([means.min(0).values, means.max(0).values]))
-    with torch.no_grad():
-        for p in field.parameters():
-            p.add_(torch.randn(p.shape, generator=g) * 0.3)
-    return field
-
-
 def _frames(folder, n):
     return np.stack([read_image(folder / "rgb" / f"{i:04d}.png") for i in range(n)]).astype(float)
 
@@ -187,7 +173,7 @@ def test_generate_render_and_evaluate_commands_on_simulated_cuda(tmp_path, cpu_t
             assert main([*gen, "--device", dev, "--out", str(d / "gen")]) == 0
             assert main([render[0], str(d / "gen"), *render[1:], "--device", dev, "--out", str(d / "r")]) == 0
             folder = load_scene_folder(d / "gen", "cpu")
-            save_field(d / "gen" / "field.safetensors", _field(folder.scene.canonical.means))
+            save_field(d / "gen" / "field.safetensors", perturbed_field(folder.scene.canonical.means))
             assert main([render[0], str(d / "gen"), *render[1:], "--device", dev, "--out", str(d / "f")]) == 0
             assert main([*evaluate, "--device", dev, "--csv", str(d / "eval.csv")]) == 0
         with open(d / "eval.csv", newline="") as f:
@@ -218,14 +204,6 @@ def test_the_gpu_benchmarks_generate_part_runs_on_simulated_cuda(monkeypatch, ca
     assert all(float(r.split("**")[1]) > 0 for r in rows)
 
 
-TRAINING_CASES = {
-    "vae": (dict(train=("vae",), objectives=("vae",)), 0),
-    "diffusion": (dict(objectives=("diffusion",), caption_dropout=0.5), 0),
-    "reconstruction": (dict(train=("ldrm",), objectives=("reconstruction",), latent_noise=0.5), 0),
-    "reconstruction_motion": (dict(train=("ldrm", "ldrm.deformation"), objectives=("reconstruction",),
-                                   scenes="all", deformation=True, motion=True), 1),
-}
-"""The objective sets of the shipped stages (clip 0 static, 1 dynamic), as tests/test_objectives.py."""
 
 
 def test_training_forwards_on_simulated_cuda_give_the_cpus_losses(tmp_path):
@@ -237,7 +215,7 @@ def test_training_forwards_on_simulated_cuda_give_the_cpus_losses(tmp_path):
     ds = ClipDataset(tmp_path, ClipConfig(num_frames=frames, height=size, width=size, scenes="all",
                                           plucker="packed", num_tracks=64, seed=0))
     clips = [ds[0], ds[1]]
-    for case, (kwargs, clip) in TRAINING_CASES.items():
+    for case, (kwargs, clip) in OBJECTIVE_CASES.items():
         stage = StageConfig(height=size, width=size, num_frames=frames, render_frames=2, **kwargs)
         model = tiny_model(seed=1, dynamic=True, active_dit=True)
         apply_freezing(model, stage.train)
