@@ -12,13 +12,23 @@ for device reasons breaks here with PyTorch's own message:
 * ``.numpy()`` of a CUDA tensor → ``TypeError: can't convert cuda:0 device type tensor to numpy``.
 
 The values are the CPU kernels' (no TF32; ``torch.autocast("cuda")`` casts as on a GPU, then the CPU computes
-in that dtype; SDPA runs the CPU's kernel; draws on "cuda" come from the CPU's generator), so a run on the
-simulated device can be compared with the CPU run of the same code path. Model offload's in-place moves
-(``tensor.data = cuda_tensor`` and back) are simulated too. What the simulation cannot run: autograd (torch
-needs a CUDA build to record a graph of CUDA tensors: an op on a tensor that requires grad raises here, so
-forwards run under ``torch.no_grad()``), CUDA-only kernels (gsplat: the PyTorch tile path renders), streams,
-memory figures (reported as 0) and speed. Nothing leaks out of the block: the patches are undone and a
-simulated tensor used after it raises.
+in that dtype; draws on "cuda" come from the CPU's generator), so a run on the simulated device can be compared
+with the CPU run of the same code path. Model offload's in-place moves (``tensor.data = cuda_tensor`` and back)
+are simulated too.
+
+Two ways to use it:
+
+* in a test's process, ``with simulated_cuda():`` — no autograd: torch needs a CUDA device guard and CUDA
+  hooks to record a graph of CUDA tensors, which a CPU-only build lacks (an op on a tensor that requires grad
+  raises here instead of aborting the process; forwards run under ``torch.no_grad()``); the Python bindings
+  that would enter the device (indexing, ``.to("cuda")``, ``.item()``…) are computed on the CPU values, and
+  SDPA runs the CPU's kernel;
+* a whole pytest run with tests/simulated_cuda_plugin.py, which loads tests/simulated_cuda_runtime.cpp (that
+  guard and those hooks) before torch: autograd runs (:data:`RUNTIME`), so does every binding.
+
+Neither can run CUDA-only kernels (gsplat: the PyTorch tile path renders), streams, ``torch.compile`` (it does
+not trace a dispatch mode), pinned memory, memory figures (reported as 0) or measure speed. Nothing leaks out of
+the block: the patches are undone and a simulated tensor used after it raises.
 """
 from __future__ import annotations
 
@@ -38,6 +48,9 @@ NAME = "simulated CUDA (CPU)"
 """``torch.cuda.get_device_name()`` inside :func:`simulated_cuda`."""
 CUDA = torch.device("cuda", 0)
 CPU = torch.device("cpu")
+RUNTIME = torch.version.cuda is None and torch.accelerator.current_accelerator() == torch.device("cuda")
+"""Whether tests/simulated_cuda_runtime.cpp is loaded (tests/simulated_cuda_plugin.py): a CPU-only torch that
+sees a CUDA accelerator. Then autograd runs, and the Python bindings that enter the device work as they are."""
 CROSS_DEVICE_OPS = frozenset({
     torch.ops.aten.copy_.default, torch.ops.aten._to_copy.default, torch.ops.aten.copy.default,
     torch.ops.aten._copy_from.default, torch.ops.aten._copy_from_and_resize.default,
@@ -136,9 +149,9 @@ class _Dispatch(TorchDispatchMode):
 
 
 ON_VALUES = frozenset({
-    torch.Tensor.nonzero, torch.nonzero, torch.Tensor.item, torch.Tensor.tolist, torch.Tensor.__int__,
+    torch.Tensor.nonzero, torch.nonzero, torch.Tensor.item, torch.Tensor.__int__,
     torch.Tensor.__float__, torch.Tensor.__bool__, torch.Tensor.__index__, torch.Tensor.__format__,
-    torch.Tensor.new_tensor, torch.Tensor.__invert__, torch.Tensor.contiguous,
+    torch.Tensor.__invert__, torch.Tensor.contiguous,
     torch.nn.functional.scaled_dot_product_attention,
 })
 """Functions called on the CPU values: tensor methods whose Python bindings enter the tensor's device before
@@ -162,13 +175,29 @@ class _Functions(TorchFunctionMode):
 
     def __torch_function__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
-        if torch.is_grad_enabled() and getattr(func, "__name__", "") not in NO_GRAPH \
+        if not RUNTIME and torch.is_grad_enabled() and getattr(func, "__name__", "") not in NO_GRAPH \
                 and getattr(func, "__module__", "") != "torch.nn.init" \
                 and any(isinstance(x, SimulatedCudaTensor) and x.requires_grad for x in tree_leaves((args, kwargs))):
             raise RuntimeError(f"simulated CUDA has no autograd (torch aborts on it): {func} of a tensor that "
                                "requires grad; run the forward under torch.no_grad()")
         if getattr(func, "__name__", "") == "__set__" and getattr(func, "__self__", None) is DATA:
             return _set_data(*args)
+        if func is torch.Tensor.pin_memory:
+            return args[0]
+        if func is torch.Tensor.tolist and isinstance(args[0], SimulatedCudaTensor):  # refused for subclasses
+            return args[0].elem.tolist()
+        if func in (torch.tensor, torch.as_tensor) and _is_cuda(kwargs.get("device")):
+            if isinstance(args[0], SimulatedCudaTensor):
+                return args[0] if func is torch.as_tensor and kwargs.get("dtype") in (None, args[0].dtype) \
+                    else args[0].to(kwargs.get("dtype") or args[0].dtype, copy=func is torch.tensor)
+            return _wrap(func(*args, **{**kwargs, "device": CPU}))
+        if func is torch.Tensor.new_tensor and isinstance(args[0], SimulatedCudaTensor) \
+                and _is_cuda(kwargs.get("device", CUDA)):  # like torch.tensor: made apart from the dispatcher
+            return _wrap(args[0].elem.new_tensor(*args[1:], **{**kwargs, "device": CPU}))
+        if RUNTIME:  # the bindings below enter the device, which the runtime provides
+            if func in (torch.Tensor.__getitem__, torch.Tensor.__setitem__):  # a list index becomes a tensor
+                args = (args[0], _list_indices_as_tensors(args[1]), *args[2:])  # made apart from the dispatcher
+            return func(*args, **kwargs)
         if func is torch.Tensor.cuda:
             return _move(args[0], CUDA, kwargs.get("non_blocking", False))
         if func is torch.Tensor.to:
@@ -176,15 +205,8 @@ class _Functions(TorchFunctionMode):
             if device is not None and _is_cuda(device):
                 out = _move(args[0], CUDA, non_blocking)
                 return out if dtype is None else out.to(dtype)
-        if func in (torch.tensor, torch.as_tensor) and _is_cuda(kwargs.get("device")):
-            if isinstance(args[0], SimulatedCudaTensor):
-                return args[0] if func is torch.as_tensor and kwargs.get("dtype") in (None, args[0].dtype) \
-                    else args[0].to(kwargs.get("dtype") or args[0].dtype, copy=func is torch.tensor)
-            return _wrap(func(*args, **{**kwargs, "device": CPU}))
         if func is torch.Tensor.copy_:  # any devices: a copy
             _unwrap(args[0]).copy_(_unwrap(args[1]), *args[2:], **kwargs)
-            return args[0]
-        if func is torch.Tensor.pin_memory:
             return args[0]
         if func is torch.Tensor.__getitem__ and isinstance(args[0], SimulatedCudaTensor):
             return _wrap(args[0].elem[_index(args[1])])
@@ -244,6 +266,13 @@ def _index(index):
     return tuple(_unwrap(i) for i in index) if isinstance(index, tuple) else _unwrap(index)
 
 
+def _list_indices_as_tensors(index):
+    """A Python index with its lists as CPU index tensors (CUDA indexing takes those, through the dispatcher)."""
+    if isinstance(index, tuple):
+        return tuple(_list_indices_as_tensors(i) for i in index)
+    return torch.tensor(index, device="cpu") if isinstance(index, list) else index
+
+
 def _move(t: torch.Tensor, device: torch.device, non_blocking: bool) -> torch.Tensor:
     if isinstance(t, SimulatedCudaTensor):
         return t
@@ -260,6 +289,7 @@ def simulated_cuda():
         mock.patch("torch.cuda._lazy_init", lambda: None),
         mock.patch("torch.cuda.device_count", lambda: 1),
         mock.patch("torch.cuda.current_device", lambda: 0),
+        mock.patch("torch.cuda.set_device", lambda *a, **k: None),
         mock.patch("torch.cuda.synchronize", lambda *a, **k: None),
         mock.patch("torch.cuda.max_memory_allocated", zero),
         mock.patch("torch.cuda.memory_allocated", zero),

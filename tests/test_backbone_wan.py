@@ -217,6 +217,7 @@ def test_tensors_are_made_on_the_inputs_device(backbone, request):
     assert torch.equal(outputs[1], expected)
 
 
+@pytest.mark.real_gpu  # a CUDA generator (the simulated one is the CPU's)
 def test_on_the_device(backbone, device, full_float32):
     """The backbone on ``device`` (CUDA where present) agrees with the CPU; outputs on the inputs' device."""
     x, image_latent, plucker = _inputs(backbone, batch=1)

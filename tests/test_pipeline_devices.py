@@ -150,6 +150,7 @@ def test_offload_moves_one_network_at_a_time_and_restores_the_cpu_copies():
             pass
 
 
+@pytest.mark.real_gpu  # pinned memory
 @pytest.mark.cuda
 def test_offload_on_cuda_moves_the_weights_and_back():
     a, b = torch.nn.Linear(2, 2), torch.nn.Linear(2, 3)
@@ -211,6 +212,7 @@ def test_each_attention_kernel_runs_under_its_order_and_gives_the_same_scene(ima
 
 
 @pytest.mark.slow
+@pytest.mark.real_gpu  # torch.compile does not trace a dispatch mode
 def test_compiled_blocks_give_the_eager_scene(image, device):
     """``compile=True`` compiles every transformer block in place (regional compilation, the rest of the DiT
     eager); the sampled latents equal the eager run's to float32 rounding; the identical blocks share their graphs
@@ -275,6 +277,7 @@ def test_gaussians_are_built_in_float32_inside_a_bfloat16_autocast_region():
 
 
 @pytest.mark.slow
+@pytest.mark.real_gpu  # memory figures
 def test_high_water_names_the_stage_that_set_the_peak(image, device):
     """GenerationResult.high_water: on CUDA, the device's running peak (bytes) at the end of each timed stage,
     never decreasing, reaching the peak torch reports; empty on the CPU (no allocator statistics)."""

@@ -102,6 +102,7 @@ def test_signal_stop_then_resume_matches_uninterrupted_run_exactly(tmp_path, dev
 
 
 @pytest.mark.slow
+@pytest.mark.real_gpu  # a child process, outside the simulation
 def test_hard_kill_then_resume_from_last_checkpoint_matches(tmp_path, device):
     ref = _trainer(tmp_path / "ref", device)
     ref.fit()
