@@ -281,8 +281,15 @@ def checkpoint_sha256(directory: str | os.PathLike) -> dict[str, str]:
     return out
 
 
+def _onnx():
+    """The onnx package, imported where an export or check needs it (not at import of this module)."""
+    import onnx  # lazy: onnx and protobuf add ~0.05 s to every command's start; only exports and checks use them
+
+    return onnx
+
+
 def _value_info(values) -> list[dict]:
-    import onnx  # lazy: onnx and protobuf add ~0.05 s to every command's start; only these checks use them
+    onnx = _onnx()
 
     out = []
     for v in values:
@@ -306,7 +313,7 @@ GRAPH_METADATA_KEYS = ("diff4splat.part", "diff4splat.config", "diff4splat.dims"
 
 def _export_graph(graph: _Graph, path: Path, opset: int, external_data_bytes: int, config: dict) -> dict:
     """Trace, translate, save and check one graph (with :func:`graph_metadata`); returns its manifest entry."""
-    import onnx  # lazy: onnx and protobuf add ~0.05 s to every command's start; only these checks use them
+    onnx = _onnx()
 
     weight_bytes = sum(t.numel() * t.element_size() for t in graph.module.state_dict().values())
     onnx_logger = logging.getLogger("torch.onnx")
@@ -367,7 +374,7 @@ def _dim_ranges(dynamic_shapes: dict) -> dict[str, list[int]]:
 
 def check_opset(opset: int) -> None:
     """Raise ValueError unless ``opset`` is an int in [:data:`MIN_OPSET`, the installed onnx's newest]."""
-    import onnx  # lazy: onnx and protobuf add ~0.05 s to every command's start; only these checks use them
+    onnx = _onnx()
 
     newest = onnx.defs.onnx_opset_version()
     if isinstance(opset, bool) or not isinstance(opset, int) or not MIN_OPSET <= opset <= newest:
@@ -415,7 +422,7 @@ def export_onnx(
         FileNotFoundError: ``checkpoint`` lacks a network's weights.
         torch._dynamo.exc.UserError: a dynamic dimension cannot be honoured by a network (a bug).
     """
-    import onnx  # lazy: onnx and protobuf add ~0.05 s to every command's start; only these checks use them
+    onnx = _onnx()
 
     check_opset(opset)
     inputs = [*inputs, checkpoint]
