@@ -1,8 +1,10 @@
-"""The library's CUDA code paths on a CPU-only machine (CI): ``generate``, ``render`` (of a generated and of a
-fitted folder), ``evaluate`` and the training objectives' forwards run with ``--device cuda`` on the simulated
-device of tests/simulated_cuda.py, which raises PyTorch's own errors where a GPU would (mixed devices, numpy of
-a CUDA tensor), and give the CPU's numbers. First, that the simulation refuses what CUDA refuses, so a pass
-means something; the issue-26 tracebacks it reproduces are named there."""
+"""The library's CUDA code paths on a CPU-only machine (CI), on the simulated device of tests/simulated_cuda.py,
+which raises PyTorch's own errors where a GPU would (mixed devices, numpy of a CUDA tensor). First, that the
+simulation refuses what CUDA refuses, so a pass means something (the issue-26 tracebacks it reproduces are named
+there). Then the suite's own CUDA tests, autograd included, in a pytest run with tests/simulated_cuda_plugin.py;
+and, in this process, ``generate`` (bfloat16, offload), ``render`` (of a generated and of a fitted folder),
+``evaluate``, ``benchmarks/gpu.py --part generate`` and the training objectives' forwards with ``--device cuda``,
+which give the CPU's numbers."""
 import contextlib
 import csv
 import importlib
@@ -47,6 +49,8 @@ def _cpu(x):
 
 # ----------------------------------------------------------------------------------- the simulation itself
 def test_the_simulation_refuses_what_cuda_refuses():
+    """Mixed devices and numpy of a CUDA tensor raise as on a GPU; what CUDA accepts (CPU scalars in elementwise
+    ops, CPU index tensors, copies) runs; autograd raises (no runtime in this process); nothing leaks out."""
     cpu_vec = torch.arange(4.0, device="cpu")
     with simulated_cuda(), torch.no_grad():
         assert resolve_device("cuda") == torch.device("cuda") and resolve_device("auto").type == "cuda"
