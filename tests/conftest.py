@@ -67,6 +67,14 @@ def full_float32():
 
 
 @pytest.fixture
+def cpu_tile_path(monkeypatch):
+    """For the test's body, CPU tensors render through the PyTorch tile path (as CUDA without gsplat does), not
+    numba's fused one: a CPU run then follows a simulated CUDA run's code path (tests/simulated_cuda.py)."""
+    rasterize_module = importlib.import_module("diff4splat.render.rasterize")  # the package exports a function
+    monkeypatch.setattr(rasterize_module, "DEFAULT_COMPOSITOR", rasterize_module.DEVICE_COMPOSITOR)  # so named
+
+
+@pytest.fixture
 def torch_tile_path(monkeypatch):
     """For the test's body, CUDA tensors render through our PyTorch tile path even where gsplat is installed
     (``DIFF4SPLAT_NO_GSPLAT``): a CPU/CUDA comparison then compares the same arithmetic, not two rasterizers."""

@@ -171,7 +171,8 @@ grad outside ``torch.no_grad()``; so are ``torch.nn.init``'s functions (they run
 class _Functions(TorchFunctionMode):
     """What a CPU-only build refuses before an ATen op is dispatched (``Tensor.to("cuda")``, ``.cuda()``,
     ``torch.tensor(…, device="cuda")``, indexing, ``copy_``, ``pin_memory`` and :data:`ON_VALUES`), written as the
-    ops they stand for on the CPU values; and the two things the simulation cannot do, refused with a message."""
+    ops they stand for on the CPU values (with the runtime loaded only ``torch.tensor(…, device="cuda")``,
+    ``new_tensor`` and list indices need that); and autograd without the runtime, refused with a message."""
 
     def __torch_function__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}

@@ -21,7 +21,6 @@ from models.flow_matching import FlowMatchingConfig  # noqa: E402
 from models.ldrm import LDRM, LDRMConfig  # noqa: E402
 
 FIXTURES = {"cogvideox": "tiny_cogvideox", "wan": "tiny_wan"}
-RASTERIZE = importlib.import_module("diff4splat.render.rasterize")  # the package exports its function by that name
 
 
 def _fixture(kind: str):
@@ -75,12 +74,11 @@ def test_saved_folder_reloads_to_the_same_scene(folder):
 
 
 @pytest.mark.slow
-def test_a_backbone_generates_on_simulated_cuda_as_on_the_cpu(folder, monkeypatch):
+def test_a_backbone_generates_on_simulated_cuda_as_on_the_cpu(folder, cpu_tile_path):
     """The backbone pipeline (prompt, text encoder visiting the device) on "cuda" (tests/simulated_cuda.py, on a
     CPU-only machine) keeps its outputs there and gives the CPU's latents and Gaussians (both rendering through
     the PyTorch tile path)."""
     path, _ = folder
-    monkeypatch.setattr(RASTERIZE, "DEFAULT_COMPOSITOR", RASTERIZE.DEVICE_COMPOSITOR)
     results = {}
     for dev in ("cpu", "cuda"):
         model, _ = load_model(path)

@@ -9,7 +9,6 @@ loss recomputed by hand, the shipped backbone stage configs, the stage fields' e
 packing for the backbone's grid."""
 import csv
 import dataclasses
-import importlib
 import json
 import shutil
 from pathlib import Path
@@ -380,11 +379,10 @@ def test_flow_loss_is_the_backbones_velocity_error_with_the_empty_prompt_for_dro
 
 
 @pytest.mark.parametrize("name", list(BACKBONES))
-def test_stage1_forward_on_simulated_cuda_gives_the_cpus_losses(data, name, tmp_path, monkeypatch):
+def test_stage1_forward_on_simulated_cuda_gives_the_cpus_losses(data, name, tmp_path, cpu_tile_path):
     """Stage 1 of a backbone (LoRA, diffusion and rendering objectives) on "cuda" (tests/simulated_cuda.py, on a
     CPU-only machine): the forward of a static and a dynamic clip gives the CPU's losses, both rendering through
     the PyTorch tile path. The backward is not simulated."""
-    monkeypatch.setattr(importlib.import_module("diff4splat.render.rasterize"), "DEFAULT_COMPOSITOR", "torch")
     stage = _stage(name, _init_folder(name, tmp_path / "init", camera_std=0.02), data, tmp_path / "run")
     clips = ClipDataset(data, ClipConfig(num_frames=FRAMES, height=stage.height, width=stage.width, plucker="raw"))
     batch = default_collate([clips[0], clips[2]])
