@@ -9,7 +9,8 @@ Three parts, each small enough for one 10-minute command on one GPU:
   the path, with the peak of ``torch.cuda.max_memory_allocated``, for ``base`` (shipped weights, 17 frames, 64²),
   ``small`` (random, 17 frames, 128²) and ``paper`` (random weights built directly in bfloat16 on the GPU —
   nothing is downloaded; 49 frames, 512², 50 Euler steps), the paper model with model CPU offload and a prompt
-  (eager, with its transformer blocks ``torch.compile``-d, and with cuDNN attention), with offload and no prompt,
+  (eager, with the DiT's copy prefetched behind its first step (``--offload model-prefetch``), with its
+  transformer blocks ``torch.compile``-d, and with cuDNN attention), with offload and no prompt,
   and without offload and no prompt. Goal (issue 26, the paper's figures): paper-size
   `generate` end to end ≤ 30 s and ≤ 25 GB.
 - ``train``: optimizer steps per second and peak memory of ``train_base_dit``, ``train_base_ldrm`` and
@@ -128,6 +129,8 @@ GENERATE = [  # (label, config, frames, dtype, offload, prompt, attention, compi
     ("base (shipped weights)", "base", None, torch.float32, "none", PROMPT, "auto", False),
     ("small (random)", "small", None, torch.float32, "none", PROMPT, "auto", False),
     ("paper, bf16, offload model, prompt", "paper", 49, torch.bfloat16, "model", PROMPT, "auto", False),
+    ("paper, bf16, offload model-prefetch, prompt", "paper", 49, torch.bfloat16, "model-prefetch", PROMPT, "auto",
+     False),
     ("paper, bf16, offload model, prompt, compiled blocks", "paper", 49, torch.bfloat16, "model", PROMPT, "auto",
      True),
     ("paper, bf16, offload model, prompt, cuDNN attention", "paper", 49, torch.bfloat16, "model", PROMPT, "cudnn",
@@ -204,7 +207,8 @@ def part_generate(device: torch.device, quick: bool) -> str:
             f"synchronised; \"peak in\" is the stage that set the peak (`GenerationResult.high_water`). The paper "
             f"model holds random weights built in bfloat16 on the GPU (no download); "
             f"\"offload model\" keeps the networks in pinned CPU memory and moves one at a time to the GPU "
-            f"(diff4splat/offload.py), so its `sample` includes copying the DiT there; \"cuDNN attention\" runs "
+            f"(diff4splat/offload.py), so its `sample` includes copying the DiT there; \"model-prefetch\" copies "
+            f"the DiT block by block on a side stream while its first step runs; \"cuDNN attention\" runs "
             f"`--attention cudnn` (cuDNN's fused attention tried first; torch tries FlashAttention-2 first). Peak = "
             f"`torch.cuda.max_memory_allocated` over the run, GB = 10⁹ bytes. Device: {device_name(device)}.\n\n"
             + markdown_table(["model", "run", "Gaussians", *STAGES, "total s", "peak GB", "peak in", "warm-up s"],

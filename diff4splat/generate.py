@@ -41,7 +41,7 @@ from .limits import check_limit, check_memory, check_output_size
 from .pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, GenerationResult, check_prompt, check_seed
 from .pipeline import load_model as _load_model
 from .render.sequence import render_path
-from .runtime import ATTENTION_KERNELS, DTYPES
+from .runtime import ATTENTION_KERNELS, DTYPES, check_offload
 
 __all__ = ["LoadedPipeline", "Generation", "load_pipeline", "generate", "write", "RUNTIMES"]
 
@@ -85,7 +85,7 @@ def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | Non
             dtype, offload, attention and compile then do not apply: the export's manifest fixes the model).
         device: "auto" (CUDA when present, else the CPU), "cpu", "cuda", "cuda:1", …
         dtype: weight dtype name (:data:`diff4splat.runtime.DTYPES`).
-        offload: "none" or "model" (:data:`diff4splat.runtime.OFFLOAD_MODES`).
+        offload: "none", "model" or "model-prefetch" (:data:`diff4splat.runtime.OFFLOAD_MODES`).
         attention: the attention kernel tried first (:data:`diff4splat.runtime.ATTENTION_KERNELS`).
         compile: ``torch.compile`` the transformer's blocks (:class:`diff4splat.runtime.TorchRuntime`).
 
@@ -121,6 +121,7 @@ def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | Non
         raise ValueError(f"--dtype must be one of {sorted(DTYPES)}, got {dtype!r}")
     if attention not in ATTENTION_KERNELS:
         raise ValueError(f"--attention must be one of {tuple(ATTENTION_KERNELS)}, got {attention!r}")
+    check_offload(offload, compile)
     device = resolve_device(device, "--device")  # before any model is loaded
     if checkpoint is not None and not Path(checkpoint).is_dir():
         raise FileNotFoundError(f"--checkpoint: {checkpoint} is not a folder")

@@ -17,7 +17,7 @@ from .generate import generate, load_pipeline, write
 from .io.output_folders import check_output_dir
 from .io.video import check_fps
 from .pipeline import DEFAULT_RESOLUTION
-from .runtime import ATTENTION_KERNELS
+from .runtime import ATTENTION_KERNELS, OFFLOAD_MODES
 
 __all__ = ["add_generate_parser", "generate_command"]
 
@@ -62,9 +62,10 @@ def add_generate_parser(subparsers, *, out_type: Callable[[str], Path], out_help
     g.add_argument("--dtype", choices=("float32", "bfloat16", "float16"), default="float32",
                    help="weight dtype of the networks (bfloat16 halves a GPU's memory use; default: float32); "
                         "sampling, Gaussians and rendering stay float32")
-    g.add_argument("--offload", choices=("none", "model"), default="none",
+    g.add_argument("--offload", choices=OFFLOAD_MODES, default="none",
                    help="model: keep the networks in CPU memory and move one at a time to --device while it runs "
-                        "(the paper-size model within 25 GB of GPU memory); default: none")
+                        "(the paper-size model within 25 GB of GPU memory); model-prefetch: the same, and on CUDA "
+                        "the DiT's copy overlaps its first sampling step (not with --compile); default: none")
     g.add_argument("--attention", choices=tuple(ATTENTION_KERNELS), default="auto",
                    help="fused attention kernel the networks try first (cudnn: cuDNN's, tuned for Hopper GPUs; the "
                         "others stay behind it); default: auto, torch's own order")

@@ -8,16 +8,53 @@ instead of the sum (diffusers' ``enable_model_cpu_offload`` does the same with h
 Inference only: the CPU copy of each weight is the master; moving a network off the device points its
 parameters back at that copy (no device-to-host copy), so weights changed on the device are lost. On CUDA the CPU
 copies are pinned once, and moving on is an asynchronous host-to-device copy on the current stream.
+
+Prefetch (``prefetch=``, CUDA only): the host-to-device copy of a network runs on a side stream, block by block
+in the order the blocks run, and each block waits only for its own weights (a one-shot forward pre-hook), so the
+first call computes block i while blocks i + 1 … are still on their way (diffusers' group offloading with
+``use_stream``, but once per visit rather than at every call). The paper DiT's 23.8 GB take about 0.4 s to copy
+and one sampling step about 0.5 s on an H100 (docs/benchmarks.md, "GPU"), so the copy can hide behind the first
+step. The values are those of the plain move: only the order of the copies and the kernels changes.
 """
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 
 import torch
 from torch import nn
 
-__all__ = ["ModelOffload"]
+__all__ = ["ModelOffload", "prefetch_groups"]
+
+
+def _tensors(module: nn.Module) -> Iterator[torch.Tensor]:
+    """The parameters, then the buffers, of ``module`` (each shared tensor once)."""
+    yield from module.parameters()
+    yield from (b for b in module.buffers() if b is not None)
+
+
+def prefetch_groups(module: nn.Module, blocks: Sequence[nn.Module]) -> list[list[int]]:
+    """The copy order of :class:`ModelOffload`'s prefetch: indices into ``list(_tensors(module))`` (parameters,
+    then buffers), as ``[rest, block 0, block 1, …]``. ``rest`` holds every tensor outside ``blocks`` (embedders,
+    final layers; copied first and waited for before the network runs) and every tensor that two blocks share
+    (so no block waits on another block's copy); each tensor is in exactly one group.
+
+    Raises:
+        ValueError: a block is not a submodule of ``module``, or appears twice.
+    """
+    index = {id(t): i for i, t in enumerate(_tensors(module))}
+    submodules = {id(m) for m in module.modules()}
+    if any(id(b) not in submodules for b in blocks) or len({id(b) for b in blocks}) != len(blocks):
+        raise ValueError("prefetch blocks must be distinct submodules of the network they move")
+    owners: dict[int, int] = {}  # tensor index → the one block holding it (-1: shared)
+    for k, block in enumerate(blocks):
+        for t in _tensors(block):
+            i = index[id(t)]
+            owners[i] = k if owners.get(i, k) == k else -1
+    groups: list[list[int]] = [[] for _ in range(len(blocks) + 1)]
+    for i in range(len(index)):
+        groups[owners.get(i, -1) + 1].append(i)
+    return groups
 
 
 class ModelOffload:
@@ -28,28 +65,37 @@ class ModelOffload:
         device: the compute device. On the CPU nothing ever moves.
         pin: pin the CPU copies when ``device`` is CUDA (faster, asynchronous copies; needs that much
             page-locked host memory).
+        prefetch: name → that network's blocks in the order its forward runs them (e.g. the transformer blocks,
+            :meth:`models.backbones.base.Backbone.transformer_blocks`): its move onto a CUDA device overlaps
+            the first call (module docstring). The blocks must run as modules (their forward pre-hooks fire) and
+            not be ``torch.compile``-d (a hook added to a compiled module recompiles it). Ignored off CUDA.
+
+    Raises:
+        ValueError: ``prefetch`` names a network that is not in ``modules``, or blocks that are not its
+            submodules (:func:`prefetch_groups`).
 
     Attributes:
         resident: the name of the network now on ``device``, or None.
     """
 
-    def __init__(self, modules: dict[str, nn.Module], device: str | torch.device, *, pin: bool = True):
+    def __init__(self, modules: dict[str, nn.Module], device: str | torch.device, *, pin: bool = True,
+                 prefetch: dict[str, Sequence[nn.Module]] | None = None):
         self.device = torch.device(device)
         self.modules = dict(modules)
         self.resident: str | None = None
+        unknown = sorted(set(prefetch or {}) - set(self.modules))
+        if unknown:
+            raise ValueError(f"prefetch names networks that are not offloaded: {unknown}")
+        self._groups = {name: (list(blocks), prefetch_groups(self.modules[name], blocks))
+                        for name, blocks in (prefetch or {}).items()}
         self._home: dict[str, list[torch.Tensor]] = {}
         for name, module in self.modules.items():
             module.to("cpu")
-            tensors = list(self._tensors(module))
+            tensors = list(_tensors(module))
             if pin and self.device.type == "cuda":
                 for t in tensors:
                     t.data = t.data.pin_memory()
             self._home[name] = [t.data for t in tensors]
-
-    @staticmethod
-    def _tensors(module: nn.Module) -> Iterator[torch.Tensor]:
-        yield from module.parameters()
-        yield from (b for b in module.buffers() if b is not None)
 
     @contextmanager
     def use(self, name: str) -> Iterator[nn.Module]:
@@ -61,18 +107,64 @@ class ModelOffload:
             KeyError: ``name`` is not one of the modules.
         """
         module = self.modules[name]
+        finish: Callable[[], None] | None = None
         if self.resident != name and self.device.type != "cpu":
             self.release()
-            for t, home in zip(self._tensors(module), self._home[name], strict=True):
-                t.data = home.to(self.device, non_blocking=True)
+            if name in self._groups and self.device.type == "cuda":
+                finish = self._prefetch(name)
+            else:
+                for t, home in zip(_tensors(module), self._home[name], strict=True):
+                    t.data = home.to(self.device, non_blocking=True)
             self.resident = name
-        yield module
+        try:
+            yield module
+        finally:
+            if finish is not None:
+                finish()
+
+    def _prefetch(self, name: str) -> Callable[[], None]:
+        """Start moving ``name`` onto the CUDA device on a side stream, group by group (:func:`prefetch_groups`);
+        return the call that ends the visit's hooks and makes the current stream wait for every copy."""
+        blocks, groups = self._groups[name]
+        tensors, homes = list(_tensors(self.modules[name])), self._home[name]
+        main = torch.cuda.current_stream(self.device)
+        side = torch.cuda.Stream(self.device)
+        # The new tensors come from the current stream's memory pool (they live there), and memory that stream
+        # freed may still be read by its queued kernels: the copies start after those.
+        side.wait_stream(main)
+        events = []
+        for group in groups:
+            for i in group:
+                dst = torch.empty_like(homes[i], device=self.device)
+                with torch.cuda.stream(side):
+                    dst.copy_(homes[i], non_blocking=True)
+                tensors[i].data = dst  # no record_stream: finish() orders the current stream after every copy
+            event = torch.cuda.Event()
+            event.record(side)
+            events.append(event)
+        main.wait_event(events[0])  # embedders and the rest run first, outside any block
+        handles = []
+
+        def waiter(event):
+            def hook(module, args):
+                torch.cuda.current_stream(self.device).wait_event(event)
+            return hook
+
+        for block, event in zip(blocks, events[1:], strict=True):
+            handles.append(block.register_forward_pre_hook(waiter(event)))
+
+        def finish() -> None:
+            for h in handles:
+                h.remove()
+            torch.cuda.current_stream(self.device).wait_stream(side)
+
+        return finish
 
     def release(self) -> None:
         """Move the resident network back to the CPU (its pinned master copy); frees its device memory."""
         if self.resident is None:
             return
         module = self.modules[self.resident]
-        for t, home in zip(self._tensors(module), self._home[self.resident], strict=True):
+        for t, home in zip(_tensors(module), self._home[self.resident], strict=True):
             t.data = home
         self.resident = None

@@ -259,7 +259,8 @@ class Diff4SplatPipeline:
             None keeps the model's. Sampling, Gaussians and rendering stay float32.
         offload: ``"model"`` keeps the PyTorch networks in CPU memory and moves one at a time to ``device``
             while it runs (the peak is the largest network, not all four: how a paper-size model fits a
-            25 GB budget); ``"none"`` (default) keeps them all on ``device``.
+            25 GB budget); ``"model-prefetch"`` as ``"model"``, the DiT's copy overlapping its first call on CUDA
+            (:data:`diff4splat.runtime.OFFLOAD_MODES`); ``"none"`` (default) keeps them all on ``device``.
         attention: the fused attention kernel the PyTorch networks try first
             (:data:`diff4splat.runtime.ATTENTION_KERNELS`; default ``"auto"``, torch's order).
         compile: ``torch.compile`` the transformer's blocks (:class:`TorchRuntime`; default False).

@@ -21,8 +21,8 @@ from models.ldrm import LDRMOutput
 
 from .offload import ModelOffload
 
-__all__ = ["NetworkRuntime", "TorchRuntime", "OFFLOAD_MODES", "DTYPES", "FF_CHUNK_TOKENS", "ATTENTION_KERNELS",
-           "attention_priority"]
+__all__ = ["NetworkRuntime", "TorchRuntime", "OFFLOAD_MODES", "check_offload", "DTYPES", "FF_CHUNK_TOKENS",
+           "ATTENTION_KERNELS", "attention_priority"]
 
 
 @runtime_checkable
@@ -79,9 +79,23 @@ class NetworkRuntime(Protocol):
         decoder; :meth:`models.backbones.base.Backbone.decode_latents`)."""
 
 
-OFFLOAD_MODES = ("none", "model")
+OFFLOAD_MODES = ("none", "model", "model-prefetch")
 """``offload`` values: ``none`` keeps every network on the device; ``model`` keeps them in CPU memory and moves
-one at a time to the device while it runs (:class:`diff4splat.offload.ModelOffload`)."""
+one at a time to the device while it runs (:class:`diff4splat.offload.ModelOffload`); ``model-prefetch`` does the
+same and, on CUDA, copies the DiT block by block on a side stream while its first call runs (the copy hides
+behind the first sampling step; ``ModelOffload``'s ``prefetch``; not with ``compile``)."""
+
+
+def check_offload(offload: str, compile: bool) -> None:
+    """Raise ValueError for an ``offload`` that is not one of :data:`OFFLOAD_MODES`, or ``model-prefetch`` with
+    ``compile`` (a pre-hook added to a ``torch.compile``-d block recompiles it)."""
+    if offload not in OFFLOAD_MODES:
+        raise ValueError(f"--offload must be one of {OFFLOAD_MODES}, got {offload!r}")
+    if offload == "model-prefetch" and compile:
+        raise ValueError("--offload model-prefetch does not combine with --compile (its hooks would recompile the "
+                         "compiled blocks): use --offload model")
+
+
 DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}
 """Weight dtypes a :class:`TorchRuntime` runs in, by name (``generate --dtype``)."""
 
@@ -146,8 +160,7 @@ class TorchRuntime:
     def __init__(self, model: Diff4SplatModel | BackboneModel, device: str | torch.device = "cpu", *,
                  dtype: torch.dtype | None = None, offload: str = "none", attention: str = "auto",
                  compile: bool = False):
-        if offload not in OFFLOAD_MODES:
-            raise ValueError(f"offload must be one of {OFFLOAD_MODES}, got {offload!r}")
+        check_offload(offload, compile)
         attention_priority(attention)  # an unknown name fails here, before any model moves
         self.attention = attention
         if dtype is not None and dtype not in DTYPES.values():
@@ -163,7 +176,8 @@ class TorchRuntime:
         self.input_dtype = self.dtype  # velocity and reconstruct cast every input to it
         if isinstance(self.networks["dit"], VideoDiT):
             self.networks["dit"].ff_chunk_tokens = FF_CHUNK_TOKENS
-        self.offload = ModelOffload(self.networks, self.device) if offload == "model" else None
+        prefetch = {"dit": self.backbone.transformer_blocks()} if offload == "model-prefetch" else None
+        self.offload = None if offload == "none" else ModelOffload(self.networks, self.device, prefetch=prefetch)
         # A pretrained backbone's text encoder visits the device only while it encodes.
         self.text_visits = isinstance(model, BackboneModel) and self.offload is None
         if self.offload is None:

@@ -26,8 +26,14 @@ Two ways to use it:
 * a whole pytest run with tests/simulated_cuda_plugin.py, which loads tests/simulated_cuda_runtime.cpp (that
   guard and those hooks) before torch: autograd runs (:data:`RUNTIME`), so does every binding.
 
-Neither can run CUDA-only kernels (gsplat: the PyTorch tile path renders), streams, ``torch.compile`` (it does
-not trace a dispatch mode), pinned memory, memory figures (reported as 0) or measure speed. Nothing leaks out of
+Streams are simulated for their ordering: the current stream runs everything at once, and a copy issued on
+another stream (``with torch.cuda.stream(side):``) lands only when a stream waits for it (``wait_event`` of an
+event recorded after it, ``wait_stream``, ``synchronize``); until then its destination holds NaN (integers: the
+dtype's smallest value), so a kernel that reads a prefetched tensor before waiting for it computes garbage here,
+as it may on a GPU (:class:`_Stream`).
+
+Neither can run CUDA-only kernels (gsplat: the PyTorch tile path renders), ``torch.compile`` (it does not trace a
+dispatch mode), pinned memory, memory figures (reported as 0) or measure speed. Nothing leaks out of
 the block: the patches are undone and a simulated tensor used after it raises.
 """
 from __future__ import annotations
@@ -122,6 +128,97 @@ def _check_devices(func, args, kwargs) -> torch.device | None:
     return CPU if flat else None
 
 
+class _Stream:
+    """A simulated CUDA stream (module docstring): copies issued while it is current and not the default stream
+    are held, their destinations filled with NaN (integers: the dtype's smallest value), until a wait lands them."""
+
+    def __init__(self, device=None, priority: int = 0):
+        self.held: list[tuple[int, torch.Tensor, torch.Tensor]] = []  # (sequence number, destination, source)
+        self.issued = 0
+        _STREAMS.all.append(self)
+
+    def hold(self, dst: torch.Tensor, src: torch.Tensor) -> None:
+        """Issue the copy ``src`` → ``dst`` (CPU values) on this stream."""
+        self.held.append((self.issued, dst, src.clone()))
+        self.issued += 1
+        dst.fill_(float("nan") if dst.is_floating_point() else torch.iinfo(dst.dtype).min if dst.dtype != torch.bool
+                  else False)
+
+    def land(self, upto: int) -> None:
+        """Complete the copies issued before sequence number ``upto``."""
+        for _, dst, src in (h for h in self.held if h[0] < upto):
+            dst.copy_(src)
+        self.held = [h for h in self.held if h[0] >= upto]
+
+    def wait_event(self, event: _Event) -> None:
+        if event.stream is not None:
+            event.stream.land(event.count)
+
+    def wait_stream(self, stream: _Stream) -> None:
+        stream.land(stream.issued)
+
+    def synchronize(self) -> None:
+        self.land(self.issued)
+
+    def record_event(self, event: _Event | None = None) -> _Event:
+        event = event or _Event()
+        event.record(self)
+        return event
+
+
+class _Event:
+    """A simulated CUDA event: the point of a :class:`_Stream`'s work it was recorded at."""
+
+    def __init__(self, *args, **kwargs):
+        self.stream: _Stream | None = None
+        self.count = 0
+
+    def record(self, stream: _Stream | None = None) -> None:
+        self.stream = stream or _STREAMS.current[-1]
+        self.count = self.stream.issued
+
+    def wait(self, stream: _Stream | None = None) -> None:
+        (stream or _STREAMS.current[-1]).wait_event(self)
+
+    def synchronize(self) -> None:
+        if self.stream is not None:
+            self.stream.land(self.count)
+
+    def query(self) -> bool:
+        return self.stream is None or not any(h[0] < self.count for h in self.stream.held)
+
+
+_STREAMS = types.SimpleNamespace(all=[], current=[])
+"""The simulated streams of the running :func:`simulated_cuda` block; ``current[-1]`` is the current one,
+``current[0]`` the default."""
+
+
+@contextlib.contextmanager
+def _stream_context(stream: _Stream | None):
+    """``torch.cuda.stream(stream)``: ``stream`` is current in the block (None: no change)."""
+    _STREAMS.current.append(stream or _STREAMS.current[-1])
+    try:
+        yield
+    finally:
+        _STREAMS.current.pop()
+
+
+def _synchronize(*args, **kwargs) -> None:
+    for stream in _STREAMS.all:
+        stream.synchronize()
+
+
+def _copy(dst: torch.Tensor, src: torch.Tensor, *args, **kwargs) -> torch.Tensor:
+    """``dst.copy_(src)`` on the values; held back when another stream than the default is current and ``dst`` is
+    on the simulated device (:class:`_Stream`)."""
+    stream = _STREAMS.current[-1]
+    if stream is not _STREAMS.current[0] and isinstance(dst, SimulatedCudaTensor):
+        stream.hold(dst.elem, _unwrap(src).to(dst.dtype))
+    else:
+        _unwrap(dst).copy_(_unwrap(src), *args, **kwargs)
+    return dst
+
+
 class _Dispatch(TorchDispatchMode):
     """Runs every ATen op on the CPU values after :func:`_check_devices`; outputs land on the device that
     CUDA would give them (the ``device=`` keyword, else the inputs' common device)."""
@@ -133,6 +230,8 @@ class _Dispatch(TorchDispatchMode):
             return args[0]
         if func is torch.ops.aten.is_pinned.default:
             return False
+        if func is torch.ops.aten.copy_.default:
+            return _copy(*args, **kwargs)
         to_cuda = common == CUDA
         if "device" in kwargs:
             to_cuda = _is_cuda(kwargs["device"])
@@ -207,8 +306,7 @@ class _Functions(TorchFunctionMode):
                 out = _move(args[0], CUDA, non_blocking)
                 return out if dtype is None else out.to(dtype)
         if func is torch.Tensor.copy_:  # any devices: a copy
-            _unwrap(args[0]).copy_(_unwrap(args[1]), *args[2:], **kwargs)
-            return args[0]
+            return _copy(*args, **kwargs)
         if func is torch.Tensor.__getitem__ and isinstance(args[0], SimulatedCudaTensor):
             return _wrap(args[0].elem[_index(args[1])])
         if func is torch.Tensor.__setitem__ and isinstance(args[0], SimulatedCudaTensor):
@@ -291,7 +389,12 @@ def simulated_cuda():
         mock.patch("torch.cuda.device_count", lambda: 1),
         mock.patch("torch.cuda.current_device", lambda: 0),
         mock.patch("torch.cuda.set_device", lambda *a, **k: None),
-        mock.patch("torch.cuda.synchronize", lambda *a, **k: None),
+        mock.patch("torch.cuda.synchronize", _synchronize),
+        mock.patch("torch.cuda.Stream", _Stream),
+        mock.patch("torch.cuda.Event", _Event),
+        mock.patch("torch.cuda.stream", _stream_context),
+        mock.patch("torch.cuda.current_stream", lambda *a, **k: _STREAMS.current[-1]),
+        mock.patch("torch.cuda.default_stream", lambda *a, **k: _STREAMS.current[0]),
         mock.patch("torch.cuda.max_memory_allocated", zero),
         mock.patch("torch.cuda.memory_allocated", zero),
         mock.patch("torch.cuda.reset_peak_memory_stats", lambda *a, **k: None),
@@ -314,6 +417,9 @@ def simulated_cuda():
     overwrite = torch.__future__.get_overwrite_module_params_on_conversion()
     torch.__future__.set_overwrite_module_params_on_conversion(True)  # Module.to: new Parameters, not .data =
     stack.callback(torch.__future__.set_overwrite_module_params_on_conversion, overwrite)
+    _STREAMS.all, _STREAMS.current = [], []
+    _STREAMS.current.append(_Stream())  # the default stream
+    stack.callback(_STREAMS.__init__, all=[], current=[])
     with stack:
         for p in patches:
             stack.enter_context(p)

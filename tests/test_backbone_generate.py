@@ -74,16 +74,18 @@ def test_saved_folder_reloads_to_the_same_scene(folder):
 
 
 @pytest.mark.slow
-def test_a_backbone_generates_on_simulated_cuda_as_on_the_cpu(folder, cpu_tile_path):
+@pytest.mark.parametrize("offload", ["none", "model-prefetch"])
+def test_a_backbone_generates_on_simulated_cuda_as_on_the_cpu(folder, offload, cpu_tile_path):
     """The backbone pipeline (prompt, text encoder visiting the device) on "cuda" (tests/simulated_cuda.py, on a
     CPU-only machine) keeps its outputs there and gives the CPU's latents and Gaussians (both rendering through
-    the PyTorch tile path)."""
+    the PyTorch tile path); so does model offload with the diffusers transformer's blocks prefetched (a block
+    that ran before its weights landed would read NaN there)."""
     path, _ = folder
     results = {}
     for dev in ("cpu", "cuda"):
         model, _ = load_model(path)
         with simulated_cuda() if dev == "cuda" else contextlib.nullcontext():
-            pipe = Diff4SplatPipeline(model, dev)
+            pipe = Diff4SplatPipeline(model, dev, offload=offload if dev == "cuda" else "none")
             cams = pipe.default_cameras("orbit", model.config.num_frames)
             image = torch.rand(model.config.height, model.config.width, 3, generator=torch.Generator().manual_seed(1))
             results[dev] = pipe(image, cams, "a cat walking", seed=3)

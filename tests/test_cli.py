@@ -371,3 +371,13 @@ def test_a_bad_guidance_is_one_line_exit_2_before_the_model_loads(tmp_path, caps
 def test_guidance_is_recorded_in_meta(tmp_path):
     code, out = _generate(tmp_path, "--prompt", "a cat turns its head", "--guidance", "2.5", frames=5)
     assert code == 0 and json.loads((out / "meta.json").read_text())["guidance"] == 2.5
+
+
+def test_model_prefetch_with_compile_is_one_line_exit_2_before_the_model_loads(tmp_path, capsys, monkeypatch):
+    for how in ("from_pretrained", "random"):
+        monkeypatch.setattr(Diff4SplatModel, how, lambda *a, **k: pytest.fail("the model loaded"))
+    code = main(["generate", str(EXAMPLE_IMAGE), "--offload", "model-prefetch", "--compile", "--quiet",
+                 "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "--offload model-prefetch does not combine with --compile" in err[0]
+    assert not (tmp_path / "o").exists()

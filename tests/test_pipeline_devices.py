@@ -10,7 +10,7 @@ import models.layers
 import models.text_encoder
 from diff4splat.assemble import to_gaussians
 from diff4splat.cameras import intrinsics_from_fov
-from diff4splat.offload import ModelOffload
+from diff4splat.offload import ModelOffload, prefetch_groups
 from diff4splat.onnx_runtime import OnnxRuntime
 from diff4splat.pipeline import Diff4SplatPipeline
 from diff4splat.runtime import ATTENTION_KERNELS, TorchRuntime, attention_priority
@@ -96,13 +96,72 @@ def test_the_pipeline_creates_no_tensor_on_the_default_device(image, cpu_pipe, n
 
 
 @pytest.mark.slow
-def test_model_offload_gives_the_same_scene_and_leaves_the_networks_on_the_cpu(image, device):
+@pytest.mark.parametrize("offload", ["model", "model-prefetch"])
+def test_model_offload_gives_the_same_scene_and_leaves_the_networks_on_the_cpu(image, device, offload):
+    """Both offload modes give the scene of keeping the networks on the device (prefetch only reorders the
+    copies and kernels) and leave the networks in CPU memory, with no hook left on the DiT's blocks."""
     _, ref = _run(image, device)
-    pipe, res = _run(image, device, offload="model")
+    pipe, res = _run(image, device, offload=offload)
     assert torch.equal(res.latents, ref.latents)
     assert torch.equal(res.scene.canonical.means, ref.scene.canonical.means)
     assert pipe.runtime.offload.resident is None  # released after the LDRM
     assert {p.device.type for p in pipe.model.parameters()} == {"cpu"}
+    assert not any(b._forward_pre_hooks for b in pipe.runtime.backbone.transformer_blocks())
+
+
+def test_prefetch_groups_put_each_tensor_in_one_group_in_block_order():
+    """[rest, block 0, block 1, …] over ``_tensors``' order (parameters, then buffers): a block's group is its own
+    tensors; the embedder, the head, a root buffer and a weight two blocks share go to the rest."""
+    embed, head = torch.nn.Linear(2, 2), torch.nn.Linear(2, 2)
+    blocks = torch.nn.ModuleList(torch.nn.Linear(2, 2) for _ in range(3))
+    blocks[2].register_buffer("table", torch.zeros(2))
+    shared = torch.nn.Linear(2, 2)
+    net = torch.nn.Module()
+    net.embed, net.blocks, net.head = embed, blocks, head
+    net.register_buffer("scale", torch.ones(1))
+    net.blocks[0].extra, net.blocks[1].extra = shared, shared  # one module in two blocks
+    tensors = [*net.parameters(), *net.buffers()]
+    groups = prefetch_groups(net, list(blocks))
+    assert sorted(i for g in groups for i in g) == list(range(len(tensors)))
+    ids = [{id(tensors[i]) for i in g} for g in groups]
+    own = [{id(blocks[k].weight), id(blocks[k].bias)} for k in range(3)]
+    assert ids[1] == own[0] and ids[2] == own[1] and ids[3] == own[2] | {id(blocks[2].table)}
+    assert ids[0] == {id(t) for t in (embed.weight, embed.bias, head.weight, head.bias, net.scale, shared.weight,
+                                      shared.bias)}
+    with pytest.raises(ValueError, match="distinct submodules"):
+        prefetch_groups(net, [blocks[0], torch.nn.Linear(2, 2)])
+    with pytest.raises(ValueError, match="distinct submodules"):
+        prefetch_groups(net, [blocks[0], blocks[0]])
+    with pytest.raises(ValueError, match="not offloaded"):
+        ModelOffload({"dit": net}, "cpu", prefetch={"vae": list(blocks)})
+
+
+@pytest.mark.real_gpu  # pinned memory, streams
+@pytest.mark.cuda
+def test_prefetch_on_cuda_gives_the_plain_moves_output():
+    """On a GPU, blocks large enough that their copies outlast a block's compute (16 × 64 MB): the first call
+    with prefetch (copies on a side stream, each block waiting for its own) equals the plain move's, and a second
+    visit after another network's does too; a block that did not wait would read memory still being copied."""
+    torch.manual_seed(0)
+    blocks = torch.nn.Sequential(*(torch.nn.Linear(4096, 4096) for _ in range(16)))
+    x = torch.randn(64, 4096) / 64
+    plain = ModelOffload({"dit": blocks}, "cuda")
+    with torch.no_grad(), plain.use("dit"):
+        ref = blocks(x.cuda()).cpu()
+    plain.release()
+    off = ModelOffload({"dit": blocks, "other": torch.nn.Linear(2, 2)}, "cuda", prefetch={"dit": list(blocks)})
+    with torch.no_grad():
+        for _ in range(2):
+            with off.use("dit"):
+                assert torch.equal(blocks(x.cuda()).cpu(), ref)
+            with off.use("other"):
+                pass
+    assert not any(b._forward_pre_hooks for b in blocks)
+
+
+def test_prefetch_does_not_combine_with_compile():
+    with pytest.raises(ValueError, match="model-prefetch does not combine with --compile"):
+        TorchRuntime(tiny_model(), offload="model-prefetch", compile=True)
 
 
 @pytest.mark.slow

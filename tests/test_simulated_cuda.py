@@ -29,6 +29,7 @@ from diff4splat.cli import main
 from diff4splat.devices import resolve_device
 from diff4splat.io.image import read_image
 from diff4splat.io.scene_folder import load_scene_folder
+from diff4splat.offload import ModelOffload
 from diff4splat.pipeline import Diff4SplatPipeline
 from models.hexplane import save_field
 from training.eval_metrics import psnr_from_mse
@@ -109,6 +110,67 @@ def test_the_simulation_computes_the_cpus_values():
         assert torch.equal(a, b)
 
 
+def test_the_simulations_side_streams_land_copies_only_when_waited_for():
+    """A copy issued on a side stream reads as NaN until the current stream waits for an event recorded after it
+    (or for the whole stream); copies on the current stream land at once."""
+    src = torch.arange(1.0, 7.0, device="cpu")
+    with simulated_cuda():
+        main, side = torch.cuda.current_stream(), torch.cuda.Stream()
+        a, b, now = (torch.empty(6, device="cuda") for _ in range(3))
+        now.copy_(src)
+        with torch.cuda.stream(side):
+            a.copy_(src, non_blocking=True)
+            first = torch.cuda.Event()
+            first.record(side)
+            b.copy_(src * 2, non_blocking=True)
+        assert torch.equal(now.cpu(), src) and torch.isnan(a.cpu()).all() and torch.isnan(b.cpu()).all()
+        main.wait_event(first)
+        assert torch.equal(a.cpu(), src) and torch.isnan(b.cpu()).all()  # the event was recorded before b's copy
+        main.wait_stream(side)
+        assert torch.equal(b.cpu(), src * 2)
+
+
+class _Blocks(torch.nn.Module):
+    """An embedder, four blocks run in order, a head: the shape of a DiT for ModelOffload's prefetch."""
+
+    def __init__(self):
+        super().__init__()
+        self.embed, self.head = torch.nn.Linear(3, 8), torch.nn.Linear(8, 2)
+        self.blocks = torch.nn.ModuleList(torch.nn.Sequential(torch.nn.Linear(8, 8), torch.nn.GELU())
+                                          for _ in range(4))
+        self.register_buffer("scale", torch.tensor(0.5))
+
+    def forward(self, x):
+        x = self.embed(x) * self.scale
+        for block in self.blocks:
+            x = x + block(x)
+        return self.head(x)
+
+
+@pytest.mark.parametrize("waits", [True, False], ids=["as_written", "without_waits"])
+def test_prefetch_waits_for_each_blocks_weights(waits, monkeypatch):
+    """ModelOffload's prefetch on "cuda": each block waits for its own weights' copy on the side stream, so the
+    first call gives the CPU's output; with the waits taken out, the blocks read weights still on their way
+    (NaN on the simulated device), which shows the test can fail. The hooks are gone after the visit."""
+    torch.manual_seed(0)
+    net, x = _Blocks(), torch.randn(5, 3)
+    with torch.no_grad():
+        ref = net(x)
+        with simulated_cuda():
+            off = ModelOffload({"dit": net, "other": torch.nn.Linear(2, 2)}, "cuda", prefetch={"dit": net.blocks})
+            if not waits:
+                monkeypatch.setattr(type(torch.cuda.current_stream()), "wait_event", lambda self, event: None)
+            with off.use("dit"):
+                out = _cpu(net(x.to("cuda")))
+            assert all(not b._forward_pre_hooks for b in net.blocks)
+            with off.use("dit"):  # resident: no copy, the same output
+                again = _cpu(net(x.to("cuda")))
+    if waits:
+        assert torch.equal(out, ref) and torch.equal(again, ref)
+    else:
+        assert torch.isnan(out).all() and torch.equal(again, ref)  # the visit's end waits for every copy
+
+
 # ----------------------------------------------------------------------------------- the library on "cuda"
 @pytest.mark.skipif(torch.version.cuda is not None, reason="a CUDA build of torch: python -m pytest -m cuda runs "
                     "the CUDA tests on its GPU, and the simulated runtime is for CPU-only builds")
@@ -132,6 +194,7 @@ GENERATE_CASES = {  # dynamic, prompt, pipeline keywords
     "dynamic_prompt": (True, PROMPT, {}),
     "static_bfloat16": (False, "", dict(dtype=torch.bfloat16)),
     "offload_model_prompt": (True, PROMPT, dict(offload="model")),
+    "offload_model_prefetch_prompt": (True, PROMPT, dict(offload="model-prefetch")),
 }
 
 
