@@ -355,6 +355,7 @@ def test_the_background_is_composited_behind_the_gaussians(background):
     torch.testing.assert_close(rgb.detach(), rgb0.detach() + (1 - alpha.detach())[..., None] * bg)
 
 
+@pytest.mark.slow  # 2.5 s: 300 fitting iterations
 def test_a_learned_background_fits_the_backdrop_colour():
     """Views of the blob over a backdrop colour: the learned colour (starting at grey, no depth) reaches it."""
     backdrop = torch.tensor([0.2, 0.7, 0.4])

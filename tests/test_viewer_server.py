@@ -31,11 +31,16 @@ def _folder(tmp_path, **kw):
     return out, scene
 
 
+def _serve(server):
+    """``serve_forever`` polling every 10 ms: ``shutdown()`` waits for the next poll (0.5 s by default)."""
+    server.serve_forever(poll_interval=0.01)
+
+
 @pytest.fixture
 def served(tmp_path):
     out, scene = _folder(tmp_path, sh_degree=1)
     server = make_server(out, 0)
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread = threading.Thread(target=_serve, args=(server,), daemon=True)
     thread.start()
     yield out, scene, server.server_address[1]
     server.shutdown()
@@ -160,7 +165,7 @@ def test_a_render_output_is_served_with_its_own_viewer_html(tmp_path):
     out, _ = _folder(tmp_path)
     (out / "scene.ply").unlink()  # a render output: viewer.html, rgb/, … but no scene
     server = make_server(out, 0)
-    threading.Thread(target=server.serve_forever, daemon=True).start()
+    threading.Thread(target=_serve, args=(server,), daemon=True).start()
     try:
         port = server.server_address[1]
         assert _raw(port, "/") == (200, (out / "viewer.html").read_bytes())
