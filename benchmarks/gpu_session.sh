@@ -2,13 +2,15 @@
 # One GPU session's work (issue 26), step by step, on a lent machine that starts bare and is given back after
 # 30 s idle: every call sets up what is missing, runs its steps and leaves what must come back under $OUT.
 #
-#   bash benchmarks/gpu_session.sh STEP [STEP ...]      # e.g. generate cuda, then suite, then gt-data gt-train
+#   bash benchmarks/gpu_session.sh STEP [STEP ...]      # e.g. generate cuda, then suite-1, then suite-2, …
 #   GPU_SESSION_DRY=1 bash benchmarks/gpu_session.sh all   # print the commands only
 #
 # Steps, in the order of what only a GPU can show (minutes on one H100, estimated):
 #   generate   benchmarks/gpu.py --part generate --write: the paper-size rows, goal <= 30 s and <= 25 GB (~6)
 #   cuda       python -m pytest -m cuda: the CUDA cases, gsplat parity and the real_gpu ones included (~3)
-#   suite      python -m pytest: the whole suite on a machine with CUDA (~8)
+#   suite-1    python -m pytest on the first half of the test files (test_a… to test_pi…) with CUDA (~5)
+#   suite-2    the second half (test_pr… to test_w…): the two halves are the whole suite, which ran past a
+#              10-minute command before (95 % in 500 s on an H100)
 #   render     benchmarks/gpu.py --part render --write (~1)
 #   train      benchmarks/gpu.py --part train --write (~2)
 #   gt-data    benchmarks/gpu_training.py --part data (~4)
@@ -34,14 +36,15 @@ WORK=runs/gpu_training  # ignored; kept between calls on a machine that stays wa
 declare -A COMMANDS=(
   [generate]="python benchmarks/gpu.py --part generate --write"
   [cuda]="python -m pytest -m cuda -rs -p no:cacheprovider"
-  [suite]="python -m pytest -rs -p no:cacheprovider"
+  [suite-1]="python -m pytest -rs -p no:cacheprovider tests/test_[a-o]*.py tests/test_p[a-i]*.py"
+  [suite-2]="python -m pytest -rs -p no:cacheprovider tests/test_p[j-z]*.py tests/test_[q-z]*.py"
   [render]="python benchmarks/gpu.py --part render --write"
   [train]="python benchmarks/gpu.py --part train --write"
   [gt-data]="python benchmarks/gpu_training.py --part data --work $WORK"
   [gt-train]="python benchmarks/gpu_training.py --part train --work $WORK"
   [gt-eval]="python benchmarks/gpu_training.py --part eval --work $WORK --write"
 )
-ORDER=(generate cuda suite render train gt-data gt-train gt-eval)
+ORDER=(generate cuda suite-1 suite-2 render train gt-data gt-train gt-eval)
 
 steps=()
 for s in "$@"; do

@@ -24,8 +24,9 @@ def test_every_step_runs_a_command_that_accepts_its_flags():
     proc = _session("all")
     assert proc.returncode == 0, proc.stderr
     commands = [shlex.split(line) for line in proc.stdout.splitlines()]
-    assert len(commands) == 8
+    assert len(commands) == 9
     helps: dict[str, str] = {}
+    halves = []
     for cmd in commands:
         assert cmd[0] == "python"
         if cmd[1] == "-m":  # pytest: its markers are registered (--strict-markers)
@@ -33,6 +34,9 @@ def test_every_step_runs_a_command_that_accepts_its_flags():
             if "-m" in cmd[3:]:
                 marker = cmd[cmd.index("-m", 3) + 1]
                 assert re.search(rf'^\s*"{marker}:', (ROOT / "pyproject.toml").read_text(), re.M), marker
+            globs = [a for a in cmd[3:] if a.startswith("tests/")]
+            if globs:
+                halves.append({p for g in globs for p in ROOT.glob(g)})
             continue
         script = ROOT / cmd[1]
         assert script.is_file(), cmd
@@ -43,6 +47,9 @@ def test_every_step_runs_a_command_that_accepts_its_flags():
             assert flag in helps[cmd[1]], (cmd, flag)
         part = cmd[cmd.index("--part") + 1]
         assert re.search(rf"--part \{{[^}}]*\b{part}\b", helps[cmd[1]]), (cmd, part)
+    # the suite's halves: every test file in exactly one
+    assert len(halves) == 2 and halves[0] and halves[1] and not halves[0] & halves[1]
+    assert halves[0] | halves[1] == set((ROOT / "tests").glob("test_*.py"))
 
 
 def test_an_unknown_or_missing_step_is_one_line_exit_2():
