@@ -26,11 +26,11 @@ Two ways to use it:
 * a whole pytest run with tests/simulated_cuda_plugin.py, which loads tests/simulated_cuda_runtime.cpp (that
   guard and those hooks) before torch: autograd runs (:data:`RUNTIME`), so does every binding.
 
-Streams are simulated for their ordering: the current stream runs everything at once, and a copy issued on
-another stream (``with torch.cuda.stream(side):``) lands only when a stream waits for it (``wait_event`` of an
-event recorded after it, ``wait_stream``, ``synchronize``); until then its destination holds NaN (integers: the
-dtype's smallest value), so a kernel that reads a prefetched tensor before waiting for it computes garbage here,
-as it may on a GPU (:class:`_Stream`).
+Streams are simulated for their ordering: the current stream runs everything at once, and a copy into a CUDA tensor
+issued on another stream (``with torch.cuda.stream(side):``) lands only when a stream waits for it (``wait_event``
+of an event recorded after it, ``wait_stream``, ``synchronize``); until then its destination holds NaN (integers:
+the dtype's smallest value), so a kernel that reads a prefetched tensor before waiting for it computes garbage
+here, as it may on a GPU (:class:`_Stream`).
 
 Neither can run CUDA-only kernels (gsplat: the PyTorch tile path renders), ``torch.compile`` (it does not trace a
 dispatch mode), pinned memory, memory figures (reported as 0) or measure speed. Nothing leaks out of
@@ -129,8 +129,9 @@ def _check_devices(func, args, kwargs) -> torch.device | None:
 
 
 class _Stream:
-    """A simulated CUDA stream (module docstring): copies issued while it is current and not the default stream
-    are held, their destinations filled with NaN (integers: the dtype's smallest value), until a wait lands them."""
+    """A simulated CUDA stream (module docstring): copies into CUDA tensors issued while it is current and not the
+    default stream are held, their destinations filled with NaN (integers: the dtype's smallest value), until a
+    wait lands them."""
 
     def __init__(self, device=None, priority: int = 0):
         self.held: list[tuple[int, torch.Tensor, torch.Tensor]] = []  # (sequence number, destination, source)
