@@ -161,14 +161,10 @@ class _Stream:
     def synchronize(self) -> None:
         self.land(self.issued)
 
-    def record_event(self, event: _Event | None = None) -> _Event:
-        event = event or _Event()
-        event.record(self)
-        return event
-
 
 class _Event:
-    """A simulated CUDA event: the point of a :class:`_Stream`'s work it was recorded at."""
+    """A simulated CUDA event: the point of a :class:`_Stream`'s work it was recorded at (``record``; streams
+    wait for it with ``wait_event``)."""
 
     def __init__(self, *args, **kwargs):
         self.stream: _Stream | None = None
@@ -177,16 +173,6 @@ class _Event:
     def record(self, stream: _Stream | None = None) -> None:
         self.stream = stream or _STREAMS.current[-1]
         self.count = self.stream.issued
-
-    def wait(self, stream: _Stream | None = None) -> None:
-        (stream or _STREAMS.current[-1]).wait_event(self)
-
-    def synchronize(self) -> None:
-        if self.stream is not None:
-            self.stream.land(self.count)
-
-    def query(self) -> bool:
-        return self.stream is None or not any(h[0] < self.count for h in self.stream.held)
 
 
 _STREAMS = types.SimpleNamespace(all=[], current=[])
