@@ -13,21 +13,27 @@ Three parts, each small enough for one 10-minute command on one GPU:
   transformer blocks ``torch.compile``-d, and with cuDNN attention), with offload and no prompt,
   and without offload and no prompt. Goal (issue 26, the paper's figures): paper-size
   `generate` end to end ≤ 30 s and ≤ 25 GB.
+- ``command``: the README's paper-size command (``diff4splat generate photo --config paper --dtype bfloat16
+  --offload model --prompt …``) in a child process, once, as a user runs it: wall time of the whole process, its
+  host memory peak, the GPU peak and the output folder's size.
 - ``train``: optimizer steps per second and peak memory of ``train_base_dit``, ``train_base_ldrm`` and
   ``train_stage1`` with the ``small`` model on synthetic data made here (``data_prep synth``), on the trainer's
   defaults for the device (bf16 autocast and TF32 on CUDA).
 
-    python benchmarks/gpu.py --part render|generate|train|all [--write]
+    python benchmarks/gpu.py --part render|generate|command|train|all [--write]
     python benchmarks/gpu.py --device cpu --quick --part all     # a dry run of the code paths, no figures
 
-``--write`` replaces the sections ``gpu_render``, ``gpu_generate`` and ``gpu_train`` of docs/benchmarks.md; every
-table names the device it ran on. Without CUDA the script exits with one line and code 2 unless ``--device cpu``.
+``--write`` replaces the sections ``gpu_render``, ``gpu_generate``, ``gpu_command`` and ``gpu_train`` of
+docs/benchmarks.md; every table names the device it ran on. Without CUDA the script exits with one line and code 2
+unless ``--device cpu``.
 """
 from __future__ import annotations
 
 import argparse
 import contextlib
 import csv
+import json
+import os
 import statistics
 import subprocess
 import sys
@@ -215,6 +221,49 @@ def part_generate(device: torch.device, quick: bool) -> str:
                              rows) + verdict)
 
 
+# -------------------------------------------------------------------------------------------------- command
+COMMAND = ("generate", str(EXAMPLE), "--config", "paper", "--dtype", "bfloat16", "--offload", "model",
+           "--prompt", PROMPT)
+"""The README's paper-size command ("On a GPU"), as a user types it."""
+
+
+def part_command(device: torch.device, quick: bool) -> str:
+    """The README's paper-size command in a child process, as a user runs it: the whole process's wall time
+    (imports, building the random paper model in bfloat16 on the CPU, the checks, generate, writing the folder),
+    its peak host memory (``ru_maxrss``), the stages and GPU peak from meta.json, and the folder's size."""
+    argv = list(COMMAND) if not quick else ["generate", str(EXAMPLE), "--config", "base", "--steps", "1",
+                                            "--frames", "5", "--prompt", PROMPT]
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "out"
+        t0 = time.perf_counter()
+        child = subprocess.Popen([sys.executable, "-m", "diff4splat.cli", *argv, "--device", str(device), "--quiet",
+                                  "--out", str(out)])
+        _, status, usage = os.wait4(child.pid, 0)  # this child's own peak
+        wall = time.perf_counter() - t0
+        if os.waitstatus_to_exitcode(status):
+            raise RuntimeError(f"{' '.join(argv)} exited with {os.waitstatus_to_exitcode(status)}")
+        meta = json.loads((out / "meta.json").read_text())
+        files = [f for f in out.rglob("*") if f.is_file()]
+        size = sum(f.stat().st_size for f in files) / 1e9
+        plys = sum(f.stat().st_size for f in files if f.parent.name == "frames") / 1e9
+    t = meta["timings_s"]
+    stages = sum(v for k, v in t.items() if k != "load_model")
+    row = [f"`diff4splat {' '.join(argv[:1] + ['photo.png'] + argv[2:-2])} --prompt …`", f"{wall:.1f}",
+           f"{t['load_model']:.1f}", f"{stages:.2f}", f"{wall - t['load_model'] - stages:.1f}",
+           f"{usage.ru_maxrss * 1024 / 1e9:.1f}", meta["peak_memory_gb"] or "–", f"{meta['num_gaussians']:,}",
+           f"{size:.2f} ({plys:.2f} in frames/)"]
+    print(row, flush=True)
+    return ("### The paper-size command end to end\n\n"
+            "`python benchmarks/gpu.py --part command --write`: the README's command (\"On a GPU\") in a child "
+            "process, once, as a user runs it: \"wall\" is the whole process (imports, the random paper model built "
+            "in bfloat16 on the CPU, the request's checks, generate, writing the folder); \"stages\" is the sum of "
+            "meta.json's stage timings (encode … render, the table above) and \"rest\" the remainder (imports, "
+            "checks, writing). Host peak = `ru_maxrss` of the child; GPU peak = meta.json's `peak_memory_gb`; "
+            f"GB = 10⁹ bytes. Device: {device_name(device)}.\n\n"
+            + markdown_table(["command", "wall s", "load_model s", "stages s", "rest s", "host peak GB",
+                              "GPU peak GB", "Gaussians", "output folder GB"], [row]))
+
+
 # ---------------------------------------------------------------------------------------------------- train
 TRAIN = ("train_base_dit", "train_base_ldrm", "train_stage1")
 
@@ -277,7 +326,7 @@ def gpu_device(args: argparse.Namespace) -> torch.device | None:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--part", choices=("render", "generate", "train", "all"), default="all")
+    ap.add_argument("--part", choices=("render", "generate", "command", "train", "all"), default="all")
     add_gpu_arguments(ap, "tiny sizes: checks that every path runs, no figures")
     args = ap.parse_args()
     device = gpu_device(args)
@@ -285,10 +334,11 @@ def main() -> int:
         return 2
     if device.type == "cuda":
         torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
-    parts = ("render", "generate", "train") if args.part == "all" else (args.part,)
+    parts = ("render", "generate", "command", "train") if args.part == "all" else (args.part,)
     for part in parts:
         t0 = time.perf_counter()
-        body = {"render": part_render, "generate": part_generate, "train": part_train}[part](device, args.quick)
+        body = {"render": part_render, "generate": part_generate, "command": part_command,
+                "train": part_train}[part](device, args.quick)
         print(body + f"\n\n({part}: {time.perf_counter() - t0:.0f} s)\n", flush=True)
         if args.write:
             write_section(f"gpu_{part}", body)

@@ -7,6 +7,8 @@
 #
 # Steps, in the order of what only a GPU can show (minutes on one H100, estimated):
 #   generate   benchmarks/gpu.py --part generate --write: the paper-size rows, goal <= 30 s and <= 25 GB (~6)
+#   command    benchmarks/gpu.py --part command --write: the README's paper-size command end to end, as a user
+#              runs it (the random paper model built on the CPU, the checks, writing ~7 GB) (~3)
 #   cuda       python -m pytest -m cuda: the CUDA cases, gsplat parity and the real_gpu ones included (~3)
 #   suite-1    python -m pytest on the first half of the test files (test_a… to test_pi…) with CUDA (~5)
 #   suite-2    the second half (test_pr… to test_w…): the two halves are the whole suite, which ran past a
@@ -35,6 +37,7 @@ WORK=runs/gpu_training  # ignored; kept between calls on a machine that stays wa
 
 declare -A COMMANDS=(
   [generate]="python benchmarks/gpu.py --part generate --write"
+  [command]="python benchmarks/gpu.py --part command --write"
   [cuda]="python -m pytest -m cuda -rs -p no:cacheprovider"
   [suite-1]="python -m pytest -rs -p no:cacheprovider tests/test_[a-o]*.py tests/test_p[a-i]*.py"
   [suite-2]="python -m pytest -rs -p no:cacheprovider tests/test_p[j-z]*.py tests/test_[q-z]*.py"
@@ -44,7 +47,7 @@ declare -A COMMANDS=(
   [gt-train]="python benchmarks/gpu_training.py --part train --work $WORK"
   [gt-eval]="python benchmarks/gpu_training.py --part eval --work $WORK --write"
 )
-ORDER=(generate cuda suite-1 suite-2 render train gt-data gt-train gt-eval)
+ORDER=(generate command cuda suite-1 suite-2 render train gt-data gt-train gt-eval)
 
 steps=()
 for s in "$@"; do

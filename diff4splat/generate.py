@@ -217,6 +217,7 @@ def generate(
     depth_kind: str = "metric",
     progress: bool = False,
     notes: Callable[[str], None] | None = None,
+    out: str | os.PathLike | None = None,
 ) -> Generation:
     """A 4D scene from one photograph, rendered along its camera path (the ``diff4splat generate`` command).
 
@@ -240,6 +241,8 @@ def generate(
             "inverse" (:data:`diff4splat.assemble.DEPTH_KINDS`).
         progress: tqdm progress bars.
         notes: called with one-line notes for the user (e.g. a depth map resized); default: ignored.
+        out: the folder :func:`write` will fill, if known: the output's size estimate is checked against the free
+            space of its disk (:func:`diff4splat.limits.check_output_size`; None: against the fixed 4 GiB).
 
     Returns:
         :class:`Generation`; write it with :func:`write`.
@@ -288,7 +291,7 @@ def generate(
     else:
         path = _cameras_from_file(Path(cameras), frames, photo_shape, width, height)
     check_output_size(len(path), path.width, path.height,  # before any network runs
-                      pipe.scene_slots(path.width, path.height, len(path)), knobs="--frames or --resolution")
+                      pipe.scene_slots(path.width, path.height, len(path)), knobs="--frames or --resolution", out=out)
     check_memory(pipe.memory_estimate(path.width, path.height, len(path)),
                  f"{len(path)} frames at {path.width}×{path.height}", "--frames or --resolution")
     result = pipe(image, path, prompt, steps=steps, sampler=sampler, guidance=guidance, seed=seed, progress=progress,

@@ -97,7 +97,7 @@ def generate_command(args) -> dict:
         trajectory=args.trajectory, amplitude=args.amplitude, frames=args.frames, resolution=args.resolution,
         prompt=args.prompt, steps=args.steps, sampler=args.sampler, guidance=args.guidance, seed=args.seed,
         depth=args.depth, depth_kind=args.depth_kind, progress=not args.quiet,
-        notes=None if args.quiet else lambda note: print(f"diff4splat: note: {note}", file=sys.stderr))
+        notes=None if args.quiet else lambda note: print(f"diff4splat: note: {note}", file=sys.stderr), out=args.out)
     return write(generation, args.out, fps=args.fps, overwrite=args.overwrite)
 
 

@@ -6,15 +6,23 @@ the value, the limit and the environment variable that raises it, e.g.::
 
     --steps 1000000000 exceeds the limit of 1000 sampler steps (set DIFF4SPLAT_MAX_STEPS to raise it)
 
-Limits are read from the environment at each check, so a variable set after import applies.
+Limits are read from the environment at each check, so a variable set after import applies. Two limits are the
+machine's own resources unless their variable is set: peak memory is checked against what the process holds plus
+the memory available when the check runs (:func:`available_memory`), and the output size against the free space
+of the output's disk (:func:`free_disk`); their fixed defaults (8 GiB, 4 GiB) apply only where that cannot be
+measured.
 """
 from __future__ import annotations
 
 import os
+import shutil
 from dataclasses import dataclass
+from pathlib import Path
+
+import psutil
 
 __all__ = ["Limit", "LIMITS", "LimitError", "limit", "check_limit", "check_output_size", "check_memory",
-           "OUTPUT_BYTES_PER_PIXEL", "OUTPUT_BYTES_PER_GAUSSIAN"]
+           "available_memory", "free_disk", "OUTPUT_BYTES_PER_PIXEL", "OUTPUT_BYTES_PER_GAUSSIAN"]
 
 
 @dataclass(frozen=True)
@@ -47,10 +55,13 @@ LIMITS: dict[str, Limit] = {lim.name: lim for lim in (
     Limit("image_pixels", 100_000_000, "DIFF4SPLAT_MAX_IMAGE_PIXELS", "pixels",
           "input photographs above 100 megapixels (the photo is decoded at full size before it is resized)"),
     Limit("output_bytes", 4 << 30, "DIFF4SPLAT_MAX_OUTPUT_BYTES", "bytes",
-          "long paths at a high model resolution, when the output disk has room for the estimate"),
+          "a fixed size instead of the output disk's free space (the default wherever that is measured): an "
+          "estimate above the free space of a disk that will have room (the estimate is an upper bound), or a "
+          "smaller cap"),
     Limit("memory_bytes", 8 << 30, "DIFF4SPLAT_MAX_MEMORY_BYTES", "bytes of memory",
-          "long paths or high resolutions on a machine with more free memory than a laptop's 8 GiB (the estimate is "
-          "an upper bound, 1.2-1.5x the measured peak; docs/benchmarks.md, 'Memory of generate')"),
+          "a fixed size instead of the memory available when the check runs (the default wherever that is "
+          "measured): the estimate is an upper bound, 1.2-1.5x the measured peak (docs/benchmarks.md, 'Memory of "
+          "generate'), so a request just above the available memory may still fit; or a smaller cap"),
     Limit("parameters", 20_000_000_000, "DIFF4SPLAT_MAX_PARAMETERS", "parameters",
           "model configs larger than the paper's (16.8 billion parameters), on a machine with 4 bytes each"),
     Limit("iterations", 100_000, "DIFF4SPLAT_MAX_ITERATIONS", "optimisation steps",
@@ -121,35 +132,74 @@ def check_limit(name: str, value: int, what: str) -> int:
     return value
 
 
+def available_memory() -> int | None:
+    """Bytes of memory this process may reach at its peak: what it holds now (its resident set: the networks are
+    loaded before the check) plus what a new allocation can take without swapping (psutil's ``available``:
+    MemAvailable on Linux, free + inactive on macOS, the available physical memory on Windows); None where psutil
+    cannot measure it. The default of the ``memory_bytes`` limit (:func:`check_memory`), which bounds an estimate
+    of the whole process's peak."""
+    try:
+        return int(psutil.virtual_memory().available + psutil.Process().memory_info().rss)
+    except (OSError, RuntimeError, NotImplementedError, psutil.Error):  # no /proc in a sandbox, an unknown system
+        return None
+
+
+def free_disk(path: str | os.PathLike) -> int | None:
+    """Free bytes for an unprivileged user on the disk that holds ``path`` (its nearest existing ancestor: the
+    output folder need not exist yet), or None where it cannot be measured. The default of the ``output_bytes``
+    limit (:func:`check_output_size`)."""
+    p = Path(os.path.abspath(path))
+    while not p.exists() and p.parent != p:
+        p = p.parent
+    try:
+        return int(shutil.disk_usage(p).free)
+    except OSError:
+        return None
+
+
+def _bound(name: str, measured: int | None, resource: str, knobs: str) -> tuple[int, str]:
+    """Limit ``name``'s value and, for a message, what it is and how to change it: its variable if set, else
+    ``measured`` (the machine's ``resource``) when known, else its fixed default."""
+    lim = LIMITS[name]
+    if os.environ.get(lim.env, "").strip() or measured is None:
+        bound = limit(name)
+        return bound, (f"the limit of {bound / 2**30:.1f} GiB ({bound} bytes; lower {knobs}, or set {lim.env} to "
+                       "raise it)")
+    return measured, f"the {measured / 2**30:.1f} GiB {resource} (lower {knobs}, or set {lim.env} to a size in bytes)"
+
+
 def check_output_size(frames: int, width: int, height: int, gaussians: int = 0,
-                      knobs: str = "--frames or the resolution") -> int:
+                      knobs: str = "--frames or the resolution", out: str | os.PathLike | None = None) -> int:
     """Estimate the bytes ``generate`` (or ``render``) writes for ``frames`` × ``width`` × ``height`` and a scene of
-    up to ``gaussians`` Gaussians, and check the limit.
+    up to ``gaussians`` Gaussians, and check it against the free space of ``out``'s disk.
 
     The estimate is frames · width · height · :data:`OUTPUT_BYTES_PER_PIXEL` for the images plus
     (frames + 1) · gaussians · :data:`OUTPUT_BYTES_PER_GAUSSIAN` for ``scene.ply``, the per-frame PLYs and the
     deformation maps (an upper bound: pruning only lowers the count, and a static scene writes no deformation).
+    The bound is ``DIFF4SPLAT_MAX_OUTPUT_BYTES`` when set, else the free space of the disk that will hold ``out``
+    (:func:`free_disk`), else (``out`` None or not measurable) the ``output_bytes`` limit's 4 GiB.
 
     Returns:
         The estimate, bytes.
 
     Raises:
-        LimitError: the estimate exceeds the ``output_bytes`` limit (message gives frames and resolution, the
-            estimate and the limit, and ``knobs``: the arguments that lower it).
+        LimitError: the estimate exceeds the bound (message gives frames and resolution, the estimate and the
+            bound, and ``knobs``: the arguments that lower it).
     """
     estimate = int(frames) * int(width) * int(height) * OUTPUT_BYTES_PER_PIXEL
     estimate += (int(frames) + 1) * int(gaussians) * OUTPUT_BYTES_PER_GAUSSIAN
-    lim = LIMITS["output_bytes"]
-    bound = limit("output_bytes")
+    bound, then = _bound("output_bytes", None if out is None else free_disk(out), f"free on the disk of {out}", knobs)
     if estimate > bound:
         raise LimitError(f"output of {frames} frames at {width}×{height}: estimated {estimate / 2**30:.1f} GiB "
-                         f"exceeds the limit of {bound / 2**30:.1f} GiB ({bound} bytes; lower {knobs}, or set "
-                         f"{lim.env} to raise it)")
+                         f"exceeds {then}")
     return estimate
 
 
 def check_memory(estimate: int, request: str, knobs: str) -> int:
-    """Check an estimate of a command's peak memory against the ``memory_bytes`` limit, before anything heavy runs.
+    """Check an estimate of a command's peak memory, before anything heavy runs, against the memory it can have.
+
+    The bound is ``DIFF4SPLAT_MAX_MEMORY_BYTES`` when set, else :func:`available_memory`, else (not measurable)
+    the ``memory_bytes`` limit's 8 GiB.
 
     Args:
         estimate: bytes (an upper bound, e.g. :meth:`diff4splat.pipeline.Diff4SplatPipeline.memory_estimate`).
@@ -160,11 +210,10 @@ def check_memory(estimate: int, request: str, knobs: str) -> int:
         ``estimate``.
 
     Raises:
-        LimitError: one line with the request, the estimate and the limit in GiB, the knobs and the variable.
+        LimitError: one line with the request, the estimate and the bound in GiB, the knobs and the variable.
     """
-    lim = LIMITS["memory_bytes"]
-    bound = limit("memory_bytes")
+    bound, then = _bound("memory_bytes", available_memory(), "of memory available to this process", knobs)
     if estimate > bound:
-        raise LimitError(f"{request}: estimated peak memory {estimate / 2**30:.1f} GiB exceeds the limit of "
-                         f"{bound / 2**30:.1f} GiB (lower {knobs}, or set {lim.env} to raise it)")
+        raise LimitError(f"{request}: estimated peak memory {estimate / 2**30:.1f} GiB exceeds "
+                         f"{then}")
     return estimate

@@ -180,8 +180,9 @@ def load_model(checkpoint: str | Path | None = None, config: str = DEFAULT_CONFI
 
     A checkpoint folder is ours (``config.json``: :meth:`Diff4SplatModel.from_pretrained`) or a pretrained diffusers
     backbone's (``model_index.json``: :meth:`models.backbones.model.BackboneModel.from_pretrained`, loaded directly
-    in ``dtype``, e.g. bfloat16, never as a float32 copy first). ``untrained=True`` skips checkpoint and shipped
-    weights and returns the seeded random model without a warning (the baseline that evaluations compare against).
+    in ``dtype``, e.g. bfloat16, never as a float32 copy first; a random model is built in ``dtype`` too).
+    ``untrained=True`` skips checkpoint and shipped weights and returns the seeded random model without a warning
+    (the baseline that evaluations compare against).
 
     Returns:
         (model in eval mode, a description of where the weights came from).
@@ -193,7 +194,7 @@ def load_model(checkpoint: str | Path | None = None, config: str = DEFAULT_CONFI
     """
     random_source = f"random:{config}:seed={seed}"
     if untrained:
-        return Diff4SplatModel.random(load_config(config), seed=seed).eval(), random_source
+        return Diff4SplatModel.random(load_config(config), seed=seed, dtype=dtype).eval(), random_source
     if checkpoint is not None:
         path = Path(checkpoint)
         if not path.is_dir():
@@ -209,7 +210,8 @@ def load_model(checkpoint: str | Path | None = None, config: str = DEFAULT_CONFI
         return Diff4SplatModel.from_pretrained(shipped).eval(), str(shipped)
     warnings.warn(f"no trained weights in {shipped}: using a randomly initialised '{config}' model "
                   f"(seed {seed}); its scenes show the pipeline working, not learned content", stacklevel=2)
-    return Diff4SplatModel.random(load_config(config), seed=seed).eval(), random_source
+    # built in ``dtype``: the paper-size model in bfloat16 is 33.7 GB, where a float32 build first held 67.3 GB
+    return Diff4SplatModel.random(load_config(config), seed=seed, dtype=dtype).eval(), random_source
 
 
 MIN_FOV_DEG = 0.1

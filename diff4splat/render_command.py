@@ -245,7 +245,7 @@ def rerender(
     else:
         path, depth = trajectory_cameras(src, trajectory, frames, amplitude)
     path = resize_cameras(path, width, height)
-    check_output_size(len(path), path.width, path.height, knobs="--frames, --width or --height")
+    check_output_size(len(path), path.width, path.height, knobs="--frames, --width or --height", out=out)
     scene = path_scene(src, path.times)
     if depth is None:
         depth = estimate_scene_depth(src)  # only the fill value of pixels that no frame covers (1 m without one)

@@ -131,6 +131,7 @@ def test_output_size_estimate_is_checked_before_the_networks_run(tmp_path, capsy
 def test_memory_estimate_is_checked_before_the_networks_run_and_names_the_knobs(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(Diff4SplatPipeline, "__call__", _never)
     monkeypatch.setenv("DIFF4SPLAT_MAX_OUTPUT_BYTES", str(1 << 40))  # the output check would refuse 401 frames first
+    monkeypatch.setenv("DIFF4SPLAT_MAX_MEMORY_BYTES", str(8 << 30))  # a laptop, whatever this machine has
     code, lines = _generate(capsys, tmp_path, "--frames", "401")
     _one_line(code, lines, "401 frames at 256×256: estimated peak memory", "GiB exceeds the limit of 8.0 GiB",
               "lower --frames or --resolution", "DIFF4SPLAT_MAX_MEMORY_BYTES")
@@ -150,7 +151,7 @@ def test_memory_estimate_grows_with_key_times_times_slots():
     assert 3.5 < grow[1] / grow[0] < 4.5
     pipe.runtime.has_deformation = False
     assert pipe.memory_estimate(c.width, c.height, 401) - fixed < grow[1] / 10
-    with pytest.raises(LimitError, match="GiB exceeds the limit of 8.0 GiB"):
+    with pytest.raises(LimitError, match="GiB exceeds the .* GiB"):  # TBs: above any machine's memory
         check_memory(pipe.memory_estimate(1024, 1024, 1001), "x", "y")
 
 

@@ -1,0 +1,126 @@
+"""The memory and output-size limits are the machine's own: the memory available now and the free space of the
+output's disk (diff4splat/limits.py), so the paper-size command of the README passes its checks on a GPU machine
+(it was refused by the fixed 8 GiB / 4 GiB of a laptop) and a small disk refuses a request before any network runs.
+"""
+import os
+import shutil
+import sys
+
+import psutil
+import pytest
+import torch
+from helpers import EXAMPLE_IMAGE
+
+import diff4splat.limits as limits
+from diff4splat.cli import main
+from diff4splat.generate import generate
+from diff4splat.limits import LIMITS, LimitError, available_memory, check_memory, check_output_size, free_disk
+from diff4splat.pipeline import Diff4SplatPipeline
+from models.bundle import Diff4SplatModel, load_config
+
+GiB = 1 << 30
+
+
+class _Ran(Exception):
+    """Raised in place of the networks: the request passed every check before them."""
+
+
+def _ran(*args, **kwargs):
+    raise _Ran
+
+
+@pytest.fixture
+def no_env(monkeypatch):
+    """Neither limit's variable set: the machine's resources decide."""
+    for name in ("memory_bytes", "output_bytes"):
+        monkeypatch.delenv(LIMITS[name].env, raising=False)
+
+
+def test_free_disk_is_the_free_space_of_the_nearest_existing_folder(tmp_path):
+    assert free_disk(tmp_path / "not" / "yet" / "out") == pytest.approx(shutil.disk_usage(tmp_path).free,
+                                                                         abs=64 << 20)
+    assert free_disk(tmp_path / "out") != shutil.disk_usage(tmp_path).total  # free, not the disk's size
+    assert free_disk("relative/out") == pytest.approx(shutil.disk_usage(os.getcwd()).free, abs=64 << 20)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/meminfo")
+def test_available_memory_is_what_the_process_holds_plus_memavailable():
+    """The estimate is of the whole process's peak, checked after the networks are loaded: the bound is what the
+    process holds plus Linux's MemAvailable (free + reclaimable page cache), not MemFree (which a full page cache
+    drives to zero) nor MemTotal, nor MemAvailable alone (which would count the loaded weights twice)."""
+    info = {k: int(v.split()[0]) * 1024 for k, v in
+            (line.split(":", 1) for line in open("/proc/meminfo").read().splitlines())}
+    rss = psutil.Process().memory_info().rss
+    assert rss > 256 << 20  # torch alone: so MemAvailable alone would miss by more than the tolerance
+    assert available_memory() == pytest.approx(info["MemAvailable"] + rss, abs=128 << 20)
+    assert available_memory() < psutil.virtual_memory().total + rss
+
+
+def test_output_size_is_checked_against_the_output_disk(tmp_path, monkeypatch, no_env):
+    out = tmp_path / "{braces} and spaces"
+    monkeypatch.setattr(limits, "free_disk", lambda path: 3 * GiB)
+    est = check_output_size(17, 256, 256, gaussians=1_000_000, out=out)  # 1.9 GiB
+    assert est == 17 * 256 * 256 * 16 + 18 * 1_000_000 * 112
+    with pytest.raises(LimitError) as e:
+        check_output_size(49, 512, 512, gaussians=3_479_808, knobs="--frames or --resolution", out=out)
+    assert str(e.value) == (f"output of 49 frames at 512×512: estimated 18.3 GiB exceeds the 3.0 GiB free on the disk "
+                            f"of {out} (lower --frames or --resolution, or set DIFF4SPLAT_MAX_OUTPUT_BYTES to a size "
+                            "in bytes)")
+    monkeypatch.setenv("DIFF4SPLAT_MAX_OUTPUT_BYTES", str(GiB))  # the variable wins over the disk
+    with pytest.raises(LimitError, match=r"exceeds the limit of 1.0 GiB \(1073741824 bytes; .*to raise it\)"):
+        check_output_size(17, 256, 256, gaussians=1_000_000, out=out)
+    monkeypatch.delenv("DIFF4SPLAT_MAX_OUTPUT_BYTES")
+    monkeypatch.setattr(limits, "free_disk", lambda path: None)  # not measurable: the fixed 4 GiB
+    with pytest.raises(LimitError, match="exceeds the limit of 4.0 GiB"):
+        check_output_size(49, 512, 512, gaussians=3_479_808, out=out)
+
+
+def test_memory_is_checked_against_the_memory_available(monkeypatch, no_env):
+    monkeypatch.setattr(limits, "available_memory", lambda: 12 * GiB)
+    assert check_memory(11 * GiB, "x", "y") == 11 * GiB
+    with pytest.raises(LimitError) as e:
+        check_memory(13 * GiB, "49 frames at 512×512", "--frames or --resolution")
+    assert str(e.value) == ("49 frames at 512×512: estimated peak memory 13.0 GiB exceeds the 12.0 GiB of memory "
+                            "available to this process (lower --frames or --resolution, or set "
+                            "DIFF4SPLAT_MAX_MEMORY_BYTES to a size in bytes)")
+    monkeypatch.setenv("DIFF4SPLAT_MAX_MEMORY_BYTES", str(16 * GiB))  # the variable wins, above or below
+    assert check_memory(13 * GiB, "x", "y") == 13 * GiB
+    monkeypatch.delenv("DIFF4SPLAT_MAX_MEMORY_BYTES")
+    monkeypatch.setattr(limits, "available_memory", lambda: None)  # not measurable: the fixed 8 GiB
+    with pytest.raises(LimitError, match="exceeds the limit of 8.0 GiB"):
+        check_memory(9 * GiB, "x", "y")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("memory, disk, refused", [
+    (120 * GiB, 60 * GiB, None),  # the H100 machine of issue 26: 128 GiB of memory, 64 GiB of disk
+    (8 * GiB, 60 * GiB, "of memory available to this process"),  # a laptop: the weights alone are 33.7 GB in bfloat16
+    (120 * GiB, 10 * GiB, "free on the disk of"),  # a full disk: 18.3 GiB for 49 frames of 3.48 M Gaussian slots
+])
+def test_the_paper_size_request_passes_its_checks_where_the_machine_has_room(tmp_path, monkeypatch, no_env, memory,
+                                                                             disk, refused):
+    """`generate --config paper` (49 frames, 512²) was refused before any network ran by the fixed defaults
+    (18.3 GiB of output against 4 GiB, 70.8 GB of memory against 8 GiB) on any machine: the README's paper-size
+    command could not run. The paper model is built on the meta device (no memory); the networks are not run."""
+    pipe = Diff4SplatPipeline(Diff4SplatModel.random(load_config("paper"), device="meta", dtype=torch.bfloat16),
+                              device="meta")
+    monkeypatch.setattr(Diff4SplatPipeline, "__call__", _ran)
+    monkeypatch.setattr(limits, "available_memory", lambda: memory)
+    monkeypatch.setattr(limits, "free_disk", lambda path: disk)
+    expected = _Ran if refused is None else LimitError
+    with pytest.raises(expected, match=refused):
+        generate(EXAMPLE_IMAGE, pipeline=pipe, out=tmp_path / "out")
+
+
+def test_cli_refuses_a_request_its_output_disk_cannot_hold_before_the_networks_run(tmp_path, capsys, monkeypatch,
+                                                                                   no_env):
+    monkeypatch.setattr(Diff4SplatPipeline, "__call__", _ran)
+    seen = []
+    monkeypatch.setattr(limits, "free_disk", lambda path: seen.append(path) or 50 << 20)  # 50 MiB free
+    out = tmp_path / "out"
+    code = main(["generate", str(EXAMPLE_IMAGE), "--quiet", "--out", str(out)])
+    err = [line for line in capsys.readouterr().err.splitlines() if not line.startswith("diff4splat: warning")]
+    assert code == 2 and len(err) == 1, err
+    assert err[0].startswith("diff4splat: error: output of 17 frames at 256×256: estimated 0.2 GiB exceeds the 0.0 GiB "
+                             f"free on the disk of {out}"), err
+    assert seen == [out] and not out.exists()
