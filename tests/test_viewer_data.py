@@ -11,6 +11,7 @@ from diff4splat.cameras.path import CameraPath
 from diff4splat.io import load_ply
 from diff4splat.viewer.data import (
     FLOAT16_MAX_PX,
+    _fits_float16,
     decode_keyframes,
     encode_keyframes,
     float16_error_px,
@@ -136,3 +137,12 @@ def test_config_cameras_and_errors():
     assert math.isfinite(c["far"]) and c["far"] >= 100
     with pytest.raises(ValueError, match="fps"):
         viewer_payload(scene, cams, fps=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_fits_float16_is_a_finite_float16_cast_without_the_copy(dtype):
+    """One min/max pass decides what `isfinite(x.half()).all()` would (the float16 keyframes' range check)."""
+    edge = [65504.0, 65519.0, 65519.99, 65520.0, 70000.0, math.nan, math.inf, 1e-8, 0.0]
+    for v in edge + [-x for x in edge]:
+        x = torch.tensor([[1.0, v], [0.5, -2.0]], dtype=dtype)
+        assert _fits_float16(x) == bool(torch.isfinite(x.half()).all()), v

@@ -48,6 +48,29 @@ def ply_property_names(sh_coeffs: int) -> list[str]:
     return names
 
 
+def _ply_parts(gaussians: Gaussians) -> tuple[bytes, np.ndarray]:
+    """The PLY header and the vertex records: an (N, P) C-contiguous little-endian float32 array, the properties
+    in file order (module docstring). The logit and log columns are computed in float64 and rounded once."""
+    gaussians.validate()
+    g = gaussians.detach().to("cpu")  # device: the records are a CPU array
+    n, k = g.num_gaussians, g.sh.shape[1]
+    names = ply_property_names(k)
+    values = torch.empty(n, len(names), dtype=torch.float32)
+    o = 9 + 3 * (k - 1)  # the opacity column
+    values[:, 0:3] = g.means
+    values[:, 3:6] = 0  # the normals
+    values[:, 6:9] = g.sh[:, 0, :]
+    values[:, 9:o] = g.sh[:, 1:, :].transpose(1, 2).reshape(n, 3 * (k - 1))  # channel-major rest coefficients
+    opac = g.opacities.double().clamp(OPACITY_EPS, 1.0 - OPACITY_EPS)
+    values[:, o] = torch.log(opac / (1.0 - opac))
+    values[:, o + 1:o + 4] = torch.log(g.scales.double())
+    values[:, o + 4:o + 8] = g.quats
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
+    header += [f"property float {name}" for name in names]
+    header += ["end_header"]
+    return ("\n".join(header) + "\n").encode("ascii"), np.asarray(values.numpy(), dtype="<f4")  # no copy on x86/ARM
+
+
 def ply_bytes(gaussians: Gaussians) -> bytes:
     """The whole binary PLY file (module docstring) of N activated Gaussians, as bytes (what :func:`save_ply`
     writes; the viewer embeds it).
@@ -55,27 +78,8 @@ def ply_bytes(gaussians: Gaussians) -> bytes:
     Raises:
         ValueError: ``gaussians`` fails :meth:`Gaussians.validate`.
     """
-    gaussians.validate()
-    g = gaussians.detach().to("cpu", torch.float64)
-    n, k = g.num_gaussians, g.sh.shape[1]
-    opac = g.opacities.clamp(OPACITY_EPS, 1.0 - OPACITY_EPS)
-    columns = [
-        g.means,
-        torch.zeros(n, 3, dtype=torch.float64, device="cpu"),
-        g.sh[:, 0, :],
-        g.sh[:, 1:, :].transpose(1, 2).reshape(n, 3 * (k - 1)),  # channel-major rest coefficients
-        torch.log(opac / (1.0 - opac))[:, None],
-        torch.log(g.scales),
-        g.quats,
-    ]
-    # Every property is a little-endian float32 in file order: the vertex records are the rows of one C-contiguous
-    # (N, P) float32 array.
-    values = np.ascontiguousarray(torch.cat(columns, dim=1).numpy(), dtype="<f4")  # device: g is a CPU copy
-    names = ply_property_names(k)
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
-    header += [f"property float {name}" for name in names]
-    header += ["end_header"]
-    return ("\n".join(header) + "\n").encode("ascii") + values.tobytes()
+    header, values = _ply_parts(gaussians)
+    return header + values.tobytes()
 
 
 def save_ply(path: str | os.PathLike, gaussians: Gaussians) -> None:
@@ -89,10 +93,11 @@ def save_ply(path: str | os.PathLike, gaussians: Gaussians) -> None:
     Raises:
         ValueError: ``gaussians`` fails :meth:`Gaussians.validate`.
     """
-    data = ply_bytes(gaussians)
+    header, values = _ply_parts(gaussians)
     with atomic_output_path(path) as tmp:
         with open(tmp, "wb") as f:
-            f.write(data)
+            f.write(header)
+            f.write(values.data)  # the records' own buffer: no bytes copy of the file
 
 
 _MAX_HEADER_LINE = 1024

@@ -104,10 +104,11 @@ def float16_error_px(
     the Gaussians in front of them (z > ``near``) whose projection lies within 4× the principal point's
     distance from the image origin; 0.0 when no Gaussian is in view. Large inputs are measured on a seeded
     evenly spaced subset of ``max_points`` points and ``max_cameras`` evenly spaced cameras (first and last kept)."""
-    pts = means.reshape(-1, 3).double()
+    pts = means.reshape(-1, 3)
     if pts.shape[0] > max_points:
         pick = torch.linspace(0, pts.shape[0] - 1, max_points, device=pts.device).round().long()
         pts = pts[pick]  # evenly spaced: the same subset on every device, no permutation of millions
+    pts = pts.double()  # after the pick: a float64 copy of the subset, not of every frame's means
     if viewmats.shape[0] > max_cameras:
         pick = torch.linspace(0, viewmats.shape[0] - 1, max_cameras, device=viewmats.device).round().long()
         viewmats, Ks = viewmats[pick], Ks[pick]
@@ -125,6 +126,13 @@ def float16_error_px(
         if bool(keep.any()):
             worst = max(worst, float((pa[keep] - pb[keep]).norm(dim=1).max()))
     return worst
+
+
+def _fits_float16(x: Tensor) -> bool:
+    """Every value rounds to a finite float16: |x| < 65520 (the largest float16 is 65504; from 65520 on, rounding
+    gives inf) and no NaN, from one min/max pass instead of a float16 copy of the keyframes."""
+    lo, hi = torch.aminmax(x)
+    return bool(torch.maximum(-lo, hi) < 65520)  # NaN compares False
 
 
 def encode_keyframes(frames: dict[str, Tensor], dtype: str) -> bytes:
@@ -185,7 +193,7 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
     dtype, err = "float32", None
     if frames is not None:
         err = float16_error_px(frames["means"], cameras.viewmats.detach().cpu(), cameras.Ks.detach().cpu())
-        in_range = all(bool(torch.isfinite(v.half()).all()) for v in frames.values())  # |x| ≤ 65504
+        in_range = all(_fits_float16(v) for v in frames.values())
         dtype = "float16" if err <= FLOAT16_MAX_PX and in_range else "float32"
     itemsize = 2 if dtype == "float16" else 4
     F = 0 if times is None else times.shape[0]
