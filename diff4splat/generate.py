@@ -218,6 +218,7 @@ def generate(
     progress: bool = False,
     notes: Callable[[str], None] | None = None,
     out: str | os.PathLike | None = None,
+    frame_plys: bool = True,
 ) -> Generation:
     """A 4D scene from one photograph, rendered along its camera path (the ``diff4splat generate`` command).
 
@@ -243,6 +244,9 @@ def generate(
         notes: called with one-line notes for the user (e.g. a depth map resized); default: ignored.
         out: the folder :func:`write` will fill, if known: the output's size estimate is checked against the free
             space of its disk (:func:`diff4splat.limits.check_output_size`; None: against the fixed 4 GiB).
+        frame_plys: whether :func:`write` writes frames/NNNN.ply, the scene at each frame's time (meta.json
+            ``frame_plys``; False: scene.ply and deformation.npz hold the same, in frames × 40 bytes per Gaussian
+            instead of frames × 108).
 
     Returns:
         :class:`Generation`; write it with :func:`write`.
@@ -291,7 +295,8 @@ def generate(
     else:
         path = _cameras_from_file(Path(cameras), frames, photo_shape, width, height)
     check_output_size(len(path), path.width, path.height,  # before any network runs
-                      pipe.scene_slots(path.width, path.height, len(path)), knobs="--frames or --resolution", out=out)
+                      pipe.scene_slots(path.width, path.height, len(path)), knobs="--frames or --resolution", out=out,
+                      frame_plys=frame_plys)
     check_memory(pipe.memory_estimate(path.width, path.height, len(path)),
                  f"{len(path)} frames at {path.width}×{path.height}", "--frames or --resolution")
     result = pipe(image, path, prompt, steps=steps, sampler=sampler, guidance=guidance, seed=seed, progress=progress,
@@ -302,6 +307,7 @@ def generate(
     timings = {"load_model": loaded.load_seconds, **result.timings, "render": time.perf_counter() - t0}
     meta = _meta(loaded, result, prompt, None if cameras is not None else trajectory, files, depth_kind, seed,
                  timings)
+    meta["frame_plys"] = bool(frame_plys)
     inputs = [Path(p) for p in files.values() if isinstance(p, (str, os.PathLike))] + list(loaded.files)
     return Generation(result, colors, depths, alphas, meta, inputs, cfg.scene_depth, time.perf_counter() - t_start)
 
@@ -368,7 +374,7 @@ def write(generation: Generation, out_dir: str | os.PathLike, *, fps: int = 8, o
     result = generation.result
     write_scene_folder(out_dir, result.scene, result.cameras, generation.colors, generation.depths,
                        generation.alphas, meta, fps=fps, depth_fallback=generation.depth_fallback,
-                       inputs=generation.inputs, overwrite=overwrite)
+                       inputs=generation.inputs, overwrite=overwrite, frame_plys=meta["frame_plys"])
     meta["timings_s"]["write"] = time.perf_counter() - t0
     meta["timings_s"]["total"] = generation.seconds + meta["timings_s"]["write"]
     return meta

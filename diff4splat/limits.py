@@ -22,7 +22,8 @@ from pathlib import Path
 import psutil
 
 __all__ = ["Limit", "LIMITS", "LimitError", "limit", "check_limit", "check_output_size", "check_memory",
-           "available_memory", "free_disk", "OUTPUT_BYTES_PER_PIXEL", "OUTPUT_BYTES_PER_GAUSSIAN"]
+           "available_memory", "free_disk", "OUTPUT_BYTES_PER_PIXEL", "OUTPUT_BYTES_PER_GAUSSIAN",
+           "OUTPUT_DEFORMATION_BYTES_PER_GAUSSIAN"]
 
 
 @dataclass(frozen=True)
@@ -87,6 +88,10 @@ depth (4), with margin for the videos' and PNGs' worst-case (incompressible) siz
 OUTPUT_BYTES_PER_GAUSSIAN = 112
 """Upper bound of what ``generate`` writes per Gaussian and frame: a float32 PLY row of SH degree 0 with normals
 (17 × 4 bytes) plus its deformation (Δμ 3, Δq 4, Δs 3: 10 × 4 bytes), with margin for headers."""
+
+OUTPUT_DEFORMATION_BYTES_PER_GAUSSIAN = 44
+"""The same without the frame's PLY row (``generate --no-frame-plys``): the deformation's 10 × 4 bytes, with
+margin."""
 
 
 class LimitError(ValueError):
@@ -169,13 +174,16 @@ def _bound(name: str, measured: int | None, resource: str, knobs: str) -> tuple[
 
 
 def check_output_size(frames: int, width: int, height: int, gaussians: int = 0,
-                      knobs: str = "--frames or the resolution", out: str | os.PathLike | None = None) -> int:
+                      knobs: str = "--frames or the resolution", out: str | os.PathLike | None = None,
+                      frame_plys: bool = True) -> int:
     """Estimate the bytes ``generate`` (or ``render``) writes for ``frames`` × ``width`` × ``height`` and a scene of
     up to ``gaussians`` Gaussians, and check it against the free space of ``out``'s disk.
 
     The estimate is frames · width · height · :data:`OUTPUT_BYTES_PER_PIXEL` for the images plus
     (frames + 1) · gaussians · :data:`OUTPUT_BYTES_PER_GAUSSIAN` for ``scene.ply``, the per-frame PLYs and the
-    deformation maps (an upper bound: pruning only lowers the count, and a static scene writes no deformation).
+    deformation maps (an upper bound: pruning only lowers the count, and a static scene writes no deformation);
+    without ``frame_plys``, gaussians · (:data:`OUTPUT_BYTES_PER_GAUSSIAN` + frames ·
+    :data:`OUTPUT_DEFORMATION_BYTES_PER_GAUSSIAN`).
     The bound is ``DIFF4SPLAT_MAX_OUTPUT_BYTES`` when set, else the free space of the disk that will hold ``out``
     (:func:`free_disk`), else (``out`` None or not measurable) the ``output_bytes`` limit's 4 GiB.
 
@@ -187,7 +195,8 @@ def check_output_size(frames: int, width: int, height: int, gaussians: int = 0,
             bound, and ``knobs``: the arguments that lower it).
     """
     estimate = int(frames) * int(width) * int(height) * OUTPUT_BYTES_PER_PIXEL
-    estimate += (int(frames) + 1) * int(gaussians) * OUTPUT_BYTES_PER_GAUSSIAN
+    per_frame = OUTPUT_BYTES_PER_GAUSSIAN if frame_plys else OUTPUT_DEFORMATION_BYTES_PER_GAUSSIAN
+    estimate += int(gaussians) * (OUTPUT_BYTES_PER_GAUSSIAN + int(frames) * per_frame)
     bound, then = _bound("output_bytes", None if out is None else free_disk(out), f"free on the disk of {out}", knobs)
     if estimate > bound:
         raise LimitError(f"output of {frames} frames at {width}×{height}: estimated {estimate / 2**30:.1f} GiB "

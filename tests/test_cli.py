@@ -131,6 +131,24 @@ def test_without_shipped_weights_a_seeded_random_model_is_used_with_a_warning(tm
 
 
 @pytest.mark.slow
+def test_no_frame_plys_leaves_out_frames_and_nothing_else(tmp_path, dynamic_checkpoint):
+    """`--no-frame-plys`: no frames/, meta.json says so, every other file the same bytes as with them."""
+    args = ["--checkpoint", str(dynamic_checkpoint), "--trajectory", "spiral", "--frames", "5"]
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    code, with_plys = _generate(tmp_path / "a", *args)
+    assert code == 0
+    code, without = _generate(tmp_path / "b", *args, "--no-frame-plys")
+    assert code == 0
+    meta = _check_folder(without, 5)
+    assert not (without / "frames").exists() and (with_plys / "frames" / "0004.ply").is_file()
+    assert meta["frame_plys"] is False and json.loads((with_plys / "meta.json").read_text())["frame_plys"] is True
+    assert not meta["static"]
+    for name in ("scene.ply", "deformation.npz", "cameras.json", "rgb/0004.png", "depth/0004.exr", "video.mp4"):
+        assert (without / name).read_bytes() == (with_plys / name).read_bytes(), name
+
+
+@pytest.mark.slow
 def test_dynamic_checkpoint_frames_differ_only_through_the_deformation(tmp_path, dynamic_checkpoint):
     code, out = _generate(tmp_path, "--checkpoint", str(dynamic_checkpoint), "--trajectory", "spiral", "--frames", "5")
     assert code == 0

@@ -14,7 +14,17 @@ from helpers import EXAMPLE_IMAGE
 import diff4splat.limits as limits
 from diff4splat.cli import main
 from diff4splat.generate import generate
-from diff4splat.limits import LIMITS, LimitError, available_memory, check_memory, check_output_size, free_disk
+from diff4splat.limits import (
+    LIMITS,
+    OUTPUT_BYTES_PER_GAUSSIAN,
+    OUTPUT_BYTES_PER_PIXEL,
+    OUTPUT_DEFORMATION_BYTES_PER_GAUSSIAN,
+    LimitError,
+    available_memory,
+    check_memory,
+    check_output_size,
+    free_disk,
+)
 from diff4splat.pipeline import Diff4SplatPipeline
 from models.bundle import Diff4SplatModel, load_config
 
@@ -75,6 +85,18 @@ def test_output_size_is_checked_against_the_output_disk(tmp_path, monkeypatch, n
         check_output_size(49, 512, 512, gaussians=3_479_808, out=out)
 
 
+def test_without_frame_plys_the_estimate_is_the_scene_ply_and_the_deformation(monkeypatch):
+    """frames/ costs a PLY row per Gaussian and frame: without it, one row for scene.ply and the deformation's
+    10 float32 per Gaussian and frame remain (each with margin), still above what is written."""
+    monkeypatch.setenv("DIFF4SPLAT_MAX_OUTPUT_BYTES", str(1 << 50))
+    F, G = 49, 3_479_808
+    images = F * 512 * 512 * OUTPUT_BYTES_PER_PIXEL
+    assert check_output_size(F, 512, 512, G) == images + (F + 1) * G * OUTPUT_BYTES_PER_GAUSSIAN
+    without = check_output_size(F, 512, 512, G, frame_plys=False)
+    assert without == images + G * (OUTPUT_BYTES_PER_GAUSSIAN + F * OUTPUT_DEFORMATION_BYTES_PER_GAUSSIAN)
+    assert G * 17 * 4 + F * G * 10 * 4 < without - images < 0.45 * (check_output_size(F, 512, 512, G) - images)
+
+
 def test_memory_is_checked_against_the_memory_available(monkeypatch, no_env):
     monkeypatch.setattr(limits, "available_memory", lambda: 12 * GiB)
     assert check_memory(11 * GiB, "x", "y") == 11 * GiB
@@ -96,6 +118,7 @@ def test_memory_is_checked_against_the_memory_available(monkeypatch, no_env):
     (120 * GiB, 60 * GiB, None),  # the H100 machine of issue 26: 128 GiB of memory, 64 GiB of disk
     (8 * GiB, 60 * GiB, "of memory available to this process"),  # a laptop: the weights alone are 33.7 GB in bfloat16
     (120 * GiB, 10 * GiB, "free on the disk of"),  # a full disk: 18.3 GiB for 49 frames of 3.48 M Gaussian slots
+    (120 * GiB, -10 * GiB, None),  # the same disk with --no-frame-plys (7.5 GiB): the README's command
 ])
 def test_the_paper_size_request_passes_its_checks_where_the_machine_has_room(tmp_path, monkeypatch, no_env, memory,
                                                                              disk, refused):
@@ -106,10 +129,10 @@ def test_the_paper_size_request_passes_its_checks_where_the_machine_has_room(tmp
                               device="meta")
     monkeypatch.setattr(Diff4SplatPipeline, "__call__", _ran)
     monkeypatch.setattr(limits, "available_memory", lambda: memory)
-    monkeypatch.setattr(limits, "free_disk", lambda path: disk)
+    monkeypatch.setattr(limits, "free_disk", lambda path: abs(disk))
     expected = _Ran if refused is None else LimitError
     with pytest.raises(expected, match=refused):
-        generate(EXAMPLE_IMAGE, pipeline=pipe, out=tmp_path / "out")
+        generate(EXAMPLE_IMAGE, pipeline=pipe, out=tmp_path / "out", frame_plys=disk > 0)
 
 
 def test_cli_refuses_a_request_its_output_disk_cannot_hold_before_the_networks_run(tmp_path, capsys, monkeypatch,

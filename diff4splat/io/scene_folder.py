@@ -260,6 +260,7 @@ def write_scene_folder(
     kind: str = "generate",
     extra: Callable[[Path], None] | None = None,
     with_scene: bool = True,
+    frame_plys: bool = True,
 ) -> Path:
     """Write the whole output folder into a temporary folder, then rename it onto ``out_dir``
     (:func:`~diff4splat.io.output_folders.output_dir`, marker kind ``kind``: "generate", "fit" for ``diff4splat fit``,
@@ -269,6 +270,8 @@ def write_scene_folder(
     last, so ``extra`` may still add to ``meta``), to add files of its own. ``with_scene=False`` (a ``render``
     output) leaves out scene.ply, deformation.npz and frames/, and pads an odd-sized video.mp4 to even sizes by
     repeating the last column/row (MPEG-4 Part 2 needs even sizes); ``out_dir``'s parents must then exist.
+    ``frame_plys=False`` leaves out frames/ alone (``generate --no-frame-plys``: the scene at each frame's time is
+    scene.ply deformed by deformation.npz; a long path's frames/ is most of the folder).
 
     A failure part-way leaves no ``out_dir`` (or the previous one untouched). An existing ``out_dir`` is
     replaced only if it is empty or an earlier output of ``kind`` (or ``overwrite``), never if it holds
@@ -290,7 +293,7 @@ def write_scene_folder(
             if not scene.is_static or scene.has_temporal:
                 save_deformation(tmp / "deformation.npz", scene)
         for i in range(T):
-            if with_scene:
+            if with_scene and frame_plys:
                 save_ply(tmp / "frames" / f"{i:04d}.ply", scene.at(float(cameras.times[i])))
             save_depth_exr(tmp / "depth" / f"{i:04d}.exr", depths[i].cpu(), alphas[i].clamp(0, 1).cpu())
             save_image(tmp / "rgb" / f"{i:04d}.png", rgb[i])
