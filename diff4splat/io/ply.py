@@ -55,7 +55,7 @@ def _ply_parts(gaussians: Gaussians) -> tuple[bytes, np.ndarray]:
     g = gaussians.detach().to("cpu")  # device: the records are a CPU array
     n, k = g.num_gaussians, g.sh.shape[1]
     names = ply_property_names(k)
-    values = torch.empty(n, len(names), dtype=torch.float32)
+    values = torch.empty(n, len(names), dtype=torch.float32, device="cpu")  # device: the records are host bytes
     o = 9 + 3 * (k - 1)  # the opacity column
     values[:, 0:3] = g.means
     values[:, 3:6] = 0  # the normals
@@ -68,7 +68,8 @@ def _ply_parts(gaussians: Gaussians) -> tuple[bytes, np.ndarray]:
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
     header += [f"property float {name}" for name in names]
     header += ["end_header"]
-    return ("\n".join(header) + "\n").encode("ascii"), np.asarray(values.numpy(), dtype="<f4")  # no copy on x86/ARM
+    records = np.asarray(values.numpy(), dtype="<f4")  # device: a CPU tensor; no copy on little-endian hosts
+    return ("\n".join(header) + "\n").encode("ascii"), records
 
 
 def ply_bytes(gaussians: Gaussians) -> bytes:
