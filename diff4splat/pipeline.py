@@ -180,7 +180,7 @@ def load_model(checkpoint: str | Path | None = None, config: str = DEFAULT_CONFI
 
     A checkpoint folder is ours (``config.json``: :meth:`Diff4SplatModel.from_pretrained`) or a pretrained diffusers
     backbone's (``model_index.json``: :meth:`models.backbones.model.BackboneModel.from_pretrained`, loaded directly
-    in ``dtype``, e.g. bfloat16, never as a float32 copy first; a random model is built in ``dtype`` too).
+    in ``dtype``, e.g. bfloat16, never as a float32 copy first; so are our checkpoints and a random model).
     ``untrained=True`` skips checkpoint and shipped weights and returns the seeded random model without a warning
     (the baseline that evaluations compare against).
 
@@ -204,10 +204,10 @@ def load_model(checkpoint: str | Path | None = None, config: str = DEFAULT_CONFI
         if not (path / "config.json").is_file():
             raise ValueError(f"checkpoint: {path} is neither a diff4splat model (config.json) nor a diffusers backbone "
                              f"folder ({INDEX_FILE}, e.g. Wan-AI/Wan2.2-TI2V-5B-Diffusers)")
-        return Diff4SplatModel.from_pretrained(path).eval(), str(path)
+        return Diff4SplatModel.from_pretrained(path, dtype=dtype).eval(), str(path)
     shipped = WEIGHTS_DIR / config
     if (shipped / "config.json").is_file():
-        return Diff4SplatModel.from_pretrained(shipped).eval(), str(shipped)
+        return Diff4SplatModel.from_pretrained(shipped, dtype=dtype).eval(), str(shipped)
     warnings.warn(f"no trained weights in {shipped}: using a randomly initialised '{config}' model "
                   f"(seed {seed}); its scenes show the pipeline working, not learned content", stacklevel=2)
     # built in ``dtype``: the paper-size model in bfloat16 is 33.7 GB, where a float32 build first held 67.3 GB

@@ -243,8 +243,10 @@ class Diff4SplatModel(nn.Module):
         return directory
 
     @classmethod
-    def from_pretrained(cls, directory: str | os.PathLike, map_location: str = "cpu") -> Diff4SplatModel:
-        """Load a folder written by :meth:`save_pretrained`.
+    def from_pretrained(cls, directory: str | os.PathLike, map_location: str = "cpu",
+                        dtype: torch.dtype | None = None) -> Diff4SplatModel:
+        """Load a folder written by :meth:`save_pretrained`, each network directly in ``dtype`` (None: float32;
+        :meth:`models.pretrained.PretrainedMixin.from_pretrained`: no float32 copy first).
 
         Raises:
             FileNotFoundError: a missing config.json or network sub-folder.
@@ -265,7 +267,7 @@ class Diff4SplatModel(nn.Module):
         nn.Module.__init__(model)
         model.config = config
         for name, module_cls in _MODULES.items():
-            sub = module_cls.from_pretrained(directory / name, map_location=map_location)
+            sub = module_cls.from_pretrained(directory / name, map_location=map_location, dtype=dtype)
             if sub.config != getattr(config, name):
                 raise ValueError(f"checkpoint: {directory / name} config differs from {directory / CONFIG_NAME}")
             setattr(config, name, sub.config)  # one object, as in __init__: edits reach both

@@ -170,8 +170,14 @@ class PretrainedMixin:
         (folder / CONFIG_NAME).write_text(json.dumps({"class": type(self).__name__, **cfg}, indent=2))
 
     @classmethod
-    def from_pretrained(cls: type[T], directory: str | os.PathLike, map_location: str = "cpu") -> T:
+    def from_pretrained(cls: type[T], directory: str | os.PathLike, map_location: str = "cpu",
+                        dtype: torch.dtype | None = None) -> T:
         """Load a model written by :meth:`save_pretrained`.
+
+        The model is built on the ``meta`` device (no memory, no initialiser runs) and takes the file's tensors as
+        its parameters (``load_state_dict(assign=True)``), each cast to ``dtype`` (None: the default dtype,
+        float32) one at a time: a paper-size checkpoint loads into bfloat16 at the size of the file plus one
+        tensor, where building it first held a randomly initialised float32 copy (67 GB) beside the weights.
 
         Raises:
             FileNotFoundError: ``directory`` lacks config.json or model.safetensors.
@@ -190,10 +196,15 @@ class PretrainedMixin:
         data = {**getattr(cls.config_class, "SAVED_DEFAULTS", {}), **data}
         config = config_from_dict(cls.config_class, data, str(directory / CONFIG_NAME))
         check_model_size(lambda: cls(config), str(directory / CONFIG_NAME))
-        model = cls(config)
+        with torch.device("meta"), skip_init():  # every tensor comes from the file
+            model = cls(config)
         state = load_weights(directory / WEIGHTS_NAME, map_location)
+        target = dtype or torch.get_default_dtype()
+        for key, value in state.items():  # one cast at a time: the file's tensor is freed as its cast replaces it
+            if value.is_floating_point() and value.dtype != target:
+                state[key] = value.to(target)
         try:
-            missing, unexpected = model.load_state_dict(state, strict=False)
+            missing, unexpected = model.load_state_dict(state, strict=False, assign=True)
         except RuntimeError as e:  # tensor shapes that differ from the config's
             raise ValueError(f"checkpoint: {directory / WEIGHTS_NAME} does not fit {directory / CONFIG_NAME}: "
                              f"{e}") from None

@@ -131,6 +131,30 @@ def test_save_and_load_round_trip_gives_identical_networks(tmp_path):
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
 
+@pytest.mark.slow
+def test_a_checkpoint_loads_in_the_dtype_asked_for_without_building_a_cpu_model_first(tmp_path, monkeypatch):
+    """`from_pretrained(dtype=)` builds the networks on the meta device and takes the file's tensors: no layer is
+    ever initialised on the CPU (a paper-size checkpoint used to be built in float32 first, 67 GB), the result is
+    the file's values, and in bfloat16 it equals the float32 load cast, parameter for parameter."""
+    model = Diff4SplatModel.random(Diff4SplatConfig(), seed=3)
+    model.save_pretrained(tmp_path / "ckpt")
+    built_on = set()
+    reset = torch.nn.Linear.reset_parameters
+    monkeypatch.setattr(torch.nn.Linear, "reset_parameters",
+                        lambda self: (built_on.add(self.weight.device.type), reset(self))[1])
+    full = Diff4SplatModel.from_pretrained(tmp_path / "ckpt")
+    half = Diff4SplatModel.from_pretrained(tmp_path / "ckpt", dtype=torch.bfloat16)
+    assert built_on == {"meta"}
+    ref, a, b = model.state_dict(), full.state_dict(), half.state_dict()
+    assert a.keys() == b.keys() == ref.keys()
+    assert all(torch.equal(a[k], ref[k]) and a[k].device.type == "cpu" for k in ref)
+    assert all(b[k].dtype == torch.bfloat16 and torch.equal(b[k], ref[k].to(torch.bfloat16)) for k in ref
+               if ref[k].is_floating_point())
+    assert all(p.requires_grad for p in full.parameters())  # trainable as before (assign keeps requires_grad)
+    loaded, _ = load_model(tmp_path / "ckpt", dtype=torch.bfloat16)
+    assert {p.dtype for p in loaded.parameters()} == {torch.bfloat16}
+
+
 def test_random_models_are_seeded():
     a = Diff4SplatModel.random(Diff4SplatConfig(), seed=0).state_dict()
     b = Diff4SplatModel.random(Diff4SplatConfig(), seed=0).state_dict()
