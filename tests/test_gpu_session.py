@@ -57,3 +57,20 @@ def test_an_unknown_or_missing_step_is_one_line_exit_2():
         proc = _session(*args)
         assert proc.returncode == 2 and proc.stdout == ""
         assert proc.stderr.count("\n") == 1 and proc.stderr.startswith("gpu_session.sh: error: ")
+
+
+@pytest.mark.slow
+def test_the_command_part_runs_the_readme_command_in_a_child_and_measures_its_folder():
+    """`benchmarks/gpu.py --part command` on the CPU, quick (the base model, 5 frames, 1 step, the README command's
+    flags otherwise): the child writes its folder, and the row reads its stages and size back; with
+    --no-frame-plys, frames/ holds nothing."""
+    proc = subprocess.run([sys.executable, "benchmarks/gpu.py", "--device", "cpu", "--quick", "--part", "command"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    row = next(line for line in proc.stdout.splitlines() if line.startswith("| `diff4splat generate"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert "--no-frame-plys" in cells[0] and "--config base" in cells[0]
+    wall, load, stages, rest = (float(c) for c in cells[1:5])
+    assert wall > 0 and load > 0 and stages > 0 and abs(wall - load - stages - rest) < 0.15
+    assert cells[6] == "–" and int(cells[7].replace(",", "")) > 0  # no GPU peak on the CPU
+    assert float(cells[8].split()[0]) > 0 and cells[8].endswith("(0.00 in frames/)")
