@@ -251,8 +251,9 @@ class Diff4SplatModel(nn.Module):
         Raises:
             FileNotFoundError: a missing config.json or network sub-folder.
             ValueError: configs that do not fit together or weights that do not match; a config implying
-                more parameters than the ``parameters`` limit (:class:`diff4splat.limits.LimitError`, counted
-                on the ``meta`` device before any network is built).
+                more parameters than the ``parameters`` limit, or weights in ``dtype`` larger than the memory
+                available (:class:`diff4splat.limits.LimitError`, counted on the ``meta`` device before any
+                network is built).
         """
         directory = Path(directory)
         if not (directory / CONFIG_NAME).is_file():
@@ -262,7 +263,8 @@ class Diff4SplatModel(nn.Module):
             if isinstance(data.get(name), dict):
                 data[name] = {**getattr(module_cls.config_class, "SAVED_DEFAULTS", {}), **data[name]}
         config = config_from_dict(Diff4SplatConfig, data, str(directory / CONFIG_NAME))
-        check_model_size(lambda: cls(config), str(directory / CONFIG_NAME))  # before any network is built
+        check_model_size(lambda: cls(config), str(directory / CONFIG_NAME),  # before any network is built
+                         host_dtype=dtype or torch.get_default_dtype() if map_location == "cpu" else None)
         model = cls.__new__(cls)
         nn.Module.__init__(model)
         model.config = config
@@ -289,11 +291,13 @@ class Diff4SplatModel(nn.Module):
                 paper-size model in half the memory.
 
         Raises:
-            LimitError: ``config`` implies more parameters than the ``parameters`` limit (counted on the
-                ``meta`` device first, :func:`models.pretrained.check_model_size`).
+            LimitError: ``config`` implies more parameters than the ``parameters`` limit, or (built on the CPU)
+                weights larger than the memory available (counted on the ``meta`` device first,
+                :func:`models.pretrained.check_model_size`).
         """
-        check_model_size(lambda: cls(config), f"config {config.name!r}")
         device = torch.device(device)
+        check_model_size(lambda: cls(config), f"config {config.name!r}",
+                         host_dtype=dtype or torch.float32 if device.type == "cpu" else None)
         previous = torch.get_default_dtype()
         with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []), device:
             torch.manual_seed(seed)

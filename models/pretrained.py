@@ -10,12 +10,12 @@ from pathlib import Path
 from typing import Any, ClassVar, TypeVar, get_type_hints
 
 import torch
-from safetensors import SafetensorError
-from safetensors.torch import load_file, save_file
+from safetensors import SafetensorError, safe_open
+from safetensors.torch import save_file
 
 from diff4splat.io.output_folders import output_dir
 from diff4splat.io.structured import read_json
-from diff4splat.limits import LIMITS, LimitError, check_limit, limit
+from diff4splat.limits import LIMITS, LimitError, check_limit, check_memory, limit
 
 T = TypeVar("T", bound="PretrainedMixin")
 
@@ -25,15 +25,22 @@ MODEL_KIND = "model"
 """Output kind of a saved model folder (:data:`diff4splat.io.MARKER`)."""
 
 
-def load_weights(path: str | os.PathLike, map_location: str = "cpu") -> dict[str, torch.Tensor]:
-    """Read a ``model.safetensors`` file.
+def load_weights(path: str | os.PathLike, map_location: str = "cpu",
+                 dtype: torch.dtype | None = None) -> dict[str, torch.Tensor]:
+    """Read a ``model.safetensors`` file, tensor by tensor, floating-point tensors cast to ``dtype`` as they are
+    read (None: as stored): the peak is the result plus one tensor of the file.
 
     Raises:
         ValueError: naming ``path`` when the file is truncated or corrupt (safetensors' ``SafetensorError``
             or a header that is not valid JSON / UTF-8).
     """
     try:
-        return load_file(str(path), device=map_location)
+        state = {}
+        with safe_open(str(path), framework="pt", device=map_location) as f:
+            for key in f.keys():  # noqa: SIM118 - safe_open has keys(), no __iter__
+                t = f.get_tensor(key)
+                state[key] = t.to(dtype) if dtype is not None and t.is_floating_point() else t
+        return state
     except (SafetensorError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise ValueError(f"checkpoint: {path} is not a readable safetensors file (truncated or corrupt: "
                          f"{' '.join(str(e).split())})") from None
@@ -106,20 +113,23 @@ def skip_init() -> Iterator[None]:
             setattr(torch.nn.init, n, fn)
 
 
-def check_model_size(build: Any, where: str) -> int:
+def check_model_size(build: Any, where: str, host_dtype: torch.dtype | None = None) -> int:
     """Count the parameters ``build()`` would allocate, on the ``meta`` device (no memory) and without running
     initialisers (:func:`skip_init`), and check the ``parameters`` limit (:mod:`diff4splat.limits`) before the
-    real model is built.
+    real model is built; with ``host_dtype`` (weights built in CPU memory in that dtype) also check their bytes
+    against the memory this process can have (:func:`diff4splat.limits.check_memory`).
 
     Args:
         build: zero-argument callable that constructs the ``nn.Module`` (called under ``torch.device("meta")``).
         where: the config's source (a file or config name) for the message.
+        host_dtype: the dtype the weights will take in CPU memory; None: not built in CPU memory (another device).
 
     Returns:
         The parameter count.
 
     Raises:
-        LimitError: more parameters than the limit, or so many that a tensor size overflows (names ``where``).
+        LimitError: more parameters than the limit, or so many that a tensor size overflows (names ``where``);
+            weights larger than the memory available (names the dtype and, for float32, ``--dtype bfloat16``).
     """
     try:
         with torch.device("meta"), skip_init():
@@ -130,7 +140,12 @@ def check_model_size(build: Any, where: str) -> int:
         raise LimitError(f"{where}: the model this config describes is too large to count (a tensor size "
                          f"overflows); the limit is {limit('parameters')} parameters "
                          f"(set {LIMITS['parameters'].env} to raise it)") from None
-    return check_limit("parameters", n, f"{where}: a model of")
+    check_limit("parameters", n, f"{where}: a model of")
+    if host_dtype is not None:
+        itemsize = torch.empty((), dtype=host_dtype, device="meta").element_size()
+        check_memory(n * itemsize, f"{where}: the weights of {n:,} parameters in {str(host_dtype)[6:]}",
+                     "--dtype (bfloat16 halves float32) or --config" if itemsize > 2 else "--config")
+    return n
 
 
 class PretrainedMixin:
@@ -176,8 +191,9 @@ class PretrainedMixin:
 
         The model is built on the ``meta`` device (no memory, no initialiser runs) and takes the file's tensors as
         its parameters (``load_state_dict(assign=True)``), each cast to ``dtype`` (None: the default dtype,
-        float32) one at a time: a paper-size checkpoint loads into bfloat16 at the size of the file plus one
-        tensor, where building it first held a randomly initialised float32 copy (67 GB) beside the weights.
+        float32) as it is read (:func:`load_weights`): a paper-size checkpoint loads into bfloat16 at the size
+        of the result plus one tensor, where building it first held a randomly initialised float32 copy (67 GB)
+        beside the whole file.
 
         Raises:
             FileNotFoundError: ``directory`` lacks config.json or model.safetensors.
@@ -195,14 +211,11 @@ class PretrainedMixin:
             raise ValueError(f"checkpoint: {directory} holds a {saved_class}, not a {cls.__name__}")
         data = {**getattr(cls.config_class, "SAVED_DEFAULTS", {}), **data}
         config = config_from_dict(cls.config_class, data, str(directory / CONFIG_NAME))
-        check_model_size(lambda: cls(config), str(directory / CONFIG_NAME))
+        check_model_size(lambda: cls(config), str(directory / CONFIG_NAME),
+                         host_dtype=dtype or torch.get_default_dtype() if map_location == "cpu" else None)
         with torch.device("meta"), skip_init():  # every tensor comes from the file
             model = cls(config)
-        state = load_weights(directory / WEIGHTS_NAME, map_location)
-        target = dtype or torch.get_default_dtype()
-        for key, value in state.items():  # one cast at a time: the file's tensor is freed as its cast replaces it
-            if value.is_floating_point() and value.dtype != target:
-                state[key] = value.to(target)
+        state = load_weights(directory / WEIGHTS_NAME, map_location, dtype or torch.get_default_dtype())
         try:
             missing, unexpected = model.load_state_dict(state, strict=False, assign=True)
         except RuntimeError as e:  # tensor shapes that differ from the config's

@@ -1,6 +1,7 @@
 import dataclasses
 import inspect
 import json
+from pathlib import Path
 
 import pytest
 import torch
@@ -40,6 +41,21 @@ def test_paper_config_on_meta_device_reports_parameter_counts():
     assert counts["text_encoder"] == 4_762_310_656
     assert counts["dit"] > 10_000_000_000  # 32 blocks × 4096 wide
     assert all(p.device.type == "meta" for p in model.parameters())
+    assert _readme_sizes("paper") == [counts[k] for k in ("vae", "text_encoder", "dit", "ldrm", "total")]
+
+
+def _readme_sizes(name: str) -> list[int]:
+    """The README's "Model sizes" row of config ``name``: VAE, text encoder, DiT, LDRM, total."""
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    row = next(line for line in readme.splitlines() if line.startswith(f"| `{name}`"))
+    return [int(cell.split()[0].replace(",", "")) for cell in row.strip("|").split("|")[2:]]
+
+
+@pytest.mark.parametrize("name", ["base", "tiny", "small"])
+def test_readme_model_sizes_are_the_configs_counts(name):
+    with torch.device("meta"):
+        counts = Diff4SplatModel(load_config(name)).parameter_counts()
+    assert _readme_sizes(name) == [counts[k] for k in ("vae", "text_encoder", "dit", "ldrm", "total")]
 
 
 def test_default_config_is_shipped_with_weights_and_is_every_default():

@@ -25,7 +25,7 @@ from diff4splat.limits import (
     check_output_size,
     free_disk,
 )
-from diff4splat.pipeline import Diff4SplatPipeline
+from diff4splat.pipeline import Diff4SplatPipeline, load_model
 from models.bundle import Diff4SplatModel, load_config
 
 GiB = 1 << 30
@@ -147,3 +147,20 @@ def test_cli_refuses_a_request_its_output_disk_cannot_hold_before_the_networks_r
     assert err[0].startswith("diff4splat: error: output of 17 frames at 256×256: estimated 0.2 GiB exceeds the 0.0 GiB "
                              f"free on the disk of {out}"), err
     assert seen == [out] and not out.exists()
+
+
+@pytest.mark.parametrize("dtype, needle", [(None, "the weights of 16,834,223,193 parameters in float32: estimated "
+                                                  "peak memory 62.7 GiB"),
+                                           (torch.bfloat16, "in bfloat16: estimated peak memory 31.4 GiB")])
+def test_a_model_too_large_for_the_memory_is_refused_before_it_is_built(monkeypatch, no_env, dtype, needle):
+    """`generate --config paper` on a laptop: the random paper model (67.3 GB in float32, 33.7 GB in bfloat16) is
+    refused when counted on the meta device, before any weight is allocated (it used to be built, then the
+    request's memory check came too late)."""
+    monkeypatch.setattr(limits, "available_memory", lambda: 16 * GiB)
+    allocated = []
+    monkeypatch.setattr(torch.nn.Linear, "reset_parameters", lambda self: allocated.append(self.weight.device.type))
+    with pytest.raises(LimitError) as e:
+        load_model(config="paper", dtype=dtype)
+    assert needle in str(e.value) and "16.0 GiB of memory available to this process" in str(e.value)
+    assert ("--dtype (bfloat16 halves float32) or --config" in str(e.value)) == (dtype is None)
+    assert set(allocated) <= {"meta"}
