@@ -152,6 +152,9 @@ class GenerationResult:
         photo_gaussians: H_o·W_o + ⌈H_o/2⌉·⌈W_o/2⌉, the photo layer's share of the unpruned scene (the backdrop
             follows it, :func:`diff4splat.assemble.assemble_scene`).
         num_slots: the unpruned scene's size, the range of ``gaussian_index``.
+        video: (1, 3, T, h, w) ``latents`` decoded by the VAE, pixels in about [−1, 1] at the model resolution,
+            when the pipeline decoded them for the generated frames' colours (``generated_colors: video``), else
+            None (decode them with ``runtime.decode_latents``).
     """
 
     scene: DynamicGaussians
@@ -171,6 +174,7 @@ class GenerationResult:
     photo_psnr_db: float = float("nan")
     num_slots: int = 0
     photo_gaussians: int = 0
+    video: Tensor | None = None
 
 
 def load_model(checkpoint: str | Path | None = None, config: str = DEFAULT_CONFIG, seed: int = 0, *,
@@ -544,4 +548,4 @@ class Diff4SplatPipeline:
                                 source_frames=sources,
                                 gaussian_index=index, eps2d=PHOTO_EPS2D, background=photo["background"],
                                 photo_psnr_db=photo["photo_psnr_db"], num_slots=int(grid.shape[0]),
-                                photo_gaussians=photo["photo_gaussians"])
+                                photo_gaussians=photo["photo_gaussians"], video=decoded)

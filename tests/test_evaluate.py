@@ -2,6 +2,7 @@
 computation, baselines and ablations, the sampler sweep, the CLI, and devices (``--device``, nothing made on torch's
 default device)."""
 import csv
+import dataclasses
 import math
 
 import kornia
@@ -358,3 +359,31 @@ def test_csv_outputs_are_appended_with_one_header(tmp_path):
     check_csv_outputs(outputs)  # same columns: appendable
     with pytest.raises(ValueError, match="other columns"):
         check_csv_outputs(csv_outputs(tmp_path / "e.csv", ["model", "b"], None, None))
+
+
+@pytest.mark.slow
+def test_the_sampled_video_is_decoded_once_per_generation(clips, monkeypatch):
+    """With ``generated_colors: video`` the pipeline decodes the sampled latents for the scene's colours and
+    returns them (``GenerationResult.video``, equal to a fresh decode); ``evaluate_clip`` scores
+    ``psnr_novel_video`` on that decode instead of decoding again: one decode per generation."""
+    model = tiny_model(dynamic=True)
+    model.config = dataclasses.replace(model.config, generated_colors="video")
+    pipe = Diff4SplatPipeline(model)
+    clip = clips[0]
+    cams = CameraPath(clip["viewmats"].double(), clip["Ks"].double(), 64, 64, clip["times"].double())
+    res = pipe(clip["video"][:, 0].permute(1, 2, 0), cams, clip["caption"], steps=2, seed=0)
+    assert res.video is not None and torch.equal(res.video, pipe.runtime.decode_latents(res.latents))
+    decodes, generations = [], []
+    decode, call = pipe.runtime.decode_latents, Diff4SplatPipeline.__call__
+    monkeypatch.setattr(pipe.runtime, "decode_latents", lambda latents: decodes.append(1) or decode(latents))
+    monkeypatch.setattr(Diff4SplatPipeline, "__call__", lambda self, *a, **k: generations.append(1) or call(self, *a,
+                                                                                                            **k))
+    m = evaluate_clip(pipe, clip, steps=2).metrics
+    assert len(generations) >= 3 and len(decodes) == len(generations)
+    video = ((res.video[0] + 1) / 2).clamp(0, 1).permute(1, 0, 2, 3).double()
+    gt = clip["video"].permute(1, 0, 2, 3).double()
+    assert m["psnr_novel_video"] == pytest.approx(-10 * math.log10(float(((video[1:] - gt[1:]) ** 2).mean())),
+                                                  abs=1e-6)
+    ldrm = Diff4SplatPipeline(tiny_model(dynamic=True))(clip["video"][:, 0].permute(1, 2, 0), cams, clip["caption"],
+                                                         steps=2, seed=0)
+    assert ldrm.video is None  # generated_colors: ldrm decodes nothing

@@ -196,8 +196,9 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
     """Metrics, baselines and ablations of one held-out clip (module docstring).
 
     Generates the clip's scene three times (sampled latents, noise latents, and — PyTorch models only —
-    the true video's latents) plus the loop-closure orbit of a static clip, and decodes the sampled latents once
-    (``psnr_novel_video``), on ``pipe.device``; ``clip``'s
+    the true video's latents) plus the loop-closure orbit of a static clip; the sampled latents' frames
+    (``psnr_novel_video``) are the pipeline's own decode where it made one (``generated_colors: video``), else
+    decoded here; on ``pipe.device``; ``clip``'s
     tensors are CPU tensors (:func:`_held_out_clips`) and the metrics are computed on the CPU.
 
     Raises:
@@ -216,7 +217,8 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
     colors, depths, alphas = _render(res)
     pred = colors.permute(0, 3, 1, 2)
     mse = {"model": frame_mse(pred[1:], gt[1:]), **repeat_baselines(clip["video"])}
-    video = ((pipe.runtime.decode_latents(res.latents)[0].float().cpu() + 1) / 2).clamp(0, 1)  # (3, T, h, w)
+    decoded = res.video if res.video is not None else pipe.runtime.decode_latents(res.latents)  # decoded once
+    video = ((decoded[0].float().cpu() + 1) / 2).clamp(0, 1)  # (3, T, h, w)
     mse["video"] = frame_mse(video.permute(1, 0, 2, 3)[1:], gt[1:])
     out = {"psnr_input": image_psnr(pred[:1], gt[:1]), "ssim_input": image_ssim(pred[:1], gt[:1]),
            "ssim_novel": image_ssim(pred[1:], gt[1:])}
