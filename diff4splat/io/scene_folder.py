@@ -7,7 +7,7 @@ input, every file checked (:func:`load_output_scene`, :func:`load_scene_folder`,
     scene.ply           canonical Gaussians, INRIA layout
     deformation.npz     times (T,), d_means (T,M,3), d_quats (T,M,4), d_scales (T,M,3) (absent if static),
                         t_means (M,), t_scales (M,) (4D temporal support, when present); no file if neither
-    frames/0000.ply …   the Gaussians deformed to each frame's time
+    frames/0000.ply …   the Gaussians deformed to each frame's time (not with generate --no-frame-plys)
     rgb/0000.png …      the render along the camera path, 8-bit lossless
     video.mp4           RGB along the camera path
     depth/0000.exr …    float32 expected depth "Z" (metres) and coverage "A"
