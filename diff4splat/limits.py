@@ -22,7 +22,7 @@ from pathlib import Path
 import psutil
 
 __all__ = ["Limit", "LIMITS", "LimitError", "limit", "check_limit", "check_output_size", "check_memory",
-           "available_memory", "free_disk", "OUTPUT_BYTES_PER_PIXEL", "OUTPUT_BYTES_PER_GAUSSIAN",
+           "available_memory", "cgroup_room", "free_disk", "OUTPUT_BYTES_PER_PIXEL", "OUTPUT_BYTES_PER_GAUSSIAN",
            "OUTPUT_DEFORMATION_BYTES_PER_GAUSSIAN"]
 
 
@@ -140,12 +140,68 @@ def check_limit(name: str, value: int, what: str) -> int:
 def available_memory() -> int | None:
     """Bytes of memory this process may reach at its peak: what it holds now (its resident set: the networks are
     loaded before the check) plus what a new allocation can take without swapping (psutil's ``available``:
-    MemAvailable on Linux, free + inactive on macOS, the available physical memory on Windows); None where psutil
+    MemAvailable on Linux, free + inactive on macOS, the available physical memory on Windows), or less where a
+    Linux cgroup limits this process's memory (a container, a SLURM job: :func:`cgroup_room`); None where psutil
     cannot measure it. The default of the ``memory_bytes`` limit (:func:`check_memory`), which bounds an estimate
     of the whole process's peak."""
     try:
-        return int(psutil.virtual_memory().available + psutil.Process().memory_info().rss)
+        free, held = psutil.virtual_memory().available, psutil.Process().memory_info().rss
     except (OSError, RuntimeError, NotImplementedError, psutil.Error):  # no /proc in a sandbox, an unknown system
+        return None
+    room = cgroup_room()
+    return int(held + (free if room is None else min(free, room)))
+
+
+_CGROUP_UNLIMITED = 1 << 62
+"""cgroup v1 writes "no limit" as a number near 2⁶³ (9223372036854771712): anything above this is no limit."""
+
+
+def cgroup_room(proc_cgroup: str | os.PathLike = "/proc/self/cgroup",
+                root: str | os.PathLike = "/sys/fs/cgroup") -> int | None:
+    """Bytes this process's Linux memory cgroup can still take before its limit, the least along its hierarchy
+    (a limit set on a parent holds for its children): limit − (usage − inactive file cache), as the kernel
+    reclaims that cache before it kills (the container runtimes' "working set"). cgroup v2: ``memory.max``,
+    ``memory.current``, ``inactive_file`` of ``memory.stat``; v1: ``memory.limit_in_bytes``,
+    ``memory.usage_in_bytes``, ``total_inactive_file``. None without a limit, or where there is no cgroup file
+    system (macOS, Windows). ``proc_cgroup`` and ``root``: the files read (tests give a fake tree)."""
+    try:
+        lines = Path(proc_cgroup).read_text().splitlines()
+    except OSError:
+        return None
+    root = Path(root)
+    v1 = next((ln.split(":", 2)[2] for ln in lines if "memory" in ln.split(":", 2)[1].split(",")), None)
+    v2 = next((ln.split(":", 2)[2] for ln in lines if ln.startswith("0::")), None)
+    if v1 is not None:
+        base, files = root / "memory", ("memory.limit_in_bytes", "memory.usage_in_bytes", "total_inactive_file")
+        path = v1
+    elif v2 is not None:
+        base, files, path = root, ("memory.max", "memory.current", "inactive_file"), v2
+    else:
+        return None
+    folder = base / path.strip("/")
+    if not folder.is_dir():  # a cgroup namespace shows the process's own cgroup at the mount's root
+        folder = base
+    rooms = []
+    while True:
+        room = _cgroup_level_room(folder, *files)
+        if room is not None:
+            rooms.append(room)
+        if folder == base or base not in folder.parents:
+            break
+        folder = folder.parent
+    return max(0, min(rooms)) if rooms else None
+
+
+def _cgroup_level_room(folder: Path, limit_file: str, usage_file: str, inactive_key: str) -> int | None:
+    """limit − (usage − inactive file cache) of one cgroup folder, None without a limit or unreadable."""
+    try:
+        raw = (folder / limit_file).read_text().strip()
+        if raw == "max" or int(raw) >= _CGROUP_UNLIMITED:
+            return None
+        usage = int((folder / usage_file).read_text().strip())
+        stat = dict(line.split() for line in (folder / "memory.stat").read_text().splitlines() if line.strip())
+        return int(raw) - (usage - int(stat.get(inactive_key, 0)))
+    except (OSError, ValueError):
         return None
 
 

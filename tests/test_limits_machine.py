@@ -164,3 +164,44 @@ def test_a_model_too_large_for_the_memory_is_refused_before_it_is_built(monkeypa
     assert needle in str(e.value) and "16.0 GiB of memory available to this process" in str(e.value)
     assert ("--dtype (bfloat16 halves float32) or --config" in str(e.value)) == (dtype is None)
     assert set(allocated) <= {"meta"}
+
+
+def _cgroup(folder, limit, usage, inactive, v1=False):
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / ("memory.limit_in_bytes" if v1 else "memory.max")).write_text(f"{limit}\n")
+    (folder / ("memory.usage_in_bytes" if v1 else "memory.current")).write_text(f"{usage}\n")
+    key = "total_inactive_file" if v1 else "inactive_file"
+    (folder / "memory.stat").write_text(f"anon 123\n{key} {inactive}\nfile 456\n")
+
+
+def test_cgroup_room_is_the_least_limit_minus_working_set_along_the_hierarchy(tmp_path):
+    """A container or SLURM job limits memory below the machine's: MemAvailable alone would let a job take the
+    host's memory and be killed. Room = limit − (usage − inactive file cache), the least over the cgroup and its
+    parents; cgroup v2 and v1 layouts; "max" / v1's 2⁶³ mean no limit."""
+    proc = tmp_path / "cgroup"
+    root = tmp_path / "fs"
+    proc.write_text("0::/user.slice/job1\n")
+    _cgroup(root / "user.slice" / "job1", 8 * GiB, 4 * GiB, GiB)
+    _cgroup(root / "user.slice", "max", 30 * GiB, 0)
+    assert limits.cgroup_room(proc, root) == 5 * GiB
+    _cgroup(root / "user.slice", 6 * GiB, 5 * GiB + GiB // 2, 0)  # a parent with less room: it binds
+    assert limits.cgroup_room(proc, root) == GiB // 2
+    _cgroup(root / "user.slice", "max", 30 * GiB, 0)
+    _cgroup(root / "user.slice" / "job1", "max", 4 * GiB, GiB)
+    assert limits.cgroup_room(proc, root) is None  # no limit anywhere
+    proc.write_text("0::/\n")  # a cgroup namespace: the process's cgroup is the mount's root
+    _cgroup(root, 2 * GiB, GiB, 0)
+    assert limits.cgroup_room(proc, root) == GiB
+    proc.write_text("12:pids:/x\n4:memory:/slurm/uid_1/job_2\n0::/\n")  # v1 (hybrid: the memory line wins)
+    _cgroup(root / "memory" / "slurm" / "uid_1" / "job_2", 16 * GiB, 10 * GiB, 2 * GiB, v1=True)
+    _cgroup(root / "memory" / "slurm", 9223372036854771712, 40 * GiB, 0, v1=True)
+    assert limits.cgroup_room(proc, root) == 8 * GiB
+    assert limits.cgroup_room(tmp_path / "no_such_file", root) is None
+
+
+def test_available_memory_is_held_by_the_cgroup_limit(monkeypatch):
+    rss = psutil.Process().memory_info().rss
+    monkeypatch.setattr(limits, "cgroup_room", lambda: GiB)
+    assert available_memory() == pytest.approx(rss + GiB, abs=64 << 20)
+    monkeypatch.setattr(limits, "cgroup_room", lambda: 1 << 50)  # more than the machine: the machine binds
+    assert available_memory() < psutil.virtual_memory().total + rss
