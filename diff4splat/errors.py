@@ -2,9 +2,9 @@
 
 An *expected* failure — bad input, a malformed or corrupt file (the readers raise ``ValueError`` naming
 the file), an unavailable device, an operating-system error on a path the user gave (permissions, disk
-full, a name too long, …) — is printed as one line ``<prog>: error: <what>: <why>`` on stderr and the
-tool exits with :data:`EXIT_USAGE` (2). Ctrl-C prints ``<prog>: interrupted`` and exits with
-:data:`EXIT_INTERRUPTED` (130, the shell's 128 + SIGINT). Anything else is a bug in this code and keeps
+full, a name too long, …), a GPU out of memory — is printed as one line ``<prog>: error: <what>: <why>``
+on stderr and the tool exits with :data:`EXIT_USAGE` (2). Ctrl-C prints ``<prog>: interrupted`` and exits
+with :data:`EXIT_INTERRUPTED` (130, the shell's 128 + SIGINT). Anything else is a bug in this code and keeps
 its traceback (exit 1): :func:`is_expected` lists what is expected instead of swallowing everything.
 
 C libraries under OpenCV (libpng, libjpeg) print warnings such as ``libpng warning: iCCP: known
@@ -19,6 +19,8 @@ import os
 import sys
 import warnings
 from collections.abc import Callable, Iterator
+
+import torch
 
 __all__ = ["print_warnings", "EXIT_USAGE", "EXIT_INTERRUPTED", "EXPECTED_ERRNOS", "is_expected", "one_line", "run_cli",
            "quiet_c_stderr"]
@@ -44,17 +46,23 @@ def is_expected(exc: BaseException) -> bool:
     Expected: ``ValueError`` (every argument check and every reader of a malformed or corrupt file
     raises it, naming the parameter or the file) and ``OSError`` whose ``errno`` is in
     :data:`EXPECTED_ERRNOS` (``FileNotFoundError``, ``FileExistsError``, ``PermissionError``,
-    ``IsADirectoryError``, ``NotADirectoryError`` and ``ENOSPC``/``EROFS``/``ENAMETOOLONG``/… errors).
+    ``IsADirectoryError``, ``NotADirectoryError`` and ``ENOSPC``/``EROFS``/``ENAMETOOLONG``/… errors), and
+    ``torch.OutOfMemoryError`` (a request larger than the GPU: the user lowers it or offloads).
     """
-    if isinstance(exc, (ValueError, *_EXPECTED_OS_ERRORS)):  # these types also when raised with a message only
+    if isinstance(exc, (ValueError, torch.OutOfMemoryError, *_EXPECTED_OS_ERRORS)):  # also with a message only
         return True
     return isinstance(exc, OSError) and exc.errno in EXPECTED_ERRNOS
 
 
 def one_line(exc: BaseException) -> str:
     """``exc`` as one line: ``<path>: <reason>`` for an ``OSError`` with a file name (``<path> -> <path2>:``
-    for a rename), else the message with every run of whitespace (newlines included) made one space;
+    for a rename); for a GPU out of memory, torch's first three sentences (what was asked, what is free) and the
+    flags that lower it; else the message with every run of whitespace (newlines included) made one space;
     the exception's type name when the message is empty."""
+    if isinstance(exc, torch.OutOfMemoryError):  # torch's allocator advice follows what was asked and what is free
+        asked = ". ".join(str(exc).split(". ")[:3]).rstrip(".")
+        return (" ".join(asked.split()) + ". Lower the request (--frames, --resolution), or use --offload model or "
+                "--dtype bfloat16 where the command has them")
     if isinstance(exc, OSError) and exc.filename is not None:
         where = os.fsdecode(exc.filename)
         if exc.filename2 is not None:

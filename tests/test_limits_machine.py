@@ -13,6 +13,7 @@ from helpers import EXAMPLE_IMAGE
 
 import diff4splat.limits as limits
 from diff4splat.cli import main
+from diff4splat.errors import is_expected, one_line
 from diff4splat.generate import generate
 from diff4splat.limits import (
     LIMITS,
@@ -205,3 +206,31 @@ def test_available_memory_is_held_by_the_cgroup_limit(monkeypatch):
     assert available_memory() == pytest.approx(rss + GiB, abs=64 << 20)
     monkeypatch.setattr(limits, "cgroup_room", lambda: 1 << 50)  # more than the machine: the machine binds
     assert available_memory() < psutil.virtual_memory().total + rss
+
+
+TORCH_OOM = ("CUDA out of memory. Tried to allocate 20.00 GiB. GPU 0 has a total capacity of 79.19 GiB of which 3.06 "
+             "GiB is free. Including non-PyTorch memory, this process has 76.12 GiB memory in use. Of the allocated "
+             "memory 75.50 GiB is allocated by PyTorch, and 1.2 MiB is reserved by PyTorch but unallocated. If "
+             "reserved but unallocated memory is large try setting PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True "
+             "to avoid fragmentation.  See documentation for Memory Management  "
+             "(https://pytorch.org/docs/stable/notes/cuda.html#environment-variables)")
+
+
+def test_a_gpu_out_of_memory_is_one_line_naming_what_lowers_it(tmp_path, capsys, monkeypatch):
+    """`generate --config paper` without `--offload model` on a 24 GB GPU: torch's OutOfMemoryError (a
+    RuntimeError, which would print a traceback) is an expected failure: one line with what was asked and what
+    is free, the flags that lower it, exit 2, nothing written."""
+    oom = torch.OutOfMemoryError(TORCH_OOM)
+    assert is_expected(oom) and not is_expected(RuntimeError("a bug"))
+    assert one_line(oom) == ("CUDA out of memory. Tried to allocate 20.00 GiB. GPU 0 has a total capacity of 79.19 GiB "
+                             "of which 3.06 GiB is free. Lower the request (--frames, --resolution), or use --offload "
+                             "model or --dtype bfloat16 where the command has them")
+
+    def out_of_memory(*args, **kwargs):
+        raise torch.OutOfMemoryError(TORCH_OOM)
+
+    monkeypatch.setattr(Diff4SplatPipeline, "__call__", out_of_memory)
+    out = tmp_path / "out"
+    code = main(["generate", str(EXAMPLE_IMAGE), "--quiet", "--frames", "5", "--out", str(out)])
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert code == 2 and err == [f"diff4splat: error: {one_line(oom)}"] and not out.exists()
