@@ -142,9 +142,10 @@ def check_model_size(build: Any, where: str, host_dtype: torch.dtype | None = No
                          f"(set {LIMITS['parameters'].env} to raise it)") from None
     check_limit("parameters", n, f"{where}: a model of")
     if host_dtype is not None:
-        itemsize = torch.empty((), dtype=host_dtype, device="meta").element_size()
-        check_memory(n * itemsize, f"{where}: the weights of {n:,} parameters in {str(host_dtype)[6:]}",
-                     "--dtype (bfloat16 halves float32) or --config" if itemsize > 2 else "--config")
+        size = "the model size (--config)"
+        check_memory(n * host_dtype.itemsize, f"{where}: the weights of {n:,} parameters in {str(host_dtype)[6:]}",
+                     f"the weights' dtype (--dtype bfloat16 halves float32) or {size}" if host_dtype.itemsize > 2
+                     else size)
     return n
 
 

@@ -163,7 +163,9 @@ def test_a_model_too_large_for_the_memory_is_refused_before_it_is_built(monkeypa
     with pytest.raises(LimitError) as e:
         load_model(config="paper", dtype=dtype)
     assert needle in str(e.value) and "16.0 GiB of memory available to this process" in str(e.value)
-    assert ("--dtype (bfloat16 halves float32) or --config" in str(e.value)) == (dtype is None)
+    assert ("(lower the weights' dtype (--dtype bfloat16 halves float32) or the model size (--config), or set "
+            "DIFF4SPLAT_MAX_MEMORY_BYTES" in str(e.value)) == (dtype is None)
+    assert "(lower the model size (--config), or set" in str(e.value) or dtype is None
     assert set(allocated) <= {"meta"}
 
 
