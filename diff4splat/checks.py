@@ -128,8 +128,8 @@ def check_finite(name: str, tensor: Tensor) -> None:
         return
     # One reduction first: NaN and ±inf make the sum non-finite, so a finite sum proves every entry finite; only a
     # non-finite sum (which large finite values can also give, by overflow) takes the exact test. Summed in float32
-    # (float64 for float64): 15× cheaper than isfinite().all() on 65,536 × 3 floats and 20× cheaper than a
-    # float64 sum of float32 values (0.03 against 0.5 s on a paper-size deformation, 49 × 1.3 M × 3, 2 cores).
+    # (float64 for float64 tensors): a float64 sum converts every float32 entry first, most of the cost of checking a
+    # paper-size deformation (docs/benchmarks.md, "Writing the output folder").
     acc = torch.float64 if tensor.dtype == torch.float64 else torch.float32
     if bool(torch.isfinite(tensor.detach().sum(dtype=acc))):
         return

@@ -146,8 +146,8 @@ def available_memory() -> int | None:
     of the whole process's peak."""
     try:
         free, held = psutil.virtual_memory().available, psutil.Process().memory_info().rss
-    except (OSError, RuntimeError, NotImplementedError, psutil.Error):  # no /proc in a sandbox, an unknown system
-        return None
+    except (OSError, RuntimeError, NotImplementedError, psutil.Error):  # no /proc in a sandbox; psutil's
+        return None  # NotImplementedError is its error for a call this platform lacks: not a stub
     room = cgroup_room()
     return int(held + (free if room is None else min(free, room)))
 
