@@ -1,6 +1,7 @@
 """Tests of diff4splat/viewer/data.py: keyframes are DynamicGaussians.at's, the byte layout round-trips, the
 float16 error has its closed form, and the size budget's reductions (brute-force references, closed forms)."""
 import math
+from fractions import Fraction
 
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ from diff4splat.viewer.data import (
     _fits_float16,
     decode_keyframes,
     encode_keyframes,
+    evenly_spaced,
     float16_error_px,
     keyframe_times,
     keyframes,
@@ -66,6 +68,23 @@ def test_float16_error_closed_form():
     means = torch.tensor([[[1.0004, 0.0, 1.0], [5.0, 0.0, -1.0]]], dtype=torch.float64)
     assert float16_error_px(means, torch.eye(4)[None], K[None]) == pytest.approx(0.4, rel=1e-3)
     assert float16_error_px(means[:, 1:], torch.eye(4)[None], K[None]) == 0.0
+
+
+def test_evenly_spaced_is_exact_integer_rounding_past_float32s_integers():
+    """round(i · (n − 1) / (k − 1)) exactly (Fractions), first 0 and last n − 1, also above 2²⁴ items, where a
+    float32 linspace ends at n (16,777,220 of 16,777,220: an index past the end, the paper-size viewer's 10⁸
+    keyframe points)."""
+    for n, k in ((10, 4), (7, 7), (5, 9), (1, 3), (2**24 + 4, 200_000), (10**8 + 7, 9)):
+        got = evenly_spaced(n, k).tolist()
+        want = [int(Fraction(2 * i * (n - 1) + (k - 1), 2 * (k - 1))) for i in range(k)]
+        assert got == want and got[0] == 0 and got[-1] == n - 1, (n, k)
+    assert evenly_spaced(5, 1).tolist() == [0]
+    float32 = torch.linspace(0, 2**24 + 3, 200_000).round().long()
+    assert int(float32[-1]) == 2**24 + 4  # the bug this replaces
+    # the float16 check over 2²⁴ + 4 points (a stride-0 view: no memory) takes the subset without an IndexError
+    means = torch.tensor([1.0004, 0.0, 1.0], dtype=torch.float64).expand(1, 2**24 + 4, 3)
+    K = torch.tensor([[1000.0, 0, 500], [0, 1000.0, 500], [0, 0, 1]])
+    assert float16_error_px(means, torch.eye(4)[None], K[None]) == pytest.approx(0.4, rel=1e-3)
 
 
 def test_float32_where_float16_would_move_points_by_more_than_half_a_pixel():

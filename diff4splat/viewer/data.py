@@ -92,6 +92,16 @@ def keyframes(scene: DynamicGaussians, times: Tensor) -> dict[str, Tensor]:
     return out
 
 
+def evenly_spaced(n: int, k: int, device: torch.device | str = "cpu") -> Tensor:
+    """(k,) int64 indices into ``n`` items, evenly spaced from 0 to n − 1: round(i · (n − 1) / (k − 1)), halves up,
+    in exact integer arithmetic (a float32 ``linspace`` rounds n − 1 up to n above 2²⁴ items: an index past the
+    end). ``k`` ≥ 1 (k = 1: [0]); indices repeat when k > n."""
+    i = torch.arange(k, dtype=torch.int64, device=device)
+    if k == 1:
+        return i
+    return (2 * i * (n - 1) + (k - 1)) // (2 * (k - 1))
+
+
 def float16_error_px(
     means: Tensor,  # (F, N, 3) world, metres
     viewmats: Tensor,  # (C, 4, 4) world-to-camera (OpenCV)
@@ -106,11 +116,10 @@ def float16_error_px(
     evenly spaced subset of ``max_points`` points and ``max_cameras`` evenly spaced cameras (first and last kept)."""
     pts = means.reshape(-1, 3)
     if pts.shape[0] > max_points:
-        pick = torch.linspace(0, pts.shape[0] - 1, max_points, device=pts.device).round().long()
-        pts = pts[pick]  # evenly spaced: the same subset on every device, no permutation of millions
+        pts = pts[evenly_spaced(pts.shape[0], max_points, pts.device)]  # the same subset on every device
     pts = pts.double()  # after the pick: a float64 copy of the subset, not of every frame's means
     if viewmats.shape[0] > max_cameras:
-        pick = torch.linspace(0, viewmats.shape[0] - 1, max_cameras, device=viewmats.device).round().long()
+        pick = evenly_spaced(viewmats.shape[0], max_cameras, viewmats.device)
         viewmats, Ks = viewmats[pick], Ks[pick]
     half = pts.half().double()
     worst = 0.0
@@ -205,7 +214,7 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
         per_frame = n * (11 if temporal else 10) * itemsize
         keep_f = int(min(F, max(2, (budget - payload_bytes(n, degree, 0, temporal, itemsize)) // max(per_frame, 1))))
         if keep_f < F:
-            idx = torch.linspace(0, F - 1, keep_f, device=times.device).round().long().unique()
+            idx = evenly_spaced(F, keep_f, times.device).unique()
             reductions.append(f"{F} → {idx.numel()} keyframes")
             times, frames = times[idx], {k: v[idx] for k, v in frames.items()}
             F = idx.numel()
