@@ -352,6 +352,7 @@ def settle_generated(
     drop = torch.zeros(scene.num_gaussians, dtype=torch.bool, device=scene.canonical.means.device)
     if len(sources) < 2:
         return scene, drop, {"duplicates": 0, "slid": 0, "occluders": 0}
+    source = source.to(drop.device)  # as duplicate_mask and occluder_mask: a CPU ``source`` with a CUDA scene
     W, H = cameras.width, cameras.height
     t0 = float(cameras.times[0])
     dup = duplicate_mask(scene, source, cameras.viewmats[sources], cameras.Ks[sources], cameras.times[sources], W, H)
@@ -363,7 +364,7 @@ def settle_generated(
     if factors:
         viewmats = cameras.viewmats[sources].to(scene.canonical.means)
         centres = -(viewmats[:, :3, :3].transpose(1, 2) @ viewmats[:, :3, 3:])[..., 0]  # (S, 3) camera centres
-        scene, moved = slide_behind(scene, occl, centres[source[occl].to(centres.device)], cameras.viewmats[0],
+        scene, moved = slide_behind(scene, occl, centres[source[occl]], cameras.viewmats[0],
                                     cameras.Ks[0], t0, W, H, surface_depth, factors=factors)
     drop |= dup
     drop[occl[~moved]] = True

@@ -66,7 +66,8 @@ INDEX_OPS = frozenset({
     torch.ops.aten.index.Tensor, torch.ops.aten.index_put_.default, torch.ops.aten.index_put.default,
     torch.ops.aten._index_put_impl_.default,
 })
-"""Ops whose index tensors (argument 1, a list) may be CPU tensors indexing a CUDA tensor."""
+"""Ops whose index tensors (argument 1, a list) may be CPU tensors indexing a CUDA tensor (not the reverse: a CPU
+tensor indexed by CUDA indices raises IndexError, ATen's ``check_indices_on_cpu_or_selfdevice``)."""
 SCALAR_VALUE_OPS = INDEX_OPS | frozenset({
     torch.ops.aten.masked_fill_.Tensor, torch.ops.aten.masked_fill.Tensor, torch.ops.aten.fill_.Tensor,
     torch.ops.aten.fill.Tensor,
@@ -113,8 +114,12 @@ def _check_devices(func, args, kwargs) -> torch.device | None:
     CPU scalars: ops tagged ``pointwise``) and in :data:`SCALAR_VALUE_OPS`."""
     flat = []
     for i, a in enumerate(args):
-        if func in INDEX_OPS and i == 1:
-            continue  # indices: CPU or the tensor's device
+        if func in INDEX_OPS and i == 1:  # indices: CPU or the indexed tensor's device ("dev_tensor[{cpu,dev}_tensor]")
+            if not isinstance(args[0], SimulatedCudaTensor) and any(
+                    isinstance(x, SimulatedCudaTensor) for x in tree_leaves(a)):
+                raise IndexError(f"indices should be either on cpu or on the same device as the indexed tensor "
+                                 f"({args[0].device}) (simulated CUDA, in {func})")
+            continue
         flat.extend(x for x in tree_leaves(a) if isinstance(x, torch.Tensor))
     flat.extend(x for x in tree_leaves(kwargs) if isinstance(x, torch.Tensor))
     scalars_ok = torch.Tag.pointwise in getattr(func, "tags", ()) or func in SCALAR_VALUE_OPS

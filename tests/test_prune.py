@@ -476,7 +476,8 @@ def test_settle_generated_drops_duplicates_and_slides_occluders():
 
 
 def test_settle_generated_on_each_device_matches_the_cpu(device):
-    """The same drops, slides and counts on every device, everything made on the scene's device."""
+    """The same drops, slides and counts on every device, everything made on the scene's device; ``source`` and
+    ``sources`` may stay on the CPU (as duplicate_mask and occluder_mask take them)."""
     wall = _plane(3.0)
     vm1 = torch.eye(4, dtype=torch.float64)
     vm1[0, 3] = -0.4  # camera 1 at x = 0.4 m
@@ -494,6 +495,8 @@ def test_settle_generated_on_each_device_matches_the_cpu(device):
     assert counts == ref[2] and counts["slid"] >= len(front) and torch.equal(drop.cpu(), ref[1])
     torch.testing.assert_close(out.canonical.means.cpu(), ref[0].canonical.means)
     torch.testing.assert_close(out.canonical.scales.cpu(), ref[0].canonical.scales)
+    mixed = settle_generated(scene.to(dev), source, path.to(dev), torch.tensor([0, 1]), depth.to(dev))
+    assert mixed[2] == ref[2] and torch.equal(mixed[1].cpu(), ref[1])
 
 
 def test_footprint_max_bounds_the_brute_force_maximum():

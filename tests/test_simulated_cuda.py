@@ -67,6 +67,8 @@ def test_the_simulation_refuses_what_cuda_refuses():
             torch.cat([x, cpu_vec])
         with pytest.raises(RuntimeError, match="same device"):
             x[x > 1] = cpu_vec[:2]
+        with pytest.raises(IndexError, match="indices should be either on cpu"):  # prune.settle_generated: a CPU
+            cpu_vec[torch.tensor([1, 0], device="cuda")]  # ``source`` indexed by the CUDA scene's indices
         # what CUDA accepts: CPU scalars in elementwise ops, CPU index tensors, copies, masked fills
         assert torch.equal(_cpu(x * torch.tensor(2.0) + 1), cpu_vec * 2 + 1)
         assert torch.equal(_cpu(x[torch.tensor([3, 0])]), torch.tensor([3.0, 0.0]))
