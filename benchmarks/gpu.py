@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import csv
+import gc
 import json
 import os
 import statistics
@@ -40,6 +41,7 @@ import sys
 import tempfile
 import time
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -76,6 +78,18 @@ def reset_peak(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.empty_cache()
         torch.cuda.reset_peak_memory_stats(device)
+
+
+def free_memory(device: torch.device) -> None:
+    """Give back what dropped models held: the GPU's cached blocks and the pinned host memory torch keeps cached
+    after the offload's CPU copies are freed (``empty_cache`` does not release those; a paper model pins about
+    40 GB), and ``torch.compile``'s caches. Call after the last reference to a model is gone."""
+    gc.collect()
+    if device.type == "cuda":
+        torch._dynamo.reset()
+        torch.cuda.empty_cache()
+        if hasattr(torch._C, "_host_emptyCache"):  # torch ≥ 2.5; older builds keep the pinned cache
+            torch._C._host_emptyCache()
 
 
 def peak_gb(device: torch.device) -> str:
@@ -137,13 +151,15 @@ GENERATE = [  # (label, config, frames, dtype, offload, prompt, attention, compi
     ("paper, bf16, offload model, prompt", "paper", 49, torch.bfloat16, "model", PROMPT, "auto", False),
     ("paper, bf16, offload model-prefetch, prompt", "paper", 49, torch.bfloat16, "model-prefetch", PROMPT, "auto",
      False),
-    ("paper, bf16, offload model, prompt, compiled blocks", "paper", 49, torch.bfloat16, "model", PROMPT, "auto",
-     True),
     ("paper, bf16, offload model, prompt, cuDNN attention", "paper", 49, torch.bfloat16, "model", PROMPT, "cudnn",
      False),
     ("paper, bf16, offload model, no prompt", "paper", 49, torch.bfloat16, "model", "", "auto", False),
     ("paper, bf16, no offload, no prompt", "paper", 49, torch.bfloat16, "none", "", "auto", False),
+    ("paper, bf16, offload model, prompt, compiled blocks", "paper", 49, torch.bfloat16, "model", PROMPT, "auto",
+     True),
 ]
+"""The rows, in the order they run: the rows of one model together (a paper model is built, and pinned by the
+offload, once per key of :func:`part_generate`), the compiled one last (it changes its model's blocks in place)."""
 STAGES = ("encode_image", "encode_text", "sample", "reconstruct", "prune", "render")
 
 
@@ -173,14 +189,19 @@ def run_generate(pipe: Diff4SplatPipeline, frames: int | None, prompt: str, step
             "frames": len(res.cameras), "steps": res.steps, "size": f"{cfg.width}²"}
 
 
-def part_generate(device: torch.device, quick: bool) -> str:
+def part_generate(device: torch.device, quick: bool, emit: Callable[[str], None] | None = None) -> str:
+    """The ``generate`` table; ``emit`` (e.g. writing docs/benchmarks.md) gets the table so far after every row, so
+    rows already measured survive a command stopped at its time limit. A row that fails (out of memory, a
+    ``torch.compile`` error) is recorded with its error and the next row runs."""
     rows, verdicts = [], []
     models: dict[tuple, object] = {}
     for label, config, frames, dtype, offload, prompt, attention, compile in GENERATE:
         key = (config, dtype, compile)  # compiling changes the model's blocks in place: a model of its own
+        pipe = model = None
         try:
             if key not in models:
-                models.clear()  # one paper model at a time
+                models.clear()  # one paper model at a time: free the last before building the next
+                free_memory(device)
                 reset_peak(device)
                 models[key] = build_model(config, dtype, device, quick)
             model = models[key]
@@ -191,10 +212,13 @@ def part_generate(device: torch.device, quick: bool) -> str:
             warm = time.perf_counter() - t_warm
             reset_peak(device)
             t = run_generate(pipe, 5 if quick else frames, prompt, 2 if quick else None)
-        except torch.OutOfMemoryError as e:
-            rows.append([label, "out of memory: " + str(e).splitlines()[0][:80]] + [""] * (len(STAGES) + 5))
-            pipe = model = None  # noqa: F841 - drop every reference before freeing the cache
+        except Exception as e:  # noqa: BLE001 - a benchmark row: record what failed, measure the next
+            kind = "out of memory" if isinstance(e, torch.OutOfMemoryError) else type(e).__name__
+            rows.append([label, f"{kind}: " + (str(e).splitlines() or [""])[0][:80]] + [""] * (len(STAGES) + 5))
+            print(rows[-1], flush=True)
+            pipe = model = None  # noqa: F841 - drop every reference before freeing the caches
             models.clear()
+            free_memory(device)
             reset_peak(device)
             continue
         total = sum(t[s] for s in STAGES)
@@ -205,7 +229,19 @@ def part_generate(device: torch.device, quick: bool) -> str:
         if config == "paper" and offload == "model" and prompt and not quick:
             verdicts.append(f"{label}: {total:.1f} s ({'meets' if total <= 30 else 'misses'} 30 s), peak {peak} GB "
                             f"({'meets' if float(peak.split()[0]) <= 25 else 'misses'} 25 GB).")
+        if emit is not None:
+            emit(_generate_table(device, rows, verdicts))
+    pipe = model = None  # noqa: F841
+    models.clear()
+    free_memory(device)
+    return _generate_table(device, rows, verdicts)
+
+
+def _generate_table(device: torch.device, rows: list[list[str]], verdicts: list[str]) -> str:
     verdict = "".join(f"\n\n{v}" for v in ([f"Goal: {GOAL}."] + verdicts if verdicts else []))
+    if len(rows) < len(GENERATE):
+        verdict += (f"\n\n{len(rows)} of {len(GENERATE)} rows: the command stopped before the rest "
+                    f"({', '.join(r[0] for r in GENERATE[len(rows):])}).")
     return (f"### `generate` on the GPU per stage, seconds, with peak memory\n\n"
             f"`python benchmarks/gpu.py --part generate --write`; one run after a one-step warm-up (its wall time "
             f"is the last column: model moves, kernel loads and, for \"compiled blocks\", `torch.compile` of one "
@@ -334,14 +370,20 @@ def main() -> int:
         return 2
     if device.type == "cuda":
         torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
-    parts = ("render", "generate", "command", "train") if args.part == "all" else (args.part,)
-    for part in parts:
-        t0 = time.perf_counter()
-        body = {"render": part_render, "generate": part_generate, "command": part_command,
-                "train": part_train}[part](device, args.quick)
-        print(body + f"\n\n({part}: {time.perf_counter() - t0:.0f} s)\n", flush=True)
-        if args.write:
-            write_section(f"gpu_{part}", body)
+    if args.part == "all":  # each part in a process of its own: a part's pinned and cached memory dies with it
+        flags = ["--device", args.device] + ["--quick"] * args.quick + ["--write"] * args.write
+        codes = [subprocess.run([sys.executable, __file__, "--part", part, *flags]).returncode
+                 for part in ("render", "generate", "command", "train")]
+        return next((c for c in codes if c), 0)
+    t0 = time.perf_counter()
+    emit = (lambda body: write_section(f"gpu_{args.part}", body)) if args.write else None
+    if args.part == "generate":
+        body = part_generate(device, args.quick, emit)
+    else:
+        body = {"render": part_render, "command": part_command, "train": part_train}[args.part](device, args.quick)
+    print(body + f"\n\n({args.part}: {time.perf_counter() - t0:.0f} s)\n", flush=True)
+    if emit is not None:
+        emit(body)
     return 0
 
 
