@@ -7,7 +7,10 @@ instead of the sum (diffusers' ``enable_model_cpu_offload`` does the same with h
 
 Inference only: the CPU copy of each weight is the master; moving a network off the device points its
 parameters back at that copy (no device-to-host copy), so weights changed on the device are lost. On CUDA the CPU
-copies are pinned once, and moving on is an asynchronous host-to-device copy on the current stream.
+copies are pinned once, and moving on is an asynchronous host-to-device copy on the current stream. The pinned
+copies share blocks of :data:`PIN_BLOCK_BYTES` (:func:`pin_packed`): torch's pinned-memory allocator rounds each
+allocation up to a power of two, so pinning every weight alone would pin up to twice its bytes (the paper-size
+text encoder's 9.5 GB as 13.2 GB, the DiT's 23.8 GB as 27.1 GB).
 
 Prefetch (``prefetch=``, CUDA only): the host-to-device copy of a network runs on a side stream, block by block in
 the order the blocks run, and each block waits only for its own weights (a forward pre-hook, removed when the
@@ -25,13 +28,26 @@ from contextlib import contextmanager
 import torch
 from torch import nn
 
-__all__ = ["ModelOffload", "prefetch_groups"]
+__all__ = ["ModelOffload", "prefetch_groups", "weight_bytes", "pin_plan", "pin_packed", "pinned_bytes",
+           "PIN_BLOCK_BYTES"]
+
+PIN_BLOCK_BYTES = 1 << 29
+"""Bytes of one pinned host block that weights share (512 MiB, a power of two: the allocator pins it as asked).
+Each network's weights fill blocks first-fit in order; a weight larger than a block gets one of its own."""
+PIN_ALIGN = 64
+"""Byte alignment of each weight in a block (any element size; whole cache lines for the copy engine)."""
 
 
 def _tensors(module: nn.Module) -> Iterator[torch.Tensor]:
     """The parameters, then the buffers, of ``module`` (each shared tensor once)."""
     yield from module.parameters()
     yield from (b for b in module.buffers() if b is not None)
+
+
+def weight_bytes(module: nn.Module) -> list[int]:
+    """Bytes of each parameter, then buffer, of ``module`` (each shared tensor once): what :class:`ModelOffload`
+    keeps on the CPU, in the order it packs them (:func:`pin_plan`)."""
+    return [t.numel() * t.element_size() for t in _tensors(module)]
 
 
 def prefetch_groups(module: nn.Module, blocks: Sequence[nn.Module]) -> list[list[int]]:
@@ -56,6 +72,68 @@ def prefetch_groups(module: nn.Module, blocks: Sequence[nn.Module]) -> list[list
     for i in range(len(index)):
         groups[owners.get(i, -1) + 1].append(i)
     return groups
+
+
+def _pow2(n: int) -> int:
+    """What torch's pinned-memory allocator (``CachingHostAllocator``) pins for ``n`` bytes: n rounded up to a
+    power of two."""
+    return 1 << max(n - 1, 0).bit_length() if n else 0
+
+
+def pin_plan(nbytes: Sequence[int], block: int = PIN_BLOCK_BYTES) -> tuple[list[int], list[tuple[int, int]]]:
+    """Where :func:`pin_packed` puts tensors of ``nbytes`` bytes: (the blocks' sizes, (block, byte offset) of each
+    tensor). First fit in order, offsets multiples of :data:`PIN_ALIGN`; a tensor larger than ``block`` gets a block
+    of its own size; each block is as large as what it holds. A block whose tensors alone would pin less than the
+    block rounded up to a power of two (a network's last, part-filled block; a small network) is split into one
+    block per tensor."""
+    used: list[int] = []  # bytes used in each block so far
+    where: list[tuple[int, int]] = []
+    for n in map(int, nbytes):
+        k = next((k for k, u in enumerate(used) if u <= block  # above ``block``: a tensor's own, full
+                  and -(-u // PIN_ALIGN) * PIN_ALIGN + n <= block), None)
+        if k is None:
+            used.append(0)
+            k = len(used) - 1
+        offset = -(-used[k] // PIN_ALIGN) * PIN_ALIGN
+        where.append((k, offset))
+        used[k] = offset + n if n <= block else block + n
+    held = [[i for i, (k, _) in enumerate(where) if k == b] for b in range(len(used))]
+    sizes: list[int] = []
+    out: list[tuple[int, int]] = [(0, 0)] * len(where)
+    for b, u in enumerate(used):
+        size = u - block if u > block else u
+        if sum(_pow2(int(nbytes[i])) for i in held[b]) < _pow2(size):
+            for i in held[b]:
+                out[i] = (len(sizes), 0)
+                sizes.append(int(nbytes[i]))
+        else:
+            for i in held[b]:
+                out[i] = (len(sizes), where[i][1])
+            sizes.append(size)
+    return sizes, out
+
+
+def pinned_bytes(nbytes: Sequence[int], block: int = PIN_BLOCK_BYTES) -> int:
+    """Host bytes pinned for tensors of ``nbytes`` bytes by :func:`pin_packed`: its blocks, each rounded up to a
+    power of two as torch's pinned-memory allocator does."""
+    return sum(_pow2(size) for size in pin_plan(nbytes, block)[0])
+
+
+def pin_packed(tensors: Sequence[torch.Tensor], block: int = PIN_BLOCK_BYTES, pin: bool = True) -> None:
+    """Move CPU ``tensors`` (parameters or buffers) into shared pinned blocks laid out by :func:`pin_plan`, in
+    place: each one's ``.data`` becomes a contiguous view of its block (same shape, dtype and values). A block is
+    allocated when its first tensor arrives and each original is dropped as soon as it is copied, so the peak is the
+    weights plus about one block, not twice the weights. ``pin=False`` allocates plain blocks (the layout without
+    CUDA, for tests)."""
+    sizes, where = pin_plan([t.numel() * t.element_size() for t in tensors], block)  # weight_bytes' order
+    blocks: dict[int, torch.Tensor] = {}
+    for t, (k, offset) in zip(tensors, where, strict=True):
+        if k not in blocks:
+            buf = torch.empty(sizes[k], dtype=torch.uint8, device="cpu")
+            blocks[k] = buf.pin_memory() if pin else buf
+        view = blocks[k][offset:offset + t.numel() * t.element_size()].view(t.dtype).view(t.shape)
+        view.copy_(t.data)
+        t.data = view
 
 
 class ModelOffload:
@@ -94,8 +172,7 @@ class ModelOffload:
             module.to("cpu")
             tensors = list(_tensors(module))
             if pin and self.device.type == "cuda":
-                for t in tensors:
-                    t.data = t.data.pin_memory()
+                pin_packed(tensors)
             self._home[name] = [t.data for t in tensors]
 
     @contextmanager

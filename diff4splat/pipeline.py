@@ -325,18 +325,21 @@ class Diff4SplatPipeline:
         return sum(layer_sizes(width, height)) + (len(sources) - 1) * c.height * c.width
 
     def memory_estimate(self, width: int, height: int, num_frames: int) -> int:
-        """Upper bound of ``generate``'s peak memory, bytes, for a ``width`` × ``height`` output of ``num_frames``
-        frames, from the config alone (nothing is allocated; checked against the ``memory_bytes`` limit before the
-        networks run, :func:`diff4splat.limits.check_memory`).
+        """Upper bound of ``generate``'s peak host memory, bytes, for a ``width`` × ``height`` output of
+        ``num_frames`` frames, from the config alone (nothing is allocated; checked against the ``memory_bytes``
+        limit before the networks run, :func:`diff4splat.limits.check_memory`).
 
-        Sum of: the process (more with a CUDA build of torch, :data:`MEMORY_CUDA_BUILD_BYTES`) and the weights; the
-        deformation of the unpruned scene, (:meth:`scene_slots` × K key times × 10 floats) ×
-        :data:`MEMORY_SCENE_COPIES` (the LDRM's flattened maps, re-based, pruned copies, the viewer's keyframes); the
-        LDRM's deformation maps, n latent frames × K × the model grid × 10 floats ×
-        :data:`MEMORY_MAP_COPIES`; :data:`MEMORY_BYTES_PER_GAUSSIAN` per slot (attributes, renderer tile lists);
-        the rendered frames, T × H × W × 5 floats, twice (floats and encoded). The deformation terms vanish for a
-        runtime without the deformation network. Measured against the peak resident memory of ``generate`` on the
-        CPU in docs/benchmarks.md ("Memory of generate": 1.2-1.5× the measured peak at 17-149 frames, 64²-512²).
+        Sum of: the process (more with a CUDA build of torch, :data:`MEMORY_CUDA_BUILD_BYTES`) and the weights it
+        holds in host memory (:meth:`diff4splat.runtime.TorchRuntime.host_weight_bytes`: all of them on the CPU, the
+        pinned copies with model offload, none on a GPU without it); the deformation of the unpruned scene,
+        (:meth:`scene_slots` × K key times × 10 floats) × :data:`MEMORY_SCENE_COPIES` (the LDRM's flattened maps,
+        re-based, pruned copies, the viewer's keyframes); on the CPU the LDRM's deformation maps, n latent frames × K
+        × the model grid × 10 floats × :data:`MEMORY_MAP_COPIES` (on a GPU they stay in its memory);
+        :data:`MEMORY_BYTES_PER_GAUSSIAN` per slot (attributes, renderer tile lists); the rendered frames, T × H × W
+        × 5 floats, twice (floats and encoded). The deformation terms vanish for a runtime without the deformation
+        network. Measured against the peak resident memory of ``generate`` on the CPU in docs/benchmarks.md
+        ("Memory of generate": 1.2-1.5× the measured peak at 17-149 frames, 64²-512²). GPU memory is not
+        estimated: a request too large for it fails with torch's out-of-memory error, one line naming the knobs.
 
         Raises:
             ValueError: ``num_frames`` not 1 + 4k.
@@ -345,11 +348,10 @@ class Diff4SplatPipeline:
         n = self.runtime.latent.num_latent_frames(num_frames)
         slots = self.scene_slots(width, height, num_frames)
         keys = num_frames if self.runtime.has_deformation else 0
-        weights = sum(p.numel() * p.element_size() for p in self.runtime.model.parameters()) \
-            if isinstance(self.runtime, TorchRuntime) else 0
+        weights = self.runtime.host_weight_bytes() if isinstance(self.runtime, TorchRuntime) else 0
+        maps = MEMORY_MAP_COPIES * n * c.height * c.width if self.device.type == "cpu" else 0
         base = MEMORY_BASE_BYTES + (MEMORY_CUDA_BUILD_BYTES if torch.backends.cuda.is_built() else 0)
-        return int(base + weights + MEMORY_BYTES_PER_GAUSSIAN * slots
-                   + 40 * keys * (MEMORY_SCENE_COPIES * slots + MEMORY_MAP_COPIES * n * c.height * c.width)
+        return int(base + weights + MEMORY_BYTES_PER_GAUSSIAN * slots + 40 * keys * (MEMORY_SCENE_COPIES * slots + maps)
                    + 2 * 20 * num_frames * width * height)
 
     def output_size(self, resolution: int | None = None) -> tuple[int, int]:

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import torch
 from helpers import EXAMPLE_IMAGE, not_a_folder
+from simulated_cuda import simulated_cuda
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_leaves
 
@@ -35,7 +36,8 @@ from diff4splat.limits import (
     check_output_size,
     limit,
 )
-from diff4splat.pipeline import Diff4SplatPipeline, load_model
+from diff4splat.offload import pinned_bytes, weight_bytes
+from diff4splat.pipeline import MEMORY_MAP_COPIES, Diff4SplatPipeline, load_model
 from diff4splat.runtime import TorchRuntime
 from models.bundle import Diff4SplatModel, load_config
 from models.pretrained import config_from_dict
@@ -153,6 +155,29 @@ def test_memory_estimate_grows_with_key_times_times_slots():
     assert pipe.memory_estimate(c.width, c.height, 401) - fixed < grow[1] / 10
     with pytest.raises(LimitError, match="GiB exceeds the .* GiB"):  # TBs: above any machine's memory
         check_memory(pipe.memory_estimate(1024, 1024, 1001), "x", "y")
+
+
+@pytest.mark.slow  # the simulation's first dispatch mode imports torch._dynamo
+def test_memory_estimate_on_a_gpu_counts_host_memory_only():
+    """On CUDA (simulated) the estimate leaves out what lives in GPU memory: the weights without offload, the LDRM's
+    deformation maps always; with model offload it counts the weights' pinned copies (pinned_bytes, not their
+    bytes). Against the CPU's estimate for the same request: differences equal to those terms."""
+    cfg = load_config("tiny")
+    frames = 9
+    n = 1 + (frames - 1) // 4  # latent frames of the tiny model's 4× temporal compression
+    with simulated_cuda(), torch.no_grad():
+        cpu = Diff4SplatPipeline(Diff4SplatModel(cfg), "cpu")
+        gpu = Diff4SplatPipeline(Diff4SplatModel(cfg), "cuda")
+        off = Diff4SplatPipeline(Diff4SplatModel(cfg), "cuda", offload="model")
+        est = {k: p.memory_estimate(cfg.width, cfg.height, frames) for k, p in (("cpu", cpu), ("gpu", gpu),
+                                                                                   ("off", off))}
+        nets = cpu.runtime.networks.values()
+        assert n == cpu.runtime.latent.num_latent_frames(frames)
+    raw = sum(sum(weight_bytes(net)) for net in nets)
+    pinned = sum(pinned_bytes(weight_bytes(net)) for net in nets)
+    maps = 40 * frames * MEMORY_MAP_COPIES * n * cfg.height * cfg.width
+    assert est["cpu"] - est["gpu"] == raw + maps
+    assert est["off"] - est["gpu"] == pinned and pinned > raw
 
 
 @pytest.mark.slow
