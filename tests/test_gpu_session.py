@@ -24,9 +24,9 @@ def test_every_step_runs_a_command_that_accepts_its_flags():
     proc = _session("all")
     assert proc.returncode == 0, proc.stderr
     commands = [shlex.split(line) for line in proc.stdout.splitlines()]
-    assert len(commands) == 10
+    assert len(commands) == 11
     helps: dict[str, str] = {}
-    halves = []
+    halves, whole = [], []
     for cmd in commands:
         assert cmd[0] == "python"
         if cmd[1] == "-m":  # pytest: its markers are registered (--strict-markers)
@@ -37,6 +37,8 @@ def test_every_step_runs_a_command_that_accepts_its_flags():
             globs = [a for a in cmd[3:] if a.startswith("tests/")]
             if globs:
                 halves.append({p for g in globs for p in ROOT.glob(g)})
+            elif "-m" not in cmd[3:]:
+                whole.append(cmd)
             continue
         script = ROOT / cmd[1]
         assert script.is_file(), cmd
@@ -47,6 +49,7 @@ def test_every_step_runs_a_command_that_accepts_its_flags():
             assert flag in helps[cmd[1]], (cmd, flag)
         part = cmd[cmd.index("--part") + 1]
         assert re.search(rf"--part \{{[^}}]*\b{part}\b", helps[cmd[1]]), (cmd, part)
+    assert len(whole) == 1  # the step `suite`: every test, in 8 processes where pytest-xdist is installed
     # the suite's halves: every test file in exactly one
     assert len(halves) == 2 and halves[0] and halves[1] and not halves[0] & halves[1]
     assert halves[0] | halves[1] == set((ROOT / "tests").glob("test_*.py"))
