@@ -365,7 +365,8 @@ def test_csv_outputs_are_appended_with_one_header(tmp_path):
 def test_the_sampled_video_is_decoded_once_per_generation(clips, monkeypatch):
     """With ``generated_colors: video`` the pipeline decodes the sampled latents for the scene's colours and
     returns them (``GenerationResult.video``, equal to a fresh decode); ``evaluate_clip`` scores
-    ``psnr_novel_video`` on that decode instead of decoding again: one decode per generation."""
+    ``psnr_novel_video`` on that decode instead of decoding again: one decode per generation, and one of the true
+    video's latents (``vae_psnr``)."""
     model = tiny_model(dynamic=True)
     model.config = dataclasses.replace(model.config, generated_colors="video")
     pipe = Diff4SplatPipeline(model)
@@ -379,7 +380,7 @@ def test_the_sampled_video_is_decoded_once_per_generation(clips, monkeypatch):
     monkeypatch.setattr(Diff4SplatPipeline, "__call__", lambda self, *a, **k: generations.append(1) or call(self, *a,
                                                                                                             **k))
     m = evaluate_clip(pipe, clip, steps=2).metrics
-    assert len(generations) >= 3 and len(decodes) == len(generations)
+    assert len(generations) >= 3 and len(decodes) == len(generations) + 1  # + the true video's (vae_psnr)
     video = ((res.video[0] + 1) / 2).clamp(0, 1).permute(1, 0, 2, 3).double()
     gt = clip["video"].permute(1, 0, 2, 3).double()
     assert m["psnr_novel_video"] == pytest.approx(-10 * math.log10(float(((video[1:] - gt[1:]) ** 2).mean())),
@@ -387,3 +388,15 @@ def test_the_sampled_video_is_decoded_once_per_generation(clips, monkeypatch):
     ldrm = Diff4SplatPipeline(tiny_model(dynamic=True))(clip["video"][:, 0].permute(1, 2, 0), cams, clip["caption"],
                                                          steps=2, seed=0)
     assert ldrm.video is None  # generated_colors: ldrm decodes nothing
+
+
+@pytest.mark.slow
+def test_evaluate_clip_encodes_the_true_video_in_the_pipelines_dtype(clips):
+    """The true video's latents (``vae_psnr`` and the oracle row) go through the runtime as generation does: a
+    bfloat16 pipeline scores the clip (the VAE called directly was handed float32 input against bfloat16 weights;
+    with model offload on a GPU, CUDA input against weights left on the CPU), within 1 dB of float32's."""
+    m32 = evaluate_clip(Diff4SplatPipeline(tiny_model(dynamic=True)), clips[0], steps=2).metrics
+    m16 = evaluate_clip(Diff4SplatPipeline(tiny_model(dynamic=True), dtype=torch.bfloat16), clips[0],
+                        steps=2).metrics
+    for k in ("vae_psnr", "psnr_novel_gt"):
+        assert math.isfinite(m16[k]) and abs(m16[k] - m32[k]) < 1.0, (k, m16[k], m32[k])

@@ -234,9 +234,9 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
     mse["gt"] = torch.full((T - 1,), float("nan"), dtype=torch.float64, device="cpu")
     out["vae_psnr"] = out["motion_epe_gt"] = out["motion_disp_epe_gt"] = float("nan")
     if pipe.model is not None:
-        vae = pipe.model.vae
-        latents = vae.encode_latents(clip["video"][None].to(pipe.device) * 2 - 1)
-        recon = (vae.decode_latents(latents)[0].cpu() + 1) / 2
+        # through the runtime, as the pipeline does: in its dtype, and on the device with model offload
+        latents = pipe.runtime.encode_image(clip["video"][None].to(pipe.device) * 2 - 1)
+        recon = (pipe.runtime.decode_latents(latents)[0].cpu() + 1) / 2
         out["vae_psnr"] = image_psnr(recon.permute(1, 0, 2, 3), gt)
         oracle = pipe(image, cams, clip["caption"], video_latents=latents, **gen)
         mse["gt"] = frame_mse(_render(oracle)[0][1:].permute(0, 3, 1, 2), gt[1:])
