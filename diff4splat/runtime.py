@@ -246,6 +246,8 @@ class TorchRuntime:
     def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None, image: Tensor) -> LDRMOutput:
         dt = self.dtype
         with self._use("ldrm") as ldrm:
-            out = ldrm(latents.to(dt), plucker.to(dt), None if times is None else times.to(dt), image.to(dt))
+            # times stay float32 (bfloat16 would round clip times near 1 by up to 2⁻⁹); the deformation network
+            # embeds them in float32 and casts the embedding
+            out = ldrm(latents.to(dt), plucker.to(dt), None if times is None else times.float(), image.to(dt))
         return LDRMOutput(**{f.name: None if getattr(out, f.name) is None else getattr(out, f.name).float()
                              for f in fields(out)})

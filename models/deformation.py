@@ -223,7 +223,10 @@ class DeformationNetwork(nn.Module, PretrainedMixin):
         for down in self.down:
             level = F.gelu(down(level))
             pyramid.append(F.interpolate(level, size=(h, w), mode="bilinear", align_corners=False))
-        film = self.time_mlp(time_embedding(times.to(features.dtype), cfg.time_frequencies))
+        # The embedding in float32 at least, then the network's dtype (diffusers' timestep embeddings do the same):
+        # in bfloat16 the top octave's angles (up to 2⁵·π rad) would be off by up to 0.5 rad.
+        emb = time_embedding(times.to(torch.promote_types(times.dtype, torch.float32)), cfg.time_frequencies)
+        film = self.time_mlp(emb.to(features.dtype))
         film = film.reshape(K, cfg.levels, 2, cfg.hidden, 1, 1)
         # The (B, k, F, h, w) hidden maps are the network's largest tensors: key times go through in chunks of at
         # most CHUNK_ELEMENTS hidden values, each written into the outputs, so memory grows with K only through the

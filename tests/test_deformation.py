@@ -6,10 +6,12 @@ import math
 import pytest
 import torch
 import torch.nn.functional as F
+from helpers import tiny_model
 
 import models.deformation as deformation
 from diff4splat.gaussians import Gaussians
 from diff4splat.quaternions import quat_multiply, quat_normalize, quat_to_rotmat
+from diff4splat.runtime import TorchRuntime
 from diff4splat.scene import DynamicGaussians
 from models.deformation import (
     DeformationConfig,
@@ -150,6 +152,33 @@ def test_time_embedding_closed_form():
             expect += [math.sin(2**k * math.pi * tv), math.cos(2**k * math.pi * tv)]
         torch.testing.assert_close(emb[i], torch.tensor(expect, dtype=torch.float64))
     assert (emb[0] - emb[2]).abs().max() > 1.0  # t = 0 and t = 1 are distinguishable
+
+
+def test_a_bfloat16_network_embeds_times_in_float32():
+    """The time MLP of a bfloat16 network sees the float32 embedding rounded once to bfloat16 (error ≤ 2⁻⁸ against
+    float64), also through the runtime's LDRM call; embedding bfloat16 times (1/48 rounds by 2⁻¹²) in bfloat16
+    is off by up to 0.5 rad in the top octave (2⁵·π·t)."""
+    seen = []
+    times = torch.tensor([0.0, 1 / 48, 0.5, 47 / 48, 1.0])
+    ref = time_embedding(times.double(), 6)
+    net = _net(perturb=True).to(torch.bfloat16)
+    net.time_mlp.register_forward_pre_hook(lambda m, args: seen.append(args[0]))
+    net(torch.randn(1, 64, 8, 8, dtype=torch.bfloat16), times, upsample=8)
+    assert seen[-1].dtype == torch.bfloat16 and (seen[-1].double() - ref).abs().max() <= 2**-8
+    bf16 = time_embedding(times.to(torch.bfloat16), 6).double()
+    assert (bf16 - ref).abs().max() > 0.05  # what the cast before the embedding gave
+
+    runtime = TorchRuntime(tiny_model(dynamic=True), dtype=torch.bfloat16)
+    dnet = runtime.networks["ldrm"].deformation
+    dnet.time_mlp.register_forward_pre_hook(lambda m, args: seen.append(args[0]))
+    c = runtime.config
+    n = runtime.latent.num_latent_frames(9)
+    latents = torch.randn(1, runtime.latent.latent_channels, n, c.height // 8, c.width // 8)
+    plucker = torch.zeros(1, 6 * runtime.latent.temporal_factor * runtime.latent.spatial_factor ** 2, n,
+                          c.height // 8, c.width // 8)
+    runtime.reconstruct(latents, plucker, times, torch.zeros(1, 3, c.height, c.width))
+    ref = time_embedding(times.double(), dnet.config.time_frequencies)
+    assert (seen[-1].double() - ref).abs().max() <= 2**-8
 
 
 def test_activations_zero_identity_and_extremes():
