@@ -143,6 +143,13 @@ def test_gap_intervals_pool_frames_and_resample_whole_clips():
     same = [10 * math.log10(float(o.sum() / m.sum())) for m, o in zip(m2, o2, strict=True)]  # 3.80, 1.25 dB
     point, lo, hi, n = gap_intervals(m2, o2, a2)["0_15"]
     assert n == 2 and lo == pytest.approx(min(same)) and hi == pytest.approx(max(same))
+
+    # a clip the model predicts exactly (zero MSE): its draws' gaps are +inf; the interval takes the draws at its
+    # ends (no interpolation between infinite draws, which gave NaN)
+    m3 = [torch.zeros(4, dtype=torch.float64), m2[1]]
+    p3, lo3, hi3, _ = gap_intervals(m3, o2, a2)["0_15"]
+    assert p3 == pytest.approx(10 * math.log10(float((o2[0].sum() + o2[1].sum()) / m2[1].sum())))
+    assert lo3 == pytest.approx(same[1]) and hi3 == math.inf
     assert point == pytest.approx(10 * math.log10(float((o2[0].sum() + o2[1].sum()) / (m2[0].sum() + m2[1].sum()))))
     for bad in [([], [], []), (model, other[:2], angles), (model, other, [angles[0], angles[1], angles[1]])]:
         with pytest.raises(ValueError):

@@ -182,7 +182,8 @@ def gap_intervals(
     Returns:
         {``"all"`` and every bin name of :data:`ANGLE_BINS`: (gap dB, interval low, interval high, clips with
         frames there)}; NaN gap and interval for a bin with no frame. Gaps of capped PSNRs are not capped: a zero
-        MSE gives ±inf.
+        MSE gives ±inf, and where a draw's gap is infinite the interval's ends are the draws just outside it (no
+        interpolation, which would give NaN).
 
     Raises:
         ValueError: no clips, lists of different lengths or a clip whose three tensors differ in shape, draws < 1.
@@ -220,7 +221,13 @@ def gap_intervals(
         point = float(10 * torch.log10(sums[1, :, b].sum() / sums[0, :, b].sum())) if n else float("nan")
         g = gaps[:, b]
         g = g[~g.isnan()]
-        q = torch.quantile(g, levels).tolist() if g.numel() else [math.nan] * 2
+        if not g.numel():
+            q = [math.nan] * 2
+        elif bool(g.isinf().any()):  # a zero MSE: interpolating between ±inf draws gives NaN; take the draws
+            q = [float(torch.quantile(g, levels[0], interpolation="lower")),  # outside the interval's ends instead
+                 float(torch.quantile(g, levels[1], interpolation="higher"))]
+        else:
+            q = torch.quantile(g, levels).tolist()
         out[name] = (point, q[0], q[1], int((counts[:, b] > 0).sum()))
     return out
 
