@@ -129,8 +129,7 @@ def pin_packed(tensors: Sequence[torch.Tensor], block: int = PIN_BLOCK_BYTES, pi
     blocks: dict[int, torch.Tensor] = {}
     for t, (k, offset) in zip(tensors, where, strict=True):
         if k not in blocks:
-            buf = torch.empty(sizes[k], dtype=torch.uint8, device="cpu")
-            blocks[k] = buf.pin_memory() if pin else buf
+            blocks[k] = torch.empty(sizes[k], dtype=torch.uint8, device="cpu", pin_memory=pin)  # not a copy
         view = blocks[k][offset:offset + t.numel() * t.element_size()].view(t.dtype).view(t.shape)
         view.copy_(t.data)
         t.data = view

@@ -276,6 +276,8 @@ class _Functions(TorchFunctionMode):
             return _set_data(*args)
         if func is torch.Tensor.pin_memory:
             return args[0]
+        if kwargs.get("pin_memory") and getattr(func, "__module__", "").startswith("torch"):  # a factory's pinned
+            kwargs = {**kwargs, "pin_memory": False}  # host memory: plain memory here, as pin_memory() above
         if func is torch.Tensor.tolist and isinstance(args[0], SimulatedCudaTensor):  # refused for subclasses
             return args[0].elem.tolist()
         if func in (torch.tensor, torch.as_tensor) and _is_cuda(kwargs.get("device")):
