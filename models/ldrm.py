@@ -285,12 +285,13 @@ def sincos_position_3d(n: int, h: int, w: int, dim: int, device=None, dtype=torc
     """
     d_s = 2 * (dim // 6)
     d_t = dim - 2 * d_s
+    exact = torch.promote_types(dtype, torch.float32)  # computed in at least float32, cast once (bfloat16 weights)
 
     def axis(length: int, d: int) -> Tensor:  # (length, d)
         half = d // 2
-        omega = torch.pow(10000.0, -torch.arange(half, device=device, dtype=dtype) / max(half, 1))
-        ang = torch.arange(length, device=device, dtype=dtype)[:, None] * omega[None]
-        emb = torch.cat([torch.sin(ang), torch.cos(ang)], dim=-1)
+        omega = torch.pow(10000.0, -torch.arange(half, device=device, dtype=exact) / max(half, 1))
+        ang = torch.arange(length, device=device, dtype=exact)[:, None] * omega[None]
+        emb = torch.cat([torch.sin(ang), torch.cos(ang)], dim=-1).to(dtype)
         return F.pad(emb, (0, d - 2 * half))  # odd d: one zero channel
 
     et, ey, ex = axis(n, d_t), axis(h, d_s), axis(w, d_s)

@@ -338,6 +338,11 @@ def test_position_embedding_unique_and_closed_form():
     assert math.isclose(float(pe[idx, 24]), math.sin(1.0), rel_tol=1e-6)
     assert math.isclose(float(pe[idx, 44]), math.sin(3.0), rel_tol=1e-6)
     assert math.isclose(float(pe[idx, 44 + 10]), math.cos(3.0), rel_tol=1e-6)
+    # in bfloat16 (the LDRM's latents with bfloat16 weights): the float64 values rounded once, at the paper's
+    # 13 × 32 × 32 token grid (computed in bfloat16 the angles were off by up to 0.03)
+    ref = sincos_position_3d(13, 32, 32, 96, dtype=torch.float64)
+    bf16 = sincos_position_3d(13, 32, 32, 96, dtype=torch.bfloat16)
+    assert bf16.dtype == torch.bfloat16 and torch.equal(bf16, ref.to(torch.bfloat16))
 
 
 @pytest.mark.slow
