@@ -44,6 +44,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from models.backbones.base import LatentFormat
+from models.layers import tracing
 from models.pretrained import PretrainedMixin
 
 __all__ = ["VideoVAEConfig", "PAPER_VIDEO_VAE", "VideoVAE", "CausalConv3d", "FrameGroupNorm", "ResBlock3d",
@@ -161,6 +162,13 @@ PAPER_VIDEO_VAE: dict = dict(in_channels=3, latent_channels=16, base_channels=96
 and shift stay 1/0 until estimated from data with :func:`estimate_latent_scaling`."""
 
 
+MAX_KERNEL_ELEMENTS = 2**31 - 1
+"""Elements of one sample above which :class:`CausalConv3d` and :func:`upsample2x` run on windows of frames: CUDA
+kernels index in 32 bits (torch < 2.7's ``upsample_nearest3d`` refuses larger outputs; cuDNN declines convolutions
+it cannot split by batch, and torch's fallback builds a column buffer of ~130 GB for the paper decoder's last
+stage: (1, 192, 51, 512, 512) at 49 frames, 512²)."""
+
+
 class CausalConv3d(nn.Module):
     """3D convolution that pads time only on the past side, replicating the first frame.
 
@@ -180,7 +188,15 @@ class CausalConv3d(nn.Module):
     def forward(self, x: Tensor) -> Tensor:
         if self.time_pad:
             x = torch.cat([x[:, :, :1].expand(-1, -1, self.time_pad, -1, -1), x], dim=2)
-        return self.conv(x)
+        c_in, t, h, w = x.shape[1:]
+        c = max(c_in, self.conv.out_channels)
+        if c * t * h * w <= MAX_KERNEL_ELEMENTS or self.conv.stride[0] != 1 or tracing():
+            return self.conv(x)
+        # One sample above 2³¹ elements (the paper decoder's last stage at 49 frames, 512²): windows of output
+        # frames, each with the time_pad frames before it; the same values, each call within 32-bit indexing.
+        step = max(1, MAX_KERNEL_ELEMENTS // (c * h * w) - self.time_pad)
+        return torch.cat([self.conv(x[:, :, s:s + step + self.time_pad]) for s in range(0, t - self.time_pad, step)],
+                         dim=2)
 
 
 class FrameGroupNorm(nn.GroupNorm):
@@ -265,8 +281,13 @@ def upsample2x(x: Tensor, mode: str) -> Tensor:
     """
     if mode not in UPSAMPLE_MODES:
         raise ValueError(f"mode must be one of {UPSAMPLE_MODES}, got {mode!r}")
-    return F.interpolate(x, scale_factor=(1.0, 2.0, 2.0), mode="trilinear" if mode == "bilinear" else "nearest",
-                         **({"align_corners": False} if mode == "bilinear" else {}))
+    kw = dict(scale_factor=(1.0, 2.0, 2.0), mode="trilinear" if mode == "bilinear" else "nearest",
+              **({"align_corners": False} if mode == "bilinear" else {}))
+    per_frame = 4 * x.shape[1] * x.shape[3] * x.shape[4]  # output elements of one frame of one sample
+    if per_frame * x.shape[2] <= MAX_KERNEL_ELEMENTS or tracing():
+        return F.interpolate(x, **kw)
+    step = max(1, MAX_KERNEL_ELEMENTS // per_frame)  # frames never mix: windows of frames give the same values
+    return torch.cat([F.interpolate(x[:, :, s:s + step], **kw) for s in range(0, x.shape[2], step)], dim=2)
 
 
 class Upsample(nn.Module):

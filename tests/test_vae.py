@@ -5,6 +5,7 @@ import pytest
 import torch
 from torch import nn
 
+import models.vae
 from models.pretrained import count_parameters
 from models.vae import (
     PAPER_VIDEO_VAE,
@@ -69,6 +70,31 @@ def test_encoder_is_exactly_causal_per_group():
             group = (j + 3) // 4
             assert torch.equal(mean[:, :, :group], base[:, :, :group]), f"frame {j} leaked into earlier latents"
             assert (mean[:, :, group] - base[:, :, group]).abs().max() > 1e-4, f"frame {j} ignored by its group"
+
+
+def test_convolutions_and_upsampling_above_the_kernel_limit_run_on_windows_of_frames(monkeypatch):
+    """Above MAX_KERNEL_ELEMENTS per sample (2³¹ − 1: the paper decoder's last stage) the causal convolutions and
+    the 2× upsampling run on windows of frames, each call under the limit, and give the values of one call: the
+    whole encode and decode, with the limit lowered to a few frames' worth, against the plain run."""
+    vae = _vae(5, randomize=True)
+    x = _video(9, b=2)
+    calls = []
+    conv3d = nn.Conv3d.forward
+    monkeypatch.setattr(nn.Conv3d, "forward", lambda self, t: calls.append(t.shape[2]) or conv3d(self, t))
+    with torch.no_grad():
+        ref = vae.decode(vae.encode(x)[0])
+        plain = len(calls)
+        monkeypatch.setattr(models.vae, "MAX_KERNEL_ELEMENTS", 3000)  # below one frame of most layers
+        got = vae.decode(vae.encode(x)[0])
+    torch.testing.assert_close(got, ref, atol=1e-5, rtol=1e-5)
+    windows = calls[plain:]
+    assert len(windows) > 2 * plain and windows.count(3) > plain  # windows of one frame and the 2 before it
+    for mode in ("nearest", "bilinear"):
+        frames = torch.randn(1, 8, 9, 4, 4)
+        monkeypatch.setattr(models.vae, "MAX_KERNEL_ELEMENTS", 2**31 - 1)
+        whole = upsample2x(frames, mode)
+        monkeypatch.setattr(models.vae, "MAX_KERNEL_ELEMENTS", 2 * 4 * 8 * 16)  # two frames per call
+        assert torch.equal(upsample2x(frames, mode), whole)
 
 
 @pytest.mark.slow
