@@ -1,5 +1,6 @@
 """Tests of the ray path: 3DGRT response vs brute force, culling vs no culling, pinhole agreement with the
 rasterizer (measured tolerance), fisheye beyond 180°, validity limits, thin-lens focus and blur, gradients."""
+import importlib
 import math
 
 import pytest
@@ -18,6 +19,9 @@ ID = torch.eye(4, dtype=D)[None]
 
 def _K(f, cx, cy):
     return torch.tensor([[[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]]], dtype=D)
+
+
+raytrace_module = importlib.import_module("diff4splat.render.raytrace")  # the package's name is the function
 
 
 def _random(n, seed, lo=(-2.5, -2.0, 5.0), hi=(2.5, 2.0, 10.0), smin=0.01, smax=0.05, sh=None):
@@ -73,8 +77,13 @@ def test_single_isotropic_gaussian_closed_form_any_camera():
     ("pinhole", None), ("pinhole", ThinLens(0.08, 4.0, spp=4)), ("fisheye", FisheyePolynomial(k1=0.06, k2=-2e-4)),
 ])
 @pytest.mark.slow
-def test_culling_and_batching_change_nothing(model, params):
-    """Tiles, cone culling and pair batches vs one brute-force composite of every ray with every Gaussian."""
+def test_culling_and_batching_change_nothing(model, params, monkeypatch):
+    """Tiles, cone culling and pair batches vs one brute-force composite of every ray with every Gaussian; the
+    culling takes as many tiles at once as keep (tiles × Gaussians) within the budget (25 of the 30 tiles here)."""
+    culled = []
+    cull = raytrace_module.cull_tiles
+    monkeypatch.setattr(raytrace_module, "cull_tiles",
+                        lambda cones, *a: culled.append(len(cones[0])) or cull(cones, *a))
     args = _random(150, 1, lo=(-4, -4, -3), hi=(4, 4, 8), smin=0.05, smax=0.3)
     args[0] = args[0][(args[0].norm(dim=-1) > 0.5)][:120]
     args = [a[: len(args[0])] for a in args]
@@ -94,6 +103,7 @@ def test_culling_and_batching_change_nothing(model, params):
     ref_a = acc.reshape(22, 26, S).mean(2)
     ref_ed = dist.reshape(22, 26, S).mean(2) / ref_a.clamp(min=1e-10)
     assert float(ref_a.max()) > 0.5 and meta["n_pairs"][0] < 26 * 22 * S * len(args[0])  # culling did cull
+    assert culled == [3000 // len(args[0]), 30 - 3000 // len(args[0])]
     torch.testing.assert_close(out[0, ..., :3], ref_rgb, rtol=0, atol=1e-12)
     torch.testing.assert_close(alpha[0, ..., 0], ref_a, rtol=0, atol=1e-12)
     torch.testing.assert_close(out[0, ..., 3], ref_ed, rtol=0, atol=1e-9)
