@@ -39,6 +39,7 @@ pixel's Gaussian on its source camera's ray (``diff4splat.assemble.to_gaussians`
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -230,8 +231,12 @@ class LDRMOutput:
 
 
 # Register the output as a pytree node so torch.export / torch.onnx (dynamo) can trace the
-# model's forward directly; the None deformation fields of a static scene are empty subtrees.
-torch.export.register_dataclass(LDRMOutput, serialized_type_name="diff4splat.LDRMOutput")
+# model's forward directly; the None deformation fields of a static scene are empty subtrees. torch 2.7's own
+# register_dataclass calls its deprecated _register_pytree_node: that FutureWarning is torch's, not the user's,
+# and would precede every command's output (one-line errors included).
+with warnings.catch_warnings():
+    warnings.filterwarnings("ignore", message=".*_register_pytree_node.*", category=FutureWarning)
+    torch.export.register_dataclass(LDRMOutput, serialized_type_name="diff4splat.LDRMOutput")
 
 
 def distance_activation(r_d: Tensor, config: LDRMConfig) -> Tensor:
