@@ -19,9 +19,9 @@ hit that would bring T below T_MIN. Colours and backgrounds follow
 Everything is batched tensor code (no loop over Gaussians): rays are grouped by pixel tiles, each
 tile keeps only the Gaussians whose alpha ≥ 1/255 support sphere can meet one of its rays (a cone
 test, :func:`cull_tiles`, on as many tiles at once as keep (tile × Gaussian) within ``budget``), and each
-tile's (ray × Gaussian) matrix is evaluated in batches of at most ``budget`` pairs. Plain autograd gives the gradients. Every tensor is made on the device of the
-inputs, so the ray path runs on CUDA as on the CPU (any dtype; it is the path for camera effects on
-every device).
+tile's (ray × Gaussian) matrix is evaluated in batches of at most ``budget`` pairs. Plain autograd gives the
+gradients. Every tensor is made on the device of the inputs, so the ray path runs on CUDA as on the CPU (any
+dtype; it is the path for camera effects on every device).
 """
 from __future__ import annotations
 
