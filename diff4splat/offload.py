@@ -154,6 +154,7 @@ class ModelOffload:
 
     Attributes:
         resident: the name of the network now on ``device``, or None.
+        pinned: whether the CPU copies are pinned (``pin`` on a CUDA device).
     """
 
     def __init__(self, modules: dict[str, nn.Module], device: str | torch.device, *, pin: bool = True,
@@ -167,12 +168,19 @@ class ModelOffload:
         self._groups = {name: (list(blocks), prefetch_groups(self.modules[name], blocks))
                         for name, blocks in (prefetch or {}).items()}
         self._home: dict[str, list[torch.Tensor]] = {}
+        self.pinned = pin and self.device.type == "cuda"
         for name, module in self.modules.items():
             module.to("cpu")
             tensors = list(_tensors(module))
-            if pin and self.device.type == "cuda":
+            if self.pinned:
                 pin_packed(tensors)
             self._home[name] = [t.data for t in tensors]
+
+    def host_bytes(self) -> int:
+        """Bytes of host memory the CPU copies hold: their pinned blocks (:func:`pinned_bytes`, each rounded up to a
+        power of two) where they are pinned, else their bytes."""
+        sizes = [weight_bytes(module) for module in self.modules.values()]
+        return sum(pinned_bytes(s) if self.pinned else sum(s) for s in sizes)
 
     @contextmanager
     def use(self, name: str) -> Iterator[nn.Module]:

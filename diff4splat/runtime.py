@@ -19,7 +19,7 @@ from models.bundle import Diff4SplatConfig, Diff4SplatModel
 from models.dit import VideoDiT
 from models.ldrm import LDRMOutput
 
-from .offload import ModelOffload, pinned_bytes, weight_bytes
+from .offload import ModelOffload, weight_bytes
 
 __all__ = ["NetworkRuntime", "TorchRuntime", "OFFLOAD_MODES", "check_offload", "DTYPES", "FF_CHUNK_TOKENS",
            "ATTENTION_KERNELS", "attention_priority"]
@@ -207,14 +207,14 @@ class TorchRuntime:
 
     def host_weight_bytes(self) -> int:
         """Bytes of host memory the weights hold while the runtime runs: every network on the CPU; with model
-        offload on CUDA their pinned copies (:func:`diff4splat.offload.pinned_bytes`: shared blocks, each pinned
-        as a power of two); else a backbone's text encoder, kept on the CPU between visits, and nothing more."""
-        sizes = {name: weight_bytes(net) for name, net in self.networks.items()}
+        offload their CPU copies (:meth:`diff4splat.offload.ModelOffload.host_bytes`: pinned on CUDA, in shared
+        blocks each rounded up to a power of two); else a backbone's text encoder, kept on the CPU between visits,
+        and nothing more."""
         if self.device.type == "cpu":
-            return sum(map(sum, sizes.values()))
+            return sum(sum(weight_bytes(net)) for net in self.networks.values())
         if self.offload is not None:
-            return sum(pinned_bytes(s) if self.device.type == "cuda" else sum(s) for s in sizes.values())
-        return sum(sizes["text_encoder"]) if self.text_visits else 0
+            return self.offload.host_bytes()
+        return sum(weight_bytes(self.networks["text_encoder"])) if self.text_visits else 0
 
     def release(self) -> None:
         """Free the device memory of an offloaded network (nothing without offload)."""

@@ -31,7 +31,8 @@ from ..render.defaults import BACKGROUND, EPS2D, NEAR_PLANE
 from ..scene import DynamicGaussians
 
 __all__ = ["VIEWER_BUDGET_BYTES", "FLOAT16_MAX_PX", "NEAR", "ViewerPayload", "keyframe_times", "keyframes",
-           "float16_error_px", "encode_keyframes", "decode_keyframes", "viewer_payload", "payload_bytes"]
+           "evenly_spaced", "float16_error_px", "encode_keyframes", "decode_keyframes", "viewer_payload",
+           "payload_bytes"]
 
 VIEWER_BUDGET_BYTES = 50 * 2**20
 """Most bytes of data (PLY + keyframes, before base64) embedded in one viewer.html."""
