@@ -189,13 +189,16 @@ def run_generate(pipe: Diff4SplatPipeline, frames: int | None, prompt: str, step
             "frames": len(res.cameras), "steps": res.steps, "size": f"{cfg.width}²"}
 
 
-def part_generate(device: torch.device, quick: bool, emit: Callable[[str], None] | None = None) -> str:
+def part_generate(device: torch.device, quick: bool, emit: Callable[[str], None] | None = None,
+                  only: list[int] | None = None) -> str:
     """The ``generate`` table; ``emit`` (e.g. writing docs/benchmarks.md) gets the table so far after every row, so
     rows already measured survive a command stopped at its time limit. A row that fails (out of memory, a
-    ``torch.compile`` error) is recorded with its error and the next row runs."""
+    ``torch.compile`` error) is recorded with its error and the next row runs. ``only``: the 1-based numbers of
+    the rows of :data:`GENERATE` to run (default all), in their order there."""
+    selected = [r for i, r in enumerate(GENERATE, 1) if only is None or i in only]
     rows, verdicts = [], []
     models: dict[tuple, object] = {}
-    for label, config, frames, dtype, offload, prompt, attention, compile in GENERATE:
+    for label, config, frames, dtype, offload, prompt, attention, compile in selected:
         key = (config, dtype, compile)  # compiling changes the model's blocks in place: a model of its own
         pipe = model = None
         try:
@@ -230,18 +233,21 @@ def part_generate(device: torch.device, quick: bool, emit: Callable[[str], None]
             verdicts.append(f"{label}: {total:.1f} s ({'meets' if total <= 30 else 'misses'} 30 s), peak {peak} GB "
                             f"({'meets' if float(peak.split()[0]) <= 25 else 'misses'} 25 GB).")
         if emit is not None:
-            emit(_generate_table(device, rows, verdicts))
+            emit(_generate_table(device, rows, verdicts, selected))
     pipe = model = None  # noqa: F841
     models.clear()
     free_memory(device)
-    return _generate_table(device, rows, verdicts)
+    return _generate_table(device, rows, verdicts, selected)
 
 
-def _generate_table(device: torch.device, rows: list[list[str]], verdicts: list[str]) -> str:
+def _generate_table(device: torch.device, rows: list[list[str]], verdicts: list[str], selected: list[tuple]) -> str:
     verdict = "".join(f"\n\n{v}" for v in ([f"Goal: {GOAL}."] + verdicts if verdicts else []))
-    if len(rows) < len(GENERATE):
-        verdict += (f"\n\n{len(rows)} of {len(GENERATE)} rows: the command stopped before the rest "
-                    f"({', '.join(r[0] for r in GENERATE[len(rows):])}).")
+    if len(rows) < len(selected):
+        verdict += (f"\n\n{len(rows)} of {len(selected)} rows: the command stopped before the rest "
+                    f"({'; '.join(r[0] for r in selected[len(rows):])}).")
+    if len(selected) < len(GENERATE):
+        verdict += (f"\n\nRows not asked for in this run (`--rows`): "
+                    f"{'; '.join(r[0] for r in GENERATE if r not in selected)}.")
     return (f"### `generate` on the GPU per stage, seconds, with peak memory\n\n"
             f"`python benchmarks/gpu.py --part generate --write`; one run after a one-step warm-up (its wall time "
             f"is the last column: model moves, kernel loads and, for \"compiled blocks\", `torch.compile` of one "
@@ -363,22 +369,34 @@ def gpu_device(args: argparse.Namespace) -> torch.device | None:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--part", choices=("render", "generate", "command", "train", "all"), default="all")
+    ap.add_argument("--rows", default=None, metavar="N,N,…",
+                    help="generate: the 1-based numbers of the rows to run, of: "
+                         + "; ".join(f"{i} {r[0]}" for i, r in enumerate(GENERATE, 1)) + " (default all)")
     add_gpu_arguments(ap, "tiny sizes: checks that every path runs, no figures")
     args = ap.parse_args()
+    try:
+        only = None if args.rows is None else sorted({int(n) for n in args.rows.split(",")})
+        if only is not None and not all(1 <= n <= len(GENERATE) for n in only):
+            raise ValueError
+    except ValueError:
+        print(f"gpu.py: error: --rows: comma-separated row numbers from 1 to {len(GENERATE)}, got {args.rows!r}",
+              file=sys.stderr)
+        return 2
     device = gpu_device(args)
     if device is None:
         return 2
     if device.type == "cuda":
         torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
     if args.part == "all":  # each part in a process of its own: a part's pinned and cached memory dies with it
-        flags = ["--device", args.device] + ["--quick"] * args.quick + ["--write"] * args.write
+        flags = (["--device", args.device] + ["--quick"] * args.quick + ["--write"] * args.write
+                 + ["--rows", args.rows] * (args.rows is not None))
         codes = [subprocess.run([sys.executable, __file__, "--part", part, *flags]).returncode
                  for part in ("render", "generate", "command", "train")]
         return next((c for c in codes if c), 0)
     t0 = time.perf_counter()
     emit = (lambda body: write_section(f"gpu_{args.part}", body)) if args.write else None
     if args.part == "generate":
-        body = part_generate(device, args.quick, emit)
+        body = part_generate(device, args.quick, emit, only)
     else:
         body = {"render": part_render, "command": part_command, "train": part_train}[args.part](device, args.quick)
     print(body + f"\n\n({args.part}: {time.perf_counter() - t0:.0f} s)\n", flush=True)

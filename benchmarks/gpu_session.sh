@@ -5,6 +5,11 @@
 #   bash benchmarks/gpu_session.sh STEP [STEP ...]      # e.g. suite command, then generate
 #   GPU_SESSION_DRY=1 bash benchmarks/gpu_session.sh all   # print the commands only
 #   GPU_SESSION_SECONDS=540 bash benchmarks/gpu_session.sh …   # the call's time limit (default 570 s)
+#   bash benchmarks/gpu_session.sh suite+command generate   # a step 'a+b' runs a and b at the same time
+#   GPU_GENERATE_ROWS=1,2,3,6,8 bash benchmarks/gpu_session.sh generate   # gpu.py --rows: those rows only
+#
+# 'a+b' is for steps whose figures do not matter to the other: the suite beside the paper command (its wall time
+# then shares the 16 cores with the suite's processes: say so where it is reported), never beside generate.
 #
 # A session has 15 minutes of device time, its machine's start included: two calls. The first,
 # `suite command` (~8 min with set-up), shows that everything runs on CUDA; the second, `generate` (~5 min),
@@ -47,7 +52,7 @@ XDIST=""  # the whole suite in 8 processes where pytest-xdist is installed (the 
 python -c "import xdist" 2>/dev/null && XDIST="-n 8"
 declare -A COMMANDS=(
   [suite]="python -m pytest $XDIST -rs -p no:cacheprovider"
-  [generate]="python benchmarks/gpu.py --part generate --write"
+  [generate]="python benchmarks/gpu.py --part generate --write${GPU_GENERATE_ROWS:+ --rows $GPU_GENERATE_ROWS}"
   [command]="python benchmarks/gpu.py --part command --write"
   [cuda]="python -m pytest -m cuda -rs -p no:cacheprovider"
   [suite-1]="python -m pytest -rs -p no:cacheprovider tests/test_[a-o]*.py tests/test_p[a-i]*.py"
@@ -62,14 +67,19 @@ ORDER=(suite command generate cuda suite-1 suite-2 render train gt-data gt-train
 
 steps=()
 for s in "$@"; do
-  if [[ $s == all ]]; then steps+=("${ORDER[@]}");
-  elif [[ -n ${COMMANDS[$s]+x} ]]; then steps+=("$s");
-  else echo "gpu_session.sh: error: unknown step '$s' (one of: ${ORDER[*]} all)" >&2; exit 2; fi
+  if [[ $s == all ]]; then steps+=("${ORDER[@]}"); continue; fi
+  IFS=+ read -ra parts <<<"$s"
+  for p in "${parts[@]}"; do
+    [[ -n $p && -n ${COMMANDS[$p]+x} ]] \
+      || { echo "gpu_session.sh: error: unknown step '$p' in '$s' (one of: ${ORDER[*]} all; a+b: both at once)" >&2
+           exit 2; }
+  done
+  steps+=("$s")
 done
 if [[ ${#steps[@]} -eq 0 ]]; then echo "gpu_session.sh: error: name at least one step (one of: ${ORDER[*]} all)" >&2; exit 2; fi
 
 if [[ -n $DRY ]]; then
-  for s in "${steps[@]}"; do echo "${COMMANDS[$s]}"; done
+  for s in "${steps[@]}"; do IFS=+ read -ra parts <<<"$s"; for p in "${parts[@]}"; do echo "${COMMANDS[$p]}"; done; done
   exit 0
 fi
 
@@ -92,21 +102,29 @@ fi
   echo "gsplat extension ready in $(( $(date +%s) - t0 )) s"; } 2>&1 | tee -a "$OUT/setup.log"
 
 # --- the steps
+run_step() {  # STEP SECONDS: one command under its time limit, its output in $OUT/STEP.log; returns its exit code
+  local s=$1 left=$2 t0 rc
+  echo "=== $s: ${COMMANDS[$s]} (at most ${left} s)" | tee -a "$OUT/$s.log"
+  t0=$(date +%s)
+  # OMP_NUM_THREADS: the suite's 8 processes share the 16 cores (torch would start 16 threads in each)
+  local threads=()
+  [[ $s == suite && -n $XDIST ]] && threads=(env OMP_NUM_THREADS=2)
+  timeout --signal=INT --kill-after=20 "$left" "${threads[@]}" ${COMMANDS[$s]} 2>&1 | tee -a "$OUT/$s.log"
+  rc=$?
+  echo "=== $s: exit $rc after $(( $(date +%s) - t0 )) s" | tee -a "$OUT/$s.log"
+  return $rc
+}
 status=0
 docs_sum=$(md5sum docs/benchmarks.md)
 for s in "${steps[@]}"; do
   left=$(( DEADLINE - $(date +%s) ))
   if (( left < 30 )); then
-    echo "=== $s: not run, ${left} s left of GPU_SESSION_SECONDS" | tee -a "$OUT/$s.log"; status=124; continue
+    echo "=== $s: not run, ${left} s left of GPU_SESSION_SECONDS" | tee -a "$OUT/${s//+/_}.log"; status=124; continue
   fi
-  echo "=== $s: ${COMMANDS[$s]} (at most ${left} s)" | tee -a "$OUT/$s.log"
-  t0=$(date +%s)
-  # OMP_NUM_THREADS: the suite's 8 processes share the 16 cores (torch would start 16 threads in each)
-  if [[ $s == suite && -n $XDIST ]]; then export OMP_NUM_THREADS=2; else unset OMP_NUM_THREADS; fi
-  timeout --signal=INT --kill-after=20 "$left" ${COMMANDS[$s]} 2>&1 | tee -a "$OUT/$s.log"
-  rc=$?
-  echo "=== $s: exit $rc after $(( $(date +%s) - t0 )) s" | tee -a "$OUT/$s.log"
-  [[ $rc -eq 0 ]] || status=$rc
+  IFS=+ read -ra parts <<<"$s"
+  pids=()
+  for p in "${parts[@]}"; do run_step "$p" "$left" & pids+=($!); done
+  for pid in "${pids[@]}"; do wait "$pid" || status=$?; done
   [[ $(md5sum docs/benchmarks.md) == "$docs_sum" ]] || cp docs/benchmarks.md "$OUT/benchmarks.md"
 done
 exit $status
