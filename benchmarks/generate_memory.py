@@ -1,8 +1,9 @@
 """Peak memory of ``diff4splat generate`` against its estimate (``Diff4SplatPipeline.memory_estimate``).
 
 Runs the real command once per (frames, resolution) in a child process and reads that child's peak resident set
-size (``ru_maxrss`` of ``os.wait4``); the estimate is what the CLI checks against the ``memory_bytes`` limit before
-any network runs. Also lists the longest path each resolution allows within the default output and memory limits.
+size (its own ``ru_maxrss``, ``_common.run_with_peak_memory``); the estimate is what the CLI checks against the
+``memory_bytes`` limit before any network runs. Also lists the longest path each resolution allows within the
+default output and memory limits.
 
     python benchmarks/generate_memory.py [--write] [--cases 17x256 49x256 ...]
 """
@@ -17,7 +18,7 @@ import tempfile
 from pathlib import Path
 from unittest import mock
 
-from _common import markdown_table, publish
+from _common import markdown_table, publish, run_with_peak_memory
 
 from diff4splat.limits import LIMITS, LimitError, check_memory, check_output_size
 from diff4splat.pipeline import Diff4SplatPipeline
@@ -30,26 +31,14 @@ def peak_of_generate(frames: int, resolution: int) -> tuple[float, int]:
     """(peak RSS of one ``generate`` child, bytes; its Gaussian count)."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "o"
-        peak = peak_memory_of([sys.executable, "-m", "diff4splat.cli", "generate", str(EXAMPLE), "--frames",
-                               str(frames), "--resolution", str(resolution), "--out", str(out), "--quiet"],
-                              env={**os.environ, "DIFF4SPLAT_MAX_MEMORY_BYTES": str(1 << 40),
-                                   "DIFF4SPLAT_MAX_OUTPUT_BYTES": str(1 << 40)})
+        argv = [sys.executable, "-m", "diff4splat.cli", "generate", str(EXAMPLE), "--frames", str(frames),
+                "--resolution", str(resolution), "--out", str(out), "--quiet"]
+        done, peak = run_with_peak_memory(argv, stdout=subprocess.DEVNULL, env={
+            **os.environ, "DIFF4SPLAT_MAX_MEMORY_BYTES": str(1 << 40), "DIFF4SPLAT_MAX_OUTPUT_BYTES": str(1 << 40)})
+        if done.returncode != 0:
+            raise RuntimeError(f"{' '.join(argv)} exited with {done.returncode}")
         count = int(json.loads((out / "meta.json").read_text())["num_gaussians"])
     return peak, count
-
-
-def peak_memory_of(argv: list[str], env: dict | None = None) -> float:
-    """Run ``argv`` to its end; its own peak resident memory, bytes (``os.wait4``'s rusage of that child).
-
-    Raises:
-        RuntimeError: the command failed.
-    """
-    child = subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL)
-    _, status, usage = os.wait4(child.pid, 0)
-    child.returncode = os.waitstatus_to_exitcode(status)
-    if child.returncode != 0:
-        raise RuntimeError(f"{' '.join(argv)} exited with {child.returncode}")
-    return usage.ru_maxrss * 1024.0
 
 
 def longest_path(pipe: Diff4SplatPipeline, resolution: int) -> int:

@@ -34,7 +34,6 @@ import contextlib
 import csv
 import gc
 import json
-import os
 import statistics
 import subprocess
 import sys
@@ -47,7 +46,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine, markdown_table, peak_rss_mb, write_section  # noqa: E402
+from _common import machine, markdown_table, peak_rss_mb, run_with_peak_memory, write_section  # noqa: E402
 from render_speed import ldrm_scene  # noqa: E402
 
 from diff4splat.devices import Stopwatch, resolve_device  # noqa: E402
@@ -272,18 +271,17 @@ COMMAND = ("generate", str(EXAMPLE), "--config", "paper", "--dtype", "bfloat16",
 def part_command(device: torch.device, quick: bool) -> str:
     """The README's paper-size command in a child process, as a user runs it: the whole process's wall time
     (imports, building the random paper model in bfloat16 on the CPU, the checks, generate, writing the folder),
-    its peak host memory (``ru_maxrss``), the stages and GPU peak from meta.json, and the folder's size."""
+    its peak host memory (``run_with_peak_memory``), the stages and GPU peak from meta.json, and the folder's size."""
     argv = list(COMMAND) if not quick else ["generate", str(EXAMPLE), "--config", "base", "--steps", "1",
                                             "--frames", "5", "--no-frame-plys", "--prompt", PROMPT]
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "out"
         t0 = time.perf_counter()
-        child = subprocess.Popen([sys.executable, "-m", "diff4splat.cli", *argv, "--device", str(device), "--quiet",
-                                  "--out", str(out)])
-        _, status, usage = os.wait4(child.pid, 0)  # this child's own peak
+        done, host_peak = run_with_peak_memory([sys.executable, "-m", "diff4splat.cli", *argv, "--device",
+                                                str(device), "--quiet", "--out", str(out)])
         wall = time.perf_counter() - t0
-        if os.waitstatus_to_exitcode(status):
-            raise RuntimeError(f"{' '.join(argv)} exited with {os.waitstatus_to_exitcode(status)}")
+        if done.returncode:
+            raise RuntimeError(f"{' '.join(argv)} exited with {done.returncode}")
         meta = json.loads((out / "meta.json").read_text())
         files = [f for f in out.rglob("*") if f.is_file()]
         size = sum(f.stat().st_size for f in files) / 1e9
@@ -292,7 +290,7 @@ def part_command(device: torch.device, quick: bool) -> str:
     stages = sum(v for k, v in t.items() if k != "load_model")
     row = [f"`diff4splat {' '.join(argv[:1] + ['photo.png'] + argv[2:-2])} --prompt …`", f"{wall:.1f}",
            f"{t['load_model']:.1f}", f"{stages:.2f}", f"{wall - t['load_model'] - stages:.1f}",
-           f"{usage.ru_maxrss * 1024 / 1e9:.1f}", max((meta["peak_memory_gb"] or {"": "–"}).values()),
+           f"{host_peak / 1e9:.1f}", max((meta["peak_memory_gb"] or {"": "–"}).values()),
            f"{meta['num_gaussians']:,}", f"{size:.2f} ({plys:.2f} in frames/)"]
     print(row, flush=True)
     return ("### The paper-size command end to end\n\n"
@@ -300,7 +298,8 @@ def part_command(device: torch.device, quick: bool) -> str:
             "process, once, as a user runs it: \"wall\" is the whole process (imports, the random paper model built "
             "in bfloat16 on the CPU, the request's checks, generate, writing the folder); \"stages\" is the sum of "
             "meta.json's stage timings (encode … render, the table above) and \"rest\" the remainder (imports, "
-            "checks, writing). Host peak = `ru_maxrss` of the child; GPU peak = meta.json's `peak_memory_gb`; "
+            "checks, writing). Host peak = the child's own `ru_maxrss` (`_common.run_with_peak_memory`); GPU peak = "
+            "meta.json's `peak_memory_gb`; "
             f"GB = 10⁹ bytes. Device: {device_name(device)}.\n\n"
             + markdown_table(["command", "wall s", "load_model s", "stages s", "rest s", "host peak GB",
                               "GPU peak GB", "Gaussians", "output folder GB"], [row]))

@@ -3,7 +3,9 @@ session-cached ONNX export. Test modules import from here, never from each other
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import os
+import types
 from pathlib import Path
 
 import torch
@@ -27,6 +29,16 @@ OBJECTIVE_CASES = {
 clip, 1: a dynamic one), for the tiny model at 32² and 9 frames."""
 
 EXAMPLE_IMAGE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
+BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
+
+
+def benchmark_module(name: str) -> types.ModuleType:
+    """The script benchmarks/<name>.py loaded as a module (the benchmarks are scripts, not a package), so tests
+    check its functions and measure as it does."""
+    spec = importlib.util.spec_from_file_location(f"benchmark_{name}", BENCHMARKS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def tiny_model(seed: int = 0, dynamic: bool = False, active_dit: bool = False, image_branch: int = 0,

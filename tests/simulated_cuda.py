@@ -247,7 +247,8 @@ ON_VALUES = frozenset({
 })
 """Functions called on the CPU values: tensor methods whose Python bindings enter the tensor's device before
 any ATen op (so a CPU-only build refuses ``cuda``), and SDPA, which would otherwise pick its kernel by the
-device (the math kernel: not the CPU's arithmetic)."""
+device (the math kernel: not the CPU's arithmetic; on a CUDA build, CUDA's kernels, which refuse CPU values),
+whether the tensors come by position or by keyword (diffusers' attention passes ``query=``…)."""
 
 
 NO_GRAPH = frozenset({
@@ -309,7 +310,7 @@ class _Functions(TorchFunctionMode):
                 _check_devices(torch.ops.aten.index_put_.default, (args[0], None, value), {})
             args[0].elem[_index(args[1])] = _unwrap(value)
             return None
-        if func in ON_VALUES and any(isinstance(a, SimulatedCudaTensor) for a in args):
+        if func in ON_VALUES and any(isinstance(a, SimulatedCudaTensor) for a in tree_leaves((args, kwargs))):
             _check_devices(func, args, kwargs)
             to_cuda = _is_cuda(kwargs.pop("device", CUDA))
             out = func(*tree_map(_unwrap, args), **tree_map(_unwrap, kwargs))

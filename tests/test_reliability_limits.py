@@ -3,7 +3,6 @@ value and the limit (exit 2); nonsense inputs are errors; messages say what is w
 import json
 import os
 import struct
-import subprocess
 import sys
 import time
 import tracemalloc
@@ -15,7 +14,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from helpers import EXAMPLE_IMAGE, not_a_folder
+from helpers import EXAMPLE_IMAGE, benchmark_module, not_a_folder
 from simulated_cuda import simulated_cuda
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_leaves
@@ -43,6 +42,7 @@ from models.bundle import Diff4SplatModel, load_config
 from models.pretrained import config_from_dict
 from models.vae import VideoVAEConfig
 
+run_with_peak_memory = benchmark_module("_common").run_with_peak_memory
 
 def _cli(capsys, *args):
     """Run ``diff4splat`` in-process; (exit code, the stderr lines that are not warnings)."""
@@ -153,8 +153,11 @@ def test_memory_estimate_grows_with_key_times_times_slots():
     assert 3.5 < grow[1] / grow[0] < 4.5
     pipe.runtime.has_deformation = False
     assert pipe.memory_estimate(c.width, c.height, 401) - fixed < grow[1] / 10
-    with pytest.raises(LimitError, match="GiB exceeds the .* GiB"):  # TBs: above any machine's memory
-        check_memory(pipe.memory_estimate(1024, 1024, 1001), "x", "y")
+    pipe.runtime.has_deformation = True
+    huge = pipe.memory_estimate(4096, 4096, 1001)
+    assert huge > 2**41  # 2 TiB: above any one machine's memory (the GPU machines have 128 GB)
+    with pytest.raises(LimitError, match="GiB exceeds the .* GiB"):
+        check_memory(huge, "x", "y")
 
 
 @pytest.mark.slow  # the simulation's first dispatch mode imports torch._dynamo
@@ -184,16 +187,14 @@ def test_memory_estimate_on_a_gpu_counts_host_memory_only():
 def test_memory_estimate_bounds_the_measured_peak_of_generate(tmp_path):
     """The whole command in a child process (peak resident memory ``ru_maxrss``) stays under the estimate that
     ``generate`` checks, and the estimate is not so loose that it refuses what runs (≤ 2× the peak). On the CPU
-    (``--device cpu``), what the estimate bounds: on a GPU machine ``auto`` would add the CUDA context's host memory
-    (2.28 GB measured on an H100 against a 1.70 GB estimate) while the tensors it counts live on the GPU."""
+    (``--device cpu``), what the estimate bounds: on a GPU machine ``auto`` would put the tensors it counts on the
+    GPU. The peak is the command's own (``run_with_peak_memory``): started straight from a pytest worker, it read
+    the worker's 2.72 GB on a GPU machine against its own 1.34 GB."""
     frames, res = 65, 64
-    child = subprocess.Popen([sys.executable, "-m", "diff4splat.cli", "generate", str(EXAMPLE_IMAGE), "--frames",
-                              str(frames), "--resolution", str(res), "--device", "cpu", "--quiet",
-                              "--out", str(tmp_path / "o")])
-    _, status, usage = os.wait4(child.pid, 0)  # this child's own peak, not the largest of every child so far
-    child.returncode = os.waitstatus_to_exitcode(status)
-    assert child.returncode == 0
-    peak = usage.ru_maxrss * 1024
+    done, peak = run_with_peak_memory([sys.executable, "-m", "diff4splat.cli", "generate", str(EXAMPLE_IMAGE),
+                                       "--frames", str(frames), "--resolution", str(res), "--device", "cpu",
+                                       "--quiet", "--out", str(tmp_path / "o")])
+    assert done.returncode == 0
     estimate = Diff4SplatPipeline.from_pretrained().memory_estimate(res, res, frames)
     assert peak <= estimate <= 2 * peak, (peak, estimate)
 
@@ -283,7 +284,9 @@ def test_huge_png_refusal_stays_under_200_mb_of_memory(tmp_path):
               "before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss\n"
               "try:\n    read_image(sys.argv[1])\nexcept ValueError as e:\n    print(e)\n"
               "print((resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) // 1024)\n")
-    out = subprocess.run([sys.executable, "-c", script, str(path)], capture_output=True, text=True, timeout=120)
+    # started by a small process: a child started straight from this one would begin at this process's peak
+    out, _ = run_with_peak_memory([sys.executable, "-c", script, str(path)], capture_output=True, text=True,
+                                  timeout=120)
     message, grown_mb = out.stdout.splitlines()
     assert "exceeds the limit" in message and int(grown_mb) < 200, out.stdout
 

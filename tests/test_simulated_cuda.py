@@ -7,7 +7,6 @@ and, in this process, ``generate`` (bfloat16, offload), ``render`` (of a generat
 which give the CPU's numbers."""
 import contextlib
 import csv
-import importlib.util
 import json
 import os
 import re
@@ -19,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from helpers import EXAMPLE_IMAGE, OBJECTIVE_CASES, perturbed_field, tiny_model
+from helpers import EXAMPLE_IMAGE, OBJECTIVE_CASES, benchmark_module, perturbed_field, tiny_model
 from simulated_cuda import SimulatedCudaTensor, simulated_cuda
 from torch.utils.data import default_collate
 
@@ -92,17 +91,23 @@ def test_the_simulation_refuses_what_cuda_refuses():
 
 
 def test_the_simulation_computes_the_cpus_values():
-    """A convolution, attention, sort, nonzero and indexing on the simulated device equal the CPU's, bit for bit."""
+    """A convolution, attention (its tensors by position, and by keyword as diffusers passes them: on a CUDA build
+    SDPA would pick CUDA's kernel for them), sort, nonzero and indexing on the simulated device equal the CPU's,
+    bit for bit."""
     g = torch.Generator().manual_seed(0)
     x, q = torch.randn(1, 2, 3, 8, 8, generator=g), torch.randn(1, 2, 7, 8, generator=g)
+    k = torch.randn(2, 3, 50, 16, generator=g)  # large enough that the math kernel's sums differ from the CPU's
     conv = torch.nn.Conv3d(2, 3, 3, padding=1)
 
     def compute(dev):
         c = conv.to(dev)
         xd, qd = x.to(dev), q.to(dev)
         a = torch.nn.functional.scaled_dot_product_attention(qd, qd, qd)
+        kd = k.to(dev)
+        by_keyword = torch.nn.functional.scaled_dot_product_attention(query=kd, key=kd.flip(2), value=kd)
         s = c(xd).flatten().sort(stable=True)
-        return [c(xd), a, s.values, s.indices, (xd > 0.5).nonzero(), xd[xd > 0.5], a[..., torch.tensor([1, 0])]]
+        return [c(xd), a, by_keyword, s.values, s.indices, (xd > 0.5).nonzero(), xd[xd > 0.5],
+                a[..., torch.tensor([1, 0])]]
 
     with torch.no_grad():
         ref = compute("cpu")
@@ -276,9 +281,7 @@ def test_generate_render_and_evaluate_commands_on_simulated_cuda(tmp_path, cpu_t
 def test_the_gpu_benchmarks_generate_part_runs_on_simulated_cuda(monkeypatch, capsys):
     """``benchmarks/gpu.py --part generate --quick --device cuda`` (every row: offload, compiled blocks, cuDNN
     attention, no prompt; tiny sizes) runs its CUDA branches to the end: what a GPU session runs first."""
-    spec = importlib.util.spec_from_file_location("gpu_benchmark", ROOT / "benchmarks" / "gpu.py")
-    gpu = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(gpu)
+    gpu = benchmark_module("gpu")
     monkeypatch.setattr(sys, "argv", ["gpu.py", "--device", "cuda", "--quick", "--part", "generate"])
     with simulated_cuda():
         assert gpu.main() == 0

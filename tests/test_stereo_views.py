@@ -1,14 +1,9 @@
 """benchmarks/stereo_views.py: the camera path reproduces the stereo pair's geometry (a sign or offset error in the
 baseline, the crop or ``doffs`` would score every model against the wrong view)."""
-import importlib.util
-from pathlib import Path
-
 import torch
+from helpers import benchmark_module
 
-_spec = importlib.util.spec_from_file_location(
-    "stereo_views", Path(__file__).resolve().parent.parent / "benchmarks" / "stereo_views.py")
-stereo_views = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(stereo_views)
+stereo_views = benchmark_module("stereo_views")
 
 
 def test_a_point_at_its_disparitys_depth_lands_on_its_right_image_pixel():
