@@ -147,8 +147,39 @@ def test_nan_batch_skips_the_step_and_is_logged(tmp_path, capsys, device):
     t.fit()
     rows = list(csv.DictReader(open(tmp_path / "metrics.csv")))
     assert [r["skipped"] for r in rows].count("1") == 1
+    skipped = next(r for r in rows if r["skipped"] == "1")
+    assert math.isnan(float(skipped["loss"])) and math.isnan(float(skipped["mae"]))  # every term is logged
     assert t.step == 6 and all(torch.isfinite(p).all() for p in t.module.parameters())
-    assert "non-finite" in capsys.readouterr().err
+    # the message names the terms that were not finite
+    assert "train: non-finite loss (mae nan) at step 1 (epoch 0, batch 1); step skipped" in capsys.readouterr().err
+
+
+def test_a_nonfinite_gradient_skips_the_step_and_says_so(tmp_path, capsys, device):
+    """A finite loss whose gradient is not (its first backward returns inf, as an overflow would): the step is
+    skipped and logged with its finite loss, and its message says gradient, not loss."""
+    calls = []
+
+    class InfGradientOnce(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, x):
+            return x.clone()
+
+        @staticmethod
+        def backward(ctx, grad):
+            calls.append(1)
+            return grad * math.inf if len(calls) == 1 else grad
+
+    def step(model, batch, generator):
+        losses = toy_step(model, batch, generator)
+        return {**losses, "loss": InfGradientOnce.apply(losses["loss"])}
+
+    t = _trainer(tmp_path, device, total_steps=3, checkpoint_every=100)
+    t.step_fn = step
+    t.fit()
+    rows = list(csv.DictReader(open(tmp_path / "metrics.csv")))
+    skipped = [r for r in rows if r["skipped"] == "1"]
+    assert len(skipped) == 1 and math.isfinite(float(skipped[0]["loss"])) and t.step == 3
+    assert "train: non-finite gradient (norm " in capsys.readouterr().err
 
 
 def test_k_nonfinite_in_a_row_stops_and_keeps_last_good_checkpoint(tmp_path, device):

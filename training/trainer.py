@@ -73,6 +73,17 @@ __all__ = ["TrainerConfig", "Trainer", "NonFiniteLossError", "warmup_cosine", "S
 StepFn = Callable[[nn.Module, Any, torch.Generator], dict[str, Tensor]]
 
 
+def _nonfinite_part(values: dict[str, float], loss_ok: bool, grad_norm: float) -> str:
+    """What was not finite in a skipped step, for its one-line message: the loss terms (``values``: the step
+    function's scalars, ``loss`` their weighted sum) that were, the gradient norm, or another rank's loss."""
+    if loss_ok:
+        return f"gradient (norm {grad_norm})"
+    bad = [f"{k} {v}" for k, v in values.items() if k != "loss" and not math.isfinite(v)]
+    if math.isfinite(values["loss"]):
+        return "loss on another rank"
+    return "loss (" + (", ".join(bad) if bad else f"the sum {values['loss']} of finite terms") + ")"
+
+
 class NonFiniteLossError(RuntimeError):
     """Raised after ``max_nonfinite`` consecutive non-finite losses."""
 
@@ -504,7 +515,7 @@ class Trainer:
             losses = self.step_fn(self.model, batch, self.generator)
         loss = losses["loss"]
         self.position += 1
-        ok = self._all_finite(loss.detach())
+        loss_ok = ok = self._all_finite(loss.detach())
         grad_norm = float("nan")
         if ok:
             loss.backward()
@@ -515,12 +526,13 @@ class Trainer:
         if not ok:
             self.optimizer.zero_grad(set_to_none=True)
             self.nonfinite += 1
-            record = {"step": self.step, "epoch": self.epoch, "skipped": 1, "loss": float(loss.detach())}
+            values = {k: float(v.detach()) for k, v in losses.items()}
+            record = {"step": self.step, "epoch": self.epoch, "skipped": 1, "grad_norm": grad_norm, **values}
             self._log(csv_path, record)
             if self.rank == 0:
-                tqdm.write(f"train: non-finite loss/gradient at step {self.step} (epoch {self.epoch}, batch "
-                           f"{self.position - 1}); step skipped ({self.nonfinite}/{cfg.max_nonfinite} in a row)",
-                           file=sys.stderr)
+                tqdm.write(f"train: non-finite {_nonfinite_part(values, loss_ok, grad_norm)} at step {self.step} "
+                           f"(epoch {self.epoch}, batch {self.position - 1}); step skipped "
+                           f"({self.nonfinite}/{cfg.max_nonfinite} in a row)", file=sys.stderr)
             if self.nonfinite >= cfg.max_nonfinite:
                 raise NonFiniteLossError(
                     f"{self.nonfinite} consecutive non-finite steps at step {self.step}; the last good "
