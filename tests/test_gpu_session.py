@@ -14,9 +14,9 @@ ROOT = Path(__file__).resolve().parent.parent
 SCRIPT = ROOT / "benchmarks" / "gpu_session.sh"
 
 
-def _session(*args: str) -> subprocess.CompletedProcess:
+def _session(*args: str, **env: str) -> subprocess.CompletedProcess:
     return subprocess.run(["bash", str(SCRIPT), *args], cwd=ROOT, capture_output=True, text=True, timeout=60,
-                          env={**os.environ, "GPU_SESSION_DRY": "1"})
+                          env={**os.environ, "GPU_SESSION_DRY": "1", **env})
 
 
 @pytest.mark.slow
@@ -55,8 +55,29 @@ def test_every_step_runs_a_command_that_accepts_its_flags():
     assert halves[0] | halves[1] == set((ROOT / "tests").glob("test_*.py"))
 
 
+@pytest.mark.slow
+def test_steps_at_once_and_generate_rows():
+    """``a+b`` names both steps' commands (run at the same time), and GPU_GENERATE_ROWS reaches gpu.py's
+    ``--rows``, which refuses a row that does not exist in one line, exit 2."""
+    proc = _session("suite+command", "generate", GPU_GENERATE_ROWS="3,8")
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.splitlines()
+    assert len(lines) == 3 and lines[0].startswith("python -m pytest")
+    assert lines[1:] == ["python benchmarks/gpu.py --part command --write",
+                         "python benchmarks/gpu.py --part generate --write --rows 3,8"]
+    bad = subprocess.run([sys.executable, "benchmarks/gpu.py", "--device", "cpu", "--quick", "--part", "generate",
+                          "--rows", "3,99"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "--rows" in bad.stderr
+    one = subprocess.run([sys.executable, "benchmarks/gpu.py", "--device", "cpu", "--quick", "--part", "generate",
+                          "--rows", "2"], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert one.returncode == 0, one.stderr
+    rows = [line for line in one.stdout.splitlines() if line.startswith("| ") and "**" in line]
+    assert len(rows) == 1 and rows[0].startswith("| small (random) |")
+    assert "Rows not asked for in this run (`--rows`): base (shipped weights); paper, bf16" in one.stdout
+
+
 def test_an_unknown_or_missing_step_is_one_line_exit_2():
-    for args in (("bogus",), ()):
+    for args in (("bogus",), (), ("suite+bogus",)):
         proc = _session(*args)
         assert proc.returncode == 2 and proc.stdout == ""
         assert proc.stderr.count("\n") == 1 and proc.stderr.startswith("gpu_session.sh: error: ")
