@@ -230,7 +230,9 @@ def part_generate(device: torch.device, quick: bool, emit: Callable[[str], None]
         print(rows[-1], flush=True)
         if config == "paper" and offload == "model" and prompt and not quick:
             verdicts.append(f"{label}: {total:.1f} s ({'meets' if total <= 30 else 'misses'} 30 s), peak {peak} GB "
-                            f"({'meets' if float(peak.split()[0]) <= 25 else 'misses'} 25 GB).")
+                            f"({'meets' if float(peak.split()[0]) <= 25 else 'misses'} 25 GB)"
+                            + (f", after a {warm:.1f} s warm-up that compiled (once per process)." if compile
+                               else "."))
         if emit is not None:
             emit(_generate_table(device, rows, verdicts, selected))
     pipe = model = None  # noqa: F841
