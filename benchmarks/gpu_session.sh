@@ -16,13 +16,16 @@
 # measures the 30 s goal. Each step runs under what is left of GPU_SESSION_SECONDS (then SIGINT: pytest prints
 # its summary, gpu.py keeps the rows it wrote), so $OUT gets the logs and docs/benchmarks.md whatever happens.
 #
-# Steps, in the order of what only a GPU can show (minutes on one H100, estimated):
+# Steps, in the order of what only a GPU can show (minutes on one H100, estimated; measured on an H200 where
+# a figure says so; set-up before the first step: 60 s on a fresh machine, gsplat's extension 55 s of it):
 #   suite      python -m pytest, the whole suite with CUDA, in 8 processes (pytest-xdist, on the GPU image;
-#              without it, serially, which ran past a 10-minute command before: 95 % in 500 s) (~3)
+#              without it, serially, which ran past a 10-minute command before: 95 % in 500 s), the 30 slowest
+#              tests listed (~5: 99 % in 270 s on an H200 beside `command`)
 #   command    benchmarks/gpu.py --part command --write: the README's paper-size command end to end, as a user
-#              runs it (the random paper model built on the CPU, the checks, writing ~7 GB) (~3)
+#              runs it (the random paper model built on the CPU, one serial random-number stream: ~1 minute
+#              for its 16 B parameters; the checks, writing ~3 GB) (~3: beside the suite it ran past 266 s)
 #   generate   benchmarks/gpu.py --part generate --write: the paper-size rows, goal <= 30 s and <= 25 GB; the
-#              table is written after every row (~5)
+#              table is written after every row (~5: rows 1,2,3,6,8 took 215 s on an H200)
 #   cuda       python -m pytest -m cuda: only the CUDA cases, gsplat parity and the real_gpu ones included (~2)
 #   suite-1    python -m pytest on the first half of the test files (test_a… to test_pi…), serially (~5)
 #   suite-2    the second half (test_pr… to test_w…): the two halves are the whole suite
@@ -51,7 +54,7 @@ WORK=runs/gpu_training  # ignored; kept between calls on a machine that stays wa
 XDIST=""  # the whole suite in 8 processes where pytest-xdist is installed (the GPU image has it)
 python -c "import xdist" 2>/dev/null && XDIST="-n 8"
 declare -A COMMANDS=(
-  [suite]="python -m pytest $XDIST -rs -p no:cacheprovider"
+  [suite]="python -m pytest $XDIST -rs -p no:cacheprovider --durations=30"
   [generate]="python benchmarks/gpu.py --part generate --write${GPU_GENERATE_ROWS:+ --rows $GPU_GENERATE_ROWS}"
   [command]="python benchmarks/gpu.py --part command --write"
   [cuda]="python -m pytest -m cuda -rs -p no:cacheprovider"
