@@ -45,31 +45,57 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-_PEAK_STARTER = ("import os, subprocess, sys\n"
-                 "child = subprocess.Popen(sys.argv[2:])\n"
-                 "_, status, usage = os.wait4(child.pid, 0)\n"
-                 "code = os.waitstatus_to_exitcode(status)\n"
-                 "open(sys.argv[1], 'w').write(f'{usage.ru_maxrss} {code}')\n"
-                 "sys.exit(code if code >= 0 else 128 - code)\n")
-"""Starts a command and writes its peak resident memory (KiB) and exit code to the file ``argv[1]``."""
+_PEAK_STARTER = """
+import os, subprocess, sys, time
+report, limit = sys.argv[1], float(sys.argv[2])
+child = subprocess.Popen(sys.argv[3:])
+end = time.monotonic() + limit
+while True:
+    pid, status, usage = os.wait4(child.pid, os.WNOHANG)
+    if pid:
+        break
+    if time.monotonic() > end:
+        child.kill()
+        _, status, usage = os.wait4(child.pid, 0)
+        open(report, "w").write(f"{usage.ru_maxrss} timeout")
+        sys.exit(124)
+    time.sleep(0.01)
+code = os.waitstatus_to_exitcode(status)
+open(report, "w").write(f"{usage.ru_maxrss} {code}")
+sys.exit(code if code >= 0 else 128 - code)
+"""
+"""Starts a command, waits for it (at most ``argv[2]`` seconds, then kills it) and writes its peak resident memory
+(KiB) and exit code, or ``timeout``, to the file ``argv[1]``."""
 
 
-def run_with_peak_memory(argv: list[str], **run_kwargs) -> tuple[subprocess.CompletedProcess, int]:
-    """Run ``argv`` to its end (``subprocess.run`` with ``run_kwargs``: ``env``, ``capture_output``, ``timeout``…);
-    returns the completed process and the command's own peak resident memory, bytes (Linux).
+def run_with_peak_memory(argv: list[str], timeout: float | None = None,
+                         **run_kwargs) -> tuple[subprocess.CompletedProcess, int]:
+    """Run ``argv`` to its end (``subprocess.run`` with ``run_kwargs``: ``env``, ``capture_output``…; after
+    ``timeout`` seconds it is killed); returns the completed process and the command's own peak resident memory,
+    bytes (Linux).
 
     The command is started by a small Python process (:data:`_PEAK_STARTER`): a child's ``ru_maxrss``
     (``os.wait4``, ``RUSAGE_SELF`` in the child) counts its parent's peak as well, since Linux carries the peak of
     the memory map it replaces at ``exec`` into the new program's. Started straight from a pytest worker after
     hundreds of tests, ``generate --device cpu`` reported that worker's 2.72 GB against its own 1.34 GB
     (measured on the same machine, Intel Xeon, torch 2.11.0+cu130). The returncode is the command's
-    (``-N`` for signal N)."""
+    (``-N`` for signal N).
+
+    Raises:
+        RuntimeError: the command could not be started (no such program).
+        subprocess.TimeoutExpired: ``timeout`` passed; the command was killed.
+    """
     with tempfile.TemporaryDirectory() as tmp:
         report = Path(tmp) / "peak"
-        done = subprocess.run([sys.executable, "-c", _PEAK_STARTER, str(report), *argv], **run_kwargs)
-        kib, code = (int(v) for v in report.read_text().split())
-    done.args, done.returncode = argv, code
-    return done, kib * 1024
+        limit = "inf" if timeout is None else str(timeout)
+        done = subprocess.run([sys.executable, "-c", _PEAK_STARTER, str(report), limit, *argv], **run_kwargs)
+        if not report.is_file():
+            raise RuntimeError(f"{argv[0]} did not start (its starter exited with {done.returncode})")
+        kib, code = report.read_text().split()
+    if code == "timeout":
+        raise subprocess.TimeoutExpired(argv, timeout, done.stdout, done.stderr)
+    done.args, done.returncode = argv, int(code)
+    return done, int(kib) * 1024
 
 
 def markdown_table(header: list[str], rows: list[list]) -> str:

@@ -2,12 +2,14 @@
 import os
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
 from helpers import benchmark_module
 
 common = benchmark_module("_common")
+pytestmark = pytest.mark.slow  # each test starts processes
 
 
 @pytest.mark.skipif(sys.platform != "linux", reason="ru_maxrss in KiB and its carry across exec are Linux's")
@@ -27,3 +29,18 @@ def test_a_commands_peak_memory_is_its_own_not_its_parents():
         [sys.executable, "-c", "import numpy as np; a = np.ones(50_000_000); raise SystemExit(3)"],
         capture_output=True)
     assert done.returncode == 3 and 400e6 < big < 600e6
+
+
+def test_a_command_past_its_timeout_is_killed_and_raises(tmp_path):
+    """``timeout``: the command is killed (not left running behind its starter) and TimeoutExpired is raised; a
+    program that does not exist is one RuntimeError."""
+    pid_file = tmp_path / "pid"
+    script = "import os, sys, time; open(sys.argv[1], 'w').write(str(os.getpid())); time.sleep(60)"
+    t0 = time.monotonic()
+    with pytest.raises(subprocess.TimeoutExpired):
+        common.run_with_peak_memory([sys.executable, "-c", script, str(pid_file)], timeout=2)
+    assert time.monotonic() - t0 < 30
+    with pytest.raises(ProcessLookupError):  # killed and reaped
+        os.kill(int(pid_file.read_text()), 0)
+    with pytest.raises(RuntimeError, match="did not start"):
+        common.run_with_peak_memory(["/nonexistent/program"], capture_output=True)
