@@ -77,15 +77,17 @@ def main() -> None:
                              [[f"{r}²", longest_path(pipe, r)] for r in (64, 128, 256, 512, 1024)])
     publish("generate_memory", "Memory of generate",
             "Shipped base model, `arc` preset, examples/chelsea.png; peak resident memory of the whole command "
-            "(`ru_maxrss` of the child) against the estimate that `generate` checks before any network runs. The "
+            "(the child's own `ru_maxrss`, `run_with_peak_memory`) against the estimate that `generate` checks "
+            "before any network runs. The "
             "estimate must stay ≥ the peak (it is an upper bound) and within ~1.5× of it. The deformation of the "
             "unpruned scene grows with key times × Gaussian slots, both ∝ frames, so memory grows with frames²: "
             "the second table lists the longest path each output size allows on a laptop (4 GiB free on the output's "
             "disk, 8 GiB of memory available; generate checks the machine's own)."
             " A CUDA build of torch holds more before any tensor (288 MiB more resident after `import torch` with "
             "2.14.1+cu130 than with 2.13.0+cpu, no GPU in use), so the estimate adds 320 MiB for one "
-            "(`MEMORY_CUDA_BUILD_BYTES`): without it, 65 frames at 64² with `--device cpu` peaked at 1.72 GB "
-            "against a 1.70 GB estimate there. The rows below are the CPU build's.",
+            "(`MEMORY_CUDA_BUILD_BYTES`): 65 frames at 64² with `--device cpu` peaked at 1.36 GB with "
+            "2.14.1+cu130 against 1.07 GB with 2.13.0+cpu (each the command's own peak), estimated 1.84 and "
+            "1.50 GB. The rows below are the CPU build's.",
             table + "\n\n" + longest, args.write)
 
 

@@ -109,8 +109,11 @@ MEMORY_BASE_BYTES = 640 << 20
 MEMORY_CUDA_BUILD_BYTES = 320 << 20
 """What a CUDA build of torch adds to that process, GPU in use or not: the host memory of its CUDA libraries (288 MiB
 more resident after ``import torch`` with torch 2.14.1+cu130 than with 2.13.0+cpu, on a machine without a GPU)."""
-MEMORY_SCENE_COPIES = 3
-"""Copies of the unpruned scene's deformation alive at once, at most (:meth:`Diff4SplatPipeline.memory_estimate`)."""
+MEMORY_SCENE_COPIES = 2
+"""Copies of the unpruned scene's deformation alive at once, at most (:meth:`Diff4SplatPipeline.memory_estimate`):
+the scene ``assemble`` writes each field of once, and its pruned copy. Three until main at 7e96020, from before
+``assemble`` stopped concatenating pieces: the estimate was then 1.8× the measured peak at 149 frames, 256²
+(docs/benchmarks.md, "Memory of generate")."""
 MEMORY_MAP_COPIES = 2
 """Copies of the LDRM's deformation maps alive at once, at most (the network's output and its flattened view)."""
 MEMORY_BYTES_PER_GAUSSIAN = 600
@@ -332,13 +335,13 @@ class Diff4SplatPipeline:
         Sum of: the process (more with a CUDA build of torch, :data:`MEMORY_CUDA_BUILD_BYTES`) and the weights it
         holds in host memory (:meth:`diff4splat.runtime.TorchRuntime.host_weight_bytes`: all of them on the CPU, the
         pinned copies with model offload, none on a GPU without it); the deformation of the unpruned scene,
-        (:meth:`scene_slots` × K key times × 10 floats) × :data:`MEMORY_SCENE_COPIES` (the LDRM's flattened maps,
-        re-based, pruned copies, the viewer's keyframes); on the CPU the LDRM's deformation maps, n latent frames × K
+        (:meth:`scene_slots` × K key times × 10 floats) × :data:`MEMORY_SCENE_COPIES` (the scene and its pruned
+        copy); on the CPU the LDRM's deformation maps, n latent frames × K
         × the model grid × 10 floats × :data:`MEMORY_MAP_COPIES` (on a GPU they stay in its memory);
         :data:`MEMORY_BYTES_PER_GAUSSIAN` per slot (attributes, renderer tile lists); the rendered frames, T × H × W
         × 5 floats, twice (floats and encoded). The deformation terms vanish for a runtime without the deformation
         network. Measured against the peak resident memory of ``generate`` on the CPU in docs/benchmarks.md
-        ("Memory of generate": 1.2-1.5× the measured peak at 17-149 frames, 64²-512²). GPU memory is not
+        ("Memory of generate": 1.1-1.5× the measured peak at 17-149 frames, 64²-512²). GPU memory is not
         estimated: a request too large for it fails with torch's out-of-memory error, one line naming the knobs.
 
         Raises:

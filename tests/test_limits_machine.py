@@ -117,7 +117,7 @@ def test_memory_is_checked_against_the_memory_available(monkeypatch, no_env):
 @pytest.mark.slow
 @pytest.mark.parametrize("memory, disk, refused", [
     (120 * GiB, 60 * GiB, None),  # the H100 machine of issue 26: 128 GiB of memory, 64 GiB of disk
-    (8 * GiB, 60 * GiB, "of memory available to this process"),  # a laptop: the scene's host copies alone ~20 GiB
+    (8 * GiB, 60 * GiB, "of memory available to this process"),  # a laptop: the scene's host copies alone ~13 GiB
     (120 * GiB, 10 * GiB, "free on the disk of"),  # a full disk: 18.3 GiB for 49 frames of 3.48 M Gaussian slots
     (120 * GiB, -10 * GiB, None),  # the same disk with --no-frame-plys (7.5 GiB): the README's command
 ])
