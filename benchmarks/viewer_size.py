@@ -5,8 +5,11 @@ scenes (random Gaussians, 17 keyframes) of 10,000 and 65,536 Gaussians at SH deg
 keyframe bytes per Gaussian per frame (float16 or float32, chosen by the measured float16 error), that error
 in pixels, the embedded PLY and keyframe sizes, the whole file, whether the size budget reduced the scene,
 and — when Chromium and Playwright are installed — the time from navigation until the page reports ready
-(headless Chromium, software WebGL, this machine) and the milliseconds one change of time takes in the page
-(interpolating every Gaussian between two keyframes and writing it into Spark's PackedSplats).
+(headless Chromium, software WebGL, this machine), the milliseconds one change of time takes in the page
+(interpolating every Gaussian between two keyframes and writing it into Spark's PackedSplats; float16 keyframes
+are decoded when the time enters a new pair, which each of these changes does) and the page's JavaScript heap once
+ready. A last row serves a paper-size scene (1,311,201 Gaussians, 49 keyframes: what the paper model keeps) with
+``diff4splat view``, which never reduces the scene.
 
     python benchmarks/viewer_size.py --write
 """
@@ -16,6 +19,7 @@ import argparse
 import shutil
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -27,10 +31,11 @@ from _common import machine, markdown_table, write_section  # noqa: E402
 from diff4splat.cameras.path import CameraPath  # noqa: E402
 from diff4splat.gaussians import Gaussians  # noqa: E402
 from diff4splat.generate import generate, write  # noqa: E402
-from diff4splat.io.scene_folder import load_scene_folder  # noqa: E402
+from diff4splat.io.scene_folder import load_scene_folder, write_scene_folder  # noqa: E402
 from diff4splat.scene import DynamicGaussians  # noqa: E402
 from diff4splat.viewer.data import viewer_payload  # noqa: E402
 from diff4splat.viewer.page import write_viewer  # noqa: E402
+from diff4splat.viewer_server import HOST, folder_payload, make_server  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -51,9 +56,10 @@ def synthetic(n: int, sh_degree: int, frames: int = 17, seed: int = 0) -> tuple[
     return scene, CameraPath(torch.eye(4).repeat(frames, 1, 1), K.repeat(frames, 1, 1), 512, 512)
 
 
-def load_seconds(path: Path) -> tuple[float, float] | None:
-    """(seconds until the page reports ready, ms of one time change: interpolating every Gaussian and
-    writing it into Spark's PackedSplats, median of 5), or None without Chromium/Playwright."""
+def load_seconds(url: str) -> tuple[float, float, float] | None:
+    """(seconds until the page at ``url`` reports ready, ms of one time change: interpolating every Gaussian and
+    writing it into Spark's PackedSplats, median of 5; the JavaScript heap once ready, MiB), or None without
+    Chromium/Playwright."""
     chromium = shutil.which("chromium")
     try:
         from playwright.sync_api import sync_playwright
@@ -66,31 +72,53 @@ def load_seconds(path: Path) -> tuple[float, float] | None:
         b = p.chromium.launch(executable_path=chromium, args=flags)
         page = b.new_page(viewport={"width": 640, "height": 560})
         t0 = time.perf_counter()
-        page.goto(path.as_uri())
-        page.wait_for_function("window.d4s && (window.d4s.ready || window.d4s.error)", timeout=300_000)
+        page.goto(url)
+        page.wait_for_function("window.d4s && (window.d4s.ready || window.d4s.error)", timeout=600_000)
         dt = time.perf_counter() - t0
         err = page.evaluate("d4s.error")
+        heap = page.evaluate("performance.memory.usedJSHeapSize") / 2**20
         js = ("(() => { if (!d4s.config.dynamic) return null; const ms = []; for (let i = 0; i < 5; i++) {"
               " const t = performance.now(); d4s.setTime(0.1 + 0.2 * i); ms.push(performance.now() - t); }"
               " return ms.sort((a, b) => a - b)[2]; })()")
         step = None if err else page.evaluate(js)
         b.close()
     if err:
-        raise RuntimeError(f"{path}: {err}")
-    return dt, step
+        raise RuntimeError(f"{url}: {err}")
+    return dt, step, heap
 
 
-def row(name: str, path: Path, payload) -> list:
+def row(name: str, path: Path, payload, url: str | None = None) -> list:
+    """The table's row of ``payload`` written at ``path`` (viewer.html), loaded from ``url`` (default: the file)."""
     c = payload.config
     mb = lambda x: f"{x / 2**20:.2f}"  # noqa: E731
-    t = load_seconds(path)
-    ready, step = (None, None) if t is None else t
+    t = load_seconds(url or path.as_uri())
+    ready, step, heap = (None, None, None) if t is None else t
     return [name, f"{c['numGaussians']:,}", c["shDegree"], len(c["times"]), c["dtype"],
             "—" if c["float16ErrorPx"] is None else f"{c['float16ErrorPx']:.3f}",
             c["bytesPerGaussianPerFrame"], f"{c['bytesPerGaussianPerFrame'] * 4 / 3:.1f}",
             mb(len(payload.ply)), mb(len(payload.frames or b"")), mb(path.stat().st_size),
             "; ".join(payload.reductions) or "no", "—" if ready is None else f"{ready:.1f}",
-            "—" if step is None else f"{step:.0f}"]
+            "—" if step is None else f"{step:.0f}", "—" if heap is None else f"{heap:.0f}"]
+
+
+def served_row(tmp: Path, n: int, frames: int) -> list:
+    """The row of a synthetic scene written as an output folder and served by ``diff4splat view`` (the full scene:
+    its viewer.html columns are the folder's embedded, reduced copy)."""
+    scene, cams = synthetic(n, 0, frames=frames)
+    out = tmp / f"view_{n}"
+    T, H, W = len(cams), cams.height, cams.width
+    write_scene_folder(out, scene, cams, torch.zeros(T, H, W, 3), torch.ones(T, H, W), torch.ones(T, H, W), {},
+                       frame_plys=False)
+    del scene
+    server = make_server(out, 0)
+    threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.01}, daemon=True).start()
+    try:
+        full = folder_payload(out)
+        return row(f"synthetic, {frames} keyframes, `diff4splat view`", out / "viewer.html", full,
+                   f"http://{HOST}:{server.server_address[1]}/")
+    finally:
+        server.shutdown()
+        server.server_close()
 
 
 def main() -> None:
@@ -109,9 +137,10 @@ def main() -> None:
                 scene, cams = synthetic(n, d)
                 path = Path(tmp) / f"s{n}_{d}.html"
                 rows.append(row("synthetic, 17 keyframes", path, write_viewer(path, scene, cams)))
+        rows.append(served_row(Path(tmp), 1_311_201, 49))
     body = markdown_table(["scene", "Gaussians", "SH", "keyframes", "dtype", "float16 error px",
                            "bytes / Gaussian / frame", "in the page (base64)", "PLY MiB", "keyframes MiB",
-                           "viewer.html MiB", "reduced", "ready s", "time change ms"], rows)
+                           "viewer.html MiB", "reduced", "ready s", "time change ms", "page heap MiB"], rows)
     print(body)
     if args.write:
         write_section("viewer_size", f"Machine: {machine()}; headless Chromium with SwiftShader (software WebGL). "

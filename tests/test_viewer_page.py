@@ -8,6 +8,7 @@ import math
 import re
 from importlib import resources
 from pathlib import Path
+from unittest import mock
 
 import cv2
 import numpy as np
@@ -15,6 +16,7 @@ import pytest
 import torch
 from helpers import moving_patch_scene
 
+import diff4splat.viewer.data as viewer_data
 from diff4splat.cli import main
 from diff4splat.io import load_cameras_json, load_ply
 from diff4splat.render import rasterize
@@ -143,12 +145,26 @@ def test_page_is_ready_and_matches_a_cpu_render(browser, dynamic_page_file):
     page.close()
 
 
+@pytest.fixture(scope="module")
+def float32_page_file(tmp_path_factory):
+    """The dynamic page with float32 keyframes (float16 refused: its error bound set below 0)."""
+    scene, cams = moving_patch_scene(n=600, sh_degree=1)
+    path = tmp_path_factory.mktemp("viewer32") / "viewer.html"
+    with mock.patch.object(viewer_data, "FLOAT16_MAX_PX", -1.0):
+        write_viewer(path, scene, cams)
+    return path, scene, cams
+
+
 @pytest.mark.slow
-def test_time_slider_moves_the_scene_the_right_way(browser, dynamic_page_file):
+@pytest.mark.parametrize("dtype", ["float16", "float32"])
+def test_time_slider_moves_the_scene_the_right_way(browser, dynamic_page_file, float32_page_file, dtype):
     """The patch moves 0.6 m to +x at 3 m: 0.6 · f/3 px on the canvas (f = 80 px × its scale) from t = 0 to 1;
-    the slider's end shows it there (centroid within 10 %) and matches the CPU render at t = 1."""
-    path, scene, cams = dynamic_page_file
+    the slider's end shows it there (centroid within 10 %) and matches the CPU render at t = 1; halfway, half the
+    shift. With float16 keyframes (decoded two at a time as the time moves between pairs) and float32 ones (read
+    in place)."""
+    path, scene, cams = dynamic_page_file if dtype == "float16" else float32_page_file
     page = _open(browser, path.as_uri())
+    assert page.evaluate("d4s.config.dtype") == dtype
     img = _canvas(page)
     x0, shift = _centroid_x(img), 0.6 * 80 * img.shape[1] / 128 / 3
     assert page.locator("#play").is_visible() and "t = 0.000" in page.locator("#tlabel").inner_text()

@@ -37,12 +37,36 @@ const HALF = (() => {
   return t;
 })();
 
-function decodeFloats(bytes, dtype) {
-  const buf = bytes.buffer.slice(bytes.byteOffset, bytes.byteOffset + bytes.byteLength);
-  if (dtype === "float32") return new Float32Array(buf);
-  const h = new Uint16Array(buf), out = new Float32Array(h.length);
-  for (let i = 0; i < h.length; i++) out[i] = HALF[h[i]];
-  return out;
+// The keyframes as loaded, without a copy: a Float32Array or (float16) Uint16Array view of the bytes. Only the
+// two keyframes around the current time are decoded to float32 (keyframeDecoder): a paper-size scene's keyframes
+// (1.3 M Gaussians × 49 frames, 1.3 GB in float16) decoded all at once took 2.6 GB more, on top of the bytes.
+function keyframeArray(bytes, dtype) {
+  const size = dtype === "float32" ? 4 : 2;
+  const b = bytes.byteOffset % size ? bytes.slice() : bytes;  // a typed view needs an aligned offset
+  return dtype === "float32" ? new Float32Array(b.buffer, b.byteOffset, b.byteLength / 4)
+    : new Uint16Array(b.buffer, b.byteOffset, b.byteLength / 2);
+}
+
+// keyframe(f) → frame f's fields in float32, decoded from float16 on first use; the last two used are kept (the
+// pair the time lies between), so playing decodes each keyframe once per pass.
+function keyframeDecoder(frames, dtype) {
+  if (dtype === "float32") return (f) => frames[f];
+  const kept = new Map();
+  const decode = (h) => {
+    if (!h) return null;
+    const out = new Float32Array(h.length);
+    for (let i = 0; i < h.length; i++) out[i] = HALF[h[i]];
+    return out;
+  };
+  return (f) => {
+    let d = kept.get(f);
+    if (d) { kept.delete(f); kept.set(f, d); return d; }  // most recently used last
+    const src = frames[f];
+    d = { means: decode(src.means), quats: decode(src.quats), scales: decode(src.scales), opacities: decode(src.opacities) };
+    kept.set(f, d);
+    if (kept.size > 2) kept.delete(kept.keys().next().value);
+    return d;
+  };
 }
 
 // Keyframe array layout (little endian, dtype of cfg.dtype): for each keyframe f, means (N, 3), quats
@@ -153,7 +177,8 @@ async function main() {
   // per-Gaussian colour and opacity as loaded (setSplat rewrites all of a splat's packed fields)
   const colors = [], opac = new Float32Array(n);
   for (let i = 0; i < n; i++) { const s = packed.getSplat(i); colors.push(s.color.clone()); opac[i] = s.opacity; }
-  const frames = cfg.dynamic ? splitFrames(decodeFloats(frameBytes, cfg.dtype), cfg) : null;
+  const frames = cfg.dynamic ? splitFrames(keyframeArray(frameBytes, cfg.dtype), cfg) : null;
+  const keyframe = frames && keyframeDecoder(frames, cfg.dtype);
   const c = new THREE.Vector3(), sc = new THREE.Vector3(), q = new THREE.Quaternion();
   function setTime(t) {
     state.time = t;
@@ -163,7 +188,7 @@ async function main() {
     while (k < ts.length - 2 && t > ts[k + 1]) k++;
     const k1 = Math.min(k + 1, ts.length - 1);
     const w = k1 === k ? 0 : Math.min(1, Math.max(0, (t - ts[k]) / (ts[k1] - ts[k])));
-    const a = frames[k], b = frames[k1];
+    const a = keyframe(k), b = keyframe(k1);
     for (let i = 0; i < n; i++) {
       const i3 = 3 * i, i4 = 4 * i;
       c.set(a.means[i3] + w * (b.means[i3] - a.means[i3]), a.means[i3 + 1] + w * (b.means[i3 + 1] - a.means[i3 + 1]),
