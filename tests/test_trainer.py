@@ -15,14 +15,8 @@ import torch
 from _trainer_toy import ToyData, ToyModel, run_two_ranks, toy_step
 
 from training.checkpoint import latest_checkpoint, load_checkpoint
-from training.trainer import (
-    NonFiniteLossError,
-    Trainer,
-    TrainerConfig,
-    resolve_bf16,
-    training_device,
-    warmup_cosine,
-)
+from training.placement import resolve_bf16, training_device
+from training.trainer import NonFiniteLossError, Trainer, TrainerConfig, warmup_cosine
 
 TESTS = Path(__file__).resolve().parent
 

@@ -40,8 +40,9 @@ from models.vae import estimate_latent_scaling
 
 from . import stage_config
 from .objectives import TrainingModule
+from .placement import resolve_bf16, training_device
 from .stage_config import StageConfig, apply_freezing
-from .trainer import Trainer, resolve_bf16, training_device
+from .trainer import Trainer
 
 __all__ = ["main", "build_training", "calibrate_latent_scaling", "backbone_training"]
 

@@ -62,13 +62,13 @@ from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset, DistributedSampler
 from tqdm.auto import tqdm
 
-from diff4splat.devices import AUTO, resolve_device
+from diff4splat.devices import AUTO
 from diff4splat.io.atomic import atomic_output_path
 
 from .checkpoint import latest_checkpoint, load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from .placement import dist_info, resolve_bf16, training_device
 
-__all__ = ["TrainerConfig", "Trainer", "NonFiniteLossError", "warmup_cosine", "StepFn", "resolve_bf16",
-           "training_device"]
+__all__ = ["TrainerConfig", "Trainer", "NonFiniteLossError", "warmup_cosine", "StepFn"]
 
 StepFn = Callable[[nn.Module, Any, torch.Generator], dict[str, Tensor]]
 
@@ -169,36 +169,6 @@ class TrainerConfig:
         self.betas = tuple(self.betas)
 
 
-def resolve_bf16(bf16: bool | None, device: str | torch.device) -> bool:
-    """Whether a trainer on ``device`` autocasts to bfloat16: ``bf16`` when it is set, else (None = auto)
-    True for a CUDA device and False for any other (the CPU's bfloat16 matmuls are slower than float32)."""
-    if bf16 is None:
-        return torch.device(device).type == "cuda"
-    return bool(bf16)
-
-
-def training_device(device: str | torch.device | None = AUTO, name: str = "trainer.device") -> torch.device:
-    """The device one training process runs on.
-
-    Args:
-        device: as :func:`diff4splat.devices.resolve_device` takes it (``auto``/None, ``cpu``, ``cuda``,
-            ``cuda:N``, a ``torch.device``).
-        name: what the user calls the setting, for the error message.
-
-    Returns:
-        The device, with a CUDA index: ``auto``/``cuda`` become ``cuda:$LOCAL_RANK`` under torchrun (one GPU
-        per process), else the current CUDA device.
-
-    Raises:
-        ValueError: not a device, or one this machine lacks (no GPU, LOCAL_RANK ≥ the GPU count), naming ``name``.
-    """
-    dev = resolve_device(device, name)
-    if dev.type == "cuda" and dev.index is None:
-        local = os.environ.get("LOCAL_RANK")
-        dev = resolve_device(f"cuda:{int(local) if local is not None else torch.cuda.current_device()}", name)
-    return dev
-
-
 def warmup_cosine(step: int, warmup: int, total: int, min_ratio: float) -> float:
     """LR multiplier: linear warm-up (step+1)/warmup, then cosine from 1 to ``min_ratio`` at ``total``
     (SGDR, Loshchilov & Hutter 2017, without restarts)."""
@@ -206,12 +176,6 @@ def warmup_cosine(step: int, warmup: int, total: int, min_ratio: float) -> float
         return (step + 1) / warmup
     progress = min(1.0, (step - warmup) / max(1, total - warmup))
     return min_ratio + (1 - min_ratio) * 0.5 * (1 + math.cos(math.pi * progress))
-
-
-def _dist_info() -> tuple[int, int, bool]:
-    if dist.is_available() and dist.is_initialized():
-        return dist.get_rank(), dist.get_world_size(), True
-    return 0, 1, False
 
 
 def _full_tensor(t: Tensor) -> Tensor:
@@ -256,7 +220,7 @@ class Trainer:
             torch.backends.cuda.matmul.allow_tf32 = config.tf32
             torch.backends.cudnn.allow_tf32 = config.tf32
         self._init_distributed(self.device)
-        self.rank, self.world, self.distributed = _dist_info()
+        self.rank, self.world, self.distributed = dist_info()
         self.sharded = self.distributed and config.strategy == "fsdp"
         if config.gradient_checkpointing:
             self._enable_gradient_checkpointing(model)
