@@ -11,9 +11,9 @@
 # 'a+b' is for steps whose figures do not matter to the other: the suite beside the paper command (its wall time
 # then shares the 16 cores with the suite's processes: say so where it is reported), never beside generate.
 #
-# A session has 15 minutes of device time, its machine's start included: two calls. The first,
-# `suite command` (~8 min with set-up), shows that everything runs on CUDA; the second, `generate` (~5 min),
-# measures the 30 s goal. Each step runs under what is left of GPU_SESSION_SECONDS (then SIGINT: pytest prints
+# A session has 15 minutes of device time, its machine's start included: two calls. Next (docs/CONTRIBUTING.md,
+# "On a lent GPU"): `suite` (~5 min with set-up), which shows that everything runs on CUDA, then `command`
+# (~3 min); `generate` (~5 min) measures the 30 s goal. Each step runs under what is left of GPU_SESSION_SECONDS (then SIGINT: pytest prints
 # its summary, gpu.py keeps the rows it wrote), so $OUT gets the logs and docs/benchmarks.md whatever happens.
 #
 # Steps, in the order of what only a GPU can show (minutes on one H100, estimated; measured on an H200 where

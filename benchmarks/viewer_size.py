@@ -35,7 +35,7 @@ from diff4splat.io.scene_folder import load_scene_folder, write_scene_folder  # 
 from diff4splat.scene import DynamicGaussians  # noqa: E402
 from diff4splat.viewer.data import viewer_payload  # noqa: E402
 from diff4splat.viewer.page import write_viewer  # noqa: E402
-from diff4splat.viewer_server import HOST, folder_payload, make_server  # noqa: E402
+from diff4splat.viewer_server import HOST, make_server  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -113,9 +113,8 @@ def served_row(tmp: Path, n: int, frames: int) -> list:
     server = make_server(out, 0)
     threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.01}, daemon=True).start()
     try:
-        full = folder_payload(out)
-        return row(f"synthetic, {frames} keyframes, `diff4splat view`", out / "viewer.html", full,
-                   f"http://{HOST}:{server.server_address[1]}/")
+        return row(f"synthetic, {frames} keyframes, `diff4splat view`", out / "viewer.html",
+                   server.RequestHandlerClass.payload, f"http://{HOST}:{server.server_address[1]}/")
     finally:
         server.shutdown()
         server.server_close()

@@ -72,6 +72,7 @@ class _Handler(BaseHTTPRequestHandler):
     root: Path  # the folder, resolved (set by make_server's subclass)
     page: bytes | None = None
     data: dict[str, bytes] = {}
+    payload: ViewerPayload | None = None  # what page and data were made from
 
     def log_message(self, format, *args):  # noqa: A002 (the base class's name): quiet
         pass
@@ -117,7 +118,8 @@ class _Handler(BaseHTTPRequestHandler):
 
 def make_server(folder: str | os.PathLike, port: int = 0) -> ThreadingHTTPServer:
     """A server for ``folder`` bound to 127.0.0.1:``port`` (0: any free port; ``server.server_address[1]``).
-    Call ``serve_forever()``; the caller closes it.
+    Call ``serve_forever()``; the caller closes it. ``server.RequestHandlerClass.payload`` is the
+    :class:`~diff4splat.viewer.data.ViewerPayload` it serves (None for a folder that holds only viewer.html).
 
     Raises:
         FileNotFoundError: ``folder`` is not a folder, or holds neither scene.ply nor viewer.html.
@@ -131,7 +133,7 @@ def make_server(folder: str | os.PathLike, port: int = 0) -> ThreadingHTTPServer
         raise FileNotFoundError(f"DIR: {root} is not a folder (give an output folder of generate, fit or render)")
     if not 0 <= port <= 65535:
         raise ValueError(f"--port must be in 0 … 65535, got {port}")
-    page, data = None, {}
+    page, data, payload = None, {}, None
     if (root / "scene.ply").exists() or (root / "scene.ply").is_symlink():
         payload = folder_payload(root)
         page = viewer_html(payload, f"diff4splat · {root.resolve().name}", full_url=DATA_PREFIX,
@@ -139,7 +141,7 @@ def make_server(folder: str | os.PathLike, port: int = 0) -> ThreadingHTTPServer
         data = {"scene.ply": payload.ply, **({"frames.bin": payload.frames} if payload.frames is not None else {})}
     elif served_file(root.resolve(), "/") is None:
         raise FileNotFoundError(f"DIR: {root} has neither scene.ply nor {VIEWER_NAME} (not an output folder)")
-    handler = type("Handler", (_Handler,), {"root": root.resolve(), "page": page, "data": data})
+    handler = type("Handler", (_Handler,), {"root": root.resolve(), "page": page, "data": data, "payload": payload})
     try:
         return ThreadingHTTPServer((HOST, port), handler)
     except OSError as e:

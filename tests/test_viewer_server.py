@@ -240,3 +240,25 @@ def test_a_corrupt_folder_is_refused_naming_the_file(tmp_path, capsys):
     err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert err == [f"diff4splat: error: {out / 'deformation.npz'}: not a readable .npz archive (File is not a zip "
                    "file)"]
+
+
+def test_the_server_keeps_the_payload_it_serves(tmp_path):
+    """``RequestHandlerClass.payload``: the unreduced payload whose bytes are served (what benchmarks read their
+    sizes from); None for a folder with only viewer.html."""
+    out, _ = _folder(tmp_path, sh_degree=1)
+    server = make_server(out, 0)
+    try:
+        payload = server.RequestHandlerClass.payload
+        assert payload.config["numGaussians"] == 120 and payload.reductions == []
+        assert server.RequestHandlerClass.data["scene.ply"] is payload.ply
+        assert server.RequestHandlerClass.data["frames.bin"] is payload.frames
+    finally:
+        server.server_close()
+    only_page = tmp_path / "page"
+    only_page.mkdir()
+    (only_page / "viewer.html").write_text("<html></html>")
+    server = make_server(only_page, 0)
+    try:
+        assert server.RequestHandlerClass.payload is None
+    finally:
+        server.server_close()
