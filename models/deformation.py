@@ -26,8 +26,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .layers import tracing
 from .pretrained import PretrainedMixin
+from .tracing import tracing
 
 __all__ = [
     "DeformationConfig",

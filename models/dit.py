@@ -32,9 +32,18 @@ from torch import Tensor, nn
 from torch.utils.checkpoint import checkpoint
 
 from models.backbones.base import check_velocity_inputs
-from models.layers import CrossAttention, Mlp, SelfAttention, TimestepEmbedder, modulate, patchify, tracing, unpatchify
+from models.layers import (
+    CrossAttention,
+    Mlp,
+    SelfAttention,
+    TimestepEmbedder,
+    modulated_layer_norm,
+    patchify,
+    unpatchify,
+)
 from models.pretrained import PretrainedMixin
 from models.rope import rope_3d, rope_split
+from models.tracing import tracing
 
 __all__ = ["VideoDiTConfig", "VideoDiTBlock", "FinalLayer", "VideoDiT"]
 
@@ -134,15 +143,23 @@ class VideoDiTBlock(nn.Module):
         ff_chunk_tokens: int | None = None,  # the MLP over at most this many tokens at a time (None: all)
     ) -> Tensor:
         shift_msa, scale_msa, gate_msa, shift_mlp, scale_mlp, gate_mlp = self.adaLN_modulation(c).chunk(6, dim=1)
-        x = x + gate_msa.unsqueeze(1) * self.attn(modulate(self.norm1(x), shift_msa, scale_msa), rope)
+        # Gated residuals as one addcmul each (x + g·branch in one pass over the tokens, rounded once).
+        h = self.attn(modulated_layer_norm(x, shift_msa, scale_msa, self.norm1.eps), rope)
+        x = torch.addcmul(x, gate_msa.unsqueeze(1), h)
         if context is not None:  # a None check on an argument, not on tensor values: exportable
             x = x + self.cross_attn(self.norm2(x), context, context_mask)
-        h = modulate(self.norm3(x), shift_mlp, scale_mlp)
-        if ff_chunk_tokens is not None and h.shape[1] > ff_chunk_tokens:
-            h = torch.cat([self.mlp(part) for part in h.split(ff_chunk_tokens, dim=1)], dim=1)
-        else:
-            h = self.mlp(h)
-        return x + gate_mlp.unsqueeze(1) * h
+        h = modulated_layer_norm(x, shift_mlp, scale_mlp, self.norm3.eps)
+        gate = gate_mlp.unsqueeze(1)
+        if ff_chunk_tokens is None or h.shape[1] <= ff_chunk_tokens:
+            return torch.addcmul(x, gate, self.mlp(h))
+        parts = zip(x.split(ff_chunk_tokens, dim=1), h.split(ff_chunk_tokens, dim=1), strict=True)
+        if tracing() or (torch.is_grad_enabled() and any(t.requires_grad for t in (x, h, gate))):
+            return torch.cat([torch.addcmul(xp, gate, self.mlp(hp)) for xp, hp in parts], dim=1)
+        # Nothing records autograd: each chunk's residual is added into x in place. x is this block's own tensor
+        # here (the sum made by the residuals above, never the caller's input), so no one else sees the write.
+        for xp, hp in parts:
+            xp.addcmul_(gate, self.mlp(hp))
+        return x
 
 
 class FinalLayer(nn.Module):
@@ -157,7 +174,7 @@ class FinalLayer(nn.Module):
     def forward(self, x: Tensor, c: Tensor) -> Tensor:
         """x: (B, N, D), c: (B, D) → (B, N, pt·ph·pw·out_channels)."""
         shift, scale = self.adaLN_modulation(c).chunk(2, dim=1)
-        return self.linear(modulate(self.norm_final(x), shift, scale))
+        return self.linear(modulated_layer_norm(x, shift, scale, self.norm_final.eps))
 
 
 class VideoDiT(nn.Module, PretrainedMixin):

@@ -48,9 +48,10 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .deformation import DeformationConfig, DeformationNetwork, soft_clamp, unit_quat_from_raw
-from .layers import Mlp, SelfAttention, patchify, tracing
+from .layers import Mlp, SelfAttention, patchify
 from .mono_depth import MonoDepth
 from .pretrained import PretrainedMixin
+from .tracing import tracing
 
 __all__ = ["LDRMConfig", "LDRM", "LDRMOutput", "distance_activation", "gaussian_activations", "sincos_position_3d",
            "source_frame_indices", "GAUSSIAN_FRAMES"]

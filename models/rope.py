@@ -16,6 +16,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from models.tracing import tracing
+
 __all__ = ["rope_split", "rope_frequencies", "rope_3d", "apply_rope", "apply_rope_complex"]
 
 
@@ -101,34 +103,54 @@ def rope_3d(
 
 
 def apply_rope(
-    x: Tensor,  # (..., N, D) queries or keys
+    x: Tensor,  # (..., N, D) queries or keys; (..., N, heads, D) with token_dim=-3
     cos: Tensor,  # (N, D/2)
     sin: Tensor,  # (N, D/2)
+    token_dim: int = -2,
 ) -> Tensor:
     """Rotate consecutive channel pairs of ``x`` by the tabulated angles (RoFormer Eq. 14).
 
     (x_{2j}, x_{2j+1}) ↦ (x_{2j} cos φ − x_{2j+1} sin φ, x_{2j} sin φ + x_{2j+1} cos φ).
     A pure rotation: the norm of every token vector is preserved.
 
+    Each output channel is one multiply and one fused multiply-add (``addcmul``, rounded once) written straight
+    into the output: 2.5 reads/writes of ``x``'s size, against 4.5 for the textbook four products, two sums and a
+    ``stack`` (at the paper size the queries and keys of one block moved 1.96 GB that way; 1.09 GB now). Where
+    autograd records (``x`` or a table requires grad) or a model is traced, the same arithmetic runs out of place
+    with one ``stack``.
+
     Args:
-        x: (..., N, D), e.g. (B, heads, N, head_dim); D even.
+        x: (..., N, D), e.g. (B, heads, N, head_dim); or (..., N, heads, D) with ``token_dim=-3`` (the layout
+            of a projection's output, which attention kernels take without a copy); D even.
         cos, sin: (N, D/2) from :func:`rope_3d`.
+        token_dim: the dimension of ``x`` that the tables' N runs along, −2 or −3.
 
     Returns:
-        (..., N, D), same dtype as ``x``.
+        ``x``'s shape, dtype and memory layout.
 
     Raises:
-        ValueError: the tables do not match ``x``'s last two dimensions.
+        ValueError: the tables do not match ``x``, or ``token_dim`` is not −2 or −3.
     """
-    N, D = x.shape[-2], x.shape[-1]
+    if token_dim not in (-2, -3) or x.dim() < -token_dim:
+        raise ValueError(f"token_dim must be -2 or -3 for x of shape {tuple(x.shape)}, got {token_dim}")
+    N, D = x.shape[token_dim], x.shape[-1]
     if D % 2 or cos.shape != (N, D // 2) or sin.shape != (N, D // 2):
         raise ValueError(f"cos/sin must have shape ({N}, {D // 2}) for x of shape {tuple(x.shape)}, "
                          f"got {tuple(cos.shape)} and {tuple(sin.shape)}")
+    if token_dim == -3:  # (N, 1, D/2): broadcast over the heads
+        cos, sin = cos[:, None], sin[:, None]
     cos, sin = cos.to(x.dtype), sin.to(x.dtype)
     pairs = x.unflatten(-1, (D // 2, 2))
     x0, x1 = pairs[..., 0], pairs[..., 1]
-    out = torch.stack([x0 * cos - x1 * sin, x0 * sin + x1 * cos], dim=-1)
-    return out.flatten(-2)
+    if tracing() or (torch.is_grad_enabled() and (x.requires_grad or cos.requires_grad or sin.requires_grad)):
+        return torch.stack([torch.addcmul(x0 * cos, x1, sin, value=-1), torch.addcmul(x1 * cos, x0, sin)],
+                           dim=-1).flatten(-2)
+    out = torch.empty_like(x)  # x's layout (empty_like keeps the strides of a dense tensor)
+    halves = out.unflatten(-1, (D // 2, 2))
+    o0, o1 = halves[..., 0], halves[..., 1]
+    torch.mul(x0, cos, out=o0).addcmul_(x1, sin, value=-1)
+    torch.mul(x1, cos, out=o1).addcmul_(x0, sin)
+    return out
 
 
 def apply_rope_complex(

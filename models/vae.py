@@ -44,8 +44,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from models.backbones.base import LatentFormat
-from models.layers import tracing
 from models.pretrained import PretrainedMixin
+from models.tracing import tracing
 
 __all__ = ["VideoVAEConfig", "PAPER_VIDEO_VAE", "VideoVAE", "CausalConv3d", "FrameGroupNorm", "ResBlock3d",
            "kl_divergence", "sample_posterior", "estimate_latent_scaling", "LOGVAR_RANGE", "UPSAMPLE_MODES",

@@ -289,6 +289,26 @@ def test_gradient_checkpointing_gives_the_same_loss_and_gradients(monkeypatch):
     assert calls == []
 
 
+def test_a_block_adds_its_chunked_feed_forward_into_its_own_tensor_only():
+    """Without autograd a block adds each feed-forward chunk's residual in place, into the sum its own residuals
+    made: the caller's tokens stay as they were, and the output is the unchunked block's, for one sample (the
+    LayerNorm-affine modulation) and for two."""
+    model = _model()
+    block, D = model.blocks[0], CFG.hidden_size
+    g = torch.Generator().manual_seed(5)
+    rope = dit_module.rope_3d(2, 2, 3, CFG.head_dim, CFG.rope_theta)
+    for batch in (1, 2):
+        x, c = torch.randn(batch, 12, D, generator=g), torch.randn(batch, D, generator=g)
+        ctx = torch.randn(batch, 4, D, generator=g)
+        before = x.clone()
+        with torch.no_grad():
+            plain = block(x, c, rope, ctx)
+            chunked = block(x, c, rope, ctx, ff_chunk_tokens=5)
+        assert torch.equal(x, before)
+        assert not torch.equal(plain, x)  # the block does something (its gates are not zero here)
+        torch.testing.assert_close(chunked, plain, rtol=1e-5, atol=1e-6)
+
+
 def test_feed_forward_chunking_gives_the_same_velocity_in_fewer_tokens_at_a_time():
     """dit.ff_chunk_tokens runs each block's MLP over at most that many tokens (N = 2·2·3 = 12 here: chunks of 5,
     5, 2); the velocity is the unchunked one (the MLP acts on each token alone) and so are the gradients. A

@@ -1,11 +1,22 @@
 """Tests for models.layers: timestep embedding, modulation, patchify, self-/cross-attention."""
+import collections
 import math
 
 import pytest
 import torch
 import torch.nn.functional as F
+from torch.utils._python_dispatch import TorchDispatchMode
 
-from models.layers import CrossAttention, QKNorm, SelfAttention, modulate, patchify, timestep_embedding, unpatchify
+from models.layers import (
+    CrossAttention,
+    QKNorm,
+    SelfAttention,
+    modulate,
+    modulated_layer_norm,
+    patchify,
+    timestep_embedding,
+    unpatchify,
+)
 from models.rope import apply_rope, rope_3d
 
 
@@ -25,6 +36,60 @@ def test_modulate_is_per_sample_affine():
     shift, scale = torch.randn(2, 4), torch.randn(2, 4)
     out = modulate(x, shift, scale)
     torch.testing.assert_close(out[1, 2], x[1, 2] * (1 + scale[1]) + shift[1])
+
+
+def test_modulated_layer_norm_is_modulate_of_layer_norm():
+    """One sample runs LayerNorm with the modulation as its own affine, several run LayerNorm then one addcmul:
+    both are modulate(LayerNorm(x)) in float64 with its gradients (gradcheck); in bfloat16 the one-sample kernel
+    rounds once, so it is no further from the float64 result than the chain; bf16 autocast gives modulate's
+    dtype."""
+    g = torch.Generator().manual_seed(0)
+    for batch in (1, 3):
+        x = torch.randn(batch, 5, 8, generator=g, dtype=torch.float64) * 3 + 1
+        shift, scale = torch.randn(batch, 8, generator=g, dtype=torch.float64), torch.randn(batch, 8, generator=g,
+                                                                                           dtype=torch.float64)
+        ref = modulate(F.layer_norm(x, (8,), eps=1e-6), shift, scale)
+        torch.testing.assert_close(modulated_layer_norm(x, shift, scale, 1e-6), ref, rtol=0, atol=1e-12)
+        args = tuple(t.clone().requires_grad_() for t in (x, shift, scale))
+        assert torch.autograd.gradcheck(lambda *a: modulated_layer_norm(*a, 1e-6), args)
+    x, shift, scale = (t.bfloat16() for t in (torch.randn(1, 256, 64, generator=g), torch.randn(1, 64, generator=g),
+                                              torch.randn(1, 64, generator=g)))
+    truth = modulate(F.layer_norm(x.double(), (64,), eps=1e-6), shift.double(), scale.double())
+    fused, chain = modulated_layer_norm(x, shift, scale, 1e-6), modulate(F.layer_norm(x, (64,), eps=1e-6), shift, scale)
+    assert fused.dtype == chain.dtype == torch.bfloat16
+    assert float((fused.double() - truth).abs().mean()) <= float((chain.double() - truth).abs().mean())
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        for batch in (1, 2):
+            xb, sb = x.expand(batch, -1, -1), shift.expand(batch, -1)
+            expected = modulate(F.layer_norm(xb, (64,), eps=1e-6), sb, sb)
+            assert modulated_layer_norm(xb, sb, sb, 1e-6).dtype == expected.dtype
+
+
+def test_attention_merges_the_heads_without_copying_the_tokens():
+    """Self- and cross-attention hand the heads to the attention kernel as views of the projections' outputs, and
+    read its output back as a view: no op of theirs copies the tokens (a transposed layout costs one copy per
+    attention, 0.22 GB at the paper size)."""
+    class Ops(TorchDispatchMode):
+        def __init__(self):
+            super().__init__()
+            self.seen, self.copies = collections.Counter(), []
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            out = func(*args, **(kwargs or {}))
+            name = func.overloadpacket.__name__
+            self.seen[name] += 1
+            if name in ("clone", "contiguous", "copy_", "_to_copy") and out.numel() >= x.numel() // 4:
+                self.copies.append((name, tuple(out.shape)))
+            return out
+
+    torch.manual_seed(0)
+    attn, cross = SelfAttention(64, 4), CrossAttention(64, 32, 4)
+    x, ctx, rope = torch.randn(2, 48, 64), torch.randn(2, 7, 32), rope_3d(2, 4, 6, 16)
+    keep = torch.tensor([[True] * 3 + [False] * 4, [True] * 7])
+    with torch.no_grad(), Ops() as ops:
+        attn(x, rope), cross(x, ctx), cross(x, ctx, keep)
+    assert ops.seen["_scaled_dot_product_flash_attention_for_cpu"] + ops.seen["scaled_dot_product_attention"] >= 3
+    assert ops.copies == []
 
 
 def test_patchify_linear_equals_conv3d_and_unpatchify_inverts():

@@ -1,0 +1,154 @@
+"""Bytes one DiT sampling step moves outside its matmuls and attention, per aten op, on any machine.
+
+The paper model's step is about 85 % GEMMs and attention; the rest (norms, modulation, RoPE, residuals, GELU,
+copies) is memory-bound: each op reads its inputs and writes its outputs once, so on a GPU its time is about
+its bytes over the memory bandwidth (3.35 TB/s on an H100 SXM) while the GEMMs are compute-bound. This script
+counts those bytes: the DiT of a config (default ``paper``: 32 blocks, hidden 4,096, 49 frames, 512² → 13,312
+tokens, 226 text tokens) is built in bfloat16 under torch's ``FakeTensorMode`` (shapes, dtypes and strides; no
+storage, no GPU) and one no-grad forward runs as sampling runs it (feed-forward chunk
+:data:`diff4splat.runtime.FF_CHUNK_TOKENS`) under a dispatch mode that adds up, per aten op, the bytes of the
+tensors it reads and writes (a view moves nothing; an in-place op reads and writes its tensor; an ``out=`` op
+writes its output). It is a count, not a timing: a strided read can move more bytes than it uses, a kernel can
+hit the cache.
+
+``--device cuda`` counts the ops CUDA runs (fused RMSNorm; the attention as FlashAttention, as torch picks it on
+an H100 without a mask); it needs a CUDA build of torch, not a GPU. ``--device cpu`` counts the CPU's ops (its
+RMSNorm is several ops).
+
+    python benchmarks/dit_traffic.py [--config paper] [--device cuda] [--write]
+
+``--write`` replaces the section ``dit_traffic`` of docs/benchmarks.md.
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import sys
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch._subclasses.fake_tensor import FakeTensorMode
+from torch.overrides import TorchFunctionMode
+from torch.utils._python_dispatch import TorchDispatchMode
+from torch.utils._pytree import tree_flatten
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import markdown_table, publish  # noqa: E402
+
+from diff4splat.runtime import FF_CHUNK_TOKENS  # noqa: E402
+from models.bundle import load_config  # noqa: E402
+from models.dit import VideoDiT  # noqa: E402
+
+__all__ = ["count_step", "MATMUL_OPS", "FREE_OPS"]
+
+MATMUL_OPS = frozenset({"mm", "addmm", "bmm", "baddbmm", "_scaled_dot_product_flash_attention",
+                        "_scaled_dot_product_flash_attention_for_cpu", "_scaled_dot_product_efficient_attention",
+                        "_scaled_dot_product_cudnn_attention"})
+"""GEMMs and fused attention kernels: compute-bound at the paper size, counted apart."""
+FREE_OPS = frozenset({"view", "_unsafe_view", "t", "transpose", "unsqueeze", "squeeze", "expand", "split",
+                      "split_with_sizes", "chunk", "slice", "select", "permute", "alias", "detach", "unflatten",
+                      "as_strided", "unbind", "lift_fresh", "empty", "empty_like", "empty_strided", "promote_types",
+                      "device"})
+"""Ops that move no tensor bytes: views, allocations (counted where they are written) and `prim::device`."""
+H100_BANDWIDTH = 3.35e12
+"""An H100 SXM's HBM3 bandwidth, bytes/s (NVIDIA's datasheet): the floor on the time of a memory-bound op."""
+
+
+class _Count(TorchDispatchMode):
+    """Bytes read and written per aten op (see the module docstring for the rule)."""
+
+    def __init__(self):
+        super().__init__()
+        self.bytes, self.calls = collections.Counter(), collections.Counter()
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        out = func(*args, **kwargs)
+        name = func.overloadpacket.__name__
+        if name not in FREE_OPS:
+            read = {id(t): t for t in tree_flatten((args, {k: v for k, v in kwargs.items() if k != "out"}))[0]
+                    if isinstance(t, torch.Tensor)}
+            written = {id(t): t for t in tree_flatten(out)[0] if isinstance(t, torch.Tensor)}
+            self.bytes[name] += sum(t.numel() * t.element_size() for t in [*read.values(), *written.values()])
+            self.calls[name] += 1
+        return out
+
+
+class _FlashAttention(TorchFunctionMode):
+    """``scaled_dot_product_attention`` on fake CUDA tensors as FlashAttention, the kernel torch picks on an H100
+    for an unmasked call (without a GPU, its kernel choice falls back to the unfused math path)."""
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        if func is F.scaled_dot_product_attention:
+            if kwargs.get("attn_mask") is not None:
+                raise ValueError("the count runs an unmasked prompt, as sampling a one-prompt batch does")
+            return torch.ops.aten._scaled_dot_product_flash_attention(*args[:3])[0]
+        return func(*args, **kwargs)
+
+
+def count_step(config: str = "paper", device: str = "cuda", ff_chunk_tokens: int | None = FF_CHUNK_TOKENS,
+               dtype: torch.dtype = torch.bfloat16) -> tuple[collections.Counter, collections.Counter, int]:
+    """One no-grad forward of ``config``'s DiT at its frames and size with a full-length prompt, on fake tensors.
+
+    Returns:
+        (bytes per aten op, calls per aten op, tokens).
+
+    Raises:
+        RuntimeError: ``device`` is ``cuda`` and torch was built without CUDA.
+    """
+    if device == "cuda" and not torch.backends.cuda.is_built():
+        raise RuntimeError("--device cuda counts CUDA's ops on fake tensors: it needs a CUDA build of torch "
+                           "(no GPU); this torch is a CPU build: use --device cpu")
+    cfg = load_config(config)
+    vae, dit_cfg = cfg.vae, cfg.dit
+    n = vae.num_latent_frames(cfg.num_frames)
+    h, w = cfg.height // vae.spatial_factor, cfg.width // vae.spatial_factor
+    previous = torch.get_default_dtype()
+    torch.set_default_dtype(dtype)
+    count = _Count()
+    try:
+        with FakeTensorMode(), torch.device(device):
+            dit = VideoDiT(dit_cfg).eval()
+            dit._check_inputs = lambda *args: None  # σ's range check reads a value; fake tensors have none
+            dit.ff_chunk_tokens = ff_chunk_tokens
+            c = dit_cfg.latent_channels
+            inputs = (torch.randn(1, c, n, h, w), torch.ones(1), torch.randn(1, c, 1, h, w),
+                      torch.randn(1, dit_cfg.camera_channels, n, h, w),
+                      torch.randn(1, cfg.text_encoder.max_length, dit_cfg.text_dim))
+            attention = _FlashAttention() if device == "cuda" else TorchFunctionMode()
+            with torch.no_grad(), attention, count:
+                dit(*inputs)
+    finally:
+        torch.set_default_dtype(previous)
+    p = dit_cfg.patch_size
+    return count.bytes, count.calls, n * h * w // (p[0] * p[1] * p[2])
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--config", default="paper")
+    ap.add_argument("--device", choices=("cuda", "cpu"), default="cuda" if torch.backends.cuda.is_built() else "cpu",
+                    help="whose ops to count (cuda needs a CUDA build of torch, not a GPU)")
+    ap.add_argument("--write", action="store_true", help="write the table into docs/benchmarks.md")
+    args = ap.parse_args()
+    moved, calls, tokens = count_step(args.config, args.device)
+    other = {k: v for k, v in moved.items() if k not in MATMUL_OPS}
+    rows = [[f"`{k}`", f"{calls[k]:,}", f"{v / 1e9:.1f}"] for k, v in sorted(other.items(), key=lambda kv: -kv[1])]
+    total, matmul = sum(other.values()), sum(v for k, v in moved.items() if k in MATMUL_OPS)
+    rows.append(["**outside matmuls and attention**", f"{sum(calls[k] for k in other):,}", f"**{total / 1e9:.1f}**"])
+    rows.append(["matmuls and attention (their operands and outputs)", f"{sum(calls[k] for k in MATMUL_OPS):,}",
+                 f"{matmul / 1e9:.1f}"])
+    note = (f"One no-grad DiT forward of `{args.config}` ({tokens:,} tokens, bfloat16, feed-forward chunk "
+            f"{FF_CHUNK_TOKENS:,}, full-length prompt) on fake `{args.device}` tensors; GB = 10⁹ bytes read + "
+            f"written per step, by aten op. At an H100's {H100_BANDWIDTH / 1e12:.2f} TB/s the ops outside the "
+            f"matmuls and attention take at least {1e3 * total / H100_BANDWIDTH:.0f} ms per step, "
+            f"{50 * total / H100_BANDWIDTH:.1f} s over 50 steps.")
+    publish("dit_traffic", "Bytes moved by one DiT sampling step outside its matmuls (fake tensors, any machine)",
+            note, markdown_table(["aten op", "calls", "GB"], rows), args.write)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
