@@ -42,10 +42,11 @@ from models.dit import VideoDiT  # noqa: E402
 
 __all__ = ["count_step", "MATMUL_OPS", "FREE_OPS"]
 
-MATMUL_OPS = frozenset({"mm", "addmm", "bmm", "baddbmm", "_scaled_dot_product_flash_attention",
+MATMUL_OPS = frozenset({"mm", "addmm", "_addmm_activation", "bmm", "baddbmm", "_scaled_dot_product_flash_attention",
                         "_scaled_dot_product_flash_attention_for_cpu", "_scaled_dot_product_efficient_attention",
                         "_scaled_dot_product_cudnn_attention"})
-"""GEMMs and fused attention kernels: compute-bound at the paper size, counted apart."""
+"""GEMMs (``_addmm_activation``: with the GELU in its epilogue) and fused attention kernels: compute-bound at the
+paper size, counted apart."""
 FREE_OPS = frozenset({"view", "_unsafe_view", "t", "transpose", "unsqueeze", "squeeze", "expand", "split",
                       "split_with_sizes", "chunk", "slice", "select", "permute", "alias", "detach", "unflatten",
                       "as_strided", "unbind", "lift_fresh", "empty", "empty_like", "empty_strided", "promote_types",

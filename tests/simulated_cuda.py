@@ -12,7 +12,8 @@ for device reasons breaks here with PyTorch's own message:
 * ``.numpy()`` of a CUDA tensor → ``TypeError: can't convert cuda:0 device type tensor to numpy``.
 
 The values are the CPU kernels' (no TF32; ``torch.autocast("cuda")`` casts as on a GPU, then the CPU computes
-in that dtype; draws on "cuda" come from the CPU's generator), so a run on the simulated device can be compared
+in that dtype; draws on "cuda" come from the CPU's generator; an op whose CUDA kernel computes another function than
+the CPU's runs as CUDA's, :data:`CUDA_SEMANTICS`), so a run on the simulated device can be compared
 with the CPU run of the same code path. Model offload's in-place moves (``tensor.data = cuda_tensor`` and back)
 are simulated too.
 
@@ -229,7 +230,8 @@ class _Dispatch(TorchDispatchMode):
             to_cuda = _is_cuda(kwargs["device"])
             kwargs["device"] = CPU if to_cuda else kwargs["device"]
         wrappers = {id(x.elem): x for x in tree_leaves((args, kwargs)) if isinstance(x, SimulatedCudaTensor)}
-        result = func(*tree_map(_unwrap, args), **tree_map(_unwrap, kwargs))
+        impl = CUDA_SEMANTICS.get(func, func) if to_cuda else func
+        result = impl(*tree_map(_unwrap, args), **tree_map(_unwrap, kwargs))
 
         def back(x):  # an in-place op's (or out=) result is its argument; a new CPU tensor goes to CUDA if due
             if isinstance(x, torch.Tensor) and id(x) in wrappers:
@@ -237,6 +239,17 @@ class _Dispatch(TorchDispatchMode):
             return _wrap(x) if to_cuda else x
 
         return tree_map(back, result)
+
+
+def _addmm_activation_cuda(bias, mat1, mat2, beta=1, alpha=1, use_gelu=False):
+    """``aten._addmm_activation`` as CUDA computes it: addmm, then GELU in its tanh form (cuBLASLt's epilogue, and
+    ATen's CUDA fallback ``gelu_(result, "tanh")``) or ReLU. The CPU kernel applies the erf GELU."""
+    out = torch.addmm(bias, mat1, mat2, beta=beta, alpha=alpha)
+    return torch.nn.functional.gelu(out, approximate="tanh") if use_gelu else torch.relu(out)
+
+
+CUDA_SEMANTICS = {torch.ops.aten._addmm_activation.default: _addmm_activation_cuda}
+"""Ops whose CUDA kernel computes something else than the CPU's: run on the simulated device as CUDA runs them."""
 
 
 ON_VALUES = frozenset({

@@ -1,14 +1,17 @@
 """Tests for models.layers: timestep embedding, modulation, patchify, self-/cross-attention."""
 import collections
 import math
+from unittest import mock
 
 import pytest
 import torch
 import torch.nn.functional as F
+from simulated_cuda import simulated_cuda
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from models.layers import (
     CrossAttention,
+    Mlp,
     QKNorm,
     SelfAttention,
     modulate,
@@ -90,6 +93,39 @@ def test_attention_merges_the_heads_without_copying_the_tokens():
         attn(x, rope), cross(x, ctx), cross(x, ctx, keep)
     assert ops.seen["_scaled_dot_product_flash_attention_for_cpu"] + ops.seen["scaled_dot_product_attention"] >= 3
     assert ops.copies == []
+
+
+def test_feed_forward_applies_its_gelu_in_the_gemm_epilogue_on_cuda_only():
+    """Without autograd on CUDA (here the simulated device, which runs ``_addmm_activation`` as CUDA does: the tanh
+    GELU) the first GEMM applies the GELU, and the output is the plain path's; on the CPU, whose
+    ``_addmm_activation`` applies the erf form, and with autograd, the plain path runs."""
+    torch.manual_seed(0)
+    mlp, x = Mlp(16, 64, 8), torch.randn(2, 5, 16) * 2
+    with torch.no_grad():
+        plain, erf = (mlp.fc2(F.gelu(mlp.fc1(x), approximate=form)) for form in ("tanh", "none"))
+    spy = mock.patch.object(torch, "_addmm_activation", wraps=torch._addmm_activation)
+    with spy as fused, torch.no_grad():
+        assert torch.equal(mlp(x), plain) and fused.call_count == 0
+    with simulated_cuda(), spy as fused:
+        cuda_mlp, cuda_x = mlp.to("cuda"), x.to("cuda")
+        with torch.no_grad():
+            out = cuda_mlp(cuda_x)
+        assert fused.call_count == 1 and out.device.type == "cuda"
+        torch.testing.assert_close(out.cpu(), plain, rtol=1e-6, atol=1e-6)
+    assert float((erf - plain).abs().max()) > 1e-5  # the two GELU forms differ: the check above can tell them apart
+
+
+@pytest.mark.cuda
+def test_feed_forward_gelu_epilogue_matches_the_plain_path_on_a_gpu():
+    """On a GPU, in bfloat16: cuBLASLt's GELU epilogue against the separate GEMM and tanh GELU, to bfloat16
+    rounding."""
+    torch.manual_seed(0)
+    mlp = Mlp(256, 1024).to("cuda", torch.bfloat16)
+    x = torch.randn(3, 77, 256, device="cuda", dtype=torch.bfloat16)
+    with torch.no_grad():
+        fused = mlp(x)
+        plain = mlp.fc2(mlp.act(mlp.fc1(x)))
+    torch.testing.assert_close(fused.float(), plain.float(), rtol=2e-2, atol=2e-2)
 
 
 def test_patchify_linear_equals_conv3d_and_unpatchify_inverts():
