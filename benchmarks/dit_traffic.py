@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
 import sys
 from pathlib import Path
 
@@ -40,7 +41,7 @@ from diff4splat.runtime import FF_CHUNK_TOKENS  # noqa: E402
 from models.bundle import load_config  # noqa: E402
 from models.dit import VideoDiT  # noqa: E402
 
-__all__ = ["count_step", "MATMUL_OPS", "FREE_OPS"]
+__all__ = ["count_step", "ByteCount", "MATMUL_OPS", "FREE_OPS"]
 
 MATMUL_OPS = frozenset({"mm", "addmm", "_addmm_activation", "bmm", "baddbmm", "_scaled_dot_product_flash_attention",
                         "_scaled_dot_product_flash_attention_for_cpu", "_scaled_dot_product_efficient_attention",
@@ -52,11 +53,16 @@ FREE_OPS = frozenset({"view", "_unsafe_view", "t", "transpose", "unsqueeze", "sq
                       "as_strided", "unbind", "lift_fresh", "empty", "empty_like", "empty_strided", "promote_types",
                       "device"})
 """Ops that move no tensor bytes: views, allocations (counted where they are written) and `prim::device`."""
+BEFORE_GB = 229.0
+"""This count on main at 3b7e94c (2026-11-26), before the blocks were written for it: LayerNorm, then the adaLN
+modulation's multiply and add; gated residuals as a multiply and an add; RoPE as four products, two sums and a
+stack; attention handed heads-outer copies, so its output was copied back; the feed-forward's chunks concatenated;
+GELU as its own kernel. GB per paper-size step, fake CUDA tensors (torch 2.14.1+cu130)."""
 H100_BANDWIDTH = 3.35e12
 """An H100 SXM's HBM3 bandwidth, bytes/s (NVIDIA's datasheet): the floor on the time of a memory-bound op."""
 
 
-class _Count(TorchDispatchMode):
+class ByteCount(TorchDispatchMode):
     """Bytes read and written per aten op (see the module docstring for the rule)."""
 
     def __init__(self):
@@ -108,7 +114,7 @@ def count_step(config: str = "paper", device: str = "cuda", ff_chunk_tokens: int
     h, w = cfg.height // vae.spatial_factor, cfg.width // vae.spatial_factor
     previous = torch.get_default_dtype()
     torch.set_default_dtype(dtype)
-    count = _Count()
+    count = ByteCount()
     try:
         with FakeTensorMode(), torch.device(device):
             dit = VideoDiT(dit_cfg).eval()
@@ -118,7 +124,7 @@ def count_step(config: str = "paper", device: str = "cuda", ff_chunk_tokens: int
             inputs = (torch.randn(1, c, n, h, w), torch.ones(1), torch.randn(1, c, 1, h, w),
                       torch.randn(1, dit_cfg.camera_channels, n, h, w),
                       torch.randn(1, cfg.text_encoder.max_length, dit_cfg.text_dim))
-            attention = _FlashAttention() if device == "cuda" else TorchFunctionMode()
+            attention = _FlashAttention() if device == "cuda" else contextlib.nullcontext()
             with torch.no_grad(), attention, count:
                 dit(*inputs)
     finally:
@@ -146,6 +152,12 @@ def main() -> int:
             f"written per step, by aten op. At an H100's {H100_BANDWIDTH / 1e12:.2f} TB/s the ops outside the "
             f"matmuls and attention take at least {1e3 * total / H100_BANDWIDTH:.0f} ms per step, "
             f"{50 * total / H100_BANDWIDTH:.1f} s over 50 steps.")
+    if args.device == "cuda" and args.config == "paper":
+        note += (f" Before the blocks were written for it (main at 3b7e94c): {BEFORE_GB:.1f} GB, at least "
+                 f"{1e3 * BEFORE_GB * 1e9 / H100_BANDWIDTH:.0f} ms per step; the difference is "
+                 f"{50 * (BEFORE_GB * 1e9 - total) / H100_BANDWIDTH:.1f} s over 50 steps at full bandwidth, what the "
+                 f"eager paper-size `generate` should gain (measured on a GPU by `benchmarks/gpu.py --part "
+                 f"generate`).")
     publish("dit_traffic", "Bytes moved by one DiT sampling step outside its matmuls (fake tensors, any machine)",
             note, markdown_table(["aten op", "calls", "GB"], rows), args.write)
     return 0

@@ -143,9 +143,10 @@ class VideoDiTBlock(nn.Module):
         ff_chunk_tokens: int | None = None,  # the MLP over at most this many tokens at a time (None: all)
     ) -> Tensor:
         shift_msa, scale_msa, gate_msa, shift_mlp, scale_mlp, gate_mlp = self.adaLN_modulation(c).chunk(6, dim=1)
-        # Gated residuals as one addcmul each (x + g·branch in one pass over the tokens, rounded once).
-        h = self.attn(modulated_layer_norm(x, shift_msa, scale_msa, self.norm1.eps), rope)
-        x = torch.addcmul(x, gate_msa.unsqueeze(1), h)
+        # Gated residuals as one addcmul each (x + g·branch in one pass over the tokens, rounded once); a branch's
+        # output is a temporary, so it is freed before the next branch runs.
+        x = torch.addcmul(x, gate_msa.unsqueeze(1),
+                          self.attn(modulated_layer_norm(x, shift_msa, scale_msa, self.norm1.eps), rope))
         if context is not None:  # a None check on an argument, not on tensor values: exportable
             x = x + self.cross_attn(self.norm2(x), context, context_mask)
         h = modulated_layer_norm(x, shift_mlp, scale_mlp, self.norm3.eps)
