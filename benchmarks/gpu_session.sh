@@ -13,7 +13,8 @@
 #
 # A session has 15 minutes of device time, its machine's start included: two calls. Next (docs/CONTRIBUTING.md,
 # "On a lent GPU"): `suite` (~5 min with set-up), which shows that everything runs on CUDA, then `command`
-# (~3 min); `generate` (~5 min) measures the 30 s goal. Each step runs under what is left of GPU_SESSION_SECONDS (then SIGINT: pytest prints
+# (~3 min); `generate` (~5 min) measures the 30 s goal (rows 1 and 3 also what the eager step's halved memory
+# traffic bought, benchmarks/dit_traffic.py: compare with the table's figures of the same card). Each step runs under what is left of GPU_SESSION_SECONDS (then SIGINT: pytest prints
 # its summary, gpu.py keeps the rows it wrote), so $OUT gets the logs and docs/benchmarks.md whatever happens.
 #
 # Steps, in the order of what only a GPU can show (minutes on one H100, estimated; measured on an H200 where
