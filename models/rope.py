@@ -113,11 +113,11 @@ def apply_rope(
     (x_{2j}, x_{2j+1}) ↦ (x_{2j} cos φ − x_{2j+1} sin φ, x_{2j} sin φ + x_{2j+1} cos φ).
     A pure rotation: the norm of every token vector is preserved.
 
-    Each output channel is one multiply and one fused multiply-add (``addcmul``, rounded once) written straight
-    into the output: 2.5 reads/writes of ``x``'s size, against 4.5 for the textbook four products, two sums and a
-    ``stack`` (at the paper size the queries and keys of one block moved 1.96 GB that way; 1.09 GB now). Where
-    autograd records (``x`` or a table requires grad) or a model is traced, the same arithmetic runs out of place
-    with one ``stack``.
+    Each half of the pairs is one multiply written straight into the output and one fused multiply-add
+    (``addcmul_``) on it: five times ``x``'s size read or written, against nine for the textbook four products, two
+    sums and a ``stack`` (at the paper size the queries and keys of one block moved 1.96 GB that way; 1.09 GB now).
+    Where autograd records (``x`` or a table requires grad) or a model is traced, the same arithmetic runs out of
+    place with one ``stack``.
 
     Args:
         x: (..., N, D), e.g. (B, heads, N, head_dim); or (..., N, heads, D) with ``token_dim=-3`` (the layout
