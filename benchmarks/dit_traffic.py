@@ -8,8 +8,8 @@ tokens, 226 text tokens) is built in bfloat16 under torch's ``FakeTensorMode`` (
 storage, no GPU) and one no-grad forward runs as sampling runs it (feed-forward chunk
 :data:`diff4splat.runtime.FF_CHUNK_TOKENS`) under a dispatch mode that adds up, per aten op, the bytes of the
 tensors it reads and writes (a view moves nothing; an in-place op reads and writes its tensor; an ``out=`` op
-writes its output). It is a count, not a timing: a strided read can move more bytes than it uses, a kernel can
-hit the cache.
+writes its output; a broadcast counts once; every other element of a tensor counts as all of it,
+:func:`moved_bytes`). It is a count, not a timing: a kernel can hit the cache, or move more than it uses.
 
 ``--device cuda`` counts the ops CUDA runs (fused RMSNorm; the attention as FlashAttention, as torch picks it on
 an H100 without a mask); it needs a CUDA build of torch, not a GPU. ``--device cpu`` counts the CPU's ops (its
@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import collections
 import contextlib
+import math
 import sys
 from pathlib import Path
 
@@ -41,7 +42,7 @@ from diff4splat.runtime import FF_CHUNK_TOKENS  # noqa: E402
 from models.bundle import load_config  # noqa: E402
 from models.dit import VideoDiT  # noqa: E402
 
-__all__ = ["count_step", "ByteCount", "MATMUL_OPS", "FREE_OPS"]
+__all__ = ["count_step", "ByteCount", "moved_bytes", "MATMUL_OPS", "FREE_OPS"]
 
 MATMUL_OPS = frozenset({"mm", "addmm", "_addmm_activation", "bmm", "baddbmm", "_scaled_dot_product_flash_attention",
                         "_scaled_dot_product_flash_attention_for_cpu", "_scaled_dot_product_efficient_attention",
@@ -53,13 +54,27 @@ FREE_OPS = frozenset({"view", "_unsafe_view", "t", "transpose", "unsqueeze", "sq
                       "as_strided", "unbind", "lift_fresh", "empty", "empty_like", "empty_strided", "promote_types",
                       "device"})
 """Ops that move no tensor bytes: views, allocations (counted where they are written) and `prim::device`."""
-BEFORE_GB = 229.0
+BEFORE_GB = 242.9
 """This count on main at 3b7e94c (2026-11-26), before the blocks were written for it: LayerNorm, then the adaLN
 modulation's multiply and add; gated residuals as a multiply and an add; RoPE as four products, two sums and a
 stack; attention handed heads-outer copies, so its output was copied back; the feed-forward's chunks concatenated;
-GELU as its own kernel. GB per paper-size step, fake CUDA tensors (torch 2.14.1+cu130)."""
+GELU as its own kernel. GB per paper-size step, fake CUDA tensors (torch 2.14.1+cu130), counted by the rule
+of :func:`moved_bytes`."""
+SECTOR = 32
+"""Bytes a GPU's memory system moves at least per access (an L2 sector)."""
 H100_BANDWIDTH = 3.35e12
 """An H100 SXM's HBM3 bandwidth, bytes/s (NVIDIA's datasheet): the floor on the time of a memory-bound op."""
+
+
+def moved_bytes(t: torch.Tensor) -> int:
+    """Bytes a kernel moves to read or write ``t`` once: its elements, without the repeats of a broadcast (a zero
+    stride), and times its last dimension's stride when that is 2–``SECTOR`` elements, as for the even or odd
+    channels of pairs: a GPU moves whole sectors, so reading every other element moves them all."""
+    if t.dim() == 0:
+        return t.element_size()
+    n = math.prod(size for size, stride in zip(t.shape, t.stride(), strict=True) if stride != 0)
+    gap = t.stride(-1) if t.shape[-1] > 1 else 1
+    return n * t.element_size() * min(max(gap, 1), max(1, SECTOR // t.element_size()))
 
 
 class ByteCount(TorchDispatchMode):
@@ -77,7 +92,7 @@ class ByteCount(TorchDispatchMode):
             read = {id(t): t for t in tree_flatten((args, {k: v for k, v in kwargs.items() if k != "out"}))[0]
                     if isinstance(t, torch.Tensor)}
             written = {id(t): t for t in tree_flatten(out)[0] if isinstance(t, torch.Tensor)}
-            self.bytes[name] += sum(t.numel() * t.element_size() for t in [*read.values(), *written.values()])
+            self.bytes[name] += sum(map(moved_bytes, [*read.values(), *written.values()]))
             self.calls[name] += 1
         return out
 

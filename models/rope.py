@@ -16,8 +16,6 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from models.tracing import tracing
-
 __all__ = ["rope_split", "rope_frequencies", "rope_3d", "apply_rope", "apply_rope_complex"]
 
 
@@ -113,11 +111,12 @@ def apply_rope(
     (x_{2j}, x_{2j+1}) ↦ (x_{2j} cos φ − x_{2j+1} sin φ, x_{2j} sin φ + x_{2j+1} cos φ).
     A pure rotation: the norm of every token vector is preserved.
 
-    Each half of the pairs is one multiply written straight into the output and one fused multiply-add
-    (``addcmul_``) on it: five times ``x``'s size read or written, against nine for the textbook four products, two
-    sums and a ``stack`` (at the paper size the queries and keys of one block moved 1.96 GB that way; 1.09 GB now).
-    Where autograd records (``x`` or a table requires grad) or a model is traced, the same arithmetic runs out of
-    place with one ``stack``.
+    Computed over whole channels, never every other one: out = x ⊙ cos' + swap(x) ⊙ sin', with swap exchanging
+    each pair, cos' each cos φ twice and sin' the pair's (−sin φ, sin φ); one flip, one multiply and one fused
+    multiply-add (``addcmul``), each reading and writing contiguous memory. The textbook four products of the even
+    and odd channels, two sums and a ``stack`` read every other element (a GPU fetches whole 32-byte sectors, so
+    such a read costs as much as reading all of ``x``) and moved about 1.6 times the bytes
+    (benchmarks/dit_traffic.py).
 
     Args:
         x: (..., N, D), e.g. (B, heads, N, head_dim); or (..., N, heads, D) with ``token_dim=-3`` (the layout
@@ -137,20 +136,12 @@ def apply_rope(
     if D % 2 or cos.shape != (N, D // 2) or sin.shape != (N, D // 2):
         raise ValueError(f"cos/sin must have shape ({N}, {D // 2}) for x of shape {tuple(x.shape)}, "
                          f"got {tuple(cos.shape)} and {tuple(sin.shape)}")
-    if token_dim == -3:  # (N, 1, D/2): broadcast over the heads
-        cos, sin = cos[:, None], sin[:, None]
-    cos, sin = cos.to(x.dtype), sin.to(x.dtype)
-    pairs = x.unflatten(-1, (D // 2, 2))
-    x0, x1 = pairs[..., 0], pairs[..., 1]
-    if tracing() or (torch.is_grad_enabled() and (x.requires_grad or cos.requires_grad or sin.requires_grad)):
-        return torch.stack([torch.addcmul(x0 * cos, x1, sin, value=-1), torch.addcmul(x1 * cos, x0, sin)],
-                           dim=-1).flatten(-2)
-    out = torch.empty_like(x)  # x's layout (empty_like keeps the strides of a dense tensor)
-    halves = out.unflatten(-1, (D // 2, 2))
-    o0, o1 = halves[..., 0], halves[..., 1]
-    torch.mul(x0, cos, out=o0).addcmul_(x1, sin, value=-1)
-    torch.mul(x1, cos, out=o1).addcmul_(x0, sin)
-    return out
+    cos2 = torch.stack([cos, cos], dim=-1).flatten(-2).to(x.dtype)  # (N, D): cos φ_j at channels 2j and 2j + 1
+    sin2 = torch.stack([-sin, sin], dim=-1).flatten(-2).to(x.dtype)  # (N, D): −sin φ_j, then sin φ_j
+    if token_dim == -3:  # (N, 1, D): broadcast over the heads
+        cos2, sin2 = cos2[:, None], sin2[:, None]
+    swapped = x.unflatten(-1, (D // 2, 2)).flip(-1).flatten(-2)  # (x_{2j+1}, x_{2j}) at channels (2j, 2j + 1)
+    return torch.addcmul(x * cos2, swapped, sin2)
 
 
 def apply_rope_complex(

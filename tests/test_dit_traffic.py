@@ -19,6 +19,11 @@ def test_the_count_reads_inputs_writes_outputs_and_skips_views():
         torch.empty_like(a)
     assert dict(count.bytes) == {"add": 3 * 128, "add_": 3 * 128, "mul": 3 * 128}
     assert dict(count.calls) == {"add": 1, "add_": 1, "mul": 1}
+    row = torch.randn(8)
+    with traffic.ByteCount() as count:
+        a * row  # the row broadcast over a's 4 rows: read once
+        a[:, ::2] + 1  # every other element read: the sectors of all of them move (output 4 × 4 floats)
+    assert dict(count.bytes) == {"mul": 128 + 32 + 128, "add": 128 + 64}
 
 
 @pytest.mark.slow
