@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import platform
 import re
@@ -13,9 +14,11 @@ import warnings
 from pathlib import Path
 
 import torch
+from torch._subclasses.fake_tensor import FakeTensorMode
 
 from diff4splat.pipeline import Diff4SplatPipeline, load_model
-from models.bundle import DEFAULT_CONFIG
+from models.bundle import DEFAULT_CONFIG, load_config
+from models.dit import VideoDiT
 
 BENCHMARKS_MD = Path(__file__).resolve().parent.parent / "docs" / "benchmarks.md"
 
@@ -96,6 +99,34 @@ def run_with_peak_memory(argv: list[str], timeout: float | None = None,
         raise subprocess.TimeoutExpired(argv, timeout, done.stdout, done.stderr)
     done.args, done.returncode = argv, int(code)
     return done, int(kib) * 1024
+
+
+@contextlib.contextmanager
+def fake_dit_step(config: str, ff_chunk_tokens: int | None, dtype: torch.dtype = torch.bfloat16,
+                  device: str = "cpu"):
+    """``config``'s DiT built in ``dtype`` under torch's ``FakeTensorMode`` on ``device`` (shapes, dtypes and
+    strides; no storage, no GPU) with the inputs of one sampling step at the config's frames and size and a
+    full-length prompt. Yields ``(dit, inputs, tokens)``; run ``dit(*inputs)`` inside. The default dtype is restored
+    after."""
+    cfg = load_config(config)
+    vae, dit_cfg = cfg.vae, cfg.dit
+    n = vae.num_latent_frames(cfg.num_frames)
+    h, w = cfg.height // vae.spatial_factor, cfg.width // vae.spatial_factor
+    p = dit_cfg.patch_size
+    previous = torch.get_default_dtype()
+    torch.set_default_dtype(dtype)
+    try:
+        with FakeTensorMode(), torch.device(device):
+            dit = VideoDiT(dit_cfg).eval()
+            dit._check_inputs = lambda *args: None  # σ's range check reads a value; fake tensors have none
+            dit.ff_chunk_tokens = ff_chunk_tokens
+            c = dit_cfg.latent_channels
+            inputs = (torch.randn(1, c, n, h, w), torch.ones(1), torch.randn(1, c, 1, h, w),
+                      torch.randn(1, dit_cfg.camera_channels, n, h, w),
+                      torch.randn(1, cfg.text_encoder.max_length, dit_cfg.text_dim))
+            yield dit, inputs, n * h * w // (p[0] * p[1] * p[2])
+    finally:
+        torch.set_default_dtype(previous)
 
 
 def markdown_table(header: list[str], rows: list[list]) -> str:

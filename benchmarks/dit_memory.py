@@ -23,15 +23,12 @@ import sys
 from pathlib import Path
 
 import torch
-from torch._subclasses.fake_tensor import FakeTensorMode
 from torch.distributed._tools.mem_tracker import MemTracker, _MemRefType, _ModState
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import markdown_table, publish  # noqa: E402
+from _common import fake_dit_step, markdown_table, publish  # noqa: E402
 
 from diff4splat.runtime import FF_CHUNK_TOKENS  # noqa: E402
-from models.bundle import load_config  # noqa: E402
-from models.dit import VideoDiT  # noqa: E402
 
 H100_SAMPLE_PEAK_GB = 25.49
 """The paper model's measured peak during sampling on an H100 (docs/benchmarks.md, "GPU"), GB = 10⁹ bytes."""
@@ -50,28 +47,11 @@ def measure(config: str, ff_chunk_tokens: int | None, dtype: torch.dtype = torch
         {"params": GB, "act": peak activation GB, "modules": {name: activation peak GB inside that module}}
         (GB = 10⁹ bytes; a block module's figure is the largest over the blocks).
     """
-    cfg = load_config(config)
-    vae, dit_cfg = cfg.vae, cfg.dit
-    n = vae.num_latent_frames(cfg.num_frames)
-    h, w = cfg.height // vae.spatial_factor, cfg.width // vae.spatial_factor
-    previous = torch.get_default_dtype()
-    torch.set_default_dtype(dtype)
-    try:
-        with FakeTensorMode():
-            dit = VideoDiT(dit_cfg).eval()
-            # σ's range check reads a value, which fake tensors do not have; the shapes are the config's own.
-            dit._check_inputs = lambda *args: None
-            dit.ff_chunk_tokens = ff_chunk_tokens
-            c = dit_cfg.latent_channels
-            inputs = (torch.randn(1, c, n, h, w), torch.ones(1), torch.randn(1, c, 1, h, w),
-                      torch.randn(1, dit_cfg.camera_channels, n, h, w),
-                      torch.randn(1, cfg.text_encoder.max_length, dit_cfg.text_dim))
-            tracker = MemTracker()
-            tracker.track_external(dit)
-            with tracker, torch.no_grad():
-                dit(*inputs)
-    finally:
-        torch.set_default_dtype(previous)
+    with fake_dit_step(config, ff_chunk_tokens, dtype) as (dit, inputs, tokens):
+        tracker = MemTracker()
+        tracker.track_external(dit)
+        with tracker, torch.no_grad():
+            dit(*inputs)
     peak = next(iter(tracker.get_tracker_snapshot("peak").values()))
     modules = {}
     for stats in tracker.memory_tracking.values():
@@ -80,7 +60,7 @@ def measure(config: str, ff_chunk_tokens: int | None, dtype: torch.dtype = torch
             act = max(next(iter(s.values()))[_MemRefType.ACT] for s in stats.snapshots[_ModState.PEAK_FW])
             modules[short] = max(modules.get(short, 0.0), act / 1e9)
     return {"params": peak[_MemRefType.PARAM] / 1e9, "act": peak[_MemRefType.ACT] / 1e9, "modules": modules,
-            "tokens": n * h * w // (dit_cfg.patch_size[0] * dit_cfg.patch_size[1] * dit_cfg.patch_size[2])}
+            "tokens": tokens}
 
 
 def main() -> int:

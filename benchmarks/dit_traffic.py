@@ -30,17 +30,14 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
-from torch._subclasses.fake_tensor import FakeTensorMode
 from torch.overrides import TorchFunctionMode
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_flatten
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import markdown_table, publish  # noqa: E402
+from _common import fake_dit_step, markdown_table, publish  # noqa: E402
 
 from diff4splat.runtime import FF_CHUNK_TOKENS  # noqa: E402
-from models.bundle import load_config  # noqa: E402
-from models.dit import VideoDiT  # noqa: E402
 
 __all__ = ["count_step", "ByteCount", "moved_bytes", "MATMUL_OPS", "FREE_OPS"]
 
@@ -123,29 +120,12 @@ def count_step(config: str = "paper", device: str = "cuda", ff_chunk_tokens: int
     if device == "cuda" and not torch.backends.cuda.is_built():
         raise RuntimeError("--device cuda counts CUDA's ops on fake tensors: it needs a CUDA build of torch "
                            "(no GPU); this torch is a CPU build: use --device cpu")
-    cfg = load_config(config)
-    vae, dit_cfg = cfg.vae, cfg.dit
-    n = vae.num_latent_frames(cfg.num_frames)
-    h, w = cfg.height // vae.spatial_factor, cfg.width // vae.spatial_factor
-    previous = torch.get_default_dtype()
-    torch.set_default_dtype(dtype)
     count = ByteCount()
-    try:
-        with FakeTensorMode(), torch.device(device):
-            dit = VideoDiT(dit_cfg).eval()
-            dit._check_inputs = lambda *args: None  # σ's range check reads a value; fake tensors have none
-            dit.ff_chunk_tokens = ff_chunk_tokens
-            c = dit_cfg.latent_channels
-            inputs = (torch.randn(1, c, n, h, w), torch.ones(1), torch.randn(1, c, 1, h, w),
-                      torch.randn(1, dit_cfg.camera_channels, n, h, w),
-                      torch.randn(1, cfg.text_encoder.max_length, dit_cfg.text_dim))
-            attention = _FlashAttention() if device == "cuda" else contextlib.nullcontext()
-            with torch.no_grad(), attention, count:
-                dit(*inputs)
-    finally:
-        torch.set_default_dtype(previous)
-    p = dit_cfg.patch_size
-    return count.bytes, count.calls, n * h * w // (p[0] * p[1] * p[2])
+    with fake_dit_step(config, ff_chunk_tokens, dtype, device) as (dit, inputs, tokens):
+        attention = _FlashAttention() if device == "cuda" else contextlib.nullcontext()
+        with torch.no_grad(), attention, count:
+            dit(*inputs)
+    return count.bytes, count.calls, tokens
 
 
 def main() -> int:
