@@ -53,14 +53,15 @@ DRY=${GPU_SESSION_DRY:-}
 WORK=runs/gpu_training  # ignored; kept between calls on a machine that stays warm
 
 XDIST=""  # the whole suite in 8 processes where pytest-xdist is installed (the GPU image has it)
+# -rfEs: the summary lists failures, errors and skips (-rs alone would list the skips only)
 python -c "import xdist" 2>/dev/null && XDIST="-n 8"
 declare -A COMMANDS=(
-  [suite]="python -m pytest $XDIST -rs -p no:cacheprovider --durations=30"
+  [suite]="python -m pytest $XDIST -rfEs -p no:cacheprovider --durations=30"
   [generate]="python benchmarks/gpu.py --part generate --write${GPU_GENERATE_ROWS:+ --rows $GPU_GENERATE_ROWS}"
   [command]="python benchmarks/gpu.py --part command --write"
-  [cuda]="python -m pytest -m cuda -rs -p no:cacheprovider"
-  [suite-1]="python -m pytest -rs -p no:cacheprovider tests/test_[a-o]*.py tests/test_p[a-i]*.py"
-  [suite-2]="python -m pytest -rs -p no:cacheprovider tests/test_p[j-z]*.py tests/test_[q-z]*.py"
+  [cuda]="python -m pytest -m cuda -rfEs -p no:cacheprovider"
+  [suite-1]="python -m pytest -rfEs -p no:cacheprovider tests/test_[a-o]*.py tests/test_p[a-i]*.py"
+  [suite-2]="python -m pytest -rfEs -p no:cacheprovider tests/test_p[j-z]*.py tests/test_[q-z]*.py"
   [render]="python benchmarks/gpu.py --part render --write"
   [train]="python benchmarks/gpu.py --part train --write"
   [gt-data]="python benchmarks/gpu_training.py --part data --work $WORK"
