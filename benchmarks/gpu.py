@@ -1,10 +1,12 @@
-"""GPU figures: the renderer, `generate` per stage with peak memory, and training steps per second.
+"""GPU figures: the renderer, a DiT block, `generate` per stage with peak memory, and training steps per second.
 
-Three parts, each small enough for one 10-minute command on one GPU:
+Five parts, each small enough for one 10-minute command on one GPU:
 
 - ``render``: gsplat (``compositor=None`` on CUDA), our pure-PyTorch tile path on CUDA (``compositor="torch"``)
   and the fused CPU path (``compositor="fused"``) on the LDRM-sized scenes of benchmarks/render_speed.py (one
   Gaussian per pixel) at 256² and 1024²: forward and forward+backward, median after warm-up.
+- ``block``: one paper-size DiT block, op by op (:mod:`models.dit_reference`) against ours, eager and compiled
+  (what the eager step's fewer passes over its tokens buy, benchmarks/dit_traffic.py), in about a minute.
 - ``generate``: the pipeline's stages (synchronised, :class:`diff4splat.devices.Stopwatch`) and the render along
   the path, with the peak of ``torch.cuda.max_memory_allocated``, for ``base`` (shipped weights, 17 frames, 64²),
   ``small`` (random, 17 frames, 128²) and ``paper`` (random weights built directly in bfloat16 on the GPU —
@@ -20,10 +22,10 @@ Three parts, each small enough for one 10-minute command on one GPU:
   ``train_stage1`` with the ``small`` model on synthetic data made here (``data_prep synth``), on the trainer's
   defaults for the device (bf16 autocast and TF32 on CUDA).
 
-    python benchmarks/gpu.py --part render|generate|command|train|all [--write]
+    python benchmarks/gpu.py --part render|block|generate|command|train|all [--write]
     python benchmarks/gpu.py --device cpu --quick --part all     # a dry run of the code paths, no figures
 
-``--write`` replaces the sections ``gpu_render``, ``gpu_generate``, ``gpu_command`` and ``gpu_train`` of
+``--write`` replaces the sections ``gpu_render``, ``gpu_block``, ``gpu_generate``, ``gpu_command`` and ``gpu_train`` of
 docs/benchmarks.md; every table names the device it ran on. Without CUDA the script exits with one line and code 2
 unless ``--device cpu``.
 """
@@ -55,7 +57,11 @@ from diff4splat.pipeline import Diff4SplatPipeline, load_model  # noqa: E402
 from diff4splat.render import rasterize  # noqa: E402
 from diff4splat.render.gsplat_backend import gsplat_available  # noqa: E402
 from diff4splat.render.sequence import render_path  # noqa: E402
+from diff4splat.runtime import FF_CHUNK_TOKENS  # noqa: E402
 from models.bundle import Diff4SplatModel, load_config  # noqa: E402
+from models.dit import VideoDiTBlock  # noqa: E402
+from models.dit_reference import reference_block  # noqa: E402
+from models.rope import rope_3d  # noqa: E402
 from training.stage_config import load_stage  # noqa: E402
 from training.train import build_training  # noqa: E402
 
@@ -141,6 +147,55 @@ def part_render(device: torch.device, quick: bool) -> str:
             f"`python benchmarks/gpu.py --part render --write`; median after two warm-ups, CUDA synchronised. "
             f"Device: {device_name(device)}. The CPU row uses torch's {torch.get_num_threads()} threads.\n\n"
             + markdown_table(["path", "device", "image", "forward ms", "fwd+bwd ms"], rows))
+
+
+# ---------------------------------------------------------------------------------------------------- block
+def part_block(device: torch.device, quick: bool) -> str:
+    """One DiT block of the paper model (random weights, bfloat16 on CUDA) at its sampling size (13,312 tokens,
+    226 text tokens), no grad: :func:`models.dit_reference.reference_block` (each op on its own) against the block's
+    eager forward (feed-forward chunk as sampling runs it) and its ``torch.compile``-d forward (``generate
+    --compile``'s regional compilation), median of synchronised runs after warm-ups."""
+    cfg = load_config("tiny" if quick else "paper")
+    d, vae = cfg.dit, cfg.vae
+    grid = (vae.num_latent_frames(cfg.num_frames) // d.patch_size[0],
+            cfg.height // vae.spatial_factor // d.patch_size[1], cfg.width // vae.spatial_factor // d.patch_size[2])
+    tokens = grid[0] * grid[1] * grid[2]
+    dtype = torch.bfloat16 if device.type == "cuda" else torch.float32
+    g = torch.Generator().manual_seed(0)  # inputs drawn on the CPU, then moved: the same values on any device
+    with torch.device(device):
+        block = VideoDiTBlock(d.hidden_size, d.num_heads, d.mlp_ratio, d.qk_norm, d.norm_eps).to(dtype).eval()
+    x, c, text = (torch.randn(*shape, generator=g).to(device, dtype) for shape in
+                  ((1, tokens, d.hidden_size), (1, d.hidden_size), (1, cfg.text_encoder.max_length, d.hidden_size)))
+    rope = rope_3d(*grid, d.head_dim, d.rope_theta, dtype=dtype, device=device)
+    variants = [("op by op (`models.dit_reference`)", lambda: reference_block(block, x, c, rope, text)),
+                ("ours, eager", lambda: block(x, c, rope, text, None, FF_CHUNK_TOKENS))]
+    if device.type == "cuda":  # regional compilation as `generate --compile` (Triton; not on the CPU dry run)
+        compiled = torch.compile(block)
+        variants.append(("ours, `torch.compile`", lambda: compiled(x, c, rope, text, None, FF_CHUNK_TOKENS)))
+    clock, rows, reference = Stopwatch(device), [], None
+    runs, warm = (2, 1) if quick else (10, 3)
+    for label, run in variants:
+        times = []
+        with torch.no_grad():
+            for k in range(warm + runs):
+                clock.lap()
+                out = run()
+                t = clock.lap()
+                if k >= warm:
+                    times.append(t)
+        reference = out if reference is None else reference
+        ms = 1e3 * statistics.median(times)
+        diff = float((out.float() - reference.float()).abs().max())
+        rows.append([label, f"{ms:.2f}", f"{ms * d.depth:.0f}", f"{ms * d.depth * 50 / 1e3:.2f}", f"{diff:.3g}"])
+        print(rows[-1], flush=True)
+        del out
+    return (f"### One DiT block on the GPU: op by op against ours\n\n"
+            f"`python benchmarks/gpu.py --part block --write`; one block of the `{cfg.name}` DiT (random weights, "
+            f"{str(dtype).removeprefix('torch.')}), {tokens:,} tokens and {cfg.text_encoder.max_length} text tokens, "
+            f"no grad; median of {runs} synchronised runs after {warm} warm-up run(s); the step and 50-step columns "
+            f"multiply by its {d.depth} blocks (the DiT's embedders and final layer are not in them); the last "
+            f"column is the largest difference from the op-by-op output. Device: {device_name(device)}.\n\n"
+            + markdown_table(["block", "ms", f"× {d.depth} blocks, ms per step", "50 steps, s", "max abs Δ"], rows))
 
 
 # ------------------------------------------------------------------------------------------------- generate
@@ -369,7 +424,7 @@ def gpu_device(args: argparse.Namespace) -> torch.device | None:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--part", choices=("render", "generate", "command", "train", "all"), default="all")
+    ap.add_argument("--part", choices=("render", "block", "generate", "command", "train", "all"), default="all")
     ap.add_argument("--rows", default=None, metavar="N,N,…",
                     help="generate: the 1-based numbers of the rows to run, of: "
                          + "; ".join(f"{i} {r[0]}" for i, r in enumerate(GENERATE, 1)) + " (default all)")
@@ -392,14 +447,15 @@ def main() -> int:
         flags = (["--device", args.device] + ["--quick"] * args.quick + ["--write"] * args.write
                  + ["--rows", args.rows] * (args.rows is not None))
         codes = [subprocess.run([sys.executable, __file__, "--part", part, *flags]).returncode
-                 for part in ("render", "generate", "command", "train")]
+                 for part in ("render", "block", "generate", "command", "train")]
         return next((c for c in codes if c), 0)
     t0 = time.perf_counter()
     emit = (lambda body: write_section(f"gpu_{args.part}", body)) if args.write else None
     if args.part == "generate":
         body = part_generate(device, args.quick, emit, only)
     else:
-        body = {"render": part_render, "command": part_command, "train": part_train}[args.part](device, args.quick)
+        body = {"render": part_render, "block": part_block, "command": part_command,
+                "train": part_train}[args.part](device, args.quick)
     print(body + f"\n\n({args.part}: {time.perf_counter() - t0:.0f} s)\n", flush=True)
     if emit is not None:
         emit(body)

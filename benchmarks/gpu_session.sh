@@ -13,8 +13,9 @@
 #
 # A session has 15 minutes of device time, its machine's start included: two calls. Next (docs/CONTRIBUTING.md,
 # "On a lent GPU"): `suite` (~5 min with set-up), which shows that everything runs on CUDA, then `command`
-# (~3 min); `generate` (~5 min) measures the 30 s goal (rows 1 and 3 also what the eager step's halved memory
-# traffic bought, benchmarks/dit_traffic.py: compare with the table's figures of the same card). Each step runs under what is left of GPU_SESSION_SECONDS (then SIGINT: pytest prints
+# (~3 min); `block` (~1 min) times one paper-size DiT block op by op against ours (what the eager step's halved
+# memory traffic buys, benchmarks/dit_traffic.py); `generate` (~5 min) measures the 30 s goal (rows 1 and 3:
+# compare with the table's figures of the same card). Each step runs under what is left of GPU_SESSION_SECONDS (then SIGINT: pytest prints
 # its summary, gpu.py keeps the rows it wrote), so $OUT gets the logs and docs/benchmarks.md whatever happens.
 #
 # Steps, in the order of what only a GPU can show (minutes on one H100, estimated; measured on an H200 where
@@ -25,6 +26,8 @@
 #   command    benchmarks/gpu.py --part command --write: the README's paper-size command end to end, as a user
 #              runs it (the random paper model built on the CPU, one serial random-number stream: ~1 minute
 #              for its 16 B parameters; the checks, writing ~3 GB) (~3: beside the suite it ran past 266 s)
+#   block      benchmarks/gpu.py --part block --write: one paper-size DiT block, op by op against ours, eager and
+#              compiled: what the eager step's fewer passes over its tokens buy, on this card (~1)
 #   generate   benchmarks/gpu.py --part generate --write: the paper-size rows, goal <= 30 s and <= 25 GB; the
 #              table is written after every row (~5: rows 1,2,3,6,8 took 215 s on an H200)
 #   cuda       python -m pytest -m cuda: only the CUDA cases, gsplat parity and the real_gpu ones included (~2)
@@ -59,6 +62,7 @@ declare -A COMMANDS=(
   [suite]="python -m pytest $XDIST -rfEs -p no:cacheprovider --durations=30"
   [generate]="python benchmarks/gpu.py --part generate --write${GPU_GENERATE_ROWS:+ --rows $GPU_GENERATE_ROWS}"
   [command]="python benchmarks/gpu.py --part command --write"
+  [block]="python benchmarks/gpu.py --part block --write"
   [cuda]="python -m pytest -m cuda -rfEs -p no:cacheprovider"
   [suite-1]="python -m pytest -rfEs -p no:cacheprovider tests/test_[a-o]*.py tests/test_p[a-i]*.py"
   [suite-2]="python -m pytest -rfEs -p no:cacheprovider tests/test_p[j-z]*.py tests/test_[q-z]*.py"
@@ -68,7 +72,7 @@ declare -A COMMANDS=(
   [gt-train]="python benchmarks/gpu_training.py --part train --work $WORK"
   [gt-eval]="python benchmarks/gpu_training.py --part eval --work $WORK --write"
 )
-ORDER=(suite command generate cuda suite-1 suite-2 render train gt-data gt-train gt-eval)
+ORDER=(suite command block generate cuda suite-1 suite-2 render train gt-data gt-train gt-eval)
 
 steps=()
 for s in "$@"; do

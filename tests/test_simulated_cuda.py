@@ -292,6 +292,19 @@ def test_the_gpu_benchmarks_generate_part_runs_on_simulated_cuda(monkeypatch, ca
 
 
 
+def test_the_gpu_benchmarks_block_part_runs_on_simulated_cuda(monkeypatch, capsys):
+    """``benchmarks/gpu.py --part block --quick --device cuda``: the op-by-op block, ours eager (the GELU epilogue on
+    "cuda") and ours compiled, each to within bfloat16 rounding of the first."""
+    gpu = benchmark_module("gpu")
+    monkeypatch.setattr(sys, "argv", ["gpu.py", "--device", "cuda", "--quick", "--part", "block"])
+    with simulated_cuda():
+        assert gpu.main() == 0
+    rows = [line.strip("|").split("|") for line in capsys.readouterr().out.splitlines() if line.startswith("| ")
+            and not line.startswith("| block")]
+    assert [r[0].strip() for r in rows] == ["op by op (`models.dit_reference`)", "ours, eager", "ours, `torch.compile`"]
+    assert all(float(r[1]) > 0 and float(r[4]) < 0.05 for r in rows)
+
+
 def test_training_forwards_on_simulated_cuda_give_the_cpus_losses(tmp_path):
     """Each objective's forward (the step generator on the CPU, the batch and model on "cuda") gives the CPU's
     losses, on "cuda". The backward is not simulated (no autograd for simulated tensors)."""
