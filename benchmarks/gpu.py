@@ -176,13 +176,19 @@ def part_block(device: torch.device, quick: bool) -> str:
     runs, warm = (2, 1) if quick else (10, 3)
     for label, run in variants:
         times = []
-        with torch.no_grad():
-            for k in range(warm + runs):
-                clock.lap()
-                out = run()
-                t = clock.lap()
-                if k >= warm:
-                    times.append(t)
+        try:
+            with torch.no_grad():
+                for k in range(warm + runs):
+                    clock.lap()
+                    out = run()
+                    t = clock.lap()
+                    if k >= warm:
+                        times.append(t)
+        except Exception as e:  # out of memory, a torch.compile error: the row says so, the next one runs
+            rows.append([label, f"failed: {type(e).__name__}: {str(e).splitlines()[0][:100]}", "–", "–", "–"])
+            print(rows[-1], flush=True)
+            free_memory(device)
+            continue
         reference = out if reference is None else reference
         ms = 1e3 * statistics.median(times)
         diff = float((out.float() - reference.float()).abs().max())

@@ -304,6 +304,15 @@ def test_the_gpu_benchmarks_block_part_runs_on_simulated_cuda(monkeypatch, capsy
     assert [r[0].strip() for r in rows] == ["op by op (`models.dit_reference`)", "ours, eager", "ours, `torch.compile`"]
     assert all(float(r[1]) > 0 and float(r[4]) < 0.05 for r in rows)
 
+    def broken(*args, **kwargs):
+        raise RuntimeError("no Triton here")
+
+    monkeypatch.setattr(gpu.torch, "compile", lambda module: broken)  # a compile error is its row's, not the part's
+    with simulated_cuda():
+        assert gpu.main() == 0
+    last = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| ours, `torch.compile`")]
+    assert last and "failed: RuntimeError: no Triton here" in last[0]
+
 
 def test_training_forwards_on_simulated_cuda_give_the_cpus_losses(tmp_path):
     """Each objective's forward (the step generator on the CPU, the batch and model on "cuda") gives the CPU's
