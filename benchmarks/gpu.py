@@ -176,6 +176,7 @@ def part_block(device: torch.device, quick: bool) -> str:
     runs, warm = (2, 1) if quick else (10, 3)
     for label, run in variants:
         times = []
+        reset_peak(device)
         try:
             with torch.no_grad():
                 for k in range(warm + runs):
@@ -185,23 +186,27 @@ def part_block(device: torch.device, quick: bool) -> str:
                     if k >= warm:
                         times.append(t)
         except Exception as e:  # out of memory, a torch.compile error: the row says so, the next one runs
-            rows.append([label, f"failed: {type(e).__name__}: {str(e).splitlines()[0][:100]}", "–", "–", "–"])
+            rows.append([label, f"failed: {type(e).__name__}: {str(e).splitlines()[0][:100]}", "–", "–", "–", "–"])
             print(rows[-1], flush=True)
             free_memory(device)
             continue
         reference = out if reference is None else reference
         ms = 1e3 * statistics.median(times)
         diff = float((out.float() - reference.float()).abs().max())
-        rows.append([label, f"{ms:.2f}", f"{ms * d.depth:.0f}", f"{ms * d.depth * 50 / 1e3:.2f}", f"{diff:.3g}"])
+        rows.append([label, f"{ms:.2f}", f"{ms * d.depth:.0f}", f"{ms * d.depth * 50 / 1e3:.2f}", peak_gb(device),
+                     f"{diff:.3g}"])
         print(rows[-1], flush=True)
         del out
     return (f"### One DiT block on the GPU: op by op against ours\n\n"
             f"`python benchmarks/gpu.py --part block --write`; one block of the `{cfg.name}` DiT (random weights, "
             f"{str(dtype).removeprefix('torch.')}), {tokens:,} tokens and {cfg.text_encoder.max_length} text tokens, "
             f"no grad; median of {runs} synchronised runs after {warm} warm-up run(s); the step and 50-step columns "
-            f"multiply by its {d.depth} blocks (the DiT's embedders and final layer are not in them); the last "
-            f"column is the largest difference from the op-by-op output. Device: {device_name(device)}.\n\n"
-            + markdown_table(["block", "ms", f"× {d.depth} blocks, ms per step", "50 steps, s", "max abs Δ"], rows))
+            f"multiply by its {d.depth} blocks (the DiT's embedders and final layer are not in them); peak: the "
+            f"block's weights, its inputs and the forward's activations (`torch.cuda.max_memory_allocated`, "
+            f"GB = 10⁹ bytes); the last column is the largest difference from the op-by-op output. "
+            f"Device: {device_name(device)}.\n\n"
+            + markdown_table(["block", "ms", f"× {d.depth} blocks, ms per step", "50 steps, s", "peak GB",
+                              "max abs Δ"], rows))
 
 
 # ------------------------------------------------------------------------------------------------- generate
