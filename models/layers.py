@@ -118,7 +118,8 @@ def modulate(x: Tensor, shift: Tensor, scale: Tensor) -> Tensor:
 
 
 def modulated_layer_norm(x: Tensor, shift: Tensor, scale: Tensor, eps: float) -> Tensor:
-    """``modulate(LayerNorm(x), shift, scale)`` (LayerNorm without its own affine) in fewer passes over ``x``.
+    """``modulate(LayerNorm(x), shift, scale)`` (LayerNorm without its own affine; DiT §3.2 adaLN) in fewer passes
+    over ``x``.
 
     One sample (B = 1, as sampling runs): the per-sample affine is LayerNorm's own weight 1 + scale and bias shift,
     one kernel that reads ``x`` once and rounds once; the normalise-multiply-add chain read and wrote the tokens three
@@ -133,10 +134,10 @@ def modulated_layer_norm(x: Tensor, shift: Tensor, scale: Tensor, eps: float) ->
 
     Returns:
         (B, N, D), dtype of ``x`` promoted with ``scale``'s (as :func:`modulate`; float32 under autocast, which
-        runs LayerNorm in float32).
+        runs LayerNorm in float32). Raises nothing of its own (LayerNorm's errors for mismatched sizes).
     """
-    dtype = torch.promote_types(x.dtype, scale.dtype)
     if x.shape[0] == 1 and not tracing():
+        dtype = torch.promote_types(x.dtype, scale.dtype)
         return F.layer_norm(x.to(dtype), x.shape[-1:], (1 + scale[0]).to(dtype), shift[0].to(dtype), eps)
     return torch.addcmul(shift.unsqueeze(1), F.layer_norm(x, x.shape[-1:], eps=eps), 1 + scale.unsqueeze(1))
 

@@ -1,7 +1,8 @@
 """Whether a model is being traced (torch.jit, torch.compile, torch.export, torch.onnx).
 
-While tracing, the networks leave out value-dependent checks, Python loops over data-dependent sizes and
-in-place fast paths (``out=`` writes autograd cannot record and exporters do not take), so the graph stays general.
+While tracing, the networks leave out value-dependent checks, Python loops over data-dependent sizes and their
+fast paths for one sample or for no autograd (a LayerNorm affine made of the input, residuals added in place),
+so the graph stays general.
 """
 from __future__ import annotations
 
