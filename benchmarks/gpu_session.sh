@@ -35,9 +35,12 @@
 #   suite-2    the second half (test_pr… to test_w…): the two halves are the whole suite
 #   render     benchmarks/gpu.py --part render --write (~1)
 #   train      benchmarks/gpu.py --part train --write (~2)
-#   gt-data    benchmarks/gpu_training.py --part data (~4)
-#   gt-train   benchmarks/gpu_training.py --part train, bf16 from the shipped weights (~10: a call of its own)
-#   gt-eval    benchmarks/gpu_training.py --part eval --write (~5)
+#   gt-data    benchmarks/gpu_training.py --part data: 324 scenes on every core (~1: 1.5 CPU-s a scene here)
+#   gt-train   benchmarks/gpu_training.py --part train, bf16 from the shipped weights, 6000 steps (~6-9: the small
+#              stage ran 11 steps/s on an H100; the base model is smaller). At the deadline's SIGINT the trainer
+#              saves the step it is at, and gt-eval (next call) evaluates every checkpoint there is
+#   gt-eval    benchmarks/gpu_training.py --part eval --write: the shipped model and the 6 checkpoints, one
+#              evaluation per two cores at once (~2). One session: `gt-data gt-train`, then `gt-eval`
 #   all        every step above, in that order
 #
 # Set-up on this side, once (the wheels the GPU image lacks; 22 MB; .whl is ignored, name it in `carry`):

@@ -5,8 +5,10 @@ the device with the trainer's defaults there (bf16 autocast and TF32 on CUDA), a
 all kept; the shipped model and each checkpoint's DiT (the VAE, text encoder and LDRM shipped) then go through
 ``diff4splat evaluate`` on the held-out set. The table: steps, minutes of training (the summed step times of
 metrics.csv), the flow loss over the last interval, novel-view PSNR over all frames and per view-angle bin, and the
-gap over repeating frame 0. Three parts share ``--work`` (each fits one 10-minute command on one H100; ``all`` runs
-them in turn):
+gap over repeating frame 0. Three parts share ``--work`` (``all`` runs them in turn; a lent GPU session runs ``data``
+and ``train`` in one 10-minute command, ``eval`` in the next: benchmarks/gpu_session.sh). ``data`` uses every core;
+``eval`` runs ``--jobs`` evaluations at once; a SIGINT (Ctrl-C, the session's deadline) reaches the trainer, which
+saves the step it stopped at, and ``eval`` then takes every checkpoint there is:
 
     python benchmarks/gpu_training.py --part data  --work runs/gpu_training    # the base data: seeds 1 and 777
     python benchmarks/gpu_training.py --part train --work runs/gpu_training --steps 6000 --every 1000
@@ -20,10 +22,13 @@ from __future__ import annotations
 
 import argparse
 import csv
+import os
 import shutil
+import signal
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import torch
@@ -45,9 +50,26 @@ DATA = {"train": ("300", "1"), "heldout": ("24", "777")}
 BINS = ("0_15", "15_45", "45_90")
 
 
-def _run(cmd: list[str]) -> None:
-    print("$", " ".join(cmd), flush=True)
-    subprocess.run(cmd, check=True, cwd=ROOT)
+def _run(cmd: list[str], log: Path | None = None, env: dict[str, str] | None = None) -> None:
+    """``cmd`` in the repository, its output here or in ``log``; raises CalledProcessError when it fails.
+
+    On SIGINT (Ctrl-C, or ``gpu_session.sh``'s deadline) the child is sent SIGINT too and waited for: the trainer
+    finishes its step and saves its checkpoint (``subprocess.run`` would kill it 0.25 s later, mid-step)."""
+    print("$", " ".join(cmd) + (f" > {log}" if log else ""), flush=True)
+    out = open(log, "w") if log else None  # noqa: SIM115 (closed below, after the child)
+    try:
+        with subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT if out else None) as proc:
+            try:
+                code = proc.wait()
+            except KeyboardInterrupt:
+                proc.send_signal(signal.SIGINT)  # a second one is harmless: the trainer's handler only sets a flag
+                proc.wait()
+                raise
+    finally:
+        if out:
+            out.close()
+    if code:
+        raise subprocess.CalledProcessError(code, cmd)
 
 
 def part_data(work: Path, quick: bool) -> None:
@@ -58,7 +80,7 @@ def part_data(work: Path, quick: bool) -> None:
             print(f"{out}: there already", flush=True)
             continue
         _run([sys.executable, "-m", "data_prep.cli", "synth", "--scenes", "4" if quick else scenes, "--seed", seed,
-              "--static-ratio", "0.4", "--workers", "8", "--quiet", "--out", str(out)])
+              "--static-ratio", "0.4", "--workers", str(os.cpu_count() or 1), "--quiet", "--out", str(out)])
 
 
 def part_train(work: Path, device: torch.device, steps: int, every: int) -> None:
@@ -92,19 +114,43 @@ def _metrics(run: Path) -> list[dict]:
         return [r for r in csv.DictReader(f) if r["skipped"] == "0"]
 
 
-def part_eval(work: Path, device: torch.device, quick: bool) -> str:
-    """Each checkpoint (and the shipped model, step 0) through ``diff4splat evaluate`` → the table."""
-    rows_csv = work / "eval.csv"
-    rows_csv.unlink(missing_ok=True)
-    points = [(0, SHIPPED)]
-    for ckpt in sorted((work / "dit" / "checkpoints").glob("step_*")):
-        points.append((int(ckpt.name.split("_")[1]), _model_at(ckpt, work / "models" / ckpt.name)))
-    for _, model in points:
+def _evaluate(points: list[tuple[int, Path]], work: Path, device: torch.device, quick: bool,
+              jobs: int) -> list[dict]:
+    """``diff4splat evaluate`` of each model, ``jobs`` processes at once (the cores shared among them; the base
+    model leaves a GPU mostly idle), each one's report in ``eval/step_N.log``: the aggregate rows, in ``points``'
+    order."""
+    out = work / "eval"
+    if out.exists():  # this script's own earlier evaluations, never other files
+        if any(f.suffix not in (".csv", ".log") for f in out.iterdir()):
+            print(f"gpu_training.py: error: {out} holds files other than evaluations; not replacing it",
+                  file=sys.stderr)
+            raise SystemExit(2)
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    threads = str(max(1, (os.cpu_count() or 1) // jobs))
+    env = {**os.environ, "OMP_NUM_THREADS": threads, "NUMBA_NUM_THREADS": threads}
+
+    def one(point: tuple[int, Path]) -> dict:
+        step, model = point
+        csv_path = out / f"step_{step}.csv"
         _run([sys.executable, "-m", "diff4splat.cli", "evaluate", "--data", str(work / "heldout"), "--checkpoint",
-              str(model), "--device", str(device), "--quiet", "--csv", str(rows_csv)]
-             + (["--limit", "2", "--steps", "2"] if quick else []))
-    with open(rows_csv) as f:
-        evals = list(csv.DictReader(f))
+              str(model), "--device", str(device), "--quiet", "--csv", str(csv_path)]
+             + (["--limit", "2", "--steps", "2"] if quick else []), log=out / f"step_{step}.log", env=env)
+        with open(csv_path) as f:
+            (row,) = csv.DictReader(f)
+        return row
+
+    with ThreadPoolExecutor(jobs) as pool:
+        return list(pool.map(one, points))
+
+
+def part_eval(work: Path, device: torch.device, quick: bool, jobs: int | None = None) -> str:
+    """Each checkpoint (and the shipped model, step 0) through ``diff4splat evaluate`` → the table. ``jobs``:
+    evaluations at once (default: one per two cores, at most one per model)."""
+    points = [(0, SHIPPED)]
+    for ckpt in sorted((work / "dit" / "checkpoints").glob("step_*"), key=lambda p: int(p.name.split("_")[1])):
+        points.append((int(ckpt.name.split("_")[1]), _model_at(ckpt, work / "models" / ckpt.name)))
+    evals = _evaluate(points, work, device, quick, jobs or min(len(points), max(1, (os.cpu_count() or 1) // 2)))
     log = _metrics(work / "dit")
     rows, last = [], 0
     for (step, _), e in zip(points, evals, strict=True):
@@ -132,31 +178,39 @@ def part_eval(work: Path, device: torch.device, quick: bool) -> str:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--part", choices=("data", "train", "eval", "all"), default="all")
-    ap.add_argument("--work", type=Path, required=True, help="folder the parts share (data, run, models, eval.csv)")
+    ap.add_argument("--work", type=Path, required=True,
+                    help="folder the parts share (train/, heldout/, dit/, models/, eval/)")
     ap.add_argument("--steps", type=int, default=6000, help="training steps (default 6000, the recipe's)")
     ap.add_argument("--every", type=int, default=1000, help="steps between evaluated checkpoints (default 1000)")
+    ap.add_argument("--jobs", type=int, default=None,
+                    help="evaluations at once (default: one per two cores, at most one per model)")
     add_gpu_arguments(ap, "4 scenes, 4 steps, 2 clips: the code paths, no figures")
     args = ap.parse_args()
     device = gpu_device(args)
     if device is None:
         return 2
     steps, every = (4, 2) if args.quick else (args.steps, args.every)
-    if steps < 1 or every < 1:
-        print("gpu_training.py: error: --steps and --every must be ≥ 1", file=sys.stderr)
+    if steps < 1 or every < 1 or (args.jobs is not None and args.jobs < 1):
+        print("gpu_training.py: error: --steps, --every and --jobs must be ≥ 1", file=sys.stderr)
         return 2
     args.work.mkdir(parents=True, exist_ok=True)
     parts = ("data", "train", "eval") if args.part == "all" else (args.part,)
     for part in parts:
         t0 = time.perf_counter()
-        if part == "data":
-            part_data(args.work, args.quick)
-        elif part == "train":
-            part_train(args.work, device, steps, every)
-        else:
-            body = part_eval(args.work, device, args.quick)
-            print(body, flush=True)
-            if args.write:
-                write_section("gpu_training", body)
+        try:
+            if part == "data":
+                part_data(args.work, args.quick)
+            elif part == "train":
+                part_train(args.work, device, steps, every)
+            else:
+                body = part_eval(args.work, device, args.quick, args.jobs)
+                print(body, flush=True)
+                if args.write:
+                    write_section("gpu_training", body)
+        except KeyboardInterrupt:
+            print(f"gpu_training.py: interrupted in part {part} after {time.perf_counter() - t0:.0f} s (a training "
+                  f"run keeps the checkpoint it saved on the signal)", file=sys.stderr)
+            return 130
         print(f"({part}: {time.perf_counter() - t0:.0f} s)", flush=True)
     return 0
 
