@@ -48,6 +48,8 @@ STAGE = "train_base_dit"
 DATA = {"train": ("300", "1"), "heldout": ("24", "777")}
 """Folder → (scenes, seed) of ``data_prep synth`` (the model card's "Data")."""
 BINS = ("0_15", "15_45", "45_90")
+WALL = "train_wall_seconds.txt"
+"""The training process's wall time in ``--work`` (start-up, data loading and checkpoints with the steps)."""
 
 
 def _run(cmd: list[str], log: Path | None = None, env: dict[str, str] | None = None) -> None:
@@ -97,7 +99,11 @@ def part_train(work: Path, device: torch.device, steps: int, every: int) -> None
             print(f"gpu_training.py: error: {run} exists and is not a training run; not replacing it", file=sys.stderr)
             raise SystemExit(2)
         shutil.rmtree(run)
-    _run([sys.executable, "-m", "training.train", "--config", str(config), "--quiet"])
+    t0 = time.perf_counter()
+    try:
+        _run([sys.executable, "-m", "training.train", "--config", str(config), "--quiet"])
+    finally:  # also after a SIGINT: the steps the run made took this long
+        (work / WALL).write_text(f"{time.perf_counter() - t0:.1f}\n")
 
 
 def _model_at(checkpoint: Path, out: Path) -> Path:
@@ -163,6 +169,8 @@ def part_eval(work: Path, device: torch.device, quick: bool, jobs: int | None = 
                      f"{float(e['psnr_novel_noise']):.2f}"])
         last = step
     clips = evals[0]["clips"]
+    wall = (f" The training process took {float((work / WALL).read_text()) / 60:.1f} min of wall time for its "
+            f"{last:,} steps (start-up, data loading and checkpoints included)." if (work / WALL).is_file() else "")
     return (f"### bf16 training on the GPU: held-out metrics per GPU-minute\n\n"
             f"`python benchmarks/gpu_training.py --part data|train|eval`: `{STAGE}` continued from the shipped "
             f"weights (`models/weights/base`) on the trainer's defaults for the device, a checkpoint every "
@@ -170,7 +178,7 @@ def part_eval(work: Path, device: torch.device, quick: bool, jobs: int | None = 
             f"encoder and LDRM through `diff4splat evaluate` on the {clips} held-out clips of seed 777. Minutes: the "
             f"summed step times of metrics.csv; flow: the flow-matching loss's mean since the previous row; PSNR of "
             f"the novel views (dB), all frames and per view-angle bin; gap: over repeating frame 0; noise: the "
-            f"noise-latent ablation. Device: {device_name(device)}.\n\n"
+            f"noise-latent ablation.{wall} Device: {device_name(device)}.\n\n"
             + markdown_table(["steps", "minutes", "flow", "novel PSNR", "0–15°", "15–45°", "45–90°",
                               "vs repeat frame 0", "noise latents"], rows))
 

@@ -43,6 +43,7 @@ def test_the_dry_run_evaluates_every_checkpoint_in_step_order(quick_data, tmp_pa
             (e,) = csv.DictReader(f)
         assert row[3].strip() == f"{float(e['psnr_novel']):.2f}"
     assert float(rows[-1][2]) > 0 and rows[-3][2].strip() == "nan"  # the flow loss since the previous row
+    assert "min of wall time for its 4 steps" in proc.stdout  # the whole training process, beside the step times
 
 
 @pytest.mark.slow
