@@ -1,11 +1,15 @@
 """Training stages on devices (training/train.py, trainer.py, objectives.py on a tiny generated dataset): the
 ``--device`` flag and ``trainer.device`` (errors are one ``train: error:`` line, exit code 2), gradient
 checkpointing of the DiT (the same losses as without), FSDP2 on two gloo ranks through ``python -m
-training.train`` (per-block sharding, EMA, the final model gathered), and, on a GPU, the CPU's losses on CUDA."""
+training.train`` (per-block sharding, EMA, the final model gathered), ``torchrun`` with one process (DDP and FSDP
+through gloo, and NCCL on a GPU), and, on a GPU, the CPU's losses on CUDA."""
 import csv
 import dataclasses
 import functools
 import json
+import subprocess
+import sys
+import textwrap
 from pathlib import Path
 
 import pytest
@@ -24,6 +28,7 @@ from training.stage_config import StageConfig
 from training.train import build_training, calibrate_latent_scaling, main
 from training.trainer import TrainerConfig
 
+ROOT = Path(__file__).resolve().parent.parent
 SIZE, FRAMES = 32, 9
 STAGES = {
     "vae": dict(train=("vae",), objectives=("vae",), scenes="all"),
@@ -135,6 +140,46 @@ def test_fsdp_on_two_gloo_ranks_trains_a_stage_block_by_block(data, tmp_path):
         else:  # frozen: as initialised
             assert torch.equal(v, init[k]), k
     assert any(not torch.equal(v, init[k]) for k, v in trained.state_dict().items() if k.startswith("dit.blocks."))
+
+
+@pytest.mark.slow
+@pytest.mark.real_gpu  # a child process: not on the simulated CUDA device
+@pytest.mark.parametrize("strategy", ["ddp", "fsdp"])
+def test_torchrun_with_one_process_trains_through_the_strategy(data, tmp_path, device, strategy):
+    """``torchrun --nproc_per_node 1`` joins a process group of one (NCCL on CUDA, gloo on the CPU: the path
+    several GPUs take, on a machine with one) and trains through DDP or FSDP2, with the plain run's losses in float32
+    (one rank: the gradient all-reduce averages one gradient)."""
+    kw = dict(device=str(device), bf16=False, tf32=False)
+    plain, _, _ = build_training(_stage("stage1", data, tmp_path / "plain", **kw))
+    plain.fit()
+    cfg = _yaml(_stage("stage1", data, tmp_path / "run", **kw), tmp_path / "stage.yaml")
+    script = tmp_path / "rank.py"
+    script.write_text(textwrap.dedent(f"""
+        import sys
+        import torch.distributed as dist
+        from torch.distributed.fsdp import FSDPModule
+        from torch.nn.parallel import DistributedDataParallel
+        import training.train as train
+        built = []
+        real = train.build_training
+        train.build_training = lambda stage, seed=None: built.append((real(stage, seed), dist.get_backend())) \
+            or built[-1][0]
+        code = train.main(["--config", {str(cfg)!r}, "--strategy", {strategy!r}, "--device", {str(device)!r},
+                           "--quiet"])
+        (trainer, _, _), backend = built[0]
+        assert trainer.distributed and trainer.world == 1, (trainer.distributed, trainer.world)
+        assert backend == {"nccl" if device.type == "cuda" else "gloo"!r}, backend
+        assert isinstance(trainer.model, {"FSDPModule" if strategy == "fsdp" else "DistributedDataParallel"})
+        sys.exit(code)
+    """))
+    proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "1",
+                           str(script)], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    got, expected = _metrics(tmp_path / "run"), _metrics(tmp_path / "plain")
+    assert sorted(got) == sorted(expected) == [1, 2, 3]
+    for step, losses in expected.items():
+        assert got[step] == pytest.approx(losses, rel=1e-4, abs=1e-6), step
+    assert (tmp_path / "run" / "model").is_dir()
 
 
 # ------------------------------------------------------------------------------------------------ CUDA

@@ -11,7 +11,7 @@ camera weights and our LDRM (:mod:`training.backbone_training`; ``pip install 'd
 ``<run_dir>/model`` is a diffusers folder with the LoRA merged, which ``generate --checkpoint`` runs and the next
 stage starts from.
 
-Distributed: ``torchrun --nproc_per_node N -m training.train --config ...`` (one process per GPU,
+Distributed: ``torchrun --nproc_per_node N -m training.train --config ...`` (N ≥ 1; one process per GPU,
 ``cuda:$LOCAL_RANK``; DDP, NCCL on CUDA and gloo on the CPU; ``--strategy fsdp`` shards paper-size models
 block by block with FSDP2). At the end rank 0 writes the trained model to ``<run_dir>/model``
 (``Diff4SplatModel.save_pretrained``; EMA weights when EMA is on; gathered from every rank under FSDP), the

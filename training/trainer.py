@@ -34,7 +34,7 @@ Devices and precision (``trainer:`` section of a stage YAML, or ``python -m trai
   (:class:`models.dit.VideoDiT`): the blocks' activations are recomputed in the backward pass instead of stored
   (same loss and gradients, less memory, ~⅓ more compute).
 
-Distributed: under ``torchrun`` (``WORLD_SIZE`` > 1) each process first selects its GPU
+Distributed: under ``torchrun`` (any ``--nproc_per_node``, one included) each process first selects its GPU
 (``torch.cuda.set_device(cuda:$LOCAL_RANK)``), then joins the process group (NCCL on CUDA, with
 ``device_id``; gloo on the CPU). ``strategy="ddp"`` wraps the model in DDP; ``strategy="fsdp"`` shards it
 with FSDP2 ``fully_shard``: first every module of ``model.fsdp_units()`` when the model defines it (the
@@ -261,7 +261,11 @@ class Trainer:
 
     @staticmethod
     def _init_distributed(device: torch.device) -> None:
-        if int(os.environ.get("WORLD_SIZE", "1")) > 1 and dist.is_available() and not dist.is_initialized():
+        """Join the process group when ``torchrun`` started this process (its env:// rendezvous variables), with
+        any number of processes: ``--nproc_per_node 1`` trains with the strategy's wrapper too (DDP or FSDP on one
+        rank, as the Hugging Face Trainer and Lightning do), so one GPU runs the NCCL path that several use."""
+        launched = all(k in os.environ for k in ("MASTER_ADDR", "MASTER_PORT", "RANK", "WORLD_SIZE"))
+        if launched and dist.is_available() and not dist.is_initialized():
             if device.type == "cuda":
                 dist.init_process_group("nccl", device_id=device)
             else:
