@@ -14,7 +14,7 @@ import pytest
 import torch
 from _trainer_toy import ToyData, ToyModel, run_two_ranks, toy_step
 
-from training.checkpoint import latest_checkpoint, load_checkpoint
+from training.checkpoint import latest_checkpoint, load_checkpoint, rng_state, set_rng_state
 from training.placement import resolve_bf16, training_device
 from training.trainer import NonFiniteLossError, Trainer, TrainerConfig, warmup_cosine
 
@@ -256,6 +256,27 @@ def test_cuda_gives_the_cpu_losses_in_float32(tmp_path):
     assert sorted(losses["cuda"]) == sorted(losses["cpu"]) == [1, 2, 3]
     for step, loss in losses["cpu"].items():
         assert losses["cuda"][step] == pytest.approx(loss, rel=1e-4, abs=1e-7), step
+
+
+def test_a_checkpoint_from_a_node_with_more_gpus_restores_the_gpus_there_are(monkeypatch):
+    """Resuming on a machine with fewer GPUs than the one that saved: each present GPU gets its saved state, the
+    others' states are left out (``set_rng_state_all`` indexed GPUs that are not there)."""
+    restored, state = {}, rng_state()
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    monkeypatch.setattr(torch.cuda, "set_rng_state", lambda s, device="cuda": restored.__setitem__(device, s))
+    saved = [torch.full((8,), i, dtype=torch.uint8) for i in range(8)]  # the states of 8 GPUs
+    set_rng_state({**state, "cuda": saved})
+    assert sorted(restored) == [0, 1] and all(torch.equal(restored[i], saved[i]) for i in (0, 1))
+
+
+@pytest.mark.cuda
+def test_a_checkpoint_from_a_node_with_more_gpus_resumes_here():
+    """The real CUDA generators: the saved state of GPU 0 is restored, the extra GPUs' states raise nothing."""
+    first = torch.cuda.get_rng_state(0)
+    torch.cuda.manual_seed_all(123)
+    set_rng_state({**rng_state(), "cuda": [first] * (torch.cuda.device_count() + 3)})
+    assert torch.equal(torch.cuda.get_rng_state(0), first)
 
 
 def test_device_comes_from_the_config_unless_given(tmp_path, monkeypatch):

@@ -44,10 +44,13 @@ def rng_state(step_generator: torch.Generator | None = None) -> dict[str, Any]:
 
 
 def set_rng_state(state: dict[str, Any], step_generator: torch.Generator | None = None) -> None:
-    """Restore the states captured by :func:`rng_state`."""
+    """Restore the states captured by :func:`rng_state`. The CUDA states are restored for the GPUs this machine
+    has (a run saved on a node with more GPUs resumes on one with fewer; ``torch.cuda.set_rng_state_all`` would
+    index a GPU that is not there)."""
     torch.set_rng_state(state["torch"])
     if state.get("cuda") and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
+        for index, cuda_state in enumerate(state["cuda"][:torch.cuda.device_count()]):
+            torch.cuda.set_rng_state(cuda_state, index)
     np.random.set_state(state["numpy"])
     random.setstate(state["python"])
     if step_generator is not None and state.get("step_generator") is not None:
