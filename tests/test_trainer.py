@@ -12,7 +12,9 @@ from pathlib import Path
 
 import pytest
 import torch
+import torch.distributed as dist
 from _trainer_toy import ToyData, ToyModel, run_two_ranks, toy_step
+from torch import nn
 
 from training.checkpoint import latest_checkpoint, load_checkpoint, rng_state, set_rng_state
 from training.placement import resolve_bf16, training_device
@@ -93,6 +95,32 @@ def test_signal_stop_then_resume_matches_uninterrupted_run_exactly(tmp_path, dev
     for (k, v), (_, w) in zip(ref.module.state_dict().items(), b.module.state_dict().items(), strict=True):
         assert torch.equal(v, w), k
     assert all(torch.equal(ref.ema[k], b.ema[k]) for k in ref.ema)
+
+
+def test_a_process_group_of_one_resumes_exactly(tmp_path):
+    """``torchrun --nproc_per_node 1`` (a gloo group of one here): the run is distributed (DDP), and a stop and
+    resume gives the uninterrupted run's losses bit for bit, as without a group (rank 0's step generator is the
+    checkpoint's; only the ranks that saved nothing reseed theirs)."""
+    dist.init_process_group("gloo", store=dist.HashStore(), rank=0, world_size=1)
+    try:
+        ref = _trainer(tmp_path / "ref", "cpu")
+        assert ref.distributed and isinstance(ref.model, nn.parallel.DistributedDataParallel)
+        ref.fit()
+        calls = {"n": 0}
+
+        def stopping_step(model, batch, gen):
+            calls["n"] += 1
+            if calls["n"] == 6:
+                os.kill(os.getpid(), signal.SIGTERM)  # the trainer finishes this step, saves, returns
+            return toy_step(model, batch, gen)
+
+        torch.manual_seed(0)
+        assert Trainer(ToyModel(), ToyData(), stopping_step, _cfg(tmp_path / "run"), device="cpu").fit()["stopped"]
+        b = _trainer(tmp_path / "run", "cpu")
+        b.fit(resume=True)
+    finally:
+        dist.destroy_process_group()
+    assert _losses(tmp_path / "run") == _losses(tmp_path / "ref")
 
 
 @pytest.mark.slow
