@@ -170,6 +170,12 @@ def test_code_cites_the_design_doc_in_the_repo():
     assert not stale, "cite docs/DESIGN.md, not DESIGN.md: " + ", ".join(stale)
 
 
+def test_the_test_extra_installs_what_the_wheel_test_builds_with():
+    """The wheel test builds without build isolation, in the test environment: the ``test`` extra holds the
+    build-system's requirements (a Python 3.11 venv with torch 2.11 had setuptools 65 < 68, and the build failed)."""
+    assert set(PYPROJECT["build-system"]["requires"]) <= set(PYPROJECT["project"]["optional-dependencies"]["test"])
+
+
 @pytest.mark.slow
 def test_wheel_holds_configs_weights_and_entry_points(tmp_path):
     """The wheel a user installs (``pip install .`` or from a git URL) has the package data."""
