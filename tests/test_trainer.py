@@ -74,20 +74,24 @@ def test_training_reduces_the_loss_and_never_touches_frozen_weights(tmp_path, de
     assert torch.equal(t.module.frozen.weight, frozen)
 
 
-def test_signal_stop_then_resume_matches_uninterrupted_run_exactly(tmp_path, device):
-    ref = _trainer(tmp_path / "ref", device)
-    ref.fit()
+def _run_stopped_by_sigterm(run_dir, device, at: int = 6) -> dict:
+    """The toy run to ``run_dir``, sent SIGTERM during its ``at``-th step: it finishes that step, saves, returns."""
     calls = {"n": 0}
 
     def stopping_step(model, batch, gen):
         calls["n"] += 1
-        if calls["n"] == 6:
-            os.kill(os.getpid(), signal.SIGTERM)  # the trainer finishes this step, saves, returns
+        if calls["n"] == at:
+            os.kill(os.getpid(), signal.SIGTERM)
         return toy_step(model, batch, gen)
 
     torch.manual_seed(0)
-    a = Trainer(ToyModel(), ToyData(), stopping_step, _cfg(tmp_path / "run"), device=device)
-    out = a.fit()
+    return Trainer(ToyModel(), ToyData(), stopping_step, _cfg(run_dir), device=device).fit()
+
+
+def test_signal_stop_then_resume_matches_uninterrupted_run_exactly(tmp_path, device):
+    ref = _trainer(tmp_path / "ref", device)
+    ref.fit()
+    out = _run_stopped_by_sigterm(tmp_path / "run", device)
     assert out["stopped"] and out["step"] == 6
     b = _trainer(tmp_path / "run", device)
     b.fit(resume=True)
@@ -106,16 +110,7 @@ def test_a_process_group_of_one_resumes_exactly(tmp_path):
         ref = _trainer(tmp_path / "ref", "cpu")
         assert ref.distributed and isinstance(ref.model, nn.parallel.DistributedDataParallel)
         ref.fit()
-        calls = {"n": 0}
-
-        def stopping_step(model, batch, gen):
-            calls["n"] += 1
-            if calls["n"] == 6:
-                os.kill(os.getpid(), signal.SIGTERM)  # the trainer finishes this step, saves, returns
-            return toy_step(model, batch, gen)
-
-        torch.manual_seed(0)
-        assert Trainer(ToyModel(), ToyData(), stopping_step, _cfg(tmp_path / "run"), device="cpu").fit()["stopped"]
+        assert _run_stopped_by_sigterm(tmp_path / "run", "cpu")["step"] == 6
         b = _trainer(tmp_path / "run", "cpu")
         b.fit(resume=True)
     finally:
