@@ -7,6 +7,7 @@ import csv
 import dataclasses
 import functools
 import json
+import math
 import subprocess
 import sys
 import textwrap
@@ -142,17 +143,10 @@ def test_fsdp_on_two_gloo_ranks_trains_a_stage_block_by_block(data, tmp_path):
     assert any(not torch.equal(v, init[k]) for k, v in trained.state_dict().items() if k.startswith("dit.blocks."))
 
 
-@pytest.mark.slow
-@pytest.mark.real_gpu  # a child process: not on the simulated CUDA device
-@pytest.mark.parametrize("strategy", ["ddp", "fsdp"])
-def test_torchrun_with_one_process_trains_through_the_strategy(data, tmp_path, device, strategy):
-    """``torchrun --nproc_per_node 1`` joins a process group of one (NCCL on CUDA, gloo on the CPU: the path
-    several GPUs take, on a machine with one) and trains through DDP or FSDP2, with the plain run's losses in float32
-    (one rank: the gradient all-reduce averages one gradient)."""
-    kw = dict(device=str(device), bf16=False, tf32=False)
-    plain, _, _ = build_training(_stage("stage1", data, tmp_path / "plain", **kw))
-    plain.fit()
-    cfg = _yaml(_stage("stage1", data, tmp_path / "run", **kw), tmp_path / "stage.yaml")
+def _torchrun_one_process(cfg: Path, device: torch.device, strategy: str, tmp_path: Path) -> None:
+    """``torchrun --standalone --nproc_per_node 1`` of ``training.train`` on ``cfg``; asserts the run joined a group
+    of one on the device's backend (NCCL on CUDA, gloo on the CPU), trained through the strategy's wrapper and
+    exited 0."""
     script = tmp_path / "rank.py"
     script.write_text(textwrap.dedent(f"""
         import sys
@@ -162,7 +156,7 @@ def test_torchrun_with_one_process_trains_through_the_strategy(data, tmp_path, d
         import training.train as train
         built = []
         real = train.build_training
-        train.build_training = lambda stage, seed=None: built.append((real(stage, seed), dist.get_backend())) \
+        train.build_training = lambda stage, seed=None: built.append((real(stage, seed), dist.get_backend())) \\
             or built[-1][0]
         code = train.main(["--config", {str(cfg)!r}, "--strategy", {strategy!r}, "--device", {str(device)!r},
                            "--quiet"])
@@ -175,11 +169,38 @@ def test_torchrun_with_one_process_trains_through_the_strategy(data, tmp_path, d
     proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "1",
                            str(script)], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-4000:]
+
+
+@pytest.mark.slow
+@pytest.mark.real_gpu  # a child process: not on the simulated CUDA device
+@pytest.mark.parametrize("strategy", ["ddp", "fsdp"])
+def test_torchrun_with_one_process_trains_through_the_strategy(data, tmp_path, device, strategy):
+    """``torchrun --nproc_per_node 1`` joins a process group of one (NCCL on CUDA, gloo on the CPU: the path
+    several GPUs take, on a machine with one) and trains through DDP or FSDP2, with the plain run's losses in float32
+    (one rank: the gradient all-reduce averages one gradient)."""
+    kw = dict(device=str(device), bf16=False, tf32=False)
+    plain, _, _ = build_training(_stage("stage1", data, tmp_path / "plain", **kw))
+    plain.fit()
+    _torchrun_one_process(_yaml(_stage("stage1", data, tmp_path / "run", **kw), tmp_path / "stage.yaml"), device,
+                          strategy, tmp_path)
     got, expected = _metrics(tmp_path / "run"), _metrics(tmp_path / "plain")
     assert sorted(got) == sorted(expected) == [1, 2, 3]
     for step, losses in expected.items():
         assert got[step] == pytest.approx(losses, rel=1e-4, abs=1e-6), step
     assert (tmp_path / "run" / "model").is_dir()
+
+
+@pytest.mark.slow
+@pytest.mark.cuda
+@pytest.mark.real_gpu  # a child process: not on the simulated CUDA device
+def test_torchrun_fsdp_on_cuda_trains_with_the_gpu_defaults(data, tmp_path):
+    """The GPU defaults under FSDP2 (bf16 parameters in the blocks, float32 reductions; TF32): three finite steps
+    through NCCL, the model gathered and written."""
+    _torchrun_one_process(_yaml(_stage("stage3", data, tmp_path / "run", device="cuda"), tmp_path / "stage.yaml"),
+                          torch.device("cuda"), "fsdp", tmp_path)
+    rows = _metrics(tmp_path / "run")
+    assert sorted(rows) == [1, 2, 3] and all(math.isfinite(v) for r in rows.values() for v in r.values())
+    assert Diff4SplatModel.from_pretrained(tmp_path / "run" / "model") is not None
 
 
 # ------------------------------------------------------------------------------------------------ CUDA
