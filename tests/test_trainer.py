@@ -104,7 +104,7 @@ def test_signal_stop_then_resume_matches_uninterrupted_run_exactly(tmp_path, dev
 def test_a_process_group_of_one_resumes_exactly(tmp_path):
     """``torchrun --nproc_per_node 1`` (a gloo group of one here): the run is distributed (DDP), and a stop and
     resume gives the uninterrupted run's losses bit for bit, as without a group (rank 0's step generator is the
-    checkpoint's; only the ranks that saved nothing reseed theirs)."""
+    checkpoint's; only with several ranks, whose streams it does not hold, are they reseeded)."""
     dist.init_process_group("gloo", store=dist.HashStore(), rank=0, world_size=1)
     try:
         ref = _trainer(tmp_path / "ref", "cpu")

@@ -371,7 +371,7 @@ class Trainer:
         self._load_states(model_state, state["optimizer"], ema)
         self.scheduler.load_state_dict(state["scheduler"])
         set_rng_state(state["rng"], self.generator)
-        if self.world > 1:  # rank 0 saved its own stream: the others continue a stream of their own, reseeded
+        if self.world > 1:  # the checkpoint holds rank 0's stream only: with several ranks each reseeds its own
             self.generator.manual_seed(self.config.seed + 1000 * self.rank + state["step"])
         self.loader_generator.set_state(state["loader_generator"])
         self.step, self.epoch, self.position = state["step"], state["epoch"], state["position"]
