@@ -498,7 +498,10 @@ class LDRM(nn.Module, PretrainedMixin):
         if times is not None:
             S, nf = raw.shape[1], volume.shape[2]
             B, _, _, hp, wp = volume.shape
-            feats = volume.transpose(1, 2).reshape(B * nf, cfg.embed_dim, hp, wp)
+            # Contiguous (NCHW): the token volume's view has channels-last strides, with which the 1×1 out_conv's
+            # weight gradient comes back with strides (F, 1, F, F) for its (10, F, 1, 1) weight, the same memory
+            # but not the parameter's strides, and DDP warns on every run that they do not match its bucket.
+            feats = volume.transpose(1, 2).reshape(B * nf, cfg.embed_dim, hp, wp).contiguous()
             d = self.deformation(feats, times, cfg.vae_spatial * cfg.patch_size)  # each (B·nf, K, H, W, ·)
             maps = [m.reshape(B, nf, *m.shape[1:]).transpose(1, 2) for m in d]  # (B, K, nf, H, W, ·)
             if cfg.gaussian_frames == "all":  # frame f belongs to latent frame ⌈f / r⌉

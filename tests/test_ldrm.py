@@ -346,7 +346,10 @@ def test_position_embedding_unique_and_closed_form():
 
 
 @pytest.mark.slow
-def test_gradients_reach_every_parameter():
+def test_gradients_reach_every_parameter_with_its_strides():
+    """Every parameter gets a non-zero gradient laid out as the parameter is (the layout DDP's gradient buckets
+    assume: the deformation network's 1×1 out_conv, fed channels-last token features, once got (F, 1, F, F)
+    strides for its (10, F, 1, 1) weight and DDP warned on every run)."""
     model = _model()
     with torch.no_grad():
         model.deformation.out_conv.weight.normal_(0.0, 0.3)
@@ -359,6 +362,7 @@ def test_gradients_reach_every_parameter():
     loss.backward()
     for name, p in model.named_parameters():
         assert p.grad is not None and p.grad.abs().sum() > 0, f"no gradient for {name}"
+        assert p.grad.stride() == p.stride(), (name, p.grad.stride(), p.stride())
 
 
 @pytest.mark.slow
