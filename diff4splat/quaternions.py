@@ -139,19 +139,23 @@ def rotmat_to_quat(rotmats: Tensor) -> Tensor:
 
 
 def quat_nlerp(q0: Tensor, q1: Tensor, w: Tensor | float) -> Tensor:
-    """Normalised linear interpolation between quaternions, taking the shorter arc.
+    """Normalised linear interpolation between the rotations of two quaternions, taking the shorter arc.
+
+    The inputs are normalised first: q and c·q (c > 0) are the same rotation, and a blend of unnormalised inputs
+    would weigh each by its norm (the viewer page, which receives unit keyframes, interpolates as this does).
 
     Args:
-        q0: (..., 4) wxyz.
-        q1: (..., 4) wxyz.
-        w: weight in [0, 1] (scalar or broadcastable (..., 1)); 0 → q0, 1 → q1.
+        q0: (..., 4) wxyz, any non-zero norm.
+        q1: (..., 4) wxyz, any non-zero norm.
+        w: weight in [0, 1] (scalar or broadcastable (..., 1)); 0 → q0/|q0|, 1 → q1/|q1|.
 
     Returns:
-        (..., 4) unit quaternion normalize((1−w)·q0 + w·sign(q0·q1)·q1).
+        (..., 4) unit quaternion normalize((1−w)·u0 + w·sign(u0·u1)·u1), u = q/|q| (norm of the blend ≥ 1/√2).
 
     Raises:
-        ValueError: if the blend has zero norm (only for antipodal non-unit inputs).
+        ValueError: a zero-norm input.
     """
+    q0, q1 = quat_normalize(q0, "q0"), quat_normalize(q1, "q1")
     sign = torch.where((q0 * q1).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(q1.dtype)
     return quat_normalize((1 - w) * q0 + w * sign * q1, "interpolated quaternion")
 

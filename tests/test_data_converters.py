@@ -125,7 +125,7 @@ def make_vkitti2(root: Path) -> tuple[Path, Expect]:
     uv, z = {"cam00": [], "cam01": []}, {"cam00": [], "cam01": []}
     for c, name in ((0, "cam00"), (1, "cam01")):
         for i, V in enumerate(cv_poses(shift=(0.5 * c, 0, 0))):
-            intr.append(f"{i} {c} {FX} {FY} {CX} {CY}")
+            intr.append(f"{i} {c} {FX} {FY} {CX - 0.5} {CY - 0.5}")  # VKITTI2 counts pixel centres at integers
             extr.append(f"{i} {c} " + " ".join(f"{v:.12g}" for v in V.reshape(-1)))
             p, zz = project_cv(V, P_WORLD)
             uv[name].append(p)

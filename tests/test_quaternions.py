@@ -74,3 +74,7 @@ def test_nlerp_endpoints_and_shorter_arc():
     mid = quat_nlerp(q0, q1, 0.5)  # symmetric blend of two rotations about x → half angle
     torch.testing.assert_close(mid, axis_angle_to_quat(torch.tensor([1.0, 0, 0], dtype=torch.float64),
                                                        torch.tensor(0.5, dtype=torch.float64)))
+    # the rotations are blended, not their representations: scaling an input changes nothing
+    torch.testing.assert_close(quat_nlerp(3.0 * q0, 0.2 * q1, 0.3), quat_nlerp(q0, q1, 0.3))
+    with pytest.raises(ValueError, match="q1"):
+        quat_nlerp(q0, torch.zeros(4, dtype=torch.float64), 0.5)

@@ -20,40 +20,55 @@ from diff4splat.viewer.data import (
     keyframe_times,
     keyframes,
     payload_bytes,
+    time_range,
     viewer_payload,
 )
 
 
 def test_keyframes_are_the_scene_at_its_key_times():
     scene, cams = moving_patch_scene(n=50, frames=4, temporal=True)
-    times = keyframe_times(scene, cams)
-    assert torch.equal(times, scene.times.double())
+    times = keyframe_times(scene)
+    assert torch.equal(times, scene.times.double()) and time_range(scene, cams) == (0.0, 1.0)
     frames = keyframes(scene, times)
+    assert set(frames) == {"means", "quats", "scales"}  # temporal opacity: evaluated by the page from μ_t, σ_t
     for k, t in enumerate(times.tolist()):
         g = scene.at(t, gate=0.0)
         torch.testing.assert_close(frames["means"][k], g.means)
         torch.testing.assert_close(frames["quats"][k], g.quats / g.quats.norm(dim=-1, keepdim=True))
         torch.testing.assert_close(frames["scales"][k], g.scales)
-        torch.testing.assert_close(frames["opacities"][k], g.opacities)  # temporal support: p(t)·o
     assert float((frames["means"][-1, :, 0] - frames["means"][0, :, 0]).mean()) == pytest.approx(0.6)
 
 
 def test_key_times_of_static_and_temporal_only_scenes():
+    """A static scene has no time controls and no frame data; one with temporal support only has controls over
+    the path's times and its μ_t, σ_t (float32) but no keyframes: its Gaussians do not move."""
     static, cams = moving_patch_scene(n=10, shift=0.0)
-    assert keyframe_times(static, cams) is None
-    temporal, cams = moving_patch_scene(n=10, shift=0.0, temporal=True)
-    assert torch.equal(keyframe_times(temporal, cams), cams.times.double())  # opacity changes with time
+    assert keyframe_times(static) is None and time_range(static, cams) is None
     p = viewer_payload(static, cams)
     assert p.frames is None and p.config["dynamic"] is False and p.config["times"] == []
+    temporal, cams = moving_patch_scene(n=10, shift=0.0, temporal=True)
+    cams = CameraPath(cams.viewmats, cams.Ks, cams.width, cams.height, torch.linspace(0.2, 0.7, 5))
+    assert keyframe_times(temporal) is None and time_range(temporal, cams) == pytest.approx((0.2, 0.7))
+    p = viewer_payload(temporal, cams)
+    assert p.config["dynamic"] is True and p.config["times"] == []
+    assert p.config["timeRange"] == pytest.approx([0.2, 0.7])
+    assert len(p.frames) == 8 * 10 and p.config["bytesPerGaussianPerFrame"] == 0
+    back = decode_keyframes(p.frames, p.config)
+    np.testing.assert_array_equal(back["t_means"], temporal.t_means.numpy())
+    np.testing.assert_array_equal(back["t_scales"], temporal.t_scales.numpy())
+    assert back["means"].shape == (0, 10, 3)
 
 
 @pytest.mark.parametrize("dtype", ["float16", "float32"])
 def test_encode_decode_round_trip(dtype):
     scene, cams = moving_patch_scene(n=30, frames=3, temporal=True)
-    frames = keyframes(scene, keyframe_times(scene, cams))
-    data = encode_keyframes(frames, dtype)
-    assert len(data) == 3 * 30 * 11 * (2 if dtype == "float16" else 4)
+    frames = keyframes(scene, keyframe_times(scene))
+    data = encode_keyframes(frames, dtype, (scene.t_means, scene.t_scales))
+    assert len(data) == 8 * 30 + 3 * 30 * 10 * (2 if dtype == "float16" else 4)
+    assert len(data) == payload_bytes(30, 0, 3, True, 2 if dtype == "float16" else 4) - 30 * 17 * 4  # less the PLY
     back = decode_keyframes(data, {"numGaussians": 30, "times": [0, 0.5, 1], "temporal": True, "dtype": dtype})
+    np.testing.assert_array_equal(back["t_means"], scene.t_means.numpy())  # float32 whatever the keyframes' dtype
+    np.testing.assert_array_equal(back["t_scales"], scene.t_scales.numpy())
     for k, v in frames.items():
         ref = v.numpy().astype(np.float16).astype(np.float32) if dtype == "float16" else v.numpy()
         np.testing.assert_array_equal(back[k], ref)

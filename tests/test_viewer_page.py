@@ -17,8 +17,10 @@ import torch
 from helpers import moving_patch_scene
 
 import diff4splat.viewer.data as viewer_data
+from diff4splat.cameras.path import CameraPath
 from diff4splat.cli import main
 from diff4splat.io import load_cameras_json, load_ply
+from diff4splat.quaternions import quat_to_rotmat
 from diff4splat.render import rasterize
 from diff4splat.scene import DynamicGaussians
 from diff4splat.viewer.data import payload_bytes, viewer_payload
@@ -209,6 +211,90 @@ def test_camera_menu_jumps_to_a_path_camera(browser, tmp_path):
     page.locator("#camera").select_option("1")
     img = _canvas(page)
     assert _psnr4(img, _cpu(scene, cams, 1, 1.0, img)) >= 25.0
+    page.close()
+
+
+@pytest.mark.slow
+def test_each_path_camera_is_drawn_with_its_own_intrinsics(browser, tmp_path):
+    """Camera 1 zooms in 1.6× (its own K): chosen in the menu, the canvas shows what the CPU renders with that K,
+    not with camera 0's (the page once projected every camera with the first one's K)."""
+    scene, cams = moving_patch_scene(n=300, frames=2)
+    cams.Ks[1, :2, :2] *= 1.6
+    write_viewer(tmp_path / "viewer.html", scene, cams)
+    page = _open(browser, (tmp_path / "viewer.html").as_uri())
+    page.locator("#camera").select_option("1")
+    img = _canvas(page)
+    assert _psnr4(img, _cpu(scene, cams, 1, 1.0, img)) >= 25.0
+    first_k = CameraPath(cams.viewmats, cams.Ks[[0, 0]], cams.width, cams.height)
+    assert _psnr4(img, _cpu(scene, first_k, 1, 1.0, img)) < 20.0
+    page.close()
+
+
+def _pose(page) -> dict[str, np.ndarray]:
+    """The page camera's position, right vector and up vector (world), and the orbit target."""
+    p = {k: np.array(v, dtype=np.float64) for k, v in page.evaluate("d4s.pose()").items()}
+    x, y, z, w = p["quaternion"]  # three.js order
+    rot = quat_to_rotmat(torch.tensor([w, x, y, z], dtype=torch.float64)).numpy()
+    return {"position": p["position"], "right": rot[:, 0], "up": p["up"], "target": p["target"]}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("world", ["opencv", "z-up"])
+def test_a_horizontal_drag_orbits_about_the_cameras_up(browser, tmp_path, world):
+    """Dragging to the right turns the scene to the right as in any orbit viewer: the camera moves to its own left,
+    about the target, in the plane normal to its up vector, in our y-down world (generate's: the first camera's
+    OpenCV frame) and in a z-up one (a fitted dataset's). The page once kept three.js's default orbit axis, world
+    +y: the drag was mirrored in the first and tumbled the camera over in the second."""
+    scene, cams = moving_patch_scene(n=200, shift=0.0)
+    if world == "z-up":  # world = R · camera-0 frame: x right, y forward, z up
+        R = torch.tensor([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])
+        c = scene.canonical
+        scene = DynamicGaussians(type(c)(c.means @ R.T, c.quats, c.scales, c.opacities, c.sh))
+        cams.viewmats[:, :3, :3] = R.T
+    write_viewer(tmp_path / "viewer.html", scene, cams)
+    page = _open(browser, (tmp_path / "viewer.html").as_uri())
+    before = _pose(page)
+    box = page.locator("#view").bounding_box()
+    cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    page.mouse.move(cx, cy)
+    page.mouse.down()
+    page.mouse.move(cx + 60, cy, steps=6)
+    page.mouse.up()
+    page.wait_for_timeout(100)
+    after = _pose(page)
+    moved = after["position"] - before["position"]
+    assert np.linalg.norm(moved) > 0.1  # metres, at 3 m from the target
+    assert moved @ before["right"] < -0.5 * np.linalg.norm(moved)  # to the camera's left
+    assert abs(moved @ before["up"]) < 0.05 * np.linalg.norm(moved)  # about its up vector
+    radius = [np.linalg.norm(p["position"] - p["target"]) for p in (before, after)]
+    assert radius[1] == pytest.approx(radius[0], rel=1e-3)
+    page.close()
+
+
+@pytest.mark.slow
+def test_between_keyframes_the_page_has_the_renderers_gaussians(browser, tmp_path):
+    """At times between keyframes the page's Gaussians (before Spark packs them) are DynamicGaussians.at's: the
+    scales interpolate geometrically as s·exp(Δs) with Δs linear (Δs from 0 to ln 4 gives 2s halfway, not the
+    2.5s of a linear blend of the keyframes), and temporal opacities o·exp(−½((t − μ_t)/σ_t)²) peak at μ_t
+    between keyframes (a linear blend of the keyframes' opacities gave 3e-6 instead of o at t = μ_t = 0.5)."""
+    scene, cams = moving_patch_scene(n=40, frames=2, temporal=True)
+    d_scales = torch.zeros(2, 40, 3)
+    d_scales[1] = math.log(4.0)
+    t_means = torch.linspace(0.3, 0.7, 40)
+    scene = DynamicGaussians(scene.canonical, scene.times, scene.d_means, scene.d_quats, d_scales,
+                             t_means=t_means, t_scales=torch.full((40,), 0.1))
+    write_viewer(tmp_path / "viewer.html", scene, cams)
+    page = _open(browser, (tmp_path / "viewer.html").as_uri())
+    for t in (0.25, 0.5, 0.6):
+        ref = scene.at(t, gate=0.0)
+        for i in (0, 13, 20, 39):
+            got = page.evaluate("([t, i]) => d4s.splatAt(t, i)", [t, i])
+            np.testing.assert_allclose(got["mean"], ref.means[i].numpy(), atol=3e-3)
+            q = ref.quats[i] / ref.quats[i].norm()
+            np.testing.assert_allclose(got["quat"], q.numpy(), atol=2e-3)
+            np.testing.assert_allclose(got["scale"], ref.scales[i].numpy(), rtol=2e-3)
+            assert got["opacity"] == pytest.approx(float(ref.opacities[i]), abs=3e-3), (t, i)
+    assert page.evaluate("([t, i]) => d4s.splatAt(t, i)", [0.5, 20])["scale"][0] == pytest.approx(0.08, rel=2e-3)
     page.close()
 
 

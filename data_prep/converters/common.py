@@ -45,6 +45,7 @@ from diff4splat.quaternions import quat_to_rotmat
 from ..format import SceneWriter, timestamps_to_times
 
 __all__ = [
+    "INTEGER_CENTRE_SHIFT",
     "GL_TO_CV",
     "P3D_TO_CV",
     "NED_TO_CV",
@@ -78,6 +79,10 @@ __all__ = [
     "load_json_file",
     "load_gzip_json",
 ]
+
+INTEGER_CENTRE_SHIFT = 0.5
+"""Pixels: our image coordinates (pixel centres at +0.5, FORMAT.md) minus those of conventions that put pixel centres
+at integers (OpenCV, KITTI): a principal point given in the latter gets + this."""
 
 GL_TO_CV = np.diag([1.0, -1.0, -1.0])
 """OpenGL/Blender camera axes (x right, y up, z back) ↔ OpenCV camera axes (its own inverse)."""

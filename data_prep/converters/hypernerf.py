@@ -42,7 +42,7 @@ import numpy as np
 
 from diff4splat.io.structured import read_json
 
-from .common import camera_path, read_rgb_uint8, require_dir, rigid, select_frames, write_scene
+from .common import INTEGER_CENTRE_SHIFT, camera_path, read_rgb_uint8, require_dir, rigid, select_frames, write_scene
 
 __all__ = ["convert_hypernerf", "NerfiesCamera", "read_nerfies_camera", "undistort_rgb", "HYPERNERF_FPS"]
 
@@ -117,7 +117,7 @@ def undistort_rgb(rgb: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarra
     if not np.any(dist):
         return rgb
     K_cv = np.array(K, dtype=np.float64)
-    K_cv[:2, 2] -= 0.5  # OpenCV puts pixel centres at integer coordinates
+    K_cv[:2, 2] -= INTEGER_CENTRE_SHIFT  # OpenCV puts pixel centres at integer coordinates
     return cv2.undistort(rgb, K_cv, np.asarray(dist, dtype=np.float64), None, K_cv)
 
 

@@ -15,6 +15,11 @@ The extrinsic rows are world-to-camera matrices; camera axes are KITTI's (x righ
 z forward) = OpenCV; depth is z-depth ("distance to the camera plane", README). Camera_0 is the
 left and Camera_1 the right camera of the stereo rig. The sequences were generated at 10 Hz like
 KITTI.
+
+Pixel coordinates: the principal point is given with pixel centres at integers, as OpenCV and KITTI count
+them: the dataset's (620.5, 187.0) for its 1242×375 frames is ((W − 1)/2, (H − 1)/2), the centre of the
+rendered (symmetric) frustum. Ours puts pixel centres at +0.5 (FORMAT.md), so cx, cy get + 0.5 (621.0, 187.5);
+the focal lengths are unchanged.
 """
 from __future__ import annotations
 
@@ -26,6 +31,7 @@ import numpy as np
 from diff4splat.io.structured import read_text
 
 from .common import (
+    INTEGER_CENTRE_SHIFT,
     camera_path,
     decode_scaled_uint16,
     intrinsics,
@@ -115,7 +121,9 @@ def convert_vkitti2(src: str | os.PathLike, out: str | os.PathLike, *, cameras: 
         except KeyError as e:
             raise ValueError(f"{src}: (frame, camera) {e.args[0]} missing from intrinsic.txt/extrinsic.txt") from None
         viewmats = ext.reshape(-1, 4, 4)  # world-to-camera, OpenCV axes already
-        paths[f"cam{k:02d}"] = camera_path(viewmats, intrinsics(*intr.T), W, H, ts)
+        fx, fy, cx, cy = intr.T
+        Ks = intrinsics(fx, fy, cx + INTEGER_CENTRE_SHIFT, cy + INTEGER_CENTRE_SHIFT)
+        paths[f"cam{k:02d}"] = camera_path(viewmats, Ks, W, H, ts)
 
     def frames(name: str):
         c = cameras[int(name[3:])]

@@ -1,17 +1,21 @@
 """What the 4D viewer shows, computed in Python (the page only interpolates; docs/DESIGN.md, "Viewer").
 
 A viewer payload is the canonical Gaussians as INRIA PLY bytes (:func:`diff4splat.io.ply_bytes`: colours,
-opacities, SH) and, for a scene that changes with time, **absolute** keyframes: for each key time t the
-means (N, 3) metres, quats (N, 4) wxyz, scales (N, 3) metres — and opacities (N,) when the scene has temporal
-support — of :meth:`DynamicGaussians.at` (t, gate 0), the same code that writes ``frames/NNNN.ply``. The page
-interpolates linearly between keyframes (nlerp for quaternions), which is exact for the means at the
-deformation's own key times (μ + Δμ is affine in the linearly interpolated Δμ).
+opacities, SH) and, for a scene that changes with time, the frame data (:func:`encode_keyframes`): with temporal
+support each Gaussian's time mean μ_t and standard deviation σ_t, from which the page evaluates the opacity
+o·exp(−½((t − μ_t)/σ_t)²) at any t as :meth:`DynamicGaussians.at` does; for a deforming scene **absolute**
+keyframes, for each of the deformation's key times t the means (N, 3) metres, quats (N, 4) wxyz and scales (N, 3)
+metres of :meth:`DynamicGaussians.at` (t, gate 0), the same code that writes ``frames/NNNN.ply``. Between two
+keyframes the page reproduces the renderer's interpolation of the deformation (:meth:`DynamicGaussians.
+deformation_at`, linear in Δμ, Δs and nlerp in Δq): the means linearly (μ + Δμ is affine in Δμ), the quaternions
+by nlerp (Δq ⊗ q with a unit q keeps the nlerp's weights and sign) and the scales geometrically (s·exp(Δs) is
+log-linear in Δs), so at every time, not only at key times, the page shows the Gaussians the renderer draws.
 
 Keyframes are stored as float16 when rounding the means to float16 moves no Gaussian by more than
 :data:`FLOAT16_MAX_PX` pixels in any camera of the path (measured, :func:`float16_error_px`) and every value
 is within float16's range (|x| ≤ 65504), else float32.
-Size per Gaussian per keyframe: 10 values (11 with temporal support) × 2 or 4 bytes, × 4/3 once base64-
-encoded into ``viewer.html``. Above :data:`VIEWER_BUDGET_BYTES` of embedded data the page gets a reduced
+Size per Gaussian per keyframe: 10 values × 2 or 4 bytes, plus 8 bytes once with temporal support, × 4/3 once
+base64-encoded into ``viewer.html``. Above :data:`VIEWER_BUDGET_BYTES` of embedded data the page gets a reduced
 scene (:func:`viewer_payload`: SH degree 0, then fewer keyframes, then the most opaque Gaussians) and says
 so on screen; ``diff4splat view`` serves the full one.
 """
@@ -30,8 +34,8 @@ from ..io.ply import ply_bytes
 from ..render.defaults import BACKGROUND, EPS2D, NEAR_PLANE
 from ..scene import DynamicGaussians
 
-__all__ = ["VIEWER_BUDGET_BYTES", "FLOAT16_MAX_PX", "NEAR", "ViewerPayload", "keyframe_times", "keyframes",
-           "evenly_spaced", "float16_error_px", "encode_keyframes", "decode_keyframes", "viewer_payload",
+__all__ = ["VIEWER_BUDGET_BYTES", "FLOAT16_MAX_PX", "NEAR", "ViewerPayload", "keyframe_times", "time_range",
+           "keyframes", "evenly_spaced", "float16_error_px", "encode_keyframes", "decode_keyframes", "viewer_payload",
            "payload_bytes"]
 
 VIEWER_BUDGET_BYTES = 50 * 2**20
@@ -51,7 +55,8 @@ class ViewerPayload:
     Attributes:
         config: JSON-ready dict read by the page (counts, cameras, key times, dtype, note …).
         ply: INRIA PLY bytes of the (possibly reduced) canonical Gaussians.
-        frames: keyframe bytes (layout in :func:`encode_keyframes`), or None for a static scene.
+        frames: frame data bytes (layout in :func:`encode_keyframes`), or None for a scene that does not change
+            with time.
         reductions: what the size budget took away (empty: the full scene), as stated on the page.
     """
 
@@ -61,14 +66,19 @@ class ViewerPayload:
     reductions: list[str] = field(default_factory=list)
 
 
-def keyframe_times(scene: DynamicGaussians, cameras: CameraPath) -> Tensor | None:
-    """Key times (F,) in [0, 1]: the deformation's own times for a deforming scene, the path's frame times for
-    a scene with temporal support only, None for a static scene (no time controls)."""
-    if not scene.is_static:
-        return scene.times.detach().cpu().double()
-    if scene.has_temporal:
-        return cameras.times.detach().cpu().double()
-    return None
+def keyframe_times(scene: DynamicGaussians) -> Tensor | None:
+    """Key times (F,) in [0, 1]: the deformation's own times, None for a scene without deformation (with temporal
+    support only, the page evaluates the opacities at any time from μ_t and σ_t: no keyframes)."""
+    return None if scene.is_static else scene.times.detach().cpu().double()
+
+
+def time_range(scene: DynamicGaussians, cameras: CameraPath) -> tuple[float, float] | None:
+    """The time slider's range in [0, 1]: the deformation's first and last key times, else (with temporal support
+    only) the path's first and last frame times; None for a scene that does not change with time (no controls)."""
+    times = keyframe_times(scene)
+    if times is None and scene.has_temporal:
+        times = cameras.times.detach().cpu().double()
+    return None if times is None else (float(times.min()), float(times.max()))
 
 
 @torch.no_grad()
@@ -76,15 +86,13 @@ def keyframes(scene: DynamicGaussians, times: Tensor) -> dict[str, Tensor]:
     """Absolute Gaussians at every key time (:meth:`DynamicGaussians.at` with gate 0, so all N in order).
 
     Returns:
-        {"means": (F, N, 3), "quats": (F, N, 4) unit wxyz, "scales": (F, N, 3), and "opacities": (F, N) when
-        the scene has temporal support}, float32 on the CPU.
+        {"means": (F, N, 3) metres, "quats": (F, N, 4) unit wxyz, "scales": (F, N, 3) metres}, float32 on the CPU
+        (opacities are not keyframed: with temporal support the page evaluates them from μ_t and σ_t).
     """
     F, N = len(times), scene.num_gaussians
     cpu = torch.device("cpu")  # the payload is bytes for the page: built on the host
     out = {"means": torch.empty(F, N, 3, device=cpu), "quats": torch.empty(F, N, 4, device=cpu),
            "scales": torch.empty(F, N, 3, device=cpu)}
-    if scene.has_temporal:
-        out["opacities"] = torch.empty(F, N, device=cpu)
     for i, t in enumerate(times):  # one time at a time into the outputs: memory F·N·10 floats, not twice that
         g = scene.at(float(t), gate=0.0)
         for key, dst in out.items():
@@ -145,22 +153,33 @@ def _fits_float16(x: Tensor) -> bool:
     return bool(torch.maximum(-lo, hi) < 65520)  # NaN compares False
 
 
-def encode_keyframes(frames: dict[str, Tensor], dtype: str) -> bytes:
-    """Little-endian bytes, keyframe by keyframe: means (N·3), quats (N·4, wxyz), scales (N·3), then
-    opacities (N) if present — ``dtype`` "float16" or "float32". The page's ``splitFrames`` reads this."""
+def encode_keyframes(frames: dict[str, Tensor] | None, dtype: str,
+                     temporal: tuple[Tensor, Tensor] | None = None) -> bytes:
+    """The frame data as little-endian bytes: with ``temporal`` = (t_means (N,), t_scales (N,)), both as float32
+    (8·N bytes: σ_t keeps its precision whatever ``dtype``); then, keyframe by keyframe, means (N·3), quats (N·4,
+    wxyz), scales (N·3) in ``dtype`` ("float16" or "float32"). The page's ``splitFrames`` reads this.
+
+    Raises:
+        ValueError: another ``dtype``.
+    """
     if dtype not in ("float16", "float32"):
         raise ValueError(f"dtype must be 'float16' or 'float32', got {dtype!r}")
-    keys = ["means", "quats", "scales"] + (["opacities"] if "opacities" in frames else [])
-    F = frames["means"].shape[0]
-    parts = [frames[k].reshape(F, -1) for k in keys]
-    flat = torch.cat(parts, dim=1).cpu().numpy().astype("<f2" if dtype == "float16" else "<f4")
-    return flat.tobytes()
+    out = b""
+    if temporal is not None:
+        out = torch.cat([v.detach().reshape(-1) for v in temporal]).to("cpu", torch.float32).numpy().astype("<f4")
+        out = out.tobytes()
+    if frames is not None:
+        F = frames["means"].shape[0]
+        parts = [frames[k].reshape(F, -1) for k in ("means", "quats", "scales")]
+        out += torch.cat(parts, dim=1).cpu().numpy().astype("<f2" if dtype == "float16" else "<f4").tobytes()
+    return out
 
 
 def payload_bytes(num_gaussians: int, sh_degree: int, num_frames: int, temporal: bool, itemsize: int) -> int:
-    """Bytes of embedded data (before base64): PLY rows of (17 + 3·((d+1)² − 1)) float32 plus keyframes."""
+    """Bytes of embedded data (before base64): PLY rows of (17 + 3·((d+1)² − 1)) float32, the temporal support's
+    2 float32 per Gaussian, and ``num_frames`` keyframes of 10 values of ``itemsize`` bytes per Gaussian."""
     ply = num_gaussians * 4 * (17 + 3 * ((sh_degree + 1) ** 2 - 1))
-    return ply + num_frames * num_gaussians * (11 if temporal else 10) * itemsize
+    return ply + (8 * num_gaussians if temporal else 0) + num_frames * num_gaussians * 10 * itemsize
 
 
 def _camera_list(cameras: CameraPath) -> list[dict]:
@@ -194,7 +213,7 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
     if not fps > 0:
         raise ValueError(f"fps must be > 0, got {fps}")
     scene = scene.to("cpu")
-    times = keyframe_times(scene, cameras)
+    times, span = keyframe_times(scene), time_range(scene, cameras)
     canonical: Gaussians = scene.canonical
     degree = canonical.sh_degree
     n, temporal = canonical.num_gaussians, scene.has_temporal
@@ -212,7 +231,7 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
         reductions.append(f"SH degree {degree} → 0")
         degree = 0
     if budget is not None and size() > budget and F > 2:
-        per_frame = n * (11 if temporal else 10) * itemsize
+        per_frame = n * 10 * itemsize
         keep_f = int(min(F, max(2, (budget - payload_bytes(n, degree, 0, temporal, itemsize)) // max(per_frame, 1))))
         if keep_f < F:
             idx = evenly_spaced(F, keep_f, times.device).unique()
@@ -231,10 +250,13 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
         g = Gaussians(g.means, g.quats, g.scales, g.opacities, g.sh[:, :1])
     if frames is not None and keep is not None:
         frames = {k: v[:, keep] for k, v in frames.items()}
+    support = None
+    if temporal:
+        support = (scene.t_means, scene.t_scales) if keep is None else (scene.t_means[keep], scene.t_scales[keep])
     first = frames["means"][0] if frames is not None else g.means.detach()
     config = {
-        "numGaussians": n, "shDegree": degree, "dynamic": frames is not None, "temporal": temporal,
-        "times": [] if times is None else [float(t) for t in times],
+        "numGaussians": n, "shDegree": degree, "dynamic": span is not None, "temporal": temporal,
+        "times": [] if times is None else [float(t) for t in times], "timeRange": [] if span is None else list(span),
         "dtype": dtype, "float16ErrorPx": err, "width": cameras.width, "height": cameras.height,
         "duration": (len(cameras) - 1) / fps if len(cameras) > 1 else 1.0 / fps,
         "cameras": _camera_list(cameras), "near": NEAR, "background": [float(c) for c in background],
@@ -243,22 +265,24 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
         "targetDistance": _target_distance(first, cameras.viewmats[0].detach().cpu()),
         "note": ("reduced to fit the viewer's size budget: " + "; ".join(reductions) +
                  " — run `diff4splat view DIR` for the full scene") if reductions else "",
-        "bytesPerGaussianPerFrame": (11 if temporal else 10) * itemsize if frames is not None else 0,
+        "bytesPerGaussianPerFrame": 10 * itemsize if frames is not None else 0,
     }
     if not math.isfinite(config["far"]):
         config["far"] = 1e4
-    return ViewerPayload(config, ply_bytes(g), None if frames is None else encode_keyframes(frames, dtype),
-                         reductions)
+    data = None if span is None else encode_keyframes(frames, dtype, support)
+    return ViewerPayload(config, ply_bytes(g), data, reductions)
 
 
 def decode_keyframes(data: bytes, config: dict) -> dict[str, np.ndarray]:
-    """Inverse of :func:`encode_keyframes` given the page config (tests and tools)."""
+    """Inverse of :func:`encode_keyframes` given the page config (tests and tools): "t_means", "t_scales" (N,)
+    with temporal support, "means", "quats", "scales" (F, N, ·) for F key times (F = 0 without deformation)."""
     n, F = config["numGaussians"], len(config["times"])
-    cols = 11 if config["temporal"] else 10
-    flat = np.frombuffer(data, dtype="<f2" if config["dtype"] == "float16" else "<f4").astype(np.float32)
-    flat = flat.reshape(F, n * cols)
-    out = {"means": flat[:, :3 * n].reshape(F, n, 3), "quats": flat[:, 3 * n:7 * n].reshape(F, n, 4),
-           "scales": flat[:, 7 * n:10 * n].reshape(F, n, 3)}
+    out, start = {}, 0
     if config["temporal"]:
-        out["opacities"] = flat[:, 10 * n:]
+        support = np.frombuffer(data, dtype="<f4", count=2 * n).astype(np.float32)
+        out["t_means"], out["t_scales"], start = support[:n], support[n:], 8 * n
+    flat = np.frombuffer(data[start:], dtype="<f2" if config["dtype"] == "float16" else "<f4").astype(np.float32)
+    flat = flat.reshape(F, n * 10)
+    out.update(means=flat[:, :3 * n].reshape(F, n, 3), quats=flat[:, 3 * n:7 * n].reshape(F, n, 4),
+               scales=flat[:, 7 * n:10 * n].reshape(F, n, 3))
     return out

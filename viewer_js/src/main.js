@@ -1,11 +1,13 @@
 // diff4splat 4D viewer: the page half of diff4splat/viewer (docs/DESIGN.md, "Viewer").
 //
 // Reads what diff4splat/viewer/page.py embedded in viewer.html (or, under `diff4splat view`, fetches the
-// full-size data): the canonical Gaussians as INRIA PLY bytes (colours, opacities, SH) and, for a dynamic
-// scene, absolute per-keyframe means/quats(wxyz)/scales (and opacities when the scene has temporal
-// support) computed in Python by DynamicGaussians.at(). The page never re-implements the deformation: it
-// linearly interpolates the keyframes (nlerp for quaternions) and writes the result into Spark's
-// PackedSplats with setSplat + needsUpdate.
+// full-size data): the canonical Gaussians as INRIA PLY bytes (colours, opacities, SH) and, for a scene that changes
+// with time, each Gaussian's time mean and standard deviation (temporal support) and, for a deforming scene,
+// absolute per-keyframe means/quats(wxyz)/scales computed in Python by DynamicGaussians.at(). The page never
+// re-implements the deformation: between two keyframes it interpolates as the renderer interpolates the
+// deformation (means linearly, quaternions by nlerp, scales geometrically: s·exp(Δs) with Δs linear), evaluates
+// the temporal opacity o·exp(−½((t − μ_t)/σ_t)²), and writes the result into Spark's PackedSplats with setSplat +
+// needsUpdate.
 //
 // Conventions: the scene's world and cameras.json use OpenCV world-to-camera matrices (x right, y down,
 // z forward); three.js cameras are OpenGL (x right, y up, looking down −z), so c2w_gl = inv(viewmat) ·
@@ -62,25 +64,34 @@ function keyframeDecoder(frames, dtype) {
     let d = kept.get(f);
     if (d) { kept.delete(f); kept.set(f, d); return d; }  // most recently used last
     const src = frames[f];
-    d = { means: decode(src.means), quats: decode(src.quats), scales: decode(src.scales), opacities: decode(src.opacities) };
+    d = { means: decode(src.means), quats: decode(src.quats), scales: decode(src.scales) };
     kept.set(f, d);
     if (kept.size > 2) kept.delete(kept.keys().next().value);
     return d;
   };
 }
 
-// Keyframe array layout (little endian, dtype of cfg.dtype): for each keyframe f, means (N, 3), quats
-// (N, 4) wxyz, scales (N, 3), then opacities (N) when cfg.temporal.
-function splitFrames(flat, cfg) {
-  const n = cfg.numGaussians, per = n * (cfg.temporal ? 11 : 10), frames = [];
+// Frame data layout (little endian; diff4splat/viewer/data.py encode_keyframes): when cfg.temporal, the time
+// means (N) then the time standard deviations (N) as float32; then for each keyframe f (cfg.times), means (N, 3),
+// quats (N, 4) wxyz and scales (N, 3) in cfg.dtype.
+function splitFrames(bytes, cfg) {
+  const n = cfg.numGaussians;
+  let temporal = null, rest = bytes;
+  if (cfg.temporal) {
+    const b = bytes.byteOffset % 4 ? bytes.slice(0, 8 * n) : bytes;  // a Float32Array needs an aligned offset
+    const support = new Float32Array(b.buffer, b.byteOffset, 2 * n);
+    temporal = { means: support.subarray(0, n), scales: support.subarray(n, 2 * n) };
+    rest = bytes.subarray(8 * n);
+  }
+  const flat = keyframeArray(rest, cfg.dtype), per = 10 * n, frames = [];
   for (let f = 0; f < cfg.times.length; f++) {
     const o = f * per;
     frames.push({
       means: flat.subarray(o, o + 3 * n), quats: flat.subarray(o + 3 * n, o + 7 * n),
-      scales: flat.subarray(o + 7 * n, o + 10 * n), opacities: cfg.temporal ? flat.subarray(o + 10 * n, o + 11 * n) : null,
+      scales: flat.subarray(o + 7 * n, o + 10 * n),
     });
   }
-  return frames;
+  return { temporal, frames };
 }
 
 function projectionFromK(K, w, h, near, far) {
@@ -145,6 +156,7 @@ async function main() {
 
   const cams = cfg.cameras, W = cfg.width, H = cfg.height;
   const camera = new THREE.PerspectiveCamera(50, W / H, cfg.near, cfg.far);
+  let current = 0;  // the path camera last chosen: its K is the projection
   function resize() {
     const s = Math.min(window.innerWidth / W, (window.innerHeight - document.getElementById("ui").offsetHeight) / H);
     const w = Math.max(1, Math.floor(W * s)), h = Math.max(1, Math.floor(H * s));
@@ -155,14 +167,21 @@ async function main() {
     // against aliasing, as at the output's size).
     spark.preBlurAmount = eps2d * Math.max(1, (w / W) * (h / H));
     // K at the canvas size: scale focal lengths and principal point with the image
-    const k = cams[0].K.map((v, i) => (i === 0 || i === 2 ? v * w / W : i === 4 || i === 5 ? v * h / H : v));
+    const k = cams[current].K.map((v, i) => (i === 0 || i === 2 ? v * w / W : i === 4 || i === 5 ? v * h / H : v));
     camera.projectionMatrix.copy(projectionFromK(k, w, h, cfg.near, cfg.far));
     camera.projectionMatrixInverse.copy(camera.projectionMatrix).invert();
   }
-  const controls = new OrbitControls(camera, view);
+  let controls = null;
   function goTo(index) {
     const p = glPose(cams[index].viewmat);
     camera.up.copy(p.up);
+    // OrbitControls takes its orbit axis from camera.up when it is built (three.js r187): new controls for each
+    // camera orbit about that camera's up, not the default +y (mirrored drags in our y-down world, tumbling in a
+    // z-up one).
+    controls?.dispose();
+    controls = new OrbitControls(camera, view);
+    current = index;
+    resize();
     camera.position.copy(p.pos);
     camera.quaternion.copy(p.quat);
     controls.target.copy(p.pos).addScaledVector(p.fwd, cfg.targetDistance);
@@ -174,38 +193,67 @@ async function main() {
   goTo(0);
   window.addEventListener("resize", resize);
 
-  // per-Gaussian colour and opacity as loaded (setSplat rewrites all of a splat's packed fields)
+  // per-Gaussian colour, opacity and (for a scene with temporal support only) pose as loaded: setSplat rewrites
+  // all of a splat's packed fields
+  const data = cfg.dynamic ? splitFrames(frameBytes, cfg) : null;
+  const keyframe = data && data.frames.length ? keyframeDecoder(data.frames, cfg.dtype) : null;
   const colors = [], opac = new Float32Array(n);
-  for (let i = 0; i < n; i++) { const s = packed.getSplat(i); colors.push(s.color.clone()); opac[i] = s.opacity; }
-  const frames = cfg.dynamic ? splitFrames(keyframeArray(frameBytes, cfg.dtype), cfg) : null;
-  const keyframe = frames && keyframeDecoder(frames, cfg.dtype);
-  const c = new THREE.Vector3(), sc = new THREE.Vector3(), q = new THREE.Quaternion();
-  function setTime(t) {
-    state.time = t;
-    if (!frames) return;
+  const canon = { means: new Float32Array(3 * n), quats: new Float32Array(4 * n), scales: new Float32Array(3 * n) };
+  for (let i = 0; i < n; i++) {
+    const s = packed.getSplat(i);
+    colors.push(s.color.clone());
+    opac[i] = s.opacity;
+    canon.means.set([s.center.x, s.center.y, s.center.z], 3 * i);
+    canon.quats.set([s.quaternion.w, s.quaternion.x, s.quaternion.y, s.quaternion.z], 4 * i);
+    canon.scales.set([s.scales.x, s.scales.y, s.scales.z], 3 * i);
+  }
+  // The keyframes around time t and the weight of the second: DynamicGaussians.deformation_at's clamped lookup.
+  function bracket(t) {
     const ts = cfg.times;
+    if (!keyframe) return { a: canon, b: canon, w: 0 };
     let k = 0;
     while (k < ts.length - 2 && t > ts[k + 1]) k++;
     const k1 = Math.min(k + 1, ts.length - 1);
     const w = k1 === k ? 0 : Math.min(1, Math.max(0, (t - ts[k]) / (ts[k1] - ts[k])));
-    const a = keyframe(k), b = keyframe(k1);
+    return { a: keyframe(k), b: keyframe(k1), w };
+  }
+  const c = new THREE.Vector3(), sc = new THREE.Vector3(), q = new THREE.Quaternion();
+  // Gaussian i at time t between keyframes a and b (weight w of b) into c, q, sc; returns its opacity.
+  function splatAt(a, b, w, t, i) {
+    const i3 = 3 * i, i4 = 4 * i;
+    c.set(a.means[i3] + w * (b.means[i3] - a.means[i3]), a.means[i3 + 1] + w * (b.means[i3 + 1] - a.means[i3 + 1]),
+          a.means[i3 + 2] + w * (b.means[i3 + 2] - a.means[i3 + 2]));
+    // s·exp((1 − w)·Δs_a + w·Δs_b) = s_a^(1−w) · s_b^w (a float16 scale rounded to 0 falls back to linear)
+    const geo = (x, y) => (x > 0 && y > 0 ? x * Math.pow(y / x, w) : x + w * (y - x));
+    sc.set(geo(a.scales[i3], b.scales[i3]), geo(a.scales[i3 + 1], b.scales[i3 + 1]), geo(a.scales[i3 + 2], b.scales[i3 + 2]));
+    // nlerp on the shorter arc; wxyz in the data, THREE.Quaternion is (x, y, z, w)
+    const d = a.quats[i4] * b.quats[i4] + a.quats[i4 + 1] * b.quats[i4 + 1] + a.quats[i4 + 2] * b.quats[i4 + 2] + a.quats[i4 + 3] * b.quats[i4 + 3];
+    const sb = d < 0 ? -w : w, sa = 1 - w;
+    q.set(sa * a.quats[i4 + 1] + sb * b.quats[i4 + 1], sa * a.quats[i4 + 2] + sb * b.quats[i4 + 2],
+          sa * a.quats[i4 + 3] + sb * b.quats[i4 + 3], sa * a.quats[i4] + sb * b.quats[i4]).normalize();
+    if (!data.temporal) return opac[i];
+    const z = (t - data.temporal.means[i]) / data.temporal.scales[i];
+    return opac[i] * Math.exp(-0.5 * z * z);
+  }
+  function setTime(t) {
+    state.time = t;
+    if (!data) return;
+    const { a, b, w } = bracket(t);
     for (let i = 0; i < n; i++) {
-      const i3 = 3 * i, i4 = 4 * i;
-      c.set(a.means[i3] + w * (b.means[i3] - a.means[i3]), a.means[i3 + 1] + w * (b.means[i3 + 1] - a.means[i3 + 1]),
-            a.means[i3 + 2] + w * (b.means[i3 + 2] - a.means[i3 + 2]));
-      sc.set(a.scales[i3] + w * (b.scales[i3] - a.scales[i3]), a.scales[i3 + 1] + w * (b.scales[i3 + 1] - a.scales[i3 + 1]),
-             a.scales[i3 + 2] + w * (b.scales[i3 + 2] - a.scales[i3 + 2]));
-      // nlerp on the shorter arc; wxyz in the data, THREE.Quaternion is (x, y, z, w)
-      const d = a.quats[i4] * b.quats[i4] + a.quats[i4 + 1] * b.quats[i4 + 1] + a.quats[i4 + 2] * b.quats[i4 + 2] + a.quats[i4 + 3] * b.quats[i4 + 3];
-      const sb = d < 0 ? -w : w, sa = 1 - w;
-      q.set(sa * a.quats[i4 + 1] + sb * b.quats[i4 + 1], sa * a.quats[i4 + 2] + sb * b.quats[i4 + 2],
-            sa * a.quats[i4 + 3] + sb * b.quats[i4 + 3], sa * a.quats[i4] + sb * b.quats[i4]).normalize();
-      const o = a.opacities ? a.opacities[i] + w * (b.opacities[i] - a.opacities[i]) : opac[i];
+      const o = splatAt(a, b, w, t, i);
       packed.setSplat(i, c, sc, q, o, colors[i]);
     }
     packed.needsUpdate = true;
     splats.updateVersion?.();
   }
+  // For tests: Gaussian i at time t as setTime writes it, before Spark packs it.
+  state.splatAt = (t, i) => {
+    const { a, b, w } = bracket(t), o = splatAt(a, b, w, t, i);
+    return { mean: c.toArray(), quat: [q.w, q.x, q.y, q.z], scale: sc.toArray(), opacity: o };
+  };
+  // For tests: the view camera's pose (three.js, OpenGL axes) and the orbit's target.
+  state.pose = () => ({ position: camera.position.toArray(), quaternion: camera.quaternion.toArray(),
+                        up: camera.up.toArray(), target: controls.target.toArray() });
 
   // UI: time slider + play/pause for a dynamic scene only; the path cameras; the frame time
   const ui = document.getElementById("ui");
@@ -217,7 +265,7 @@ async function main() {
     camSelect.appendChild(o);
   });
   const slider = document.getElementById("time"), play = document.getElementById("play"), label = document.getElementById("tlabel");
-  const t0 = cfg.dynamic ? cfg.times[0] : 0, t1 = cfg.dynamic ? cfg.times[cfg.times.length - 1] : 0;
+  const [t0, t1] = cfg.dynamic ? cfg.timeRange : [0, 0];
   const showTime = (t) => { label.textContent = `t = ${t.toFixed(3)} (${(t * cfg.duration).toFixed(2)} s)`; };
   camSelect.addEventListener("change", () => {
     const i = Number(camSelect.value);
