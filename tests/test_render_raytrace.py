@@ -6,10 +6,9 @@ import math
 import pytest
 import torch
 
-from diff4splat.cameras import camera_rays
 from diff4splat.cameras.lenses import FisheyeKB, FisheyePolynomial, RollingShutter, ThinLens, generate_rays
 from diff4splat.constants import ALPHA_MIN
-from diff4splat.quaternions import axis_angle_to_quat
+from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
 from diff4splat.render import rasterize
 from diff4splat.render.raytrace import composite_rays, ray_gaussian_response, raytrace, whitening
 
@@ -70,7 +69,7 @@ def test_single_isotropic_gaussian_closed_form_any_camera():
         a = torch.where(a >= ALPHA_MIN, a, 0.0)
         torch.testing.assert_close(alpha[0, ..., 0], a, rtol=0, atol=1e-12)
         torch.testing.assert_close(out[0, ..., 0], a, rtol=0, atol=1e-12)
-        torch.testing.assert_close(out[0, ..., 1], a * proj, rtol=0, atol=1e-12)  # D = Σ w·t_max
+        torch.testing.assert_close(out[0, ..., 1], a * proj * d[..., 2], rtol=0, atol=1e-12)  # D = Σ w·t_max·d_z
 
 
 @pytest.mark.parametrize("model,params", [
@@ -101,7 +100,9 @@ def test_culling_and_batching_change_nothing(model, params, monkeypatch):
     col, acc, dist = col * ok[:, None], acc * ok, dist * ok
     ref_rgb = (col + (1 - acc)[:, None] * bg).reshape(22, 26, S, 3).mean(2)
     ref_a = acc.reshape(22, 26, S).mean(2)
-    ref_ed = dist.reshape(22, 26, S).mean(2) / ref_a.clamp(min=1e-10)
+    z_axis = vm[0, 2]  # a hit's camera z: o_z + t·d_z, so Σ w·z = o_z·Σ w + d_z·Σ w·t per ray
+    z_sum = (o.reshape(-1, 3) @ z_axis[:3] + z_axis[3]) * acc + (d.reshape(-1, 3) @ z_axis[:3]) * dist
+    ref_ed = z_sum.reshape(22, 26, S).mean(2) / ref_a.clamp(min=1e-10)
     assert float(ref_a.max()) > 0.5 and meta["n_pairs"][0] < 26 * 22 * S * len(args[0])  # culling did cull
     assert culled == [3000 // len(args[0]), 30 - 3000 // len(args[0])]
     torch.testing.assert_close(out[0, ..., :3], ref_rgb, rtol=0, atol=1e-12)
@@ -129,12 +130,34 @@ def test_pinhole_ray_path_agrees_with_rasterizer():
     dc, da = (r1[..., :3] - r2[..., :3]).abs(), (a1 - a2).abs()
     assert float(dc.max()) < 1e-2 and float(dc.mean()) < 1e-4
     assert float(da.max()) < 1.2e-2 and float(da.mean()) < 2e-4
-    # depth: ray path gives distance along the ray; times the ray's cos to the axis it is the hit z,
-    # within a Gaussian's extent (≤ 5 cm) of the rasterizer's centre z where a pixel is mostly covered
-    _, d = camera_rays(ID, K, 48, 40)
-    z_hit = r2[..., 3] * d[..., 2]
+    # depth: both give camera z, the ray path the hits' z, within a Gaussian's extent (≤ 5 cm) of the
+    # rasterizer's centre z where a pixel is mostly covered
     cover = a1[..., 0] > 0.3
-    assert float((z_hit - r1[..., 3])[cover].abs().max()) < 0.05
+    assert float((r2[..., 3] - r1[..., 3])[cover].abs().max()) < 0.05
+
+
+@pytest.mark.parametrize("lens", [FisheyeKB(), ThinLens(aperture_radius=0.05, focus_distance=2.0, spp=4)],
+                         ids=["fisheye", "thin-lens"])
+def test_the_depth_channel_is_camera_z_for_every_camera(lens):
+    """An opaque Gaussian 45° off the axis of a rotated, moved camera, at camera z = 2 m: "ED" at its pixel is its
+    z (as the rasterizer's and gsplat's depth), not its distance along the ray (2.83 m), for a fisheye and for a
+    thin lens whose rays start across its aperture; "D" is that times alpha."""
+    R = axis_angle_to_quat(torch.tensor([0.3, 1.0, -0.2], dtype=D), torch.tensor(0.7, dtype=D))
+    rot = quat_to_rotmat(R)
+    vm = torch.eye(4, dtype=D)
+    vm[:3, :3], vm[:3, 3] = rot, torch.tensor([0.4, -0.1, 0.3], dtype=D)
+    p_cam = torch.tensor([2.0, 0.0, 2.0], dtype=D)
+    mean = (rot.T @ (p_cam - vm[:3, 3]))[None]
+    args = [mean, torch.tensor([[1.0, 0, 0, 0]], dtype=D), torch.full((1, 3), 0.1, dtype=D),
+            torch.tensor([0.99], dtype=D), torch.ones(1, 3, dtype=D)]
+    K = _K(24.0, 32.0, 24.0)
+    model = "fisheye" if isinstance(lens, FisheyeKB) else "pinhole"
+    out, alpha, _ = raytrace(*args, vm[None], K, 64, 48, render_mode="RGB+ED", camera_model=model, camera_params=lens)
+    d, _, _ = raytrace(*args, vm[None], K, 64, 48, render_mode="D", camera_model=model, camera_params=lens)
+    i, j = divmod(int(alpha[0, ..., 0].argmax()), 64)
+    assert float(alpha[0, i, j, 0]) > 0.5
+    assert float(out[0, i, j, 3]) == pytest.approx(2.0, abs=0.05)  # z within σ, not the 2.83 m along the ray
+    torch.testing.assert_close(d[..., 0], out[..., 3] * alpha[..., 0])
 
 
 def test_hits_are_sorted_by_distance_not_z():

@@ -141,7 +141,7 @@ def rasterize(
             :mod:`diff4splat.cameras.lenses` — ``ThinLens`` (pinhole depth of field), ``FisheyeKB`` or
             ``FisheyePolynomial`` (fisheye; None → equidistant). Any non-pinhole model or effect is
             rendered by the ray path :func:`diff4splat.render.raytrace.raytrace` (its docstring lists
-            the differences: exact ray response, eps2d ignored, depth = distance along the ray, meta
+            the differences: exact ray response, eps2d ignored, hits ordered along the ray, meta
             keys). Rolling shutter needs a dynamic scene: :func:`diff4splat.render.render_rolling_shutter`.
         compositor: tile path, "fused" (projection :mod:`diff4splat.render.fused_projection`, compositing
             :mod:`diff4splat.render.fused`; CPU tensors only) or "torch" (:mod:`diff4splat.render.projection`,

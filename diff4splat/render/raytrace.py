@@ -249,8 +249,9 @@ def raytrace(
     Differences from the rasterizer (documented, tested): the response is exact along the ray
     instead of the EWA affine approximation; there is no screen-space dilation, so ``eps2d`` is
     ignored (a pinhole ray trace matches ``rasterize(..., eps2d=0)`` for small Gaussians); hits are
-    kept by t_max ∈ [near_plane, far_plane] instead of culling centres by camera z; the depth
-    channel is the distance along the ray t_max (range from the ray origin), not camera z.
+    kept by t_max ∈ [near_plane, far_plane] instead of culling centres by camera z. The depth channel is
+    camera z as the rasterizer's and gsplat's (for every camera model): each hit's z = o_z + t_max·d_z in the
+    camera's axes, composited with the hit's weight, so "ED" is the expected z-depth of the surface seen.
 
     Args:
         camera_model: "pinhole" or "fisheye" (:data:`diff4splat.cameras.lenses.RAY_CAMERA_MODELS`).
@@ -261,7 +262,7 @@ def raytrace(
         Others: as :func:`diff4splat.render.rasterize`. ``rasterize_mode`` must be "classic".
 
     Returns:
-        render_colors (C, H, W, D[+1]) ("D" = Σ w·t_max, "ED" = that / alpha, metres along the ray),
+        render_colors (C, H, W, D[+1]) ("D" = Σ w·z of the hits, "ED" = that / alpha, camera z in metres),
         render_alphas (C, H, W, 1), meta — camera_model, camera_params, width, height, n_cameras,
         tile_size, samples_per_pixel, n_pairs (list of C ints: pairs evaluated).
 
@@ -350,9 +351,13 @@ def render_rays(
             col_img = col_img.index_copy(0, all_ids, torch.cat(cols))
             acc_img = acc_img.index_copy(0, all_ids, torch.cat(accs))
             dist_img = dist_img.index_copy(0, all_ids, torch.cat(dists))
-        out = torch.cat([col_img, dist_img[:, None]], dim=-1) if render_mode != "RGB" else col_img
+        # Σ w·t_max along each ray → Σ w·z in this camera, exact per ray: a hit's camera z is o_z + t·d_z for the
+        # ray's origin and direction in camera axes (o_z = 0 at a pinhole or a lens's centre plane)
+        z_axis = viewmats[c, 2]
+        depth_img = (o_all @ z_axis[:3] + z_axis[3]) * acc_img + (d_all @ z_axis[:3]) * dist_img
+        out = torch.cat([col_img, depth_img[:, None]], dim=-1) if render_mode != "RGB" else col_img
         if render_mode in ("D", "ED"):
-            out = dist_img[:, None]
+            out = depth_img[:, None]
         if bgs is not None:
             out = out + (1.0 - acc_img)[:, None] * bgs[c]
         out_c.append(out.reshape(height, width, S, -1).mean(2))

@@ -57,7 +57,7 @@ def render_rolling_shutter(
             camera_params, tile_size, near_plane, …; not render_mode, which is "RGB+ED").
 
     Returns:
-        colors (F, H, W, 3) clamped to [0, 1], expected distance along the ray (F, H, W) metres (0
+        colors (F, H, W, 3) clamped to [0, 1], expected z-depth (F, H, W) metres in each band's camera (0
         where alpha = 0), alphas (F, H, W); on the scene's device.
 
     Raises:

@@ -31,8 +31,8 @@ class RasterSettings:
     Compared by identity (``backgrounds`` is a tensor).
 
     Attributes:
-        near_plane, far_plane: Gaussians (ray hits) with camera z (distance along the ray) outside
-            [near_plane, far_plane] are culled, metres.
+        near_plane, far_plane: Gaussians with camera z (on the ray path: ray hits with distance along the ray)
+            outside [near_plane, far_plane] are culled, metres.
         eps2d: screen-space dilation added to each projected covariance, pixels².
         sh_degree: None (``colors`` composited as given) or 0..3 (``colors`` are SH coefficients).
         backgrounds: (C, D) colour behind the Gaussians, or None.
