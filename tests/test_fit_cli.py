@@ -27,6 +27,7 @@ from diff4splat.io.output_folders import read_marker
 from diff4splat.io.scene_folder import load_deformation, save_deformation
 from diff4splat.limits import LimitError
 from diff4splat.quaternions import quat_multiply, quat_normalize, quat_to_rotmat, rotmat_to_quat
+from diff4splat.render import spherical_harmonics
 from diff4splat.scene import DynamicGaussians
 from models.hexplane import HexPlaneConfig, load_field
 from training import fit_cli
@@ -205,7 +206,11 @@ def test_generate_init_is_placed_in_the_scene_world_at_the_depth_scale(dynamic_s
     same = (quats * q_world).sum(-1).abs()  # q and −q are one rotation
     torch.testing.assert_close(same, torch.ones(n), atol=1e-5, rtol=0)
     torch.testing.assert_close(opac, torch.full((n,), 0.7), atol=1e-6, rtol=0)
-    torch.testing.assert_close(sh, cam.sh, atol=1e-6, rtol=0)
+    # degree 1: the colour the camera-frame Gaussian showed towards d is the world one's towards c2w·d = Rᵀd
+    # (the coefficients themselves change: they were copied unrotated before)
+    dirs = torch.nn.functional.normalize(torch.randn(n, 3, generator=torch.Generator().manual_seed(1)), dim=-1)
+    torch.testing.assert_close(spherical_harmonics(1, dirs @ R.float(), sh), spherical_harmonics(1, dirs, cam.sh),
+                               atol=1e-5, rtol=0)
     metrics = run_fit(dynamic_scene, tmp_path / "out",
         dataclasses.replace(CONFIG, iterations=2, coarse_iterations=1), init=init,
                       checkpoint_every=0)
@@ -413,8 +418,9 @@ def test_a_dynamic_scene_needs_a_fine_stage(dynamic_scene, tmp_path):
 
 
 def test_placed_generate_output_moves_like_the_original(dynamic_scene, tmp_path):
-    # a generate scene with a deformation, in cam00's frame: placed in the world, every time's Gaussians are the
-    # similarity transform (scale s, c2w) of the original's at that time
+    # a generate scene with a deformation and SH degree 2, in cam00's frame: placed in the world, every time's
+    # Gaussians are the similarity transform (scale s, c2w) of the original's at that time, and show towards R·d
+    # the colour the original showed towards d
 
     scene = load_scene(dynamic_scene)
     g = torch.Generator().manual_seed(3)
@@ -422,7 +428,7 @@ def test_placed_generate_output_moves_like_the_original(dynamic_scene, tmp_path)
     means = torch.randn(n, 3, generator=g) * 0.3 + torch.tensor([0.0, 0.0, 3.0])
     cam = DynamicGaussians(
         Gaussians(means, quat_normalize(torch.randn(n, 4, generator=g)), torch.full((n, 3), 0.05),
-                  torch.full((n,), 0.5), torch.rand(n, 1, 3, generator=g)),
+                  torch.full((n,), 0.5), torch.rand(n, 9, 3, generator=g) - 0.5),
         torch.linspace(0, 1, T), torch.randn(T, n, 3, generator=g) * 0.1,
         quat_normalize(torch.randn(T, n, 4, generator=g) * 0.2 + torch.tensor([1.0, 0, 0, 0])),
         torch.randn(T, n, 3, generator=g) * 0.1)
@@ -439,6 +445,9 @@ def test_placed_generate_output_moves_like_the_original(dynamic_scene, tmp_path)
         torch.testing.assert_close(b.means, a.means * s @ c2w[:3, :3].T + c2w[:3, 3], atol=1e-4, rtol=0)
         torch.testing.assert_close(quat_to_rotmat(b.quats), c2w[:3, :3] @ quat_to_rotmat(a.quats), atol=1e-5, rtol=0)
         torch.testing.assert_close(b.scales, a.scales * s, atol=1e-6, rtol=1e-5)
+    dirs = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    torch.testing.assert_close(spherical_harmonics(2, dirs @ c2w[:3, :3].T, placed.canonical.sh),
+                               spherical_harmonics(2, dirs, cam.canonical.sh), atol=1e-5, rtol=0)
 
 
 def _tensors(obj):

@@ -5,8 +5,9 @@ import pytest
 import torch
 
 from diff4splat.gaussians import SH_C0, rgb_to_sh0
+from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
 from diff4splat.render import rasterize, sh_basis, sh_to_color, spherical_harmonics
-from diff4splat.render.sh import num_sh_bases
+from diff4splat.render.sh import num_sh_bases, rotate_sh, sh_rotation
 
 
 def _legendre(deg: int, m: int, x: torch.Tensor) -> torch.Tensor:
@@ -120,3 +121,39 @@ def test_renderer_uses_direction_from_camera_centre():
         a, _, _ = rasterize(means, quats, scales, opac, sh, vm[None], K[None], 32, 24, sh_degree=deg, render_mode="RGB")
         b, _, _ = rasterize(means, quats, scales, opac, cols, vm[None], K[None], 32, 24, render_mode="RGB")
         torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.parametrize("degree", [1, 2, 3])
+def test_rotated_coefficients_give_the_rotated_colours(degree):
+    """Gaussians rotated by R show towards R·d the colour they showed towards d (brute force over directions and
+    rotations), in float64 to rounding and in float32 to its rounding; the matrix is orthogonal and block-diagonal
+    (a rotation keeps each degree's functions among themselves) and the identity for R = I."""
+    g = torch.Generator().manual_seed(degree)
+    k = num_sh_bases(degree)
+    sh = torch.randn(20, k, 3, generator=g, dtype=torch.float64)
+    dirs = torch.nn.functional.normalize(torch.randn(20, 3, generator=g, dtype=torch.float64), dim=-1)
+    for axis, angle in (([0.3, 1.0, -0.5], 1.1), ([0.0, 0.0, 1.0], math.pi), ([1.0, -2.0, 0.5], 2.9)):
+        R = quat_to_rotmat(axis_angle_to_quat(torch.tensor(axis, dtype=torch.float64),
+                                              torch.tensor(angle, dtype=torch.float64)))
+        want = spherical_harmonics(degree, dirs, sh)
+        torch.testing.assert_close(spherical_harmonics(degree, dirs @ R.T, rotate_sh(sh, R)), want, rtol=0,
+                                   atol=1e-12)
+        got32 = spherical_harmonics(degree, (dirs @ R.T).float(), rotate_sh(sh.float(), R.float()))
+        torch.testing.assert_close(got32, want.float(), rtol=0, atol=2e-5)
+        M = sh_rotation(degree, R)
+        torch.testing.assert_close(M @ M.T, torch.eye(k, dtype=torch.float64), rtol=0, atol=1e-12)
+        for band in range(degree + 1):
+            block = torch.zeros(k, dtype=torch.bool)
+            block[band * band:(band + 1) ** 2] = True
+            assert float(M[block][:, ~block].abs().sum()) < 1e-11
+    torch.testing.assert_close(sh_rotation(degree, torch.eye(3)), torch.eye(k, dtype=torch.float64), rtol=0,
+                               atol=1e-12)
+
+
+def test_rotating_the_dc_term_changes_nothing_and_bad_shapes_raise():
+    sh = torch.randn(4, 1, 3)
+    assert rotate_sh(sh, torch.eye(3)) is sh
+    with pytest.raises(ValueError, match="K in"):
+        rotate_sh(torch.zeros(4, 5, 3), torch.eye(3))
+    with pytest.raises(ValueError, match=r"\(3, 3\)"):
+        rotate_sh(torch.zeros(4, 4, 3), torch.eye(4))

@@ -41,6 +41,7 @@ from diff4splat.limits import check_limit
 from diff4splat.pipeline import check_seed
 from diff4splat.quaternions import quat_conjugate, quat_multiply, rotmat_to_quat
 from diff4splat.render.sequence import render_path
+from diff4splat.render.sh import rotate_sh
 from diff4splat.scene import DynamicGaussians
 from models.hexplane import save_field
 from training.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
@@ -91,8 +92,9 @@ def place_generate_output(init_dir: Path, scene, ref_camera: str) -> DynamicGaus
     generate's world is its first camera's frame, taken to be ``ref_camera`` at frame 0 (c2w = [R | c]); its
     scale is matched to the scene's depth when the scene has depth: s = median of frame 0's valid depth /
     median camera-space depth of the Gaussians in front of that camera. Means → s·R μ + c, quats → q_R ⊗ q,
-    scales → s·scales; the deformation follows: Δμ → s·R Δμ, Δq → q_R ⊗ Δq ⊗ q_R⁻¹ (so the composition
-    of docs/DESIGN.md gives the moved Gaussians), Δs unchanged.
+    scales → s·scales, SH coefficients of degree ≥ 1 rotated by R (:func:`diff4splat.render.sh.rotate_sh`: the
+    colour seen along R·d is the one seen along d); the deformation follows: Δμ → s·R Δμ, Δq → q_R ⊗ Δq ⊗ q_R⁻¹
+    (so the composition of docs/DESIGN.md gives the moved Gaussians), Δs unchanged.
 
     Raises:
         FileNotFoundError: ``init_dir`` has no scene.ply.
@@ -113,7 +115,7 @@ def place_generate_output(init_dir: Path, scene, ref_camera: str) -> DynamicGaus
     c2w = torch.linalg.inv(scene.cameras(ref_camera).viewmats[0].double()).float()
     R, q_r = c2w[:3, :3], rotmat_to_quat(c2w[:3, :3])
     canonical = Gaussians(g.means * scale @ R.T + c2w[:3, 3], quat_multiply(q_r[None], g.quats),
-                          g.scales * scale, g.opacities, g.sh)
+                          g.scales * scale, g.opacities, rotate_sh(g.sh, R))
     if "d_means" in arrays:
         arrays["d_means"] = arrays["d_means"] * scale @ R.T
         arrays["d_quats"] = quat_multiply(quat_multiply(q_r, arrays["d_quats"]), quat_conjugate(q_r))

@@ -8,13 +8,16 @@ Colour = max(Σ_k c_k·Y_k(dir) + 0.5, 0) (docs/DESIGN.md "Colours").
 """
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from diff4splat.gaussians import SH_C0
 
-__all__ = ["SH_C0", "SH_C1", "SH_C2", "SH_C3", "num_sh_bases", "sh_basis", "spherical_harmonics", "sh_to_color"]
+__all__ = ["SH_C0", "SH_C1", "SH_C2", "SH_C3", "num_sh_bases", "sh_basis", "spherical_harmonics", "sh_to_color",
+           "sh_rotation", "rotate_sh"]
 
 SH_C1 = 0.4886025119029199  # sqrt(3/(4π))
 SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
@@ -108,3 +111,62 @@ def spherical_harmonics(degrees_to_use: int, dirs: Tensor, coeffs: Tensor) -> Te
 def sh_to_color(sh_values: Tensor) -> Tensor:
     """INRIA colour from an SH value: max(value + 0.5, 0). (...) → (...)."""
     return torch.clamp_min(sh_values + 0.5, 0.0)
+
+
+_ROTATION_SAMPLES = 64
+"""Directions on which :func:`sh_rotation` solves for its matrix (≥ 16 = the degree-3 basis size; a Fibonacci
+sphere, so the sampled basis has full column rank)."""
+
+
+def sh_rotation(degree: int, R: Tensor) -> Tensor:
+    """The matrix that rotates SH coefficients: M (K, K), K = (degree+1)², with Y(Rᵀd) = M·Y(d) for every unit d.
+
+    Rotations map each degree's functions onto themselves, so M is block-diagonal (the real Wigner matrices of R
+    in this basis); it is solved here by least squares on fixed directions, exact to float64 rounding since the
+    relation is linear and exact. Coefficients c of a colour(d) = c·Y(d) become Mᵀc after rotating by R (the
+    rotated colour at R·d is the original one at d): :func:`rotate_sh`.
+
+    Args:
+        degree: 0..3.
+        R: (3, 3) rotation matrix (orthonormal, det +1).
+
+    Returns:
+        (K, K) float64 on the CPU.
+
+    Raises:
+        ValueError: degree outside 0..3, or R not (3, 3).
+    """
+    k = num_sh_bases(degree)
+    if tuple(R.shape) != (3, 3):
+        raise ValueError(f"R must have shape (3, 3), got {tuple(R.shape)}")
+    R = R.detach().to("cpu", torch.float64)
+    i = torch.arange(_ROTATION_SAMPLES, dtype=torch.float64) + 0.5
+    z = 1.0 - 2.0 * i / _ROTATION_SAMPLES
+    phi = math.pi * (3.0 - math.sqrt(5.0)) * i
+    r = torch.sqrt(1.0 - z * z)
+    dirs = torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], dim=-1)  # (S, 3) unit
+    basis, rotated = sh_basis(degree, dirs), sh_basis(degree, dirs @ R)  # rows: Y(d)ᵀ and Y(Rᵀd)ᵀ
+    return torch.linalg.lstsq(basis, rotated).solution.T[:k, :k]  # basis·Mᵀ = rotated
+
+
+def rotate_sh(sh: Tensor, R: Tensor) -> Tensor:
+    """SH coefficients of Gaussians rotated by R: the new colour towards R·d is the old one towards d.
+
+    Args:
+        sh: (..., K, D) coefficients, K = (degree+1)² ≤ 16 (the DC term, K = 1, is returned unchanged).
+        R: (3, 3) rotation matrix (world → world).
+
+    Returns:
+        (..., K, D) in ``sh``'s dtype and device.
+
+    Raises:
+        ValueError: K not a square ≤ 16, or R not (3, 3).
+    """
+    k = sh.shape[-2] if sh.dim() >= 2 else 0
+    degree = math.isqrt(k) - 1
+    if k < 1 or (degree + 1) ** 2 != k or degree > 3:
+        raise ValueError(f"sh must have shape (..., K, D) with K in (1, 4, 9, 16), got {tuple(sh.shape)}")
+    if degree == 0:
+        return sh
+    m = sh_rotation(degree, R).to(sh.device, sh.dtype)
+    return torch.einsum("kj,...kd->...jd", m, sh)  # c' = Mᵀc
