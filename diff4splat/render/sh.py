@@ -140,7 +140,7 @@ def sh_rotation(degree: int, R: Tensor) -> Tensor:
     if tuple(R.shape) != (3, 3):
         raise ValueError(f"R must have shape (3, 3), got {tuple(R.shape)}")
     R = R.detach().to("cpu", torch.float64)
-    i = torch.arange(_ROTATION_SAMPLES, dtype=torch.float64) + 0.5
+    i = torch.arange(_ROTATION_SAMPLES, dtype=torch.float64, device="cpu") + 0.5  # a (K, K) solve: on the host
     z = 1.0 - 2.0 * i / _ROTATION_SAMPLES
     phi = math.pi * (3.0 - math.sqrt(5.0)) * i
     r = torch.sqrt(1.0 - z * z)

@@ -166,7 +166,7 @@ def encode_keyframes(frames: dict[str, Tensor] | None, dtype: str,
         raise ValueError(f"dtype must be 'float16' or 'float32', got {dtype!r}")
     out = b""
     if temporal is not None:
-        out = torch.cat([v.detach().reshape(-1) for v in temporal]).to("cpu", torch.float32).numpy().astype("<f4")
+        out = torch.cat([v.detach().reshape(-1) for v in temporal]).to(torch.float32).cpu().numpy().astype("<f4")
         out = out.tobytes()
     if frames is not None:
         F = frames["means"].shape[0]
