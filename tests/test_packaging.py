@@ -15,13 +15,14 @@ from pathlib import Path
 import pytest
 
 from diff4splat.config_files import CONFIGS_DIR
+from diff4splat.io.output_folders import INSTALLED_PACKAGES
 from models.bundle import CONFIG_DIR, DEFAULT_CONFIG, config_names, load_config
 from training.stage_config import STAGE_CONFIG_DIR, load_stage, stage_names
 
 tomllib = pytest.importorskip("tomllib")  # Python ≥ 3.11
 
 ROOT = Path(__file__).resolve().parent.parent
-PACKAGES = ("diff4splat", "models", "training", "data_prep")
+PACKAGES = INSTALLED_PACKAGES
 PYPROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())
 IMPLICIT = {"onnxscript": "torch.onnx.export's dynamo exporter imports it; torch declares it optional"}
 """Modules our code never imports by name but a library call of ours needs at run time."""
@@ -110,6 +111,14 @@ def test_the_default_paths_never_import_the_diffusers_extra():
 def test_the_diffusers_extra_is_declared():
     extras = PYPROJECT["project"]["optional-dependencies"]
     assert {re.split(r"[<>=!~ ]", r)[0] for r in extras["diffusers"]} == set(DIFFUSERS_EXTRA)
+
+
+def test_the_protected_packages_are_the_ones_the_wheel_installs():
+    """output_folders.INSTALLED_PACKAGES (what no output may replace) names pyproject's packages, and the
+    import-linter's root packages."""
+    include = PYPROJECT["tool"]["setuptools"]["packages"]["find"]["include"]
+    assert sorted(f"{p}*" for p in INSTALLED_PACKAGES) == sorted(include)
+    assert sorted(PYPROJECT["tool"]["importlinter"]["root_packages"]) == sorted(INSTALLED_PACKAGES)
 
 
 def test_configs_are_package_data():

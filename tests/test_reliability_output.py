@@ -16,6 +16,7 @@ import pytest
 import torch
 from helpers import EXAMPLE_IMAGE, tiny_model
 
+import diff4splat
 from data_prep.format import SceneWriter
 from diff4splat.cli import main
 from diff4splat.io import MARKER, OutputDirError, check_output_dir, output_dir
@@ -112,6 +113,22 @@ def test_generate_into_home_or_an_ancestor_of_it_is_refused(tmp_path, capsys, no
     _refused(capsys, ["generate", str(EXAMPLE_IMAGE), "--out", str(home), "--overwrite"], "home directory")
     _refused(capsys, ["generate", str(EXAMPLE_IMAGE), "--out", str(tmp_path), "--overwrite"], "home directory")
     assert _snapshot(tmp_path) == before
+
+
+def test_diff4splats_own_packages_are_never_replaced(capsys, no_model):
+    """`--out <checkout>/models --overwrite` once deleted the models package and the shipped weights it holds (the
+    default checkpoint, which no --checkpoint names): each installed package, any folder inside one (the weights)
+    and any folder holding one (the checkout, site-packages, a virtual environment) is refused, even with
+    --overwrite, before anything is written."""
+    installed = Path(diff4splat.__file__).resolve().parent.parent
+    names = [n for n in ("diff4splat", "models", "training", "data_prep") if (installed / n).is_dir()]
+    assert "models" in names and (installed / "models" / "weights").is_dir()
+    for folder in [installed / n for n in names] + [installed / "models" / "weights", installed]:
+        with pytest.raises(OutputDirError, match="diff4splat's installed package"):
+            check_output_dir(folder, overwrite=True)
+    _refused(capsys, ["generate", str(EXAMPLE_IMAGE), "--out", str(installed / "models"), "--overwrite"],
+             "diff4splat's installed package")
+    assert (installed / "models" / "__init__.py").is_file()
 
 
 def test_generate_into_a_filesystem_root_is_refused(capsys, no_model):

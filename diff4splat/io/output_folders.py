@@ -9,7 +9,9 @@ The rules (README, "Output folders"):
 * An existing folder is replaced only if it is empty or an earlier output of the same kind (the marker
   file :data:`MARKER` this module writes into every folder). ``overwrite=True`` also allows another
   kind or a folder without the marker, but a folder that holds inputs is never replaced: an input file
-  or folder, the current directory, the home directory, a filesystem root or an ancestor of any of them.
+  or folder, the current directory, the home directory, a filesystem root, diff4splat's own installed
+  packages (:data:`INSTALLED_PACKAGES`: their code and the shipped weights, the default checkpoints that no
+  ``--checkpoint`` names) or an ancestor of any of them.
 * A symlink ``out`` is followed: the folder it points to is replaced and the link is kept.
 * The temporary folder ``.<name>.<pid>.<random>.tmp`` is removed when the body raises, on SIGINT
   (KeyboardInterrupt) and on SIGTERM (exit status 143); one left by a killed run (SIGKILL) is removed by
@@ -38,10 +40,15 @@ from pathlib import Path
 
 from .atomic import naming_os_errors
 
-__all__ = ["MARKER", "OutputDirError", "check_output_dir", "output_dir", "read_marker", "remove_stale_temps"]
+__all__ = ["MARKER", "INSTALLED_PACKAGES", "OutputDirError", "check_output_dir", "output_dir", "read_marker",
+           "remove_stale_temps"]
 
 MARKER = ".diff4splat-output.json"
 """File written into every output folder: ``{"tool": "diff4splat", "kind": <kind>, "format": 1}``."""
+
+INSTALLED_PACKAGES = ("diff4splat", "models", "training", "data_prep")
+"""The top-level packages this distribution installs (pyproject's ``packages.find``); an output never replaces one
+of them or a folder holding one."""
 
 _MARKER_FORMAT = 1
 _SHORT_NAME_BYTES = 200  # longer names use a hash in temporary/lock names (suffixes need ≤ 55 bytes)
@@ -86,9 +93,16 @@ def read_marker(folder: Path) -> str | None:
     return None
 
 
+def _installation() -> list[Path]:
+    """The folders of :data:`INSTALLED_PACKAGES` beside this package (a checkout or site-packages), resolved."""
+    root = Path(__file__).resolve().parents[2]  # diff4splat/io/output_folders.py → the folder holding diff4splat
+    return [root / name for name in INSTALLED_PACKAGES if (root / name / "__init__.py").is_file()]
+
+
 def _protected(inputs: Iterable[str | os.PathLike | None]) -> list[tuple[Path, str]]:
     """(resolved path, what it is) of everything an output may never replace or contain."""
     out = [(_resolve(Path(p)), f"input {p}") for p in inputs if p is not None and str(p) != ""]
+    out += [(p, f"diff4splat's installed package {p}") for p in _installation()]
     out.append((_resolve(Path.cwd()), "the current directory"))
     home = os.environ.get("HOME")
     if home:
@@ -100,6 +114,9 @@ def _holds_inputs(target: Path, inputs) -> str | None:
     """Why ``target`` may not be replaced, as a predicate ("is the home directory", "holds input x.png")."""
     if target.parent == target:
         return "is a filesystem root"
+    for p in _installation():
+        if p in target.parents:
+            return f"is inside diff4splat's installed package {p}"
     for p, what in _protected(inputs):
         if target == p or target in p.parents:
             return f"is {what}" if target == p else f"holds {what}"
