@@ -39,8 +39,8 @@ def add_generate_parser(subparsers, *, out_type: Callable[[str], Path], out_help
                         "a scene depth is the model config's scene_depth (2 m for the shipped ones)")
     g.add_argument("--frames", type=int, default=None, help="number of frames T = 1 + 4k (default: config)")
     g.add_argument("--resolution", type=int, default=None,
-                   help=f"output height in pixels (the photo layer keeps the photograph at this resolution; default: "
-                        f"{DEFAULT_RESOLUTION}, or the model's height if larger)")
+                   help=f"output height in pixels, at least the model's height (the photo layer keeps the photograph "
+                        f"at this resolution; default: {DEFAULT_RESOLUTION}, or the model's height if larger)")
     g.add_argument("--depth", type=Path, default=None, metavar="FILE",
                    help="a depth map of the photograph for its Gaussians instead of the network's: EXR (channel Z), "
                         ".npy, or a 16-bit PNG/TIFF (millimetres); NaN/inf/0 pixels are filled from the network")

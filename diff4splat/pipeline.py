@@ -28,7 +28,6 @@ renderer's *backend*, gsplat or PyTorch, is another choice, made in :mod:`diff4s
 """
 from __future__ import annotations
 
-import math
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -51,6 +50,7 @@ from .cameras import (
     pack_plucker,
     plucker_rays,
 )
+from .cameras.path import check_field_of_view
 from .checks import check_positive_int
 from .devices import Stopwatch
 from .limits import check_limit
@@ -221,22 +221,6 @@ def load_model(checkpoint: str | Path | None = None, config: str = DEFAULT_CONFI
     return Diff4SplatModel.random(load_config(config), seed=seed, dtype=dtype).eval(), random_source
 
 
-MIN_FOV_DEG = 0.1
-"""Narrowest field of view, degrees, a camera of the path may have (a 0.1° view is a ~20 m lens on a full-frame
-sensor: smaller means intrinsics in the wrong units)."""
-
-
-def _check_field_of_view(cameras: CameraPath) -> None:
-    """ValueError when a camera's field of view is narrower than :data:`MIN_FOV_DEG` (focal lengths in the wrong
-    units: nothing but a point of the photograph would be seen)."""
-    fx, fy = float(cameras.Ks[:, 0, 0].max()), float(cameras.Ks[:, 1, 1].max())
-    fov = math.degrees(2 * math.atan(min(cameras.width / (2 * fx), cameras.height / (2 * fy))))
-    if fov < MIN_FOV_DEG:
-        raise ValueError(f"cameras: focal lengths fx={fx:.3g}, fy={fy:.3g} pixels give a field of view of {fov:.3g}° "
-                         f"on a {cameras.width}×{cameras.height} image, below {MIN_FOV_DEG}° (check the intrinsics' "
-                         f"units)")
-
-
 def _without_full_mask(text: Tensor, mask: Tensor, device: torch.device) -> tuple[Tensor, Tensor | None]:
     """Text tokens (1, L, d) and their mask (1, L) bool on ``device``; a mask that marks every token real is
     None, which means the same to every runtime (``VideoDiT.forward``: None = all tokens real): the DiT's
@@ -362,13 +346,17 @@ class Diff4SplatPipeline:
         model's aspect ratio at that height.
 
         Raises:
-            ValueError: ``resolution`` not a positive int, or one at which the model's aspect ratio gives no whole
-                width; above the ``resolution`` limit (:class:`diff4splat.limits.LimitError`).
+            ValueError: ``resolution`` not a positive int, below the model's height (the output is the network's
+                depth and motion upsampled to the photo, never downsampled), or one at which the model's aspect
+                ratio gives no whole width; above the ``resolution`` limit (:class:`diff4splat.limits.LimitError`).
         """
         c = self.config
         if resolution is None:
             return c.width, c.height
         resolution = check_limit("resolution", check_positive_int("resolution", resolution), "resolution")
+        if resolution < c.height:
+            raise ValueError(f"resolution {resolution} is below the model's {c.height} pixels of height: the output "
+                             f"is at least the model resolution (--resolution {c.height} or more)")
         if (resolution * c.width) % c.height:
             raise ValueError(f"resolution {resolution}: the model's {c.width}×{c.height} aspect ratio gives no whole "
                              f"width at that height")
@@ -467,7 +455,7 @@ class Diff4SplatPipeline:
         steps = check_limit("steps", check_positive_int("steps", steps), "steps")
         guidance = check_guidance(cfg.sampling.guidance if guidance is None else guidance)
         check_limit("frames", len(cameras), "cameras: a path of")
-        _check_field_of_view(cameras)
+        check_field_of_view(cameras)
         seed, prompt = check_seed(seed), check_prompt(prompt)
         cameras = cameras.relative_to_first().to(dtype=torch.float32, device=dev)
         cameras_model = cameras.resized(cfg.width, cfg.height)

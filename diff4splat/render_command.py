@@ -45,6 +45,7 @@ from torch import Tensor
 from models.hexplane import load_field
 
 from .cameras import CameraPath, make_trajectory
+from .cameras.path import check_field_of_view
 from .cameras.trajectories import check_amplitude
 from .checks import check_positive_int
 from .constants import ALPHA_MIN
@@ -219,7 +220,8 @@ def rerender(
             (:class:`~diff4splat.limits.LimitError`); a malformed file of ``folder`` or camera file
             (:func:`load_scene_folder`); an unknown preset or an ``amplitude`` outside the preset's range
             (:func:`diff4splat.cameras.trajectories.check_amplitude`, as ``generate``), checked before the folder is
-            read; a path none of whose frames sees the scene (every pixel background, as ``generate`` refuses it),
+            read; a camera narrower than 0.1° (:func:`~diff4splat.cameras.path.check_field_of_view`, as ``generate``);
+            a path none of whose frames sees the scene (every pixel background, as ``generate`` refuses it),
             checked after rendering and before anything is written; a ``device`` this machine does not have.
         FileNotFoundError: ``folder``, its ``scene.ply``/``cameras.json`` or the camera file is missing.
     """
@@ -245,6 +247,7 @@ def rerender(
     else:
         path, depth = trajectory_cameras(src, trajectory, frames, amplitude)
     path = resize_cameras(path, width, height)
+    check_field_of_view(path)  # as generate: a camera seeing a point of the scene has intrinsics in other units
     check_output_size(len(path), path.width, path.height, knobs="--frames, --width or --height", out=out)
     scene = path_scene(src, path.times)
     if depth is None:

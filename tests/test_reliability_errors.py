@@ -218,6 +218,16 @@ def test_camera_file_with_absurd_width_is_one_line(tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize("resolution", ["63", "1"])
+def test_a_resolution_below_the_models_is_one_line_naming_the_minimum(tmp_path, capsys, resolution):
+    """The shipped base model works at 64²: a smaller --resolution was "guide (63×63) must be at least as large as
+    depth (64×64)" from deep inside the photo layer."""
+    code = main(["generate", str(EXAMPLE_IMAGE), *FAST, "--resolution", resolution, "--out", str(tmp_path / "o")])
+    _one_line_exit_2(code, capsys.readouterr().err, f"resolution {resolution} is below the model's 64 pixels",
+                     "--resolution 64 or more")
+    assert not (tmp_path / "o").exists()
+
+
 @pytest.mark.slow
 def test_libpng_noise_never_adds_a_line(tmp_path, capfd):
     photo = _png_with_bad_iccp(tmp_path / "cat.png")

@@ -292,7 +292,7 @@ def test_cli_render_writes_the_folder_and_reports_it(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("case", ["missing_folder", "both", "neither", "amplitude_with_cameras", "out_is_input",
-                                  "user_folder", "missing_cameras"])
+                                  "user_folder", "missing_cameras", "huge_focal"])
 def test_cli_bad_input_one_line_exit_2(tmp_path, capsys, case):
     folder, *_ = _folder(tmp_path)
     out = tmp_path / "r"
@@ -310,6 +310,11 @@ def test_cli_bad_input_one_line_exit_2(tmp_path, capsys, case):
     elif case == "user_folder":
         out.mkdir()
         (out / "notes.txt").write_text("keep")
+    elif case == "huge_focal":  # generate refused this path (field of view 1e-26°); render drew flat frames
+        cam = json.loads((folder / "cameras.json").read_text())
+        cam["Ks"] = [[[1e30, 0.0, k[0][2]], [0.0, 1e30, k[1][2]], [0.0, 0.0, 1.0]] for k in cam["Ks"]]
+        (tmp_path / "huge.json").write_text(json.dumps(cam))
+        args[3] = str(tmp_path / "huge.json")
     else:
         args[3] = str(tmp_path / "none.json")
     before = sorted(p.name for p in folder.iterdir())
@@ -318,6 +323,7 @@ def test_cli_bad_input_one_line_exit_2(tmp_path, capsys, case):
     assert code == 2
     lines = [line for line in err.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith("diff4splat: error:"), err
+    assert case != "huge_focal" or "field of view" in lines[0]
     assert sorted(p.name for p in folder.iterdir()) == before
     assert (sorted(p.name for p in out.iterdir()) == ["notes.txt"]) if case == "user_folder" else not out.exists()
 

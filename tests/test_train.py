@@ -124,7 +124,8 @@ def test_a_decoder_stage_trains_the_vae_decoder_alone_and_keeps_the_latents(vae_
 @pytest.mark.slow
 def test_build_training_optimises_exactly_the_stage_modules_on_its_scenes(vae_run, data, tmp_path):
     stage = load_stage(_stage_yaml(tmp_path, "stage1", num_frames=FRAMES), data=str(data),
-                       init_from=str(vae_run[1] / "model"), trainer={"run_dir": str(tmp_path / "run"), "device": "cpu"})
+                       init_from=str(vae_run[1] / "model"),
+                       trainer={"run_dir": str(tmp_path / "run"), "device": "cpu", "batch_size": 2})
     trainer, model, counts = build_training(stage)
     optimised = {id(p) for group in trainer.optimizer.param_groups for p in group["params"]}
     for name, p in model.named_parameters():
@@ -193,3 +194,38 @@ def test_bad_stage_values_are_exit_code_2(data, tmp_path, capsys, fields, needle
     cfg = _stage_yaml(tmp_path, "vae", **fields)
     assert main(["--config", str(cfg), "--data", str(data), "--run-dir", str(tmp_path / "run"), "--quiet"]) == 2
     assert needle in _error(capsys)
+
+
+def _listing(root: Path) -> list[str]:
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*"))
+
+
+def test_a_run_folder_is_never_the_data_a_user_folder_or_a_silent_fresh_start(data, tmp_path, capsys):
+    """The run folder is written step by step, so it is checked before anything is built: never the dataset (a run
+    written into it failed `data_prep validate`), inside it, or a folder of other files; an earlier run continues
+    only with --resume (without it, its metrics and checkpoints would mix with a new run's), and --resume without a
+    checkpoint is an error (it trained from step 0 without a word). One line, exit 2, nothing written."""
+    cfg = _stage_yaml(tmp_path, "vae", height=SIZE, width=SIZE, trainer={"batch_size": 2})
+    user = tmp_path / "notes"
+    user.mkdir()
+    (user / "notes.txt").write_text("mine\n")
+    run = tmp_path / "earlier"  # what an earlier run leaves (its metrics.csv; checkpoints/ and model/ likewise)
+    run.mkdir()
+    (run / "metrics.csv").write_text("step,loss\n1,0.5\n")
+    cases = [(data, [], "input"), (data / "runs" / "a", [], "is inside input"),
+             (user, [], "not a training run"), (run, [], "holds an earlier run; pass --resume"),
+             (tmp_path / "new", ["--resume"], "--resume: no checkpoint in")]
+    for folder, extra, needle in cases:
+        before = {p: _listing(p) for p in (data, user, run)}
+        code = main(["--config", str(cfg), "--data", str(data), "--run-dir", str(folder), "--steps", "1", "--quiet",
+                     "--device", "cpu", *extra])
+        assert code == 2 and needle in _error(capsys), folder
+        assert {p: _listing(p) for p in (data, user, run)} == before and not (tmp_path / "new").exists()
+
+
+def test_a_dataset_smaller_than_one_batch_writes_nothing(data, tmp_path, capsys):
+    cfg = _stage_yaml(tmp_path, "vae", height=SIZE, width=SIZE, trainer={"batch_size": 4})
+    run = tmp_path / "run"
+    assert main(["--config", str(cfg), "--data", str(data), "--run-dir", str(run), "--quiet", "--device", "cpu"]) == 2
+    assert "dataset of 3 items is smaller than one batch (4 × 1 processes)" in _error(capsys)
+    assert not run.exists()

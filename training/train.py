@@ -33,18 +33,20 @@ import torch
 from data_prep.clips import ClipConfig, ClipDataset
 from diff4splat.devices import resolve_device
 from diff4splat.errors import run_cli
+from diff4splat.io.output_folders import check_output_dir
 from models.backbones.model import INDEX_FILE, BackboneModel
 from models.bundle import Diff4SplatModel, load_config
 from models.ldrm import LDRM
 from models.vae import estimate_latent_scaling
 
 from . import stage_config
+from .checkpoint import latest_checkpoint
 from .objectives import TrainingModule
 from .placement import resolve_bf16, training_device
 from .stage_config import StageConfig, apply_freezing
 from .trainer import Trainer
 
-__all__ = ["main", "build_training", "calibrate_latent_scaling", "backbone_training"]
+__all__ = ["main", "build_training", "check_run_dir", "calibrate_latent_scaling", "backbone_training", "RUN_FILES"]
 
 LATENT_SCALING_CLIPS = 64
 """Training clips whose posterior means set the VAE's latent scaling after its stage."""
@@ -163,6 +165,41 @@ def calibrate_latent_scaling(model, dataset, num_clips: int = LATENT_SCALING_CLI
     return a, b
 
 
+RUN_FILES = ("metrics.csv", "checkpoints", "model")
+"""What a training run writes into its folder: an existing folder holding one of them is an earlier run."""
+
+
+def check_run_dir(stage: StageConfig, resume: bool) -> None:
+    """Check the run folder before any model or data is built or anything written (README, "Training").
+
+    The run folder is written step by step, not replaced: it may be new, empty, or, with ``resume``, an earlier
+    run that has a checkpoint. It is never the dataset, the ``init_from`` folder, one of diff4splat's installed
+    packages, the current or home directory or a filesystem root, an ancestor of any of them, nor inside the
+    dataset or ``init_from`` (a run inside the dataset made it fail ``data_prep validate``).
+
+    Raises:
+        ValueError: any of the above, one line naming the folder: a non-empty folder that is not a training run;
+            an earlier run without ``resume`` (its metrics and checkpoints would be mixed with the new run's);
+            ``resume`` without a checkpoint (the run would silently start from step 0).
+    """
+    run = Path(stage.trainer.run_dir)
+    inputs = [p for p in (stage.data, stage.init_from) if p]
+    check_output_dir(run, inputs=inputs, overwrite=True, kind="training run", parents=True)  # the protected places
+    for p in inputs:
+        if Path(p).resolve() in run.resolve().parents:
+            raise ValueError(f"run folder {run} is inside input {p}; training would write into it (choose a "
+                             "--run-dir outside it)")
+    earlier = run.is_dir() and any((run / name).exists() for name in RUN_FILES)
+    if run.is_dir() and not earlier and next(run.iterdir(), None) is not None:
+        raise ValueError(f"run folder {run} is a non-empty folder that is not a training run (no "
+                         f"{', '.join(RUN_FILES)}); choose a new --run-dir")
+    if resume and latest_checkpoint(run) is None:
+        raise ValueError(f"--resume: no checkpoint in {run / 'checkpoints'}")
+    if earlier and not resume:
+        raise ValueError(f"run folder {run} holds an earlier run; pass --resume to continue it, or choose a new "
+                         "--run-dir")
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``python -m training.train``. Returns the exit code: 0, 2 after an expected failure
     (one ``train: error: …`` line: bad config, corrupt checkpoint, OS error on the run folder), 130 after
@@ -193,6 +230,7 @@ def _main(argv: list[str] | None) -> int:
     if args.quiet:
         trainer_over["progress"] = False
     stage = stage_config.load_stage(args.config, data=args.data, init_from=args.init_from, trainer=trainer_over or None)
+    check_run_dir(stage, args.resume)
     trainer, model, counts = build_training(stage)
     if trainer.rank == 0:
         print(f"train: stage {stage.name}, trainable {counts}, {len(trainer.dataset)} clips, "

@@ -200,8 +200,9 @@ class Trainer:
         extra_meta: JSON-able description stored in every checkpoint (e.g. the stage config).
 
     Raises:
-        ValueError: an unusable device (naming ``device`` or ``trainer.device``), a model with no trainable
-            parameter, or ``gradient_checkpointing`` for a model without a module that supports it.
+        ValueError: an unusable device (naming ``device`` or ``trainer.device``), a dataset smaller than one batch
+            per process, a model with no trainable parameter, or ``gradient_checkpointing`` for a model without a
+            module that supports it.
     """
 
     def __init__(self, model: nn.Module, dataset: Dataset, step_fn: StepFn, config: TrainerConfig,
@@ -222,6 +223,7 @@ class Trainer:
         self._init_distributed(self.device)
         self.rank, self.world, self.distributed = dist_info()
         self.sharded = self.distributed and config.strategy == "fsdp"
+        self._check_one_batch()  # before anything is built or written
         if config.gradient_checkpointing:
             self._enable_gradient_checkpointing(model)
         self.checkpoint_frozen = bool(getattr(model, "checkpoint_frozen", True))
@@ -400,11 +402,13 @@ class Trainer:
         sampler.set_epoch(self.epoch)
         idx = list(sampler)
         b = self.config.batch_size
-        batches = [idx[i:i + b] for i in range(0, len(idx) - b + 1, b)]
-        if not batches:
+        return [idx[i:i + b] for i in range(0, len(idx) - b + 1, b)]  # at least one (_check_one_batch)
+
+    def _check_one_batch(self) -> None:
+        """Each rank's share of the dataset (``DistributedSampler``, drop_last) holds at least one batch."""
+        if len(self.dataset) // self.world < self.config.batch_size:
             raise ValueError(f"dataset of {len(self.dataset)} items is smaller than one batch "
-                             f"({b} × {self.world} processes)")
-        return batches
+                             f"({self.config.batch_size} × {self.world} processes)")
 
     def _loader(self, batches: list[list[int]]) -> DataLoader:
         if hasattr(self.dataset, "set_epoch"):

@@ -11,7 +11,7 @@ from ..checks import check_finite, check_positive_int
 from ..quaternions import quat_nlerp, quat_to_rotmat, rotmat_to_quat
 from .intrinsics import center_crop_box
 
-__all__ = ["CameraPath", "invert_rigid", "camera_centers"]
+__all__ = ["CameraPath", "invert_rigid", "camera_centers", "check_field_of_view", "MIN_FOV_DEG"]
 
 ROTATION_TOL = 1e-4
 """Tolerance on ‖RᵀR − I‖_F and |det R − 1| for a viewmat's rotation block."""
@@ -240,3 +240,23 @@ class CameraPath:
 
 def _shape(x: object) -> object:
     return tuple(x.shape) if hasattr(x, "shape") else type(x).__name__
+
+
+MIN_FOV_DEG = 0.1
+"""Narrowest field of view, degrees, a camera of a path may have (a 0.1° view is a ~20 m lens on a full-frame
+sensor: smaller means intrinsics in the wrong units)."""
+
+
+def check_field_of_view(cameras: CameraPath) -> None:
+    """Refuse a path with a camera narrower than :data:`MIN_FOV_DEG` (focal lengths in the wrong units: nothing but
+    a point of the scene would be seen, each frame one flat colour). ``generate`` and ``render`` both check it.
+
+    Raises:
+        ValueError: the narrowest field of view, naming the focal lengths, pixels.
+    """
+    fx, fy = float(cameras.Ks[:, 0, 0].max()), float(cameras.Ks[:, 1, 1].max())
+    fov = math.degrees(2 * math.atan(min(cameras.width / (2 * fx), cameras.height / (2 * fy))))
+    if fov < MIN_FOV_DEG:
+        raise ValueError(f"cameras: focal lengths fx={fx:.3g}, fy={fy:.3g} pixels give a field of view of {fov:.3g}° "
+                         f"on a {cameras.width}×{cameras.height} image, below {MIN_FOV_DEG}° (check the intrinsics' "
+                         f"units)")
