@@ -11,7 +11,7 @@ import sys
 from importlib.metadata import entry_points
 from pathlib import Path
 
-from models.bundle import DEFAULT_CONFIG
+from models.bundle import DEFAULT_CONFIG, config_names
 
 from .cameras import TRAJECTORIES
 from .devices import AUTO, DEVICE_HELP, resolve_device
@@ -62,7 +62,7 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
     Raises:
         ValueError: ``load_command`` is not a registered entry point.
     """
-    config_help = f"shipped model config (tiny, small, paper) or a YAML path (default: {DEFAULT_CONFIG})"
+    config_help = f"shipped model config ({', '.join(config_names())}) or a YAML path (default: {DEFAULT_CONFIG})"
 
     parser = _Parser(prog="diff4splat", description="One photograph + a camera path + a prompt → a 4D Gaussian scene.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)

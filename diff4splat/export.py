@@ -316,10 +316,13 @@ def _export_graph(graph: _Graph, path: Path, opset: int, external_data_bytes: in
     onnx = _onnx()
 
     weight_bytes = sum(t.numel() * t.element_size() for t in graph.module.state_dict().values())
-    onnx_logger = logging.getLogger("torch.onnx")
-    level = onnx_logger.level
+    # exporter chatter on stderr: missing optional torchvision ops (torch.onnx), "Skipping constant folding for op
+    # Split with multiple outputs" (onnxscript's optimizer, a dozen lines per export)
+    loggers = [logging.getLogger(name) for name in ("torch.onnx", "onnxscript")]
+    levels = [lg.level for lg in loggers]
     try:
-        onnx_logger.setLevel(logging.ERROR)  # exporter chatter (missing optional torchvision ops)
+        for lg in loggers:
+            lg.setLevel(logging.ERROR)
         with warnings.catch_warnings(), torch.no_grad():
             warnings.simplefilter("ignore")  # deprecation notices of the tracing stack
             program = torch.export.export(graph.module.eval(), graph.args, dynamic_shapes=graph.dynamic_shapes,
@@ -328,7 +331,8 @@ def _export_graph(graph: _Graph, path: Path, opset: int, external_data_bytes: in
                                              input_names=list(graph.input_names),
                                              output_names=list(graph.output_names), verbose=False)
     finally:
-        onnx_logger.setLevel(level)
+        for lg, level in zip(loggers, levels, strict=True):
+            lg.setLevel(level)
     external = weight_bytes >= external_data_bytes
     onnx_program.save(str(path), external_data=external)
     proto = onnx.load(str(path), load_external_data=False)  # external tensors keep their file references

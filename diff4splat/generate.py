@@ -170,6 +170,9 @@ def _check_request(image, cameras, trajectory, amplitude, frames, resolution, st
         check_input_file(depth, "--depth")
     if depth_kind not in DEPTH_KINDS:
         raise ValueError(f"--depth-kind must be one of {DEPTH_KINDS}, got {depth_kind!r}")
+    if depth is None and depth_kind != "metric":
+        raise ValueError(f"--depth-kind {depth_kind} describes a --depth file; none was given (the network's depth is "
+                         "metric)")
     check_seed(seed, "--seed")
     check_prompt(prompt, "--prompt")
     if guidance is not None:
@@ -294,6 +297,10 @@ def generate(
         path = cameras
     else:
         path = _cameras_from_file(Path(cameras), frames, photo_shape, width, height)
+        try:  # the frame count the VAE needs, named by the file (else "video: T=7 frames" from the sampler)
+            cfg.vae.num_latent_frames(len(path))
+        except ValueError as e:
+            raise ValueError(f"--cameras {cameras}: {len(path)} cameras, one per frame: {e}") from None
     check_output_size(len(path), path.width, path.height,  # before any network runs
                       pipe.scene_slots(path.width, path.height, len(path)), knobs="--frames or --resolution", out=out,
                       frame_plys=frame_plys)

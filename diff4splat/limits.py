@@ -23,7 +23,7 @@ import psutil
 
 __all__ = ["Limit", "LIMITS", "LimitError", "limit", "check_limit", "check_output_size", "check_memory",
            "available_memory", "cgroup_room", "free_disk", "OUTPUT_BYTES_PER_PIXEL", "OUTPUT_BYTES_PER_GAUSSIAN",
-           "OUTPUT_DEFORMATION_BYTES_PER_GAUSSIAN"]
+           "OUTPUT_DEFORMATION_BYTES_PER_GAUSSIAN", "size_text"]
 
 
 @dataclass(frozen=True)
@@ -218,15 +218,24 @@ def free_disk(path: str | os.PathLike) -> int | None:
         return None
 
 
+def size_text(n_bytes: float) -> str:
+    """A byte count for a message: GiB from 1 GiB, else MiB from 1 MiB, else KiB, one decimal (a 2 MiB free disk
+    read "0.0 GiB free")."""
+    for unit, power in (("GiB", 30), ("MiB", 20)):
+        if n_bytes >= 2**power:
+            return f"{n_bytes / 2**power:.1f} {unit}"
+    return f"{n_bytes / 2**10:.1f} KiB"
+
+
 def _bound(name: str, measured: int | None, resource: str, knobs: str) -> tuple[int, str]:
     """Limit ``name``'s value and, for a message, what it is and how to change it: its variable if set, else
     ``measured`` (the machine's ``resource``) when known, else its fixed default."""
     lim = LIMITS[name]
     if os.environ.get(lim.env, "").strip() or measured is None:
         bound = limit(name)
-        return bound, (f"the limit of {bound / 2**30:.1f} GiB ({bound} bytes; lower {knobs}, or set {lim.env} to "
+        return bound, (f"the limit of {size_text(bound)} ({bound} bytes; lower {knobs}, or set {lim.env} to "
                        "raise it)")
-    return measured, f"the {measured / 2**30:.1f} GiB {resource} (lower {knobs}, or set {lim.env} to a size in bytes)"
+    return measured, f"the {size_text(measured)} {resource} (lower {knobs}, or set {lim.env} to a size in bytes)"
 
 
 def check_output_size(frames: int, width: int, height: int, gaussians: int = 0,
@@ -255,7 +264,7 @@ def check_output_size(frames: int, width: int, height: int, gaussians: int = 0,
     estimate += int(gaussians) * (OUTPUT_BYTES_PER_GAUSSIAN + int(frames) * per_frame)
     bound, then = _bound("output_bytes", None if out is None else free_disk(out), f"free on the disk of {out}", knobs)
     if estimate > bound:
-        raise LimitError(f"output of {frames} frames at {width}×{height}: estimated {estimate / 2**30:.1f} GiB "
+        raise LimitError(f"output of {frames} frames at {width}×{height}: estimated {size_text(estimate)} "
                          f"exceeds {then}")
     return estimate
 
@@ -279,6 +288,6 @@ def check_memory(estimate: int, request: str, knobs: str) -> int:
     """
     bound, then = _bound("memory_bytes", available_memory(), "of memory available to this process", knobs)
     if estimate > bound:
-        raise LimitError(f"{request}: estimated peak memory {estimate / 2**30:.1f} GiB exceeds "
+        raise LimitError(f"{request}: estimated peak memory {size_text(estimate)} exceeds "
                          f"{then}")
     return estimate

@@ -68,7 +68,7 @@ def load_manifest(directory: str | os.PathLike) -> dict:
     if not directory.is_dir():
         raise FileNotFoundError(f"directory: {directory} is not a folder")
     if not path.is_file():
-        raise FileNotFoundError(f"directory: {path} does not exist (not a folder written by export_onnx)")
+        raise FileNotFoundError(f"directory: {path} does not exist (give a folder written by `diff4splat export-onnx`)")
     manifest = read_json(path, "directory")
     if manifest.get("format") != MANIFEST_FORMAT:
         raise ValueError(f"directory: {path} has format {manifest.get('format')!r}, expected {MANIFEST_FORMAT!r}")

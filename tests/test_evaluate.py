@@ -328,6 +328,8 @@ def _refusals(tmp_path):
         (["--photo", text], f"--photo: could not decode {text} as an image"),
         (["--photo", tmp_path / "missing.png"], f"--photo: {tmp_path / 'missing.png'} does not exist"),
         (["--limit", "0"], "--limit must be a positive int, got 0"),
+        (["--checkpoint", tmp_path], "--random evaluates the untrained model; --checkpoint"),  # it was ignored
+        (["--prompt", "a cat"], "--prompt is used with --photo"),  # it was ignored
         (["--sampling", "--sampling-clips", "0"], "--sampling-clips must be a positive int, got 0"),
         (["--steps", "1000000"], "--steps 1000000 exceeds the limit of 1000 sampler steps"),
         (["--frames", "0"], "--frames must be a positive int, got 0"),

@@ -145,8 +145,8 @@ def test_cli_refuses_a_request_its_output_disk_cannot_hold_before_the_networks_r
     code = main(["generate", str(EXAMPLE_IMAGE), "--quiet", "--out", str(out)])
     err = [line for line in capsys.readouterr().err.splitlines() if not line.startswith("diff4splat: warning")]
     assert code == 2 and len(err) == 1, err
-    assert err[0].startswith("diff4splat: error: output of 17 frames at 256×256: estimated 0.2 GiB exceeds the 0.0 GiB "
-                             f"free on the disk of {out}"), err
+    assert err[0].startswith("diff4splat: error: output of 17 frames at 256×256: estimated 218.3 MiB exceeds the "
+                             f"50.0 MiB free on the disk of {out}"), err  # it said "0.0 GiB free"
     assert seen == [out] and not out.exists()
 
 

@@ -228,6 +228,24 @@ def test_a_resolution_below_the_models_is_one_line_naming_the_minimum(tmp_path, 
     assert not (tmp_path / "o").exists()
 
 
+def test_a_depth_kind_without_a_depth_file_is_refused(tmp_path, capsys):
+    """--depth-kind inverse without --depth was silently ignored (meta.json: depth_kind null)."""
+    code = main(["generate", str(EXAMPLE_IMAGE), *FAST, "--depth-kind", "inverse", "--out", str(tmp_path / "o")])
+    _one_line_exit_2(code, capsys.readouterr().err, "--depth-kind inverse describes a --depth file")
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_camera_file_of_the_wrong_length_names_itself(tmp_path, capsys):
+    """7 cameras cannot be a clip of 1 + 4k frames: the line names the file (it said "video: T=7 frames" alone)."""
+    cams = {"width": 64, "height": 64, "Ks": [[[50.0, 0, 32], [0, 50.0, 32], [0, 0, 1]]] * 7,
+            "viewmats": [np.eye(4).tolist()] * 7, "times": np.linspace(0, 1, 7).tolist()}
+    (tmp_path / "c.json").write_text(json.dumps(cams))
+    code = main(["generate", str(EXAMPLE_IMAGE), *FAST[2:], "--cameras", str(tmp_path / "c.json"), "--out",
+                 str(tmp_path / "o")])
+    _one_line_exit_2(code, capsys.readouterr().err, f"--cameras {tmp_path / 'c.json'}: 7 cameras", "1 + 4·k")
+    assert not (tmp_path / "o").exists()
+
+
 @pytest.mark.slow
 def test_libpng_noise_never_adds_a_line(tmp_path, capfd):
     photo = _png_with_bad_iccp(tmp_path / "cat.png")

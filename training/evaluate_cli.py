@@ -133,11 +133,17 @@ def _check_args(args) -> dict:
     (:func:`training.eval_csv.csv_outputs`; none without ``--csv``), each checked to be appendable.
 
     Raises:
-        ValueError: a count that is not a positive integer (``--limit``, ``--sampling-clips``, ``--frames``,
-            ``--steps``, ``--resolution``) or above its limit; a ``--photo`` that is not a decodable image; a CSV
-            output that could not be appended to (:func:`training.eval_csv.check_csv_outputs`).
+        ValueError: ``--random`` with ``--checkpoint``; ``--prompt`` without ``--photo``; a count that is not a
+            positive integer (``--limit``, ``--sampling-clips``, ``--frames``, ``--steps``, ``--resolution``) or
+            above its limit; a ``--photo`` that is not a decodable image; a CSV output that could not be appended to
+            (:func:`training.eval_csv.check_csv_outputs`).
         FileNotFoundError: ``--photo`` does not exist.
     """
+    if args.random and args.checkpoint is not None:
+        raise ValueError(f"--random evaluates the untrained model; --checkpoint {args.checkpoint} would be ignored "
+                         "(give one of them)")
+    if args.prompt and args.photo is None:
+        raise ValueError("--prompt is used with --photo (the held-out clips have their own captions); give --photo")
     for name in ("limit", "frames", "steps", "resolution", "sampling_clips"):
         value = getattr(args, name)
         if value is not None:

@@ -210,8 +210,7 @@ def main(argv: list[str] | None = None) -> int:
 def _main(argv: list[str] | None) -> int:
     ap = argparse.ArgumentParser(prog="python -m training.train", description=__doc__.splitlines()[0])
     ap.add_argument("--config", required=True,
-                    help="stage config: a shipped name (train_vae, train_stage1..3, train_wan_stage1..3, "
-                         "train_cogvideox_stage1..3) or a YAML path")
+                    help=f"stage config: a shipped name ({', '.join(stage_config.stage_names())}) or a YAML path")
     ap.add_argument("--data", default=None, help="dataset root (overrides the YAML)")
     ap.add_argument("--run-dir", default=None, help="run folder (overrides trainer.run_dir)")
     ap.add_argument("--init-from", default=None, help="model folder to start from (overrides the YAML)")
