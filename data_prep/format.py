@@ -61,6 +61,7 @@ __all__ = [
     "SceneReader",
     "load_scene",
     "list_scenes",
+    "check_dataset_root",
     "frame_name",
     "check_camera_name",
     "read_rgb",
@@ -394,3 +395,19 @@ class SceneReader:
 def load_scene(path: str | os.PathLike) -> SceneReader:
     """Open a scene folder lazily (:class:`SceneReader`); only ``meta.json`` is read and checked."""
     return SceneReader(path)
+
+
+def check_dataset_root(out: Path, what: str = "dataset root") -> None:
+    """Refuse to add scenes to ``out`` unless it is missing, empty or a dataset root: every entry but hidden ones (the
+    scene writers' temporaries) a scene folder (one with ``meta.json``). Scenes are added to a dataset, never mixed
+    into a folder of other files (a generate output, a user's folder: ``data_prep synth`` wrote into any folder).
+
+    Raises:
+        ValueError: the first entry that is not a scene folder, naming ``what`` (the flag) and ``out``.
+    """
+    if not out.is_dir():
+        return
+    for entry in sorted(out.iterdir()):
+        if not entry.name.startswith(".") and not (entry / "meta.json").is_file():
+            raise ValueError(f"{what} {out} holds {entry.name}, which is not a scene folder (no meta.json): synth adds "
+                             "scenes to a new or empty folder or a dataset root only; choose another --out")

@@ -45,7 +45,7 @@ from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat, rotmat_to
 from diff4splat.render.sequence import render_path
 from diff4splat.scene import DynamicGaussians
 
-from .format import SceneWriter
+from .format import SceneWriter, check_dataset_root
 from .synth_world import caption_for, sample_scene_spec
 from .textures import image_albedo
 
@@ -537,14 +537,15 @@ def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, si
         The scene folders of all ``num_scenes`` scenes, in index order.
 
     Raises:
-        ValueError: naming the argument that is out of range; :class:`diff4splat.limits.LimitError` for a request
-            above a limit (:func:`check_synth_request`).
+        ValueError: naming the argument that is out of range; an ``out_dir`` holding anything but scene folders;
+            :class:`diff4splat.limits.LimitError` for a request above a limit (:func:`check_synth_request`).
     """
     check_synth_request(num_scenes, seed, size=size, frames=frames, cameras=cameras, workers=workers,
                         static_ratio=static_ratio, texture_ratio=texture_ratio)
     # numpy integers pass the checks; Python ints go on (the seed is written to meta.json)
     num_scenes, seed, size, frames, cameras, workers = map(int, (num_scenes, seed, size, frames, cameras, workers))
     out = Path(out_dir)
+    check_dataset_root(out, "--out")
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     kw = dict(size=size, frames=frames, cameras=cameras, static_ratio=float(static_ratio),

@@ -257,6 +257,23 @@ def test_synthesize_resumes_and_validates(tmp_path):
             synthesize(tmp_path, 1, 0, texture_ratio=bad)
 
 
+def test_synthesize_adds_scenes_to_a_dataset_root_only(tmp_path):
+    """A folder of other files (a user's, a generate output) is refused before anything is written (synth wrote its
+    scenes into any existing folder); a dataset root with a scene of another source gets the new scenes beside it."""
+    kw = dict(size=16, frames=3, cameras=1, progress=False)
+    user = tmp_path / "user"
+    user.mkdir()
+    (user / "notes.txt").write_text("mine")
+    with pytest.raises(ValueError, match=r"--out .*user holds notes.txt, which is not a scene folder"):
+        synthesize(user, 1, 0, **kw)
+    assert sorted(p.name for p in user.iterdir()) == ["notes.txt"]
+    root = tmp_path / "data"
+    (root / "vkitti2_scene01").mkdir(parents=True)
+    (root / "vkitti2_scene01" / "meta.json").write_text("{}")
+    assert synthesize(root, 1, 0, **kw) == [root / scene_name(0)]
+    assert sorted(p.name for p in root.iterdir()) == [scene_name(0), "vkitti2_scene01"]
+
+
 @pytest.mark.slow
 def test_cli_synth(tmp_path, capsys):
     out = tmp_path / "data"
