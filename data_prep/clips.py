@@ -188,7 +188,8 @@ class ClipDataset(Dataset):
 
     Raises:
         FileNotFoundError: ``root`` is not a folder.
-        ValueError: bad config/overrides, unknown ``scene_names``, or no scene long enough for one clip.
+        ValueError: bad config/overrides, no scene folder in ``root``, unknown ``scene_names``, or no scene long
+            enough for one clip.
     """
 
     def __init__(self, root: str | os.PathLike, config: ClipConfig | None = None, *,
@@ -200,6 +201,9 @@ class ClipDataset(Dataset):
         self.config = replace(config or ClipConfig(), **overrides)
         cfg = self.config
         scenes = list_scenes(self.root)
+        if not scenes:
+            raise ValueError(f"no scene in {self.root}: a dataset root holds scene folders, each with a meta.json "
+                             "(data_prep synth or data_prep convert make them)")
         if scene_names is not None:
             unknown = sorted(set(scene_names) - {p.name for p in scenes})
             if unknown:

@@ -22,6 +22,7 @@ from torch.utils._pytree import tree_leaves
 import diff4splat.pipeline as pipeline
 from data_prep.cli import main as data_prep_main
 from data_prep.clips import ClipConfig, ClipDataset
+from data_prep.synth import generate_scene
 from diff4splat.cameras import CameraPath
 from diff4splat.cli import main
 from diff4splat.io import load_cameras_json, load_realestate10k, save_cameras_json
@@ -461,7 +462,12 @@ def test_convert_of_an_empty_camera_file_names_it(tmp_path, capsys):
 
 
 def test_no_clip_message_reads_as_english(tmp_path):
-    with pytest.raises(ValueError, match=rf"fits in the scenes of {tmp_path} \(0 scene"):
+    """An empty or non-dataset folder says so (it said "no clip of 17 frames … fits in the scenes of X (0 scene(s))"
+    to `evaluate --data`); a dataset of short scenes says that no clip fits."""
+    with pytest.raises(ValueError, match=rf"no scene in {tmp_path}: a dataset root holds scene folders"):
+        ClipDataset(tmp_path, ClipConfig(scenes="all"))
+    generate_scene(tmp_path, 0, seed=0, size=16, frames=3, cameras=1)
+    with pytest.raises(ValueError, match=rf"no clip of 17 frames .* fits in the scenes of {tmp_path} \(1 scene"):
         ClipDataset(tmp_path, ClipConfig(scenes="all"))
 
 
