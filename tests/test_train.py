@@ -12,6 +12,7 @@ from helpers import tiny_model
 from data_prep.clips import ClipConfig, ClipDataset
 from data_prep.synth import generate_scene
 from models.bundle import Diff4SplatModel, load_config
+from training.checkpoint import save_checkpoint
 from training.stage_config import STAGE_CONFIG_DIR, load_stage
 from training.train import build_training, calibrate_latent_scaling, main
 
@@ -212,15 +213,19 @@ def test_a_run_folder_is_never_the_data_a_user_folder_or_a_silent_fresh_start(da
     run = tmp_path / "earlier"  # what an earlier run leaves (its metrics.csv; checkpoints/ and model/ likewise)
     run.mkdir()
     (run / "metrics.csv").write_text("step,loss\n1,0.5\n")
-    cases = [(data, [], "input"), (data / "runs" / "a", [], "is inside input"),
-             (user, [], "not a training run"), (run, [], "holds an earlier run; pass --resume"),
+    resumable = tmp_path / "stopped"  # an earlier run with a checkpoint
+    save_checkpoint(resumable, 1, {"w": torch.zeros(1)}, {"step": 1}, {})
+    cases = [(data, [], "input"), (data / "runs" / "a", [], "is inside input"), (user, [], "not a training run"),
+             (resumable, [], "holds an earlier run; pass --resume to continue it"),
+             (run, [], "holds an earlier run; it has no checkpoint to resume from: delete it, or choose a new"),
+             (run, ["--resume"], "--resume: no checkpoint in"),
              (tmp_path / "new", ["--resume"], "--resume: no checkpoint in")]
     for folder, extra, needle in cases:
-        before = {p: _listing(p) for p in (data, user, run)}
+        before = {p: _listing(p) for p in (data, user, run, resumable)}
         code = main(["--config", str(cfg), "--data", str(data), "--run-dir", str(folder), "--steps", "1", "--quiet",
                      "--device", "cpu", *extra])
         assert code == 2 and needle in _error(capsys), folder
-        assert {p: _listing(p) for p in (data, user, run)} == before and not (tmp_path / "new").exists()
+        assert {p: _listing(p) for p in (data, user, run, resumable)} == before and not (tmp_path / "new").exists()
 
 
 def test_a_dataset_smaller_than_one_batch_writes_nothing(data, tmp_path, capsys):

@@ -193,11 +193,13 @@ def check_run_dir(stage: StageConfig, resume: bool) -> None:
     if run.is_dir() and not earlier and next(run.iterdir(), None) is not None:
         raise ValueError(f"run folder {run} is a non-empty folder that is not a training run (no "
                          f"{', '.join(RUN_FILES)}); choose a new --run-dir")
-    if resume and latest_checkpoint(run) is None:
+    checkpoint = latest_checkpoint(run)
+    if resume and checkpoint is None:
         raise ValueError(f"--resume: no checkpoint in {run / 'checkpoints'}")
     if earlier and not resume:
-        raise ValueError(f"run folder {run} holds an earlier run; pass --resume to continue it, or choose a new "
-                         "--run-dir")
+        hint = ("pass --resume to continue it" if checkpoint is not None else
+                "it has no checkpoint to resume from: delete it")
+        raise ValueError(f"run folder {run} holds an earlier run; {hint}, or choose a new --run-dir")
 
 
 def main(argv: list[str] | None = None) -> int:
