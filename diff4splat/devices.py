@@ -57,7 +57,7 @@ set_thread_env()  # before torch loads libgomp (module docstring)
 import torch  # noqa: E402  (after set_thread_env)
 
 __all__ = ["AUTO", "DEVICE_HELP", "THREAD_ENV", "USER_THREAD_VARIABLES", "set_thread_env", "resolve_device",
-           "synchronize", "Stopwatch", "autocast_off", "full_precision"]
+           "synchronize", "Stopwatch", "autocast_off", "full_precision", "host_values"]
 
 AUTO = "auto"
 """The device name that means "CUDA when present, else the CPU" (every command's ``--device`` default)."""
@@ -159,3 +159,11 @@ def full_precision(fn: Callable) -> Callable:
             return fn(*args, **kwargs)
 
     return wrapper
+
+
+def host_values(x: torch.Tensor) -> torch.Tensor:
+    """``x`` detached on the CPU in a dtype numpy has: bfloat16 widened to float32 (numpy has no bfloat16, and
+    ``.numpy()`` raised "unsupported ScalarType BFloat16"); every other dtype kept. What writers call before
+    ``.numpy()`` (numpy sees CPU tensors only: docs/DESIGN.md, "Devices")."""
+    x = x.detach().cpu()
+    return x.float() if x.dtype == torch.bfloat16 else x

@@ -49,10 +49,12 @@ class Gaussians:
 
     @property
     def num_gaussians(self) -> int:
+        """N, the number of Gaussians."""
         return self.means.shape[0]
 
     @property
     def sh_degree(self) -> int:
+        """SH degree 0..3 of ``sh`` ((degree+1)² coefficients per colour)."""
         return int(math.isqrt(self.sh.shape[1])) - 1
 
     def validate(self) -> None:
@@ -71,8 +73,10 @@ class Gaussians:
         if self.sh.dim() != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3:
             raise ValueError(f"sh must have shape (N, K, 3), got {tuple(self.sh.shape)}")
         k = self.sh.shape[1]
-        if math.isqrt(k) ** 2 != k or k > 16:
-            raise ValueError(f"sh must hold (degree+1)² ≤ 16 coefficients per colour, got {k}")
+        if k < 1 or math.isqrt(k) ** 2 != k or k > 16:
+            raise ValueError(f"sh must hold (degree+1)² ∈ {{1, 4, 9, 16}} coefficients per colour, got {k}")
+        if any(getattr(self, f.name).is_meta for f in fields(self)):
+            return  # meta tensors have shapes but no values (a model's size, sharding plans): nothing more to check
         for f in fields(self):
             check_finite(f.name, getattr(self, f.name))
         if n and bool((self.scales <= 0).any()):
@@ -91,6 +95,7 @@ class Gaussians:
         return Gaussians(*(getattr(self, f.name).to(*args, **kwargs) for f in fields(self)))
 
     def detach(self) -> Gaussians:
+        """Every tensor detached from autograd (the same storage)."""
         return Gaussians(*(getattr(self, f.name).detach() for f in fields(self)))
 
 

@@ -51,7 +51,7 @@ from .cameras import (
     plucker_rays,
 )
 from .cameras.path import check_field_of_view
-from .checks import check_positive_int
+from .checks import check_positive_int, is_int
 from .devices import Stopwatch
 from .limits import check_limit
 from .photo import PHOTO_EPS2D, layer_sizes
@@ -72,15 +72,16 @@ SEED_RANGE = (-(2**63), 2**64 - 1)
 
 
 def check_seed(seed: object, name: str = "seed") -> int:
-    """Return ``seed`` as an int if it lies in :data:`SEED_RANGE`.
+    """Return ``seed`` as an int if it lies in :data:`SEED_RANGE` (an int or numpy integer, not a bool, as every
+    count this library takes).
 
     Raises:
         ValueError: ``seed`` is not an integer or lies outside the range (the message gives the range).
     """
     lo, hi = SEED_RANGE
-    if isinstance(seed, bool) or not isinstance(seed, int) or not lo <= seed <= hi:
+    if not is_int(seed) or not lo <= int(seed) <= hi:
         raise ValueError(f"{name} must be an integer in [{lo}, {hi}] (-2**63 … 2**64 − 1), got {seed!r}")
-    return seed
+    return int(seed)
 
 
 def check_prompt(prompt: object, name: str = "prompt") -> str:
@@ -434,6 +435,9 @@ class Diff4SplatPipeline:
         """
         cfg, runtime = self.config, self.runtime
         dev = self.device
+        if not isinstance(image, Tensor):
+            raise ValueError(f"image must be a torch.Tensor (H, W, 3) in [0, 1], got {type(image).__name__} "
+                             "(torch.from_numpy converts an array; diff4splat.io.load_image reads a file)")
         if image.dim() != 3 or image.shape[-1] != 3 or image.shape[0] * cfg.width != image.shape[1] * cfg.height:
             raise ValueError(f"image must have shape (H, W, 3) with the model's aspect ratio {cfg.width}:{cfg.height} "
                              f"(e.g. ({cfg.height}, {cfg.width}, 3)), got {tuple(image.shape)}")

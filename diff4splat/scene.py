@@ -92,9 +92,9 @@ class DynamicGaussians:
             return
         if any(p is None for p in parts):
             raise ValueError("times, d_means, d_quats and d_scales must be given together (or none of them)")
-        T, M = self.times.shape[0], self.canonical.num_gaussians
-        if self.times.dim() != 1 or T < 1:
+        if self.times.dim() != 1 or self.times.shape[0] < 1:
             raise ValueError(f"times must have shape (T,) with T ≥ 1, got {tuple(self.times.shape)}")
+        T, M = self.times.shape[0], self.canonical.num_gaussians
         for name, c in (("d_means", 3), ("d_quats", 4), ("d_scales", 3)):
             t = getattr(self, name)
             if tuple(t.shape) != (T, M, c):
@@ -175,6 +175,7 @@ class DynamicGaussians:
 
     @property
     def num_gaussians(self) -> int:
+        """M, the number of canonical Gaussians."""
         return self.canonical.num_gaussians
 
     def deformation_at(self, t: float) -> tuple[Tensor, Tensor, Tensor]:

@@ -204,6 +204,9 @@ def test_viewmat_at_interpolates_centre_and_rotation():
     path = CameraPath(vms, K, 10, 10)
     for i in range(3):
         assert torch.equal(path.viewmat_at(float(path.times[i])), vms[i])
+    before = path.viewmats.clone()
+    path.viewmat_at(0.0)[0, 3] = 42.0  # a copy: the path is unchanged (it returned a view of it)
+    assert torch.equal(path.viewmats, before)
     assert torch.equal(path.viewmat_at(-0.5), vms[0]) and torch.equal(path.viewmat_at(2.0), vms[2])
     mid = path.viewmat_at(0.75)
     c2w = invert_rigid(mid)

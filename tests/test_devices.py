@@ -24,15 +24,15 @@ def _has_reason(lines: list[str], node: ast.AST) -> bool:
 
 
 def _calls_attr(expr: ast.AST, names: set[str]) -> bool:
-    """Whether ``expr`` holds a call ``….name(…)`` or ``torch.name(…)`` for a name in ``names``."""
-    return any(isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute) and n.func.attr in names
-               for n in ast.walk(expr))
+    """Whether ``expr`` holds a call ``….name(…)``, ``torch.name(…)`` or ``name(…)`` for a name in ``names``."""
+    return any(isinstance(n, ast.Call) and (n.func.attr if isinstance(n.func, ast.Attribute) else
+                                            getattr(n.func, "id", None)) in names for n in ast.walk(expr))
 
 
 def device_rule_violations(source: str, filename: str = "<string>") -> list[str]:
     """``file:line: what`` for each tensor factory call without ``device=`` and each ``.numpy()`` whose
-    receiver is not moved to the CPU (``.cpu()``) or made there (``torch.from_numpy``), where the call's
-    lines carry no ``# device:`` reason."""
+    receiver is not moved to the CPU (``.cpu()``, ``devices.host_values``) or made there (``torch.from_numpy``),
+    where the call's lines carry no ``# device:`` reason."""
     lines = source.splitlines()
     out = []
     for node in ast.walk(ast.parse(source, filename)):
@@ -42,8 +42,8 @@ def device_rule_violations(source: str, filename: str = "<string>") -> list[str]
         if (isinstance(f.value, ast.Name) and f.value.id == "torch" and f.attr in FACTORIES
                 and not any(k.arg == "device" for k in node.keywords) and not _has_reason(lines, node)):
             out.append(f"{filename}:{node.lineno}: torch.{f.attr}(…) without device= (or a '{REASON}' reason)")
-        if (f.attr == "numpy" and not node.args and not _calls_attr(f.value, {"cpu", "from_numpy"})
-                and not _has_reason(lines, node)):
+        if (f.attr == "numpy" and not node.args and not _has_reason(lines, node)
+                and not _calls_attr(f.value, {"cpu", "from_numpy", "host_values"})):
             out.append(f"{filename}:{node.lineno}: .numpy() without .cpu() (or a '{REASON}' reason)")
     return out
 
@@ -53,7 +53,8 @@ def test_the_check_finds_what_it_should():
     assert len(device_rule_violations(bad)) == 3
     good = ("x = torch.zeros(3, device=t.device)\ny = t.detach().cpu().numpy()\n"
             "z = torch.tensor([1.0])  # device: a CPU constant, moved with .to(x) below\n"
-            "w = torch.from_numpy(a).double().numpy()\nv = torch.randn(\n  3,  # device: CPU generator\n)\n")
+            "w = torch.from_numpy(a).double().numpy()\nv = torch.randn(\n  3,  # device: CPU generator\n)\n"
+            "u = host_values(t).numpy()\n")
     assert device_rule_violations(good) == []
 
 

@@ -23,11 +23,18 @@ def test_sh_degree_from_coefficient_count():
     assert Gaussians(**a).sh_degree == 3
 
 
+def test_gaussians_move_to_the_meta_device():
+    """Shapes only (a model's size, a sharding plan): the value checks, which read values, are skipped there."""
+    g = Gaussians(**_args()).to("meta")
+    assert g.means.is_meta and g.num_gaussians == 4
+
+
 @pytest.mark.parametrize("field,value,match", [
     ("means", torch.zeros(4, 2), "means"),
     ("scales", torch.zeros(4, 3), "scales"),
     ("opacities", torch.full((4,), 1.5), "opacities"),
     ("sh", torch.zeros(4, 5, 3), "sh"),
+    ("sh", torch.zeros(4, 0, 3), "sh must hold"),  # accepted before, with sh_degree −1
     ("quats", torch.zeros(4, 4), "zero-norm"),
     ("means", torch.full((4, 3), math.nan), "means"),
 ])

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 import torch
 from helpers import EXAMPLE_IMAGE, tiny_model
@@ -10,7 +11,7 @@ from helpers import EXAMPLE_IMAGE, tiny_model
 from diff4splat.cli import main
 from diff4splat.generate import LoadedPipeline, generate, write
 from diff4splat.io import load_ply
-from diff4splat.pipeline import Diff4SplatPipeline
+from diff4splat.pipeline import Diff4SplatPipeline, check_seed
 
 
 def _never():
@@ -22,6 +23,8 @@ def _never():
     ({"frames": 10**6}, "--frames 1000000 exceeds the limit"),
     ({"resolution": -4}, "--resolution must be a positive int"),
     ({"seed": 2**70}, "--seed"),
+    ({"seed": True}, "--seed must be an integer"),
+    ({"depth_kind": "inverse"}, "--depth-kind inverse describes a --depth file"),
     ({"trajectory": "zigzag"}, "--trajectory must be one of"),
     ({"trajectory": "forward", "amplitude": 1e30}, "--amplitude"),
     ({"cameras": EXAMPLE_IMAGE, "amplitude": 0.1}, "--amplitude scales a --trajectory preset"),
@@ -30,6 +33,11 @@ def _never():
 def test_the_request_is_checked_before_the_model_loads(kwargs, message):
     with pytest.raises(ValueError, match=message):
         generate(EXAMPLE_IMAGE, pipeline=_never, **kwargs)
+
+
+def test_a_numpy_integer_seed_is_a_seed():
+    """Counts take numpy integers everywhere; the seed refused np.int64(3)."""
+    assert check_seed(np.int64(3)) == 3 and type(check_seed(np.uint64(2**64 - 1))) is int
 
 
 def test_a_missing_photo_is_named_before_the_model_loads():

@@ -32,6 +32,13 @@ def test_depth_and_alpha_from_torch(tmp_path):
     assert [p.name for p in (tmp_path / "sub").iterdir()] == ["0000.exr"]  # no temp file left
 
 
+def test_bfloat16_depth_is_written_as_its_float32_values(tmp_path):
+    """numpy has no bfloat16: the writer widens it (it raised "unsupported ScalarType BFloat16")."""
+    depth = torch.linspace(0.5, 4.0, 6 * 8).reshape(6, 8).bfloat16()
+    save_depth_exr(tmp_path / "d.exr", depth, alpha=torch.ones(6, 8, dtype=torch.bfloat16))
+    assert np.array_equal(load_depth_exr(tmp_path / "d.exr"), depth.float().numpy())
+
+
 def test_reads_half_float_z_written_elsewhere(tmp_path):
     z = np.array([[1.5, 2.25], [1024.0, 0.125]], dtype=np.float16)
     OpenEXR.File({"compression": OpenEXR.NO_COMPRESSION, "type": OpenEXR.scanlineimage},

@@ -73,6 +73,8 @@ def test_video_errors(tmp_path):
 def test_to_uint8_rounds():
     x = np.array([0.0, 0.5 / 255, 1.49 / 255, 0.5, 1.0, 2.0, -1.0])
     assert to_uint8(x).tolist() == [0, 0, 1, 128, 255, 255, 0]
+    b = torch.tensor([0.0, 0.25, 0.5, 1.0], dtype=torch.bfloat16)  # no numpy bfloat16: widened, same bytes
+    assert to_uint8(b).tolist() == to_uint8(b.float()).tolist() == [0, 64, 128, 255]
     u = np.arange(5, dtype=np.uint8)
     assert to_uint8(u) is u
 

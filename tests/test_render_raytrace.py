@@ -160,6 +160,25 @@ def test_the_depth_channel_is_camera_z_for_every_camera(lens):
     torch.testing.assert_close(d[..., 0], out[..., 3] * alpha[..., 0])
 
 
+@pytest.mark.parametrize("lens", [None, ThinLens(0.01, 3.0, spp=2)], ids=["pinhole", "thin-lens"])
+def test_low_precision_inputs_and_autocast_compute_in_float32(lens):
+    """float16/bfloat16 inputs are computed in float32, as the tile path computes them (the ray path called
+    torch.linalg.inv on half Ks: "Low precision dtypes not supported"), and a bfloat16 autocast region changes
+    nothing: the float32 result, bit for bit."""
+    args = [a.float() for a in _random(30, 4)] + [ID.float(), _K(20.0, 12.0, 10.0).float()]
+    ref, ref_a, _ = raytrace(*args, 24, 20, camera_params=lens)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        auto, auto_a, _ = raytrace(*args, 24, 20, camera_params=lens)
+    assert auto.dtype == torch.float32 and torch.equal(auto, ref) and torch.equal(auto_a, ref_a)
+    for dtype in (torch.float16, torch.bfloat16):
+        low = [a.to(dtype).requires_grad_(i == 0) for i, a in enumerate(args)]
+        out, alpha, _ = raytrace(*low, 24, 20, camera_params=lens)
+        want, want_a, _ = raytrace(*[a.detach().float() for a in low], 24, 20, camera_params=lens)
+        assert out.dtype == torch.float32 and torch.equal(out, want) and torch.equal(alpha, want_a)
+        out.sum().backward()
+        assert low[0].grad.dtype == dtype and bool(torch.isfinite(low[0].grad).all())
+
+
 def test_hits_are_sorted_by_distance_not_z():
     """Behind the image plane (fisheye, ray at 120° from the axis) the nearer Gaussian has the larger z:
     a z sort would composite the far one first."""

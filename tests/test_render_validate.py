@@ -61,6 +61,23 @@ def test_bad_option_gives_one_message_from_every_entry_point(kw, needle):
     assert len(messages) == 1 and needle in messages.pop()
 
 
+@pytest.mark.parametrize("index, edit, needle", [
+    (5, lambda v: v[:0], "viewmats holds no camera"),  # stacked nothing: a RuntimeError from torch.stack
+    (3, lambda o: o + 1.0, "opacities must be in [0, 1], got values from 1.5 to 1.5"),  # the fused path clamped
+    (3, lambda o: o - 1.0, "opacities must be in [0, 1]"),
+    (2, lambda s: -s, "scales must be >= 0 metres"),
+    (6, lambda K: K * torch.tensor([0.0, 1, 1], dtype=D)[:, None], "Ks need focal lengths fx, fy > 0 pixels"),
+])
+def test_values_the_paths_assume_are_checked_by_every_entry_point(index, edit, needle):
+    """Values that rendered before (zero cameras crashed in torch.stack): the same message from every path."""
+    args = _args()
+    args[index] = edit(args[index])
+    if index == 5:
+        args[6] = args[6][:0]
+    messages = {_message(fn, args) for fn in ENTRY_POINTS}
+    assert len(messages) == 1 and needle in messages.pop()
+
+
 def test_non_finite_tensor_named_the_same_by_every_entry_point():
     args = _args()
     args[0] = args[0].clone()

@@ -95,7 +95,7 @@ def test_identity_deformation_is_dropped():
     assert moving.without_deformation(atol=1e-2).is_static
 
 
-@pytest.mark.parametrize("bad", ["partial", "shape", "nan", "times_range", "times_order", "zero_quat"])
+@pytest.mark.parametrize("bad", ["partial", "shape", "nan", "times_range", "times_order", "zero_quat", "times_0d"])
 def test_invalid_deformation_raises(bad):
     g = _gaussians(2)
     times = torch.tensor([0.0, 1.0], dtype=torch.float64)
@@ -112,6 +112,8 @@ def test_invalid_deformation_raises(bad):
         args = (times + 0.5, dm, dq, ds)
     elif bad == "times_order":
         args = (times.flip(0), dm, dq, ds)
+    elif bad == "times_0d":  # an IndexError before the shape check
+        args = (times[0], dm[:1], dq[:1], ds[:1])
     else:
         dq[1, 1] = 0
         args = (times, dm, dq, ds)

@@ -163,7 +163,7 @@ class CameraPath:
         centre is interpolated linearly and the camera-to-world rotation by normalised quaternion lerp
         (shorter arc, :func:`diff4splat.quaternions.quat_nlerp`, the interpolation the scene uses for
         Δq); before the first / after the last time the end pose is held; at a camera's own time its
-        viewmat is returned exactly.
+        viewmat is returned exactly (a copy: changing the result never changes the path).
 
         Args:
             t: clip time, finite.
@@ -180,7 +180,7 @@ class CameraPath:
         times = self.times.detach().double()
         k = int(torch.searchsorted(times, torch.tensor(t, dtype=torch.float64, device=times.device), right=True)) - 1
         if k < 0 or t == float(times[k]) or k == len(self) - 1:
-            return self.viewmats[max(k, 0)]
+            return self.viewmats[max(k, 0)].clone()  # a new tensor, as between key times (not a view of the path)
         w = (t - float(times[k])) / float(times[k + 1] - times[k])
         c2w = invert_rigid(self.viewmats[k:k + 2])
         q = rotmat_to_quat(c2w[:, :3, :3])

@@ -23,6 +23,9 @@ def camera_rays(
     Returns:
         origins: (C, H, W, 3) camera centres, metres.
         dirs: (C, H, W, 3) unit directions, world frame.
+
+    Raises:
+        ValueError: ``viewmats`` not (C, 4, 4) or ``Ks`` not (C, 3, 3).
     """
     if viewmats.dim() != 3 or viewmats.shape[1:] != (4, 4):
         raise ValueError(f"viewmats must have shape (C, 4, 4), got {tuple(viewmats.shape)}")

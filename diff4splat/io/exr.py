@@ -8,6 +8,7 @@ import numpy as np
 import OpenEXR
 from torch import Tensor
 
+from ..devices import host_values
 from .atomic import atomic_output_path
 
 __all__ = ["save_depth_exr", "load_depth_exr"]
@@ -15,7 +16,7 @@ __all__ = ["save_depth_exr", "load_depth_exr"]
 
 def _as_float32_map(name: str, x: Tensor | np.ndarray) -> np.ndarray:
     if isinstance(x, Tensor):
-        x = x.detach().cpu().numpy()
+        x = host_values(x).numpy()
     x = np.asarray(x)
     if x.ndim != 2 or x.shape[0] == 0 or x.shape[1] == 0:
         raise ValueError(f"{name} must have shape (H, W) with H, W ≥ 1, got {x.shape}")

@@ -9,6 +9,7 @@ import numpy as np
 from torch import Tensor
 
 from ..checks import check_positive
+from ..devices import host_values
 from ..errors import quiet_c_stderr
 from .atomic import atomic_output_path
 
@@ -49,7 +50,7 @@ def to_uint8(images: Tensor | np.ndarray, name: str = "images") -> np.ndarray:
         ValueError: naming ``name`` for other dtypes or non-finite values.
     """
     if isinstance(images, Tensor):
-        images = images.detach().cpu().numpy()
+        images = host_values(images).numpy()
     images = np.asarray(images)
     if images.dtype == np.uint8:
         return images

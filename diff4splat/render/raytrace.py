@@ -20,8 +20,9 @@ Everything is batched tensor code (no loop over Gaussians): rays are grouped by 
 tile keeps only the Gaussians whose alpha ≥ 1/255 support sphere can meet one of its rays (a cone
 test, :func:`cull_tiles`, on as many tiles at once as keep (tile × Gaussian) within ``budget``), and each
 tile's (ray × Gaussian) matrix is evaluated in batches of at most ``budget`` pairs. Plain autograd gives the
-gradients. Every tensor is made on the device of the inputs, so the ray path runs on CUDA as on the CPU (any
-dtype; it is the path for camera effects on every device).
+gradients. Every tensor is made on the device of the inputs, so the ray path runs on CUDA as on the CPU (it is the
+path for camera effects on every device); it computes in the dtype of the inputs, float16/bfloat16 ones in float32
+(outputs are float32 then), with autocast off, as the tile path does.
 """
 from __future__ import annotations
 
@@ -33,6 +34,7 @@ from torch import Tensor
 from diff4splat.cameras.lenses import RAY_CAMERA_MODELS, ThinLens, check_camera, generate_rays
 from diff4splat.cameras.path import camera_centers
 from diff4splat.constants import ALPHA_MAX, ALPHA_MIN, OPACITY_LOG_FLOOR, T_MIN
+from diff4splat.devices import full_precision
 from diff4splat.quaternions import quat_to_rotmat
 from diff4splat.render.defaults import (
     CAMERA_MODEL,
@@ -45,7 +47,7 @@ from diff4splat.render.defaults import (
     TILE_SIZE,
 )
 from diff4splat.render.settings import RasterSettings
-from diff4splat.render.stages import color_features, expected_depth, mode_backgrounds
+from diff4splat.render.stages import color_features, compute_dtype, expected_depth, mode_backgrounds
 from diff4splat.render.validate import validate_inputs
 
 __all__ = ["raytrace", "render_rays", "whitening", "ray_gaussian_response", "composite_rays", "support_radius",
@@ -276,6 +278,7 @@ def raytrace(
     return render_rays(means, quats, scales, opacities, colors, viewmats, Ks, width, height, settings, budget=budget)
 
 
+@full_precision
 def render_rays(
     means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, viewmats: Tensor, Ks: Tensor,
     width: int, height: int, settings: RasterSettings, *, budget: int | None = None,
@@ -291,7 +294,8 @@ def render_rays(
     near_plane, far_plane, tile_size = settings.near_plane, settings.far_plane, settings.tile_size
     render_mode, camera_model = settings.render_mode, settings.camera_model
     budget = RAY_PAIR_BUDGET if budget is None else int(budget)
-    dtype = means.dtype
+    dtype = compute_dtype(means.dtype)  # float16/bfloat16 inputs in float32, autocast off: as the tile path
+    means, quats, scales, opacities = means.to(dtype), quats.to(dtype), scales.to(dtype), opacities.to(dtype)
     viewmats, Ks = viewmats.to(dtype), Ks.to(dtype)
     C = viewmats.shape[0]
     origins, dirs, valid = generate_rays(viewmats, Ks, width, height, camera_model, params)

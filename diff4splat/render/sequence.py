@@ -33,7 +33,9 @@ def render_path(
         cameras: T cameras (OpenCV world-to-camera) with times in [0, 1].
         background: RGB in [0, 1] behind the Gaussians.
         progress: tqdm progress bar over frames.
-        **rasterize_kwargs: passed to :func:`diff4splat.render.rasterize` (e.g. ``tile_size``).
+        **rasterize_kwargs: passed to :func:`diff4splat.render.rasterize` (e.g. ``tile_size``, ``eps2d``: a
+            generated scene's own is ``GenerationResult.eps2d``); not ``render_mode`` ("RGB+ED"), ``backgrounds``
+            (from ``background``) or ``sh_degree`` (the scene's), which are set here.
 
     Returns:
         colors (T, H, W, 3) in [0, 1] (clamped), expected depth (T, H, W) metres (0 where alpha = 0),

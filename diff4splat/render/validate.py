@@ -6,6 +6,7 @@ accepts are listed here.
 """
 from __future__ import annotations
 
+import torch
 from torch import Tensor
 
 from diff4splat.checks import check_finite, check_positive_int
@@ -46,7 +47,8 @@ def validate_inputs(
     height, tile_size positive ints (pixels); 0 ≤ near_plane < far_plane (metres);
     eps2d ≥ 0 (pixels²); render_mode in :data:`RENDER_MODES`, rasterize_mode in
     :data:`RASTERIZE_MODES`, camera_model in ``camera_models``;
-    every tensor floating point and finite. Every entry point (tile path, dense reference, ray path,
+    every tensor floating point and finite; at least one camera; opacities in [0, 1], scales ≥ 0 (metres) and
+    focal lengths fx, fy > 0 (pixels). Every entry point (tile path, dense reference, ray path,
     gsplat backend) calls this, so the same bad argument gives the same message from each.
 
     Raises:
@@ -69,6 +71,8 @@ def validate_inputs(
             raise ValueError(f"colors holds {colors.shape[1]} SH coefficients, sh_degree={sh_degree} needs {k}")
     _check_shape("viewmats", viewmats, (None, 4, 4))
     c = viewmats.shape[0]
+    if c == 0:
+        raise ValueError("viewmats holds no camera (shape (0, 4, 4)); render at least one")
     _check_shape("Ks", Ks, (c, 3, 3))
     if backgrounds is not None:
         _check_shape("backgrounds", backgrounds, (c, colors.shape[-1]))
@@ -96,3 +100,14 @@ def validate_inputs(
             if not t.is_floating_point():
                 raise ValueError(f"{name} must be a floating-point tensor, got dtype {t.dtype}")
             check_finite(name, t)
+    # the values the paths assume (each one would otherwise render, and the compositors disagree: the fused one
+    # clamps an opacity above 1 where the PyTorch one does not)
+    if n:
+        lo, hi = torch.aminmax(opacities.detach())
+        if not 0 <= float(lo) <= float(hi) <= 1:
+            raise ValueError(f"opacities must be in [0, 1], got values from {float(lo):.6g} to {float(hi):.6g}")
+        if float(scales.detach().min()) < 0:
+            raise ValueError(f"scales must be >= 0 metres, got a minimum of {float(scales.detach().min()):.6g}")
+    focal = Ks.detach()[:, [0, 1], [0, 1]]
+    if not bool((focal > 0).all()):
+        raise ValueError(f"Ks need focal lengths fx, fy > 0 pixels, got a minimum of {float(focal.min()):.6g}")
