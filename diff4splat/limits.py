@@ -51,8 +51,9 @@ LIMITS: dict[str, Limit] = {lim.name: lim for lim in (
     Limit("frames", 1001, "DIFF4SPLAT_MAX_FRAMES", "frames",
           "camera paths longer than 1001 frames (about 2 min at 8 fps) on a machine with the memory for them"),
     Limit("resolution", 2048, "DIFF4SPLAT_MAX_RESOLUTION", "pixels of output height",
-          "output videos taller than 2048 pixels (the photo layer holds 2 Gaussians per output pixel: 8.4 M at "
-          "2048², about 1 GB with its deformation) on a machine with the memory for them"),
+          "output videos taller than 2048 pixels (the photo layer holds 1.25 Gaussians per output pixel, a front "
+          "disk per pixel and a backing disk per 2×2 block: 5.2 M at 2048², about 0.6 GB with its deformation) on a "
+          "machine with the memory for them"),
     Limit("image_pixels", 100_000_000, "DIFF4SPLAT_MAX_IMAGE_PIXELS", "pixels",
           "input photographs above 100 megapixels (the photo is decoded at full size before it is resized)"),
     Limit("output_bytes", 4 << 30, "DIFF4SPLAT_MAX_OUTPUT_BYTES", "bytes",
@@ -61,7 +62,7 @@ LIMITS: dict[str, Limit] = {lim.name: lim for lim in (
           "smaller cap"),
     Limit("memory_bytes", 8 << 30, "DIFF4SPLAT_MAX_MEMORY_BYTES", "bytes of memory",
           "a fixed size instead of the memory available when the check runs (the default wherever that is "
-          "measured): the estimate is an upper bound, 1.2-1.5x the measured peak (docs/benchmarks.md, 'Memory of "
+          "measured): the estimate is an upper bound, 1.1-1.45x the measured peak (docs/benchmarks.md, 'Memory of "
           "generate'), so a request just above the available memory may still fit; or a smaller cap"),
     Limit("parameters", 20_000_000_000, "DIFF4SPLAT_MAX_PARAMETERS", "parameters",
           "model configs larger than the paper's (16.8 billion parameters), on a machine with 4 bytes each"),

@@ -102,16 +102,16 @@ def _assert_same_fit(out_a, metrics_a, out_b, metrics_b):
             assert torch.equal(a, b), k
 
 
-def _sigterm_at(monkeypatch, step):
-    """Make run_fit's optimisation send SIGTERM to this process right after ``step`` (its handler then
-    stops the loop and checkpoints)."""
+def _sigterm_at(monkeypatch, step, signum=signal.SIGTERM):
+    """Make run_fit's optimisation send SIGTERM (or ``signum``) to this process right after ``step`` (its handler
+    then stops the loop and checkpoints)."""
     real = fit_cli.fit_steps
 
     def patched(state, views, config, until, *, on_step=None, **kw):
         def hook(s):
             on_step(s)
             if s.step == step:
-                os.kill(os.getpid(), signal.SIGTERM)
+                os.kill(os.getpid(), signum)
         return real(state, views, config, until, on_step=hook, **kw)
 
     monkeypatch.setattr(fit_cli, "fit_steps", patched)
@@ -275,9 +275,10 @@ def test_resume_after_a_hard_kill_continues_from_the_last_periodic_checkpoint(dy
 def test_resume_errors(dynamic_scene, tmp_path, monkeypatch, capsys):
     with pytest.raises(ValueError, match="--resume: no checkpoint"):
         run_fit(dynamic_scene, tmp_path / "fit", CONFIG, resume=True)
-    _sigterm_at(monkeypatch, 2)
-    with pytest.raises(FitInterrupted):
+    _sigterm_at(monkeypatch, 2, signal.SIGINT)  # Ctrl-C: the command exits 128 + 2 = 130 (it was 143 for both)
+    with pytest.raises(FitInterrupted) as stopped:
         run_fit(dynamic_scene, tmp_path / "fit", CONFIG, holdout_camera=1, seed=SEED, checkpoint_every=0)
+    assert stopped.value.signum == signal.SIGINT
     monkeypatch.undo()
     for other in (dict(holdout_camera=1, seed=SEED + 1), dict(holdout_camera=None, seed=SEED)):
         with pytest.raises(ValueError, match="checkpoint .* is of another fit"):

@@ -78,7 +78,12 @@ MAX_LISTED_DIFFERENCES = 6
 
 
 class FitInterrupted(Exception):
-    """SIGTERM/SIGINT stopped the fit after a checkpoint was written (rerun with ``--resume``)."""
+    """SIGTERM/SIGINT stopped the fit after a checkpoint was written (rerun with ``--resume``); ``signum`` is the
+    signal, so the command exits 128 + signum (130 after Ctrl-C, 143 after SIGTERM) as every tool does."""
+
+    def __init__(self, message: str, signum: int = signal.SIGTERM) -> None:
+        super().__init__(message)
+        self.signum = int(signum)
 
 
 def _moves(views) -> bool:
@@ -303,11 +308,11 @@ def run_fit(scene_dir: Path, out: Path, config: FitConfig, *, holdout_camera: in
 
     if holdout and not resume:  # the starting point (for a generate init: generate's Gaussians at t = 0)
         state.history.append(_history_entry(state, holdout, 0, masks))
-    stop = {"flag": False}
+    stop = {"flag": False, "signum": signal.SIGTERM}
     handlers = {}
     try:
         for sig in (signal.SIGTERM, signal.SIGINT):
-            handlers[sig] = signal.signal(sig, lambda *_: stop.update(flag=True))
+            handlers[sig] = signal.signal(sig, lambda signum, _: stop.update(flag=True, signum=signum))
     except ValueError:  # not the main thread
         pass
     try:
@@ -318,7 +323,8 @@ def run_fit(scene_dir: Path, out: Path, config: FitConfig, *, holdout_camera: in
             signal.signal(sig, h)
     if stop["flag"] and state.step < config.iterations:
         _save(run_dir, state, config, run)
-        raise FitInterrupted(f"stopped at step {state.step}; checkpoint in {run_dir}; rerun with --resume")
+        raise FitInterrupted(f"stopped at step {state.step}; checkpoint in {run_dir}; rerun with --resume",
+                             stop["signum"])
     return _write_output(scene, out, state, config, train, holdout, masks, dict(
         scene=str(scene_dir), holdout_camera=holdout_camera, seed=seed, init=None if init is None else str(init),
         fps=fps, overwrite=overwrite, t_start=t_start, run_dir=run_dir, progress=progress, device=str(device)))
@@ -415,7 +421,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    """The ``fit`` command: one summary line; 143 after SIGTERM/SIGINT (checkpoint written).
+    """The ``fit`` command: one summary line; 143 after SIGTERM, 130 after SIGINT (checkpoint written first).
 
     Raises:
         ValueError: a bad argument (named by its flag), one above a limit (:class:`diff4splat.limits.LimitError`:
@@ -443,8 +449,8 @@ def run(args) -> int:
                     checkpoint_every=args.checkpoint_every, fps=args.fps, progress=not args.quiet,
                     overwrite=args.overwrite, device=device)
     except FitInterrupted as e:
-        print(f"diff4splat fit: {e}", file=sys.stderr)
-        return 143
+        print(f"diff4splat fit: interrupted: {e}", file=sys.stderr)
+        return 128 + e.signum
     held = "" if m["holdout_psnr"] is None else f", held-out {m['holdout_psnr']:.2f} dB"
     if m["holdout_masked_psnr"] is not None:
         held += f" (co-visible pixels {m['holdout_masked_psnr']:.2f} dB)"
