@@ -42,10 +42,12 @@ from .scene_files import (
     TIMES_TOLERANCE,
     SceneMeta,
     check_camera_name,
+    depth_values_problem,
     frame_name,
     list_scenes,
     read_rgb,
     read_timestamps,
+    size_problem,
     timestamps_to_times,
 )
 from .validate import validate_scene
@@ -345,26 +347,42 @@ class SceneReader:
         """(T,) float64 seconds of ``camera`` (default: the reference camera; all are synchronised)."""
         return read_timestamps(self._cam(camera or self.meta.cameras[0]) / "cameras.json")
 
+    def _size(self, camera: str) -> tuple[int, int]:
+        cams = self.cameras(camera)
+        return cams.height, cams.width
+
     def rgb(self, camera: str, index: int) -> np.ndarray:
-        """Frame ``index`` of ``camera``: (H, W, 3) float32 RGB in [0, 1].
+        """Frame ``index`` of ``camera``: (H, W, 3) float32 RGB in [0, 1], the size of its ``cameras.json``.
 
         Raises:
-            ValueError: unknown camera, index outside [0, T), or an undecodable / non-RGB-8-bit file.
+            ValueError: unknown camera, index outside [0, T), an undecodable / non-RGB-8-bit file, or one of
+                another size than its camera's (naming the file; ``data_prep validate`` reports the same).
             FileNotFoundError: the frame file is missing.
         """
-        return read_rgb(self._frame(camera, index, "rgb", ".png"))
+        f = self._frame(camera, index, "rgb", ".png")
+        img = read_rgb(f)
+        why = size_problem("image", img.shape, self._size(camera))
+        if why is not None:
+            raise ValueError(f"{f}: {why}")
+        return img
 
     def depth(self, camera: str, index: int) -> np.ndarray:
         """Frame ``index`` of ``camera``: (H, W) float32 metric z-depth in metres, +inf where invalid.
 
         Raises:
             ValueError: the scene has no depth (``depth_source == "none"``), unknown camera, index out
-                of range, or an unreadable EXR without a "Z" channel.
+                of range, an unreadable EXR without a "Z" channel, a map of another size than its camera's or
+                with NaN, −inf or ≤ 0 values (naming the file; ``data_prep validate`` reports the same).
             FileNotFoundError: the frame file is missing.
         """
         if not self.has_depth:
             raise ValueError(f"scene {self.path} has no depth (depth_source='none')")
-        return load_depth_exr(self._frame(camera, index, "depth", ".exr"))
+        f = self._frame(camera, index, "depth", ".exr")
+        z = load_depth_exr(f)
+        for why in (size_problem("depth", z.shape, self._size(camera)), depth_values_problem(z)):
+            if why is not None:
+                raise ValueError(f"{f}: {why}")
+        return z
 
     def tracks(self) -> tuple[np.ndarray, np.ndarray] | None:
         """``(points (P, T, 3) float32 metres world frame, visibility (P, T) bool)`` or None without tracks.npz.

@@ -31,6 +31,8 @@ __all__ = [
     "read_rgb",
     "read_timestamps",
     "timestamps_to_times",
+    "size_problem",
+    "depth_values_problem",
 ]
 
 FORMAT_VERSION = 1
@@ -217,3 +219,20 @@ def list_scenes(root: str | os.PathLike) -> list[Path]:
         raise FileNotFoundError(f"dataset folder not found: {root}")
     return sorted(p for p in root.iterdir()
                   if p.is_dir() and not p.name.startswith(".") and (p / "meta.json").is_file())
+
+
+def size_problem(kind: str, shape: tuple[int, ...], size: tuple[int, int]) -> str | None:
+    """Why a frame of ``shape`` (H, W, …) does not fit its camera's ``size`` (H, W), or None: "image is 40×40,
+    cameras.json says 32×32" (``kind``: "image" or "depth")."""
+    if tuple(shape[:2]) == tuple(size):
+        return None
+    return f"{kind} is {shape[1]}×{shape[0]}, cameras.json says {size[1]}×{size[0]}"
+
+
+def depth_values_problem(z: np.ndarray) -> str | None:
+    """Why a depth map (H, W) breaks FORMAT.md (metres > 0, +inf where invalid), or None: the counts of NaN, −inf
+    and ≤ 0 values (a negative depth back-projects behind its camera)."""
+    nan, neginf, nonpos = int(np.isnan(z).sum()), int(np.isneginf(z).sum()), int((z <= 0).sum())
+    if not (nan or neginf or nonpos):
+        return None
+    return f"depth must be > 0 metres or +inf (invalid): {nan} NaN, {neginf} -inf, {nonpos} ≤ 0 value(s)"

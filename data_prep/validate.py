@@ -21,10 +21,12 @@ from .scene_files import (
     SYNC_TOLERANCE_S,
     TIMES_TOLERANCE,
     SceneMeta,
+    depth_values_problem,
     frame_name,
     list_scenes,
     read_rgb,
     read_timestamps,
+    size_problem,
     timestamps_to_times,
 )
 
@@ -157,9 +159,9 @@ def _check_camera(problems: list[Problem], scene: Path, name: str, meta: SceneMe
         except ValueError as e:
             problems.append(Problem(f, _reason(e, f)))
             continue
-        if size is not None and img.shape[:2] != size:
-            problems.append(Problem(
-                f, f"image is {img.shape[1]}×{img.shape[0]}, cameras.json says {size[1]}×{size[0]}"))
+        why = None if size is None else size_problem("image", img.shape, size)
+        if why is not None:
+            problems.append(Problem(f, why))
 
     depth_dir = folder / "depth"
     if meta.depth_source == "none":
@@ -172,12 +174,9 @@ def _check_camera(problems: list[Problem], scene: Path, name: str, meta: SceneMe
         except ValueError as e:
             problems.append(Problem(f, _reason(e, f)))
             continue
-        if size is not None and z.shape != size:
-            problems.append(Problem(f, f"depth is {z.shape[1]}×{z.shape[0]}, cameras.json says {size[1]}×{size[0]}"))
-        nan, neginf, nonpos = int(np.isnan(z).sum()), int(np.isneginf(z).sum()), int((z <= 0).sum())
-        if nan or neginf or nonpos:
-            problems.append(Problem(f, f"depth must be > 0 metres or +inf (invalid): {nan} NaN, {neginf} -inf, "
-                                       f"{nonpos} ≤ 0 value(s)"))
+        for why in (None if size is None else size_problem("depth", z.shape, size), depth_values_problem(z)):
+            if why is not None:
+                problems.append(Problem(f, why))
     return ts
 
 

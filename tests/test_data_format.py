@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import OpenEXR
 import pytest
 import torch
 
@@ -15,7 +16,9 @@ from data_prep.format import (
     load_scene,
     timestamps_to_times,
 )
+from data_prep.validate import validate_scene
 from diff4splat.cameras import CameraPath, intrinsics_from_fov, make_trajectory
+from diff4splat.io import save_depth_exr, save_image
 
 H, W, T = 6, 8, 3
 
@@ -110,6 +113,28 @@ def test_reader_errors(tmp_path):
     (tmp_path / "s" / "meta.json").write_text('{"format_version": 1}')
     with pytest.raises(ValueError, match="missing key"):
         load_scene(tmp_path / "s")
+
+
+def test_reader_refuses_frames_validate_refuses(tmp_path):
+    """A frame of another size than its camera's and a depth map with NaN, −inf or ≤ 0 values are errors naming
+    the file, as `data_prep validate` reports them (fit crashed on the first with an IndexError, and trained on
+    the second, back-projecting negative depths behind the camera)."""
+    write_scene(tmp_path / "s")
+    r = load_scene(tmp_path / "s")
+    big = tmp_path / "s" / "cam01" / "rgb" / "00002.png"
+    save_image(big, np.zeros((H + 8, W + 8, 3), np.uint8))
+    with pytest.raises(ValueError, match=rf"{big}: image is {W + 8}×{H + 8}, cameras.json says {W}×{H}"):
+        r.rgb("cam01", 2)
+    f = tmp_path / "s" / "cam00" / "depth" / "00001.exr"
+    z = np.full((H, W), 2.0, np.float32)
+    z[0, :3] = [np.nan, -1.0, 0.0]  # written by another tool (ours refuses NaN and negative depths)
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, {"Z": z}).write(str(f))
+    with pytest.raises(ValueError, match=rf"{f}: depth must be > 0 metres or \+inf \(invalid\): 1 NaN, 0 -inf, 2"):
+        r.depth("cam00", 1)
+    save_depth_exr(f, np.full((H // 2, W), 2.0, np.float32))
+    with pytest.raises(ValueError, match=rf"{f}: depth is {W}×{H // 2}, cameras.json says {W}×{H}"):
+        r.depth("cam00", 1)
+    assert {p.file.name for p in validate_scene(tmp_path / "s")} == {"00002.png", "00001.exr"}  # the same two
 
 
 def test_atomic_failure_leaves_nothing(tmp_path):
