@@ -51,7 +51,7 @@ from tqdm import tqdm
 from diff4splat.cameras import camera_centers
 from diff4splat.checks import check_int
 from diff4splat.config_files import CURATION_DEFAULT
-from diff4splat.io import atomic_output_path, output_dir
+from diff4splat.io import atomic_output_path, check_output_dir, output_dir
 from diff4splat.io.structured import read_yaml
 
 from .format import SCENE_KIND, SceneReader, list_scenes
@@ -402,6 +402,20 @@ def _finalize(out_root: Path) -> list[dict[str, Any]]:
     return records
 
 
+def _check_out_root(in_root: Path, out_root: Path) -> None:
+    """``out_root`` may receive a curation: new, empty or an earlier curation (its ``curation.yaml``); never the
+    input, a folder holding it or inside it (the dataset would fail validation), a folder of other files (a user's
+    ``manifest.jsonl`` was replaced) or the places the output-folder policy protects (diff4splat's packages, the
+    current and home directories)."""
+    check_output_dir(out_root, inputs=[in_root], overwrite=True, kind="curation", parents=True)
+    if in_root.resolve() in out_root.resolve().parents:
+        raise ValueError(f"the output folder {out_root} is inside the input {in_root}: the curation would become "
+                         "part of the dataset; choose a folder outside it")
+    if out_root.is_dir() and not (out_root / CONFIG_COPY).is_file() and next(out_root.iterdir(), None) is not None:
+        raise ValueError(f"the output folder {out_root} holds other files (no {CONFIG_COPY}): a curation goes to a "
+                         "new or empty folder or continues an earlier one; choose another folder")
+
+
 def curate(in_root: str | os.PathLike, out_root: str | os.PathLike, config: CurationConfig | None = None, *,
            workers: int = 1, mode: str = "symlink", progress: bool = True) -> list[dict[str, Any]]:
     """Curate every scene of ``in_root`` into ``out_root`` (resumable; see the module docstring).
@@ -419,8 +433,8 @@ def curate(in_root: str | os.PathLike, out_root: str | os.PathLike, config: Cura
 
     Raises:
         FileNotFoundError: ``in_root`` is not a folder.
-        ValueError: bad ``workers``/``mode``, ``out_root`` equal to ``in_root``, or an ``out_root``
-            curated before with a different config or mode.
+        ValueError: bad ``workers``/``mode``; an ``out_root`` that is ``in_root``, holds it or lies inside it,
+            holds other files than an earlier curation, or was curated before with a different config or mode.
     """
     config = config or CurationConfig()
     in_root, out_root = Path(in_root), Path(out_root)
@@ -428,8 +442,7 @@ def curate(in_root: str | os.PathLike, out_root: str | os.PathLike, config: Cura
     if mode not in MODES:
         raise ValueError(f"mode must be one of {list(MODES)}, got {mode!r}")
     scenes = list_scenes(in_root)
-    if out_root.resolve() == in_root.resolve():
-        raise ValueError(f"the output folder must differ from the input folder, got {out_root}")
+    _check_out_root(in_root, out_root)
     settings = {"mode": mode, "config": config.to_dict()}
     cfg_file = out_root / CONFIG_COPY
     if cfg_file.is_file():

@@ -315,8 +315,18 @@ def test_bad_arguments(dataset, tmp_path):
         curate(dataset, tmp_path / "o", workers=0)
     with pytest.raises(ValueError, match="mode"):
         curate(dataset, tmp_path / "o", mode="hardlink")
-    with pytest.raises(ValueError, match="differ"):
+    with pytest.raises(ValueError, match="is input"):
         curate(dataset, dataset)
+    with pytest.raises(ValueError, match="holds input"):
+        curate(dataset, dataset.parent)
+    with pytest.raises(ValueError, match="is inside the input"):  # it was accepted: the dataset then failed validate
+        curate(dataset, dataset / "curated")
+    user = tmp_path / "user"
+    user.mkdir()
+    (user / "manifest.jsonl").write_text("{}\n")  # a user's own file: it was replaced
+    with pytest.raises(ValueError, match="holds other files"):
+        curate(dataset, user)
+    assert (user / "manifest.jsonl").read_text() == "{}\n" and not (dataset / "curated").exists()
     with pytest.raises(FileNotFoundError):
         curate(tmp_path / "nope", tmp_path / "o")
 

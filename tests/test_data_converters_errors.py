@@ -95,3 +95,17 @@ def test_an_empty_truncated_or_foreign_source_file_is_one_line_naming_it(tmp_pat
     line = _only_error_line(capsys)
     assert str(path) in line and words in line, line
     assert not (tmp_path / "out").exists()
+
+
+def test_an_unknown_option_or_an_output_inside_the_source_is_one_line(tmp_path, capsys):
+    """``--option bogus=1`` was a TypeError traceback from the converter's call; an output folder inside the source
+    was accepted and written into the source dataset."""
+    src = tmp_path / "src"
+    src.mkdir()
+    assert main(["convert", "dnerf", str(src), str(tmp_path / "out"), "--option", "bogus=1"]) == 2
+    line = _only_error_line(capsys)
+    assert "dnerf takes no option bogus; its options: split, background" in line, line
+    for out, word in ((src / "out", "is inside"), (src, "is"), (tmp_path, "holds")):
+        assert main(["convert", "dnerf", str(src), str(out)]) == 2
+        assert f"output scene folder {out} {word} the source {src}" in _only_error_line(capsys)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["src"] and not any(src.iterdir())

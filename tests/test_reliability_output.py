@@ -15,11 +15,13 @@ from pathlib import Path
 import pytest
 import torch
 from helpers import EXAMPLE_IMAGE, tiny_model
+from safetensors.torch import save_file
 
 import diff4splat
 from data_prep.format import SceneWriter
 from diff4splat.cli import main
 from diff4splat.io import MARKER, OutputDirError, check_output_dir, output_dir
+from diff4splat.io.atomic import atomic_output_path, current_umask
 from diff4splat.io.output_folders import remove_stale_temps
 from training.checkpoint import save_checkpoint
 
@@ -314,16 +316,24 @@ def test_concurrent_writers_of_one_out_are_serialised(tmp_path):
 
 @pytest.mark.parametrize("umask, dir_mode, file_mode", [(0o022, 0o755, 0o644), (0o002, 0o775, 0o664)])
 def test_output_folders_and_files_follow_the_umask(tmp_path, umask, dir_mode, file_mode):
+    """Folders, files and what libraries write with their own modes: safetensors (and so diffusers) creates 0600
+    files, which a saved model, checkpoint or field kept (unreadable to the group under umask 002)."""
     old = os.umask(umask)
     try:
+        assert current_umask() == umask
         with output_dir(tmp_path / "out", kind="t") as tmp:
             (tmp / "a.txt").write_text("1")
             (tmp / "sub").mkdir()
+            save_file({"w": torch.zeros(2)}, str(tmp / "sub" / "m.safetensors"))
+        with atomic_output_path(tmp_path / "f.safetensors") as tmp:
+            save_file({"w": torch.zeros(2)}, tmp)
     finally:
         os.umask(old)
     out = tmp_path / "out"
     assert (out.stat().st_mode & 0o777, (out / "sub").stat().st_mode & 0o777) == (dir_mode, dir_mode)
     assert ((out / "a.txt").stat().st_mode & 0o777, (out / MARKER).stat().st_mode & 0o777) == (file_mode, file_mode)
+    assert (out / "sub" / "m.safetensors").stat().st_mode & 0o777 == file_mode
+    assert (tmp_path / "f.safetensors").stat().st_mode & 0o777 == file_mode
 
 
 def test_every_folder_writer_uses_the_policy(tmp_path):

@@ -5,6 +5,7 @@ Conventions, layouts and what is not converted are documented per source in
 """
 from __future__ import annotations
 
+import inspect
 import os
 from pathlib import Path
 
@@ -51,11 +52,21 @@ def convert(source: str, src: str | os.PathLike, out: str | os.PathLike, **optio
         **options: passed to the source's converter.
 
     Raises:
-        ValueError: unknown ``source``; ``src`` is not a folder but a FIFO, a symlink loop, a file, … (said as
-            such, :func:`.common.require_dir`, before the converter looks for its files); the converter's errors.
+        ValueError: unknown ``source``; an option the source's converter does not take (naming its options); ``out``
+            equal to ``src``, holding it or inside it; ``src`` is not a folder but a FIFO, a symlink loop, a
+            file, … (said as such, :func:`.common.require_dir`, before the converter looks for its files); the
+            converter's errors.
         FileNotFoundError: no ``src`` (``"source folder not found: <src>"``), missing source files.
     """
     if source not in CONVERTERS:
         raise ValueError(f"unknown source {source!r}; known: {sorted(CONVERTERS)}")
+    known = [p for p in inspect.signature(CONVERTERS[source]).parameters if p not in ("src", "out")]
+    unknown = sorted(set(options) - set(known))
+    if unknown:  # a TypeError traceback from the converter's call before
+        raise ValueError(f"{source} takes no option {', '.join(unknown)}; its options: {', '.join(known)}")
     require_dir(src, "source")
+    a, b = Path(src).resolve(), Path(out).resolve()
+    if a == b or a in b.parents or b in a.parents:
+        raise ValueError(f"output scene folder {out} {'is' if a == b else 'is inside' if a in b.parents else 'holds'} "
+                         f"the source {src}; choose a folder outside it")
     return CONVERTERS[source](src, out, **options)

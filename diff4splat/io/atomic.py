@@ -17,9 +17,36 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["atomic_output_path", "naming_os_errors", "disk_full_error"]
+__all__ = ["atomic_output_path", "naming_os_errors", "disk_full_error", "current_umask", "follow_umask"]
 
 _SPACE_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
+
+
+def current_umask() -> int:
+    """The process's umask (Linux: read from ``/proc/self/status``, which changes nothing; elsewhere set and put
+    back at once)."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def follow_umask(root: str | os.PathLike) -> None:
+    """Give the file ``root``, or every file under the folder ``root``, the mode a plain ``open()`` gives, 0o666 &
+    ~umask (symlinks are left alone). safetensors ≥ 0.8 (and so diffusers) creates its files 0600: models,
+    checkpoints and fields were unreadable to the user's group where every other file followed the umask."""
+    mode = 0o666 & ~current_umask()
+    root = Path(root)
+    files = [root] if not root.is_dir() else [Path(d) / n for d, _, names in os.walk(root) for n in names]
+    for p in files:
+        if not p.is_symlink() and (p.stat().st_mode & 0o777) != mode:
+            os.chmod(p, mode)
 
 
 def disk_full_error(where: str | os.PathLike) -> OSError | None:
@@ -140,6 +167,7 @@ def atomic_output_path(path: str | os.PathLike) -> Iterator[str]:
                 if full is not None:
                     raise full
                 raise OSError(f"writer produced no file at {tmp} for {path}")
+            follow_umask(tmp)
             os.replace(tmp, path)
     finally:
         if tmp.exists():

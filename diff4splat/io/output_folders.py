@@ -18,7 +18,8 @@ The rules (README, "Output folders"):
   the next run on the same ``out`` once its owner pid is dead (never a live process's).
 * Concurrent writers of one ``out`` are serialised by ``fcntl.flock`` on ``.<name>.lock`` beside it,
   held only for the check-and-rename at the end; the lock file is removed on release.
-* Folders and files follow the umask (``os.mkdir``, not ``mkdtemp``'s 0700).
+* Folders and files follow the umask (``os.mkdir``, not ``mkdtemp``'s 0700; files a library created with its own
+  mode, such as safetensors' 0600, are given the umask's: :func:`~diff4splat.io.atomic.follow_umask`).
 * Write errors name the file as it will be under ``out`` (``out/scene.ply: No space left on device``), never
   the temporary folder (:func:`~diff4splat.io.atomic.naming_os_errors`).
 """
@@ -38,7 +39,7 @@ from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from .atomic import naming_os_errors
+from .atomic import follow_umask, naming_os_errors
 
 __all__ = ["MARKER", "INSTALLED_PACKAGES", "OutputDirError", "check_output_dir", "output_dir", "read_marker",
            "remove_stale_temps"]
@@ -331,6 +332,7 @@ def output_dir(out: str | os.PathLike, *, kind: str, inputs: Iterable[str | os.P
             with naming_os_errors(out, tmp):  # inside: a full disk is seen before tmp is removed
                 yield tmp
                 (tmp / MARKER).write_text(json.dumps({"tool": "diff4splat", "kind": kind, "format": _MARKER_FORMAT}))
+                follow_umask(tmp)  # whatever wrote the files (safetensors: 0600), they get the umask's mode
                 with _locked(target):
                     check_output_dir(out, inputs=inputs, overwrite=overwrite, kind=kind, replace=replace)
                     _swap_into_place(tmp, target)
