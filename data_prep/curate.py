@@ -139,6 +139,11 @@ class CurationConfig:
             v = getattr(self, name)
             if v is not None and v > 1:
                 raise ValueError(f"curation config field {name!r} is a ratio in [0, 1], got {v!r}")
+        for lo, hi in (("min_translation_m", "max_translation_m"), ("min_rotation_deg", "max_rotation_deg"),
+                       ("min_dynamic_ratio", "max_dynamic_ratio")):
+            if getattr(self, hi) is not None and getattr(self, lo) > getattr(self, hi):  # would reject every scene
+                raise ValueError(f"curation config fields {lo!r} ({getattr(self, lo)!r}) and {hi!r} "
+                                 f"({getattr(self, hi)!r}) leave no range: {lo} must be ≤ {hi}")
 
     @classmethod
     def from_dict(cls, data: Any) -> CurationConfig:

@@ -302,7 +302,8 @@ def test_config_yaml(tmp_path):
     assert CurationConfig.from_yaml(f) == CurationConfig(min_frames=5, max_translation_m=2.5)
     for text, match in [("min_framez: 5\n", "min_framez"), ("min_frames: 0\n", "min_frames"),
                         ("min_sharpness: -1\n", "min_sharpness"), ("min_valid_depth_ratio: 1.5\n", "ratio"),
-                        ("validate: 1\n", "validate"), ("- 1\n", "mapping")]:
+                        ("validate: 1\n", "validate"), ("- 1\n", "mapping"),
+                        ("min_rotation_deg: 50\nmax_rotation_deg: 10\n", "leave no range")]:  # rejected every scene
         f.write_text(text)
         with pytest.raises(ValueError, match=match):
             CurationConfig.from_yaml(f)

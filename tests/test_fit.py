@@ -254,8 +254,10 @@ def test_to_scene_prunes_invisible_gaussians_and_samples_the_field():
     keep = [i for i in range(20) if i not in (2, 7)]
     means = state.params["means"].detach()[keep].clone()
     times = torch.tensor([0.0, 0.25, 1.0])
+    pruned = state.counts["pruned"]
     scene = to_scene(state, times)
     assert scene.num_gaussians == 18 and state.num_gaussians == 18
+    assert state.counts["pruned"] == pruned + 2  # metrics.json's densify.pruned counted none of these
     assert float(scene.canonical.opacities.min()) >= ALPHA_MIN
     torch.testing.assert_close(scene.canonical.means, means)
     assert torch.equal(scene.times, times)

@@ -484,11 +484,12 @@ def evaluate_views(state: FitState, views: list[View], sh_degree: int,
 @torch.no_grad()
 def to_scene(state: FitState, times: Tensor | None) -> DynamicGaussians:
     """The fitted scene: activated canonical Gaussians (those with opacity < 1/255, which can never pass
-    the renderer's alpha test, removed) plus the field sampled at ``times`` (T,) when there is a field; on
-    ``state.device``."""
+    the renderer's alpha test, removed and counted in ``state.counts["pruned"]``) plus the field sampled at
+    ``times`` (T,) when there is a field; on ``state.device``."""
     keep = torch.sigmoid(state.params["opacities"]) >= ALPHA_MIN
     if not bool(keep.all()):
         state.params = prune(state.params, state.optimizer, ~keep, state.stats)
+        state.counts["pruned"] += int((~keep).sum())  # metrics.json's count: densification's and these
     means, quats, scales, opac, sh = (x.detach() for x in _activated(state.params))
     canonical = Gaussians(means, quats, scales, opac, sh)
     if state.field is None or times is None:
