@@ -198,14 +198,18 @@ async function main() {
   const data = cfg.dynamic ? splitFrames(frameBytes, cfg) : null;
   const keyframe = data && data.frames.length ? keyframeDecoder(data.frames, cfg.dtype) : null;
   const colors = [], opac = new Float32Array(n);
-  const canon = { means: new Float32Array(3 * n), quats: new Float32Array(4 * n), scales: new Float32Array(3 * n) };
+  // the pose is kept only where no keyframe holds it (temporal support alone): 40 bytes a Gaussian otherwise unused
+  const canon = data && !keyframe
+    ? { means: new Float32Array(3 * n), quats: new Float32Array(4 * n), scales: new Float32Array(3 * n) } : null;
   for (let i = 0; i < n; i++) {
     const s = packed.getSplat(i);
     colors.push(s.color.clone());
     opac[i] = s.opacity;
-    canon.means.set([s.center.x, s.center.y, s.center.z], 3 * i);
-    canon.quats.set([s.quaternion.w, s.quaternion.x, s.quaternion.y, s.quaternion.z], 4 * i);
-    canon.scales.set([s.scales.x, s.scales.y, s.scales.z], 3 * i);
+    if (canon) {
+      canon.means.set([s.center.x, s.center.y, s.center.z], 3 * i);
+      canon.quats.set([s.quaternion.w, s.quaternion.x, s.quaternion.y, s.quaternion.z], 4 * i);
+      canon.scales.set([s.scales.x, s.scales.y, s.scales.z], 3 * i);
+    }
   }
   // The keyframes around time t and the weight of the second: DynamicGaussians.deformation_at's clamped lookup.
   function bracket(t) {
@@ -248,6 +252,7 @@ async function main() {
   }
   // For tests: Gaussian i at time t as setTime writes it, before Spark packs it.
   state.splatAt = (t, i) => {
+    if (!data) return null;  // a scene that does not change with time keeps the PLY's Gaussians
     const { a, b, w } = bracket(t), o = splatAt(a, b, w, t, i);
     return { mean: c.toArray(), quat: [q.w, q.x, q.y, q.z], scale: sc.toArray(), opacity: o };
   };
