@@ -114,6 +114,8 @@ class SceneWriter:
         replace: replace an existing scene folder written by this writer (its marker, or empty);
             otherwise ``FileExistsError`` on enter.
         validate: run the full validator on the finished temporary folder before renaming.
+        replace_flag: the caller's option that sets ``replace`` (``--replace``), named in the refusal of an
+            existing scene folder it would replace (None: the error names none).
 
     Raises:
         ValueError: invalid meta fields (on construction) or an incomplete/invalid scene (on exit).
@@ -123,21 +125,23 @@ class SceneWriter:
 
     def __init__(self, path: str | os.PathLike, *, source: str, dynamic: bool, depth_source: str,
                  num_frames: int, fps: float, depth_scale: float = 1.0, depth_shift: float = 0.0,
-                 extra: dict[str, Any] | None = None, replace: bool = False, validate: bool = True) -> None:
+                 extra: dict[str, Any] | None = None, replace: bool = False, validate: bool = True,
+                 replace_flag: str | None = None) -> None:
         self.path = Path(path)
         # cameras is a placeholder until add_camera; validated now so bad meta fails before any IO
         self.meta = SceneMeta(source=source, dynamic=dynamic, depth_source=depth_source, num_frames=num_frames,
                               cameras=["cam00"], fps=fps, depth_scale=depth_scale, depth_shift=depth_shift,
                               extra=dict(extra or {}))
         self.meta.cameras = []
-        self.replace, self.validate = replace, validate
+        self.replace, self.validate, self.replace_flag = replace, validate, replace_flag
         self._ctx = None
         self._tmp: Path | None = None
         self._sizes: dict[str, tuple[int, int]] = {}
         self._written: dict[str, tuple[set[int], set[int]]] = {}
 
     def __enter__(self) -> SceneWriter:
-        self._ctx = output_dir(self.path, kind=SCENE_KIND, replace=self.replace, parents=True)
+        self._ctx = output_dir(self.path, kind=SCENE_KIND, replace=self.replace, parents=True, overwrite_flag=None,
+                               replace_flag=self.replace_flag)
         self._tmp = self._ctx.__enter__()
         return self
 

@@ -236,7 +236,8 @@ class Diff4SplatModel(nn.Module):
             OutputDirError: ``directory`` may not be written or replaced.
         """
         directory = Path(directory)
-        with output_dir(directory, kind=MODEL_KIND, overwrite=overwrite, parents=True) as tmp:
+        with output_dir(directory, kind=MODEL_KIND, overwrite=overwrite, parents=True,
+                        overwrite_flag="overwrite=True") as tmp:
             (tmp / CONFIG_NAME).write_text(json.dumps(self.config.to_dict(), indent=2))
             for name in _MODULES:
                 getattr(self, name).write_pretrained(tmp / name)

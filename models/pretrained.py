@@ -172,7 +172,8 @@ class PretrainedMixin:
             OutputDirError: ``directory`` may not be written or replaced.
         """
         directory = Path(directory)
-        with output_dir(directory, kind=MODEL_KIND, overwrite=overwrite, parents=True) as tmp:
+        with output_dir(directory, kind=MODEL_KIND, overwrite=overwrite, parents=True,
+                        overwrite_flag="overwrite=True") as tmp:
             self.write_pretrained(tmp)
         return directory
 

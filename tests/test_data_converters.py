@@ -521,3 +521,25 @@ def test_data_prep_cli_has_convert(tmp_path):
     assert main(["convert", "pointodyssey", str(src), str(tmp_path / "out"), "--option", "max_tracks=1"]) == 0
     assert load_scene(tmp_path / "out").tracks()[0].shape[0] == 1
     assert main(["convert", "pointodyssey", str(src), str(tmp_path / "out")]) == 2  # exists, no --replace
+
+
+def test_a_refused_output_folder_names_only_the_flag_that_would_lift_the_refusal(tmp_path, capsys):
+    """convert has --replace and no --overwrite: its refusal of a user's folder suggested --overwrite, and its
+    refusal of an earlier conversion suggested nothing."""
+    src, _ = make_vkitti2(tmp_path / "vk")
+    out = tmp_path / "out"
+    assert main(["convert", "vkitti2", str(src), str(out)]) == 0
+    capsys.readouterr()
+    assert main(["convert", "vkitti2", str(src), str(out)]) == 2
+    assert capsys.readouterr().err.strip().endswith(f"output folder {out} already exists (choose a new folder, or pass "
+                                             "--replace to replace it)")
+    assert main(["convert", "vkitti2", str(src), str(out), "--replace"]) == 0
+    capsys.readouterr()
+    user = tmp_path / "user"
+    user.mkdir()
+    (user / "notes.txt").write_text("mine")
+    for extra in ([], ["--replace"]):
+        assert main(["convert", "vkitti2", str(src), str(user), *extra]) == 2
+        line = capsys.readouterr().err.strip()
+        assert "--overwrite" not in line and "--replace" not in line, line
+    assert [p.name for p in user.iterdir()] == ["notes.txt"]

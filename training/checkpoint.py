@@ -82,7 +82,7 @@ def save_checkpoint(
     """
     root = Path(run_dir) / "checkpoints"
     folder = root / f"step_{step:08d}"
-    with output_dir(folder, kind="checkpoint", parents=True) as tmp:
+    with output_dir(folder, kind="checkpoint", parents=True, overwrite_flag=None) as tmp:
         save_file({k: v.detach().contiguous().cpu() for k, v in model_state.items()}, str(tmp / "model.safetensors"))
         if ema_state is not None:
             save_file({k: v.detach().contiguous().cpu() for k, v in ema_state.items()}, str(tmp / "ema.safetensors"))

@@ -580,7 +580,7 @@ def write_scene(
     T = len(timestamps)
     with SceneWriter(out, source=source, dynamic=dynamic, depth_source=depth_source, num_frames=T,
                      fps=float(fps), depth_scale=float(depth_scale), depth_shift=float(depth_shift),
-                     extra=extra, replace=replace) as w:
+                     extra=extra, replace=replace, replace_flag="--replace") as w:
         for name, path in cameras.items():
             w.add_camera(name, path, timestamps)
         for name in cameras:

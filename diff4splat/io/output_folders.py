@@ -124,30 +124,36 @@ def _holds_inputs(target: Path, inputs) -> str | None:
     return None
 
 
-def _check_existing(label: str, target: Path, kind: str, overwrite: bool, replace: bool) -> None:
-    """Raise unless the existing folder ``target`` may be replaced (module docstring)."""
+def _check_existing(label: str, target: Path, kind: str, overwrite: bool, replace: bool,
+                    overwrite_flag: str | None, replace_flag: str | None) -> None:
+    """Raise unless the existing folder ``target`` may be replaced (module docstring); a refusal names the
+    caller's flag that would allow the replacement, and only when that flag would."""
     if not target.is_dir():
         raise _ExistingFolderError(f"{label} is a file, not a folder")
-    if not replace:
-        raise FileExistsError(f"{label} already exists")
     try:
         empty = next(os.scandir(target), None) is None
     except OSError as e:
         raise _ExistingFolderError(f"{label} cannot be read: {e.strerror}") from None
+    found = None if empty else read_marker(target)
+    if not replace:
+        ours = empty or found == kind or overwrite
+        hint = f" (choose a new folder, or pass {replace_flag} to replace it)" if ours and replace_flag else ""
+        raise FileExistsError(f"{label} already exists{hint}")
     if empty or overwrite:
         return
-    found = read_marker(target)
+    hint = f"choose a new folder, or pass {overwrite_flag} to replace it" if overwrite_flag else "choose a new folder"
     if found is None:
         raise _ExistingFolderError(f"{label} is a non-empty folder not written by diff4splat; refusing to "
-                                   "replace it (choose a new folder, or pass --overwrite to replace it)")
+                                   f"replace it ({hint})")
     if found != kind:
         raise _ExistingFolderError(f"{label} holds a diff4splat {found!r} output, not {kind!r}; refusing to "
-                                   "replace it (choose a new folder, or pass --overwrite to replace it)")
+                                   f"replace it ({hint})")
 
 
 def check_output_dir(out: str | os.PathLike, *, inputs: Iterable[str | os.PathLike | None] = (),
                      overwrite: bool = False, kind: str = "generate", replace: bool = True,
-                     parents: bool = False) -> Path:
+                     parents: bool = False, overwrite_flag: str | None = "--overwrite",
+                     replace_flag: str | None = None) -> Path:
     """Check that ``out`` may be written (module docstring) before any work is done; nothing is created.
 
     Args:
@@ -159,6 +165,9 @@ def check_output_dir(out: str | os.PathLike, *, inputs: Iterable[str | os.PathLi
         replace: False → an existing ``out`` is an error (``FileExistsError``).
         parents: allow missing parent folders (library writers create them; the CLI asks for an
             existing parent). The nearest existing ancestor must then be a writable folder.
+        overwrite_flag: the caller's option that sets ``overwrite``, named in a refusal it would lift
+            (None: the caller has none).
+        replace_flag: the caller's option that sets ``replace``, named likewise (None: none).
 
     Returns:
         The folder that will be written: ``out`` made absolute with symlinks followed.
@@ -201,7 +210,7 @@ def check_output_dir(out: str | os.PathLike, *, inputs: Iterable[str | os.PathLi
     if not os.access(parent, os.W_OK | os.X_OK):
         raise OutputDirError(f"{label}: parent folder {parent} is not writable")
     if target.exists():
-        _check_existing(label, target, kind, overwrite, replace)
+        _check_existing(label, target, kind, overwrite, replace, overwrite_flag, replace_flag)
     if parent != target.parent:  # missing parents will be created: no probe of the final folder
         return target
     probe = parent / _temp_name(target.name, "probe")
@@ -300,15 +309,17 @@ def _sigterm_cleans_up() -> Iterator[None]:
 
 @contextmanager
 def output_dir(out: str | os.PathLike, *, kind: str, inputs: Iterable[str | os.PathLike | None] = (),
-               overwrite: bool = False, replace: bool = True, parents: bool = False) -> Iterator[Path]:
+               overwrite: bool = False, replace: bool = True, parents: bool = False,
+               overwrite_flag: str | None = "--overwrite", replace_flag: str | None = None) -> Iterator[Path]:
     """Yield a temporary folder beside ``out``; on success it replaces ``out`` (module docstring policy).
 
     The marker :data:`MARKER` is written into the folder after the body. If the body raises (or SIGINT/
     SIGTERM arrive) the temporary folder is removed and ``out`` is left as it was.
 
     Args:
-        out, inputs, overwrite, kind, replace, parents: as :func:`check_output_dir` (checked on enter,
-            and again under the lock just before the rename); missing parents are created if ``parents``.
+        out, inputs, overwrite, kind, replace, parents, overwrite_flag, replace_flag: as :func:`check_output_dir`
+            (checked on enter, and again under the lock just before the rename); missing parents are created if
+            ``parents``.
 
     Yields:
         The temporary folder (Path) to write into.
@@ -320,7 +331,9 @@ def output_dir(out: str | os.PathLike, *, kind: str, inputs: Iterable[str | os.P
             (:func:`~diff4splat.io.atomic.naming_os_errors`).
     """
     inputs = list(inputs)
-    target = _check_consistent(out, inputs=inputs, overwrite=overwrite, kind=kind, replace=replace, parents=parents)
+    flags = {"overwrite_flag": overwrite_flag, "replace_flag": replace_flag}
+    target = _check_consistent(out, inputs=inputs, overwrite=overwrite, kind=kind, replace=replace, parents=parents,
+                               **flags)
     if parents:
         target.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temps(target)
@@ -334,7 +347,7 @@ def output_dir(out: str | os.PathLike, *, kind: str, inputs: Iterable[str | os.P
                 (tmp / MARKER).write_text(json.dumps({"tool": "diff4splat", "kind": kind, "format": _MARKER_FORMAT}))
                 follow_umask(tmp)  # whatever wrote the files (safetensors: 0600), they get the umask's mode
                 with _locked(target):
-                    check_output_dir(out, inputs=inputs, overwrite=overwrite, kind=kind, replace=replace)
+                    check_output_dir(out, inputs=inputs, overwrite=overwrite, kind=kind, replace=replace, **flags)
                     _swap_into_place(tmp, target)
         finally:
             if tmp.exists():

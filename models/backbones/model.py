@@ -192,7 +192,8 @@ class BackboneModel(nn.Module):
             OutputDirError: ``directory`` may not be written or replaced.
         """
         directory = Path(directory)
-        with output_dir(directory, kind=MODEL_KIND, overwrite=overwrite, parents=True) as tmp:
+        with output_dir(directory, kind=MODEL_KIND, overwrite=overwrite, parents=True,
+                        overwrite_flag="overwrite=True") as tmp:
             self.backbone.write_pretrained(tmp)
             self.ldrm.write_pretrained(tmp / LDRM_FOLDER)
             (tmp / CONFIG_FILE).write_text(json.dumps(self.config.to_dict(), indent=2))
