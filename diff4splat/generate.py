@@ -314,7 +314,7 @@ def generate(
     timings = {"load_model": loaded.load_seconds, **result.timings, "render": time.perf_counter() - t0}
     meta = _meta(loaded, result, prompt, None if cameras is not None else trajectory, files, depth_kind, seed,
                  timings)
-    meta["frame_plys"] = bool(frame_plys)
+    meta["frame_plys"] = bool(frame_plys) and result.scene.changes_with_time
     inputs = [Path(p) for p in files.values() if isinstance(p, (str, os.PathLike))] + list(loaded.files)
     return Generation(result, colors, depths, alphas, meta, inputs, cfg.scene_depth, time.perf_counter() - t_start)
 

@@ -131,6 +131,12 @@ class DynamicGaussians:
         """True when the Gaussians have temporal support (t_means, t_scales)."""
         return self.t_means is not None
 
+    @property
+    def changes_with_time(self) -> bool:
+        """True when :meth:`at` depends on t: the scene deforms or has temporal support (else every time gives
+        the canonical Gaussians, and writers leave out what would repeat them)."""
+        return not self.is_static or self.has_temporal
+
     def temporal_opacity(self, t: float) -> Tensor:
         """Marginal p(t) = exp(−½((t − μ_t)/σ_t)²) of every Gaussian (Yang et al. 2024), peak 1.
 

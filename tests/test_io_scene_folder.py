@@ -64,14 +64,22 @@ def test_folder_has_every_file_and_frames_follow_the_deformation(tmp_path):
         np.testing.assert_allclose(load_ply(out / "frames" / f"{i:04d}.ply").means.numpy(),
                                    scene.at(float(cams.times[i])).means.numpy(), atol=1e-6)
         np.testing.assert_allclose(load_depth_exr(out / "depth" / f"{i:04d}.exr"), depths[i].numpy())
-    assert json.loads((out / "meta.json").read_text()) == {"seed": 0}
+    assert json.loads((out / "meta.json").read_text()) == {"seed": 0, "frame_plys": True}
 
 
-def test_static_scene_writes_no_deformation(tmp_path):
+def test_static_scene_writes_no_deformation_and_no_copies_of_scene_ply(tmp_path):
+    """A static scene's frames/ held T copies of scene.ply; with temporal support each frame differs, so they stay."""
     scene, cams, colors, depths, alphas = _inputs(dynamic=False)
     write_scene_folder(tmp_path / "out", scene, cams, colors, depths, alphas, {})
-    assert not (tmp_path / "out" / "deformation.npz").exists()
-    assert load_ply(tmp_path / "out" / "scene.ply").num_gaussians == 10
+    out = tmp_path / "out"
+    assert not (out / "deformation.npz").exists() and not (out / "frames").exists()
+    assert json.loads((out / "meta.json").read_text())["frame_plys"] is False
+    assert load_ply(out / "scene.ply").num_gaussians == 10
+    g = scene.canonical
+    temporal = DynamicGaussians(g, t_means=torch.linspace(0, 1, 10), t_scales=torch.full((10,), 0.2))
+    write_scene_folder(tmp_path / "t", temporal, cams, colors, depths, alphas, {})
+    first, last = (load_ply(tmp_path / "t" / "frames" / f"{i:04d}.ply").opacities for i in (0, 4))
+    assert not torch.allclose(first, last)
 
 
 def test_failure_part_way_leaves_no_folder(tmp_path):

@@ -7,7 +7,8 @@ input, every file checked (:func:`load_output_scene`, :func:`load_scene_folder`,
     scene.ply           canonical Gaussians, INRIA layout
     deformation.npz     times (T,), d_means (T,M,3), d_quats (T,M,4), d_scales (T,M,3) (absent if static),
                         t_means (M,), t_scales (M,) (4D temporal support, when present); no file if neither
-    frames/0000.ply …   the Gaussians deformed to each frame's time (not with generate --no-frame-plys)
+    frames/0000.ply …   the Gaussians deformed to each frame's time (not with generate --no-frame-plys, nor for a
+                        scene that does not change with time: every frame would be scene.ply)
     rgb/0000.png …      the render along the camera path, 8-bit lossless
     video.mp4           RGB along the camera path
     depth/0000.exr …    float32 expected depth "Z" (metres) and coverage "A"
@@ -159,7 +160,7 @@ def save_deformation(path: str | os.PathLike, scene: DynamicGaussians) -> None:
     Raises:
         ValueError: the scene has neither a deformation nor temporal support (nothing to write).
     """
-    if scene.is_static and not scene.has_temporal:
+    if not scene.changes_with_time:
         raise ValueError("a static scene without temporal support has no deformation to save")
     keys = (() if scene.is_static else _DEFORMATION_KEYS) + (_TEMPORAL_KEYS if scene.has_temporal else ())
     arrays = {k: getattr(scene, k).detach().cpu().float().numpy() for k in keys}  # device: np.savez writes host arrays
@@ -271,7 +272,9 @@ def write_scene_folder(
     output) leaves out scene.ply, deformation.npz and frames/, and pads an odd-sized video.mp4 to even sizes by
     repeating the last column/row (MPEG-4 Part 2 needs even sizes); ``out_dir``'s parents must then exist.
     ``frame_plys=False`` leaves out frames/ alone (``generate --no-frame-plys``: the scene at each frame's time is
-    scene.ply deformed by deformation.npz; a long path's frames/ is most of the folder).
+    scene.ply deformed by deformation.npz; a long path's frames/ is most of the folder); a scene that does not
+    change with time (:attr:`DynamicGaussians.changes_with_time`) gets no frames/ either, every frame being
+    scene.ply. ``meta["frame_plys"]`` is set to whether frames/ was written (with the scene only).
 
     A failure part-way leaves no ``out_dir`` (or the previous one untouched). An existing ``out_dir`` is
     replaced only if it is empty or an earlier output of ``kind`` (or ``overwrite``), never if it holds
@@ -286,11 +289,13 @@ def write_scene_folder(
         raise ValueError(f"colors/depths/alphas must have {T} frames (one per camera), got "
                          f"{colors.shape[0]}/{depths.shape[0]}/{alphas.shape[0]}")
     depths = fill_empty_depth(depths, alphas, depth_fallback)
+    if with_scene:
+        frame_plys = meta["frame_plys"] = bool(frame_plys) and scene.changes_with_time
     rgb = to_uint8(colors.cpu(), "colors")  # (T, H, W, 3): rgb/*.png lossless beside the lossy video
     with output_dir(out_dir, kind=kind, inputs=inputs, overwrite=overwrite, parents=with_scene) as tmp:
         if with_scene:
             save_ply(tmp / "scene.ply", scene.canonical)
-            if not scene.is_static or scene.has_temporal:
+            if scene.changes_with_time:
                 save_deformation(tmp / "deformation.npz", scene)
         for i in range(T):
             if with_scene and frame_plys:
@@ -452,7 +457,7 @@ class SceneFolder:
         """Where the deformation comes from: ``"field.safetensors"``, ``"deformation.npz"`` or ``"static"``."""
         if self.field is not None:
             return FIELD_FILE
-        return "static" if self.scene.is_static and not self.scene.has_temporal else "deformation.npz"
+        return "deformation.npz" if self.scene.changes_with_time else "static"
 
 
 def load_scene_folder(folder: str | os.PathLike, device: str | torch.device = "cpu", *,
