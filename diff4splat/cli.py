@@ -19,6 +19,7 @@ from .errors import print_warnings, run_cli
 from .export import EXPORT_KIND, check_opset, export_onnx
 from .generate_cli import add_generate_parser, generate_command
 from .io.output_folders import check_output_dir
+from .io.video import DEFAULT_FPS
 from .pipeline import load_model
 from .render_command import rerender
 from .viewer_server import serve
@@ -97,7 +98,7 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
     r.add_argument("--frames", type=int, default=None, help="preset frame count (default: the folder's)")
     r.add_argument("--width", type=int, default=None, help="output width, pixels (default: the camera path's)")
     r.add_argument("--height", type=int, default=None, help="output height, pixels (default: the camera path's)")
-    r.add_argument("--fps", type=int, default=8, help="video frame rate (default: 8)")
+    r.add_argument("--fps", type=float, default=DEFAULT_FPS, help=f"video frame rate (default: {DEFAULT_FPS:g})")
     r.add_argument("--device", default=AUTO, help=DEVICE_HELP + "; where the scene is rendered")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.add_argument("--out", type=_out_path, required=True, help=OUT_HELP)

@@ -36,7 +36,7 @@ from .io.image import preprocess_image, read_image
 from .io.inputs import check_input_file
 from .io.output_folders import check_output_dir
 from .io.scene_folder import scene_meta, write_scene_folder
-from .io.video import check_fps
+from .io.video import DEFAULT_FPS, check_fps
 from .limits import check_limit, check_memory, check_output_size
 from .pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, GenerationResult, check_prompt, check_seed
 from .pipeline import load_model as _load_model
@@ -356,7 +356,8 @@ def _meta(loaded: LoadedPipeline, result: GenerationResult, prompt: str, traject
     }
 
 
-def write(generation: Generation, out_dir: str | os.PathLike, *, fps: int = 8, overwrite: bool = False) -> dict:
+def write(generation: Generation, out_dir: str | os.PathLike, *, fps: float = DEFAULT_FPS,
+          overwrite: bool = False) -> dict:
     """Write ``generate``'s output folder (README, "Output folders";
     :func:`diff4splat.io.scene_folder.write_scene_folder`: atomic, an existing folder replaced only if it is an
     earlier output or with ``overwrite``).
@@ -374,7 +375,7 @@ def write(generation: Generation, out_dir: str | os.PathLike, *, fps: int = 8, o
             (:class:`diff4splat.io.output_folders.OutputDirError`).
         OSError: writing failed (``<path>: <reason>``); nothing half-written is left.
     """
-    check_fps(check_positive_int("--fps", fps), "--fps")
+    check_fps(fps, "--fps")
     check_output_dir(out_dir, inputs=generation.inputs, overwrite=overwrite, kind="generate")
     meta = dict(generation.meta, fps=fps, timings_s=dict(generation.meta["timings_s"]))
     t0 = time.perf_counter()

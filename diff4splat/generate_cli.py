@@ -10,12 +10,11 @@ from pathlib import Path
 from .assemble import DEPTH_KINDS
 from .cameras import DEFAULT_AMPLITUDES, DEFAULT_TRAJECTORY, TRAJECTORIES
 from .cameras.trajectories import amplitude_help
-from .checks import check_positive_int
 from .devices import AUTO, DEVICE_HELP
 from .errors import print_warnings
 from .generate import generate, load_pipeline, write
 from .io.output_folders import check_output_dir
-from .io.video import check_fps
+from .io.video import DEFAULT_FPS, check_fps
 from .pipeline import DEFAULT_RESOLUTION
 from .runtime import ATTENTION_KERNELS, OFFLOAD_MODES
 
@@ -57,7 +56,7 @@ def add_generate_parser(subparsers, *, out_type: Callable[[str], Path], out_help
     g.add_argument("--checkpoint", type=Path, default=None,
                    help="model folder (default: the shipped weights of --config)")
     g.add_argument("--config", default=None, help=config_help)
-    g.add_argument("--fps", type=int, default=8, help="video frame rate (default: 8)")
+    g.add_argument("--fps", type=float, default=DEFAULT_FPS, help=f"video frame rate (default: {DEFAULT_FPS:g})")
     g.add_argument("--device", default=AUTO, help=DEVICE_HELP)
     g.add_argument("--dtype", choices=("float32", "bfloat16", "float16"), default="float32",
                    help="weight dtype of the networks (bfloat16 halves a GPU's memory use; default: float32); "
@@ -92,7 +91,7 @@ def generate_command(args) -> dict:
     checks before the model loads) and :func:`diff4splat.generate.write`. Returns the meta dict of meta.json."""
     check_output_dir(args.out, inputs=[args.image, args.checkpoint, args.cameras, args.onnx, args.depth],
                      overwrite=args.overwrite, kind="generate")
-    check_fps(check_positive_int("--fps", args.fps), "--fps")
+    check_fps(args.fps, "--fps")
     generation = generate(
         args.image, args.cameras, pipeline=lambda: print_warnings(
             load_pipeline, args.checkpoint, args.config, runtime=args.runtime, onnx=args.onnx, device=args.device,

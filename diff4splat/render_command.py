@@ -64,7 +64,7 @@ from .io.scene_folder import (
     scene_meta,
     write_scene_folder,
 )
-from .io.video import check_fps
+from .io.video import DEFAULT_FPS, check_fps
 from .limits import check_limit, check_output_size
 from .render.sequence import render_path
 from .scene import DynamicGaussians
@@ -186,7 +186,7 @@ def rerender(
     frames: int | None = None,
     width: int | None = None,
     height: int | None = None,
-    fps: float = 8,
+    fps: float = DEFAULT_FPS,
     overwrite: bool = False,
     progress: bool = False,
     device: str | torch.device = "cpu",

@@ -27,6 +27,7 @@ from pathlib import Path
 from models.hexplane import load_field
 
 from .io.scene_folder import is_layout_file, load_scene_folder, meta_background, meta_eps2d
+from .io.video import DEFAULT_FPS
 from .viewer.data import ViewerPayload, viewer_payload
 from .viewer.page import VIEWER_NAME, viewer_html
 
@@ -50,7 +51,7 @@ def folder_payload(folder: str | os.PathLike) -> ViewerPayload:
     """
     src = load_scene_folder(folder, load_field=load_field)
     fps = src.meta.get("fps")  # checked by load_scene_folder when present
-    return viewer_payload(src.scene, src.cameras, fps=8 if fps is None else fps, budget=None,
+    return viewer_payload(src.scene, src.cameras, fps=DEFAULT_FPS if fps is None else fps, budget=None,
                           background=meta_background(src.meta), eps2d=meta_eps2d(src.meta))
 
 

@@ -3,6 +3,7 @@ time."""
 import json
 import re
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -282,11 +283,12 @@ def test_cli_render_writes_the_folder_and_reports_it(tmp_path, capsys):
     folder, scene, cams, _ = _folder(tmp_path)
     out = tmp_path / "r"
     code = main(["render", str(folder), "--trajectory", "pan-left", "--frames", "3", "--amplitude", "0.1",
-                 "--fps", "4", "--quiet", "--out", str(out)])
+                 "--fps", "7.5", "--quiet", "--out", str(out)])
     assert code == 0
     assert capsys.readouterr().out.strip().splitlines()[-1] == f"wrote {out} (3 frames, {W}x{H})"
     meta = json.loads((out / "meta.json").read_text())
-    assert (meta["trajectory"], meta["amplitude"], meta["fps"], meta["frames"]) == ("pan-left", 0.1, 4, 3)
+    assert (meta["trajectory"], meta["amplitude"], meta["fps"], meta["frames"]) == ("pan-left", 0.1, 7.5, 3)
+    assert cv2.VideoCapture(str(out / "video.mp4")).get(cv2.CAP_PROP_FPS) == 7.5  # a rate that is not an integer
     path = load_cameras_json(out / "cameras.json")
     torch.testing.assert_close(path.camera_centers()[-1], torch.tensor([-0.1 * meta["scene_depth"], 0.0, 0.0]))
 

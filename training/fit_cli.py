@@ -36,7 +36,7 @@ from diff4splat.devices import AUTO, DEVICE_HELP, resolve_device
 from diff4splat.gaussians import Gaussians
 from diff4splat.io.output_folders import check_output_dir
 from diff4splat.io.scene_folder import DEFORMATION_ARRAYS, load_output_scene, scene_meta, write_scene_folder
-from diff4splat.io.video import check_fps
+from diff4splat.io.video import DEFAULT_FPS, check_fps
 from diff4splat.limits import check_limit
 from diff4splat.pipeline import check_seed
 from diff4splat.quaternions import quat_conjugate, quat_multiply, rotmat_to_quat
@@ -238,7 +238,7 @@ def check_out_outside_inputs(out: str | Path, scene_dir: str | Path, init: str |
 
 def run_fit(scene_dir: Path, out: Path, config: FitConfig, *, holdout_camera: int | None = None, seed: int = 0,
             init: Path | None = None, resume: bool = False, eval_every: int = 250, checkpoint_every: int = 500,
-            fps: int = 8, progress: bool = False, overwrite: bool = False,
+            fps: float = DEFAULT_FPS, progress: bool = False, overwrite: bool = False,
             device: str | torch.device = "cpu") -> dict:
     """Fit ``scene_dir`` and write the output folder ``out`` (module docstring). Returns metrics.json's dict.
 
@@ -412,7 +412,7 @@ def register(subparsers) -> None:
     p.add_argument("--checkpoint-every", type=int, default=500, help="checkpoint interval, steps, ≥ 1 (one "
                    "larger than --iterations: only on SIGTERM; default 500)")
     p.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in OUT.checkpoints")
-    p.add_argument("--fps", type=int, default=8, help="video frame rate (default 8)")
+    p.add_argument("--fps", type=float, default=DEFAULT_FPS, help=f"video frame rate (default {DEFAULT_FPS:g})")
     p.add_argument("--device", default=AUTO, help=DEVICE_HELP + "; where the Gaussians, the field and the views "
                    "live (a checkpoint resumes on any device)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -430,7 +430,7 @@ def run(args) -> int:
     """
     device = resolve_device(args.device, "--device")  # before any work
     flag = lambda name: "--" + name.replace("_", "-")  # noqa: E731
-    for name in ("iterations", "eval_every", "checkpoint_every", "fps", "max_gaussians", "init_points"):
+    for name in ("iterations", "eval_every", "checkpoint_every", "max_gaussians", "init_points"):
         check_positive_int(flag(name), getattr(args, name))
     check_limit("iterations", args.iterations, "--iterations")
     for name in ("max_gaussians", "init_points"):

@@ -52,7 +52,7 @@ from .inputs import check_input_file
 from .output_folders import output_dir
 from .ply import load_ply, save_ply
 from .structured import read_json
-from .video import check_fps, save_image, save_video, to_uint8
+from .video import DEFAULT_FPS, check_fps, save_image, save_video, to_uint8
 
 __all__ = ["write_scene_folder", "fill_empty_depth", "save_deformation", "load_deformation", "json_default",
            "load_output_scene", "folder_file", "DEFORMATION_ARRAYS", "is_layout_file", "LAYOUT_FILES", "LAYOUT_FRAMES",
@@ -254,7 +254,7 @@ def write_scene_folder(
     alphas: Tensor,  # (T, H, W)
     meta: dict,
     *,
-    fps: float = 8,
+    fps: float = DEFAULT_FPS,
     depth_fallback: float = 1.0,
     inputs: Iterable[str | os.PathLike | None] = (),
     overwrite: bool = False,

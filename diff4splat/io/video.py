@@ -13,12 +13,16 @@ from ..devices import host_values
 from ..errors import quiet_c_stderr
 from .atomic import atomic_output_path
 
-__all__ = ["save_video", "load_video", "save_image", "to_uint8", "check_fps", "MAX_FPS"]
+__all__ = ["save_video", "load_video", "save_image", "to_uint8", "check_fps", "MAX_FPS", "DEFAULT_FPS"]
+
+DEFAULT_FPS = 8.0
+"""Frame rate of every video, viewer and output folder when none is given (frames per second): a 17-frame path
+plays in about 2 s."""
 
 MAX_FPS = 1000
 """Highest frame rate :func:`save_video` writes. MPEG-4 Part 2 stores the frame rate as a time base of
 at most 65535 ticks per second, so OpenCV's writer fails from 65536 fps on; 1000 fps is far above any
-display and any real camera path (the CLI default is 8)."""
+display and any real camera path (the default is :data:`DEFAULT_FPS`)."""
 
 
 def check_fps(fps: object, name: str = "fps") -> float:
@@ -61,7 +65,7 @@ def to_uint8(images: Tensor | np.ndarray, name: str = "images") -> np.ndarray:
     return np.round(np.clip(images, 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
-def save_video(path: str | os.PathLike, frames: Tensor | np.ndarray, fps: float = 8) -> None:
+def save_video(path: str | os.PathLike, frames: Tensor | np.ndarray, fps: float = DEFAULT_FPS) -> None:
     """Write RGB frames to an MP4 file (MPEG-4 Part 2, OpenCV fourcc ``mp4v``), atomically.
 
     The encoder is lossy (8-bit 4:2:0 chroma): expect a few grey levels of error on smooth content.

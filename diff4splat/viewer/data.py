@@ -31,6 +31,7 @@ from torch import Tensor
 from ..cameras.path import CameraPath
 from ..gaussians import Gaussians
 from ..io.ply import ply_bytes
+from ..io.video import DEFAULT_FPS
 from ..render.defaults import BACKGROUND, EPS2D, NEAR_PLANE
 from ..scene import DynamicGaussians
 
@@ -195,7 +196,7 @@ def _target_distance(means: Tensor, viewmat: Tensor) -> float:
     return float(z.median()) if z.numel() else 1.0
 
 
-def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float = 8.0,
+def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float = DEFAULT_FPS,
                    budget: int | None = VIEWER_BUDGET_BYTES,
                    background: tuple[float, float, float] = BACKGROUND, eps2d: float = EPS2D) -> ViewerPayload:
     """The data of one viewer page (module docstring), reduced to at most ``budget`` bytes (None: never).

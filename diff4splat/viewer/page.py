@@ -15,6 +15,7 @@ from importlib import resources
 
 from ..cameras.path import CameraPath
 from ..io.atomic import atomic_output_path
+from ..io.video import DEFAULT_FPS
 from ..render.defaults import BACKGROUND, EPS2D
 from ..scene import DynamicGaussians
 from .data import VIEWER_BUDGET_BYTES, ViewerPayload, viewer_payload
@@ -71,7 +72,7 @@ def viewer_html(payload: ViewerPayload, title: str = "diff4splat viewer", *, ful
     return "".join(parts)
 
 
-def write_viewer(path: str | os.PathLike, scene: DynamicGaussians, cameras: CameraPath, *, fps: float = 8.0,
+def write_viewer(path: str | os.PathLike, scene: DynamicGaussians, cameras: CameraPath, *, fps: float = DEFAULT_FPS,
                  budget: int | None = VIEWER_BUDGET_BYTES, title: str = "diff4splat viewer",
                  background: tuple[float, float, float] = BACKGROUND, eps2d: float = EPS2D) -> ViewerPayload:
     """Write ``viewer.html`` for ``scene`` seen along ``cameras`` (the first one is where it opens),
