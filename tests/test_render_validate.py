@@ -54,7 +54,10 @@ def test_bad_size_gives_one_message_from_every_entry_point(name, value):
 @pytest.mark.parametrize("kw, needle", [
     ({"render_mode": "RGBD"}, "render_mode must be one of"),
     ({"near_plane": 2.0, "far_plane": 1.0}, "near_plane < far_plane"),
-    ({"eps2d": -1.0}, "eps2d must be >= 0"),
+    ({"eps2d": -1.0}, "eps2d must be a finite number >= 0"),
+    ({"eps2d": float("inf")}, "eps2d must be a finite number >= 0"),  # culled every Gaussian, silently
+    ({"eps2d": None}, "eps2d must be a finite number >= 0"),  # a TypeError from a comparison
+    ({"sh_degree": True}, "sh_degree must be an int in 0..3, got True"),  # rendered as degree 1
 ])
 def test_bad_option_gives_one_message_from_every_entry_point(kw, needle):
     messages = {_message(fn, _args(), **kw) for fn in ENTRY_POINTS}
@@ -67,12 +70,17 @@ def test_bad_option_gives_one_message_from_every_entry_point(kw, needle):
     (3, lambda o: o - 1.0, "opacities must be in [0, 1]"),
     (2, lambda s: -s, "scales must be >= 0 metres"),
     (6, lambda K: K * torch.tensor([0.0, 1, 1], dtype=D)[:, None], "Ks need focal lengths fx, fy > 0 pixels"),
+    # the tile paths ignored skew and the last row, the ray path inverted them (and raised LinAlgError on a 0 row)
+    (6, lambda K: K + torch.tensor([[0.0, 10, 0], [0, 0, 0], [0, 0, 0]], dtype=D), "Ks must be pinhole intrinsics"),
+    (6, lambda K: K * torch.tensor([1.0, 1, 0], dtype=D)[:, None], "Ks must be pinhole intrinsics"),
+    # a scaled camera: its centre −Rᵀt, and so every SH colour, was wrong
+    (5, lambda V: V * torch.tensor([2.0, 2, 2, 1], dtype=D)[:, None], "viewmats must be rigid"),
 ])
 def test_values_the_paths_assume_are_checked_by_every_entry_point(index, edit, needle):
     """Values that rendered before (zero cameras crashed in torch.stack): the same message from every path."""
     args = _args()
     args[index] = edit(args[index])
-    if index == 5:
+    if index == 5 and len(args[5]) == 0:
         args[6] = args[6][:0]
     messages = {_message(fn, args) for fn in ENTRY_POINTS}
     assert len(messages) == 1 and needle in messages.pop()

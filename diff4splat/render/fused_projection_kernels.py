@@ -87,7 +87,7 @@ def project_forward(means, quats, scales, opacities, viewmats, ks, width, height
             _rotmat(quats[i], rot)
             for c in range(n_cam):
                 x, y, z = _camera_frame(rot, scales[i], means[i], viewmats[c], m, cov, tmp, cc)
-                if not (near <= z <= far):
+                if not (near <= z <= far) or z <= 0.0:  # as project_gaussians: near = 0 never divides by 0
                     continue
                 fx, fy, cx, cy, xlo, xhi, ylo, yhi = _limits(ks[c], width, height)
                 rz = 1.0 / z

@@ -208,7 +208,7 @@ def project_gaussians(
 ) -> Projection:
     """Project Gaussians into C cameras and cull them, as gsplat's ``fully_fused_projection``.
 
-    Steps (gsplat CUDA kernel order): camera-frame centre; cull z < near_plane or z > far_plane;
+    Steps (gsplat CUDA kernel order): camera-frame centre; cull z < near_plane, z ≤ 0 or z > far_plane;
     Σ2d by :func:`persp_proj`; dilation Σ2d + eps2d·I with compensation
     sqrt(max(0, det Σ2d / det(Σ2d + eps2d·I))) (Mip-Splatting eq. 9, used when ``antialiased``);
     cull det ≤ 0; conic = (Σ2d + eps2d·I)⁻¹; radius = ceil(3·sqrt(b + sqrt(max(0.01, b² − det)))) (0.01:
@@ -237,7 +237,7 @@ def project_gaussians(
         raise ValueError(f"camera_model must be one of {CAMERA_MODELS}, got {camera_model!r}")
     means_c, covars_c = world_to_camera(means, covariance_3d(quats, scales), viewmats)
     z = means_c[..., 2]
-    in_depth = (z >= near_plane) & (z <= far_plane)
+    in_depth = (z >= near_plane) & (z > 0) & (z <= far_plane)  # z > 0: near_plane = 0 may not divide by z = 0
     safe_means_c = torch.where(in_depth[..., None], means_c, means_c.new_tensor([0.0, 0.0, 1.0]))
     means2d, cov = project_means_covars(safe_means_c, covars_c, Ks, width, height, camera_model)
     sxx, sxy, syy = cov[..., 0, 0], 0.5 * (cov[..., 0, 1] + cov[..., 1, 0]), cov[..., 1, 1]
@@ -247,7 +247,12 @@ def project_gaussians(
     valid = in_depth & (det > 0)
     safe_det = torch.where(valid, det, torch.ones_like(det))
     conics = torch.stack([syy / safe_det, -sxy / safe_det, sxx / safe_det], dim=-1)
-    compensations = torch.sqrt(torch.clamp(det_orig / safe_det, min=0.0)) if antialiased else None
+    compensations = None
+    if antialiased:  # sqrt'(0) is infinite: a line or point Gaussian (det Σ2d = 0) gets 0 and a zero gradient
+        ratio = det_orig / safe_det
+        positive = ratio > 0
+        compensations = torch.where(positive, torch.sqrt(torch.where(positive, ratio, torch.ones_like(ratio))),
+                                    torch.zeros_like(ratio))
     with torch.no_grad():
         b = 0.5 * (sxx + syy)
         v1 = b + torch.sqrt(torch.clamp(b * b - det, min=EIGEN_FLOOR))

@@ -47,7 +47,7 @@ from diff4splat.render.defaults import (
     TILE_SIZE,
 )
 from diff4splat.render.settings import RasterSettings
-from diff4splat.render.stages import color_features, compute_dtype, expected_depth, mode_backgrounds
+from diff4splat.render.stages import color_features, compute_dtype, expected_depth, keep_in_graph, mode_backgrounds
 from diff4splat.render.validate import validate_inputs
 
 __all__ = ["raytrace", "render_rays", "whitening", "ray_gaussian_response", "composite_rays", "support_radius",
@@ -59,16 +59,24 @@ memory of a batch: 1.3 M Gaussians culled against all 1024 tiles of a 512² imag
 _LOG_T_MIN = math.log(T_MIN)
 
 
+RAY_SCALE_FLOOR = 1e-6
+"""Smallest standard deviation the ray path whitens by, metres: scales below it (0 included: a flat or line
+Gaussian, accepted by the renderer) are raised to it, so 1/s stays finite and float32's ‖d' × o'‖² cannot
+overflow for offsets up to 10 km (a 0 scale made W infinite and the image and gradients NaN). A 1 µm
+thickness is invisible at any scene scale the library renders; the tile path dilates by eps2d instead."""
+
+
 def whitening(quats: Tensor, scales: Tensor) -> Tensor:
     """Whitening matrices W = S⁻¹Rᵀ mapping world offsets to the Gaussians' unit frames (Σ⁻¹ = WᵀW).
 
     Args:
-        quats: (N, 4) wxyz, non-zero norm.  scales: (N, 3) standard deviations, metres, > 0.
+        quats: (N, 4) wxyz, non-zero norm.  scales: (N, 3) standard deviations, metres, ≥ 0 (raised to
+            :data:`RAY_SCALE_FLOOR`; no gradient flows to a scale below it).
 
     Returns:
         (N, 3, 3), 1/metres.
     """
-    return quat_to_rotmat(quats).transpose(-1, -2) / scales[..., :, None]
+    return quat_to_rotmat(quats).transpose(-1, -2) / scales.clamp_min(RAY_SCALE_FLOOR)[..., :, None]
 
 
 def ray_gaussian_response(
@@ -364,8 +372,9 @@ def render_rays(
             out = depth_img[:, None]
         if bgs is not None:
             out = out + (1.0 - acc_img)[:, None] * bgs[c]
-        out_c.append(out.reshape(height, width, S, -1).mean(2))
-        out_a.append(acc_img.reshape(height, width, S, 1).mean(2))
+        anchors = (feats, means, whiten, opacities, viewmats, Ks)  # attached even when camera c sees nothing
+        out_c.append(keep_in_graph(out, *anchors).reshape(height, width, S, -1).mean(2))
+        out_a.append(keep_in_graph(acc_img, *anchors).reshape(height, width, S, 1).mean(2))
     render_alphas = torch.stack(out_a)
     render_colors = expected_depth(torch.stack(out_c), render_alphas, render_mode)
     meta = {

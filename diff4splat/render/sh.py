@@ -38,7 +38,7 @@ def num_sh_bases(degree: int) -> int:
     Raises:
         ValueError: degree outside 0..3.
     """
-    if not isinstance(degree, int) or not 0 <= degree <= 3:
+    if isinstance(degree, bool) or not isinstance(degree, int) or not 0 <= degree <= 3:
         raise ValueError(f"sh_degree must be an int in 0..3, got {degree!r}")
     return (degree + 1) ** 2
 

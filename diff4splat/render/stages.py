@@ -85,6 +85,22 @@ def expected_depth(render_colors: Tensor, render_alphas: Tensor, render_mode: st
     return torch.cat([render_colors[..., :-1], render_colors[..., -1:] / render_alphas.clamp(min=1e-10)], dim=-1)
 
 
+def keep_in_graph(out: Tensor, *inputs: Tensor | None) -> Tensor:
+    """``out`` itself, or ``out`` attached to the autograd graph of ``inputs`` with zero gradient when it is not.
+
+    A view in which no Gaussian is visible composites nothing, so the PyTorch compositors' image would be a
+    detached zero/background tensor and ``loss.backward()`` would raise; the fused path and gsplat keep their
+    outputs attached. The anchor is an empty slice's sum (exactly 0, and 0 even beside inf), so ``out``'s values
+    are unchanged.
+    """
+    if out.requires_grad or not torch.is_grad_enabled():
+        return out
+    sources = [t for t in inputs if t is not None and t.requires_grad]
+    if not sources:
+        return out
+    return out + sum(t.reshape(-1)[:0].sum() for t in sources)
+
+
 @full_precision
 def render_pipeline(
     compositor: Compositor,
@@ -133,8 +149,9 @@ def render_pipeline(
             feats[c, sel], proj.covars2d[c, sel], None if bgs is None else bgs[c], width, height, tile_size,
         )
         info["gaussian_ids"] = vis
-        out_colors.append(col.reshape(height, width, -1))
-        out_alphas.append(alpha.reshape(height, width, 1))
+        anchors = (feats, proj.means2d, proj.conics, proj.opacities)  # attached even when camera c sees nothing
+        out_colors.append(keep_in_graph(col, *anchors).reshape(height, width, -1))
+        out_alphas.append(keep_in_graph(alpha, *anchors).reshape(height, width, 1))
         infos.append(info)
     render_alphas = torch.stack(out_alphas)
     render_colors = expected_depth(torch.stack(out_colors), render_alphas, render_mode)

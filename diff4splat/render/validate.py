@@ -6,6 +6,8 @@ accepts are listed here.
 """
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -20,6 +22,9 @@ RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 """gsplat's render modes: colour, accumulated depth, expected depth, colour + either depth."""
 RASTERIZE_MODES = ("classic", "antialiased")
 """gsplat's rasterize modes (antialiased: Mip-Splatting opacity compensation)."""
+VIEWMAT_TOL = {torch.float64: 1e-6, torch.float32: 1e-4, torch.float16: 1e-2, torch.bfloat16: 2e-2}
+"""Largest |RᵀR − I| entry accepted in viewmats, per dtype (a rotation rounded to the dtype passes; a scaled or
+sheared one does not)."""
 
 
 def _check_shape(name: str, t: Tensor, shape: tuple) -> None:
@@ -45,11 +50,12 @@ def validate_inputs(
     ((N, D), or (N, K, 3) with K ≥ (sh_degree+1)²), viewmats (C, 4, 4), Ks (C, 3, 3), backgrounds
     (C, D); every tensor on the device of ``means`` (no path moves tensors between devices); width,
     height, tile_size positive ints (pixels); 0 ≤ near_plane < far_plane (metres);
-    eps2d ≥ 0 (pixels²); render_mode in :data:`RENDER_MODES`, rasterize_mode in
+    eps2d a finite number ≥ 0 (pixels²); render_mode in :data:`RENDER_MODES`, rasterize_mode in
     :data:`RASTERIZE_MODES`, camera_model in ``camera_models``;
-    every tensor floating point and finite; at least one camera; opacities in [0, 1], scales ≥ 0 (metres) and
-    focal lengths fx, fy > 0 (pixels). Every entry point (tile path, dense reference, ray path,
-    gsplat backend) calls this, so the same bad argument gives the same message from each.
+    every tensor floating point and finite; at least one camera; opacities in [0, 1], scales ≥ 0 (metres),
+    Ks pinhole with focal lengths fx, fy > 0 (pixels), no skew and last row (0, 0, 1); viewmats rigid
+    (RᵀR = I within :data:`VIEWMAT_TOL`, last row (0, 0, 0, 1)). Every entry point (tile path, dense reference,
+    ray path, gsplat backend) calls this, so the same bad argument gives the same message from each.
 
     Raises:
         ValueError: naming the first bad argument and its value (or shape).
@@ -85,8 +91,8 @@ def validate_inputs(
     check_positive_int("tile_size", tile_size, "pixels")
     if not 0 <= near_plane < far_plane:
         raise ValueError(f"need 0 <= near_plane < far_plane, got near_plane={near_plane}, far_plane={far_plane}")
-    if not eps2d >= 0:
-        raise ValueError(f"eps2d must be >= 0 pixels², got {eps2d}")
+    if isinstance(eps2d, bool) or not isinstance(eps2d, (int, float)) or not 0 <= eps2d < math.inf:
+        raise ValueError(f"eps2d must be a finite number >= 0 pixels², got {eps2d!r}")
     if render_mode not in RENDER_MODES:
         raise ValueError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
     if rasterize_mode not in RASTERIZE_MODES:
@@ -111,3 +117,18 @@ def validate_inputs(
     focal = Ks.detach()[:, [0, 1], [0, 1]]
     if not bool((focal > 0).all()):
         raise ValueError(f"Ks need focal lengths fx, fy > 0 pixels, got a minimum of {float(focal.min()):.6g}")
+    # the paths read fx, fy, cx, cy only (as gsplat) except the ray path, which inverts K: any other entry would
+    # make them disagree, so it must be the pinhole's 0 (no skew) and (0, 0, 1)
+    pinhole = Ks.new_tensor([[1.0, 0.0, 1.0], [0.0, 1.0, 1.0], [0.0, 0.0, 0.0]])  # 1: free entry
+    fixed = Ks.new_tensor([0.0, 0.0, 1.0])
+    if bool(((Ks.detach() * (1 - pinhole))[:, :2] != 0).any()) or bool((Ks.detach()[:, 2] != fixed).any()):
+        raise ValueError("Ks must be pinhole intrinsics [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (pixels): no skew, "
+                         "last row (0, 0, 1)")
+    # world-to-camera must be rigid: the SH view direction uses the camera centre −Rᵀt
+    R = viewmats.detach()[:, :3, :3].double()
+    eye = torch.eye(3, dtype=R.dtype, device=R.device)
+    ortho_err = float((R.transpose(-1, -2) @ R - eye).abs().amax())
+    tol = VIEWMAT_TOL[viewmats.dtype] if viewmats.dtype in VIEWMAT_TOL else VIEWMAT_TOL[torch.float32]
+    if ortho_err > tol or bool((viewmats.detach()[:, 3] != viewmats.new_tensor([0.0, 0.0, 0.0, 1.0])).any()):
+        raise ValueError(f"viewmats must be rigid world-to-camera transforms [R | t; 0 0 0 1] with R a rotation, "
+                         f"got |RᵀR − I| up to {ortho_err:.3g} (tolerance {tol:g}) or another last row")
