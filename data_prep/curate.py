@@ -451,7 +451,7 @@ def curate(in_root: str | os.PathLike, out_root: str | os.PathLike, config: Cura
     settings = {"mode": mode, "config": config.to_dict()}
     cfg_file = out_root / CONFIG_COPY
     if cfg_file.is_file():
-        previous = yaml.safe_load(cfg_file.read_text(encoding="utf-8"))
+        previous = read_yaml(cfg_file, "curation config", expect=None)
         if previous != settings:
             raise ValueError(f"{out_root} was curated with a different config or mode ({cfg_file}); "
                              "use a new output folder or delete it")

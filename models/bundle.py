@@ -215,7 +215,8 @@ class Diff4SplatModel(nn.Module):
     def backbone(self) -> OursBackbone:
         """The VAE, text encoder and DiT as a :class:`models.backbones.base.Backbone` (a view: the modules are
         this model's; not a sub-module, so the state dict keeps its keys), with the config's sampling shift."""
-        return OursBackbone(self.vae, self.text_encoder, self.dit, self.config.sampling.shift)
+        s = self.config.sampling
+        return OursBackbone(self.vae, self.text_encoder, self.dit, s.shift, (s.logit_normal_mean, s.logit_normal_std))
 
     def networks(self) -> dict[str, nn.Module]:
         """The four networks by name (:data:`NETWORKS`)."""

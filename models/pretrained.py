@@ -54,8 +54,9 @@ def config_from_dict(cls: type, data: dict[str, Any], where: str = "config") -> 
     tuples where the field is a tuple.
 
     Raises:
-        ValueError: ``data`` is not a dict, an unknown field name, or a non-integer value (e.g. ``1e9``,
-            which JSON and YAML read as a float) for an ``int`` field (names the field and ``where``).
+        ValueError: ``data`` is not a dict, an unknown field name, a non-integer value (e.g. ``1e9``,
+            which JSON and YAML read as a float) for an ``int`` field, or a value that is not a number (a string
+            such as ``"1e-4"``, a bool) for a ``float`` field (names the field and ``where``).
     """
     if not isinstance(data, dict):
         raise ValueError(f"{where}: expected an object of config fields, got {type(data).__name__} {data!r:.60}")
@@ -64,9 +65,15 @@ def config_from_dict(cls: type, data: dict[str, Any], where: str = "config") -> 
     for key, value in data.items():
         if key not in fields:
             raise ValueError(f"{where}: unknown field {key!r} for {cls.__name__} (known: {sorted(fields)})")
-        if get_type_hints(cls).get(key) is int and (isinstance(value, bool) or not isinstance(value, int)):
+        hint = get_type_hints(cls).get(key)
+        if hint is int and (isinstance(value, bool) or not isinstance(value, int)):
             raise ValueError(f"{where}: field {key!r} of {cls.__name__} must be an integer, got {value!r} "
                              f"({type(value).__name__}; write 1000, not 1e3 or 1000.0)")
+        if hint in (float, float | None) and value is not None:
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ValueError(f"{where}: field {key!r} of {cls.__name__} must be a number, got {value!r} "
+                                 f"({type(value).__name__})")
+            value = float(value)
         f = fields[key]
         sub = _dataclass_type(cls, key)
         if sub is not None and isinstance(value, dict):

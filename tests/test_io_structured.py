@@ -56,3 +56,12 @@ def test_valid_files_parse_and_empty_yaml_is_an_empty_mapping(tmp_path):
     assert read_yaml(e, "a") == {}
     with pytest.raises(ValueError, match="must hold a YAML list, got a YAML object"):
         read_yaml(y, "a", expect=list)
+
+
+def test_yaml_reads_exponent_floats_without_a_dot_as_numbers(tmp_path):
+    """PyYAML (YAML 1.1) read ``lr: 1e-4`` as the string '1e-4', and a training run crashed at its first step."""
+    path = tmp_path / "stage.yaml"
+    path.write_text("lr: 1e-4\nkl: -3E2\nsteps: 1000\nname: 1e-4x\nversion: '1e-4'\nbig: 1.5e+3\n")
+    data = read_yaml(path, "stage")
+    assert data == {"lr": 1e-4, "kl": -300.0, "steps": 1000, "name": "1e-4x", "version": "1e-4", "big": 1500.0}
+    assert type(data["lr"]) is float and type(data["steps"]) is int

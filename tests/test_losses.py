@@ -225,3 +225,23 @@ def test_head_distillation_loss_rejects_bad_sigma(sigma):
 def test_head_distillation_loss_rejects_mismatched_maps():
     with pytest.raises(ValueError, match="one shape"):
         head_distillation_loss(torch.zeros(1, 12, 1, 8, 8), torch.zeros(1, 12, 2, 8, 8), 1.0)
+
+
+def test_smoothness_counts_only_valid_pixels():
+    """An uncovered pixel renders depth 0: it swamped the per-image normaliser and its edges scored a constant
+    covered depth 0.257 instead of 0."""
+    img = torch.rand(1, 3, 16, 16, generator=torch.Generator().manual_seed(0))
+    depth = torch.full((1, 16, 16), 2.0, requires_grad=True)
+    hole = torch.zeros(1, 16, 16, dtype=torch.bool)
+    hole[..., 4:8] = True
+    rendered = torch.where(hole, torch.zeros_like(depth), depth)  # the renderer's depth of uncovered pixels
+    loss = depth_smoothness_loss(rendered, img, ~hole)
+    loss.backward()
+    assert float(loss.detach()) == 0.0 and float(depth.grad.abs().max()) == 0.0
+    assert float(depth_smoothness_loss(rendered, img)) == 0.0  # depth 0 is never valid
+    # on the valid pixels it is the loss of the valid region alone: a crop of the right half
+    ramp = 1.0 + torch.arange(16.0).expand(1, 16, 16) / 4
+    right = torch.zeros(1, 16, 16, dtype=torch.bool)
+    right[..., 8:] = True
+    torch.testing.assert_close(depth_smoothness_loss(torch.where(right, ramp, 0.0), img, right),
+                               depth_smoothness_loss(ramp[..., 8:], img[..., 8:]))

@@ -18,6 +18,7 @@ from diff4splat.gaussians import Gaussians, rgb_to_sh0
 from diff4splat.photo import PHOTO_EPS2D
 from diff4splat.prune import settle_generated
 from diff4splat.scene import DynamicGaussians
+from models.flow_matching import shift_sigmas
 from training.losses import (
     LossWeights,
     depth_correlation_loss,
@@ -174,6 +175,20 @@ def test_forward_losses_and_gradients_reach_only_the_trainable_networks(clips, c
     assert set(got) == trained and all(v > 0 for v in got.values()), got
 
 
+def test_training_sigmas_follow_the_model_configs_logit_normal_and_the_stage_shift():
+    """The stage drew σ from logit-normal(0, 1) whatever the model config's logit_normal_mean/std said."""
+    model = tiny_model()
+    model.config = dataclasses.replace(model.config, sampling=dataclasses.replace(
+        model.config.sampling, logit_normal_mean=1.5, logit_normal_std=0.5))
+    stage = StageConfig(height=SIZE, width=SIZE, num_frames=FRAMES, flow_shift=1.0)
+    sigmas = TrainingModule(model, stage).backbone().training_sigmas(20_000, torch.Generator().manual_seed(0))
+    u = torch.logit(sigmas.double())
+    assert abs(float(u.mean()) - 1.5) < 0.02 and abs(float(u.std()) - 0.5) < 0.02
+    plain = TrainingModule(model, stage).backbone().training_sigmas(8, torch.Generator().manual_seed(1))
+    shifted = TrainingModule(model, dataclasses.replace(stage, flow_shift=3.0)).backbone()
+    torch.testing.assert_close(shifted.training_sigmas(8, torch.Generator().manual_seed(1)), shift_sigmas(plain, 3.0))
+
+
 @pytest.mark.slow
 def test_forward_is_a_function_of_the_generator(clips):
     """Same generator state → the same losses (exact resume relies on it); another seed → new σ, ε."""
@@ -235,7 +250,7 @@ def _check_losses(losses, batch, frames, rgb, depth, alpha, g, dm) -> None:
     valid = batch["depth_valid"][0][frames] & (alpha > 0.5)
     torch.testing.assert_close(losses["photo"], photometric_loss(rgb, target, WEIGHTS.ssim))
     torch.testing.assert_close(losses["depth"], depth_correlation_loss(depth, batch["depth"][0][frames], valid))
-    torch.testing.assert_close(losses["smooth"], depth_smoothness_loss(depth.clamp(min=1e-3), target))
+    torch.testing.assert_close(losses["smooth"], depth_smoothness_loss(depth, target, alpha > 0.5))
     torch.testing.assert_close(losses["metric_depth"], log_depth_loss(depth, batch["depth"][0][frames], valid))
     errors, moves = _hand_motion(batch, g, dm)
     assert float(losses["motion"]) == pytest.approx(sum(errors) / len(errors), rel=1e-5)

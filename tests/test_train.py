@@ -190,6 +190,11 @@ def test_missing_data_folder_is_exit_code_2(tmp_path, capsys):
     ({"height": 36, "width": 36}, "height"),  # the packed Plücker rays need multiples of 8
     ({"height": 40, "width": 40}, "multiple of 16"),  # the tiny DiT's 2×2 patches on 8×8 latents need 16
     ({"init_from": "no_such_model"}, "init_from"),
+    # each passed the check and failed at step 1, or trained with a maximised loss
+    ({"flow_shift": 0}, "stage.flow_shift must be > 0"),
+    ({"kl_weight": -1e-3}, "stage.kl_weight must be ≥ 0"),
+    ({"weights": {"smooth": -1e-3}}, "stage.weights.smooth must be a finite number ≥ 0"),
+    ({"kl_weight": "tiny"}, "field 'kl_weight' of StageConfig must be a number, got 'tiny'"),
 ])
 def test_bad_stage_values_are_exit_code_2(data, tmp_path, capsys, fields, needle):
     cfg = _stage_yaml(tmp_path, "vae", **fields)

@@ -349,6 +349,19 @@ def test_bad_config_raises():
         TrainerConfig(strategy="horovod")
     with pytest.raises(ValueError, match="total_steps"):
         TrainerConfig(total_steps=0)
+    # each trained without complaint: grad_clip −1 turned clipping off
+    for field, value in (("grad_clip", -1.0), ("warmup_steps", -2), ("weight_decay", -0.1), ("min_lr_ratio", 1.5)):
+        with pytest.raises(ValueError, match=f"trainer.{field} must"):
+            TrainerConfig(**{field: value})
+
+
+def test_metrics_csv_logs_the_learning_rate_each_step_used(tmp_path):
+    """The lr column was read after scheduler.step(): the next step's rate, one step late."""
+    t = _trainer(tmp_path, "cpu", total_steps=6, warmup_steps=3, checkpoint_every=100, min_lr_ratio=0.1)
+    t.fit()
+    rows = list(csv.DictReader(open(tmp_path / "metrics.csv")))
+    want = [1e-2 * warmup_cosine(i, 3, 6, 0.1) for i in range(6)]  # step k (1-based) ran with the multiplier at k − 1
+    assert [float(r["lr"]) for r in rows] == pytest.approx(want, rel=1e-12)
 
 
 @pytest.mark.parametrize("strategy, bf16", [("ddp", False), ("fsdp", False), ("fsdp", True)])

@@ -6,7 +6,7 @@ standard value of the work the term comes from, named in each docstring (:class:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import kornia
 import torch
@@ -46,6 +46,10 @@ class LossWeights:
         motion: weight of the track loss (stage 3 only).
         displacement: weight of the track-displacement loss (:func:`displacement_loss`, stage 3 only): the
             motion relative to frame 0, which the absolute track loss mixes with the frame-0 depth error.
+
+    Raises:
+        ValueError: a weight that is negative or not finite (a negative weight maximises its loss), or an
+            ``ssim`` above 1 (the photometric loss mixes (1 − ssim)·L1 + ssim·(1 − SSIM)).
     """
 
     ssim: float = 0.2
@@ -55,6 +59,15 @@ class LossWeights:
     smooth: float = 1e-3
     motion: float = 1.0
     displacement: float = 0.0
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if not 0 <= value < math.inf:
+                raise ValueError(f"stage.weights.{f.name} must be a finite number ≥ 0, got {value}")
+        if self.ssim > 1:
+            raise ValueError(f"stage.weights.ssim must lie in [0, 1] (the SSIM share of the photometric loss), "
+                             f"got {self.ssim}")
 
 
 def sample_training_sigmas(n: int, mean: float = 0.0, std: float = 1.0, shift: float = 1.0,
@@ -178,27 +191,39 @@ def log_depth_loss(pred: Tensor, reference: Tensor, valid: Tensor | None = None,
     return torch.where(n > 0, loss, torch.zeros_like(loss)).mean()
 
 
-def depth_smoothness_loss(depth: Tensor, image: Tensor) -> Tensor:
-    """Edge-aware smoothness of mean-normalised inverse depth (Monodepth2, Godard et al. 2019, Eq. 3).
+def depth_smoothness_loss(depth: Tensor, image: Tensor, valid: Tensor | None = None) -> Tensor:
+    """Edge-aware smoothness of mean-normalised inverse depth (Monodepth2, Godard et al. 2019, Eq. 3), over the
+    pixels ``valid`` marks.
 
     L = mean |∂x d*| e^{−|∂x I|} + mean |∂y d*| e^{−|∂y I|}, d* = (1/depth) / mean(1/depth) per image,
-    |∂I| averaged over colour channels. Zero for a constant depth; small where depth edges align
-    with image edges.
+    |∂I| averaged over colour channels; the means run over valid pixels (d*'s normaliser) and over neighbour
+    pairs whose two pixels are valid (the differences). Zero for a constant depth on the valid pixels, whatever
+    the others hold (an uncovered pixel renders depth 0: counted, its disparity swamped the normaliser and
+    its edge pulled the covered neighbours towards the camera); small where depth edges align with image edges.
 
     Args:
-        depth: (B, H, W) metres > 0.
+        depth: (B, H, W) metres; only pixels with depth > 0 (finite) count.
         image: (B, 3, H, W) in [0, 1].
+        valid: (B, H, W) bool, the pixels to regularise (e.g. rendered alpha > 0.5); None: every pixel.
 
     Returns:
-        Scalar ≥ 0.
+        Scalar ≥ 0 (0 without a valid neighbour pair).
     """
-    disp = 1.0 / depth.clamp(min=1e-6)
-    disp = disp / disp.mean(dim=(1, 2), keepdim=True)
+    ok = torch.isfinite(depth) & (depth > 0)
+    if valid is not None:
+        ok = ok & valid
+    disp = torch.where(ok, 1.0 / torch.where(ok, depth, torch.ones_like(depth)), torch.zeros_like(depth))
+    n = ok.flatten(1).sum(1).clamp(min=1).to(disp.dtype)
+    mean = disp.flatten(1).sum(1) / n
+    disp = disp / torch.where(mean > 0, mean, torch.ones_like(mean))[:, None, None]
+    ok_x, ok_y = ok[:, :, 1:] & ok[:, :, :-1], ok[:, 1:] & ok[:, :-1]
     dx = (disp[:, :, 1:] - disp[:, :, :-1]).abs()
     dy = (disp[:, 1:] - disp[:, :-1]).abs()
     ix = (image[..., 1:] - image[..., :-1]).abs().mean(1)
     iy = (image[..., 1:, :] - image[..., :-1, :]).abs().mean(1)
-    return (dx * torch.exp(-ix)).mean() + (dy * torch.exp(-iy)).mean()
+    lx = (dx * torch.exp(-ix) * ok_x).sum() / ok_x.sum().clamp(min=1)
+    ly = (dy * torch.exp(-iy) * ok_y).sum() / ok_y.sum().clamp(min=1)
+    return lx + ly
 
 
 def gather_track_predictions(

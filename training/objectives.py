@@ -135,12 +135,15 @@ class TrainingModule(nn.Module):
 
     def backbone(self) -> Backbone:
         """The model's video backbone: a diffusers model's own, or our VAE, text encoder and DiT as an
-        :class:`OursBackbone` whose training σ are shifted by the stage's ``flow_shift`` (a view, built per call:
-        it shares the networks and is no sub-module, so the state dict keeps its keys)."""
+        :class:`OursBackbone` whose training σ are the model config's logit-normal shifted by the stage's
+        ``flow_shift`` (a view, built per call: it shares the networks and is no sub-module, so the state dict keeps
+        its keys)."""
         m = self.model
         if isinstance(m, BackboneModel):
             return m.backbone
-        return OursBackbone(m.vae, m.text_encoder, m.dit, shift=self.stage.flow_shift)
+        s = m.config.sampling
+        return OursBackbone(m.vae, m.text_encoder, m.dit, shift=self.stage.flow_shift,
+                            logit_normal=(s.logit_normal_mean, s.logit_normal_std))
 
     @property
     def checkpoint_frozen(self) -> bool:
@@ -360,7 +363,7 @@ class TrainingModule(nn.Module):
             parts = {
                 "photo": photometric_loss(rgb, target, st.weights.ssim),
                 "depth": depth_correlation_loss(depth, gt_depth, valid & (alpha > 0.5)),
-                "smooth": depth_smoothness_loss(depth.clamp(min=1e-3), target),
+                "smooth": depth_smoothness_loss(depth, target, alpha > 0.5),
             }
             if st.weights.metric_depth > 0:
                 parts["metric_depth"] = log_depth_loss(depth, gt_depth, valid & (alpha > 0.5))

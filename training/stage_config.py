@@ -17,6 +17,7 @@ LDRM in full.
 """
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -197,6 +198,10 @@ class StageConfig:
             raise ValueError(f"stage.caption_dropout must lie in [0, 1], got {self.caption_dropout}")
         if ("distill" in self.objectives) != (self.teacher is not None):
             raise ValueError("stage.teacher: the distill objective needs a teacher model folder, and only it uses one")
+        if not 0 < self.flow_shift < math.inf:  # σ' = sσ/(1 + (s − 1)σ): s ≤ 0 is no schedule
+            raise ValueError(f"stage.flow_shift must be > 0, got {self.flow_shift}")
+        if not 0 <= self.kl_weight < math.inf:
+            raise ValueError(f"stage.kl_weight must be ≥ 0, got {self.kl_weight}")
         if not self.distill_sigma >= 0:
             raise ValueError(f"stage.distill_sigma must be ≥ 0 pixels, got {self.distill_sigma}")
         if isinstance(self.lora, dict):

@@ -120,7 +120,8 @@ class TrainerConfig:
         progress: show a tqdm bar.
 
     Raises:
-        ValueError: a count < 1, lr ≤ 0, an unknown strategy, ema_decay outside (0, 1), a device that is not a
+        ValueError: a count < 1, lr ≤ 0, a negative warmup_steps, grad_clip, weight_decay or num_workers, a
+            min_lr_ratio outside [0, 1], an unknown strategy, ema_decay outside (0, 1), a device that is not a
             string, or a bf16 that is not true, false, null or ``auto`` (each naming ``trainer.<field>``).
     """
 
@@ -152,8 +153,13 @@ class TrainerConfig:
         for name in ("total_steps", "batch_size", "checkpoint_every", "keep_checkpoints", "log_every", "max_nonfinite"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"trainer.{name} must be ≥ 1, got {getattr(self, name)}")
-        if not self.lr > 0:
+        if not 0 < self.lr < math.inf:
             raise ValueError(f"trainer.lr must be > 0, got {self.lr}")
+        for name in ("warmup_steps", "grad_clip", "weight_decay", "num_workers"):  # grad_clip < 0 turned clipping off
+            if not 0 <= getattr(self, name) < math.inf:
+                raise ValueError(f"trainer.{name} must be ≥ 0, got {getattr(self, name)}")
+        if not 0 <= self.min_lr_ratio <= 1:
+            raise ValueError(f"trainer.min_lr_ratio must lie in [0, 1], got {self.min_lr_ratio}")
         if self.strategy not in ("ddp", "fsdp"):
             raise ValueError(f"trainer.strategy must be 'ddp' or 'fsdp', got {self.strategy!r}")
         if self.ema_decay is not None and not 0 < self.ema_decay < 1:
@@ -510,6 +516,7 @@ class Trainer:
                     f"{self.nonfinite} consecutive non-finite steps at step {self.step}; the last good "
                     f"checkpoint in {self.run_dir / 'checkpoints'} is intact")
             return record
+        lr = self.scheduler.get_last_lr()[0]  # the rate this step used (after scheduler.step() it is the next one's)
         self.optimizer.step()
         self.scheduler.step()
         self.optimizer.zero_grad(set_to_none=True)
@@ -520,7 +527,7 @@ class Trainer:
                 for n, p in self.module.named_parameters():
                     if n in self.ema:
                         self.ema[n].lerp_(p.detach().float(), 1 - cfg.ema_decay)
-        record = {"step": self.step, "epoch": self.epoch, "skipped": 0, "lr": self.scheduler.get_last_lr()[0],
+        record = {"step": self.step, "epoch": self.epoch, "skipped": 0, "lr": lr,
                   "grad_norm": grad_norm, "seconds": time.perf_counter() - t0,
                   **{k: float(v.detach()) for k, v in losses.items()}}
         self._log(csv_path, record)

@@ -6,12 +6,26 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-__all__ = ["read_text", "read_json", "read_yaml"]
+__all__ = ["read_text", "read_json", "read_yaml", "YamlLoader"]
+
+
+class YamlLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that also reads YAML 1.2's floats without a dot: ``1e-4``, ``-3E2``.
+
+    PyYAML follows YAML 1.1, whose float needs a dot, so ``lr: 1e-4`` was the string ``'1e-4'`` and a training
+    run crashed at its first comparison; JSON, YAML 1.2 and Python read it as a number. Every YAML file the
+    library reads goes through this loader (:func:`read_yaml`).
+    """
+
+
+YamlLoader.add_implicit_resolver(  # copies SafeLoader's resolvers first; checked after them, so ints stay ints
+    "tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9][0-9_]*[eE][-+]?[0-9]+$"), list("-+0123456789"))
 
 _JSON_TYPES = {dict: "object", list: "list", str: "string", int: "number", float: "number", bool: "boolean",
                type(None): "null"}
@@ -68,7 +82,7 @@ def read_json(path: str | os.PathLike, what: str, expect: type | None = dict) ->
 
 
 def read_yaml(path: str | os.PathLike, what: str, expect: type | None = dict) -> Any:
-    """Parse a YAML file (``yaml.safe_load``); an empty file is ``{}`` when ``expect`` is ``dict``.
+    """Parse a YAML file (safe loading, :class:`YamlLoader`); an empty file is ``{}`` when ``expect`` is ``dict``.
 
     Raises:
         FileNotFoundError / ValueError: :func:`read_text`; invalid YAML (the parser's problem and line); a
@@ -77,7 +91,7 @@ def read_yaml(path: str | os.PathLike, what: str, expect: type | None = dict) ->
     path = Path(path)
     text = read_text(path, what)
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=YamlLoader)  # noqa: S506 - YamlLoader is a SafeLoader
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""

@@ -22,13 +22,17 @@ class OursBackbone(Backbone):
         vae, text_encoder, dit: the networks of a :class:`models.bundle.Diff4SplatModel`.
         shift: the flow-matching timestep shift of the inference schedule and of :meth:`training_sigmas`
             (``config.sampling.shift``; a training stage passes its ``flow_shift``).
+        logit_normal: (mean, std) of the logit-normal training σ before the shift (``config.sampling``'s
+            ``logit_normal_mean``, ``logit_normal_std``; SD3 §3.1 uses (0, 1)).
     """
 
     kind = "ours"
 
-    def __init__(self, vae: VideoVAE, text_encoder: TextEncoder, dit: VideoDiT, shift: float = 1.0):
+    def __init__(self, vae: VideoVAE, text_encoder: TextEncoder, dit: VideoDiT, shift: float = 1.0,
+                 logit_normal: tuple[float, float] = (0.0, 1.0)):
         super().__init__()
         self.vae, self.text_encoder, self.dit, self.shift = vae, text_encoder, dit, shift
+        self.logit_normal = tuple(logit_normal)
         self.latent = vae.config.latent_format
 
     def encode_video(self, video: Tensor, generator: torch.Generator | None = None) -> Tensor:
@@ -53,9 +57,10 @@ class OursBackbone(Backbone):
         return sigma_schedule(steps, self.shift, dtype=torch.float64)
 
     def training_sigmas(self, n: int, generator: torch.Generator) -> Tensor:
-        """Logit-normal σ (SD3 §3.1) shifted by :attr:`shift`, on ``generator``'s device
+        """Logit-normal σ (SD3 §3.1, :attr:`logit_normal`) shifted by :attr:`shift`, on ``generator``'s device
         (``training.losses.sample_training_sigmas``' draw)."""
-        return shift_sigmas(sample_logit_normal(n, generator=generator, device=generator.device), self.shift)
+        mean, std = self.logit_normal
+        return shift_sigmas(sample_logit_normal(n, mean, std, generator=generator, device=generator.device), self.shift)
 
     def transformer_blocks(self) -> list[nn.Module]:
         return list(self.dit.blocks)
