@@ -238,7 +238,7 @@ def test_smoothness_counts_only_valid_pixels():
     loss = depth_smoothness_loss(rendered, img, ~hole)
     loss.backward()
     assert float(loss.detach()) == 0.0 and float(depth.grad.abs().max()) == 0.0
-    assert float(depth_smoothness_loss(rendered, img)) == 0.0  # depth 0 is never valid
+    assert float(depth_smoothness_loss(rendered.detach(), img)) == 0.0  # depth 0 is never valid
     # on the valid pixels it is the loss of the valid region alone: a crop of the right half
     ramp = 1.0 + torch.arange(16.0).expand(1, 16, 16) / 4
     right = torch.zeros(1, 16, 16, dtype=torch.bool)
