@@ -158,6 +158,33 @@ def test_an_output_of_another_kind_is_replaced_only_with_overwrite(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == [MARKER, "manifest.json"]
 
 
+def test_an_earlier_output_holding_a_users_files_is_replaced_only_with_overwrite(tmp_path):
+    """Re-exporting into an earlier export deleted the NOTES.md and results/ a user had added beside it."""
+    out = tmp_path / "out"
+    with output_dir(out, kind="onnx") as tmp:
+        (tmp / "graphs").mkdir()
+        (tmp / "graphs" / "dit.onnx").write_bytes(b"g")
+        (tmp / "empty").mkdir()
+    assert json.loads((out / MARKER).read_text())["files"] == ["empty/", "graphs/dit.onnx"]
+    for added in ("NOTES.md", "graphs/mine.csv", "results/"):
+        path = out / added
+        path.mkdir() if added.endswith("/") else path.write_text("mine")
+        with pytest.raises(OutputDirError, match=f"earlier diff4splat 'onnx' output that also holds {added}, which "
+                                                 "diff4splat did not write; refusing to replace it"):
+            check_output_dir(out, kind="onnx")
+        shutil.rmtree(path) if path.is_dir() else path.unlink()
+    (out / "graphs" / "dit.onnx").unlink()  # a user removing what we wrote leaves nothing of theirs
+    with output_dir(out, kind="onnx") as tmp:
+        (tmp / "manifest.json").write_text("{}")
+    (out / "NOTES.md").write_text("mine")
+    with output_dir(out, kind="onnx", overwrite=True) as tmp:
+        (tmp / "manifest.json").write_text("{}")
+    assert sorted(p.name for p in out.iterdir()) == [MARKER, "manifest.json"]
+    (out / MARKER).write_text(json.dumps({"tool": "diff4splat", "kind": "onnx", "format": 1}))  # no list: by kind
+    (out / "NOTES.md").write_text("mine")
+    check_output_dir(out, kind="onnx")
+
+
 def test_overwrite_replaces_a_user_folder_that_holds_no_inputs(tmp_path):
     out = tmp_path / "old_results"
     out.mkdir()

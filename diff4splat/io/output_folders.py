@@ -7,7 +7,9 @@ The rules (README, "Output folders"):
   exists and is writable, its name fits the file system (≤ 255 bytes; the temporary name is shortened
   with a hash when needed, so any legal name works).
 * An existing folder is replaced only if it is empty or an earlier output of the same kind (the marker
-  file :data:`MARKER` this module writes into every folder). ``overwrite=True`` also allows another
+  file :data:`MARKER` this module writes into every folder) holding nothing but what that output wrote (the
+  marker lists its files: a note or result a user added beside them makes the folder theirs; folders written
+  before the list was recorded are checked by kind alone). ``overwrite=True`` also allows another
   kind or a folder without the marker, but a folder that holds inputs is never replaced: an input file
   or folder, the current directory, the home directory, a filesystem root, diff4splat's own installed
   packages (:data:`INSTALLED_PACKAGES`: their code and the shipped weights, the default checkpoints that no
@@ -45,13 +47,14 @@ __all__ = ["MARKER", "INSTALLED_PACKAGES", "OutputDirError", "check_output_dir",
            "remove_stale_temps"]
 
 MARKER = ".diff4splat-output.json"
-"""File written into every output folder: ``{"tool": "diff4splat", "kind": <kind>, "format": 1}``."""
+"""File written into every output folder: ``{"tool": "diff4splat", "kind": <kind>, "format": 2, "files": [...]}``,
+``files`` the paths written, relative to the folder (POSIX, sorted; format 1 had no list)."""
 
 INSTALLED_PACKAGES = ("diff4splat", "models", "training", "data_prep")
 """The top-level packages this distribution installs (pyproject's ``packages.find``); an output never replaces one
 of them or a folder holding one."""
 
-_MARKER_FORMAT = 1
+_MARKER_FORMAT = 2
 _SHORT_NAME_BYTES = 200  # longer names use a hash in temporary/lock names (suffixes need ≤ 55 bytes)
 EXIT_SIGTERM = 128 + signal.SIGTERM
 
@@ -83,14 +86,48 @@ def _resolve(out: Path) -> Path:
     return Path(os.path.realpath(out))
 
 
-def read_marker(folder: Path) -> str | None:
-    """The kind recorded in ``folder``'s marker, or None (no marker or not ours)."""
+def _marker(folder: Path) -> dict | None:
+    """``folder``'s marker as a dict, or None (no marker, unreadable, or not ours)."""
     try:
         data = json.loads((folder / MARKER).read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return None
     if isinstance(data, dict) and data.get("tool") == "diff4splat" and isinstance(data.get("kind"), str):
-        return data["kind"]
+        return data
+    return None
+
+
+def read_marker(folder: Path) -> str | None:
+    """The kind recorded in ``folder``'s marker, or None (no marker or not ours)."""
+    data = _marker(folder)
+    return None if data is None else data["kind"]
+
+
+def _files_under(folder: Path) -> list[str]:
+    """Every file, link and empty folder under ``folder`` but the marker, as sorted POSIX paths relative to it
+    (an empty folder ends with "/"; links are listed, never followed)."""
+    found, top = [], os.fspath(folder)
+    for root, dirs, files in os.walk(folder):
+        rel = Path(root).relative_to(folder)
+        links = [d for d in dirs if os.path.islink(os.path.join(root, d))]
+        dirs[:] = [d for d in dirs if d not in links]
+        found += [(rel / n).as_posix() for n in files + links]
+        if root != top and not (dirs or files or links):
+            found.append(rel.as_posix() + "/")
+    return sorted(f for f in found if f != MARKER)
+
+
+def _foreign_file(folder: Path, marker: dict) -> str | None:
+    """The first path under ``folder`` that its marker's ``files`` does not list, nor holds as a folder (None:
+    all listed, or a marker without a list)."""
+    listed = marker.get("files")
+    if not isinstance(listed, list):
+        return None
+    listed = {str(f) for f in listed}
+    listed |= {p.as_posix() + "/" for f in listed for p in Path(f).parents if p != Path(".")}
+    for f in _files_under(folder):
+        if f not in listed:
+            return f
     return None
 
 
@@ -134,7 +171,8 @@ def _check_existing(label: str, target: Path, kind: str, overwrite: bool, replac
         empty = next(os.scandir(target), None) is None
     except OSError as e:
         raise _ExistingFolderError(f"{label} cannot be read: {e.strerror}") from None
-    found = None if empty else read_marker(target)
+    data = None if empty else _marker(target)
+    found = None if data is None else data["kind"]
     if not replace:
         ours = empty or found == kind or overwrite
         hint = f" (choose a new folder, or pass {replace_flag} to replace it)" if ours and replace_flag else ""
@@ -148,6 +186,10 @@ def _check_existing(label: str, target: Path, kind: str, overwrite: bool, replac
     if found != kind:
         raise _ExistingFolderError(f"{label} holds a diff4splat {found!r} output, not {kind!r}; refusing to "
                                    f"replace it ({hint})")
+    foreign = _foreign_file(target, data)
+    if foreign is not None:
+        raise _ExistingFolderError(f"{label} is an earlier diff4splat {kind!r} output that also holds {foreign}, "
+                                   f"which diff4splat did not write; refusing to replace it ({hint})")
 
 
 def check_output_dir(out: str | os.PathLike, *, inputs: Iterable[str | os.PathLike | None] = (),
@@ -344,7 +386,8 @@ def output_dir(out: str | os.PathLike, *, kind: str, inputs: Iterable[str | os.P
         try:
             with naming_os_errors(out, tmp):  # inside: a full disk is seen before tmp is removed
                 yield tmp
-                (tmp / MARKER).write_text(json.dumps({"tool": "diff4splat", "kind": kind, "format": _MARKER_FORMAT}))
+                marker = {"tool": "diff4splat", "kind": kind, "format": _MARKER_FORMAT, "files": _files_under(tmp)}
+                (tmp / MARKER).write_text(json.dumps(marker))
                 follow_umask(tmp)  # whatever wrote the files (safetensors: 0600), they get the umask's mode
                 with _locked(target):
                     check_output_dir(out, inputs=inputs, overwrite=overwrite, kind=kind, replace=replace, **flags)
