@@ -233,9 +233,12 @@ def _graphs(model: Diff4SplatModel, text: bool, deformation: bool) -> list[_Grap
         graphs.append(_Graph("dit", _PlainDiT(model), dit_args, ("x", "sigma", "image_latent", "plucker"),
                              ("velocity",), dit_ds))
     image = cfg.ldrm.image_branch > 0
-    ldrm_args = (randn(B, c, n, h, w), randn(B, cfg.ldrm.plucker_channels, n, h, w),
+    # traced on a grid of at least lmin tokens a side (a config whose own grid is smaller, e.g. ldrm.patch_size 2
+    # at 64², failed the export on torch.export's bound); the graph itself runs on smaller grids
+    lh, lw = max(h, pl * lmin), max(w, pl * lmin)
+    ldrm_args = (randn(B, c, n, lh, lw), randn(B, cfg.ldrm.plucker_channels, n, lh, lw),
                  torch.linspace(0, 1, K, device="cpu") if deformation else None,
-                 randn(B, 3, s * h, s * w).tanh() if image else None)
+                 randn(B, 3, s * lh, s * lw).tanh() if image else None)
     ldrm_ds = {"latents": ldrm_lat, "plucker": ldrm_lat, "times": {0: K_d} if deformation else None,
                "image": {0: batch, 2: (s * pl) * hr, 3: (s * pl) * wr} if image else None}
     names = tuple(k for k, a in zip(("latents", "plucker", "times", "image"), ldrm_args, strict=True) if a is not None)

@@ -72,7 +72,8 @@ class LoadedPipeline:
     files: tuple[Path, ...] = ()
 
 
-def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | None = None, *, runtime: str = "torch",
+def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | None = None, *,
+                  runtime: str | None = None,
                   onnx: str | os.PathLike | None = None, device: str | torch.device = AUTO, dtype: str = "float32",
                   offload: str = "none", attention: str = "auto", compile: bool = False) -> LoadedPipeline:
     """Load the networks ``generate`` runs.
@@ -83,6 +84,7 @@ def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | Non
         config: shipped config name or YAML path (None: :data:`models.bundle.DEFAULT_CONFIG`).
         runtime: one of :data:`RUNTIMES`; "onnxruntime" runs the export in ``onnx`` (checkpoint, config, device,
             dtype, offload, attention and compile then do not apply: the export's manifest fixes the model).
+            None: "onnxruntime" when ``onnx`` is given, else "torch".
         device: "auto" (CUDA when present, else the CPU), "cpu", "cuda", "cuda:1", …
         dtype: weight dtype name (:data:`diff4splat.runtime.DTYPES`).
         offload: "none", "model" or "model-prefetch" (:data:`diff4splat.runtime.OFFLOAD_MODES`).
@@ -94,6 +96,8 @@ def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | Non
             a malformed model folder or export.
         FileNotFoundError: ``checkpoint`` or ``onnx`` is not a folder; an unknown config name.
     """
+    if runtime is None:
+        runtime = "torch" if onnx is None else "onnxruntime"
     if runtime not in RUNTIMES:
         raise ValueError(f"--runtime must be one of {RUNTIMES}, got {runtime!r}")
     if runtime == "onnxruntime":
@@ -116,7 +120,7 @@ def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | Non
                               time.perf_counter() - t0, None, None, {"onnxruntime": onnxruntime.__version__},
                               (Path(onnx),))
     if onnx is not None:
-        raise ValueError("--onnx needs --runtime onnxruntime")
+        raise ValueError("--onnx runs the export with onnxruntime, not --runtime torch")
     if dtype not in DTYPES:
         raise ValueError(f"--dtype must be one of {sorted(DTYPES)}, got {dtype!r}")
     if attention not in ATTENTION_KERNELS:

@@ -72,10 +72,11 @@ def add_generate_parser(subparsers, *, out_type: Callable[[str], Path], out_help
                    help="torch.compile the transformer's blocks (regional compilation): the first sampling step "
                         "compiles, the later ones run fused kernels (for long runs on a GPU; needs a C++ compiler "
                         "on the CPU)")
-    g.add_argument("--runtime", choices=("torch", "onnxruntime"), default="torch",
-                   help="run the networks with PyTorch or with onnxruntime on an --onnx export (default: torch)")
-    g.add_argument("--onnx", type=Path, default=None, help="folder written by `diff4splat export-onnx` "
-                   "(with --runtime onnxruntime)")
+    g.add_argument("--runtime", choices=("torch", "onnxruntime"), default=None,
+                   help="run the networks with PyTorch or with onnxruntime on an --onnx export (default: onnxruntime "
+                        "with --onnx, else torch)")
+    g.add_argument("--onnx", type=Path, default=None, help="folder written by `diff4splat export-onnx`, run with "
+                   "onnxruntime")
     g.add_argument("--no-frame-plys", dest="frame_plys", action="store_false",
                    help="leave out frames/NNNN.ply, the scene at each frame's time (scene.ply and deformation.npz "
                         "hold the same; frames/ is most of a long path's folder: 4.4 of 7.2 GB at the paper size)")

@@ -3,6 +3,7 @@
 The export of the perturbed tiny model is made once per test session (:func:`exported`, cached under
 pytest's base temp folder) and shared with tests/test_onnx_runtime.py: exports are the slow part.
 """
+import dataclasses
 import hashlib
 import json
 
@@ -251,6 +252,26 @@ def test_external_data_graph_checks_and_runs(tmp_path):
     meta = session.get_modelmeta().custom_metadata_map  # the graph carries its own part, config and dim ranges
     assert meta["diff4splat.part"] == "text_encoder" and json.loads(meta["diff4splat.config"]) == json.loads(
         json.dumps(model.config.to_dict())) and json.loads(meta["diff4splat.dims"]) == entry["dims"]
+
+
+@pytest.mark.slow
+def test_an_ldrm_whose_grid_is_below_the_pyramids_bound_exports_and_runs_at_its_own_grid(tmp_path):
+    """deformation.levels 4 needs 9 LDRM tokens a side to trace, the tiny model has 8: export-onnx crashed with a
+    ConstraintViolationError after its other graphs, though generate ran the model."""
+    cfg = Diff4SplatConfig()
+    deformation = dataclasses.replace(cfg.ldrm.deformation, levels=4)
+    ldrm = dataclasses.replace(cfg.ldrm, deformation=deformation)
+    model = Diff4SplatModel.random(dataclasses.replace(cfg, ldrm=ldrm))
+    torch.nn.init.normal_(model.ldrm.deformation.out_conv.weight, std=0.5, generator=torch.Generator().manual_seed(0))
+    graph = next(g for g in _graphs(model.eval(), text=False, deformation=True) if g.name == "ldrm")
+    _export_graph(graph, tmp_path / "ldrm.onnx", 18, external_data_bytes=2**31, config=model.config.to_dict())
+    session = ort.InferenceSession(str(tmp_path / "ldrm.onnx"), providers=["CPUExecutionProvider"])
+    h = cfg.height // cfg.vae.spatial_factor  # the model's own grid, below the traced one
+    latents, plucker, times, _ = _ldrm_inputs(1, 2, h, h, 3)
+    got = session.run(None, {"latents": latents.numpy(), "plucker": plucker.numpy(), "times": times.numpy()})
+    ref = model.ldrm(latents, plucker, times)
+    for name, value in zip(LDRM_OUTPUTS, got, strict=True):
+        _close(value, getattr(ref, name), f"ldrm.{name}")
 
 
 def test_weight_hashes_follow_the_weights(tmp_path):

@@ -171,7 +171,7 @@ def test_generate_cli_onnxruntime_writes_the_same_folder(full, tmp_path, tmp_pat
     ckpt = tmp_path_factory.getbasetemp() / "onnx_cache" / "checkpoint"
     common = ["generate", str(EXAMPLE_IMAGE), "--frames", "5", "--steps", "2", "--prompt", PROMPT, "--quiet"]
     assert main(common + ["--checkpoint", str(ckpt), "--device", "cpu", "--out", str(tmp_path / "torch")]) == 0
-    assert main(common + ["--runtime", "onnxruntime", "--onnx", str(out), "--out", str(tmp_path / "ort")]) == 0
+    assert main(common + ["--onnx", str(out), "--out", str(tmp_path / "ort")]) == 0  # --onnx: onnxruntime
     a, b = tmp_path / "torch", tmp_path / "ort"
     assert sorted(p.name for p in a.iterdir()) == sorted(p.name for p in b.iterdir())
     meta = json.loads((b / "meta.json").read_text())
@@ -252,7 +252,7 @@ def test_cli_prompt_on_a_no_text_export_is_one_line_exit_2(lean, tmp_path, capsy
 def test_cli_runtime_option_errors(tmp_path, capsys, case):
     args = ["generate", str(EXAMPLE_IMAGE), "--quiet", "--out", str(tmp_path / "o")]
     args += {"no_onnx": ["--runtime", "onnxruntime"],
-             "onnx_without_runtime": ["--onnx", str(tmp_path)],
+             "onnx_without_runtime": ["--runtime", "torch", "--onnx", str(tmp_path)],
              "with_checkpoint": ["--runtime", "onnxruntime", "--onnx", str(tmp_path), "--checkpoint", str(tmp_path)],
              "with_attention": ["--runtime", "onnxruntime", "--onnx", str(tmp_path), "--attention", "cudnn"],
              "with_compile": ["--runtime", "onnxruntime", "--onnx", str(tmp_path), "--compile"],
