@@ -16,7 +16,7 @@ from models.bundle import DEFAULT_CONFIG, config_names
 from .cameras import TRAJECTORIES
 from .devices import AUTO, DEVICE_HELP, resolve_device
 from .errors import print_warnings, run_cli
-from .export import EXPORT_KIND, check_opset, export_onnx
+from .export import EXPORT_KIND, MAX_OPSET, MIN_OPSET, check_opset, export_onnx
 from .generate_cli import add_generate_parser, generate_command
 from .io.output_folders import check_output_dir
 from .io.video import DEFAULT_FPS
@@ -82,7 +82,8 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
     e.add_argument("--no-text", action="store_true", help="leave out the text encoder (empty prompt only)")
     e.add_argument("--static", action="store_true",
                    help="leave out the deformation network (static scenes only)")
-    e.add_argument("--opset", type=int, default=18, help="ONNX opset, >= 18 (default: 18)")
+    e.add_argument("--opset", type=int, default=MIN_OPSET,
+                   help=f"ONNX opset, {MIN_OPSET} to {MAX_OPSET} (default: {MIN_OPSET})")
     r = sub.add_parser("render", help="re-render an output folder of generate or fit along a camera path",
                        description="Render the scene of an output folder of generate or fit along any camera path "
                                    "and time: rgb/0000.png … (lossless), video.mp4, depth/0000.exr …, cameras.json.")

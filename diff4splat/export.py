@@ -72,7 +72,7 @@ from models.pretrained import WEIGHTS_NAME
 from .io.output_folders import check_output_dir, output_dir
 
 __all__ = ["export_onnx", "check_opset", "state_dict_sha256", "checkpoint_sha256", "MANIFEST_NAME", "MANIFEST_FORMAT",
-           "MIN_OPSET", "EXTERNAL_DATA_BYTES", "LDRM_OUTPUTS", "STATIC_LDRM_OUTPUTS", "graph_metadata",
+           "MIN_OPSET", "MAX_OPSET", "EXTERNAL_DATA_BYTES", "LDRM_OUTPUTS", "STATIC_LDRM_OUTPUTS", "graph_metadata",
            "GRAPH_METADATA_KEYS"]
 
 MANIFEST_NAME = "manifest.json"
@@ -82,6 +82,10 @@ MANIFEST_FORMAT = "diff4splat-onnx/2"
 """/2: LDRM maps with a source-frame axis S and the optional ``image`` input (/1: maps of frame 0 only)."""
 MIN_OPSET = 18
 """The dynamo exporter emits opset ≥ 18 (LayerNorm, GroupNorm-free decompositions, ``ReduceMean`` axes inputs)."""
+MAX_OPSET = 25
+"""The newest opset whose graphs pass ``onnx.checker`` and load in onnxruntime (tests/test_export.py exports one at
+it). onnx 1.23 names opsets up to 28, but the exporter's graphs fail its checker from 26 on (no Gelu/Attention
+registered at the version the exporter's converter leaves them), after the whole export had run."""
 EXTERNAL_DATA_BYTES = 2_000_000_000
 """Graphs whose weights reach 2 GB store them in a ``<file>.onnx.data`` beside the graph: a single
 protobuf cannot exceed 2 GiB (``onnx.checker`` and onnxruntime read the external file by path)."""
@@ -380,10 +384,11 @@ def _dim_ranges(dynamic_shapes: dict) -> dict[str, list[int]]:
 
 
 def check_opset(opset: int) -> None:
-    """Raise ValueError unless ``opset`` is an int in [:data:`MIN_OPSET`, the installed onnx's newest]."""
+    """Raise ValueError unless ``opset`` is an int in [:data:`MIN_OPSET`, :data:`MAX_OPSET` or the installed onnx's
+    newest if older]."""
     onnx = _onnx()
 
-    newest = onnx.defs.onnx_opset_version()
+    newest = min(MAX_OPSET, onnx.defs.onnx_opset_version())
     if isinstance(opset, bool) or not isinstance(opset, int) or not MIN_OPSET <= opset <= newest:
         raise ValueError(f"opset must be an int in [{MIN_OPSET}, {newest}] (the dynamo exporter needs ≥ {MIN_OPSET}), "
                          f"got {opset!r}")
@@ -412,7 +417,7 @@ def export_onnx(
         out_dir: output folder; replaced only when the whole export succeeded.
         text: include the text encoder and the text-conditioned DiT (False = ``--no-text``).
         deformation: include the deformation network in the LDRM graph (False = ``--static``).
-        opset: ONNX opset, ≥ :data:`MIN_OPSET` and ≤ the installed onnx's newest.
+        opset: ONNX opset in [:data:`MIN_OPSET`, :data:`MAX_OPSET`] (:func:`check_opset`).
         checkpoint: the folder ``model`` was loaded from; its weight files are hashed. None hashes
             the in-memory state dict (:func:`state_dict_sha256`), e.g. for a random model.
         source: free-text description of the weights' origin stored in the manifest.

@@ -18,6 +18,7 @@ from diff4splat.cli import main
 from diff4splat.export import (
     LDRM_OUTPUTS,
     MANIFEST_NAME,
+    MAX_OPSET,
     _export_graph,
     _graphs,
     checkpoint_sha256,
@@ -306,12 +307,24 @@ def test_failed_export_keeps_the_previous_folder_and_leaves_no_temp(tmp_path, mo
     assert [p.name for p in tmp_path.iterdir()] == ["onnx"]
 
 
-@pytest.mark.parametrize("case", ["opset_17", "missing_checkpoint", "out_is_file", "no_out"])
+@pytest.mark.slow
+def test_a_graph_at_the_newest_accepted_opset_passes_the_checker_and_loads(tmp_path):
+    """Opsets 26–28 were accepted (onnx names them) and failed the checker after the whole export."""
+    model = tiny_model()
+    graph = next(g for g in _graphs(model, text=True, deformation=True) if g.name == "text_encoder")
+    _export_graph(graph, tmp_path / "t.onnx", MAX_OPSET, external_data_bytes=2**31, config=model.config.to_dict())
+    assert {o.domain: o.version for o in onnx.load(str(tmp_path / "t.onnx")).opset_import}[""] == MAX_OPSET
+    ort.InferenceSession(str(tmp_path / "t.onnx"), providers=["CPUExecutionProvider"])
+
+
+@pytest.mark.parametrize("case", ["opset_17", "opset_above_max", "missing_checkpoint", "out_is_file", "no_out"])
 def test_export_cli_bad_input_one_line_exit_2_and_no_output(tmp_path, capsys, case):
     out = tmp_path / "out"
     args = ["export-onnx", "--out", str(out)]
     if case == "opset_17":
         args += ["--opset", "17"]
+    elif case == "opset_above_max":
+        args += ["--opset", str(MAX_OPSET + 1)]
     elif case == "missing_checkpoint":
         args += ["--checkpoint", str(tmp_path / "nope")]
     elif case == "out_is_file":
