@@ -11,6 +11,7 @@ import sys
 from importlib.metadata import entry_points
 from pathlib import Path
 
+from models.backbones.model import INDEX_FILE
 from models.bundle import DEFAULT_CONFIG, config_names
 
 from .cameras import TRAJECTORIES
@@ -129,6 +130,9 @@ def export_onnx_command(args) -> dict:
     check_opset(args.opset)
     if args.checkpoint is not None and not args.checkpoint.is_dir():
         raise FileNotFoundError(f"--checkpoint: {args.checkpoint} is not a folder")
+    if args.checkpoint is not None and (args.checkpoint / INDEX_FILE).is_file():  # before loading gigabytes
+        raise ValueError(f"--checkpoint {args.checkpoint} is a diffusers backbone ({INDEX_FILE}); export-onnx exports "
+                         "our own networks only (serve a backbone with --runtime torch)")
     model, source = print_warnings(load_model, args.checkpoint, args.config, seed=0)
     checkpoint = None if source.startswith("random:") else Path(source)  # hash the weight files read
     return export_onnx(model, args.out, text=not args.no_text, deformation=not args.static, opset=args.opset,

@@ -429,13 +429,17 @@ def export_onnx(
         The manifest dict (also written to ``out_dir/manifest.json``).
 
     Raises:
-        ValueError: ``opset`` out of range.
+        ValueError: ``opset`` out of range; ``model`` is not a :class:`~models.bundle.Diff4SplatModel` (a diffusers
+            backbone's networks are not exported).
         OutputDirError: ``out_dir`` may not be written (a file, holds inputs, not an ONNX export, …).
         FileNotFoundError: ``checkpoint`` lacks a network's weights.
         torch._dynamo.exc.UserError: a dynamic dimension cannot be honoured by a network (a bug).
     """
     onnx = _onnx()
 
+    if not isinstance(model, Diff4SplatModel):
+        raise ValueError(f"export-onnx exports our own networks (a Diff4SplatModel), not a {type(model).__name__}: "
+                         "a diffusers backbone is served with --runtime torch")
     check_opset(opset)
     inputs = [*inputs, checkpoint]
     check_output_dir(out_dir, inputs=inputs, overwrite=overwrite, kind=EXPORT_KIND, parents=True)  # before the export

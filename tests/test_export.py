@@ -317,7 +317,8 @@ def test_a_graph_at_the_newest_accepted_opset_passes_the_checker_and_loads(tmp_p
     ort.InferenceSession(str(tmp_path / "t.onnx"), providers=["CPUExecutionProvider"])
 
 
-@pytest.mark.parametrize("case", ["opset_17", "opset_above_max", "missing_checkpoint", "out_is_file", "no_out"])
+@pytest.mark.parametrize("case", ["opset_17", "opset_above_max", "missing_checkpoint", "backbone", "out_is_file",
+                                  "no_out"])
 def test_export_cli_bad_input_one_line_exit_2_and_no_output(tmp_path, capsys, case):
     out = tmp_path / "out"
     args = ["export-onnx", "--out", str(out)]
@@ -327,6 +328,10 @@ def test_export_cli_bad_input_one_line_exit_2_and_no_output(tmp_path, capsys, ca
         args += ["--opset", str(MAX_OPSET + 1)]
     elif case == "missing_checkpoint":
         args += ["--checkpoint", str(tmp_path / "nope")]
+    elif case == "backbone":  # refused before loading (a 5B backbone loaded for minutes, then a wrong message)
+        (tmp_path / "wan").mkdir()
+        (tmp_path / "wan" / "model_index.json").write_text('{"_class_name": "WanImageToVideoPipeline"}')
+        args += ["--checkpoint", str(tmp_path / "wan")]
     elif case == "out_is_file":
         out.write_text("x")
     else:
