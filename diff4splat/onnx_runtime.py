@@ -29,10 +29,12 @@ from onnxruntime.capi import onnxruntime_pybind11_state as state
 from torch import Tensor
 
 from models.bundle import Diff4SplatConfig
+from models.dit import check_dit_inputs
 from models.flow_matching import sigma_schedule
-from models.ldrm import LDRMOutput
+from models.ldrm import LDRMOutput, check_ldrm_inputs
 from models.pretrained import config_from_dict
 from models.text_encoder import ByteTokenizer
+from models.vae import check_latents, check_video
 
 from .export import GRAPH_METADATA_KEYS, LDRM_OUTPUTS, MANIFEST_FORMAT, MANIFEST_NAME, STATIC_LDRM_OUTPUTS
 from .io.structured import read_json
@@ -273,7 +275,12 @@ class OnnxRuntime:
         return sigma_schedule(steps, self.config.sampling.shift, dtype=torch.float64)
 
     def encode_image(self, video: Tensor) -> Tensor:
-        """(B, 3, T, H, W) in [−1, 1] → (B, c, n, h, w) DiT latents (``vae_encoder.onnx``)."""
+        """(B, 3, T, H, W) in [−1, 1] → (B, c, n, h, w) DiT latents (``vae_encoder.onnx``).
+
+        Raises:
+            ValueError: as :meth:`models.vae.VideoVAE.encode` (T ≠ 1 + 4k, H or W not a multiple of 8, …).
+        """
+        check_video(self.config.vae, video)
         (z,) = self._run("vae_encoder", {"video": _numpy(video, np.float32)})
         return torch.from_numpy(z)
 
@@ -286,10 +293,9 @@ class OnnxRuntime:
         :class:`models.vae.VideoVAE`), so the padding changes nothing.
 
         Raises:
-            ValueError: latents not 5-D.
+            ValueError: as :meth:`models.vae.VideoVAE.decode` (not (B, c, n, h, w)).
         """
-        if latents.dim() != 5:
-            raise ValueError(f"latents must have shape (B, c, n, h, w), got {tuple(latents.shape)}")
+        check_latents(self.config.vae, latents)
         n, n_min = latents.shape[2], self.manifest["files"]["vae_decoder"]["dims"]["latent_frames"][0]
         padded = torch.cat([latents] + [latents[:, :, -1:]] * max(0, n_min - n), dim=2)
         (video,) = self._run("vae_decoder", {"latents": _numpy(padded, np.float32)})
@@ -314,8 +320,10 @@ class OnnxRuntime:
         mask (exactly zero cross-attention, see :mod:`diff4splat.export`).
 
         Raises:
-            ValueError: text given to a graph exported without text inputs.
+            ValueError: as :meth:`models.dit.VideoDiT.forward` (shapes, σ outside [0, 1]); text given to a graph
+                exported without text inputs.
         """
+        check_dit_inputs(self.config.dit, x, sigma, image_latent, plucker, text, text_mask)
         feeds = {"x": _numpy(x, np.float32), "sigma": _numpy(sigma, np.float32),
                  "image_latent": _numpy(image_latent, np.float32), "plucker": _numpy(plucker, np.float32)}
         if self.dit_text_inputs:
@@ -342,18 +350,13 @@ class OnnxRuntime:
                 branch (``parts.ldrm_image_input``), ignored otherwise.
 
         Raises:
-            ValueError: ``times`` given to an export without the deformation network
-                (``export_onnx(deformation=False)``); ``image`` missing or not (B, 3, 8h, 8w) for an
-                export with an image branch.
+            ValueError: as :meth:`models.ldrm.LDRM.forward` (shapes, times outside [0, 1], ``image`` missing or not
+                (B, 3, 8h, 8w) for an export with an image branch); ``times`` given to an export without the
+                deformation network (``export_onnx(deformation=False)``).
         """
+        check_ldrm_inputs(self.config.ldrm, latents, plucker, times, image)
         feeds = {"latents": _numpy(latents, np.float32), "plucker": _numpy(plucker, np.float32)}
         if self.ldrm_image_input:
-            B, _, _, h, w = latents.shape
-            s = self.config.ldrm.vae_spatial
-            if image is None or tuple(image.shape) != (B, 3, s * h, s * w):
-                got = None if image is None else tuple(image.shape)
-                raise ValueError(f"image must have shape ({B}, 3, {s * h}, {s * w}) (the ONNX export in "
-                                 f"{self.directory} has an LDRM image branch), got {got}")
             feeds["image"] = _numpy(image, np.float32)
         if times is not None:
             if not self.has_deformation:

@@ -45,7 +45,7 @@ from models.pretrained import PretrainedMixin
 from models.rope import rope_3d, rope_split
 from models.tracing import tracing
 
-__all__ = ["VideoDiTConfig", "VideoDiTBlock", "FinalLayer", "VideoDiT"]
+__all__ = ["VideoDiTConfig", "VideoDiTBlock", "FinalLayer", "VideoDiT", "check_dit_inputs"]
 
 SIGMA_SCALE = 1000.0  # σ ∈ [0, 1] is embedded as σ·1000, the DiT/DDPM timestep range.
 
@@ -178,6 +178,30 @@ class FinalLayer(nn.Module):
         return self.linear(modulated_layer_norm(x, shift, scale, self.norm_final.eps))
 
 
+def check_dit_inputs(config: VideoDiTConfig, x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor | None,
+                     text: Tensor | None, text_mask: Tensor | None) -> None:
+    """The checks :meth:`VideoDiT.forward` makes (shapes static under tracing; the σ range in eager mode only); the
+    ONNX runtime makes them too. Shapes as :meth:`VideoDiT.forward`.
+
+    Raises:
+        ValueError: an argument of the wrong shape or dtype (named), σ outside [0, 1], ``text_mask`` without ``text``.
+    """
+    cfg = config
+    check_velocity_inputs(x, sigma, image_latent, plucker, cfg.latent_channels, cfg.camera_channels, cfg.patch_size)
+    B = x.shape[0]
+    if text is None:
+        if text_mask is not None:
+            raise ValueError("text_mask was given without text")
+    else:
+        if text.dim() != 3 or text.shape[0] != B or text.shape[2] != cfg.text_dim or text.shape[1] < 1:
+            raise ValueError(f"text must have shape ({B}, L >= 1, {cfg.text_dim}), got {tuple(text.shape)}")
+        if text_mask is not None and (text_mask.shape != text.shape[:2] or text_mask.dtype != torch.bool):
+            raise ValueError(f"text_mask must be a bool tensor of shape {tuple(text.shape[:2])}, "
+                             f"got {text_mask.dtype} {tuple(text_mask.shape)}")
+    if not tracing() and bool((~((sigma >= 0) & (sigma <= 1))).any()):
+        raise ValueError(f"sigma must lie in [0, 1] (no NaN), got {sigma.tolist()}")
+
+
 class VideoDiT(nn.Module, PretrainedMixin):
     """Camera- and text-conditioned image-to-video flow-matching DiT (Diff4Splat's generator).
 
@@ -273,7 +297,7 @@ class VideoDiT(nn.Module, PretrainedMixin):
             ValueError: an argument has the wrong shape or dtype (the message names it), σ is
                 outside [0, 1], or ``text_mask`` is given without ``text``.
         """
-        self._check_inputs(x, sigma, image_latent, plucker, text, text_mask)
+        check_dit_inputs(self.config, x, sigma, image_latent, plucker, text, text_mask)
         cfg = self.config
         B, c, n, h, w = x.shape
         pt, ph, pw = cfg.patch_size
@@ -298,22 +322,5 @@ class VideoDiT(nn.Module, PretrainedMixin):
                 tokens = block(tokens, emb, rope, context, text_mask, self.ff_chunk_tokens)
         out = self.final_layer(tokens, emb)  # (B, N, pt·ph·pw·c)
         return unpatchify(out, cfg.patch_size, grid, c)
-
-    def _check_inputs(self, x, sigma, image_latent, plucker, text, text_mask) -> None:
-        """Shape checks (static under tracing) and, in eager mode only, the σ range."""
-        cfg = self.config
-        check_velocity_inputs(x, sigma, image_latent, plucker, cfg.latent_channels, cfg.camera_channels, cfg.patch_size)
-        B = x.shape[0]
-        if text is None:
-            if text_mask is not None:
-                raise ValueError("text_mask was given without text")
-        else:
-            if text.dim() != 3 or text.shape[0] != B or text.shape[2] != cfg.text_dim or text.shape[1] < 1:
-                raise ValueError(f"text must have shape ({B}, L >= 1, {cfg.text_dim}), got {tuple(text.shape)}")
-            if text_mask is not None and (text_mask.shape != text.shape[:2] or text_mask.dtype != torch.bool):
-                raise ValueError(f"text_mask must be a bool tensor of shape {tuple(text.shape[:2])}, "
-                                 f"got {text_mask.dtype} {tuple(text_mask.shape)}")
-        if not tracing() and bool((~((sigma >= 0) & (sigma <= 1))).any()):
-            raise ValueError(f"sigma must lie in [0, 1] (no NaN), got {sigma.tolist()}")
 
 

@@ -54,7 +54,7 @@ from .pretrained import PretrainedMixin
 from .tracing import tracing
 
 __all__ = ["LDRMConfig", "LDRM", "LDRMOutput", "distance_activation", "gaussian_activations", "sincos_position_3d",
-           "source_frame_indices", "GAUSSIAN_FRAMES"]
+           "source_frame_indices", "GAUSSIAN_FRAMES", "check_ldrm_inputs"]
 
 RAW_GAUSSIAN_CHANNELS = 12
 """Raw head channels per pixel: distance 1, scales 3, quaternion 4, opacity 1, colour 3."""
@@ -371,6 +371,38 @@ class ImageBranch(nn.Module):
         return raw + self.out(F.gelu(self.conv2(x)))  # (B, 12, H, W)
 
 
+def check_ldrm_inputs(config: LDRMConfig, latents: Tensor, plucker: Tensor, times: Tensor | None,
+                      image: Tensor | None) -> None:
+    """The checks :meth:`LDRM.forward` makes (shapes static under tracing; the time range in eager mode only); the
+    ONNX runtime makes them too. Shapes as :meth:`LDRM.forward`.
+
+    Raises:
+        ValueError: as :meth:`LDRM.forward`.
+    """
+    cfg = config
+    if latents.dim() != 5 or latents.shape[1] != cfg.latent_channels:
+        raise ValueError(f"latents must have shape (B, {cfg.latent_channels}, n, h, w), got {tuple(latents.shape)}")
+    B, _, n, h, w = latents.shape
+    if h % cfg.patch_size or w % cfg.patch_size:
+        raise ValueError(f"latents: h, w = {h}, {w} must be multiples of patch_size {cfg.patch_size}")
+    if plucker.dim() != 5 or plucker.shape[1] != cfg.plucker_channels:
+        raise ValueError(f"plucker must have shape (B, {cfg.plucker_channels}, n, h, w), "
+                         f"got {tuple(plucker.shape)}")
+    if plucker.shape[0] != B or tuple(plucker.shape[2:]) != (n, h, w):
+        raise ValueError(f"plucker {tuple(plucker.shape)} must match latents {tuple(latents.shape)} in B, n, h, w "
+                         "(equal token counts)")
+    if times is not None:
+        if times.dim() != 1 or times.shape[0] < 1:
+            raise ValueError(f"times must have shape (K,) with K ≥ 1, got {tuple(times.shape)}")
+        if not tracing() and not bool(((times >= 0) & (times <= 1)).all()):
+            raise ValueError(f"times must lie in [0, 1], got min {float(times.min())}, max {float(times.max())}")
+    if cfg.image_branch > 0:
+        H, W = h * cfg.vae_spatial, w * cfg.vae_spatial
+        if image is None or tuple(image.shape) != (B, 3, H, W):
+            got = None if image is None else tuple(image.shape)
+            raise ValueError(f"image must have shape ({B}, 3, {H}, {W}) (this LDRM has an image branch), got {got}")
+
+
 class LDRM(nn.Module, PretrainedMixin):
     """Video latent + camera path (+ photo) → pixel-aligned Gaussians of the source frames (+ deformation maps)."""
 
@@ -397,30 +429,6 @@ class LDRM(nn.Module, PretrainedMixin):
             if isinstance(module, nn.Linear):  # ViT/DiT initialisation
                 nn.init.xavier_uniform_(module.weight)
                 nn.init.zeros_(module.bias)
-
-    def _check_inputs(self, latents: Tensor, plucker: Tensor, times: Tensor | None, image: Tensor | None) -> None:
-        cfg = self.config
-        if latents.dim() != 5 or latents.shape[1] != cfg.latent_channels:
-            raise ValueError(f"latents must have shape (B, {cfg.latent_channels}, n, h, w), got {tuple(latents.shape)}")
-        B, _, n, h, w = latents.shape
-        if h % cfg.patch_size or w % cfg.patch_size:
-            raise ValueError(f"latents: h, w = {h}, {w} must be multiples of patch_size {cfg.patch_size}")
-        if plucker.dim() != 5 or plucker.shape[1] != cfg.plucker_channels:
-            raise ValueError(f"plucker must have shape (B, {cfg.plucker_channels}, n, h, w), "
-                             f"got {tuple(plucker.shape)}")
-        if plucker.shape[0] != B or tuple(plucker.shape[2:]) != (n, h, w):
-            raise ValueError(f"plucker {tuple(plucker.shape)} must match latents {tuple(latents.shape)} in B, n, h, w "
-                             "(equal token counts)")
-        if times is not None:
-            if times.dim() != 1 or times.shape[0] < 1:
-                raise ValueError(f"times must have shape (K,) with K ≥ 1, got {tuple(times.shape)}")
-            if not tracing() and not bool(((times >= 0) & (times <= 1)).all()):
-                raise ValueError(f"times must lie in [0, 1], got min {float(times.min())}, max {float(times.max())}")
-        if self.image_branch is not None:
-            H, W = h * cfg.vae_spatial, w * cfg.vae_spatial
-            if image is None or tuple(image.shape) != (B, 3, H, W):
-                got = None if image is None else tuple(image.shape)
-                raise ValueError(f"image must have shape ({B}, 3, {H}, {W}) (this LDRM has an image branch), got {got}")
 
     def features(
         self,
@@ -482,7 +490,7 @@ class LDRM(nn.Module, PretrainedMixin):
                 ``latents`` in B, n, h, w; h, w not multiples of patch_size; ``times`` not (K,) or
                 outside [0, 1]; ``image`` missing or not (B, 3, H, W) when the LDRM has an image branch.
         """
-        self._check_inputs(latents, plucker, times, image)
+        check_ldrm_inputs(self.config, latents, plucker, times, image)
         cfg = self.config
         volume = self.features(latents, plucker)
         raw = self.head_maps(volume)

@@ -49,7 +49,7 @@ from models.tracing import tracing
 
 __all__ = ["VideoVAEConfig", "PAPER_VIDEO_VAE", "VideoVAE", "CausalConv3d", "FrameGroupNorm", "ResBlock3d",
            "kl_divergence", "sample_posterior", "estimate_latent_scaling", "LOGVAR_RANGE", "UPSAMPLE_MODES",
-           "upsample2x"]
+           "upsample2x", "check_video", "check_latents"]
 
 LOGVAR_RANGE = (-30.0, 20.0)
 """Clamp of the posterior log-variance (Stable Diffusion ``DiagonalGaussianDistribution``)."""
@@ -434,6 +434,35 @@ def estimate_latent_scaling(latents: Tensor) -> tuple[float, float]:
     return 1.0 / std, float(latents.double().mean())
 
 
+def check_video(config: VideoVAEConfig, video: Tensor) -> None:
+    """The checks :meth:`VideoVAE.encode` makes (static: safe under tracing; the ONNX runtime makes them too).
+
+    Args:
+        video: (B, in_channels, T, H, W) with T = 1 + temporal_factor·k and H, W positive multiples of
+            spatial_factor.
+
+    Raises:
+        ValueError: naming what does not fit.
+    """
+    if video.ndim != 5 or video.shape[1] != config.in_channels:
+        raise ValueError(f"video must have shape (B, {config.in_channels}, T, H, W), got {tuple(video.shape)}")
+    config.num_latent_frames(video.shape[2])
+    h, w = video.shape[-2:]
+    if h % config.spatial_factor or w % config.spatial_factor or h == 0 or w == 0:
+        raise ValueError(f"video: H={h}, W={w} must be positive multiples of {config.spatial_factor}")
+
+
+def check_latents(config: VideoVAEConfig, z: Tensor) -> None:
+    """The checks :meth:`VideoVAE.decode` makes: ``z`` is (B, latent_channels, n, h, w) with n, h, w ≥ 1.
+
+    Raises:
+        ValueError: naming the shape.
+    """
+    if z.ndim != 5 or z.shape[1] != config.latent_channels or 0 in z.shape:
+        raise ValueError(f"latents must have shape (B, {config.latent_channels}, n, h, w) with n, h, w >= 1, "
+                         f"got {tuple(z.shape)}")
+
+
 class VideoVAE(nn.Module, PretrainedMixin):
     """Causal video VAE: (B, 3, T, H, W) pixels in [−1, 1] ↔ (B, c, n, H/8, W/8) latents.
 
@@ -449,21 +478,6 @@ class VideoVAE(nn.Module, PretrainedMixin):
         self.encoder = Encoder(config)
         self.decoder = Decoder(config)
 
-    def _check_video(self, video: Tensor) -> None:
-        c = self.config
-        if video.ndim != 5 or video.shape[1] != c.in_channels:
-            raise ValueError(f"video must have shape (B, {c.in_channels}, T, H, W), got {tuple(video.shape)}")
-        c.num_latent_frames(video.shape[2])
-        h, w = video.shape[-2:]
-        if h % c.spatial_factor or w % c.spatial_factor or h == 0 or w == 0:
-            raise ValueError(f"video: H={h}, W={w} must be positive multiples of {c.spatial_factor}")
-
-    def _check_latents(self, z: Tensor) -> None:
-        c = self.config
-        if z.ndim != 5 or z.shape[1] != c.latent_channels or 0 in z.shape:
-            raise ValueError(f"latents must have shape (B, {c.latent_channels}, n, h, w) with n, h, w >= 1, "
-                             f"got {tuple(z.shape)}")
-
     def encode(self, video: Tensor) -> tuple[Tensor, Tensor]:
         """Posterior parameters of a clip.
 
@@ -477,7 +491,7 @@ class VideoVAE(nn.Module, PretrainedMixin):
         Raises:
             ValueError: wrong rank/channels, T ≠ 1 + 4k, or H/W not multiples of 8.
         """
-        self._check_video(video)
+        check_video(self.config, video)
         moments = self.encoder(video)
         mean, logvar = moments.chunk(2, dim=1)
         return mean, logvar.clamp(*LOGVAR_RANGE)
@@ -499,7 +513,7 @@ class VideoVAE(nn.Module, PretrainedMixin):
         Raises:
             ValueError: wrong rank or channel count.
         """
-        self._check_latents(z)
+        check_latents(self.config, z)
         return self.decoder(z)
 
     def forward(self, video: Tensor, sample_posterior: bool = True,

@@ -6,6 +6,7 @@ Exports come from tests/test_export.py's session cache (:func:`test_export.expor
 import json
 import math
 import os
+import re
 import shutil
 
 import numpy as np
@@ -154,6 +155,31 @@ def test_image_input_flag_is_checked_against_the_graph(branch, tmp_path):
     path.write_text(json.dumps(manifest))
     with pytest.raises(ValueError, match="manifest.json: parts.ldrm_image_input must be a bool, got missing"):
         OnnxRuntime(folder)
+
+
+@pytest.mark.slow
+def test_the_onnx_runtime_checks_inputs_as_the_pytorch_networks_do(full):
+    """A bad shape reached onnxruntime (a Reshape node's error and coloured log lines) and σ = 1.5 ran silently;
+    the PyTorch networks refuse each with one ValueError, and so does the runtime now."""
+    model, out = full
+    rt = OnnxRuntime(out)
+    cfg = model.config
+    c, h = cfg.vae.latent_channels, cfg.height // cfg.vae.spatial_factor
+    r = lambda *shape: torch.randn(shape, generator=torch.Generator().manual_seed(0))  # noqa: E731
+    cases = [
+        (lambda: rt.encode_image(r(1, 3, 6, cfg.height, cfg.width)), "T must be 1 + 4·k"),
+        (lambda: rt.encode_image(r(1, 3, 1, cfg.height - 4, cfg.width)), "multiples of 8"),
+        (lambda: rt.decode_latents(r(1, c + 1, 2, h, h)), "latents must have shape"),
+        (lambda: rt.velocity(r(1, c, 2, h, h), torch.tensor([1.5]), r(1, c, 1, h, h), r(1, 1536, 2, h, h), None,
+                             None), "sigma must lie in [0, 1]"),
+        (lambda: rt.velocity(r(1, c, 2, h, h), torch.tensor([0.5]), r(1, c, 1, h, h), r(1, 1536, 3, h, h), None,
+                             None), "plucker must have shape"),
+        (lambda: rt.reconstruct(r(1, c, 2, h, h), r(1, 1536, 2, h, h), torch.tensor([0.0, 2.0]), None),
+         "times must lie in [0, 1]"),
+    ]
+    for call, needle in cases:
+        with pytest.raises(ValueError, match=re.escape(needle)):
+            call()
 
 
 @pytest.mark.slow
