@@ -16,7 +16,7 @@ import torch.distributed as dist
 from _trainer_toy import ToyData, ToyModel, run_two_ranks, toy_step
 from torch import nn
 
-from training.checkpoint import latest_checkpoint, load_checkpoint, rng_state, set_rng_state
+from training.checkpoint import latest_checkpoint, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from training.placement import resolve_bf16, training_device
 from training.trainer import NonFiniteLossError, Trainer, TrainerConfig, warmup_cosine
 
@@ -439,3 +439,19 @@ def test_run_two_ranks_repeats_an_aborted_run_from_a_fresh_run_folder(tmp_path):
     """)
     run_two_ranks(script, fresh=(run,))
     assert marker.exists() and (run / "rank0").exists()  # aborted once, then run again to the end
+
+
+class _RunsCode:
+    """Unpickling this calls a function: what a crafted state.pt could do with weights_only=False."""
+
+    def __reduce__(self):
+        return (os.getcwd, ())
+
+
+def test_a_checkpoint_state_is_never_unpickled_beyond_tensors_and_plain_values(tmp_path):
+    folder = save_checkpoint(tmp_path, 1, {"w": torch.zeros(2)}, {"rng": rng_state(), "step": 1}, {})
+    model_state, state, _ = load_checkpoint(folder)  # numpy's RNG state (an ndarray) is allowed
+    assert state["step"] == 1 and state["rng"]["numpy"][0] == "MT19937"
+    torch.save({"step": 1, "payload": _RunsCode()}, folder / "state.pt")
+    with pytest.raises(ValueError, match=r"state.pt holds objects other than tensors and plain values"):
+        load_checkpoint(folder)

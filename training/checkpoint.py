@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import os
+import pickle
 import random
 import shutil
 from pathlib import Path
@@ -30,6 +31,11 @@ from diff4splat.io.atomic import atomic_output_path
 from diff4splat.io.output_folders import output_dir
 
 __all__ = ["save_checkpoint", "load_checkpoint", "latest_checkpoint", "rng_state", "set_rng_state"]
+
+_NUMPY_STATE_GLOBALS = [np.ndarray, np.dtype, type(np.dtype(np.uint32)),
+                        (np._core if hasattr(np, "_core") else np.core).multiarray._reconstruct]
+"""What ``state.pt`` may hold beyond tensors and plain values: numpy's RNG state, a uint32 array
+(``torch.load(weights_only=True)`` unpickles nothing else, so a crafted checkpoint runs no code)."""
 
 
 def rng_state(step_generator: torch.Generator | None = None) -> dict[str, Any]:
@@ -114,11 +120,19 @@ def load_checkpoint(
 
     Raises:
         FileNotFoundError: the folder lacks model.safetensors or state.pt.
+        ValueError: state.pt holds objects other than tensors, plain values and numpy's RNG state (it is never
+            unpickled beyond those: ``torch.load(weights_only=True)``).
     """
     folder = Path(folder)
     for name in ("model.safetensors", "state.pt"):
         if not (folder / name).is_file():
             raise FileNotFoundError(f"checkpoint: {folder / name} does not exist")
     ema = load_file(str(folder / "ema.safetensors")) if (folder / "ema.safetensors").is_file() else None
-    state = torch.load(folder / "state.pt", map_location="cpu", weights_only=False)
+    try:
+        with torch.serialization.safe_globals(_NUMPY_STATE_GLOBALS):
+            state = torch.load(folder / "state.pt", map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as e:
+        found = next((line.strip() for line in str(e).splitlines() if "but got" in line), "")
+        raise ValueError(f"checkpoint: {folder / 'state.pt'} holds objects other than tensors and plain values, "
+                         f"which are not unpickled ({found or 'weights_only load failed'})") from None
     return load_file(str(folder / "model.safetensors"), device="cpu"), state, ema
