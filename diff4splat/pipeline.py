@@ -40,6 +40,7 @@ from models.backbones.model import INDEX_FILE, BackboneModel
 from models.bundle import DEFAULT_CONFIG, WEIGHTS_DIR, Diff4SplatModel, load_config
 from models.flow_matching import check_guidance, euler_sample, heun_sample
 from models.ldrm import source_frame_indices
+from models.pretrained import CONFIG_NAME
 
 from .assemble import DEPTH_KINDS, assemble_scene
 from .cameras import (
@@ -209,12 +210,12 @@ def load_model(checkpoint: str | Path | None = None, config: str = DEFAULT_CONFI
             raise FileNotFoundError(f"checkpoint: {path} is not a folder")
         if (path / INDEX_FILE).is_file():
             return BackboneModel.from_pretrained(path, torch_dtype=dtype, seed=seed).eval(), str(path)
-        if not (path / "config.json").is_file():
+        if not (path / CONFIG_NAME).is_file():
             raise ValueError(f"checkpoint: {path} is neither a diff4splat model (config.json) nor a diffusers backbone "
                              f"folder ({INDEX_FILE}, e.g. Wan-AI/Wan2.2-TI2V-5B-Diffusers)")
         return Diff4SplatModel.from_pretrained(path, dtype=dtype).eval(), str(path)
     shipped = WEIGHTS_DIR / config
-    if (shipped / "config.json").is_file():
+    if (shipped / CONFIG_NAME).is_file():
         return Diff4SplatModel.from_pretrained(shipped, dtype=dtype).eval(), str(shipped)
     warnings.warn(f"no trained weights in {shipped}: using a randomly initialised '{config}' model "
                   f"(seed {seed}); its scenes show the pipeline working, not learned content", stacklevel=2)

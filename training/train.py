@@ -37,6 +37,7 @@ from diff4splat.io.output_folders import check_output_dir
 from models.backbones.model import INDEX_FILE, BackboneModel
 from models.bundle import Diff4SplatModel, load_config
 from models.ldrm import LDRM
+from models.pretrained import CONFIG_NAME
 from models.vae import estimate_latent_scaling
 
 from . import stage_config
@@ -107,7 +108,7 @@ def _ours_model(stage: StageConfig) -> Diff4SplatModel:
     if (folder / INDEX_FILE).is_file():
         raise ValueError(f"init_from: {folder} is a diffusers backbone folder ({INDEX_FILE}); set stage.backbone "
                          "(wan2.2-ti2v or cogvideox-i2v) and a lora: section to train it")
-    if not (folder / "config.json").is_file():
+    if not (folder / CONFIG_NAME).is_file():
         raise FileNotFoundError(f"init_from: {stage.init_from} is not a model folder (no config.json)")
     return Diff4SplatModel.from_pretrained(folder)
 
@@ -120,7 +121,7 @@ def _teacher(stage: StageConfig) -> LDRM | None:
     """
     if stage.teacher is None:
         return None
-    if not (Path(stage.teacher) / "config.json").is_file():
+    if not (Path(stage.teacher) / CONFIG_NAME).is_file():
         raise FileNotFoundError(f"teacher: {stage.teacher} is not a model folder (no config.json)")
     return Diff4SplatModel.from_pretrained(stage.teacher).ldrm
 

@@ -32,10 +32,13 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-__all__ = ["LatentFormat", "Backbone", "CameraPatchConv", "vpred_to_flow", "check_velocity_inputs", "BACKBONE_KINDS"]
+__all__ = ["LatentFormat", "Backbone", "CameraPatchConv", "vpred_to_flow", "check_velocity_inputs", "BACKBONE_KINDS",
+           "INDEX_FILE"]
 
 BACKBONE_KINDS = ("ours", "wan2.2-ti2v", "cogvideox-i2v")
 """The backbones: our networks, Wan2.2-TI2V-5B, CogVideoX-5B-I2V."""
+INDEX_FILE = "model_index.json"
+"""The file that makes a folder a diffusers pipeline (the Hub layout of a backbone)."""
 
 
 @dataclass(frozen=True)

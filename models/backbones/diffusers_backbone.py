@@ -26,7 +26,7 @@ from torch import Tensor, nn
 
 from diff4splat.io.structured import read_json
 
-from .base import Backbone, CameraPatchConv, LatentFormat
+from .base import INDEX_FILE, Backbone, CameraPatchConv, LatentFormat
 
 __all__ = ["DiffusersBackbone", "CAMERA_FOLDER", "CAMERA_WEIGHTS"]
 
@@ -156,7 +156,7 @@ class DiffusersBackbone(Backbone):
                 failed; camera weights of the wrong shape.
         """
         directory = Path(directory)
-        index = directory / "model_index.json"
+        index = directory / INDEX_FILE
         if not index.is_file():
             raise FileNotFoundError(f"checkpoint: {index} does not exist")
         data = read_json(index, "checkpoint")

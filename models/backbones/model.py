@@ -28,12 +28,11 @@ from ..bundle import Diff4SplatConfig, check_generated
 from ..flow_matching import FlowMatchingConfig
 from ..ldrm import LDRM, LDRMConfig
 from ..pretrained import MODEL_KIND, config_from_dict, count_parameters
-from .base import Backbone, LatentFormat
+from .base import INDEX_FILE, Backbone, LatentFormat
 
 __all__ = ["BackboneModel", "BackboneModelConfig", "backbone_class", "folder_backbone", "DEFAULTS",
            "CONFIG_FILE", "INDEX_FILE", "PIPELINES"]
 
-INDEX_FILE = "model_index.json"
 CONFIG_FILE = "diff4splat.json"
 LDRM_FOLDER = "ldrm"
 

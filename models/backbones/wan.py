@@ -34,8 +34,6 @@ from .diffusers_backbone import DiffusersBackbone
 
 __all__ = ["WanBackbone"]
 
-INDEX_FILE = "model_index.json"
-
 
 class WanBackbone(DiffusersBackbone):
     """Wan2.2-TI2V-5B: ``AutoencoderKLWan`` + UMT5 + ``WanTransformer3DModel`` (camera-widened patch embedding).
