@@ -66,7 +66,7 @@ import torch
 from torch import Tensor, nn
 from torch.export import Dim
 
-from models.bundle import Diff4SplatModel
+from models.bundle import NETWORKS, Diff4SplatModel
 from models.pretrained import WEIGHTS_NAME
 
 from .io.output_folders import check_output_dir, output_dir
@@ -91,7 +91,6 @@ EXTERNAL_DATA_BYTES = 2_000_000_000
 protobuf cannot exceed 2 GiB (``onnx.checker`` and onnxruntime read the external file by path)."""
 STATIC_LDRM_OUTPUTS = ("distance", "scales", "quats", "opacities", "colors")
 LDRM_OUTPUTS = STATIC_LDRM_OUTPUTS + ("d_means", "d_quats", "d_scales")
-_NETWORKS = ("vae", "text_encoder", "dit", "ldrm")
 _MAX = 1 << 14  # upper bound of every dynamic dimension (sizes, not memory: the graph has no limit)
 
 
@@ -276,7 +275,7 @@ def checkpoint_sha256(directory: str | os.PathLike) -> dict[str, str]:
     """
     directory = Path(directory)
     out = {}
-    for name in _NETWORKS:
+    for name in NETWORKS:
         path = directory / name / WEIGHTS_NAME
         if not path.is_file():
             raise FileNotFoundError(f"checkpoint: {path} does not exist")

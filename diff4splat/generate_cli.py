@@ -7,6 +7,8 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+from models.flow_matching import SAMPLERS
+
 from .assemble import DEPTH_KINDS
 from .cameras import DEFAULT_AMPLITUDES, DEFAULT_TRAJECTORY, TRAJECTORIES
 from .cameras.trajectories import amplitude_help
@@ -48,7 +50,7 @@ def add_generate_parser(subparsers, *, out_type: Callable[[str], Path], out_help
                         "(disparity up to scale and shift), both fitted to the network's depth (default: metric)")
     g.add_argument("--prompt", default="", help="text describing the motion; empty = no text encoder")
     g.add_argument("--steps", type=int, default=None, help="sampler steps (default: config)")
-    g.add_argument("--sampler", choices=("euler", "heun"), default=None, help="ODE sampler (default: config)")
+    g.add_argument("--sampler", choices=SAMPLERS, default=None, help="ODE sampler (default: config)")
     g.add_argument("--guidance", type=float, default=None,
                    help="classifier-free guidance scale with a prompt, ≥ 0; 1 = off (default: config: 1 for ours, 5 "
                         "for Wan2.2, 6 for CogVideoX)")

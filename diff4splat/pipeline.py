@@ -38,7 +38,7 @@ from torch import Tensor
 
 from models.backbones.model import INDEX_FILE, BackboneModel
 from models.bundle import DEFAULT_CONFIG, WEIGHTS_DIR, Diff4SplatModel, load_config
-from models.flow_matching import check_guidance, euler_sample, heun_sample
+from models.flow_matching import check_guidance, integrator
 from models.ldrm import source_frame_indices
 from models.pretrained import CONFIG_NAME
 
@@ -455,8 +455,7 @@ class Diff4SplatPipeline:
         n = runtime.latent.num_latent_frames(len(cameras))  # raises for T ≠ 1 + t·k
         steps = cfg.sampling.steps if steps is None else steps
         sampler = cfg.sampling.sampler if sampler is None else sampler
-        if sampler not in ("euler", "heun"):
-            raise ValueError(f"sampler must be 'euler' or 'heun', got {sampler!r}")
+        integrate = integrator(sampler)  # raises for an unknown sampler
         steps = check_limit("steps", check_positive_int("steps", steps), "steps")
         guidance = check_guidance(cfg.sampling.guidance if guidance is None else guidance)
         check_limit("frames", len(cameras), "cameras: a path of")
@@ -501,7 +500,6 @@ class Diff4SplatPipeline:
             return v_uncond + guidance * (v - v_uncond)
 
         if video_latents is None:
-            integrate = euler_sample if sampler == "euler" else heun_sample
             latents = integrate(velocity, noise, runtime.sigmas(steps), progress=progress)
         elif tuple(video_latents.shape) != tuple(noise.shape):
             raise ValueError(f"video_latents must have shape {tuple(noise.shape)}, got {tuple(video_latents.shape)}")

@@ -30,6 +30,7 @@ __all__ = [
     "check_guidance",
     "PAPER_FLOW_MATCHING",
     "SAMPLERS",
+    "integrator",
     "shift_sigmas",
     "sigma_schedule",
     "sample_logit_normal",
@@ -318,7 +319,16 @@ def sample(velocity_fn: VelocityFn, noise: Tensor, steps: int, sampler: str = "e
     Raises:
         ValueError: unknown ``sampler``, ``steps`` not an int ≥ 1, ``shift`` ≤ 0.
     """
-    _check_sampler(sampler)
+    fn = integrator(sampler)
     sigmas = sigma_schedule(steps, shift, dtype=torch.float64)
-    fn = euler_sample if sampler == "euler" else heun_sample
     return fn(velocity_fn, noise, sigmas, progress=progress)
+
+
+def integrator(sampler: str) -> Callable[..., Tensor]:
+    """The integration function of ``sampler``: :func:`euler_sample` or :func:`heun_sample`.
+
+    Raises:
+        ValueError: ``sampler`` not in :data:`SAMPLERS`.
+    """
+    _check_sampler(sampler)
+    return {"euler": euler_sample, "heun": heun_sample}[sampler]

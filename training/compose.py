@@ -24,12 +24,10 @@ from pathlib import Path
 
 from diff4splat.errors import run_cli
 from diff4splat.io.structured import read_yaml
-from models.bundle import Diff4SplatModel, config_path, load_config
+from models.bundle import NETWORKS, Diff4SplatModel, config_path, load_config
 from models.pretrained import config_from_dict
 
 __all__ = ["compose", "main", "ZERO_INIT_PREFIXES"]
-
-NETWORKS = ("vae", "text_encoder", "dit", "ldrm")
 
 ZERO_INIT_PREFIXES = ("image_branch.",)
 """Parameter-name prefixes that may be missing from a taken network: layers whose output is exactly 0 at

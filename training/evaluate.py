@@ -81,7 +81,7 @@ from diff4splat.devices import synchronize
 from diff4splat.io import load_image
 from diff4splat.pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, GenerationResult
 from diff4splat.render.sequence import render_path
-from models.flow_matching import heun_sample, sigma_schedule
+from models.flow_matching import SAMPLERS, heun_sample, sigma_schedule
 
 from .eval_metrics import (
     ANGLE_BINS,
@@ -357,7 +357,7 @@ def sampling_tradeoffs(pipe: Diff4SplatPipeline, clips: list[dict], nfes=(1, 2, 
         cams = CameraPath(c["viewmats"].double(), c["Ks"].double(), cfg.width, cfg.height, c["times"].double())
         image = c["video"][:, 0].permute(1, 2, 0)
         refs.append((c, cams, image, pipe(image, cams, c["caption"], steps=reference_steps, sampler="heun").latents))
-    for sampler in ("euler", "heun"):
+    for sampler in SAMPLERS:
         for nfe in nfes:
             steps = nfe if sampler == "euler" else max(1, math.ceil((nfe + 1) / 2))
             ms, rms, psnr = [], [], []
