@@ -32,6 +32,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from models.bundle import GENERATED_FOOTPRINTS
+from models.deformation import IDENTITY_QUAT
 from models.ldrm import LDRMOutput
 
 from .cameras import CameraPath, camera_rays
@@ -342,7 +343,7 @@ def _deformation(out: LDRMOutput, grid: Gaussians, times: Tensor, t0: float, siz
     size_back = (-(-size[0] // 2), -(-size[1] // 2))  # the backing disks' half-resolution grid
     n_photo = size[0] * size[1] + size_back[0] * size_back[1]
     deform = []
-    for m, r, identity in zip(raw, ref, ((0.0,) * 3, (1.0, 0.0, 0.0, 0.0), (0.0,) * 3), strict=True):
+    for m, r, identity in zip(raw, ref, ((0.0,) * 3, IDENTITY_QUAT, (0.0,) * 3), strict=True):
         c = len(identity)
         d = torch.empty(K, n_photo + n_back + (S - 1) * h * w, c, device=grid.means.device, dtype=dtype)
         start = 0

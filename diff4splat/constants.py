@@ -5,7 +5,9 @@ gsplat's ``rasterize_to_pixels``; every module compares against these names, nev
 """
 from __future__ import annotations
 
-__all__ = ["ALPHA_MAX", "ALPHA_MIN", "T_MIN", "OPACITY_EPS", "OPACITY_LOG_FLOOR", "CAMERA_MODEL"]
+import math
+
+__all__ = ["ALPHA_MAX", "ALPHA_MIN", "T_MIN", "LOG_T_MIN", "OPACITY_EPS", "OPACITY_LOG_FLOOR", "CAMERA_MODEL"]
 
 ALPHA_MAX = 0.99
 """Per-Gaussian alpha is clamped to this (INRIA 3DGS ``min(0.99f, …)``)."""
@@ -14,6 +16,8 @@ ALPHA_MIN = 1.0 / 255.0
 which a pixel counts as empty, and the temporal-opacity gate below which a Gaussian cannot contribute."""
 T_MIN = 1e-4
 """Compositing stops before a Gaussian that would bring transmittance below this (3DGS)."""
+LOG_T_MIN = math.log(T_MIN)
+"""ln :data:`T_MIN`, the same test on log-transmittance (the PyTorch and ray compositors accumulate log T)."""
 OPACITY_EPS = 1e-6
 """Opacities are clamped to [OPACITY_EPS, 1 − OPACITY_EPS] before the logit (PLY storage), so it stays finite."""
 OPACITY_LOG_FLOOR = 1e-30

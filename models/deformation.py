@@ -38,6 +38,7 @@ __all__ = [
     "deformation_activations",
     "RAW_DEFORMATION_CHANNELS",
     "CHUNK_ELEMENTS",
+    "IDENTITY_QUAT",
 ]
 
 RAW_DEFORMATION_CHANNELS = 10
@@ -47,7 +48,8 @@ CHUNK_ELEMENTS = 1 << 24
 """Hidden values (B · k · F · h · w) of one chunk of key times in :meth:`DeformationNetwork.forward`: 64 MiB in
 float32, a few times that with the conv's output and GELU (ours: bounds memory for long camera paths)."""
 
-_IDENTITY_QUAT = (1.0, 0.0, 0.0, 0.0)
+IDENTITY_QUAT = (1.0, 0.0, 0.0, 0.0)
+"""The rotation Δq of no deformation, wxyz: what the heads add their output to (zero-init → identity)."""
 
 
 @dataclass
@@ -119,7 +121,7 @@ def unit_quat_from_raw(raw: Tensor, eps: float = 1e-8) -> Tensor:  # raw: (..., 
     Returns:
         (..., 4) unit quaternions, wxyz.
     """
-    identity = raw.new_tensor(_IDENTITY_QUAT)
+    identity = raw.new_tensor(IDENTITY_QUAT)
     q = raw + identity
     norm = torch.linalg.vector_norm(q, dim=-1, keepdim=True)
     return torch.where(norm < eps, identity.expand_as(q), q / norm.clamp_min(eps))

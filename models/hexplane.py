@@ -63,6 +63,7 @@ from diff4splat.checks import check_finite, check_int, check_number, check_posit
 from diff4splat.io.atomic import atomic_output_path
 from diff4splat.limits import check_limit
 
+from .deformation import IDENTITY_QUAT
 from .pretrained import config_from_dict
 
 __all__ = [
@@ -93,7 +94,6 @@ MIN_EXTENT = 1e-6
 FIELD_FORMAT = "diff4splat-hexplane"
 FIELD_FORMAT_VERSION = 1
 _SPATIAL_INIT = (0.1, 0.5)  # reference init_grid_param(a=0.1, b=0.5)
-_IDENTITY_QUAT = (1.0, 0.0, 0.0, 0.0)
 _PLANE_REGS = ("smoothness", "tv")
 
 
@@ -400,7 +400,7 @@ class HexPlaneField(nn.Module):
             ValueError: as :meth:`features`.
         """
         h = self.trunk(self.features(means, t))  # (N, W)
-        d_quats = self.d_quats_head(h) + h.new_tensor(_IDENTITY_QUAT)
+        d_quats = self.d_quats_head(h) + h.new_tensor(IDENTITY_QUAT)
         return self.d_means_head(h), d_quats, self.d_scales_head(h)
 
     @torch.no_grad()

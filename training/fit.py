@@ -44,6 +44,7 @@ from diff4splat.gaussians import Gaussians, rgb_to_sh0
 from diff4splat.limits import check_limit
 from diff4splat.render import rasterize
 from diff4splat.scene import DynamicGaussians, compose_deformation
+from models.deformation import IDENTITY_QUAT
 from models.hexplane import HexPlaneConfig, HexPlaneField
 from training.densify import DensifyConfig, DensityStats, densify_and_prune, inverse_sigmoid, prune, reset_opacity
 from training.eval_metrics import PSNR_CAP, psnr_from_mse
@@ -288,7 +289,7 @@ def init_state(means: Tensor, colors: Tensor, config: FitConfig, extent: float, 
     params = {
         "means": means.float(),
         "scales": torch.log(knn_scales(means.float()) if scales is None else scales.to(dev).float()),
-        "quats": (torch.tensor([1.0, 0.0, 0.0, 0.0], device=dev).repeat(n, 1) if quats is None
+        "quats": (torch.tensor(IDENTITY_QUAT, device=dev).repeat(n, 1) if quats is None
                   else quats.to(dev).float()),
         "opacities": inverse_sigmoid(torch.full((n,), 0.1, device=dev) if opacities is None
                                      else opacities.to(dev).float().clamp(1e-4, 1 - 1e-4)),

@@ -33,7 +33,7 @@ from torch import Tensor
 
 from diff4splat.cameras.lenses import RAY_CAMERA_MODELS, ThinLens, check_camera, generate_rays
 from diff4splat.cameras.path import camera_centers
-from diff4splat.constants import ALPHA_MAX, ALPHA_MIN, OPACITY_LOG_FLOOR, T_MIN
+from diff4splat.constants import ALPHA_MAX, ALPHA_MIN, LOG_T_MIN, OPACITY_LOG_FLOOR
 from diff4splat.devices import full_precision
 from diff4splat.quaternions import quat_to_rotmat
 from diff4splat.render.defaults import (
@@ -56,7 +56,6 @@ __all__ = ["raytrace", "render_rays", "whitening", "ray_gaussian_response", "com
 RAY_PAIR_BUDGET = 1 << 20
 """Most (ray, Gaussian) pairs evaluated at once, and (tile, Gaussian) pairs culled at once (bounds the transient
 memory of a batch: 1.3 M Gaussians culled against all 1024 tiles of a 512² image at once took ~33 GB)."""
-_LOG_T_MIN = math.log(T_MIN)
 
 
 RAY_SCALE_FLOOR = 1e-6
@@ -155,7 +154,7 @@ def composite_rays(
     a = torch.where(hit, alpha, torch.zeros_like(alpha))
     log_1ma = torch.log1p(-a)
     log_t_next = torch.cumsum(log_1ma, dim=1)
-    incl = (log_t_next >= _LOG_T_MIN) & hit
+    incl = (log_t_next >= LOG_T_MIN) & hit
     w = torch.where(incl, a * torch.exp(log_t_next - log_1ma), torch.zeros_like(a))  # (R, k)
     f = feats.index_select(0, idx.reshape(-1)).reshape(R, k, F)
     return (w[..., None] * f).sum(1), w.sum(1), (w * t.gather(1, idx)).sum(1)

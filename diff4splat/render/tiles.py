@@ -13,19 +13,16 @@ tiles), and numpy is used only for the CPU's radix sort (:func:`_stable_argsort_
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
 from torch import Tensor
 
-from diff4splat.constants import ALPHA_MAX, T_MIN
+from diff4splat.constants import ALPHA_MAX, LOG_T_MIN
 from diff4splat.render.projection import splat_alpha, splat_sigma, support_extent
 
 __all__ = ["tile_boxes", "bin_tiles", "composite_tiles", "pair_budget", "PAIR_BUDGET", "PAIR_BUDGET_DEVICE",
            "CHUNK_PIXELS", "CHUNK_PIXELS_DEVICE"]
 
-_LOG_T_MIN = math.log(T_MIN)
 PAIR_BUDGET = 1 << 18
 """Most (pixel, Gaussian) pairs composited at once on the CPU (bounds the transient memory of a chunk). 2¹⁸
 keeps a chunk's per-pair arrays (~1 MiB each) cache-sized: at 256²/65,536 it was ~30 % faster, forward and
@@ -153,7 +150,7 @@ class _CompositePairs(torch.autograd.Function):
         log_1ma = torch.log1p(-alpha)
         excl = torch.cumsum(log_1ma, 0, dtype=torch.float64) - log_1ma  # float64: no cancellation
         log_T = (excl - excl.index_select(0, starts.index_select(0, pix))).to(alpha.dtype)
-        incl = (log_T + log_1ma) >= _LOG_T_MIN  # next_T ≥ 1e-4
+        incl = (log_T + log_1ma) >= LOG_T_MIN  # next_T ≥ 1e-4
         T = torch.exp(log_T)
         w = torch.where(incl, alpha * T, 0.0)
         f = feats.index_select(0, gid)
