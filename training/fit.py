@@ -66,12 +66,12 @@ class LearningRates:
 
     position_init/final are multiplied by the scene extent (``spatial_lr_scale``), as the reference does;
     positions, the field's network and its planes decay exponentially from init to final over the stage
-    (:func:`expon_lr`, delay multiplier 0.01 for positions).
+    (:func:`expon_lr`, without a delay: the references' delay multiplier 0.01 takes effect only with
+    ``lr_delay_steps`` > 0, and theirs is 0).
     """
 
     position_init: float = 1.6e-4
     position_final: float = 1.6e-6
-    position_delay_mult: float = 0.01
     sh0: float = 2.5e-3
     shN: float = 2.5e-3 / 20
     opacities: float = 0.05
@@ -362,7 +362,7 @@ def _set_lrs(state: FitState, config: FitConfig) -> None:
         for g in state.field_optimizer.param_groups:
             init, final = ((lr.deformation_init, lr.deformation_final) if g["name"] == "deformation"
                            else (lr.grid_init, lr.grid_final))
-            g["lr"] = expon_lr(stage_step, init * state.extent, final * state.extent, stage_len, 0, 0.01)
+            g["lr"] = expon_lr(stage_step, init * state.extent, final * state.extent, stage_len)
 
 
 def fit_steps(state: FitState, views: list[View], config: FitConfig, until: int, *, progress: bool = False,
