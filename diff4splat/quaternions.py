@@ -17,10 +17,33 @@ __all__ = [
     "rotmat_to_quat",
     "quat_nlerp",
     "axis_angle_to_quat",
+    "rotation_errors",
+    "ROTATION_TOL",
 ]
 
 _ZERO_NORM = 1e-12
 """A quaternion with a smaller norm has no orientation (:func:`quat_normalize` refuses it)."""
+ROTATION_TOL = 1e-4
+"""Largest :func:`rotation_errors` of a matrix taken as a rotation (camera paths, scene files, converters): a float32
+rotation passes by orders of magnitude, a 1 % scale or shear does not."""
+
+
+def rotation_errors(R: Tensor) -> tuple[Tensor, Tensor]:
+    """How far matrices are from rotations: max |RᵀR − I| entry and |det R − 1|, computed in float64.
+
+    The one test of rotation matrices (camera paths, the renderer's viewmats, dataset converters); a reflection has
+    RᵀR = I and det −1.
+
+    Args:
+        R: (..., 3, 3).
+
+    Returns:
+        orthonormality error (...), determinant error (...), float64, on R's device.
+    """
+    R = R.detach().double()
+    eye = torch.eye(3, dtype=R.dtype, device=R.device)
+    ortho = (R.transpose(-1, -2) @ R - eye).abs().amax(dim=(-2, -1))
+    return ortho, (torch.linalg.det(R) - 1.0).abs()
 
 
 def quat_normalize(quats: Tensor, name: str = "quats") -> Tensor:

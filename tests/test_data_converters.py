@@ -27,13 +27,8 @@ from data_prep.cli import main
 from data_prep.convert_cli import main as convert_main
 from data_prep.convert_cli import parse_options
 from data_prep.converters import convert
-from data_prep.converters.common import (
-    decode_scaled_uint16,
-    disparity_to_depth,
-    float16_bits_to_float,
-    normalize_rotation,
-    select_frames,
-)
+from data_prep.converters.camera_conventions import normalize_rotation
+from data_prep.converters.common import decode_scaled_uint16, disparity_to_depth, float16_bits_to_float, select_frames
 from data_prep.converters.multicamvideo import parse_ue_matrix
 from data_prep.converters.stereo4d import decode_stereo4d_tracks
 from data_prep.format import load_scene
@@ -477,7 +472,7 @@ def test_bad_inputs_raise(tmp_path):
     src, _ = make_dynamic_replica(tmp_path / "dr")
     with pytest.raises(ValueError, match="sequence must be given"):
         convert("dynamic_replica", src, tmp_path / "o")
-    with pytest.raises(ValueError, match="not a uniformly scaled rotation"):
+    with pytest.raises(ValueError, match="must be a uniformly scaled rotation"):
         normalize_rotation(np.diag([1.0, 2.0, 1.0]))
     with pytest.raises(ValueError, match="non-positive determinant"):
         normalize_rotation(np.diag([1.0, 1.0, -1.0]))

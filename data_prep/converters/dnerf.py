@@ -34,17 +34,8 @@ import numpy as np
 
 from diff4splat.io.structured import read_json
 
-from .common import (
-    c2w_gl_to_viewmat,
-    camera_path,
-    check_downscale,
-    downscale_rgb,
-    downscaled_intrinsics,
-    intrinsics,
-    require_file,
-    select_frames,
-    write_scene,
-)
+from .camera_conventions import c2w_gl_to_viewmat, camera_path, intrinsics
+from .common import check_downscale, downscale_rgb, downscaled_intrinsics, require_file, select_frames, write_scene
 
 __all__ = ["convert_dnerf", "read_dnerf_rgb", "DNERF_FPS", "DNERF_SPLITS"]
 

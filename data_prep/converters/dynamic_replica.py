@@ -25,17 +25,14 @@ from pathlib import Path
 
 import numpy as np
 
+from .camera_conventions import P3D_TO_CV, camera_path, intrinsics, rigid
 from .common import (
-    P3D_TO_CV,
-    camera_path,
     finite_positive_or_inf,
     float16_bits_to_float,
-    intrinsics,
     load_gzip_json,
     read_rgb_uint8,
     read_uint16_png,
     require_file,
-    rigid,
     select_frames,
     write_scene,
 )

@@ -42,7 +42,8 @@ import numpy as np
 
 from diff4splat.io.structured import read_json
 
-from .common import INTEGER_CENTRE_SHIFT, camera_path, read_rgb_uint8, require_dir, rigid, select_frames, write_scene
+from .camera_conventions import INTEGER_CENTRE_SHIFT, camera_path, check_rotation, rigid
+from .common import read_rgb_uint8, require_dir, select_frames, write_scene
 
 __all__ = ["convert_hypernerf", "NerfiesCamera", "read_nerfies_camera", "undistort_rgb", "HYPERNERF_FPS"]
 
@@ -93,8 +94,7 @@ def read_nerfies_camera(path: str | os.PathLike) -> NerfiesCamera:
     if "tangential" in d and "tangential_distortion" not in d:
         d["tangential_distortion"] = d["tangential"]
     R = _array(path, d, "orientation", (3, 3))
-    if np.abs(R.T @ R - np.eye(3)).max() > 1e-4 or np.linalg.det(R) <= 0:
-        raise ValueError(f"{path}: 'orientation' must be a rotation matrix (rows = camera axes)")
+    check_rotation(R, f"{path}: 'orientation'", "a rotation matrix (rows = camera axes)")
     f = float(_array(path, d, "focal_length", ()))
     ratio = float(_array(path, d, "pixel_aspect_ratio", (), 1.0))
     cx, cy = _array(path, d, "principal_point", (2,))

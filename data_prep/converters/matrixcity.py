@@ -24,17 +24,13 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 
+from .camera_conventions import c2w_gl_to_viewmat, camera_path, intrinsics, normalize_rotation, rigid
 from .common import (
-    c2w_gl_to_viewmat,
-    camera_path,
     finite_positive_or_inf,
-    intrinsics,
     load_json_file,
-    normalize_rotation,
     read_rgb_uint8,
     require_dir,
     require_file,
-    rigid,
     select_frames,
     write_scene,
 )

@@ -26,16 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import (
-    c2w_cv_to_viewmat,
-    camera_path,
-    intrinsics,
-    iter_video_frames,
-    load_json_file,
-    rigid,
-    select_frames,
-    write_scene,
-)
+from .camera_conventions import c2w_cv_to_viewmat, camera_path, intrinsics, rigid
+from .common import iter_video_frames, load_json_file, select_frames, write_scene
 
 __all__ = ["convert_multicamvideo", "parse_ue_matrix", "ue_to_opencv_c2w", "MULTICAMVIDEO_FPS", "SENSOR_MM"]
 

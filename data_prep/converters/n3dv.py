@@ -32,14 +32,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from .camera_conventions import c2w_gl_to_viewmat, c2w_llff_to_gl, camera_path, intrinsics
 from .common import (
-    c2w_gl_to_viewmat,
-    c2w_llff_to_gl,
-    camera_path,
     check_downscale,
     downscale_rgb,
     downscaled_intrinsics,
-    intrinsics,
     iter_video_frames,
     load_npy,
     require_file,

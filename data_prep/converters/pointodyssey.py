@@ -20,15 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import (
-    camera_path,
-    decode_scaled_uint16,
-    load_npz,
-    read_rgb_uint8,
-    read_uint16_png,
-    select_frames,
-    write_scene,
-)
+from .camera_conventions import camera_path
+from .common import decode_scaled_uint16, load_npz, read_rgb_uint8, read_uint16_png, select_frames, write_scene
 
 __all__ = ["convert_pointodyssey", "POINTODYSSEY_DEPTH_M_PER_UNIT", "POINTODYSSEY_FPS"]
 

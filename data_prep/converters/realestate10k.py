@@ -35,16 +35,8 @@ from diff4splat.depth_alignment import align_video, valid_depth_mask
 from diff4splat.io import load_realestate10k
 from diff4splat.io.cameras import read_realestate10k_lines
 
-from .common import (
-    camera_path,
-    load_npy,
-    only_stem,
-    read_rgb_uint8,
-    require_dir,
-    require_file,
-    select_frames,
-    write_scene,
-)
+from .camera_conventions import camera_path
+from .common import load_npy, only_stem, read_rgb_uint8, require_dir, require_file, select_frames, write_scene
 
 __all__ = ["convert_realestate10k", "read_realestate10k_timestamps"]
 

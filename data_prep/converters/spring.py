@@ -25,16 +25,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from .common import (
-    camera_path,
-    disparity_to_depth,
-    intrinsics,
-    load_number_rows,
-    read_rgb_uint8,
-    require_file,
-    select_frames,
-    write_scene,
-)
+from .camera_conventions import camera_path, intrinsics
+from .common import disparity_to_depth, load_number_rows, read_rgb_uint8, require_file, select_frames, write_scene
 
 __all__ = ["convert_spring", "read_dsp5", "SPRING_BASELINE", "SPRING_FPS"]
 

@@ -23,16 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import (
-    c2w_cv_to_viewmat,
-    camera_path,
-    intrinsics,
-    iter_video_frames,
-    load_npz,
-    only_stem,
-    select_frames,
-    write_scene,
-)
+from .camera_conventions import c2w_cv_to_viewmat, camera_path, intrinsics
+from .common import iter_video_frames, load_npz, only_stem, select_frames, write_scene
 
 __all__ = ["convert_stereo4d", "decode_stereo4d_tracks", "STEREO4D_HFOV_DEG"]
 

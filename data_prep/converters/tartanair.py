@@ -21,20 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import (
-    NED_TO_CV,
-    c2w_cv_to_viewmat,
-    camera_path,
-    finite_positive_or_inf,
-    intrinsics,
-    load_npy,
-    load_number_rows,
-    quat_xyzw_to_rotmat,
-    read_rgb_uint8,
-    rigid,
-    select_frames,
-    write_scene,
-)
+from .camera_conventions import NED_TO_CV, c2w_cv_to_viewmat, camera_path, intrinsics, quat_xyzw_to_rotmat, rigid
+from .common import finite_positive_or_inf, load_npy, load_number_rows, read_rgb_uint8, select_frames, write_scene
 
 __all__ = ["convert_tartanair", "read_tartanair_poses", "TARTANAIR_K", "TARTANAIR_FPS"]
 

@@ -30,11 +30,9 @@ import numpy as np
 
 from diff4splat.io.structured import read_text
 
+from .camera_conventions import INTEGER_CENTRE_SHIFT, camera_path, intrinsics
 from .common import (
-    INTEGER_CENTRE_SHIFT,
-    camera_path,
     decode_scaled_uint16,
-    intrinsics,
     read_rgb_uint8,
     read_uint16_png,
     require_dir,

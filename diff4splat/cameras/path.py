@@ -8,13 +8,11 @@ import torch
 from torch import Tensor
 
 from ..checks import check_finite, check_positive_int
-from ..quaternions import quat_nlerp, quat_to_rotmat, rotmat_to_quat
+from ..quaternions import ROTATION_TOL, quat_nlerp, quat_to_rotmat, rotation_errors, rotmat_to_quat
 from .intrinsics import center_crop_box
 
 __all__ = ["CameraPath", "invert_rigid", "camera_centers", "check_field_of_view", "MIN_FOV_DEG"]
 
-ROTATION_TOL = 1e-4
-"""Tolerance on ‖RᵀR − I‖_F and |det R − 1| for a viewmat's rotation block."""
 
 
 def invert_rigid(viewmats: Tensor) -> Tensor:
@@ -117,14 +115,12 @@ class CameraPath:
 
         vm64 = vm.detach().double()
         R = vm64[:, :3, :3]
-        eye = torch.eye(3, dtype=torch.float64, device=vm.device)
-        ortho_err = (R.transpose(-1, -2) @ R - eye).flatten(1).norm(dim=-1)
-        det_err = (torch.linalg.det(R) - 1.0).abs()
+        ortho_err, det_err = rotation_errors(R)
         bad = (ortho_err > ROTATION_TOL) | (det_err > ROTATION_TOL)
         if bool(bad.any()):
             i = int(bad.nonzero()[0])
             raise ValueError(
-                f"viewmats[{i}] rotation is not a proper rotation: ‖RᵀR−I‖={float(ortho_err[i]):.3g}, "
+                f"viewmats[{i}] rotation is not a proper rotation: max |RᵀR−I|={float(ortho_err[i]):.3g}, "
                 f"det R={float(torch.linalg.det(R[i])):.6g} (tolerance {ROTATION_TOL})"
             )
         bottom = vm64[:, 3, :] - vm64.new_tensor([0.0, 0.0, 0.0, 1.0])

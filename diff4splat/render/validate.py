@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 from diff4splat.checks import check_finite, check_positive_int
+from diff4splat.quaternions import ROTATION_TOL, rotation_errors
 from diff4splat.render.projection import CAMERA_MODELS
 from diff4splat.render.settings import RasterSettings
 from diff4splat.render.sh import num_sh_bases
@@ -22,9 +23,9 @@ RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 """gsplat's render modes: colour, accumulated depth, expected depth, colour + either depth."""
 RASTERIZE_MODES = ("classic", "antialiased")
 """gsplat's rasterize modes (antialiased: Mip-Splatting opacity compensation)."""
-VIEWMAT_TOL = {torch.float64: 1e-6, torch.float32: 1e-4, torch.float16: 1e-2, torch.bfloat16: 2e-2}
-"""Largest |RᵀR − I| entry accepted in viewmats, per dtype (a rotation rounded to the dtype passes; a scaled or
-sheared one does not)."""
+VIEWMAT_TOL = {torch.float64: ROTATION_TOL, torch.float32: ROTATION_TOL, torch.float16: 1e-2, torch.bfloat16: 2e-2}
+"""Largest :func:`~diff4splat.quaternions.rotation_errors` accepted in viewmats, per dtype (a rotation rounded to
+the dtype passes; a scaled, sheared or mirrored one does not)."""
 
 
 def _check_shape(name: str, t: Tensor, shape: tuple) -> None:
@@ -125,10 +126,10 @@ def validate_inputs(
         raise ValueError("Ks must be pinhole intrinsics [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (pixels): no skew, "
                          "last row (0, 0, 1)")
     # world-to-camera must be rigid: the SH view direction uses the camera centre −Rᵀt
-    R = viewmats.detach()[:, :3, :3].double()
-    eye = torch.eye(3, dtype=R.dtype, device=R.device)
-    ortho_err = float((R.transpose(-1, -2) @ R - eye).abs().amax())
-    tol = VIEWMAT_TOL[viewmats.dtype] if viewmats.dtype in VIEWMAT_TOL else VIEWMAT_TOL[torch.float32]
-    if ortho_err > tol or bool((viewmats.detach()[:, 3] != viewmats.new_tensor([0.0, 0.0, 0.0, 1.0])).any()):
+    ortho_err, det_err = (float(e.max()) for e in rotation_errors(viewmats[:, :3, :3]))
+    tol = VIEWMAT_TOL.get(viewmats.dtype, ROTATION_TOL)
+    bottom = viewmats.detach()[:, 3] != viewmats.new_tensor([0.0, 0.0, 0.0, 1.0])
+    if max(ortho_err, det_err) > tol or bool(bottom.any()):
         raise ValueError(f"viewmats must be rigid world-to-camera transforms [R | t; 0 0 0 1] with R a rotation, "
-                         f"got |RᵀR − I| up to {ortho_err:.3g} (tolerance {tol:g}) or another last row")
+                         f"got max |RᵀR − I| {ortho_err:.3g}, |det R − 1| {det_err:.3g} (tolerance {tol:g}) or "
+                         "another last row")
