@@ -59,6 +59,15 @@ from typing import Any
 import torch
 import torch.distributed as dist
 from torch import Tensor, nn
+from torch.distributed.checkpoint.state_dict import (
+    StateDictOptions,
+    get_model_state_dict,
+    get_optimizer_state_dict,
+    set_state_dict,
+)
+from torch.distributed.device_mesh import init_device_mesh
+from torch.distributed.fsdp import MixedPrecisionPolicy, fully_shard
+from torch.distributed.tensor import distribute_tensor
 from torch.utils.data import DataLoader, Dataset, DistributedSampler
 from tqdm.auto import tqdm
 
@@ -283,10 +292,6 @@ class Trainer:
         if not self.distributed:
             return module
         if self.sharded:
-            # torch.distributed.fsdp / device_mesh exist only in builds with torch.distributed
-            from torch.distributed.device_mesh import init_device_mesh
-            from torch.distributed.fsdp import MixedPrecisionPolicy, fully_shard
-
             mesh = init_device_mesh(self.device.type, (self.world,))  # not FSDP's default: CUDA whenever present
             blocks = (MixedPrecisionPolicy(param_dtype=torch.bfloat16, reduce_dtype=torch.float32) if self.bf16
                       else MixedPrecisionPolicy())
@@ -302,7 +307,6 @@ class Trainer:
         """Full weights (collective under FSDP, where rank 0 gets them on the CPU and the other ranks ``{}``);
         without the frozen parameters when ``frozen`` is False."""
         if self.sharded:
-            from torch.distributed.checkpoint.state_dict import StateDictOptions, get_model_state_dict
 
             state = get_model_state_dict(self.model, options=StateDictOptions(
                 full_state_dict=True, cpu_offload=True, ignore_frozen_params=not frozen))
@@ -323,7 +327,6 @@ class Trainer:
 
     def _optimizer_state(self) -> dict:
         if self.sharded:
-            from torch.distributed.checkpoint.state_dict import StateDictOptions, get_optimizer_state_dict
 
             return get_optimizer_state_dict(self.model, self.optimizer,
                                             options=StateDictOptions(full_state_dict=True, cpu_offload=True))
@@ -331,8 +334,6 @@ class Trainer:
 
     def _load_states(self, model_state: dict, optim_state: dict, ema: dict[str, Tensor] | None) -> None:
         if self.sharded:
-            from torch.distributed.checkpoint.state_dict import StateDictOptions, set_state_dict
-            from torch.distributed.tensor import distribute_tensor
 
             set_state_dict(self.model, self.optimizer, model_state_dict=model_state, optim_state_dict=optim_state,
                            options=StateDictOptions(full_state_dict=True, broadcast_from_rank0=False,
