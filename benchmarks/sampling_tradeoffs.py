@@ -17,7 +17,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, markdown_table, repo_relative, write_section  # noqa: E402
 
-from data_prep.synth import synthesize  # noqa: E402
+from data_prep.synth_dataset import synthesize  # noqa: E402
 from diff4splat.pipeline import Diff4SplatPipeline, load_model  # noqa: E402
 from models.bundle import DEFAULT_CONFIG  # noqa: E402
 from training.evaluate import _held_out_clips, sampling_tradeoffs, stiffness_profile  # noqa: E402

@@ -17,11 +17,12 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from diff4splat.devices import resolve_device
 from diff4splat.errors import run_cli
 
 from .convert_cli import register as _add_convert  # data_prep convert SOURCE IN OUT
 from .curate import DEFAULT_CONFIG_PATH, CurationConfig, curate
-from .synth import check_synth_request, synthesize
+from .synth_dataset import check_synth_request, synthesize
 from .validate import summarize, validate_path
 
 __all__ = ["main", "build_parser", "SUBCOMMANDS"]
@@ -67,9 +68,10 @@ def _synth(args: argparse.Namespace) -> int:
                         workers=args.workers, static_ratio=args.static_ratio, texture_ratio=args.texture_ratio,
                         flags=True)  # the messages name the flags
     t0 = time.perf_counter()
+    resolve_device(args.device, "--device")  # before anything is created
     paths = synthesize(args.out, args.scenes, args.seed, size=args.size, frames=args.frames, cameras=args.cameras,
                        static_ratio=args.static_ratio, texture_ratio=args.texture_ratio, workers=args.workers,
-                       progress=not args.quiet)
+                       progress=not args.quiet, device=args.device)
     print(f"{len(paths)} scene(s) in {args.out} ({time.perf_counter() - t0:.1f} s)")
     return 0
 
@@ -91,6 +93,9 @@ def _add_synth(sub) -> None:
                    help="probability in [0, 1] that a surface gets a crop of a bundled photograph as texture "
                         "(data_prep/textures/); 0: procedural textures only (default 0.5)")
     p.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
+    p.add_argument("--device", default="cpu",
+                   help="torch device that renders the scenes: cpu, cuda, cuda:N or auto (default: cpu, so a seed "
+                        "gives the same bytes on every machine; CUDA renders with gsplat when installed)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_synth)
 

@@ -27,32 +27,26 @@ from __future__ import annotations
 
 import math
 import os
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
 from diff4splat.cameras import CameraPath, intrinsics_from_fov, look_at
-from diff4splat.checks import check_int, check_number
 from diff4splat.gaussians import Gaussians, rgb_to_sh0
-from diff4splat.limits import check_limit
 from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat, rotmat_to_quat
 from diff4splat.render.sequence import render_path
 from diff4splat.scene import DynamicGaussians
 
-from .format import SceneWriter, check_dataset_root
+from .format import SceneWriter
 from .synth_world import caption_for, sample_scene_spec
 from .textures import image_albedo
 
-__all__ = ["generate_scene", "synthesize", "render_spec", "write_synth_scene", "SynthScene", "build_scene",
-           "build_gaussians", "object_transform", "camera_path", "track_visibility", "scene_name", "MAX_TRACKS",
-           "VISIBILITY_TOL_M", "VISIBILITY_TOL_REL", "check_synth_request", "max_gaussians", "scene_bytes",
-           "BYTES_PER_PIXEL", "BYTES_PER_GAUSSIAN_FRAME"]
+__all__ = ["generate_scene", "render_spec", "write_synth_scene", "SynthScene", "build_scene", "build_gaussians",
+           "object_transform", "camera_path", "track_visibility", "scene_name", "MAX_TRACKS", "VISIBILITY_TOL_M",
+           "VISIBILITY_TOL_REL"]
 
 MAX_TRACKS = 256
 """Tracked object points per scene (fewer if the objects have fewer Gaussians)."""
@@ -66,12 +60,6 @@ IMAGE_SPACING = 0.5
 """Ground and wall Gaussians with an image texture lie this factor closer (4× as many): at the procedural
 spacing (0.25 m at 64 px) a photograph's detail would blur into a few colour blobs."""
 _WALL_HEIGHT = 4.0
-BYTES_PER_PIXEL = 24
-"""Memory of a scene per pixel of every camera and frame: the float32 RGB (12 bytes) and depth (4) kept until the
-scene is written, and the renderer's expected depth and alpha (8) of the camera being rendered."""
-BYTES_PER_GAUSSIAN_FRAME = 120
-"""Memory of a dynamic scene per Gaussian and frame: its float64 deformation (Δμ 3, Δq 4, Δs 3: 80 bytes) and the
-float32 copy the scene holds (40)."""
 _UP = np.array([0.0, -1.0, 0.0])  # world up (y points down)
 
 
@@ -381,20 +369,23 @@ class SynthScene:
     caption: str
 
 
-def render_spec(spec: dict[str, Any], rng: np.random.Generator) -> SynthScene:
+def render_spec(spec: dict[str, Any], rng: np.random.Generator, device: str | torch.device = "cpu") -> SynthScene:
     """Build, render and track a scene spec (one torch thread, restored afterwards).
 
     ``rng`` supplies the per-Gaussian texture jitter and the choice of tracked points, so the same
-    spec and generator state give identical arrays.
+    spec and generator state give identical arrays. The scene is built on the CPU and rendered on ``device``
+    (CUDA: gsplat when installed, whose images differ from the CPU renderer's by float rounding and its 0.999
+    alpha clamp); the returned arrays and scene are on the CPU.
     """
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
         scene, ids = build_scene(spec, rng)
         paths = [camera_path(spec, c) for c in spec["cameras"]]
+        rendered = scene.to(device)
         rgbs, depths = [], []
         for p in paths:
-            rgb, ed, alpha = render_path(scene, p, background=tuple(spec["background"]))
+            rgb, ed, alpha = render_path(rendered, p, background=tuple(spec["background"]))
             rgbs.append(rgb.cpu().numpy())
             depths.append(torch.where(alpha >= 0.5, ed, torch.inf).cpu().numpy())
     finally:
@@ -434,13 +425,13 @@ def write_synth_scene(path: str | os.PathLike, result: SynthScene, extra: dict[s
 
 def generate_scene(out_dir: str | os.PathLike, index: int, seed: int, *, size: int = 64, frames: int = 17,
                    cameras: int = 2, static_ratio: float = 0.3, texture_ratio: float = 0.5,
-                   replace: bool = False) -> Path:
+                   replace: bool = False, device: str | torch.device = "cpu") -> Path:
     """Sample, render and write scene ``index`` of run ``seed`` to ``out_dir/scene_{index:05d}`` (atomic).
 
     The scene is static (no object motion) with probability ``static_ratio``, drawn from the scene's
     own generator ``numpy.random.default_rng([seed, index])``, which then samples the spec
     (:func:`sample_scene_spec`; each surface gets an image texture with probability ``texture_ratio``)
-    and drives :func:`render_spec`.
+    and drives :func:`render_spec`, which renders on ``device``.
 
     Returns:
         The scene folder.
@@ -452,142 +443,5 @@ def generate_scene(out_dir: str | os.PathLike, index: int, seed: int, *, size: i
     dynamic = bool(rng.random() >= static_ratio)
     spec = sample_scene_spec(rng, dynamic=dynamic, num_cameras=cameras, size=size, num_frames=frames,
                              texture_ratio=texture_ratio)
-    result = render_spec(spec, rng)
+    result = render_spec(spec, rng, device)
     return write_synth_scene(Path(out_dir) / scene_name(index), result, {"seed": seed, "index": index}, replace)
-
-
-def max_gaussians(size: int) -> int:
-    """An upper bound of the Gaussians of any scene of ``size`` pixels (:func:`build_gaussians`).
-
-    Ground and wall Gaussians lie on grids of spacing sp = 0.25 m·min(1, 64/size)^½, halved where image-textured
-    (:data:`IMAGE_SPACING`): at most π·6²/(sp/2)² on the ground disk of radius ≤ 6 m and 2π·6·4/(0.6·sp)² on the
-    4 m wall, together 13 940·max(1, size/64); at most 4 objects of ≤ 800 surface samples each add 3 200.
-    """
-    return 14_000 * max(1, math.ceil(size / 64)) + 3_200
-
-
-def scene_bytes(size: int, frames: int, cameras: int) -> int:
-    """Estimated memory of one synthetic scene while it is made: cameras · frames · size² · :data:`BYTES_PER_PIXEL`
-    plus frames · :func:`max_gaussians` · :data:`BYTES_PER_GAUSSIAN_FRAME`."""
-    return cameras * frames * size * size * BYTES_PER_PIXEL + frames * max_gaussians(size) * BYTES_PER_GAUSSIAN_FRAME
-
-
-_FLAGS = {"num_scenes": "--scenes", "seed": "--seed", "size": "--size", "frames": "--frames", "cameras": "--cameras",
-          "workers": "--workers", "static_ratio": "--static-ratio", "texture_ratio": "--texture-ratio"}
-"""The ``data_prep synth`` flag of each :func:`synthesize` argument (the CLI's messages name the flags)."""
-
-
-def check_synth_request(num_scenes: int, seed: int, *, size: int, frames: int, cameras: int, workers: int,
-                        static_ratio: float, texture_ratio: float, flags: bool = False) -> None:
-    """Check :func:`synthesize`'s arguments and limits before anything is created or allocated.
-
-    Args:
-        flags: name the arguments by their ``data_prep synth`` flags (``--scenes``, ``--size``, …) instead of
-            their parameter names.
-
-    Raises:
-        ValueError: an argument out of range (named). :class:`diff4splat.limits.LimitError` (a ValueError):
-            ``num_scenes`` above the ``scenes`` limit, ``size`` above ``resolution``, ``frames`` above ``frames``,
-            or :func:`scene_bytes` above ``synth_bytes``.
-    """
-    name = _FLAGS.get if flags else str
-    check_limit("scenes", check_int(name("num_scenes"), num_scenes, 1), name("num_scenes"))
-    check_int(name("seed"), seed, 0)
-    check_limit("resolution", check_int(name("size"), size, 8), name("size"))
-    check_limit("frames", check_int(name("frames"), frames, 2), name("frames"))
-    check_int(name("cameras"), cameras, 1)
-    check_int(name("workers"), workers, 1)
-    for key, value in (("static_ratio", static_ratio), ("texture_ratio", texture_ratio)):
-        check_number(name(key), value, lo=0, hi=1)
-    check_limit("synth_bytes", scene_bytes(size, frames, cameras),
-                f"one scene of {name('cameras')} {cameras} × {name('frames')} {frames} at {name('size')} {size}: "
-                "estimated")
-
-
-def _init_worker() -> None:
-    torch.set_num_threads(1)
-
-
-def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, size: int = 64, frames: int = 17,
-               cameras: int = 2, static_ratio: float = 0.3, texture_ratio: float = 0.5, workers: int = 1,
-               progress: bool = True) -> list[Path]:
-    """Generate scenes 0 … num_scenes−1 into ``out_dir``, skipping scenes already present (resume).
-
-    Every argument and limit is checked first (:func:`check_synth_request`): a refused request creates nothing.
-    Scenes are then made in index order, the existing ones skipped as they come (the first new scene is written
-    without looking at the later ones first). Each scene is written atomically by :func:`generate_scene`; with
-    ``workers`` > 1 scenes are made in that many processes (spawned, one torch thread each, at most 2 scenes
-    queued per process). A tqdm bar counts finished and skipped scenes. ``out_dir`` is created when missing, and
-    removed again if the run fails before anything was written into it.
-
-    Args:
-        out_dir: dataset root (created).
-        num_scenes: ≥ 1, at most the ``scenes`` limit.
-        seed: global seed (any int ≥ 0).
-        size: image width = height, pixels, in [8, the ``resolution`` limit].
-        frames: T frames per camera, in [2, the ``frames`` limit].
-        cameras: synchronised cameras per scene, ≥ 1.
-        static_ratio: probability in [0, 1] of a static scene.
-        texture_ratio: probability in [0, 1] that a surface (ground, wall, object) uses an image texture
-            (:mod:`data_prep.textures`); 0 gives the procedural-only scenes.
-        workers: processes, ≥ 1.
-        progress: show the progress bar.
-
-    Returns:
-        The scene folders of all ``num_scenes`` scenes, in index order.
-
-    Raises:
-        ValueError: naming the argument that is out of range; an ``out_dir`` holding anything but scene folders;
-            :class:`diff4splat.limits.LimitError` for a request above a limit (:func:`check_synth_request`).
-    """
-    check_synth_request(num_scenes, seed, size=size, frames=frames, cameras=cameras, workers=workers,
-                        static_ratio=static_ratio, texture_ratio=texture_ratio)
-    # numpy integers pass the checks; Python ints go on (the seed is written to meta.json)
-    num_scenes, seed, size, frames, cameras, workers = map(int, (num_scenes, seed, size, frames, cameras, workers))
-    out = Path(out_dir)
-    check_dataset_root(out, "--out")
-    created = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
-    kw = dict(size=size, frames=frames, cameras=cameras, static_ratio=float(static_ratio),
-              texture_ratio=float(texture_ratio))
-    bar = tqdm(total=num_scenes, desc="synth", unit="scene", disable=not progress)
-
-    def todo():
-        for i in range(num_scenes):
-            if (out / scene_name(i) / "meta.json").is_file():
-                bar.update()
-            else:
-                yield i
-
-    try:
-        if workers == 1 or num_scenes == 1:
-            for i in todo():
-                generate_scene(out, i, seed, **kw)
-                bar.update()
-        else:
-            with ProcessPoolExecutor(min(workers, num_scenes), mp_context=get_context("spawn"),
-                                     initializer=_init_worker) as pool:
-                running: set = set()
-                for i in todo():
-                    running.add(pool.submit(generate_scene, out, i, seed, **kw))
-                    while len(running) >= 2 * workers:
-                        running = _collect(running, bar)
-                while running:
-                    running = _collect(running, bar)
-    except BaseException:
-        if created and out.is_dir() and not any(out.iterdir()):
-            out.rmdir()
-        raise
-    finally:
-        bar.close()
-    return [out / scene_name(i) for i in range(num_scenes)]
-
-
-def _collect(running: set, bar) -> set:
-    """Wait until a scene of ``running`` is finished; re-raise its failure or count it on ``bar``. Returns the
-    futures still running."""
-    done, pending = wait(running, return_when=FIRST_COMPLETED)
-    for fut in done:
-        fut.result()
-        bar.update()
-    return pending

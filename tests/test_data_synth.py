@@ -13,7 +13,7 @@ from concurrent.futures import Future
 import numpy as np
 import pytest
 
-import data_prep.synth
+import data_prep.synth_dataset
 from data_prep.cli import main
 from data_prep.format import load_scene
 from data_prep.synth import (
@@ -23,13 +23,11 @@ from data_prep.synth import (
     build_gaussians,
     camera_path,
     generate_scene,
-    max_gaussians,
     object_transform,
     render_spec,
-    scene_bytes,
     scene_name,
-    synthesize,
 )
+from data_prep.synth_dataset import max_gaussians, scene_bytes, synthesize
 from data_prep.synth_world import CAMERA_MOTIONS, MOTIONS, SHAPES, TEXTURES, caption_for, sample_scene_spec
 from data_prep.textures import IMAGE_TEXTURES, image_albedo
 from data_prep.validate import validate_path, validate_scene
@@ -288,6 +286,9 @@ def test_cli_synth(tmp_path, capsys):
     assert main(["synth", "--scenes", "x", "--out", str(out)]) == 2
     assert main(["synth", "--out", str(out)]) == 2
     assert capsys.readouterr().err.count("\n") == 2
+    assert main(["synth", "--scenes", "1", "--out", str(tmp_path / "gpu"), "--device", "cuda:7"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("data_prep: error: --device") and err.count("\n") == 1 and not (tmp_path / "gpu").exists()
 
 
 # --------------------------------------------------------------------------- limits (issue 28)
@@ -343,16 +344,16 @@ def test_the_first_scene_is_started_without_looking_at_every_later_path(tmp_path
     """``--scenes 1000000000`` printed nothing for 60 s: it checked 10⁹ paths before writing scene 0 (10⁶ took
     22 s on a 2-core CPU)."""
     monkeypatch.setenv("DIFF4SPLAT_MAX_SCENES", str(10**6))
-    monkeypatch.setattr(data_prep.synth, "scene_bytes", lambda *a: 0)
+    monkeypatch.setattr(data_prep.synth_dataset, "scene_bytes", lambda *a: 0)
     started = []
 
     def first(out, index, seed, **kw):
         started.append(index)
         raise _FirstScene
 
-    monkeypatch.setattr(data_prep.synth, "generate_scene", first)
+    monkeypatch.setattr(data_prep.synth_dataset, "generate_scene", first)
     if workers > 1:  # a spawned worker would import the real generate_scene: run the pool's tasks here
-        monkeypatch.setattr(data_prep.synth, "ProcessPoolExecutor", _InlinePool)
+        monkeypatch.setattr(data_prep.synth_dataset, "ProcessPoolExecutor", _InlinePool)
     out = tmp_path / "data"
     t0 = time.perf_counter()
     with pytest.raises(_FirstScene):

@@ -22,6 +22,7 @@ from helpers import EXAMPLE_IMAGE, OBJECTIVE_CASES, benchmark_module, perturbed_
 from simulated_cuda import SimulatedCudaTensor, simulated_cuda
 from torch.utils.data import default_collate
 
+from data_prep.cli import main as data_prep_main
 from data_prep.clips import ClipConfig, ClipDataset
 from data_prep.synth import generate_scene
 from diff4splat.cli import main
@@ -276,6 +277,22 @@ def test_generate_render_and_evaluate_commands_on_simulated_cuda(tmp_path, cpu_t
     assert json.loads((tmp_path / "cuda" / "f" / "meta.json").read_text())["deformation"] == "field.safetensors"
     for k in ("psnr_input", "psnr_novel", "psnr_novel_noise", "psnr_novel_gt", "vae_psnr", "motion_epe"):
         assert float(cuda_row[k]) == pytest.approx(float(cpu_row[k]), abs=0.02), k
+
+
+def test_data_prep_synth_renders_on_simulated_cuda(tmp_path, cpu_tile_path):
+    """``data_prep synth --device cuda``: the scene is rendered from CUDA tensors and holds the CPU's frames
+    (the tile path on both: the same arithmetic up to rounding); the tracks come from the CPU scene, the same."""
+    for dev in ("cpu", "cuda"):
+        with simulated_cuda() if dev == "cuda" else contextlib.nullcontext():
+            args = ["--size", "32", "--frames", "3", "--cameras", "1", "--static-ratio", "0", "--device", dev]
+            assert data_prep_main(["synth", "--scenes", "1", *args, "--quiet", "--out", str(tmp_path / dev)]) == 0
+    cpu, cuda = (tmp_path / d / "scene_00000" for d in ("cpu", "cuda"))
+    frames = sorted(p.relative_to(cpu) for p in cpu.rglob("*.png"))
+    assert frames and frames == sorted(p.relative_to(cuda) for p in cuda.rglob("*.png"))
+    for f in frames:  # 8-bit frames: equal but for a rounding step
+        a, b = (read_image(root / f).astype(np.int16) for root in (cpu, cuda))
+        assert np.abs(a - b).max() <= 1, f
+    assert (cpu / "tracks.npz").read_bytes() == (cuda / "tracks.npz").read_bytes()
 
 
 def test_the_gpu_benchmarks_generate_part_runs_on_simulated_cuda(monkeypatch, capsys):
