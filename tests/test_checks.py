@@ -9,7 +9,7 @@ import torch
 
 import data_prep.format as data_format
 import data_prep.scene_files as scene_files
-import data_prep.synth as synth
+import data_prep.synth_dataset as synth
 import diff4splat.cameras.lenses as lenses
 import diff4splat.cameras.path as path
 import diff4splat.gaussians as gaussians
