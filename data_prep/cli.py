@@ -23,6 +23,7 @@ from diff4splat.errors import run_cli
 from .convert_cli import register as _add_convert  # data_prep convert SOURCE IN OUT
 from .curate import DEFAULT_CONFIG_PATH, CurationConfig, curate
 from .synth_dataset import check_synth_request, synthesize
+from .synth_world import DEFAULT_CAMERAS, DEFAULT_FRAMES, DEFAULT_SIZE, DEFAULT_STATIC_RATIO, DEFAULT_TEXTURE_RATIO
 from .validate import summarize, validate_path
 
 __all__ = ["main", "build_parser", "SUBCOMMANDS"]
@@ -85,13 +86,16 @@ def _add_synth(sub) -> None:
     p.add_argument("--scenes", type=int, required=True, help="number of scenes N (scene_00000 … )")
     p.add_argument("--out", type=Path, required=True, help="dataset root to write")
     p.add_argument("--seed", type=int, default=0, help="global seed ≥ 0 (default 0)")
-    p.add_argument("--size", type=int, default=64, help="image width = height, pixels (default 64)")
-    p.add_argument("--frames", type=int, default=17, help="frames per camera (default 17)")
-    p.add_argument("--cameras", type=int, default=2, help="synchronised cameras per scene (default 2)")
-    p.add_argument("--static-ratio", type=float, default=0.3, help="fraction of static scenes in [0, 1] (default 0.3)")
-    p.add_argument("--texture-ratio", type=_unit_float, default=0.5,
+    p.add_argument("--size", type=int, default=DEFAULT_SIZE,
+                   help=f"image width = height, pixels (default {DEFAULT_SIZE})")
+    p.add_argument("--frames", type=int, default=DEFAULT_FRAMES, help=f"frames per camera (default {DEFAULT_FRAMES})")
+    p.add_argument("--cameras", type=int, default=DEFAULT_CAMERAS,
+                   help=f"synchronised cameras per scene (default {DEFAULT_CAMERAS})")
+    p.add_argument("--static-ratio", type=float, default=DEFAULT_STATIC_RATIO,
+                   help=f"fraction of static scenes in [0, 1] (default {DEFAULT_STATIC_RATIO})")
+    p.add_argument("--texture-ratio", type=_unit_float, default=DEFAULT_TEXTURE_RATIO,
                    help="probability in [0, 1] that a surface gets a crop of a bundled photograph as texture "
-                        "(data_prep/textures/); 0: procedural textures only (default 0.5)")
+                        f"(data_prep/textures/); 0: procedural textures only (default {DEFAULT_TEXTURE_RATIO})")
     p.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
     p.add_argument("--device", default="cpu",
                    help="torch device that renders the scenes: cpu, cuda, cuda:N or auto (default: cpu, so a seed "

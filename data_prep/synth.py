@@ -41,7 +41,15 @@ from diff4splat.render.sequence import render_path
 from diff4splat.scene import DynamicGaussians
 
 from .format import SceneWriter
-from .synth_world import caption_for, sample_scene_spec
+from .synth_world import (
+    DEFAULT_CAMERAS,
+    DEFAULT_FRAMES,
+    DEFAULT_SIZE,
+    DEFAULT_STATIC_RATIO,
+    DEFAULT_TEXTURE_RATIO,
+    caption_for,
+    sample_scene_spec,
+)
 from .textures import image_albedo
 
 __all__ = ["generate_scene", "render_spec", "write_synth_scene", "SynthScene", "build_scene", "build_gaussians",
@@ -423,8 +431,9 @@ def write_synth_scene(path: str | os.PathLike, result: SynthScene, extra: dict[s
     return Path(path)
 
 
-def generate_scene(out_dir: str | os.PathLike, index: int, seed: int, *, size: int = 64, frames: int = 17,
-                   cameras: int = 2, static_ratio: float = 0.3, texture_ratio: float = 0.5,
+def generate_scene(out_dir: str | os.PathLike, index: int, seed: int, *, size: int = DEFAULT_SIZE,
+                   frames: int = DEFAULT_FRAMES, cameras: int = DEFAULT_CAMERAS,
+                   static_ratio: float = DEFAULT_STATIC_RATIO, texture_ratio: float = DEFAULT_TEXTURE_RATIO,
                    replace: bool = False, device: str | torch.device = "cpu") -> Path:
     """Sample, render and write scene ``index`` of run ``seed`` to ``out_dir/scene_{index:05d}`` (atomic).
 

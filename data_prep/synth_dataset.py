@@ -18,6 +18,7 @@ from diff4splat.limits import check_limit
 
 from .format import check_dataset_root
 from .synth import generate_scene, scene_name
+from .synth_world import DEFAULT_CAMERAS, DEFAULT_FRAMES, DEFAULT_SIZE, DEFAULT_STATIC_RATIO, DEFAULT_TEXTURE_RATIO
 
 __all__ = ["synthesize", "check_synth_request", "max_gaussians", "scene_bytes", "BYTES_PER_PIXEL",
            "BYTES_PER_GAUSSIAN_FRAME"]
@@ -82,8 +83,9 @@ def _init_worker() -> None:
     torch.set_num_threads(1)
 
 
-def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, size: int = 64, frames: int = 17,
-               cameras: int = 2, static_ratio: float = 0.3, texture_ratio: float = 0.5, workers: int = 1,
+def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, size: int = DEFAULT_SIZE,
+               frames: int = DEFAULT_FRAMES, cameras: int = DEFAULT_CAMERAS, static_ratio: float = DEFAULT_STATIC_RATIO,
+               texture_ratio: float = DEFAULT_TEXTURE_RATIO, workers: int = 1,
                progress: bool = True, device: str | torch.device = "cpu") -> list[Path]:
     """Generate scenes 0 … num_scenes−1 into ``out_dir``, skipping scenes already present (resume).
 

@@ -30,7 +30,19 @@ from diff4splat.checks import check_number
 from .textures import IMAGE_TEXTURES, load_texture, texture_names
 
 __all__ = ["COLORS", "SHAPES", "MOTIONS", "CAMERA_MOTIONS", "TEXTURES", "sample_scene_spec", "caption_for",
-           "direction_word"]
+           "direction_word", "DEFAULT_SIZE", "DEFAULT_FRAMES", "DEFAULT_CAMERAS", "DEFAULT_STATIC_RATIO",
+           "DEFAULT_TEXTURE_RATIO"]
+
+DEFAULT_SIZE = 64
+"""Image width = height of a synthetic scene when none is given, pixels (the ``base`` model's resolution)."""
+DEFAULT_FRAMES = 17
+"""Frames per camera when none is given (the ``base`` model's clip length, 1 + 4·4)."""
+DEFAULT_CAMERAS = 2
+"""Synchronised cameras per scene when none is given (one to train on, one to supervise novel views)."""
+DEFAULT_STATIC_RATIO = 0.3
+"""Probability of a static scene when none is given."""
+DEFAULT_TEXTURE_RATIO = 0.5
+"""Probability that a surface gets a crop of a bundled photograph as texture when none is given."""
 
 COLORS: dict[str, tuple[float, float, float]] = {
     "red": (0.85, 0.12, 0.10), "orange": (0.95, 0.50, 0.08), "yellow": (0.95, 0.85, 0.15),
@@ -192,7 +204,8 @@ def _sample_camera(rng: np.random.Generator, fov: float, kind: str) -> dict[str,
 
 
 def sample_scene_spec(rng: np.random.Generator, *, dynamic: bool, num_cameras: int, size: int,
-                      num_frames: int, fps: float = 8.0, texture_ratio: float = 0.5) -> dict[str, Any]:
+                      num_frames: int, fps: float = 8.0,
+                      texture_ratio: float = DEFAULT_TEXTURE_RATIO) -> dict[str, Any]:
     """Sample a complete scene description.
 
     The procedural scene is sampled first; then, only if ``texture_ratio`` > 0, each surface (ground,
