@@ -123,6 +123,13 @@ def check_finite(name: str, tensor: Tensor) -> None:
 
     Integer and empty tensors pass. The message counts the bad entries, e.g.
     ``means contains 2 non-finite value(s) (NaN or inf)``.
+
+    Args:
+        name: what the message calls the tensor.
+        tensor: any shape, dtype and device.
+
+    Raises:
+        ValueError: ``tensor`` is floating point and holds at least one NaN or ±inf.
     """
     if not tensor.is_floating_point() or not tensor.numel():
         return

@@ -125,7 +125,19 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
 
 
 def export_onnx_command(args) -> dict:
-    """Run ``export-onnx``; returns the manifest written to ``--out/manifest.json``."""
+    """Run ``export-onnx``; returns the manifest written to ``--out/manifest.json``.
+
+    Args:
+        args: the parsed ``export-onnx`` arguments (``out``, ``checkpoint``, ``config``, ``opset``, ``no_text``,
+            ``static``, ``overwrite``).
+
+    Raises:
+        FileNotFoundError: ``--checkpoint`` is not a folder.
+        ValueError: ``--checkpoint`` is a diffusers backbone folder (has ``model_index.json``); an unsupported
+            ``--opset`` (:func:`diff4splat.export.check_opset`); an unusable ``--out``
+            (:func:`diff4splat.io.output_folders.check_output_dir`, which also raises FileExistsError for an
+            existing ``--out`` without ``--overwrite``).
+    """
     check_output_dir(args.out, inputs=[args.checkpoint], overwrite=args.overwrite, kind=EXPORT_KIND)
     check_opset(args.opset)
     if args.checkpoint is not None and not args.checkpoint.is_dir():

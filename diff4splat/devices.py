@@ -164,6 +164,14 @@ def full_precision(fn: Callable) -> Callable:
 def host_values(x: torch.Tensor) -> torch.Tensor:
     """``x`` detached on the CPU in a dtype numpy has: bfloat16 widened to float32 (numpy has no bfloat16, and
     ``.numpy()`` raised "unsupported ScalarType BFloat16"); every other dtype kept. What writers call before
-    ``.numpy()`` (numpy sees CPU tensors only: docs/DESIGN.md, "Devices")."""
+    ``.numpy()`` (numpy sees CPU tensors only: docs/DESIGN.md, "Devices").
+
+    Args:
+        x: a tensor of any shape, dtype and device.
+
+    Returns:
+        The same shape and values on the CPU, detached; float32 if ``x`` was bfloat16, else ``x``'s dtype (no data copy
+        when ``x`` is already a CPU tensor of such a dtype).
+    """
     x = x.detach().cpu()
     return x.float() if x.dtype == torch.bfloat16 else x

@@ -271,7 +271,8 @@ class OnnxRuntime:
         return self.sessions[part].run(None, feeds)
 
     def sigmas(self, steps: int) -> Tensor:
-        """The exported model's σ schedule (:func:`models.flow_matching.sigma_schedule`, the config's shift)."""
+        """The exported model's σ schedule: (steps + 1,) float64, decreasing from 1 to 0
+        (:func:`models.flow_matching.sigma_schedule`, the config's shift)."""
         return sigma_schedule(steps, self.config.sampling.shift, dtype=torch.float64)
 
     def encode_image(self, video: Tensor) -> Tensor:
@@ -316,8 +317,10 @@ class OnnxRuntime:
 
     def velocity(self, x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor,
                  text: Tensor | None, text_mask: Tensor | None) -> Tensor:
-        """``dit.onnx``; without text on a text-conditioned graph, one zero token with an all-False
-        mask (exactly zero cross-attention, see :mod:`diff4splat.export`).
+        """Flow-matching velocity ε − x0 by ``dit.onnx``: x (B, c, n, h, w), sigma (B,) in [0, 1], image_latent
+        (B, c, 1, h, w), plucker (B, 6·t·s², n, h, w), text (B, L, d_text) and text_mask (B, L) bool (a None mask:
+        all True) or None → (B, c, n, h, w) float32 (on the CPU). Without text on a text-conditioned graph, one zero
+        token with an all-False mask (exactly zero cross-attention, see :mod:`diff4splat.export`).
 
         Raises:
             ValueError: as :meth:`models.dit.VideoDiT.forward` (shapes, σ outside [0, 1]); text given to a graph

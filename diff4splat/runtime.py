@@ -222,28 +222,44 @@ class TorchRuntime:
             self.offload.release()
 
     def sigmas(self, steps: int) -> Tensor:
+        """The sampler's σ schedule: (steps + 1,) float64, decreasing from 1 to 0
+        (:meth:`models.backbones.base.Backbone.sigmas`; ours uses the config's current shift)."""
         return self.model.backbone.sigmas(steps)  # ours: the config's shift as it is now
 
     def encode_image(self, video: Tensor) -> Tensor:
+        """(B, 3, 1, H, W) pixels in [−1, 1] → (B, c, 1, H/s, W/s) DiT-scaled latent (posterior mean), float32
+        (:meth:`models.backbones.base.Backbone.encode_video`, in the runtime's dtype)."""
         with self._use("vae"):
             return self.backbone.encode_video(video.to(self.dtype)).float()
 
     def encode_text(self, prompt: str) -> tuple[Tensor, Tensor]:
+        """Prompt → tokens (1, L, d_text) float32 and mask (1, L) bool, both on the runtime's device
+        (:meth:`models.backbones.base.Backbone.encode_text`, whose errors it passes on)."""
         with self._use("text_encoder"):
             tokens, mask = self.backbone.encode_text([prompt])
         return tokens.float().to(self.device), mask.to(self.device)
 
     def velocity(self, x, sigma, image_latent, plucker, text, text_mask) -> Tensor:
+        """Flow-matching velocity ε − x0 (:meth:`models.backbones.base.Backbone.velocity`): x (B, c, n, h, w),
+        sigma (B,) in [0, 1], image_latent (B, c, 1, h, w), plucker (B, 6·t·s², n, h, w), text (B, L, d_text) and
+        text_mask (B, L) bool, or None → (B, c, n, h, w) float32. Inputs are cast to the runtime's dtype (σ to
+        float32); the backbone's ValueError for a wrong shape passes through."""
         dt = self.dtype
         with self._use("dit"):  # σ float32: its embedding casts
             return self.backbone.velocity(x.to(dt), sigma.float(), image_latent.to(dt), plucker.to(dt),
                                           None if text is None else text.to(dt), text_mask).float()
 
     def decode_latents(self, latents: Tensor) -> Tensor:
+        """(B, c, n, h, w) DiT-scaled latents → (B, 3, 1 + t·(n − 1), h·s, w·s) pixels in about [−1, 1], float32
+        (:meth:`models.backbones.base.Backbone.decode_latents`)."""
         with self._use("vae"):
             return self.backbone.decode_latents(latents.to(self.dtype)).float()
 
     def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None, image: Tensor) -> LDRMOutput:
+        """The LDRM (:class:`models.ldrm.LDRM`) on latents (B, c, n, h, w), plucker (B, 6·t·s², n, h, w), times
+        (K,) in [0, 1] (kept float32) or None for a static scene, and the photograph ``image`` (B, 3, H, W) in
+        [−1, 1] → :class:`LDRMOutput` of float32 maps (B, S, H, W, ·) for the S source frames, plus deformation
+        maps (B, K, S, H, W, ·) when ``times`` is given. The LDRM's ValueError for bad inputs passes through."""
         dt = self.dtype
         with self._use("ldrm") as ldrm:
             # times stay float32 (bfloat16 would round clip times near 1 by up to 2⁻⁹); the deformation network

@@ -127,6 +127,9 @@ class Diff4SplatConfig:
         return self.vae.spatial_factor * max(self.dit.patch_size[1], self.ldrm.patch_size)
 
     def to_dict(self) -> dict:
+        """The config as nested plain dicts (``dataclasses.asdict``: sub-configs become dicts, tuples stay tuples),
+        JSON-serialisable: what ``config.json`` (:meth:`Diff4SplatModel.save_pretrained`) and the ONNX manifest's
+        ``config`` hold, read back by :func:`models.pretrained.config_from_dict`."""
         return dataclasses.asdict(self)
 
 

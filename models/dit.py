@@ -142,6 +142,22 @@ class VideoDiTBlock(nn.Module):
         context_mask: Tensor | None = None,  # (B, L) bool, True = real token
         ff_chunk_tokens: int | None = None,  # the MLP over at most this many tokens at a time (None: all)
     ) -> Tensor:
+        """One block on the video tokens (class docstring).
+
+        Args:
+            x: (B, N, D) video tokens, N = n'·h'·w' patches flattened frame-major.
+            c: (B, D) σ embedding (adaLN input).
+            rope: (cos, sin), each (N, head_dim/2), from :func:`models.rope.rope_3d` of the token grid.
+            context: (B, L, D) projected text tokens, or None (cross-attention skipped).
+            context_mask: (B, L) bool, True = real token, or None (all real).
+            ff_chunk_tokens: run the MLP over at most this many tokens at a time (same values); None: all at once.
+
+        Returns:
+            (B, N, D).
+
+        Raises:
+            ValueError: ``context_mask`` not a bool (B, L) tensor (from :meth:`CrossAttention.forward`).
+        """
         shift_msa, scale_msa, gate_msa, shift_mlp, scale_mlp, gate_mlp = self.adaLN_modulation(c).chunk(6, dim=1)
         # Gated residuals as one addcmul each (x + g·branch in one pass over the tokens, rounded once); a branch's
         # output is a temporary, so it is freed before the next branch runs.
@@ -204,6 +220,11 @@ def check_dit_inputs(config: VideoDiTConfig, x: Tensor, sigma: Tensor, image_lat
 
 class VideoDiT(nn.Module, PretrainedMixin):
     """Camera- and text-conditioned image-to-video flow-matching DiT (Diff4Splat's generator).
+
+    :meth:`forward`: noisy latents x (B, c, n, h, w), σ (B,) in [0, 1], first-frame latent (B, c, 1, h, w), packed
+    Plücker rays (B, camera_channels, n, h, w) or None, text (B, L, text_dim) + mask (B, L) or None → velocity
+    ε − x0 (B, c, n, h, w). Inside, patches of (p_t, p_h, p_w) = ``patch_size`` become N = (n/p_t)·(h/p_h)·(w/p_w)
+    tokens of width D = ``hidden_size``, run through ``depth`` :class:`VideoDiTBlock` s with 3D RoPE.
 
     Build with a :class:`VideoDiTConfig`; ``save_pretrained`` / ``from_pretrained`` from
     :class:`models.pretrained.PretrainedMixin`.

@@ -206,6 +206,7 @@ class QKNorm(nn.RMSNorm):
     """
 
     def forward(self, x: Tensor) -> Tensor:
+        """x: (..., head_dim) → (..., head_dim), RMS-normalised and scaled by the weight, in x's dtype."""
         return F.rms_norm(x, self.normalized_shape, self.weight.to(x.dtype), self.eps)
 
 
@@ -298,12 +299,15 @@ class CrossAttention(_MultiHead):
         context: Tensor,  # (B, L, context_dim)
         context_mask: Tensor | None = None,  # (B, L) bool, True = real token
     ) -> Tensor:
-        """Returns (B, N, D).
+        """Attend each token of ``x`` (B, N, D) to ``context`` (B, L, context_dim); returns (B, N, D).
 
         Masked context tokens get exactly zero attention weight. A sample whose mask is all False
         has nothing to attend to: its output is exactly zero (not NaN). This is done with tensor
         ops only (the mask row is opened to all keys, then the result is multiplied by 0), so the
         module traces/exports without data-dependent branches.
+
+        Raises:
+            ValueError: ``context_mask`` given but not a bool tensor of shape (B, L).
         """
         B, N, D = x.shape
         L = context.shape[1]

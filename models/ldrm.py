@@ -323,6 +323,7 @@ class Block(nn.Module):
         self.mlp = Mlp(dim, int(dim * mlp_ratio))
 
     def forward(self, x: Tensor) -> Tensor:  # (B, N, D) → (B, N, D)
+        """(B, N, D) tokens (position embedding already added) → (B, N, D)."""
         x = x + self.attn(self.norm1(x))
         return x + self.mlp(self.norm2(x))
 
@@ -347,6 +348,8 @@ class UpsampleHead(nn.Module):
         self.out = nn.Conv2d(c_in, RAW_GAUSSIAN_CHANNELS, 3, padding=1)
 
     def forward(self, x: Tensor) -> Tensor:  # (N, D, h, w) → (N, 12, f·h, f·w)
+        """Token maps (N, D, h, w) (N maps, e.g. B·n' latent frames) → raw Gaussian channels (N, 12, f·h, f·w),
+        f = ``factor`` (a power of two)."""
         return self.out(self.stages(x))
 
 
@@ -367,6 +370,8 @@ class ImageBranch(nn.Module):
         nn.init.zeros_(self.out.bias)
 
     def forward(self, image: Tensor, raw: Tensor) -> Tensor:  # (B, 3, H, W) in [−1, 1], (B, 12, H, W)
+        """raw + residual(image, raw): ``image`` (B, 3, H, W) photograph in [−1, 1] (cast to raw's dtype), ``raw``
+        (B, 12, H, W) frame 0's raw head channels → (B, 12, H, W) raw channels (before activation)."""
         x = F.gelu(self.conv1(torch.cat([image.to(raw.dtype), raw], dim=1)))
         return raw + self.out(F.gelu(self.conv2(x)))  # (B, 12, H, W)
 
@@ -404,7 +409,17 @@ def check_ldrm_inputs(config: LDRMConfig, latents: Tensor, plucker: Tensor, time
 
 
 class LDRM(nn.Module, PretrainedMixin):
-    """Video latent + camera path (+ photo) → pixel-aligned Gaussians of the source frames (+ deformation maps)."""
+    """Video latent + camera path (+ photo) → pixel-aligned Gaussians of the source frames (+ deformation maps).
+
+    Diff4Splat's LDRM (Pan et al. 2025; module docstring). :meth:`forward`: latents (B, c, n, h, w), Plücker rays
+    (B, 6·vae_temporal·vae_spatial², n, h, w), times (K,) in [0, 1] or None, photograph (B, 3, H, W) in [−1, 1]
+    (image branch only) → :class:`LDRMOutput` maps (B, S, H, W, ·) with H = vae_spatial·h, W = vae_spatial·w pixels
+    and S = len(:func:`source_frame_indices`) (n for "latent", 1 + vae_temporal·(n − 1) for "all", 1 for
+    "reference"), plus deformation maps (B, K, S, H, W, ·) when ``times`` is given.
+
+    Args:
+        config: :class:`LDRMConfig` (the only constructor argument, for save/from_pretrained).
+    """
 
     config_class = LDRMConfig
 
@@ -435,9 +450,16 @@ class LDRM(nn.Module, PretrainedMixin):
         latents: Tensor,  # (B, c, n, h, w)
         plucker: Tensor,  # (B, 6·4·8·8, n, h, w)
     ) -> Tensor:  # (B, D, n', h/p, w/p)
-        """The transformer's token volume: (B, D, n', h/p, w/p) with D = ``embed_dim``, n' = n, or 1 when
-        ``gaussian_frames`` is "reference" (Pan et al. 2025 §3.2: latent and Plücker tokens, transformer blocks).
-        Inputs as :meth:`forward` (not checked here)."""
+        """The transformer's token volume (Pan et al. 2025 §3.2: latent and Plücker tokens, transformer blocks).
+
+        Args:
+            latents: (B, c, n, h, w) video latent; h, w multiples of p = ``patch_size``.
+            plucker: (B, 6·vae_temporal·vae_spatial², n, h, w) packed Plücker rays (cast to the latents' dtype).
+
+        Returns:
+            (B, D, n', h/p, w/p) with D = ``embed_dim``, n' = n, or 1 when ``gaussian_frames`` is "reference".
+            Inputs are not checked here (:meth:`forward` checks them).
+        """
         cfg = self.config
         p = cfg.patch_size
         B, _, n, h, w = latents.shape
@@ -452,7 +474,13 @@ class LDRM(nn.Module, PretrainedMixin):
 
     def head_maps(self, volume: Tensor) -> Tensor:  # (B, D, n', h', w') → (B, 12, S, H, W)
         """The head's raw Gaussian channels (before :func:`gaussian_activations` and the image branch) of the S
-        source frames, H = h'·p·f, W = w'·p·f pixels, from a :meth:`features` volume."""
+        source frames, from a :meth:`features` volume (B, D, n', h', w').
+
+        Returns:
+            (B, 12, S, H, W), H = h'·p·f, W = w'·p·f pixels (p = ``patch_size``, f = ``vae_spatial``); S = n' (the
+            "deconv" head over n' frames or the "upsample" head per frame), or vae_temporal·(n' − 1) + 1 for
+            ``gaussian_frames`` "all" (the deconv head's first vae_temporal − 1 frames dropped).
+        """
         cfg = self.config
         B, D, nv, hp, wp = volume.shape
         if cfg.head == "deconv":

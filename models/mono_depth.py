@@ -63,6 +63,18 @@ class MonoDepth(nn.Module):
         nn.init.zeros_(self.out.bias)
 
     def forward(self, image: Tensor) -> Tensor:  # (B, 3, H, W) → (B, H, W)
+        """Raw ray-distance channel of each photograph (the LDRM's pre-activation distance, unitless logit).
+
+        Args:
+            image: (B, 3, H, W) photograph, pixels in [−1, 1]; H and W divisible by 2^levels.
+
+        Returns:
+            (B, H, W) raw distance (metres only after ``models.ldrm.gaussian_activations``); with ``grid`` = g > 0,
+            smooth over a g×g grid of cells.
+
+        Raises:
+            ValueError: ``image`` not (B, 3, H, W) with H and W divisible by 2^levels.
+        """
         f = 2 ** self.levels
         if image.dim() != 4 or image.shape[1] != 3 or image.shape[-2] % f or image.shape[-1] % f:
             raise ValueError(f"image must be (B, 3, H, W) with H and W divisible by {f}, got {tuple(image.shape)}")

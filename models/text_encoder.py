@@ -187,6 +187,7 @@ class RMSNorm(nn.Module):
         self.weight = nn.Parameter(torch.ones(dim))  # device: the construction context's (torch.device(…), meta)
 
     def forward(self, x: Tensor) -> Tensor:
+        """(..., dim) → (..., dim): statistic in float32, normalised x cast back to x's dtype, times the weight."""
         var = x.float().pow(2).mean(-1, keepdim=True)
         return self.weight * (x.float() * torch.rsqrt(var + self.eps)).to(x.dtype)
 
@@ -225,6 +226,8 @@ class T5Block(nn.Module):
         self.wo = nn.Linear(config.d_ff, config.d_model, bias=False)
 
     def forward(self, x: Tensor, bias: Tensor) -> Tensor:
+        """x: (B, L, d_model) token features; bias: (B or 1, heads, L, L) relative position bias plus the additive
+        padding mask (:class:`T5Attention`) → (B, L, d_model)."""
         x = x + self.attn(self.attn_norm(x), bias)
         h = self.ff_norm(x)
         # GEGLU (Shazeer 2020, Eq. 6) with the tanh GELU approximation T5 v1.1 uses ("gelu_new").

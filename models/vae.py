@@ -186,6 +186,9 @@ class CausalConv3d(nn.Module):
         self.conv = nn.Conv3d(in_channels, out_channels, kernel_size, stride=stride, padding=(0, kh // 2, kw // 2))
 
     def forward(self, x: Tensor) -> Tensor:
+        """(B, C_in, T, H, W) → (B, C_out, ⌊(T − 1)/s_t⌋ + 1, ⌊(H − 1)/s_h⌋ + 1, ⌊(W − 1)/s_w⌋ + 1) (odd spatial
+        kernels); above :data:`MAX_KERNEL_ELEMENTS` per sample (stride 1 in time) run in windows of frames, same
+        values."""
         if self.time_pad:
             x = torch.cat([x[:, :, :1].expand(-1, -1, self.time_pad, -1, -1), x], dim=2)
         c_in, t, h, w = x.shape[1:]
@@ -206,6 +209,7 @@ class FrameGroupNorm(nn.GroupNorm):
     """
 
     def forward(self, x: Tensor) -> Tensor:
+        """(B, C, T, H, W) → (B, C, T, H, W), each frame normalised over its channel groups × H × W."""
         b, c, t, h, w = x.shape
         y = super().forward(x.transpose(1, 2).reshape(b * t, c, h, w))
         return y.reshape(b, t, c, h, w).transpose(1, 2)
@@ -231,6 +235,7 @@ class ResBlock3d(nn.Module):
         self.skip = nn.Conv3d(in_channels, out_channels, 1) if in_channels != out_channels else nn.Identity()
 
     def forward(self, x: Tensor) -> Tensor:
+        """(B, in_channels, T, H, W) → (B, out_channels, T, H, W)."""
         h = self.conv1(F.silu(self.norm1(x)))
         return self.skip(x) + self.conv2(F.silu(self.norm2(h)))
 
@@ -267,6 +272,8 @@ class Downsample(nn.Module):
         self.conv = CausalConv3d(channels, channels, stride=(2 if temporal else 1, 2, 2))
 
     def forward(self, x: Tensor) -> Tensor:
+        """(B, C, T, H, W) → (B, C, T', H/2, W/2), T' = 1 + (T − 1)/2 if temporal else T, for even H, W and (if
+        temporal) odd T; other sizes give ⌈·/2⌉ without ``shortcut`` and a shape mismatch with it."""
         y = self.conv(x)
         return y + causal_mean_pool(x, self.temporal) if self.shortcut else y
 
@@ -305,6 +312,11 @@ class Upsample(nn.Module):
         self.conv = CausalConv3d(channels, channels * (2 if temporal else 1))
 
     def forward(self, x: Tensor) -> Tensor:
+        """(B, C, n, H, W) → (B, C, 1 + 2(n − 1), 2H, 2W) if temporal, else (B, C, n, 2H, 2W).
+
+        Raises:
+            ValueError: ``mode`` not in :data:`UPSAMPLE_MODES` (from :func:`upsample2x`).
+        """
         x = upsample2x(x, self.mode)
         y = self.conv(x)
         if self.temporal:
@@ -338,6 +350,9 @@ class Encoder(nn.Module):
         self.conv_out = CausalConv3d(cin, 2 * config.latent_channels)
 
     def forward(self, x: Tensor) -> Tensor:
+        """(B, in_channels, T, H, W), T = 1 + t·k, H and W multiples of s → moments (B, 2c, 1 + k, H/s, W/s):
+        mean on the first c channels, logvar (unclamped) on the last c; t = ``temporal_factor``, s =
+        ``spatial_factor`` of the config (4 and 8 by default). No checks here (:meth:`VideoVAE.encode` checks)."""
         h = self.layers(self.conv_in(x))
         out = self.conv_out(F.silu(self.norm_out(h)))
         if not self.shortcuts:
@@ -370,6 +385,8 @@ class Decoder(nn.Module):
         self.conv_out = CausalConv3d(cin, config.in_channels)
 
     def forward(self, z: Tensor) -> Tensor:
+        """VAE latents z (B, c, n, h, w) (not DiT-scaled) → video (B, in_channels, 1 + t·(n − 1), s·h, s·w), pixels
+        nominally in [−1, 1]; t = ``temporal_factor``, s = ``spatial_factor`` of the config (4 and 8 by default)."""
         h = self.conv_in(z)
         if self.shortcuts:
             h = h + z.repeat_interleave(h.shape[1] // z.shape[1], dim=1)

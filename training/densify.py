@@ -105,6 +105,7 @@ class DensityStats:
 
     @property
     def device(self) -> torch.device:
+        """The device of the statistics (that of ``grad_accum``, ``denom`` and ``max_radii``)."""
         return self.grad_accum.device
 
     def update(self, means2d_grad: Tensor, radii: Tensor, width: int, height: int) -> None:
@@ -142,6 +143,9 @@ def replace_params(params: dict[str, nn.Parameter], optimizer: torch.optim.Optim
 
     Returns:
         The new parameter dict (the optimizer's groups point at the new parameters).
+
+    Raises:
+        ValueError: a name of ``params`` has no Adam group of that name (checked after the groups were replaced).
     """
     out = {}
     for group in optimizer.param_groups:
@@ -231,7 +235,19 @@ def densify_and_prune(params: dict[str, nn.Parameter], optimizer: torch.optim.Op
 
 def reset_opacity(params: dict[str, nn.Parameter], optimizer: torch.optim.Optimizer,
                   value: float = 0.01) -> dict[str, nn.Parameter]:
-    """Opacities → min(o, ``value``) with zeroed Adam moments for them (3DGS ``reset_opacity``)."""
+    """Opacities → min(o, ``value``) with zeroed Adam moments for them (3DGS ``reset_opacity``).
+
+    Args:
+        params: name → parameter; "opacities" (N,) holds logits.
+        optimizer: Adam with one group per parameter, named as in ``params``.
+        value: the cap, an opacity in (0, 1) (applied as its logit).
+
+    Returns:
+        ``params`` with the new "opacities" (N,) parameter (the optimizer's group points at it).
+
+    Raises:
+        ValueError: the optimizer has no group named "opacities".
+    """
     for group in optimizer.param_groups:
         if group["name"] == "opacities":
             old = group["params"][0]

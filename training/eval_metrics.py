@@ -43,7 +43,11 @@ def psnr_from_mse(mse: float) -> float:
 
 def frame_mse(pred: Tensor, gt: Tensor) -> Tensor:
     """Per-frame mean squared error (F,) float64 of predictions (F, 3, H, W), clamped to [0, 1] first,
-    against ground truth (F, 3, H, W) in [0, 1]."""
+    against ground truth (F, 3, H, W) in [0, 1].
+
+    Raises:
+        ValueError: ``pred`` and ``gt`` shapes differ.
+    """
     if pred.shape != gt.shape:
         raise ValueError(f"pred has shape {tuple(pred.shape)}, gt {tuple(gt.shape)}: they must match")
     return ((pred.double().clamp(0, 1) - gt.double()) ** 2).flatten(1).mean(1)
@@ -146,6 +150,9 @@ def binned_psnr(mse: Tensor, angles: Tensor) -> dict[str, tuple[float, int]]:
 
     Returns:
         {bin name: (PSNR dB, NaN for an empty bin; number of frames)} for every bin of :data:`ANGLE_BINS`.
+
+    Raises:
+        ValueError: ``mse`` and ``angles`` not matching 1-D (F,) tensors.
     """
     if mse.shape != angles.shape or mse.dim() != 1:
         raise ValueError(f"mse {tuple(mse.shape)} and angles {tuple(angles.shape)} must be matching (F,) tensors")
@@ -249,6 +256,9 @@ def repeat_baselines(video: Tensor) -> dict[str, Tensor]:
 
     Returns:
         {"repeat": (T−1,), "repeat_blur": (T−1,)} float64 MSE (:func:`frame_mse`).
+
+    Raises:
+        ValueError: ``video`` not (3, T, H, W) with T ≥ 2.
     """
     if video.dim() != 4 or video.shape[0] != 3 or video.shape[1] < 2:
         raise ValueError(f"video must have shape (3, T, H, W) with T ≥ 2, got {tuple(video.shape)}")
@@ -281,6 +291,9 @@ def motion_errors(pred: Tensor, tracks: Tensor, mask: Tensor) -> dict[str, float
 
     Returns:
         {key: value} for the five keys above.
+
+    Raises:
+        ValueError: ``pred`` and ``tracks`` not the same (N, T, 3) shape, or ``mask`` not (N, T).
     """
     if pred.shape != tracks.shape or pred.dim() != 3 or pred.shape[-1] != 3 or mask.shape != pred.shape[:2]:
         raise ValueError(f"pred {tuple(pred.shape)} and tracks {tuple(tracks.shape)} must be (N, T, 3) and "
@@ -392,6 +405,9 @@ def masked_psnr(pred: Tensor, gt: Tensor, mask: Tensor) -> float:
 
     Returns:
         dB; NaN when the mask is empty.
+
+    Raises:
+        ValueError: shapes other than ``pred``, ``gt`` (F, H, W, 3) alike and ``mask`` (F, H, W).
     """
     if pred.shape != gt.shape or mask.shape != pred.shape[:-1]:
         raise ValueError(f"pred {tuple(pred.shape)}, gt {tuple(gt.shape)} and mask {tuple(mask.shape)} "

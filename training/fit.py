@@ -225,6 +225,7 @@ class FitState:
 
     @property
     def num_gaussians(self) -> int:
+        """N, the current number of Gaussians (rows of ``params["means"]``; changes with densification)."""
         return self.params["means"].shape[0]
 
     @property
@@ -378,6 +379,12 @@ def fit_steps(state: FitState, views: list[View], config: FitConfig, until: int,
         progress: a tqdm bar (its PSNR, an exponential moving average, is read every :data:`POSTFIX_EVERY` steps).
         should_stop: polled after every step (SIGTERM → checkpoint and return).
         on_step: ``on_step(state)`` after every step (checkpoints, evaluation).
+
+    Returns:
+        ``state``, advanced in place.
+
+    Raises:
+        ValueError: ``config.depth_weight`` is None (not yet resolved from the scene's depth source).
     """
     if config.depth_weight is None:
         raise ValueError("depth_weight is None: resolve it first (default_depth_weight of the scene's depth source)")

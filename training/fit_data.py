@@ -48,10 +48,12 @@ class View:
 
     @property
     def width(self) -> int:
+        """W, the image width in pixels (``image.shape[1]``)."""
         return self.image.shape[1]
 
     @property
     def device(self) -> torch.device:
+        """The device of ``image``, the view's device (:meth:`to` returns a copy with every tensor on another)."""
         return self.image.device
 
     def to(self, device: str | torch.device) -> View:
@@ -61,6 +63,7 @@ class View:
 
     @property
     def height(self) -> int:
+        """H, the image height in pixels (``image.shape[0]``)."""
         return self.image.shape[0]
 
 

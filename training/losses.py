@@ -136,6 +136,9 @@ def depth_correlation_loss(pred: Tensor, reference: Tensor, valid: Tensor | None
 
     Returns:
         Scalar mean over images of 1 − ρ, in [0, 2].
+
+    Raises:
+        ValueError: ``pred`` and ``reference`` not both (B, H, W) of the same shape.
     """
     if pred.shape != reference.shape or pred.dim() != 3:
         raise ValueError(
@@ -257,6 +260,9 @@ def motion_loss(pred: Tensor, target: Tensor, visibility: Tensor) -> Tensor:
 
     Returns:
         Scalar metres; 0 when nothing is visible.
+
+    Raises:
+        ValueError: shapes other than ``pred``, ``target`` (B, P, T, 3) alike and ``visibility`` (B, P, T).
     """
     if pred.shape != target.shape or visibility.shape != pred.shape[:-1]:
         raise ValueError(f"pred {tuple(pred.shape)}, target {tuple(target.shape)} and visibility "

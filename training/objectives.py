@@ -184,6 +184,22 @@ class TrainingModule(nn.Module):
         return self
 
     def forward(self, batch: dict, generator: torch.Generator) -> dict[str, Tensor]:
+        """The stage's losses on one collated batch (module docstring).
+
+        Args:
+            batch: collated :class:`data_prep.clips.ClipDataset` items: ``video`` (B, 3, T, H, W) RGB in [0, 1],
+                ``viewmats`` (B, T, 4, 4) world-to-camera (metres), ``Ks`` (B, T, 3, 3) pixels, ``times`` (B, T) in
+                [0, 1], ``plucker_packed`` (B, 1536, n, h, w) and/or ``plucker`` (B, T, H, W, 6), ``depth`` /
+                ``depth_valid`` (B, T, H, W) metres / bool, ``tracks`` (B, N, T, 3) metres, ``track_visibility``
+                (B, N, T), ``track_mask`` (B, N), ``caption`` list of B str; each objective reads only its keys.
+            generator: the CPU step generator; every random draw is made on it.
+
+        Returns:
+            {"loss": weighted total, <component>: value, ...}, each a 0-dim tensor (components: class docstring).
+
+        Raises:
+            ValueError: the ``depth`` objective on an LDRM without a monocular depth network (``image_depth`` 0).
+        """
         st, m = self.stage, self.model
         video = batch["video"] * 2 - 1  # (B, 3, T, H, W) in [−1, 1]
         losses: dict[str, Tensor] = {}

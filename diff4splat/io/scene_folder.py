@@ -493,7 +493,12 @@ def load_scene_folder(folder: str | os.PathLike, device: str | torch.device = "c
 
 
 def estimate_scene_depth(folder: SceneFolder) -> float | None:
-    """:func:`scene_depth`, or None when none of its sources exists."""
+    """:func:`scene_depth` (metres, > 0), or None when none of its sources exists.
+
+    Raises:
+        ValueError: ``depth/0000.exr``'s channels "Z" and "A" differ in size; a ``depth/0000.exr`` that is not a
+            readable EXR with a "Z" channel (from :func:`~diff4splat.io.exr.load_depth_exr`, naming it).
+    """
     value = folder.meta.get("scene_depth")  # checked by load_output_scene: a finite number > 0, or absent
     if value is not None:
         return float(value)

@@ -129,6 +129,19 @@ def gather_kernel(ids, per_isect, out):  # pragma: no cover - compiled
 @KERNEL(parallel=True)
 def forward_kernel(params, feats, bg, has_bg, ids, offsets, counts, box, width, height, tile, tiles_x,
                     out, acc, t_final, last, pairs):  # pragma: no cover - compiled
+    """Forward compositing of one camera, tiles in parallel (:mod:`diff4splat.render.fused`); float64 arrays.
+
+    Inputs (M Gaussians, F features, I tile intersections, n_tiles = tiles_x·tiles_y, H·W pixels, row-major
+    pixel index q = y·width + x): params (M, 6) = [μx, μy, a, b, c, o] (pixel centre in pixels, conic
+    (a, b, c) in 1/pixels², opacity o in [0, 1]); feats (M, F); bg (F,) (zeros and ``has_bg`` False without a
+    background); ids (I,) Gaussian index of each intersection, grouped by tile, depth order inside a tile;
+    offsets (n_tiles,), counts (n_tiles,): start and length of each tile's run in ``ids``; box (M, 4) int64
+    inclusive pixel box (x0, y0, x1, y1); width, height in pixels; tile = tile side in pixels.
+
+    Outputs, written in place: out (H·W, F) composited features (+ T_final·bg with a background); acc (H·W,)
+    alpha 1 − T_final; t_final (H·W,) final transmittance; last (H·W,) int64 index into ``ids`` of the last
+    Gaussian each pixel included (−1: none); pairs (n_tiles,) int64 (Gaussian, pixel) pairs inside the boxes.
+    """
     n_tiles = counts.shape[0]
     n_feat = feats.shape[1]
     for t in prange(n_tiles):
@@ -185,6 +198,16 @@ def forward_kernel(params, feats, bg, has_bg, ids, offsets, counts, box, width, 
 @KERNEL(parallel=True)
 def backward_kernel(params, feats, bg, has_bg, ids, offsets, counts, box, width, height, tile, tiles_x,
                      t_final, last, grad_out, grad_acc, g_params, g_feats):  # pragma: no cover - compiled
+    """Backward pass of :func:`forward_kernel`, tiles in parallel, each tile's list walked back to front.
+
+    Inputs: the forward kernel's params (M, 6), feats (M, F), bg (F,), has_bg, ids (I,), offsets (n_tiles,),
+    counts (n_tiles,), box (M, 4), width, height, tile, tiles_x, and its outputs t_final (H·W,) and last (H·W,);
+    grad_out (H·W, F) and grad_acc (H·W,): ∂L/∂out and ∂L/∂acc (float64).
+
+    Outputs, accumulated in place (zeroed by the caller): g_params (I, 6) and g_feats (I, F), one row per
+    intersection (∂L/∂params and ∂L/∂feats of that pair's Gaussian); the caller sums the rows per Gaussian with
+    :func:`gather_kernel`. The background's gradient is computed outside (Σ t_final·grad_out).
+    """
     n_tiles = counts.shape[0]
     n_feat = feats.shape[1]
     for t in prange(n_tiles):

@@ -80,6 +80,19 @@ def _screen_cov(cc, j00, j02, j11, j12):  # pragma: no cover - compiled
 @KERNEL(parallel=True)
 def project_forward(means, quats, scales, opacities, viewmats, ks, width, height, near, far, eps2d, antialiased,
                     means2d, depths, covars2d, conics, opac_out, radii, comps):  # pragma: no cover - compiled
+    """EWA projection of N Gaussians into C pinhole cameras (blocks of Gaussians in parallel), in float64.
+
+    Inputs (float64): means (N, 3) world units; quats (N, 4) unit wxyz quaternions (normalised by the caller);
+    scales (N, 3) standard deviations (not log); opacities (N,); viewmats (C, 4, 4) world-to-camera; ks (C, 3, 3)
+    intrinsics in pixels; width, height in pixels; near, far: depth planes; eps2d: dilation added to the 2D
+    covariance diagonal (pixels²); antialiased: multiply opacities by the compensation (Mip-Splatting eq. 9).
+
+    Outputs (the caller's zeroed arrays, in the input dtype), written in place at (c, i) for each Gaussian i
+    kept by camera c (culled entries stay 0): means2d (C, N, 2) pixels; depths (C, N) camera z; covars2d (C, N, 3)
+    = (σxx, σxy, σyy) pixels², dilated; conics (C, N, 3) its inverse (a, b, c); opac_out (C, N); radii (C, N)
+    int32 3σ radius in pixels (0 = culled, at most RADIUS_MAX); comps (C, N) compensation (1.0 unless
+    ``antialiased``).
+    """
     n_cam, n = viewmats.shape[0], means.shape[0]
     for blk in prange((n + _BLOCK - 1) // _BLOCK):
         rot, m, cov, tmp, cc = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
@@ -119,6 +132,16 @@ def project_forward(means, quats, scales, opacities, viewmats, ks, width, height
 def project_backward(means, quats, scales, opacities, viewmats, ks, width, height, eps2d, antialiased, radii,
                      g_means2d, g_depths, g_covars2d, g_conics, g_opac, g_comps,
                      v_means, v_quats, v_scales, v_opac):  # pragma: no cover - compiled
+    """Backward pass of :func:`project_forward` (gsplat ``fully_fused_projection_bwd``), summed over cameras.
+
+    Inputs: the forward's means (N, 3), quats (N, 4), scales (N, 3), opacities (N,), viewmats (C, 4, 4),
+    ks (C, 3, 3), width, height, eps2d, antialiased and its radii (C, N) (entries with radius 0 are skipped);
+    the output gradients g_means2d (C, N, 2), g_depths (C, N), g_covars2d (C, N, 3), g_conics (C, N, 3),
+    g_opac (C, N), g_comps (C, N) (float64, zeros where the output had no gradient).
+
+    Outputs, in place (zeroed by the caller): v_means (N, 3), v_scales (N, 3), v_opac (N,) accumulated over
+    cameras; v_quats (N, 4) written per Gaussian (w.r.t. the unit quaternion). No gradients for viewmats or ks.
+    """
     n_cam, n = viewmats.shape[0], means.shape[0]
     for blk in prange((n + _BLOCK - 1) // _BLOCK):
         rot, m, cov, tmp, cc = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))

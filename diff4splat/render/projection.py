@@ -180,7 +180,17 @@ def persp_proj(
 def project_means_covars(
     means_c: Tensor, covars_c: Tensor, Ks: Tensor, width: int, height: int, camera_model: str
 ) -> tuple[Tensor, Tensor]:
-    """Dispatch to the camera model's projection; see :func:`persp_proj` for shapes.
+    """Dispatch to the camera model's projection (only "pinhole": :func:`persp_proj`).
+
+    Args:
+        means_c: (C, N, 3) camera-frame centres, metres; z non-zero.
+        covars_c: (C, N, 3, 3) camera-frame covariances, metres².
+        Ks: (C, 3, 3) intrinsics, pixels.
+        width, height: image size, pixels.
+        camera_model: a name in :data:`CAMERA_MODELS`.
+
+    Returns:
+        means2d: (C, N, 2) pixels;  covars2d: (C, N, 2, 2) pixels² (not yet dilated).
 
     Raises:
         ValueError: ``camera_model`` not in :data:`CAMERA_MODELS`.

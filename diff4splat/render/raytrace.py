@@ -291,8 +291,30 @@ def render_rays(
     width: int, height: int, settings: RasterSettings, *, budget: int | None = None,
 ) -> tuple[Tensor, Tensor, dict]:
     """:func:`raytrace` with its keywords in ``settings`` (:class:`~diff4splat.render.settings.RasterSettings`):
-    what :func:`raytrace` and :func:`diff4splat.render.rasterize` call. Arguments, outputs and errors as
-    :func:`raytrace`."""
+    what :func:`raytrace` and :func:`diff4splat.render.rasterize` call.
+
+    Args:
+        means: (N, 3) centres, world frame (metres).
+        quats: (N, 4) wxyz rotations (normalised here).
+        scales: (N, 3) standard deviations ≥ 0 (metres).
+        opacities: (N,) in [0, 1].
+        colors: (N, D), or (N, K, 3) SH coefficients with ``settings.sh_degree``.
+        viewmats: (C, 4, 4) world-to-camera rigid transforms.
+        Ks: (C, 3, 3) pinhole intrinsics (pixels).
+        width, height: image size in pixels.
+        settings: the keywords of :func:`raytrace` (``camera_model``, ``camera_params``, planes, modes, ...).
+        budget: most (ray, Gaussian) pairs per batch (None: :data:`RAY_PAIR_BUDGET`).
+
+    Returns:
+        render_colors (C, H, W, D[+1]) (depth channel: camera z in metres, as :func:`raytrace`),
+        render_alphas (C, H, W, 1) in [0, 1], meta dict (camera_model, camera_params, width, height, n_cameras,
+        tile_size, samples_per_pixel, n_pairs: list of C ints).
+
+    Raises:
+        ValueError: an argument :func:`~diff4splat.render.validate.validate_inputs` rejects (camera models
+            limited to :data:`RAY_CAMERA_MODELS`); unknown camera model or mismatched ``camera_params``
+            (:func:`~diff4splat.cameras.lenses.check_camera`); ``settings.rasterize_mode`` other than "classic".
+    """
     params = check_camera(settings.camera_model, settings.camera_params)
     validate_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, settings,
                     camera_models=RAY_CAMERA_MODELS)

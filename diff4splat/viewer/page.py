@@ -47,7 +47,20 @@ def viewer_html(payload: ViewerPayload, title: str = "diff4splat viewer", *, ful
                 embed: bool = True) -> str:
     """The page (module docstring). ``full_url``: where ``diff4splat view`` serves the data (``scene.ply``,
     ``frames.bin``), which the page then fetches over http instead of reading the embedded copy; ``embed``
-    false leaves the data out of the page (it must then be served at ``full_url``)."""
+    false leaves the data out of the page (it must then be served at ``full_url``).
+
+    Args:
+        payload: the scene's bytes and page config (:class:`ViewerPayload`).
+        title: the page title (HTML-escaped).
+        full_url: URL of the served data, or None to read the embedded copy.
+        embed: put ``scene.ply`` (and ``frames.bin``, if any) into the page, base64 encoded.
+
+    Returns:
+        The self-contained HTML page as a str.
+
+    Raises:
+        ValueError: ``embed`` false without ``full_url``.
+    """
     if not embed and full_url is None:
         raise ValueError("embed=False needs full_url (the page must get its data somewhere)")
     config = dict(payload.config, fullUrl=full_url)

@@ -143,6 +143,19 @@ class CameraPatchConv(nn.Module):
         self.camera_weight = nn.Parameter(torch.zeros(shape, device=conv.weight.device, dtype=conv.weight.dtype))
 
     def forward(self, x: Tensor) -> Tensor:  # (B, in + camera, [T,] H, W)
+        """The widened patch embedding: conv(x[:, :in]) + conv_camera(x[:, in:]).
+
+        Args:
+            x: (B, in_channels + camera_channels, T, H, W) for a Conv3d, (B, in_channels + camera_channels, H, W)
+                for a Conv2d: latents concatenated with packed Plücker rays along dim 1.
+
+        Returns:
+            (B, out_channels, T', H', W') or (B, out_channels, H', W'): the pretrained convolution's output size
+            (⌊T/k_t⌋, ⌊H/k_h⌋, ⌊W/k_w⌋ for kernel = stride and no padding).
+
+        Raises:
+            ValueError: ``x.shape[1]`` ≠ in_channels + camera_channels.
+        """
         if x.shape[1] != self.in_channels + self.camera_channels:
             raise ValueError(f"CameraPatchConv: expected {self.in_channels} + {self.camera_channels} channels, "
                              f"got {x.shape[1]}")

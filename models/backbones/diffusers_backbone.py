@@ -188,5 +188,8 @@ class DiffusersBackbone(Backbone):
         ValueError naming ``path`` when the folder is not this backbone's. Nothing by default."""
 
     def transformer_blocks(self) -> list[nn.Module]:
+        """The diffusers transformer's blocks in order: its ``transformer_blocks`` (CogVideoX), else its ``blocks``
+        (Wan). Each takes hidden states (B, N, D) among other arguments, with the diffusers model's own signature
+        (FSDP units, gradient checkpointing, regional compilation)."""
         return list(self.transformer.transformer_blocks if hasattr(self.transformer, "transformer_blocks")
                     else self.transformer.blocks)

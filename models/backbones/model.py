@@ -120,6 +120,9 @@ class BackboneModelConfig:
         return cls(**{**released, "backbone": kind, "vae": latent, "ldrm": ldrm, "sampling": sampling, **overrides})
 
     def to_dict(self) -> dict:
+        """The config as nested plain dicts (``dataclasses.asdict``: sub-configs become dicts, tuples stay tuples),
+        JSON-serialisable: what a checkpoint's ``config.json`` holds (:meth:`BackboneModel.save_pretrained`), read
+        back by :func:`models.pretrained.config_from_dict`."""
         return dataclasses.asdict(self)
 
 

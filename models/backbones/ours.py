@@ -36,31 +36,58 @@ class OursBackbone(Backbone):
         self.latent = vae.config.latent_format
 
     def encode_video(self, video: Tensor, generator: torch.Generator | None = None) -> Tensor:
-        """:meth:`VideoVAE.encode_latents`: the posterior mean, or a sample drawn with ``generator``."""
+        """:meth:`VideoVAE.encode_latents`: video (B, 3, T, H, W) pixels in [−1, 1], T = 1 + 4k, H and W multiples
+        of 8 → DiT-scaled latents (B, c, 1 + k, H/8, W/8): the posterior mean, or a sample drawn with ``generator``.
+
+        Raises:
+            ValueError: from :meth:`VideoVAE.encode` (wrong rank or channels, T ≠ 1 + 4k, H/W not multiples of 8).
+        """
         return self.vae.encode_latents(video, sample_posterior=generator is not None, generator=generator)
 
     def decode_latents(self, latents: Tensor) -> Tensor:
+        """:meth:`VideoVAE.decode_latents`: DiT-scaled latents (B, c, n, h, w) → video (B, 3, 1 + 4(n − 1), 8h, 8w),
+        pixels nominally in [−1, 1]."""
         return self.vae.decode_latents(latents)
 
     def encode_text(self, prompts: list[str]) -> tuple[Tensor, Tensor]:
-        """:meth:`TextEncoder.encode` (byte tokens, zeros at padding)."""
+        """:meth:`TextEncoder.encode` (byte tokens): B prompts → tokens (B, L, d_text) (zeros at padding) and
+        mask (B, L) bool (True = real token), on the text encoder's device.
+
+        Raises:
+            ValueError: from :meth:`TextEncoder.encode` (:meth:`models.text_encoder.ByteTokenizer.__call__`).
+        """
         return self.text_encoder.encode(prompts)
 
     def velocity(self, x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor,
                  text: Tensor | None, text_mask: Tensor | None) -> Tensor:
         """:meth:`VideoDiT.forward` (the image latent concatenated with a frame-0 mask; no prompt: no text
-        tokens, the text encoder does not run)."""
+        tokens, the text encoder does not run).
+
+        Args:
+            x: (B, c, n, h, w) state at ``sigma``.  sigma: (B,) in [0, 1].  image_latent: (B, c, 1, h, w).
+            plucker: (B, 6·t·s², n, h, w) packed Plücker rays.  text, text_mask: (B, L, d_text), (B, L) bool,
+                or None.
+
+        Returns:
+            (B, c, n, h, w) velocity ε − x0, in the DiT's parameter dtype.
+
+        Raises:
+            ValueError: from :meth:`VideoDiT.forward` (a shape or dtype, σ outside [0, 1], mask without text).
+        """
         return self.dit(x, sigma, image_latent, plucker, text, text_mask)
 
     def sigmas(self, steps: int) -> Tensor:
-        """:func:`models.flow_matching.sigma_schedule` with :attr:`shift`, float64."""
+        """:func:`models.flow_matching.sigma_schedule` with :attr:`shift`: (steps + 1,) float64, decreasing from
+        1 to 0."""
         return sigma_schedule(steps, self.shift, dtype=torch.float64)
 
     def training_sigmas(self, n: int, generator: torch.Generator) -> Tensor:
-        """Logit-normal σ (SD3 §3.1, :attr:`logit_normal`) shifted by :attr:`shift`, on ``generator``'s device
-        (``training.losses.sample_training_sigmas``' draw)."""
+        """(n,) float32 logit-normal σ in [0, 1] (SD3 §3.1, :attr:`logit_normal`) shifted by :attr:`shift`, on
+        ``generator``'s device (``training.losses.sample_training_sigmas``' draw)."""
         mean, std = self.logit_normal
         return shift_sigmas(sample_logit_normal(n, mean, std, generator=generator, device=generator.device), self.shift)
 
     def transformer_blocks(self) -> list[nn.Module]:
+        """The DiT's ``config.depth`` blocks (:class:`models.dit.VideoDiTBlock`), in order; each maps tokens
+        (B, N, D) → (B, N, D)."""
         return list(self.dit.blocks)
