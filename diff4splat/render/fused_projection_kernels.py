@@ -77,6 +77,16 @@ def _screen_cov(cc, j00, j02, j11, j12):  # pragma: no cover - compiled
     return s00, s01, s10, s11
 
 
+@KERNEL(inline="always")
+def _screen_det(vm, j00, j02, j11, j12):  # pragma: no cover - compiled
+    """det(J Σc Jᵀ) for Σc = vm vmᵀ (vm = Rv·R·diag(s)) as the sum of the squared 2×2 minors of A = J·vm
+    (Cauchy–Binet), as :func:`diff4splat.render.projection.project_gaussians`: s00·s11 − s01² cancels the long
+    axis's L⁴ of an elongated Gaussian, the minors are products of the axes' own lengths."""
+    a0, a1, a2 = (j00 * vm[0, 0] + j02 * vm[2, 0], j00 * vm[0, 1] + j02 * vm[2, 1], j00 * vm[0, 2] + j02 * vm[2, 2])
+    b0, b1, b2 = (j11 * vm[1, 0] + j12 * vm[2, 0], j11 * vm[1, 1] + j12 * vm[2, 1], j11 * vm[1, 2] + j12 * vm[2, 2])
+    return (a1 * b2 - a2 * b1) ** 2 + (a2 * b0 - a0 * b2) ** 2 + (a0 * b1 - a1 * b0) ** 2
+
+
 @KERNEL(parallel=True)
 def project_forward(means, quats, scales, opacities, viewmats, ks, width, height, near, far, eps2d, antialiased,
                     means2d, depths, covars2d, conics, opac_out, radii, comps):  # pragma: no cover - compiled
@@ -108,9 +118,10 @@ def project_forward(means, quats, scales, opacities, viewmats, ks, width, height
                 j12 = -fy * min(max(y * rz, ylo), yhi) * rz
                 s00, s01, s10, s11 = _screen_cov(cc, fx * rz, j02, fy * rz, j12)
                 sxy = 0.5 * (s01 + s10)
-                det_orig = s00 * s11 - sxy * sxy
+                _mm(viewmats[c, :3, :3], m, tmp, False, False)  # Rv·R·diag(s)
+                det_orig = _screen_det(tmp, fx * rz, j02, fy * rz, j12)
+                det = det_orig + eps2d * (s00 + s11) + eps2d * eps2d
                 sxx, syy = s00 + eps2d, s11 + eps2d
-                det = sxx * syy - sxy * sxy
                 if not det > 0:
                     continue
                 b = 0.5 * (sxx + syy)
@@ -163,9 +174,10 @@ def project_backward(means, quats, scales, opacities, viewmats, ks, width, heigh
                 j00, j11, j02, j12 = fx * rz, fy * rz, -fx * ux * rz, -fy * uy * rz
                 s00, s01, s10, s11 = _screen_cov(cc, j00, j02, j11, j12)
                 sxy = 0.5 * (s01 + s10)
-                det_orig = s00 * s11 - sxy * sxy
+                _mm(view[:3, :3], m, tmp, False, False)  # Rv·R·diag(s)
+                det_orig = _screen_det(tmp, j00, j02, j11, j12)
+                det = det_orig + eps2d * (s00 + s11) + eps2d * eps2d
                 sxx, syy = s00 + eps2d, s11 + eps2d
-                det = sxx * syy - sxy * sxy
                 inv = 1.0 / det
                 # covars2d = (sxx, sxy, syy)
                 gxx, gxy, gyy = g_covars2d[c, i, 0], g_covars2d[c, i, 1], g_covars2d[c, i, 2]

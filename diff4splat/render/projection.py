@@ -159,6 +159,21 @@ def persp_proj(
     Returns:
         means2d: (C, N, 2) pixels;  covars2d: (C, N, 2, 2) pixels² (not yet dilated).
     """
+    means2d, J = persp_jacobian(means_c, Ks, width, height)
+    return means2d, matmul(matmul(J, covars_c), J.transpose(-1, -2))
+
+
+def persp_jacobian(
+    means_c: Tensor,  # (C, N, 3) camera frame, z ≠ 0
+    Ks: Tensor,  # (C, 3, 3)
+    width: int,
+    height: int,
+) -> tuple[Tensor, Tensor]:
+    """The pinhole projection of centres and its clamped Jacobian J of :func:`persp_proj`.
+
+    Returns:
+        means2d: (C, N, 2) pixels;  J: (C, N, 2, 3) pixels per metre.
+    """
     x, y, z = means_c.unbind(-1)
     fx, fy = Ks[:, 0, 0, None], Ks[:, 1, 1, None]
     cx, cy = Ks[:, 0, 2, None], Ks[:, 1, 2, None]
@@ -172,9 +187,7 @@ def persp_proj(
     J = torch.stack(
         [fx * rz, zeros, -fx * tx * rz * rz, zeros, fy * rz, -fy * ty * rz * rz], dim=-1
     ).reshape(z.shape + (2, 3))
-    covars2d = matmul(matmul(J, covars_c), J.transpose(-1, -2))
-    means2d = torch.stack([fx * x * rz + cx, fy * y * rz + cy], dim=-1)
-    return means2d, covars2d
+    return torch.stack([fx * x * rz + cx, fy * y * rz + cy], dim=-1), J
 
 
 def project_means_covars(
@@ -219,7 +232,8 @@ def project_gaussians(
     """Project Gaussians into C cameras and cull them, as gsplat's ``fully_fused_projection``.
 
     Steps (gsplat CUDA kernel order): camera-frame centre; cull z < near_plane, z ≤ 0 or z > far_plane;
-    Σ2d by :func:`persp_proj`; dilation Σ2d + eps2d·I with compensation
+    Σ2d = J Σc Jᵀ as :func:`persp_proj`, its determinant as the sum of the squared 2×2 minors of J·R_cam·R·S
+    (Cauchy–Binet: no cancellation for elongated Gaussians in float32); dilation Σ2d + eps2d·I with compensation
     sqrt(max(0, det Σ2d / det(Σ2d + eps2d·I))) (Mip-Splatting eq. 9, used when ``antialiased``);
     cull det ≤ 0; conic = (Σ2d + eps2d·I)⁻¹; radius = ceil(3·sqrt(b + sqrt(max(0.01, b² − det)))) (0.01:
     :data:`EIGEN_FLOOR`)
@@ -245,15 +259,21 @@ def project_gaussians(
     """
     if camera_model not in CAMERA_MODELS:
         raise ValueError(f"camera_model must be one of {CAMERA_MODELS}, got {camera_model!r}")
-    means_c, covars_c = world_to_camera(means, covariance_3d(quats, scales), viewmats)
+    R = viewmats[:, :3, :3]
+    means_c = matmul(means[None], R.transpose(-1, -2)) + viewmats[:, None, :3, 3]
     z = means_c[..., 2]
     in_depth = (z >= near_plane) & (z > 0) & (z <= far_plane)  # z > 0: near_plane = 0 may not divide by z = 0
     safe_means_c = torch.where(in_depth[..., None], means_c, means_c.new_tensor([0.0, 0.0, 1.0]))
-    means2d, cov = project_means_covars(safe_means_c, covars_c, Ks, width, height, camera_model)
-    sxx, sxy, syy = cov[..., 0, 0], 0.5 * (cov[..., 0, 1] + cov[..., 1, 0]), cov[..., 1, 1]
-    det_orig = sxx * syy - sxy * sxy
+    means2d, J = persp_jacobian(safe_means_c, Ks, width, height)
+    # Σ2d = A Aᵀ with A = J·R_cam·R·S (C, N, 2, 3), whose columns are the projected axes s_k·(J R_cam R e_k): det Σ2d
+    # is the sum of A's squared 2×2 minors (Cauchy–Binet), products of the axes' own lengths, where sxx·syy − sxy²
+    # cancels the long axis's L⁴ (float32 culled a 1 km × 1 cm Gaussian the float64 kernels render)
+    A = matmul(J, matmul(R[:, None], (quat_to_rotmat(quats) * scales[..., None, :])[None]))
+    cov = matmul(A, A.transpose(-1, -2))
+    sxx, sxy, syy = cov[..., 0, 0], cov[..., 0, 1], cov[..., 1, 1]
+    det_orig = torch.linalg.cross(A[..., 0, :], A[..., 1, :]).square().sum(-1)
+    det = det_orig + eps2d * (sxx + syy) + eps2d * eps2d  # det(Σ2d + ε·I)
     sxx, syy = sxx + eps2d, syy + eps2d
-    det = sxx * syy - sxy * sxy
     valid = in_depth & (det > 0)
     safe_det = torch.where(valid, det, torch.ones_like(det))
     conics = torch.stack([syy / safe_det, -sxy / safe_det, sxx / safe_det], dim=-1)
