@@ -6,7 +6,6 @@ import pytest
 import torch
 from helpers import EXAMPLE_IMAGE, tiny_model
 
-import diff4splat.pipeline as pipeline
 from diff4splat.assemble import to_gaussians, video_colors
 from diff4splat.cameras import camera_rays, pack_plucker, plucker_rays
 from diff4splat.gaussians import sh0_to_rgb
@@ -15,6 +14,7 @@ from diff4splat.photo import BACKDROP_CELLS, BACKDROP_EXTEND
 from diff4splat.pipeline import Diff4SplatPipeline
 from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
 from diff4splat.runtime import TorchRuntime
+from models import flow_matching
 from models.flow_matching import euler_sample, sigma_schedule
 from models.ldrm import LDRMOutput
 
@@ -307,8 +307,8 @@ def test_result_reports_the_steps_and_sampler_actually_used(image, monkeypatch):
     assert isinstance(pipe.runtime, TorchRuntime) and pipe.runtime.name == "torch"
     seen = []
     for name in ("euler", "heun"):
-        real = getattr(pipeline, f"{name}_sample")
-        monkeypatch.setattr(pipeline, f"{name}_sample", lambda v, x, sigmas, real=real, name=name, **kw:
+        real = getattr(flow_matching, f"{name}_sample")  # what models.flow_matching.integrator hands the pipeline
+        monkeypatch.setattr(flow_matching, f"{name}_sample", lambda v, x, sigmas, real=real, name=name, **kw:
                             seen.append((len(sigmas) - 1, name)) or real(v, x, sigmas, **kw))
     cams = pipe.default_cameras("orbit", 5)
     pipe.config.sampling.steps, pipe.config.sampling.sampler = 3, "heun"

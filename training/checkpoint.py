@@ -78,7 +78,8 @@ def save_checkpoint(
         run_dir: the run folder; checkpoints go to ``run_dir/checkpoints``.
         step: optimizer steps taken so far.
         model_state: weights (unwrapped module's state_dict).
-        training_state: optimizer/scheduler/RNG/data position (anything ``torch.save`` can write).
+        training_state: optimizer/scheduler/RNG/data position: tensors (any device, saved on the CPU), plain values,
+            numpy's RNG state (what :func:`load_checkpoint` reads back).
         meta: JSON-serialisable description.
         ema_state: EMA weights or None.
         keep: how many checkpoints to keep (≥ 1).
@@ -92,13 +93,24 @@ def save_checkpoint(
         save_file({k: v.detach().contiguous().cpu() for k, v in model_state.items()}, str(tmp / "model.safetensors"))
         if ema_state is not None:
             save_file({k: v.detach().contiguous().cpu() for k, v in ema_state.items()}, str(tmp / "ema.safetensors"))
-        torch.save(training_state, tmp / "state.pt")
+        torch.save(_on_cpu(training_state), tmp / "state.pt")  # plain CPU tensors: loads anywhere, weights-only
         (tmp / "meta.json").write_text(json.dumps({"step": step, **meta}, indent=2, default=str))
     with atomic_output_path(root / "latest") as tmp:
         Path(tmp).write_text(folder.name)
     for old in sorted(p for p in root.glob("step_*") if p.is_dir())[:-max(1, keep)]:
         shutil.rmtree(old, ignore_errors=True)
     return folder
+
+
+def _on_cpu(obj: Any) -> Any:
+    """``obj`` with every tensor in its dicts, lists and tuples detached and copied to the CPU."""
+    if isinstance(obj, torch.Tensor):
+        return obj.detach().cpu()
+    if isinstance(obj, dict):
+        return {k: _on_cpu(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(_on_cpu(v) for v in obj)
+    return obj
 
 
 def latest_checkpoint(run_dir: str | os.PathLike) -> Path | None:
