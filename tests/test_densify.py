@@ -11,7 +11,6 @@ from training.densify import (
     DensifyConfig,
     DensityStats,
     densify_and_prune,
-    inverse_sigmoid,
     prune,
     replace_params,
     reset_opacity,
@@ -35,7 +34,7 @@ def _params(means, scales, quats=None, opacities=None, seed=0, device="cpu"):
         "means": means.float(),
         "scales": torch.log(torch.as_tensor(scales, dtype=torch.float32).expand(n, 3)).clone(),
         "quats": torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(n, 1) if quats is None else quats.float(),
-        "opacities": inverse_sigmoid(torch.full((n,), 0.5) if opacities is None else opacities.float()),
+        "opacities": torch.logit(torch.full((n,), 0.5) if opacities is None else opacities.float()),
         "sh0": torch.rand(n, 1, 3, generator=g),
         "shN": torch.rand(n, 3, 3, generator=g),
     }
@@ -222,11 +221,6 @@ def test_prune_and_replace_params():
     with pytest.raises(ValueError, match="without an Adam group"):
         replace_params({**out, "extra": nn.Parameter(torch.zeros(2))}, opt,
                        {k: v.detach()[:0] for k, v in out.items()}, None)
-
-
-def test_inverse_sigmoid():
-    x = torch.tensor([0.001, 0.2, 0.5, 0.99])
-    torch.testing.assert_close(torch.sigmoid(inverse_sigmoid(x)), x)
 
 
 def test_active_schedule():

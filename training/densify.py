@@ -28,8 +28,7 @@ from torch import Tensor, nn
 
 from diff4splat.quaternions import quat_to_rotmat
 
-__all__ = ["DensifyConfig", "DensityStats", "densify_and_prune", "prune", "reset_opacity", "replace_params",
-           "inverse_sigmoid"]
+__all__ = ["DensifyConfig", "DensityStats", "densify_and_prune", "prune", "reset_opacity", "replace_params"]
 
 
 @dataclass
@@ -78,11 +77,6 @@ class DensifyConfig:
     def active(self, iteration: int) -> bool:
         """True when ``iteration`` (1-based count of steps taken) densifies."""
         return self.start < iteration <= self.until and iteration % self.interval == 0
-
-
-def inverse_sigmoid(x: Tensor) -> Tensor:
-    """logit(x) = log(x / (1 − x)), the inverse of the opacity activation."""
-    return torch.log(x / (1 - x))
 
 
 class DensityStats:
@@ -251,7 +245,7 @@ def reset_opacity(params: dict[str, nn.Parameter], optimizer: torch.optim.Optimi
     for group in optimizer.param_groups:
         if group["name"] == "opacities":
             old = group["params"][0]
-            p = nn.Parameter(torch.minimum(old.detach(), inverse_sigmoid(torch.tensor(value, device=old.device))))
+            p = nn.Parameter(torch.minimum(old.detach(), torch.logit(torch.tensor(value, device=old.device))))
             state = optimizer.state.pop(old, None)
             if state:
                 state["exp_avg"], state["exp_avg_sq"] = torch.zeros_like(p), torch.zeros_like(p)

@@ -46,7 +46,7 @@ from diff4splat.render import rasterize
 from diff4splat.scene import DynamicGaussians, compose_deformation
 from models.deformation import IDENTITY_QUAT
 from models.hexplane import HexPlaneConfig, HexPlaneField
-from training.densify import DensifyConfig, DensityStats, densify_and_prune, inverse_sigmoid, prune, reset_opacity
+from training.densify import DensifyConfig, DensityStats, densify_and_prune, prune, reset_opacity
 from training.eval_metrics import PSNR_CAP, psnr_from_mse
 from training.fit_data import View, knn_scales
 from training.losses import photometric_loss
@@ -292,7 +292,7 @@ def init_state(means: Tensor, colors: Tensor, config: FitConfig, extent: float, 
         "scales": torch.log(knn_scales(means.float()) if scales is None else scales.to(dev).float()),
         "quats": (torch.tensor(IDENTITY_QUAT, device=dev).repeat(n, 1) if quats is None
                   else quats.to(dev).float()),
-        "opacities": inverse_sigmoid(torch.full((n,), 0.1, device=dev) if opacities is None
+        "opacities": torch.logit(torch.full((n,), 0.1, device=dev) if opacities is None
                                      else opacities.to(dev).float().clamp(1e-4, 1 - 1e-4)),
         "sh0": sh_full[:, :1],
         "shN": sh_full[:, 1:],
