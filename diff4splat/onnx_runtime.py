@@ -267,6 +267,9 @@ class OnnxRuntime:
             self.sessions[name] = _session(path, opts, self.providers)
             check_graph(name, entry, self.sessions[name], self.manifest, path)
 
+    def release(self) -> None:
+        """Nothing to free: the onnxruntime sessions keep their own memory between scenes."""
+
     def _run(self, part: str, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
         return self.sessions[part].run(None, feeds)
 

@@ -434,8 +434,62 @@ class Diff4SplatPipeline:
                 empty); ``video_latents`` of another shape than the sampler's; a depth map that is not (H, W), has
                 no valid pixel or cannot be aligned; an unknown ``depth_kind``.
         """
+        steps, sampler, guidance, seed, prompt = self._check_call(image, cameras, prompt, steps, sampler, guidance,
+                                                                  seed, depth, depth_kind)
+        cfg, runtime, dev = self.config, self.runtime, self.device
+        H_o, W_o = int(image.shape[0]), int(image.shape[1])
+        n = runtime.latent.num_latent_frames(len(cameras))
+        cameras = cameras.relative_to_first().to(dtype=torch.float32, device=dev)
+        cameras_model = cameras.resized(cfg.width, cfg.height)
+        image = image.to(dev, torch.float32)
+        timings: dict[str, float] = {}
+
+        clock = Stopwatch(dev)
+        small = image.permute(2, 0, 1)[None]
+        if (H_o, W_o) != (cfg.height, cfg.width):
+            small = F.interpolate(small, size=(cfg.height, cfg.width), mode="area")
+        video = (small * 2 - 1)[:, :, None]  # (1, 3, 1, h·8, w·8) in [−1, 1]
+        image_latent = runtime.encode_image(video)  # (1, c, 1, h, w)
+        timings["encode_image"] = clock.lap()
+        conditions, guidance = self._encode_prompt(prompt, guidance)
+        timings["encode_text"] = clock.lap()
+
+        plucker = pack_plucker(plucker_rays(cameras_model.viewmats, cameras_model.Ks, cfg.width, cfg.height)[None],
+                               runtime.latent.temporal_factor, runtime.latent.spatial_factor)  # (1, 6·t·s², n, h, w)
+        plucker = plucker.to(runtime.input_dtype)  # cast once: the networks see the same values, no float32 copy
+        latents = self._sample(image_latent, plucker, conditions, guidance, n, steps, sampler, seed, video_latents,
+                               progress)
+        timings["sample"] = clock.lap()
+
+        key_times = torch.unique(cameras.times)
+        # A runtime without the deformation network (a static ONNX export) makes static scenes.
+        out = runtime.reconstruct(latents, plucker, key_times if runtime.has_deformation else None, video[:, :, 0])
+        frames = source_frame_indices(cfg.ldrm.gaussian_frames, n, runtime.latent.temporal_factor)
+        decoded = None
+        if cfg.generated_colors == "video" and len(frames) > 1:  # the generated frames' pixels (assemble.video_colors)
+            decoded = runtime.decode_latents(latents)
+        runtime.release()  # the networks are done: an offloaded one leaves the device before pruning renders
+        sources = torch.tensor(frames, device=dev)
+        times = key_times if out.d_means is not None else None
+        scene, grid, photo = assemble_scene(out, sources, cameras_model, cameras, image, times, depth=depth,
+                                            depth_kind=depth_kind, video=decoded, footprint=cfg.generated_footprint)
+        scene = scene.without_deformation(cfg.static_atol)
+        timings["reconstruct"] = clock.lap()
+
+        scene, index, stats = self._prune(scene, grid, cameras, sources, photo)
+        timings["prune"] = clock.lap()
+        return GenerationResult(scene=scene, cameras=cameras, latents=latents, timings=timings,
+                                high_water=dict(zip(timings, clock.high_water, strict=False)), prune_stats=stats,
+                                steps=steps, sampler=sampler, guidance=guidance, shift=cfg.sampling.shift,
+                                source_frames=sources,
+                                gaussian_index=index, eps2d=PHOTO_EPS2D, background=photo["background"],
+                                photo_psnr_db=photo["photo_psnr_db"], num_slots=int(grid.shape[0]),
+                                photo_gaussians=photo["photo_gaussians"], video=decoded)
+
+    def _check_call(self, image, cameras, prompt, steps, sampler, guidance, seed, depth, depth_kind) -> tuple:
+        """Check :meth:`__call__`'s arguments before any network runs (its Raises) and resolve the config's
+        defaults: returns (steps, sampler, guidance, seed, prompt)."""
         cfg, runtime = self.config, self.runtime
-        dev = self.device
         if not isinstance(image, Tensor):
             raise ValueError(f"image must be a torch.Tensor (H, W, 3) in [0, 1], got {type(image).__name__} "
                              "(torch.from_numpy converts an array; diff4splat.io.load_image reads a file)")
@@ -452,28 +506,21 @@ class Diff4SplatPipeline:
             raise ValueError(f"depth_kind must be one of {DEPTH_KINDS}, got {depth_kind!r}")
         if depth is not None and tuple(depth.shape) != (H_o, W_o):
             raise ValueError(f"depth must have shape ({H_o}, {W_o}) like the image, got {tuple(depth.shape)}")
-        n = runtime.latent.num_latent_frames(len(cameras))  # raises for T ≠ 1 + t·k
+        runtime.latent.num_latent_frames(len(cameras))  # raises for T ≠ 1 + t·k
         steps = cfg.sampling.steps if steps is None else steps
         sampler = cfg.sampling.sampler if sampler is None else sampler
-        integrate = integrator(sampler)  # raises for an unknown sampler
+        integrator(sampler)  # raises for an unknown sampler
         steps = check_limit("steps", check_positive_int("steps", steps), "steps")
         guidance = check_guidance(cfg.sampling.guidance if guidance is None else guidance)
         check_limit("frames", len(cameras), "cameras: a path of")
         check_field_of_view(cameras)
-        seed, prompt = check_seed(seed), check_prompt(prompt)
-        cameras = cameras.relative_to_first().to(dtype=torch.float32, device=dev)
-        cameras_model = cameras.resized(cfg.width, cfg.height)
-        image = image.to(dev, torch.float32)
-        timings: dict[str, float] = {}
+        return steps, sampler, guidance, check_seed(seed), check_prompt(prompt)
 
-        clock = Stopwatch(dev)
-        small = image.permute(2, 0, 1)[None]
-        if (H_o, W_o) != (cfg.height, cfg.width):
-            small = F.interpolate(small, size=(cfg.height, cfg.width), mode="area")
-        video = (small * 2 - 1)[:, :, None]  # (1, 3, 1, h·8, w·8) in [−1, 1]
-        image_latent = runtime.encode_image(video)  # (1, c, 1, h, w)
-        timings["encode_image"] = clock.lap()
-
+    def _encode_prompt(self, prompt: str, guidance: float) -> tuple[tuple, float]:
+        """The text conditions ((text, text_mask), (uncond, uncond_mask)), each pair None where no text is used,
+        and the guidance that applies: an empty prompt is the unconditional input itself (guidance 1, no text
+        encoder unless the runtime encodes the empty prompt)."""
+        runtime, dev = self.runtime, self.device
         text = text_mask = uncond = uncond_mask = None
         if prompt.strip() or runtime.encodes_empty_prompt:
             text, text_mask = _without_full_mask(*runtime.encode_text(prompt), dev)
@@ -481,12 +528,14 @@ class Diff4SplatPipeline:
             guidance = 1.0  # the prompt is the unconditional input: nothing to guide towards
         elif guidance != 1.0 and runtime.encodes_empty_prompt:
             uncond, uncond_mask = _without_full_mask(*runtime.encode_text(""), dev)
-        timings["encode_text"] = clock.lap()
+        return ((text, text_mask), (uncond, uncond_mask)), guidance
 
-        plucker = pack_plucker(plucker_rays(cameras_model.viewmats, cameras_model.Ks, cfg.width, cfg.height)[None],
-                               runtime.latent.temporal_factor, runtime.latent.spatial_factor)  # (1, 6·t·s², n, h, w)
-        plucker = plucker.to(runtime.input_dtype)  # cast once: the networks see the same values, no float32 copy
-
+    def _sample(self, image_latent: Tensor, plucker: Tensor, conditions: tuple, guidance: float, n: int,
+                steps: int, sampler: str, seed: int, video_latents: Tensor | None, progress: bool) -> Tensor:
+        """The video latents (1, c, n, h, w): integrated from seeded noise with classifier-free guidance (or
+        ``video_latents``), frame 0 replaced by the photograph's latent ``image_latent`` (1, c, 1, h, w)."""
+        runtime, dev = self.runtime, self.device
+        (text, text_mask), (uncond, uncond_mask) = conditions
         gen = torch.Generator(device="cpu").manual_seed(seed)  # CPU draws: the same noise on every device
         noise = torch.randn((1, runtime.latent.latent_channels, n, *image_latent.shape[-2:]),  # CPU draw, moved
                             generator=gen, device="cpu").to(dev)
@@ -500,30 +549,21 @@ class Diff4SplatPipeline:
             return v_uncond + guidance * (v - v_uncond)
 
         if video_latents is None:
-            latents = integrate(velocity, noise, runtime.sigmas(steps), progress=progress)
+            latents = integrator(sampler)(velocity, noise, runtime.sigmas(steps), progress=progress)
         elif tuple(video_latents.shape) != tuple(noise.shape):
             raise ValueError(f"video_latents must have shape {tuple(noise.shape)}, got {tuple(video_latents.shape)}")
         else:
             latents = video_latents.to(noise)
-        latents = torch.cat([image_latent, latents[:, :, 1:]], dim=2)
-        timings["sample"] = clock.lap()
+        return torch.cat([image_latent, latents[:, :, 1:]], dim=2)
 
-        key_times = torch.unique(cameras.times)
-        # A runtime without the deformation network (a static ONNX export) makes static scenes.
-        out = runtime.reconstruct(latents, plucker, key_times if runtime.has_deformation else None, video[:, :, 0])
-        frames = source_frame_indices(cfg.ldrm.gaussian_frames, n, runtime.latent.temporal_factor)
-        decoded = None
-        if cfg.generated_colors == "video" and len(frames) > 1:  # the generated frames' pixels (assemble.video_colors)
-            decoded = runtime.decode_latents(latents)
-        if isinstance(runtime, TorchRuntime):
-            runtime.release()  # the networks are done: an offloaded one leaves the device before pruning renders
-        sources = torch.tensor(frames, device=dev)
-        times = key_times if out.d_means is not None else None
-        scene, grid, photo = assemble_scene(out, sources, cameras_model, cameras, image, times, depth=depth,
-                                            depth_kind=depth_kind, video=decoded, footprint=cfg.generated_footprint)
-        scene = scene.without_deformation(cfg.static_atol)
-        timings["reconstruct"] = clock.lap()
+    def _prune(self, scene: DynamicGaussians, grid: Tensor, cameras: CameraPath, sources: Tensor,
+               photo: dict) -> tuple[DynamicGaussians, Tensor, dict]:
+        """Settle and prune the assembled scene: (scene, index of each kept Gaussian in the assembled one, stats).
 
+        Raises:
+            ValueError: the camera path sees none of the scene (every Gaussian pruned).
+        """
+        cfg, dev = self.config, self.device
         index = torch.arange(scene.num_gaussians, device=dev)
         scene, drop, settled = settle_generated(scene, grid, cameras, sources, photo["photo_depth"])
         scene, index = scene.select(~drop), index[~drop]
@@ -535,13 +575,6 @@ class Diff4SplatPipeline:
         stats = {**stats, "before": scene.num_gaussians, "after": int(keep.sum())}
         scene, index = scene.select(keep), index[keep]
         stats = {**stats, "before": stats["before"] + settled["duplicates"] + settled["occluders"], **settled}
-        timings["prune"] = clock.lap()
         if stats["after"] == 0:
             raise ValueError(_sees_nothing(stats, cfg.prune_opacity))
-        return GenerationResult(scene=scene, cameras=cameras, latents=latents, timings=timings,
-                                high_water=dict(zip(timings, clock.high_water, strict=False)), prune_stats=stats,
-                                steps=steps, sampler=sampler, guidance=guidance, shift=cfg.sampling.shift,
-                                source_frames=sources,
-                                gaussian_index=index, eps2d=PHOTO_EPS2D, background=photo["background"],
-                                photo_psnr_db=photo["photo_psnr_db"], num_slots=int(grid.shape[0]),
-                                photo_gaussians=photo["photo_gaussians"], video=decoded)
+        return scene, index, stats

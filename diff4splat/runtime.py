@@ -78,6 +78,10 @@ class NetworkRuntime(Protocol):
         """(1, c, n, h, w) DiT-scaled latents → (1, 3, 1 + t·(n − 1), h·s, w·s) pixels in about [−1, 1] (the VAE
         decoder; :meth:`models.backbones.base.Backbone.decode_latents`)."""
 
+    def release(self) -> None:
+        """The networks are done for this scene: free what they hold on the device (an offloaded network's
+        weights), so the pruning renders that follow have the memory."""
+
 
 OFFLOAD_MODES = ("none", "model", "model-prefetch")
 """``offload`` values: ``none`` keeps every network on the device; ``model`` keeps them in CPU memory and moves
