@@ -39,7 +39,6 @@ from .io.scene_folder import scene_meta, write_scene_folder
 from .io.video import DEFAULT_FPS, check_fps
 from .limits import check_limit, check_memory, check_output_size
 from .pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, GenerationResult, check_prompt, check_seed
-from .pipeline import load_model as _load_model
 from .render.sequence import render_path
 from .runtime import ATTENTION_KERNELS, DTYPES, check_offload
 
@@ -112,13 +111,10 @@ def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | Non
             raise FileNotFoundError(f"--onnx: {onnx} is not a folder")
         import onnxruntime  # lazy: ~0.1 s at every command's start; only --runtime onnxruntime needs it
 
-        from .onnx_runtime import OnnxRuntime  # lazy: as onnxruntime
-
         t0 = time.perf_counter()
-        ort = OnnxRuntime(onnx)
-        return LoadedPipeline(Diff4SplatPipeline(ort), f"onnx:{onnx} ({ort.manifest['source']})",
-                              time.perf_counter() - t0, None, None, {"onnxruntime": onnxruntime.__version__},
-                              (Path(onnx),))
+        pipe = Diff4SplatPipeline.from_onnx(onnx)
+        return LoadedPipeline(pipe, pipe.source, time.perf_counter() - t0, None, None,
+                              {"onnxruntime": onnxruntime.__version__}, (Path(onnx),))
     if onnx is not None:
         raise ValueError("--onnx runs the export with onnxruntime, not --runtime torch")
     if dtype not in DTYPES:
@@ -130,10 +126,9 @@ def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | Non
     if checkpoint is not None and not Path(checkpoint).is_dir():
         raise FileNotFoundError(f"--checkpoint: {checkpoint} is not a folder")
     t0 = time.perf_counter()
-    model, source = _load_model(checkpoint, config or DEFAULT_CONFIG, seed=0, dtype=DTYPES[dtype])
-    pipe = Diff4SplatPipeline(model, device=device, dtype=DTYPES[dtype], offload=offload,
-                              attention=attention, compile=compile)
-    return LoadedPipeline(pipe, source, time.perf_counter() - t0, dtype, offload,
+    pipe = Diff4SplatPipeline.from_pretrained(checkpoint, config or DEFAULT_CONFIG, device, dtype=DTYPES[dtype],
+                                              offload=offload, attention=attention, compile=compile)
+    return LoadedPipeline(pipe, pipe.source, time.perf_counter() - t0, dtype, offload,
                           files=() if checkpoint is None else (Path(checkpoint),))
 
 

@@ -265,6 +265,8 @@ class Diff4SplatPipeline:
         model: the :class:`Diff4SplatModel` or :class:`models.backbones.model.BackboneModel`, or None for another
             runtime.
         config: the model's :class:`Diff4SplatConfig` or :class:`models.backbones.model.BackboneModelConfig`.
+        source: where the weights came from (a folder, ``random:<config>:seed=<n>``, ``onnx:<folder> (…)``), set
+            by :meth:`from_pretrained` and :meth:`from_onnx`; None for a pipeline built from a model in memory.
 
     Raises:
         TypeError: ``model`` is neither a Diff4SplatModel, a BackboneModel nor a NetworkRuntime.
@@ -284,20 +286,36 @@ class Diff4SplatPipeline:
                             f"{type(model).__name__}")
         self.device = torch.device(device)
         self.config = self.runtime.config
+        self.source: str | None = None
 
     @classmethod
     def from_pretrained(cls, checkpoint: str | Path | None = None, config: str = DEFAULT_CONFIG,
-                        device: str | torch.device = "cpu") -> Diff4SplatPipeline:
-        """Pipeline over :func:`load_model` (shipped weights when ``checkpoint`` is None)."""
-        return cls(load_model(checkpoint, config)[0], device)
+                        device: str | torch.device = "cpu", *, dtype: torch.dtype | None = None,
+                        offload: str = "none", attention: str = "auto",
+                        compile: bool = False) -> Diff4SplatPipeline:
+        """The one way to load the PyTorch networks: :func:`load_model` (a checkpoint folder, ours or a diffusers
+        backbone's; the shipped weights of ``config`` when ``checkpoint`` is None; a seeded random model with a
+        warning when none ship), loaded directly in ``dtype``, then run on ``device`` as :class:`Diff4SplatPipeline`'s
+        arguments say. :attr:`source` says where the weights came from.
+
+        Raises:
+            as :func:`load_model` and the constructor.
+        """
+        model, source = load_model(checkpoint, config, dtype=dtype)
+        pipe = cls(model, device, dtype=dtype, offload=offload, attention=attention, compile=compile)
+        pipe.source = source
+        return pipe
 
     @classmethod
     def from_onnx(cls, directory: str | Path, providers: list[str] | None = None) -> Diff4SplatPipeline:
         """Pipeline over an ``export-onnx`` folder served by onnxruntime
-        (:class:`diff4splat.onnx_runtime.OnnxRuntime`)."""
+        (:class:`diff4splat.onnx_runtime.OnnxRuntime`); :attr:`source` is ``onnx:<directory> (<its source>)``."""
         from .onnx_runtime import OnnxRuntime  # lazy: onnxruntime adds ~0.1 s to every command's start
 
-        return cls(OnnxRuntime(directory, providers=providers))
+        runtime = OnnxRuntime(directory, providers=providers)
+        pipe = cls(runtime)
+        pipe.source = f"onnx:{directory} ({runtime.manifest['source']})"
+        return pipe
 
     def scene_slots(self, width: int, height: int, num_frames: int) -> int:
         """Gaussians of the unpruned scene for a ``width`` × ``height`` output and ``num_frames`` frames: the photo
