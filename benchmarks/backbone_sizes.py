@@ -9,6 +9,7 @@ exact counts.
 """
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -27,6 +28,7 @@ def billions_and_bf16(n: int) -> str:
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter).parse_args()
     rows, exact = [], []
     for name in sorted(backbone_names(), reverse=True):  # Wan first
         config = backbone_config(name)

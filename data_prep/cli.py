@@ -21,7 +21,7 @@ from diff4splat.devices import resolve_device
 from diff4splat.errors import run_cli
 
 from .convert_cli import register as _add_convert  # data_prep convert SOURCE IN OUT
-from .curate import DEFAULT_CONFIG_PATH, CurationConfig, curate
+from .curate import DEFAULT_CONFIG_PATH, MODES, CurationConfig, curate
 from .synth_dataset import check_synth_request, synthesize
 from .synth_world import DEFAULT_CAMERAS, DEFAULT_FRAMES, DEFAULT_SIZE, DEFAULT_STATIC_RATIO, DEFAULT_TEXTURE_RATIO
 from .validate import summarize, validate_path
@@ -136,8 +136,9 @@ def _add_curate(sub) -> None:
     p.add_argument("--config", type=Path, default=None,
                    help="YAML thresholds (default: configs/data_prep/curation_default.yaml)")
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="worker processes (default: CPU count)")
-    p.add_argument("--mode", default="symlink",
-                   help="accepted scenes in OUT as absolute symlinks, full copies, or not at all (default: symlink)")
+    p.add_argument("--mode", default="symlink", choices=MODES,
+                   help="accepted scenes in OUT as absolute symlinks (symlink), full copies (copy) or not at all "
+                        "(none; default: symlink)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_curate)
 

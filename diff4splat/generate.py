@@ -272,8 +272,11 @@ def generate(
     elif isinstance(loaded, Diff4SplatPipeline):
         loaded = LoadedPipeline(loaded, "pipeline", dtype=None, offload=None)
     pipe, cfg = loaded.pipeline, loaded.pipeline.config
-    if frames is not None:
-        cfg.vae.num_latent_frames(frames)  # T = 1 + 4k, before any decoding
+    if frames is not None:  # T = 1 + 4k, before any decoding
+        try:
+            cfg.vae.num_latent_frames(frames)
+        except ValueError:
+            raise ValueError(f"--frames {frames}: the frame count must be {pipe.runtime.latent.frames_rule}") from None
     if isinstance(image, Tensor):
         height, width = int(image.shape[0]), int(image.shape[1])
         pipe.output_size(height)  # the resolution limit

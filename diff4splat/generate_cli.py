@@ -82,7 +82,7 @@ def add_generate_parser(subparsers, *, out_type: Callable[[str], Path], out_help
     g.add_argument("--no-frame-plys", dest="frame_plys", action="store_false",
                    help="leave out frames/NNNN.ply, the scene at each frame's time (scene.ply and deformation.npz "
                         "hold the same; frames/ is most of a long path's folder: 4.4 of 7.2 GB at the paper size)")
-    g.add_argument("--quiet", action="store_true", help="no progress bars")
+    g.add_argument("--quiet", action="store_true", help="no progress bars (notes and warnings still print)")
     g.add_argument("--out", type=out_type, required=True, help=out_help)
     g.add_argument("--overwrite", action="store_true", help=overwrite_help)
 
@@ -102,7 +102,7 @@ def generate_command(args) -> dict:
         trajectory=args.trajectory, amplitude=args.amplitude, frames=args.frames, resolution=args.resolution,
         prompt=args.prompt, steps=args.steps, sampler=args.sampler, guidance=args.guidance, seed=args.seed,
         depth=args.depth, depth_kind=args.depth_kind, progress=not args.quiet,
-        notes=None if args.quiet else lambda note: print(f"diff4splat: note: {note}", file=sys.stderr), out=args.out,
+        notes=lambda note: print(f"diff4splat: note: {note}", file=sys.stderr), out=args.out,
         frame_plys=args.frame_plys)
     return write(generation, args.out, fps=args.fps, overwrite=args.overwrite)
 

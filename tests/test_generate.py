@@ -76,3 +76,9 @@ def test_generate_then_write_is_what_the_command_writes(tmp_path):
         assert cli_meta[key] == on_disk[key], key
     assert load_ply(tmp_path / "cli" / "scene.ply").num_gaussians > 0
     assert torch.isfinite(gen.colors).all()
+
+
+def test_a_frame_count_the_vae_cannot_take_is_named_by_its_flag():
+    """``--frames 6`` said "video: T=6 frames; …": the user passed no video."""
+    with pytest.raises(ValueError, match=r"^--frames 6: the frame count must be 1 \+ 4·k \(1, 5, 9, …\)$"):
+        generate(EXAMPLE_IMAGE, pipeline=Diff4SplatPipeline(tiny_model()), frames=6)

@@ -239,3 +239,9 @@ def test_a_dataset_smaller_than_one_batch_writes_nothing(data, tmp_path, capsys)
     assert main(["--config", str(cfg), "--data", str(data), "--run-dir", str(run), "--quiet", "--device", "cpu"]) == 2
     assert "dataset of 3 items is smaller than one batch (4 × 1 processes)" in _error(capsys)
     assert not run.exists()
+    # a stage that keeps only static scenes names its filter, the likely cause (two of three scenes are static)
+    cfg = _stage_yaml(tmp_path, "vae", height=SIZE, width=SIZE, scenes="static", trainer={"batch_size": 4})
+    assert main(["--config", str(cfg), "--data", str(data), "--run-dir", str(run), "--quiet", "--device", "cpu"]) == 2
+    assert (f"data: 2 of the 3 scenes in {data} are static (stage.scenes: static), fewer than one batch of 4: make "
+            "more static scenes (data_prep synth --static-ratio) or lower trainer.batch_size") in _error(capsys)
+    assert not run.exists()

@@ -235,5 +235,6 @@ def register(subparsers) -> None:
                    "(metrics are computed on the CPU)")
     e.add_argument("--quiet", action="store_true", help="no progress bar")
     e.add_argument("--csv", type=Path, default=None,
-                   help="append the aggregate row to this CSV (--per-clip: clip rows to <stem>_clips.csv)")
+                   help="append the aggregate row to this CSV (--per-clip: clip rows to <stem>_clips.csv; --sampling: "
+                        "sampler rows to <stem>_sampling.csv)")
     e.set_defaults(func=run)

@@ -396,7 +396,8 @@ def register(subparsers) -> None:
                         "holdout_masked_psnr over the pixels some training view sees)")
     p.add_argument("--seed", type=int, default=0, help="seed (initial subset, view order, splits; default 0)")
     p.add_argument("--max-gaussians", type=int, default=d.densify.max_gaussians,
-                   help=f"cap on the Gaussian count (default {d.densify.max_gaussians})")
+                   help=f"densification adds Gaussians up to this count (default {d.densify.max_gaussians}; an --init "
+                        "scene that holds more keeps them, less what pruning removes)")
     p.add_argument("--init-points", type=int, default=d.init_points,
                    help=f"at most this many back-projected depth points initialise the fit (default {d.init_points})")
     p.add_argument("--sh-degree", type=int, default=d.sh_degree, help=f"largest SH degree (default {d.sh_degree})")

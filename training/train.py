@@ -31,6 +31,7 @@ from pathlib import Path
 import torch
 
 from data_prep.clips import ClipConfig, ClipDataset
+from data_prep.format import list_scenes
 from diff4splat.devices import resolve_device
 from diff4splat.errors import run_cli
 from diff4splat.io.output_folders import check_output_dir
@@ -94,6 +95,12 @@ def build_training(stage: StageConfig, seed: int | None = None
                                                  scenes=stage.scenes, plucker=plucker, seed=stage.trainer.seed))
     if len(dataset) == 0:
         raise ValueError(f"data: no {stage.scenes} clips of {stage.num_frames} frames in {stage.data}")
+    if stage.scenes != "all" and len(dataset) < stage.trainer.batch_size:  # the filter is the likely cause
+        ratio = "--static-ratio" if stage.scenes == "static" else "a lower --static-ratio"
+        raise ValueError(f"data: {len(dataset)} of the {len(list_scenes(stage.data))} scenes in {stage.data} are "
+                         f"{stage.scenes} (stage.scenes: {stage.scenes}), fewer than one batch of "
+                         f"{stage.trainer.batch_size}: make more {stage.scenes} scenes (data_prep synth {ratio}) or "
+                         "lower trainer.batch_size")
     module = TrainingModule(model, stage, _teacher(stage))
     trainer = Trainer(module, dataset, lambda mod, batch, gen: mod(batch, gen), stage.trainer,
                       extra_meta={"stage": dataclasses.asdict(stage), "trainable": counts})

@@ -60,11 +60,17 @@ class LatentFormat:
         """Channels of the packed Plücker rays on this latent grid: 6·t·s²."""
         return 6 * self.temporal_factor * self.spatial_factor ** 2
 
+    @property
+    def frames_rule(self) -> str:
+        """The frame counts the VAE takes, in words: ``1 + 4·k (1, 5, 9, …)``."""
+        t = self.temporal_factor
+        return f"1 + {t}·k (1, {1 + t}, {1 + 2 * t}, …)"
+
     def num_latent_frames(self, num_frames: int) -> int:
         """n = 1 + (T − 1)/t. Raises ValueError unless T = 1 + t·k, k ≥ 0."""
         t = self.temporal_factor
         if num_frames < 1 or (num_frames - 1) % t:  # no isinstance: an ONNX export traces T as a SymInt
-            raise ValueError(f"video: T={num_frames} frames; T must be 1 + {t}·k (1, {1 + t}, {1 + 2 * t}, …)")
+            raise ValueError(f"video: T={num_frames} frames; T must be {self.frames_rule}")
         return 1 + (num_frames - 1) // t
 
     def num_frames(self, num_latent_frames: int) -> int:
