@@ -30,7 +30,7 @@ from safetensors.torch import load_file, save_file
 from diff4splat.io.atomic import atomic_output_path
 from diff4splat.io.output_folders import output_dir
 
-__all__ = ["save_checkpoint", "load_checkpoint", "latest_checkpoint", "rng_state", "set_rng_state"]
+__all__ = ["save_checkpoint", "load_checkpoint", "latest_checkpoint", "rng_state", "set_rng_state", "on_cpu"]
 
 _NUMPY_STATE_GLOBALS = [np.ndarray, np.dtype, type(np.dtype(np.uint32)),
                         (np._core if hasattr(np, "_core") else np.core).multiarray._reconstruct]
@@ -93,7 +93,7 @@ def save_checkpoint(
         save_file({k: v.detach().contiguous().cpu() for k, v in model_state.items()}, str(tmp / "model.safetensors"))
         if ema_state is not None:
             save_file({k: v.detach().contiguous().cpu() for k, v in ema_state.items()}, str(tmp / "ema.safetensors"))
-        torch.save(_on_cpu(training_state), tmp / "state.pt")  # plain CPU tensors: loads anywhere, weights-only
+        torch.save(on_cpu(training_state), tmp / "state.pt")  # plain CPU tensors: loads anywhere, weights-only
         (tmp / "meta.json").write_text(json.dumps({"step": step, **meta}, indent=2, default=str))
     with atomic_output_path(root / "latest") as tmp:
         Path(tmp).write_text(folder.name)
@@ -102,14 +102,15 @@ def save_checkpoint(
     return folder
 
 
-def _on_cpu(obj: Any) -> Any:
-    """``obj`` with every tensor in its dicts, lists and tuples detached and copied to the CPU."""
+def on_cpu(obj: Any) -> Any:
+    """``obj`` with every tensor in its dicts, lists and tuples detached and copied to the CPU: what a checkpoint
+    holds."""
     if isinstance(obj, torch.Tensor):
         return obj.detach().cpu()
     if isinstance(obj, dict):
-        return {k: _on_cpu(v) for k, v in obj.items()}
+        return {k: on_cpu(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return type(obj)(_on_cpu(v) for v in obj)
+        return type(obj)(on_cpu(v) for v in obj)
     return obj
 
 

@@ -44,7 +44,7 @@ from diff4splat.render.sequence import render_path
 from diff4splat.render.sh import rotate_sh
 from diff4splat.scene import DynamicGaussians
 from models.hexplane import save_field
-from training.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from training.checkpoint import latest_checkpoint, load_checkpoint, on_cpu, save_checkpoint
 from training.densify import DensityStats
 from training.fit import (
     BACKGROUNDS,
@@ -133,17 +133,6 @@ def _generate_init(init_dir: Path, scene, ref_camera: str):
     return g.means, g.quats, g.scales, g.opacities, g.sh
 
 
-def _cpu(obj):
-    """``obj`` with every tensor in it (dicts, lists, tuples) on the CPU: what a checkpoint holds."""
-    if isinstance(obj, torch.Tensor):
-        return obj.detach().cpu()
-    if isinstance(obj, dict):
-        return {k: _cpu(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return type(obj)(_cpu(v) for v in obj)
-    return obj
-
-
 def _plain(value):
     """``value`` as JSON would store it (tuples as lists), so that equal settings compare equal."""
     return json.loads(json.dumps(value))
@@ -217,7 +206,7 @@ def _save(run_dir: Path, state: FitState, config: FitConfig, run: dict) -> None:
              "step": state.step, "order": list(state.order), "train_time": state.train_time,
              "history": state.history, "counts": state.counts, "generator": state.generator.get_state(),
              "run": run}
-    save_checkpoint(run_dir, state.step, _cpu(weights), _cpu(saved),
+    save_checkpoint(run_dir, state.step, on_cpu(weights), on_cpu(saved),
                     {"config": config_dict(config), "device": str(state.device)}, keep=1)
 
 
