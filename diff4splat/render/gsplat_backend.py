@@ -51,7 +51,11 @@ Known differences of the gsplat backend from the PyTorch path:
   * ``meta`` holds gsplat's keys (radii, means2d, depths, conics, opacities, tile_width, tile_height,
     tiles_per_gauss, isect_ids, flatten_ids, isect_offsets, …, unpacked: see above; radii are per axis from
     1.5 on and use gsplat's boxes), not ``per_camera``, ``covars2d`` or ``compensations``;
-  * gradients are gsplat's (float32 atomics: not bitwise reproducible).
+  * gradients are gsplat's (float32 atomics: not bitwise reproducible);
+  * gsplat computes det Σ2d as σxx·σyy − σxy² in float32, which cancels an elongated Gaussian's long axis (ours
+    sums the squared minors of J·R·S: :func:`~diff4splat.render.projection.project_gaussians`), so a 100 m ×
+    1 cm Gaussian may lose a few % of its alpha and a 1 km × 1 cm one be culled there (float64 inputs stay on
+    the PyTorch path).
 """
 from __future__ import annotations
 
