@@ -92,6 +92,13 @@ def keep_in_graph(out: Tensor, *inputs: Tensor | None) -> Tensor:
     detached zero/background tensor and ``loss.backward()`` would raise; the fused path and gsplat keep their
     outputs attached. The anchor is an empty slice's sum (exactly 0, and 0 even beside inf), so ``out``'s values
     are unchanged.
+
+    Args:
+        out: a rendered output, any shape.
+        inputs: the tensors it was computed from, any shapes (None entries skipped).
+
+    Returns:
+        ``out``'s values and shape, requiring grad when any input does and grad mode is on.
     """
     if out.requires_grad or not torch.is_grad_enabled():
         return out
