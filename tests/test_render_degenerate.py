@@ -16,7 +16,7 @@ from diff4splat.render.rasterize import choose_path
 D = torch.float64
 W, H = 32, 24
 K = torch.tensor([[[30.0, 0, W / 2], [0, 30.0, H / 2], [0, 0, 1]]], dtype=D)
-VM = torch.eye(4, dtype=D)[None]
+VM = torch.eye(4, dtype=D)[None]  # never requires grad: a test that needs camera gradients clones it
 
 
 def _scene(n=4, dtype=D):
@@ -84,7 +84,7 @@ def test_near_plane_zero_with_camera_gradients_stays_finite(device):
     """Camera gradients route the fused path through the PyTorch projection."""
     params = [t.to(device) for t in _scene()]
     params[0][0] = torch.tensor([0.3, 0.1, 0.0], dtype=D, device=device)
-    viewmats = VM.to(device).requires_grad_(True)
+    viewmats = VM.clone().to(device).requires_grad_(True)  # a clone: VM itself must stay a constant
     out, _, _ = rasterize(*params, viewmats, K.to(device), W, H, near_plane=0.0)
     out.sum().backward()
     assert bool(torch.isfinite(viewmats.grad).all())
