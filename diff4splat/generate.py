@@ -54,7 +54,8 @@ class LoadedPipeline:
 
     Attributes:
         pipeline: the :class:`~diff4splat.pipeline.Diff4SplatPipeline`.
-        source: the weights' folder, ``random:<config>:seed=<s>``, or ``onnx:<folder> (<its source>)``.
+        source: the weights' folder, ``random:<config>:seed=<s>[:cuda]`` (``:cuda``: initialised on a GPU), or
+            ``onnx:<folder> (<its source>)``.
         load_seconds: wall time of loading, seconds.
         dtype: weight dtype name of a torch runtime ("float32", "bfloat16", "float16"), None for onnxruntime.
         offload: offload mode of a torch runtime, None for onnxruntime.

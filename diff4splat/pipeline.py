@@ -37,7 +37,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from models.backbones.model import INDEX_FILE, BackboneModel
-from models.bundle import DEFAULT_CONFIG, WEIGHTS_DIR, Diff4SplatModel, load_config
+from models.bundle import DEFAULT_CONFIG, WEIGHTS_DIR, Diff4SplatModel, load_config, random_init_device
 from models.flow_matching import check_guidance, integrator
 from models.ldrm import source_frame_indices
 from models.pretrained import CONFIG_NAME
@@ -56,7 +56,7 @@ from .checks import check_positive_int, is_int
 from .devices import Stopwatch
 from .limits import check_limit
 from .photo import PHOTO_EPS2D, layer_sizes
-from .prune import prune_mask, settle_generated
+from .prune import nothing_seen_message, prune_mask, settle_generated
 from .render.defaults import BACKGROUND
 from .runtime import NetworkRuntime, TorchRuntime
 from .scene import DynamicGaussians
@@ -183,7 +183,7 @@ class GenerationResult:
 
 
 def load_model(checkpoint: str | Path | None = None, config: str = DEFAULT_CONFIG, seed: int = 0, *,
-               untrained: bool = False, dtype: torch.dtype | None = None
+               untrained: bool = False, dtype: torch.dtype | None = None, init_device: str | torch.device = "cpu"
                ) -> tuple[Diff4SplatModel | BackboneModel, str]:
     """Load a checkpoint folder, else the shipped weights of ``config``, else a seeded random model.
 
@@ -191,7 +191,10 @@ def load_model(checkpoint: str | Path | None = None, config: str = DEFAULT_CONFI
     backbone's (``model_index.json``: :meth:`models.backbones.model.BackboneModel.from_pretrained`, loaded directly
     in ``dtype``, e.g. bfloat16, never as a float32 copy first; so are our checkpoints and a random model).
     ``untrained=True`` skips checkpoint and shipped weights and returns the seeded random model without a warning
-    (the baseline that evaluations compare against).
+    (the baseline that evaluations compare against). A random model without ``untrained`` is initialised on
+    ``init_device`` when :func:`models.bundle.random_init_device` finds room there (a GPU: seconds, where the CPU
+    takes minutes for the paper size), then returned on the CPU like every other; its values are that device's
+    generator's, and its source says so (``random:<config>:seed=<n>:cuda``).
 
     Returns:
         (model in eval mode, a description of where the weights came from).
@@ -219,8 +222,11 @@ def load_model(checkpoint: str | Path | None = None, config: str = DEFAULT_CONFI
         return Diff4SplatModel.from_pretrained(shipped, dtype=dtype).eval(), str(shipped)
     warnings.warn(f"no trained weights in {shipped}: using a randomly initialised '{config}' model "
                   f"(seed {seed}); its scenes show the pipeline working, not learned content", stacklevel=2)
+    cfg = load_config(config)
+    where = random_init_device(cfg, init_device, dtype)
     # built in ``dtype``: the paper-size model in bfloat16 is 33.7 GB, where a float32 build first held 67.3 GB
-    return Diff4SplatModel.random(load_config(config), seed=seed, dtype=dtype).eval(), random_source
+    model = Diff4SplatModel.random(cfg, seed=seed, device=where, dtype=dtype, host=True).eval()
+    return model, random_source + ("" if where.type == "cpu" else f":{where.type}")
 
 
 def _without_full_mask(text: Tensor, mask: Tensor, device: torch.device) -> tuple[Tensor, Tensor | None]:
@@ -230,16 +236,6 @@ def _without_full_mask(text: Tensor, mask: Tensor, device: torch.device) -> tupl
     guard for samples without real tokens. One prompt, right-padded to its own length, has no padding."""
     text, mask = text.to(device), mask.to(device)
     return text, None if bool(mask.all()) else mask
-
-
-def _sees_nothing(stats: dict[str, int], min_opacity: float) -> str:
-    """The error message when pruning left no Gaussian, naming the likely cause."""
-    msg = (f"the camera path sees none of the scene: all {stats['before']} Gaussians were pruned "
-           f"({stats['unseen']} outside every camera's view, {stats['low_opacity']} with opacity < {min_opacity})")
-    if stats["unseen"] == 0:
-        return msg + "; likely cause: the model's weights (every Gaussian is transparent)"
-    return msg + ("; likely cause: the cameras look away from the scene (the scene lies in front of the "
-                  "first camera, along its +z axis, OpenCV axes)")
 
 
 class Diff4SplatPipeline:
@@ -265,8 +261,8 @@ class Diff4SplatPipeline:
         model: the :class:`Diff4SplatModel` or :class:`models.backbones.model.BackboneModel`, or None for another
             runtime.
         config: the model's :class:`Diff4SplatConfig` or :class:`models.backbones.model.BackboneModelConfig`.
-        source: where the weights came from (a folder, ``random:<config>:seed=<n>``, ``onnx:<folder> (…)``), set
-            by :meth:`from_pretrained` and :meth:`from_onnx`; None for a pipeline built from a model in memory.
+        source: where the weights came from (a folder, ``random:<config>:seed=<n>[:cuda]``, ``onnx:<folder> (…)``),
+            set by :meth:`from_pretrained` and :meth:`from_onnx`; None for a pipeline built from a model in memory.
 
     Raises:
         TypeError: ``model`` is neither a Diff4SplatModel, a BackboneModel nor a NetworkRuntime.
@@ -295,13 +291,14 @@ class Diff4SplatPipeline:
                         compile: bool = False) -> Diff4SplatPipeline:
         """The one way to load the PyTorch networks: :func:`load_model` (a checkpoint folder, ours or a diffusers
         backbone's; the shipped weights of ``config`` when ``checkpoint`` is None; a seeded random model with a
-        warning when none ship), loaded directly in ``dtype``, then run on ``device`` as :class:`Diff4SplatPipeline`'s
-        arguments say. :attr:`source` says where the weights came from.
+        warning when none ship, initialised on ``device`` when it is a GPU with room), loaded directly in
+        ``dtype``, then run on ``device`` as :class:`Diff4SplatPipeline`'s arguments say. :attr:`source` says
+        where the weights came from.
 
         Raises:
             as :func:`load_model` and the constructor.
         """
-        model, source = load_model(checkpoint, config, dtype=dtype)
+        model, source = load_model(checkpoint, config, dtype=dtype, init_device=device)
         pipe = cls(model, device, dtype=dtype, offload=offload, attention=attention, compile=compile)
         pipe.source = source
         return pipe
@@ -594,5 +591,5 @@ class Diff4SplatPipeline:
         scene, index = scene.select(keep), index[keep]
         stats = {**stats, "before": stats["before"] + settled["duplicates"] + settled["occluders"], **settled}
         if stats["after"] == 0:
-            raise ValueError(_sees_nothing(stats, cfg.prune_opacity))
+            raise ValueError(nothing_seen_message(stats, cfg.prune_opacity))
         return scene, index, stats

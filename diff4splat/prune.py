@@ -18,8 +18,8 @@ from .render.projection import project_gaussians
 from .render.rasterize import rasterize
 from .scene import DynamicGaussians
 
-__all__ = ["visibility_mask", "prune_scene", "prune_mask", "duplicate_mask", "occluder_mask", "SLIDE_FACTORS",
-           "slide_behind", "settle_generated"]
+__all__ = ["visibility_mask", "prune_scene", "prune_mask", "nothing_seen_message", "duplicate_mask", "occluder_mask",
+           "SLIDE_FACTORS", "slide_behind", "settle_generated"]
 
 
 def visibility_mask(scene: DynamicGaussians, cameras: CameraPath, near_plane: float = NEAR_PLANE) -> Tensor:
@@ -74,6 +74,17 @@ def prune_mask(scene: DynamicGaussians, cameras: CameraPath | None = None, min_o
     stats = {"before": scene.num_gaussians, "low_opacity": int((~opaque).sum()),
              "unseen": int((opaque & ~seen).sum()), "after": int(keep.sum())}
     return keep, stats
+
+
+def nothing_seen_message(stats: dict[str, int], min_opacity: float) -> str:
+    """The error message when pruning left no Gaussian (``stats`` as :func:`prune_mask` returns them), naming the
+    likely cause: transparent Gaussians (the model's weights) or cameras that look away from the scene."""
+    msg = (f"the camera path sees none of the scene: all {stats['before']} Gaussians were pruned "
+           f"({stats['unseen']} outside every camera's view, {stats['low_opacity']} with opacity < {min_opacity})")
+    if stats["unseen"] == 0:
+        return msg + "; likely cause: the model's weights (every Gaussian is transparent)"
+    return msg + ("; likely cause: the cameras look away from the scene (the scene lies in front of the "
+                  "first camera, along its +z axis, OpenCV axes)")
 
 
 def prune_scene(scene: DynamicGaussians, cameras: CameraPath | None = None, min_opacity: float = 0.005,

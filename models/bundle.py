@@ -23,12 +23,13 @@ from .backbones.ours import OursBackbone
 from .dit import VideoDiT, VideoDiTConfig
 from .flow_matching import FlowMatchingConfig
 from .ldrm import LDRM, LDRMConfig
-from .pretrained import CONFIG_NAME, MODEL_KIND, check_model_size, config_from_dict, count_parameters
+from .pretrained import CONFIG_NAME, MODEL_KIND, check_model_size, config_from_dict, count_parameters, skip_init
 from .text_encoder import TextEncoder, TextEncoderConfig
 from .vae import VideoVAE, VideoVAEConfig
 
 __all__ = ["Diff4SplatConfig", "Diff4SplatModel", "load_config", "config_path", "config_names", "CONFIG_DIR",
-           "WEIGHTS_DIR", "DEFAULT_CONFIG", "NETWORKS", "GENERATED_COLORS", "GENERATED_FOOTPRINTS", "check_generated"]
+           "WEIGHTS_DIR", "DEFAULT_CONFIG", "NETWORKS", "GENERATED_COLORS", "GENERATED_FOOTPRINTS", "check_generated",
+           "largest_network_bytes", "random_init_device"]
 
 CONFIG_DIR = MODEL_CONFIGS
 """Model size configs (``base``, ``tiny``, ``small``, ``paper``): ``configs/models/``
@@ -206,13 +207,14 @@ def load_config(name_or_path: str | os.PathLike) -> Diff4SplatConfig:
 class Diff4SplatModel(nn.Module):
     """The four networks of Diff4Splat (Pan et al. 2025, Fig. 2) under one config."""
 
-    def __init__(self, config: Diff4SplatConfig):
+    def __init__(self, config: Diff4SplatConfig, *, place: str | torch.device | None = None):
+        """Build the four networks in :data:`NETWORKS` order (one random-number stream); ``place``: move each
+        network there as soon as it is built (None: leave it where it was built)."""
         super().__init__()
         self.config = config
-        self.vae = VideoVAE(config.vae)
-        self.text_encoder = TextEncoder(config.text_encoder)
-        self.dit = VideoDiT(config.dit)
-        self.ldrm = LDRM(config.ldrm)
+        for name, module_cls in _MODULES.items():
+            network = module_cls(getattr(config, name))
+            setattr(self, name, network if place is None else network.to(place))
 
     @property
     def backbone(self) -> OursBackbone:
@@ -283,7 +285,7 @@ class Diff4SplatModel(nn.Module):
 
     @classmethod
     def random(cls, config: Diff4SplatConfig, seed: int = 0, *, device: str | torch.device = "cpu",
-               dtype: torch.dtype | None = None) -> Diff4SplatModel:
+               dtype: torch.dtype | None = None, host: bool = False) -> Diff4SplatModel:
         """A randomly initialised model, deterministic for ``seed`` on a given device.
 
         Args:
@@ -294,20 +296,61 @@ class Diff4SplatModel(nn.Module):
                 copy and the minutes of initialising 16 B parameters on a CPU.
             dtype: floating dtype the weights are created in (None: float32), e.g. ``torch.bfloat16`` to build a
                 paper-size model in half the memory.
+            host: move each network to the CPU as soon as it is built on ``device``: the values are ``device``'s,
+                the model is returned on the CPU, and ``device`` holds one network at a time (the largest is its
+                peak, :func:`largest_network_bytes`).
 
         Raises:
-            LimitError: ``config`` implies more parameters than the ``parameters`` limit, or (built on the CPU)
+            LimitError: ``config`` implies more parameters than the ``parameters`` limit, or (returned on the CPU)
                 weights larger than the memory available (counted on the ``meta`` device first,
                 :func:`models.pretrained.check_model_size`).
         """
         device = torch.device(device)
         check_model_size(lambda: cls(config), f"config {config.name!r}",
-                         host_dtype=dtype or torch.float32 if device.type == "cpu" else None)
+                         host_dtype=dtype or torch.float32 if device.type == "cpu" or host else None)
         previous = torch.get_default_dtype()
         with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []), device:
             torch.manual_seed(seed)
             try:
                 torch.set_default_dtype(dtype or torch.float32)
-                return cls(config)
+                return cls(config, place="cpu" if host else None)
             finally:
                 torch.set_default_dtype(previous)
+
+
+def largest_network_bytes(config: Diff4SplatConfig, dtype: torch.dtype | None = None) -> int:
+    """Bytes of the largest of the four networks' parameters and buffers in ``dtype`` (None: float32), counted on
+    the ``meta`` device (nothing is allocated or initialised): what :meth:`Diff4SplatModel.random` with
+    ``host=True`` holds on its device at a time."""
+    with torch.device("meta"), skip_init():
+        model = Diff4SplatModel(config)
+    itemsize = (dtype or torch.float32).itemsize
+    return max(sum(t.numel() for t in (*net.parameters(), *net.buffers())) * itemsize
+               for net in model.networks().values())
+
+
+INIT_HEADROOM_BYTES = 1 << 30
+"""GPU memory :func:`random_init_device` leaves free beyond the largest network (the allocator's rounding, the
+CUDA context of a first use)."""
+
+
+def random_init_device(config: Diff4SplatConfig, device: str | torch.device, dtype: torch.dtype | None = None
+                       ) -> torch.device:
+    """Where :meth:`Diff4SplatModel.random` (``host=True``) should initialise a model that runs on ``device``:
+    ``device`` itself when it is a CUDA GPU with room for the largest network plus :data:`INIT_HEADROOM_BYTES`
+    (free memory, ``torch.cuda.mem_get_info``), else the CPU. A GPU fills 16.8 B paper-size parameters in seconds;
+    the CPU's one serial generator takes minutes (about 155 M parameters/s on one core, each DiT linear layer
+    filled twice: its default initialisation, then DiT's).
+
+    Raises:
+        nothing: a device whose memory cannot be queried (no CUDA runtime) gives the CPU.
+    """
+    device = torch.device(device)
+    if device.type != "cuda":
+        return torch.device("cpu")
+    try:
+        free, _ = torch.cuda.mem_get_info(device)
+    except (RuntimeError, AssertionError):  # a CPU-only build of torch, or no driver
+        return torch.device("cpu")
+    fits = largest_network_bytes(config, dtype) + INIT_HEADROOM_BYTES <= free
+    return device if fits else torch.device("cpu")

@@ -406,6 +406,7 @@ def simulated_cuda():
         mock.patch("torch.cuda.max_memory_allocated", zero),
         mock.patch("torch.cuda.memory_allocated", zero),
         mock.patch("torch.cuda.reset_peak_memory_stats", lambda *a, **k: None),
+        mock.patch("torch.cuda.mem_get_info", lambda *a, **k: (0, 0)),  # (free, total): no room for anything
         mock.patch("torch.cuda.empty_cache", lambda: None),
         mock.patch("torch.cuda.get_device_name", lambda *a: NAME),
         mock.patch("torch.cuda.get_device_properties", lambda *a: types.SimpleNamespace(

@@ -17,6 +17,7 @@ import diff4splat.generate as generate_module
 import diff4splat.pipeline
 from diff4splat.cameras import DEFAULT_AMPLITUDES, DEFAULT_TRAJECTORY, CameraPath, intrinsics_from_fov
 from diff4splat.cli import build_parser, main
+from diff4splat.devices import resolve_device
 from diff4splat.io import load_depth_exr, load_image, load_ply, load_video, ply_property_names, save_cameras_json
 from diff4splat.io.image import preprocess_image, read_image
 from diff4splat.io.scene_folder import load_deformation
@@ -113,7 +114,8 @@ def test_without_shipped_weights_a_seeded_random_model_is_used_with_a_warning(tm
     assert code == 0
     assert "randomly initialised" in capsys.readouterr().err
     meta = _check_folder(out, 5)
-    assert meta["model"] == f"random:{DEFAULT_CONFIG}:seed=0" and meta["config"] == DEFAULT_CONFIG
+    on = ":cuda" if resolve_device().type == "cuda" else ""  # --device auto: a GPU initialises it (test_random_init)
+    assert meta["model"] == f"random:{DEFAULT_CONFIG}:seed=0{on}" and meta["config"] == DEFAULT_CONFIG
     assert meta["trajectory"] == "arc"
     # The default path is the arc: the first and last centres are 0.5 rad apart around the scene
     # centre c, at its distance, and the camera moved to its right.
