@@ -339,15 +339,18 @@ COMMAND = ("generate", str(EXAMPLE), "--config", "paper", "--dtype", "bfloat16",
 
 def part_command(device: torch.device, quick: bool) -> str:
     """The README's paper-size command in a child process, as a user runs it: the whole process's wall time
-    (imports, building the random paper model in bfloat16 on the CPU, the checks, generate, writing the folder),
-    its peak host memory (``run_with_peak_memory``), the stages and GPU peak from meta.json, and the folder's size."""
+    (imports, initialising the random paper model in bfloat16, on the GPU when it has room, the checks, generate,
+    writing the folder), its peak host memory (``run_with_peak_memory``), the stages and GPU peak from meta.json,
+    and the folder's size. The child's progress goes to this process's output, so a run stopped at a time limit
+    shows where it was (on an H100, 2026-11-26, the command ran past a 163 s limit with ``--quiet``, saying
+    nothing: the random model was then filled on the CPU)."""
     argv = list(COMMAND) if not quick else ["generate", str(EXAMPLE), "--config", "base", "--steps", "1",
                                             "--frames", "5", "--no-frame-plys", "--prompt", PROMPT]
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "out"
         t0 = time.perf_counter()
         done, host_peak = run_with_peak_memory([sys.executable, "-m", "diff4splat.cli", *argv, "--device",
-                                                str(device), "--quiet", "--out", str(out)])
+                                                str(device), "--out", str(out)])
         wall = time.perf_counter() - t0
         if done.returncode:
             raise RuntimeError(f"{' '.join(argv)} exited with {done.returncode}")
@@ -364,11 +367,11 @@ def part_command(device: torch.device, quick: bool) -> str:
     print(row, flush=True)
     return ("### The paper-size command end to end\n\n"
             "`python benchmarks/gpu.py --part command --write`: the README's command (\"On a GPU\") in a child "
-            "process, once, as a user runs it: \"wall\" is the whole process (imports, the random paper model built "
-            "in bfloat16 on the CPU, the request's checks, generate, writing the folder); \"stages\" is the sum of "
-            "meta.json's stage timings (encode … render, the table above) and \"rest\" the remainder (imports, "
-            "checks, writing). Host peak = the child's own `ru_maxrss` (`_common.run_with_peak_memory`); GPU peak = "
-            "meta.json's `peak_memory_gb`; "
+            "process, once, as a user runs it: \"wall\" is the whole process (imports, the random paper model "
+            "initialised in bfloat16 on the GPU, the request's checks, generate, writing the folder); \"stages\" is "
+            "the sum of meta.json's stage timings (encode … render, the table above) and \"rest\" the remainder "
+            "(imports, checks, writing). Host peak = the child's own `ru_maxrss` (`_common.run_with_peak_memory`); "
+            "GPU peak = meta.json's `peak_memory_gb`; "
             f"GB = 10⁹ bytes. Device: {device_name(device)}.\n\n"
             + markdown_table(["command", "wall s", "load_model s", "stages s", "rest s", "host peak GB",
                               "GPU peak GB", "Gaussians", "output folder GB"], [row]))
