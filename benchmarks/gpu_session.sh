@@ -12,24 +12,26 @@
 # then shares the 16 cores with the suite's processes: say so where it is reported), never beside generate.
 #
 # A session has 15 minutes of device time, its machine's start included: two calls. Next (docs/CONTRIBUTING.md,
-# "On a lent GPU"): `suite` (~5 min with set-up), which shows that everything runs on CUDA, then `command`
-# (~3 min); `block` (~1 min) times one paper-size DiT block op by op against ours (what the eager step's halved
-# memory traffic buys, benchmarks/dit_traffic.py); `generate` (~5 min) measures the 30 s goal (rows 1 and 3:
-# compare with the table's figures of the same card). Each step runs under what is left of GPU_SESSION_SECONDS (then SIGINT: pytest prints
-# its summary, gpu.py keeps the rows it wrote), so $OUT gets the logs and docs/benchmarks.md whatever happens.
+# "On a lent GPU"): `suite` alone under the default 570 s (~7 min with set-up), which shows that everything runs on
+# CUDA, then `amx command` (~3 min), then what is left on `GPU_GENERATE_ROWS=8 generate` (the compiled row on an
+# H100). Each step runs under what is left of GPU_SESSION_SECONDS (then SIGINT: pytest prints its summary, gpu.py
+# keeps the rows it wrote), so $OUT gets the logs and docs/benchmarks.md whatever happens.
 #
-# Steps, in the order of what only a GPU can show (minutes on one H100, estimated; measured on an H200 where
-# a figure says so; set-up before the first step: 60 s on a fresh machine, gsplat's extension 55 s of it):
+# Steps, in the order of what only a GPU can show (minutes on one H100; measured there on 2026-11-26 where a
+# figure says so; set-up before the first step: 82 s on a fresh H100, gsplat's extension 76 s of it):
 #   suite      python -m pytest, the whole suite with CUDA, in 8 processes (pytest-xdist, on the GPU image;
 #              without it, serially, which ran past a 10-minute command before: 95 % in 500 s), the 30 slowest
-#              tests listed (~5: 99 % in 270 s on an H200 beside `command`)
+#              tests listed (~6: 96-99 % in 327 s on an H100 alone, stopped by a 335 s limit)
 #   command    benchmarks/gpu.py --part command --write: the README's paper-size command end to end, as a user
-#              runs it (the random paper model built on the CPU, one serial random-number stream: ~1 minute
-#              for its 16 B parameters; the checks, writing ~3 GB) (~3: beside the suite it ran past 266 s)
+#              runs it (the random paper model initialised on the GPU since main after c895c0f; on the CPU's
+#              one serial random-number stream it took minutes, and the command ran past 163 s on an H100; the
+#              checks, writing ~3 GB) (~2, estimated)
 #   block      benchmarks/gpu.py --part block --write: one paper-size DiT block, op by op against ours, eager and
-#              compiled: what the eager step's fewer passes over its tokens buy, on this card (~1)
+#              compiled: what the eager step's fewer passes over its tokens buy, on this card (32 s on an H100)
 #   generate   benchmarks/gpu.py --part generate --write: the paper-size rows, goal <= 30 s and <= 25 GB; the
-#              table is written after every row (~5: rows 1,2,3,6,8 took 215 s on an H200)
+#              table is written after every row (rows 1,3: 104 s on an H100; rows 1,2,3,6,8: 215 s on an H200)
+#   amx        benchmarks/amx_nan_check.py: the host CPU's bf16 matmul with Intel AMX and without it (oneDNN#5717),
+#              and the bf16 Wan backbone test that failed on the Xeon hosts (a CPU test), twice under each (~1)
 #   cuda       python -m pytest -m cuda: only the CUDA cases, gsplat parity and the real_gpu ones included (~2)
 #   suite-1    python -m pytest on the first half of the test files (test_a… to test_pi…), serially (~5)
 #   suite-2    the second half (test_pr… to test_w…): the two halves are the whole suite
@@ -66,6 +68,7 @@ declare -A COMMANDS=(
   [generate]="python benchmarks/gpu.py --part generate --write${GPU_GENERATE_ROWS:+ --rows $GPU_GENERATE_ROWS}"
   [command]="python benchmarks/gpu.py --part command --write"
   [block]="python benchmarks/gpu.py --part block --write"
+  [amx]="python benchmarks/amx_nan_check.py --repeats 2"
   [cuda]="python -m pytest -m cuda -rfEs -p no:cacheprovider"
   [suite-1]="python -m pytest -rfEs -p no:cacheprovider tests/test_[a-o]*.py tests/test_p[a-i]*.py"
   [suite-2]="python -m pytest -rfEs -p no:cacheprovider tests/test_p[j-z]*.py tests/test_[q-z]*.py"
@@ -75,7 +78,7 @@ declare -A COMMANDS=(
   [gt-train]="python benchmarks/gpu_training.py --part train --work $WORK"
   [gt-eval]="python benchmarks/gpu_training.py --part eval --work $WORK --write"
 )
-ORDER=(suite command block generate cuda suite-1 suite-2 render train gt-data gt-train gt-eval)
+ORDER=(suite command block generate amx cuda suite-1 suite-2 render train gt-data gt-train gt-eval)
 
 steps=()
 for s in "$@"; do
