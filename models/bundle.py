@@ -313,9 +313,12 @@ class Diff4SplatModel(nn.Module):
             torch.manual_seed(seed)
             try:
                 torch.set_default_dtype(dtype or torch.float32)
-                return cls(config, place="cpu" if host else None)
+                model = cls(config, place="cpu" if host else None)
             finally:
                 torch.set_default_dtype(previous)
+        if host and device.type == "cuda":
+            torch.cuda.empty_cache()  # the allocator's cache held the largest network: give it back
+        return model
 
 
 def largest_network_bytes(config: Diff4SplatConfig, dtype: torch.dtype | None = None) -> int:
