@@ -14,8 +14,9 @@
 # A session has 15 minutes of device time, its machine's start included: two calls. Next (docs/CONTRIBUTING.md,
 # "On a lent GPU"): `suite` alone under the default 570 s (~7 min with set-up), which shows that everything runs on
 # CUDA, then `command amx` (~3 min: the command first, a done-when item), then what is left on
-# `GPU_GENERATE_ROWS=8 generate` (the compiled row on an H100). Each step runs under what is left of GPU_SESSION_SECONDS (then SIGINT: pytest prints its summary, gpu.py
-# keeps the rows it wrote), so $OUT gets the logs and docs/benchmarks.md whatever happens.
+# `GPU_GENERATE_ROWS=8 generate` (the compiled row on an H100). Each step runs under what is left of
+# GPU_SESSION_SECONDS (then SIGINT: pytest prints its summary, gpu.py keeps the rows it wrote), so $OUT gets the
+# logs and docs/benchmarks.md whatever happens.
 #
 # Steps, in the order of what only a GPU can show (minutes on one H100; measured there on 2026-11-26 where a
 # figure says so; set-up before the first step: 82 s on a fresh H100, gsplat's extension 76 s of it):
