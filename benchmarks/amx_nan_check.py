@@ -67,7 +67,7 @@ def traced_training() -> str:
     """The backbone test's two bf16 training steps (its data, folder and stage) with a forward hook on every module:
     "finite losses", or the first module whose output held NaN/inf (hooks fire inner modules first)."""
     sys.path.insert(0, str(ROOT / "tests"))  # the test's helpers; imported here, in the child that runs them
-    import test_training_backbone as t  # noqa: PLC0415 - pytest and diffusers: seconds that --help need not pay
+    import test_training_backbone as t  # lazy: pytest, diffusers and tests/ on the path, in the child that runs it
 
     first: list[str] = []
 

@@ -201,6 +201,9 @@ def main() -> int:
     if steps < 1 or every < 1 or (args.jobs is not None and args.jobs < 1):
         print("gpu_training.py: error: --steps, --every and --jobs must be ≥ 1", file=sys.stderr)
         return 2
+    # the deadline's SIGINT must reach part_train even where a non-interactive shell started this in the background,
+    # which leaves SIGINT ignored (Python then installs no KeyboardInterrupt, and the trainer would run to its end)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     args.work.mkdir(parents=True, exist_ok=True)
     parts = ("data", "train", "eval") if args.part == "all" else (args.part,)
     for part in parts:

@@ -2,6 +2,7 @@
 import importlib
 import os
 import shutil
+import signal
 
 import pytest
 import torch
@@ -18,6 +19,14 @@ DEVICES = [pytest.param("cpu", id="cpu"),
 DIFFUSERS_TESTS = ("test_backbone_*.py", "test_training_backbone.py")
 """The pretrained-backbone tests: every test in them is ``slow`` (module ``pytestmark``), because importing diffusers
 and transformers alone takes ~8 s on 2 cores; the fast loop does not even collect them."""
+
+
+def pytest_configure(config):
+    """SIGINT is Python's KeyboardInterrupt in this process, so in the processes the tests start: a suite started in
+    the background by a non-interactive shell (``nohup .ci/run &``) inherits SIGINT ignored and passes that on, and
+    the tests that interrupt a command (Ctrl-C, a session's deadline) then wait on a child that never stops."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def pytest_ignore_collect(collection_path, config):

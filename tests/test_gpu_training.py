@@ -33,11 +33,16 @@ def test_a_sigint_stopped_run_keeps_its_last_step_and_every_checkpoint_is_evalua
                              start_new_session=True)
     metrics = work / "dit" / "metrics.csv"
     deadline = time.monotonic() + 240
-    while not (metrics.is_file() and len(metrics.read_text().splitlines()) >= 3):  # the header and two steps
-        assert train.poll() is None and time.monotonic() < deadline, train.communicate()
-        time.sleep(0.1)
-    os.kill(train.pid, signal.SIGINT)
-    _, err = train.communicate(timeout=120)
+    try:
+        while not (metrics.is_file() and len(metrics.read_text().splitlines()) >= 3):  # the header and two steps
+            assert train.poll() is None and time.monotonic() < deadline, train.communicate()
+            time.sleep(0.1)
+        os.kill(train.pid, signal.SIGINT)
+        _, err = train.communicate(timeout=120)
+    finally:  # a failure here must not leave a 100,000-step training run on the machine's cores
+        if train.poll() is None:
+            os.killpg(train.pid, signal.SIGKILL)
+            train.communicate()
     assert train.returncode == 130 and "interrupted in part train" in err, err[-3000:]
     with open(metrics) as f:
         last = max(int(r["step"]) for r in csv.DictReader(f))
