@@ -137,6 +137,14 @@ def markdown_table(header: list[str], rows: list[list]) -> str:
     return "\n".join(lines)
 
 
+def read_section(name: str, path: Path = BENCHMARKS_MD) -> str | None:
+    """The body of the section ``name`` (:func:`write_section`), or None where there is none."""
+    text = path.read_text() if path.exists() else ""
+    found = re.search(re.escape(f"<!-- {name}:begin -->") + r"\n(.*?)\n" + re.escape(f"<!-- {name}:end -->"), text,
+                      flags=re.S)
+    return found.group(1) if found else None
+
+
 def write_section(name: str, body: str, path: Path = BENCHMARKS_MD) -> None:
     """Replace (or append) the section between ``<!-- name:begin -->`` and ``<!-- name:end -->``."""
     begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"

@@ -26,8 +26,9 @@ Five parts, each small enough for one 10-minute command on one GPU:
     python benchmarks/gpu.py --device cpu --quick --part all     # a dry run of the code paths, no figures
 
 ``--write`` replaces the sections ``gpu_render``, ``gpu_block``, ``gpu_generate``, ``gpu_command`` and ``gpu_train`` of
-docs/benchmarks.md; every table names the device it ran on. Without CUDA the script exits with one line and code 2
-unless ``--device cpu``.
+docs/benchmarks.md; every table names the device it ran on. ``--part generate --rows N,…`` runs only those rows
+and keeps the table's others where they ran on the same device and software, each row saying when it ran. Without
+CUDA the script exits with one line and code 2 unless ``--device cpu``.
 """
 from __future__ import annotations
 
@@ -48,7 +49,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine, markdown_table, peak_rss_mb, run_with_peak_memory, write_section  # noqa: E402
+from _common import machine, markdown_table, peak_rss_mb, read_section, run_with_peak_memory, write_section  # noqa: E402
 from render_speed import ldrm_scene  # noqa: E402
 
 from diff4splat.devices import Stopwatch, resolve_device  # noqa: E402
@@ -227,6 +228,7 @@ GENERATE = [  # (label, config, frames, dtype, offload, prompt, attention, compi
 """The rows, in the order they run: the rows of one model together (a paper model is built, and pinned by the
 offload, once per key of :func:`part_generate`), the compiled one last (it changes its model's blocks in place)."""
 STAGES = ("encode_image", "encode_text", "sample", "reconstruct", "prune", "render")
+HEADER = ["model", "run", "Gaussians", *STAGES, "total s", "peak GB", "peak in", "warm-up s", "measured"]
 
 
 def build_model(config: str, dtype: torch.dtype, device: torch.device, quick: bool):
@@ -256,13 +258,15 @@ def run_generate(pipe: Diff4SplatPipeline, frames: int | None, prompt: str, step
 
 
 def part_generate(device: torch.device, quick: bool, emit: Callable[[str], None] | None = None,
-                  only: list[int] | None = None) -> str:
+                  only: list[int] | None = None, previous: str | None = None) -> str:
     """The ``generate`` table; ``emit`` (e.g. writing docs/benchmarks.md) gets the table so far after every row, so
     rows already measured survive a command stopped at its time limit. A row that fails (out of memory, a
     ``torch.compile`` error) is recorded with its error and the next row runs. ``only``: the 1-based numbers of
-    the rows of :data:`GENERATE` to run (default all), in their order there."""
+    the rows of :data:`GENERATE` to run (default all), in their order there. ``previous``: the section's body as
+    it was (docs/benchmarks.md); its rows from this device that are not run now stay (:func:`earlier_rows`)."""
     selected = [r for i, r in enumerate(GENERATE, 1) if only is None or i in only]
-    rows, verdicts = [], []
+    kept = earlier_rows(previous, device_name(device), {r[0] for r in selected})
+    rows: dict[str, list[str]] = {}
     models: dict[tuple, object] = {}
     for label, config, frames, dtype, offload, prompt, attention, compile in selected:
         key = (config, dtype, compile)  # compiling changes the model's blocks in place: a model of its own
@@ -283,42 +287,91 @@ def part_generate(device: torch.device, quick: bool, emit: Callable[[str], None]
             t = run_generate(pipe, 5 if quick else frames, prompt, 2 if quick else None)
         except Exception as e:  # noqa: BLE001 - a benchmark row: record what failed, measure the next
             kind = "out of memory" if isinstance(e, torch.OutOfMemoryError) else type(e).__name__
-            rows.append([label, f"{kind}: " + (str(e).splitlines() or [""])[0][:80]] + [""] * (len(STAGES) + 5))
-            print(rows[-1], flush=True)
+            rows[label] = ([label, f"{kind}: " + (str(e).splitlines() or [""])[0][:80]]
+                           + [""] * (len(HEADER) - 3) + [measured_now()])
+            print(rows[label], flush=True)
             pipe = model = None  # noqa: F841 - drop every reference before freeing the caches
             models.clear()
             free_memory(device)
             reset_peak(device)
             continue
         total = sum(t[s] for s in STAGES)
-        peak = peak_gb(device)
-        rows.append([label, f"{t['size']}, {t['frames']} fr, {t['steps']} st", f"{t['gaussians']:,}"]
-                    + [f"{t[s]:.2f}" for s in STAGES] + [f"**{total:.2f}**", peak, t["peak_stage"], f"{warm:.1f}"])
-        print(rows[-1], flush=True)
-        if config == "paper" and offload == "model" and prompt and not quick:
-            verdicts.append(f"{label}: {total:.1f} s ({'meets' if total <= 30 else 'misses'} 30 s), peak {peak} GB "
-                            f"({'meets' if float(peak.split()[0]) <= 25 else 'misses'} 25 GB)"
-                            + (f", after a {warm:.1f} s warm-up that compiled (once per process)." if compile
-                               else "."))
+        rows[label] = ([label, f"{t['size']}, {t['frames']} fr, {t['steps']} st", f"{t['gaussians']:,}"]
+                       + [f"{t[s]:.2f}" for s in STAGES]
+                       + [f"**{total:.2f}**", peak_gb(device), t["peak_stage"], f"{warm:.1f}", measured_now()])
+        print(rows[label], flush=True)
         if emit is not None:
-            emit(_generate_table(device, rows, verdicts, selected))
+            emit(_generate_table(device, rows, kept, selected, quick))
     pipe = model = None  # noqa: F841
     models.clear()
     free_memory(device)
-    return _generate_table(device, rows, verdicts, selected)
+    return _generate_table(device, rows, kept, selected, quick)
 
 
-def _generate_table(device: torch.device, rows: list[list[str]], verdicts: list[str], selected: list[tuple]) -> str:
+def measured_now() -> str:
+    """The "measured" column: when a row ran, UTC to the minute (a table may keep rows of earlier runs)."""
+    return time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+
+
+def earlier_rows(previous: str | None, device_label: str, running: set[str]) -> dict[str, list[str]]:
+    """The rows of an earlier ``generate`` table that a run of some rows (``--rows``) keeps: those of ``previous``
+    (the section's body in docs/benchmarks.md) whose label is a row of :data:`GENERATE` not in ``running``, when
+    that table ran on the same device and software (its "Device:" text is ``device_label``); a table of another
+    device gives none, its figures do not compare. Each row is mapped by column name onto :data:`HEADER`; a column
+    the earlier table lacked holds "—". Returns ``{label: cells}``."""
+    if not previous or f"Device: {device_label}.\n" not in previous:
+        return {}
+    lines = [line for line in previous.splitlines() if line.startswith("|")]
+    if len(lines) < 3:
+        return {}
+
+    def cells(line: str) -> list[str]:
+        return [c.strip() for c in line.strip().strip("|").split("|")]
+
+    header, labels = cells(lines[0]), {r[0] for r in GENERATE} - running
+    kept = {}
+    for line in lines[2:]:
+        row = dict(zip(header, cells(line), strict=False))
+        if row.get("model") in labels:
+            kept[row["model"]] = [row.get(h, "—") for h in HEADER]
+    return kept
+
+
+def _verdict(label: str, cells: list[str]) -> str | None:
+    """Whether a paper row with model offload and a prompt meets the goal (:data:`GOAL`); None for other rows
+    and failed ones."""
+    _, config, _, _, offload, prompt, _, compile = next(r for r in GENERATE if r[0] == label)
+    try:
+        total = float(cells[HEADER.index("total s")].strip("*"))
+        peak = float(cells[HEADER.index("peak GB")].split()[0])
+    except (ValueError, IndexError):
+        return None
+    if not (config == "paper" and offload == "model" and prompt):
+        return None
+    warm = cells[HEADER.index("warm-up s")]
+    return (f"{label}: {total:.1f} s ({'meets' if total <= 30 else 'misses'} 30 s), peak {peak:.2f} GB "
+            f"({'meets' if peak <= 25 else 'misses'} 25 GB)"
+            + (f", after a {warm} s warm-up that compiled (once per process)." if compile else "."))
+
+
+def _generate_table(device: torch.device, rows: dict[str, list[str]], kept: dict[str, list[str]],
+                    selected: list[tuple], quick: bool) -> str:
+    table = [(rows.get(r[0]) or kept[r[0]]) for r in GENERATE if r[0] in rows or r[0] in kept]
+    verdicts = [] if quick else [v for v in (_verdict(c[0], c) for c in table) if v]
     verdict = "".join(f"\n\n{v}" for v in ([f"Goal: {GOAL}."] + verdicts if verdicts else []))
-    if len(rows) < len(selected):
-        verdict += (f"\n\n{len(rows)} of {len(selected)} rows: the command stopped before the rest "
-                    f"({'; '.join(r[0] for r in selected[len(rows):])}).")
-    if len(selected) < len(GENERATE):
-        verdict += (f"\n\nRows not asked for in this run (`--rows`): "
-                    f"{'; '.join(r[0] for r in GENERATE if r not in selected)}.")
+    ran = [r for r in selected if r[0] in rows]
+    if len(ran) < len(selected):
+        verdict += (f"\n\n{len(ran)} of {len(selected)} rows: the command stopped before the rest "
+                    f"({'; '.join(r[0] for r in selected if r[0] not in rows)}).")
+    if kept:
+        verdict += (f"\n\nRows of an earlier run on this device, kept (\"measured\" says when): "
+                    f"{'; '.join(k for k in kept)}.")
+    missing = [r[0] for r in GENERATE if r not in selected and r[0] not in kept]
+    if missing:
+        verdict += f"\n\nRows not measured on this device (`--rows` left them out): {'; '.join(missing)}."
     return (f"### `generate` on the GPU per stage, seconds, with peak memory\n\n"
             f"`python benchmarks/gpu.py --part generate --write`; one run after a one-step warm-up (its wall time "
-            f"is the last column: model moves, kernel loads and, for \"compiled blocks\", `torch.compile` of one "
+            f"is the warm-up column: model moves, kernel loads and, for \"compiled blocks\", `torch.compile` of one "
             f"transformer block, `--compile`), stages "
             f"synchronised; \"peak in\" is the stage that set the peak (`GenerationResult.high_water`). The paper "
             f"model holds random weights built in bfloat16 on the GPU (no download); "
@@ -326,9 +379,10 @@ def _generate_table(device: torch.device, rows: list[list[str]], verdicts: list[
             f"(diff4splat/offload.py), so its `sample` includes copying the DiT there; \"model-prefetch\" copies "
             f"the DiT block by block on a side stream while its first step runs; \"cuDNN attention\" runs "
             f"`--attention cudnn` (cuDNN's fused attention tried first; torch tries FlashAttention-2 first). Peak = "
-            f"`torch.cuda.max_memory_allocated` over the run, GB = 10⁹ bytes. Device: {device_name(device)}.\n\n"
-            + markdown_table(["model", "run", "Gaussians", *STAGES, "total s", "peak GB", "peak in", "warm-up s"],
-                             rows) + verdict)
+            f"`torch.cuda.max_memory_allocated` over the run, GB = 10⁹ bytes. A run of some rows (`--rows`) keeps "
+            f"the other rows of this table where they ran on the same device and software. "
+            f"Device: {device_name(device)}.\n\n"
+            + markdown_table(HEADER, table) + verdict)
 
 
 # -------------------------------------------------------------------------------------------------- command
@@ -467,7 +521,7 @@ def main() -> int:
     t0 = time.perf_counter()
     emit = (lambda body: write_section(f"gpu_{args.part}", body)) if args.write else None
     if args.part == "generate":
-        body = part_generate(device, args.quick, emit, only)
+        body = part_generate(device, args.quick, emit, only, read_section("gpu_generate") if args.write else None)
     else:
         body = {"render": part_render, "block": part_block, "command": part_command,
                 "train": part_train}[args.part](device, args.quick)

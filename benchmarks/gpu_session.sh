@@ -11,28 +11,30 @@
 # 'a+b' is for steps whose figures do not matter to the other: the suite beside the paper command (its wall time
 # then shares the 16 cores with the suite's processes: say so where it is reported), never beside generate.
 #
-# A session has 15 minutes of device time, its machine's start included: two calls. Next (docs/CONTRIBUTING.md,
-# "On a lent GPU"): `suite` alone under the default 570 s (~7 min with set-up), which shows that everything runs on
-# CUDA, then `command amx` (~3 min: the command first, a done-when item), then what is left on
-# `GPU_GENERATE_ROWS=8 generate` (the compiled row on an H100). Each step runs under what is left of
+# A session has 15 minutes of device time, its machine's start included: two calls. On 2026-11-26 (an H100, main
+# at c5ca12e) `suite` alone (~6 min with set-up) and then `command amx generate` with GPU_GENERATE_ROWS=8 (~5 min)
+# used 789 s. Next (docs/CONTRIBUTING.md, "On a lent GPU"): `gt-data gt-train`, then `gt-eval` at once; then the
+# generate rows not yet run at this main. Each step runs under what is left of
 # GPU_SESSION_SECONDS (then SIGINT: pytest prints its summary, gpu.py keeps the rows it wrote), so $OUT gets the
 # logs and docs/benchmarks.md whatever happens.
 #
 # Steps, in the order of what only a GPU can show (minutes on one H100; measured there on 2026-11-26 where a
-# figure says so; set-up before the first step: 82 s on a fresh H100, gsplat's extension 76 s of it):
+# figure says so; set-up before the first step: 82 s on a fresh H100, gsplat's extension 69-76 s of it):
 #   suite      python -m pytest, the whole suite with CUDA, in 8 processes (pytest-xdist, on the GPU image;
 #              without it, serially, which ran past a 10-minute command before: 95 % in 500 s), the 30 slowest
-#              tests listed (~6: 96-99 % in 327 s on an H100 alone, stopped by a 335 s limit)
+#              tests listed (~5: 2290 passed in 268 s on an H100 alone)
 #   command    benchmarks/gpu.py --part command --write: the README's paper-size command end to end, as a user
 #              runs it (the random paper model initialised on the GPU since main after c895c0f; on the CPU's
-#              one serial random-number stream it took minutes, and the command ran past 163 s on an H100; the
-#              checks, writing ~3 GB) (~2, estimated)
+#              one serial random-number stream it took minutes, and the command ran past 163 s on an H100)
+#              (~2: 98 s on an H100, the command 89 s of it)
 #   block      benchmarks/gpu.py --part block --write: one paper-size DiT block, op by op against ours, eager and
 #              compiled: what the eager step's fewer passes over its tokens buy, on this card (32 s on an H100)
 #   generate   benchmarks/gpu.py --part generate --write: the paper-size rows, goal <= 30 s and <= 25 GB; the
-#              table is written after every row (rows 1,3: 104 s on an H100; rows 1,2,3,6,8: 215 s on an H200)
+#              table is written after every row, the rows not run kept where the device is the same (rows 1,3:
+#              104 s on an H100; row 8: 99 s; rows 1,2,3,6,8: 215 s on an H200)
 #   amx        benchmarks/amx_nan_check.py: the host CPU's bf16 matmul with Intel AMX and without it (oneDNN#5717),
-#              and the bf16 Wan backbone test that failed on the Xeon hosts (a CPU test), twice under each (~1)
+#              and the bf16 Wan backbone test that failed on the Xeon hosts (a CPU test), twice under each
+#              (~2: 91 s on an H100's host)
 #   cuda       python -m pytest -m cuda: only the CUDA cases, gsplat parity and the real_gpu ones included (~2)
 #   suite-1    python -m pytest on the first half of the test files (test_a… to test_pi…), serially (~5)
 #   suite-2    the second half (test_pr… to test_w…): the two halves are the whole suite

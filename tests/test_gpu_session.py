@@ -1,6 +1,7 @@
 """benchmarks/gpu_session.sh, the GPU session's runbook: every step names a command that exists here with the flags
 it passes (a renamed part or flag would otherwise first fail on a lent GPU, whose minutes are few), and a bad step
 is one line, exit 2."""
+import importlib.util
 import os
 import re
 import shlex
@@ -74,7 +75,8 @@ def test_steps_at_once_and_generate_rows():
     assert one.returncode == 0, one.stderr
     rows = [line for line in one.stdout.splitlines() if line.startswith("| ") and "**" in line]
     assert len(rows) == 1 and rows[0].startswith("| small (random) |")
-    assert "Rows not asked for in this run (`--rows`): base (shipped weights); paper, bf16" in one.stdout
+    assert ("Rows not measured on this device (`--rows` left them out): base (shipped weights); paper, bf16"
+            in one.stdout)
 
 
 def test_an_unknown_or_missing_step_is_one_line_exit_2():
@@ -112,3 +114,58 @@ def test_the_amx_check_runs_its_matmul_case_under_both_instruction_sets():
     for line, isa in zip(lines[1:], ("DEFAULT", "AVX512_CORE_BF16"), strict=True):
         assert re.fullmatch(rf"ONEDNN_MAX_CPU_ISA={isa} matmul: bmm: (clean|NaN leaked into a clean row) "
                             r"mm: (clean|NaN leaked into a clean row)", line), line
+
+
+@pytest.fixture(scope="module")
+def gpu_benchmark():
+    """benchmarks/gpu.py as a module (it puts benchmarks/ on sys.path for its own imports)."""
+    spec = importlib.util.spec_from_file_location("gpu_benchmark", ROOT / "benchmarks" / "gpu.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _row(gpu, label: str, total: str, peak: str, measured: str) -> list[str]:
+    row = [label, "512², 49 fr, 50 st", "1,310,919", *["0.10"] * len(gpu.STAGES), f"**{total}**", peak, "sample",
+           "4.1", measured]
+    assert len(row) == len(gpu.HEADER)
+    return row
+
+
+def test_a_run_of_some_generate_rows_keeps_the_others_of_the_same_device(gpu_benchmark, monkeypatch, tmp_path):
+    """``gpu.py --part generate --rows N --write`` keeps the table's other rows where the earlier table ran on the
+    same device and software (its "Device:" text), in GENERATE's order, each with when it ran; an earlier table
+    from another device gives none; a table written before the "measured" column maps by column name (—); the
+    goal's verdicts are recomputed from every row kept or run."""
+    gpu = gpu_benchmark
+    eager, prefetch = (r[0] for r in gpu.GENERATE[2:4])
+    compiled = gpu.GENERATE[7][0]
+    monkeypatch.setattr(gpu, "device_name", lambda device: "GPU A, torch x")
+    earlier = gpu._generate_table(None, {eager: _row(gpu, eager, "31.45", "24.95", "2026-11-25 10:00 UTC"),
+                                         compiled: _row(gpu, compiled, "27.63", "24.82", "2026-11-25 10:05 UTC")},
+                                  {}, [r for r in gpu.GENERATE if r[0] in (eager, compiled)], quick=False)
+    path = tmp_path / "benchmarks.md"
+    gpu.write_section("gpu_generate", earlier, path)  # benchmarks/_common.py's, as gpu.py imports them
+    previous = gpu.read_section("gpu_generate", path)
+    assert previous == earlier.strip()
+
+    kept = gpu.earlier_rows(previous, "GPU A, torch x", {compiled})
+    assert list(kept) == [eager] and kept[eager][-1] == "2026-11-25 10:00 UTC" and kept[eager][9] == "**31.45**"
+    assert gpu.earlier_rows(previous, "GPU B, torch x", {compiled}) == {}
+    assert gpu.earlier_rows(None, "GPU A, torch x", set()) == {}
+
+    fresh = {prefetch: _row(gpu, prefetch, "28.10", "24.90", "2026-11-26 19:00 UTC"),
+             compiled: _row(gpu, compiled, "26.38", "24.85", "2026-11-26 19:05 UTC")}
+    merged = gpu._generate_table(None, fresh, kept, [r for r in gpu.GENERATE if r[0] in fresh], quick=False)
+    lines = [line for line in merged.splitlines() if line.startswith("| ") and "**" in line]
+    assert [line.split(" | ")[0][2:] for line in lines] == [eager, prefetch, compiled]  # GENERATE's order
+    assert "2026-11-25 10:00 UTC" in lines[0] and "26.38" in lines[2] and "27.63" not in merged
+    assert f"{eager}: 31.4 s (misses 30 s), peak 24.95 GB (meets 25 GB)." in merged
+    assert f"{compiled}: 26.4 s (meets 30 s), peak 24.85 GB (meets 25 GB), after a 4.1 s warm-up" in merged
+    assert f"kept (\"measured\" says when): {eager}." in merged
+    assert "Rows not measured on this device (`--rows` left them out): base (shipped weights); small" in merged
+
+    old = previous.replace(" | measured |", " |").replace("|---:|---:|\n", "|---:|\n", 1)
+    old = re.sub(r" \| 2026-11-25 10:0\d UTC \|", " |", old)
+    assert "measured" not in old.split("\n\n")[2]
+    assert gpu.earlier_rows(old, "GPU A, torch x", set())[compiled][-1] == "—"
