@@ -8,8 +8,11 @@ A known oneDNN bug may fit: issue uxlfoundation/oneDNN#5717 (fixed by PR #5723, 
 kernel (``brg_matmul:avx10_1_512_amx``) reads past a row's K columns into the next row when K > 32 and K % 32 != 0,
 and a NaN there reaches a row that holds none. This script tells the causes apart on such a machine:
 
-- ``matmul``: the issue's case. A (16, 32, 33) @ (16, 33, 64) bmm and a (64, 33) @ (33, 64) mm in bfloat16, row 0
-  of each matrix finite and every other row NaN. Row 0 of the product must be finite.
+- ``matmul``: the issue's case (:func:`diff4splat.devices.bf16_nan_leaks`, which warns trainers and runtimes that
+  compute in bfloat16 on such a CPU). A (16, 32, 33) @ (16, 33, 64) bmm and a (64, 33) @ (33, 64) mm in bfloat16,
+  row 0 of each matrix finite and every other row NaN. Row 0 of the product must be finite. Then the same with
+  ``torch.backends.mkldnn`` switched off in the process (torch's own kernels), a remedy that needs no
+  environment variable if it holds there.
 - ``trace``: the test's two training steps, ``--repeats`` times, with a forward hook on every module: the first
   (deepest) module whose output is non-finite, and whether its inputs were finite.
 
@@ -33,25 +36,12 @@ from pathlib import Path
 
 import torch
 
+from diff4splat.devices import bf16_nan_leaks
 from training.trainer import NonFiniteLossError
 
 ROOT = Path(__file__).resolve().parent.parent
 ISAS = ("DEFAULT", "AVX512_CORE_BF16")
 """oneDNN's instruction sets to compare: whatever this CPU has, and AVX-512 with bf16 but no AMX."""
-
-
-def leaked_rows() -> dict[str, bool]:
-    """Whether row 0 of a bfloat16 product came out non-finite although row 0 of its left factor is finite
-    (oneDNN#5717's case: K = 33, every other row NaN), for ``bmm`` and ``mm``; True means a leak."""
-    g = torch.Generator().manual_seed(0)
-    a = torch.full((16, 32, 33), float("nan"), dtype=torch.bfloat16)
-    a[:, 0] = torch.randn(16, 33, generator=g).to(torch.bfloat16)
-    b = torch.randn(16, 33, 64, generator=g).to(torch.bfloat16)
-    m = torch.full((64, 33), float("nan"), dtype=torch.bfloat16)
-    m[0] = torch.randn(33, generator=g).to(torch.bfloat16)
-    w = torch.randn(33, 64, generator=g).to(torch.bfloat16)
-    return {"bmm": not bool(torch.isfinite(torch.bmm(a, b)[:, 0]).all()),
-            "mm": not bool(torch.isfinite(m @ w)[0].all())}
 
 
 def host() -> str:
@@ -113,7 +103,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--child", choices=("matmul", "trace"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child == "matmul":
-        print(" ".join(f"{k}: {'NaN leaked into a clean row' if v else 'clean'}" for k, v in leaked_rows().items()))
+        def says(leaks: dict[str, bool]) -> str:
+            return " ".join(f"{k}: {'NaN leaked into a clean row' if v else 'clean'}" for k, v in leaks.items())
+
+        with torch.backends.mkldnn.flags(enabled=False):  # torch's own bfloat16 kernels, oneDNN bypassed
+            without = bf16_nan_leaks()
+        print(f"{says(bf16_nan_leaks())}; without oneDNN (torch.backends.mkldnn off): {says(without)}")
         return 0
     if args.child == "trace":
         print(traced_training())

@@ -175,3 +175,49 @@ def host_values(x: torch.Tensor) -> torch.Tensor:
     """
     x = x.detach().cpu()
     return x.float() if x.dtype == torch.bfloat16 else x
+
+
+ONEDNN_NAN_LEAK = "uxlfoundation/oneDNN#5717"
+"""The oneDNN bug :func:`bf16_nan_leaks` looks for (fixed by oneDNN PR #5723, 2026-07-31)."""
+
+
+def bf16_nan_leaks(mm: Callable = torch.mm, bmm: Callable = torch.bmm) -> dict[str, bool]:
+    """Whether this CPU's bfloat16 matmuls let NaN from other rows into a row that holds none: oneDNN's Intel AMX
+    kernel (:data:`ONEDNN_NAN_LEAK`) reads past a row's K columns when K > 32 and K % 32 != 0. The bug's own case:
+    a (16, 32, 33) @ (16, 33, 64) ``bmm`` and a (64, 33) @ (33, 64) ``mm``, row 0 of each left factor finite and
+    every other row NaN; row 0 of each product must come out finite.
+
+    Measured: both leak on an Intel Xeon host with AMX (torch 2.11.0, oneDNN v3.10.2) under oneDNN's default
+    instructions, and neither with ``ONEDNN_MAX_CPU_ISA=AVX512_CORE_BF16`` (benchmarks/amx_nan_check.py); neither
+    on the AMD EPYC machines here.
+
+    Args:
+        mm, bmm: the products to check (torch's by default; tests pass others).
+
+    Returns:
+        ``{"bmm": leaked, "mm": leaked}``.
+    """
+    cpu, bf16, nan = torch.device("cpu"), torch.bfloat16, float("nan")  # the CPU's kernels are what is checked
+    g = torch.Generator().manual_seed(0)
+    a = torch.full((16, 32, 33), nan, dtype=bf16, device=cpu)
+    a[:, 0] = torch.randn(16, 33, generator=g, device=cpu).to(bf16)
+    b = torch.randn(16, 33, 64, generator=g, device=cpu).to(bf16)
+    m = torch.full((64, 33), nan, dtype=bf16, device=cpu)
+    m[0] = torch.randn(33, generator=g, device=cpu).to(bf16)
+    w = torch.randn(33, 64, generator=g, device=cpu).to(bf16)
+    return {"bmm": not bool(torch.isfinite(bmm(a, b)[:, 0]).all()),
+            "mm": not bool(torch.isfinite(mm(m, w)[0]).all())}
+
+
+@functools.cache
+def cpu_bf16_warning() -> str | None:
+    """What to tell someone who computes in bfloat16 on this CPU, or None: a message when :func:`bf16_nan_leaks`
+    finds the leak here (checked once per process, two small matmuls). The bfloat16 Wan backbone test, which
+    trains on the CPU, had a NaN loss in the test suite on two such Xeon hosts and passed on a third; whether the
+    leak caused it is not established."""
+    leaks = [k for k, v in bf16_nan_leaks().items() if v]
+    if not leaks:
+        return None
+    return (f"this CPU's bfloat16 {'/'.join(leaks)} lets NaN from one row into others (Intel AMX, "
+            f"{ONEDNN_NAN_LEAK}): bfloat16 losses or outputs may turn NaN here; set "
+            f"ONEDNN_MAX_CPU_ISA=AVX512_CORE_BF16 before starting Python, or compute in float32")

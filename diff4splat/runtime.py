@@ -5,6 +5,7 @@ PyTorch networks — our :class:`models.bundle.Diff4SplatModel` or a pretrained 
 """
 from __future__ import annotations
 
+import warnings
 from contextlib import contextmanager, nullcontext
 from dataclasses import fields
 from typing import Protocol, runtime_checkable
@@ -19,6 +20,7 @@ from models.bundle import Diff4SplatConfig, Diff4SplatModel
 from models.dit import VideoDiT
 from models.ldrm import LDRMOutput
 
+from .devices import cpu_bf16_warning
 from .offload import ModelOffload, weight_bytes
 
 __all__ = ["NetworkRuntime", "TorchRuntime", "OFFLOAD_MODES", "check_offload", "DTYPES", "FF_CHUNK_TOKENS",
@@ -170,6 +172,8 @@ class TorchRuntime:
         if dtype is not None and dtype not in DTYPES.values():
             raise ValueError(f"dtype must be one of {sorted(DTYPES)} (torch dtypes), got {dtype!r}")
         self.device = torch.device(device)
+        if self.device.type == "cpu" and dtype == torch.bfloat16 and cpu_bf16_warning():
+            warnings.warn(cpu_bf16_warning(), stacklevel=2)
         self.model = model.eval() if dtype is None else model.to(dtype).eval()
         self.config = model.config
         self.backbone = model.backbone

@@ -35,6 +35,7 @@ from data_prep.clips import ClipConfig, ClipDataset  # noqa: E402
 from data_prep.synth import generate_scene  # noqa: E402
 from diff4splat.cameras import pack_plucker, plucker_rays  # noqa: E402
 from diff4splat.cli import main as cli_main  # noqa: E402
+from diff4splat.devices import cpu_bf16_warning  # noqa: E402
 from models.backbones.model import BackboneModel, BackboneModelConfig  # noqa: E402
 from models.ldrm import LDRM, LDRMConfig  # noqa: E402
 from training.backbone_training import add_lora, load_backbone_model, lora_layers, merged_lora  # noqa: E402
@@ -206,7 +207,8 @@ def test_a_bfloat16_backbone_trains_float32_weights(data, tmp_path):
     assert float(saved.backbone.camera_conv.camera_weight.detach().abs().max()) > 0
     assert trainer.bf16 and trainer.fit()["step"] == 2
     rows = _metrics(tmp_path / "run")  # every loss term of every step, skipped ones included, in the message
-    assert all(math.isfinite(float(r["loss"])) for r in rows), rows
+    # on a CPU whose bfloat16 matmul leaks NaN across rows (oneDNN#5717) the message says so
+    assert all(math.isfinite(float(r["loss"])) for r in rows), (rows, cpu_bf16_warning())
 
 
 @pytest.mark.slow

@@ -51,6 +51,7 @@ import os
 import signal
 import sys
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -71,7 +72,7 @@ from torch.distributed.tensor import distribute_tensor
 from torch.utils.data import DataLoader, Dataset, DistributedSampler
 from tqdm.auto import tqdm
 
-from diff4splat.devices import AUTO
+from diff4splat.devices import AUTO, cpu_bf16_warning
 from diff4splat.io.atomic import atomic_output_path
 
 from .checkpoint import latest_checkpoint, load_checkpoint, rng_state, save_checkpoint, set_rng_state
@@ -231,6 +232,8 @@ class Trainer:
         self.device = (training_device(config.device, "trainer.device") if device is None
                        else training_device(device, "device"))
         self.bf16 = resolve_bf16(config.bf16, self.device)
+        if self.bf16 and self.device.type == "cpu" and cpu_bf16_warning():
+            warnings.warn(cpu_bf16_warning(), stacklevel=2)
         if self.device.type == "cuda":  # before the process group and the model: NCCL and FSDP use this GPU
             torch.cuda.set_device(self.device)
             torch.backends.cuda.matmul.allow_tf32 = config.tf32
