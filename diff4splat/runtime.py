@@ -158,6 +158,10 @@ class TorchRuntime:
 
     Raises:
         ValueError: an unknown ``offload`` or ``attention``, or a non-floating ``dtype``.
+
+    Warns:
+        UserWarning: bfloat16 on a CPU whose bfloat16 matmul leaks NaN across rows
+            (:func:`diff4splat.devices.cpu_bf16_warning`).
     """
 
     name = "torch"

@@ -219,6 +219,10 @@ class Trainer:
         ValueError: an unusable device (naming ``device`` or ``trainer.device``), a dataset smaller than one batch
             per process, a model with no trainable parameter, or ``gradient_checkpointing`` for a model without a
             module that supports it.
+
+    Warns:
+        UserWarning: bf16 on a CPU whose bfloat16 matmul leaks NaN across rows
+            (:func:`diff4splat.devices.cpu_bf16_warning`).
     """
 
     def __init__(self, model: nn.Module, dataset: Dataset, step_fn: StepFn, config: TrainerConfig,
