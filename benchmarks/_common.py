@@ -137,17 +137,33 @@ def markdown_table(header: list[str], rows: list[list]) -> str:
     return "\n".join(lines)
 
 
+def markdown_rows(text: str) -> list[dict[str, str]]:
+    """The rows of the first table in ``text`` (as :func:`markdown_table` writes it), each ``{column: cell}``
+    with the cells stripped; [] where there is no table."""
+    lines = [line for line in text.splitlines() if line.startswith("|")]
+
+    def cells(line: str) -> list[str]:
+        return [c.strip() for c in line.strip().strip("|").split("|")]
+
+    header = cells(lines[0]) if lines else []
+    return [dict(zip(header, cells(line), strict=False)) for line in lines[2:]]
+
+
+def _markers(name: str) -> tuple[str, str]:
+    return f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
+
+
 def read_section(name: str, path: Path = BENCHMARKS_MD) -> str | None:
     """The body of the section ``name`` (:func:`write_section`), or None where there is none."""
+    begin, end = _markers(name)
     text = path.read_text() if path.exists() else ""
-    found = re.search(re.escape(f"<!-- {name}:begin -->") + r"\n(.*?)\n" + re.escape(f"<!-- {name}:end -->"), text,
-                      flags=re.S)
+    found = re.search(re.escape(begin) + r"\n(.*?)\n" + re.escape(end), text, flags=re.S)
     return found.group(1) if found else None
 
 
 def write_section(name: str, body: str, path: Path = BENCHMARKS_MD) -> None:
     """Replace (or append) the section between ``<!-- name:begin -->`` and ``<!-- name:end -->``."""
-    begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
+    begin, end = _markers(name)
     block = f"{begin}\n{body.strip()}\n{end}"
     text = path.read_text() if path.exists() else "# Benchmarks\n"
     if begin in text:

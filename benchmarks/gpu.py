@@ -49,7 +49,15 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine, markdown_table, peak_rss_mb, read_section, run_with_peak_memory, write_section  # noqa: E402
+from _common import (  # noqa: E402
+    machine,
+    markdown_rows,
+    markdown_table,
+    peak_rss_mb,
+    read_section,
+    run_with_peak_memory,
+    write_section,
+)
 from render_speed import ldrm_scene  # noqa: E402
 
 from diff4splat.devices import Stopwatch, resolve_device  # noqa: E402
@@ -321,20 +329,9 @@ def earlier_rows(previous: str | None, device_label: str, running: set[str]) -> 
     the earlier table lacked holds "—". Returns ``{label: cells}``."""
     if not previous or f"Device: {device_label}.\n" not in previous:
         return {}
-    lines = [line for line in previous.splitlines() if line.startswith("|")]
-    if len(lines) < 3:
-        return {}
-
-    def cells(line: str) -> list[str]:
-        return [c.strip() for c in line.strip().strip("|").split("|")]
-
-    header, labels = cells(lines[0]), {r[0] for r in GENERATE} - running
-    kept = {}
-    for line in lines[2:]:
-        row = dict(zip(header, cells(line), strict=False))
-        if row.get("model") in labels:
-            kept[row["model"]] = [row.get(h, "—") for h in HEADER]
-    return kept
+    labels = {r[0] for r in GENERATE} - running
+    return {row["model"]: [row.get(h, "—") for h in HEADER] for row in markdown_rows(previous)
+            if row.get("model") in labels}
 
 
 def _verdict(label: str, cells: list[str]) -> str | None:
@@ -365,7 +362,7 @@ def _generate_table(device: torch.device, rows: dict[str, list[str]], kept: dict
                     f"({'; '.join(r[0] for r in selected if r[0] not in rows)}).")
     if kept:
         verdict += (f"\n\nRows of an earlier run on this device, kept (\"measured\" says when): "
-                    f"{'; '.join(k for k in kept)}.")
+                    f"{'; '.join(kept)}.")
     missing = [r[0] for r in GENERATE if r not in selected and r[0] not in kept]
     if missing:
         verdict += f"\n\nRows not measured on this device (`--rows` left them out): {'; '.join(missing)}."

@@ -176,8 +176,8 @@ class TorchRuntime:
         if dtype is not None and dtype not in DTYPES.values():
             raise ValueError(f"dtype must be one of {sorted(DTYPES)} (torch dtypes), got {dtype!r}")
         self.device = torch.device(device)
-        if self.device.type == "cpu" and dtype == torch.bfloat16 and cpu_bf16_warning():
-            warnings.warn(cpu_bf16_warning(), stacklevel=2)
+        if self.device.type == "cpu" and dtype == torch.bfloat16 and (message := cpu_bf16_warning()):
+            warnings.warn(message, stacklevel=2)
         self.model = model.eval() if dtype is None else model.to(dtype).eval()
         self.config = model.config
         self.backbone = model.backbone

@@ -236,8 +236,8 @@ class Trainer:
         self.device = (training_device(config.device, "trainer.device") if device is None
                        else training_device(device, "device"))
         self.bf16 = resolve_bf16(config.bf16, self.device)
-        if self.bf16 and self.device.type == "cpu" and cpu_bf16_warning():
-            warnings.warn(cpu_bf16_warning(), stacklevel=2)
+        if self.bf16 and self.device.type == "cpu" and (message := cpu_bf16_warning()):
+            warnings.warn(message, stacklevel=2)
         if self.device.type == "cuda":  # before the process group and the model: NCCL and FSDP use this GPU
             torch.cuda.set_device(self.device)
             torch.backends.cuda.matmul.allow_tf32 = config.tf32
