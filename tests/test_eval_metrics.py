@@ -211,6 +211,15 @@ def test_motion_errors_on_hand_computed_tracks():
     # displacement pairs (t ≥ 1, visible at 0 and t): (0,1), (0,2), (1,2)
     assert m["motion_disp_epe"] == pytest.approx((0.5 + 1.0 + 1.0) / 3)
     assert m["motion_disp_hold"] == pytest.approx((1.0 + 2.0 + 2.0) / 3)
+    assert m["motion_disp_d5"] == m["motion_disp_d10"] == 0.0  # errors 0.5, 1, 1 m
+    assert m["motion_disp_hold_d10"] == 0.0
+    exact = motion_errors(tracks + 0.07 * z, tracks, mask)  # right displacements, a wrong depth: every pair within 5 cm
+    assert exact["motion_disp_d5"] == exact["motion_disp_d10"] == 1.0 and exact["motion_disp_epe"] < 1e-6
+    off = tracks.clone()
+    off[1:, 1:] += 0.07 * z  # track 0's pairs exact; tracks 1 and 2 are 0.07 m off at t ≥ 1: within 10 cm, not 5
+    near = motion_errors(off, tracks, torch.ones(3, 3, dtype=torch.bool))
+    assert near["motion_disp_d5"] == pytest.approx(2 / 6) and near["motion_disp_d10"] == 1.0
+    assert near["motion_disp_hold_d5"] == pytest.approx(2 / 6)  # track 2 never moves
     # absolute EPE over the 7 masked pairs: track 0: √(0.25+0.25), √(0.25+1), track 1: 0, 1; track 2: 1, 0
     t0 = [0.5, math.sqrt(0.25 + 0.25), math.sqrt(0.25 + 1.0)]
     assert m["motion_epe"] == pytest.approx((sum(t0) + 0 + 1 + 1 + 0) / 7)

@@ -17,7 +17,7 @@ from diff4splat.cameras import unproject_depth
 __all__ = ["PSNR_CAP", "ANGLE_BINS", "psnr_from_mse", "image_psnr", "image_ssim", "thumbnail", "pearson",
            "depth_errors", "frame_mse", "view_angles", "angle_bin", "binned_psnr", "repeat_baselines", "motion_errors",
            "kept_index_map", "ablation_noise", "BLUR_SIGMA", "BLUR_KERNEL", "covisible_mask", "masked_psnr",
-           "blockiness", "BOOTSTRAP_DRAWS", "BOOTSTRAP_INTERVAL", "gap_intervals"]
+           "blockiness", "BOOTSTRAP_DRAWS", "BOOTSTRAP_INTERVAL", "gap_intervals", "DELTA_THRESHOLDS_M"]
 
 PSNR_CAP = 100.0
 """PSNR of identical images (MSE 0) is reported as this many dB instead of infinity."""
@@ -164,6 +164,8 @@ def binned_psnr(mse: Tensor, angles: Tensor) -> dict[str, tuple[float, int]]:
     return out
 
 
+DELTA_THRESHOLDS_M = (0.05, 0.10)
+"""Displacement-error thresholds of :func:`motion_errors`' δ fractions, metres."""
 BOOTSTRAP_DRAWS = 2000
 """Resamplings of the clips in :func:`gap_intervals`."""
 BOOTSTRAP_INTERVAL = (0.05, 0.95)
@@ -281,7 +283,10 @@ def motion_errors(pred: Tensor, tracks: Tensor, mask: Tensor) -> dict[str, float
       at t: the error of the predicted *displacement*, free of the frame-0 depth error that dominates the
       absolute ``motion_epe`` (a point placed 0.3 m too deep that moves exactly right has EPE 0.3 m and
       displacement error 0);
-    - ``motion_disp_hold``: mean ‖p_t − p_0‖ over the same pairs: the displacement error of no motion.
+    - ``motion_disp_hold``: mean ‖p_t − p_0‖ over the same pairs: the displacement error of no motion;
+    - ``motion_disp_d5``, ``motion_disp_d10``: the fraction of those pairs whose displacement error is below
+      :data:`DELTA_THRESHOLDS_M` (5 cm, 10 cm; the 3D δ thresholds of TAPVid-3D's tracking accuracy, Koppula et al.
+      2024, at fixed distances); ``motion_disp_hold_d5``, ``motion_disp_hold_d10`` the same of holding still.
 
     A mean over no pairs is NaN.
 
@@ -290,7 +295,7 @@ def motion_errors(pred: Tensor, tracks: Tensor, mask: Tensor) -> dict[str, float
         mask: (N, T) bool, the pairs to score (visible and with a predicted point).
 
     Returns:
-        {key: value} for the five keys above.
+        {key: value} for the nine keys above.
 
     Raises:
         ValueError: ``pred`` and ``tracks`` not the same (N, T, 3) shape, or ``mask`` not (N, T).
@@ -306,10 +311,14 @@ def motion_errors(pred: Tensor, tracks: Tensor, mask: Tensor) -> dict[str, float
     err = (pred - tracks).norm(dim=-1)
     moved = mask[:, 1:] & mask[:, :1]
     true_disp = tracks[:, 1:] - tracks[:, :1]
+    disp_err = (pred[:, 1:] - pred[:, :1] - true_disp).norm(dim=-1)
     return {"motion_epe": mean(err, mask), "motion_epe_t0": mean(err[:, 0], mask[:, 0]),
             "motion_epe_hold": mean((pred[:, :1] - tracks).norm(dim=-1), mask),
-            "motion_disp_epe": mean((pred[:, 1:] - pred[:, :1] - true_disp).norm(dim=-1), moved),
-            "motion_disp_hold": mean(true_disp.norm(dim=-1), moved)}
+            "motion_disp_epe": mean(disp_err, moved),
+            "motion_disp_hold": mean(true_disp.norm(dim=-1), moved),
+            **{f"motion_disp_d{round(d * 100)}": mean((disp_err < d).double(), moved) for d in DELTA_THRESHOLDS_M},
+            **{f"motion_disp_hold_d{round(d * 100)}": mean((true_disp.norm(dim=-1) < d).double(), moved)
+               for d in DELTA_THRESHOLDS_M}}
 
 
 def kept_index_map(gaussian_index: Tensor, total: int) -> Tensor:

@@ -109,15 +109,17 @@ METRICS = ("psnr_input", "ssim_input", "psnr_novel", "ssim_novel", "depth_corr",
            "vae_psnr")
 """Reported metrics; higher is better except ``motion_epe`` (metres)."""
 
-DIAGNOSTICS = ("motion_epe_t0", "motion_epe_hold", "motion_disp_epe", "motion_disp_hold", "motion_epe_gt",
+DIAGNOSTICS = ("motion_epe_t0", "motion_epe_hold", "motion_disp_epe", "motion_disp_hold", "motion_disp_d5",
+               "motion_disp_d10", "motion_disp_hold_d5", "motion_disp_hold_d10", "motion_epe_gt",
                "motion_disp_epe_gt")
 """Reported beside the metrics to split ``motion_epe`` (metres, lower is better): ``motion_epe_t0`` is the
 error at frame 0 alone (geometry: where the scene puts the tracked points before anything moves), and
 ``motion_epe_hold`` the error of holding each point at its frame-0 position (no motion). The predicted motion
 helps where ``motion_epe`` < ``motion_epe_hold``; an identity deformation makes them equal. The absolute EPE
 is dominated by the frame-0 depth error; ``motion_disp_epe`` (error of the displacement from frame 0) against
-``motion_disp_hold`` (the true displacement, i.e. the error of no motion) isolates the motion.
-``motion_epe_gt``/``motion_disp_epe_gt``: the same for the scene generated from the true video's latents."""
+``motion_disp_hold`` (the true displacement, i.e. the error of no motion) isolates the motion, and
+``motion_disp_d5``/``motion_disp_d10`` (higher is better) are the fractions of displacements within 5 / 10 cm, beside
+``motion_disp_hold_d5``/``motion_disp_hold_d10`` of holding still. ``motion_epe_gt``/``motion_disp_epe_gt``: the same for the scene generated from the true video's latents."""
 
 DEPTH_DIAGNOSTICS = ("depth_abs_rel", "depth_scale")
 """Reported beside ``depth_corr`` on the same pixels (:func:`training.eval_metrics.depth_errors`): the mean

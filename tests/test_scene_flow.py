@@ -1,0 +1,130 @@
+"""Scene flow from optical flow and depth (diff4splat/scene_flow.py): DIS recovers a known translation, chained
+tracking follows it and loses what leaves the image, lifting gives the closed-form 3D motion and keeps a static
+scene still under a moving camera."""
+from pathlib import Path
+
+import pytest
+import torch
+
+from diff4splat.cameras import intrinsics_from_fov, look_at
+from diff4splat.io import load_image
+from diff4splat.scene_flow import lift_tracks, optical_flow, pixel_centres, sample_pixels, track_pixels
+
+TEXTURE = Path(__file__).resolve().parent.parent / "data_prep" / "textures" / "coins.png"
+
+
+def _window(image, top, left, size):  # (H, W, 3) → (3, size, size)
+    return image[top:top + size, left:left + size].permute(2, 0, 1)
+
+
+@pytest.fixture(scope="module")
+def texture():
+    return load_image(TEXTURE)
+
+
+def test_dis_flow_recovers_a_translation(texture, device):
+    # frame b is frame a's window moved by (−3, −2) in the texture: content moves (+3, +2) pixels
+    a = _window(texture, 40, 40, 64)[None].to(device)
+    b = _window(texture, 38, 37, 64)[None].to(device)
+    for up in (1, 4):
+        flow = optical_flow(a, b, upsample=up)
+        assert flow.shape == (1, 64, 64, 2) and flow.device == a.device
+        inner = flow[0, 8:-8, 8:-8].cpu()
+        err = (inner - torch.tensor([3.0, 2.0])).norm(dim=-1)
+        assert float(err.median()) < 0.25, (up, float(err.median()))
+
+
+def test_sample_pixels_is_exact_at_centres_and_bilinear_between(device):
+    maps = torch.arange(2 * 4 * 5 * 1, dtype=torch.float32, device=device).reshape(2, 4, 5, 1)
+    uv = pixel_centres(4, 5, maps)[None].expand(2, 4, 5, 2)
+    assert torch.equal(sample_pixels(maps, uv), maps)
+    mid = torch.tensor([[[1.0, 0.5]]], device=device).expand(2, 1, 2)  # halfway between columns 0 and 1 of row 0
+    assert torch.allclose(sample_pixels(maps, mid)[:, 0, 0], (maps[:, 0, 0, 0] + maps[:, 0, 1, 0]) / 2)
+
+
+def test_tracking_chains_small_steps_and_loses_pixels_that_leave(texture, device):
+    # content moves 2 pixels right per frame; a window-sized jump 0 → 4 (8 px) is chained from 2 px steps
+    frames = torch.stack([_window(texture, 60, 60 - 2 * t, 48) for t in range(5)]).to(device)
+    pos, ok = track_pixels(frames)
+    assert pos.shape == (5, 48, 48, 2) and ok.shape == (5, 48, 48) and pos.device == frames.device
+    centres = pixel_centres(48, 48, pos)
+    inner = (slice(8, -16), slice(8, -8))  # stays inside the image through frame 4
+    err = (pos[4][inner] - centres[inner] - torch.tensor([8.0, 0.0], device=device)).norm(dim=-1)
+    assert float(err.median()) < 0.5
+    assert bool(ok[4][inner].float().mean() > 0.9)
+    # the last columns leave the image: lost, and their positions are held, never outside the image
+    assert float(ok[4][:, -4:].float().mean()) < 0.2
+    assert float(pos[..., 0].max()) <= 48
+
+
+def _plane_setup(device, T=3):
+    K = intrinsics_from_fov(32, 32, fov_x_deg=60.0, dtype=torch.float64)
+    Ks = K[None].expand(T, 3, 3).to(device)
+    # cameras translating sideways and forward, looking down +z (frame 0 the identity)
+    eyes = torch.stack([torch.tensor([0.1 * t, 0.0, 0.05 * t], dtype=torch.float64) for t in range(T)])
+    viewmats = look_at(eyes, eyes + torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)).to(device)
+    return Ks, viewmats
+
+
+def _project(points, K, viewmat):  # (N, 3) world → (N, 2) pixels, (N,) z
+    cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]
+    uv = cam[:, :2] / cam[:, 2:] * K.diagonal()[:2] + K[:2, 2]
+    return uv, cam[:, 2]
+
+
+@pytest.mark.parametrize("motion", [(0.0, 0.0, 0.0), (0.12, -0.05, 0.0)])
+def test_lifting_gives_the_closed_form_motion_and_keeps_static_points_still(device, motion):
+    """A fronto-parallel plane at z = 3 m seen by a moving camera; ``motion`` moves the whole plane per frame.
+    Positions and depths are exact (the plane's own projections), so lifting must return the true points."""
+    T, H, W = 3, 32, 32
+    Ks, viewmats = _plane_setup(device, T)
+    uv0 = pixel_centres(H, W, Ks).reshape(-1, 2)
+    z0 = torch.full((H * W,), 3.0, dtype=torch.float64, device=device)
+    first = torch.cat([(uv0 - Ks[0, :2, 2]) / Ks[0].diagonal()[:2] * z0[:, None], z0[:, None]], dim=1)  # camera 0 = I
+    step = torch.tensor(motion, dtype=torch.float64, device=device)
+    positions, depths = [uv0.reshape(H, W, 2)], [z0.reshape(H, W)]
+    for t in range(1, T):
+        uv, z = _project(first + t * step, Ks[t], viewmats[t])
+        positions.append(uv.reshape(H, W, 2))
+        depths.append(torch.full((H, W), float(z[0]), dtype=torch.float64, device=device))  # fronto-parallel plane
+    tracked = torch.ones(T, H, W, dtype=torch.bool, device=device)
+    points, moving = lift_tracks(torch.stack(positions), tracked, torch.stack(depths), Ks, viewmats)
+    assert points.device == Ks.device
+    truth = torch.stack([first + t * step for t in range(T)]).reshape(T, H, W, 3)
+    assert torch.allclose(points, truth, atol=1e-6)
+    assert bool(moving[1:].all()) == bool(step.abs().sum() > 0) and not bool(moving[0].any())
+    # a lost track holds its last position
+    lost = tracked.clone()
+    lost[2] = False
+    held, _ = lift_tracks(torch.stack(positions), lost, torch.stack(depths), Ks, viewmats)
+    assert torch.allclose(held[2], held[1])
+
+
+def test_lifting_picks_the_neighbour_depth_consistent_with_the_point(device):
+    """A tracked pixel on an object's edge: its own pixel holds the wall's depth, a neighbour the object's. The point
+    (static, gate passed by a 3-pixel motion) is lifted at the object's depth, not 10 m away."""
+    T, H, W = 2, 16, 16
+    Ks, viewmats = _plane_setup(device, T)
+    viewmats = viewmats[:1].expand(T, 4, 4).contiguous()  # a still camera
+    positions = pixel_centres(H, W, Ks)[None].expand(T, H, W, 2).clone()
+    positions[1, 8, 8, 0] += 3.0
+    depths = torch.full((T, H, W), 2.0, dtype=torch.float64, device=device)
+    depths[1, 8, 11] = 10.0  # the wall shows at the pixel the point moved to; its left neighbour is the object
+    tracked = torch.ones(T, H, W, dtype=torch.bool, device=device)
+    points, moving = lift_tracks(positions, tracked, depths, Ks, viewmats)
+    assert bool(moving[1, 8, 8]) and int(moving[1].sum()) == 1
+    assert abs(float(points[1, 8, 8, 2]) - 2.0) < 1e-9
+
+
+def test_bad_inputs_are_refused(device):
+    frames = torch.rand(2, 3, 8, 8, device=device)
+    with pytest.raises(ValueError, match="preset"):
+        optical_flow(frames, frames, preset="slow")
+    with pytest.raises(ValueError, match="src and dst"):
+        optical_flow(frames, frames[:1])
+    with pytest.raises(ValueError, match="fb_tolerance"):
+        track_pixels(frames, fb_tolerance=0)
+    Ks, viewmats = _plane_setup(device, 2)
+    pos, ok = track_pixels(frames)
+    with pytest.raises(ValueError, match="finite and > 0"):
+        lift_tracks(pos, ok, torch.zeros(2, 8, 8, device=device), Ks, viewmats)
