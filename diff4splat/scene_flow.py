@@ -44,8 +44,9 @@ FLOW_UPSAMPLE = 4
 """Default factor by which frames are upsampled before DIS (module docstring, step 1)."""
 FB_TOLERANCE_PX = 0.5
 """Default forward-backward tolerance, pixels of the frames' grid (module docstring, step 2)."""
-GATE_PX = 1.0
-"""Default rigidity gate, pixels: a tracked pixel this close to its camera-motion-only position is static."""
+GATE_PX = 2.0
+"""Default rigidity gate, pixels: a tracked pixel this close to its camera-motion-only position is static
+(docs/benchmarks.md, "Scene flow from optical flow": 1 px let 2.6 mm of spurious motion into static clips)."""
 
 
 def _gray_uint8(frames: Tensor) -> np.ndarray:  # (P, 3, H, W) in [0, 1] → (P, H, W) uint8

@@ -119,7 +119,8 @@ helps where ``motion_epe`` < ``motion_epe_hold``; an identity deformation makes 
 is dominated by the frame-0 depth error; ``motion_disp_epe`` (error of the displacement from frame 0) against
 ``motion_disp_hold`` (the true displacement, i.e. the error of no motion) isolates the motion, and
 ``motion_disp_d5``/``motion_disp_d10`` (higher is better) are the fractions of displacements within 5 / 10 cm, beside
-``motion_disp_hold_d5``/``motion_disp_hold_d10`` of holding still. ``motion_epe_gt``/``motion_disp_epe_gt``: the same for the scene generated from the true video's latents."""
+``motion_disp_hold_d5``/``motion_disp_hold_d10`` of holding still. ``motion_epe_gt``/``motion_disp_epe_gt``: the
+same for the scene generated from the true video's latents."""
 
 DEPTH_DIAGNOSTICS = ("depth_abs_rel", "depth_scale")
 """Reported beside ``depth_corr`` on the same pixels (:func:`training.eval_metrics.depth_errors`): the mean
