@@ -81,7 +81,7 @@ def main() -> None:
     torch.set_num_threads(1)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        model, _ = load_model(args.checkpoint, None)
+        model, _ = load_model(args.checkpoint)
     vae = model.vae.to(device).eval()
     cfg = model.config
     clips = []

@@ -23,6 +23,8 @@ result is on the frames' device.
 """
 from __future__ import annotations
 
+from itertools import pairwise
+
 import cv2
 import numpy as np
 import torch
@@ -35,7 +37,7 @@ from .cameras import invert_rigid
 from .checks import check_positive_int
 
 __all__ = ["DIS_PRESETS", "FLOW_UPSAMPLE", "FB_TOLERANCE_PX", "GATE_PX", "optical_flow", "track_pixels",
-           "lift_tracks", "sample_pixels"]
+           "lift_tracks", "source_frame_motion", "sample_pixels", "pixel_centres"]
 
 DIS_PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
                "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
@@ -165,13 +167,20 @@ def _nearest_depth(depth: Tensor, uv: Tensor, expected: Tensor) -> Tensor:
 
 
 def lift_tracks(positions: Tensor, tracked: Tensor, depths: Tensor, Ks: Tensor, viewmats: Tensor, *,
-                gate_px: float = GATE_PX) -> tuple[Tensor, Tensor]:
+                depth_frames: list[int] | None = None, gate_px: float = GATE_PX) -> tuple[Tensor, Tensor]:
     """3D positions of frame 0's tracked pixels in every frame (module docstring, step 3).
+
+    A frame with a depth map lifts its tracked pixel at the depth of the 3×3 neighbourhood closest to where the
+    point would be had it not moved since the previous frame with a depth map; a frame without one (a network
+    that predicts depth for some frames only) lifts it at the camera-space depth interpolated linearly, in frame
+    index, between the point's depths at the frames with maps around it (the nearest one beyond the last).
 
     Args:
         positions, tracked: (T, H, W, 2), (T, H, W) from :func:`track_pixels`.
-        depths: (T, H, W) z-depth maps, metres, finite and > 0 (fill invalid pixels before).
+        depths: (D, H, W) z-depth maps of the frames ``depth_frames``, metres, finite and > 0 (fill invalid
+            pixels before).
         Ks: (T, 3, 3) pixels.  viewmats: (T, 4, 4) world-to-camera.
+        depth_frames: D increasing frame indices, the first 0 (default: every frame, D = T).
         gate_px: rigidity gate, pixels (≥ 0; 0 treats every tracked pixel that moved at all as moving).
 
     Returns:
@@ -179,14 +188,18 @@ def lift_tracks(positions: Tensor, tracked: Tensor, depths: Tensor, Ks: Tensor, 
         moving: (T, H, W) bool, the points whose position at frame t is not their frame-0 position.
 
     Raises:
-        ValueError: shapes that do not match, a depth that is not finite and > 0, ``gate_px`` < 0.
+        ValueError: shapes that do not match, ``depth_frames`` not increasing from 0 within [0, T), a depth that
+            is not finite and > 0, ``gate_px`` < 0.
     """
     T, H, W = tracked.shape
-    if positions.shape != (T, H, W, 2) or depths.shape != (T, H, W) or Ks.shape != (T, 3, 3) \
+    frames = list(range(T)) if depth_frames is None else [int(f) for f in depth_frames]
+    if positions.shape != (T, H, W, 2) or depths.shape != (len(frames), H, W) or Ks.shape != (T, 3, 3) \
             or viewmats.shape != (T, 4, 4):
         raise ValueError(f"positions {tuple(positions.shape)}, tracked {tuple(tracked.shape)}, depths "
                          f"{tuple(depths.shape)}, Ks {tuple(Ks.shape)} and viewmats {tuple(viewmats.shape)} must be "
-                         "(T, H, W, 2), (T, H, W), (T, H, W), (T, 3, 3), (T, 4, 4)")
+                         "(T, H, W, 2), (T, H, W), (D, H, W) with D depth frames, (T, 3, 3), (T, 4, 4)")
+    if not frames or frames[0] != 0 or any(b <= a for a, b in pairwise(frames)) or frames[-1] >= T:
+        raise ValueError(f"depth_frames must increase from 0 and lie below T = {T}, got {frames}")
     if not bool((torch.isfinite(depths) & (depths > 0)).all()):
         raise ValueError("depths must be finite and > 0 (fill invalid pixels first)")
     if not float(gate_px) >= 0:
@@ -194,18 +207,83 @@ def lift_tracks(positions: Tensor, tracked: Tensor, depths: Tensor, Ks: Tensor, 
     dtype = torch.promote_types(depths.dtype, torch.float32)
     uv, depths, Ks, viewmats = positions.to(dtype), depths.to(dtype), Ks.to(dtype), viewmats.to(dtype)
     cam_to_world = invert_rigid(viewmats)
-    first = transform_points(cam_to_world[:1], unproject_points(uv[0].reshape(1, -1, 2), depths[0].reshape(1, -1, 1),
-                                                                Ks[:1]))[0].reshape(H, W, 3)
-    points, moving = [first], [torch.zeros(H, W, dtype=torch.bool, device=depths.device)]
+
+    def unproject(t: int, z: Tensor) -> Tensor:  # frame t's tracked pixels at camera-space depths z (H, W)
+        cam = unproject_points(uv[t].reshape(1, -1, 2), z.reshape(1, -1, 1), Ks[t:t + 1])
+        return transform_points(cam_to_world[t:t + 1], cam)[0].reshape(H, W, 3)
+
+    def camera_z(t: int, points: Tensor) -> Tensor:  # (H, W) z of world points in camera t
+        return transform_points(viewmats[t:t + 1], points.reshape(1, -1, 3))[0, :, 2].reshape(H, W)
+
+    first = unproject(0, depths[0])
+    moving = [torch.zeros(H, W, dtype=torch.bool, device=depths.device)]
+    for t in range(1, T):  # the rigidity test needs no depth at t: where the camera alone puts the frame-0 point
+        ego = project_points(transform_points(viewmats[t:t + 1], first.reshape(1, -1, 3))[0], Ks[t]).reshape(H, W, 2)
+        off = (ego - uv[t]).norm(dim=-1) > gate_px
+        moving.append(torch.where(tracked[t], off, moving[-1]))  # a lost track keeps its last state and position
+
+    def settle(t: int, lifted: Tensor, previous: Tensor) -> Tensor:
+        return torch.where(moving[t][..., None], torch.where(tracked[t][..., None], lifted, previous), first)
+
+    # frames with depth maps, in order: each picks its depth near the previous one's point
+    at_depth, z_at = {0: first}, {0: depths[0]}
+    for k in range(1, len(frames)):
+        t, prev = frames[k], at_depth[frames[k - 1]]
+        z = _nearest_depth(depths[k], uv[t], camera_z(t, prev))
+        at_depth[t] = settle(t, unproject(t, z), prev)
+        z_at[t] = camera_z(t, at_depth[t])
+    points = [first]
     for t in range(1, T):
-        still_cam = transform_points(viewmats[t:t + 1], points[-1].reshape(1, -1, 3))[0].reshape(H, W, 3)
-        z = _nearest_depth(depths[t], uv[t], still_cam[..., 2])
-        lifted = transform_points(cam_to_world[t:t + 1], unproject_points(uv[t].reshape(1, -1, 2),
-                                                                          z.reshape(1, -1, 1), Ks[t:t + 1]))[0]
-        ego = project_points(transform_points(viewmats[t:t + 1], first.reshape(1, -1, 3))[0], Ks[t])
-        off = (ego.reshape(H, W, 2) - uv[t]).norm(dim=-1) > gate_px
-        now = torch.where(tracked[t], off, moving[-1])  # a lost track keeps its last state and position
-        point = torch.where(tracked[t][..., None], lifted.reshape(H, W, 3), points[-1])
-        points.append(torch.where(now[..., None], point, first))
-        moving.append(now)
+        if t in at_depth:
+            points.append(at_depth[t])
+            continue
+        before = max(f for f in frames if f < t)
+        after = min((f for f in frames if f > t), default=before)
+        w = 0.0 if after == before else (t - before) / (after - before)
+        points.append(settle(t, unproject(t, torch.lerp(z_at[before], z_at[after], w)), points[-1]))
     return torch.stack(points), torch.stack(moving)
+
+
+def source_frame_motion(frames: Tensor, depths: Tensor, sources: list[int], Ks: Tensor, viewmats: Tensor, *,
+                        upsample: int = FLOW_UPSAMPLE, fb_tolerance: float = FB_TOLERANCE_PX,
+                        gate_px: float = GATE_PX) -> Tensor:
+    """Displacement of every pixel of each source frame at every frame of the video: the scene flow of
+    pixel-aligned Gaussians (docs/DESIGN.md, "Data flow of generate", step 6) measured from the frames.
+
+    Source frame s (video frame f = ``sources[s]``) is tracked forward through frames f … T−1 and backward through
+    f … 0 (:func:`track_pixels`) and lifted (:func:`lift_tracks`) with the depth maps of the source frames on
+    each side, which are the only frames with depth.
+
+    Args:
+        frames: (T, 3, H, W) RGB in [0, 1].
+        depths: (S, H, W) z-depth of the source frames, metres, finite and > 0.
+        sources: S video frame indices, increasing, within [0, T).
+        Ks, viewmats: (T, 3, 3), (T, 4, 4) the video's cameras.
+        upsample, fb_tolerance, gate_px: as :func:`track_pixels` and :func:`lift_tracks`.
+
+    Returns:
+        (T, S, H, W, 3) displacement Δμ(t) of each source pixel's point from its position at its own frame,
+        metres, world frame; zero at the source's own frame and for every static point.
+
+    Raises:
+        ValueError: ``depths`` not (S, H, W) for the S ``sources``, sources not increasing within [0, T), or as
+            :func:`track_pixels` and :func:`lift_tracks`.
+    """
+    T, _, H, W = frames.shape
+    sources = [int(f) for f in sources]
+    if depths.shape != (len(sources), H, W) or any(b <= a for a, b in pairwise(sources)) \
+            or not sources or sources[0] < 0 or sources[-1] >= T:
+        raise ValueError(f"depths {tuple(depths.shape)} must be (S, {H}, {W}) for S increasing sources within "
+                         f"[0, {T}), got sources {sources}")
+    out = depths.new_zeros(T, len(sources), H, W, 3, dtype=torch.promote_types(depths.dtype, torch.float32))
+    for s, f in enumerate(sources):
+        for step in (1, -1):  # forward from f, then backward from f
+            order = list(range(f, T)) if step == 1 else list(range(f, -1, -1))
+            if len(order) < 2:
+                continue
+            keys = [i for i, frame in enumerate(order) if frame in sources]
+            positions, tracked = track_pixels(frames[order], upsample=upsample, fb_tolerance=fb_tolerance)
+            points, _ = lift_tracks(positions, tracked, depths[[sources.index(order[i]) for i in keys]],
+                                    Ks[order], viewmats[order], depth_frames=keys, gate_px=gate_px)
+            out[order, s] = (points - points[:1]).to(out.dtype)
+    return out

@@ -8,7 +8,14 @@ import torch
 
 from diff4splat.cameras import intrinsics_from_fov, look_at
 from diff4splat.io import load_image
-from diff4splat.scene_flow import lift_tracks, optical_flow, pixel_centres, sample_pixels, track_pixels
+from diff4splat.scene_flow import (
+    lift_tracks,
+    optical_flow,
+    pixel_centres,
+    sample_pixels,
+    source_frame_motion,
+    track_pixels,
+)
 
 TEXTURE = Path(__file__).resolve().parent.parent / "data_prep" / "textures" / "coins.png"
 
@@ -98,6 +105,10 @@ def test_lifting_gives_the_closed_form_motion_and_keeps_static_points_still(devi
     lost[2] = False
     held, _ = lift_tracks(torch.stack(positions), lost, torch.stack(depths), Ks, viewmats)
     assert torch.allclose(held[2], held[1])
+    # depth at frames 0 and 2 only: frame 1's camera-space depth is interpolated, exact for this linear motion
+    sparse, _ = lift_tracks(torch.stack(positions), tracked, torch.stack(depths)[[0, 2]], Ks, viewmats,
+                            depth_frames=[0, 2])
+    assert torch.allclose(sparse, truth, atol=1e-6)
 
 
 def test_lifting_picks_the_neighbour_depth_consistent_with_the_point(device):
@@ -116,6 +127,28 @@ def test_lifting_picks_the_neighbour_depth_consistent_with_the_point(device):
     assert abs(float(points[1, 8, 8, 2]) - 2.0) < 1e-9
 
 
+def test_source_frames_move_with_the_video(texture, device):
+    """Content moving 2 px right per frame before a still camera, on a plane 2 m away: every source frame's pixels
+    move (t − f)·2 px·z/f_x metres along x, before and after their own frame f, and not at all along z."""
+    T, size = 5, 48
+    frames = torch.stack([_window(texture, 60, 60 - 2 * t, size) for t in range(T)]).to(device)
+    K = intrinsics_from_fov(size, size, fov_x_deg=60.0, dtype=torch.float64).to(device)
+    Ks, viewmats = K[None].expand(T, 3, 3), torch.eye(4, dtype=torch.float64, device=device)[None].expand(T, 4, 4)
+    depths = torch.full((2, size, size), 2.0, dtype=torch.float64, device=device)
+    d = source_frame_motion(frames, depths, [0, 4], Ks, viewmats)
+    assert d.shape == (T, 2, size, size, 3) and d.device == frames.device
+    inner = (slice(12, -12), slice(12, -12))
+    metres_per_px = 2.0 / float(K[0, 0])
+    for s, f in enumerate([0, 4]):
+        assert float(d[f, s].abs().max()) == 0.0
+        for t in range(T):
+            if abs(t - f) < 2:  # within the gate of 2 px: held still
+                continue
+            dx = d[t, s][inner][..., 0]
+            assert abs(float(dx.median()) - (t - f) * 2 * metres_per_px) < 0.25 * metres_per_px, (s, t)
+            assert float(d[t, s][inner][..., 2].abs().median()) < 1e-6
+
+
 def test_bad_inputs_are_refused(device):
     frames = torch.rand(2, 3, 8, 8, device=device)
     with pytest.raises(ValueError, match="preset"):
@@ -128,3 +161,7 @@ def test_bad_inputs_are_refused(device):
     pos, ok = track_pixels(frames)
     with pytest.raises(ValueError, match="finite and > 0"):
         lift_tracks(pos, ok, torch.zeros(2, 8, 8, device=device), Ks, viewmats)
+    with pytest.raises(ValueError, match="depth_frames"):
+        lift_tracks(pos, ok, torch.ones(1, 8, 8, device=device), Ks, viewmats, depth_frames=[1])
+    with pytest.raises(ValueError, match="sources"):
+        source_frame_motion(frames, torch.ones(2, 8, 8, device=device), [1, 0], Ks, viewmats)
