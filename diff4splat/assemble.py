@@ -44,7 +44,7 @@ from .quaternions import quat_conjugate, quat_multiply, quat_normalize
 from .scene import DynamicGaussians
 
 __all__ = ["DEPTH_KINDS", "GENERATED_SCALE_PX", "to_gaussians", "video_colors", "pixel_footprint", "photo_depth",
-           "rebase_deformation", "assemble_scene"]
+           "rebase_deformation", "assemble_scene", "z_depth"]
 
 DEPTH_KINDS = ("metric", "relative", "inverse")
 """What a user's depth map holds (``generate --depth-kind``): metric z-depth in metres (used as given: the camera
@@ -155,11 +155,8 @@ def photo_depth(
     """
     if depth_kind not in DEPTH_KINDS:
         raise ValueError(f"depth_kind must be one of {DEPTH_KINDS}, got {depth_kind!r}")
-    h, w = distance.shape
     H, W = image.shape[:2]
-    _, dirs = camera_rays(viewmat[None].float(), K[None].float(), w, h)
-    z_model = distance.float() * (dirs[0] @ viewmat[2, :3].float())
-    z_net = upsample_depth(z_model, image)
+    z_net = upsample_depth(z_depth(distance[None], viewmat[None], K[None])[0], image)
     if depth is None:
         return z_net
     if tuple(depth.shape) != (H, W):
@@ -170,6 +167,15 @@ def photo_depth(
     aligned = _align(depth, z_net, depth_kind)
     good = torch.isfinite(aligned) & (aligned > 0)
     return torch.where(good, aligned, z_net)
+
+
+def z_depth(distance: Tensor, viewmats: Tensor, Ks: Tensor) -> Tensor:
+    """Z-depth maps (S, h, w) of ray-distance maps (S, h, w) (metres along each pixel's unit ray) seen by cameras
+    ``viewmats`` (S, 4, 4), ``Ks`` (S, 3, 3) at (h, w): distance × cos(angle to the optical axis); float32 at least."""
+    S, h, w = distance.shape
+    dtype = torch.promote_types(distance.dtype, torch.float32)
+    _, dirs = camera_rays(viewmats.to(dtype), Ks.to(dtype), w, h)  # (S, h, w, 3) world
+    return distance.to(dtype) * torch.einsum("shwc,sc->shw", dirs, viewmats[:, 2, :3].to(dtype))
 
 
 def rebase_deformation(d_means: Tensor, d_quats: Tensor, d_scales: Tensor, reference: tuple[Tensor, Tensor, Tensor]

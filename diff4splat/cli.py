@@ -1,4 +1,5 @@
-"""``diff4splat`` command line: ``diff4splat generate IMAGE ... --out DIR``, ``diff4splat export-onnx --out DIR`` and
+"""``diff4splat`` command line: ``diff4splat generate IMAGE ... --out DIR``, ``diff4splat reconstruct VIDEO ...
+--out DIR`` (:mod:`diff4splat.reconstruct`), ``diff4splat export-onnx --out DIR`` and
 ``diff4splat render DIR (--cameras FILE | --trajectory NAME) --out OUT`` (:mod:`diff4splat.render_command`) and
 ``diff4splat view DIR [--port P]`` (:mod:`diff4splat.viewer_server`).
 
@@ -18,10 +19,12 @@ from .cameras import TRAJECTORIES
 from .devices import AUTO, DEVICE_HELP, resolve_device
 from .errors import print_warnings, run_cli
 from .export import EXPORT_KIND, MAX_OPSET, MIN_OPSET, check_opset, export_onnx
+from .generate import load_pipeline, write
 from .generate_cli import add_generate_parser, generate_command
 from .io.output_folders import check_output_dir
-from .io.video import DEFAULT_FPS
+from .io.video import DEFAULT_FPS, check_fps
 from .pipeline import load_model
+from .reconstruct import RECONSTRUCT_KIND, reconstruct
 from .render_command import rerender
 from .viewer_server import serve
 
@@ -105,6 +108,31 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.add_argument("--out", type=_out_path, required=True, help=OUT_HELP)
     r.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
+    rc = sub.add_parser("reconstruct", help="turn a real video into a 4D scene (the LDRM on the video's latents)",
+                        description="A monocular video (or a folder of frames) → the output folder of generate: the "
+                                    "VAE encodes the clip, the LDRM places its pixels in 3D, the motion is measured "
+                                    "from the frames (optical flow lifted with the LDRM's depth); frame 0 and the "
+                                    "later source frames keep the video's own pixels.")
+    rc.add_argument("video", type=Path, metavar="VIDEO",
+                    help="video file (any format OpenCV reads) or folder of frames")
+    rc.add_argument("--frames", type=int, default=None, help="clip length T = 1 + 4k (default: config)")
+    rc.add_argument("--stride", type=int, default=1, help="take every S-th frame of the video (default: 1)")
+    rc.add_argument("--start", type=int, default=0, help="first frame of the clip, 0-based (default: 0)")
+    rc.add_argument("--cameras", type=Path, default=None, metavar="FILE",
+                    help="cameras.json or RealEstate10K .txt, one camera per clip frame, for a moving camera "
+                         "(default: a still camera with the model's field of view)")
+    rc.add_argument("--resolution", type=int, default=None,
+                    help="output height in pixels (default: 256, or the model's if larger)")
+    rc.add_argument("--checkpoint", type=Path, default=None,
+                    help="model folder (default: the shipped weights of --config)")
+    rc.add_argument("--config", default=None, help=config_help)
+    rc.add_argument("--fps", type=float, default=DEFAULT_FPS, help=f"video frame rate (default: {DEFAULT_FPS:g})")
+    rc.add_argument("--device", default=AUTO, help=DEVICE_HELP)
+    rc.add_argument("--no-frame-plys", dest="frame_plys", action="store_false",
+                    help="leave out frames/NNNN.ply (scene.ply + deformation.npz hold the same)")
+    rc.add_argument("--quiet", action="store_true", help="no progress bar")
+    rc.add_argument("--out", type=_out_path, required=True, help=OUT_HELP)
+    rc.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     v = sub.add_parser("view", help="serve an output folder's interactive 4D viewer on 127.0.0.1",
                        description="Serve DIR's viewer (the full scene, never the size-reduced embedded copy) on "
                                    "127.0.0.1 only, and print the address; Ctrl-C stops. viewer.html in DIR "
@@ -151,6 +179,21 @@ def export_onnx_command(args) -> dict:
                        checkpoint=checkpoint, source=source, inputs=[args.checkpoint], overwrite=args.overwrite)
 
 
+def reconstruct_command(args) -> dict:
+    """Run ``reconstruct``: the output folder and frame rate checked first, then
+    :func:`diff4splat.reconstruct.reconstruct` (its own checks before the model loads) and
+    :func:`diff4splat.generate.write`. Returns the meta dict of meta.json."""
+    check_output_dir(args.out, inputs=[args.video, args.checkpoint, args.cameras], overwrite=args.overwrite,
+                     kind=RECONSTRUCT_KIND)
+    check_fps(args.fps, "--fps")
+    generation = reconstruct(
+        args.video, args.cameras, pipeline=lambda: print_warnings(load_pipeline, args.checkpoint, args.config,
+                                                                  device=args.device),
+        frames=args.frames, stride=args.stride, start=args.start, resolution=args.resolution,
+        progress=not args.quiet, out=args.out, frame_plys=args.frame_plys)
+    return write(generation, args.out, fps=args.fps, overwrite=args.overwrite)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``diff4splat`` console script. Returns the exit code: 0, 2 after an expected
     failure (one ``diff4splat: error: …`` line, :func:`diff4splat.errors.run_cli`), 130 after Ctrl-C."""
@@ -169,6 +212,10 @@ def _main(argv: list[str] | None) -> int:
         t = meta["timings_s"]
         print(f"wrote {args.out} ({meta['frames']} frames, {meta['num_gaussians']} Gaussians, "
               f"{'static' if meta['static'] else 'dynamic'}) in {t['total']:.1f} s")
+    elif args.command == "reconstruct":
+        meta = reconstruct_command(args)
+        print(f"wrote {args.out} ({meta['frames']} frames, {meta['num_gaussians']} Gaussians, "
+              f"{'static' if meta['static'] else 'dynamic'}) in {meta['timings_s']['total']:.1f} s")
     elif args.command == "export-onnx":
         manifest = export_onnx_command(args)
         print(f"wrote {args.out} ({', '.join(f['file'] for f in manifest['files'].values())}, "

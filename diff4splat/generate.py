@@ -42,7 +42,8 @@ from .pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, GenerationResult, 
 from .render.sequence import render_path
 from .runtime import ATTENTION_KERNELS, DTYPES, check_offload
 
-__all__ = ["LoadedPipeline", "Generation", "load_pipeline", "generate", "write", "RUNTIMES"]
+__all__ = ["LoadedPipeline", "Generation", "load_pipeline", "generate", "write", "RUNTIMES", "cameras_from_file",
+           "generation_meta"]
 
 RUNTIMES = ("torch", "onnxruntime")
 """What runs the networks: PyTorch, or onnxruntime over an ``export-onnx`` folder."""
@@ -146,6 +147,7 @@ class Generation:
         inputs: the files the request read (an output folder may not be one of them or hold one).
         depth_fallback: depth written where nothing is seen, metres (the config's scene depth).
         seconds: wall time of :func:`generate`, seconds.
+        kind: the output folder's marker kind: "generate", or "reconstruct" (:mod:`diff4splat.reconstruct`).
     """
 
     result: GenerationResult
@@ -156,6 +158,7 @@ class Generation:
     inputs: list[Path]
     depth_fallback: float
     seconds: float
+    kind: str = "generate"
 
 
 def _check_request(image, cameras, trajectory, amplitude, frames, resolution, steps, seed, prompt, depth,
@@ -189,10 +192,14 @@ def _check_request(image, cameras, trajectory, amplitude, frames, resolution, st
         check_amplitude(trajectory, amplitude, "--amplitude")
 
 
-def _cameras_from_file(path: Path, frames: int | None, photo_shape: tuple[int, int], width: int,
+def cameras_from_file(path: Path, frames: int | None, photo_shape: tuple[int, int], width: int,
                        height: int) -> CameraPath:
     """``--cameras`` file → camera path at ``width`` × ``height``. RealEstate10K intrinsics are normalised by the
-    photograph as displayed (``photo_shape`` (H, W) after EXIF orientation), the image that is centre-cropped."""
+    photograph as displayed (``photo_shape`` (H, W) after EXIF orientation), the image that is centre-cropped.
+
+    Raises:
+        ValueError: a malformed file, or ``frames`` given and not the file's camera count.
+    """
     if path.suffix.lower() == ".json":
         cams = load_cameras_json(path)
     else:
@@ -299,7 +306,7 @@ def generate(
     elif isinstance(cameras, CameraPath):
         path = cameras
     else:
-        path = _cameras_from_file(Path(cameras), frames, photo_shape, width, height)
+        path = cameras_from_file(Path(cameras), frames, photo_shape, width, height)
         try:  # the frame count the VAE needs, named by the file (else "video: T=7 frames" from the sampler)
             cfg.vae.num_latent_frames(len(path))
         except ValueError as e:
@@ -315,16 +322,17 @@ def generate(
     colors, depths, alphas = render_path(result.scene, result.cameras, eps2d=result.eps2d,
                                          background=result.background, progress=progress)
     timings = {"load_model": loaded.load_seconds, **result.timings, "render": time.perf_counter() - t0}
-    meta = _meta(loaded, result, prompt, None if cameras is not None else trajectory, files, depth_kind, seed,
+    meta = generation_meta(loaded, result, prompt, None if cameras is not None else trajectory, files, depth_kind, seed,
                  timings)
     meta["frame_plys"] = bool(frame_plys) and result.scene.changes_with_time
     inputs = [Path(p) for p in files.values() if isinstance(p, (str, os.PathLike))] + list(loaded.files)
     return Generation(result, colors, depths, alphas, meta, inputs, cfg.scene_depth, time.perf_counter() - t_start)
 
 
-def _meta(loaded: LoadedPipeline, result: GenerationResult, prompt: str, trajectory: str | None, files: dict,
+def generation_meta(loaded: LoadedPipeline, result: GenerationResult, prompt: str, trajectory: str | None, files: dict,
           depth_kind: str, seed: int, timings: dict) -> dict:
-    """meta.json of ``generate``: every setting comes from what the pipeline actually used."""
+    """meta.json of ``generate`` (``reconstruct`` starts from it): every setting comes from what the pipeline
+    actually used."""
     pipe, cfg = loaded.pipeline, loaded.pipeline.config
     path = lambda v: str(v) if isinstance(v, (str, os.PathLike)) else None  # noqa: E731
     return {
@@ -379,13 +387,14 @@ def write(generation: Generation, out_dir: str | os.PathLike, *, fps: float = DE
         OSError: writing failed (``<path>: <reason>``); nothing half-written is left.
     """
     check_fps(fps, "--fps")
-    check_output_dir(out_dir, inputs=generation.inputs, overwrite=overwrite, kind="generate")
+    check_output_dir(out_dir, inputs=generation.inputs, overwrite=overwrite, kind=generation.kind)
     meta = dict(generation.meta, fps=fps, timings_s=dict(generation.meta["timings_s"]))
     t0 = time.perf_counter()
     result = generation.result
     write_scene_folder(out_dir, result.scene, result.cameras, generation.colors, generation.depths,
                        generation.alphas, meta, fps=fps, depth_fallback=generation.depth_fallback,
-                       inputs=generation.inputs, overwrite=overwrite, frame_plys=meta["frame_plys"])
+                       inputs=generation.inputs, overwrite=overwrite, frame_plys=meta["frame_plys"],
+                       kind=generation.kind)
     meta["timings_s"]["write"] = time.perf_counter() - t0
     meta["timings_s"]["total"] = generation.seconds + meta["timings_s"]["write"]
     return meta

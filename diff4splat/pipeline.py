@@ -469,9 +469,7 @@ class Diff4SplatPipeline:
         conditions, guidance = self._encode_prompt(prompt, guidance)
         timings["encode_text"] = clock.lap()
 
-        plucker = pack_plucker(plucker_rays(cameras_model.viewmats, cameras_model.Ks, cfg.width, cfg.height)[None],
-                               runtime.latent.temporal_factor, runtime.latent.spatial_factor)  # (1, 6·t·s², n, h, w)
-        plucker = plucker.to(runtime.input_dtype)  # cast once: the networks see the same values, no float32 copy
+        plucker = self.packed_plucker(cameras_model)
         latents = self._sample(image_latent, plucker, conditions, guidance, n, steps, sampler, seed, video_latents,
                                progress)
         timings["sample"] = clock.lap()
@@ -491,7 +489,7 @@ class Diff4SplatPipeline:
         scene = scene.without_deformation(cfg.static_atol)
         timings["reconstruct"] = clock.lap()
 
-        scene, index, stats = self._prune(scene, grid, cameras, sources, photo)
+        scene, index, stats = self.settle_and_prune(scene, grid, cameras, sources, photo)
         timings["prune"] = clock.lap()
         return GenerationResult(scene=scene, cameras=cameras, latents=latents, timings=timings,
                                 high_water=dict(zip(timings, clock.high_water, strict=False)), prune_stats=stats,
@@ -571,9 +569,18 @@ class Diff4SplatPipeline:
             latents = video_latents.to(noise)
         return torch.cat([image_latent, latents[:, :, 1:]], dim=2)
 
-    def _prune(self, scene: DynamicGaussians, grid: Tensor, cameras: CameraPath, sources: Tensor,
-               photo: dict) -> tuple[DynamicGaussians, Tensor, dict]:
-        """Settle and prune the assembled scene: (scene, index of each kept Gaussian in the assembled one, stats).
+    def packed_plucker(self, cameras_model: CameraPath) -> Tensor:
+        """The networks' camera input: Plücker rays of the path at the model resolution, packed to the latent grid
+        (1, 6·t·s², n, h, w), in the runtime's ``input_dtype`` (cast once: no float32 copy beside it)."""
+        latent = self.runtime.latent
+        rays = plucker_rays(cameras_model.viewmats, cameras_model.Ks, cameras_model.width, cameras_model.height)
+        return pack_plucker(rays[None], latent.temporal_factor, latent.spatial_factor).to(self.runtime.input_dtype)
+
+    def settle_and_prune(self, scene: DynamicGaussians, grid: Tensor, cameras: CameraPath, sources: Tensor,
+                         photo: dict) -> tuple[DynamicGaussians, Tensor, dict]:
+        """Settle and prune an assembled scene (:func:`diff4splat.assemble.assemble_scene`'s scene, source index
+        ``grid`` and stats ``photo``; steps 8 of docs/DESIGN.md, "Data flow of generate"): (scene, index of each kept
+        Gaussian in the assembled one, stats).
 
         Raises:
             ValueError: the camera path sees none of the scene (every Gaussian pruned).

@@ -1,0 +1,118 @@
+"""A clip of the user's video: frames ``start, start + stride, …`` of a video file (any container and codec OpenCV's
+backend reads) or of a folder of images (sorted by name), decoded once, only up to the last frame needed.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..checks import check_positive_int
+from ..errors import quiet_c_stderr
+from .image import check_image_pixels, read_image
+
+__all__ = ["VideoClip", "IMAGE_SUFFIXES", "check_clip_request", "read_video_clip"]
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+"""Files of a frame folder, by suffix (case-insensitive); other files in the folder are ignored."""
+
+
+@dataclass(frozen=True)
+class VideoClip:
+    """Frames read by :func:`read_video_clip`.
+
+    Attributes:
+        frames: T arrays (H, W, 3) uint8 RGB (a video file), or as :func:`diff4splat.io.image.read_image` returns
+            them (a folder: grey, RGB or RGBA, 8 or 16 bits).
+        indices: (T,) the frames' indices in the source (0 = its first frame).
+        fps: the file's frame rate (frames per second), or None for a folder or a file that does not say.
+    """
+
+    frames: list[np.ndarray]
+    indices: list[int]
+    fps: float | None
+
+
+def check_clip_request(frames: object, stride: object, start: object) -> tuple[int, int, int]:
+    """``(frames, stride, start)`` as ints: frames, stride ≥ 1, start ≥ 0.
+
+    Raises:
+        ValueError: naming the flag (``--frames``, ``--stride``, ``--start``) and the value.
+    """
+    frames = check_positive_int("--frames", frames)
+    stride = check_positive_int("--stride", stride)
+    if isinstance(start, bool) or not isinstance(start, (int, np.integer)) or int(start) < 0:
+        raise ValueError(f"--start must be an integer ≥ 0, got {start!r}")
+    return frames, stride, int(start)
+
+
+def _short(path: Path, found: int, start: int, stride: int, frames: int) -> ValueError:
+    need = start + stride * (frames - 1) + 1
+    return ValueError(f"{path}: {found} frame(s), but --start {start} --stride {stride} --frames {frames} needs {need}")
+
+
+def read_video_clip(path: str | os.PathLike, frames: int, stride: int = 1, start: int = 0) -> VideoClip:
+    """Read frames ``start + stride·i`` (i < ``frames``) of a video file or a folder of images.
+
+    Args:
+        path: a video file, or a folder whose image files (:data:`IMAGE_SUFFIXES`) are the frames in name order.
+        frames, stride, start: the clip (:func:`check_clip_request`).
+
+    Returns:
+        :class:`VideoClip`.
+
+    Raises:
+        FileNotFoundError: nothing at ``path``.
+        ValueError: a bad request, a file OpenCV cannot decode, a folder without images, frames of different
+            sizes, a frame above the ``image_pixels`` limit, fewer frames than the request needs.
+    """
+    frames, stride, start = check_clip_request(frames, stride, start)
+    path = Path(path)
+    wanted = [start + stride * i for i in range(frames)]
+    if path.is_dir():
+        files = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+        if not files:
+            raise ValueError(f"{path}: no image file ({', '.join(IMAGE_SUFFIXES)}) in the folder")
+        if wanted[-1] >= len(files):
+            raise _short(path, len(files), start, stride, frames)
+        images = [read_image(files[i]) for i in wanted]
+        fps = None
+    elif path.is_file():
+        images, fps = _decode(path, wanted, start, stride, frames)
+    else:
+        raise FileNotFoundError(f"video not found: {path}")
+    if len({im.shape[:2] for im in images}) > 1:
+        raise ValueError(f"{path}: the frames differ in size ({sorted({im.shape[:2] for im in images})})")
+    return VideoClip(images, wanted, fps)
+
+
+def _decode(path: Path, wanted: list[int], start: int, stride: int,
+            frames: int) -> tuple[list[np.ndarray], float | None]:
+    """The frames ``wanted`` of a video file (decoding stops after the last) and its frame rate."""
+    images, index, keep = [], 0, set(wanted)
+    with quiet_c_stderr():  # FFmpeg's complaints about a damaged file; the errors below name it
+        cap = cv2.VideoCapture(str(path))
+        try:
+            if not cap.isOpened():
+                raise ValueError(f"{path}: not a video OpenCV can open")
+            fps = float(cap.get(cv2.CAP_PROP_FPS)) or None
+            while index <= wanted[-1]:
+                if not cap.grab():
+                    break
+                if index in keep:
+                    ok, frame = cap.retrieve()
+                    if not ok:
+                        raise ValueError(f"{path}: frame {index} could not be decoded")
+                    check_image_pixels(path, frame.shape[1], frame.shape[0])
+                    images.append(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
+                index += 1
+        finally:
+            cap.release()
+    if index == 0:
+        raise ValueError(f"{path}: could not decode any frame (not a video OpenCV reads, or damaged)")
+    if len(images) < len(wanted):
+        raise _short(path, index, start, stride, frames)
+    return images, fps if fps is None or np.isfinite(fps) and fps > 0 else None
