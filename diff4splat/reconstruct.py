@@ -1,13 +1,19 @@
 """``diff4splat reconstruct``: a real monocular video → a 4D scene that moves as the video does.
 
-The LDRM reads the video's own latents (the VAE encodes the clip; nothing is sampled) and places the pixel-aligned
-Gaussians of its source frames (docs/DESIGN.md, "Data flow of generate", step 6); the video is observed, not
-generated, so it is kept as ``generate`` keeps the photograph: frame 0 becomes the photo layer at the output
-resolution, the later source frames' Gaussians carry the video's own pixels (``assemble.video_colors`` of the
-real frames), and the scene's motion is measured from the frames (:func:`diff4splat.scene_flow.source_frame_motion`:
-OpenCV's DIS optical flow, chained and lifted to 3D with the LDRM's depth of the source frames) at every frame's
-time, so the deformation interpolates between consecutive frames. A still video gives a static scene (the rigidity
-gate keeps every static point at rest; no deformation is written).
+The LDRM reads the video's own latents (the VAE encodes the clip; nothing is sampled) and gives the depth of its
+source frames (video frames 0, 4, 8, …; docs/DESIGN.md, "Data flow of generate", step 6). The video is observed, not
+generated, so every source frame is kept as ``generate`` keeps the photograph: a photo layer of its pixels at the
+output resolution (:func:`diff4splat.photo.photo_layer`) on its depth (the LDRM's, upsampled with the frame as the
+guide), plus frame 0's backdrop. The motion is measured from the frames
+(:func:`diff4splat.scene_flow.source_frame_motion`: OpenCV's DIS optical flow, chained and lifted to 3D with the
+source frames' depths) at every frame's time, so each layer follows the video before and after its own frame and
+the deformation interpolates between consecutive frames. The layers overlap; at any time the layer of the nearest
+source frame must be the one seen, so each layer is moved back along its own camera's rays by :data:`TIME_PUSH` per
+frame of time away from its own (:func:`time_push`: invisible at its own camera, it orders the layers by time), and
+the others fill only what it does not show (what moved away, what the camera uncovers).
+
+A still world (no pixel moves beyond the rigidity gate) gives a static scene: no deformation, no push, and the
+layers settled as ``generate`` settles its frames (a later frame's duplicates of what frame 0 shows dropped).
 
 Library use mirrors :mod:`diff4splat.generate`::
 
@@ -30,24 +36,45 @@ from torch import Tensor
 from models.deformation import IDENTITY_QUAT
 from models.ldrm import source_frame_indices
 
-from .assemble import assemble_scene, z_depth
-from .cameras import CameraPath, intrinsics_from_fov
+from .assemble import z_depth
+from .cameras import CameraPath, intrinsics_from_fov, invert_rigid
 from .checks import check_positive_int
 from .devices import Stopwatch
+from .gaussians import Gaussians
 from .generate import Generation, LoadedPipeline, cameras_from_file, generation_meta, load_pipeline
 from .io.image import preprocess_image
 from .io.inputs import check_input_file
 from .io.video_input import check_clip_request, read_video_clip
 from .limits import check_limit, check_memory, check_output_size
-from .photo import PHOTO_EPS2D
+from .photo import PHOTO_EPS2D, backdrop_layer, photo_layer, upsample_depth
 from .pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, GenerationResult
+from .prune import prune_mask
 from .render.sequence import render_path
+from .scene import DynamicGaussians
 from .scene_flow import source_frame_motion
 
-__all__ = ["reconstruct", "reconstruct_scene", "still_cameras", "RECONSTRUCT_KIND"]
+__all__ = ["reconstruct", "reconstruct_scene", "still_cameras", "time_push", "RECONSTRUCT_KIND", "TIME_PUSH",
+           "FLOW_SIZE", "GATE_PX", "FB_TOLERANCE_PX", "MOVING_FRACTION"]
 
 RECONSTRUCT_KIND = "reconstruct"
 """Marker kind of a ``reconstruct`` output folder (the layout is ``generate``'s)."""
+TIME_PUSH = 0.25
+"""How much further along its camera's rays a frame's layer moves per frame of clip time away from its own
+(:func:`time_push`): a layer 4 frames away (the next source frame) lies 2× deeper, behind every surface of the
+nearest frame's layer in a scene whose depths span less than 2×, so what moved away leaves no stale copy in front
+(2 % left one: the development clips' in-between frames, docs/benchmarks.md)."""
+GATE_PX = 0.5
+"""Rigidity gate of the motion, pixels of the output frames (``scene_flow.lift_tracks``): a real video's pixels that
+move a few pixels per frame (a face talking) must not be held still, as the 2 px of the 64² synthetic clips would
+(swept on the development video, docs/benchmarks.md "`reconstruct` between its frames": 0, 0.5, 1 px)."""
+FB_TOLERANCE_PX = 1.5
+"""Forward-backward tolerance of the tracking, pixels of the output frames (swept with :data:`GATE_PX`: 0.5, 1.5)."""
+MOVING_FRACTION = 0.005
+"""A clip is dynamic when, at some frame, more than this fraction of a source frame's pixels has moved by more than
+the config's ``static_atol``: a still video's few pixels of codec noise above the gate do not make it move."""
+FLOW_SIZE = 256
+"""Pixels of height the frames are tracked at: the output resolution upsampled by the nearest whole factor
+(``scene_flow.optical_flow``'s ``upsample``; 4 × 64 px was the best of 1, 2 and 4 on the held-out tracks)."""
 
 
 def still_cameras(pipe: Diff4SplatPipeline, num_frames: int, width: int, height: int) -> CameraPath:
@@ -75,6 +102,33 @@ def _check_frames(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraPath)
         raise ValueError(f"--frames {T}: the frame count must be {pipe.runtime.latent.frames_rule}") from None
 
 
+def _layer_motion(motion: Tensor, height: int, width: int) -> Tensor:
+    """A source frame's per-pixel displacement maps (T, H, W, 3) → its photo layer's (T, H·W + ⌈H/2⌉·⌈W/2⌉, 3): the
+    front disks take their pixel's, the backing disks the mean of their 2×2 block's (``photo.photo_layer``'s order)."""
+    T = motion.shape[0]
+    block = F.avg_pool2d(motion.permute(0, 3, 1, 2), 2, ceil_mode=True).permute(0, 2, 3, 1)
+    return torch.cat([motion.reshape(T, height * width, 3), block.reshape(T, -1, 3)], dim=1)
+
+
+def time_push(layer: Gaussians, d_means: Tensor, frame: int, centre: Tensor) -> tuple[Tensor, Tensor]:
+    """The layer of video frame ``frame`` moved back along its own camera's rays at every other key frame j:
+    μ_j → o + λ_j(μ + Δμ_j − o), scales × λ_j, λ_j = 1 + :data:`TIME_PUSH`·|j − frame| (its pixels at its own camera
+    unchanged), so that at any time the layer of the nearest frame is in front and the others show only where it
+    has nothing (module docstring).
+
+    Args:
+        layer: the frame's photo layer (M Gaussians).  d_means: (T, M, 3) its displacements at the T key frames.
+        frame: its video frame.  centre: (3,) its camera's centre, world frame.
+
+    Returns:
+        d_means (T, M, 3) and d_scales (T, M, 3) (log λ_j on every axis).
+    """
+    T = d_means.shape[0]
+    lam = 1 + TIME_PUSH * (torch.arange(T, device=d_means.device, dtype=d_means.dtype) - frame).abs()  # (T,)
+    d = d_means + (lam - 1)[:, None, None] * (layer.means[None] + d_means - centre)
+    return d, lam.log()[:, None, None].expand(T, layer.num_gaussians, 3)
+
+
 @torch.no_grad()
 def reconstruct_scene(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraPath) -> GenerationResult:
     """The 4D scene of a video clip (module docstring).
@@ -86,7 +140,9 @@ def reconstruct_scene(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraP
 
     Returns:
         :class:`~diff4splat.pipeline.GenerationResult` (``steps`` 0, ``sampler`` "none": nothing sampled;
-        ``latents``: the video's own; key times of the deformation: the frames' times).
+        ``latents``: the video's own). Its unpruned order (``gaussian_index``, ``num_slots``): the photo layer of
+        frame 0 (``photo_gaussians``), the backdrop, then the photo layers of source frames 1…S−1 (each H·W front
+        then ⌈H/2⌉·⌈W/2⌉ backing disks); the deformation's key times are the frames' times.
 
     Raises:
         ValueError: frames not (T, H, W, 3) in [0, 1] at the model's aspect ratio, T ≠ 1 + 4k, cameras not T at
@@ -98,37 +154,72 @@ def reconstruct_scene(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraP
     cameras = cameras.relative_to_first().to(dtype=torch.float32, device=dev)
     cameras_model = cameras.resized(cfg.width, cfg.height)
     clock, timings = Stopwatch(dev), {}
-    small = frames.to(dev, torch.float32).permute(0, 3, 1, 2)  # (T, 3, H, W)
-    if (H, W) != (cfg.height, cfg.width):
-        small = F.interpolate(small, size=(cfg.height, cfg.width), mode="area")
+    images = frames.to(dev, torch.float32)  # (T, H, W, 3)
+    small = F.interpolate(images.permute(0, 3, 1, 2), size=(cfg.height, cfg.width), mode="area")
     video = (small * 2 - 1).transpose(0, 1)[None]  # (1, 3, T, h, w) in [−1, 1]
     latents = runtime.encode_image(video)  # the clip's own latents (posterior mean)
     timings["encode_video"] = clock.lap()
     out = runtime.reconstruct(latents, pipe.packed_plucker(cameras_model), None, video[:, :, 0])
     runtime.release()
-    n = runtime.latent.num_latent_frames(T)
-    indices = source_frame_indices(cfg.ldrm.gaussian_frames, n, runtime.latent.temporal_factor)
+    indices = source_frame_indices(cfg.ldrm.gaussian_frames, runtime.latent.num_latent_frames(T),
+                                   runtime.latent.temporal_factor)
     sources = torch.tensor(indices, device=dev)
+    z_model = z_depth(out.distance[0], cameras_model.viewmats[sources], cameras_model.Ks[sources])  # (S, h, w)
+    z = torch.stack([upsample_depth(z_model[s], images[f]) for s, f in enumerate(indices)])  # (S, H, W)
     timings["reconstruct"] = clock.lap()
-    z = z_depth(out.distance[0], cameras_model.viewmats[sources], cameras_model.Ks[sources])  # (S, h, w)
-    d_means = source_frame_motion(small.clamp(0, 1), z, indices, cameras_model.Ks, cameras_model.viewmats)
-    maps = d_means.shape[:-1]  # (T, S, h, w)
-    out.d_means = d_means[None]
-    out.d_quats = d_means.new_tensor(IDENTITY_QUAT).expand(1, *maps, 4)
-    out.d_scales = d_means.new_zeros(1, *maps, 3)
+    motion = source_frame_motion(images.permute(0, 3, 1, 2), z, indices, cameras.Ks, cameras.viewmats,
+                                 upsample=max(1, round(FLOW_SIZE / H)), fb_tolerance=FB_TOLERANCE_PX,
+                                 gate_px=GATE_PX)  # (T, S, H, W, 3)
+    moved = (motion.abs() > cfg.static_atol).any(dim=-1).flatten(2).float().mean(dim=-1)  # (T, S)
+    dynamic = bool((moved > MOVING_FRACTION).any())
+    if not dynamic:
+        motion = motion.zero_()
     timings["motion"] = clock.lap()
-    scene, grid, photo = assemble_scene(out, sources, cameras_model, cameras, frames[0].to(dev, torch.float32),
-                                        cameras.times, video=video, footprint=cfg.generated_footprint)
-    scene = scene.without_deformation(cfg.static_atol)
+    centres = invert_rigid(cameras.viewmats)[:, :3, 3]
+    layers, d_means, d_scales, grid = [], [], [], []
+    for s, f in enumerate(indices):
+        layer, history = photo_layer(images[f], z[s], cameras.viewmats[f], cameras.Ks[f])
+        if s == 0:
+            photo_psnr = history[-1]
+        d, log_scale = time_push(layer, _layer_motion(motion[:, s], H, W), f, centres[f])
+        layers.append(layer)
+        d_means.append(d)
+        d_scales.append(log_scale)
+        grid.append(torch.full((layer.num_gaussians,), s, dtype=torch.long, device=dev))
+        if s == 0:  # the backdrop follows frame 0's layer: static, behind everything
+            # behind every layer however far it is pushed
+            backdrop = backdrop_layer(images[0], z[0] * (1 + TIME_PUSH * (T - 1)), cameras.viewmats[0], cameras.Ks[0])
+            layers.append(backdrop)
+            d_means.append(d.new_zeros(T, backdrop.num_gaussians, 3))
+            d_scales.append(d.new_zeros(T, backdrop.num_gaussians, 3))
+            grid.append(torch.zeros(backdrop.num_gaussians, dtype=torch.long, device=dev))
+    canonical = Gaussians(*(torch.cat([getattr(g, f) for g in layers])
+                            for f in ("means", "quats", "scales", "opacities", "sh")))
+    grid = torch.cat(grid)
+    N, n0 = canonical.num_gaussians, layers[0].num_gaussians
+    photo = {"photo_depth": z[0], "photo_gaussians": n0}
+    if dynamic:
+        scene = DynamicGaussians(canonical, cameras.times, torch.cat(d_means, 1),
+                                 canonical.means.new_tensor(IDENTITY_QUAT).expand(T, N, 4), torch.cat(d_scales, 1))
+    else:  # a still world: the layers of one static scene, overlaps settled as generate settles its frames
+        scene = DynamicGaussians(canonical)
     timings["assemble"] = clock.lap()
-    scene, index, stats = pipe.settle_and_prune(scene, grid, cameras, sources, photo)
+    if dynamic:  # every layer is observed: only the backdrop's cells that no camera sees go
+        index = torch.arange(N, device=dev)
+        keep = torch.ones(N, dtype=torch.bool, device=dev)
+        back = slice(n0, n0 + backdrop.num_gaussians)
+        keep[back], stats = prune_mask(scene.select(index[back]), cameras, min_opacity=cfg.prune_opacity)
+        scene, index = scene.select(keep), index[keep]
+        stats = {**stats, "before": N, "after": int(keep.sum()), "duplicates": 0, "slid": 0, "occluders": 0}
+    else:
+        scene, index, stats = pipe.settle_and_prune(scene, grid, cameras, sources, photo)
     timings["prune"] = clock.lap()
     return GenerationResult(scene=scene, cameras=cameras, latents=latents, steps=0, sampler="none", guidance=1.0,
                             shift=cfg.sampling.shift, timings=timings,
                             high_water=dict(zip(timings, clock.high_water, strict=False)), prune_stats=stats,
                             source_frames=sources, gaussian_index=index, eps2d=PHOTO_EPS2D,
-                            background=photo["background"], photo_psnr_db=photo["photo_psnr_db"],
-                            num_slots=int(grid.shape[0]), photo_gaussians=photo["photo_gaussians"])
+                            background=tuple(float(c) for c in images[0].reshape(-1, 3).mean(0)),
+                            photo_psnr_db=photo_psnr, num_slots=N, photo_gaussians=n0)
 
 
 def reconstruct(

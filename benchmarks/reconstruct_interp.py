@@ -1,0 +1,119 @@
+"""``reconstruct`` between the frames it was given: in-between frames rendered from the 4D scene against holding
+the previous frame and blending the two neighbours.
+
+    python benchmarks/reconstruct_interp.py (--video FILE_OR_DIR [--start K] [--stride S] | --data DIR)
+        [--frames T] [--resolution R] [--checkpoint DIR] [--device cpu] [--write]
+
+The clip given to :func:`diff4splat.reconstruct.reconstruct` is every other frame (frames start, start + 2S, …,
+T of them); the T − 1 frames between them are held out. Each is rendered from the scene at its time (halfway
+between its neighbours' clip times) and camera, and scored (PSNR of the mean squared error over all held-out
+frames, RGB in [0, 1]) against the true frame, beside two baselines that need no scene: the previous given frame
+held, and the mean of the two given neighbours (a cross-fade is not motion). ``--video``: a real video, still
+camera (the default of ``reconstruct``); ``--data``: each scene of a ``data_prep synth`` set (17 frames, so T = 9 at
+stride 2), its first camera's frames and true cameras. ``--write`` puts the table into docs/benchmarks.md
+(``reconstruct_interp``).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import markdown_table, publish  # noqa: E402
+
+from diff4splat.cameras import CameraPath  # noqa: E402
+from diff4splat.generate import load_pipeline  # noqa: E402
+from diff4splat.io import load_cameras_json  # noqa: E402
+from diff4splat.io.image import preprocess_image  # noqa: E402
+from diff4splat.io.video_input import read_video_clip  # noqa: E402
+from diff4splat.reconstruct import reconstruct, still_cameras  # noqa: E402
+from diff4splat.render.sequence import render_path  # noqa: E402
+from training.eval_metrics import psnr_from_mse  # noqa: E402
+
+
+def held_out_scores(loaded, video: Path, frames: int, stride: int, start: int, resolution: int | None,
+                    cameras: CameraPath | None) -> dict[str, float]:
+    """Squared errors summed over the held-out frames of one clip ({"scene", "hold", "blend"}: sum of per-frame MSE),
+    their count and the seconds ``reconstruct`` took. ``cameras``: the video's cameras at every frame (None: still)."""
+    pipe = loaded.pipeline
+    given = [start + 2 * stride * i for i in range(frames)]
+    between = [g + stride for g in given[:-1]]
+    width, height = pipe.output_size(resolution if resolution is not None else max(256, pipe.config.height))
+    path = None if cameras is None else _subset(cameras, given).fitted(width, height)
+    t0 = time.perf_counter()
+    gen = reconstruct(video, path, pipeline=loaded, frames=frames, stride=2 * stride, start=start,
+                      resolution=resolution)
+    seconds = time.perf_counter() - t0
+    H, W = gen.colors.shape[1:3]
+    clip = read_video_clip(video, 2 * frames - 1, stride, start)
+    truth = torch.stack([preprocess_image(f, (H, W)) for f in clip.frames])  # (2T − 1, H, W, 3)
+    times = (torch.arange(frames - 1, dtype=torch.float64) + 0.5) / (frames - 1)
+    if cameras is None:
+        mid = still_cameras(pipe, frames - 1, W, H)
+        mid = CameraPath(mid.viewmats, mid.Ks, W, H, times.float())
+    else:  # the in-between frames' own cameras, in the clip's frame (relative to its first camera)
+        mid = _subset(cameras, between).fitted(W, H)
+        first = cameras.viewmats[given[0]].double()
+        mid = CameraPath((mid.viewmats.double() @ torch.linalg.inv(first)).float(), mid.Ks, W, H, times.float())
+    scene = gen.result.scene
+    rendered = render_path(scene, mid.to(scene.canonical.means.device), eps2d=gen.result.eps2d,
+                           background=gen.result.background)[0].cpu()
+    target, prev, nxt = truth[1::2], truth[0:-1:2], truth[2::2]
+    mse = lambda a: float(((a - target) ** 2).mean(dim=(1, 2, 3)).sum())  # noqa: E731
+    return {"scene": mse(rendered), "hold": mse(prev), "blend": mse((prev + nxt) / 2), "frames": len(between),
+            "seconds": seconds}
+
+
+def _subset(cameras: CameraPath, index: list[int]) -> CameraPath:
+    return CameraPath(cameras.viewmats[index], cameras.Ks[index], cameras.width, cameras.height)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    source = ap.add_mutually_exclusive_group(required=True)
+    source.add_argument("--video", type=Path, help="a real video file or folder of frames (still camera)")
+    source.add_argument("--data", type=Path, help="a data_prep synth set (first camera of every scene)")
+    ap.add_argument("--start", type=int, default=0)
+    ap.add_argument("--stride", type=int, default=1, help="stride of the video's frames (the clip takes every 2nd)")
+    ap.add_argument("--frames", type=int, default=None, help="T given frames (default: 17, or 9 for --data)")
+    ap.add_argument("--resolution", type=int, default=None)
+    ap.add_argument("--checkpoint", type=Path, default=None)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--write", action="store_true")
+    args = ap.parse_args()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        loaded = load_pipeline(args.checkpoint, device=args.device)
+    if args.video is not None:
+        jobs = [(args.video, None)]
+        frames = args.frames or 17
+    else:
+        jobs = [(d / "cam00" / "rgb", load_cameras_json(d / "cam00" / "cameras.json"))
+                for d in sorted(args.data.iterdir()) if (d / "cam00").is_dir()]
+        frames = args.frames or 9
+    total = {"scene": 0.0, "hold": 0.0, "blend": 0.0, "frames": 0, "seconds": 0.0}
+    for video, cameras in jobs:
+        scores = held_out_scores(loaded, video, frames, args.stride, args.start, args.resolution, cameras)
+        total = {k: total[k] + scores[k] for k in total}
+        print(video, {k: round(psnr_from_mse(scores[k] / scores["frames"]), 2) for k in ("scene", "hold", "blend")},
+              flush=True)
+    n = total["frames"]
+    psnr = {k: psnr_from_mse(total[k] / n) for k in ("scene", "hold", "blend")}
+    rows = [["4D scene (`reconstruct`, rendered at the in-between times)", f"{psnr['scene']:.2f}",
+             f"{psnr['scene'] - psnr['hold']:+.2f}", f"{psnr['scene'] - psnr['blend']:+.2f}"],
+            ["previous given frame held", f"{psnr['hold']:.2f}", "—", "—"],
+            ["mean of the two given neighbours", f"{psnr['blend']:.2f}", "—", "—"]]
+    table = markdown_table(["in-between frames", "PSNR (dB)", "− hold", "− blend"], rows)
+    what = str(args.video) if args.video is not None else f"{len(jobs)} scenes of {args.data}"
+    publish("reconstruct_interp", f"`reconstruct` between its frames ({what}, {frames} given frames)",
+            f"{n} held-out frames; `reconstruct` took {total['seconds'] / len(jobs):.1f} s per clip (load, encode, "
+            "LDRM, motion, assembly, rendering).", table, args.write)
+
+
+if __name__ == "__main__":
+    main()
