@@ -1,0 +1,158 @@
+"""``diff4splat reconstruct`` (diff4splat/reconstruct.py, diff4splat/io/video_input.py): a video's clip is read as
+asked, its scene moves as the video does (in-between frames rendered from it beat holding the previous frame), a
+still video gives a static scene, and the command writes generate's folder or fails in one line."""
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from diff4splat.cli import main
+from diff4splat.generate import load_pipeline
+from diff4splat.io import load_image, save_image, save_video
+from diff4splat.io.video_input import read_video_clip
+from diff4splat.reconstruct import reconstruct, still_cameras
+from diff4splat.render.sequence import render_path
+
+TEXTURES = Path(__file__).resolve().parent.parent / "data_prep" / "textures"
+SIZE = 64
+
+
+def _moving_patch_video(frames: int, step: int = 1) -> np.ndarray:
+    """(frames, 64, 64, 3) uint8: a 20-pixel grass patch moving ``step`` pixels right per frame over coins."""
+    back = load_image(TEXTURES / "coins.png", (SIZE, SIZE))
+    patch = load_image(TEXTURES / "grass.png", (20, 20))
+    out = []
+    for t in range(frames):
+        img = back.clone()
+        x = 10 + step * t
+        img[22:42, x:x + 20] = patch
+        out.append((img.numpy() * 255).round().astype(np.uint8))
+    return np.stack(out)
+
+
+@pytest.fixture(scope="module")
+def videos(tmp_path_factory):
+    root = tmp_path_factory.mktemp("videos")
+    moving = _moving_patch_video(17)
+    (root / "moving").mkdir()
+    for i, frame in enumerate(moving):
+        save_image(root / "moving" / f"{i:04d}.png", frame)
+    save_video(root / "moving.mp4", moving)
+    (root / "still").mkdir()
+    for i in range(9):
+        save_image(root / "still" / f"{i:04d}.png", moving[0])
+    return root, moving
+
+
+@pytest.fixture(scope="module")
+def base_pipeline():
+    return load_pipeline(device="cpu")
+
+
+def test_a_clip_is_the_frames_asked_for(videos):
+    root, moving = videos
+    clip = read_video_clip(root / "moving", 5, stride=3, start=2)
+    assert clip.indices == [2, 5, 8, 11, 14] and clip.fps is None
+    for frame, i in zip(clip.frames, clip.indices, strict=True):
+        assert np.array_equal(frame, moving[i])  # PNG is lossless
+    video = read_video_clip(root / "moving.mp4", 5, stride=3, start=2)
+    assert video.indices == clip.indices and video.fps == pytest.approx(8.0)
+    for frame, i in zip(video.frames, video.indices, strict=True):  # MPEG-4 is lossy: close, and the right frame
+        err = np.abs(frame.astype(float) - moving[i]).mean()
+        assert err < 12 and all(err < np.abs(frame.astype(float) - moving[j]).mean() for j in (i - 1, i + 1))
+
+
+@pytest.mark.parametrize("source", ["moving", "moving.mp4"])
+def test_a_clip_longer_than_the_video_is_refused_with_the_numbers(videos, source):
+    root, _ = videos
+    with pytest.raises(ValueError, match=r"17 frame\(s\), but --start 10 --stride 2 --frames 5 needs 19"):
+        read_video_clip(root / source, 5, stride=2, start=10)
+
+
+def test_bad_clip_requests_are_refused(videos, tmp_path):
+    root, _ = videos
+    with pytest.raises(FileNotFoundError):
+        read_video_clip(tmp_path / "none.mp4", 5)
+    with pytest.raises(ValueError, match="--start"):
+        read_video_clip(root / "moving", 5, start=-1)
+    with pytest.raises(ValueError, match="--stride"):
+        read_video_clip(root / "moving", 5, stride=0)
+    with pytest.raises(ValueError, match="no image file"):
+        read_video_clip(tmp_path, 5)
+    (tmp_path / "junk.mp4").write_bytes(b"not a video")
+    with pytest.raises(ValueError, match="junk.mp4"):
+        read_video_clip(tmp_path / "junk.mp4", 5)
+
+
+def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float(-10 * torch.log10(((a - b) ** 2).mean()))
+
+
+def test_the_scene_moves_as_the_video_does(videos, base_pipeline):
+    """Every other frame of a patch moving 1 px per frame: the scene at its own frames shows them, and rendered at
+    the held-out frames between them it beats holding the previous given frame (the patch is where it was)."""
+    root, moving = videos
+    gen = reconstruct(root / "moving", pipeline=base_pipeline, frames=9, stride=2, resolution=SIZE)
+    scene = gen.result.scene
+    assert not scene.is_static and gen.kind == "reconstruct" and gen.meta["video_frames"] == list(range(0, 17, 2))
+    truth = torch.from_numpy(moving).float() / 255
+    for f in gen.result.source_frames.tolist():  # each source frame's layer is in front at its own time
+        assert _psnr(gen.colors[f], truth[2 * f]) > 30, f
+    times = (torch.arange(8, dtype=torch.float32) + 0.5) / 8
+    mid = still_cameras(base_pipeline.pipeline, 8, SIZE, SIZE)
+    mid = type(mid)(mid.viewmats, mid.Ks, SIZE, SIZE, times)
+    between = render_path(scene, mid, eps2d=gen.result.eps2d, background=gen.result.background)[0]
+    target, held = truth[1::2], truth[0:-1:2]
+    assert _psnr(between, target) > _psnr(held, target) + 1.0
+
+
+def test_a_still_video_gives_a_static_scene(videos, base_pipeline):
+    root, _ = videos
+    gen = reconstruct(root / "still", pipeline=base_pipeline, frames=9, resolution=SIZE)
+    assert gen.result.scene.is_static and not gen.result.scene.changes_with_time
+    assert gen.result.prune_stats["duplicates"] > 0  # the later frames' copies of frame 0 are settled away
+    assert _psnr(gen.colors[4], gen.colors[0]) > 60
+
+
+def test_the_command_writes_generate_s_folder(videos, tmp_path, capsys):
+    root, _ = videos
+    out = tmp_path / "out"
+    args = ["reconstruct", str(root / "moving.mp4"), "--frames", "9", "--stride", "2", "--resolution", str(SIZE),
+            "--device", "cpu", "--quiet", "--no-frame-plys", "--out", str(out)]
+    assert main(args) == 0
+    meta = json.loads((out / "meta.json").read_text())
+    marker = json.loads((out / ".diff4splat-output.json").read_text())
+    assert marker["kind"] == meta["kind"] == "reconstruct" and meta["video_frames"] == list(range(0, 17, 2))
+    assert meta["frames"] == 9 and not meta["static"] and (out / "deformation.npz").is_file()
+    assert (out / "scene.ply").is_file() and (out / "video.mp4").is_file() and (out / "viewer.html").is_file()
+    cams = json.loads((out / "cameras.json").read_text())
+    assert np.allclose(cams["times"], np.arange(9) / 8)
+    assert main(args) == 0  # its own earlier output is replaced
+    assert "wrote" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("case", ["missing", "frames_not_1_plus_4k", "too_short", "zero_stride", "generate_folder"])
+def test_bad_input_is_one_line_exit_2_and_no_output(videos, tmp_path, capsys, case):
+    root, _ = videos
+    out = tmp_path / "out"
+    args = ["reconstruct", str(root / "moving"), "--frames", "9", "--resolution", str(SIZE), "--device", "cpu",
+            "--quiet", "--out", str(out)]
+    if case == "missing":
+        args[1] = str(tmp_path / "none.mp4")
+    elif case == "frames_not_1_plus_4k":
+        args[3] = "8"
+    elif case == "too_short":
+        args += ["--start", "10"]
+    elif case == "zero_stride":
+        args += ["--stride", "0"]
+    else:  # an earlier generate output is another kind: not replaced
+        out.mkdir()
+        (out / ".diff4splat-output.json").write_text(json.dumps({"tool": "diff4splat", "kind": "generate",
+                                                                 "format": 2, "files": []}))
+    capsys.readouterr()
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("diff4splat: error:"), err
+    assert not out.exists() or case == "generate_folder"
