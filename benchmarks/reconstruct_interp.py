@@ -11,7 +11,7 @@ frames, RGB in [0, 1]) against the true frame, beside two baselines that need no
 held, and the mean of the two given neighbours (a cross-fade is not motion). ``--video``: a real video, still
 camera (the default of ``reconstruct``); ``--data``: each scene of a ``data_prep synth`` set (17 frames, so T = 9 at
 stride 2), its first camera's frames and true cameras. ``--write`` puts the table into docs/benchmarks.md
-(``reconstruct_interp``).
+(section ``reconstruct_interp_<label>``, ``--label`` default: the video's or set's name).
 """
 from __future__ import annotations
 
@@ -84,6 +84,8 @@ def main() -> None:
     ap.add_argument("--resolution", type=int, default=None)
     ap.add_argument("--checkpoint", type=Path, default=None)
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--label", default=None, help="section name suffix in docs/benchmarks.md")
+    ap.add_argument("--note", default="", help="a sentence on the clip for the table's note (e.g. how it was used)")
     ap.add_argument("--write", action="store_true")
     args = ap.parse_args()
     with warnings.catch_warnings():
@@ -110,9 +112,11 @@ def main() -> None:
             ["mean of the two given neighbours", f"{psnr['blend']:.2f}", "—", "—"]]
     table = markdown_table(["in-between frames", "PSNR (dB)", "− hold", "− blend"], rows)
     what = str(args.video) if args.video is not None else f"{len(jobs)} scenes of {args.data}"
-    publish("reconstruct_interp", f"`reconstruct` between its frames ({what}, {frames} given frames)",
-            f"{n} held-out frames; `reconstruct` took {total['seconds'] / len(jobs):.1f} s per clip (load, encode, "
-            "LDRM, motion, assembly, rendering).", table, args.write)
+    label = args.label or (args.video.stem if args.video is not None else args.data.name)
+    publish(f"reconstruct_interp_{label}", f"`reconstruct` between its frames ({what}, start {args.start}, "
+            f"{frames} given frames)", f"{args.note} {n} held-out frames; `reconstruct` took "
+            f"{total['seconds'] / len(jobs):.1f} s per clip (encode, LDRM, motion, assembly, rendering).".strip(),
+            table, args.write)
 
 
 if __name__ == "__main__":

@@ -81,8 +81,8 @@ def still_cameras(pipe: Diff4SplatPipeline, num_frames: int, width: int, height:
     """A camera that does not move: every frame the identity viewmat, the model's vertical field of view at
     ``width`` × ``height``; times i/(T−1)."""
     K = intrinsics_from_fov(width, height, fov_y_deg=pipe.config.fov_y_deg)
-    return CameraPath(torch.eye(4).expand(num_frames, 4, 4).clone(), K.expand(num_frames, 3, 3).clone(), width,
-                      height)
+    eye = torch.eye(4, device=K.device)
+    return CameraPath(eye.expand(num_frames, 4, 4).clone(), K.expand(num_frames, 3, 3).clone(), width, height)
 
 
 def _check_frames(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraPath) -> None:
