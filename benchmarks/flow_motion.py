@@ -11,7 +11,8 @@ The frames are the clip's own, or its round trip through the model's VAE (what a
 latents could see of it). With the true depth this is the route's upper bound: what the issue asks of a motion
 path reading the true video's latents is ≤ 0.5× holding still. Static clips report the spurious motion (mean
 displacement of their tracks, mm). Time: tracking and lifting one 17-frame 64² clip on one thread.
-``--write`` puts the table into docs/benchmarks.md (``flow_motion``).
+``--write`` puts the table into docs/benchmarks.md (section ``flow_motion_<label>``, ``--label`` default: the first
+set's folder name).
 """
 from __future__ import annotations
 
@@ -75,6 +76,8 @@ def main() -> None:
     ap.add_argument("--checkpoint", type=Path, default=None, help="model whose VAE makes the round trip (default: "
                     "the shipped base model)")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--label", default=None, help="section name suffix in docs/benchmarks.md")
+    ap.add_argument("--note", default="", help="a sentence on the sets for the table's note")
     ap.add_argument("--write", action="store_true")
     args = ap.parse_args()
     device = resolve_device(args.device)
@@ -120,9 +123,10 @@ def main() -> None:
                             "displacement error (m)", "× holding still", "δ 5 / 10 cm", "static clips (mm)",
                             "ms per clip"], rows)
     sets = ", ".join(str(d) for d in args.data)
-    publish("flow_motion", f"Scene flow from optical flow and true depth ({len(dynamic)} dynamic, {len(static)} "
-            f"static held-out clips)", f"Sets: {sets}; dynamic clips' {hold_row}. Frames 'true' unless the variant "
-            "says VAE round trip; depth always the true depth (the route's upper bound).", table, args.write)
+    publish(f"flow_motion_{args.label or args.data[0].name}", f"Scene flow from optical flow and true depth "
+            f"({sets}: {len(dynamic)} dynamic, {len(static)} static clips)", f"{args.note} Dynamic clips' {hold_row}. "
+            "Frames 'true' unless the variant says VAE round trip; depth always the true depth (the route's upper "
+            "bound).".strip(), table, args.write)
 
 
 if __name__ == "__main__":

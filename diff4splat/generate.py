@@ -43,7 +43,7 @@ from .render.sequence import render_path
 from .runtime import ATTENTION_KERNELS, DTYPES, check_offload
 
 __all__ = ["LoadedPipeline", "Generation", "load_pipeline", "generate", "write", "RUNTIMES", "cameras_from_file",
-           "generation_meta"]
+           "generation_meta", "resolve_pipeline", "check_frame_count"]
 
 RUNTIMES = ("torch", "onnxruntime")
 """What runs the networks: PyTorch, or onnxruntime over an ``export-onnx`` folder."""
@@ -161,6 +161,26 @@ class Generation:
     kind: str = "generate"
 
 
+def resolve_pipeline(pipeline: LoadedPipeline | Diff4SplatPipeline | Callable[[], LoadedPipeline] | None
+                     ) -> LoadedPipeline:
+    """The networks a request runs on: a :class:`LoadedPipeline` as given, a bare pipeline wrapped (source
+    "pipeline"), a zero-argument loader called now, or None for the shipped model on the ``auto`` device."""
+    loaded = pipeline() if callable(pipeline) and not isinstance(pipeline, Diff4SplatPipeline) else pipeline
+    if loaded is None:
+        return load_pipeline()
+    if isinstance(loaded, Diff4SplatPipeline):
+        return LoadedPipeline(loaded, "pipeline", dtype=None, offload=None)
+    return loaded
+
+
+def check_frame_count(pipe: Diff4SplatPipeline, frames: int) -> None:
+    """Raise ValueError naming ``--frames`` unless ``frames`` is a length the pipeline's VAE takes (T = 1 + 4k)."""
+    try:
+        pipe.config.vae.num_latent_frames(frames)
+    except ValueError:
+        raise ValueError(f"--frames {frames}: the frame count must be {pipe.runtime.latent.frames_rule}") from None
+
+
 def _check_request(image, cameras, trajectory, amplitude, frames, resolution, steps, seed, prompt, depth,
                    depth_kind, guidance) -> None:
     """The request's own checks, made before any model loads (messages name the command's flags)."""
@@ -274,17 +294,10 @@ def generate(
         raise ValueError(f"resolution={resolution} but the image tensor is {image.shape[0]} pixels high: a tensor "
                          "is used at its own resolution (resize it, or pass a photo file)")
     files = {"image": image, "cameras_file": cameras, "depth_file": depth}  # as given, for meta.json
-    loaded = pipeline() if callable(pipeline) and not isinstance(pipeline, Diff4SplatPipeline) else pipeline
-    if loaded is None:
-        loaded = load_pipeline()
-    elif isinstance(loaded, Diff4SplatPipeline):
-        loaded = LoadedPipeline(loaded, "pipeline", dtype=None, offload=None)
+    loaded = resolve_pipeline(pipeline)
     pipe, cfg = loaded.pipeline, loaded.pipeline.config
     if frames is not None:  # T = 1 + 4k, before any decoding
-        try:
-            cfg.vae.num_latent_frames(frames)
-        except ValueError:
-            raise ValueError(f"--frames {frames}: the frame count must be {pipe.runtime.latent.frames_rule}") from None
+        check_frame_count(pipe, frames)
     if isinstance(image, Tensor):
         height, width = int(image.shape[0]), int(image.shape[1])
         pipe.output_size(height)  # the resolution limit

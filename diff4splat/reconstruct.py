@@ -41,7 +41,14 @@ from .cameras import CameraPath, intrinsics_from_fov, invert_rigid
 from .checks import check_positive_int
 from .devices import Stopwatch
 from .gaussians import Gaussians
-from .generate import Generation, LoadedPipeline, cameras_from_file, generation_meta, load_pipeline
+from .generate import (
+    Generation,
+    LoadedPipeline,
+    cameras_from_file,
+    check_frame_count,
+    generation_meta,
+    resolve_pipeline,
+)
 from .io.image import preprocess_image
 from .io.inputs import check_input_file
 from .io.video_input import check_clip_request, read_video_clip
@@ -96,10 +103,7 @@ def _check_frames(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraPath)
         raise ValueError(f"frames are {W}×{H}; the model's aspect ratio is {cfg.width}:{cfg.height}")
     if len(cameras) != T or (cameras.width, cameras.height) != (W, H):
         raise ValueError(f"cameras: {len(cameras)} at {cameras.width}×{cameras.height}, the frames: {T} at {W}×{H}")
-    try:
-        pipe.runtime.latent.num_latent_frames(T)
-    except ValueError:
-        raise ValueError(f"--frames {T}: the frame count must be {pipe.runtime.latent.frames_rule}") from None
+    check_frame_count(pipe, T)
 
 
 def _layer_motion(motion: Tensor, height: int, width: int) -> Tensor:
@@ -268,17 +272,10 @@ def reconstruct(
         check_input_file(cameras, "--cameras")
     if resolution is not None:
         check_limit("resolution", check_positive_int("--resolution", resolution), "--resolution")
-    loaded = pipeline() if callable(pipeline) and not isinstance(pipeline, Diff4SplatPipeline) else pipeline
-    if loaded is None:
-        loaded = load_pipeline()
-    elif isinstance(loaded, Diff4SplatPipeline):
-        loaded = LoadedPipeline(loaded, "pipeline", dtype=None, offload=None)
+    loaded = resolve_pipeline(pipeline)
     pipe, cfg = loaded.pipeline, loaded.pipeline.config
     T = frames or cfg.num_frames
-    try:
-        cfg.vae.num_latent_frames(T)
-    except ValueError:
-        raise ValueError(f"--frames {T}: the frame count must be {pipe.runtime.latent.frames_rule}") from None
+    check_frame_count(pipe, T)
     width, height = pipe.output_size(resolution if resolution is not None else max(DEFAULT_RESOLUTION, cfg.height))
     clip = read_video_clip(video, T, stride, start)
     shape = clip.frames[0].shape[:2]
