@@ -8,10 +8,11 @@ The clip given to :func:`diff4splat.reconstruct.reconstruct` is every other fram
 T of them); the T − 1 frames between them are held out. Each is rendered from the scene at its time (halfway
 between its neighbours' clip times) and camera, and scored (PSNR of the mean squared error over all held-out
 frames, RGB in [0, 1]) against the true frame, beside two baselines that need no scene: the previous given frame
-held, and the mean of the two given neighbours (a cross-fade is not motion). ``--video``: a real video, still
-camera (the default of ``reconstruct``); ``--data``: each scene of a ``data_prep synth`` set (17 frames, so T = 9 at
-stride 2), its first camera's frames and true cameras. ``--write`` puts the table into docs/benchmarks.md
-(section ``reconstruct_interp_<label>``, ``--label`` default: the video's or set's name).
+held, and the mean of the two given neighbours (a cross-fade is not motion), for each ``--layers`` choice.
+``--video``: a real video, still camera (the default of ``reconstruct``); ``--data``: each scene of a
+``data_prep synth`` set (17 frames, so T = 9 at stride 2), its first camera's frames and true cameras.
+``--write`` puts the table into docs/benchmarks.md (section ``reconstruct_interp_<label>``, ``--label`` default:
+the video's or set's name).
 """
 from __future__ import annotations
 
@@ -31,15 +32,16 @@ from diff4splat.generate import load_pipeline  # noqa: E402
 from diff4splat.io import load_cameras_json  # noqa: E402
 from diff4splat.io.image import preprocess_image  # noqa: E402
 from diff4splat.io.video_input import read_video_clip  # noqa: E402
-from diff4splat.reconstruct import reconstruct, still_cameras  # noqa: E402
+from diff4splat.reconstruct import LAYERS, reconstruct, still_cameras  # noqa: E402
 from diff4splat.render.sequence import render_path  # noqa: E402
 from training.eval_metrics import psnr_from_mse  # noqa: E402
 
 
 def held_out_scores(loaded, video: Path, frames: int, stride: int, start: int, resolution: int | None,
-                    cameras: CameraPath | None) -> dict[str, float]:
+                    cameras: CameraPath | None, layers: str) -> dict[str, float]:
     """Squared errors summed over the held-out frames of one clip ({"scene", "hold", "blend"}: sum of per-frame MSE),
-    their count and the seconds ``reconstruct`` took. ``cameras``: the video's cameras at every frame (None: still)."""
+    their count, the seconds ``reconstruct`` took and its Gaussians. ``cameras``: the video's cameras at every frame
+    (None: still)."""
     pipe = loaded.pipeline
     given = [start + 2 * stride * i for i in range(frames)]
     between = [g + stride for g in given[:-1]]
@@ -47,7 +49,7 @@ def held_out_scores(loaded, video: Path, frames: int, stride: int, start: int, r
     path = None if cameras is None else _subset(cameras, given).fitted(width, height)
     t0 = time.perf_counter()
     gen = reconstruct(video, path, pipeline=loaded, frames=frames, stride=2 * stride, start=start,
-                      resolution=resolution)
+                      resolution=resolution, layers=layers)
     seconds = time.perf_counter() - t0
     H, W = gen.colors.shape[1:3]
     clip = read_video_clip(video, 2 * frames - 1, stride, start)
@@ -66,7 +68,7 @@ def held_out_scores(loaded, video: Path, frames: int, stride: int, start: int, r
     target, prev, nxt = truth[1::2], truth[0:-1:2], truth[2::2]
     mse = lambda a: float(((a - target) ** 2).mean(dim=(1, 2, 3)).sum())  # noqa: E731
     return {"scene": mse(rendered), "hold": mse(prev), "blend": mse((prev + nxt) / 2), "frames": len(between),
-            "seconds": seconds}
+            "seconds": seconds, "gaussians": scene.num_gaussians}
 
 
 def _subset(cameras: CameraPath, index: list[int]) -> CameraPath:
@@ -98,24 +100,28 @@ def main() -> None:
         jobs = [(d / "cam00" / "rgb", load_cameras_json(d / "cam00" / "cameras.json"))
                 for d in sorted(args.data.iterdir()) if (d / "cam00").is_dir()]
         frames = args.frames or 9
-    total = {"scene": 0.0, "hold": 0.0, "blend": 0.0, "frames": 0, "seconds": 0.0}
-    for video, cameras in jobs:
-        scores = held_out_scores(loaded, video, frames, args.stride, args.start, args.resolution, cameras)
-        total = {k: total[k] + scores[k] for k in total}
-        print(video, {k: round(psnr_from_mse(scores[k] / scores["frames"]), 2) for k in ("scene", "hold", "blend")},
-              flush=True)
-    n = total["frames"]
-    psnr = {k: psnr_from_mse(total[k] / n) for k in ("scene", "hold", "blend")}
-    rows = [["4D scene (`reconstruct`, rendered at the in-between times)", f"{psnr['scene']:.2f}",
-             f"{psnr['scene'] - psnr['hold']:+.2f}", f"{psnr['scene'] - psnr['blend']:+.2f}"],
-            ["previous given frame held", f"{psnr['hold']:.2f}", "—", "—"],
-            ["mean of the two given neighbours", f"{psnr['blend']:.2f}", "—", "—"]]
-    table = markdown_table(["in-between frames", "PSNR (dB)", "− hold", "− blend"], rows)
+    rows, psnr = [], {}
+    for layers in LAYERS:
+        total = {"scene": 0.0, "hold": 0.0, "blend": 0.0, "frames": 0, "seconds": 0.0, "gaussians": 0}
+        for video, cameras in jobs:
+            scores = held_out_scores(loaded, video, frames, args.stride, args.start, args.resolution, cameras, layers)
+            total = {k: total[k] + scores[k] for k in total}
+            print(video, layers, {k: round(psnr_from_mse(scores[k] / scores["frames"]), 2)
+                                  for k in ("scene", "hold", "blend")}, flush=True)
+        n = total["frames"]
+        psnr = {k: psnr_from_mse(total[k] / n) for k in ("scene", "hold", "blend")}
+        rows.append([f"4D scene, `--layers {layers}`", f"{psnr['scene']:.2f}", f"{psnr['scene'] - psnr['hold']:+.2f}",
+                     f"{psnr['scene'] - psnr['blend']:+.2f}", f"{total['seconds'] / len(jobs):.1f}",
+                     f"{total['gaussians'] // len(jobs):,}"])
+    rows += [["previous given frame held", f"{psnr['hold']:.2f}", "—", "—", "—", "—"],
+             ["mean of the two given neighbours", f"{psnr['blend']:.2f}", "—", "—", "—", "—"]]
+    table = markdown_table(["in-between frames", "PSNR (dB)", "− hold", "− blend", "`reconstruct` s per clip",
+                            "Gaussians"], rows)
     what = str(args.video) if args.video is not None else f"{len(jobs)} scenes of {args.data}"
     label = args.label or (args.video.stem if args.video is not None else args.data.name)
     publish(f"reconstruct_interp_{label}", f"`reconstruct` between its frames ({what}, start {args.start}, "
-            f"{frames} given frames)", f"{args.note} {n} held-out frames; `reconstruct` took "
-            f"{total['seconds'] / len(jobs):.1f} s per clip (encode, LDRM, motion, assembly, rendering).".strip(),
+            f"{frames} given frames)", f"{args.note} {n} held-out frames, rendered at their times; `reconstruct`'s "
+            "seconds: load excluded (encode, LDRM, motion, assembly, rendering the given frames).".strip(),
             table, args.write)
 
 

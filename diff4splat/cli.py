@@ -24,7 +24,7 @@ from .generate_cli import add_generate_parser, generate_command
 from .io.output_folders import check_output_dir
 from .io.video import DEFAULT_FPS, check_fps
 from .pipeline import load_model
-from .reconstruct import RECONSTRUCT_KIND, reconstruct
+from .reconstruct import DEFAULT_LAYERS, LAYERS, RECONSTRUCT_KIND, reconstruct
 from .render_command import rerender
 from .viewer_server import serve
 
@@ -123,6 +123,10 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
                          "(default: a still camera with the model's field of view)")
     rc.add_argument("--resolution", type=int, default=None,
                     help="output height in pixels (default: 256, or the model's if larger)")
+    rc.add_argument("--layers", choices=LAYERS, default=DEFAULT_LAYERS,
+                    help="frames kept as photo layers: every frame (T·1.25 Gaussians per output pixel), or the "
+                         "LDRM's source frames 0, 4, 8, … (a quarter; coarser between frames) "
+                         f"(default: {DEFAULT_LAYERS})")
     rc.add_argument("--checkpoint", type=Path, default=None,
                     help="model folder (default: the shipped weights of --config)")
     rc.add_argument("--config", default=None, help=config_help)
@@ -189,7 +193,7 @@ def reconstruct_command(args) -> dict:
     generation = reconstruct(
         args.video, args.cameras, pipeline=lambda: print_warnings(load_pipeline, args.checkpoint, args.config,
                                                                   device=args.device),
-        frames=args.frames, stride=args.stride, start=args.start, resolution=args.resolution,
+        frames=args.frames, stride=args.stride, start=args.start, resolution=args.resolution, layers=args.layers,
         progress=not args.quiet, out=args.out, frame_plys=args.frame_plys)
     return write(generation, args.out, fps=args.fps, overwrite=args.overwrite)
 

@@ -53,15 +53,25 @@ from .io.image import preprocess_image
 from .io.inputs import check_input_file
 from .io.video_input import check_clip_request, read_video_clip
 from .limits import check_limit, check_memory, check_output_size
-from .photo import PHOTO_EPS2D, backdrop_layer, photo_layer, upsample_depth
-from .pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, GenerationResult
+from .photo import PHOTO_EPS2D, backdrop_layer, layer_sizes, photo_layer, upsample_depth
+from .pipeline import (
+    DEFAULT_RESOLUTION,
+    MEMORY_BASE_BYTES,
+    MEMORY_BYTES_PER_GAUSSIAN,
+    MEMORY_CUDA_BUILD_BYTES,
+    MEMORY_SCENE_COPIES,
+    Diff4SplatPipeline,
+    GenerationResult,
+)
 from .prune import prune_mask
 from .render.sequence import render_path
+from .runtime import TorchRuntime
 from .scene import DynamicGaussians
-from .scene_flow import source_frame_motion
+from .scene_flow import chain_flows, consecutive_flows, sample_pixels, source_frame_motion
 
-__all__ = ["reconstruct", "reconstruct_scene", "still_cameras", "time_push", "RECONSTRUCT_KIND", "TIME_PUSH",
-           "FLOW_SIZE", "GATE_PX", "FB_TOLERANCE_PX", "MOVING_FRACTION"]
+__all__ = ["reconstruct", "reconstruct_scene", "still_cameras", "time_push", "carried_depth", "check_layers",
+           "RECONSTRUCT_KIND", "TIME_PUSH", "FLOW_SIZE", "GATE_PX", "FB_TOLERANCE_PX", "MOVING_FRACTION", "LAYERS",
+           "DEFAULT_LAYERS", "scene_slots", "memory_estimate"]
 
 RECONSTRUCT_KIND = "reconstruct"
 """Marker kind of a ``reconstruct`` output folder (the layout is ``generate``'s)."""
@@ -79,6 +89,11 @@ FB_TOLERANCE_PX = 1.5
 MOVING_FRACTION = 0.005
 """A clip is dynamic when, at some frame, more than this fraction of a source frame's pixels has moved by more than
 the config's ``static_atol``: a still video's few pixels of codec noise above the gate do not make it move."""
+LAYERS = ("every", "source")
+"""Which frames of the clip become photo layers (``--layers``, :func:`reconstruct_scene`)."""
+DEFAULT_LAYERS = "every"
+"""Every frame: an in-between time is drawn from its two neighbours' pixels (the held-out bikes shots: docs/
+benchmarks.md, "`reconstruct` between its frames"), at T·1.25 Gaussians per output pixel."""
 FLOW_SIZE = 256
 """Pixels of height the frames are tracked at: the output resolution upsampled by the nearest whole factor
 (``scene_flow.optical_flow``'s ``upsample``; 4 × 64 px was the best of 1, 2 and 4 on the held-out tracks)."""
@@ -104,6 +119,32 @@ def _check_frames(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraPath)
     if len(cameras) != T or (cameras.width, cameras.height) != (W, H):
         raise ValueError(f"cameras: {len(cameras)} at {cameras.width}×{cameras.height}, the frames: {T} at {W}×{H}")
     check_frame_count(pipe, T)
+
+
+def check_layers(layers: object) -> str:
+    """``layers`` if it is one of :data:`LAYERS`; else ValueError naming ``--layers``."""
+    if layers not in LAYERS:
+        raise ValueError(f"--layers must be one of {LAYERS}, got {layers!r}")
+    return layers
+
+
+def carried_depth(depths: Tensor, sources: list[int], frame: int, flows: tuple[Tensor, Tensor]) -> Tensor:
+    """The z-depth map (H, W) of video frame ``frame``: its own source frame's, or the nearest source frame's
+    (the earlier on a tie) sampled where :func:`diff4splat.scene_flow.chain_flows` carries each pixel to it — a
+    point keeps its depth over the one or two frames between (the camera's motion over them is not applied).
+
+    Args:
+        depths: (S, H, W) z-depths of the source frames ``sources`` (increasing frame indices).
+        flows: the video's :func:`diff4splat.scene_flow.consecutive_flows` at (H, W).
+    """
+    if frame in sources:
+        return depths[sources.index(frame)]
+    s = min(range(len(sources)), key=lambda i: (abs(sources[i] - frame), sources[i]))
+    f = sources[s]
+    fw, bw = flows
+    pair = (fw[frame:f], bw[frame:f]) if f > frame else (bw[f:frame].flip(0), fw[f:frame].flip(0))
+    positions, _ = chain_flows(*pair, fb_tolerance=float("inf"))
+    return sample_pixels(depths[s][None, ..., None], positions[-1][None])[0, ..., 0]
 
 
 def _layer_motion(motion: Tensor, height: int, width: int) -> Tensor:
@@ -134,25 +175,30 @@ def time_push(layer: Gaussians, d_means: Tensor, frame: int, centre: Tensor) -> 
 
 
 @torch.no_grad()
-def reconstruct_scene(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraPath) -> GenerationResult:
+def reconstruct_scene(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraPath, *,
+                      layers: str = DEFAULT_LAYERS) -> GenerationResult:
     """The 4D scene of a video clip (module docstring).
 
     Args:
         pipe: the networks (their VAE encoder and LDRM run; no text encoder, no DiT).
         frames: (T, H, W, 3) RGB in [0, 1] at the output resolution and the model's aspect ratio, T = 1 + 4k.
         cameras: the T cameras at the output resolution (re-expressed relative to the first).
+        layers: which frames become photo layers (:data:`LAYERS`): "every" frame, or the LDRM's "source" frames
+            (0, 4, 8, …: a quarter of the Gaussians, each in-between frame drawn from pixels up to two frames away).
 
     Returns:
         :class:`~diff4splat.pipeline.GenerationResult` (``steps`` 0, ``sampler`` "none": nothing sampled;
-        ``latents``: the video's own). Its unpruned order (``gaussian_index``, ``num_slots``): the photo layer of
-        frame 0 (``photo_gaussians``), the backdrop, then the photo layers of source frames 1…S−1 (each H·W front
-        then ⌈H/2⌉·⌈W/2⌉ backing disks); the deformation's key times are the frames' times.
+        ``latents``: the video's own; ``source_frames``: the frames that are layers). Its unpruned order
+        (``gaussian_index``, ``num_slots``): the photo layer of frame 0 (``photo_gaussians``), the backdrop, then the
+        photo layers of the other layer frames (each H·W front then ⌈H/2⌉·⌈W/2⌉ backing disks); the deformation's key
+        times are the frames' times.
 
     Raises:
         ValueError: frames not (T, H, W, 3) in [0, 1] at the model's aspect ratio, T ≠ 1 + 4k, cameras not T at
-            (W, H); a camera path that sees none of the scene.
+            (W, H), an unknown ``layers``; a camera path that sees none of the scene.
     """
     _check_frames(pipe, frames, cameras)
+    check_layers(layers)
     cfg, runtime, dev = pipe.config, pipe.runtime, pipe.device
     T, H, W = frames.shape[:3]
     cameras = cameras.relative_to_first().to(dtype=torch.float32, device=dev)
@@ -169,19 +215,21 @@ def reconstruct_scene(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraP
                                    runtime.latent.temporal_factor)
     sources = torch.tensor(indices, device=dev)
     z_model = z_depth(out.distance[0], cameras_model.viewmats[sources], cameras_model.Ks[sources])  # (S, h, w)
-    z = torch.stack([upsample_depth(z_model[s], images[f]) for s, f in enumerate(indices)])  # (S, H, W)
+    z_src = torch.stack([upsample_depth(z_model[s], images[f]) for s, f in enumerate(indices)])  # (S, H, W)
     timings["reconstruct"] = clock.lap()
-    motion = source_frame_motion(images.permute(0, 3, 1, 2), z, indices, cameras.Ks, cameras.viewmats,
-                                 upsample=max(1, round(FLOW_SIZE / H)), fb_tolerance=FB_TOLERANCE_PX,
-                                 gate_px=GATE_PX)  # (T, S, H, W, 3)
-    moved = (motion.abs() > cfg.static_atol).any(dim=-1).flatten(2).float().mean(dim=-1)  # (T, S)
+    flows = consecutive_flows(images.permute(0, 3, 1, 2), upsample=max(1, round(FLOW_SIZE / H)))
+    frames_of = list(range(T)) if layers == "every" else indices  # the frames that become layers
+    z = torch.stack([carried_depth(z_src, indices, f, flows) for f in frames_of])  # (L, H, W)
+    motion = source_frame_motion(images.permute(0, 3, 1, 2), z, frames_of, cameras.Ks, cameras.viewmats,
+                                 fb_tolerance=FB_TOLERANCE_PX, gate_px=GATE_PX, flows=flows)  # (T, L, H, W, 3)
+    moved = (motion.abs() > cfg.static_atol).any(dim=-1).flatten(2).float().mean(dim=-1)  # (T, L)
     dynamic = bool((moved > MOVING_FRACTION).any())
     if not dynamic:
         motion = motion.zero_()
     timings["motion"] = clock.lap()
     centres = invert_rigid(cameras.viewmats)[:, :3, 3]
     layers, d_means, d_scales, grid = [], [], [], []
-    for s, f in enumerate(indices):
+    for s, f in enumerate(frames_of):
         layer, history = photo_layer(images[f], z[s], cameras.viewmats[f], cameras.Ks[f])
         if s == 0:
             photo_psnr = history[-1]
@@ -216,14 +264,35 @@ def reconstruct_scene(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraP
         scene, index = scene.select(keep), index[keep]
         stats = {**stats, "before": N, "after": int(keep.sum()), "duplicates": 0, "slid": 0, "occluders": 0}
     else:
-        scene, index, stats = pipe.settle_and_prune(scene, grid, cameras, sources, photo)
+        scene, index, stats = pipe.settle_and_prune(scene, grid, cameras, torch.tensor(frames_of, device=dev), photo)
     timings["prune"] = clock.lap()
     return GenerationResult(scene=scene, cameras=cameras, latents=latents, steps=0, sampler="none", guidance=1.0,
                             shift=cfg.sampling.shift, timings=timings,
                             high_water=dict(zip(timings, clock.high_water, strict=False)), prune_stats=stats,
-                            source_frames=sources, gaussian_index=index, eps2d=PHOTO_EPS2D,
+                            source_frames=torch.tensor(frames_of, device=dev), gaussian_index=index, eps2d=PHOTO_EPS2D,
                             background=tuple(float(c) for c in images[0].reshape(-1, 3).mean(0)),
                             photo_psnr_db=photo_psnr, num_slots=N, photo_gaussians=n0)
+
+
+def scene_slots(width: int, height: int, num_layers: int) -> int:
+    """Gaussians of the unpruned scene of ``num_layers`` photo layers at ``width`` × ``height`` and frame 0's
+    backdrop (:func:`diff4splat.photo.layer_sizes`): ``GenerationResult.num_slots``."""
+    photo, backdrop = layer_sizes(width, height)
+    return num_layers * photo + backdrop
+
+
+def memory_estimate(pipe: Diff4SplatPipeline, width: int, height: int, frames: int, num_layers: int) -> int:
+    """Upper bound of ``reconstruct``'s peak host memory, bytes (as :meth:`Diff4SplatPipeline.memory_estimate`,
+    whose constants it uses): the process and the weights in host memory; per Gaussian slot
+    (:func:`scene_slots`) its attributes and the deformation at T key times (10 floats) × the copies alive at once;
+    the motion maps, T × layers × H × W × 3 floats, twice (the maps and the layers' copies); the consecutive flows;
+    the frames and their renders, T × H × W × 5 floats, twice."""
+    slots = scene_slots(width, height, num_layers)
+    weights = pipe.runtime.host_weight_bytes() if isinstance(pipe.runtime, TorchRuntime) else 0
+    base = MEMORY_BASE_BYTES + (MEMORY_CUDA_BUILD_BYTES if torch.backends.cuda.is_built() else 0)
+    pixels = width * height
+    return int(base + weights + slots * (MEMORY_BYTES_PER_GAUSSIAN + 40 * frames * MEMORY_SCENE_COPIES)
+               + 2 * 12 * frames * num_layers * pixels + 16 * frames * pixels + 2 * 20 * frames * pixels)
 
 
 def reconstruct(
@@ -235,6 +304,7 @@ def reconstruct(
     stride: int = 1,
     start: int = 0,
     resolution: int | None = None,
+    layers: str = DEFAULT_LAYERS,
     progress: bool = False,
     out: str | os.PathLike | None = None,
     frame_plys: bool = True,
@@ -250,6 +320,7 @@ def reconstruct(
         stride, start: the clip is frames ``start + stride·i`` of the video.
         resolution: output height, pixels (default: 256, or the model's height if larger); every frame is
             centre-cropped to the model's aspect ratio and resized (as ``generate``'s photograph).
+        layers: which frames become photo layers (:func:`reconstruct_scene`).
         progress: tqdm progress bar while rendering.
         out, frame_plys: as :func:`diff4splat.generate.generate`.
 
@@ -272,6 +343,7 @@ def reconstruct(
         check_input_file(cameras, "--cameras")
     if resolution is not None:
         check_limit("resolution", check_positive_int("--resolution", resolution), "--resolution")
+    check_layers(layers)
     loaded = resolve_pipeline(pipeline)
     pipe, cfg = loaded.pipeline, loaded.pipeline.config
     T = frames or cfg.num_frames
@@ -286,10 +358,13 @@ def reconstruct(
         path = cameras
     else:
         path = cameras_from_file(Path(cameras), T, shape, width, height)
-    check_output_size(T, width, height, pipe.scene_slots(width, height, T), knobs="--frames or --resolution", out=out,
+    num_layers = T if layers == "every" else len(source_frame_indices(
+        cfg.ldrm.gaussian_frames, pipe.runtime.latent.num_latent_frames(T), pipe.runtime.latent.temporal_factor))
+    knobs = "--frames, --resolution or --layers source"
+    check_output_size(T, width, height, scene_slots(width, height, num_layers), knobs=knobs, out=out,
                       frame_plys=frame_plys)
-    check_memory(pipe.memory_estimate(width, height, T), f"{T} frames at {width}×{height}", "--frames or --resolution")
-    result = reconstruct_scene(pipe, images, path)
+    check_memory(memory_estimate(pipe, width, height, T, num_layers), f"{T} frames at {width}×{height}", knobs)
+    result = reconstruct_scene(pipe, images, path, layers=layers)
     t0 = time.perf_counter()
     colors, depths, alphas = render_path(result.scene, result.cameras, eps2d=result.eps2d,
                                          background=result.background, progress=progress)
@@ -299,7 +374,7 @@ def reconstruct(
     for key in ("image", "prompt", "trajectory", "seed", "steps", "sampler", "guidance", "shift", "depth_file",
                 "depth_kind"):
         meta.pop(key)
-    meta.update(video=str(video), video_frames=clip.indices, video_fps=clip.fps, kind=RECONSTRUCT_KIND,
+    meta.update(video=str(video), video_frames=clip.indices, video_fps=clip.fps, kind=RECONSTRUCT_KIND, layers=layers,
                 frame_plys=bool(frame_plys) and result.scene.changes_with_time)
     inputs = [Path(video)] + ([Path(cameras)] if isinstance(cameras, (str, os.PathLike)) else []) + list(loaded.files)
     return Generation(result, colors, depths, alphas, meta, inputs, cfg.scene_depth, time.perf_counter() - t_start,

@@ -36,8 +36,8 @@ from torch import Tensor
 from .cameras import invert_rigid
 from .checks import check_positive_int
 
-__all__ = ["DIS_PRESETS", "FLOW_UPSAMPLE", "FB_TOLERANCE_PX", "GATE_PX", "optical_flow", "track_pixels",
-           "lift_tracks", "source_frame_motion", "sample_pixels", "pixel_centres"]
+__all__ = ["DIS_PRESETS", "FLOW_UPSAMPLE", "FB_TOLERANCE_PX", "GATE_PX", "optical_flow", "consecutive_flows",
+           "chain_flows", "track_pixels", "lift_tracks", "source_frame_motion", "sample_pixels", "pixel_centres"]
 
 DIS_PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
                "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
@@ -114,9 +114,65 @@ def pixel_centres(height: int, width: int, like: Tensor) -> Tensor:
     return torch.stack([u, v], dim=-1)
 
 
+def consecutive_flows(frames: Tensor, *, upsample: int = FLOW_UPSAMPLE, preset: str = "medium"
+                      ) -> tuple[Tensor, Tensor]:
+    """The optical flows between consecutive frames, both ways (:func:`optical_flow`): what :func:`chain_flows`
+    follows pixels through, computed once for a video.
+
+    Args:
+        frames: (T, 3, H, W) RGB in [0, 1], T ≥ 2.
+
+    Returns:
+        forward (T − 1, H, W, 2): frame t → t + 1 at t; backward (T − 1, H, W, 2): frame t + 1 → t at t.
+
+    Raises:
+        ValueError: ``frames`` not (T, 3, H, W) with T ≥ 2, or as :func:`optical_flow`.
+    """
+    if frames.dim() != 4 or frames.shape[1] != 3 or frames.shape[0] < 2:
+        raise ValueError(f"frames must be (T, 3, H, W) with T ≥ 2, got {tuple(frames.shape)}")
+    return (optical_flow(frames[:-1], frames[1:], upsample=upsample, preset=preset),
+            optical_flow(frames[1:], frames[:-1], upsample=upsample, preset=preset))
+
+
+def chain_flows(forward: Tensor, backward: Tensor, *, fb_tolerance: float = FB_TOLERANCE_PX) -> tuple[Tensor, Tensor]:
+    """Follow every pixel of the first frame through a sequence given its consecutive flows (module docstring,
+    step 2): ``forward[k]`` maps frame k to k + 1 of the sequence, ``backward[k]`` frame k + 1 to k (for a sequence
+    running backwards in time, pass :func:`consecutive_flows`' flows reversed and swapped).
+
+    Args:
+        forward, backward: (T − 1, H, W, 2) pixel displacements.
+        fb_tolerance: forward-backward tolerance, pixels (> 0; ``inf`` keeps every track).
+
+    Returns:
+        positions: (T, H, W, 2) pixel positions of the first frame's pixels in each frame (frame 0: the centres).
+        tracked: (T, H, W) bool, False from the step at which the track was lost (its position is then held).
+
+    Raises:
+        ValueError: flows of different or wrong shapes, ``fb_tolerance`` not > 0.
+    """
+    if forward.dim() != 4 or forward.shape[-1] != 2 or forward.shape != backward.shape:
+        raise ValueError(f"forward and backward must both be (T − 1, H, W, 2), got {tuple(forward.shape)} and "
+                         f"{tuple(backward.shape)}")
+    if not float(fb_tolerance) > 0:
+        raise ValueError(f"fb_tolerance must be > 0 pixels, got {fb_tolerance}")
+    _, H, W, _ = forward.shape
+    uv = pixel_centres(H, W, forward)
+    positions, tracked = [uv], [torch.ones(H, W, dtype=torch.bool, device=forward.device)]
+    for k in range(forward.shape[0]):
+        step = sample_pixels(forward[k:k + 1], uv[None])[0]
+        moved = uv + step
+        back = sample_pixels(backward[k:k + 1], moved[None])[0]
+        inside = (moved[..., 0] >= 0) & (moved[..., 0] <= W) & (moved[..., 1] >= 0) & (moved[..., 1] <= H)
+        ok = tracked[-1] & inside & ((step + back).norm(dim=-1) <= fb_tolerance)
+        uv = torch.where(ok[..., None], moved, uv)
+        positions.append(uv)
+        tracked.append(ok)
+    return torch.stack(positions), torch.stack(tracked)
+
+
 def track_pixels(frames: Tensor, *, upsample: int = FLOW_UPSAMPLE, fb_tolerance: float = FB_TOLERANCE_PX,
                  preset: str = "medium") -> tuple[Tensor, Tensor]:
-    """Follow every pixel of frame 0 through the frames (module docstring, step 2).
+    """Follow every pixel of frame 0 through the frames: :func:`consecutive_flows` then :func:`chain_flows`.
 
     Args:
         frames: (T, 3, H, W) RGB in [0, 1], T ≥ 1, any device.
@@ -134,22 +190,11 @@ def track_pixels(frames: Tensor, *, upsample: int = FLOW_UPSAMPLE, fb_tolerance:
         raise ValueError(f"frames must be (T, 3, H, W) with T ≥ 1, got {tuple(frames.shape)}")
     if not float(fb_tolerance) > 0:
         raise ValueError(f"fb_tolerance must be > 0 pixels, got {fb_tolerance}")
-    T, _, H, W = frames.shape
-    uv = pixel_centres(H, W, frames.float())
-    positions, tracked = [uv], [torch.ones(H, W, dtype=torch.bool, device=frames.device)]
-    if T > 1:
-        fw = optical_flow(frames[:-1], frames[1:], upsample=upsample, preset=preset)  # (T-1, H, W, 2)
-        bw = optical_flow(frames[1:], frames[:-1], upsample=upsample, preset=preset)
-    for t in range(1, T):
-        step = sample_pixels(fw[t - 1:t], uv[None])[0]
-        moved = uv + step
-        back = sample_pixels(bw[t - 1:t], moved[None])[0]
-        inside = (moved[..., 0] >= 0) & (moved[..., 0] <= W) & (moved[..., 1] >= 0) & (moved[..., 1] <= H)
-        ok = tracked[-1] & inside & ((step + back).norm(dim=-1) <= fb_tolerance)
-        uv = torch.where(ok[..., None], moved, uv)
-        positions.append(uv)
-        tracked.append(ok)
-    return torch.stack(positions), torch.stack(tracked)
+    if frames.shape[0] == 1:
+        H, W = frames.shape[-2:]
+        return (pixel_centres(H, W, frames.float())[None],
+                torch.ones(1, H, W, dtype=torch.bool, device=frames.device))
+    return chain_flows(*consecutive_flows(frames, upsample=upsample, preset=preset), fb_tolerance=fb_tolerance)
 
 
 def _nearest_depth(depth: Tensor, uv: Tensor, expected: Tensor) -> Tensor:
@@ -246,13 +291,13 @@ def lift_tracks(positions: Tensor, tracked: Tensor, depths: Tensor, Ks: Tensor, 
 
 def source_frame_motion(frames: Tensor, depths: Tensor, sources: list[int], Ks: Tensor, viewmats: Tensor, *,
                         upsample: int = FLOW_UPSAMPLE, fb_tolerance: float = FB_TOLERANCE_PX,
-                        gate_px: float = GATE_PX) -> Tensor:
+                        gate_px: float = GATE_PX, flows: tuple[Tensor, Tensor] | None = None) -> Tensor:
     """Displacement of every pixel of each source frame at every frame of the video: the scene flow of
     pixel-aligned Gaussians (docs/DESIGN.md, "Data flow of generate", step 6) measured from the frames.
 
     Source frame s (video frame f = ``sources[s]``) is tracked forward through frames f … T−1 and backward through
-    f … 0 (:func:`track_pixels`) and lifted (:func:`lift_tracks`) with the depth maps of the source frames on
-    each side, which are the only frames with depth.
+    f … 0 (:func:`chain_flows` over the video's :func:`consecutive_flows`, computed once) and lifted
+    (:func:`lift_tracks`) with the depth maps of the source frames on each side, which are the only frames with depth.
 
     Args:
         frames: (T, 3, H, W) RGB in [0, 1].
@@ -260,6 +305,7 @@ def source_frame_motion(frames: Tensor, depths: Tensor, sources: list[int], Ks: 
         sources: S video frame indices, increasing, within [0, T).
         Ks, viewmats: (T, 3, 3), (T, 4, 4) the video's cameras.
         upsample, fb_tolerance, gate_px: as :func:`track_pixels` and :func:`lift_tracks`.
+        flows: the video's :func:`consecutive_flows` when already computed (``upsample`` is then not used).
 
     Returns:
         (T, S, H, W, 3) displacement Δμ(t) of each source pixel's point from its position at its own frame,
@@ -267,7 +313,7 @@ def source_frame_motion(frames: Tensor, depths: Tensor, sources: list[int], Ks: 
 
     Raises:
         ValueError: ``depths`` not (S, H, W) for the S ``sources``, sources not increasing within [0, T), or as
-            :func:`track_pixels` and :func:`lift_tracks`.
+            :func:`chain_flows` and :func:`lift_tracks`.
     """
     T, _, H, W = frames.shape
     sources = [int(f) for f in sources]
@@ -276,13 +322,16 @@ def source_frame_motion(frames: Tensor, depths: Tensor, sources: list[int], Ks: 
         raise ValueError(f"depths {tuple(depths.shape)} must be (S, {H}, {W}) for S increasing sources within "
                          f"[0, {T}), got sources {sources}")
     out = depths.new_zeros(T, len(sources), H, W, 3, dtype=torch.promote_types(depths.dtype, torch.float32))
+    if T < 2:
+        return out
+    fw, bw = consecutive_flows(frames, upsample=upsample) if flows is None else flows
     for s, f in enumerate(sources):
-        for step in (1, -1):  # forward from f, then backward from f
-            order = list(range(f, T)) if step == 1 else list(range(f, -1, -1))
+        for order, forward, backward in ((list(range(f, T)), fw[f:], bw[f:]),  # forward in time from f
+                                         (list(range(f, -1, -1)), bw[:f].flip(0), fw[:f].flip(0))):  # backward
             if len(order) < 2:
                 continue
             keys = [i for i, frame in enumerate(order) if frame in sources]
-            positions, tracked = track_pixels(frames[order], upsample=upsample, fb_tolerance=fb_tolerance)
+            positions, tracked = chain_flows(forward, backward, fb_tolerance=fb_tolerance)
             points, _ = lift_tracks(positions, tracked, depths[[sources.index(order[i]) for i in keys]],
                                     Ks[order], viewmats[order], depth_frames=keys, gate_px=gate_px)
             out[order, s] = (points - points[:1]).to(out.dtype)
