@@ -12,8 +12,9 @@ from diff4splat.cli import main
 from diff4splat.generate import load_pipeline
 from diff4splat.io import load_image, save_image, save_video
 from diff4splat.io.video_input import read_video_clip
-from diff4splat.reconstruct import reconstruct, still_cameras
+from diff4splat.reconstruct import carried_depth, reconstruct, still_cameras
 from diff4splat.render.sequence import render_path
+from diff4splat.scene_flow import consecutive_flows
 
 TEXTURES = Path(__file__).resolve().parent.parent / "data_prep" / "textures"
 SIZE = 64
@@ -106,6 +107,32 @@ def test_the_scene_moves_as_the_video_does(videos, base_pipeline):
     between = render_path(scene, mid, eps2d=gen.result.eps2d, background=gen.result.background)[0]
     target, held = truth[1::2], truth[0:-1:2]
     assert _psnr(between, target) > _psnr(held, target) + 1.0
+
+
+def test_a_frame_s_depth_is_carried_from_the_nearest_source_frame_along_the_flow():
+    """Content moving 2 px right per frame: frame 1's pixel u was at u − 2 in source frame 0, so it takes the depth
+    there (a depth ramp along x makes that visible); frame 3 takes source frame 4's depth at u + 2."""
+    back = load_image(TEXTURES / "coins.png", (96, 96))
+    frames = torch.stack([back[10:10 + SIZE, 20 - 2 * t:20 - 2 * t + SIZE].permute(2, 0, 1) for t in range(5)])
+    ramp = 1.0 + 0.01 * (torch.arange(SIZE, dtype=torch.float32) + 0.5)
+    depths = torch.stack([ramp.expand(SIZE, SIZE), 2 * ramp.expand(SIZE, SIZE)])  # sources 0 and 4
+    flows = consecutive_flows(frames)
+    inner = (slice(8, -8), slice(8, -8))
+    z1 = carried_depth(depths, [0, 4], 1, flows)
+    assert abs(float((z1 - (ramp - 0.02).expand(SIZE, SIZE))[inner].median())) < 0.003
+    z3 = carried_depth(depths, [0, 4], 3, flows)
+    assert abs(float((z3 - 2 * (ramp + 0.02).expand(SIZE, SIZE))[inner].median())) < 0.006
+    assert torch.equal(carried_depth(depths, [0, 4], 4, flows), depths[1])
+
+
+def test_source_layers_are_fewer_and_still_move(videos, base_pipeline):
+    root, _ = videos
+    every = reconstruct(root / "moving", pipeline=base_pipeline, frames=9, stride=2, resolution=SIZE)
+    source = reconstruct(root / "moving", pipeline=base_pipeline, frames=9, stride=2, resolution=SIZE, layers="source")
+    assert source.result.source_frames.tolist() == [0, 4, 8] and every.result.source_frames.tolist() == list(range(9))
+    assert source.result.num_slots < every.result.num_slots / 2 and not source.result.scene.is_static
+    with pytest.raises(ValueError, match="--layers"):
+        reconstruct(root / "moving", pipeline=base_pipeline, frames=9, layers="all")
 
 
 def test_a_still_video_gives_a_static_scene(videos, base_pipeline):
