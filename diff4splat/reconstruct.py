@@ -2,18 +2,19 @@
 
 The LDRM reads the video's own latents (the VAE encodes the clip; nothing is sampled) and gives the depth of its
 source frames (video frames 0, 4, 8, …; docs/DESIGN.md, "Data flow of generate", step 6). The video is observed, not
-generated, so every source frame is kept as ``generate`` keeps the photograph: a photo layer of its pixels at the
-output resolution (:func:`diff4splat.photo.photo_layer`) on its depth (the LDRM's, upsampled with the frame as the
-guide), plus frame 0's backdrop. The motion is measured from the frames
+generated, so every frame (``layers="every"``; or the source frames alone) is kept as ``generate`` keeps the
+photograph: a photo layer of its pixels at the output resolution (:func:`diff4splat.photo.photo_layer`) on its depth
+(the LDRM's, upsampled with the frame as the guide, carried along the optical flow to the frames between source
+frames: :func:`carried_depth`), plus frame 0's backdrop. The motion is measured from the frames
 (:func:`diff4splat.scene_flow.source_frame_motion`: OpenCV's DIS optical flow, chained and lifted to 3D with the
-source frames' depths) at every frame's time, so each layer follows the video before and after its own frame and
-the deformation interpolates between consecutive frames. The layers overlap; at any time the layer of the nearest
-source frame must be the one seen, so each layer is moved back along its own camera's rays by :data:`TIME_PUSH` per
-frame of time away from its own (:func:`time_push`: invisible at its own camera, it orders the layers by time), and
-the others fill only what it does not show (what moved away, what the camera uncovers).
+depths) at every frame's time, so each layer follows the video before and after its own frame, its points at their
+measured places, and the deformation interpolates between consecutive frames. The layers overlap; each is opaque at
+its own frame's time and fades away from it (temporal opacity, :data:`TIME_SIGMA`), so at a frame the scene shows
+that frame and between two frames the two, moved to that time.
 
-A still world (no pixel moves beyond the rigidity gate) gives a static scene: no deformation, no push, and the
-layers settled as ``generate`` settles its frames (a later frame's duplicates of what frame 0 shows dropped).
+A still world (no more than :data:`MOVING_FRACTION` of a layer's pixels move beyond the rigidity gate) gives a static
+scene: no deformation, no temporal opacity, and the layers settled as ``generate`` settles its frames (a later frame's
+duplicates of what frame 0 shows dropped).
 
 Library use mirrors :mod:`diff4splat.generate`::
 
@@ -37,7 +38,7 @@ from models.deformation import IDENTITY_QUAT
 from models.ldrm import source_frame_indices
 
 from .assemble import z_depth
-from .cameras import CameraPath, intrinsics_from_fov, invert_rigid
+from .cameras import CameraPath, intrinsics_from_fov
 from .checks import check_positive_int
 from .devices import Stopwatch
 from .gaussians import Gaussians
@@ -69,23 +70,26 @@ from .runtime import TorchRuntime
 from .scene import DynamicGaussians
 from .scene_flow import chain_flows, consecutive_flows, sample_pixels, source_frame_motion
 
-__all__ = ["reconstruct", "reconstruct_scene", "still_cameras", "time_push", "carried_depth", "check_layers",
-           "RECONSTRUCT_KIND", "TIME_PUSH", "FLOW_SIZE", "GATE_PX", "FB_TOLERANCE_PX", "MOVING_FRACTION", "LAYERS",
-           "DEFAULT_LAYERS", "scene_slots", "memory_estimate"]
+__all__ = ["reconstruct", "reconstruct_scene", "still_cameras", "carried_depth", "check_layers", "scene_slots",
+           "memory_estimate", "RECONSTRUCT_KIND", "TIME_SIGMA", "BACKDROP_TIME_SIGMA", "FLOW_SIZE", "GATE_PX",
+           "FB_TOLERANCE_PX", "MOVING_FRACTION", "LAYERS", "DEFAULT_LAYERS"]
 
 RECONSTRUCT_KIND = "reconstruct"
 """Marker kind of a ``reconstruct`` output folder (the layout is ``generate``'s)."""
-TIME_PUSH = 0.25
-"""How much further along its camera's rays a frame's layer moves per frame of clip time away from its own
-(:func:`time_push`): a layer 4 frames away (the next source frame) lies 2× deeper, behind every surface of the
-nearest frame's layer in a scene whose depths span less than 2×, so what moved away leaves no stale copy in front
-(2 % left one: the development clips' in-between frames, docs/benchmarks.md)."""
+TIME_SIGMA = 0.6
+"""Temporal standard deviation of a layer's opacity (``DynamicGaussians.t_scales``), in units of the spacing between
+layer frames: its own frame's layer is opaque at its time, a neighbour's at 0.25 (one spacing away, behind or
+mixed in), one two spacings away at 0.004, so a copy that the flow lost fades instead of lingering; halfway between
+two frames both neighbours show at 0.71 each. Chosen on the development clips (0.4, 0.5, 0.6, 0.8 spacings, and a
+push of the farther layers along their rays, which left their points off their true places: docs/benchmarks.md)."""
 GATE_PX = 0.5
 """Rigidity gate of the motion, pixels of the output frames (``scene_flow.lift_tracks``): a real video's pixels that
 move a few pixels per frame (a face talking) must not be held still, as the 2 px of the 64² synthetic clips would
 (swept on the development video, docs/benchmarks.md "`reconstruct` between its frames": 0, 0.5, 1 px)."""
 FB_TOLERANCE_PX = 1.5
 """Forward-backward tolerance of the tracking, pixels of the output frames (swept with :data:`GATE_PX`: 0.5, 1.5)."""
+BACKDROP_TIME_SIGMA = 1e3
+"""The backdrop's temporal standard deviation (clip time): present at every time (opacity × 0.99999988 at t = 0, 1)."""
 MOVING_FRACTION = 0.005
 """A clip is dynamic when, at some frame, more than this fraction of a source frame's pixels has moved by more than
 the config's ``static_atol``: a still video's few pixels of codec noise above the gate do not make it move."""
@@ -155,25 +159,6 @@ def _layer_motion(motion: Tensor, height: int, width: int) -> Tensor:
     return torch.cat([motion.reshape(T, height * width, 3), block.reshape(T, -1, 3)], dim=1)
 
 
-def time_push(layer: Gaussians, d_means: Tensor, frame: int, centre: Tensor) -> tuple[Tensor, Tensor]:
-    """The layer of video frame ``frame`` moved back along its own camera's rays at every other key frame j:
-    μ_j → o + λ_j(μ + Δμ_j − o), scales × λ_j, λ_j = 1 + :data:`TIME_PUSH`·|j − frame| (its pixels at its own camera
-    unchanged), so that at any time the layer of the nearest frame is in front and the others show only where it
-    has nothing (module docstring).
-
-    Args:
-        layer: the frame's photo layer (M Gaussians).  d_means: (T, M, 3) its displacements at the T key frames.
-        frame: its video frame.  centre: (3,) its camera's centre, world frame.
-
-    Returns:
-        d_means (T, M, 3) and d_scales (T, M, 3) (log λ_j on every axis).
-    """
-    T = d_means.shape[0]
-    lam = 1 + TIME_PUSH * (torch.arange(T, device=d_means.device, dtype=d_means.dtype) - frame).abs()  # (T,)
-    d = d_means + (lam - 1)[:, None, None] * (layer.means[None] + d_means - centre)
-    return d, lam.log()[:, None, None].expand(T, layer.num_gaussians, 3)
-
-
 @torch.no_grad()
 def reconstruct_scene(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraPath, *,
                       layers: str = DEFAULT_LAYERS) -> GenerationResult:
@@ -227,39 +212,38 @@ def reconstruct_scene(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraP
     if not dynamic:
         motion = motion.zero_()
     timings["motion"] = clock.lap()
-    centres = invert_rigid(cameras.viewmats)[:, :3, 3]
-    layers, d_means, d_scales, grid = [], [], [], []
+    layers, d_means, grid = [], [], []
     for s, f in enumerate(frames_of):
         layer, history = photo_layer(images[f], z[s], cameras.viewmats[f], cameras.Ks[f])
         if s == 0:
             photo_psnr = history[-1]
-        d, log_scale = time_push(layer, _layer_motion(motion[:, s], H, W), f, centres[f])
         layers.append(layer)
-        d_means.append(d)
-        d_scales.append(log_scale)
+        d_means.append(_layer_motion(motion[:, s], H, W))
         grid.append(torch.full((layer.num_gaussians,), s, dtype=torch.long, device=dev))
         if s == 0:  # the backdrop follows frame 0's layer: static, behind everything
-            # behind every layer however far it is pushed
-            backdrop = backdrop_layer(images[0], z[0] * (1 + TIME_PUSH * (T - 1)), cameras.viewmats[0], cameras.Ks[0])
+            backdrop = backdrop_layer(images[0], z[0], cameras.viewmats[0], cameras.Ks[0])
             layers.append(backdrop)
-            d_means.append(d.new_zeros(T, backdrop.num_gaussians, 3))
-            d_scales.append(d.new_zeros(T, backdrop.num_gaussians, 3))
+            d_means.append(z.new_zeros(T, backdrop.num_gaussians, 3))
             grid.append(torch.zeros(backdrop.num_gaussians, dtype=torch.long, device=dev))
     canonical = Gaussians(*(torch.cat([getattr(g, f) for g in layers])
                             for f in ("means", "quats", "scales", "opacities", "sh")))
     grid = torch.cat(grid)
     N, n0 = canonical.num_gaussians, layers[0].num_gaussians
     photo = {"photo_depth": z[0], "photo_gaussians": n0}
-    if dynamic:
+    if dynamic:  # each layer at its frame's time, fading over TIME_SIGMA of the spacing; the backdrop always
+        own = cameras.times[torch.tensor(frames_of, device=dev)][grid]
+        sigma = torch.full_like(own, TIME_SIGMA * float(cameras.times[frames_of[1]] - cameras.times[frames_of[0]]))
+        back = slice(n0, n0 + backdrop.num_gaussians)
+        own[back], sigma[back] = 0.5, BACKDROP_TIME_SIGMA
         scene = DynamicGaussians(canonical, cameras.times, torch.cat(d_means, 1),
-                                 canonical.means.new_tensor(IDENTITY_QUAT).expand(T, N, 4), torch.cat(d_scales, 1))
+                                 canonical.means.new_tensor(IDENTITY_QUAT).expand(T, N, 4),
+                                 canonical.means.new_zeros(()).expand(T, N, 3), own, sigma)
     else:  # a still world: the layers of one static scene, overlaps settled as generate settles its frames
         scene = DynamicGaussians(canonical)
     timings["assemble"] = clock.lap()
     if dynamic:  # every layer is observed: only the backdrop's cells that no camera sees go
         index = torch.arange(N, device=dev)
         keep = torch.ones(N, dtype=torch.bool, device=dev)
-        back = slice(n0, n0 + backdrop.num_gaussians)
         keep[back], stats = prune_mask(scene.select(index[back]), cameras, min_opacity=cfg.prune_opacity)
         scene, index = scene.select(keep), index[keep]
         stats = {**stats, "before": N, "after": int(keep.sum()), "duplicates": 0, "slid": 0, "occluders": 0}

@@ -46,6 +46,10 @@ FLOW_UPSAMPLE = 4
 """Default factor by which frames are upsampled before DIS (module docstring, step 1)."""
 FB_TOLERANCE_PX = 0.5
 """Default forward-backward tolerance, pixels of the frames' grid (module docstring, step 2)."""
+RIGID_DEPTH_FACTORS = (0.25, 0.35, 0.5, 0.71, 1.0, 1.41, 2.0, 2.83, 4.0)
+"""Depth factors of the rigidity test (:func:`lift_tracks`): a tracked pixel is static when it lies within the gate
+of where the camera's own motion puts its frame-0 point at some depth between a quarter and four times the given
+one (along the epipolar line), so a depth map off by up to 4× does not make a moving camera's static world move."""
 GATE_PX = 2.0
 """Default rigidity gate, pixels: a tracked pixel this close to its camera-motion-only position is static
 (docs/benchmarks.md, "Scene flow from optical flow": 1 px let 2.6 mm of spurious motion into static clips)."""
@@ -197,6 +201,27 @@ def track_pixels(frames: Tensor, *, upsample: int = FLOW_UPSAMPLE, fb_tolerance:
     return chain_flows(*consecutive_flows(frames, upsample=upsample, preset=preset), fb_tolerance=fb_tolerance)
 
 
+def _static_segment(points: Tensor, origin: Tensor, viewmat: Tensor, K: Tensor) -> Tensor:
+    """Where camera (``viewmat``, ``K``) sees the frame-0 points (H, W, 3) if they did not move, for their ray
+    distances from the frame-0 camera centre ``origin`` scaled by each of :data:`RIGID_DEPTH_FACTORS`:
+    (F, H, W, 2) pixels, a polyline along each point's epipolar line (one point for a camera that only turned)."""
+    rays = points - origin
+    factors = rays.new_tensor(RIGID_DEPTH_FACTORS)
+    candidates = origin + factors[:, None, None, None] * rays  # (F, H, W, 3)
+    cam = transform_points(viewmat[None], candidates.reshape(1, -1, 3))[0]
+    cam = torch.cat([cam[:, :2], cam[:, 2:].clamp_min(1e-6)], dim=1)  # behind the camera: far off the image
+    return project_points(cam, K).reshape(*candidates.shape[:-1], 2)
+
+
+def _segment_distance(uv: Tensor, polyline: Tensor) -> Tensor:
+    """Distance (H, W) of pixel positions (H, W, 2) to per-pixel polylines (F, H, W, 2), pixels."""
+    a, b = polyline[:-1], polyline[1:]
+    ab = b - a
+    w = ((uv - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp_min(1e-12)
+    nearest = a + w.clamp(0, 1)[..., None] * ab
+    return (uv - nearest).norm(dim=-1).min(dim=0).values
+
+
 def _nearest_depth(depth: Tensor, uv: Tensor, expected: Tensor) -> Tensor:
     """Of the 3×3 pixels around each position, the z-depth closest to ``expected``: depth (H, W), uv (H, W, 2),
     expected (H, W) → (H, W)."""
@@ -261,10 +286,11 @@ def lift_tracks(positions: Tensor, tracked: Tensor, depths: Tensor, Ks: Tensor, 
         return transform_points(viewmats[t:t + 1], points.reshape(1, -1, 3))[0, :, 2].reshape(H, W)
 
     first = unproject(0, depths[0])
+    origin = cam_to_world[0, :3, 3]
     moving = [torch.zeros(H, W, dtype=torch.bool, device=depths.device)]
-    for t in range(1, T):  # the rigidity test needs no depth at t: where the camera alone puts the frame-0 point
-        ego = project_points(transform_points(viewmats[t:t + 1], first.reshape(1, -1, 3))[0], Ks[t]).reshape(H, W, 2)
-        off = (ego - uv[t]).norm(dim=-1) > gate_px
+    for t in range(1, T):  # the rigidity test needs no depth at t: where the camera alone can put the frame-0 point
+        ego = _static_segment(first, origin, viewmats[t], Ks[t])  # (RIGID_DEPTHS, H, W, 2)
+        off = _segment_distance(uv[t], ego) > gate_px
         moving.append(torch.where(tracked[t], off, moving[-1]))  # a lost track keeps its last state and position
 
     def settle(t: int, lifted: Tensor, previous: Tensor) -> Tensor:

@@ -103,7 +103,7 @@ from .objectives import track_query_index
 
 __all__ = ["evaluate_clip", "evaluate_clips", "evaluate_all", "aggregate", "ClipEvaluation", "sampling_tradeoffs",
            "photo_fidelity", "stiffness_profile", "METRICS", "DIAGNOSTICS", "DEPTH_DIAGNOSTICS", "BASELINES",
-           "VARIANTS", "PHOTO_KEYS", "binned_keys"]
+           "VARIANTS", "PHOTO_KEYS", "binned_keys", "scene_motion"]
 
 METRICS = ("psnr_input", "ssim_input", "psnr_novel", "ssim_novel", "depth_corr", "motion_epe", "loop_psnr",
            "vae_psnr")
@@ -169,7 +169,7 @@ class ClipEvaluation:
     frame_mse: dict[str, Tensor] = field(default_factory=dict)
 
 
-def _scene_motion(pipe: Diff4SplatPipeline, res: GenerationResult, clip: dict) -> dict[str, float]:
+def scene_motion(pipe: Diff4SplatPipeline, res: GenerationResult, clip: dict) -> dict[str, float]:
     """:func:`motion_errors` of a generated scene: each track's frame-0 pixel → its front disk of the photo layer
     (``res.gaussian_index``; the photo layer's front disks are the first H·W slots of the unpruned scene, at the
     output resolution, which is the clip's) → its positions at the clip's times. Computed on the CPU (the clip's
@@ -180,7 +180,8 @@ def _scene_motion(pipe: Diff4SplatPipeline, res: GenerationResult, clip: dict) -
     kept = kept_index_map(res.gaussian_index.cpu(), res.num_slots)
     g_idx = kept[idx]
     ok = ok & (g_idx >= 0)
-    pred = torch.stack([res.scene.at(t).means.cpu()[g_idx.clamp(min=0)] for t in res.cameras.times.tolist()], 1)
+    # gate 0: every Gaussian at every time (a scene with temporal opacity leaves the faded ones out by default)
+    pred = torch.stack([res.scene.at(t, gate=0).means.cpu()[g_idx.clamp(min=0)] for t in res.cameras.times.tolist()], 1)
     return motion_errors(pred, tracks, vis & ok[:, None])
 
 
@@ -229,7 +230,7 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
     out["depth_corr"] = (pearson(depths[valid].double(), clip["depth"][valid].double())
                          if valid.sum() > 1 else float("nan"))
     out.update(depth_errors(depths[valid], clip["depth"][valid]))
-    out.update(_scene_motion(pipe, res, clip))
+    out.update(scene_motion(pipe, res, clip))
     out["loop_psnr"] = _loop_psnr(pipe, image, clip, T, **gen)
 
     noisy = pipe(image, cams, clip["caption"], video_latents=ablation_noise(res.latents.shape, seed), **gen)
@@ -243,7 +244,7 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
         out["vae_psnr"] = image_psnr(recon.permute(1, 0, 2, 3), gt)
         oracle = pipe(image, cams, clip["caption"], video_latents=latents, **gen)
         mse["gt"] = frame_mse(_render(oracle)[0][1:].permute(0, 3, 1, 2), gt[1:])
-        motion = _scene_motion(pipe, oracle, clip)
+        motion = scene_motion(pipe, oracle, clip)
         out["motion_epe_gt"], out["motion_disp_epe_gt"] = motion["motion_epe"], motion["motion_disp_epe"]
     out["psnr_novel"] = psnr_from_mse(float(mse["model"].mean()))
     out.update({f"psnr_novel_{v}": psnr_from_mse(float(mse[v].mean())) for v in VARIANTS})
