@@ -14,8 +14,9 @@ quantity with networks; here it is measured from the frames):
 3. :func:`lift_tracks`: the tracked pixels to 3D with each frame's z-depth map and camera. The depth at a tracked
    pixel is the one of its 3×3 neighbourhood closest to the depth the point would have if it had not moved
    (a pixel's depth at an object's edge is often the background's); a point whose tracked pixel lies within
-   ``gate_px`` of where the camera's own motion puts it (the rigidity test of motion segmentation) is static and
-   keeps its frame-0 position, so a static scene comes out static whatever the depth's noise.
+   ``gate_px`` of where the camera's own motion puts it at some depth between a quarter and four times the given one
+   (a segment of its epipolar line: the rigidity test of motion segmentation, :data:`RIGID_DEPTH_FACTORS`) is
+   static and keeps its frame-0 position, so a static scene comes out static whatever the depth's noise.
 
 Conventions as everywhere (docs/DESIGN.md, "Conventions"): pixel (i, j) has its centre at (j + 0.5, i + 0.5);
 ``viewmats`` world-to-camera, ``Ks`` in pixels, depths are z-depths in metres. OpenCV sees CPU copies; every
@@ -37,7 +38,8 @@ from .cameras import invert_rigid
 from .checks import check_positive_int
 
 __all__ = ["DIS_PRESETS", "FLOW_UPSAMPLE", "FB_TOLERANCE_PX", "GATE_PX", "optical_flow", "consecutive_flows",
-           "chain_flows", "track_pixels", "lift_tracks", "source_frame_motion", "sample_pixels", "pixel_centres"]
+           "chain_flows", "track_pixels", "lift_tracks", "source_frame_motion", "sample_pixels", "pixel_centres",
+           "RIGID_DEPTH_FACTORS"]
 
 DIS_PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
                "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
@@ -251,7 +253,7 @@ def lift_tracks(positions: Tensor, tracked: Tensor, depths: Tensor, Ks: Tensor, 
             pixels before).
         Ks: (T, 3, 3) pixels.  viewmats: (T, 4, 4) world-to-camera.
         depth_frames: D increasing frame indices, the first 0 (default: every frame, D = T).
-        gate_px: rigidity gate, pixels (≥ 0; 0 treats every tracked pixel that moved at all as moving).
+        gate_px: rigidity gate, pixels (≥ 0; 0 treats every tracked pixel off its epipolar segment as moving).
 
     Returns:
         points: (T, H, W, 3) world positions, metres (frame 0: the pixels unprojected at ``depths[0]``).

@@ -111,6 +111,24 @@ def test_lifting_gives_the_closed_form_motion_and_keeps_static_points_still(devi
     assert torch.allclose(sparse, truth, atol=1e-6)
 
 
+def test_a_static_world_stays_still_under_a_wrong_depth_and_a_moving_camera(device):
+    """The plane's true projections under the moving camera, but depth maps at a third of the truth: every pixel
+    lies on its epipolar segment, so nothing moves (the camera-only position at the given depth is 1.9-3.7 px off);
+    a point moved off that segment (up, across the sideways motion) does."""
+    T, H, W = 3, 32, 32
+    Ks, viewmats = _plane_setup(device, T)
+    uv0 = pixel_centres(H, W, Ks).reshape(-1, 2)
+    z0 = torch.full((H * W,), 3.0, dtype=torch.float64, device=device)
+    first = torch.cat([(uv0 - Ks[0, :2, 2]) / Ks[0].diagonal()[:2] * z0[:, None], z0[:, None]], dim=1)
+    positions = torch.stack([_project(first, Ks[t], viewmats[t])[0].reshape(H, W, 2) for t in range(T)])
+    positions[2, 5, 5, 1] -= 4.0  # one point rises 4 px at frame 2
+    wrong = torch.full((T, H, W), 1.0, dtype=torch.float64, device=device)  # a third of the true 3 m
+    tracked = torch.ones(T, H, W, dtype=torch.bool, device=device)
+    points, moving = lift_tracks(positions, tracked, wrong, Ks, viewmats)
+    assert int(moving.sum()) == 1 and bool(moving[2, 5, 5])
+    assert torch.equal(points[1], points[0]) and float((points[2] - points[0]).norm(dim=-1).max()) > 0
+
+
 def test_lifting_picks_the_neighbour_depth_consistent_with_the_point(device):
     """A tracked pixel on an object's edge: its own pixel holds the wall's depth, a neighbour the object's. The point
     (static, gate passed by a 3-pixel motion) is lifted at the object's depth, not 10 m away."""
