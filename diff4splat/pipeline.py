@@ -570,17 +570,16 @@ class Diff4SplatPipeline:
         return torch.cat([image_latent, latents[:, :, 1:]], dim=2)
 
     def packed_plucker(self, cameras_model: CameraPath) -> Tensor:
-        """The networks' camera input: Plücker rays of the path at the model resolution, packed to the latent grid
-        (1, 6·t·s², n, h, w), in the runtime's ``input_dtype`` (cast once: no float32 copy beside it)."""
-        latent = self.runtime.latent
-        rays = plucker_rays(cameras_model.viewmats, cameras_model.Ks, cameras_model.width, cameras_model.height)
-        return pack_plucker(rays[None], latent.temporal_factor, latent.spatial_factor).to(self.runtime.input_dtype)
+        """Plücker rays of a path at the model resolution packed to the latent grid, (1, 6·t·s², n, h, w), in the
+        runtime's ``input_dtype`` (cast once: no float32 copy beside it)."""
+        cams, latent = cameras_model, self.runtime.latent
+        rays = plucker_rays(cams.viewmats, cams.Ks, cams.width, cams.height)[None]
+        return pack_plucker(rays, latent.temporal_factor, latent.spatial_factor).to(self.runtime.input_dtype)
 
     def settle_and_prune(self, scene: DynamicGaussians, grid: Tensor, cameras: CameraPath, sources: Tensor,
                          photo: dict) -> tuple[DynamicGaussians, Tensor, dict]:
-        """Settle and prune an assembled scene (:func:`diff4splat.assemble.assemble_scene`'s scene, source index
-        ``grid`` and stats ``photo``; steps 8 of docs/DESIGN.md, "Data flow of generate"): (scene, index of each kept
-        Gaussian in the assembled one, stats).
+        """Settle and prune an assembled scene (``assemble_scene``'s scene, source index ``grid``, stats ``photo``;
+        docs/DESIGN.md, "Data flow of generate", step 8): (scene, index of each kept Gaussian in it, stats).
 
         Raises:
             ValueError: the camera path sees none of the scene (every Gaussian pruned).
