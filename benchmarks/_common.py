@@ -17,6 +17,7 @@ from unittest import mock
 import torch
 from torch._subclasses.fake_tensor import FakeTensorMode
 
+from diff4splat import generate
 from diff4splat.pipeline import Diff4SplatPipeline, load_model
 from models import dit as dit_module
 from models.bundle import DEFAULT_CONFIG, load_config
@@ -194,6 +195,21 @@ def load_pipeline(checkpoint, config: str):
         warnings.simplefilter("ignore")
         model, source = load_model(checkpoint, config)
     return Diff4SplatPipeline(model), source
+
+
+def parse_pipeline_run(ap: argparse.ArgumentParser):
+    """Add ``--checkpoint``, ``--device``, ``--label`` (the docs/benchmarks.md section's suffix), ``--note`` (a
+    sentence for the table's note) and ``--write`` to ``ap``, parse it and load the pipeline on that device (without
+    the warnings of a missing checkpoint): ``(args, diff4splat.generate.LoadedPipeline)``."""
+    ap.add_argument("--checkpoint", type=Path, default=None)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--label", default=None, help="section name suffix in docs/benchmarks.md")
+    ap.add_argument("--note", default="", help="a sentence on the data for the table's note (e.g. how it was used)")
+    ap.add_argument("--write", action="store_true")
+    args = ap.parse_args()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return args, generate.load_pipeline(args.checkpoint, device=args.device)
 
 
 def held_out_run(description: str, data_help: str) -> tuple[argparse.Namespace, Diff4SplatPipeline, str]:

@@ -28,11 +28,11 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import markdown_table, publish  # noqa: E402
 
-from data_prep.clips import ClipConfig, ClipDataset  # noqa: E402
 from diff4splat.devices import resolve_device  # noqa: E402
 from diff4splat.pipeline import load_model  # noqa: E402
 from diff4splat.scene_flow import FB_TOLERANCE_PX, FLOW_UPSAMPLE, GATE_PX, lift_tracks, track_pixels  # noqa: E402
 from training.eval_metrics import motion_errors  # noqa: E402
+from training.evaluate import _held_out_clips  # noqa: E402
 from training.objectives import track_query_index  # noqa: E402
 
 VARIANTS = [  # (label, frames, upsample, preset, fb_tolerance, gate_px)
@@ -87,12 +87,7 @@ def main() -> None:
         model, _ = load_model(args.checkpoint)
     vae = model.vae.to(device).eval()
     cfg = model.config
-    clips = []
-    for root in args.data:
-        ds = ClipDataset(root, ClipConfig(num_frames=cfg.num_frames, height=cfg.height, width=cfg.width,
-                                          scenes="all", reference_camera="first", target_cameras="same",
-                                          plucker="raw", seed=0))
-        clips += [ds[i] for i in range(len(ds))]
+    clips = [clip for root in args.data for clip in _held_out_clips(root, cfg.height, cfg.width, cfg.num_frames, None)]
     frames = {}
     with torch.no_grad():
         for i, clip in enumerate(clips):

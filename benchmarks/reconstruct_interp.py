@@ -19,16 +19,14 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-import warnings
 from pathlib import Path
 
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import markdown_table, publish  # noqa: E402
+from _common import markdown_table, parse_pipeline_run, publish  # noqa: E402
 
 from diff4splat.cameras import CameraPath  # noqa: E402
-from diff4splat.generate import load_pipeline  # noqa: E402
 from diff4splat.io import load_cameras_json  # noqa: E402
 from diff4splat.io.image import preprocess_image  # noqa: E402
 from diff4splat.io.video_input import read_video_clip  # noqa: E402
@@ -84,15 +82,7 @@ def main() -> None:
     ap.add_argument("--stride", type=int, default=1, help="stride of the video's frames (the clip takes every 2nd)")
     ap.add_argument("--frames", type=int, default=None, help="T given frames (default: 17, or 9 for --data)")
     ap.add_argument("--resolution", type=int, default=None)
-    ap.add_argument("--checkpoint", type=Path, default=None)
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--label", default=None, help="section name suffix in docs/benchmarks.md")
-    ap.add_argument("--note", default="", help="a sentence on the clip for the table's note (e.g. how it was used)")
-    ap.add_argument("--write", action="store_true")
-    args = ap.parse_args()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        loaded = load_pipeline(args.checkpoint, device=args.device)
+    args, loaded = parse_pipeline_run(ap)
     if args.video is not None:
         jobs = [(args.video, None)]
         frames = args.frames or 17

@@ -17,38 +17,22 @@ import argparse
 import statistics
 import sys
 import time
-import warnings
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import markdown_table, publish  # noqa: E402
+from _common import markdown_table, parse_pipeline_run, publish  # noqa: E402
 
-from data_prep.clips import ClipConfig, ClipDataset  # noqa: E402
 from diff4splat.cameras import CameraPath  # noqa: E402
-from diff4splat.generate import load_pipeline  # noqa: E402
 from diff4splat.reconstruct import LAYERS, reconstruct_scene  # noqa: E402
-from training.evaluate import scene_motion  # noqa: E402
+from training.evaluate import _held_out_clips, scene_motion  # noqa: E402
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, nargs="+", required=True, help="held-out sets (data_prep synth)")
-    ap.add_argument("--checkpoint", type=Path, default=None)
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--label", default=None, help="section name suffix in docs/benchmarks.md")
-    ap.add_argument("--note", default="", help="a sentence on the sets for the table's note")
-    ap.add_argument("--write", action="store_true")
-    args = ap.parse_args()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        loaded = load_pipeline(args.checkpoint, device=args.device)
+    args, loaded = parse_pipeline_run(ap)
     pipe, cfg = loaded.pipeline, loaded.pipeline.config
-    clips = []
-    for root in args.data:
-        ds = ClipDataset(root, ClipConfig(num_frames=cfg.num_frames, height=cfg.height, width=cfg.width,
-                                          scenes="all", reference_camera="first", target_cameras="same",
-                                          plucker="raw", seed=0))
-        clips += [ds[i] for i in range(len(ds))]
+    clips = [clip for root in args.data for clip in _held_out_clips(root, cfg.height, cfg.width, cfg.num_frames, None)]
     dynamic = [c for c in clips if bool(c["dynamic"])]
     rows, hold = [], None
     for layers in LAYERS:
