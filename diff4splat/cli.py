@@ -119,8 +119,8 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
     rc.add_argument("--stride", type=int, default=1, help="take every S-th frame of the video (default: 1)")
     rc.add_argument("--start", type=int, default=0, help="first frame of the clip, 0-based (default: 0)")
     rc.add_argument("--cameras", type=Path, default=None, metavar="FILE",
-                    help="cameras.json or RealEstate10K .txt, one camera per clip frame, for a moving camera "
-                         "(default: a still camera with the model's field of view)")
+                    help="cameras.json or RealEstate10K .txt for a moving camera: one camera per clip frame, or one "
+                         "per video frame (the clip's are taken) (default: a still camera, the model's field of view)")
     rc.add_argument("--resolution", type=int, default=None,
                     help="output height in pixels (default: 256, or the model's if larger)")
     rc.add_argument("--layers", choices=LAYERS, default=DEFAULT_LAYERS,

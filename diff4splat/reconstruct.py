@@ -70,9 +70,9 @@ from .runtime import TorchRuntime
 from .scene import DynamicGaussians
 from .scene_flow import chain_flows, consecutive_flows, sample_pixels, source_frame_motion
 
-__all__ = ["reconstruct", "reconstruct_scene", "still_cameras", "carried_depth", "check_layers", "scene_slots",
-           "memory_estimate", "RECONSTRUCT_KIND", "TIME_SIGMA", "BACKDROP_TIME_SIGMA", "FLOW_SIZE", "GATE_PX",
-           "FB_TOLERANCE_PX", "MOVING_FRACTION", "LAYERS", "DEFAULT_LAYERS"]
+__all__ = ["reconstruct", "reconstruct_scene", "still_cameras", "clip_cameras", "carried_depth", "check_layers",
+           "scene_slots", "memory_estimate", "RECONSTRUCT_KIND", "TIME_SIGMA", "BACKDROP_TIME_SIGMA", "FLOW_SIZE",
+           "GATE_PX", "FB_TOLERANCE_PX", "MOVING_FRACTION", "LAYERS", "DEFAULT_LAYERS"]
 
 RECONSTRUCT_KIND = "reconstruct"
 """Marker kind of a ``reconstruct`` output folder (the layout is ``generate``'s)."""
@@ -258,6 +258,25 @@ def reconstruct_scene(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraP
                             photo_psnr_db=photo_psnr, num_slots=N, photo_gaussians=n0)
 
 
+def clip_cameras(cameras: CameraPath, indices: list[int], source: object = "cameras") -> CameraPath:
+    """The cameras of a clip's frames: ``cameras`` as they are when there is one per clip frame, else the ones at
+    the clip's video frame ``indices`` of a path with one camera per video frame; times i/(T−1) either way.
+
+    Raises:
+        ValueError: naming ``--cameras`` ``source``, when the path has neither as many cameras as the clip nor one
+            for each of its video frames.
+    """
+    T = len(indices)
+    if len(cameras) == T:
+        index = list(range(T))
+    elif len(cameras) > indices[-1]:
+        index = indices
+    else:
+        raise ValueError(f"--cameras {source}: {len(cameras)} cameras, but the clip needs {T} (one per clip frame) "
+                         f"or one per video frame up to frame {indices[-1]}")
+    return CameraPath(cameras.viewmats[index], cameras.Ks[index], cameras.width, cameras.height)
+
+
 def scene_slots(width: int, height: int, num_layers: int) -> int:
     """Gaussians of the unpruned scene of ``num_layers`` photo layers at ``width`` × ``height`` and frame 0's
     backdrop (:func:`diff4splat.photo.layer_sizes`): ``GenerationResult.num_slots``."""
@@ -297,8 +316,9 @@ def reconstruct(
 
     Args:
         video: a video file (any format OpenCV reads) or a folder of frames (images, in name order).
-        cameras: a camera file (cameras.json or RealEstate10K .txt, one camera per chosen frame), a
-            :class:`CameraPath` at the output resolution, or None: a still camera (:func:`still_cameras`).
+        cameras: a camera file (cameras.json or RealEstate10K .txt: one camera per clip frame, or one per video frame
+            of which the clip's are taken, :func:`clip_cameras`), a :class:`CameraPath` at the output resolution (one
+            per clip frame), or None: a still camera (:func:`still_cameras`).
         pipeline: as :func:`diff4splat.generate.generate`.
         frames: T = 1 + 4k frames of the clip (default: the config's).
         stride, start: the clip is frames ``start + stride·i`` of the video.
@@ -341,7 +361,7 @@ def reconstruct(
     elif isinstance(cameras, CameraPath):
         path = cameras
     else:
-        path = cameras_from_file(Path(cameras), T, shape, width, height)
+        path = clip_cameras(cameras_from_file(Path(cameras), None, shape, width, height), clip.indices, cameras)
     num_layers = T if layers == "every" else len(source_frame_indices(
         cfg.ldrm.gaussian_frames, pipe.runtime.latent.num_latent_frames(T), pipe.runtime.latent.temporal_factor))
     knobs = "--frames, --resolution or --layers source"

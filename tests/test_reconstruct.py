@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 import torch
 
+from data_prep.synth import generate_scene
 from diff4splat.cli import main
 from diff4splat.generate import load_pipeline
-from diff4splat.io import load_image, save_image, save_video
+from diff4splat.io import load_cameras_json, load_image, save_cameras_json, save_image, save_video
 from diff4splat.io.video_input import read_video_clip
 from diff4splat.reconstruct import carried_depth, reconstruct, still_cameras
 from diff4splat.render.sequence import render_path
@@ -158,6 +159,24 @@ def test_the_command_writes_generate_s_folder(videos, tmp_path, capsys):
     assert np.allclose(cams["times"], np.arange(9) / 8)
     assert main(args) == 0  # its own earlier output is replaced
     assert "wrote" in capsys.readouterr().out
+
+
+def test_a_camera_file_of_every_video_frame_gives_the_clip_s_cameras(tmp_path, base_pipeline):
+    """A synthetic scene's first camera (a moving one): its 17 frames and the cameras.json of all 17; the clip every
+    other frame takes the cameras of frames 0, 2, …, 16, relative to the first, at the clip's times. A file with
+    neither the clip's nor the video's count is refused, naming both."""
+    scene = generate_scene(tmp_path, 0, seed=3)
+    video, cams_file = scene / "cam00" / "rgb", scene / "cam00" / "cameras.json"
+    gen = reconstruct(video, cams_file, pipeline=base_pipeline, frames=9, stride=2, resolution=SIZE)
+    truth = load_cameras_json(cams_file).viewmats.double()
+    expected = truth[0::2] @ torch.linalg.inv(truth[0])
+    assert torch.allclose(gen.result.cameras.viewmats.double(), expected, atol=1e-5)
+    assert torch.allclose(gen.result.cameras.times.double(), torch.arange(9, dtype=torch.float64) / 8)
+    short = load_cameras_json(cams_file)
+    save_cameras_json(tmp_path / "five.json", type(short)(short.viewmats[:5], short.Ks[:5], short.width,
+                                                          short.height))
+    with pytest.raises(ValueError, match=r"5 cameras, but the clip needs 9 .* up to frame 16"):
+        reconstruct(video, tmp_path / "five.json", pipeline=base_pipeline, frames=9, stride=2, resolution=SIZE)
 
 
 @pytest.mark.parametrize("case", ["missing", "frames_not_1_plus_4k", "too_short", "zero_stride", "generate_folder"])
