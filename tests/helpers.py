@@ -8,12 +8,14 @@ import os
 import types
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from diff4splat.cameras.path import CameraPath
 from diff4splat.cli import main
 from diff4splat.export import MANIFEST_NAME, export_onnx
 from diff4splat.gaussians import Gaussians, rgb_to_sh0
+from diff4splat.io import load_image
 from diff4splat.scene import DynamicGaussians
 from models.bundle import Diff4SplatConfig, Diff4SplatModel
 from models.hexplane import HexPlaneConfig, HexPlaneField
@@ -29,6 +31,8 @@ OBJECTIVE_CASES = {
 clip, 1: a dynamic one), for the tiny model at 32² and 9 frames."""
 
 EXAMPLE_IMAGE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
+TEXTURES = Path(__file__).resolve().parent.parent / "data_prep" / "textures"
+"""The bundled texture photographs (training data may use them; tests build videos from them)."""
 BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
 
 
@@ -186,3 +190,16 @@ def adam_steps_on_the_default_device() -> bool:
     finally:
         torch.set_default_device(None)
     return False
+
+
+def moving_patch_video(frames: int, step: int = 1) -> np.ndarray:
+    """(frames, 64, 64, 3) uint8: a 20-pixel grass patch moving ``step`` pixels right per frame over coins."""
+    back = load_image(TEXTURES / "coins.png", (64, 64))
+    patch = load_image(TEXTURES / "grass.png", (20, 20))
+    out = []
+    for t in range(frames):
+        img = back.clone()
+        x = 10 + step * t
+        img[22:42, x:x + 20] = patch
+        out.append((img.numpy() * 255).round().astype(np.uint8))
+    return np.stack(out)

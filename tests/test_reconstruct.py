@@ -2,11 +2,11 @@
 asked, its scene moves as the video does (in-between frames rendered from it beat holding the previous frame), a
 still video gives a static scene, and the command writes generate's folder or fails in one line."""
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from helpers import TEXTURES, moving_patch_video
 
 from data_prep.synth import generate_scene
 from diff4splat.cli import main
@@ -17,27 +17,13 @@ from diff4splat.reconstruct import carried_depth, reconstruct, still_cameras
 from diff4splat.render.sequence import render_path
 from diff4splat.scene_flow import consecutive_flows
 
-TEXTURES = Path(__file__).resolve().parent.parent / "data_prep" / "textures"
 SIZE = 64
-
-
-def _moving_patch_video(frames: int, step: int = 1) -> np.ndarray:
-    """(frames, 64, 64, 3) uint8: a 20-pixel grass patch moving ``step`` pixels right per frame over coins."""
-    back = load_image(TEXTURES / "coins.png", (SIZE, SIZE))
-    patch = load_image(TEXTURES / "grass.png", (20, 20))
-    out = []
-    for t in range(frames):
-        img = back.clone()
-        x = 10 + step * t
-        img[22:42, x:x + 20] = patch
-        out.append((img.numpy() * 255).round().astype(np.uint8))
-    return np.stack(out)
 
 
 @pytest.fixture(scope="module")
 def videos(tmp_path_factory):
     root = tmp_path_factory.mktemp("videos")
-    moving = _moving_patch_video(17)
+    moving = moving_patch_video(17)
     (root / "moving").mkdir()
     for i, frame in enumerate(moving):
         save_image(root / "moving" / f"{i:04d}.png", frame)

@@ -14,12 +14,13 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from helpers import moving_patch_scene
+from helpers import moving_patch_scene, moving_patch_video
 
 import diff4splat.viewer.data as viewer_data
 from diff4splat.cameras.path import CameraPath
 from diff4splat.cli import main
-from diff4splat.io import load_cameras_json, load_ply
+from diff4splat.io import load_cameras_json, load_ply, save_image
+from diff4splat.io.scene_folder import load_output_scene
 from diff4splat.quaternions import quat_to_rotmat
 from diff4splat.render import rasterize
 from diff4splat.scene import DynamicGaussians
@@ -315,6 +316,34 @@ def test_reduced_scene_says_so(browser, tmp_path):
     page = _open(browser, (tmp_path / "viewer.html").as_uri())
     assert "SH degree 2 → 0" in page.locator("#note").inner_text()
     assert page.evaluate("d4s.numGaussians") == 200
+    page.close()
+
+
+@pytest.mark.slow
+def test_reconstruct_output_plays_its_video(browser, tmp_path):
+    """`diff4splat reconstruct` of a patch moving across 9 frames (every other one of 17): viewer.html opened from
+    disk shows, at frame k's time (k = 0, 4, 8), what the CPU renders of the scene there (≥ 25 dB on 4×-downsampled
+    images, temporal opacity and motion included) and the video's frame k; the slider's end differs from its start
+    where the patch moved."""
+    frames = moving_patch_video(17)
+    video = tmp_path / "video"
+    video.mkdir()
+    for i, frame in enumerate(frames):
+        save_image(video / f"{i:04d}.png", frame)
+    out = tmp_path / "rec"
+    assert main(["reconstruct", str(video), "--frames", "9", "--stride", "2", "--resolution", "64", "--device", "cpu",
+                 "--quiet", "--out", str(out)]) == 0
+    scene, _ = load_output_scene(out)
+    cams = load_cameras_json(out / "cameras.json")
+    page = _open(browser, (out / "viewer.html").as_uri())
+    images = {}
+    for k in (0, 4, 8):
+        page.evaluate(f"d4s.setTime({k / 8})")
+        images[k] = _canvas(page)
+        assert _psnr4(images[k], _cpu(scene, cams, k, k / 8, images[k])) >= 25.0, k
+        truth = cv2.resize(frames[2 * k].astype(np.float32) / 255, images[k].shape[1::-1], interpolation=cv2.INTER_AREA)
+        assert _psnr4(images[k], truth) >= 22.0, k
+    assert float(np.abs(images[8] - images[0]).mean()) > 0.02
     page.close()
 
 
