@@ -287,14 +287,15 @@ def scene_slots(width: int, height: int, num_layers: int) -> int:
 def memory_estimate(pipe: Diff4SplatPipeline, width: int, height: int, frames: int, num_layers: int) -> int:
     """Upper bound of ``reconstruct``'s peak host memory, bytes (as :meth:`Diff4SplatPipeline.memory_estimate`,
     whose constants it uses): the process and the weights in host memory; per Gaussian slot
-    (:func:`scene_slots`) its attributes and the deformation at T key times (10 floats) × the copies alive at once;
+    (:func:`scene_slots`) its attributes and the deformation at T key times (10 floats) × the copies alive at once
+    plus one (the identity rotations and zero scale offsets are views until the folder is written);
     the motion maps, T × layers × H × W × 3 floats, twice (the maps and the layers' copies); the consecutive flows;
     the frames and their renders, T × H × W × 5 floats, twice."""
     slots = scene_slots(width, height, num_layers)
     weights = pipe.runtime.host_weight_bytes() if isinstance(pipe.runtime, TorchRuntime) else 0
     base = MEMORY_BASE_BYTES + (MEMORY_CUDA_BUILD_BYTES if torch.backends.cuda.is_built() else 0)
     pixels = width * height
-    return int(base + weights + slots * (MEMORY_BYTES_PER_GAUSSIAN + 40 * frames * MEMORY_SCENE_COPIES)
+    return int(base + weights + slots * (MEMORY_BYTES_PER_GAUSSIAN + 40 * frames * (MEMORY_SCENE_COPIES + 1))
                + 2 * 12 * frames * num_layers * pixels + 16 * frames * pixels + 2 * 20 * frames * pixels)
 
 
