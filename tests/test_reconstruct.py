@@ -2,6 +2,7 @@
 asked, its scene moves as the video does (in-between frames rendered from it beat holding the previous frame), a
 still video gives a static scene, and the command writes generate's folder or fails in one line."""
 import json
+from unittest import mock
 
 import numpy as np
 import pytest
@@ -13,7 +14,7 @@ from diff4splat.cli import main
 from diff4splat.generate import load_pipeline
 from diff4splat.io import load_cameras_json, load_image, save_cameras_json, save_image, save_video
 from diff4splat.io.video_input import read_video_clip
-from diff4splat.reconstruct import carried_depth, reconstruct, still_cameras
+from diff4splat.reconstruct import carried_depth, memory_estimate, reconstruct, still_cameras
 from diff4splat.render.sequence import render_path
 from diff4splat.scene_flow import consecutive_flows
 
@@ -120,6 +121,18 @@ def test_source_layers_are_fewer_and_still_move(videos, base_pipeline):
     assert source.result.num_slots < every.result.num_slots / 2 and not source.result.scene.is_static
     with pytest.raises(ValueError, match="--layers"):
         reconstruct(root / "moving", pipeline=base_pipeline, frames=9, layers="all")
+
+
+def test_a_request_beyond_the_memory_limit_is_refused_before_the_networks_run(videos, base_pipeline, monkeypatch):
+    root, _ = videos
+    every = memory_estimate(base_pipeline.pipeline, SIZE, SIZE, 9, 9)
+    assert memory_estimate(base_pipeline.pipeline, SIZE, SIZE, 9, 3) < every
+    monkeypatch.setenv("DIFF4SPLAT_MAX_MEMORY_BYTES", str(every - 1))
+    with mock.patch("diff4splat.reconstruct.reconstruct_scene", side_effect=AssertionError("ran")):
+        with pytest.raises(ValueError, match="--layers source"):
+            reconstruct(root / "moving", pipeline=base_pipeline, frames=9, stride=2, resolution=SIZE)
+        with pytest.raises(AssertionError, match="ran"):  # a quarter of the layers fits
+            reconstruct(root / "moving", pipeline=base_pipeline, frames=9, stride=2, resolution=SIZE, layers="source")
 
 
 def test_a_still_video_gives_a_static_scene(videos, base_pipeline):
