@@ -7,6 +7,7 @@ import os
 import platform
 import re
 import resource
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -180,7 +181,7 @@ def publish(name: str, title: str, note: str, table: str, write: bool) -> str:
     """Print a section — ``### title``, the command line that made it, the machine, ``note``, the table — and with
     ``write`` put it into docs/benchmarks.md (:func:`write_section`); returns its body."""
     script = Path(sys.argv[0]).name
-    body = (f"### {title}\n\n`python benchmarks/{script} {' '.join(sys.argv[1:])}` on {machine()}. {note}\n\n"
+    body = (f"### {title}\n\n`python benchmarks/{script} {shlex.join(sys.argv[1:])}` on {machine()}. {note}\n\n"
             f"{table}\n")
     print(body)
     if write:
