@@ -56,7 +56,7 @@ from .checks import check_positive_int, is_int
 from .devices import Stopwatch
 from .limits import check_limit
 from .photo import PHOTO_EPS2D, layer_sizes
-from .prune import nothing_seen_message, prune_mask, settle_generated
+from .prune import settle_and_prune
 from .render.defaults import BACKGROUND
 from .runtime import NetworkRuntime, TorchRuntime
 from .scene import DynamicGaussians
@@ -489,7 +489,8 @@ class Diff4SplatPipeline:
         scene = scene.without_deformation(cfg.static_atol)
         timings["reconstruct"] = clock.lap()
 
-        scene, index, stats = self.settle_and_prune(scene, grid, cameras, sources, photo)
+        scene, index, stats = settle_and_prune(scene, grid, cameras, sources, photo["photo_depth"],
+                                               photo["photo_gaussians"], cfg.prune_opacity)
         timings["prune"] = clock.lap()
         return GenerationResult(scene=scene, cameras=cameras, latents=latents, timings=timings,
                                 high_water=dict(zip(timings, clock.high_water, strict=False)), prune_stats=stats,
@@ -575,27 +576,3 @@ class Diff4SplatPipeline:
         cams, latent = cameras_model, self.runtime.latent
         rays = plucker_rays(cams.viewmats, cams.Ks, cams.width, cams.height)[None]
         return pack_plucker(rays, latent.temporal_factor, latent.spatial_factor).to(self.runtime.input_dtype)
-
-    def settle_and_prune(self, scene: DynamicGaussians, grid: Tensor, cameras: CameraPath, sources: Tensor,
-                         photo: dict) -> tuple[DynamicGaussians, Tensor, dict]:
-        """Settle and prune an assembled scene (``assemble_scene``'s scene, source index ``grid``, stats ``photo``;
-        docs/DESIGN.md, "Data flow of generate", step 8): (scene, index of each kept Gaussian in it, stats).
-
-        Raises:
-            ValueError: the camera path sees none of the scene (every Gaussian pruned).
-        """
-        cfg, dev = self.config, self.device
-        index = torch.arange(scene.num_gaussians, device=dev)
-        scene, drop, settled = settle_generated(scene, grid, cameras, sources, photo["photo_depth"])
-        scene, index = scene.select(~drop), index[~drop]
-        # The photo layer is opaque and pixel-aligned to the first camera (seen by construction): only the
-        # backdrop and the generated Gaussians need the opacity and visibility tests.
-        generated = index >= photo["photo_gaussians"]
-        keep = torch.ones(scene.num_gaussians, dtype=torch.bool, device=dev)
-        keep[generated], stats = prune_mask(scene.select(generated), cameras, min_opacity=cfg.prune_opacity)
-        stats = {**stats, "before": scene.num_gaussians, "after": int(keep.sum())}
-        scene, index = scene.select(keep), index[keep]
-        stats = {**stats, "before": stats["before"] + settled["duplicates"] + settled["occluders"], **settled}
-        if stats["after"] == 0:
-            raise ValueError(nothing_seen_message(stats, cfg.prune_opacity))
-        return scene, index, stats

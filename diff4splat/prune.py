@@ -19,7 +19,7 @@ from .render.rasterize import rasterize
 from .scene import DynamicGaussians
 
 __all__ = ["visibility_mask", "prune_scene", "prune_mask", "nothing_seen_message", "duplicate_mask", "occluder_mask",
-           "SLIDE_FACTORS", "slide_behind", "settle_generated"]
+           "SLIDE_FACTORS", "slide_behind", "settle_generated", "settle_and_prune"]
 
 
 def visibility_mask(scene: DynamicGaussians, cameras: CameraPath, near_plane: float = NEAR_PLANE) -> Tensor:
@@ -468,3 +468,38 @@ def _as_float(value: object) -> float:
         return float(value)  # type: ignore[arg-type]
     except (TypeError, ValueError):
         return math.nan
+
+
+def settle_and_prune(scene: DynamicGaussians, source: Tensor, cameras: CameraPath, sources: Tensor,
+                     surface_depth: Tensor, photo_gaussians: int, min_opacity: float
+                     ) -> tuple[DynamicGaussians, Tensor, dict[str, int]]:
+    """Settle and prune an assembled scene (docs/DESIGN.md, "Data flow of generate", step 8): :func:`settle_generated`,
+    then :func:`prune_mask` of everything after the first ``photo_gaussians`` (the photo layer is opaque and
+    pixel-aligned to the first camera, seen by construction).
+
+    Args:
+        scene: M Gaussians, the photo layer first.  source: (M,) long, each one's source frame index in [0, S).
+        cameras: the clip's path at the scene's image size.  sources: (S,) long, the video frame of each source frame.
+        surface_depth: (H, W) the photo layer's z-depth at the input view, metres.
+        photo_gaussians: the photo layer's count.  min_opacity: :func:`prune_mask`'s threshold.
+
+    Returns:
+        (the kept scene, (M',) long index of each kept Gaussian in ``scene``, counts of :func:`prune_mask` and
+        :func:`settle_generated` with "before" the whole scene).
+
+    Raises:
+        ValueError: the camera path sees none of the scene (every Gaussian pruned); as :func:`settle_generated`.
+    """
+    dev = scene.canonical.means.device
+    index = torch.arange(scene.num_gaussians, device=dev)
+    scene, drop, settled = settle_generated(scene, source, cameras, sources, surface_depth)
+    scene, index = scene.select(~drop), index[~drop]
+    generated = index >= photo_gaussians
+    keep = torch.ones(scene.num_gaussians, dtype=torch.bool, device=dev)
+    keep[generated], stats = prune_mask(scene.select(generated), cameras, min_opacity=min_opacity)
+    stats = {**stats, "before": scene.num_gaussians, "after": int(keep.sum())}
+    scene, index = scene.select(keep), index[keep]
+    stats = {**stats, "before": stats["before"] + settled["duplicates"] + settled["occluders"], **settled}
+    if stats["after"] == 0:
+        raise ValueError(nothing_seen_message(stats, min_opacity))
+    return scene, index, stats

@@ -64,13 +64,14 @@ from .pipeline import (
     Diff4SplatPipeline,
     GenerationResult,
 )
-from .prune import prune_mask
+from .prune import prune_mask, settle_and_prune
 from .render.sequence import render_path
 from .runtime import TorchRuntime
 from .scene import DynamicGaussians
 from .scene_flow import chain_flows, consecutive_flows, sample_pixels, source_frame_motion
 
 __all__ = ["reconstruct", "reconstruct_scene", "still_cameras", "clip_cameras", "carried_depth", "check_layers",
+           "layer_frames",
            "scene_slots", "memory_estimate", "RECONSTRUCT_KIND", "TIME_SIGMA", "BACKDROP_TIME_SIGMA", "FLOW_SIZE",
            "GATE_PX", "FB_TOLERANCE_PX", "MOVING_FRACTION", "LAYERS", "DEFAULT_LAYERS"]
 
@@ -138,8 +139,12 @@ def carried_depth(depths: Tensor, sources: list[int], frame: int, flows: tuple[T
     point keeps its depth over the one or two frames between (the camera's motion over them is not applied).
 
     Args:
-        depths: (S, H, W) z-depths of the source frames ``sources`` (increasing frame indices).
+        depths: (S, H, W) z-depths of the source frames ``sources`` (increasing frame indices), metres.
+        frame: the video frame, within [0, T).
         flows: the video's :func:`diff4splat.scene_flow.consecutive_flows` at (H, W).
+
+    Returns:
+        (H, W) z-depth, metres (bilinear samples of the source frame's map).
     """
     if frame in sources:
         return depths[sources.index(frame)]
@@ -149,6 +154,15 @@ def carried_depth(depths: Tensor, sources: list[int], frame: int, flows: tuple[T
     pair = (fw[frame:f], bw[frame:f]) if f > frame else (bw[f:frame].flip(0), fw[f:frame].flip(0))
     positions, _ = chain_flows(*pair, fb_tolerance=float("inf"))
     return sample_pixels(depths[s][None, ..., None], positions[-1][None])[0, ..., 0]
+
+
+def layer_frames(pipe: Diff4SplatPipeline, num_frames: int, layers: str) -> tuple[list[int], list[int]]:
+    """(the LDRM's source frames, the frames that become photo layers) of a ``num_frames``-frame clip: every frame
+    for ``layers`` "every", the source frames (0, 4, 8, …; ``models.ldrm.source_frame_indices``) for "source"."""
+    latent = pipe.runtime.latent
+    sources = source_frame_indices(pipe.config.ldrm.gaussian_frames, latent.num_latent_frames(num_frames),
+                                   latent.temporal_factor)
+    return sources, list(range(num_frames)) if layers == "every" else sources
 
 
 def _layer_motion(motion: Tensor, height: int, width: int) -> Tensor:
@@ -196,14 +210,12 @@ def reconstruct_scene(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraP
     timings["encode_video"] = clock.lap()
     out = runtime.reconstruct(latents, pipe.packed_plucker(cameras_model), None, video[:, :, 0])
     runtime.release()
-    indices = source_frame_indices(cfg.ldrm.gaussian_frames, runtime.latent.num_latent_frames(T),
-                                   runtime.latent.temporal_factor)
+    indices, frames_of = layer_frames(pipe, T, layers)
     sources = torch.tensor(indices, device=dev)
     z_model = z_depth(out.distance[0], cameras_model.viewmats[sources], cameras_model.Ks[sources])  # (S, h, w)
     z_src = torch.stack([upsample_depth(z_model[s], images[f]) for s, f in enumerate(indices)])  # (S, H, W)
     timings["reconstruct"] = clock.lap()
     flows = consecutive_flows(images.permute(0, 3, 1, 2), upsample=max(1, round(FLOW_SIZE / H)))
-    frames_of = list(range(T)) if layers == "every" else indices  # the frames that become layers
     z = torch.stack([carried_depth(z_src, indices, f, flows) for f in frames_of])  # (L, H, W)
     motion = source_frame_motion(images.permute(0, 3, 1, 2), z, frames_of, cameras.Ks, cameras.viewmats,
                                  fb_tolerance=FB_TOLERANCE_PX, gate_px=GATE_PX, flows=flows)  # (T, L, H, W, 3)
@@ -212,24 +224,23 @@ def reconstruct_scene(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraP
     if not dynamic:
         motion = motion.zero_()
     timings["motion"] = clock.lap()
-    layers, d_means, grid = [], [], []
+    parts, d_means, grid = [], [], []  # the layers and the backdrop, in the scene's order
     for s, f in enumerate(frames_of):
         layer, history = photo_layer(images[f], z[s], cameras.viewmats[f], cameras.Ks[f])
         if s == 0:
             photo_psnr = history[-1]
-        layers.append(layer)
+        parts.append(layer)
         d_means.append(_layer_motion(motion[:, s], H, W))
         grid.append(torch.full((layer.num_gaussians,), s, dtype=torch.long, device=dev))
         if s == 0:  # the backdrop follows frame 0's layer: static, behind everything
             backdrop = backdrop_layer(images[0], z[0], cameras.viewmats[0], cameras.Ks[0])
-            layers.append(backdrop)
+            parts.append(backdrop)
             d_means.append(z.new_zeros(T, backdrop.num_gaussians, 3))
             grid.append(torch.zeros(backdrop.num_gaussians, dtype=torch.long, device=dev))
-    canonical = Gaussians(*(torch.cat([getattr(g, f) for g in layers])
+    canonical = Gaussians(*(torch.cat([getattr(g, f) for g in parts])
                             for f in ("means", "quats", "scales", "opacities", "sh")))
     grid = torch.cat(grid)
-    N, n0 = canonical.num_gaussians, layers[0].num_gaussians
-    photo = {"photo_depth": z[0], "photo_gaussians": n0}
+    N, n0 = canonical.num_gaussians, parts[0].num_gaussians
     if dynamic:  # each layer at its frame's time, fading over TIME_SIGMA of the spacing; the backdrop always
         own = cameras.times[torch.tensor(frames_of, device=dev)][grid]
         sigma = torch.full_like(own, TIME_SIGMA * float(cameras.times[frames_of[1]] - cameras.times[frames_of[0]]))
@@ -248,7 +259,8 @@ def reconstruct_scene(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraP
         scene, index = scene.select(keep), index[keep]
         stats = {**stats, "before": N, "after": int(keep.sum()), "duplicates": 0, "slid": 0, "occluders": 0}
     else:
-        scene, index, stats = pipe.settle_and_prune(scene, grid, cameras, torch.tensor(frames_of, device=dev), photo)
+        scene, index, stats = settle_and_prune(scene, grid, cameras, torch.tensor(frames_of, device=dev), z[0], n0,
+                                               cfg.prune_opacity)
     timings["prune"] = clock.lap()
     return GenerationResult(scene=scene, cameras=cameras, latents=latents, steps=0, sampler="none", guidance=1.0,
                             shift=cfg.sampling.shift, timings=timings,
@@ -363,8 +375,7 @@ def reconstruct(
         path = cameras
     else:
         path = clip_cameras(cameras_from_file(Path(cameras), None, shape, width, height), clip.indices, cameras)
-    num_layers = T if layers == "every" else len(source_frame_indices(
-        cfg.ldrm.gaussian_frames, pipe.runtime.latent.num_latent_frames(T), pipe.runtime.latent.temporal_factor))
+    num_layers = len(layer_frames(pipe, T, layers)[1])
     knobs = "--frames, --resolution or --layers source"
     check_output_size(T, width, height, scene_slots(width, height, num_layers), knobs=knobs, out=out,
                       frame_plys=frame_plys)

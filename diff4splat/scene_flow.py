@@ -58,7 +58,8 @@ GATE_PX = 2.0
 
 
 def _gray_uint8(frames: Tensor) -> np.ndarray:  # (P, 3, H, W) in [0, 1] → (P, H, W) uint8
-    rgb = (frames.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
+    rgb = (frames.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(0, 2, 3, 1)
+    rgb = rgb.cpu().numpy()  # device: OpenCV reads host arrays (the flow goes back to the frames' device)
     return np.stack([cv2.cvtColor(np.ascontiguousarray(x), cv2.COLOR_RGB2GRAY) for x in rgb])
 
 
