@@ -46,6 +46,9 @@
 #              saves the step it is at, and gt-eval (next call) evaluates every checkpoint there is
 #   gt-eval    benchmarks/gpu_training.py --part eval --write: the shipped model and the 6 checkpoints, one
 #              evaluation per two cores at once (~2). One session: `gt-data gt-train`, then `gt-eval`
+#   motion     benchmarks/gpu_motion.py: the LDRM's motion network (train_base_motion) from the shipped weights on
+#              gt-data's scenes, GPU_MOTION_STEPS steps (default 1500); the last checkpoint's weights and metrics.csv
+#              to $OUT (`gpu_motion.py --out DIR --unpack DIR` makes the model folder here). One call: `gt-data motion`
 #   all        every step above, in that order
 #
 # Set-up on this side, once (the wheels the GPU image lacks; 22 MB; .whl is ignored, name it in `carry`):
@@ -80,8 +83,9 @@ declare -A COMMANDS=(
   [gt-data]="python benchmarks/gpu_training.py --part data --work $WORK"
   [gt-train]="python benchmarks/gpu_training.py --part train --work $WORK"
   [gt-eval]="python benchmarks/gpu_training.py --part eval --work $WORK --write"
+  [motion]="python benchmarks/gpu_motion.py --work $WORK --out $OUT --steps ${GPU_MOTION_STEPS:-1500}"
 )
-ORDER=(suite command block generate amx cuda suite-1 suite-2 render train gt-data gt-train gt-eval)
+ORDER=(suite command block generate amx cuda suite-1 suite-2 render train gt-data gt-train gt-eval motion)
 
 steps=()
 for s in "$@"; do

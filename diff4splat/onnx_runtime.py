@@ -256,6 +256,7 @@ class OnnxRuntime:
         self.has_text = bool(parts["text_encoder"])
         self.dit_text_inputs = bool(parts["dit_text_inputs"])
         self.has_deformation = bool(parts["deformation"])
+        self.has_motion = False  # the motion network is not exported: the token deformation network's maps
         self.ldrm_image_input = bool(parts["ldrm_image_input"])
         self.tokenizer = ByteTokenizer(self.config.text_encoder.max_length)
         self.latent = self.config.vae.latent_format

@@ -478,11 +478,17 @@ class Diff4SplatPipeline:
         # A runtime without the deformation network (a static ONNX export) makes static scenes.
         out = runtime.reconstruct(latents, plucker, key_times if runtime.has_deformation else None, video[:, :, 0])
         frames = source_frame_indices(cfg.ldrm.gaussian_frames, n, runtime.latent.temporal_factor)
-        decoded = None
-        if cfg.generated_colors == "video" and len(frames) > 1:  # the generated frames' pixels (assemble.video_colors)
-            decoded = runtime.decode_latents(latents)
-        runtime.release()  # the networks are done: an offloaded one leaves the device before pruning renders
         sources = torch.tensor(frames, device=dev)
+        motion = runtime.has_motion and out.d_means is not None
+        decoded = None
+        if (cfg.generated_colors == "video" and len(frames) > 1) or motion:  # the generated video's pixels
+            decoded = runtime.decode_latents(latents)
+        if motion:  # the motion network reads the decoded frames (diff4splat.frame_motion)
+            out = runtime.motion(out, ((decoded[0].transpose(0, 1) + 1) / 2).clamp(0, 1), cameras_model.times,
+                                 cameras_model.viewmats, cameras_model.Ks, sources, key_times)
+        if cfg.generated_colors != "video" or len(frames) == 1:
+            decoded = None  # assemble.video_colors only for a model that takes the later frames' colours from it
+        runtime.release()  # the networks are done: an offloaded one leaves the device before pruning renders
         times = key_times if out.d_means is not None else None
         scene, grid, photo = assemble_scene(out, sources, cameras_model, cameras, image, times, depth=depth,
                                             depth_kind=depth_kind, video=decoded, footprint=cfg.generated_footprint)

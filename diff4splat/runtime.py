@@ -21,6 +21,7 @@ from models.dit import VideoDiT
 from models.ldrm import LDRMOutput
 
 from .devices import cpu_bf16_warning
+from .frame_motion import frame_motion
 from .offload import ModelOffload, weight_bytes
 
 __all__ = ["NetworkRuntime", "TorchRuntime", "OFFLOAD_MODES", "check_offload", "DTYPES", "FF_CHUNK_TOKENS",
@@ -36,6 +37,7 @@ class NetworkRuntime(Protocol):
             (resolution, LDRM, sampling defaults).
         latent: the VAE's :class:`models.backbones.base.LatentFormat` (channels, temporal and spatial factors).
         has_deformation: whether :meth:`reconstruct` can predict deformation maps (times not None).
+        has_motion: whether :meth:`motion` can read the deformation from the frames (an LDRM with a motion network).
         encodes_empty_prompt: whether the transformer needs the empty prompt's text embedding (a pretrained
             backbone's unconditional input) rather than no text at all.
         name: "torch" or "onnxruntime" (written to meta.json).
@@ -51,6 +53,7 @@ class NetworkRuntime(Protocol):
     config: Diff4SplatConfig | BackboneModelConfig
     latent: LatentFormat
     has_deformation: bool
+    has_motion: bool
     encodes_empty_prompt: bool
     name: str
     input_dtype: torch.dtype
@@ -75,6 +78,12 @@ class NetworkRuntime(Protocol):
     def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None, image: Tensor) -> LDRMOutput:
         """LDRM (+ deformation network when ``times`` (K,) is given) → activated maps (B, S, H, W, ·);
         ``image`` (1, 3, H, W) in [−1, 1] is the photograph (used by an LDRM with an image branch)."""
+
+    def motion(self, out: LDRMOutput, frames: Tensor, frame_times: Tensor, viewmats: Tensor, Ks: Tensor,
+               sources: Tensor, times: Tensor) -> LDRMOutput:
+        """``out`` with its deformation read from the frames (T, 3, H, W) in [0, 1] at the model resolution by the
+        LDRM's motion network (:func:`diff4splat.frame_motion.frame_motion`; cameras (T, 4, 4), (T, 3, 3), times
+        (T,), source frame indices (S,), key times (K,))."""
 
     def decode_latents(self, latents: Tensor) -> Tensor:
         """(1, c, n, h, w) DiT-scaled latents → (1, 3, 1 + t·(n − 1), h·s, w·s) pixels in about [−1, 1] (the VAE
@@ -195,6 +204,8 @@ class TorchRuntime:
         if self.offload is None:
             for name, net in self.networks.items():
                 net.to("cpu" if self.text_visits and name == "text_encoder" else self.device)
+        ldrm = self.networks.get("ldrm")
+        self.has_motion = getattr(ldrm, "motion", None) is not None
         self.compiled = bool(compile)
         if self.compiled:
             self.backbone.compile_blocks()
@@ -266,6 +277,18 @@ class TorchRuntime:
         (:meth:`models.backbones.base.Backbone.decode_latents`)."""
         with self._use("vae"):
             return self.backbone.decode_latents(latents.to(self.dtype)).float()
+
+    def motion(self, out: LDRMOutput, frames: Tensor, frame_times: Tensor, viewmats: Tensor, Ks: Tensor,
+               sources: Tensor, times: Tensor) -> LDRMOutput:
+        """:func:`diff4splat.frame_motion.frame_motion` with the LDRM's motion network, in float32 (the frames, cameras
+        and times as :meth:`NetworkRuntime.motion` takes them)."""
+        with self._use("ldrm") as ldrm:
+            net = ldrm.motion
+            dt = next(net.parameters()).dtype
+            moved = frame_motion(net, out, frames.to(dt), frame_times.float(), viewmats.float(), Ks.float(), sources,
+                                 times.float())
+        return LDRMOutput(**{f.name: None if getattr(moved, f.name) is None else getattr(moved, f.name).float()
+                             for f in fields(moved)})
 
     def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None, image: Tensor) -> LDRMOutput:
         """The LDRM (:class:`models.ldrm.LDRM`) on latents (B, c, n, h, w), plucker (B, 6·t·s², n, h, w), times

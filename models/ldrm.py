@@ -50,6 +50,7 @@ from torch import Tensor, nn
 from .deformation import DeformationConfig, DeformationNetwork, soft_clamp, unit_quat_from_raw
 from .layers import Mlp, SelfAttention, patchify
 from .mono_depth import MonoDepth
+from .motion import MotionConfig, MotionNetwork
 from .pretrained import PretrainedMixin
 from .tracing import tracing
 
@@ -117,6 +118,9 @@ class LDRMConfig:
         image_depth_grid: cells per side over which that network's output is averaged and interpolated back
             (``MonoDepth`` ``grid``: the coarse layout only); 0 = every pixel.
         deformation: config of the deformation network; its ``in_channels`` must equal ``embed_dim``.
+        motion: config of the motion network that reads each source pixel's motion from the frames
+            (:mod:`models.motion`; run by the pipeline, ``diff4splat.frame_motion``), or None (the token deformation
+            network alone decides motion).
     """
 
     latent_channels: int = 4
@@ -139,6 +143,7 @@ class LDRMConfig:
     image_depth: int = 0
     image_depth_grid: int = 0
     deformation: DeformationConfig = field(default_factory=DeformationConfig)
+    motion: MotionConfig | None = None
 
     SAVED_DEFAULTS: ClassVar[dict[str, object]] = {"gaussian_frames": "reference", "head": "deconv"}
     """Values of fields missing from a saved ``config.json`` (``PretrainedMixin.from_pretrained``): checkpoints
@@ -148,6 +153,8 @@ class LDRMConfig:
     def __post_init__(self) -> None:
         if isinstance(self.deformation, dict):
             self.deformation = DeformationConfig(**self.deformation)
+        if isinstance(self.motion, dict):
+            self.motion = MotionConfig(**self.motion)
         for name in ("latent_channels", "vae_temporal", "vae_spatial", "patch_size", "embed_dim", "depth", "num_heads"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"LDRMConfig.{name} must be ≥ 1, got {getattr(self, name)}")
@@ -440,6 +447,7 @@ class LDRM(nn.Module, PretrainedMixin):
         self.image_depth = (MonoDepth(config.image_depth, grid=config.image_depth_grid) if config.image_depth > 0
                             else None)
         self.deformation = DeformationNetwork(config.deformation)
+        self.motion = MotionNetwork(config.motion) if config.motion is not None else None
         for module in [self.embed, *self.blocks.modules()]:
             if isinstance(module, nn.Linear):  # ViT/DiT initialisation
                 nn.init.xavier_uniform_(module.weight)

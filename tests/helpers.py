@@ -19,6 +19,7 @@ from diff4splat.io import load_image
 from diff4splat.scene import DynamicGaussians
 from models.bundle import Diff4SplatConfig, Diff4SplatModel
 from models.hexplane import HexPlaneConfig, HexPlaneField
+from models.motion import MotionConfig
 
 OBJECTIVE_CASES = {
     "vae": (dict(train=("vae",), objectives=("vae",)), 0),
@@ -45,17 +46,24 @@ def benchmark_module(name: str) -> types.ModuleType:
     return module
 
 
+TINY_MOTION = MotionConfig(features=4, hidden=8, levels=2, radius=1)
+"""A motion network for the tiny model's tests (``tiny_model(motion=True)``)."""
+
+
 def tiny_model(seed: int = 0, dynamic: bool = False, active_dit: bool = False, image_branch: int = 0,
-               vae_upsample: str = "nearest"):
+               vae_upsample: str = "nearest", motion: bool = False):
     """A random tiny Diff4SplatModel (``vae_upsample``: its VAE decoder's ``VideoVAEConfig.upsample``).
 
     ``dynamic`` perturbs the zero-initialised deformation head; ``active_dit`` perturbs the DiT's
     zero-initialised layers (final layer, adaLN gates, camera and cross-attention projections), so its
     velocity is non-zero and depends on every input. ``image_branch`` > 0 gives the LDRM an image branch
     of that many channels (``LDRMConfig.image_branch``) whose zero-initialised last layer is perturbed,
-    so the photograph changes frame 0's Gaussians.
+    so the photograph changes frame 0's Gaussians. ``motion`` gives the LDRM the motion network :data:`TINY_MOTION`
+    with its zero-initialised output perturbed (it moves pixels).
     """
     config = Diff4SplatConfig()
+    if motion:
+        config = dataclasses.replace(config, ldrm=dataclasses.replace(config.ldrm, motion=TINY_MOTION))
     config = dataclasses.replace(config, vae=dataclasses.replace(config.vae, upsample=vae_upsample))
     if image_branch:
         config = dataclasses.replace(config, ldrm=dataclasses.replace(config.ldrm, image_branch=image_branch))
@@ -70,6 +78,8 @@ def tiny_model(seed: int = 0, dynamic: bool = False, active_dit: bool = False, i
         _perturb(model.ldrm.deformation.out_conv, seed + 1, weight_std=0.5)
     if image_branch:
         _perturb(model.ldrm.image_branch.out, seed + 3, weight_std=0.1)
+    if motion:
+        _perturb(model.ldrm.motion.out, seed + 4, weight_std=0.5, bias_std=1.0)
     return model
 
 

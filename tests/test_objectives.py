@@ -122,7 +122,10 @@ WEIGHTS = LossWeights(ssim=0.2, rgb=2.0, depth=0.5, metric_depth=0.75, smooth=0.
 
 
 def _network(name: str) -> str:
-    return "ldrm.deformation" if name.startswith("ldrm.deformation.") else name.split(".")[0]
+    for part in ("ldrm.deformation", "ldrm.motion"):
+        if name.startswith(part + "."):
+            return part
+    return name.split(".")[0]
 
 
 CASES = {
@@ -138,6 +141,10 @@ CASES = {
                     scenes="all", deformation=True, motion=True),
                {"flow", "photo", "depth", "metric_depth", "smooth", "motion", "displacement"},
                {"dit", "ldrm", "ldrm.deformation"}),
+    # the motion path (diff4splat.frame_motion) alone: the tracks and the renders reach it through the decoded frames
+    "motion_path": (dict(train=("ldrm.motion",), objectives=("reconstruction",), scenes="all", deformation=True,
+                         motion=True),
+                    {"photo", "depth", "metric_depth", "smooth", "motion", "displacement"}, {"ldrm.motion"}),
 }
 
 
@@ -146,7 +153,8 @@ CASES = {
 def test_forward_losses_and_gradients_reach_only_the_trainable_networks(clips, case):
     kwargs, keys, trained = CASES[case]
     stage = StageConfig(height=SIZE, width=SIZE, num_frames=FRAMES, render_frames=2, weights=WEIGHTS, **kwargs)
-    model = tiny_model(seed=1, dynamic=True)  # a non-zero deformation head: it shapes the renders
+    # a non-zero deformation head (and motion network): they shape the renders
+    model = tiny_model(seed=1, dynamic=True, motion=case == "motion_path")
     apply_freezing(model, stage.train)
     module = TrainingModule(model, stage).train()
     batch = default_collate(clips[1:] if stage.deformation else clips[:1])
@@ -159,6 +167,7 @@ def test_forward_losses_and_gradients_reach_only_the_trainable_networks(clips, c
         "vae": lambda terms: terms["vae_l1"] + stage.kl_weight * terms["vae_kl"],
         "stage1": lambda terms: terms["flow"] + rendering(terms),
         "frozen_deformation": lambda terms: rendering(terms) + 3.0 * terms["motion"] + 1.5 * terms["displacement"],
+        "motion_path": lambda terms: rendering(terms) + 3.0 * terms["motion"] + 1.5 * terms["displacement"],
         "stage3": lambda terms: (terms["flow"] + rendering(terms) + 3.0 * terms["motion"]
                                  + 1.5 * terms["displacement"]),
     }[case](losses)

@@ -29,7 +29,7 @@ from models.pretrained import config_from_dict
 
 __all__ = ["compose", "main", "ZERO_INIT_PREFIXES"]
 
-ZERO_INIT_PREFIXES = ("image_branch.",)
+ZERO_INIT_PREFIXES = ("image_branch.", "motion.")
 """Parameter-name prefixes that may be missing from a taken network: layers whose output is exactly 0 at
 initialisation (their last layer is zero-initialised), so leaving them at their initial values keeps the taken
 network's function."""

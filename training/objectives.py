@@ -29,6 +29,7 @@ from diff4splat.assemble import assemble_scene, to_gaussians
 from diff4splat.cameras import camera_rays, pack_plucker, plucker_rays
 from diff4splat.cameras.path import CameraPath
 from diff4splat.devices import autocast_off
+from diff4splat.frame_motion import frame_motion
 from diff4splat.photo import PHOTO_EPS2D
 from diff4splat.prune import settle_generated
 from diff4splat.render import rasterize
@@ -325,6 +326,16 @@ class TrainingModule(nn.Module):
             return DynamicGaussians(g)
         return DynamicGaussians(g, times, d_means, d_quats, d_scales)
 
+    def _motion_frames(self, latents: Tensor, batch: dict) -> Tensor | None:
+        """The frames the LDRM's motion network reads, (B, T, 3, H, W) in [0, 1], as ``generate`` gives them: the
+        VAE's decoding of the (noised) ``latents`` the LDRM reads (no gradient); None when the stage predicts no
+        deformation or the LDRM has no motion network."""
+        if not self.stage.deformation or self.model.ldrm.motion is None:
+            return None
+        with torch.no_grad():
+            video = self.backbone().decode_latents(latents)  # (B, 3, T, H, W) in about [−1, 1]
+        return ((video.float() + 1) / 2).clamp(0, 1).transpose(1, 2)
+
     def _noised(self, latents: Tensor, gen: torch.Generator) -> Tensor:
         """``latents`` (B, c, n, h, w) with frames 1… mixed with noise, (1 − σ)z + σε, σ ~ U(0, stage.latent_noise)
         per clip (:class:`StageConfig` ``latent_noise``); unchanged when it is 0. Draws σ (B,) then ε."""
@@ -359,10 +370,15 @@ class TrainingModule(nn.Module):
                                                     latent.temporal_factor), device=latents.device)
         sums: dict[str, Tensor] = {}
         outs = None if st.deformation else m.ldrm(latents, plucker, None, image)
+        seen = self._motion_frames(latents, batch)
         for b in range(B):
             times = batch["times"][b].to(torch.promote_types(latents.dtype, torch.float32))  # never bf16
             if st.deformation:
                 out = m.ldrm(latents[b:b + 1], plucker[b:b + 1], times, image[b:b + 1])
+                if seen is not None:  # the motion path reads the frames (diff4splat.frame_motion)
+                    with autocast_off():
+                        out = frame_motion(m.ldrm.motion, out, seen[b], batch["times"][b].float(),
+                                           batch["viewmats"][b].float(), batch["Ks"][b].float(), sources, times)
             else:
                 out = LDRMOutput(**{k: None if v is None else v[b:b + 1] for k, v in vars(outs).items()})
             if st.scene == "assembled":

@@ -41,11 +41,11 @@ STAGE_CONFIG_DIR = STAGE_CONFIGS
 ``train_cogvideox_stage1`` …): ``configs/training/``
 (:mod:`diff4splat.config_files`)."""
 
-MODULES = ("vae", "vae.decoder", "text_encoder", "dit", "ldrm", "ldrm.deformation", "ldrm.head",
+MODULES = ("vae", "vae.decoder", "text_encoder", "dit", "ldrm", "ldrm.deformation", "ldrm.motion", "ldrm.head",
            "ldrm.image_branch", "ldrm.image_depth")
 """Module names a stage can train (``vae.decoder`` is the VAE's decoder alone: the encoder, hence every latent the
 DiT and the LDRM were trained on, and the latent scaling stay as they are; ``ldrm.deformation`` is the LDRM's
-deformation network; ``ldrm.head`` and
+deformation network; ``ldrm.motion`` its motion network (:mod:`models.motion`); ``ldrm.head`` and
 ``ldrm.image_branch`` alone train a new head on the LDRM's features, which the deformation network also reads;
 ``ldrm.image_depth`` is the monocular depth network of frame 0, :class:`models.mono_depth.MonoDepth`;
 ``dit`` of a diffusers backbone is its transformer's LoRA adapters and camera weights)."""
@@ -267,7 +267,8 @@ def load_stage(name_or_path: str | os.PathLike, **overrides) -> StageConfig:
 def apply_freezing(model: nn.Module, train: tuple[str, ...]) -> dict[str, int]:
     """Freeze every parameter except those of the modules in ``train``.
 
-    ``"ldrm"`` without ``"ldrm.deformation"`` trains the LDRM with its deformation network frozen. (A diffusers
+    ``"ldrm"`` trains the LDRM without its deformation and motion networks, which train only when named
+    (``"ldrm.deformation"``, ``"ldrm.motion"``). (A diffusers
     backbone model's ``"dit"`` is its LoRA and camera weights:
     :func:`training.backbone_training.apply_backbone_freezing`, which calls this for the rest.)
 
@@ -277,8 +278,9 @@ def apply_freezing(model: nn.Module, train: tuple[str, ...]) -> dict[str, int]:
     model.requires_grad_(False)
     counts = {}
     for name in train:
-        if name == "ldrm" and "ldrm.deformation" not in train:
-            params = [p for n, p in model.ldrm.named_parameters() if not n.startswith("deformation.")]
+        if name == "ldrm":
+            skip = tuple(f"{part}." for part in ("deformation", "motion") if f"ldrm.{part}" not in train)
+            params = [p for n, p in model.ldrm.named_parameters() if not n.startswith(skip)]
         else:  # an optional part the model does not have (an LDRM without image branch) trains nothing
             parent, _, leaf = name.rpartition(".")
             module = getattr(model.get_submodule(parent), leaf, None) if parent else model.get_submodule(name)

@@ -3,13 +3,15 @@ world-to-camera viewmats)."""
 from .intrinsics import center_crop_box, fov_from_intrinsics, intrinsics_from_focal, intrinsics_from_fov
 from .lenses import FisheyeKB, FisheyePolynomial, RollingShutter, ThinLens
 from .path import CameraPath, camera_centers, invert_rigid
-from .rays import camera_rays, pack_plucker, plucker_rays, unproject_depth
+from .rays import camera_rays, pack_plucker, plucker_rays, project_points, unproject_depth, unproject_pixels
 from .trajectories import DEFAULT_AMPLITUDES, DEFAULT_TRAJECTORY, TRAJECTORIES, look_at, make_trajectory
 
 __all__ = [
     "camera_rays",
     "plucker_rays",
     "unproject_depth",
+    "project_points",
+    "unproject_pixels",
     "pack_plucker",
     "intrinsics_from_fov",
     "intrinsics_from_focal",

@@ -72,6 +72,43 @@ def unproject_depth(
     return o + d * (depth.to(d.dtype) / cos)[..., None]
 
 
+def project_points(
+    points: Tensor,  # (..., 3) world, metres
+    viewmats: Tensor,  # (..., 4, 4) world-to-camera, broadcast against points' leading dimensions
+    Ks: Tensor,  # (..., 3, 3) pixels
+) -> tuple[Tensor, Tensor]:
+    """Pinhole projection (OpenCV frame) of world points: the inverse of :func:`unproject_pixels`.
+
+    x_cam = R p + t; (u, v) = (f_x x/z + c_x, f_y y/z + c_y), continuous pixel coordinates with pixel (i, j)'s centre
+    at (j + 0.5, i + 0.5) as in :func:`camera_rays`. Points at z ≤ 0 get non-finite or meaningless (u, v): mask them
+    with ``z > 0``.
+
+    Returns:
+        uv: (..., 2) pixels; z: (...) z-depth, metres.
+    """
+    cam = (viewmats[..., :3, :3] @ points[..., None])[..., 0] + viewmats[..., :3, 3]
+    z = cam[..., 2]
+    pix = (Ks @ cam[..., None])[..., 0]
+    return pix[..., :2] / z[..., None], z
+
+
+def unproject_pixels(
+    uv: Tensor,  # (..., 2) pixels, centres at index + 0.5
+    z: Tensor,  # (...) z-depth, metres
+    viewmats: Tensor,  # (..., 4, 4) world-to-camera, broadcast against uv's leading dimensions
+    Ks: Tensor,  # (..., 3, 3) pixels
+) -> Tensor:
+    """World points at continuous pixel positions and z-depths: p = Rᵀ(z·K⁻¹(u, v, 1)ᵀ − t).
+
+    Returns:
+        (..., 3) world points, metres.
+    """
+    pix = torch.cat([uv, torch.ones_like(uv[..., :1])], dim=-1)
+    cam = (torch.linalg.inv(Ks) @ pix[..., None])[..., 0] * z[..., None]
+    R, t = viewmats[..., :3, :3], viewmats[..., :3, 3]
+    return (R.transpose(-1, -2) @ (cam - t)[..., None])[..., 0]
+
+
 def plucker_rays(
     viewmats: Tensor,  # (C, 4, 4) world-to-camera
     Ks: Tensor,  # (C, 3, 3) pixels

@@ -1,0 +1,93 @@
+"""The LDRM's motion path on held-out synthetic clips (issue 58): displacement error from frame 0 against holding
+still, from the true video's latents and from generated ones, on dynamic clips; spurious motion on static clips.
+
+For each clip the pipeline builds the scene twice, from the clip's own latents (VAE-encoded, no sampling) and from
+latents it samples with the clip's caption as the prompt; the photo layer's points at the tracks' frame-0 pixels are
+followed through the scene (:func:`training.evaluate.scene_motion`). Reported per set, means over clips: the
+displacement error (m) and the same for holding still, its ratio, EPE3D (m, absolute positions), δ5cm / δ10cm of the
+displacement (TAPVid-3D's thresholds), and on static clips the mean predicted displacement (mm):
+
+    python benchmarks/motion_path.py --data data/synth_heldout --checkpoint runs/x/model [--write SECTION]
+
+``--write`` puts the table in docs/benchmarks.md under ``motion_path_<SECTION>``.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import shlex
+import sys
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import markdown_table, write_section  # noqa: E402
+
+from diff4splat.cameras import CameraPath  # noqa: E402
+from diff4splat.pipeline import Diff4SplatPipeline  # noqa: E402
+from training.evaluate import _held_out_clips, scene_motion  # noqa: E402
+
+KEYS = ("motion_disp_epe", "motion_disp_hold", "motion_epe", "motion_disp_d5", "motion_disp_d10",
+        "motion_disp_hold_d5", "motion_disp_hold_d10")
+
+
+def clip_motion(pipe: Diff4SplatPipeline, clip: dict, latents: str, steps: int | None) -> dict[str, float]:
+    """:func:`scene_motion` of ``clip``'s scene from its ``latents`` ("true": VAE-encoded; "generated": sampled)."""
+    cfg = pipe.config
+    cams = CameraPath(clip["viewmats"].double(), clip["Ks"].double(), cfg.width, cfg.height, clip["times"].double())
+    image = clip["video"][:, 0].permute(1, 2, 0)
+    video_latents = None
+    if latents == "true":
+        video_latents = pipe.runtime.encode_image(clip["video"][None].to(pipe.device) * 2 - 1)
+    res = pipe(image, cams, clip["caption"], steps=steps, video_latents=video_latents)
+    out = scene_motion(pipe, res, clip)
+    out["deformed"] = float(res.scene.d_means is not None)
+    return out
+
+
+def _mean(rows: list[dict[str, float]], key: str) -> float:
+    vals = [r[key] for r in rows if not math.isnan(r[key])]
+    return sum(vals) / len(vals) if vals else float("nan")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", required=True)
+    ap.add_argument("--checkpoint", default=None, help="model folder (default: the shipped weights)")
+    ap.add_argument("--limit", type=int, default=None)
+    ap.add_argument("--steps", type=int, default=None)
+    ap.add_argument("--latents", default="true,generated")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--write", default=None, help="section suffix in docs/benchmarks.md")
+    args = ap.parse_args()
+    torch.manual_seed(0)
+    pipe = Diff4SplatPipeline.from_pretrained(args.checkpoint, device=args.device)
+    cfg = pipe.config
+    clips = _held_out_clips(args.data, cfg.height, cfg.width, cfg.num_frames, args.limit)
+    rows = []
+    for which in args.latents.split(","):
+        per = {True: [], False: []}
+        with torch.no_grad():
+            for clip in clips:
+                per[bool(clip["dynamic"])].append(clip_motion(pipe, clip, which, args.steps))
+        dyn, sta = per[True], per[False]
+        disp, hold = _mean(dyn, "motion_disp_epe"), _mean(dyn, "motion_disp_hold")
+        rows.append([which, len(dyn), f"{disp:.4f}", f"{hold:.4f}", f"{disp / hold:.3f}",
+                     f"{_mean(dyn, 'motion_epe'):.4f}",
+                     f"{_mean(dyn, 'motion_disp_d5'):.3f} / {_mean(dyn, 'motion_disp_d10'):.3f}",
+                     f"{_mean(dyn, 'motion_disp_hold_d5'):.3f} / {_mean(dyn, 'motion_disp_hold_d10'):.3f}",
+                     len(sta), f"{1000 * _mean(sta, 'motion_disp_epe'):.2f}",
+                     f"{sum(r['deformed'] for r in sta):.0f}"])
+    head = ["latents", "dynamic clips", "displacement error (m)", "holding still (m)", "ratio", "EPE3D (m)",
+            "δ5cm / δ10cm", "δ holding still", "static clips", "static: mean displacement (mm)",
+            "static scenes with deformation"]
+    table = markdown_table(head, rows)
+    print(table)
+    if args.write:
+        cmd = shlex.join(["python", "benchmarks/motion_path.py", *sys.argv[1:]])
+        write_section(f"motion_path_{args.write}", f"`{cmd}` (device: {args.device})\n\n{table}")
+
+
+if __name__ == "__main__":
+    main()
