@@ -5,6 +5,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from diff4splat.cameras import camera_rays
 from training.losses import (
     depth_correlation_loss,
     depth_smoothness_loss,
@@ -16,6 +17,7 @@ from training.losses import (
     motion_loss,
     photometric_loss,
     sample_training_sigmas,
+    warp_loss,
 )
 
 
@@ -245,3 +247,19 @@ def test_smoothness_counts_only_valid_pixels():
     right[..., 8:] = True
     torch.testing.assert_close(depth_smoothness_loss(torch.where(right, ramp, 0.0), img, right),
                                depth_smoothness_loss(ramp[..., 8:], img[..., 8:]))
+
+
+def test_warp_loss_is_zero_when_points_follow_the_content_and_not_when_held_still():
+    T, H, W, f, z = 3, 16, 16, 20.0, 2.0
+    g = torch.Generator().manual_seed(0)
+    tex = F.interpolate(torch.rand(1, 3, 8, 24, generator=g), size=(H, W + 8), mode="bilinear")[0]
+    frames = torch.stack([tex[:, :, 2 * t:2 * t + W] for t in range(T)])  # content moves 2 px left per frame
+    K = torch.tensor([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1]]).expand(T, 3, 3)
+    vm = torch.eye(4).repeat(T, 1, 1)
+    o, d = camera_rays(vm[:1], K[:1], W, H)
+    still = (o + d * (z / d[..., 2:]))[0].expand(T, H, W, 3)  # frame 0's pixels at z-depth 2 m
+    step = torch.tensor([-2.0 * z / f, 0.0, 0.0])
+    moving = still + torch.arange(T, dtype=torch.float32)[:, None, None, None] * step
+    assert float(warp_loss(frames, moving, vm, K)) < 1e-6  # integer shifts: exact bilinear look-ups
+    assert float(warp_loss(frames, still, vm, K)) > 0.01
+    assert float(warp_loss(frames[:1].expand(T, 3, H, W), still, vm, K)) < 1e-6  # a still video, still points

@@ -118,7 +118,8 @@ def test_render_frames_uses_each_frames_time_and_camera():
 # ----------------------------------------------------------------------------------- TrainingModule
 NETWORKS = ("vae", "text_encoder", "dit", "ldrm", "ldrm.deformation")
 # not the defaults: the sum is checked
-WEIGHTS = LossWeights(ssim=0.2, rgb=2.0, depth=0.5, metric_depth=0.75, smooth=0.25, motion=3.0, displacement=1.5)
+WEIGHTS = LossWeights(ssim=0.2, rgb=2.0, depth=0.5, metric_depth=0.75, smooth=0.25, motion=3.0, displacement=1.5,
+                      warp=0.5)
 
 
 def _network(name: str) -> str:
@@ -145,6 +146,9 @@ CASES = {
     "motion_path": (dict(train=("ldrm.motion",), objectives=("reconstruction",), scenes="all", deformation=True,
                          motion=True),
                     {"photo", "depth", "metric_depth", "smooth", "motion", "displacement"}, {"ldrm.motion"}),
+    # the tracking objective: the motion network alone, no renders
+    "tracking": (dict(train=("ldrm.motion",), objectives=("tracking",), scenes="all"), {"displacement", "warp"},
+                 {"ldrm.motion"}),
 }
 
 
@@ -154,10 +158,10 @@ def test_forward_losses_and_gradients_reach_only_the_trainable_networks(clips, c
     kwargs, keys, trained = CASES[case]
     stage = StageConfig(height=SIZE, width=SIZE, num_frames=FRAMES, render_frames=2, weights=WEIGHTS, **kwargs)
     # a non-zero deformation head (and motion network): they shape the renders
-    model = tiny_model(seed=1, dynamic=True, motion=case == "motion_path")
+    model = tiny_model(seed=1, dynamic=True, motion=case in ("motion_path", "tracking"))
     apply_freezing(model, stage.train)
     module = TrainingModule(model, stage).train()
-    batch = default_collate(clips[1:] if stage.deformation else clips[:1])
+    batch = default_collate(clips[1:] if stage.deformation or case == "tracking" else clips[:1])
     losses = module(batch, torch.Generator().manual_seed(0))
     assert set(losses) == keys | {"loss"}
     assert all(v.ndim == 0 and math.isfinite(float(v.detach())) for v in losses.values()), losses
@@ -168,12 +172,13 @@ def test_forward_losses_and_gradients_reach_only_the_trainable_networks(clips, c
         "stage1": lambda terms: terms["flow"] + rendering(terms),
         "frozen_deformation": lambda terms: rendering(terms) + 3.0 * terms["motion"] + 1.5 * terms["displacement"],
         "motion_path": lambda terms: rendering(terms) + 3.0 * terms["motion"] + 1.5 * terms["displacement"],
+        "tracking": lambda terms: 1.5 * terms["displacement"] + WEIGHTS.warp * terms["warp"],
         "stage3": lambda terms: (terms["flow"] + rendering(terms) + 3.0 * terms["motion"]
                                  + 1.5 * terms["displacement"]),
     }[case](losses)
     torch.testing.assert_close(losses["loss"], expected)
-    if "motion" in keys:
-        assert float(losses["motion"].detach()) > 1e-3  # visible tracks were queried and compared
+    if "motion" in keys or "displacement" in keys:
+        assert float(losses["displacement"].detach()) > 1e-3  # visible tracks were queried and compared
     losses["loss"].backward()
     got = {}
     for name, p in model.named_parameters():

@@ -10,8 +10,10 @@ from dataclasses import dataclass, fields
 
 import kornia
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
+from diff4splat.cameras import project_points
 from diff4splat.devices import autocast_off
 from models.flow_matching import add_noise, sample_logit_normal, shift_sigmas, velocity_target
 
@@ -25,6 +27,7 @@ __all__ = [
     "log_depth_loss",
     "motion_loss",
     "displacement_loss",
+    "warp_loss",
     "gather_track_predictions",
     "head_distillation_loss",
 ]
@@ -46,6 +49,7 @@ class LossWeights:
         motion: weight of the track loss (stage 3 only).
         displacement: weight of the track-displacement loss (:func:`displacement_loss`, stage 3 only): the
             motion relative to frame 0, which the absolute track loss mixes with the frame-0 depth error.
+        warp: weight of the dense warp loss of the ``tracking`` objective (:func:`warp_loss`).
 
     Raises:
         ValueError: a weight that is negative or not finite (a negative weight maximises its loss), or an
@@ -59,6 +63,7 @@ class LossWeights:
     smooth: float = 1e-3
     motion: float = 1.0
     displacement: float = 0.0
+    warp: float = 1.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -325,3 +330,27 @@ def head_distillation_loss(student: Tensor, teacher: Tensor, sigma: float) -> Te
                                               border_type="replicate")
         target = flat.reshape(B, S, C, H, W).transpose(1, 2)
     return (student - target).square().mean()
+
+
+def warp_loss(frames: Tensor, points: Tensor, viewmats: Tensor, Ks: Tensor) -> Tensor:
+    """Brightness constancy of moving points: mean L1 between frame 0's colour at each pixel and frame t's colour where
+    that pixel's point is at t, over the (t ≥ 1, pixel) pairs whose point projects inside frame t in front of it
+    (the photometric loss of unsupervised optical flow, e.g. Jonschkowski et al. 2020, dense where tracks are sparse;
+    occlusions are not masked).
+
+    Args:
+        frames: (T, 3, H, W) in [0, 1].
+        points: (T, H, W, 3) world positions at each frame's time of frame 0's pixels, metres.
+        viewmats: (T, 4, 4) world-to-camera; Ks: (T, 3, 3) pixels at (H, W).
+
+    Returns:
+        Scalar ≥ 0; 0 where nothing projects inside a frame.
+    """
+    T, _, H, W = frames.shape
+    uv, z = project_points(points[1:], viewmats[1:, None, None], Ks[1:, None, None])  # (T−1, H, W, 2)
+    size = uv.new_tensor([W, H])
+    grid = uv / size * 2 - 1
+    seen = F.grid_sample(frames[1:], grid.to(frames.dtype), mode="bilinear", padding_mode="zeros",
+                         align_corners=False)  # (T−1, 3, H, W)
+    inside = ((grid.abs() < 1).all(-1) & (z > 0)).to(frames.dtype)[:, None]
+    return ((seen - frames[:1]).abs() * inside).sum() / (3 * inside.sum()).clamp_min(1)

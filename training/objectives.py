@@ -52,6 +52,7 @@ from .losses import (
     log_depth_loss,
     motion_loss,
     photometric_loss,
+    warp_loss,
 )
 from .stage_config import StageConfig
 
@@ -210,7 +211,7 @@ class TrainingModule(nn.Module):
             losses["vae_l1"] = (recon - video).abs().mean()
             losses["vae_kl"] = kl_divergence(mean, logvar).mean() / mean[0].numel()
             total = total + losses["vae_l1"] + st.kl_weight * losses["vae_kl"]
-        if {"diffusion", "reconstruction", "distill"} & set(st.objectives):
+        if {"diffusion", "reconstruction", "distill", "tracking"} & set(st.objectives):
             backbone = self.backbone()
             with torch.no_grad():  # the VAE is frozen after its own stage
                 latents = backbone.encode_video(video).to(video.dtype)  # float32 targets under bf16 autocast
@@ -230,6 +231,10 @@ class TrainingModule(nn.Module):
                 total = total + w.metric_depth * rec["metric_depth"]
             if "motion" in rec:
                 total = total + w.motion * rec["motion"] + w.displacement * rec["displacement"]
+        if "tracking" in st.objectives:
+            tracking = self._tracking(latents, plucker, batch, generator)
+            losses.update(tracking)
+            total = total + st.weights.displacement * tracking["displacement"] + st.weights.warp * tracking["warp"]
         if "depth" in st.objectives:
             losses["mono_depth"] = self._mono_depth(batch)
             total = total + losses["mono_depth"]
@@ -332,9 +337,50 @@ class TrainingModule(nn.Module):
         deformation or the LDRM has no motion network."""
         if not self.stage.deformation or self.model.ldrm.motion is None:
             return None
+        return self._decoded_frames(latents)
+
+    def _decoded_frames(self, latents: Tensor) -> Tensor:
+        """The VAE's decoding of DiT-scaled ``latents`` (B, c, n, h, w): (B, T, 3, H, W) in [0, 1], no gradient."""
         with torch.no_grad():
             video = self.backbone().decode_latents(latents)  # (B, 3, T, H, W) in about [−1, 1]
         return ((video.float() + 1) / 2).clamp(0, 1).transpose(1, 2)
+
+    def _tracking(self, latents: Tensor, plucker: Tensor, batch: dict, gen: torch.Generator) -> dict[str, Tensor]:
+        """The ``tracking`` objective: the LDRM's motion network alone follows frame 0's pixels through the frames
+        ``generate`` gives it (the decoded (noised) latents), on the LDRM's own frame-0 depth (no gradient; no
+        renders), as :func:`diff4splat.frame_motion.frame_motion` runs it for source frame 0. Losses, means over the
+        batch: ``displacement`` of the tracks (:func:`training.losses.displacement_loss`) and the dense ``warp``
+        (:func:`training.losses.warp_loss`).
+
+        Raises:
+            ValueError: the LDRM has no motion network.
+        """
+        m = self.model
+        if m.ldrm.motion is None:
+            raise ValueError("the tracking objective trains ldrm.motion; this LDRM has none (ldrm.motion: null)")
+        B, _, T, H, W = batch["video"].shape
+        latents = self._noised(latents, gen)
+        frames = self._decoded_frames(latents)
+        with torch.no_grad():
+            distance = m.ldrm(latents, plucker, None, batch["video"][:, :, 0] * 2 - 1).distance[:, :1].float()
+        source = torch.zeros(1, dtype=torch.long, device=latents.device)
+        sums: dict[str, Tensor] = {}
+        for b in range(B):
+            with autocast_off():
+                times, vm, Ks = batch["times"][b].float(), batch["viewmats"][b].float(), batch["Ks"][b].float()
+                maps = LDRMOutput(distance=distance[b:b + 1], scales=None, quats=None, opacities=None, colors=None)
+                d = frame_motion(m.ldrm.motion, maps, frames[b], times, vm, Ks, source, times).d_means[0, :, 0]
+                o, dirs = camera_rays(vm[:1], Ks[:1], W, H)
+                points = (o + dirs * distance[b, 0, ..., None])[0] + d  # (T, H, W, 3)
+                tracks = batch["tracks"][b]
+                vis = batch["track_visibility"][b] & batch["track_mask"][b][:, None]
+                idx, ok = track_query_index(tracks[:, 0], Ks[0], W, H, vis[:, 0])
+                pred = points.reshape(T, H * W, 3)[:, idx].transpose(0, 1)  # (N, T, 3)
+                parts = {"displacement": displacement_loss(pred[None], tracks[None], (vis & ok[:, None])[None]),
+                         "warp": warp_loss(frames[b], points, vm, Ks)}
+            for k, v in parts.items():
+                sums[k] = sums.get(k, 0) + v / B
+        return sums
 
     def _noised(self, latents: Tensor, gen: torch.Generator) -> Tensor:
         """``latents`` (B, c, n, h, w) with frames 1… mixed with noise, (1 − σ)z + σε, σ ~ U(0, stage.latent_noise)

@@ -50,7 +50,7 @@ deformation network; ``ldrm.motion`` its motion network (:mod:`models.motion`); 
 ``ldrm.image_depth`` is the monocular depth network of frame 0, :class:`models.mono_depth.MonoDepth`;
 ``dit`` of a diffusers backbone is its transformer's LoRA adapters and camera weights)."""
 
-OBJECTIVES = ("vae", "diffusion", "reconstruction", "distill", "depth")
+OBJECTIVES = ("vae", "diffusion", "reconstruction", "distill", "depth", "tracking")
 
 RENDERED_SCENES = ("decoded", "assembled")
 """What the reconstruction objective renders (:attr:`StageConfig.scene`)."""
