@@ -195,7 +195,7 @@ class MotionNetwork(nn.Module, PretrainedMixin):
         self.encoder = nn.Sequential(nn.Conv2d(3, f, 3, padding=1), nn.GELU(), nn.Conv2d(f, f, 3, padding=1))
         # log of the soft-argmax's inverse temperature β per level (learned); a correlation is a cosine in [−1, 1], and
         # β = 40 at the start lets a clear peak win while a flat window stays soft (our initial value)
-        beta = torch.full((config.levels,), math.log(40.0))  # device: the construction context's (torch.device(…), meta)
+        beta = torch.full((config.levels,), math.log(40.0))  # device: the construction context's (torch.device, meta)
         self.log_sharpness = nn.Parameter(beta)
         window = (2 * config.radius + 1) ** 2
         self.head = nn.Sequential(
