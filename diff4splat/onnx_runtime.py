@@ -289,6 +289,16 @@ class OnnxRuntime:
         (z,) = self._run("vae_encoder", {"video": _numpy(video, np.float32)})
         return torch.from_numpy(z)
 
+    def motion(self, out: LDRMOutput, frames: Tensor, frame_times: Tensor, viewmats: Tensor, Ks: Tensor,
+               sources: Tensor, times: Tensor) -> LDRMOutput:
+        """Not served: an export has no motion network (``has_motion`` is False; the pipeline never calls this).
+
+        Raises:
+            ValueError: always.
+        """
+        raise ValueError("this ONNX export has no motion network (has_motion is False): its scenes keep the "
+                         "deformation network's maps")
+
     def decode_latents(self, latents: Tensor) -> Tensor:
         """(B, c, n, h, w) DiT latents → (B, 3, 1 + 4(n − 1), 8h, 8w) pixels (``vae_decoder.onnx``), on the latents'
         device.
