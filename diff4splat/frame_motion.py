@@ -36,7 +36,8 @@ __all__ = ["frame_motion", "nearest_frames"]
 
 
 def nearest_frames(times: Tensor, frame_times: Tensor) -> Tensor:  # (K,), (T,) → (K,) long
-    """Index of the frame nearest in time to each key time (the earlier one on a tie)."""
+    """Index into ``frame_times`` (T,) of the frame nearest in time to each of ``times`` (K,) (clip times in [0, 1];
+    the earlier frame on a tie): (K,) long."""
     return (times[:, None] - frame_times[None, :]).abs().argmin(dim=1)
 
 

@@ -480,14 +480,13 @@ class Diff4SplatPipeline:
         frames = source_frame_indices(cfg.ldrm.gaussian_frames, n, runtime.latent.temporal_factor)
         sources = torch.tensor(frames, device=dev)
         motion = runtime.has_motion and out.d_means is not None
-        decoded = None
-        if (cfg.generated_colors == "video" and len(frames) > 1) or motion:  # the generated video's pixels
-            decoded = runtime.decode_latents(latents)
+        colors_from_video = cfg.generated_colors == "video" and len(frames) > 1  # the later frames' colours (assemble)
+        decoded = runtime.decode_latents(latents) if colors_from_video or motion else None
         if motion:  # the motion network reads the decoded frames (diff4splat.frame_motion)
             out = runtime.motion(out, ((decoded[0].transpose(0, 1) + 1) / 2).clamp(0, 1), cameras_model.times,
                                  cameras_model.viewmats, cameras_model.Ks, sources, key_times)
-        if cfg.generated_colors != "video" or len(frames) == 1:
-            decoded = None  # assemble.video_colors only for a model that takes the later frames' colours from it
+        if not colors_from_video:
+            decoded = None
         runtime.release()  # the networks are done: an offloaded one leaves the device before pruning renders
         times = key_times if out.d_means is not None else None
         scene, grid, photo = assemble_scene(out, sources, cameras_model, cameras, image, times, depth=depth,

@@ -187,5 +187,6 @@ def test_a_still_motion_network_makes_the_scene_static_whatever_the_token_networ
     with torch.no_grad():
         model.ldrm.motion.out.weight.zero_()
         model.ldrm.motion.out.bias.zero_()
-    res = Diff4SplatPipeline(model)(image, Diff4SplatPipeline(model).default_cameras("orbit", 9), "", steps=1)
+    pipe = Diff4SplatPipeline(model)
+    res = pipe(image, pipe.default_cameras("orbit", 9), "", steps=1)
     assert res.scene.is_static and res.scene.times is None  # no deformation file

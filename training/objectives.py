@@ -331,14 +331,6 @@ class TrainingModule(nn.Module):
             return DynamicGaussians(g)
         return DynamicGaussians(g, times, d_means, d_quats, d_scales)
 
-    def _motion_frames(self, latents: Tensor, batch: dict) -> Tensor | None:
-        """The frames the LDRM's motion network reads, (B, T, 3, H, W) in [0, 1], as ``generate`` gives them: the
-        VAE's decoding of the (noised) ``latents`` the LDRM reads (no gradient); None when the stage predicts no
-        deformation or the LDRM has no motion network."""
-        if not self.stage.deformation or self.model.ldrm.motion is None:
-            return None
-        return self._decoded_frames(latents)
-
     def _decoded_frames(self, latents: Tensor) -> Tensor:
         """The VAE's decoding of DiT-scaled ``latents`` (B, c, n, h, w): (B, T, 3, H, W) in [0, 1], no gradient."""
         with torch.no_grad():
@@ -416,7 +408,8 @@ class TrainingModule(nn.Module):
                                                     latent.temporal_factor), device=latents.device)
         sums: dict[str, Tensor] = {}
         outs = None if st.deformation else m.ldrm(latents, plucker, None, image)
-        seen = self._motion_frames(latents, batch)
+        # the frames the motion network reads, as generate gives them: the decoding of the latents the LDRM reads
+        seen = self._decoded_frames(latents) if st.deformation and m.ldrm.motion is not None else None
         for b in range(B):
             times = batch["times"][b].to(torch.promote_types(latents.dtype, torch.float32))  # never bf16
             if st.deformation:
