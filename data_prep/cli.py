@@ -22,6 +22,7 @@ from diff4splat.errors import run_cli
 
 from .convert_cli import register as _add_convert  # data_prep convert SOURCE IN OUT
 from .curate import DEFAULT_CONFIG_PATH, MODES, CurationConfig, curate
+from .engine import add_engine_arguments, engine_from_args
 from .synth_dataset import check_synth_request, synthesize
 from .synth_world import DEFAULT_CAMERAS, DEFAULT_FRAMES, DEFAULT_SIZE, DEFAULT_STATIC_RATIO, DEFAULT_TEXTURE_RATIO
 from .validate import summarize, validate_path
@@ -70,9 +71,10 @@ def _synth(args: argparse.Namespace) -> int:
                         flags=True)  # the messages name the flags
     t0 = time.perf_counter()
     resolve_device(args.device, "--device")  # before anything is created
+    engine = engine_from_args(args)
     paths = synthesize(args.out, args.scenes, args.seed, size=args.size, frames=args.frames, cameras=args.cameras,
                        static_ratio=args.static_ratio, texture_ratio=args.texture_ratio, workers=args.workers,
-                       progress=not args.quiet, device=args.device)
+                       progress=not args.quiet, device=args.device, engine=engine)
     print(f"{len(paths)} scene(s) in {args.out} ({time.perf_counter() - t0:.1f} s)")
     return 0
 
@@ -96,7 +98,7 @@ def _add_synth(sub) -> None:
     p.add_argument("--texture-ratio", type=_unit_float, default=DEFAULT_TEXTURE_RATIO,
                    help="probability in [0, 1] that a surface gets a crop of a bundled photograph as texture "
                         f"(data_prep/textures/); 0: procedural textures only (default {DEFAULT_TEXTURE_RATIO})")
-    p.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
+    add_engine_arguments(p, default_workers=1)
     p.add_argument("--device", default="cpu",
                    help="torch device that renders the scenes: cpu, cuda, cuda:N or auto (default: cpu, so a seed "
                         "gives the same bytes on every machine; CUDA renders with gsplat when installed)")
@@ -119,7 +121,8 @@ def _unit_float(text: str) -> float:
 
 def _curate(args: argparse.Namespace) -> int:
     config = CurationConfig.from_yaml(args.config or DEFAULT_CONFIG_PATH)
-    records = curate(args.input, args.output, config, workers=args.workers, mode=args.mode, progress=not args.quiet)
+    records = curate(args.input, args.output, config, workers=args.workers, mode=args.mode, progress=not args.quiet,
+                     engine=engine_from_args(args))
     n_ok = sum(r["accepted"] for r in records)
     print(f"curated {len(records)} scene(s): {n_ok} accepted, {len(records) - n_ok} rejected "
           f"-> {args.output / 'manifest.jsonl'}")
@@ -135,7 +138,7 @@ def _add_curate(sub) -> None:
     p.add_argument("output", type=Path, help="output folder (created; must differ from IN)")
     p.add_argument("--config", type=Path, default=None,
                    help="YAML thresholds (default: configs/data_prep/curation_default.yaml)")
-    p.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="worker processes (default: CPU count)")
+    add_engine_arguments(p, default_workers=os.cpu_count() or 1)
     p.add_argument("--mode", default="symlink", choices=MODES,
                    help="accepted scenes in OUT as absolute symlinks (symlink), full copies (copy) or not at all "
                         "(none; default: symlink)")

@@ -36,9 +36,8 @@ import os
 import shutil
 import sys
 import uuid
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, fields
-from multiprocessing import get_context
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +53,7 @@ from diff4splat.config_files import CURATION_DEFAULT
 from diff4splat.io import atomic_output_path, check_output_dir, output_dir
 from diff4splat.io.structured import read_yaml
 
+from .engine import Engine, map_scenes
 from .format import SCENE_KIND, SceneReader, list_scenes
 from .validate import validate_scene
 
@@ -353,8 +353,11 @@ def curate_scene(src: str | os.PathLike, out_root: str | os.PathLike, config: Cu
     return record
 
 
-def _init_worker() -> None:
-    torch.set_num_threads(1)  # one process per core; no oversubscription
+def _curate_task(src: Path, out_root: Path, config: CurationConfig, mode: str) -> None:
+    """Curate scene ``src`` (the engine's task), unless a completed earlier attempt (a retried task, a resumed run)
+    wrote its record already."""
+    if not (out_root / RECORDS / f"{src.name}.json").is_file():
+        curate_scene(src, out_root, config, mode)
 
 
 def _remove_leftovers(out_root: Path) -> None:
@@ -422,7 +425,8 @@ def _check_out_root(in_root: Path, out_root: Path) -> None:
 
 
 def curate(in_root: str | os.PathLike, out_root: str | os.PathLike, config: CurationConfig | None = None, *,
-           workers: int = 1, mode: str = "symlink", progress: bool = True) -> list[dict[str, Any]]:
+           workers: int = 1, mode: str = "symlink", progress: bool = True,
+           engine: Engine | None = None) -> list[dict[str, Any]]:
     """Curate every scene of ``in_root`` into ``out_root`` (resumable; see the module docstring).
 
     Args:
@@ -430,6 +434,8 @@ def curate(in_root: str | os.PathLike, out_root: str | os.PathLike, config: Cura
         out_root: output folder (created); must not be ``in_root``.
         config: thresholds; ``None`` → :class:`CurationConfig` defaults.
         workers: processes (≥ 1); 1 runs in this process. Results do not depend on it.
+        engine: where the scenes are curated (:func:`data_prep.engine.check_engine`); ``None``: the local pool of
+            ``workers`` processes. Results do not depend on it either.
         mode: one of :data:`MODES`.
         progress: show a tqdm bar (on stderr).
 
@@ -444,6 +450,7 @@ def curate(in_root: str | os.PathLike, out_root: str | os.PathLike, config: Cura
     config = config or CurationConfig()
     in_root, out_root = Path(in_root), Path(out_root)
     workers = check_int("workers", workers, 1)
+    engine = engine or Engine(workers=workers)
     if mode not in MODES:
         raise ValueError(f"mode must be one of {list(MODES)}, got {mode!r}")
     scenes = list_scenes(in_root)
@@ -463,19 +470,9 @@ def curate(in_root: str | os.PathLike, out_root: str | os.PathLike, config: Cura
     done = {f.stem for f in (out_root / RECORDS).glob("*.json") if not f.name.startswith(".")}
     todo = [s for s in scenes if s.name not in done]
     bar = tqdm(total=len(scenes), initial=len(scenes) - len(todo), desc="curate", unit="scene",
-               disable=not progress, file=sys.stderr)
+               disable=not progress or engine.name != "local", file=sys.stderr)
     try:
-        if workers == 1 or len(todo) <= 1:
-            for s in todo:
-                curate_scene(s, out_root, config, mode)
-                bar.update()
-        else:
-            with ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=get_context("spawn"),
-                                     initializer=_init_worker) as pool:
-                futures = [pool.submit(curate_scene, s, out_root, config, mode) for s in todo]
-                for fut in as_completed(futures):
-                    fut.result()
-                    bar.update()
+        map_scenes(partial(_curate_task, out_root=out_root, config=config, mode=mode), todo, engine, bar=bar)
     finally:
         bar.close()
         records = _finalize(out_root)

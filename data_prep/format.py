@@ -35,6 +35,7 @@ from diff4splat.io import (
     save_image,
 )
 
+from .engine import fault_point
 from .scene_files import (
     DEPTH_SOURCES,
     FORMAT_VERSION,
@@ -287,6 +288,7 @@ class SceneWriter:
             problems = validate_scene(self.tmp_dir)
             if problems:
                 raise ValueError(f"scene {self.path} is invalid: " + "; ".join(str(p) for p in problems[:5]))
+        fault_point("write", self.path.name)  # a test's injected worker death: every file written, none renamed
 
 
 class SceneReader:

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import math
 import os
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from multiprocessing import get_context
+from dataclasses import replace
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -16,6 +16,7 @@ from diff4splat.checks import check_int, check_number
 from diff4splat.devices import resolve_device
 from diff4splat.limits import check_limit
 
+from .engine import Engine, map_scenes
 from .format import check_dataset_root
 from .synth import generate_scene, scene_name
 from .synth_world import DEFAULT_CAMERAS, DEFAULT_FRAMES, DEFAULT_SIZE, DEFAULT_STATIC_RATIO, DEFAULT_TEXTURE_RATIO
@@ -79,22 +80,28 @@ def check_synth_request(num_scenes: int, seed: int, *, size: int, frames: int, c
                 "estimated")
 
 
-def _init_worker() -> None:
-    torch.set_num_threads(1)
+def _make_scene(index: int, out: Path, seed: int, kw: dict) -> None:
+    """Scene ``index`` of the run (the engine's task): made and written atomically, or left as it is when a
+    completed earlier attempt (a retried task, a resumed run) wrote it already."""
+    if (out / scene_name(index) / "meta.json").is_file():
+        return
+    generate_scene(out, index, seed, **kw)
 
 
 def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, size: int = DEFAULT_SIZE,
                frames: int = DEFAULT_FRAMES, cameras: int = DEFAULT_CAMERAS, static_ratio: float = DEFAULT_STATIC_RATIO,
                texture_ratio: float = DEFAULT_TEXTURE_RATIO, workers: int = 1,
-               progress: bool = True, device: str | torch.device = "cpu") -> list[Path]:
+               progress: bool = True, device: str | torch.device = "cpu", engine: Engine | None = None) -> list[Path]:
     """Generate scenes 0 … num_scenes−1 into ``out_dir``, skipping scenes already present (resume).
 
     Every argument and limit is checked first (:func:`check_synth_request`): a refused request creates nothing.
-    Scenes are then made in index order, the existing ones skipped as they come (the first new scene is written
-    without looking at the later ones first). Each scene is written atomically by :func:`generate_scene`; with
-    ``workers`` > 1 scenes are made in that many processes (spawned, one torch thread each, at most 2 scenes
-    queued per process). A tqdm bar counts finished and skipped scenes. ``out_dir`` is created when missing, and
-    removed again if the run fails before anything was written into it.
+    Scene ``i`` depends on ``seed`` and ``i`` alone, and is written atomically by :func:`generate_scene`, so the
+    dataset is the same bytes whatever the engine, worker count or order. The local engine goes through the scenes
+    in index order, skipping the existing ones as they come (the first new scene is written without looking at the
+    later ones first; a tqdm bar counts finished and skipped scenes); with ``workers`` > 1 scenes are made in that
+    many processes. The ray engine hands every index to Ray Data, whose tasks skip the scenes already written
+    (:mod:`data_prep.engine`). ``out_dir`` is created when missing, and removed again if the run fails before
+    anything was written into it.
 
     Args:
         out_dir: dataset root (created).
@@ -106,10 +113,12 @@ def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, si
         static_ratio: probability in [0, 1] of a static scene.
         texture_ratio: probability in [0, 1] that a surface (ground, wall, object) uses an image texture
             (:mod:`data_prep.textures`); 0 gives the procedural-only scenes.
-        workers: processes, ≥ 1.
-        progress: show the progress bar.
+        workers: processes, ≥ 1 (the local engine; ``engine`` given: its own ``workers`` count).
+        progress: show progress.
         device: where the scenes are rendered (:func:`~diff4splat.devices.resolve_device`): "cpu" (the default,
             so a seed gives the same bytes on every machine), "cuda", "auto", …
+        engine: where the scenes are made (:func:`data_prep.engine.check_engine`); ``None``: the local pool of
+            ``workers`` processes. On Ray, a CUDA ``device`` gives each task one GPU.
 
     Returns:
         The scene folders of all ``num_scenes`` scenes, in index order.
@@ -123,14 +132,17 @@ def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, si
                         static_ratio=static_ratio, texture_ratio=texture_ratio)
     # numpy integers pass the checks; Python ints go on (the seed is written to meta.json)
     num_scenes, seed, size, frames, cameras, workers = map(int, (num_scenes, seed, size, frames, cameras, workers))
+    engine = engine or Engine(workers=workers)
     device = str(resolve_device(device, "--device"))
+    if engine.name == "ray" and device.startswith("cuda"):
+        engine = replace(engine, gpus_per_task=engine.gpus_per_task or 1.0)
     out = Path(out_dir)
     check_dataset_root(out, "--out")
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     kw = dict(size=size, frames=frames, cameras=cameras, static_ratio=float(static_ratio),
               texture_ratio=float(texture_ratio), device=device)
-    bar = tqdm(total=num_scenes, desc="synth", unit="scene", disable=not progress)
+    bar = tqdm(total=num_scenes, desc="synth", unit="scene", disable=not progress or engine.name != "local")
 
     def todo():
         for i in range(num_scenes):
@@ -140,20 +152,8 @@ def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, si
                 yield i
 
     try:
-        if workers == 1 or num_scenes == 1:
-            for i in todo():
-                generate_scene(out, i, seed, **kw)
-                bar.update()
-        else:
-            with ProcessPoolExecutor(min(workers, num_scenes), mp_context=get_context("spawn"),
-                                     initializer=_init_worker) as pool:
-                running: set = set()
-                for i in todo():
-                    running.add(pool.submit(generate_scene, out, i, seed, **kw))
-                    while len(running) >= 2 * workers:
-                        running = _collect(running, bar)
-                while running:
-                    running = _collect(running, bar)
+        items = todo() if engine.name == "local" else range(num_scenes)
+        map_scenes(partial(_make_scene, out=out, seed=seed, kw=kw), items, engine, progress=progress, bar=bar)
     except BaseException:
         if created and out.is_dir() and not any(out.iterdir()):
             out.rmdir()
@@ -161,13 +161,3 @@ def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, si
     finally:
         bar.close()
     return [out / scene_name(i) for i in range(num_scenes)]
-
-
-def _collect(running: set, bar) -> set:
-    """Wait until a scene of ``running`` is finished; re-raise its failure or count it on ``bar``. Returns the
-    futures still running."""
-    done, pending = wait(running, return_when=FIRST_COMPLETED)
-    for fut in done:
-        fut.result()
-        bar.update()
-    return pending

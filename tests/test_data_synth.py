@@ -13,6 +13,7 @@ from concurrent.futures import Future
 import numpy as np
 import pytest
 
+import data_prep.engine
 import data_prep.synth_dataset
 from data_prep.cli import main
 from data_prep.format import load_scene
@@ -353,7 +354,7 @@ def test_the_first_scene_is_started_without_looking_at_every_later_path(tmp_path
 
     monkeypatch.setattr(data_prep.synth_dataset, "generate_scene", first)
     if workers > 1:  # a spawned worker would import the real generate_scene: run the pool's tasks here
-        monkeypatch.setattr(data_prep.synth_dataset, "ProcessPoolExecutor", _InlinePool)
+        monkeypatch.setattr(data_prep.engine, "ProcessPoolExecutor", _InlinePool)
     out = tmp_path / "data"
     t0 = time.perf_counter()
     with pytest.raises(_FirstScene):

@@ -1,0 +1,256 @@
+"""Where ``data_prep``'s per-scene work runs: the local process pool or Ray Data.
+
+Every ``data_prep`` command that maps over scenes (``synth``, ``convert --each``, ``curate``) hands its scene function
+and scene list to :func:`map_scenes`, with an :class:`Engine`:
+
+* ``local`` (default): scenes one after another in this process (``workers`` 1), or in a pool of ``workers`` spawned
+  processes (:class:`concurrent.futures.ProcessPoolExecutor`), one torch thread each, at most two scenes queued
+  per process. Nothing beyond the base install.
+* ``ray``: Ray Data (``ray.data.from_items(…).map(…)``, one block per scene, so a task is one scene) on the cluster
+  at ``ray_address`` (as ``ray.init`` takes it: ``"auto"`` for a running cluster, ``"ray://host:10001"`` for a
+  client), on the Ray this process already joined, or else on a local Ray started here with ``workers`` CPUs and
+  shut down afterwards. Each task asks for ``cpus_per_task`` CPUs and ``gpus_per_task`` GPUs. A task whose worker
+  dies (killed, OOM-killed, its node removed) is retried by Ray Data (its default: without limit, for system
+  failures); an exception raised by the scene function is not retried and fails the run with that exception.
+  Ray is the optional extra ``diff4splat[ray]``, imported only here and only for this engine.
+
+The engine decides where and in what order scenes are made, never what they hold: the scene functions seed every
+scene from its index, write it atomically (a temporary folder renamed into place) and return at once when their
+scene is already complete, so a retried task, a resumed run and either engine give the same bytes, each scene
+exactly once.
+
+Fault injection (for the retry tests): :func:`fault_point` kills its own process with SIGKILL once, the first time
+it is reached at the named stage for the named scene, when ``DIFF4SPLAT_FAULT`` is ``"<stage>:<scene>:<flag file>"``
+(the flag file, created on that first time, makes it once per run).
+"""
+from __future__ import annotations
+
+import argparse
+import functools
+import logging
+import os
+import pickle
+import signal
+from collections.abc import Callable, Iterable, Sequence, Sized
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from multiprocessing import get_context
+from typing import Any
+
+import torch
+from tqdm.auto import tqdm
+
+from diff4splat.checks import check_int
+
+__all__ = ["Engine", "ENGINES", "check_engine", "add_engine_arguments", "engine_from_args", "map_scenes",
+           "fault_point", "import_ray", "FAULT_ENV", "RAY_EXTRA"]
+
+ENGINES = ("local", "ray")
+"""The engines :func:`map_scenes` runs on."""
+FAULT_ENV = "DIFF4SPLAT_FAULT"
+"""Environment variable of :func:`fault_point`."""
+RAY_EXTRA = "pip install 'diff4splat[ray]'"
+"""The install command named when Ray is asked for and missing."""
+
+
+@dataclass(frozen=True)
+class Engine:
+    """Where :func:`map_scenes` runs the scenes.
+
+    Attributes:
+        name: one of :data:`ENGINES`.
+        workers: local: processes (1 runs in this process); ray: the CPUs of a local Ray started here (a cluster's
+            own resources decide otherwise).
+        ray_address: ray: the cluster (``ray.init``'s ``address``); ``None`` joins the Ray this process has
+            joined, or starts a local one.
+        cpus_per_task: ray: CPUs each scene task asks for.
+        gpus_per_task: ray: GPUs each scene task asks for (``synth --device cuda``: 1).
+    """
+
+    name: str = "local"
+    workers: int = 1
+    ray_address: str | None = None
+    cpus_per_task: float = 1.0
+    gpus_per_task: float = 0.0
+
+
+def import_ray():
+    """Import Ray (the optional extra).
+
+    Raises:
+        ValueError: Ray Data is not installed (the message names :data:`RAY_EXTRA`).
+    """
+    try:
+        import ray  # optional dependency (extra [ray])
+        import ray.data  # noqa: F401  (Ray Data comes with ray[data])
+    except ImportError as e:
+        raise ValueError(f"--engine ray needs Ray Data, which is not installed ({e}): {RAY_EXTRA}") from None
+    return ray
+
+
+def check_engine(name: str, workers: int = 1, ray_address: str | None = None, *, gpus_per_task: float = 0.0,
+                 flags: bool = True) -> Engine:
+    """Check an engine request before any work: the name, the worker count, and for ``ray`` that Ray is installed.
+
+    Args:
+        flags: name the arguments by their ``data_prep`` flags (``--engine``, ``--workers``, ``--ray-address``).
+
+    Returns:
+        The :class:`Engine`.
+
+    Raises:
+        ValueError: an unknown engine, ``workers`` < 1, a ``ray_address`` without ``--engine ray``, an empty
+            address, or Ray missing (:func:`import_ray`).
+    """
+    flag = {"name": "--engine", "workers": "--workers", "ray_address": "--ray-address"} if flags else {}
+    if name not in ENGINES:
+        raise ValueError(f"{flag.get('name', 'engine')} must be one of {', '.join(ENGINES)}, got {name!r}")
+    workers = check_int(flag.get("workers", "workers"), workers, 1)
+    if ray_address is not None:
+        if name != "ray":
+            raise ValueError(f"{flag.get('ray_address', 'ray_address')} is for the ray engine; add "
+                             f"{flag.get('name', 'engine')} ray")
+        if not str(ray_address).strip():
+            raise ValueError(f"{flag.get('ray_address', 'ray_address')} is empty: give auto, host:port or "
+                             "ray://host:10001")
+    if name == "ray":
+        import_ray()
+    return Engine(name=name, workers=workers, ray_address=ray_address, gpus_per_task=float(gpus_per_task))
+
+
+def add_engine_arguments(parser: argparse.ArgumentParser, default_workers: int = 1) -> None:
+    """Add ``--engine``, ``--workers`` and ``--ray-address`` to a ``data_prep`` subcommand's parser."""
+    parser.add_argument("--engine", default="local", choices=ENGINES,
+                        help="local: a pool of --workers processes on this machine (default); ray: Ray Data tasks "
+                             f"on a Ray cluster ({RAY_EXTRA})")
+    parser.add_argument("--workers", type=int, default=default_workers,
+                        help="local: worker processes; ray: the CPUs of a Ray started here "
+                             f"(default {default_workers})")
+    parser.add_argument("--ray-address", default=None, metavar="ADDR",
+                        help="the Ray cluster, as ray.init takes it: auto (a running cluster), host:port, "
+                             "ray://host:10001 (a client); default: start a local Ray")
+
+
+def engine_from_args(args: argparse.Namespace) -> Engine:
+    """The :class:`Engine` of the flags :func:`add_engine_arguments` added (checked: :func:`check_engine`)."""
+    return check_engine(args.engine, args.workers, args.ray_address)
+
+
+def fault_point(stage: str, scene: str) -> None:
+    """Kill this process (SIGKILL, as the OOM killer does) the first time ``stage`` is reached for ``scene`` while
+    :data:`FAULT_ENV` is ``"<stage>:<scene>:<flag file>"``; do nothing otherwise (see the module docstring)."""
+    spec = os.environ.get(FAULT_ENV)
+    if not spec:
+        return
+    want_stage, want_scene, flag = spec.split(":", 2)
+    if (want_stage, want_scene) != (stage, scene):
+        return
+    try:
+        fd = os.open(flag, os.O_CREAT | os.O_EXCL | os.O_WRONLY)  # the first time only
+    except FileExistsError:
+        return
+    os.close(fd)
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+def map_scenes(fn: Callable[[Any], Any], items: Iterable[Any], engine: Engine, *, desc: str = "scenes",
+               progress: bool = True, bar: tqdm | None = None) -> None:
+    """Call ``fn(item)`` once for each item on ``engine``, waiting for all of them.
+
+    ``fn`` must be picklable (a module-level function or a :func:`functools.partial` of one) and do the whole work
+    of its item, writing its output itself; its return value is dropped. Items are handed out in order (the local
+    engine draws them lazily from an iterator: the first one starts before the last one is known); they finish in
+    any order.
+
+    Args:
+        fn: the per-scene function.
+        items: the scenes' arguments (picklable).
+        engine: where to run them.
+        desc: the progress bar's label.
+        progress: show progress (local: a tqdm bar, or ``bar`` when given; ray: Ray Data's progress bars).
+        bar: a tqdm bar to count finished items on (local engine), e.g. one already counting skipped scenes.
+
+    Raises:
+        The first exception raised by ``fn`` (on the ray engine too: the scene function's own exception).
+    """
+    if engine.name == "ray":
+        items = list(items)
+        if items:
+            _map_ray(fn, items, engine, progress)
+        return
+    workers = min(engine.workers, len(items)) if isinstance(items, Sized) else engine.workers
+    own_bar = bar is None
+    bar = bar if bar is not None else tqdm(total=len(items) if isinstance(items, Sized) else None, desc=desc,
+                                           unit="scene", disable=not progress)
+    try:
+        if workers <= 1:
+            for item in items:
+                fn(item)
+                bar.update()
+            return
+        with ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_init_worker) as pool:
+            running: set = set()
+            for item in items:
+                running.add(pool.submit(fn, item))
+                while len(running) >= 2 * workers:
+                    running = _collect(running, bar)
+            while running:
+                running = _collect(running, bar)
+    finally:
+        if own_bar:
+            bar.close()
+
+
+def _init_worker() -> None:
+    torch.set_num_threads(1)  # one process per core; no oversubscription
+
+
+def _collect(running: set, bar: tqdm) -> set:
+    """Wait until an item of ``running`` is finished; re-raise its failure or count it on ``bar``. Returns the
+    futures still running."""
+    done, pending = wait(running, return_when=FIRST_COMPLETED)
+    for fut in done:
+        fut.result()
+        bar.update()
+    return pending
+
+
+def _ray_row(row: dict[str, Any], fn: Callable[[Any], Any], items: Sequence[Any]) -> dict[str, Any]:
+    """Ray Data's map function: run item ``row["index"]`` (one torch thread per CPU the task holds). The scene
+    function's exception comes back pickled in ``row["error"]`` (Ray Data's own wrapper does not carry it to the
+    driver); a worker that dies returns nothing, and Ray retries the task."""
+    torch.set_num_threads(max(1, int(os.environ.get("OMP_NUM_THREADS", "1"))))
+    try:
+        fn(items[row["index"]])
+    except Exception as e:
+        try:
+            return {"index": row["index"], "error": pickle.dumps(e)}
+        except Exception:  # an exception that does not pickle: its type and message
+            return {"index": row["index"], "error": pickle.dumps(RuntimeError(f"{type(e).__name__}: {e}"))}
+    return {"index": row["index"], "error": b""}
+
+
+def _map_ray(fn: Callable[[Any], Any], items: Sequence[Any], engine: Engine, progress: bool) -> None:
+    ray = import_ray()
+    started = not ray.is_initialized()
+    if started:
+        kw: dict[str, Any] = dict(address=engine.ray_address, logging_level=logging.ERROR, log_to_driver=False,
+                                  include_dashboard=False)
+        if engine.ray_address is None:
+            kw["num_cpus"] = engine.workers
+        ray.init(**kw)
+    try:
+        ctx = ray.data.DataContext.get_current()
+        ctx.enable_progress_bars = progress
+        ctx.print_on_execution_start = progress
+        if not progress:  # no "progress bars disabled" warning, no execution log lines
+            logging.getLogger("ray.data").setLevel(logging.ERROR)
+        ds = ray.data.from_items([{"index": i} for i in range(len(items))], override_num_blocks=len(items))
+        ds = ds.map(functools.partial(_ray_row, fn=fn, items=list(items)), num_cpus=engine.cpus_per_task,
+                    num_gpus=engine.gpus_per_task or None)
+        for row in ds.iter_rows():
+            if row["error"]:
+                raise pickle.loads(row["error"])
+    finally:
+        if started:
+            ray.shutdown()
