@@ -234,8 +234,9 @@ def _map_ray(fn: Callable[[Any], Any], items: Sequence[Any], engine: Engine, pro
     ray = import_ray()
     started = not ray.is_initialized()
     if started:
-        kw: dict[str, Any] = dict(address=engine.ray_address, logging_level=logging.ERROR, log_to_driver=False,
-                                  include_dashboard=False)
+        # "local": a new Ray here, even where `ray start` left one running (None would join that one)
+        kw: dict[str, Any] = dict(address=engine.ray_address or "local", logging_level=logging.ERROR,
+                                  log_to_driver=False, include_dashboard=False)
         if engine.ray_address is None:
             kw["num_cpus"] = engine.workers
         ray.init(**kw)

@@ -16,7 +16,7 @@ from diff4splat.checks import check_int, check_number
 from diff4splat.devices import resolve_device
 from diff4splat.limits import check_limit
 
-from .engine import Engine, map_scenes
+from .engine import Engine, fault_point, map_scenes
 from .format import check_dataset_root
 from .synth import generate_scene, scene_name
 from .synth_world import DEFAULT_CAMERAS, DEFAULT_FRAMES, DEFAULT_SIZE, DEFAULT_STATIC_RATIO, DEFAULT_TEXTURE_RATIO
@@ -86,6 +86,7 @@ def _make_scene(index: int, out: Path, seed: int, kw: dict) -> None:
     if (out / scene_name(index) / "meta.json").is_file():
         return
     generate_scene(out, index, seed, **kw)
+    fault_point("done", scene_name(index))  # a test's injected worker death: the scene written, the task not done
 
 
 def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, size: int = DEFAULT_SIZE,

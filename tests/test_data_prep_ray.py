@@ -21,7 +21,6 @@ from data_prep.cli import main  # noqa: E402
 from data_prep.converters import convert_each  # noqa: E402
 from data_prep.curate import CurationConfig, curate  # noqa: E402
 from data_prep.engine import Engine  # noqa: E402
-from data_prep.synth import generate_scene  # noqa: E402
 from training.stage_config import StageConfig  # noqa: E402
 from training.trainer import TrainerConfig  # noqa: E402
 

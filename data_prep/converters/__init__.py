@@ -163,9 +163,15 @@ def convert_each(source: str, src_root: str | os.PathLike, out_root: str | os.Pa
             require_dir(src_root / n, "source")
     _check_apart(src_root, out_root, "output dataset root")
     check_dataset_root(out_root, "OUT")
+    created = not out_root.exists()
     out_root.mkdir(parents=True, exist_ok=True)
     task = partial(_convert_task, source=source, src_root=src_root, out_root=out_root, options=options)
-    map_scenes(task, names, engine or Engine(), desc=f"convert {source}", progress=progress)
+    try:
+        map_scenes(task, names, engine or Engine(), desc=f"convert {source}", progress=progress)
+    except BaseException:
+        if created and not any(out_root.iterdir()):  # nothing written: no empty folder left behind
+            out_root.rmdir()
+        raise
     return [out_root / n for n in names]
 
 
