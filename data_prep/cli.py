@@ -4,6 +4,9 @@ Each subcommand is one ``_add_<name>(sub)`` function below that adds its parser 
 ``func=<handler>``; a handler takes the parsed arguments and returns the exit code. To add a
 subcommand, write its two functions and append the adder to :data:`SUBCOMMANDS`.
 
+``synth``, ``curate`` and ``convert --each`` take ``--engine local|ray``, ``--workers`` and ``--ray-address``
+(:mod:`data_prep.engine`).
+
 Bad input (a bad argument, a missing folder, a malformed file, an OS error on a path) gets one line on
 stderr (``data_prep: error: …``) and exit code 2; Ctrl-C exits 130 (:func:`diff4splat.errors.run_cli`).
 """
