@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from test_data_converters_4dgs import make_dnerf
+from _data_prep_fixtures import dnerf_clip
 
 import data_prep.engine as engine_mod
 from data_prep.cli import main
@@ -88,8 +88,8 @@ def test_fault_point_fires_only_for_its_stage_and_scene(tmp_path, monkeypatch):
 
 # ------------------------------------------------------------------------------------------------ convert --each
 def _dnerf_clips(root: Path) -> None:
-    make_dnerf(root / "lego", times=(0.0, 0.5, 1.0))
-    make_dnerf(root / "mutant", times=(1.0, 0.0))
+    dnerf_clip(root / "lego", times=(0.0, 0.5, 1.0))
+    dnerf_clip(root / "mutant", times=(1.0, 0.0))
 
 
 def test_convert_each_makes_one_scene_per_clip_and_a_rerun_resumes(tmp_path, capsys):
@@ -100,7 +100,7 @@ def test_convert_each_makes_one_scene_per_clip_and_a_rerun_resumes(tmp_path, cap
     metas = {p.parent.name: json.loads(p.read_text())["num_frames"] for p in out.glob("*/meta.json")}
     assert metas == {"lego": 3, "mutant": 2}
     before = {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()}
-    make_dnerf(tmp_path / "src" / "trex", times=(0.0, 1.0))
+    dnerf_clip(tmp_path / "src" / "trex", times=(0.0, 1.0))
     names = tmp_path / "names.txt"
     names.write_text("# the clips\nlego\n\ntrex\n")
     assert main(["convert", "dnerf", str(tmp_path / "src"), str(out), "--each", str(names), "--quiet"]) == 0

@@ -5,17 +5,15 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import textwrap
-from pathlib import Path
 
 import pytest
 import yaml
 
 ray = pytest.importorskip("ray", reason="the ray extra (diff4splat[ray]) is not installed")
 
+from _data_prep_fixtures import dnerf_clip, tree  # noqa: E402
 from _trainer_toy import run_two_ranks  # noqa: E402
-from test_data_converters_4dgs import make_dnerf  # noqa: E402
 
 from data_prep.cli import main  # noqa: E402
 from data_prep.converters import convert_each  # noqa: E402
@@ -29,20 +27,6 @@ pytestmark = pytest.mark.slow
 SIZE, FRAMES = 32, 9
 RAY = Engine("ray")  # joins the Ray this module started
 THRESHOLDS = CurationConfig(min_frames=FRAMES, min_translation_m=0.0, min_sharpness=5000.0, min_valid_depth_ratio=0.0)
-
-
-def tree(root: Path) -> dict[str, bytes | str]:
-    """Every entry under ``root`` by relative path: a file's bytes, a symlink's target (not followed)."""
-    out: dict[str, bytes | str] = {}
-    for dirpath, dirnames, filenames in os.walk(root):
-        for name in dirnames + filenames:
-            p = Path(dirpath) / name
-            rel = str(p.relative_to(root))
-            if p.is_symlink():
-                out[rel] = "-> " + os.readlink(p)
-            elif p.is_file():
-                out[rel] = p.read_bytes()
-    return out
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +58,7 @@ def test_synth_on_ray_is_the_local_dataset_byte_for_byte(synth_pair):
 def test_convert_each_on_ray_is_the_local_dataset_byte_for_byte(local_ray, tmp_path):
     src = tmp_path / "dnerf"
     for name, times in (("lego", (0.0, 0.5, 1.0)), ("mutant", (0.0, 1.0)), ("jumpingjacks", (1.0, 0.0, 0.5, 0.25))):
-        make_dnerf(src / name, times=times)
+        dnerf_clip(src / name, times=times)
     outs = {}
     for engine in (Engine("local", workers=1), RAY):
         outs[engine.name] = convert_each("dnerf", src, tmp_path / engine.name, engine=engine, progress=False)
@@ -86,7 +70,7 @@ def test_convert_each_on_ray_is_the_local_dataset_byte_for_byte(local_ray, tmp_p
 
 def test_convert_each_names_the_failing_clip_from_a_ray_task(local_ray, tmp_path):
     src = tmp_path / "dnerf"
-    make_dnerf(src / "good")
+    dnerf_clip(src / "good", times=(0.0, 1.0))
     (src / "broken").mkdir()  # no transforms file
     with pytest.raises(FileNotFoundError, match="^dnerf clip broken: "):
         convert_each("dnerf", src, tmp_path / "out", engine=RAY, progress=False)

@@ -11,7 +11,7 @@ import pytest
 
 ray = pytest.importorskip("ray", reason="the ray extra (diff4splat[ray]) is not installed")
 
-from test_data_prep_ray import tree  # noqa: E402
+from _data_prep_fixtures import tree  # noqa: E402
 
 from data_prep.engine import FAULT_ENV, Engine  # noqa: E402
 from data_prep.synth_dataset import synthesize  # noqa: E402
