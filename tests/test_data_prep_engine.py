@@ -12,6 +12,7 @@ import pytest
 from _data_prep_fixtures import dnerf_clip
 
 import data_prep.engine as engine_mod
+import data_prep.synth_dataset as sd
 from data_prep.cli import main
 from data_prep.converters import convert_each, list_sources
 from data_prep.engine import FAULT_ENV, Engine, check_engine, fault_point, map_scenes
@@ -153,3 +154,14 @@ def test_list_sources_reads_clip_files_for_selecting_sources(tmp_path):
         list_sources("dynamic_replica", tmp_path)
     with pytest.raises(ValueError, match="no stereo4d clips"):
         list_sources("stereo4d", tmp_path)
+
+
+def test_synth_on_ray_with_a_cuda_device_asks_one_gpu_per_task(tmp_path, monkeypatch):
+    """``synth --device cuda --engine ray``: each Ray task asks for a GPU (the local engine's processes share
+    the device as before)."""
+    seen = []
+    monkeypatch.setattr(sd, "resolve_device", lambda device, flag: "cuda:0" if device == "cuda" else "cpu")
+    monkeypatch.setattr(sd, "map_scenes", lambda fn, items, engine, **kw: seen.append(engine))
+    for device, engine in (("cuda", Engine("ray")), ("cpu", Engine("ray")), ("cuda", None)):
+        sd.synthesize(tmp_path / "d", 2, size=16, frames=2, device=device, engine=engine, progress=False)
+    assert [e.gpus_per_task for e in seen] == [1.0, 0.0, 0.0]
