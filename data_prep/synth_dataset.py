@@ -9,12 +9,13 @@ from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
+import psutil
 import torch
 from tqdm.auto import tqdm
 
 from diff4splat.checks import check_int, check_number
 from diff4splat.devices import resolve_device
-from diff4splat.limits import check_limit
+from diff4splat.limits import check_limit, check_memory
 
 from .engine import Engine, fault_point, map_scenes
 from .format import check_dataset_root
@@ -64,7 +65,8 @@ def check_synth_request(num_scenes: int, seed: int, *, size: int, frames: int, c
     Raises:
         ValueError: an argument out of range (named). :class:`diff4splat.limits.LimitError` (a ValueError):
             ``num_scenes`` above the ``scenes`` limit, ``size`` above ``resolution``, ``frames`` above ``frames``,
-            or :func:`scene_bytes` above ``synth_bytes``.
+            :func:`scene_bytes` above ``synth_bytes``, or this process's memory plus one scene per worker above the
+            memory it may use (:func:`diff4splat.limits.check_memory`: the machine's, its cgroup's, its ulimits).
     """
     name = _FLAGS.get if flags else str
     check_limit("scenes", check_int(name("num_scenes"), num_scenes, 1), name("num_scenes"))
@@ -75,9 +77,12 @@ def check_synth_request(num_scenes: int, seed: int, *, size: int, frames: int, c
     check_int(name("workers"), workers, 1)
     for key, value in (("static_ratio", static_ratio), ("texture_ratio", texture_ratio)):
         check_number(name(key), value, lo=0, hi=1)
-    check_limit("synth_bytes", scene_bytes(size, frames, cameras),
-                f"one scene of {name('cameras')} {cameras} × {name('frames')} {frames} at {name('size')} {size}: "
-                "estimated")
+    one = f"one scene of {name('cameras')} {cameras} × {name('frames')} {frames} at {name('size')} {size}"
+    check_limit("synth_bytes", scene_bytes(size, frames, cameras), f"{one}: estimated")
+    # the memory this process (and each worker, under the same ulimits) may use: its own plus one scene per worker
+    check_memory(psutil.Process().memory_info().rss + min(workers, num_scenes) * scene_bytes(size, frames, cameras),
+                 f"{one}, {min(workers, num_scenes)} at a time", f"{name('size')}, {name('frames')}, "
+                 f"{name('cameras')} or {name('workers')}")
 
 
 def _make_scene(index: int, out: Path, seed: int, kw: dict) -> None:

@@ -52,8 +52,8 @@ def add_generate_parser(subparsers, *, out_type: Callable[[str], Path], out_help
     g.add_argument("--steps", type=int, default=None, help="sampler steps (default: config)")
     g.add_argument("--sampler", choices=SAMPLERS, default=None, help="ODE sampler (default: config)")
     g.add_argument("--guidance", type=float, default=None,
-                   help="classifier-free guidance scale with a prompt, ≥ 0; 1 = off (default: config: 1 for ours, 5 "
-                        "for Wan2.2, 6 for CogVideoX)")
+                   help="classifier-free guidance scale with a prompt, in [0, 30]; 1 = off (default: config: 1 for "
+                        "ours, 5 for Wan2.2, 6 for CogVideoX)")
     g.add_argument("--seed", type=int, default=0, help="noise seed (default: 0)")
     g.add_argument("--checkpoint", type=Path, default=None,
                    help="model folder (default: the shipped weights of --config)")

@@ -8,7 +8,8 @@ the value, the limit and the environment variable that raises it, e.g.::
 
 Limits are read from the environment at each check, so a variable set after import applies. Two limits are the
 machine's own resources unless their variable is set: peak memory is checked against what the process holds plus
-the memory available when the check runs (:func:`available_memory`), and the output size against the free space
+the least room of the memory available when the check runs, its cgroup's limit and its ulimits
+(:func:`available_memory`), and the output size against the free space
 of the output's disk (:func:`free_disk`); their fixed defaults (8 GiB, 4 GiB) apply only where that cannot be
 measured.
 """
@@ -21,9 +22,14 @@ from pathlib import Path
 
 import psutil
 
+try:
+    import resource  # POSIX only: the process's ulimits
+except ImportError:  # Windows
+    resource = None
+
 __all__ = ["Limit", "LIMITS", "LimitError", "limit", "check_limit", "check_output_size", "check_memory",
-           "available_memory", "cgroup_room", "free_disk", "OUTPUT_BYTES_PER_PIXEL", "OUTPUT_BYTES_PER_GAUSSIAN",
-           "OUTPUT_DEFORMATION_BYTES_PER_GAUSSIAN", "size_text"]
+           "available_memory", "memory_caps", "tightest_memory_cap", "cgroup_room", "free_disk",
+           "OUTPUT_BYTES_PER_PIXEL", "OUTPUT_BYTES_PER_GAUSSIAN", "OUTPUT_DEFORMATION_BYTES_PER_GAUSSIAN", "size_text"]
 
 
 @dataclass(frozen=True)
@@ -138,19 +144,64 @@ def check_limit(name: str, value: int, what: str) -> int:
     return value
 
 
-def available_memory() -> int | None:
-    """Bytes of memory this process may reach at its peak: what it holds now (its resident set: the networks are
-    loaded before the check) plus what a new allocation can take without swapping (psutil's ``available``:
-    MemAvailable on Linux, free + inactive on macOS, the available physical memory on Windows), or less where a
-    Linux cgroup limits this process's memory (a container, a SLURM job: :func:`cgroup_room`); None where psutil
-    cannot measure it. The default of the ``memory_bytes`` limit (:func:`check_memory`), which bounds an estimate
-    of the whole process's peak."""
+def memory_caps() -> dict[str, int] | None:
+    """Bytes this process can still allocate under each cap that applies, by the cap's name for a message:
+
+    * ``"available"``: psutil's ``available`` (MemAvailable on Linux, free + inactive on macOS, the available
+      physical memory on Windows);
+    * ``"cgroup memory.max"``: the room left under its Linux memory cgroup (a container, a SLURM job, a CI
+      runner: :func:`cgroup_room`), when one is set;
+    * ``"address-space limit (ulimit -v, RLIMIT_AS)"``: the limit less the address space the process has
+      mapped now (its virtual size), when set;
+    * ``"data-segment limit (ulimit -d, RLIMIT_DATA)"``: the limit less its data segment (heap and private
+      mappings) now, when set.
+
+    None where psutil cannot measure the memory (no /proc in a sandbox)."""
     try:
-        free, held = psutil.virtual_memory().available, psutil.Process().memory_info().rss
+        mem = psutil.Process().memory_info()
+        caps = {"available": int(psutil.virtual_memory().available)}
     except (OSError, RuntimeError, NotImplementedError, psutil.Error):  # no /proc in a sandbox; psutil's
         return None  # NotImplementedError is its error for a call this platform lacks: not a stub
     room = cgroup_room()
-    return int(held + (free if room is None else min(free, room)))
+    if room is not None:
+        caps["cgroup memory.max"] = room
+    for name, which, used in (("address-space limit (ulimit -v, RLIMIT_AS)", "RLIMIT_AS", mem.vms),
+                              ("data-segment limit (ulimit -d, RLIMIT_DATA)", "RLIMIT_DATA",
+                               getattr(mem, "data", None))):
+        cap = _rlimit(which)
+        if cap is not None and used is not None:
+            caps[name] = max(0, cap - int(used))
+    return caps
+
+
+def _rlimit(which: str) -> int | None:
+    """The soft limit ``resource.<which>`` in bytes, None where unlimited or not available (Windows)."""
+    if resource is None or not hasattr(resource, which):
+        return None
+    soft, _ = resource.getrlimit(getattr(resource, which))
+    return None if soft == resource.RLIM_INFINITY or soft < 0 else int(soft)
+
+
+def available_memory() -> int | None:
+    """Bytes of memory this process may reach at its peak: what it holds now (its resident set: the networks are
+    loaded before the check) plus the least room of :func:`memory_caps` (the machine's available memory, its
+    cgroup's limit, its address-space and data-segment limits); None where psutil cannot measure it. The default of
+    the ``memory_bytes`` limit (:func:`check_memory`), which bounds an estimate of the whole process's peak."""
+    caps = memory_caps()
+    if caps is None:
+        return None
+    try:
+        held = psutil.Process().memory_info().rss
+    except (OSError, RuntimeError, NotImplementedError, psutil.Error):
+        return None
+    return int(held + min(caps.values()))
+
+
+def tightest_memory_cap() -> str:
+    """The name of the cap of :func:`memory_caps` with the least room, for messages ("available" where none can
+    be measured)."""
+    caps = memory_caps()
+    return "available" if not caps else min(caps, key=caps.get)
 
 
 _CGROUP_UNLIMITED = 1 << 62
@@ -273,8 +324,9 @@ def check_output_size(frames: int, width: int, height: int, gaussians: int = 0,
 def check_memory(estimate: int, request: str, knobs: str) -> int:
     """Check an estimate of a command's peak memory, before anything heavy runs, against the memory it can have.
 
-    The bound is ``DIFF4SPLAT_MAX_MEMORY_BYTES`` when set, else :func:`available_memory`, else (not measurable)
-    the ``memory_bytes`` limit's 8 GiB.
+    The bound is ``DIFF4SPLAT_MAX_MEMORY_BYTES`` when set, else :func:`available_memory` (the least of the machine's
+    available memory, the cgroup's ``memory.max`` and the process's ``ulimit -v``/``-d``, plus what it holds; the
+    message names the tightest), else (not measurable) the ``memory_bytes`` limit's 8 GiB.
 
     Args:
         estimate: bytes (an upper bound, e.g. :meth:`diff4splat.pipeline.Diff4SplatPipeline.memory_estimate`).
@@ -287,7 +339,10 @@ def check_memory(estimate: int, request: str, knobs: str) -> int:
     Raises:
         LimitError: one line with the request, the estimate and the bound in GiB, the knobs and the variable.
     """
-    bound, then = _bound("memory_bytes", available_memory(), "of memory available to this process", knobs)
+    cap = tightest_memory_cap()
+    resource_text = ("of memory available to this process" if cap == "available" else
+                     f"this process may still use under its {cap}")
+    bound, then = _bound("memory_bytes", available_memory(), resource_text, knobs)
     if estimate > bound:
         raise LimitError(f"{request}: estimated peak memory {size_text(estimate)} exceeds "
                          f"{then}")

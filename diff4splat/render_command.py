@@ -64,7 +64,7 @@ from .io.scene_folder import (
     scene_meta,
     write_scene_folder,
 )
-from .io.video import DEFAULT_FPS, check_fps
+from .io.video import DEFAULT_FPS, check_fps, check_video_size
 from .limits import check_limit, check_output_size
 from .render.sequence import render_path
 from .scene import DynamicGaussians
@@ -248,6 +248,7 @@ def rerender(
         path, depth = trajectory_cameras(src, trajectory, frames, amplitude)
     path = resize_cameras(path, width, height)
     check_field_of_view(path)  # as generate: a camera seeing a point of the scene has intrinsics in other units
+    check_video_size(path.width, path.height, "--width or --height")
     check_output_size(len(path), path.width, path.height, knobs="--frames, --width or --height", out=out)
     scene = path_scene(src, path.times)
     if depth is None:

@@ -28,6 +28,7 @@ from tqdm.auto import tqdm
 __all__ = [
     "FlowMatchingConfig",
     "check_guidance",
+    "MAX_GUIDANCE",
     "PAPER_FLOW_MATCHING",
     "SAMPLERS",
     "integrator",
@@ -88,11 +89,19 @@ SD3 defaults for high-resolution training (Esser et al. 2024, §3.1 and §5.3.2)
 usual sampling budget of flow-matching video DiTs. These are our choices, not numbers from Diff4Splat."""
 
 
+MAX_GUIDANCE = 30.0
+"""Largest classifier-free guidance scale accepted. The guided velocity is v_u + w·(v_c − v_u): past a few tens the
+difference of the two predictions, scaled by w, swamps the velocity and the sampler integrates it into saturated
+noise. The video backbones' own defaults are 5 (Wan2.2) and 6 (CogVideoX); image models are used up to ~20."""
+
+
 def check_guidance(guidance: float, name: str = "guidance") -> float:
-    """``guidance`` as a float; ValueError (naming ``name``) unless it is a finite number ≥ 0."""
+    """``guidance`` as a float; ValueError (naming ``name``) unless it is a finite number in [0,
+    :data:`MAX_GUIDANCE`]."""
     if isinstance(guidance, bool) or not isinstance(guidance, (int, float)) or not math.isfinite(guidance) \
-            or guidance < 0:
-        raise ValueError(f"{name} must be a finite number ≥ 0 (1 = no guidance), got {guidance!r}")
+            or not 0 <= guidance <= MAX_GUIDANCE:
+        raise ValueError(f"{name} must be a finite number in [0, {MAX_GUIDANCE:g}] (1 = no guidance; the video "
+                         f"backbones use 5-6), got {guidance!r}")
     return float(guidance)
 
 

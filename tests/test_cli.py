@@ -379,12 +379,13 @@ def test_amplitude_out_of_range_is_one_line_before_the_model_loads(tmp_path, cap
     assert not out.exists()
 
 
-@pytest.mark.parametrize("value", ["-1", "nan", "inf"])
+@pytest.mark.parametrize("value", ["-1", "nan", "inf", "1e9", "30.5"])  # 1e9: saturated noise (issue 61)
 def test_a_bad_guidance_is_one_line_exit_2_before_the_model_loads(tmp_path, capsys, value, monkeypatch):
     monkeypatch.setattr(generate_module, "load_pipeline", lambda *a, **k: pytest.fail("the model loaded"))
     code = main(["generate", str(EXAMPLE_IMAGE), "--guidance", value, "--quiet", "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and len(err) == 1 and "--guidance" in err[0] and not (tmp_path / "o").exists()
+    assert code == 2 and len(err) == 1 and "--guidance must be a finite number in [0, 30]" in err[0]
+    assert not (tmp_path / "o").exists()
 
 
 def test_guidance_is_recorded_in_meta(tmp_path):

@@ -11,10 +11,12 @@ import tracemalloc
 from concurrent.futures import Future
 
 import numpy as np
+import psutil
 import pytest
 
 import data_prep.engine
 import data_prep.synth_dataset
+import diff4splat.limits as limits
 from data_prep.cli import main
 from data_prep.format import load_scene
 from data_prep.synth import (
@@ -487,3 +489,17 @@ def test_cli_bad_texture_ratio_is_one_line_exit_2(tmp_path, capsys, value):
     err = capsys.readouterr().err
     assert err == f"data_prep: error: argument --texture-ratio: must be a number in [0, 1], got {value!r}\n"
     assert not (tmp_path / "d").exists()
+
+
+def test_synth_checks_one_scene_per_worker_against_the_memory_it_may_use(tmp_path, monkeypatch, capsys):
+    """The memory check sees the process's caps (here a monkeypatched room of the process's own memory plus
+    1.5 scenes): one worker fits, two do not, and the refusal names --workers before anything is made."""
+    one = data_prep.synth_dataset.scene_bytes(64, 17, 2)
+    monkeypatch.setattr(limits, "available_memory", lambda: psutil.Process().memory_info().rss + int(1.5 * one))
+    args = ["synth", "--scenes", "2", "--out", str(tmp_path / "d"), "--quiet"]
+    assert main([*args, "--workers", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "2 at a time: estimated peak memory" in err and "--workers" in err and err.count("\n") == 1
+    assert not (tmp_path / "d").exists()
+    data_prep.synth_dataset.check_synth_request(2, 0, size=64, frames=17, cameras=2, workers=1, static_ratio=0.4,
+                                                texture_ratio=0.5)

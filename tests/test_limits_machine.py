@@ -4,6 +4,7 @@ output's disk (diff4splat/limits.py), so the paper-size command of the README pa
 """
 import os
 import shutil
+import subprocess
 import sys
 
 import psutil
@@ -236,3 +237,41 @@ def test_a_gpu_out_of_memory_is_one_line_naming_what_lowers_it(tmp_path, capsys,
     code = main(["generate", str(EXAMPLE_IMAGE), "--quiet", "--frames", "5", "--out", str(out)])
     err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert code == 2 and err == [f"diff4splat: error: {one_line(oom)}"] and not out.exists()
+
+
+def test_memory_caps_count_the_process_ulimits_and_the_message_names_the_tightest(monkeypatch, no_env):
+    """``ulimit -v`` (RLIMIT_AS) bounds the address space: what the process may still allocate is the limit less its
+    virtual size now, not the machine's available memory (issue 61: ``generate --frames 201`` under an 8 GB
+    ``ulimit -v`` ran 75 s against MemAvailable, then died in an allocation)."""
+    mem = psutil.Process().memory_info()
+    caps = {"RLIMIT_AS": mem.vms + 2 * GiB, "RLIMIT_DATA": None}
+    monkeypatch.setattr(limits, "_rlimit", lambda which: caps[which])
+    monkeypatch.setattr(limits, "cgroup_room", lambda: None)
+    got = limits.memory_caps()
+    assert got["address-space limit (ulimit -v, RLIMIT_AS)"] == pytest.approx(2 * GiB, abs=64 << 20)
+    assert limits.available_memory() == pytest.approx(psutil.Process().memory_info().rss + 2 * GiB, abs=64 << 20)
+    with pytest.raises(LimitError, match=r"exceeds the .* GiB this process may still use under its address-space "
+                                         r"limit \(ulimit -v, RLIMIT_AS\)"):
+        check_memory(mem.rss + 3 * GiB, "--frames 201 at 256×256", "--frames")
+    caps["RLIMIT_DATA"] = (mem.data if hasattr(mem, "data") else 0) + GiB  # the data segment is tighter now
+    if hasattr(mem, "data"):
+        assert limits.tightest_memory_cap() == "data-segment limit (ulimit -d, RLIMIT_DATA)"
+    caps.update(RLIMIT_AS=None, RLIMIT_DATA=None)
+    monkeypatch.setattr(limits, "cgroup_room", lambda: GiB // 2)  # a container's memory.max
+    with pytest.raises(LimitError, match=r"under its cgroup memory\.max"):
+        check_memory(psutil.Process().memory_info().rss + GiB, "x", "y")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="bash's ulimit -v")
+def test_generate_under_a_real_ulimit_v_is_refused_before_the_work_naming_the_cap(tmp_path):
+    """A child process under ``ulimit -v 8000000`` (8 GB of address space), as in issue 61: ``generate --frames
+    201`` is refused with one line naming RLIMIT_AS, exit 2, and writes nothing."""
+    out = tmp_path / "out"
+    cmd = (f"ulimit -v 8000000 && exec {sys.executable} -m diff4splat.cli generate {EXAMPLE_IMAGE} --frames 201 "
+           f"--quiet --out {out}")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("DIFF4SPLAT_MAX_")}
+    r = subprocess.run(["bash", "-c", cmd], capture_output=True, text=True, timeout=300, env=env)
+    assert r.returncode == 2, r.stderr[-2000:]
+    assert r.stderr.count("\n") == 1 and "ulimit -v, RLIMIT_AS" in r.stderr, r.stderr
+    assert not out.exists()

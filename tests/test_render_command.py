@@ -538,3 +538,20 @@ def test_a_path_that_sees_none_of_the_scene_is_refused(tmp_path):
     with pytest.raises(ValueError, match="sees none of the scene: all 5 frames"):
         rerender(folder, tmp_path / "r", cameras=cam_file)
     assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("width, height", [(1, 100_000), (8192, 8)])
+def test_a_size_mp4_cannot_hold_is_refused_before_rendering(tmp_path, capsys, monkeypatch, width, height):
+    """``render --width 1 --height 100000`` rendered every frame, then died in OpenCV's video writer (issue 61):
+    MPEG-4 allows at most 8190 pixels a side, checked before any frame is rendered."""
+    folder, *_ = _folder(tmp_path)
+    monkeypatch.setattr("diff4splat.render_command.render_path", _never)
+    code = main(["render", str(folder), "--trajectory", "arc", "--frames", "2", "--width", str(width), "--height",
+                 str(height), "--quiet", "--out", str(tmp_path / "r")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "MPEG-4 allows at most 8190 pixels a side" in err, err
+    assert not (tmp_path / "r").exists()
+
+
+def _never(*args, **kwargs):
+    raise AssertionError("rendered before the size check")

@@ -13,12 +13,16 @@ from ..devices import host_values
 from ..errors import quiet_c_stderr
 from .atomic import atomic_output_path
 
-__all__ = ["save_video", "load_video", "save_image", "to_uint8", "check_fps", "MAX_FPS", "DEFAULT_FPS"]
+__all__ = ["save_video", "load_video", "save_image", "to_uint8", "check_fps", "check_video_size", "MAX_FPS",
+           "DEFAULT_FPS", "MAX_VIDEO_SIDE"]
 
 DEFAULT_FPS = 8.0
 """Frame rate of every video, viewer and output folder when none is given (frames per second): a 17-frame path
 plays in about 2 s."""
 
+MAX_VIDEO_SIDE = 8190
+"""Largest width or height :func:`save_video` writes, pixels: MPEG-4 Part 2 codes each in 13 bits (FFmpeg's mpeg4
+encoder refuses 8192, "dimensions too large for MPEG-4"), and sizes are even."""
 MAX_FPS = 1000
 """Highest frame rate :func:`save_video` writes. MPEG-4 Part 2 stores the frame rate as a time base of
 at most 65535 ticks per second, so OpenCV's writer fails from 65536 fps on; 1000 fps is far above any
@@ -65,6 +69,19 @@ def to_uint8(images: Tensor | np.ndarray, name: str = "images") -> np.ndarray:
     return np.round(np.clip(images, 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
+def check_video_size(width: int, height: int, knobs: str = "the output size") -> None:
+    """Check that an MP4 of ``width`` × ``height`` pixels, odd sides padded to even, can be written, before the
+    frames are made.
+
+    Raises:
+        ValueError: a side above :data:`MAX_VIDEO_SIDE` (naming ``knobs``, the arguments that set the size).
+    """
+    w, h = int(width) + int(width) % 2, int(height) + int(height) % 2
+    if max(w, h) > MAX_VIDEO_SIDE:
+        raise ValueError(f"a video of {width}×{height} pixels cannot be written: MPEG-4 allows at most "
+                         f"{MAX_VIDEO_SIDE} pixels a side; lower {knobs}")
+
+
 def save_video(path: str | os.PathLike, frames: Tensor | np.ndarray, fps: float = DEFAULT_FPS) -> None:
     """Write RGB frames to an MP4 file (MPEG-4 Part 2, OpenCV fourcc ``mp4v``), atomically.
 
@@ -75,11 +92,12 @@ def save_video(path: str | os.PathLike, frames: Tensor | np.ndarray, fps: float 
         path: output file; must end in ``.mp4``. Written to a temporary ``.mp4`` beside it, then
             renamed, so the final path never holds a half-written video.
         frames: (T, H, W, 3) RGB, uint8 or float in [0, 1] (clipped, see :func:`to_uint8`), T ≥ 1,
-            H and W even.
+            H and W even, at most :data:`MAX_VIDEO_SIDE`.
         fps: frames per second, in (0, :data:`MAX_FPS`].
 
     Raises:
-        ValueError: naming ``path`` (suffix), ``frames`` (shape, dtype, odd size, NaN) or ``fps`` (:func:`check_fps`).
+        ValueError: naming ``path`` (suffix), ``frames`` (shape, dtype, odd or too large a size, NaN) or ``fps``
+            (:func:`check_fps`).
         OSError: naming ``path`` when the disk is full (or the quota spent), read-only or not writable
             (:func:`~diff4splat.io.atomic.naming_os_errors`).
         RuntimeError: OpenCV could not open the encoder, or the file it wrote does not hold every frame.
@@ -94,6 +112,7 @@ def save_video(path: str | os.PathLike, frames: Tensor | np.ndarray, fps: float 
     T, H, W, _ = video.shape
     if H % 2 or W % 2 or H == 0 or W == 0:
         raise ValueError(f"frames height and width must be positive and even for MP4, got {H}×{W}")
+    check_video_size(W, H, "the frames' size")
     with atomic_output_path(path) as tmp:  # its RuntimeErrors become OSError(ENOSPC, …, path) on a full disk
         writer = cv2.VideoWriter(tmp, cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (W, H))
         if not writer.isOpened():
