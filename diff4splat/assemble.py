@@ -39,7 +39,16 @@ from .cameras import CameraPath, camera_rays
 from .depth_alignment import fit_scale_shift
 from .devices import autocast_off
 from .gaussians import Gaussians, rgb_to_sh0
-from .photo import PHOTO_EPS2D, PHOTO_OPACITY, backdrop_layer, photo_layer, pixel_disks, upsample_depth
+from .io.depth_maps import valid_depth
+from .photo import (
+    PHOTO_EPS2D,
+    PHOTO_OPACITY,
+    backdrop_layer,
+    check_photo_fidelity,
+    photo_layer,
+    pixel_disks,
+    upsample_depth,
+)
 from .quaternions import quat_conjugate, quat_multiply, quat_normalize
 from .scene import DynamicGaussians
 
@@ -119,7 +128,7 @@ def _align(user: Tensor, network: Tensor, kind: str) -> Tensor:
     """``user`` (H, W) aligned to ``network`` (H, W) metres by kind (:data:`DEPTH_KINDS`); non-finite where invalid."""
     if kind == "metric":
         return user
-    valid = torch.isfinite(user) & (user > 0 if kind == "inverse" else torch.isfinite(user))
+    valid = torch.isfinite(user)  # the holes are NaN (photo_depth)
     x = user.detach().double().cpu().numpy()  # device: depth_alignment fits in numpy; result moved back
     y = network.detach().double().cpu().numpy()  # device: as above
     mask = valid.cpu().numpy()  # device: as above
@@ -143,15 +152,16 @@ def photo_depth(
     The network's: ray distance × cos(angle to the optical axis) = z-depth at the model resolution, upsampled by
     :func:`diff4splat.photo.upsample_depth` with the photograph as the guide. A user's ``depth`` replaces it,
     aligned by ``depth_kind`` (:data:`DEPTH_KINDS`; relative and inverse maps are fitted to the network's depth
-    by least squares, ``diff4splat.depth_alignment.fit_scale_shift``); its non-finite or non-positive pixels
-    (holes) take the network's depth.
+    by least squares, ``diff4splat.depth_alignment.fit_scale_shift``); its holes
+    (:func:`diff4splat.io.depth_maps.valid_depth`: not finite, or metres outside [1 mm, 10 km]) take the network's
+    depth. The values are checked where they enter (:func:`diff4splat.io.depth_maps.check_depth_values`).
 
     Returns:
         (H, W) z-depth, metres, finite and > 0, on ``image``'s device.
 
     Raises:
-        ValueError: ``depth`` not (H, W); an unknown ``depth_kind``; a depth map with no valid pixel, or one
-            whose fit to the network's depth is degenerate (constant, or a negative scale).
+        ValueError: ``depth`` not (H, W); an unknown ``depth_kind``; a depth map whose fit to the network's depth
+            is degenerate (a negative scale).
     """
     if depth_kind not in DEPTH_KINDS:
         raise ValueError(f"depth_kind must be one of {DEPTH_KINDS}, got {depth_kind!r}")
@@ -162,11 +172,8 @@ def photo_depth(
     if tuple(depth.shape) != (H, W):
         raise ValueError(f"depth must have shape ({H}, {W}) (the output resolution), got {tuple(depth.shape)}")
     depth = depth.to(z_net)
-    if not bool((torch.isfinite(depth) & (depth > 0 if depth_kind != "relative" else True)).any()):
-        raise ValueError("depth: no valid pixel (every value is NaN, infinite or not positive)")
-    aligned = _align(depth, z_net, depth_kind)
-    good = torch.isfinite(aligned) & (aligned > 0)
-    return torch.where(good, aligned, z_net)
+    aligned = _align(torch.where(valid_depth(depth, depth_kind), depth, torch.nan), z_net, depth_kind)
+    return torch.where(valid_depth(aligned, "metric"), aligned, z_net)
 
 
 def z_depth(distance: Tensor, viewmats: Tensor, Ks: Tensor) -> Tensor:
@@ -298,7 +305,8 @@ def assemble_scene(
 
     Raises:
         ValueError: as :func:`photo_depth`, :func:`diff4splat.photo.photo_layer`, :func:`video_colors` and
-            :func:`pixel_footprint`; an unknown ``footprint``.
+            :func:`pixel_footprint`; an unknown ``footprint``; a photo layer that does not render the photograph
+            (:func:`diff4splat.photo.check_photo_fidelity`).
     """
     if footprint not in GENERATED_FOOTPRINTS:
         raise ValueError(f"footprint must be one of {GENERATED_FOOTPRINTS}, got {footprint!r}")
@@ -313,6 +321,7 @@ def assemble_scene(
     z = photo_depth(out.distance[0, 0], cameras_model.viewmats[0], cameras_model.Ks[0], image, depth, depth_kind)
     viewmat, K0 = cameras.viewmats[0].float(), cameras.Ks[0].float()
     layer, history = photo_layer(image, z, viewmat, K0, eps2d=eps2d)
+    check_photo_fidelity(history[-1])  # frame 0 is the photograph, or nothing is written
     backdrop = backdrop_layer(image, z, viewmat, K0)
     n_photo, n_back, n_grid = layer.num_gaussians, backdrop.num_gaussians, h * w
     generated = gaussians.select(torch.arange(n_grid, S * n_grid, device=dev))

@@ -47,7 +47,25 @@ from .render import rasterize
 
 __all__ = ["PHOTO_EPS2D", "FRONT_SCALE_PX", "BACKING_SCALE_PX", "BACKING_OFFSET", "PHOTO_OPACITY", "THICKNESS",
            "REFINE_STEPS", "BACKDROP_CELLS", "BACKDROP_EXTEND", "BACKDROP_DEPTH", "pixel_disks", "photo_layer",
-           "refine_colors", "upsample_depth", "render_input_view", "backdrop_layer", "layer_sizes"]
+           "refine_colors", "upsample_depth", "render_input_view", "backdrop_layer", "layer_sizes",
+           "MIN_PHOTO_PSNR_DB", "check_photo_fidelity"]
+
+MIN_PHOTO_PSNR_DB = 40.0
+"""Least PSNR (dB) of the photo layer rendered alone at the input camera against the photograph: below it, frame 0
+is not the photograph (the layer's depth, a user's ``--depth``, put its disks where they do not cover their
+pixels) and the scene is refused. The MP4 encoding of the same frame is 31-38 dB."""
+
+
+def check_photo_fidelity(psnr_db: float, what: str = "the photograph") -> None:
+    """Refuse a photo layer whose own render at the input camera is below :data:`MIN_PHOTO_PSNR_DB`.
+
+    Raises:
+        ValueError: naming the PSNR and the threshold (NaN included).
+    """
+    if not psnr_db >= MIN_PHOTO_PSNR_DB:
+        raise ValueError(f"frame 0 would not be {what}: its photo layer renders it at {psnr_db:.1f} dB PSNR, below "
+                         f"{MIN_PHOTO_PSNR_DB:g} dB (a depth far from the photo's surfaces, e.g. a --depth map in "
+                         "other units than metres); nothing was written")
 
 PHOTO_EPS2D = 0.1
 """Screen-space dilation, pixels², of scenes with a photo layer (module docstring; meta.json ``eps2d``)."""

@@ -54,6 +54,7 @@ from .cameras import (
 from .cameras.path import check_field_of_view
 from .checks import check_positive_int, is_int
 from .devices import Stopwatch
+from .io.depth_maps import check_depth_values
 from .limits import check_limit
 from .photo import PHOTO_EPS2D, layer_sizes
 from .prune import settle_and_prune
@@ -523,8 +524,10 @@ class Diff4SplatPipeline:
             raise ValueError(f"cameras are {cameras.width}×{cameras.height}, the image is {W_o}×{H_o}")
         if depth_kind not in DEPTH_KINDS:
             raise ValueError(f"depth_kind must be one of {DEPTH_KINDS}, got {depth_kind!r}")
-        if depth is not None and tuple(depth.shape) != (H_o, W_o):
-            raise ValueError(f"depth must have shape ({H_o}, {W_o}) like the image, got {tuple(depth.shape)}")
+        if depth is not None:
+            if tuple(depth.shape) != (H_o, W_o):
+                raise ValueError(f"depth must have shape ({H_o}, {W_o}) like the image, got {tuple(depth.shape)}")
+            check_depth_values(depth, depth_kind)
         runtime.latent.num_latent_frames(len(cameras))  # raises for T ≠ 1 + t·k
         steps = cfg.sampling.steps if steps is None else steps
         sampler = cfg.sampling.sampler if sampler is None else sampler

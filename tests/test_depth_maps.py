@@ -1,6 +1,7 @@
 """A user's depth map for the photo layer: reading (diff4splat/io/depth_maps.py), alignment by kind
 (diff4splat.assemble.photo_depth) and ``generate --depth`` end to end."""
 import json
+import re
 
 import cv2
 import numpy as np
@@ -8,11 +9,13 @@ import pytest
 import torch
 from helpers import EXAMPLE_IMAGE
 
+import diff4splat.assemble as assemble
+import diff4splat.generate as generate_module
 from diff4splat.assemble import photo_depth
 from diff4splat.cameras import camera_rays, intrinsics_from_fov
 from diff4splat.cli import main
 from diff4splat.io import load_depth_exr, save_depth_exr
-from diff4splat.io.depth_maps import MILLIMETRES, fit_depth_map, read_depth_map
+from diff4splat.io.depth_maps import MILLIMETRES, fit_depth_map, read_depth_map, valid_depth
 
 
 def _depth(h=24, w=32, seed=0):
@@ -37,7 +40,7 @@ def test_every_format_reads_back_in_metres(tmp_path):
 
 @pytest.mark.parametrize("case,needle", [
     ("missing", "does not exist"), ("suffix", "is not a depth map"), ("eight_bit_metric", "is 8-bit"),
-    ("three_channels", "one-channel"), ("no_depth", "no finite positive depth"), ("pickle", "readable .npy"),
+    ("three_channels", "one-channel"), ("no_depth", "holds no usable metric depth"), ("pickle", "readable .npy"),
     ("not_exr", "OpenEXR"), ("strings", "2-D numeric"),
 ])
 def test_bad_depth_files_are_one_clear_error_naming_the_file(tmp_path, case, needle):
@@ -91,8 +94,9 @@ def test_relative_and_inverse_maps_are_aligned_to_the_network_depth_and_holes_fi
         torch.testing.assert_close(photo_depth(distance, eye, K, image, holed, kind), z, rtol=1e-4, atol=0)
     metric = z * 1.3
     torch.testing.assert_close(photo_depth(distance, eye, K, image, metric, "metric"), metric)
-    with pytest.raises(ValueError, match="no valid pixel"):
-        photo_depth(distance, eye, K, image, torch.full((H, W), float("nan")), "metric")
+    far = metric.clone()
+    far[:2] = 1e10  # Blender's "no surface": holes, filled from the network
+    torch.testing.assert_close(photo_depth(distance, eye, K, image, far, "metric")[:2], z[:2])
     with pytest.raises(ValueError, match="depth_kind"):
         photo_depth(distance, eye, K, image, metric, "disparity")
 
@@ -123,4 +127,52 @@ def test_a_bad_depth_file_stops_generate_with_one_line(tmp_path, capsys):
     code = main(["generate", str(EXAMPLE_IMAGE), "--depth", str(bad), "--quiet", "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err.strip()
     assert code == 2 and err.count("\n") == 0 and "d.png" in err and "8-bit" in err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("kind, values, needle", [
+    ("metric", np.full((8, 8), 1e30), r"holds no usable metric depth: its values \(1e\+30 … 1e\+30\) are not metres "
+                                      r"in \[0.001, 10000\]"),
+    ("metric", np.full((8, 8), 1e-5), "holds no usable metric depth"),
+    ("relative", np.full((8, 8), 5.0), "a relative depth map must vary, but every valid value is 5"),
+    ("inverse", np.full((8, 8), -1.0), "holds no usable inverse depth"),
+])
+def test_depths_that_cannot_be_the_photos_are_refused_by_generate_before_any_work(tmp_path, capsys, monkeypatch,
+                                                                                  kind, values, needle):
+    """A metric map of 1e30 gave a flat brown frame 0 at 6.5 dB and exit 0 (issue 61); a constant relative map's
+    message named neither --depth nor the file. Each is one line naming both, exit 2, before the model loads."""
+    monkeypatch.setattr(generate_module, "load_pipeline", lambda *a, **k: pytest.fail("the model loaded"))
+    path = tmp_path / "d.npy"
+    np.save(path, values)
+    code = main(["generate", str(EXAMPLE_IMAGE), "--depth", str(path), "--depth-kind", kind, "--quiet", "--out",
+                 str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err.count("\n") == 0 and f"--depth {path}" in err, err
+    assert re.search(needle, err), err
+    assert not (tmp_path / "o").exists()
+
+
+def test_far_and_near_metric_values_are_holes_the_network_fills():
+    depth = torch.tensor([[1e10, 2.0], [0.0, 1e-4]])
+    assert valid_depth(depth, "metric").tolist() == [[False, True], [False, False]]
+    assert valid_depth(depth, "relative").all() and valid_depth(-depth, "relative").all()
+    assert valid_depth(torch.tensor([0.5, 0.0, -1.0]), "inverse").tolist() == [True, False, False]
+
+
+@pytest.mark.slow
+def test_a_photo_layer_that_misses_the_photograph_is_refused_and_nothing_is_written(tmp_path, capsys, monkeypatch):
+    """The last guard of "frame 0 is the photograph": whatever put the photo layer's disks off their pixels, a
+    render of the layer below 40 dB is an error, never an output."""
+    real = assemble.photo_layer
+
+    def missing(*args, **kwargs):
+        layer, history = real(*args, **kwargs)
+        return layer, [*history[:-1], 6.5]
+
+    monkeypatch.setattr(assemble, "photo_layer", missing)
+    code = main(["generate", str(EXAMPLE_IMAGE), "--resolution", "64", "--frames", "5", "--steps", "1", "--quiet",
+                 "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err.count("\n") == 0, err
+    assert "frame 0 would not be the photograph: its photo layer renders it at 6.5 dB PSNR, below 40 dB" in err, err
     assert not (tmp_path / "o").exists()

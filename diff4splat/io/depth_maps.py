@@ -7,10 +7,12 @@ Formats, by extension:
 - ``.png`` / ``.tif`` / ``.tiff``: one grey channel, 16-bit (8-bit only for relative kinds). A 16-bit metric map is
   in millimetres (the Kinect / ScanNet / TUM convention) and is divided by 1000.
 
-Values that are NaN, ±inf or not positive are holes (0 is the usual "no depth" of 16-bit maps); the pipeline fills
-them from the network's depth. The map is cropped like the photograph (:func:`diff4splat.cameras.center_crop_box`
-on the photograph's displayed size when the map has that size, else on its own) and resized to the output resolution
-with nearest-neighbour sampling (no depth is invented between a foreground and a background pixel).
+Values that are NaN or ±inf are holes, and so are metric values outside [1 mm, 10 km] (0 is the usual "no depth" of
+16-bit maps) and disparities that are not positive (:func:`valid_depth`); the pipeline fills them from the network's
+depth. A map with no usable value, or a relative one that is constant, is refused (:func:`check_depth_values`).
+The map is cropped like the photograph (:func:`diff4splat.cameras.center_crop_box` on the photograph's displayed
+size when the map has that size, else on its own) and resized to the output resolution with nearest-neighbour
+sampling (no depth is invented between a foreground and a background pixel).
 """
 from __future__ import annotations
 
@@ -25,12 +27,58 @@ from ..cameras import center_crop_box
 from .exr import load_depth_exr
 from .inputs import check_input_file
 
-__all__ = ["DEPTH_SUFFIXES", "MILLIMETRES", "read_depth_map", "fit_depth_map"]
+__all__ = ["DEPTH_SUFFIXES", "MILLIMETRES", "MIN_METRIC_DEPTH", "MAX_METRIC_DEPTH", "read_depth_map", "fit_depth_map",
+           "valid_depth", "check_depth_values"]
 
 DEPTH_SUFFIXES = (".exr", ".npy", ".png", ".tif", ".tiff")
 """File types ``--depth`` reads."""
 MILLIMETRES = 1e-3
 """Metres per unit of a 16-bit metric depth image."""
+MIN_METRIC_DEPTH = 1e-3
+"""Nearest metric depth taken from a map, metres (1 mm); nearer values are holes."""
+MAX_METRIC_DEPTH = 1e4
+"""Farthest metric depth taken from a map, metres (10 km); farther values are holes, as a renderer's "no surface"
+value (Blender's 10¹⁰) or a sky's. A map with no value in range is refused: it is not metres."""
+
+
+def valid_depth(depth: Tensor, kind: str = "metric") -> Tensor:
+    """Mask of the pixels of a depth map that carry depth: finite, and for ``metric`` within [:data:`MIN_METRIC_DEPTH`,
+    :data:`MAX_METRIC_DEPTH`] metres, for ``inverse`` (disparity) positive; a ``relative`` value may be any finite
+    number (its scale and shift are fitted). The rest are holes, filled from the network's depth."""
+    mask = torch.isfinite(depth)
+    if kind == "metric":
+        mask &= (depth >= MIN_METRIC_DEPTH) & (depth <= MAX_METRIC_DEPTH)
+    elif kind == "inverse":
+        mask &= depth > 0
+    return mask
+
+
+def check_depth_values(depth: Tensor, kind: str, what: str = "depth") -> None:
+    """Check a depth map's values before any network runs: it must hold valid pixels (:func:`valid_depth`), and a
+    relative or inverse map must vary over them (its scale and shift are fitted to the network's depth).
+
+    Args:
+        depth: (H, W) the map as given (metres for ``metric``).
+        kind: "metric", "relative" or "inverse".
+        what: the argument and file, for messages (e.g. ``"--depth d.exr"``).
+
+    Raises:
+        ValueError: no valid pixel (naming the range of the values given), or a relative/inverse map that is
+            constant over its valid pixels.
+    """
+    depth = torch.as_tensor(depth)
+    mask = valid_depth(depth, kind)
+    finite = depth[torch.isfinite(depth)]
+    span = f"{float(finite.min()):.4g} … {float(finite.max()):.4g}" if finite.numel() else "none finite"
+    if not bool(mask.any()):
+        need = {"metric": f"metres in [{MIN_METRIC_DEPTH:g}, {MAX_METRIC_DEPTH:g}] (a 16-bit image: millimetres)",
+                "inverse": "positive disparity", "relative": "finite values"}[kind]
+        raise ValueError(f"{what} holds no usable {kind} depth: its values ({span}) are not {need}")
+    values = depth[mask]
+    if kind != "metric" and float(values.max() - values.min()) == 0:
+        raise ValueError(f"{what}: a {kind} depth map must vary, but every valid value is {float(values[0]):.6g}: its "
+                         "scale and shift cannot be fitted to the network's depth (a flat map of metres is "
+                         "--depth-kind metric)")
 
 
 def read_depth_map(path: str | os.PathLike, kind: str = "metric", what: str = "--depth") -> np.ndarray:
@@ -47,7 +95,8 @@ def read_depth_map(path: str | os.PathLike, kind: str = "metric", what: str = "-
 
     Raises:
         FileNotFoundError / ValueError: a missing or unreadable file, an unknown extension, not one channel, an 8-bit
-            image for metric depth, no finite positive value (each message names the file).
+            image for metric depth, no usable value or a constant relative map (:func:`check_depth_values`; each
+            message names the file).
     """
     path = check_input_file(path, what)
     suffix = path.suffix.lower()
@@ -80,8 +129,7 @@ def read_depth_map(path: str | os.PathLike, kind: str = "metric", what: str = "-
             raise ValueError(f"{what}: {path} is 8-bit; metric depth needs a 16-bit image (millimetres), an EXR or "
                              f"a .npy (or give --depth-kind relative/inverse)")
         depth = raw.astype(np.float64) * (MILLIMETRES if raw.dtype == np.uint16 and kind == "metric" else 1.0)
-    if not np.any(np.isfinite(depth) & (depth > 0)):
-        raise ValueError(f"{what}: {path} holds no finite positive depth")
+    check_depth_values(torch.from_numpy(depth), kind, f"{what} {path}")
     return depth
 
 
