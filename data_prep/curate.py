@@ -444,8 +444,9 @@ def curate(in_root: str | os.PathLike, out_root: str | os.PathLike, config: Cura
 
     Raises:
         FileNotFoundError: ``in_root`` is not a folder.
-        ValueError: bad ``workers``/``mode``; an ``out_root`` that is ``in_root``, holds it or lies inside it,
-            holds other files than an earlier curation, or was curated before with a different config or mode.
+        ValueError: bad ``workers``/``mode``; an ``in_root`` without scenes; an ``out_root`` that is ``in_root``,
+            holds it or lies inside it, holds other files than an earlier curation, or was curated before with a
+            different config or mode.
     """
     config = config or CurationConfig()
     in_root, out_root = Path(in_root), Path(out_root)
@@ -454,6 +455,8 @@ def curate(in_root: str | os.PathLike, out_root: str | os.PathLike, config: Cura
     if mode not in MODES:
         raise ValueError(f"mode must be one of {list(MODES)}, got {mode!r}")
     scenes = list_scenes(in_root)
+    if not scenes:
+        raise ValueError(f"{in_root} holds no scenes (a scene is a sub-folder with meta.json): nothing to curate")
     _check_out_root(in_root, out_root)
     settings = {"mode": mode, "config": config.to_dict()}
     cfg_file = out_root / CONFIG_COPY

@@ -343,6 +343,11 @@ def test_cli_subcommand(dataset, tmp_path, capsys):
     assert "not found" in capsys.readouterr().err
     assert cli_main(["curate", str(dataset), str(tmp_path / "o3"), "--mode", "hardlink"]) == 2
     assert "mode" in capsys.readouterr().err
+    (tmp_path / "empty" / "not_a_scene").mkdir(parents=True)  # issue 61: exit 0 with an empty manifest, no word
+    assert cli_main(["curate", str(tmp_path / "empty"), str(tmp_path / "o4")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "holds no scenes (a scene is a sub-folder with meta.json)" in err
+    assert not (tmp_path / "o4").exists()
 
 
 def _png_header(width: int, height: int) -> bytes:

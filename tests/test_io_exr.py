@@ -1,4 +1,6 @@
 """Tests for diff4splat.io.exr: float32 depth/alpha round trips through OpenEXR, errors."""
+import re
+
 import numpy as np
 import OpenEXR
 import pytest
@@ -67,3 +69,16 @@ def test_errors(tmp_path):
     OpenEXR.File({"type": OpenEXR.scanlineimage}, {"R": np.ones((2, 2), np.float32)}).write(str(tmp_path / "r.exr"))
     with pytest.raises(ValueError, match="'Z'"):
         load_depth_exr(tmp_path / "r.exr")
+
+
+@pytest.mark.parametrize("head, said", [(b"\x89PNG\r\n\x1a\n" + bytes(24), "it holds a PNG image"),
+                                        (b"\xff\xd8\xff\xe0" + bytes(24), "it holds a JPEG image"),
+                                        (b"", "it does not start with the EXR signature 76 2f 31 01 (empty)"),
+                                        (b"\x76\x2f\x31\x01" + bytes(4), "could not read")])
+def test_a_file_named_exr_that_is_not_one_says_what_it_is(tmp_path, head, said):
+    """``data_prep validate`` on a PNG named .exr printed OpenEXR's "Unable to open 'file' for read" (issue 61)."""
+    path = tmp_path / "00000.exr"
+    path.write_bytes(head)
+    want = said if "could" in said else "^" + re.escape(f"{path} is not an OpenEXR file: {said}")
+    with pytest.raises(ValueError, match=want):
+        load_depth_exr(path)

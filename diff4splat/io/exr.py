@@ -73,6 +73,14 @@ def save_depth_exr(
             raise RuntimeError(f"OpenEXR wrote an incomplete {path}")
 
 
+EXR_MAGIC = b"\x76\x2f\x31\x01"
+"""The first four bytes of every OpenEXR file (the format's magic number, 20000630)."""
+_OTHER_FORMATS = ((b"\x89PNG", "PNG image"), (b"\xff\xd8\xff", "JPEG image"), (b"II*\x00", "TIFF image"),
+                  (b"MM\x00*", "TIFF image"), (b"\x93NUMPY", "NumPy .npy array"), (b"PK\x03\x04", "zip archive"),
+                  (b"GIF8", "GIF image"), (b"BM", "BMP image"))
+"""Signatures of the files most often given an .exr name by mistake, for the error message."""
+
+
 def load_depth_exr(
     path: str | os.PathLike, return_alpha: bool = False
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray | None]:
@@ -93,6 +101,13 @@ def load_depth_exr(
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"EXR file not found: {path}")
+    with open(path, "rb") as f:
+        head = f.read(8)
+    if head[:4] != EXR_MAGIC:
+        kind = next((name for magic, name in _OTHER_FORMATS if head.startswith(magic)), None)
+        raise ValueError(f"{path} is not an OpenEXR file: " +
+                         (f"it holds a {kind}" if kind else "it does not start with the EXR signature 76 2f 31 01") +
+                         (" (empty)" if not head else ""))
     try:
         with OpenEXR.File(str(path), separate_channels=True) as f:
             channels = {name: np.array(ch.pixels) for name, ch in f.channels().items()}
