@@ -19,6 +19,7 @@ import os
 import sys
 import warnings
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import torch
 
@@ -128,12 +129,32 @@ def quiet_c_stderr() -> Iterator[None]:
         os.close(saved)
 
 
+_OUR_PACKAGES = tuple(str(Path(__file__).resolve().parent.parent / name) + os.sep
+                      for name in ("diff4splat", "models", "training", "data_prep"))
+"""The folders of this project's four packages: a warning raised from code in them is ours."""
+_DEVELOPER_WARNINGS = (DeprecationWarning, PendingDeprecationWarning, FutureWarning)
+"""Categories that tell a library's developers about its dependencies' APIs, not the user about the run."""
+
+
 def print_warnings(call: Callable, *args, prog: str = "diff4splat", **kwargs):
-    """``call(*args, **kwargs)`` with the warnings it raises (e.g. the random-model notice) printed as one
-    ``<prog>: warning: …`` line each on stderr, the command line's form. Returns what ``call`` returns."""
+    """``call(*args, **kwargs)`` with the warnings that concern the user printed once each on stderr. Returns what
+    ``call`` returns.
+
+    Ours (raised from this project's code, e.g. the random-model notice): one ``<prog>: warning: …`` line each, the
+    command line's form. A dependency's: its deprecation and future warnings (which concern its callers' code, e.g.
+    torch's ``torch.jit.script_method is deprecated`` under ``--compile``) are dropped; any other is printed once as
+    ``<module>: <Category>: …``, not labelled as ours. A warning repeated with the same text is printed once."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         out = call(*args, **kwargs)
+    seen = set()
     for w in caught:
-        print(f"{prog}: warning: {w.message}", file=sys.stderr)
+        ours = os.path.abspath(w.filename).startswith(_OUR_PACKAGES)
+        if not ours and issubclass(w.category, _DEVELOPER_WARNINGS):
+            continue
+        line = (f"{prog}: warning: {w.message}" if ours else
+                f"{Path(w.filename).stem}: {w.category.__name__}: {w.message}")
+        if line not in seen:
+            seen.add(line)
+            print(line, file=sys.stderr)
     return out

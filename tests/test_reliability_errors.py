@@ -11,6 +11,7 @@ import signal
 import struct
 import subprocess
 import sys
+import warnings
 import zlib
 from contextlib import contextmanager
 from pathlib import Path
@@ -22,6 +23,7 @@ import torch
 from helpers import EXAMPLE_IMAGE, exported
 
 import data_prep.cli as dcli
+import diff4splat.errors as errors
 import diff4splat.io.atomic as atomic
 import diff4splat.io.scene_folder as output
 import diff4splat.pipeline
@@ -598,3 +600,23 @@ def test_a_really_full_file_system_is_named_by_every_writer(tmp_path, slack):
               f"expected {mnt / 'out2' / 'rgb' / '0000.png'}: {NO_SPACE}"]
     assert lines[0::2] == expect, run.stdout
     assert lines[1::2] == ["left []"] * len(expect), run.stdout  # nothing half-written or temporary left behind
+
+
+def test_only_warnings_that_concern_the_user_are_printed_once_each(capsys):
+    """``generate --compile --quiet`` printed torch's "`torch.jit.script_method` is deprecated" 14 times as
+    ``diff4splat: warning:`` (issue 61): a dependency's deprecation is dropped, our own warning is printed once
+    however often it is raised, and a dependency's other warnings keep their own label."""
+    ours = str(Path(errors.__file__).resolve().parent / "pipeline.py")
+    theirs = str(Path(torch.__file__).resolve().parent / "jit" / "_script.py")
+
+    def run():
+        for _ in range(14):
+            warnings.warn_explicit("`torch.jit.script_method` is deprecated.", DeprecationWarning, theirs, 1)
+            warnings.warn_explicit("`x` is deprecated.", FutureWarning, theirs, 2)
+            warnings.warn_explicit("the model is random", UserWarning, ours, 3)
+        warnings.warn_explicit("TF32 is off", UserWarning, theirs, 4)
+        return 7
+
+    assert errors.print_warnings(run) == 7
+    assert capsys.readouterr().err.splitlines() == ["diff4splat: warning: the model is random",
+                                                    "_script: UserWarning: TF32 is off"]
