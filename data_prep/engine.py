@@ -40,7 +40,7 @@ from typing import Any
 import torch
 from tqdm.auto import tqdm
 
-from diff4splat.checks import check_int
+from diff4splat.checks import MissingExtraError, check_int
 
 __all__ = ["Engine", "ENGINES", "check_engine", "add_engine_arguments", "engine_from_args", "map_scenes",
            "fault_point", "import_ray", "FAULT_ENV", "RAY_EXTRA"]
@@ -78,13 +78,13 @@ def import_ray():
     """Import Ray (the optional extra).
 
     Raises:
-        ValueError: Ray Data is not installed (the message names :data:`RAY_EXTRA`).
+        MissingExtraError: Ray Data is not installed (the message names :data:`RAY_EXTRA`).
     """
     try:
         import ray  # optional dependency (extra [ray])
         import ray.data  # noqa: F401  (Ray Data comes with ray[data])
     except ImportError as e:
-        raise ValueError(f"--engine ray needs Ray Data, which is not installed ({e}): {RAY_EXTRA}") from None
+        raise MissingExtraError(f"--engine ray needs Ray Data, which is not installed ({e}): {RAY_EXTRA}") from None
     return ray
 
 
@@ -100,7 +100,7 @@ def check_engine(name: str, workers: int = 1, ray_address: str | None = None, *,
 
     Raises:
         ValueError: an unknown engine, ``workers`` < 1, a ``ray_address`` without ``--engine ray``, an empty
-            address, or Ray missing (:func:`import_ray`).
+            address. MissingExtraError: Ray missing (:func:`import_ray`).
     """
     flag = {"name": "--engine", "workers": "--workers", "ray_address": "--ray-address"} if flags else {}
     if name not in ENGINES:

@@ -13,7 +13,14 @@ from numbers import Integral, Real
 import torch
 from torch import Tensor
 
-__all__ = ["is_int", "is_number", "check_int", "check_positive_int", "check_number", "check_positive", "check_finite"]
+__all__ = ["is_int", "is_number", "check_int", "check_positive_int", "check_number", "check_positive", "check_finite",
+           "MissingExtraError"]
+
+
+class MissingExtraError(ModuleNotFoundError):
+    """An optional extra of diff4splat is not installed for what was asked (a diffusers backbone, ``--engine ray``):
+    the message names the ``pip install 'diff4splat[…]'`` command. Expected (one line, exit 2), unlike any other
+    missing module, which is a broken install."""
 
 
 def is_int(value: object) -> bool:

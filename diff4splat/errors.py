@@ -23,8 +23,10 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["print_warnings", "EXIT_USAGE", "EXIT_INTERRUPTED", "EXPECTED_ERRNOS", "is_expected", "one_line", "run_cli",
-           "quiet_c_stderr"]
+from .checks import MissingExtraError
+
+__all__ = ["print_warnings", "EXIT_USAGE", "EXIT_INTERRUPTED", "EXPECTED_ERRNOS", "is_expected",
+           "one_line", "run_cli", "quiet_c_stderr"]
 
 EXIT_USAGE = 2
 """Exit code of an expected failure (bad input, corrupt file, unavailable device, OS error on a path)."""
@@ -48,9 +50,10 @@ def is_expected(exc: BaseException) -> bool:
     raises it, naming the parameter or the file) and ``OSError`` whose ``errno`` is in
     :data:`EXPECTED_ERRNOS` (``FileNotFoundError``, ``FileExistsError``, ``PermissionError``,
     ``IsADirectoryError``, ``NotADirectoryError`` and ``ENOSPC``/``EROFS``/``ENAMETOOLONG``/… errors), and
-    ``torch.OutOfMemoryError`` (a request larger than the GPU: the user lowers it or offloads).
+    ``torch.OutOfMemoryError`` (a request larger than the GPU: the user lowers it or offloads), and
+    :class:`MissingExtraError` (an optional extra to install).
     """
-    if isinstance(exc, (ValueError, torch.OutOfMemoryError, *_EXPECTED_OS_ERRORS)):  # also with a message only
+    if isinstance(exc, (ValueError, MissingExtraError, torch.OutOfMemoryError, *_EXPECTED_OS_ERRORS)):  # message only
         return True
     return isinstance(exc, OSError) and exc.errno in EXPECTED_ERRNOS
 

@@ -203,7 +203,7 @@ def load_model(checkpoint: str | Path | None = None, config: str = DEFAULT_CONFI
     Raises:
         FileNotFoundError: ``checkpoint`` given but missing, or an unknown config name.
         ValueError: a folder that is neither format (one line naming both marker files).
-        ModuleNotFoundError: a diffusers folder without ``diff4splat[diffusers]`` installed.
+        MissingExtraError: a diffusers folder without ``diff4splat[diffusers]`` installed.
     """
     random_source = f"random:{config}:seed={seed}"
     if untrained:

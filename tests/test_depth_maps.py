@@ -162,7 +162,7 @@ def test_far_and_near_metric_values_are_holes_the_network_fills():
 @pytest.mark.slow
 def test_a_photo_layer_that_misses_the_photograph_is_refused_and_nothing_is_written(tmp_path, capsys, monkeypatch):
     """The last guard of "frame 0 is the photograph": whatever put the photo layer's disks off their pixels, a
-    render of the layer below 40 dB is an error, never an output."""
+    render of the layer below 30 dB is an error, never an output."""
     real = assemble.photo_layer
 
     def missing(*args, **kwargs):
@@ -174,5 +174,5 @@ def test_a_photo_layer_that_misses_the_photograph_is_refused_and_nothing_is_writ
                  "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err.strip()
     assert code == 2 and err.count("\n") == 0, err
-    assert "frame 0 would not be the photograph: its photo layer renders it at 6.5 dB PSNR, below 40 dB" in err, err
+    assert "frame 0 would not be the photograph: its photo layer renders it at 6.5 dB PSNR, below 30 dB" in err, err
     assert not (tmp_path / "o").exists()

@@ -62,7 +62,7 @@ def load_backbone_model(stage: StageConfig) -> BackboneModel:
         FileNotFoundError: ``init_from`` is not a diffusers folder (no ``model_index.json``).
         ValueError: the folder holds another backbone than ``stage.backbone``, or does not load
             (:meth:`BackboneModel.from_pretrained`); no transformer module matches ``stage.lora.target_modules``.
-        ModuleNotFoundError: diffusers missing.
+        MissingExtraError: diffusers missing.
     """
     folder = Path(stage.init_from) if stage.init_from else None
     if folder is None:

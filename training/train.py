@@ -32,6 +32,7 @@ import torch
 
 from data_prep.clips import ClipConfig, ClipDataset
 from data_prep.format import list_scenes
+from diff4splat.checks import MissingExtraError
 from diff4splat.devices import resolve_device
 from diff4splat.errors import run_cli
 from diff4splat.io.output_folders import check_output_dir
@@ -72,7 +73,7 @@ def build_training(stage: StageConfig, seed: int | None = None
             1 + t·k, no clips; ``init_from`` of the wrong kind for ``stage.backbone``; ``backbone_dtype: bfloat16``
             without bf16 autocast.
         FileNotFoundError: ``init_from`` or ``data`` is not a folder of the right kind.
-        ModuleNotFoundError: a diffusers backbone stage without peft / diffusers installed.
+        MissingExtraError: a diffusers backbone stage without peft / diffusers installed.
     """
     device = resolve_device(stage.trainer.device, "trainer.device")
     if stage.backbone == "ours":
@@ -137,13 +138,13 @@ def backbone_training():
     """:mod:`training.backbone_training`, imported on demand (it imports peft; diffusers through the backbones).
 
     Raises:
-        ModuleNotFoundError: peft or diffusers missing (the message says what to install).
+        MissingExtraError: peft or diffusers missing (the message says what to install).
     """
     try:
         return importlib.import_module("training.backbone_training")
     except ModuleNotFoundError as e:
-        raise ModuleNotFoundError(f"training a diffusers backbone needs {e.name}: pip install 'diff4splat[diffusers]'"
-                                  ) from None
+        raise MissingExtraError(f"training a diffusers backbone needs {e.name}: pip install 'diff4splat[diffusers]'"
+                                ) from None
 
 
 @torch.no_grad()

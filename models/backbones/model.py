@@ -21,13 +21,14 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from diff4splat.checks import MissingExtraError
 from diff4splat.io.output_folders import output_dir
 from diff4splat.io.structured import read_json
 
 from ..bundle import Diff4SplatConfig, check_generated
 from ..flow_matching import FlowMatchingConfig
 from ..ldrm import LDRM, LDRMConfig
-from ..pretrained import MODEL_KIND, config_from_dict, count_parameters
+from ..pretrained import CONFIG_NAME, MODEL_KIND, WEIGHTS_NAME, check_model_size, config_from_dict, count_parameters
 from .base import INDEX_FILE, Backbone, LatentFormat
 
 __all__ = ["BackboneModel", "BackboneModelConfig", "backbone_class", "folder_backbone", "DEFAULTS",
@@ -142,12 +143,54 @@ def folder_backbone(directory: str | os.PathLike) -> str:
     return PIPELINES[name]
 
 
+def check_backbone_folder(directory: str | os.PathLike) -> str:
+    """Check a diffusers backbone folder before anything is imported or loaded (diffusers' own errors are
+    tracebacks): ``model_index.json`` names a pipeline of :data:`PIPELINES`; every component it names is a
+    sub-folder holding its config (``config.json``, ``scheduler_config.json``, ``tokenizer_config.json``, …); a
+    ``diff4splat.json`` is readable, describes this backbone, and its LDRM is within the ``parameters`` limit
+    (counted on the meta device); an ``ldrm/`` holds its config and weights.
+
+    Returns:
+        The backbone kind.
+
+    Raises:
+        FileNotFoundError: no ``model_index.json``; a component folder or its config missing (naming both);
+            ``ldrm/`` without its files.
+        ValueError: an unreadable index or ``diff4splat.json``, another pipeline, another backbone's
+            ``diff4splat.json``; :class:`diff4splat.limits.LimitError`: an LDRM above the limit.
+    """
+    directory = Path(directory)
+    kind = folder_backbone(directory)
+    index = read_json(directory / INDEX_FILE, "checkpoint")
+    for name, value in index.items():
+        if name.startswith("_") or not (isinstance(value, list) and len(value) == 2) or value[0] is None:
+            continue  # "_class_name", "_diffusers_version", settings, components left out (None)
+        folder = directory / name
+        if not folder.is_dir():
+            raise FileNotFoundError(f"checkpoint: {directory} has no {name}/ folder, which {INDEX_FILE} names "
+                                    f"({value[0]}.{value[1]})")
+        if not any(folder.glob("*config*.json")):
+            raise FileNotFoundError(f"checkpoint: {folder} holds no config file (config.json, scheduler_config.json, "
+                                    f"tokenizer_config.json) for its {value[1]}")
+    if (directory / CONFIG_FILE).is_file():
+        where = str(directory / CONFIG_FILE)
+        config = config_from_dict(BackboneModelConfig, read_json(directory / CONFIG_FILE, "checkpoint"), where)
+        if config.backbone != kind:
+            raise ValueError(f"checkpoint: {where} describes a {config.backbone} backbone; the folder holds a {kind}")
+        check_model_size(lambda: LDRM(config.ldrm), f"{where} (ldrm)")
+    if (directory / LDRM_FOLDER).is_dir():
+        missing = [f for f in (CONFIG_NAME, WEIGHTS_NAME) if not (directory / LDRM_FOLDER / f).is_file()]
+        if missing:
+            raise FileNotFoundError(f"checkpoint: {directory / LDRM_FOLDER} lacks {', '.join(missing)}")
+    return kind
+
+
 def backbone_class(kind: str) -> type[Backbone]:
     """The :class:`Backbone` subclass of ``kind``, imported on demand (it imports diffusers).
 
     Raises:
         ValueError: an unknown kind.
-        ModuleNotFoundError: diffusers or transformers missing (the message names ``diff4splat[diffusers]``).
+        MissingExtraError: diffusers or transformers missing (the message names ``diff4splat[diffusers]``).
     """
     if kind not in _MODULES:
         raise ValueError(f"backbone must be one of {sorted(_MODULES)}, got {kind!r}")
@@ -155,8 +198,8 @@ def backbone_class(kind: str) -> type[Backbone]:
     try:
         return getattr(importlib.import_module(module), name)
     except ModuleNotFoundError as e:
-        raise ModuleNotFoundError(f"the {kind} backbone needs {e.name}: pip install 'diff4splat[diffusers]'"
-                                  ) from None
+        raise MissingExtraError(f"the {kind} backbone needs {e.name}: pip install 'diff4splat[diffusers]'"
+                                ) from None
 
 
 class BackboneModel(nn.Module):
@@ -212,12 +255,12 @@ class BackboneModel(nn.Module):
             seed: seed of the random LDRM of a folder without ``ldrm/``.
 
         Raises:
-            FileNotFoundError: no ``model_index.json``.
-            ValueError: another pipeline's folder; a ``diff4splat.json`` or ``ldrm/`` that does not fit the backbone.
-            ModuleNotFoundError: diffusers missing (:func:`backbone_class`).
+            FileNotFoundError, ValueError: what :func:`check_backbone_folder` finds, before diffusers is imported;
+                a ``diff4splat.json`` or ``ldrm/`` that does not fit the backbone.
+            MissingExtraError: diffusers missing (:func:`backbone_class`).
         """
         directory = Path(directory)
-        kind = folder_backbone(directory)
+        kind = check_backbone_folder(directory)
         backbone = backbone_class(kind).from_pretrained(directory, torch_dtype=torch_dtype)
         if (directory / CONFIG_FILE).is_file():
             data = read_json(directory / CONFIG_FILE, "checkpoint")
