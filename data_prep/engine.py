@@ -20,8 +20,8 @@ scene is already complete, so a retried task, a resumed run and either engine gi
 exactly once.
 
 Fault injection (for the retry tests): :func:`fault_point` kills its own process with SIGKILL once, the first time
-it is reached at the named stage for the named scene, when ``DIFF4SPLAT_FAULT`` is ``"<stage>:<scene>:<flag file>"``
-(the flag file, created on that first time, makes it once per run).
+it is reached at the named stage for the named scene, when ``DIFF4SPLAT_FAULT`` holds ``"<stage>:<scene>:<flag file>"``
+(comma-separated for several; the flag file, created on that first time, makes it once per run).
 """
 from __future__ import annotations
 
@@ -138,19 +138,18 @@ def engine_from_args(args: argparse.Namespace) -> Engine:
 
 def fault_point(stage: str, scene: str) -> None:
     """Kill this process (SIGKILL, as the OOM killer does) the first time ``stage`` is reached for ``scene`` while
-    :data:`FAULT_ENV` is ``"<stage>:<scene>:<flag file>"``; do nothing otherwise (see the module docstring)."""
-    spec = os.environ.get(FAULT_ENV)
-    if not spec:
-        return
-    want_stage, want_scene, flag = spec.split(":", 2)
-    if (want_stage, want_scene) != (stage, scene):
-        return
-    try:
-        fd = os.open(flag, os.O_CREAT | os.O_EXCL | os.O_WRONLY)  # the first time only
-    except FileExistsError:
-        return
-    os.close(fd)
-    os.kill(os.getpid(), signal.SIGKILL)
+    :data:`FAULT_ENV` holds ``"<stage>:<scene>:<flag file>"`` (several, comma-separated); do nothing otherwise (see
+    the module docstring)."""
+    for spec in filter(None, os.environ.get(FAULT_ENV, "").split(",")):
+        want_stage, want_scene, flag = spec.split(":", 2)
+        if (want_stage, want_scene) != (stage, scene):
+            continue
+        try:
+            fd = os.open(flag, os.O_CREAT | os.O_EXCL | os.O_WRONLY)  # the first time only
+        except FileExistsError:
+            return
+        os.close(fd)
+        os.kill(os.getpid(), signal.SIGKILL)
 
 
 def map_scenes(fn: Callable[[Any], Any], items: Iterable[Any], engine: Engine, *, desc: str = "scenes",

@@ -85,6 +85,9 @@ def test_fault_point_fires_only_for_its_stage_and_scene(tmp_path, monkeypatch):
     fault_point("write", "scene_00001")
     fault_point("write", "scene_00001")  # once: the flag file exists now
     assert killed == [engine_mod.signal.SIGKILL] and flag.exists()
+    monkeypatch.setenv(FAULT_ENV, f"write:scene_00001:{flag},done:scene_00003:{tmp_path / 'flag2'}")  # several
+    fault_point("done", "scene_00003")
+    assert len(killed) == 2 and (tmp_path / "flag2").exists()
 
 
 # ------------------------------------------------------------------------------------------------ convert --each
