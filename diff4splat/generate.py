@@ -38,7 +38,14 @@ from .io.output_folders import check_output_dir
 from .io.scene_folder import scene_meta, write_scene_folder
 from .io.video import DEFAULT_FPS, check_fps
 from .limits import check_limit, check_memory, check_output_size
-from .pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, GenerationResult, check_prompt, check_seed
+from .pipeline import (
+    DEFAULT_RESOLUTION,
+    TIME_ESTIMATE_PRINTED,
+    Diff4SplatPipeline,
+    GenerationResult,
+    check_prompt,
+    check_seed,
+)
 from .render.sequence import render_path
 from .runtime import ATTENTION_KERNELS, DTYPES, check_offload
 
@@ -329,6 +336,10 @@ def generate(
                       frame_plys=frame_plys)
     check_memory(pipe.memory_estimate(path.width, path.height, len(path)),
                  f"{len(path)} frames at {path.width}×{path.height}", "--frames or --resolution")
+    seconds = pipe.time_estimate(path.width, path.height, len(path))
+    if seconds > TIME_ESTIMATE_PRINTED and notes is not None and pipe.device.type == "cpu":
+        notes(f"{len(path)} frames at {path.width}×{path.height}: estimated {seconds:.0f} s on this CPU (lower "
+              "--resolution or --frames for less)")
     result = pipe(image, path, prompt, steps=steps, sampler=sampler, guidance=guidance, seed=seed, progress=progress,
                   depth=depth if isinstance(depth, Tensor) else None, depth_kind=depth_kind)
     t0 = time.perf_counter()

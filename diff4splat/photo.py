@@ -36,6 +36,7 @@ from __future__ import annotations
 import math
 
 import cv2
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -48,7 +49,8 @@ from .render import rasterize
 __all__ = ["PHOTO_EPS2D", "FRONT_SCALE_PX", "BACKING_SCALE_PX", "BACKING_OFFSET", "PHOTO_OPACITY", "THICKNESS",
            "REFINE_STEPS", "BACKDROP_CELLS", "BACKDROP_EXTEND", "BACKDROP_DEPTH", "pixel_disks", "photo_layer",
            "refine_colors", "upsample_depth", "render_input_view", "backdrop_layer", "layer_sizes",
-           "MIN_PHOTO_PSNR_DB", "check_photo_fidelity"]
+           "MIN_PHOTO_PSNR_DB", "check_photo_fidelity", "backdrop_colors", "backdrop_colors_reference",
+           "BACKDROP_SAMPLES"]
 
 MIN_PHOTO_PSNR_DB = 30.0
 """Least PSNR (dB) of the photo layer rendered alone at the input camera against the photograph: below it, frame 0
@@ -259,6 +261,36 @@ def layer_sizes(width: int, height: int) -> tuple[int, int]:
     return width * height + (-(-height // 2)) * (-(-width // 2)), rows * cols
 
 
+BACKDROP_SAMPLES = 4
+"""Samples per backdrop cell side at which :func:`backdrop_colors` blurs the mirrored photograph (σ = one cell =
+this many samples): the blur's cost is then fixed per cell, not per pixel of the photograph."""
+
+
+def backdrop_colors(host: np.ndarray, cell: int, pad: int, h: int, w: int) -> np.ndarray:
+    """The backdrop's (h, w, 3) cell colours of the photograph ``host`` (H, W, 3) float32: the photograph mirrored
+    ``pad`` pixels beyond every border (``cv2.copyMakeBorder``, BORDER_REFLECT), blurred with a Gaussian of σ = one
+    cell (``cell`` pixels) and area-averaged to cells, as :func:`backdrop_colors_reference` does at full resolution,
+    but on the photograph first area-averaged to :data:`BACKDROP_SAMPLES` samples per cell (a pixel's weight is
+    spread over ≤ 1/4 cell more): a blur of fixed cost instead of one whose kernel grows with the photograph."""
+    H, W = host.shape[:2]
+    scale = BACKDROP_SAMPLES / cell
+    if scale >= 1:  # cells of ≤ 4 pixels: the full-resolution blur is as cheap
+        return backdrop_colors_reference(host, cell, pad, h, w)
+    small = cv2.resize(host, (max(1, round(W * scale)), max(1, round(H * scale))), interpolation=cv2.INTER_AREA)
+    border = round(pad * scale)
+    big = cv2.GaussianBlur(cv2.copyMakeBorder(small, border, border, border, border, cv2.BORDER_REFLECT), (0, 0),
+                           float(BACKDROP_SAMPLES))
+    used = (min(big.shape[0], round(h * BACKDROP_SAMPLES)), min(big.shape[1], round(w * BACKDROP_SAMPLES)))
+    return cv2.resize(big[:used[0], :used[1]], (w, h), interpolation=cv2.INTER_AREA)
+
+
+def backdrop_colors_reference(host: np.ndarray, cell: int, pad: int, h: int, w: int) -> np.ndarray:
+    """:func:`backdrop_colors` at full resolution: mirror, blur σ = ``cell`` pixels, area-average to (h, w) cells of
+    ``cell`` pixels (the blur's kernel, and its cost per pixel, grow with the photograph)."""
+    big = cv2.GaussianBlur(cv2.copyMakeBorder(host, pad, pad, pad, pad, cv2.BORDER_REFLECT), (0, 0), float(cell))
+    return cv2.resize(big[:h * cell, :w * cell], (w, h), interpolation=cv2.INTER_AREA)
+
+
 def backdrop_layer(
     image: Tensor,  # (H, W, 3) in [0, 1]
     depth: Tensor,  # (H, W) the photo layer's z-depth, metres
@@ -269,10 +301,10 @@ def backdrop_layer(
 
     The photograph is extended by :data:`BACKDROP_EXTEND` image sizes on every side by mirroring
     (``cv2.copyMakeBorder``, BORDER_REFLECT), blurred (Gaussian, σ = one cell) and area-averaged to cells of H /
-    :data:`BACKDROP_CELLS` pixels; one Gaussian per cell sits on the ray through the cell's centre at z =
-    :data:`BACKDROP_DEPTH` × the photo layer's largest depth, a disk facing the camera of σ = 0.8 cell, opacity
-    :data:`PHOTO_OPACITY`. At the input camera the photo layer hides it; a moving camera sees it where neither
-    the photograph nor the generated frames have anything.
+    :data:`BACKDROP_CELLS` pixels (:func:`backdrop_colors`); one Gaussian per cell sits on the ray through the
+    cell's centre at z = :data:`BACKDROP_DEPTH` × the photo layer's largest depth, a disk facing the camera of
+    σ = 0.8 cell, opacity :data:`PHOTO_OPACITY`. At the input camera the photo layer hides it; a moving camera
+    sees it where neither the photograph nor the generated frames have anything.
 
     Returns:
         Gaussians ((1 + 2·extend)² · cells²-ish, SH degree 0) on ``image``'s device, float32.
@@ -285,8 +317,7 @@ def backdrop_layer(
     viewmat, K = viewmat.to(dev, torch.float32), K.to(dev, torch.float32)
     cell, pad, h, w = _backdrop_grid(W, H)
     host = image.detach().float().cpu().numpy()  # device: cv2 pads and blurs on the host; moved back below
-    big = cv2.GaussianBlur(cv2.copyMakeBorder(host, pad, pad, pad, pad, cv2.BORDER_REFLECT), (0, 0), float(cell))
-    small = torch.from_numpy(cv2.resize(big[:h * cell, :w * cell], (w, h), interpolation=cv2.INTER_AREA)).to(dev)
+    small = torch.from_numpy(backdrop_colors(host, cell, pad, h, w)).to(dev)
     Kb = K.clone()
     Kb[0, 2], Kb[1, 2] = K[0, 2] + pad, K[1, 2] + pad
     Kb[:2] = Kb[:2] / cell

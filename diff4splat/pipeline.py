@@ -121,6 +121,15 @@ MEMORY_MAP_COPIES = 2
 """Copies of the LDRM's deformation maps alive at once, at most (the network's output and its flattened view)."""
 MEMORY_BYTES_PER_GAUSSIAN = 600
 """Memory per Gaussian slot besides its deformation: attributes, pruning masks, the renderer's tile lists."""
+TIME_FIXED_SECONDS = 3.0
+"""``generate``'s wall time that does not grow with the output (interpreter, imports, the base model's load and
+sampling at its own resolution), seconds on the reference 2-core CPU (docs/benchmarks.md, "generate against the
+output resolution": the 64² run)."""
+TIME_SECONDS_PER_PIXEL_FRAME = 2.0e-6
+"""``generate``'s wall time per output pixel and frame on the reference 2-core CPU (photo layer, assembly, pruning,
+rendering, writing; the same table's slope)."""
+TIME_ESTIMATE_PRINTED = 60.0
+"""Seconds above which ``generate`` prints its time estimate before the work."""
 
 @dataclass
 class GenerationResult:
@@ -358,6 +367,14 @@ class Diff4SplatPipeline:
         base = MEMORY_BASE_BYTES + (MEMORY_CUDA_BUILD_BYTES if torch.backends.cuda.is_built() else 0)
         return int(base + weights + MEMORY_BYTES_PER_GAUSSIAN * slots + 40 * keys * (MEMORY_SCENE_COPIES * slots + maps)
                    + 2 * 20 * num_frames * width * height)
+
+    def time_estimate(self, width: int, height: int, num_frames: int) -> float:
+        """Rough wall time of ``generate`` on the CPU for a ``width`` × ``height`` output of ``num_frames`` frames,
+        seconds: :data:`TIME_FIXED_SECONDS` + :data:`TIME_SECONDS_PER_PIXEL_FRAME` · pixels · frames, measured with the
+        base model on a 2-core CPU and scaled by 2 / the cores torch uses here. A larger model's sampling is not in
+        it (its networks run at their own resolution); on a GPU it is an upper bound."""
+        scale = 2 / max(1, torch.get_num_threads())
+        return scale * (TIME_FIXED_SECONDS + TIME_SECONDS_PER_PIXEL_FRAME * width * height * num_frames)
 
     def output_size(self, resolution: int | None = None) -> tuple[int, int]:
         """(width, height) of the output for ``resolution`` pixels of height (None: the model resolution): the

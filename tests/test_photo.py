@@ -3,6 +3,7 @@ can open, disks on their rays facing the camera, edge-aware depth upsampling."""
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
@@ -16,6 +17,9 @@ from diff4splat.photo import (
     BACKING_SCALE_PX,
     FRONT_SCALE_PX,
     PHOTO_EPS2D,
+    _backdrop_grid,
+    backdrop_colors,
+    backdrop_colors_reference,
     backdrop_layer,
     photo_layer,
     render_input_view,
@@ -188,3 +192,19 @@ def test_the_backdrop_hides_behind_the_photo_and_fills_what_it_cannot_show():
     _, alpha, _ = rasterize(back.means, back.quats, back.scales, back.opacities, back.sh, turned[None], K[None], W, H,
                             eps2d=PHOTO_EPS2D, sh_degree=0, render_mode="RGB")
     assert float(alpha.min()) >= 0.99
+
+
+@pytest.mark.parametrize("H, W", [(256, 256), (200, 300), (176, 320)])
+def test_the_backdrop_blur_at_four_samples_per_cell_is_the_full_resolution_one(H, W):
+    """``backdrop_colors`` blurs the mirrored photograph at 4 samples per cell instead of every pixel (its kernel
+    grew with the photograph: 14.8 s of a 1024² ``generate``): the same cells within a grey level on average and
+    a few percent at worst (the sample grid is up to half a sample off the pixel grid)."""
+    image = load_image(EXAMPLE_IMAGE, size=(H, W)).numpy().astype(np.float32)
+    cell, pad, h, w = _backdrop_grid(W, H)
+    fast, exact = backdrop_colors(image, cell, pad, h, w), backdrop_colors_reference(image, cell, pad, h, w)
+    assert fast.shape == exact.shape == (h, w, 3)
+    err = np.abs(fast - exact)
+    assert err.mean() < 0.006 and err.max() < 0.06, (err.mean(), err.max())
+    small = load_image(EXAMPLE_IMAGE, size=(48, 48)).numpy().astype(np.float32)  # cells of 3 px: exact itself
+    args = _backdrop_grid(48, 48)
+    assert np.array_equal(backdrop_colors(small, *args), backdrop_colors_reference(small, *args))
