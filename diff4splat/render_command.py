@@ -39,6 +39,7 @@ from __future__ import annotations
 import os
 import time
 
+import psutil
 import torch
 from torch import Tensor
 
@@ -65,12 +66,13 @@ from .io.scene_folder import (
     write_scene_folder,
 )
 from .io.video import DEFAULT_FPS, check_fps, check_video_size
-from .limits import check_limit, check_output_size
+from .limits import check_limit, check_memory, check_output_size
+from .pipeline import MEMORY_BYTES_PER_GAUSSIAN
 from .render.sequence import render_path
 from .scene import DynamicGaussians
 
 __all__ = ["RENDER_KIND", "path_scene", "placed_at", "load_camera_file", "trajectory_cameras", "resize_cameras",
-           "rerender"]
+           "render_memory_estimate", "rerender"]
 
 RENDER_KIND = "render"
 """Output-folder kind of ``diff4splat render`` (:data:`diff4splat.io.MARKER`)."""
@@ -95,6 +97,18 @@ def path_scene(folder: SceneFolder, times: Tensor) -> DynamicGaussians:
     keys = torch.unique(times.detach().float().cpu()).to(s.canonical.means)  # sorted, strictly increasing
     d_means, d_quats, d_scales = folder.field.deformations_at(s.canonical.means, keys)
     return DynamicGaussians(s.canonical, keys, d_means, d_quats, d_scales, s.t_means, s.t_scales)
+
+
+def render_memory_estimate(folder: SceneFolder, path: CameraPath) -> int:
+    """Upper bound of ``render``'s peak host memory, bytes, once ``folder`` is loaded: what the process holds now,
+    plus a field's deformation sampled at the path's distinct times (:func:`path_scene`: 10 floats per Gaussian and
+    time), :data:`diff4splat.pipeline.MEMORY_BYTES_PER_GAUSSIAN` per Gaussian (a frame's deformed copy, the
+    renderer's tile lists) and the frames (T × H × W × 5 floats, twice: floats and encoded). Checked against the
+    memory the process may use (:func:`diff4splat.limits.check_memory`) before any frame is rendered."""
+    n = folder.scene.num_gaussians
+    sampled = 40 * n * len(torch.unique(path.times)) if folder.field is not None else 0
+    held = psutil.Process().memory_info().rss
+    return int(held + sampled + MEMORY_BYTES_PER_GAUSSIAN * n + 2 * 20 * len(path) * path.width * path.height)
 
 
 def placed_at(path: CameraPath, first: Tensor) -> CameraPath:
@@ -250,6 +264,8 @@ def rerender(
     check_field_of_view(path)  # as generate: a camera seeing a point of the scene has intrinsics in other units
     check_video_size(path.width, path.height, "--width or --height")
     check_output_size(len(path), path.width, path.height, knobs="--frames, --width or --height", out=out)
+    check_memory(render_memory_estimate(src, path), f"{len(path)} frames at {path.width}×{path.height} of "
+                 f"{src.scene.num_gaussians:,} Gaussians", "--frames, --width or --height")
     scene = path_scene(src, path.times)
     if depth is None:
         depth = estimate_scene_depth(src)  # only the fill value of pixels that no frame covers (1 m without one)
