@@ -67,13 +67,19 @@ from .io.scene_folder import (
 )
 from .io.video import DEFAULT_FPS, check_fps, check_video_size
 from .limits import check_limit, check_memory, check_output_size
-from .pipeline import MEMORY_BYTES_PER_GAUSSIAN
 from .render.sequence import render_path
 from .scene import DynamicGaussians
 
 __all__ = ["RENDER_KIND", "path_scene", "placed_at", "load_camera_file", "trajectory_cameras", "resize_cameras",
-           "render_memory_estimate", "rerender"]
+           "render_memory_estimate", "rerender", "RENDER_BYTES_PER_GAUSSIAN", "RENDER_BASE_BYTES"]
 
+RENDER_BYTES_PER_GAUSSIAN = 1400
+"""Peak memory per Gaussian of ``render`` beyond the loaded scene (:func:`render_memory_estimate`): a frame's deformed
+copy and interpolation temporaries, the renderer's tile lists."""
+RENDER_BASE_BYTES = 384 << 20
+"""Memory ``render`` adds once its first frame runs, whatever the scene: numba's compiled kernels and LLVM, the video
+encoder. With :data:`RENDER_BYTES_PER_GAUSSIAN` the estimate was 1.16-1.34× the measured peak (dynamic scenes of
+0.09-5.3 M Gaussians rendered at 256²-1024², 17 frames, 2-core CPU)."""
 RENDER_KIND = "render"
 """Output-folder kind of ``diff4splat render`` (:data:`diff4splat.io.MARKER`)."""
 
@@ -101,14 +107,15 @@ def path_scene(folder: SceneFolder, times: Tensor) -> DynamicGaussians:
 
 def render_memory_estimate(folder: SceneFolder, path: CameraPath) -> int:
     """Upper bound of ``render``'s peak host memory, bytes, once ``folder`` is loaded: what the process holds now,
-    plus a field's deformation sampled at the path's distinct times (:func:`path_scene`: 10 floats per Gaussian and
-    time), :data:`diff4splat.pipeline.MEMORY_BYTES_PER_GAUSSIAN` per Gaussian (a frame's deformed copy, the
-    renderer's tile lists) and the frames (T × H × W × 5 floats, twice: floats and encoded). Checked against the
-    memory the process may use (:func:`diff4splat.limits.check_memory`) before any frame is rendered."""
+    plus :data:`RENDER_BASE_BYTES`, a field's deformation sampled at the path's distinct times (:func:`path_scene`:
+    10 floats per Gaussian and time), :data:`RENDER_BYTES_PER_GAUSSIAN` per Gaussian and the frames (T × H × W × 5
+    floats, twice: floats and encoded). Checked against the memory the process may use
+    (:func:`diff4splat.limits.check_memory`) before any frame is rendered."""
     n = folder.scene.num_gaussians
     sampled = 40 * n * len(torch.unique(path.times)) if folder.field is not None else 0
     held = psutil.Process().memory_info().rss
-    return int(held + sampled + MEMORY_BYTES_PER_GAUSSIAN * n + 2 * 20 * len(path) * path.width * path.height)
+    return int(held + RENDER_BASE_BYTES + sampled + RENDER_BYTES_PER_GAUSSIAN * n
+               + 2 * 20 * len(path) * path.width * path.height)
 
 
 def placed_at(path: CameraPath, first: Tensor) -> CameraPath:

@@ -5,10 +5,12 @@ import re
 
 import cv2
 import numpy as np
+import psutil
 import pytest
 import torch
 from helpers import perturbed_field
 
+import diff4splat.limits as limits
 from diff4splat.cameras import CameraPath, intrinsics_from_fov, look_at, make_trajectory
 from diff4splat.cameras.trajectories import check_amplitude
 from diff4splat.cli import main
@@ -555,3 +557,16 @@ def test_a_size_mp4_cannot_hold_is_refused_before_rendering(tmp_path, capsys, mo
 
 def _never(*args, **kwargs):
     raise AssertionError("rendered before the size check")
+
+
+def test_render_checks_its_memory_against_what_the_process_may_use_before_rendering(tmp_path, capsys, monkeypatch):
+    """With room for less than the estimate (the machine's, a cgroup's or a ulimit's: limits.available_memory),
+    ``render`` is one line naming the request and the knobs, exit 2, before any frame; with room it renders."""
+    folder, *_ = _folder(tmp_path)
+    monkeypatch.setattr("diff4splat.render_command.render_path", _never)
+    monkeypatch.setattr(limits, "available_memory", lambda: psutil.Process().memory_info().rss + (64 << 20))
+    code = main(["render", str(folder), "--trajectory", "arc", "--frames", "3", "--quiet", "--out",
+                 str(tmp_path / "r")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "estimated peak memory" in err and "--width or --height" in err, err
+    assert not (tmp_path / "r").exists()
