@@ -66,7 +66,6 @@ def check_depth_values(depth: Tensor, kind: str, what: str = "depth") -> None:
         ValueError: no valid pixel (naming the range of the values given), or a relative/inverse map that is
             constant over its valid pixels.
     """
-    depth = torch.as_tensor(depth)
     mask = valid_depth(depth, kind)
     finite = depth[torch.isfinite(depth)]
     span = f"{float(finite.min()):.4g} … {float(finite.max()):.4g}" if finite.numel() else "none finite"
