@@ -493,11 +493,10 @@ def settle_and_prune(scene: DynamicGaussians, source: Tensor, cameras: CameraPat
     dev = scene.canonical.means.device
     index = torch.arange(scene.num_gaussians, device=dev)
     scene, drop, settled = settle_generated(scene, source, cameras, sources, surface_depth)
-    scene, index = scene.select(~drop), index[~drop]
-    generated = index >= photo_gaussians
-    keep = torch.ones(scene.num_gaussians, dtype=torch.bool, device=dev)
+    keep = ~drop  # one select of the whole scene (and its deformation) at the end, not one per step
+    generated = keep & (index >= photo_gaussians)
     keep[generated], stats = prune_mask(scene.select(generated), cameras, min_opacity=min_opacity)
-    stats = {**stats, "before": scene.num_gaussians, "after": int(keep.sum())}
+    stats = {**stats, "before": int((~drop).sum()), "after": int(keep.sum())}
     scene, index = scene.select(keep), index[keep]
     stats = {**stats, "before": stats["before"] + settled["duplicates"] + settled["occluders"], **settled}
     if stats["after"] == 0:
