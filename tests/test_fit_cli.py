@@ -12,10 +12,12 @@ import sys
 import time
 
 import numpy as np
+import psutil
 import pytest
 import torch
 from helpers import adam_steps_on_the_default_device
 
+import diff4splat.limits as limits
 from data_prep.format import SceneWriter, load_scene, read_rgb
 from data_prep.synth import generate_scene
 from data_prep.validate import validate_scene
@@ -530,3 +532,22 @@ def test_fit_on_a_missing_device_is_one_line_exit_2(dynamic_scene, tmp_path, cap
     assert not (tmp_path / "out").exists()
     with pytest.raises(ValueError, match="device: cuda is not available"):
         run_fit(dynamic_scene, tmp_path / "out", CONFIG, device="cuda")
+
+
+def test_fit_checks_its_memory_before_loading_the_views(tmp_path, capsys, monkeypatch):
+    """With less room than :func:`training.fit_cli.fit_memory_estimate` (the machine's, a cgroup's or a ulimit's:
+    limits.available_memory), ``fit`` is one line naming the Gaussians and the knobs, exit 2, before any view is
+    loaded and with nothing written; the estimate grows by FIT_BYTES_PER_GAUSSIAN per allowed Gaussian."""
+    generate_scene(tmp_path, 0, seed=3, size=16, frames=3, cameras=1, static_ratio=0.0)
+    scene_dir = tmp_path / "scene_00000"
+    monkeypatch.setattr(fit_cli, "load_views", lambda *a, **k: pytest.fail("the views were loaded"))
+    monkeypatch.setattr(limits, "available_memory", lambda: psutil.Process().memory_info().rss + (256 << 20))
+    code = main(["fit", str(scene_dir), "--out", str(tmp_path / "o"), "--max-gaussians", "200000", "--quiet",
+                 "--device", "cpu"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "a fit of up to 200,000 Gaussians" in err, err
+    assert "--max-gaussians or --init-points" in err and not (tmp_path / "o").exists()
+    scene, d = load_scene(scene_dir), FitConfig()
+    small, large = (fit_cli.fit_memory_estimate(scene, dataclasses.replace(
+        d, densify=dataclasses.replace(d.densify, max_gaussians=n))) for n in (100_000, 200_000))
+    assert abs(large - small - 100_000 * fit_cli.FIT_BYTES_PER_GAUSSIAN) < 64 << 20  # the process may move a little
