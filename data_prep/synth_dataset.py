@@ -9,13 +9,12 @@ from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
-import psutil
 import torch
 from tqdm.auto import tqdm
 
 from diff4splat.checks import check_int, check_number
 from diff4splat.devices import resolve_device
-from diff4splat.limits import check_limit, check_memory
+from diff4splat.limits import check_limit, check_memory, held_memory
 
 from .engine import Engine, fault_point, map_scenes
 from .format import check_dataset_root
@@ -80,7 +79,7 @@ def check_synth_request(num_scenes: int, seed: int, *, size: int, frames: int, c
     one = f"one scene of {name('cameras')} {cameras} × {name('frames')} {frames} at {name('size')} {size}"
     check_limit("synth_bytes", scene_bytes(size, frames, cameras), f"{one}: estimated")
     # the memory this process (and each worker, under the same ulimits) may use: its own plus one scene per worker
-    check_memory(psutil.Process().memory_info().rss + min(workers, num_scenes) * scene_bytes(size, frames, cameras),
+    check_memory(held_memory() + min(workers, num_scenes) * scene_bytes(size, frames, cameras),
                  f"{one}, {min(workers, num_scenes)} at a time", f"{name('size')}, {name('frames')}, "
                  f"{name('cameras')} or {name('workers')}")
 

@@ -29,6 +29,7 @@ from .assemble import DEPTH_KINDS
 from .cameras import DEFAULT_TRAJECTORY, TRAJECTORIES, CameraPath
 from .cameras.trajectories import check_amplitude
 from .checks import check_positive_int
+from .costs import TIME_ESTIMATE_PRINTED
 from .devices import AUTO, resolve_device
 from .io import load_cameras_json, load_realestate10k
 from .io.depth_maps import fit_depth_map, read_depth_map
@@ -38,14 +39,7 @@ from .io.output_folders import check_output_dir
 from .io.scene_folder import scene_meta, write_scene_folder
 from .io.video import DEFAULT_FPS, check_fps
 from .limits import check_limit, check_memory, check_output_size
-from .pipeline import (
-    DEFAULT_RESOLUTION,
-    TIME_ESTIMATE_PRINTED,
-    Diff4SplatPipeline,
-    GenerationResult,
-    check_prompt,
-    check_seed,
-)
+from .pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, GenerationResult, check_prompt, check_seed
 from .render.sequence import render_path
 from .runtime import ATTENTION_KERNELS, DTYPES, check_offload
 

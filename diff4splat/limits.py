@@ -28,7 +28,7 @@ except ImportError:  # Windows
     resource = None
 
 __all__ = ["Limit", "LIMITS", "LimitError", "limit", "check_limit", "check_output_size", "check_memory",
-           "available_memory", "memory_caps", "tightest_memory_cap", "cgroup_room", "free_disk",
+           "available_memory", "held_memory", "memory_caps", "tightest_memory_cap", "cgroup_room", "free_disk",
            "OUTPUT_BYTES_PER_PIXEL", "OUTPUT_BYTES_PER_GAUSSIAN", "OUTPUT_DEFORMATION_BYTES_PER_GAUSSIAN", "size_text"]
 
 
@@ -188,13 +188,16 @@ def available_memory() -> int | None:
     cgroup's limit, its address-space and data-segment limits); None where psutil cannot measure it. The default of
     the ``memory_bytes`` limit (:func:`check_memory`), which bounds an estimate of the whole process's peak."""
     caps = memory_caps()
-    if caps is None:
-        return None
+    return None if caps is None else held_memory() + min(caps.values())
+
+
+def held_memory() -> int:
+    """Bytes this process holds now (its resident set), the start of a whole-process peak estimate for
+    :func:`check_memory`; 0 where psutil cannot measure it."""
     try:
-        held = psutil.Process().memory_info().rss
+        return int(psutil.Process().memory_info().rss)
     except (OSError, RuntimeError, NotImplementedError, psutil.Error):
-        return None
-    return int(held + min(caps.values()))
+        return 0
 
 
 def tightest_memory_cap() -> str:

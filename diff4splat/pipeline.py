@@ -53,6 +53,15 @@ from .cameras import (
 )
 from .cameras.path import check_field_of_view
 from .checks import check_positive_int, is_int
+from .costs import (
+    MEMORY_BASE_BYTES,
+    MEMORY_BYTES_PER_GAUSSIAN,
+    MEMORY_CUDA_BUILD_BYTES,
+    MEMORY_MAP_COPIES,
+    MEMORY_SCENE_COPIES,
+    TIME_FIXED_SECONDS,
+    TIME_SECONDS_PER_PIXEL_FRAME,
+)
 from .devices import Stopwatch
 from .io.depth_maps import check_depth_values
 from .limits import check_limit
@@ -106,30 +115,6 @@ def check_prompt(prompt: object, name: str = "prompt") -> str:
                          f"give the text in UTF-8") from None
     return prompt
 
-
-MEMORY_BASE_BYTES = 640 << 20
-"""The ``generate`` process before its tensors: Python, torch, numba, OpenCV (measured 0.57 GB with the base model)."""
-MEMORY_CUDA_BUILD_BYTES = 320 << 20
-"""What a CUDA build of torch adds to that process, GPU in use or not: the host memory of its CUDA libraries (288 MiB
-more resident after ``import torch`` with torch 2.14.1+cu130 than with 2.13.0+cpu, on a machine without a GPU)."""
-MEMORY_SCENE_COPIES = 2
-"""Copies of the unpruned scene's deformation alive at once, at most (:meth:`Diff4SplatPipeline.memory_estimate`):
-the scene ``assemble`` writes each field of once, and its pruned copy. Three until main at 7e96020, from before
-``assemble`` stopped concatenating pieces: the estimate was then 1.8× the measured peak at 149 frames, 256²
-(docs/benchmarks.md, "Memory of generate")."""
-MEMORY_MAP_COPIES = 2
-"""Copies of the LDRM's deformation maps alive at once, at most (the network's output and its flattened view)."""
-MEMORY_BYTES_PER_GAUSSIAN = 600
-"""Memory per Gaussian slot besides its deformation: attributes, pruning masks, the renderer's tile lists."""
-TIME_FIXED_SECONDS = 4.5
-"""``generate``'s wall time that does not grow with the output (interpreter, imports, the base model's load and
-sampling at its own resolution), seconds on the reference 2-core CPU (docs/benchmarks.md, "generate against the
-output resolution": the 64² run)."""
-TIME_SECONDS_PER_PIXEL_FRAME = 2.4e-6
-"""``generate``'s wall time per output pixel and frame on the reference 2-core CPU (photo layer, assembly, pruning,
-rendering, writing; the same table's slope to 2048², the steepest: 1.9e-6 to 1024²)."""
-TIME_ESTIMATE_PRINTED = 60.0
-"""Seconds above which ``generate`` prints its time estimate before the work."""
 
 @dataclass
 class GenerationResult:

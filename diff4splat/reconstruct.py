@@ -40,6 +40,7 @@ from models.ldrm import source_frame_indices
 from .assemble import z_depth
 from .cameras import CameraPath, intrinsics_from_fov
 from .checks import check_positive_int
+from .costs import MEMORY_BASE_BYTES, MEMORY_BYTES_PER_GAUSSIAN, MEMORY_CUDA_BUILD_BYTES, MEMORY_SCENE_COPIES
 from .devices import Stopwatch
 from .gaussians import Gaussians
 from .generate import (
@@ -55,15 +56,7 @@ from .io.inputs import check_input_file
 from .io.video_input import check_clip_request, read_video_clip
 from .limits import check_limit, check_memory, check_output_size
 from .photo import PHOTO_EPS2D, backdrop_layer, layer_sizes, photo_layer, upsample_depth
-from .pipeline import (
-    DEFAULT_RESOLUTION,
-    MEMORY_BASE_BYTES,
-    MEMORY_BYTES_PER_GAUSSIAN,
-    MEMORY_CUDA_BUILD_BYTES,
-    MEMORY_SCENE_COPIES,
-    Diff4SplatPipeline,
-    GenerationResult,
-)
+from .pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, GenerationResult
 from .prune import prune_mask, settle_and_prune
 from .render.sequence import render_path
 from .runtime import TorchRuntime

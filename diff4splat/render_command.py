@@ -39,7 +39,6 @@ from __future__ import annotations
 import os
 import time
 
-import psutil
 import torch
 from torch import Tensor
 
@@ -50,6 +49,7 @@ from .cameras.path import check_field_of_view
 from .cameras.trajectories import check_amplitude
 from .checks import check_positive_int
 from .constants import ALPHA_MIN
+from .costs import RENDER_BASE_BYTES, RENDER_BYTES_PER_GAUSSIAN
 from .devices import resolve_device
 from .io import load_cameras_json, load_realestate10k
 from .io.inputs import check_input_file
@@ -66,20 +66,13 @@ from .io.scene_folder import (
     write_scene_folder,
 )
 from .io.video import DEFAULT_FPS, check_fps, check_video_size
-from .limits import check_limit, check_memory, check_output_size
+from .limits import check_limit, check_memory, check_output_size, held_memory
 from .render.sequence import render_path
 from .scene import DynamicGaussians
 
 __all__ = ["RENDER_KIND", "path_scene", "placed_at", "load_camera_file", "trajectory_cameras", "resize_cameras",
-           "render_memory_estimate", "rerender", "RENDER_BYTES_PER_GAUSSIAN", "RENDER_BASE_BYTES"]
+           "render_memory_estimate", "rerender"]
 
-RENDER_BYTES_PER_GAUSSIAN = 1400
-"""Peak memory per Gaussian of ``render`` beyond the loaded scene (:func:`render_memory_estimate`): a frame's deformed
-copy and interpolation temporaries, the renderer's tile lists."""
-RENDER_BASE_BYTES = 384 << 20
-"""Memory ``render`` adds once its first frame runs, whatever the scene: numba's compiled kernels and LLVM, the video
-encoder. With :data:`RENDER_BYTES_PER_GAUSSIAN` the estimate was 1.16-1.34× the measured peak (dynamic scenes of
-0.09-5.3 M Gaussians rendered at 256²-1024², 17 frames, 2-core CPU)."""
 RENDER_KIND = "render"
 """Output-folder kind of ``diff4splat render`` (:data:`diff4splat.io.MARKER`)."""
 
@@ -113,7 +106,7 @@ def render_memory_estimate(folder: SceneFolder, path: CameraPath) -> int:
     (:func:`diff4splat.limits.check_memory`) before any frame is rendered."""
     n = folder.scene.num_gaussians
     sampled = 40 * n * len(torch.unique(path.times)) if folder.field is not None else 0
-    held = psutil.Process().memory_info().rss
+    held = held_memory()
     return int(held + RENDER_BASE_BYTES + sampled + RENDER_BYTES_PER_GAUSSIAN * n
                + 2 * 20 * len(path) * path.width * path.height)
 

@@ -46,7 +46,7 @@ def _one_line_exit_2(capsys, tmp_path, folder: Path) -> str:
 
 
 def test_a_complete_folder_passes_the_checks(tmp_path):
-    assert check_backbone_folder(hub_folder(tmp_path / "wan")) == "wan2.2-ti2v"
+    assert check_backbone_folder(hub_folder(tmp_path / "wan")) == ("wan2.2-ti2v", None)
 
 
 @pytest.mark.parametrize("drop, needle", [

@@ -28,22 +28,21 @@ import sys
 import time
 from pathlib import Path
 
-import psutil
 import torch
 
 from data_prep.format import load_scene
 from diff4splat.checks import check_positive_int
+from diff4splat.costs import RENDER_BASE_BYTES
 from diff4splat.devices import AUTO, DEVICE_HELP, resolve_device
 from diff4splat.gaussians import Gaussians
 from diff4splat.io.output_folders import check_output_dir
 from diff4splat.io.scene_folder import DEFORMATION_ARRAYS, load_output_scene, scene_meta, write_scene_folder
 from diff4splat.io.video import DEFAULT_FPS, check_fps
-from diff4splat.limits import check_limit, check_memory
+from diff4splat.limits import check_limit, check_memory, held_memory
 from diff4splat.pipeline import check_seed
 from diff4splat.quaternions import quat_conjugate, quat_multiply, rotmat_to_quat
 from diff4splat.render.sequence import render_path
 from diff4splat.render.sh import rotate_sh
-from diff4splat.render_command import RENDER_BASE_BYTES
 from diff4splat.scene import DynamicGaussians
 from models.hexplane import save_field
 from training.checkpoint import latest_checkpoint, load_checkpoint, on_cpu, save_checkpoint
@@ -237,16 +236,21 @@ FIT_BYTES_PER_VIEW_PIXEL = 64
 margin."""
 
 
+def _most_gaussians(config: FitConfig) -> int:
+    """The most Gaussians a fit may hold: the larger of the densification cap and the initial points."""
+    return max(config.densify.max_gaussians, config.init_points, config.random_points)
+
+
 def fit_memory_estimate(scene, config: FitConfig) -> int:
     """Upper bound of ``fit``'s peak host memory, bytes, from the scene's ``meta.json`` and cameras before its frames
     are loaded: what the process holds now, the renderer's fixed memory
-    (:data:`diff4splat.render_command.RENDER_BASE_BYTES`), :data:`FIT_BYTES_PER_VIEW_PIXEL` per pixel of every camera
+    (:data:`diff4splat.costs.RENDER_BASE_BYTES`), :data:`FIT_BYTES_PER_VIEW_PIXEL` per pixel of every camera
     and frame, and
     :data:`FIT_BYTES_PER_GAUSSIAN` per Gaussian at the most it may hold (the larger of the densification cap and the
     initial points)."""
     pixels = sum(c.width * c.height for c in map(scene.cameras, scene.camera_names)) * scene.num_frames
-    gaussians = max(config.densify.max_gaussians, config.init_points, config.random_points)
-    held = psutil.Process().memory_info().rss
+    gaussians = _most_gaussians(config)
+    held = held_memory()
     return int(held + RENDER_BASE_BYTES + FIT_BYTES_PER_VIEW_PIXEL * pixels + FIT_BYTES_PER_GAUSSIAN * gaussians)
 
 
@@ -276,7 +280,7 @@ def run_fit(scene_dir: Path, out: Path, config: FitConfig, *, holdout_camera: in
     scene = load_scene(scene_dir)
     check_out_outside_inputs(out, scene_dir, init)
     check_output_dir(out, inputs=[scene_dir, init], overwrite=overwrite, kind="fit")
-    gaussians = max(config.densify.max_gaussians, config.init_points, config.random_points)
+    gaussians = _most_gaussians(config)
     check_memory(fit_memory_estimate(scene, config), f"a fit of up to {gaussians:,} Gaussians on {scene_dir}",
                  "--max-gaussians or --init-points")
     torch.manual_seed(seed)

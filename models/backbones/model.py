@@ -134,16 +134,22 @@ def folder_backbone(directory: str | os.PathLike) -> str:
         FileNotFoundError: no ``model_index.json``.
         ValueError: an unreadable index or a pipeline that is not one of :data:`PIPELINES`.
     """
+    return _read_index(directory)[1]
+
+
+def _read_index(directory: str | os.PathLike) -> tuple[dict, str]:
+    """(``model_index.json``'s contents, the backbone kind it names); raises as :func:`folder_backbone`."""
     index = Path(directory) / INDEX_FILE
     if not index.is_file():
         raise FileNotFoundError(f"checkpoint: {index} does not exist")
-    name = read_json(index, "checkpoint").get("_class_name")
+    data = read_json(index, "checkpoint")
+    name = data.get("_class_name")
     if name not in PIPELINES:
         raise ValueError(f"checkpoint: {index} is a {name!r} folder; diff4splat runs {', '.join(sorted(PIPELINES))}")
-    return PIPELINES[name]
+    return data, PIPELINES[name]
 
 
-def check_backbone_folder(directory: str | os.PathLike) -> str:
+def check_backbone_folder(directory: str | os.PathLike) -> tuple[str, BackboneModelConfig | None]:
     """Check a diffusers backbone folder before anything is imported or loaded (diffusers' own errors are
     tracebacks): ``model_index.json`` names a pipeline of :data:`PIPELINES`; every component it names is a
     sub-folder holding its config (``config.json``, ``scheduler_config.json``, ``tokenizer_config.json``, …); a
@@ -151,7 +157,7 @@ def check_backbone_folder(directory: str | os.PathLike) -> str:
     (counted on the meta device); an ``ldrm/`` holds its config and weights.
 
     Returns:
-        The backbone kind.
+        (the backbone kind, the ``diff4splat.json`` config or None without one).
 
     Raises:
         FileNotFoundError: no ``model_index.json``; a component folder or its config missing (naming both);
@@ -160,8 +166,7 @@ def check_backbone_folder(directory: str | os.PathLike) -> str:
             ``diff4splat.json``; :class:`diff4splat.limits.LimitError`: an LDRM above the limit.
     """
     directory = Path(directory)
-    kind = folder_backbone(directory)
-    index = read_json(directory / INDEX_FILE, "checkpoint")
+    index, kind = _read_index(directory)
     for name, value in index.items():
         if name.startswith("_") or not (isinstance(value, list) and len(value) == 2) or value[0] is None:
             continue  # "_class_name", "_diffusers_version", settings, components left out (None)
@@ -172,6 +177,7 @@ def check_backbone_folder(directory: str | os.PathLike) -> str:
         if not any(folder.glob("*config*.json")):
             raise FileNotFoundError(f"checkpoint: {folder} holds no config file (config.json, scheduler_config.json, "
                                     f"tokenizer_config.json) for its {value[1]}")
+    config = None
     if (directory / CONFIG_FILE).is_file():
         where = str(directory / CONFIG_FILE)
         config = config_from_dict(BackboneModelConfig, read_json(directory / CONFIG_FILE, "checkpoint"), where)
@@ -182,7 +188,7 @@ def check_backbone_folder(directory: str | os.PathLike) -> str:
         missing = [f for f in (CONFIG_NAME, WEIGHTS_NAME) if not (directory / LDRM_FOLDER / f).is_file()]
         if missing:
             raise FileNotFoundError(f"checkpoint: {directory / LDRM_FOLDER} lacks {', '.join(missing)}")
-    return kind
+    return kind, config
 
 
 def backbone_class(kind: str) -> type[Backbone]:
@@ -260,16 +266,13 @@ class BackboneModel(nn.Module):
             MissingExtraError: diffusers missing (:func:`backbone_class`).
         """
         directory = Path(directory)
-        kind = check_backbone_folder(directory)
+        kind, config = check_backbone_folder(directory)
         backbone = backbone_class(kind).from_pretrained(directory, torch_dtype=torch_dtype)
-        if (directory / CONFIG_FILE).is_file():
-            data = read_json(directory / CONFIG_FILE, "checkpoint")
-            config = config_from_dict(BackboneModelConfig, data, str(directory / CONFIG_FILE))
-            if config.backbone != kind or config.vae != backbone.latent:
-                raise ValueError(f"checkpoint: {directory / CONFIG_FILE} describes a {config.backbone} backbone with "
-                                 f"{config.vae}; the folder holds a {kind} with {backbone.latent}")
-        else:
+        if config is None:
             config = BackboneModelConfig.for_backbone(kind, backbone.latent)
+        elif config.vae != backbone.latent:
+            raise ValueError(f"checkpoint: {directory / CONFIG_FILE} describes a {config.backbone} backbone with "
+                             f"{config.vae}; the folder holds a {kind} with {backbone.latent}")
         if (directory / LDRM_FOLDER).is_dir():
             ldrm = LDRM.from_pretrained(directory / LDRM_FOLDER)
             if ldrm.config != config.ldrm:
