@@ -64,7 +64,7 @@ from diff4splat.devices import Stopwatch, resolve_device  # noqa: E402
 from diff4splat.io import load_image  # noqa: E402
 from diff4splat.pipeline import Diff4SplatPipeline, load_model  # noqa: E402
 from diff4splat.render import rasterize  # noqa: E402
-from diff4splat.render.gsplat_backend import gsplat_available  # noqa: E402
+from diff4splat.render.rasterize import gsplat_available  # noqa: E402
 from diff4splat.render.sequence import render_path  # noqa: E402
 from diff4splat.runtime import FF_CHUNK_TOKENS  # noqa: E402
 from models.bundle import Diff4SplatModel, load_config  # noqa: E402

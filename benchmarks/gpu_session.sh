@@ -120,7 +120,7 @@ fi
 { nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
   python -c "import torch, gsplat; print('torch', torch.__version__, 'gsplat', gsplat.__version__)"
   t0=$(date +%s)
-  python -c "from diff4splat.render.gsplat_backend import gsplat_available as g; print('gsplat CUDA extension', g())"
+  python -c "from diff4splat.render.rasterize import gsplat_available as g; print('gsplat CUDA extension', g())"
   echo "gsplat extension ready in $(( $(date +%s) - t0 )) s"; } 2>&1 | tee -a "$OUT/setup.log"
 
 # --- the steps

@@ -100,8 +100,8 @@ def run_one(renderer: str, size: int, runs: int, backward: bool = True) -> dict:
 
 
 PROFILE_STAGES = [  # (label, module, attribute): the fused forward's stages, timed by wrapping them
-    ("validation", "diff4splat.render.stages", "validate_inputs"),
-    ("projection (kernel + conversions)", "diff4splat.render.fused_projection", "_FusedProjection.apply"),
+    ("validation", "diff4splat.render.rasterize", "validate_inputs"),
+    ("projection (kernel + conversions)", "diff4splat.render.fused", "_FusedProjection.apply"),
     ("binning (box + bin kernels)", "diff4splat.render.fused", "bin_tiles_fused"),
     ("compositing (forward kernel)", "diff4splat.render.fused", "_FusedComposite.apply"),
 ]
@@ -183,8 +183,8 @@ def main() -> None:
         f"### CPU renderer speed (LDRM-sized scenes, one Gaussian per pixel, RGB+ED, 1 camera)\n\n"
         f"`python benchmarks/render_speed.py --write`; median of the runs column after one warm-up, each "
         f"configuration in its own process. Machine: {machine()}; load average while measuring "
-        f"{os.getloadavg()[0]:.1f}. \"fused\" is the default path (numba kernels: projection "
-        f"diff4splat/render/fused_projection.py, binning and compositing diff4splat/render/fused.py), \"torch\" "
+        f"{os.getloadavg()[0]:.1f}. \"fused\" is the default path (numba kernels: "
+        f"projection, binning and compositing diff4splat/render/fused.py), \"torch\" "
         f"the pure-PyTorch path (its reference and fallback), \"dense\" the brute-force reference. The fused path "
         f"projects in float64, so a few support boxes differ from the float32 reference's by rounding (a few "
         f"pairs fewer at 256² and 512²; the images agree to float32 rounding).",

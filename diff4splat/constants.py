@@ -26,4 +26,4 @@ opacity gives a finite, very negative value (never visible) instead of −inf.""
 
 CAMERA_MODEL = "pinhole"
 """Default camera model of the renderer and of the ray path's cameras (gsplat "pinhole"); re-exported as
-``diff4splat.render.defaults.CAMERA_MODEL``."""
+``diff4splat.render.settings.CAMERA_MODEL``."""

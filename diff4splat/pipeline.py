@@ -67,7 +67,7 @@ from .io.depth_maps import check_depth_values
 from .limits import check_limit
 from .photo import PHOTO_EPS2D, layer_sizes
 from .prune import settle_and_prune
-from .render.defaults import BACKGROUND
+from .render.settings import BACKGROUND
 from .runtime import NetworkRuntime, TorchRuntime
 from .scene import DynamicGaussians
 

@@ -13,9 +13,9 @@ from torch import Tensor
 from .cameras.path import CameraPath
 from .checks import check_finite, check_positive, check_positive_int
 from .gaussians import Gaussians
-from .render.defaults import NEAR_PLANE
 from .render.projection import project_gaussians
 from .render.rasterize import rasterize
+from .render.settings import NEAR_PLANE
 from .scene import DynamicGaussians
 
 __all__ = ["visibility_mask", "prune_scene", "prune_mask", "nothing_seen_message", "duplicate_mask", "occluder_mask",
@@ -122,7 +122,7 @@ def duplicate_mask(
     to ``times[s]`` (:meth:`DynamicGaussians.at`), from camera s (:func:`diff4splat.render.rasterize`,
     "ED") → accumulated alpha A and expected depth D (H, W). A Gaussian of frame s is a duplicate iff
     its mean deformed to ``times[s]``, in camera s's frame (x, y, z) = R·μ + t, lies in front of the
-    near plane (z > 0.01 m, :data:`~diff4splat.render.defaults.NEAR_PLANE`), projects to
+    near plane (z > 0.01 m, :data:`~diff4splat.render.settings.NEAR_PLANE`), projects to
     (u, v) = (fx·x/z + cx, fy·y/z + cy) inside the image, and at pixel (⌊v⌋, ⌊u⌋)
     A ≥ ``min_alpha`` and |z − D| ≤ ``depth_tolerance``·D: the surface is already represented at
     that depth. Gaussians of frame 0 are never duplicates; Gaussians in front of the rendered surface

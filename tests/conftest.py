@@ -8,7 +8,7 @@ import pytest
 import torch
 from helpers import tiny_model
 
-from diff4splat.render.gsplat_backend import NO_GSPLAT_ENV, gsplat_available
+from diff4splat.render.rasterize import NO_GSPLAT_ENV, gsplat_available
 
 CUDA = torch.cuda.is_available()
 DEVICES = [pytest.param("cpu", id="cpu"),

@@ -49,7 +49,7 @@ from torch.overrides import TorchFunctionMode
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_leaves, tree_map
 
-from diff4splat.render.gsplat_backend import NO_GSPLAT_ENV, gsplat_available
+from diff4splat.render.rasterize import NO_GSPLAT_ENV, gsplat_available
 
 NAME = "simulated CUDA (CPU)"
 """``torch.cuda.get_device_name()`` inside :func:`simulated_cuda`."""

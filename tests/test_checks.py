@@ -13,7 +13,7 @@ import data_prep.synth_dataset as synth
 import diff4splat.cameras.lenses as lenses
 import diff4splat.cameras.path as path
 import diff4splat.gaussians as gaussians
-import diff4splat.render.validate as validate
+import diff4splat.render.settings as render_settings
 import diff4splat.scene as scene
 import models.hexplane as hexplane
 from diff4splat.checks import (
@@ -79,7 +79,7 @@ def test_check_finite_accepts_finite_values_whose_sum_overflows():
 
 def test_check_finite_has_one_home():
     """gaussians.py used to define its own copy; now every module uses the function of diff4splat.checks."""
-    for module in (gaussians, scene, path, validate):
+    for module in (gaussians, scene, path, render_settings):
         assert module.check_finite is check_finite, module.__name__
 
 

@@ -385,7 +385,7 @@ def _device_fit(device, steps=8):
     fine stage (its field made at step 3), depth loss on, one view."""
     config = _config(iterations=steps, coarse_iterations=3)
     state = _blob(config=config, device=device)
-    with torch.no_grad():  # opacity 0.25 < 0.35: gsplat's 3σ tiles drop no rim (diff4splat/render/gsplat_backend.py)
+    with torch.no_grad():  # opacity 0.25 < 0.35: gsplat's 3σ tiles drop no rim (render/rasterize.py, rasterize_gsplat)
         state.params["opacities"].fill_(math.log(0.25 / 0.75))
     losses = []
     fit_steps(state, [_target_view().to(device)], config, steps, on_step=lambda s: losses.append(float(s.loss)))

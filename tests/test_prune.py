@@ -16,8 +16,8 @@ from diff4splat.prune import (
     visibility_mask,
 )
 from diff4splat.render import rasterize_dense
-from diff4splat.render.defaults import NEAR_PLANE
 from diff4splat.render.sequence import render_path
+from diff4splat.render.settings import NEAR_PLANE
 from diff4splat.scene import DynamicGaussians
 
 

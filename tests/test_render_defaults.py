@@ -1,4 +1,4 @@
-"""The render entry points take their default values from one home, diff4splat.render.defaults, and those
+"""The render entry points take their default values from one home, diff4splat.render.settings, and those
 are gsplat's ``rasterization`` defaults (except the render mode, "RGB+ED" in this project). The public entry
 points keep gsplat's keyword list and pack it into one RasterSettings, which every function behind them takes."""
 import ast
@@ -13,16 +13,14 @@ import torch
 import diff4splat
 from diff4splat.cameras.lenses import ThinLens
 from diff4splat.prune import prune_scene, visibility_mask
-from diff4splat.render import defaults, rasterize, rasterize_dense, raytrace, render_rolling_shutter
-from diff4splat.render.fused_projection import project_fused
-from diff4splat.render.gsplat_backend import rasterize_gsplat, use_gsplat
+from diff4splat.render import rasterize, rasterize_dense, raytrace, render_rolling_shutter
+from diff4splat.render import settings as render_settings
+from diff4splat.render.fused import project_fused
 from diff4splat.render.projection import project_gaussians
-from diff4splat.render.rasterize import choose_path
+from diff4splat.render.rasterize import choose_path, rasterize_gsplat, render_pipeline
 from diff4splat.render.raytrace import render_rays
 from diff4splat.render.sequence import render_path
-from diff4splat.render.settings import GSPLAT_KEYWORDS, RasterSettings
-from diff4splat.render.stages import render_pipeline
-from diff4splat.render.validate import validate_inputs
+from diff4splat.render.settings import GSPLAT_KEYWORDS, RasterSettings, validate_inputs
 
 RENDERERS = {"rasterize": rasterize, "rasterize_dense": rasterize_dense, "raytrace": raytrace}
 """The public entry points with gsplat's keyword list (users call them)."""
@@ -47,7 +45,7 @@ def _defaults(fn) -> dict:
 
 
 def _all_entry_points():
-    return {**RENDERERS, **SCENE_RENDERERS, "use_gsplat": use_gsplat, "visibility_mask": visibility_mask,
+    return {**RENDERERS, **SCENE_RENDERERS, "visibility_mask": visibility_mask,
             "prune_scene": prune_scene, "RasterSettings": RasterSettings, "project_gaussians": project_gaussians,
             "choose_path": choose_path}
 
@@ -79,15 +77,15 @@ def test_every_shared_parameter_has_the_same_default_everywhere():
 
 @pytest.mark.parametrize("name", sorted(_all_entry_points()))
 def test_defaults_are_the_named_constants_of_the_one_home(name):
-    """Each default is the object in diff4splat.render.defaults, not a literal that happens to be equal
+    """Each default is the object in diff4splat.render.settings, not a literal that happens to be equal
     (a float literal written in a signature is another object, so ``is`` tells them apart)."""
     found = 0
     for p, value in _defaults(_all_entry_points()[name]).items():
         if p in HOME:
-            home = getattr(defaults, HOME[p])
-            assert value == home, f"{name}({p}=...) default {value!r} != defaults.{HOME[p]} {home!r}"
+            home = getattr(render_settings, HOME[p])
+            assert value == home, f"{name}({p}=...) default {value!r} != settings.{HOME[p]} {home!r}"
             if isinstance(home, (float, tuple)):
-                assert value is home, f"{name}({p}=...) repeats the value instead of using defaults.{HOME[p]}"
+                assert value is home, f"{name}({p}=...) repeats the value instead of using settings.{HOME[p]}"
             found += 1
     assert found >= 1
 
@@ -98,11 +96,11 @@ def test_renderers_share_the_full_gsplat_argument_list():
 
 
 def test_defaults_are_gsplats_except_the_render_mode():
-    ours = {p: getattr(defaults, HOME[p]) for p in GSPLAT_RASTERIZATION}
+    ours = {p: getattr(render_settings, HOME[p]) for p in GSPLAT_RASTERIZATION}
     assert {p: v for p, v in ours.items() if p != "render_mode"} == {
         p: v for p, v in GSPLAT_RASTERIZATION.items() if p != "render_mode"}
-    assert defaults.RENDER_MODE == "RGB+ED"  # this project's choice: colour + expected depth
-    assert defaults.BACKGROUND == (0.0, 0.0, 0.0)
+    assert render_settings.RENDER_MODE == "RGB+ED"  # this project's choice: colour + expected depth
+    assert render_settings.BACKGROUND == (0.0, 0.0, 0.0)
 
 
 def test_functions_behind_the_entry_points_take_the_settings_not_the_keywords():
@@ -117,7 +115,7 @@ def test_settings_fields_are_gsplats_keywords_plus_camera_params():
     assert fields == [*GSPLAT_KEYWORDS, "camera_params"]
     assert set(_defaults(rasterize)) - {"compositor"} == set(fields)
     s = RasterSettings()
-    assert s.gsplat_keywords() == {k: getattr(defaults, HOME[k]) if k in HOME else None for k in GSPLAT_KEYWORDS}
+    assert s.gsplat_keywords() == {k: getattr(render_settings, HOME[k]) if k in HOME else None for k in GSPLAT_KEYWORDS}
     assert not s.antialiased and RasterSettings(rasterize_mode="antialiased").antialiased
     assert set(s.projection_keywords()) == set(_defaults(project_gaussians))
 
@@ -130,7 +128,7 @@ CUSTOM = dict(near_plane=0.5, far_plane=20.0, eps2d=0.2, sh_degree=0, render_mod
     (rasterize, "diff4splat.render.rasterize", "render_pipeline", {}),
     (rasterize, "diff4splat.render.rasterize", "render_rays", {"camera_model": "fisheye"}),
     (rasterize, "diff4splat.render.rasterize", "render_rays", {"camera_params": ThinLens(0.05, 3.0)}),
-    (rasterize_dense, "diff4splat.render.reference", "render_pipeline", {}),
+    (rasterize_dense, "diff4splat.render.rasterize", "render_pipeline", {}),
     (raytrace, "diff4splat.render.raytrace", "render_rays", {"camera_params": ThinLens(0.05, 3.0)}),
 ])
 def test_each_entry_point_packs_every_keyword_into_the_settings(monkeypatch, entry, module, inner, extra):
@@ -149,7 +147,7 @@ def test_each_entry_point_packs_every_keyword_into_the_settings(monkeypatch, ent
 
 def _literal_defaults(path: Path):
     """(function or class, parameter or field) of every default written as a literal in ``path`` for a
-    parameter named like a render setting (HOME); a name (``NEAR_PLANE``, ``defaults.EPS2D``) is not a literal."""
+    parameter named like a render setting (HOME); a name (``NEAR_PLANE``, ``settings.EPS2D``) is not a literal."""
     for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
         if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
             a = node.args
@@ -169,8 +167,9 @@ def _literal_defaults(path: Path):
 
 def test_no_default_is_written_anywhere_but_the_home():
     """A render setting's default written as a literal anywhere in the library (a signature's ``0.01``, a
-    dataclass field's ``"pinhole"``) fails here: defaults live in diff4splat/render/defaults.py only."""
+    dataclass field's ``"pinhole"``) fails here: defaults live in diff4splat/render/settings.py only (as module
+    constants, which this does not flag)."""
     root = Path(diff4splat.__file__).parent
     found = {(str(path.relative_to(root)), fn, p) for path in sorted(root.rglob("*.py"))
-             if path.name != "defaults.py" for fn, p in _literal_defaults(path)}
+             for fn, p in _literal_defaults(path)}
     assert found == set(), found

@@ -103,9 +103,10 @@ def test_a_view_that_sees_nothing_stays_in_the_graph_with_zero_gradients(path, d
 def test_an_elongated_gaussian_in_float32_renders_as_in_float64(path, device):
     """det Σ2d as sxx·syy − sxy² cancelled the long axis's L⁴ in float32: a 100 m × 1 cm Gaussian lost 3 % of its
     alpha on the PyTorch path and a 1 km × 1 cm one was culled; the minors of J·R·S do not cancel. (gsplat, the
-    default path on CUDA, keeps the cancellation: a documented difference, diff4splat.render.gsplat_backend.)"""
+    default path on CUDA, keeps the cancellation: a documented difference,
+    diff4splat.render.rasterize.rasterize_gsplat.)"""
     if path == "default" and choose_path(torch.zeros(1, 3, device=device)) == "gsplat":
-        pytest.skip("gsplat's float32 determinant cancels (documented in diff4splat.render.gsplat_backend)")
+        pytest.skip("gsplat's float32 determinant cancels (documented in diff4splat.render.rasterize.rasterize_gsplat)")
     q = torch.tensor([[0.9394, 0.0, 0.0, 0.3429]], device=device)  # long axis 40° from the image's x axis
     for length in (100.0, 1000.0):
         params = [torch.tensor([[0.0, 0.0, 5.0]], device=device), q,

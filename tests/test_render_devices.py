@@ -19,12 +19,12 @@ from diff4splat.gaussians import Gaussians
 from diff4splat.render import rasterize, rasterize_dense, render_rolling_shutter
 from diff4splat.render.fused import bin_tiles_fused, composite_fused
 from diff4splat.render.rasterize import DEFAULT_COMPOSITOR, DEVICE_COMPOSITOR, PATHS, choose_path
-from diff4splat.render.reference import composite_dense
 from diff4splat.render.sequence import render_path
 from diff4splat.render.tiles import (
     PAIR_BUDGET,
     PAIR_BUDGET_DEVICE,
     _stable_argsort_small,
+    composite_dense,
     composite_tiles,
     pair_budget,
 )
@@ -61,8 +61,7 @@ def test_choose_path_keeps_device_tensors_off_the_fused_path():
 def test_choose_path_prefers_gsplat_for_device_tensors_unless_told(monkeypatch):
     """With gsplat "available" for non-CPU tensors: None → gsplat, an explicit "torch" is honoured, CPU
     tensors never go to gsplat."""
-    monkeypatch.setattr(rasterize_module, "use_gsplat",
-                        lambda means, camera_model="pinhole": means.device.type != "cpu")
+    monkeypatch.setattr(rasterize_module, "use_gsplat", lambda means: means.device.type != "cpu")
     dev = torch.empty(3, 3, device="meta")
     assert choose_path(dev) == "gsplat"
     assert choose_path(dev, compositor="torch") == "torch"

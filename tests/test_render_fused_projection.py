@@ -1,4 +1,4 @@
-"""Tests of diff4splat/render/fused_projection.py: the fused projection against project_gaussians (every output
+"""Tests of the fused projection (diff4splat/render/fused.py, project_fused) against project_gaussians (every output
 and the gradients of means, quats, scales, opacities; float64 and float32; culled, clamped and antialiased
 cases), finite differences (gradcheck), thread-count determinism, the fallbacks and the errors."""
 import math
@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import diff4splat.render.fused as fused
-from diff4splat.render.fused_projection import project_fused
+from diff4splat.render.fused import project_fused
 from diff4splat.render.projection import project_gaussians
 
 pytestmark = pytest.mark.skipif(not fused.fused_available(), reason="numba is not installed")

@@ -7,9 +7,8 @@ import types
 import pytest
 import torch
 
-from diff4splat.render import gsplat_backend, rasterize, rasterize_dense
-from diff4splat.render.gsplat_backend import NO_GSPLAT_ENV, gsplat_available, use_gsplat
-from diff4splat.render.rasterize import choose_path
+from diff4splat.render import rasterize, rasterize_dense
+from diff4splat.render.rasterize import NO_GSPLAT_ENV, choose_path, gsplat_available, use_gsplat
 
 rasterize_module = importlib.import_module("diff4splat.render.rasterize")  # the package re-exports the function
 W, H = 32, 24
@@ -54,8 +53,8 @@ def test_gsplat_is_used_only_when_its_cuda_extension_loads(monkeypatch, extensio
     monkeypatch.setitem(sys.modules, "gsplat", pkg)
     monkeypatch.setitem(sys.modules, "gsplat.cuda", cuda)
     monkeypatch.setitem(sys.modules, "gsplat.cuda._backend", backend)
-    monkeypatch.setattr(gsplat_backend.importlib.util, "find_spec", lambda name: object())
-    monkeypatch.setattr(gsplat_backend.torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(rasterize_module.importlib.util, "find_spec", lambda name: object())
+    monkeypatch.setattr(rasterize_module.torch.cuda, "is_available", lambda: True)
     gsplat_available.cache_clear()
     try:
         if extension == "loads":
@@ -84,7 +83,7 @@ def test_dispatch_passes_the_same_call_to_gsplat(monkeypatch):
         return rasterize_dense(*args, **kwargs)
 
     monkeypatch.setitem(sys.modules, "gsplat", types.SimpleNamespace(rasterization=fake_rasterization))
-    monkeypatch.setattr(rasterize_module, "use_gsplat", lambda means, camera_model="pinhole": True)
+    monkeypatch.setattr(rasterize_module, "use_gsplat", lambda means: True)
     args = _scene()
     bg = torch.rand(1, 3)
     kw = dict(near_plane=0.5, far_plane=50.0, eps2d=0.2, backgrounds=bg, render_mode="RGB+D",

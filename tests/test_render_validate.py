@@ -5,9 +5,8 @@ import torch
 
 from diff4splat.cameras import CameraPath, intrinsics_from_focal
 from diff4splat.render import rasterize, rasterize_dense, raytrace
-from diff4splat.render.gsplat_backend import rasterize_gsplat
-from diff4splat.render.settings import RasterSettings
-from diff4splat.render.validate import RASTERIZE_MODES, RENDER_MODES, validate_inputs
+from diff4splat.render.rasterize import rasterize_gsplat
+from diff4splat.render.settings import RASTERIZE_MODES, RENDER_MODES, RasterSettings, validate_inputs
 
 
 def gsplat_backend(*args, **keywords):

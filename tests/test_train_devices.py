@@ -209,7 +209,7 @@ def test_torchrun_fsdp_on_cuda_trains_with_the_gpu_defaults(data, tmp_path):
 def test_a_stage_on_cuda_gives_the_cpu_losses_in_float32(data, tmp_path, name, monkeypatch):
     """bf16 and TF32 off: the first steps' losses on CUDA are the CPU's to float32 rounding (the step generator's
     draws are the same numbers on both devices). Both devices render with the PyTorch tile path: gsplat, used for
-    CUDA tensors when installed, differs from it by design (diff4splat/render/gsplat_backend.py)."""
+    CUDA tensors when installed, differs from it by design (diff4splat/render/rasterize.py, rasterize_gsplat)."""
     monkeypatch.setattr(objectives, "rasterize", functools.partial(rasterize, compositor="torch"))
     flags = torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
     losses = {}

@@ -33,7 +33,7 @@ from diff4splat.frame_motion import frame_motion
 from diff4splat.photo import PHOTO_EPS2D
 from diff4splat.prune import settle_generated
 from diff4splat.render import rasterize
-from diff4splat.render.defaults import EPS2D
+from diff4splat.render.settings import EPS2D
 from diff4splat.scene import DynamicGaussians
 from models.backbones.base import Backbone, LatentFormat
 from models.backbones.model import BackboneModel

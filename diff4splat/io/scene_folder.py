@@ -42,7 +42,7 @@ from ..cameras.path import CameraPath
 from ..checks import check_positive
 from ..constants import ALPHA_MIN
 from ..limits import check_limit
-from ..render.defaults import BACKGROUND, EPS2D, NEAR_PLANE
+from ..render.settings import BACKGROUND, EPS2D, NEAR_PLANE
 from ..scene import DynamicGaussians
 from ..viewer.page import VIEWER_NAME, write_viewer
 from .atomic import atomic_output_path
@@ -72,7 +72,7 @@ COVERED = 0.5
 
 def meta_background(meta: dict) -> tuple[float, float, float]:
     """An output folder's meta.json ``background`` (3 numbers in [0, 1], the colour the scene was fitted
-    against), else :data:`~diff4splat.render.defaults.BACKGROUND`."""
+    against), else :data:`~diff4splat.render.settings.BACKGROUND`."""
     bg = meta.get("background")
     if (isinstance(bg, list) and len(bg) == 3 and all(isinstance(v, (int, float)) and not isinstance(v, bool)
                                                       and 0.0 <= v <= 1.0 for v in bg)):
@@ -83,7 +83,7 @@ def meta_background(meta: dict) -> tuple[float, float, float]:
 def meta_eps2d(meta: dict) -> float:
     """An output folder's meta.json ``eps2d`` (the screen-space dilation, pixels², its scene is rendered with: 0.1
     for a ``generate`` scene with a photo layer, :mod:`diff4splat.photo`), else
-    :data:`~diff4splat.render.defaults.EPS2D`."""
+    :data:`~diff4splat.render.settings.EPS2D`."""
     eps = meta.get("eps2d")
     if isinstance(eps, (int, float)) and not isinstance(eps, bool) and 0.0 <= eps <= 10.0:
         return float(eps)
@@ -522,7 +522,7 @@ def scene_depth(folder: SceneFolder) -> float:
 
     The first of: meta.json's ``scene_depth``; the median depth "Z" of the pixels of ``depth/0000.exr`` whose
     coverage "A" exceeds :data:`COVERED` (every pixel with a finite Z > 0 if the file has no "A"); the median depth
-    of the canonical Gaussian means in front of the first camera (z > :data:`~diff4splat.render.defaults.NEAR_PLANE`).
+    of the canonical Gaussian means in front of the first camera (z > :data:`~diff4splat.render.settings.NEAR_PLANE`).
 
     Raises:
         ValueError: none of the three exists (no depth map and no Gaussian in front of the first camera); a

@@ -1,7 +1,8 @@
 """Gaussian-splatting renderer (gsplat-compatible API): projection, SH colours, rasterizers.
 
 ``rasterize`` is the fast tile path, ``rasterize_dense`` the brute-force reference it is tested
-against; both share :mod:`.projection` and :mod:`.sh` (docs/DESIGN.md, "The renderer"). Camera effects
+against; both share one pipeline (:func:`.rasterize.render_pipeline`: :mod:`.settings`, :mod:`.projection`,
+:mod:`.sh`; docs/DESIGN.md, "The renderer"). Camera effects
 (fisheye, thin lens: ``rasterize(..., camera_params=...)``) go through the ray path ``raytrace``;
 ``render_rolling_shutter`` renders row bands of a dynamic scene at their own times.
 
@@ -10,10 +11,9 @@ on CUDA gsplat when installed, else the pure-PyTorch tile path (:func:`.rasteriz
 numba only ever see CPU tensors (diff4splat/devices.py, the device rule).
 """
 from diff4splat.render.projection import Projection, project_gaussians
-from diff4splat.render.rasterize import rasterize
+from diff4splat.render.rasterize import rasterize, rasterize_dense
 from diff4splat.render.raytrace import raytrace
-from diff4splat.render.reference import rasterize_dense
-from diff4splat.render.rolling_shutter import render_rolling_shutter
+from diff4splat.render.sequence import render_rolling_shutter
 from diff4splat.render.sh import sh_basis, sh_to_color, spherical_harmonics
 
 eval_sh = spherical_harmonics

@@ -1,39 +1,52 @@
-"""Fused CPU compositor: one JIT-compiled loop over each tile's (Gaussian, pixel) pairs, forward and backward.
+"""The fused CPU path: projection, binning and compositing as JIT-compiled loops, forward and backward.
 
-The same compositor as :func:`diff4splat.render.tiles.composite_tiles` (the pure-PyTorch path, kept as
-the reference and the fallback) — same tile binning (:func:`~diff4splat.render.tiles.bin_tiles`), same
-3DGS rules, same outputs — but each pair's data is touched once instead of through ~40 tensor passes.
+Projection (:func:`project_fused`): the EWA projection and culling of the PyTorch reference
+:func:`~diff4splat.render.projection.project_gaussians` (which it falls back to), computed per Gaussian in
+float64: rotation from the unit quaternion, Σ = R S Sᵀ Rᵀ (3DGS eq. 6), camera frame, gsplat's clamped
+perspective Jacobian (EWA splatting eq. 29–31), dilation, compensation (Mip-Splatting eq. 9), conic, 3σ radius and
+the culls. The backward pass is the analytic chain rule of those formulas (gsplat ``fully_fused_projection_bwd``),
+summed over cameras per Gaussian. The quaternion normalisation stays a torch op (autograd differentiates it), so
+its zero-norm error is the reference's. Scope: pinhole CPU tensors whose ``viewmats`` and ``Ks`` need no
+gradient; anything else (camera gradients, CUDA tensors, no numba) uses the reference.
 
-Per tile (tiles in parallel, ``numba.prange``; a tile is one thread's work, so the result does not depend on
-the thread count), Gaussians are visited front to back in the tile's depth-sorted list, and for each the
-pixels of its support box inside the tile (gsplat ``rasterize_to_pixels_fwd``, with the loops swapped so a
-pair is evaluated only inside the box): σ = ½(a dx² + c dy²) + b dx dy, skipped if σ < 0; alpha =
-min(0.99, o·exp(−σ)), skipped if < 1/255; a pixel stops before the Gaussian that would take its
-transmittance T below 1e-4; otherwise it adds w = alpha·T times the features and T ← T·(1 − alpha).
-T and the sums are float64. The backward pass (gsplat ``rasterize_to_pixels_bwd``) walks each tile's list
-back to front from each pixel's last included Gaussian, recovering T_i = T_{i+1}/(1 − alpha_i), with
-∂L/∂alpha_i = T_i·v_i − (Σ_{j>i} w_j v_j)/(1 − alpha_i), v_i = feat_i·∂L/∂colour + ∂L/∂alpha − bg·∂L/∂colour,
-and writes each pair's gradient into its intersection's own slot; slots are summed per Gaussian afterwards
-(serially, in intersection order), so the backward is deterministic too.
+Compositing (:func:`composite_fused`): the same compositor as :func:`diff4splat.render.tiles.composite_tiles`
+(the pure-PyTorch path, kept as the reference and the fallback) — same tile binning
+(:func:`~diff4splat.render.tiles.bin_tiles`, here :func:`bin_tiles_fused`), same 3DGS rules, same outputs — but
+each pair's data is touched once instead of through ~40 tensor passes. Per tile (tiles in parallel,
+``numba.prange``; a tile is one thread's work, so the result does not depend on the thread count), Gaussians are
+visited front to back in the tile's depth-sorted list, and for each the pixels of its support box inside the tile
+(gsplat ``rasterize_to_pixels_fwd``, with the loops swapped so a pair is evaluated only inside the box):
+σ = ½(a dx² + c dy²) + b dx dy, skipped if σ < 0; alpha = min(0.99, o·exp(−σ)), skipped if < 1/255; a pixel
+stops before the Gaussian that would take its transmittance T below 1e-4; otherwise it adds w = alpha·T times the
+features and T ← T·(1 − alpha). T and the sums are float64. The backward pass (gsplat ``rasterize_to_pixels_bwd``)
+walks each tile's list back to front from each pixel's last included Gaussian, recovering
+T_i = T_{i+1}/(1 − alpha_i), with ∂L/∂alpha_i = T_i·v_i − (Σ_{j>i} w_j v_j)/(1 − alpha_i),
+v_i = feat_i·∂L/∂colour + ∂L/∂alpha − bg·∂L/∂colour, and writes each pair's gradient into its intersection's own
+slot; slots are summed per Gaussian afterwards (serially, in intersection order), so the backward is deterministic
+too. Results never depend on which path ran beyond float rounding.
 
-numba (a PyPI wheel, no compiler needed) compiles the kernels on first use and caches them on disk. Without
-numba the tile path is used, with one warning.
+The kernels live in :mod:`.fused_kernels`: numba (a PyPI wheel, no compiler needed) compiles them on first use
+and caches them on disk. Without numba the PyTorch path is used, with one warning.
 
 CPU only (diff4splat/devices.py, the device rule): numpy and numba see CPU tensors only, so every array here
 comes from a CPU tensor and every result tensor is made on the CPU. :func:`diff4splat.render.rasterize.choose_path`
-never sends non-CPU tensors here, and :func:`composite_fused` / :func:`bin_tiles_fused` refuse them.
+never sends non-CPU tensors here, :func:`composite_fused` / :func:`bin_tiles_fused` refuse them and
+:func:`project_fused` hands them to the reference.
 """
 from __future__ import annotations
 
+import inspect
 import warnings
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from diff4splat.quaternions import quat_normalize
+from diff4splat.render.projection import Projection, project_gaussians
 from diff4splat.render.tiles import composite_tiles
 
-__all__ = ["composite_fused", "fused_available", "bin_tiles_fused"]
+__all__ = ["project_fused", "composite_fused", "fused_available", "bin_tiles_fused"]
 
 _UNSET = object()
 _KERNELS = _UNSET
@@ -45,7 +58,7 @@ def _kernels():
     global _KERNELS
     if _KERNELS is _UNSET:
         try:
-            from diff4splat.render import fused_kernels  # lazy: numba, ~0.2 s; absent → the PyTorch path
+            from diff4splat.render import fused_kernels  # lazy: numba's import time; absent → the PyTorch path
         except ImportError:
             fused_kernels = None
         _KERNELS = fused_kernels
@@ -67,6 +80,86 @@ def _check_cpu(what: str, x: Tensor) -> None:
     if x.device.type != "cpu":
         raise ValueError(f"{what} runs on the CPU only (numba), got a tensor on {x.device}; use the PyTorch "
                          "tile path (diff4splat.render.tiles, rasterize(compositor='torch'))")
+
+
+class _FusedProjection(torch.autograd.Function):
+    """Autograd wrapper of the two kernels: (means, unit quats, scales, opacities) → the Projection tensors."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d,  # noqa: D102
+                antialiased):
+        C, N = viewmats.shape[0], means.shape[0]
+        # outputs written in the input dtype (no copies)
+        dt = torch.empty(0, dtype=means.dtype, device="cpu").numpy().dtype  # device: a CPU tensor, its dtype read
+        out = [np.zeros(shape, dt) for shape in ((C, N, 2), (C, N), (C, N, 3), (C, N, 3), (C, N))]
+        radii, comps = np.zeros((C, N), np.int32), np.zeros((C, N), dt)
+        arrays = [_np(x.double()) for x in (means, quats, scales, opacities, viewmats, Ks)]
+        kernels = _kernels()
+        with kernels.threads(torch.get_num_threads()):
+            # the planes rounded to the input dtype, as the reference compares z with them in that dtype
+            planes = [float(torch.tensor(p, dtype=means.dtype, device="cpu")) for p in (near, far)]
+            kernels.project_forward(*arrays, width, height, *planes, float(eps2d), antialiased, *out, radii, comps)
+        ctx.arrays, ctx.radii = arrays, radii
+        ctx.sizes = (width, height, float(eps2d), antialiased)
+        ctx.dtype = means.dtype
+        radii_t = torch.from_numpy(radii)
+        ctx.mark_non_differentiable(radii_t)
+        return (*(torch.from_numpy(x) for x in out), radii_t, torch.from_numpy(comps))
+
+    @staticmethod
+    def backward(ctx, *grads):  # noqa: D102
+        means, quats, scales, opacities, viewmats, Ks = ctx.arrays
+        width, height, eps2d, antialiased = ctx.sizes
+        C, N = viewmats.shape[0], means.shape[0]
+        shapes = ((C, N, 2), (C, N), (C, N, 3), (C, N, 3), (C, N))
+        g = [np.zeros(s) if x is None else _np(x.double()) for s, x in zip(shapes, grads[:5], strict=True)]
+        g_comps = np.zeros((C, N)) if grads[6] is None else _np(grads[6].double())
+        v = (np.zeros((N, 3)), np.zeros((N, 4)), np.zeros((N, 3)), np.zeros(N))
+        kernels = _kernels()
+        with kernels.threads(torch.get_num_threads()):
+            kernels.project_backward(means, quats, scales, opacities, viewmats, Ks, width, height, eps2d,
+                                     antialiased, ctx.radii, *g, g_comps, *v)
+        return (*(torch.from_numpy(x).to(ctx.dtype) for x in v), None, None, None, None, None, None, None, None)
+
+
+_REFERENCE = inspect.signature(project_gaussians)
+
+
+def project_fused(
+    means: Tensor,  # (N, 3)
+    quats: Tensor,  # (N, 4)
+    scales: Tensor,  # (N, 3)
+    opacities: Tensor,  # (N,)
+    viewmats: Tensor,  # (C, 4, 4)
+    Ks: Tensor,  # (C, 3, 3)
+    width: int,
+    height: int,
+    **settings,
+) -> Projection:
+    """:func:`~diff4splat.render.projection.project_gaussians` by the fused kernels (module docstring), or by that
+    reference where they do not apply: no numba, a non-pinhole model, non-CPU tensors, or ``viewmats``/``Ks``
+    requiring gradients. ``settings`` are the reference's keyword arguments with its defaults (``near_plane``,
+    ``far_plane``, ``eps2d``, ``antialiased``, ``camera_model``): its signature is the one home of both.
+
+    Returns:
+        :class:`~diff4splat.render.projection.Projection`, in the dtype of ``means`` (computed in float64).
+
+    Raises:
+        TypeError: a keyword the reference does not take.
+        ValueError: unknown camera model or zero-norm quaternion (from the reference's checks).
+    """
+    bound = _REFERENCE.bind(means, quats, scales, opacities, viewmats, Ks, width, height, **settings)
+    bound.apply_defaults()
+    a = bound.arguments
+    if (a["camera_model"] != "pinhole" or not fused_available() or means.device.type != "cpu"
+            or viewmats.requires_grad or Ks.requires_grad):
+        return project_gaussians(*bound.args, **bound.kwargs)
+    near_plane, far_plane, eps2d, antialiased = a["near_plane"], a["far_plane"], a["eps2d"], a["antialiased"]
+    means2d, depths, covars2d, conics, opac, radii, comps = _FusedProjection.apply(
+        means, quat_normalize(quats), scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d,
+        antialiased)
+    return Projection(means2d=means2d, depths=depths, covars2d=covars2d, conics=conics, opacities=opac, radii=radii,
+                      compensations=comps if antialiased else None)
 
 
 class _FusedComposite(torch.autograd.Function):

@@ -1,10 +1,10 @@
-"""EWA projection of 3D Gaussians to screen space (shared by the fast and the dense rasterizer).
+"""EWA projection of 3D Gaussians to screen space: the pure-PyTorch reference of every path's projection.
 
 This is the per-Gaussian stage of 3D Gaussian Splatting (Kerbl et al. 2023, §4; Zwicker et al.
 2002, EWA splatting eq. 31) written to match gsplat's ``fully_fused_projection`` CUDA kernel
-(``persp_proj``, ``add_blur``, 3σ radius, culling) for the pinhole camera. Camera models are kept
-behind :func:`project_means_covars` so another model (fisheye, through a ray path) can be added
-without touching the rasterizers.
+(``persp_proj``, ``add_blur``, 3σ radius, culling) for the pinhole camera; other camera models render on the
+ray path (:mod:`diff4splat.render.raytrace`). :func:`diff4splat.render.fused.project_fused` computes the same in
+numba kernels on the CPU.
 
 Also home of :func:`splat_alpha`, the single definition of a Gaussian's opacity at a pixel (with the
 3DGS thresholds of :mod:`diff4splat.constants`), used by both rasterizers so they cannot drift apart.
@@ -18,18 +18,16 @@ from torch import Tensor
 
 from diff4splat.constants import ALPHA_MAX, ALPHA_MIN, OPACITY_LOG_FLOOR
 from diff4splat.quaternions import quat_to_rotmat
-from diff4splat.render.defaults import CAMERA_MODEL, EPS2D, FAR_PLANE, NEAR_PLANE
+from diff4splat.render.settings import CAMERA_MODEL, EPS2D, FAR_PLANE, NEAR_PLANE
 
 __all__ = [
     "RADIUS_MAX",
     "FOV_MARGIN",
     "EIGEN_FLOOR",
-    "CAMERA_MODELS",
     "Projection",
     "covariance_3d",
     "world_to_camera",
     "persp_proj",
-    "project_means_covars",
     "project_gaussians",
     "support_extent",
     "splat_sigma",
@@ -44,8 +42,6 @@ FOV_MARGIN = 0.3
 tan½fov on each side (a constant of the projection, not a setting; the fused kernels use it too)."""
 EIGEN_FLOOR = 0.01
 """Floor of b² − det under the square root of the larger eigenvalue of Σ2d, pixels⁴ (gsplat's 3σ radius)."""
-CAMERA_MODELS = ("pinhole",)
-"""Camera models the projection supports."""
 
 
 class _MatmulFullPrecision(torch.autograd.Function):
@@ -190,29 +186,6 @@ def persp_jacobian(
     return torch.stack([fx * x * rz + cx, fy * y * rz + cy], dim=-1), J
 
 
-def project_means_covars(
-    means_c: Tensor, covars_c: Tensor, Ks: Tensor, width: int, height: int, camera_model: str
-) -> tuple[Tensor, Tensor]:
-    """Dispatch to the camera model's projection (only "pinhole": :func:`persp_proj`).
-
-    Args:
-        means_c: (C, N, 3) camera-frame centres, metres; z non-zero.
-        covars_c: (C, N, 3, 3) camera-frame covariances, metres².
-        Ks: (C, 3, 3) intrinsics, pixels.
-        width, height: image size, pixels.
-        camera_model: a name in :data:`CAMERA_MODELS`.
-
-    Returns:
-        means2d: (C, N, 2) pixels;  covars2d: (C, N, 2, 2) pixels² (not yet dilated).
-
-    Raises:
-        ValueError: ``camera_model`` not in :data:`CAMERA_MODELS`.
-    """
-    if camera_model == "pinhole":
-        return persp_proj(means_c, covars_c, Ks, width, height)
-    raise ValueError(f"camera_model must be one of {CAMERA_MODELS}, got {camera_model!r}")
-
-
 def project_gaussians(
     means: Tensor,  # (N, 3)
     quats: Tensor,  # (N, 4)
@@ -246,19 +219,20 @@ def project_gaussians(
         means, quats, scales, opacities: Gaussians (metres; wxyz; metres; (0, 1)).
         viewmats: (C, 4, 4) world-to-camera, OpenCV.  Ks: (C, 3, 3) pixels.
         width, height: image size, pixels.
-        near_plane, far_plane: depth range kept, metres (defaults: :mod:`diff4splat.render.defaults`).
+        near_plane, far_plane: depth range kept, metres (defaults: :mod:`diff4splat.render.settings`).
         eps2d: screen-space dilation, pixels².
         antialiased: multiply opacities by the compensation (gsplat ``rasterize_mode="antialiased"``).
-        camera_model: only "pinhole" for now.
+        camera_model: "pinhole" (gsplat's keyword; other models render on the ray path).
 
     Returns:
         :class:`Projection`.
 
     Raises:
-        ValueError: unknown camera model or zero-norm quaternion.
+        ValueError: a camera model other than "pinhole", or a zero-norm quaternion.
     """
-    if camera_model not in CAMERA_MODELS:
-        raise ValueError(f"camera_model must be one of {CAMERA_MODELS}, got {camera_model!r}")
+    if camera_model != "pinhole":
+        raise ValueError(f"camera_model must be 'pinhole' here (the ray path, raytrace, renders the others), "
+                         f"got {camera_model!r}")
     R = viewmats[:, :3, :3]
     means_c = matmul(means[None], R.transpose(-1, -2)) + viewmats[:, None, :3, 3]
     z = means_c[..., 2]
@@ -267,7 +241,7 @@ def project_gaussians(
     means2d, J = persp_jacobian(safe_means_c, Ks, width, height)
     # Σ2d = A Aᵀ with A = J·R_cam·R·S (C, N, 2, 3), whose columns are the projected axes s_k·(J R_cam R e_k): det Σ2d
     # is the sum of A's squared 2×2 minors (Cauchy–Binet), products of the axes' own lengths, where sxx·syy − sxy²
-    # cancels the long axis's L⁴ (float32 culled a 1 km × 1 cm Gaussian the float64 kernels render)
+    # cancels the long axis's L⁴ (in float32 it would cull a 1 km × 1 cm Gaussian)
     A = matmul(J, matmul(R[:, None], (quat_to_rotmat(quats) * scales[..., None, :])[None]))
     cov = matmul(A, A.transpose(-1, -2))
     sxx, sxy, syy = cov[..., 0, 0], cov[..., 0, 1], cov[..., 1, 1]

@@ -14,7 +14,7 @@ min(ALPHA_MAX, opacity·response); a hit is skipped if alpha < ALPHA_MIN or t_ma
 [near_plane, far_plane] (so maxima behind the ray origin never count); hits are sorted by t_max
 (distance along the ray, not camera z) and composited front to back from T = 1, stopping before a
 hit that would bring T below T_MIN. Colours and backgrounds follow
-:func:`diff4splat.render.rasterize` (SH along mean − camera centre, see :func:`color_features`).
+:func:`diff4splat.render.rasterize` (SH along mean − camera centre, see :func:`~diff4splat.render.sh.color_features`).
 
 Everything is batched tensor code (no loop over Gaussians): rays are grouped by pixel tiles, each
 tile keeps only the Gaussians whose alpha ≥ 1/255 support sphere can meet one of its rays (a cone
@@ -36,7 +36,7 @@ from diff4splat.cameras.path import camera_centers
 from diff4splat.constants import ALPHA_MAX, ALPHA_MIN, LOG_T_MIN, OPACITY_LOG_FLOOR
 from diff4splat.devices import full_precision
 from diff4splat.quaternions import quat_to_rotmat
-from diff4splat.render.defaults import (
+from diff4splat.render.settings import (
     CAMERA_MODEL,
     EPS2D,
     FAR_PLANE,
@@ -45,23 +45,27 @@ from diff4splat.render.defaults import (
     RENDER_MODE,
     SH_DEGREE,
     TILE_SIZE,
+    RasterSettings,
+    compute_dtype,
+    expected_depth,
+    mode_backgrounds,
+    validate_inputs,
 )
-from diff4splat.render.settings import RasterSettings
-from diff4splat.render.stages import color_features, compute_dtype, expected_depth, keep_in_graph, mode_backgrounds
-from diff4splat.render.validate import validate_inputs
+from diff4splat.render.sh import color_features
+from diff4splat.render.tiles import keep_in_graph
 
 __all__ = ["raytrace", "render_rays", "whitening", "ray_gaussian_response", "composite_rays", "support_radius",
            "tile_cones", "cull_tiles", "RAY_PAIR_BUDGET"]
 
 RAY_PAIR_BUDGET = 1 << 20
 """Most (ray, Gaussian) pairs evaluated at once, and (tile, Gaussian) pairs culled at once (bounds the transient
-memory of a batch: 1.3 M Gaussians culled against all 1024 tiles of a 512² image at once took ~33 GB)."""
+memory of a batch: culling every tile against every Gaussian at once costs about 25 bytes per pair)."""
 
 
 RAY_SCALE_FLOOR = 1e-6
 """Smallest standard deviation the ray path whitens by, metres: scales below it (0 included: a flat or line
 Gaussian, accepted by the renderer) are raised to it, so 1/s stays finite and float32's ‖d' × o'‖² cannot
-overflow for offsets up to 10 km (a 0 scale made W infinite and the image and gradients NaN). A 1 µm
+overflow for offsets up to 10 km (a 0 scale would make W infinite and the image and gradients NaN). A 1 µm
 thickness is invisible at any scene scale the library renders; the tile path dilates by eps2d instead."""
 
 
@@ -311,7 +315,7 @@ def render_rays(
         tile_size, samples_per_pixel, n_pairs: list of C ints).
 
     Raises:
-        ValueError: an argument :func:`~diff4splat.render.validate.validate_inputs` rejects (camera models
+        ValueError: an argument :func:`~diff4splat.render.settings.validate_inputs` rejects (camera models
             limited to :data:`RAY_CAMERA_MODELS`); unknown camera model or mismatched ``camera_params``
             (:func:`~diff4splat.cameras.lenses.check_camera`); ``settings.rasterize_mode`` other than "classic".
     """

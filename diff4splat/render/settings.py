@@ -1,20 +1,54 @@
-"""The renderer's settings as one value: :class:`RasterSettings`, built once per call by a public entry point.
+"""The renderer's settings: their defaults, :class:`RasterSettings` (one value per render call) and their checks.
 
 The public entry points (:func:`~diff4splat.render.rasterize`, :func:`~diff4splat.render.rasterize_dense`,
-:func:`~diff4splat.render.raytrace`) keep gsplat's ``rasterization`` keyword list, so calls port unchanged; each
-packs its keywords into a :class:`RasterSettings` and every function behind it (the dispatch, input validation,
-the render pipeline, the gsplat backend, the ray path) takes that object instead of re-listing the keywords.
-Its defaults are those of :mod:`diff4splat.render.defaults`, the one home of each value.
+:func:`~diff4splat.render.raytrace`) keep gsplat's ``rasterization`` keyword list, so calls port unchanged, and
+take their default values from the constants here, the one home of each value (as do
+:func:`~diff4splat.render.projection.project_gaussians` and the scene renderers of :mod:`.sequence`, which take
+:data:`BACKGROUND` and :data:`NEAR_PLANE`). Each entry point packs its keywords into a :class:`RasterSettings`, and
+every function behind it (the dispatch, :func:`validate_inputs`, the render pipeline, the gsplat backend, the ray
+path) takes that object instead of re-listing the keywords.
+
+The values are gsplat's ``rasterization`` defaults (the same in 1.4.0 … 1.5.3), except :data:`RENDER_MODE`:
+this project renders colour and expected depth together ("RGB+ED") by default, where gsplat's default is "RGB".
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import torch
 from torch import Tensor
 
-from diff4splat.render import defaults
+from diff4splat.checks import check_finite, check_positive_int
+from diff4splat.constants import CAMERA_MODEL
+from diff4splat.quaternions import ROTATION_TOL, rotation_errors
+from diff4splat.render.sh import num_sh_bases
 
-__all__ = ["RasterSettings", "GSPLAT_KEYWORDS"]
+__all__ = [
+    "NEAR_PLANE", "FAR_PLANE", "EPS2D", "SH_DEGREE", "RENDER_MODE", "RASTERIZE_MODE", "CAMERA_MODEL", "TILE_SIZE",
+    "BACKGROUND", "GSPLAT_KEYWORDS", "RasterSettings", "RENDER_MODES", "RASTERIZE_MODES", "VIEWMAT_TOL",
+    "validate_inputs", "LOW_PRECISION", "compute_dtype", "mode_backgrounds", "expected_depth",
+]
+
+NEAR_PLANE = 0.01
+"""Gaussians (or ray hits) nearer than this, metres along the camera z (the ray), are culled (gsplat 0.01)."""
+FAR_PLANE = 1e10
+"""Gaussians (or ray hits) farther than this, metres, are culled (gsplat 1e10)."""
+EPS2D = 0.3
+"""Screen-space dilation added to each projected covariance, pixels² (gsplat / INRIA 0.3)."""
+SH_DEGREE = None
+"""``colors`` are composited as given unless an SH degree is named (gsplat None)."""
+RENDER_MODE = "RGB+ED"
+"""Colour plus expected depth as the last channel (gsplat's default is "RGB"; this project's is "RGB+ED")."""
+RASTERIZE_MODE = "classic"
+"""No Mip-Splatting opacity compensation (gsplat "classic")."""
+# CAMERA_MODEL: pinhole projection (gsplat "pinhole"); its home is diff4splat.constants because the camera models
+# (diff4splat.cameras.lenses), below the renderer, default to it too.
+TILE_SIZE = 16
+"""Tile edge, pixels (gsplat 16); a performance knob, the image does not depend on it."""
+BACKGROUND = (0.0, 0.0, 0.0)
+"""RGB in [0, 1] behind the Gaussians for the scene renderers (render_path, render_rolling_shutter); an output
+folder's own colour is :func:`diff4splat.io.scene_folder.meta_background`."""
 
 GSPLAT_KEYWORDS = ("near_plane", "far_plane", "eps2d", "sh_degree", "backgrounds", "render_mode", "rasterize_mode",
                    "camera_model", "tile_size")
@@ -26,9 +60,9 @@ GSPLAT_KEYWORDS = ("near_plane", "far_plane", "eps2d", "sh_degree", "backgrounds
 class RasterSettings:
     """How to render (everything of a render call but the Gaussians, the cameras and the image size).
 
-    Values are stored as given: :func:`diff4splat.render.validate.validate_inputs` checks them, with the
-    tensors, where a render starts (so a bad value gives the same ``ValueError`` from every entry point).
-    Compared by identity (``backgrounds`` is a tensor).
+    Values are stored as given: :func:`validate_inputs` checks them, with the tensors, where a render starts (so
+    a bad value gives the same ``ValueError`` from every entry point). Compared by identity (``backgrounds`` is a
+    tensor).
 
     Attributes:
         near_plane, far_plane: Gaussians with camera z (on the ray path: ray hits with distance along the ray)
@@ -43,15 +77,15 @@ class RasterSettings:
         camera_params: None, or a camera effect of :mod:`diff4splat.cameras.lenses` (ray path).
     """
 
-    near_plane: float = defaults.NEAR_PLANE
-    far_plane: float = defaults.FAR_PLANE
-    eps2d: float = defaults.EPS2D
-    sh_degree: int | None = defaults.SH_DEGREE
+    near_plane: float = NEAR_PLANE
+    far_plane: float = FAR_PLANE
+    eps2d: float = EPS2D
+    sh_degree: int | None = SH_DEGREE
     backgrounds: Tensor | None = None
-    render_mode: str = defaults.RENDER_MODE
-    rasterize_mode: str = defaults.RASTERIZE_MODE
-    camera_model: str = defaults.CAMERA_MODEL
-    tile_size: int = defaults.TILE_SIZE
+    render_mode: str = RENDER_MODE
+    rasterize_mode: str = RASTERIZE_MODE
+    camera_model: str = CAMERA_MODEL
+    tile_size: int = TILE_SIZE
     camera_params: object = None
 
     @property
@@ -66,6 +100,159 @@ class RasterSettings:
 
     def projection_keywords(self) -> dict:
         """The keyword arguments of :func:`diff4splat.render.projection.project_gaussians` (and its drop-in
-        :func:`diff4splat.render.fused_projection.project_fused`) for these settings."""
+        :func:`diff4splat.render.fused.project_fused`) for these settings."""
         return {"near_plane": self.near_plane, "far_plane": self.far_plane, "eps2d": self.eps2d,
                 "antialiased": self.antialiased, "camera_model": self.camera_model}
+
+
+RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
+"""gsplat's render modes: colour, accumulated depth, expected depth, colour + either depth."""
+RASTERIZE_MODES = ("classic", "antialiased")
+"""gsplat's rasterize modes (antialiased: Mip-Splatting opacity compensation)."""
+VIEWMAT_TOL = {torch.float64: ROTATION_TOL, torch.float32: ROTATION_TOL, torch.float16: 1e-2, torch.bfloat16: 2e-2}
+"""Largest :func:`~diff4splat.quaternions.rotation_errors` accepted in viewmats, per dtype (a rotation rounded to
+the dtype passes; a scaled, sheared or mirrored one does not)."""
+
+
+def _check_shape(name: str, t: Tensor, shape: tuple) -> None:
+    """Raise ValueError naming ``name`` unless ``t`` has ``shape`` (None = any size)."""
+    if not isinstance(t, Tensor):
+        raise ValueError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
+    ok = t.dim() == len(shape) and all(s is None or s == d for s, d in zip(shape, t.shape, strict=False))
+    if not ok:
+        want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
+        raise ValueError(f"{name} must have shape {want}, got {tuple(t.shape)}")
+
+
+def validate_inputs(
+    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, viewmats: Tensor, Ks: Tensor,
+    width: int, height: int, settings: RasterSettings, *, camera_models: tuple[str, ...] = ("pinhole",),
+) -> None:
+    """Check every argument of ``rasterize``; raise one ``ValueError`` naming the first bad one.
+
+    ``means`` … ``height`` are as in :func:`diff4splat.render.rasterize`; ``settings`` holds its keywords
+    (``camera_params`` is the ray path's to check); ``camera_models`` are the camera models the calling path
+    renders: pinhole on the tile paths and gsplat, :data:`~diff4splat.cameras.lenses.RAY_CAMERA_MODELS` on the
+    ray path.
+
+    Checked, in order: shapes of means (N, 3), quats (N, 4), scales (N, 3), opacities (N,), colors
+    ((N, D), or (N, K, 3) with K ≥ (sh_degree+1)²), viewmats (C, 4, 4), Ks (C, 3, 3), backgrounds
+    (C, D); every tensor on the device of ``means`` (no path moves tensors between devices); width,
+    height, tile_size positive ints (pixels); 0 ≤ near_plane < far_plane (metres);
+    eps2d a finite number ≥ 0 (pixels²); render_mode in :data:`RENDER_MODES`, rasterize_mode in
+    :data:`RASTERIZE_MODES`, camera_model in ``camera_models``;
+    every tensor floating point and finite; at least one camera; opacities in [0, 1], scales ≥ 0 (metres),
+    Ks pinhole with focal lengths fx, fy > 0 (pixels), no skew and last row (0, 0, 1); viewmats rigid
+    (RᵀR = I within :data:`VIEWMAT_TOL`, last row (0, 0, 0, 1)). Every entry point (tile path, dense reference,
+    ray path, gsplat backend) calls this, so the same bad argument gives the same message from each.
+
+    Raises:
+        ValueError: naming the first bad argument and its value (or shape).
+    """
+    sh_degree, backgrounds, tile_size = settings.sh_degree, settings.backgrounds, settings.tile_size
+    near_plane, far_plane, eps2d = settings.near_plane, settings.far_plane, settings.eps2d
+    render_mode, rasterize_mode, camera_model = settings.render_mode, settings.rasterize_mode, settings.camera_model
+    _check_shape("means", means, (None, 3))
+    n = means.shape[0]
+    _check_shape("quats", quats, (n, 4))
+    _check_shape("scales", scales, (n, 3))
+    _check_shape("opacities", opacities, (n,))
+    if sh_degree is None:
+        _check_shape("colors", colors, (n, None))
+    else:
+        k = num_sh_bases(sh_degree)
+        _check_shape("colors", colors, (n, None, 3))
+        if colors.shape[1] < k:
+            raise ValueError(f"colors holds {colors.shape[1]} SH coefficients, sh_degree={sh_degree} needs {k}")
+    _check_shape("viewmats", viewmats, (None, 4, 4))
+    c = viewmats.shape[0]
+    if c == 0:
+        raise ValueError("viewmats holds no camera (shape (0, 4, 4)); render at least one")
+    _check_shape("Ks", Ks, (c, 3, 3))
+    if backgrounds is not None:
+        _check_shape("backgrounds", backgrounds, (c, colors.shape[-1]))
+    for name, t in (("quats", quats), ("scales", scales), ("opacities", opacities), ("colors", colors),
+                    ("viewmats", viewmats), ("Ks", Ks), ("backgrounds", backgrounds)):
+        if t is not None and t.device != means.device:
+            raise ValueError(f"{name} is on {t.device} but means on {means.device}: pass every tensor on one device")
+    check_positive_int("width", width, "pixels")
+    check_positive_int("height", height, "pixels")
+    check_positive_int("tile_size", tile_size, "pixels")
+    if not 0 <= near_plane < far_plane:
+        raise ValueError(f"need 0 <= near_plane < far_plane, got near_plane={near_plane}, far_plane={far_plane}")
+    if isinstance(eps2d, bool) or not isinstance(eps2d, (int, float)) or not 0 <= eps2d < math.inf:
+        raise ValueError(f"eps2d must be a finite number >= 0 pixels², got {eps2d!r}")
+    if render_mode not in RENDER_MODES:
+        raise ValueError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
+    if rasterize_mode not in RASTERIZE_MODES:
+        raise ValueError(f"rasterize_mode must be one of {RASTERIZE_MODES}, got {rasterize_mode!r}")
+    if camera_model not in camera_models:
+        raise ValueError(f"camera_model must be one of {camera_models} (others are not supported yet), "
+                         f"got {camera_model!r}")
+    for name, t in (("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
+                    ("colors", colors), ("viewmats", viewmats), ("Ks", Ks), ("backgrounds", backgrounds)):
+        if t is not None:
+            if not t.is_floating_point():
+                raise ValueError(f"{name} must be a floating-point tensor, got dtype {t.dtype}")
+            check_finite(name, t)
+    # the values the paths assume (each one would otherwise render, and the compositors disagree: the fused one
+    # clamps an opacity above 1 where the PyTorch one does not)
+    if n:
+        lo, hi = torch.aminmax(opacities.detach())
+        if not 0 <= float(lo) <= float(hi) <= 1:
+            raise ValueError(f"opacities must be in [0, 1], got values from {float(lo):.6g} to {float(hi):.6g}")
+        if float(scales.detach().min()) < 0:
+            raise ValueError(f"scales must be >= 0 metres, got a minimum of {float(scales.detach().min()):.6g}")
+    focal = Ks.detach()[:, [0, 1], [0, 1]]
+    if not bool((focal > 0).all()):
+        raise ValueError(f"Ks need focal lengths fx, fy > 0 pixels, got a minimum of {float(focal.min()):.6g}")
+    # the paths read fx, fy, cx, cy only (as gsplat) except the ray path, which inverts K: any other entry would
+    # make them disagree, so it must be the pinhole's 0 (no skew) and (0, 0, 1)
+    pinhole = Ks.new_tensor([[1.0, 0.0, 1.0], [0.0, 1.0, 1.0], [0.0, 0.0, 0.0]])  # 1: free entry
+    fixed = Ks.new_tensor([0.0, 0.0, 1.0])
+    if bool(((Ks.detach() * (1 - pinhole))[:, :2] != 0).any()) or bool((Ks.detach()[:, 2] != fixed).any()):
+        raise ValueError("Ks must be pinhole intrinsics [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (pixels): no skew, "
+                         "last row (0, 0, 1)")
+    # world-to-camera must be rigid: the SH view direction uses the camera centre −Rᵀt
+    ortho_err, det_err = (float(e.max()) for e in rotation_errors(viewmats[:, :3, :3]))
+    tol = VIEWMAT_TOL.get(viewmats.dtype, ROTATION_TOL)
+    bottom = viewmats.detach()[:, 3] != viewmats.new_tensor([0.0, 0.0, 0.0, 1.0])
+    if max(ortho_err, det_err) > tol or bool(bottom.any()):
+        raise ValueError(f"viewmats must be rigid world-to-camera transforms [R | t; 0 0 0 1] with R a rotation, "
+                         f"got max |RᵀR − I| {ortho_err:.3g}, |det R − 1| {det_err:.3g} (tolerance {tol:g}) or "
+                         "another last row")
+
+
+LOW_PRECISION = (torch.float16, torch.bfloat16)
+"""Input dtypes the renderer computes in float32 instead (outputs are float32 then)."""
+
+
+def compute_dtype(dtype: torch.dtype) -> torch.dtype:
+    """The dtype the renderer computes in for inputs of ``dtype``: float16/bfloat16 → float32, else itself.
+
+    Every path also runs with autocast off (:func:`diff4splat.devices.full_precision`): under
+    ``torch.autocast(dtype=bfloat16)`` the projection's matmuls would run in bfloat16 (8-bit mantissa: depth
+    errors of metres, wrong culling); gsplat's kernels likewise compute in float32 whatever the autocast state.
+    """
+    return torch.float32 if dtype in LOW_PRECISION else dtype
+
+
+def mode_backgrounds(backgrounds: Tensor | None, render_mode: str, C: int, dtype: torch.dtype) -> Tensor | None:
+    """Backgrounds (C, F) of the composited features for ``render_mode``: the colour for "RGB",
+    0 for the depth channel ("D"/"ED" → (C, 1) zeros, "RGB+D"/"RGB+ED" → colour then 0); None stays None."""
+    if backgrounds is None:
+        return None
+    bgs = backgrounds.to(dtype)
+    if render_mode in ("D", "ED"):
+        return bgs.new_zeros(C, 1)
+    if render_mode != "RGB":
+        return torch.cat([bgs, bgs.new_zeros(C, 1)], dim=-1)
+    return bgs
+
+
+def expected_depth(render_colors: Tensor, render_alphas: Tensor, render_mode: str) -> Tensor:
+    """For "ED"/"RGB+ED", divide the accumulated depth (last channel) by max(alpha, 1e-10), so it is
+    0 where alpha is 0; other modes are returned unchanged. (C, H, W, F), (C, H, W, 1) → (C, H, W, F)."""
+    if render_mode not in ("ED", "RGB+ED"):
+        return render_colors
+    return torch.cat([render_colors[..., :-1], render_colors[..., -1:] / render_alphas.clamp(min=1e-10)], dim=-1)

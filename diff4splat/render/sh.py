@@ -4,7 +4,8 @@ The basis and constants are those of the INRIA reference implementation (``sh_ut
 ``forward.cu::computeColorFromSH``, Kerbl et al. 2023 §5), i.e. the orthonormal real SH of
 Sloan, "Stupid Spherical Harmonics (SH) Tricks" (2008), App. A2, with the Condon–Shortley phase,
 evaluated at a unit direction (x, y, z) and ordered l = 0..3, m = −l..l.
-Colour = max(Σ_k c_k·Y_k(dir) + 0.5, 0) (docs/DESIGN.md "Colours").
+Colour = max(Σ_k c_k·Y_k(dir) + 0.5, 0) (docs/DESIGN.md "Colours"); :func:`color_features` gives every
+render path its per-camera colours.
 """
 from __future__ import annotations
 
@@ -14,10 +15,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from diff4splat.cameras.path import camera_centers
 from diff4splat.gaussians import SH_C0
 
 __all__ = ["SH_C0", "SH_C1", "SH_C2", "SH_C3", "num_sh_bases", "sh_basis", "spherical_harmonics", "sh_to_color",
-           "sh_rotation", "rotate_sh"]
+           "color_features", "sh_rotation", "rotate_sh"]
 
 SH_C1 = 0.4886025119029199  # sqrt(3/(4π))
 SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
@@ -111,6 +113,23 @@ def spherical_harmonics(degrees_to_use: int, dirs: Tensor, coeffs: Tensor) -> Te
 def sh_to_color(sh_values: Tensor) -> Tensor:
     """INRIA colour from an SH value: max(value + 0.5, 0). (...) → (...)."""
     return torch.clamp_min(sh_values + 0.5, 0.0)
+
+
+def color_features(
+    colors: Tensor,  # (N, D) or (N, K, 3) SH
+    means: Tensor,  # (N, 3)
+    viewmats: Tensor,  # (C, 4, 4)
+    sh_degree: int | None,
+) -> Tensor:
+    """Per-camera colour features (C, N, D): ``colors`` as given, or with ``sh_degree`` the INRIA
+    SH colour max(SH(dir) + 0.5, 0) along dir = mean − camera centre (centre −Rᵀt, gsplat
+    ``rasterization``)."""
+    C, N = viewmats.shape[0], means.shape[0]
+    if sh_degree is None:
+        return colors[None].expand(C, N, colors.shape[-1])
+    campos = camera_centers(viewmats)  # (C, 3)
+    dirs = means[None] - campos[:, None]  # (C, N, 3)
+    return sh_to_color(spherical_harmonics(sh_degree, dirs, colors[None]))
 
 
 _ROTATION_SAMPLES = 64

@@ -1,4 +1,5 @@
-"""The pure-PyTorch tile compositor: the reference and fallback of the fused one (:mod:`.fused`).
+"""The pure-PyTorch compositors: the tile compositor, reference and fallback of the fused one (:mod:`.fused`),
+and the dense brute-force one (:func:`composite_dense`), the oracle both are tested against.
 
 Organised like gsplat's CUDA pipeline (Kerbl et al. 2023 §6): per camera the visible Gaussians are sorted
 once by depth, binned into tile_size × tile_size tiles (each tile's list stays depth-sorted), and tiles are
@@ -17,16 +18,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from diff4splat.constants import ALPHA_MAX, LOG_T_MIN
+from diff4splat.constants import ALPHA_MAX, LOG_T_MIN, T_MIN
 from diff4splat.render.projection import splat_alpha, splat_sigma, support_extent
 
-__all__ = ["tile_boxes", "bin_tiles", "composite_tiles", "pair_budget", "PAIR_BUDGET", "PAIR_BUDGET_DEVICE",
-           "CHUNK_PIXELS", "CHUNK_PIXELS_DEVICE"]
+__all__ = ["tile_boxes", "bin_tiles", "composite_tiles", "composite_dense", "keep_in_graph", "pair_budget",
+           "PAIR_BUDGET", "PAIR_BUDGET_DEVICE", "CHUNK_PIXELS", "CHUNK_PIXELS_DEVICE"]
 
 PAIR_BUDGET = 1 << 18
 """Most (pixel, Gaussian) pairs composited at once on the CPU (bounds the transient memory of a chunk). 2¹⁸
-keeps a chunk's per-pair arrays (~1 MiB each) cache-sized: at 256²/65,536 it was ~30 % faster, forward and
-backward, than 2²¹ on the benchmark machine (benchmarks/render_speed.py)."""
+keeps a chunk's per-pair arrays (~1 MiB each) cache-sized."""
 PAIR_BUDGET_DEVICE = 1 << 22
 """The same bound on a non-CPU device (CUDA). There the cost of a chunk is its ~40 kernel launches and the
 host synchronisations of the chunk loop (``int(…)`` of sizes), not cache misses, so chunks are 16× larger:
@@ -212,7 +212,7 @@ def composite_tiles(
     *,
     budget: int | None = None,
 ) -> tuple[Tensor, Tensor, dict]:
-    """Composite one camera tile by tile; same result as :func:`reference.composite_dense`.
+    """Composite one camera tile by tile; same result as :func:`composite_dense`.
 
     Tiles (from :func:`bin_tiles`) are taken in raster order in chunks of consecutive tiles holding
     at most ``budget`` pairs and :data:`CHUNK_PIXELS` pixels (:data:`CHUNK_PIXELS_DEVICE` off the CPU). For
@@ -223,7 +223,7 @@ def composite_tiles(
 
     Args:
         means2d, conics, opacities, depths, feats, covars2d: the M visible Gaussians of one camera (pixels,
-            1/pixels², (0, 1), metres, any features, pixels²), as :data:`diff4splat.render.stages.Compositor`.
+            1/pixels², (0, 1), metres, any features, pixels²), as :data:`diff4splat.render.rasterize.Compositor`.
         background: (F,) behind the Gaussians, or None (0).
         width, height, tile_size: pixels.
         budget: most pairs per chunk; default :func:`pair_budget` of the device (:data:`PAIR_BUDGET` on the
@@ -291,3 +291,80 @@ def composite_tiles(
     del info["box"]
     info["n_pairs"] = n_pairs_total
     return out, acc_img, info
+
+
+def composite_dense(
+    means2d: Tensor,  # (M, 2)
+    conics: Tensor,  # (M, 3)
+    opacities: Tensor,  # (M,)
+    depths: Tensor,  # (M,)
+    feats: Tensor,  # (M, F)
+    covars2d: Tensor,  # (M, 3), unused: every pixel is evaluated
+    background: Tensor | None,  # (F,)
+    width: int,
+    height: int,
+    tile_size: int,  # unused: no tiles
+) -> tuple[Tensor, Tensor, dict]:
+    """Composite one camera by brute force: all pixels × all Gaussians, sequential in depth.
+
+    Gaussians are sorted by depth (stable, ties keep input order). For each pixel, T = 1; for each
+    Gaussian front to back with alpha from :func:`splat_alpha` (0 = skipped): next_T = T·(1 − alpha);
+    if next_T < 1e-4 the pixel stops and this Gaussian is not included; otherwise the pixel gains
+    alpha·T·feat and T = next_T. Finally colour += T·background, alpha = 1 − T (gsplat
+    ``rasterize_to_pixels_fwd``; 3DGS eq. 3).
+
+    The loop runs over the depth-sorted Gaussians (O(H·W·M) memory: the brute-force oracle, for tests and tiny
+    images); every tensor is made on the device of ``means2d``, so it runs on any device.
+
+    Returns:
+        colors: (H·W, F), alphas: (H·W,), info {} (no tiles).
+    """
+    dtype, device = means2d.dtype, means2d.device
+    order = torch.argsort(depths, stable=True)
+    ys, xs = torch.meshgrid(
+        torch.arange(height, dtype=dtype, device=device) + 0.5, torch.arange(width, dtype=dtype, device=device) + 0.5,
+        indexing="ij",
+    )
+    px, py = xs.reshape(-1, 1), ys.reshape(-1, 1)  # (P, 1)
+    m2, cn, op, ft = means2d[order], conics[order], opacities[order], feats[order]
+    alphas = splat_alpha(px - m2[None, :, 0], py - m2[None, :, 1], cn[None], op[None])  # (P, M)
+    n_pix = px.shape[0]
+    T = torch.ones(n_pix, dtype=dtype, device=device)
+    done = torch.zeros(n_pix, dtype=torch.bool, device=device)
+    out = torch.zeros(n_pix, feats.shape[-1], dtype=dtype, device=device)
+    for i in range(alphas.shape[1]):
+        a = alphas[:, i]
+        next_T = T * (1.0 - a)
+        live = ~done & (a > 0)
+        stop = live & (next_T < T_MIN)
+        take = live & ~stop
+        done = done | stop
+        w = torch.where(take, a * T, torch.zeros_like(a))
+        out = out + w[:, None] * ft[i]
+        T = torch.where(take, next_T, T)
+    if background is not None:
+        out = out + T[:, None] * background
+    return out, 1.0 - T, {}
+
+
+def keep_in_graph(out: Tensor, *inputs: Tensor | None) -> Tensor:
+    """``out`` itself, or ``out`` attached to the autograd graph of ``inputs`` with zero gradient when it is not.
+
+    A view in which no Gaussian is visible composites nothing, so the PyTorch compositors' image would be a
+    detached zero/background tensor and ``loss.backward()`` would raise; the fused path and gsplat keep their
+    outputs attached. The anchor is an empty slice's sum (exactly 0, and 0 even beside inf), so ``out``'s values
+    are unchanged.
+
+    Args:
+        out: a rendered output, any shape.
+        inputs: the tensors it was computed from, any shapes (None entries skipped).
+
+    Returns:
+        ``out``'s values and shape, requiring grad when any input does and grad mode is on.
+    """
+    if out.requires_grad or not torch.is_grad_enabled():
+        return out
+    sources = [t for t in inputs if t is not None and t.requires_grad]
+    if not sources:
+        return out
+    return out + sum(t.reshape(-1)[:0].sum() for t in sources)

@@ -32,7 +32,7 @@ from ..cameras.path import CameraPath
 from ..gaussians import Gaussians
 from ..io.ply import ply_bytes
 from ..io.video import DEFAULT_FPS
-from ..render.defaults import BACKGROUND, EPS2D, NEAR_PLANE
+from ..render.settings import BACKGROUND, EPS2D, NEAR_PLANE
 from ..scene import DynamicGaussians
 
 __all__ = ["VIEWER_BUDGET_BYTES", "FLOAT16_MAX_PX", "NEAR", "ViewerPayload", "keyframe_times", "time_range",

@@ -16,7 +16,7 @@ from importlib import resources
 from ..cameras.path import CameraPath
 from ..io.atomic import atomic_output_path
 from ..io.video import DEFAULT_FPS
-from ..render.defaults import BACKGROUND, EPS2D
+from ..render.settings import BACKGROUND, EPS2D
 from ..scene import DynamicGaussians
 from .data import VIEWER_BUDGET_BYTES, ViewerPayload, viewer_payload
 
