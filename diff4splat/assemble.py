@@ -65,7 +65,7 @@ must tile their frame at any output resolution, where the scene's dilation (0.1 
 widens them: the generated frames are at the model resolution (64²), the output at 256² or more. Without the
 dilation, σ = 0.7 leaves alpha ≥ 0.98 at the corner between four pixels (0.995·e^(−0.25/σ²) = 0.60 from each of the
 four); σ = 0.5 left alpha 0.87 there, a lattice of holes through which what lies behind showed at 4×
-magnification (tests/test_assemble.py). A neighbour in front reaches alpha 0.77 at the shared edge and 0.36 at the
+magnification. A neighbour in front reaches alpha 0.77 at the shared edge and 0.36 at the
 pixel's centre (a slight blur; the photo layer keeps its sharp σ = 0.25 px with backing disks and solved colours)."""
 
 
@@ -244,8 +244,8 @@ def pixel_footprint(
     :data:`GENERATED_SCALE_PX` pixels there (:func:`diff4splat.photo.pixel_disks` at its own z-depth), opacity
     :data:`diff4splat.photo.PHOTO_OPACITY`; means and colours unchanged.
 
-    Rendered alone at its own camera, a source frame's disks then reproduce its colours edge to edge
-    (tests/test_assemble.py), as the photo layer reproduces the photograph: what the generated frame drew is what
+    Rendered alone at its own camera, a source frame's disks then reproduce its colours edge to edge,
+    as the photo layer reproduces the photograph: what the generated frame drew is what
     its view of the scene shows where nothing nearer covers it. The LDRM's opacities, rotations and scales are
     not used (a small LDRM learns low opacities that leave a generated frame's disocclusions mostly to the
     backdrop: base model card).

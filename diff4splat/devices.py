@@ -3,8 +3,8 @@
 The rule (docs/DESIGN.md, "Devices"):
 
 - Every tensor is created on the device of the inputs it belongs with (``device=x.device``, ``x.new_*``,
-  ``torch.*_like``). A factory call without ``device=`` says why on its line (``# device: …``); the suite
-  checks this (tests/test_devices.py).
+  ``torch.*_like``). A factory call without ``device=`` says why on its line (``# device: …``); the test suite
+  checks this.
 - numpy and the numba kernels see CPU tensors only: a ``.numpy()`` follows a ``.cpu()`` in the same
   expression, or the line says why it is already on the CPU (``# device: …``).
 - Random draws use a CPU ``torch.Generator`` and are moved afterwards, so a seed gives the same numbers on

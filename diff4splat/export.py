@@ -37,8 +37,7 @@ Leaving parts out (CONTRIBUTING, "leave out what a scene does not need"):
 - With text, ``dit.onnx`` is the text-conditioned graph and also serves the empty prompt: one zero
   token with an all-False mask gives *exactly* zero cross-attention (``CrossAttention`` multiplies
   the output of an all-masked row by 0, and x + 0 = x in IEEE arithmetic), so it equals
-  ``VideoDiT(text=None)`` bit for bit in PyTorch (tests/test_export.py checks this, and the ONNX graph
-  against the text=None PyTorch call). One DiT file serves both, so its weights are stored once.
+  ``VideoDiT(text=None)`` bit for bit in PyTorch (and the ONNX graph equals the text=None PyTorch call). One DiT file serves both, so its weights are stored once.
 - ``deformation=False`` (``--static``): ``ldrm.onnx`` has no ``times`` input and no deformation
   outputs (the deformation network is not in the graph); such an export only makes static scenes.
 - The image branch is not optional: an LDRM trained with one needs the photograph, so its graph
@@ -83,8 +82,7 @@ MANIFEST_FORMAT = "diff4splat-onnx/2"
 MIN_OPSET = 18
 """The dynamo exporter emits opset ≥ 18 (LayerNorm, GroupNorm-free decompositions, ``ReduceMean`` axes inputs)."""
 MAX_OPSET = 25
-"""The newest opset whose graphs pass ``onnx.checker`` and load in onnxruntime (tests/test_export.py exports one at
-it). onnx 1.23 names opsets up to 28, but the exporter's graphs fail its checker from 26 on (no Gelu/Attention
+"""The newest opset whose graphs pass ``onnx.checker`` and load in onnxruntime. onnx 1.23 names opsets up to 28, but the exporter's graphs fail its checker from 26 on (no Gelu/Attention
 registered at the version the exporter's converter leaves them), after the whole export had run."""
 EXTERNAL_DATA_BYTES = 2_000_000_000
 """Graphs whose weights reach 2 GB store them in a ``<file>.onnx.data`` beside the graph: a single
@@ -246,8 +244,7 @@ def _graphs(model: Diff4SplatModel, text: bool, deformation: bool) -> list[_Grap
                "image": {0: batch, 2: (s * pl) * hr, 3: (s * pl) * wr} if image else None}
     names = tuple(k for k, a in zip(("latents", "plucker", "times", "image"), ldrm_args, strict=True) if a is not None)
     # The image branch writes frame 0 with a torch.where over the frame axis (models/ldrm.py), not a cat with
-    # an (n − 1)-frame slice, which would add a guard n − 1 ≠ 1 leaving out n = 2 (5 video frames);
-    # tests/test_export.py checks the graph against PyTorch at n = 1, 2 and 3.
+    # an (n − 1)-frame slice, which would add a guard n − 1 ≠ 1 leaving out n = 2 (5 video frames).
     graphs.append(_Graph("ldrm", _LDRM(model), ldrm_args, names, LDRM_OUTPUTS if deformation else STATIC_LDRM_OUTPUTS,
                          ldrm_ds))
     return graphs

@@ -15,9 +15,8 @@ text encoder's 9.5 GB as 13.2 GB, the DiT's 23.8 GB as 27.1 GB).
 Prefetch (``prefetch=``, CUDA only): the host-to-device copy of a network runs on a side stream, block by block in
 the order the blocks run, and each block waits only for its own weights (a forward pre-hook, removed when the
 visit's first call returns), so that call computes block i while blocks i + 1 … are still on their way (diffusers'
-group offloading with ``use_stream``, but once per visit rather than at every call). The paper DiT's 23.8 GB take
-about 0.4 s to copy and one sampling step about 0.5 s on an H100 (docs/benchmarks.md, "GPU"), so the copy can hide
-behind the first step. The values are those of the plain move: only the order of the copies and the kernels
+group offloading with ``use_stream``, but once per visit rather than at every call). A network's copy takes about as
+long as one sampling step on an H100 (docs/benchmarks.md, "GPU"), so the copy can hide behind the first step. The values are those of the plain move: only the order of the copies and the kernels
 changes.
 """
 from __future__ import annotations

@@ -3,7 +3,7 @@
 Single-image 3D systems that look right (Splatter Image, Flash3D, 3D photos) keep the observed pixels and predict
 geometry for them; generation is for what the photograph cannot show. :func:`photo_layer` places one Gaussian per
 pixel of the photograph on its camera ray at a given depth, so that rendering the layer alone at the input camera
-reproduces the photograph (≥ 40 dB, tests/test_photo.py), and a camera that moves a little sees the photograph
+reproduces the photograph (≥ 40 dB PSNR), and a camera that moves a little sees the photograph
 reprojected by that depth.
 
 Two layers of Gaussians, because two needs conflict under a 3DGS renderer (eps2d screen-space dilation,

@@ -166,8 +166,11 @@ def duplicate_mask(
         earlier = (source < s) & ~dup  # (M,)
         if cand.numel() == 0 or not bool(earlier.any()):
             continue
-        g = scene.at(float(times[s]), gate=0.0)  # all M Gaussians at times[s] (gate 0 drops none)
-        covered, z, d = _surface_lookup(g.select(earlier), g.means[cand], viewmats[s], Ks[s], width, height, min_alpha)
+        need = earlier.clone()
+        need[cand] = True
+        g = scene.at(float(times[s]), gate=0.0, index=need)  # the earlier and frame s's Gaussians at times[s]
+        covered, z, d = _surface_lookup(g.select(earlier[need]), g.means[source[need] == s], viewmats[s], Ks[s],
+                                        width, height, min_alpha)
         dup[cand[covered & ((z - d).abs() <= depth_tolerance * d)]] = True
     return dup
 
@@ -235,18 +238,18 @@ def occluder_mask(
     cand = torch.nonzero(source > 0).squeeze(1)
     if cand.numel() == 0 or not bool((source == 0).any()):
         return out
-    g = scene.at(float(time), gate=0.0)
     if surface_depth is not None:
         if tuple(surface_depth.shape) != (height, width):
             raise ValueError(f"surface_depth must have shape ({height}, {width}), got {tuple(surface_depth.shape)}")
         depth = surface_depth.to(means)
+        c = scene.at(float(time), gate=0.0, index=cand)  # the candidates only: the surface is given
     else:
-        surface = g.select(source == 0)
+        g = scene.at(float(time), gate=0.0)
+        surface, c = g.select(source == 0), g.select(cand)
         rendered, alpha, _ = rasterize(surface.means, surface.quats, surface.scales, surface.opacities,
                                        surface.opacities[:, None], viewmat[None], K[None], width, height,
                                        render_mode="ED")
         depth = torch.where(alpha[0, ..., 0] >= min_alpha, rendered[0, ..., 0], 0.0)  # (H, W), 0: uncovered
-    c = g.select(cand)
     covers = _covers(c.means, c.quats, c.scales, c.opacities, viewmat, K, width, height, depth, depth_tolerance)
     out[cand[covers]] = True
     return out
@@ -316,10 +319,9 @@ def slide_behind(
     found = torch.zeros(index.shape[0], dtype=torch.bool, device=means.device)
     lam = torch.ones(index.shape[0], dtype=means.dtype, device=means.device)
     with torch.no_grad():
-        # the whole scene at the photo's time (M rows), not a select of the P Gaussians (K·P deformation rows)
-        g = scene.at(float(time), gate=0.0)
+        g = scene.at(float(time), gate=0.0, index=index)  # the P Gaussians at the photo's time
         mu = means[index]
-        offset, quats, scales, opacities = g.means[index] - mu, g.quats[index], g.scales[index], g.opacities[index]
+        offset, quats, scales, opacities = g.means - mu, g.quats, g.scales, g.opacities
         for f in factors:
             i = torch.nonzero(~found).squeeze(1)
             if i.numel() == 0:

@@ -184,7 +184,7 @@ class DynamicGaussians:
         """M, the number of canonical Gaussians."""
         return self.canonical.num_gaussians
 
-    def deformation_at(self, t: float) -> tuple[Tensor, Tensor, Tensor]:
+    def deformation_at(self, t: float, index: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
         """Interpolated deformation at time ``t``.
 
         Linear interpolation between the two nearest key times (Δq by shorter-arc nlerp); times before
@@ -192,9 +192,11 @@ class DynamicGaussians:
 
         Args:
             t: time in [0, 1].
+            index: (K,) indices or (M,) bool mask of the Gaussians wanted; None: all M.
 
         Returns:
-            d_means (M, 3) metres, d_quats (M, 4) unit wxyz, d_scales (M, 3) log-scale offsets.
+            d_means (K, 3) metres, d_quats (K, 4) unit wxyz, d_scales (K, 3) log-scale offsets (K = M without
+            ``index``).
 
         Raises:
             ValueError: a static scene, or t outside [0, 1] / not finite.
@@ -211,10 +213,12 @@ class DynamicGaussians:
             k = int(torch.searchsorted(times, torch.tensor(t, dtype=times.dtype, device=times.device), right=True)) - 1
             w = (t - float(times[k])) / float(times[k + 1] - times[k])
         k1 = min(k + 1, times.shape[0] - 1)
-        lerp = lambda a: (1 - w) * a[k] + w * a[k1]  # noqa: E731
-        return lerp(self.d_means), quat_nlerp(self.d_quats[k], self.d_quats[k1], w), lerp(self.d_scales)
+        key = (lambda a, j: a[j]) if index is None else (lambda a, j: a[j][index])  # noqa: E731
+        lerp = lambda a: (1 - w) * key(a, k) + w * key(a, k1)  # noqa: E731
+        return (lerp(self.d_means), quat_nlerp(key(self.d_quats, k), key(self.d_quats, k1), w),
+                lerp(self.d_scales))
 
-    def at(self, t: float, gate: float = ALPHA_MIN) -> Gaussians:
+    def at(self, t: float, gate: float = ALPHA_MIN, index: Tensor | None = None) -> Gaussians:
         """The Gaussians at time ``t`` ∈ [0, 1] (the canonical ones for a static scene).
 
         With temporal support, opacities are multiplied by p(t) (:meth:`temporal_opacity`) and only
@@ -224,6 +228,9 @@ class DynamicGaussians:
         Args:
             t: time in [0, 1].
             gate: temporal gate (see :meth:`active_indices`); ignored without temporal support.
+            index: (K,) ascending int64 indices or (M,) bool mask: only these Gaussians (those of them that pass
+                the gate), in index order — what ``at(t, gate)`` then a selection returns, without evaluating the
+                rest. None: all M.
 
         The result is not validated as a whole again: the means are sums of finite values and the rotations unit
         quaternions of non-zero ones (:func:`compose_deformation`); only the scales s·exp(Δs), which can overflow
@@ -233,17 +240,26 @@ class DynamicGaussians:
             ValueError: t outside [0, 1] or not finite, gate < 0; a deformed scale that is not finite or not > 0.
         """
         t = _check_time(t)
-        idx = self.active_indices(t, gate)
-        scene = self if idx is None else self.select(idx)
-        g = scene.canonical
-        opacities = g.opacities if idx is None else g.opacities * scene.temporal_opacity(t)
+        if not gate >= 0:
+            raise ValueError(f"gate must be >= 0, got {gate}")
+        p = self.temporal_opacity(t) if self.has_temporal else None  # (M,)
+        idx = None if index is None else torch.nonzero(index).squeeze(1) if index.dtype == torch.bool else index
+        if p is not None and gate > 0:  # the gate of active_indices, on the Gaussians of ``index`` only
+            o = self.canonical.opacities.detach() if idx is None else self.canonical.opacities.detach()[idx]
+            keep = o * (p if idx is None else p[idx]).detach() >= gate
+            idx = torch.nonzero(keep).squeeze(1) if idx is None else idx[keep]
+        g = self.canonical if idx is None else self.canonical.select(idx)
+        if p is not None:
+            g = _unchecked(Gaussians, {"means": g.means, "quats": g.quats, "scales": g.scales, "sh": g.sh,
+                                       "opacities": g.opacities * (p if idx is None else p[idx])})  # o·p ∈ [0, 1]
         if self.is_static:
-            return g if idx is None else Gaussians(g.means, g.quats, g.scales, opacities, g.sh)
-        means, quats, scales = compose_deformation(g.means, g.quats, g.scales, *scene.deformation_at(t))
+            return g
+        # the two key times around t, gathered for the active Gaussians only (not every key time of a select)
+        means, quats, scales = compose_deformation(g.means, g.quats, g.scales, *self.deformation_at(t, idx))
         check_finite("scales", scales)
         if scales.numel() and not bool((scales > 0).all()):
             raise ValueError(f"deformed scales must be > 0 metres at t = {t} (a log-scale offset underflows)")
-        return _unchecked(Gaussians, {"means": means, "quats": quats, "scales": scales, "opacities": opacities,
+        return _unchecked(Gaussians, {"means": means, "quats": quats, "scales": scales, "opacities": g.opacities,
                                       "sh": g.sh})
 
     def select(self, index: Tensor) -> DynamicGaussians:

@@ -341,11 +341,9 @@ def random_init_device(config: Diff4SplatConfig, device: str | torch.device, dty
                        ) -> torch.device:
     """Where :meth:`Diff4SplatModel.random` (``host=True``) should initialise a model that runs on ``device``:
     ``device`` itself when it is a CUDA GPU with room for the largest network plus :data:`INIT_HEADROOM_BYTES`
-    (free memory, ``torch.cuda.mem_get_info``), else the CPU. On an H100 the paper size (16.8 B parameters) loaded in
-    45.6 s, copying to host memory and pinning included (docs/benchmarks.md, the command table); the CPU's one serial
-    generator takes minutes for the fill alone: 4.6 s per paper DiT block of 369 M parameters (one AMD EPYC
-    core, bfloat16: each linear layer is filled twice, by its default initialisation and then by DiT's), about
-    150 s for the DiT's 32 blocks before the text encoder's 4.8 B parameters.
+    (free memory, ``torch.cuda.mem_get_info``), else the CPU, whose one serial generator fills a paper-size model
+    many times slower (each linear layer is filled twice, by its default initialisation and then by DiT's; times in
+    docs/benchmarks.md, the command table).
 
     Raises:
         nothing: a device whose memory cannot be queried (no CUDA runtime) gives the CPU.

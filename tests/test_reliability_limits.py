@@ -478,3 +478,15 @@ def test_readme_limits_table_names_every_limit_and_its_default():
     for lim in LIMITS.values():
         row = next(line for line in table.splitlines() if f"`{lim.env}`" in line)
         assert f"{lim.default:_}".replace("_", " ") in row or str(lim.default) in row, row
+
+
+@pytest.mark.parametrize("extra, text, knob", [
+    (("--frames", "401"), "401 frames at 64×64: estimated peak memory", "lower --frames"),
+    (("--photo", EXAMPLE_IMAGE, "--resolution", "2048"), "--photo at ", "lower --resolution")])
+def test_evaluate_checks_its_memory_before_any_clip_loads(tmp_path, capsys, monkeypatch, extra, text, knob):
+    """issue 61: ``evaluate`` generates a scene per clip (and one for ``--photo`` at ``--resolution``); each
+    estimate is checked against the process's memory before the clips load (no dataset is given: loading would
+    fail on the empty folder with another message)."""
+    monkeypatch.setenv("DIFF4SPLAT_MAX_MEMORY_BYTES", str(2 << 30))
+    code, lines = _cli(capsys, "evaluate", "--random", "--config", "tiny", "--data", tmp_path, *extra)
+    _one_line(code, lines, text, "GiB exceeds the limit of 2.0 GiB", knob, "DIFF4SPLAT_MAX_MEMORY_BYTES")

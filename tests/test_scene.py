@@ -85,6 +85,36 @@ def test_select_keeps_deformation_aligned():
     torch.testing.assert_close(sub.at(1.0).means, scene.at(1.0).means[mask])
 
 
+@pytest.mark.parametrize("temporal", [False, True])
+@pytest.mark.parametrize("gate", [0.0, 0.2])
+@pytest.mark.parametrize("static", [False, True])
+def test_at_of_an_index_is_the_selection_of_at(temporal, gate, static):
+    """``at(t, gate, index)`` evaluates only the Gaussians of ``index`` (indices or mask): the same values as the
+    subset's own ``at`` (select first, then evaluate), gated the same way."""
+    m, k = 40, 5
+    g = _gaussians(m, seed=3)
+    gen = torch.Generator().manual_seed(4)
+    times = torch.linspace(0, 1, k, dtype=torch.float64)
+    d = {} if static else {"times": times, "d_means": torch.randn(k, m, 3, generator=gen, dtype=torch.float64),
+                           "d_quats": torch.randn(k, m, 4, generator=gen, dtype=torch.float64),
+                           "d_scales": 0.1 * torch.randn(k, m, 3, generator=gen, dtype=torch.float64)}
+    if temporal:
+        d.update(t_means=torch.rand(m, generator=gen, dtype=torch.float64),
+                 t_scales=0.05 + 0.3 * torch.rand(m, generator=gen, dtype=torch.float64))
+    scene = DynamicGaussians(g, **d)
+    mask = torch.rand(m, generator=gen) < 0.5
+    for t in (0.0, 0.37, 0.5, 1.0):
+        want = scene.select(mask).at(t, gate)
+        for index in (mask, torch.nonzero(mask).squeeze(1)):
+            got = scene.at(t, gate, index=index)
+            for name in ("means", "quats", "scales", "opacities", "sh"):
+                torch.testing.assert_close(getattr(got, name), getattr(want, name))
+        if temporal and gate > 0:
+            assert 0 < want.num_gaussians < int(mask.sum())  # the gate dropped some of the selection, not all
+    with pytest.raises(ValueError, match="gate must be >= 0"):
+        scene.at(0.5, -1.0, index=mask)
+
+
 def test_identity_deformation_is_dropped():
     g = _gaussians(4)
     times = torch.tensor([0.0, 1.0], dtype=torch.float64)

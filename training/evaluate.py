@@ -329,7 +329,7 @@ def aggregate(evals: list[ClipEvaluation]) -> dict[str, float]:
 def evaluate_all(pipe: Diff4SplatPipeline, clips: list[dict], *, progress: bool = False, **kw
                  ) -> list[ClipEvaluation]:
     """:func:`evaluate_clip` of every clip (keyword arguments passed on); ``progress``: a tqdm bar over the clips
-    on stderr (an evaluation of 120 clips takes ~25 min on a 2-core CPU)."""
+    on stderr."""
     return [evaluate_clip(pipe, c, **kw) for c in tqdm(clips, desc="evaluate", unit="clip", disable=not progress,
                                                         dynamic_ncols=True)]
 

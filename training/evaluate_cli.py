@@ -22,7 +22,7 @@ from diff4splat.checks import check_positive_int
 from diff4splat.devices import AUTO, DEVICE_HELP, resolve_device
 from diff4splat.io.image import read_image
 from diff4splat.io.inputs import check_input_file
-from diff4splat.limits import check_limit
+from diff4splat.limits import check_limit, check_memory
 from diff4splat.pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, load_model
 from models.bundle import DEFAULT_CONFIG
 
@@ -172,6 +172,8 @@ def run(args) -> int:
     Raises:
         ValueError: ``--device`` naming a device this machine does not have, a bad argument or output file
             (:func:`_check_args`), all checked before any model loads; no clips in ``--data``.
+        LimitError: the generation of a clip, or of the ``--photo`` scene at ``--resolution``, would need more
+            memory than the process may use (:func:`diff4splat.limits.check_memory`), checked before any clip loads.
     """
     device = resolve_device(args.device, "--device")  # before any model is loaded
     outputs = _check_args(args)  # refuse before the evaluation runs, not after
@@ -180,7 +182,14 @@ def run(args) -> int:
         model, source = load_model(args.checkpoint, args.config, seed=args.seed, untrained=args.random)
     pipe = Diff4SplatPipeline(model, device=device)
     cfg = pipe.config
-    clips = _held_out_clips(args.data, cfg.height, cfg.width, args.frames or cfg.num_frames, args.limit)
+    frames = args.frames or cfg.num_frames
+    check_memory(pipe.memory_estimate(cfg.width, cfg.height, frames), f"{frames} frames at {cfg.width}×{cfg.height}",
+                 "--frames")
+    if args.photo is not None:
+        width, height = pipe.output_size(args.resolution)
+        check_memory(pipe.memory_estimate(width, height, cfg.num_frames),
+                     f"--photo at {width}×{height}, {cfg.num_frames} frames", "--resolution")
+    clips = _held_out_clips(args.data, cfg.height, cfg.width, frames, args.limit)
     if not clips:
         raise ValueError(f"--data: no clips in {args.data}")
     evals = evaluate_all(pipe, clips, steps=args.steps, progress=not args.quiet)

@@ -7,8 +7,8 @@ Sources of the configurations (each file's ``source`` says which for every compo
 them, ``scripts/convert_wan_to_diffusers.py`` (``get_transformer_config("Wan2.2-TI2V-5B")``,
 ``vae22_diffusers_config``, the UniPC scheduler with ``flow_shift`` 5.0, ``google/umt5-xxl``) and
 ``scripts/convert_cogvideox_to_diffusers.py`` (``--num_layers 42 --num_attention_heads 48 --i2v``, VAE
-``scaling_factor`` 0.7, ``snr_shift_scale`` 1.0, ``google/t5-v1_1-xxl``), github.com/huggingface/diffusers at
-commit 58eb52c0803ea9af3abec60841c2a093bdf1f951.
+``scaling_factor`` 0.7, ``snr_shift_scale`` 1.0, ``google/t5-v1_1-xxl``) of github.com/huggingface/diffusers
+(the revision read: docs/DESIGN.md, "Backbones").
 
 :func:`parameter_counts` builds the backbone the way :class:`models.backbones.model.BackboneModel` does — the
 :class:`~models.backbones.base.Backbone` subclass of the folder's pipeline (which checks the configuration: channels,
