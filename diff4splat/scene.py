@@ -203,7 +203,14 @@ class DynamicGaussians:
         """
         if self.is_static:
             raise ValueError("a static scene has no deformation")
-        t = _check_time(t)
+        k, k1, w = self._keys(_check_time(t))
+        key = (lambda a, j: a[j]) if index is None else (lambda a, j: a[j][index])  # noqa: E731
+        lerp = lambda a: (1 - w) * key(a, k) + w * key(a, k1)  # noqa: E731
+        return (lerp(self.d_means), quat_nlerp(key(self.d_quats, k), key(self.d_quats, k1), w),
+                lerp(self.d_scales))
+
+    def _keys(self, t: float) -> tuple[int, int, float]:
+        """(k, k1, w): the key times around ``t`` and the weight of k1 (t clamped to the key range)."""
         times = self.times
         if t <= float(times[0]) or times.shape[0] == 1:
             k, w = 0, 0.0
@@ -212,11 +219,7 @@ class DynamicGaussians:
         else:
             k = int(torch.searchsorted(times, torch.tensor(t, dtype=times.dtype, device=times.device), right=True)) - 1
             w = (t - float(times[k])) / float(times[k + 1] - times[k])
-        k1 = min(k + 1, times.shape[0] - 1)
-        key = (lambda a, j: a[j]) if index is None else (lambda a, j: a[j][index])  # noqa: E731
-        lerp = lambda a: (1 - w) * key(a, k) + w * key(a, k1)  # noqa: E731
-        return (lerp(self.d_means), quat_nlerp(key(self.d_quats, k), key(self.d_quats, k1), w),
-                lerp(self.d_scales))
+        return k, min(k + 1, times.shape[0] - 1), w
 
     def at(self, t: float, gate: float = ALPHA_MIN, index: Tensor | None = None) -> Gaussians:
         """The Gaussians at time ``t`` ∈ [0, 1] (the canonical ones for a static scene).
@@ -248,6 +251,14 @@ class DynamicGaussians:
             o = self.canonical.opacities.detach() if idx is None else self.canonical.opacities.detach()[idx]
             keep = o * (p if idx is None else p[idx]).detach() >= gate
             idx = torch.nonzero(keep).squeeze(1) if idx is None else idx[keep]
+        fused = None if self.is_static else self._at_fused(t, idx)
+        if fused is not None:
+            c = self.canonical
+            opacities, sh = (c.opacities, c.sh) if idx is None else (c.opacities[idx], c.sh[idx])
+            if p is not None:
+                opacities = opacities * (p if idx is None else p[idx])
+            return _unchecked(Gaussians, {"means": fused[0], "quats": fused[1], "scales": fused[2],
+                                          "opacities": opacities, "sh": sh})
         g = self.canonical if idx is None else self.canonical.select(idx)
         if p is not None:
             g = _unchecked(Gaussians, {"means": g.means, "quats": g.quats, "scales": g.scales, "sh": g.sh,
@@ -261,6 +272,31 @@ class DynamicGaussians:
             raise ValueError(f"deformed scales must be > 0 metres at t = {t} (a log-scale offset underflows)")
         return _unchecked(Gaussians, {"means": means, "quats": quats, "scales": scales, "opacities": g.opacities,
                                       "sh": g.sh})
+
+    def _at_fused(self, t: float, idx: Tensor | None) -> tuple[Tensor, Tensor, Tensor] | None:
+        """:meth:`at`'s deformed means, quats and scales of the Gaussians ``idx`` (None: all) by the numba kernel
+        (:mod:`diff4splat.scene_kernels`), or None where the reference must run: a tensor off the CPU or needing
+        gradients, mixed dtypes, no numba, or a Gaussian the reference would raise for."""
+        c = self.canonical
+        tensors = (c.means, c.quats, c.scales, self.d_means, self.d_quats, self.d_scales)
+        if (any(x.device.type != "cpu" for x in tensors)
+                or (torch.is_grad_enabled() and any(x.requires_grad for x in tensors))
+                or len({x.dtype for x in tensors}) != 1 or c.means.dtype not in (torch.float32, torch.float64)):
+            return None
+        kernel = _deform_kernel()
+        if kernel is None:
+            return None
+        k, k1, w = self._keys(t)
+        dev = c.means.device
+        index = torch.arange(c.num_gaussians, device=dev) if idx is None else idx.long()
+        n = index.shape[0]
+        out = (c.means.new_empty(n, 3), c.means.new_empty(n, 4), c.means.new_empty(n, 3))
+        bad = torch.zeros(n, dtype=torch.bool, device=dev)
+        host = lambda x: x.detach().cpu().contiguous().numpy()  # noqa: E731  (a no-op copy: CPU, checked above)
+        kernel(host(index), host(c.means), host(c.quats), host(c.scales), host(self.d_means[k]),
+               host(self.d_quats[k]), host(self.d_scales[k]), host(self.d_means[k1]), host(self.d_quats[k1]),
+               host(self.d_scales[k1]), float(w), *(host(o) for o in out), host(bad))
+        return None if bool(bad.any()) else out
 
     def select(self, index: Tensor) -> DynamicGaussians:
         """Subset of Gaussians by boolean mask (M,) or indices; deformation and temporal arrays follow. Not
@@ -288,6 +324,21 @@ class DynamicGaussians:
         mv = lambda x: None if x is None else x.to(*args, **kwargs)  # noqa: E731
         return DynamicGaussians(self.canonical.to(*args, **kwargs), mv(self.times), mv(self.d_means),
                                 mv(self.d_quats), mv(self.d_scales), mv(self.t_means), mv(self.t_scales))
+
+
+_UNSET = object()
+_KERNEL = [_UNSET]
+
+
+def _deform_kernel():
+    """:func:`diff4splat.scene_kernels.deform` (imported on first use), or None without numba."""
+    if _KERNEL[0] is _UNSET:
+        try:
+            from .scene_kernels import deform  # lazy: numba's import time; absent → the PyTorch reference
+        except ImportError:
+            deform = None
+        _KERNEL[0] = deform
+    return _KERNEL[0]
 
 
 def _within(x: Tensor, atol: float) -> bool:

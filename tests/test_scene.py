@@ -3,6 +3,7 @@ import math
 import pytest
 import torch
 
+import diff4splat.scene as scene_module
 from diff4splat.gaussians import Gaussians
 from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
 from diff4splat.scene import DynamicGaussians
@@ -154,3 +155,52 @@ def test_invalid_deformation_raises(bad):
 def test_time_outside_unit_interval_raises():
     with pytest.raises(ValueError, match="time t"):
         DynamicGaussians(_gaussians()).at(1.5)
+
+
+def _dynamic_scene(m, k, dtype, seed=0, temporal=True):
+    gen = torch.Generator().manual_seed(seed)
+    d = {"times": torch.linspace(0, 1, k, dtype=dtype), "d_means": torch.randn(k, m, 3, generator=gen, dtype=dtype),
+         "d_quats": torch.randn(k, m, 4, generator=gen, dtype=dtype),
+         "d_scales": 0.3 * torch.randn(k, m, 3, generator=gen, dtype=dtype)}
+    if temporal:
+        d.update(t_means=torch.rand(m, generator=gen, dtype=dtype),
+                 t_scales=0.05 + 0.3 * torch.rand(m, generator=gen, dtype=dtype))
+    return DynamicGaussians(_gaussians(m, seed=seed + 1, dtype=dtype), **d)
+
+
+@pytest.mark.parametrize("dtype, tol", [(torch.float32, 2e-6), (torch.float64, 1e-13)])
+def test_the_fused_cpu_kernel_of_at_matches_the_reference(monkeypatch, dtype, tol):
+    """On the CPU without gradients ``at`` runs the numba kernel (:mod:`diff4splat.scene_kernels`); the reference
+    is ``deformation_at`` then ``compose_deformation`` of the same Gaussians. Times at, between and beyond the keys;
+    a gate that drops some Gaussians; antipodal key quaternions (the shorter-arc sign)."""
+    calls = []
+    kernel = scene_module._deform_kernel()
+    assert kernel is not None  # numba is a dependency
+    monkeypatch.setattr(scene_module, "_deform_kernel", lambda: lambda *a: calls.append(1) or kernel(*a))
+    scene = _dynamic_scene(300, 4, dtype)
+    scene.d_quats[2, :50] = -scene.d_quats[1, :50]  # the same rotations, opposite signs
+    for t in (0.0, 1 / 3, 0.5, 0.9, 1.0):
+        got = scene.at(t)
+        idx = scene.active_indices(t)
+        assert 0 < idx.numel() < 300
+        c = scene.canonical.select(idx)
+        means, quats, scales = scene_module.compose_deformation(c.means, c.quats, c.scales,
+                                                                *scene.deformation_at(t, idx))
+        for a, b in ((got.means, means), (got.quats, quats), (got.scales, scales)):
+            assert a.dtype == dtype
+            torch.testing.assert_close(a, b, rtol=tol, atol=tol)
+        torch.testing.assert_close(got.opacities, c.opacities * scene.temporal_opacity(t)[idx])
+    assert len(calls) == 5
+
+
+def test_at_with_gradients_or_an_overflowing_scale_runs_the_reference():
+    """Gradients need the PyTorch reference (the kernel has no backward); a scale that overflows is reported by the
+    reference's error, as without the kernel."""
+    scene = _dynamic_scene(20, 3, torch.float64, temporal=False)
+    scene.canonical.means.requires_grad_(True)
+    scene.at(0.4).means.sum().backward()
+    torch.testing.assert_close(scene.canonical.means.grad, torch.ones_like(scene.canonical.means))
+    scene = _dynamic_scene(20, 3, torch.float64, temporal=False)
+    scene.d_scales[1, 7, 0] = 1e4  # exp overflows
+    with pytest.raises(ValueError, match="scales"):
+        scene.at(0.5)
