@@ -11,52 +11,20 @@ an ``ImportError`` here (no numba) makes :mod:`.fused` fall back to the PyTorch 
 """
 from __future__ import annotations
 
-import contextlib
-import functools
 import math
-import os
 
-import numba
 import numpy as np
-import torch
-from numba import njit, prange
+from numba import prange
 
 from diff4splat.constants import ALPHA_MAX, ALPHA_MIN, OPACITY_LOG_FLOOR, T_MIN
+from diff4splat.jit import KERNEL, threads
 from diff4splat.render.projection import EIGEN_FLOOR, FOV_MARGIN, RADIUS_MAX
 
 __all__ = ["KERNEL", "box_kernel", "bin_kernel", "forward_kernel", "backward_kernel", "gather_kernel",
            "project_forward", "project_backward", "threads"]
 
-if "NUMBA_THREADING_LAYER" not in os.environ:
-    # OpenMP first: torch's CPU wheel runs on libgomp, and numba's "omp" layer then shares torch's thread pool.
-    # With numba's own "workqueue" pool, torch's OpenMP threads still spin-wait after each torch op and take
-    # the cores from numba's threads.
-    numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
-
-
-KERNEL = functools.partial(njit, cache=True, error_model="numpy")
-"""numba's njit as every kernel of the fused renderer uses it: cached on disk; NumPy's error model (a division
-by zero gives inf/NaN instead of a Python exception check before every division and integer floor division,
-which would slow the binning's inner loops)."""
-
 _BLOCK = 256
 """Gaussians per parallel work item of the projection (one set of scratch matrices each)."""
-
-
-@contextlib.contextmanager
-def threads(n: int):
-    """Run the kernel launches inside on ``n`` threads (at most numba's pool size), then restore torch's count.
-
-    numba's OpenMP layer sets the shared OpenMP thread count at each launch (``omp_set_num_threads``), which is
-    also torch's: without the restore, ``torch.set_num_threads(1)`` would read back numba's count after a launch.
-    """
-    saved = torch.get_num_threads()
-    numba.set_num_threads(max(1, min(n, numba.config.NUMBA_NUM_THREADS)))
-    try:
-        yield
-    finally:
-        if torch.get_num_threads() != saved:
-            torch.set_num_threads(saved)
 
 
 @KERNEL(inline="always")
