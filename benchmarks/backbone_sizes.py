@@ -16,7 +16,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import markdown_table  # noqa: E402
 
-from models.backbones.model import DEFAULTS, PIPELINES  # noqa: E402
+from models.backbone_model import DEFAULTS, PIPELINES  # noqa: E402
 from models.backbones.sizes import backbone_config, backbone_names, parameter_counts  # noqa: E402
 
 COLUMNS = [("vae", "VAE"), ("text_encoder", "text encoder"), ("transformer", "transformer"),

@@ -12,7 +12,7 @@ import sys
 from importlib.metadata import entry_points
 from pathlib import Path
 
-from models.backbones.model import INDEX_FILE
+from models.backbone_model import INDEX_FILE
 from models.bundle import DEFAULT_CONFIG, config_names
 
 from .cameras import TRAJECTORIES

@@ -143,7 +143,7 @@ class ModelOffload:
         pin: pin the CPU copies when ``device`` is CUDA (faster, asynchronous copies; needs that much
             page-locked host memory).
         prefetch: name → that network's blocks in the order its forward runs them (e.g. the transformer blocks,
-            :meth:`models.backbones.base.Backbone.transformer_blocks`): its move onto a CUDA device overlaps
+            :meth:`models.backbone.Backbone.transformer_blocks`): its move onto a CUDA device overlaps
             the first call (module docstring). The blocks must run as modules (their forward pre-hooks fire) and
             not be ``torch.compile``-d (a hook added to a compiled module recompiles it). Ignored off CUDA.
 

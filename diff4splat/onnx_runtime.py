@@ -271,9 +271,6 @@ class OnnxRuntime:
     def release(self) -> None:
         """Nothing to free: the onnxruntime sessions keep their own memory between scenes."""
 
-    def _run(self, part: str, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
-        return self.sessions[part].run(None, feeds)
-
     def sigmas(self, steps: int) -> Tensor:
         """The exported model's σ schedule: (steps + 1,) float64, decreasing from 1 to 0
         (:func:`models.flow_matching.sigma_schedule`, the config's shift)."""
@@ -286,7 +283,7 @@ class OnnxRuntime:
             ValueError: as :meth:`models.vae.VideoVAE.encode` (T ≠ 1 + 4k, H or W not a multiple of 8, …).
         """
         check_video(self.config.vae, video)
-        (z,) = self._run("vae_encoder", {"video": _numpy(video, np.float32)})
+        (z,) = self.sessions["vae_encoder"].run(None, {"video": _numpy(video, np.float32)})
         return torch.from_numpy(z)
 
     def motion(self, out: LDRMOutput, frames: Tensor, frame_times: Tensor, viewmats: Tensor, Ks: Tensor,
@@ -313,7 +310,7 @@ class OnnxRuntime:
         check_latents(self.config.vae, latents)
         n, n_min = latents.shape[2], self.manifest["files"]["vae_decoder"]["dims"]["latent_frames"][0]
         padded = torch.cat([latents] + [latents[:, :, -1:]] * max(0, n_min - n), dim=2)
-        (video,) = self._run("vae_decoder", {"latents": _numpy(padded, np.float32)})
+        (video,) = self.sessions["vae_decoder"].run(None, {"latents": _numpy(padded, np.float32)})
         return torch.from_numpy(video[:, :, : 1 + self.latent.temporal_factor * (n - 1)]).to(latents.device)
 
     def encode_text(self, prompt: str) -> tuple[Tensor, Tensor]:
@@ -326,36 +323,54 @@ class OnnxRuntime:
             raise ValueError(f"prompt: the ONNX export in {self.directory} was made without the text encoder "
                              f"(text=False) and serves only the empty prompt, got prompt {prompt!r:.60}")
         ids, mask = self.tokenizer([prompt])
-        (tokens,) = self._run("text_encoder", {"ids": _numpy(ids, np.int64), "mask": _numpy(mask, np.bool_)})
+        feeds = {"ids": _numpy(ids, np.int64), "mask": _numpy(mask, np.bool_)}
+        (tokens,) = self.sessions["text_encoder"].run(None, feeds)
         return torch.from_numpy(tokens), mask
 
-    def velocity(self, x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor,
-                 text: Tensor | None, text_mask: Tensor | None) -> Tensor:
-        """Flow-matching velocity ε − x0 by ``dit.onnx``: x (B, c, n, h, w), sigma (B,) in [0, 1], image_latent
-        (B, c, 1, h, w), plucker (B, 6·t·s², n, h, w), text (B, L, d_text) and text_mask (B, L) bool (a None mask:
-        all True) or None → (B, c, n, h, w) float32 (on the CPU). Without text on a text-conditioned graph, one zero
-        token with an all-False mask (exactly zero cross-attention, see :mod:`diff4splat.export`).
+    def velocity(self, x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor, text: Tensor | None,
+                 text_mask: Tensor | None, guidance: float = 1.0, uncond: Tensor | None = None,
+                 uncond_mask: Tensor | None = None) -> Tensor:
+        """Flow-matching velocity ε − x0 by ``dit.onnx``: x (B, c, n, h, w), sigma (B,) or a 0-dim σ of the whole
+        batch, in [0, 1], image_latent (B, c, 1, h, w), plucker (B, 6·t·s², n, h, w), text (B, L, d_text) and
+        text_mask (B, L) bool (a None mask: all True) or None → (B, c, n, h, w) float32 (on the CPU). Without text
+        on a text-conditioned graph, one zero token with an all-False mask (exactly zero cross-attention, see
+        :mod:`diff4splat.export`). ``guidance`` g ≠ 1 runs the graph a second time on ``uncond`` + ``uncond_mask``
+        (or no text) and returns v_u + g·(v − v_u) (:meth:`diff4splat.runtime.NetworkRuntime.velocity`).
 
         Raises:
             ValueError: as :meth:`models.dit.VideoDiT.forward` (shapes, σ outside [0, 1]); text given to a graph
                 exported without text inputs.
         """
+        sigma = sigma.expand(x.shape[0]) if sigma.dim() == 0 else sigma
         check_dit_inputs(self.config.dit, x, sigma, image_latent, plucker, text, text_mask)
         feeds = {"x": _numpy(x, np.float32), "sigma": _numpy(sigma, np.float32),
                  "image_latent": _numpy(image_latent, np.float32), "plucker": _numpy(plucker, np.float32)}
-        if self.dit_text_inputs:
-            B = x.shape[0]
-            if text is None:
-                text = torch.zeros(B, 1, self.config.dit.text_dim, device=x.device)
-                text_mask = torch.zeros(B, 1, dtype=torch.bool, device=x.device)
-            elif text_mask is None:
-                text_mask = torch.ones(text.shape[:2], dtype=torch.bool, device=text.device)
-            feeds["text"], feeds["text_mask"] = _numpy(text, np.float32), _numpy(text_mask, np.bool_)
-        elif text is not None:
-            raise ValueError(f"text: the ONNX export in {self.directory} was made without the text encoder "
-                             "(text=False): its DiT has no text inputs")
-        (v,) = self._run("dit", feeds)
-        return torch.from_numpy(v)
+        dit = self.sessions["dit"]
+        (v,) = dit.run(None, {**feeds, **self._text_feeds(x, text, text_mask)})
+        if guidance == 1.0:
+            return torch.from_numpy(v)
+        check_dit_inputs(self.config.dit, x, sigma, image_latent, plucker, uncond, uncond_mask)
+        (v_uncond,) = dit.run(None, {**feeds, **self._text_feeds(x, uncond, uncond_mask)})
+        v, v_uncond = torch.from_numpy(v), torch.from_numpy(v_uncond)
+        return v_uncond + guidance * (v - v_uncond)
+
+    def _text_feeds(self, x: Tensor, text: Tensor | None, text_mask: Tensor | None) -> dict[str, np.ndarray]:
+        """``dit.onnx``'s text inputs for the batch of ``x`` (:meth:`velocity`); none for a graph without them.
+
+        Raises:
+            ValueError: text given to a graph exported without text inputs.
+        """
+        if not self.dit_text_inputs:
+            if text is not None:
+                raise ValueError(f"text: the ONNX export in {self.directory} was made without the text encoder "
+                                 "(text=False): its DiT has no text inputs")
+            return {}
+        if text is None:
+            text = torch.zeros(x.shape[0], 1, self.config.dit.text_dim, device=x.device)
+            text_mask = torch.zeros(x.shape[0], 1, dtype=torch.bool, device=x.device)
+        elif text_mask is None:
+            text_mask = torch.ones(text.shape[:2], dtype=torch.bool, device=text.device)
+        return {"text": _numpy(text, np.float32), "text_mask": _numpy(text_mask, np.bool_)}
 
     def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None, image: Tensor | None) -> LDRMOutput:
         """``ldrm.onnx`` → :class:`LDRMOutput`: maps (B, S, H, W, ·) of the S source frames
@@ -382,7 +397,7 @@ class OnnxRuntime:
             feeds["times"] = _numpy(times, np.float32)
         elif self.has_deformation:  # the dynamic graph needs a times input; its maps are dropped below
             feeds["times"] = np.zeros(1, np.float32)
-        outputs = self._run("ldrm", feeds)
+        outputs = self.sessions["ldrm"].run(None, feeds)
         names = LDRM_OUTPUTS if self.has_deformation else STATIC_LDRM_OUTPUTS
         maps = {name: torch.from_numpy(a) for name, a in zip(names, outputs, strict=True)}
         if times is None:  # the dynamic graph always computes them; a static request drops them

@@ -21,7 +21,7 @@ The photograph and the camera path come at the *output* resolution; the networks
 
 The networks are reached through a :class:`NetworkRuntime` (encode_image, encode_text, velocity,
 reconstruct): :class:`TorchRuntime` runs the PyTorch modules (our networks or a pretrained diffusers backbone,
-through :class:`models.backbones.base.Backbone`), ``diff4splat.onnx_runtime.OnnxRuntime``
+through :class:`models.backbone.Backbone`), ``diff4splat.onnx_runtime.OnnxRuntime``
 runs an ONNX export with onnxruntime. Everything else (validation, Plücker rays, noise, sampler, the scene's
 assembly, pruning) is this module's single implementation for both. (A *runtime* runs the networks; the
 renderer's *backend*, gsplat or PyTorch, is another choice, made in :mod:`diff4splat.render`.)
@@ -30,13 +30,14 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from models.backbones.model import INDEX_FILE, BackboneModel
+from models.backbone_model import INDEX_FILE, BackboneModel
 from models.bundle import DEFAULT_CONFIG, WEIGHTS_DIR, Diff4SplatModel, load_config, random_init_device
 from models.flow_matching import check_guidance, integrator
 from models.ldrm import source_frame_indices
@@ -183,7 +184,7 @@ def load_model(checkpoint: str | Path | None = None, config: str = DEFAULT_CONFI
     """Load a checkpoint folder, else the shipped weights of ``config``, else a seeded random model.
 
     A checkpoint folder is ours (``config.json``: :meth:`Diff4SplatModel.from_pretrained`) or a pretrained diffusers
-    backbone's (``model_index.json``: :meth:`models.backbones.model.BackboneModel.from_pretrained`, loaded directly
+    backbone's (``model_index.json``: :meth:`models.backbone_model.BackboneModel.from_pretrained`, loaded directly
     in ``dtype``, e.g. bfloat16, never as a float32 copy first; so are our checkpoints and a random model).
     ``untrained=True`` skips checkpoint and shipped weights and returns the seeded random model without a warning
     (the baseline that evaluations compare against). A random model without ``untrained`` is initialised on
@@ -253,9 +254,9 @@ class Diff4SplatPipeline:
 
     Attributes:
         runtime: the :class:`NetworkRuntime` that runs the networks.
-        model: the :class:`Diff4SplatModel` or :class:`models.backbones.model.BackboneModel`, or None for another
+        model: the :class:`Diff4SplatModel` or :class:`models.backbone_model.BackboneModel`, or None for another
             runtime.
-        config: the model's :class:`Diff4SplatConfig` or :class:`models.backbones.model.BackboneModelConfig`.
+        config: the model's :class:`Diff4SplatConfig` or :class:`models.backbone_model.BackboneModelConfig`.
         source: where the weights came from (a folder, ``random:<config>:seed=<n>[:cuda]``, ``onnx:<folder> (…)``),
             set by :meth:`from_pretrained` and :meth:`from_onnx`; None for a pipeline built from a model in memory.
 
@@ -564,14 +565,9 @@ class Diff4SplatPipeline:
         noise = torch.randn((1, runtime.latent.latent_channels, n, *image_latent.shape[-2:]),  # CPU draw, moved
                             generator=gen, device="cpu").to(dev)
 
-        def velocity(x: Tensor, sigma: Tensor) -> Tensor:
-            sigma = sigma.reshape(1).to(x)
-            v = runtime.velocity(x, sigma, image_latent, plucker, text, text_mask)
-            if guidance == 1.0:
-                return v
-            v_uncond = runtime.velocity(x, sigma, image_latent, plucker, uncond, uncond_mask)
-            return v_uncond + guidance * (v - v_uncond)
-
+        # the runtime's velocity itself, its conditions bound: each step calls the network directly
+        velocity = partial(runtime.velocity, image_latent=image_latent, plucker=plucker, text=text,
+                           text_mask=text_mask, guidance=guidance, uncond=uncond, uncond_mask=uncond_mask)
         if video_latents is None:
             latents = integrator(sampler)(velocity, noise, runtime.sigmas(steps), progress=progress)
         elif tuple(video_latents.shape) != tuple(noise.shape):

@@ -1,6 +1,6 @@
 """How the pipeline reaches the networks: the :class:`NetworkRuntime` protocol, and :class:`TorchRuntime`, which runs
 PyTorch networks — our :class:`models.bundle.Diff4SplatModel` or a pretrained diffusers backbone with our LDRM
-(:class:`models.backbones.model.BackboneModel`) — through their :class:`models.backbones.base.Backbone`
+(:class:`models.backbone_model.BackboneModel`) — through their :class:`models.backbone.Backbone`
 (``diff4splat.onnx_runtime.OnnxRuntime`` is the other runtime). Batch 1, float32 tensors in and out.
 """
 from __future__ import annotations
@@ -14,8 +14,8 @@ import torch
 from torch import Tensor
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
-from models.backbones.base import LatentFormat
-from models.backbones.model import BackboneModel, BackboneModelConfig
+from models.backbone import LatentFormat
+from models.backbone_model import BackboneModel, BackboneModelConfig
 from models.bundle import Diff4SplatConfig, Diff4SplatModel
 from models.dit import VideoDiT
 from models.ldrm import LDRMOutput
@@ -33,9 +33,9 @@ class NetworkRuntime(Protocol):
     """What the pipeline needs from the networks (batch 1, float32 tensors in, or ``input_dtype`` ones; tensors out).
 
     Attributes:
-        config: the model's :class:`Diff4SplatConfig` or :class:`models.backbones.model.BackboneModelConfig`
+        config: the model's :class:`Diff4SplatConfig` or :class:`models.backbone_model.BackboneModelConfig`
             (resolution, LDRM, sampling defaults).
-        latent: the VAE's :class:`models.backbones.base.LatentFormat` (channels, temporal and spatial factors).
+        latent: the VAE's :class:`models.backbone.LatentFormat` (channels, temporal and spatial factors).
         has_deformation: whether :meth:`reconstruct` can predict deformation maps (times not None).
         has_motion: whether :meth:`motion` can read the deformation from the frames (an LDRM with a motion network).
         encodes_empty_prompt: whether the transformer needs the empty prompt's text embedding (a pretrained
@@ -47,7 +47,7 @@ class NetworkRuntime(Protocol):
         attention: the fused attention kernel tried first (:data:`ATTENTION_KERNELS`; written to meta.json), None
             for a runtime that does not run torch's attention.
         compiled: whether the transformer's blocks run ``torch.compile``-d
-            (:meth:`models.backbones.base.Backbone.compile_blocks`; written to meta.json).
+            (:meth:`models.backbone.Backbone.compile_blocks`; written to meta.json).
     """
 
     config: Diff4SplatConfig | BackboneModelConfig
@@ -62,7 +62,7 @@ class NetworkRuntime(Protocol):
 
     def sigmas(self, steps: int) -> Tensor:
         """The sampler's σ schedule: (steps + 1,) float64 from 1 to 0
-        (:meth:`models.backbones.base.Backbone.sigmas`)."""
+        (:meth:`models.backbone.Backbone.sigmas`)."""
 
     def encode_image(self, video: Tensor) -> Tensor:
         """(1, 3, 1, H, W) pixels in [−1, 1] → (1, c, 1, h, w) DiT-scaled latent (posterior mean)."""
@@ -71,9 +71,13 @@ class NetworkRuntime(Protocol):
         """Non-empty prompt → tokens (1, L, d_text), mask (1, L) bool. ValueError if it cannot."""
 
     def velocity(self, x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor,
-                 text: Tensor | None, text_mask: Tensor | None) -> Tensor:
-        """Flow-matching velocity ε − x0: x (1, c, n, h, w), sigma (1,), image_latent (1, c, 1, h, w),
-        plucker (1, 6·t·s², n, h, w), text (1, L, d) + mask (1, L) or None → (1, c, n, h, w)."""
+                 text: Tensor | None, text_mask: Tensor | None, guidance: float = 1.0,
+                 uncond: Tensor | None = None, uncond_mask: Tensor | None = None) -> Tensor:
+        """Flow-matching velocity ε − x0, the network called directly (the sampler's ``velocity_fn`` with the
+        conditions bound): x (1, c, n, h, w), sigma (1,) or a 0-dim σ, image_latent (1, c, 1, h, w),
+        plucker (1, 6·t·s², n, h, w), text (1, L, d) + mask (1, L) or None → (1, c, n, h, w) float32. With
+        ``guidance`` g ≠ 1, classifier-free guidance (Ho & Salimans 2022): the network runs again on the
+        unconditional text ``uncond`` + ``uncond_mask`` (None: no text) and the result is v_u + g·(v − v_u)."""
 
     def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None, image: Tensor) -> LDRMOutput:
         """LDRM (+ deformation network when ``times`` (K,) is given) → activated maps (B, S, H, W, ·);
@@ -87,7 +91,7 @@ class NetworkRuntime(Protocol):
 
     def decode_latents(self, latents: Tensor) -> Tensor:
         """(1, c, n, h, w) DiT-scaled latents → (1, 3, 1 + t·(n − 1), h·s, w·s) pixels in about [−1, 1] (the VAE
-        decoder; :meth:`models.backbones.base.Backbone.decode_latents`)."""
+        decoder; :meth:`models.backbone.Backbone.decode_latents`)."""
 
     def release(self) -> None:
         """The networks are done for this scene: free what they hold on the device (an offloaded network's
@@ -148,8 +152,8 @@ def attention_priority(name: str) -> list[SDPBackend] | None:
 
 class TorchRuntime:
     """:class:`NetworkRuntime` over PyTorch networks (eval mode, no grad): our :class:`Diff4SplatModel` or a
-    pretrained diffusers backbone with our LDRM (:class:`models.backbones.model.BackboneModel`), both through their
-    :class:`models.backbones.base.Backbone`.
+    pretrained diffusers backbone with our LDRM (:class:`models.backbone_model.BackboneModel`), both through their
+    :class:`models.backbone.Backbone`.
 
     Args:
         model: the networks; moved to ``device`` (or, with ``offload="model"``, to the CPU) and cast to
@@ -162,7 +166,7 @@ class TorchRuntime:
         offload: one of :data:`OFFLOAD_MODES`.
         attention: one of :data:`ATTENTION_KERNELS`: the fused attention kernel every network call tries first.
         compile: ``torch.compile`` the transformer's blocks (regional compilation,
-            :meth:`models.backbones.base.Backbone.compile_blocks`): the first sampling step compiles, the later
+            :meth:`models.backbone.Backbone.compile_blocks`): the first sampling step compiles, the later
             ones run fused kernels (``benchmarks/gpu.py`` measures both on a GPU).
 
     Raises:
@@ -190,6 +194,7 @@ class TorchRuntime:
         self.model = model.eval() if dtype is None else model.to(dtype).eval()
         self.config = model.config
         self.backbone = model.backbone
+        self.velocity_model = self.backbone.velocity_model  # called directly by :meth:`velocity`
         self.latent = self.backbone.latent
         self.encodes_empty_prompt = self.backbone.encodes_empty_prompt
         self.networks = model.networks()
@@ -246,35 +251,46 @@ class TorchRuntime:
 
     def sigmas(self, steps: int) -> Tensor:
         """The sampler's σ schedule: (steps + 1,) float64, decreasing from 1 to 0
-        (:meth:`models.backbones.base.Backbone.sigmas`; ours uses the config's current shift)."""
+        (:meth:`models.backbone.Backbone.sigmas`; ours uses the config's current shift)."""
         return self.model.backbone.sigmas(steps)  # ours: the config's shift as it is now
 
     def encode_image(self, video: Tensor) -> Tensor:
         """(B, 3, 1, H, W) pixels in [−1, 1] → (B, c, 1, H/s, W/s) DiT-scaled latent (posterior mean), float32
-        (:meth:`models.backbones.base.Backbone.encode_video`, in the runtime's dtype)."""
+        (:meth:`models.backbone.Backbone.encode_video`, in the runtime's dtype)."""
         with self._use("vae"):
             return self.backbone.encode_video(video.to(self.dtype)).float()
 
     def encode_text(self, prompt: str) -> tuple[Tensor, Tensor]:
         """Prompt → tokens (1, L, d_text) float32 and mask (1, L) bool, both on the runtime's device
-        (:meth:`models.backbones.base.Backbone.encode_text`, whose errors it passes on)."""
+        (:meth:`models.backbone.Backbone.encode_text`, whose errors it passes on)."""
         with self._use("text_encoder"):
             tokens, mask = self.backbone.encode_text([prompt])
         return tokens.float().to(self.device), mask.to(self.device)
 
-    def velocity(self, x, sigma, image_latent, plucker, text, text_mask) -> Tensor:
-        """Flow-matching velocity ε − x0 (:meth:`models.backbones.base.Backbone.velocity`): x (B, c, n, h, w),
-        sigma (B,) in [0, 1], image_latent (B, c, 1, h, w), plucker (B, 6·t·s², n, h, w), text (B, L, d_text) and
-        text_mask (B, L) bool, or None → (B, c, n, h, w) float32. Inputs are cast to the runtime's dtype (σ to
-        float32); the backbone's ValueError for a wrong shape passes through."""
-        dt = self.dtype
-        with self._use("dit"):  # σ float32: its embedding casts
-            return self.backbone.velocity(x.to(dt), sigma.float(), image_latent.to(dt), plucker.to(dt),
-                                          None if text is None else text.to(dt), text_mask).float()
+    def velocity(self, x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor, text: Tensor | None,
+                 text_mask: Tensor | None, guidance: float = 1.0, uncond: Tensor | None = None,
+                 uncond_mask: Tensor | None = None) -> Tensor:
+        """Flow-matching velocity ε − x0 by the backbone's velocity network, called directly
+        (:attr:`models.backbone.Backbone.velocity_model`): x (B, c, n, h, w), sigma (B,) or a 0-dim σ of the whole
+        batch, in [0, 1], image_latent (B, c, 1, h, w), plucker (B, 6·t·s², n, h, w), text (B, L, d_text) and
+        text_mask (B, L) bool, or None → (B, c, n, h, w) float32. ``guidance`` g ≠ 1 runs the network a second time
+        on ``uncond`` + ``uncond_mask`` (or no text) and returns v_u + g·(v − v_u) (:meth:`NetworkRuntime.velocity`).
+        Inputs are cast to the runtime's dtype (σ to float32); the network's ValueError for a wrong shape passes
+        through."""
+        dt, net = self.dtype, self.velocity_model
+        sigma = (sigma.expand(x.shape[0]) if sigma.dim() == 0 else sigma).float()  # float32: its embedding casts
+        x, image_latent, plucker = x.to(dt), image_latent.to(dt), plucker.to(dt)
+        with self._use("dit"):
+            v = net(x, sigma, image_latent, plucker, None if text is None else text.to(dt), text_mask).float()
+            if guidance == 1.0:
+                return v
+            v_uncond = net(x, sigma, image_latent, plucker, None if uncond is None else uncond.to(dt),
+                           uncond_mask).float()
+        return v_uncond + guidance * (v - v_uncond)
 
     def decode_latents(self, latents: Tensor) -> Tensor:
         """(B, c, n, h, w) DiT-scaled latents → (B, 3, 1 + t·(n − 1), h·s, w·s) pixels in about [−1, 1], float32
-        (:meth:`models.backbones.base.Backbone.decode_latents`)."""
+        (:meth:`models.backbone.Backbone.decode_latents`)."""
         with self._use("vae"):
             return self.backbone.decode_latents(latents.to(self.dtype)).float()
 

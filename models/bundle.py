@@ -135,10 +135,10 @@ class Diff4SplatConfig:
 
 
 GENERATED_COLORS = ("ldrm", "video")
-"""Values of ``generated_colors`` (:class:`Diff4SplatConfig`, :class:`models.backbones.model.BackboneModelConfig`)."""
+"""Values of ``generated_colors`` (:class:`Diff4SplatConfig`, :class:`models.backbone_model.BackboneModelConfig`)."""
 GENERATED_FOOTPRINTS = ("ldrm", "pixel")
 """Values of ``generated_footprint`` (:class:`Diff4SplatConfig`,
-:class:`models.backbones.model.BackboneModelConfig`)."""
+:class:`models.backbone_model.BackboneModelConfig`)."""
 
 
 def check_generated(config: object) -> None:
@@ -218,7 +218,7 @@ class Diff4SplatModel(nn.Module):
 
     @property
     def backbone(self) -> OursBackbone:
-        """The VAE, text encoder and DiT as a :class:`models.backbones.base.Backbone` (a view: the modules are
+        """The VAE, text encoder and DiT as a :class:`models.backbone.Backbone` (a view: the modules are
         this model's; not a sub-module, so the state dict keeps its keys), with the config's sampling shift."""
         s = self.config.sampling
         return OursBackbone(self.vae, self.text_encoder, self.dit, s.shift, (s.logit_normal_mean, s.logit_normal_std))

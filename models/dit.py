@@ -31,7 +31,7 @@ import torch
 from torch import Tensor, nn
 from torch.utils.checkpoint import checkpoint
 
-from models.backbones.base import check_velocity_inputs
+from models.backbone import check_velocity_inputs
 from models.layers import (
     CrossAttention,
     Mlp,

@@ -240,8 +240,9 @@ def _check_sigmas(sigmas: Tensor) -> None:
         raise ValueError("sigmas must be strictly decreasing (from noise to data)")
 
 
-def _velocity(velocity_fn: VelocityFn, x: Tensor, sigma: Tensor) -> Tensor:
-    v = velocity_fn(x, sigma)
+def _checked(v: Tensor, x: Tensor) -> Tensor:
+    """``v``, the velocity at ``x``, after checking it has ``x``'s shape (called on the result, so the sampling
+    loop calls ``velocity_fn`` itself)."""
     if v.shape != x.shape:
         raise ValueError(f"velocity_fn returned shape {tuple(v.shape)}, expected {tuple(x.shape)}")
     return v
@@ -271,7 +272,7 @@ def euler_sample(velocity_fn: VelocityFn, noise: Tensor, sigmas: Tensor, progres
     sig = sigmas.to(dtype=noise.dtype, device=noise.device)
     x = noise
     for i in tqdm(range(sig.shape[0] - 1), disable=not progress, desc="euler"):
-        x = x + (sig[i + 1] - sig[i]) * _velocity(velocity_fn, x, sig[i])
+        x = x + (sig[i + 1] - sig[i]) * _checked(velocity_fn(x, sig[i]), x)
     return x
 
 
@@ -298,12 +299,12 @@ def heun_sample(velocity_fn: VelocityFn, noise: Tensor, sigmas: Tensor, progress
     x = noise
     for i in tqdm(range(sig.shape[0] - 1), disable=not progress, desc="heun"):
         h = sig[i + 1] - sig[i]
-        d = _velocity(velocity_fn, x, sig[i])
+        d = _checked(velocity_fn(x, sig[i]), x)
         x_pred = x + h * d
         if is_zero[i + 1]:
             x = x_pred
         else:
-            x = x + h * 0.5 * (d + _velocity(velocity_fn, x_pred, sig[i + 1]))
+            x = x + h * 0.5 * (d + _checked(velocity_fn(x_pred, sig[i + 1]), x_pred))
     return x
 
 

@@ -43,7 +43,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from models.backbones.base import LatentFormat
+from models.backbone import LatentFormat
 from models.pretrained import PretrainedMixin
 from models.tracing import tracing
 
@@ -135,7 +135,7 @@ class VideoVAEConfig:
 
     @property
     def latent_format(self) -> LatentFormat:
-        """Channels and compression as a :class:`models.backbones.base.LatentFormat` (the one home of the frame
+        """Channels and compression as a :class:`models.backbone.LatentFormat` (the one home of the frame
         grouping arithmetic)."""
         return LatentFormat(self.latent_channels, self.temporal_factor, self.spatial_factor)
 

@@ -30,8 +30,8 @@ from tiny_cogvideox import (  # noqa: E402
 )
 from torch import nn  # noqa: E402
 
-from models.backbones.base import LatentFormat, vpred_to_flow  # noqa: E402
-from models.backbones.cogvideox import CogVideoXBackbone  # noqa: E402
+from models.backbone import LatentFormat  # noqa: E402
+from models.backbones.cogvideox import CogVideoXBackbone, vpred_to_flow  # noqa: E402
 from models.flow_matching import euler_sample  # noqa: E402
 
 PROMPT = "a cat"
@@ -102,7 +102,7 @@ def test_velocity_is_the_diffusers_transformer_converted_by_vpred_to_flow(backbo
     t = torch.tensor([999, 499, 20])
     sigma = backbone.sigmas(1000)[:-1].flip(0)[t].float()  # σ_t as float32
     with torch.no_grad():
-        ours = backbone.velocity(inp["x"], sigma, inp["image_latent"], inp["plucker"], text, mask)
+        ours = backbone(inp["x"], sigma, inp["image_latent"], inp["plucker"], text, mask)
         ref = _reference_velocity(backbone, inp["x"], t, inp["image_latent"], text)
     assert ours.dtype == torch.float32 and ours.shape == inp["x"].shape
     assert (ours - ref).abs().max().item() <= 1e-6
@@ -113,10 +113,10 @@ def test_camera_weights_change_the_velocity_and_text_none_is_the_empty_prompt(ba
     sigma = torch.tensor([0.8, 0.3])
     with torch.no_grad():
         empty, mask = backbone.encode_text(["", ""])
-        base = backbone.velocity(inp["x"], sigma, inp["image_latent"], inp["plucker"], empty, mask)
-        assert torch.equal(backbone.velocity(inp["x"], sigma, inp["image_latent"], inp["plucker"], None, None), base)
+        base = backbone(inp["x"], sigma, inp["image_latent"], inp["plucker"], empty, mask)
+        assert torch.equal(backbone(inp["x"], sigma, inp["image_latent"], inp["plucker"], None, None), base)
         cam = tiny_backbone(seed=0, camera_std=0.05)
-        moved = cam.velocity(inp["x"], sigma, inp["image_latent"], inp["plucker"], empty, mask)
+        moved = cam(inp["x"], sigma, inp["image_latent"], inp["plucker"], empty, mask)
     assert (moved - base).abs().max().item() > 1e-3
 
 
@@ -131,7 +131,7 @@ def cpu_case(backbone):
 
 def test_velocity_makes_every_tensor_on_its_inputs_device(backbone, cpu_case, no_implicit_device):
     with torch.no_grad():
-        v = backbone.velocity(**cpu_case)
+        v = backbone(**cpu_case)
     assert v.device.type == "cpu" and torch.isfinite(v).all()
 
 
@@ -141,19 +141,19 @@ def test_invert_scale_latents_divides_the_image_latent_by_scaling_factor_squared
     sigma = torch.tensor([0.6])
     sf = bb.vae.config.scaling_factor
     with torch.no_grad():
-        plain = bb.velocity(inp["x"], sigma, inp["image_latent"] / sf ** 2, inp["plucker"], None, None)
+        plain = bb(inp["x"], sigma, inp["image_latent"] / sf ** 2, inp["plucker"], None, None)
         bb.vae.register_to_config(invert_scale_latents=True)
-        inverted = bb.velocity(inp["x"], sigma, inp["image_latent"], inp["plucker"], None, None)
+        inverted = bb(inp["x"], sigma, inp["image_latent"], inp["plucker"], None, None)
     assert (inverted - plain).abs().max().item() <= 1e-6
 
 
 def test_velocity_rejects_bad_shapes_and_sizes_other_than_the_learned_embeddings(backbone):
     inp = tiny_inputs(backbone)
     with pytest.raises(ValueError, match="sigma must have shape"):
-        backbone.velocity(inp["x"], torch.tensor([0.5, 0.5]), inp["image_latent"], inp["plucker"], None, None)
+        backbone(inp["x"], torch.tensor([0.5, 0.5]), inp["image_latent"], inp["plucker"], None, None)
     big = {k: torch.zeros(*v.shape[:3], 4, 4) for k, v in inp.items()}
     with pytest.raises(ValueError, match="learned positional embeddings"):
-        backbone.velocity(big["x"], torch.tensor([0.5]), big["image_latent"], big["plucker"], None, None)
+        backbone(big["x"], torch.tensor([0.5]), big["image_latent"], big["plucker"], None, None)
 
 
 # ---------------------------------------------------------------------------------------------- DDIM ≡ Euler
@@ -255,7 +255,7 @@ def test_euler_over_sigmas_reproduces_the_pipelines_ddim_latents(backbone, steps
         # The pipeline samples the image posterior with its generator: the same seed gives the same image latent.
         image_latent = backbone.encode_video((2 * image - 1).unsqueeze(2), generator=torch.Generator().manual_seed(7))
         text, mask = backbone.encode_text([PROMPT])
-        ours = euler_sample(lambda x, s: backbone.velocity(x, s.expand(1), image_latent, plucker, text, mask),
+        ours = euler_sample(lambda x, s: backbone(x, s.expand(1), image_latent, plucker, text, mask),
                             noise.permute(0, 2, 1, 3, 4), backbone.sigmas(steps))
     diff = (ours.permute(0, 2, 1, 3, 4) - ref).abs().max().item()
     assert diff <= 1e-5, diff
@@ -277,8 +277,8 @@ def test_write_load_round_trip_keeps_camera_weights_and_the_diffusers_layout(tmp
         text, mask = written.encode_text([PROMPT, ""])
         text2, mask2 = loaded.encode_text([PROMPT, ""])
         assert torch.equal(text, text2)
-        v1 = written.velocity(inp["x"], sigma, inp["image_latent"], inp["plucker"], text, mask)
-        v2 = loaded.velocity(inp["x"], sigma, inp["image_latent"], inp["plucker"], text2, mask2)
+        v1 = written(inp["x"], sigma, inp["image_latent"], inp["plucker"], text, mask)
+        v2 = loaded(inp["x"], sigma, inp["image_latent"], inp["plucker"], text2, mask2)
     assert torch.equal(v1, v2)
     assert torch.equal(written.sigmas(7), loaded.sigmas(7))
     plain = CogVideoXTransformer3DModel.from_config(written.transformer.config)

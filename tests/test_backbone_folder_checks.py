@@ -1,5 +1,5 @@
 """A diffusers backbone folder given to ``--checkpoint`` is checked before diffusers is imported or anything loads
-(:func:`models.backbones.model.check_backbone_folder`): a missing component folder or config, an absurd
+(:func:`models.backbone_model.check_backbone_folder`): a missing component folder or config, an absurd
 ``diff4splat.json`` and a missing ``[diffusers]`` extra are each one line, exit 2 (issue 61: tracebacks before)."""
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import pytest
 from helpers import EXAMPLE_IMAGE
 
 from diff4splat.cli import main
-from models.backbones.base import LatentFormat
-from models.backbones.model import BackboneModelConfig, check_backbone_folder
+from models.backbone import LatentFormat
+from models.backbone_model import BackboneModelConfig, check_backbone_folder
 
 COMPONENTS = {"transformer": ("diffusers", "WanTransformer3DModel", "config.json"),
               "vae": ("diffusers", "AutoencoderKLWan", "config.json"),

@@ -15,7 +15,7 @@ from simulated_cuda import SimulatedCudaTensor, simulated_cuda  # noqa: E402
 
 from diff4splat.cli import main  # noqa: E402
 from diff4splat.pipeline import Diff4SplatPipeline, load_model  # noqa: E402
-from models.backbones.model import BackboneModel, BackboneModelConfig  # noqa: E402
+from models.backbone_model import BackboneModel, BackboneModelConfig  # noqa: E402
 from models.deformation import DeformationConfig  # noqa: E402
 from models.flow_matching import FlowMatchingConfig  # noqa: E402
 from models.ldrm import LDRM, LDRMConfig  # noqa: E402
@@ -127,7 +127,7 @@ def test_a_folder_of_another_pipeline_is_refused(tmp_path):
 
 def test_a_folder_fresh_from_the_hub_gets_the_released_config_zero_camera_and_a_random_ldrm(tmp_path):
     """A Hub folder has none of ours: camera weights zero (the pretrained transformer exactly), the backbone's
-    released resolution and frames (models.backbones.model.DEFAULTS), the paper-size LDRM on its latents, random,
+    released resolution and frames (models.backbone_model.DEFAULTS), the paper-size LDRM on its latents, random,
     with a warning naming the missing ldrm/."""
     fixture = _fixture("cogvideox")
     fixture.tiny_backbone(0).write_pretrained(tmp_path)

@@ -13,8 +13,9 @@ pytestmark = pytest.mark.slow  # every test here: diffusers costs ~8 s to import
 pytest.importorskip("ftfy", reason="the Wan backbone module needs ftfy (diff4splat[diffusers])")
 
 from diff4splat.config_files import BACKBONE_CONFIGS  # noqa: E402
-from models.backbones.base import CameraPatchConv, LatentFormat  # noqa: E402
-from models.backbones.model import DEFAULTS, PIPELINES, BackboneModelConfig  # noqa: E402
+from models.backbone import LatentFormat  # noqa: E402
+from models.backbone_model import DEFAULTS, PIPELINES, BackboneModelConfig  # noqa: E402
+from models.backbones.diffusers_backbone import CameraPatchConv  # noqa: E402
 from models.backbones.sizes import (  # noqa: E402
     COMPONENTS,
     COUNT_KEYS,

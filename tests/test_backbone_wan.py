@@ -18,7 +18,7 @@ from safetensors import safe_open  # noqa: E402
 from safetensors.torch import save_file  # noqa: E402
 from tiny_wan import FRAMES, HEIGHT, WIDTH, tiny_wan, tiny_wan_components, write_tiny_wan  # noqa: E402
 
-from models.backbones.base import LatentFormat  # noqa: E402
+from models.backbone import LatentFormat  # noqa: E402
 from models.backbones.diffusers_backbone import CAMERA_FOLDER, CAMERA_WEIGHTS  # noqa: E402
 from models.backbones.wan import WanBackbone  # noqa: E402
 from models.flow_matching import euler_sample, sample_logit_normal, shift_sigmas  # noqa: E402
@@ -154,7 +154,7 @@ def test_velocity_is_the_diffusers_transformer_called_as_the_pipeline_does(backb
     sigma = torch.tensor([0.7, 0.25])
     text, mask = backbone.encode_text([PROMPT, ""])
     with torch.no_grad():
-        ours = backbone.velocity(x, sigma, image_latent, plucker, text, mask)
+        ours = backbone(x, sigma, image_latent, plucker, text, mask)
         with backbone.hub_transformer() as transformer:
             assert isinstance(transformer.patch_embedding, torch.nn.Conv3d)
             reference = torch.cat([_pipeline_call(transformer, x[i:i + 1], image_latent[i:i + 1], s, text[i:i + 1])
@@ -162,9 +162,9 @@ def test_velocity_is_the_diffusers_transformer_called_as_the_pipeline_does(backb
         # Frame 0 of x is not read; no prompt is the prompt "".
         x2 = x.clone()
         x2[:, :, 0] = torch.randn_like(x2[:, :, 0])
-        again = backbone.velocity(x2, sigma, image_latent, plucker, text, None)
-        no_prompt = backbone.velocity(x[1:], sigma[1:], image_latent[1:], plucker[1:], None, None)
-        with_empty = backbone.velocity(x[1:], sigma[1:], image_latent[1:], plucker[1:], text[1:], mask[1:])
+        again = backbone(x2, sigma, image_latent, plucker, text, None)
+        no_prompt = backbone(x[1:], sigma[1:], image_latent[1:], plucker[1:], None, None)
+        with_empty = backbone(x[1:], sigma[1:], image_latent[1:], plucker[1:], text[1:], mask[1:])
     assert ours.shape == x.shape and ours.dtype == torch.float32
     diff = (ours - reference).abs().max().item()
     print(f"velocity vs the diffusers transformer: max |diff| = {diff:.3g}")
@@ -177,10 +177,10 @@ def test_the_camera_branch_is_wired(backbone):
     x, image_latent, plucker = _inputs(backbone)
     sigma = torch.tensor([0.5, 0.5])
     with torch.no_grad():
-        before = backbone.velocity(x, sigma, image_latent, plucker, None, None)
-        assert torch.equal(before, backbone.velocity(x, sigma, image_latent, torch.zeros_like(plucker), None, None))
+        before = backbone(x, sigma, image_latent, plucker, None, None)
+        assert torch.equal(before, backbone(x, sigma, image_latent, torch.zeros_like(plucker), None, None))
         backbone.camera_conv.camera_weight.normal_(0, 0.02, generator=torch.Generator().manual_seed(0))
-        after = backbone.velocity(x, sigma, image_latent, plucker, None, None)
+        after = backbone(x, sigma, image_latent, plucker, None, None)
     assert (after - before).abs().max() > 1e-3
 
 
@@ -188,15 +188,15 @@ def test_velocity_shape_errors(backbone):
     x, image_latent, plucker = _inputs(backbone)
     sigma = torch.tensor([0.5, 0.5])
     with pytest.raises(ValueError, match="sigma"):
-        backbone.velocity(x, sigma[:1], image_latent, plucker, None, None)
+        backbone(x, sigma[:1], image_latent, plucker, None, None)
     with pytest.raises(ValueError, match="image_latent"):
-        backbone.velocity(x, sigma, image_latent[:, :, :, :2], plucker, None, None)
+        backbone(x, sigma, image_latent[:, :, :, :2], plucker, None, None)
     with pytest.raises(ValueError, match="plucker"):
-        backbone.velocity(x, sigma, image_latent, plucker[:, :6], None, None)
+        backbone(x, sigma, image_latent, plucker[:, :6], None, None)
     with pytest.raises(ValueError, match="patch_size"):
-        backbone.velocity(x[..., :1], sigma, image_latent[..., :1], plucker[..., :1], None, None)
+        backbone(x[..., :1], sigma, image_latent[..., :1], plucker[..., :1], None, None)
     with pytest.raises(ValueError, match="text"):
-        backbone.velocity(x, sigma, image_latent, plucker, torch.zeros(1, 512, 16), None)
+        backbone(x, sigma, image_latent, plucker, torch.zeros(1, 512, 16), None)
 
 
 def test_tensors_are_made_on_the_inputs_device(backbone, request):
@@ -207,10 +207,10 @@ def test_tensors_are_made_on_the_inputs_device(backbone, request):
     sigma = torch.tensor([0.6])
     with torch.no_grad():
         text, mask = backbone.encode_text([PROMPT])
-        expected = backbone.velocity(x, sigma, image_latent, plucker, None, None)
+        expected = backbone(x, sigma, image_latent, plucker, None, None)
         request.getfixturevalue("no_implicit_device")
-        outputs = [backbone.velocity(x, sigma, image_latent, plucker, text, mask),
-                   backbone.velocity(x, sigma, image_latent, plucker, None, None),
+        outputs = [backbone(x, sigma, image_latent, plucker, text, mask),
+                   backbone(x, sigma, image_latent, plucker, None, None),
                    backbone.decode_latents(backbone.encode_video(video)), backbone.sigmas(3),
                    backbone.training_sigmas(4, torch.Generator().manual_seed(0))]
     assert all(o.device.type == "cpu" for o in outputs)
@@ -224,12 +224,12 @@ def test_on_the_device(backbone, device, full_float32):
     sigma = torch.tensor([0.7])
     video = torch.rand(1, 3, 5, 32, 32, generator=torch.Generator().manual_seed(0)) * 2 - 1
     with torch.no_grad():
-        cpu = [backbone.velocity(x, sigma, image_latent, plucker, None, None), backbone.encode_video(video)]
+        cpu = [backbone(x, sigma, image_latent, plucker, None, None), backbone.encode_video(video)]
         backbone.to(device)
         text, mask = backbone.encode_text([""])
         args = [t.to(device) for t in (x, sigma, image_latent, plucker)]
-        out = [backbone.velocity(*args, None, None), backbone.encode_video(video.to(device)),
-               backbone.velocity(*args, text, mask)]
+        out = [backbone(*args, None, None), backbone.encode_video(video.to(device)),
+               backbone(*args, text, mask)]
         sig = backbone.training_sigmas(8, torch.Generator(device).manual_seed(0))
     assert text.device == mask.device == sig.device == out[0].device == out[1].device
     assert out[0].device.type == device.type
@@ -258,7 +258,7 @@ def test_euler_over_the_backbone_sigmas_reproduces_the_pipeline(backbone):
         image_latent = backbone.encode_video(pixels.unsqueeze(2))
         text, mask = backbone.encode_text([PROMPT])
         plucker = torch.zeros(1, backbone.latent.camera_channels, *LATENT)
-        ours = euler_sample(lambda x, s: backbone.velocity(x, s.expand(1), image_latent, plucker, text, mask),
+        ours = euler_sample(lambda x, s: backbone(x, s.expand(1), image_latent, plucker, text, mask),
                             noise, backbone.sigmas(steps))
     ours[:, :, :1] = image_latent  # as the pipeline does after its loop
     diff = (ours - reference).abs().max().item()
@@ -285,8 +285,8 @@ def test_write_and_load_round_trip(backbone, tmp_path):
             args = (None, None) if prompt is None else saved.encode_text([prompt, prompt])
             args2 = (None, None) if prompt is None else loaded.encode_text([prompt, prompt])
             assert prompt is None or torch.equal(args[0], args2[0])
-            assert torch.equal(saved.velocity(x, sigma, image_latent, plucker, *args),
-                               loaded.velocity(x, sigma, image_latent, plucker, *args2))
+            assert torch.equal(saved(x, sigma, image_latent, plucker, *args),
+                               loaded(x, sigma, image_latent, plucker, *args2))
     assert torch.equal(saved.sigmas(5), loaded.sigmas(5))
 
     # transformer/ keeps the checkpoint's key names: exactly a plain WanTransformer3DModel's, no camera_weight.
@@ -324,8 +324,8 @@ def test_a_hub_style_wan_pipeline_folder_loads(tmp_path):
     assert not loaded.camera_conv.camera_weight.any()
     x, image_latent, plucker = _inputs(saved, batch=1)
     with torch.no_grad():
-        assert torch.equal(saved.velocity(x, torch.tensor([0.5]), image_latent, plucker, None, None),
-                           loaded.velocity(x, torch.tensor([0.5]), image_latent, plucker, None, None))
+        assert torch.equal(saved(x, torch.tensor([0.5]), image_latent, plucker, None, None),
+                           loaded(x, torch.tensor([0.5]), image_latent, plucker, None, None))
 
 
 @pytest.mark.slow

@@ -99,8 +99,8 @@ DIFFUSERS_EXTRA = ("diffusers", "transformers", "peft", "sentencepiece", "ftfy")
 def test_the_default_paths_never_import_the_diffusers_extra():
     """The CPU default (generate with our networks, training our stages, ONNX export) imports none of the
     ``diffusers`` extra's packages: only a diffusers folder or a backbone stage loads them
-    (``models.backbones.model.backbone_class``, ``training.backbone_training``)."""
-    code = ("import sys, diff4splat.cli, diff4splat.generate, diff4splat.export, models.backbones.model, "
+    (``models.backbone_model.backbone_class``, ``training.backbone_training``)."""
+    code = ("import sys, diff4splat.cli, diff4splat.generate, diff4splat.export, models.backbone_model, "
             "training.train, training.objectives, training.evaluate_cli; "
             f"print(sorted(m for m in {DIFFUSERS_EXTRA!r} if m in sys.modules))")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)

@@ -116,7 +116,7 @@ def test_a_mask_of_only_real_tokens_is_dropped_and_padding_stays_masked(image, m
     pipe = Diff4SplatPipeline(_trained_cross_attention(tiny_model()))
     runtime = pipe.runtime
     seen, velocity, encode = [], runtime.velocity, runtime.encode_text
-    monkeypatch.setattr(runtime, "velocity", lambda *a: seen.append(a[-1]) or velocity(*a))
+    monkeypatch.setattr(runtime, "velocity", lambda *a, **k: seen.append(k["text_mask"]) or velocity(*a, **k))
     plain = _run(pipe, image, prompt="a cat turns its head")
     assert seen and all(m is None for m in seen)
 
@@ -341,9 +341,9 @@ def test_guidance_integrates_the_guided_velocity(image, monkeypatch):
     pipe = Diff4SplatPipeline(tiny_model(active_dit=True))
     cams = pipe.default_cameras("orbit", 5)
     calls = []
-    real = pipe.runtime.velocity
-    monkeypatch.setattr(pipe.runtime, "velocity", lambda x, s, il, pl, t, m: calls.append(t is not None)
-                        or real(x, s, il, pl, t, m))
+    real, dit = pipe.runtime.velocity, pipe.runtime.velocity_model
+    monkeypatch.setattr(pipe.runtime, "velocity_model", lambda x, s, il, pl, t, m: calls.append(t is not None)
+                        or dit(x, s, il, pl, t, m))
     base = pipe(image, cams, "a cat turns", steps=3)
     assert base.guidance == 1.0 and calls == [True] * 3
     calls.clear()

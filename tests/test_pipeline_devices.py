@@ -196,7 +196,7 @@ def test_the_plucker_rays_are_made_once_in_the_runtimes_input_dtype(image, monke
     for name in ("velocity", "reconstruct"):
         real = getattr(pipe.runtime, name)
         monkeypatch.setattr(pipe.runtime, name,
-                            lambda *a, real=real, **k: seen.append(a[3] if len(a) > 4 else a[1]) or real(*a, **k))
+                            lambda *a, real=real, **k: seen.append(k.get("plucker", a[1])) or real(*a, **k))
     res = pipe(image, pipe.default_cameras("arc", 5), PROMPT, steps=2)
     assert len(seen) == 3 and all(p is seen[0] for p in seen) and seen[0].dtype == torch.bfloat16
     monkeypatch.undo()

@@ -36,7 +36,7 @@ from data_prep.synth import generate_scene  # noqa: E402
 from diff4splat.cameras import pack_plucker, plucker_rays  # noqa: E402
 from diff4splat.cli import main as cli_main  # noqa: E402
 from diff4splat.devices import cpu_bf16_warning  # noqa: E402
-from models.backbones.model import BackboneModel, BackboneModelConfig  # noqa: E402
+from models.backbone_model import BackboneModel, BackboneModelConfig  # noqa: E402
 from models.ldrm import LDRM, LDRMConfig  # noqa: E402
 from training.backbone_training import add_lora, load_backbone_model, lora_layers, merged_lora  # noqa: E402
 from training.checkpoint import latest_checkpoint, load_checkpoint  # noqa: E402
@@ -184,9 +184,9 @@ def test_the_saved_model_reloads_with_the_trained_velocity(run):
     sigma = torch.tensor([0.3, 0.8])
     with torch.no_grad():
         text, mask = model.backbone.encode_text(["a red car drives down the street", ""])
-        trained = model.backbone.velocity(x, sigma, image, plucker, text, mask)
-        loaded = reloaded.backbone.velocity(x, sigma, image, plucker, text, mask)
-        initial = BackboneModel.from_pretrained(run["init"]).backbone.velocity(x, sigma, image, plucker, text, mask)
+        trained = model.backbone(x, sigma, image, plucker, text, mask)
+        loaded = reloaded.backbone(x, sigma, image, plucker, text, mask)
+        initial = BackboneModel.from_pretrained(run["init"]).backbone(x, sigma, image, plucker, text, mask)
     torch.testing.assert_close(loaded, trained, rtol=1e-5, atol=1e-5)
     assert float((trained - initial).abs().max()) > 1e-3  # training changed the velocity
 
@@ -327,16 +327,16 @@ def test_lora_starts_as_the_loaded_transformer_and_merges_under_its_own_names(na
             torch.randn(1, fmt.camera_channels, n, h, w, generator=g))
     with torch.no_grad():
         text, mask = backbone.encode_text(["a dog runs"])
-        base = backbone.velocity(*args, text, mask)
+        base = backbone(*args, text, mask)
         count = add_lora(transformer, LoraSettings(rank=2, alpha=4), seed=1)
         assert count == len(lora_layers(transformer)) > 0
-        assert torch.equal(backbone.velocity(*args, text, mask), base)  # B = 0
+        assert torch.equal(backbone(*args, text, mask), base)  # B = 0
         for _, layer in lora_layers(transformer):
             layer.lora_B["default"].weight.normal_(0, 0.1, generator=g)
-        adapted = backbone.velocity(*args, text, mask)
+        adapted = backbone(*args, text, mask)
         with merged_lora(transformer):
             assert not lora_layers(transformer) and set(transformer.state_dict()) == plain_keys
-            merged = backbone.velocity(*args, text, mask)
+            merged = backbone(*args, text, mask)
     assert lora_layers(transformer) and float((adapted - base).abs().max()) > 1e-3
     torch.testing.assert_close(merged, adapted, rtol=1e-5, atol=1e-5)
     with pytest.raises(ValueError, match="already has LoRA"):
@@ -375,7 +375,7 @@ def test_flow_loss_is_the_backbones_velocity_error_with_the_empty_prompt_for_dro
         noise = torch.randn(x0.shape, generator=gen)
         s = sigma[:, None, None, None, None]
         plucker = pack_plucker(batch["plucker"], fmt.temporal_factor, fmt.spatial_factor)
-        v = backbone.velocity((1 - s) * x0 + s * noise, sigma, x0[:, :, :1], plucker, None, None)
+        v = backbone((1 - s) * x0 + s * noise, sigma, x0[:, :, :1], plucker, None, None)
     first = 1 if name == "wan" else 0
     expected = ((v - (noise - x0))[:, :, first:] ** 2).mean()
     torch.testing.assert_close(flow, expected, rtol=1e-5, atol=1e-6)

@@ -5,15 +5,15 @@ Design:
 
 - **Loading** (:func:`load_backbone_model`). A stage with ``backbone: wan2.2-ti2v`` or ``cogvideox-i2v`` starts from a
   diffusers folder (``init_from`` with ``model_index.json``: the Hub's, or the previous stage's ``<run_dir>/model``),
-  loaded by :meth:`models.backbones.model.BackboneModel.from_pretrained` with the frozen weights in
+  loaded by :meth:`models.backbone_model.BackboneModel.from_pretrained` with the frozen weights in
   ``stage.backbone_dtype``. The weights that train (the patch embedding's camera weights, the LDRM) are float32: with
   a bfloat16 backbone they are read again from the folder in float32, so a bfloat16 load never rounds them.
 - **LoRA** (Hu et al. 2022) through peft's ``inject_adapter_in_model`` on the transformer's attention and FFN linear
   layers (:class:`training.stage_config.LoraSettings`, :data:`training.stage_config.LORA_TARGETS`): A drawn from
   ``trainer.seed``, B zero, so step 0 runs the loaded transformer exactly; the adapters are float32.
 - **Freezing** (:func:`apply_backbone_freezing`): ``dit`` trains the adapters and ``camera_weight`` of the
-  :class:`models.backbones.base.CameraPatchConv`, ``ldrm`` (and its parts) the LDRM in full; everything else of the
-  backbone (VAE, text encoder, the transformer's own weights) is frozen.
+  :class:`models.backbones.diffusers_backbone.CameraPatchConv`, ``ldrm`` (and its parts) the LDRM in full; everything
+  else of the backbone (VAE, text encoder, the transformer's own weights) is frozen.
 - **Checkpoints** (:mod:`training.checkpoint`) hold the training module's state dict as it is, the adapters under
   peft's names (``…attn1.to_q.base_layer.weight``, ``…attn1.to_q.lora_A.default.weight``); a resumed run builds the
   same model and loads them (exact resume, :class:`training.trainer.Trainer`).
@@ -40,8 +40,8 @@ from peft.tuners.lora import LoraLayer
 from safetensors.torch import load_file
 from torch import nn
 
+from models.backbone_model import LDRM_FOLDER, BackboneModel, folder_backbone
 from models.backbones.diffusers_backbone import CAMERA_FOLDER, CAMERA_WEIGHTS
-from models.backbones.model import LDRM_FOLDER, BackboneModel, folder_backbone
 from models.ldrm import LDRM
 
 from .stage_config import LoraSettings, StageConfig, apply_freezing
@@ -195,5 +195,5 @@ def save_backbone_model(model: BackboneModel, directory: str | os.PathLike, *, o
 
 def pixel_multiple(model: BackboneModel) -> int:
     """Clip heights and widths must be multiples of this many pixels: the VAE's spatial factor × the patch size of the
-    transformer (2×2) and of the LDRM (as :class:`models.backbones.model.BackboneModelConfig` checks its own size)."""
+    transformer (2×2) and of the LDRM (as :class:`models.backbone_model.BackboneModelConfig` checks its own size)."""
     return model.backbone.latent.spatial_factor * max(2, model.config.ldrm.patch_size)

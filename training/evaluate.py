@@ -68,6 +68,7 @@ import math
 import statistics
 import time
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -401,20 +402,17 @@ def stiffness_profile(pipe: Diff4SplatPipeline, clip: dict, steps: int = 16, sub
     captured: dict = {}
     original = runtime.velocity
 
-    def recorder(x, sigma, *cond):
+    def recorder(x, sigma, **cond):
         captured.setdefault("cond", cond)
         captured.setdefault("shape", x.shape)
-        return original(x, sigma, *cond)
+        return original(x, sigma, **cond)
 
     runtime.velocity = recorder
     try:
         pipe(image, cams, clip["caption"], steps=1, sampler="euler", seed=seed)
     finally:
         del runtime.velocity  # restore the class method
-    cond = captured["cond"]
-
-    def v(x: Tensor, sigma: Tensor) -> Tensor:
-        return original(x, sigma.reshape(1).to(x), *cond)
+    v = partial(original, **captured["cond"])  # σ as the sampler gives it (0-dim)
 
     dev = pipe.device
     gen = torch.Generator(device="cpu").manual_seed(seed)  # CPU draws, moved: the same numbers on every device

@@ -1,11 +1,11 @@
 """The training objectives of each stage, as one module whose ``forward(batch, generator)`` returns losses.
 
 Computing the objective inside ``forward`` lets DDP / FSDP wrap :class:`TrainingModule` and synchronise
-gradients as usual. The video networks are reached through a :class:`models.backbones.base.Backbone`
-(``encode_video``, ``encode_text``, ``velocity``, ``training_sigmas``), so the same objectives train our networks
+gradients as usual. The video networks are reached through a :class:`models.backbone.Backbone`
+(``encode_video``, ``encode_text``, ``velocity_model``, ``training_sigmas``), so the same objectives train our networks
 (:class:`models.bundle.Diff4SplatModel`, through :class:`models.backbones.ours.OursBackbone`: the networks' own calls,
 σ shifted by the stage's ``flow_shift``) and a pretrained diffusers backbone with our LDRM
-(:class:`models.backbones.model.BackboneModel`; LoRA, freezing, loading and saving in
+(:class:`models.backbone_model.BackboneModel`; LoRA, freezing, loading and saving in
 :mod:`training.backbone_training`). Batches are :class:`data_prep.clips.ClipDataset` items collated by the default
 collate (``video`` (B,3,T,H,W) in [0,1], ``viewmats``/``Ks`` (B,T,4,4)/(B,T,3,3), ``times`` (B,T),
 ``plucker_packed`` (B,1536,n,h,w) and/or ``plucker`` (B,T,H,W,6), ``depth``/``depth_valid`` (B,T,H,W),
@@ -18,9 +18,11 @@ Under bf16 autocast the VAE latents, the flow-matching targets, are kept in the 
 
 Camera conditioning: ``plucker_packed`` is packed for the 4×8×8 grid of our VAE (and CogVideoX's); for a backbone with
 another latent grid (Wan2.2: 4×16×16) the rays (``plucker`` (B,T,H,W,6) when the dataset gives them, else from
-``viewmats``/``Ks``) are packed for the backbone's :class:`models.backbones.base.LatentFormat`.
+``viewmats``/``Ks``) are packed for the backbone's :class:`models.backbone.LatentFormat`.
 """
 from __future__ import annotations
+
+from functools import partial
 
 import torch
 from torch import Tensor, nn
@@ -35,8 +37,8 @@ from diff4splat.prune import settle_generated
 from diff4splat.render import rasterize
 from diff4splat.render.settings import EPS2D
 from diff4splat.scene import DynamicGaussians
-from models.backbones.base import Backbone, LatentFormat
-from models.backbones.model import BackboneModel
+from models.backbone import Backbone, LatentFormat
+from models.backbone_model import BackboneModel
 from models.backbones.ours import OursBackbone
 from models.bundle import Diff4SplatModel
 from models.ldrm import LDRM, LDRMOutput, distance_activation, source_frame_indices
@@ -290,7 +292,7 @@ class TrainingModule(nn.Module):
         has_text = torch.tensor([bool(c.strip()) for c in captions], device=dev)
         keep = ~drop & has_text
         with torch.no_grad():  # frozen text encoder (as the paper's frozen T5)
-            if backbone.encodes_empty_prompt:  # its unconditional input: the embedding of "" (velocity's text=None)
+            if backbone.encodes_empty_prompt:  # its unconditional input: the embedding of "" (text=None)
                 prompts = [c if k else "" for c, k in zip(captions, keep.tolist(), strict=True)]
                 text, mask = backbone.encode_text(prompts)
             else:  # ours: no prompt is no text tokens, and an all-false mask is exactly that path
@@ -300,8 +302,10 @@ class TrainingModule(nn.Module):
         image_latent = latents[:, :, :1]
         sigma = backbone.training_sigmas(B, gen).to(latents)
         noise = torch.randn(latents.shape, generator=gen, device=gen.device).to(latents)
-        return flow_matching_loss(lambda x, s: backbone.velocity(x, s, image_latent, plucker, text, mask), latents,
-                                  noise, sigma, from_frame=FLOW_LOSS_FROM_FRAME.get(backbone.kind, 0))
+        velocity = partial(backbone.velocity_model, image_latent=image_latent, plucker=plucker, text=text,
+                           text_mask=mask)
+        return flow_matching_loss(velocity, latents, noise, sigma,
+                                  from_frame=FLOW_LOSS_FROM_FRAME.get(backbone.kind, 0))
 
     def _assemble(self, out: LDRMOutput, sources: Tensor, batch: dict, b: int, times: Tensor | None
                   ) -> tuple[DynamicGaussians, dict]:

@@ -26,7 +26,7 @@ from torch import nn
 
 from diff4splat.config_files import STAGE_CONFIGS
 from diff4splat.io.structured import read_yaml
-from models.backbones.base import BACKBONE_KINDS
+from models.backbone import BACKBONE_KINDS
 from models.bundle import DEFAULT_CONFIG
 from models.pretrained import config_from_dict
 
@@ -132,7 +132,7 @@ class StageConfig:
         kl_weight: weight of the VAE KL term (per element, β-VAE style).
         caption_dropout: probability of training the DiT without text (the empty-prompt path).
         flow_shift: timestep shift of the logit-normal training σ of our DiT (a diffusers backbone draws σ its own
-            way: :meth:`models.backbones.base.Backbone.training_sigmas`).
+            way: :meth:`models.backbone.Backbone.training_sigmas`).
         backbone: ``ours`` (our VAE, text encoder and DiT) or a diffusers backbone (``wan2.2-ti2v``,
             ``cogvideox-i2v``), which ``init_from`` must then hold (a folder with ``model_index.json``). A diffusers
             backbone's ``train`` may list ``dit`` (its transformer through LoRA, plus the camera weights of the

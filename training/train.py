@@ -36,7 +36,7 @@ from diff4splat.checks import MissingExtraError
 from diff4splat.devices import resolve_device
 from diff4splat.errors import run_cli
 from diff4splat.io.output_folders import check_output_dir
-from models.backbones.model import INDEX_FILE, BackboneModel
+from models.backbone_model import INDEX_FILE, BackboneModel
 from models.bundle import Diff4SplatModel, load_config
 from models.ldrm import LDRM
 from models.pretrained import CONFIG_NAME

@@ -1,5 +1,5 @@
 """CogVideoX-5B-I2V (Yang et al. 2024, "CogVideoX: Text-to-Video Diffusion Models with An Expert Transformer") as a
-:class:`models.backbones.base.Backbone`, over diffusers' components (``THUDM/CogVideoX-5b-I2V``: the
+:class:`models.backbone.Backbone`, over diffusers' components (``THUDM/CogVideoX-5b-I2V``: the
 ``CogVideoXTransformer3DModel``, ``AutoencoderKLCogVideoX``, the T5-XXL encoder and tokenizer, the
 ``CogVideoXDDIMScheduler``), loaded from and saved to the Hub folder layout (:mod:`.diffusers_backbone`).
 
@@ -12,7 +12,7 @@ Distillation for Fast Sampling of Diffusion Models", §4): ``x_t = α·x0 + s·�
     x = x_t/(α + s) = (1 − σ)·x0 + σ·ε,    σ = s/(α + s),
 
 is our straight path (models/flow_matching.py), and the v-prediction gives its velocity ``ε − x0``
-(:func:`models.backbones.base.vpred_to_flow`). A DDIM step with η = 0 (diffusers'
+(:func:`vpred_to_flow`). A DDIM step with η = 0 (diffusers'
 ``CogVideoXDDIMScheduler.step``: ``x_t' = a·x_t + b·x̂0``, ``a = s'/s``, ``b = α' − α·s'/s``) maps the predicted
 ``x̂0``, ``ε̂`` to ``α'·x̂0 + s'·ε̂``, and an Euler step of ``dx/dσ = ε̂ − x̂0`` from σ to σ' maps them to
 ``(1 − σ')·x̂0 + σ'·ε̂``: the same point, so our Euler sampler over :meth:`CogVideoXBackbone.sigmas` reproduces the
@@ -26,10 +26,28 @@ import torch
 from diffusers import AutoencoderKLCogVideoX, CogVideoXImageToVideoPipeline
 from torch import Tensor, nn
 
-from .base import LatentFormat, check_velocity_inputs, vpred_to_flow
+from ..backbone import LatentFormat, check_velocity_inputs
 from .diffusers_backbone import DiffusersBackbone
 
-__all__ = ["CogVideoXBackbone"]
+__all__ = ["CogVideoXBackbone", "vpred_to_flow"]
+
+
+def vpred_to_flow(x_t: Tensor, v: Tensor, alpha: Tensor, sigma_ddpm: Tensor) -> Tensor:
+    """A v-prediction (Salimans & Ho 2022, §4: ``v = α·ε − σ·x0``) as the flow-matching velocity ``ε − x0``.
+
+    With α² + σ² = 1: ``x0 = α·x_t − σ·v`` and ``ε = σ·x_t + α·v``.
+
+    Args:
+        x_t: (B, ...) the DDPM state ``α·x0 + σ·ε``.
+        v: (B, ...) the network's v-prediction.
+        alpha, sigma_ddpm: (B,) √ᾱ_t and √(1 − ᾱ_t) of each sample's timestep.
+
+    Returns:
+        (B, ...) ``ε − x0`` = ``(σ − α)·x_t + (α + σ)·v``.
+    """
+    shape = (-1,) + (1,) * (x_t.dim() - 1)
+    a, s = alpha.reshape(shape).to(x_t), sigma_ddpm.reshape(shape).to(x_t)
+    return (s - a) * x_t + (a + s) * v
 
 
 def _check_int(name: str, value: int, low: int) -> None:
@@ -42,7 +60,7 @@ class CogVideoXBackbone(DiffusersBackbone):
 
     The transformer's input per latent frame is, on channels, ``[x_t, image latent, Plücker rays]``: the image
     latent in frame 0 and zeros after it (``CogVideoXImageToVideoPipeline.prepare_latents``), the rays through the
-    zero-initialised camera weights of ``patch_embed.proj`` (:class:`models.backbones.base.CameraPatchConv`).
+    zero-initialised camera weights of ``patch_embed.proj`` (:class:`.diffusers_backbone.CameraPatchConv`).
 
     Args:
         transformer: a CogVideoX 1.0 ``CogVideoXTransformer3DModel`` (``patch_size_t`` None: a Conv2d patch
@@ -114,7 +132,7 @@ class CogVideoXBackbone(DiffusersBackbone):
 
         These are the latents CogVideoX denoises (the pipeline's ``decode_latents`` divides by
         ``scaling_factor``) whatever ``invert_scale_latents`` says; that flag concerns only the image conditioning
-        and is applied in :meth:`velocity`.
+        and is applied in :meth:`forward`.
 
         Raises:
             ValueError: not (B, 3, T, H, W), T ≠ 1 + 4k, or H, W not multiples of 8.
@@ -197,15 +215,15 @@ class CogVideoXBackbone(DiffusersBackbone):
 
     # ---------------------------------------------------------------------------------------------- transformer
 
-    def velocity(self, x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor,
-                 text: Tensor | None, text_mask: Tensor | None) -> Tensor:
+    def forward(self, x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor,
+                text: Tensor | None, text_mask: Tensor | None) -> Tensor:
         """Flow-matching velocity ``ε − x0`` from CogVideoX's v-prediction.
 
         σ → its timestep t (:meth:`timesteps`), ``x_t = (α + s)·x``; the transformer runs as
         ``CogVideoXImageToVideoPipeline.__call__`` runs it: ``hidden_states`` (B, n, C, h, w) with channels
         ``[x_t, image latent | zeros, plucker]``, ``timestep`` t per sample, rotary embeddings from the pipeline's
         ``_prepare_rotary_positional_embeddings``, ``ofs`` 2.0 where the transformer has an ofs embedding; the
-        prediction (in float32) goes through :func:`models.backbones.base.vpred_to_flow`. The transformer runs
+        prediction (in float32) goes through :func:`vpred_to_flow`. The transformer runs
         in its own dtype. With learned positional embeddings (CogVideoX-5B-I2V) and a frame count other than the
         transformer's ``sample_frames`` (49 frames, 13 latent frames), diffusers' patch embedding substitutes
         sin-cos embeddings for the learned ones, in its pipeline as here.

@@ -4,7 +4,7 @@ folder layout they are loaded from and saved to (docs/DESIGN.md, "Backbones").
 A backbone folder is the diffusers layout of the Hub repositories (``model_index.json``, ``transformer/``,
 ``vae/``, ``text_encoder/``, ``tokenizer/``, ``scheduler/``: ``Wan-AI/Wan2.2-TI2V-5B-Diffusers``,
 ``THUDM/CogVideoX-5b-I2V``), loaded by the diffusers pipeline class itself, plus ``camera/model.safetensors``: the
-zero-initialised camera weights of the patch embedding (:class:`models.backbones.base.CameraPatchConv`), absent in a
+zero-initialised camera weights of the patch embedding (:class:`CameraPatchConv`), absent in a
 folder fresh from the Hub (then they start at zero). ``transformer/`` keeps the checkpoint's own key names, so the
 folder we write is still loadable by diffusers alone.
 
@@ -20,15 +20,17 @@ from pathlib import Path
 from typing import ClassVar
 
 import torch
+import torch.nn.functional as F
 from diffusers import DiffusionPipeline
 from safetensors.torch import load_file, save_file
 from torch import Tensor, nn
 
 from diff4splat.io.structured import read_json
 
-from .base import INDEX_FILE, Backbone, CameraPatchConv, LatentFormat
+from ..backbone import Backbone, LatentFormat
+from ..backbone_model import INDEX_FILE
 
-__all__ = ["DiffusersBackbone", "CAMERA_FOLDER", "CAMERA_WEIGHTS"]
+__all__ = ["DiffusersBackbone", "CameraPatchConv", "CAMERA_FOLDER", "CAMERA_WEIGHTS"]
 
 CAMERA_FOLDER = "camera"
 CAMERA_WEIGHTS = "model.safetensors"
@@ -46,6 +48,55 @@ def _set(module: nn.Module, path: str, value: nn.Module) -> None:
     for name in parents:
         module = getattr(module, name)
     setattr(module, last, value)
+
+
+class CameraPatchConv(nn.Module):
+    """A transformer's patch-embedding convolution widened by ``camera_channels`` input channels whose weights
+    start at zero (the authors' code, paulpanwang/Diff4Splat: Plücker rays as extra patch-embedding channels).
+
+    The input is ``cat([x, plucker], dim=1)``: the first ``in_channels`` go through the pretrained ``weight`` and
+    ``bias``, the rest through ``camera_weight`` (no bias); the sum is the widened convolution (a convolution is
+    linear in its input channels). Kept as two weights so that ``weight``/``bias`` keep the pretrained checkpoint's
+    key names (``patch_embedding.weight``; the transformer folder stays loadable by diffusers) and, with
+    ``camera_weight`` at zero, the output is the pretrained convolution's bit for bit (adding +0.0).
+
+    Args:
+        conv: the pretrained ``nn.Conv2d`` or ``nn.Conv3d`` (kernel = stride, no padding); its parameters are
+            taken over, not copied.
+        camera_channels: extra input channels (6·t·s²).
+    """
+
+    def __init__(self, conv: nn.Conv2d | nn.Conv3d, camera_channels: int):
+        super().__init__()
+        if not isinstance(conv, (nn.Conv2d, nn.Conv3d)):
+            raise TypeError(f"conv must be an nn.Conv2d or nn.Conv3d, got {type(conv).__name__}")
+        self.in_channels, self.camera_channels = conv.in_channels, camera_channels
+        self.stride, self.padding = conv.stride, conv.padding
+        self.weight, self.bias = conv.weight, conv.bias
+        self._conv = F.conv3d if isinstance(conv, nn.Conv3d) else F.conv2d
+        # Zero-init: the pretrained transformer is unchanged until the camera branch is trained.
+        shape = (conv.out_channels, camera_channels, *conv.kernel_size)
+        self.camera_weight = nn.Parameter(torch.zeros(shape, device=conv.weight.device, dtype=conv.weight.dtype))
+
+    def forward(self, x: Tensor) -> Tensor:  # (B, in + camera, [T,] H, W)
+        """The widened patch embedding: conv(x[:, :in]) + conv_camera(x[:, in:]).
+
+        Args:
+            x: (B, in_channels + camera_channels, T, H, W) for a Conv3d, (B, in_channels + camera_channels, H, W)
+                for a Conv2d: latents concatenated with packed Plücker rays along dim 1.
+
+        Returns:
+            (B, out_channels, T', H', W') or (B, out_channels, H', W'): the pretrained convolution's output size
+            (⌊T/k_t⌋, ⌊H/k_h⌋, ⌊W/k_w⌋ for kernel = stride and no padding).
+
+        Raises:
+            ValueError: ``x.shape[1]`` ≠ in_channels + camera_channels.
+        """
+        if x.shape[1] != self.in_channels + self.camera_channels:
+            raise ValueError(f"CameraPatchConv: expected {self.in_channels} + {self.camera_channels} channels, "
+                             f"got {x.shape[1]}")
+        out = self._conv(x[:, :self.in_channels], self.weight, self.bias, self.stride, self.padding)
+        return out + self._conv(x[:, self.in_channels:], self.camera_weight, None, self.stride, self.padding)
 
 
 class DiffusersBackbone(Backbone):
@@ -99,6 +150,12 @@ class DiffusersBackbone(Backbone):
         dist = self.vae.encode(video.to(self.vae.dtype)).latent_dist
         z = dist.mode() if generator is None else dist.sample(generator)
         return z.to(device=video.device, dtype=torch.float32)
+
+    @property
+    def velocity_model(self) -> DiffusersBackbone:
+        """The backbone itself: its ``forward`` (each subclass's) runs the transformer the way its diffusers pipeline
+        does and returns the velocity in our convention (:attr:`models.backbone.Backbone.velocity_model`)."""
+        return self
 
     @property
     def camera_conv(self) -> CameraPatchConv:

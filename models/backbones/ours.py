@@ -1,16 +1,17 @@
-"""Our own networks as a :class:`models.backbones.base.Backbone`: the video VAE, the byte-level T5 text encoder
+"""Our own networks as a :class:`models.backbone.Backbone`: the video VAE, the byte-level T5 text encoder
 and the VideoDiT of a :class:`models.bundle.Diff4SplatModel` (the CPU default), unchanged: every method is a call
-of the network's own method, so outputs are bit-identical to calling the networks directly."""
+of the network's own method, and the velocity network is the DiT itself, so outputs are bit-identical to calling
+the networks directly."""
 from __future__ import annotations
 
 import torch
 from torch import Tensor, nn
 
+from ..backbone import Backbone
 from ..dit import VideoDiT
 from ..flow_matching import sample_logit_normal, shift_sigmas, sigma_schedule
 from ..text_encoder import TextEncoder
 from ..vae import VideoVAE
-from .base import Backbone
 
 __all__ = ["OursBackbone"]
 
@@ -58,23 +59,14 @@ class OursBackbone(Backbone):
         """
         return self.text_encoder.encode(prompts)
 
-    def velocity(self, x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor,
-                 text: Tensor | None, text_mask: Tensor | None) -> Tensor:
-        """:meth:`VideoDiT.forward` (the image latent concatenated with a frame-0 mask; no prompt: no text
-        tokens, the text encoder does not run).
-
-        Args:
-            x: (B, c, n, h, w) state at ``sigma``.  sigma: (B,) in [0, 1].  image_latent: (B, c, 1, h, w).
-            plucker: (B, 6·t·s², n, h, w) packed Plücker rays.  text, text_mask: (B, L, d_text), (B, L) bool,
-                or None.
-
-        Returns:
-            (B, c, n, h, w) velocity ε − x0, in the DiT's parameter dtype.
-
-        Raises:
-            ValueError: from :meth:`VideoDiT.forward` (a shape or dtype, σ outside [0, 1], mask without text).
-        """
-        return self.dit(x, sigma, image_latent, plucker, text, text_mask)
+    @property
+    def velocity_model(self) -> VideoDiT:
+        """The DiT: :meth:`VideoDiT.forward` is the velocity (the image latent concatenated with a frame-0 mask; no
+        prompt: no text tokens, the text encoder does not run). It takes x (B, c, n, h, w), sigma (B,) in [0, 1],
+        image_latent (B, c, 1, h, w), plucker (B, 6·t·s², n, h, w), text (B, L, d_text) and text_mask (B, L) bool
+        or None, and returns (B, c, n, h, w) ε − x0 in its parameter dtype; ValueError for a shape or dtype, σ
+        outside [0, 1], a mask without text."""
+        return self.dit
 
     def sigmas(self, steps: int) -> Tensor:
         """:func:`models.flow_matching.sigma_schedule` with :attr:`shift`: (steps + 1,) float64, decreasing from

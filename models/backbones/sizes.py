@@ -10,8 +10,8 @@ them, ``scripts/convert_wan_to_diffusers.py`` (``get_transformer_config("Wan2.2-
 ``scaling_factor`` 0.7, ``snr_shift_scale`` 1.0, ``google/t5-v1_1-xxl``) of github.com/huggingface/diffusers
 (the revision read: docs/DESIGN.md, "Backbones").
 
-:func:`parameter_counts` builds the backbone the way :class:`models.backbones.model.BackboneModel` does — the
-:class:`~models.backbones.base.Backbone` subclass of the folder's pipeline (which checks the configuration: channels,
+:func:`parameter_counts` builds the backbone the way :class:`models.backbone_model.BackboneModel` does — the
+:class:`~models.backbone.Backbone` subclass of the folder's pipeline (which checks the configuration: channels,
 VAE factors, scheduler) with its camera-widened patch embedding, and the LDRM at
 :meth:`BackboneModelConfig.for_backbone`'s sizes — so the counts are those of the model ``generate`` would run.
 
@@ -30,9 +30,9 @@ from torch import nn
 from diff4splat.config_files import BACKBONE_CONFIGS
 from diff4splat.io.structured import read_json
 
+from ..backbone_model import PIPELINES, BackboneModel, BackboneModelConfig, backbone_class
 from ..ldrm import LDRM
 from ..pretrained import count_parameters
-from .model import PIPELINES, BackboneModel, BackboneModelConfig, backbone_class
 
 __all__ = ["backbone_names", "backbone_config", "meta_backbone", "meta_model", "parameter_counts", "COMPONENTS",
            "COUNT_KEYS"]
@@ -128,9 +128,10 @@ def parameter_counts(name: str) -> dict[str, int]:
 
     Returns:
         ``transformer`` (the Hub transformer), ``vae``, ``text_encoder`` (the encoder only), ``camera`` (the
-        :class:`~models.backbones.base.CameraPatchConv`'s zero-initialised weights: out_channels × 6·t·s² × the
-        patch kernel), ``ldrm`` (:class:`models.ldrm.LDRM` on the backbone's latents at the paper's sizes) and
-        ``total``. Buffers are not counted (CogVideoX-5B-I2V's learned positional embedding is a diffusers buffer).
+        :class:`~models.backbones.diffusers_backbone.CameraPatchConv`'s zero-initialised weights: out_channels ×
+        6·t·s² × the patch kernel), ``ldrm`` (:class:`models.ldrm.LDRM` on the backbone's latents at the paper's
+        sizes) and ``total``. Buffers are not counted (CogVideoX-5B-I2V's learned positional embedding is a
+        diffusers buffer).
     """
     model = meta_model(name)
     counts = model.parameter_counts()  # vae, text_encoder, dit (with the camera weights), ldrm, total

@@ -1,4 +1,4 @@
-"""Wan2.2-TI2V-5B as a :class:`models.backbones.base.Backbone`: diffusers' ``AutoencoderKLWan`` (48 channels,
+"""Wan2.2-TI2V-5B as a :class:`models.backbone.Backbone`: diffusers' ``AutoencoderKLWan`` (48 channels,
 4×16×16 compression), the UMT5-XXL text encoder and ``WanTransformer3DModel`` with its patch embedding widened by the
 camera channels (docs/DESIGN.md, "Backbones").
 
@@ -28,8 +28,8 @@ import torch
 from diffusers import AutoencoderKLWan, WanImageToVideoPipeline
 from torch import Tensor, nn
 
+from ..backbone import LatentFormat, check_velocity_inputs
 from ..flow_matching import sample_logit_normal, shift_sigmas
-from .base import LatentFormat, check_velocity_inputs
 from .diffusers_backbone import DiffusersBackbone
 
 __all__ = ["WanBackbone"]
@@ -38,7 +38,7 @@ __all__ = ["WanBackbone"]
 class WanBackbone(DiffusersBackbone):
     """Wan2.2-TI2V-5B: ``AutoencoderKLWan`` + UMT5 + ``WanTransformer3DModel`` (camera-widened patch embedding).
 
-    Conventions (module :mod:`models.backbones.base`):
+    Conventions (module :mod:`models.backbone`):
 
     - **Latents**: ``(z − latents_mean)/latents_std`` per channel of the VAE's posterior (the pipeline's
       ``prepare_latents`` writes it ``(z − mean)·(1/std)``, and so do we, for the same bits), (B, 48, n, H/16, W/16).
@@ -191,8 +191,8 @@ class WanBackbone(DiffusersBackbone):
 
     # ---------------------------------------------------------------- transformer
 
-    def velocity(self, x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor,
-                 text: Tensor | None, text_mask: Tensor | None) -> Tensor:
+    def forward(self, x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor,
+                text: Tensor | None, text_mask: Tensor | None) -> Tensor:
         """Flow-matching velocity ``ε − x0`` from the camera-conditioned transformer, the way
         ``WanImageToVideoPipeline.__call__`` calls it with ``expand_timesteps=True``: latent frame 0 of ``x``
         replaced by ``image_latent``; per-token timesteps (B, seq_len), 0 for the tokens of latent frame 0 and
@@ -265,7 +265,7 @@ class WanBackbone(DiffusersBackbone):
         Returns:
             (steps + 1,) float64 on the CPU, strictly decreasing from about 1 (1 for the flow-matching Euler
             scheduler; 1 − 1e-6 for UniPC's flow sigmas) to 0. Checked: the scheduler's timesteps are
-            ``σ·num_train_timesteps``, the timestep :meth:`velocity` gives the transformer (exactly for the
+            ``σ·num_train_timesteps``, the timestep :meth:`forward` gives the transformer (exactly for the
             flow-matching Euler scheduler; UniPC truncates them to integers, so its pipeline's timesteps are up to
             1 lower than ours: 1/1000 of the range).
 

@@ -25,16 +25,18 @@ from diff4splat.checks import MissingExtraError
 from diff4splat.io.output_folders import output_dir
 from diff4splat.io.structured import read_json
 
-from ..bundle import Diff4SplatConfig, check_generated
-from ..flow_matching import FlowMatchingConfig
-from ..ldrm import LDRM, LDRMConfig
-from ..pretrained import CONFIG_NAME, MODEL_KIND, WEIGHTS_NAME, check_model_size, config_from_dict, count_parameters
-from .base import INDEX_FILE, Backbone, LatentFormat
+from .backbone import Backbone, LatentFormat
+from .bundle import Diff4SplatConfig, check_generated
+from .flow_matching import FlowMatchingConfig
+from .ldrm import LDRM, LDRMConfig
+from .pretrained import CONFIG_NAME, MODEL_KIND, WEIGHTS_NAME, check_model_size, config_from_dict, count_parameters
 
 __all__ = ["BackboneModel", "BackboneModelConfig", "backbone_class", "folder_backbone", "DEFAULTS",
            "CONFIG_FILE", "INDEX_FILE", "PIPELINES"]
 
 CONFIG_FILE = "diff4splat.json"
+INDEX_FILE = "model_index.json"
+"""The file that makes a folder a diffusers pipeline (the Hub layout of a backbone)."""
 LDRM_FOLDER = "ldrm"
 
 PIPELINES = {

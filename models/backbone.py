@@ -1,27 +1,28 @@
 """What the pipeline and the training stages need from a video backbone: VAE + text encoder + a
-camera-conditioned video transformer (docs/DESIGN.md, "Backbones").
+camera-conditioned video transformer (docs/DESIGN.md, "Backbones"): the :class:`Backbone` interface, the
+:class:`LatentFormat` of its latents and the shape checks of its velocity (:func:`check_velocity_inputs`).
 
-Three implementations: our own networks (:mod:`models.backbones.ours`, the CPU default), Wan2.2-TI2V-5B
-(:mod:`models.backbones.wan`) and CogVideoX-5B-I2V (:mod:`models.backbones.cogvideox`), the last two built from
-diffusers' modules (the optional extra ``diff4splat[diffusers]``).
+Three implementations, the adapters of :mod:`models.backbones`: our own networks (:mod:`models.backbones.ours`, the
+CPU default), Wan2.2-TI2V-5B (:mod:`models.backbones.wan`) and CogVideoX-5B-I2V (:mod:`models.backbones.cogvideox`),
+the last two built from diffusers' modules (the optional extra ``diff4splat[diffusers]``).
 
 Conventions every backbone obeys, whatever its own:
 
 - **Latents** are the transformer's inputs: the VAE's posterior mean *normalised the backbone's way* (ours
   ``a·(z − b)``, Wan ``(z − mean)/std`` per channel, CogVideoX ``z·scaling_factor``), shape (B, c, n, h, w)
   channel-first with n = 1 + (T − 1)/t latent frames, h = H/s, w = W/s (:class:`LatentFormat`).
-- **Flow matching, σ convention**: ``x_σ = (1 − σ)·x0 + σ·ε`` with σ = 1 pure noise, and :meth:`Backbone.velocity`
-  returns ``v = ε − x0`` (models/flow_matching.py). Wan is trained in exactly this convention (timestep = 1000·σ);
-  CogVideoX is a v-prediction DDPM whose prediction is converted (:func:`vpred_to_flow`): a DDIM (η = 0) step
-  between two of its timesteps is an Euler step of this ODE between their σ, so our samplers reproduce its
-  scheduler's latents.
-- **First-frame conditioning** happens inside :meth:`Backbone.velocity` from ``image_latent`` (B, c, 1, h, w),
-  the backbone's way (ours: concatenated with a frame mask; Wan: latent frame 0 replaced and its tokens given
-  timestep 0; CogVideoX: the image latent concatenated on channels, zero after frame 0).
+- **Flow matching, σ convention**: ``x_σ = (1 − σ)·x0 + σ·ε`` with σ = 1 pure noise, and
+  :attr:`Backbone.velocity_model` returns ``v = ε − x0`` (models/flow_matching.py). Wan is trained in exactly this
+  convention (timestep = 1000·σ); CogVideoX is a v-prediction DDPM whose prediction is converted
+  (:func:`models.backbones.cogvideox.vpred_to_flow`): a DDIM (η = 0) step between two of its timesteps is an Euler
+  step of this ODE between their σ, so our samplers reproduce its scheduler's latents.
+- **First-frame conditioning** happens inside :attr:`Backbone.velocity_model` from ``image_latent``
+  (B, c, 1, h, w), the backbone's way (ours: concatenated with a frame mask; Wan: latent frame 0 replaced and its
+  tokens given timestep 0; CogVideoX: the image latent concatenated on channels, zero after frame 0).
 - **Camera conditioning**: ``plucker`` (B, 6·t·s², n, h, w) Plücker rays packed onto the latent grid
   (:func:`diff4splat.cameras.pack_plucker`). The diffusers transformers see them as extra input channels of their
-  patch embedding, whose new weights start at zero (:class:`CameraPatchConv`): an untrained camera branch leaves
-  the pretrained transformer exactly as it was.
+  patch embedding, whose new weights start at zero (:class:`models.backbones.diffusers_backbone.CameraPatchConv`):
+  an untrained camera branch leaves the pretrained transformer exactly as it was.
 """
 from __future__ import annotations
 
@@ -29,16 +30,12 @@ import abc
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
-__all__ = ["LatentFormat", "Backbone", "CameraPatchConv", "vpred_to_flow", "check_velocity_inputs", "BACKBONE_KINDS",
-           "INDEX_FILE"]
+__all__ = ["LatentFormat", "Backbone", "check_velocity_inputs", "BACKBONE_KINDS"]
 
 BACKBONE_KINDS = ("ours", "wan2.2-ti2v", "cogvideox-i2v")
 """The backbones: our networks, Wan2.2-TI2V-5B, CogVideoX-5B-I2V."""
-INDEX_FILE = "model_index.json"
-"""The file that makes a folder a diffusers pipeline (the Hub layout of a backbone)."""
 
 
 @dataclass(frozen=True)
@@ -80,7 +77,7 @@ class LatentFormat:
 
 def check_velocity_inputs(x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor | None,
                           latent_channels: int, camera_channels: int, patch_size: tuple[int, int, int]) -> None:
-    """The shape checks every :meth:`Backbone.velocity` makes (static: safe under tracing).
+    """The shape checks every :attr:`Backbone.velocity_model` makes (static: safe under tracing).
 
     Args:
         x: (B, c, n, h, w) with c = ``latent_channels`` and (n, h, w) divisible by ``patch_size`` (p_t, p_h, p_w).
@@ -100,73 +97,6 @@ def check_velocity_inputs(x: Tensor, sigma: Tensor, image_latent: Tensor, plucke
         raise ValueError(f"image_latent must have shape {(B, c, 1, h, w)}, got {tuple(image_latent.shape)}")
     if plucker is not None and plucker.shape != (B, camera_channels, n, h, w):
         raise ValueError(f"plucker must have shape {(B, camera_channels, n, h, w)}, got {tuple(plucker.shape)}")
-
-
-def vpred_to_flow(x_t: Tensor, v: Tensor, alpha: Tensor, sigma_ddpm: Tensor) -> Tensor:
-    """A v-prediction (Salimans & Ho 2022, §4: ``v = α·ε − σ·x0``) as the flow-matching velocity ``ε − x0``.
-
-    With α² + σ² = 1: ``x0 = α·x_t − σ·v`` and ``ε = σ·x_t + α·v``.
-
-    Args:
-        x_t: (B, ...) the DDPM state ``α·x0 + σ·ε``.
-        v: (B, ...) the network's v-prediction.
-        alpha, sigma_ddpm: (B,) √ᾱ_t and √(1 − ᾱ_t) of each sample's timestep.
-
-    Returns:
-        (B, ...) ``ε − x0`` = ``(σ − α)·x_t + (α + σ)·v``.
-    """
-    shape = (-1,) + (1,) * (x_t.dim() - 1)
-    a, s = alpha.reshape(shape).to(x_t), sigma_ddpm.reshape(shape).to(x_t)
-    return (s - a) * x_t + (a + s) * v
-
-
-class CameraPatchConv(nn.Module):
-    """A transformer's patch-embedding convolution widened by ``camera_channels`` input channels whose weights
-    start at zero (the authors' code, paulpanwang/Diff4Splat: Plücker rays as extra patch-embedding channels).
-
-    The input is ``cat([x, plucker], dim=1)``: the first ``in_channels`` go through the pretrained ``weight`` and
-    ``bias``, the rest through ``camera_weight`` (no bias); the sum is the widened convolution (a convolution is
-    linear in its input channels). Kept as two weights so that ``weight``/``bias`` keep the pretrained checkpoint's
-    key names (``patch_embedding.weight``; the transformer folder stays loadable by diffusers) and, with
-    ``camera_weight`` at zero, the output is the pretrained convolution's bit for bit (adding +0.0).
-
-    Args:
-        conv: the pretrained ``nn.Conv2d`` or ``nn.Conv3d`` (kernel = stride, no padding); its parameters are
-            taken over, not copied.
-        camera_channels: extra input channels (6·t·s²).
-    """
-
-    def __init__(self, conv: nn.Conv2d | nn.Conv3d, camera_channels: int):
-        super().__init__()
-        if not isinstance(conv, (nn.Conv2d, nn.Conv3d)):
-            raise TypeError(f"conv must be an nn.Conv2d or nn.Conv3d, got {type(conv).__name__}")
-        self.in_channels, self.camera_channels = conv.in_channels, camera_channels
-        self.stride, self.padding = conv.stride, conv.padding
-        self.weight, self.bias = conv.weight, conv.bias
-        self._conv = F.conv3d if isinstance(conv, nn.Conv3d) else F.conv2d
-        # Zero-init: the pretrained transformer is unchanged until the camera branch is trained.
-        shape = (conv.out_channels, camera_channels, *conv.kernel_size)
-        self.camera_weight = nn.Parameter(torch.zeros(shape, device=conv.weight.device, dtype=conv.weight.dtype))
-
-    def forward(self, x: Tensor) -> Tensor:  # (B, in + camera, [T,] H, W)
-        """The widened patch embedding: conv(x[:, :in]) + conv_camera(x[:, in:]).
-
-        Args:
-            x: (B, in_channels + camera_channels, T, H, W) for a Conv3d, (B, in_channels + camera_channels, H, W)
-                for a Conv2d: latents concatenated with packed Plücker rays along dim 1.
-
-        Returns:
-            (B, out_channels, T', H', W') or (B, out_channels, H', W'): the pretrained convolution's output size
-            (⌊T/k_t⌋, ⌊H/k_h⌋, ⌊W/k_w⌋ for kernel = stride and no padding).
-
-        Raises:
-            ValueError: ``x.shape[1]`` ≠ in_channels + camera_channels.
-        """
-        if x.shape[1] != self.in_channels + self.camera_channels:
-            raise ValueError(f"CameraPatchConv: expected {self.in_channels} + {self.camera_channels} channels, "
-                             f"got {x.shape[1]}")
-        out = self._conv(x[:, :self.in_channels], self.weight, self.bias, self.stride, self.padding)
-        return out + self._conv(x[:, self.in_channels:], self.camera_weight, None, self.stride, self.padding)
 
 
 class Backbone(nn.Module, abc.ABC):
@@ -197,12 +127,14 @@ class Backbone(nn.Module, abc.ABC):
     def encode_text(self, prompts: list[str]) -> tuple[Tensor, Tensor]:
         """Prompts → tokens (B, L, d_text) and mask (B, L) bool (True = a token the transformer attends to)."""
 
+    @property
     @abc.abstractmethod
-    def velocity(self, x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor,
-                 text: Tensor | None, text_mask: Tensor | None) -> Tensor:
-        """Flow-matching velocity ``ε − x0`` (module docstring).
+    def velocity_model(self) -> nn.Module:
+        """The network of the flow-matching velocity ``ε − x0`` (module docstring): the ``nn.Module`` whose call
+        ``(x, sigma, image_latent, plucker, text, text_mask)`` computes it (ours: the DiT; a diffusers backbone: the
+        backbone itself, whose ``forward`` converts to and from its transformer's conventions).
 
-        Args:
+        Its call takes:
             x: (B, c, n, h, w) the state at ``sigma``.
             sigma: (B,) σ in [0, 1] (float32).
             image_latent: (B, c, 1, h, w) the photograph's normalised latent.
@@ -210,8 +142,8 @@ class Backbone(nn.Module, abc.ABC):
             text, text_mask: (B, L, d_text), (B, L) bool, or None for no prompt (a backbone trained with a text
                 embedding of the empty prompt encodes "" itself).
 
-        Returns:
-            (B, c, n, h, w), float32.
+        and returns (B, c, n, h, w): float32 from a diffusers backbone, the DiT's parameter dtype from ours; a
+        ValueError names an input of the wrong shape (:func:`check_velocity_inputs`).
         """
 
     @abc.abstractmethod
