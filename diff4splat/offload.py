@@ -16,8 +16,8 @@ Prefetch (``prefetch=``, CUDA only): the host-to-device copy of a network runs o
 the order the blocks run, and each block waits only for its own weights (a forward pre-hook, removed when the
 visit's first call returns), so that call computes block i while blocks i + 1 … are still on their way (diffusers'
 group offloading with ``use_stream``, but once per visit rather than at every call). A network's copy takes about as
-long as one sampling step on an H100 (docs/benchmarks.md, "GPU"), so the copy can hide behind the first step. The values are those of the plain move: only the order of the copies and the kernels
-changes.
+long as one sampling step on an H100 (docs/benchmarks.md, "GPU"), so the copy can hide behind the first step. The
+values are those of the plain move: only the order of the copies and the kernels changes.
 """
 from __future__ import annotations
 
