@@ -39,6 +39,7 @@ from diff4splat.checks import check_int
 from diff4splat.io import preprocess_image
 
 from .format import SceneMeta, SceneReader, list_scenes, timestamps_to_times
+from .scene_files import META_FILE
 
 __all__ = ["ClipConfig", "ClipItem", "ClipSpec", "ClipDataset", "resize_depth", "OCCLUSION_TOL_M", "OCCLUSION_TOL_REL"]
 
@@ -213,7 +214,7 @@ class ClipDataset(Dataset):
         items: list[ClipItem] = []
         step = cfg.window_step or cfg.span
         for p in scenes:
-            meta = SceneMeta.load(p / "meta.json")
+            meta = SceneMeta.load(p / META_FILE)
             if cfg.scenes != "all" and meta.dynamic != (cfg.scenes == "dynamic"):
                 continue
             self.metas[p.name] = meta

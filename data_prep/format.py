@@ -37,14 +37,23 @@ from diff4splat.io import (
 
 from .engine import fault_point
 from .scene_files import (
+    CAMERAS_FILE,
+    CAPTION_FILE,
+    DEPTH_DIR,
     DEPTH_SOURCES,
+    DEPTH_SUFFIX,
     FORMAT_VERSION,
+    META_FILE,
+    RGB_DIR,
+    RGB_SUFFIX,
     SYNC_TOLERANCE_S,
     TIMES_TOLERANCE,
+    TRACKS_FILE,
     SceneMeta,
     check_camera_name,
     depth_values_problem,
     frame_name,
+    is_scene,
     list_scenes,
     read_rgb,
     read_timestamps,
@@ -201,11 +210,11 @@ class SceneWriter:
             if err > TIMES_TOLERANCE:
                 raise ValueError(f"camera {name!r}: times differ from the normalised timestamps by {err:.3g}")
         if self._sizes:
-            ref = read_timestamps(root / self.meta.cameras[0] / "cameras.json")
+            ref = read_timestamps(root / self.meta.cameras[0] / CAMERAS_FILE)
             if np.abs(ref - ts).max() > SYNC_TOLERANCE_S:
                 raise ValueError(f"camera {name!r} is not synchronised with {self.meta.cameras[0]!r} "
                                  "(timestamps differ)")
-        cam_file = root / name / "cameras.json"
+        cam_file = root / name / CAMERAS_FILE
         save_cameras_json(cam_file, cameras)
         data = json.loads(cam_file.read_text(encoding="utf-8"))
         data["timestamps"] = ts.tolist()
@@ -241,10 +250,10 @@ class SceneWriter:
             raise ValueError(f"depth must be {'given' if has_depth else 'None'} "
                              f"for depth_source={self.meta.depth_source!r}")
         folder = self.tmp_dir / camera
-        save_image(folder / "rgb" / frame_name(index, ".png"), rgb)
+        save_image(folder / RGB_DIR / frame_name(index, RGB_SUFFIX), rgb)
         self._written[camera][0].add(index)
         if depth is not None:
-            save_depth_exr(folder / "depth" / frame_name(index, ".exr"), _check_depth(depth, (H, W)))
+            save_depth_exr(folder / DEPTH_DIR / frame_name(index, DEPTH_SUFFIX), _check_depth(depth, (H, W)))
             self._written[camera][1].add(index)
 
     def write_tracks(self, points: np.ndarray | Tensor, visibility: np.ndarray | Tensor) -> None:
@@ -265,25 +274,25 @@ class SceneWriter:
             raise ValueError("points must be finite")
         if not self.meta.dynamic and np.abs(pts - pts[:, :1]).max() > 1e-6:
             raise ValueError("a static scene (dynamic=false) cannot have moving tracks")
-        np.savez_compressed(self.tmp_dir / "tracks.npz", points=pts, visibility=vis)
+        np.savez_compressed(self.tmp_dir / TRACKS_FILE, points=pts, visibility=vis)
 
     def write_caption(self, caption: str) -> None:
         """Write ``caption.txt``: one non-empty UTF-8 line. Raises ValueError otherwise."""
         if not isinstance(caption, str) or not caption.strip() or "\n" in caption.strip() or "\r" in caption:
             raise ValueError(f"caption must be one non-empty line of text, got {caption!r}")
-        (self.tmp_dir / "caption.txt").write_text(caption.strip() + "\n", encoding="utf-8")
+        (self.tmp_dir / CAPTION_FILE).write_text(caption.strip() + "\n", encoding="utf-8")
 
     def _finish(self) -> None:
         if not self.meta.cameras:
             raise ValueError(f"scene {self.path} has no camera; call add_camera")
         T, has_depth = self.meta.num_frames, self.meta.depth_source != "none"
         for cam, (rgb_done, depth_done) in self._written.items():
-            for kind, done in (("rgb", rgb_done), ("depth", depth_done if has_depth else set(range(T)))):
+            for kind, done in ((RGB_DIR, rgb_done), (DEPTH_DIR, depth_done if has_depth else set(range(T)))):
                 if len(done) != T:
                     missing = sorted(set(range(T)) - done)
                     raise ValueError(f"scene {self.path}: camera {cam!r} misses {kind} frame(s) {missing[:5]}")
         self.meta.validate()
-        (self.tmp_dir / "meta.json").write_text(json.dumps(self.meta.to_dict(), indent=1) + "\n", encoding="utf-8")
+        (self.tmp_dir / META_FILE).write_text(json.dumps(self.meta.to_dict(), indent=1) + "\n", encoding="utf-8")
         if self.validate:
             problems = validate_scene(self.tmp_dir)
             if problems:
@@ -306,7 +315,7 @@ class SceneReader:
         self.path = Path(path)
         if not self.path.is_dir():
             raise FileNotFoundError(f"scene folder not found: {self.path}")
-        self.meta = SceneMeta.load(self.path / "meta.json")
+        self.meta = SceneMeta.load(self.path / META_FILE)
         self._cameras: dict[str, CameraPath] = {}
 
     def __repr__(self) -> str:
@@ -346,12 +355,12 @@ class SceneReader:
             ValueError: unknown camera or invalid ``cameras.json``. FileNotFoundError: file missing.
         """
         if camera not in self._cameras:
-            self._cameras[camera] = load_cameras_json(self._cam(camera) / "cameras.json")
+            self._cameras[camera] = load_cameras_json(self._cam(camera) / CAMERAS_FILE)
         return self._cameras[camera]
 
     def timestamps(self, camera: str | None = None) -> np.ndarray:
         """(T,) float64 seconds of ``camera`` (default: the reference camera; all are synchronised)."""
-        return read_timestamps(self._cam(camera or self.meta.cameras[0]) / "cameras.json")
+        return read_timestamps(self._cam(camera or self.meta.cameras[0]) / CAMERAS_FILE)
 
     def _size(self, camera: str) -> tuple[int, int]:
         cams = self.cameras(camera)
@@ -365,7 +374,7 @@ class SceneReader:
                 another size than its camera's (naming the file; ``data_prep validate`` reports the same).
             FileNotFoundError: the frame file is missing.
         """
-        f = self._frame(camera, index, "rgb", ".png")
+        f = self._frame(camera, index, RGB_DIR, RGB_SUFFIX)
         img = read_rgb(f)
         why = size_problem("image", img.shape, self._size(camera))
         if why is not None:
@@ -383,7 +392,7 @@ class SceneReader:
         """
         if not self.has_depth:
             raise ValueError(f"scene {self.path} has no depth (depth_source='none')")
-        f = self._frame(camera, index, "depth", ".exr")
+        f = self._frame(camera, index, DEPTH_DIR, DEPTH_SUFFIX)
         z = load_depth_exr(f)
         for why in (size_problem("depth", z.shape, self._size(camera)), depth_values_problem(z)):
             if why is not None:
@@ -396,7 +405,7 @@ class SceneReader:
         Raises:
             ValueError: the file is unreadable or misses ``points``/``visibility``.
         """
-        f = self.path / "tracks.npz"
+        f = self.path / TRACKS_FILE
         if not f.is_file():
             return None
         try:
@@ -408,7 +417,7 @@ class SceneReader:
     @property
     def caption(self) -> str | None:
         """The caption (stripped), or None without caption.txt."""
-        f = self.path / "caption.txt"
+        f = self.path / CAPTION_FILE
         return f.read_text(encoding="utf-8").strip() if f.is_file() else None
 
     def video(self, camera: str) -> np.ndarray:
@@ -432,6 +441,6 @@ def check_dataset_root(out: Path, what: str = "dataset root") -> None:
     if not out.is_dir():
         return
     for entry in sorted(out.iterdir()):
-        if not entry.name.startswith(".") and not (entry / "meta.json").is_file():
+        if not entry.name.startswith(".") and not is_scene(entry):
             raise ValueError(f"{what} {out} holds {entry.name}, which is not a scene folder (no meta.json): synth adds "
                              "scenes to a new or empty folder or a dataset root only; choose another --out")

@@ -1,5 +1,7 @@
-"""What a scene folder holds, file by file (``data_prep/FORMAT.md``): the format's constants, ``meta.json``
-(:class:`SceneMeta`), frame file names, and the readers of single files (timestamps, RGB frames).
+"""What a scene folder holds, file by file (``data_prep/FORMAT.md``): the one home of its file and folder names
+(:data:`META_FILE`, :data:`CAMERAS_FILE`, :data:`CAPTION_FILE`, :data:`TRACKS_FILE`, the frame folders
+:data:`RGB_DIR` and :data:`DEPTH_DIR` and :func:`frame_name`), the format's constants, ``meta.json``
+(:class:`SceneMeta`), and the readers of single files (timestamps, RGB frames).
 
 The lowest module of the format: :mod:`data_prep.validate` checks scenes with it, and :mod:`data_prep.format`
 (the scene writer and reader) builds on both and re-exports the names of the format, so ``from data_prep.format import
@@ -20,12 +22,21 @@ from diff4splat.io.image import read_image
 from diff4splat.io.structured import read_json
 
 __all__ = [
+    "META_FILE",
+    "CAMERAS_FILE",
+    "CAPTION_FILE",
+    "TRACKS_FILE",
+    "RGB_DIR",
+    "RGB_SUFFIX",
+    "DEPTH_DIR",
+    "DEPTH_SUFFIX",
     "FORMAT_VERSION",
     "DEPTH_SOURCES",
     "SYNC_TOLERANCE_S",
     "TIMES_TOLERANCE",
     "SceneMeta",
     "list_scenes",
+    "is_scene",
     "frame_name",
     "check_camera_name",
     "read_rgb",
@@ -34,6 +45,21 @@ __all__ = [
     "size_problem",
     "depth_values_problem",
 ]
+
+META_FILE = "meta.json"
+"""A scene's description (:class:`SceneMeta`); a folder holding one is a scene (:func:`is_scene`)."""
+CAMERAS_FILE = "cameras.json"
+"""A camera folder's path: diff4splat's ``cameras.json`` plus ``"timestamps"`` (T,) seconds."""
+CAPTION_FILE = "caption.txt"
+"""A scene's optional caption: one non-empty UTF-8 line."""
+TRACKS_FILE = "tracks.npz"
+"""A scene's optional 3D point tracks: ``points`` (P, T, 3) float32 metres, ``visibility`` (P, T) bool."""
+RGB_DIR = "rgb"
+"""A camera folder's sub-folder of RGB frames, ``frame_name(i, RGB_SUFFIX)``: 8-bit RGB PNG."""
+RGB_SUFFIX = ".png"
+DEPTH_DIR = "depth"
+"""A camera folder's sub-folder of depth frames, ``frame_name(i, DEPTH_SUFFIX)``: float32 EXR channel "Z", metres."""
+DEPTH_SUFFIX = ".exr"
 
 FORMAT_VERSION = 1
 """Version of ``data_prep/FORMAT.md`` written by this module."""
@@ -217,8 +243,13 @@ def list_scenes(root: str | os.PathLike) -> list[Path]:
     root = Path(root)
     if not root.is_dir():
         raise FileNotFoundError(f"dataset folder not found: {root}")
-    return sorted(p for p in root.iterdir()
-                  if p.is_dir() and not p.name.startswith(".") and (p / "meta.json").is_file())
+    return sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".") and is_scene(p))
+
+
+def is_scene(folder: str | os.PathLike) -> bool:
+    """True when ``folder`` holds a :data:`META_FILE` (a regular file, or a link to one): a scene, complete, since
+    the writer renames a scene into place only when every file is written."""
+    return (Path(folder) / META_FILE).is_file()
 
 
 def size_problem(kind: str, shape: tuple[int, ...], size: tuple[int, int]) -> str | None:
@@ -226,7 +257,7 @@ def size_problem(kind: str, shape: tuple[int, ...], size: tuple[int, int]) -> st
     cameras.json says 32×32" (``kind``: "image" or "depth")."""
     if tuple(shape[:2]) == tuple(size):
         return None
-    return f"{kind} is {shape[1]}×{shape[0]}, cameras.json says {size[1]}×{size[0]}"
+    return f"{kind} is {shape[1]}×{shape[0]}, {CAMERAS_FILE} says {size[1]}×{size[0]}"
 
 
 def depth_values_problem(z: np.ndarray) -> str | None:

@@ -18,6 +18,7 @@ from diff4splat.limits import check_limit, check_memory, held_memory
 
 from .engine import Engine, fault_point, map_scenes
 from .format import check_dataset_root
+from .scene_files import is_scene
 from .synth import generate_scene, scene_name
 from .synth_world import DEFAULT_CAMERAS, DEFAULT_FRAMES, DEFAULT_SIZE, DEFAULT_STATIC_RATIO, DEFAULT_TEXTURE_RATIO
 
@@ -87,7 +88,7 @@ def check_synth_request(num_scenes: int, seed: int, *, size: int, frames: int, c
 def _make_scene(index: int, out: Path, seed: int, kw: dict) -> None:
     """Scene ``index`` of the run (the engine's task): made and written atomically, or left as it is when a
     completed earlier attempt (a retried task, a resumed run) wrote it already."""
-    if (out / scene_name(index) / "meta.json").is_file():
+    if is_scene(out / scene_name(index)):
         return
     generate_scene(out, index, seed, **kw)
     fault_point("done", scene_name(index))  # a test's injected worker death: the scene written, the task not done
@@ -151,7 +152,7 @@ def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, si
 
     def todo():
         for i in range(num_scenes):
-            if (out / scene_name(i) / "meta.json").is_file():
+            if is_scene(out / scene_name(i)):
                 bar.update()
             else:
                 yield i

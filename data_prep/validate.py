@@ -18,11 +18,20 @@ from diff4splat.io import load_cameras_json, load_depth_exr
 from diff4splat.io.inputs import check_input_file
 
 from .scene_files import (
+    CAMERAS_FILE,
+    CAPTION_FILE,
+    DEPTH_DIR,
+    DEPTH_SUFFIX,
+    META_FILE,
+    RGB_DIR,
+    RGB_SUFFIX,
     SYNC_TOLERANCE_S,
     TIMES_TOLERANCE,
+    TRACKS_FILE,
     SceneMeta,
     depth_values_problem,
     frame_name,
+    is_scene,
     list_scenes,
     read_rgb,
     read_timestamps,
@@ -55,9 +64,9 @@ class Problem:
 def is_scene_dir(path: str | os.PathLike) -> bool:
     """True if ``path`` looks like one scene (has ``meta.json`` or a ``<cam>/cameras.json``), not a dataset root."""
     path = Path(path)
-    if (path / "meta.json").is_file():
+    if is_scene(path):
         return True
-    return any(c.is_dir() and (c / "cameras.json").is_file() for c in path.iterdir()) if path.is_dir() else False
+    return any(c.is_dir() and (c / CAMERAS_FILE).is_file() for c in path.iterdir()) if path.is_dir() else False
 
 
 def _reason(e: Exception, path: Path) -> str:
@@ -122,7 +131,7 @@ def _check_camera(problems: list[Problem], scene: Path, name: str, meta: SceneMe
     if not folder.is_dir():
         problems.append(Problem(folder, "missing camera folder (listed in meta.json 'cameras')"))
         return None
-    cam_file = folder / "cameras.json"
+    cam_file = folder / CAMERAS_FILE
     size, ts = None, None
     why = _file_problem(cam_file)
     if why is not None:
@@ -153,7 +162,7 @@ def _check_camera(problems: list[Problem], scene: Path, name: str, meta: SceneMe
             problems.append(Problem(cam_file, f"'timestamps' differ from the reference camera {meta.cameras[0]!r} "
                                               f"by {float(np.abs(ts - ref_ts).max()):.3g} s (not synchronised)"))
 
-    for f in _check_frames(problems, folder / "rgb", ".png", T):
+    for f in _check_frames(problems, folder / RGB_DIR, RGB_SUFFIX, T):
         try:
             img = read_rgb(f)
         except ValueError as e:
@@ -163,12 +172,12 @@ def _check_camera(problems: list[Problem], scene: Path, name: str, meta: SceneMe
         if why is not None:
             problems.append(Problem(f, why))
 
-    depth_dir = folder / "depth"
+    depth_dir = folder / DEPTH_DIR
     if meta.depth_source == "none":
         if depth_dir.exists():
             problems.append(Problem(depth_dir, "depth folder present but meta.json depth_source is 'none'"))
         return ts
-    for f in _check_frames(problems, depth_dir, ".exr", T):
+    for f in _check_frames(problems, depth_dir, DEPTH_SUFFIX, T):
         try:
             z = load_depth_exr(f)
         except ValueError as e:
@@ -232,7 +241,7 @@ def _scene_problems(scene: Path) -> list[Problem]:
     """:func:`validate_scene` before each problem is given its scene."""
     if not scene.is_dir():
         return [Problem(scene, "not a folder")]
-    meta_file = scene / "meta.json"
+    meta_file = scene / META_FILE
     why = _file_problem(meta_file)
     if why is not None:
         return [Problem(meta_file, why)]
@@ -241,7 +250,7 @@ def _scene_problems(scene: Path) -> list[Problem]:
     except ValueError as e:
         return [Problem(meta_file, _reason(e, meta_file))]
     problems: list[Problem] = []
-    cap = scene / "caption.txt"
+    cap = scene / CAPTION_FILE
     why = _file_problem(cap) if _present(cap) else None
     if why is not None:
         problems.append(Problem(cap, why))
@@ -258,9 +267,9 @@ def _scene_problems(scene: Path) -> list[Problem]:
         if k == 0:
             ref_ts = ts
     for c in sorted(scene.iterdir()):
-        if c.is_dir() and c.name not in meta.cameras and (c / "cameras.json").exists():
+        if c.is_dir() and c.name not in meta.cameras and (c / CAMERAS_FILE).exists():
             problems.append(Problem(c, "camera folder not listed in meta.json 'cameras'"))
-    tracks = scene / "tracks.npz"
+    tracks = scene / TRACKS_FILE
     why = _file_problem(tracks) if _present(tracks) else None
     if why is not None:
         problems.append(Problem(tracks, why))
@@ -290,8 +299,8 @@ def validate_path(path: str | os.PathLike) -> tuple[int, list[Problem]]:
     problems: list[Problem] = []
     for d in sorted(path.iterdir()):
         if d.is_dir() and not d.name.startswith(".") and d not in scenes:
-            why = _file_problem(d / "meta.json")
-            problems.append(Problem(d / "meta.json", f"{why} (sub-folder of a dataset root is not a scene)"))
+            why = _file_problem(d / META_FILE)
+            problems.append(Problem(d / META_FILE, f"{why} (sub-folder of a dataset root is not a scene)"))
     if not scenes and not problems:
         problems.append(Problem(path, "no scene folders (sub-folders with meta.json) found"))
     for s in scenes:

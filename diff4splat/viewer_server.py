@@ -26,7 +26,7 @@ from pathlib import Path
 
 from models.hexplane import load_field
 
-from .io.scene_folder import is_layout_file, load_scene_folder, meta_background, meta_eps2d
+from .io.scene_folder import SCENE_FILE, is_layout_file, load_scene_folder, meta_background, meta_eps2d
 from .io.video import DEFAULT_FPS
 from .viewer.data import ViewerPayload, viewer_payload
 from .viewer.page import VIEWER_NAME, viewer_html
@@ -135,13 +135,13 @@ def make_server(folder: str | os.PathLike, port: int = 0) -> ThreadingHTTPServer
     if not 0 <= port <= 65535:
         raise ValueError(f"--port must be in 0 … 65535, got {port}")
     page, data, payload = None, {}, None
-    if (root / "scene.ply").exists() or (root / "scene.ply").is_symlink():
+    if (root / SCENE_FILE).exists() or (root / SCENE_FILE).is_symlink():
         payload = folder_payload(root)
         page = viewer_html(payload, f"diff4splat · {root.resolve().name}", full_url=DATA_PREFIX,
                            embed=False).encode("utf-8")
         data = {"scene.ply": payload.ply, **({"frames.bin": payload.frames} if payload.frames is not None else {})}
     elif served_file(root.resolve(), "/") is None:
-        raise FileNotFoundError(f"DIR: {root} has neither scene.ply nor {VIEWER_NAME} (not an output folder)")
+        raise FileNotFoundError(f"DIR: {root} has neither {SCENE_FILE} nor {VIEWER_NAME} (not an output folder)")
     handler = type("Handler", (_Handler,), {"root": root.resolve(), "page": page, "data": data, "payload": payload})
     try:
         return ThreadingHTTPServer((HOST, port), handler)

@@ -36,7 +36,15 @@ from diff4splat.costs import RENDER_BASE_BYTES
 from diff4splat.devices import AUTO, DEVICE_HELP, resolve_device
 from diff4splat.gaussians import Gaussians
 from diff4splat.io.output_folders import check_output_dir
-from diff4splat.io.scene_folder import DEFORMATION_ARRAYS, load_output_scene, scene_meta, write_scene_folder
+from diff4splat.io.scene_folder import (
+    DEFORMATION_ARRAYS,
+    FIELD_FILE,
+    METRICS_FILE,
+    SCENE_FILE,
+    load_output_scene,
+    scene_meta,
+    write_scene_folder,
+)
 from diff4splat.io.video import DEFAULT_FPS, check_fps
 from diff4splat.limits import check_limit, check_memory, held_memory
 from diff4splat.pipeline import check_seed
@@ -107,8 +115,8 @@ def place_generate_output(init_dir: Path, scene, ref_camera: str) -> DynamicGaus
         ValueError: a malformed, corrupt or inconsistent file of ``init_dir``, named
             (:func:`diff4splat.io.scene_folder.load_output_scene`).
     """
-    if not (init_dir / "scene.ply").is_file():
-        raise FileNotFoundError(f"--init: {init_dir / 'scene.ply'} does not exist (give a generate output folder)")
+    if not (init_dir / SCENE_FILE).is_file():
+        raise FileNotFoundError(f"--init: {init_dir / SCENE_FILE} does not exist (give a generate output folder)")
     loaded, _ = load_output_scene(init_dir)  # scene.ply, deformation.npz and meta.json checked as input
     g = loaded.canonical
     arrays = {k: getattr(loaded, k) for k in DEFORMATION_ARRAYS if getattr(loaded, k) is not None}
@@ -390,8 +398,8 @@ def _write_output(scene, out: Path, state: FitState, config: FitConfig, train, h
 
     def extra(tmp: Path) -> None:
         if state.field is not None:
-            save_field(tmp / "field.safetensors", state.field)
-        (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2))
+            save_field(tmp / FIELD_FILE, state.field)
+        (tmp / METRICS_FILE).write_text(json.dumps(metrics, indent=2))
 
     write_scene_folder(out, fitted, ref, colors, depths, alphas, meta, fps=opts["fps"],
                        inputs=[opts["scene"], opts["init"]], overwrite=opts["overwrite"], kind="fit", extra=extra)

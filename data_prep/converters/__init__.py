@@ -13,6 +13,7 @@ from pathlib import Path
 
 from ..engine import Engine, map_scenes
 from ..format import check_dataset_root
+from ..scene_files import is_scene
 from .common import require_dir
 from .dnerf import convert_dnerf
 from .dynamic_replica import convert_dynamic_replica
@@ -178,7 +179,7 @@ def convert_each(source: str, src_root: str | os.PathLike, out_root: str | os.Pa
 def _convert_task(name: str, source: str, src_root: Path, out_root: Path, options: dict) -> None:
     """Clip ``name`` into ``out_root/name`` (the engine's task), unless a completed earlier attempt wrote it."""
     out = out_root / name
-    if (out / "meta.json").is_file():
+    if is_scene(out):
         return
     selector = SELECTORS.get(source)
     src, opts = (src_root, {**options, selector: name}) if selector else (src_root / name, options)

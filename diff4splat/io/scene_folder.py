@@ -56,16 +56,29 @@ from .video import DEFAULT_FPS, check_fps, save_image, save_video, to_uint8
 
 __all__ = ["write_scene_folder", "fill_empty_depth", "save_deformation", "load_deformation", "json_default",
            "load_output_scene", "folder_file", "DEFORMATION_ARRAYS", "is_layout_file", "LAYOUT_FILES", "LAYOUT_FRAMES",
-           "FIELD_FILE", "SceneFolder", "load_scene_folder", "scene_depth", "estimate_scene_depth", "scene_meta",
+           "layout_frame", "SCENE_FILE", "DEFORMATION_FILE", "CAMERAS_FILE", "META_FILE", "VIDEO_FILE", "FIELD_FILE",
+           "METRICS_FILE", "SceneFolder", "load_scene_folder", "scene_depth", "estimate_scene_depth", "scene_meta",
            "meta_background", "meta_eps2d"]
 
-LAYOUT_FILES = ("scene.ply", "deformation.npz", "cameras.json", "meta.json", "video.mp4", VIEWER_NAME,
-                "field.safetensors", "metrics.json")
+SCENE_FILE = "scene.ply"
+"""The canonical Gaussians, INRIA PLY layout (:func:`diff4splat.io.ply.save_ply`)."""
+DEFORMATION_FILE = "deformation.npz"
+"""The deformation and temporal support of the canonical Gaussians (:func:`save_deformation`); absent if neither."""
+CAMERAS_FILE = "cameras.json"
+"""The camera path (:func:`diff4splat.io.save_cameras_json`)."""
+META_FILE = "meta.json"
+"""The run's settings, counts and timings, and the fields every folder shares (:func:`scene_meta`)."""
+VIDEO_FILE = "video.mp4"
+"""RGB along the camera path (:func:`diff4splat.io.video.save_video`)."""
+FIELD_FILE = "field.safetensors"
+"""The HexPlane field a ``fit`` output folder holds (:func:`models.hexplane.save_field`)."""
+METRICS_FILE = "metrics.json"
+"""A ``fit`` output folder's training and hold-out metrics."""
+LAYOUT_FILES = (SCENE_FILE, DEFORMATION_FILE, CAMERAS_FILE, META_FILE, VIDEO_FILE, VIEWER_NAME, FIELD_FILE,
+                METRICS_FILE)
 """The files at the top of an output folder of generate, fit or render (module docstring)."""
 LAYOUT_FRAMES = {"frames": ".ply", "rgb": ".png", "depth": ".exr"}
 """The per-frame sub-folders of an output folder and the suffix of their files ``NNNN<suffix>`` (4+ digits)."""
-FIELD_FILE = "field.safetensors"
-"""The HexPlane field a ``fit`` output folder holds (:func:`models.hexplane.save_field`)."""
 COVERED = 0.5
 """Pixels of ``depth/0000.exr`` with coverage "A" above this give the scene depth (:func:`scene_depth`)."""
 
@@ -294,21 +307,21 @@ def write_scene_folder(
     rgb = to_uint8(colors.cpu(), "colors")  # (T, H, W, 3): rgb/*.png lossless beside the lossy video
     with output_dir(out_dir, kind=kind, inputs=inputs, overwrite=overwrite, parents=with_scene) as tmp:
         if with_scene:
-            save_ply(tmp / "scene.ply", scene.canonical)
+            save_ply(tmp / SCENE_FILE, scene.canonical)
             if scene.changes_with_time:
-                save_deformation(tmp / "deformation.npz", scene)
+                save_deformation(tmp / DEFORMATION_FILE, scene)
         for i in range(T):
             if with_scene and frame_plys:
-                save_ply(tmp / "frames" / f"{i:04d}.ply", scene.at(float(cameras.times[i])))
-            save_depth_exr(tmp / "depth" / f"{i:04d}.exr", depths[i].cpu(), alphas[i].clamp(0, 1).cpu())
-            save_image(tmp / "rgb" / f"{i:04d}.png", rgb[i])
-        save_video(tmp / "video.mp4", rgb if with_scene else _even(rgb), fps=fps)
-        save_cameras_json(tmp / "cameras.json", cameras.to("cpu"))
+                save_ply(tmp / layout_frame("frames", i), scene.at(float(cameras.times[i])))
+            save_depth_exr(tmp / layout_frame("depth", i), depths[i].cpu(), alphas[i].clamp(0, 1).cpu())
+            save_image(tmp / layout_frame("rgb", i), rgb[i])
+        save_video(tmp / VIDEO_FILE, rgb if with_scene else _even(rgb), fps=fps)
+        save_cameras_json(tmp / CAMERAS_FILE, cameras.to("cpu"))
         write_viewer(tmp / VIEWER_NAME, scene, cameras.to("cpu"), fps=fps, background=meta_background(meta),
                      eps2d=meta_eps2d(meta))
         if extra is not None:
             extra(tmp)
-        (tmp / "meta.json").write_text(json.dumps(meta, indent=2, default=json_default))
+        (tmp / META_FILE).write_text(json.dumps(meta, indent=2, default=json_default))
     return Path(out_dir)
 
 
@@ -325,6 +338,12 @@ def json_default(obj):
     if isinstance(obj, Path):
         return str(obj)
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def layout_frame(folder: str, index: int) -> str:
+    """The path of frame ``index`` in the per-frame sub-folder ``folder`` (a key of :data:`LAYOUT_FRAMES`), relative
+    to the output folder: ``layout_frame("depth", 0)`` is ``"depth/0000.exr"``."""
+    return f"{folder}/{index:04d}{LAYOUT_FRAMES[folder]}"
 
 
 def is_layout_file(name: str) -> bool:
@@ -404,17 +423,17 @@ def load_output_scene(folder: str | os.PathLike) -> tuple[DynamicGaussians, dict
         raise FileNotFoundError(f"scene folder {path} does not exist")
     if not path.is_dir():
         raise FileNotFoundError(f"scene folder {path} is not a folder (give an output folder of generate or fit)")
-    ply = folder_file(path, "scene.ply")
+    ply = folder_file(path, SCENE_FILE)
     if ply is None:
         raise FileNotFoundError(f"scene folder {path} has no scene.ply (not an output folder of generate or fit)")
-    meta_path = folder_file(path, "meta.json")
-    meta = {} if meta_path is None else read_json(meta_path, "meta.json")
+    meta_path = folder_file(path, META_FILE)
+    meta = {} if meta_path is None else read_json(meta_path, META_FILE)
     if meta_path is not None:
         _check_meta(meta, meta_path)
     canonical = load_ply(ply)
     if canonical.num_gaussians == 0:
         raise ValueError(f"{ply}: holds no Gaussians")
-    npz = folder_file(path, "deformation.npz")
+    npz = folder_file(path, DEFORMATION_FILE)
     scene = DynamicGaussians(canonical)
     if npz is not None:
         arrays = load_deformation(npz, canonical.num_gaussians)
@@ -422,7 +441,7 @@ def load_output_scene(folder: str | os.PathLike) -> tuple[DynamicGaussians, dict
             scene = DynamicGaussians(canonical, **{k: torch.from_numpy(v) for k, v in arrays.items()})
         except ValueError as e:
             raise ValueError(f"{npz}: {e}") from None
-    npz = path / "deformation.npz"
+    npz = path / DEFORMATION_FILE
     if meta.get("static") is False and scene.is_static:
         state = "holds no deformation" if npz.exists() else "is missing"
         raise ValueError(f"{npz}: {state}, but {meta_path} says the scene moves (\"static\": false)")
@@ -457,7 +476,7 @@ class SceneFolder:
         """Where the deformation comes from: ``"field.safetensors"``, ``"deformation.npz"`` or ``"static"``."""
         if self.field is not None:
             return FIELD_FILE
-        return "deformation.npz" if self.scene.changes_with_time else "static"
+        return DEFORMATION_FILE if self.scene.changes_with_time else "static"
 
 
 def load_scene_folder(folder: str | os.PathLike, device: str | torch.device = "cpu", *,
@@ -483,7 +502,7 @@ def load_scene_folder(folder: str | os.PathLike, device: str | torch.device = "c
     """
     path = Path(folder)
     scene, meta = load_output_scene(path)
-    cameras_file = folder_file(path, "cameras.json")
+    cameras_file = folder_file(path, CAMERAS_FILE)
     if cameras_file is None:
         raise FileNotFoundError(f"scene folder {path} has no cameras.json (not an output folder of generate or fit)")
     cameras = load_cameras_json(cameras_file)
@@ -502,7 +521,7 @@ def estimate_scene_depth(folder: SceneFolder) -> float | None:
     value = folder.meta.get("scene_depth")  # checked by load_output_scene: a finite number > 0, or absent
     if value is not None:
         return float(value)
-    exr = folder_file(folder.path, "depth/0000.exr")
+    exr = folder_file(folder.path, layout_frame("depth", 0))
     if exr is not None:
         z, a = load_depth_exr(exr, return_alpha=True)
         if a is not None and a.shape != z.shape:
