@@ -9,22 +9,21 @@ from __future__ import annotations
 
 import argparse
 import sys
+from functools import partial
 from importlib.metadata import entry_points
 from pathlib import Path
 
-from models.backbone_model import INDEX_FILE
 from models.bundle import DEFAULT_CONFIG, config_names
 
 from .cameras import TRAJECTORIES
 from .devices import AUTO, DEVICE_HELP, resolve_device
 from .errors import print_warnings, run_cli
-from .export import EXPORT_KIND, MAX_OPSET, MIN_OPSET, check_opset, export_onnx
+from .export import MAX_OPSET, MIN_OPSET, export_checkpoint
 from .generate import load_pipeline, write
 from .generate_cli import add_generate_parser, generate_command
-from .io.output_folders import check_output_dir
-from .io.video import DEFAULT_FPS, check_fps
+from .io.video import DEFAULT_FPS
 from .pipeline import load_model
-from .reconstruct import DEFAULT_LAYERS, LAYERS, RECONSTRUCT_KIND, reconstruct
+from .reconstruct import DEFAULT_LAYERS, LAYERS, reconstruct
 from .render_command import rerender
 from .viewer_server import serve
 
@@ -157,45 +156,25 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
 
 
 def export_onnx_command(args) -> dict:
-    """Run ``export-onnx``; returns the manifest written to ``--out/manifest.json``.
-
-    Args:
-        args: the parsed ``export-onnx`` arguments (``out``, ``checkpoint``, ``config``, ``opset``, ``no_text``,
-            ``static``, ``overwrite``).
-
-    Raises:
-        FileNotFoundError: ``--checkpoint`` is not a folder.
-        ValueError: ``--checkpoint`` is a diffusers backbone folder (has ``model_index.json``); an unsupported
-            ``--opset`` (:func:`diff4splat.export.check_opset`); an unusable ``--out``
-            (:func:`diff4splat.io.output_folders.check_output_dir`, which also raises FileExistsError for an
-            existing ``--out`` without ``--overwrite``).
-    """
-    check_output_dir(args.out, inputs=[args.checkpoint], overwrite=args.overwrite, kind=EXPORT_KIND)
-    check_opset(args.opset)
-    if args.checkpoint is not None and not args.checkpoint.is_dir():
-        raise FileNotFoundError(f"--checkpoint: {args.checkpoint} is not a folder")
-    if args.checkpoint is not None and (args.checkpoint / INDEX_FILE).is_file():  # before loading gigabytes
-        raise ValueError(f"--checkpoint {args.checkpoint} is a diffusers backbone ({INDEX_FILE}); export-onnx exports "
-                         "our own networks only (serve a backbone with --runtime torch)")
-    model, source = print_warnings(load_model, args.checkpoint, args.config, seed=0)
-    checkpoint = None if source.startswith("random:") else Path(source)  # hash the weight files read
-    return export_onnx(model, args.out, text=not args.no_text, deformation=not args.static, opset=args.opset,
-                       checkpoint=checkpoint, source=source, inputs=[args.checkpoint], overwrite=args.overwrite)
+    """Run ``export-onnx``: :func:`diff4splat.export.export_checkpoint` (``--out``, ``--opset`` and
+    ``--checkpoint`` checked before the model loads; its warnings printed). Returns the manifest written to
+    ``--out/manifest.json``."""
+    return export_checkpoint(args.checkpoint, args.out, config=args.config, text=not args.no_text,
+                             deformation=not args.static, opset=args.opset, overwrite=args.overwrite,
+                             load=partial(print_warnings, load_model))
 
 
 def reconstruct_command(args) -> dict:
-    """Run ``reconstruct``: the output folder and frame rate checked first, then
-    :func:`diff4splat.reconstruct.reconstruct` (its own checks before the model loads) and
-    :func:`diff4splat.generate.write`. Returns the meta dict of meta.json."""
-    check_output_dir(args.out, inputs=[args.video, args.checkpoint, args.cameras], overwrite=args.overwrite,
-                     kind=RECONSTRUCT_KIND)
-    check_fps(args.fps, "--fps")
+    """Run ``reconstruct``: :func:`diff4splat.reconstruct.reconstruct` (the output folder, the frame rate and the
+    request checked before the model loads) and :func:`diff4splat.generate.write`. Returns the meta dict of
+    meta.json."""
     generation = reconstruct(
         args.video, args.cameras, pipeline=lambda: print_warnings(load_pipeline, args.checkpoint, args.config,
                                                                   device=args.device),
         frames=args.frames, stride=args.stride, start=args.start, resolution=args.resolution, layers=args.layers,
-        progress=not args.quiet, out=args.out, frame_plys=args.frame_plys)
-    return write(generation, args.out, fps=args.fps, overwrite=args.overwrite)
+        progress=not args.quiet, out=args.out, overwrite=args.overwrite, inputs=[args.checkpoint], fps=args.fps,
+        frame_plys=args.frame_plys)
+    return write(generation, args.out, overwrite=args.overwrite)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,7 +1,7 @@
 """ONNX export of the four networks: one graph per module plus ``manifest.json``.
 
-``export_onnx(model, out_dir)`` writes, atomically (temp folder + rename, :func:`diff4splat.io.output_folders`,
-kind ``"onnx"``):
+``export_onnx(model, out_dir)`` (or ``export_checkpoint(folder, out_dir)``, the ``export-onnx`` command) writes,
+atomically (temp folder + rename, :func:`diff4splat.io.output_folders`, kind ``"onnx"``):
 
 =====================  =====================================================  ==========================================
 file                   inputs                                                 outputs
@@ -37,7 +37,8 @@ Leaving parts out (CONTRIBUTING, "leave out what a scene does not need"):
 - With text, ``dit.onnx`` is the text-conditioned graph and also serves the empty prompt: one zero
   token with an all-False mask gives *exactly* zero cross-attention (``CrossAttention`` multiplies
   the output of an all-masked row by 0, and x + 0 = x in IEEE arithmetic), so it equals
-  ``VideoDiT(text=None)`` bit for bit in PyTorch (and the ONNX graph equals the text=None PyTorch call). One DiT file serves both, so its weights are stored once.
+  ``VideoDiT(text=None)`` bit for bit in PyTorch (and the ONNX graph equals the text=None PyTorch call). One DiT
+  file serves both, so its weights are stored once.
 - ``deformation=False`` (``--static``): ``ldrm.onnx`` has no ``times`` input and no deformation
   outputs (the deformation network is not in the graph); such an export only makes static scenes.
 - The image branch is not optional: an LDRM trained with one needs the photograph, so its graph
@@ -57,7 +58,7 @@ import logging
 import os
 import re
 import warnings
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -65,14 +66,16 @@ import torch
 from torch import Tensor, nn
 from torch.export import Dim
 
-from models.bundle import NETWORKS, Diff4SplatModel
+from models.backbone_model import INDEX_FILE
+from models.bundle import DEFAULT_CONFIG, NETWORKS, Diff4SplatModel
 from models.pretrained import WEIGHTS_NAME
 
 from .io.output_folders import check_output_dir, output_dir
+from .pipeline import load_model
 
-__all__ = ["export_onnx", "check_opset", "state_dict_sha256", "checkpoint_sha256", "MANIFEST_NAME", "MANIFEST_FORMAT",
-           "MIN_OPSET", "MAX_OPSET", "EXTERNAL_DATA_BYTES", "LDRM_OUTPUTS", "STATIC_LDRM_OUTPUTS", "graph_metadata",
-           "GRAPH_METADATA_KEYS"]
+__all__ = ["export_onnx", "export_checkpoint", "check_opset", "state_dict_sha256", "checkpoint_sha256",
+           "MANIFEST_NAME", "MANIFEST_FORMAT", "MIN_OPSET", "MAX_OPSET", "EXTERNAL_DATA_BYTES", "LDRM_OUTPUTS",
+           "STATIC_LDRM_OUTPUTS", "graph_metadata", "GRAPH_METADATA_KEYS"]
 
 MANIFEST_NAME = "manifest.json"
 EXPORT_KIND = "onnx"
@@ -82,8 +85,9 @@ MANIFEST_FORMAT = "diff4splat-onnx/2"
 MIN_OPSET = 18
 """The dynamo exporter emits opset ≥ 18 (LayerNorm, GroupNorm-free decompositions, ``ReduceMean`` axes inputs)."""
 MAX_OPSET = 25
-"""The newest opset whose graphs pass ``onnx.checker`` and load in onnxruntime. onnx 1.23 names opsets up to 28, but the exporter's graphs fail its checker from 26 on (no Gelu/Attention
-registered at the version the exporter's converter leaves them), after the whole export had run."""
+"""The newest opset whose graphs pass ``onnx.checker`` and load in onnxruntime. onnx 1.23 names opsets up to 28, but
+the exporter's graphs fail its checker from 26 on (no Gelu/Attention registered at the version the exporter's
+converter leaves them), after the whole export had run."""
 EXTERNAL_DATA_BYTES = 2_000_000_000
 """Graphs whose weights reach 2 GB store them in a ``<file>.onnx.data`` beside the graph: a single
 protobuf cannot exceed 2 GiB (``onnx.checker`` and onnxruntime read the external file by path)."""
@@ -431,14 +435,66 @@ def export_onnx(
         FileNotFoundError: ``checkpoint`` lacks a network's weights.
         torch._dynamo.exc.UserError: a dynamic dimension cannot be honoured by a network (a bug).
     """
-    onnx = _onnx()
-
     if not isinstance(model, Diff4SplatModel):
         raise ValueError(f"export-onnx exports our own networks (a Diff4SplatModel), not a {type(model).__name__}: "
                          "a diffusers backbone is served with --runtime torch")
     check_opset(opset)
     inputs = [*inputs, checkpoint]
     check_output_dir(out_dir, inputs=inputs, overwrite=overwrite, kind=EXPORT_KIND, parents=True)  # before the export
+    return _export(model, out_dir, text=text, deformation=deformation, opset=opset, checkpoint=checkpoint,
+                   source=source, external_data_bytes=external_data_bytes, inputs=inputs, overwrite=overwrite)
+
+
+def export_checkpoint(
+    checkpoint: str | os.PathLike | None,
+    out_dir: str | os.PathLike,
+    *,
+    config: str = DEFAULT_CONFIG,
+    text: bool = True,
+    deformation: bool = True,
+    opset: int = MIN_OPSET,
+    overwrite: bool = False,
+    load: Callable[..., tuple[Diff4SplatModel, str]] = load_model,
+) -> dict:
+    """Export the networks of a model folder (the ``diff4splat export-onnx`` command): ``out_dir``, ``opset`` and
+    ``checkpoint`` are checked before anything loads, then :func:`export_onnx`'s export of what ``load`` returns.
+
+    Args:
+        checkpoint: our model folder (its weight files are hashed); None: the shipped weights of ``config``, or a
+            seeded random model with a warning when none ship (its state dict is hashed).
+        out_dir: the export folder; its parent must exist. Replaced only when the whole export succeeded.
+        config: shipped config name or YAML path, for ``checkpoint`` None.
+        text, deformation, opset, overwrite: as :func:`export_onnx`.
+        load: called as ``load(checkpoint, config, seed=0)`` after the checks, returning (model, source)
+            (:func:`diff4splat.pipeline.load_model`; the command passes it wrapped to print its warnings).
+
+    Returns:
+        The manifest dict (also written to ``out_dir/manifest.json``).
+
+    Raises:
+        OutputDirError: (a ValueError) ``out_dir`` may not be written
+            (:func:`diff4splat.io.output_folders.check_output_dir`); FileExistsError likewise.
+        ValueError: an unsupported ``opset`` (:func:`check_opset`); ``checkpoint`` is a diffusers backbone folder
+            (has ``model_index.json``: its networks are not exported); a malformed model folder.
+        FileNotFoundError: ``checkpoint`` is not a folder; an unknown config name (:func:`load_model`).
+    """
+    check_output_dir(out_dir, inputs=[checkpoint], overwrite=overwrite, kind=EXPORT_KIND)
+    check_opset(opset)
+    if checkpoint is not None and (Path(checkpoint) / INDEX_FILE).is_file():  # before loading gigabytes
+        raise ValueError(f"--checkpoint {checkpoint} is a diffusers backbone ({INDEX_FILE}); export-onnx exports "
+                         "our own networks only (serve a backbone with --runtime torch)")
+    model, source = load(checkpoint, config, seed=0)
+    weights = None if source.startswith("random:") else Path(source)  # the weight files read, hashed
+    return _export(model, out_dir, text=text, deformation=deformation, opset=opset, checkpoint=weights, source=source,
+                   external_data_bytes=EXTERNAL_DATA_BYTES, inputs=[checkpoint, weights], overwrite=overwrite)
+
+
+def _export(model: Diff4SplatModel, out_dir: str | os.PathLike, *, text: bool, deformation: bool, opset: int,
+            checkpoint: str | os.PathLike | None, source: str | None, external_data_bytes: int,
+            inputs: list[str | os.PathLike | None], overwrite: bool) -> dict:
+    """:func:`export_onnx` once its arguments are checked: the weights hashed, the graphs and the manifest written
+    (the folder checked again as it is written, :func:`diff4splat.io.output_folders.output_dir`)."""
+    onnx = _onnx()
     weights = ({"kind": "checkpoint", "path": str(checkpoint), "sha256": checkpoint_sha256(checkpoint)}
                if checkpoint is not None else {"kind": "state_dict", "sha256": state_dict_sha256(model)})
     model = model.to("cpu", torch.float32).eval()

@@ -7,15 +7,17 @@ and calls these two; benchmarks and scripts call them directly::
     gen = generate("photo.jpg", prompt="the cat turns its head", frames=17, seed=0)   # shipped model, auto device
     write(gen, "out")                                                                # scene.ply, video.mp4, …
 
-Every argument is checked once, by the function that first uses it, before anything heavy runs: the files and
-numbers the request names before the model loads (``pipeline`` may be a loader that is only called then), the
-output size and the peak memory (:mod:`diff4splat.limits`) before the networks run.
+Every argument is checked once, by the function it enters, before anything heavy runs: :func:`generate` checks the
+output folder it is told of (``out``), the frame rate and the files and numbers of the request before the model
+loads (``pipeline`` may be a loader that is only called then), the output size and the peak memory
+(:mod:`diff4splat.limits`) before the networks run; :func:`write` checks a frame rate given to it, and its folder
+when it writes (:func:`diff4splat.io.output_folders.output_dir`: it may have changed since).
 """
 from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -44,10 +46,12 @@ from .render.sequence import render_path
 from .runtime import ATTENTION_KERNELS, DTYPES, check_offload
 
 __all__ = ["LoadedPipeline", "Generation", "load_pipeline", "generate", "write", "RUNTIMES", "cameras_from_file",
-           "generation_meta", "resolve_pipeline", "check_frame_count"]
+           "generation_meta", "resolve_pipeline", "check_frame_count", "check_destination", "GENERATE_KIND"]
 
 RUNTIMES = ("torch", "onnxruntime")
 """What runs the networks: PyTorch, or onnxruntime over an ``export-onnx`` folder."""
+GENERATE_KIND = "generate"
+"""Marker kind of a ``generate`` output folder (:mod:`diff4splat.io.output_folders`)."""
 
 
 @dataclass(frozen=True)
@@ -148,7 +152,8 @@ class Generation:
         inputs: the files the request read (an output folder may not be one of them or hold one).
         depth_fallback: depth written where nothing is seen, metres (the config's scene depth).
         seconds: wall time of :func:`generate`, seconds.
-        kind: the output folder's marker kind: "generate", or "reconstruct" (:mod:`diff4splat.reconstruct`).
+        kind: the output folder's marker kind: :data:`GENERATE_KIND`, or "reconstruct"
+            (:mod:`diff4splat.reconstruct`).
     """
 
     result: GenerationResult
@@ -159,7 +164,7 @@ class Generation:
     inputs: list[Path]
     depth_fallback: float
     seconds: float
-    kind: str = "generate"
+    kind: str = GENERATE_KIND
 
 
 def resolve_pipeline(pipeline: LoadedPipeline | Diff4SplatPipeline | Callable[[], LoadedPipeline] | None
@@ -172,6 +177,22 @@ def resolve_pipeline(pipeline: LoadedPipeline | Diff4SplatPipeline | Callable[[]
     if isinstance(loaded, Diff4SplatPipeline):
         return LoadedPipeline(loaded, "pipeline", dtype=None, offload=None)
     return loaded
+
+
+def check_destination(out: str | os.PathLike | None, fps: float, *, inputs: Iterable[str | os.PathLike | None],
+                      overwrite: bool, kind: str) -> None:
+    """What a request writes, checked before any work: ``out`` (when given) may be written as the folder of ``kind``
+    (:func:`diff4splat.io.output_folders.check_output_dir`: its parent exists, it is not and holds none of
+    ``inputs``, an existing one is replaced only as ``overwrite`` allows) and ``fps`` is a frame rate
+    (:func:`diff4splat.io.video.check_fps`).
+
+    Raises:
+        OutputDirError: (a ValueError) ``out`` may not be written; FileExistsError as ``check_output_dir``.
+        ValueError: a bad ``fps``, naming ``--fps``.
+    """
+    if out is not None:
+        check_output_dir(out, inputs=inputs, overwrite=overwrite, kind=kind)
+    check_fps(fps, "--fps")
 
 
 def check_frame_count(pipe: Diff4SplatPipeline, frames: int) -> None:
@@ -249,6 +270,9 @@ def generate(
     progress: bool = False,
     notes: Callable[[str], None] | None = None,
     out: str | os.PathLike | None = None,
+    overwrite: bool = False,
+    inputs: Iterable[str | os.PathLike | None] = (),
+    fps: float = DEFAULT_FPS,
     frame_plys: bool = True,
 ) -> Generation:
     """A 4D scene from one photograph, rendered along its camera path (the ``diff4splat generate`` command).
@@ -273,8 +297,18 @@ def generate(
             "inverse" (:data:`diff4splat.assemble.DEPTH_KINDS`).
         progress: tqdm progress bars.
         notes: called with one-line notes for the user (e.g. a depth map resized); default: ignored.
-        out: the folder :func:`write` will fill, if known: the output's size estimate is checked against the free
-            space of its disk (:func:`diff4splat.limits.check_output_size`; None: against the fixed 4 GiB).
+        out: the folder :func:`write` will fill, if known: checked first, before the request's files
+            (:func:`check_destination`: its parent must exist, it may not be or hold an input, an existing folder
+            is replaced only if it is empty or an earlier ``generate`` output, or with ``overwrite``), and the
+            output's size estimate is checked against the free space of its disk
+            (:func:`diff4splat.limits.check_output_size`; None: against the fixed 4 GiB).
+        overwrite: ``out`` may also replace a folder that is not an earlier ``generate`` output (pass the same
+            to :func:`write`).
+        inputs: further files and folders the request reads that are not arguments here, such as the folders a
+            ``pipeline`` loader will read (``--checkpoint``, ``--onnx``): ``out`` may not be or hold one, nor may
+            :func:`write`'s folder (:attr:`Generation.inputs`).
+        fps: frame rate of video.mp4 and the viewer's playback, 1 … 1000 (meta.json ``fps``; :func:`write` uses
+            it unless given another).
         frame_plys: whether :func:`write` writes frames/NNNN.ply, the scene at each frame's time (meta.json
             ``frame_plys``; False: scene.ply and deformation.npz hold the same, in frames × 40 bytes per Gaussian
             instead of frames × 108).
@@ -284,17 +318,22 @@ def generate(
 
     Raises:
         ValueError: any argument out of range or a limit exceeded (:class:`diff4splat.limits.LimitError`, before
-            the networks run), a malformed photo, camera or depth file (the message names it), a camera path that
-            sees none of the scene; everything :class:`~diff4splat.pipeline.Diff4SplatPipeline` raises.
+            the networks run), an ``out`` that may not be written
+            (:class:`diff4splat.io.output_folders.OutputDirError`), a malformed photo, camera or depth file (the
+            message names it), a camera path that sees none of the scene; everything
+            :class:`~diff4splat.pipeline.Diff4SplatPipeline` raises.
         FileNotFoundError: a missing input file.
+        FileExistsError: as :func:`diff4splat.io.output_folders.check_output_dir`.
     """
     t_start = time.perf_counter()
+    files = {"image": image, "cameras_file": cameras, "depth_file": depth}  # as given, for meta.json
+    read = [Path(p) for p in (*files.values(), *inputs) if isinstance(p, (str, os.PathLike))]
+    check_destination(out, fps, inputs=read, overwrite=overwrite, kind=GENERATE_KIND)
     _check_request(image, cameras, trajectory, amplitude, frames, resolution, steps, seed, prompt, depth, depth_kind,
                    guidance)
     if isinstance(image, Tensor) and resolution is not None and resolution != image.shape[0]:
         raise ValueError(f"resolution={resolution} but the image tensor is {image.shape[0]} pixels high: a tensor "
                          "is used at its own resolution (resize it, or pass a photo file)")
-    files = {"image": image, "cameras_file": cameras, "depth_file": depth}  # as given, for meta.json
     loaded = resolve_pipeline(pipeline)
     pipe, cfg = loaded.pipeline, loaded.pipeline.config
     if frames is not None:  # T = 1 + 4k, before any decoding
@@ -341,16 +380,16 @@ def generate(
                                          background=result.background, progress=progress)
     timings = {"load_model": loaded.load_seconds, **result.timings, "render": time.perf_counter() - t0}
     meta = generation_meta(loaded, result, prompt, None if cameras is not None else trajectory, files, depth_kind, seed,
-                 timings)
+                 timings, fps)
     meta["frame_plys"] = bool(frame_plys) and result.scene.changes_with_time
-    inputs = [Path(p) for p in files.values() if isinstance(p, (str, os.PathLike))] + list(loaded.files)
-    return Generation(result, colors, depths, alphas, meta, inputs, cfg.scene_depth, time.perf_counter() - t_start)
+    return Generation(result, colors, depths, alphas, meta, read + list(loaded.files), cfg.scene_depth,
+                      time.perf_counter() - t_start)
 
 
 def generation_meta(loaded: LoadedPipeline, result: GenerationResult, prompt: str, trajectory: str | None, files: dict,
-          depth_kind: str, seed: int, timings: dict) -> dict:
+          depth_kind: str, seed: int, timings: dict, fps: float) -> dict:
     """meta.json of ``generate`` (``reconstruct`` starts from it): every setting comes from what the pipeline
-    actually used."""
+    actually used; ``fps`` the frame rate of the folder's video and viewer."""
     pipe, cfg = loaded.pipeline, loaded.pipeline.config
     path = lambda v: str(v) if isinstance(v, (str, os.PathLike)) else None  # noqa: E731
     return {
@@ -380,21 +419,22 @@ def generation_meta(loaded: LoadedPipeline, result: GenerationResult, prompt: st
         "timings_s": timings,
         # the device's running peak at the end of each stage (GenerationResult.high_water); CUDA only
         "peak_memory_gb": {k: round(v / 1e9, 3) for k, v in result.high_water.items()} or None,
-        **scene_meta(result.scene, result.cameras, fps=None, background=result.background, eps2d=result.eps2d,
+        **scene_meta(result.scene, result.cameras, fps=fps, background=result.background, eps2d=result.eps2d,
                      versions=loaded.versions),
     }
 
 
-def write(generation: Generation, out_dir: str | os.PathLike, *, fps: float = DEFAULT_FPS,
+def write(generation: Generation, out_dir: str | os.PathLike, *, fps: float | None = None,
           overwrite: bool = False) -> dict:
     """Write ``generate``'s output folder (README, "Output folders";
-    :func:`diff4splat.io.scene_folder.write_scene_folder`: atomic, an existing folder replaced only if it is an
-    earlier output or with ``overwrite``).
+    :func:`diff4splat.io.scene_folder.write_scene_folder`: atomic, checked as it is written, missing parents
+    created, an existing folder replaced only if it is an earlier output or with ``overwrite``).
 
     Args:
         generation: what :func:`generate` returned.
         out_dir: the folder; never one of the request's input files or a folder holding one.
-        fps: frame rate of video.mp4 (and the viewer's playback), 1 … 1000.
+        fps: frame rate of video.mp4 (and the viewer's playback), 1 … 1000; None: the one :func:`generate` was
+            given (meta.json ``fps``).
 
     Returns:
         The meta dict written to meta.json (with the write and total timings).
@@ -404,8 +444,10 @@ def write(generation: Generation, out_dir: str | os.PathLike, *, fps: float = DE
             (:class:`diff4splat.io.output_folders.OutputDirError`).
         OSError: writing failed (``<path>: <reason>``); nothing half-written is left.
     """
-    check_fps(fps, "--fps")
-    check_output_dir(out_dir, inputs=generation.inputs, overwrite=overwrite, kind=generation.kind)
+    if fps is None:
+        fps = generation.meta["fps"]
+    else:
+        check_fps(fps, "--fps")
     meta = dict(generation.meta, fps=fps, timings_s=dict(generation.meta["timings_s"]))
     t0 = time.perf_counter()
     result = generation.result

@@ -15,8 +15,7 @@ from .cameras.trajectories import amplitude_help
 from .devices import AUTO, DEVICE_HELP
 from .errors import print_warnings
 from .generate import generate, load_pipeline, write
-from .io.output_folders import check_output_dir
-from .io.video import DEFAULT_FPS, check_fps
+from .io.video import DEFAULT_FPS
 from .pipeline import DEFAULT_RESOLUTION
 from .runtime import ATTENTION_KERNELS, OFFLOAD_MODES
 
@@ -90,11 +89,8 @@ def add_generate_parser(subparsers, *, out_type: Callable[[str], Path], out_help
 
 
 def generate_command(args) -> dict:
-    """Run ``generate``: the output folder checked first, then :func:`diff4splat.generate.generate` (its own
-    checks before the model loads) and :func:`diff4splat.generate.write`. Returns the meta dict of meta.json."""
-    check_output_dir(args.out, inputs=[args.image, args.checkpoint, args.cameras, args.onnx, args.depth],
-                     overwrite=args.overwrite, kind="generate")
-    check_fps(args.fps, "--fps")
+    """Run ``generate``: :func:`diff4splat.generate.generate` (the output folder, the frame rate and the request
+    checked before the model loads) and :func:`diff4splat.generate.write`. Returns the meta dict of meta.json."""
     generation = generate(
         args.image, args.cameras, pipeline=lambda: print_warnings(
             load_pipeline, args.checkpoint, args.config, runtime=args.runtime, onnx=args.onnx, device=args.device,
@@ -103,7 +99,7 @@ def generate_command(args) -> dict:
         prompt=args.prompt, steps=args.steps, sampler=args.sampler, guidance=args.guidance, seed=args.seed,
         depth=args.depth, depth_kind=args.depth_kind, progress=not args.quiet,
         notes=lambda note: print(f"diff4splat: note: {note}", file=sys.stderr), out=args.out,
-        frame_plys=args.frame_plys)
-    return write(generation, args.out, fps=args.fps, overwrite=args.overwrite)
+        overwrite=args.overwrite, inputs=[args.checkpoint, args.onnx], fps=args.fps, frame_plys=args.frame_plys)
+    return write(generation, args.out, overwrite=args.overwrite)
 
 

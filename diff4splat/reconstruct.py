@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import torch
@@ -47,12 +47,14 @@ from .generate import (
     Generation,
     LoadedPipeline,
     cameras_from_file,
+    check_destination,
     check_frame_count,
     generation_meta,
     resolve_pipeline,
 )
 from .io.image import preprocess_image
 from .io.inputs import check_input_file
+from .io.video import DEFAULT_FPS
 from .io.video_input import check_clip_request, read_video_clip
 from .limits import check_limit, check_memory, check_output_size
 from .photo import PHOTO_EPS2D, backdrop_layer, layer_sizes, photo_layer, upsample_depth
@@ -316,6 +318,9 @@ def reconstruct(
     layers: str = DEFAULT_LAYERS,
     progress: bool = False,
     out: str | os.PathLike | None = None,
+    overwrite: bool = False,
+    inputs: Iterable[str | os.PathLike | None] = (),
+    fps: float = DEFAULT_FPS,
     frame_plys: bool = True,
 ) -> Generation:
     """A 4D scene of a video clip, rendered at its own cameras (the ``diff4splat reconstruct`` command).
@@ -332,7 +337,8 @@ def reconstruct(
             centre-cropped to the model's aspect ratio and resized (as ``generate``'s photograph).
         layers: which frames become photo layers (:func:`reconstruct_scene`).
         progress: tqdm progress bar while rendering.
-        out, frame_plys: as :func:`diff4splat.generate.generate`.
+        out, overwrite, inputs, fps, frame_plys: as :func:`diff4splat.generate.generate` (``out`` checked first, as
+            a folder of :data:`RECONSTRUCT_KIND`).
 
     Returns:
         :class:`~diff4splat.generate.Generation` (write it with :func:`diff4splat.generate.write`; its folder's
@@ -340,10 +346,14 @@ def reconstruct(
 
     Raises:
         FileNotFoundError: a missing video or camera file.
-        ValueError: a bad clip request or one the video is too short for, a malformed video or camera file,
+        FileExistsError: as :func:`diff4splat.io.output_folders.check_output_dir`.
+        ValueError: an ``out`` that may not be written (:class:`diff4splat.io.output_folders.OutputDirError`), a
+            bad ``fps``, a bad clip request or one the video is too short for, a malformed video or camera file,
             limits exceeded (before the networks run), everything :func:`reconstruct_scene` raises.
     """
     t_start = time.perf_counter()
+    read = [Path(p) for p in (video, cameras, *inputs) if isinstance(p, (str, os.PathLike))]
+    check_destination(out, fps, inputs=read, overwrite=overwrite, kind=RECONSTRUCT_KIND)
     if not Path(video).is_dir():
         check_input_file(video, "video")
     if frames is not None:
@@ -379,12 +389,11 @@ def reconstruct(
                                          background=result.background, progress=progress)
     timings = {"load_model": loaded.load_seconds, **result.timings, "render": time.perf_counter() - t0}
     files = {"image": None, "cameras_file": cameras, "depth_file": None}
-    meta = generation_meta(loaded, result, "", None, files, "metric", 0, timings)
+    meta = generation_meta(loaded, result, "", None, files, "metric", 0, timings, fps)
     for key in ("image", "prompt", "trajectory", "seed", "steps", "sampler", "guidance", "shift", "depth_file",
                 "depth_kind"):
         meta.pop(key)
     meta.update(video=str(video), video_frames=clip.indices, video_fps=clip.fps, kind=RECONSTRUCT_KIND, layers=layers,
                 frame_plys=bool(frame_plys) and result.scene.changes_with_time)
-    inputs = [Path(video)] + ([Path(cameras)] if isinstance(cameras, (str, os.PathLike)) else []) + list(loaded.files)
-    return Generation(result, colors, depths, alphas, meta, inputs, cfg.scene_depth, time.perf_counter() - t_start,
-                      kind=RECONSTRUCT_KIND)
+    return Generation(result, colors, depths, alphas, meta, read + list(loaded.files), cfg.scene_depth,
+                      time.perf_counter() - t_start, kind=RECONSTRUCT_KIND)

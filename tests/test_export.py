@@ -22,10 +22,11 @@ from diff4splat.export import (
     _export_graph,
     _graphs,
     checkpoint_sha256,
+    export_checkpoint,
     export_onnx,
     state_dict_sha256,
 )
-from diff4splat.io import MARKER
+from diff4splat.io import MARKER, OutputDirError
 from models.bundle import Diff4SplatConfig, Diff4SplatModel
 from models.pretrained import config_from_dict
 
@@ -340,3 +341,26 @@ def test_export_cli_bad_input_one_line_exit_2_and_no_output(tmp_path, capsys, ca
     lines = [line for line in capsys.readouterr().err.splitlines() if not line.startswith("diff4splat: warning")]
     assert code == 2 and len(lines) == 1 and lines[0].startswith("diff4splat: error:")
     assert out.is_file() if case == "out_is_file" else not out.exists()
+
+
+def test_export_checkpoint_checks_out_opset_and_checkpoint_before_the_model_loads(tmp_path):
+    """``export-onnx``'s library call refuses a bad ``--out``, ``--opset`` or backbone folder before ``load`` runs (the
+    command checks none of them itself); a missing checkpoint is ``load_model``'s one refusal."""
+    def never(*args, **kwargs):
+        raise AssertionError("the model was loaded before the request was checked")
+
+    (tmp_path / "wan").mkdir()
+    (tmp_path / "wan" / "model_index.json").write_text("{}")
+    (tmp_path / "file").write_text("x")
+    for checkpoint, out, opset, error, message in [
+        (None, tmp_path / "file", 18, OutputDirError, "is a file"),
+        (None, tmp_path / "no" / "such", 18, OutputDirError, "does not exist"),
+        (tmp_path / "wan", tmp_path, 18, OutputDirError, "holds input"),
+        (None, tmp_path / "out", 17, ValueError, "opset must be an int"),
+        (tmp_path / "wan", tmp_path / "out", 18, ValueError, "is a diffusers backbone"),
+    ]:
+        with pytest.raises(error, match=message):
+            export_checkpoint(checkpoint, out, opset=opset, overwrite=True, load=never)
+    with pytest.raises(FileNotFoundError, match="nope is not a folder"):
+        export_checkpoint(tmp_path / "nope", tmp_path / "out")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "wan"]

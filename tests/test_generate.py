@@ -11,6 +11,7 @@ from helpers import EXAMPLE_IMAGE, tiny_model
 from diff4splat.cli import main
 from diff4splat.generate import LoadedPipeline, generate, write
 from diff4splat.io import load_ply
+from diff4splat.io.output_folders import OutputDirError
 from diff4splat.pipeline import Diff4SplatPipeline, check_seed
 
 
@@ -55,8 +56,9 @@ def test_generate_then_write_is_what_the_command_writes(tmp_path):
     """The library call and `diff4splat generate` give the same scene and meta.json settings (the command is a
     thin layer over these two functions), and the request's inputs are protected from `write`."""
     loaded = LoadedPipeline(Diff4SplatPipeline(tiny_model(dynamic=True)), "tiny")
-    gen = generate(EXAMPLE_IMAGE, pipeline=loaded, frames=5, resolution=64, steps=1, seed=3)
+    gen = generate(EXAMPLE_IMAGE, pipeline=loaded, frames=5, resolution=64, steps=1, seed=3, fps=6)
     T = len(gen.result.cameras)
+    assert write(gen, tmp_path / "own")["fps"] == 6  # generate's frame rate unless write is given another
     assert gen.colors.shape == (T, 64, 64, 3) and gen.depths.shape == gen.alphas.shape == (T, 64, 64)
     meta = write(gen, tmp_path / "lib", fps=12)
     on_disk = json.loads((tmp_path / "lib" / "meta.json").read_text())
@@ -82,3 +84,24 @@ def test_a_frame_count_the_vae_cannot_take_is_named_by_its_flag():
     """``--frames 6`` said "video: T=6 frames; …": the user passed no video."""
     with pytest.raises(ValueError, match=r"^--frames 6: the frame count must be 1 \+ 4·k \(1, 5, 9, …\)$"):
         generate(EXAMPLE_IMAGE, pipeline=Diff4SplatPipeline(tiny_model()), frames=6)
+
+
+def test_the_output_folder_and_frame_rate_are_checked_before_the_model_loads(tmp_path):
+    """``generate`` checks the folder it is told of and the frame rate first, so its command does not check them
+    again: a folder holding an input (the photo's, or a loader's checkpoint given in ``inputs``), a user's folder
+    without ``overwrite``, a missing parent, a bad fps."""
+    ckpt = tmp_path / "run" / "model"
+    ckpt.mkdir(parents=True)
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("mine")
+    for kwargs, error, message in [
+        ({"out": EXAMPLE_IMAGE.parent, "overwrite": True}, OutputDirError, "holds input"),
+        ({"out": tmp_path / "run", "inputs": [ckpt]}, OutputDirError, "holds input"),
+        ({"out": tmp_path / "mine"}, OutputDirError, "not written by diff4splat"),
+        ({"out": tmp_path / "no" / "such"}, OutputDirError, "does not exist"),
+        ({"fps": 0}, ValueError, "--fps"),
+        ({"out": tmp_path / "new", "fps": 1e6}, ValueError, "--fps must be at most"),
+    ]:
+        with pytest.raises(error, match=message):
+            generate(EXAMPLE_IMAGE, pipeline=_never, **kwargs)
+    assert not (tmp_path / "new").exists() and sorted(p.name for p in tmp_path.iterdir()) == ["mine", "run"]

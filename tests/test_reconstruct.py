@@ -12,7 +12,7 @@ from helpers import TEXTURES, moving_patch_video
 from data_prep.synth import generate_scene
 from diff4splat.cli import main
 from diff4splat.generate import load_pipeline
-from diff4splat.io import load_cameras_json, load_image, save_cameras_json, save_image, save_video
+from diff4splat.io import OutputDirError, load_cameras_json, load_image, save_cameras_json, save_image, save_video
 from diff4splat.io.video_input import read_video_clip
 from diff4splat.reconstruct import carried_depth, memory_estimate, reconstruct, still_cameras
 from diff4splat.render.sequence import render_path
@@ -73,6 +73,22 @@ def test_bad_clip_requests_are_refused(videos, tmp_path):
     (tmp_path / "junk.mp4").write_bytes(b"not a video")
     with pytest.raises(ValueError, match="junk.mp4"):
         read_video_clip(tmp_path / "junk.mp4", 5)
+
+
+def test_the_output_folder_and_frame_rate_are_checked_before_the_model_loads(videos, tmp_path):
+    """``reconstruct`` checks the folder it is told of and the frame rate first (its command checks neither)."""
+    root, _ = videos
+
+    def never():
+        raise AssertionError("the model was loaded before the request was checked")
+
+    with pytest.raises(OutputDirError, match="holds input"):
+        reconstruct(root / "moving", pipeline=never, out=root, overwrite=True)
+    with pytest.raises(OutputDirError, match="holds input"):
+        reconstruct(root / "moving", pipeline=never, out=tmp_path, inputs=[tmp_path / "model"], overwrite=True)
+    with pytest.raises(ValueError, match="--fps"):
+        reconstruct(root / "moving", pipeline=never, out=tmp_path / "out", fps=-1)
+    assert not (tmp_path / "out").exists()
 
 
 def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
