@@ -8,7 +8,7 @@ A known oneDNN bug may fit: issue uxlfoundation/oneDNN#5717 (fixed by PR #5723, 
 kernel (``brg_matmul:avx10_1_512_amx``) reads past a row's K columns into the next row when K > 32 and K % 32 != 0,
 and a NaN there reaches a row that holds none. This script tells the causes apart on such a machine:
 
-- ``matmul``: the issue's case (:func:`diff4splat.devices.bf16_nan_leaks`, which warns trainers and runtimes that
+- ``matmul``: the issue's case (:func:`diff4splat.utils.devices.bf16_nan_leaks`, which warns trainers and runtimes that
   compute in bfloat16 on such a CPU). A (16, 32, 33) @ (16, 33, 64) bmm and a (64, 33) @ (33, 64) mm in bfloat16,
   row 0 of each matrix finite and every other row NaN. Row 0 of the product must be finite. Then the same with
   ``torch.backends.mkldnn`` switched off in the process (torch's own kernels), a remedy that needs no
@@ -36,7 +36,7 @@ from pathlib import Path
 
 import torch
 
-from diff4splat.devices import bf16_nan_leaks
+from diff4splat.utils.devices import bf16_nan_leaks
 from training.trainer import NonFiniteLossError
 
 ROOT = Path(__file__).resolve().parent.parent

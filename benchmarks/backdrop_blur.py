@@ -1,5 +1,6 @@
-"""The backdrop's blur (:func:`diff4splat.photo.backdrop_colors`, 4 samples per cell) against its full-resolution
-reference (:func:`diff4splat.photo.backdrop_colors_reference`): time and colour error per photo size.
+"""The backdrop's blur (:func:`diff4splat.assembly.photo.backdrop_colors`, 4 samples per cell) against its
+full-resolution
+reference (:func:`diff4splat.assembly.photo.backdrop_colors_reference`): time and colour error per photo size.
 
     python benchmarks/backdrop_blur.py [--write]
 
@@ -20,8 +21,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import markdown_table, publish  # noqa: E402
 
+from diff4splat.assembly.photo import BACKDROP_SAMPLES, _backdrop_grid, backdrop_colors, backdrop_colors_reference  # noqa: E402
 from diff4splat.io import load_image  # noqa: E402
-from diff4splat.photo import BACKDROP_SAMPLES, _backdrop_grid, backdrop_colors, backdrop_colors_reference  # noqa: E402
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
 SIZES = [(256, 256), (512, 512), (704, 1280), (1024, 1024), (2048, 2048)]

@@ -14,7 +14,8 @@ cross a block border (columns/rows j with (j + 1) mod f = 0) and all others:
 (the paper's kernel = stride transposed convolution) puts the steps between tokens on the borders and is ≫ 1.
 The maps of source frame 0 are included (the photo layer uses frame 0's distance). "scene colour" is the colour the
 scene's later source frames carry: the LDRM's, or for ``generated_colors: video`` the VAE-decoded video's
-(:func:`diff4splat.assemble.video_colors`). ``--write`` puts the table into docs/benchmarks.md (``blockiness``).
+(:func:`diff4splat.assembly.assemble.video_colors`). ``--write`` puts the table into docs/benchmarks.md
+(``blockiness``).
 """
 from __future__ import annotations
 
@@ -29,9 +30,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import markdown_table, publish  # noqa: E402
 
 from data_prep.clips import ClipConfig, ClipDataset  # noqa: E402
-from diff4splat.assemble import video_colors  # noqa: E402
-from diff4splat.devices import resolve_device  # noqa: E402
+from diff4splat.assembly.assemble import video_colors  # noqa: E402
 from diff4splat.pipeline import load_model  # noqa: E402
+from diff4splat.utils.devices import resolve_device  # noqa: E402
 from models.ldrm import source_frame_indices  # noqa: E402
 from training.eval_metrics import blockiness  # noqa: E402
 

@@ -1,6 +1,6 @@
 """Peak memory of ``render`` and ``fit`` against the estimate each checks before its heavy work
 (:func:`diff4splat.render_command.render_memory_estimate`, :func:`training.fit_cli.fit_memory_estimate`; constants in
-:mod:`diff4splat.costs` and ``training.fit_cli``).
+:mod:`diff4splat.utils.costs` and ``training.fit_cli``).
 
     python benchmarks/command_memory.py [--quick] [--write]
 
@@ -66,7 +66,8 @@ def main() -> None:
                                             "--device", "cpu", "--out", str(scene)], capture_output=True, text=True)
             if done.returncode != 0:
                 raise RuntimeError(done.stderr[-2000:])
-            est, peak = _estimate_and_peak(["diff4splat", "render", str(scene), "--device", "cpu", "--quiet",
+            est, peak = _estimate_and_peak(["diff4splat", "render", str(scene), "--trajectory", "orbit", "--device",
+            "cpu", "--quiet",
                                             "--out", str(tmp / f"r{res}.mp4")])
             rows.append(["render", f"generated {res}², 17 frames", f"{_gaussians(scene):,}", f"{peak:.2f}",
                          f"{est:.2f}", f"{est / peak:.2f}"])

@@ -10,7 +10,7 @@ once / alone) and the median CPU seconds (user + system) of a run. Two runs at o
 run already keeps busy should take about 2× one alone, and no more than 2.5×.
 
 A setting adds variables to the commands' environment, e.g. ``spin=GOMP_SPINCOUNT=300000`` (libgomp's own
-default: the package's thread settings, diff4splat/devices.py, step aside when it is set) against
+default: the package's thread settings, diff4splat/utils/devices.py, step aside when it is set) against
 ``passive=OMP_WAIT_POLICY=PASSIVE``; without ``--setting`` the package's defaults run. Other load on the machine
 moves the figures: repeat, and quote medians.
 

@@ -3,8 +3,8 @@
     python benchmarks/flow_motion.py --data DIR [DIR ...] [--checkpoint DIR] [--device cpu] [--write]
 
 For every clip of the held-out sets (``data_prep synth``), frame 0's pixels are tracked through the clip
-(:func:`diff4splat.scene_flow.track_pixels`: OpenCV DIS, chained, forward-backward check) and lifted to 3D with
-the clip's **true** z-depth and cameras (:func:`~diff4splat.scene_flow.lift_tracks`); each 3D track's frame-0
+(:func:`diff4splat.geometry.scene_flow.track_pixels`: OpenCV DIS, chained, forward-backward check) and lifted to 3D with
+the clip's **true** z-depth and cameras (:func:`~diff4splat.geometry.scene_flow.lift_tracks`); each 3D track's frame-0
 pixel takes that pixel's trajectory, scored as ``diff4splat evaluate`` scores a scene's motion
 (:func:`training.eval_metrics.motion_errors`: displacement error from frame 0 against holding still, δ 5 / 10 cm).
 The frames are the clip's own, or its round trip through the model's VAE (what an LDRM reading the true video's
@@ -28,9 +28,9 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import markdown_table, publish  # noqa: E402
 
-from diff4splat.devices import resolve_device  # noqa: E402
+from diff4splat.geometry.scene_flow import FB_TOLERANCE_PX, FLOW_UPSAMPLE, GATE_PX, lift_tracks, track_pixels  # noqa: E402
 from diff4splat.pipeline import load_model  # noqa: E402
-from diff4splat.scene_flow import FB_TOLERANCE_PX, FLOW_UPSAMPLE, GATE_PX, lift_tracks, track_pixels  # noqa: E402
+from diff4splat.utils.devices import resolve_device  # noqa: E402
 from training.eval_metrics import motion_errors  # noqa: E402
 from training.evaluate import _held_out_clips  # noqa: E402
 from training.objectives import track_query_index  # noqa: E402

@@ -20,8 +20,8 @@ from unittest import mock
 
 from _common import markdown_table, publish, run_with_peak_memory
 
-from diff4splat.limits import LIMITS, LimitError, check_memory, check_output_size
 from diff4splat.pipeline import Diff4SplatPipeline
+from diff4splat.utils.limits import LIMITS, LimitError, check_memory, check_output_size
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
 CASES = ["17x256", "49x256", "149x256", "49x64", "101x64", "25x512"]

@@ -7,7 +7,7 @@ Five parts, each small enough for one 10-minute command on one GPU:
   Gaussian per pixel) at 256² and 1024²: forward and forward+backward, median after warm-up.
 - ``block``: one paper-size DiT block, op by op (:mod:`models.dit_reference`) against ours, eager and compiled
   (what the eager step's fewer passes over its tokens buy, benchmarks/dit_traffic.py), in about a minute.
-- ``generate``: the pipeline's stages (synchronised, :class:`diff4splat.devices.Stopwatch`) and the render along
+- ``generate``: the pipeline's stages (synchronised, :class:`diff4splat.utils.devices.Stopwatch`) and the render along
   the path, with the peak of ``torch.cuda.max_memory_allocated``, for ``base`` (shipped weights, 17 frames, 64²),
   ``small`` (random, 17 frames, 128²) and ``paper`` (random weights built directly in bfloat16 on the GPU —
   nothing is downloaded; 49 frames, 512², 50 Euler steps), the paper model with model CPU offload and a prompt
@@ -60,13 +60,13 @@ from _common import (  # noqa: E402
 )
 from render_speed import ldrm_scene  # noqa: E402
 
-from diff4splat.devices import Stopwatch, resolve_device  # noqa: E402
 from diff4splat.io import load_image  # noqa: E402
 from diff4splat.pipeline import Diff4SplatPipeline, load_model  # noqa: E402
 from diff4splat.render import rasterize  # noqa: E402
 from diff4splat.render.rasterize import gsplat_available  # noqa: E402
 from diff4splat.render.sequence import render_path  # noqa: E402
 from diff4splat.runtime import FF_CHUNK_TOKENS  # noqa: E402
+from diff4splat.utils.devices import Stopwatch, resolve_device  # noqa: E402
 from models.bundle import Diff4SplatModel, load_config  # noqa: E402
 from models.dit import VideoDiTBlock  # noqa: E402
 from models.dit_reference import reference_block  # noqa: E402
@@ -373,7 +373,7 @@ def _generate_table(device: torch.device, rows: dict[str, list[str]], kept: dict
             f"synchronised; \"peak in\" is the stage that set the peak (`GenerationResult.high_water`). The paper "
             f"model holds random weights built in bfloat16 on the GPU (no download); "
             f"\"offload model\" keeps the networks in pinned CPU memory and moves one at a time to the GPU "
-            f"(diff4splat/offload.py), so its `sample` includes copying the DiT there; \"model-prefetch\" copies "
+            f"(diff4splat/utils/offload.py), so its `sample` includes copying the DiT there; \"model-prefetch\" copies "
             f"the DiT block by block on a side stream while its first step runs; \"cuDNN attention\" runs "
             f"`--attention cudnn` (cuDNN's fused attention tried first; torch tries FlashAttention-2 first). Peak = "
             f"`torch.cuda.max_memory_allocated` over the run, GB = 10⁹ bytes. A run of some rows (`--rows`) keeps "

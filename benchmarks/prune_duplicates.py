@@ -1,7 +1,7 @@
 """Duplicate pruning across source frames: Gaussian counts and render time with and without it.
 
 For each camera preset and seed, ``generate`` runs on the example photograph and the table reports the
-Gaussians of the unpruned S·H·W grid, those :func:`diff4splat.prune.duplicate_mask` drops, those left after
+Gaussians of the unpruned S·H·W grid, those :func:`diff4splat.assembly.prune.duplicate_mask` drops, those left after
 it, the later-frame Gaussians that covered the photograph and slid behind it (``slid``), and those left after the
 occluder and opacity/visibility pruning (``GenerationResult.prune_stats``); then the same
 opacity/visibility pruning without the duplicate pruning, for comparison. Render times are medians of
@@ -9,11 +9,12 @@ opacity/visibility pruning without the duplicate pruning, for comparison. Render
 pruning. With a random model (no trained weights for the config) the counts show the code path working,
 not what a trained LDRM's overlap is.
 
-The pipeline applies the duplicate pruning itself (:func:`diff4splat.prune.settle_generated`) and has no switch to
-turn it off, so this script intercepts ``diff4splat.prune.duplicate_mask``: it records the unpruned scene and
-the source cameras the pipeline passes, calls :func:`~diff4splat.prune.duplicate_mask` on them itself (timed),
-and hands the mask back to the pipeline. The scene without duplicate pruning is the recorded unpruned scene after the
-pipeline's own opacity/visibility pruning (:func:`diff4splat.prune.prune_scene`, ``config.prune_opacity``).
+The pipeline applies the duplicate pruning itself (:func:`diff4splat.assembly.prune.settle_generated`) and has no switch
+to turn it off, so this script intercepts ``diff4splat.assembly.prune.duplicate_mask``: it records the unpruned scene
+and the source cameras the pipeline passes, calls :func:`~diff4splat.assembly.prune.duplicate_mask` on them itself
+(timed), and hands the mask back to the pipeline. The scene without duplicate pruning is the recorded unpruned scene
+after the pipeline's own opacity/visibility pruning (:func:`diff4splat.assembly.prune.prune_scene`,
+``config.prune_opacity``).
 
     python benchmarks/prune_duplicates.py [--config tiny] [--checkpoint DIR | --untrained] [--seeds 0 1 2]
         [--trajectories orbit arc forward pan-left] [--repeats 3] [--write]
@@ -35,10 +36,10 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, markdown_table, peak_rss_mb, repo_relative, write_section  # noqa: E402
 
-import diff4splat.prune as prune_module  # noqa: E402
+import diff4splat.assembly.prune as prune_module  # noqa: E402
+from diff4splat.assembly.prune import duplicate_mask, prune_scene  # noqa: E402
 from diff4splat.io import load_image  # noqa: E402
 from diff4splat.pipeline import Diff4SplatPipeline, load_model  # noqa: E402
-from diff4splat.prune import duplicate_mask, prune_scene  # noqa: E402
 from diff4splat.render.sequence import render_path  # noqa: E402
 from models.bundle import DEFAULT_CONFIG  # noqa: E402
 

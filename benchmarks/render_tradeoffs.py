@@ -30,9 +30,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, markdown_table, peak_rss_mb, write_section  # noqa: E402
 
 from diff4splat.cameras import CameraPath, RollingShutter, ThinLens, intrinsics_from_fov  # noqa: E402
-from diff4splat.gaussians import Gaussians  # noqa: E402
 from diff4splat.render import rasterize, raytrace, render_rolling_shutter  # noqa: E402
-from diff4splat.scene import DynamicGaussians  # noqa: E402
+from diff4splat.scene.dynamic import DynamicGaussians  # noqa: E402
+from diff4splat.scene.gaussians import Gaussians  # noqa: E402
 
 DOCS = Path(__file__).resolve().parent.parent / "docs"
 T_FRAME = 0.5

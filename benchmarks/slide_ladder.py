@@ -1,12 +1,13 @@
-"""The slide ladder of :func:`diff4splat.prune.settle_generated`: novel views and the prune stage's time per ladder.
+"""The slide ladder of :func:`diff4splat.assembly.prune.settle_generated`: novel views and the prune stage's time per
+ladder.
 
     python benchmarks/slide_ladder.py --data DIR [DIR …] [--checkpoint DIR] [--limit N] [--write]
 
 A generated Gaussian that would cover the photograph at the input view slides back along its source ray to the
-first factor λ of a ladder at which it no longer does (:func:`diff4splat.prune.slide_behind`); the ladder is an
+first factor λ of a ladder at which it no longer does (:func:`diff4splat.assembly.prune.slide_behind`); the ladder is an
 approximation of "the nearest free depth". Rows: ``drop`` (``factors=()``: every such Gaussian dropped, the rule
 before the slide), and geometric ladders 1.05·r^k up to ~4 with ratios r = 1.25, 1.12 (the default,
-:data:`diff4splat.prune.SLIDE_FACTORS`) and 1.06. For each held-out set (its clips' first frames, cameras and
+:data:`diff4splat.assembly.prune.SLIDE_FACTORS`) and 1.06. For each held-out set (its clips' first frames, cameras and
 captions, as ``diff4splat evaluate`` reads them) the novel frames 1…T−1 are scored against the truth with the
 sampled latents and with the noise-latent ablation (:func:`training.eval_metrics.ablation_noise`): PSNR of the mean
 MSE over all novel frames and beyond 45°, and the gap there. The time is the median ``prune`` stage of ``generate``
@@ -28,9 +29,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import held_out_run, markdown_table, publish, repo_relative  # noqa: E402
 
 import diff4splat.pipeline as pipeline_module  # noqa: E402
+from diff4splat.assembly.prune import SLIDE_FACTORS, settle_generated  # noqa: E402
 from diff4splat.cameras import CameraPath  # noqa: E402
 from diff4splat.io import load_image  # noqa: E402
-from diff4splat.prune import SLIDE_FACTORS, settle_generated  # noqa: E402
 from diff4splat.render.sequence import render_path  # noqa: E402
 from training.eval_metrics import ablation_noise, binned_psnr, frame_mse, psnr_from_mse, view_angles  # noqa: E402
 from training.evaluate import _held_out_clips  # noqa: E402

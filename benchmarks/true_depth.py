@@ -7,8 +7,8 @@ cameras and caption, as ``diff4splat evaluate`` reads them), frames 1…T−1 ar
 ground truth (PSNR of the mean MSE over all novel frames, and by view angle from the input camera,
 :data:`training.eval_metrics.ANGLE_BINS`):
 
-- ``oracle``: the photo layer alone (:func:`diff4splat.photo.photo_layer`) built from the true first frame and its
-  true depth (invalid pixels at the largest valid depth), static, rendered with the scene's dilation over the
+- ``oracle``: the photo layer alone (:func:`diff4splat.assembly.photo.photo_layer`) built from the true first frame and
+  its true depth (invalid pixels at the largest valid depth), static, rendered with the scene's dilation over the
   photograph's mean colour: pixel-aligned Gaussians of what was observed, moved by the true geometry;
 - ``generate, true depth``: the pipeline given the true depth map (``depth=``, metric; invalid pixels are holes
   the network's depth fills), sampled latents, rendered as ``generate`` renders it;
@@ -27,11 +27,11 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import held_out_run, markdown_table, publish, repo_relative  # noqa: E402
 
+from diff4splat.assembly.photo import PHOTO_EPS2D, photo_layer  # noqa: E402
 from diff4splat.cameras import CameraPath  # noqa: E402
-from diff4splat.photo import PHOTO_EPS2D, photo_layer  # noqa: E402
 from diff4splat.pipeline import Diff4SplatPipeline  # noqa: E402
 from diff4splat.render.sequence import render_path  # noqa: E402
-from diff4splat.scene import DynamicGaussians  # noqa: E402
+from diff4splat.scene.dynamic import DynamicGaussians  # noqa: E402
 from training.eval_metrics import ANGLE_BINS, binned_psnr, frame_mse, psnr_from_mse, repeat_baselines, view_angles  # noqa: E402
 from training.evaluate import _held_out_clips  # noqa: E402
 

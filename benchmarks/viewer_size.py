@@ -1,4 +1,4 @@
-"""Size and load time of ``viewer.html`` (the self-contained 4D viewer, diff4splat/viewer).
+"""Size and load time of ``viewer.html`` (the self-contained 4D viewer, diff4splat/io/viewer_page.py).
 
 Rows: the shipped example (``diff4splat generate examples/chelsea.png``, default model) and synthetic dynamic
 scenes (random Gaussians, 17 keyframes) of 10,000 and 65,536 Gaussians at SH degree 0 and 3. Columns: the
@@ -29,12 +29,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, markdown_table, write_section  # noqa: E402
 
 from diff4splat.cameras.path import CameraPath  # noqa: E402
-from diff4splat.gaussians import Gaussians  # noqa: E402
 from diff4splat.generate import generate, write  # noqa: E402
 from diff4splat.io.scene_folder import load_scene_folder, write_scene_folder  # noqa: E402
-from diff4splat.scene import DynamicGaussians  # noqa: E402
-from diff4splat.viewer.data import viewer_payload  # noqa: E402
-from diff4splat.viewer.page import write_viewer  # noqa: E402
+from diff4splat.io.viewer_data import viewer_payload  # noqa: E402
+from diff4splat.io.viewer_page import write_viewer  # noqa: E402
+from diff4splat.scene.dynamic import DynamicGaussians  # noqa: E402
+from diff4splat.scene.gaussians import Gaussians  # noqa: E402
 from diff4splat.viewer_server import HOST, make_server  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent

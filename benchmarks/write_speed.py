@@ -26,9 +26,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import markdown_table, publish  # noqa: E402
 
 from diff4splat.cameras import intrinsics_from_fov, make_trajectory  # noqa: E402
-from diff4splat.gaussians import Gaussians  # noqa: E402
 from diff4splat.io.scene_folder import write_scene_folder  # noqa: E402
-from diff4splat.scene import DynamicGaussians  # noqa: E402
+from diff4splat.scene.dynamic import DynamicGaussians  # noqa: E402
+from diff4splat.scene.gaussians import Gaussians  # noqa: E402
 
 CASES = ["93359x17x256", "1311201x49x512"]
 PARTS = {"frames/*.ply": lambda p: p.parent.name == "frames", "deformation.npz": lambda p: p.name == "deformation.npz",

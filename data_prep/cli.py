@@ -8,7 +8,7 @@ subcommand, write its two functions and append the adder to :data:`SUBCOMMANDS`.
 (:mod:`data_prep.engine`).
 
 Bad input (a bad argument, a missing folder, a malformed file, an OS error on a path) gets one line on
-stderr (``data_prep: error: …``) and exit code 2; Ctrl-C exits 130 (:func:`diff4splat.errors.run_cli`).
+stderr (``data_prep: error: …``) and exit code 2; Ctrl-C exits 130 (:func:`diff4splat.utils.errors.run_cli`).
 """
 from __future__ import annotations
 
@@ -20,8 +20,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from diff4splat.devices import resolve_device
-from diff4splat.errors import run_cli
+from diff4splat.utils.devices import resolve_device
+from diff4splat.utils.errors import run_cli
 
 from .convert_cli import register as _add_convert  # data_prep convert SOURCE IN OUT
 from .curate import DEFAULT_CONFIG_PATH, MODES, CurationConfig, curate
@@ -163,7 +163,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``data_prep`` console script. Returns the exit code (0 ok, 1 problems, 2 bad input,
-    130 after Ctrl-C; :func:`diff4splat.errors.run_cli`)."""
+    130 after Ctrl-C; :func:`diff4splat.utils.errors.run_cli`)."""
     def run() -> int:
         args = build_parser().parse_args(argv)
         return int(args.func(args))

@@ -35,8 +35,8 @@ from torch import Tensor
 from torch.utils.data import Dataset
 
 from diff4splat.cameras import CameraPath, center_crop_box, pack_plucker, plucker_rays
-from diff4splat.checks import check_int
 from diff4splat.io import preprocess_image
+from diff4splat.utils.checks import check_int
 
 from .format import SceneMeta, SceneReader, list_scenes, timestamps_to_times
 from .scene_files import META_FILE

@@ -13,7 +13,7 @@ import json
 import sys
 from pathlib import Path
 
-from diff4splat.errors import run_cli
+from diff4splat.utils.errors import run_cli
 
 from .converters import CONVERTERS, convert, convert_each
 from .engine import add_engine_arguments, engine_from_args

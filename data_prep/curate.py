@@ -48,10 +48,10 @@ import yaml
 from tqdm import tqdm
 
 from diff4splat.cameras import camera_centers
-from diff4splat.checks import check_int
-from diff4splat.config_files import CURATION_DEFAULT
 from diff4splat.io import atomic_output_path, check_output_dir, output_dir
 from diff4splat.io.structured import read_yaml
+from diff4splat.utils.checks import check_int
+from diff4splat.utils.config_files import CURATION_DEFAULT
 
 from .engine import Engine, map_scenes
 from .format import SCENE_KIND, SceneReader, list_scenes

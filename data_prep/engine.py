@@ -40,7 +40,7 @@ from typing import Any
 import torch
 from tqdm.auto import tqdm
 
-from diff4splat.checks import MissingExtraError, check_int
+from diff4splat.utils.checks import MissingExtraError, check_int
 
 __all__ = ["Engine", "ENGINES", "check_engine", "add_engine_arguments", "engine_from_args", "map_scenes",
            "fault_point", "import_ray", "FAULT_ENV", "RAY_EXTRA"]

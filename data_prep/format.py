@@ -25,7 +25,6 @@ import numpy as np
 from torch import Tensor
 
 from diff4splat.cameras import CameraPath
-from diff4splat.checks import is_int
 from diff4splat.io import (
     load_cameras_json,
     load_depth_exr,
@@ -34,6 +33,7 @@ from diff4splat.io import (
     save_depth_exr,
     save_image,
 )
+from diff4splat.utils.checks import is_int
 
 from .engine import fault_point
 from .scene_files import (

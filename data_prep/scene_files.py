@@ -17,9 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from diff4splat.checks import check_int, check_number, is_int, is_number
 from diff4splat.io.image import read_image
 from diff4splat.io.structured import read_json
+from diff4splat.utils.checks import check_int, check_number, is_int, is_number
 
 __all__ = [
     "META_FILE",
@@ -125,7 +125,7 @@ class SceneMeta:
         self.validate()
 
     def validate(self) -> None:
-        """Check every field's type and value (FORMAT.md table) with :mod:`diff4splat.checks`; numbers are kept
+        """Check every field's type and value (FORMAT.md table) with :mod:`diff4splat.utils.checks`; numbers are kept
         as Python ``int``/``float`` (numpy scalars are accepted and converted, so ``meta.json`` can be written).
         Raises ValueError naming the field."""
         if not is_int(self.format_version) or self.format_version != FORMAT_VERSION:
@@ -224,7 +224,7 @@ def read_rgb(path: str | os.PathLike) -> np.ndarray:
     Raises:
         FileNotFoundError: nothing exists at ``path``.
         ValueError: ``path`` is a folder, a FIFO or a symlink loop; the file cannot be decoded, has more pixels
-            than the ``image_pixels`` limit (:class:`diff4splat.limits.LimitError`), or is not 8-bit with exactly
+            than the ``image_pixels`` limit (:class:`diff4splat.utils.limits.LimitError`), or is not 8-bit with exactly
             3 channels.
     """
     img = read_image(path)

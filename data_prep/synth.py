@@ -1,7 +1,7 @@
 """Synthetic dynamic scenes made of 3D Gaussians, rendered with diff4splat's renderer (``data_prep synth``).
 
 A scene spec (:func:`data_prep.synth_world.sample_scene_spec`) becomes a
-:class:`~diff4splat.scene.DynamicGaussians`: a textured ground disk and cylindrical backdrop wall
+:class:`~diff4splat.scene.dynamic.DynamicGaussians`: a textured ground disk and cylindrical backdrop wall
 (flat Gaussians on a grid) plus 1–4 objects (flat Gaussians on their surfaces), coloured by a
 procedural texture (checker, stripes, spotted noise blobs) or, with probability ``texture_ratio`` per
 surface, a crop of a bundled real photograph (:mod:`data_prep.textures`; image-textured ground and wall
@@ -35,10 +35,10 @@ import numpy as np
 import torch
 
 from diff4splat.cameras import CameraPath, intrinsics_from_fov, look_at
-from diff4splat.gaussians import Gaussians, rgb_to_sh0
-from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat, rotmat_to_quat
 from diff4splat.render.sequence import render_path
-from diff4splat.scene import DynamicGaussians
+from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.scene.gaussians import Gaussians, rgb_to_sh0
+from diff4splat.scene.quaternions import axis_angle_to_quat, quat_to_rotmat, rotmat_to_quat
 
 from .format import SceneWriter
 from .synth_world import (

@@ -12,9 +12,9 @@ from pathlib import Path
 import torch
 from tqdm.auto import tqdm
 
-from diff4splat.checks import check_int, check_number
-from diff4splat.devices import resolve_device
-from diff4splat.limits import check_limit, check_memory, held_memory
+from diff4splat.utils.checks import check_int, check_number
+from diff4splat.utils.devices import resolve_device
+from diff4splat.utils.limits import check_limit, check_memory, held_memory
 
 from .engine import Engine, fault_point, map_scenes
 from .format import check_dataset_root
@@ -63,10 +63,10 @@ def check_synth_request(num_scenes: int, seed: int, *, size: int, frames: int, c
             their parameter names.
 
     Raises:
-        ValueError: an argument out of range (named). :class:`diff4splat.limits.LimitError` (a ValueError):
+        ValueError: an argument out of range (named). :class:`diff4splat.utils.limits.LimitError` (a ValueError):
             ``num_scenes`` above the ``scenes`` limit, ``size`` above ``resolution``, ``frames`` above ``frames``,
             :func:`scene_bytes` above ``synth_bytes``, or this process's memory plus one scene per worker above the
-            memory it may use (:func:`diff4splat.limits.check_memory`: the machine's, its cgroup's, its ulimits).
+            memory it may use (:func:`diff4splat.utils.limits.check_memory`: the machine's, its cgroup's, its ulimits).
     """
     name = _FLAGS.get if flags else str
     check_limit("scenes", check_int(name("num_scenes"), num_scenes, 1), name("num_scenes"))
@@ -121,7 +121,7 @@ def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, si
             (:mod:`data_prep.textures`); 0 gives the procedural-only scenes.
         workers: processes, ≥ 1 (the local engine; ``engine`` given: its own ``workers`` count).
         progress: show progress.
-        device: where the scenes are rendered (:func:`~diff4splat.devices.resolve_device`): "cpu" (the default,
+        device: where the scenes are rendered (:func:`~diff4splat.utils.devices.resolve_device`): "cpu" (the default,
             so a seed gives the same bytes on every machine), "cuda", "auto", …
         engine: where the scenes are made (:func:`data_prep.engine.check_engine`); ``None``: the local pool of
             ``workers`` processes. On Ray, a CUDA ``device`` gives each task one GPU.
@@ -132,7 +132,7 @@ def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, si
     Raises:
         ValueError: naming the argument that is out of range; an ``out_dir`` holding anything but scene folders; a
             ``device`` this machine does not have;
-            :class:`diff4splat.limits.LimitError` for a request above a limit (:func:`check_synth_request`).
+            :class:`diff4splat.utils.limits.LimitError` for a request above a limit (:func:`check_synth_request`).
     """
     check_synth_request(num_scenes, seed, size=size, frames=frames, cameras=cameras, workers=workers,
                         static_ratio=static_ratio, texture_ratio=texture_ratio)

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from diff4splat.checks import check_number
+from diff4splat.utils.checks import check_number
 
 from .textures import IMAGE_TEXTURES, load_texture, texture_names
 

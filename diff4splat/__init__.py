@@ -8,10 +8,10 @@ the networks. The generation pipeline, which does, is imported from its module::
 
     from diff4splat.pipeline import Diff4SplatPipeline
 """
-from . import devices  # noqa: F401  first: sets the OpenMP runtime's environment before torch loads it
-from .gaussians import Gaussians
-from .render import rasterize, rasterize_dense
-from .scene import DynamicGaussians
+from diff4splat.render import rasterize, rasterize_dense
+from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.scene.gaussians import Gaussians
+from diff4splat.utils import devices  # noqa: F401  first: sets the OpenMP runtime's environment before torch loads it
 
 __version__ = "0.1.0"
 

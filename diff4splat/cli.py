@@ -13,19 +13,18 @@ from functools import partial
 from importlib.metadata import entry_points
 from pathlib import Path
 
+from diff4splat.cameras import TRAJECTORIES
+from diff4splat.export import MAX_OPSET, MIN_OPSET, export_checkpoint
+from diff4splat.generate import load_pipeline, write
+from diff4splat.generate_cli import add_generate_parser, generate_command
+from diff4splat.io.video import DEFAULT_FPS
+from diff4splat.pipeline import load_model
+from diff4splat.reconstruct import DEFAULT_LAYERS, LAYERS, reconstruct
+from diff4splat.render_command import rerender
+from diff4splat.utils.devices import AUTO, DEVICE_HELP, resolve_device
+from diff4splat.utils.errors import print_warnings, run_cli
+from diff4splat.viewer_server import serve
 from models.bundle import DEFAULT_CONFIG, config_names
-
-from .cameras import TRAJECTORIES
-from .devices import AUTO, DEVICE_HELP, resolve_device
-from .errors import print_warnings, run_cli
-from .export import MAX_OPSET, MIN_OPSET, export_checkpoint
-from .generate import load_pipeline, write
-from .generate_cli import add_generate_parser, generate_command
-from .io.video import DEFAULT_FPS
-from .pipeline import load_model
-from .reconstruct import DEFAULT_LAYERS, LAYERS, reconstruct
-from .render_command import rerender
-from .viewer_server import serve
 
 __all__ = ["main", "build_parser"]
 
@@ -179,7 +178,7 @@ def reconstruct_command(args) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``diff4splat`` console script. Returns the exit code: 0, 2 after an expected
-    failure (one ``diff4splat: error: …`` line, :func:`diff4splat.errors.run_cli`), 130 after Ctrl-C."""
+    failure (one ``diff4splat: error: …`` line, :func:`diff4splat.utils.errors.run_cli`), 130 after Ctrl-C."""
     return run_cli("diff4splat", lambda: _main(argv), expected=(CLIError,))
 
 

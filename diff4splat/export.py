@@ -66,22 +66,25 @@ import torch
 from torch import Tensor, nn
 from torch.export import Dim
 
+from diff4splat.io.output_folders import check_output_dir, output_dir
+from diff4splat.onnx_runtime import (
+    GRAPH_METADATA_KEYS,
+    LDRM_OUTPUTS,
+    MANIFEST_FORMAT,
+    MANIFEST_NAME,
+    STATIC_LDRM_OUTPUTS,
+)
+from diff4splat.pipeline import load_model
 from models.backbone_model import INDEX_FILE
 from models.bundle import DEFAULT_CONFIG, NETWORKS, Diff4SplatModel
 from models.pretrained import WEIGHTS_NAME
-
-from .io.output_folders import check_output_dir, output_dir
-from .pipeline import load_model
 
 __all__ = ["export_onnx", "export_checkpoint", "check_opset", "state_dict_sha256", "checkpoint_sha256",
            "MANIFEST_NAME", "MANIFEST_FORMAT", "MIN_OPSET", "MAX_OPSET", "EXTERNAL_DATA_BYTES", "LDRM_OUTPUTS",
            "STATIC_LDRM_OUTPUTS", "graph_metadata", "GRAPH_METADATA_KEYS"]
 
-MANIFEST_NAME = "manifest.json"
 EXPORT_KIND = "onnx"
 """Output kind of an export folder (:data:`diff4splat.io.MARKER`); ``generate`` replaces one only with --overwrite."""
-MANIFEST_FORMAT = "diff4splat-onnx/2"
-"""/2: LDRM maps with a source-frame axis S and the optional ``image`` input (/1: maps of frame 0 only)."""
 MIN_OPSET = 18
 """The dynamo exporter emits opset ≥ 18 (LayerNorm, GroupNorm-free decompositions, ``ReduceMean`` axes inputs)."""
 MAX_OPSET = 25
@@ -91,8 +94,6 @@ converter leaves them), after the whole export had run."""
 EXTERNAL_DATA_BYTES = 2_000_000_000
 """Graphs whose weights reach 2 GB store them in a ``<file>.onnx.data`` beside the graph: a single
 protobuf cannot exceed 2 GiB (``onnx.checker`` and onnxruntime read the external file by path)."""
-STATIC_LDRM_OUTPUTS = ("distance", "scales", "quats", "opacities", "colors")
-LDRM_OUTPUTS = STATIC_LDRM_OUTPUTS + ("d_means", "d_quats", "d_scales")
 _MAX = 1 << 14  # upper bound of every dynamic dimension (sizes, not memory: the graph has no limit)
 
 
@@ -314,8 +315,6 @@ def graph_metadata(part: str, config: dict, dims: dict[str, list[int]]) -> dict[
     return {"diff4splat.part": part, "diff4splat.config": json.dumps(config, sort_keys=True),
             "diff4splat.dims": json.dumps(dims, sort_keys=True)}
 
-
-GRAPH_METADATA_KEYS = ("diff4splat.part", "diff4splat.config", "diff4splat.dims")
 
 
 def _export_graph(graph: _Graph, path: Path, opset: int, external_data_bytes: int, config: dict) -> dict:

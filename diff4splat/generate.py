@@ -10,7 +10,7 @@ and calls these two; benchmarks and scripts call them directly::
 Every argument is checked once, by the function it enters, before anything heavy runs: :func:`generate` checks the
 output folder it is told of (``out``), the frame rate and the files and numbers of the request before the model
 loads (``pipeline`` may be a loader that is only called then), the output size and the peak memory
-(:mod:`diff4splat.limits`) before the networks run; :func:`write` checks a frame rate given to it, and its folder
+(:mod:`diff4splat.utils.limits`) before the networks run; :func:`write` checks a frame rate given to it, and its folder
 when it writes (:func:`diff4splat.io.output_folders.output_dir`: it may have changed since).
 """
 from __future__ import annotations
@@ -24,26 +24,25 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from diff4splat.assembly.assemble import DEPTH_KINDS
+from diff4splat.cameras import DEFAULT_TRAJECTORY, TRAJECTORIES, CameraPath
+from diff4splat.cameras.trajectories import check_amplitude
+from diff4splat.io import load_cameras_json, load_realestate10k
+from diff4splat.io.depth_maps import fit_depth_map, read_depth_map
+from diff4splat.io.image import preprocess_image, read_image
+from diff4splat.io.inputs import check_input_file
+from diff4splat.io.output_folders import check_output_dir
+from diff4splat.io.scene_folder import scene_meta, write_scene_folder
+from diff4splat.io.video import DEFAULT_FPS, check_fps
+from diff4splat.pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, GenerationResult, check_prompt, check_seed
+from diff4splat.render.sequence import render_path
+from diff4splat.runtime import ATTENTION_KERNELS, DTYPES, check_offload
+from diff4splat.utils.checks import check_positive_int
+from diff4splat.utils.costs import TIME_ESTIMATE_PRINTED
+from diff4splat.utils.devices import AUTO, resolve_device
+from diff4splat.utils.limits import check_limit, check_memory, check_output_size
 from models.bundle import DEFAULT_CONFIG
 from models.flow_matching import check_guidance
-
-from .assemble import DEPTH_KINDS
-from .cameras import DEFAULT_TRAJECTORY, TRAJECTORIES, CameraPath
-from .cameras.trajectories import check_amplitude
-from .checks import check_positive_int
-from .costs import TIME_ESTIMATE_PRINTED
-from .devices import AUTO, resolve_device
-from .io import load_cameras_json, load_realestate10k
-from .io.depth_maps import fit_depth_map, read_depth_map
-from .io.image import preprocess_image, read_image
-from .io.inputs import check_input_file
-from .io.output_folders import check_output_dir
-from .io.scene_folder import scene_meta, write_scene_folder
-from .io.video import DEFAULT_FPS, check_fps
-from .limits import check_limit, check_memory, check_output_size
-from .pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, GenerationResult, check_prompt, check_seed
-from .render.sequence import render_path
-from .runtime import ATTENTION_KERNELS, DTYPES, check_offload
 
 __all__ = ["LoadedPipeline", "Generation", "load_pipeline", "generate", "write", "RUNTIMES", "cameras_from_file",
            "generation_meta", "resolve_pipeline", "check_frame_count", "check_destination", "GENERATE_KIND"]
@@ -294,14 +293,14 @@ def generate(
         guidance: classifier-free guidance scale (default: the config's; :meth:`Diff4SplatPipeline.__call__`).
         depth: a depth map of the photograph for the photo layer: a file (EXR channel Z, .npy, 16-bit PNG/TIFF in
             millimetres) or an (H, W) tensor at the output resolution; ``depth_kind``: "metric", "relative" or
-            "inverse" (:data:`diff4splat.assemble.DEPTH_KINDS`).
+            "inverse" (:data:`diff4splat.assembly.assemble.DEPTH_KINDS`).
         progress: tqdm progress bars.
         notes: called with one-line notes for the user (e.g. a depth map resized); default: ignored.
         out: the folder :func:`write` will fill, if known: checked first, before the request's files
             (:func:`check_destination`: its parent must exist, it may not be or hold an input, an existing folder
             is replaced only if it is empty or an earlier ``generate`` output, or with ``overwrite``), and the
             output's size estimate is checked against the free space of its disk
-            (:func:`diff4splat.limits.check_output_size`; None: against the fixed 4 GiB).
+            (:func:`diff4splat.utils.limits.check_output_size`; None: against the fixed 4 GiB).
         overwrite: ``out`` may also replace a folder that is not an earlier ``generate`` output (pass the same
             to :func:`write`).
         inputs: further files and folders the request reads that are not arguments here, such as the folders a
@@ -317,7 +316,7 @@ def generate(
         :class:`Generation`; write it with :func:`write`.
 
     Raises:
-        ValueError: any argument out of range or a limit exceeded (:class:`diff4splat.limits.LimitError`, before
+        ValueError: any argument out of range or a limit exceeded (:class:`diff4splat.utils.limits.LimitError`, before
             the networks run), an ``out`` that may not be written
             (:class:`diff4splat.io.output_folders.OutputDirError`), a malformed photo, camera or depth file (the
             message names it), a camera path that sees none of the scene; everything

@@ -7,17 +7,16 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+from diff4splat.assembly.assemble import DEPTH_KINDS
+from diff4splat.cameras import DEFAULT_AMPLITUDES, DEFAULT_TRAJECTORY, TRAJECTORIES
+from diff4splat.cameras.trajectories import amplitude_help
+from diff4splat.generate import generate, load_pipeline, write
+from diff4splat.io.video import DEFAULT_FPS
+from diff4splat.pipeline import DEFAULT_RESOLUTION
+from diff4splat.runtime import ATTENTION_KERNELS, OFFLOAD_MODES
+from diff4splat.utils.devices import AUTO, DEVICE_HELP
+from diff4splat.utils.errors import print_warnings
 from models.flow_matching import SAMPLERS
-
-from .assemble import DEPTH_KINDS
-from .cameras import DEFAULT_AMPLITUDES, DEFAULT_TRAJECTORY, TRAJECTORIES
-from .cameras.trajectories import amplitude_help
-from .devices import AUTO, DEVICE_HELP
-from .errors import print_warnings
-from .generate import generate, load_pipeline, write
-from .io.video import DEFAULT_FPS
-from .pipeline import DEFAULT_RESOLUTION
-from .runtime import ATTENTION_KERNELS, OFFLOAD_MODES
 
 __all__ = ["add_generate_parser", "generate_command"]
 

@@ -28,6 +28,7 @@ import torch
 from onnxruntime.capi import onnxruntime_pybind11_state as state
 from torch import Tensor
 
+from diff4splat.io.structured import read_json
 from models.bundle import Diff4SplatConfig
 from models.dit import check_dit_inputs
 from models.flow_matching import sigma_schedule
@@ -36,10 +37,19 @@ from models.pretrained import config_from_dict
 from models.text_encoder import ByteTokenizer
 from models.vae import check_latents, check_video
 
-from .export import GRAPH_METADATA_KEYS, LDRM_OUTPUTS, MANIFEST_FORMAT, MANIFEST_NAME, STATIC_LDRM_OUTPUTS
-from .io.structured import read_json
+__all__ = ["OnnxRuntime", "load_manifest", "check_graph", "session_options", "default_providers", "MANIFEST_NAME",
+           "MANIFEST_FORMAT", "STATIC_LDRM_OUTPUTS", "LDRM_OUTPUTS", "GRAPH_METADATA_KEYS"]
 
-__all__ = ["OnnxRuntime", "load_manifest", "check_graph", "session_options", "default_providers"]
+MANIFEST_NAME = "manifest.json"
+"""The export folder's manifest (:func:`diff4splat.export.export_onnx` writes it, :func:`load_manifest` reads it)."""
+MANIFEST_FORMAT = "diff4splat-onnx/2"
+"""/2: LDRM maps with a source-frame axis S and the optional ``image`` input (/1: maps of frame 0 only)."""
+STATIC_LDRM_OUTPUTS = ("distance", "scales", "quats", "opacities", "colors")
+"""Outputs of ``ldrm.onnx`` exported without deformation, in order."""
+LDRM_OUTPUTS = STATIC_LDRM_OUTPUTS + ("d_means", "d_quats", "d_scales")
+"""Outputs of ``ldrm.onnx`` with deformation, in order."""
+GRAPH_METADATA_KEYS = ("diff4splat.part", "diff4splat.config", "diff4splat.dims")
+"""Metadata keys of every exported graph (:func:`diff4splat.export.graph_metadata`)."""
 
 _PARTS = ("vae_encoder", "vae_decoder", "text_encoder", "dit", "ldrm")
 _ORT_DTYPES = {"float32": "tensor(float)", "float16": "tensor(float16)", "int64": "tensor(int64)",

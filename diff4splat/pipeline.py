@@ -14,7 +14,7 @@ The photograph and the camera path come at the *output* resolution; the networks
    the sampled first latent frame is replaced by the photograph's own latent, which is known exactly.
 5. LDRM(video latent, Plücker rays, frame times) → pixel-aligned maps of the source frames + deformation maps at
    every distinct frame time.
-6. :func:`diff4splat.assemble.assemble_scene`: the photograph itself as the reference frame's Gaussians at the
+6. :func:`diff4splat.assembly.assemble.assemble_scene`: the photograph itself as the reference frame's Gaussians at the
    output resolution (the photo layer, on the LDRM's depth or the user's), the LDRM's Gaussians for the other
    source frames → :class:`DynamicGaussians` (static when the deformation is the identity), pruned of Gaussians
    that repeat a surface, hide the photograph at the input view or never contribute.
@@ -37,14 +37,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from models.backbone_model import INDEX_FILE, BackboneModel
-from models.bundle import DEFAULT_CONFIG, WEIGHTS_DIR, Diff4SplatModel, load_config, random_init_device
-from models.flow_matching import check_guidance, integrator
-from models.ldrm import source_frame_indices
-from models.pretrained import CONFIG_NAME
-
-from .assemble import DEPTH_KINDS, assemble_scene
-from .cameras import (
+from diff4splat.assembly.assemble import DEPTH_KINDS, assemble_scene
+from diff4splat.assembly.photo import PHOTO_EPS2D, layer_sizes
+from diff4splat.assembly.prune import settle_and_prune
+from diff4splat.cameras import (
     DEFAULT_TRAJECTORY,
     CameraPath,
     intrinsics_from_fov,
@@ -52,9 +48,13 @@ from .cameras import (
     pack_plucker,
     plucker_rays,
 )
-from .cameras.path import check_field_of_view
-from .checks import check_positive_int, is_int
-from .costs import (
+from diff4splat.cameras.path import check_field_of_view
+from diff4splat.io.depth_maps import check_depth_values
+from diff4splat.render.settings import BACKGROUND
+from diff4splat.runtime import NetworkRuntime, TorchRuntime
+from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.utils.checks import check_positive_int, is_int
+from diff4splat.utils.costs import (
     MEMORY_BASE_BYTES,
     MEMORY_BYTES_PER_GAUSSIAN,
     MEMORY_CUDA_BUILD_BYTES,
@@ -63,14 +63,13 @@ from .costs import (
     TIME_FIXED_SECONDS,
     TIME_SECONDS_PER_PIXEL_FRAME,
 )
-from .devices import Stopwatch
-from .io.depth_maps import check_depth_values
-from .limits import check_limit
-from .photo import PHOTO_EPS2D, layer_sizes
-from .prune import settle_and_prune
-from .render.settings import BACKGROUND
-from .runtime import NetworkRuntime, TorchRuntime
-from .scene import DynamicGaussians
+from diff4splat.utils.devices import Stopwatch
+from diff4splat.utils.limits import check_limit
+from models.backbone_model import INDEX_FILE, BackboneModel
+from models.bundle import DEFAULT_CONFIG, WEIGHTS_DIR, Diff4SplatModel, load_config, random_init_device
+from models.flow_matching import check_guidance, integrator
+from models.ldrm import source_frame_indices
+from models.pretrained import CONFIG_NAME
 
 __all__ = ["Diff4SplatPipeline", "GenerationResult", "load_model", "check_seed", "check_prompt", "SEED_RANGE",
            "DEFAULT_RESOLUTION"]
@@ -123,7 +122,7 @@ class GenerationResult:
 
     Attributes:
         scene: the 4D scene (world frame = first camera's frame, metres); its first ``photo_gaussians`` are the
-            photo layer (:mod:`diff4splat.photo`) where not pruned.
+            photo layer (:mod:`diff4splat.assembly.photo`) where not pruned.
         cameras: the camera path used, re-expressed relative to its first camera, at the output resolution.
         latents: (1, c, n, h, w) the sampled video latent fed to the LDRM.
         steps: sampler steps actually run (the argument, or ``config.sampling.steps``).
@@ -136,22 +135,23 @@ class GenerationResult:
         high_water: on CUDA, the device's peak allocated memory (bytes, ``torch.cuda.max_memory_allocated``) at
             the end of each stage of ``timings``: a running maximum since the caller's last
             ``torch.cuda.reset_peak_memory_stats``, so the first stage that reaches the last value set the peak
-            (:class:`diff4splat.devices.Stopwatch`). Empty on other devices.
-        prune_stats: counts from :func:`diff4splat.prune.prune_mask`, plus "duplicates" (Gaussians of a
-            later source frame dropped as near-duplicates, :func:`diff4splat.prune.duplicate_mask`), "slid"
+            (:class:`diff4splat.utils.devices.Stopwatch`). Empty on other devices.
+        prune_stats: counts from :func:`diff4splat.assembly.prune.prune_mask`, plus "duplicates" (Gaussians of a
+            later source frame dropped as near-duplicates, :func:`diff4splat.assembly.prune.duplicate_mask`), "slid"
             (later-frame Gaussians that covered the photograph at the input view, moved back along their source
-            rays, :func:`diff4splat.prune.slide_behind`) and "occluders" (those dropped because no slide freed
-            them; :func:`diff4splat.prune.settle_generated`).
+            rays, :func:`diff4splat.assembly.prune.slide_behind`) and "occluders" (those dropped because no slide freed
+            them; :func:`diff4splat.assembly.prune.settle_generated`).
         source_frames: (S,) long, the video frame of each source frame whose rays carry a grid of
             Gaussians (``models.ldrm.source_frame_indices``).
         gaussian_index: (M,) long, index of each kept Gaussian in the unpruned scene, increasing: the photo
             layer's H_o·W_o front disks then ⌈H_o/2⌉·⌈W_o/2⌉ backing disks (row-major; output resolution), then
-            source frames 1…S−1 with h·w each (model resolution, row-major; :func:`diff4splat.assemble.assemble_scene`).
+            source frames 1…S−1 with h·w each (model resolution, row-major;
+            :func:`diff4splat.assembly.assemble.assemble_scene`).
         eps2d: the screen-space dilation, pixels², the scene is rendered with (meta.json ``eps2d``).
         background: RGB in [0, 1] behind the scene: the photograph's mean colour (meta.json ``background``).
         photo_psnr_db: PSNR of the photo layer alone rendered at the input camera against the photograph.
         photo_gaussians: H_o·W_o + ⌈H_o/2⌉·⌈W_o/2⌉, the photo layer's share of the unpruned scene (the backdrop
-            follows it, :func:`diff4splat.assemble.assemble_scene`).
+            follows it, :func:`diff4splat.assembly.assemble.assemble_scene`).
         num_slots: the unpruned scene's size, the range of ``gaussian_index``.
         video: (1, 3, T, h, w) ``latents`` decoded by the VAE, pixels in about [−1, 1] at the model resolution,
             when the pipeline decoded them for the generated frames' colours (``generated_colors: video``), else
@@ -303,7 +303,7 @@ class Diff4SplatPipeline:
     def from_onnx(cls, directory: str | Path, providers: list[str] | None = None) -> Diff4SplatPipeline:
         """Pipeline over an ``export-onnx`` folder served by onnxruntime
         (:class:`diff4splat.onnx_runtime.OnnxRuntime`); :attr:`source` is ``onnx:<directory> (<its source>)``."""
-        from .onnx_runtime import OnnxRuntime  # lazy: onnxruntime adds ~0.1 s to every command's start
+        from diff4splat.onnx_runtime import OnnxRuntime  # lazy: onnxruntime adds ~0.1 s to every command's start
 
         runtime = OnnxRuntime(directory, providers=providers)
         pipe = cls(runtime)
@@ -312,7 +312,7 @@ class Diff4SplatPipeline:
 
     def scene_slots(self, width: int, height: int, num_frames: int) -> int:
         """Gaussians of the unpruned scene for a ``width`` × ``height`` output and ``num_frames`` frames: the photo
-        layer and backdrop (:func:`diff4splat.photo.layer_sizes`) plus h·w per later source frame at the model
+        layer and backdrop (:func:`diff4splat.assembly.photo.layer_sizes`) plus h·w per later source frame at the model
         resolution (``GenerationResult.num_slots``; an upper bound of the kept count).
 
         Raises:
@@ -327,7 +327,7 @@ class Diff4SplatPipeline:
     def memory_estimate(self, width: int, height: int, num_frames: int) -> int:
         """Upper bound of ``generate``'s peak host memory, bytes, for a ``width`` × ``height`` output of
         ``num_frames`` frames, from the config alone (nothing is allocated; checked against the ``memory_bytes``
-        limit before the networks run, :func:`diff4splat.limits.check_memory`).
+        limit before the networks run, :func:`diff4splat.utils.limits.check_memory`).
 
         Sum of: the process (more with a CUDA build of torch, :data:`MEMORY_CUDA_BUILD_BYTES`) and the weights it
         holds in host memory (:meth:`diff4splat.runtime.TorchRuntime.host_weight_bytes`: all of them on the CPU, the
@@ -369,7 +369,8 @@ class Diff4SplatPipeline:
         Raises:
             ValueError: ``resolution`` not a positive int, below the model's height (the output is the network's
                 depth and motion upsampled to the photo, never downsampled), or one at which the model's aspect
-                ratio gives no whole width; above the ``resolution`` limit (:class:`diff4splat.limits.LimitError`).
+                ratio gives no whole width; above the ``resolution`` limit
+                (:class:`diff4splat.utils.limits.LimitError`).
         """
         c = self.config
         if resolution is None:
@@ -391,7 +392,7 @@ class Diff4SplatPipeline:
 
         Raises:
             ValueError: unknown preset or an invalid frame count or resolution; ``num_frames`` above the ``frames``
-                limit (:class:`diff4splat.limits.LimitError`).
+                limit (:class:`diff4splat.utils.limits.LimitError`).
         """
         c = self.config
         if num_frames is not None:
@@ -438,7 +439,7 @@ class Diff4SplatPipeline:
             depth: (H, W) a depth map of the photograph for the photo layer instead of the network's (NaN/inf or
                 ≤ 0 pixels are holes the network's depth fills); ``depth_kind``: "metric" (z-depth, metres, used as
                 given), "relative" or "inverse" (aligned to the network's depth;
-                :func:`diff4splat.assemble.photo_depth`).
+                :func:`diff4splat.assembly.assemble.photo_depth`).
 
         Returns:
             :class:`GenerationResult`.
@@ -448,7 +449,7 @@ class Diff4SplatPipeline:
                 than the image, T ≠ 1 + 4k, an unknown sampler or steps < 1; a prompt the runtime cannot encode (an
                 ONNX export made without the text encoder) or that is not valid UTF-8; a seed outside
                 :data:`SEED_RANGE`; steps, T or the resolution above their limits
-                (:class:`diff4splat.limits.LimitError`, checked before any network runs); a camera path that sees
+                (:class:`diff4splat.utils.limits.LimitError`, checked before any network runs); a camera path that sees
                 none of the scene (every Gaussian pruned, e.g. focal lengths so long that the field of view is
                 empty); ``video_latents`` of another shape than the sampler's; a depth map that is not (H, W), has
                 no valid pixel or cannot be aligned; an unknown ``depth_kind``.
@@ -486,7 +487,7 @@ class Diff4SplatPipeline:
         motion = runtime.has_motion and out.d_means is not None
         colors_from_video = cfg.generated_colors == "video" and len(frames) > 1  # the later frames' colours (assemble)
         decoded = runtime.decode_latents(latents) if colors_from_video or motion else None
-        if motion:  # the motion network reads the decoded frames (diff4splat.frame_motion)
+        if motion:  # the motion network reads the decoded frames (diff4splat.assembly.frame_motion)
             out = runtime.motion(out, ((decoded[0].transpose(0, 1) + 1) / 2).clamp(0, 1), cameras_model.times,
                                  cameras_model.viewmats, cameras_model.Ks, sources, key_times)
         if not colors_from_video:

@@ -3,11 +3,11 @@
 The LDRM reads the video's own latents (the VAE encodes the clip; nothing is sampled) and gives the depth of its
 source frames (video frames 0, 4, 8, …; docs/DESIGN.md, "Data flow of generate", step 6). The video is observed, not
 generated, so every frame (``layers="every"``; or the source frames alone) is kept as ``generate`` keeps the
-photograph: a photo layer of its pixels at the output resolution (:func:`diff4splat.photo.photo_layer`) on its depth
-(the LDRM's, upsampled with the frame as the guide, carried along the optical flow to the frames between source
+photograph: a photo layer of its pixels at the output resolution (:func:`diff4splat.assembly.photo.photo_layer`) on its
+depth (the LDRM's, upsampled with the frame as the guide, carried along the optical flow to the frames between source
 frames: :func:`carried_depth`), plus frame 0's backdrop. The motion is measured from the frames
-(:func:`diff4splat.scene_flow.source_frame_motion`: OpenCV's DIS optical flow, chained and lifted to 3D with the
-depths) at every frame's time, so each layer follows the video before and after its own frame, its points at their
+(:func:`diff4splat.geometry.scene_flow.source_frame_motion`: OpenCV's DIS optical flow, chained and lifted to 3D with
+the depths) at every frame's time, so each layer follows the video before and after its own frame, its points at their
 measured places, and the deformation interpolates between consecutive frames. The layers overlap; each is opaque at
 its own frame's time and fades away from it (temporal opacity, :data:`TIME_SIGMA`), so at a frame the scene shows
 that frame and between two frames the two, moved to that time.
@@ -34,16 +34,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from models.deformation import IDENTITY_QUAT
-from models.ldrm import source_frame_indices
-
-from .assemble import z_depth
-from .cameras import CameraPath, intrinsics_from_fov
-from .checks import check_positive_int
-from .costs import MEMORY_BASE_BYTES, MEMORY_BYTES_PER_GAUSSIAN, MEMORY_CUDA_BUILD_BYTES, MEMORY_SCENE_COPIES
-from .devices import Stopwatch
-from .gaussians import Gaussians
-from .generate import (
+from diff4splat.assembly.assemble import z_depth
+from diff4splat.assembly.photo import PHOTO_EPS2D, backdrop_layer, layer_sizes, photo_layer, upsample_depth
+from diff4splat.assembly.prune import prune_mask, settle_and_prune
+from diff4splat.cameras import CameraPath, intrinsics_from_fov
+from diff4splat.generate import (
     Generation,
     LoadedPipeline,
     cameras_from_file,
@@ -52,18 +47,27 @@ from .generate import (
     generation_meta,
     resolve_pipeline,
 )
-from .io.image import preprocess_image
-from .io.inputs import check_input_file
-from .io.video import DEFAULT_FPS
-from .io.video_input import check_clip_request, read_video_clip
-from .limits import check_limit, check_memory, check_output_size
-from .photo import PHOTO_EPS2D, backdrop_layer, layer_sizes, photo_layer, upsample_depth
-from .pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, GenerationResult
-from .prune import prune_mask, settle_and_prune
-from .render.sequence import render_path
-from .runtime import TorchRuntime
-from .scene import DynamicGaussians
-from .scene_flow import chain_flows, consecutive_flows, sample_pixels, source_frame_motion
+from diff4splat.geometry.scene_flow import chain_flows, consecutive_flows, sample_pixels, source_frame_motion
+from diff4splat.io.image import preprocess_image
+from diff4splat.io.inputs import check_input_file
+from diff4splat.io.video import DEFAULT_FPS
+from diff4splat.io.video_input import check_clip_request, read_video_clip
+from diff4splat.pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, GenerationResult
+from diff4splat.render.sequence import render_path
+from diff4splat.runtime import TorchRuntime
+from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.scene.gaussians import Gaussians
+from diff4splat.utils.checks import check_positive_int
+from diff4splat.utils.costs import (
+    MEMORY_BASE_BYTES,
+    MEMORY_BYTES_PER_GAUSSIAN,
+    MEMORY_CUDA_BUILD_BYTES,
+    MEMORY_SCENE_COPIES,
+)
+from diff4splat.utils.devices import Stopwatch
+from diff4splat.utils.limits import check_limit, check_memory, check_output_size
+from models.deformation import IDENTITY_QUAT
+from models.ldrm import source_frame_indices
 
 __all__ = ["reconstruct", "reconstruct_scene", "still_cameras", "clip_cameras", "carried_depth", "check_layers",
            "layer_frames",
@@ -130,13 +134,13 @@ def check_layers(layers: object) -> str:
 
 def carried_depth(depths: Tensor, sources: list[int], frame: int, flows: tuple[Tensor, Tensor]) -> Tensor:
     """The z-depth map (H, W) of video frame ``frame``: its own source frame's, or the nearest source frame's
-    (the earlier on a tie) sampled where :func:`diff4splat.scene_flow.chain_flows` carries each pixel to it — a
+    (the earlier on a tie) sampled where :func:`diff4splat.geometry.scene_flow.chain_flows` carries each pixel to it — a
     point keeps its depth over the one or two frames between (the camera's motion over them is not applied).
 
     Args:
         depths: (S, H, W) z-depths of the source frames ``sources`` (increasing frame indices), metres.
         frame: the video frame, within [0, T).
-        flows: the video's :func:`diff4splat.scene_flow.consecutive_flows` at (H, W).
+        flows: the video's :func:`diff4splat.geometry.scene_flow.consecutive_flows` at (H, W).
 
     Returns:
         (H, W) z-depth, metres (bilinear samples of the source frame's map).
@@ -286,7 +290,7 @@ def clip_cameras(cameras: CameraPath, indices: list[int], source: object = "came
 
 def scene_slots(width: int, height: int, num_layers: int) -> int:
     """Gaussians of the unpruned scene of ``num_layers`` photo layers at ``width`` × ``height`` and frame 0's
-    backdrop (:func:`diff4splat.photo.layer_sizes`): ``GenerationResult.num_slots``."""
+    backdrop (:func:`diff4splat.assembly.photo.layer_sizes`): ``GenerationResult.num_slots``."""
     photo, backdrop = layer_sizes(width, height)
     return num_layers * photo + backdrop
 

@@ -5,7 +5,7 @@ Input folder (docs/DESIGN.md, "Output folder of generate"): ``scene.ply`` (canon
 in a ``fit`` output, ``field.safetensors`` (the HexPlane field, :func:`models.hexplane.load_field`). With a
 field the deformation is queried at exactly the times of the new path (:func:`path_scene`); without one
 ``deformation.npz`` is interpolated between its key times as docs/DESIGN.md says
-(:meth:`~diff4splat.scene.DynamicGaussians.at`); a folder with neither is static. Every file is read as
+(:meth:`~diff4splat.scene.dynamic.DynamicGaussians.at`); a folder with neither is static. Every file is read as
 untrusted input (:func:`load_scene_folder`): a malformed, corrupt or inconsistent one is a ``ValueError`` naming
 it (``deformation.npz`` missing while ``meta.json`` says ``"static": false`` included).
 
@@ -42,19 +42,13 @@ import time
 import torch
 from torch import Tensor
 
-from models.hexplane import load_field
-
-from .cameras import CameraPath, make_trajectory
-from .cameras.path import check_field_of_view
-from .cameras.trajectories import check_amplitude
-from .checks import check_positive_int
-from .constants import ALPHA_MIN
-from .costs import RENDER_BASE_BYTES, RENDER_BYTES_PER_GAUSSIAN
-from .devices import resolve_device
-from .io import load_cameras_json, load_realestate10k
-from .io.inputs import check_input_file
-from .io.output_folders import MARKER, check_output_dir, read_marker
-from .io.scene_folder import (
+from diff4splat.cameras import CameraPath, make_trajectory
+from diff4splat.cameras.path import check_field_of_view
+from diff4splat.cameras.trajectories import check_amplitude
+from diff4splat.io import load_cameras_json, load_realestate10k
+from diff4splat.io.inputs import check_input_file
+from diff4splat.io.output_folders import MARKER, check_output_dir, read_marker
+from diff4splat.io.scene_folder import (
     SceneFolder,
     estimate_scene_depth,
     folder_file,
@@ -65,10 +59,15 @@ from .io.scene_folder import (
     scene_meta,
     write_scene_folder,
 )
-from .io.video import DEFAULT_FPS, check_fps, check_video_size
-from .limits import check_limit, check_memory, check_output_size, held_memory
-from .render.sequence import render_path
-from .scene import DynamicGaussians
+from diff4splat.io.video import DEFAULT_FPS, check_fps, check_video_size
+from diff4splat.render.sequence import render_path
+from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.utils.checks import check_positive_int
+from diff4splat.utils.constants import ALPHA_MIN
+from diff4splat.utils.costs import RENDER_BASE_BYTES, RENDER_BYTES_PER_GAUSSIAN
+from diff4splat.utils.devices import resolve_device
+from diff4splat.utils.limits import check_limit, check_memory, check_output_size, held_memory
+from models.hexplane import load_field
 
 __all__ = ["RENDER_KIND", "path_scene", "placed_at", "load_camera_file", "trajectory_cameras", "resize_cameras",
            "render_memory_estimate", "rerender"]
@@ -103,7 +102,7 @@ def render_memory_estimate(folder: SceneFolder, path: CameraPath) -> int:
     plus :data:`RENDER_BASE_BYTES`, a field's deformation sampled at the path's distinct times (:func:`path_scene`:
     10 floats per Gaussian and time), :data:`RENDER_BYTES_PER_GAUSSIAN` per Gaussian and the frames (T × H × W × 5
     floats, twice: floats and encoded). Checked against the memory the process may use
-    (:func:`diff4splat.limits.check_memory`) before any frame is rendered."""
+    (:func:`diff4splat.utils.limits.check_memory`) before any frame is rendered."""
     n = folder.scene.num_gaussians
     sampled = 40 * n * len(torch.unique(path.times)) if folder.field is not None else 0
     held = held_memory()
@@ -155,8 +154,8 @@ def trajectory_cameras(folder: SceneFolder, name: str, frames: int | None = None
 
     Raises:
         ValueError: unknown preset, bad ``amplitude`` (:func:`make_trajectory`: the checks of ``generate``'s presets),
-            ``frames`` not a positive int or above the ``frames`` limit (:class:`~diff4splat.limits.LimitError`), no
-            scene depth (:func:`scene_depth`).
+            ``frames`` not a positive int or above the ``frames`` limit (:class:`~diff4splat.utils.limits.LimitError`),
+            no scene depth (:func:`scene_depth`).
     """
     c = folder.cameras
     T = _check_frames(len(c) if frames is None else frames)
@@ -166,7 +165,7 @@ def trajectory_cameras(folder: SceneFolder, name: str, frames: int | None = None
 
 
 def _check_frames(frames: object) -> int:
-    """``frames`` if it is a positive int within the ``frames`` limit (:func:`diff4splat.limits.check_limit`)."""
+    """``frames`` if it is a positive int within the ``frames`` limit (:func:`diff4splat.utils.limits.check_limit`)."""
     return check_limit("frames", check_positive_int("--frames", frames), "--frames")
 
 
@@ -220,7 +219,7 @@ def rerender(
         progress: tqdm progress bar.
         device: where the scene is rendered: ``"cpu"`` (default), ``"cuda"``, ``"cuda:N"``, ``"auto"`` (CUDA when
             torch sees a GPU, else the CPU) or a ``torch.device``; checked first
-            (:func:`diff4splat.devices.resolve_device`). The scene, the field and the cameras are moved there; the
+            (:func:`diff4splat.utils.devices.resolve_device`). The scene, the field and the cameras are moved there; the
             files are written from CPU copies. On CUDA the renderer may be gsplat (docs/DESIGN.md, "The renderer"),
             whose images differ slightly from the CPU's.
 
@@ -231,7 +230,7 @@ def rerender(
         ValueError: both or neither of ``cameras``/``trajectory``; ``amplitude``/``frames`` with ``cameras``; a bad
             ``fps``, size or preset argument; an ``out`` that may not be written
             (:class:`~diff4splat.io.OutputDirError`); frames or output size above their limits
-            (:class:`~diff4splat.limits.LimitError`); a malformed file of ``folder`` or camera file
+            (:class:`~diff4splat.utils.limits.LimitError`); a malformed file of ``folder`` or camera file
             (:func:`load_scene_folder`); an unknown preset or an ``amplitude`` outside the preset's range
             (:func:`diff4splat.cameras.trajectories.check_amplitude`, as ``generate``), checked before the folder is
             read; a camera narrower than 0.1° (:func:`~diff4splat.cameras.path.check_field_of_view`, as ``generate``);

@@ -14,15 +14,14 @@ import torch
 from torch import Tensor
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
+from diff4splat.assembly.frame_motion import frame_motion
+from diff4splat.utils.devices import cpu_bf16_warning
+from diff4splat.utils.offload import ModelOffload, weight_bytes
 from models.backbone import LatentFormat
 from models.backbone_model import BackboneModel, BackboneModelConfig
 from models.bundle import Diff4SplatConfig, Diff4SplatModel
 from models.dit import VideoDiT
 from models.ldrm import LDRMOutput
-
-from .devices import cpu_bf16_warning
-from .frame_motion import frame_motion
-from .offload import ModelOffload, weight_bytes
 
 __all__ = ["NetworkRuntime", "TorchRuntime", "OFFLOAD_MODES", "check_offload", "DTYPES", "FF_CHUNK_TOKENS",
            "ATTENTION_KERNELS", "attention_priority"]
@@ -86,8 +85,8 @@ class NetworkRuntime(Protocol):
     def motion(self, out: LDRMOutput, frames: Tensor, frame_times: Tensor, viewmats: Tensor, Ks: Tensor,
                sources: Tensor, times: Tensor) -> LDRMOutput:
         """``out`` with its deformation read from the frames (T, 3, H, W) in [0, 1] at the model resolution by the
-        LDRM's motion network (:func:`diff4splat.frame_motion.frame_motion`; cameras (T, 4, 4), (T, 3, 3), times
-        (T,), source frame indices (S,), key times (K,))."""
+        LDRM's motion network (:func:`diff4splat.assembly.frame_motion.frame_motion`; cameras (T, 4, 4), (T, 3, 3),
+        times (T,), source frame indices (S,), key times (K,))."""
 
     def decode_latents(self, latents: Tensor) -> Tensor:
         """(1, c, n, h, w) DiT-scaled latents → (1, 3, 1 + t·(n − 1), h·s, w·s) pixels in about [−1, 1] (the VAE
@@ -100,7 +99,7 @@ class NetworkRuntime(Protocol):
 
 OFFLOAD_MODES = ("none", "model", "model-prefetch")
 """``offload`` values: ``none`` keeps every network on the device; ``model`` keeps them in CPU memory and moves
-one at a time to the device while it runs (:class:`diff4splat.offload.ModelOffload`); ``model-prefetch`` does the
+one at a time to the device while it runs (:class:`diff4splat.utils.offload.ModelOffload`); ``model-prefetch`` does the
 same and, on CUDA, copies the DiT block by block on a side stream while its first call runs (the copy hides
 behind the first sampling step; ``ModelOffload``'s ``prefetch``; not with ``compile``)."""
 
@@ -174,7 +173,7 @@ class TorchRuntime:
 
     Warns:
         UserWarning: bfloat16 on a CPU whose bfloat16 matmul leaks NaN across rows
-            (:func:`diff4splat.devices.cpu_bf16_warning`).
+            (:func:`diff4splat.utils.devices.cpu_bf16_warning`).
     """
 
     name = "torch"
@@ -235,7 +234,7 @@ class TorchRuntime:
 
     def host_weight_bytes(self) -> int:
         """Bytes of host memory the weights hold while the runtime runs: every network on the CPU; with model
-        offload their CPU copies (:meth:`diff4splat.offload.ModelOffload.host_bytes`: pinned on CUDA, in shared
+        offload their CPU copies (:meth:`diff4splat.utils.offload.ModelOffload.host_bytes`: pinned on CUDA, in shared
         blocks each rounded up to a power of two); else a backbone's text encoder, kept on the CPU between visits,
         and nothing more."""
         if self.device.type == "cpu":
@@ -296,8 +295,8 @@ class TorchRuntime:
 
     def motion(self, out: LDRMOutput, frames: Tensor, frame_times: Tensor, viewmats: Tensor, Ks: Tensor,
                sources: Tensor, times: Tensor) -> LDRMOutput:
-        """:func:`diff4splat.frame_motion.frame_motion` with the LDRM's motion network, in float32 (the frames, cameras
-        and times as :meth:`NetworkRuntime.motion` takes them)."""
+        """:func:`diff4splat.assembly.frame_motion.frame_motion` with the LDRM's motion network, in float32 (the frames,
+        cameras and times as :meth:`NetworkRuntime.motion` takes them)."""
         with self._use("ldrm") as ldrm:
             net = ldrm.motion
             dt = next(net.parameters()).dtype

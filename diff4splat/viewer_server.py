@@ -1,6 +1,6 @@
 """``diff4splat view DIR [--port P]``: serve an output folder's 4D viewer on 127.0.0.1 only.
 
-The page at ``/`` (and ``/viewer.html``) is the viewer (:mod:`diff4splat.viewer`) with the folder's **full**
+The page at ``/`` (and ``/viewer.html``) is the viewer (:mod:`diff4splat.io.viewer_page`) with the folder's **full**
 scene, never reduced to the size budget of the embedded ``viewer.html``: the page fetches the canonical
 Gaussians and the keyframes from ``/__diff4splat__/scene.ply`` and ``/__diff4splat__/frames.bin``, which are
 computed once at start from the folder's scene.ply, deformation.npz, cameras.json and meta.json, each checked as
@@ -24,12 +24,11 @@ import threading
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
+from diff4splat.io.scene_folder import SCENE_FILE, is_layout_file, load_scene_folder, meta_background, meta_eps2d
+from diff4splat.io.video import DEFAULT_FPS
+from diff4splat.io.viewer_data import ViewerPayload, viewer_payload
+from diff4splat.io.viewer_page import VIEWER_NAME, viewer_html
 from models.hexplane import load_field
-
-from .io.scene_folder import SCENE_FILE, is_layout_file, load_scene_folder, meta_background, meta_eps2d
-from .io.video import DEFAULT_FPS
-from .viewer.data import ViewerPayload, viewer_payload
-from .viewer.page import VIEWER_NAME, viewer_html
 
 __all__ = ["HOST", "DATA_PREFIX", "make_server", "folder_payload", "served_file", "serve"]
 
@@ -120,7 +119,7 @@ class _Handler(BaseHTTPRequestHandler):
 def make_server(folder: str | os.PathLike, port: int = 0) -> ThreadingHTTPServer:
     """A server for ``folder`` bound to 127.0.0.1:``port`` (0: any free port; ``server.server_address[1]``).
     Call ``serve_forever()``; the caller closes it. ``server.RequestHandlerClass.payload`` is the
-    :class:`~diff4splat.viewer.data.ViewerPayload` it serves (None for a folder that holds only viewer.html).
+    :class:`~diff4splat.io.viewer_data.ViewerPayload` it serves (None for a folder that holds only viewer.html).
 
     Raises:
         FileNotFoundError: ``folder`` is not a folder, or holds neither scene.ply nor viewer.html.

@@ -21,9 +21,9 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from diff4splat.checks import MissingExtraError
 from diff4splat.io.output_folders import output_dir
 from diff4splat.io.structured import read_json
+from diff4splat.utils.checks import MissingExtraError
 
 from .backbone import Backbone, LatentFormat
 from .bundle import Diff4SplatConfig, check_generated
@@ -165,7 +165,7 @@ def check_backbone_folder(directory: str | os.PathLike) -> tuple[str, BackboneMo
         FileNotFoundError: no ``model_index.json``; a component folder or its config missing (naming both);
             ``ldrm/`` without its files.
         ValueError: an unreadable index or ``diff4splat.json``, another pipeline, another backbone's
-            ``diff4splat.json``; :class:`diff4splat.limits.LimitError`: an LDRM above the limit.
+            ``diff4splat.json``; :class:`diff4splat.utils.limits.LimitError`: an LDRM above the limit.
     """
     directory = Path(directory)
     index, kind = _read_index(directory)

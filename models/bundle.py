@@ -15,9 +15,9 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from diff4splat.config_files import MODEL_CONFIGS
 from diff4splat.io.output_folders import output_dir
 from diff4splat.io.structured import read_json, read_yaml
+from diff4splat.utils.config_files import MODEL_CONFIGS
 
 from .backbones.ours import OursBackbone
 from .dit import VideoDiT, VideoDiTConfig
@@ -33,7 +33,7 @@ __all__ = ["Diff4SplatConfig", "Diff4SplatModel", "load_config", "config_path", 
 
 CONFIG_DIR = MODEL_CONFIGS
 """Model size configs (``base``, ``tiny``, ``small``, ``paper``): ``configs/models/``
-(:mod:`diff4splat.config_files`)."""
+(:mod:`diff4splat.utils.config_files`)."""
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 """Shipped trained weights, one folder per model name."""
 DEFAULT_CONFIG = "base"
@@ -62,12 +62,13 @@ class Diff4SplatConfig:
         static_atol: deformations below this (metres / quaternion / log-scale) count as static.
         generated_colors: where the Gaussians of source frames 1… take their colours (one of
             :data:`GENERATED_COLORS`): ``"ldrm"``, the LDRM's colour maps (the paper, Sec. 3.2); ``"video"``, the
-            generated video decoded by the VAE at each Gaussian's pixel (:func:`diff4splat.assemble.video_colors`:
-            the LDRM places what the generator drew, as the photo layer places the photograph).
+            generated video decoded by the VAE at each Gaussian's pixel
+            (:func:`diff4splat.assembly.assemble.video_colors`: the LDRM places what the generator drew, as the photo
+            layer places the photograph).
         generated_footprint: the opacity, rotation and scale of those Gaussians (one of
             :data:`GENERATED_FOOTPRINTS`): ``"ldrm"``, the LDRM's maps (the paper, Sec. 3.2); ``"pixel"``, opaque
             disks facing their source camera that tile its frame, as the photo layer tiles the photograph
-            (:func:`diff4splat.assemble.pixel_footprint`; the LDRM still places them).
+            (:func:`diff4splat.assembly.assemble.pixel_footprint`; the LDRM still places them).
         vae, text_encoder, dit, ldrm, sampling: the networks' and the sampler's configs.
     """
 
@@ -259,7 +260,7 @@ class Diff4SplatModel(nn.Module):
             FileNotFoundError: a missing config.json or network sub-folder.
             ValueError: configs that do not fit together or weights that do not match; a config implying
                 more parameters than the ``parameters`` limit, or weights in ``dtype`` larger than the memory
-                available (:class:`diff4splat.limits.LimitError`, counted on the ``meta`` device before any
+                available (:class:`diff4splat.utils.limits.LimitError`, counted on the ``meta`` device before any
                 network is built).
         """
         directory = Path(directory)

@@ -112,7 +112,7 @@ def unit_quat_from_raw(raw: Tensor, eps: float = 1e-8) -> Tensor:  # raw: (..., 
 
     A zero raw output gives exactly the identity rotation (1, 0, 0, 0). Branch-free so that it
     traces for ONNX: where the sum has norm < ``eps`` (raw ≈ (−1, 0, 0, 0), orientation undefined)
-    the identity is returned instead of NaN. (``diff4splat.quaternions.quat_normalize`` raises on
+    the identity is returned instead of NaN. (``diff4splat.scene.quaternions.quat_normalize`` raises on
     zero norm, a data-dependent check a traced network head cannot contain.)
 
     Args:

@@ -2,8 +2,8 @@
 
 A Gaussian's canonical mean μ and a time t ∈ [0, 1] give a deformation (Δμ, Δq, Δs). The field returns these
 tensors only (:meth:`HexPlaneField.forward` at one time, :meth:`HexPlaneField.deformations_at` at T key times); the
-``diff4splat`` layer composes them with the canonical Gaussians (:func:`diff4splat.scene.compose_deformation`,
-:class:`diff4splat.scene.DynamicGaussians`; docs/DESIGN.md, "Conventions" and "Layers").
+``diff4splat`` layer composes them with the canonical Gaussians (:func:`diff4splat.scene.dynamic.compose_deformation`,
+:class:`diff4splat.scene.dynamic.DynamicGaussians`; docs/DESIGN.md, "Conventions" and "Layers").
 Public reference code: hustvl/4DGaussians ``scene/hexplane.py`` (planes, sampling), ``scene/deformation.py``
 (MLP), ``scene/regulation.py`` + ``scene/gaussian_model.py`` (regularisers), defaults from
 ``arguments/__init__.py`` (``ModelHiddenParams``) overridden by ``arguments/dnerf/dnerf_default.py``.
@@ -59,9 +59,9 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
 from torch import Tensor, nn
 
-from diff4splat.checks import check_finite, check_int, check_number, check_positive_int, is_int
 from diff4splat.io.atomic import atomic_output_path
-from diff4splat.limits import check_limit
+from diff4splat.utils.checks import check_finite, check_int, check_number, check_positive_int, is_int
+from diff4splat.utils.limits import check_limit
 
 from .deformation import IDENTITY_QUAT
 from .pretrained import config_from_dict
@@ -132,7 +132,7 @@ class HexPlaneConfig:
     plane_reg: str = "smoothness"
 
     def __post_init__(self) -> None:
-        # diff4splat.checks; integers and numbers are stored as Python int / float (the config is saved as JSON)
+        # diff4splat.utils.checks; integers and numbers are stored as Python int / float (the config is saved as JSON)
         for name in ("feature_dim", "net_width"):
             setattr(self, name, check_positive_int(name, getattr(self, name)))
         self.trunk_depth = check_int("trunk_depth", self.trunk_depth, 0)
@@ -407,7 +407,7 @@ class HexPlaneField(nn.Module):
     def deformations_at(self, means: Tensor, times: Tensor, chunk: int = 65536) -> tuple[Tensor, Tensor, Tensor]:
         """The deformation of M points at each of T key times, evaluated ``chunk`` points at a time (no gradient).
 
-        The tensors of :class:`~diff4splat.scene.DynamicGaussians` (which the caller builds:
+        The tensors of :class:`~diff4splat.scene.dynamic.DynamicGaussians` (which the caller builds:
         ``DynamicGaussians(canonical, times, *field.deformations_at(canonical.means, times))``).
 
         Args:
@@ -494,7 +494,7 @@ def load_field(path: str | os.PathLike, map_location: str | torch.device = "cpu"
         FileNotFoundError: no file at ``path``.
         ValueError: naming ``path``: not a readable safetensors file, metadata of another format or version,
             a bad config, or tensors that do not match the config.
-        diff4splat.limits.LimitError: the config describes more parameters than the ``parameters`` limit.
+        diff4splat.utils.limits.LimitError: the config describes more parameters than the ``parameters`` limit.
     """
     path = Path(path)
     if not path.is_file():

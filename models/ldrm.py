@@ -34,7 +34,7 @@ Architecture (B scenes, latent (B, c, n, h, w), patch p, tokens N = n·(h/p)·(w
 
 Gaussians are predicted in the world frame in which the Plücker rays are given (the network
 sees world-frame rays). The network returns plain tensors (:class:`LDRMOutput`); placing each
-pixel's Gaussian on its source camera's ray (``diff4splat.assemble.to_gaussians``) is the pipeline's job.
+pixel's Gaussian on its source camera's ray (``diff4splat.assembly.assemble.to_gaussians``) is the pipeline's job.
 """
 from __future__ import annotations
 
@@ -119,8 +119,8 @@ class LDRMConfig:
             (``MonoDepth`` ``grid``: the coarse layout only); 0 = every pixel.
         deformation: config of the deformation network; its ``in_channels`` must equal ``embed_dim``.
         motion: config of the motion network that reads each source pixel's motion from the frames
-            (:mod:`models.motion`; run by the pipeline, ``diff4splat.frame_motion``), or None (the token deformation
-            network alone decides motion).
+            (:mod:`models.motion`; run by the pipeline, ``diff4splat.assembly.frame_motion``), or None (the token
+            deformation network alone decides motion).
     """
 
     latent_channels: int = 4

@@ -15,7 +15,7 @@ from safetensors.torch import save_file
 
 from diff4splat.io.output_folders import output_dir
 from diff4splat.io.structured import read_json
-from diff4splat.limits import LIMITS, LimitError, check_limit, check_memory, limit
+from diff4splat.utils.limits import LIMITS, LimitError, check_limit, check_memory, limit
 
 T = TypeVar("T", bound="PretrainedMixin")
 
@@ -122,9 +122,9 @@ def skip_init() -> Iterator[None]:
 
 def check_model_size(build: Any, where: str, host_dtype: torch.dtype | None = None) -> int:
     """Count the parameters ``build()`` would allocate, on the ``meta`` device (no memory) and without running
-    initialisers (:func:`skip_init`), and check the ``parameters`` limit (:mod:`diff4splat.limits`) before the
+    initialisers (:func:`skip_init`), and check the ``parameters`` limit (:mod:`diff4splat.utils.limits`) before the
     real model is built; with ``host_dtype`` (weights built in CPU memory in that dtype) also check their bytes
-    against the memory this process can have (:func:`diff4splat.limits.check_memory`).
+    against the memory this process can have (:func:`diff4splat.utils.limits.check_memory`).
 
     Args:
         build: zero-argument callable that constructs the ``nn.Module`` (called under ``torch.device("meta")``).

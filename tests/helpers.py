@@ -14,9 +14,9 @@ import torch
 from diff4splat.cameras.path import CameraPath
 from diff4splat.cli import main
 from diff4splat.export import MANIFEST_NAME, export_onnx
-from diff4splat.gaussians import Gaussians, rgb_to_sh0
 from diff4splat.io import load_image
-from diff4splat.scene import DynamicGaussians
+from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.scene.gaussians import Gaussians, rgb_to_sh0
 from models.bundle import Diff4SplatConfig, Diff4SplatModel
 from models.hexplane import HexPlaneConfig, HexPlaneField
 from models.motion import MotionConfig

@@ -1,20 +1,20 @@
-"""The generated frames' pixel footprint (diff4splat/assemble.py ``pixel_footprint``, diff4splat/photo.py
-``pixel_disks``): a source frame's disks rendered alone at its own camera cover it edge to edge and reproduce its
-colours, where the LDRM's own footprint of a small model leaves most of it to what lies behind; disks on their
-rays, facing their camera, σ in pixels at that camera; ``assemble_scene`` changes nothing else."""
+"""The generated frames' pixel footprint (diff4splat/assembly/assemble.py ``pixel_footprint``,
+diff4splat/assembly/photo.py ``pixel_disks``): a source frame's disks rendered alone at its own camera cover it edge to
+edge and reproduce its colours, where the LDRM's own footprint of a small model leaves most of it to what lies behind;
+disks on their rays, facing their camera, σ in pixels at that camera; ``assemble_scene`` changes nothing else."""
 from pathlib import Path
 
 import pytest
 import torch
 from helpers import EXAMPLE_IMAGE
 
-from diff4splat.assemble import GENERATED_SCALE_PX, assemble_scene, pixel_footprint, to_gaussians
+from diff4splat.assembly.assemble import GENERATED_SCALE_PX, assemble_scene, pixel_footprint, to_gaussians
+from diff4splat.assembly.photo import PHOTO_EPS2D, PHOTO_OPACITY, THICKNESS, pixel_disks
 from diff4splat.cameras import CameraPath, camera_rays, intrinsics_from_fov, make_trajectory
-from diff4splat.gaussians import sh0_to_rgb
 from diff4splat.io import load_image
-from diff4splat.photo import PHOTO_EPS2D, PHOTO_OPACITY, THICKNESS, pixel_disks
-from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
 from diff4splat.render import rasterize
+from diff4splat.scene.gaussians import sh0_to_rgb
+from diff4splat.scene.quaternions import axis_angle_to_quat, quat_to_rotmat
 from models.ldrm import LDRMOutput
 
 TEXTURE = Path(__file__).resolve().parent.parent / "data_prep" / "textures" / "grass.png"  # fine detail

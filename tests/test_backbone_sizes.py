@@ -12,7 +12,7 @@ pytest.importorskip("diffusers", reason="the backbone sizes build diffusers mode
 pytestmark = pytest.mark.slow  # every test here: diffusers costs ~8 s to import (tests/conftest.py)
 pytest.importorskip("ftfy", reason="the Wan backbone module needs ftfy (diff4splat[diffusers])")
 
-from diff4splat.config_files import BACKBONE_CONFIGS  # noqa: E402
+from diff4splat.utils.config_files import BACKBONE_CONFIGS  # noqa: E402
 from models.backbone import LatentFormat  # noqa: E402
 from models.backbone_model import DEFAULTS, PIPELINES, BackboneModelConfig  # noqa: E402
 from models.backbones.diffusers_backbone import CameraPatchConv  # noqa: E402

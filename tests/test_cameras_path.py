@@ -13,8 +13,8 @@ from diff4splat.cameras import (
     invert_rigid,
 )
 from diff4splat.cameras.lenses import generate_rays
-from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
 from diff4splat.render.sh import color_features
+from diff4splat.scene.quaternions import axis_angle_to_quat, quat_to_rotmat
 
 
 def random_viewmats(T, seed=0, dtype=torch.float64):

@@ -1,4 +1,4 @@
-"""diff4splat.checks: the one home of the argument checks (int, positive int, number in a range, positive number,
+"""diff4splat.utils.checks: the one home of the argument checks (int, positive int, number in a range, positive number,
 finite tensor)."""
 import math
 import re
@@ -12,11 +12,11 @@ import data_prep.scene_files as scene_files
 import data_prep.synth_dataset as synth
 import diff4splat.cameras.lenses as lenses
 import diff4splat.cameras.path as path
-import diff4splat.gaussians as gaussians
 import diff4splat.render.settings as render_settings
-import diff4splat.scene as scene
+import diff4splat.scene.dynamic as scene
+import diff4splat.scene.gaussians as gaussians
 import models.hexplane as hexplane
-from diff4splat.checks import (
+from diff4splat.utils.checks import (
     check_finite,
     check_int,
     check_number,
@@ -78,7 +78,7 @@ def test_check_finite_accepts_finite_values_whose_sum_overflows():
 
 
 def test_check_finite_has_one_home():
-    """gaussians.py used to define its own copy; now every module uses the function of diff4splat.checks."""
+    """gaussians.py used to define its own copy; now every module uses the function of diff4splat.utils.checks."""
     for module in (gaussians, scene, path, render_settings):
         assert module.check_finite is check_finite, module.__name__
 

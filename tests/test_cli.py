@@ -15,16 +15,16 @@ from plyfile import PlyData
 
 import diff4splat.generate as generate_module
 import diff4splat.pipeline
+from diff4splat.assembly.photo import PHOTO_EPS2D
 from diff4splat.cameras import DEFAULT_AMPLITUDES, DEFAULT_TRAJECTORY, CameraPath, intrinsics_from_fov
 from diff4splat.cli import build_parser, main
-from diff4splat.devices import resolve_device
 from diff4splat.io import load_depth_exr, load_image, load_ply, load_video, ply_property_names, save_cameras_json
 from diff4splat.io.image import preprocess_image, read_image
 from diff4splat.io.scene_folder import load_deformation
-from diff4splat.photo import PHOTO_EPS2D
 from diff4splat.pipeline import Diff4SplatPipeline
-from diff4splat.quaternions import quat_to_rotmat
-from diff4splat.scene import DynamicGaussians
+from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.scene.quaternions import quat_to_rotmat
+from diff4splat.utils.devices import resolve_device
 from models.bundle import DEFAULT_CONFIG, Diff4SplatModel, load_config
 
 INRIA = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]

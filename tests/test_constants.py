@@ -1,4 +1,4 @@
-"""diff4splat.constants is the only home of the 3DGS thresholds: no other module of the repo defines a
+"""diff4splat.utils.constants is the only home of the 3DGS thresholds: no other module of the repo defines a
 module-level constant with one of their values or names (scene's gate, the output's empty-pixel cut,
 the projection's thresholds and the PLY epsilon all used to be separate copies)."""
 import ast
@@ -6,10 +6,10 @@ from pathlib import Path
 
 import torch
 
-from diff4splat import constants
-from diff4splat.constants import ALPHA_MAX, ALPHA_MIN, OPACITY_EPS, T_MIN
 from diff4splat.io.scene_folder import fill_empty_depth
 from diff4splat.render.projection import splat_alpha
+from diff4splat.utils import constants
+from diff4splat.utils.constants import ALPHA_MAX, ALPHA_MIN, OPACITY_EPS, T_MIN
 
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("diff4splat", "models", "training", "data_prep", "benchmarks")
@@ -38,7 +38,7 @@ def test_no_module_defines_its_own_copy_of_a_threshold():
     copies = []
     for pkg in PACKAGES:
         for path in sorted((ROOT / pkg).rglob("*.py")):
-            if path == ROOT / "diff4splat" / "constants.py":
+            if path == ROOT / "diff4splat" / "utils" / "constants.py":
                 continue
             for name, v in _module_level_numbers(path).items():
                 if name.lstrip("_") in names or v in (ALPHA_MIN, ALPHA_MAX):

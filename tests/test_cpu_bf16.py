@@ -1,4 +1,4 @@
-"""The CPU's bfloat16 matmul check (diff4splat.devices.bf16_nan_leaks, oneDNN#5717) and the warning that trainers
+"""The CPU's bfloat16 matmul check (diff4splat.utils.devices.bf16_nan_leaks, oneDNN#5717) and the warning that trainers
 and runtimes computing in bfloat16 on such a CPU give."""
 import warnings
 
@@ -7,9 +7,9 @@ import torch
 from _trainer_toy import ToyData, ToyModel, toy_step
 from helpers import tiny_model
 
-from diff4splat import devices
-from diff4splat.devices import bf16_nan_leaks, cpu_bf16_warning
 from diff4splat.runtime import TorchRuntime
+from diff4splat.utils import devices
+from diff4splat.utils.devices import bf16_nan_leaks, cpu_bf16_warning
 from training.trainer import Trainer, TrainerConfig
 
 

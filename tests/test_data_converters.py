@@ -32,7 +32,7 @@ from data_prep.converters.common import decode_scaled_uint16, disparity_to_depth
 from data_prep.converters.multicamvideo import parse_ue_matrix
 from data_prep.converters.stereo4d import decode_stereo4d_tracks
 from data_prep.format import load_scene
-from diff4splat.quaternions import rotmat_to_quat
+from diff4splat.scene.quaternions import rotmat_to_quat
 
 W, H = 16, 12
 FX = FY = 20.0

@@ -16,7 +16,7 @@ import pytest
 
 import data_prep.engine
 import data_prep.synth_dataset
-import diff4splat.limits as limits
+import diff4splat.utils.limits as limits
 from data_prep.cli import main
 from data_prep.format import load_scene
 from data_prep.synth import (
@@ -34,7 +34,7 @@ from data_prep.synth_dataset import max_gaussians, scene_bytes, synthesize
 from data_prep.synth_world import CAMERA_MOTIONS, MOTIONS, SHAPES, TEXTURES, caption_for, sample_scene_spec
 from data_prep.textures import IMAGE_TEXTURES, image_albedo
 from data_prep.validate import validate_path, validate_scene
-from diff4splat.gaussians import sh0_to_rgb
+from diff4splat.scene.gaussians import sh0_to_rgb
 
 SIZE, T = 32, 5
 VERBS = {"translate": ("slides", "rolls"), "rotate": ("spins", "tumbles"), "bounce": ("bounces",),

@@ -9,10 +9,10 @@ import torch.nn.functional as F
 from helpers import tiny_model
 
 import models.deformation as deformation
-from diff4splat.gaussians import Gaussians
-from diff4splat.quaternions import quat_multiply, quat_normalize, quat_to_rotmat
 from diff4splat.runtime import TorchRuntime
-from diff4splat.scene import DynamicGaussians
+from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.scene.gaussians import Gaussians
+from diff4splat.scene.quaternions import quat_multiply, quat_normalize, quat_to_rotmat
 from models.deformation import (
     DeformationConfig,
     DeformationNetwork,

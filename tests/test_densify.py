@@ -6,7 +6,7 @@ import pytest
 import torch
 from torch import nn
 
-from diff4splat.quaternions import quat_to_rotmat
+from diff4splat.scene.quaternions import quat_to_rotmat
 from training.densify import (
     DensifyConfig,
     DensityStats,

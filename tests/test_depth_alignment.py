@@ -1,8 +1,8 @@
-"""Tests for diff4splat.depth_alignment: exact recovery, robustness to outliers, shared video fit, errors."""
+"""Tests for diff4splat.geometry.depth_alignment: exact recovery, robustness to outliers, shared video fit, errors."""
 import numpy as np
 import pytest
 
-from diff4splat.depth_alignment import (
+from diff4splat.geometry.depth_alignment import (
     DepthAlignment,
     align_video,
     fit_scale_shift,

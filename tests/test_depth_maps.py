@@ -1,5 +1,5 @@
 """A user's depth map for the photo layer: reading (diff4splat/io/depth_maps.py), alignment by kind
-(diff4splat.assemble.photo_depth) and ``generate --depth`` end to end."""
+(diff4splat.assembly.assemble.photo_depth) and ``generate --depth`` end to end."""
 import json
 import re
 
@@ -9,9 +9,9 @@ import pytest
 import torch
 from helpers import EXAMPLE_IMAGE
 
-import diff4splat.assemble as assemble
+import diff4splat.assembly.assemble as assemble
 import diff4splat.generate as generate_module
-from diff4splat.assemble import photo_depth
+from diff4splat.assembly.assemble import photo_depth
 from diff4splat.cameras import camera_rays, intrinsics_from_fov
 from diff4splat.cli import main
 from diff4splat.io import load_depth_exr, save_depth_exr

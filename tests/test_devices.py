@@ -1,4 +1,4 @@
-"""The device rule (diff4splat/devices.py, docs/DESIGN.md "Devices"): ``resolve_device``, and a check of the
+"""The device rule (diff4splat/utils/devices.py, docs/DESIGN.md "Devices"): ``resolve_device``, and a check of the
 library's source that no tensor is created without a device and no tensor reaches numpy without ``.cpu()``
 unless the line says why (``# device: …``)."""
 import ast
@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from diff4splat.devices import resolve_device
+from diff4splat.utils.devices import resolve_device
 
 ROOT = Path(__file__).resolve().parents[1]
 LIBRARY = ("diff4splat", "models", "training", "data_prep")
@@ -63,7 +63,7 @@ def test_library_code_creates_no_tensor_without_a_device():
     for package in LIBRARY:
         for path in sorted((ROOT / package).rglob("*.py")):
             found += device_rule_violations(path.read_text(encoding="utf-8"), str(path.relative_to(ROOT)))
-    assert not found, "the device rule (diff4splat/devices.py) is broken at:\n" + "\n".join(found)
+    assert not found, "the device rule (diff4splat/utils/devices.py) is broken at:\n" + "\n".join(found)
 
 
 def test_resolve_device():

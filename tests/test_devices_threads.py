@@ -1,4 +1,4 @@
-"""Issue 28: the CPU thread settings of diff4splat/devices.py reach the OpenMP runtime that torch, MKL and numba
+"""Issue 28: the CPU thread settings of diff4splat/utils/devices.py reach the OpenMP runtime that torch, MKL and numba
 share (idle threads sleep: two runs at once share the cores), and the thread counts follow the CPU affinity.
 
 Each check runs in a fresh interpreter: the runtime reads its environment once, when torch loads it, and this
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from diff4splat.devices import THREAD_ENV, USER_THREAD_VARIABLES, set_thread_env
+from diff4splat.utils.devices import THREAD_ENV, USER_THREAD_VARIABLES, set_thread_env
 
 REPO = Path(__file__).resolve().parent.parent
 CHILD = """

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from diff4splat.cameras import intrinsics_from_fov, make_trajectory
-from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
+from diff4splat.scene.quaternions import axis_angle_to_quat, quat_to_rotmat
 from training.eval_metrics import (
     ANGLE_BINS,
     PSNR_CAP,

@@ -13,8 +13,8 @@ from torch import nn
 
 from data_prep.format import load_scene
 from data_prep.synth import generate_scene
-from diff4splat.constants import ALPHA_MIN
-from diff4splat.scene import compose_deformation
+from diff4splat.scene.dynamic import compose_deformation
+from diff4splat.utils.constants import ALPHA_MIN
 from models.hexplane import HexPlaneConfig
 from training.densify import DensifyConfig
 from training.eval_metrics import PSNR_CAP

@@ -17,20 +17,20 @@ import pytest
 import torch
 from helpers import adam_steps_on_the_default_device
 
-import diff4splat.limits as limits
+import diff4splat.utils.limits as limits
 from data_prep.format import SceneWriter, load_scene, read_rgb
 from data_prep.synth import generate_scene
 from data_prep.validate import validate_scene
 from diff4splat.cameras import CameraPath
 from diff4splat.cli import main
-from diff4splat.gaussians import Gaussians
 from diff4splat.io import load_ply, save_ply
 from diff4splat.io.output_folders import read_marker
 from diff4splat.io.scene_folder import load_deformation, save_deformation
-from diff4splat.limits import LimitError
-from diff4splat.quaternions import quat_multiply, quat_normalize, quat_to_rotmat, rotmat_to_quat
 from diff4splat.render import spherical_harmonics
-from diff4splat.scene import DynamicGaussians
+from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.scene.gaussians import Gaussians
+from diff4splat.scene.quaternions import quat_multiply, quat_normalize, quat_to_rotmat, rotmat_to_quat
+from diff4splat.utils.limits import LimitError
 from models.hexplane import HexPlaneConfig, load_field
 from training import fit_cli
 from training.densify import DensifyConfig

@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from diff4splat.gaussians import SH_C0, Gaussians, rgb_to_sh0, sh0_to_rgb
+from diff4splat.scene.gaussians import SH_C0, Gaussians, rgb_to_sh0, sh0_to_rgb
 
 
 def _args(n=4):

@@ -6,9 +6,9 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from diff4splat.gaussians import Gaussians
-from diff4splat.quaternions import quat_normalize
-from diff4splat.scene import DynamicGaussians, compose_deformation
+from diff4splat.scene.dynamic import DynamicGaussians, compose_deformation
+from diff4splat.scene.gaussians import Gaussians
+from diff4splat.scene.quaternions import quat_normalize
 from models.hexplane import (
     MIN_EXTENT,
     PLANE_AXES,

@@ -7,7 +7,7 @@ import torch
 
 from diff4splat.cameras import CameraPath, intrinsics_from_focal, make_trajectory
 from diff4splat.io import load_cameras_json, load_realestate10k, save_cameras_json, save_realestate10k
-from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
+from diff4splat.scene.quaternions import axis_angle_to_quat, quat_to_rotmat
 
 W, H = 64, 48
 

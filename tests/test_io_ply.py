@@ -6,9 +6,9 @@ import plyfile
 import pytest
 import torch
 
-from diff4splat.constants import OPACITY_EPS
-from diff4splat.gaussians import Gaussians
 from diff4splat.io import load_ply, ply_property_names, save_ply
+from diff4splat.scene.gaussians import Gaussians
+from diff4splat.utils.constants import OPACITY_EPS
 
 INRIA_DEG3 = (
     ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]

@@ -9,7 +9,6 @@ import pytest
 import torch
 
 from diff4splat.cameras import CameraPath, intrinsics_from_fov
-from diff4splat.gaussians import Gaussians
 from diff4splat.io import MARKER, load_depth_exr, load_ply, load_video, save_ply
 from diff4splat.io.scene_folder import (
     DEFORMATION_ARRAYS,
@@ -19,7 +18,8 @@ from diff4splat.io.scene_folder import (
     load_output_scene,
     write_scene_folder,
 )
-from diff4splat.scene import DynamicGaussians
+from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.scene.gaussians import Gaussians
 
 
 def test_fill_empty_depth_uses_the_far_bound_and_keeps_covered_pixels():

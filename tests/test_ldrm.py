@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from diff4splat.cameras import pack_plucker, plucker_rays
-from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
+from diff4splat.scene.quaternions import axis_angle_to_quat, quat_to_rotmat
 from models.deformation import DeformationConfig
 from models.ldrm import (
     LDRM,
@@ -290,7 +290,7 @@ def test_activations_extremes_and_monotone():
 @pytest.mark.slow
 def test_ldrm_returns_tensors_and_imports_no_pipeline_layer():
     """Layering: the network module builds no Gaussians; turning its maps into a scene is the pipeline's
-    job (``diff4splat.assemble.to_gaussians``), and importing it loads no pipeline-layer module."""
+    job (``diff4splat.assembly.assemble.to_gaussians``), and importing it loads no pipeline-layer module."""
     code = ("import sys, models.ldrm as m; "
             "bad = [k for k in sys.modules if k.split('.')[:2] in (['diff4splat', 'pipeline'], ['diff4splat', 'cli'], "
             "['diff4splat', 'export'], ['diff4splat', 'onnx_runtime'])]; "

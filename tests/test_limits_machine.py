@@ -1,5 +1,5 @@
 """The memory and output-size limits are the machine's own: the memory available now and the free space of the
-output's disk (diff4splat/limits.py), so the paper-size command of the README passes its checks on a GPU machine
+output's disk (diff4splat/utils/limits.py), so the paper-size command of the README passes its checks on a GPU machine
 (it was refused by the fixed 8 GiB / 4 GiB of a laptop) and a small disk refuses a request before any network runs.
 """
 import os
@@ -12,11 +12,12 @@ import pytest
 import torch
 from helpers import EXAMPLE_IMAGE
 
-import diff4splat.limits as limits
+import diff4splat.utils.limits as limits
 from diff4splat.cli import main
-from diff4splat.errors import is_expected, one_line
 from diff4splat.generate import generate
-from diff4splat.limits import (
+from diff4splat.pipeline import Diff4SplatPipeline, load_model
+from diff4splat.utils.errors import is_expected, one_line
+from diff4splat.utils.limits import (
     LIMITS,
     OUTPUT_BYTES_PER_GAUSSIAN,
     OUTPUT_BYTES_PER_PIXEL,
@@ -27,7 +28,6 @@ from diff4splat.limits import (
     check_output_size,
     free_disk,
 )
-from diff4splat.pipeline import Diff4SplatPipeline, load_model
 from models.bundle import Diff4SplatModel, load_config
 
 GiB = 1 << 30

@@ -1,4 +1,4 @@
-"""The LDRM's motion network (models/motion.py) and the motion path (diff4splat/frame_motion.py)."""
+"""The LDRM's motion network (models/motion.py) and the motion path (diff4splat/assembly/frame_motion.py)."""
 from __future__ import annotations
 
 import math
@@ -9,12 +9,12 @@ import torch.nn.functional as F
 from helpers import EXAMPLE_IMAGE, tiny_model
 
 import diff4splat.runtime as runtime_module
+from diff4splat.assembly.frame_motion import frame_motion, nearest_frames
 from diff4splat.cameras import camera_rays, project_points, unproject_pixels
-from diff4splat.frame_motion import frame_motion, nearest_frames
-from diff4splat.gaussians import Gaussians
 from diff4splat.io import load_image
 from diff4splat.pipeline import Diff4SplatPipeline
-from diff4splat.scene import DynamicGaussians
+from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.scene.gaussians import Gaussians
 from models.ldrm import LDRMOutput
 from models.motion import (
     MotionConfig,

@@ -11,13 +11,13 @@ from torch.utils.data import default_collate
 
 from data_prep.clips import ClipConfig, ClipDataset
 from data_prep.synth import generate_scene
-from diff4splat.assemble import assemble_scene, to_gaussians
+from diff4splat.assembly.assemble import assemble_scene, to_gaussians
+from diff4splat.assembly.photo import PHOTO_EPS2D
+from diff4splat.assembly.prune import settle_generated
 from diff4splat.cameras import camera_rays
 from diff4splat.cameras.path import CameraPath
-from diff4splat.gaussians import Gaussians, rgb_to_sh0
-from diff4splat.photo import PHOTO_EPS2D
-from diff4splat.prune import settle_generated
-from diff4splat.scene import DynamicGaussians
+from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.scene.gaussians import Gaussians, rgb_to_sh0
 from models.flow_matching import shift_sigmas
 from training.losses import (
     LossWeights,
@@ -142,7 +142,8 @@ CASES = {
                     scenes="all", deformation=True, motion=True),
                {"flow", "photo", "depth", "metric_depth", "smooth", "motion", "displacement"},
                {"dit", "ldrm", "ldrm.deformation"}),
-    # the motion path (diff4splat.frame_motion) alone: the tracks and the renders reach it through the decoded frames
+    # the motion path (diff4splat.assembly.frame_motion) alone: the tracks and the renders reach it through the decoded
+    # frames
     "motion_path": (dict(train=("ldrm.motion",), objectives=("reconstruction",), scenes="all", deformation=True,
                          motion=True),
                     {"photo", "depth", "metric_depth", "smooth", "motion", "displacement"}, {"ldrm.motion"}),

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from diff4splat.config_files import CONFIGS_DIR
 from diff4splat.io.output_folders import INSTALLED_PACKAGES
+from diff4splat.utils.config_files import CONFIGS_DIR
 from models.bundle import CONFIG_DIR, DEFAULT_CONFIG, config_names, load_config
 from training.stage_config import STAGE_CONFIG_DIR, load_stage, stage_names
 
@@ -220,7 +220,7 @@ def test_wheel_holds_configs_weights_and_entry_points(tmp_path):
         assert f"diff4splat/configs/training/{name}.yaml" in names
     assert f"models/weights/{DEFAULT_CONFIG}/ldrm/model.safetensors" in names
     assert "diff4splat/configs/data_prep/curation_default.yaml" in names
-    assert {"diff4splat/viewer/assets/viewer.js", "diff4splat/viewer/assets/LICENSES.txt"} <= names  # the viewer
+    assert {"diff4splat/io/viewer_assets/viewer.js", "diff4splat/io/viewer_assets/LICENSES.txt"} <= names  # the viewer
     assert "diff4splat = diff4splat.cli:main" in entry_points and "evaluate = " in entry_points
 
 

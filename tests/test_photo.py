@@ -1,5 +1,5 @@
-"""The photo layer (diff4splat/photo.py): the photograph reproduced at the input camera, no gaps a sub-pixel motion
-can open, disks on their rays facing the camera, edge-aware depth upsampling."""
+"""The photo layer (diff4splat/assembly/photo.py): the photograph reproduced at the input camera, no gaps a sub-pixel
+motion can open, disks on their rays facing the camera, edge-aware depth upsampling."""
 import math
 from pathlib import Path
 
@@ -9,10 +9,7 @@ import torch
 import torch.nn.functional as F
 from helpers import EXAMPLE_IMAGE
 
-from diff4splat.cameras import camera_rays, intrinsics_from_fov
-from diff4splat.gaussians import Gaussians, sh0_to_rgb
-from diff4splat.io import load_image
-from diff4splat.photo import (
+from diff4splat.assembly.photo import (
     BACKDROP_DEPTH,
     BACKING_SCALE_PX,
     FRONT_SCALE_PX,
@@ -25,8 +22,11 @@ from diff4splat.photo import (
     render_input_view,
     upsample_depth,
 )
-from diff4splat.quaternions import quat_to_rotmat
+from diff4splat.cameras import camera_rays, intrinsics_from_fov
+from diff4splat.io import load_image
 from diff4splat.render import rasterize
+from diff4splat.scene.gaussians import Gaussians, sh0_to_rgb
+from diff4splat.scene.quaternions import quat_to_rotmat
 
 TEXTURE = Path(__file__).resolve().parent.parent / "data_prep" / "textures" / "grass.png"  # fine detail
 

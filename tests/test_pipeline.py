@@ -6,14 +6,14 @@ import pytest
 import torch
 from helpers import EXAMPLE_IMAGE, tiny_model
 
-from diff4splat.assemble import to_gaussians, video_colors
+from diff4splat.assembly.assemble import to_gaussians, video_colors
+from diff4splat.assembly.photo import BACKDROP_CELLS, BACKDROP_EXTEND
 from diff4splat.cameras import camera_rays, pack_plucker, plucker_rays
-from diff4splat.gaussians import sh0_to_rgb
 from diff4splat.io import load_image
-from diff4splat.photo import BACKDROP_CELLS, BACKDROP_EXTEND
 from diff4splat.pipeline import Diff4SplatPipeline
-from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
 from diff4splat.runtime import TorchRuntime
+from diff4splat.scene.gaussians import sh0_to_rgb
+from diff4splat.scene.quaternions import axis_angle_to_quat, quat_to_rotmat
 from models import flow_matching
 from models.flow_matching import euler_sample, sigma_schedule
 from models.ldrm import LDRMOutput

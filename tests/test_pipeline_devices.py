@@ -1,4 +1,4 @@
-"""The generation pipeline on every device, in bfloat16 and with model CPU offload (diff4splat/offload.py)."""
+"""The generation pipeline on every device, in bfloat16 and with model CPU offload (diff4splat/utils/offload.py)."""
 import numpy as np
 import pytest
 import torch
@@ -8,9 +8,12 @@ from torch.nn.attention import SDPBackend, sdpa_kernel
 
 import models.layers
 import models.text_encoder
-from diff4splat.assemble import to_gaussians
+from diff4splat.assembly.assemble import to_gaussians
 from diff4splat.cameras import intrinsics_from_fov
-from diff4splat.offload import (
+from diff4splat.onnx_runtime import OnnxRuntime
+from diff4splat.pipeline import Diff4SplatPipeline, load_model
+from diff4splat.runtime import ATTENTION_KERNELS, TorchRuntime, attention_priority
+from diff4splat.utils.offload import (
     PIN_ALIGN,
     ModelOffload,
     _tensors,
@@ -20,9 +23,6 @@ from diff4splat.offload import (
     prefetch_groups,
     weight_bytes,
 )
-from diff4splat.onnx_runtime import OnnxRuntime
-from diff4splat.pipeline import Diff4SplatPipeline, load_model
-from diff4splat.runtime import ATTENTION_KERNELS, TorchRuntime, attention_priority
 from models.bundle import Diff4SplatModel, load_config
 from models.ldrm import LDRMConfig, LDRMOutput, gaussian_activations
 from models.pretrained import skip_init

@@ -3,9 +3,7 @@ import math
 import pytest
 import torch
 
-from diff4splat.cameras import CameraPath, intrinsics_from_fov
-from diff4splat.gaussians import Gaussians
-from diff4splat.prune import (
+from diff4splat.assembly.prune import (
     SLIDE_FACTORS,
     _footprint_max,
     duplicate_mask,
@@ -15,10 +13,12 @@ from diff4splat.prune import (
     slide_behind,
     visibility_mask,
 )
+from diff4splat.cameras import CameraPath, intrinsics_from_fov
 from diff4splat.render import rasterize_dense
 from diff4splat.render.sequence import render_path
 from diff4splat.render.settings import NEAR_PLANE
-from diff4splat.scene import DynamicGaussians
+from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.scene.gaussians import Gaussians
 
 
 def _path(T=3, W=32, H=32):

@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from diff4splat.quaternions import (
+from diff4splat.scene.quaternions import (
     axis_angle_to_quat,
     quat_conjugate,
     quat_multiply,

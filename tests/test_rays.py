@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from diff4splat.cameras import camera_rays, pack_plucker, plucker_rays, unproject_depth
-from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
+from diff4splat.scene.quaternions import axis_angle_to_quat, quat_to_rotmat
 
 
 def make_cameras(C=2, seed=0):

@@ -12,11 +12,11 @@ from helpers import TEXTURES, moving_patch_video
 from data_prep.synth import generate_scene
 from diff4splat.cli import main
 from diff4splat.generate import load_pipeline
+from diff4splat.geometry.scene_flow import consecutive_flows
 from diff4splat.io import OutputDirError, load_cameras_json, load_image, save_cameras_json, save_image, save_video
 from diff4splat.io.video_input import read_video_clip
 from diff4splat.reconstruct import carried_depth, memory_estimate, reconstruct, still_cameras
 from diff4splat.render.sequence import render_path
-from diff4splat.scene_flow import consecutive_flows
 
 SIZE = 64
 

@@ -23,19 +23,19 @@ import torch
 from helpers import EXAMPLE_IMAGE, exported
 
 import data_prep.cli as dcli
-import diff4splat.errors as errors
 import diff4splat.io.atomic as atomic
 import diff4splat.io.scene_folder as output
 import diff4splat.pipeline
+import diff4splat.utils.errors as errors
 import training.stage_config
 from diff4splat.cameras import make_trajectory
 from diff4splat.cli import main
-from diff4splat.errors import EXIT_INTERRUPTED, EXIT_USAGE, is_expected, one_line, quiet_c_stderr, run_cli
-from diff4splat.gaussians import Gaussians
 from diff4splat.io import cameras, exr, ply, video
 from diff4splat.io.atomic import atomic_output_path, naming_os_errors
 from diff4splat.io.image import read_image
 from diff4splat.onnx_runtime import OnnxRuntime, load_manifest
+from diff4splat.scene.gaussians import Gaussians
+from diff4splat.utils.errors import EXIT_INTERRUPTED, EXIT_USAGE, is_expected, one_line, quiet_c_stderr, run_cli
 from training.train import main as train_main
 
 REPO = Path(__file__).resolve().parent.parent
@@ -535,7 +535,7 @@ def test_disk_full_during_generate_is_one_line_naming_the_file(tmp_path, capsys,
 _FULL_DISK_SCRIPT = r"""
 import os, sys
 import numpy as np
-from diff4splat.errors import is_expected, one_line
+from diff4splat.utils.errors import is_expected, one_line
 from diff4splat.io.exr import save_depth_exr
 from diff4splat.io.output_folders import output_dir
 from diff4splat.io.video import save_image, save_video

@@ -25,10 +25,12 @@ from data_prep.clips import ClipConfig, ClipDataset
 from data_prep.synth import generate_scene
 from diff4splat.cameras import CameraPath
 from diff4splat.cli import main
-from diff4splat.costs import MEMORY_MAP_COPIES
 from diff4splat.io import load_cameras_json, load_realestate10k, save_cameras_json
 from diff4splat.io.image import header_size, read_image
-from diff4splat.limits import (
+from diff4splat.pipeline import Diff4SplatPipeline, load_model
+from diff4splat.runtime import TorchRuntime
+from diff4splat.utils.costs import MEMORY_MAP_COPIES
+from diff4splat.utils.limits import (
     LIMITS,
     OUTPUT_BYTES_PER_GAUSSIAN,
     LimitError,
@@ -37,9 +39,7 @@ from diff4splat.limits import (
     check_output_size,
     limit,
 )
-from diff4splat.offload import pinned_bytes, weight_bytes
-from diff4splat.pipeline import Diff4SplatPipeline, load_model
-from diff4splat.runtime import TorchRuntime
+from diff4splat.utils.offload import pinned_bytes, weight_bytes
 from models.bundle import Diff4SplatModel, load_config
 from models.pretrained import config_from_dict
 from models.vae import VideoVAEConfig

@@ -11,8 +11,8 @@ import pytest
 import torch
 
 import diff4splat
+from diff4splat.assembly.prune import prune_scene, visibility_mask
 from diff4splat.cameras.lenses import ThinLens
-from diff4splat.prune import prune_scene, visibility_mask
 from diff4splat.render import rasterize, rasterize_dense, raytrace, render_rolling_shutter
 from diff4splat.render import settings as render_settings
 from diff4splat.render.fused import project_fused

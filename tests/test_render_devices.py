@@ -1,4 +1,4 @@
-"""The renderer on every device (docs/DESIGN.md "The renderer", diff4splat/devices.py "the device rule").
+"""The renderer on every device (docs/DESIGN.md "The renderer", diff4splat/utils/devices.py "the device rule").
 
 - Dispatch: :func:`diff4splat.render.rasterize.choose_path` never sends a non-CPU tensor to the fused (numba)
   path; meta tensors stand in for CUDA ones on a CPU-only machine (their device type is not "cpu" either).
@@ -15,7 +15,6 @@ import pytest
 import torch
 
 from diff4splat.cameras import CameraPath, FisheyePolynomial, RollingShutter, ThinLens
-from diff4splat.gaussians import Gaussians
 from diff4splat.render import rasterize, rasterize_dense, render_rolling_shutter
 from diff4splat.render.fused import bin_tiles_fused, composite_fused
 from diff4splat.render.rasterize import DEFAULT_COMPOSITOR, DEVICE_COMPOSITOR, PATHS, choose_path
@@ -28,7 +27,8 @@ from diff4splat.render.tiles import (
     composite_tiles,
     pair_budget,
 )
-from diff4splat.scene import DynamicGaussians
+from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.scene.gaussians import Gaussians
 
 rasterize_module = importlib.import_module("diff4splat.render.rasterize")  # the package re-exports the function
 CPU = torch.device("cpu")

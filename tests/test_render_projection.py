@@ -4,10 +4,10 @@ import math
 import pytest
 import torch
 
-from diff4splat.constants import ALPHA_MIN
-from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
 from diff4splat.render import project_gaussians
 from diff4splat.render.projection import covariance_3d, splat_alpha, support_extent
+from diff4splat.scene.quaternions import axis_angle_to_quat, quat_to_rotmat
+from diff4splat.utils.constants import ALPHA_MIN
 
 D = torch.float64
 W, H = 64, 48

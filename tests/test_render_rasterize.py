@@ -4,8 +4,8 @@ import math
 import pytest
 import torch
 
-from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
 from diff4splat.render import rasterize, rasterize_dense
+from diff4splat.scene.quaternions import axis_angle_to_quat, quat_to_rotmat
 
 pytestmark = pytest.mark.usefixtures("each_compositor")  # every test on both CPU compositors
 

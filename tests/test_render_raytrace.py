@@ -7,10 +7,10 @@ import pytest
 import torch
 
 from diff4splat.cameras.lenses import FisheyeKB, FisheyePolynomial, RollingShutter, ThinLens, generate_rays
-from diff4splat.constants import ALPHA_MIN
-from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
 from diff4splat.render import rasterize
 from diff4splat.render.raytrace import composite_rays, ray_gaussian_response, raytrace, whitening
+from diff4splat.scene.quaternions import axis_angle_to_quat, quat_to_rotmat
+from diff4splat.utils.constants import ALPHA_MIN
 
 D = torch.float64
 ID = torch.eye(4, dtype=D)[None]

@@ -4,9 +4,9 @@ import pytest
 import torch
 
 from diff4splat.cameras import CameraPath, FisheyePolynomial, RollingShutter, ThinLens
-from diff4splat.gaussians import Gaussians, rgb_to_sh0
 from diff4splat.render import raytrace, render_rolling_shutter
-from diff4splat.scene import DynamicGaussians
+from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.scene.gaussians import Gaussians, rgb_to_sh0
 
 D = torch.float64
 W, H, F, Z = 48, 40, 40.0, 4.0

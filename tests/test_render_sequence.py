@@ -1,9 +1,9 @@
 import torch
 
 from diff4splat.cameras import CameraPath, intrinsics_from_fov
-from diff4splat.gaussians import Gaussians, rgb_to_sh0
 from diff4splat.render.sequence import render_path
-from diff4splat.scene import DynamicGaussians
+from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.scene.gaussians import Gaussians, rgb_to_sh0
 
 
 def test_each_frame_renders_the_scene_at_its_own_time():

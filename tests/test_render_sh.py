@@ -4,10 +4,10 @@ import math
 import pytest
 import torch
 
-from diff4splat.gaussians import SH_C0, rgb_to_sh0
-from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
 from diff4splat.render import rasterize, sh_basis, sh_to_color, spherical_harmonics
 from diff4splat.render.sh import num_sh_bases, rotate_sh, sh_rotation
+from diff4splat.scene.gaussians import SH_C0, rgb_to_sh0
+from diff4splat.scene.quaternions import axis_angle_to_quat, quat_to_rotmat
 
 
 def _legendre(deg: int, m: int, x: torch.Tensor) -> torch.Tensor:

@@ -3,10 +3,10 @@ import math
 import pytest
 import torch
 
-import diff4splat.scene as scene_module
-from diff4splat.gaussians import Gaussians
-from diff4splat.quaternions import axis_angle_to_quat, quat_to_rotmat
-from diff4splat.scene import DynamicGaussians
+import diff4splat.scene.dynamic as scene_module
+from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.scene.gaussians import Gaussians
+from diff4splat.scene.quaternions import axis_angle_to_quat, quat_to_rotmat
 
 
 def _gaussians(m=5, seed=0, dtype=torch.float64):
@@ -170,7 +170,7 @@ def _dynamic_scene(m, k, dtype, seed=0, temporal=True):
 
 @pytest.mark.parametrize("dtype, tol", [(torch.float32, 2e-6), (torch.float64, 1e-13)])
 def test_the_fused_cpu_kernel_of_at_matches_the_reference(monkeypatch, dtype, tol):
-    """On the CPU without gradients ``at`` runs the numba kernel (:mod:`diff4splat.scene_kernels`); the reference
+    """On the CPU without gradients ``at`` runs the numba kernel (:mod:`diff4splat.scene.kernels`); the reference
     is ``deformation_at`` then ``compose_deformation`` of the same Gaussians. Times at, between and beyond the keys;
     a gate that drops some Gaussians; antipodal key quaternions (the shorter-arc sign)."""
     calls = []

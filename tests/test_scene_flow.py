@@ -1,4 +1,4 @@
-"""Scene flow from optical flow and depth (diff4splat/scene_flow.py): DIS recovers a known translation, chained
+"""Scene flow from optical flow and depth (diff4splat/geometry/scene_flow.py): DIS recovers a known translation, chained
 tracking follows it and loses what leaves the image, lifting gives the closed-form 3D motion and keeps a static
 scene still under a moving camera."""
 from pathlib import Path
@@ -7,8 +7,7 @@ import pytest
 import torch
 
 from diff4splat.cameras import intrinsics_from_fov, look_at
-from diff4splat.io import load_image
-from diff4splat.scene_flow import (
+from diff4splat.geometry.scene_flow import (
     lift_tracks,
     optical_flow,
     pixel_centres,
@@ -16,6 +15,7 @@ from diff4splat.scene_flow import (
     source_frame_motion,
     track_pixels,
 )
+from diff4splat.io import load_image
 
 TEXTURE = Path(__file__).resolve().parent.parent / "data_prep" / "textures" / "coins.png"
 

@@ -7,14 +7,14 @@ import pytest
 import torch
 
 import diff4splat.render.sequence as render_sequence_module
+from diff4splat.assembly.prune import prune_scene
 from diff4splat.cameras import CameraPath, intrinsics_from_fov
-from diff4splat.constants import ALPHA_MIN
-from diff4splat.gaussians import Gaussians, rgb_to_sh0
 from diff4splat.io.scene_folder import load_deformation, save_deformation
-from diff4splat.prune import prune_scene
 from diff4splat.render import rasterize, rasterize_dense
 from diff4splat.render.sequence import render_path
-from diff4splat.scene import DynamicGaussians
+from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.scene.gaussians import Gaussians, rgb_to_sh0
+from diff4splat.utils.constants import ALPHA_MIN
 
 D = torch.float64
 W = H = 24

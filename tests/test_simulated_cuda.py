@@ -27,13 +27,13 @@ from data_prep.clips import ClipConfig, ClipDataset
 from data_prep.synth import generate_scene
 from diff4splat.cameras import CameraPath
 from diff4splat.cli import main
-from diff4splat.devices import resolve_device
 from diff4splat.io import load_cameras_json
 from diff4splat.io.image import read_image
 from diff4splat.io.scene_folder import load_scene_folder
-from diff4splat.offload import ModelOffload
 from diff4splat.pipeline import Diff4SplatPipeline
 from diff4splat.reconstruct import reconstruct_scene
+from diff4splat.utils.devices import resolve_device
+from diff4splat.utils.offload import ModelOffload
 from models.hexplane import save_field
 from training.eval_metrics import psnr_from_mse
 from training.objectives import TrainingModule

@@ -35,7 +35,7 @@ from data_prep.clips import ClipConfig, ClipDataset  # noqa: E402
 from data_prep.synth import generate_scene  # noqa: E402
 from diff4splat.cameras import pack_plucker, plucker_rays  # noqa: E402
 from diff4splat.cli import main as cli_main  # noqa: E402
-from diff4splat.devices import cpu_bf16_warning  # noqa: E402
+from diff4splat.utils.devices import cpu_bf16_warning  # noqa: E402
 from models.backbone_model import BackboneModel, BackboneModelConfig  # noqa: E402
 from models.ldrm import LDRM, LDRMConfig  # noqa: E402
 from training.backbone_training import add_lora, load_backbone_model, lora_layers, merged_lora  # noqa: E402

@@ -1,4 +1,4 @@
-"""Tests of diff4splat/viewer/data.py: keyframes are DynamicGaussians.at's, the byte layout round-trips, the
+"""Tests of diff4splat/io/viewer_data.py: keyframes are DynamicGaussians.at's, the byte layout round-trips, the
 float16 error has its closed form, and the size budget's reductions (brute-force references, closed forms)."""
 import math
 from fractions import Fraction
@@ -10,7 +10,7 @@ from helpers import moving_patch_scene
 
 from diff4splat.cameras.path import CameraPath
 from diff4splat.io import load_ply
-from diff4splat.viewer.data import (
+from diff4splat.io.viewer_data import (
     FLOAT16_MAX_PX,
     _fits_float16,
     decode_keyframes,

@@ -1,4 +1,4 @@
-"""Tests of diff4splat/viewer/page.py: the page's structure (self-contained, data round-trips) and, in headless
+"""Tests of diff4splat/io/viewer_page.py: the page's structure (self-contained, data round-trips) and, in headless
 Chromium (the ``browser`` fixture of conftest.py: system Chromium + Playwright, software WebGL), what a user
 sees: ready with the right count and no errors, the first camera's view matching a CPU render, the time
 slider moving the scene the right way, a drag moving the view, no time controls on a static scene."""
@@ -16,16 +16,16 @@ import pytest
 import torch
 from helpers import moving_patch_scene, moving_patch_video
 
-import diff4splat.viewer.data as viewer_data
+import diff4splat.io.viewer_data as viewer_data
 from diff4splat.cameras.path import CameraPath
 from diff4splat.cli import main
 from diff4splat.io import load_cameras_json, load_ply, save_image
 from diff4splat.io.scene_folder import load_output_scene
-from diff4splat.quaternions import quat_to_rotmat
+from diff4splat.io.viewer_data import payload_bytes, viewer_payload
+from diff4splat.io.viewer_page import bundle_js, viewer_html, write_viewer
 from diff4splat.render import rasterize
-from diff4splat.scene import DynamicGaussians
-from diff4splat.viewer.data import payload_bytes, viewer_payload
-from diff4splat.viewer.page import bundle_js, viewer_html, write_viewer
+from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.scene.quaternions import quat_to_rotmat
 
 VIEWPORT = {"width": 384, "height": 340}  # the canvas fits the path's aspect above the controls (≈ 3× 128 × 96)
 
@@ -66,7 +66,7 @@ def test_json_cannot_close_the_script_element():
 
 
 def test_licences_and_versions_are_shipped():
-    text = resources.files("diff4splat.viewer").joinpath("assets/LICENSES.txt").read_text(encoding="utf-8")
+    text = resources.files("diff4splat.io").joinpath("viewer_assets/LICENSES.txt").read_text(encoding="utf-8")
     package = json.loads((Path(__file__).resolve().parent.parent / "viewer_js" / "package.json").read_text())
     for name, version in package["dependencies"].items():
         assert f"{name} {version} (MIT)" in text

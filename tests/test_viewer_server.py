@@ -18,8 +18,8 @@ from helpers import moving_patch_scene
 
 from diff4splat.cli import main
 from diff4splat.io.scene_folder import load_scene_folder, write_scene_folder
-from diff4splat.viewer.data import payload_bytes
-from diff4splat.viewer.page import write_viewer
+from diff4splat.io.viewer_data import payload_bytes
+from diff4splat.io.viewer_page import write_viewer
 from diff4splat.viewer_server import DATA_PREFIX, HOST, folder_payload, make_server
 
 

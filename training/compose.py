@@ -22,8 +22,8 @@ import argparse
 import dataclasses
 from pathlib import Path
 
-from diff4splat.errors import run_cli
 from diff4splat.io.structured import read_yaml
+from diff4splat.utils.errors import run_cli
 from models.bundle import NETWORKS, Diff4SplatModel, config_path, load_config
 from models.pretrained import config_from_dict
 

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from diff4splat.quaternions import quat_to_rotmat
+from diff4splat.scene.quaternions import quat_to_rotmat
 
 __all__ = ["DensifyConfig", "DensityStats", "densify_and_prune", "prune", "reset_opacity", "replace_params"]
 

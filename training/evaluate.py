@@ -78,10 +78,10 @@ from tqdm.auto import tqdm
 
 from data_prep.clips import ClipConfig, ClipDataset
 from diff4splat.cameras import CameraPath, make_trajectory
-from diff4splat.devices import synchronize
 from diff4splat.io import load_image
 from diff4splat.pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, GenerationResult
 from diff4splat.render.sequence import render_path
+from diff4splat.utils.devices import synchronize
 from models.flow_matching import SAMPLERS, heun_sample, sigma_schedule
 
 from .eval_metrics import (
@@ -350,7 +350,7 @@ def sampling_tradeoffs(pipe: Diff4SplatPipeline, clips: list[dict], nfes=(1, 2, 
     each sampler at each NFE (Euler: steps = NFE; Heun: steps = ⌈(NFE+1)/2⌉, NFE = 2·steps − 1) is
     compared by the RMS latent distance to the reference, its wall time, and the PSNR of the
     generated scene's renders against the ground-truth clip. The clock is read after
-    :func:`diff4splat.devices.synchronize` (the device's queued work counted).
+    :func:`diff4splat.utils.devices.synchronize` (the device's queued work counted).
 
     Returns:
         Rows {sampler, nfe, steps, ms, latent_rms, psnr}.

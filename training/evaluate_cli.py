@@ -18,12 +18,12 @@ import math
 import warnings
 from pathlib import Path
 
-from diff4splat.checks import check_positive_int
-from diff4splat.devices import AUTO, DEVICE_HELP, resolve_device
 from diff4splat.io.image import read_image
 from diff4splat.io.inputs import check_input_file
-from diff4splat.limits import check_limit, check_memory
 from diff4splat.pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, load_model
+from diff4splat.utils.checks import check_positive_int
+from diff4splat.utils.devices import AUTO, DEVICE_HELP, resolve_device
+from diff4splat.utils.limits import check_limit, check_memory
 from models.bundle import DEFAULT_CONFIG
 
 from .eval_csv import append_csv, check_csv_outputs, csv_outputs
@@ -173,7 +173,8 @@ def run(args) -> int:
         ValueError: ``--device`` naming a device this machine does not have, a bad argument or output file
             (:func:`_check_args`), all checked before any model loads; no clips in ``--data``.
         LimitError: the generation of a clip, or of the ``--photo`` scene at ``--resolution``, would need more
-            memory than the process may use (:func:`diff4splat.limits.check_memory`), checked before any clip loads.
+            memory than the process may use (:func:`diff4splat.utils.limits.check_memory`), checked before any clip
+            loads.
     """
     device = resolve_device(args.device, "--device")  # before any model is loaded
     outputs = _check_args(args)  # refuse before the evaluation runs, not after

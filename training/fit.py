@@ -8,7 +8,7 @@ against every frame of the training cameras of a scene folder (data_prep format)
    depth, or a ``generate`` output (``init``).
 2. **Coarse stage** (4DGS §3.3, "coarse"): static 3D Gaussians, ``coarse_iterations`` steps.
 3. **Fine stage**: the field deforms every Gaussian to the view's time (μ + Δμ, normalize(Δq ⊗ q),
-   s·exp(Δs), :func:`diff4splat.scene.compose_deformation`); its regularisers are added to the loss.
+   s·exp(Δs), :func:`diff4splat.scene.dynamic.compose_deformation`); its regularisers are added to the loss.
    A static scene (``meta.dynamic`` false, or one frame) has no fine stage and no field.
 
 Loss per view: (1 − λ)·L1 + λ·(1 − SSIM) (3DGS Eq. 7, :func:`training.losses.photometric_loss`, λ = 0.2) +
@@ -38,12 +38,12 @@ import torch
 from torch import Tensor, nn
 from tqdm import tqdm
 
-from diff4splat.constants import ALPHA_MIN
-from diff4splat.devices import synchronize
-from diff4splat.gaussians import Gaussians, rgb_to_sh0
-from diff4splat.limits import check_limit
 from diff4splat.render import rasterize
-from diff4splat.scene import DynamicGaussians, compose_deformation
+from diff4splat.scene.dynamic import DynamicGaussians, compose_deformation
+from diff4splat.scene.gaussians import Gaussians, rgb_to_sh0
+from diff4splat.utils.constants import ALPHA_MIN
+from diff4splat.utils.devices import synchronize
+from diff4splat.utils.limits import check_limit
 from models.deformation import IDENTITY_QUAT
 from models.hexplane import HexPlaneConfig, HexPlaneField
 from training.densify import DensifyConfig, DensityStats, densify_and_prune, prune, reset_opacity
@@ -136,7 +136,7 @@ class FitConfig:
         lr: learning rates.
 
     Raises:
-        ValueError: a field out of range (named). :class:`diff4splat.limits.LimitError` (a ValueError):
+        ValueError: a field out of range (named). :class:`diff4splat.utils.limits.LimitError` (a ValueError):
             ``iterations`` above the ``iterations`` limit, or ``init_points``, ``random_points`` or
             ``densify.max_gaussians`` above the ``gaussians`` limit.
     """

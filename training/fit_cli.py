@@ -8,7 +8,7 @@ marker kind "fit"), rendered along the scene's reference camera in the scene's w
 ``--checkpoint-every`` steps and on SIGTERM/SIGINT; ``--resume`` continues from the newest one (a checkpoint of
 another fit is refused, naming the settings that differ), and the folder is removed when the output is written.
 ``--out`` may not lie inside the scene folder or the ``--init`` folder (the fit would write into its own input).
-Every argument is checked, against the limits too (``iterations``, ``gaussians``; :mod:`diff4splat.limits`),
+Every argument is checked, against the limits too (``iterations``, ``gaussians``; :mod:`diff4splat.utils.limits`),
 before the scene is read.
 
 ``--device`` (default ``auto``: CUDA when torch sees a GPU, else the CPU) is where the Gaussians, the field, the
@@ -31,10 +31,6 @@ from pathlib import Path
 import torch
 
 from data_prep.format import load_scene
-from diff4splat.checks import check_positive_int
-from diff4splat.costs import RENDER_BASE_BYTES
-from diff4splat.devices import AUTO, DEVICE_HELP, resolve_device
-from diff4splat.gaussians import Gaussians
 from diff4splat.io.output_folders import check_output_dir
 from diff4splat.io.scene_folder import (
     DEFORMATION_ARRAYS,
@@ -46,12 +42,16 @@ from diff4splat.io.scene_folder import (
     write_scene_folder,
 )
 from diff4splat.io.video import DEFAULT_FPS, check_fps
-from diff4splat.limits import check_limit, check_memory, held_memory
 from diff4splat.pipeline import check_seed
-from diff4splat.quaternions import quat_conjugate, quat_multiply, rotmat_to_quat
 from diff4splat.render.sequence import render_path
 from diff4splat.render.sh import rotate_sh
-from diff4splat.scene import DynamicGaussians
+from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.scene.gaussians import Gaussians
+from diff4splat.scene.quaternions import quat_conjugate, quat_multiply, rotmat_to_quat
+from diff4splat.utils.checks import check_positive_int
+from diff4splat.utils.costs import RENDER_BASE_BYTES
+from diff4splat.utils.devices import AUTO, DEVICE_HELP, resolve_device
+from diff4splat.utils.limits import check_limit, check_memory, held_memory
 from models.hexplane import save_field
 from training.checkpoint import latest_checkpoint, load_checkpoint, on_cpu, save_checkpoint
 from training.densify import DensityStats
@@ -252,7 +252,7 @@ def _most_gaussians(config: FitConfig) -> int:
 def fit_memory_estimate(scene, config: FitConfig) -> int:
     """Upper bound of ``fit``'s peak host memory, bytes, from the scene's ``meta.json`` and cameras before its frames
     are loaded: what the process holds now, the renderer's fixed memory
-    (:data:`diff4splat.costs.RENDER_BASE_BYTES`), :data:`FIT_BYTES_PER_VIEW_PIXEL` per pixel of every camera
+    (:data:`diff4splat.utils.costs.RENDER_BASE_BYTES`), :data:`FIT_BYTES_PER_VIEW_PIXEL` per pixel of every camera
     and frame, and
     :data:`FIT_BYTES_PER_GAUSSIAN` per Gaussian at the most it may hold (the larger of the densification cap and the
     initial points)."""
@@ -271,7 +271,7 @@ def run_fit(scene_dir: Path, out: Path, config: FitConfig, *, holdout_camera: in
     Args:
         checkpoint_every: steps between checkpoints, ≥ 1; 0: only on SIGTERM/SIGINT.
         device: where the fit runs (``"auto"``, ``"cpu"``, ``"cuda"``, a ``torch.device``;
-            :func:`diff4splat.devices.resolve_device`), checked before any work; the CLI's default is ``auto``.
+            :func:`diff4splat.utils.devices.resolve_device`), checked before any work; the CLI's default is ``auto``.
 
     Raises:
         FileNotFoundError: the scene or ``init`` is missing. ValueError: bad arguments (``checkpoint_every`` < 0,
@@ -454,7 +454,7 @@ def run(args) -> int:
     """The ``fit`` command: one summary line; 143 after SIGTERM, 130 after SIGINT (checkpoint written first).
 
     Raises:
-        ValueError: a bad argument (named by its flag), one above a limit (:class:`diff4splat.limits.LimitError`:
+        ValueError: a bad argument (named by its flag), one above a limit (:class:`diff4splat.utils.limits.LimitError`:
             ``--iterations``, ``--max-gaussians``, ``--init-points``), ``--device`` naming a device this machine
             does not have (checked first), an ``--out`` inside the scene or ``--init`` folder.
     """

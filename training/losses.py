@@ -14,7 +14,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from diff4splat.cameras import project_points
-from diff4splat.devices import autocast_off
+from diff4splat.utils.devices import autocast_off
 from models.flow_matching import add_noise, sample_logit_normal, shift_sigmas, velocity_target
 
 __all__ = [

@@ -11,7 +11,7 @@ collate (``video`` (B,3,T,H,W) in [0,1], ``viewmats``/``Ks`` (B,T,4,4)/(B,T,3,3)
 ``plucker_packed`` (B,1536,n,h,w) and/or ``plucker`` (B,T,H,W,6), ``depth``/``depth_valid`` (B,T,H,W),
 ``tracks`` (B,N,T,3), ``track_visibility`` (B,N,T), ``track_mask`` (B,N), ``caption`` list[str]).
 
-Devices (diff4splat/devices.py): the batch and the model may be on any one device; the step generator is a CPU
+Devices (diff4splat/utils/devices.py): the batch and the model may be on any one device; the step generator is a CPU
 ``torch.Generator`` (the trainer's), so every draw (caption dropout, σ, ε, latent noise, rendered frames) is
 made on the generator's device and then moved to the data, and a seed gives the same numbers on every device.
 Under bf16 autocast the VAE latents, the flow-matching targets, are kept in the batch's precision (float32).
@@ -27,16 +27,16 @@ from functools import partial
 import torch
 from torch import Tensor, nn
 
-from diff4splat.assemble import assemble_scene, to_gaussians
+from diff4splat.assembly.assemble import assemble_scene, to_gaussians
+from diff4splat.assembly.frame_motion import frame_motion
+from diff4splat.assembly.photo import PHOTO_EPS2D
+from diff4splat.assembly.prune import settle_generated
 from diff4splat.cameras import camera_rays, pack_plucker, plucker_rays
 from diff4splat.cameras.path import CameraPath
-from diff4splat.devices import autocast_off
-from diff4splat.frame_motion import frame_motion
-from diff4splat.photo import PHOTO_EPS2D
-from diff4splat.prune import settle_generated
 from diff4splat.render import rasterize
 from diff4splat.render.settings import EPS2D
-from diff4splat.scene import DynamicGaussians
+from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.utils.devices import autocast_off
 from models.backbone import Backbone, LatentFormat
 from models.backbone_model import BackboneModel
 from models.backbones.ours import OursBackbone
@@ -75,7 +75,8 @@ def render_frames(scene: DynamicGaussians, viewmats: Tensor, Ks: Tensor, times: 
         scene: the (possibly static) scene.
         viewmats: (T, 4, 4), Ks: (T, 3, 3), times: (T,) of the clip.
         frames: frame indices to render.
-        eps2d: the screen-space dilation, pixels² (the scene's: :data:`diff4splat.photo.PHOTO_EPS2D` with a photo
+        eps2d: the screen-space dilation, pixels² (the scene's: :data:`diff4splat.assembly.photo.PHOTO_EPS2D` with a
+        photo
             layer).
         background: (3,) RGB in [0, 1] behind the Gaussians, or None (black).
 
@@ -309,10 +310,10 @@ class TrainingModule(nn.Module):
 
     def _assemble(self, out: LDRMOutput, sources: Tensor, batch: dict, b: int, times: Tensor | None
                   ) -> tuple[DynamicGaussians, dict]:
-        """Clip b's scene as ``generate`` builds it (:func:`diff4splat.assemble.assemble_scene`): the photo layer
-        (frame 0's pixels on the predicted depth: the depth gets the gradient, the colours are observed), the
-        backdrop and the other source frames' Gaussians as :func:`diff4splat.prune.settle_generated` leaves them
-        (which to drop and how far to slide chosen without gradient), so the LDRM learns depth and what the
+        """Clip b's scene as ``generate`` builds it (:func:`diff4splat.assembly.assemble.assemble_scene`): the photo
+        layer (frame 0's pixels on the predicted depth: the depth gets the gradient, the colours are observed), the
+        backdrop and the other source frames' Gaussians as :func:`diff4splat.assembly.prune.settle_generated` leaves
+        them (which to drop and how far to slide chosen without gradient), so the LDRM learns depth and what the
         photograph cannot show. Those Gaussians keep the LDRM's own opacities and scales, which this trains
         (``generated_footprint: pixel`` replaces them in ``generate`` only: base model card)."""
         H, W = batch["video"].shape[-2:]
@@ -326,7 +327,7 @@ class TrainingModule(nn.Module):
 
     def _decoded(self, out: LDRMOutput, sources: Tensor, batch: dict, b: int, times: Tensor) -> DynamicGaussians:
         """Clip b's decoded scene (``stage.scene: decoded``): the LDRM's pixel-aligned Gaussians of every source frame
-        on its source camera (:func:`diff4splat.assemble.to_gaussians`), deforming when the stage predicts
+        on its source camera (:func:`diff4splat.assembly.assemble.to_gaussians`), deforming when the stage predicts
         deformation."""
         with autocast_off():
             g, d_means, d_quats, d_scales = to_gaussians(out, batch["viewmats"][b][sources].float(),
@@ -344,7 +345,8 @@ class TrainingModule(nn.Module):
     def _tracking(self, latents: Tensor, plucker: Tensor, batch: dict, gen: torch.Generator) -> dict[str, Tensor]:
         """The ``tracking`` objective: the LDRM's motion network alone follows frame 0's pixels through the frames
         ``generate`` gives it (the decoded (noised) latents), on the LDRM's own frame-0 depth (no gradient; no
-        renders), as :func:`diff4splat.frame_motion.frame_motion` runs it for source frame 0. Losses, means over the
+        renders), as :func:`diff4splat.assembly.frame_motion.frame_motion` runs it for source frame 0. Losses, means
+        over the
         batch: ``displacement`` of the tracks (:func:`training.losses.displacement_loss`) and the dense ``warp``
         (:func:`training.losses.warp_loss`).
 
@@ -418,7 +420,7 @@ class TrainingModule(nn.Module):
             times = batch["times"][b].to(torch.promote_types(latents.dtype, torch.float32))  # never bf16
             if st.deformation:
                 out = m.ldrm(latents[b:b + 1], plucker[b:b + 1], times, image[b:b + 1])
-                if seen is not None:  # the motion path reads the frames (diff4splat.frame_motion)
+                if seen is not None:  # the motion path reads the frames (diff4splat.assembly.frame_motion)
                     with autocast_off():
                         out = frame_motion(m.ldrm.motion, out, seen[b], batch["times"][b].float(),
                                            batch["viewmats"][b].float(), batch["Ks"][b].float(), sources, times)
@@ -446,7 +448,8 @@ class TrainingModule(nn.Module):
                 tracks, vis = batch["tracks"][b], batch["track_visibility"][b] & batch["track_mask"][b][:, None]
                 idx, ok = track_query_index(tracks[:, 0], batch["Ks"][b, 0], W, H, vis[:, 0])
                 # idx < H·W: frame 0's grid comes first, the photo layer's front disks in an assembled scene
-                # (diff4splat.assemble.assemble_scene), the reference frame's Gaussians in a decoded one (to_gaussians)
+                # (diff4splat.assembly.assemble.assemble_scene), the reference frame's Gaussians in a decoded one
+                # (to_gaussians)
                 pred = gather_track_predictions(scene.canonical.means[None], scene.d_means[None], idx[None])[0]
                 parts["motion"] = motion_loss(pred, tracks, vis & ok[:, None])
                 parts["displacement"] = displacement_loss(pred[None], tracks[None], (vis & ok[:, None])[None])

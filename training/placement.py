@@ -7,7 +7,7 @@ import os
 import torch
 import torch.distributed as dist
 
-from diff4splat.devices import AUTO, resolve_device
+from diff4splat.utils.devices import AUTO, resolve_device
 
 __all__ = ["resolve_bf16", "training_device", "dist_info"]
 
@@ -24,7 +24,7 @@ def training_device(device: str | torch.device | None = AUTO, name: str = "train
     """The device one training process runs on.
 
     Args:
-        device: as :func:`diff4splat.devices.resolve_device` takes it (``auto``/None, ``cpu``, ``cuda``,
+        device: as :func:`diff4splat.utils.devices.resolve_device` takes it (``auto``/None, ``cpu``, ``cuda``,
             ``cuda:N``, a ``torch.device``).
         name: what the user calls the setting, for the error message.
 

@@ -24,8 +24,8 @@ from pathlib import Path
 
 from torch import nn
 
-from diff4splat.config_files import STAGE_CONFIGS
 from diff4splat.io.structured import read_yaml
+from diff4splat.utils.config_files import STAGE_CONFIGS
 from models.backbone import BACKBONE_KINDS
 from models.bundle import DEFAULT_CONFIG
 from models.pretrained import config_from_dict
@@ -39,7 +39,7 @@ __all__ = ["StageConfig", "LoraSettings", "load_stage", "stage_names", "apply_fr
 STAGE_CONFIG_DIR = STAGE_CONFIGS
 """The shipped stage configs (``train_vae``, ``train_stage1`` … ``train_stage3``, ``train_wan_stage1`` … and
 ``train_cogvideox_stage1`` …): ``configs/training/``
-(:mod:`diff4splat.config_files`)."""
+(:mod:`diff4splat.utils.config_files`)."""
 
 MODULES = ("vae", "vae.decoder", "text_encoder", "dit", "ldrm", "ldrm.deformation", "ldrm.motion", "ldrm.head",
            "ldrm.image_branch", "ldrm.image_depth")
@@ -119,7 +119,7 @@ class StageConfig:
         scene: what the rendering losses render. ``decoded``: the LDRM's pixel-aligned Gaussians of every source
             frame alone, over black (the paper's LDRM objective, Pan et al. 2025 §3.3: every source frame's
             Gaussians must explain the views, so later frames learn to read their latents). ``assembled``: the scene
-            ``generate`` builds (:func:`diff4splat.assemble.assemble_scene`: the photo layer of frame 0 on the
+            ``generate`` builds (:func:`diff4splat.assembly.assemble.assemble_scene`: the photo layer of frame 0 on the
             predicted depth, the backdrop, the non-redundant later-frame Gaussians over the photo's mean colour),
             where later frames are seen only through disocclusions.
         deformation: predict deformation (times passed to the LDRM); off in static stages.

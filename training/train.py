@@ -32,10 +32,10 @@ import torch
 
 from data_prep.clips import ClipConfig, ClipDataset
 from data_prep.format import list_scenes
-from diff4splat.checks import MissingExtraError
-from diff4splat.devices import resolve_device
-from diff4splat.errors import run_cli
 from diff4splat.io.output_folders import check_output_dir
+from diff4splat.utils.checks import MissingExtraError
+from diff4splat.utils.devices import resolve_device
+from diff4splat.utils.errors import run_cli
 from models.backbone_model import INDEX_FILE, BackboneModel
 from models.bundle import Diff4SplatModel, load_config
 from models.ldrm import LDRM
@@ -214,7 +214,7 @@ def check_run_dir(stage: StageConfig, resume: bool) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``python -m training.train``. Returns the exit code: 0, 2 after an expected failure
     (one ``train: error: …`` line: bad config, corrupt checkpoint, OS error on the run folder), 130 after
-    Ctrl-C (:func:`diff4splat.errors.run_cli`); a bug keeps its traceback."""
+    Ctrl-C (:func:`diff4splat.utils.errors.run_cli`); a bug keeps its traceback."""
     return run_cli("train", lambda: _main(argv))
 
 

@@ -72,8 +72,8 @@ from torch.distributed.tensor import distribute_tensor
 from torch.utils.data import DataLoader, Dataset, DistributedSampler
 from tqdm.auto import tqdm
 
-from diff4splat.devices import AUTO, cpu_bf16_warning
 from diff4splat.io.atomic import atomic_output_path
+from diff4splat.utils.devices import AUTO, cpu_bf16_warning
 
 from .checkpoint import latest_checkpoint, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from .placement import dist_info, resolve_bf16, training_device
@@ -222,7 +222,7 @@ class Trainer:
 
     Warns:
         UserWarning: bf16 on a CPU whose bfloat16 matmul leaks NaN across rows
-            (:func:`diff4splat.devices.cpu_bf16_warning`).
+            (:func:`diff4splat.utils.devices.cpu_bf16_warning`).
     """
 
     def __init__(self, model: nn.Module, dataset: Dataset, step_fn: StepFn, config: TrainerConfig,

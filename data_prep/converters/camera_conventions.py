@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from diff4splat.cameras import CameraPath, invert_rigid
-from diff4splat.quaternions import ROTATION_TOL, quat_to_rotmat, rotation_errors
+from diff4splat.scene.quaternions import ROTATION_TOL, quat_to_rotmat, rotation_errors
 
 from ..format import timestamps_to_times
 
@@ -105,7 +105,7 @@ def c2w_llff_to_gl(c2w_llff: np.ndarray) -> np.ndarray:
 def quat_xyzw_to_rotmat(q: np.ndarray) -> np.ndarray:
     """Quaternions (..., 4) stored x, y, z, w (Hamilton, as in ROS/TartanAir) → rotation matrices (..., 3, 3).
 
-    Reorders to wxyz and calls :func:`diff4splat.quaternions.quat_to_rotmat` (normalised on use).
+    Reorders to wxyz and calls :func:`diff4splat.scene.quaternions.quat_to_rotmat` (normalised on use).
 
     Raises:
         ValueError: a zero-norm quaternion.
@@ -123,7 +123,7 @@ def normalize_rotation(M: np.ndarray, name: str = "rotation") -> np.ndarray:
 
     Raises:
         ValueError: naming ``name``, if det(M) ≤ 0 or M / det^(1/3) is not a rotation within
-            :data:`~diff4splat.quaternions.ROTATION_TOL` (:func:`~diff4splat.quaternions.rotation_errors`).
+            :data:`~diff4splat.scene.quaternions.ROTATION_TOL` (:func:`~diff4splat.scene.quaternions.rotation_errors`).
     """
     M = np.asarray(M, dtype=np.float64)
     det = np.linalg.det(M)
@@ -136,7 +136,8 @@ def normalize_rotation(M: np.ndarray, name: str = "rotation") -> np.ndarray:
 
 def check_rotation(R: np.ndarray, name: str, what: str = "a rotation matrix") -> None:
     """Raise ValueError naming ``name`` unless every (..., 3, 3) matrix of ``R`` is a rotation within
-    :data:`~diff4splat.quaternions.ROTATION_TOL` (:func:`~diff4splat.quaternions.rotation_errors`: orthonormal, det 1).
+    :data:`~diff4splat.scene.quaternions.ROTATION_TOL` (:func:`~diff4splat.scene.quaternions.rotation_errors`:
+    orthonormal, det 1).
     """
     ortho, det = (float(e.max()) for e in rotation_errors(torch.from_numpy(np.asarray(R, dtype=np.float64))))
     if max(ortho, det) > ROTATION_TOL:

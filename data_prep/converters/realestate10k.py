@@ -17,7 +17,7 @@ adjustment and are only defined up to scale: **RealEstate10K has no metric refer
 - without estimates, no depth is written (``depth_source="none"``);
 - with estimates but no reference, :func:`convert_realestate10k` refuses (an unaligned estimate is
   not a depth in any unit of the scene);
-- with both, one (s, t) per clip is fitted robustly (:func:`diff4splat.depth_alignment.align_video`)
+- with both, one (s, t) per clip is fitted robustly (:func:`diff4splat.geometry.depth_alignment.align_video`)
   from the estimate to the reference, ``depth_source="aligned_estimate"``. The reference must be in
   the units of the camera file (e.g. SfM points triangulated with the released poses and projected
   into the frames), so depth and poses agree. Units stay the dataset's arbitrary SfM units unless
@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from diff4splat.depth_alignment import align_video, valid_depth_mask
+from diff4splat.geometry.depth_alignment import align_video, valid_depth_mask
 from diff4splat.io import load_realestate10k
 from diff4splat.io.cameras import read_realestate10k_lines
 
@@ -79,7 +79,7 @@ def convert_realestate10k(src: str | os.PathLike, out: str | os.PathLike, *, cli
             keeps SfM units (flagged ``metric_scale: false``).
         start, stride, max_frames: frame selection.
         replace: replace an existing output folder.
-        **robust_kwargs: options of :func:`diff4splat.depth_alignment.fit_scale_shift_robust`.
+        **robust_kwargs: options of :func:`diff4splat.geometry.depth_alignment.fit_scale_shift_robust`.
 
     Returns:
         The scene folder (static scene).

@@ -12,7 +12,7 @@ import math
 import torch
 from torch import Tensor
 
-from ..checks import check_positive, check_positive_int
+from diff4splat.utils.checks import check_positive, check_positive_int
 
 __all__ = ["center_crop_box", "intrinsics_from_fov", "intrinsics_from_focal", "fov_from_intrinsics"]
 

@@ -30,10 +30,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..checks import check_number, check_positive_int
-from ..constants import CAMERA_MODEL
-from .path import camera_centers
-from .rays import camera_rays
+from diff4splat.cameras.path import camera_centers
+from diff4splat.cameras.rays import camera_rays
+from diff4splat.utils.checks import check_number, check_positive_int
+from diff4splat.utils.constants import CAMERA_MODEL
 
 __all__ = [
     "RAY_CAMERA_MODELS",

@@ -7,9 +7,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..checks import check_finite, check_positive_int
-from ..quaternions import ROTATION_TOL, quat_nlerp, quat_to_rotmat, rotation_errors, rotmat_to_quat
-from .intrinsics import center_crop_box
+from diff4splat.cameras.intrinsics import center_crop_box
+from diff4splat.scene.quaternions import ROTATION_TOL, quat_nlerp, quat_to_rotmat, rotation_errors, rotmat_to_quat
+from diff4splat.utils.checks import check_finite, check_positive_int
 
 __all__ = ["CameraPath", "invert_rigid", "camera_centers", "check_field_of_view", "MIN_FOV_DEG"]
 
@@ -157,7 +157,7 @@ class CameraPath:
 
         Between the two cameras whose times bracket t (weight w = (t − t_k)/(t_{k+1} − t_k)) the camera
         centre is interpolated linearly and the camera-to-world rotation by normalised quaternion lerp
-        (shorter arc, :func:`diff4splat.quaternions.quat_nlerp`, the interpolation the scene uses for
+        (shorter arc, :func:`diff4splat.scene.quaternions.quat_nlerp`, the interpolation the scene uses for
         Δq); before the first / after the last time the end pose is held; at a camera's own time its
         viewmat is returned exactly (a copy: changing the result never changes the path).
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .path import camera_centers
+from diff4splat.cameras.path import camera_centers
 
 __all__ = ["camera_rays", "plucker_rays", "pack_plucker", "unproject_depth"]
 

@@ -44,8 +44,8 @@ from numbers import Real
 import torch
 from torch import Tensor
 
-from ..checks import check_positive_int
-from .path import CameraPath
+from diff4splat.cameras.path import CameraPath
+from diff4splat.utils.checks import check_positive_int
 
 __all__ = ["TRAJECTORIES", "DEFAULT_TRAJECTORY", "DEFAULT_AMPLITUDES", "AMPLITUDE_LIMITS", "check_amplitude",
            "amplitude_help", "look_at", "make_trajectory"]

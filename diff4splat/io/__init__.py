@@ -4,13 +4,13 @@ Every writer is atomic: it writes a temporary file beside the target and renames
 (:func:`atomic_output_path`), so a crash never leaves a half-written output. Every output folder is
 written by :func:`output_dir`, which also decides whether an existing folder may be replaced.
 """
-from .atomic import atomic_output_path
-from .cameras import load_cameras_json, load_realestate10k, save_cameras_json, save_realestate10k
-from .exr import load_depth_exr, save_depth_exr
-from .image import load_image, preprocess_image
-from .output_folders import MARKER, OutputDirError, check_output_dir, output_dir
-from .ply import load_ply, ply_bytes, ply_property_names, save_ply
-from .video import load_video, save_image, save_video, to_uint8
+from diff4splat.io.atomic import atomic_output_path
+from diff4splat.io.cameras import load_cameras_json, load_realestate10k, save_cameras_json, save_realestate10k
+from diff4splat.io.exr import load_depth_exr, save_depth_exr
+from diff4splat.io.image import load_image, preprocess_image
+from diff4splat.io.output_folders import MARKER, OutputDirError, check_output_dir, output_dir
+from diff4splat.io.ply import load_ply, ply_bytes, ply_property_names, save_ply
+from diff4splat.io.video import load_video, save_image, save_video, to_uint8
 
 __all__ = [
     "save_ply",

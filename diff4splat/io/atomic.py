@@ -2,7 +2,7 @@
 errors of writing, named after the file the user asked for.
 
 A write that fails for a reason of the disk (full, quota, read-only, permissions) must reach the user as
-``<path>: <reason>`` (README, "Errors"; :func:`diff4splat.errors.one_line`). Python's ``write()`` raises
+``<path>: <reason>`` (README, "Errors"; :func:`diff4splat.utils.errors.one_line`). Python's ``write()`` raises
 ``OSError(ENOSPC)`` *without* a file name, OpenCV returns ``False`` or writes a short file, OpenEXR and
 safetensors raise ``RuntimeError``-like errors whose text mentions the reason: :func:`naming_os_errors` turns
 each into ``OSError(errno, strerror, <path>)``, asking the file system (:func:`disk_full_error`) when a

@@ -26,12 +26,12 @@ from pathlib import Path
 
 import torch
 
-from ..cameras.path import CameraPath
-from ..checks import check_positive, check_positive_int
-from ..limits import LIMITS, LimitError, check_limit, limit
-from .atomic import atomic_output_path
-from .inputs import check_input_file
-from .structured import read_json, read_text
+from diff4splat.cameras.path import CameraPath
+from diff4splat.io.atomic import atomic_output_path
+from diff4splat.io.inputs import check_input_file
+from diff4splat.io.structured import read_json, read_text
+from diff4splat.utils.checks import check_positive, check_positive_int
+from diff4splat.utils.limits import LIMITS, LimitError, check_limit, limit
 
 __all__ = ["save_cameras_json", "load_cameras_json", "load_realestate10k", "read_realestate10k_lines",
            "save_realestate10k", "CAMERA_FILE_BYTES_PER_FRAME"]
@@ -116,7 +116,7 @@ def load_cameras_json(path: str | os.PathLike) -> CameraPath:
         ValueError: ``path`` is not a regular file; not UTF-8 text, invalid JSON, a missing key (named), a
             value of the wrong type or shape, or a field failing :meth:`CameraPath.validate` (named);
             more frames than the ``frames`` limit or width × height above the ``image_pixels`` limit
-            (:class:`diff4splat.limits.LimitError`, checked before any tensor is built; the file size
+            (:class:`diff4splat.utils.limits.LimitError`, checked before any tensor is built; the file size
             is checked before it is parsed).
     """
     path = _check_camera_file(path, "camera file")
@@ -159,7 +159,7 @@ def read_realestate10k_lines(path: str | os.PathLike) -> tuple[list[int], list[l
         FileNotFoundError: ``path`` does not exist.
         ValueError: ``path`` is not a regular UTF-8 text file; naming the line for a wrong number of values,
             non-numeric values or non-zero distortion; more frames than the ``frames`` limit
-            (:class:`diff4splat.limits.LimitError`; the file size is checked before it is read).
+            (:class:`diff4splat.utils.limits.LimitError`; the file size is checked before it is read).
     """
     path = _check_camera_file(path, "RealEstate10K camera file")
     text = read_text(path, "RealEstate10K camera file")
@@ -208,7 +208,7 @@ def load_realestate10k(path: str | os.PathLike, width: int, height: int, relativ
             values, non-numeric values or non-zero distortion; no frames; decreasing timestamps; equal
             first and last timestamps with T > 1; a field failing :meth:`CameraPath.validate`
             (``width``/``height`` included); more frames than the ``frames`` limit
-            (:class:`diff4splat.limits.LimitError`; the file size is checked before it is parsed).
+            (:class:`diff4splat.utils.limits.LimitError`; the file size is checked before it is parsed).
     """
     stamps, rows = read_realestate10k_lines(path)
     if not rows:

@@ -23,9 +23,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..cameras import center_crop_box
-from .exr import load_depth_exr
-from .inputs import check_input_file
+from diff4splat.cameras import center_crop_box
+from diff4splat.io.exr import load_depth_exr
+from diff4splat.io.inputs import check_input_file
 
 __all__ = ["DEPTH_SUFFIXES", "MILLIMETRES", "MIN_METRIC_DEPTH", "MAX_METRIC_DEPTH", "read_depth_map", "fit_depth_map",
            "valid_depth", "check_depth_values"]
@@ -85,7 +85,8 @@ def read_depth_map(path: str | os.PathLike, kind: str = "metric", what: str = "-
 
     Args:
         path: the file.
-        kind: "metric", "relative" or "inverse" (:data:`diff4splat.assemble.DEPTH_KINDS`): an 8-bit image is refused
+        kind: "metric", "relative" or "inverse" (:data:`diff4splat.assembly.assemble.DEPTH_KINDS`): an 8-bit image is
+        refused
             for "metric", a 16-bit one is read as millimetres for "metric".
         what: the argument's name for messages.
 

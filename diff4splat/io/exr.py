@@ -8,8 +8,8 @@ import numpy as np
 import OpenEXR
 from torch import Tensor
 
-from ..devices import host_values
-from .atomic import atomic_output_path
+from diff4splat.io.atomic import atomic_output_path
+from diff4splat.utils.devices import host_values
 
 __all__ = ["save_depth_exr", "load_depth_exr"]
 

@@ -8,10 +8,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..cameras.intrinsics import center_crop_box
-from ..errors import quiet_c_stderr
-from ..limits import check_limit
-from .inputs import check_input_file
+from diff4splat.cameras.intrinsics import center_crop_box
+from diff4splat.io.inputs import check_input_file
+from diff4splat.utils.errors import quiet_c_stderr
+from diff4splat.utils.limits import check_limit
 
 __all__ = ["load_image", "read_image", "preprocess_image", "exif_orientation", "apply_orientation",
            "header_size"]
@@ -216,7 +216,8 @@ def header_size(data: bytes) -> tuple[int, int] | None:
 
 
 def check_image_pixels(path: str | os.PathLike, width: int, height: int) -> None:
-    """Raise :class:`diff4splat.limits.LimitError` if ``width`` × ``height`` exceeds the ``image_pixels`` limit."""
+    """Raise :class:`diff4splat.utils.limits.LimitError` if ``width`` × ``height`` exceeds the ``image_pixels``
+    limit."""
     check_limit("image_pixels", width * height, f"image {path}: {width}×{height} =")
 
 
@@ -254,14 +255,14 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
         (H, W) grey, (H, W, 3) RGB or (H, W, 4) RGBA array (channel order RGB, not OpenCV's BGR),
         uint8 or uint16 (or the float dtype of a float TIFF/EXR).
 
-    The pixel count is checked against the ``image_pixels`` limit (:mod:`diff4splat.limits`) from the
+    The pixel count is checked against the ``image_pixels`` limit (:mod:`diff4splat.utils.limits`) from the
     header (:func:`header_size`) before decoding; formats whose header is not parsed are checked after.
 
     Raises:
         FileNotFoundError: nothing exists at ``path``.
         ValueError: ``path`` is a folder, FIFO or symlink loop (:func:`diff4splat.io.inputs.check_input_file`),
             the file cannot be decoded as an image, or it has more pixels than the ``image_pixels`` limit
-            (:class:`diff4splat.limits.LimitError`).
+            (:class:`diff4splat.utils.limits.LimitError`).
     """
     path = check_input_file(path, "image")
     data = np.fromfile(path, dtype=np.uint8)

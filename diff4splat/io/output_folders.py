@@ -41,7 +41,7 @@ from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from .atomic import follow_umask, naming_os_errors
+from diff4splat.io.atomic import follow_umask, naming_os_errors
 
 __all__ = ["MARKER", "INSTALLED_PACKAGES", "OutputDirError", "check_output_dir", "output_dir", "read_marker",
            "remove_stale_temps"]

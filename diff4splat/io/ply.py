@@ -26,9 +26,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..constants import OPACITY_EPS
-from ..gaussians import Gaussians
-from .atomic import atomic_output_path
+from diff4splat.io.atomic import atomic_output_path
+from diff4splat.scene.gaussians import Gaussians
+from diff4splat.utils.constants import OPACITY_EPS
 
 __all__ = ["save_ply", "ply_bytes", "load_ply", "ply_property_names"]
 

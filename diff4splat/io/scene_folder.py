@@ -13,7 +13,7 @@ input, every file checked (:func:`load_output_scene`, :func:`load_scene_folder`,
     video.mp4           RGB along the camera path
     depth/0000.exr …    float32 expected depth "Z" (metres) and coverage "A"
     cameras.json        Ks, viewmats, width, height, times
-    viewer.html         the interactive 4D viewer, self-contained (diff4splat.viewer)
+    viewer.html         the interactive 4D viewer, self-contained (diff4splat.io.viewer_page)
     meta.json           model, seed, steps, timings, counts, "static", "background", "eps2d", "fps"
     field.safetensors   (``fit`` only) the HexPlane field;  metrics.json (``fit`` only)
 
@@ -37,22 +37,22 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .. import __version__
-from ..cameras.path import CameraPath
-from ..checks import check_positive
-from ..constants import ALPHA_MIN
-from ..limits import check_limit
-from ..render.settings import BACKGROUND, EPS2D, NEAR_PLANE
-from ..scene import DynamicGaussians
-from ..viewer.page import VIEWER_NAME, write_viewer
-from .atomic import atomic_output_path
-from .cameras import load_cameras_json, save_cameras_json
-from .exr import load_depth_exr, save_depth_exr
-from .inputs import check_input_file
-from .output_folders import output_dir
-from .ply import load_ply, save_ply
-from .structured import read_json
-from .video import DEFAULT_FPS, check_fps, save_image, save_video, to_uint8
+from diff4splat import __version__
+from diff4splat.cameras.path import CameraPath
+from diff4splat.io.atomic import atomic_output_path
+from diff4splat.io.cameras import load_cameras_json, save_cameras_json
+from diff4splat.io.exr import load_depth_exr, save_depth_exr
+from diff4splat.io.inputs import check_input_file
+from diff4splat.io.output_folders import output_dir
+from diff4splat.io.ply import load_ply, save_ply
+from diff4splat.io.structured import read_json
+from diff4splat.io.video import DEFAULT_FPS, check_fps, save_image, save_video, to_uint8
+from diff4splat.io.viewer_page import VIEWER_NAME, write_viewer
+from diff4splat.render.settings import BACKGROUND, EPS2D, NEAR_PLANE
+from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.utils.checks import check_positive
+from diff4splat.utils.constants import ALPHA_MIN
+from diff4splat.utils.limits import check_limit
 
 __all__ = ["write_scene_folder", "fill_empty_depth", "save_deformation", "load_deformation", "json_default",
            "load_output_scene", "folder_file", "DEFORMATION_ARRAYS", "is_layout_file", "LAYOUT_FILES", "LAYOUT_FRAMES",
@@ -95,7 +95,7 @@ def meta_background(meta: dict) -> tuple[float, float, float]:
 
 def meta_eps2d(meta: dict) -> float:
     """An output folder's meta.json ``eps2d`` (the screen-space dilation, pixels², its scene is rendered with: 0.1
-    for a ``generate`` scene with a photo layer, :mod:`diff4splat.photo`), else
+    for a ``generate`` scene with a photo layer, :mod:`diff4splat.assembly.photo`), else
     :data:`~diff4splat.render.settings.EPS2D`."""
     eps = meta.get("eps2d")
     if isinstance(eps, (int, float)) and not isinstance(eps, bool) and 0.0 <= eps <= 10.0:
@@ -127,7 +127,7 @@ def scene_meta(scene: DynamicGaussians, cameras: CameraPath, *, fps: float | Non
 def fill_empty_depth(depths: Tensor, alphas: Tensor, fallback: float) -> Tensor:
     """Give pixels without geometry the far distance of the scene, so every depth is finite and > 0.
 
-    Empty pixels (alpha < :data:`~diff4splat.constants.ALPHA_MIN` = 1/255) get the largest depth rendered
+    Empty pixels (alpha < :data:`~diff4splat.utils.constants.ALPHA_MIN` = 1/255) get the largest depth rendered
     anywhere on the path (the scene's far bound along these views), or ``fallback`` metres if no pixel is
     covered; the "A" channel of the EXR keeps the coverage so users can mask them.
 
@@ -237,7 +237,7 @@ def load_deformation(path: str | os.PathLike, num_gaussians: int | None = None) 
             array that is not floating-point (pickled objects included) or of another shape than
             times (K,), d_means (K, M, 3), d_quats (K, M, 4), d_scales (K, M, 3), t_means (M,), t_scales (M,)
             (one K, M = ``num_gaussians``); K above the ``frames`` limit
-            (:class:`~diff4splat.limits.LimitError`). Values (finite, times increasing) are checked by
+            (:class:`~diff4splat.utils.limits.LimitError`). Values (finite, times increasing) are checked by
             ``DynamicGaussians``.
     """
     path = check_input_file(path, "deformation")
@@ -416,7 +416,7 @@ def load_output_scene(folder: str | os.PathLike) -> tuple[DynamicGaussians, dict
             missing (or holding no deformation) while ``meta.json`` says ``"static": false`` or holding one while it
             says ``true``, ``meta.json`` not a JSON object or with a bad field; a file of the folder that is a
             folder, a FIFO or a dangling symlink; a deformation above the ``frames`` limit
-            (:class:`~diff4splat.limits.LimitError`).
+            (:class:`~diff4splat.utils.limits.LimitError`).
     """
     path = Path(folder)
     if not path.exists():

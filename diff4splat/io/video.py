@@ -8,10 +8,10 @@ import cv2
 import numpy as np
 from torch import Tensor
 
-from ..checks import check_positive
-from ..devices import host_values
-from ..errors import quiet_c_stderr
-from .atomic import atomic_output_path
+from diff4splat.io.atomic import atomic_output_path
+from diff4splat.utils.checks import check_positive
+from diff4splat.utils.devices import host_values
+from diff4splat.utils.errors import quiet_c_stderr
 
 __all__ = ["save_video", "load_video", "save_image", "to_uint8", "check_fps", "check_video_size", "MAX_FPS",
            "DEFAULT_FPS", "MAX_VIDEO_SIDE"]

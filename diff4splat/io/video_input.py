@@ -10,9 +10,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..checks import check_positive_int
-from ..errors import quiet_c_stderr
-from .image import check_image_pixels, read_image
+from diff4splat.io.image import check_image_pixels, read_image
+from diff4splat.utils.checks import check_positive_int
+from diff4splat.utils.errors import quiet_c_stderr
 
 __all__ = ["VideoClip", "IMAGE_SUFFIXES", "check_clip_request", "read_video_clip"]
 

@@ -8,7 +8,7 @@ against; both share one pipeline (:func:`.rasterize.render_pipeline`: :mod:`.set
 
 Every entry point runs on the device of its inputs: on the CPU ``rasterize`` uses the fused numba path,
 on CUDA gsplat when installed, else the pure-PyTorch tile path (:func:`.rasterize.choose_path`); numpy and
-numba only ever see CPU tensors (diff4splat/devices.py, the device rule).
+numba only ever see CPU tensors (diff4splat/utils/devices.py, the device rule).
 """
 from diff4splat.render.projection import Projection, project_gaussians
 from diff4splat.render.rasterize import rasterize, rasterize_dense

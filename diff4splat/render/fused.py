@@ -28,7 +28,7 @@ too. Results never depend on which path ran beyond float rounding.
 The kernels live in :mod:`.fused_kernels`: numba (a PyPI wheel, no compiler needed) compiles them on first use
 and caches them on disk. Without numba the PyTorch path is used, with one warning.
 
-CPU only (diff4splat/devices.py, the device rule): numpy and numba see CPU tensors only, so every array here
+CPU only (diff4splat/utils/devices.py, the device rule): numpy and numba see CPU tensors only, so every array here
 comes from a CPU tensor and every result tensor is made on the CPU. :func:`diff4splat.render.rasterize.choose_path`
 never sends non-CPU tensors here, :func:`composite_fused` / :func:`bin_tiles_fused` refuse them and
 :func:`project_fused` hands them to the reference.
@@ -42,9 +42,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from diff4splat.quaternions import quat_normalize
 from diff4splat.render.projection import Projection, project_gaussians
 from diff4splat.render.tiles import composite_tiles
+from diff4splat.scene.quaternions import quat_normalize
 
 __all__ = ["project_fused", "composite_fused", "fused_available", "bin_tiles_fused"]
 

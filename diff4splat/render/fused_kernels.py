@@ -16,9 +16,9 @@ import math
 import numpy as np
 from numba import prange
 
-from diff4splat.constants import ALPHA_MAX, ALPHA_MIN, OPACITY_LOG_FLOOR, T_MIN
-from diff4splat.jit import KERNEL, threads
 from diff4splat.render.projection import EIGEN_FLOOR, FOV_MARGIN, RADIUS_MAX
+from diff4splat.utils.constants import ALPHA_MAX, ALPHA_MIN, OPACITY_LOG_FLOOR, T_MIN
+from diff4splat.utils.jit import KERNEL, threads
 
 __all__ = ["KERNEL", "box_kernel", "bin_kernel", "forward_kernel", "backward_kernel", "gather_kernel",
            "project_forward", "project_backward", "threads"]

@@ -7,7 +7,7 @@ ray path (:mod:`diff4splat.render.raytrace`). :func:`diff4splat.render.fused.pro
 numba kernels on the CPU.
 
 Also home of :func:`splat_alpha`, the single definition of a Gaussian's opacity at a pixel (with the
-3DGS thresholds of :mod:`diff4splat.constants`), used by both rasterizers so they cannot drift apart.
+3DGS thresholds of :mod:`diff4splat.utils.constants`), used by both rasterizers so they cannot drift apart.
 """
 from __future__ import annotations
 
@@ -16,9 +16,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from diff4splat.constants import ALPHA_MAX, ALPHA_MIN, OPACITY_LOG_FLOOR
-from diff4splat.quaternions import quat_to_rotmat
 from diff4splat.render.settings import CAMERA_MODEL, EPS2D, FAR_PLANE, NEAR_PLANE
+from diff4splat.scene.quaternions import quat_to_rotmat
+from diff4splat.utils.constants import ALPHA_MAX, ALPHA_MIN, OPACITY_LOG_FLOOR
 
 __all__ = [
     "RADIUS_MAX",
@@ -107,7 +107,7 @@ def covariance_3d(quats: Tensor, scales: Tensor) -> Tensor:
         (N, 3, 3) symmetric PSD covariances, metres².
 
     Raises:
-        ValueError: a zero-norm quaternion (from :func:`diff4splat.quaternions.quat_to_rotmat`).
+        ValueError: a zero-norm quaternion (from :func:`diff4splat.scene.quaternions.quat_to_rotmat`).
     """
     m = quat_to_rotmat(quats) * scales[..., None, :]  # R S
     return matmul(m, m.transpose(-1, -2))

@@ -2,7 +2,7 @@
 
 :func:`rasterize` packs its keywords into one :class:`~diff4splat.render.settings.RasterSettings`, which every
 path takes. Which path renders a call is decided by :func:`choose_path` (docs/DESIGN.md "The renderer",
-diff4splat/devices.py "the device rule"):
+diff4splat/utils/devices.py "the device rule"):
 
 - "ray": a non-pinhole camera model or a camera effect (:func:`diff4splat.render.raytrace.raytrace`), any
   device and dtype;
@@ -27,8 +27,6 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from diff4splat.devices import full_precision
-from diff4splat.quaternions import quat_normalize
 from diff4splat.render.fused import composite_fused, project_fused
 from diff4splat.render.projection import Projection, project_gaussians
 from diff4splat.render.raytrace import render_rays
@@ -49,6 +47,8 @@ from diff4splat.render.settings import (
 )
 from diff4splat.render.sh import color_features
 from diff4splat.render.tiles import composite_dense, composite_tiles, keep_in_graph
+from diff4splat.scene.quaternions import quat_normalize
+from diff4splat.utils.devices import full_precision
 
 __all__ = [
     "rasterize", "rasterize_dense", "choose_path", "render_pipeline", "rasterize_gsplat", "gsplat_available",

@@ -33,9 +33,6 @@ from torch import Tensor
 
 from diff4splat.cameras.lenses import RAY_CAMERA_MODELS, ThinLens, check_camera, generate_rays
 from diff4splat.cameras.path import camera_centers
-from diff4splat.constants import ALPHA_MAX, ALPHA_MIN, LOG_T_MIN, OPACITY_LOG_FLOOR
-from diff4splat.devices import full_precision
-from diff4splat.quaternions import quat_to_rotmat
 from diff4splat.render.settings import (
     CAMERA_MODEL,
     EPS2D,
@@ -53,6 +50,9 @@ from diff4splat.render.settings import (
 )
 from diff4splat.render.sh import color_features
 from diff4splat.render.tiles import keep_in_graph
+from diff4splat.scene.quaternions import quat_to_rotmat
+from diff4splat.utils.constants import ALPHA_MAX, ALPHA_MIN, LOG_T_MIN, OPACITY_LOG_FLOOR
+from diff4splat.utils.devices import full_precision
 
 __all__ = ["raytrace", "render_rays", "whitening", "ray_gaussian_response", "composite_rays", "support_radius",
            "tile_cones", "cull_tiles", "RAY_PAIR_BUDGET"]

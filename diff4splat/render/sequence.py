@@ -20,12 +20,12 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from ..cameras.lenses import RollingShutter
-from ..cameras.path import CameraPath
-from ..scene import DynamicGaussians
-from .rasterize import rasterize
-from .raytrace import raytrace
-from .settings import BACKGROUND
+from diff4splat.cameras.lenses import RollingShutter
+from diff4splat.cameras.path import CameraPath
+from diff4splat.render.rasterize import rasterize
+from diff4splat.render.raytrace import raytrace
+from diff4splat.render.settings import BACKGROUND
+from diff4splat.scene.dynamic import DynamicGaussians
 
 __all__ = ["render_path", "render_rolling_shutter"]
 

@@ -19,10 +19,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from diff4splat.checks import check_finite, check_positive_int
-from diff4splat.constants import CAMERA_MODEL
-from diff4splat.quaternions import ROTATION_TOL, rotation_errors
 from diff4splat.render.sh import num_sh_bases
+from diff4splat.scene.quaternions import ROTATION_TOL, rotation_errors
+from diff4splat.utils.checks import check_finite, check_positive_int
+from diff4splat.utils.constants import CAMERA_MODEL
 
 __all__ = [
     "NEAR_PLANE", "FAR_PLANE", "EPS2D", "SH_DEGREE", "RENDER_MODE", "RASTERIZE_MODE", "CAMERA_MODEL", "TILE_SIZE",
@@ -42,7 +42,7 @@ RENDER_MODE = "RGB+ED"
 """Colour plus expected depth as the last channel (gsplat's default is "RGB"; this project's is "RGB+ED")."""
 RASTERIZE_MODE = "classic"
 """No Mip-Splatting opacity compensation (gsplat "classic")."""
-# CAMERA_MODEL: pinhole projection (gsplat "pinhole"); its home is diff4splat.constants because the camera models
+# CAMERA_MODEL: pinhole projection (gsplat "pinhole"); its home is diff4splat.utils.constants because the camera models
 # (diff4splat.cameras.lenses), below the renderer, default to it too.
 TILE_SIZE = 16
 """Tile edge, pixels (gsplat 16); a performance knob, the image does not depend on it."""
@@ -110,7 +110,7 @@ RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 RASTERIZE_MODES = ("classic", "antialiased")
 """gsplat's rasterize modes (antialiased: Mip-Splatting opacity compensation)."""
 VIEWMAT_TOL = {torch.float64: ROTATION_TOL, torch.float32: ROTATION_TOL, torch.float16: 1e-2, torch.bfloat16: 2e-2}
-"""Largest :func:`~diff4splat.quaternions.rotation_errors` accepted in viewmats, per dtype (a rotation rounded to
+"""Largest :func:`~diff4splat.scene.quaternions.rotation_errors` accepted in viewmats, per dtype (a rotation rounded to
 the dtype passes; a scaled, sheared or mirrored one does not)."""
 
 
@@ -230,7 +230,7 @@ LOW_PRECISION = (torch.float16, torch.bfloat16)
 def compute_dtype(dtype: torch.dtype) -> torch.dtype:
     """The dtype the renderer computes in for inputs of ``dtype``: float16/bfloat16 → float32, else itself.
 
-    Every path also runs with autocast off (:func:`diff4splat.devices.full_precision`): under
+    Every path also runs with autocast off (:func:`diff4splat.utils.devices.full_precision`): under
     ``torch.autocast(dtype=bfloat16)`` the projection's matmuls would run in bfloat16 (8-bit mantissa: depth
     errors of metres, wrong culling); gsplat's kernels likewise compute in float32 whatever the autocast state.
     """

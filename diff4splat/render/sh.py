@@ -16,7 +16,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from diff4splat.cameras.path import camera_centers
-from diff4splat.gaussians import SH_C0
+from diff4splat.scene.gaussians import SH_C0
 
 __all__ = ["SH_C0", "SH_C1", "SH_C2", "SH_C3", "num_sh_bases", "sh_basis", "spherical_harmonics", "sh_to_color",
            "color_features", "sh_rotation", "rotate_sh"]

@@ -18,8 +18,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from diff4splat.constants import ALPHA_MAX, LOG_T_MIN, T_MIN
 from diff4splat.render.projection import splat_alpha, splat_sigma, support_extent
+from diff4splat.utils.constants import ALPHA_MAX, LOG_T_MIN, T_MIN
 
 __all__ = ["tile_boxes", "bin_tiles", "composite_tiles", "composite_dense", "keep_in_graph", "pair_budget",
            "PAIR_BUDGET", "PAIR_BUDGET_DEVICE", "CHUNK_PIXELS", "CHUNK_PIXELS_DEVICE"]

@@ -1,5 +1,5 @@
 """The pretrained backbones' real sizes: their Hub configurations, shipped as data
-(``configs/backbones/<name>.json``, :data:`diff4splat.config_files.BACKBONE_CONFIGS`), instantiated on
+(``configs/backbones/<name>.json``, :data:`diff4splat.utils.config_files.BACKBONE_CONFIGS`), instantiated on
 ``torch.device("meta")`` — shapes only, no weight allocated, nothing downloaded — and counted.
 
 Sources of the configurations (each file's ``source`` says which for every component): the Hub folders
@@ -27,8 +27,8 @@ import torch
 import transformers
 from torch import nn
 
-from diff4splat.config_files import BACKBONE_CONFIGS
 from diff4splat.io.structured import read_json
+from diff4splat.utils.config_files import BACKBONE_CONFIGS
 
 from ..backbone_model import PIPELINES, BackboneModel, BackboneModelConfig, backbone_class
 from ..ldrm import LDRM

@@ -1,6 +1,6 @@
-// diff4splat 4D viewer: the page half of diff4splat/viewer (docs/DESIGN.md, "Viewer").
+// diff4splat 4D viewer: the page half of diff4splat/io/viewer_page.py (docs/DESIGN.md, "Viewer").
 //
-// Reads what diff4splat/viewer/page.py embedded in viewer.html (or, under `diff4splat view`, fetches the
+// Reads what diff4splat/io/viewer_page.py embedded in viewer.html (or, under `diff4splat view`, fetches the
 // full-size data): the canonical Gaussians as INRIA PLY bytes (colours, opacities, SH) and, for a scene that changes
 // with time, each Gaussian's time mean and standard deviation (temporal support) and, for a deforming scene,
 // absolute per-keyframe means/quats(wxyz)/scales computed in Python by DynamicGaussians.at(). The page never
@@ -71,7 +71,7 @@ function keyframeDecoder(frames, dtype) {
   };
 }
 
-// Frame data layout (little endian; diff4splat/viewer/data.py encode_keyframes): when cfg.temporal, the time
+// Frame data layout (little endian; diff4splat/io/viewer_data.py encode_keyframes): when cfg.temporal, the time
 // means (N) then the time standard deviations (N) as float32; then for each keyframe f (cfg.times), means (N, 3),
 // quats (N, 4) wxyz and scales (N, 3) in cfg.dtype.
 function splitFrames(bytes, cfg) {

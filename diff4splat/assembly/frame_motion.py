@@ -26,11 +26,10 @@ import dataclasses
 import torch
 from torch import Tensor
 
+from diff4splat.cameras import camera_rays, project_points, unproject_pixels
 from models.deformation import IDENTITY_QUAT
 from models.ldrm import LDRMOutput
 from models.motion import MotionNetwork
-
-from .cameras import camera_rays, project_points, unproject_pixels
 
 __all__ = ["frame_motion", "nearest_frames"]
 

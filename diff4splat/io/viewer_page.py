@@ -2,7 +2,7 @@
 
 The page is this module's HTML, the bundled renderer (``assets/viewer.js``: the sources in ``viewer/`` at the
 repository root — three.js and Spark, built with esbuild; licences in ``assets/LICENSES.txt``) and the
-payload of :mod:`diff4splat.viewer.data` as base64 text in ``<script type="application/octet-stream">``
+payload of :mod:`diff4splat.io.viewer_data` as base64 text in ``<script type="application/octet-stream">``
 elements (a page on ``file://`` may not ``fetch`` a sibling file). docs/DESIGN.md, "Viewer".
 """
 from __future__ import annotations
@@ -13,12 +13,12 @@ import json
 import os
 from importlib import resources
 
-from ..cameras.path import CameraPath
-from ..io.atomic import atomic_output_path
-from ..io.video import DEFAULT_FPS
-from ..render.settings import BACKGROUND, EPS2D
-from ..scene import DynamicGaussians
-from .data import VIEWER_BUDGET_BYTES, ViewerPayload, viewer_payload
+from diff4splat.cameras.path import CameraPath
+from diff4splat.io.atomic import atomic_output_path
+from diff4splat.io.video import DEFAULT_FPS
+from diff4splat.io.viewer_data import VIEWER_BUDGET_BYTES, ViewerPayload, viewer_payload
+from diff4splat.render.settings import BACKGROUND, EPS2D
+from diff4splat.scene.dynamic import DynamicGaussians
 
 __all__ = ["viewer_html", "write_viewer", "bundle_js", "VIEWER_NAME"]
 
@@ -36,7 +36,7 @@ html, body { margin: 0; background: #111; color: #ddd; font: 13px system-ui, san
 
 def bundle_js() -> str:
     """The bundled page code (three.js + Spark + the viewer), shipped as package data."""
-    return resources.files("diff4splat.viewer").joinpath("assets/viewer.js").read_text(encoding="utf-8")
+    return resources.files("diff4splat.io").joinpath("viewer_assets/viewer.js").read_text(encoding="utf-8")
 
 
 def _script(kind: str, ident: str, text: str) -> str:
@@ -92,7 +92,7 @@ def write_viewer(path: str | os.PathLike, scene: DynamicGaussians, cameras: Came
     atomically. Returns the payload (its ``config`` holds the sizes and any reduction).
 
     Raises:
-        ValueError: see :func:`diff4splat.viewer.data.viewer_payload`.
+        ValueError: see :func:`diff4splat.io.viewer_data.viewer_payload`.
     """
     payload = viewer_payload(scene, cameras, fps=fps, budget=budget, background=background, eps2d=eps2d)
     text = viewer_html(payload, title)

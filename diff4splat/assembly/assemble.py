@@ -2,21 +2,21 @@
 
 :func:`assemble_scene` (docs/DESIGN.md, "Data flow of generate", steps 7–8):
 
-- **The reference frame is the photo layer** (:mod:`diff4splat.photo`) at the *output* resolution: the photograph's
-  own pixels on the depth of the LDRM's reference grid (its ray distances at the model resolution, made z-depth and
-  upsampled with the photograph as the guide, :func:`photo_depth`), or on the user's depth map (``depth=``), and
-  the reference grid's deformation maps upsampled bilinearly, re-based so that the layer is exactly the observation
+- **The reference frame is the photo layer** (:mod:`diff4splat.assembly.photo`) at the *output* resolution: the
+  photograph's own pixels on the depth of the LDRM's reference grid (its ray distances at the model resolution, made
+  z-depth and upsampled with the photograph as the guide, :func:`photo_depth`), or on the user's depth map (``depth=``),
+  and the reference grid's deformation maps upsampled bilinearly, re-based so that the layer is exactly the observation
   at the photograph's time (:func:`rebase_deformation`). The LDRM's own colours, opacities and scales of the
   reference frame are not used.
-- **The backdrop** (:func:`diff4splat.photo.backdrop_layer`): the photograph continued beyond its borders, blurred,
-  behind everything; static.
+- **The backdrop** (:func:`diff4splat.assembly.photo.backdrop_layer`): the photograph continued beyond its borders,
+  blurred, behind everything; static.
 - **The other source frames** (video frames 4, 8, …) keep the network's pixel-aligned Gaussians at the model
   resolution (:func:`to_gaussians`): what the generated video shows that the photograph does not. With ``video=``
   (config ``generated_colors: video``) their colours are the decoded generated video's pixels
   (:func:`video_colors`) rather than the LDRM's. With ``footprint="pixel"`` (config ``generated_footprint: pixel``)
   they are opaque disks facing their source camera that tile its frame (:func:`pixel_footprint`), as the photo
   layer tiles the photograph, instead of the LDRM's opacities, rotations and scales. Which of them
-  survive is the pipeline's pruning (:mod:`diff4splat.prune`): none that re-describes a surface already placed,
+  survive is the pipeline's pruning (:mod:`diff4splat.assembly.prune`): none that re-describes a surface already placed,
   none in front of the photo layer at the input view.
 
 Gaussian order of the assembled scene: the photo layer's H_o·W_o front disks then ⌈H_o/2⌉·⌈W_o/2⌉ backing disks (each
@@ -31,16 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from models.bundle import GENERATED_FOOTPRINTS
-from models.deformation import IDENTITY_QUAT
-from models.ldrm import LDRMOutput
-
-from .cameras import CameraPath, camera_rays
-from .depth_alignment import fit_scale_shift
-from .devices import autocast_off
-from .gaussians import Gaussians, rgb_to_sh0
-from .io.depth_maps import valid_depth
-from .photo import (
+from diff4splat.assembly.photo import (
     PHOTO_EPS2D,
     PHOTO_OPACITY,
     backdrop_layer,
@@ -49,8 +40,16 @@ from .photo import (
     pixel_disks,
     upsample_depth,
 )
-from .quaternions import quat_conjugate, quat_multiply, quat_normalize
-from .scene import DynamicGaussians
+from diff4splat.cameras import CameraPath, camera_rays
+from diff4splat.geometry.depth_alignment import fit_scale_shift
+from diff4splat.io.depth_maps import valid_depth
+from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.scene.gaussians import Gaussians, rgb_to_sh0
+from diff4splat.scene.quaternions import quat_conjugate, quat_multiply, quat_normalize
+from diff4splat.utils.devices import autocast_off
+from models.bundle import GENERATED_FOOTPRINTS
+from models.deformation import IDENTITY_QUAT
+from models.ldrm import LDRMOutput
 
 __all__ = ["DEPTH_KINDS", "GENERATED_SCALE_PX", "to_gaussians", "video_colors", "pixel_footprint", "photo_depth",
            "rebase_deformation", "assemble_scene", "z_depth"]
@@ -150,9 +149,9 @@ def photo_depth(
     """The photo layer's z-depth at the output resolution.
 
     The network's: ray distance × cos(angle to the optical axis) = z-depth at the model resolution, upsampled by
-    :func:`diff4splat.photo.upsample_depth` with the photograph as the guide. A user's ``depth`` replaces it,
+    :func:`diff4splat.assembly.photo.upsample_depth` with the photograph as the guide. A user's ``depth`` replaces it,
     aligned by ``depth_kind`` (:data:`DEPTH_KINDS`; relative and inverse maps are fitted to the network's depth
-    by least squares, ``diff4splat.depth_alignment.fit_scale_shift``); its holes
+    by least squares, ``diff4splat.geometry.depth_alignment.fit_scale_shift``); its holes
     (:func:`diff4splat.io.depth_maps.valid_depth`: not finite, or metres outside [1 mm, 10 km]) take the network's
     depth. The values are checked where they enter (:func:`diff4splat.io.depth_maps.check_depth_values`).
 
@@ -241,8 +240,8 @@ def pixel_footprint(
     height: int,
 ) -> Gaussians:
     """``gaussians`` with the footprint of a pixel: each an opaque disk facing its source camera, in-plane σ =
-    :data:`GENERATED_SCALE_PX` pixels there (:func:`diff4splat.photo.pixel_disks` at its own z-depth), opacity
-    :data:`diff4splat.photo.PHOTO_OPACITY`; means and colours unchanged.
+    :data:`GENERATED_SCALE_PX` pixels there (:func:`diff4splat.assembly.photo.pixel_disks` at its own z-depth), opacity
+    :data:`diff4splat.assembly.photo.PHOTO_OPACITY`; means and colours unchanged.
 
     Rendered alone at its own camera, a source frame's disks then reproduce its colours edge to edge,
     as the photo layer reproduces the photograph: what the generated frame drew is what
@@ -304,9 +303,9 @@ def assemble_scene(
         background).
 
     Raises:
-        ValueError: as :func:`photo_depth`, :func:`diff4splat.photo.photo_layer`, :func:`video_colors` and
+        ValueError: as :func:`photo_depth`, :func:`diff4splat.assembly.photo.photo_layer`, :func:`video_colors` and
             :func:`pixel_footprint`; an unknown ``footprint``; a photo layer that does not render the photograph
-            (:func:`diff4splat.photo.check_photo_fidelity`).
+            (:func:`diff4splat.assembly.photo.check_photo_fidelity`).
     """
     if footprint not in GENERATED_FOOTPRINTS:
         raise ValueError(f"footprint must be one of {GENERATED_FOOTPRINTS}, got {footprint!r}")

@@ -11,7 +11,7 @@ from pathlib import Path
 
 __all__ = ["CONFIGS_DIR", "MODEL_CONFIGS", "STAGE_CONFIGS", "CURATION_DEFAULT", "BACKBONE_CONFIGS"]
 
-CONFIGS_DIR = Path(__file__).resolve().parent / "configs"
+CONFIGS_DIR = Path(__file__).resolve().parents[1] / "configs"
 """Every shipped YAML config, by kind in the sub-folders below."""
 MODEL_CONFIGS = CONFIGS_DIR / "models"
 """Model size configs (``base``, ``tiny``, ``small``, ``paper``)."""

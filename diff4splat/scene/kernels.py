@@ -1,7 +1,7 @@
-"""The numba kernel of :meth:`diff4splat.scene.DynamicGaussians.at` on the CPU: the deformation interpolated between
-two key times and composed with the canonical Gaussians in one pass over the Gaussians (the PyTorch reference,
-:meth:`~diff4splat.scene.DynamicGaussians.deformation_at` then :func:`~diff4splat.scene.compose_deformation`, makes
-about twenty (K, ·) temporaries).
+"""The numba kernel of :meth:`diff4splat.scene.dynamic.DynamicGaussians.at` on the CPU: the deformation interpolated
+between two key times and composed with the canonical Gaussians in one pass over the Gaussians (the PyTorch reference,
+:meth:`~diff4splat.scene.dynamic.DynamicGaussians.deformation_at` then
+:func:`~diff4splat.scene.dynamic.compose_deformation`, makes about twenty (K, ·) temporaries).
 
 For each Gaussian i of ``index`` (w the weight of key k1, u = q/‖q‖):
 
@@ -14,7 +14,7 @@ in the tensors' dtype (float32 or float64), each Gaussian one parallel work item
 the thread count. A Gaussian whose quaternions have norm < 1e-12, or whose deformed scale is not finite and > 0, is
 flagged and not computed; the caller then runs the reference, which raises the error naming the tensor.
 
-Imported only when :meth:`~diff4splat.scene.DynamicGaussians.at` first runs on the CPU without gradients, so
+Imported only when :meth:`~diff4splat.scene.dynamic.DynamicGaussians.at` first runs on the CPU without gradients, so
 ``import diff4splat`` does not pay numba's import time; without numba the reference runs.
 """
 from __future__ import annotations
@@ -25,12 +25,12 @@ import numpy as np
 import torch
 from numba import prange
 
-from .jit import KERNEL, threads
+from diff4splat.utils.jit import KERNEL, threads
 
 __all__ = ["deform", "deform_kernel"]
 
 _ZERO_NORM = 1e-12
-"""The norm below which a quaternion has no orientation (:func:`diff4splat.quaternions.quat_norms`)."""
+"""The norm below which a quaternion has no orientation (:func:`diff4splat.scene.quaternions.quat_norms`)."""
 
 
 @KERNEL(parallel=True)
@@ -73,6 +73,6 @@ def deform_kernel(index: np.ndarray,  # (K,) int64 into the M Gaussians
 
 
 def deform(*arrays) -> None:
-    """:func:`deform_kernel` on torch's thread count (:func:`diff4splat.jit.threads`), same arguments."""
+    """:func:`deform_kernel` on torch's thread count (:func:`diff4splat.utils.jit.threads`), same arguments."""
     with threads(torch.get_num_threads()):
         deform_kernel(*arrays)

@@ -1,7 +1,7 @@
 """What the commands cost, per unit of their request: the measured constants of the memory and time estimates that
 are checked before any heavy work (:meth:`diff4splat.pipeline.Diff4SplatPipeline.memory_estimate` and
 ``time_estimate``, :func:`diff4splat.reconstruct.memory_estimate`,
-:func:`diff4splat.render_command.render_memory_estimate`; checked by :func:`diff4splat.limits.check_memory`).
+:func:`diff4splat.render_command.render_memory_estimate`; checked by :func:`diff4splat.utils.limits.check_memory`).
 Figures are bytes and seconds on the reference 2-core CPU (docs/benchmarks.md)."""
 from __future__ import annotations
 

@@ -6,8 +6,8 @@ from dataclasses import dataclass, fields
 
 from torch import Tensor
 
-from .checks import check_finite
-from .quaternions import quat_normalize
+from diff4splat.scene.quaternions import quat_normalize
+from diff4splat.utils.checks import check_finite
 
 __all__ = ["Gaussians", "SH_C0", "rgb_to_sh0", "sh0_to_rgb"]
 

@@ -41,10 +41,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .cameras import camera_rays
-from .gaussians import Gaussians, rgb_to_sh0
-from .quaternions import rotmat_to_quat
-from .render import rasterize
+from diff4splat.cameras import camera_rays
+from diff4splat.render import rasterize
+from diff4splat.scene.gaussians import Gaussians, rgb_to_sh0
+from diff4splat.scene.quaternions import rotmat_to_quat
 
 __all__ = ["PHOTO_EPS2D", "FRONT_SCALE_PX", "BACKING_SCALE_PX", "BACKING_OFFSET", "PHOTO_OPACITY", "THICKNESS",
            "REFINE_STEPS", "BACKDROP_CELLS", "BACKDROP_EXTEND", "BACKDROP_DEPTH", "pixel_disks", "photo_layer",

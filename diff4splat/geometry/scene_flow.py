@@ -34,8 +34,8 @@ from kornia.geometry.camera import project_points, unproject_points
 from kornia.geometry.linalg import transform_points
 from torch import Tensor
 
-from .cameras import invert_rigid
-from .checks import check_positive_int
+from diff4splat.cameras import invert_rigid
+from diff4splat.utils.checks import check_positive_int
 
 __all__ = ["DIS_PRESETS", "FLOW_UPSAMPLE", "FB_TOLERANCE_PX", "GATE_PX", "optical_flow", "consecutive_flows",
            "chain_flows", "track_pixels", "lift_tracks", "source_frame_motion", "sample_pixels", "pixel_centres",

@@ -1,7 +1,7 @@
 """How every numba kernel of the package is compiled and launched: :data:`KERNEL` (``njit`` with the disk cache and
 NumPy's error model), the threading layer shared with torch, and :func:`threads`.
 
-Imported only by the kernel modules (:mod:`diff4splat.scene_kernels`, :mod:`diff4splat.render.fused_kernels`), which
+Imported only by the kernel modules (:mod:`diff4splat.scene.kernels`, :mod:`diff4splat.render.fused_kernels`), which
 are imported on first use, so ``import diff4splat`` does not pay numba's import time.
 """
 from __future__ import annotations

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import torch
 
-from .checks import MissingExtraError
+from diff4splat.utils.checks import MissingExtraError
 
 __all__ = ["print_warnings", "EXIT_USAGE", "EXIT_INTERRUPTED", "EXPECTED_ERRNOS", "is_expected",
            "one_line", "run_cli", "quiet_c_stderr"]
@@ -132,7 +132,7 @@ def quiet_c_stderr() -> Iterator[None]:
         os.close(saved)
 
 
-_OUR_PACKAGES = tuple(str(Path(__file__).resolve().parent.parent / name) + os.sep
+_OUR_PACKAGES = tuple(str(Path(__file__).resolve().parents[2] / name) + os.sep
                       for name in ("diff4splat", "models", "training", "data_prep"))
 """The folders of this project's four packages: a warning raised from code in them is ours."""
 _DEVELOPER_WARNINGS = (DeprecationWarning, PendingDeprecationWarning, FutureWarning)

@@ -28,12 +28,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..cameras.path import CameraPath
-from ..gaussians import Gaussians
-from ..io.ply import ply_bytes
-from ..io.video import DEFAULT_FPS
-from ..render.settings import BACKGROUND, EPS2D, NEAR_PLANE
-from ..scene import DynamicGaussians
+from diff4splat.cameras.path import CameraPath
+from diff4splat.io.ply import ply_bytes
+from diff4splat.io.video import DEFAULT_FPS
+from diff4splat.render.settings import BACKGROUND, EPS2D, NEAR_PLANE
+from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.scene.gaussians import Gaussians
 
 __all__ = ["VIEWER_BUDGET_BYTES", "FLOAT16_MAX_PX", "NEAR", "ViewerPayload", "keyframe_times", "time_range",
            "keyframes", "evenly_spaced", "float16_error_px", "encode_keyframes", "decode_keyframes", "viewer_payload",

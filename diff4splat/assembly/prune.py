@@ -10,13 +10,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .cameras.path import CameraPath
-from .checks import check_finite, check_positive, check_positive_int
-from .gaussians import Gaussians
-from .render.projection import project_gaussians
-from .render.rasterize import rasterize
-from .render.settings import NEAR_PLANE
-from .scene import DynamicGaussians
+from diff4splat.cameras.path import CameraPath
+from diff4splat.render.projection import project_gaussians
+from diff4splat.render.rasterize import rasterize
+from diff4splat.render.settings import NEAR_PLANE
+from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.scene.gaussians import Gaussians
+from diff4splat.utils.checks import check_finite, check_positive, check_positive_int
 
 __all__ = ["visibility_mask", "prune_scene", "prune_mask", "nothing_seen_message", "duplicate_mask", "occluder_mask",
            "SLIDE_FACTORS", "slide_behind", "settle_generated", "settle_and_prune"]
@@ -216,8 +216,8 @@ def occluder_mask(
         min_alpha: accumulated alpha in (0, 1] above which a pixel counts as covered.
         depth_tolerance: relative depth margin (> 0).
         surface_depth: (H, W) the surface's z-depth at every pixel when it is known exactly (the photo layer's
-            depth map, :func:`diff4splat.assemble.photo_depth`), used instead of rendering source 0 (whose expected
-            depth blends neighbouring pixels where the depth varies from pixel to pixel).
+            depth map, :func:`diff4splat.assembly.assemble.photo_depth`), used instead of rendering source 0 (whose
+            expected depth blends neighbouring pixels where the depth varies from pixel to pixel).
 
     Returns:
         (M,) bool, True = drop; never True for source 0.

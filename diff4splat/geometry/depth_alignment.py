@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .checks import check_int
+from diff4splat.utils.checks import check_int
 
 __all__ = [
     "DepthAlignment",

@@ -14,7 +14,7 @@ mean μ_t and time scale σ_t, and its opacity at time t is multiplied by the ma
 Gaussian along time, p(t) = exp(−½((t − μ_t)/σ_t)²). The marginal is left unnormalised (peak 1 at
 t = μ_t, no 1/(σ_t√(2π)) factor), as in the authors' code (``exp(-0.5 (t - mu_t)² / cov_t)``), so
 a Gaussian is exactly as opaque as its canonical opacity at its own time. Gaussians whose opacity
-o·p(t) is below a threshold (default :data:`diff4splat.constants.ALPHA_MIN` = 1/255, the 3DGS alpha
+o·p(t) is below a threshold (default :data:`diff4splat.utils.constants.ALPHA_MIN` = 1/255, the 3DGS alpha
 cut-off, so gating is exact) can never pass the renderer's
 alpha test (alpha ≤ o·p(t)), so ``at(t)`` leaves them out before projection (temporal gating): the
 image is unchanged and they cost nothing.
@@ -26,10 +26,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .checks import check_finite
-from .constants import ALPHA_MIN
-from .gaussians import Gaussians, _unchecked
-from .quaternions import quat_multiply, quat_nlerp, quat_normalize, quat_norms
+from diff4splat.scene.gaussians import Gaussians, _unchecked
+from diff4splat.scene.quaternions import quat_multiply, quat_nlerp, quat_normalize, quat_norms
+from diff4splat.utils.checks import check_finite
+from diff4splat.utils.constants import ALPHA_MIN
 
 __all__ = ["DynamicGaussians", "compose_deformation"]
 
@@ -275,7 +275,7 @@ class DynamicGaussians:
 
     def _at_fused(self, t: float, idx: Tensor | None) -> tuple[Tensor, Tensor, Tensor] | None:
         """:meth:`at`'s deformed means, quats and scales of the Gaussians ``idx`` (None: all) by the numba kernel
-        (:mod:`diff4splat.scene_kernels`), or None where the reference must run: a tensor off the CPU or needing
+        (:mod:`diff4splat.scene.kernels`), or None where the reference must run: a tensor off the CPU or needing
         gradients, mixed dtypes, no numba, or a Gaussian the reference would raise for."""
         c = self.canonical
         tensors = (c.means, c.quats, c.scales, self.d_means, self.d_quats, self.d_scales)
@@ -331,10 +331,10 @@ _KERNEL = [_UNSET]
 
 
 def _deform_kernel():
-    """:func:`diff4splat.scene_kernels.deform` (imported on first use), or None without numba."""
+    """:func:`diff4splat.scene.kernels.deform` (imported on first use), or None without numba."""
     if _KERNEL[0] is _UNSET:
         try:
-            from .scene_kernels import deform  # lazy: numba's import time; absent → the PyTorch reference
+            from diff4splat.scene.kernels import deform  # lazy: numba's import time; absent → the PyTorch reference
         except ImportError:
             deform = None
         _KERNEL[0] = deform

@@ -1,0 +1,1 @@
+"""Geometry measured from the inputs: depth maps aligned to metric depth, scene flow lifted from frames."""
