@@ -180,3 +180,35 @@ def test_fits_float16_is_a_finite_float16_cast_without_the_copy(dtype):
     for v in edge + [-x for x in edge]:
         x = torch.tensor([[1.0, v], [0.5, -2.0]], dtype=dtype)
         assert _fits_float16(x) == bool(torch.isfinite(x.half()).all()), v
+
+
+@pytest.mark.parametrize("far", [False, True])
+def test_the_payload_equals_the_one_built_from_every_keyframe(far):
+    """``viewer_payload`` deforms only the kept Gaussians at the kept key times, and decides the dtype from the
+    means ``float16_error_px`` would pick out of all F·N (more than it measures) and from a range bound (``far``:
+    means beyond float16's range, so the exact per-time check runs): the same bytes as the reference that holds
+    every keyframe of every Gaussian, then reduces."""
+    n, F = 30_000, 9  # F·N above FLOAT16_CHECK_POINTS: the evenly spaced subset is used
+    scene, cams = moving_patch_scene(n=n, frames=F, temporal=True)
+    if far:
+        c = scene.canonical
+        means = c.means.clone()
+        means[7] += 70_000.0  # one far Gaussian: float16 overflows there
+        scene = type(scene)(type(c)(means, c.quats, c.scales, torch.linspace(0.1, 0.9, n), c.sh), scene.times,
+                            scene.d_means, scene.d_quats, scene.d_scales, scene.t_means, scene.t_scales)
+    times = keyframe_times(scene)
+    every = keyframes(scene, times)  # the reference: F × N keyframes held at once
+    err = float16_error_px(every["means"], cams.viewmats, cams.Ks)
+    dtype = "float16" if err <= FLOAT16_MAX_PX and all(_fits_float16(v) for v in every.values()) else "float32"
+    assert dtype == ("float32" if far else "float16")
+    itemsize = 2 if dtype == "float16" else 4
+    budget = payload_bytes(n // 3, 0, 3, True, itemsize)  # fewer keyframes, then a third of the Gaussians
+    p = viewer_payload(scene, cams, budget=budget)
+    assert p.config["dtype"] == dtype and p.config["float16ErrorPx"] == err
+    m = p.config["numGaussians"]
+    assert len(p.reductions) == 2 and 0 < m < n and len(p.config["times"]) < F  # both reductions taken
+    kept_t = torch.tensor([times.tolist().index(t) for t in p.config["times"]])
+    kept = torch.argsort(scene.canonical.opacities, descending=True)[:m].sort().values
+    want = encode_keyframes({k: v[kept_t][:, kept] for k, v in every.items()}, dtype,
+                            (scene.t_means[kept], scene.t_scales[kept]))
+    assert p.frames == want

@@ -83,19 +83,22 @@ def time_range(scene: DynamicGaussians, cameras: CameraPath) -> tuple[float, flo
 
 
 @torch.no_grad()
-def keyframes(scene: DynamicGaussians, times: Tensor) -> dict[str, Tensor]:
+def keyframes(scene: DynamicGaussians, times: Tensor, index: Tensor | None = None) -> dict[str, Tensor]:
     """Absolute Gaussians at every key time (:meth:`DynamicGaussians.at` with gate 0, so all N in order).
+
+    Args:
+        index: (N,) ascending indices of the Gaussians wanted (the ones a reduced page keeps); None: all.
 
     Returns:
         {"means": (F, N, 3) metres, "quats": (F, N, 4) unit wxyz, "scales": (F, N, 3) metres}, float32 on the CPU
         (opacities are not keyframed: with temporal support the page evaluates them from μ_t and σ_t).
     """
-    F, N = len(times), scene.num_gaussians
+    F, N = len(times), scene.num_gaussians if index is None else index.shape[0]
     cpu = torch.device("cpu")  # the payload is bytes for the page: built on the host
     out = {"means": torch.empty(F, N, 3, device=cpu), "quats": torch.empty(F, N, 4, device=cpu),
            "scales": torch.empty(F, N, 3, device=cpu)}
     for i, t in enumerate(times):  # one time at a time into the outputs: memory F·N·10 floats, not twice that
-        g = scene.at(float(t), gate=0.0)
+        g = scene.at(float(t), gate=0.0, index=index)
         for key, dst in out.items():
             src = getattr(g, key).detach()
             dst[i] = (src / src.norm(dim=-1, keepdim=True) if key == "quats" else src).to("cpu", torch.float32)
@@ -112,12 +115,16 @@ def evenly_spaced(n: int, k: int, device: torch.device | str = "cpu") -> Tensor:
     return (2 * i * (n - 1) + (k - 1)) // (2 * (k - 1))
 
 
+FLOAT16_CHECK_POINTS = 200_000
+"""Most keyframe means :func:`float16_error_px` measures (an evenly spaced subset of the F·N)."""
+
+
 def float16_error_px(
     means: Tensor,  # (F, N, 3) world, metres
     viewmats: Tensor,  # (C, 4, 4) world-to-camera (OpenCV)
     Ks: Tensor,  # (C, 3, 3) pixels
     near: float = NEAR,
-    max_points: int = 200_000,
+    max_points: int = FLOAT16_CHECK_POINTS,
     max_cameras: int = 9,
 ) -> float:
     """Largest image-plane displacement, pixels, caused by rounding ``means`` to float16, over the cameras and
@@ -152,6 +159,38 @@ def _fits_float16(x: Tensor) -> bool:
     gives inf) and no NaN, from one min/max pass instead of a float16 copy of the keyframes."""
     lo, hi = torch.aminmax(x)
     return bool(torch.maximum(-lo, hi) < 65520)  # NaN compares False
+
+
+@torch.no_grad()
+def keyframe_dtype(scene: DynamicGaussians, times: Tensor, cameras: CameraPath) -> tuple[str, float]:
+    """("float16" or "float32", :func:`float16_error_px`) of the keyframes of all N Gaussians at ``times`` (F,),
+    without holding them: the error from the evenly spaced F·N means it measures, deformed at their own times
+    (:meth:`DynamicGaussians.at` with ``index``); the range from a bound, max |μ| + max |Δμ| and
+    max s·exp(max Δs) below 65520, else from every keyframe's values one time at a time."""
+    F, N = len(times), scene.num_gaussians
+    pick = evenly_spaced(F * N, FLOAT16_CHECK_POINTS) if F * N > FLOAT16_CHECK_POINTS else torch.arange(F * N)
+    means = [scene.at(float(times[f]), gate=0.0, index=pick[pick // N == f] % N).means.detach()
+             for f in range(F)]
+    err = float16_error_px(torch.cat(means)[None].cpu(), cameras.viewmats.detach().cpu(),
+                           cameras.Ks.detach().cpu())
+    return ("float16" if err <= FLOAT16_MAX_PX and _keyframes_fit_float16(scene, times) else "float32"), err
+
+
+def _keyframes_fit_float16(scene: DynamicGaussians, times: Tensor) -> bool:
+    """Every keyframe value rounds to a finite float16 (the quaternions are unit): true when the bound
+    max |μ| + max |Δμ| and max s·exp(max Δs) is below 65520, else checked at each time."""
+    c = scene.canonical
+    if c.num_gaussians == 0:
+        return True
+    bound = max(float(c.means.detach().abs().max()) + float(scene.d_means.detach().abs().max()),
+                float(c.scales.detach().max()) * math.exp(float(scene.d_scales.detach().max())))
+    if bound < 65520:
+        return True
+    for t in times:
+        g = scene.at(float(t), gate=0.0)
+        if not (_fits_float16(g.means.detach()) and _fits_float16(g.scales.detach())):
+            return False
+    return True
 
 
 def encode_keyframes(frames: dict[str, Tensor] | None, dtype: str,
@@ -219,12 +258,7 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
     degree = canonical.sh_degree
     n, temporal = canonical.num_gaussians, scene.has_temporal
     reductions: list[str] = []
-    frames = keyframes(scene, times) if times is not None else None
-    dtype, err = "float32", None
-    if frames is not None:
-        err = float16_error_px(frames["means"], cameras.viewmats.detach().cpu(), cameras.Ks.detach().cpu())
-        in_range = all(_fits_float16(v) for v in frames.values())
-        dtype = "float16" if err <= FLOAT16_MAX_PX and in_range else "float32"
+    dtype, err = ("float32", None) if times is None else keyframe_dtype(scene, times, cameras)
     itemsize = 2 if dtype == "float16" else 4
     F = 0 if times is None else times.shape[0]
     size = lambda: payload_bytes(n, degree, F, temporal, itemsize)  # noqa: E731
@@ -237,8 +271,7 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
         if keep_f < F:
             idx = evenly_spaced(F, keep_f, times.device).unique()
             reductions.append(f"{F} → {idx.numel()} keyframes")
-            times, frames = times[idx], {k: v[idx] for k, v in frames.items()}
-            F = idx.numel()
+            times, F = times[idx], idx.numel()
     keep = None
     if budget is not None and size() > budget:
         per = payload_bytes(1, degree, F, temporal, itemsize)
@@ -249,8 +282,7 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
     g = canonical if keep is None else canonical.select(keep)
     if degree < canonical.sh_degree:
         g = Gaussians(g.means, g.quats, g.scales, g.opacities, g.sh[:, :1])
-    if frames is not None and keep is not None:
-        frames = {k: v[:, keep] for k, v in frames.items()}
+    frames = None if times is None else keyframes(scene, times, keep)  # the kept key times and Gaussians only
     support = None
     if temporal:
         support = (scene.t_means, scene.t_scales) if keep is None else (scene.t_means[keep], scene.t_scales[keep])
