@@ -1,7 +1,7 @@
 """Cost of ``diff4splat generate`` against its output resolution: wall time and peak memory at 64², 256², 512²,
 1024², 2048² (the shipped base model, 17 frames, ``examples/chelsea.png``).
 
-    python benchmarks/generate_resolution.py [--resolutions 64 256 512 1024 2048] [--repeats 3] [--label before] [--write]
+    python benchmarks/generate_resolution.py [--resolutions 64 256 512 1024 2048] [--repeats 3] [--label L] [--write]
 
 Each row is the real command in a child process (``_common.run_with_peak_memory``: its own peak resident set), the
 fastest of ``--repeats`` runs up to 1024² (one run above: the ratios divide by the 256² run's few seconds beyond the
