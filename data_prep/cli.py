@@ -1,14 +1,6 @@
-"""``data_prep`` command line: dataset tools (``validate``, ``synth``, ``curate``; more subcommands plug in here).
-
-Each subcommand is one ``_add_<name>(sub)`` function below that adds its parser and sets
-``func=<handler>``; a handler takes the parsed arguments and returns the exit code. To add a
-subcommand, write its two functions and append the adder to :data:`SUBCOMMANDS`.
-
-``synth``, ``curate`` and ``convert --each`` take ``--engine local|ray``, ``--workers`` and ``--ray-address``
-(:mod:`data_prep.engine`).
-
-Bad input (a bad argument, a missing folder, a malformed file, an OS error on a path) gets one line on
-stderr (``data_prep: error: …``) and exit code 2; Ctrl-C exits 130 (:func:`diff4splat.utils.errors.run_cli`).
+"""``data_prep`` command line: ``validate``, ``synth``, ``curate``, ``convert``. Each subcommand is an
+``_add_<name>(sub)`` adder in :data:`SUBCOMMANDS` that sets ``func=<handler>`` (parsed arguments → exit code).
+Bad input gets one line on stderr and exit code 2; Ctrl-C exits 130 (:func:`diff4splat.utils.errors.run_cli`).
 """
 from __future__ import annotations
 
@@ -42,8 +34,6 @@ class _Parser(argparse.ArgumentParser):
         raise CLIError(message)
 
 
-# --------------------------------------------------------------------------- validate
-
 def _validate(args: argparse.Namespace) -> int:
     n, problems = validate_path(args.dir)
     if n == 0:  # nothing was checked: no "problems in scenes" summary; the root-level line is the summary
@@ -65,8 +55,6 @@ def _add_validate(sub) -> None:
     p.add_argument("dir", type=Path, help="dataset root or scene folder")
     p.set_defaults(func=_validate)
 
-
-# --------------------------------------------------------------------------- synth
 
 def _synth(args: argparse.Namespace) -> int:
     check_synth_request(args.scenes, args.seed, size=args.size, frames=args.frames, cameras=args.cameras,
@@ -110,7 +98,7 @@ def _add_synth(sub) -> None:
 
 
 def _unit_float(text: str) -> float:
-    """argparse type: a float in [0, 1]; argparse reports anything else as one line naming the flag and value."""
+    """argparse type: a float in [0, 1]."""
     try:
         value = float(text)
     except ValueError:
@@ -119,8 +107,6 @@ def _unit_float(text: str) -> float:
         raise argparse.ArgumentTypeError(f"must be a number in [0, 1], got {text!r}")
     return value
 
-
-# --------------------------------------------------------------------------- curate
 
 def _curate(args: argparse.Namespace) -> int:
     config = CurationConfig.from_yaml(args.config or DEFAULT_CONFIG_PATH)
@@ -162,8 +148,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``data_prep`` console script. Returns the exit code (0 ok, 1 problems, 2 bad input,
-    130 after Ctrl-C; :func:`diff4splat.utils.errors.run_cli`)."""
+    """Entry point of the ``data_prep`` console script: the exit code (0 ok, 1 problems, 2 bad input, 130 Ctrl-C)."""
     def run() -> int:
         args = build_parser().parse_args(argv)
         return int(args.func(args))

@@ -1,25 +1,10 @@
-"""Training clips: a map-style ``torch.utils.data.Dataset`` over a dataset root in our format (FORMAT.md).
-
-**Index.** :class:`ClipDataset` lists the scenes of the root (optionally only static or only dynamic
-ones, or a given subset) and cuts each into windows: items ``(scene, start frame)`` with
-``start = 0, window_step, 2·window_step, …`` such that a clip at the minimum stride fits
-(``start + (T − 1)·min_stride ≤ T_scene − 1``). The index depends only on the scenes' lengths and the
-config, so ``len()`` is fixed and ``DistributedSampler`` can split it.
-
-**Per-item randomness.** Item ``i`` in epoch ``e`` draws, from a generator seeded with
-``(seed, e, i)``: the temporal stride (uniform in ``[min_stride, max_stride]``, capped so the clip fits
-in the scene), the reference camera (``"first"`` = the scene's reference camera, ``"random"`` = any of
-its synchronised cameras), the camera of every target frame (``"same"`` as the reference, or
-``"random"``) and the subset of tracks. ``__getitem__(i)`` is a pure function of (config, i, epoch);
-:meth:`ClipDataset.set_epoch` changes the epoch (the trainer calls it before each epoch).
-
-**A clip** of T = 1 + 4k frames: frame 0 is the reference image (source frame ``start`` of the
-reference camera); frame k > 0 is source frame ``start + k·stride`` of its camera. Images are
-centre-cropped to the aspect ratio of (height, width) and resized by
-:func:`diff4splat.io.preprocess_image`; intrinsics follow the same crop and resize
-(:meth:`diff4splat.cameras.CameraPath.fitted`, the same :func:`~diff4splat.cameras.center_crop_box`);
-cameras are re-expressed relative to the reference camera (:meth:`CameraPath.relative_to_first`,
-``viewmats[0] = I``), so the clip's world frame is the reference camera's frame at frame 0.
+"""Training clips: a map-style ``torch.utils.data.Dataset`` over a dataset root (FORMAT.md). :class:`ClipDataset` cuts
+each scene into windows starting at 0, window_step, 2·window_step, … wherever a clip at the minimum stride fits, so
+``len()`` depends only on the scenes' lengths and the config (``DistributedSampler`` can split it). Item ``i`` of epoch
+``e`` draws its stride, reference and target cameras and tracks from a generator seeded with ``(seed, e, i)``. A clip of
+T = 1 + 4k frames holds source frames ``start + k·stride``, frame 0 of the reference camera; images are centre-cropped
+and resized (:func:`diff4splat.io.preprocess_image`, intrinsics alike: :meth:`~diff4splat.cameras.CameraPath.fitted`)
+and cameras re-expressed relative to frame 0 (:meth:`~diff4splat.cameras.CameraPath.relative_to_first`).
 """
 from __future__ import annotations
 
@@ -52,24 +37,18 @@ _CHOICES = {"scenes": ("all", "static", "dynamic"), "reference_camera": ("first"
 
 @dataclass(frozen=True)
 class ClipConfig:
-    """Clip sampling options (the single source of defaults).
+    """Clip sampling options (the defaults). Raises ValueError naming the field, for a wrong type or value.
 
     Attributes:
-        num_frames: T = 1 + 4k frames per clip (the VAE's causal grouping), ≥ 1.
+        num_frames: T = 1 + 4k frames per clip (the VAE's causal grouping).
         height, width: clip resolution, pixels; multiples of 8 when ``plucker`` includes ``"packed"``.
-        scenes: ``"static"`` (stages 1–2), ``"dynamic"`` (stage 3) or ``"all"``, by ``meta["dynamic"]``.
+        scenes: ``"static"``, ``"dynamic"`` or ``"all"``, by ``meta["dynamic"]``.
         min_stride, max_stride: temporal stride range in source frames, 1 ≤ min ≤ max.
-        window_step: source frames between consecutive window starts; ``None`` → (T − 1)·min_stride + 1
-            (non-overlapping windows at the minimum stride).
+        window_step: source frames between window starts; None → :attr:`span` (non-overlapping windows).
         reference_camera: ``"first"`` (the scene's reference camera) or ``"random"`` (any camera).
-        target_cameras: ``"same"`` (a monocular clip) or ``"random"`` (each target frame from any
-            synchronised camera).
+        target_cameras: ``"same"`` (a monocular clip) or ``"random"`` (each target frame from any camera).
         num_tracks: N tracks per clip (sampled without replacement; padded when the scene has fewer).
         plucker: ``"raw"`` (T, H, W, 6), ``"packed"`` (:func:`~diff4splat.cameras.pack_plucker`) or ``"both"``.
-        seed: base seed of the per-item randomness.
-
-    Raises:
-        ValueError: naming the field, for a wrong type or value.
     """
 
     num_frames: int = 17
@@ -128,20 +107,8 @@ class ClipSpec:
 
 
 def resize_depth(depth: np.ndarray, height: int, width: int) -> np.ndarray:
-    """Centre-crop and resize a metric depth map exactly like images (:func:`center_crop_box`), by nearest.
-
-    Nearest-neighbour with pixel-centre alignment (``cv2.INTER_NEAREST_EXACT``: output pixel j samples
-    source pixel ⌊(j + 0.5)·src/dst⌋) keeps every value a source value: metric z-depth is unchanged by
-    a crop/resize of the image (the camera does not move) and +inf (invalid) is never blended with
-    valid depth.
-
-    Args:
-        depth: (h, w) float32 metres, +inf invalid.
-        height, width: output size, pixels.
-
-    Returns:
-        (height, width) float32.
-    """
+    """Centre-crop (:func:`center_crop_box`) and resize an (h, w) float32 depth map (metres, +inf invalid) to
+    (height, width) like images, by ``cv2.INTER_NEAREST_EXACT``, so every value stays a source value."""
     y0, x0, ch, cw = center_crop_box(depth.shape[0], depth.shape[1], height, width)
     crop = np.ascontiguousarray(depth[y0:y0 + ch, x0:x0 + cw], dtype=np.float32)
     if (ch, cw) == (height, width):
@@ -150,47 +117,25 @@ def resize_depth(depth: np.ndarray, height: int, width: int) -> np.ndarray:
 
 
 class ClipDataset(Dataset):
-    """Clips of T frames at (height, width) from a dataset root (see the module docstring).
+    """Clips of T frames at (height, width) from a dataset root (see the module docstring); ``overrides`` replace
+    fields of ``config`` (None: the defaults); ``scene_names`` (None: all) restricts the scenes.
 
-    Args:
-        root: dataset root (folder of scene folders, FORMAT.md), e.g. the output of ``data_prep curate``.
-        config: :class:`ClipConfig`; ``None`` → defaults. ``overrides``: fields replacing those of ``config``.
-        scene_names: restrict to these scene folder names (e.g. ``accepted.txt``); ``None`` → all.
+    ``__getitem__(i)`` returns a dict (collates with the default ``collate_fn``); float32 unless said:
 
-    ``__getitem__(i)`` returns a dict (collates with the default ``collate_fn``; B is the batch):
+    - ``video`` (3, T, H, W) RGB in [0, 1], frame 0 the reference image; ``viewmats`` (T, 4, 4) world-to-camera,
+      metres, clip world = the reference camera at frame 0 (viewmats[0] = I); ``Ks`` (T, 3, 3) pixels, fitted to
+      the crop/resize; ``times`` (T,) in [0, 1] from the source timestamps;
+    - ``plucker`` (T, H, W, 6) ``[o × d, d]`` in the clip world (``"raw"``), ``plucker_packed`` (6·4·64,
+      1 + (T−1)/4, H/8, W/8) its :func:`pack_plucker` (``"packed"``);
+    - ``depth`` (T, H, W) metric z-depth, metres, +inf invalid (nearest resize), ``depth_valid`` (T, H, W) bool;
+    - ``tracks`` (N, T, 3) clip-world metres (0 pads), ``track_visibility`` (N, T) bool: in front of frame k's
+      camera, inside the image, and the stored flag (reference camera) or FORMAT.md's occlusion test on the clip
+      depth (other cameras; skipped without depth), ``track_mask`` (N,) bool: a real track;
+    - ``caption`` str (``""`` without one), ``dynamic`` () bool, ``frame_indices`` (T,) int64 source frames,
+      ``camera_indices`` (T,) int64 into ``meta["cameras"]``, ``scene`` str, ``index`` () int64.
 
-    ============== =============================== ========= ================================================
-    key            shape                           dtype     meaning
-    ============== =============================== ========= ================================================
-    video          (3, T, H, W)                    float32   RGB in [0, 1]; frame 0 is the reference image
-    viewmats       (T, 4, 4)                       float32   world-to-camera, clip world = reference camera
-                                                             at frame 0 (viewmats[0] = I), metres
-    Ks             (T, 3, 3)                       float32   pixels, fitted to the crop/resize of ``video``
-    times          (T,)                            float32   clip times in [0, 1] from the source timestamps
-    plucker        (T, H, W, 6)                    float32   ``[o × d, d]`` in the clip world (``"raw"``)
-    plucker_packed (6·4·64, 1 + (T−1)/4, H/8, W/8) float32   :func:`pack_plucker` of ``plucker`` (``"packed"``)
-    depth          (T, H, W)                       float32   metric z-depth, metres; +inf invalid (nearest resize)
-    depth_valid    (T, H, W)                       bool      finite depth (all False without depth)
-    tracks         (N, T, 3)                       float32   track positions in the clip world, metres (0 pads)
-    track_visibility (N, T)                        bool      visible in frame k's camera (see below)
-    track_mask     (N,)                            bool      real track (False for padding)
-    caption        —                               str       ``caption.txt`` or ``""``
-    dynamic        ()                              bool      ``meta["dynamic"]``
-    frame_indices  (T,)                            int64     source frame of each clip frame
-    camera_indices (T,)                            int64     index into the scene's ``meta["cameras"]``
-    scene          —                               str       scene folder name
-    index          ()                              int64     i
-    ============== =============================== ========= ================================================
-
-    Track visibility of clip frame k: the point lies in front of frame k's camera and projects inside
-    the clip image; if that camera is the scene's reference camera, its stored ``visibility`` flag
-    (FORMAT.md) must also hold; for other cameras the occlusion test of FORMAT.md is applied to the
-    clip depth (nearest pixel; skipped for scenes without depth).
-
-    Raises:
-        FileNotFoundError: ``root`` is not a folder.
-        ValueError: bad config/overrides, no scene folder in ``root``, unknown ``scene_names``, or no scene long
-            enough for one clip.
+    Raises FileNotFoundError: ``root`` is not a folder; ValueError: bad config/overrides, no scene folder in ``root``,
+    unknown ``scene_names``, or no scene long enough for one clip.
     """
 
     def __init__(self, root: str | os.PathLike, config: ClipConfig | None = None, *,

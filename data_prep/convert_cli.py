@@ -1,10 +1,6 @@
-"""``data_prep convert SOURCE IN OUT``: convert one source scene/sequence to the scene format; with ``--each``,
-every clip of ``IN`` into the dataset root ``OUT`` (on ``--engine local`` or ``ray``: :mod:`data_prep.engine`).
-
-:func:`register` adds the subcommand to the ``data_prep`` parser (``data_prep/cli.py`` appends it to
-its subcommand list); ``python -m data_prep.convert_cli SOURCE IN OUT …`` runs it alone.
-Source-specific options (CONVERTERS.md) are passed as ``--option KEY=VALUE``; VALUE is parsed as
-JSON when it is valid JSON (numbers, true/false, lists → tuples), else kept as a string.
+"""``data_prep convert SOURCE IN OUT``: convert one source scene to the scene format; with ``--each``, every clip of
+``IN`` into the dataset root ``OUT``. :func:`register` adds it to the ``data_prep`` parser;
+``python -m data_prep.convert_cli`` runs it alone. Source options (CONVERTERS.md): ``--option KEY=VALUE``.
 """
 from __future__ import annotations
 
@@ -22,11 +18,8 @@ __all__ = ["register", "parse_options", "read_names", "main"]
 
 
 def parse_options(items: list[str]) -> dict:
-    """``["key=value", …]`` → {key: value}; JSON values decoded, lists become tuples.
-
-    Raises:
-        ValueError: an item without ``=`` or with an empty key.
-    """
+    """``["key=value", …]`` → {key: value}; a value that is valid JSON is decoded (lists become tuples), any
+    other kept as a string. Raises ValueError: an item without ``=`` or with an empty key."""
     out = {}
     for item in items:
         key, sep, value = item.partition("=")
@@ -59,11 +52,8 @@ def _convert(args: argparse.Namespace) -> int:
 
 
 def read_names(path: str | Path) -> list[str]:
-    """The clip names of a ``--each`` file: one per line, blank lines and ``#`` comments skipped.
-
-    Raises:
-        FileNotFoundError: no such file. ValueError: no names in it.
-    """
+    """The clip names of a ``--each`` file: one per line, blank lines and ``#`` comments skipped. Raises
+    FileNotFoundError: no such file; ValueError: no names in it."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"--each: file of clip names not found: {path}")

@@ -1,32 +1,10 @@
-"""Curation: per-scene statistics, threshold filters, a resumable manifest and the accepted scenes.
+"""Curation (``data_prep curate IN OUT``): per-scene :class:`SceneStats` judged by a :class:`CurationConfig`.
 
-``data_prep curate IN OUT [--config filters.yaml] [--workers K] [--mode symlink|copy|none]``
-(:mod:`data_prep.cli`) calls :func:`curate`.
-
-For every scene of the dataset root ``IN`` (:func:`data_prep.format.list_scenes`) it computes
-:class:`SceneStats`, judges them against the thresholds of a :class:`CurationConfig` (YAML; the
-shipped defaults are ``configs/data_prep/curation_default.yaml``) and writes into ``OUT``:
-
-``OUT/manifest.jsonl``
-    one JSON object per scene, sorted by scene id: ``{"scene", "accepted", "reasons", "messages",
-    "stats"}``. ``reasons`` lists the names of the violated config fields (e.g. ``"min_frames"``),
-    or ``"error"`` for a scene that could not be read; ``messages`` says the same in words.
-``OUT/accepted.txt``
-    the accepted scene ids, one per line, sorted.
-``OUT/curation.yaml``
-    the config of the run (a rerun with a different config is refused).
-``OUT/<scene>``
-    each accepted scene, by ``mode``: ``"symlink"`` (default; an absolute symbolic link to the
-    source folder: instant and no extra space, but ``IN`` must stay where it is), ``"copy"`` (a full
-    copy: a self-contained dataset root) or ``"none"`` (no scene folders, only the lists).
-    ``OUT`` is then itself a dataset root readable by :class:`data_prep.clips.ClipDataset`.
-
-Resumability and atomicity: each scene's record is written to ``OUT/.curation/<scene>.json``
-(temporary file + rename) after its output folder or link is in place (temporary folder or link +
-rename), so a killed run leaves whole scenes and whole records only. A rerun skips the scenes that
-have a record, removes the temporary leftovers of a killed run, and rebuilds ``manifest.jsonl`` and
-``accepted.txt`` (atomically) from all records: an interrupted run followed by a rerun gives the same
-files as one uninterrupted run. Only one curation run may write to an ``OUT`` at a time.
+:func:`curate` writes into ``OUT`` ``manifest.jsonl`` (one ``{"scene", "accepted", "reasons", "messages", "stats"}``
+per scene, sorted; ``reasons``: the violated config fields, or ``"error"``), ``accepted.txt``, ``curation.yaml``
+(config and mode) and each accepted scene by ``mode`` (an absolute symlink, a copy, or none), so ``OUT`` is a
+dataset root. Each scene's record ``OUT/.curation/<scene>.json`` is written atomically after its folder, so a rerun
+resumes (DESIGN.md, "Data preparation at scale"). One run at a time per ``OUT``.
 """
 from __future__ import annotations
 
@@ -57,22 +35,11 @@ from .engine import Engine, map_scenes
 from .format import SCENE_KIND, SceneReader, list_scenes
 from .validate import validate_scene
 
-__all__ = [
-    "DEFAULT_CONFIG_PATH",
-    "MODES",
-    "CurationConfig",
-    "SceneStats",
-    "laplacian_variance",
-    "scene_statistics",
-    "judge",
-    "curate_scene",
-    "curate",
-    "read_manifest",
-]
+__all__ = ["DEFAULT_CONFIG_PATH", "MODES", "CurationConfig", "SceneStats", "laplacian_variance", "scene_statistics",
+           "judge", "curate_scene", "curate", "read_manifest"]
 
 DEFAULT_CONFIG_PATH = CURATION_DEFAULT
-"""The shipped YAML; it holds exactly the defaults of :class:`CurationConfig` (a test checks this)."""
-
+"""The shipped YAML; it holds exactly the defaults of :class:`CurationConfig`."""
 MODES: tuple[str, ...] = ("symlink", "copy", "none")
 """How accepted scenes appear in ``OUT`` (see the module docstring)."""
 
@@ -81,29 +48,15 @@ MANIFEST, ACCEPTED, CONFIG_COPY, RECORDS = "manifest.jsonl", "accepted.txt", "cu
 
 @dataclass(frozen=True)
 class CurationConfig:
-    """Filter thresholds (the single source of defaults; ``curation_default.yaml`` mirrors them).
+    """Filter thresholds (the defaults; ``curation_default.yaml`` mirrors them).
 
-    A ``max_*`` field set to ``None`` (YAML ``null``) disables that bound.
+    ``min_*``/``max_*`` bound the :class:`SceneStats` of the same name (``max_*`` None: no bound; ratios in [0, 1]);
+    ``require_depth`` and ``dynamic_requires_tracks`` reject scenes without depth / dynamic scenes without tracks;
+    ``dynamic_motion_threshold_m``: metres from its frame-0 position beyond which a track moves; ``sample_frames`` (≥
+    1): evenly spaced frames per camera read for sharpness and valid depth; ``validate``: also run
+    :func:`data_prep.validate.validate_scene` (reason ``"validate"``).
 
-    Attributes:
-        min_frames: reject scenes with fewer frames T per camera (a clip of T = 1 + 4k frames at
-            stride s needs (T − 1)·s + 1 frames).
-        min_translation_m, max_translation_m: bounds on the translation range, metres.
-        min_rotation_deg, max_rotation_deg: bounds on the rotation range, degrees.
-        require_depth: reject scenes without depth (``depth_source == "none"``).
-        min_valid_depth_ratio: reject scenes with depth whose valid-depth ratio is lower, in [0, 1].
-        dynamic_motion_threshold_m: a track "moves" when it gets farther than this from its
-            frame-0 position, metres.
-        dynamic_requires_tracks: reject dynamic scenes without ``tracks.npz`` (their motion is unknown).
-        min_dynamic_ratio, max_dynamic_ratio: bounds on the dynamic ratio of dynamic scenes, in [0, 1]
-            (static scenes are not judged on it).
-        min_sharpness: reject scenes whose sharpness (variance of the Laplacian, 8-bit grey units) is lower.
-        sample_frames: frames per camera read for sharpness and valid depth, evenly spaced, ≥ 1.
-        validate: also run the full format validator (:func:`data_prep.validate.validate_scene`,
-            decodes every file; slow) and reject invalid scenes (reason ``"validate"``).
-
-    Raises:
-        ValueError: naming the field, for a wrong type or an out-of-range value.
+    Raises ValueError naming the field, for a wrong type or an out-of-range value.
     """
 
     min_frames: int = 17
@@ -147,11 +100,8 @@ class CurationConfig:
 
     @classmethod
     def from_dict(cls, data: Any) -> CurationConfig:
-        """Build from a mapping; unknown keys are errors, missing keys take the defaults.
-
-        Raises:
-            ValueError: not a mapping, an unknown key (named), or a bad value (see the class).
-        """
+        """Build from a mapping; missing keys take the defaults. Raises ValueError: not a mapping, an unknown key or
+        a bad value."""
         if data is None:
             data = {}
         if not isinstance(data, dict):
@@ -164,11 +114,7 @@ class CurationConfig:
 
     @classmethod
     def from_yaml(cls, path: str | os.PathLike) -> CurationConfig:
-        """Read a YAML mapping (see ``curation_default.yaml``).
-
-        Raises:
-            FileNotFoundError: ``path`` does not exist. ValueError: bad YAML or fields (prefixed with the path).
-        """
+        """Read a YAML mapping. Raises FileNotFoundError, or ValueError (bad YAML or fields) naming ``path``."""
         data = read_yaml(path, "curation config", expect=None)
         try:
             return cls.from_dict(data)
@@ -182,21 +128,17 @@ class CurationConfig:
 
 @dataclass(frozen=True)
 class SceneStats:
-    """What curation measures of one scene (``None``: not measurable, e.g. no depth or no tracks).
+    """What curation measures of one scene.
 
     Attributes:
-        num_frames: T, frames per camera.
-        num_cameras: synchronised cameras.
-        dynamic: ``meta["dynamic"]``.
-        translation_range_m: max distance, metres, of any camera centre (every camera, every frame)
-            from the reference camera's centre at frame 0 — camera motion and multi-view baseline.
-        rotation_range_deg: max rotation angle, degrees in [0, 180], of any camera relative to the
-            reference camera at frame 0: arccos((tr(R·R₀ᵀ) − 1)/2).
-        valid_depth_ratio: fraction in [0, 1] of pixels with finite depth > 0 over the sampled
-            frames of every camera; ``None`` without depth.
-        dynamic_ratio: fraction in [0, 1] of visible track observations (p, i) whose track p moves
-            (max_i ‖X_p(i) − X_p(0)‖ > ``dynamic_motion_threshold_m``); ``None`` without tracks.
-        sharpness: median over the sampled frames of every camera of :func:`laplacian_variance`.
+        translation_range_m: max distance, metres, of any camera centre (every camera, every frame) from the
+            reference camera's centre at frame 0.
+        rotation_range_deg: max angle arccos((tr(R·R₀ᵀ) − 1)/2), degrees in [0, 180], of any camera relative to
+            the reference camera at frame 0.
+        valid_depth_ratio: fraction of sampled pixels with finite depth > 0; None without depth.
+        dynamic_ratio: fraction of visible track observations whose track moves (max_i ‖X_p(i) − X_p(0)‖ >
+            ``dynamic_motion_threshold_m``); None without tracks.
+        sharpness: median :func:`laplacian_variance` of the sampled frames.
     """
 
     num_frames: int
@@ -210,19 +152,8 @@ class SceneStats:
 
 
 def laplacian_variance(rgb: np.ndarray) -> float:
-    """Sharpness of an image: variance of its Laplacian (Pech-Pacheco et al., ICPR 2000).
-
-    The image is converted to grey (``kornia.color.rgb_to_grayscale``, ITU-R 601 weights) in 8-bit
-    units (0…255) and filtered with ``kornia.filters.laplacian`` (3×3 kernel of ones with −8 at the
-    centre, not normalised, reflected border); the result is the population variance over pixels.
-    Blur lowers it (a constant image gives 0). It grows with texture and depends on resolution.
-
-    Args:
-        rgb: (H, W, 3) float in [0, 1].
-
-    Returns:
-        variance, (8-bit grey units)², ≥ 0.
-    """
+    """Sharpness of an (H, W, 3) float image in [0, 1]: the population variance, (8-bit grey units)² ≥ 0, of its
+    Laplacian (Pech-Pacheco et al., ICPR 2000; kornia's ITU-R 601 grey and unnormalised 3×3 Laplacian)."""
     x = torch.from_numpy(np.ascontiguousarray(rgb, dtype=np.float32)).permute(2, 0, 1)[None] * 255.0
     lap = kornia.filters.laplacian(kornia.color.rgb_to_grayscale(x), kernel_size=3, normalized=False)
     return float(lap.double().var(unbiased=False))
@@ -234,11 +165,8 @@ def _sample_indices(num_frames: int, k: int) -> list[int]:
 
 
 def scene_statistics(scene: SceneReader, config: CurationConfig) -> SceneStats:
-    """Measure one scene (reads the cameras, tracks and ``config.sample_frames`` frames per camera).
-
-    Raises:
-        ValueError / FileNotFoundError / OSError: an unreadable file of the scene.
-    """
+    """Measure one scene (reads cameras, tracks and ``config.sample_frames`` frames per camera). Raises ValueError,
+    FileNotFoundError or OSError: an unreadable file of the scene."""
     T, names = scene.num_frames, scene.camera_names
     ref = scene.cameras(names[0]).viewmats[0].double().cpu().numpy()
     trans, rot = 0.0, 0.0
@@ -275,12 +203,8 @@ def scene_statistics(scene: SceneReader, config: CurationConfig) -> SceneStats:
 
 
 def judge(stats: SceneStats, config: CurationConfig) -> list[tuple[str, str]]:
-    """The filters a scene fails: ``[(config field name, message), …]`` (empty = accepted).
-
-    A scene is rejected by ``min_*`` when its statistic is below the threshold and by ``max_*`` when
-    above (equal passes); ``None`` statistics are judged only by ``require_depth`` /
-    ``dynamic_requires_tracks``; the dynamic ratio is judged for dynamic scenes only.
-    """
+    """The filters a scene fails: ``[(config field name, message), …]`` (empty = accepted). Equal passes; None
+    statistics are judged only by ``require_*``; the dynamic ratio only for dynamic scenes."""
     c, out = config, []
 
     def bounds(value: float, lo: str, hi: str | None, what: str, unit: str) -> None:
@@ -327,15 +251,8 @@ def _place(src: Path, dst: Path, mode: str) -> None:
 
 def curate_scene(src: str | os.PathLike, out_root: str | os.PathLike, config: CurationConfig,
                  mode: str = "symlink") -> dict[str, Any]:
-    """Measure and judge one scene, place it in ``out_root`` if accepted, then write its record.
-
-    Order (for resumability): output folder/link first, record ``out_root/.curation/<scene>.json``
-    last, each atomically. An unreadable scene is rejected with reason ``"error"`` (never raises for
-    a bad scene).
-
-    Returns:
-        The manifest record ``{"scene", "accepted", "reasons", "messages", "stats"}``.
-    """
+    """Measure and judge one scene, place it in ``out_root`` if accepted, then write its record and return it.
+    An unreadable scene is rejected with reason ``"error"`` (never raises for a bad scene)."""
     src, out_root = Path(src), Path(out_root)
     try:
         scene = SceneReader(src)
@@ -354,8 +271,7 @@ def curate_scene(src: str | os.PathLike, out_root: str | os.PathLike, config: Cu
 
 
 def _curate_task(src: Path, out_root: Path, config: CurationConfig, mode: str) -> None:
-    """Curate scene ``src`` (the engine's task), unless a completed earlier attempt (a retried task, a resumed run)
-    wrote its record already."""
+    """The engine's task: curate ``src`` unless an earlier attempt wrote its record."""
     if not (out_root / RECORDS / f"{src.name}.json").is_file():
         curate_scene(src, out_root, config, mode)
 
@@ -374,11 +290,8 @@ def _remove_leftovers(out_root: Path) -> None:
 
 
 def read_manifest(path: str | os.PathLike) -> list[dict[str, Any]]:
-    """The records of a ``manifest.jsonl`` (or of an ``OUT`` folder holding one), in file order.
-
-    Raises:
-        FileNotFoundError: no manifest. ValueError: a line that is not a JSON object (line number named).
-    """
+    """The records of a ``manifest.jsonl`` (or of an ``OUT`` folder holding one), in file order. Raises
+    FileNotFoundError: no manifest; ValueError: a line that is not a JSON object (line number named)."""
     path = Path(path)
     if path.is_dir():
         path = path / MANIFEST
@@ -411,10 +324,8 @@ def _finalize(out_root: Path) -> list[dict[str, Any]]:
 
 
 def _check_out_root(in_root: Path, out_root: Path) -> None:
-    """``out_root`` may receive a curation: new, empty or an earlier curation (its ``curation.yaml``); never the
-    input, a folder holding it or inside it (the dataset would fail validation), a folder of other files (a user's
-    ``manifest.jsonl`` was replaced) or the places the output-folder policy protects (diff4splat's packages, the
-    current and home directories)."""
+    """Refuse an ``out_root`` that is not new, empty or an earlier curation, that is, holds or lies inside the input,
+    or that the output-folder policy protects."""
     check_output_dir(out_root, inputs=[in_root], overwrite=True, kind="curation", parents=True)
     if in_root.resolve() in out_root.resolve().parents:
         raise ValueError(f"the output folder {out_root} is inside the input {in_root}: the curation would become "
@@ -427,26 +338,15 @@ def _check_out_root(in_root: Path, out_root: Path) -> None:
 def curate(in_root: str | os.PathLike, out_root: str | os.PathLike, config: CurationConfig | None = None, *,
            workers: int = 1, mode: str = "symlink", progress: bool = True,
            engine: Engine | None = None) -> list[dict[str, Any]]:
-    """Curate every scene of ``in_root`` into ``out_root`` (resumable; see the module docstring).
+    """Curate every scene of the dataset root ``in_root`` into ``out_root`` (resumable; see the module docstring).
 
-    Args:
-        in_root: dataset root (folder of scene folders).
-        out_root: output folder (created); must not be ``in_root``.
-        config: thresholds; ``None`` → :class:`CurationConfig` defaults.
-        workers: processes (≥ 1); 1 runs in this process. Results do not depend on it.
-        engine: where the scenes are curated (:func:`data_prep.engine.check_engine`); ``None``: the local pool of
-            ``workers`` processes. Results do not depend on it either.
-        mode: one of :data:`MODES`.
-        progress: show a tqdm bar (on stderr).
+    ``config`` None: the defaults; ``engine`` None: the local pool of ``workers`` (≥ 1) processes (results depend on
+    neither); ``mode``: one of :data:`MODES`; ``progress``: a tqdm bar on stderr. Returns all manifest records (earlier
+    runs' too), sorted by scene.
 
-    Returns:
-        All manifest records (including those of earlier runs into ``out_root``), sorted by scene.
-
-    Raises:
-        FileNotFoundError: ``in_root`` is not a folder.
-        ValueError: bad ``workers``/``mode``; an ``in_root`` without scenes; an ``out_root`` that is ``in_root``,
-            holds it or lies inside it, holds other files than an earlier curation, or was curated before with a
-            different config or mode.
+    Raises FileNotFoundError: ``in_root`` is not a folder; ValueError: bad ``workers``/``mode``; an ``in_root`` without
+    scenes; an ``out_root`` that is ``in_root``, holds it or lies inside it, holds other files than an earlier curation,
+    or was curated before with a different config or mode.
     """
     config = config or CurationConfig()
     in_root, out_root = Path(in_root), Path(out_root)

@@ -1,27 +1,6 @@
-"""Where ``data_prep``'s per-scene work runs: the local process pool or Ray Data.
-
-Every ``data_prep`` command that maps over scenes (``synth``, ``convert --each``, ``curate``) hands its scene function
-and scene list to :func:`map_scenes`, with an :class:`Engine`:
-
-* ``local`` (default): scenes one after another in this process (``workers`` 1), or in a pool of ``workers`` spawned
-  processes (:class:`concurrent.futures.ProcessPoolExecutor`), one torch thread each, at most two scenes queued
-  per process. Nothing beyond the base install.
-* ``ray``: Ray Data (``ray.data.from_items(…).map(…)``, one block per scene, so a task is one scene) on the cluster
-  at ``ray_address`` (as ``ray.init`` takes it: ``"auto"`` for a running cluster, ``"ray://host:10001"`` for a
-  client), on the Ray this process already joined, or else on a local Ray started here with ``workers`` CPUs and
-  shut down afterwards. Each task asks for ``cpus_per_task`` CPUs and ``gpus_per_task`` GPUs. A task whose worker
-  dies (killed, OOM-killed, its node removed) is retried by Ray Data (its default: without limit, for system
-  failures); an exception raised by the scene function is not retried and fails the run with that exception.
-  Ray is the optional extra ``diff4splat[ray]``, imported only here and only for this engine.
-
-The engine decides where and in what order scenes are made, never what they hold: the scene functions seed every
-scene from its index, write it atomically (a temporary folder renamed into place) and return at once when their
-scene is already complete, so a retried task, a resumed run and either engine give the same bytes, each scene
-exactly once.
-
-Fault injection (for the retry tests): :func:`fault_point` kills its own process with SIGKILL once, the first time
-it is reached at the named stage for the named scene, when ``DIFF4SPLAT_FAULT`` holds ``"<stage>:<scene>:<flag file>"``
-(comma-separated for several; the flag file, created on that first time, makes it once per run).
+"""Where ``data_prep``'s per-scene work runs (:func:`map_scenes`): ``local``, this process or a pool of spawned
+processes, or ``ray``, Ray Data with one task per scene (the optional extra ``diff4splat[ray]``). The engine decides
+where and in what order scenes are made, never what they hold (DESIGN.md, "Data preparation at scale").
 """
 from __future__ import annotations
 
@@ -55,17 +34,9 @@ RAY_EXTRA = "pip install 'diff4splat[ray]'"
 
 @dataclass(frozen=True)
 class Engine:
-    """Where :func:`map_scenes` runs the scenes.
-
-    Attributes:
-        name: one of :data:`ENGINES`.
-        workers: local: processes (1 runs in this process); ray: the CPUs of a local Ray started here (a cluster's
-            own resources decide otherwise).
-        ray_address: ray: the cluster (``ray.init``'s ``address``); ``None`` joins the Ray this process has
-            joined, or starts a local one.
-        cpus_per_task: ray: CPUs each scene task asks for.
-        gpus_per_task: ray: GPUs each scene task asks for (``synth --device cuda``: 1).
-    """
+    """Where :func:`map_scenes` runs the scenes: ``name`` one of :data:`ENGINES`; ``workers``: local processes
+    (1: this process) or the CPUs of a Ray started here; ``ray_address``: ``ray.init``'s ``address`` (None: the Ray
+    this process joined, else a new local one); ``cpus_per_task``, ``gpus_per_task``: what each Ray task asks for."""
 
     name: str = "local"
     workers: int = 1
@@ -75,11 +46,7 @@ class Engine:
 
 
 def import_ray():
-    """Import Ray (the optional extra).
-
-    Raises:
-        MissingExtraError: Ray Data is not installed (the message names :data:`RAY_EXTRA`).
-    """
+    """Import Ray. Raises MissingExtraError: Ray Data is not installed (naming :data:`RAY_EXTRA`)."""
     try:
         import ray  # optional dependency (extra [ray])
         import ray.data  # noqa: F401  (Ray Data comes with ray[data])
@@ -90,18 +57,9 @@ def import_ray():
 
 def check_engine(name: str, workers: int = 1, ray_address: str | None = None, *, gpus_per_task: float = 0.0,
                  flags: bool = True) -> Engine:
-    """Check an engine request before any work: the name, the worker count, and for ``ray`` that Ray is installed.
-
-    Args:
-        flags: name the arguments by their ``data_prep`` flags (``--engine``, ``--workers``, ``--ray-address``).
-
-    Returns:
-        The :class:`Engine`.
-
-    Raises:
-        ValueError: an unknown engine, ``workers`` < 1, a ``ray_address`` without ``--engine ray``, an empty
-            address. MissingExtraError: Ray missing (:func:`import_ray`).
-    """
+    """The :class:`Engine` of a request, checked before any work (for ``ray``: that Ray is installed); ``flags``: name
+    the arguments by their ``data_prep`` flags. Raises ValueError: an unknown engine, ``workers`` < 1, a ``ray_address``
+    without ``--engine ray``, an empty address; MissingExtraError: Ray missing (:func:`import_ray`)."""
     flag = {"name": "--engine", "workers": "--workers", "ray_address": "--ray-address"} if flags else {}
     if name not in ENGINES:
         raise ValueError(f"{flag.get('name', 'engine')} must be one of {', '.join(ENGINES)}, got {name!r}")
@@ -137,9 +95,8 @@ def engine_from_args(args: argparse.Namespace) -> Engine:
 
 
 def fault_point(stage: str, scene: str) -> None:
-    """Kill this process (SIGKILL, as the OOM killer does) the first time ``stage`` is reached for ``scene`` while
-    :data:`FAULT_ENV` holds ``"<stage>:<scene>:<flag file>"`` (several, comma-separated); do nothing otherwise (see
-    the module docstring)."""
+    """Fault injection for the retry tests: SIGKILL this process the first time ``stage`` is reached for ``scene``
+    while :data:`FAULT_ENV` holds ``"<stage>:<scene>:<flag file>"`` (comma-separated; the flag file marks it done)."""
     for spec in filter(None, os.environ.get(FAULT_ENV, "").split(",")):
         want_stage, want_scene, flag = spec.split(":", 2)
         if (want_stage, want_scene) != (stage, scene):
@@ -154,23 +111,13 @@ def fault_point(stage: str, scene: str) -> None:
 
 def map_scenes(fn: Callable[[Any], Any], items: Iterable[Any], engine: Engine, *, desc: str = "scenes",
                progress: bool = True, bar: tqdm | None = None) -> None:
-    """Call ``fn(item)`` once for each item on ``engine``, waiting for all of them.
+    """Call the picklable ``fn(item)`` once for each picklable item on ``engine`` and wait for all; return values are
+    dropped.
 
-    ``fn`` must be picklable (a module-level function or a :func:`functools.partial` of one) and do the whole work
-    of its item, writing its output itself; its return value is dropped. Items are handed out in order (the local
-    engine draws them lazily from an iterator: the first one starts before the last one is known); they finish in
-    any order.
+    Items are handed out in order (the local engine draws them lazily) and finish in any order. ``progress``: a tqdm bar
+    labelled ``desc`` (local; or count on ``bar`` when given) or Ray Data's bars.
 
-    Args:
-        fn: the per-scene function.
-        items: the scenes' arguments (picklable).
-        engine: where to run them.
-        desc: the progress bar's label.
-        progress: show progress (local: a tqdm bar, or ``bar`` when given; ray: Ray Data's progress bars).
-        bar: a tqdm bar to count finished items on (local engine), e.g. one already counting skipped scenes.
-
-    Raises:
-        The first exception raised by ``fn`` (on the ray engine too: the scene function's own exception).
+    Raises the first exception raised by ``fn`` (on Ray too: ``fn``'s own exception).
     """
     if engine.name == "ray":
         items = list(items)
@@ -205,8 +152,7 @@ def _init_worker() -> None:
 
 
 def _collect(running: set, bar: tqdm) -> set:
-    """Wait until an item of ``running`` is finished; re-raise its failure or count it on ``bar``. Returns the
-    futures still running."""
+    """Wait for a future of ``running`` to finish, re-raise its failure or count it; return those still running."""
     done, pending = wait(running, return_when=FIRST_COMPLETED)
     for fut in done:
         fut.result()
@@ -215,9 +161,8 @@ def _collect(running: set, bar: tqdm) -> set:
 
 
 def _ray_row(row: dict[str, Any], fn: Callable[[Any], Any], items: Sequence[Any]) -> dict[str, Any]:
-    """Ray Data's map function: run item ``row["index"]`` (one torch thread per CPU the task holds). The scene
-    function's exception comes back pickled in ``row["error"]`` (Ray Data's own wrapper does not carry it to the
-    driver); a worker that dies returns nothing, and Ray retries the task."""
+    """Ray Data's map function: run item ``row["index"]``; ``fn``'s exception comes back pickled in ``row["error"]``
+    (Ray Data's own wrapper does not carry it to the driver)."""
     torch.set_num_threads(max(1, int(os.environ.get("OMP_NUM_THREADS", "1"))))
     try:
         fn(items[row["index"]])

@@ -1,18 +1,8 @@
-"""The dataset scene format (version 1): one folder per scene, written atomically, read lazily.
+"""The dataset scene format (version 1, specified in ``data_prep/FORMAT.md``): one folder per scene.
 
-The layout and every field are specified in ``data_prep/FORMAT.md``; in short::
-
-    <scene>/meta.json  caption.txt?  tracks.npz?
-    <scene>/<cam>/cameras.json            diff4splat cameras.json + "timestamps" (T,) seconds
-    <scene>/<cam>/rgb/00000.png …         8-bit RGB
-    <scene>/<cam>/depth/00000.exr …       float32 "Z", metric z-depth in metres, +inf = invalid
-
-:class:`SceneWriter` builds a scene in a temporary folder beside the target and renames it into
-place (:func:`diff4splat.io.output_folders`, kind ``"scene"``), so a scene folder is either complete or absent.
-:class:`SceneReader` (:func:`load_scene`) reads ``meta.json`` on open and everything else on demand.
-Validation of a whole folder is :func:`data_prep.validate.validate_scene`. The format's constants, ``meta.json``
-and the single-file readers live in :mod:`data_prep.scene_files` (below :mod:`data_prep.validate`, which this
-module uses) and are re-exported here.
+:class:`SceneWriter` writes a scene atomically (complete or absent); :class:`SceneReader` (:func:`load_scene`)
+reads ``meta.json`` on open and everything else on demand. The constants, ``meta.json`` and the single-file
+readers of :mod:`data_prep.scene_files` are re-exported here.
 """
 from __future__ import annotations
 
@@ -25,14 +15,7 @@ import numpy as np
 from torch import Tensor
 
 from diff4splat.cameras import CameraPath
-from diff4splat.io import (
-    load_cameras_json,
-    load_depth_exr,
-    output_dir,
-    save_cameras_json,
-    save_depth_exr,
-    save_image,
-)
+from diff4splat.io import load_cameras_json, load_depth_exr, output_dir, save_cameras_json, save_depth_exr, save_image
 from diff4splat.utils.checks import is_int
 
 from .engine import fault_point
@@ -62,24 +45,9 @@ from .scene_files import (
 )
 from .validate import validate_scene
 
-__all__ = [
-    "FORMAT_VERSION",
-    "SCENE_KIND",
-    "DEPTH_SOURCES",
-    "SYNC_TOLERANCE_S",
-    "TIMES_TOLERANCE",
-    "SceneMeta",
-    "SceneWriter",
-    "SceneReader",
-    "load_scene",
-    "list_scenes",
-    "check_dataset_root",
-    "frame_name",
-    "check_camera_name",
-    "read_rgb",
-    "read_timestamps",
-    "timestamps_to_times",
-]
+__all__ = ["FORMAT_VERSION", "SCENE_KIND", "DEPTH_SOURCES", "SYNC_TOLERANCE_S", "TIMES_TOLERANCE", "SceneMeta",
+           "SceneWriter", "SceneReader", "load_scene", "list_scenes", "check_dataset_root", "frame_name",
+           "check_camera_name", "read_rgb", "read_timestamps", "timestamps_to_times"]
 
 SCENE_KIND = "scene"
 """Output kind of a scene folder (:data:`diff4splat.io.MARKER`); ``replace=True`` replaces only these."""
@@ -98,39 +66,17 @@ def _check_depth(depth: Tensor | np.ndarray, shape: tuple[int, int]) -> np.ndarr
 
 
 class SceneWriter:
-    """Write one scene folder atomically (FORMAT.md).
+    """Write the scene folder ``path`` atomically (FORMAT.md), as a context manager: it is built in a temporary folder
+    beside ``path`` and renamed onto it when the block exits without error and every camera has all T RGB frames (and T
+    depth frames unless ``depth_source == "none"``); on any error ``path`` is left as it was.
 
-    Use as a context manager: the scene is built in a temporary folder beside ``path`` and renamed
-    onto ``path`` when the block exits without error and the scene is complete (every camera has all
-    T RGB frames, and all T depth frames unless ``depth_source == "none"``). By default the finished
-    temporary folder is also checked with :func:`data_prep.validate.validate_scene` before renaming.
-    On any error the temporary folder is deleted and ``path`` is left as it was.
+    ``source`` … ``depth_shift``, ``extra`` (more JSON keys): the meta fields (:class:`SceneMeta`; ``cameras`` is filled
+    by :meth:`add_camera`). ``replace``: replace a scene folder written by this writer; ``replace_flag``: the option
+    named in the refusal; ``validate``: check the folder (:func:`data_prep.validate.validate_scene`) first.
 
-    Example::
-
-        with SceneWriter(out / "scene_0000", source="synthetic", dynamic=True,
-                         depth_source="ground_truth", num_frames=T, fps=8.0) as w:
-            w.add_camera("cam00", camera_path)               # timestamps default to times·(T−1)/fps
-            for i in range(T):
-                w.write_frame("cam00", i, rgb[i], depth[i])  # (H, W, 3) [0, 1] or uint8; (H, W) metres
-            w.write_tracks(points, visibility)
-            w.write_caption("a red ball bounces while the camera orbits")
-
-    Args:
-        path: final scene folder.
-        source, dynamic, depth_source, num_frames, fps, depth_scale, depth_shift: meta fields
-            (:class:`SceneMeta`); ``cameras`` is filled by :meth:`add_camera` in call order.
-        extra: additional JSON-serialisable meta keys.
-        replace: replace an existing scene folder written by this writer (its marker, or empty);
-            otherwise ``FileExistsError`` on enter.
-        validate: run the full validator on the finished temporary folder before renaming.
-        replace_flag: the caller's option that sets ``replace`` (``--replace``), named in the refusal of an
-            existing scene folder it would replace (None: the error names none).
-
-    Raises:
-        ValueError: invalid meta fields (on construction) or an incomplete/invalid scene (on exit).
-        FileExistsError: ``path`` exists and ``replace`` is false.
-        OutputDirError: ``path`` may not be written (a file, a folder that is not a scene written here, …).
+    Raises ValueError: invalid meta fields (on construction) or an incomplete/invalid scene (on exit); FileExistsError:
+    ``path`` exists and ``replace`` is false; OutputDirError: ``path`` may not be written (a file, a folder that is not
+    a scene written here, …).
     """
 
     def __init__(self, path: str | os.PathLike, *, source: str, dynamic: bool, depth_source: str,
@@ -176,17 +122,13 @@ class SceneWriter:
         return self._tmp
 
     def add_camera(self, name: str, cameras: CameraPath, timestamps: np.ndarray | Tensor | None = None) -> None:
-        """Add camera ``name`` with its T cameras and writes ``<name>/cameras.json``.
+        """Add camera ``name`` (``[A-Za-z0-9_.-]+``; the first is the reference) and write its ``cameras.json``.
 
-        Args:
-            name: camera folder name ([A-Za-z0-9_.-]+); the first added is the reference camera.
-            cameras: T = num_frames cameras (validated :class:`CameraPath`).
-            timestamps: (T,) seconds, non-decreasing, with ``cameras.times`` equal to their
-                normalisation (FORMAT.md); ``None`` → times·(T−1)/fps.
+        ``cameras``: T = num_frames cameras; ``timestamps``: (T,) non-decreasing seconds whose normalisation (FORMAT.md)
+        equals ``cameras.times``; None → times·(T−1)/fps.
 
-        Raises:
-            ValueError: a bad or duplicate name, a path of the wrong length, or timestamps of the wrong
-                shape, non-finite, decreasing or inconsistent with ``cameras.times``.
+        Raises ValueError: a bad or duplicate name, a path of the wrong length, or timestamps of the wrong shape,
+        non-finite, decreasing, inconsistent with ``cameras.times`` or the reference camera's.
         """
         root = self.tmp_dir
         T = self.meta.num_frames
@@ -225,18 +167,12 @@ class SceneWriter:
 
     def write_frame(self, camera: str, index: int, rgb: Tensor | np.ndarray,
                     depth: Tensor | np.ndarray | None = None) -> None:
-        """Write frame ``index`` of ``camera``: ``rgb/{index:05d}.png`` and ``depth/{index:05d}.exr``.
+        """Write frame ``index`` (in [0, T)) of ``camera``: ``rgb/{index:05d}.png`` and ``depth/{index:05d}.exr``.
 
-        Args:
-            camera: a camera added with :meth:`add_camera`.
-            index: 0 ≤ index < T.
-            rgb: (H, W, 3) uint8, or float in [0, 1] (clipped and rounded to 8 bits).
-            depth: (H, W) metric z-depth, metres, > 0, +inf where invalid; required unless
-                ``depth_source == "none"`` (then it must be ``None``).
+        ``rgb``: (H, W, 3) uint8, or float in [0, 1] (rounded to 8 bits); ``depth``: (H, W) metric z-depth in metres, >
+        0, +inf where invalid; required unless ``depth_source == "none"`` (then None).
 
-        Raises:
-            ValueError: unknown camera, index out of range, wrong shapes, or invalid depth values
-                (NaN, −inf, ≤ 0: mark invalid pixels +inf).
+        Raises ValueError: unknown camera, index out of range, wrong shapes, or NaN, −inf or ≤ 0 depth.
         """
         if camera not in self._sizes:
             raise ValueError(f"unknown camera {camera!r}; call add_camera first")
@@ -257,12 +193,8 @@ class SceneWriter:
             self._written[camera][1].add(index)
 
     def write_tracks(self, points: np.ndarray | Tensor, visibility: np.ndarray | Tensor) -> None:
-        """Write ``tracks.npz``: points (P, T, 3) metres world frame, visibility (P, T) bool (FORMAT.md).
-
-        Raises:
-            ValueError: wrong shapes (T ≠ num_frames, P = 0), non-finite points, or a static scene
-                whose tracks move by more than 1e-6 m.
-        """
+        """Write ``tracks.npz``: points (P, T, 3) metres world frame, visibility (P, T) bool (FORMAT.md). Raises
+        ValueError: wrong shapes (T ≠ num_frames, P = 0), non-finite points, or moving tracks in a static scene."""
         pts = np.asarray(points.detach().cpu() if isinstance(points, Tensor) else points, dtype=np.float32)
         vis = np.asarray(visibility.detach().cpu() if isinstance(visibility, Tensor) else visibility)
         T = self.meta.num_frames
@@ -301,15 +233,8 @@ class SceneWriter:
 
 
 class SceneReader:
-    """Lazy read access to one scene folder (FORMAT.md). Only ``meta.json`` is read on open.
-
-    Args:
-        path: scene folder.
-
-    Raises:
-        FileNotFoundError: ``path`` is not a folder or has no ``meta.json``.
-        ValueError: invalid ``meta.json``.
-    """
+    """Lazy read access to the scene folder ``path`` (FORMAT.md); only ``meta.json`` is read on open. Raises
+    FileNotFoundError: ``path`` is not a folder or has no ``meta.json``; ValueError: an invalid ``meta.json``."""
 
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = Path(path)
@@ -349,11 +274,8 @@ class SceneReader:
         return folder / sub / frame_name(index, suffix)
 
     def cameras(self, camera: str) -> CameraPath:
-        """The :class:`CameraPath` of ``camera`` (cached): T viewmats (world-to-camera), Ks (pixels), times.
-
-        Raises:
-            ValueError: unknown camera or invalid ``cameras.json``. FileNotFoundError: file missing.
-        """
+        """The :class:`CameraPath` of ``camera`` (cached): T viewmats (world-to-camera), Ks (pixels), times. Raises
+        ValueError: unknown camera or invalid ``cameras.json``. FileNotFoundError: file missing."""
         if camera not in self._cameras:
             self._cameras[camera] = load_cameras_json(self._cam(camera) / CAMERAS_FILE)
         return self._cameras[camera]
@@ -367,13 +289,9 @@ class SceneReader:
         return cams.height, cams.width
 
     def rgb(self, camera: str, index: int) -> np.ndarray:
-        """Frame ``index`` of ``camera``: (H, W, 3) float32 RGB in [0, 1], the size of its ``cameras.json``.
-
-        Raises:
-            ValueError: unknown camera, index outside [0, T), an undecodable / non-RGB-8-bit file, or one of
-                another size than its camera's (naming the file; ``data_prep validate`` reports the same).
-            FileNotFoundError: the frame file is missing.
-        """
+        """Frame ``index`` of ``camera``: (H, W, 3) float32 RGB in [0, 1], the size of its ``cameras.json``. Raises
+        ValueError: unknown camera, index outside [0, T), an undecodable / non-RGB-8-bit file, or one of another size
+        than its camera's; FileNotFoundError: the frame file is missing."""
         f = self._frame(camera, index, RGB_DIR, RGB_SUFFIX)
         img = read_rgb(f)
         why = size_problem("image", img.shape, self._size(camera))
@@ -382,14 +300,9 @@ class SceneReader:
         return img
 
     def depth(self, camera: str, index: int) -> np.ndarray:
-        """Frame ``index`` of ``camera``: (H, W) float32 metric z-depth in metres, +inf where invalid.
-
-        Raises:
-            ValueError: the scene has no depth (``depth_source == "none"``), unknown camera, index out
-                of range, an unreadable EXR without a "Z" channel, a map of another size than its camera's or
-                with NaN, −inf or ≤ 0 values (naming the file; ``data_prep validate`` reports the same).
-            FileNotFoundError: the frame file is missing.
-        """
+        """Frame ``index`` of ``camera``: (H, W) float32 metric z-depth in metres, +inf where invalid. Raises
+        ValueError: the scene has no depth, unknown camera, index out of range, an EXR without a "Z" channel, of another
+        size than its camera's or with NaN, −inf or ≤ 0 values; FileNotFoundError: the frame file is missing."""
         if not self.has_depth:
             raise ValueError(f"scene {self.path} has no depth (depth_source='none')")
         f = self._frame(camera, index, DEPTH_DIR, DEPTH_SUFFIX)
@@ -400,11 +313,8 @@ class SceneReader:
         return z
 
     def tracks(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """``(points (P, T, 3) float32 metres world frame, visibility (P, T) bool)`` or None without tracks.npz.
-
-        Raises:
-            ValueError: the file is unreadable or misses ``points``/``visibility``.
-        """
+        """``(points (P, T, 3) float32 metres world frame, visibility (P, T) bool)`` or None without tracks.npz. Raises
+        ValueError: the file is unreadable or misses ``points``/``visibility``."""
         f = self.path / TRACKS_FILE
         if not f.is_file():
             return None
@@ -431,13 +341,9 @@ def load_scene(path: str | os.PathLike) -> SceneReader:
 
 
 def check_dataset_root(out: Path, what: str = "dataset root") -> None:
-    """Refuse to add scenes to ``out`` unless it is missing, empty or a dataset root: every entry but hidden ones (the
-    scene writers' temporaries) a scene folder (one with ``meta.json``). Scenes are added to a dataset, never mixed
-    into a folder of other files (a generate output, a user's folder: ``data_prep synth`` wrote into any folder).
-
-    Raises:
-        ValueError: the first entry that is not a scene folder, naming ``what`` (the flag) and ``out``.
-    """
+    """Refuse to add scenes to ``out`` unless it is missing, empty or a dataset root (every entry but hidden ones, the
+    writers' temporaries, a scene folder). Raises ValueError: the first entry that is not a scene folder, naming
+    ``what`` (the flag) and ``out``."""
     if not out.is_dir():
         return
     for entry in sorted(out.iterdir()):

@@ -1,11 +1,6 @@
-"""What a scene folder holds, file by file (``data_prep/FORMAT.md``): the one home of its file and folder names
-(:data:`META_FILE`, :data:`CAMERAS_FILE`, :data:`CAPTION_FILE`, :data:`TRACKS_FILE`, the frame folders
-:data:`RGB_DIR` and :data:`DEPTH_DIR` and :func:`frame_name`), the format's constants, ``meta.json``
-(:class:`SceneMeta`), and the readers of single files (timestamps, RGB frames).
-
-The lowest module of the format: :mod:`data_prep.validate` checks scenes with it, and :mod:`data_prep.format`
-(the scene writer and reader) builds on both and re-exports the names of the format, so ``from data_prep.format import
-SceneMeta`` keeps working.
+"""What a scene folder holds, file by file (``data_prep/FORMAT.md``): its file and folder names, the format's
+constants, ``meta.json`` (:class:`SceneMeta`) and the readers of single files. The lowest module of the format
+(below :mod:`data_prep.validate` and :mod:`data_prep.format`, which re-exports it).
 """
 from __future__ import annotations
 
@@ -21,30 +16,10 @@ from diff4splat.io.image import read_image
 from diff4splat.io.structured import read_json
 from diff4splat.utils.checks import check_int, check_number, is_int, is_number
 
-__all__ = [
-    "META_FILE",
-    "CAMERAS_FILE",
-    "CAPTION_FILE",
-    "TRACKS_FILE",
-    "RGB_DIR",
-    "RGB_SUFFIX",
-    "DEPTH_DIR",
-    "DEPTH_SUFFIX",
-    "FORMAT_VERSION",
-    "DEPTH_SOURCES",
-    "SYNC_TOLERANCE_S",
-    "TIMES_TOLERANCE",
-    "SceneMeta",
-    "list_scenes",
-    "is_scene",
-    "frame_name",
-    "check_camera_name",
-    "read_rgb",
-    "read_timestamps",
-    "timestamps_to_times",
-    "size_problem",
-    "depth_values_problem",
-]
+__all__ = ["META_FILE", "CAMERAS_FILE", "CAPTION_FILE", "TRACKS_FILE", "RGB_DIR", "RGB_SUFFIX", "DEPTH_DIR",
+           "DEPTH_SUFFIX", "FORMAT_VERSION", "DEPTH_SOURCES", "SYNC_TOLERANCE_S", "TIMES_TOLERANCE", "SceneMeta",
+           "list_scenes", "is_scene", "frame_name", "check_camera_name", "read_rgb", "read_timestamps",
+           "timestamps_to_times", "size_problem", "depth_values_problem"]
 
 META_FILE = "meta.json"
 """A scene's description (:class:`SceneMeta`); a folder holding one is a scene (:func:`is_scene`)."""
@@ -65,10 +40,8 @@ FORMAT_VERSION = 1
 """Version of ``data_prep/FORMAT.md`` written by this module."""
 DEPTH_SOURCES: tuple[str, ...] = ("ground_truth", "aligned_estimate", "none")
 """Allowed values of ``meta["depth_source"]``."""
-
 SYNC_TOLERANCE_S = 1e-3
 """Cameras are synchronised when their timestamps agree within this many seconds."""
-
 TIMES_TOLERANCE = 1e-4
 """``times`` must equal the normalised ``timestamps`` within this (times are in [0, 1])."""
 
@@ -89,23 +62,8 @@ def frame_name(index: int, suffix: str) -> str:
 
 @dataclass
 class SceneMeta:
-    """The typed content of ``meta.json`` (FORMAT.md, "meta.json").
-
-    Attributes:
-        source: dataset name, e.g. ``"synthetic"``, ``"pointodyssey"``.
-        dynamic: anything in the scene moves (False: static world, only cameras move).
-        depth_source: one of :data:`DEPTH_SOURCES`.
-        num_frames: T ≥ 1 frames per camera.
-        cameras: camera folder names, reference camera first, unique.
-        fps: nominal frame rate of the stored frames, Hz, > 0.
-        depth_scale: > 0; metric = depth_scale·estimate + depth_shift was applied (1 for ground truth).
-        depth_shift: metres (0 for ground truth).
-        format_version: must be :data:`FORMAT_VERSION`.
-        extra: any other keys, kept as is (JSON-serialisable).
-
-    Raises:
-        ValueError: naming the field and the value, on construction.
-    """
+    """The typed content of ``meta.json``; each field is specified in FORMAT.md ("meta.json"). ``extra`` holds any
+    other JSON-serialisable keys. Raises ValueError naming the field and the value, on construction."""
 
     source: str
     dynamic: bool
@@ -125,9 +83,7 @@ class SceneMeta:
         self.validate()
 
     def validate(self) -> None:
-        """Check every field's type and value (FORMAT.md table) with :mod:`diff4splat.utils.checks`; numbers are kept
-        as Python ``int``/``float`` (numpy scalars are accepted and converted, so ``meta.json`` can be written).
-        Raises ValueError naming the field."""
+        """Check every field (FORMAT.md table); numpy scalars become Python numbers. Raises ValueError naming it."""
         if not is_int(self.format_version) or self.format_version != FORMAT_VERSION:
             raise ValueError(f"format_version must be {FORMAT_VERSION}, got {self.format_version!r}")
         self.format_version = FORMAT_VERSION
@@ -159,11 +115,7 @@ class SceneMeta:
 
     @classmethod
     def from_dict(cls, data: Any) -> SceneMeta:
-        """Parse a ``meta.json`` object.
-
-        Raises:
-            ValueError: not an object, a missing key (named) or a field failing :meth:`validate`.
-        """
+        """Parse a ``meta.json`` object. Raises ValueError: not an object, a missing key or an invalid field."""
         if not isinstance(data, dict):
             raise ValueError(f"meta must be a JSON object, got {type(data).__name__}")
         missing = [k for k in cls._KEYS if k not in data]
@@ -174,12 +126,7 @@ class SceneMeta:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> SceneMeta:
-        """Read and parse ``meta.json``.
-
-        Raises:
-            FileNotFoundError: ``path`` does not exist.
-            ValueError: invalid JSON or an invalid field (message prefixed with the path).
-        """
+        """Read and parse ``meta.json``. Raises FileNotFoundError, or ValueError (invalid JSON or field) naming it."""
         data = read_json(path, "scene meta", expect=None)
         try:
             return cls.from_dict(data)
@@ -188,22 +135,17 @@ class SceneMeta:
 
 
 def timestamps_to_times(timestamps: np.ndarray) -> np.ndarray:
-    """Clip times t_i = (ts_i − ts_0)/(ts_{T−1} − ts_0) in [0, 1] of timestamps (T,) seconds.
-
-    T = 1, or equal first and last timestamps, gives all zeros. Returns float64 (T,).
-    """
+    """Clip times t_i = (ts_i − ts_0)/(ts_{T−1} − ts_0), float64 (T,) in [0, 1], of timestamps (T,) seconds; all
+    zeros when the first and last timestamps are equal."""
     ts = np.asarray(timestamps, dtype=np.float64)
     span = ts[-1] - ts[0] if ts.size else 0.0
     return (ts - ts[0]) / span if span > 0 else np.zeros_like(ts)
 
 
 def read_timestamps(path: str | os.PathLike) -> np.ndarray:
-    """The ``"timestamps"`` (T,) float64 seconds of a scene camera's ``cameras.json``.
-
-    Raises:
-        FileNotFoundError: ``path`` does not exist.
-        ValueError: invalid JSON, missing ``timestamps``, not a list of finite numbers, or decreasing.
-    """
+    """The ``"timestamps"`` (T,) float64 seconds of a scene camera's ``cameras.json``. Raises FileNotFoundError:
+    ``path`` does not exist; ValueError: invalid JSON, missing ``timestamps``, not a list of finite numbers, or
+    decreasing."""
     path = Path(path)
     data = read_json(path, "camera file", expect=None)
     ts = data.get("timestamps") if isinstance(data, dict) else None
@@ -216,17 +158,9 @@ def read_timestamps(path: str | os.PathLike) -> np.ndarray:
 
 
 def read_rgb(path: str | os.PathLike) -> np.ndarray:
-    """Decode an 8-bit 3-channel RGB image file to (H, W, 3) float32 in [0, 1] (value/255).
-
-    Decoded by :func:`diff4splat.io.image.read_image`: its pixel count is checked against the ``image_pixels``
-    limit from the header before decoding, and a path that is not a regular file is named as what it is.
-
-    Raises:
-        FileNotFoundError: nothing exists at ``path``.
-        ValueError: ``path`` is a folder, a FIFO or a symlink loop; the file cannot be decoded, has more pixels
-            than the ``image_pixels`` limit (:class:`diff4splat.utils.limits.LimitError`), or is not 8-bit with exactly
-            3 channels.
-    """
+    """Decode an 8-bit RGB image file (:func:`diff4splat.io.image.read_image`) to (H, W, 3) float32 in [0, 1]. Raises
+    FileNotFoundError: nothing exists at ``path``; ValueError: not a regular file, undecodable, over the
+    ``image_pixels`` limit (:class:`diff4splat.utils.limits.LimitError`), or not 8-bit with exactly 3 channels."""
     img = read_image(path)
     if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
         ch = img.shape[2] if img.ndim == 3 else 1
@@ -235,11 +169,8 @@ def read_rgb(path: str | os.PathLike) -> np.ndarray:
 
 
 def list_scenes(root: str | os.PathLike) -> list[Path]:
-    """Scene folders of a dataset root: sorted sub-folders holding ``meta.json``, hidden ones skipped.
-
-    Raises:
-        FileNotFoundError: ``root`` is not a folder.
-    """
+    """Scene folders of a dataset root: sorted non-hidden sub-folders holding ``meta.json``. Raises FileNotFoundError:
+    ``root`` is not a folder."""
     root = Path(root)
     if not root.is_dir():
         raise FileNotFoundError(f"dataset folder not found: {root}")
@@ -247,22 +178,19 @@ def list_scenes(root: str | os.PathLike) -> list[Path]:
 
 
 def is_scene(folder: str | os.PathLike) -> bool:
-    """True when ``folder`` holds a :data:`META_FILE` (a regular file, or a link to one): a scene, complete, since
-    the writer renames a scene into place only when every file is written."""
+    """True when ``folder`` holds a :data:`META_FILE` (file or link to one): a complete scene (writes are atomic)."""
     return (Path(folder) / META_FILE).is_file()
 
 
 def size_problem(kind: str, shape: tuple[int, ...], size: tuple[int, int]) -> str | None:
-    """Why a frame of ``shape`` (H, W, …) does not fit its camera's ``size`` (H, W), or None: "image is 40×40,
-    cameras.json says 32×32" (``kind``: "image" or "depth")."""
+    """Why a ``kind`` ("image", "depth") frame of ``shape`` (H, W, …) does not fit its camera's (H, W), or None."""
     if tuple(shape[:2]) == tuple(size):
         return None
     return f"{kind} is {shape[1]}×{shape[0]}, {CAMERAS_FILE} says {size[1]}×{size[0]}"
 
 
 def depth_values_problem(z: np.ndarray) -> str | None:
-    """Why a depth map (H, W) breaks FORMAT.md (metres > 0, +inf where invalid), or None: the counts of NaN, −inf
-    and ≤ 0 values (a negative depth back-projects behind its camera)."""
+    """Why a depth map (H, W) breaks FORMAT.md (metres > 0, +inf where invalid): counts of NaN, −inf, ≤ 0; or None."""
     nan, neginf, nonpos = int(np.isnan(z).sum()), int(np.isneginf(z).sum()), int((z <= 0).sum())
     if not (nan or neginf or nonpos):
         return None

@@ -1,27 +1,11 @@
 """Synthetic dynamic scenes made of 3D Gaussians, rendered with diff4splat's renderer (``data_prep synth``).
 
-A scene spec (:func:`data_prep.synth_world.sample_scene_spec`) becomes a
-:class:`~diff4splat.scene.dynamic.DynamicGaussians`: a textured ground disk and cylindrical backdrop wall
-(flat Gaussians on a grid) plus 1–4 objects (flat Gaussians on their surfaces), coloured by a
-procedural texture (checker, stripes, spotted noise blobs) or, with probability ``texture_ratio`` per
-surface, a crop of a bundled real photograph (:mod:`data_prep.textures`; image-textured ground and wall
-get :data:`IMAGE_SPACING` × the Gaussian spacing), plus per-Gaussian jitter, times a Lambertian
-shading term ``ambient + (1 − ambient)·max(0, n·l)`` with a sampled light direction l and tint,
-baked into the degree-0 SH. Object motions (translate/roll, rotate, bounce, deform; formulas in
-:mod:`data_prep.synth_world`) become per-frame deformation maps at the frame times t_i = i/(T−1), so
-``scene.at(t_i)`` holds the exact moved Gaussians. Each camera path is rendered with
-:func:`diff4splat.render.render_path`; depth is the rendered expected z-depth (metres) where the
-accumulated opacity is ≥ 0.5 and +inf elsewhere.
-
-Tracks are the exact world positions of up to 256 object Gaussian means (the same positions the
-renderer draws). Visibility follows FORMAT.md: in front of the reference camera, inside its image
-and not occluded — its rendered depth at the containing pixel ≥ z − (0.05 m + 0.03·z).
-
-Determinism: scene ``index`` of run ``seed`` samples everything from
-``numpy.random.default_rng([seed, index])`` and renders with one torch thread, so scenes are
-identical whether made serially, in parallel or on resume. Image textures are drawn after the procedural
-spec, so ``texture_ratio`` changes only textures (and ground/wall density), and ``texture_ratio`` = 0
-reproduces the procedural-only scenes bit for bit.
+A spec (:func:`data_prep.synth_world.sample_scene_spec`) becomes a :class:`~diff4splat.scene.dynamic.DynamicGaussians`
+of flat Gaussians on a ground disk, a cylindrical wall and 1–4 objects, textured (:mod:`data_prep.textures`) and shaded
+``ambient + (1 − ambient)·max(0, n·l)`` into the degree-0 SH, deformed at the frame times t_i = i/(T−1). Depth is the
+rendered z-depth (metres) where opacity ≥ 0.5, else +inf; tracks are exact object Gaussian means. Scene ``index`` of
+run ``seed`` draws everything from ``default_rng([seed, index])`` and renders on one thread: the same bytes serially,
+in parallel or on resume.
 """
 from __future__ import annotations
 
@@ -60,13 +44,10 @@ MAX_TRACKS = 256
 """Tracked object points per scene (fewer if the objects have fewer Gaussians)."""
 VISIBILITY_TOL_M = 0.05
 VISIBILITY_TOL_REL = 0.03
-"""Occlusion tolerance VISIBILITY_TOL_M + VISIBILITY_TOL_REL·z, metres (FORMAT.md, tracks). The rendered
-expected depth averages the depths of the Gaussian centres covering a pixel, weighted front to back,
-so on a curved or slanted surface it lies a few centimetres in front of a surface point (≈ spacing ×
-slope, up to about 0.1 m at 3 m here); back sides of objects lie ≥ 0.3 m behind their front."""
+"""Occlusion tolerance VISIBILITY_TOL_M + VISIBILITY_TOL_REL·z, metres (FORMAT.md, tracks): the rendered depth
+averages Gaussian-centre depths, so it lies up to about 0.1 m in front of a slanted surface at 3 m."""
 IMAGE_SPACING = 0.5
-"""Ground and wall Gaussians with an image texture lie this factor closer (4× as many): at the procedural
-spacing (0.25 m at 64 px) a photograph's detail would blur into a few colour blobs."""
+"""Spacing factor of image-textured ground and wall Gaussians (4× as many), so a photograph's detail survives."""
 _WALL_HEIGHT = 4.0
 _UP = np.array([0.0, -1.0, 0.0])  # world up (y points down)
 
@@ -75,8 +56,6 @@ def scene_name(index: int) -> str:
     """Folder name of scene ``index``: ``scene_00007``."""
     return f"scene_{index:05d}"
 
-
-# --------------------------------------------------------------------------- geometry and colour
 
 def _tangent_frames(normals: np.ndarray) -> np.ndarray:
     """(N, 3, 3) rotations whose columns are (t1, t2, n): local → world frames of flat Gaussians."""
@@ -87,12 +66,9 @@ def _tangent_frames(normals: np.ndarray) -> np.ndarray:
     return np.stack([t1, t2, normals], axis=-1)
 
 
-def _texture_rgb(
-    rng: np.random.Generator, tex: dict, base: list[float], uv: np.ndarray, extent: np.ndarray, spacing: float
-) -> np.ndarray:
-    """Albedo (N, 3) of a texture at surface coordinates ``uv`` (N, 2) metres plus per-Gaussian jitter
-    ``noise``·N(0, 1) (one draw per Gaussian, grey). Procedural kinds use ``base``, ``extent`` (2,) metres;
-    ``"image"`` samples :func:`data_prep.textures.image_albedo` with the Gaussian ``spacing`` (metres)."""
+def _texture_rgb(rng: np.random.Generator, tex: dict, base: list[float], uv: np.ndarray, extent: np.ndarray,
+                 spacing: float) -> np.ndarray:
+    """Albedo (N, 3) of a texture at surface coordinates ``uv`` (N, 2) metres plus grey jitter ``noise``·N(0, 1)."""
     if tex["kind"] == "image":
         return image_albedo(tex, uv, spacing) + tex["noise"] * rng.standard_normal((len(uv), 1))
     c1, c2 = np.asarray(base), np.asarray(tex["color2"])
@@ -174,13 +150,8 @@ def _density(tex: dict) -> float:
 
 
 def build_gaussians(spec: dict[str, Any], rng: np.random.Generator) -> tuple[Gaussians, np.ndarray]:
-    """Canonical (t = 0) Gaussians of a scene spec.
-
-    Returns:
-        Gaussians (float32; ground, wall, then objects; flat discs: in-plane σ = 0.7·spacing, normal σ
-        = 0.1 of that; ground/wall spacing 0.25 m·min(1, 64/size)^½ (wall ×1.2), × :data:`IMAGE_SPACING`
-        where image-textured), and object_id (M,) int64: −1 for ground/wall, k for ``spec["objects"][k]``.
-    """
+    """Canonical (t = 0) float32 Gaussians of a scene spec (ground, wall, then objects; flat discs of in-plane
+    σ = 0.7·spacing) and the object id (M,) int64 of each: −1 for ground/wall, k for ``spec["objects"][k]``."""
     parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, float, float, int]] = []  # pts, nrm, rgb, sigma, opacity, id
     R, gy, light = spec["room_radius"], spec["ground_y"], spec["light"]
     sp = 0.25 * min(1.0, 64 / spec["size"]) ** 0.5
@@ -224,16 +195,9 @@ def build_gaussians(spec: dict[str, Any], rng: np.random.Generator) -> tuple[Gau
     return Gaussians(f32(means), quats, f32(scales), f32(opac), rgb_to_sh0(f32(rgb))[:, None, :]), ids
 
 
-# --------------------------------------------------------------------------- motion and cameras
-
 def object_transform(obj: dict[str, Any], t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Pose of an object at clip time t ∈ [0, 1]: p(t) = p0 + d + R·(S ⊙ (p − p0)).
-
-    Motion formulas: :mod:`data_prep.synth_world` docstring. A static object gives d = 0, R = I, S = 1.
-
-    Returns:
-        pivot p0 (3,), displacement d (3,) metres, rotation R (3, 3), scale factors S (3,) — float64.
-    """
+    """Pose of an object at clip time t ∈ [0, 1], p(t) = p0 + d + R·(S ⊙ (p − p0)) (motions:
+    :mod:`data_prep.synth_world`): float64 pivot p0 (3,), displacement d (3,) metres, R (3, 3), scales S (3,)."""
     m, c = obj["motion"], np.asarray(obj["center"], dtype=np.float64)
     d, R, S = np.zeros(3), np.eye(3), np.ones(3)
     if m is None:
@@ -287,14 +251,9 @@ def build_scene(spec: dict[str, Any], rng: np.random.Generator) -> tuple[Dynamic
 
 
 def camera_path(spec: dict[str, Any], cam: dict[str, Any]) -> CameraPath:
-    """T cameras of one sampled camera (square images of ``spec["size"]`` pixels).
-
-    Base pose: eye at azimuth θ, horizontal distance ``distance`` from the scene centre
-    (eye = (d·sin θ, ground_y − height, −d·cos θ)), looking at the point ``target_height`` above the
-    centre; f = horizontal forward, r = horizontal right. Motions over t ∈ [0, 1] (``delta``):
-    orbit θ(t) = θ + δ·t (δ > 0: eye moves to the camera's right); dolly eye, target += δ·t·f;
-    truck eye, target += δ·t·r; pan: target direction turns by δ·t towards r (δ > 0: right); static.
-    """
+    """T cameras of one sampled camera (square images of ``spec["size"]`` pixels): eye at azimuth θ and distance d,
+    (d·sin θ, ground_y − height, −d·cos θ), looking ``target_height`` above the centre; over t ∈ [0, 1] orbit
+    θ += δ·t, dolly / truck move eye and target by δ·t along forward / right, pan turns by δ·t towards right."""
     T, size = spec["num_frames"], spec["size"]
     t = np.linspace(0.0, 1.0, T) if T > 1 else np.zeros(1)
     gy, d = spec["ground_y"], cam["distance"]
@@ -320,19 +279,9 @@ def camera_path(spec: dict[str, Any], cam: dict[str, Any]) -> CameraPath:
     return CameraPath(viewmats, K.expand(T, 3, 3).clone(), size, size)
 
 
-# --------------------------------------------------------------------------- tracks, scenes, driver
-
 def track_visibility(points: np.ndarray, cameras: CameraPath, depth: np.ndarray) -> np.ndarray:
-    """Visibility (P, T) bool of world points in the reference camera (FORMAT.md, tracks.npz).
-
-    Visible at frame i iff z > 0 in camera i, the projection (u, v) = (fx·x/z + cx, fy·y/z + cy)
-    lies in [0, W) × [0, H), and depth[i, ⌊v⌋, ⌊u⌋] ≥ z − (VISIBILITY_TOL_M + VISIBILITY_TOL_REL·z).
-
-    Args:
-        points: (P, T, 3) world positions, metres.
-        cameras: the reference camera's T cameras.
-        depth: (T, H, W) its rendered z-depth, metres (+inf where empty).
-    """
+    """Visibility (P, T) bool of world points (P, T, 3) metres in the reference camera's T ``cameras`` with rendered
+    ``depth`` (T, H, W) metres (FORMAT.md, tracks.npz; tolerance :data:`VISIBILITY_TOL_M` + VISIBILITY_TOL_REL·z)."""
     V = cameras.viewmats.double().cpu().numpy()
     K = cameras.Ks.double().cpu().numpy()
     cam = np.einsum("tij,ptj->pti", V[:, :3, :3], points.astype(np.float64)) + V[None, :, :3, 3]
@@ -350,20 +299,9 @@ def track_visibility(points: np.ndarray, cameras: CameraPath, depth: np.ndarray)
 
 @dataclass
 class SynthScene:
-    """A rendered synthetic scene, before writing.
-
-    Attributes:
-        spec: the scene spec (:func:`data_prep.synth_world.sample_scene_spec`).
-        scene: its Gaussians with deformation at the T frame times (static: none).
-        object_ids: (M,) int64 object index of every Gaussian, −1 for ground/wall.
-        cameras: one :class:`CameraPath` per camera, reference first.
-        rgb: per camera (T, H, W, 3) float32 in [0, 1].
-        depth: per camera (T, H, W) float32 metres, +inf where the accumulated opacity < 0.5.
-        track_ids: (P,) indices of the tracked Gaussians.
-        points: (P, T, 3) float32 world positions of the tracked Gaussian means, metres.
-        visibility: (P, T) bool in the reference camera (:func:`track_visibility`).
-        caption: one line (:func:`data_prep.synth_world.caption_for`).
-    """
+    """A rendered synthetic scene, before writing: per camera (reference first) a path, rgb (T, H, W, 3) float32 in
+    [0, 1] and depth (T, H, W) float32 metres; ``object_ids`` (M,) as :func:`build_gaussians`; the tracked
+    Gaussians ``track_ids`` (P,), their ``points`` (P, T, 3) float32 metres and ``visibility`` (P, T) bool."""
 
     spec: dict[str, Any]
     scene: DynamicGaussians
@@ -378,13 +316,9 @@ class SynthScene:
 
 
 def render_spec(spec: dict[str, Any], rng: np.random.Generator, device: str | torch.device = "cpu") -> SynthScene:
-    """Build, render and track a scene spec (one torch thread, restored afterwards).
-
-    ``rng`` supplies the per-Gaussian texture jitter and the choice of tracked points, so the same
-    spec and generator state give identical arrays. The scene is built on the CPU and rendered on ``device``
-    (CUDA: gsplat when installed, whose images differ from the CPU renderer's by float rounding and its 0.999
-    alpha clamp); the returned arrays and scene are on the CPU.
-    """
+    """Build, render (on ``device``; one torch thread) and track a scene spec; the result is on the CPU. ``rng``
+    draws the texture jitter and the tracked points. CUDA renders with gsplat when installed (float rounding and
+    its 0.999 alpha clamp differ from the CPU renderer)."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -413,11 +347,8 @@ def render_spec(spec: dict[str, Any], rng: np.random.Generator, device: str | to
 
 def write_synth_scene(path: str | os.PathLike, result: SynthScene, extra: dict[str, Any] | None = None,
                       replace: bool = False) -> Path:
-    """Write a :class:`SynthScene` as a scene folder (FORMAT.md) atomically; cameras ``cam00``, ``cam01``, ….
-
-    meta.json gets ``source: "synthetic"``, ``depth_source: "ground_truth"`` and ``"synth"``: the spec
-    plus ``extra``. Returns the folder.
-    """
+    """Write a :class:`SynthScene` as a scene folder atomically (cameras ``cam00``, …; meta ``"synth"``: the spec
+    plus ``extra``) and return it."""
     spec, T = result.spec, result.spec["num_frames"]
     with SceneWriter(path, source="synthetic", dynamic=spec["dynamic"], depth_source="ground_truth", num_frames=T,
                      fps=spec["fps"], extra={"synth": {**(extra or {}), "spec": spec}}, replace=replace) as w:
@@ -435,19 +366,9 @@ def generate_scene(out_dir: str | os.PathLike, index: int, seed: int, *, size: i
                    frames: int = DEFAULT_FRAMES, cameras: int = DEFAULT_CAMERAS,
                    static_ratio: float = DEFAULT_STATIC_RATIO, texture_ratio: float = DEFAULT_TEXTURE_RATIO,
                    replace: bool = False, device: str | torch.device = "cpu") -> Path:
-    """Sample, render and write scene ``index`` of run ``seed`` to ``out_dir/scene_{index:05d}`` (atomic).
-
-    The scene is static (no object motion) with probability ``static_ratio``, drawn from the scene's
-    own generator ``numpy.random.default_rng([seed, index])``, which then samples the spec
-    (:func:`sample_scene_spec`; each surface gets an image texture with probability ``texture_ratio``)
-    and drives :func:`render_spec`, which renders on ``device``.
-
-    Returns:
-        The scene folder.
-
-    Raises:
-        FileExistsError: the scene exists and ``replace`` is false.
-    """
+    """Sample, render (on ``device``) and write scene ``index`` of run ``seed`` to ``out_dir/scene_{index:05d}``;
+    static with probability ``static_ratio``, each surface image-textured with probability ``texture_ratio``.
+    Returns the folder. Raises FileExistsError: the scene exists and ``replace`` is false."""
     rng = np.random.default_rng([seed, index])
     dynamic = bool(rng.random() >= static_ratio)
     spec = sample_scene_spec(rng, dynamic=dynamic, num_cameras=cameras, size=size, num_frames=frames,

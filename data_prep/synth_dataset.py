@@ -34,12 +34,9 @@ float32 copy the scene holds (40)."""
 
 
 def max_gaussians(size: int) -> int:
-    """An upper bound of the Gaussians of any scene of ``size`` pixels (:func:`build_gaussians`).
-
-    Ground and wall Gaussians lie on grids of spacing sp = 0.25 m·min(1, 64/size)^½, halved where image-textured
-    (:data:`IMAGE_SPACING`): at most π·6²/(sp/2)² on the ground disk of radius ≤ 6 m and 2π·6·4/(0.6·sp)² on the
-    4 m wall, together 13 940·max(1, size/64); at most 4 objects of ≤ 800 surface samples each add 3 200.
-    """
+    """An upper bound of the Gaussians of any scene of ``size`` pixels (:func:`data_prep.synth.build_gaussians`):
+    ground and wall grids of spacing sp = 0.25 m·min(1, 64/size)^½, halved where image-textured, hold at most
+    13 940·max(1, size/64); at most 4 objects of ≤ 800 surface samples add 3 200."""
     return 14_000 * max(1, math.ceil(size / 64)) + 3_200
 
 
@@ -56,17 +53,13 @@ _FLAGS = {"num_scenes": "--scenes", "seed": "--seed", "size": "--size", "frames"
 
 def check_synth_request(num_scenes: int, seed: int, *, size: int, frames: int, cameras: int, workers: int,
                         static_ratio: float, texture_ratio: float, flags: bool = False) -> None:
-    """Check :func:`synthesize`'s arguments and limits before anything is created or allocated.
+    """Check :func:`synthesize`'s arguments and limits before anything is created; ``flags``: name the arguments by
+    their ``data_prep synth`` flags.
 
-    Args:
-        flags: name the arguments by their ``data_prep synth`` flags (``--scenes``, ``--size``, …) instead of
-            their parameter names.
-
-    Raises:
-        ValueError: an argument out of range (named). :class:`diff4splat.utils.limits.LimitError` (a ValueError):
-            ``num_scenes`` above the ``scenes`` limit, ``size`` above ``resolution``, ``frames`` above ``frames``,
-            :func:`scene_bytes` above ``synth_bytes``, or this process's memory plus one scene per worker above the
-            memory it may use (:func:`diff4splat.utils.limits.check_memory`: the machine's, its cgroup's, its ulimits).
+    Raises ValueError: an argument out of range (named). :class:`diff4splat.utils.limits.LimitError` (a ValueError):
+    ``num_scenes`` above the ``scenes`` limit, ``size`` above ``resolution``, ``frames`` above ``frames``,
+    :func:`scene_bytes` above ``synth_bytes``, or this process's memory plus one scene per worker above what it may use
+    (:func:`diff4splat.utils.limits.check_memory`).
     """
     name = _FLAGS.get if flags else str
     check_limit("scenes", check_int(name("num_scenes"), num_scenes, 1), name("num_scenes"))
@@ -86,8 +79,7 @@ def check_synth_request(num_scenes: int, seed: int, *, size: int, frames: int, c
 
 
 def _make_scene(index: int, out: Path, seed: int, kw: dict) -> None:
-    """Scene ``index`` of the run (the engine's task): made and written atomically, or left as it is when a
-    completed earlier attempt (a retried task, a resumed run) wrote it already."""
+    """The engine's task: make scene ``index`` unless an earlier attempt wrote it."""
     if is_scene(out / scene_name(index)):
         return
     generate_scene(out, index, seed, **kw)
@@ -98,41 +90,18 @@ def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, si
                frames: int = DEFAULT_FRAMES, cameras: int = DEFAULT_CAMERAS, static_ratio: float = DEFAULT_STATIC_RATIO,
                texture_ratio: float = DEFAULT_TEXTURE_RATIO, workers: int = 1,
                progress: bool = True, device: str | torch.device = "cpu", engine: Engine | None = None) -> list[Path]:
-    """Generate scenes 0 … num_scenes−1 into ``out_dir``, skipping scenes already present (resume).
+    """Generate scenes 0 … num_scenes−1 into the dataset root ``out_dir``, skipping scenes already present (resume).
 
-    Every argument and limit is checked first (:func:`check_synth_request`): a refused request creates nothing.
-    Scene ``i`` depends on ``seed`` and ``i`` alone, and is written atomically by :func:`generate_scene`, so the
-    dataset is the same bytes whatever the engine, worker count or order. The local engine goes through the scenes
-    in index order, skipping the existing ones as they come (the first new scene is written without looking at the
-    later ones first; a tqdm bar counts finished and skipped scenes); with ``workers`` > 1 scenes are made in that
-    many processes. The ray engine hands every index to Ray Data, whose tasks skip the scenes already written
-    (:mod:`data_prep.engine`). ``out_dir`` is created when missing, and removed again if the run fails before
-    anything was written into it.
+    Every argument and limit is checked first (:func:`check_synth_request`), so a refused request creates nothing; an
+    ``out_dir`` this run created is removed again if it fails before writing into it. Scene ``i`` depends on ``seed``
+    and ``i`` alone (:func:`data_prep.synth.generate_scene`), whatever the engine, workers or order. ``num_scenes``,
+    ``size``, ``frames``: ≥ 1, ≥ 8, ≥ 2, each at most its limit; ``static_ratio``, ``texture_ratio``: probabilities in
+    [0, 1] of a static scene and of an image-textured surface; ``workers``: local processes (``engine`` None: the local
+    pool); ``device``: where scenes render ("cpu": the same bytes on every machine; on Ray, CUDA gives each task one
+    GPU). Returns all ``num_scenes`` scene folders, in index order.
 
-    Args:
-        out_dir: dataset root (created).
-        num_scenes: ≥ 1, at most the ``scenes`` limit.
-        seed: global seed (any int ≥ 0).
-        size: image width = height, pixels, in [8, the ``resolution`` limit].
-        frames: T frames per camera, in [2, the ``frames`` limit].
-        cameras: synchronised cameras per scene, ≥ 1.
-        static_ratio: probability in [0, 1] of a static scene.
-        texture_ratio: probability in [0, 1] that a surface (ground, wall, object) uses an image texture
-            (:mod:`data_prep.textures`); 0 gives the procedural-only scenes.
-        workers: processes, ≥ 1 (the local engine; ``engine`` given: its own ``workers`` count).
-        progress: show progress.
-        device: where the scenes are rendered (:func:`~diff4splat.utils.devices.resolve_device`): "cpu" (the default,
-            so a seed gives the same bytes on every machine), "cuda", "auto", …
-        engine: where the scenes are made (:func:`data_prep.engine.check_engine`); ``None``: the local pool of
-            ``workers`` processes. On Ray, a CUDA ``device`` gives each task one GPU.
-
-    Returns:
-        The scene folders of all ``num_scenes`` scenes, in index order.
-
-    Raises:
-        ValueError: naming the argument that is out of range; an ``out_dir`` holding anything but scene folders; a
-            ``device`` this machine does not have;
-            :class:`diff4splat.utils.limits.LimitError` for a request above a limit (:func:`check_synth_request`).
+    Raises ValueError: an argument out of range (named); an ``out_dir`` holding anything but scene folders; a ``device``
+    this machine does not have; :class:`diff4splat.utils.limits.LimitError` above a limit.
     """
     check_synth_request(num_scenes, seed, size=size, frames=frames, cameras=cameras, workers=workers,
                         static_ratio=static_ratio, texture_ratio=texture_ratio)

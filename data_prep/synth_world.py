@@ -1,22 +1,14 @@
-"""Random specifications of synthetic scenes: layout, objects, motions, cameras, lighting, captions.
+"""Random specifications of synthetic scenes (layout, objects, motions, cameras, lighting) and their captions:
+numpy sampling from one generator into JSON-serialisable dicts (stored in ``meta.json["synth"]``).
 
-Everything here is plain numpy sampling from one ``numpy.random.Generator`` and returns
-JSON-serialisable dicts (stored in ``meta.json["synth"]``), so a scene is fully described by its
-spec; :mod:`data_prep.synth` turns a spec into Gaussians, renders it and writes the scene folder.
-
-World frame (metres, OpenCV-like so cameras need no axis flips): x right, **y down**, z forward.
-The ground is the plane y = ``ground_y`` (> 0, below the origin), the scene centre lies on it at
-(0, ground_y, 0), and a cylindrical backdrop wall of radius ``room_radius`` surrounds it.
-
-Object motion over the clip t ∈ [0, 1] (one per object; applied to every point p of the object
-about its pivot p0, see :func:`data_prep.synth.object_transform`):
-``p(t) = p0 + d(t) + R(t)·(S(t) ⊙ (p − p0))`` with
+World frame (metres): x right, **y down**, z forward; the ground is the plane y = ``ground_y`` > 0 with the scene
+centre (0, ground_y, 0), inside a cylindrical wall of radius ``room_radius``. Object motion over t ∈ [0, 1] is
+``p(t) = p0 + d(t) + R(t)·(S(t) ⊙ (p − p0))`` (:func:`data_prep.synth.object_transform`):
 - ``translate``: d(t) = t·v (v horizontal); spheres roll without slipping: R about up × v̂ by |d|/r;
 - ``rotate``: R(t) about a unit axis by ω·t (vertical axis → "spins", other → "tumbles");
 - ``bounce``: d(t) = t·v + (0, −4H·τ(1−τ), 0), τ = frac(n·t): n parabolic hops of height H;
-- ``deform``: S(t) = 1 + a·sin(2πft)·(1, 1, 1) ("pulses") or (1 + a/2·s, 1 − a·s, 1 + a/2·s)
-  with s = sin(2πft) ("squashes and stretches"), pivot at the bottom of the object (stays on the
-  ground).
+- ``deform``: S(t) = 1 + a·s·(1, 1, 1) ("pulses") or (1 + a/2·s, 1 − a·s, 1 + a/2·s), s = sin(2πft), about the
+  object's bottom.
 """
 from __future__ import annotations
 
@@ -58,8 +50,7 @@ SHAPES: dict[str, str] = {"sphere": "ball", "box": "box", "ellipsoid": "egg", "b
 MOTIONS: tuple[str, ...] = ("translate", "rotate", "bounce", "deform")
 CAMERA_MOTIONS: tuple[str, ...] = ("orbit", "dolly", "pan", "truck", "static")
 TEXTURES: dict[str, str] = {"plain": "", "checker": "checkered", "stripes": "striped", "noise": "spotted"}
-"""Procedural textures and the adjective used in captions. The fifth kind, ``"image"`` (a crop of a bundled
-photograph, :mod:`data_prep.textures`), takes its adjective from :data:`data_prep.textures.IMAGE_TEXTURES`."""
+"""Procedural textures and their caption adjective (kind ``"image"``: :data:`data_prep.textures.IMAGE_TEXTURES`)."""
 
 _MATERIALS = ("wooden", "tiled", "concrete", "carpeted", "grassy", "sandy")
 
@@ -88,15 +79,12 @@ def _texture(rng: np.random.Generator, kinds: tuple[str, ...], base: list[float]
 
 
 def _bright(base: list[float]) -> np.ndarray:
-    """A bright version of a base colour (3,): 0.2 + 1.5·base, clipped to [0, 1] (black → dark grey)."""
+    """0.2 + 1.5·base, clipped to [0, 1]."""
     return np.clip(0.2 + 1.5 * np.asarray(base), 0.0, 1.0)
 
 
 def _image_texture(rng: np.random.Generator, base: list[float]) -> dict[str, Any]:
-    """An image texture (fields: :mod:`data_prep.textures`): a random bundled image, a square crop of
-    0.4–1 of its shorter side at a random position, 0.5–3 m of surface per crop width, rotated by a
-    random angle half of the time; grey images tinted by a bright base colour, RGB images by a light
-    tint (weight 0–0.25 of it)."""
+    """An image texture (fields: :mod:`data_prep.textures`): a random square crop of a bundled image, tinted."""
     names = texture_names()
     name = names[int(rng.integers(len(names)))]
     img = load_texture(name)
@@ -113,9 +101,7 @@ def _image_texture(rng: np.random.Generator, base: list[float]) -> dict[str, Any
 
 
 def _apply_image_textures(rng: np.random.Generator, spec: dict[str, Any], ratio: float) -> None:
-    """Give the ground, the wall and each object (in this order) an image texture with probability
-    ``ratio`` each, in place; a textured ground's material becomes the image's caption word. Draws
-    nothing when ``ratio`` is 0 (the procedural-only scene, bit for bit)."""
+    """Give each surface an image texture with probability ``ratio``, in place; draws nothing when ``ratio`` is 0."""
     if ratio <= 0:
         return
     for surface in (spec["ground"], spec["wall"], *spec["objects"]):
@@ -206,33 +192,18 @@ def _sample_camera(rng: np.random.Generator, fov: float, kind: str) -> dict[str,
 def sample_scene_spec(rng: np.random.Generator, *, dynamic: bool, num_cameras: int, size: int,
                       num_frames: int, fps: float = 8.0,
                       texture_ratio: float = DEFAULT_TEXTURE_RATIO) -> dict[str, Any]:
-    """Sample a complete scene description.
+    """Sample a complete scene description from the scene's own generator ``rng``.
 
-    The procedural scene is sampled first; then, only if ``texture_ratio`` > 0, each surface (ground,
-    wall, objects) draws whether it gets an image texture instead of its procedural one. So a scene's
-    layout, colours, motions and cameras do not depend on ``texture_ratio``, and ``texture_ratio`` = 0
-    gives exactly the procedural-only specs (and generator state) of earlier versions.
+    ``dynamic``: at least one object moves (else none); ``num_cameras`` ≥ 1 (camera 0 the reference); ``size``: image
+    width = height, pixels; ``fps``: Hz; ``texture_ratio`` in [0, 1]: probability that a surface gets an image texture,
+    drawn after the procedural scene so that nothing else depends on it.
 
-    Args:
-        rng: the scene's own generator (its seed makes the scene reproducible).
-        dynamic: at least one object moves; otherwise no object moves (stage 1–2 data).
-        num_cameras: synchronised cameras, ≥ 1; camera 0 is the reference camera.
-        size: image width = height, pixels.
-        num_frames: T frames per camera.
-        fps: frame rate, Hz.
-        texture_ratio: probability in [0, 1] that a surface uses an image texture (:mod:`data_prep.textures`).
+    Returns a JSON-serialisable dict: ``dynamic``, ``size``, ``num_frames``, ``fps``, ``ground_y``, ``room_radius``,
+    ``light`` {direction (3,), ambient, tint (3,)}, ``background`` (3,), ``ground`` / ``wall`` {material, color_name,
+    color, texture}, ``objects`` (1–4 dicts: shape, half extents (3,) and center (3,) metres, colour, texture, motion
+    or None) and ``cameras`` (kind, fov_x_deg, azimuth, distance, height, target_height, delta).
 
-    Returns:
-        JSON-serialisable dict: ``dynamic``, ``size``, ``num_frames``, ``fps``, ``ground_y``,
-        ``room_radius``, ``light`` {direction (3,), ambient, tint (3,)}, ``background`` (3,),
-        ``ground`` / ``wall`` {material, color_name, color, texture}, ``objects`` (1–4 dicts with
-        shape, half extents (3,) metres, center (3,) metres, colour, texture, motion or None) and
-        ``cameras`` (dicts with kind, fov_x_deg, azimuth, distance, height, target_height, delta).
-        A texture is procedural (kind plain/checker/stripes/noise, color2, freq, angle, noise, blobs) or
-        an image (kind ``"image"``, file, grey, crop, metres, angle, tint, noise).
-
-    Raises:
-        ValueError: ``texture_ratio`` is not a number in [0, 1].
+    Raises ValueError: ``texture_ratio`` is not a number in [0, 1].
     """
     check_number("texture_ratio", texture_ratio, lo=0, hi=1)
     room = float(rng.uniform(5.0, 6.0))
@@ -303,8 +274,7 @@ def _motion_phrase(m: dict[str, Any], shape: str, cam_R: np.ndarray) -> str:
 
 
 def _camera_phrase(cam: dict[str, Any], static_scene: bool = False) -> str:
-    """"the camera orbits right around the scene" etc.; with ``static_scene`` the phrase ends in a
-    preposition ("… orbits right around", "… dollies forward through") to be followed by the scene."""
+    """"the camera orbits right around the scene"; with ``static_scene`` it ends in a preposition ("… around")."""
     d, kind = cam["delta"], cam["kind"]
     if kind == "orbit":  # azimuth grows → the eye moves to the camera's right (synth.camera_path)
         return f"the camera orbits {'right' if d > 0 else 'left'} around" + ("" if static_scene else " the scene")
@@ -316,19 +286,9 @@ def _camera_phrase(cam: dict[str, Any], static_scene: bool = False) -> str:
 
 
 def caption_for(spec: dict[str, Any], ref_rotation: np.ndarray) -> str:
-    """One-line caption of what moves and how (objects, then the reference camera).
-
-    Directions ("to the left", "towards the camera") are in the reference camera's frame at t = 0.
-
-    Args:
-        spec: from :func:`sample_scene_spec`.
-        ref_rotation: (3, 3) world-to-camera rotation of the reference camera at frame 0.
-
-    Returns:
-        e.g. "a red striped ball rolls to the left and a blue box stays still on a wooden floor,
-        while the camera orbits left around the scene" or "the camera dollies forward through a
-        static scene with a green egg on a tiled floor".
-    """
+    """One-line caption of what moves and how (objects, then the reference camera), directions in the frame of
+    ``ref_rotation`` (3, 3), the reference camera's world-to-camera rotation at frame 0: e.g. "a red striped ball rolls
+    to the left and a blue box stays still on a wooden floor, while the camera orbits left around the scene"."""
     floor = f"on a {spec['ground']['material']} floor"
     objs = spec["objects"]
     if not spec["dynamic"] or all(o["motion"] is None for o in objs):

@@ -1,24 +1,11 @@
-"""Image textures for synthetic scenes: crops of the real photographs bundled in ``data_prep/textures/``.
-
-The bundled images (licences in ``data_prep/textures/README.md``) are the only real images training data
-may use; the files are listed in :data:`IMAGE_TEXTURES` with the word a caption uses for them.
-
-A texture spec (``kind: "image"``, sampled by :func:`data_prep.synth_world.sample_scene_spec`) places a
-square crop of one image on a surface:
-
-- ``file``: the image's file name (a key of :data:`IMAGE_TEXTURES`); ``grey``: whether it has one channel;
-- ``crop`` [x0, y0, c]: the crop's top-left corner and side, pixels of the bundled image (pixel (i, j)
-  has its centre at (j + 0.5, i + 0.5), as everywhere in diff4splat);
-- ``metres``: the surface length one crop width covers (0.5–3 m); ``angle``: rotation of the crop on the
-  surface, radians;
-- ``tint`` (3,): multiplies the image (grey images: a bright version of the surface's base colour; RGB
-  images: white or a light tint); ``noise``: the per-Gaussian jitter's standard deviation.
-
-A surface point with coordinates uv (metres) is rotated by −angle, divided by ``metres`` and folded into
-the crop by a **mirrored repeat** (s ↦ 1 − |(s mod 2) − 1|: continuous, no seams, period two crop widths),
-then the image is sampled bilinearly there. To avoid aliasing when a Gaussian covers many texels, the
-sample is read from the level of an area-averaged image pyramid (``cv2.INTER_AREA``, halving per level)
-whose texels are about one Gaussian spacing wide.
+"""Image textures for synthetic scenes: crops of the photographs bundled in ``data_prep/textures/`` (licences in its
+README.md; the only real images training data may use). A texture spec (``kind: "image"``,
+:func:`data_prep.synth_world.sample_scene_spec`) places a square crop of one image on a surface: ``file`` (a key of
+:data:`IMAGE_TEXTURES`), ``grey`` (one channel), ``crop`` [x0, y0, c] (top-left corner and side, pixels; pixel (i, j)
+centred at (j + 0.5, i + 0.5)), ``metres`` (surface length per crop width), ``angle`` (radians), ``tint`` (3,)
+multiplying the image, ``noise`` (the per-Gaussian jitter's std). A surface point uv (metres) is rotated by −angle,
+divided by ``metres``, folded into the crop by a mirrored repeat and sampled bilinearly from the level of an
+area-averaged pyramid whose texels are about one Gaussian spacing wide.
 """
 from __future__ import annotations
 
@@ -53,18 +40,8 @@ def texture_names() -> list[str]:
 
 @functools.lru_cache(maxsize=32)  # 9 bundled images
 def load_texture(name: str) -> np.ndarray:
-    """A bundled texture image, decoded once per process (read-only array).
-
-    Args:
-        name: file name, one of :func:`texture_names`.
-
-    Returns:
-        (H, W) grey or (H, W, 3) RGB float32 in [0, 1] (uint8 / 255, channel order RGB).
-
-    Raises:
-        ValueError: ``name`` is not a bundled texture.
-        FileNotFoundError: the file is missing from the installed package.
-    """
+    """The bundled texture ``name``, decoded once per process: read-only (H, W) grey or (H, W, 3) RGB float32 in
+    [0, 1]. Raises ValueError: not a bundled texture; FileNotFoundError: missing from the installed package."""
     if name not in IMAGE_TEXTURES:
         raise ValueError(f"texture must be one of {texture_names()}, got {name!r}")
     img = read_image(TEXTURE_DIR / name)  # OpenCV decode, BGR → RGB
@@ -77,8 +54,7 @@ def load_texture(name: str) -> np.ndarray:
 
 @functools.lru_cache(maxsize=32)  # 9 bundled images
 def texture_pyramid(name: str) -> tuple[np.ndarray, ...]:
-    """Area-averaged pyramid of :func:`load_texture`: level 0 the image, each next level half the size
-    (``cv2.INTER_AREA``, sides rounded up), down to a longest side of 4 px. Read-only float32 arrays."""
+    """Area-averaged pyramid of :func:`load_texture` (``cv2.INTER_AREA``, halving, sides rounded up) down to 4 px."""
     levels = [load_texture(name)]
     while max(levels[-1].shape[:2]) > 4:
         h, w = levels[-1].shape[:2]
@@ -89,17 +65,8 @@ def texture_pyramid(name: str) -> tuple[np.ndarray, ...]:
 
 
 def bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear sample of ``image`` at continuous pixel coordinates (pixel (i, j) centred at (j + 0.5, i + 0.5)).
-
-    Coordinates beyond the outermost pixel centres clamp to the edge pixels.
-
-    Args:
-        image: (H, W) or (H, W, C) float array.
-        x, y: (N,) column / row coordinates, pixels.
-
-    Returns:
-        (N,) or (N, C) float64.
-    """
+    """Bilinear sample, (N,) or (N, C) float64, of an (H, W) or (H, W, C) ``image`` at (N,) pixel coordinates
+    ``x``, ``y`` (pixel (i, j) centred at (j + 0.5, i + 0.5); beyond the edge centres clamped)."""
     h, w = image.shape[:2]
     xf = np.clip(np.asarray(x, dtype=np.float64) - 0.5, 0, w - 1)
     yf = np.clip(np.asarray(y, dtype=np.float64) - 0.5, 0, h - 1)
@@ -120,11 +87,8 @@ def mirror(s: np.ndarray) -> np.ndarray:
 
 
 def crop_pixels(tex: dict[str, Any], uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel coordinates (x, y), each (N,), in the full-size image of surface coordinates ``uv`` (N, 2) metres.
-
-    (u', v') = R(−angle)·uv / metres, folded by :func:`mirror` into [0, 1]², mapped to the crop
-    [x0, x0 + c] × [y0, y0 + c].
-    """
+    """Pixel coordinates (x, y), each (N,), in the full-size image of surface coordinates ``uv`` (N, 2) metres:
+    R(−angle)·uv / metres, folded by :func:`mirror` into [0, 1]², mapped to the crop [x0, x0 + c] × [y0, y0 + c]."""
     x0, y0, c = tex["crop"]
     ca, sa = math.cos(tex["angle"]), math.sin(tex["angle"])
     u = (uv[:, 0] * ca + uv[:, 1] * sa) / tex["metres"]
@@ -133,23 +97,9 @@ def crop_pixels(tex: dict[str, Any], uv: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 def image_albedo(tex: dict[str, Any], uv: np.ndarray, spacing: float) -> np.ndarray:
-    """Albedo (N, 3) of an image texture at surface coordinates ``uv`` (N, 2) metres, before jitter.
-
-    The pyramid level L = ⌊log2(texels per Gaussian)⌋ (clamped to the pyramid), texels per Gaussian =
-    ``spacing`` / metres · c; coordinates are scaled to that level and sampled by :func:`bilinear`.
-    Grey images give grey·tint, RGB images rgb·tint.
-
-    Args:
-        tex: an image texture spec (module docstring).
-        uv: (N, 2) surface coordinates, metres.
-        spacing: distance between neighbouring Gaussians on the surface, metres (> 0).
-
-    Returns:
-        (N, 3) float64 in [0, 1] (tint components lie in [0, 1]).
-
-    Raises:
-        ValueError: ``spacing`` ≤ 0 or an unknown ``tex["file"]``.
-    """
+    """Albedo (N, 3) float64 in [0, 1] (image·tint, before jitter) of an image texture at surface coordinates
+    ``uv`` (N, 2) metres, read from pyramid level ⌊log2(``spacing`` / metres · c)⌋, ``spacing`` being the Gaussians'
+    distance in metres. Raises ValueError: ``spacing`` ≤ 0 or an unknown ``tex["file"]``."""
     if not spacing > 0:
         raise ValueError(f"spacing must be > 0 metres, got {spacing!r}")
     levels = texture_pyramid(tex["file"])

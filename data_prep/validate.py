@@ -1,10 +1,6 @@
-"""Validation of scene folders against ``data_prep/FORMAT.md`` (``data_prep validate DIR``).
-
-:func:`validate_scene` decodes every file of a scene and returns a list of :class:`Problem`, each
-naming the offending file once; an empty list means the scene is valid. It never raises for a bad scene.
-A path that is there but is not a regular file (a FIFO, a folder, a symlink loop or a dangling link) is
-reported as what it is, not as missing, and is never opened (reading a FIFO would block).
-:func:`summarize` is the one-line count the CLI prints after the problems.
+"""Validation of scene folders against ``data_prep/FORMAT.md`` (``data_prep validate DIR``): every file is decoded
+and each problem names its file once; a path that is not a regular file (FIFO, folder, symlink loop, dangling link)
+is reported as what it is and never opened.
 """
 from __future__ import annotations
 
@@ -47,11 +43,8 @@ STATIC_TRACK_TOLERANCE_M = 1e-6
 
 @dataclass(frozen=True)
 class Problem:
-    """One violation of the format: the file (or folder) concerned and what is wrong with it.
-
-    ``scene`` is the scene folder the problem belongs to (set by :func:`validate_scene`); None for a problem of a
-    dataset root itself (a sub-folder that is not a scene). It is not compared.
-    """
+    """One violation of the format: the file (or folder) and what is wrong with it. ``scene`` (not compared): the
+    scene folder it belongs to, None for a problem of a dataset root itself."""
 
     file: Path
     message: str
@@ -70,8 +63,7 @@ def is_scene_dir(path: str | os.PathLike) -> bool:
 
 
 def _reason(e: Exception, path: Path) -> str:
-    """``e``'s message without the ``<path>: `` or ``<what>: <path> `` it starts with (a :class:`Problem` names the
-    file); a path elsewhere in it becomes "file"."""
+    """``e``'s message without its leading ``<path>: `` or ``<what>: <path> ``; a path elsewhere becomes "file"."""
     text, name = str(e), str(path)
     if text.startswith(f"{name}: "):
         return text[len(name) + 2:]
@@ -82,12 +74,7 @@ def _reason(e: Exception, path: Path) -> str:
 
 
 def _file_problem(path: Path, missing: str = "missing file") -> str | None:
-    """Why ``path`` cannot be read as a file, or None when it is a regular file (or a link to one).
-
-    ``missing`` when nothing is there; else what it is, from :func:`diff4splat.io.inputs.check_input_file`:
-    "is a FIFO (named pipe), not a regular file", "is a symlink loop, not a regular file", "is a folder, not a
-    regular file", "is a symlink to a missing file (<target>)".
-    """
+    """Why ``path`` is not a readable regular file (``missing``, or what it is, from ``check_input_file``), or None."""
     try:
         check_input_file(path, "file")
     except FileNotFoundError as e:
@@ -98,9 +85,14 @@ def _file_problem(path: Path, missing: str = "missing file") -> str | None:
     return None
 
 
-def _present(path: Path) -> bool:
-    """Something is at ``path`` (a file, a folder, a FIFO, a symlink, also a dangling one or a loop)."""
-    return path.exists() or path.is_symlink()
+def _optional_file_problem(problems: list[Problem], path: Path) -> bool:
+    """Report an optional file that is there but not a regular file; True when there is a regular file to read."""
+    if not (path.exists() or path.is_symlink()):  # also a dangling link or a loop
+        return False
+    why = _file_problem(path)
+    if why is not None:
+        problems.append(Problem(path, why))
+    return why is None
 
 
 def _check_frames(problems: list[Problem], folder: Path, suffix: str, T: int) -> list[Path]:
@@ -215,19 +207,7 @@ def _check_tracks(problems: list[Problem], f: Path, meta: SceneMeta) -> None:
 
 
 def validate_scene(path: str | os.PathLike) -> list[Problem]:
-    """Check one scene folder against FORMAT.md, decoding every file.
-
-    Checks: ``meta.json`` present, valid JSON and typed (:class:`SceneMeta`); each listed camera has
-    a ``cameras.json`` that loads as a valid :class:`~diff4splat.cameras.CameraPath` of T cameras with
-    T ``timestamps`` (seconds, non-decreasing) consistent with ``times`` and synchronised with the
-    reference camera; exactly the T RGB frames, each an 8-bit 3-channel image of the camera's size;
-    unless ``depth_source == "none"`` exactly the T depth EXRs, each of the camera's size with values
-    > 0 or +inf (no NaN/−inf/≤ 0), and no depth folder otherwise; no unlisted camera folders;
-    ``caption.txt`` one non-empty UTF-8 line; ``tracks.npz`` with float32 finite ``points`` (P, T, 3),
-    bool ``visibility`` (P, T), and constant tracks in a static scene.
-
-    Args:
-        path: scene folder.
+    """Check one scene folder against every rule of FORMAT.md, decoding every file; never raises for a bad scene.
 
     Returns:
         Problems in file order; empty if the scene is valid. If ``meta.json`` is missing or invalid
@@ -251,10 +231,7 @@ def _scene_problems(scene: Path) -> list[Problem]:
         return [Problem(meta_file, _reason(e, meta_file))]
     problems: list[Problem] = []
     cap = scene / CAPTION_FILE
-    why = _file_problem(cap) if _present(cap) else None
-    if why is not None:
-        problems.append(Problem(cap, why))
-    elif _present(cap):
+    if _optional_file_problem(problems, cap):
         try:
             text = cap.read_bytes().decode("utf-8").strip()
             if not text or "\n" in text or "\r" in text:
@@ -270,26 +247,15 @@ def _scene_problems(scene: Path) -> list[Problem]:
         if c.is_dir() and c.name not in meta.cameras and (c / CAMERAS_FILE).exists():
             problems.append(Problem(c, "camera folder not listed in meta.json 'cameras'"))
     tracks = scene / TRACKS_FILE
-    why = _file_problem(tracks) if _present(tracks) else None
-    if why is not None:
-        problems.append(Problem(tracks, why))
-    elif _present(tracks):
+    if _optional_file_problem(problems, tracks):
         _check_tracks(problems, tracks, meta)
     return problems
 
 
 def validate_path(path: str | os.PathLike) -> tuple[int, list[Problem]]:
-    """Validate a single scene folder or every scene of a dataset root (:func:`is_scene_dir` decides).
-
-    In a dataset root, non-hidden sub-folders without ``meta.json`` are reported as problems
-    (a scene whose meta.json is lost; their :attr:`Problem.scene` is None), and an empty root is a problem.
-
-    Returns:
-        (number of scenes checked, problems).
-
-    Raises:
-        FileNotFoundError: ``path`` is not a folder.
-    """
+    """Validate one scene folder or every scene of a dataset root (:func:`is_scene_dir` decides); in a root, each
+    non-hidden sub-folder without ``meta.json``, or no scene at all, is a problem. Returns (number of scenes checked,
+    problems). Raises FileNotFoundError: ``path`` is not a folder."""
     path = Path(path)
     if not path.is_dir():
         raise FileNotFoundError(f"not a folder: {path}")
@@ -309,12 +275,8 @@ def validate_path(path: str | os.PathLike) -> tuple[int, list[Problem]]:
 
 
 def summarize(num_scenes: int, problems: list[Problem]) -> str:
-    """The summary line of ``data_prep validate`` after :func:`validate_path` checked ``num_scenes`` scenes.
-
-    Counts agree with the problems printed: problems in scenes, the scenes they are in (each scene once, by
-    :attr:`Problem.scene`), and apart from them the sub-folders of a dataset root that are not scenes, e.g.
-    ``2 scene(s) checked: 3 problem(s) in 1 scene(s); 1 sub-folder(s) not a scene``.
-    """
+    """The summary line of ``data_prep validate``: problems in scenes, the scenes they are in, and the sub-folders of
+    a dataset root that are not scenes."""
     in_scenes = [p for p in problems if p.scene is not None]
     bad = len({p.scene for p in in_scenes})
     text = f"{num_scenes} scene(s) checked: " + (f"{len(in_scenes)} problem(s) in {bad} scene(s)" if in_scenes

@@ -30,40 +30,24 @@ from .vkitti2 import convert_vkitti2
 
 __all__ = ["CONVERTERS", "SELECTORS", "convert", "convert_each", "check_options", "list_sources"]
 
-CONVERTERS = {
-    "pointodyssey": convert_pointodyssey,
-    "spring": convert_spring,
-    "vkitti2": convert_vkitti2,
-    "tartanair": convert_tartanair,
-    "matrixcity": convert_matrixcity,
-    "dynamic_replica": convert_dynamic_replica,
-    "realestate10k": convert_realestate10k,
-    "stereo4d": convert_stereo4d,
-    "multicamvideo": convert_multicamvideo,
-    "dnerf": convert_dnerf,
-    "n3dv": convert_n3dv,
-    "hypernerf": convert_hypernerf,
-}
+CONVERTERS = {"pointodyssey": convert_pointodyssey, "spring": convert_spring, "vkitti2": convert_vkitti2,
+              "tartanair": convert_tartanair, "matrixcity": convert_matrixcity,
+              "dynamic_replica": convert_dynamic_replica, "realestate10k": convert_realestate10k,
+              "stereo4d": convert_stereo4d, "multicamvideo": convert_multicamvideo, "dnerf": convert_dnerf,
+              "n3dv": convert_n3dv, "hypernerf": convert_hypernerf}
 """Source name → ``convert_<source>(src, out, **options) -> Path``."""
-
-
 SELECTORS = {"dynamic_replica": "sequence", "realestate10k": "clip", "stereo4d": "name"}
 """Sources whose folder holds many clips, each picked by this option of the converter; every other source's scene
 is a folder of its own."""
 
 
 def check_options(source: str, options: dict) -> None:
-    """Check that ``source`` is known and takes every option in ``options``.
-
-    Raises:
-        ValueError: unknown ``source`` (naming the known ones); an option its converter does not take (naming its
-            options).
-    """
+    """Check that ``source`` is known and takes every option in ``options``; ValueError (naming the known) if not."""
     if source not in CONVERTERS:
         raise ValueError(f"unknown source {source!r}; known: {sorted(CONVERTERS)}")
     known = [p for p in inspect.signature(CONVERTERS[source]).parameters if p not in ("src", "out")]
     unknown = sorted(set(options) - set(known))
-    if unknown:  # a TypeError traceback from the converter's call before
+    if unknown:
         raise ValueError(f"{source} takes no option {', '.join(unknown)}; its options: {', '.join(known)}")
 
 
@@ -75,20 +59,11 @@ def _check_apart(src: str | os.PathLike, out: str | os.PathLike, what: str) -> N
 
 
 def convert(source: str, src: str | os.PathLike, out: str | os.PathLike, **options) -> Path:
-    """Convert one source scene/sequence ``src`` to the scene folder ``out``.
+    """Convert one scene/sequence folder ``src`` of ``source`` (layout: CONVERTERS.md) to the scene folder ``out``.
 
-    Args:
-        source: a key of :data:`CONVERTERS`.
-        src: the source's scene/sequence folder (layout in CONVERTERS.md).
-        out: output scene folder.
-        **options: passed to the source's converter.
-
-    Raises:
-        ValueError: unknown ``source``; an option the source's converter does not take (naming its options); ``out``
-            equal to ``src``, holding it or inside it; ``src`` is not a folder but a FIFO, a symlink loop, a
-            file, … (said as such, :func:`.common.require_dir`, before the converter looks for its files); the
-            converter's errors.
-        FileNotFoundError: no ``src`` (``"source folder not found: <src>"``), missing source files.
+    Raises ValueError: unknown ``source`` or option (:func:`check_options`); ``out`` equal to ``src``, holding it or
+    inside it; ``src`` not a folder (:func:`.common.require_dir`); the converter's errors; FileNotFoundError: no
+    ``src``, missing source files.
     """
     check_options(source, options)
     require_dir(src, "source")
@@ -97,14 +72,9 @@ def convert(source: str, src: str | os.PathLike, out: str | os.PathLike, **optio
 
 
 def list_sources(source: str, src_root: str | os.PathLike) -> list[str]:
-    """The clips of ``src_root`` that :func:`convert_each` converts when no names are given: the sorted visible
-    sub-folders, or for a source of :data:`SELECTORS` the stems of its per-clip files (RealEstate10K ``*.txt``,
-    Stereo4D ``*.npz``).
-
-    Raises:
-        ValueError: Dynamic Replica (its sequences are listed in its annotations: give the names); no clips found.
-        FileNotFoundError: no ``src_root``.
-    """
+    """The clips :func:`convert_each` converts when no names are given: the sorted visible sub-folders of ``src_root``,
+    or the stems of its per-clip files (RealEstate10K ``*.txt``, Stereo4D ``*.npz``). Raises ValueError: Dynamic Replica
+    (give the names) or no clips; FileNotFoundError: no ``src_root``."""
     root = require_dir(src_root, "source")
     pattern = {"realestate10k": "*.txt", "stereo4d": "*.npz"}.get(source)
     if source in SELECTORS and pattern is None:
@@ -120,31 +90,17 @@ def list_sources(source: str, src_root: str | os.PathLike) -> list[str]:
 def convert_each(source: str, src_root: str | os.PathLike, out_root: str | os.PathLike,
                  names: Sequence[str] | None = None, *, engine: Engine | None = None, progress: bool = True,
                  **options) -> list[Path]:
-    """Convert many clips of one source into the dataset root ``out_root``, one scene folder each (resumable).
+    """Convert the clips ``names`` (None: :func:`list_sources`) of ``src_root`` into the dataset root ``out_root``,
+    scene ``out_root/name`` each, skipping complete ones (a rerun resumes); everything is checked first.
 
-    Clip ``name`` is the folder ``src_root/name`` or, for a source of :data:`SELECTORS`, the clip of ``src_root``
-    that the source's selecting option names; it becomes the scene ``out_root/name``. A scene already complete in
-    ``out_root`` is skipped, so a rerun (or a retried task) resumes; every scene is written atomically, and the
-    dataset does not depend on the engine or its worker count (:mod:`data_prep.engine`). Everything is checked
-    before any clip is converted.
+    Clip ``name`` is the folder ``src_root/name``, or for a source of :data:`SELECTORS` the clip its selecting option
+    names. ``engine`` None: this process. ``options`` go to every clip's converter (neither ``replace`` nor the
+    selecting option). Returns the scene folders, in the order of ``names``.
 
-    Args:
-        source: a key of :data:`CONVERTERS`.
-        src_root: the folder holding the clips.
-        out_root: dataset root to write (created).
-        names: the clips; ``None``: :func:`list_sources`.
-        engine: where the clips are converted; ``None``: in this process.
-        progress: show progress.
-        **options: the converter's options, the same for every clip (not ``replace``, nor the selecting option).
-
-    Returns:
-        The scene folders, in the order of ``names``.
-
-    Raises:
-        ValueError: what :func:`check_options` raises; ``replace`` or the selecting option among ``options``; a
-            name that is empty, hidden, a path or repeated; ``out_root`` equal to ``src_root``, inside it or holding
-            it, or holding anything but scene folders; a clip's conversion error (naming the clip).
-        FileNotFoundError: no ``src_root``; a named clip folder missing.
+    Raises ValueError: what :func:`check_options` raises; ``replace`` or the selecting option among ``options``; a name
+    that is empty, hidden, a path or repeated; ``out_root`` equal to ``src_root``, inside it or holding it, or holding
+    anything but scene folders; a clip's conversion error (naming the clip); FileNotFoundError: no ``src_root``; a named
+    clip folder missing.
     """
     check_options(source, options)
     selector = SELECTORS.get(source)
@@ -177,7 +133,7 @@ def convert_each(source: str, src_root: str | os.PathLike, out_root: str | os.Pa
 
 
 def _convert_task(name: str, source: str, src_root: Path, out_root: Path, options: dict) -> None:
-    """Clip ``name`` into ``out_root/name`` (the engine's task), unless a completed earlier attempt wrote it."""
+    """The engine's task: clip ``name`` into ``out_root/name`` unless an earlier attempt wrote it."""
     out = out_root / name
     if is_scene(out):
         return

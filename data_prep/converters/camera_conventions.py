@@ -1,24 +1,6 @@
-"""Camera conventions of the source datasets → ours, shared by every converter.
-
-Every converter turns a source dataset's native conventions into the scene format's
-(``data_prep/FORMAT.md``, docs/DESIGN.md): metres, OpenCV camera axes (x right, y down, z forward),
-world-to-camera ``viewmats``, pixel ``Ks``, +inf for invalid depth. The axis changes needed by the
-sources are collected here so that each is written once:
-
-- OpenGL / Blender / NeRF camera axes (x right, y up, z backward) → OpenCV: flip the camera's y and
-  z axes, c2w_cv = c2w_gl · diag(1, −1, −1, 1) (Mildenhall et al., NeRF code release; MatrixCity
-  README "same pose coordinate system as NeRF").
-- PyTorch3D camera axes (x left, y up, z forward, row-vector convention X_cam = X_world·R + T)
-  → OpenCV: R_cv = diag(−1, −1, 1)·Rᵀ, t_cv = diag(−1, −1, 1)·T (the transform of PyTorch3D's
-  ``opencv_from_cameras_projection``).
-- NED body axes (x forward, y right, z down; AirSim / TartanAir) → OpenCV: x_cv = y_ned,
-  y_cv = z_ned, z_cv = x_ned.
-- LLFF camera-to-world columns (down, right, backward; ``poses_bounds.npy``) → OpenGL (right, up,
-  backward) by the column permutation [1, −0, 2] of LLFF's ``load_llff.py`` and 4DGaussians'
-  ``neural_3D_dataset_NDC.py``, then → OpenCV as above.
-
-All pose arithmetic is float64 numpy; :func:`camera_path` builds the float64
-:class:`~diff4splat.cameras.CameraPath` (validated: proper rotations, positive focal lengths).
+"""Camera conventions of the source datasets → ours (metres, OpenCV camera axes x right, y down, z forward,
+world-to-camera ``viewmats``, pixel ``Ks`` with pixel centres at +0.5; FORMAT.md), each written once here. All pose
+arithmetic is float64 numpy; :func:`camera_path` builds the validated :class:`~diff4splat.cameras.CameraPath`.
 """
 from __future__ import annotations
 
@@ -30,22 +12,9 @@ from diff4splat.scene.quaternions import ROTATION_TOL, quat_to_rotmat, rotation_
 
 from ..format import timestamps_to_times
 
-__all__ = [
-    "INTEGER_CENTRE_SHIFT",
-    "GL_TO_CV",
-    "P3D_TO_CV",
-    "NED_TO_CV",
-    "rigid",
-    "invert",
-    "c2w_gl_to_viewmat",
-    "c2w_cv_to_viewmat",
-    "c2w_llff_to_gl",
-    "quat_xyzw_to_rotmat",
-    "normalize_rotation",
-    "check_rotation",
-    "intrinsics",
-    "camera_path",
-]
+__all__ = ["INTEGER_CENTRE_SHIFT", "GL_TO_CV", "P3D_TO_CV", "NED_TO_CV", "rigid", "invert", "c2w_gl_to_viewmat",
+           "c2w_cv_to_viewmat", "c2w_llff_to_gl", "quat_xyzw_to_rotmat", "normalize_rotation", "check_rotation",
+           "intrinsics", "camera_path"]
 
 INTEGER_CENTRE_SHIFT = 0.5
 """Pixels: our image coordinates (pixel centres at +0.5, FORMAT.md) minus those of conventions that put pixel centres
@@ -53,12 +22,11 @@ at integers (OpenCV, KITTI): a principal point given in the latter gets + this."
 
 GL_TO_CV = np.diag([1.0, -1.0, -1.0])
 """OpenGL/Blender camera axes (x right, y up, z back) ↔ OpenCV camera axes (its own inverse)."""
-
 P3D_TO_CV = np.diag([-1.0, -1.0, 1.0])
-"""PyTorch3D camera axes (x left, y up, z forward) ↔ OpenCV camera axes (its own inverse)."""
-
+"""PyTorch3D camera axes (x left, y up, z forward) ↔ OpenCV camera axes (its own inverse): R_cv = P·Rᵀ, t_cv = P·T
+for its row-vector X_cam = X_world·R + T (PyTorch3D's ``opencv_from_cameras_projection``)."""
 NED_TO_CV = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
-"""Maps a vector in NED body axes (x forward, y right, z down) to OpenCV camera axes."""
+"""Maps a vector in NED body axes (x forward, y right, z down; AirSim, TartanAir) to OpenCV camera axes."""
 
 
 def rigid(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -83,48 +51,33 @@ def c2w_cv_to_viewmat(c2w: np.ndarray) -> np.ndarray:
 
 
 def c2w_gl_to_viewmat(c2w: np.ndarray) -> np.ndarray:
-    """(..., 4, 4) camera-to-world with OpenGL/Blender camera axes → OpenCV world-to-camera viewmats.
-
-    c2w_cv = c2w_gl · diag(1, −1, −1, 1) (module docstring), then inverted.
-    """
+    """(..., 4, 4) camera-to-world with OpenGL/Blender/NeRF camera axes (x right, y up, z back) → OpenCV
+    world-to-camera: c2w_cv = c2w_gl · diag(1, −1, −1, 1) (NeRF code release), inverted."""
     c2w = np.array(c2w, dtype=np.float64)
     c2w[..., :3, :3] = c2w[..., :3, :3] @ GL_TO_CV
     return invert(c2w)
 
 
 def c2w_llff_to_gl(c2w_llff: np.ndarray) -> np.ndarray:
-    """(..., 3, 4) LLFF camera-to-world [down | right | backward | t] → (..., 4, 4) OpenGL camera-to-world.
-
-    Columns reordered to [right, up, backward] = [c1, −c0, c2] (module docstring); feed the result to
-    :func:`c2w_gl_to_viewmat`.
-    """
+    """(..., 3, 4) LLFF camera-to-world [down | right | backward | t] → (..., 4, 4) OpenGL camera-to-world, columns
+    [c1, −c0, c2] as LLFF's ``load_llff.py`` and 4DGaussians' ``neural_3D_dataset_NDC.py`` (then
+    :func:`c2w_gl_to_viewmat`)."""
     P = np.asarray(c2w_llff, dtype=np.float64)
     return rigid(np.stack([P[..., 1], -P[..., 0], P[..., 2]], axis=-1), P[..., 3])
 
 
 def quat_xyzw_to_rotmat(q: np.ndarray) -> np.ndarray:
-    """Quaternions (..., 4) stored x, y, z, w (Hamilton, as in ROS/TartanAir) → rotation matrices (..., 3, 3).
-
-    Reorders to wxyz and calls :func:`diff4splat.scene.quaternions.quat_to_rotmat` (normalised on use).
-
-    Raises:
-        ValueError: a zero-norm quaternion.
-    """
+    """Quaternions (..., 4) stored x, y, z, w (Hamilton; ROS, TartanAir) → rotation matrices (..., 3, 3), normalised
+    (:func:`diff4splat.scene.quaternions.quat_to_rotmat`). Raises ValueError: a zero-norm quaternion."""
     q = np.asarray(q, dtype=np.float64)
     wxyz = np.concatenate([q[..., 3:4], q[..., :3]], axis=-1)
     return quat_to_rotmat(torch.from_numpy(wxyz)).numpy()
 
 
 def normalize_rotation(M: np.ndarray, name: str = "rotation") -> np.ndarray:
-    """Remove a uniform scale from (..., 3, 3) scaled rotations: R = M / det(M)^(1/3).
-
-    Some exporters store s·R (MatrixCity's ``transform_matrix``, s = 0.01). A non-uniform scale or
-    a reflection is an error, not something to be silently projected away.
-
-    Raises:
-        ValueError: naming ``name``, if det(M) ≤ 0 or M / det^(1/3) is not a rotation within
-            :data:`~diff4splat.scene.quaternions.ROTATION_TOL` (:func:`~diff4splat.scene.quaternions.rotation_errors`).
-    """
+    """Remove a uniform scale from (..., 3, 3) scaled rotations s·R (MatrixCity's, s = 0.01): R = M / det(M)^(1/3).
+    Raises ValueError naming ``name``: det(M) ≤ 0 or M / det^(1/3) not a rotation within
+    :data:`~diff4splat.scene.quaternions.ROTATION_TOL` (a non-uniform scale or reflection is never projected away)."""
     M = np.asarray(M, dtype=np.float64)
     det = np.linalg.det(M)
     if (det <= 0).any():
@@ -135,10 +88,8 @@ def normalize_rotation(M: np.ndarray, name: str = "rotation") -> np.ndarray:
 
 
 def check_rotation(R: np.ndarray, name: str, what: str = "a rotation matrix") -> None:
-    """Raise ValueError naming ``name`` unless every (..., 3, 3) matrix of ``R`` is a rotation within
-    :data:`~diff4splat.scene.quaternions.ROTATION_TOL` (:func:`~diff4splat.scene.quaternions.rotation_errors`:
-    orthonormal, det 1).
-    """
+    """Raise ValueError naming ``name`` unless every (..., 3, 3) matrix of ``R`` is orthonormal with det 1 within
+    :data:`~diff4splat.scene.quaternions.ROTATION_TOL` (:func:`~diff4splat.scene.quaternions.rotation_errors`)."""
     ortho, det = (float(e.max()) for e in rotation_errors(torch.from_numpy(np.asarray(R, dtype=np.float64))))
     if max(ortho, det) > ROTATION_TOL:
         raise ValueError(f"{name} must be {what} (max |RᵀR − I| = {ortho:.3g}, |det R − 1| = {det:.3g})")
@@ -154,17 +105,9 @@ def intrinsics(fx, fy, cx, cy) -> np.ndarray:
 
 def camera_path(viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int,
                 timestamps: np.ndarray) -> CameraPath:
-    """A validated float64 :class:`CameraPath` with times = normalised ``timestamps`` (FORMAT.md).
-
-    Args:
-        viewmats: (T, 4, 4) world-to-camera, OpenCV axes, metres.
-        Ks: (T, 3, 3) or (3, 3) pixel intrinsics.
-        width, height: image size in pixels.
-        timestamps: (T,) seconds, non-decreasing.
-
-    Raises:
-        ValueError: from :meth:`CameraPath.validate` (e.g. an improper rotation after conversion).
-    """
+    """A validated float64 :class:`CameraPath` of (T, 4, 4) OpenCV world-to-camera ``viewmats`` (metres), (T, 3, 3) or
+    (3, 3) pixel ``Ks``, the image size and times = normalised (T,) ``timestamps`` in seconds (FORMAT.md). Raises
+    ValueError from :meth:`CameraPath.validate` (e.g. an improper rotation after conversion)."""
     V = torch.from_numpy(np.ascontiguousarray(viewmats, dtype=np.float64))
     K = np.asarray(Ks, dtype=np.float64)
     if K.ndim == 2:

@@ -23,38 +23,16 @@ from diff4splat.io.structured import read_json
 
 from ..format import SceneWriter
 
-__all__ = [
-    "only_stem",
-    "decode_scaled_uint16",
-    "float16_bits_to_float",
-    "disparity_to_depth",
-    "finite_positive_or_inf",
-    "read_rgb_uint8",
-    "read_uint16_png",
-    "check_downscale",
-    "downscale_rgb",
-    "downscaled_intrinsics",
-    "iter_video_frames",
-    "select_frames",
-    "write_scene",
-    "require_file",
-    "require_dir",
-    "load_npy",
-    "load_npz",
-    "load_number_rows",
-    "load_json_file",
-    "load_gzip_json",
-]
+__all__ = ["only_stem", "decode_scaled_uint16", "float16_bits_to_float", "disparity_to_depth", "finite_positive_or_inf",
+           "read_rgb_uint8", "read_uint16_png", "check_downscale", "downscale_rgb", "downscaled_intrinsics",
+           "iter_video_frames", "select_frames", "write_scene", "require_file", "require_dir", "load_npy", "load_npz",
+           "load_number_rows", "load_json_file", "load_gzip_json"]
+
 
 def require_file(path: str | os.PathLike, what: str) -> Path:
-    """``Path(path)`` if it is a regular file (or a link to one).
-
-    Raises:
-        FileNotFoundError: nothing is there (``"<what> not found: <path>"``) or a dangling link (named).
-        ValueError: ``path`` is a folder, a FIFO, a socket, a device or a symlink loop, said as such
-            (:func:`diff4splat.io.inputs.check_input_file`, e.g. ``"<what>: <path> is a FIFO (named pipe), not
-            a file"``).
-    """
+    """``Path(path)`` if it is a regular file (or a link to one). Raises FileNotFoundError: nothing is there, or a
+    dangling link; ValueError: a folder, FIFO, socket, device or symlink loop, said as such
+    (:func:`diff4splat.io.inputs.check_input_file`)."""
     p = Path(path)
     try:
         return check_input_file(p, what)
@@ -65,12 +43,8 @@ def require_file(path: str | os.PathLike, what: str) -> Path:
 
 
 def only_stem(folder: Path, pattern: str, option: str, what: str) -> str:
-    """Stem of the single file matching ``pattern`` in ``folder`` (the default when ``option`` is not given).
-
-    Raises:
-        FileNotFoundError: ``folder`` is not a folder ("source folder not found: <folder>").
-        ValueError: zero or several matches ("<option> must be given: <folder> holds N <what>").
-    """
+    """Stem of the single file matching ``pattern`` in ``folder`` (the default when ``option`` is not given). Raises
+    FileNotFoundError: no ``folder``; ValueError: zero or several matches."""
     require_dir(folder, "source")
     found = sorted(folder.glob(pattern))
     if len(found) != 1:
@@ -79,13 +53,8 @@ def only_stem(folder: Path, pattern: str, option: str, what: str) -> str:
 
 
 def require_dir(path: str | os.PathLike, what: str) -> Path:
-    """``Path(path)`` if it is a folder (or a link to one).
-
-    Raises:
-        FileNotFoundError: nothing is there (``"<what> folder not found: <path>"``) or a dangling link (named).
-        ValueError: ``path`` is something else, said as such: ``"<what> folder: <path> is a FIFO (named pipe),
-            not a folder"``, ``… is a symlink loop, not a folder``, ``… is a regular file, not a folder``.
-    """
+    """``Path(path)`` if it is a folder (or a link to one). Raises FileNotFoundError: nothing is there, or a dangling
+    link; ValueError: something else, said as such."""
     p = Path(path)
     if p.is_dir():
         return p
@@ -101,8 +70,7 @@ def require_dir(path: str | os.PathLike, what: str) -> Path:
 
 
 _NUMPY_READ_ERRORS = (EOFError, ValueError, zipfile.BadZipFile, pickle.UnpicklingError, zlib.error)
-"""What ``np.load`` raises on a truncated, empty or foreign file (``allow_pickle=False``); an ``OSError`` of the
-path itself (permission, …) is left to the CLI's ``<path>: <reason>``."""
+"""What ``np.load`` raises on a truncated, empty or foreign file (an ``OSError`` of the path is left to the CLI)."""
 
 
 def _why(e: BaseException) -> str:
@@ -113,13 +81,8 @@ def _why(e: BaseException) -> str:
 
 
 def load_npy(path: str | os.PathLike, what: str) -> np.ndarray:
-    """The array of the ``.npy`` file ``path`` (never unpickled).
-
-    Raises:
-        FileNotFoundError / ValueError: :func:`require_file`.
-        ValueError: ``path`` is empty, truncated, not a ``.npy`` file or a ``.npz`` archive, named
-            (``"<what>: <path> is not a readable .npy array (<why>)"``).
-    """
+    """The array of the ``.npy`` file ``path`` (never unpickled). Raises what :func:`require_file` raises, and
+    ValueError: empty, truncated, not ``.npy`` or a ``.npz`` archive."""
     p = require_file(path, what)
     try:
         arr = np.load(p, allow_pickle=False)
@@ -134,13 +97,8 @@ def load_npy(path: str | os.PathLike, what: str) -> np.ndarray:
 def load_npz(path: str | os.PathLike, what: str, required: Iterable[str],
              optional: Iterable[str] = ()) -> dict[str, np.ndarray]:
     """The ``required`` arrays and those of ``optional`` present in the ``.npz`` archive ``path`` (never unpickled).
-
-    Raises:
-        FileNotFoundError / ValueError: :func:`require_file`.
-        ValueError: ``path`` is empty, truncated or not a ``.npz`` archive (``"<what>: <path> is not a readable
-            .npz archive (<why>)"``), misses a required array (``"<what>: <path> misses [...]"``), or an array
-            cannot be read (corrupt member, pickled objects), each naming the file.
-    """
+    Raises what :func:`require_file` raises, and ValueError: empty, truncated or not a ``.npz`` archive, a missing
+    required array, or an unreadable one (corrupt member, pickled objects), each naming the file."""
     p = require_file(path, what)
     try:
         z = np.load(p, allow_pickle=False)
@@ -163,13 +121,9 @@ def load_npz(path: str | os.PathLike, what: str, required: Iterable[str],
 
 
 def load_number_rows(path: str | os.PathLike, what: str, ncols: int, columns: str = "") -> np.ndarray:
-    """The (N, ``ncols``) float64 rows of a whitespace-separated text file of numbers (``#`` comments allowed).
-
-    Raises:
-        FileNotFoundError / ValueError: :func:`require_file`.
-        ValueError: an empty file (``"<path>: no lines of numbers (an empty file)"``), a line that is not
-            numbers, or rows of another width than ``ncols`` (``columns`` names them), each naming the file.
-    """
+    """The (N, ``ncols``) float64 rows of a whitespace-separated text file of numbers (``#`` comments allowed). Raises
+    what :func:`require_file` raises, and ValueError: an empty file, a line that is not numbers, or rows of another
+    width than ``ncols`` (``columns`` names them), each naming the file."""
     p = require_file(path, what)
     try:
         with warnings.catch_warnings():
@@ -191,13 +145,8 @@ def load_json_file(path: str | os.PathLike, what: str, expect: type | None = dic
 
 
 def load_gzip_json(path: str | os.PathLike, what: str, expect: type | None = None) -> Any:
-    """The JSON value of a gzip-compressed file (``.jgz``).
-
-    Raises:
-        FileNotFoundError / ValueError: :func:`require_file`.
-        ValueError: not gzip, truncated, not UTF-8 or not JSON, or a top-level value that is not an ``expect``,
-            each naming the file (``"<what>: <path> is not gzip-compressed JSON (<why>)"``).
-    """
+    """The JSON value of a gzip-compressed file (``.jgz``). Raises what :func:`require_file` raises, and ValueError: not
+    gzip, truncated, not UTF-8 or not JSON, or a top-level value that is not an ``expect``, each naming the file."""
     p = require_file(path, what)
     try:
         with gzip.open(p, "rt", encoding="utf8") as f:
@@ -219,13 +168,8 @@ def finite_positive_or_inf(depth: np.ndarray) -> np.ndarray:
 
 
 def decode_scaled_uint16(raw: np.ndarray, metres_per_unit: float, invalid: tuple[int, ...] = (0,)) -> np.ndarray:
-    """Integer depth image → float32 metres: raw·``metres_per_unit``; the ``invalid`` codes → +inf.
-
-    Used for VKITTI2 (centimetres, 65535 = sky) and PointOdyssey (1000 m / 65535 per unit).
-
-    Raises:
-        ValueError: ``raw`` is not an unsigned 16-bit image.
-    """
+    """uint16 depth image → float32 metres: raw·``metres_per_unit``; the ``invalid`` codes → +inf. Raises ValueError:
+    ``raw`` is not an unsigned 16-bit image."""
     raw = np.asarray(raw)
     if raw.dtype != np.uint16:
         raise ValueError(f"expected a 16-bit depth image, got dtype {raw.dtype}")
@@ -235,14 +179,8 @@ def decode_scaled_uint16(raw: np.ndarray, metres_per_unit: float, invalid: tuple
 
 
 def float16_bits_to_float(raw: np.ndarray) -> np.ndarray:
-    """Reinterpret the bits of a uint16 image as IEEE float16 and widen to float32.
-
-    This is CO3D's / Dynamic Replica's "16-bit PNG depth" encoding (dynamic_stereo
-    ``_load_16big_png_depth``: ``np.frombuffer(uint16, float16)``).
-
-    Raises:
-        ValueError: ``raw`` is not uint16.
-    """
+    """Reinterpret the bits of a uint16 image as float16, widened to float32: CO3D's / Dynamic Replica's 16-bit PNG
+    depth (dynamic_stereo ``_load_16big_png_depth``). Raises ValueError: ``raw`` is not uint16."""
     raw = np.ascontiguousarray(raw)
     if raw.dtype != np.uint16:
         raise ValueError(f"expected a 16-bit image, got dtype {raw.dtype}")
@@ -250,13 +188,8 @@ def float16_bits_to_float(raw: np.ndarray) -> np.ndarray:
 
 
 def disparity_to_depth(disparity: np.ndarray, fx: float, baseline: float) -> np.ndarray:
-    """Rectified-stereo disparity (pixels) → z-depth (metres): z = fx·B / d; d ≤ 0 or non-finite → +inf.
-
-    Args:
-        disparity: (H, W) disparity in pixels of the image whose focal length is ``fx``.
-        fx: focal length, pixels.
-        baseline: stereo baseline B, metres.
-    """
+    """Rectified-stereo disparity (H, W), pixels → z-depth, metres: z = fx·B / d (``fx`` pixels, ``baseline`` B
+    metres); d ≤ 0 or non-finite → +inf."""
     d = np.asarray(disparity, dtype=np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         z = fx * baseline / d
@@ -264,13 +197,8 @@ def disparity_to_depth(disparity: np.ndarray, fx: float, baseline: float) -> np.
 
 
 def read_rgb_uint8(path: str | os.PathLike) -> np.ndarray:
-    """Decode a colour image file (PNG/JPEG/…, 8 or 16 bit) to (H, W, 3) uint8 RGB.
-
-    16-bit images are scaled by 255/65535 and rounded; alpha is dropped.
-
-    Raises:
-        FileNotFoundError: missing file. ValueError: OpenCV cannot decode it.
-    """
+    """Decode an 8- or 16-bit (scaled by 255/65535, rounded) colour image file to (H, W, 3) uint8 RGB, alpha dropped.
+    Raises FileNotFoundError: missing file; ValueError: OpenCV cannot decode it."""
     p = require_file(path, "image")
     img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
     if img is None:
@@ -286,11 +214,8 @@ def read_rgb_uint8(path: str | os.PathLike) -> np.ndarray:
 
 
 def read_uint16_png(path: str | os.PathLike) -> np.ndarray:
-    """Read a single-channel 16-bit PNG unchanged as (H, W) uint16.
-
-    Raises:
-        FileNotFoundError: missing file. ValueError: undecodable, or not single-channel 16-bit.
-    """
+    """Read a single-channel 16-bit PNG unchanged as (H, W) uint16. Raises FileNotFoundError: missing file; ValueError:
+    undecodable, or not single-channel 16-bit."""
     p = require_file(path, "depth image")
     img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
     if img is None or img.dtype != np.uint16 or img.ndim != 2:
@@ -308,10 +233,7 @@ def check_downscale(factor, width: int, height: int) -> int:
 
 
 def downscale_rgb(rgb: np.ndarray, factor: int) -> np.ndarray:
-    """(H, W, 3) uint8 → (H // factor, W // factor, 3) uint8 by area averaging (``cv2.INTER_AREA``).
-
-    ``factor`` 1 returns ``rgb`` unchanged. The matching intrinsics are :func:`downscaled_intrinsics`.
-    """
+    """(H, W, 3) uint8 → (H // factor, W // factor, 3) uint8 by ``cv2.INTER_AREA`` (factor 1: ``rgb`` itself)."""
     if factor == 1:
         return rgb
     h, w = rgb.shape[:2]
@@ -319,14 +241,8 @@ def downscale_rgb(rgb: np.ndarray, factor: int) -> np.ndarray:
 
 
 def downscaled_intrinsics(K: np.ndarray, width: int, height: int, factor: int) -> tuple[np.ndarray, int, int]:
-    """Pixel intrinsics (..., 3, 3) of ``width``×``height`` images resized by :func:`downscale_rgb`.
-
-    The resize maps continuous pixel coordinates (pixel centres at +0.5) by sx = (W // f) / W and
-    sy = (H // f) / H, so fx, cx scale by sx and fy, cy by sy.
-
-    Returns:
-        (K', W // factor, H // factor).
-    """
+    """(K', W // factor, H // factor): pixel intrinsics (..., 3, 3) of ``width``×``height`` images resized by
+    :func:`downscale_rgb`; fx, cx scale by (W // f) / W and fy, cy by (H // f) / H."""
     w2, h2 = width // factor, height // factor
     K2 = np.array(K, dtype=np.float64)
     K2[..., 0, :] *= w2 / width
@@ -335,15 +251,9 @@ def downscaled_intrinsics(K: np.ndarray, width: int, height: int, factor: int) -
 
 
 def iter_video_frames(path: str | os.PathLike, indices: list[int]) -> Iterator[np.ndarray]:
-    """Stream the frames ``indices`` (increasing) of a video file as (H, W, 3) uint8 RGB, one at a time.
-
-    Decoding is sequential (OpenCV ``VideoCapture``) so memory stays at one frame, whatever the
-    video length (a 81-frame 1280² MultiCamVideo clip is 400 MB decoded).
-
-    Raises:
-        FileNotFoundError: missing file. ValueError: unreadable video, or it has fewer frames than
-            ``max(indices) + 1``.
-    """
+    """Stream the frames ``indices`` (increasing) of a video file as (H, W, 3) uint8 RGB, decoding sequentially so
+    memory holds one frame. Raises FileNotFoundError: missing file; ValueError: unreadable video, or fewer frames than
+    ``max(indices) + 1``."""
     p = require_file(path, "video")
     cap = cv2.VideoCapture(str(p))
     if not cap.isOpened():
@@ -366,15 +276,9 @@ def iter_video_frames(path: str | os.PathLike, indices: list[int]) -> Iterator[n
 
 def select_frames(total: int, start: int = 0, stride: int = 1, max_frames: int | None = None, *,
                   source: str | os.PathLike | None = None) -> list[int]:
-    """Source frame indices start, start+stride, … (< total), at most ``max_frames`` of them.
-
-    Args:
-        source: the file or folder the ``total`` frames were counted in, named when it has none.
-
-    Raises:
-        ValueError: ``total`` < 1 (``"<source> has no frames"``), ``start`` outside [0, total), ``stride`` < 1,
-            ``max_frames`` < 1.
-    """
+    """Source frame indices start, start+stride, … (< total), at most ``max_frames`` of them; ``source``: where the
+    frames were counted, named when there are none. Raises ValueError: ``total`` < 1, ``start`` outside [0, total),
+    ``stride`` < 1, ``max_frames`` < 1."""
     if total < 1:
         raise ValueError(f"{'the source sequence' if source is None else source} has no frames")
     if not isinstance(start, int) or not 0 <= start < total:
@@ -391,40 +295,18 @@ FrameSource = Callable[[str], Iterable[tuple[np.ndarray, np.ndarray | None]]]
 """camera name → its T frames in order, each (rgb (H, W, 3) uint8, depth (H, W) float32 metres or None)."""
 
 
-def write_scene(
-    out: str | os.PathLike,
-    *,
-    source: str,
-    dynamic: bool,
-    depth_source: str,
-    fps: float,
-    cameras: dict[str, CameraPath],
-    timestamps: np.ndarray,
-    frames: FrameSource,
-    tracks: tuple[np.ndarray, np.ndarray] | None = None,
-    depth_scale: float = 1.0,
-    depth_shift: float = 0.0,
-    extra: dict | None = None,
-    replace: bool = False,
-) -> Path:
-    """Write one converted scene with :class:`data_prep.format.SceneWriter` (atomic, validated).
+def write_scene(out: str | os.PathLike, *, source: str, dynamic: bool, depth_source: str, fps: float,
+                cameras: dict[str, CameraPath], timestamps: np.ndarray, frames: FrameSource,
+                tracks: tuple[np.ndarray, np.ndarray] | None = None, depth_scale: float = 1.0,
+                depth_shift: float = 0.0, extra: dict | None = None, replace: bool = False) -> Path:
+    """Write one converted scene folder ``out`` with :class:`data_prep.format.SceneWriter` (atomic, validated).
 
-    Args:
-        out: scene folder to create.
-        source, dynamic, depth_source, fps, depth_scale, depth_shift, extra: meta fields (FORMAT.md).
-        cameras: camera name → T-frame path, reference camera first (dict order).
-        timestamps: (T,) seconds shared by every camera (the sources are synchronised).
-        frames: called once per camera, yields its T (rgb, depth) pairs in order.
-        tracks: optional (points (P, T, 3) metres world, visibility (P, T) bool).
-        replace: replace an existing scene folder.
+    ``source`` … ``extra``: meta fields (FORMAT.md); ``cameras``: name → T-frame path, reference first; ``timestamps``:
+    (T,) seconds shared by every camera; ``frames(name)`` yields a camera's T (rgb, depth) pairs; ``tracks``: optional
+    (points (P, T, 3) metres, visibility (P, T) bool). Returns ``out``.
 
-    Returns:
-        The scene folder.
-
-    Raises:
-        ValueError: a camera yields a number of frames other than T, or any SceneWriter/validator
-            error (bad shapes, invalid depth values, unsynchronised cameras).
-        FileExistsError: ``out`` exists and ``replace`` is false.
+    Raises ValueError: a camera yields a number of frames other than T, or any SceneWriter/validator error (bad shapes,
+    invalid depth values, unsynchronised cameras); FileExistsError: ``out`` exists and ``replace`` is false.
     """
     T = len(timestamps)
     with SceneWriter(out, source=source, dynamic=dynamic, depth_source=depth_source, num_frames=T,

@@ -1,27 +1,7 @@
-"""D-NeRF (Blender dynamic scenes) → scene format.
+"""D-NeRF (Blender dynamic scenes) → scene format: one split of one object folder, one moving camera.
 
-Source: Pumarola et al., "D-NeRF: Neural Radiance Fields for Dynamic Scenes", CVPR 2021; the
-release's ``load_blender.py`` and the reader of hustvl/4DGaussians (``scene/dataset_readers.py``,
-``readCamerasFromTransforms``). One converted scene = one split of one object folder::
-
-    <IN>/transforms_{train,val,test}.json   camera_angle_x (rad), frames [{file_path, time, transform_matrix}]
-    <IN>/<file_path>.png                    RGBA render (800×800 in the release); "./train/r_000" → train/r_000.png
-
-- ``transform_matrix`` is camera-to-world with Blender/OpenGL camera axes (x right, y up, z
-  backward): c2w_cv = c2w_gl · diag(1, −1, −1, 1) (:func:`.common.c2w_gl_to_viewmat`; 4DGaussians
-  negates the same two columns).
-- Intrinsics: fx = fy = W/2 / tan(camera_angle_x / 2) (``load_blender.py``), principal point at the
-  image centre (W/2, H/2) in our pixel-centre-at-+0.5 coordinates, where Blender puts it. (NeRF's
-  ``get_rays`` uses integer pixel coordinates, a half-pixel shift we do not copy.)
-- RGBA is composited on the ``background``: rgb·a + bg·(1 − a), as D-NeRF (``white_bkgd``) and
-  4DGaussians do; white by default. An image without alpha is used as is.
-- One moving monocular camera → ``cam00``: the split's frames sorted by ``time``, each with its pose.
-- Time: D-NeRF's ``time`` ∈ [0, 1] (its loader asserts the first is 0). Timestamps are
-  time · (N − 1) / ``fps`` seconds (N = frames in the split, ``fps`` nominal: the renders have no
-  frame rate), so the stored ``times`` — timestamps normalised to the first and last selected frame
-  (FORMAT.md) — equal the dataset's ``time`` exactly when the selection spans time 0 to time 1.
-  Otherwise the conversion is refused (ValueError) rather than silently re-timing the frames.
-- Units: Blender scene units (not known to be metres), ``depth_source: "none"``.
+Source: Pumarola et al., "D-NeRF: Neural Radiance Fields for Dynamic Scenes", CVPR 2021 (``load_blender.py``) and
+hustvl/4DGaussians' ``readCamerasFromTransforms``. Layout and conventions: ``data_prep/CONVERTERS.md``, "D-NeRF".
 """
 from __future__ import annotations
 
@@ -50,14 +30,8 @@ _TIME_TOL = 1e-6  # the selection's first/last time must be 0/1 within this (flo
 
 
 def read_dnerf_rgb(path: str | os.PathLike, background: float) -> np.ndarray:
-    """Read a D-NeRF render and composite its alpha on a grey level ``background`` in [0, 1].
-
-    Returns:
-        (H, W, 3) uint8 RGB: round(255 · (rgb·a + background·(1 − a))), rgb and a in [0, 1].
-
-    Raises:
-        FileNotFoundError: missing file. ValueError: undecodable, or not an 8/16-bit colour image.
-    """
+    """Read a D-NeRF render as (H, W, 3) uint8 RGB, round(255 · (rgb·a + background·(1 − a))), ``background`` a grey
+    level in [0, 1]. Raises FileNotFoundError: missing file; ValueError: undecodable or not 8/16-bit colour."""
     p = require_file(path, "D-NeRF image")
     img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
     if img is None or img.dtype not in (np.uint8, np.uint16) or img.ndim != 3 or img.shape[2] not in (3, 4):
@@ -79,27 +53,16 @@ def _image_path(src: Path, file_path: str) -> Path:
 def convert_dnerf(src: str | os.PathLike, out: str | os.PathLike, *, split: str = "train",
                   background: str = "white", downscale: int = 1, fps: float = DNERF_FPS, start: int = 0,
                   stride: int = 1, max_frames: int | None = None, replace: bool = False) -> Path:
-    """Convert one split of a D-NeRF object (module docstring) to a one-camera dynamic scene.
+    """Convert one split (``"train"``, ``"val"``, ``"test"``) of the D-NeRF object folder ``src`` to a one-camera
+    dynamic scene ``out`` (``depth_source: "none"``) and return it.
 
-    Args:
-        src: object folder (``data/lego``) holding ``transforms_<split>.json`` and the images.
-        out: output scene folder.
-        split: ``"train"``, ``"val"`` or ``"test"``.
-        background: ``"white"`` (D-NeRF's and 4DGaussians' default) or ``"black"``.
-        downscale: integer factor; images resized to (W // f, H // f) with ``cv2.INTER_AREA``.
-        fps: nominal frame rate of the split's frames, Hz (timestamps = time · (N − 1) / fps); meta fps
-            is fps / stride.
-        start, stride, max_frames: selection in time order.
-        replace: replace an existing output folder.
+    ``background``: ``"white"`` or ``"black"``; ``downscale``: integer factor (``cv2.INTER_AREA``); ``fps``: nominal, Hz
+    (timestamps = time · (N − 1) / fps; meta fps = fps / stride); ``start``, ``stride``, ``max_frames``: the selection
+    in time order.
 
-    Returns:
-        The scene folder (``dynamic: true``, ``depth_source: "none"``).
-
-    Raises:
-        FileNotFoundError: missing JSON or image.
-        ValueError: bad ``split``/``background``/``downscale``/``fps``; a missing or malformed
-            ``camera_angle_x``, ``frames``, ``file_path``, ``time`` or ``transform_matrix`` (named with its
-            frame index); images of different sizes; a selection whose times do not span [0, 1].
+    Raises FileNotFoundError: missing JSON or image; ValueError: bad ``split``/``background``/``downscale``/``fps``; a
+    missing or malformed ``camera_angle_x``, ``frames``, ``file_path``, ``time`` or ``transform_matrix`` (named with its
+    frame index); images of different sizes; a selection whose times do not span [0, 1].
     """
     src = Path(src)
     if split not in DNERF_SPLITS:

@@ -1,21 +1,7 @@
-"""Dynamic Replica → scene format.
+"""Dynamic Replica → scene format: one sequence of a split, its stereo cameras, ground-truth depth.
 
-Source: Karaev et al., "DynamicStereo: Consistent Dynamic Depth from Stereo Videos", CVPR 2023,
-and its code release (``datasets/dynamic_stereo_datasets.py``). The dataset root holds one
-gzipped JSON annotation list per split and the frames under ``<root>/<split>/``::
-
-    <IN>/frame_annotations_<split>.jgz   list of CO3D-style FrameAnnotation objects:
-        sequence_name, camera_name ("left"/"right"), frame_number, frame_timestamp (s),
-        image {path, size [H, W]}, depth {path, scale_adjustment}, viewpoint {R, T,
-        focal_length [fx, fy], principal_point [px, py], intrinsics_format}
-    <IN>/<split>/<image.path>            RGB PNG
-    <IN>/<split>/<depth.path>            16-bit PNG whose bits are IEEE float16 depth (×scale_adjustment)
-
-Cameras are PyTorch3D cameras: row-vector convention X_cam = X_world·R + T, camera axes x left,
-y up, z forward; intrinsics in NDC, ``"ndc_isotropic"`` (pixels = NDC · min(H, W)/2) or
-``"ndc_norm_image_bounds"`` (pixels = NDC · (W/2, H/2)), principal point
-p_px = (W/2, H/2) − p_ndc · scale. Depth is z-depth in the scene's units (Replica meshes are
-metric); values < 1e-5 are invalid.
+Source: Karaev et al., "DynamicStereo: Consistent Dynamic Depth from Stereo Videos", CVPR 2023
+(``datasets/dynamic_stereo_datasets.py``). Layout and conventions: ``data_prep/CONVERTERS.md``, "Dynamic Replica".
 """
 from __future__ import annotations
 
@@ -50,13 +36,8 @@ def load_frame_annotations(root: str | os.PathLike, split: str) -> list[dict]:
 
 
 def pytorch3d_to_opencv(viewpoint: dict, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
-    """A PyTorch3D viewpoint (module docstring) → (viewmat (4, 4) OpenCV world-to-camera, K (3, 3) pixels).
-
-    R_cv = diag(−1, −1, 1)·Rᵀ, t_cv = diag(−1, −1, 1)·T; focal and principal point from NDC.
-
-    Raises:
-        ValueError: an unknown ``intrinsics_format``.
-    """
+    """A PyTorch3D viewpoint → (viewmat (4, 4) OpenCV world-to-camera, K (3, 3) pixels): R_cv = diag(−1, −1, 1)·Rᵀ,
+    t_cv = diag(−1, −1, 1)·T, focal and principal point from NDC. Raises ValueError: unknown ``intrinsics_format``."""
     R = np.asarray(viewpoint["R"], dtype=np.float64)
     T = np.asarray(viewpoint["T"], dtype=np.float64)
     fmt = str(viewpoint.get("intrinsics_format", "ndc_norm_image_bounds")).lower()
@@ -75,23 +56,14 @@ def pytorch3d_to_opencv(viewpoint: dict, height: int, width: int) -> tuple[np.nd
 def convert_dynamic_replica(src: str | os.PathLike, out: str | os.PathLike, *, sequence: str | None = None,
                             split: str = "train", sides: tuple[str, ...] = ("left", "right"), start: int = 0,
                             stride: int = 1, max_frames: int | None = None, replace: bool = False) -> Path:
-    """Convert one Dynamic Replica sequence (module docstring) to a scene folder.
+    """Convert one Dynamic Replica sequence (None: the split's only one) of the dataset root ``src`` to the scene
+    ``out`` and return it (dynamic, ground-truth depth, timestamps = ``frame_timestamp``).
 
-    Args:
-        src: dataset root (holding ``frame_annotations_<split>.jgz`` and ``<split>/``).
-        out: output scene folder.
-        sequence: ``sequence_name`` to convert; ``None`` is allowed when the split has one sequence.
-        split: annotation split name (``train``, ``valid``, ``test``).
-        sides: ``camera_name`` values to convert, stored as ``cam00``, ``cam01`` in this order.
-        start, stride, max_frames: selection over the sequence's frames sorted by ``frame_number``.
-        replace: replace an existing output folder.
+    ``sides``: ``camera_name`` values, stored as ``cam00``, ``cam01`` in order; ``start``, ``stride``, ``max_frames``:
+    the selection over the frames sorted by ``frame_number``.
 
-    Returns:
-        The scene folder (dynamic, ground-truth depth, timestamps = ``frame_timestamp``).
-
-    Raises:
-        ValueError: unknown/ambiguous sequence, a side missing, unequal frame numbers between sides.
-        FileNotFoundError: missing annotation or frame files.
+    Raises ValueError: unknown/ambiguous sequence, a side missing, unequal frame numbers between sides;
+    FileNotFoundError: missing annotation or frame files.
     """
     src = Path(src)
     by_seq: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))

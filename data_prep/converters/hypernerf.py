@@ -1,34 +1,8 @@
-"""HyperNeRF / Nerfies captures → scene format.
+"""HyperNeRF / Nerfies captures → scene format: one capture, one camera (monocular) or two ("vrig").
 
-Source: Park et al., "Nerfies: Deformable Neural Radiance Fields", ICCV 2021 and "HyperNeRF", SIGGRAPH
-Asia 2021; the google/nerfies code (``nerfies/camera.py`` ``Camera.project``/``from_json``/``scale``,
-``nerfies/datasets/nerfies.py``, the capture-processing notebook). One converted scene = one capture::
-
-    <IN>/dataset.json          {count, num_exemplars, ids, train_ids, val_ids}
-    <IN>/metadata.json         {id: {time_id, warp_id, appearance_id, camera_id}}  (time_id absent → warp_id)
-    <IN>/camera/<id>.json      orientation, position, focal_length, principal_point, skew, pixel_aspect_ratio,
-                               radial_distortion (k1, k2, k3), tangential_distortion (p1, p2), image_size [W, H]
-    <IN>/rgb/<scale>x/<id>.png frames at 1/scale resolution (area-downsampled by the capture notebook)
-    <IN>/scene.json            {scale, center, near, far}   (optional here; needed for ``normalize``)
-
-- Camera model (``Camera.project``): x_c = orientation·(X − position), so ``orientation`` is the
-  world-to-camera rotation (rows = camera axes) with OpenCV axes (x right, y down, z forward) — the
-  notebook builds it from COLMAP's rotation — and ``position`` the camera centre. Pixel =
-  (f·x_d + skew·y_d + cx, f·pixel_aspect_ratio·y_d + cy) with (x_d, y_d) the distorted x/z, y/z; pixel
-  centres at +0.5 (``get_pixel_centers``), like ours. viewmat = [R | −R·position],
-  K = [[f, 0, cx], [0, f·ratio, cy]], divided by ``scale`` as ``Camera.scale(1/scale)`` does.
-- Distortion is nerfies' = OpenCV's model (radial 1 + k1·r² + k2·r⁴ + k3·r⁶, tangential p1, p2): frames
-  with non-zero coefficients are **undistorted** with ``cv2.undistort`` (bilinear, same K; pixels
-  that map outside the source image become black), OpenCV's principal point being ours − 0.5 (it
-  puts pixel centres at integers). Non-zero ``skew`` is refused (our Ks have none).
-- World frame: COLMAP's, as stored (``normalize=False``), or nerfies' normalised frame
-  (X − center)·scale from ``scene.json`` (``normalize=True``; positions move, rotations do not).
-  Neither is metric: ``metric_scale: false``, ``depth_source: "none"``.
-- Cameras: frames grouped by ``camera_id`` (sorted → ``cam00``, ``cam01``, …). One camera (a
-  monocular capture) → its frames sorted by time_id; several (the "vrig" captures) → only the
-  time_ids every camera has, one frame each (a repeated time_id in a camera is an error).
-- Time: timestamps = time_id / ``fps`` (nominal, default 15 Hz: the Nerfies paper extracted ~15 fps;
-  the files do not say); times = time_ids normalised to the first and last selected one.
+Source: Park et al., "Nerfies: Deformable Neural Radiance Fields", ICCV 2021 and "HyperNeRF", SIGGRAPH Asia 2021;
+google/nerfies (``camera.py`` ``Camera.project``/``from_json``/``scale``). Layout and conventions (undistorted
+frames, COLMAP or nerfies-normalised units, nominal 15 Hz): ``data_prep/CONVERTERS.md``, "HyperNeRF / Nerfies".
 """
 from __future__ import annotations
 
@@ -48,19 +22,16 @@ from .common import read_rgb_uint8, require_dir, select_frames, write_scene
 __all__ = ["convert_hypernerf", "NerfiesCamera", "read_nerfies_camera", "undistort_rgb", "HYPERNERF_FPS"]
 
 HYPERNERF_FPS = 15.0
-"""Nominal frame rate of the captures' extracted frames, Hz (assumed; see module docstring)."""
+"""Nominal frame rate of the captures' extracted frames, Hz (assumed: the files hold no rate; CONVERTERS.md)."""
 
 _SPLIT_KEYS = {"all": "ids", "train": "train_ids", "val": "val_ids"}
 
 
 @dataclass(frozen=True)
 class NerfiesCamera:
-    """One ``camera/<id>.json`` at full (1x) resolution, in our conventions.
-
-    ``K`` (3, 3) pixels (pixel centres at +0.5), ``R`` (3, 3) world-to-camera OpenCV rotation,
-    ``position`` (3,) camera centre in world units, ``dist`` (5,) OpenCV order (k1, k2, p1, p2, k3),
-    ``size`` (W, H) pixels.
-    """
+    """One ``camera/<id>.json`` at full resolution, in our conventions: ``K`` (3, 3) pixels (centres at +0.5), ``R``
+    (3, 3) world-to-camera OpenCV rotation, ``position`` (3,) camera centre, ``dist`` (5,) OpenCV (k1, k2, p1, p2,
+    k3), ``size`` (W, H) pixels."""
 
     K: np.ndarray
     R: np.ndarray
@@ -81,13 +52,11 @@ def _array(path: Path, data: dict, key: str, shape: tuple, default=None) -> np.n
 
 
 def read_nerfies_camera(path: str | os.PathLike) -> NerfiesCamera:
-    """Parse a Nerfies/HyperNeRF camera JSON (module docstring); ``tangential`` is read as
-    ``tangential_distortion`` as ``Camera.from_json`` does; absent skew/ratio/distortion default to 0/1/0.
+    """Parse a Nerfies/HyperNeRF camera JSON (``tangential`` read as ``tangential_distortion``; absent skew, ratio,
+    distortion: 0, 1, 0).
 
-    Raises:
-        FileNotFoundError: missing file. ValueError: invalid JSON, a missing or malformed field (named),
-            a non-positive focal length, ratio or image size, non-zero skew, or an orientation that is not
-            a rotation (‖RᵀR − I‖ > 1e-4 or det ≤ 0).
+    Raises FileNotFoundError: missing file; ValueError: invalid JSON, a missing or malformed field (named), a
+    non-positive focal length, ratio or image size, non-zero skew, or an orientation that is not a rotation.
     """
     path = Path(path)
     d = read_json(path, "HyperNeRF camera")
@@ -152,26 +121,17 @@ def _group(src: Path, ids: list[str]) -> dict[int, list[tuple[int, str]]]:
 def convert_hypernerf(src: str | os.PathLike, out: str | os.PathLike, *, scale: int = 1, split: str = "all",
                       normalize: bool = False, fps: float = HYPERNERF_FPS, start: int = 0, stride: int = 1,
                       max_frames: int | None = None, replace: bool = False) -> Path:
-    """Convert one HyperNeRF/Nerfies capture (module docstring) to a one- or two-camera dynamic scene.
+    """Convert one HyperNeRF/Nerfies capture ``src`` to a one- or two-camera dynamic scene ``out`` (``depth_source:
+    "none"``) and return it.
 
-    Args:
-        src: capture folder (``dataset.json``, ``metadata.json``, ``camera/``, ``rgb/``).
-        out: output scene folder.
-        scale: image scale folder ``rgb/<scale>x`` (1, 2, 4, 8 in the releases); intrinsics ÷ scale.
-        split: ``"all"`` (dataset.json ``ids``), ``"train"`` or ``"val"``.
-        normalize: express the world in nerfies' normalised frame (X − center)·scale of ``scene.json``.
-        fps: nominal frame rate of time_ids, Hz (timestamps = time_id / fps); meta fps = fps / stride.
-        start, stride, max_frames: selection among the (common) time_ids, in order.
-        replace: replace an existing output folder.
+    ``scale``: the ``rgb/<scale>x`` folder (intrinsics ÷ scale); ``split``: ``"all"``, ``"train"`` or ``"val"``;
+    ``normalize``: nerfies' normalised world (X − center)·scale of ``scene.json``; ``fps``: nominal rate of time_ids, Hz
+    (meta fps = fps / stride); ``start``, ``stride``, ``max_frames``: selection among the (common) time_ids.
 
-    Returns:
-        The scene folder (``dynamic: true``, ``depth_source: "none"``).
-
-    Raises:
-        FileNotFoundError: missing JSON, camera file, ``rgb/<scale>x`` folder or image.
-        ValueError: bad options; a missing or malformed field in dataset.json, metadata.json, a camera
-            file or scene.json (named); cameras without a common time_id; a repeated time_id in a
-            multi-camera capture; a camera whose image size changes or differs from image_size / scale.
+    Raises FileNotFoundError: missing JSON, camera file, ``rgb/<scale>x`` folder or image; ValueError: bad options; a
+    missing or malformed field in dataset.json, metadata.json, a camera file or scene.json (named); cameras without a
+    common time_id; a repeated time_id in a multi-camera capture; a camera whose image size changes or differs from
+    image_size / scale.
     """
     src = Path(src)
     if isinstance(scale, bool) or not isinstance(scale, int) or scale < 1:

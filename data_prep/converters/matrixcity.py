@@ -1,19 +1,7 @@
-"""MatrixCity → scene format.
+"""MatrixCity → scene format: one ``<block>`` folder of released poses and images, plus its depth folder.
 
-Source: Li et al., "MatrixCity: A Large-scale City Dataset for City-scale Neural Rendering and
-Beyond", ICCV 2023, and the dataset README / ``scripts/load_data.py``. One converted scene = one
-``<block>`` folder of the released poses with its images, plus the matching depth folder::
-
-    <IN>/transforms.json      fl_x, fl_y (px) or camera_angle_x (rad), w, h, cx?, cy?,
-                              frames: [{file_path, transform_matrix (4×4 camera-to-world)}]
-    <IN>/<file_path>          the images (e.g. 0000.png)
-    <DEPTH_DIR>/<stem>.exr    z-depth in centimetres (float16 or float32 EXR); 65504 (float16 max) = invalid
-
-``transform_matrix`` uses the NeRF/OpenGL camera axes (x right, y up, z backward); in the per-block
-``transforms.json`` positions are metres and the rotation block is scaled by 0.01 (the README:
-"the rotation matrix needs to be multiplied by 100 to normalize it") — the scale is removed by
-:func:`normalize_rotation` (det^(1/3)), which also accepts the already normalised ``pose/<block>``
-files (whose positions are in units of 100 m: pass ``metres_per_unit=100``). The city is static.
+Source: Li et al., "MatrixCity: A Large-scale City Dataset for City-scale Neural Rendering and Beyond", ICCV 2023
+(README, ``scripts/load_data.py``). Layout and conventions: ``data_prep/CONVERTERS.md``, "MatrixCity".
 """
 from __future__ import annotations
 
@@ -42,13 +30,8 @@ MATRIXCITY_INVALID_DEPTH = 65504.0
 
 
 def read_matrixcity_depth(path: str | os.PathLike) -> np.ndarray:
-    """A MatrixCity depth EXR → (H, W) float32 metres, +inf where invalid (≥ 65504 cm or non-finite).
-
-    The first present channel among R, Y, Z, then any, is read (``load_data.py`` takes channel 0).
-
-    Raises:
-        FileNotFoundError: missing file. ValueError: unreadable EXR.
-    """
+    """A MatrixCity depth EXR (centimetres; first channel among R, Y, Z, then any) → (H, W) float32 metres, +inf
+    where ≥ 65504 cm or non-finite. Raises FileNotFoundError: missing file; ValueError: unreadable EXR."""
     p = require_file(path, "MatrixCity depth")
     try:
         with OpenEXR.File(str(p), separate_channels=True) as f:
@@ -73,27 +56,14 @@ def convert_matrixcity(src: str | os.PathLike, out: str | os.PathLike, *, depth_
                        transforms: str = "transforms.json", metres_per_unit: float = 1.0, start: int = 0,
                        stride: int = 1, max_frames: int | None = None, fps: float = 10.0,
                        replace: bool = False) -> Path:
-    """Convert one MatrixCity block (module docstring) to a scene folder.
+    """Convert one MatrixCity block folder ``src`` to the static scene ``out`` and return it.
 
-    Args:
-        src: block folder with ``transforms.json`` and the images.
-        out: output scene folder.
-        depth_dir: folder of ``<image stem>.exr`` depth maps; ``None`` → no depth
-            (``depth_source="none"``).
-        transforms: name of the pose file inside ``src``.
-        metres_per_unit: position unit of the pose file (1 for ``<block>/transforms.json``, 100 for
-            ``pose/<block>`` files).
-        start, stride, max_frames: selection in the order of ``frames``.
-        fps: nominal frame rate assigned to the image sequence (MatrixCity frames are sampled along
-            a path every few metres, not in time), Hz.
-        replace: replace an existing output folder.
+    ``depth_dir``: folder of ``<image stem>.exr`` (None: ``depth_source="none"``); ``transforms``: the pose file in
+    ``src``; ``metres_per_unit``: its position unit (1 for ``<block>/transforms.json``, 100 for ``pose/<block>``);
+    ``fps``: nominal, Hz (frames are sampled along a path, not in time).
 
-    Returns:
-        The scene folder (static, ground-truth depth when ``depth_dir`` is given).
-
-    Raises:
-        FileNotFoundError: missing files. ValueError: no intrinsics in the JSON, a transform that is
-            not a uniformly scaled rotation, or images of another size than ``w``×``h``.
+    Raises FileNotFoundError: missing files; ValueError: no intrinsics in the JSON, a transform that is not a uniformly
+    scaled rotation, or images of another size than ``w``×``h``.
     """
     src = Path(src)
     meta = load_json_file(src / transforms, "MatrixCity transforms.json")

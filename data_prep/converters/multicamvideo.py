@@ -1,22 +1,8 @@
-"""MultiCamVideo (ReCamMaster) → scene format.
+"""MultiCamVideo (ReCamMaster) → scene format: one ``<focal>_aperture<a>/sceneN`` folder, up to 10 cameras.
 
-Source: Bai et al., "ReCamMaster: Camera-Controlled Generative Rendering from A Single Video",
-ICCV 2025; dataset card and README of the MultiCamVideo-Dataset, and the official loading code
-(``parse_matrix`` and the c2w conversion in the ReCamMaster training/inference scripts). One
-converted scene = one ``<focal>_aperture<a>/sceneN`` folder::
-
-    <IN>/videos/cam01.mp4 … cam10.mp4          81 synchronised frames, 1280×1280, 15 fps
-    <IN>/cameras/camera_extrinsics.json        {"frame0": {"cam01": "[r r r 0] [r r r 0] [r r r 0] [x y z 1]", …}, …}
-
-The folder name gives the focal length (f18, f24, f35, f50 mm) of a 23.76 × 23.76 mm sensor, so
-fx = fy = f_mm / 23.76 · W, principal point at the centre. Each matrix string is an Unreal Engine
-5 transform in row-vector form (translation in the 4th row, centimetres); transposed it is the
-camera-to-world [R_ue | t_ue] with the UE camera axes (x forward, y right, z up) in the UE world,
-which is left-handed (x forward, y right, z up). Conversion: OpenCV camera axes
-local_ue = Q·cv with Q = [[0,0,1],[1,0,0],[0,−1,0]] (ReCamMaster's column reorder [1, 2, 0] and
-sign flip), world mirrored to a right-handed frame F = diag(1, −1, 1) (x forward, y left, z up),
-centimetres → metres: c2w = [F·R_ue·Q | F·t_ue / 100]. Relative camera poses are identical to
-ReCamMaster's (F cancels in V_i·V_0⁻¹). No depth is provided.
+Source: Bai et al., "ReCamMaster: Camera-Controlled Generative Rendering from A Single Video", ICCV 2025 (dataset
+card, the loaders' ``parse_matrix``). Layout and conventions (Unreal Engine poses → OpenCV, c2w =
+[F·R_ue·Q | F·t_ue / 100]): ``data_prep/CONVERTERS.md``, "MultiCamVideo".
 """
 from __future__ import annotations
 
@@ -42,11 +28,7 @@ _F = np.diag([1.0, -1.0, 1.0])  # left-handed UE world → right-handed world
 
 
 def parse_ue_matrix(text: str) -> np.ndarray:
-    """``"[a b c d] [e f g h] [i j k l] [m n o p]"`` → (4, 4) float64 (rows as written).
-
-    Raises:
-        ValueError: not 4 bracketed rows of 4 numbers.
-    """
+    """``"[a b c d] [e f g h] [i j k l] [m n o p]"`` → (4, 4) float64 (rows as written); ValueError otherwise."""
     rows = re.findall(r"\[([^\[\]]*)\]", str(text))
     try:
         M = np.array([[float(v) for v in r.split()] for r in rows], dtype=np.float64)
@@ -58,7 +40,7 @@ def parse_ue_matrix(text: str) -> np.ndarray:
 
 
 def ue_to_opencv_c2w(M_row: np.ndarray) -> np.ndarray:
-    """(…, 4, 4) UE row-vector transforms (cm) → (…, 4, 4) OpenCV camera-to-world in metres (module docstring)."""
+    """(…, 4, 4) UE row-vector transforms (cm) → (…, 4, 4) OpenCV camera-to-world in metres (CONVERTERS.md)."""
     c2w_ue = np.swapaxes(np.asarray(M_row, dtype=np.float64), -1, -2)
     return rigid(_F @ c2w_ue[..., :3, :3] @ _Q, (c2w_ue[..., :3, 3] @ _F.T) / 100.0)
 
@@ -66,23 +48,13 @@ def ue_to_opencv_c2w(M_row: np.ndarray) -> np.ndarray:
 def convert_multicamvideo(src: str | os.PathLike, out: str | os.PathLike, *, cameras: tuple[str, ...] | None = None,
                           focal_mm: float | None = None, start: int = 0, stride: int = 1,
                           max_frames: int | None = None, replace: bool = False) -> Path:
-    """Convert one MultiCamVideo scene folder (module docstring) to a multi-camera scene folder.
+    """Convert one MultiCamVideo scene folder ``src`` to the multi-camera scene ``out`` and return it.
 
-    Args:
-        src: scene folder (``.../f18_aperture10/scene1``).
-        out: output scene folder.
-        cameras: source camera names (``cam01`` …) to convert, first = reference; ``None`` → every
-            camera of ``frame0`` in sorted order. Names are kept.
-        focal_mm: focal length in mm; ``None`` → parsed from the parent folder name ``f<mm>_…``.
-        start, stride, max_frames: frame selection; meta fps = 15/stride.
-        replace: replace an existing output folder.
+    ``cameras``: source names kept (``cam01`` …), first = reference (None: all of ``frame0``, sorted); ``focal_mm``:
+    None → parsed from the parent folder ``f<mm>_…``; meta fps = 15 / stride.
 
-    Returns:
-        The scene folder (dynamic, ``depth_source="none"``).
-
-    Raises:
-        ValueError: no focal length, a frame or camera missing in the JSON, or a bad matrix string.
-        FileNotFoundError: missing JSON or video.
+    Raises ValueError: no focal length, a frame or camera missing in the JSON, or a bad matrix string;
+    FileNotFoundError: missing JSON or video.
     """
     src = Path(src)
     data = load_json_file(src / "cameras" / "camera_extrinsics.json", "camera_extrinsics.json")

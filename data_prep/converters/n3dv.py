@@ -1,27 +1,8 @@
-"""Neural 3D Video (Neu3D / N3DV) → scene format.
+"""Neural 3D Video (Neu3D / N3DV) → scene format: one scene folder, its static synchronised video cameras.
 
-Source: Li et al., "Neural 3D Video Synthesis from Multi-view Video", CVPR 2022 (the
-facebookresearch/Neural_3D_Video release), read as LLFF (Mildenhall et al. 2019, ``load_llff.py``)
-and hustvl/4DGaussians ``scene/neural_3D_dataset_NDC.py`` read it. One converted scene = one scene
-folder (``coffee_martini``, ``flame_steak``, …)::
-
-    <IN>/poses_bounds.npy       (N_cams, 17) float: per camera a 3×5 [R | t | hwf] row-major, then near, far
-    <IN>/cam00.mp4 … camNN.mp4  one synchronised video per camera; sorted names ↔ rows of poses_bounds.npy
-
-- [R | t] is camera-to-world with LLFF camera axes: the columns of R are (down, right, backward).
-  To OpenGL (right, up, backward) by the column permutation [1, −0, 2] of both loaders, then to OpenCV
-  (:func:`.common.c2w_llff_to_gl`, :func:`.common.c2w_gl_to_viewmat`). Cameras are static: the
-  pose is repeated for every frame.
-- hwf = (height, width, focal) of the images COLMAP ran on, focal in their pixels. The focal length
-  is scaled to the decoded video size (fx·W_video/w, fy·H_video/h; the two ratios must agree within
-  1 %), then by ``downscale``. Principal point at the image centre (LLFF stores none).
-- World frame and units: COLMAP's (not re-centred, unlike the loaders' ``center_poses``), **not
-  metres** (``metric_scale: false``); ``depth_source: "none"``. The near/far bounds are kept in meta
-  (``near_far``, same units).
-- Time: timestamps = frame index / video fps (``CAP_PROP_FPS``); T = the fewest frames among the
-  selected videos (the release's videos may differ by a few frames at the end).
-- Reference camera: the first of ``cameras`` (``cam00`` by default). 4DGaussians holds cam00 out for
-  evaluation (``eval_index=0``) and trains on the others: hold out camera 0 to compare with it.
+Source: Li et al., "Neural 3D Video Synthesis from Multi-view Video", CVPR 2022, read as LLFF (``load_llff.py``)
+and hustvl/4DGaussians' ``neural_3D_dataset_NDC.py`` read it. Layout and conventions (COLMAP units, not metres;
+4DGaussians holds ``cam00`` out for evaluation): ``data_prep/CONVERTERS.md``, "Neural 3D Video".
 """
 from __future__ import annotations
 
@@ -48,16 +29,9 @@ __all__ = ["convert_n3dv", "read_poses_bounds", "video_info"]
 
 
 def read_poses_bounds(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Parse an LLFF ``poses_bounds.npy``.
-
-    Returns:
-        (c2w_llff (N, 3, 4) float64 LLFF axes, hwf (N, 3) = (height, width, focal) pixels,
-        near_far (N, 2)).
-
-    Raises:
-        FileNotFoundError: missing file. ValueError: not a finite (N, 17) numeric array, or a
-            non-positive h, w or focal.
-    """
+    """Parse an LLFF ``poses_bounds.npy``: (c2w_llff (N, 3, 4) float64 LLFF axes, hwf (N, 3) = (height, width, focal)
+    pixels, near_far (N, 2)). Raises FileNotFoundError: missing file; ValueError: not a finite (N, 17) array, or
+    non-positive h, w or focal."""
     p = require_file(path, "poses_bounds.npy")
     arr = load_npy(p, "poses_bounds.npy")
     if arr.ndim != 2 or arr.shape[1] != 17 or arr.shape[0] < 1 or not np.issubdtype(arr.dtype, np.number):
@@ -73,11 +47,8 @@ def read_poses_bounds(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, 
 
 
 def video_info(path: str | os.PathLike) -> tuple[int, float, int, int]:
-    """(frame count, fps, width, height) of a video from its container (OpenCV ``VideoCapture``).
-
-    Raises:
-        FileNotFoundError: missing file. ValueError: unreadable, or no positive frame count / fps / size.
-    """
+    """(frame count, fps, width, height) of a video from its container (OpenCV ``VideoCapture``). Raises
+    FileNotFoundError: missing file; ValueError: unreadable, or no positive frame count / fps / size."""
     p = require_file(path, "video")
     cap = cv2.VideoCapture(str(p))
     try:
@@ -95,25 +66,15 @@ def video_info(path: str | os.PathLike) -> tuple[int, float, int, int]:
 def convert_n3dv(src: str | os.PathLike, out: str | os.PathLike, *, cameras: tuple[str, ...] | None = None,
                  downscale: int = 1, start: int = 0, stride: int = 1, max_frames: int | None = None,
                  replace: bool = False) -> Path:
-    """Convert one N3DV scene folder (module docstring) to a multi-camera dynamic scene.
+    """Convert one N3DV scene folder ``src`` to the multi-camera dynamic scene ``out`` and return it.
 
-    Args:
-        src: scene folder with ``poses_bounds.npy`` and ``cam*.mp4``.
-        out: output scene folder.
-        cameras: video stems to convert (``("cam00", "cam05")``), first = reference; ``None`` → all,
-            sorted. Names are kept as camera folder names.
-        downscale: integer factor; frames resized to (W // f, H // f) with ``cv2.INTER_AREA``.
-        start, stride, max_frames: frame selection; meta fps = video fps / stride.
-        replace: replace an existing output folder.
+    ``cameras``: video stems kept as camera names, first = reference (None: all, sorted); ``downscale``: integer factor
+    (``cv2.INTER_AREA``); meta fps = video fps / stride.
 
-    Returns:
-        The scene folder (``dynamic: true``, ``depth_source: "none"``).
-
-    Raises:
-        FileNotFoundError: missing ``poses_bounds.npy`` or no ``cam*.mp4``.
-        ValueError: a malformed ``poses_bounds.npy``; its row count differs from the number of videos;
-            an unknown or repeated camera; videos of different fps; a video size whose aspect differs
-            from hwf's; bad ``downscale``; a video shorter than its frame count says.
+    Raises FileNotFoundError: missing ``poses_bounds.npy`` or no ``cam*.mp4``; ValueError: a malformed
+    ``poses_bounds.npy``; its row count differs from the number of videos; an unknown or repeated camera; videos of
+    different fps; a video size whose aspect differs from hwf's; bad ``downscale``; a video shorter than its frame count
+    says.
     """
     src = Path(src)
     c2w_llff, hwf, near_far = read_poses_bounds(src / "poses_bounds.npy")

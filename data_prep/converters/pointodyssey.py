@@ -1,17 +1,7 @@
-"""PointOdyssey → scene format.
+"""PointOdyssey → scene format: one sequence folder, one camera, ground-truth depth and 3D tracks.
 
-Source: Zheng et al., "PointOdyssey: A Large-Scale Synthetic Dataset for Long-Term Point
-Tracking", ICCV 2023, and the loaders of its code release (``pointodysseydataset*.py``). One
-converted scene = one sequence folder::
-
-    <IN>/rgbs/rgb_<%05d>.jpg
-    <IN>/depths/depth_<%05d>.png    uint16; metres = value / 65535 · 1000 (1000 m = the far limit)
-    <IN>/anno.npz                   trajs_2d (T, N, 2) px, trajs_3d (T, N, 3) world metres,
-                                    valids (T, N), visibs (T, N), intrinsics (T, 3, 3) px,
-                                    extrinsics (T, 4, 4) world-to-camera ("cams_T_world")
-
-Camera axes are OpenCV (the release projects ``trajs_3d`` with ``intrinsics @ extrinsics``); depth is
-z-depth. Value 0 and the saturated value 65535 carry no depth and become +inf.
+Source: Zheng et al., "PointOdyssey: A Large-Scale Synthetic Dataset for Long-Term Point Tracking", ICCV 2023
+(``pointodysseydataset*.py``). Layout and conventions: ``data_prep/CONVERTERS.md``, "PointOdyssey".
 """
 from __future__ import annotations
 
@@ -45,24 +35,14 @@ def _select_tracks(pts: np.ndarray, vis: np.ndarray, max_tracks: int) -> tuple[n
 def convert_pointodyssey(src: str | os.PathLike, out: str | os.PathLike, *, start: int = 0, stride: int = 1,
                          max_frames: int | None = None, max_tracks: int = 4096, fps: float = POINTODYSSEY_FPS,
                          replace: bool = False) -> Path:
-    """Convert one PointOdyssey sequence folder (module docstring) to a scene folder.
+    """Convert one PointOdyssey sequence folder ``src`` to the scene ``out`` and return it: ``cam00``, ground-truth
+    depth, tracks with visibility ``visibs & valids``.
 
-    Args:
-        src: sequence folder.
-        out: output scene folder.
-        start, stride, max_frames: frame selection; meta fps = ``fps``/stride.
-        max_tracks: at most this many 3D tracks are kept (those finite in every selected frame,
-            evenly spaced in the source order); 0 writes no ``tracks.npz``.
-        fps: source frame rate, Hz.
-        replace: replace an existing output folder.
+    ``max_tracks``: at most this many tracks finite in every selected frame, evenly spaced (0: no ``tracks.npz``);
+    ``fps``: source rate, Hz (meta fps = fps / stride).
 
-    Returns:
-        The scene folder: one camera ``cam00``, ground-truth depth, tracks with visibility =
-        ``visibs & valids`` of the source (its occlusion flags for this camera).
-
-    Raises:
-        FileNotFoundError: missing ``anno.npz`` or frame files.
-        ValueError: ``anno.npz`` misses a key (named) or has inconsistent frame counts.
+    Raises FileNotFoundError: missing ``anno.npz`` or frame files; ValueError: ``anno.npz`` misses a key (named) or has
+    inconsistent frame counts.
     """
     src = Path(src)
     anno = load_npz(src / "anno.npz", "PointOdyssey anno.npz", _ANNO_KEYS)

@@ -1,28 +1,9 @@
 """RealEstate10K → scene format, with optional depth estimates aligned to a sparse reference.
 
-Source: Zhou et al., "Stereo Magnification: Learning View Synthesis using Multiplane Images",
-SIGGRAPH 2018, and the dataset README. The dataset releases only camera files; frames are taken
-from the YouTube videos by the user at the listed timestamps. Expected layout (the frame naming is
-ours, the common one of RealEstate10K download scripts — see CONVERTERS.md)::
-
-    <IN>/<clip>.txt                  URL line, then per frame: timestamp_µs fx fy cx cy 0 0 [R|t] (3×4 row-major)
-    <IN>/<clip>/<timestamp_µs>.png   (or .jpg) the frame at that timestamp
-    <ESTIMATES>/<timestamp_µs>.npy   optional (H, W) relative depth or disparity from a monocular estimator
-    <REFERENCE>/<timestamp_µs>.npy   optional (H, W) sparse reference depth; NaN / inf / ≤ 0 = no sample
-
-Camera files are parsed by :func:`diff4splat.io.load_realestate10k` (intrinsics normalised by the
-image size, [R | t] world-to-camera with OpenCV axes). The poses come from ORB-SLAM2 and bundle
-adjustment and are only defined up to scale: **RealEstate10K has no metric reference**. Hence:
-
-- without estimates, no depth is written (``depth_source="none"``);
-- with estimates but no reference, :func:`convert_realestate10k` refuses (an unaligned estimate is
-  not a depth in any unit of the scene);
-- with both, one (s, t) per clip is fitted robustly (:func:`diff4splat.geometry.depth_alignment.align_video`)
-  from the estimate to the reference, ``depth_source="aligned_estimate"``. The reference must be in
-  the units of the camera file (e.g. SfM points triangulated with the released poses and projected
-  into the frames), so depth and poses agree. Units stay the dataset's arbitrary SfM units unless
-  ``metres_per_unit`` is given (e.g. from an external metric estimate); meta records
-  ``"metric_scale": false`` in that case.
+Source: Zhou et al., "Stereo Magnification: Learning View Synthesis using Multiplane Images", SIGGRAPH 2018, and
+the dataset README. Layout and conventions: ``data_prep/CONVERTERS.md``, "RealEstate10K". Poses are only defined
+up to scale, so depth is written only when estimates are aligned to a reference in the camera file's units
+(:func:`diff4splat.geometry.depth_alignment.align_video`).
 """
 from __future__ import annotations
 
@@ -42,13 +23,8 @@ __all__ = ["convert_realestate10k", "read_realestate10k_timestamps"]
 
 
 def read_realestate10k_timestamps(path: str | os.PathLike) -> list[int]:
-    """The integer timestamps (µs) of the frame lines of a RealEstate10K camera file, in file order.
-
-    Raises:
-        FileNotFoundError / ValueError: :func:`diff4splat.io.cameras.read_realestate10k_lines` (the rules of
-            :func:`diff4splat.io.load_realestate10k`: a FIFO or loop, non-UTF-8 text, a truncated line, a timestamp
-            that is not an integer, each naming the file and line).
-    """
+    """The integer timestamps (µs) of the frame lines of a RealEstate10K camera file, in file order. Raises
+    FileNotFoundError / ValueError as :func:`diff4splat.io.cameras.read_realestate10k_lines`."""
     return read_realestate10k_lines(require_file(path, "RealEstate10K camera file"))[0]
 
 
@@ -64,30 +40,18 @@ def convert_realestate10k(src: str | os.PathLike, out: str | os.PathLike, *, cli
                           reference_dir: str | os.PathLike | None = None, space: str = "disparity",
                           metres_per_unit: float | None = None, start: int = 0, stride: int = 1,
                           max_frames: int | None = None, replace: bool = False, **robust_kwargs) -> Path:
-    """Convert one RealEstate10K clip (module docstring) to a scene folder.
+    """Convert one RealEstate10K clip (None: the only ``.txt`` of ``src``) to the static scene ``out``; return it.
 
     Args:
-        src: folder with ``<clip>.txt`` and ``<clip>/`` frames.
-        out: output scene folder.
-        clip: clip id; ``None`` when ``src`` holds exactly one ``.txt``.
-        estimates_dir: per-frame relative depth/disparity ``.npy``; ``None`` → no depth.
-        reference_dir: per-frame sparse reference depth ``.npy`` in camera-file units (required with
-            ``estimates_dir``).
-        space: ``"disparity"`` if the estimates are inverse depth (MiDaS / Depth Anything), else
-            ``"depth"``.
-        metres_per_unit: metres per camera-file unit, applied to translations and depth; ``None``
-            keeps SfM units (flagged ``metric_scale: false``).
-        start, stride, max_frames: frame selection.
-        replace: replace an existing output folder.
+        estimates_dir: per-frame relative depth/disparity ``.npy`` (``space``: ``"disparity"`` or ``"depth"``);
+            None → no depth.
+        reference_dir: per-frame sparse reference depth ``.npy`` in camera-file units (required with estimates).
+        metres_per_unit: metres per camera-file unit, applied to translations and depth; None keeps SfM units
+            (``metric_scale: false``).
         **robust_kwargs: options of :func:`diff4splat.geometry.depth_alignment.fit_scale_shift_robust`.
 
-    Returns:
-        The scene folder (static scene).
-
-    Raises:
-        ValueError: ambiguous clip, estimates without a reference, shapes that differ, or any
-            alignment error (too few reference samples, negative scale, …).
-        FileNotFoundError: missing camera file, frames or depth files.
+    Raises ValueError: ambiguous clip, estimates without a reference, shapes that differ, or any alignment error (too
+    few reference samples, negative scale, …); FileNotFoundError: missing camera file, frames or depth files.
     """
     src = Path(src)
     if clip is None:

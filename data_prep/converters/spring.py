@@ -1,21 +1,8 @@
-"""Spring → scene format.
+"""Spring → scene format: one train scene folder, left and right cameras, depth from disparity.
 
-Source: Mehl et al., "Spring: A High-Resolution High-Detail Dataset and Benchmark for Scene Flow,
-Optical Flow and Stereo", CVPR 2023, and its ``flow_library`` (``readDsp5Disp``). One converted
-scene = one scene folder of the train split::
-
-    <IN>/frame_left/frame_left_<%04d>.png        1920×1080, frames numbered from 1
-    <IN>/frame_right/frame_right_<%04d>.png
-    <IN>/disp1_left/disp1_left_<%04d>.dsp5       HDF5, dataset "disparity", 3840×2160 (2× per axis)
-    <IN>/disp1_right/disp1_right_<%04d>.dsp5
-    <IN>/cam_data/intrinsics.txt                 one line per frame: fx fy cx cy (pixels, 1920×1080)
-    <IN>/cam_data/extrinsics.txt                 one line per frame: 16 values, 4×4 row-major world-to-camera
-
-The disparity maps are at twice the image resolution; every second sample ([::2, ::2]) is the
-value of the image pixel, in image pixels (as the reference loaders do), and the left/right
-baseline is 0.065 m: depth = fx·0.065 / disparity. Extrinsics describe the left camera with OpenCV
-axes; the right camera is the left one shifted by the baseline along its x axis
-(t_right = t_left − [0.065, 0, 0]).
+Source: Mehl et al., "Spring: A High-Resolution High-Detail Dataset and Benchmark for Scene Flow, Optical Flow and
+Stereo", CVPR 2023 (``flow_library`` ``readDsp5Disp``). Layout and conventions (depth = fx·0.065 m / disparity):
+``data_prep/CONVERTERS.md``, "Spring".
 """
 from __future__ import annotations
 
@@ -38,11 +25,8 @@ SPRING_FPS = 24.0
 
 
 def read_dsp5(path: str | os.PathLike) -> np.ndarray:
-    """Read a Spring ``.dsp5`` disparity file (HDF5 dataset ``"disparity"``) as float32 (2H, 2W).
-
-    Raises:
-        FileNotFoundError: missing file. ValueError: no ``"disparity"`` dataset.
-    """
+    """Read a Spring ``.dsp5`` disparity file (HDF5 dataset ``"disparity"``) as float32 (2H, 2W). Raises
+    FileNotFoundError: missing file; ValueError: no ``"disparity"`` dataset."""
     p = require_file(path, "Spring disparity")
     with h5py.File(p, "r") as f:
         if "disparity" not in f:
@@ -57,22 +41,13 @@ def _read_rows(path: Path, ncols: int) -> np.ndarray:
 def convert_spring(src: str | os.PathLike, out: str | os.PathLike, *, sides: tuple[str, ...] = ("left", "right"),
                    start: int = 0, stride: int = 1, max_frames: int | None = None, fps: float = SPRING_FPS,
                    replace: bool = False) -> Path:
-    """Convert one Spring train scene folder (module docstring) to a scene folder.
+    """Convert one Spring train scene folder ``src`` to the scene ``out`` and return it (dynamic, ground-truth depth).
 
-    Args:
-        src: scene folder (e.g. ``spring/train/0001``).
-        out: output scene folder.
-        sides: cameras to convert, stored as ``cam00``, ``cam01`` in this order.
-        start, stride, max_frames: selection over frame indices 0…T−1 (file number = index + 1).
-        fps: nominal source frame rate, Hz.
-        replace: replace an existing output folder.
+    ``sides``: stored as ``cam00``, ``cam01`` in order; ``start``, ``stride``, ``max_frames``: selection over frame
+    indices 0…T−1 (file number = index + 1); ``fps``: nominal, Hz.
 
-    Returns:
-        The scene folder (dynamic, ground-truth depth from disparity).
-
-    Raises:
-        FileNotFoundError / ValueError: missing files, malformed camera files,
-            or a disparity map that is not twice the image size.
+    Raises FileNotFoundError / ValueError: missing files, malformed camera files, or a disparity map that is not twice
+    the image size.
     """
     src = Path(src)
     intr = _read_rows(src / "cam_data" / "intrinsics.txt", 4)

@@ -1,19 +1,7 @@
-"""Stereo4D → scene format.
+"""Stereo4D → scene format: one clip's annotation ``.npz`` and left rectified video, metric poses and 3D tracks.
 
-Source: Jin et al., "Stereo4D: Learning How Things Move in 3D from Internet Stereo Videos",
-CVPR 2025, and the README of its code release (stereo4d-code). The released annotation of a clip
-is one ``.npz``; the frames come from the YouTube VR180 video, rectified and cropped to a 60°
-perspective view by the release's ``rectify.py``::
-
-    <IN>/<name>.npz                      name, video_id, timestamps (T,) µs of the source video,
-                                         camera2world (T, 3|4, 4) OpenCV axes, metres,
-                                         track_lengths (P,), track_indices (ΣL,), track_coordinates (ΣL, 3)
-    <IN>/<name>-left_rectified.mp4       T frames, square (512×512), 60° horizontal field of view
-
-Tracks are stored ragged: track p occupies the next ``track_lengths[p]`` entries; entry j puts
-``track_coordinates[j]`` (world metres) at frame ``track_indices[j]``; other frames are undefined.
-The scale is metric (stereo baseline of the VR180 rig). Intrinsics follow from the perspective crop:
-fx = fy = (W/2)/tan(hfov/2), principal point at the image centre. No dense depth is released.
+Source: Jin et al., "Stereo4D: Learning How Things Move in 3D from Internet Stereo Videos", CVPR 2025 (stereo4d-code
+README, ``rectify.py``). Layout and conventions: ``data_prep/CONVERTERS.md``, "Stereo4D".
 """
 from __future__ import annotations
 
@@ -33,11 +21,8 @@ STEREO4D_HFOV_DEG = 60.0
 
 
 def decode_stereo4d_tracks(lengths: np.ndarray, indices: np.ndarray, coords: np.ndarray, num_frames: int) -> np.ndarray:
-    """Ragged Stereo4D tracks → (P, T, 3) float64 world points, NaN where a track is undefined.
-
-    Raises:
-        ValueError: Σ lengths ≠ number of entries, or a frame index outside [0, num_frames).
-    """
+    """Ragged Stereo4D tracks → (P, T, 3) float64 world points, NaN where a track is undefined. Raises ValueError: Σ
+    lengths ≠ number of entries, or a frame index outside [0, num_frames)."""
     lengths = np.asarray(lengths, dtype=np.int64)
     indices = np.asarray(indices, dtype=np.int64)
     coords = np.asarray(coords, dtype=np.float64)
@@ -54,26 +39,14 @@ def decode_stereo4d_tracks(lengths: np.ndarray, indices: np.ndarray, coords: np.
 def convert_stereo4d(src: str | os.PathLike, out: str | os.PathLike, *, name: str | None = None,
                      hfov_deg: float = STEREO4D_HFOV_DEG, start: int = 0, stride: int = 1,
                      max_frames: int | None = None, max_tracks: int = 4096, replace: bool = False) -> Path:
-    """Convert one Stereo4D clip (module docstring) to a scene folder (left eye).
+    """Convert one Stereo4D clip (None: the only ``.npz`` of ``src``), left eye, to the scene ``out``; return it
+    (dynamic, ``depth_source="none"``, timestamps from the npz).
 
-    Args:
-        src: folder with ``<name>.npz`` and ``<name>-left_rectified.mp4``.
-        out: output scene folder.
-        name: clip name; ``None`` when ``src`` holds exactly one ``.npz``.
-        hfov_deg: horizontal field of view of the rectified video, degrees.
-        start, stride, max_frames: frame selection.
-        max_tracks: keep at most this many tracks defined in every selected frame (evenly spaced);
-            0 writes no tracks.
-        replace: replace an existing output folder.
+    ``hfov_deg``: horizontal field of view of the rectified video, degrees; ``max_tracks``: at most this many tracks
+    defined in every selected frame, evenly spaced (0: none), visible where in front of the camera and in the image.
 
-    Returns:
-        The scene folder (dynamic, ``depth_source="none"``, timestamps from the npz). Track
-        visibility = in front of the camera and inside the image (the release has no occlusion flag
-        for tracks; undefined entries are dropped with their track).
-
-    Raises:
-        ValueError: ambiguous clip, missing npz keys, or frame counts that disagree.
-        FileNotFoundError: missing npz or video.
+    Raises ValueError: ambiguous clip, missing npz keys, or frame counts that disagree; FileNotFoundError: missing npz
+    or video.
     """
     src = Path(src)
     if name is None:

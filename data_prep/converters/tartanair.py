@@ -1,18 +1,8 @@
-"""TartanAir → scene format.
+"""TartanAir → scene format: one trajectory folder, left and right cameras, ground-truth depth.
 
-Source: Wang et al., "TartanAir: A Dataset to Push the Limits of Visual SLAM", IROS 2020, and the
-``tartanair_tools`` README / data-type notes. One converted scene = one trajectory folder::
-
-    <IN>/image_left/<%06d>_left.png          640×480 RGB
-    <IN>/depth_left/<%06d>_left_depth.npy    float32 z-depth, metres (disparity = 80 / depth)
-    <IN>/pose_left.txt                       one line per frame: tx ty tz qx qy qz qw
-    <IN>/image_right, depth_right, pose_right.txt   the same for the right camera (0.25 m baseline)
-
-Poses are camera-to-world in the NED frame (x north/forward, y east/right, z down) for both the
-world and the camera body, quaternions stored x, y, z, w. Pinhole intrinsics are fixed:
-fx = fy = 320, cx = 320, cy = 240 (640 × 480). Sky is rendered at a large finite depth (≈10⁴ m);
-depths beyond ``max_depth`` become +inf. The world frame stays NED (right-handed, metres); only the
-camera axes change: c2w_cv = [R_ned · NED_TO_CVᵀ | t].
+Source: Wang et al., "TartanAir: A Dataset to Push the Limits of Visual SLAM", IROS 2020 (``tartanair_tools``).
+Layout and conventions (NED world kept, camera axes to OpenCV: c2w_cv = [R_ned · NED_TO_CVᵀ | t]):
+``data_prep/CONVERTERS.md``, "TartanAir".
 """
 from __future__ import annotations
 
@@ -34,11 +24,8 @@ TARTANAIR_FPS = 10.0
 
 
 def read_tartanair_poses(path: str | os.PathLike) -> np.ndarray:
-    """``pose_<side>.txt`` → (T, 4, 4) OpenCV world-to-camera viewmats in the NED world frame, metres.
-
-    Raises:
-        FileNotFoundError: missing file. ValueError: a line without 7 numbers or a zero quaternion.
-    """
+    """``pose_<side>.txt`` → (T, 4, 4) OpenCV world-to-camera viewmats in the NED world frame, metres. Raises
+    FileNotFoundError: missing file; ValueError: a line without 7 numbers or a zero quaternion."""
     rows = load_number_rows(path, "TartanAir pose file", 7, "tx ty tz qx qy qz qw")
     R_ned = quat_xyzw_to_rotmat(rows[:, 3:])  # camera body (NED) → world (NED)
     return c2w_cv_to_viewmat(rigid(R_ned @ NED_TO_CV.T, rows[:, :3]))
@@ -47,23 +34,13 @@ def read_tartanair_poses(path: str | os.PathLike) -> np.ndarray:
 def convert_tartanair(src: str | os.PathLike, out: str | os.PathLike, *, sides: tuple[str, ...] = ("left", "right"),
                       start: int = 0, stride: int = 1, max_frames: int | None = None, max_depth: float = 1000.0,
                       fps: float = TARTANAIR_FPS, replace: bool = False) -> Path:
-    """Convert one TartanAir trajectory folder (module docstring) to a scene folder.
+    """Convert one TartanAir trajectory folder ``src`` to the static scene ``out`` and return it.
 
-    Args:
-        src: trajectory folder (e.g. ``abandonedfactory/Easy/P000``).
-        out: output scene folder.
-        sides: cameras to convert, stored as ``cam00``, ``cam01`` in this order.
-        start, stride, max_frames: frame selection; meta fps = ``fps``/stride.
-        max_depth: depths above this many metres (the sky dome) become +inf.
-        fps: nominal source frame rate, Hz.
-        replace: replace an existing output folder.
+    ``sides``: stored as ``cam00``, ``cam01`` in order; ``max_depth``: metres beyond which depth (the sky) is +inf;
+    ``fps``: nominal, Hz (meta fps = fps / stride).
 
-    Returns:
-        The scene folder (static world, ground-truth depth).
-
-    Raises:
-        FileNotFoundError: missing pose/frame files. ValueError: malformed poses, frame-count
-            mismatch between pose file and images, or a depth map of another size.
+    Raises FileNotFoundError: missing pose/frame files; ValueError: malformed poses, frame-count mismatch between pose
+    file and images, or a depth map of another size.
     """
     src = Path(src)
     views = {s: read_tartanair_poses(src / f"pose_{s}.txt") for s in sides}

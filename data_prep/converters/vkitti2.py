@@ -1,25 +1,8 @@
-"""Virtual KITTI 2 → scene format.
+"""Virtual KITTI 2 → scene format: one ``<SceneXX>/<variation>`` folder, stereo cameras, ground-truth depth.
 
-Source: Cabon, Murray, Humenberger, "Virtual KITTI 2", arXiv:2001.10773 (2020), and the dataset's
-README (naverlabs.com, "Virtual KITTI 2 Dataset"). One converted scene = one
-``<SceneXX>/<variation>`` folder (e.g. ``Scene01/clone``) of the rgb, depth and textgt archives
-extracted into the same tree::
-
-    <IN>/intrinsic.txt                                   header, then: frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]
-    <IN>/extrinsic.txt                                   header, then: frame cameraID r11 r12 r13 t1 r21 r22 r23 t2
-                                                         r31 r32 r33 t3 0 0 0 1
-    <IN>/frames/rgb/Camera_<c>/rgb_<%05d>.jpg
-    <IN>/frames/depth/Camera_<c>/depth_<%05d>.png        uint16, centimetres; 65535 (655.35 m) = sky / no depth
-
-The extrinsic rows are world-to-camera matrices; camera axes are KITTI's (x right, y down,
-z forward) = OpenCV; depth is z-depth ("distance to the camera plane", README). Camera_0 is the
-left and Camera_1 the right camera of the stereo rig. The sequences were generated at 10 Hz like
-KITTI.
-
-Pixel coordinates: the principal point is given with pixel centres at integers, as OpenCV and KITTI count
-them: the dataset's (620.5, 187.0) for its 1242×375 frames is ((W − 1)/2, (H − 1)/2), the centre of the
-rendered (symmetric) frustum. Ours puts pixel centres at +0.5 (FORMAT.md), so cx, cy get + 0.5 (621.0, 187.5);
-the focal lengths are unchanged.
+Source: Cabon, Murray, Humenberger, "Virtual KITTI 2", arXiv:2001.10773 (2020), and the dataset's README. Layout
+and conventions (principal point + 0.5: the dataset counts pixel centres at integers): ``data_prep/CONVERTERS.md``,
+"Virtual KITTI 2".
 """
 from __future__ import annotations
 
@@ -53,19 +36,9 @@ _SKY = 65535
 
 
 def read_vkitti2_table(path: str | os.PathLike, ncols: int) -> dict[tuple[int, int], np.ndarray]:
-    """Parse a VKITTI2 text table (one header line, whitespace-separated rows) keyed by (frame, camera).
-
-    Args:
-        path: ``intrinsic.txt`` (6 columns) or ``extrinsic.txt`` (18 columns).
-        ncols: expected number of columns per row.
-
-    Returns:
-        {(frame, cameraID): values (ncols − 2,) float64}.
-
-    Raises:
-        FileNotFoundError: missing file. ValueError: a row (named by line) with another column count
-            or non-numeric values.
-    """
+    """Parse a VKITTI2 text table (one header line, ``ncols`` whitespace-separated columns): {(frame, cameraID): values
+    (ncols − 2,) float64}. Raises FileNotFoundError: missing file; ValueError: a row (named by line) of another width or
+    not numbers."""
     p = require_file(path, "VKITTI2 table")
     table = {}
     for lineno, line in enumerate(read_text(p, "VKITTI2 table").splitlines()[1:], start=2):
@@ -85,22 +58,13 @@ def read_vkitti2_table(path: str | os.PathLike, ncols: int) -> dict[tuple[int, i
 def convert_vkitti2(src: str | os.PathLike, out: str | os.PathLike, *, cameras: tuple[int, ...] = (0, 1),
                     start: int = 0, stride: int = 1, max_frames: int | None = None,
                     replace: bool = False) -> Path:
-    """Convert one Virtual KITTI 2 scene/variation folder (module docstring) to a scene folder.
+    """Convert one Virtual KITTI 2 scene/variation folder ``src`` to the dynamic scene ``out`` and return it.
 
-    Args:
-        src: the ``<SceneXX>/<variation>`` folder.
-        out: output scene folder.
-        cameras: VKITTI2 camera IDs to convert (0 = left, 1 = right); stored as ``cam00``, ``cam01``…
-            in this order, the first being the reference camera.
-        start, stride, max_frames: frame selection (:func:`select_frames`); fps becomes 10/stride.
-        replace: replace an existing output folder.
+    ``cameras``: camera IDs (0 left, 1 right) stored as ``cam00``, ``cam01``… in order, the first the reference; fps =
+    10 / stride.
 
-    Returns:
-        The scene folder (``depth_source="ground_truth"``, dynamic).
-
-    Raises:
-        FileNotFoundError: a missing table, folder or frame file.
-        ValueError: malformed tables, a frame missing from a table, or invalid output.
+    Raises FileNotFoundError: a missing table, folder or frame file; ValueError: malformed tables, a frame missing from
+    a table, or invalid output.
     """
     src = Path(src)
     K_tab = read_vkitti2_table(src / "intrinsic.txt", 6)
