@@ -24,27 +24,7 @@ from diff4splat.cameras.trajectories import (
     make_trajectory,
 )
 
-__all__ = [
-    "camera_rays",
-    "plucker_rays",
-    "unproject_depth",
-    "project_points",
-    "unproject_pixels",
-    "pack_plucker",
-    "intrinsics_from_fov",
-    "intrinsics_from_focal",
-    "fov_from_intrinsics",
-    "center_crop_box",
-    "CameraPath",
-    "FisheyePolynomial",
-    "FisheyeKB",
-    "ThinLens",
-    "RollingShutter",
-    "invert_rigid",
-    "camera_centers",
-    "look_at",
-    "make_trajectory",
-    "TRAJECTORIES",
-    "DEFAULT_TRAJECTORY",
-    "DEFAULT_AMPLITUDES",
-]
+__all__ = ["camera_rays", "plucker_rays", "unproject_depth", "project_points", "unproject_pixels", "pack_plucker",
+           "intrinsics_from_fov", "intrinsics_from_focal", "fov_from_intrinsics", "center_crop_box", "CameraPath",
+           "FisheyePolynomial", "FisheyeKB", "ThinLens", "RollingShutter", "invert_rigid", "camera_centers", "look_at",
+           "make_trajectory", "TRAJECTORIES", "DEFAULT_TRAJECTORY", "DEFAULT_AMPLITUDES"]

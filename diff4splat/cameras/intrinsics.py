@@ -1,9 +1,6 @@
-"""Pinhole intrinsics in pixels (OpenCV convention, pixel (i, j) centred at (j+0.5, i+0.5)).
-
-K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] maps a camera-frame point (x, y, z) to the pixel
-coordinates (u, v) = (fx·x/z + cx, fy·y/z + cy). The principal point defaults to the image
-centre (W/2, H/2), which with the pixel-centre convention above lies exactly midway between the
-two middle pixels of an even-sized image (Hartley & Zisserman, *Multiple View Geometry*, §6.1).
+"""Pinhole intrinsics in pixels (OpenCV convention, pixel (i, j) centred at (j+0.5, i+0.5)): K = [[fx, 0, cx],
+[0, fy, cy], [0, 0, 1]] maps a camera-frame point (x, y, z) to (fx·x/z + cx, fy·y/z + cy); the principal point
+defaults to the image centre (W/2, H/2) (Hartley & Zisserman, *Multiple View Geometry*, §6.1).
 """
 from __future__ import annotations
 
@@ -34,25 +31,12 @@ def intrinsics_from_focal(
     dtype: torch.dtype = torch.float32,
     device: torch.device | str = "cpu",
 ) -> Tensor:
-    """Pinhole intrinsic matrix from focal lengths in pixels.
-
-    Args:
-        fx: horizontal focal length, pixels, > 0.
-        fy: vertical focal length, pixels, > 0.
-        width: image width W, pixels, positive int.
-        height: image height H, pixels, positive int.
-        cx: principal point x, pixels; ``None`` → W/2 (image centre). Any finite value is allowed
-            (off-centre crops put it outside the image).
-        cy: principal point y, pixels; ``None`` → H/2.
-        dtype: floating dtype of the result.
-        device: device of the result.
-
-    Returns:
-        (3, 3) K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels.
+    """(3, 3) pinhole K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], pixels, from focal lengths ``fx``, ``fy`` > 0 pixels,
+    the image size (positive ints) and a principal point (any finite value; None → the image centre).
 
     Raises:
-        ValueError: naming ``fx``/``fy`` (not positive and finite), ``width``/``height`` (not a
-            positive int) or ``cx``/``cy`` (not finite).
+        ValueError: naming ``fx``/``fy`` (not positive and finite), ``width``/``height`` (not a positive int) or
+            ``cx``/``cy`` (not finite).
     """
     fx = check_positive("fx", fx)
     fy = check_positive("fy", fy)
@@ -75,26 +59,12 @@ def intrinsics_from_fov(
     dtype: torch.dtype = torch.float32,
     device: torch.device | str = "cpu",
 ) -> Tensor:
-    """Pinhole intrinsic matrix from a field of view, principal point at the image centre.
-
-    The field of view spans the full image edge to edge: fx = (W/2) / tan(fov_x/2) and
-    fy = (H/2) / tan(fov_y/2) (Hartley & Zisserman §6.1). With one of the two given the pixels are
-    square (fx = fy); with both given each focal length follows its own field of view.
-
-    Args:
-        width: image width W, pixels, positive int.
-        height: image height H, pixels, positive int.
-        fov_x_deg: horizontal field of view in degrees, in (0, 180).
-        fov_y_deg: vertical field of view in degrees, in (0, 180).
-        dtype: floating dtype of the result.
-        device: device of the result.
-
-    Returns:
-        (3, 3) K in pixels with (cx, cy) = (W/2, H/2).
+    """(3, 3) pinhole K, pixels, principal point at the image centre, from a field of view edge to edge in degrees,
+    in (0, 180): fx = (W/2) / tan(fov_x/2), fy = (H/2) / tan(fov_y/2) (Hartley & Zisserman §6.1). With one of the
+    two given the pixels are square.
 
     Raises:
-        ValueError: naming ``fov_x_deg``/``fov_y_deg`` (neither given, or outside (0, 180)) or
-            ``width``/``height`` (not a positive int).
+        ValueError: naming ``fov_x_deg``/``fov_y_deg`` (neither given, or outside (0, 180)) or ``width``/``height``.
     """
     width = check_positive_int("width", width, "pixels")
     height = check_positive_int("height", height, "pixels")
@@ -111,19 +81,11 @@ def intrinsics_from_fov(
 
 
 def fov_from_intrinsics(K: Tensor, width: int, height: int) -> tuple[float, float]:
-    """Horizontal and vertical field of view (degrees) of a centred pinhole K; inverse of
-    :func:`intrinsics_from_fov`: fov = 2·atan((size/2) / f).
-
-    Args:
-        K: (3, 3) intrinsics in pixels with fx, fy > 0.
-        width: image width W, pixels.
-        height: image height H, pixels.
-
-    Returns:
-        (fov_x_deg, fov_y_deg), each in (0, 180).
+    """(fov_x_deg, fov_y_deg), each in (0, 180), of a centred pinhole K (3, 3), pixels: fov = 2·atan((size/2) / f),
+    the inverse of :func:`intrinsics_from_fov`.
 
     Raises:
-        ValueError: naming ``K`` (wrong shape or non-positive focal) or ``width``/``height``.
+        ValueError: naming ``K`` (not (3, 3), focal lengths not > 0) or ``width``/``height``.
     """
     if tuple(K.shape) != (3, 3):
         raise ValueError(f"K must have shape (3, 3), got {tuple(K.shape)}")
@@ -132,21 +94,13 @@ def fov_from_intrinsics(K: Tensor, width: int, height: int) -> tuple[float, floa
         raise ValueError(f"K must have positive focal lengths, got fx={fx}, fy={fy}")
     width = check_positive_int("width", width, "pixels")
     height = check_positive_int("height", height, "pixels")
-    return (
-        math.degrees(2.0 * math.atan(width / 2.0 / fx)),
-        math.degrees(2.0 * math.atan(height / 2.0 / fy)),
-    )
+    return math.degrees(2.0 * math.atan(width / 2.0 / fx)), math.degrees(2.0 * math.atan(height / 2.0 / fy))
 
 
 def center_crop_box(height: int, width: int, target_height: int, target_width: int) -> tuple[int, int, int, int]:
-    """The largest centred crop of a height×width image with the aspect ratio of the target.
-
-    Used for photographs (:func:`diff4splat.io.preprocess_image`) and for their intrinsics
-    (:meth:`diff4splat.cameras.CameraPath.fitted`) so both are cropped identically.
-
-    Returns:
-        (y0, x0, crop_height, crop_width) in pixels.
-    """
+    """(y0, x0, crop_height, crop_width), pixels: the largest centred crop of a height×width image with the target's
+    aspect ratio, used for photographs (:func:`diff4splat.io.preprocess_image`) and their intrinsics
+    (:meth:`diff4splat.cameras.CameraPath.fitted`) alike."""
     if width * target_height > height * target_width:  # wider than the target: crop columns
         ch, cw = height, max(1, min(width, round(height * target_width / target_height)))
     else:  # taller: crop rows

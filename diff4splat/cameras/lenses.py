@@ -1,24 +1,11 @@
-"""Physical camera models of 4D Gaussian Ray Tracing: fisheye lenses, thin lens, rolling shutter.
+"""Physical camera models of 4D-GRT (Liu et al., "Every Camera Effect, Every Time, All at Once: 4D Gaussian Ray
+Tracing for Physics-based Camera Effect Data Generation", arXiv:2509.10759, 2025) for the ray path of the renderer
+(:mod:`diff4splat.render.raytrace`) and :func:`diff4splat.render.render_rolling_shutter`: the polynomial fisheye of
+Blender Cycles (:class:`FisheyePolynomial`), OpenCV's Kannala–Brandt fisheye (:class:`FisheyeKB`), thin-lens depth of
+field after PBRT 3rd ed. §6.2.3 (:class:`ThinLens`) and a rolling shutter (:class:`RollingShutter`).
 
-Parameter dataclasses with their closed-form maps, used by the ray path of the renderer
-(:mod:`diff4splat.render.raytrace`) and by :func:`diff4splat.render.render_rolling_shutter`.
-The camera effects are those of 4D-GRT (Liu et al., "Every Camera Effect, Every Time, All at Once:
-4D Gaussian Ray Tracing for Physics-based Camera Effect Data Generation", arXiv:2509.10759, 2025):
-
-* :class:`FisheyePolynomial` — the polynomial fisheye of Blender Cycles used by 4D-GRT's scenes,
-  θ = k0 + k1·r + k2·r² + k3·r³ + k4·r⁴, r = distance of the pixel centre from the principal point
-  (pixels), θ = angle from the optical axis (radians).
-* :class:`FisheyeKB` — OpenCV ``cv::fisheye`` / Kannala–Brandt (Kannala & Brandt, TPAMI 2006, eq. 6):
-  θ_d = θ(1 + k1θ² + k2θ⁴ + k3θ⁶ + k4θ⁸), pixel = (fx·θ_d·x/ρ + cx, fy·θ_d·y/ρ + cy), ρ = ‖(x, y)‖.
-* :class:`ThinLens` — thin-lens depth of field as in PBRT (Pharr, Jakob & Humphreys, *Physically
-  Based Rendering* 3rd ed., §6.2.3): rays from points of the aperture disk towards the point where
-  the pinhole ray meets the plane z = focus_distance.
-* :class:`RollingShutter` — rows read out top to bottom over ``duration`` of clip time.
-
-Camera frame: OpenCV (x right, y down, z forward); θ = atan2(‖(x, y)‖, z) ∈ [0, π], so a fisheye with
-a field of view > 180° sees points with z < 0. Fisheye maps use the principal point (cx, cy) of the
-intrinsics K; :class:`FisheyeKB` also uses fx, fy, :class:`FisheyePolynomial` works in pixel units
-(square pixels) and ignores fx, fy.
+Camera frame: OpenCV (x right, y down, z forward); θ = atan2(‖(x, y)‖, z) ∈ [0, π], so a fisheye wider than 180°
+sees points with z < 0. Fisheye maps use the principal point (cx, cy) of K; only :class:`FisheyeKB` uses fx, fy.
 """
 from __future__ import annotations
 
@@ -35,17 +22,8 @@ from diff4splat.cameras.rays import camera_rays
 from diff4splat.utils.checks import check_number, check_positive_int
 from diff4splat.utils.constants import CAMERA_MODEL
 
-__all__ = [
-    "RAY_CAMERA_MODELS",
-    "FisheyePolynomial",
-    "FisheyeKB",
-    "ThinLens",
-    "RollingShutter",
-    "check_camera",
-    "generate_rays",
-    "concentric_disk",
-    "hammersley",
-]
+__all__ = ["RAY_CAMERA_MODELS", "FisheyePolynomial", "FisheyeKB", "ThinLens", "RollingShutter", "check_camera",
+           "generate_rays", "concentric_disk", "hammersley"]
 
 RAY_CAMERA_MODELS = ("pinhole", "fisheye")
 """Camera models of the ray path: "pinhole" (optionally with :class:`ThinLens`) and "fisheye"
@@ -68,12 +46,8 @@ def _smallest_positive_root(coeffs_low_first: list[float]) -> float:
 
 
 def _solve_increasing(f: Callable[[Tensor], Tensor], df: Callable[[Tensor], Tensor], y: Tensor, hi: float) -> Tensor:
-    """x ∈ [0, hi] with f(x) = y for f increasing on [0, hi] (y clamped to [f(0), f(hi)]).
-
-    Safeguarded Newton iteration (a Newton step leaving the current bracket is replaced by
-    bisection, so it always converges), run without autograd; a last Newton step with autograd gives
-    the implicit-function gradient dx/dy = 1/f'(x).
-    """
+    """x ∈ [0, hi] with f(x) = y for f increasing on [0, hi] (y clamped to [f(0), f(hi)]): Newton steps, bisection
+    when a step leaves the bracket, without autograd; a last Newton step with autograd gives dx/dy = 1/f'(x)."""
     with torch.no_grad():
         yd = y.detach()
         lo_b, hi_b = torch.zeros_like(yd), torch.full_like(yd, hi)
@@ -121,25 +95,27 @@ def _angle(points: Tensor) -> tuple[Tensor, Tensor]:
     return torch.atan2(rho, points[..., 2]), rho
 
 
+def _radial(points: Tensor, theta_max: float, fn: Callable[[Tensor], Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+    """fn(θ) of camera-frame points (..., 3), valid (θ < theta_max, not the origin) and ρ (1 where 0)."""
+    theta, rho = _angle(points)
+    valid = (theta < theta_max) & (points.norm(dim=-1) > 0)
+    safe = torch.where(rho > 0, rho, torch.ones_like(rho))
+    return fn(torch.where(valid, theta, torch.zeros_like(theta))), valid, safe
+
+
 @dataclass(frozen=True)
 class FisheyePolynomial:
-    """Polynomial fisheye lens θ(r) = k0 + k1·r + k2·r² + k3·r³ + k4·r⁴ (4D-GRT, Blender Cycles).
-
-    r is the distance of a pixel position from the principal point (cx, cy) of K, in pixels (square
-    pixels; fx, fy are not used); θ the angle of its ray from the optical axis, radians.
+    """Polynomial fisheye lens θ(r) = k0 + k1·r + k2·r² + k3·r³ + k4·r⁴ (4D-GRT, Blender Cycles): r the distance
+    of a pixel position from (cx, cy) in pixels (square pixels), θ its ray's angle from the optical axis, radians.
 
     Attributes:
-        k0: must be 0 (r = 0 is the optical axis), radians.
-        k1: > 0, radians per pixel.
-        k2, k3, k4: radians per pixel², pixel³, pixel⁴.
-        r_max: (derived) largest valid radius, pixels: the first turning point θ'(r) = 0 (no
-            fold-back) or where θ reaches π, whichever comes first.
-        theta_max: (derived) θ(r_max) ≤ π, radians; the field of view is 2·theta_max (> 180° when
-            theta_max > π/2). Pixels with r > r_max receive no ray; points with θ > theta_max do
-            not project.
+        k0: must be 0 (r = 0 is the optical axis).  k1: > 0, radians per pixel.  k2, k3, k4: radians per pixel^n.
+        r_max: (derived) largest valid radius, pixels: the first turning point θ'(r) = 0 or where θ reaches π.
+        theta_max: (derived) θ(r_max) ≤ π; the field of view is 2·theta_max. Pixels beyond r_max get no ray,
+            points beyond theta_max do not project.
 
     Raises:
-        ValueError: naming the field — a non-finite coefficient, k0 ≠ 0 or k1 ≤ 0.
+        ValueError: naming the field: a non-finite coefficient, k0 ≠ 0 or k1 ≤ 0.
     """
 
     k0: float = 0.0
@@ -178,22 +154,12 @@ class FisheyePolynomial:
         return _polyval((self.k1, 2 * self.k2, 3 * self.k3, 4 * self.k4), r)
 
     def radius(self, theta: Tensor) -> Tensor:
-        """Inverse map r(θ) in pixels by safeguarded Newton iteration on [0, r_max].
-
-        θ (...) radians is clamped to [0, theta_max]; differentiable (dr/dθ = 1/θ'(r)).
-        """
+        """Inverse map r(θ), pixels, for θ (...) radians clamped to [0, theta_max]; differentiable."""
         return _solve_increasing(self.theta, self.dtheta, theta.clamp(0.0, self.theta_max), self.r_max)
 
     def unproject(self, pixels: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
-        """Camera-frame unit ray directions of pixel positions.
-
-        Args:
-            pixels: (..., 2) positions (u, v), pixels.  K: (3, 3) intrinsics (cx, cy used).
-
-        Returns:
-            dirs (..., 3) unit vectors, valid (...) bool (r ≤ r_max; invalid rays have a finite
-            dummy direction).
-        """
+        """Camera-frame unit directions (..., 3) of pixel positions (..., 2) for K (3, 3), and valid (...) bool
+        (r ≤ r_max; invalid rays get a finite dummy direction)."""
         ex, ey = _pixel_offsets(pixels, K)
         r = torch.sqrt(ex * ex + ey * ey)
         valid = r <= self.r_max
@@ -201,40 +167,25 @@ class FisheyePolynomial:
         return _direction(theta, ex, ey, r), valid
 
     def project(self, points: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
-        """Pixel positions of camera-frame points: pixel = c + r(θ)·(x, y)/ρ.
-
-        Args:
-            points: (..., 3) camera frame, metres.  K: (3, 3) intrinsics (cx, cy used).
-
-        Returns:
-            pixels (..., 2), valid (...) bool (θ < theta_max and the point is not at the origin).
-        """
-        theta, rho = _angle(points)
-        valid = (theta < self.theta_max) & (points.norm(dim=-1) > 0)
-        r = self.radius(torch.where(valid, theta, torch.zeros_like(theta)))
-        safe = torch.where(rho > 0, rho, torch.ones_like(rho))
-        u = K[0, 2] + r * points[..., 0] / safe
-        v = K[1, 2] + r * points[..., 1] / safe
-        return torch.stack([u, v], dim=-1), valid
+        """Pixel positions (..., 2) = c + r(θ)·(x, y)/ρ of camera-frame points (..., 3), metres, and valid (...) bool
+        (θ < theta_max, not the origin)."""
+        r, valid, safe = _radial(points, self.theta_max, self.radius)
+        return torch.stack([K[0, 2] + r * points[..., 0] / safe, K[1, 2] + r * points[..., 1] / safe], -1), valid
 
 
 @dataclass(frozen=True)
 class FisheyeKB:
-    """OpenCV fisheye / Kannala–Brandt lens: θ_d = θ(1 + k1θ² + k2θ⁴ + k3θ⁶ + k4θ⁸).
-
-    A camera-frame point at angle θ = atan2(ρ, z) from the axis lands at
-    (fx·θ_d·x/ρ + cx, fy·θ_d·y/ρ + cy) (OpenCV ``cv::fisheye::projectPoints``, with θ extended past
-    90°); all k = 0 is the equidistant fisheye r = f·θ. Unprojection inverts θ_d(θ) by Newton.
+    """OpenCV fisheye (``cv::fisheye::projectPoints``, θ extended past 90°) / Kannala–Brandt lens (TPAMI 2006, eq. 6):
+    θ_d = θ(1 + k1θ² + k2θ⁴ + k3θ⁶ + k4θ⁸), pixel = (fx·θ_d·x/ρ + cx, fy·θ_d·y/ρ + cy), ρ = ‖(x, y)‖; all k = 0 is the
+    equidistant fisheye r = f·θ. Unprojection inverts θ_d(θ) by Newton.
 
     Attributes:
         k1, k2, k3, k4: distortion coefficients (dimensionless).
-        theta_max: (derived) end of the monotone range: the first root of
-            dθ_d/dθ = 1 + 3k1θ² + 5k2θ⁴ + 7k3θ⁶ + 9k4θ⁸, capped at π, radians.
-        theta_d_max: (derived) θ_d(theta_max); pixels with ‖((u−cx)/fx, (v−cy)/fy)‖ > theta_d_max
-            receive no ray.
+        theta_max: (derived) first root of dθ_d/dθ, capped at π, radians.
+        theta_d_max: (derived) θ_d(theta_max); pixels with ‖((u−cx)/fx, (v−cy)/fy)‖ beyond it get no ray.
 
     Raises:
-        ValueError: naming the field — a non-finite coefficient.
+        ValueError: naming the field: a non-finite coefficient.
     """
 
     k1: float = 0.0
@@ -267,11 +218,7 @@ class FisheyeKB:
         return _solve_increasing(self.distort, self.ddistort, theta_d.clamp(0.0, self.theta_d_max), self.theta_max)
 
     def unproject(self, pixels: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
-        """Camera-frame unit ray directions of pixel positions (..., 2) for intrinsics K (3, 3).
-
-        Returns:
-            dirs (..., 3), valid (...) bool (θ_d ≤ theta_d_max).
-        """
+        """Camera-frame unit directions (..., 3) of pixels (..., 2) for K (3, 3), valid if θ_d ≤ theta_d_max."""
         ex, ey = _pixel_offsets(pixels, K)
         mx, my = ex / K[0, 0], ey / K[1, 1]
         theta_d = torch.sqrt(mx * mx + my * my)
@@ -281,21 +228,15 @@ class FisheyeKB:
 
     def project(self, points: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
         """Pixel positions (..., 2) of camera-frame points (..., 3) and validity (θ < theta_max)."""
-        theta, rho = _angle(points)
-        valid = (theta < self.theta_max) & (points.norm(dim=-1) > 0)
-        td = self.distort(torch.where(valid, theta, torch.zeros_like(theta)))
-        safe = torch.where(rho > 0, rho, torch.ones_like(rho))
+        td, valid, safe = _radial(points, self.theta_max, self.distort)
         u = K[0, 0] * td * points[..., 0] / safe + K[0, 2]
         v = K[1, 1] * td * points[..., 1] / safe + K[1, 2]
         return torch.stack([u, v], dim=-1), valid
 
 
 def hammersley(n: int, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu") -> Tensor:
-    """Centred 2-D Hammersley points ((i + ½)/n, φ₂(i) + ½/n), i < n; (n, 2) in (0, 1)², on ``device``.
-
-    φ₂ is the base-2 radical inverse (van der Corput). For n a power of two the points form a
-    (0, m, 2)-net with each point centred in its stratum (PBRT 3rd ed. §7.4.1).
-    """
+    """Centred 2-D Hammersley points ((i + ½)/n, φ₂(i) + ½/n), i < n, φ₂ the base-2 radical inverse: (n, 2) in
+    (0, 1)² on ``device`` (PBRT 3rd ed. §7.4.1)."""
     i = torch.arange(n, dtype=torch.int64, device=device)
     inv = torch.zeros(n, dtype=torch.float64, device=device)
     bits, scale = i.clone(), 0.5
@@ -307,11 +248,8 @@ def hammersley(n: int, dtype: torch.dtype = torch.float64, device: torch.device 
 
 
 def concentric_disk(u: Tensor) -> Tensor:
-    """Shirley–Chiu concentric map of the unit square onto the unit disk (Shirley & Chiu 1997;
-    PBRT 3rd ed. §13.6.2 ``ConcentricSampleDisk``). (..., 2) in [0, 1]² → (..., 2) with ‖·‖ ≤ 1.
-
-    Area-preserving: a uniform/stratified square pattern maps to a uniform/stratified disk pattern.
-    """
+    """Shirley–Chiu concentric, area-preserving map of the unit square onto the unit disk (PBRT 3rd ed. §13.6.2):
+    (..., 2) in [0, 1]² → (..., 2) with ‖·‖ ≤ 1."""
     a, b = 2.0 * u[..., 0] - 1.0, 2.0 * u[..., 1] - 1.0
     first = a.abs() > b.abs()
     safe_a = torch.where(a == 0, torch.ones_like(a), a)
@@ -325,24 +263,18 @@ def concentric_disk(u: Tensor) -> Tensor:
 
 @dataclass(frozen=True)
 class ThinLens:
-    """Thin-lens depth of field (PBRT 3rd ed. §6.2.3; 4D-GRT's depth-of-field effect).
-
-    For each pixel, ``spp`` rays start at points l of the aperture disk (camera frame, z = 0) and
-    pass through the point where the pinhole ray of the pixel centre meets the plane
-    z = focus_distance; the pixel is the mean of the ``spp`` composited rays. A point at depth z is
-    spread over a disk of radius f·aperture_radius·|1/z − 1/focus_distance| pixels (circle of
-    confusion diameter 2·f·A·|z − z_f|/(z·z_f), f the focal length in pixels, A the aperture
-    radius); points on the focal plane stay sharp.
+    """Thin-lens depth of field (PBRT 3rd ed. §6.2.3; 4D-GRT): each pixel is the mean of ``spp`` rays from points of
+    the aperture disk (camera frame, z = 0) through the point where its pinhole ray meets z = focus_distance. A point
+    at depth z spreads over a disk of radius f·A·|1/z − 1/z_f| pixels (f the focal length in pixels).
 
     Attributes:
-        aperture_radius: lens aperture radius A, metres, ≥ 0 (0 = pinhole).
-        focus_distance: depth z_f of the plane in focus, metres, > 0.
-        spp: aperture samples per pixel, ≥ 1: the Shirley–Chiu concentric map of ``spp`` centred
-            Hammersley points (:meth:`aperture_samples`), the same pattern for every pixel
-            (deterministic; spp = 1 is the lens centre, i.e. the pinhole image).
+        aperture_radius: A, metres, ≥ 0 (0 = pinhole).
+        focus_distance: z_f, metres, > 0.
+        spp: samples per pixel, ≥ 1: the concentric map of ``spp`` centred Hammersley points, the same for every
+            pixel (spp = 1 is the lens centre).
 
     Raises:
-        ValueError: naming the field — a non-finite or negative aperture, focus ≤ 0, spp not an int ≥ 1.
+        ValueError: naming the field: a non-finite or negative aperture, focus ≤ 0, spp not an int ≥ 1.
     """
 
     aperture_radius: float
@@ -361,24 +293,19 @@ class ThinLens:
 
 @dataclass(frozen=True)
 class RollingShutter:
-    """Rolling-shutter readout, top row first (4D-GRT's rolling-shutter effect).
-
-    Row i of an H-row frame is captured at clip time t(i) = t0 + (i + ½)/H · duration, where
-    t0 = t_frame − duration/2 (``anchor="center"``: the readout is centred on the frame time, so a
-    global shutter shows the frame time) or t0 = t_frame (``anchor="start"``). Times are clamped to
-    [0, 1] (scene and camera path are held at their ends outside the clip). The rows are rendered in
-    ``chunks`` contiguous bands (band k = rows ⌊kH/n⌋ … ⌊(k+1)H/n⌋ − 1), each at the mean time of
-    its rows, t0 + (r0 + r1)/(2H)·duration: chunks = 1 is a global shutter at t0 + duration/2,
-    chunks = H (``None``) is exact per row.
+    """Rolling-shutter readout, top row first (4D-GRT): row i of H is captured at t0 + (i + ½)/H · duration, with
+    t0 = t_frame − duration/2 (``anchor="center"``) or t_frame (``"start"``), clamped to [0, 1]. Rows are rendered in
+    ``chunks`` contiguous bands (band k = rows ⌊kH/n⌋ … ⌊(k+1)H/n⌋ − 1), each at the mean time of its rows:
+    1 chunk is a global shutter, None (H chunks) is exact per row.
 
     Attributes:
-        duration: readout time from the first to the last row, in clip-time units, in [0, 1].
-        chunks: number of row bands, int ≥ 1, or None for one per row (H).
+        duration: readout time from first to last row, clip-time units, in [0, 1].
+        chunks: row bands, int ≥ 1, or None for one per row.
         anchor: "center" or "start".
 
     Raises:
-        ValueError: naming the field — duration not in [0, 1], chunks not an int ≥ 1 (or larger
-            than the image height, in :meth:`row_bands`), unknown anchor.
+        ValueError: naming the field: duration not in [0, 1], chunks not an int ≥ 1 (or above the image height,
+            in :meth:`row_bands`), unknown anchor.
     """
 
     duration: float
@@ -402,11 +329,7 @@ class RollingShutter:
         return (self.start_time(t_frame) + (i + 0.5) / height * self.duration).clamp(0.0, 1.0)
 
     def row_bands(self, height: int) -> list[tuple[int, int]]:
-        """Row ranges [r0, r1) of the chunks, top to bottom.
-
-        Raises:
-            ValueError: ``chunks`` > height.
-        """
+        """Row ranges [r0, r1) of the chunks, top to bottom; ValueError if ``chunks`` > height."""
         n = height if self.chunks is None else self.chunks
         if n > height:
             raise ValueError(f"RollingShutter.chunks must be <= the image height {height}, got {n}")
@@ -421,14 +344,12 @@ class RollingShutter:
 
 
 def check_camera(camera_model: str, camera_params: object) -> object:
-    """Validate a (camera_model, camera_params) pair of the ray path; returns the effective params.
-
-    Accepted: ("pinhole", None), ("pinhole", ThinLens), ("fisheye", None → FisheyeKB()),
-    ("fisheye", FisheyeKB), ("fisheye", FisheyePolynomial).
+    """Validate a (camera_model, camera_params) pair of the ray path and return the effective params: ("pinhole",
+    None | ThinLens) or ("fisheye", None → FisheyeKB() | FisheyeKB | FisheyePolynomial).
 
     Raises:
-        ValueError: unknown ``camera_model``; ``camera_params`` of the wrong type for the model
-            (a :class:`RollingShutter` is rejected with a pointer to ``render_rolling_shutter``).
+        ValueError: unknown ``camera_model``, params of the wrong type (a RollingShutter points to
+            ``render_rolling_shutter``).
     """
     if camera_model not in RAY_CAMERA_MODELS:
         raise ValueError(f"camera_model must be one of {RAY_CAMERA_MODELS}, got {camera_model!r}")
@@ -453,18 +374,10 @@ def generate_rays(
     camera_model: str = CAMERA_MODEL,
     camera_params: object = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """World-frame rays of every pixel (centre (j + ½, i + ½)) for a camera model of the ray path.
-
-    * pinhole: d = normalise(Rᵀ K⁻¹(u, v, 1)), o = −Rᵀt (:func:`diff4splat.cameras.camera_rays`), S = 1.
-    * fisheye: camera-frame d from the lens's ``unproject``; pixels beyond its maximum angle are
-      invalid. S = 1.
-    * pinhole + :class:`ThinLens`: S = spp rays per pixel from the lens points l (camera frame,
-      z = 0) towards p_f = d_pin·z_f/d_pin,z (the pinhole ray at depth z_f): o = −Rᵀt + Rᵀl,
-      d = Rᵀ normalise(p_f − l) (PBRT 3rd ed. §6.2.3).
-
-    Args:
-        viewmats, Ks, width, height: as :func:`diff4splat.render.rasterize`.
-        camera_model, camera_params: see :func:`check_camera`.
+    """World-frame rays of every pixel (centre (j + ½, i + ½)) for a camera model of the ray path: pinhole
+    (:func:`~diff4splat.cameras.camera_rays`, S = 1); fisheye (the lens's ``unproject``, S = 1); pinhole +
+    :class:`ThinLens` (S = spp rays from lens points l towards the pinhole ray's point at depth z_f:
+    o = −Rᵀt + Rᵀl, d = Rᵀ normalise(p_f − l)).
 
     Returns:
         origins (C, H, W, S, 3) metres, dirs (C, H, W, S, 3) unit world vectors, valid (C, H, W, S) bool.

@@ -14,16 +14,8 @@ from diff4splat.utils.checks import check_finite, check_positive_int
 __all__ = ["CameraPath", "invert_rigid", "camera_centers", "check_field_of_view", "MIN_FOV_DEG"]
 
 
-
 def invert_rigid(viewmats: Tensor) -> Tensor:
-    """Closed-form inverse of rigid transforms [R | t; 0 0 0 1] → [Rᵀ | −Rᵀt; 0 0 0 1].
-
-    Args:
-        viewmats: (..., 4, 4) rigid transforms (R orthonormal, bottom row [0, 0, 0, 1]).
-
-    Returns:
-        (..., 4, 4) inverses (camera-to-world for world-to-camera input), same dtype.
-    """
+    """Inverses (..., 4, 4), same dtype, of rigid transforms (..., 4, 4): [R | t; 0 0 0 1] → [Rᵀ | −Rᵀt; 0 0 0 1]."""
     R = viewmats[..., :3, :3]
     t = viewmats[..., :3, 3:]
     Rt = R.transpose(-1, -2)
@@ -35,17 +27,8 @@ def invert_rigid(viewmats: Tensor) -> Tensor:
 
 
 def camera_centers(viewmats: Tensor) -> Tensor:
-    """Camera centres c = −Rᵀt of world-to-camera rigid transforms [R | t] (the one home of this formula).
-
-    Args:
-        viewmats: (..., 4, 4) or (..., 3, 4) world-to-camera transforms (OpenCV frame), metres.
-
-    Returns:
-        (..., 3) camera centres in world coordinates, metres, dtype of ``viewmats``.
-
-    Raises:
-        ValueError: ``viewmats`` is not a tensor of shape (..., 4, 4) or (..., 3, 4).
-    """
+    """Camera centres c = −Rᵀt (..., 3), world frame, metres, dtype of ``viewmats``, of world-to-camera transforms
+    (..., 4, 4) or (..., 3, 4); ValueError for another shape."""
     if not isinstance(viewmats, Tensor) or viewmats.dim() < 2 or tuple(viewmats.shape[-2:]) not in ((4, 4), (3, 4)):
         raise ValueError(f"viewmats must be a tensor of shape (..., 4, 4) or (..., 3, 4), got {_shape(viewmats)}")
     return -torch.einsum("...ji,...j->...i", viewmats[..., :3, :3], viewmats[..., :3, 3])
@@ -59,17 +42,13 @@ def _default_times(n: int, dtype: torch.dtype, device: torch.device) -> Tensor:
 
 @dataclass
 class CameraPath:
-    """T pinhole cameras along a clip (docs/DESIGN.md conventions: OpenCV frame, x right, y down, z forward).
+    """T pinhole cameras along a clip (OpenCV frame: x right, y down, z forward), validated on construction.
 
     Attributes:
         viewmats: (T, 4, 4) world-to-camera rigid transforms [R | t], metres; T ≥ 1.
-        Ks: (T, 3, 3) intrinsics in pixels ([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], fx, fy > 0).
-        width: image width W, pixels.
-        height: image height H, pixels.
-        times: (T,) clip times in [0, 1], non-decreasing; ``None`` → t_i = i/(T−1) (T = 1 → [0]).
-
-    The path is validated on construction (:meth:`validate`); tensors are stored as given
-    (``times`` is created in the dtype of ``viewmats``).
+        Ks: (T, 3, 3) intrinsics, pixels ([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], fx, fy > 0).
+        width, height: image size, pixels.
+        times: (T,) clip times in [0, 1], non-decreasing; None → t_i = i/(T−1) (T = 1 → [0]) in ``viewmats``' dtype.
     """
 
     viewmats: Tensor
@@ -90,11 +69,10 @@ class CameraPath:
         """Check shapes and values.
 
         Raises:
-            ValueError: naming the field — ``viewmats`` (not (T, 4, 4) with T ≥ 1, non-finite,
-                rotation block with ‖RᵀR − I‖_F > 1e-4 or |det R − 1| > 1e-4, bottom row not
-                [0, 0, 0, 1] within 1e-6), ``Ks`` (not (T, 3, 3), non-finite, fx or fy ≤ 0, bottom
-                row not [0, 0, 1], non-zero skew/off-diagonal entries), ``width``/``height`` (not a
-                positive int) or ``times`` (not (T,), non-finite, outside [0, 1], decreasing).
+            ValueError: naming the field: ``viewmats`` (not (T ≥ 1, 4, 4), non-finite, not a proper rotation within
+                ROTATION_TOL, bottom row not [0, 0, 0, 1] within 1e-6), ``Ks`` (not (T, 3, 3), non-finite, fx or
+                fy ≤ 0, not of the form above), ``width``/``height`` (not a positive int) or ``times`` (not (T,),
+                non-finite, outside [0, 1], decreasing).
         """
         self.width = check_positive_int("width", self.width, "pixels")
         self.height = check_positive_int("height", self.height, "pixels")
@@ -153,22 +131,10 @@ class CameraPath:
         return camera_centers(self.viewmats)
 
     def viewmat_at(self, t: float) -> Tensor:
-        """World-to-camera pose at clip time ``t``, interpolated between the path's cameras.
-
-        Between the two cameras whose times bracket t (weight w = (t − t_k)/(t_{k+1} − t_k)) the camera
-        centre is interpolated linearly and the camera-to-world rotation by normalised quaternion lerp
-        (shorter arc, :func:`diff4splat.scene.quaternions.quat_nlerp`, the interpolation the scene uses for
-        Δq); before the first / after the last time the end pose is held; at a camera's own time its
-        viewmat is returned exactly (a copy: changing the result never changes the path).
-
-        Args:
-            t: clip time, finite.
-
-        Returns:
-            (4, 4) world-to-camera rigid transform, dtype of ``viewmats``.
-
-        Raises:
-            ValueError: t not finite.
+        """World-to-camera pose (4, 4) at clip time ``t`` (finite, else ValueError), in ``viewmats``' dtype: between
+        the bracketing cameras the centre is lerped and the camera-to-world rotation nlerped
+        (:func:`~diff4splat.scene.quaternions.quat_nlerp`); outside the times the end pose is held; at a camera's own
+        time a copy of its viewmat is returned.
         """
         t = float(t)
         if not math.isfinite(t):
@@ -186,39 +152,22 @@ class CameraPath:
         return invert_rigid(out)
 
     def relative_to_first(self) -> CameraPath:
-        """The same path in the first camera's frame: V_i' = V_i · V_0⁻¹ (so V_0' = I exactly).
-
-        Relative poses between cameras (V_i V_j⁻¹) and the images they see are unchanged; only the
-        world frame moves. Intrinsics, size and times are copied.
-        """
+        """The same path in the first camera's frame: V_i' = V_i · V_0⁻¹ (V_0' = I exactly); images unchanged."""
         rel = self.viewmats @ invert_rigid(self.viewmats[:1])
         rel[0] = torch.eye(4, dtype=rel.dtype, device=rel.device)  # exact, not V_0·V_0⁻¹ ≈ I
         return CameraPath(rel, self.Ks.clone(), self.width, self.height, self.times.clone())
 
     def resized(self, width: int, height: int) -> CameraPath:
-        """The path for images resized (stretched, not cropped) to ``width`` × ``height`` pixels.
-
-        Pixel coordinates scale continuously: fx, cx by width/W and fy, cy by height/H (the image
-        edge 0…W maps to 0…width, consistent with pixel centres at j+0.5). A change of aspect ratio
-        therefore gives non-square pixels (fx/fy changes).
-
-        Raises:
-            ValueError: ``width``/``height`` not a positive int.
-        """
+        """The path for images stretched to ``width`` × ``height`` pixels (positive ints): fx, cx scale by
+        width/W and fy, cy by height/H (a new aspect ratio gives non-square pixels)."""
         width, height = check_positive_int("width", width, "pixels"), check_positive_int("height", height, "pixels")
         scale = self.Ks.new_tensor([width / self.width, height / self.height, 1.0])
         Ks = self.Ks * scale[None, :, None]
         return CameraPath(self.viewmats.clone(), Ks, width, height, self.times.clone())
 
     def fitted(self, width: int, height: int) -> CameraPath:
-        """The path for images centre-cropped to the aspect ratio of ``width``×``height``, then resized.
-
-        Same crop as :func:`diff4splat.io.preprocess_image` (:func:`center_crop_box`): the principal
-        point shifts by the crop offset, then :meth:`resized` scales to the target size.
-
-        Raises:
-            ValueError: ``width``/``height`` not a positive int.
-        """
+        """The path for images centre-cropped to the aspect ratio of ``width`` × ``height`` as
+        :func:`diff4splat.io.preprocess_image` crops them (:func:`center_crop_box`), then :meth:`resized`."""
         width, height = check_positive_int("width", width, "pixels"), check_positive_int("height", height, "pixels")
         y0, x0, ch, cw = center_crop_box(self.height, self.width, height, width)
         Ks = self.Ks.clone()
@@ -228,10 +177,8 @@ class CameraPath:
 
     def to(self, *args, **kwargs) -> CameraPath:
         """Move/cast the tensors (``Tensor.to`` arguments)."""
-        return CameraPath(
-            self.viewmats.to(*args, **kwargs), self.Ks.to(*args, **kwargs), self.width, self.height,
-            self.times.to(*args, **kwargs),
-        )
+        return CameraPath(self.viewmats.to(*args, **kwargs), self.Ks.to(*args, **kwargs), self.width, self.height,
+                          self.times.to(*args, **kwargs))
 
 
 def _shape(x: object) -> object:
@@ -239,16 +186,13 @@ def _shape(x: object) -> object:
 
 
 MIN_FOV_DEG = 0.1
-"""Narrowest field of view, degrees, a camera of a path may have (a 0.1° view is a ~20 m lens on a full-frame
-sensor: smaller means intrinsics in the wrong units)."""
-
+"""Narrowest field of view, degrees, of a camera of a path (0.1° is a ~20 m lens on a full-frame sensor)."""
 
 def check_field_of_view(cameras: CameraPath) -> None:
-    """Refuse a path with a camera narrower than :data:`MIN_FOV_DEG` (focal lengths in the wrong units: nothing but
-    a point of the scene would be seen, each frame one flat colour). ``generate`` and ``render`` both check it.
+    """Refuse a path with a camera narrower than :data:`MIN_FOV_DEG` (focal lengths in the wrong units).
 
     Raises:
-        ValueError: the narrowest field of view, naming the focal lengths, pixels.
+        ValueError: naming the narrowest field of view and the focal lengths, pixels.
     """
     fx, fy = float(cameras.Ks[:, 0, 0].max()), float(cameras.Ks[:, 1, 1].max())
     fov = math.degrees(2 * math.atan(min(cameras.width / (2 * fx), cameras.height / (2 * fy))))

@@ -15,14 +15,8 @@ def camera_rays(
     width: int,
     height: int,
 ) -> tuple[Tensor, Tensor]:
-    """World-frame origins and unit directions of every pixel's ray (pinhole, OpenCV frame).
-
-    Pixel (i, j) is sampled at its centre (j+0.5, i+0.5): d_cam = K⁻¹ (u, v, 1)ᵀ,
-    d_world = Rᵀ d_cam / ‖·‖, o = −Rᵀ t for viewmat [R | t].
-
-    Returns:
-        origins: (C, H, W, 3) camera centres, metres.
-        dirs: (C, H, W, 3) unit directions, world frame.
+    """World-frame origins (C, H, W, 3), metres, and unit directions (C, H, W, 3) of every pixel's pinhole ray: pixel
+    (i, j) at (j+0.5, i+0.5), d = normalise(Rᵀ K⁻¹ (u, v, 1)ᵀ), o = −Rᵀ t for viewmat [R | t].
 
     Raises:
         ValueError: ``viewmats`` not (C, 4, 4) or ``Ks`` not (C, 3, 3).
@@ -52,14 +46,8 @@ def unproject_depth(
     Ks: Tensor,  # (C, 3, 3) pixels
     depth: Tensor,  # (C, H, W) z-depth, metres
 ) -> Tensor:
-    """World points of every pixel at its z-depth (distance along the optical axis, FORMAT.md depth).
-
-    p = o + d·z / (d · ẑ), with o, d the pixel ray of :func:`camera_rays` and ẑ the camera's optical axis
-    in the world frame (third row of R); equivalently p = Rᵀ(z·K⁻¹(u, v, 1)ᵀ − t). Non-finite depths give
-    non-finite points (mask them with ``torch.isfinite(depth)``).
-
-    Returns:
-        (C, H, W, 3) world points, metres.
+    """World points (C, H, W, 3), metres, of every pixel at its z-depth: p = o + d·z / (d · ẑ) with o, d the ray of
+    :func:`camera_rays` and ẑ the optical axis (= Rᵀ(z·K⁻¹(u, v, 1)ᵀ − t)). Non-finite depths give non-finite points.
 
     Raises:
         ValueError: shapes that do not match (C, 4, 4), (C, 3, 3), (C, H, W).
@@ -77,14 +65,9 @@ def project_points(
     viewmats: Tensor,  # (..., 4, 4) world-to-camera, broadcast against points' leading dimensions
     Ks: Tensor,  # (..., 3, 3) pixels
 ) -> tuple[Tensor, Tensor]:
-    """Pinhole projection (OpenCV frame) of world points: the inverse of :func:`unproject_pixels`.
-
-    x_cam = R p + t; (u, v) = (f_x x/z + c_x, f_y y/z + c_y), continuous pixel coordinates with pixel (i, j)'s centre
-    at (j + 0.5, i + 0.5) as in :func:`camera_rays`. Points at z ≤ 0 get non-finite or meaningless (u, v): mask them
-    with ``z > 0``.
-
-    Returns:
-        uv: (..., 2) pixels; z: (...) z-depth, metres.
+    """Pinhole projection of world points, the inverse of :func:`unproject_pixels`: x_cam = R p + t, (u, v) =
+    (f_x x/z + c_x, f_y y/z + c_y), pixel centres as in :func:`camera_rays`. Returns uv (..., 2) pixels and z (...)
+    metres; (u, v) of points at z ≤ 0 are meaningless (mask with ``z > 0``).
     """
     cam = (viewmats[..., :3, :3] @ points[..., None])[..., 0] + viewmats[..., :3, 3]
     z = cam[..., 2]
@@ -98,11 +81,7 @@ def unproject_pixels(
     viewmats: Tensor,  # (..., 4, 4) world-to-camera, broadcast against uv's leading dimensions
     Ks: Tensor,  # (..., 3, 3) pixels
 ) -> Tensor:
-    """World points at continuous pixel positions and z-depths: p = Rᵀ(z·K⁻¹(u, v, 1)ᵀ − t).
-
-    Returns:
-        (..., 3) world points, metres.
-    """
+    """World points (..., 3), metres, at continuous pixel positions and z-depths: p = Rᵀ(z·K⁻¹(u, v, 1)ᵀ − t)."""
     pix = torch.cat([uv, torch.ones_like(uv[..., :1])], dim=-1)
     cam = (torch.linalg.inv(Ks) @ pix[..., None])[..., 0] * z[..., None]
     R, t = viewmats[..., :3, :3], viewmats[..., :3, 3]
@@ -115,11 +94,8 @@ def plucker_rays(
     width: int,
     height: int,
 ) -> Tensor:
-    """Plücker coordinates ``[o × d, d]`` of every pixel's ray (CameraCtrl, He et al. 2024, Eq. 3).
-
-    Returns:
-        (C, H, W, 6): moment o × d (metres) then unit direction d (world frame).
-    """
+    """Plücker coordinates (C, H, W, 6) of every pixel's ray (CameraCtrl, He et al. 2024, Eq. 3): moment o × d
+    (metres), then unit world direction d."""
     o, d = camera_rays(viewmats, Ks, width, height)
     return torch.cat([torch.linalg.cross(o, d, dim=-1), d], dim=-1)
 
@@ -129,20 +105,16 @@ def pack_plucker(
     temporal: int = 4,
     spatial: int = 8,
 ) -> Tensor:
-    """Pack pixel-rate Plücker rays to the VAE latent grid by space-/time-to-depth.
-
-    Frames follow the VAE's causal grouping: frame 0 alone (repeated ``temporal`` times), then
-    groups of ``temporal`` frames. Each latent pixel gathers its ``spatial``×``spatial`` pixels.
-
-    Args:
-        rays: (B, T, H, W, 6) with T = 1 + temporal·k and H, W multiples of ``spatial``.
+    """Pack pixel-rate Plücker rays (B, T, H, W, 6), T = 1 + temporal·k, H and W multiples of ``spatial``, onto the
+    VAE latent grid by space-/time-to-depth: frame 0 repeated ``temporal`` times, then groups of ``temporal`` frames
+    (the VAE's causal grouping), each latent pixel gathering its ``spatial``² pixels.
 
     Returns:
-        (B, 6·temporal·spatial², n, H/spatial, W/spatial) with n = 1 + k; channel order
-        (frame-in-group, row-in-block, column-in-block, ray component).
+        (B, 6·temporal·spatial², 1 + k, H/spatial, W/spatial), channels ordered (frame-in-group, row-in-block,
+        column-in-block, ray component).
 
     Raises:
-        ValueError: T ≠ 1 + temporal·k or H, W not multiples of ``spatial``.
+        ValueError: another shape.
     """
     if rays.dim() != 5 or rays.shape[-1] != 6:
         raise ValueError(f"rays must have shape (B, T, H, W, 6), got {tuple(rays.shape)}")

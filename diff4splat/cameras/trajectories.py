@@ -1,39 +1,15 @@
-"""Preset camera trajectories relative to the first camera (first viewmat = identity).
+"""Preset camera trajectories in the frame of the first camera (OpenCV: x right, y down, z forward; first viewmat =
+identity), around the scene centre c = (0, 0, d) with d = scene_depth; frame i of T at clip time t_i = i/(T−1)
+(T = 1: one identity camera). a = amplitude, eye = camera centre; README ``--trajectory``/``--amplitude`` gives the
+user's view, :data:`AMPLITUDE_LIMITS` the accepted range (beyond it the path leaves what one photograph can show).
 
-All presets are expressed in the frame of the first camera (OpenCV: x right, y down, z forward),
-which is the world frame of the returned path. The scene is assumed to sit around the point
-c = (0, 0, scene_depth) straight ahead of the first camera. Frame i of T has the clip time
-t_i = i/(T−1) (T = 1 → t = 0, a single identity camera).
+- ``arc`` (default): eye_i = c + d·(sin θ_i, 0, −cos θ_i), θ_i = a·t_i, looking at c; a in radians, > 0 to the
+  right, < 0 to the left; default 0.5 (inside the 20–70° sweeps of ``data_prep.synth_world``'s training clips).
+- ``orbit``: as ``arc`` with θ_i = 2π·i/T, a seamless 360° loop; takes no amplitude.
+- ``spiral``: eye(t) = a·d·t·(cos 4πt, sin 4πt, 0), two outward turns in the image plane, looking at c.
+- ``forward``/``backward`` (dolly ±z), ``up``/``down`` (pedestal ∓y), ``pan-left``/``pan-right`` (truck ∓x):
+  eye(t) = a·d·t·direction, orientation of the first camera kept (R = I).
 
-Presets (eye = camera centre in world coordinates, d = scene_depth, a = amplitude). The amplitude of
-``arc`` is an ANGLE in radians; that of every translation preset and ``spiral`` is a LENGTH in units
-of ``scene_depth``; ``orbit`` takes none. Each preset accepts the amplitudes of :data:`AMPLITUDE_LIMITS`
-(:func:`check_amplitude`): beyond them the path leaves what one photograph can show.
-
-- ``arc`` (the default path of ``diff4splat generate``): part of the orbit circle, the camera sweeps
-  ``a`` radians in total around c, looking at c: eye_i = c + d·(sin θ_i, 0, −cos θ_i) with
-  θ_i = a·t_i. a > 0 moves the eye to the camera's right (+x), a < 0 to its left; 0 < |a| ≤ 2π
-  (a full turn: more would repeat it).
-  Default a = 0.5 rad (≈ 29°), inside the 20–70° orbit sweeps of the synthetic training clips
-  (``data_prep.synth_world``): a path a single photograph supports. With a = 2π·(T−1)/T it is
-  exactly ``orbit`` of T frames.
-- ``orbit``: a full 360° horizontal circle of radius d around c, looking at c:
-  eye_i = c + d·(sin θ_i, 0, −cos θ_i) with θ_i = 2π·i/T, i.e. a seamless loop that starts by
-  moving to the camera's right; the last frame is one step (2π/T) before returning to the first.
-  ``amplitude`` does not apply (the radius is fixed by the first camera and c). Most of a full turn
-  shows what one photograph cannot know (the back of the scene); ``arc`` is the conservative path.
-- ``spiral``: an outward planar spiral of two turns in the first camera's image plane, looking at
-  c: eye(t) = a·d·t·(cos 4πt, sin 4πt, 0). Default a = 0.25 (final radius d/4); 0 < a ≤ 1 (at 1 the
-  last camera sees c from 45° off the first camera's axis).
-- ``forward`` / ``backward``: dolly along ±z, eye(t) = ±a·d·t·(0, 0, 1). Default a = 0.5. Forward
-  0 < a ≤ 1: at 1 the camera reaches c, further it would pass through the scene. Backward 0 < a ≤ 4: at 4
-  the photograph (about d away) spans a fifth of the frame, the rest is the blurred backdrop.
-- ``up`` / ``down``: pedestal along ∓y (y points down), eye(t) = ∓a·d·t·(0, 1, 0). Default a = 0.25.
-- ``pan-left`` / ``pan-right``: truck along ∓x, eye(t) = ∓a·d·t·(1, 0, 0). Default a = 0.25.
-  ``up``/``down``/``pan-*``: 0 < a ≤ 1; a shift of one scene depth takes the photograph (nearly) out of
-  a 50° view (the shipped models' field of view), leaving only the blurred backdrop.
-
-The translation presets keep the orientation of the first camera (R = I, looking along +z);
 ``arc``, ``orbit`` and ``spiral`` use :func:`look_at` towards c with "up" = −y of the first camera.
 """
 from __future__ import annotations
@@ -57,31 +33,14 @@ DEFAULT_TRAJECTORY = "arc"
 """The preset used when no camera path is named (``diff4splat generate``,
 ``Diff4SplatPipeline.default_cameras``): a short arc that one photograph supports."""
 
-DEFAULT_AMPLITUDES: dict[str, float] = {
-    "arc": 0.5,
-    "spiral": 0.25,
-    "forward": 0.5,
-    "backward": 0.5,
-    "up": 0.25,
-    "down": 0.25,
-    "pan-left": 0.25,
-    "pan-right": 0.25,
-}
-"""Default ``amplitude`` per preset: radians for ``arc``, units of ``scene_depth`` for the others
-(``orbit`` takes none)."""
+DEFAULT_AMPLITUDES: dict[str, float] = {"arc": 0.5, "spiral": 0.25, "forward": 0.5, "backward": 0.5, "up": 0.25,
+                                         "down": 0.25, "pan-left": 0.25, "pan-right": 0.25}
+"""Default ``amplitude`` per preset: radians for ``arc``, units of ``scene_depth`` for the others (not ``orbit``)."""
 
-AMPLITUDE_LIMITS: dict[str, float] = {
-    "arc": 2.0 * math.pi,
-    "spiral": 1.0,
-    "forward": 1.0,
-    "backward": 4.0,
-    "up": 1.0,
-    "down": 1.0,
-    "pan-left": 1.0,
-    "pan-right": 1.0,
-}
-"""Largest ``amplitude`` per preset (``orbit`` takes none): ``arc`` accepts 0 < |a| ≤ 2π radians (negative
-sweeps left), every other preset 0 < a ≤ limit, in units of ``scene_depth``. The module docstring says why."""
+AMPLITUDE_LIMITS: dict[str, float] = {"arc": 2.0 * math.pi, "spiral": 1.0, "forward": 1.0, "backward": 4.0, "up": 1.0,
+                                      "down": 1.0, "pan-left": 1.0, "pan-right": 1.0}
+"""Largest ``amplitude`` per preset: ``arc`` 0 < |a| ≤ 2π radians (negative sweeps left), the others 0 < a ≤ limit
+scene depths (:data:`_LIMIT_REASONS` says why)."""
 
 _LIMIT_REASONS = {
     "arc": "a full turn; more would repeat it",
@@ -92,34 +51,17 @@ _LIMIT_REASONS = {
                     "at 1 the photograph has (nearly) left the frame of a 50° camera"),
 }
 
-_DIRECTIONS = {
-    "forward": (0.0, 0.0, 1.0),
-    "backward": (0.0, 0.0, -1.0),
-    "up": (0.0, -1.0, 0.0),
-    "down": (0.0, 1.0, 0.0),
-    "pan-left": (-1.0, 0.0, 0.0),
-    "pan-right": (1.0, 0.0, 0.0),
-}
-
+_DIRECTIONS = {"forward": (0.0, 0.0, 1.0), "backward": (0.0, 0.0, -1.0), "up": (0.0, -1.0, 0.0),
+               "down": (0.0, 1.0, 0.0), "pan-left": (-1.0, 0.0, 0.0), "pan-right": (1.0, 0.0, 0.0)}
 
 def check_amplitude(trajectory: str, amplitude: object, name: str = "amplitude") -> float | None:
-    """The amplitude ``trajectory`` will use: ``amplitude`` checked against the preset's range, or its default.
-
-    Called by :func:`make_trajectory` and, before any work, by the command line (``name="--amplitude"``).
-
-    Args:
-        trajectory: one of :data:`TRAJECTORIES`.
-        amplitude: the requested amplitude (radians for ``arc``, scene depths otherwise), or None for the
-            preset's default (:data:`DEFAULT_AMPLITUDES`).
-        name: the parameter's name in messages, as the caller's user knows it.
-
-    Returns:
-        The amplitude as a float; None for ``orbit`` (which takes none).
+    """The amplitude ``trajectory`` will use: ``amplitude`` (radians for ``arc``, scene depths otherwise) checked
+    against :data:`AMPLITUDE_LIMITS`, or the preset's default for None; None for ``orbit``. ``name`` is the
+    parameter's name in messages (the command line passes ``"--amplitude"``).
 
     Raises:
-        ValueError: naming ``trajectory`` (unknown preset), or ``name``, the preset, the accepted range and unit
-            (:data:`AMPLITUDE_LIMITS`) when ``amplitude`` is not a finite number in that range, or is given for
-            ``orbit``.
+        ValueError: an unknown ``trajectory``; ``amplitude`` not a finite number in range, or given for ``orbit``
+            (naming ``name``, the preset, the range and unit).
     """
     if trajectory not in TRAJECTORIES:
         raise ValueError(f"trajectory must be one of {TRAJECTORIES}, got {trajectory!r}")
@@ -162,24 +104,12 @@ def look_at(
     targets: Tensor,  # (T, 3) or (3,) points to look at
     up: tuple[float, float, float] | Tensor = (0.0, -1.0, 0.0),
 ) -> Tensor:
-    """World-to-camera viewmats of cameras at ``eyes`` looking at ``targets`` (OpenCV frame).
-
-    The camera's +z axis points from eye to target, +x = normalize(down × z) with down = −up, and
-    +y = z × x points down in the image. With eye = 0, target on +z and the default up = (0, −1, 0)
-    (world y down, as in the OpenCV first-camera frame) the result is exactly the identity.
-    R has rows (x, y, z) and t = −R·eye.
-
-    Args:
-        eyes: (T, 3) camera centres, metres.
-        targets: (T, 3) or (3,) look-at points, metres.
-        up: (3,) world direction that appears up in the image.
-
-    Returns:
-        (T, 4, 4) world-to-camera rigid transforms in the dtype of ``eyes``.
+    """World-to-camera viewmats (T, 4, 4), dtype of ``eyes``, of cameras at ``eyes`` (T, 3) looking at ``targets``
+    (T, 3) or (3,), metres, with ``up`` the world direction shown up in the image. R has rows x = normalize(−up × z),
+    y = z × x, z = normalize(target − eye); t = −R·eye (eye 0, target on +z, default up: exactly the identity).
 
     Raises:
-        ValueError: naming ``eyes``/``targets`` when an eye coincides with its target, or ``up``
-            when the viewing direction is parallel to it.
+        ValueError: an eye equal to its target, or ``up`` parallel to the viewing direction.
     """
     if eyes.dim() != 2 or eyes.shape[-1] != 3:
         raise ValueError(f"eyes must have shape (T, 3), got {tuple(eyes.shape)}")
@@ -213,31 +143,19 @@ def make_trajectory(
     scene_depth: float = 2.0,
     amplitude: float | None = None,
 ) -> CameraPath:
-    """A preset camera path of ``num_frames`` cameras sharing the intrinsics ``K``.
-
-    See the module docstring for each preset's exact motion and default amplitude.
+    """A preset camera path (module docstring) of ``num_frames`` ≥ 1 cameras sharing ``K`` (3, 3), pixels, for
+    ``width`` × ``height`` images, around a scene centre ``scene_depth`` metres (> 0) ahead.
 
     Args:
-        name: one of :data:`TRAJECTORIES`.
-        num_frames: T ≥ 1.
-        K: (3, 3) intrinsics in pixels, used for every frame.
-        width: image width, pixels.
-        height: image height, pixels.
-        scene_depth: distance d (metres, > 0) from the first camera to the scene centre c.
-        amplitude: motion size; ``None`` → the preset default (:data:`DEFAULT_AMPLITUDES`). For
-            ``arc`` an angle in RADIANS, the total sweep around c: 0 < |amplitude| ≤ 2π, positive to
-            the camera's right, negative to its left. For every other preset a length in units of
-            ``scene_depth`` in (0, :data:`AMPLITUDE_LIMITS`]. Not accepted for ``orbit``
-            (:func:`check_amplitude`).
+        amplitude: motion size (:func:`check_amplitude`): radians for ``arc``, scene depths otherwise, None for the
+            preset default; not accepted for ``orbit``.
 
     Returns:
-        :class:`CameraPath` with viewmats (T, 4, 4) (viewmats[0] = I exactly), Ks (T, 3, 3),
-        times t_i = i/(T−1); validated. Dtype: that of ``K`` if floating, else float32.
+        :class:`CameraPath` (viewmats[0] = I exactly, times i/(T−1)), dtype of ``K`` if floating, else float32.
 
     Raises:
-        ValueError: naming ``name`` (unknown preset), ``num_frames`` (< 1 or not an int),
-            ``scene_depth`` (≤ 0 or not finite), ``amplitude`` (outside the preset's range or given for
-            ``orbit``, :func:`check_amplitude`), ``K`` (not (3, 3)), or a field of :meth:`CameraPath.validate`.
+        ValueError: naming ``name``, ``num_frames``, ``scene_depth``, ``amplitude``, ``K`` (not (3, 3)) or a field
+            of :meth:`CameraPath.validate`.
     """
     if name not in TRAJECTORIES:
         raise ValueError(f"name must be one of {TRAJECTORIES}, got {name!r}")

@@ -12,26 +12,7 @@ from diff4splat.io.output_folders import MARKER, OutputDirError, check_output_di
 from diff4splat.io.ply import load_ply, ply_bytes, ply_property_names, save_ply
 from diff4splat.io.video import load_video, save_image, save_video, to_uint8
 
-__all__ = [
-    "save_ply",
-    "ply_bytes",
-    "load_ply",
-    "ply_property_names",
-    "save_depth_exr",
-    "load_depth_exr",
-    "save_video",
-    "load_video",
-    "save_image",
-    "to_uint8",
-    "load_image",
-    "preprocess_image",
-    "atomic_output_path",
-    "output_dir",
-    "check_output_dir",
-    "OutputDirError",
-    "MARKER",
-    "save_cameras_json",
-    "load_cameras_json",
-    "load_realestate10k",
-    "save_realestate10k",
-]
+__all__ = ["save_ply", "ply_bytes", "load_ply", "ply_property_names", "save_depth_exr", "load_depth_exr", "save_video",
+           "load_video", "save_image", "to_uint8", "load_image", "preprocess_image", "atomic_output_path", "output_dir",
+           "check_output_dir", "OutputDirError", "MARKER", "save_cameras_json", "load_cameras_json",
+           "load_realestate10k", "save_realestate10k"]

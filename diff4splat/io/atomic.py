@@ -1,12 +1,7 @@
-"""Atomic file writes: a file appears complete or not at all (folders: :mod:`diff4splat.io.output_folders`); and the
-errors of writing, named after the file the user asked for.
-
-A write that fails for a reason of the disk (full, quota, read-only, permissions) must reach the user as
-``<path>: <reason>`` (README, "Errors"; :func:`diff4splat.utils.errors.one_line`). Python's ``write()`` raises
-``OSError(ENOSPC)`` *without* a file name, OpenCV returns ``False`` or writes a short file, OpenEXR and
-safetensors raise ``RuntimeError``-like errors whose text mentions the reason: :func:`naming_os_errors` turns
-each into ``OSError(errno, strerror, <path>)``, asking the file system (:func:`disk_full_error`) when a
-library does not say why.
+"""Atomic file writes (a file appears complete or not at all; folders: :mod:`diff4splat.io.output_folders`), and
+write errors as ``OSError(errno, strerror, <path>)`` naming the file the user asked for (README, "Errors"), also
+where Python's ``write()`` gives no name, OpenCV fails silently or OpenEXR/safetensors raise other errors
+(:func:`naming_os_errors`, asking the file system via :func:`disk_full_error`).
 """
 from __future__ import annotations
 
@@ -23,8 +18,7 @@ _SPACE_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
 
 
 def current_umask() -> int:
-    """The process's umask (Linux: read from ``/proc/self/status``, which changes nothing; elsewhere set and put
-    back at once)."""
+    """The process's umask (from ``/proc/self/status`` on Linux; elsewhere set and put back at once)."""
     try:
         with open("/proc/self/status", encoding="ascii") as f:
             for line in f:
@@ -38,9 +32,8 @@ def current_umask() -> int:
 
 
 def follow_umask(root: str | os.PathLike) -> None:
-    """Give the file ``root``, or every file under the folder ``root``, the mode a plain ``open()`` gives, 0o666 &
-    ~umask (symlinks are left alone). safetensors ≥ 0.8 (and so diffusers) creates its files 0600: models,
-    checkpoints and fields were unreadable to the user's group where every other file followed the umask."""
+    """Give the file ``root``, or every file under the folder ``root``, the mode 0o666 & ~umask (symlinks are left
+    alone): safetensors creates its files 0600."""
     mode = 0o666 & ~current_umask()
     root = Path(root)
     files = [root] if not root.is_dir() else [Path(d) / n for d, _, names in os.walk(root) for n in names]
@@ -50,16 +43,9 @@ def follow_umask(root: str | os.PathLike) -> None:
 
 
 def disk_full_error(where: str | os.PathLike) -> OSError | None:
-    """The ``OSError`` (``ENOSPC`` or ``EDQUOT``) the file system gives for one more block in ``where``'s folder,
-    or None when it has room (or cannot tell).
-
-    The check after a writer failed without saying why: a write that ran out of space leaves the disk full
-    (the kernel writes what fits), so allocating one block beside it fails the same way. A probe file
-    ``.<random>.space`` is created in the folder (``where`` if it is one, else its parent) and removed.
-
-    Returns:
-        ``OSError(errno, strerror)`` without a file name (the caller names the file), or None.
-    """
+    """``OSError(ENOSPC or EDQUOT, strerror)`` (no file name) if one more block cannot be allocated in ``where``'s
+    folder, else None (room, or cannot tell): after a writer failed without saying why (a probe file
+    ``.<random>.space`` is created there and removed)."""
     where = Path(where)
     folder = where if where.is_dir() else where.parent
     probe = folder / f".{uuid.uuid4().hex[:12]}.space"
@@ -94,25 +80,12 @@ def _renamed(name: str | bytes | os.PathLike | None, temp: str | None, final: st
 
 @contextmanager
 def naming_os_errors(path: str | os.PathLike, temp: str | os.PathLike | None = None) -> Iterator[None]:
-    """Re-raise the write errors of the block as ``OSError``\\ s naming ``path``.
+    """Re-raise the block's write errors as ``OSError``\\ s naming ``path`` (the original chained as ``__cause__``).
 
-    * An ``OSError`` without a file name (``write()`` on a full disk) → ``OSError(errno, strerror, path)``.
-    * An ``OSError`` naming ``temp`` (the temporary file or folder standing in for ``path``) or a file in it
-      → the same error naming ``path`` (or the file at the same place under ``path``); a rename's second name
-      is dropped when it is the same file.
-    * Any other exception but ``ValueError`` (a library's ``RuntimeError``, e.g. OpenEXR's or safetensors'
-      "No space left on device") → ``OSError(ENOSPC/EDQUOT, strerror, path)`` when :func:`disk_full_error`
-      finds ``path``'s disk full; else unchanged.
-
-    The original error is chained as ``__cause__``. ``ValueError`` (bad input), ``KeyboardInterrupt`` and
-    ``SystemExit`` pass unchanged.
-
-    Args:
-        path: the file or folder the user asked for, as they gave it.
-        temp: the temporary path written in its place, if any.
-
-    Raises:
-        OSError: as above; any other exception of the block unchanged.
+    An ``OSError`` without a file name gets ``path``; one naming ``temp`` (the temporary file or folder standing in
+    for ``path``) or a file in it is renamed to the same place under ``path`` (a rename's second name dropped when
+    it is the same file); any other exception but ``ValueError`` becomes ``OSError(ENOSPC/EDQUOT, strerror, path)``
+    when :func:`disk_full_error` finds the disk full. Others pass unchanged.
     """
     final = os.fspath(path)
     temp = None if temp is None else os.fspath(temp)
@@ -139,22 +112,12 @@ def naming_os_errors(path: str | os.PathLike, temp: str | os.PathLike | None = N
 
 @contextmanager
 def atomic_output_path(path: str | os.PathLike) -> Iterator[str]:
-    """Yield a temporary path beside ``path``; on success rename it onto ``path`` (``os.replace``).
-
-    The temporary name keeps the final suffix (writers such as OpenCV pick the container from it):
-    ``<folder>/.<name>.<random>.tmp<suffix>``. If the body raises, the temporary file is removed and
-    ``path`` is left untouched, so readers never see a half-written file. Missing parent folders
-    are created. Write errors name ``path``, not the temporary file (:func:`naming_os_errors`).
-
-    Args:
-        path: final file path.
-
-    Yields:
-        The temporary path (str) to write to.
+    """Yield a temporary path ``<folder>/.<name>.<random>.tmp<suffix>`` (the suffix kept for writers that pick the
+    format from it) beside ``path``, missing parents created; on success ``os.replace`` it onto ``path``, on error
+    remove it, leaving ``path`` untouched.
 
     Raises:
-        OSError: naming ``path`` (disk full, read-only, permissions, …; :func:`naming_os_errors`); the body's
-            other exceptions unchanged.
+        OSError: naming ``path`` (:func:`naming_os_errors`); the body's other exceptions unchanged.
     """
     path = Path(path)
     tmp = path.parent / f".{path.name}.{uuid.uuid4().hex[:12]}.tmp{path.suffix}"

@@ -14,9 +14,8 @@ first line with the video URL, then one line per frame::
 
     timestamp_us fx fy cx cy 0 0 r11 r12 r13 t1 r21 r22 r23 t2 r31 r32 r33 t3
 
-with fx, cx divided by the image width, fy, cy divided by the image height, the two zeros
-(radial distortion, always zero in the dataset) and the 3×4 world-to-camera matrix [R | t] row-major
-(OpenCV axes).
+with fx, cx divided by the image width, fy, cy by the image height, two zeros (radial distortion) and the 3×4
+world-to-camera matrix [R | t] row-major (OpenCV axes).
 """
 from __future__ import annotations
 
@@ -37,17 +36,12 @@ __all__ = ["save_cameras_json", "load_cameras_json", "load_realestate10k", "read
            "save_realestate10k", "CAMERA_FILE_BYTES_PER_FRAME"]
 
 CAMERA_FILE_BYTES_PER_FRAME = 4096
-"""Generous upper bound of the bytes one frame takes in a camera file (an indented ``cameras.json``
-frame is about 1 KB, a RealEstate10K line about 200 bytes): a larger file is refused before it is parsed."""
-
+"""Upper bound of the bytes one frame takes in a camera file (an indented ``cameras.json`` frame is about 1 KB):
+a larger file is refused before it is parsed."""
 
 def _check_camera_file(path: str | os.PathLike, what: str) -> Path:
-    """Check ``path`` is a regular file no larger than the ``frames`` limit allows, before it is read.
-
-    Raises:
-        FileNotFoundError / ValueError: :func:`diff4splat.io.inputs.check_input_file`.
-        LimitError: the file is larger than ``frames`` limit × :data:`CAMERA_FILE_BYTES_PER_FRAME` (+ 64 KB).
-    """
+    """``path`` checked to be a regular file (:func:`check_input_file`) of at most ``frames`` limit ×
+    :data:`CAMERA_FILE_BYTES_PER_FRAME` + 64 KB (else LimitError), before it is read."""
     path = check_input_file(path, what)
     size, frames = path.stat().st_size, limit("frames")
     bound = frames * CAMERA_FILE_BYTES_PER_FRAME + (1 << 16)
@@ -57,23 +51,9 @@ def _check_camera_file(path: str | os.PathLike, what: str) -> Path:
     return path
 
 
-def _check_frame_count(path: Path, count: int) -> None:
-    check_limit("frames", count, f"{path}: a camera path of")
-
-
 def save_cameras_json(path: str | os.PathLike, camera_path: CameraPath) -> None:
-    """Write a camera path as ``cameras.json`` (module docstring), atomically.
-
-    Values are written as JSON numbers with full double precision, so float32 paths round-trip
-    exactly.
-
-    Args:
-        path: output file.
-        camera_path: validated :class:`CameraPath` (T cameras).
-
-    Raises:
-        ValueError: ``camera_path`` fails :meth:`CameraPath.validate`.
-    """
+    """Write ``camera_path`` as ``cameras.json`` (module docstring) atomically, as full-precision JSON numbers (float32
+    round-trips exactly); ValueError if it fails :meth:`CameraPath.validate`."""
     camera_path.validate()
     data = {
         "width": camera_path.width,
@@ -101,23 +81,14 @@ def _tensor(data: dict, key: str, shape_tail: tuple[int, ...], path: Path) -> to
 
 
 def load_cameras_json(path: str | os.PathLike) -> CameraPath:
-    """Read a ``cameras.json`` camera path (module docstring).
-
-    Args:
-        path: JSON file with keys "width", "height", "Ks", "viewmats" and optionally "times"
-            (default t_i = i/(T−1)); other keys are ignored.
-
-    Returns:
-        Validated float32 :class:`CameraPath`, as stored (not re-expressed relative to the first
-        camera).
+    """Read a ``cameras.json`` (module docstring; "times" optional, default i/(T−1), other keys ignored) as a validated
+    float32 :class:`CameraPath` on the CPU, as stored.
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
-        ValueError: ``path`` is not a regular file; not UTF-8 text, invalid JSON, a missing key (named), a
-            value of the wrong type or shape, or a field failing :meth:`CameraPath.validate` (named);
-            more frames than the ``frames`` limit or width × height above the ``image_pixels`` limit
-            (:class:`diff4splat.utils.limits.LimitError`, checked before any tensor is built; the file size
-            is checked before it is parsed).
+        ValueError: not a regular UTF-8 file of valid JSON, a missing key, a value of the wrong type or shape, or a
+            field failing :meth:`CameraPath.validate` (each named); more frames than the ``frames`` limit, width ×
+            height above ``image_pixels`` or a file too large for the ``frames`` limit (LimitError, before parsing).
     """
     path = _check_camera_file(path, "camera file")
     data = read_json(path, "camera file")
@@ -133,7 +104,7 @@ def load_cameras_json(path: str | os.PathLike) -> CameraPath:
                 f"{path}: width × height = {data['width']}×{data['height']} =")
     for key in ("viewmats", "Ks"):
         if isinstance(data[key], list):
-            _check_frame_count(path, len(data[key]))
+            check_limit("frames", len(data[key]), f"{path}: a camera path of")
     viewmats = _tensor(data, "viewmats", (4, 4), path)
     Ks = _tensor(data, "Ks", (3, 3), path)
     times = None
@@ -149,17 +120,13 @@ def load_cameras_json(path: str | os.PathLike) -> CameraPath:
 
 
 def read_realestate10k_lines(path: str | os.PathLike) -> tuple[list[int], list[list[float]]]:
-    """The frame lines of a RealEstate10K camera file (module docstring): integer timestamps (µs) and the 18
-    numbers after each, in file order; no frames is an empty list (the caller names what that means).
-
-    :func:`load_realestate10k` reads through this; a converter that needs the timestamps before it knows the
-    image size (``data_prep``'s RealEstate10K converter) too, so both hold a file to the same rules.
+    """The frame lines of a RealEstate10K camera file (module docstring): integer timestamps (µs) and the 18 numbers
+    after each, in file order (no frames: empty lists). An optional non-numeric first line and blank lines are skipped.
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
-        ValueError: ``path`` is not a regular UTF-8 text file; naming the line for a wrong number of values,
-            non-numeric values or non-zero distortion; more frames than the ``frames`` limit
-            (:class:`diff4splat.utils.limits.LimitError`; the file size is checked before it is read).
+        ValueError: not a regular UTF-8 text file; naming the line: a wrong number of values, non-numeric values or
+            non-zero distortion; more frames than the ``frames`` limit (LimitError, the file size checked first).
     """
     path = _check_camera_file(path, "RealEstate10K camera file")
     text = read_text(path, "RealEstate10K camera file")
@@ -181,34 +148,18 @@ def read_realestate10k_lines(path: str | os.PathLike) -> tuple[list[int], list[l
             raise ValueError(f"{path}:{lineno}: non-zero distortion ({vals[4]}, {vals[5]}) is not supported")
         stamps.append(stamp)
         rows.append(vals)
-    _check_frame_count(path, len(rows))
+    check_limit("frames", len(rows), f"{path}: a camera path of")
     return stamps, rows
 
 
 def load_realestate10k(path: str | os.PathLike, width: int, height: int, relative: bool = True) -> CameraPath:
-    """Read a RealEstate10K camera file (module docstring) for images of ``width`` × ``height``.
-
-    Intrinsics are de-normalised: fx·W, fy·H, cx·W, cy·H. Times are the timestamps mapped linearly
-    to [0, 1]: t_i = (ts_i − ts_0)/(ts_{T−1} − ts_0) (T = 1 → [0]).
-
-    Args:
-        path: text file; an optional first line that is not numeric (the YouTube URL), blank lines
-            ignored, then 19 numbers per frame.
-        width: image width W, pixels.
-        height: image height H, pixels.
-        relative: re-express the poses relative to the first camera (V_i V_0⁻¹, first = I), the
-            docs/DESIGN.md convention; ``False`` keeps the dataset's world frame.
-
-    Returns:
-        Validated float32 :class:`CameraPath`.
+    """Read a RealEstate10K camera file (:func:`read_realestate10k_lines`) as a validated float32 :class:`CameraPath`
+    for ``width`` × ``height`` images: intrinsics fx·W, fy·H, cx·W, cy·H; times t_i = (ts_i − ts_0)/(ts_{T−1} − ts_0)
+    (T = 1 → [0]); with ``relative``, poses re-expressed relative to the first camera (V_i V_0⁻¹).
 
     Raises:
-        FileNotFoundError: ``path`` does not exist.
-        ValueError: ``path`` is not a regular UTF-8 text file; naming the line for a wrong number of
-            values, non-numeric values or non-zero distortion; no frames; decreasing timestamps; equal
-            first and last timestamps with T > 1; a field failing :meth:`CameraPath.validate`
-            (``width``/``height`` included); more frames than the ``frames`` limit
-            (:class:`diff4splat.utils.limits.LimitError`; the file size is checked before it is parsed).
+        FileNotFoundError / ValueError: as :func:`read_realestate10k_lines`; no frames; decreasing timestamps; equal
+            first and last timestamps with T > 1; a field failing :meth:`CameraPath.validate`.
     """
     stamps, rows = read_realestate10k_lines(path)
     if not rows:
@@ -239,21 +190,13 @@ def load_realestate10k(path: str | os.PathLike, width: int, height: int, relativ
 def save_realestate10k(
     path: str | os.PathLike, camera_path: CameraPath, url: str | None = None, fps: float = 30
 ) -> None:
-    """Write a camera path in the RealEstate10K text format (module docstring), atomically.
-
-    Timestamps (integer microseconds) place the clip over (T−1)/fps seconds:
-    ts_i = round(t_i·(T−1)·10⁶/fps), so uniform times give frame i at i/fps and reading the file
-    back recovers t_i (to 1 µs). Numbers are written with 9 significant digits (float32 exact).
-
-    Args:
-        path: output text file.
-        camera_path: validated :class:`CameraPath`; its own world frame is written as is.
-        url: optional first line (e.g. the source video URL); must be one line.
-        fps: frames per second of the clip, > 0.
+    """Write ``camera_path`` (its own world frame) in the RealEstate10K format atomically, with ``url`` (one line) as
+    the first line if given. Timestamps ts_i = round(t_i·(T−1)·10⁶/fps) µs place uniform times at i/fps; numbers
+    have 9 significant digits (float32 exact).
 
     Raises:
-        ValueError: naming ``url`` (contains a line break or is numeric, which would be read as a
-            frame), ``fps`` (not positive and finite) or a field of :meth:`CameraPath.validate`.
+        ValueError: naming ``url`` (a line break, or numeric), ``fps`` (not > 0 and finite) or a field of
+            :meth:`CameraPath.validate`.
     """
     camera_path.validate()
     fps = check_positive("fps", fps)

@@ -1,18 +1,8 @@
-"""A depth map of the photograph, from a file the user made elsewhere (``generate --depth``).
-
-Formats, by extension:
-
-- ``.exr``: the "Z" channel (:func:`diff4splat.io.load_depth_exr`; what ``generate`` itself writes);
-- ``.npy``: a 2-D float array (or (H, W, 1)), no pickles;
-- ``.png`` / ``.tif`` / ``.tiff``: one grey channel, 16-bit (8-bit only for relative kinds). A 16-bit metric map is
-  in millimetres (the Kinect / ScanNet / TUM convention) and is divided by 1000.
-
-Values that are NaN or ±inf are holes, and so are metric values outside [1 mm, 10 km] (0 is the usual "no depth" of
-16-bit maps) and disparities that are not positive (:func:`valid_depth`); the pipeline fills them from the network's
-depth. A map with no usable value, or a relative one that is constant, is refused (:func:`check_depth_values`).
-The map is cropped like the photograph (:func:`diff4splat.cameras.center_crop_box` on the photograph's displayed
-size when the map has that size, else on its own) and resized to the output resolution with nearest-neighbour
-sampling (no depth is invented between a foreground and a background pixel).
+"""A depth map of the photograph from a file the user made elsewhere (``generate --depth``): ``.exr`` ("Z"
+channel), ``.npy`` (2-D, no pickles) or a one-channel ``.png``/``.tif``/``.tiff`` (16-bit; 8-bit only for relative
+kinds; a 16-bit metric map is millimetres, the Kinect / ScanNet / TUM convention). Non-finite values, metric values
+outside [1 mm, 10 km] and non-positive disparities are holes, filled from the network's depth (:func:`valid_depth`).
+The map is cropped like the photograph and resized with nearest-neighbour sampling (:func:`fit_depth_map`).
 """
 from __future__ import annotations
 
@@ -37,14 +27,12 @@ MILLIMETRES = 1e-3
 MIN_METRIC_DEPTH = 1e-3
 """Nearest metric depth taken from a map, metres (1 mm); nearer values are holes."""
 MAX_METRIC_DEPTH = 1e4
-"""Farthest metric depth taken from a map, metres (10 km); farther values are holes, as a renderer's "no surface"
-value (Blender's 10¹⁰) or a sky's. A map with no value in range is refused: it is not metres."""
+"""Farthest metric depth taken from a map, metres (10 km); farther values ("no surface", sky) are holes."""
 
 
 def valid_depth(depth: Tensor, kind: str = "metric") -> Tensor:
-    """Mask of the pixels of a depth map that carry depth: finite, and for ``metric`` within [:data:`MIN_METRIC_DEPTH`,
-    :data:`MAX_METRIC_DEPTH`] metres, for ``inverse`` (disparity) positive; a ``relative`` value may be any finite
-    number (its scale and shift are fitted). The rest are holes, filled from the network's depth."""
+    """Mask of the pixels carrying depth: finite, and for ``metric`` within [:data:`MIN_METRIC_DEPTH`,
+    :data:`MAX_METRIC_DEPTH`] metres, for ``inverse`` positive (``relative``: any finite value)."""
     mask = torch.isfinite(depth)
     if kind == "metric":
         mask &= (depth >= MIN_METRIC_DEPTH) & (depth <= MAX_METRIC_DEPTH)
@@ -54,17 +42,12 @@ def valid_depth(depth: Tensor, kind: str = "metric") -> Tensor:
 
 
 def check_depth_values(depth: Tensor, kind: str, what: str = "depth") -> None:
-    """Check a depth map's values before any network runs: it must hold valid pixels (:func:`valid_depth`), and a
-    relative or inverse map must vary over them (its scale and shift are fitted to the network's depth).
-
-    Args:
-        depth: (H, W) the map as given (metres for ``metric``).
-        kind: "metric", "relative" or "inverse".
-        what: the argument and file, for messages (e.g. ``"--depth d.exr"``).
+    """Check a depth map (H, W) (metres for ``metric``; ``kind`` "metric", "relative" or "inverse") before any
+    network runs: it must have valid pixels (:func:`valid_depth`), and a relative/inverse map must vary over them.
 
     Raises:
-        ValueError: no valid pixel (naming the range of the values given), or a relative/inverse map that is
-            constant over its valid pixels.
+        ValueError: prefixed with ``what`` (the argument and file): no valid pixel (naming the values' range), or a
+            constant relative/inverse map.
     """
     mask = valid_depth(depth, kind)
     finite = depth[torch.isfinite(depth)]
@@ -81,22 +64,12 @@ def check_depth_values(depth: Tensor, kind: str, what: str = "depth") -> None:
 
 
 def read_depth_map(path: str | os.PathLike, kind: str = "metric", what: str = "--depth") -> np.ndarray:
-    """Read a depth map file (module docstring) as it is stored, scaled to metres for a metric 16-bit image.
-
-    Args:
-        path: the file.
-        kind: "metric", "relative" or "inverse" (:data:`diff4splat.assembly.assemble.DEPTH_KINDS`): an 8-bit image is
-        refused
-            for "metric", a 16-bit one is read as millimetres for "metric".
-        what: the argument's name for messages.
-
-    Returns:
-        (H, W) float64 array; holes as they are in the file (NaN/inf/0/negative).
+    """Read a depth map file (module docstring) as (H, W) float64 as stored (holes included), a 16-bit metric image
+    scaled to metres. ``kind``: :data:`diff4splat.assembly.assemble.DEPTH_KINDS`; ``what``: the flag in messages.
 
     Raises:
-        FileNotFoundError / ValueError: a missing or unreadable file, an unknown extension, not one channel, an 8-bit
-            image for metric depth, no usable value or a constant relative map (:func:`check_depth_values`; each
-            message names the file).
+        FileNotFoundError / ValueError: naming the file: missing or unreadable, an unknown extension, not one
+            channel, 8-bit for metric depth, or values :func:`check_depth_values` refuses.
     """
     path = check_input_file(path, what)
     suffix = path.suffix.lower()
@@ -134,16 +107,11 @@ def read_depth_map(path: str | os.PathLike, kind: str = "metric", what: str = "-
 
 
 def fit_depth_map(depth: np.ndarray, photo_shape: tuple[int, int], size: tuple[int, int]) -> tuple[Tensor, str | None]:
-    """Crop and resize a depth map to the output resolution as the photograph was (module docstring).
-
-    Args:
-        depth: (h, w) the map as read.
-        photo_shape: (H_p, W_p) the photograph's displayed size.
-        size: (H, W) the output resolution.
+    """Centre-crop and resize (nearest) a depth map (h, w) to ``size`` (H, W) as the photograph was.
 
     Returns:
-        ((H, W) float32 CPU tensor, a note saying what was resized or None when the map had the photograph's size
-        already at the output resolution).
+        ((H, W) float32 CPU tensor, a note on the resize (and on a size that is not ``photo_shape``), or None when
+        the map had the output size).
     """
     H, W = size
     h, w = depth.shape

@@ -30,21 +30,16 @@ def save_depth_exr(
     depth: Tensor | np.ndarray,  # (H, W) metres
     alpha: Tensor | np.ndarray | None = None,  # (H, W) in [0, 1]
 ) -> None:
-    """Write a depth map as a single-part scanline EXR (ZIP compression, lossless float32), atomically.
-
-    The depth goes to the standard depth channel "Z" (OpenEXR "Interpreting Deep Pixels"/technical
-    introduction: Z is distance along the camera's view axis); the optional coverage to "A".
+    """Write a depth map as a single-part scanline EXR atomically (ZIP compression, lossless float32): the depth in
+    the standard channel "Z" (distance along the view axis), the coverage, if any, in "A".
 
     Args:
-        path: output ``.exr`` file; written to a temporary ``.exr`` beside it, then renamed.
-        depth: (H, W) z-depth in metres, ≥ 0 or +inf (background); converted to float32.
-        alpha: (H, W) accumulated opacity in [0, 1], or ``None`` for no "A" channel.
+        depth: (H, W) z-depth, metres, ≥ 0 or +inf (background).
+        alpha: (H, W) accumulated opacity in [0, 1], or None for no "A" channel.
 
     Raises:
-        ValueError: naming ``depth`` (shape, NaN, negative values) or ``alpha`` (shape mismatch,
-            non-finite, outside [0, 1]).
-        OSError: naming ``path`` when the disk is full (or the quota spent), read-only or not writable
-            (:func:`~diff4splat.io.atomic.naming_os_errors`).
+        ValueError: naming ``depth`` (shape, NaN, negative) or ``alpha`` (shape, non-finite, outside [0, 1]).
+        OSError: naming ``path`` (disk full, read-only, permissions; :func:`~diff4splat.io.atomic.naming_os_errors`).
         RuntimeError: OpenEXR wrote a file that does not read back.
     """
     z = _as_float32_map("depth", depth)
@@ -84,19 +79,12 @@ _OTHER_FORMATS = ((b"\x89PNG", "PNG image"), (b"\xff\xd8\xff", "JPEG image"), (b
 def load_depth_exr(
     path: str | os.PathLike, return_alpha: bool = False
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray | None]:
-    """Read a depth map written by :func:`save_depth_exr` (or any EXR with a "Z" channel).
-
-    Args:
-        path: EXR file.
-        return_alpha: also return the "A" channel (``None`` if the file has none).
-
-    Returns:
-        depth (H, W) float32 metres, or ``(depth, alpha)`` with alpha (H, W) float32 or ``None``
-        when ``return_alpha`` is true. Half-float channels are converted to float32.
+    """The "Z" channel (H, W) float32, metres, of an EXR (:func:`save_depth_exr`'s or any), and with
+    ``return_alpha`` its "A" channel (H, W) float32 or None; half floats are converted.
 
     Raises:
         FileNotFoundError: ``path`` is not an existing file.
-        ValueError: the file is not a readable EXR or has no "Z" channel.
+        ValueError: not a readable EXR (naming the format it holds, when known) or no "Z" channel.
     """
     path = Path(path)
     if not path.is_file():

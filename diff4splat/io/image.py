@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 
 import cv2
 import numpy as np
@@ -29,7 +30,7 @@ def _check_size(size: tuple[int, int] | None) -> tuple[int, int] | None:
 
 
 def _to_unit_float(array: np.ndarray) -> np.ndarray:
-    """Integer or float image → float32 in [0, 1] (uint8 / 255, uint16 / 65535, floats checked)."""
+    """uint8 / 255, uint16 / 65535 or a float image checked to lie in [0, 1] → float32."""
     if array.dtype == np.uint8:
         return array.astype(np.float32) / 255.0
     if array.dtype == np.uint16:
@@ -46,27 +47,18 @@ def _to_unit_float(array: np.ndarray) -> np.ndarray:
 
 
 def preprocess_image(array: np.ndarray, size: tuple[int, int] | None = None) -> Tensor:
-    """Convert an in-memory RGB(A)/grey image to a float RGB tensor, centre-cropped and resized.
-
-    Steps: (1) scale to [0, 1] (uint8 / 255, uint16 / 65535, floats must already lie in [0, 1]);
-    (2) grey → RGB by repeating the channel; alpha is composited over a white background,
-    rgb·a + (1 − a), before any resampling (so transparent pixels never bleed colour);
-    (3) centre-crop to the aspect ratio width/height of ``size`` (the crop keeps the full extent
-    along the constrained axis, rounded to whole pixels); (4) resize with ``cv2.INTER_AREA`` when
-    shrinking (area averaging, no aliasing) and ``cv2.INTER_LINEAR`` when enlarging (OpenCV's
-    INTER_AREA degenerates to nearest-neighbour blocks for integer up-scaling).
+    """An in-memory image as a (height, width, 3) float32 RGB tensor in [0, 1]: scaled to [0, 1], grey repeated to
+    RGB, alpha composited over white (rgb·a + (1 − a)) before any resampling, centre-cropped to the aspect ratio of
+    ``size`` (:func:`~diff4splat.cameras.intrinsics.center_crop_box`) and resized with ``cv2.INTER_AREA`` when
+    shrinking, ``cv2.INTER_LINEAR`` when enlarging (INTER_AREA gives blocks there).
 
     Args:
-        array: (H, W), (H, W, 1) grey, (H, W, 2) grey+alpha, (H, W, 3) RGB or (H, W, 4) RGBA;
-            uint8, uint16 or float in [0, 1]. Channel order is RGB (not OpenCV's BGR).
-        size: (height, width) of the output in pixels; ``None`` keeps the input size (no crop).
-
-    Returns:
-        (height, width, 3) float32 tensor in [0, 1], RGB.
+        array: (H, W), (H, W, 1) grey, (H, W, 2) grey+alpha, (H, W, 3) RGB or (H, W, 4) RGBA; uint8, uint16 or
+            float in [0, 1].
+        size: (height, width) of the output in pixels; None keeps the input size (no crop).
 
     Raises:
-        ValueError: bad ``size``, a shape or dtype listed as unsupported above, an empty image,
-            or non-finite / out-of-range float values.
+        ValueError: bad ``size``, another shape or dtype, an empty image, non-finite or out-of-range floats.
     """
     size = _check_size(size)
     array = np.asarray(array)
@@ -93,30 +85,29 @@ def preprocess_image(array: np.ndarray, size: tuple[int, int] | None = None) -> 
 
 
 def exif_orientation(data: bytes) -> int:
-    """The EXIF Orientation tag (0x0112) of an encoded JPEG (APP1 ``Exif``) or PNG (``eXIf`` chunk).
-
-    Args:
-        data: the encoded file's bytes.
-
-    Returns:
-        1…8 as in the EXIF 2.3 specification (1 = stored as displayed); 1 when the file is another
-        format, carries no EXIF block or no Orientation tag, or the value is out of range.
-    """
+    """The EXIF Orientation tag (0x0112, 1…8, 1 = stored as displayed) of an encoded JPEG (APP1 ``Exif``) or PNG
+    (``eXIf`` chunk); 1 for another format, no tag, or a value out of range."""
     tiff = _exif_tiff_block(data)
     if tiff is None or len(tiff) < 8 or tiff[:2] not in (b"II", b"MM"):
         return 1
     order = "little" if tiff[:2] == b"II" else "big"
-    ifd = int.from_bytes(tiff[4:8], order)
-    if ifd + 2 > len(tiff):
-        return 1
-    for i in range(int.from_bytes(tiff[ifd : ifd + 2], order)):
-        entry = tiff[ifd + 2 + 12 * i : ifd + 14 + 12 * i]
-        if len(entry) < 12:
-            break
+    for entry in _ifd_entries(tiff, order):
         if int.from_bytes(entry[:2], order) == 0x0112:  # type SHORT: the value sits in the first 2 bytes
             value = int.from_bytes(entry[8:10], order)
             return value if 1 <= value <= 8 else 1
     return 1
+
+
+def _ifd_entries(tiff: bytes, order: str) -> Iterator[bytes]:
+    """The 12-byte entries of the first IFD of a TIFF-structured block, up to where it is truncated."""
+    ifd = int.from_bytes(tiff[4:8], order)
+    if ifd + 2 > len(tiff):
+        return
+    for i in range(int.from_bytes(tiff[ifd : ifd + 2], order)):
+        entry = tiff[ifd + 2 + 12 * i : ifd + 14 + 12 * i]
+        if len(entry) < 12:
+            return
+        yield entry
 
 
 def _exif_tiff_block(data: bytes) -> bytes | None:
@@ -149,18 +140,10 @@ _JPEG_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}  # start-of-frame 
 
 
 def header_size(data: bytes) -> tuple[int, int] | None:
-    """(width, height) in pixels as stored in an encoded image's header, read without decoding.
-
-    Reads the PNG ``IHDR`` chunk, the first JPEG start-of-frame segment (SOF0…SOF15), the BMP info
-    header, the WebP ``VP8 ``/``VP8L``/``VP8X`` chunk, or the TIFF first IFD (tags 256/257): the
-    sizes a decoder would allocate. Stored size, before EXIF orientation (the pixel count is the same).
-
-    Args:
-        data: the encoded file's bytes (a prefix suffices for all but JPEGs with large APP segments).
-
-    Returns:
-        (width, height), or None when the format is another one or the header is truncated.
-    """
+    """(width, height) in pixels as stored (before EXIF orientation) in an encoded image's header, without decoding:
+    PNG ``IHDR``, the first JPEG start-of-frame segment, the BMP info header, WebP ``VP8 ``/``VP8L``/``VP8X``, TIFF's
+    first IFD (tags 256/257). None for another format or a truncated header. A prefix of the file suffices (but for
+    JPEGs with large APP segments)."""
     if data[:8] == b"\x89PNG\r\n\x1a\n":
         if len(data) >= 24 and data[12:16] == b"IHDR":
             return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
@@ -200,14 +183,8 @@ def header_size(data: bytes) -> tuple[int, int] | None:
         return None
     if data[:4] in (b"II*\x00", b"MM\x00*") and len(data) >= 8:
         order = "little" if data[:2] == b"II" else "big"
-        ifd = int.from_bytes(data[4:8], order)
-        if ifd + 2 > len(data):
-            return None
         size: dict[int, int] = {}
-        for i in range(int.from_bytes(data[ifd : ifd + 2], order)):
-            entry = data[ifd + 2 + 12 * i : ifd + 14 + 12 * i]
-            if len(entry) < 12:
-                break
+        for entry in _ifd_entries(data, order):
             tag, kind = int.from_bytes(entry[:2], order), int.from_bytes(entry[2:4], order)
             if tag in (256, 257):
                 size[tag] = int.from_bytes(entry[8:10] if kind == 3 else entry[8:12], order)
@@ -216,21 +193,14 @@ def header_size(data: bytes) -> tuple[int, int] | None:
 
 
 def check_image_pixels(path: str | os.PathLike, width: int, height: int) -> None:
-    """Raise :class:`diff4splat.utils.limits.LimitError` if ``width`` × ``height`` exceeds the ``image_pixels``
-    limit."""
+    """LimitError if ``width`` × ``height`` exceeds the ``image_pixels`` limit."""
     check_limit("image_pixels", width * height, f"image {path}: {width}×{height} =")
 
 
 def apply_orientation(array: np.ndarray, orientation: int) -> np.ndarray:
-    """Transform a stored image (H, W, ...) to its displayed orientation (EXIF Orientation 1…8).
-
-    2: mirror left-right; 3: rotate 180°; 4: mirror top-bottom; 5: transpose; 6: rotate 90° clockwise;
-    7: transverse (transpose, then rotate 180°); 8: rotate 90° counter-clockwise. Orientations 5…8
-    swap H and W.
-
-    Raises:
-        ValueError: ``orientation`` not in 1…8.
-    """
+    """A stored image (H, W, ...) in its displayed orientation (EXIF 1…8: 2 mirror left-right, 3 rotate 180°,
+    4 mirror top-bottom, 5 transpose, 6 rotate 90° clockwise, 7 transverse, 8 rotate 90° counter-clockwise);
+    ValueError for another ``orientation``."""
     if orientation not in range(1, 9):
         raise ValueError(f"orientation must be an EXIF orientation in 1…8, got {orientation!r}")
     transposed = np.swapaxes(array, 0, 1)
@@ -240,29 +210,15 @@ def apply_orientation(array: np.ndarray, orientation: int) -> np.ndarray:
 
 
 def read_image(path: str | os.PathLike) -> np.ndarray:
-    """Decode an image file once, as displayed: RGB(A) or grey, EXIF orientation applied.
-
-    Any format OpenCV decodes (PNG, JPEG, TIFF, WebP, BMP, …) in 8 or 16 bits, grey, RGB or RGBA.
-    The file is decoded once with ``IMREAD_UNCHANGED`` (which keeps alpha and 16 bits but ignores
-    EXIF orientation); the EXIF Orientation tag of a JPEG or PNG (:func:`exif_orientation`) is then
-    applied (:func:`apply_orientation`), so ``array.shape[:2]`` is the displayed (H, W) — the size
-    that camera intrinsics normalised by the photograph (RealEstate10K) refer to.
-
-    Args:
-        path: image file.
+    """Decode an image file once (OpenCV ``IMREAD_UNCHANGED``: PNG, JPEG, TIFF, WebP, BMP, …) with its EXIF orientation
+    applied (:func:`exif_orientation`), so ``shape[:2]`` is the displayed (H, W).
 
     Returns:
-        (H, W) grey, (H, W, 3) RGB or (H, W, 4) RGBA array (channel order RGB, not OpenCV's BGR),
-        uint8 or uint16 (or the float dtype of a float TIFF/EXR).
-
-    The pixel count is checked against the ``image_pixels`` limit (:mod:`diff4splat.utils.limits`) from the
-    header (:func:`header_size`) before decoding; formats whose header is not parsed are checked after.
+        (H, W) grey, (H, W, 3) RGB or (H, W, 4) RGBA, uint8 or uint16 (or a float TIFF/EXR's dtype).
 
     Raises:
-        FileNotFoundError: nothing exists at ``path``.
-        ValueError: ``path`` is a folder, FIFO or symlink loop (:func:`diff4splat.io.inputs.check_input_file`),
-            the file cannot be decoded as an image, or it has more pixels than the ``image_pixels`` limit
-            (:class:`diff4splat.utils.limits.LimitError`).
+        FileNotFoundError / ValueError: not a regular file (:func:`check_input_file`); not decodable; more pixels than
+            the ``image_pixels`` limit (LimitError; checked from the header before decoding where it is parsed).
     """
     path = check_input_file(path, "image")
     data = np.fromfile(path, dtype=np.uint8)
@@ -283,20 +239,7 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
 
 
 def load_image(path: str | os.PathLike, size: tuple[int, int] | None = None) -> Tensor:
-    """Read an image file (:func:`read_image`) and preprocess it (:func:`preprocess_image`).
-
-    Alpha is composited over white; the EXIF orientation is applied before the centre crop.
-
-    Args:
-        path: image file.
-        size: (height, width) in pixels, or ``None`` to keep the file's (displayed) size.
-
-    Returns:
-        (height, width, 3) float32 tensor in [0, 1], RGB.
-
-    Raises:
-        FileNotFoundError: ``path`` is not an existing file.
-        ValueError: the file cannot be decoded as an image, or a bad ``size``.
-    """
+    """:func:`preprocess_image` of :func:`read_image`: (height, width, 3) float32 RGB in [0, 1] (``size`` None: the
+    displayed size). Raises as those two."""
     size = _check_size(size)
     return preprocess_image(read_image(path), size)

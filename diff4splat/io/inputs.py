@@ -10,20 +10,11 @@ __all__ = ["check_input_file"]
 
 
 def check_input_file(path: str | os.PathLike, what: str) -> Path:
-    """``Path(path)`` if it is a regular file (or a link to one), else an error saying what it is.
-
-    Args:
-        path: the path the user gave.
-        what: its name as the user knows it, e.g. ``"image"`` or ``"--cameras"``.
-
-    Returns:
-        ``Path(path)``.
+    """``Path(path)`` if it is a regular file (or a link to one); ``what`` names it in messages (``"--cameras"``).
 
     Raises:
-        FileNotFoundError: nothing exists at ``path`` (``"<what>: <path> does not exist"``), or it is a
-            dangling symlink (named as such).
-        ValueError: ``path`` is a folder, a FIFO (named pipe), a socket, a device or a symlink loop
-            (``"<what>: <path> is a folder, not a file"`` …).
+        FileNotFoundError: nothing exists at ``path`` (``"<what>: <path> does not exist"``), or a dangling symlink.
+        ValueError: a folder, FIFO, socket, device or symlink loop (``"<what>: <path> is a folder, not a file"``).
     """
     p = Path(path)
     try:

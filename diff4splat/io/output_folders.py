@@ -1,29 +1,11 @@
-"""The output-folder policy: one implementation for every command that writes a folder.
-
-A folder is written to a temporary sibling and renamed into place, so it appears complete or not at all.
-The rules (README, "Output folders"):
-
-* ``out`` is checked before any work (:func:`check_output_dir`): not ``""``/``.``, not a file, its parent
-  exists and is writable, its name fits the file system (≤ 255 bytes; the temporary name is shortened
-  with a hash when needed, so any legal name works).
-* An existing folder is replaced only if it is empty or an earlier output of the same kind (the marker
-  file :data:`MARKER` this module writes into every folder) holding nothing but what that output wrote (the
-  marker lists its files: a note or result a user added beside them makes the folder theirs; folders written
-  before the list was recorded are checked by kind alone). ``overwrite=True`` also allows another
-  kind or a folder without the marker, but a folder that holds inputs is never replaced: an input file
-  or folder, the current directory, the home directory, a filesystem root, diff4splat's own installed
-  packages (:data:`INSTALLED_PACKAGES`: their code and the shipped weights, the default checkpoints that no
-  ``--checkpoint`` names) or an ancestor of any of them.
-* A symlink ``out`` is followed: the folder it points to is replaced and the link is kept.
-* The temporary folder ``.<name>.<pid>.<random>.tmp`` is removed when the body raises, on SIGINT
-  (KeyboardInterrupt) and on SIGTERM (exit status 143); one left by a killed run (SIGKILL) is removed by
-  the next run on the same ``out`` once its owner pid is dead (never a live process's).
-* Concurrent writers of one ``out`` are serialised by ``fcntl.flock`` on ``.<name>.lock`` beside it,
-  held only for the check-and-rename at the end; the lock file is removed on release.
-* Folders and files follow the umask (``os.mkdir``, not ``mkdtemp``'s 0700; files a library created with its own
-  mode, such as safetensors' 0600, are given the umask's: :func:`~diff4splat.io.atomic.follow_umask`).
-* Write errors name the file as it will be under ``out`` (``out/scene.ply: No space left on device``), never
-  the temporary folder (:func:`~diff4splat.io.atomic.naming_os_errors`).
+"""The output-folder policy, one implementation for every command that writes a folder (README, "Output folders"):
+``out`` is checked before any work (:func:`check_output_dir`), the folder is written into a temporary sibling
+``.<name>.<pid>.<random>.tmp`` and renamed into place (:func:`output_dir`), and an existing folder is replaced only if
+it is empty or an earlier output of the same kind holding only the files its :data:`MARKER` lists (or with
+``overwrite``), never if it holds inputs. A symlink ``out`` is followed. Temporaries are removed on error, SIGINT
+and SIGTERM (exit 143), and those of killed runs by the next run; concurrent writers are serialised by ``flock``
+on ``.<name>.lock``. Files follow the umask, and write errors name the file under ``out``
+(:mod:`diff4splat.io.atomic`).
 """
 from __future__ import annotations
 
@@ -104,8 +86,8 @@ def read_marker(folder: Path) -> str | None:
 
 
 def _files_under(folder: Path) -> list[str]:
-    """Every file, link and empty folder under ``folder`` but the marker, as sorted POSIX paths relative to it
-    (an empty folder ends with "/"; links are listed, never followed)."""
+    """Sorted POSIX paths of every file, link (not followed) and empty folder (ending "/") under ``folder``, but
+    the marker."""
     found, top = [], os.fspath(folder)
     for root, dirs, files in os.walk(folder):
         rel = Path(root).relative_to(folder)
@@ -118,8 +100,7 @@ def _files_under(folder: Path) -> list[str]:
 
 
 def _foreign_file(folder: Path, marker: dict) -> str | None:
-    """The first path under ``folder`` that its marker's ``files`` does not list, nor holds as a folder (None:
-    all listed, or a marker without a list)."""
+    """The first path under ``folder`` its marker's ``files`` does not list (None: all listed, or no list)."""
     listed = marker.get("files")
     if not isinstance(listed, list):
         return None
@@ -163,8 +144,7 @@ def _holds_inputs(target: Path, inputs) -> str | None:
 
 def _check_existing(label: str, target: Path, kind: str, overwrite: bool, replace: bool,
                     overwrite_flag: str | None, replace_flag: str | None) -> None:
-    """Raise unless the existing folder ``target`` may be replaced (module docstring); a refusal names the
-    caller's flag that would allow the replacement, and only when that flag would."""
+    """Raise unless the existing folder ``target`` may be replaced; a refusal names the flag that would lift it."""
     if not target.is_dir():
         raise _ExistingFolderError(f"{label} is a file, not a folder")
     try:
@@ -200,24 +180,20 @@ def check_output_dir(out: str | os.PathLike, *, inputs: Iterable[str | os.PathLi
 
     Args:
         out: the output folder as the user gave it.
-        inputs: files/folders the command reads (None entries are skipped); ``out`` may not be one of
-            them or an ancestor of one.
+        inputs: files/folders the command reads (None skipped); ``out`` may not be or contain one.
         overwrite: also replace a folder without the marker or of another kind (never one holding inputs).
         kind: what the command writes ("generate", "onnx", "model", "checkpoint", "scene", …).
-        replace: False → an existing ``out`` is an error (``FileExistsError``).
-        parents: allow missing parent folders (library writers create them; the CLI asks for an
-            existing parent). The nearest existing ancestor must then be a writable folder.
-        overwrite_flag: the caller's option that sets ``overwrite``, named in a refusal it would lift
-            (None: the caller has none).
-        replace_flag: the caller's option that sets ``replace``, named likewise (None: none).
+        replace: False → an existing ``out`` is an error.
+        parents: allow missing parents (the nearest existing ancestor must be a writable folder).
+        overwrite_flag, replace_flag: the caller's options that set ``overwrite``/``replace``, named in a refusal
+            they would lift (None: the caller has none).
 
     Returns:
-        The folder that will be written: ``out`` made absolute with symlinks followed.
+        ``out`` made absolute with symlinks followed.
 
     Raises:
-        OutputDirError: (a ValueError) ``out`` is empty, ".", a file, a symlink loop or dangling link,
-            holds inputs, is a non-output folder, has a missing/non-folder/unwritable parent or a name
-            longer than the file system allows.
+        OutputDirError: (a ValueError) ``out`` is empty, ".", a file, a symlink loop or dangling link, holds inputs,
+            is a non-output folder, has a missing/non-folder/unwritable parent or too long a name.
         FileExistsError: ``out`` exists and ``replace`` is false.
     """
     raw = os.fspath(out)
@@ -279,13 +255,7 @@ def _pid_alive(pid: int) -> bool:
 
 
 def remove_stale_temps(target: str | os.PathLike) -> list[Path]:
-    """Remove the temporary/aside folders of ``target`` left by killed runs (owner pid dead).
-
-    Matches ``.<name>.<pid>.<8 hex>.tmp`` / ``.old`` beside ``target``; a live owner's folder is kept.
-
-    Returns:
-        The removed paths.
-    """
+    """Remove ``.<name>.<pid>.<8 hex>.tmp``/``.old`` folders beside ``target`` whose owner pid is dead; returns them."""
     target = Path(target)
     pattern = re.compile(rf"^\.{re.escape(_stem(target.name))}\.(\d+)\.[0-9a-f]{{8}}\.(tmp|old)$")
     removed = []
@@ -335,10 +305,7 @@ def _on_sigterm(signum, frame):
 
 @contextmanager
 def _sigterm_cleans_up() -> Iterator[None]:
-    """While the body runs, SIGTERM raises SystemExit(143) (so ``finally`` blocks remove temporaries).
-
-    Installed only in the main thread and only over the default handler (a program's own is kept).
-    """
+    """While the body runs, SIGTERM raises SystemExit(143); only in the main thread, over the default handler."""
     if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) != signal.SIG_DFL:
         yield
         return
@@ -353,23 +320,15 @@ def _sigterm_cleans_up() -> Iterator[None]:
 def output_dir(out: str | os.PathLike, *, kind: str, inputs: Iterable[str | os.PathLike | None] = (),
                overwrite: bool = False, replace: bool = True, parents: bool = False,
                overwrite_flag: str | None = "--overwrite", replace_flag: str | None = None) -> Iterator[Path]:
-    """Yield a temporary folder beside ``out``; on success it replaces ``out`` (module docstring policy).
+    """Yield a temporary folder beside ``out``; after the body the :data:`MARKER` is written and the folder replaces
+    ``out``. If the body raises (or SIGINT/SIGTERM arrive) it is removed and ``out`` is left as it was.
 
-    The marker :data:`MARKER` is written into the folder after the body. If the body raises (or SIGINT/
-    SIGTERM arrive) the temporary folder is removed and ``out`` is left as it was.
-
-    Args:
-        out, inputs, overwrite, kind, replace, parents, overwrite_flag, replace_flag: as :func:`check_output_dir`
-            (checked on enter, and again under the lock just before the rename); missing parents are created if
-            ``parents``.
-
-    Yields:
-        The temporary folder (Path) to write into.
+    Arguments are :func:`check_output_dir`'s, checked on enter and again under the lock before the rename; missing
+    parents are created with ``parents``.
 
     Raises:
         OutputDirError, FileExistsError: as :func:`check_output_dir`.
-        OSError: writing failed (disk full, read-only, permissions, …), naming the file as it will be under
-            ``out`` (``out/scene.ply``), or ``out`` itself when the error named no file
+        OSError: writing failed, naming the file as it will be under ``out``
             (:func:`~diff4splat.io.atomic.naming_os_errors`).
     """
     inputs = list(inputs)
@@ -398,12 +357,8 @@ def output_dir(out: str | os.PathLike, *, kind: str, inputs: Iterable[str | os.P
 
 
 def _check_consistent(out: str | os.PathLike, **kwargs) -> Path:
-    """:func:`check_output_dir`, with a refusal about the existing folder confirmed under the writers' lock.
-
-    The check on enter runs unlocked (a writer holds the lock only while it swaps), so it can see another
-    writer's swap half done (``out`` renamed aside, the new folder not yet in place) and refuse a folder that
-    is in fact an earlier output. Under the lock no swap is in progress; a real refusal is raised from there.
-    """
+    """:func:`check_output_dir`; a refusal about the existing folder is confirmed under the writers' lock (unlocked,
+    another writer's swap may be seen half done)."""
     try:
         return check_output_dir(out, **kwargs)
     except _ExistingFolderError:

@@ -5,17 +5,10 @@ Vertex properties, all float32, binary little-endian, in this order::
     x y z nx ny nz f_dc_0 f_dc_1 f_dc_2 f_rest_0 … f_rest_{3(K−1)−1}
     opacity scale_0 scale_1 scale_2 rot_0 rot_1 rot_2 rot_3
 
-- f_dc_c = sh[:, 0, c]; f_rest is channel-major: the K−1 higher-order coefficients of R, then of G,
-  then of B, i.e. f_rest_{c·(K−1)+k−1} = sh[:, k, c] (INRIA stores features_rest transposed to
-  (N, 3, K−1) before flattening).
-- opacity = logit(clamp(o, 1e-6, 1 − 1e-6)) — opacities of exactly 0 or 1 are clamped first so the
-  logit stays finite; loading applies the sigmoid.
-- scale_i = log(s_i) (scales are stored in log space); loading applies exp.
-- rot = the quaternion wxyz as stored (unnormalised; normalised on use); normals are zero.
-
-Writing needs only numpy (structured arrays); the reader parses the header itself and accepts any
-binary little-endian PLY whose vertex element has scalar properties with these names (extra
-properties are ignored, f_rest_* are ordered by their index as INRIA's loader does).
+f_dc_c = sh[:, 0, c]; f_rest is channel-major, f_rest_{c·(K−1)+k−1} = sh[:, k, c] (INRIA transposes features_rest
+to (N, 3, K−1)); opacity = logit(clamp(o, 1e-6, 1 − 1e-6)); scale_i = log(s_i); rot = the quaternion wxyz as stored;
+normals are zero. The reader accepts any binary little-endian PLY whose vertex element has scalar properties with
+these names (others ignored, f_rest_* ordered by index as INRIA's loader does).
 """
 from __future__ import annotations
 
@@ -49,8 +42,7 @@ def ply_property_names(sh_coeffs: int) -> list[str]:
 
 
 def _ply_parts(gaussians: Gaussians) -> tuple[bytes, np.ndarray]:
-    """The PLY header and the vertex records: an (N, P) C-contiguous little-endian float32 array, the properties
-    in file order (module docstring). The logit and log columns are computed in float64 and rounded once."""
+    """The PLY header and the (N, P) little-endian float32 vertex records in file order (logit and log in float64)."""
     gaussians.validate()
     g = gaussians.detach().to("cpu")  # device: the records are a CPU array
     n, k = g.num_gaussians, g.sh.shape[1]
@@ -73,27 +65,14 @@ def _ply_parts(gaussians: Gaussians) -> tuple[bytes, np.ndarray]:
 
 
 def ply_bytes(gaussians: Gaussians) -> bytes:
-    """The whole binary PLY file (module docstring) of N activated Gaussians, as bytes (what :func:`save_ply`
-    writes; the viewer embeds it).
-
-    Raises:
-        ValueError: ``gaussians`` fails :meth:`Gaussians.validate`.
-    """
+    """The binary PLY file :func:`save_ply` writes, as bytes; ValueError if ``gaussians`` fails validation."""
     header, values = _ply_parts(gaussians)
     return header + values.tobytes()
 
 
 def save_ply(path: str | os.PathLike, gaussians: Gaussians) -> None:
-    """Write Gaussians to a binary little-endian PLY in the INRIA layout (module docstring), atomically.
-
-    Args:
-        path: output file (``.ply``); written to a temporary file beside it, then renamed.
-        gaussians: N activated Gaussians (scales > 0 metres, opacities in [0, 1], SH (N, K, 3)).
-            Tensors are detached and moved to the CPU; values are stored as float32.
-
-    Raises:
-        ValueError: ``gaussians`` fails :meth:`Gaussians.validate`.
-    """
+    """Write N activated Gaussians (scales > 0 metres, opacities in [0, 1], SH (N, K, 3); any device) as an INRIA
+    binary PLY (module docstring) of float32, atomically; ValueError if they fail :meth:`Gaussians.validate`."""
     header, values = _ply_parts(gaussians)
     with atomic_output_path(path) as tmp:
         with open(tmp, "wb") as f:
@@ -102,8 +81,7 @@ def save_ply(path: str | os.PathLike, gaussians: Gaussians) -> None:
 
 
 _MAX_HEADER_LINE = 1024
-"""Bytes a PLY header line may take (the longest of the INRIA layout is about 30): a binary file mistaken for a
-PLY must not be read whole looking for a line break."""
+"""Bytes a PLY header line may take, so a binary file is not read whole looking for a line break."""
 _MAX_HEADER_LINES = 4096
 """Lines a PLY header may take (the INRIA layout at SH degree 3 has 65)."""
 
@@ -153,23 +131,15 @@ def _read_header(f, path: Path) -> tuple[int, np.dtype]:
 
 
 def load_ply(path: str | os.PathLike) -> Gaussians:
-    """Read Gaussians from a binary PLY in the INRIA layout (inverse of :func:`save_ply`).
-
-    Args:
-        path: PLY file with vertex properties x y z f_dc_0..2 [f_rest_*] opacity scale_0..2 rot_0..3
-            (any scalar type; others ignored).
-
-    Returns:
-        :class:`Gaussians` in float32: means (N, 3) metres, quats (N, 4) wxyz as stored,
-        scales = exp(scale_*) (N, 3), opacities = sigmoid(opacity) (N,), sh (N, K, 3) with
-        K = 1 + (number of f_rest_*)/3.
+    """Read Gaussians from a binary PLY in the INRIA layout (inverse of :func:`save_ply`; properties of any scalar
+    type, others ignored) as float32 :class:`Gaussians`: means (N, 3) metres, quats (N, 4) wxyz as stored,
+    scales = exp(scale_*), opacities = sigmoid(opacity), sh (N, K, 3), K = 1 + (number of f_rest_*)/3.
 
     Raises:
         FileNotFoundError: ``path`` is not an existing file.
-        ValueError: every message starts with ``path``: not a binary little-endian PLY (a header line over
-            1 KB, no ``end_header``), a required property missing, a number of f_rest_* that is not 3·(K−1) for
-            K ∈ {1, 4, 9, 16}, truncated data, or values failing :meth:`Gaussians.validate` (NaN/inf, a scale that
-            over- or underflows float32, a zero quaternion).
+        ValueError: starting with ``path``: not a binary little-endian PLY (a header line over 1 KB, no
+            ``end_header``), a required property missing, f_rest_* not 3·(K−1) for K ∈ {1, 4, 9, 16}, truncated
+            data, or values failing :meth:`Gaussians.validate`.
     """
     path = Path(path)
     if not path.is_file():

@@ -1,24 +1,7 @@
-"""The scene folder: the one home of the output folder of ``generate``, ``fit`` and ``render`` (docs/DESIGN.md,
-"Output folder of generate"): its layout (:data:`LAYOUT_FILES`, :func:`is_layout_file`), writing, atomically
-(:func:`write_scene_folder`; the folder policy is :mod:`diff4splat.io.output_folders`'s), the fields of ``meta.json``
-every folder shares (:func:`scene_meta`, :func:`meta_background`, :func:`meta_eps2d`), and reading it back as
-input, every file checked (:func:`load_output_scene`, :func:`load_scene_folder`, :func:`scene_depth`)::
-
-    scene.ply           canonical Gaussians, INRIA layout
-    deformation.npz     times (T,), d_means (T,M,3), d_quats (T,M,4), d_scales (T,M,3) (absent if static),
-                        t_means (M,), t_scales (M,) (4D temporal support, when present); no file if neither
-    frames/0000.ply …   the Gaussians deformed to each frame's time (not with generate --no-frame-plys, nor for a
-                        scene that does not change with time: every frame would be scene.ply)
-    rgb/0000.png …      the render along the camera path, 8-bit lossless
-    video.mp4           RGB along the camera path
-    depth/0000.exr …    float32 expected depth "Z" (metres) and coverage "A"
-    cameras.json        Ks, viewmats, width, height, times
-    viewer.html         the interactive 4D viewer, self-contained (diff4splat.io.viewer_page)
-    meta.json           model, seed, steps, timings, counts, "static", "background", "eps2d", "fps"
-    field.safetensors   (``fit`` only) the HexPlane field;  metrics.json (``fit`` only)
-
-A ``render`` output holds rgb/, video.mp4, depth/, cameras.json, viewer.html and meta.json of the same layout
-(:func:`is_layout_file` names every file of it; :func:`write_scene_folder` with ``with_scene=False``).
+"""The output folder of ``generate``, ``fit`` and ``render``: the names of its files (:data:`LAYOUT_FILES`,
+:data:`LAYOUT_FRAMES`), writing it atomically (:func:`write_scene_folder`), the ``meta.json`` fields every folder
+shares (:func:`scene_meta`) and reading it back as untrusted input (:func:`load_scene_folder`). The layout is listed
+in docs/DESIGN.md, "Output folder of generate"; the folder policy is :mod:`diff4splat.io.output_folders`'s.
 """
 from __future__ import annotations
 
@@ -94,8 +77,7 @@ def meta_background(meta: dict) -> tuple[float, float, float]:
 
 
 def meta_eps2d(meta: dict) -> float:
-    """An output folder's meta.json ``eps2d`` (the screen-space dilation, pixels², its scene is rendered with: 0.1
-    for a ``generate`` scene with a photo layer, :mod:`diff4splat.assembly.photo`), else
+    """An output folder's meta.json ``eps2d`` (screen-space dilation, pixels², in [0, 10]), else
     :data:`~diff4splat.render.settings.EPS2D`."""
     eps = meta.get("eps2d")
     if isinstance(eps, (int, float)) and not isinstance(eps, bool) and 0.0 <= eps <= 10.0:
@@ -106,10 +88,9 @@ def meta_eps2d(meta: dict) -> float:
 def scene_meta(scene: DynamicGaussians, cameras: CameraPath, *, fps: float | None,
                background: Iterable[float] = BACKGROUND, eps2d: float = EPS2D,
                versions: dict | None = None) -> dict:
-    """The fields of ``meta.json`` that every output folder (generate, fit, render) writes, built here once:
-    ``frames``, ``width``, ``height`` (of ``cameras``, the path rendered), ``fps``, ``static``, ``num_gaussians``,
-    ``background`` (RGB in [0, 1], :func:`meta_background` reads it), ``eps2d`` (pixels², :func:`meta_eps2d`) and
-    ``versions`` (diff4splat, torch, python, plus ``versions``). Each command adds its own settings."""
+    """The ``meta.json`` fields every output folder writes: frames, width, height (of ``cameras``), fps, static,
+    num_gaussians, background (RGB in [0, 1]), eps2d (pixels²) and versions (diff4splat, torch, python, plus
+    ``versions``). Each command adds its own settings."""
     return {
         "frames": len(cameras),
         "width": cameras.width,
@@ -125,19 +106,10 @@ def scene_meta(scene: DynamicGaussians, cameras: CameraPath, *, fps: float | Non
 
 
 def fill_empty_depth(depths: Tensor, alphas: Tensor, fallback: float) -> Tensor:
-    """Give pixels without geometry the far distance of the scene, so every depth is finite and > 0.
+    """(T, H, W) depth, metres, finite and > 0: pixels with alpha < ALPHA_MIN (1/255) get the largest depth of any
+    covered pixel on the path, or ``fallback`` metres if none is covered (the EXR's "A" channel keeps the coverage).
 
-    Empty pixels (alpha < :data:`~diff4splat.utils.constants.ALPHA_MIN` = 1/255) get the largest depth rendered
-    anywhere on the path (the scene's far bound along these views), or ``fallback`` metres if no pixel is
-    covered; the "A" channel of the EXR keeps the coverage so users can mask them.
-
-    Args:
-        depths: (T, H, W) expected depth, metres (0 where empty).
-        alphas: (T, H, W) coverage in [0, 1].
-        fallback: metres > 0.
-
-    Returns:
-        (T, H, W) depth, metres, finite and > 0.
+    ``depths``: (T, H, W) metres, 0 where empty; ``alphas``: (T, H, W) coverage in [0, 1]; ``fallback`` > 0.
     """
     covered = alphas >= ALPHA_MIN
     far = float(depths[covered].max()) if bool(covered.any()) else float(fallback)
@@ -154,9 +126,7 @@ DEFORMATION_ARRAYS = tuple(_SHAPES)
 _NPZ_ERRORS = (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, zlib.error,
                NotImplementedError,  # zipfile's error for a compression method it does not support: not a stub
                RuntimeError, ValueError, KeyError, OSError)
-"""What zipfile and numpy's header parser raise on a corrupt archive or member (not a zip file, a bad CRC, a
-truncated member, an unsupported compression or encryption, a malformed ``.npy`` header)."""
-
+"""What zipfile and numpy's ``.npy`` header parser raise on a corrupt archive or member."""
 
 def _zip_call(path: Path, what: str, fn: Callable, *args):
     """``fn(*args)``, its failures on a corrupt archive as one ``ValueError`` starting with ``path``."""
@@ -167,11 +137,11 @@ def _zip_call(path: Path, what: str, fn: Callable, *args):
 
 
 def save_deformation(path: str | os.PathLike, scene: DynamicGaussians) -> None:
-    """Write ``deformation.npz``: float32 times, d_means, d_quats, d_scales when the scene deforms and
-    t_means (M,), t_scales (M,) (clip time) when it has temporal support.
+    """Write ``deformation.npz`` atomically: float32 times, d_means, d_quats, d_scales when the scene deforms, and
+    t_means (M,), t_scales (M,) when it has temporal support.
 
     Raises:
-        ValueError: the scene has neither a deformation nor temporal support (nothing to write).
+        ValueError: the scene has neither (nothing to write).
     """
     if not scene.changes_with_time:
         raise ValueError("a static scene without temporal support has no deformation to save")
@@ -193,8 +163,8 @@ def _npy_header(f) -> tuple[tuple[int, ...], bool, np.dtype]:
 
 
 def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, path: Path, dims: dict[str, int]) -> np.ndarray:
-    """One array of ``deformation.npz`` as float32: its header checked (a real floating-point dtype, the shape of
-    :data:`_SHAPES` with the sizes in ``dims``, where K and M are bound on first sight) before its data is read."""
+    """One array of ``deformation.npz`` as float32, its header (floating dtype, :data:`_SHAPES` with K, M bound in
+    ``dims`` on first sight) checked before its data is read."""
     key = info.filename[:-len(".npy")]
     corrupt = f"'{key}' is not a readable .npy array"
     with _zip_call(path, corrupt, zf.open, info) as f:
@@ -218,27 +188,19 @@ def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, path: Path, dims: d
 
 
 def load_deformation(path: str | os.PathLike, num_gaussians: int | None = None) -> dict[str, np.ndarray]:
-    """Read ``deformation.npz`` → float32 numpy arrays {"times", "d_means", "d_quats", "d_scales"} and/or
-    {"t_means", "t_scales"}, whichever the file holds (keyword arguments of ``DynamicGaussians``).
-
-    The archive is read with :mod:`zipfile` and numpy's ``.npy`` header parser, never unpickling anything; each
-    array's dtype and shape are checked from its header before its data is read.
+    """Read ``deformation.npz`` → float32 arrays {"times", "d_means", "d_quats", "d_scales"} and/or
+    {"t_means", "t_scales"} (``DynamicGaussians`` keyword arguments), with :mod:`zipfile` and numpy's ``.npy``
+    header parser (never unpickling); each array's dtype and shape are checked before its data is read.
 
     Args:
-        path: the file.
-        num_gaussians: M, the Gaussian count of the scene the file belongs to (``scene.ply``), or None to take
-            it from the file.
+        num_gaussians: M of the scene's ``scene.ply``, or None to take it from the file.
 
     Raises:
-        FileNotFoundError / ValueError: ``path`` is missing or not a regular file
-            (:func:`diff4splat.io.inputs.check_input_file`).
-        ValueError: every message starts with ``path``: not a zip archive (random bytes, a truncated file), a
-            corrupt member, an entry that is not one of the six arrays above, a partial set of either group, an
-            array that is not floating-point (pickled objects included) or of another shape than
-            times (K,), d_means (K, M, 3), d_quats (K, M, 4), d_scales (K, M, 3), t_means (M,), t_scales (M,)
-            (one K, M = ``num_gaussians``); K above the ``frames`` limit
-            (:class:`~diff4splat.utils.limits.LimitError`). Values (finite, times increasing) are checked by
-            ``DynamicGaussians``.
+        FileNotFoundError / ValueError: ``path`` missing or not a regular file (:func:`check_input_file`).
+        ValueError: starting with ``path``: not a zip archive, a corrupt member, an unknown entry, a partial set of
+            either group, an array not floating-point or not of shape times (K,), d_means (K, M, 3), d_quats
+            (K, M, 4), d_scales (K, M, 3), t_means (M,), t_scales (M,); K above the ``frames`` limit (LimitError).
+            Values are checked by ``DynamicGaussians``.
     """
     path = check_input_file(path, "deformation")
     dims = {} if num_gaussians is None else {"M": int(num_gaussians)}
@@ -276,26 +238,18 @@ def write_scene_folder(
     with_scene: bool = True,
     frame_plys: bool = True,
 ) -> Path:
-    """Write the whole output folder into a temporary folder, then rename it onto ``out_dir``
-    (:func:`~diff4splat.io.output_folders.output_dir`, marker kind ``kind``: "generate", "fit" for ``diff4splat fit``,
-    whose ``extra`` writes field.safetensors and metrics.json, or "render" for ``diff4splat render``).
+    """Write the output folder (docs/DESIGN.md, "Output folder of generate") through
+    :func:`~diff4splat.io.output_folders.output_dir` with marker kind ``kind`` ("generate", "fit" or "render").
 
-    ``extra(tmp)`` is called with the temporary folder after the other files and before ``meta.json`` (written
-    last, so ``extra`` may still add to ``meta``), to add files of its own. ``with_scene=False`` (a ``render``
-    output) leaves out scene.ply, deformation.npz and frames/, and pads an odd-sized video.mp4 to even sizes by
-    repeating the last column/row (MPEG-4 Part 2 needs even sizes); ``out_dir``'s parents must then exist.
-    ``frame_plys=False`` leaves out frames/ alone (``generate --no-frame-plys``: the scene at each frame's time is
-    scene.ply deformed by deformation.npz; a long path's frames/ is most of the folder); a scene that does not
-    change with time (:attr:`DynamicGaussians.changes_with_time`) gets no frames/ either, every frame being
-    scene.ply. ``meta["frame_plys"]`` is set to whether frames/ was written (with the scene only).
-
-    A failure part-way leaves no ``out_dir`` (or the previous one untouched). An existing ``out_dir`` is
-    replaced only if it is empty or an earlier output of ``kind`` (or ``overwrite``), never if it holds
-    one of ``inputs``.
+    ``extra(tmp)`` adds files of its own after the others and before ``meta.json`` (written last). ``with_scene``
+    false (a render) leaves out scene.ply, deformation.npz and frames/, and pads an odd-sized video.mp4 to even
+    sizes by repeating the last column/row; ``out_dir``'s parents must then exist. frames/ is written only with
+    ``frame_plys`` and a scene that changes with time; ``meta["frame_plys"]`` records whether (with the scene).
+    A failure part-way leaves ``out_dir`` as it was.
 
     Raises:
         ValueError: frame counts of colours/depths/alphas/cameras differ.
-        OutputDirError: ``out_dir`` may not be written (a file, holds inputs, not an output, …).
+        OutputDirError: ``out_dir`` may not be written (:func:`~diff4splat.io.output_folders.check_output_dir`).
     """
     T = len(cameras)
     if not (colors.shape[0] == depths.shape[0] == alphas.shape[0] == T):
@@ -341,15 +295,13 @@ def json_default(obj):
 
 
 def layout_frame(folder: str, index: int) -> str:
-    """The path of frame ``index`` in the per-frame sub-folder ``folder`` (a key of :data:`LAYOUT_FRAMES`), relative
-    to the output folder: ``layout_frame("depth", 0)`` is ``"depth/0000.exr"``."""
+    """Frame ``index``'s path in the sub-folder ``folder`` (a key of :data:`LAYOUT_FRAMES`): ``"depth/0000.exr"``."""
     return f"{folder}/{index:04d}{LAYOUT_FRAMES[folder]}"
 
 
 def is_layout_file(name: str) -> bool:
-    """True when ``name``, a ``/``-separated path relative to an output folder, is a file of the output-folder layout
-    (:data:`LAYOUT_FILES`, or ``frames/NNNN.ply``, ``rgb/NNNN.png``, ``depth/NNNN.exr`` with 4 or more ASCII
-    digits); any other name (``..``, a backslash, a percent sign, a leading ``/``, …) is not."""
+    """Whether ``name`` (``/``-separated, relative to an output folder) is one of :data:`LAYOUT_FILES` or
+    ``frames/NNNN.ply``, ``rgb/NNNN.png``, ``depth/NNNN.exr`` with 4 or more ASCII digits."""
     folder, _, file = name.rpartition("/")
     if not folder:
         return name in LAYOUT_FILES
@@ -362,9 +314,8 @@ def folder_file(folder: str | os.PathLike, name: str) -> Path | None:
     """``folder / name`` if something is there, None if nothing is.
 
     Raises:
-        FileNotFoundError / ValueError: something is there but it is not a regular file (a folder, a FIFO, a
-            dangling symlink, …; :func:`diff4splat.io.inputs.check_input_file`), naming it: reading a FIFO would
-            block forever.
+        FileNotFoundError / ValueError: it is not a regular file (a folder, a FIFO, a dangling symlink;
+            :func:`~diff4splat.io.inputs.check_input_file`).
     """
     path = Path(folder) / name
     if not path.exists() and not path.is_symlink():
@@ -373,9 +324,7 @@ def folder_file(folder: str | os.PathLike, name: str) -> Path | None:
 
 
 def _check_meta(meta: dict, path: Path) -> None:
-    """The fields of ``meta.json`` that the readers use, where present and not null: ``static`` (a boolean),
-    ``fps`` (:func:`~diff4splat.io.video.check_fps`), ``background`` (:func:`meta_background` takes it as given),
-    ``eps2d`` (:func:`meta_eps2d` takes it as given), ``scene_depth`` (a finite number > 0)."""
+    """Check ``static``, ``fps``, ``background``, ``eps2d`` and ``scene_depth`` of ``meta.json`` where not null."""
     checks = {
         "static": ("true or false", lambda v: isinstance(v, bool)),
         "fps": ("a number of frames per second in (0, 1000]", lambda v: _passes(check_fps, v)),
@@ -397,26 +346,19 @@ def _passes(check: Callable, *args) -> bool:
 
 
 def load_output_scene(folder: str | os.PathLike) -> tuple[DynamicGaussians, dict]:
-    """The scene of an output folder of ``generate`` or ``fit`` (module docstring), read as untrusted input:
-    ``scene.ply`` (:func:`~diff4splat.io.ply.load_ply`), ``deformation.npz`` (:func:`load_deformation`, checked
-    against ``scene.ply``) and ``meta.json`` (a JSON object whose ``static``, ``fps``, ``background``, ``eps2d`` and
-    ``scene_depth``, where present and not null, are valid; its ``static`` must agree with ``deformation.npz``).
-    The camera path and a fit's field are :func:`load_scene_folder`'s.
+    """The scene of an output folder of ``generate`` or ``fit``, read as untrusted input: ``scene.ply``,
+    ``deformation.npz`` (checked against it) and ``meta.json`` (its fields checked, ``static`` agreeing with
+    ``deformation.npz``).
 
     Returns:
-        (canonical Gaussians with the deformation and temporal support of ``deformation.npz``, on the CPU;
-        ``meta.json`` as a dict, {} if absent).
+        (the canonical Gaussians with their deformation and temporal support, on the CPU; ``meta.json``, {} if absent).
 
     Raises:
-        FileNotFoundError: ``folder`` does not exist, is not a folder, or has no ``scene.ply`` (each named).
-        ValueError: naming the file, its path first (``meta.json``'s JSON errors as
-            :func:`~diff4splat.io.structured.read_json`: ``meta.json: <path> …``): a malformed or corrupt
-            ``scene.ply`` or ``deformation.npz`` (truncated, random bytes, wrong keys, shapes or dtypes, NaN/inf),
-            a ``scene.ply`` without Gaussians, ``deformation.npz`` not fitting ``scene.ply``, ``deformation.npz``
-            missing (or holding no deformation) while ``meta.json`` says ``"static": false`` or holding one while it
-            says ``true``, ``meta.json`` not a JSON object or with a bad field; a file of the folder that is a
-            folder, a FIFO or a dangling symlink; a deformation above the ``frames`` limit
-            (:class:`~diff4splat.utils.limits.LimitError`).
+        FileNotFoundError: ``folder`` does not exist, is not a folder, or has no ``scene.ply``.
+        ValueError: naming the file: a malformed or corrupt ``scene.ply`` (or one without Gaussians) or
+            ``deformation.npz`` (:func:`load_deformation`), one not fitting the other, ``meta.json`` not a JSON
+            object, with a bad field or a ``static`` the deformation contradicts; a file that is a folder, FIFO or
+            dangling symlink; a deformation above the ``frames`` limit (LimitError).
     """
     path = Path(folder)
     if not path.exists():
@@ -455,14 +397,11 @@ class SceneFolder:
     """An output folder of ``generate`` or ``fit``, loaded (:func:`load_scene_folder`).
 
     Attributes:
-        path: the folder.
-        scene: canonical Gaussians (M, float32, world frame, metres) with the deformation of
-            ``deformation.npz`` (key times (K,), interpolated between them) and its temporal support, if any;
-            on the device :func:`load_scene_folder` was given.
-        cameras: the folder's own path (``cameras.json``), T cameras, on the CPU.
+        scene: canonical Gaussians (M, float32, world frame, metres) with the deformation and temporal support of
+            ``deformation.npz``, on the device given to :func:`load_scene_folder`.
+        cameras: the folder's ``cameras.json`` (T cameras), on the CPU.
         meta: ``meta.json`` ({} if absent).
-        field: the HexPlane field of ``field.safetensors`` (``models.hexplane.HexPlaneField``), or None; on the
-            scene's device.
+        field: the ``field.safetensors`` HexPlane field on the scene's device, or None.
     """
 
     path: Path
@@ -481,24 +420,17 @@ class SceneFolder:
 
 def load_scene_folder(folder: str | os.PathLike, device: str | torch.device = "cpu", *,
                       load_field: Callable[..., Any] | None = None) -> SceneFolder:
-    """Read an output folder of ``generate`` or ``fit`` (module docstring) as untrusted input, the scene and field
-    onto ``device`` (the camera path stays on the CPU): ``scene.ply``, ``deformation.npz`` and ``meta.json`` by
-    :func:`load_output_scene`, ``cameras.json`` by :func:`diff4splat.io.load_cameras_json`, ``field.safetensors``
-    by ``load_field(path, map_location=device)``.
+    """Read an output folder of ``generate`` or ``fit`` as untrusted input: the scene (:func:`load_output_scene`) and
+    field onto ``device``, ``cameras.json`` (:func:`~diff4splat.io.cameras.load_cameras_json`) on the CPU.
 
     Args:
-        load_field: the reader of a fit's ``field.safetensors`` (:func:`models.hexplane.load_field`: the ``io``
-            layer does not import ``models``, so the commands above it pass it); None leaves the file unread and
-            ``field`` None.
+        load_field: reader of ``field.safetensors`` (:func:`models.hexplane.load_field`, passed in because ``io``
+            does not import ``models``), called as ``load_field(path, map_location=device)``; None leaves it unread.
 
     Raises:
-        FileNotFoundError: ``folder`` does not exist, is not a folder, or lacks ``scene.ply`` or ``cameras.json``
-            (each named).
-        ValueError: a file of the folder is malformed or corrupt, or the files disagree (the message names the
-            file; :func:`load_output_scene`): a truncated or garbage ``deformation.npz`` or ``scene.ply``, wrong
-            keys, shapes or dtypes, NaN/inf, ``deformation.npz`` missing while ``meta.json`` says
-            ``"static": false``, ``meta.json`` not a JSON object, a bad ``cameras.json`` or ``field.safetensors``;
-            a file that is a folder, a FIFO or a dangling symlink.
+        FileNotFoundError: ``folder`` does not exist, is not a folder, or lacks ``scene.ply`` or ``cameras.json``.
+        ValueError: a malformed, corrupt or inconsistent file, named (:func:`load_output_scene`, ``cameras.json``,
+            ``field.safetensors``).
     """
     path = Path(folder)
     scene, meta = load_output_scene(path)
@@ -515,8 +447,7 @@ def estimate_scene_depth(folder: SceneFolder) -> float | None:
     """:func:`scene_depth` (metres, > 0), or None when none of its sources exists.
 
     Raises:
-        ValueError: ``depth/0000.exr``'s channels "Z" and "A" differ in size; a ``depth/0000.exr`` that is not a
-            readable EXR with a "Z" channel (from :func:`~diff4splat.io.exr.load_depth_exr`, naming it).
+        ValueError: ``depth/0000.exr`` unreadable, without "Z", or with "Z" and "A" of different sizes.
     """
     value = folder.meta.get("scene_depth")  # checked by load_output_scene: a finite number > 0, or absent
     if value is not None:
@@ -539,13 +470,12 @@ def estimate_scene_depth(folder: SceneFolder) -> float | None:
 def scene_depth(folder: SceneFolder) -> float:
     """Distance from the folder's first camera to the scene centre, metres: where presets look.
 
-    The first of: meta.json's ``scene_depth``; the median depth "Z" of the pixels of ``depth/0000.exr`` whose
-    coverage "A" exceeds :data:`COVERED` (every pixel with a finite Z > 0 if the file has no "A"); the median depth
-    of the canonical Gaussian means in front of the first camera (z > :data:`~diff4splat.render.settings.NEAR_PLANE`).
+    The first of: meta.json's ``scene_depth``; the median "Z" of ``depth/0000.exr`` over pixels with "A" >
+    :data:`COVERED` (every finite Z > 0 without "A"); the median depth of the canonical means in front of the
+    first camera (z > NEAR_PLANE).
 
     Raises:
-        ValueError: none of the three exists (no depth map and no Gaussian in front of the first camera); a
-            ``depth/0000.exr`` that is not a readable EXR with a "Z" channel (naming it).
+        ValueError: none of the three exists; ``depth/0000.exr`` unreadable or without "Z".
     """
     depth = estimate_scene_depth(folder)
     if depth is None:

@@ -1,6 +1,5 @@
-"""Reading text, JSON and YAML files: the one place that turns every decode error into a ``ValueError``
-naming the file, so a corrupt ``config.json``, manifest, stage YAML or scene ``meta.json`` reads the same
-way everywhere (``<what>: <path> is not valid JSON (Expecting value at line 1 column 2)``).
+"""Reading text, JSON and YAML files, every decode error a ``ValueError`` naming the file
+(``<what>: <path> is not valid JSON (Expecting value at line 1 column 2)``).
 """
 from __future__ import annotations
 
@@ -16,13 +15,8 @@ __all__ = ["read_text", "read_json", "read_yaml", "YamlLoader"]
 
 
 class YamlLoader(yaml.SafeLoader):
-    """``yaml.SafeLoader`` that also reads YAML 1.2's floats without a dot: ``1e-4``, ``-3E2``.
-
-    PyYAML follows YAML 1.1, whose float needs a dot, so ``lr: 1e-4`` was the string ``'1e-4'`` and a training
-    run crashed at its first comparison; JSON, YAML 1.2 and Python read it as a number. Every YAML file the
-    library reads goes through this loader (:func:`read_yaml`).
-    """
-
+    """``yaml.SafeLoader`` that also reads YAML 1.2's floats without a dot (``1e-4``, ``-3E2``), which YAML 1.1 reads as
+    strings; every YAML file the library reads goes through it (:func:`read_yaml`)."""
 
 YamlLoader.add_implicit_resolver(  # copies SafeLoader's resolvers first; checked after them, so ints stay ints
     "tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9][0-9_]*[eE][-+]?[0-9]+$"), list("-+0123456789"))
@@ -32,15 +26,11 @@ _JSON_TYPES = {dict: "object", list: "list", str: "string", int: "number", float
 
 
 def read_text(path: str | os.PathLike, what: str) -> str:
-    """The UTF-8 text of ``path``.
-
-    Args:
-        path: the file.
-        what: what the file is to the caller's user (a parameter name or a description), prefixed to messages.
+    """The UTF-8 text of ``path``; ``what`` (what the file is to the user) prefixes messages.
 
     Raises:
         FileNotFoundError: ``path`` is not a file (``<what>: <path> not found``).
-        ValueError: not UTF-8 text, naming the first bad byte and its offset (a binary file, usually).
+        ValueError: not UTF-8, naming the first bad byte and its offset.
     """
     path = Path(path)
     if not path.is_file():
@@ -61,16 +51,10 @@ def _check_type(data: Any, expect: type | None, what: str, path: Path, fmt: str)
 
 
 def read_json(path: str | os.PathLike, what: str, expect: type | None = dict) -> Any:
-    """Parse a JSON file.
-
-    Args:
-        path: the file.
-        what: prefixed to messages (see :func:`read_text`).
-        expect: the type the top-level value must have (``dict`` = a JSON object), or None for any.
+    """Parse a JSON file whose top-level value must be an ``expect`` (``dict``: a JSON object; None: anything).
 
     Raises:
-        FileNotFoundError / ValueError: :func:`read_text`; invalid JSON (message, line, column); a top-level
-            value that is not an ``expect`` (e.g. a list where an object is needed).
+        FileNotFoundError / ValueError: :func:`read_text`; invalid JSON (message, line, column); another top-level type.
     """
     path = Path(path)
     text = read_text(path, what)
@@ -82,12 +66,8 @@ def read_json(path: str | os.PathLike, what: str, expect: type | None = dict) ->
 
 
 def read_yaml(path: str | os.PathLike, what: str, expect: type | None = dict) -> Any:
-    """Parse a YAML file (safe loading, :class:`YamlLoader`); an empty file is ``{}`` when ``expect`` is ``dict``.
-
-    Raises:
-        FileNotFoundError / ValueError: :func:`read_text`; invalid YAML (the parser's problem and line); a
-            top-level value that is not an ``expect``.
-    """
+    """Parse a YAML file (:class:`YamlLoader`) as :func:`read_json` does JSON (invalid YAML: the parser's problem and
+    line); an empty file is ``{}`` when ``expect`` is ``dict``."""
     path = Path(path)
     text = read_text(path, what)
     try:

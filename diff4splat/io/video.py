@@ -17,24 +17,16 @@ __all__ = ["save_video", "load_video", "save_image", "to_uint8", "check_fps", "c
            "DEFAULT_FPS", "MAX_VIDEO_SIDE"]
 
 DEFAULT_FPS = 8.0
-"""Frame rate of every video, viewer and output folder when none is given (frames per second): a 17-frame path
-plays in about 2 s."""
+"""Frame rate of every video, viewer and output folder when none is given, frames per second."""
 
 MAX_VIDEO_SIDE = 8190
-"""Largest width or height :func:`save_video` writes, pixels: MPEG-4 Part 2 codes each in 13 bits (FFmpeg's mpeg4
-encoder refuses 8192, "dimensions too large for MPEG-4"), and sizes are even."""
+"""Largest width or height :func:`save_video` writes, pixels (MPEG-4 Part 2 codes each in 13 bits; sizes are even)."""
 MAX_FPS = 1000
-"""Highest frame rate :func:`save_video` writes. MPEG-4 Part 2 stores the frame rate as a time base of
-at most 65535 ticks per second, so OpenCV's writer fails from 65536 fps on; 1000 fps is far above any
-display and any real camera path (the default is :data:`DEFAULT_FPS`)."""
+"""Highest frame rate :func:`save_video` writes (MPEG-4 Part 2's time base holds at most 65535 ticks per second)."""
 
 
 def check_fps(fps: object, name: str = "fps") -> float:
-    """Return ``fps`` as a float if it is a finite number in (0, :data:`MAX_FPS`].
-
-    Raises:
-        ValueError: naming ``name`` and the value.
-    """
+    """``fps`` as a float if it is a finite number in (0, :data:`MAX_FPS`], else ValueError naming ``name``."""
     fps = check_positive(name, fps)
     if fps > MAX_FPS:
         raise ValueError(f"{name} must be at most {MAX_FPS} frames per second (the MP4 encoder's limit is "
@@ -43,20 +35,9 @@ def check_fps(fps: object, name: str = "fps") -> float:
 
 
 def to_uint8(images: Tensor | np.ndarray, name: str = "images") -> np.ndarray:
-    """Convert images to uint8: uint8 passes through, floats in [0, 1] → round(255·clip(x, 0, 1)).
-
-    Float values outside [0, 1] are clipped (rendered SH colours can exceed 1); NaN/inf are errors.
-
-    Args:
-        images: any shape, uint8 or floating point (numpy array or tensor, any device).
-        name: argument name used in error messages.
-
-    Returns:
-        numpy uint8 array of the same shape.
-
-    Raises:
-        ValueError: naming ``name`` for other dtypes or non-finite values.
-    """
+    """Images of any shape (array or tensor, any device) as a numpy uint8 array: uint8 as is, floats as
+    round(255·clip(x, 0, 1)) (rendered SH colours can exceed 1); ValueError naming ``name`` for another dtype or
+    NaN/inf."""
     if isinstance(images, Tensor):
         images = host_values(images).numpy()
     images = np.asarray(images)
@@ -70,12 +51,8 @@ def to_uint8(images: Tensor | np.ndarray, name: str = "images") -> np.ndarray:
 
 
 def check_video_size(width: int, height: int, knobs: str = "the output size") -> None:
-    """Check that an MP4 of ``width`` × ``height`` pixels, odd sides padded to even, can be written, before the
-    frames are made.
-
-    Raises:
-        ValueError: a side above :data:`MAX_VIDEO_SIDE` (naming ``knobs``, the arguments that set the size).
-    """
+    """ValueError (naming ``knobs``, what sets the size) if an MP4 of ``width`` × ``height``, odd sides padded to
+    even, would exceed :data:`MAX_VIDEO_SIDE`: checked before the frames are made."""
     w, h = int(width) + int(width) % 2, int(height) + int(height) % 2
     if max(w, h) > MAX_VIDEO_SIDE:
         raise ValueError(f"a video of {width}×{height} pixels cannot be written: MPEG-4 allows at most "
@@ -83,23 +60,17 @@ def check_video_size(width: int, height: int, knobs: str = "the output size") ->
 
 
 def save_video(path: str | os.PathLike, frames: Tensor | np.ndarray, fps: float = DEFAULT_FPS) -> None:
-    """Write RGB frames to an MP4 file (MPEG-4 Part 2, OpenCV fourcc ``mp4v``), atomically.
-
-    The encoder is lossy (8-bit 4:2:0 chroma): expect a few grey levels of error on smooth content.
-    MPEG-4 Part 2 needs even frame sizes; odd sizes are rejected rather than silently cropped.
+    """Write RGB frames to an MP4 file (MPEG-4 Part 2, OpenCV fourcc ``mp4v``; lossy, 8-bit 4:2:0), atomically.
 
     Args:
-        path: output file; must end in ``.mp4``. Written to a temporary ``.mp4`` beside it, then
-            renamed, so the final path never holds a half-written video.
-        frames: (T, H, W, 3) RGB, uint8 or float in [0, 1] (clipped, see :func:`to_uint8`), T ≥ 1,
-            H and W even, at most :data:`MAX_VIDEO_SIDE`.
+        path: output file ending in ``.mp4``.
+        frames: (T, H, W, 3) RGB, uint8 or float in [0, 1] (:func:`to_uint8`), T ≥ 1, H and W even and at most
+            :data:`MAX_VIDEO_SIDE` (odd sizes are refused, not cropped).
         fps: frames per second, in (0, :data:`MAX_FPS`].
 
     Raises:
-        ValueError: naming ``path`` (suffix), ``frames`` (shape, dtype, odd or too large a size, NaN) or ``fps``
-            (:func:`check_fps`).
-        OSError: naming ``path`` when the disk is full (or the quota spent), read-only or not writable
-            (:func:`~diff4splat.io.atomic.naming_os_errors`).
+        ValueError: naming ``path`` (suffix), ``frames`` (shape, dtype, odd or too large a size, NaN) or ``fps``.
+        OSError: naming ``path`` (disk full, read-only, permissions; :func:`~diff4splat.io.atomic.naming_os_errors`).
         RuntimeError: OpenCV could not open the encoder, or the file it wrote does not hold every frame.
     """
     path = Path(path)
@@ -138,13 +109,7 @@ def _frame_count(path: str) -> int:
 
 
 def load_video(path: str | os.PathLike) -> np.ndarray:
-    """Decode every frame of a video file with OpenCV.
-
-    Args:
-        path: video file (any container/codec OpenCV's backend reads).
-
-    Returns:
-        (T, H, W, 3) uint8 RGB frames.
+    """Every frame of a video file OpenCV reads, as (T, H, W, 3) uint8 RGB.
 
     Raises:
         FileNotFoundError: ``path`` is not an existing file.
@@ -170,16 +135,13 @@ def load_video(path: str | os.PathLike) -> np.ndarray:
 
 
 def save_image(path: str | os.PathLike, image: Tensor | np.ndarray) -> None:
-    """Write an 8-bit image (PNG, or any format OpenCV writes, chosen by the suffix), atomically.
-
-    Args:
-        path: output file, e.g. ``frame.png``; PNG is lossless.
-        image: (H, W, 3) RGB, (H, W, 4) RGBA or (H, W) grey; uint8 or float in [0, 1] (clipped).
+    """Write an 8-bit image atomically, in the format of ``path``'s suffix (PNG is lossless; any OpenCV writes).
+    ``image``: (H, W, 3) RGB, (H, W, 4) RGBA or (H, W) grey; uint8 or float in [0, 1] (clipped).
 
     Raises:
-        ValueError: naming ``path`` (suffix OpenCV cannot write) or ``image`` (shape, dtype, NaN, or a format the
-            suffix's encoder refuses).
-        OSError: naming ``path`` (disk full, read-only, permissions; :func:`~diff4splat.io.atomic.atomic_output_path`).
+        ValueError: naming ``path`` (a suffix OpenCV cannot write) or ``image`` (shape, dtype, NaN, or refused by
+            the encoder).
+        OSError: naming ``path`` (disk full, read-only, permissions).
     """
     path = Path(path)
     if not cv2.haveImageWriter(str(path)):

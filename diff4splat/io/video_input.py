@@ -25,10 +25,10 @@ class VideoClip:
     """Frames read by :func:`read_video_clip`.
 
     Attributes:
-        frames: T arrays (H, W, 3) uint8 RGB (a video file), or as :func:`diff4splat.io.image.read_image` returns
-            them (a folder: grey, RGB or RGBA, 8 or 16 bits).
+        frames: T arrays (H, W, 3) uint8 RGB (a video file), or as :func:`~diff4splat.io.image.read_image` returns
+            them (a folder).
         indices: (T,) the frames' indices in the source (0 = its first frame).
-        fps: the file's frame rate (frames per second), or None for a folder or a file that does not say.
+        fps: the file's frame rate, frames per second, or None (a folder, or a file that does not say).
     """
 
     frames: list[np.ndarray]
@@ -55,19 +55,13 @@ def _short(path: Path, found: int, start: int, stride: int, frames: int) -> Valu
 
 
 def read_video_clip(path: str | os.PathLike, frames: int, stride: int = 1, start: int = 0) -> VideoClip:
-    """Read frames ``start + stride·i`` (i < ``frames``) of a video file or a folder of images.
-
-    Args:
-        path: a video file, or a folder whose image files (:data:`IMAGE_SUFFIXES`) are the frames in name order.
-        frames, stride, start: the clip (:func:`check_clip_request`).
-
-    Returns:
-        :class:`VideoClip`.
+    """Frames ``start + stride·i`` (i < ``frames``, :func:`check_clip_request`) of a video file or of a folder whose
+    image files (:data:`IMAGE_SUFFIXES`) are the frames in name order.
 
     Raises:
         FileNotFoundError: nothing at ``path``.
-        ValueError: a bad request, a file OpenCV cannot decode, a folder without images, frames of different
-            sizes, a frame above the ``image_pixels`` limit, fewer frames than the request needs.
+        ValueError: a bad request, a file OpenCV cannot decode, a folder without images, frames of different sizes,
+            a frame above the ``image_pixels`` limit, fewer frames than the request needs.
     """
     frames, stride, start = check_clip_request(frames, stride, start)
     path = Path(path)

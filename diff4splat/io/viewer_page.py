@@ -1,9 +1,6 @@
-"""``viewer.html``: one self-contained page (code and data embedded, opens from disk through ``file://``).
-
-The page is this module's HTML, the bundled renderer (``assets/viewer.js``: the sources in ``viewer/`` at the
-repository root — three.js and Spark, built with esbuild; licences in ``assets/LICENSES.txt``) and the
-payload of :mod:`diff4splat.io.viewer_data` as base64 text in ``<script type="application/octet-stream">``
-elements (a page on ``file://`` may not ``fetch`` a sibling file). docs/DESIGN.md, "Viewer".
+"""``viewer.html``: one self-contained page (opens from ``file://``): this module's HTML, the bundled renderer
+(``viewer_assets/viewer.js``, built from ``viewer_js/``; licences in ``viewer_assets/LICENSES.txt``) and the payload of
+:mod:`diff4splat.io.viewer_data` as base64 in ``<script>`` elements. docs/DESIGN.md, "Viewer".
 """
 from __future__ import annotations
 
@@ -45,18 +42,13 @@ def _script(kind: str, ident: str, text: str) -> str:
 
 def viewer_html(payload: ViewerPayload, title: str = "diff4splat viewer", *, full_url: str | None = None,
                 embed: bool = True) -> str:
-    """The page (module docstring). ``full_url``: where ``diff4splat view`` serves the data (``scene.ply``,
-    ``frames.bin``), which the page then fetches over http instead of reading the embedded copy; ``embed``
-    false leaves the data out of the page (it must then be served at ``full_url``).
+    """The page (module docstring) as a str; ``title`` is HTML-escaped.
 
     Args:
-        payload: the scene's bytes and page config (:class:`ViewerPayload`).
-        title: the page title (HTML-escaped).
-        full_url: URL of the served data, or None to read the embedded copy.
+        payload: the scene's bytes and page config.
+        full_url: where ``diff4splat view`` serves the data (``scene.ply``, ``frames.bin``), which the page then
+            fetches instead of the embedded copy; None reads the embedded copy.
         embed: put ``scene.ply`` (and ``frames.bin``, if any) into the page, base64 encoded.
-
-    Returns:
-        The self-contained HTML page as a str.
 
     Raises:
         ValueError: ``embed`` false without ``full_url``.
