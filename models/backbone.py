@@ -1,29 +1,14 @@
-"""What the pipeline and the training stages need from a video backbone: VAE + text encoder + a
-camera-conditioned video transformer (docs/DESIGN.md, "Backbones"): the :class:`Backbone` interface, the
-:class:`LatentFormat` of its latents and the shape checks of its velocity (:func:`check_velocity_inputs`).
+"""What the pipeline and the training stages need from a video backbone (VAE + text encoder + camera-conditioned
+video transformer): the :class:`Backbone` interface, the :class:`LatentFormat` of its latents and the shape checks
+of its velocity. Implementations in :mod:`models.backbones`: ours (the CPU default), Wan2.2-TI2V-5B and
+CogVideoX-5B-I2V (diffusers, the ``diff4splat[diffusers]`` extra).
 
-Three implementations, the adapters of :mod:`models.backbones`: our own networks (:mod:`models.backbones.ours`, the
-CPU default), Wan2.2-TI2V-5B (:mod:`models.backbones.wan`) and CogVideoX-5B-I2V (:mod:`models.backbones.cogvideox`),
-the last two built from diffusers' modules (the optional extra ``diff4splat[diffusers]``).
-
-Conventions every backbone obeys, whatever its own:
-
-- **Latents** are the transformer's inputs: the VAE's posterior mean *normalised the backbone's way* (ours
-  ``a·(z − b)``, Wan ``(z − mean)/std`` per channel, CogVideoX ``z·scaling_factor``), shape (B, c, n, h, w)
-  channel-first with n = 1 + (T − 1)/t latent frames, h = H/s, w = W/s (:class:`LatentFormat`).
-- **Flow matching, σ convention**: ``x_σ = (1 − σ)·x0 + σ·ε`` with σ = 1 pure noise, and
-  :attr:`Backbone.velocity_model` returns ``v = ε − x0`` (models/flow_matching.py). Wan is trained in exactly this
-  convention (timestep = 1000·σ); CogVideoX is a v-prediction DDPM whose prediction is converted
-  (:func:`models.backbones.cogvideox.vpred_to_flow`): a DDIM (η = 0) step between two of its timesteps is an Euler
-  step of this ODE between their σ, so our samplers reproduce its scheduler's latents.
-- **First-frame conditioning** happens inside :attr:`Backbone.velocity_model` from ``image_latent``
-  (B, c, 1, h, w), the backbone's way (ours: concatenated with a frame mask; Wan: latent frame 0 replaced and its
-  tokens given timestep 0; CogVideoX: the image latent concatenated on channels, zero after frame 0).
-- **Camera conditioning**: ``plucker`` (B, 6·t·s², n, h, w) Plücker rays packed onto the latent grid
-  (:func:`diff4splat.cameras.pack_plucker`). The diffusers transformers see them as extra input channels of their
-  patch embedding, whose new weights start at zero (:class:`models.backbones.diffusers_backbone.CameraPatchConv`):
-  an untrained camera branch leaves the pretrained transformer exactly as it was.
-"""
+Conventions every backbone obeys (DESIGN.md "Backbones"): latents are the VAE posterior mean normalised the
+backbone's way, (B, c, n, h, w), n = 1 + (T − 1)/t; x_σ = (1 − σ)·x0 + σ·ε and :attr:`Backbone.velocity_model`
+returns v = ε − x0 (CogVideoX's v-prediction converted, :func:`models.backbones.cogvideox.vpred_to_flow`);
+first-frame conditioning from ``image_latent`` (B, c, 1, h, w) happens inside the velocity model; ``plucker``
+(B, 6·t·s², n, h, w) packed rays enter through zero-initialised weights, so an untrained camera branch leaves a
+pretrained transformer unchanged."""
 from __future__ import annotations
 
 import abc
@@ -43,9 +28,9 @@ class LatentFormat:
     """How a backbone's VAE maps video to latents.
 
     Attributes:
-        latent_channels: c (ours 4–16, Wan2.2 48, CogVideoX 16).
-        temporal_factor: t, frames per latent frame after the first (4 for all three).
-        spatial_factor: s, pixels per latent pixel along each side (ours and CogVideoX 8, Wan2.2 16).
+        latent_channels: c.
+        temporal_factor: t, frames per latent frame after the first.
+        spatial_factor: s, pixels per latent pixel along each side.
     """
 
     latent_channels: int
@@ -64,7 +49,7 @@ class LatentFormat:
         return f"1 + {t}·k (1, {1 + t}, {1 + 2 * t}, …)"
 
     def num_latent_frames(self, num_frames: int) -> int:
-        """n = 1 + (T − 1)/t. Raises ValueError unless T = 1 + t·k, k ≥ 0."""
+        """n = 1 + (T − 1)/t; ValueError unless T = 1 + t·k, k ≥ 0."""
         t = self.temporal_factor
         if num_frames < 1 or (num_frames - 1) % t:  # no isinstance: an ONNX export traces T as a SymInt
             raise ValueError(f"video: T={num_frames} frames; T must be {self.frames_rule}")
@@ -77,15 +62,9 @@ class LatentFormat:
 
 def check_velocity_inputs(x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor | None,
                           latent_channels: int, camera_channels: int, patch_size: tuple[int, int, int]) -> None:
-    """The shape checks every :attr:`Backbone.velocity_model` makes (static: safe under tracing).
-
-    Args:
-        x: (B, c, n, h, w) with c = ``latent_channels`` and (n, h, w) divisible by ``patch_size`` (p_t, p_h, p_w).
-        sigma: (B,).  image_latent: (B, c, 1, h, w).  plucker: (B, ``camera_channels``, n, h, w) or None.
-
-    Raises:
-        ValueError: naming the first argument whose shape does not fit.
-    """
+    """The shape checks of every :attr:`Backbone.velocity_model` (static: safe under tracing): x (B, c, n, h, w)
+    with (n, h, w) divisible by ``patch_size``, sigma (B,), image_latent (B, c, 1, h, w), plucker
+    (B, camera_channels, n, h, w) or None; ValueError naming the first that does not fit."""
     if x.dim() != 5 or x.shape[1] != latent_channels:
         raise ValueError(f"x must have shape (B, {latent_channels}, n, h, w), got {tuple(x.shape)}")
     B, c, n, h, w = x.shape
@@ -105,9 +84,8 @@ class Backbone(nn.Module, abc.ABC):
     Attributes:
         kind: one of :data:`BACKBONE_KINDS`.
         latent: the :class:`LatentFormat`.
-        encodes_empty_prompt: True when the transformer was trained with the empty prompt's text embedding as its
-            unconditional input (the pretrained backbones), so the pipeline encodes "" when there is no prompt;
-            False (ours): no prompt means no text tokens, and no text encoder runs.
+        encodes_empty_prompt: True when the transformer's unconditional input is the embedding of "" (the pretrained
+            backbones); False (ours): no prompt means no text tokens.
     """
 
     kind: str
@@ -116,8 +94,8 @@ class Backbone(nn.Module, abc.ABC):
 
     @abc.abstractmethod
     def encode_video(self, video: Tensor, generator: torch.Generator | None = None) -> Tensor:
-        """(B, 3, T, H, W) pixels in [−1, 1], T = 1 + t·k → normalised latents (B, c, n, h, w): the posterior
-        mean, or a posterior sample drawn with ``generator`` when given."""
+        """(B, 3, T, H, W) in [−1, 1], T = 1 + t·k → normalised latents (B, c, n, h, w): the posterior mean, or a
+        sample drawn with ``generator``."""
 
     @abc.abstractmethod
     def decode_latents(self, latents: Tensor) -> Tensor:
@@ -130,42 +108,29 @@ class Backbone(nn.Module, abc.ABC):
     @property
     @abc.abstractmethod
     def velocity_model(self) -> nn.Module:
-        """The network of the flow-matching velocity ``ε − x0`` (module docstring): the ``nn.Module`` whose call
-        ``(x, sigma, image_latent, plucker, text, text_mask)`` computes it (ours: the DiT; a diffusers backbone: the
-        backbone itself, whose ``forward`` converts to and from its transformer's conventions).
-
-        Its call takes:
-            x: (B, c, n, h, w) the state at ``sigma``.
-            sigma: (B,) σ in [0, 1] (float32).
-            image_latent: (B, c, 1, h, w) the photograph's normalised latent.
-            plucker: (B, 6·t·s², n, h, w) packed Plücker rays.
-            text, text_mask: (B, L, d_text), (B, L) bool, or None for no prompt (a backbone trained with a text
-                embedding of the empty prompt encodes "" itself).
-
-        and returns (B, c, n, h, w): float32 from a diffusers backbone, the DiT's parameter dtype from ours; a
-        ValueError names an input of the wrong shape (:func:`check_velocity_inputs`).
-        """
+        """The ``nn.Module`` whose call ``(x, sigma, image_latent, plucker, text, text_mask)`` computes ε − x0 (ours:
+        the
+        DiT; a diffusers backbone: itself): x (B, c, n, h, w), sigma (B,) float32 in [0, 1], image_latent (B, c, 1, h,
+        w),
+        plucker (B, 6·t·s², n, h, w), text (B, L, d_text) and mask (B, L) or None → (B, c, n, h, w) (float32 from a
+        diffusers backbone, the DiT's dtype from ours); ValueError from :func:`check_velocity_inputs`."""
 
     @abc.abstractmethod
     def sigmas(self, steps: int) -> Tensor:
-        """The inference schedule: (steps + 1,) float64 σ, decreasing from 1 to 0 (the backbone scheduler's)."""
+        """The inference schedule: (steps + 1,) float64 σ from 1 down to 0 (the backbone scheduler's)."""
 
     @abc.abstractmethod
     def training_sigmas(self, n: int, generator: torch.Generator) -> Tensor:
-        """(n,) σ drawn for a training step on ``generator``'s device (a backbone with discrete timesteps returns
-        σ of its timesteps)."""
+        """(n,) σ for a training step on ``generator``'s device."""
 
     @abc.abstractmethod
     def transformer_blocks(self) -> list[nn.Module]:
         """The transformer's blocks (FSDP units, gradient checkpointing, regional compilation)."""
 
     def compile_blocks(self) -> None:
-        """Regional compilation: ``torch.compile`` each of :meth:`transformer_blocks` in place
-        (``nn.Module.compile``; the PyTorch recipe "regional compilation", diffusers' ``compile_repeated_blocks``).
-        Identical blocks share one compiled graph, so the cold start compiles one block, not the transformer; the
-        elementwise work between the matmuls (norms, adaLN modulation, RoPE, QK-norm, GELU, gated residuals) is
-        fused into fewer kernels. The outputs equal the eager blocks' up to floating-point rounding. The first call
-        at each new input shape (and with / without text) compiles, which needs a C++ compiler on the CPU and
-        Triton on CUDA."""
+        """Regional compilation: ``torch.compile`` each of :meth:`transformer_blocks` in place (diffusers'
+        ``compile_repeated_blocks``); identical blocks share one graph. Same outputs up to rounding; needs a C++
+        compiler
+        on the CPU and Triton on CUDA."""
         for block in self.transformer_blocks():
             block.compile()

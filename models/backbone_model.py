@@ -1,13 +1,8 @@
 """A pretrained diffusers backbone with our LDRM: the model ``generate --checkpoint DIR`` runs for a diffusers folder.
 
-A folder (docs/DESIGN.md, "Backbones") is the Hub layout of the backbone (``model_index.json``, ``transformer/``,
-``vae/``, ``text_encoder/``, ``tokenizer/``, ``scheduler/``; :mod:`models.backbones.diffusers_backbone`) plus our
-``camera/`` (the patch embedding's camera weights), ``ldrm/`` (:class:`models.ldrm.LDRM`) and ``diff4splat.json``
-(:class:`BackboneModelConfig`). A folder fresh from the Hub has none of ours: the camera weights start at zero, the
-config takes the backbone's defaults (:data:`DEFAULTS`) and the LDRM is random (with a warning).
-
-Only :func:`backbone_class` imports a backbone module, and with it diffusers: the CPU default never does.
-"""
+The folder is the backbone's Hub layout (:mod:`models.backbones.diffusers_backbone`) plus our ``camera/``, ``ldrm/``
+and ``diff4splat.json`` (:class:`BackboneModelConfig`); fresh from the Hub it has none of ours (camera weights zero,
+:data:`DEFAULTS`, a random LDRM with a warning). Only :func:`backbone_class` imports diffusers."""
 from __future__ import annotations
 
 import dataclasses
@@ -39,25 +34,20 @@ INDEX_FILE = "model_index.json"
 """The file that makes a folder a diffusers pipeline (the Hub layout of a backbone)."""
 LDRM_FOLDER = "ldrm"
 
-PIPELINES = {
-    "WanPipeline": "wan2.2-ti2v",
-    "WanImageToVideoPipeline": "wan2.2-ti2v",
-    "CogVideoXImageToVideoPipeline": "cogvideox-i2v",
-}
+PIPELINES = {"WanPipeline": "wan2.2-ti2v", "WanImageToVideoPipeline": "wan2.2-ti2v",
+             "CogVideoXImageToVideoPipeline": "cogvideox-i2v"}
 """``model_index.json`` ``_class_name`` → backbone kind."""
 _MODULES = {"wan2.2-ti2v": ("models.backbones.wan", "WanBackbone"),
             "cogvideox-i2v": ("models.backbones.cogvideox", "CogVideoXBackbone")}
 
 DEFAULTS = {
-    # Wan2.2-TI2V-5B: 720p-class video, 1280×704, 121 frames at 24 fps (Wan-Video/Wan2.2 README; its diffusers
-    # example uses height 704, width 1280, num_frames 121).
+    # Wan2.2-TI2V-5B: 1280×704, 121 frames at 24 fps (Wan-Video/Wan2.2 README and its diffusers example).
     "wan2.2-ti2v": dict(name="wan2.2-ti2v-5b", height=704, width=1280, num_frames=121, guidance=5.0),
     # CogVideoX-5B-I2V: 720×480, 49 frames at 8 fps (THUDM/CogVideoX-5b-I2V model card).
     "cogvideox-i2v": dict(name="cogvideox-5b-i2v", height=480, width=720, num_frames=49, guidance=6.0),
 }
-"""Model resolution, clip length and classifier-free guidance scale of each backbone as released (what a folder without
-``diff4splat.json`` uses; the guidance is the default ``guidance_scale`` of diffusers' ``WanImageToVideoPipeline``
-and ``CogVideoXImageToVideoPipeline``)."""
+"""Resolution, clip length and guidance scale of each backbone as released (README / model card, diffusers'
+default ``guidance_scale``): what a folder without ``diff4splat.json`` uses."""
 
 
 @dataclass
@@ -66,17 +56,18 @@ class BackboneModelConfig:
     the pipeline reads, with the backbone in place of our VAE, text encoder and DiT.
 
     Attributes:
-        name: model name (meta.json ``config``).
-        backbone: one of the kinds of :data:`PIPELINES`.
-        height, width: model resolution in pixels (multiples of the VAE's spatial factor × the patch sizes).
+        name: model name.
+        backbone: a kind of :data:`PIPELINES`.
+        height, width: model resolution, pixels (multiples of the VAE's spatial factor × the patch sizes).
         num_frames: default clip length T = 1 + 4k.
         fov_y_deg, scene_depth, prune_opacity, static_atol, generated_colors, generated_footprint: as
             :class:`models.bundle.Diff4SplatConfig`.
-        vae: the backbone VAE's :class:`LatentFormat` (taken from the loaded VAE; a saved one must agree).
-        ldrm: the LDRM's config on the backbone's latents (``latent_channels``, ``vae_temporal``, ``vae_spatial``
-            from ``vae``); the paper's sizes (:meth:`LDRMConfig.paper`) by default.
-        sampling: ``steps`` and ``sampler`` of our sampler; ``shift`` is informational (the σ schedule is the
-            backbone scheduler's, :meth:`Backbone.sigmas`).
+        vae: the backbone VAE's :class:`LatentFormat` (must agree with the loaded VAE).
+        ldrm: the LDRM's config on those latents; the paper's sizes by default.
+        sampling: ``steps`` and ``sampler``; ``shift`` is informational (:meth:`Backbone.sigmas` decides).
+
+    Raises:
+        ValueError: an unknown backbone, an LDRM that does not match ``vae``, or a bad size.
     """
 
     name: str = "wan2.2-ti2v-5b"
@@ -123,9 +114,7 @@ class BackboneModelConfig:
         return cls(**{**released, "backbone": kind, "vae": latent, "ldrm": ldrm, "sampling": sampling, **overrides})
 
     def to_dict(self) -> dict:
-        """The config as nested plain dicts (``dataclasses.asdict``: sub-configs become dicts, tuples stay tuples),
-        JSON-serialisable: what a checkpoint's ``config.json`` holds (:meth:`BackboneModel.save_pretrained`), read
-        back by :func:`models.pretrained.config_from_dict`."""
+        """The config as nested plain dicts (``dataclasses.asdict``), JSON-serialisable."""
         return dataclasses.asdict(self)
 
 
@@ -134,7 +123,7 @@ def folder_backbone(directory: str | os.PathLike) -> str:
 
     Raises:
         FileNotFoundError: no ``model_index.json``.
-        ValueError: an unreadable index or a pipeline that is not one of :data:`PIPELINES`.
+        ValueError: an unreadable index or a pipeline not in :data:`PIPELINES`.
     """
     return _read_index(directory)[1]
 
@@ -152,20 +141,15 @@ def _read_index(directory: str | os.PathLike) -> tuple[dict, str]:
 
 
 def check_backbone_folder(directory: str | os.PathLike) -> tuple[str, BackboneModelConfig | None]:
-    """Check a diffusers backbone folder before anything is imported or loaded (diffusers' own errors are
-    tracebacks): ``model_index.json`` names a pipeline of :data:`PIPELINES`; every component it names is a
-    sub-folder holding its config (``config.json``, ``scheduler_config.json``, ``tokenizer_config.json``, …); a
-    ``diff4splat.json`` is readable, describes this backbone, and its LDRM is within the ``parameters`` limit
-    (counted on the meta device); an ``ldrm/`` holds its config and weights.
-
-    Returns:
-        (the backbone kind, the ``diff4splat.json`` config or None without one).
+    """Check a diffusers backbone folder before anything is imported or loaded: the index names a known pipeline,
+    every component folder holds its config, a ``diff4splat.json`` describes this backbone with an LDRM within the
+    ``parameters`` limit, an ``ldrm/`` holds its config and weights. Returns (kind, the ``diff4splat.json`` config or
+    None).
 
     Raises:
-        FileNotFoundError: no ``model_index.json``; a component folder or its config missing (naming both);
-            ``ldrm/`` without its files.
-        ValueError: an unreadable index or ``diff4splat.json``, another pipeline, another backbone's
-            ``diff4splat.json``; :class:`diff4splat.utils.limits.LimitError`: an LDRM above the limit.
+        FileNotFoundError: no index, a component folder or its config missing, ``ldrm/`` without its files.
+        ValueError: an unreadable index or ``diff4splat.json``, another pipeline or backbone;
+            :class:`diff4splat.utils.limits.LimitError` for an LDRM above the limit.
     """
     directory = Path(directory)
     index, kind = _read_index(directory)
@@ -194,11 +178,11 @@ def check_backbone_folder(directory: str | os.PathLike) -> tuple[str, BackboneMo
 
 
 def backbone_class(kind: str) -> type[Backbone]:
-    """The :class:`Backbone` subclass of ``kind``, imported on demand (it imports diffusers).
+    """The :class:`Backbone` subclass of ``kind``, imported on demand (with diffusers).
 
     Raises:
         ValueError: an unknown kind.
-        MissingExtraError: diffusers or transformers missing (the message names ``diff4splat[diffusers]``).
+        MissingExtraError: diffusers or transformers missing.
     """
     if kind not in _MODULES:
         raise ValueError(f"backbone must be one of {sorted(_MODULES)}, got {kind!r}")
@@ -211,13 +195,8 @@ def backbone_class(kind: str) -> type[Backbone]:
 
 
 class BackboneModel(nn.Module):
-    """A diffusers backbone (:class:`Backbone`) and our LDRM under one :class:`BackboneModelConfig`.
-
-    Args:
-        backbone: the video backbone (VAE, text encoder, camera-conditioned transformer).
-        ldrm: the LDRM on its latents.
-        config: the model config (``config.vae`` must be ``backbone.latent``).
-    """
+    """A diffusers backbone and our LDRM under one :class:`BackboneModelConfig` (``config.vae`` must equal
+    ``backbone.latent``; ValueError otherwise)."""
 
     def __init__(self, backbone: Backbone, ldrm: LDRM, config: BackboneModelConfig):
         super().__init__()
@@ -226,8 +205,7 @@ class BackboneModel(nn.Module):
         self.backbone, self.ldrm, self.config = backbone, ldrm, config
 
     def networks(self) -> dict[str, nn.Module]:
-        """The four networks by the pipeline's names (``vae``, ``text_encoder``, ``dit``: the transformer,
-        ``ldrm``)."""
+        """The networks by the pipeline's names: ``vae``, ``text_encoder``, ``dit`` (the transformer), ``ldrm``."""
         b = self.backbone
         return {"vae": b.vae, "text_encoder": b.text_encoder, "dit": b.transformer, "ldrm": self.ldrm}
 
@@ -238,12 +216,9 @@ class BackboneModel(nn.Module):
         return counts
 
     def save_pretrained(self, directory: str | os.PathLike, *, overwrite: bool = False) -> Path:
-        """Write the Hub layout, ``camera/``, ``ldrm/`` and ``diff4splat.json`` atomically (temp folder + rename,
-        :func:`diff4splat.io.output_folders.output_dir`, kind ``"model"``).
-
-        Raises:
-            OutputDirError: ``directory`` may not be written or replaced.
-        """
+        """Write the Hub layout, ``camera/``, ``ldrm/`` and ``diff4splat.json`` atomically
+        (:func:`diff4splat.io.output_folders.output_dir`, kind ``"model"``). OutputDirError if ``directory`` may not be
+        written."""
         directory = Path(directory)
         with output_dir(directory, kind=MODEL_KIND, overwrite=overwrite, parents=True,
                         overwrite_flag="overwrite=True") as tmp:
@@ -255,17 +230,13 @@ class BackboneModel(nn.Module):
     @classmethod
     def from_pretrained(cls, directory: str | os.PathLike, torch_dtype: torch.dtype | None = None,
                         seed: int = 0) -> BackboneModel:
-        """Load a backbone folder from a local path (nothing is downloaded).
-
-        Args:
-            directory: the folder (module docstring).
-            torch_dtype: dtype the networks are loaded in (e.g. ``torch.bfloat16``); None: as saved.
-            seed: seed of the random LDRM of a folder without ``ldrm/``.
+        """Load a local backbone folder (nothing is downloaded) in ``torch_dtype`` (None: as saved); a folder without
+        ``ldrm/`` gets a random LDRM from ``seed``, with a warning.
 
         Raises:
-            FileNotFoundError, ValueError: what :func:`check_backbone_folder` finds, before diffusers is imported;
-                a ``diff4splat.json`` or ``ldrm/`` that does not fit the backbone.
-            MissingExtraError: diffusers missing (:func:`backbone_class`).
+            FileNotFoundError, ValueError: from :func:`check_backbone_folder`, before diffusers is imported; a
+                ``diff4splat.json`` or ``ldrm/`` that does not fit the backbone.
+            MissingExtraError: diffusers missing.
         """
         directory = Path(directory)
         kind, config = check_backbone_folder(directory)

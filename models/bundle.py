@@ -1,9 +1,6 @@
-"""The whole Diff4Splat model: video VAE, text encoder, video DiT and LDRM under one config.
-
-A checkpoint folder holds ``config.json`` (this module's :class:`Diff4SplatConfig`) and one
-sub-folder per network (``vae/``, ``text_encoder/``, ``dit/``, ``ldrm/``), each written by that
-network's ``save_pretrained``. ``configs/models/<name>.yaml`` files override the dataclass defaults.
-"""
+"""The whole Diff4Splat model: video VAE, text encoder, video DiT and LDRM under one config. A checkpoint folder
+holds ``config.json`` (:class:`Diff4SplatConfig`) and one sub-folder per network, each written by its
+``save_pretrained``; ``configs/models/<name>.yaml`` files override the dataclass defaults."""
 from __future__ import annotations
 
 import dataclasses
@@ -32,20 +29,17 @@ __all__ = ["Diff4SplatConfig", "Diff4SplatModel", "load_config", "config_path", 
            "largest_network_bytes", "random_init_device"]
 
 CONFIG_DIR = MODEL_CONFIGS
-"""Model size configs (``base``, ``tiny``, ``small``, ``paper``): ``configs/models/``
-(:mod:`diff4splat.utils.config_files`)."""
+"""Model size configs (``base``, ``tiny``, ``small``, ``paper``): ``configs/models/``."""
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 """Shipped trained weights, one folder per model name."""
 DEFAULT_CONFIG = "base"
-"""Name of the model config used when none is named: by ``diff4splat generate`` / ``export-onnx``,
-``diff4splat evaluate``, :func:`diff4splat.pipeline.load_model` / ``Diff4SplatPipeline.from_pretrained``,
-the training stages' ``model_config`` and the benchmarks. One of :func:`config_names`; its shipped
-weights (``WEIGHTS_DIR / DEFAULT_CONFIG``) are what a plain ``generate`` runs (``base``: its model card
-is ``models/weights/base/MODEL_CARD.md``)."""
+"""Name of the model config used when none is named (``generate``, ``export-onnx``, ``evaluate``,
+:func:`diff4splat.pipeline.load_model`, training, benchmarks); its shipped weights (``WEIGHTS_DIR / DEFAULT_CONFIG``,
+model card ``models/weights/base/MODEL_CARD.md``) are what a plain ``generate`` runs."""
 
 _MODULES = {"vae": VideoVAE, "text_encoder": TextEncoder, "dit": VideoDiT, "ldrm": LDRM}
 NETWORKS = tuple(_MODULES)
-"""The four networks' attribute names on :class:`Diff4SplatModel`, in the order data flows through them."""
+"""The four networks' attribute names on :class:`Diff4SplatModel`, in data-flow order."""
 
 
 @dataclass
@@ -53,23 +47,23 @@ class Diff4SplatConfig:
     """Top-level configuration: model resolution, default camera and sampling, and the four networks.
 
     Attributes:
-        name: model name (``tiny``, ``small``, ``paper``); names ``models/weights/<name>``.
-        height, width: model resolution in pixels (multiples of 8 × the DiT/LDRM patch).
+        name: model name; names ``models/weights/<name>``.
+        height, width: model resolution in pixels (multiples of :attr:`pixel_multiple`).
         num_frames: default clip length T = 1 + 4k.
         fov_y_deg: vertical field of view of the default intrinsics, degrees.
         scene_depth: nominal distance to the scene centre, metres; unit of trajectory amplitudes.
         prune_opacity: Gaussians with opacity below this are pruned from generated scenes.
         static_atol: deformations below this (metres / quaternion / log-scale) count as static.
-        generated_colors: where the Gaussians of source frames 1… take their colours (one of
-            :data:`GENERATED_COLORS`): ``"ldrm"``, the LDRM's colour maps (the paper, Sec. 3.2); ``"video"``, the
-            generated video decoded by the VAE at each Gaussian's pixel
-            (:func:`diff4splat.assembly.assemble.video_colors`: the LDRM places what the generator drew, as the photo
-            layer places the photograph).
-        generated_footprint: the opacity, rotation and scale of those Gaussians (one of
-            :data:`GENERATED_FOOTPRINTS`): ``"ldrm"``, the LDRM's maps (the paper, Sec. 3.2); ``"pixel"``, opaque
-            disks facing their source camera that tile its frame, as the photo layer tiles the photograph
-            (:func:`diff4splat.assembly.assemble.pixel_footprint`; the LDRM still places them).
+        generated_colors: colours of source frames 1…'s Gaussians (:data:`GENERATED_COLORS`): ``"ldrm"`` the LDRM's
+            maps (the paper, Sec. 3.2), ``"video"`` the decoded video at each pixel
+            (:func:`diff4splat.assembly.assemble.video_colors`).
+        generated_footprint: their opacity, rotation and scale (:data:`GENERATED_FOOTPRINTS`): ``"ldrm"`` the LDRM's
+            maps, ``"pixel"`` opaque disks tiling the source frame
+            (:func:`diff4splat.assembly.assemble.pixel_footprint`).
         vae, text_encoder, dit, ldrm, sampling: the networks' and the sampler's configs.
+
+    Raises:
+        ValueError: from :meth:`validate`.
     """
 
     name: str = "tiny"
@@ -92,12 +86,8 @@ class Diff4SplatConfig:
         self.validate()
 
     def validate(self) -> None:
-        """Check that the networks fit together.
-
-        Raises:
-            ValueError: naming the mismatched fields (latent channels, text width, camera channels,
-                VAE compression, resolution, frame count).
-        """
+        """Check that the networks fit together; ValueError naming the mismatched fields (latent channels, text width,
+        camera channels, VAE compression, resolution, frame count, field of view, depth, generated options)."""
         c = self.vae.latent_channels
         if not (self.dit.latent_channels == c == self.ldrm.latent_channels):
             raise ValueError(f"latent_channels differ: vae {c}, dit {self.dit.latent_channels}, "
@@ -124,27 +114,25 @@ class Diff4SplatConfig:
 
     @property
     def pixel_multiple(self) -> int:
-        """Pixels per side that every image size must be a multiple of: the VAE's spatial compression
-        times the largest token patch (DiT or LDRM), e.g. 8·2 = 16 for tiny."""
+        """Pixels per side every image size must be a multiple of: VAE spatial factor × the largest DiT/LDRM patch."""
         return self.vae.spatial_factor * max(self.dit.patch_size[1], self.ldrm.patch_size)
 
     def to_dict(self) -> dict:
-        """The config as nested plain dicts (``dataclasses.asdict``: sub-configs become dicts, tuples stay tuples),
-        JSON-serialisable: what ``config.json`` (:meth:`Diff4SplatModel.save_pretrained`) and the ONNX manifest's
-        ``config`` hold, read back by :func:`models.pretrained.config_from_dict`."""
+        """The config as nested plain dicts (``dataclasses.asdict``), JSON-serialisable: what ``config.json`` and the
+        ONNX
+        manifest hold, read back by :func:`models.pretrained.config_from_dict`."""
         return dataclasses.asdict(self)
 
 
 GENERATED_COLORS = ("ldrm", "video")
-"""Values of ``generated_colors`` (:class:`Diff4SplatConfig`, :class:`models.backbone_model.BackboneModelConfig`)."""
+"""Values of ``generated_colors``."""
 GENERATED_FOOTPRINTS = ("ldrm", "pixel")
-"""Values of ``generated_footprint`` (:class:`Diff4SplatConfig`,
-:class:`models.backbone_model.BackboneModelConfig`)."""
+"""Values of ``generated_footprint``."""
 
 
 def check_generated(config: object) -> None:
-    """Raises ValueError unless ``config.generated_colors`` is one of :data:`GENERATED_COLORS` and
-    ``config.generated_footprint`` one of :data:`GENERATED_FOOTPRINTS`."""
+    """ValueError unless ``config.generated_colors`` is in :data:`GENERATED_COLORS` and ``config.generated_footprint``
+    in :data:`GENERATED_FOOTPRINTS`."""
     for name, values in (("generated_colors", GENERATED_COLORS), ("generated_footprint", GENERATED_FOOTPRINTS)):
         if getattr(config, name) not in values:
             raise ValueError(f"{name} must be one of {values}, got {getattr(config, name)!r}")
@@ -159,13 +147,12 @@ def config_names() -> list[str]:
 
 
 def config_path(name_or_path: str | os.PathLike) -> Path:
-    """The file of a model config: ``configs/models/<name>.yaml`` for a shipped name, else the given file.
-
-    A shipped name wins over a file of the same name in the current directory.
+    """The file of a model config: ``configs/models/<name>.yaml`` for a shipped name (which wins over a local
+    file), else the given file.
 
     Raises:
-        FileNotFoundError: neither a shipped config name nor an existing file (the message lists the names).
-        IsADirectoryError: a folder (a model folder goes to ``--checkpoint``/``from_pretrained``).
+        FileNotFoundError: neither a shipped name nor an existing file (the message lists the names).
+        IsADirectoryError: a folder.
     """
     text = os.fspath(name_or_path)
     if text in config_names():
@@ -183,14 +170,13 @@ def config_path(name_or_path: str | os.PathLike) -> Path:
 
 
 def load_config(name_or_path: str | os.PathLike) -> Diff4SplatConfig:
-    """Load a model config by name (``configs/models/<name>.yaml``, shipped with the package) or from a YAML or
-    JSON file (a mapping of :class:`Diff4SplatConfig` fields, e.g. a checkpoint's ``config.json``), over the
-    dataclass defaults; an empty file is the defaults.
+    """Load a model config by shipped name or from a YAML/JSON file of :class:`Diff4SplatConfig` fields, over the
+    defaults; an empty file is the defaults.
 
     Raises:
         FileNotFoundError, IsADirectoryError: no such config (:func:`config_path`).
-        ValueError: naming the file when it is not a model config: not UTF-8 text, not valid YAML/JSON, not a
-            mapping of fields; unknown fields or inconsistent networks.
+        ValueError: naming the file: not UTF-8, not valid YAML/JSON, not a mapping; unknown fields or inconsistent
+            networks.
     """
     path = config_path(name_or_path)
     fmt = "JSON" if path.suffix.lower() == ".json" else "YAML"  # not YAML for JSON: YAML 1.1 reads 1e-06 as text
@@ -209,8 +195,8 @@ class Diff4SplatModel(nn.Module):
     """The four networks of Diff4Splat (Pan et al. 2025, Fig. 2) under one config."""
 
     def __init__(self, config: Diff4SplatConfig, *, place: str | torch.device | None = None):
-        """Build the four networks in :data:`NETWORKS` order (one random-number stream); ``place``: move each
-        network there as soon as it is built (None: leave it where it was built)."""
+        """Build the four networks in :data:`NETWORKS` order (one random stream); ``place``: move each there once
+        built."""
         super().__init__()
         self.config = config
         for name, module_cls in _MODULES.items():
@@ -219,8 +205,8 @@ class Diff4SplatModel(nn.Module):
 
     @property
     def backbone(self) -> OursBackbone:
-        """The VAE, text encoder and DiT as a :class:`models.backbone.Backbone` (a view: the modules are
-        this model's; not a sub-module, so the state dict keeps its keys), with the config's sampling shift."""
+        """The VAE, text encoder and DiT as a :class:`models.backbone.Backbone` view (not a sub-module), with the
+        config's sampling shift."""
         s = self.config.sampling
         return OursBackbone(self.vae, self.text_encoder, self.dit, s.shift, (s.logit_normal_mean, s.logit_normal_std))
 
@@ -235,9 +221,9 @@ class Diff4SplatModel(nn.Module):
         return counts
 
     def save_pretrained(self, directory: str | os.PathLike, *, overwrite: bool = False) -> Path:
-        """Write ``config.json`` and one sub-folder per network, atomically (temp folder + rename,
-        :func:`diff4splat.io.output_folders`, kind ``"model"``: an existing folder is replaced only if it is
-        empty or an earlier saved model, or ``overwrite``).
+        """Write ``config.json`` and one sub-folder per network atomically
+        (:func:`diff4splat.io.output_folders.output_dir`,
+        kind ``"model"``: an existing folder is replaced only if empty, an earlier saved model, or ``overwrite``).
 
         Raises:
             OutputDirError: ``directory`` may not be written or replaced.
@@ -253,15 +239,13 @@ class Diff4SplatModel(nn.Module):
     @classmethod
     def from_pretrained(cls, directory: str | os.PathLike, map_location: str = "cpu",
                         dtype: torch.dtype | None = None) -> Diff4SplatModel:
-        """Load a folder written by :meth:`save_pretrained`, each network directly in ``dtype`` (None: float32;
-        :meth:`models.pretrained.PretrainedMixin.from_pretrained`: no float32 copy first).
+        """Load a folder written by :meth:`save_pretrained`, each network directly in ``dtype`` (None: float32).
 
         Raises:
             FileNotFoundError: a missing config.json or network sub-folder.
-            ValueError: configs that do not fit together or weights that do not match; a config implying
-                more parameters than the ``parameters`` limit, or weights in ``dtype`` larger than the memory
-                available (:class:`diff4splat.utils.limits.LimitError`, counted on the ``meta`` device before any
-                network is built).
+            ValueError: configs that do not fit together or weights that do not match;
+                :class:`diff4splat.utils.limits.LimitError` for more parameters than the ``parameters`` limit or weights
+                larger than the memory available (counted on the ``meta`` device first).
         """
         directory = Path(directory)
         if not (directory / CONFIG_NAME).is_file():
@@ -291,20 +275,15 @@ class Diff4SplatModel(nn.Module):
 
         Args:
             config: the model's configuration.
-            seed: seed of the initialisation (the CPU generator by default; ``device``'s own generator when the
-                weights are built on another device, so the values differ from the CPU's).
-            device: where the weights are created. Building a paper-size model directly on a GPU skips the CPU
-                copy and the minutes of initialising 16 B parameters on a CPU.
-            dtype: floating dtype the weights are created in (None: float32), e.g. ``torch.bfloat16`` to build a
-                paper-size model in half the memory.
-            host: move each network to the CPU as soon as it is built on ``device``: the values are ``device``'s,
-                the model is returned on the CPU, and ``device`` holds one network at a time (the largest is its
-                peak, :func:`largest_network_bytes`).
+            seed: seed of ``device``'s generator (values differ between devices).
+            device: where the weights are created (a GPU skips the slow CPU initialisation).
+            dtype: floating dtype of the weights (None: float32).
+            host: move each network to the CPU once built: ``device`` holds one network at a time
+                (:func:`largest_network_bytes`).
 
         Raises:
-            LimitError: ``config`` implies more parameters than the ``parameters`` limit, or (returned on the CPU)
-                weights larger than the memory available (counted on the ``meta`` device first,
-                :func:`models.pretrained.check_model_size`).
+            LimitError: more parameters than the ``parameters`` limit, or (returned on the CPU) weights larger than the
+                memory available (:func:`models.pretrained.check_model_size`).
         """
         device = torch.device(device)
         check_model_size(lambda: cls(config), f"config {config.name!r}",
@@ -323,9 +302,8 @@ class Diff4SplatModel(nn.Module):
 
 
 def largest_network_bytes(config: Diff4SplatConfig, dtype: torch.dtype | None = None) -> int:
-    """Bytes of the largest of the four networks' parameters and buffers in ``dtype`` (None: float32), counted on
-    the ``meta`` device (nothing is allocated or initialised): what :meth:`Diff4SplatModel.random` with
-    ``host=True`` holds on its device at a time."""
+    """Bytes of the largest network's parameters and buffers in ``dtype`` (None: float32), counted on the ``meta``
+    device: what :meth:`Diff4SplatModel.random` with ``host=True`` holds on its device at a time."""
     with torch.device("meta"), skip_init():
         model = Diff4SplatModel(config)
     itemsize = (dtype or torch.float32).itemsize
@@ -334,21 +312,14 @@ def largest_network_bytes(config: Diff4SplatConfig, dtype: torch.dtype | None = 
 
 
 INIT_HEADROOM_BYTES = 1 << 30
-"""GPU memory :func:`random_init_device` leaves free beyond the largest network (the allocator's rounding, the
-CUDA context of a first use)."""
+"""GPU memory :func:`random_init_device` leaves free beyond the largest network."""
 
 
 def random_init_device(config: Diff4SplatConfig, device: str | torch.device, dtype: torch.dtype | None = None
                        ) -> torch.device:
-    """Where :meth:`Diff4SplatModel.random` (``host=True``) should initialise a model that runs on ``device``:
-    ``device`` itself when it is a CUDA GPU with room for the largest network plus :data:`INIT_HEADROOM_BYTES`
-    (free memory, ``torch.cuda.mem_get_info``), else the CPU, whose one serial generator fills a paper-size model
-    many times slower (each linear layer is filled twice, by its default initialisation and then by DiT's; times in
-    docs/benchmarks.md, the command table).
-
-    Raises:
-        nothing: a device whose memory cannot be queried (no CUDA runtime) gives the CPU.
-    """
+    """Where :meth:`Diff4SplatModel.random` (``host=True``) should initialise a model running on ``device``: that CUDA
+    device when its free memory holds the largest network plus :data:`INIT_HEADROOM_BYTES`, else the CPU (also when
+    the memory cannot be queried). Raises nothing."""
     device = torch.device(device)
     if device.type != "cuda":
         return torch.device("cpu")

@@ -1,28 +1,12 @@
 """Camera-controlled video diffusion transformer (the video generator of Diff4Splat, Pan et al. 2025).
 
-A DiT (Peebles & Xie 2023) over video latents, conditioned on
-  * the flow-matching noise level σ — adaLN-Zero modulation of every block (DiT §3.2);
-  * the first-frame latent — concatenated on channels with a frame-0 mask (image-to-video, as in
-    Wan 2.1 I2V / Stable Video Diffusion);
-  * the camera path — packed Plücker rays (CameraCtrl, He et al. 2024) patchified like the latents
-    and added to the patch tokens through a zero-initialised projection;
-  * text — cross-attention to projected text-encoder tokens in every block (PixArt-α, Chen et al. 2024).
-Self-attention runs over all video tokens with 3D RoPE (``models.rope``) and QK-norm.
-
-The network predicts the flow-matching velocity v = ε − x0 for x_σ = (1 − σ)·x0 + σ·ε
-(rectified flow, Liu et al. 2023; SD3 Esser et al. 2024 Eq. 1–3).
-
-Gradient checkpointing (Chen et al. 2016) is a runtime switch, not part of the saved config:
-``dit.gradient_checkpointing = True`` (set by the trainer's ``gradient_checkpointing`` option) recomputes each
-block's activations in the backward pass (``torch.utils.checkpoint``, non-reentrant) while the module is
-training with gradients enabled; the loss and the gradients are those of the plain forward.
-
-Feed-forward chunking (diffusers' ``enable_forward_chunking``) is another runtime switch:
-``dit.ff_chunk_tokens = n`` runs each block's MLP over at most n tokens at a time. The MLP acts on every token
-alone, so the output is the same; the peak of its hidden activations (N × 4D, twice: before and after the GELU)
-is divided by ⌈N / n⌉. :class:`diff4splat.runtime.TorchRuntime` sets it for sampling (at 49 frames, 512² the
-paper model's hidden activations are 0.87 GB; benchmarks/dit_memory.py).
-"""
+A DiT (Peebles & Xie 2023) over video latents predicting the flow-matching velocity v = ε − x0 (SD3 Eq. 1–3),
+conditioned on σ (adaLN-Zero, DiT §3.2), the first-frame latent (concatenated on channels with a frame-0 mask, as
+Wan 2.1 I2V), the camera path (packed Plücker rays through a zero-initialised projection added to the patch tokens,
+CameraCtrl, He et al. 2024) and text (cross-attention, PixArt-α). Self-attention uses 3D RoPE and QK-norm. Two
+runtime switches, never saved: ``gradient_checkpointing`` (recompute each block in the backward pass, Chen et al.
+2016) and ``ff_chunk_tokens`` (each block's MLP over at most n tokens at a time, as diffusers'
+``enable_forward_chunking``); neither changes the values."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -52,7 +36,7 @@ SIGMA_SCALE = 1000.0  # σ ∈ [0, 1] is embedded as σ·1000, the DiT/DDPM time
 
 @dataclass
 class VideoDiTConfig:
-    """Sizes of :class:`VideoDiT`. Defaults are the CPU test size (~0.26 M parameters).
+    """Sizes of :class:`VideoDiT`; defaults are the CPU test size.
 
     Attributes:
         latent_channels: c, channels of the video VAE latent.
@@ -61,13 +45,15 @@ class VideoDiTConfig:
         num_heads: attention heads; head_dim = hidden_size / num_heads must be even and ≥ 6 (3D RoPE).
         mlp_ratio: feed-forward width / hidden_size.
         patch_size: (pt, ph, pw) latent voxels per token.
-        text_dim: width of the text-encoder tokens (4096 for T5-XXL).
-        camera_channels: channels of the packed Plücker tensor, 6·4·8·8 = 1536 for
-            ``diff4splat.cameras.pack_plucker`` with the VAE's 4×8×8 compression.
+        text_dim: width of the text-encoder tokens.
+        camera_channels: channels of the packed Plücker tensor (6·4·8·8 for a 4×8×8 VAE).
         frequency_embedding_size: width of the sinusoidal σ features.
-        rope_theta: RoPE base wavelength.
+        rope_theta: RoPE base wavelength (> 1).
         qk_norm: RMSNorm queries and keys per head.
         norm_eps: epsilon of every LayerNorm / RMSNorm.
+
+    Raises:
+        ValueError: a field out of range.
     """
 
     latent_channels: int = 16
@@ -107,21 +93,14 @@ class VideoDiTConfig:
 
     @classmethod
     def paper(cls) -> VideoDiTConfig:
-        """Paper size, as fixed in docs/DESIGN.md for Diff4Splat: 32 blocks, hidden 4096, 32 heads
-        (head_dim 128, RoPE split 44/42/42), 16 latent channels, patch 1×2×2, T5-XXL text (4096).
-        Only instantiate on ``torch.device("meta")`` on a CPU machine."""
+        """Paper size (DESIGN.md): 32 blocks, hidden 4096, 32 heads, 16 latent channels, patch 1×2×2, T5-XXL text."""
         return cls(latent_channels=16, hidden_size=4096, depth=32, num_heads=32, mlp_ratio=4.0,
                    patch_size=(1, 2, 2), text_dim=4096, camera_channels=1536)
 
 
 class VideoDiTBlock(nn.Module):
-    """Transformer block: adaLN-Zero self-attention, pre-norm text cross-attention, adaLN-Zero MLP.
-
-    x ← x + g₁ · SelfAttn(modulate(LN(x), β₁, γ₁))          (DiT §3.2, 3D RoPE)
-    x ← x + CrossAttn(LN'(x), text)                          (PixArt-α; skipped without text)
-    x ← x + g₂ · MLP(modulate(LN(x), β₂, γ₂))
-    with (β₁, γ₁, g₁, β₂, γ₂, g₂) = Linear(SiLU(c)) from the σ embedding c.
-    """
+    """Transformer block: x += g₁·SelfAttn(modulate(LN(x), β₁, γ₁)) (3D RoPE); x += CrossAttn(LN'(x), text)
+    (skipped without text); x += g₂·MLP(modulate(LN(x), β₂, γ₂)); (β, γ, g) = Linear(SiLU(c)) of the σ embedding."""
 
     def __init__(self, hidden_size: int, num_heads: int, mlp_ratio: float, qk_norm: bool, eps: float):
         super().__init__()
@@ -142,25 +121,20 @@ class VideoDiTBlock(nn.Module):
         context_mask: Tensor | None = None,  # (B, L) bool, True = real token
         ff_chunk_tokens: int | None = None,  # the MLP over at most this many tokens at a time (None: all)
     ) -> Tensor:
-        """One block on the video tokens (class docstring).
+        """One block on the video tokens.
 
         Args:
-            x: (B, N, D) video tokens, N = n'·h'·w' patches flattened frame-major.
-            c: (B, D) σ embedding (adaLN input).
-            rope: (cos, sin), each (N, head_dim/2), from :func:`models.rope.rope_3d` of the token grid.
-            context: (B, L, D) projected text tokens, or None (cross-attention skipped).
-            context_mask: (B, L) bool, True = real token, or None (all real).
-            ff_chunk_tokens: run the MLP over at most this many tokens at a time (same values); None: all at once.
+            x: (B, N, D) video tokens, frame-major.
+            c: (B, D) σ embedding.
+            rope: (cos, sin), each (N, head_dim/2), from :func:`models.rope.rope_3d`.
+            context: (B, L, D) projected text tokens, or None.
+            context_mask: (B, L) bool, True = real token, or None.
+            ff_chunk_tokens: the MLP over at most this many tokens at a time; None: all at once.
 
-        Returns:
-            (B, N, D).
-
-        Raises:
-            ValueError: ``context_mask`` not a bool (B, L) tensor (from :meth:`CrossAttention.forward`).
+        Returns (B, N, D). ValueError from :meth:`CrossAttention.forward` for a bad mask.
         """
         shift_msa, scale_msa, gate_msa, shift_mlp, scale_mlp, gate_mlp = self.adaLN_modulation(c).chunk(6, dim=1)
-        # Gated residuals as one addcmul each (x + g·branch in one pass over the tokens, rounded once); a branch's
-        # output is a temporary, so it is freed before the next branch runs.
+        # Gated residuals as one addcmul each (one pass over the tokens, rounded once).
         x = torch.addcmul(x, gate_msa.unsqueeze(1),
                           self.attn(modulated_layer_norm(x, shift_msa, scale_msa, self.norm1.eps), rope))
         if context is not None:  # a None check on an argument, not on tensor values: exportable
@@ -172,8 +146,7 @@ class VideoDiTBlock(nn.Module):
         parts = zip(x.split(ff_chunk_tokens, dim=1), h.split(ff_chunk_tokens, dim=1), strict=True)
         if tracing() or (torch.is_grad_enabled() and any(t.requires_grad for t in (x, h, gate))):
             return torch.cat([torch.addcmul(xp, gate, self.mlp(hp)) for xp, hp in parts], dim=1)
-        # Nothing records autograd: each chunk's residual is added into x in place. x is this block's own tensor
-        # here (the sum made by the residuals above, never the caller's input), so no one else sees the write.
+        # No autograd: add each chunk's residual into x in place (x is this block's own sum, not the caller's input).
         for xp, hp in parts:
             xp.addcmul_(gate, self.mlp(hp))
         return x
@@ -189,19 +162,15 @@ class FinalLayer(nn.Module):
         self.adaLN_modulation = nn.Sequential(nn.SiLU(), nn.Linear(hidden_size, 2 * hidden_size))
 
     def forward(self, x: Tensor, c: Tensor) -> Tensor:
-        """x: (B, N, D), c: (B, D) → (B, N, pt·ph·pw·out_channels)."""
+        """x (B, N, D), c (B, D) → (B, N, pt·ph·pw·out_channels)."""
         shift, scale = self.adaLN_modulation(c).chunk(2, dim=1)
         return self.linear(modulated_layer_norm(x, shift, scale, self.norm_final.eps))
 
 
 def check_dit_inputs(config: VideoDiTConfig, x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor | None,
                      text: Tensor | None, text_mask: Tensor | None) -> None:
-    """The checks :meth:`VideoDiT.forward` makes (shapes static under tracing; the σ range in eager mode only); the
-    ONNX runtime makes them too. Shapes as :meth:`VideoDiT.forward`.
-
-    Raises:
-        ValueError: an argument of the wrong shape or dtype (named), σ outside [0, 1], ``text_mask`` without ``text``.
-    """
+    """The checks of :meth:`VideoDiT.forward` (shapes static under tracing, the σ range eager only); the ONNX runtime
+    makes them too. ValueError as :meth:`VideoDiT.forward`."""
     cfg = config
     check_velocity_inputs(x, sigma, image_latent, plucker, cfg.latent_channels, cfg.camera_channels, cfg.patch_size)
     B = x.shape[0]
@@ -221,19 +190,10 @@ def check_dit_inputs(config: VideoDiTConfig, x: Tensor, sigma: Tensor, image_lat
 class VideoDiT(nn.Module, PretrainedMixin):
     """Camera- and text-conditioned image-to-video flow-matching DiT (Diff4Splat's generator).
 
-    :meth:`forward`: noisy latents x (B, c, n, h, w), σ (B,) in [0, 1], first-frame latent (B, c, 1, h, w), packed
-    Plücker rays (B, camera_channels, n, h, w) or None, text (B, L, text_dim) + mask (B, L) or None → velocity
-    ε − x0 (B, c, n, h, w). Inside, patches of (p_t, p_h, p_w) = ``patch_size`` become N = (n/p_t)·(h/p_h)·(w/p_w)
-    tokens of width D = ``hidden_size``, run through ``depth`` :class:`VideoDiTBlock` s with 3D RoPE.
-
-    Build with a :class:`VideoDiTConfig`; ``save_pretrained`` / ``from_pretrained`` from
-    :class:`models.pretrained.PretrainedMixin`.
-
     Attributes:
-        gradient_checkpointing: recompute each block in the backward pass (training with gradients only);
-            False after construction and after loading (a runtime setting, never saved).
-        ff_chunk_tokens: run each block's MLP over at most this many tokens at a time (same output, less peak
-            memory); None (all at once) after construction and after loading (a runtime setting, never saved).
+        gradient_checkpointing: recompute each block in the backward pass (training with gradients only); False
+            after construction and loading.
+        ff_chunk_tokens: MLP chunk size in tokens, or None; None after construction and loading.
     """
 
     config_class = VideoDiTConfig
@@ -250,15 +210,14 @@ class VideoDiT(nn.Module, PretrainedMixin):
         self.text_embedder = Mlp(config.text_dim, D, D)  # PixArt-α caption projection
         self.blocks = nn.ModuleList(
             VideoDiTBlock(D, config.num_heads, config.mlp_ratio, config.qk_norm, config.norm_eps)
-            for _ in range(config.depth)
-        )
+            for _ in range(config.depth))
         self.final_layer = FinalLayer(D, patch_volume, c, config.norm_eps)
         self.gradient_checkpointing = False
         self.ff_chunk_tokens: int | None = None
         self.initialize_weights()
 
     def initialize_weights(self) -> None:
-        """DiT initialisation (DiT ``initialize_weights``) plus two zero-inits for the new branches."""
+        """DiT initialisation (DiT ``initialize_weights``) plus zero-inits for the new branches."""
         def _basic_init(module):
             if isinstance(module, nn.Linear):
                 nn.init.xavier_uniform_(module.weight)
@@ -268,12 +227,10 @@ class VideoDiT(nn.Module, PretrainedMixin):
         nn.init.normal_(self.t_embedder.mlp[0].weight, std=0.02)
         nn.init.normal_(self.t_embedder.mlp[2].weight, std=0.02)
         for block in self.blocks:
-            # adaLN-Zero (DiT §3.2): gates start at 0, so every residual branch is off and each block
-            # is the identity at initialisation.
+            # adaLN-Zero (DiT §3.2): gates start at 0, so each block starts as the identity.
             nn.init.zeros_(block.adaLN_modulation[-1].weight)
             nn.init.zeros_(block.adaLN_modulation[-1].bias)
-            # The cross-attention branch has no gate; zeroing its output projection makes it start
-            # off as well (PixArt-α's initialisation), keeping "block = identity" at step 0.
+            # Zero cross-attention output projection (PixArt-α): the ungated branch starts off too.
             nn.init.zeros_(block.cross_attn.proj.weight)
             nn.init.zeros_(block.cross_attn.proj.bias)
         # Zero final layer (DiT): the untrained network predicts v = 0 everywhere.
@@ -281,10 +238,7 @@ class VideoDiT(nn.Module, PretrainedMixin):
         nn.init.zeros_(self.final_layer.adaLN_modulation[-1].bias)
         nn.init.zeros_(self.final_layer.linear.weight)
         nn.init.zeros_(self.final_layer.linear.bias)
-        # Zero camera projection (ControlNet's zero-conv idea, as in CameraCtrl / AC3D): camera tokens
-        # are exactly 0 until training moves this layer, so an untrained camera branch leaves the
-        # network bit-for-bit what it is without cameras, and a pretrained video DiT can be
-        # fine-tuned with camera control without a disruptive first step.
+        # Zero camera projection (ControlNet zero-conv, CameraCtrl): an untrained camera branch changes nothing.
         nn.init.zeros_(self.camera_embedder.weight)
         nn.init.zeros_(self.camera_embedder.bias)
 
@@ -297,26 +251,23 @@ class VideoDiT(nn.Module, PretrainedMixin):
         text: Tensor | None = None,  # (B, L, text_dim) text-encoder tokens
         text_mask: Tensor | None = None,  # (B, L) bool, True = real token
     ) -> Tensor:
-        """Predict the flow-matching velocity v = ε − x0 (SD3 Eq. 3, σ = 1 is pure noise).
+        """Predict the flow-matching velocity v = ε − x0 (σ = 1 is pure noise).
 
         Args:
-            x: (B, c, n, h, w) noisy video latent, n latent frames; n, h, w divisible by patch_size.
-            sigma: (B,) noise level σ ∈ [0, 1] (checked in eager mode; not while tracing/exporting).
-            image_latent: (B, c, 1, h, w) clean latent of the first frame, placed at latent frame 0
-                next to a mask channel that is 1 at frame 0 and 0 elsewhere.
-            plucker: (B, camera_channels, n, h, w) from ``diff4splat.cameras.pack_plucker``
-                (moments in metres, unit directions); None → no camera tokens (identical to an
-                untrained, zero-initialised camera branch).
-            text: (B, L, text_dim) text tokens; None → no cross-attention at all (empty prompt).
-            text_mask: (B, L) bool, True for real tokens; None → all tokens real. Padding tokens
-                get zero attention weight; a sample with no real token gets zero cross-attention.
+            x: (B, c, n, h, w) noisy latent; n, h, w divisible by patch_size.
+            sigma: (B,) σ ∈ [0, 1] (checked in eager mode only).
+            image_latent: (B, c, 1, h, w) clean first-frame latent.
+            plucker: (B, camera_channels, n, h, w) from ``diff4splat.cameras.pack_plucker``, or None (no camera tokens,
+                as an untrained camera branch).
+            text: (B, L, text_dim) text tokens, or None (no cross-attention).
+            text_mask: (B, L) bool, True = real token, or None (all real).
 
         Returns:
-            (B, c, n, h, w) velocity, same dtype as the parameters.
+            (B, c, n, h, w) velocity in the parameters' dtype.
 
         Raises:
-            ValueError: an argument has the wrong shape or dtype (the message names it), σ is
-                outside [0, 1], or ``text_mask`` is given without ``text``.
+            ValueError: an argument of the wrong shape or dtype (named), σ outside [0, 1], or ``text_mask`` without
+                ``text``.
         """
         check_dit_inputs(self.config, x, sigma, image_latent, plucker, text, text_mask)
         cfg = self.config
@@ -343,5 +294,3 @@ class VideoDiT(nn.Module, PretrainedMixin):
                 tokens = block(tokens, emb, rope, context, text_mask, self.ff_chunk_tokens)
         out = self.final_layer(tokens, emb)  # (B, N, pt·ph·pw·c)
         return unpatchify(out, cfg.patch_size, grid, c)
-
-

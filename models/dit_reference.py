@@ -1,14 +1,7 @@
-"""The DiT block written op by op, as DiT, PixArt-α and RoFormer write it: the reference for :class:`VideoDiTBlock`.
-
-:class:`models.dit.VideoDiTBlock` computes the same function in fewer passes over its tokens (LayerNorm carrying the
-adaLN modulation, one ``addcmul`` per gated residual, RoPE over whole channels, heads kept inner, the GELU in the
-GEMM's epilogue on CUDA). :func:`reference_block` computes it with the block's own parameters and each operation on
-its own: LayerNorm, then the modulation's multiply and add (DiT §3.2); q, k and v from the fused projection, split
-into heads-outer (B, heads, N, head_dim) tensors; QK-norm; RoPE as four products of the even and odd channels, two
-sums and a stack (RoFormer Eq. 14); attention, its output merged back; text cross-attention (PixArt-α); the
-feed-forward with its GELU as an op of its own. Tests hold the block to it; ``benchmarks/gpu.py --part block``
-times both on a GPU.
-"""
+"""The DiT block written op by op, as DiT, PixArt-α and RoFormer write it: the reference the tests hold
+:class:`models.dit.VideoDiTBlock` to. Same parameters; LayerNorm then the modulation (DiT §3.2), heads-outer q, k,
+v, QK-norm, RoPE as products of even and odd channels (RoFormer Eq. 14), text cross-attention (PixArt-α) and the
+GELU as its own op."""
 from __future__ import annotations
 
 import torch
@@ -29,7 +22,7 @@ def reference_block(
     context: Tensor | None = None,  # (B, L, D) projected text tokens
     context_mask: Tensor | None = None,  # (B, L) bool, True = real token
 ) -> Tensor:
-    """``block(x, c, rope, context, context_mask)`` computed op by op (see the module docstring): (B, N, D)."""
+    """``block(x, c, rope, context, context_mask)`` computed op by op: (B, N, D)."""
     shift_msa, scale_msa, gate_msa, shift_mlp, scale_mlp, gate_mlp = block.adaLN_modulation(c).chunk(6, dim=1)
     D = x.shape[-1]
     h = modulate(F.layer_norm(x, (D,), eps=block.norm1.eps), shift_msa, scale_msa)

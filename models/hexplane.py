@@ -1,49 +1,17 @@
 """HexPlane deformation field of 4D Gaussian Splatting (Wu et al., CVPR 2024, §3.2).
 
-A Gaussian's canonical mean μ and a time t ∈ [0, 1] give a deformation (Δμ, Δq, Δs). The field returns these
-tensors only (:meth:`HexPlaneField.forward` at one time, :meth:`HexPlaneField.deformations_at` at T key times); the
-``diff4splat`` layer composes them with the canonical Gaussians (:func:`diff4splat.scene.dynamic.compose_deformation`,
-:class:`diff4splat.scene.dynamic.DynamicGaussians`; docs/DESIGN.md, "Conventions" and "Layers").
-Public reference code: hustvl/4DGaussians ``scene/hexplane.py`` (planes, sampling), ``scene/deformation.py``
-(MLP), ``scene/regulation.py`` + ``scene/gaussian_model.py`` (regularisers), defaults from
-``arguments/__init__.py`` (``ModelHiddenParams``) overridden by ``arguments/dnerf/dnerf_default.py``.
+A canonical mean μ (metres) and a time t ∈ [0, 1] give a deformation (Δμ, Δq, Δs), composed with the canonical
+Gaussians by :mod:`diff4splat.scene.dynamic` (DESIGN.md "Conventions"). μ maps to box coordinates in [−1, 1]³
+(clamped) and t to 2t − 1; per scale, six planes (xy, xz, xt, yz, yt, zt) of shape (1, F, res_b, res_a) are sampled
+bilinearly and multiplied; the scales are concatenated, (N, S·F) → trunk → three heads Δμ (metres), Δq (added to
+(1, 0, 0, 0)), Δs (log-scale offset). Reference: hustvl/4DGaussians ``scene/hexplane.py``, ``scene/deformation.py``,
+``scene/regulation.py``; defaults from its D-NeRF config; the same initialisation (spatial planes U(0.1, 0.5), time
+planes 1, Xavier Linear weights).
 
-Pipeline for N points (shapes in comments; F = ``feature_dim``, S = ``len(multires)``, W = ``net_width``):
-
-1. μ (N, 3) metres → box coordinates x = (μ − c)·2/e ∈ [−1, 1]³ (c the centre, e the extent of ``bounds``),
-   clamped to [−1, 1] (points outside the box take the border value, as the reference's
-   ``padding_mode='border'``); time → 2t − 1 ∈ [−1, 1].
-2. Per scale s (spatial resolution × ``multires[s]``, time resolution unchanged): six planes, the pairs of
-   ``itertools.combinations(range(4), 2)`` = xy, xz, xt, yz, yt, zt; plane (a, b) has shape
-   (1, F, res_b, res_a) and is sampled bilinearly at (coord_a, coord_b) (``grid_sample``,
-   ``align_corners=True``, ``padding_mode='border'``); the six (N, F) samples are multiplied (Hadamard).
-3. The S products are concatenated → (N, S·F) → trunk Linear(S·F, W) then ``trunk_depth`` × (ReLU, Linear(W, W))
-   → three heads ReLU-Linear(W, W)-ReLU-Linear(W, k): Δμ (k = 3, metres), Δq (k = 4, added to (1, 0, 0, 0)),
-   Δs (k = 3, log-scale offset).
-
-Initialisation as the reference: spatial planes U(0.1, 0.5), time planes 1 (so a new field's features do not
-depend on t), Linear weights Xavier-uniform (gain 1), biases PyTorch's default. **Beyond the reference**, the
-last Linear of each head is zero-initialised (weights and bias), so a new field is exactly the identity
-(Δμ = 0, Δq = (1, 0, 0, 0), Δs = 0); the reference code does not do this.
-
-Deliberate differences from the reference, all documented where they act:
-
-- **Time coordinate.** The reference feeds t ∈ [0, 1] directly as the grid coordinate in [−1, 1]
-  (``gaussian_renderer/__init__.py``: ``time = viewpoint_camera.time``; D-NeRF times are ``time / max_time``),
-  so only the upper half of the time axis (rows 12…24 of 25) is ever sampled. We map t → 2t − 1, so the
-  whole time axis spans the clip.
-- **Box orientation.** The reference's ``set_aabb(xyz_max, xyz_min)`` stores [max, min], so its
-  ``normalize_aabb`` maps max → −1 and min → +1 (a mirror image). We map min → −1, max → +1; the function
-  class is the same.
-- **Rotation.** The reference adds the head output to the canonical quaternion (``apply_rotation=False``);
-  we compose normalize(Δq ⊗ q) with Δq = (1, 0, 0, 0) + head (docs/DESIGN.md). Its scale update
-  ``log s + Δs`` equals our s·exp(Δs).
-- Δopacity and ΔSH heads are not built: the reference has them off in every config (``no_do=True``,
-  ``no_dshs=True``).
-
-Parameter count of the default config (:class:`HexPlaneConfig()`): 2,444,170 — planes 2,426,880
-(scale 1: 3·32·64² + 3·32·64·25; scale 2: 3·32·128² + 3·32·128·25), trunk 4,160, heads 13,130.
-"""
+Differences from the reference: the last Linear of each head starts at zero (a new field is the identity); time
+maps to 2t − 1 (the reference samples only the upper half of its time axis); the box maps min → −1 (the reference
+mirrors it); rotation composes normalize(Δq ⊗ q) (the reference adds); no Δopacity/ΔSH heads (off in every
+reference config)."""
 from __future__ import annotations
 
 import dataclasses
@@ -66,22 +34,9 @@ from diff4splat.utils.limits import check_limit
 from .deformation import IDENTITY_QUAT
 from .pretrained import config_from_dict
 
-__all__ = [
-    "HexPlaneConfig",
-    "HexPlaneField",
-    "sample_plane",
-    "plane_tv",
-    "time_smoothness",
-    "time_l1",
-    "save_field",
-    "load_field",
-    "PLANE_AXES",
-    "SPATIAL_PLANES",
-    "TIME_PLANES",
-    "MIN_EXTENT",
-    "FIELD_FORMAT",
-    "FIELD_FORMAT_VERSION",
-]
+__all__ = ["HexPlaneConfig", "HexPlaneField", "sample_plane", "plane_tv", "time_smoothness", "time_l1", "save_field",
+           "load_field", "PLANE_AXES", "SPATIAL_PLANES", "TIME_PLANES", "MIN_EXTENT", "FIELD_FORMAT",
+           "FIELD_FORMAT_VERSION"]
 
 PLANE_AXES: tuple[tuple[int, int], ...] = tuple(itertools.combinations(range(4), 2))
 """Coordinate pairs of the six planes (0 = x, 1 = y, 2 = z, 3 = t): xy, xz, xt, yz, yt, zt."""
@@ -90,7 +45,7 @@ SPATIAL_PLANES = (0, 1, 3)
 TIME_PLANES = (2, 4, 5)
 """Indices into :data:`PLANE_AXES` of the space-time planes xt, yt, zt (the reference's ``[2, 4, 5]``)."""
 MIN_EXTENT = 1e-6
-"""Smallest box extent per axis, metres: a degenerate axis (max − min below it) is treated as this wide."""
+"""Smallest box extent per axis, metres: a degenerate axis is treated as this wide."""
 FIELD_FORMAT = "diff4splat-hexplane"
 FIELD_FORMAT_VERSION = 1
 _SPATIAL_INIT = (0.1, 0.5)  # reference init_grid_param(a=0.1, b=0.5)
@@ -102,20 +57,17 @@ class HexPlaneConfig:
     """Sizes and regulariser weights of :class:`HexPlaneField` (defaults: the reference's D-NeRF config).
 
     Attributes:
-        feature_dim: F, channels per plane (reference ``kplanes_config['output_coordinate_dim']`` = 32).
-        resolution: (x, y, z, t) plane resolution at scale 1, each ≥ 3 (reference [64, 64, 64, 25]).
-        multires: spatial resolution multipliers, one scale each (``dnerf_default.py``: [1, 2]); the time
-            resolution is the same at every scale, as the reference.
-        net_width: W, width of the trunk and heads (reference ``net_width`` = 64).
-        trunk_depth: hidden (ReLU, Linear(W, W)) blocks after the first Linear, ≥ 0. The reference's
-            ``defor_depth`` D builds max(D − 1, 0) of them; D-NeRF's D = 0 → 0.
-        plane_tv_weight: weight of the spatial-plane regulariser (reference 1e-4).
-        time_smoothness_weight: weight of the second-difference smoothness of the time planes (reference 1e-2).
-        l1_time_planes: weight of mean |1 − plane| of the time planes (reference 1e-4).
-        plane_reg: regulariser of the spatial planes under ``plane_tv_weight``. ``"smoothness"`` (default)
-            follows 4DGaussians' ``_plane_regulation``, which despite the weight's name applies the
-            second-difference ``compute_plane_smoothness`` (:func:`time_smoothness`) to the spatial planes;
-            ``"tv"`` is K-Planes' total variation ``compute_plane_tv`` (:func:`plane_tv`).
+        feature_dim: F, channels per plane.
+        resolution: (x, y, z, t) plane resolution at scale 1, each ≥ 3.
+        multires: spatial resolution multipliers, one scale each; time resolution is the same at every scale.
+        net_width: W, width of the trunk and heads.
+        trunk_depth: hidden (ReLU, Linear(W, W)) blocks after the first Linear, ≥ 0 (the reference's
+            max(defor_depth − 1, 0)).
+        plane_tv_weight: weight of the spatial-plane regulariser.
+        time_smoothness_weight: weight of the time planes' second-difference smoothness.
+        l1_time_planes: weight of mean |1 − plane| of the time planes.
+        plane_reg: the spatial regulariser: ``"smoothness"`` (the reference's ``_plane_regulation``, which applies
+            :func:`time_smoothness` to the spatial planes) or ``"tv"`` (K-Planes, :func:`plane_tv`).
 
     Raises:
         ValueError: a field out of range, naming the field and the value.
@@ -158,11 +110,8 @@ class HexPlaneConfig:
 
     @property
     def num_parameters(self) -> int:
-        """Parameter count of a :class:`HexPlaneField` of this config, in closed form (nothing allocated).
-
-        Σ_scales Σ_planes F·res_a·res_b + trunk (S·F·W + W + depth·(W² + W)) + heads (3·(W² + W) + 10·W + 10);
-        2,444,170 for the defaults.
-        """
+        """Parameter count of a :class:`HexPlaneField` of this config, in closed form: planes + trunk
+        (S·F·W + W + depth·(W² + W)) + heads (3·(W² + W) + 10·W + 10)."""
         W, planes = self.net_width, 0
         for mult in self.multires:
             res = [r * mult for r in self.resolution[:3]] + [self.resolution[3]]
@@ -175,16 +124,8 @@ class HexPlaneConfig:
 
 
 def sample_plane(plane: Tensor, coords: Tensor) -> Tensor:
-    """Bilinear sample of one plane at normalised coordinates (reference ``grid_sample_wrapper``).
-
-    Args:
-        plane: (1, C, H, W) feature plane.
-        coords: (N, 2) coordinates (u, v) ∈ [−1, 1]: u indexes W (u = −1 the first column, +1 the last),
-            v indexes H (``align_corners=True``). Coordinates outside are clamped to the border.
-
-    Returns:
-        (N, C) features.
-    """
+    """Bilinear sample (``align_corners=True``, border-clamped) of a (1, C, H, W) plane at (N, 2) coordinates
+    (u, v) ∈ [−1, 1], u along W, v along H → (N, C) (reference ``grid_sample_wrapper``)."""
     C = plane.shape[1]
     grid = coords.clamp(-1.0, 1.0).view(1, 1, -1, 2)  # (1, 1, N, 2)
     out = F.grid_sample(plane, grid, mode="bilinear", padding_mode="border", align_corners=True)  # (1, C, 1, N)
@@ -199,19 +140,8 @@ def _check_plane(name: str, plane: Tensor, min_h: int, min_w: int) -> tuple[int,
 
 
 def plane_tv(plane: Tensor) -> Tensor:
-    """K-Planes total variation (reference ``scene/regulation.py`` ``compute_plane_tv``).
-
-    2·(mean over (B, C, H−1, W) of (p[h+1] − p[h])² + mean over (B, C, H, W−1) of (p[w+1] − p[w])²).
-
-    Args:
-        plane: (B, C, H, W), H, W ≥ 2.
-
-    Returns:
-        scalar Tensor ≥ 0.
-
-    Raises:
-        ValueError: another shape.
-    """
+    """K-Planes total variation (reference ``compute_plane_tv``): 2·(mean of squared H differences + mean of
+    squared W differences) of a (B, C, H, W) plane, H, W ≥ 2 → scalar ≥ 0. ValueError on another shape."""
     _check_plane("plane_tv", plane, 2, 2)
     h_tv = torch.square(plane[..., 1:, :] - plane[..., :-1, :]).mean()
     w_tv = torch.square(plane[..., :, 1:] - plane[..., :, :-1]).mean()
@@ -219,33 +149,16 @@ def plane_tv(plane: Tensor) -> Tensor:
 
 
 def time_smoothness(plane: Tensor) -> Tensor:
-    """Mean squared second difference along H (reference ``compute_plane_smoothness``).
-
-    On a time plane (a, t) of shape (1, C, res_t, res_a) H is the time axis; on a spatial plane (a, b) it is b.
-
-    Args:
-        plane: (B, C, H, W), H ≥ 3.
-
-    Returns:
-        scalar Tensor ≥ 0: mean over (B, C, H−2, W) of (p[h+2] − 2p[h+1] + p[h])².
-
-    Raises:
-        ValueError: another shape.
-    """
+    """Mean squared second difference along H (reference ``compute_plane_smoothness``; H is time on a time
+    plane) of a (B, C, H, W) plane, H ≥ 3 → scalar ≥ 0. ValueError on another shape."""
     _check_plane("time_smoothness", plane, 3, 1)
     first = plane[..., 1:, :] - plane[..., :-1, :]
     return torch.square(first[..., 1:, :] - first[..., :-1, :]).mean()
 
 
 def time_l1(plane: Tensor) -> Tensor:
-    """Mean |1 − plane| (reference ``gaussian_model.py`` ``_l1_regulation``): pulls time planes to 1 (static).
-
-    Args:
-        plane: (B, C, H, W).
-
-    Returns:
-        scalar Tensor ≥ 0.
-    """
+    """Mean |1 − plane| of a (B, C, H, W) plane (reference ``_l1_regulation``), pulling time planes to 1 (static)
+    → scalar ≥ 0."""
     _check_plane("time_l1", plane, 1, 1)
     return torch.abs(1 - plane).mean()
 
@@ -272,26 +185,20 @@ def _head(width: int, out: int, device: torch.device) -> nn.Sequential:
 
 
 class HexPlaneField(nn.Module):
-    """The HexPlane deformation field (module docstring; reference ``scene/hexplane.py`` +
-    ``scene/deformation.py``).
+    """The HexPlane deformation field (module docstring).
 
     Args:
         config: sizes and regulariser weights.
-        bounds: (2, 3) float tensor [min, max] of the scene box, metres, finite, max ≥ min per axis. An axis
-            with max − min < :data:`MIN_EXTENT` (a planar or single-point scene) is treated as
-            :data:`MIN_EXTENT` wide about its centre instead of dividing by zero. Stored as the buffer
-            ``bounds`` (float32, saved and loaded with the state dict).
-        device: where the parameters and ``bounds`` are made (default: ``bounds``' device). The random
-            initialisation draws from that device's default generator (``torch.manual_seed`` seeds them all,
-            but CUDA draws other numbers than the CPU): to get the same field on every device, make it on the
-            CPU and move it (``HexPlaneField(config, bounds, device="cpu").to(dev)``, as ``fit`` does).
+        bounds: (2, 3) float [min, max] of the scene box, metres, finite, max ≥ min; an axis narrower than
+            :data:`MIN_EXTENT` is treated as that wide. Stored as the float32 buffer ``bounds``.
+        device: where the parameters are made (default ``bounds``' device); random init draws from that device's
+            generator, so make the field on the CPU and move it for the same field on every device.
 
     Attributes:
         grids: ``grids[s][i]`` the plane :data:`PLANE_AXES` ``[i]`` of scale s, (1, F, res_b, res_a).
-        trunk, d_means_head, d_quats_head, d_scales_head: the MLP (module docstring).
 
     Raises:
-        ValueError: bad ``bounds`` (shape, non-finite, max < min).
+        ValueError: bad ``config`` or ``bounds`` (shape, non-finite, max < min).
     """
 
     def __init__(self, config: HexPlaneConfig, bounds: Tensor, device: str | torch.device | None = None) -> None:
@@ -330,18 +237,15 @@ class HexPlaneField(nn.Module):
             nn.init.zeros_(head[-1].bias)
 
     def normalize(self, means: Tensor) -> Tensor:
-        """Box coordinates of ``means`` (N, 3) metres → (N, 3) in [−1, 1] (min → −1, max → +1, clamped).
-
-        ±inf coordinates clamp to the border; an inf·0 that an overflowing box extent (|bounds| near the
-        float limit) would give maps to the centre, so the result is always finite for NaN-free means.
-        """
+        """``means`` (N, 3) metres → box coordinates (N, 3) in [−1, 1] (min → −1, clamped); finite for
+        NaN-free means, even with ±inf or an overflowing box extent."""
         lo, hi = self.bounds[0].to(means.dtype), self.bounds[1].to(means.dtype)
         scale = 2.0 / (hi - lo).clamp_min(MIN_EXTENT)  # (3,), 0 if the extent overflows
         x = (means - (0.5 * lo + 0.5 * hi)) * scale
         return torch.nan_to_num(x, nan=0.0).clamp(-1.0, 1.0)
 
     def _times(self, t: float | Tensor, n: int, like: Tensor) -> Tensor:
-        """(N, 1) grid time coordinates 2t − 1 from a float or a (N,) / 0-d tensor in [0, 1]."""
+        """(N, 1) grid times 2t − 1 from a float or a (N,) / 0-d tensor in [0, 1]."""
         if isinstance(t, Tensor):
             if t.dim() == 0:
                 t = t.reshape(1).expand(n)
@@ -355,18 +259,10 @@ class HexPlaneField(nn.Module):
         return like.new_full((n, 1), 2.0 * check_number("t", t, lo=0, hi=1) - 1.0)
 
     def features(self, means: Tensor, t: float | Tensor) -> Tensor:
-        """Plane features of points at time ``t``.
-
-        Args:
-            means: (N, 3) canonical means, metres (outside the box, ±inf included: clamped to its border).
-            t: time in [0, 1], a float or a (N,) tensor.
-
-        Returns:
-            (N, S·F): per scale the product of the six plane samples, scales concatenated.
+        """Plane features (N, S·F) of ``means`` (N, 3) metres at time ``t`` ∈ [0, 1] (float or (N,)).
 
         Raises:
-            ValueError: ``means`` not (N, 3) of the field's dtype or holding NaN (which would crash
-                ``grid_sample``'s CPU backward); ``t`` not a float / (N,) tensor in [0, 1].
+            ValueError: ``means`` not (N, 3) of the field's dtype or holding NaN; ``t`` not a float / (N,) in [0, 1].
         """
         if means.dim() != 2 or means.shape[1] != 3 or not means.is_floating_point():
             raise ValueError(f"means must be a float tensor of shape (N, 3), got {means.dtype} {tuple(means.shape)}")
@@ -385,44 +281,27 @@ class HexPlaneField(nn.Module):
         return torch.cat(per_scale, dim=1)
 
     def forward(self, means: Tensor, t: float | Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Deformation of Gaussians with canonical means ``means`` at time ``t``.
-
-        Args:
-            means: (N, 3) canonical means, metres, N ≥ 0.
-            t: time in [0, 1], a float or a (N,) tensor.
-
-        Returns:
-            d_means (N, 3) metres; d_quats (N, 4) wxyz, unnormalised, (1, 0, 0, 0) + head output (exactly
-            the identity at init); d_scales (N, 3) log-scale offsets. Differentiable w.r.t. the parameters
-            and ``means`` (zero gradient w.r.t. means outside the box).
-
-        Raises:
-            ValueError: as :meth:`features`.
-        """
+        """Deformation at time ``t``: d_means (N, 3) metres, d_quats (N, 4) wxyz unnormalised ((1, 0, 0, 0) + head),
+        d_scales (N, 3) log-scale offsets; differentiable. ValueError as :meth:`features`."""
         h = self.trunk(self.features(means, t))  # (N, W)
         d_quats = self.d_quats_head(h) + h.new_tensor(IDENTITY_QUAT)
         return self.d_means_head(h), d_quats, self.d_scales_head(h)
 
     @torch.no_grad()
     def deformations_at(self, means: Tensor, times: Tensor, chunk: int = 65536) -> tuple[Tensor, Tensor, Tensor]:
-        """The deformation of M points at each of T key times, evaluated ``chunk`` points at a time (no gradient).
-
-        The tensors of :class:`~diff4splat.scene.dynamic.DynamicGaussians` (which the caller builds:
-        ``DynamicGaussians(canonical, times, *field.deformations_at(canonical.means, times))``).
+        """:meth:`forward` at each of T key times, ``chunk`` points at a time, without gradient: the tensors of
+        :class:`~diff4splat.scene.dynamic.DynamicGaussians`.
 
         Args:
-            means: (M, 3) canonical means, metres, on any device and of any float dtype (evaluated on the
-                field's device in its dtype), M ≥ 0.
-            times: (T,) key times in [0, 1], T ≥ 1 (a tensor on any device, or a sequence of numbers).
-            chunk: points per field evaluation (bounds memory), ≥ 1.
+            means: (M, 3) canonical means, metres, any device and float dtype.
+            times: (T,) key times in [0, 1], T ≥ 1 (tensor or sequence).
+            chunk: points per evaluation, ≥ 1.
 
         Returns:
-            d_means (T, M, 3) metres, d_quats (T, M, 4) wxyz unnormalised, d_scales (T, M, 3) log-scale
-            offsets: exactly :meth:`forward` at each key time, on ``means``' device and dtype.
+            d_means (T, M, 3), d_quats (T, M, 4), d_scales (T, M, 3) on ``means``' device and dtype.
 
         Raises:
-            ValueError: ``times`` not (T,) with T ≥ 1, non-finite or outside [0, 1]; ``chunk`` < 1; ``means``
-                not (M, 3) or holding NaN (:meth:`features`).
+            ValueError: bad ``times`` or ``chunk``; ``means`` as :meth:`features`.
         """
         check_positive_int("chunk", chunk)
         times = torch.as_tensor(times, dtype=means.dtype, device=means.device)
@@ -442,16 +321,10 @@ class HexPlaneField(nn.Module):
         return d_means, d_quats, d_scales
 
     def regularization(self) -> Tensor:
-        """Weighted regulariser of the planes (reference ``gaussian_model.py`` ``compute_regulation``).
-
-        Σ over scales of ``plane_tv_weight``·Σ_{xy,xz,yz} R(p) + ``time_smoothness_weight``·Σ_{xt,yt,zt}
-        :func:`time_smoothness` (p) + ``l1_time_planes``·Σ_{xt,yt,zt} :func:`time_l1` (p), with R =
-        :func:`time_smoothness` (the reference, ``plane_reg="smoothness"``) or :func:`plane_tv`
-        (``plane_reg="tv"``).
-
-        Returns:
-            scalar Tensor ≥ 0, differentiable w.r.t. the planes.
-        """
+        """Weighted plane regulariser (reference ``compute_regulation``), summed over scales:
+        ``plane_tv_weight``·Σ_spatial R + ``time_smoothness_weight``·Σ_time :func:`time_smoothness` +
+        ``l1_time_planes``·
+        Σ_time :func:`time_l1`, R chosen by ``plane_reg``. Scalar ≥ 0, differentiable."""
         cfg = self.config
         spatial = time_smoothness if cfg.plane_reg == "smoothness" else plane_tv
         total = self.grids[0][0].new_zeros(())
@@ -466,15 +339,8 @@ class HexPlaneField(nn.Module):
 
 
 def save_field(path: str | os.PathLike, field: HexPlaneField) -> None:
-    """Write ``field`` to one safetensors file, atomically (:func:`diff4splat.io.atomic.atomic_output_path`).
-
-    Tensors: the state dict (planes ``grids.s.i``, MLP weights, the ``bounds`` buffer). Metadata:
-    ``format`` = :data:`FIELD_FORMAT`, ``version`` = :data:`FIELD_FORMAT_VERSION`, ``config`` = the
-    :class:`HexPlaneConfig` as JSON.
-
-    Raises:
-        ValueError: ``field`` is not a :class:`HexPlaneField`.
-    """
+    """Write ``field`` atomically to one safetensors file: its state dict, metadata ``format`` (:data:`FIELD_FORMAT`),
+    ``version`` and ``config`` (JSON). ValueError unless ``field`` is a :class:`HexPlaneField`."""
     if not isinstance(field, HexPlaneField):
         raise ValueError(f"field must be a HexPlaneField, got {type(field).__name__}")
     tensors = {k: v.detach().contiguous().cpu() for k, v in field.state_dict().items()}
@@ -485,16 +351,14 @@ def save_field(path: str | os.PathLike, field: HexPlaneField) -> None:
 
 
 def load_field(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> HexPlaneField:
-    """Read a field written by :func:`save_field` (in the dtype it was saved in) onto ``map_location``.
-
-    The file's tensors are read on the CPU and become the field's (nothing is initialised at random: the global
-    random state is left as it was), then moved to ``map_location``.
+    """Read a field written by :func:`save_field` (in its saved dtype) onto ``map_location``; the global random
+    state is untouched.
 
     Raises:
         FileNotFoundError: no file at ``path``.
-        ValueError: naming ``path``: not a readable safetensors file, metadata of another format or version,
-            a bad config, or tensors that do not match the config.
-        diff4splat.utils.limits.LimitError: the config describes more parameters than the ``parameters`` limit.
+        ValueError: naming ``path``: unreadable, another format or version, a bad config, or tensors that do not
+            match it.
+        diff4splat.utils.limits.LimitError: more parameters than the ``parameters`` limit.
     """
     path = Path(path)
     if not path.is_file():

@@ -1,10 +1,6 @@
-"""Small building blocks shared by the transformer networks (DiT ``models.py`` style).
-
-Generic pieces, free of any one network's config: sinusoidal timestep embedding, MLP, adaLN
-``modulate``, video patchify/unpatchify, and multi-head self-/cross-attention with QK-norm, 3D RoPE
-and key padding masks. Everything is ONNX-exportable: no complex dtypes and no Python control flow
-on tensor values.
-"""
+"""Building blocks shared by the transformer networks (DiT ``models.py`` style): sinusoidal timestep embedding,
+MLP, adaLN ``modulate``, video patchify/unpatchify, and multi-head self-/cross-attention with QK-norm, 3D RoPE and
+key padding masks. ONNX-exportable: no complex dtypes, no Python control flow on tensor values."""
 from __future__ import annotations
 
 import math
@@ -16,33 +12,20 @@ from torch import Tensor, nn
 from models.rope import apply_rope
 from models.tracing import tracing
 
-__all__ = [
-    "timestep_embedding",
-    "TimestepEmbedder",
-    "Mlp",
-    "modulate",
-    "modulated_layer_norm",
-    "patchify",
-    "unpatchify",
-    "QKNorm",
-    "SelfAttention",
-    "CrossAttention",
-]
+__all__ = ["timestep_embedding", "TimestepEmbedder", "Mlp", "modulate", "modulated_layer_norm", "patchify",
+           "unpatchify", "QKNorm", "SelfAttention", "CrossAttention"]
 
 
 def timestep_embedding(t: Tensor, dim: int, max_period: float = 10000.0) -> Tensor:
-    """Sinusoidal embedding of scalar times (DiT ``TimestepEmbedder``; Vaswani et al. 2017 §3.5).
-
-    emb = [cos(t·ω_0), …, cos(t·ω_{k−1}), sin(t·ω_0), …, sin(t·ω_{k−1})], k = ⌊dim/2⌋,
-    ω_i = max_period^(−i/k); a zero column is appended when ``dim`` is odd.
+    """Sinusoidal embedding of scalar times (DiT; Vaswani et al. 2017 §3.5): [cos(t·ω_i)…, sin(t·ω_i)…],
+    k = ⌊dim/2⌋, ω_i = max_period^(−i/k), a zero column appended for odd ``dim``.
 
     Args:
-        t: (B,) real times, any range (DiT uses integer steps 0…1000; flow models pass σ·1000).
+        t: (B,) real times (flow models pass σ·1000).
         dim: embedding width ≥ 2.
         max_period: longest wavelength, in units of t.
 
-    Returns:
-        (B, dim) float32 in [−1, 1].
+    Returns (B, dim) float32 in [−1, 1].
 
     Raises:
         ValueError: ``t`` is not 1-D or ``dim`` < 2.
@@ -73,20 +56,15 @@ class TimestepEmbedder(nn.Module):
         )
 
     def forward(self, t: Tensor) -> Tensor:
-        """t: (B,) → (B, hidden_size)."""
         emb = timestep_embedding(t, self.frequency_embedding_size)
         return self.mlp(emb.to(self.mlp[0].weight.dtype))
 
 
 class Mlp(nn.Module):
-    """Linear → GELU(tanh) → Linear, the transformer feed-forward (DiT / ViT).
-
-    On CUDA, where autograd records nothing and no autocast runs, the first Linear's GEMM applies the GELU in its
-    epilogue (``torch._addmm_activation``: cuBLASLt's GELU epilogue, the tanh form; ATen's CUDA fallback runs
-    ``gelu_(…, "tanh")``), so the (…, hidden) activations are written once instead of written, read and written
-    again (at the paper size 0.87 GB a block, 28 GB a sampling step; benchmarks/dit_traffic.py). The CPU's
-    ``_addmm_activation`` applies the erf form, so the CPU, autograd, autocast and tracing take the plain path.
-    """
+    """Linear → GELU(tanh) → Linear, the transformer feed-forward (DiT / ViT): (..., in) → (..., out).
+    On CUDA without autograd, autocast or tracing, the first GEMM applies the GELU in its epilogue
+    (``torch._addmm_activation``), writing the hidden activations once; the CPU's epilogue is the erf form, so the CPU
+    takes the plain path."""
 
     def __init__(self, in_features: int, hidden_features: int, out_features: int | None = None):
         super().__init__()
@@ -95,7 +73,6 @@ class Mlp(nn.Module):
         self.fc2 = nn.Linear(hidden_features, out_features or in_features)
 
     def forward(self, x: Tensor) -> Tensor:
-        """x: (..., in_features) → (..., out_features)."""
         w = self.fc1.weight
         if x.is_cuda and x.dtype == w.dtype and x.dim() >= 2 and not torch.is_autocast_enabled("cuda") \
                 and not (torch.is_grad_enabled() and (x.requires_grad or w.requires_grad)) and not tracing():
@@ -105,36 +82,21 @@ class Mlp(nn.Module):
 
 
 def modulate(x: Tensor, shift: Tensor, scale: Tensor) -> Tensor:
-    """Adaptive LayerNorm affine: x·(1 + scale) + shift, per sample (DiT §3.2, adaLN).
-
-    Args:
-        x: (B, N, D) normalised tokens.
-        shift, scale: (B, D) regressed from the conditioning vector.
-
-    Returns:
-        (B, N, D).
-    """
+    """Adaptive LayerNorm affine x·(1 + scale) + shift (DiT §3.2): x (B, N, D), shift, scale (B, D) → (B, N, D)."""
     return x * (1 + scale.unsqueeze(1)) + shift.unsqueeze(1)
 
 
 def modulated_layer_norm(x: Tensor, shift: Tensor, scale: Tensor, eps: float) -> Tensor:
-    """``modulate(LayerNorm(x), shift, scale)`` (LayerNorm without its own affine; DiT §3.2 adaLN) in fewer passes
-    over ``x``.
-
-    One sample (B = 1, as sampling runs): the per-sample affine is LayerNorm's own weight 1 + scale and bias shift,
-    one kernel that reads ``x`` once and rounds once; the normalise-multiply-add chain read and wrote the tokens three
-    times (at the paper size, 13,312 × 4,096 bfloat16 tokens: 0.65 GB against 0.22 GB per call, twice a block).
-    Several samples, or while tracing: LayerNorm, then one ``addcmul``. Same values as :func:`modulate` up to
-    the rounding of the intermediate (exactly in float64).
+    """``modulate(LayerNorm(x), shift, scale)`` (LayerNorm without affine) in fewer passes over ``x``: for B = 1
+    the affine is LayerNorm's own weight and bias (one kernel); otherwise LayerNorm then one ``addcmul``. Same values
+    as :func:`modulate` up to intermediate rounding.
 
     Args:
         x: (B, N, D) tokens.
-        shift, scale: (B, D) regressed from the conditioning vector.
+        shift, scale: (B, D).
         eps: LayerNorm's epsilon.
 
-    Returns:
-        (B, N, D), dtype of ``x`` promoted with ``scale``'s (as :func:`modulate`; float32 under autocast, which
-        runs LayerNorm in float32). Raises nothing of its own (LayerNorm's errors for mismatched sizes).
+    Returns (B, N, D) in ``x``'s dtype promoted with ``scale``'s.
     """
     if x.shape[0] == 1 and not tracing():
         dtype = torch.promote_types(x.dtype, scale.dtype)
@@ -143,18 +105,9 @@ def modulated_layer_norm(x: Tensor, shift: Tensor, scale: Tensor, eps: float) ->
 
 
 def patchify(x: Tensor, patch: tuple[int, int, int]) -> Tensor:
-    """Cut a video into non-overlapping pt×ph×pw patches, one token each (ViT / DiT patchify).
-
-    Token order is frame-major ((f·h' + y)·w' + x); the channels of a token are ordered
-    (C, pt, ph, pw), i.e. the flattening of a ``Conv3d`` weight, so ``Linear`` on these tokens
-    equals ``Conv3d(kernel_size=patch, stride=patch)``.
-
-    Args:
-        x: (B, C, T, H, W), T, H, W divisible by ``patch``.
-        patch: (pt, ph, pw).
-
-    Returns:
-        (B, T/pt · H/ph · W/pw, C·pt·ph·pw).
+    """Cut a video (B, C, T, H, W) into non-overlapping (pt, ph, pw) patches, one token each (ViT / DiT):
+    → (B, T/pt · H/ph · W/pw, C·pt·ph·pw), tokens frame-major, channels ordered (C, pt, ph, pw) so a Linear equals
+    ``Conv3d(kernel_size=patch, stride=patch)``.
 
     Raises:
         ValueError: ``x`` is not 5-D or a size is not divisible by its patch size.
@@ -171,19 +124,10 @@ def patchify(x: Tensor, patch: tuple[int, int, int]) -> Tensor:
 
 
 def unpatchify(tokens: Tensor, patch: tuple[int, int, int], grid: tuple[int, int, int], channels: int) -> Tensor:
-    """Inverse of :func:`patchify`.
-
-    Args:
-        tokens: (B, n·h·w, channels·pt·ph·pw).
-        patch: (pt, ph, pw).
-        grid: (n, h, w) token grid.
-        channels: C.
-
-    Returns:
-        (B, C, n·pt, h·ph, w·pw).
+    """Inverse of :func:`patchify`: tokens (B, n·h·w, C·pt·ph·pw) on the ``grid`` (n, h, w) → (B, C, n·pt, h·ph, w·pw).
 
     Raises:
-        ValueError: ``tokens`` does not have the stated shape.
+        ValueError: ``tokens`` does not have that shape.
     """
     pt, ph, pw = patch
     n, h, w = grid
@@ -197,28 +141,16 @@ def unpatchify(tokens: Tensor, patch: tuple[int, int, int], grid: tuple[int, int
 
 
 class QKNorm(nn.RMSNorm):
-    """RMSNorm over one head's channels (QK-norm) computed in the input's dtype: under bf16 autocast the queries
-    and keys arrive in bfloat16, and a float32 weight keeps torch from its fused kernel (it warns "Mismatch dtype
-    between input and weight" and falls back to the unfused composite); the weight (ones at init) is cast to
-    the input's dtype instead. Identical to :class:`torch.nn.RMSNorm` when the dtypes already agree.
-
-    x: (..., head_dim) → (..., head_dim), same dtype.
-    """
+    """RMSNorm over one head's channels (QK-norm) with the weight cast to the input's dtype, so bf16 inputs keep
+    torch's fused kernel; equal to :class:`torch.nn.RMSNorm` when dtypes agree. (..., head_dim) → same."""
 
     def forward(self, x: Tensor) -> Tensor:
-        """x: (..., head_dim) → (..., head_dim), RMS-normalised and scaled by the weight, in x's dtype."""
         return F.rms_norm(x, self.normalized_shape, self.weight.to(x.dtype), self.eps)
 
 
 class _MultiHead(nn.Module):
-    """Head split and per-head QK-norm shared by :class:`SelfAttention` and :class:`CrossAttention`.
-
-    Holds no random parameters (RMSNorm weights start at 1), so the subclasses' projections are initialised
-    from the RNG in the same order as if they were built alone.
-
-    Raises:
-        ValueError: ``dim`` not divisible by ``num_heads``.
-    """
+    """Head split and per-head QK-norm of the attention modules; no random parameters (the subclasses' projections
+    draw from the RNG as if built alone). ValueError: ``dim`` not divisible by ``num_heads``."""
 
     def __init__(self, dim: int, num_heads: int, qk_norm: bool, eps: float):
         super().__init__()
@@ -231,12 +163,8 @@ class _MultiHead(nn.Module):
 
 
 class SelfAttention(_MultiHead):
-    """Multi-head self-attention with optional QK-norm and rotary positions.
-
-    QK-norm: RMSNorm over each head's query and key channels before the dot product, which
-    bounds attention logits and stabilises large-scale training (Dehghani et al. 2023, ViT-22B;
-    Esser et al. 2024, SD3). RoPE (if given) is applied after the norm, as in Wan / SD3.
-    """
+    """Multi-head self-attention with optional QK-norm (RMSNorm of each head's queries and keys, Dehghani et al. 2023;
+    SD3) and RoPE after the norm (Wan / SD3)."""
 
     def __init__(self, dim: int, num_heads: int, qk_norm: bool = True, eps: float = 1e-6):
         super().__init__(dim, num_heads, qk_norm, eps)
@@ -248,7 +176,7 @@ class SelfAttention(_MultiHead):
         x: Tensor,  # (B, N, D)
         rope: tuple[Tensor, Tensor] | None = None,  # cos, sin: (N, head_dim/2) each
     ) -> Tensor:
-        """Attend every token to every token; returns (B, N, D)."""
+        """(B, N, D) → (B, N, D), every token attending to every token."""
         B, N, D = x.shape
         weights = self.qkv.weight.chunk(3)  # views of the fused (3D, D) projection: q, k, v rows
         biases = self.qkv.bias.chunk(3)
@@ -260,32 +188,23 @@ class SelfAttention(_MultiHead):
             t = norm(t)
             return t if rope is None else apply_rope(t, *rope, token_dim=-3)
 
-        # One projection at a time: the (B, N, 3D) output of the fused matrix never exists (at the paper size,
-        # 13,312 tokens, it was 0.33 GB alive beside the rotated queries and keys; benchmarks/dit_memory.py).
+        # One projection at a time: the (B, N, 3D) output of the fused matrix never exists.
         q, k, v = project(0, self.q_norm), project(1, self.k_norm), project(2)
         return self.proj(_attend(q, k, v).reshape(B, N, D))
 
 
 def _attend(q: Tensor, k: Tensor, v: Tensor, keep: Tensor | None = None) -> Tensor:
-    """Scaled dot-product attention on heads-inner tensors: q (B, N, heads, d), k and v (B, L, heads, d), keep
-    (B, L) bool or None → (B, N, heads, d).
-
-    The projections' own layout: their outputs are split into heads by a view, normalised and rotated in place of
-    a transposed copy, and handed to ``scaled_dot_product_attention`` as (B, heads, N, d) views, which its kernels
-    take as they are; they write the output in the query's layout, so (B, N, heads·d) is a view again. Transposing
-    first made the kernels write heads-outer and cost a copy of the output per attention (0.22 GB at the paper
-    size, twice a block)."""
+    """Scaled dot-product attention on heads-inner tensors: q (B, N, heads, d), k, v (B, L, heads, d), keep (B, L) bool
+    or
+    None → (B, N, heads, d); passed to the kernel as transposed views, so no copies."""
     mask = None if keep is None else keep[:, None, None, :]
     return F.scaled_dot_product_attention(q.transpose(1, 2), k.transpose(1, 2), v.transpose(1, 2),
                                           attn_mask=mask).transpose(1, 2)
 
 
 class CrossAttention(_MultiHead):
-    """Multi-head cross-attention from tokens to a context sequence, with a key padding mask.
-
-    Queries come from ``x``; keys/values from ``context`` (e.g. text tokens, as in PixArt-α).
-    QK-norm as in :class:`SelfAttention`; no positional rotation.
-    """
+    """Multi-head cross-attention from ``x`` to a ``context`` sequence (e.g. text, PixArt-α) with a key padding mask;
+    QK-norm as :class:`SelfAttention`, no rotation."""
 
     def __init__(self, dim: int, context_dim: int, num_heads: int, qk_norm: bool = True, eps: float = 1e-6):
         super().__init__(dim, num_heads, qk_norm, eps)
@@ -299,12 +218,9 @@ class CrossAttention(_MultiHead):
         context: Tensor,  # (B, L, context_dim)
         context_mask: Tensor | None = None,  # (B, L) bool, True = real token
     ) -> Tensor:
-        """Attend each token of ``x`` (B, N, D) to ``context`` (B, L, context_dim); returns (B, N, D).
-
-        Masked context tokens get exactly zero attention weight. A sample whose mask is all False
-        has nothing to attend to: its output is exactly zero (not NaN). This is done with tensor
-        ops only (the mask row is opened to all keys, then the result is multiplied by 0), so the
-        module traces/exports without data-dependent branches.
+        """``x`` (B, N, D) attends to ``context`` (B, L, context_dim) → (B, N, D). Masked tokens get zero weight; a
+        sample
+        with an all-False mask gives exactly zero (tensor ops only, so it traces).
 
         Raises:
             ValueError: ``context_mask`` given but not a bool tensor of shape (B, L).

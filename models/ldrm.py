@@ -1,41 +1,13 @@
 """Latent Dynamic Reconstruction Model (LDRM; Diff4Splat, Pan et al. 2025, LDRM section).
 
-Decodes a video latent plus the camera path (Plücker rays packed to latent resolution) into
-pixel-aligned 3D Gaussians along the camera rays of the video's *source frames* and, when times are
-given, deformation maps at those times (:mod:`models.deformation`).
-
-Architecture (B scenes, latent (B, c, n, h, w), patch p, tokens N = n·(h/p)·(w/p), width D):
-
-1. Patchify latents and packed Plücker rays (1×p×p each) → (B, N, c·p²) and (B, N, 1536·p²),
-   concatenate channel-wise, ``Linear`` → (B, N, D) plus a fixed 3D sine-cosine position
-   embedding (per axis as in MAE, He et al. 2022; channels split over t, y, x).
-2. ``depth`` pre-norm transformer blocks (ViT/DiT: x += Attn(LN(x)); x += MLP(LN(x))) with
-   self-attention over all spatio-temporal tokens, then a final LayerNorm.
-3. The tokens as a (B, D, n, h/p, w/p) volume → the head → 12 raw channels per pixel of each source frame →
-   activations (:func:`gaussian_activations`). ``LDRMConfig.head``: ``"upsample"`` (default) decodes each frame's
-   token map with overlapping 3×3 convolutions and ×2 pixel shuffles (:class:`UpsampleHead`: neighbouring tokens
-   meet in every output pixel, no 8×8 blocks); ``"deconv"`` is the paper's "3D deconvolutional layer … pixel-level
-   correspondence with source video frames", a ``ConvTranspose3d`` with kernel = stride, which decodes every token
-   into its own block of pixels (checkpoints written before the switch existed load with it). Which frames are
-   source frames is ``LDRMConfig.gaussian_frames`` (:func:`source_frame_indices`):
-
-   - ``"latent"`` (default): kernel = stride = (1, 8p, 8p), one H×W grid per latent frame, placed on
-     the rays of the last video frame that latent frame encodes (frames 0, 4, 8, …: S = n);
-   - ``"all"``: kernel = stride = (4, 8p, 8p), one grid per video frame (S = T = 1 + 4(n − 1); the
-     causal first latent frame encodes frame 0 alone, so the first 3 decoded frames are dropped);
-   - ``"reference"``: frame 0 only (S = 1), the design before every-frame decoding (an ablation).
-4. Optional sharp input view (``image_branch`` > 0; ours, beyond the paper): the photograph at full
-   resolution and frame 0's raw head output pass through a small zero-initialised CNN whose output is
-   added to frame 0's raw channels, so the reference frame's Gaussians can carry detail that the VAE's
-   8×8 compression lost. With ``image_depth`` > 0, frame 0's raw distance channel is instead drawn by a
-   monocular depth network from the photograph alone (``models.mono_depth``), trained on metric depth.
-5. Each source frame's tokens as a (B, D, h/p, w/p) map feed the deformation network (for ``"all"``,
-   the frames of one latent frame share its map).
-
-Gaussians are predicted in the world frame in which the Plücker rays are given (the network
-sees world-frame rays). The network returns plain tensors (:class:`LDRMOutput`); placing each
-pixel's Gaussian on its source camera's ray (``diff4splat.assembly.assemble.to_gaussians``) is the pipeline's job.
-"""
+Video latent (B, c, n, h, w) + packed Plücker rays (B, 6·4·8·8, n, h, w) → pixel-aligned 3D Gaussians on the rays of
+the video's source frames and, given times, deformation maps (:mod:`models.deformation`). Patchified latent and
+ray tokens are embedded with a fixed 3D sine-cosine position embedding (MAE, He et al. 2022), pass ``depth``
+pre-norm transformer blocks over all tokens, and a head (``"upsample"``, ours, or the paper's ``"deconv"``) turns
+the token volume into 12 raw channels per pixel (:func:`gaussian_activations`). Options beyond the paper: a sharp
+input-view CNN (``image_branch``) and a monocular depth network for frame 0 (``image_depth``). The Gaussians are in
+the world frame of the rays; placing them on rays is ``diff4splat.assembly.assemble``'s job. Source frames,
+heads and branches: DESIGN.md "Data flow of generate", step 6."""
 from __future__ import annotations
 
 import math
@@ -61,17 +33,15 @@ RAW_GAUSSIAN_CHANNELS = 12
 """Raw head channels per pixel: distance 1, scales 3, quaternion 4, opacity 1, colour 3."""
 
 GAUSSIAN_FRAMES = ("latent", "all", "reference")
-"""Values of ``LDRMConfig.gaussian_frames`` (module docstring, step 3)."""
+"""Values of ``LDRMConfig.gaussian_frames`` (:func:`source_frame_indices`)."""
 HEADS = ("upsample", "deconv")
-"""Values of ``LDRMConfig.head`` (module docstring, step 3)."""
+"""Values of ``LDRMConfig.head``."""
 
 
 def source_frame_indices(gaussian_frames: str, num_latent_frames: int, vae_temporal: int = 4) -> list[int]:
-    """Video frames whose camera rays carry a grid of pixel-aligned Gaussians, in output order.
-
-    ``"latent"``: [0, r, 2r, …, (n−1)r] with r = ``vae_temporal`` (latent frame i ≥ 1 of the causal VAE
-    encodes frames r(i−1)+1 … ri; its grid goes on the last of them, so the path's last frame is one);
-    ``"all"``: every frame 0 … r(n−1); ``"reference"``: [0].
+    """Video frames whose rays carry a grid of Gaussians, in output order: ``"latent"`` [0, r, …, (n−1)r] with
+    r = ``vae_temporal`` (the last frame each causal latent frame encodes), ``"all"`` every frame 0 … r(n−1),
+    ``"reference"`` [0].
 
     Raises:
         ValueError: unknown ``gaussian_frames`` or ``num_latent_frames`` < 1.
@@ -89,38 +59,32 @@ def source_frame_indices(gaussian_frames: str, num_latent_frames: int, vae_tempo
 
 @dataclass
 class LDRMConfig:
-    """Sizes and output ranges of :class:`LDRM` (defaults: the tiny CPU model, ~0.3 M parameters).
+    """Sizes and output ranges of :class:`LDRM` (defaults: the tiny CPU model).
 
     Attributes:
         latent_channels: c, channels of the video latent.
-        vae_temporal, vae_spatial: VAE compression (4× time, 8×8 space); the Plücker input has
-            6·vae_temporal·vae_spatial² channels (``pack_plucker``).
+        vae_temporal, vae_spatial: VAE compression; the Plücker input has 6·vae_temporal·vae_spatial² channels.
         patch_size: p, latent pixels per token side (1×p×p patches).
-        embed_dim: D, token width; divisible by ``num_heads``.
-        depth: number of transformer blocks.
-        num_heads: attention heads.
-        mlp_ratio: MLP hidden width / D.
+        embed_dim: D, token width; divisible by ``num_heads``, ≥ 6.
+        depth, num_heads, mlp_ratio: transformer blocks, attention heads, MLP hidden width / D.
         depth_min, depth_max: range of the predicted ray distance, metres (0 < min < default < max).
         default_depth: distance for a zero raw output, metres.
-        scale_base: Gaussian scale per metre of distance for a zero raw output, radians: about
-            0.7 of a pixel's angular size 1/focal (0.01 ↔ focal ≈ 70 px, the tiny 64 px model at 50° fov),
-            so neighbouring pixel-aligned splats overlap without each covering many pixels.
-        scale_log_range: bound of the log-scale adjustment; scales lie within
-            distance·scale_base·e^{±scale_log_range}.
-        gaussian_frames: which video frames get a grid of Gaussians: "latent", "all" or "reference"
-            (module docstring, step 3; :func:`source_frame_indices`).
-        head: "upsample" (overlapping convolutions and pixel shuffles, :class:`UpsampleHead`) or "deconv" (the
-            paper's non-overlapping transposed convolution); "upsample" needs ``gaussian_frames`` ≠ "all".
-        head_channels: channels of the first upsampling stage (halved at each ×2 stage, at least 16).
-        image_branch: channels of the sharp-input-view CNN (module docstring, step 4); 0 = no branch.
-        image_depth: channels of the monocular depth network that draws frame 0's distance from the photograph
-            (:class:`models.mono_depth.MonoDepth`, module docstring step 4); 0 = none. Needs ``image_branch`` > 0.
-        image_depth_grid: cells per side over which that network's output is averaged and interpolated back
-            (``MonoDepth`` ``grid``: the coarse layout only); 0 = every pixel.
-        deformation: config of the deformation network; its ``in_channels`` must equal ``embed_dim``.
-        motion: config of the motion network that reads each source pixel's motion from the frames
-            (:mod:`models.motion`; run by the pipeline, ``diff4splat.assembly.frame_motion``), or None (the token
-            deformation network alone decides motion).
+        scale_base: Gaussian scale per metre of distance for a zero raw output, radians (≈ 0.7/focal in pixels,
+            so neighbouring splats overlap).
+        scale_log_range: scales lie within distance·scale_base·e^{±scale_log_range}.
+        gaussian_frames: one of :data:`GAUSSIAN_FRAMES`.
+        head: one of :data:`HEADS`; "upsample" needs ``gaussian_frames`` ≠ "all" and vae_spatial·patch_size a power
+            of two.
+        head_channels: channels of the first upsampling stage (halved per ×2 stage, at least 16).
+        image_branch: channels of the sharp-input-view CNN; 0 = none.
+        image_depth: channels of the monocular depth network (:class:`models.mono_depth.MonoDepth`) drawing frame
+            0's distance; 0 = none; needs ``image_branch`` > 0.
+        image_depth_grid: that network's averaging grid (``MonoDepth`` ``grid``); 0 = every pixel.
+        deformation: deformation network config; ``in_channels`` must equal ``embed_dim``.
+        motion: config of the motion network (:mod:`models.motion`), or None.
+
+    Raises:
+        ValueError: a field out of range or inconsistent, naming it.
     """
 
     latent_channels: int = 4
@@ -146,9 +110,8 @@ class LDRMConfig:
     motion: MotionConfig | None = None
 
     SAVED_DEFAULTS: ClassVar[dict[str, object]] = {"gaussian_frames": "reference", "head": "deconv"}
-    """Values of fields missing from a saved ``config.json`` (``PretrainedMixin.from_pretrained``): checkpoints
-    written before every-frame decoding existed decode frame 0 only, and those written before the upsampling head
-    existed keep their transposed convolution."""
+    """Values of fields missing from a saved ``config.json``: older checkpoints decode frame 0 only, with the
+    transposed-convolution head."""
 
     def __post_init__(self) -> None:
         if isinstance(self.deformation, dict):
@@ -200,31 +163,25 @@ class LDRMConfig:
 
     @classmethod
     def paper(cls) -> LDRMConfig:
-        """Paper-size LDRM (docs/DESIGN.md: 16 blocks, 64-dim tokens; 16 latent channels; 2×2 patches).
-
-        Heads (4 × 16 dims), patch size 2, the deformation width 64 and ``scale_base`` = 2e-3
-        (≈ 1/focal for a ~500 px focal length at the paper's 480×720-class resolution) are our
-        choices, not published numbers. Only instantiated on ``torch.device("meta")`` in tests.
-        """
+        """Paper-size LDRM (16 blocks of 64-dim tokens, 16 latent channels); the heads, 2×2 patches, deformation width
+        and ``scale_base`` = 2e-3 are our choices."""
         return cls(latent_channels=16, patch_size=2, embed_dim=64, depth=16, num_heads=4,
                    scale_base=2e-3, deformation=DeformationConfig(in_channels=64, hidden=64))
 
 
 @dataclass
 class LDRMOutput:
-    """Activated per-pixel Gaussian maps of the S source frames and optional deformation maps.
-
-    Source frame j is video frame ``source_frame_indices(config.gaussian_frames, n)[j]``; j = 0 is
-    the reference frame (frame 0).
+    """Activated per-pixel Gaussian maps of the S source frames (j = 0 the reference frame) and optional deformation
+    maps.
 
     Attributes:
         distance: (B, S, H, W) metres along the pixel's unit ray, in [depth_min, depth_max].
         scales: (B, S, H, W, 3) metres, > 0.
         quats: (B, S, H, W, 4) unit wxyz, world frame.
-        opacities: (B, S, H, W) in [0, 1] (open interval except where sigmoid saturates in float).
+        opacities: (B, S, H, W) in [0, 1].
         colors: (B, S, H, W, 3) RGB in [0, 1].
-        d_means: (B, K, S, H, W, 3) metres, world frame, or None (static: no times asked for).
-        d_quats: (B, K, S, H, W, 4) unit wxyz (identity (1,0,0,0)), or None.
+        d_means: (B, K, S, H, W, 3) metres, world frame, or None (no times asked for).
+        d_quats: (B, K, S, H, W, 4) unit wxyz, or None.
         d_scales: (B, K, S, H, W, 3) log-scale offsets (s_t = s·exp(Δs)), or None.
     """
 
@@ -238,17 +195,15 @@ class LDRMOutput:
     d_scales: Tensor | None = None
 
 
-# Register the output as a pytree node so torch.export / torch.onnx (dynamo) can trace the
-# model's forward directly; the None deformation fields of a static scene are empty subtrees. torch 2.7's own
-# register_dataclass calls its deprecated _register_pytree_node: that FutureWarning is torch's, not the user's,
-# and would precede every command's output (one-line errors included).
+# A pytree node, so torch.export / torch.onnx can trace forward (None fields are empty subtrees); torch 2.7's own
+# deprecated _register_pytree_node warns, which would precede every command's output.
 with warnings.catch_warnings():
     warnings.filterwarnings("ignore", message=".*_register_pytree_node.*", category=FutureWarning)
     torch.export.register_dataclass(LDRMOutput, serialized_type_name="diff4splat.LDRMOutput")
 
 
 def distance_activation(r_d: Tensor, config: LDRMConfig) -> Tensor:
-    """The raw distance channel (...) → ray distance (...), metres in [d_min, d_max] (:func:`gaussian_activations`);
+    """Raw distance channel (...) → ray distance (...), metres in [d_min, d_max] (:func:`gaussian_activations`);
     float32 at least."""
     r_d = r_d.to(torch.promote_types(r_d.dtype, torch.float32))
     lo, hi = math.log(config.depth_min), math.log(config.depth_max)
@@ -258,28 +213,16 @@ def distance_activation(r_d: Tensor, config: LDRMConfig) -> Tensor:
 
 
 def gaussian_activations(raw: Tensor, config: LDRMConfig) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """Map the 12 raw head channels (..., 12) to activated Gaussian parameters; finite for any finite input.
+    """The 12 raw head channels (..., 12) (distance, scales 3, quaternion 4, opacity, colour 3) → activated
+    Gaussian parameters, finite for finite input, computed in float32 at least (float64 stays float64).
 
-    distance = exp(log d_min + σ(r_d + b)·(log d_max − log d_min)), with b chosen so r_d = 0 gives
-        ``default_depth``; a sigmoid in log-depth (scale-uniform; our variant of the near/far-bounded
-        sigmoid ray distance of pixel-aligned LRMs such as GS-LRM, Zhang et al. 2024), values in
-        [d_min, d_max] metres (reached exactly only where the sigmoid saturates in float).
-    scales = distance · scale_base · exp(soft_clamp(r_s, scale_log_range)): a pixel footprint
-        (distance/focal with scale_base ≈ 1/focal) times a learned factor in e^{±range}; metres > 0.
-    quats = normalize(r_q + (1, 0, 0, 0)): unit wxyz; zero raw → identity.
-    opacities = σ(r_o) in [0, 1] (3DGS, Kerbl et al. 2023).
-    colors = σ(r_c) in [0, 1].
+    distance = exp(log d_min + σ(r_d + b)·(log d_max − log d_min)), b such that r_d = 0 gives ``default_depth``
+        (a log-depth variant of GS-LRM's bounded ray distance, Zhang et al. 2024); metres in [d_min, d_max].
+    scales = distance · scale_base · exp(soft_clamp(r_s, scale_log_range)), metres > 0.
+    quats = normalize(r_q + (1, 0, 0, 0)), unit wxyz.
+    opacities = σ(r_o), colors = σ(r_c), in [0, 1] (3DGS, Kerbl et al. 2023).
 
-    Computed in float32 at least (half-precision weights or a bfloat16 autocast region would quantise the
-    distance to ~1 %, i.e. centimetres at metres).
-
-    Args:
-        raw: (..., 12) in channel order distance, scales (3), quaternion (4), opacity, colour (3).
-
-    Returns:
-        distance (...), scales (..., 3), quats (..., 4), opacities (...), colors (..., 3); float32 (float64 for
-        float64 input).
-    """
+    Returns distance (...), scales (..., 3), quats (..., 4), opacities (...), colors (..., 3)."""
     raw = raw.to(torch.promote_types(raw.dtype, torch.float32))
     r_d, r_s, r_q, r_o, r_c = raw.split([1, 3, 4, 1, 3], dim=-1)
     distance = distance_activation(r_d[..., 0], config)
@@ -288,14 +231,9 @@ def gaussian_activations(raw: Tensor, config: LDRMConfig) -> tuple[Tensor, Tenso
 
 
 def sincos_position_3d(n: int, h: int, w: int, dim: int, device=None, dtype=torch.float32) -> Tensor:
-    """Fixed 3D sine-cosine position embedding (MAE 2D recipe, He et al. 2022, extended to t, y, x).
-
-    Channels: ``dim − 2·d_s`` for the frame index, ``d_s`` each for row and column, with
-    d_s = 2·⌊dim/6⌋; each axis uses [sin(p·ω_k), cos(p·ω_k)], ω_k = 10000^{−k/(d/2)}.
-
-    Returns:
-        (n·h·w, dim), token order (frame, row, column) row-major; values in [−1, 1].
-    """
+    """Fixed 3D sine-cosine position embedding (MAE 2D recipe, He et al. 2022, extended to t, y, x): d_s =
+    2·⌊dim/6⌋ channels each for row and column, the rest for the frame; each axis [sin(p·ω_k), cos(p·ω_k)],
+    ω_k = 10000^{−k/(d/2)}. Returns (n·h·w, dim), order (frame, row, column), values in [−1, 1]."""
     d_s = 2 * (dim // 6)
     d_t = dim - 2 * d_s
     exact = torch.promote_types(dtype, torch.float32)  # computed in at least float32, cast once (bfloat16 weights)
@@ -316,11 +254,8 @@ def sincos_position_3d(n: int, h: int, w: int, dim: int, device=None, dtype=torc
 
 
 class Block(nn.Module):
-    """Pre-norm transformer block: x + Attn(LN(x)), then x + MLP(LN(x)) (ViT, Dosovitskiy et al. 2021).
-
-    Attention and MLP are the shared :class:`models.layers.SelfAttention` (no QK-norm, no RoPE:
-    positions enter as the additive sine-cosine embedding) and :class:`models.layers.Mlp`.
-    """
+    """Pre-norm transformer block x + Attn(LN(x)), x + MLP(LN(x)) (ViT, Dosovitskiy et al. 2021); no QK-norm, no
+    RoPE."""
 
     def __init__(self, dim: int, heads: int, mlp_ratio: float) -> None:
         super().__init__()
@@ -330,20 +265,14 @@ class Block(nn.Module):
         self.mlp = Mlp(dim, int(dim * mlp_ratio))
 
     def forward(self, x: Tensor) -> Tensor:  # (B, N, D) → (B, N, D)
-        """(B, N, D) tokens (position embedding already added) → (B, N, D)."""
         x = x + self.attn(self.norm1(x))
         return x + self.mlp(self.norm2(x))
 
 
-
 class UpsampleHead(nn.Module):
-    """Token map → raw Gaussian channels per pixel, with overlap (ours; replaces the paper's kernel = stride
-    transposed convolution, which decodes every token into its own f×f block of pixels and shows those blocks).
-
-    log₂ f stages of [3×3 conv C_k → 4·C_{k+1}, ×2 pixel shuffle (Shi et al. 2016), GELU] with C_0 = ``channels``
-    and C_{k+1} = max(16, C_k / 2), then a 3×3 conv to 12 channels: every output pixel mixes the 3×3 neighbourhood
-    of tokens around it at every scale. (N, D, h, w) → (N, 12, f·h, f·w).
-    """
+    """Token map → raw Gaussian channels per pixel, with overlap (ours, instead of the paper's kernel = stride
+    transposed convolution): log₂ f stages of [3×3 conv C_k → 4·C_{k+1}, ×2 pixel shuffle (Shi et al. 2016), GELU],
+    C_{k+1} = max(16, C_k / 2), then a 3×3 conv to 12 channels. (N, D, h, w) → (N, 12, f·h, f·w)."""
 
     def __init__(self, dim: int, factor: int, channels: int) -> None:
         super().__init__()
@@ -355,18 +284,13 @@ class UpsampleHead(nn.Module):
         self.out = nn.Conv2d(c_in, RAW_GAUSSIAN_CHANNELS, 3, padding=1)
 
     def forward(self, x: Tensor) -> Tensor:  # (N, D, h, w) → (N, 12, f·h, f·w)
-        """Token maps (N, D, h, w) (N maps, e.g. B·n' latent frames) → raw Gaussian channels (N, 12, f·h, f·w),
-        f = ``factor`` (a power of two)."""
         return self.out(self.stages(x))
 
 
 class ImageBranch(nn.Module):
-    """Sharp input view (ours, beyond the paper): photo + frame 0's raw head output → a raw-channel residual.
-
-    conv3×3(3 + 12 → C) → GELU → conv3×3(C → C) → GELU → conv1×1(C → 12), the last layer zero-initialised
-    (weights and bias) so a new branch adds exactly 0: the LDRM starts as the paper's and learns from the
-    photograph only what improves the loss (as adaLN-Zero in DiT, Peebles & Xie 2023).
-    """
+    """Sharp input view (ours): photo + frame 0's raw head output → a raw-channel residual. conv3×3(15 → C), GELU,
+    conv3×3(C → C), GELU, conv1×1(C → 12); the last layer starts at zero so a new branch adds exactly 0 (as DiT's
+    adaLN-Zero)."""
 
     def __init__(self, channels: int) -> None:
         super().__init__()
@@ -377,20 +301,15 @@ class ImageBranch(nn.Module):
         nn.init.zeros_(self.out.bias)
 
     def forward(self, image: Tensor, raw: Tensor) -> Tensor:  # (B, 3, H, W) in [−1, 1], (B, 12, H, W)
-        """raw + residual(image, raw): ``image`` (B, 3, H, W) photograph in [−1, 1] (cast to raw's dtype), ``raw``
-        (B, 12, H, W) frame 0's raw head channels → (B, 12, H, W) raw channels (before activation)."""
+        """raw + residual: ``image`` (B, 3, H, W) in [−1, 1], ``raw`` (B, 12, H, W) → (B, 12, H, W) raw channels."""
         x = F.gelu(self.conv1(torch.cat([image.to(raw.dtype), raw], dim=1)))
         return raw + self.out(F.gelu(self.conv2(x)))  # (B, 12, H, W)
 
 
 def check_ldrm_inputs(config: LDRMConfig, latents: Tensor, plucker: Tensor, times: Tensor | None,
                       image: Tensor | None) -> None:
-    """The checks :meth:`LDRM.forward` makes (shapes static under tracing; the time range in eager mode only); the
-    ONNX runtime makes them too. Shapes as :meth:`LDRM.forward`.
-
-    Raises:
-        ValueError: as :meth:`LDRM.forward`.
-    """
+    """The checks of :meth:`LDRM.forward` (shapes static under tracing, the time range eager only); the ONNX runtime
+    makes them too. ValueError as :meth:`LDRM.forward`."""
     cfg = config
     if latents.dim() != 5 or latents.shape[1] != cfg.latent_channels:
         raise ValueError(f"latents must have shape (B, {cfg.latent_channels}, n, h, w), got {tuple(latents.shape)}")
@@ -416,17 +335,8 @@ def check_ldrm_inputs(config: LDRMConfig, latents: Tensor, plucker: Tensor, time
 
 
 class LDRM(nn.Module, PretrainedMixin):
-    """Video latent + camera path (+ photo) → pixel-aligned Gaussians of the source frames (+ deformation maps).
-
-    Diff4Splat's LDRM (Pan et al. 2025; module docstring). :meth:`forward`: latents (B, c, n, h, w), Plücker rays
-    (B, 6·vae_temporal·vae_spatial², n, h, w), times (K,) in [0, 1] or None, photograph (B, 3, H, W) in [−1, 1]
-    (image branch only) → :class:`LDRMOutput` maps (B, S, H, W, ·) with H = vae_spatial·h, W = vae_spatial·w pixels
-    and S = len(:func:`source_frame_indices`) (n for "latent", 1 + vae_temporal·(n − 1) for "all", 1 for
-    "reference"), plus deformation maps (B, K, S, H, W, ·) when ``times`` is given.
-
-    Args:
-        config: :class:`LDRMConfig` (the only constructor argument, for save/from_pretrained).
-    """
+    """Video latent + camera path (+ photo) → pixel-aligned Gaussians of the source frames (+ deformation maps)
+    (module docstring)."""
 
     config_class = LDRMConfig
 
@@ -458,16 +368,9 @@ class LDRM(nn.Module, PretrainedMixin):
         latents: Tensor,  # (B, c, n, h, w)
         plucker: Tensor,  # (B, 6·4·8·8, n, h, w)
     ) -> Tensor:  # (B, D, n', h/p, w/p)
-        """The transformer's token volume (Pan et al. 2025 §3.2: latent and Plücker tokens, transformer blocks).
-
-        Args:
-            latents: (B, c, n, h, w) video latent; h, w multiples of p = ``patch_size``.
-            plucker: (B, 6·vae_temporal·vae_spatial², n, h, w) packed Plücker rays (cast to the latents' dtype).
-
-        Returns:
-            (B, D, n', h/p, w/p) with D = ``embed_dim``, n' = n, or 1 when ``gaussian_frames`` is "reference".
-            Inputs are not checked here (:meth:`forward` checks them).
-        """
+        """The transformer's token volume: latents (B, c, n, h, w) (h, w multiples of p) and packed Plücker rays
+        (cast to the latents' dtype) → (B, D, n', h/p, w/p), n' = n, or 1 for ``gaussian_frames`` "reference".
+        Unchecked."""
         cfg = self.config
         p = cfg.patch_size
         B, _, n, h, w = latents.shape
@@ -481,14 +384,10 @@ class LDRM(nn.Module, PretrainedMixin):
         return volume[:, :, :1] if cfg.gaussian_frames == "reference" else volume
 
     def head_maps(self, volume: Tensor) -> Tensor:  # (B, D, n', h', w') → (B, 12, S, H, W)
-        """The head's raw Gaussian channels (before :func:`gaussian_activations` and the image branch) of the S
-        source frames, from a :meth:`features` volume (B, D, n', h', w').
-
-        Returns:
-            (B, 12, S, H, W), H = h'·p·f, W = w'·p·f pixels (p = ``patch_size``, f = ``vae_spatial``); S = n' (the
-            "deconv" head over n' frames or the "upsample" head per frame), or vae_temporal·(n' − 1) + 1 for
-            ``gaussian_frames`` "all" (the deconv head's first vae_temporal − 1 frames dropped).
-        """
+        """Raw Gaussian channels (B, 12, S, H, W) of the S source frames from a :meth:`features` volume
+        (B, D, n', h', w'); H = h'·p·vae_spatial; S = n', or vae_temporal·(n' − 1) + 1 for "all" (the deconv head's
+        first
+        vae_temporal − 1 frames dropped)."""
         cfg = self.config
         B, D, nv, hp, wp = volume.shape
         if cfg.head == "deconv":
@@ -507,24 +406,21 @@ class LDRM(nn.Module, PretrainedMixin):
         times: Tensor | None = None,  # (K,) in [0, 1]
         image: Tensor | None = None,  # (B, 3, H, W) in [−1, 1], the photograph (frame 0)
     ) -> LDRMOutput:
-        """Predict the source frames' Gaussians (H = 8h, W = 8w pixels) and their deformation at ``times``.
+        """The source frames' Gaussians (H = 8h, W = 8w pixels) and their deformation at ``times``.
 
         Args:
-            latents: (B, c, n, h, w) video latent, c = ``config.latent_channels``.
+            latents: (B, c, n, h, w) video latent.
             plucker: (B, 6·vae_temporal·vae_spatial², n, h, w) packed Plücker rays (``pack_plucker``).
-            times: (K,) clip times in [0, 1], or None for a static scene (the deformation network
-                is then not run and the deformation fields are None).
+            times: (K,) clip times in [0, 1], or None (static: no deformation network run).
             image: (B, 3, H, W) frame 0 in [−1, 1]; required with an image branch, ignored without.
 
         Returns:
-            :class:`LDRMOutput` with activated maps (B, S, H, W, ·) for the S source frames
-            (:func:`source_frame_indices`; formulas in :func:`gaussian_activations`) and deformation
-            maps (B, K, S, H, W, ·) or None.
+            :class:`LDRMOutput`: maps (B, S, H, W, ·), S = len(:func:`source_frame_indices`); deformation maps
+            (B, K, S, H, W, ·) or None.
 
         Raises:
-            ValueError: wrong rank/channels of ``latents`` or ``plucker``; ``plucker`` not matching
-                ``latents`` in B, n, h, w; h, w not multiples of patch_size; ``times`` not (K,) or
-                outside [0, 1]; ``image`` missing or not (B, 3, H, W) when the LDRM has an image branch.
+            ValueError: wrong rank/channels of ``latents`` or ``plucker``, mismatched B, n, h, w, h, w not multiples of
+                patch_size, ``times`` not (K,) in [0, 1], ``image`` missing or misshapen with an image branch.
         """
         check_ldrm_inputs(self.config, latents, plucker, times, image)
         cfg = self.config
@@ -542,9 +438,7 @@ class LDRM(nn.Module, PretrainedMixin):
         if times is not None:
             S, nf = raw.shape[1], volume.shape[2]
             B, _, _, hp, wp = volume.shape
-            # Contiguous (NCHW): the token volume's view has channels-last strides, with which the 1×1 out_conv's
-            # weight gradient comes back with strides (F, 1, F, F) for its (10, F, 1, 1) weight, the same memory
-            # but not the parameter's strides, and DDP warns on every run that they do not match its bucket.
+            # Contiguous: a channels-last view gives out_conv's weight gradient other strides, and DDP warns.
             feats = volume.transpose(1, 2).reshape(B * nf, cfg.embed_dim, hp, wp).contiguous()
             d = self.deformation(feats, times, cfg.vae_spatial * cfg.patch_size)  # each (B·nf, K, H, W, ·)
             maps = [m.reshape(B, nf, *m.shape[1:]).transpose(1, 2) for m in d]  # (B, K, nf, H, W, ·)

@@ -1,24 +1,12 @@
-"""The photo layer's monocular depth network: photograph → frame 0's raw ray-distance channel (ours).
+"""The photo layer's monocular depth network: photograph → frame 0's raw ray-distance channel (ours; DESIGN.md "Data
+flow of generate", step 6).
 
-The LDRM reads the photograph through the video VAE's 8×8 compression and a small image branch with a 5×5 window
-(``models.ldrm``); the frame-0 depth it draws is mostly a floor-like gradient (base model card). Single-image 3D
-systems that place the observed pixels on predicted geometry take that geometry from a dedicated monocular depth
-network (Flash3D, Szymanowicz et al. 2024, builds on a pretrained UniDepth); ours is a small U-Net (Ronneberger et
-al. 2015) trained directly on our data's metric depth (``training.objectives``, objective ``depth``):
-
-    conv block(3 → C) → ``levels`` × [stride-2 conv block, channels ×2] → + 1×1 conv of the image's mean feature
-    (global context, ParseNet, Liu et al. 2015) → ``levels`` × [×2 bilinear, concat skip, conv block] → conv3×3(C → 1)
-
-A conv block is conv3×3 → GELU → conv3×3 → GELU. The output is the LDRM's raw distance channel (before
-``models.ldrm.gaussian_activations``: distance = exp(log d_min + σ(r + b)·(log d_max − log d_min))), so the LDRM's
-bounds and activation stay the one definition of distance; the last convolution starts at zero, i.e. at the
-config's ``default_depth`` everywhere.
-
-With ``grid`` = g > 0 the output is averaged over a g×g grid of cells and interpolated bilinearly back to (H, W):
-a depth that can carry the scene's coarse layout but not follow the photograph's texture; g = 1 is one distance
-per photograph, a photo layer facing the camera that cannot bend (``train_base_depth_scale``). Neither is shipped:
-the base model card has what each does to held-out synthetic views and to real photographs.
-"""
+As single-image 3D systems take the observed pixels' geometry from a monocular depth network (Flash3D,
+Szymanowicz et al. 2024), a small U-Net (Ronneberger et al. 2015) with a global-context 1×1 at its coarsest level
+(ParseNet, Liu et al. 2015), trained on metric depth (``training.objectives``, objective ``depth``). Its output is
+the LDRM's raw distance channel (before ``models.ldrm.gaussian_activations``); the last convolution starts at zero,
+i.e. at the config's ``default_depth``. With ``grid`` = g > 0 the output is averaged over g×g cells and interpolated
+back: the coarse layout only."""
 from __future__ import annotations
 
 import torch
@@ -34,17 +22,15 @@ def _conv_block(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
 
 
 class MonoDepth(nn.Module):
-    """(B, 3, H, W) photograph in [−1, 1] → (B, H, W) raw ray-distance channel (module docstring).
+    """(B, 3, H, W) photograph in [−1, 1] → (B, H, W) raw ray-distance channel.
 
     Args:
         channels: C, the full-resolution width; level i has C·2^i channels at (H, W) / 2^i.
         levels: encoder stages (≥ 1); H and W must be divisible by 2^levels.
-        grid: g > 0 averages the output over g×g cells and interpolates it back bilinearly (module docstring);
-            0 keeps every pixel.
+        grid: g > 0 averages the output over g×g cells; 0 keeps every pixel.
 
     Raises:
-        ValueError: ``channels`` or ``levels`` < 1, ``grid`` < 0; (in forward) an image that is not (B, 3, H, W)
-            with H and W divisible by 2^levels.
+        ValueError: ``channels`` or ``levels`` < 1, ``grid`` < 0.
     """
 
     def __init__(self, channels: int, levels: int = 3, grid: int = 0) -> None:
@@ -63,18 +49,8 @@ class MonoDepth(nn.Module):
         nn.init.zeros_(self.out.bias)
 
     def forward(self, image: Tensor) -> Tensor:  # (B, 3, H, W) → (B, H, W)
-        """Raw ray-distance channel of each photograph (the LDRM's pre-activation distance, unitless logit).
-
-        Args:
-            image: (B, 3, H, W) photograph, pixels in [−1, 1]; H and W divisible by 2^levels.
-
-        Returns:
-            (B, H, W) raw distance (metres only after ``models.ldrm.gaussian_activations``); with ``grid`` = g > 0,
-            smooth over a g×g grid of cells.
-
-        Raises:
-            ValueError: ``image`` not (B, 3, H, W) with H and W divisible by 2^levels.
-        """
+        """Raw ray-distance channel (B, H, W) (a logit; metres after ``gaussian_activations``) of ``image`` (B, 3, H, W)
+        in [−1, 1]. ValueError unless H and W are divisible by 2^levels."""
         f = 2 ** self.levels
         if image.dim() != 4 or image.shape[1] != 3 or image.shape[-2] % f or image.shape[-1] % f:
             raise ValueError(f"image must be (B, 3, H, W) with H and W divisible by {f}, got {tuple(image.shape)}")

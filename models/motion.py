@@ -1,34 +1,12 @@
 """Motion network of the LDRM: where each source pixel is at time t, read from the frames at pixel resolution.
 
-The token deformation network (:mod:`models.deformation`) decides motion on an 8×8 token grid conditioned on time
-alone; it cannot put a moving object's edge between two tokens. This network sees the frames themselves, as optical
-flow networks do (a correlation volume between two frames' learned features: FlowNet, Dosovitskiy et al. 2015, §3;
-RAFT's multi-level lookup around the current estimate, Teed & Deng 2020, §3.2), and predicts each source pixel's
-*residual* image motion around where a static point would be (ours; DGS-LRM and MoVieS, Lin et al. 2025, predict
-per-pixel 3D motion and supervise it densely):
-
-1. ``encode``: each frame (N, 3, H, W) in [−1, 1] → features (N, F, H, W) by two 3×3 convolutions, and an average
-   pooled pyramid of ``levels`` levels (level l at H/2^l).
-2. :func:`correlation`: for every source pixel p and its static reprojection u(p) in the target frame (the caller's
-   geometry: the source pixel's 3D point projected into frame t's camera, continuous pixel coordinates, pixel
-   (x, y)'s centre at (x + 0.5, y + 0.5)), the cosine similarities cos(f_s,l(p), f_t,l(u(p)/2^l + d)) over the
-   (2r+1)² integer offsets d of a level. A static point matches at d = 0; a moving one elsewhere.
-3. :meth:`MotionNetwork.match`: coarse to fine, the soft-argmax (expected offset under softmax(β_l·correlation)) of
-   each level's window around the estimate so far is added to it: a differentiable block matching that reaches
-   r·(2^levels − 1) pixels, with no weights to learn but the features and β_l.
-4. The head: the finest correlation around the match, the source features, an in-frame flag and the match → 3×3
-   convolutions with dilation 1, 2, 4 → the zero-initialised 1×1 output conv → a gate on the match, a residual flow
-   (2, pixels) and a log z-depth ratio (1).
-5. :func:`motion_activations`: flow = tanh(gate)·match + residual, soft-clamped to ``max_flow`` px, then shrunk by
-   ``min_flow`` px (the
-   soft threshold sign(f)·max(|f| − τ, 0) on its length), so a pixel the network sees as still is *exactly*
-   still and a static scene keeps no deformation (docs/DESIGN.md, "The motion path"); the depth ratio counts only
-   where the pixel moves.
-
-Zero-initialised output (weights and bias): the raw output is 0 for any input, the gate is closed, so training starts
-from the static scene (every point at its reprojection, no motion) and learns motion as a residual, as the
-deformation network and adaLN-Zero (DiT, Peebles & Xie 2023) do.
-"""
+Unlike the token deformation network (:mod:`models.deformation`, 8×8 tokens, time alone), it sees the frames, as
+optical-flow networks do (correlation of learned features, FlowNet, Dosovitskiy et al. 2015 §3; RAFT's lookups
+around the current estimate, Teed & Deng 2020 §3.2), and predicts each source pixel's residual motion around its
+static reprojection ``uv`` (pixels, pixel (x, y)'s centre at (x + 0.5, y + 0.5)): a feature pyramid
+(:meth:`MotionNetwork.encode`), coarse-to-fine soft-argmax matching (:meth:`MotionNetwork.match`), a dilated-conv
+head with a zero-initialised output, and :func:`motion_activations` (gated match + residual, soft-thresholded so
+still pixels are exactly still). DESIGN.md "The motion path"."""
 from __future__ import annotations
 
 import math
@@ -41,7 +19,7 @@ from torch import Tensor, nn
 from .pretrained import PretrainedMixin
 
 COS_EPS = 1e-6
-"""Norm below which a feature vector counts as zero in the cosine similarity (outside the frame: similarity 0)."""
+"""Norm below which a feature vector counts as zero in the cosine similarity."""
 
 __all__ = ["MotionConfig", "MotionNetwork", "correlation", "correlation_reference", "motion_activations"]
 
@@ -51,13 +29,16 @@ class MotionConfig:
     """Sizes of :class:`MotionNetwork`.
 
     Attributes:
-        features: F, channels of the frame features the correlation compares.
+        features: F, channels of the compared frame features.
         hidden: channels of the head's convolutions.
-        levels: pyramid levels of the correlation (level l compares features pooled 2^l×).
-        radius: r, offsets −r…r per axis at each level: (2r+1)² correlations per level.
-        max_flow: bound of the residual flow per axis, pixels at the model resolution (soft clamp).
-        min_flow: soft threshold on the flow's length, pixels: shorter motion is no motion.
-        max_log_depth: bound of the log z-depth ratio (soft clamp).
+        levels: pyramid levels (level l pooled 2^l×).
+        radius: r, offsets −r…r per axis: (2r+1)² correlations per level.
+        max_flow: soft-clamp bound of the flow per axis, pixels at the model resolution.
+        min_flow: soft threshold on the flow's length, pixels, in [0, max_flow).
+        max_log_depth: soft-clamp bound of the log z-depth ratio.
+
+    Raises:
+        ValueError: a field out of range.
     """
 
     features: int = 8
@@ -96,8 +77,8 @@ def _offsets(radius: int, like: Tensor) -> Tensor:
 
 
 def level_correlation(query: Tensor, target: Tensor, uv: Tensor, level: int, radius: int) -> Tensor:
-    """One level of :func:`correlation`: ``query`` (N, F, H, W) at full resolution, ``target`` (N, F, H/2^l, W/2^l),
-    ``uv`` (N, H, W, 2) full-resolution pixels → (N, (2r+1)², H, W)."""
+    """One level of :func:`correlation`: ``query`` (N, F, H, W), ``target`` (N, F, H/2^l, W/2^l), ``uv`` (N, H, W, 2)
+    full-resolution pixels → (N, (2r+1)², H, W)."""
     N, Fc, H, W = query.shape
     h, w = target.shape[-2:]
     offsets = _offsets(radius, uv)
@@ -109,7 +90,7 @@ def level_correlation(query: Tensor, target: Tensor, uv: Tensor, level: int, rad
 
 
 def _query(source: list[Tensor], level: int) -> Tensor:
-    """The source features of ``level`` brought to full resolution (bilinear)."""
+    """The source features of ``level`` bilinearly at full resolution."""
     src = source[level]
     return src if level == 0 else F.interpolate(src, size=source[0].shape[-2:], mode="bilinear", align_corners=False)
 
@@ -118,24 +99,20 @@ def correlation(source: list[Tensor], target: list[Tensor], uv: Tensor, radius: 
     """Multi-level local correlation volume around each source pixel's position in the target frame.
 
     Args:
-        source: per level l, (N, F, H/2^l, W/2^l) features of the source frames.
-        target: the same for the target frames.
-        uv: (N, H, W, 2) where each source pixel (x, y) is looked up in the target frame at full resolution:
-            continuous pixel coordinates, pixel centres at (x + 0.5, y + 0.5); positions outside read zeros.
+        source, target: per level l, (N, F, H/2^l, W/2^l) features.
+        uv: (N, H, W, 2) full-resolution pixel positions in the target frame (outside reads zeros).
         radius: r ≥ 0.
 
     Returns:
-        (N, levels·(2r+1)², H, W) in [−1, 1]: channel l·(2r+1)² + (dy + r)·(2r+1) + (dx + r) is the cosine similarity
-        cos(f_s,l↑(p), f_t,l(uv(p)/2^l + (dx, dy))), with f_s,l↑ the source level bilinearly brought to (H, W) and
-        the target read bilinearly (0 outside the frame). Cosine, not the dot product: a longer feature vector
-        would otherwise win every window it appears in (normalised cross-correlation, as block matching uses).
+        (N, levels·(2r+1)², H, W) in [−1, 1]; channel l·(2r+1)² + (dy + r)·(2r+1) + (dx + r) is the cosine similarity
+        (normalised cross-correlation) of the upsampled source level at p and the target at uv(p)/2^l + (dx, dy).
     """
     return torch.cat([level_correlation(_query(source, level), target[level], uv, level, radius)
                       for level in range(len(source))], dim=1)
 
 
 def correlation_reference(source: list[Tensor], target: list[Tensor], uv: Tensor, radius: int) -> Tensor:
-    """:func:`correlation` by explicit bilinear interpolation, one pixel at a time (slow; the tests' reference)."""
+    """:func:`correlation` by explicit bilinear interpolation, pixel by pixel (slow; the tests' reference)."""
     N, Fc, H, W = source[0].shape
     out = torch.zeros(N, len(source) * (2 * radius + 1) ** 2, H, W, dtype=source[0].dtype, device=source[0].device)
     for level, (src, tgt) in enumerate(zip(source, target, strict=True)):
@@ -162,16 +139,13 @@ def correlation_reference(source: list[Tensor], target: list[Tensor], uv: Tensor
 
 
 def motion_activations(raw: Tensor, match: Tensor, config: MotionConfig) -> tuple[Tensor, Tensor]:
-    """Flow (N, H, W, 2) pixels and log z-depth ratio (N, H, W) from the head's raw channels (N, 4, H, W) and the
-    matched flow ``match`` (N, H, W, 2).
+    """Flow (N, H, W, 2) pixels and log z-depth ratio (N, H, W) from raw channels (N, 4, H, W) and ``match``
+    (N, H, W, 2).
 
-    flow₀ = max_flow·tanh((tanh(g)·match + raw_xy) / max_flow) with g = raw channel 0 (the gate: how far to trust
-    the match); flow = flow₀·max(|flow₀| − τ, 0)/|flow₀| with τ = ``min_flow`` (exactly 0 where |flow₀| ≤ τ); log
-    ratio = max_log_depth·tanh(raw_z / max_log_depth) where flow ≠ 0, else 0. A zero ``raw`` gives zero flow and
-    ratio whatever the match. The threshold and the mask pass gradients straight through (their values are the
-    thresholded ones, their gradients those of flow₀ and the unmasked ratio; Bengio et al. 2013): a dead zone around
-    the zero-initialised output would otherwise stop every gradient, and the network would never move.
-    """
+    flow₀ = max_flow·tanh((tanh(raw_0)·match + raw_xy)/max_flow); flow = flow₀·max(|flow₀| − τ, 0)/|flow₀|,
+    τ = ``min_flow``; log ratio = max_log_depth·tanh(raw_z/max_log_depth) where flow ≠ 0, else 0. Zero ``raw`` gives
+    zero. The threshold and mask pass gradients straight through (Bengio et al. 2013), so the zero-initialised output
+    can leave its dead zone."""
     gate = torch.tanh(raw[:, :1]).permute(0, 2, 3, 1)  # (N, H, W, 1)
     flow = config.max_flow * torch.tanh((gate * match + raw[:, 1:3].permute(0, 2, 3, 1)) / config.max_flow)
     length = flow.norm(dim=-1, keepdim=True)
@@ -193,8 +167,7 @@ class MotionNetwork(nn.Module, PretrainedMixin):
         self.config = config
         f, h = config.features, config.hidden
         self.encoder = nn.Sequential(nn.Conv2d(3, f, 3, padding=1), nn.GELU(), nn.Conv2d(f, f, 3, padding=1))
-        # log of the soft-argmax's inverse temperature β per level (learned); a correlation is a cosine in [−1, 1], and
-        # β = 40 at the start lets a clear peak win while a flat window stays soft (our initial value)
+        # log of the soft-argmax's learned inverse temperature β per level; β = 40 lets a clear cosine peak win
         beta = torch.full((config.levels,), math.log(40.0))  # device: the construction context's (torch.device, meta)
         self.log_sharpness = nn.Parameter(beta)
         window = (2 * config.radius + 1) ** 2
@@ -204,14 +177,13 @@ class MotionNetwork(nn.Module, PretrainedMixin):
             nn.Conv2d(h, h, 3, padding=4, dilation=4), nn.GELU(),
         )
         self.out = nn.Conv2d(h, 4, 1)
-        # Zero-init (weights and bias): the raw output is exactly 0, so the gate is closed and motion_activations
-        # gives no flow and no depth change: the network starts as the static scene. The gate's gradient is the
-        # match's, non-zero wherever the frames differ, so the network opens it where the match explains them.
+        # Zero-init: the raw output is 0, the gate closed, so the network starts as the static scene.
         nn.init.zeros_(self.out.weight)
         nn.init.zeros_(self.out.bias)
 
     def encode(self, frames: Tensor) -> list[Tensor]:  # frames: (N, 3, H, W) in [−1, 1]
-        """Feature pyramid of ``frames``: ``levels`` tensors (N, F, H/2^l, W/2^l), level l average-pooled 2^l×
+        """Feature pyramid of ``frames`` (N, 3, H, W) in [−1, 1]: ``levels`` tensors (N, F, H/2^l, W/2^l),
+        average-pooled
         (H, W divisible by 2^(levels−1))."""
         feats = [self.encoder(frames)]
         for _ in range(self.config.levels - 1):
@@ -219,12 +191,11 @@ class MotionNetwork(nn.Module, PretrainedMixin):
         return feats
 
     def match(self, source: list[Tensor], target: list[Tensor], uv: Tensor) -> tuple[Tensor, Tensor]:
-        """Coarse-to-fine soft-argmax matching: from the coarsest level to the finest, the expected offset under
-        softmax(β_l · correlation) of the (2r+1)² window around ``uv`` + the flow so far, times 2^l pixels, is added
-        to the flow (as a differentiable block matching; the window follows the estimate as in RAFT's look-ups).
+        """Coarse-to-fine soft-argmax matching: per level, coarsest first, the expected offset under
+        softmax(β_l·correlation) of the window around ``uv`` + flow, times 2^l pixels, is added to the flow.
 
         Returns:
-            flow: (N, H, W, 2) pixels; corr: (N, (2r+1)², H, W) the finest level's correlation around uv + flow.
+            flow (N, H, W, 2) pixels; corr (N, (2r+1)², H, W), the finest level's correlation around uv + flow.
         """
         cfg = self.config
         offsets = _offsets(cfg.radius, uv)
@@ -237,16 +208,13 @@ class MotionNetwork(nn.Module, PretrainedMixin):
         return flow, corr
 
     def forward(self, source: list[Tensor], target: list[Tensor], uv: Tensor) -> tuple[Tensor, Tensor]:
-        """Motion of each source pixel between the source frame and the target frame, around ``uv``.
-
-        Args:
-            source, target: pyramids of :meth:`encode`, N pairs (index the frames' pyramids to pair them).
-            uv: (N, H, W, 2) each source pixel's static reprojection in the target frame, pixels (centres at
-                index + 0.5); a position outside the frame reads zero features and sets the in-frame flag to 0.
+        """Motion of each source pixel from its static reprojection ``uv`` (N, H, W, 2) in the target frame, given
+        :meth:`encode` pyramids of N frame pairs (outside the frame: zero features, in-frame flag 0).
 
         Returns:
-            flow: (N, H, W, 2) pixels to add to ``uv`` (exactly 0 for pixels seen as still).
-            log_depth: (N, H, W) log of the target z-depth over the reprojected one (0 where flow is 0).
+            flow (N, H, W, 2) pixels to add to ``uv`` (exactly 0 for still pixels); log_depth (N, H, W), log of the
+            target
+            z-depth over the reprojected one (0 where flow is 0).
         """
         H, W = source[0].shape[-2:]
         match, corr = self.match(source, target, uv)

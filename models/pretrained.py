@@ -27,12 +27,11 @@ MODEL_KIND = "model"
 
 def load_weights(path: str | os.PathLike, map_location: str = "cpu",
                  dtype: torch.dtype | None = None) -> dict[str, torch.Tensor]:
-    """Read a ``model.safetensors`` file, tensor by tensor, floating-point tensors cast to ``dtype`` as they are
-    read (None: as stored): the peak is the result plus one tensor of the file.
+    """Read a ``model.safetensors`` file tensor by tensor, floating-point tensors cast to ``dtype`` as read (None: as
+    stored): the peak is the result plus one tensor.
 
     Raises:
-        ValueError: naming ``path`` when the file is truncated or corrupt (safetensors' ``SafetensorError``
-            or a header that is not valid JSON / UTF-8).
+        ValueError: naming ``path`` when the file is truncated or corrupt.
     """
     try:
         state = {}
@@ -47,16 +46,12 @@ def load_weights(path: str | os.PathLike, map_location: str = "cpu",
 
 
 def config_from_dict(cls: type, data: dict[str, Any], where: str = "config") -> Any:
-    """Build dataclass ``cls`` from a dict over its defaults, rejecting unknown fields.
-
-    A nested dataclass field given as a dict overrides that field's *default value* field by field
-    (so ``{"dit": {"text_dim": 32}}`` keeps the parent's other ``dit`` defaults); lists become
-    tuples where the field is a tuple.
+    """Build dataclass ``cls`` from a dict over its defaults, rejecting unknown fields. A nested dataclass field given
+    as a dict overrides that field's default value field by field; lists become tuples for tuple fields.
 
     Raises:
-        ValueError: ``data`` is not a dict, an unknown field name, a non-integer value (e.g. ``1e9``,
-            which JSON and YAML read as a float) for an ``int`` field, or a value that is not a number (a string
-            such as ``"1e-4"``, a bool) for a ``float`` field (names the field and ``where``).
+        ValueError: naming the field and ``where``: ``data`` not a dict, an unknown field, a non-integer for an
+            ``int`` field (e.g. ``1e9``), or a non-number (a string, a bool) for a ``float`` field.
     """
     if not isinstance(data, dict):
         raise ValueError(f"{where}: expected an object of config fields, got {type(data).__name__} {data!r:.60}")
@@ -93,7 +88,7 @@ def config_from_dict(cls: type, data: dict[str, Any], where: str = "config") -> 
 
 
 def _shallow_asdict(obj: Any) -> dict[str, Any]:
-    """Field dict of a dataclass instance, nested dataclasses as dicts (so they merge recursively)."""
+    """Field dict of a dataclass instance, nested dataclasses as dicts."""
     return {f.name: (_shallow_asdict(v) if dataclasses.is_dataclass(v := getattr(obj, f.name)) else v)
             for f in dataclasses.fields(obj)}
 
@@ -106,9 +101,8 @@ def _dataclass_type(cls: type, name: str) -> type | None:
 
 @contextlib.contextmanager
 def skip_init() -> Iterator[None]:
-    """Within the block, ``torch.nn.init``'s in-place initialisers return their tensor untouched: building a model
-    on the ``meta`` device to count its parameters does not run (or import torch._dynamo for) initialisation on
-    tensors that hold no data (the same idea as transformers' ``no_init_weights``)."""
+    """Within the block ``torch.nn.init``'s in-place initialisers return their tensor untouched (for building on the
+    ``meta`` device; transformers' ``no_init_weights``)."""
     names = [n for n in dir(torch.nn.init) if n.endswith("_") and not n.startswith("_")]
     saved = {n: getattr(torch.nn.init, n) for n in names}
     try:
@@ -121,22 +115,14 @@ def skip_init() -> Iterator[None]:
 
 
 def check_model_size(build: Any, where: str, host_dtype: torch.dtype | None = None) -> int:
-    """Count the parameters ``build()`` would allocate, on the ``meta`` device (no memory) and without running
-    initialisers (:func:`skip_init`), and check the ``parameters`` limit (:mod:`diff4splat.utils.limits`) before the
-    real model is built; with ``host_dtype`` (weights built in CPU memory in that dtype) also check their bytes
-    against the memory this process can have (:func:`diff4splat.utils.limits.check_memory`).
-
-    Args:
-        build: zero-argument callable that constructs the ``nn.Module`` (called under ``torch.device("meta")``).
-        where: the config's source (a file or config name) for the message.
-        host_dtype: the dtype the weights will take in CPU memory; None: not built in CPU memory (another device).
-
-    Returns:
-        The parameter count.
+    """Count the parameters ``build()`` allocates, on the ``meta`` device under :func:`skip_init`, and check the
+    ``parameters`` limit (:mod:`diff4splat.utils.limits`); with ``host_dtype`` (weights built in CPU memory in that
+    dtype) also check their bytes against the memory available. ``where`` names the config's source. Returns the
+    count.
 
     Raises:
-        LimitError: more parameters than the limit, or so many that a tensor size overflows (names ``where``);
-            weights larger than the memory available (names the dtype and, for float32, ``--dtype bfloat16``).
+        LimitError: more parameters than the limit or a tensor size overflow; weights larger than the memory
+            available.
     """
     try:
         with torch.device("meta"), skip_init():
@@ -157,23 +143,16 @@ def check_model_size(build: Any, where: str, host_dtype: torch.dtype | None = No
 
 
 class PretrainedMixin:
-    """Mixin for ``nn.Module`` subclasses with a dataclass ``config`` attribute.
-
-    Subclasses set ``config_class``; ``__init__`` must accept the config as its only argument.
-    """
+    """Mixin for ``nn.Module`` subclasses with a dataclass ``config``; subclasses set ``config_class`` and take the
+    config as their only ``__init__`` argument."""
 
     config_class: ClassVar[type]
 
     def save_pretrained(self, directory: str | os.PathLike, *, overwrite: bool = False) -> Path:
-        """Write ``model.safetensors`` and ``config.json`` into ``directory`` atomically.
-
-        Files are written into a temporary sibling folder that is renamed over ``directory``
-        (:func:`diff4splat.io.output_folders`, kind ``"model"``), so a killed save never leaves a half-written
-        model; an existing ``directory`` is replaced only if it is empty or an earlier saved model (or
-        ``overwrite``).
-
-        Returns:
-            The directory path.
+        """Write ``model.safetensors`` and ``config.json`` into ``directory`` atomically
+        (:func:`diff4splat.io.output_folders.output_dir`, kind ``"model"``: an existing folder is replaced only if
+        empty,
+        an earlier saved model, or ``overwrite``). Returns the directory.
 
         Raises:
             OutputDirError: ``directory`` may not be written or replaced.
@@ -185,8 +164,7 @@ class PretrainedMixin:
         return directory
 
     def write_pretrained(self, folder: Path) -> None:
-        """Write ``model.safetensors`` and ``config.json`` into the existing folder ``folder`` (no policy:
-        the caller owns it, e.g. a sub-folder of a folder being written by :func:`diff4splat.io.output_folders`)."""
+        """Write ``model.safetensors`` and ``config.json`` into the existing ``folder`` (the caller owns it)."""
         folder.mkdir(exist_ok=True)
         state = {k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}
         save_file(state, str(folder / WEIGHTS_NAME), metadata={"class": type(self).__name__})
@@ -196,19 +174,13 @@ class PretrainedMixin:
     @classmethod
     def from_pretrained(cls: type[T], directory: str | os.PathLike, map_location: str = "cpu",
                         dtype: torch.dtype | None = None) -> T:
-        """Load a model written by :meth:`save_pretrained`.
-
-        The model is built on the ``meta`` device (no memory, no initialiser runs) and takes the file's tensors as
-        its parameters (``load_state_dict(assign=True)``), each cast to ``dtype`` (None: the default dtype,
-        float32) as it is read (:func:`load_weights`): a paper-size checkpoint loads into bfloat16 at the size
-        of the result plus one tensor, where building it first held a randomly initialised float32 copy (67 GB)
-        beside the whole file.
+        """Load a model written by :meth:`save_pretrained`: built on the ``meta`` device, its parameters the file's
+        tensors cast to ``dtype`` (None: the default dtype) as read (:func:`load_weights`).
 
         Raises:
             FileNotFoundError: ``directory`` lacks config.json or model.safetensors.
-            ValueError: the config names another class or has unknown fields, or weights do not match;
-                config.json or model.safetensors is corrupt (``diff4splat.io.structured.read_json``,
-                :func:`load_weights`).
+            ValueError: the config names another class or has unknown fields, the weights do not match, or a file is
+                corrupt.
         """
         directory = Path(directory)
         for name in (CONFIG_NAME, WEIGHTS_NAME):

@@ -1,16 +1,9 @@
 """3D rotary position embedding (RoPE) for video tokens, real-valued (ONNX-exportable).
 
-RoPE (Su et al. 2021, "RoFormer", Eq. 13–15) rotates each consecutive channel pair
-(x_{2i}, x_{2i+1}) of a query/key by the angle m·θ_i, where m is the token position and
-θ_i = theta^(−2i/d). The attention logit q_mᵀ k_n then depends on positions only through
-m − n. For video the head dimension is split into three parts that rotate with the frame,
-row and column index respectively (3D RoPE as in Wan 2.1 / HunyuanVideo); each part uses its
-own frequency ladder over its own width.
-
-Everything is written with cos/sin tables and real arithmetic (no ``torch.complex``), so
-``torch.onnx.export`` can trace it. :func:`apply_rope_complex` is the textbook complex-number
-formulation kept as the reference the tests compare against.
-"""
+RoPE (Su et al. 2021, RoFormer, Eq. 13–15) rotates each channel pair (x_{2i}, x_{2i+1}) of a query/key by m·θ_i,
+θ_i = theta^(−2i/d), so logits depend on m − n only. For video the head dimension is split into frame, row and
+column parts, each with its own frequency ladder (3D RoPE as in Wan 2.1 / HunyuanVideo).
+:func:`apply_rope_complex` is the textbook complex form, the reference of the tests."""
 from __future__ import annotations
 
 import torch
@@ -20,13 +13,10 @@ __all__ = ["rope_split", "rope_frequencies", "rope_3d", "apply_rope", "apply_rop
 
 
 def rope_split(head_dim: int) -> tuple[int, int, int]:
-    """Channels of one attention head given to the (frame, row, column) axes.
-
-    Rule of Wan 2.1 (``d − 4⌊d/6⌋``, ``2⌊d/6⌋``, ``2⌊d/6⌋``): the two spatial axes get equal even
-    widths and time takes the rest (head_dim 128 → (44, 42, 42); 16 → (8, 4, 4)).
+    """Channels of one head for (frame, row, column): (d − 4⌊d/6⌋, 2⌊d/6⌋, 2⌊d/6⌋), Wan 2.1's rule.
 
     Raises:
-        ValueError: ``head_dim`` is odd or smaller than 6 (some axis would get no channel pair).
+        ValueError: ``head_dim`` is odd or smaller than 6.
     """
     if head_dim % 2 or head_dim < 6:
         raise ValueError(f"head_dim must be even and >= 6 for 3D RoPE, got {head_dim}")
@@ -35,17 +25,10 @@ def rope_split(head_dim: int) -> tuple[int, int, int]:
 
 
 def rope_frequencies(dim: int, theta: float = 10000.0, device=None) -> Tensor:
-    """Angular frequencies θ_i = theta^(−2i/dim), i = 0 … dim/2 − 1 (RoFormer Eq. 15).
-
-    Args:
-        dim: even number of channels rotated by one axis.
-        theta: base wavelength (> 1); 10000 as in RoFormer.
-
-    Returns:
-        (dim/2,) float64 radians per unit position, decreasing from 1.
+    """(dim/2,) float64 angular frequencies θ_i = theta^(−2i/dim), radians per position (RoFormer Eq. 15).
 
     Raises:
-        ValueError: odd ``dim`` or ``theta`` ≤ 1.
+        ValueError: ``dim`` not positive and even, or ``theta`` ≤ 1.
     """
     if dim % 2 or dim <= 0:
         raise ValueError(f"dim must be a positive even number, got {dim}")
@@ -55,35 +38,17 @@ def rope_frequencies(dim: int, theta: float = 10000.0, device=None) -> Tensor:
     return theta ** (-exponent)
 
 
-def rope_3d(
-    n: int,
-    h: int,
-    w: int,
-    head_dim: int,
-    theta: float = 10000.0,
-    *,
-    dtype: torch.dtype = torch.float32,
-    device=None,
-) -> tuple[Tensor, Tensor]:
-    """cos/sin tables of 3D RoPE for an n×h×w token grid flattened frame-major.
-
-    Token k = (f·h + y)·w + x sits at integer position (f, y, x). Its head dimension is split
-    into ``rope_split(head_dim)`` = (d_t, d_h, d_w) channels; channel pair i of the time part is
-    rotated by f·θ_i (θ over width d_t), pair i of the row part by y·θ_i (θ over d_h) and pair i
-    of the column part by x·θ_i (θ over d_w) — RoFormer Eq. 13 applied per axis.
-
-    Args:
-        n, h, w: grid size in tokens (frames, rows, columns), each ≥ 1.
-        head_dim: channels per attention head (even, ≥ 6).
-        theta: RoPE base wavelength.
-        dtype, device: of the returned tables (angles are computed in float64 first).
+def rope_3d(n: int, h: int, w: int, head_dim: int, theta: float = 10000.0, *, dtype: torch.dtype = torch.float32,
+            device=None) -> tuple[Tensor, Tensor]:
+    """cos/sin tables of 3D RoPE for an n×h×w token grid flattened frame-major: token (f, y, x)'s pairs in the
+    :func:`rope_split` parts rotate by f·θ_i, y·θ_i, x·θ_i (RoFormer Eq. 13 per axis); angles in float64, then
+    ``dtype``.
 
     Returns:
-        cos, sin: each (n·h·w, head_dim/2), values in [−1, 1]; column j holds the rotation of
-        channel pair (2j, 2j+1).
+        cos, sin: each (n·h·w, head_dim/2); column j rotates channel pair (2j, 2j+1).
 
     Raises:
-        ValueError: a non-positive grid size or an unusable ``head_dim`` / ``theta``.
+        ValueError: a grid size < 1 or an unusable ``head_dim`` / ``theta``.
     """
     for name, size in (("n", n), ("h", h), ("w", w)):
         if size < 1:
@@ -106,29 +71,19 @@ def apply_rope(
     sin: Tensor,  # (N, D/2)
     token_dim: int = -2,
 ) -> Tensor:
-    """Rotate consecutive channel pairs of ``x`` by the tabulated angles (RoFormer Eq. 14).
-
-    (x_{2j}, x_{2j+1}) ↦ (x_{2j} cos φ − x_{2j+1} sin φ, x_{2j} sin φ + x_{2j+1} cos φ).
-    A pure rotation: the norm of every token vector is preserved.
-
-    Computed over whole channels, never every other one: out = x ⊙ cos' + swap(x) ⊙ sin', with swap exchanging
-    each pair, cos' each cos φ twice and sin' the pair's (−sin φ, sin φ); one flip, one multiply and one fused
-    multiply-add (``addcmul``), each reading and writing contiguous memory. The textbook four products of the even
-    and odd channels, two sums and a ``stack`` read every other element (a GPU fetches whole 32-byte sectors, so
-    such a read costs as much as reading all of ``x``) and moved about 1.6 times the bytes
-    (benchmarks/dit_traffic.py).
+    """Rotate channel pairs of ``x`` by the tabulated angles (RoFormer Eq. 14): (x_{2j}, x_{2j+1}) ↦
+    (x_{2j} cos φ − x_{2j+1} sin φ, x_{2j} sin φ + x_{2j+1} cos φ), computed on whole channels as
+    x ⊙ cos' + swap(x) ⊙ sin' (contiguous reads).
 
     Args:
-        x: (..., N, D), e.g. (B, heads, N, head_dim); or (..., N, heads, D) with ``token_dim=-3`` (the layout
-            of a projection's output, which attention kernels take without a copy); D even.
+        x: (..., N, D), or (..., N, heads, D) with ``token_dim=-3``; D even.
         cos, sin: (N, D/2) from :func:`rope_3d`.
-        token_dim: the dimension of ``x`` that the tables' N runs along, −2 or −3.
+        token_dim: the dimension of ``x`` the tables' N runs along, −2 or −3.
 
-    Returns:
-        ``x``'s shape, dtype and memory layout.
+    Returns ``x``'s shape, dtype and layout.
 
     Raises:
-        ValueError: the tables do not match ``x``, or ``token_dim`` is not −2 or −3.
+        ValueError: tables that do not match ``x``, or another ``token_dim``.
     """
     if token_dim not in (-2, -3) or x.dim() < -token_dim:
         raise ValueError(f"token_dim must be -2 or -3 for x of shape {tuple(x.shape)}, got {token_dim}")
@@ -148,12 +103,7 @@ def apply_rope_complex(
     x: Tensor,  # (..., N, D)
     freqs_cis: Tensor,  # (N, D/2) complex, unit modulus e^{iφ}
 ) -> Tensor:
-    """Reference: the rotation as complex multiplication (x_{2j} + i·x_{2j+1})·e^{iφ_j} (RoFormer §3.2.2).
-
-    The LLaMA-style formulation; not exportable to ONNX (complex dtype), used by the tests only.
-
-    Returns:
-        (..., N, D), same dtype as ``x``.
-    """
+    """Reference: (x_{2j} + i·x_{2j+1})·e^{iφ_j} with ``freqs_cis`` (N, D/2) complex (RoFormer §3.2.2); not
+    exportable. Returns ``x``'s shape and dtype."""
     xc = torch.view_as_complex(x.double().unflatten(-1, (x.shape[-1] // 2, 2)).contiguous())
     return torch.view_as_real(xc * freqs_cis.to(torch.complex128)).flatten(-2).to(x.dtype)

@@ -1,24 +1,11 @@
 """T5-style text encoder (T5 v1.1 encoder architecture) and a dependency-free byte tokenizer.
 
-Architecture (Raffel et al. 2020, "Exploring the Limits of Transfer Learning with a Unified
-Text-to-Text Transformer", §2.1; v1.1 changes: gated-GELU feed-forward, Shazeer 2020 "GLU Variants
-Improve Transformer", Eq. 6, and no embedding/classifier sharing):
-
-    h_0     = Embed(ids)                                   (no absolute positions, no scaling)
-    h_l'    = h_{l-1} + SelfAttn(RMSNorm(h_{l-1}); B)      (pre-norm, no biases)
-    h_l     = h_l'    + W_o (GELU(W_0 RMSNorm(h_l')) ⊙ W_1 RMSNorm(h_l'))
-    out     = RMSNorm(h_L)
-
-B is the relative position bias: a learned scalar per (bucket, head), where the bucket is a function
-of the key−query offset (log-spaced beyond ``num_buckets/4`` positions, §2.1 "Position embeddings");
-it is computed once and shared by all layers, exactly as in T5. Attention logits are not scaled by
-1/√d_kv (T5 folds the scale into the initialisation of W_q, see :meth:`TextEncoder._init_weights`).
-
-The paper configuration (:meth:`TextEncoderConfig.paper`) has the shape of the T5-v1.1-XXL encoder
-used by video DiTs (4,762,310,656 parameters). Pretrained T5 weights need the SentencePiece
-tokenizer; :meth:`TextEncoder.forward` takes ids from any tokenizer, while :meth:`TextEncoder.encode`
-uses the built-in :class:`ByteTokenizer` (the tiny default model is trained with it).
-"""
+Raffel et al. 2020 §2.1 with the v1.1 changes (gated-GELU feed-forward, Shazeer 2020 Eq. 6; no embedding
+sharing): h_0 = Embed(ids); h' = h + SelfAttn(RMSNorm(h); B); h = h' + W_o(GELU(W_0 RMSNorm(h')) ⊙ W_1 RMSNorm(h'));
+out = RMSNorm(h_L). B is the learned relative position bias per (bucket, head), computed once and shared by all
+layers; logits are not scaled by 1/√d_kv (folded into W_q's initialisation). :meth:`TextEncoderConfig.paper` is
+the T5-v1.1-XXL encoder's shape; :meth:`TextEncoder.forward` takes ids from any tokenizer,
+:meth:`TextEncoder.encode` uses :class:`ByteTokenizer`."""
 from __future__ import annotations
 
 import math
@@ -34,18 +21,12 @@ __all__ = ["ByteTokenizer", "TextEncoderConfig", "TextEncoder", "relative_positi
 
 
 class ByteTokenizer:
-    """UTF-8 byte tokenizer: id = byte + 3, with pad = 0, bos = 1, eos = 2 (vocabulary 259).
-
-    A prompt becomes ``[bos, b_1 + 3, …, b_k + 3, eos]``; prompts whose encoding is longer than
-    ``max_length`` keep their first ``max_length − 2`` bytes (the eos is kept; a multi-byte
-    character may be cut). The batch is right-padded with ``pad_id`` to the longest prompt, or to
-    ``max_length`` with ``padding="max_length"``.
-
-    Args:
-        max_length: maximum sequence length including bos and eos, ≥ 2.
+    """UTF-8 byte tokenizer: id = byte + 3, pad = 0, bos = 1, eos = 2 (vocabulary 259). A prompt becomes
+    ``[bos, b_1 + 3, …, eos]``, keeping its first ``max_length − 2`` bytes; a batch is right-padded to the longest
+    prompt, or to ``max_length`` with ``padding="max_length"``.
 
     Raises:
-        ValueError: ``max_length`` < 2.
+        ValueError: ``max_length`` (including bos and eos) < 2.
     """
 
     pad_id = 0
@@ -60,18 +41,11 @@ class ByteTokenizer:
         self.max_length = max_length
 
     def __call__(self, prompts: list[str], padding: str = "longest") -> tuple[Tensor, Tensor]:
-        """Tokenize a batch.
-
-        Args:
-            prompts: B ≥ 1 strings (an empty string gives ``[bos, eos]``).
-            padding: ``"longest"`` or ``"max_length"``.
-
-        Returns:
-            ids: (B, L) int64 token ids; mask: (B, L) bool, True on real tokens (bos/bytes/eos); both on the
-            CPU, as tokenizers return them (move them to the encoder's device).
+        """Tokenize B ≥ 1 strings ("" gives ``[bos, eos]``) → ids (B, L) int64 and mask (B, L) bool (True on real
+        tokens), both on the CPU.
 
         Raises:
-            ValueError: ``prompts`` is empty or not a list of str; unknown ``padding``.
+            ValueError: ``prompts`` empty or not a list of str; unknown ``padding``.
         """
         if isinstance(prompts, str) or not isinstance(prompts, (list, tuple)) or len(prompts) == 0:
             raise ValueError(f"prompts must be a non-empty list of str, got {type(prompts).__name__} {prompts!r:.60}")
@@ -90,26 +64,28 @@ class ByteTokenizer:
         return ids, ids != self.pad_id
 
     def decode(self, ids: Tensor) -> list[str]:
-        """Inverse of :meth:`__call__` for (B, L) ids: drops special ids, decodes UTF-8 (invalid → U+FFFD)."""
+        """Inverse of :meth:`__call__` for (B, L) ids: special ids dropped, invalid UTF-8 → U+FFFD."""
         return [bytes(int(i) - self.offset for i in row if int(i) >= self.offset).decode("utf-8", errors="replace")
                 for row in ids]
 
 
 @dataclass
 class TextEncoderConfig:
-    """T5-encoder hyper-parameters; defaults are the tiny CPU model (≈ 0.1 M parameters).
+    """T5-encoder hyper-parameters; defaults are the tiny CPU model.
 
     Attributes:
-        vocab_size: embedding rows (≥ 259 so the byte tokenizer fits).
+        vocab_size: embedding rows (≥ 259 for the byte tokenizer).
         d_model: token width = d_text of the output.
-        num_layers: transformer blocks.
-        num_heads: attention heads.
-        d_kv: width per head (inner attention width = num_heads·d_kv, need not equal d_model).
+        num_layers, num_heads: transformer blocks and attention heads.
+        d_kv: width per head (num_heads·d_kv need not equal d_model).
         d_ff: hidden width of the gated-GELU feed-forward.
-        num_buckets: relative-position buckets (half per direction).
+        num_buckets: relative-position buckets (even, ≥ 4; half per direction).
         max_distance: offsets ≥ this share the last log-spaced bucket.
-        max_length: tokenizer length limit (bos + bytes + eos) used by :meth:`TextEncoder.encode`.
+        max_length: tokenizer length limit used by :meth:`TextEncoder.encode`.
         eps: RMSNorm epsilon.
+
+    Raises:
+        ValueError: a field out of range.
     """
 
     vocab_size: int = 259
@@ -145,25 +121,14 @@ class TextEncoderConfig:
 
 PAPER_TEXT_ENCODER: dict = dict(vocab_size=32128, d_model=4096, num_layers=24, num_heads=64, d_kv=64, d_ff=10240,
                                 num_buckets=32, max_distance=128, max_length=226, eps=1e-6)
-"""google/t5-v1_1-xxl encoder (config.json of the released checkpoint); max_length 226 is the prompt
-length of CogVideoX (Yang et al. 2024), our choice for the video DiT's text tokens."""
+"""google/t5-v1_1-xxl encoder; max_length 226 is CogVideoX's prompt length (our choice)."""
 
 
 def relative_position_bucket(relative_position: Tensor, num_buckets: int = 32, max_distance: int = 128) -> Tensor:
-    """Bidirectional T5 bucket of a key−query offset (Raffel et al. 2020, §2.1; Mesh-TF ``_relative_position_bucket``).
-
-    Half of the buckets serve positive offsets (key after query). Within a half, offsets
-    |r| < num_buckets/4 get their own bucket; larger ones are log-spaced up to ``max_distance`` and
-    clipped to the last bucket of the half:
-
-        b(|r|) = n/4 + ⌊ log(|r| / (n/4)) / log(max_distance / (n/4)) · (n/4) ⌋,   n = num_buckets.
-
-    Args:
-        relative_position: integer tensor of offsets (key index − query index), any shape.
-
-    Returns:
-        int64 tensor of the same shape, values in [0, num_buckets).
-    """
+    """Bidirectional T5 bucket of key − query offsets (Raffel et al. 2020 §2.1; Mesh-TF
+    ``_relative_position_bucket``): half the buckets for positive offsets; within a half |r| < n/4 exact, larger ones
+    b = n/4 + ⌊log(|r|/(n/4)) / log(max_distance/(n/4)) · (n/4)⌋, clipped. Integer tensor → int64 of its shape in
+    [0, num_buckets)."""
     half = num_buckets // 2
     bucket = (relative_position > 0).long() * half
     n = relative_position.abs()
@@ -176,10 +141,7 @@ def relative_position_bucket(relative_position: Tensor, num_buckets: int = 32, m
 
 
 class RMSNorm(nn.Module):
-    """T5 layer norm: y = w · x / √(mean(x²) + eps), no mean subtraction, no bias (Zhang & Sennrich 2019).
-
-    The statistic is computed in float32 for half-precision inputs. (..., d) → (..., d).
-    """
+    """T5 layer norm w · x / √(mean(x²) + eps) (Zhang & Sennrich 2019), statistic in float32. (..., d) → (..., d)."""
 
     def __init__(self, dim: int, eps: float = 1e-6):
         super().__init__()
@@ -187,7 +149,6 @@ class RMSNorm(nn.Module):
         self.weight = nn.Parameter(torch.ones(dim))  # device: the construction context's (torch.device(…), meta)
 
     def forward(self, x: Tensor) -> Tensor:
-        """(..., dim) → (..., dim): statistic in float32, normalised x cast back to x's dtype, times the weight."""
         var = x.float().pow(2).mean(-1, keepdim=True)
         return self.weight * (x.float() * torch.rsqrt(var + self.eps)).to(x.dtype)
 
@@ -205,7 +166,7 @@ class T5Attention(nn.Module):
         self.o = nn.Linear(inner, config.d_model, bias=False)
 
     def forward(self, x: Tensor, bias: Tensor) -> Tensor:
-        """x: (B, L, d_model); bias: (B or 1, heads, L, L) position bias + additive mask → (B, L, d_model)."""
+        """x (B, L, d_model), bias (B or 1, heads, L, L) position bias + additive mask → (B, L, d_model)."""
         b, length, _ = x.shape
         q, k, v = (proj(x).view(b, length, self.num_heads, self.d_kv).transpose(1, 2)
                    for proj in (self.q, self.k, self.v))
@@ -226,8 +187,7 @@ class T5Block(nn.Module):
         self.wo = nn.Linear(config.d_ff, config.d_model, bias=False)
 
     def forward(self, x: Tensor, bias: Tensor) -> Tensor:
-        """x: (B, L, d_model) token features; bias: (B or 1, heads, L, L) relative position bias plus the additive
-        padding mask (:class:`T5Attention`) → (B, L, d_model)."""
+        """x (B, L, d_model), bias as :class:`T5Attention` → (B, L, d_model)."""
         x = x + self.attn(self.attn_norm(x), bias)
         h = self.ff_norm(x)
         # GEGLU (Shazeer 2020, Eq. 6) with the tanh GELU approximation T5 v1.1 uses ("gelu_new").
@@ -235,11 +195,7 @@ class T5Block(nn.Module):
 
 
 class TextEncoder(nn.Module, PretrainedMixin):
-    """T5 v1.1 encoder: prompts → per-token features for the video DiT's cross-attention.
-
-    Args:
-        config: :class:`TextEncoderConfig` (the only constructor argument, for save/from_pretrained).
-    """
+    """T5 v1.1 encoder: prompts → per-token features for the video DiT's cross-attention."""
 
     config_class = TextEncoderConfig
 
@@ -255,12 +211,8 @@ class TextEncoder(nn.Module, PretrainedMixin):
         self._init_weights()
 
     def _init_weights(self) -> None:
-        """Mesh-TF / HF T5 initialisation (factor 1): N(0, σ²) with σ = fan-in^-½, except W_q.
-
-        W_q uses σ = (d_model·d_kv)^-½: the extra d_kv^-½ is the attention's 1/√d_kv scale, folded
-        into the weights because the logits are not scaled. Embeddings use σ = 1 (T5 multiplies
-        nothing at the input). Norm weights stay 1. No zero-init: T5 is trained from this state.
-        """
+        """Mesh-TF / HF T5 initialisation: N(0, fan-in⁻¹), W_q (d_model·d_kv)^-½ (the folded 1/√d_kv),
+        embeddings σ = 1, norm weights 1."""
         c = self.config
         nn.init.normal_(self.embed.weight, std=1.0)
         nn.init.normal_(self.relative_attention_bias.weight, std=c.d_model ** -0.5)
@@ -272,23 +224,15 @@ class TextEncoder(nn.Module, PretrainedMixin):
             nn.init.normal_(block.wo.weight, std=c.d_ff ** -0.5)
 
     def position_bias(self, length: int) -> Tensor:
-        """Relative position bias shared by every layer: (1, heads, L, L), [0, h, i, j] for query i, key j."""
+        """Relative position bias (1, heads, L, L), [0, h, i, j] for query i, key j."""
         pos = torch.arange(length, device=self.embed.weight.device)
         buckets = relative_position_bucket(pos[None, :] - pos[:, None], self.config.num_buckets,
                                            self.config.max_distance)
         return self.relative_attention_bias(buckets).permute(2, 0, 1)[None]
 
     def forward(self, ids: Tensor, mask: Tensor | None = None) -> Tensor:
-        """Encode token ids.
-
-        Args:
-            ids: (B, L) int64 token ids in [0, vocab_size).
-            mask: (B, L) bool, True on real tokens; None = all real. Every row needs ≥ 1 real token.
-                Padded keys get −∞ logits, so real tokens never see padding: their outputs do not
-                depend on how much padding follows (or precedes) them.
-
-        Returns:
-            (B, L, d_model) features in the embedding dtype; rows at padded positions are set to 0.
+        """Encode ids (B, L) int64 in [0, vocab_size) with ``mask`` (B, L) bool (None = all real; ≥ 1 real token a
+        row; padded keys get −∞ logits) → (B, L, d_model) in the embedding dtype, zero at padding.
 
         Raises:
             ValueError: wrong ranks/shapes, ids out of range, or a row without real tokens.
@@ -299,8 +243,7 @@ class TextEncoder(nn.Module, PretrainedMixin):
             mask = torch.ones_like(ids, dtype=torch.bool)
         if mask.shape != ids.shape or mask.dtype != torch.bool:
             raise ValueError(f"mask must be bool with shape {tuple(ids.shape)}, got {mask.dtype} {tuple(mask.shape)}")
-        # Value checks need data: meta tensors only carry shapes, and torch.export / torch.onnx trace
-        # symbolic tensors (the exported graph leaves id validation to its caller, the tokenizer).
+        # Value checks need data: not on meta tensors nor while exporting (the tokenizer checks ids there).
         if ids.device.type != "meta" and not torch.compiler.is_exporting():
             if ids.numel() and (int(ids.min()) < 0 or int(ids.max()) >= self.config.vocab_size):
                 raise ValueError(f"ids must lie in [0, {self.config.vocab_size}), "
@@ -317,21 +260,8 @@ class TextEncoder(nn.Module, PretrainedMixin):
 
     @torch.no_grad()
     def encode(self, prompts: list[str], padding: str = "longest") -> tuple[Tensor, Tensor]:
-        """Tokenize with :class:`ByteTokenizer` and encode (no gradients).
-
-        The pipeline skips the encoder for an empty prompt; ``encode([""])`` still works and encodes
-        ``[bos, eos]``.
-
-        Args:
-            prompts: B ≥ 1 strings.
-            padding: ``"longest"`` or ``"max_length"`` (fixed L = config.max_length).
-
-        Returns:
-            tokens: (B, L, d_model) features (zeros at padding); mask: (B, L) bool, on the model's device.
-
-        Raises:
-            ValueError: see :meth:`ByteTokenizer.__call__`.
-        """
+        """:class:`ByteTokenizer` then :meth:`forward`, without gradients: → tokens (B, L, d_model) and mask (B, L)
+        on the model's device. ValueError from the tokenizer."""
         ids, mask = self.tokenizer(prompts, padding=padding)
         device = self.embed.weight.device
         ids, mask = ids.to(device), mask.to(device)

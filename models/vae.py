@@ -1,40 +1,12 @@
-"""Causal 3D-convolution video VAE (4× temporal, 8×8 spatial compression, first frame on its own).
+"""Causal 3D-convolution video VAE: 4× temporal, 8×8 spatial compression, first frame encoded on its own.
 
-A simplified CogVideoX / Wan-style video VAE (Yang et al. 2024, "CogVideoX", §2.1; Wan Team 2025,
-"Wan: Open and Advanced Large-Scale Video Generative Models", §3.1):
-
-- **Causal in time.** Every convolution pads only with *past* frames, replicating the first frame
-  (:class:`CausalConv3d`), and normalisation is per frame (:class:`FrameGroupNorm`; a GroupNorm
-  over the whole clip would leak future statistics into the past — Wan uses a per-frame norm for
-  the same reason). Hence latent i depends only on frames ≤ 4i and decoded frame t only on latents
-  ≤ ⌈t/4⌉, and the first frame is encoded exactly like a still image.
-- **First frame alone.** A temporal downsample is a causal stride-2 convolution: with two replicated
-  copies of frame 0 in front, T = 1 + 2j frames give 1 + j outputs, output 0 seeing only frame 0.
-  Two of them map T = 1 + 4k frames to n = 1 + k latents; the decoder mirrors this with temporal
-  "pixel shuffle" upsampling (latent 0 → 1 frame, every later latent → 2 frames, twice).
-- **8×8 spatial** by three stride-2 convolutions; latent channels 4 (tiny) or 16 (paper).
-- **Diagonal Gaussian posterior** q(z|x) = N(mean, exp(logvar)), logvar clamped to [−30, 20]
-  (Kingma & Welling 2014; the clamp follows the Stable Diffusion VAE).
-
-- **Residual shortcuts** (DC-AE, Chen et al. 2025, "Deep Compression Autoencoder for Efficient
-  High-Resolution Diffusion Models", §3.2 "residual autoencoding"): every down/upsampling block adds a
-  parameter-free path to its learned convolution — space-to-channel averaging (a causal 2×2(×2) mean
-  pool) going down, duplication going up — and the bottleneck adds channel averaging
-  (encoder → mean) and channel duplication (latent → decoder). The untrained network then already
-  passes a block-averaged image through the latent, and training learns the residual; without them
-  the tiny VAE stays at the per-image mean colour for hundreds of steps (see the model card).
-
-- **Spatial upsampling** in the decoder (``VideoVAEConfig.upsample``): ``nearest`` (SD / Wan: each feature
-  copied into 2×2 before the convolution) or ``bilinear``. With the residual shortcuts, nearest duplication three
-  times over copies every latent pixel's features into its own 8×8 block, and a small decoder keeps those blocks:
-  the shipped tiny VAE's reconstructions carry 2.5× the squared neighbour differences across the 8-pixel borders
-  as inside them (true frames ≈ 1.05; ``benchmarks/blockiness.py``). Bilinear upsampling overlaps neighbouring
-  latents on both paths, so no block structure exists to be learned away.
-
-Simplifications against the published VAEs: no attention in the middle block, no feature cache
-(the whole clip is encoded at once), no tiling. Tensors are channel-first ``(B, C, T, H, W)``,
-pixels in [−1, 1]; latents ``(B, c, n, H/8, W/8)``.
-"""
+A simplified CogVideoX / Wan-style video VAE (Yang et al. 2024 §2.1; Wan Team 2025 §3.1): convolutions pad time
+with replicated past frames and norms are per frame, so latent i depends only on frames ≤ 4i and decoded frame t
+only on latents ≤ ⌈t/4⌉; a diagonal Gaussian posterior N(mean, exp(logvar)), logvar clamped to [−30, 20]
+(Kingma & Welling 2014; Stable Diffusion's clamp); DC-AE residual shortcuts (Chen et al. 2025 §3.2) around every
+resampling block and the bottleneck; nearest or bilinear spatial upsampling (DESIGN.md "Training", stage 0).
+No attention in the middle block, no feature cache, no tiling. Tensors ``(B, C, T, H, W)``, pixels in [−1, 1];
+latents ``(B, c, n, H/8, W/8)``."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -60,26 +32,23 @@ UPSAMPLE_MODES = ("nearest", "bilinear")
 
 @dataclass
 class VideoVAEConfig:
-    """Video VAE hyper-parameters; defaults are the tiny CPU model (246,819 parameters).
+    """Video VAE hyper-parameters; defaults are the tiny CPU model.
 
     Attributes:
         in_channels: pixel channels (3, RGB in [−1, 1]).
         latent_channels: c, channels of the latent video.
         base_channels: width of the first level.
-        channel_mults: width multiplier per level; ``len − 1`` stride-2 spatial downsamples
-            (4 levels → 8×8).
-        temporal_downsample: one flag per downsample, True = also halve time (first frame alone);
-            two True → 4× temporal compression. The decoder mirrors it.
+        channel_mults: width multiplier per level; ``len − 1`` stride-2 spatial downsamples (4 levels → 8×8).
+        temporal_downsample: one flag per downsample, True = also halve time; the decoder mirrors it.
         num_res_blocks: residual blocks per encoder level (the decoder has one more, as in SD/Wan).
         norm_groups: GroupNorm groups; must divide every level width.
-        shortcuts: DC-AE residual shortcuts (module docstring); parameter-free. Needs
-            ``latent_channels`` to divide the deepest width.
-        upsample: the decoder's spatial 2× upsampling, one of :data:`UPSAMPLE_MODES` (module docstring):
-            ``nearest`` (default, the published VAEs') or ``bilinear`` (no 8×8 blocks). Weights are the same
-            either way: a decoder trained with one runs with the other, changed.
-        scaling_factor: a in z_dit = a·(z − b), applied by :meth:`VideoVAE.encode_latents` so the DiT
-            sees roughly unit-variance latents; set after VAE training with :func:`estimate_latent_scaling`.
-        shift_factor: b in the same formula (latent mean).
+        shortcuts: DC-AE residual shortcuts; needs ``latent_channels`` to divide the deepest width.
+        upsample: the decoder's spatial 2× upsampling, one of :data:`UPSAMPLE_MODES`; the weights fit either.
+        scaling_factor, shift_factor: a and b in z_dit = a·(z − b) (:meth:`VideoVAE.encode_latents`), set with
+            :func:`estimate_latent_scaling`.
+
+    Raises ValueError (``__post_init__``) on a non-positive size, a wrong flag count, groups that do not divide the
+    widths, an unknown ``upsample`` or ``scaling_factor`` ≤ 0.
     """
 
     in_channels: int = 3
@@ -135,13 +104,11 @@ class VideoVAEConfig:
 
     @property
     def latent_format(self) -> LatentFormat:
-        """Channels and compression as a :class:`models.backbone.LatentFormat` (the one home of the frame
-        grouping arithmetic)."""
+        """Channels and compression as a :class:`models.backbone.LatentFormat`."""
         return LatentFormat(self.latent_channels, self.temporal_factor, self.spatial_factor)
 
     def num_latent_frames(self, num_frames: int) -> int:
-        """n = 1 + (T − 1)/temporal_factor (:meth:`LatentFormat.num_latent_frames`). Raises ValueError unless
-        T = 1 + temporal_factor·k, k ≥ 0."""
+        """n = 1 + (T − 1)/temporal_factor; ValueError unless T = 1 + temporal_factor·k."""
         return self.latent_format.num_latent_frames(num_frames)
 
     def num_frames(self, num_latent_frames: int) -> int:
@@ -157,26 +124,18 @@ class VideoVAEConfig:
 PAPER_VIDEO_VAE: dict = dict(in_channels=3, latent_channels=16, base_channels=96, channel_mults=(1, 2, 4, 4),
                              temporal_downsample=(False, True, True), num_res_blocks=2, norm_groups=32,
                              shortcuts=True, scaling_factor=1.0, shift_factor=0.0)
-"""Paper-scale VAE: 4×8×8 compression with 16 latent channels; widths and depth of the Wan 2.1 VAE
-(dim 96, mults 1-2-4-4, 2 residual blocks, temporal downsampling in the last two stages). The scale
-and shift stay 1/0 until estimated from data with :func:`estimate_latent_scaling`."""
+"""Paper-scale VAE: 4×8×8 compression, 16 latent channels; widths and depth of the Wan 2.1 VAE. Scale and
+shift stay 1/0 until estimated with :func:`estimate_latent_scaling`."""
 
 
 MAX_KERNEL_ELEMENTS = 2**31 - 1
-"""Elements of one sample above which :class:`CausalConv3d` and :func:`upsample2x` run on windows of frames: CUDA
-kernels index in 32 bits (torch < 2.7's ``upsample_nearest3d`` refuses larger outputs; cuDNN declines convolutions
-it cannot split by batch, and torch's fallback builds a column buffer of ~130 GB for the paper decoder's last
-stage: (1, 192, 51, 512, 512) at 49 frames, 512²)."""
+"""Elements of one sample above which :class:`CausalConv3d` and :func:`upsample2x` run on windows of frames
+(CUDA kernels index in 32 bits)."""
 
 
 class CausalConv3d(nn.Module):
-    """3D convolution that pads time only on the past side, replicating the first frame.
-
-    With temporal kernel k_t the input gets k_t − 1 copies of frame 0 in front, so output frame i
-    sees input frames ≤ i·s_t (s_t = temporal stride) and frame 0 is processed like a still image
-    repeated. Height/width use symmetric zero padding k//2. (B, C_in, T, H, W) →
-    (B, C_out, ⌊(T − 1)/s_t⌋ + 1, ⌊(H − 1)/s_h⌋ + 1, ⌊(W − 1)/s_w⌋ + 1) for odd spatial kernels.
-    """
+    """3D convolution padding time only on the past side with k_t − 1 copies of frame 0; symmetric zero padding
+    k//2 in H, W. Output frame i sees input frames ≤ i·s_t."""
 
     def __init__(self, in_channels: int, out_channels: int, kernel_size: tuple[int, int, int] = (3, 3, 3),
                  stride: tuple[int, int, int] = (1, 1, 1)):
@@ -187,8 +146,7 @@ class CausalConv3d(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         """(B, C_in, T, H, W) → (B, C_out, ⌊(T − 1)/s_t⌋ + 1, ⌊(H − 1)/s_h⌋ + 1, ⌊(W − 1)/s_w⌋ + 1) (odd spatial
-        kernels); above :data:`MAX_KERNEL_ELEMENTS` per sample (stride 1 in time) run in windows of frames, same
-        values."""
+        kernels); above :data:`MAX_KERNEL_ELEMENTS` (stride 1 in time) in windows of frames, same values."""
         if self.time_pad:
             x = torch.cat([x[:, :, :1].expand(-1, -1, self.time_pad, -1, -1), x], dim=2)
         c_in, t, h, w = x.shape[1:]
@@ -203,13 +161,9 @@ class CausalConv3d(nn.Module):
 
 
 class FrameGroupNorm(nn.GroupNorm):
-    """GroupNorm with statistics per frame (over channels-in-group × H × W), so it stays causal in time.
-
-    (B, C, T, H, W) → (B, C, T, H, W); equals ``nn.GroupNorm`` applied to each frame separately.
-    """
+    """GroupNorm with statistics per frame (causal in time); (B, C, T, H, W) → same."""
 
     def forward(self, x: Tensor) -> Tensor:
-        """(B, C, T, H, W) → (B, C, T, H, W), each frame normalised over its channel groups × H × W."""
         b, c, t, h, w = x.shape
         y = super().forward(x.transpose(1, 2).reshape(b * t, c, h, w))
         return y.reshape(b, t, c, h, w).transpose(1, 2)
@@ -217,12 +171,7 @@ class FrameGroupNorm(nn.GroupNorm):
 
 class ResBlock3d(nn.Module):
     """x + conv(SiLU(norm(conv(SiLU(norm(x)))))) with causal 3×3×3 convolutions (1×1×1 skip if widths differ).
-
-    The second convolution is zero-initialised, so every block starts as its skip path: the
-    initial network is the short chain of resampling convolutions, activations do not grow with
-    depth, and each block learns a residual correction (Goyal et al. 2017 §5.1; DiT zero-inits its
-    residual branches for the same reason).
-    """
+    The second convolution starts at zero so each block starts as its skip path (Goyal et al. 2017 §5.1)."""
 
     def __init__(self, in_channels: int, out_channels: int, groups: int):
         super().__init__()
@@ -241,10 +190,8 @@ class ResBlock3d(nn.Module):
 
 
 def causal_mean_pool(x: Tensor, temporal: bool) -> Tensor:
-    """DC-AE down shortcut: 2×2 spatial mean, and with ``temporal`` frame 0 alone then means of frame
-    pairs (2i − 1, 2i), so output i sees only frames ≤ 2i. (B, C, T, H, W) → (B, C, T', H/2, W/2),
-    T' = 1 + (T − 1)/2 if temporal else T. Half-precision inputs are pooled in float32 (the CPU has no
-    bfloat16 ``avg_pool3d``) and returned in their dtype."""
+    """DC-AE down shortcut: 2×2 spatial mean and, with ``temporal``, frame 0 alone then means of frames
+    (2i − 1, 2i). (B, C, T, H, W) → (B, C, T', H/2, W/2); half precision pooled in float32, returned in its dtype."""
     if temporal and x.shape[2] > 1:
         b, c, t, h, w = x.shape
         x = torch.cat([x[:, :, :1], x[:, :, 1:].reshape(b, c, (t - 1) // 2, 2, h, w).mean(3)], dim=2)
@@ -254,17 +201,16 @@ def causal_mean_pool(x: Tensor, temporal: bool) -> Tensor:
 
 
 def causal_repeat(x: Tensor, temporal: bool) -> Tensor:
-    """DC-AE up shortcut, the adjoint layout of :func:`causal_mean_pool`: with ``temporal`` frame 0 stays
-    alone and every later frame becomes two. Spatial upsampling is done by the caller. (B, C, n, H, W) →
-    (B, C, 1 + 2(n − 1), H, W) if temporal else unchanged."""
+    """DC-AE up shortcut (time only): with ``temporal`` frame 0 stays alone and every later frame becomes two.
+    (B, C, n, H, W) → (B, C, 1 + 2(n − 1), H, W), else unchanged."""
     if not temporal:
         return x
     return torch.cat([x[:, :, :1], x[:, :, 1:].repeat_interleave(2, dim=2)], dim=2)
 
 
 class Downsample(nn.Module):
-    """Causal 3×3×3 convolution with stride (2 if temporal else 1, 2, 2): T=1+2j → 1+j, H,W → H/2, W/2;
-    plus :func:`causal_mean_pool` of the input when ``shortcut``."""
+    """Causal 3×3×3 convolution, stride (2 if temporal else 1, 2, 2), plus :func:`causal_mean_pool` of the input when
+    ``shortcut``."""
 
     def __init__(self, channels: int, temporal: bool, shortcut: bool = True):
         super().__init__()
@@ -272,16 +218,15 @@ class Downsample(nn.Module):
         self.conv = CausalConv3d(channels, channels, stride=(2 if temporal else 1, 2, 2))
 
     def forward(self, x: Tensor) -> Tensor:
-        """(B, C, T, H, W) → (B, C, T', H/2, W/2), T' = 1 + (T − 1)/2 if temporal else T, for even H, W and (if
-        temporal) odd T; other sizes give ⌈·/2⌉ without ``shortcut`` and a shape mismatch with it."""
+        """(B, C, T, H, W) → (B, C, T', H/2, W/2), T' = 1 + (T − 1)/2 if temporal else T (even H, W; odd T if
+        temporal)."""
         y = self.conv(x)
         return y + causal_mean_pool(x, self.temporal) if self.shortcut else y
 
 
 def upsample2x(x: Tensor, mode: str) -> Tensor:
-    """(B, C, T, H, W) → (B, C, T, 2H, 2W), each frame on its own: ``nearest`` copies every value into 2×2;
-    ``bilinear`` interpolates between pixel centres (half-pixel, ``align_corners=False``; edges clamped), i.e.
-    weights 3/4 and 1/4 of the two nearest inputs per axis (trilinear with time scale 1: frames never mix).
+    """(B, C, T, H, W) → (B, C, T, 2H, 2W), frames never mixed: ``nearest`` copies into 2×2, ``bilinear`` uses
+    half-pixel weights 3/4, 1/4 (``align_corners=False``, edges clamped).
 
     Raises:
         ValueError: ``mode`` is not one of :data:`UPSAMPLE_MODES`.
@@ -298,13 +243,9 @@ def upsample2x(x: Tensor, mode: str) -> Tensor:
 
 
 class Upsample(nn.Module):
-    """2× in H, W (:func:`upsample2x`, ``mode``), then a causal conv; temporal: T=n → 1 + 2(n − 1) by time
-    pixel-shuffle.
-
-    With ``temporal`` the conv outputs 2C channels: frame 0 keeps the first C (the first frame stays
-    alone), every later frame i becomes frames 2i − 1 (first C) and 2i (last C). With ``shortcut`` the
-    upsampled input, repeated in time by :func:`causal_repeat`, is added.
-    """
+    """2× in H, W (:func:`upsample2x`) then a causal conv; ``temporal``: the conv gives 2C channels, frame 0 keeps
+    the first C and later frame i becomes frames 2i − 1, 2i. ``shortcut`` adds the input repeated by
+    :func:`causal_repeat`."""
 
     def __init__(self, channels: int, temporal: bool, shortcut: bool = True, mode: str = "nearest"):
         super().__init__()
@@ -312,11 +253,8 @@ class Upsample(nn.Module):
         self.conv = CausalConv3d(channels, channels * (2 if temporal else 1))
 
     def forward(self, x: Tensor) -> Tensor:
-        """(B, C, n, H, W) → (B, C, 1 + 2(n − 1), 2H, 2W) if temporal, else (B, C, n, 2H, 2W).
-
-        Raises:
-            ValueError: ``mode`` not in :data:`UPSAMPLE_MODES` (from :func:`upsample2x`).
-        """
+        """(B, C, n, H, W) → (B, C, 1 + 2(n − 1), 2H, 2W) if temporal, else (B, C, n, 2H, 2W). ValueError from
+        :func:`upsample2x` on a bad mode."""
         x = upsample2x(x, self.mode)
         y = self.conv(x)
         if self.temporal:
@@ -328,8 +266,8 @@ class Upsample(nn.Module):
 
 
 class Encoder(nn.Module):
-    """(B, 3, T, H, W) → (B, 2c, n, H/8, W/8): mean and logvar stacked on channels. With shortcuts the
-    mean gets the deepest features averaged over groups of width/c channels (DC-AE §3.2)."""
+    """(B, 3, T, H, W) → (B, 2c, n, H/8, W/8), mean and logvar on channels; the shortcut adds the deepest features
+    averaged over groups of width/c channels to the mean."""
 
     def __init__(self, config: VideoVAEConfig):
         super().__init__()
@@ -350,9 +288,8 @@ class Encoder(nn.Module):
         self.conv_out = CausalConv3d(cin, 2 * config.latent_channels)
 
     def forward(self, x: Tensor) -> Tensor:
-        """(B, in_channels, T, H, W), T = 1 + t·k, H and W multiples of s → moments (B, 2c, 1 + k, H/s, W/s):
-        mean on the first c channels, logvar (unclamped) on the last c; t = ``temporal_factor``, s =
-        ``spatial_factor`` of the config (4 and 8 by default). No checks here (:meth:`VideoVAE.encode` checks)."""
+        """(B, in_channels, T, H, W), T = 1 + t·k → moments (B, 2c, 1 + k, H/s, W/s): mean, then unclamped logvar;
+        t, s the config's temporal and spatial factors. Unchecked (:meth:`VideoVAE.encode` checks)."""
         h = self.layers(self.conv_in(x))
         out = self.conv_out(F.silu(self.norm_out(h)))
         if not self.shortcuts:
@@ -364,8 +301,8 @@ class Encoder(nn.Module):
 
 
 class Decoder(nn.Module):
-    """(B, c, n, h, w) → (B, 3, 1 + 4(n − 1), 8h, 8w), mirror of :class:`Encoder`. With shortcuts the
-    latent, each channel repeated width/c times, is added to the first convolution (DC-AE §3.2)."""
+    """(B, c, n, h, w) → (B, 3, 1 + 4(n − 1), 8h, 8w), mirror of :class:`Encoder`; the shortcut adds the latent,
+    each channel repeated width/c times, after the first convolution."""
 
     def __init__(self, config: VideoVAEConfig):
         super().__init__()
@@ -385,8 +322,7 @@ class Decoder(nn.Module):
         self.conv_out = CausalConv3d(cin, config.in_channels)
 
     def forward(self, z: Tensor) -> Tensor:
-        """VAE latents z (B, c, n, h, w) (not DiT-scaled) → video (B, in_channels, 1 + t·(n − 1), s·h, s·w), pixels
-        nominally in [−1, 1]; t = ``temporal_factor``, s = ``spatial_factor`` of the config (4 and 8 by default)."""
+        """Unscaled latents (B, c, n, h, w) → video (B, in_channels, 1 + t·(n − 1), s·h, s·w), nominally in [−1, 1]."""
         h = self.conv_in(z)
         if self.shortcuts:
             h = h + z.repeat_interleave(h.shape[1] // z.shape[1], dim=1)
@@ -394,15 +330,11 @@ class Decoder(nn.Module):
 
 
 def sample_posterior(mean: Tensor, logvar: Tensor, generator: torch.Generator | None = None) -> Tensor:
-    """Reparameterised draw z = mean + exp(logvar/2)·ε, ε ~ N(0, I) (Kingma & Welling 2014, §2.4).
+    """z = mean + exp(logvar/2)·ε, ε ~ N(0, I) (Kingma & Welling 2014 §2.4); differentiable in mean and logvar.
 
     Args:
-        mean, logvar: (B, c, n, h, w) posterior parameters (same shape).
-        generator: optional generator for ε; ε is drawn on the generator's device (a CPU generator gives the
-            same ε on every device) and moved to ``mean``'s. None: the default generator of ``mean``'s device.
-
-    Returns:
-        (B, c, n, h, w) latent sample; differentiable in mean and logvar.
+        mean, logvar: (B, c, n, h, w), same shape.
+        generator: ε is drawn on its device (a CPU generator gives the same ε everywhere), then moved to ``mean``'s.
 
     Raises:
         ValueError: shape mismatch.
@@ -415,18 +347,11 @@ def sample_posterior(mean: Tensor, logvar: Tensor, generator: torch.Generator | 
 
 
 def kl_divergence(mean: Tensor, logvar: Tensor) -> Tensor:
-    """KL(N(mean, exp(logvar)) ‖ N(0, I)) per batch item, summed over all other dims.
-
-    Closed form (Kingma & Welling 2014, Appendix B): ½ Σ (mean² + exp(logvar) − 1 − logvar), in nats.
-
-    Args:
-        mean, logvar: (B, ...) tensors of the same shape.
-
-    Returns:
-        (B,) non-negative KL values.
+    """KL(N(mean, exp(logvar)) ‖ N(0, I)) = ½ Σ (mean² + exp(logvar) − 1 − logvar) in nats (Kingma & Welling
+    2014, App. B), summed per batch item: (B, ...) → (B,).
 
     Raises:
-        ValueError: shape mismatch or fewer than 1 dimension.
+        ValueError: shape mismatch or a 0-dim input.
     """
     if mean.shape != logvar.shape or mean.ndim < 1:
         raise ValueError(f"mean {tuple(mean.shape)} and logvar {tuple(logvar.shape)} must have the same (B, ...) shape")
@@ -435,13 +360,11 @@ def kl_divergence(mean: Tensor, logvar: Tensor) -> Tensor:
 
 
 def estimate_latent_scaling(latents: Tensor) -> tuple[float, float]:
-    """(scaling_factor, shift_factor) = (1/std, mean) over all entries of a latent batch.
-
-    Makes a·(z − b) zero-mean and unit-variance (Rombach et al. 2022 §4.3.2 / Appendix G use 1/std;
-    Flux adds the mean shift). Store the result in :class:`VideoVAEConfig` after training the VAE.
+    """(scaling_factor, shift_factor) = (1/std, mean) over all entries, so a·(z − b) is zero-mean unit-variance
+    (Rombach et al. 2022 §4.3.2; Flux adds the shift).
 
     Raises:
-        ValueError: fewer than 2 entries or zero standard deviation.
+        ValueError: fewer than 2 entries or zero std.
     """
     if latents.numel() < 2:
         raise ValueError(f"latents: need at least 2 entries to estimate a std, got {latents.numel()}")
@@ -452,15 +375,8 @@ def estimate_latent_scaling(latents: Tensor) -> tuple[float, float]:
 
 
 def check_video(config: VideoVAEConfig, video: Tensor) -> None:
-    """The checks :meth:`VideoVAE.encode` makes (static: safe under tracing; the ONNX runtime makes them too).
-
-    Args:
-        video: (B, in_channels, T, H, W) with T = 1 + temporal_factor·k and H, W positive multiples of
-            spatial_factor.
-
-    Raises:
-        ValueError: naming what does not fit.
-    """
+    """The checks of :meth:`VideoVAE.encode` (static, safe under tracing): ``video`` (B, in_channels, T, H, W),
+    T = 1 + temporal_factor·k, H, W positive multiples of spatial_factor; ValueError otherwise."""
     if video.ndim != 5 or video.shape[1] != config.in_channels:
         raise ValueError(f"video must have shape (B, {config.in_channels}, T, H, W), got {tuple(video.shape)}")
     config.num_latent_frames(video.shape[2])
@@ -470,22 +386,14 @@ def check_video(config: VideoVAEConfig, video: Tensor) -> None:
 
 
 def check_latents(config: VideoVAEConfig, z: Tensor) -> None:
-    """The checks :meth:`VideoVAE.decode` makes: ``z`` is (B, latent_channels, n, h, w) with n, h, w ≥ 1.
-
-    Raises:
-        ValueError: naming the shape.
-    """
+    """The checks of :meth:`VideoVAE.decode`: ``z`` (B, latent_channels, n, h, w), n, h, w ≥ 1; ValueError otherwise."""
     if z.ndim != 5 or z.shape[1] != config.latent_channels or 0 in z.shape:
         raise ValueError(f"latents must have shape (B, {config.latent_channels}, n, h, w) with n, h, w >= 1, "
                          f"got {tuple(z.shape)}")
 
 
 class VideoVAE(nn.Module, PretrainedMixin):
-    """Causal video VAE: (B, 3, T, H, W) pixels in [−1, 1] ↔ (B, c, n, H/8, W/8) latents.
-
-    Args:
-        config: :class:`VideoVAEConfig` (the only constructor argument, for save/from_pretrained).
-    """
+    """Causal video VAE: (B, 3, T, H, W) pixels in [−1, 1] ↔ (B, c, n, H/8, W/8) latents."""
 
     config_class = VideoVAEConfig
 
@@ -496,73 +404,39 @@ class VideoVAE(nn.Module, PretrainedMixin):
         self.decoder = Decoder(config)
 
     def encode(self, video: Tensor) -> tuple[Tensor, Tensor]:
-        """Posterior parameters of a clip.
-
-        Args:
-            video: (B, 3, T, H, W), pixels in [−1, 1], T = 1 + 4k, H and W multiples of 8.
-
-        Returns:
-            mean, logvar: (B, c, 1 + k, H/8, W/8) each; logvar clamped to [−30, 20].
-            Latent i depends only on frames ≤ 4i (latent 0 on frame 0 alone).
-
-        Raises:
-            ValueError: wrong rank/channels, T ≠ 1 + 4k, or H/W not multiples of 8.
-        """
+        """(B, 3, T, H, W) in [−1, 1], T = 1 + 4k → mean, logvar (B, c, 1 + k, H/8, W/8), logvar clamped to
+        [−30, 20]. ValueError from :func:`check_video`."""
         check_video(self.config, video)
         moments = self.encoder(video)
         mean, logvar = moments.chunk(2, dim=1)
         return mean, logvar.clamp(*LOGVAR_RANGE)
 
     def sample(self, mean: Tensor, logvar: Tensor, generator: torch.Generator | None = None) -> Tensor:
-        """Reparameterised posterior sample, see :func:`sample_posterior`. (B, c, n, h, w) → same."""
+        """Posterior sample, :func:`sample_posterior`."""
         return sample_posterior(mean, logvar, generator)
 
     def decode(self, z: Tensor) -> Tensor:
-        """Latents → video.
-
-        Args:
-            z: (B, c, n, h, w) raw (unscaled) latents.
-
-        Returns:
-            (B, 3, 1 + 4(n − 1), 8h, 8w) pixels, nominally in [−1, 1] (not clamped). Frame t depends
-            only on latents ≤ ⌈t/4⌉.
-
-        Raises:
-            ValueError: wrong rank or channel count.
-        """
+        """Raw latents (B, c, n, h, w) → (B, 3, 1 + 4(n − 1), 8h, 8w), nominally in [−1, 1] (not clamped).
+        ValueError from :func:`check_latents`."""
         check_latents(self.config, z)
         return self.decoder(z)
 
     def forward(self, video: Tensor, sample_posterior: bool = True,
                 generator: torch.Generator | None = None) -> tuple[Tensor, Tensor, Tensor]:
-        """Reconstruct a clip (training): encode, sample (or take the mean), decode.
-
-        Args:
-            video: (B, 3, T, H, W) in [−1, 1] (see :meth:`encode`).
-            sample_posterior: draw z ~ q(z|x) (True) or use z = mean (False).
-
-        Returns:
-            reconstruction (B, 3, T, H, W), mean and logvar (B, c, n, H/8, W/8) for the KL term
-            (:func:`kl_divergence`).
-        """
+        """Encode, sample (or take the mean), decode: → reconstruction (B, 3, T, H, W), mean, logvar (for
+        :func:`kl_divergence`)."""
         mean, logvar = self.encode(video)
         z = self.sample(mean, logvar, generator) if sample_posterior else mean
         return self.decode(z), mean, logvar
 
     def encode_latents(self, video: Tensor, sample_posterior: bool = False,
                        generator: torch.Generator | None = None) -> Tensor:
-        """Video → DiT latents a·(z − b) with a = ``scaling_factor``, b = ``shift_factor``.
-
-        ``sample_posterior=False`` (default) uses the posterior mean (deterministic conditioning);
-        training the DiT may sample instead. (B, 3, T, H, W) → (B, c, n, H/8, W/8).
-        """
+        """Video → DiT latents a·(z − b) (``scaling_factor``, ``shift_factor``), z the posterior mean unless
+        ``sample_posterior``."""
         mean, logvar = self.encode(video)
         z = self.sample(mean, logvar, generator) if sample_posterior else mean
         return (z - self.config.shift_factor) * self.config.scaling_factor
 
     def decode_latents(self, latents: Tensor) -> Tensor:
-        """DiT latents → video: decode(latents / a + b), inverse of :meth:`encode_latents`.
-
-        (B, c, n, h, w) → (B, 3, 1 + 4(n − 1), 8h, 8w), pixels nominally in [−1, 1].
-        """
+        """DiT latents → video, decode(latents / a + b); inverse of :meth:`encode_latents`."""
         return self.decode(latents / self.config.scaling_factor + self.config.shift_factor)

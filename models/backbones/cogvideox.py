@@ -1,25 +1,12 @@
-"""CogVideoX-5B-I2V (Yang et al. 2024, "CogVideoX: Text-to-Video Diffusion Models with An Expert Transformer") as a
-:class:`models.backbone.Backbone`, over diffusers' components (``THUDM/CogVideoX-5b-I2V``: the
-``CogVideoXTransformer3DModel``, ``AutoencoderKLCogVideoX``, the T5-XXL encoder and tokenizer, the
-``CogVideoXDDIMScheduler``), loaded from and saved to the Hub folder layout (:mod:`.diffusers_backbone`).
+"""CogVideoX-5B-I2V (Yang et al. 2024) as a :class:`models.backbone.Backbone` over diffusers' components
+(``THUDM/CogVideoX-5b-I2V``: ``CogVideoXTransformer3DModel``, ``AutoencoderKLCogVideoX``, T5-XXL,
+``CogVideoXDDIMScheduler``), in the Hub folder layout (:mod:`.diffusers_backbone`).
 
-**CogVideoX in our flow-matching variables.** CogVideoX is a v-prediction DDPM (Salimans & Ho 2022, "Progressive
-Distillation for Fast Sampling of Diffusion Models", §4): ``x_t = α·x0 + s·ε`` with ``α = √ᾱ_t``,
-``s = √(1 − ᾱ_t)`` (1000 discrete timesteps, scaled-linear betas rescaled to zero terminal SNR, Lin et al. 2024,
-"Common Diffusion Noise Schedules and Sample Steps are Flawed", so ᾱ_999 = 0) and the network predicts
-``v = α·ε − s·x0``. Dividing by ``α + s``,
-
-    x = x_t/(α + s) = (1 − σ)·x0 + σ·ε,    σ = s/(α + s),
-
-is our straight path (models/flow_matching.py), and the v-prediction gives its velocity ``ε − x0``
-(:func:`vpred_to_flow`). A DDIM step with η = 0 (diffusers'
-``CogVideoXDDIMScheduler.step``: ``x_t' = a·x_t + b·x̂0``, ``a = s'/s``, ``b = α' − α·s'/s``) maps the predicted
-``x̂0``, ``ε̂`` to ``α'·x̂0 + s'·ε̂``, and an Euler step of ``dx/dσ = ε̂ − x̂0`` from σ to σ' maps them to
-``(1 − σ')·x̂0 + σ'·ε̂``: the same point, so our Euler sampler over :meth:`CogVideoXBackbone.sigmas` reproduces the
-diffusers pipeline's DDIM latents (σ = 1 at t = 999 where the states coincide, σ = 0 at the end).
-
-This module imports diffusers (``diff4splat[diffusers]``).
-"""
+CogVideoX is a v-prediction DDPM (Salimans & Ho 2022 §4): x_t = α·x0 + s·ε, α = √ᾱ_t, s = √(1 − ᾱ_t), zero
+terminal SNR (Lin et al. 2024), v = α·ε − s·x0. Then x_t/(α + s) = (1 − σ)·x0 + σ·ε with σ = s/(α + s) is our
+straight path and the v-prediction gives its velocity ε − x0 (:func:`vpred_to_flow`). A DDIM step (η = 0) and an
+Euler step of dx/dσ = ε̂ − x̂0 between the same σ land on the same point, so our Euler sampler over
+:meth:`CogVideoXBackbone.sigmas` reproduces the pipeline's DDIM latents. Imports diffusers."""
 from __future__ import annotations
 
 import torch
@@ -33,17 +20,14 @@ __all__ = ["CogVideoXBackbone", "vpred_to_flow"]
 
 
 def vpred_to_flow(x_t: Tensor, v: Tensor, alpha: Tensor, sigma_ddpm: Tensor) -> Tensor:
-    """A v-prediction (Salimans & Ho 2022, §4: ``v = α·ε − σ·x0``) as the flow-matching velocity ``ε − x0``.
-
-    With α² + σ² = 1: ``x0 = α·x_t − σ·v`` and ``ε = σ·x_t + α·v``.
+    """A v-prediction (v = α·ε − σ·x0, α² + σ² = 1) as the velocity ε − x0 = (σ − α)·x_t + (α + σ)·v.
 
     Args:
-        x_t: (B, ...) the DDPM state ``α·x0 + σ·ε``.
-        v: (B, ...) the network's v-prediction.
-        alpha, sigma_ddpm: (B,) √ᾱ_t and √(1 − ᾱ_t) of each sample's timestep.
+        x_t: (B, ...) the DDPM state α·x0 + σ·ε.
+        v: (B, ...) the v-prediction.
+        alpha, sigma_ddpm: (B,) √ᾱ_t and √(1 − ᾱ_t).
 
-    Returns:
-        (B, ...) ``ε − x0`` = ``(σ − α)·x_t + (α + σ)·v``.
+    Returns (B, ...).
     """
     shape = (-1,) + (1,) * (x_t.dim() - 1)
     a, s = alpha.reshape(shape).to(x_t), sigma_ddpm.reshape(shape).to(x_t)
@@ -56,27 +40,24 @@ def _check_int(name: str, value: int, low: int) -> None:
 
 
 class CogVideoXBackbone(DiffusersBackbone):
-    """CogVideoX-5B-I2V with a camera-widened patch embedding (module docstring: the σ ↔ timestep map).
-
-    The transformer's input per latent frame is, on channels, ``[x_t, image latent, Plücker rays]``: the image
-    latent in frame 0 and zeros after it (``CogVideoXImageToVideoPipeline.prepare_latents``), the rays through the
-    zero-initialised camera weights of ``patch_embed.proj`` (:class:`.diffusers_backbone.CameraPatchConv`).
+    """CogVideoX-5B-I2V with a camera-widened patch embedding: per latent frame the transformer reads
+    ``[x_t, image latent (frame 0) | zeros, Plücker rays]`` on channels, the rays through the zero-initialised camera
+    weights of ``patch_embed.proj`` (:class:`.diffusers_backbone.CameraPatchConv`).
 
     Args:
-        transformer: a CogVideoX 1.0 ``CogVideoXTransformer3DModel`` (``patch_size_t`` None: a Conv2d patch
-            embedding) with ``in_channels = 2·latent_channels`` (noisy latent + image latent).
+        transformer: a CogVideoX 1.0 ``CogVideoXTransformer3DModel`` (``patch_size_t`` None) with
+            ``in_channels = 2·latent_channels``.
         vae: ``AutoencoderKLCogVideoX``.
-        text_encoder, tokenizer: T5 (``T5EncoderModel``, ``T5Tokenizer``).
-        scheduler: a v-prediction scheduler with ``alphas_cumprod`` (``CogVideoXDDIMScheduler``): its discrete
-            timesteps define :meth:`sigmas` and :meth:`training_sigmas`.
+        text_encoder, tokenizer: T5.
+        scheduler: a v-prediction scheduler with ``alphas_cumprod``; its timesteps define :meth:`sigmas` and
+            :meth:`training_sigmas`.
 
     Attributes:
-        max_sequence_length: text tokens, the transformer's ``max_text_seq_length`` (226 for CogVideoX).
+        max_sequence_length: text tokens, the transformer's ``max_text_seq_length``.
 
     Raises:
-        ValueError: a CogVideoX 1.5 transformer (``patch_size_t`` set: its patch embedding is a Linear over
-            2×2×2 patches, not supported), channels that do not match the VAE, or a scheduler that is not
-            v-prediction.
+        ValueError: a CogVideoX 1.5 transformer (``patch_size_t`` set), channels that do not match the VAE, or a
+            scheduler that is not v-prediction.
     """
 
     kind = "cogvideox-i2v"
@@ -108,13 +89,8 @@ class CogVideoXBackbone(DiffusersBackbone):
 
     @staticmethod
     def latent_format(vae: nn.Module) -> LatentFormat:
-        """From ``AutoencoderKLCogVideoX``'s config: c = ``latent_channels``, t = ``temporal_compression_ratio``,
-        s = 2^(len(``block_out_channels``) − 1) (the pipeline's ``vae_scale_factor_spatial``); 16, 4, 8 for
-        CogVideoX.
-
-        Raises:
-            TypeError: ``vae`` is not an ``AutoencoderKLCogVideoX``.
-        """
+        """From ``AutoencoderKLCogVideoX``'s config: ``latent_channels``, ``temporal_compression_ratio``,
+        2^(len(``block_out_channels``) − 1). TypeError for another VAE."""
         if not isinstance(vae, AutoencoderKLCogVideoX):
             raise TypeError(f"vae must be an AutoencoderKLCogVideoX, got {type(vae).__name__}")
         c = vae.config
@@ -124,35 +100,20 @@ class CogVideoXBackbone(DiffusersBackbone):
     # ---------------------------------------------------------------------------------------------- VAE, text
 
     def encode_video(self, video: Tensor, generator: torch.Generator | None = None) -> Tensor:
-        """(B, 3, T, H, W) pixels in [−1, 1], T = 1 + 4k, H and W multiples of 8 → latents
-        ``scaling_factor·z`` (B, c, n, h, w) float32: z the posterior mean, or ``latent_dist.sample(generator)``
-        when ``generator`` is given (the pipeline's ``prepare_latents`` samples the image posterior with its
-        generator: the same seed gives its image latent; for B > 1 we draw the batch at once where the pipeline
-        draws image by image).
-
-        These are the latents CogVideoX denoises (the pipeline's ``decode_latents`` divides by
-        ``scaling_factor``) whatever ``invert_scale_latents`` says; that flag concerns only the image conditioning
-        and is applied in :meth:`forward`.
-
-        Raises:
-            ValueError: not (B, 3, T, H, W), T ≠ 1 + 4k, or H, W not multiples of 8.
-        """
+        """(B, 3, T, H, W) in [−1, 1], T = 1 + 4k, H, W multiples of 8 → ``scaling_factor·z`` (B, c, n, h, w)
+        float32, z the posterior mean or ``latent_dist.sample(generator)`` (as the pipeline's ``prepare_latents``);
+        ``invert_scale_latents`` is applied in :meth:`forward`. ValueError on a wrong shape."""
         return self.vae.config.scaling_factor * self.posterior(video, generator)
 
     def decode_latents(self, latents: Tensor) -> Tensor:
-        """Latents (B, c, n, h, w) → video (B, 3, 1 + 4(n − 1), 8h, 8w) float32 in about [−1, 1]
-        (the pipeline's ``decode_latents``: ``1/scaling_factor·latents`` through the VAE decoder)."""
+        """Latents (B, c, n, h, w) → video (B, 3, 1 + 4(n − 1), 8h, 8w) float32 in about [−1, 1] (the pipeline's
+        ``decode_latents``)."""
         z = 1 / self.vae.config.scaling_factor * latents.to(self.vae.dtype)
         return self.vae.decode(z).sample.float()
 
     def encode_text(self, prompts: list[str]) -> tuple[Tensor, Tensor]:
-        """Prompts → T5 embeddings (B, :attr:`max_sequence_length`, d_text) in the text encoder's dtype and an
-        all-True mask (B, L): diffusers' ``CogVideoXImageToVideoPipeline.encode_prompt`` (padded to the full
-        length, truncated beyond it); CogVideoX attends to all its text tokens, padding included.
-
-        Raises:
-            TypeError: ``prompts`` not a list of str.
-        """
+        """Prompts → T5 embeddings (B, :attr:`max_sequence_length`, d_text) in the encoder's dtype and an all-True mask
+        (B, L), by ``CogVideoXImageToVideoPipeline.encode_prompt``. TypeError unless a list of str."""
         if not isinstance(prompts, list) or not all(isinstance(p, str) for p in prompts):
             raise TypeError(f"prompts must be a list of str, got {prompts!r}")
         embeds, _ = self.pipeline().encode_prompt(prompts, do_classifier_free_guidance=False,
@@ -161,8 +122,7 @@ class CogVideoXBackbone(DiffusersBackbone):
         return embeds, torch.ones(embeds.shape[:2], dtype=torch.bool, device=embeds.device)
 
     def empty_text(self, batch: int, device: torch.device) -> Tensor:
-        """The embedding of "" (1 → ``batch``, L, d_text) on ``device``: CogVideoX's unconditional input (its
-        pipeline's negative prompt). Encoded once and kept (the text encoder is frozen)."""
+        """The embedding of "" (``batch``, L, d_text) on ``device``, CogVideoX's unconditional input; encoded once."""
         if self._empty_text is None:
             with torch.no_grad():
                 self._empty_text = self.encode_text([""])[0]
@@ -171,9 +131,8 @@ class CogVideoXBackbone(DiffusersBackbone):
     # ---------------------------------------------------------------------------------------------- schedule
 
     def timesteps(self, sigma: Tensor) -> Tensor:
-        """σ (B,) → the discrete timesteps t (B,) int64 on σ's device whose σ_t = s/(α + s) is nearest (σ of
-        :meth:`sigmas` and :meth:`training_sigmas` map to their own t exactly; pass σ in float32 or float64:
-        neighbouring σ_t differ by 4e-4 near σ = 1)."""
+        """σ (B,) → the timesteps t (B,) int64 whose σ_t is nearest (exact for σ of :meth:`sigmas` and
+        :meth:`training_sigmas`; pass float32 or float64)."""
         table = self._schedule[2].to(sigma.device)
         return (table[None, :] - sigma.to(torch.float64)[:, None]).abs().argmin(dim=1)
 
@@ -183,15 +142,9 @@ class CogVideoXBackbone(DiffusersBackbone):
         return table[0, t], table[1, t]
 
     def sigmas(self, steps: int) -> Tensor:
-        """The inference schedule (steps + 1,) float64 on the CPU: σ_t of the scheduler's own timesteps
-        (``set_timesteps(steps)`` on a copy: CogVideoX's "trailing" spacing, t = 999, …), then 0.
-
-        σ_0 = 1 (t = 999, ᾱ = 0 by the zero-terminal-SNR rescale). The last step goes to σ = 0 (ᾱ = 1: the
-        scheduler's ``set_alpha_to_one``). An Euler step from σ_t to σ_t' equals the DDIM step from t to t'
-        (module docstring); diffusers' DDIM steps from t to ``t − 1000 // steps``, which is the next listed
-        timestep when ``steps`` divides 1000 (then our samples equal the pipeline's). Otherwise (e.g. 3 steps:
-        999, 666, 332) DDIM steps to t − 333 (666, 333) but evaluates the model at the listed ones; this grid
-        follows the listed timesteps.
+        """(steps + 1,) float64 on the CPU: σ_t of the scheduler's own timesteps (``set_timesteps`` on a copy,
+        "trailing": t = 999, …, σ = 1 first), then 0. Equal to the pipeline's samples when ``steps`` divides 1000;
+        otherwise diffusers' DDIM steps to t − 1000 // steps, while this grid follows the listed timesteps.
 
         Raises:
             ValueError: ``steps`` not an int in [1, num_train_timesteps].
@@ -203,12 +156,8 @@ class CogVideoXBackbone(DiffusersBackbone):
         return torch.cat([sig, sig.new_zeros(1)])
 
     def training_sigmas(self, n: int, generator: torch.Generator) -> Tensor:
-        """(n,) float32 σ_t of timesteps t drawn uniformly from {0, …, T − 1} on ``generator``'s device (how
-        CogVideoX was trained: uniform discrete timesteps, v-prediction loss).
-
-        Raises:
-            ValueError: ``n`` not an int ≥ 1.
-        """
+        """(n,) float32 σ_t of timesteps drawn uniformly on ``generator``'s device (CogVideoX's training).
+        ValueError: ``n`` not an int ≥ 1."""
         _check_int("n", n, 1)
         t = torch.randint(0, self._schedule.shape[1], (n,), generator=generator, device=generator.device)
         return self._schedule[2].to(generator.device)[t].float()
@@ -217,34 +166,25 @@ class CogVideoXBackbone(DiffusersBackbone):
 
     def forward(self, x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor,
                 text: Tensor | None, text_mask: Tensor | None) -> Tensor:
-        """Flow-matching velocity ``ε − x0`` from CogVideoX's v-prediction.
-
-        σ → its timestep t (:meth:`timesteps`), ``x_t = (α + s)·x``; the transformer runs as
-        ``CogVideoXImageToVideoPipeline.__call__`` runs it: ``hidden_states`` (B, n, C, h, w) with channels
-        ``[x_t, image latent | zeros, plucker]``, ``timestep`` t per sample, rotary embeddings from the pipeline's
-        ``_prepare_rotary_positional_embeddings``, ``ofs`` 2.0 where the transformer has an ofs embedding; the
-        prediction (in float32) goes through :func:`vpred_to_flow`. The transformer runs
-        in its own dtype. With learned positional embeddings (CogVideoX-5B-I2V) and a frame count other than the
-        transformer's ``sample_frames`` (49 frames, 13 latent frames), diffusers' patch embedding substitutes
-        sin-cos embeddings for the learned ones, in its pipeline as here.
+        """Velocity ε − x0 from CogVideoX's v-prediction: σ → t (:meth:`timesteps`), x_t = (α + s)·x, the
+        transformer run as ``CogVideoXImageToVideoPipeline.__call__`` runs it (rotary embeddings, ``ofs`` 2.0 where
+        present) in its own dtype, then :func:`vpred_to_flow` in float32.
 
         Args:
-            x: (B, c, n, h, w) the state at σ (float32 recommended).
+            x: (B, c, n, h, w) the state at σ.
             sigma: (B,) σ in [0, 1], float32 or float64.
             image_latent: (B, c, 1, h, w) :meth:`encode_video` of the photograph (divided by scaling_factor² when
-                the VAE's ``invert_scale_latents`` is set, as the pipeline scales the image latent).
+                ``invert_scale_latents`` is set, as the pipeline).
             plucker: (B, 6·4·8², n, h, w) packed Plücker rays.
-            text: (B, L, d_text) :meth:`encode_text` tokens, L = :attr:`max_sequence_length`, or None for the
-                embedding of "" (:meth:`empty_text`).
-            text_mask: ignored (CogVideoX attends to all L tokens).
+            text: (B, L, d_text) :meth:`encode_text` tokens, or None for :meth:`empty_text`.
+            text_mask: ignored.
 
         Returns:
             (B, c, n, h, w) float32.
 
         Raises:
-            ValueError: inconsistent shapes, or (h, w) other than the transformer's ``sample_height``,
-                ``sample_width`` when its positional embeddings are learned (CogVideoX-5B-I2V: 60×90 latents,
-                480×720 pixels).
+            ValueError: inconsistent shapes, or (h, w) other than ``sample_height``, ``sample_width`` with learned
+                positional embeddings.
         """
         cfg = self.transformer.config
         check_velocity_inputs(x, sigma, image_latent, plucker, self.latent.latent_channels,

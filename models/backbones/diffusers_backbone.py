@@ -1,15 +1,7 @@
-"""What the two diffusers backbones share: their components, the camera-widened patch embedding, and the Hub
-folder layout they are loaded from and saved to (docs/DESIGN.md, "Backbones").
-
-A backbone folder is the diffusers layout of the Hub repositories (``model_index.json``, ``transformer/``,
-``vae/``, ``text_encoder/``, ``tokenizer/``, ``scheduler/``: ``Wan-AI/Wan2.2-TI2V-5B-Diffusers``,
-``THUDM/CogVideoX-5b-I2V``), loaded by the diffusers pipeline class itself, plus ``camera/model.safetensors``: the
-zero-initialised camera weights of the patch embedding (:class:`CameraPatchConv`), absent in a
-folder fresh from the Hub (then they start at zero). ``transformer/`` keeps the checkpoint's own key names, so the
-folder we write is still loadable by diffusers alone.
-
-This module imports diffusers: it is only imported when a diffusers backbone is used (``diff4splat[diffusers]``).
-"""
+"""What the two diffusers backbones share: their components, the camera-widened patch embedding and the Hub folder
+layout (DESIGN.md "Backbones"): ``model_index.json``, ``transformer/``, ``vae/``, ``text_encoder/``,
+``tokenizer/``, ``scheduler/``, loaded by the diffusers pipeline class, plus ``camera/model.safetensors`` with the
+patch embedding's camera weights (zero when absent). Imported only when a diffusers backbone is used."""
 from __future__ import annotations
 
 import abc
@@ -34,7 +26,7 @@ __all__ = ["DiffusersBackbone", "CameraPatchConv", "CAMERA_FOLDER", "CAMERA_WEIG
 
 CAMERA_FOLDER = "camera"
 CAMERA_WEIGHTS = "model.safetensors"
-"""``camera/model.safetensors``: the patch embedding's camera weights, key ``<patch_conv_path>.camera_weight``."""
+"""``camera/model.safetensors``: key ``<patch_conv_path>.camera_weight``."""
 
 
 def _get(module: nn.Module, path: str) -> nn.Module:
@@ -51,19 +43,19 @@ def _set(module: nn.Module, path: str, value: nn.Module) -> None:
 
 
 class CameraPatchConv(nn.Module):
-    """A transformer's patch-embedding convolution widened by ``camera_channels`` input channels whose weights
-    start at zero (the authors' code, paulpanwang/Diff4Splat: Plücker rays as extra patch-embedding channels).
+    """A patch-embedding convolution widened by ``camera_channels`` input channels whose weights start at zero
+    (Plücker rays as extra channels, as the authors' code paulpanwang/Diff4Splat).
 
-    The input is ``cat([x, plucker], dim=1)``: the first ``in_channels`` go through the pretrained ``weight`` and
-    ``bias``, the rest through ``camera_weight`` (no bias); the sum is the widened convolution (a convolution is
-    linear in its input channels). Kept as two weights so that ``weight``/``bias`` keep the pretrained checkpoint's
-    key names (``patch_embedding.weight``; the transformer folder stays loadable by diffusers) and, with
-    ``camera_weight`` at zero, the output is the pretrained convolution's bit for bit (adding +0.0).
+    ``cat([x, plucker], 1)``: the first ``in_channels`` go through the pretrained ``weight``/``bias`` (keeping the
+    checkpoint's key names), the rest through ``camera_weight``; at zero the output is the pretrained one bit for
+    bit.
 
     Args:
-        conv: the pretrained ``nn.Conv2d`` or ``nn.Conv3d`` (kernel = stride, no padding); its parameters are
-            taken over, not copied.
+        conv: the pretrained ``nn.Conv2d``/``nn.Conv3d`` (kernel = stride, no padding); its parameters are taken over.
         camera_channels: extra input channels (6·t·s²).
+
+    Raises:
+        TypeError: ``conv`` is not a Conv2d/Conv3d.
     """
 
     def __init__(self, conv: nn.Conv2d | nn.Conv3d, camera_channels: int):
@@ -79,19 +71,8 @@ class CameraPatchConv(nn.Module):
         self.camera_weight = nn.Parameter(torch.zeros(shape, device=conv.weight.device, dtype=conv.weight.dtype))
 
     def forward(self, x: Tensor) -> Tensor:  # (B, in + camera, [T,] H, W)
-        """The widened patch embedding: conv(x[:, :in]) + conv_camera(x[:, in:]).
-
-        Args:
-            x: (B, in_channels + camera_channels, T, H, W) for a Conv3d, (B, in_channels + camera_channels, H, W)
-                for a Conv2d: latents concatenated with packed Plücker rays along dim 1.
-
-        Returns:
-            (B, out_channels, T', H', W') or (B, out_channels, H', W'): the pretrained convolution's output size
-            (⌊T/k_t⌋, ⌊H/k_h⌋, ⌊W/k_w⌋ for kernel = stride and no padding).
-
-        Raises:
-            ValueError: ``x.shape[1]`` ≠ in_channels + camera_channels.
-        """
+        """(B, in + camera, [T,] H, W) → the pretrained convolution's output (B, out, [T',] H', W').
+        ValueError on another channel count."""
         if x.shape[1] != self.in_channels + self.camera_channels:
             raise ValueError(f"CameraPatchConv: expected {self.in_channels} + {self.camera_channels} channels, "
                              f"got {x.shape[1]}")
@@ -100,16 +81,9 @@ class CameraPatchConv(nn.Module):
 
 
 class DiffusersBackbone(Backbone):
-    """A :class:`Backbone` over a diffusers pipeline's components.
-
-    Subclasses set ``pipeline_class`` (the diffusers pipeline whose folder layout and helpers they use),
-    ``pipeline_names`` (``_class_name`` values of ``model_index.json`` they accept), ``patch_conv_path`` (the
-    transformer's patch-embedding convolution) and ``latent_format(vae)``.
-
-    Args:
-        transformer, vae, text_encoder, tokenizer, scheduler: the pipeline's components; the transformer's patch
-            embedding is replaced by a :class:`CameraPatchConv` (camera weights zero) in place.
-    """
+    """A :class:`Backbone` over a diffusers pipeline's components; the transformer's patch embedding is replaced in
+    place by a :class:`CameraPatchConv`. Subclasses set ``pipeline_class``, ``pipeline_names`` (accepted
+    ``_class_name`` values), ``patch_conv_path`` and ``latent_format(vae)``."""
 
     encodes_empty_prompt = True  # both were trained with T5/umT5("") as the unconditional text
     pipeline_class: ClassVar[type[DiffusionPipeline]]
@@ -131,17 +105,11 @@ class DiffusersBackbone(Backbone):
         """The :class:`LatentFormat` of ``vae`` (from its diffusers config)."""
 
     def posterior(self, video: Tensor, generator: torch.Generator | None = None) -> Tensor:
-        """The VAE's raw latent of ``video``: its posterior's mode (the pipelines' ``retrieve_latents(...,
-        sample_mode="argmax")``), or a sample drawn with ``generator``; float32 on the video's device.
-
-        Args:
-            video: (B, 3, T, H, W) in [−1, 1], T = 1 + t·k, H and W multiples of the spatial factor s.
-
-        Returns:
-            (B, c, n, H/s, W/s) before the backbone's normalisation.
+        """The VAE's raw latent (B, c, n, H/s, W/s) float32 of ``video`` (B, 3, T, H, W) in [−1, 1]: the posterior's
+        mode, or a sample drawn with ``generator``.
 
         Raises:
-            ValueError: a video of another shape, T ≠ 1 + t·k, or H, W not multiples of s.
+            ValueError: another shape, T ≠ 1 + t·k, or H, W not multiples of s.
         """
         s = self.latent.spatial_factor
         if video.dim() != 5 or video.shape[1] != 3 or video.shape[3] % s or video.shape[4] % s:
@@ -153,8 +121,7 @@ class DiffusersBackbone(Backbone):
 
     @property
     def velocity_model(self) -> DiffusersBackbone:
-        """The backbone itself: its ``forward`` (each subclass's) runs the transformer the way its diffusers pipeline
-        does and returns the velocity in our convention (:attr:`models.backbone.Backbone.velocity_model`)."""
+        """The backbone itself: its ``forward`` returns the velocity in our convention."""
         return self
 
     @property
@@ -163,8 +130,8 @@ class DiffusersBackbone(Backbone):
 
     @contextlib.contextmanager
     def hub_transformer(self) -> Iterator[nn.Module]:
-        """The transformer with its pretrained patch embedding back (an ``nn.Conv2d``/``nn.Conv3d`` sharing the
-        weights): what diffusers itself would run, for saving in the Hub layout and for comparisons."""
+        """Context: the transformer with a plain patch convolution sharing the weights, as diffusers runs and saves
+        it."""
         cam = self.camera_conv
         conv_cls = nn.Conv3d if cam.weight.dim() == 5 else nn.Conv2d
         with torch.device("meta"):
@@ -183,12 +150,11 @@ class DiffusersBackbone(Backbone):
                 "tokenizer": self.tokenizer, "scheduler": self.scheduler}
 
     def pipeline(self, **kwargs) -> DiffusionPipeline:
-        """The diffusers pipeline over these components, the transformer as diffusers runs it (its own patch
-        embedding: call inside :meth:`hub_transformer`). ``kwargs``: the pipeline's other arguments."""
+        """The diffusers pipeline over these components (inside :meth:`hub_transformer`)."""
         return self.pipeline_class(**self.components(), **kwargs)
 
     def write_pretrained(self, folder: Path) -> None:
-        """Write the Hub layout and ``camera/`` into the existing folder ``folder`` (the caller owns it)."""
+        """Write the Hub layout and ``camera/`` into the existing ``folder``."""
         with self.hub_transformer():
             self.pipeline(**self.pipeline_kwargs()).save_pretrained(folder, safe_serialization=True)
         (folder / CAMERA_FOLDER).mkdir(exist_ok=True)
@@ -197,20 +163,18 @@ class DiffusersBackbone(Backbone):
                   str(folder / CAMERA_FOLDER / CAMERA_WEIGHTS), metadata={"backbone": self.kind})
 
     def pipeline_kwargs(self) -> dict:
-        """Pipeline arguments other than the components written to ``model_index.json`` (e.g. Wan2.2's
-        ``expand_timesteps=True``)."""
+        """Pipeline arguments other than the components (e.g. Wan2.2's ``expand_timesteps``)."""
         return {}
 
     @classmethod
     def from_pretrained(cls, directory: str | os.PathLike, torch_dtype: torch.dtype | None = None
                         ) -> DiffusersBackbone:
-        """Load a Hub-layout folder (and its ``camera/`` weights when present) from a local path; nothing is
-        downloaded.
+        """Load a local Hub-layout folder (and its ``camera/`` weights when present); nothing is downloaded.
 
         Raises:
             FileNotFoundError: no ``model_index.json``.
-            ValueError: ``_class_name`` not one of :attr:`pipeline_names` or another check of :meth:`check_index`
-                failed; camera weights of the wrong shape.
+            ValueError: ``_class_name`` not in :attr:`pipeline_names`, :meth:`check_index` failed, or camera weights of
+                the wrong shape.
         """
         directory = Path(directory)
         index = directory / INDEX_FILE
@@ -241,12 +205,10 @@ class DiffusersBackbone(Backbone):
 
     @classmethod
     def check_index(cls, index: dict, path: Path) -> None:
-        """Further checks of a folder's ``model_index.json`` (``index``, read from ``path``) before anything loads;
-        ValueError naming ``path`` when the folder is not this backbone's. Nothing by default."""
+        """Further checks of ``model_index.json`` before loading; ValueError naming ``path``. None by default."""
 
     def transformer_blocks(self) -> list[nn.Module]:
-        """The diffusers transformer's blocks in order: its ``transformer_blocks`` (CogVideoX), else its ``blocks``
-        (Wan). Each takes hidden states (B, N, D) among other arguments, with the diffusers model's own signature
-        (FSDP units, gradient checkpointing, regional compilation)."""
+        """The transformer's blocks in order (``transformer_blocks`` for CogVideoX, ``blocks`` for Wan), with the
+        diffusers signatures."""
         return list(self.transformer.transformer_blocks if hasattr(self.transformer, "transformer_blocks")
                     else self.transformer.blocks)

@@ -1,7 +1,6 @@
-"""Our own networks as a :class:`models.backbone.Backbone`: the video VAE, the byte-level T5 text encoder
-and the VideoDiT of a :class:`models.bundle.Diff4SplatModel` (the CPU default), unchanged: every method is a call
-of the network's own method, and the velocity network is the DiT itself, so outputs are bit-identical to calling
-the networks directly."""
+"""Our own networks (video VAE, byte-level T5 text encoder, VideoDiT of a :class:`models.bundle.Diff4SplatModel`)
+as a :class:`models.backbone.Backbone`, the CPU default: every method calls the network's own, so outputs are
+bit-identical to calling the networks directly."""
 from __future__ import annotations
 
 import torch
@@ -17,14 +16,12 @@ __all__ = ["OursBackbone"]
 
 
 class OursBackbone(Backbone):
-    """Backbone over our VAE, text encoder and DiT (their modules are shared, not copied).
+    """Backbone over our VAE, text encoder and DiT (shared, not copied).
 
     Args:
         vae, text_encoder, dit: the networks of a :class:`models.bundle.Diff4SplatModel`.
-        shift: the flow-matching timestep shift of the inference schedule and of :meth:`training_sigmas`
-            (``config.sampling.shift``; a training stage passes its ``flow_shift``).
-        logit_normal: (mean, std) of the logit-normal training σ before the shift (``config.sampling``'s
-            ``logit_normal_mean``, ``logit_normal_std``; SD3 §3.1 uses (0, 1)).
+        shift: flow-matching timestep shift of :meth:`sigmas` and :meth:`training_sigmas`.
+        logit_normal: (mean, std) of the logit-normal training σ before the shift (SD3 §3.1).
     """
 
     kind = "ours"
@@ -37,49 +34,33 @@ class OursBackbone(Backbone):
         self.latent = vae.config.latent_format
 
     def encode_video(self, video: Tensor, generator: torch.Generator | None = None) -> Tensor:
-        """:meth:`VideoVAE.encode_latents`: video (B, 3, T, H, W) pixels in [−1, 1], T = 1 + 4k, H and W multiples
-        of 8 → DiT-scaled latents (B, c, 1 + k, H/8, W/8): the posterior mean, or a sample drawn with ``generator``.
-
-        Raises:
-            ValueError: from :meth:`VideoVAE.encode` (wrong rank or channels, T ≠ 1 + 4k, H/W not multiples of 8).
-        """
+        """:meth:`VideoVAE.encode_latents`: (B, 3, T, H, W) in [−1, 1] → DiT-scaled latents (B, c, n, H/8, W/8), the
+        posterior mean or a sample drawn with ``generator``. ValueError from :meth:`VideoVAE.encode`."""
         return self.vae.encode_latents(video, sample_posterior=generator is not None, generator=generator)
 
     def decode_latents(self, latents: Tensor) -> Tensor:
-        """:meth:`VideoVAE.decode_latents`: DiT-scaled latents (B, c, n, h, w) → video (B, 3, 1 + 4(n − 1), 8h, 8w),
-        pixels nominally in [−1, 1]."""
+        """:meth:`VideoVAE.decode_latents`: (B, c, n, h, w) → (B, 3, 1 + 4(n − 1), 8h, 8w), nominally in [−1, 1]."""
         return self.vae.decode_latents(latents)
 
     def encode_text(self, prompts: list[str]) -> tuple[Tensor, Tensor]:
-        """:meth:`TextEncoder.encode` (byte tokens): B prompts → tokens (B, L, d_text) (zeros at padding) and
-        mask (B, L) bool (True = real token), on the text encoder's device.
-
-        Raises:
-            ValueError: from :meth:`TextEncoder.encode` (:meth:`models.text_encoder.ByteTokenizer.__call__`).
-        """
+        """:meth:`TextEncoder.encode`: B prompts → tokens (B, L, d_text) and mask (B, L) bool on the encoder's device.
+        ValueError from the tokenizer."""
         return self.text_encoder.encode(prompts)
 
     @property
     def velocity_model(self) -> VideoDiT:
-        """The DiT: :meth:`VideoDiT.forward` is the velocity (the image latent concatenated with a frame-0 mask; no
-        prompt: no text tokens, the text encoder does not run). It takes x (B, c, n, h, w), sigma (B,) in [0, 1],
-        image_latent (B, c, 1, h, w), plucker (B, 6·t·s², n, h, w), text (B, L, d_text) and text_mask (B, L) bool
-        or None, and returns (B, c, n, h, w) ε − x0 in its parameter dtype; ValueError for a shape or dtype, σ
-        outside [0, 1], a mask without text."""
+        """The DiT (:meth:`VideoDiT.forward`); without a prompt no text tokens and no text encoder run."""
         return self.dit
 
     def sigmas(self, steps: int) -> Tensor:
-        """:func:`models.flow_matching.sigma_schedule` with :attr:`shift`: (steps + 1,) float64, decreasing from
-        1 to 0."""
+        """:func:`models.flow_matching.sigma_schedule` with :attr:`shift`: (steps + 1,) float64 from 1 to 0."""
         return sigma_schedule(steps, self.shift, dtype=torch.float64)
 
     def training_sigmas(self, n: int, generator: torch.Generator) -> Tensor:
-        """(n,) float32 logit-normal σ in [0, 1] (SD3 §3.1, :attr:`logit_normal`) shifted by :attr:`shift`, on
-        ``generator``'s device (``training.losses.sample_training_sigmas``' draw)."""
+        """(n,) float32 logit-normal σ (:attr:`logit_normal`) shifted by :attr:`shift`, on ``generator``'s device."""
         mean, std = self.logit_normal
         return shift_sigmas(sample_logit_normal(n, mean, std, generator=generator, device=generator.device), self.shift)
 
     def transformer_blocks(self) -> list[nn.Module]:
-        """The DiT's ``config.depth`` blocks (:class:`models.dit.VideoDiTBlock`), in order; each maps tokens
-        (B, N, D) → (B, N, D)."""
+        """The DiT's blocks in order."""
         return list(self.dit.blocks)

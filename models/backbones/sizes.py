@@ -1,23 +1,9 @@
-"""The pretrained backbones' real sizes: their Hub configurations, shipped as data
-(``configs/backbones/<name>.json``, :data:`diff4splat.utils.config_files.BACKBONE_CONFIGS`), instantiated on
-``torch.device("meta")`` — shapes only, no weight allocated, nothing downloaded — and counted.
-
-Sources of the configurations (each file's ``source`` says which for every component): the Hub folders
-``Wan-AI/Wan2.2-TI2V-5B-Diffusers`` and ``THUDM/CogVideoX-5b-I2V``, and diffusers' conversion scripts that wrote
-them, ``scripts/convert_wan_to_diffusers.py`` (``get_transformer_config("Wan2.2-TI2V-5B")``,
-``vae22_diffusers_config``, the UniPC scheduler with ``flow_shift`` 5.0, ``google/umt5-xxl``) and
-``scripts/convert_cogvideox_to_diffusers.py`` (``--num_layers 42 --num_attention_heads 48 --i2v``, VAE
-``scaling_factor`` 0.7, ``snr_shift_scale`` 1.0, ``google/t5-v1_1-xxl``) of github.com/huggingface/diffusers
-(the revision read: docs/DESIGN.md, "Backbones").
-
-:func:`parameter_counts` builds the backbone the way :class:`models.backbone_model.BackboneModel` does — the
-:class:`~models.backbone.Backbone` subclass of the folder's pipeline (which checks the configuration: channels,
-VAE factors, scheduler) with its camera-widened patch embedding, and the LDRM at
-:meth:`BackboneModelConfig.for_backbone`'s sizes — so the counts are those of the model ``generate`` would run.
-
-This module imports diffusers and transformers (``diff4splat[diffusers]``); only the backbone size table and its
-test import it.
-"""
+"""The pretrained backbones' real sizes: their Hub configurations, shipped as data (``configs/backbones/<name>.json``,
+each with its ``source``: the Hub folders and diffusers' conversion scripts; DESIGN.md "Backbones"), instantiated on
+``torch.device("meta")`` (no weights, nothing downloaded) and counted. :func:`parameter_counts` builds the backbone
+as :class:`models.backbone_model.BackboneModel` does (camera-widened patch embedding, the LDRM at
+:meth:`BackboneModelConfig.for_backbone`'s sizes), so the counts are those of the model ``generate`` runs. Imports
+diffusers and transformers."""
 from __future__ import annotations
 
 import inspect
@@ -38,7 +24,7 @@ __all__ = ["backbone_names", "backbone_config", "meta_backbone", "meta_model", "
            "COUNT_KEYS"]
 
 COMPONENTS = ("transformer", "vae", "text_encoder")
-"""The networks of a backbone configuration (``scheduler`` is the fourth component; the tokenizer has no weights)."""
+"""The networks of a backbone configuration (the scheduler and tokenizer have no weights)."""
 COUNT_KEYS = ("transformer", "vae", "text_encoder", "camera", "ldrm", "total")
 """The keys of :func:`parameter_counts`."""
 
@@ -51,12 +37,8 @@ def backbone_names() -> list[str]:
 
 
 def backbone_config(name: str) -> dict:
-    """``configs/backbones/<name>.json``: ``model_index``, ``transformer``, ``vae``, ``text_encoder``,
-    ``scheduler`` (the Hub folder's config files) and ``source``.
-
-    Raises:
-        ValueError: an unknown name (the message lists the known ones), or a file without those keys.
-    """
+    """``configs/backbones/<name>.json``: ``model_index``, ``transformer``, ``vae``, ``text_encoder``, ``scheduler``
+    and ``source``. ValueError for an unknown name (listing the known ones) or a file lacking those keys."""
     if name not in backbone_names():
         raise ValueError(f"backbone config {name!r} does not exist; known: {', '.join(backbone_names())}")
     path = BACKBONE_CONFIGS / f"{name}.json"
@@ -68,14 +50,13 @@ def backbone_config(name: str) -> dict:
 
 
 def _component_class(config: dict, component: str) -> type:
-    """The class ``model_index.json`` names for ``component`` (``["diffusers", "WanTransformer3DModel"]``)."""
+    """The class ``model_index.json`` names for ``component``."""
     library, class_name = config["model_index"][component]
     return getattr(_LIBRARIES[library], class_name)
 
 
 def _diffusers_init_kwargs(cls: type, values: dict) -> dict:
-    """The config's keys that ``cls.__init__`` takes: a Hub file may hold keys the installed diffusers ignores
-    (Wan2.2's VAE: ``clip_output``), which ``from_config`` would only warn about."""
+    """The config's keys ``cls.__init__`` takes (a Hub file may hold keys the installed diffusers ignores)."""
     params = inspect.signature(cls.__init__).parameters
     return {k: v for k, v in values.items() if k in params}
 
@@ -84,18 +65,13 @@ def _build(config: dict, component: str) -> nn.Module:
     cls = _component_class(config, component)
     values = config[component]
     if issubclass(cls, transformers.PreTrainedModel):
-        model_config = cls.config_class.from_dict(values)
-        return cls(model_config)
+        return cls(cls.config_class.from_dict(values))
     return cls.from_config(_diffusers_init_kwargs(cls, values))
 
 
 def meta_backbone(name: str) -> dict[str, nn.Module]:
-    """The backbone's ``transformer``, ``vae`` and ``text_encoder`` as the Hub folder defines them (the transformer
-    with its own patch embedding), every parameter and buffer on the meta device.
-
-    Raises:
-        ValueError: an unknown name.
-    """
+    """The backbone's ``transformer`` (with its own patch embedding), ``vae`` and ``text_encoder`` on the meta device.
+    ValueError for an unknown name."""
     config = backbone_config(name)
     with torch.device("meta"):
         return {component: _build(config, component) for component in COMPONENTS}
@@ -107,12 +83,8 @@ def _scheduler(config: dict):
 
 
 def meta_model(name: str) -> BackboneModel:
-    """The :class:`BackboneModel` a Hub folder of this backbone loads as (camera weights, the LDRM at
-    :meth:`BackboneModelConfig.for_backbone`'s defaults), on the meta device; no tokenizer.
-
-    Raises:
-        ValueError: an unknown name, or a configuration the backbone class rejects.
-    """
+    """The :class:`BackboneModel` a Hub folder of this backbone loads as, on the meta device, without tokenizer.
+    ValueError for an unknown name or a configuration the backbone class rejects."""
     config = backbone_config(name)
     kind = PIPELINES[config["model_index"]["_class_name"]]
     nets = meta_backbone(name)
@@ -124,15 +96,9 @@ def meta_model(name: str) -> BackboneModel:
 
 
 def parameter_counts(name: str) -> dict[str, int]:
-    """Parameters of backbone ``name`` on the meta device.
-
-    Returns:
-        ``transformer`` (the Hub transformer), ``vae``, ``text_encoder`` (the encoder only), ``camera`` (the
-        :class:`~models.backbones.diffusers_backbone.CameraPatchConv`'s zero-initialised weights: out_channels ×
-        6·t·s² × the patch kernel), ``ldrm`` (:class:`models.ldrm.LDRM` on the backbone's latents at the paper's
-        sizes) and ``total``. Buffers are not counted (CogVideoX-5B-I2V's learned positional embedding is a
-        diffusers buffer).
-    """
+    """Parameters of backbone ``name``: ``transformer`` (the Hub transformer), ``vae``, ``text_encoder``, ``camera``
+    (the zero-initialised camera weights), ``ldrm`` (paper sizes on the backbone's latents) and ``total``; buffers not
+    counted."""
     model = meta_model(name)
     counts = model.parameter_counts()  # vae, text_encoder, dit (with the camera weights), ldrm, total
     camera = model.backbone.camera_conv.camera_weight.numel()

@@ -1,23 +1,13 @@
-"""Wan2.2-TI2V-5B as a :class:`models.backbone.Backbone`: diffusers' ``AutoencoderKLWan`` (48 channels,
-4×16×16 compression), the UMT5-XXL text encoder and ``WanTransformer3DModel`` with its patch embedding widened by the
-camera channels (docs/DESIGN.md, "Backbones").
+"""Wan2.2-TI2V-5B as a :class:`models.backbone.Backbone`: diffusers' ``AutoencoderKLWan`` (48 channels, 4×16×16),
+the UMT5-XXL text encoder and ``WanTransformer3DModel`` with its patch embedding widened by the camera channels
+(DESIGN.md "Backbones").
 
-Sources: the Wan report (Wan Team, "Wan: Open and Advanced Large-Scale Video Generative Models", arXiv 2503.20314)
-and the Wan2.2 repository (github.com/Wan-Video/Wan2.2, ``wan/textimage2video.py``, ``wan/configs/wan_ti2v_5B.py``);
-in diffusers, ``pipelines/wan/pipeline_wan_i2v.py`` (``WanImageToVideoPipeline``: ``prepare_latents`` and the
-denoising loop of ``__call__`` with ``expand_timesteps=True``, the path the diffusers docs and tests run TI2V-5B
-image-to-video with), ``pipelines/wan/pipeline_wan.py`` (``WanPipeline.encode_prompt``, ``_get_t5_prompt_embeds``)
-and ``schedulers/scheduling_flow_match_euler_discrete.py`` / ``scheduling_unipc_multistep.py``.
-
-The Hub folder ``Wan-AI/Wan2.2-TI2V-5B-Diffusers`` is a ``WanPipeline`` folder (``model_index.json``:
-``"_class_name": "WanPipeline"``, ``"expand_timesteps": true``, no ``transformer_2``, a ``UniPCMultistepScheduler``
-with flow sigmas and ``flow_shift`` 5.0); we load and save it with ``WanImageToVideoPipeline``, the class whose
-``expand_timesteps`` path is the image-conditioned one (a ``WanPipeline`` folder loads with it unchanged; the folder
-we write says ``WanImageToVideoPipeline``, and both names are accepted).
-
-Imports diffusers, transformers and ftfy (diffusers' Wan prompt cleaning, ``pipeline_wan.prompt_clean``, calls
-``ftfy.fix_text``: without ftfy ``encode_prompt`` fails with a NameError, so its absence fails here, at import).
-"""
+Sources: the Wan report (arXiv 2503.20314), github.com/Wan-Video/Wan2.2 (``wan/textimage2video.py``,
+``wan/configs/wan_ti2v_5B.py``), and diffusers' ``WanImageToVideoPipeline`` (``expand_timesteps=True``, the TI2V
+image-to-video path), ``WanPipeline.encode_prompt`` and the flow-matching Euler / UniPC schedulers. The Hub folder
+``Wan-AI/Wan2.2-TI2V-5B-Diffusers`` is a ``WanPipeline`` folder; we load and save it with
+``WanImageToVideoPipeline`` and accept both names. Imports diffusers, transformers and ftfy (diffusers' Wan prompt
+cleaning calls ``ftfy.fix_text``, so a missing ftfy fails here, at import)."""
 from __future__ import annotations
 
 import copy
@@ -38,27 +28,20 @@ __all__ = ["WanBackbone"]
 class WanBackbone(DiffusersBackbone):
     """Wan2.2-TI2V-5B: ``AutoencoderKLWan`` + UMT5 + ``WanTransformer3DModel`` (camera-widened patch embedding).
 
-    Conventions (module :mod:`models.backbone`):
+    Conventions (:mod:`models.backbone`):
 
-    - **Latents**: ``(z − latents_mean)/latents_std`` per channel of the VAE's posterior (the pipeline's
-      ``prepare_latents`` writes it ``(z − mean)·(1/std)``, and so do we, for the same bits), (B, 48, n, H/16, W/16).
-    - **Velocity**: Wan's transformer predicts exactly our ``ε − x0`` at timestep ``1000·σ``; nothing is converted.
-      From the scheduler code: ``FlowMatchEulerDiscreteScheduler.scale_noise`` builds ``σ·noise + (1 − σ)·sample``
-      (our ``x_σ``), its ``step`` is ``x + (σ_next − σ)·model_output`` (an Euler step of dx/dσ = model_output, so the
-      output is dx_σ/dσ = ε − x0) with ``timesteps = sigmas·num_train_timesteps``; ``UniPCMultistepScheduler`` with
-      ``prediction_type="flow_prediction"`` (the Hub folder's) recovers ``x0 = sample − σ·model_output``
-      (``convert_model_output``), the same statement, as in Wan2.2's own ``wan/utils/fm_solvers_unipc.py``.
-    - **First frame** (TI2V, ``expand_timesteps=True``): latent frame 0 of the transformer input is the photograph's
-      latent and its tokens get timestep 0; the other tokens get ``1000·σ`` (a per-token timestep (B, seq_len)).
-    - **Text**: UMT5 embeddings of the prompt, zeroed after its last token and padded to
-      :attr:`max_sequence_length` (512) tokens, all of which the transformer attends to (Wan has no text mask).
-
-    Args: as :class:`DiffusersBackbone` (``from_pretrained`` for a folder).
+    - **Latents**: ``(z − latents_mean)·(1/latents_std)`` per channel, as ``prepare_latents``; (B, 48, n, H/16, W/16).
+    - **Velocity**: the transformer predicts exactly our ``ε − x0`` at timestep ``1000·σ`` (the flow-matching
+      schedulers' ``scale_noise``/``step`` and UniPC's ``flow_prediction`` say the same); nothing is converted.
+    - **First frame** (TI2V): latent frame 0 is the photograph's latent, its tokens at timestep 0, the others at
+      ``1000·σ`` (per-token timesteps (B, seq_len)).
+    - **Text**: UMT5 embeddings, zeroed after the prompt's last token, padded to :attr:`max_sequence_length`; no text
+      mask.
 
     Raises:
         TypeError: ``vae`` is not an ``AutoencoderKLWan``.
-        ValueError: a transformer that is not a TI2V one (input/output channels ≠ the VAE's ``z_dim``, or image
-            embeddings: Wan2.1 I2V), or a VAE config without its scale factors.
+        ValueError: not a TI2V transformer (channels ≠ the VAE's ``z_dim``, or image embeddings), or a VAE config
+            without its scale factors.
     """
 
     kind = "wan2.2-ti2v"
@@ -66,7 +49,7 @@ class WanBackbone(DiffusersBackbone):
     pipeline_names = ("WanPipeline", "WanImageToVideoPipeline")
     patch_conv_path = "patch_embedding"
     max_sequence_length: int = 512
-    """Text tokens (the pipelines' ``max_sequence_length`` default, Wan2.2's ``text_len``); longer prompts are cut."""
+    """Text tokens (the pipelines' default, Wan2.2's ``text_len``); longer prompts are cut."""
 
     def __init__(self, transformer: nn.Module, vae: nn.Module, text_encoder: nn.Module, tokenizer, scheduler):
         c, z = transformer.config, getattr(getattr(vae, "config", None), "z_dim", None)
@@ -79,8 +62,7 @@ class WanBackbone(DiffusersBackbone):
 
     @staticmethod
     def latent_format(vae: nn.Module) -> LatentFormat:
-        """``LatentFormat(z_dim, scale_factor_temporal, scale_factor_spatial)`` of an ``AutoencoderKLWan`` config
-        (48, 4, 16 for Wan2.2's VAE; 16, 4, 8 for Wan2.1's).
+        """``LatentFormat(z_dim, scale_factor_temporal, scale_factor_spatial)`` of an ``AutoencoderKLWan``.
 
         Raises:
             TypeError: not an ``AutoencoderKLWan``.
@@ -100,11 +82,8 @@ class WanBackbone(DiffusersBackbone):
 
     @classmethod
     def check_index(cls, index: dict, path: Path) -> None:
-        """A Wan2.2-TI2V folder: ``expand_timesteps`` true and no ``transformer_2`` (not Wan2.1 or Wan2.2-A14B).
-
-        Raises:
-            ValueError: naming ``path`` and the two fields.
-        """
+        """A Wan2.2-TI2V folder: ``expand_timesteps`` true and no ``transformer_2``; ValueError naming ``path``
+        otherwise."""
         second = index.get("transformer_2")
         if index.get("expand_timesteps") is not True or second not in (None, [None, None]):
             raise ValueError(f"checkpoint: {path} is not a Wan2.2-TI2V folder (expand_timesteps "
@@ -113,37 +92,23 @@ class WanBackbone(DiffusersBackbone):
     # ---------------------------------------------------------------- VAE
 
     def _latent_stats(self, device: torch.device) -> tuple[Tensor, Tensor]:
-        """(1, c, 1, 1, 1) float32 ``latents_mean`` and ``1/latents_std``, computed as ``prepare_latents`` does."""
+        """(1, c, 1, 1, 1) float32 ``latents_mean`` and ``1/latents_std``, as ``prepare_latents``."""
         c = self.vae.config
         mean = torch.tensor(c.latents_mean, dtype=torch.float32, device=device).view(1, c.z_dim, 1, 1, 1)
         inv_std = 1.0 / torch.tensor(c.latents_std, dtype=torch.float32, device=device).view(1, c.z_dim, 1, 1, 1)
         return mean, inv_std
 
     def encode_video(self, video: Tensor, generator: torch.Generator | None = None) -> Tensor:
-        """Pixels → normalised latents: ``(z − latents_mean)·(1/latents_std)`` per channel, z the posterior's mode
-        (``retrieve_latents(..., sample_mode="argmax")`` in ``prepare_latents``), or a posterior sample drawn with
-        ``generator``.
-
-        Args:
-            video: (B, 3, T, H, W) in [−1, 1], T = 1 + 4k, H and W multiples of 16 (the spatial factor).
-            generator: draw a posterior sample instead of taking the mode.
-
-        Returns:
-            (B, 48, n, H/16, W/16) float32 on ``video``'s device, n = 1 + (T − 1)/4.
-
-        Raises:
-            ValueError: a video of the wrong shape.
-        """
+        """(B, 3, T, H, W) in [−1, 1], T = 1 + 4k, H, W multiples of 16 → normalised latents
+        (B, 48, n, H/16, W/16) float32: the posterior's mode, or a sample drawn with ``generator``. ValueError on a
+        wrong
+        shape."""
         mean, inv_std = self._latent_stats(video.device)
         return (self.posterior(video, generator) - mean) * inv_std
 
     def decode_latents(self, latents: Tensor) -> Tensor:
         """Normalised latents (B, 48, n, h, w) → video (B, 3, 1 + 4(n − 1), 16h, 16w) float32 in [−1, 1] (the VAE
-        clamps): ``z = latents / (1/latents_std) + latents_mean`` then ``vae.decode`` (``__call__``'s decoding).
-
-        Raises:
-            ValueError: not (B, 48, n, h, w).
-        """
+        clamps). ValueError on another shape."""
         if latents.dim() != 5 or latents.shape[1] != self.latent.latent_channels:
             raise ValueError(f"latents must be (B, {self.latent.latent_channels}, n, h, w), "
                              f"got {tuple(latents.shape)}")
@@ -154,17 +119,8 @@ class WanBackbone(DiffusersBackbone):
     # ---------------------------------------------------------------- text
 
     def encode_text(self, prompts: list[str]) -> tuple[Tensor, Tensor]:
-        """Prompts → UMT5 embeddings with diffusers' own ``WanPipeline.encode_prompt`` (``prompt_clean``: ftfy +
-        whitespace; tokens up to :attr:`max_sequence_length`; the hidden states after each prompt's last token set to
-        zero).
-
-        Args:
-            prompts: B strings ("" is the unconditional prompt).
-
-        Returns:
-            embeds (B, L, d_text) float32 (L = :attr:`max_sequence_length`, d_text 4096 for UMT5-XXL) on the text
-            encoder's device, and mask (B, L) bool, all True: Wan's transformer attends to all L tokens, zeros
-            included (it has no text mask).
+        """B prompts ("" unconditional) → (embeds (B, L, d_text) float32, all-True mask (B, L)) with diffusers'
+        ``WanPipeline.encode_prompt``, L = :attr:`max_sequence_length`, on the text encoder's device.
 
         Raises:
             TypeError: ``prompts`` is not a list of strings.
@@ -181,7 +137,7 @@ class WanBackbone(DiffusersBackbone):
         return embeds, torch.ones(embeds.shape[:2], dtype=torch.bool, device=device)
 
     def _empty_prompt(self, device: torch.device) -> Tensor:
-        """(1, L, d_text) embedding of "", computed once (without gradients) and cached."""
+        """(1, L, d_text) embedding of "", computed once without gradients and cached."""
         cached = self._empty_text
         if cached is None or (cached.is_inference() and not torch.is_inference_mode_enabled()):
             with torch.no_grad():
@@ -193,33 +149,25 @@ class WanBackbone(DiffusersBackbone):
 
     def forward(self, x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor,
                 text: Tensor | None, text_mask: Tensor | None) -> Tensor:
-        """Flow-matching velocity ``ε − x0`` from the camera-conditioned transformer, the way
-        ``WanImageToVideoPipeline.__call__`` calls it with ``expand_timesteps=True``: latent frame 0 of ``x``
-        replaced by ``image_latent``; per-token timesteps (B, seq_len), 0 for the tokens of latent frame 0 and
-        ``σ·num_train_timesteps`` for the others (tokens in the transformer's (frame, height, width) patch order,
-        the pipeline's ``first_frame_mask[:, ::2, ::2]`` with the transformer's own patch size); the Plücker rays as
-        the patch embedding's extra input channels. Inputs are cast to the transformer's dtype; the timesteps stay
-        float32, as in the pipeline.
+        """Velocity ``ε − x0`` from the camera-conditioned transformer, called as ``WanImageToVideoPipeline`` does
+        with ``expand_timesteps=True``: latent frame 0 replaced by ``image_latent``, per-token timesteps (0 for frame 0,
+        ``σ·num_train_timesteps`` else; float32), Plücker rays as extra patch-embedding channels; inputs cast to the
+        transformer's dtype.
 
         Args:
-            x: (B, 48, n, h, w) the state at ``sigma``; its frame 0 is not read.
+            x: (B, 48, n, h, w) the state at ``sigma``; frame 0 is not read.
             sigma: (B,) σ in [0, 1].
             image_latent: (B, 48, 1, h, w) the photograph's normalised latent.
             plucker: (B, 6·4·16², n, h, w) packed Plücker rays.
-            text: (B, L, d_text) from :meth:`encode_text`, or None: the embedding of "" — the prompt diffusers'
-                Wan pipelines feed as the unconditional input (``encode_prompt``: ``negative_prompt or ""``), the
-                pretrained model's prompt-free condition (Wan2.2's own scripts default to a long negative prompt,
-                ``sample_neg_prompt`` in ``wan/configs/shared_config.py``: a guidance choice, not "no prompt");
-                computed once and cached.
-            text_mask: not used (Wan attends to every text token; :meth:`encode_text` returns all True).
+            text: (B, L, d_text) from :meth:`encode_text`, or None for the embedding of "" (diffusers' unconditional
+                prompt).
+            text_mask: not used.
 
         Returns:
-            (B, 48, n, h, w) float32. Frame 0 is the transformer's output for the conditioning tokens (timestep 0),
-            which nothing uses: samplers set latent frame 0 to ``image_latent`` at the end (as the pipeline does
-            after its loop) and training losses leave it out.
+            (B, 48, n, h, w) float32; frame 0 is unused (samplers set it to ``image_latent``).
 
         Raises:
-            ValueError: shapes that disagree, or h, w, n not multiples of the transformer's patch size.
+            ValueError: shapes that disagree, or n, h, w not multiples of the patch size.
         """
         p_t, p_h, p_w = self.transformer.config.patch_size
         check_velocity_inputs(x, sigma, image_latent, plucker, self.latent.latent_channels,
@@ -246,12 +194,7 @@ class WanBackbone(DiffusersBackbone):
 
     @property
     def shift(self) -> float:
-        """The scheduler's timestep shift: ``shift`` (``FlowMatchEulerDiscreteScheduler``) or ``flow_shift``
-        (``UniPCMultistepScheduler``; 5.0 in the Hub folder, Wan2.2's ``sample_shift`` for TI2V-5B).
-
-        Raises:
-            ValueError: a scheduler with neither.
-        """
+        """The scheduler's ``shift`` or ``flow_shift`` (5.0 in the Hub folder); ValueError if it has neither."""
         config = self.scheduler.config
         for key in ("shift", "flow_shift"):
             if key in config:
@@ -259,15 +202,8 @@ class WanBackbone(DiffusersBackbone):
         raise ValueError(f"{type(self.scheduler).__name__} has no shift or flow_shift in its config")
 
     def sigmas(self, steps: int) -> Tensor:
-        """The scheduler's own σ grid: ``set_timesteps(steps)`` on a deep copy (the backbone's scheduler is not
-        touched), its ``sigmas`` as float64.
-
-        Returns:
-            (steps + 1,) float64 on the CPU, strictly decreasing from about 1 (1 for the flow-matching Euler
-            scheduler; 1 − 1e-6 for UniPC's flow sigmas) to 0. Checked: the scheduler's timesteps are
-            ``σ·num_train_timesteps``, the timestep :meth:`forward` gives the transformer (exactly for the
-            flow-matching Euler scheduler; UniPC truncates them to integers, so its pipeline's timesteps are up to
-            1 lower than ours: 1/1000 of the range).
+        """The scheduler's own σ grid (``set_timesteps(steps)`` on a copy): (steps + 1,) float64 on the CPU, strictly
+        decreasing from about 1 to 0, checked to have timesteps σ·num_train_timesteps (within 1: UniPC truncates).
 
         Raises:
             ValueError: ``steps`` not an int ≥ 1; a scheduler whose grid is not such a flow-matching one.
@@ -289,11 +225,6 @@ class WanBackbone(DiffusersBackbone):
         return sig
 
     def training_sigmas(self, n: int, generator: torch.Generator) -> Tensor:
-        """(n,) float32 σ on ``generator``'s device: logit-normal(0, 1) (:func:`sample_logit_normal`; the Wan report
-        trains its rectified flow with logit-normal t) shifted by :attr:`shift` (:func:`shift_sigmas`), as the
-        inference grid is.
-
-        Raises:
-            ValueError: ``n`` < 1; a scheduler without a shift.
-        """
+        """(n,) float32 σ on ``generator``'s device: logit-normal(0, 1) (the Wan report) shifted by :attr:`shift`, as
+        the inference grid. ValueError: ``n`` < 1 or no shift."""
         return shift_sigmas(sample_logit_normal(n, generator=generator, device=generator.device), self.shift)
