@@ -1,26 +1,11 @@
-"""From the LDRM's maps to a 4D scene: the photograph as observed, the network's Gaussians for what it cannot show.
+"""From the LDRM's maps to a 4D scene (docs/DESIGN.md, "Data flow of generate", step 7).
 
-:func:`assemble_scene` (docs/DESIGN.md, "Data flow of generate", steps 7–8):
-
-- **The reference frame is the photo layer** (:mod:`diff4splat.assembly.photo`) at the *output* resolution: the
-  photograph's own pixels on the depth of the LDRM's reference grid (its ray distances at the model resolution, made
-  z-depth and upsampled with the photograph as the guide, :func:`photo_depth`), or on the user's depth map (``depth=``),
-  and the reference grid's deformation maps upsampled bilinearly, re-based so that the layer is exactly the observation
-  at the photograph's time (:func:`rebase_deformation`). The LDRM's own colours, opacities and scales of the
-  reference frame are not used.
-- **The backdrop** (:func:`diff4splat.assembly.photo.backdrop_layer`): the photograph continued beyond its borders,
-  blurred, behind everything; static.
-- **The other source frames** (video frames 4, 8, …) keep the network's pixel-aligned Gaussians at the model
-  resolution (:func:`to_gaussians`): what the generated video shows that the photograph does not. With ``video=``
-  (config ``generated_colors: video``) their colours are the decoded generated video's pixels
-  (:func:`video_colors`) rather than the LDRM's. With ``footprint="pixel"`` (config ``generated_footprint: pixel``)
-  they are opaque disks facing their source camera that tile its frame (:func:`pixel_footprint`), as the photo
-  layer tiles the photograph, instead of the LDRM's opacities, rotations and scales. Which of them
-  survive is the pipeline's pruning (:mod:`diff4splat.assembly.prune`): none that re-describes a surface already placed,
-  none in front of the photo layer at the input view.
-
-Gaussian order of the assembled scene: the photo layer's H_o·W_o front disks then ⌈H_o/2⌉·⌈W_o/2⌉ backing disks (each
-row-major), the backdrop, then source frames 1…S−1, h·w each at the model resolution, row-major.
+:func:`assemble_scene` puts the photo layer (:mod:`diff4splat.assembly.photo`: the photograph at the output
+resolution on the reference grid's upsampled depth, its deformation re-based to the photograph's time), the
+static backdrop, then the network's pixel-aligned Gaussians of source frames 1…S−1 at the model resolution
+(optionally coloured by the decoded video, :func:`video_colors`, and made pixel disks, :func:`pixel_footprint`).
+Order: the photo layer's H_o·W_o front then ⌈H_o/2⌉·⌈W_o/2⌉ backing disks, the backdrop, then h·w per source
+frame 1…S−1, each row-major.
 """
 from __future__ import annotations
 
@@ -55,17 +40,11 @@ __all__ = ["DEPTH_KINDS", "GENERATED_SCALE_PX", "to_gaussians", "video_colors", 
            "rebase_deformation", "assemble_scene", "z_depth"]
 
 DEPTH_KINDS = ("metric", "relative", "inverse")
-"""What a user's depth map holds (``generate --depth-kind``): metric z-depth in metres (used as given: the camera
-path is metric too), relative depth (affine: scale and shift fitted to the network's depth by least squares), or
-relative inverse depth / disparity (affine in 1/z, as MiDaS-style estimators output)."""
+"""What a user's depth map holds (``--depth-kind``): metric z-depth (metres, used as given), relative depth or
+relative inverse depth (affine in z or 1/z, fitted to the network's depth by least squares)."""
 GENERATED_SCALE_PX = 0.7
-"""In-plane σ, pixels at its source camera, of a generated frame's disk under :func:`pixel_footprint`. The disks
-must tile their frame at any output resolution, where the scene's dilation (0.1 px² of the *output*) no longer
-widens them: the generated frames are at the model resolution (64²), the output at 256² or more. Without the
-dilation, σ = 0.7 leaves alpha ≥ 0.98 at the corner between four pixels (0.995·e^(−0.25/σ²) = 0.60 from each of the
-four); σ = 0.5 left alpha 0.87 there, a lattice of holes through which what lies behind showed at 4×
-magnification. A neighbour in front reaches alpha 0.77 at the shared edge and 0.36 at the
-pixel's centre (a slight blur; the photo layer keeps its sharp σ = 0.25 px with backing disks and solved colours)."""
+"""In-plane σ, pixels at its source camera, of a generated frame's disk under :func:`pixel_footprint`: tiles the
+frame at any output magnification (alpha ≥ 0.98 at the corner between four pixels; docs/DESIGN.md, step 7)."""
 
 
 def to_gaussians(
@@ -74,27 +53,15 @@ def to_gaussians(
     Ks: Tensor,  # (S, 3, 3) pixels
     batch_index: int = 0,
 ) -> tuple[Gaussians, Tensor | None, Tensor | None, Tensor | None]:
-    """Pixel-aligned Gaussians (one per pixel of each source frame) and flattened deformation maps.
+    """Pixel-aligned Gaussians, one per pixel of each source frame of ``out`` (B, S, H, W, ·), and its deformation
+    flattened to d_means (K, M, 3), d_quats (K, M, 4), d_scales (K, M, 3) (or None), M = S·H·W.
 
-    Gaussian order is source-frame-major, then row-major pixels: Gaussian s·H·W + y·W + x sits on the
-    ray through pixel (x, y) of source camera s, μ = o + distance·d with (o, d) the pixel-centre ray of
-    :func:`diff4splat.cameras.camera_rays`; the first H·W Gaussians are the reference frame's. Colours are
-    stored as SH degree 0 via ``rgb_to_sh0`` after clamping to [1e-4, 1 − 1e-4].
-
-    Args:
-        out: LDRM output; maps (B, S, H, W, ·).
-        viewmats: (S, 4, 4) world-to-camera of the S source cameras (``models.ldrm.source_frame_indices``).
-        Ks: (S, 3, 3) intrinsics of the source cameras at (H, W), pixels.
-        batch_index: which scene of the batch.
-
-    Returns:
-        Gaussians with M = S·H·W; d_means (K, M, 3), d_quats (K, M, 4), d_scales (K, M, 3), or None. Computed in
-        float32 at least with autocast off (a bfloat16 region would round the ray directions to ~0.2 %, a pixel
-        at 512²), whatever the maps' dtype.
+    Gaussian s·H·W + y·W + x sits at μ = o + distance·d on the pixel-centre ray of pixel (x, y) of source camera s
+    (:func:`diff4splat.cameras.camera_rays`); colours clamped to [1e-4, 1 − 1e-4], stored as SH degree 0. Float32 at
+    least, computed with autocast off.
 
     Raises:
-        ValueError: ``viewmats``/``Ks`` not (S, 4, 4)/(S, 3, 3) for the S source frames of ``out``, or
-            ``batch_index`` out of range.
+        ValueError: ``viewmats``/``Ks`` not (S, 4, 4)/(S, 3, 3), or ``batch_index`` out of range.
     """
     B, S, H, W = out.distance.shape
     if not -B <= batch_index < B:
@@ -131,10 +98,7 @@ def _align(user: Tensor, network: Tensor, kind: str) -> Tensor:
     x = user.detach().double().cpu().numpy()  # device: depth_alignment fits in numpy; result moved back
     y = network.detach().double().cpu().numpy()  # device: as above
     mask = valid.cpu().numpy()  # device: as above
-    if kind == "relative":
-        fit = fit_scale_shift(x, y, mask, space="depth")
-    else:
-        fit = fit_scale_shift(x, y, mask, space="disparity")
+    fit = fit_scale_shift(x, y, mask, space="depth" if kind == "relative" else "disparity")
     return torch.from_numpy(fit.apply(np.where(mask, x, np.nan))).to(user)
 
 
@@ -146,21 +110,15 @@ def photo_depth(
     depth: Tensor | None = None,  # (H, W) the user's depth map
     depth_kind: str = "metric",
 ) -> Tensor:
-    """The photo layer's z-depth at the output resolution.
+    """The photo layer's z-depth at the output resolution, (H, W) metres, finite and > 0, on ``image``'s device.
 
-    The network's: ray distance × cos(angle to the optical axis) = z-depth at the model resolution, upsampled by
-    :func:`diff4splat.assembly.photo.upsample_depth` with the photograph as the guide. A user's ``depth`` replaces it,
-    aligned by ``depth_kind`` (:data:`DEPTH_KINDS`; relative and inverse maps are fitted to the network's depth
-    by least squares, ``diff4splat.geometry.depth_alignment.fit_scale_shift``); its holes
-    (:func:`diff4splat.io.depth_maps.valid_depth`: not finite, or metres outside [1 mm, 10 km]) take the network's
-    depth. The values are checked where they enter (:func:`diff4splat.io.depth_maps.check_depth_values`).
-
-    Returns:
-        (H, W) z-depth, metres, finite and > 0, on ``image``'s device.
+    The network's ray distance × cos(angle to the optical axis), upsampled by
+    :func:`diff4splat.assembly.photo.upsample_depth` with the photograph as the guide; or a user's ``depth``,
+    aligned by ``depth_kind`` (:data:`DEPTH_KINDS`, ``diff4splat.geometry.depth_alignment.fit_scale_shift``), its
+    holes (:func:`diff4splat.io.depth_maps.valid_depth`) filled with the network's depth.
 
     Raises:
-        ValueError: ``depth`` not (H, W); an unknown ``depth_kind``; a depth map whose fit to the network's depth
-            is degenerate (a negative scale).
+        ValueError: ``depth`` not (H, W); an unknown ``depth_kind``; a degenerate fit (a negative scale).
     """
     if depth_kind not in DEPTH_KINDS:
         raise ValueError(f"depth_kind must be one of {DEPTH_KINDS}, got {depth_kind!r}")
@@ -204,20 +162,9 @@ def video_colors(
     video: Tensor,  # (1, 3, T, h, w) the decoded generated video, about [−1, 1]
     sources: Tensor,  # (S,) video frame of each source frame
 ) -> LDRMOutput:
-    """``out`` with the colours of source frames 1… replaced by the video's pixels at those frames.
-
-    The LDRM is trained to re-draw the latents' content through its colour maps; a small one draws it blurred (base
-    model card, "This release"). Taking the generated frame's own pixel for each of its pixel-aligned Gaussians
-    keeps what the generator drew, as the photo layer keeps the photograph; the LDRM still places, sizes and moves
-    them. Source frame 0 (the photograph's grid, replaced by the photo layer) and every other map are unchanged.
-
-    Args:
-        out: the LDRM's maps, colours (1, S, h, w, 3) in [0, 1].
-        video: (1, 3, T, h, w) pixels in [−1, 1] (the VAE decoder's range; clamped), T > max(sources).
-        sources: (S,) long, the video frame of each source frame.
-
-    Returns:
-        An :class:`LDRMOutput` sharing every other tensor with ``out``; colours in [0, 1].
+    """``out`` with source frames 1…'s colours replaced by the decoded video's pixels (clamped) at those frames (the
+    photo layer's rule for generated frames: keep what the generator drew); every other map is shared. ``out``'s
+    colours are (1, S, h, w, 3) in [0, 1], ``video`` (1, 3, T, h, w) with T > max(``sources``).
 
     Raises:
         ValueError: ``video`` not (1, 3, T, h, w) at the maps' grid, or a source frame outside it.
@@ -239,15 +186,10 @@ def pixel_footprint(
     width: int,
     height: int,
 ) -> Gaussians:
-    """``gaussians`` with the footprint of a pixel: each an opaque disk facing its source camera, in-plane σ =
-    :data:`GENERATED_SCALE_PX` pixels there (:func:`diff4splat.assembly.photo.pixel_disks` at its own z-depth), opacity
-    :data:`diff4splat.assembly.photo.PHOTO_OPACITY`; means and colours unchanged.
-
-    Rendered alone at its own camera, a source frame's disks then reproduce its colours edge to edge,
-    as the photo layer reproduces the photograph: what the generated frame drew is what
-    its view of the scene shows where nothing nearer covers it. The LDRM's opacities, rotations and scales are
-    not used (a small LDRM learns low opacities that leave a generated frame's disocclusions mostly to the
-    backdrop: base model card).
+    """``gaussians`` as opaque disks facing their source camera: in-plane σ = :data:`GENERATED_SCALE_PX` pixels at their
+    own z-depth (:func:`diff4splat.assembly.photo.pixel_disks`), opacity
+    :data:`~diff4splat.assembly.photo.PHOTO_OPACITY`;
+    means and colours unchanged. Each source frame rendered alone at its camera then covers itself edge to edge.
 
     Raises:
         ValueError: not S·height·width Gaussians for the S cameras, or a Gaussian at or behind its camera's plane.
@@ -282,30 +224,20 @@ def assemble_scene(
 ) -> tuple[DynamicGaussians, Tensor, dict]:
     """The scene of one generation (module docstring).
 
-    Args:
-        out: the LDRM's maps for batch 1, (1, S, h, w, ·), deformation (1, K, S, h, w, ·) or None.
-        sources: (S,) long, the video frame of each source frame; sources[0] = 0, the photograph.
-        cameras_model, cameras: the same path at the model and at the output resolution.
-        image: (H, W, 3) the photograph at the output resolution.
-        times: (K,) the deformation's key times, or None for a static prediction.
-        depth, depth_kind: a user's depth map for the photo layer (:func:`photo_depth`).
-        eps2d: the dilation the scene is rendered with (the photo layer's colours are solved for it).
-        video: (1, 3, T, h, w) the decoded generated video in [−1, 1]: source frames 1… take its pixels as their
-            colours (:func:`video_colors`); None keeps the LDRM's colours.
-        footprint: ``"ldrm"`` keeps the LDRM's opacities, rotations and scales of source frames 1…, ``"pixel"``
-            makes them pixel disks (:func:`pixel_footprint`).
+    ``out``: the LDRM's maps for batch 1, deformation (1, K, S, h, w, ·) or None; ``sources[0]`` = 0, the photograph;
+    ``depth``, ``depth_kind``: a user's depth map (:func:`photo_depth`); ``eps2d``: the render's dilation, pixels²;
+    ``video``: the decoded video for :func:`video_colors`, or None; ``footprint``: ``"ldrm"`` or ``"pixel"``
+    (:func:`pixel_footprint`).
 
     Returns:
-        (scene, source (M,) long: the source frame of each Gaussian — 0 for the photo layer and the backdrop —,
-        stats dict with ``photo_psnr_db`` (the layer alone at the input camera, after the colour solve),
-        ``photo_gaussians``, ``backdrop_gaussians``, ``photo_depth`` (H, W), the layer's z-depth at the
-        photograph's time, and ``background``, the photograph's mean colour (RGB in [0, 1]) for the scene's
-        background).
+        (scene, source (M,) long: each Gaussian's source frame, 0 for the photo layer and backdrop, stats dict:
+        ``photo_psnr_db``, ``photo_gaussians``, ``backdrop_gaussians``, ``photo_depth`` (H, W) metres and
+        ``background``, the photograph's mean RGB in [0, 1]).
 
     Raises:
-        ValueError: as :func:`photo_depth`, :func:`diff4splat.assembly.photo.photo_layer`, :func:`video_colors` and
+        ValueError: as :func:`photo_depth`, :func:`~diff4splat.assembly.photo.photo_layer`, :func:`video_colors` and
             :func:`pixel_footprint`; an unknown ``footprint``; a photo layer that does not render the photograph
-            (:func:`diff4splat.assembly.photo.check_photo_fidelity`).
+            (:func:`~diff4splat.assembly.photo.check_photo_fidelity`).
     """
     if footprint not in GENERATED_FOOTPRINTS:
         raise ValueError(f"footprint must be one of {GENERATED_FOOTPRINTS}, got {footprint!r}")
@@ -341,14 +273,7 @@ def assemble_scene(
 
 def _deformation(out: LDRMOutput, grid: Gaussians, times: Tensor, t0: float, size: tuple[int, int],
                  n_back: int) -> list[Tensor]:
-    """The assembled scene's d_means (K, N, 3), d_quats (K, N, 4), d_scales (K, N, 3), N = photo layer + backdrop +
-    generated Gaussians in :func:`assemble_scene`'s order: the reference grid's maps (``grid``: its canonical
-    Gaussians) re-based to the photograph's time ``t0`` at the model resolution (identity there, which bilinear
-    upsampling keeps exactly), then upsampled to the front disks' ``size`` and the backing disks' half grid (front
-    and backing disks share their pixel's motion); the identity for the ``n_back`` backdrop Gaussians (it does not
-    move); the other source frames' own maps. Each field is one tensor allocated once and filled in place: at 49
-    frames, 512² the deformation is ~7 GB per copy, and concatenated pieces held three copies at once (28 GB).
-    dtype: float32, or float64 for float64 maps (as :func:`to_gaussians`)."""
+    """The scene's (d_means, d_quats, d_scales), (K, N, ·), in :func:`assemble_scene`'s order, filled in place."""
     raw = [getattr(out, f)[0] for f in ("d_means", "d_quats", "d_scales")]  # (K, S, h, w, c)
     K, S, h, w = raw[0].shape[:4]
     dtype = torch.promote_types(out.distance.dtype, torch.float32)

@@ -1,24 +1,9 @@
-"""The LDRM's motion path: each source pixel's 3D position at every key time, read from the frames.
-
-:func:`frame_motion` (docs/DESIGN.md, "The motion path") replaces the token deformation network's Δμ maps by motion
-the LDRM's motion network (:mod:`models.motion`) reads from the video frames at the model resolution:
-
-1. Each source frame's pixels as 3D points X_s = o + distance·d on their rays (the LDRM's distance maps).
-2. For each key time t, the frame at t (the nearest frame in time) and its camera: the static reprojection
-   (u, z) = project(X_s) (:func:`diff4splat.cameras.project_points`) is where a still point would be seen.
-3. The motion network correlates the source frame's features with frame t's around u and returns a residual flow f
-   (pixels) and log z-depth ratio r; the point at t is X_t = unproject(u + f, z·eʳ) in frame t's camera
-   (:func:`diff4splat.cameras.unproject_pixels`) and Δμ(t) = X_t − X_s. Zero flow is exactly zero motion, whatever
-   the camera does: the camera's own motion is the geometry's, the network's is the scene's. Key times are visited
-   outwards from each source frame's own time, and step j starts from the point's estimate at step j − 1 (projected
-   into frame t's camera) instead of X_s: the look-up window follows the point (RAFT's warm start from the previous
-   frame's flow, Teed & Deng 2020, §3.3), so it need reach only a step's motion.
-4. Δq and Δs are the token network's where the pixel moves at t, the identity where it does not, so a scene the
-   network sees as still keeps no deformation at all (``DynamicGaussians.without_deformation``).
-
-The geometry (points, reprojections) carries no gradient: training the motion path changes where points go, not
-the depth they start from.
-"""
+"""The LDRM's motion path: each source pixel's 3D position at every key time, read from the frames (docs/DESIGN.md,
+"The motion path"). :func:`frame_motion` projects each source pixel X_s = o + distance·d into the frame nearest
+each key time and lets the motion network (:mod:`models.motion`) return a residual flow f (pixels) and log z-depth
+ratio r: Δμ(t) = unproject(u + f, z·eʳ) − X_s, so zero flow is zero motion. Key times are visited outwards from
+each source's own, from the previous estimate (RAFT's warm start, Teed & Deng 2020, §3.3); Δq and Δs are the token
+network's where a pixel moves, else the identity. The geometry carries no gradient."""
 from __future__ import annotations
 
 import dataclasses
@@ -35,8 +20,7 @@ __all__ = ["frame_motion", "nearest_frames"]
 
 
 def nearest_frames(times: Tensor, frame_times: Tensor) -> Tensor:  # (K,), (T,) → (K,) long
-    """Index into ``frame_times`` (T,) of the frame nearest in time to each of ``times`` (K,) (clip times in [0, 1];
-    the earlier frame on a tie): (K,) long."""
+    """(K,) long index into ``frame_times`` (T,) of the frame nearest each of ``times`` (K,) (earlier on a tie)."""
     return (times[:, None] - frame_times[None, :]).abs().argmin(dim=1)
 
 
@@ -54,8 +38,7 @@ def frame_motion(
 
     Returns:
         An :class:`LDRMOutput` with d_means (1, K, S, H, W, 3) metres, world frame, and d_quats (1, K, S, H, W, 4) /
-        d_scales (1, K, S, H, W, 3): the token network's (``out``'s) where a pixel moves at that time, the identity
-        elsewhere (and everywhere when ``out`` has none).
+        d_scales (1, K, S, H, W, 3): ``out``'s where a pixel moves at that time, else (or without any) the identity.
 
     Raises:
         ValueError: ``out`` not of batch 1, or frames / cameras / times whose shapes do not match.

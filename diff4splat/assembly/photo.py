@@ -1,35 +1,13 @@
-"""The photo layer: the input photograph as Gaussians at the output resolution — observed, not generated.
+"""The photo layer: the input photograph as Gaussians at the output resolution, observed rather than generated
+(docs/DESIGN.md, "Data flow of generate", step 7; as Splatter Image, Flash3D and 3D photos keep observed pixels).
 
-Single-image 3D systems that look right (Splatter Image, Flash3D, 3D photos) keep the observed pixels and predict
-geometry for them; generation is for what the photograph cannot show. :func:`photo_layer` places one Gaussian per
-pixel of the photograph on its camera ray at a given depth, so that rendering the layer alone at the input camera
-reproduces the photograph (≥ 40 dB PSNR), and a camera that moves a little sees the photograph
-reprojected by that depth.
-
-Two layers of Gaussians, because two needs conflict under a 3DGS renderer (eps2d screen-space dilation,
-front-to-back compositing):
-
-- **front**: thin disks facing the camera, in-plane σ = :data:`FRONT_SCALE_PX` of a pixel, opacity
-  :data:`PHOTO_OPACITY` (alpha 0.99 at the pixel centre). Small, so a neighbour in front bleeds little into a pixel
-  (alpha 0.99·exp(−½/σ²_eff) at one pixel, σ²_eff = σ² + eps2d); the colours are then solved so that the render
-  equals the photograph (:func:`refine_colors`, a fixed-point iteration with the renderer itself).
-- **backing**: one disk per 2×2 block of pixels (⌈H/2⌉·⌈W/2⌉), on the ray through the block's centre, σ =
-  :data:`BACKING_SCALE_PX` pixels, the block's mean colour, at the largest z-depth of the front disks it can reach
-  (±:data:`BACKING_REACH` pixels) times 1 + :data:`BACKING_OFFSET`: behind every front disk it overlaps, so at the
-  input camera the front disks hide it (they leave ≤ 1 % of each pixel). It fills the gaps between the front disks
-  that a sub-pixel camera motion would otherwise open (alpha ≥ 0.97 at every sub-pixel shift instead of 0.5), at a
-  quarter of the front layer's count.
-
-Scenes holding a photo layer are rendered with :data:`PHOTO_EPS2D` = 0.1 px² instead of 3DGS's 0.3 (Mip-Splatting's
-2D filter value): with 0.3 a neighbour bleeds 19 % into a pixel and detailed photographs stop at ~30–38 dB.
-
-The layer's depth comes from the network at the model resolution, upsampled with the photograph as the guide
-(:func:`upsample_depth`, joint bilateral upsampling: depth edges follow colour edges), or from the user (``generate
---depth``).
-
-Behind everything, :func:`backdrop_layer` continues the photograph beyond its borders, blurred, far away: what
-neither the photograph nor the generated frames show is filled with the photograph's surroundings (the "repeat the
-input frame, blurred" baseline, but in 3D) instead of the background colour.
+:func:`photo_layer` puts one thin **front** disk per pixel on its camera ray at a given depth (σ =
+:data:`FRONT_SCALE_PX`, colours solved so that the render at the input camera is the photograph,
+:func:`refine_colors`) and one **backing** disk per 2×2 block (σ = :data:`BACKING_SCALE_PX`, just behind the
+deepest front disk it reaches) that fills the cracks a moving camera opens. Such scenes render with
+:data:`PHOTO_EPS2D` = 0.1 px² rather than 3DGS's 0.3, whose bleed would cap the layer's fidelity. The depth is
+upsampled from the model resolution with the photograph as the guide (:func:`upsample_depth`, Kopf et al. 2007).
+:func:`backdrop_layer` continues the photograph beyond its borders, blurred and far away, behind everything.
 """
 from __future__ import annotations
 
@@ -53,10 +31,8 @@ __all__ = ["PHOTO_EPS2D", "FRONT_SCALE_PX", "BACKING_SCALE_PX", "BACKING_OFFSET"
            "BACKDROP_SAMPLES"]
 
 MIN_PHOTO_PSNR_DB = 30.0
-"""Least PSNR (dB) of the photo layer rendered alone at the input camera against the photograph: below it, frame 0
-is not the photograph (the layer's depth, a user's ``--depth``, put its disks where they do not cover their
-pixels) and the scene is refused. Trained models render it at 65-87 dB, a random tiny model's odd depth at ~39 dB,
-the MP4 encoding of the same frame keeps 31-38 dB; the flat frame of a 10³⁰ m depth map was 6.5 dB."""
+"""Least PSNR (dB) of the photo layer rendered alone at the input camera against the photograph; below it frame 0 is
+not the photograph (a depth that puts the disks off their pixels) and the scene is refused."""
 
 
 def check_photo_fidelity(psnr_db: float, what: str = "the photograph") -> None:
@@ -71,22 +47,21 @@ def check_photo_fidelity(psnr_db: float, what: str = "the photograph") -> None:
                          "other units than metres); nothing was written")
 
 PHOTO_EPS2D = 0.1
-"""Screen-space dilation, pixels², of scenes with a photo layer (module docstring; meta.json ``eps2d``)."""
+"""Screen-space dilation, pixels², of scenes with a photo layer (meta.json ``eps2d``)."""
 FRONT_SCALE_PX = 0.25
 """In-plane standard deviation of a front disk, pixels at the input camera."""
 BACKING_SCALE_PX = 1.2
 """In-plane standard deviation of a backing disk (one per 2×2 pixels), pixels at the input camera."""
 BACKING_OFFSET = 0.01
-"""The backing layer lies this fraction behind the deepest front disk it can overlap (module docstring)."""
+"""The backing layer lies this fraction behind the deepest front disk it can overlap."""
 BACKING_REACH = 4
-"""Pixels on each side of a backing disk's centre whose front disks it must stay behind (its 3σ_eff reach at the
-input camera, 3·√(1.2² + 0.1) ≈ 3.7)."""
+"""Pixels on each side of a backing disk's centre whose front disks it stays behind (its 3σ_eff reach)."""
 PHOTO_OPACITY = 0.995
 """Opacity of every photo Gaussian (the renderer clamps alpha at 0.99)."""
 THICKNESS = 0.1
-"""Standard deviation along the ray as a fraction of the in-plane one (thin disks facing the input camera)."""
+"""Standard deviation along the ray as a fraction of the in-plane one."""
 REFINE_STEPS = 2
-"""Fixed-point steps of :func:`refine_colors` (each one render at the output resolution)."""
+"""Fixed-point steps of :func:`refine_colors` (one render each)."""
 BACKDROP_CELLS = 16
 """Backdrop Gaussians per image height (:func:`backdrop_layer`)."""
 BACKDROP_EXTEND = 2
@@ -96,6 +71,7 @@ BACKDROP_DEPTH = 1.5
 
 
 def _check(image: Tensor, depth: Tensor, viewmat: Tensor, K: Tensor) -> tuple[int, int]:
+    """Shape and value checks of the layers' inputs; returns (H, W)."""
     if image.dim() != 3 or image.shape[-1] != 3:
         raise ValueError(f"image must have shape (H, W, 3), got {tuple(image.shape)}")
     H, W = image.shape[:2]
@@ -111,8 +87,7 @@ def _check(image: Tensor, depth: Tensor, viewmat: Tensor, K: Tensor) -> tuple[in
 
 
 def _disk_frames(dirs: Tensor, cam_x: Tensor) -> Tensor:
-    """(N, 4) wxyz rotations whose local z axis is each unit ray direction ``dirs`` (N, 3) (world frame) and whose
-    local x axis is the camera's x axis ``cam_x`` ((3,) or (N, 3), world frame) made orthogonal to it."""
+    """(N, 4) wxyz rotations: local z along the unit rays ``dirs`` (N, 3), local x along ``cam_x`` made orthogonal."""
     cam_x = cam_x.to(dirs)
     x = cam_x - (dirs * cam_x).sum(-1, keepdim=True) * dirs
     x = x / x.norm(dim=-1, keepdim=True)
@@ -128,13 +103,12 @@ def pixel_disks(
     z: Tensor,  # (S, height, width) z-depth of each pixel, metres, > 0
     scale_px: float,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """One thin disk per pixel of S cameras: ``(means, quats, scales)``, (S·height·width, 3 / 4 / 3), camera-major,
-    then row-major pixels.
+    """One thin disk per pixel of S cameras: ``(means, quats, scales)``, (S·height·width, 3 / 4 / 3), camera-major, then
+    row-major pixels; ``z``'s dtype and device.
 
-    Pixel (i, j) of camera s at z-depth z sits at o + d·z/(d·ẑ) on its pixel-centre ray (o, d)
-    (:func:`diff4splat.cameras.camera_rays`), a disk facing the camera (local z axis along d, local x along the
-    camera's x axis) with in-plane σ = ``scale_px``·z/f (f = fx along x, fy along y: ``scale_px`` pixels at that
-    camera) and σ = :data:`THICKNESS`·min(σx, σy) along the ray. Dtype and device: ``z``'s.
+    Pixel (i, j) at z-depth z sits at o + d·z/(d·ẑ) on its pixel-centre ray (o, d), its local z axis along d and x
+    along the camera's x axis, in-plane σ = ``scale_px``·z/f (fx along x, fy along y) and :data:`THICKNESS`·min(σx, σy)
+    along the ray.
     """
     viewmats, Ks = viewmats.to(z), Ks.to(z)
     origins, dirs = camera_rays(viewmats, Ks, width, height)  # (S, height, width, 3)
@@ -161,24 +135,13 @@ def render_input_view(layer: Gaussians, viewmat: Tensor, K: Tensor, width: int, 
 @torch.no_grad()
 def refine_colors(layer: Gaussians, image: Tensor, viewmat: Tensor, K: Tensor, num_front: int,
                   steps: int = REFINE_STEPS, eps2d: float = PHOTO_EPS2D) -> tuple[Gaussians, list[float]]:
-    """Solve the front layer's colours so that the render at the input camera equals ``image``.
-
-    The render is linear in the colours (the weights do not depend on them), R(c) = W c, and W is close to the
-    identity (a pixel's own disk has weight ≈ 0.99·T, neighbours in front a few %), so the fixed-point iteration
-    c ← c + (image − R(c)) converges quickly; the renderer's clamp of colours at 0 bounds what it can undo next
-    to strong edges. The first ``num_front`` Gaussians of ``layer`` (one per pixel, row-major) are solved.
-
-    Args:
-        layer: the Gaussians (SH degree 0), their first H·W the front disks.
-        image: (H, W, 3) in [0, 1], the target.
-        viewmat: (4, 4), K: (3, 3) the input camera.
-        num_front: H·W.
-        steps: fixed-point steps (each one render).
-        eps2d: the dilation the scene is rendered with.
+    """Solve the first ``num_front`` Gaussians' colours (one per pixel, row-major) so that the render at the input
+    camera equals ``image`` (H, W, 3): the render is linear in the colours and close to the identity, so the fixed-point
+    iteration c ← c + (image − R(c)) converges in a few steps.
 
     Returns:
-        The layer with solved front colours, and the PSNR (dB) of the input-view render before each step and
-        after the last (``steps + 1`` values).
+        The layer with solved front colours, and the input-view PSNR (dB) before each step and after the last
+        (``steps + 1`` values).
     """
     H, W = image.shape[:2]
     target = image.reshape(-1, 3).to(layer.means)
@@ -205,22 +168,12 @@ def photo_layer(
     refine_steps: int = REFINE_STEPS,
     eps2d: float = PHOTO_EPS2D,
 ) -> tuple[Gaussians, list[float]]:
-    """The photograph as H·W front disks (row-major) then ⌈H/2⌉·⌈W/2⌉ backing disks (row-major; module docstring).
-
-    Each is a :func:`pixel_disks` disk (front: :data:`FRONT_SCALE_PX`, backing: :data:`BACKING_SCALE_PX` on the
-    half-resolution grid), opacity :data:`PHOTO_OPACITY`, SH degree 0.
-
-    Args:
-        image: (H, W, 3) the photograph in [0, 1] at the output resolution.
-        depth: (H, W) z-depth of each pixel, metres, finite and > 0.
-        viewmat: (4, 4) world-to-camera of the input camera (OpenCV).
-        K: (3, 3) its intrinsics at H × W, pixels.
-        refine_steps: colour fixed-point steps (:func:`refine_colors`); 0 keeps the photograph's colours.
-        eps2d: the dilation the scene will be rendered with (:data:`PHOTO_EPS2D`).
+    """The photograph (at the output resolution) as H·W front disks then ⌈H/2⌉·⌈W/2⌉ backing disks, each row-major
+    (:func:`pixel_disks`, opacity :data:`PHOTO_OPACITY`, SH degree 0), colours solved by :func:`refine_colors`
+    (``refine_steps`` 0: the photograph's own) for the dilation ``eps2d`` (pixels²) the scene will be rendered with.
 
     Returns:
-        (Gaussians (H·W + ⌈H/2⌉·⌈W/2⌉) on ``image``'s device in float32, input-view PSNR history of
-        :func:`refine_colors`).
+        (float32 Gaussians on ``image``'s device, the input-view PSNR history of :func:`refine_colors`).
 
     Raises:
         ValueError: shapes that do not match, image values outside [0, 1], depth not finite and positive.
@@ -255,23 +208,20 @@ def _backdrop_grid(width: int, height: int) -> tuple[int, int, int, int]:
 
 
 def layer_sizes(width: int, height: int) -> tuple[int, int]:
-    """Gaussian counts of :func:`photo_layer` (W·H front + ⌈H/2⌉·⌈W/2⌉ backing disks) and of
-    :func:`backdrop_layer` for a ``width`` × ``height`` photograph (pixels)."""
+    """Gaussian counts of :func:`photo_layer` and :func:`backdrop_layer` for a ``width`` × ``height`` photograph."""
     _, _, rows, cols = _backdrop_grid(width, height)
     return width * height + (-(-height // 2)) * (-(-width // 2)), rows * cols
 
 
 BACKDROP_SAMPLES = 4
-"""Samples per backdrop cell side at which :func:`backdrop_colors` blurs the mirrored photograph (σ = one cell =
-this many samples): the blur's cost is then fixed per cell, not per pixel of the photograph."""
+"""Samples per backdrop cell side at which :func:`backdrop_colors` blurs (σ = one cell), so the blur's cost is fixed
+per cell."""
 
 
 def backdrop_colors(host: np.ndarray, cell: int, pad: int, h: int, w: int) -> np.ndarray:
-    """The backdrop's (h, w, 3) cell colours of the photograph ``host`` (H, W, 3) float32: the photograph mirrored
-    ``pad`` pixels beyond every border (``cv2.copyMakeBorder``, BORDER_REFLECT), blurred with a Gaussian of σ = one
-    cell (``cell`` pixels) and area-averaged to cells, as :func:`backdrop_colors_reference` does at full resolution,
-    but on the photograph first area-averaged to :data:`BACKDROP_SAMPLES` samples per cell (a pixel's weight is
-    spread over ≤ 1/4 cell more): a blur of fixed cost instead of one whose kernel grows with the photograph."""
+    """The backdrop's (h, w, 3) cell colours of the photograph ``host`` (H, W, 3) float32: mirrored ``pad`` pixels
+    beyond each border (BORDER_REFLECT), blurred with σ = ``cell`` pixels and area-averaged to cells, as
+    :func:`backdrop_colors_reference` but on the photograph first area-averaged to :data:`BACKDROP_SAMPLES` per cell."""
     H, W = host.shape[:2]
     scale = BACKDROP_SAMPLES / cell
     if scale >= 1:  # cells of ≤ 4 pixels: the full-resolution blur is as cheap
@@ -285,8 +235,7 @@ def backdrop_colors(host: np.ndarray, cell: int, pad: int, h: int, w: int) -> np
 
 
 def backdrop_colors_reference(host: np.ndarray, cell: int, pad: int, h: int, w: int) -> np.ndarray:
-    """:func:`backdrop_colors` at full resolution: mirror, blur σ = ``cell`` pixels, area-average to (h, w) cells of
-    ``cell`` pixels (the blur's kernel, and its cost per pixel, grow with the photograph)."""
+    """:func:`backdrop_colors` at full resolution (its kernel and cost grow with the photograph)."""
     big = cv2.GaussianBlur(cv2.copyMakeBorder(host, pad, pad, pad, pad, cv2.BORDER_REFLECT), (0, 0), float(cell))
     return cv2.resize(big[:h * cell, :w * cell], (w, h), interpolation=cv2.INTER_AREA)
 
@@ -297,17 +246,10 @@ def backdrop_layer(
     viewmat: Tensor,  # (4, 4)
     K: Tensor,  # (3, 3) at H × W
 ) -> Gaussians:
-    """The photograph's surroundings: a far, blurred continuation of it beyond its borders.
-
-    The photograph is extended by :data:`BACKDROP_EXTEND` image sizes on every side by mirroring
-    (``cv2.copyMakeBorder``, BORDER_REFLECT), blurred (Gaussian, σ = one cell) and area-averaged to cells of H /
-    :data:`BACKDROP_CELLS` pixels (:func:`backdrop_colors`); one Gaussian per cell sits on the ray through the
-    cell's centre at z = :data:`BACKDROP_DEPTH` × the photo layer's largest depth, a disk facing the camera of
-    σ = 0.8 cell, opacity :data:`PHOTO_OPACITY`. At the input camera the photo layer hides it; a moving camera
-    sees it where neither the photograph nor the generated frames have anything.
-
-    Returns:
-        Gaussians ((1 + 2·extend)² · cells²-ish, SH degree 0) on ``image``'s device, float32.
+    """The photograph's surroundings: mirrored :data:`BACKDROP_EXTEND` image sizes beyond each border, blurred and
+    averaged to cells of H / :data:`BACKDROP_CELLS` pixels (:func:`backdrop_colors`); one disk per cell facing the
+    camera on the ray through its centre, at z = :data:`BACKDROP_DEPTH` × the largest ``depth``, σ = 0.8 cell, opacity
+    :data:`PHOTO_OPACITY`. Float32 Gaussians, SH degree 0, on ``image``'s device.
 
     Raises:
         ValueError: as :func:`photo_layer`.
@@ -334,8 +276,7 @@ def backdrop_layer(
 
 
 UPSAMPLE_SIGMA_SPATIAL = 0.75
-"""Spatial standard deviation of :func:`upsample_depth`, in low-resolution cells (its 5×5 window reaches ±2.5σ·0.75
-cells beyond the nearest one, where the weight is 0.4 %: the output does not jump where the window moves)."""
+"""Spatial standard deviation of :func:`upsample_depth`, in low-resolution cells."""
 UPSAMPLE_RADIUS = 2
 """Cells on each side of the nearest one that :func:`upsample_depth` averages."""
 UPSAMPLE_SIGMA_COLOR = 0.1
@@ -345,22 +286,13 @@ UPSAMPLE_FLOOR = 1e-3
 
 
 def upsample_depth(depth: Tensor, guide: Tensor) -> Tensor:
-    """Edge-aware upsampling of a low-resolution depth map to the guide photograph's resolution: joint bilateral
-    upsampling (Kopf et al. 2007, "Joint bilateral upsampling", Eq. 2) in log-depth.
-
-    Each output pixel p averages the log-depths of the 5×5 low-resolution cells q centred on its nearest with weights
-    exp(−‖p − q‖² / 2σ_s²) · (exp(−‖I(p) − Ĩ(q)‖² / 2σ_c²) + floor), distances in cells, I the photograph at p and Ĩ
-    the photograph area-averaged over cell q. A cell that straddles a colour edge looks like neither side, so
-    depth edges land on the photograph's colour edges instead of being smeared over the upsampling factor
-    (bilinear). σ_s = :data:`UPSAMPLE_SIGMA_SPATIAL`, σ_c = :data:`UPSAMPLE_SIGMA_COLOR`, floor
-    :data:`UPSAMPLE_FLOOR`.
-
-    Args:
-        depth: (h, w) z-depth, metres, finite and > 0.
-        guide: (H, W, 3) the photograph in [0, 1], H ≥ h, W ≥ w.
+    """Edge-aware upsampling of ``depth`` (h, w), metres, finite and > 0, to the resolution of ``guide`` (H, W, 3) in
+    [0, 1], H ≥ h, W ≥ w: joint bilateral upsampling in log-depth (Kopf et al. 2007, Eq. 2). Each output pixel p
+    averages the log-depths of the 5×5 cells q around its nearest with weights exp(−‖p − q‖² / 2σ_s²)·(exp(−‖I(p) −
+    Ĩ(q)‖² / 2σ_c²) + floor), distances in cells, Ĩ the guide area-averaged over cell q.
 
     Returns:
-        (H, W) z-depth, metres, > 0, on ``depth``'s device and dtype (a copy of ``depth`` when the sizes are equal).
+        (H, W) z-depth, metres, on ``depth``'s device and dtype (a copy when the sizes are equal).
 
     Raises:
         ValueError: wrong shapes, a guide smaller than the depth map, or depth not finite and positive.

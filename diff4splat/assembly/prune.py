@@ -1,5 +1,6 @@
-"""Pruning of Gaussians: those that never contribute to a camera path, and near-duplicates across the
-source frames of a multi-frame reconstruction."""
+"""Pruning of Gaussians: those no camera of a path sees, near-duplicates across source frames, and generated
+Gaussians that would cover the photograph (docs/DESIGN.md, "Data flow of generate", step 8; our rules, not the
+paper's)."""
 from __future__ import annotations
 
 import dataclasses
@@ -23,17 +24,9 @@ __all__ = ["visibility_mask", "prune_scene", "prune_mask", "nothing_seen_message
 
 
 def visibility_mask(scene: DynamicGaussians, cameras: CameraPath, near_plane: float = NEAR_PLANE) -> Tensor:
-    """Which Gaussians any camera of ``cameras`` sees, each at its own frame time.
-
-    A Gaussian is seen by camera i when, deformed to time ``cameras.times[i]``, it passes the
-    renderer's culling (:func:`diff4splat.render.project_gaussians`: in front of the near plane and
-    its 3σ screen footprint overlapping the image); exactly the Gaussians the rasterizer would skip
-    for every frame are reported unseen. With temporal support, a Gaussian gated out at a frame's
-    time (:meth:`DynamicGaussians.active_indices`, o·p(t) < 1/255) is not seen by that camera.
-
-    Returns:
-        (M,) bool.
-    """
+    """(M,) bool: which Gaussians any camera of ``cameras`` sees at its own frame time, i.e. passes the renderer's
+    culling (:func:`diff4splat.render.project_gaussians`) and, with temporal support, the gate of
+    :meth:`DynamicGaussians.active_indices`."""
     seen = torch.zeros(scene.num_gaussians, dtype=torch.bool, device=scene.canonical.means.device)
     for i in range(len(cameras)):
         t = float(cameras.times[i])
@@ -50,15 +43,8 @@ def visibility_mask(scene: DynamicGaussians, cameras: CameraPath, near_plane: fl
 
 def prune_mask(scene: DynamicGaussians, cameras: CameraPath | None = None, min_opacity: float = 0.005,
                near_plane: float = NEAR_PLANE) -> tuple[Tensor, dict[str, int]]:
-    """The Gaussians :func:`prune_scene` keeps, as a mask: opacity ≥ ``min_opacity`` and seen by a camera.
-
-    A Gaussian with opacity o < 1/255 can never pass the 3DGS alpha threshold (alpha ≤ o), so
-    ``min_opacity`` ≤ 1/255 prunes only Gaussians that provably never contribute.
-
-    Args:
-        scene: the scene.
-        cameras: the path the scene will be rendered along, or None to prune by opacity only.
-        min_opacity: opacity threshold in [0, 1).
+    """The Gaussians :func:`prune_scene` keeps: opacity ≥ ``min_opacity`` (in [0, 1)) and seen by a camera of
+    ``cameras`` (None: opacity only).
 
     Returns:
         keep (M,) bool and counts {"before", "low_opacity", "unseen", "after"}.
@@ -77,8 +63,7 @@ def prune_mask(scene: DynamicGaussians, cameras: CameraPath | None = None, min_o
 
 
 def nothing_seen_message(stats: dict[str, int], min_opacity: float) -> str:
-    """The error message when pruning left no Gaussian (``stats`` as :func:`prune_mask` returns them), naming the
-    likely cause: transparent Gaussians (the model's weights) or cameras that look away from the scene."""
+    """The error message when pruning left no Gaussian (``stats`` of :func:`prune_mask`), naming the likely cause."""
     msg = (f"the camera path sees none of the scene: all {stats['before']} Gaussians were pruned "
            f"({stats['unseen']} outside every camera's view, {stats['low_opacity']} with opacity < {min_opacity})")
     if stats["unseen"] == 0:
@@ -89,10 +74,7 @@ def nothing_seen_message(stats: dict[str, int], min_opacity: float) -> str:
 
 def prune_scene(scene: DynamicGaussians, cameras: CameraPath | None = None, min_opacity: float = 0.005,
                 near_plane: float = NEAR_PLANE) -> tuple[DynamicGaussians, dict[str, int]]:
-    """Drop Gaussians with opacity below ``min_opacity`` or that no camera of ``cameras`` sees (:func:`prune_mask`).
-
-    Returns:
-        The pruned scene (deformation arrays follow the kept Gaussians) and the counts of :func:`prune_mask`.
+    """Drop the Gaussians :func:`prune_mask` does not keep; returns the pruned scene and its counts.
 
     Raises:
         ValueError: ``min_opacity`` outside [0, 1).
@@ -114,46 +96,16 @@ def duplicate_mask(
     min_alpha: float = 0.5,
     depth_tolerance: float = 0.05,
 ) -> Tensor:
-    """Which Gaussians of a later source frame re-describe a surface an earlier source frame already placed.
+    """(M,) bool, True where a Gaussian of a later source frame re-describes a surface an earlier one already placed.
 
-    Pixel-aligned Gaussians decoded from several source frames (S frames, one H×W grid each) describe
-    every surface seen by two frames twice. Source frames are processed in order s = 1 … S−1; for
-    frame s, the Gaussians of frames < s that are not already marked duplicate are rendered, deformed
-    to ``times[s]`` (:meth:`DynamicGaussians.at`), from camera s (:func:`diff4splat.render.rasterize`,
-    "ED") → accumulated alpha A and expected depth D (H, W). A Gaussian of frame s is a duplicate iff
-    its mean deformed to ``times[s]``, in camera s's frame (x, y, z) = R·μ + t, lies in front of the
-    near plane (z > 0.01 m, :data:`~diff4splat.render.settings.NEAR_PLANE`), projects to
-    (u, v) = (fx·x/z + cx, fy·y/z + cy) inside the image, and at pixel (⌊v⌋, ⌊u⌋)
-    A ≥ ``min_alpha`` and |z − D| ≤ ``depth_tolerance``·D: the surface is already represented at
-    that depth. Gaussians of frame 0 are never duplicates; Gaussians in front of the rendered surface
-    (new occluders), behind it, or where A < ``min_alpha`` (content disoccluded or new in frame s)
-    are kept. A duplicate of frame s is left out of the renders for the frames after s. With temporal
-    support, opacities are o·p(t) at ``times[s]``, as rendered.
-
-    Source: our design for the every-frame decoding of Diff4Splat (Pan et al. 2025, the LDRM's
-    "3D deconvolution" decodes Gaussians in "pixel-level correspondence with source video frames";
-    the paper does not say how overlapping frames are merged), analogous to the redundancy pruning
-    of pixel-aligned feed-forward reconstructions over several key frames. The rule and its
-    thresholds are ours (docs/DESIGN.md, "Data flow of generate").
-
-    Args:
-        scene: M Gaussians (static or deformed, with or without temporal support), metres.
-        source: (M,) integer source-frame index of each Gaussian, in [0, S).
-        viewmats: (S, 4, 4) world-to-camera of each source frame (OpenCV frame).
-        Ks: (S, 3, 3) pinhole intrinsics of each source frame, pixels.
-        times: (S,) clip time of each source frame, in [0, 1].
-        width, height: image size of the source cameras, pixels (≥ 1).
-        min_alpha: accumulated alpha in (0, 1] above which a pixel counts as covered.
-        depth_tolerance: relative depth tolerance (> 0): |z − D| ≤ depth_tolerance·D.
-
-    Returns:
-        (M,) bool on the scene's device, True = duplicate (drop).
+    For s = 1 … S−1 in order, the not-yet-dropped Gaussians of frames < s are rendered at ``times[s]`` from camera s
+    (alpha A, expected depth D); a Gaussian of frame s whose deformed mean projects in front of the near plane to a
+    pixel with A ≥ ``min_alpha`` (in (0, 1]) and |z − D| ≤ ``depth_tolerance``·D (> 0) is a duplicate. Frame 0 never
+    is. ``width``, ``height``: image size, pixels (≥ 1).
 
     Raises:
-        ValueError: shapes (source not (M,), viewmats not (S, 4, 4) with S ≥ 1, Ks not (S, 3, 3),
-            times not (S,)), a non-integer ``source`` or one outside [0, S), non-finite cameras or
-            times, times outside [0, 1], width/height < 1, ``min_alpha`` outside (0, 1],
-            ``depth_tolerance`` ≤ 0 or not finite; each message names the argument and its value.
+        ValueError: wrong shapes, a non-integer ``source`` or one outside [0, S), non-finite cameras or times, times
+            outside [0, 1], width/height < 1, ``min_alpha`` outside (0, 1], ``depth_tolerance`` not finite and > 0.
     """
     S = _check_sources(scene, source, viewmats, Ks, times)
     width, height = check_positive_int("width", width, "pixels"), check_positive_int("height", height, "pixels")
@@ -189,42 +141,17 @@ def occluder_mask(
     depth_tolerance: float = 0.05,
     surface_depth: Tensor | None = None,  # (H, W) z-depth of the photograph's surface, metres
 ) -> Tensor:  # (M,) bool, True = occludes the photograph (drop)
-    """Which Gaussians of later source frames would cover the photograph at the input view.
+    """Which Gaussians of later source frames would cover the photograph at the input view (True = drop, never for
+    source 0).
 
-    The input frame (source 0, the photo layer) is observed: the photograph shows its surface unoccluded at
-    ``time``. The Gaussians of source 0 are rendered from the input camera at ``time`` (accumulated alpha A,
-    expected depth D). A Gaussian of a later source frame, deformed to ``time``, is tested over its whole screen
-    footprint, not only its centre: the renderer's own projection (:func:`diff4splat.render.project_gaussians`)
-    gives its centre and 3σ radius; the square of half-width 10/9 of that radius + 1 pixel (the renderer's
-    opacity-aware support reaches 3.33σ) around the centre, clipped to the image, is its footprint; a Gaussian
-    the projection culls (behind the near plane, footprint outside the image) cannot cover the photograph and is
-    kept. If that square holds a pixel
-    with A ≥ ``min_alpha`` whose surface the Gaussian's centre is not clearly behind, z < (1 +
-    ``depth_tolerance``)·D, it would be composited over (in front) or into (on) the photograph there and is
-    dropped: what it describes there, the photograph already shows. Gaussians wholly behind the surface, over
-    uncovered pixels, outside the image or behind the camera are kept (what the photograph cannot show:
-    disocclusions, the far side). The largest covered D over the square comes from a grey dilation of the depth
-    map (:func:`_footprint_max`, squares up to 20 % larger), so the test is conservative. Our rule
-    (docs/DESIGN.md, "Data flow of generate"), not the paper's.
-
-    Args:
-        scene: M Gaussians (static or deformed), metres.
-        source: (M,) integer source-frame index of each Gaussian, in [0, S).
-        viewmat: (4, 4) input camera (world-to-camera, OpenCV).  K: (3, 3) its intrinsics, pixels.
-        time: clip time of the photograph, in [0, 1].
-        width, height: image size, pixels (≥ 1).
-        min_alpha: accumulated alpha in (0, 1] above which a pixel counts as covered.
-        depth_tolerance: relative depth margin (> 0).
-        surface_depth: (H, W) the surface's z-depth at every pixel when it is known exactly (the photo layer's
-            depth map, :func:`diff4splat.assembly.assemble.photo_depth`), used instead of rendering source 0 (whose
-            expected depth blends neighbouring pixels where the depth varies from pixel to pixel).
-
-    Returns:
-        (M,) bool, True = drop; never True for source 0.
+    A candidate deformed to ``time`` is dropped when the square around its projected centre (half-width 10/9 of the
+    renderer's 3σ radius + 1 pixel) holds a pixel covered by source 0 (alpha ≥ ``min_alpha``) whose depth D it is not
+    clearly behind: z < (1 + ``depth_tolerance``)·D. The largest D over the square comes from a grey dilation
+    (:func:`_footprint_max`), so the test is conservative; culled Gaussians are kept. ``surface_depth``, when given,
+    is used instead of rendering source 0.
 
     Raises:
-        ValueError: the same argument checks as :func:`duplicate_mask` (one camera, ``time`` as its times);
-            ``surface_depth`` not (height, width).
+        ValueError: the checks of :func:`duplicate_mask` (one camera); ``surface_depth`` not (height, width).
     """
     means = scene.canonical.means
     times = torch.tensor([float(time)], dtype=means.dtype, device=means.device)
@@ -257,9 +184,7 @@ def occluder_mask(
 
 def _covers(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmat: Tensor, K: Tensor, width: int,
             height: int, depth: Tensor, depth_tolerance: float) -> Tensor:
-    """:func:`occluder_mask`'s test of P Gaussians (positions at the photograph's time) against the surface's
-    z-depth ``depth`` (H, W; 0 = uncovered): (P,) bool, True where the footprint square holds a covered pixel whose
-    surface the centre is not clearly behind."""
+    """:func:`occluder_mask`'s footprint test of P Gaussians against ``depth`` (H, W; 0 = uncovered): (P,) bool."""
     proj = project_gaussians(means, quats, scales, opacities, viewmat[None], K[None], width, height)
     radii = proj.radii[0].to(depth.dtype)
     d_max = _footprint_max(depth, proj.means2d[0, :, 0], proj.means2d[0, :, 1], radii * (10 / 9) + 1)
@@ -286,18 +211,13 @@ def slide_behind(
 ) -> tuple[DynamicGaussians, Tensor]:
     """Move Gaussians back along the rays from their source cameras until they no longer cover the photograph.
 
-    Gaussian i of ``index`` goes to o + λ·(μ − o) with scales λ·s (o: its source camera's centre, μ, s: its
-    canonical mean and scales; deformation offsets kept): seen from o it keeps its direction and its angular size,
-    i.e. its pixel and footprint in its source frame, while its depth there grows by λ. λ is the first of
-    ``factors`` at which, deformed to ``time``, it passes :func:`occluder_mask`'s test against ``surface_depth``
-    (its footprint at the input view covers no pixel whose surface it is not clearly behind); a Gaussian for which
-    no factor does stays where it is and is reported. Where a generated frame and the photograph disagree about a
-    surface, the photograph (observed) keeps the input view and the generated Gaussian keeps its own view, at the
-    nearest depth consistent with both. Our rule (docs/DESIGN.md, "Data flow of generate").
+    Gaussian i of ``index`` goes to o + λ·(μ − o) with scales λ·s (o its source camera's centre; deformation offsets
+    kept), so its pixel and footprint in its source frame are unchanged; λ is the first of ``factors`` at which it
+    passes :func:`occluder_mask`'s test against ``surface_depth`` at ``time``. One no factor frees stays put.
 
     Returns:
-        (the scene with the moved Gaussians — new tensors, differentiable in the canonical means and scales at the
-        chosen λ; the input scene is not modified —, (P,) bool: True = moved, False = no factor frees it).
+        (the scene with the moved Gaussians, new tensors differentiable in the canonical means and scales,
+        (P,) bool: True = moved).
 
     Raises:
         ValueError: ``index`` and ``origins`` not (P,) and (P, 3); a factor ≤ 1; ``surface_depth`` not
@@ -347,17 +267,13 @@ def settle_generated(
     *,
     factors: tuple[float, ...] = SLIDE_FACTORS,
 ) -> tuple[DynamicGaussians, Tensor, dict[str, int]]:
-    """Generated Gaussians made to add only what the photograph does not show (docs/DESIGN.md, "Data flow of
-    generate"): near-duplicates of a surface an earlier source frame placed are dropped (:func:`duplicate_mask`);
-    of the rest, those that would cover the photograph at the input view (:func:`occluder_mask` against the photo
-    layer's exact ``surface_depth``) slide back along their source camera's rays until they do not
-    (:func:`slide_behind` with ``factors``; ``()`` drops them all, the rule before the slide), and are dropped only
-    where no factor frees them. One rule for generation and training (``training.objectives``); the ladder's cost
-    and effect: ``benchmarks/slide_ladder.py``.
+    """Generated Gaussians made to add only what the photograph does not show: :func:`duplicate_mask`, then those of the
+    rest that cover the photograph (:func:`occluder_mask` against ``surface_depth``) slide back (:func:`slide_behind`;
+    ``factors=()`` drops them) and are dropped only where no factor frees them. The same rule serves training.
 
     Returns:
-        (the scene with the slid Gaussians moved, (M,) bool on the scene's device: True = drop, never for source 0,
-        counts {"duplicates", "slid", "occluders": dropped as covering the photograph}).
+        (the scene with the slid Gaussians moved, (M,) bool: True = drop, never for source 0,
+        counts {"duplicates", "slid", "occluders"}).
 
     Raises:
         ValueError: as :func:`duplicate_mask`, :func:`occluder_mask` and :func:`slide_behind`.
@@ -385,13 +301,7 @@ def settle_generated(
 
 
 def _footprint_max(depth: Tensor, u: Tensor, v: Tensor, r: Tensor) -> Tensor:
-    """An upper bound of ``depth`` (H, W) over the square of half-width ``r`` around each (u, v) (P,) (pixel
-    coordinates, pixel (i, j) centred at (j + 0.5, i + 0.5)), within the image; 0 where the square misses it.
-
-    The half-widths are rounded up to a geometric ladder (at most 19 % larger) and each rung is one grey dilation
-    (OpenCV's van Herk/Gil-Werman ``cv2.dilate``, O(1) per pixel whatever the square) read at the pixel nearest
-    the centre inside the image (a square around it holds the part of the original square inside the image).
-    """
+    """Upper bound of ``depth`` (H, W) over the square of half-width ``r`` around each (u, v) (P,); 0 off the image."""
     H, W = depth.shape
     hit = (u + r >= 0) & (u - r < W) & (v + r >= 0) & (v - r < H)
     col = u.floor().clamp(0, W - 1).long()
@@ -423,9 +333,7 @@ def _check_thresholds(min_alpha: object, depth_tolerance: object) -> float:
 
 def _surface_lookup(surface, points: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int,
                     min_alpha: float) -> tuple[Tensor, Tensor, Tensor]:
-    """Render ``surface`` (Gaussians) from one camera ("ED": alpha A, expected depth D) and look up each of
-    ``points`` (P, 3) world: its camera z, and whether it projects inside the image (z > near plane) to a
-    pixel (⌊v⌋, ⌊u⌋) with A ≥ ``min_alpha``. Returns covered (P,) bool, z (P,), D at that pixel (P,)."""
+    """(covered, camera z, D) (P,) of ``points`` (P, 3) against ``surface`` rendered from one camera (depth D)."""
     out, alpha, _ = rasterize(surface.means, surface.quats, surface.scales, surface.opacities,
                               surface.opacities[:, None], viewmat[None], K[None], width, height, render_mode="ED")
     depth, alpha = out[0, ..., 0], alpha[0, ..., 0]  # (H, W) metres, (H, W)
@@ -476,21 +384,16 @@ def settle_and_prune(scene: DynamicGaussians, source: Tensor, cameras: CameraPat
                      surface_depth: Tensor, photo_gaussians: int, min_opacity: float
                      ) -> tuple[DynamicGaussians, Tensor, dict[str, int]]:
     """Settle and prune an assembled scene (docs/DESIGN.md, "Data flow of generate", step 8): :func:`settle_generated`,
-    then :func:`prune_mask` of everything after the first ``photo_gaussians`` (the photo layer is opaque and
-    pixel-aligned to the first camera, seen by construction).
-
-    Args:
-        scene: M Gaussians, the photo layer first.  source: (M,) long, each one's source frame index in [0, S).
-        cameras: the clip's path at the scene's image size.  sources: (S,) long, the video frame of each source frame.
-        surface_depth: (H, W) the photo layer's z-depth at the input view, metres.
-        photo_gaussians: the photo layer's count.  min_opacity: :func:`prune_mask`'s threshold.
+    then :func:`prune_mask` (``min_opacity``) of everything after the photo layer's first ``photo_gaussians``.
+    ``source``: (M,) each Gaussian's source frame; ``sources``: (S,) the video frame of each source frame;
+    ``surface_depth``: (H, W) the photo layer's z-depth, metres.
 
     Returns:
-        (the kept scene, (M',) long index of each kept Gaussian in ``scene``, counts of :func:`prune_mask` and
-        :func:`settle_generated` with "before" the whole scene).
+        (the kept scene, (M',) long index of each kept Gaussian in ``scene``, the counts of :func:`prune_mask` and
+        :func:`settle_generated`).
 
     Raises:
-        ValueError: the camera path sees none of the scene (every Gaussian pruned); as :func:`settle_generated`.
+        ValueError: the camera path sees none of the scene; as :func:`settle_generated`.
     """
     dev = scene.canonical.means.device
     index = torch.arange(scene.num_gaussians, device=dev)

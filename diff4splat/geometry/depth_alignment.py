@@ -1,31 +1,11 @@
 """Scale-and-shift alignment of relative (affine-invariant) depth to metric depth.
 
-Monocular estimators (MiDaS, Depth Anything, …) predict depth or inverse depth up to an unknown
-scale s and shift t. Diff4Splat curates its training videos with metric depth obtained by aligning
-such estimates to a metric reference (Diff4Splat, "Data curation"); the alignment itself is the
-least-squares scale-and-shift fit of MiDaS (Ranftl et al., "Towards Robust Monocular Depth
-Estimation", TPAMI 2020, Eq. 4):
-
-    (s, t) = argmin_{s,t} Σ_{valid} (s·x_i + t − y_i)²
-
-solved in closed form from the 2×2 normal equations. Two spaces are supported:
-
-- ``space="depth"``: x = relative depth, y = metric depth (metres); aligned depth = s·x + t.
-- ``space="disparity"``: x = relative inverse depth (what MiDaS-style networks output),
-  y = 1 / metric depth (1/metres); aligned depth = 1 / (s·x + t).
-
-Aligned values that are not positive (a depth ≤ 0, or s·x + t ≤ 0 in disparity space) have no
-geometric meaning and are returned as +inf, the scene format's "invalid depth" value.
-
-Outliers (sky, reflections, moving objects, estimator failures) are handled by
-:func:`fit_scale_shift_robust`: a seeded least-median-of-squares (LMedS) search over minimal
-2-point samples (Rousseeuw, "Least Median of Squares Regression", JASA 1984) — threshold-free,
-breakdown point 50 % — followed by iteratively reweighted least squares (IRLS) with Tukey biweight
-or Huber weights and a MAD scale estimate (Huber, "Robust Statistics", 1981; Holland & Welsch,
-"Robust regression using iteratively reweighted least-squares", 1977).
-
-:func:`align_video` fits one (s, t) for all frames of a video, so the aligned depth is temporally
-consistent (no per-frame scale flicker).
+The least-squares fit of MiDaS (Ranftl et al., TPAMI 2020, Eq. 4), (s, t) = argmin Σ_valid (s·x_i + t − y_i)², in
+closed form, in depth space (x relative depth, y metres, aligned = s·x + t) or disparity space (x relative inverse
+depth, y = 1/metres, aligned = 1/(s·x + t)); aligned values that are not positive are +inf (invalid).
+:func:`fit_scale_shift_robust` adds least-median-of-squares over 2-point samples (Rousseeuw, JASA 1984) then IRLS
+with Tukey or Huber weights and a MAD scale (Holland & Welsch 1977; Huber 1981). :func:`align_video` fits one
+(s, t) for all frames of a video.
 """
 from __future__ import annotations
 
@@ -36,17 +16,10 @@ import numpy as np
 
 from diff4splat.utils.checks import check_int
 
-__all__ = [
-    "DepthAlignment",
-    "SPACES",
-    "fit_scale_shift",
-    "fit_scale_shift_robust",
-    "align_video",
-    "valid_depth_mask",
-]
+__all__ = ["DepthAlignment", "SPACES", "fit_scale_shift", "fit_scale_shift_robust", "align_video", "valid_depth_mask"]
 
 SPACES = ("depth", "disparity")
-"""Spaces in which the linear model s·x + t ≈ y is fitted (module docstring)."""
+"""Spaces in which s·x + t ≈ y is fitted (module docstring)."""
 
 _LOSSES = ("tukey", "huber")
 _TUKEY_C = 4.685  # 95 % asymptotic efficiency under Gaussian noise (Holland & Welsch 1977)
@@ -57,17 +30,9 @@ _CONSTANT_RTOL = 1e-12  # relative variance below which the relative depth is ca
 
 @dataclass(frozen=True)
 class DepthAlignment:
-    """A fitted scale and shift.
-
-    Attributes:
-        scale: s > 0 (metres per relative unit in depth space; 1/metres per relative unit in
-            disparity space).
-        shift: t (metres in depth space, 1/metres in disparity space).
-        space: ``"depth"`` or ``"disparity"``.
-        num_valid: number of valid samples the fit saw.
-        num_inliers: samples with non-zero final weight (= ``num_valid`` for plain least squares).
-        rms: root-mean-square residual of the inliers in the fit space (metres or 1/metres).
-    """
+    """A fitted ``scale`` s > 0 and ``shift`` t (metres, or 1/metres in disparity space), the ``space``, the
+    ``num_valid`` samples seen, the ``num_inliers`` of non-zero final weight and the inliers' ``rms`` residual in
+    the fit space."""
 
     scale: float
     shift: float
@@ -77,16 +42,8 @@ class DepthAlignment:
     rms: float
 
     def apply(self, relative: np.ndarray) -> np.ndarray:
-        """Aligned metric depth (metres) of a relative depth/disparity map of any shape.
-
-        Args:
-            relative: (...) relative depth (``space="depth"``) or relative disparity
-                (``space="disparity"``); non-finite inputs stay non-finite.
-
-        Returns:
-            (...) float64 metric z-depth in metres; values with no positive depth (s·x + t ≤ 0 in
-            either space) and non-finite inputs are +inf (invalid).
-        """
+        """(...) float64 metric z-depth (metres) of a relative depth/disparity map of any shape; +inf where s·x + t ≤ 0
+        or the input is not finite."""
         x = np.asarray(relative, dtype=np.float64)
         lin = self.scale * x + self.shift
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -96,19 +53,13 @@ class DepthAlignment:
 
 
 def valid_depth_mask(depth: np.ndarray) -> np.ndarray:
-    """Pixels of a metric depth map usable as a reference: finite and > 0 (scene format: inf = invalid).
-
-    Args:
-        depth: (...) metric depth, metres.
-
-    Returns:
-        (...) bool mask.
-    """
+    """(...) bool: pixels of a metric depth map (metres) usable as a reference, finite and > 0."""
     d = np.asarray(depth, dtype=np.float64)
     return np.isfinite(d) & (d > 0)
 
 
 def _check_space(space: str) -> str:
+    """Returns ``space``; ValueError unless it is one of :data:`SPACES`."""
     if space not in SPACES:
         raise ValueError(f"space must be one of {SPACES}, got {space!r}")
     return space
@@ -137,9 +88,8 @@ def _samples(relative, metric, mask, space: str) -> tuple[np.ndarray, np.ndarray
         raise ValueError(f"metric depth has {int((~np.isfinite(d)).sum())} NaN/inf values among the valid pixels")
     if space == "disparity":
         if (d <= 0).any():
-            raise ValueError(
-                f"metric depth must be > 0 among the valid pixels to fit in disparity space, min is {float(d.min())}"
-            )
+            raise ValueError(f"metric depth must be > 0 among the valid pixels to fit in disparity space, "
+                             f"min is {float(d.min())}")
         d = 1.0 / d
     spread = np.abs(x - x.mean()).max()
     if spread <= _CONSTANT_RTOL * max(np.abs(x).max(), np.finfo(np.float64).tiny):
@@ -148,14 +98,7 @@ def _samples(relative, metric, mask, space: str) -> tuple[np.ndarray, np.ndarray
 
 
 def _weighted_ls(x: np.ndarray, y: np.ndarray, w: np.ndarray | None) -> tuple[float, float]:
-    """Closed-form solution of the (weighted) normal equations, in centred form for accuracy.
-
-    [Σw x², Σw x; Σw x, Σw] [s; t] = [Σw x y; Σw y]  ⇔  s = Σw(x−x̄)(y−ȳ) / Σw(x−x̄)², t = ȳ − s x̄
-    with x̄, ȳ the weighted means.
-
-    Raises:
-        ValueError: the weighted relative depth has zero variance.
-    """
+    """Closed-form (weighted) least squares (s, t) in centred form; ValueError for zero weighted variance."""
     if w is None:
         xm, ym = x.mean(), y.mean()
         xc = x - xm
@@ -172,11 +115,11 @@ def _weighted_ls(x: np.ndarray, y: np.ndarray, w: np.ndarray | None) -> tuple[fl
 
 
 def _check_scale(s: float, space: str) -> None:
+    """ValueError unless the fitted scale ``s`` is > 0."""
     if not s > 0:
-        raise ValueError(
-            f"fitted scale is {s:.6g} ≤ 0 (in {space} space): the relative depth is anti-correlated with the "
-            f"metric depth — was inverse depth passed with space='depth' (or depth with space='disparity')?"
-        )
+        raise ValueError(f"fitted scale is {s:.6g} ≤ 0 (in {space} space): the relative depth is anti-correlated with "
+                         f"the metric depth — was inverse depth passed with space='depth' (or depth with "
+                         f"space='disparity')?")
 
 
 def fit_scale_shift(
@@ -186,24 +129,14 @@ def fit_scale_shift(
     *,
     space: str = "depth",
 ) -> DepthAlignment:
-    """Least-squares scale and shift (module docstring; MiDaS Eq. 4), closed form.
-
-    Args:
-        relative: (...) relative depth (``space="depth"``) or relative inverse depth
-            (``space="disparity"``), any units.
-        metric: (...) metric z-depth in metres, same shape.
-        mask: (...) bool, true where both maps are valid; ``None`` → every pixel is valid (use
-            :func:`valid_depth_mask` to exclude inf/0 reference pixels).
-        space: ``"depth"`` or ``"disparity"``.
-
-    Returns:
-        :class:`DepthAlignment` with ``num_inliers = num_valid``.
+    """Least-squares scale and shift (module docstring), closed form, of ``relative`` (...) depth (``space="depth"``) or
+    inverse depth (``"disparity"``), any units, to ``metric`` (...) z-depth in metres, over ``mask`` (...) bool (None:
+    every pixel; see :func:`valid_depth_mask`). ``num_inliers`` of the result is ``num_valid``.
 
     Raises:
-        ValueError: naming the cause — shapes differ; mask not boolean or of another shape; fewer
-            than 2 valid pixels; NaN/inf among the valid pixels of either map; metric depth ≤ 0
-            among the valid pixels in disparity space; constant relative depth; fitted scale ≤ 0;
-            unknown ``space``.
+        ValueError: shapes differ; mask not boolean or of another shape; fewer than 2 valid pixels; NaN/inf among the
+            valid pixels; metric depth ≤ 0 in disparity space; constant relative depth; fitted scale ≤ 0; unknown
+            ``space``.
     """
     space = _check_space(space)
     x, y = _samples(relative, metric, mask, space)
@@ -214,13 +147,12 @@ def fit_scale_shift(
 
 
 def _robust_sigma(r: np.ndarray) -> float:
-    """MAD estimate of the residual standard deviation, σ = 1.4826 · median |r − median r|."""
+    """MAD estimate of the residual standard deviation, 1.4826·median|r − median r|."""
     return float(_MAD_TO_SIGMA * np.median(np.abs(r - np.median(r))))
 
 
-def _lmeds(
-    x: np.ndarray, y: np.ndarray, iters: int, rng: np.random.Generator, max_eval: int
-) -> tuple[float, float] | None:
+def _lmeds(x: np.ndarray, y: np.ndarray, iters: int, rng: np.random.Generator, max_eval: int
+           ) -> tuple[float, float] | None:
     """Least-median-of-squares over random 2-point samples; ``None`` if no sample was usable."""
     n = x.size
     ev = rng.choice(n, size=max_eval, replace=False) if n > max_eval else np.arange(n)
@@ -259,33 +191,16 @@ def fit_scale_shift_robust(
     max_eval: int = 20000,
     tol: float = 1e-10,
 ) -> DepthAlignment:
-    """Outlier-robust scale and shift: LMedS over 2-point samples, then IRLS (module docstring).
-
-    1. Initialisation: ``ransac_iters`` random pairs (seeded) each give an exact (s, t); the one with
-       the smallest median absolute residual over (up to ``max_eval``) samples wins. With
-       ``ransac_iters = 0`` the plain least-squares fit is the start (not robust to gross outliers).
-    2. IRLS: residuals r = s·x + t − y; σ = 1.4826·MAD(r); weights Tukey
-       w = (1 − (r/cσ)²)² for |r| < cσ else 0 (c = 4.685), or Huber w = min(1, kσ/|r|) (k = 1.345);
-       solve the weighted normal equations; repeat until (s, t) changes by < ``tol`` (relative) or
-       ``irls_iters`` steps. If σ = 0 (more than half the samples fit exactly) the exact-fit
-       samples (|r| ≤ 1e-12·max|y|) are refitted by plain least squares.
-
-    Args:
-        relative, metric, mask, space: as in :func:`fit_scale_shift`.
-        loss: ``"tukey"`` (redescending: gross outliers get weight 0) or ``"huber"``.
-        ransac_iters: number of 2-point samples, ≥ 0.
-        irls_iters: maximum IRLS steps, ≥ 1.
-        seed: seed of the sampler (results are deterministic for a given seed).
-        max_eval: number of samples on which each hypothesis' median is evaluated (bounded cost).
-        tol: relative convergence tolerance on (s, t).
-
-    Returns:
-        :class:`DepthAlignment`; ``num_inliers`` counts samples with non-zero final weight, ``rms``
-        is over them.
+    """Outlier-robust scale and shift: LMedS over ``ransac_iters`` (≥ 0) seeded 2-point samples, each hypothesis' median
+    over up to ``max_eval`` (≥ 2) samples (0 iterations: start from least squares), then up to ``irls_iters`` (≥ 1) IRLS
+    steps with σ = 1.4826·MAD: ``loss`` "tukey" w = (1 − (r/cσ)²)² for |r| < cσ (c = 4.685) or "huber"
+    w = min(1, kσ/|r|) (k = 1.345), until (s, t) changes by less than ``tol`` (relative). σ = 0 (over half the samples
+    fit exactly) refits the exact samples. Other arguments as :func:`fit_scale_shift`; ``num_inliers`` counts samples
+    of non-zero final weight, ``rms`` is over them.
 
     Raises:
-        ValueError: every case of :func:`fit_scale_shift`, an unknown ``loss``, negative
-            ``ransac_iters``, ``irls_iters`` < 1 or ``max_eval`` < 2.
+        ValueError: as :func:`fit_scale_shift`; an unknown ``loss``, ``ransac_iters`` < 0, ``irls_iters`` < 1 or
+            ``max_eval`` < 2.
     """
     space = _check_space(space)
     if loss not in _LOSSES:
@@ -303,8 +218,7 @@ def fit_scale_shift_robust(
         sigma = _robust_sigma(r)
         if sigma <= exact_tol:
             w = (np.abs(r) <= exact_tol).astype(np.float64)
-            s_new, t_new = _weighted_ls(x, y, w) if w.sum() >= 2 else (s, t)
-            s, t = s_new, t_new
+            s, t = _weighted_ls(x, y, w) if w.sum() >= 2 else (s, t)
             break
         u = r / sigma
         if loss == "tukey":
@@ -335,26 +249,14 @@ def align_video(
     robust: bool = True,
     **robust_kwargs,
 ) -> tuple[DepthAlignment, list[np.ndarray]]:
-    """One (s, t) shared by every frame of a video, and the aligned frames.
-
-    Fitting all frames jointly is exactly the fit of the concatenated valid pixels, so the aligned
-    depth has one scale over time (temporal consistency); frames may differ in size.
-
-    Args:
-        relative: T relative maps, a list of (H_i, W_i) arrays or one (T, H, W) array.
-        metric: T metric depth maps (metres) of the same shapes.
-        masks: T bool masks of the same shapes, or ``None`` (every pixel valid).
-        space: ``"depth"`` or ``"disparity"``.
-        robust: use :func:`fit_scale_shift_robust` (``robust_kwargs`` passed on) instead of
-            :func:`fit_scale_shift`.
-
-    Returns:
-        (alignment, aligned) — the shared :class:`DepthAlignment` and the T aligned float64 depth
-        maps in metres (+inf where invalid, :meth:`DepthAlignment.apply`).
+    """One (s, t) shared by every frame of a video (the fit of the concatenated valid pixels), and the T aligned float64
+    depth maps (metres, +inf where invalid). ``relative``, ``metric`` (metres), ``masks`` (None: all valid): T maps
+    each, a list of (H_i, W_i) arrays or a (T, H, W) array; ``robust``: :func:`fit_scale_shift_robust` with
+    ``robust_kwargs``, else :func:`fit_scale_shift`.
 
     Raises:
-        ValueError: the three inputs have different frame counts (or zero frames), a frame's shapes
-            differ, ``robust_kwargs`` given with ``robust=False``, or any error of the fit.
+        ValueError: different or zero frame counts, a frame's shapes differ, ``robust_kwargs`` without ``robust``,
+            or any error of the fit.
     """
     rel = [np.asarray(r) for r in relative]
     met = [np.asarray(m) for m in metric]
@@ -362,10 +264,8 @@ def align_video(
     if len(rel) == 0:
         raise ValueError("align_video needs at least one frame, got 0")
     if len(met) != len(rel) or (msk is not None and len(msk) != len(rel)):
-        raise ValueError(
-            f"relative, metric and masks must have the same number of frames, got {len(rel)}, {len(met)}"
-            + ("" if msk is None else f", {len(msk)}")
-        )
+        raise ValueError(f"relative, metric and masks must have the same number of frames, got {len(rel)}, "
+                         f"{len(met)}" + ("" if msk is None else f", {len(msk)}"))
     for i, (r, m) in enumerate(zip(rel, met, strict=True)):
         if r.shape != m.shape or (msk is not None and msk[i].shape != r.shape):
             raise ValueError(f"frame {i}: relative, metric and mask shapes differ ({r.shape}, {m.shape})")
@@ -374,8 +274,6 @@ def align_video(
     x = np.concatenate([r.reshape(-1) for r in rel])
     y = np.concatenate([m.reshape(-1) for m in met])
     m = None if msk is None else np.concatenate([k.reshape(-1) for k in msk])
-    if robust:
-        fit = fit_scale_shift_robust(x, y, m, space=space, **robust_kwargs)
-    else:
-        fit = fit_scale_shift(x, y, m, space=space)
+    fit = (fit_scale_shift_robust(x, y, m, space=space, **robust_kwargs) if robust
+           else fit_scale_shift(x, y, m, space=space))
     return fit, [fit.apply(r) for r in rel]

@@ -1,26 +1,15 @@
-"""Scene flow of a video's pixels from dense optical flow and depth: the classical motion front end.
+"""Scene flow of a video's pixels from dense optical flow and depth (docs/DESIGN.md, "Motion measured from frames").
 
-Where a pixel of frame 0 is at every later frame, in 3D (DGS-LRM and MoVieS supervise and predict the same
-quantity with networks; here it is measured from the frames):
+1. :func:`optical_flow`: OpenCV's DIS (Kroeger et al., ECCV 2016) on the frames upsampled ``upsample``×, averaged
+   back to the frames' grid.
+2. :func:`track_pixels`: frame 0's pixels chained through consecutive flows with the forward-backward check
+   (Sundaram et al., ECCV 2010); a lost track keeps its last position.
+3. :func:`lift_tracks`: tracked pixels to 3D with each frame's z-depth and camera, at the 3×3 neighbour's depth
+   closest to the point's unmoved depth; a pixel within ``gate_px`` of its epipolar segment
+   (:data:`RIGID_DEPTH_FACTORS`) is static and keeps its frame-0 position.
 
-1. :func:`optical_flow`: dense 2D flow between frames by OpenCV's DIS (Kroeger et al., ECCV 2016,
-   ``cv2.DISOpticalFlow``) on the frames upsampled ``upsample``× (DIS matches 8×8 patches at its finest scale, too
-   coarse for a 64² frame), averaged back to the frames' grid.
-2. :func:`track_pixels`: every pixel of frame 0 followed through the frames by chaining the flow of consecutive
-   frames (each step is small, where DIS is reliable; the flow 0 → t of one call fails on large motions), with
-   the forward-backward check (Sundaram et al., ECCV 2010): a step whose backward flow does not bring the pixel
-   back within ``fb_tolerance`` pixels, or that leaves the image, loses the track, and a lost track keeps its last
-   position.
-3. :func:`lift_tracks`: the tracked pixels to 3D with each frame's z-depth map and camera. The depth at a tracked
-   pixel is the one of its 3×3 neighbourhood closest to the depth the point would have if it had not moved
-   (a pixel's depth at an object's edge is often the background's); a point whose tracked pixel lies within
-   ``gate_px`` of where the camera's own motion puts it at some depth between a quarter and four times the given one
-   (a segment of its epipolar line: the rigidity test of motion segmentation, :data:`RIGID_DEPTH_FACTORS`) is
-   static and keeps its frame-0 position, so a static scene comes out static whatever the depth's noise.
-
-Conventions as everywhere (docs/DESIGN.md, "Conventions"): pixel (i, j) has its centre at (j + 0.5, i + 0.5);
-``viewmats`` world-to-camera, ``Ks`` in pixels, depths are z-depths in metres. OpenCV sees CPU copies; every
-result is on the frames' device.
+Pixel (i, j) is centred at (j + 0.5, i + 0.5); ``viewmats`` world-to-camera, ``Ks`` pixels, z-depths in metres.
+OpenCV sees CPU copies; results are on the frames' device.
 """
 from __future__ import annotations
 
@@ -45,36 +34,31 @@ DIS_PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DI
                "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
 """OpenCV's DIS presets by name (speed against accuracy)."""
 FLOW_UPSAMPLE = 4
-"""Default factor by which frames are upsampled before DIS (module docstring, step 1)."""
+"""Default factor by which frames are upsampled before DIS."""
 FB_TOLERANCE_PX = 0.5
-"""Default forward-backward tolerance, pixels of the frames' grid (module docstring, step 2)."""
+"""Default forward-backward tolerance, pixels of the frames' grid."""
 RIGID_DEPTH_FACTORS = (0.25, 0.35, 0.5, 0.71, 1.0, 1.41, 2.0, 2.83, 4.0)
-"""Depth factors of the rigidity test (:func:`lift_tracks`): a tracked pixel is static when it lies within the gate
-of where the camera's own motion puts its frame-0 point at some depth between a quarter and four times the given
-one (along the epipolar line), so a depth map off by up to 4× does not make a moving camera's static world move."""
+"""Depth factors of :func:`lift_tracks`' rigidity test: a pixel is static when within the gate of where the camera's
+own motion puts its frame-0 point at any of these multiples of its depth (a depth off by up to 4× stays static)."""
 GATE_PX = 2.0
-"""Default rigidity gate, pixels: a tracked pixel this close to its camera-motion-only position is static
-(docs/benchmarks.md, "Scene flow from optical flow": 1 px let 2.6 mm of spurious motion into static clips)."""
+"""Default rigidity gate, pixels: a tracked pixel this close to its camera-motion-only position is static."""
 
 
 def _gray_uint8(frames: Tensor) -> np.ndarray:  # (P, 3, H, W) in [0, 1] → (P, H, W) uint8
+    """(P, 3, H, W) in [0, 1] → (P, H, W) uint8 grey, on the host."""
     rgb = (frames.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(0, 2, 3, 1)
     rgb = rgb.cpu().numpy()  # device: OpenCV reads host arrays (the flow goes back to the frames' device)
     return np.stack([cv2.cvtColor(np.ascontiguousarray(x), cv2.COLOR_RGB2GRAY) for x in rgb])
 
 
 def optical_flow(src: Tensor, dst: Tensor, *, upsample: int = FLOW_UPSAMPLE, preset: str = "medium") -> Tensor:
-    """Dense optical flow from each ``src`` frame to its ``dst`` frame (OpenCV DIS, module docstring step 1).
-
-    Args:
-        src, dst: (P, 3, H, W) RGB in [0, 1] (values outside are clamped), any device.
-        upsample: frames are resized by this integer factor (bicubic) before DIS; the flow is averaged back to
-            (H, W) and divided by it. 1 runs DIS on the frames themselves.
-        preset: one of :data:`DIS_PRESETS`.
+    """Dense optical flow (OpenCV DIS) from each ``src`` to its ``dst`` frame, (P, 3, H, W) RGB in [0, 1] (clamped),
+    computed on frames resized ``upsample``× (bicubic; 1: none) and averaged back; ``preset``: one of
+    :data:`DIS_PRESETS`.
 
     Returns:
-        (P, H, W, 2) float32 displacement (du, dv) in pixels of the (H, W) grid: the pixel centred at (u, v) of
-        ``src[p]`` is at (u + du, v + dv) in ``dst[p]``. On ``src``'s device.
+        (P, H, W, 2) float32 (du, dv), pixels: pixel (u, v) of ``src[p]`` is at (u + du, v + dv) in ``dst[p]``; on
+        ``src``'s device.
 
     Raises:
         ValueError: ``src``/``dst`` not the same (P, 3, H, W) shape, an unknown preset, ``upsample`` < 1.
@@ -98,14 +82,8 @@ def optical_flow(src: Tensor, dst: Tensor, *, upsample: int = FLOW_UPSAMPLE, pre
 
 
 def sample_pixels(maps: Tensor, uv: Tensor) -> Tensor:
-    """Bilinear samples of per-pixel maps at continuous pixel positions (centres at +0.5; border values outside).
-
-    Args:
-        maps: (P, H, W, C).  uv: (P, ..., 2) pixel positions (u right, v down).
-
-    Returns:
-        (P, ..., C) in ``maps``' dtype.
-    """
+    """Bilinear samples of ``maps`` (P, H, W, C) at pixel positions ``uv`` (P, ..., 2) (centres at +0.5, border values
+    outside): (P, ..., C) in ``maps``' dtype."""
     P, H, W, C = maps.shape
     lead = uv.shape[1:-1]
     grid = torch.stack([uv[..., 0] / W * 2 - 1, uv[..., 1] / H * 2 - 1], dim=-1).reshape(P, 1, -1, 2)
@@ -123,14 +101,8 @@ def pixel_centres(height: int, width: int, like: Tensor) -> Tensor:
 
 def consecutive_flows(frames: Tensor, *, upsample: int = FLOW_UPSAMPLE, preset: str = "medium"
                       ) -> tuple[Tensor, Tensor]:
-    """The optical flows between consecutive frames, both ways (:func:`optical_flow`): what :func:`chain_flows`
-    follows pixels through, computed once for a video.
-
-    Args:
-        frames: (T, 3, H, W) RGB in [0, 1], T ≥ 2.
-
-    Returns:
-        forward (T − 1, H, W, 2): frame t → t + 1 at t; backward (T − 1, H, W, 2): frame t + 1 → t at t.
+    """:func:`optical_flow` between consecutive frames (T, 3, H, W), T ≥ 2, both ways: forward (T − 1, H, W, 2), frame t
+    → t + 1, and backward (T − 1, H, W, 2), frame t + 1 → t.
 
     Raises:
         ValueError: ``frames`` not (T, 3, H, W) with T ≥ 2, or as :func:`optical_flow`.
@@ -142,17 +114,12 @@ def consecutive_flows(frames: Tensor, *, upsample: int = FLOW_UPSAMPLE, preset: 
 
 
 def chain_flows(forward: Tensor, backward: Tensor, *, fb_tolerance: float = FB_TOLERANCE_PX) -> tuple[Tensor, Tensor]:
-    """Follow every pixel of the first frame through a sequence given its consecutive flows (module docstring,
-    step 2): ``forward[k]`` maps frame k to k + 1 of the sequence, ``backward[k]`` frame k + 1 to k (for a sequence
-    running backwards in time, pass :func:`consecutive_flows`' flows reversed and swapped).
-
-    Args:
-        forward, backward: (T − 1, H, W, 2) pixel displacements.
-        fb_tolerance: forward-backward tolerance, pixels (> 0; ``inf`` keeps every track).
+    """Follow every pixel of the first frame through a sequence: ``forward[k]`` maps frame k to k + 1, ``backward[k]``
+    frame k + 1 to k, each (T − 1, H, W, 2) pixels; ``fb_tolerance`` > 0 pixels (``inf`` keeps every track).
 
     Returns:
-        positions: (T, H, W, 2) pixel positions of the first frame's pixels in each frame (frame 0: the centres).
-        tracked: (T, H, W) bool, False from the step at which the track was lost (its position is then held).
+        positions (T, H, W, 2) pixels (frame 0: the centres); tracked (T, H, W) bool, False from the step the track
+        was lost (its position is then held).
 
     Raises:
         ValueError: flows of different or wrong shapes, ``fb_tolerance`` not > 0.
@@ -179,16 +146,11 @@ def chain_flows(forward: Tensor, backward: Tensor, *, fb_tolerance: float = FB_T
 
 def track_pixels(frames: Tensor, *, upsample: int = FLOW_UPSAMPLE, fb_tolerance: float = FB_TOLERANCE_PX,
                  preset: str = "medium") -> tuple[Tensor, Tensor]:
-    """Follow every pixel of frame 0 through the frames: :func:`consecutive_flows` then :func:`chain_flows`.
-
-    Args:
-        frames: (T, 3, H, W) RGB in [0, 1], T ≥ 1, any device.
-        upsample, preset: as :func:`optical_flow`.
-        fb_tolerance: forward-backward tolerance, pixels (> 0; ``inf`` keeps every track).
+    """Follow every pixel of frame 0 through ``frames`` (T, 3, H, W), T ≥ 1: :func:`consecutive_flows` then
+    :func:`chain_flows`; ``upsample`` and ``preset`` as :func:`optical_flow`.
 
     Returns:
-        positions: (T, H, W, 2) float32 pixel positions of frame 0's pixels in each frame (frame 0: the centres).
-        tracked: (T, H, W) bool, False from the step at which the track was lost (its position is then held).
+        positions (T, H, W, 2) float32 and tracked (T, H, W) bool, as :func:`chain_flows`.
 
     Raises:
         ValueError: ``frames`` not (T, 3, H, W), ``fb_tolerance`` not > 0, or as :func:`optical_flow`.
@@ -205,9 +167,7 @@ def track_pixels(frames: Tensor, *, upsample: int = FLOW_UPSAMPLE, fb_tolerance:
 
 
 def _static_segment(points: Tensor, origin: Tensor, viewmat: Tensor, K: Tensor) -> Tensor:
-    """Where camera (``viewmat``, ``K``) sees the frame-0 points (H, W, 3) if they did not move, for their ray
-    distances from the frame-0 camera centre ``origin`` scaled by each of :data:`RIGID_DEPTH_FACTORS`:
-    (F, H, W, 2) pixels, a polyline along each point's epipolar line (one point for a camera that only turned)."""
+    """(F, H, W, 2) pixels of the frame-0 points (H, W, 3) unmoved, at each :data:`RIGID_DEPTH_FACTORS` distance."""
     rays = points - origin
     factors = rays.new_tensor(RIGID_DEPTH_FACTORS)
     candidates = origin + factors[:, None, None, None] * rays  # (F, H, W, 3)
@@ -226,8 +186,7 @@ def _segment_distance(uv: Tensor, polyline: Tensor) -> Tensor:
 
 
 def _nearest_depth(depth: Tensor, uv: Tensor, expected: Tensor) -> Tensor:
-    """Of the 3×3 pixels around each position, the z-depth closest to ``expected``: depth (H, W), uv (H, W, 2),
-    expected (H, W) → (H, W)."""
+    """Of the 3×3 pixels of ``depth`` (H, W) around each position ``uv`` (H, W, 2), the one closest to ``expected``."""
     H, W = depth.shape
     col = (uv[..., 0] - 0.5).round().long().clamp(0, W - 1)
     row = (uv[..., 1] - 0.5).round().long().clamp(0, H - 1)
@@ -241,28 +200,17 @@ def _nearest_depth(depth: Tensor, uv: Tensor, expected: Tensor) -> Tensor:
 
 def lift_tracks(positions: Tensor, tracked: Tensor, depths: Tensor, Ks: Tensor, viewmats: Tensor, *,
                 depth_frames: list[int] | None = None, gate_px: float = GATE_PX) -> tuple[Tensor, Tensor]:
-    """3D positions of frame 0's tracked pixels in every frame (module docstring, step 3).
-
-    A frame with a depth map lifts its tracked pixel at the depth of the 3×3 neighbourhood closest to where the
-    point would be had it not moved since the previous frame with a depth map; a frame without one (a network
-    that predicts depth for some frames only) lifts it at the camera-space depth interpolated linearly, in frame
-    index, between the point's depths at the frames with maps around it (the nearest one beyond the last).
-
-    Args:
-        positions, tracked: (T, H, W, 2), (T, H, W) from :func:`track_pixels`.
-        depths: (D, H, W) z-depth maps of the frames ``depth_frames``, metres, finite and > 0 (fill invalid
-            pixels before).
-        Ks: (T, 3, 3) pixels.  viewmats: (T, 4, 4) world-to-camera.
-        depth_frames: D increasing frame indices, the first 0 (default: every frame, D = T).
-        gate_px: rigidity gate, pixels (≥ 0; 0 treats every tracked pixel off its epipolar segment as moving).
+    """3D positions of frame 0's tracked pixels (``positions``, ``tracked`` of :func:`track_pixels`) in every frame
+    (module docstring, step 3). ``depths`` (D, H, W): z-depths, metres, finite and > 0, of the D increasing frames
+    ``depth_frames`` from 0 (default: all); other frames lift at the camera-space depth interpolated linearly in frame
+    index. ``Ks`` (T, 3, 3) pixels, ``viewmats`` (T, 4, 4); ``gate_px`` ≥ 0 pixels.
 
     Returns:
-        points: (T, H, W, 3) world positions, metres (frame 0: the pixels unprojected at ``depths[0]``).
-        moving: (T, H, W) bool, the points whose position at frame t is not their frame-0 position.
+        points (T, H, W, 3) world positions, metres; moving (T, H, W) bool, off the frame-0 position at frame t.
 
     Raises:
-        ValueError: shapes that do not match, ``depth_frames`` not increasing from 0 within [0, T), a depth that
-            is not finite and > 0, ``gate_px`` < 0.
+        ValueError: shapes that do not match, ``depth_frames`` not increasing from 0 within [0, T), a depth that is
+            not finite and > 0, ``gate_px`` < 0.
     """
     T, H, W = tracked.shape
     frames = list(range(T)) if depth_frames is None else [int(f) for f in depth_frames]
@@ -321,28 +269,14 @@ def lift_tracks(positions: Tensor, tracked: Tensor, depths: Tensor, Ks: Tensor, 
 def source_frame_motion(frames: Tensor, depths: Tensor, sources: list[int], Ks: Tensor, viewmats: Tensor, *,
                         upsample: int = FLOW_UPSAMPLE, fb_tolerance: float = FB_TOLERANCE_PX,
                         gate_px: float = GATE_PX, flows: tuple[Tensor, Tensor] | None = None) -> Tensor:
-    """Displacement of every pixel of each source frame at every frame of the video: the scene flow of
-    pixel-aligned Gaussians (docs/DESIGN.md, "Data flow of generate", step 6) measured from the frames.
-
-    Source frame s (video frame f = ``sources[s]``) is tracked forward through frames f … T−1 and backward through
-    f … 0 (:func:`chain_flows` over the video's :func:`consecutive_flows`, computed once) and lifted
-    (:func:`lift_tracks`) with the depth maps of the source frames on each side, which are the only frames with depth.
-
-    Args:
-        frames: (T, 3, H, W) RGB in [0, 1].
-        depths: (S, H, W) z-depth of the source frames, metres, finite and > 0.
-        sources: S video frame indices, increasing, within [0, T).
-        Ks, viewmats: (T, 3, 3), (T, 4, 4) the video's cameras.
-        upsample, fb_tolerance, gate_px: as :func:`track_pixels` and :func:`lift_tracks`.
-        flows: the video's :func:`consecutive_flows` when already computed (``upsample`` is then not used).
-
-    Returns:
-        (T, S, H, W, 3) displacement Δμ(t) of each source pixel's point from its position at its own frame,
-        metres, world frame; zero at the source's own frame and for every static point.
+    """(T, S, H, W, 3) displacement Δμ(t), metres, world frame, of each source frame's pixels from their position at
+    their own frame ``sources[s]`` (S increasing indices in [0, T)): tracked both ways (:func:`chain_flows` over the
+    video's :func:`consecutive_flows`, ``flows`` when given) and lifted with the source frames' ``depths`` (S, H, W)
+    (:func:`lift_tracks`). ``frames`` (T, 3, H, W) RGB in [0, 1]; ``Ks``, ``viewmats`` (T, 3, 3), (T, 4, 4).
 
     Raises:
-        ValueError: ``depths`` not (S, H, W) for the S ``sources``, sources not increasing within [0, T), or as
-            :func:`chain_flows` and :func:`lift_tracks`.
+        ValueError: ``depths`` not (S, H, W), sources not increasing within [0, T), or as :func:`chain_flows` and
+            :func:`lift_tracks`.
     """
     T, _, H, W = frames.shape
     sources = [int(f) for f in sources]

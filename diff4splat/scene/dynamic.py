@@ -1,23 +1,11 @@
-"""Dynamic 4D scenes: canonical Gaussians + deformation maps at key times (Diff4Splat §3.2).
+"""Dynamic 4D scenes: canonical Gaussians + deformation at key times (Diff4Splat §3.2; docs/DESIGN.md, "Deformation
+at time t").
 
-A deformation at key time t_k holds, per Gaussian, an offset of the mean Δμ (metres), a rotation
-Δq (wxyz, identity (1,0,0,0)) and a log-scale offset Δs. Between key times they are interpolated
-linearly (Δq by normalised lerp). The deformed Gaussian (docs/DESIGN.md, "Deformation at time t"):
-
-    μ_t = μ + Δμ(t),    q_t = normalize(Δq(t) ⊗ q),    s_t = s · exp(Δs(t)).
-
-A static scene has no deformation arrays at all: ``at(t)`` returns the canonical Gaussians.
-
-Optional temporal support (4D Gaussians, Yang et al. 2024, "Real-time Photorealistic Dynamic Scene
-Representation and Rendering with 4D Gaussian Splatting", ICLR, §3.2): each Gaussian has a time
-mean μ_t and time scale σ_t, and its opacity at time t is multiplied by the marginal of its 4D
-Gaussian along time, p(t) = exp(−½((t − μ_t)/σ_t)²). The marginal is left unnormalised (peak 1 at
-t = μ_t, no 1/(σ_t√(2π)) factor), as in the authors' code (``exp(-0.5 (t - mu_t)² / cov_t)``), so
-a Gaussian is exactly as opaque as its canonical opacity at its own time. Gaussians whose opacity
-o·p(t) is below a threshold (default :data:`diff4splat.utils.constants.ALPHA_MIN` = 1/255, the 3DGS alpha
-cut-off, so gating is exact) can never pass the renderer's
-alpha test (alpha ≤ o·p(t)), so ``at(t)`` leaves them out before projection (temporal gating): the
-image is unchanged and they cost nothing.
+Per Gaussian and key time: Δμ (metres), Δq (wxyz, identity (1, 0, 0, 0)) and a log-scale offset Δs, interpolated
+linearly between key times (Δq by nlerp): μ_t = μ + Δμ(t), q_t = normalize(Δq(t) ⊗ q), s_t = s·exp(Δs(t)).
+Optional temporal support (Yang et al., ICLR 2024, §3.2): opacity at t is o·p(t), p(t) = exp(−½((t − μ_t)/σ_t)²),
+unnormalised as in the authors' code; Gaussians with o·p(t) below the gate
+(:data:`~diff4splat.utils.constants.ALPHA_MIN`) cannot pass the alpha test and are left out before projection.
 """
 from __future__ import annotations
 
@@ -42,10 +30,7 @@ def compose_deformation(
     d_quats: Tensor,  # (..., 4) wxyz, identity (1, 0, 0, 0), unnormalised
     d_scales: Tensor,  # (..., 3) log-scale offsets
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Apply a deformation to Gaussians (docs/DESIGN.md, "Conventions": deformation at time t).
-
-    μ_t = μ + Δμ,  q_t = normalize(Δq ⊗ normalize(q)),  s_t = s·exp(Δs). Differentiable; the one place
-    the composition is written (``DynamicGaussians.at`` and ``fit`` call it).
+    """Apply a deformation: μ_t = μ + Δμ, q_t = normalize(Δq ⊗ normalize(q)), s_t = s·exp(Δs); differentiable.
 
     Returns:
         means (..., 3), unit quats (..., 4), scales (..., 3).
@@ -59,22 +44,15 @@ def compose_deformation(
 
 @dataclass
 class DynamicGaussians:
-    """Canonical Gaussians plus optional deformation maps sampled at T key times.
-
-    Attributes:
-        canonical: M canonical Gaussians (world frame, metres).
-        times: (T,) key times in [0, 1], strictly increasing, or None for a static scene.
-        d_means: (T, M, 3) mean offsets, metres, or None.
-        d_quats: (T, M, 4) rotation offsets, wxyz (identity (1,0,0,0)), or None.
-        d_scales: (T, M, 3) log-scale offsets (s_t = s·exp(Δs)), or None.
-        t_means: (M,) time mean μ_t of each Gaussian (clip time, any real; [0, 1] spans the clip), or None.
-        t_scales: (M,) time standard deviation σ_t > 0 (clip time), or None. Given together with
-            ``t_means``; without them every Gaussian exists at every time.
+    """Canonical Gaussians (M, world frame, metres) plus optional deformation at T key times ``times`` ((T,) in [0, 1],
+    strictly increasing, or None for a static scene): ``d_means`` (T, M, 3) metres, ``d_quats`` (T, M, 4) wxyz,
+    ``d_scales`` (T, M, 3) log-scale offsets; and optional temporal support, ``t_means`` (M,) clip times and
+    ``t_scales`` (M,) > 0, given together.
 
     Raises:
-        ValueError: deformation arrays given partially, with wrong shapes, non-finite values,
-            zero-norm rotations, or times outside [0, 1] / not strictly increasing; t_means/t_scales
-            given alone, not of shape (M,), non-finite, or t_scales ≤ 0.
+        ValueError: deformation arrays given partially, with wrong shapes, non-finite values, zero-norm rotations,
+            or times outside [0, 1] / not strictly increasing; t_means/t_scales given alone, not (M,), non-finite,
+            or t_scales ≤ 0.
     """
 
     canonical: Gaussians
@@ -133,44 +111,20 @@ class DynamicGaussians:
 
     @property
     def changes_with_time(self) -> bool:
-        """True when :meth:`at` depends on t: the scene deforms or has temporal support (else every time gives
-        the canonical Gaussians, and writers leave out what would repeat them)."""
+        """True when :meth:`at` depends on t: the scene deforms or has temporal support."""
         return not self.is_static or self.has_temporal
 
     def temporal_opacity(self, t: float) -> Tensor:
-        """Marginal p(t) = exp(−½((t − μ_t)/σ_t)²) of every Gaussian (Yang et al. 2024), peak 1.
-
-        Args:
-            t: time in [0, 1].
-
-        Returns:
-            (M,) values in [0, 1] (ones when the scene has no temporal support).
-
-        Raises:
-            ValueError: t outside [0, 1] or not finite.
-        """
+        """(M,) marginal p(t) = exp(−½((t − μ_t)/σ_t)²) in [0, 1], ones without temporal support; ValueError for t
+        outside [0, 1] or not finite."""
         t = _check_time(t)
         if not self.has_temporal:
             return torch.ones_like(self.canonical.opacities)
         return torch.exp(-0.5 * ((t - self.t_means) / self.t_scales) ** 2)
 
     def active_indices(self, t: float, gate: float = ALPHA_MIN) -> Tensor | None:
-        """Indices of the Gaussians that pass temporal gating at time ``t``: o·p(t) ≥ ``gate``.
-
-        With ``gate`` ≤ 1/255 the dropped Gaussians have alpha = min(0.99, o·p(t)·exp(−σ)) < 1/255
-        at every pixel, which the renderer skips anyway, so the image does not change.
-
-        Args:
-            t: time in [0, 1].
-            gate: opacity threshold ≥ 0 (0 keeps every Gaussian).
-
-        Returns:
-            (K,) int64 ascending indices into the M Gaussians, or None when nothing is gated
-            (no temporal support).
-
-        Raises:
-            ValueError: t outside [0, 1] / not finite, or gate < 0.
-        """
+        """(K,) int64 ascending indices of the Gaussians with o·p(t) ≥ ``gate`` (≥ 0), or None without temporal support
+        (``gate`` ≤ 1/255 leaves the image unchanged); ValueError for t outside [0, 1] / not finite, or gate < 0."""
         if not gate >= 0:
             raise ValueError(f"gate must be >= 0, got {gate}")
         if not self.has_temporal:
@@ -185,18 +139,9 @@ class DynamicGaussians:
         return self.canonical.num_gaussians
 
     def deformation_at(self, t: float, index: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
-        """Interpolated deformation at time ``t``.
-
-        Linear interpolation between the two nearest key times (Δq by shorter-arc nlerp); times before
-        the first / after the last key time take the end values.
-
-        Args:
-            t: time in [0, 1].
-            index: (K,) indices or (M,) bool mask of the Gaussians wanted; None: all M.
-
-        Returns:
-            d_means (K, 3) metres, d_quats (K, 4) unit wxyz, d_scales (K, 3) log-scale offsets (K = M without
-            ``index``).
+        """Deformation at time ``t`` ∈ [0, 1] of the Gaussians ``index`` ((K,) indices or (M,) bool; None: all),
+        interpolated between the key times around it (Δq by shorter-arc nlerp; end values outside the key range):
+        d_means (K, 3) metres, d_quats (K, 4) unit wxyz, d_scales (K, 3) log-scale offsets.
 
         Raises:
             ValueError: a static scene, or t outside [0, 1] / not finite.
@@ -224,23 +169,12 @@ class DynamicGaussians:
     def at(self, t: float, gate: float = ALPHA_MIN, index: Tensor | None = None) -> Gaussians:
         """The Gaussians at time ``t`` ∈ [0, 1] (the canonical ones for a static scene).
 
-        With temporal support, opacities are multiplied by p(t) (:meth:`temporal_opacity`) and only
-        the Gaussians of :meth:`active_indices` (o·p(t) ≥ ``gate``) are returned, in index order —
-        the deformation is evaluated for those only.
-
-        Args:
-            t: time in [0, 1].
-            gate: temporal gate (see :meth:`active_indices`); ignored without temporal support.
-            index: (K,) ascending int64 indices or (M,) bool mask: only these Gaussians (those of them that pass
-                the gate), in index order — what ``at(t, gate)`` then a selection returns, without evaluating the
-                rest. None: all M.
-
-        The result is not validated as a whole again: the means are sums of finite values and the rotations unit
-        quaternions of non-zero ones (:func:`compose_deformation`); only the scales s·exp(Δs), which can overflow
-        or underflow, are checked.
+        With temporal support, opacities are o·p(t) and only the Gaussians of :meth:`active_indices` (``gate``) are
+        returned, in index order. ``index`` ((K,) ascending int64 or (M,) bool): only these Gaussians, as ``at(t,
+        gate)`` then a selection. Only the deformed scales are checked again (they can overflow).
 
         Raises:
-            ValueError: t outside [0, 1] or not finite, gate < 0; a deformed scale that is not finite or not > 0.
+            ValueError: t outside [0, 1] or not finite, gate < 0; a deformed scale that is not finite and > 0.
         """
         t = _check_time(t)
         if not gate >= 0:
@@ -274,9 +208,7 @@ class DynamicGaussians:
                                       "sh": g.sh})
 
     def _at_fused(self, t: float, idx: Tensor | None) -> tuple[Tensor, Tensor, Tensor] | None:
-        """:meth:`at`'s deformed means, quats and scales of the Gaussians ``idx`` (None: all) by the numba kernel
-        (:mod:`diff4splat.scene.kernels`), or None where the reference must run: a tensor off the CPU or needing
-        gradients, mixed dtypes, no numba, or a Gaussian the reference would raise for."""
+        """:meth:`at`'s deformed means, quats, scales of ``idx`` by the numba kernel, or None: run the reference."""
         c = self.canonical
         tensors = (c.means, c.quats, c.scales, self.d_means, self.d_quats, self.d_scales)
         if (any(x.device.type != "cpu" for x in tensors)
@@ -299,9 +231,7 @@ class DynamicGaussians:
         return None if bool(bad.any()) else out
 
     def select(self, index: Tensor) -> DynamicGaussians:
-        """Subset of Gaussians by boolean mask (M,) or indices; deformation and temporal arrays follow. Not
-        validated again (every check holds per Gaussian or for the shared key times, so a subset of a valid scene
-        is valid)."""
+        """Subset by boolean mask (M,) or indices; deformation and temporal arrays follow (not validated again)."""
         values = {"canonical": self.canonical.select(index), "times": self.times}
         if self.has_temporal:
             values.update(t_means=self.t_means[index], t_scales=self.t_scales[index])
@@ -342,14 +272,13 @@ def _deform_kernel():
 
 
 def _within(x: Tensor, atol: float) -> bool:
-    """max |x| ≤ atol, without an |x| copy (the deformation of a large scene is gigabytes)."""
+    """max |x| ≤ atol, without an |x| copy."""
     lo, hi = torch.aminmax(x)
     return bool(torch.maximum(-lo, hi) <= atol)
 
 
 def _identity_rotations(quats: Tensor, atol: float) -> bool:
-    """Every (..., 4) wxyz quaternion, normalised and sign-fixed to w ≥ 0, within ``atol`` of (1, 0, 0, 0) in each
-    component: |1 − |w|/‖q‖| ≤ atol and |x|, |y|, |z| ≤ atol·‖q‖ (the sign of q does not change a rotation)."""
+    """Every (..., 4) quaternion, normalised and sign-fixed to w ≥ 0, within ``atol`` of (1, 0, 0, 0) per component."""
     norm = quat_norms(quats, "d_quats")
     return (_within(quats[..., 0].abs() / norm - 1, atol)
             and all(_within(quats[..., i] / norm, atol) for i in (1, 2, 3)))

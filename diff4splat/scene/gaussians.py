@@ -27,16 +27,9 @@ def sh0_to_rgb(sh0: Tensor) -> Tensor:
 
 @dataclass
 class Gaussians:
-    """N activated 3D Gaussians in world coordinates (3DGS, Kerbl et al. 2023).
-
-    Attributes:
-        means: (N, 3) centres, metres.
-        quats: (N, 4) orientation, wxyz, unnormalised (normalised on use).
-        scales: (N, 3) standard deviations along the local axes, metres, > 0.
-        opacities: (N,) in (0, 1).
-        sh: (N, K, 3) SH coefficients, K = (degree+1)², INRIA convention
-            (colour = max(Σ_k sh_k·Y_k(dir) + 0.5, 0)).
-    """
+    """N activated 3D Gaussians, world frame (3DGS, Kerbl et al. 2023): ``means`` (N, 3) metres, ``quats`` (N, 4)
+    wxyz (normalised on use), ``scales`` (N, 3) standard deviations along the local axes, metres, > 0, ``opacities``
+    (N,) in [0, 1], ``sh`` (N, (degree+1)², 3), INRIA convention (colour = max(Σ_k sh_k·Y_k(dir) + 0.5, 0))."""
 
     means: Tensor
     quats: Tensor
@@ -61,8 +54,8 @@ class Gaussians:
         """Check shapes and values.
 
         Raises:
-            ValueError: a wrong shape, non-finite values, scales ≤ 0, opacities outside [0, 1],
-                an SH count that is not a square, or a zero-norm quaternion.
+            ValueError: a wrong shape, non-finite values, scales ≤ 0, opacities outside [0, 1], an SH count that is not
+                1, 4, 9 or 16, or a zero-norm quaternion.
         """
         n = self.means.shape[0] if self.means.dim() == 2 else -1
         expect = {"means": (n, 3), "quats": (n, 4), "scales": (n, 3), "opacities": (n,)}
@@ -86,8 +79,7 @@ class Gaussians:
         quat_normalize(self.quats, "quats")  # zero norm → ValueError naming quats
 
     def select(self, index: Tensor) -> Gaussians:
-        """Subset by boolean mask (N,) or integer indices (M,). Not validated again: a subset of valid Gaussians is
-        valid (every check is per Gaussian), and scenes of a million Gaussians are subset several times."""
+        """Subset by boolean mask (N,) or integer indices (M,); not validated again (every check is per Gaussian)."""
         return _unchecked(Gaussians, {f.name: getattr(self, f.name)[index] for f in fields(self)})
 
     def to(self, *args, **kwargs) -> Gaussians:
@@ -100,8 +92,7 @@ class Gaussians:
 
 
 def _unchecked(cls, values: dict):
-    """An instance of the dataclass ``cls`` holding ``values`` without running ``__post_init__`` (for results
-    derived from a validated instance in a way that keeps every checked property, e.g. a subset)."""
+    """An instance of the dataclass ``cls`` holding ``values`` without running ``__post_init__``."""
     obj = object.__new__(cls)
     for f in fields(cls):
         setattr(obj, f.name, values.get(f.name))

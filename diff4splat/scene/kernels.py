@@ -1,21 +1,13 @@
-"""The numba kernel of :meth:`diff4splat.scene.dynamic.DynamicGaussians.at` on the CPU: the deformation interpolated
-between two key times and composed with the canonical Gaussians in one pass over the Gaussians (the PyTorch reference,
-:meth:`~diff4splat.scene.dynamic.DynamicGaussians.deformation_at` then
-:func:`~diff4splat.scene.dynamic.compose_deformation`, makes about twenty (K, ·) temporaries).
-
-For each Gaussian i of ``index`` (w the weight of key k1, u = q/‖q‖):
+"""The numba CPU kernel of :meth:`diff4splat.scene.dynamic.DynamicGaussians.at`: interpolation and composition in one
+pass over the Gaussians. For each Gaussian i of ``index`` (w the weight of key k1, u = q/‖q‖):
 
     Δμ = (1 − w)·Δμ_k[i] + w·Δμ_k1[i]
     Δq = normalize((1 − w)·u(Δq_k[i]) + w·sign(u(Δq_k[i])·u(Δq_k1[i]))·u(Δq_k1[i]))
     Δs = (1 − w)·Δs_k[i] + w·Δs_k1[i]
     μ_t = μ[i] + Δμ,   q_t = Δq ⊗ u(q[i]),   s_t = s[i]·exp(Δs)
 
-in the tensors' dtype (float32 or float64), each Gaussian one parallel work item, so the result does not depend on
-the thread count. A Gaussian whose quaternions have norm < 1e-12, or whose deformed scale is not finite and > 0, is
-flagged and not computed; the caller then runs the reference, which raises the error naming the tensor.
-
-Imported only when :meth:`~diff4splat.scene.dynamic.DynamicGaussians.at` first runs on the CPU without gradients, so
-``import diff4splat`` does not pay numba's import time; without numba the reference runs.
+one parallel work item per Gaussian (thread-count independent). A Gaussian the reference would raise for is flagged
+in ``bad`` and the caller runs the reference. Imported on first use (numba's import time).
 """
 from __future__ import annotations
 
@@ -30,7 +22,7 @@ from diff4splat.utils.jit import KERNEL, threads
 __all__ = ["deform", "deform_kernel"]
 
 _ZERO_NORM = 1e-12
-"""The norm below which a quaternion has no orientation (:func:`diff4splat.scene.quaternions.quat_norms`)."""
+"""The norm below which a quaternion has no orientation (as :func:`diff4splat.scene.quaternions.quat_norms`)."""
 
 
 @KERNEL(parallel=True)

@@ -1,9 +1,7 @@
-"""Argument checks shared by every layer: one message format for each kind of bad value.
+"""Argument checks shared by every layer: one message format per kind of bad value.
 
-Each check raises ``ValueError`` naming the parameter and the value it got, e.g.
-``width must be a positive int, got 0``; the CLI prints that line as is. ``bool`` is never a number here.
-The predicates :func:`is_int` and :func:`is_number` serve checks whose message names a whole group
-(e.g. ``resolution must be 4 ints >= 3``).
+Each check raises ``ValueError`` naming the parameter and the value it got (``width must be a positive int, got
+0``), which the CLI prints as is. ``bool`` is never a number here.
 """
 from __future__ import annotations
 
@@ -18,9 +16,8 @@ __all__ = ["is_int", "is_number", "check_int", "check_positive_int", "check_numb
 
 
 class MissingExtraError(ModuleNotFoundError):
-    """An optional extra of diff4splat is not installed for what was asked (a diffusers backbone, ``--engine ray``):
-    the message names the ``pip install 'diff4splat[…]'`` command. Expected (one line, exit 2), unlike any other
-    missing module, which is a broken install."""
+    """An optional extra of diff4splat is not installed for what was asked; the message names the ``pip install
+    'diff4splat[…]'`` command. An expected error (one line, exit 2), unlike any other missing module."""
 
 
 def is_int(value: object) -> bool:
@@ -34,20 +31,16 @@ def is_number(value: object) -> bool:
 
 
 def _unit(what: str) -> str:
+    """The message suffix `` (what)``, or nothing."""
     return f" ({what})" if what else ""
 
 
 def check_int(name: str, value: object, lo: int, what: str = "") -> int:
-    """Return ``value`` as an ``int`` if it is an integer ≥ ``lo`` (``bool`` is refused).
-
-    Args:
-        name: the parameter's name, as the caller's user knows it.
-        value: the value to check (int or numpy integer).
-        lo: the smallest value allowed.
-        what: optional unit, e.g. ``"frames"``, appended to the message.
+    """``value`` as an ``int`` if it is an integer ≥ ``lo`` (``bool`` refused); ``what``: an optional unit for the
+    message.
 
     Raises:
-        ValueError: ``value`` is not an integer or is < ``lo``, e.g. ``size must be an integer ≥ 8, got 4``.
+        ValueError: not an integer or < ``lo``.
     """
     if not is_int(value) or value < lo:
         raise ValueError(f"{name} must be an integer ≥ {lo}{_unit(what)}, got {value!r}")
@@ -55,15 +48,10 @@ def check_int(name: str, value: object, lo: int, what: str = "") -> int:
 
 
 def check_positive_int(name: str, value: object, what: str = "") -> int:
-    """Return ``value`` as an ``int`` if it is an integer ≥ 1 (``bool`` is refused).
-
-    Args:
-        name: the parameter's name, as the caller's user knows it.
-        value: the value to check (int or numpy integer).
-        what: optional unit, e.g. ``"pixels"``, appended to the message.
+    """``value`` as an ``int`` if it is an integer ≥ 1 (``bool`` refused); ``what``: an optional unit for the message.
 
     Raises:
-        ValueError: ``value`` is not an integer or is < 1.
+        ValueError: not an integer or < 1.
     """
     if not is_int(value) or value < 1:
         raise ValueError(f"{name} must be a positive int{_unit(what)}, got {value!r}")
@@ -72,19 +60,11 @@ def check_positive_int(name: str, value: object, what: str = "") -> int:
 
 def check_number(name: str, value: object, *, lo: float | None = None, hi: float | None = None,
                  lo_open: bool = False, what: str = "") -> float:
-    """Return ``value`` as a ``float`` if it is a finite real number in the range given.
-
-    Args:
-        name: the parameter's name, as the caller's user knows it.
-        value: the value to check (int, float or numpy scalar; ``bool``, strings and tensors are refused).
-        lo: the lower bound, or None; included unless ``lo_open``.
-        hi: the upper bound (included), or None.
-        lo_open: exclude ``lo`` itself (value > lo).
-        what: optional unit, e.g. ``"metres"``, appended to the message.
+    """``value`` as a ``float`` if it is a finite real number in [``lo``, ``hi``] (either bound None: open; ``lo_open``
+    excludes ``lo``); ``bool``, strings and tensors are refused; ``what``: an optional unit for the message.
 
     Raises:
-        ValueError: not a finite number or out of range; the message states the range, e.g.
-            ``fps must be a finite number > 0, got 0``, ``duration must be a number in [0, 1], got 2``.
+        ValueError: not a finite number or out of range; the message states the range.
     """
     ok = is_number(value)
     if ok and lo is not None:
@@ -105,14 +85,10 @@ def check_number(name: str, value: object, *, lo: float | None = None, hi: float
 
 
 def check_positive(name: str, value: object) -> float:
-    """Return ``value`` as a ``float`` if it is a finite number > 0 (``bool`` and strings are refused).
-
-    Args:
-        name: the parameter's name, as the caller's user knows it.
-        value: the value to check (int, float, numpy scalar or one-element tensor).
+    """``value`` (int, float, numpy scalar or one-element tensor) as a ``float`` if it is finite and > 0.
 
     Raises:
-        ValueError: ``value`` is not a number, not finite, or ≤ 0.
+        ValueError: not a number (``bool`` and strings included), not finite, or ≤ 0.
     """
     if isinstance(value, (bool, str, bytes)):
         raise ValueError(f"{name} must be a positive finite number, got {value!r}")
@@ -126,24 +102,14 @@ def check_positive(name: str, value: object) -> float:
 
 
 def check_finite(name: str, tensor: Tensor) -> None:
-    """Raise ``ValueError`` naming ``name`` if the floating-point ``tensor`` holds NaN or ±inf.
-
-    Integer and empty tensors pass. The message counts the bad entries, e.g.
-    ``means contains 2 non-finite value(s) (NaN or inf)``.
-
-    Args:
-        name: what the message calls the tensor.
-        tensor: any shape, dtype and device.
+    """Raise if the floating-point ``tensor`` holds NaN or ±inf; integer and empty tensors pass.
 
     Raises:
-        ValueError: ``tensor`` is floating point and holds at least one NaN or ±inf.
+        ValueError: naming ``name`` and counting the non-finite entries.
     """
     if not tensor.is_floating_point() or not tensor.numel():
         return
-    # One reduction first: NaN and ±inf make the sum non-finite, so a finite sum proves every entry finite; only a
-    # non-finite sum (which large finite values can also give, by overflow) takes the exact test. Summed in float32
-    # (float64 for float64 tensors): a float64 sum converts every float32 entry first, most of the cost of checking a
-    # paper-size deformation (docs/benchmarks.md, "Writing the output folder").
+    # A finite sum proves every entry finite; a non-finite one (NaN, inf, or overflow) takes the exact test.
     acc = torch.float64 if tensor.dtype == torch.float64 else torch.float32
     if bool(torch.isfinite(tensor.detach().sum(dtype=acc))):
         return

@@ -1,8 +1,5 @@
-"""Numerical constants shared by the renderer, the scene, pruning and IO (one home for each value).
-
-The 3DGS thresholds follow the INRIA reference rasterizer (Kerbl et al. 2023, §4 and its CUDA code) and
-gsplat's ``rasterize_to_pixels``; every module compares against these names, never a literal.
-"""
+"""Numerical constants shared by the renderer, the scene, pruning and IO: the 3DGS thresholds of the INRIA rasterizer
+(Kerbl et al. 2023, §4) and gsplat's ``rasterize_to_pixels``."""
 from __future__ import annotations
 
 import math
@@ -12,8 +9,8 @@ __all__ = ["ALPHA_MAX", "ALPHA_MIN", "T_MIN", "LOG_T_MIN", "OPACITY_EPS", "OPACI
 ALPHA_MAX = 0.99
 """Per-Gaussian alpha is clamped to this (INRIA 3DGS ``min(0.99f, …)``)."""
 ALPHA_MIN = 1.0 / 255.0
-"""A Gaussian whose alpha at a pixel is below this is skipped there (3DGS, gsplat); also the coverage below
-which a pixel counts as empty, and the temporal-opacity gate below which a Gaussian cannot contribute."""
+"""Alpha below which a Gaussian is skipped at a pixel (3DGS, gsplat); also the empty-pixel coverage and the temporal
+gate."""
 T_MIN = 1e-4
 """Compositing stops before a Gaussian that would bring transmittance below this (3DGS)."""
 LOG_T_MIN = math.log(T_MIN)
@@ -21,9 +18,7 @@ LOG_T_MIN = math.log(T_MIN)
 OPACITY_EPS = 1e-6
 """Opacities are clamped to [OPACITY_EPS, 1 − OPACITY_EPS] before the logit (PLY storage), so it stays finite."""
 OPACITY_LOG_FLOOR = 1e-30
-"""Opacities are clamped to at least this before ln(o / ALPHA_MIN) (support radii, ray pre-test), so a zero
-opacity gives a finite, very negative value (never visible) instead of −inf."""
+"""Opacities are clamped to at least this before ln(o / ALPHA_MIN), so a zero opacity gives a finite value."""
 
 CAMERA_MODEL = "pinhole"
-"""Default camera model of the renderer and of the ray path's cameras (gsplat "pinhole"); re-exported as
-``diff4splat.render.settings.CAMERA_MODEL``."""
+"""Default camera model of the renderer and the ray path (gsplat "pinhole")."""

@@ -1,15 +1,9 @@
 """One error path for every command line tool (``diff4splat``, ``data_prep``, ``python -m training.train``).
 
-An *expected* failure — bad input, a malformed or corrupt file (the readers raise ``ValueError`` naming
-the file), an unavailable device, an operating-system error on a path the user gave (permissions, disk
-full, a name too long, …), a GPU out of memory — is printed as one line ``<prog>: error: <what>: <why>``
-on stderr and the tool exits with :data:`EXIT_USAGE` (2). Ctrl-C prints ``<prog>: interrupted`` and exits
-with :data:`EXIT_INTERRUPTED` (130, the shell's 128 + SIGINT). Anything else is a bug in this code and keeps
-its traceback (exit 1): :func:`is_expected` lists what is expected instead of swallowing everything.
-
-C libraries under OpenCV (libpng, libjpeg) print warnings such as ``libpng warning: iCCP: known
-incorrect sRGB profile`` straight to file descriptor 2, past Python's ``sys.stderr``; the readers wrap
-their decode calls in :func:`quiet_c_stderr` so a run's stderr holds only this tool's own lines.
+An expected failure (bad input, a malformed file, an unavailable device, an OS error on the user's path, a GPU out
+of memory) prints one line ``<prog>: error: <what>: <why>`` on stderr and exits :data:`EXIT_USAGE`; Ctrl-C prints
+``<prog>: interrupted`` and exits :data:`EXIT_INTERRUPTED`; anything else is a bug and keeps its traceback (exit 1).
+:func:`quiet_c_stderr` silences C libraries (libpng, libjpeg) that write to file descriptor 2 directly.
 """
 from __future__ import annotations
 
@@ -35,34 +29,24 @@ EXIT_INTERRUPTED = 130
 
 EXPECTED_ERRNOS = frozenset({errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT, errno.ENAMETOOLONG,
                              errno.ENOTDIR, errno.EEXIST, errno.ENOENT, errno.EISDIR, errno.EADDRINUSE})
-"""``OSError`` numbers that describe the user's paths or machine (permissions, read-only or full disk,
-quota, name too long, a file where a folder is needed or the reverse, missing or existing entries, a TCP port
-already in use by ``diff4splat view``).
-Other ``OSError`` numbers (``EBADF``, ``EINVAL``, …) point at a bug and keep their traceback."""
+"""``OSError`` numbers that describe the user's paths or machine; other numbers point at a bug and keep their
+traceback."""
 
 _EXPECTED_OS_ERRORS = (FileNotFoundError, FileExistsError, PermissionError, IsADirectoryError, NotADirectoryError)
 
 
 def is_expected(exc: BaseException) -> bool:
-    """True when ``exc`` is a failure the user can fix (one line, exit 2) rather than a bug (traceback).
-
-    Expected: ``ValueError`` (every argument check and every reader of a malformed or corrupt file
-    raises it, naming the parameter or the file) and ``OSError`` whose ``errno`` is in
-    :data:`EXPECTED_ERRNOS` (``FileNotFoundError``, ``FileExistsError``, ``PermissionError``,
-    ``IsADirectoryError``, ``NotADirectoryError`` and ``ENOSPC``/``EROFS``/``ENAMETOOLONG``/… errors), and
-    ``torch.OutOfMemoryError`` (a request larger than the GPU: the user lowers it or offloads), and
-    :class:`MissingExtraError` (an optional extra to install).
-    """
+    """True when ``exc`` is a failure the user can fix (one line, exit 2) rather than a bug: ``ValueError``,
+    :class:`MissingExtraError`, ``torch.OutOfMemoryError`` and ``OSError`` with an errno in :data:`EXPECTED_ERRNOS`."""
     if isinstance(exc, (ValueError, MissingExtraError, torch.OutOfMemoryError, *_EXPECTED_OS_ERRORS)):  # message only
         return True
     return isinstance(exc, OSError) and exc.errno in EXPECTED_ERRNOS
 
 
 def one_line(exc: BaseException) -> str:
-    """``exc`` as one line: ``<path>: <reason>`` for an ``OSError`` with a file name (``<path> -> <path2>:``
-    for a rename); for a GPU out of memory, torch's first three sentences (what was asked, what is free) and the
-    flags that lower it; else the message with every run of whitespace (newlines included) made one space;
-    the exception's type name when the message is empty."""
+    """``exc`` as one line: ``<path>: <reason>`` (``<path> -> <path2>: …`` for a rename) for an ``OSError`` with a file
+    name; for a GPU out of memory, torch's first three sentences and the flags that lower the request; else the message
+    with whitespace runs made one space, or the type name when empty."""
     if isinstance(exc, torch.OutOfMemoryError):  # torch's allocator advice follows what was asked and what is free
         asked = ". ".join(str(exc).split(". ")[:3]).rstrip(".")
         return (" ".join(asked.split()) + ". Lower the request (--frames, --resolution), or use --offload model or "
@@ -79,18 +63,14 @@ def one_line(exc: BaseException) -> str:
 
 
 def run_cli(prog: str, body: Callable[[], int], expected: tuple[type[BaseException], ...] = ()) -> int:
-    """Run a command's ``body`` and turn its failures into exit codes (see the module docstring).
-
-    Args:
-        prog: the tool's name printed before ``error:`` (``diff4splat``, ``data_prep``, ``train``).
-        body: the command; returns its exit code.
-        expected: extra exception types reported as one line (e.g. the tool's own usage error class).
+    """Run a command's ``body`` (returns its exit code) under the module docstring's rules; ``prog`` is printed before
+    ``error:``, ``expected`` adds exception types reported as one line.
 
     Returns:
         ``body()``'s code; :data:`EXIT_USAGE` after an expected failure; :data:`EXIT_INTERRUPTED` after Ctrl-C.
 
     Raises:
-        Any other exception of ``body`` unchanged (a bug: Python prints its traceback, exit code 1).
+        Any other exception of ``body``, unchanged.
     """
     try:
         return body()
@@ -106,14 +86,9 @@ def run_cli(prog: str, body: Callable[[], int], expected: tuple[type[BaseExcepti
 
 @contextlib.contextmanager
 def quiet_c_stderr() -> Iterator[None]:
-    """Send file descriptor 2 to ``/dev/null`` inside the block (restored on exit, also after an exception).
-
-    For calls into C libraries that print warnings themselves (libpng and libjpeg under ``cv2.imread`` /
-    ``cv2.imdecode`` / ``cv2.imwrite``). Python's ``sys.stderr`` is flushed first, so this tool's own
-    lines written before the block are kept. Everything written to fd 2 meanwhile is lost, by any
-    thread: keep the block around the C call only. Without a real fd 2 (e.g. ``sys.stderr`` replaced
-    and fd 2 closed) it does nothing.
-    """
+    """File descriptor 2 sent to ``/dev/null`` inside the block (restored on exit), for C libraries that print warnings
+    themselves (``cv2.imread``, ``cv2.imwrite``). ``sys.stderr`` is flushed first; anything written to fd 2 meanwhile,
+    by any thread, is lost. Without a real fd 2 it does nothing."""
     try:
         sys.stderr.flush()
         saved = os.dup(2)
@@ -136,17 +111,13 @@ _OUR_PACKAGES = tuple(str(Path(__file__).resolve().parents[2] / name) + os.sep
                       for name in ("diff4splat", "models", "training", "data_prep"))
 """The folders of this project's four packages: a warning raised from code in them is ours."""
 _DEVELOPER_WARNINGS = (DeprecationWarning, PendingDeprecationWarning, FutureWarning)
-"""Categories that tell a library's developers about its dependencies' APIs, not the user about the run."""
+"""Categories that concern a library's developers, not the user."""
 
 
 def print_warnings(call: Callable, *args, prog: str = "diff4splat", **kwargs):
-    """``call(*args, **kwargs)`` with the warnings that concern the user printed once each on stderr. Returns what
-    ``call`` returns.
-
-    Ours (raised from this project's code, e.g. the random-model notice): one ``<prog>: warning: …`` line each, the
-    command line's form. A dependency's: its deprecation and future warnings (which concern its callers' code, e.g.
-    torch's ``torch.jit.script_method is deprecated`` under ``--compile``) are dropped; any other is printed once as
-    ``<module>: <Category>: …``, not labelled as ours. A warning repeated with the same text is printed once."""
+    """``call(*args, **kwargs)`` with the warnings that concern the user printed once each on stderr; returns its
+    result. Ours as ``<prog>: warning: …``; a dependency's deprecation and future warnings dropped, any other printed as
+    ``<module>: <Category>: …``."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         out = call(*args, **kwargs)

@@ -1,17 +1,9 @@
-"""Resource limits checked before anything is allocated: one table, env-var overrides, one message format.
+"""Resource limits checked before anything is allocated: one table, environment overrides, one message format.
 
-Each limit guards a request that would otherwise exhaust memory or disk long before it failed
-(README, "Limits"). A value above its limit raises :class:`LimitError` (a ``ValueError``) naming
-the value, the limit and the environment variable that raises it, e.g.::
-
-    --steps 1000000000 exceeds the limit of 1000 sampler steps (set DIFF4SPLAT_MAX_STEPS to raise it)
-
-Limits are read from the environment at each check, so a variable set after import applies. Two limits are the
-machine's own resources unless their variable is set: peak memory is checked against what the process holds plus
-the least room of the memory available when the check runs, its cgroup's limit and its ulimits
-(:func:`available_memory`), and the output size against the free space
-of the output's disk (:func:`free_disk`); their fixed defaults (8 GiB, 4 GiB) apply only where that cannot be
-measured.
+A value above its limit raises :class:`LimitError` naming the value, the limit and the variable that raises it
+(README, "Limits"). Limits are read from the environment at each check. Peak memory and output size default to the
+machine's own room (:func:`available_memory`, :func:`free_disk`); their fixed defaults apply only where that cannot
+be measured.
 """
 from __future__ import annotations
 
@@ -34,15 +26,8 @@ __all__ = ["Limit", "LIMITS", "LimitError", "limit", "check_limit", "check_outpu
 
 @dataclass(frozen=True)
 class Limit:
-    """One limit.
-
-    Attributes:
-        name: key in :data:`LIMITS`.
-        default: value used when ``env`` is unset.
-        env: environment variable that overrides ``default`` (a positive integer).
-        unit: what the value counts, for messages ("sampler steps", "pixels").
-        when: when a real use needs more (README table).
-    """
+    """One limit: its ``name`` in :data:`LIMITS`, ``default`` value, the ``env`` variable that overrides it (a positive
+    integer), the ``unit`` it counts (for messages) and ``when`` a real use needs more (README table)."""
 
     name: str
     default: int
@@ -88,17 +73,16 @@ LIMITS: dict[str, Limit] = {lim.name: lim for lim in (
 """Every limit, by name (README, "Limits", renders this table)."""
 
 OUTPUT_BYTES_PER_PIXEL = 16
-"""Upper bound of what ``generate`` writes per frame pixel: RGB (3) + alpha (1) frames and a float32
-depth (4), with margin for the videos' and PNGs' worst-case (incompressible) size."""
+"""Upper bound of what ``generate`` writes per frame pixel: RGB, alpha and float32 depth, with margin for
+incompressible videos and PNGs."""
 
 
 OUTPUT_BYTES_PER_GAUSSIAN = 112
-"""Upper bound of what ``generate`` writes per Gaussian and frame: a float32 PLY row of SH degree 0 with normals
-(17 × 4 bytes) plus its deformation (Δμ 3, Δq 4, Δs 3: 10 × 4 bytes), with margin for headers."""
+"""Upper bound of what ``generate`` writes per Gaussian and frame: a float32 PLY row (17 × 4 bytes) plus its
+deformation (10 × 4 bytes), with margin."""
 
 OUTPUT_DEFORMATION_BYTES_PER_GAUSSIAN = 44
-"""The same without the frame's PLY row (``generate --no-frame-plys``): the deformation's 10 × 4 bytes, with
-margin."""
+"""The same without the frame's PLY row (``generate --no-frame-plys``)."""
 
 
 class LimitError(ValueError):
@@ -110,7 +94,7 @@ def limit(name: str) -> int:
 
     Raises:
         KeyError: unknown ``name``.
-        ValueError: the environment variable is set but is not a positive integer (names it).
+        ValueError: the variable is set but is not a positive integer.
     """
     lim = LIMITS[name]
     raw = os.environ.get(lim.env)
@@ -126,12 +110,7 @@ def limit(name: str) -> int:
 
 
 def check_limit(name: str, value: int, what: str) -> int:
-    """Return ``value`` if it is at most limit ``name``, else raise :class:`LimitError`.
-
-    Args:
-        name: key of :data:`LIMITS`.
-        value: the requested amount (an int; may be astronomically large, nothing is allocated).
-        what: the value's name as the user knows it, e.g. ``"--steps"`` or ``"cameras.json: frames"``.
+    """``value`` if it is at most limit ``name``; ``what`` names it as the user knows it (``"--steps"``).
 
     Raises:
         LimitError: ``value`` > the limit; one line with the value, the limit and its variable.
@@ -145,18 +124,9 @@ def check_limit(name: str, value: int, what: str) -> int:
 
 
 def memory_caps() -> dict[str, int] | None:
-    """Bytes this process can still allocate under each cap that applies, by the cap's name for a message:
-
-    * ``"available"``: psutil's ``available`` (MemAvailable on Linux, free + inactive on macOS, the available
-      physical memory on Windows);
-    * ``"cgroup memory.max"``: the room left under its Linux memory cgroup (a container, a SLURM job, a CI
-      runner: :func:`cgroup_room`), when one is set;
-    * ``"address-space limit (ulimit -v, RLIMIT_AS)"``: the limit less the address space the process has
-      mapped now (its virtual size), when set;
-    * ``"data-segment limit (ulimit -d, RLIMIT_DATA)"``: the limit less its data segment (heap and private
-      mappings) now, when set.
-
-    None where psutil cannot measure the memory (no /proc in a sandbox)."""
+    """Bytes this process can still allocate under each cap that applies, by name: ``"available"`` (psutil), ``"cgroup
+    memory.max"`` (:func:`cgroup_room`) and the ``ulimit -v`` / ``-d`` limits less the process's current use. None where
+    psutil cannot measure the memory."""
     try:
         mem = psutil.Process().memory_info()
         caps = {"available": int(psutil.virtual_memory().available)}
@@ -175,7 +145,7 @@ def memory_caps() -> dict[str, int] | None:
 
 
 def _rlimit(which: str) -> int | None:
-    """The soft limit ``resource.<which>`` in bytes, None where unlimited or not available (Windows)."""
+    """The soft limit ``resource.<which>`` in bytes, None where unlimited or not available."""
     if resource is None or not hasattr(resource, which):
         return None
     soft, _ = resource.getrlimit(getattr(resource, which))
@@ -183,17 +153,14 @@ def _rlimit(which: str) -> int | None:
 
 
 def available_memory() -> int | None:
-    """Bytes of memory this process may reach at its peak: what it holds now (its resident set: the networks are
-    loaded before the check) plus the least room of :func:`memory_caps` (the machine's available memory, its
-    cgroup's limit, its address-space and data-segment limits); None where psutil cannot measure it. The default of
-    the ``memory_bytes`` limit (:func:`check_memory`), which bounds an estimate of the whole process's peak."""
+    """Bytes this process may reach at its peak: its resident set plus the least room of :func:`memory_caps`; None where
+    unmeasurable. The default bound of :func:`check_memory`."""
     caps = memory_caps()
     return None if caps is None else held_memory() + min(caps.values())
 
 
 def held_memory() -> int:
-    """Bytes this process holds now (its resident set), the start of a whole-process peak estimate for
-    :func:`check_memory`; 0 where psutil cannot measure it."""
+    """Bytes this process holds now (its resident set); 0 where unmeasurable."""
     try:
         return int(psutil.Process().memory_info().rss)
     except (OSError, RuntimeError, NotImplementedError, psutil.Error):
@@ -201,24 +168,21 @@ def held_memory() -> int:
 
 
 def tightest_memory_cap() -> str:
-    """The name of the cap of :func:`memory_caps` with the least room, for messages ("available" where none can
-    be measured)."""
+    """The name of the cap of :func:`memory_caps` with the least room ("available" where none can be measured)."""
     caps = memory_caps()
     return "available" if not caps else min(caps, key=caps.get)
 
 
 _CGROUP_UNLIMITED = 1 << 62
-"""cgroup v1 writes "no limit" as a number near 2⁶³ (9223372036854771712): anything above this is no limit."""
+"""cgroup v1 writes "no limit" as a number near 2⁶³: anything above this is no limit."""
 
 
 def cgroup_room(proc_cgroup: str | os.PathLike = "/proc/self/cgroup",
                 root: str | os.PathLike = "/sys/fs/cgroup") -> int | None:
-    """Bytes this process's Linux memory cgroup can still take before its limit, the least along its hierarchy
-    (a limit set on a parent holds for its children): limit − (usage − inactive file cache), as the kernel
-    reclaims that cache before it kills (the container runtimes' "working set"). cgroup v2: ``memory.max``,
-    ``memory.current``, ``inactive_file`` of ``memory.stat``; v1: ``memory.limit_in_bytes``,
-    ``memory.usage_in_bytes``, ``total_inactive_file``. None without a limit, or where there is no cgroup file
-    system (macOS, Windows). ``proc_cgroup`` and ``root``: the files read (tests give a fake tree)."""
+    """Bytes this process's Linux memory cgroup can still take, the least along its hierarchy: limit − (usage − inactive
+    file cache) (v2: ``memory.max``, ``memory.current``, ``inactive_file``; v1: ``memory.limit_in_bytes``,
+    ``memory.usage_in_bytes``, ``total_inactive_file``). None without a limit or a cgroup file system.
+    ``proc_cgroup``, ``root``: the files read."""
     try:
         lines = Path(proc_cgroup).read_text().splitlines()
     except OSError:
@@ -261,9 +225,8 @@ def _cgroup_level_room(folder: Path, limit_file: str, usage_file: str, inactive_
 
 
 def free_disk(path: str | os.PathLike) -> int | None:
-    """Free bytes for an unprivileged user on the disk that holds ``path`` (its nearest existing ancestor: the
-    output folder need not exist yet), or None where it cannot be measured. The default of the ``output_bytes``
-    limit (:func:`check_output_size`)."""
+    """Free bytes for an unprivileged user on the disk of ``path`` (its nearest existing ancestor), None where
+    unmeasurable. The default bound of :func:`check_output_size`."""
     p = Path(os.path.abspath(path))
     while not p.exists() and p.parent != p:
         p = p.parent
@@ -274,8 +237,7 @@ def free_disk(path: str | os.PathLike) -> int | None:
 
 
 def size_text(n_bytes: float) -> str:
-    """A byte count for a message: GiB from 1 GiB, else MiB from 1 MiB, else KiB, one decimal (a 2 MiB free disk
-    read "0.0 GiB free")."""
+    """A byte count for a message: GiB from 1 GiB, else MiB from 1 MiB, else KiB, one decimal."""
     for unit, power in (("GiB", 30), ("MiB", 20)):
         if n_bytes >= 2**power:
             return f"{n_bytes / 2**power:.1f} {unit}"
@@ -283,8 +245,7 @@ def size_text(n_bytes: float) -> str:
 
 
 def _bound(name: str, measured: int | None, resource: str, knobs: str) -> tuple[int, str]:
-    """Limit ``name``'s value and, for a message, what it is and how to change it: its variable if set, else
-    ``measured`` (the machine's ``resource``) when known, else its fixed default."""
+    """Limit ``name``'s bound and its text for a message: its variable if set, else ``measured``, else its default."""
     lim = LIMITS[name]
     if os.environ.get(lim.env, "").strip() or measured is None:
         bound = limit(name)
@@ -296,23 +257,16 @@ def _bound(name: str, measured: int | None, resource: str, knobs: str) -> tuple[
 def check_output_size(frames: int, width: int, height: int, gaussians: int = 0,
                       knobs: str = "--frames or the resolution", out: str | os.PathLike | None = None,
                       frame_plys: bool = True) -> int:
-    """Estimate the bytes ``generate`` (or ``render``) writes for ``frames`` × ``width`` × ``height`` and a scene of
-    up to ``gaussians`` Gaussians, and check it against the free space of ``out``'s disk.
+    """Estimate the bytes ``generate`` (or ``render``) writes and check it against the free space of ``out``'s disk;
+    returns the estimate.
 
-    The estimate is frames · width · height · :data:`OUTPUT_BYTES_PER_PIXEL` for the images plus
-    (frames + 1) · gaussians · :data:`OUTPUT_BYTES_PER_GAUSSIAN` for ``scene.ply``, the per-frame PLYs and the
-    deformation maps (an upper bound: pruning only lowers the count, and a static scene writes no deformation);
-    without ``frame_plys``, gaussians · (:data:`OUTPUT_BYTES_PER_GAUSSIAN` + frames ·
-    :data:`OUTPUT_DEFORMATION_BYTES_PER_GAUSSIAN`).
-    The bound is ``DIFF4SPLAT_MAX_OUTPUT_BYTES`` when set, else the free space of the disk that will hold ``out``
-    (:func:`free_disk`), else (``out`` None or not measurable) the ``output_bytes`` limit's 4 GiB.
-
-    Returns:
-        The estimate, bytes.
+    The estimate: frames·width·height·:data:`OUTPUT_BYTES_PER_PIXEL` plus (frames + 1)·gaussians·
+    :data:`OUTPUT_BYTES_PER_GAUSSIAN`, or without ``frame_plys`` gaussians·(:data:`OUTPUT_BYTES_PER_GAUSSIAN` +
+    frames·:data:`OUTPUT_DEFORMATION_BYTES_PER_GAUSSIAN`). The bound: ``DIFF4SPLAT_MAX_OUTPUT_BYTES`` when set, else
+    :func:`free_disk`, else the ``output_bytes`` limit.
 
     Raises:
-        LimitError: the estimate exceeds the bound (message gives frames and resolution, the estimate and the
-            bound, and ``knobs``: the arguments that lower it).
+        LimitError: the estimate exceeds the bound (the message names ``knobs``, the arguments that lower it).
     """
     estimate = int(frames) * int(width) * int(height) * OUTPUT_BYTES_PER_PIXEL
     per_frame = OUTPUT_BYTES_PER_GAUSSIAN if frame_plys else OUTPUT_DEFORMATION_BYTES_PER_GAUSSIAN
@@ -325,19 +279,9 @@ def check_output_size(frames: int, width: int, height: int, gaussians: int = 0,
 
 
 def check_memory(estimate: int, request: str, knobs: str) -> int:
-    """Check an estimate of a command's peak memory, before anything heavy runs, against the memory it can have.
-
-    The bound is ``DIFF4SPLAT_MAX_MEMORY_BYTES`` when set, else :func:`available_memory` (the least of the machine's
-    available memory, the cgroup's ``memory.max`` and the process's ``ulimit -v``/``-d``, plus what it holds; the
-    message names the tightest), else (not measurable) the ``memory_bytes`` limit's 8 GiB.
-
-    Args:
-        estimate: bytes (an upper bound, e.g. :meth:`diff4splat.pipeline.Diff4SplatPipeline.memory_estimate`).
-        request: what was asked for, as the user wrote it, e.g. ``"--frames 401 at 256×256"``.
-        knobs: the arguments that lower the estimate, e.g. ``"--frames or --resolution"``.
-
-    Returns:
-        ``estimate``.
+    """Check an estimate (bytes, an upper bound) of a command's peak memory against ``DIFF4SPLAT_MAX_MEMORY_BYTES`` when
+    set, else :func:`available_memory`, else the ``memory_bytes`` limit; returns it. ``request``: what was asked, as
+    the user wrote it; ``knobs``: the arguments that lower the estimate.
 
     Raises:
         LimitError: one line with the request, the estimate and the bound in GiB, the knobs and the variable.

@@ -1,24 +1,9 @@
-"""Model CPU offload: networks live in (pinned) CPU memory and visit the compute device only while they run.
-
-A paper-size model does not fit one GPU's memory budget whole: in bfloat16 the DiT alone holds 23.8 GB and the
-T5-XXL-shaped text encoder 9.5 GB (docs/benchmarks.md, "GPU"). With :class:`ModelOffload` at most one network is
-on the device at a time — the one that runs now — so the peak is the largest network plus its activations
-instead of the sum (diffusers' ``enable_model_cpu_offload`` does the same with hooks).
-
-Inference only: the CPU copy of each weight is the master; moving a network off the device points its
-parameters back at that copy (no device-to-host copy), so weights changed on the device are lost. On CUDA the CPU
-copies are pinned once, and moving on is an asynchronous host-to-device copy on the current stream. The pinned
-copies share blocks of :data:`PIN_BLOCK_BYTES` (:func:`pin_packed`): torch's pinned-memory allocator rounds each
-allocation up to a power of two, so pinning every weight alone would pin up to twice its bytes (the paper-size
-text encoder's 9.5 GB as 13.2 GB, the DiT's 23.8 GB as 27.1 GB).
-
-Prefetch (``prefetch=``, CUDA only): the host-to-device copy of a network runs on a side stream, block by block in
-the order the blocks run, and each block waits only for its own weights (a forward pre-hook, removed when the
-visit's first call returns), so that call computes block i while blocks i + 1 … are still on their way (diffusers'
-group offloading with ``use_stream``, but once per visit rather than at every call). A network's copy takes about as
-long as one sampling step on an H100 (docs/benchmarks.md, "GPU"), so the copy can hide behind the first step. The
-values are those of the plain move: only the order of the copies and the kernels changes.
-"""
+"""Model CPU offload: networks live in (pinned) CPU memory and visit the compute device one at a time, only while they
+run, so the peak is the largest network (docs/DESIGN.md, "Devices"; diffusers' ``enable_model_cpu_offload``).
+Inference only: the CPU copy is the master (weights changed on the device are lost). On CUDA the copies are pinned
+in shared blocks (:func:`pin_packed`), since torch's pinned allocator rounds each allocation up to a power of two.
+Prefetch (CUDA only) copies a network on a side stream block by block, each block waiting only for its own weights
+(diffusers' group offloading with ``use_stream``, once per visit)."""
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
@@ -31,10 +16,9 @@ __all__ = ["ModelOffload", "prefetch_groups", "weight_bytes", "pin_plan", "pin_p
            "PIN_BLOCK_BYTES"]
 
 PIN_BLOCK_BYTES = 1 << 29
-"""Bytes of one pinned host block that weights share (512 MiB, a power of two: the allocator pins it as asked).
-Each network's weights fill blocks first-fit in order; a weight larger than a block gets one of its own."""
+"""Bytes of one pinned host block that weights share (512 MiB, a power of two); a larger weight gets its own block."""
 PIN_ALIGN = 64
-"""Byte alignment of each weight in a block (any element size; whole cache lines for the copy engine)."""
+"""Byte alignment of each weight in a block."""
 
 
 def _tensors(module: nn.Module) -> Iterator[torch.Tensor]:
@@ -44,16 +28,13 @@ def _tensors(module: nn.Module) -> Iterator[torch.Tensor]:
 
 
 def weight_bytes(module: nn.Module) -> list[int]:
-    """Bytes of each parameter, then buffer, of ``module`` (each shared tensor once): what :class:`ModelOffload`
-    keeps on the CPU, in the order it packs them (:func:`pin_plan`)."""
+    """Bytes of each parameter, then buffer, of ``module`` (shared tensors once), in :func:`pin_plan`'s order."""
     return [t.numel() * t.element_size() for t in _tensors(module)]
 
 
 def prefetch_groups(module: nn.Module, blocks: Sequence[nn.Module]) -> list[list[int]]:
-    """The copy order of :class:`ModelOffload`'s prefetch: indices into ``list(_tensors(module))`` (parameters,
-    then buffers), as ``[rest, block 0, block 1, …]``. ``rest`` holds every tensor outside ``blocks`` (embedders,
-    final layers; copied first and waited for before the network runs) and every tensor that two blocks share
-    (so no block waits on another block's copy); each tensor is in exactly one group.
+    """The copy order of :class:`ModelOffload`'s prefetch: indices into ``list(_tensors(module))`` as ``[rest, block 0,
+    block 1, …]``; ``rest`` holds every tensor outside ``blocks`` or shared by two of them. Each tensor is in one group.
 
     Raises:
         ValueError: a block is not a submodule of ``module``, or appears twice.
@@ -74,17 +55,14 @@ def prefetch_groups(module: nn.Module, blocks: Sequence[nn.Module]) -> list[list
 
 
 def _pow2(n: int) -> int:
-    """What torch's pinned-memory allocator (``CachingHostAllocator``) pins for ``n`` bytes: n rounded up to a
-    power of two."""
+    """What torch's pinned-memory allocator pins for ``n`` bytes: n rounded up to a power of two."""
     return 1 << max(n - 1, 0).bit_length() if n else 0
 
 
 def pin_plan(nbytes: Sequence[int], block: int = PIN_BLOCK_BYTES) -> tuple[list[int], list[tuple[int, int]]]:
     """Where :func:`pin_packed` puts tensors of ``nbytes`` bytes: (the blocks' sizes, (block, byte offset) of each
-    tensor). First fit in order, offsets multiples of :data:`PIN_ALIGN`; a tensor larger than ``block`` gets a block
-    of its own size; each block is as large as what it holds. A block whose tensors alone would pin less than the
-    block rounded up to a power of two (a network's last, part-filled block; a small network) is split into one
-    block per tensor."""
+    tensor). First fit in order, offsets multiples of :data:`PIN_ALIGN`; a tensor larger than ``block`` gets a block of
+    its own; a block whose tensors alone would pin less than it does is split into one block per tensor."""
     used: list[int] = []  # bytes used in each block so far
     where: list[tuple[int, int]] = []
     for n in map(int, nbytes):
@@ -113,17 +91,14 @@ def pin_plan(nbytes: Sequence[int], block: int = PIN_BLOCK_BYTES) -> tuple[list[
 
 
 def pinned_bytes(nbytes: Sequence[int], block: int = PIN_BLOCK_BYTES) -> int:
-    """Host bytes pinned for tensors of ``nbytes`` bytes by :func:`pin_packed`: its blocks, each rounded up to a
-    power of two as torch's pinned-memory allocator does."""
+    """Host bytes :func:`pin_packed` pins for tensors of ``nbytes`` bytes (each block rounded up to a power of two)."""
     return sum(_pow2(size) for size in pin_plan(nbytes, block)[0])
 
 
 def pin_packed(tensors: Sequence[torch.Tensor], block: int = PIN_BLOCK_BYTES, pin: bool = True) -> None:
-    """Move CPU ``tensors`` (parameters or buffers) into shared pinned blocks laid out by :func:`pin_plan`, in
-    place: each one's ``.data`` becomes a contiguous view of its block (same shape, dtype and values). A block is
-    allocated when its first tensor arrives and each original is dropped as soon as it is copied, so the peak is the
-    weights plus about one block, not twice the weights. ``pin=False`` allocates plain blocks (the layout without
-    CUDA, for tests)."""
+    """Move CPU ``tensors`` into shared blocks laid out by :func:`pin_plan`, in place (each ``.data`` becomes a view of
+    its block). Each original is dropped once copied, so the peak is the weights plus about one block. ``pin=False``
+    allocates plain blocks."""
     sizes, where = pin_plan([t.numel() * t.element_size() for t in tensors], block)  # weight_bytes' order
     blocks: dict[int, torch.Tensor] = {}
     for t, (k, offset) in zip(tensors, where, strict=True):
@@ -135,25 +110,17 @@ def pin_packed(tensors: Sequence[torch.Tensor], block: int = PIN_BLOCK_BYTES, pi
 
 
 class ModelOffload:
-    """Keep the networks of ``modules`` on the CPU and move one at a time to ``device`` (see the module docstring).
-
-    Args:
-        modules: name → network; each is moved to the CPU here (in place) and stays there between calls.
-        device: the compute device. On the CPU nothing ever moves.
-        pin: pin the CPU copies when ``device`` is CUDA (faster, asynchronous copies; needs that much
-            page-locked host memory).
-        prefetch: name → that network's blocks in the order its forward runs them (e.g. the transformer blocks,
-            :meth:`models.backbone.Backbone.transformer_blocks`): its move onto a CUDA device overlaps
-            the first call (module docstring). The blocks must run as modules (their forward pre-hooks fire) and
-            not be ``torch.compile``-d (a hook added to a compiled module recompiles it). Ignored off CUDA.
+    """Keep the networks of ``modules`` (name → network, moved to the CPU here) on the CPU and move one at a time to
+    ``device`` (module docstring; on the CPU nothing moves). ``pin``: pin the copies when ``device`` is CUDA.
+    ``prefetch``: name → that network's blocks in the order its forward runs them (as non-compiled modules), whose
+    move onto a CUDA device overlaps its first call; ignored off CUDA.
 
     Raises:
-        ValueError: ``prefetch`` names a network that is not in ``modules``, or blocks that are not its
-            submodules (:func:`prefetch_groups`).
+        ValueError: ``prefetch`` names a network not in ``modules``, or blocks that are not its submodules.
 
     Attributes:
         resident: the name of the network now on ``device``, or None.
-        pinned: whether the CPU copies are pinned (``pin`` on a CUDA device).
+        pinned: whether the CPU copies are pinned.
     """
 
     def __init__(self, modules: dict[str, nn.Module], device: str | torch.device, *, pin: bool = True,
@@ -176,16 +143,14 @@ class ModelOffload:
             self._home[name] = [t.data for t in tensors]
 
     def host_bytes(self) -> int:
-        """Bytes of host memory the CPU copies hold: their pinned blocks (:func:`pinned_bytes`, each rounded up to a
-        power of two) where they are pinned, else their bytes."""
+        """Bytes of host memory the CPU copies hold (their pinned blocks where pinned)."""
         sizes = [weight_bytes(module) for module in self.modules.values()]
         return sum(pinned_bytes(s) if self.pinned else sum(s) for s in sizes)
 
     @contextmanager
     def use(self, name: str) -> Iterator[nn.Module]:
-        """The network ``name``, on the device for the body of the ``with``; the network that was resident
-        before goes back to the CPU first. It stays resident afterwards (a sampler's next step reuses it),
-        until another network is used or :meth:`release` is called.
+        """The network ``name``, on the device for the body of the ``with`` (the previous resident goes back first); it
+        stays resident until another is used or :meth:`release` is called.
 
         Raises:
             KeyError: ``name`` is not one of the modules.
@@ -207,8 +172,8 @@ class ModelOffload:
                 finish()
 
     def _prefetch(self, name: str) -> Callable[[], None]:
-        """Start moving ``name`` onto the CUDA device on a side stream, group by group (:func:`prefetch_groups`);
-        return the call that ends the visit's hooks and makes the current stream wait for every copy."""
+        """Start copying ``name`` to the CUDA device on a side stream, group by group; returns the call that removes the
+        visit's hooks and makes the current stream wait for every copy."""
         blocks, groups = self._groups[name]
         tensors, homes = list(_tensors(self.modules[name])), self._home[name]
         main = torch.cuda.current_stream(self.device)
@@ -245,7 +210,7 @@ class ModelOffload:
         return finish
 
     def release(self) -> None:
-        """Move the resident network back to the CPU (its pinned master copy); frees its device memory."""
+        """Move the resident network back to its CPU master copy, freeing its device memory."""
         if self.resident is None:
             return
         module = self.modules[self.resident]
