@@ -1,37 +1,20 @@
-"""The fused CPU path: projection, binning and compositing as JIT-compiled loops, forward and backward.
+"""The fused CPU path: projection, binning and compositing as numba loops (:mod:`.fused_kernels`), forward and
+backward, with the PyTorch path (:mod:`.projection`, :mod:`.tiles`) as reference and fallback (docs/DESIGN.md
+"The renderer").
 
-Projection (:func:`project_fused`): the EWA projection and culling of the PyTorch reference
-:func:`~diff4splat.render.projection.project_gaussians` (which it falls back to), computed per Gaussian in
-float64: rotation from the unit quaternion, Σ = R S Sᵀ Rᵀ (3DGS eq. 6), camera frame, gsplat's clamped
-perspective Jacobian (EWA splatting eq. 29–31), dilation, compensation (Mip-Splatting eq. 9), conic, 3σ radius and
-the culls. The backward pass is the analytic chain rule of those formulas (gsplat ``fully_fused_projection_bwd``),
-summed over cameras per Gaussian. The quaternion normalisation stays a torch op (autograd differentiates it), so
-its zero-norm error is the reference's. Scope: pinhole CPU tensors whose ``viewmats`` and ``Ks`` need no
-gradient; anything else (camera gradients, CUDA tensors, no numba) uses the reference.
+Projection (:func:`project_fused`): the formulas of :func:`~diff4splat.render.projection.project_gaussians` per
+Gaussian in float64, and their analytic chain rule (gsplat ``fully_fused_projection_bwd``) summed over cameras;
+the quaternion normalisation stays a torch op.
 
-Compositing (:func:`composite_fused`): the same compositor as :func:`diff4splat.render.tiles.composite_tiles`
-(the pure-PyTorch path, kept as the reference and the fallback) — same tile binning
-(:func:`~diff4splat.render.tiles.bin_tiles`, here :func:`bin_tiles_fused`), same 3DGS rules, same outputs — but
-each pair's data is touched once instead of through ~40 tensor passes. Per tile (tiles in parallel,
-``numba.prange``; a tile is one thread's work, so the result does not depend on the thread count), Gaussians are
-visited front to back in the tile's depth-sorted list, and for each the pixels of its support box inside the tile
-(gsplat ``rasterize_to_pixels_fwd``, with the loops swapped so a pair is evaluated only inside the box):
-σ = ½(a dx² + c dy²) + b dx dy, skipped if σ < 0; alpha = min(0.99, o·exp(−σ)), skipped if < 1/255; a pixel
-stops before the Gaussian that would take its transmittance T below 1e-4; otherwise it adds w = alpha·T times the
-features and T ← T·(1 − alpha). T and the sums are float64. The backward pass (gsplat ``rasterize_to_pixels_bwd``)
-walks each tile's list back to front from each pixel's last included Gaussian, recovering
-T_i = T_{i+1}/(1 − alpha_i), with ∂L/∂alpha_i = T_i·v_i − (Σ_{j>i} w_j v_j)/(1 − alpha_i),
-v_i = feat_i·∂L/∂colour + ∂L/∂alpha − bg·∂L/∂colour, and writes each pair's gradient into its intersection's own
-slot; slots are summed per Gaussian afterwards (serially, in intersection order), so the backward is deterministic
-too. Results never depend on which path ran beyond float rounding.
+Compositing (:func:`composite_fused`): the rules, formulas and outputs of
+:func:`diff4splat.render.tiles.composite_tiles` (gsplat ``rasterize_to_pixels_fwd``/``_bwd``), T and sums in
+float64. Tiles in parallel, one thread each; per tile, Gaussians front to back, each over the pixels of its support
+box in the tile. The backward walks each tile's list back to front from each pixel's last included Gaussian,
+recovering T_i = T_{i+1}/(1 − alpha_i); per-intersection gradient slots are summed per Gaussian serially. Results
+do not depend on the thread count.
 
-The kernels live in :mod:`.fused_kernels`: numba (a PyPI wheel, no compiler needed) compiles them on first use
-and caches them on disk. Without numba the PyTorch path is used, with one warning.
-
-CPU only (diff4splat/utils/devices.py, the device rule): numpy and numba see CPU tensors only, so every array here
-comes from a CPU tensor and every result tensor is made on the CPU. :func:`diff4splat.render.rasterize.choose_path`
-never sends non-CPU tensors here, :func:`composite_fused` / :func:`bin_tiles_fused` refuse them and
-:func:`project_fused` hands them to the reference.
+CPU only (diff4splat/utils/devices.py, the device rule): :func:`composite_fused` and :func:`bin_tiles_fused` refuse
+other tensors, :func:`project_fused` hands them to the reference.
 """
 from __future__ import annotations
 
@@ -71,7 +54,7 @@ def fused_available() -> bool:
 
 
 def _np(x: Tensor) -> np.ndarray:
-    """The CPU tensor ``x`` as a contiguous numpy array (``.cpu()`` is a no-op here: the path is CPU-only)."""
+    """The CPU tensor ``x`` as a contiguous numpy array."""
     return x.detach().cpu().contiguous().numpy()
 
 
@@ -136,17 +119,13 @@ def project_fused(
     height: int,
     **settings,
 ) -> Projection:
-    """:func:`~diff4splat.render.projection.project_gaussians` by the fused kernels (module docstring), or by that
-    reference where they do not apply: no numba, a non-pinhole model, non-CPU tensors, or ``viewmats``/``Ks``
-    requiring gradients. ``settings`` are the reference's keyword arguments with its defaults (``near_plane``,
-    ``far_plane``, ``eps2d``, ``antialiased``, ``camera_model``): its signature is the one home of both.
-
-    Returns:
-        :class:`~diff4splat.render.projection.Projection`, in the dtype of ``means`` (computed in float64).
+    """:func:`~diff4splat.render.projection.project_gaussians` (its keywords and defaults, its
+    :class:`~diff4splat.render.projection.Projection` in ``means``' dtype) by the fused kernels, or by the reference
+    itself without numba, for a non-pinhole model, non-CPU tensors or ``viewmats``/``Ks`` requiring gradients.
 
     Raises:
         TypeError: a keyword the reference does not take.
-        ValueError: unknown camera model or zero-norm quaternion (from the reference's checks).
+        ValueError: unknown camera model or zero-norm quaternion (the reference's checks).
     """
     bound = _REFERENCE.bind(means, quats, scales, opacities, viewmats, Ks, width, height, **settings)
     bound.apply_defaults()
@@ -220,11 +199,8 @@ def bin_tiles_fused(
     height: int,
     tile_size: int,
 ) -> dict:
-    """:func:`diff4splat.render.tiles.bin_tiles` (same dict) by two kernels: ``box_kernel`` (the boxes of
-    :func:`~diff4splat.render.tiles.tile_boxes`, in float64: for float32 inputs a box edge can differ where
-    the float32 extent rounds across a pixel centre, ~10⁻⁷ px) and ``bin_kernel`` (a counting sort by tile,
-    then each tile's list sorted by depth, tiles in parallel) instead of two global argsorts and the
-    repeat/gather chain.
+    """:func:`diff4splat.render.tiles.bin_tiles` (same dict) by two kernels: float64 boxes (a float32 box edge can
+    differ where the extent rounds across a pixel centre) and a counting sort by tile, each tile's list depth-sorted.
 
     Raises:
         RuntimeError: numba is not installed (use :func:`~diff4splat.render.tiles.bin_tiles`).
@@ -238,7 +214,7 @@ def bin_tiles_fused(
     box, tbox, per_gauss = np.empty((m, 4), np.int64), np.empty((m, 4), np.int64), np.empty(m, np.int64)
     kernels = _kernels()
     with kernels.threads(torch.get_num_threads()):
-        # float64 inputs (exact for float32): one compiled signature per kernel (a cold compile costs seconds)
+        # float64 inputs (exact for float32): one compiled signature per kernel (compiling is slow)
         kernels.box_kernel(_np(means2d.double()), _np(covars2d.double()), _np(opacities.double()), width, height,
                            tile_size, box, tbox, per_gauss)
         n_isect = int(per_gauss.sum())
@@ -266,16 +242,11 @@ def composite_fused(
     height: int,
     tile_size: int,
 ) -> tuple[Tensor, Tensor, dict]:
-    """Composite one camera with the fused kernels (module docstring); the same inputs, outputs and rules as
+    """Composite one camera with the fused kernels; the inputs, outputs and rules of
     :func:`diff4splat.render.tiles.composite_tiles`, which it falls back to (warning once) without numba.
 
-    Returns:
-        colors (H·W, F), alphas (H·W,) = 1 − T_final, info dict (the binning of :func:`bin_tiles`;
-        n_pairs = pairs inside the support boxes).
-
     Raises:
-        ValueError: non-CPU tensors (numba runs on the CPU; :func:`~diff4splat.render.tiles.composite_tiles`
-            runs on every device).
+        ValueError: non-CPU tensors.
     """
     _check_cpu("composite_fused", means2d)
     if not fused_available():

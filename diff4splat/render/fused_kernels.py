@@ -1,13 +1,8 @@
-"""The numba kernels of the fused path (:mod:`diff4splat.render.fused`, which documents the algorithms).
+"""The numba kernels of the fused path (:mod:`diff4splat.render.fused` documents the algorithms), all float64.
 
-Projection: one loop over Gaussians (``prange`` over blocks of Gaussians, each block with its own 3×3 scratch
-matrices; each Gaussian's cameras in order inside, so sums over cameras do not depend on the thread count) does
-what :func:`diff4splat.render.projection.project_gaussians` does with ~100 tensor operations, in float64; its
-backward is the chain rule of the same formulas written out, each step naming the forward formula it
-differentiates. Binning and compositing: one camera's tiles in parallel, forward and backward.
-
-Imported only when the fused path first runs, so ``import diff4splat`` does not pay numba's import time;
-an ``ImportError`` here (no numba) makes :mod:`.fused` fall back to the PyTorch path.
+Projection: blocks of Gaussians in parallel, each Gaussian's cameras in order (sums over cameras do not depend on
+the thread count); its backward writes out the chain rule, each step naming the forward formula it differentiates.
+Binning and compositing: one camera's tiles in parallel. Imported on first use (an ImportError: no numba).
 """
 from __future__ import annotations
 
@@ -43,8 +38,7 @@ def _clip_box(box, g, tx0, ty0, tw, th):  # pragma: no cover - compiled
 
 @KERNEL(parallel=True)
 def box_kernel(means2d, covars2d, opacities, width, height, tile, box, tbox, per_gauss):  # pragma: no cover
-    """tiles.tile_boxes per Gaussian in float64 (Gaussians in parallel): the opacity-aware support extent
-    (projection.support_extent), its inclusive pixel box clipped to the image, the tile box and tile count."""
+    """tiles.tile_boxes per Gaussian (in parallel): pixel box ``box``, tile box ``tbox`` and ``per_gauss`` count."""
     for g in prange(means2d.shape[0]):
         tau = np.log(max(np.float64(opacities[g]), OPACITY_LOG_FLOOR) / ALPHA_MIN)
         ex = ey = -1.0
@@ -65,11 +59,8 @@ def box_kernel(means2d, covars2d, opacities, width, height, tile, box, tbox, per
 
 @KERNEL(parallel=True)
 def bin_kernel(tbox, per_gauss, depths, tiles_x, counts, flatten_ids, isect_tiles):  # pragma: no cover
-    """Group the tile intersections by tile, each tile's list in depth order (ties by index): a counting sort
-    by tile over the Gaussians in index order (serial, sequential reads), then a stable sort by depth of each
-    tile's list (tiles in parallel). The same lists as tiles.bin_tiles' global stable depth sort followed by
-    a stable sort by tile. tbox (M, 4): each Gaussian's inclusive tile box (tx0, ty0, tx1, ty1), divided
-    outside (numba's int64 floor division is slow in these loops)."""
+    """The lists of tiles.bin_tiles: a serial counting sort of the intersections by tile, then each tile's list
+    stably sorted by depth (tiles in parallel). tbox (M, 4): inclusive tile boxes (tx0, ty0, tx1, ty1)."""
     n = tbox.shape[0]
     for g in range(n):
         if per_gauss[g] > 0:
@@ -109,19 +100,10 @@ def gather_kernel(ids, per_isect, out):  # pragma: no cover - compiled
 @KERNEL(parallel=True)
 def forward_kernel(params, feats, bg, has_bg, ids, offsets, counts, box, width, height, tile, tiles_x,
                     out, acc, t_final, last, pairs):  # pragma: no cover - compiled
-    """Forward compositing of one camera, tiles in parallel (:mod:`diff4splat.render.fused`); float64 arrays.
-
-    Inputs (M Gaussians, F features, I tile intersections, n_tiles = tiles_x·tiles_y, H·W pixels, row-major
-    pixel index q = y·width + x): params (M, 6) = [μx, μy, a, b, c, o] (pixel centre in pixels, conic
-    (a, b, c) in 1/pixels², opacity o in [0, 1]); feats (M, F); bg (F,) (zeros and ``has_bg`` False without a
-    background); ids (I,) Gaussian index of each intersection, grouped by tile, depth order inside a tile;
-    offsets (n_tiles,), counts (n_tiles,): start and length of each tile's run in ``ids``; box (M, 4) int64
-    inclusive pixel box (x0, y0, x1, y1); width, height in pixels; tile = tile side in pixels.
-
-    Outputs, written in place: out (H·W, F) composited features (+ T_final·bg with a background); acc (H·W,)
-    alpha 1 − T_final; t_final (H·W,) final transmittance; last (H·W,) int64 index into ``ids`` of the last
-    Gaussian each pixel included (−1: none); pairs (n_tiles,) int64 (Gaussian, pixel) pairs inside the boxes.
-    """
+    """Forward compositing of one camera, tiles in parallel. Inputs: params (M, 6) = [μx, μy, a, b, c, o]; feats
+    (M, F); bg (F,) (zeros, ``has_bg`` False, without one); ids, offsets, counts, box: tiles.bin_tiles' binning.
+    Outputs, in place: out (H·W, F) (+ T_final·bg); acc = 1 − T_final; t_final; last (index into ``ids`` of each
+    pixel's last included Gaussian, −1: none); pairs (n_tiles,) pairs inside the boxes. Pixel q = y·width + x."""
     n_tiles = counts.shape[0]
     n_feat = feats.shape[1]
     for t in prange(n_tiles):
@@ -130,8 +112,7 @@ def forward_kernel(params, feats, bg, has_bg, ids, offsets, counts, box, width, 
         col = np.zeros((tile * tile, n_feat))
         lst = np.full(tile * tile, -1, np.int64)
         done = np.zeros(tile * tile, np.bool_)
-        n_done = 0
-        n_pairs = 0
+        n_done = n_pairs = 0
         start = offsets[t]
         for k in range(start, start + counts[t]):
             g = ids[k]
@@ -178,16 +159,9 @@ def forward_kernel(params, feats, bg, has_bg, ids, offsets, counts, box, width, 
 @KERNEL(parallel=True)
 def backward_kernel(params, feats, bg, has_bg, ids, offsets, counts, box, width, height, tile, tiles_x,
                      t_final, last, grad_out, grad_acc, g_params, g_feats):  # pragma: no cover - compiled
-    """Backward pass of :func:`forward_kernel`, tiles in parallel, each tile's list walked back to front.
-
-    Inputs: the forward kernel's params (M, 6), feats (M, F), bg (F,), has_bg, ids (I,), offsets (n_tiles,),
-    counts (n_tiles,), box (M, 4), width, height, tile, tiles_x, and its outputs t_final (H·W,) and last (H·W,);
-    grad_out (H·W, F) and grad_acc (H·W,): ∂L/∂out and ∂L/∂acc (float64).
-
-    Outputs, accumulated in place (zeroed by the caller): g_params (I, 6) and g_feats (I, F), one row per
-    intersection (∂L/∂params and ∂L/∂feats of that pair's Gaussian); the caller sums the rows per Gaussian with
-    :func:`gather_kernel`. The background's gradient is computed outside (Σ t_final·grad_out).
-    """
+    """Backward of :func:`forward_kernel` (its inputs, t_final and last; grad_out (H·W, F), grad_acc (H·W,)),
+    tiles in parallel, lists back to front. Accumulates into the zeroed g_params (I, 6), g_feats (I, F), one row
+    per intersection, summed per Gaussian by :func:`gather_kernel`; the background's gradient is the caller's."""
     n_tiles = counts.shape[0]
     n_feat = feats.shape[1]
     for t in prange(n_tiles):
@@ -305,9 +279,8 @@ def _screen_cov(cc, j00, j02, j11, j12):  # pragma: no cover - compiled
 
 @KERNEL(inline="always")
 def _screen_det(vm, j00, j02, j11, j12):  # pragma: no cover - compiled
-    """det(J Σc Jᵀ) for Σc = vm vmᵀ (vm = Rv·R·diag(s)) as the sum of the squared 2×2 minors of A = J·vm
-    (Cauchy–Binet), as :func:`diff4splat.render.projection.project_gaussians`: s00·s11 − s01² cancels the long
-    axis's L⁴ of an elongated Gaussian, the minors are products of the axes' own lengths."""
+    """det(J Σc Jᵀ) for Σc = vm vmᵀ (vm = Rv·R·diag(s)): the sum of the squared 2×2 minors of J·vm (Cauchy–Binet),
+    as projection.project_gaussians."""
     a0, a1, a2 = (j00 * vm[0, 0] + j02 * vm[2, 0], j00 * vm[0, 1] + j02 * vm[2, 1], j00 * vm[0, 2] + j02 * vm[2, 2])
     b0, b1, b2 = (j11 * vm[1, 0] + j12 * vm[2, 0], j11 * vm[1, 1] + j12 * vm[2, 1], j11 * vm[1, 2] + j12 * vm[2, 2])
     return (a1 * b2 - a2 * b1) ** 2 + (a2 * b0 - a0 * b2) ** 2 + (a0 * b1 - a1 * b0) ** 2
@@ -316,19 +289,9 @@ def _screen_det(vm, j00, j02, j11, j12):  # pragma: no cover - compiled
 @KERNEL(parallel=True)
 def project_forward(means, quats, scales, opacities, viewmats, ks, width, height, near, far, eps2d, antialiased,
                     means2d, depths, covars2d, conics, opac_out, radii, comps):  # pragma: no cover - compiled
-    """EWA projection of N Gaussians into C pinhole cameras (blocks of Gaussians in parallel), in float64.
-
-    Inputs (float64): means (N, 3) world units; quats (N, 4) unit wxyz quaternions (normalised by the caller);
-    scales (N, 3) standard deviations (not log); opacities (N,); viewmats (C, 4, 4) world-to-camera; ks (C, 3, 3)
-    intrinsics in pixels; width, height in pixels; near, far: depth planes; eps2d: dilation added to the 2D
-    covariance diagonal (pixels²); antialiased: multiply opacities by the compensation (Mip-Splatting eq. 9).
-
-    Outputs (the caller's zeroed arrays, in the input dtype), written in place at (c, i) for each Gaussian i
-    kept by camera c (culled entries stay 0): means2d (C, N, 2) pixels; depths (C, N) camera z; covars2d (C, N, 3)
-    = (σxx, σxy, σyy) pixels², dilated; conics (C, N, 3) its inverse (a, b, c); opac_out (C, N); radii (C, N)
-    int32 3σ radius in pixels (0 = culled, at most RADIUS_MAX); comps (C, N) compensation (1.0 unless
-    ``antialiased``).
-    """
+    """EWA projection of N Gaussians into C pinhole cameras, as projection.project_gaussians (its arguments, quats
+    unit; near, far the planes). Writes the caller's zeroed arrays at (c, i) for each kept Gaussian: means2d,
+    depths, covars2d, conics, opac_out, radii (int32) and comps (1.0 unless ``antialiased``), the Projection's."""
     n_cam, n = viewmats.shape[0], means.shape[0]
     for blk in prange((n + _BLOCK - 1) // _BLOCK):
         rot, m, cov, tmp, cc = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
@@ -369,16 +332,9 @@ def project_forward(means, quats, scales, opacities, viewmats, ks, width, height
 def project_backward(means, quats, scales, opacities, viewmats, ks, width, height, eps2d, antialiased, radii,
                      g_means2d, g_depths, g_covars2d, g_conics, g_opac, g_comps,
                      v_means, v_quats, v_scales, v_opac):  # pragma: no cover - compiled
-    """Backward pass of :func:`project_forward` (gsplat ``fully_fused_projection_bwd``), summed over cameras.
-
-    Inputs: the forward's means (N, 3), quats (N, 4), scales (N, 3), opacities (N,), viewmats (C, 4, 4),
-    ks (C, 3, 3), width, height, eps2d, antialiased and its radii (C, N) (entries with radius 0 are skipped);
-    the output gradients g_means2d (C, N, 2), g_depths (C, N), g_covars2d (C, N, 3), g_conics (C, N, 3),
-    g_opac (C, N), g_comps (C, N) (float64, zeros where the output had no gradient).
-
-    Outputs, in place (zeroed by the caller): v_means (N, 3), v_scales (N, 3), v_opac (N,) accumulated over
-    cameras; v_quats (N, 4) written per Gaussian (w.r.t. the unit quaternion). No gradients for viewmats or ks.
-    """
+    """Backward of :func:`project_forward` (gsplat ``fully_fused_projection_bwd``): from its inputs, radii and the
+    outputs' gradients g_* (zeros where none), accumulates v_means, v_scales, v_opac over cameras and writes
+    v_quats (w.r.t. the unit quaternion) into the caller's zeroed arrays; no gradients for viewmats or ks."""
     n_cam, n = viewmats.shape[0], means.shape[0]
     for blk in prange((n + _BLOCK - 1) // _BLOCK):
         rot, m, cov, tmp, cc = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))

@@ -1,13 +1,8 @@
-"""EWA projection of 3D Gaussians to screen space: the pure-PyTorch reference of every path's projection.
+"""EWA projection of 3D Gaussians to screen space (pinhole): the pure-PyTorch reference of every path's projection.
 
-This is the per-Gaussian stage of 3D Gaussian Splatting (Kerbl et al. 2023, §4; Zwicker et al.
-2002, EWA splatting eq. 31) written to match gsplat's ``fully_fused_projection`` CUDA kernel
-(``persp_proj``, ``add_blur``, 3σ radius, culling) for the pinhole camera; other camera models render on the
-ray path (:mod:`diff4splat.render.raytrace`). :func:`diff4splat.render.fused.project_fused` computes the same in
-numba kernels on the CPU.
-
-Also home of :func:`splat_alpha`, the single definition of a Gaussian's opacity at a pixel (with the
-3DGS thresholds of :mod:`diff4splat.utils.constants`), used by both rasterizers so they cannot drift apart.
+3DGS (Kerbl et al. 2023, §4) with EWA splatting (Zwicker et al. 2002, eq. 31), matching gsplat's
+``fully_fused_projection`` (clamped Jacobian, eps2d blur, 3σ radius, culling). Also :func:`splat_alpha`, the one
+definition of a Gaussian's opacity at a pixel, shared by every compositor.
 """
 from __future__ import annotations
 
@@ -20,36 +15,19 @@ from diff4splat.render.settings import CAMERA_MODEL, EPS2D, FAR_PLANE, NEAR_PLAN
 from diff4splat.scene.quaternions import quat_to_rotmat
 from diff4splat.utils.constants import ALPHA_MAX, ALPHA_MIN, OPACITY_LOG_FLOOR
 
-__all__ = [
-    "RADIUS_MAX",
-    "FOV_MARGIN",
-    "EIGEN_FLOOR",
-    "Projection",
-    "covariance_3d",
-    "world_to_camera",
-    "persp_proj",
-    "project_gaussians",
-    "support_extent",
-    "splat_sigma",
-    "splat_alpha",
-    "matmul",
-]
+__all__ = ["RADIUS_MAX", "FOV_MARGIN", "EIGEN_FLOOR", "Projection", "covariance_3d", "persp_jacobian",
+           "project_gaussians", "support_extent", "splat_sigma", "splat_alpha", "matmul"]
 
 RADIUS_MAX = 1 << 30
 """Screen radii are clamped to this (pixels) before the int32 cast (exact in float32)."""
 FOV_MARGIN = 0.3
-"""gsplat's ``persp_proj`` clamps x/z (y/z) for the Jacobian to the field of view widened by this fraction of
-tan½fov on each side (a constant of the projection, not a setting; the fused kernels use it too)."""
+"""The Jacobian's x/z (y/z) is clamped to the field of view widened by this fraction of tan½fov per side (gsplat)."""
 EIGEN_FLOOR = 0.01
 """Floor of b² − det under the square root of the larger eigenvalue of Σ2d, pixels⁴ (gsplat's 3σ radius)."""
 
 
 class _MatmulFullPrecision(torch.autograd.Function):
-    """``a @ b`` (broadcasting) with autocast off in forward and backward.
-
-    Autocast lowers matmuls to bfloat16 also in a backward pass run inside the autocast region; the
-    renderer's small 3×3 / 2×3 products (covariances, camera transforms) then lose 3 digits.
-    """
+    """``a @ b`` (broadcasting) with autocast off in forward and backward (autocast also lowers the backward)."""
 
     @staticmethod
     def forward(ctx, a, b):  # noqa: D102
@@ -68,13 +46,13 @@ class _MatmulFullPrecision(torch.autograd.Function):
 
 
 def matmul(a: Tensor, b: Tensor) -> Tensor:
-    """``torch.matmul(a, b)`` (batch dims broadcast) computed in the inputs' dtype even under
-    ``torch.autocast`` — forward and backward. (..., n, k), (..., k, m) → (..., n, m)."""
+    """``a @ b`` in the inputs' dtype even under ``torch.autocast``, forward and backward.
+    (..., n, k), (..., k, m) → (..., n, m)."""
     return _MatmulFullPrecision.apply(a, b)
 
 
 class Projection(NamedTuple):
-    """Screen-space Gaussians for C cameras (all tensors indexed (camera, Gaussian)).
+    """Screen-space Gaussians for C cameras, indexed (camera, Gaussian).
 
     Attributes:
         means2d: (C, N, 2) projected centres, pixels (x right, y down).
@@ -82,8 +60,8 @@ class Projection(NamedTuple):
         covars2d: (C, N, 3) dilated screen covariance (Σxx, Σxy, Σyy) = Σ2d + eps2d·I, pixels².
         conics: (C, N, 3) its inverse (a, b, c): σ(d) = ½(a dx² + c dy²) + b dx dy, 1/pixels².
         opacities: (C, N) opacities used for compositing (× compensation when antialiased).
-        radii: (C, N) int32 3σ screen radius ceil(3·sqrt(λmax)), pixels, clamped to 2³⁰ (a huge
-            Gaussian must not wrap around int32); 0 marks a culled Gaussian.
+        radii: (C, N) int32 3σ screen radius ceil(3·sqrt(λmax)), pixels, clamped to :data:`RADIUS_MAX`;
+            0 marks a culled Gaussian.
         compensations: (C, N) sqrt(det Σ2d / det(Σ2d + eps2d·I)), or None in classic mode.
     """
 
@@ -97,66 +75,10 @@ class Projection(NamedTuple):
 
 
 def covariance_3d(quats: Tensor, scales: Tensor) -> Tensor:
-    """World covariance Σ = R S Sᵀ Rᵀ (3DGS eq. 6).
-
-    Args:
-        quats: (N, 4) wxyz, unnormalised, non-zero norm.
-        scales: (N, 3) standard deviations along the local axes, metres.
-
-    Returns:
-        (N, 3, 3) symmetric PSD covariances, metres².
-
-    Raises:
-        ValueError: a zero-norm quaternion (from :func:`diff4splat.scene.quaternions.quat_to_rotmat`).
-    """
+    """World covariance Σ = R S Sᵀ Rᵀ (3DGS eq. 6), (N, 3, 3) metres², from quats (N, 4) wxyz (unnormalised) and
+    scales (N, 3) metres. ValueError: a zero-norm quaternion (:func:`diff4splat.scene.quaternions.quat_to_rotmat`)."""
     m = quat_to_rotmat(quats) * scales[..., None, :]  # R S
     return matmul(m, m.transpose(-1, -2))
-
-
-def world_to_camera(means: Tensor, covars: Tensor, viewmats: Tensor) -> tuple[Tensor, Tensor]:
-    """Transform means and covariances into each camera's frame.
-
-    Args:
-        means: (N, 3) world points, metres.
-        covars: (N, 3, 3) world covariances, metres².
-        viewmats: (C, 4, 4) world-to-camera [R | t] (OpenCV frame).
-
-    Returns:
-        means_c: (C, N, 3) = R μ + t;  covars_c: (C, N, 3, 3) = R Σ Rᵀ.
-    """
-    R = viewmats[:, :3, :3]
-    t = viewmats[:, :3, 3]
-    means_c = matmul(means[None], R.transpose(-1, -2)) + t[:, None, :]
-    covars_c = matmul(matmul(R[:, None], covars[None]), R.transpose(-1, -2)[:, None])
-    return means_c, covars_c
-
-
-def persp_proj(
-    means_c: Tensor,  # (C, N, 3) camera frame, z > 0
-    covars_c: Tensor,  # (C, N, 3, 3)
-    Ks: Tensor,  # (C, 3, 3)
-    width: int,
-    height: int,
-) -> tuple[Tensor, Tensor]:
-    """Pinhole projection of centres and first-order (EWA) projection of covariances.
-
-    mean2d = (fx·x/z + cx, fy·y/z + cy); Σ2d = J Σc Jᵀ with the perspective Jacobian
-    J = [[fx/z, 0, −fx·tx/z²], [0, fy/z, −fy·ty/z²]] (EWA splatting eq. 29–31), where, as in
-    gsplat's ``persp_proj``, tx/z is clamped to [−(cx/fx + m·tan½fovx), (W−cx)/fx + m·tan½fovx] with
-    m = :data:`FOV_MARGIN` = 0.3 (tan½fovx = W/(2fx); for a centred principal point this is ±1.3·tan½fovx),
-    same for y.
-
-    Args:
-        means_c: (C, N, 3) camera-frame centres, metres; z must be non-zero.
-        covars_c: (C, N, 3, 3) camera-frame covariances, metres².
-        Ks: (C, 3, 3) intrinsics, pixels.
-        width, height: image size, pixels.
-
-    Returns:
-        means2d: (C, N, 2) pixels;  covars2d: (C, N, 2, 2) pixels² (not yet dilated).
-    """
-    means2d, J = persp_jacobian(means_c, Ks, width, height)
-    return means2d, matmul(matmul(J, covars_c), J.transpose(-1, -2))
 
 
 def persp_jacobian(
@@ -165,7 +87,11 @@ def persp_jacobian(
     width: int,
     height: int,
 ) -> tuple[Tensor, Tensor]:
-    """The pinhole projection of centres and its clamped Jacobian J of :func:`persp_proj`.
+    """Pinhole projection of camera-frame centres and its clamped perspective Jacobian (EWA splatting eq. 29–31).
+
+    mean2d = (fx·x/z + cx, fy·y/z + cy); J = [[fx/z, 0, −fx·tx/z²], [0, fy/z, −fy·ty/z²]] where, as gsplat's
+    ``persp_proj``, tx/z is clamped to [−(cx/fx + m·tan½fovx), (W−cx)/fx + m·tan½fovx], m = :data:`FOV_MARGIN`,
+    tan½fovx = W/(2fx); same for y. Σ2d = J Σc Jᵀ.
 
     Returns:
         means2d: (C, N, 2) pixels;  J: (C, N, 2, 3) pixels per metre.
@@ -205,27 +131,15 @@ def project_gaussians(
     """Project Gaussians into C cameras and cull them, as gsplat's ``fully_fused_projection``.
 
     Steps (gsplat CUDA kernel order): camera-frame centre; cull z < near_plane, z ≤ 0 or z > far_plane;
-    Σ2d = J Σc Jᵀ as :func:`persp_proj`, its determinant as the sum of the squared 2×2 minors of J·R_cam·R·S
+    Σ2d = J Σc Jᵀ (:func:`persp_jacobian`), its determinant as the sum of the squared 2×2 minors of J·R_cam·R·S
     (Cauchy–Binet: no cancellation for elongated Gaussians in float32); dilation Σ2d + eps2d·I with compensation
     sqrt(max(0, det Σ2d / det(Σ2d + eps2d·I))) (Mip-Splatting eq. 9, used when ``antialiased``);
-    cull det ≤ 0; conic = (Σ2d + eps2d·I)⁻¹; radius = ceil(3·sqrt(b + sqrt(max(0.01, b² − det)))) (0.01:
-    :data:`EIGEN_FLOOR`)
+    cull det ≤ 0; conic = (Σ2d + eps2d·I)⁻¹; radius = ceil(3·sqrt(b + sqrt(max(:data:`EIGEN_FLOOR`, b² − det))))
     with b = ½ trace; cull radius ≤ 0 and Gaussians whose radius box lies fully outside the image.
+    Culled Gaussians get radius 0, zeros elsewhere and exactly zero gradient (computed from a safe depth).
 
-    Culled Gaussians get radius 0 and zeros in every other output; their values are computed from
-    a substituted safe depth so no NaN/inf enters the graph and they receive exactly zero gradient.
-
-    Args:
-        means, quats, scales, opacities: Gaussians (metres; wxyz; metres; (0, 1)).
-        viewmats: (C, 4, 4) world-to-camera, OpenCV.  Ks: (C, 3, 3) pixels.
-        width, height: image size, pixels.
-        near_plane, far_plane: depth range kept, metres (defaults: :mod:`diff4splat.render.settings`).
-        eps2d: screen-space dilation, pixels².
-        antialiased: multiply opacities by the compensation (gsplat ``rasterize_mode="antialiased"``).
-        camera_model: "pinhole" (gsplat's keyword; other models render on the ray path).
-
-    Returns:
-        :class:`Projection`.
+    Args: as :func:`diff4splat.render.rasterize` (metres, pixels; viewmats OpenCV world-to-camera);
+    ``antialiased`` multiplies opacities by the compensation; ``camera_model`` must be "pinhole".
 
     Raises:
         ValueError: a camera model other than "pinhole", or a zero-norm quaternion.
@@ -268,12 +182,12 @@ def project_gaussians(
     op = opacities[None, :].expand_as(z)
     if compensations is not None:
         op = op * compensations
-    k2, k3 = keep[..., None], keep[..., None]
+    k = keep[..., None]
     return Projection(
-        means2d=torch.where(k2, means2d, 0.0),
+        means2d=torch.where(k, means2d, 0.0),
         depths=torch.where(keep, z, 0.0),
-        covars2d=torch.where(k3, torch.stack([sxx, sxy, syy], dim=-1), 0.0),
-        conics=torch.where(k3, conics, 0.0),
+        covars2d=torch.where(k, torch.stack([sxx, sxy, syy], dim=-1), 0.0),
+        conics=torch.where(k, conics, 0.0),
         opacities=torch.where(keep, op, 0.0),
         radii=radii,
         compensations=None if compensations is None else torch.where(keep, compensations, 0.0),
@@ -283,17 +197,10 @@ def project_gaussians(
 def support_extent(covars2d: Tensor, opacities: Tensor) -> Tensor:
     """Half-size of the screen box outside which a Gaussian's alpha is below :data:`ALPHA_MIN`.
 
-    alpha = min(0.99, o·exp(−σ)) ≥ 1/255 ⇔ σ ≤ τ = ln(255·o); on the ellipse ½dᵀΣ⁻¹d = τ the
-    largest |dx| is sqrt(2τ·Σxx) (and sqrt(2τ·Σyy) for y) — gsplat's opacity-aware box
-    (Radl et al. 2024, StopThePop, App. B.2). A 0.1 % + 1e-3 px margin absorbs rounding; the exact
-    alpha test is still applied per pixel, so the box only needs to contain the support.
-
-    Args:
-        covars2d: (..., 3) dilated screen covariance (Σxx, Σxy, Σyy), pixels².
-        opacities: (...) compositing opacities.
-
-    Returns:
-        (..., 2) half extents (x, y), pixels; negative where the Gaussian is never visible (o < 1/255).
+    alpha = min(0.99, o·exp(−σ)) ≥ 1/255 ⇔ σ ≤ τ = ln(255·o); on the ellipse ½dᵀΣ⁻¹d = τ the largest |dx| is
+    sqrt(2τ·Σxx) (y: Σyy), gsplat's opacity-aware box (Radl et al. 2024, StopThePop, App. B.2), plus a
+    0.1 % + 1e-3 px margin for rounding. covars2d (..., 3) (Σxx, Σxy, Σyy) pixels², opacities (...) →
+    (..., 2) half extents (x, y), pixels; negative where never visible (o < 1/255).
     """
     tau = torch.log(torch.clamp(opacities, min=OPACITY_LOG_FLOOR) / ALPHA_MIN)
     var = torch.stack([covars2d[..., 0], covars2d[..., 2]], dim=-1).clamp(min=0.0)
@@ -302,35 +209,18 @@ def support_extent(covars2d: Tensor, opacities: Tensor) -> Tensor:
 
 
 def splat_sigma(dx: Tensor, dy: Tensor, conics: Tensor) -> Tensor:
-    """Gaussian exponent σ = ½(a·dx² + c·dy²) + b·dx·dy at pixel offsets (3DGS eq. 2, conic form).
+    """Gaussian exponent σ = ½(a·dx² + c·dy²) + b·dx·dy (3DGS eq. 2, conic form), dimensionless.
 
-    Args:
-        dx, dy: (...) pixel centre minus projected centre, pixels.
-        conics: (..., 3) conic (a, b, c), 1/pixels²; the trailing 3 is split off and the rest
-            broadcasts with dx, dy.
-
-    Returns:
-        (...) σ, dimensionless (≥ 0 for a positive-definite conic).
+    dx, dy: (...) pixel centre minus projected centre, pixels; conics (..., 3) (a, b, c), 1/pixels², broadcasting.
     """
     a, b, c = conics.unbind(-1)
     return 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
 
 
 def splat_alpha(dx: Tensor, dy: Tensor, conics: Tensor, opacities: Tensor) -> Tensor:
-    """Opacity of screen Gaussians at pixel offsets, with the 3DGS skip rule applied.
-
-    alpha = min(0.99, o·exp(−σ)) with σ from :func:`splat_sigma`; returns 0 where σ < 0 or
-    alpha < 1/255 (the Gaussian is skipped there, gsplat ``rasterize_to_pixels``). All arguments
-    broadcast together.
-
-    Args:
-        dx, dy: (...) pixel centre minus projected centre, pixels.
-        conics: (..., 3) conic (a, b, c), 1/pixels².
-        opacities: (...) opacities in [0, 1].
-
-    Returns:
-        (...) alpha in {0} ∪ [1/255, 0.99].
-    """
+    """Opacity at pixel offsets with the 3DGS skip rule: alpha = min(0.99, o·exp(−σ)) (σ: :func:`splat_sigma`),
+    0 where σ < 0 or alpha < 1/255 (gsplat ``rasterize_to_pixels``). Arguments as :func:`splat_sigma`, opacities
+    (...) in [0, 1], all broadcasting → (...) alpha in {0} ∪ [1/255, 0.99]."""
     sigma = splat_sigma(dx, dy, conics)
     alpha = torch.clamp(opacities * torch.exp(-sigma), max=ALPHA_MAX)
     keep = (sigma >= 0) & (alpha >= ALPHA_MIN)

@@ -1,28 +1,15 @@
-"""Ray-traced rendering of 3D Gaussians for camera effects (fisheye, thin lens) — the ray path.
+"""Ray-traced rendering of 3D Gaussians for camera effects (fisheye, thin lens): the ray path, on every device.
 
-The particle response along a ray is that of 3D Gaussian Ray Tracing (3DGRT, Moenne-Loccoz et al.,
-"3D Gaussian Ray Tracing: Fast Tracing of Particle Scenes", ACM TOG 43(6), 2024, arXiv:2407.07090),
-the renderer 4D-GRT (Liu et al., arXiv:2509.10759, 2025) uses for its camera effects: each Gaussian
-is evaluated at the point of its maximum along the ray. In the Gaussian's whitened frame
+The particle response of 3DGRT (Moenne-Loccoz et al., ACM TOG 43(6), 2024, arXiv:2407.07090), as 4D-GRT
+(Liu et al., arXiv:2509.10759) uses for camera effects: each Gaussian counts at its maximum along the ray. In the
+Gaussian's whitened frame
 
     o' = S⁻¹Rᵀ(o − μ),   d' = S⁻¹Rᵀd,
     t_max = −(o'·d') / ‖d'‖²                 (ray parameter of the maximum; ‖d‖ = 1, so metres),
     response = exp(−½ ‖d' × o'‖² / ‖d'‖²)    (= exp(−½ min_t ‖o' + t·d'‖²), Lagrange's identity).
 
-The 3DGS rules are the rasterizer's (same constants from :mod:`.projection`): alpha =
-min(ALPHA_MAX, opacity·response); a hit is skipped if alpha < ALPHA_MIN or t_max is outside
-[near_plane, far_plane] (so maxima behind the ray origin never count); hits are sorted by t_max
-(distance along the ray, not camera z) and composited front to back from T = 1, stopping before a
-hit that would bring T below T_MIN. Colours and backgrounds follow
-:func:`diff4splat.render.rasterize` (SH along mean − camera centre, see :func:`~diff4splat.render.sh.color_features`).
-
-Everything is batched tensor code (no loop over Gaussians): rays are grouped by pixel tiles, each
-tile keeps only the Gaussians whose alpha ≥ 1/255 support sphere can meet one of its rays (a cone
-test, :func:`cull_tiles`, on as many tiles at once as keep (tile × Gaussian) within ``budget``), and each
-tile's (ray × Gaussian) matrix is evaluated in batches of at most ``budget`` pairs. Plain autograd gives the
-gradients. Every tensor is made on the device of the inputs, so the ray path runs on CUDA as on the CPU (it is the
-path for camera effects on every device); it computes in the dtype of the inputs, float16/bfloat16 ones in float32
-(outputs are float32 then), with autocast off, as the tile path does.
+The 3DGS rules are the rasterizer's, along t_max (:func:`composite_rays`). Rays are grouped by pixel tiles, each
+keeping the Gaussians its ray cone can meet (:func:`cull_tiles`); plain autograd gives the gradients.
 """
 from __future__ import annotations
 
@@ -58,27 +45,16 @@ __all__ = ["raytrace", "render_rays", "whitening", "ray_gaussian_response", "com
            "tile_cones", "cull_tiles", "RAY_PAIR_BUDGET"]
 
 RAY_PAIR_BUDGET = 1 << 20
-"""Most (ray, Gaussian) pairs evaluated at once, and (tile, Gaussian) pairs culled at once (bounds the transient
-memory of a batch: culling every tile against every Gaussian at once costs about 25 bytes per pair)."""
-
+"""Most (ray, Gaussian) pairs evaluated, and (tile, Gaussian) pairs culled, at once (bounds a batch's memory)."""
 
 RAY_SCALE_FLOOR = 1e-6
-"""Smallest standard deviation the ray path whitens by, metres: scales below it (0 included: a flat or line
-Gaussian, accepted by the renderer) are raised to it, so 1/s stays finite and float32's ‖d' × o'‖² cannot
-overflow for offsets up to 10 km (a 0 scale would make W infinite and the image and gradients NaN). A 1 µm
-thickness is invisible at any scene scale the library renders; the tile path dilates by eps2d instead."""
+"""Smallest standard deviation the ray path whitens by, metres: smaller scales (0: a flat Gaussian) are raised to
+it, so 1/s stays finite and float32's ‖d' × o'‖² cannot overflow for offsets up to 10 km."""
 
 
 def whitening(quats: Tensor, scales: Tensor) -> Tensor:
-    """Whitening matrices W = S⁻¹Rᵀ mapping world offsets to the Gaussians' unit frames (Σ⁻¹ = WᵀW).
-
-    Args:
-        quats: (N, 4) wxyz, non-zero norm.  scales: (N, 3) standard deviations, metres, ≥ 0 (raised to
-            :data:`RAY_SCALE_FLOOR`; no gradient flows to a scale below it).
-
-    Returns:
-        (N, 3, 3), 1/metres.
-    """
+    """Whitening matrices W = S⁻¹Rᵀ (Σ⁻¹ = WᵀW), (N, 3, 3) 1/metres, from quats (N, 4) wxyz and scales (N, 3)
+    metres ≥ 0 (raised to :data:`RAY_SCALE_FLOOR`; no gradient flows to a scale below it)."""
     return quat_to_rotmat(quats).transpose(-1, -2) / scales.clamp_min(RAY_SCALE_FLOOR)[..., :, None]
 
 
@@ -88,12 +64,8 @@ def ray_gaussian_response(
     means: Tensor,  # (G, 3)
     whiten: Tensor,  # (G, 3, 3)
 ) -> tuple[Tensor, Tensor]:
-    """3DGRT response of every Gaussian at its maximum along every ray.
-
-    With o' = W(o − μ), d' = W d: t_max = −(o'·d')/‖d'‖², response = exp(−½‖d' × o'‖²/‖d'‖²)
-    (module docstring). Each component of d' and o' is one (R, 3) × (3, G) matrix product and the
-    cross product is formed from those contiguous (R, G) planes (the cross-product form keeps
-    float32 accurate for Gaussians far from the origin, where ‖o'‖²‖d'‖² − (o'·d')² would cancel).
+    """3DGRT response of every Gaussian at its maximum along every ray (module docstring; the cross-product form
+    keeps float32 accurate far from the origin).
 
     Returns:
         response (R, G) in (0, 1], t_max (R, G) metres along the (unit) rays (negative: behind the origin).
@@ -130,11 +102,9 @@ def composite_rays(
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Composite G Gaussians along R rays by brute force (every pair), 3DGS rules along t_max.
 
-    alpha = min(0.99, o·response), kept iff alpha ≥ 1/255 and near_plane ≤ t_max ≤ far_plane; kept
-    hits sorted by t_max (ties in input order); log T before hit i is the exclusive prefix sum of
-    log(1 − alpha); hit i is included iff T_i·(1 − alpha_i) ≥ 1e-4 (then every later hit is dropped
-    too); w_i = alpha_i·T_i. Only the K = max hits per ray are sorted and composited (``topk``, then
-    a stable sort of those by (t_max, index)), not all G candidates.
+    alpha = min(0.99, o·response), kept iff alpha ≥ 1/255 and near_plane ≤ t_max ≤ far_plane; kept hits sorted by
+    (t_max, index); log T before hit i is the exclusive prefix sum of log(1 − alpha); hit i is included iff
+    T_i·(1 − alpha_i) ≥ 1e-4 (later hits are dropped too); w_i = alpha_i·T_i.
 
     Returns:
         colour Σ w·feat (R, F) (no background), alpha Σ w (R,), distance Σ w·t_max (R,) metres.
@@ -165,12 +135,8 @@ def composite_rays(
 
 
 def support_radius(scales: Tensor, opacities: Tensor) -> Tensor:
-    """Radius of the sphere outside which a Gaussian's alpha is below 1/255, metres.
-
-    alpha ≥ 1/255 needs ½m² ≤ ln(255·o) for the Mahalanobis distance m, and ‖x − μ‖ ≤ max(s)·m, so
-    the radius is max(s)·sqrt(2 ln(255·o)) (the 3D analogue of :func:`.projection.support_extent`).
-    (N, 3), (N,) → (N,); −1 where o < 1/255 (never visible).
-    """
+    """Radius max(s)·sqrt(2 ln(255·o)) outside which a Gaussian's alpha is below 1/255, metres (alpha ≥ 1/255 needs
+    ½m² ≤ ln(255·o), and ‖x − μ‖ ≤ max(s)·m). (N, 3), (N,) → (N,); −1 where o < 1/255."""
     tau = torch.log(torch.clamp(opacities, min=OPACITY_LOG_FLOOR) / ALPHA_MIN)
     r = scales.amax(-1) * torch.sqrt(2.0 * tau.clamp(min=0.0)) * 1.001 + 1e-9
     return torch.where(tau >= 0, r, torch.full_like(r, -1.0))
@@ -183,9 +149,8 @@ def tile_cones(
     tile_of_ray: Tensor,  # (R,) int64
     n_tiles: int,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """The cone holding each tile's valid ray directions: (axis (T, 3) unit, the normalised mean direction;
-    half-angle β (T,) radians, the largest angle to the axis (π where the directions cancel); count (T,) of valid
-    rays). Float64."""
+    """Each tile's cone of valid ray directions, float64: axis (T, 3) (normalised mean direction), half-angle β (T,)
+    radians (π where the directions cancel), count (T,) of valid rays."""
     d = dirs.double()
     v = valid.double()[:, None]
     axis = d.new_zeros(n_tiles, 3).index_add_(0, tile_of_ray, d * v)
@@ -206,17 +171,11 @@ def cull_tiles(
     means: Tensor,  # (N, 3)
     radii: Tensor,  # (N,)
 ) -> Tensor:
-    """Conservative (tile, Gaussian) visibility: can any valid ray of the tile meet the support sphere?
+    """Conservative (tile, Gaussian) visibility: can a valid ray of the tile meet the support sphere? (t, N) bool.
 
-    Rays of a tile start within ``origin_spread`` metres of ``centre`` and have directions within
-    the cone (axis a = normalised mean direction, half-angle β = max angle to a; :func:`tile_cones`). A ray from
-    o = centre + δ, ‖δ‖ ≤ ε, meets the sphere (μ, ρ) only if the ray from ``centre`` with the same
-    direction passes within ρ + ε of μ, i.e. if L = ‖μ − centre‖ ≤ ρ + ε or
-    angle(a, μ − centre) ≤ β + asin((ρ + ε)/L). Computed in float64, about 25 bytes per (tile, Gaussian): the
-    renderer passes a few tiles at a time.
-
-    Returns:
-        (t, N) bool; all False for a tile without valid rays or a Gaussian with radius < 0.
+    Rays start within ε = ``origin_spread`` metres of ``centre``, directions within the cone (axis a, half-angle β)
+    of :func:`tile_cones`; they can meet the sphere (μ, ρ) only if L = ‖μ − centre‖ ≤ ρ + ε or
+    angle(a, μ − centre) ≤ β + asin((ρ + ε)/L). False for a tile without valid rays or a radius < 0. Float64.
     """
     axis, beta, count = cones
     rel = means.double() - centre.double()
@@ -253,31 +212,19 @@ def raytrace(
 ) -> tuple[Tensor, Tensor, dict]:
     """Render Gaussians by ray tracing; same arguments and outputs as :func:`diff4splat.render.rasterize`.
 
-    :func:`~diff4splat.render.rasterize` routes here when ``camera_model != "pinhole"`` or
-    ``camera_params`` is given. Rays come from :func:`diff4splat.cameras.lenses.generate_rays`
-    (pixel centres; S = ``camera_params.spp`` lens samples per pixel for :class:`ThinLens`, else 1);
-    every ray is composited by :func:`composite_rays`; a pixel is the mean of its S rays (colour with
-    background, alpha, accumulated distance).
+    Rays come from :func:`diff4splat.cameras.lenses.generate_rays` (pixel centres; ``camera_params.spp`` lens
+    samples per pixel for :class:`ThinLens`, else 1), each composited by :func:`composite_rays`; a pixel is the
+    mean of its rays. Differences from the rasterizer: the response is exact along the ray (no EWA
+    approximation); ``eps2d`` is ignored (a pinhole ray trace matches ``rasterize(..., eps2d=0)`` for small
+    Gaussians); hits are kept by t_max ∈ [near_plane, far_plane], not centres by camera z. The depth channel is
+    camera z, each hit's o_z + t_max·d_z in camera axes, so "ED" is the expected z-depth of the surface seen.
 
-    Differences from the rasterizer (documented, tested): the response is exact along the ray
-    instead of the EWA affine approximation; there is no screen-space dilation, so ``eps2d`` is
-    ignored (a pinhole ray trace matches ``rasterize(..., eps2d=0)`` for small Gaussians); hits are
-    kept by t_max ∈ [near_plane, far_plane] instead of culling centres by camera z. The depth channel is
-    camera z as the rasterizer's and gsplat's (for every camera model): each hit's z = o_z + t_max·d_z in the
-    camera's axes, composited with the hit's weight, so "ED" is the expected z-depth of the surface seen.
+    Args: as :func:`diff4splat.render.rasterize`, with ``camera_model`` in
+    :data:`diff4splat.cameras.lenses.RAY_CAMERA_MODELS`, ``rasterize_mode`` "classic", ``tile_size`` grouping rays
+    for culling and ``budget`` the most (ray, Gaussian) pairs per batch (default :data:`RAY_PAIR_BUDGET`).
 
-    Args:
-        camera_model: "pinhole" or "fisheye" (:data:`diff4splat.cameras.lenses.RAY_CAMERA_MODELS`).
-        camera_params: None, :class:`ThinLens` (pinhole), :class:`FisheyeKB` or
-            :class:`FisheyePolynomial` (fisheye; None → equidistant FisheyeKB()).
-        tile_size: pixel tile edge used to group rays for culling (a performance knob).
-        budget: most (ray, Gaussian) pairs per batch (default :data:`RAY_PAIR_BUDGET`).
-        Others: as :func:`diff4splat.render.rasterize`. ``rasterize_mode`` must be "classic".
-
-    Returns:
-        render_colors (C, H, W, D[+1]) ("D" = Σ w·z of the hits, "ED" = that / alpha, camera z in metres),
-        render_alphas (C, H, W, 1), meta — camera_model, camera_params, width, height, n_cameras,
-        tile_size, samples_per_pixel, n_pairs (list of C ints: pairs evaluated).
+    Returns render_colors (C, H, W, D[+1]), render_alphas (C, H, W, 1), meta — camera_model, camera_params, width,
+    height, n_cameras, tile_size, samples_per_pixel, n_pairs (list of C ints: pairs evaluated).
 
     Raises:
         ValueError: as ``rasterize``; unknown camera model or mismatched ``camera_params``;
@@ -294,31 +241,8 @@ def render_rays(
     means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, viewmats: Tensor, Ks: Tensor,
     width: int, height: int, settings: RasterSettings, *, budget: int | None = None,
 ) -> tuple[Tensor, Tensor, dict]:
-    """:func:`raytrace` with its keywords in ``settings`` (:class:`~diff4splat.render.settings.RasterSettings`):
-    what :func:`raytrace` and :func:`diff4splat.render.rasterize` call.
-
-    Args:
-        means: (N, 3) centres, world frame (metres).
-        quats: (N, 4) wxyz rotations (normalised here).
-        scales: (N, 3) standard deviations ≥ 0 (metres).
-        opacities: (N,) in [0, 1].
-        colors: (N, D), or (N, K, 3) SH coefficients with ``settings.sh_degree``.
-        viewmats: (C, 4, 4) world-to-camera rigid transforms.
-        Ks: (C, 3, 3) pinhole intrinsics (pixels).
-        width, height: image size in pixels.
-        settings: the keywords of :func:`raytrace` (``camera_model``, ``camera_params``, planes, modes, ...).
-        budget: most (ray, Gaussian) pairs per batch (None: :data:`RAY_PAIR_BUDGET`).
-
-    Returns:
-        render_colors (C, H, W, D[+1]) (depth channel: camera z in metres, as :func:`raytrace`),
-        render_alphas (C, H, W, 1) in [0, 1], meta dict (camera_model, camera_params, width, height, n_cameras,
-        tile_size, samples_per_pixel, n_pairs: list of C ints).
-
-    Raises:
-        ValueError: an argument :func:`~diff4splat.render.settings.validate_inputs` rejects (camera models
-            limited to :data:`RAY_CAMERA_MODELS`); unknown camera model or mismatched ``camera_params``
-            (:func:`~diff4splat.cameras.lenses.check_camera`); ``settings.rasterize_mode`` other than "classic".
-    """
+    """:func:`raytrace` with its keywords in ``settings`` (what :func:`raytrace` and ``rasterize`` call); the same
+    arguments (``budget`` None: :data:`RAY_PAIR_BUDGET`), outputs and errors."""
     params = check_camera(settings.camera_model, settings.camera_params)
     validate_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, settings,
                     camera_models=RAY_CAMERA_MODELS)
@@ -334,9 +258,8 @@ def render_rays(
     origins, dirs, valid = generate_rays(viewmats, Ks, width, height, camera_model, params)
     S = dirs.shape[3]
     spread = params.aperture_radius if isinstance(params, ThinLens) else 0.0
-    with_rgb = render_mode in ("RGB", "RGB+D", "RGB+ED")
-    if with_rgb:
-        feats = color_features(colors.to(dtype), means, viewmats, settings.sh_degree)
+    if render_mode in ("RGB", "RGB+D", "RGB+ED"):
+        feats = color_features(colors.to(dtype), means, viewmats, settings.sh_degree)  # (C, N, D)
     else:
         feats = means.new_zeros(C, means.shape[0], 0)
     bgs = mode_backgrounds(settings.backgrounds, render_mode, C, dtype)
@@ -380,8 +303,7 @@ def render_rays(
                 ids.append(r), cols.append(col), accs.append(acc), dists.append(dist)
                 pairs += len(r) * len(g)
         n_pairs.append(pairs)
-        F = feats.shape[-1]
-        col_img = feats.new_zeros(n_rays, F)
+        col_img = feats.new_zeros(n_rays, feats.shape[-1])
         acc_img, dist_img = feats.new_zeros(n_rays), feats.new_zeros(n_rays)
         if ids:
             all_ids = torch.cat(ids)

@@ -1,16 +1,8 @@
 """Rendering a (dynamic) Gaussian scene over time: along a camera path (:func:`render_path`, one frame per camera,
-each at its time), and with a rolling shutter (:func:`render_rolling_shutter`).
+each at its time) and with a rolling shutter (:func:`render_rolling_shutter`, 4D-GRT's effect).
 
-Rolling shutter (4D-GRT's rolling-shutter effect): each band of rows
-(:meth:`diff4splat.cameras.lenses.RollingShutter.row_bands`) is rendered with the scene deformed to the band's
-capture time and, optionally, the camera pose interpolated along the path to that time
-(:meth:`diff4splat.cameras.CameraPath.viewmat_at`); the bands are stacked into the frame. A band of rows r0 … r1−1
-is rendered as an image of height r1 − r0 whose principal point is shifted up by r0 pixels (cy − r0), so its pixel
-centres are exactly those rows of the full image. Bands are rendered by the ray path
-(:func:`diff4splat.render.raytrace.raytrace`, every camera model and effect), whose rays do not depend on the image
-extent, so a band equals its rows of the full frame exactly. (The tile rasterizer would not do: its EWA Jacobian
-clamp at 1.3× the field of view, as in gsplat, depends on the image height and cy, so a one-row band would distort
-every splat.) Chunks = 1 is one ordinary ray-traced frame.
+A rolling-shutter band of rows r0 … r1−1 is an image of height r1 − r0 with cy − r0, rendered by the ray path,
+whose rays do not depend on the image extent (the rasterizer's Jacobian clamp does), so it equals those rows.
 """
 from __future__ import annotations
 
@@ -39,20 +31,13 @@ def render_path(
     progress: bool = False,
     **rasterize_kwargs,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Render frame i of ``cameras`` with the scene deformed to ``cameras.times[i]``.
-
-    Runs on the scene's device (that of ``scene.canonical.means``): the path's viewmats and Ks are moved
-    there (and cast to the scene's dtype), the background is made there; :func:`~diff4splat.render.rasterize`
-    picks the path (gsplat or the PyTorch tile path on CUDA, the fused path on the CPU).
+    """Render frame i of ``cameras`` with the scene deformed to ``cameras.times[i]``, on the scene's device and dtype.
 
     Args:
-        scene: canonical Gaussians + optional deformation (SH colours).
-        cameras: T cameras (OpenCV world-to-camera) with times in [0, 1].
-        background: RGB in [0, 1] behind the Gaussians.
-        progress: tqdm progress bar over frames.
-        **rasterize_kwargs: passed to :func:`diff4splat.render.rasterize` (e.g. ``tile_size``, ``eps2d``: a
-            generated scene's own is ``GenerationResult.eps2d``); not ``render_mode`` ("RGB+ED"), ``backgrounds``
-            (from ``background``) or ``sh_degree`` (the scene's), which are set here.
+        scene: canonical Gaussians (SH colours) + optional deformation; cameras: T cameras with times in [0, 1].
+        background: RGB in [0, 1] behind the Gaussians; progress: tqdm progress bar over frames.
+        **rasterize_kwargs: passed to :func:`diff4splat.render.rasterize` (e.g. ``tile_size``, ``eps2d``); not
+            ``render_mode`` ("RGB+ED"), ``backgrounds`` or ``sh_degree`` (the scene's), which are set here.
 
     Returns:
         colors (T, H, W, 3) in [0, 1] (clamped), expected depth (T, H, W) metres (0 where alpha = 0),
@@ -87,32 +72,24 @@ def render_rolling_shutter(
     background: tuple[float, float, float] = BACKGROUND,
     **rasterize_kwargs,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Render frames of ``cameras`` with a rolling shutter.
+    """Render frames of ``cameras`` with a rolling shutter (gradients flow to the scene tensors).
 
-    Frame i (clip time t_i = ``cameras.times[i]``) reads row r at
-    t(r) = t0 + (r + ½)/H · duration (t0 from ``shutter.anchor``; clamped to [0, 1]); band k of
-    ``shutter.chunks`` is rendered at the mean time of its rows with ``scene.at(t)`` and, with
-    ``interpolate_pose``, ``cameras.viewmat_at(t)`` (centre lerp + rotation nlerp between the path's
-    cameras), else with frame i's own viewmat. Intrinsics are frame i's. Gradients flow to the
-    scene tensors (no ``no_grad`` here).
+    Frame i (clip time ``cameras.times[i]``) reads row r at t(r) = t0 + (r + ½)/H · duration (t0 from
+    ``shutter.anchor``; clamped to [0, 1]); each band of :meth:`~diff4splat.cameras.lenses.RollingShutter.row_bands`
+    is rendered at the mean time of its rows with ``scene.at(t)`` and, with ``interpolate_pose``,
+    ``cameras.viewmat_at(t)``, else frame i's viewmat; intrinsics are frame i's.
 
     Args:
-        scene: canonical Gaussians (SH colours) + optional deformation.
-        cameras: T cameras with clip times.
-        shutter: readout duration (clip-time units), number of row bands, anchor.
-        frames: frame indices to render (default: all).
-        interpolate_pose: move the camera along the path during the readout.
-        background: RGB in [0, 1] behind the Gaussians.
-        **rasterize_kwargs: passed to :func:`diff4splat.render.raytrace.raytrace` (camera_model,
-            camera_params, tile_size, near_plane, …; not render_mode, which is "RGB+ED").
+        scene, cameras, background: as :func:`render_path`; shutter: readout duration (clip time), bands, anchor.
+        frames: frame indices to render (default: all); interpolate_pose: move the camera during the readout.
+        **rasterize_kwargs: passed to :func:`diff4splat.render.raytrace.raytrace` (not render_mode: "RGB+ED").
 
     Returns:
         colors (F, H, W, 3) clamped to [0, 1], expected z-depth (F, H, W) metres in each band's camera (0
         where alpha = 0), alphas (F, H, W); on the scene's device.
 
     Raises:
-        ValueError: ``frames`` out of range, ``shutter.chunks`` > H, ``render_mode`` in
-            ``rasterize_kwargs``, or as ``rasterize``.
+        ValueError: ``frames`` out of range, ``shutter.chunks`` > H, ``render_mode`` given, or as ``rasterize``.
     """
     if not isinstance(shutter, RollingShutter):
         raise ValueError(f"shutter must be a RollingShutter, got {type(shutter).__name__}")

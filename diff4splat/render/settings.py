@@ -1,15 +1,7 @@
-"""The renderer's settings: their defaults, :class:`RasterSettings` (one value per render call) and their checks.
+"""The renderer's settings: their defaults (the one home of each), :class:`RasterSettings` and their checks.
 
-The public entry points (:func:`~diff4splat.render.rasterize`, :func:`~diff4splat.render.rasterize_dense`,
-:func:`~diff4splat.render.raytrace`) keep gsplat's ``rasterization`` keyword list, so calls port unchanged, and
-take their default values from the constants here, the one home of each value (as do
-:func:`~diff4splat.render.projection.project_gaussians` and the scene renderers of :mod:`.sequence`, which take
-:data:`BACKGROUND` and :data:`NEAR_PLANE`). Each entry point packs its keywords into a :class:`RasterSettings`, and
-every function behind it (the dispatch, :func:`validate_inputs`, the render pipeline, the gsplat backend, the ray
-path) takes that object instead of re-listing the keywords.
-
-The values are gsplat's ``rasterization`` defaults (the same in 1.4.0 … 1.5.3), except :data:`RENDER_MODE`:
-this project renders colour and expected depth together ("RGB+ED") by default, where gsplat's default is "RGB".
+The defaults are gsplat's ``rasterization`` defaults (1.4.0 … 1.5.3) except :data:`RENDER_MODE` ("RGB+ED", gsplat
+"RGB"). Why one settings object travels behind the entry points: docs/DESIGN.md "The renderer".
 """
 from __future__ import annotations
 
@@ -42,40 +34,22 @@ RENDER_MODE = "RGB+ED"
 """Colour plus expected depth as the last channel (gsplat's default is "RGB"; this project's is "RGB+ED")."""
 RASTERIZE_MODE = "classic"
 """No Mip-Splatting opacity compensation (gsplat "classic")."""
-# CAMERA_MODEL: pinhole projection (gsplat "pinhole"); its home is diff4splat.utils.constants because the camera models
-# (diff4splat.cameras.lenses), below the renderer, default to it too.
+# CAMERA_MODEL: pinhole (gsplat "pinhole"), at home in diff4splat.utils.constants (the camera models default to it)
 TILE_SIZE = 16
 """Tile edge, pixels (gsplat 16); a performance knob, the image does not depend on it."""
 BACKGROUND = (0.0, 0.0, 0.0)
-"""RGB in [0, 1] behind the Gaussians for the scene renderers (render_path, render_rolling_shutter); an output
-folder's own colour is :func:`diff4splat.io.scene_folder.meta_background`."""
+"""RGB in [0, 1] behind the Gaussians for the scene renderers (render_path, render_rolling_shutter)."""
 
 GSPLAT_KEYWORDS = ("near_plane", "far_plane", "eps2d", "sh_degree", "backgrounds", "render_mode", "rasterize_mode",
                    "camera_model", "tile_size")
-"""The fields of :class:`RasterSettings` that are keywords of gsplat's ``rasterization`` (all but
-``camera_params``, this project's camera effects), in gsplat's order."""
+"""The fields of :class:`RasterSettings` that are gsplat ``rasterization`` keywords (all but ``camera_params``)."""
 
 
 @dataclass(frozen=True, eq=False)
 class RasterSettings:
-    """How to render (everything of a render call but the Gaussians, the cameras and the image size).
-
-    Values are stored as given: :func:`validate_inputs` checks them, with the tensors, where a render starts (so
-    a bad value gives the same ``ValueError`` from every entry point). Compared by identity (``backgrounds`` is a
-    tensor).
-
-    Attributes:
-        near_plane, far_plane: Gaussians with camera z (on the ray path: ray hits with distance along the ray)
-            outside [near_plane, far_plane] are culled, metres.
-        eps2d: screen-space dilation added to each projected covariance, pixels².
-        sh_degree: None (``colors`` composited as given) or 0..3 (``colors`` are SH coefficients).
-        backgrounds: (C, D) colour behind the Gaussians, or None.
-        render_mode: "RGB", "D", "ED", "RGB+D" or "RGB+ED".
-        rasterize_mode: "classic" or "antialiased" (Mip-Splatting opacity compensation).
-        camera_model: "pinhole" or "fisheye" (ray path).
-        tile_size: tile edge, pixels (a performance knob).
-        camera_params: None, or a camera effect of :mod:`diff4splat.cameras.lenses` (ray path).
-    """
+    """A render call's keywords (everything but the Gaussians, cameras and image size), as
+    :func:`diff4splat.render.rasterize` documents them. Stored unchecked (:func:`validate_inputs` checks them where
+    a render starts); compared by identity (``backgrounds`` is a tensor)."""
 
     near_plane: float = NEAR_PLANE
     far_plane: float = FAR_PLANE
@@ -90,17 +64,15 @@ class RasterSettings:
 
     @property
     def antialiased(self) -> bool:
-        """Whether opacities are multiplied by the Mip-Splatting compensation (``rasterize_mode="antialiased"``)."""
+        """``rasterize_mode == "antialiased"`` (Mip-Splatting opacity compensation)."""
         return self.rasterize_mode == "antialiased"
 
     def gsplat_keywords(self) -> dict:
-        """gsplat ``rasterization``'s keyword arguments for these settings: {name: value} for
-        :data:`GSPLAT_KEYWORDS`."""
+        """{name: value} for :data:`GSPLAT_KEYWORDS` (gsplat ``rasterization``'s keyword arguments)."""
         return {name: getattr(self, name) for name in GSPLAT_KEYWORDS}
 
     def projection_keywords(self) -> dict:
-        """The keyword arguments of :func:`diff4splat.render.projection.project_gaussians` (and its drop-in
-        :func:`diff4splat.render.fused.project_fused`) for these settings."""
+        """The keyword arguments of :func:`diff4splat.render.projection.project_gaussians` (and ``project_fused``)."""
         return {"near_plane": self.near_plane, "far_plane": self.far_plane, "eps2d": self.eps2d,
                 "antialiased": self.antialiased, "camera_model": self.camera_model}
 
@@ -110,8 +82,7 @@ RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 RASTERIZE_MODES = ("classic", "antialiased")
 """gsplat's rasterize modes (antialiased: Mip-Splatting opacity compensation)."""
 VIEWMAT_TOL = {torch.float64: ROTATION_TOL, torch.float32: ROTATION_TOL, torch.float16: 1e-2, torch.bfloat16: 2e-2}
-"""Largest :func:`~diff4splat.scene.quaternions.rotation_errors` accepted in viewmats, per dtype (a rotation rounded to
-the dtype passes; a scaled, sheared or mirrored one does not)."""
+"""Largest :func:`~diff4splat.scene.quaternions.rotation_errors` accepted in viewmats, per dtype (rounding passes)."""
 
 
 def _check_shape(name: str, t: Tensor, shape: tuple) -> None:
@@ -128,23 +99,17 @@ def validate_inputs(
     means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, viewmats: Tensor, Ks: Tensor,
     width: int, height: int, settings: RasterSettings, *, camera_models: tuple[str, ...] = ("pinhole",),
 ) -> None:
-    """Check every argument of ``rasterize``; raise one ``ValueError`` naming the first bad one.
+    """Check every argument of a render call (every entry point calls this, so each gives the same message).
 
-    ``means`` … ``height`` are as in :func:`diff4splat.render.rasterize`; ``settings`` holds its keywords
-    (``camera_params`` is the ray path's to check); ``camera_models`` are the camera models the calling path
-    renders: pinhole on the tile paths and gsplat, :data:`~diff4splat.cameras.lenses.RAY_CAMERA_MODELS` on the
-    ray path.
+    ``means`` … ``height`` as :func:`diff4splat.render.rasterize`, ``settings`` its keywords (``camera_params`` is
+    the ray path's to check); ``camera_models``: those the calling path renders.
 
-    Checked, in order: shapes of means (N, 3), quats (N, 4), scales (N, 3), opacities (N,), colors
-    ((N, D), or (N, K, 3) with K ≥ (sh_degree+1)²), viewmats (C, 4, 4), Ks (C, 3, 3), backgrounds
-    (C, D); every tensor on the device of ``means`` (no path moves tensors between devices); width,
-    height, tile_size positive ints (pixels); 0 ≤ near_plane < far_plane (metres);
-    eps2d a finite number ≥ 0 (pixels²); render_mode in :data:`RENDER_MODES`, rasterize_mode in
-    :data:`RASTERIZE_MODES`, camera_model in ``camera_models``;
-    every tensor floating point and finite; at least one camera; opacities in [0, 1], scales ≥ 0 (metres),
-    Ks pinhole with focal lengths fx, fy > 0 (pixels), no skew and last row (0, 0, 1); viewmats rigid
-    (RᵀR = I within :data:`VIEWMAT_TOL`, last row (0, 0, 0, 1)). Every entry point (tile path, dense reference,
-    ray path, gsplat backend) calls this, so the same bad argument gives the same message from each.
+    Checked, in order: shapes (means (N, 3), quats (N, 4), scales (N, 3), opacities (N,), colors (N, D) or
+    (N, K ≥ (sh_degree+1)², 3), viewmats (C ≥ 1, 4, 4), Ks (C, 3, 3), backgrounds (C, D)); every tensor on
+    ``means``' device; width, height, tile_size positive ints (pixels); 0 ≤ near_plane < far_plane (metres); eps2d
+    finite ≥ 0 (pixels²); modes and camera model known; tensors floating point and finite; opacities in [0, 1],
+    scales ≥ 0; Ks pinhole (fx, fy > 0, no skew, last row (0, 0, 1)); viewmats rigid (RᵀR = I within
+    :data:`VIEWMAT_TOL`, last row (0, 0, 0, 1)).
 
     Raises:
         ValueError: naming the first bad argument and its value (or shape).
@@ -171,8 +136,9 @@ def validate_inputs(
     _check_shape("Ks", Ks, (c, 3, 3))
     if backgrounds is not None:
         _check_shape("backgrounds", backgrounds, (c, colors.shape[-1]))
-    for name, t in (("quats", quats), ("scales", scales), ("opacities", opacities), ("colors", colors),
-                    ("viewmats", viewmats), ("Ks", Ks), ("backgrounds", backgrounds)):
+    tensors = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors,
+               "viewmats": viewmats, "Ks": Ks, "backgrounds": backgrounds}
+    for name, t in tensors.items():
         if t is not None and t.device != means.device:
             raise ValueError(f"{name} is on {t.device} but means on {means.device}: pass every tensor on one device")
     check_positive_int("width", width, "pixels")
@@ -189,14 +155,12 @@ def validate_inputs(
     if camera_model not in camera_models:
         raise ValueError(f"camera_model must be one of {camera_models} (others are not supported yet), "
                          f"got {camera_model!r}")
-    for name, t in (("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
-                    ("colors", colors), ("viewmats", viewmats), ("Ks", Ks), ("backgrounds", backgrounds)):
+    for name, t in tensors.items():
         if t is not None:
             if not t.is_floating_point():
                 raise ValueError(f"{name} must be a floating-point tensor, got dtype {t.dtype}")
             check_finite(name, t)
-    # the values the paths assume (each one would otherwise render, and the compositors disagree: the fused one
-    # clamps an opacity above 1 where the PyTorch one does not)
+    # values the paths assume (else the compositors disagree: the fused one clamps an opacity above 1)
     if n:
         lo, hi = torch.aminmax(opacities.detach())
         if not 0 <= float(lo) <= float(hi) <= 1:
@@ -206,8 +170,7 @@ def validate_inputs(
     focal = Ks.detach()[:, [0, 1], [0, 1]]
     if not bool((focal > 0).all()):
         raise ValueError(f"Ks need focal lengths fx, fy > 0 pixels, got a minimum of {float(focal.min()):.6g}")
-    # the paths read fx, fy, cx, cy only (as gsplat) except the ray path, which inverts K: any other entry would
-    # make them disagree, so it must be the pinhole's 0 (no skew) and (0, 0, 1)
+    # the tile paths read fx, fy, cx, cy only, the ray path inverts K: other entries must be the pinhole's
     pinhole = Ks.new_tensor([[1.0, 0.0, 1.0], [0.0, 1.0, 1.0], [0.0, 0.0, 0.0]])  # 1: free entry
     fixed = Ks.new_tensor([0.0, 0.0, 1.0])
     if bool(((Ks.detach() * (1 - pinhole))[:, :2] != 0).any()) or bool((Ks.detach()[:, 2] != fixed).any()):
@@ -228,18 +191,13 @@ LOW_PRECISION = (torch.float16, torch.bfloat16)
 
 
 def compute_dtype(dtype: torch.dtype) -> torch.dtype:
-    """The dtype the renderer computes in for inputs of ``dtype``: float16/bfloat16 → float32, else itself.
-
-    Every path also runs with autocast off (:func:`diff4splat.utils.devices.full_precision`): under
-    ``torch.autocast(dtype=bfloat16)`` the projection's matmuls would run in bfloat16 (8-bit mantissa: depth
-    errors of metres, wrong culling); gsplat's kernels likewise compute in float32 whatever the autocast state.
-    """
+    """The dtype the renderer computes in for inputs of ``dtype``: float16/bfloat16 → float32, else itself (every
+    path also turns autocast off, :func:`diff4splat.utils.devices.full_precision`, as gsplat computes in float32)."""
     return torch.float32 if dtype in LOW_PRECISION else dtype
 
 
 def mode_backgrounds(backgrounds: Tensor | None, render_mode: str, C: int, dtype: torch.dtype) -> Tensor | None:
-    """Backgrounds (C, F) of the composited features for ``render_mode``: the colour for "RGB",
-    0 for the depth channel ("D"/"ED" → (C, 1) zeros, "RGB+D"/"RGB+ED" → colour then 0); None stays None."""
+    """Backgrounds (C, F) of the features for ``render_mode``: the colour, then 0 for a depth channel; None stays."""
     if backgrounds is None:
         return None
     bgs = backgrounds.to(dtype)
@@ -251,8 +209,8 @@ def mode_backgrounds(backgrounds: Tensor | None, render_mode: str, C: int, dtype
 
 
 def expected_depth(render_colors: Tensor, render_alphas: Tensor, render_mode: str) -> Tensor:
-    """For "ED"/"RGB+ED", divide the accumulated depth (last channel) by max(alpha, 1e-10), so it is
-    0 where alpha is 0; other modes are returned unchanged. (C, H, W, F), (C, H, W, 1) → (C, H, W, F)."""
+    """"ED"/"RGB+ED": the last channel divided by max(alpha, 1e-10) (0 where alpha is 0); other modes unchanged.
+    (C, H, W, F), (C, H, W, 1) → (C, H, W, F)."""
     if render_mode not in ("ED", "RGB+ED"):
         return render_colors
     return torch.cat([render_colors[..., :-1], render_colors[..., -1:] / render_alphas.clamp(min=1e-10)], dim=-1)

@@ -1,11 +1,8 @@
 """Real spherical harmonics up to degree 3, INRIA 3DGS convention (view-dependent colour).
 
-The basis and constants are those of the INRIA reference implementation (``sh_utils.py`` /
-``forward.cu::computeColorFromSH``, Kerbl et al. 2023 §5), i.e. the orthonormal real SH of
-Sloan, "Stupid Spherical Harmonics (SH) Tricks" (2008), App. A2, with the Condon–Shortley phase,
-evaluated at a unit direction (x, y, z) and ordered l = 0..3, m = −l..l.
-Colour = max(Σ_k c_k·Y_k(dir) + 0.5, 0) (docs/DESIGN.md "Colours"); :func:`color_features` gives every
-render path its per-camera colours.
+Basis and constants of the INRIA implementation (``sh_utils.py``, Kerbl et al. 2023 §5): the orthonormal real SH
+of Sloan, "Stupid Spherical Harmonics (SH) Tricks" (2008), App. A2, Condon–Shortley phase, ordered l = 0..3,
+m = −l..l. Colour = max(Σ_k c_k·Y_k(dir) + 0.5, 0) (docs/DESIGN.md "Colours").
 """
 from __future__ import annotations
 
@@ -23,41 +20,20 @@ __all__ = ["SH_C0", "SH_C1", "SH_C2", "SH_C3", "num_sh_bases", "sh_basis", "sphe
 
 SH_C1 = 0.4886025119029199  # sqrt(3/(4π))
 SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
-SH_C3 = (
-    -0.5900435899266435,
-    2.890611442640554,
-    -0.4570457994644658,
-    0.3731763325901154,
-    -0.4570457994644658,
-    1.445305721320277,
-    -0.5900435899266435,
-)
+SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
+         1.445305721320277, -0.5900435899266435)
 
 
 def num_sh_bases(degree: int) -> int:
-    """Number of coefficients (degree+1)² of an SH expansion up to ``degree`` (0–3).
-
-    Raises:
-        ValueError: degree outside 0..3.
-    """
+    """Number of coefficients (degree+1)² of an SH expansion up to ``degree``; ValueError unless 0 ≤ degree ≤ 3."""
     if isinstance(degree, bool) or not isinstance(degree, int) or not 0 <= degree <= 3:
         raise ValueError(f"sh_degree must be an int in 0..3, got {degree!r}")
     return (degree + 1) ** 2
 
 
 def sh_basis(degree: int, dirs: Tensor) -> Tensor:
-    """Real SH basis Y_k(dir) for k < (degree+1)², INRIA constants and ordering.
-
-    Args:
-        degree: 0..3.
-        dirs: (..., 3) unit directions (x, y, z) (not normalised here).
-
-    Returns:
-        (..., (degree+1)²) basis values.
-
-    Raises:
-        ValueError: degree outside 0..3 or dirs without a trailing 3.
-    """
+    """Real SH basis Y_k(dir), k < (degree+1)²: degree 0..3, dirs (..., 3) unit (not normalised here) →
+    (..., (degree+1)²). ValueError: degree outside 0..3 or dirs without a trailing 3."""
     num_sh_bases(degree)
     if dirs.shape[-1] != 3:
         raise ValueError(f"dirs must have last dimension 3, got shape {tuple(dirs.shape)}")
@@ -67,13 +43,7 @@ def sh_basis(degree: int, dirs: Tensor) -> Tensor:
         out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
     if degree >= 2:
         xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-        out += [
-            SH_C2[0] * xy,
-            SH_C2[1] * yz,
-            SH_C2[2] * (2.0 * zz - xx - yy),
-            SH_C2[3] * xz,
-            SH_C2[4] * (xx - yy),
-        ]
+        out += [SH_C2[0] * xy, SH_C2[1] * yz, SH_C2[2] * (2.0 * zz - xx - yy), SH_C2[3] * xz, SH_C2[4] * (xx - yy)]
     if degree >= 3:
         out += [
             SH_C3[0] * y * (3.0 * xx - yy),
@@ -88,20 +58,9 @@ def sh_basis(degree: int, dirs: Tensor) -> Tensor:
 
 
 def spherical_harmonics(degrees_to_use: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
-    """Evaluate SH expansions along view directions (gsplat ``spherical_harmonics`` signature).
-
-    Args:
-        degrees_to_use: degree 0..3; the first (degree+1)² coefficients are used.
-        dirs: (..., 3) view directions (mean − camera centre), any length; normalised here
-            (a zero vector gives a zero direction, so only the DC term survives).
-        coeffs: (..., K, D) coefficients, K ≥ (degree+1)²; broadcasts against dirs[..., None, :].
-
-    Returns:
-        (..., D) Σ_k coeffs_k·Y_k(dir), without the +0.5 offset (see :func:`sh_to_color`).
-
-    Raises:
-        ValueError: degree outside 0..3 or too few coefficients.
-    """
+    """(..., D) Σ_k coeffs_k·Y_k(dir), without the +0.5 offset (gsplat ``spherical_harmonics`` signature): the
+    first (degree+1)² of coeffs (..., K, D) (broadcasting against dirs[..., None, :]) along dirs (..., 3), normalised
+    here (zero: only the DC term survives). ValueError: degree outside 0..3 or too few coefficients."""
     k = num_sh_bases(degrees_to_use)
     if coeffs.dim() < 2 or coeffs.shape[-2] < k:
         raise ValueError(f"coeffs must have shape (..., K≥{k}, D) for degree {degrees_to_use}, "
@@ -121,9 +80,8 @@ def color_features(
     viewmats: Tensor,  # (C, 4, 4)
     sh_degree: int | None,
 ) -> Tensor:
-    """Per-camera colour features (C, N, D): ``colors`` as given, or with ``sh_degree`` the INRIA
-    SH colour max(SH(dir) + 0.5, 0) along dir = mean − camera centre (centre −Rᵀt, gsplat
-    ``rasterization``)."""
+    """Per-camera colours (C, N, D): ``colors`` as given, or with ``sh_degree`` max(SH(dir) + 0.5, 0) along
+    dir = mean − camera centre (−Rᵀt), as gsplat ``rasterization``."""
     C, N = viewmats.shape[0], means.shape[0]
     if sh_degree is None:
         return colors[None].expand(C, N, colors.shape[-1])
@@ -133,27 +91,14 @@ def color_features(
 
 
 _ROTATION_SAMPLES = 64
-"""Directions on which :func:`sh_rotation` solves for its matrix (≥ 16 = the degree-3 basis size; a Fibonacci
-sphere, so the sampled basis has full column rank)."""
+"""Fibonacci-sphere directions :func:`sh_rotation` solves on (≥ 16, so the sampled basis has full column rank)."""
 
 
 def sh_rotation(degree: int, R: Tensor) -> Tensor:
-    """The matrix that rotates SH coefficients: M (K, K), K = (degree+1)², with Y(Rᵀd) = M·Y(d) for every unit d.
+    """M (K, K), K = (degree+1)², with Y(Rᵀd) = M·Y(d) for every unit d (the block-diagonal real Wigner matrices).
 
-    Rotations map each degree's functions onto themselves, so M is block-diagonal (the real Wigner matrices of R
-    in this basis); it is solved here by least squares on fixed directions, exact to float64 rounding since the
-    relation is linear and exact. Coefficients c of a colour(d) = c·Y(d) become Mᵀc after rotating by R (the
-    rotated colour at R·d is the original one at d): :func:`rotate_sh`.
-
-    Args:
-        degree: 0..3.
-        R: (3, 3) rotation matrix (orthonormal, det +1).
-
-    Returns:
-        (K, K) float64 on the CPU.
-
-    Raises:
-        ValueError: degree outside 0..3, or R not (3, 3).
+    Solved by least squares on fixed directions (exact to float64 rounding: the relation is linear). degree 0..3,
+    R (3, 3) rotation → (K, K) float64 on the CPU. ValueError: degree outside 0..3, or R not (3, 3).
     """
     k = num_sh_bases(degree)
     if tuple(R.shape) != (3, 3):
@@ -169,18 +114,9 @@ def sh_rotation(degree: int, R: Tensor) -> Tensor:
 
 
 def rotate_sh(sh: Tensor, R: Tensor) -> Tensor:
-    """SH coefficients of Gaussians rotated by R: the new colour towards R·d is the old one towards d.
-
-    Args:
-        sh: (..., K, D) coefficients, K = (degree+1)² ≤ 16 (the DC term, K = 1, is returned unchanged).
-        R: (3, 3) rotation matrix (world → world).
-
-    Returns:
-        (..., K, D) in ``sh``'s dtype and device.
-
-    Raises:
-        ValueError: K not a square ≤ 16, or R not (3, 3).
-    """
+    """SH coefficients of Gaussians rotated by R (world → world): c' = Mᵀc (:func:`sh_rotation`), so the new colour
+    towards R·d is the old one towards d. sh (..., K, D), K in (1, 4, 9, 16) → (..., K, D) in ``sh``'s dtype and
+    device. ValueError: K not a square ≤ 16, or R not (3, 3)."""
     k = sh.shape[-2] if sh.dim() >= 2 else 0
     degree = math.isqrt(k) - 1
     if k < 1 or (degree + 1) ** 2 != k or degree > 3:

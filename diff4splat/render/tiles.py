@@ -1,16 +1,8 @@
-"""The pure-PyTorch compositors: the tile compositor, reference and fallback of the fused one (:mod:`.fused`),
-and the dense brute-force one (:func:`composite_dense`), the oracle both are tested against.
+"""The pure-PyTorch compositors: the tile compositor (reference and fallback of :mod:`.fused`, and the path on
+every device) and the dense brute-force one (:func:`composite_dense`), the oracle both are tested against.
 
-Organised like gsplat's CUDA pipeline (Kerbl et al. 2023 §6): per camera the visible Gaussians are sorted
-once by depth, binned into tile_size × tile_size tiles (each tile's list stays depth-sorted), and tiles are
-composited in chunks. Inside a chunk only the (pixel, Gaussian) pairs where the pixel lies in the Gaussian's
-visible support box are evaluated — small splats cost a handful of pairs, not a whole tile — and each
-pixel's pairs are composited front to back with segmented prefix sums. The compositing step is a
-``torch.autograd.Function`` with the analytic backward of gsplat's ``rasterize_to_pixels_bwd``.
-
-Runs on every device (the path ``rasterize`` takes for CUDA tensors without gsplat, and for float64 there):
-every tensor is made on the device of the inputs, there is no loop over Gaussians (only over chunks of
-tiles), and numpy is used only for the CPU's radix sort (:func:`_stable_argsort_small`).
+As gsplat's CUDA pipeline (Kerbl et al. 2023 §6): visible Gaussians binned into tiles in depth order, tiles
+composited in chunks over the (pixel, Gaussian) pairs inside each support box, with segmented prefix sums.
 """
 from __future__ import annotations
 
@@ -25,21 +17,17 @@ __all__ = ["tile_boxes", "bin_tiles", "composite_tiles", "composite_dense", "kee
            "PAIR_BUDGET", "PAIR_BUDGET_DEVICE", "CHUNK_PIXELS", "CHUNK_PIXELS_DEVICE"]
 
 PAIR_BUDGET = 1 << 18
-"""Most (pixel, Gaussian) pairs composited at once on the CPU (bounds the transient memory of a chunk). 2¹⁸
-keeps a chunk's per-pair arrays (~1 MiB each) cache-sized."""
+"""Most (pixel, Gaussian) pairs composited at once on the CPU (per-pair arrays of a chunk stay cache-sized)."""
 PAIR_BUDGET_DEVICE = 1 << 22
-"""The same bound on a non-CPU device (CUDA). There the cost of a chunk is its ~40 kernel launches and the
-host synchronisations of the chunk loop (``int(…)`` of sizes), not cache misses, so chunks are 16× larger:
-fewer chunks, each pair array ~16 MiB (float32), a few hundred MiB of transients per chunk."""
+"""The same bound on a non-CPU device, larger: there a chunk costs kernel launches and host syncs, not cache misses."""
 CHUNK_PIXELS = 1 << 16
 """Most pixels per chunk on the CPU: the pixel keys of a chunk fit 16 bits, for the numpy radix sort."""
 CHUNK_PIXELS_DEVICE = 1 << 22
-"""Most pixels per chunk on a non-CPU device (keys are sorted by ``torch.sort(stable=True)``, any size)."""
+"""Most pixels per chunk on a non-CPU device (keys sorted by ``torch.argsort(stable=True)``)."""
 
 
 def pair_budget(device: torch.device) -> int:
-    """Default most (pixel, Gaussian) pairs per chunk on ``device``: :data:`PAIR_BUDGET` on the CPU,
-    :data:`PAIR_BUDGET_DEVICE` elsewhere."""
+    """:data:`PAIR_BUDGET` on the CPU, :data:`PAIR_BUDGET_DEVICE` elsewhere."""
     return PAIR_BUDGET if device.type == "cpu" else PAIR_BUDGET_DEVICE
 
 
@@ -52,14 +40,10 @@ def tile_boxes(
     height: int,
     tile_size: int,
 ) -> tuple[Tensor, Tensor]:
-    """Each Gaussian's pixel box and its number of tiles (the first step of :func:`bin_tiles`).
-
-    The box holds every pixel whose centre lies inside the opacity-aware support of :func:`support_extent`
-    (where alpha ≥ 1/255 can hold), clipped to the image.
+    """Each Gaussian's pixel box (centres inside its :func:`support_extent`, clipped to the image) and tile count.
 
     Returns:
-        box (M, 4) int64 inclusive pixel box (x0, y0, x1, y1); tiles_per_gauss (M,) int64 tiles it overlaps
-        (0 when the box is empty or the Gaussian is never visible).
+        box (M, 4) int64 inclusive (x0, y0, x1, y1); tiles_per_gauss (M,) int64 (0: empty box or never visible).
     """
     ext = support_extent(covars2d, opacities)
     lo = torch.ceil(means2d - ext - 0.5).clamp(min=0)  # first pixel index whose centre can be inside
@@ -82,18 +66,13 @@ def bin_tiles(
     height: int,
     tile_size: int,
 ) -> dict:
-    """Bin screen Gaussians into the tiles overlapped by their visible support, depth-sorted per tile.
-
-    The support is the pixel box of :func:`tile_boxes`, so every pixel a Gaussian can affect lies in one
-    of its tiles and the image does not depend on ``tile_size``. Gaussians are sorted by depth once (stable), their
-    tile intersections generated in that order and grouped by tile with a stable sort, so each
-    tile's list is front to back (gsplat ``isect_tiles`` + ``isect_offset_encode``).
+    """Bin screen Gaussians into the tiles their :func:`tile_boxes` box overlaps, depth-sorted (stable) per tile
+    (gsplat ``isect_tiles`` + ``isect_offset_encode``); the image therefore does not depend on ``tile_size``.
 
     Returns:
-        dict — tiles_x, tiles_y; box (M, 4) int64 inclusive pixel box (x0, y0, x1, y1);
-        tiles_per_gauss (M,); flatten_ids (I,) Gaussian index of each intersection, grouped by tile
-        (tile id = ty·tiles_x + tx ascending), depth order inside a tile; isect_tiles (I,) their
-        tile ids; tile_counts (T,) and isect_offsets (T,) list length and start of each tile.
+        dict — tiles_x, tiles_y; box (M, 4); tiles_per_gauss (M,); flatten_ids (I,) Gaussian of each intersection,
+        grouped by tile id ty·tiles_x + tx, depth order inside; isect_tiles (I,) their tile ids; tile_counts (T,),
+        isect_offsets (T,) length and start of each tile's list.
     """
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
     box, per_gauss = tile_boxes(means2d, covars2d, opacities, width, height, tile_size)
@@ -116,11 +95,7 @@ def bin_tiles(
 
 
 def _stable_argsort_small(keys: Tensor, n_keys: int) -> Tensor:
-    """Stable argsort of non-negative int keys < n_keys, (P,) → (P,) int64 on the keys' device.
-
-    On the CPU, keys that fit 16 bits are sorted by numpy's radix sort (faster than torch's merge sort);
-    elsewhere (or wider keys) by ``torch.argsort(stable=True)``, so device tensors never reach numpy.
-    """
+    """Stable argsort of int keys in [0, n_keys), (P,) → (P,) int64: numpy's radix sort for CPU 16-bit keys."""
     if keys.device.type == "cpu" and n_keys <= 1 << 16:
         return torch.from_numpy(np.argsort(keys.cpu().numpy().astype(np.uint16), kind="stable"))
     return torch.argsort(keys, stable=True)
@@ -129,14 +104,11 @@ def _stable_argsort_small(keys: Tensor, n_keys: int) -> Tensor:
 class _CompositePairs(torch.autograd.Function):
     """Front-to-back compositing of (pixel, Gaussian) pairs sorted by pixel, then depth.
 
-    Forward: alpha_i by :func:`splat_alpha`; per pixel segment, log T before pair i is the
-    exclusive prefix sum of log(1 − alpha) (float64 accumulation); pair i is included iff
-    T_i·(1 − alpha_i) ≥ 1e-4 (a prefix of the segment, the 3DGS stop rule); w_i = alpha_i·T_i;
-    colour = Σ w·feat + (1 − Σ w)·bg, alpha = Σ w.
-    Backward (gsplat ``rasterize_to_pixels_bwd``): with v_i = feat_i·∂L/∂colour + ∂L/∂alpha −
-    bg·∂L/∂colour, ∂L/∂alpha_i = T_i·v_i − (Σ_{j>i} w_j v_j)/(1 − alpha_i) for included pairs;
-    alpha = o·exp(−σ) gives ∂/∂o = exp(−σ), ∂/∂σ = −alpha (zero where skipped or clamped at
-    0.99); σ = ½(a dx² + c dy²) + b dx dy with dx = px − μx gives the mean and conic gradients.
+    Forward: log T before pair i is the per-pixel exclusive prefix sum of log(1 − alpha) (float64); pair i is
+    included iff T_i·(1 − alpha_i) ≥ 1e-4; w_i = alpha_i·T_i; colour = Σ w·feat + (1 − Σ w)·bg, alpha = Σ w.
+    Backward (gsplat ``rasterize_to_pixels_bwd``): v_i = feat_i·∂L/∂colour + ∂L/∂alpha − bg·∂L/∂colour,
+    ∂L/∂alpha_i = T_i·v_i − (Σ_{j>i} w_j v_j)/(1 − alpha_i); ∂/∂o = exp(−σ), ∂/∂σ = −alpha (0 where skipped or
+    clamped at 0.99), then the chain rule through σ = ½(a dx² + c dy²) + b dx dy, dx = px − μx.
     """
 
     @staticmethod
@@ -179,17 +151,8 @@ class _CompositePairs(torch.autograd.Function):
         d_raw = torch.where(raw <= ALPHA_MAX, d_alpha, 0.0)
         d_sigma = -d_raw * raw
         a, b, c = prm[:, 2], prm[:, 3], prm[:, 4]
-        grads = torch.stack(
-            [
-                -d_sigma * (a * dx + b * dy),
-                -d_sigma * (b * dx + c * dy),
-                0.5 * d_sigma * dx * dx,
-                d_sigma * dx * dy,
-                0.5 * d_sigma * dy * dy,
-                d_raw * vis,
-            ],
-            dim=-1,
-        )
+        grads = torch.stack([-d_sigma * (a * dx + b * dy), -d_sigma * (b * dx + c * dy), 0.5 * d_sigma * dx * dx,
+                             d_sigma * dx * dy, 0.5 * d_sigma * dy * dy, d_raw * vis], dim=-1)  # (P, 6)
         grad_params = torch.zeros_like(params).index_add_(0, gid, grads)
         grad_feats = torch.zeros_like(feats).index_add_(0, gid, w[:, None] * go)
         grad_bg = None
@@ -212,26 +175,15 @@ def composite_tiles(
     *,
     budget: int | None = None,
 ) -> tuple[Tensor, Tensor, dict]:
-    """Composite one camera tile by tile; same result as :func:`composite_dense`.
+    """Composite one camera tile by tile (a :data:`diff4splat.render.rasterize.Compositor`); same result as
+    :func:`composite_dense`, on the inputs' device.
 
-    Tiles (from :func:`bin_tiles`) are taken in raster order in chunks of consecutive tiles holding
-    at most ``budget`` pairs and :data:`CHUNK_PIXELS` pixels (:data:`CHUNK_PIXELS_DEVICE` off the CPU). For
-    each chunk the pairs (intersection × pixels of the Gaussian's box inside the tile) are generated, stably
-    sorted by pixel (:func:`_stable_argsort_small`; the depth order of the tile lists is kept) and composited
-    by :class:`_CompositePairs`. Pixels no Gaussian reaches get the background and alpha 0. Runs on the
-    device of the inputs (all on one device); the chunking does not change the result.
-
-    Args:
-        means2d, conics, opacities, depths, feats, covars2d: the M visible Gaussians of one camera (pixels,
-            1/pixels², (0, 1), metres, any features, pixels²), as :data:`diff4splat.render.rasterize.Compositor`.
-        background: (F,) behind the Gaussians, or None (0).
-        width, height, tile_size: pixels.
-        budget: most pairs per chunk; default :func:`pair_budget` of the device (:data:`PAIR_BUDGET` on the
-            CPU, :data:`PAIR_BUDGET_DEVICE` elsewhere).
+    Tiles of :func:`bin_tiles` are taken in raster order, in chunks of at most ``budget`` pairs (default
+    :func:`pair_budget`) and :data:`CHUNK_PIXELS` pixels (:data:`CHUNK_PIXELS_DEVICE` off the CPU), each chunk's
+    pairs stably sorted by pixel and composited by :class:`_CompositePairs`.
 
     Returns:
-        colors (H·W, F), alphas (H·W,), info dict (tile binning of :func:`bin_tiles`; indices
-        refer to the M input Gaussians; n_pairs = pairs evaluated).
+        colors (H·W, F), alphas (H·W,), info (the binning of :func:`bin_tiles` without box; n_pairs evaluated).
     """
     device = means2d.device
     budget = pair_budget(device) if budget is None else budget
@@ -305,26 +257,17 @@ def composite_dense(
     height: int,
     tile_size: int,  # unused: no tiles
 ) -> tuple[Tensor, Tensor, dict]:
-    """Composite one camera by brute force: all pixels × all Gaussians, sequential in depth.
+    """Composite one camera by brute force (O(H·W·M) memory; the oracle), Gaussians in stable depth order.
 
-    Gaussians are sorted by depth (stable, ties keep input order). For each pixel, T = 1; for each
-    Gaussian front to back with alpha from :func:`splat_alpha` (0 = skipped): next_T = T·(1 − alpha);
-    if next_T < 1e-4 the pixel stops and this Gaussian is not included; otherwise the pixel gains
-    alpha·T·feat and T = next_T. Finally colour += T·background, alpha = 1 − T (gsplat
-    ``rasterize_to_pixels_fwd``; 3DGS eq. 3).
-
-    The loop runs over the depth-sorted Gaussians (O(H·W·M) memory: the brute-force oracle, for tests and tiny
-    images); every tensor is made on the device of ``means2d``, so it runs on any device.
-
-    Returns:
-        colors: (H·W, F), alphas: (H·W,), info {} (no tiles).
+    Per pixel from T = 1, each Gaussian front to back with alpha of :func:`splat_alpha` (0 = skipped):
+    next_T = T·(1 − alpha); next_T < 1e-4 stops the pixel without it; else the pixel gains alpha·T·feat and
+    T = next_T. Finally colour += T·background, alpha = 1 − T (gsplat ``rasterize_to_pixels_fwd``; 3DGS eq. 3).
+    Returns colors (H·W, F), alphas (H·W,), info {}.
     """
     dtype, device = means2d.dtype, means2d.device
     order = torch.argsort(depths, stable=True)
-    ys, xs = torch.meshgrid(
-        torch.arange(height, dtype=dtype, device=device) + 0.5, torch.arange(width, dtype=dtype, device=device) + 0.5,
-        indexing="ij",
-    )
+    ys, xs = torch.meshgrid(torch.arange(height, dtype=dtype, device=device) + 0.5,
+                            torch.arange(width, dtype=dtype, device=device) + 0.5, indexing="ij")
     px, py = xs.reshape(-1, 1), ys.reshape(-1, 1)  # (P, 1)
     m2, cn, op, ft = means2d[order], conics[order], opacities[order], feats[order]
     alphas = splat_alpha(px - m2[None, :, 0], py - m2[None, :, 1], cn[None], op[None])  # (P, M)
@@ -348,20 +291,9 @@ def composite_dense(
 
 
 def keep_in_graph(out: Tensor, *inputs: Tensor | None) -> Tensor:
-    """``out`` itself, or ``out`` attached to the autograd graph of ``inputs`` with zero gradient when it is not.
-
-    A view in which no Gaussian is visible composites nothing, so the PyTorch compositors' image would be a
-    detached zero/background tensor and ``loss.backward()`` would raise; the fused path and gsplat keep their
-    outputs attached. The anchor is an empty slice's sum (exactly 0, and 0 even beside inf), so ``out``'s values
-    are unchanged.
-
-    Args:
-        out: a rendered output, any shape.
-        inputs: the tensors it was computed from, any shapes (None entries skipped).
-
-    Returns:
-        ``out``'s values and shape, requiring grad when any input does and grad mode is on.
-    """
+    """``out``, attached with zero gradient to the graph of ``inputs`` (None skipped) when it is not, so a view that
+    sees no Gaussian still backpropagates (as the fused path and gsplat do). The anchor is an empty slice's sum,
+    exactly 0, so the values are unchanged."""
     if out.requires_grad or not torch.is_grad_enabled():
         return out
     sources = [t for t in inputs if t is not None and t.requires_grad]
