@@ -168,7 +168,9 @@ def keyframe_dtype(scene: DynamicGaussians, times: Tensor, cameras: CameraPath) 
     (:meth:`DynamicGaussians.at` with ``index``); the range from a bound, max |μ| + max |Δμ| and
     max s·exp(max Δs) below 65520, else from every keyframe's values one time at a time."""
     F, N = len(times), scene.num_gaussians
-    pick = evenly_spaced(F * N, FLOAT16_CHECK_POINTS) if F * N > FLOAT16_CHECK_POINTS else torch.arange(F * N)
+    dev = scene.canonical.means.device
+    pick = (evenly_spaced(F * N, FLOAT16_CHECK_POINTS, dev) if F * N > FLOAT16_CHECK_POINTS
+            else torch.arange(F * N, device=dev))
     means = [scene.at(float(times[f]), gate=0.0, index=pick[pick // N == f] % N).means.detach()
              for f in range(F)]
     err = float16_error_px(torch.cat(means)[None].cpu(), cameras.viewmats.detach().cpu(),
