@@ -1,9 +1,6 @@
-"""``diff4splat`` command line: ``diff4splat generate IMAGE ... --out DIR``, ``diff4splat reconstruct VIDEO ...
---out DIR`` (:mod:`diff4splat.reconstruct`), ``diff4splat export-onnx --out DIR`` and
-``diff4splat render DIR (--cameras FILE | --trajectory NAME) --out OUT`` (:mod:`diff4splat.render_command`) and
-``diff4splat view DIR [--port P]`` (:mod:`diff4splat.viewer_server`).
-
-Bad input gets one line on stderr (``diff4splat: error: …``) and exit code 2, and no output folder.
+"""``diff4splat`` command line: ``generate`` (:mod:`diff4splat.generate_cli`), ``reconstruct``, ``export-onnx``,
+``render`` (:mod:`diff4splat.render_command`), ``view`` (:mod:`diff4splat.viewer_server`) and plugin commands.
+Bad input gets one line on stderr (``diff4splat: error: …``), exit code 2 and no output folder.
 """
 from __future__ import annotations
 
@@ -33,10 +30,8 @@ OUT_HELP = ("output folder, written atomically; an existing one is replaced only
 OVERWRITE_HELP = ("also replace an existing --out that is not an earlier output of this command "
                   "(never a folder holding the inputs, the current or home directory)")
 PLUGIN_GROUP = "diff4splat.commands"
-"""Entry-point group of extra subcommands: ``register(subparsers)`` adds a parser whose defaults hold
-``func(args) -> int``. ``training`` registers ``evaluate`` this way, so this package never imports it.
-Building the parser only lists the names (nothing is loaded); an entry point is loaded when its
-command is chosen (:func:`main`)."""
+"""Entry-point group of extra subcommands (``training``'s ``evaluate``): ``register(subparsers)`` adds a parser whose
+defaults hold ``func(args) -> int``; it is loaded only when its command is chosen."""
 
 
 class CLIError(Exception):
@@ -44,7 +39,7 @@ class CLIError(Exception):
 
 
 def _out_path(value: str) -> Path:
-    """``--out`` as given: ``Path("")`` would silently mean the current directory."""
+    """``--out`` as a Path; an empty name (the current directory) is an error."""
     if not value.strip():
         raise argparse.ArgumentTypeError(f"empty folder name {value!r}; give a new folder name")
     return Path(value)
@@ -56,15 +51,8 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
-    """The ``diff4splat`` argument parser.
-
-    Commands of the :data:`PLUGIN_GROUP` entry points get a placeholder subparser that accepts any
-    arguments, so listing them imports nothing (no ``training``); ``load_command`` names the one whose
-    entry point is loaded to build its real subparser instead.
-
-    Raises:
-        ValueError: ``load_command`` is not a registered entry point.
-    """
+    """The ``diff4splat`` argument parser; :data:`PLUGIN_GROUP` commands get a placeholder subparser except
+    ``load_command``, whose entry point is loaded. ValueError: ``load_command`` is not a registered entry point."""
     config_help = f"shipped model config ({', '.join(config_names())}) or a YAML path (default: {DEFAULT_CONFIG})"
 
     parser = _Parser(prog="diff4splat", description="One photograph + a camera path + a prompt → a 4D Gaussian scene.")
@@ -155,18 +143,14 @@ def build_parser(load_command: str | None = None) -> argparse.ArgumentParser:
 
 
 def export_onnx_command(args) -> dict:
-    """Run ``export-onnx``: :func:`diff4splat.export.export_checkpoint` (``--out``, ``--opset`` and
-    ``--checkpoint`` checked before the model loads; its warnings printed). Returns the manifest written to
-    ``--out/manifest.json``."""
+    """Run ``export-onnx`` (:func:`diff4splat.export.export_checkpoint`, warnings printed); returns the manifest."""
     return export_checkpoint(args.checkpoint, args.out, config=args.config, text=not args.no_text,
                              deformation=not args.static, opset=args.opset, overwrite=args.overwrite,
                              load=partial(print_warnings, load_model))
 
 
 def reconstruct_command(args) -> dict:
-    """Run ``reconstruct``: :func:`diff4splat.reconstruct.reconstruct` (the output folder, the frame rate and the
-    request checked before the model loads) and :func:`diff4splat.generate.write`. Returns the meta dict of
-    meta.json."""
+    """Run ``reconstruct`` and :func:`diff4splat.generate.write`; returns the meta dict of meta.json."""
     generation = reconstruct(
         args.video, args.cameras, pipeline=lambda: print_warnings(load_pipeline, args.checkpoint, args.config,
                                                                   device=args.device),
@@ -177,8 +161,8 @@ def reconstruct_command(args) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``diff4splat`` console script. Returns the exit code: 0, 2 after an expected
-    failure (one ``diff4splat: error: …`` line, :func:`diff4splat.utils.errors.run_cli`), 130 after Ctrl-C."""
+    """The ``diff4splat`` console script; returns the exit code: 0, 2 after an expected failure
+    (:func:`diff4splat.utils.errors.run_cli`), 130 after Ctrl-C."""
     return run_cli("diff4splat", lambda: _main(argv), expected=(CLIError,))
 
 
@@ -189,13 +173,8 @@ def _main(argv: list[str] | None) -> int:
         args = build_parser(load_command=args.plugin).parse_args(argv)
     elif unknown:
         parser.error(f"unrecognized arguments: {' '.join(unknown)}")
-    if args.command == "generate":
-        meta = generate_command(args)
-        t = meta["timings_s"]
-        print(f"wrote {args.out} ({meta['frames']} frames, {meta['num_gaussians']} Gaussians, "
-              f"{'static' if meta['static'] else 'dynamic'}) in {t['total']:.1f} s")
-    elif args.command == "reconstruct":
-        meta = reconstruct_command(args)
+    if args.command in ("generate", "reconstruct"):
+        meta = (generate_command if args.command == "generate" else reconstruct_command)(args)
         print(f"wrote {args.out} ({meta['frames']} frames, {meta['num_gaussians']} Gaussians, "
               f"{'static' if meta['static'] else 'dynamic'}) in {meta['timings_s']['total']:.1f} s")
     elif args.command == "export-onnx":

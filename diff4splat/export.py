@@ -1,7 +1,6 @@
 """ONNX export of the four networks: one graph per module plus ``manifest.json``.
 
-``export_onnx(model, out_dir)`` (or ``export_checkpoint(folder, out_dir)``, the ``export-onnx`` command) writes,
-atomically (temp folder + rename, :func:`diff4splat.io.output_folders`, kind ``"onnx"``):
+:func:`export_onnx` (:func:`export_checkpoint`: the ``export-onnx`` command) writes, atomically (kind ``"onnx"``):
 
 =====================  =====================================================  ==========================================
 file                   inputs                                                 outputs
@@ -18,37 +17,13 @@ file                   inputs                                                 ou
                                                                               (B, K, S, H, W, ·)]
 =====================  =====================================================  ==========================================
 
-The LDRM's maps have a source-frame axis S (``models.ldrm.source_frame_indices``): S = n for
-``gaussian_frames="latent"``, 1 + 4(n − 1) for ``"all"``, 1 for ``"reference"``; it follows the dynamic
-latent frame count n (a symbolic dim of the outputs, e.g. ``latent_frames``). ``image`` (the photograph,
-frame 0) is an input only when the LDRM has an image branch (``config.ldrm.image_branch`` > 0); the
-manifest records it as ``parts.ldrm_image_input``.
-
-Every graph has dynamic batch B and frame counts (T / n), dynamic resolution (multiples of the VAE
-factor and patch sizes, above a minimum the guards of the traced graph need), dynamic text length L
-and number of times K. Shapes are traced with ``torch.export.export`` (non-strict) first, so a
-dynamic axis the code cannot honour raises instead of being silently specialised; the exported
-program is translated by the dynamo ONNX exporter (opset ≥ 18) and checked with ``onnx.checker``.
-
-Leaving parts out (CONTRIBUTING, "leave out what a scene does not need"):
-
-- ``text=False`` (``--no-text``): no ``text_encoder.onnx``, and ``dit.onnx`` has no text inputs — it
-  is the text=None graph (no cross-attention at all), serving the empty prompt only.
-- With text, ``dit.onnx`` is the text-conditioned graph and also serves the empty prompt: one zero
-  token with an all-False mask gives *exactly* zero cross-attention (``CrossAttention`` multiplies
-  the output of an all-masked row by 0, and x + 0 = x in IEEE arithmetic), so it equals
-  ``VideoDiT(text=None)`` bit for bit in PyTorch (and the ONNX graph equals the text=None PyTorch call). One DiT
-  file serves both, so its weights are stored once.
-- ``deformation=False`` (``--static``): ``ldrm.onnx`` has no ``times`` input and no deformation
-  outputs (the deformation network is not in the graph); such an export only makes static scenes.
-- The image branch is not optional: an LDRM trained with one needs the photograph, so its graph
-  always has the ``image`` input.
-
-``manifest.json`` records the opset, the parts, every file's input/output names, shapes (symbolic
-dims as strings) and dtypes, the model config, and the SHA-256 of the weights (of each
-``model.safetensors`` of the source checkpoint, or of the state dict of an in-memory model). Each graph
-also carries its part name, config and dim ranges in its own ONNX metadata (:func:`graph_metadata`), which
-:mod:`diff4splat.onnx_runtime` checks the manifest against.
+S is the source-frame count (``models.ldrm.source_frame_indices``); ``image`` is an input only with an image branch.
+Batch, frame counts, resolution, text length L and times K are dynamic (traced with ``torch.export.export``, so an
+axis the code cannot honour raises). ``text=False`` leaves out the text encoder and the DiT's text inputs (with text,
+one zero token with an all-False mask gives exactly zero cross-attention, so one DiT graph serves both);
+``deformation=False`` leaves the deformation network out of ``ldrm.onnx``. ``manifest.json`` records the opset, the
+parts, every file's inputs and outputs, the model config and the SHA-256 of the weights; each graph carries its
+part, config and dim ranges in its ONNX metadata (:func:`graph_metadata`).
 """
 from __future__ import annotations
 
@@ -84,85 +59,76 @@ __all__ = ["export_onnx", "export_checkpoint", "check_opset", "state_dict_sha256
            "STATIC_LDRM_OUTPUTS", "graph_metadata", "GRAPH_METADATA_KEYS"]
 
 EXPORT_KIND = "onnx"
-"""Output kind of an export folder (:data:`diff4splat.io.MARKER`); ``generate`` replaces one only with --overwrite."""
+"""Output kind of an export folder (:data:`diff4splat.io.MARKER`)."""
 MIN_OPSET = 18
-"""The dynamo exporter emits opset ≥ 18 (LayerNorm, GroupNorm-free decompositions, ``ReduceMean`` axes inputs)."""
+"""The oldest opset the dynamo exporter emits."""
 MAX_OPSET = 25
-"""The newest opset whose graphs pass ``onnx.checker`` and load in onnxruntime. onnx 1.23 names opsets up to 28, but
-the exporter's graphs fail its checker from 26 on (no Gelu/Attention registered at the version the exporter's
-converter leaves them), after the whole export had run."""
+"""The newest opset whose graphs pass ``onnx.checker`` (from 26 on the exporter's Gelu/Attention fail it)."""
 EXTERNAL_DATA_BYTES = 2_000_000_000
-"""Graphs whose weights reach 2 GB store them in a ``<file>.onnx.data`` beside the graph: a single
-protobuf cannot exceed 2 GiB (``onnx.checker`` and onnxruntime read the external file by path)."""
-_MAX = 1 << 14  # upper bound of every dynamic dimension (sizes, not memory: the graph has no limit)
+"""Graphs with this many bytes of weights store them in ``<file>.onnx.data`` (a protobuf is at most 2 GiB)."""
+_MAX = 1 << 14  # upper bound of every dynamic dimension
 
 
-class _VAEEncoder(nn.Module):
-    """video (B, 3, T, H, W) in [−1, 1] → DiT latents a·(mean − b) (:meth:`VideoVAE.encode_latents`)."""
+class _Part(nn.Module):
+    """One network of the model (its attribute :attr:`part`), its graph's inputs the arguments of ``forward``."""
+
+    part = ""
 
     def __init__(self, model: Diff4SplatModel):
         super().__init__()
-        self.vae = model.vae
+        setattr(self, self.part, getattr(model, self.part))
+
+
+class _VAEEncoder(_Part):
+    """video (B, 3, T, H, W) in [−1, 1] → DiT latents (:meth:`VideoVAE.encode_latents`)."""
+
+    part = "vae"
 
     def forward(self, video: Tensor) -> Tensor:
         return self.vae.encode_latents(video)
 
 
-class _VAEDecoder(nn.Module):
+class _VAEDecoder(_Part):
     """DiT latents (B, c, n, h, w) → video (B, 3, 1 + 4(n − 1), 8h, 8w) (:meth:`VideoVAE.decode_latents`)."""
 
-    def __init__(self, model: Diff4SplatModel):
-        super().__init__()
-        self.vae = model.vae
+    part = "vae"
 
     def forward(self, latents: Tensor) -> Tensor:
         return self.vae.decode_latents(latents)
 
 
-class _TextEncoder(nn.Module):
+class _TextEncoder(_Part):
     """ids (B, L) int64, mask (B, L) bool → tokens (B, L, d_text) (zeros at padding)."""
 
-    def __init__(self, model: Diff4SplatModel):
-        super().__init__()
-        self.text_encoder = model.text_encoder
+    part = "text_encoder"
 
     def forward(self, ids: Tensor, mask: Tensor) -> Tensor:
         return self.text_encoder(ids, mask)
 
 
-class _TextDiT(nn.Module):
+class _TextDiT(_Part):
     """The DiT velocity with text cross-attention (all-False mask = exactly no cross-attention)."""
 
-    def __init__(self, model: Diff4SplatModel):
-        super().__init__()
-        self.dit = model.dit
+    part = "dit"
 
     def forward(self, x, sigma, image_latent, plucker, text, text_mask):
         return self.dit(x, sigma, image_latent, plucker, text, text_mask)
 
 
-class _PlainDiT(nn.Module):
-    """The DiT velocity without text (``text=None``: the cross-attention is not in the graph)."""
+class _PlainDiT(_Part):
+    """The DiT velocity without text (the cross-attention is not in the graph)."""
 
-    def __init__(self, model: Diff4SplatModel):
-        super().__init__()
-        self.dit = model.dit
+    part = "dit"
 
     def forward(self, x, sigma, image_latent, plucker):
         return self.dit(x, sigma, image_latent, plucker)
 
 
-class _LDRM(nn.Module):
-    """LDRM: (latents, plucker[, times][, image]) → the 8 maps of :data:`LDRM_OUTPUTS` with ``times``
-    (the deformation network is in the graph), else the 5 of :data:`STATIC_LDRM_OUTPUTS`.
+class _LDRM(_Part):
+    """(latents, plucker[, times][, image]) → :data:`LDRM_OUTPUTS` with ``times``, else :data:`STATIC_LDRM_OUTPUTS`
+    (an absent input is traced as None and is not a graph input)."""
 
-    An absent input is traced as ``None``: torch.export keeps only tensor inputs, so the graph's inputs
-    are the present ones in this order.
-    """
-
-    def __init__(self, model: Diff4SplatModel):
-        super().__init__()
-        self.ldrm = model.ldrm
+    part = "ldrm"
 
     def forward(self, latents, plucker, times=None, image=None):
         out = self.ldrm(latents, plucker, times, image)
@@ -180,15 +146,9 @@ class _Graph:
 
 
 def _graphs(model: Diff4SplatModel, text: bool, deformation: bool) -> list[_Graph]:
-    """Example inputs (batch 2, 9 frames / 3 latent frames: sizes 0 and 1 would be specialised by
-    torch.export) and the dynamic dims of every graph.
-
-    Resolution dims are expressed as multiples of what the architecture needs: pixels of 8 (VAE),
-    latent cells of the DiT patch, LDRM latents of its patch. Minimum sizes come from the guards of
-    the traced graphs (the deformation pyramid halves the latent grid ``levels − 1`` times and
-    needs ≥ 2 cells at its coarsest level; the VAE decoder's temporal upsampling is traced for
-    n ≥ 3 latent frames (its graph has guards n − 1 ≠ 1); torch.export names any bound that is too low).
-    """
+    """Example inputs (batch 2, 3 latent frames: torch.export specialises sizes 0 and 1) and dynamic dims of every
+    graph, resolutions as multiples of the VAE factor and patch sizes; minimums from the traced graphs' guards (the
+    deformation pyramid needs ≥ 2 cells at its coarsest level, the VAE decoder n ≥ 3 latent frames)."""
     cfg = model.config
     c, s, tf = cfg.vae.latent_channels, cfg.vae.spatial_factor, cfg.vae.temporal_factor
     _, ph, pw = cfg.dit.patch_size
@@ -239,8 +199,7 @@ def _graphs(model: Diff4SplatModel, text: bool, deformation: bool) -> list[_Grap
         graphs.append(_Graph("dit", _PlainDiT(model), dit_args, ("x", "sigma", "image_latent", "plucker"),
                              ("velocity",), dit_ds))
     image = cfg.ldrm.image_branch > 0
-    # traced on a grid of at least lmin tokens a side (a config whose own grid is smaller, e.g. ldrm.patch_size 2
-    # at 64², failed the export on torch.export's bound); the graph itself runs on smaller grids
+    # traced on a grid of at least lmin tokens a side (torch.export's bound); the graph runs on smaller grids
     lh, lw = max(h, pl * lmin), max(w, pl * lmin)
     ldrm_args = (randn(B, c, n, lh, lw), randn(B, cfg.ldrm.plucker_channels, n, lh, lw),
                  torch.linspace(0, 1, K, device="cpu") if deformation else None,
@@ -248,16 +207,13 @@ def _graphs(model: Diff4SplatModel, text: bool, deformation: bool) -> list[_Grap
     ldrm_ds = {"latents": ldrm_lat, "plucker": ldrm_lat, "times": {0: K_d} if deformation else None,
                "image": {0: batch, 2: (s * pl) * hr, 3: (s * pl) * wr} if image else None}
     names = tuple(k for k, a in zip(("latents", "plucker", "times", "image"), ldrm_args, strict=True) if a is not None)
-    # The image branch writes frame 0 with a torch.where over the frame axis (models/ldrm.py), not a cat with
-    # an (n − 1)-frame slice, which would add a guard n − 1 ≠ 1 leaving out n = 2 (5 video frames).
     graphs.append(_Graph("ldrm", _LDRM(model), ldrm_args, names, LDRM_OUTPUTS if deformation else STATIC_LDRM_OUTPUTS,
                          ldrm_ds))
     return graphs
 
 
 def state_dict_sha256(module: nn.Module) -> str:
-    """SHA-256 over a state dict: for each entry in sorted key order, the key, dtype, shape and the
-    tensor's raw bytes (CPU, contiguous). Equal for equal weights, independent of insertion order."""
+    """SHA-256 over a state dict: each entry's key, dtype, shape and raw bytes, in sorted key order."""
     digest = hashlib.sha256()
     for key, value in sorted(module.state_dict().items()):
         t = value.detach().cpu().contiguous()
@@ -267,14 +223,8 @@ def state_dict_sha256(module: nn.Module) -> str:
 
 
 def checkpoint_sha256(directory: str | os.PathLike) -> dict[str, str]:
-    """SHA-256 of each network's ``model.safetensors`` in a :meth:`Diff4SplatModel.save_pretrained` folder.
-
-    Returns:
-        {"vae/model.safetensors": hex, …} for the four networks.
-
-    Raises:
-        FileNotFoundError: a network's weights file is missing.
-    """
+    """{"vae/model.safetensors": hex SHA-256, …} of the four networks of a :meth:`Diff4SplatModel.save_pretrained`
+    folder. FileNotFoundError: a weights file is missing."""
     directory = Path(directory)
     out = {}
     for name in NETWORKS:
@@ -290,15 +240,14 @@ def checkpoint_sha256(directory: str | os.PathLike) -> dict[str, str]:
 
 
 def _onnx():
-    """The onnx package, imported where an export or check needs it (not at import of this module)."""
-    import onnx  # lazy: onnx and protobuf add ~0.05 s to every command's start; only exports and checks use them
+    """The onnx package, imported on use (kept out of every command's start)."""
+    import onnx
 
     return onnx
 
 
 def _value_info(values) -> list[dict]:
     onnx = _onnx()
-
     out = []
     for v in values:
         t = v.type.tensor_type
@@ -308,22 +257,17 @@ def _value_info(values) -> list[dict]:
 
 
 def graph_metadata(part: str, config: dict, dims: dict[str, list[int]]) -> dict[str, str]:
-    """The facts a graph carries about itself in its ONNX ``metadata_props`` (keys :data:`GRAPH_METADATA_KEYS`):
-    its part name, the model config it was exported from (the trained resolution, channels, …) and its
-    dynamic dim ranges, each as canonical JSON. :class:`diff4splat.onnx_runtime.OnnxRuntime` compares them
-    with ``manifest.json``, so an edited manifest cannot make a graph run with another config."""
+    """A graph's ONNX ``metadata_props`` (keys :data:`GRAPH_METADATA_KEYS`): its part, config and dim ranges as
+    canonical JSON, which :class:`diff4splat.onnx_runtime.OnnxRuntime` compares with ``manifest.json``."""
     return {"diff4splat.part": part, "diff4splat.config": json.dumps(config, sort_keys=True),
             "diff4splat.dims": json.dumps(dims, sort_keys=True)}
-
 
 
 def _export_graph(graph: _Graph, path: Path, opset: int, external_data_bytes: int, config: dict) -> dict:
     """Trace, translate, save and check one graph (with :func:`graph_metadata`); returns its manifest entry."""
     onnx = _onnx()
-
     weight_bytes = sum(t.numel() * t.element_size() for t in graph.module.state_dict().values())
-    # exporter chatter on stderr: missing optional torchvision ops (torch.onnx), "Skipping constant folding for op
-    # Split with multiple outputs" (onnxscript's optimizer, a dozen lines per export)
+    # silence the exporter's chatter on stderr
     loggers = [logging.getLogger(name) for name in ("torch.onnx", "onnxscript")]
     levels = [lg.level for lg in loggers]
     try:
@@ -357,8 +301,7 @@ def _export_graph(graph: _Graph, path: Path, opset: int, external_data_bytes: in
 
 
 def _name_dims(proto, graph: _Graph) -> None:
-    """Replace torch.export's symbols (``s15``, ``4*s7 + 1``) by the Dim names (``batch``, ``4*k + 1``)
-    in the graph's inputs, outputs and value infos (in place)."""
+    """Rename torch.export's symbols (``4*s7 + 1``) to the Dim names (``4*k + 1``) in the graph, in place."""
     symbol = re.compile(r"\bs\d+\b")
     mapping: dict[str, str] = {}
     for value, name in zip(proto.graph.input, graph.input_names, strict=True):
@@ -383,55 +326,33 @@ def _dim_ranges(dynamic_shapes: dict) -> dict[str, list[int]]:
 
 
 def check_opset(opset: int) -> None:
-    """Raise ValueError unless ``opset`` is an int in [:data:`MIN_OPSET`, :data:`MAX_OPSET` or the installed onnx's
-    newest if older]."""
-    onnx = _onnx()
-
-    newest = min(MAX_OPSET, onnx.defs.onnx_opset_version())
+    """ValueError unless ``opset`` is an int in [:data:`MIN_OPSET`, :data:`MAX_OPSET` or onnx's newest if older]."""
+    newest = min(MAX_OPSET, _onnx().defs.onnx_opset_version())
     if isinstance(opset, bool) or not isinstance(opset, int) or not MIN_OPSET <= opset <= newest:
         raise ValueError(f"opset must be an int in [{MIN_OPSET}, {newest}] (the dynamo exporter needs ≥ {MIN_OPSET}), "
                          f"got {opset!r}")
 
 
-def export_onnx(
-    model: Diff4SplatModel,
-    out_dir: str | os.PathLike,
-    *,
-    text: bool = True,
-    deformation: bool = True,
-    opset: int = MIN_OPSET,
-    checkpoint: str | os.PathLike | None = None,
-    source: str | None = None,
-    external_data_bytes: int = EXTERNAL_DATA_BYTES,
-    inputs: Iterable[str | os.PathLike | None] = (),
-    overwrite: bool = False,
-) -> dict:
-    """Export ``model`` to ``out_dir`` (one ``.onnx`` per module + ``manifest.json``), atomically.
+def export_onnx(model: Diff4SplatModel, out_dir: str | os.PathLike, *, text: bool = True, deformation: bool = True,
+                opset: int = MIN_OPSET, checkpoint: str | os.PathLike | None = None, source: str | None = None,
+                external_data_bytes: int = EXTERNAL_DATA_BYTES, inputs: Iterable[str | os.PathLike | None] = (),
+                overwrite: bool = False) -> dict:
+    """Export ``model`` to ``out_dir`` (one ``.onnx`` per module + ``manifest.json``), atomically; returns the manifest.
 
     Args:
-        model: the four networks. The export runs on the CPU in float32, whatever device the model was on:
-            ``model`` is moved there (in place, as ``nn.Module.to`` does) and left in eval mode; move it
-            back with ``model.to(device)`` to go on using it on a GPU. The graphs run on any onnxruntime
-            provider (CUDA included) all the same.
-        out_dir: output folder; replaced only when the whole export succeeded.
-        text: include the text encoder and the text-conditioned DiT (False = ``--no-text``).
-        deformation: include the deformation network in the LDRM graph (False = ``--static``).
-        opset: ONNX opset in [:data:`MIN_OPSET`, :data:`MAX_OPSET`] (:func:`check_opset`).
-        checkpoint: the folder ``model`` was loaded from; its weight files are hashed. None hashes
-            the in-memory state dict (:func:`state_dict_sha256`), e.g. for a random model.
+        model: the four networks; moved to the CPU in float32 and eval mode, in place.
+        out_dir: output folder; replaced only when the whole export succeeded (or ``overwrite``, any folder).
+        text, deformation: include the text encoder and text inputs (``--no-text``: False), the deformation network
+            (``--static``: False).
+        opset: ONNX opset (:func:`check_opset`).
+        checkpoint: the folder ``model`` was loaded from, whose weight files are hashed; None hashes the state dict.
         source: free-text description of the weights' origin stored in the manifest.
         external_data_bytes: graphs with at least this many bytes of weights store them externally.
         inputs: paths the export reads (``checkpoint`` is added); ``out_dir`` may not hold them.
-        overwrite: also replace a folder that is not an earlier ONNX export (:func:`diff4splat.io.output_folders`).
-
-    Returns:
-        The manifest dict (also written to ``out_dir/manifest.json``).
 
     Raises:
-        ValueError: ``opset`` out of range; ``model`` is not a :class:`~models.bundle.Diff4SplatModel` (a diffusers
-            backbone's networks are not exported).
-        OutputDirError: ``out_dir`` may not be written (a file, holds inputs, not an ONNX export, …).
-        FileNotFoundError: ``checkpoint`` lacks a network's weights.
+        ValueError: ``opset`` out of range; ``model`` is not a :class:`~models.bundle.Diff4SplatModel`.
+        OutputDirError, FileNotFoundError: ``out_dir`` may not be written; ``checkpoint`` lacks a network's weights.
         torch._dynamo.exc.UserError: a dynamic dimension cannot be honoured by a network (a bug).
     """
     if not isinstance(model, Diff4SplatModel):
@@ -444,38 +365,18 @@ def export_onnx(
                    source=source, external_data_bytes=external_data_bytes, inputs=inputs, overwrite=overwrite)
 
 
-def export_checkpoint(
-    checkpoint: str | os.PathLike | None,
-    out_dir: str | os.PathLike,
-    *,
-    config: str = DEFAULT_CONFIG,
-    text: bool = True,
-    deformation: bool = True,
-    opset: int = MIN_OPSET,
-    overwrite: bool = False,
-    load: Callable[..., tuple[Diff4SplatModel, str]] = load_model,
-) -> dict:
-    """Export the networks of a model folder (the ``diff4splat export-onnx`` command): ``out_dir``, ``opset`` and
-    ``checkpoint`` are checked before anything loads, then :func:`export_onnx`'s export of what ``load`` returns.
-
-    Args:
-        checkpoint: our model folder (its weight files are hashed); None: the shipped weights of ``config``, or a
-            seeded random model with a warning when none ship (its state dict is hashed).
-        out_dir: the export folder; its parent must exist. Replaced only when the whole export succeeded.
-        config: shipped config name or YAML path, for ``checkpoint`` None.
-        text, deformation, opset, overwrite: as :func:`export_onnx`.
-        load: called as ``load(checkpoint, config, seed=0)`` after the checks, returning (model, source)
-            (:func:`diff4splat.pipeline.load_model`; the command passes it wrapped to print its warnings).
-
-    Returns:
-        The manifest dict (also written to ``out_dir/manifest.json``).
+def export_checkpoint(checkpoint: str | os.PathLike | None, out_dir: str | os.PathLike, *, config: str = DEFAULT_CONFIG,
+                      text: bool = True, deformation: bool = True, opset: int = MIN_OPSET, overwrite: bool = False,
+                      load: Callable[..., tuple[Diff4SplatModel, str]] = load_model) -> dict:
+    """The ``export-onnx`` command: ``out_dir``, ``opset`` and ``checkpoint`` checked before anything loads, then
+    :func:`export_onnx`'s export of ``load(checkpoint, config, seed=0)`` → (model, source); returns the manifest.
+    ``checkpoint``: our model folder (None: the shipped weights of ``config``, or a seeded random model); ``out_dir``:
+    its parent must exist; ``load``: :func:`diff4splat.pipeline.load_model` or a wrapper; the rest as ``export_onnx``.
 
     Raises:
-        OutputDirError: (a ValueError) ``out_dir`` may not be written
-            (:func:`diff4splat.io.output_folders.check_output_dir`); FileExistsError likewise.
-        ValueError: an unsupported ``opset`` (:func:`check_opset`); ``checkpoint`` is a diffusers backbone folder
-            (has ``model_index.json``: its networks are not exported); a malformed model folder.
-        FileNotFoundError: ``checkpoint`` is not a folder; an unknown config name (:func:`load_model`).
+        OutputDirError, FileExistsError: ``out_dir`` may not be written.
+        ValueError: a bad ``opset``; ``checkpoint`` is a diffusers backbone folder or malformed.
+        FileNotFoundError: ``checkpoint`` is not a folder; an unknown config name.
     """
     check_output_dir(out_dir, inputs=[checkpoint], overwrite=overwrite, kind=EXPORT_KIND)
     check_opset(opset)
@@ -491,8 +392,7 @@ def export_checkpoint(
 def _export(model: Diff4SplatModel, out_dir: str | os.PathLike, *, text: bool, deformation: bool, opset: int,
             checkpoint: str | os.PathLike | None, source: str | None, external_data_bytes: int,
             inputs: list[str | os.PathLike | None], overwrite: bool) -> dict:
-    """:func:`export_onnx` once its arguments are checked: the weights hashed, the graphs and the manifest written
-    (the folder checked again as it is written, :func:`diff4splat.io.output_folders.output_dir`)."""
+    """:func:`export_onnx` once its arguments are checked: hash the weights, write the graphs and the manifest."""
     onnx = _onnx()
     weights = ({"kind": "checkpoint", "path": str(checkpoint), "sha256": checkpoint_sha256(checkpoint)}
                if checkpoint is not None else {"kind": "state_dict", "sha256": state_dict_sha256(model)})

@@ -1,17 +1,6 @@
 """``generate`` as a library function: a photograph (+ a camera path, a prompt) → a 4D scene rendered along the path
-(:func:`generate`), and its output folder (:func:`write`). The ``diff4splat generate`` command parses its arguments
-and calls these two; benchmarks and scripts call them directly::
-
-    from diff4splat.generate import generate, load_pipeline, write
-
-    gen = generate("photo.jpg", prompt="the cat turns its head", frames=17, seed=0)   # shipped model, auto device
-    write(gen, "out")                                                                # scene.ply, video.mp4, …
-
-Every argument is checked once, by the function it enters, before anything heavy runs: :func:`generate` checks the
-output folder it is told of (``out``), the frame rate and the files and numbers of the request before the model
-loads (``pipeline`` may be a loader that is only called then), the output size and the peak memory
-(:mod:`diff4splat.utils.limits`) before the networks run; :func:`write` checks a frame rate given to it, and its folder
-when it writes (:func:`diff4splat.io.output_folders.output_dir`: it may have changed since).
+(:func:`generate`), and its output folder (:func:`write`), e.g. ``write(generate("photo.jpg", frames=17), "out")``.
+Every argument is checked once, by the function it enters, before the model loads (limits before the networks run).
 """
 from __future__ import annotations
 
@@ -55,18 +44,9 @@ GENERATE_KIND = "generate"
 
 @dataclass(frozen=True)
 class LoadedPipeline:
-    """A pipeline and what meta.json records of where it came from.
-
-    Attributes:
-        pipeline: the :class:`~diff4splat.pipeline.Diff4SplatPipeline`.
-        source: the weights' folder, ``random:<config>:seed=<s>[:cuda]`` (``:cuda``: initialised on a GPU), or
-            ``onnx:<folder> (<its source>)``.
-        load_seconds: wall time of loading, seconds.
-        dtype: weight dtype name of a torch runtime ("float32", "bfloat16", "float16"), None for onnxruntime.
-        offload: offload mode of a torch runtime, None for onnxruntime.
-        versions: extra package versions for meta.json (e.g. onnxruntime's).
-        files: the folders the networks were read from (an output folder may not be one of them or hold one).
-    """
+    """A pipeline and what meta.json records of where it came from: its :attr:`source`, ``load_seconds`` (wall time,
+    seconds), a torch runtime's ``dtype`` name and ``offload`` mode (None for onnxruntime), extra package ``versions``
+    and the folders the networks were read from (``files``: no output folder may be or hold one)."""
 
     pipeline: Diff4SplatPipeline
     source: str
@@ -77,24 +57,13 @@ class LoadedPipeline:
     files: tuple[Path, ...] = ()
 
 
-def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | None = None, *,
-                  runtime: str | None = None,
+def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | None = None, *, runtime: str | None = None,
                   onnx: str | os.PathLike | None = None, device: str | torch.device = AUTO, dtype: str = "float32",
                   offload: str = "none", attention: str = "auto", compile: bool = False) -> LoadedPipeline:
-    """Load the networks ``generate`` runs.
-
-    Args:
-        checkpoint: a model folder (None: the shipped weights of ``config``; a random model with a warning when
-            none ship).
-        config: shipped config name or YAML path (None: :data:`models.bundle.DEFAULT_CONFIG`).
-        runtime: one of :data:`RUNTIMES`; "onnxruntime" runs the export in ``onnx`` (checkpoint, config, device,
-            dtype, offload, attention and compile then do not apply: the export's manifest fixes the model).
-            None: "onnxruntime" when ``onnx`` is given, else "torch".
-        device: "auto" (CUDA when present, else the CPU), "cpu", "cuda", "cuda:1", …
-        dtype: weight dtype name (:data:`diff4splat.runtime.DTYPES`).
-        offload: "none", "model" or "model-prefetch" (:data:`diff4splat.runtime.OFFLOAD_MODES`).
-        attention: the attention kernel tried first (:data:`diff4splat.runtime.ATTENTION_KERNELS`).
-        compile: ``torch.compile`` the transformer's blocks (:class:`diff4splat.runtime.TorchRuntime`).
+    """Load the networks ``generate`` runs: ``checkpoint`` and ``config`` as
+    :meth:`Diff4SplatPipeline.from_pretrained`; ``runtime`` one of :data:`RUNTIMES` (None: "onnxruntime" when ``onnx``,
+    the export folder, is given, where the torch options do not apply); ``device`` "auto", "cpu", "cuda:1", …; ``dtype``
+    a :data:`diff4splat.runtime.DTYPES` name; ``offload``, ``attention``, ``compile`` as :class:`TorchRuntime`.
 
     Raises:
         ValueError: an unknown runtime or dtype, options that do not apply to the runtime, an unavailable device,
@@ -115,7 +84,7 @@ def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | Non
                              "picks CUDA or CPU)")
         if not Path(onnx).is_dir():
             raise FileNotFoundError(f"--onnx: {onnx} is not a folder")
-        import onnxruntime  # lazy: ~0.1 s at every command's start; only --runtime onnxruntime needs it
+        import onnxruntime  # optional dependency
 
         t0 = time.perf_counter()
         pipe = Diff4SplatPipeline.from_onnx(onnx)
@@ -143,16 +112,13 @@ class Generation:
     """What :func:`generate` made: the scene, its rendering along the path, and the meta.json of the request.
 
     Attributes:
-        result: the pipeline's :class:`~diff4splat.pipeline.GenerationResult` (scene, cameras, latents, timings).
-        colors: (T, H, W, 3) in [0, 1], the scene rendered along ``result.cameras``.
-        depths: (T, H, W) z-depth, metres (0 where nothing is seen).
-        alphas: (T, H, W) in [0, 1].
-        meta: meta.json (settings the run actually used, timings in seconds).
-        inputs: the files the request read (an output folder may not be one of them or hold one).
+        result: the pipeline's :class:`~diff4splat.pipeline.GenerationResult`.
+        colors, depths, alphas: (T, H, W, 3) in [0, 1], (T, H, W) z-depth in metres (0 where nothing is seen) and
+            (T, H, W) in [0, 1], the scene rendered along ``result.cameras``.
+        meta, seconds: meta.json (the settings used, timings in seconds) and the wall time of :func:`generate`.
+        inputs: the files the request read (no output folder may be or hold one).
         depth_fallback: depth written where nothing is seen, metres (the config's scene depth).
-        seconds: wall time of :func:`generate`, seconds.
-        kind: the output folder's marker kind: :data:`GENERATE_KIND`, or "reconstruct"
-            (:mod:`diff4splat.reconstruct`).
+        kind: the output folder's marker kind: :data:`GENERATE_KIND` or "reconstruct".
     """
 
     result: GenerationResult
@@ -180,22 +146,16 @@ def resolve_pipeline(pipeline: LoadedPipeline | Diff4SplatPipeline | Callable[[]
 
 def check_destination(out: str | os.PathLike | None, fps: float, *, inputs: Iterable[str | os.PathLike | None],
                       overwrite: bool, kind: str) -> None:
-    """What a request writes, checked before any work: ``out`` (when given) may be written as the folder of ``kind``
-    (:func:`diff4splat.io.output_folders.check_output_dir`: its parent exists, it is not and holds none of
-    ``inputs``, an existing one is replaced only as ``overwrite`` allows) and ``fps`` is a frame rate
-    (:func:`diff4splat.io.video.check_fps`).
-
-    Raises:
-        OutputDirError: (a ValueError) ``out`` may not be written; FileExistsError as ``check_output_dir``.
-        ValueError: a bad ``fps``, naming ``--fps``.
-    """
+    """Check before any work that ``out`` (when given) may be written as a folder of ``kind``
+    (:func:`diff4splat.io.output_folders.check_output_dir`: OutputDirError, FileExistsError) and ``fps`` is a frame
+    rate (ValueError naming ``--fps``)."""
     if out is not None:
         check_output_dir(out, inputs=inputs, overwrite=overwrite, kind=kind)
     check_fps(fps, "--fps")
 
 
 def check_frame_count(pipe: Diff4SplatPipeline, frames: int) -> None:
-    """Raise ValueError naming ``--frames`` unless ``frames`` is a length the pipeline's VAE takes (T = 1 + 4k)."""
+    """ValueError naming ``--frames`` unless ``frames`` is a length the pipeline's VAE takes (T = 1 + 4k)."""
     try:
         pipe.config.vae.num_latent_frames(frames)
     except ValueError:
@@ -235,12 +195,8 @@ def _check_request(image, cameras, trajectory, amplitude, frames, resolution, st
 
 def cameras_from_file(path: Path, frames: int | None, photo_shape: tuple[int, int], width: int,
                        height: int) -> CameraPath:
-    """``--cameras`` file → camera path at ``width`` × ``height``. RealEstate10K intrinsics are normalised by the
-    photograph as displayed (``photo_shape`` (H, W) after EXIF orientation), the image that is centre-cropped.
-
-    Raises:
-        ValueError: a malformed file, or ``frames`` given and not the file's camera count.
-    """
+    """``--cameras`` file → camera path at ``width`` × ``height`` (RealEstate10K intrinsics are normalised by the
+    photograph's ``photo_shape`` (H, W) after EXIF orientation). ValueError: malformed, or not ``frames`` cameras."""
     if path.suffix.lower() == ".json":
         cams = load_cameras_json(path)
     else:
@@ -250,79 +206,42 @@ def cameras_from_file(path: Path, frames: int | None, photo_shape: tuple[int, in
     return cams.fitted(width, height)
 
 
-def generate(
-    image: str | os.PathLike | Tensor,  # a photo file, or (H, W, 3) in [0, 1] at the output resolution
-    cameras: str | os.PathLike | CameraPath | None = None,
-    *,
-    pipeline: LoadedPipeline | Diff4SplatPipeline | Callable[[], LoadedPipeline] | None = None,
-    trajectory: str = DEFAULT_TRAJECTORY,
-    amplitude: float | None = None,
-    frames: int | None = None,
-    resolution: int | None = None,
-    prompt: str = "",
-    steps: int | None = None,
-    sampler: str | None = None,
-    guidance: float | None = None,
-    seed: int = 0,
-    depth: str | os.PathLike | Tensor | None = None,
-    depth_kind: str = "metric",
-    progress: bool = False,
-    notes: Callable[[str], None] | None = None,
-    out: str | os.PathLike | None = None,
-    overwrite: bool = False,
-    inputs: Iterable[str | os.PathLike | None] = (),
-    fps: float = DEFAULT_FPS,
-    frame_plys: bool = True,
-) -> Generation:
-    """A 4D scene from one photograph, rendered along its camera path (the ``diff4splat generate`` command).
+def generate(image: str | os.PathLike | Tensor, cameras: str | os.PathLike | CameraPath | None = None, *,
+             pipeline: LoadedPipeline | Diff4SplatPipeline | Callable[[], LoadedPipeline] | None = None,
+             trajectory: str = DEFAULT_TRAJECTORY, amplitude: float | None = None, frames: int | None = None,
+             resolution: int | None = None, prompt: str = "", steps: int | None = None, sampler: str | None = None,
+             guidance: float | None = None, seed: int = 0, depth: str | os.PathLike | Tensor | None = None,
+             depth_kind: str = "metric", progress: bool = False, notes: Callable[[str], None] | None = None,
+             out: str | os.PathLike | None = None, overwrite: bool = False,
+             inputs: Iterable[str | os.PathLike | None] = (), fps: float = DEFAULT_FPS,
+             frame_plys: bool = True) -> Generation:
+    """A 4D scene from one photograph, rendered along its camera path (``diff4splat generate``); write the returned
+    :class:`Generation` with :func:`write`.
 
     Args:
-        image: the photograph: a file (any format OpenCV reads; EXIF orientation applied, centre-cropped to the
-            model's aspect ratio and resized to the output resolution) or an (H, W, 3) tensor in [0, 1] already at
-            the output resolution and the model's aspect ratio.
-        cameras: a camera file (``cameras.json``, or RealEstate10K ``.txt``), a :class:`CameraPath` at the output
-            resolution, or None for the ``trajectory`` preset.
-        pipeline: the networks: a :class:`LoadedPipeline` (:func:`load_pipeline`), a bare pipeline, a zero-argument
-            loader called after the request's checks, or None for the shipped model on the ``auto`` device.
-        trajectory, amplitude: the camera path preset and its size (:func:`diff4splat.cameras.make_trajectory`).
-        frames: T = 1 + 4k frames (default: the config's); with a camera file, its count must match.
-        resolution: output height, pixels (default: 256, or the model's height if larger); with a tensor image,
-            None or the tensor's height.
-        prompt: text describing the motion; "" runs no text encoder.
-        steps, sampler, seed: the flow-matching sampler's (defaults: the config's; seed 0).
-        guidance: classifier-free guidance scale (default: the config's; :meth:`Diff4SplatPipeline.__call__`).
-        depth: a depth map of the photograph for the photo layer: a file (EXR channel Z, .npy, 16-bit PNG/TIFF in
-            millimetres) or an (H, W) tensor at the output resolution; ``depth_kind``: "metric", "relative" or
-            "inverse" (:data:`diff4splat.assembly.assemble.DEPTH_KINDS`).
-        progress: tqdm progress bars.
-        notes: called with one-line notes for the user (e.g. a depth map resized); default: ignored.
-        out: the folder :func:`write` will fill, if known: checked first, before the request's files
-            (:func:`check_destination`: its parent must exist, it may not be or hold an input, an existing folder
-            is replaced only if it is empty or an earlier ``generate`` output, or with ``overwrite``), and the
-            output's size estimate is checked against the free space of its disk
-            (:func:`diff4splat.utils.limits.check_output_size`; None: against the fixed 4 GiB).
-        overwrite: ``out`` may also replace a folder that is not an earlier ``generate`` output (pass the same
-            to :func:`write`).
-        inputs: further files and folders the request reads that are not arguments here, such as the folders a
-            ``pipeline`` loader will read (``--checkpoint``, ``--onnx``): ``out`` may not be or hold one, nor may
-            :func:`write`'s folder (:attr:`Generation.inputs`).
-        fps: frame rate of video.mp4 and the viewer's playback, 1 … 1000 (meta.json ``fps``; :func:`write` uses
-            it unless given another).
-        frame_plys: whether :func:`write` writes frames/NNNN.ply, the scene at each frame's time (meta.json
-            ``frame_plys``; False: scene.ply and deformation.npz hold the same, in frames × 40 bytes per Gaussian
-            instead of frames × 108).
-
-    Returns:
-        :class:`Generation`; write it with :func:`write`.
+        image: a photo file (EXIF orientation applied, centre-cropped to the model's aspect ratio, resized) or an
+            (H, W, 3) tensor in [0, 1] at the output resolution and the model's aspect ratio.
+        cameras: a camera file (``cameras.json`` or RealEstate10K ``.txt``), a :class:`CameraPath` at the output
+            resolution, or None for the ``trajectory`` preset (:func:`diff4splat.cameras.make_trajectory`).
+        pipeline: a :class:`LoadedPipeline`, a bare pipeline, a zero-argument loader called after the request's
+            checks, or None for the shipped model on the ``auto`` device.
+        frames: T = 1 + 4k frames (default: the config's, or a camera file's count, which it must match).
+        resolution: output height, pixels (default :data:`DEFAULT_RESOLUTION` or the model's height if larger);
+            with a tensor image, None or its height.
+        prompt, steps, sampler, guidance, seed: as :meth:`Diff4SplatPipeline.__call__`.
+        depth: the photograph's depth map of ``depth_kind`` (:data:`DEPTH_KINDS`): a file (EXR channel Z, .npy,
+            16-bit PNG/TIFF in millimetres) or an (H, W) tensor at the output resolution.
+        notes: called with one-line notes for the user (e.g. a depth map resized).
+        out, overwrite: the folder :func:`write` will fill, if known, checked first (:func:`check_destination`) and
+            against its disk's free space; ``overwrite``: it may replace a folder that is not a ``generate`` output.
+        inputs: further paths the request reads (e.g. ``--checkpoint``): no output folder may be or hold one.
+        fps, frame_plys: meta.json's frame rate (1 … 1000) and whether :func:`write` writes frames/NNNN.ply.
 
     Raises:
-        ValueError: any argument out of range or a limit exceeded (:class:`diff4splat.utils.limits.LimitError`, before
-            the networks run), an ``out`` that may not be written
-            (:class:`diff4splat.io.output_folders.OutputDirError`), a malformed photo, camera or depth file (the
-            message names it), a camera path that sees none of the scene; everything
+        ValueError: an argument out of range, a limit exceeded (:class:`diff4splat.utils.limits.LimitError`), an
+            ``out`` that may not be written (``OutputDirError``), a malformed input file (named); everything
             :class:`~diff4splat.pipeline.Diff4SplatPipeline` raises.
-        FileNotFoundError: a missing input file.
-        FileExistsError: as :func:`diff4splat.io.output_folders.check_output_dir`.
+        FileNotFoundError, FileExistsError: a missing input file; as ``check_output_dir``.
     """
     t_start = time.perf_counter()
     files = {"image": image, "cameras_file": cameras, "depth_file": depth}  # as given, for meta.json
@@ -378,17 +297,16 @@ def generate(
     colors, depths, alphas = render_path(result.scene, result.cameras, eps2d=result.eps2d,
                                          background=result.background, progress=progress)
     timings = {"load_model": loaded.load_seconds, **result.timings, "render": time.perf_counter() - t0}
-    meta = generation_meta(loaded, result, prompt, None if cameras is not None else trajectory, files, depth_kind, seed,
-                 timings, fps)
+    meta = generation_meta(loaded, result, prompt, None if cameras is not None else trajectory, files, depth_kind,
+                           seed, timings, fps)
     meta["frame_plys"] = bool(frame_plys) and result.scene.changes_with_time
     return Generation(result, colors, depths, alphas, meta, read + list(loaded.files), cfg.scene_depth,
                       time.perf_counter() - t_start)
 
 
 def generation_meta(loaded: LoadedPipeline, result: GenerationResult, prompt: str, trajectory: str | None, files: dict,
-          depth_kind: str, seed: int, timings: dict, fps: float) -> dict:
-    """meta.json of ``generate`` (``reconstruct`` starts from it): every setting comes from what the pipeline
-    actually used; ``fps`` the frame rate of the folder's video and viewer."""
+                    depth_kind: str, seed: int, timings: dict, fps: float) -> dict:
+    """meta.json of ``generate`` (``reconstruct`` starts from it), from the settings the pipeline actually used."""
     pipe, cfg = loaded.pipeline, loaded.pipeline.config
     path = lambda v: str(v) if isinstance(v, (str, os.PathLike)) else None  # noqa: E731
     return {
@@ -425,24 +343,10 @@ def generation_meta(loaded: LoadedPipeline, result: GenerationResult, prompt: st
 
 def write(generation: Generation, out_dir: str | os.PathLike, *, fps: float | None = None,
           overwrite: bool = False) -> dict:
-    """Write ``generate``'s output folder (README, "Output folders";
-    :func:`diff4splat.io.scene_folder.write_scene_folder`: atomic, checked as it is written, missing parents
-    created, an existing folder replaced only if it is an earlier output or with ``overwrite``).
-
-    Args:
-        generation: what :func:`generate` returned.
-        out_dir: the folder; never one of the request's input files or a folder holding one.
-        fps: frame rate of video.mp4 (and the viewer's playback), 1 … 1000; None: the one :func:`generate` was
-            given (meta.json ``fps``).
-
-    Returns:
-        The meta dict written to meta.json (with the write and total timings).
-
-    Raises:
-        ValueError: a bad ``fps``; an ``out_dir`` that may not be written
-            (:class:`diff4splat.io.output_folders.OutputDirError`).
-        OSError: writing failed (``<path>: <reason>``); nothing half-written is left.
-    """
+    """Write ``generate``'s output folder atomically (:func:`diff4splat.io.scene_folder.write_scene_folder`;
+    docs/DESIGN.md, "Output folder of generate"); ``fps`` None: the one :func:`generate` was given. Returns the meta
+    dict written to meta.json, with the write and total timings. ValueError: a bad ``fps``; an ``out_dir`` that may not
+    be written (``OutputDirError``). OSError: writing failed (``<path>: <reason>``); nothing half-written is left."""
     if fps is None:
         fps = generation.meta["fps"]
     else:

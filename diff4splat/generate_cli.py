@@ -83,7 +83,6 @@ def add_generate_parser(subparsers, *, out_type: Callable[[str], Path], out_help
     g.add_argument("--quiet", action="store_true", help="no progress bars (notes and warnings still print)")
     g.add_argument("--out", type=out_type, required=True, help=out_help)
     g.add_argument("--overwrite", action="store_true", help=overwrite_help)
-
     return g
 
 

@@ -1,20 +1,7 @@
-"""Serve an ONNX export (:mod:`diff4splat.export`) with onnxruntime: a pipeline
-:class:`~diff4splat.runtime.NetworkRuntime`.
-
-``Diff4SplatPipeline(OnnxRuntime(dir))`` (or ``Diff4SplatPipeline.from_onnx(dir)``, or
-``diff4splat generate --runtime onnxruntime --onnx DIR``) runs image encoding, text encoding, the
-DiT velocity of every sampler step and the LDRM through onnxruntime sessions; the pipeline's own
-code (validation, Plücker rays, noise, sampler, Gaussians, pruning) and the renderer are the same
-as with PyTorch. No ``nn.Module`` is built and no PyTorch weights are read: torch tensors are only
-the glue between sessions, and ``models`` supplies the config dataclasses and the byte tokenizer.
-
-Sessions use ``ORT_ENABLE_ALL`` graph optimisations and as many intra-op threads as CPU cores, with
-``CUDAExecutionProvider`` first when this onnxruntime build offers it, else ``CPUExecutionProvider``.
-
-A request that needs a part the export left out raises ``ValueError``: a non-empty prompt for an
-export without the text encoder (``export_onnx(text=False)``), deformation ``times`` for an export
-without the deformation network (``export_onnx(deformation=False)``). The photograph is fed to
-``ldrm.onnx`` when the export's LDRM has an image branch (``parts.ldrm_image_input``).
+"""Serve an ONNX export (:mod:`diff4splat.export`) with onnxruntime: :class:`OnnxRuntime`, a pipeline
+:class:`~diff4splat.runtime.NetworkRuntime` (``generate --runtime onnxruntime --onnx DIR``), and the export folder's
+names and checks (manifest, graph metadata). No ``nn.Module`` is built: torch tensors are only the glue between
+sessions. A request for a part the export left out (text, deformation) is a ``ValueError``.
 """
 from __future__ import annotations
 
@@ -41,7 +28,7 @@ __all__ = ["OnnxRuntime", "load_manifest", "check_graph", "session_options", "de
            "MANIFEST_FORMAT", "STATIC_LDRM_OUTPUTS", "LDRM_OUTPUTS", "GRAPH_METADATA_KEYS"]
 
 MANIFEST_NAME = "manifest.json"
-"""The export folder's manifest (:func:`diff4splat.export.export_onnx` writes it, :func:`load_manifest` reads it)."""
+"""The export folder's manifest."""
 MANIFEST_FORMAT = "diff4splat-onnx/2"
 """/2: LDRM maps with a source-frame axis S and the optional ``image`` input (/1: maps of frame 0 only)."""
 STATIC_LDRM_OUTPUTS = ("distance", "scales", "quats", "opacities", "colors")
@@ -58,23 +45,10 @@ _ORT_DTYPES = {"float32": "tensor(float)", "float16": "tensor(float16)", "int64"
 
 
 def load_manifest(directory: str | os.PathLike) -> dict:
-    """Read and check ``manifest.json`` of an export folder.
-
-    Args:
-        directory: folder written by :func:`diff4splat.export.export_onnx`.
-
-    Returns:
-        The manifest dict (see :func:`diff4splat.export.export_onnx`).
-
-    Raises:
-        FileNotFoundError: no folder, no manifest, or a graph file the manifest lists is missing
-            (messages start with ``directory:``).
-        ValueError: naming the manifest: not JSON, not of format :data:`diff4splat.export.MANIFEST_FORMAT`,
-            a missing or mistyped key (``config``, ``parts``, ``files`` and each file entry's ``file``,
-            ``files``, ``inputs``, ``outputs``, ``dims``), parts that differ from the files listed, or a
-            file entry that is not a plain name inside ``directory`` (absolute, ``..``, a sub-folder, or a
-            symlink resolving outside it).
-    """
+    """Read and check ``manifest.json`` of a folder written by :func:`diff4splat.export.export_onnx`.
+    FileNotFoundError: no folder, no manifest, or a listed graph file is missing. ValueError naming the manifest: not
+    JSON, not of :data:`MANIFEST_FORMAT`, a missing or mistyped key, parts that differ from the files listed, or a file
+    that is not a plain name inside ``directory``."""
     directory = Path(directory)
     path = directory / MANIFEST_NAME
     if not directory.is_dir():
@@ -136,17 +110,9 @@ def _check_confined(directory: Path, file: object, where: str) -> None:
 
 
 def check_graph(name: str, entry: dict, session, manifest: dict, path: str | os.PathLike) -> None:
-    """Check a manifest file entry against the graph's own signature and metadata.
-
-    The graph (an onnxruntime ``InferenceSession``) must have the manifest's input and output names in
-    order, with the same ranks, dtypes and dims (sizes and symbolic names), and carry in its metadata
-    (:func:`diff4splat.export.graph_metadata`) the same part name, model config (resolution, channels, …)
-    and dim ranges as the manifest; the parts flags must match the graph's inputs (``text`` of the DiT,
-    ``times`` and ``image`` of the LDRM).
-
-    Raises:
-        ValueError: naming ``path`` (the graph file) and the first difference.
-    """
+    """Check a manifest file entry against its session's inputs and outputs (names, dims, dtypes), its metadata
+    (:func:`diff4splat.export.graph_metadata`: part, config, dim ranges) and the parts flags; ValueError naming ``path``
+    (the graph file) and the first difference."""
     def signature(values) -> list[tuple]:
         return [(v.name, [d if isinstance(d, int) else str(d) for d in v.shape], v.type) for v in values]
 
@@ -169,14 +135,10 @@ def check_graph(name: str, entry: dict, session, manifest: dict, path: str | os.
                              f"exported with: {'; '.join(diff[:3])}")
     names = [v.name for v in session.get_inputs()]
     parts = manifest["parts"]
-    if name == "dit" and ("text" in names) != parts["dit_text_inputs"]:
-        raise ValueError(f"{path}: parts.dit_text_inputs is {parts['dit_text_inputs']} but the graph's inputs "
-                         f"are {names}")
-    if name == "ldrm" and ("times" in names) != parts["deformation"]:
-        raise ValueError(f"{path}: parts.deformation is {parts['deformation']} but the graph's inputs are {names}")
-    if name == "ldrm" and ("image" in names) != parts["ldrm_image_input"]:
-        raise ValueError(f"{path}: parts.ldrm_image_input is {parts['ldrm_image_input']} but the graph's inputs "
-                         f"are {names}")
+    for part, flag, key in (("dit", "dit_text_inputs", "text"), ("ldrm", "deformation", "times"),
+                            ("ldrm", "ldrm_image_input", "image")):
+        if name == part and (key in names) != parts[flag]:
+            raise ValueError(f"{path}: parts.{flag} is {parts[flag]} but the graph's inputs are {names}")
 
 
 def _differences(manifest: object, graph: object, where: str) -> list[str]:
@@ -188,7 +150,7 @@ def _differences(manifest: object, graph: object, where: str) -> list[str]:
 
 
 def _session(path: Path, opts, providers: list[str]):
-    """``onnxruntime.InferenceSession`` of ``path``; a graph onnxruntime cannot load is a ``ValueError``."""
+    """``InferenceSession`` of ``path``; ValueError when onnxruntime cannot load it."""
     try:
         return ort.InferenceSession(str(path), sess_options=opts, providers=providers)
     except (state.Fail, state.InvalidArgument, state.InvalidGraph, state.InvalidProtobuf, state.NoSuchFile,
@@ -204,17 +166,12 @@ def default_providers() -> list[str]:
 
 
 def session_options(threads: int | None = None, profile_prefix: str | None = None):
-    """onnxruntime ``SessionOptions``: ORT_ENABLE_ALL, ``threads`` intra-op threads (default: CPU cores),
-    no spin-waiting of idle threads.
-
-    ``profile_prefix`` turns on onnxruntime's profiler (a Chrome-trace JSON per session, written by
-    ``session.end_profiling()``).
-    """
+    """onnxruntime ``SessionOptions``: ORT_ENABLE_ALL, ``threads`` intra-op threads (default: CPU cores), no
+    spinning; ``profile_prefix`` turns on the profiler (JSON per session, ``session.end_profiling()``)."""
     opts = ort.SessionOptions()
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     opts.intra_op_num_threads = int(threads or os.cpu_count() or 1)
-    # Idle pool threads sleep instead of spinning: the pipeline alternates onnxruntime with PyTorch
-    # (glue, renderer), and spinning threads would take the cores PyTorch runs on.
+    # idle threads sleep: spinning ones would take the cores PyTorch runs on between sessions
     opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
     if profile_prefix is not None:
         opts.enable_profiling = True
@@ -227,24 +184,14 @@ def _numpy(t: Tensor, dtype) -> np.ndarray:
 
 
 class OnnxRuntime:
-    """:class:`diff4splat.runtime.NetworkRuntime` over an ``export-onnx`` folder (batch 1 per call here;
-    the graphs themselves take any batch).
-
-    Args:
-        directory: folder written by :func:`diff4splat.export.export_onnx`.
-        providers: onnxruntime execution providers (default :func:`default_providers`).
-        threads: intra-op threads per session (default: CPU cores).
-        profile_prefix: enable onnxruntime profiling (see :func:`session_options`).
+    """:class:`diff4splat.runtime.NetworkRuntime` over an ``export-onnx`` folder ``directory`` (any batch);
+    ``providers`` default :func:`default_providers`, ``threads`` and ``profile_prefix`` as :func:`session_options`.
+    Raises as :func:`load_manifest`, and ValueError naming a graph file onnxruntime cannot load or that differs from
+    the manifest (:func:`check_graph`).
 
     Attributes:
-        manifest: the parsed manifest; config: the model config; has_text / has_deformation /
-            ldrm_image_input: the parts (``ldrm.onnx`` takes the photograph when the last is True).
+        manifest, config: the parsed manifest and model config; has_text, has_deformation, ldrm_image_input: parts.
         sessions: {part name: onnxruntime.InferenceSession} for the parts present.
-
-    Raises:
-        FileNotFoundError / ValueError: see :func:`load_manifest`; ValueError naming the graph file when
-            onnxruntime cannot load it (truncated, corrupt) or it differs from the manifest (:func:`check_graph`);
-            ``ImportError`` without onnxruntime.
     """
 
     name = "onnxruntime"
@@ -266,7 +213,7 @@ class OnnxRuntime:
         self.has_text = bool(parts["text_encoder"])
         self.dit_text_inputs = bool(parts["dit_text_inputs"])
         self.has_deformation = bool(parts["deformation"])
-        self.has_motion = False  # the motion network is not exported: the token deformation network's maps
+        self.has_motion = False  # the motion network is not exported
         self.ldrm_image_input = bool(parts["ldrm_image_input"])
         self.tokenizer = ByteTokenizer(self.config.text_encoder.max_length)
         self.latent = self.config.vae.latent_format
@@ -279,44 +226,28 @@ class OnnxRuntime:
             check_graph(name, entry, self.sessions[name], self.manifest, path)
 
     def release(self) -> None:
-        """Nothing to free: the onnxruntime sessions keep their own memory between scenes."""
+        """Nothing to free: the sessions keep their memory between scenes."""
 
     def sigmas(self, steps: int) -> Tensor:
-        """The exported model's σ schedule: (steps + 1,) float64, decreasing from 1 to 0
-        (:func:`models.flow_matching.sigma_schedule`, the config's shift)."""
+        """(steps + 1,) float64 from 1 to 0 (:func:`models.flow_matching.sigma_schedule`, the config's shift)."""
         return sigma_schedule(steps, self.config.sampling.shift, dtype=torch.float64)
 
     def encode_image(self, video: Tensor) -> Tensor:
-        """(B, 3, T, H, W) in [−1, 1] → (B, c, n, h, w) DiT latents (``vae_encoder.onnx``).
-
-        Raises:
-            ValueError: as :meth:`models.vae.VideoVAE.encode` (T ≠ 1 + 4k, H or W not a multiple of 8, …).
-        """
+        """(B, 3, T, H, W) in [−1, 1] → (B, c, n, h, w) DiT latents; ValueError as :meth:`VideoVAE.encode`."""
         check_video(self.config.vae, video)
         (z,) = self.sessions["vae_encoder"].run(None, {"video": _numpy(video, np.float32)})
         return torch.from_numpy(z)
 
     def motion(self, out: LDRMOutput, frames: Tensor, frame_times: Tensor, viewmats: Tensor, Ks: Tensor,
                sources: Tensor, times: Tensor) -> LDRMOutput:
-        """Not served: an export has no motion network (``has_motion`` is False; the pipeline never calls this).
-
-        Raises:
-            ValueError: always.
-        """
+        """Not served (``has_motion`` is False): ValueError."""
         raise ValueError("this ONNX export has no motion network (has_motion is False): its scenes keep the "
                          "deformation network's maps")
 
     def decode_latents(self, latents: Tensor) -> Tensor:
-        """(B, c, n, h, w) DiT latents → (B, 3, 1 + 4(n − 1), 8h, 8w) pixels (``vae_decoder.onnx``), on the latents'
-        device.
-
-        Fewer latent frames than the graph was traced for (manifest ``dims``) are padded with copies of the last one
-        and the output cut back: the decoder is causal (no output frame depends on a later latent frame,
-        :class:`models.vae.VideoVAE`), so the padding changes nothing.
-
-        Raises:
-            ValueError: as :meth:`models.vae.VideoVAE.decode` (not (B, c, n, h, w)).
-        """
+        """(B, c, n, h, w) DiT latents → (B, 3, 1 + 4(n − 1), 8h, 8w) pixels on the latents' device; ValueError as
+        :meth:`VideoVAE.decode`. Fewer latent frames than the graph's minimum are padded with the last one and cut
+        back (the decoder is causal)."""
         check_latents(self.config.vae, latents)
         n, n_min = latents.shape[2], self.manifest["files"]["vae_decoder"]["dims"]["latent_frames"][0]
         padded = torch.cat([latents] + [latents[:, :, -1:]] * max(0, n_min - n), dim=2)
@@ -324,11 +255,7 @@ class OnnxRuntime:
         return torch.from_numpy(video[:, :, : 1 + self.latent.temporal_factor * (n - 1)]).to(latents.device)
 
     def encode_text(self, prompt: str) -> tuple[Tensor, Tensor]:
-        """Prompt → tokens (1, L, d_text), mask (1, L) via the byte tokenizer and ``text_encoder.onnx``.
-
-        Raises:
-            ValueError: the export has no text encoder (``export_onnx(text=False)``).
-        """
+        """Prompt → tokens (1, L, d_text), mask (1, L); ValueError when the export has no text encoder."""
         if not self.has_text:
             raise ValueError(f"prompt: the ONNX export in {self.directory} was made without the text encoder "
                              f"(text=False) and serves only the empty prompt, got prompt {prompt!r:.60}")
@@ -340,17 +267,9 @@ class OnnxRuntime:
     def velocity(self, x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor, text: Tensor | None,
                  text_mask: Tensor | None, guidance: float = 1.0, uncond: Tensor | None = None,
                  uncond_mask: Tensor | None = None) -> Tensor:
-        """Flow-matching velocity ε − x0 by ``dit.onnx``: x (B, c, n, h, w), sigma (B,) or a 0-dim σ of the whole
-        batch, in [0, 1], image_latent (B, c, 1, h, w), plucker (B, 6·t·s², n, h, w), text (B, L, d_text) and
-        text_mask (B, L) bool (a None mask: all True) or None → (B, c, n, h, w) float32 (on the CPU). Without text
-        on a text-conditioned graph, one zero token with an all-False mask (exactly zero cross-attention, see
-        :mod:`diff4splat.export`). ``guidance`` g ≠ 1 runs the graph a second time on ``uncond`` + ``uncond_mask``
-        (or no text) and returns v_u + g·(v − v_u) (:meth:`diff4splat.runtime.NetworkRuntime.velocity`).
-
-        Raises:
-            ValueError: as :meth:`models.dit.VideoDiT.forward` (shapes, σ outside [0, 1]); text given to a graph
-                exported without text inputs.
-        """
+        """:meth:`diff4splat.runtime.NetworkRuntime.velocity` by ``dit.onnx``, batch B, float32 on the CPU (a None mask:
+        all True; no text: one zero token with an all-False mask). ValueError as :meth:`models.dit.VideoDiT.forward`, or
+        for text given to a graph without text inputs."""
         sigma = sigma.expand(x.shape[0]) if sigma.dim() == 0 else sigma
         check_dit_inputs(self.config.dit, x, sigma, image_latent, plucker, text, text_mask)
         feeds = {"x": _numpy(x, np.float32), "sigma": _numpy(sigma, np.float32),
@@ -365,11 +284,7 @@ class OnnxRuntime:
         return v_uncond + guidance * (v - v_uncond)
 
     def _text_feeds(self, x: Tensor, text: Tensor | None, text_mask: Tensor | None) -> dict[str, np.ndarray]:
-        """``dit.onnx``'s text inputs for the batch of ``x`` (:meth:`velocity`); none for a graph without them.
-
-        Raises:
-            ValueError: text given to a graph exported without text inputs.
-        """
+        """``dit.onnx``'s text inputs for the batch of ``x``; ValueError for text to a graph without them."""
         if not self.dit_text_inputs:
             if text is not None:
                 raise ValueError(f"text: the ONNX export in {self.directory} was made without the text encoder "
@@ -383,19 +298,9 @@ class OnnxRuntime:
         return {"text": _numpy(text, np.float32), "text_mask": _numpy(text_mask, np.bool_)}
 
     def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None, image: Tensor | None) -> LDRMOutput:
-        """``ldrm.onnx`` → :class:`LDRMOutput`: maps (B, S, H, W, ·) of the S source frames
-        (``models.ldrm.source_frame_indices``), deformation maps (B, K, S, H, W, ·) when ``times`` (K,) is given.
-
-        Args:
-            latents: (B, c, n, h, w) DiT latents; plucker: (B, 1536, n, h, w); times: (K,) in [0, 1] or None.
-            image: (B, 3, 8h, 8w) the photograph in [−1, 1]; fed when the export's LDRM has an image
-                branch (``parts.ldrm_image_input``), ignored otherwise.
-
-        Raises:
-            ValueError: as :meth:`models.ldrm.LDRM.forward` (shapes, times outside [0, 1], ``image`` missing or not
-                (B, 3, 8h, 8w) for an export with an image branch); ``times`` given to an export without the
-                deformation network (``export_onnx(deformation=False)``).
-        """
+        """``ldrm.onnx``: latents (B, c, n, h, w), plucker (B, 1536, n, h, w), times (K,) in [0, 1] or None, image
+        (B, 3, 8h, 8w) in [−1, 1] (fed with an image branch) → maps (B, S, H, W, ·) [+ (B, K, S, H, W, ·)].
+        ValueError as :meth:`models.ldrm.LDRM.forward`, or for ``times`` given to an export without deformation."""
         check_ldrm_inputs(self.config.ldrm, latents, plucker, times, image)
         feeds = {"latents": _numpy(latents, np.float32), "plucker": _numpy(plucker, np.float32)}
         if self.ldrm_image_input:

@@ -1,22 +1,10 @@
 """``diff4splat reconstruct``: a real monocular video → a 4D scene that moves as the video does.
 
-The LDRM reads the video's own latents (the VAE encodes the clip; nothing is sampled) and gives the depth of its
-source frames (video frames 0, 4, 8, …; docs/DESIGN.md, "Data flow of generate", step 6). The video is observed, not
-generated, so every frame (``layers="every"``; or the source frames alone) is kept as ``generate`` keeps the
-photograph: a photo layer of its pixels at the output resolution (:func:`diff4splat.assembly.photo.photo_layer`) on its
-depth (the LDRM's, upsampled with the frame as the guide, carried along the optical flow to the frames between source
-frames: :func:`carried_depth`), plus frame 0's backdrop. The motion is measured from the frames
-(:func:`diff4splat.geometry.scene_flow.source_frame_motion`: OpenCV's DIS optical flow, chained and lifted to 3D with
-the depths) at every frame's time, so each layer follows the video before and after its own frame, its points at their
-measured places, and the deformation interpolates between consecutive frames. The layers overlap; each is opaque at
-its own frame's time and fades away from it (temporal opacity, :data:`TIME_SIGMA`), so at a frame the scene shows
-that frame and between two frames the two, moved to that time.
-
-A still world (no more than :data:`MOVING_FRACTION` of a layer's pixels move beyond the rigidity gate) gives a static
-scene: no deformation, no temporal opacity, and the layers settled as ``generate`` settles its frames (a later frame's
-duplicates of what frame 0 shows dropped).
-
-Library use mirrors :mod:`diff4splat.generate`::
+The VAE encodes the clip and the LDRM gives its source frames' depth (nothing is sampled); every frame (or the source
+frames alone) becomes a photo layer (:func:`diff4splat.assembly.photo.photo_layer`) on that depth carried along the
+optical flow (:func:`carried_depth`), moved by the motion measured from the frames
+(:func:`diff4splat.geometry.scene_flow.source_frame_motion`) and faded away from its own frame's time
+(:data:`TIME_SIGMA`); a still clip gives a static scene (docs/DESIGN.md, "Motion measured from frames …")::
 
     from diff4splat.generate import write
     from diff4splat.reconstruct import reconstruct
@@ -70,48 +58,40 @@ from models.deformation import IDENTITY_QUAT
 from models.ldrm import source_frame_indices
 
 __all__ = ["reconstruct", "reconstruct_scene", "still_cameras", "clip_cameras", "carried_depth", "check_layers",
-           "layer_frames",
-           "scene_slots", "memory_estimate", "RECONSTRUCT_KIND", "TIME_SIGMA", "BACKDROP_TIME_SIGMA", "FLOW_SIZE",
-           "GATE_PX", "FB_TOLERANCE_PX", "MOVING_FRACTION", "LAYERS", "DEFAULT_LAYERS"]
+           "layer_frames", "scene_slots", "memory_estimate", "RECONSTRUCT_KIND", "TIME_SIGMA", "BACKDROP_TIME_SIGMA",
+           "FLOW_SIZE", "GATE_PX", "FB_TOLERANCE_PX", "MOVING_FRACTION", "LAYERS", "DEFAULT_LAYERS"]
 
 RECONSTRUCT_KIND = "reconstruct"
 """Marker kind of a ``reconstruct`` output folder (the layout is ``generate``'s)."""
 TIME_SIGMA = 0.6
-"""Temporal standard deviation of a layer's opacity (``DynamicGaussians.t_scales``), in units of the spacing between
-layer frames: its own frame's layer is opaque at its time, a neighbour's at 0.25 (one spacing away, behind or
-mixed in), one two spacings away at 0.004, so a copy that the flow lost fades instead of lingering; halfway between
-two frames both neighbours show at 0.71 each. Chosen on the development clips (0.4, 0.5, 0.6, 0.8 spacings, and a
-push of the farther layers along their rays, which left their points off their true places: docs/benchmarks.md)."""
+"""Temporal standard deviation of a layer's opacity (``DynamicGaussians.t_scales``), in spacings between layer frames:
+a neighbour's layer shows at 0.25, both neighbours at 0.71 halfway between them."""
 GATE_PX = 0.5
-"""Rigidity gate of the motion, pixels of the output frames (``scene_flow.lift_tracks``): a real video's pixels that
-move a few pixels per frame (a face talking) must not be held still, as the 2 px of the 64² synthetic clips would
-(swept on the development video, docs/benchmarks.md "`reconstruct` between its frames": 0, 0.5, 1 px)."""
+"""Rigidity gate of the motion, pixels of the output frames (``scene_flow.lift_tracks``)."""
 FB_TOLERANCE_PX = 1.5
-"""Forward-backward tolerance of the tracking, pixels of the output frames (swept with :data:`GATE_PX`: 0.5, 1.5)."""
+"""Forward-backward tolerance of the tracking, pixels of the output frames."""
 BACKDROP_TIME_SIGMA = 1e3
-"""The backdrop's temporal standard deviation (clip time): present at every time (opacity × 0.99999988 at t = 0, 1)."""
+"""The backdrop's temporal standard deviation (clip time): present at every time."""
 MOVING_FRACTION = 0.005
-"""A clip is dynamic when, at some frame, more than this fraction of a source frame's pixels has moved by more than
-the config's ``static_atol``: a still video's few pixels of codec noise above the gate do not make it move."""
+"""A clip is dynamic when, at some frame, more than this fraction of a layer's pixels has moved by more than the
+config's ``static_atol`` (so codec noise does not make a still video move)."""
 LAYERS = ("every", "source")
 """Which frames of the clip become photo layers (``--layers``, :func:`reconstruct_scene`)."""
 DEFAULT_LAYERS = "every"
-"""Every frame: an in-between time is drawn from its two neighbours' pixels (the held-out bikes shots: docs/
-benchmarks.md, "`reconstruct` between its frames"), at T·1.25 Gaussians per output pixel."""
+"""Every frame (T·1.25 Gaussians per output pixel): an in-between time is drawn from its two neighbours' pixels."""
 FLOW_SIZE = 256
-"""Pixels of height the frames are tracked at: the output resolution upsampled by the nearest whole factor
-(``scene_flow.optical_flow``'s ``upsample``; 4 × 64 px was the best of 1, 2 and 4 on the held-out tracks)."""
+"""Pixels of height the frames are tracked at (the output upsampled by the nearest whole factor)."""
 
 
 def still_cameras(pipe: Diff4SplatPipeline, num_frames: int, width: int, height: int) -> CameraPath:
-    """A camera that does not move: every frame the identity viewmat, the model's vertical field of view at
-    ``width`` × ``height``; times i/(T−1)."""
+    """``num_frames`` identity cameras at the model's vertical field of view and ``width`` × ``height``."""
     K = intrinsics_from_fov(width, height, fov_y_deg=pipe.config.fov_y_deg)
     eye = torch.eye(4, device=K.device)
     return CameraPath(eye.expand(num_frames, 4, 4).clone(), K.expand(num_frames, 3, 3).clone(), width, height)
 
 
 def _check_frames(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraPath) -> None:
+    """:func:`reconstruct_scene`'s checks of ``frames`` and ``cameras``."""
     cfg = pipe.config
     if frames.dim() != 4 or frames.shape[-1] != 3 or not frames.is_floating_point():
         raise ValueError(f"frames must be a float tensor (T, H, W, 3), got {tuple(frames.shape)} {frames.dtype}")
@@ -133,18 +113,10 @@ def check_layers(layers: object) -> str:
 
 
 def carried_depth(depths: Tensor, sources: list[int], frame: int, flows: tuple[Tensor, Tensor]) -> Tensor:
-    """The z-depth map (H, W) of video frame ``frame``: its own source frame's, or the nearest source frame's
-    (the earlier on a tie) sampled where :func:`diff4splat.geometry.scene_flow.chain_flows` carries each pixel to it — a
-    point keeps its depth over the one or two frames between (the camera's motion over them is not applied).
-
-    Args:
-        depths: (S, H, W) z-depths of the source frames ``sources`` (increasing frame indices), metres.
-        frame: the video frame, within [0, T).
-        flows: the video's :func:`diff4splat.geometry.scene_flow.consecutive_flows` at (H, W).
-
-    Returns:
-        (H, W) z-depth, metres (bilinear samples of the source frame's map).
-    """
+    """(H, W) z-depth, metres, of video frame ``frame`` in [0, T): its source frame's, or the nearest source frame's
+    (the earlier on a tie) sampled bilinearly where the chained ``flows``
+    (:func:`diff4splat.geometry.scene_flow.consecutive_flows`) carry each pixel; ``depths`` (S, H, W) are those of
+    ``sources`` (increasing)."""
     if frame in sources:
         return depths[sources.index(frame)]
     s = min(range(len(sources)), key=lambda i: (abs(sources[i] - frame), sources[i]))
@@ -156,8 +128,7 @@ def carried_depth(depths: Tensor, sources: list[int], frame: int, flows: tuple[T
 
 
 def layer_frames(pipe: Diff4SplatPipeline, num_frames: int, layers: str) -> tuple[list[int], list[int]]:
-    """(the LDRM's source frames, the frames that become photo layers) of a ``num_frames``-frame clip: every frame
-    for ``layers`` "every", the source frames (0, 4, 8, …; ``models.ldrm.source_frame_indices``) for "source"."""
+    """(the LDRM's source frames, the frames that become photo layers: all for "every", the source frames else)."""
     latent = pipe.runtime.latent
     sources = source_frame_indices(pipe.config.ldrm.gaussian_frames, latent.num_latent_frames(num_frames),
                                    latent.temporal_factor)
@@ -165,8 +136,7 @@ def layer_frames(pipe: Diff4SplatPipeline, num_frames: int, layers: str) -> tupl
 
 
 def _layer_motion(motion: Tensor, height: int, width: int) -> Tensor:
-    """A source frame's per-pixel displacement maps (T, H, W, 3) → its photo layer's (T, H·W + ⌈H/2⌉·⌈W/2⌉, 3): the
-    front disks take their pixel's, the backing disks the mean of their 2×2 block's (``photo.photo_layer``'s order)."""
+    """Per-pixel displacements (T, H, W, 3) → the photo layer's (T, H·W + ⌈H/2⌉·⌈W/2⌉, 3) (backing: 2×2 means)."""
     T = motion.shape[0]
     block = F.avg_pool2d(motion.permute(0, 3, 1, 2), 2, ceil_mode=True).permute(0, 2, 3, 1)
     return torch.cat([motion.reshape(T, height * width, 3), block.reshape(T, -1, 3)], dim=1)
@@ -175,25 +145,14 @@ def _layer_motion(motion: Tensor, height: int, width: int) -> Tensor:
 @torch.no_grad()
 def reconstruct_scene(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraPath, *,
                       layers: str = DEFAULT_LAYERS) -> GenerationResult:
-    """The 4D scene of a video clip (module docstring).
-
-    Args:
-        pipe: the networks (their VAE encoder and LDRM run; no text encoder, no DiT).
-        frames: (T, H, W, 3) RGB in [0, 1] at the output resolution and the model's aspect ratio, T = 1 + 4k.
-        cameras: the T cameras at the output resolution (re-expressed relative to the first).
-        layers: which frames become photo layers (:data:`LAYERS`): "every" frame, or the LDRM's "source" frames
-            (0, 4, 8, …: a quarter of the Gaussians, each in-between frame drawn from pixels up to two frames away).
-
-    Returns:
-        :class:`~diff4splat.pipeline.GenerationResult` (``steps`` 0, ``sampler`` "none": nothing sampled;
-        ``latents``: the video's own; ``source_frames``: the frames that are layers). Its unpruned order
-        (``gaussian_index``, ``num_slots``): the photo layer of frame 0 (``photo_gaussians``), the backdrop, then the
-        photo layers of the other layer frames (each H·W front then ⌈H/2⌉·⌈W/2⌉ backing disks); the deformation's key
-        times are the frames' times.
+    """The 4D scene (module docstring) of a clip ``frames`` (T, H, W, 3) in [0, 1] at the output resolution and the
+    model's aspect ratio, T = 1 + 4k, seen by ``cameras`` (T at the output resolution, made relative to the first),
+    ``layers`` (:data:`LAYERS`) its photo layers. Returns a :class:`~diff4splat.pipeline.GenerationResult` (``steps`` 0,
+    ``sampler`` "none", ``latents`` the video's, ``source_frames`` the layer frames; unpruned order: frame 0's layer,
+    the backdrop, the other layers).
 
     Raises:
-        ValueError: frames not (T, H, W, 3) in [0, 1] at the model's aspect ratio, T ≠ 1 + 4k, cameras not T at
-            (W, H), an unknown ``layers``; a camera path that sees none of the scene.
+        ValueError: bad frames, T ≠ 1 + 4k, cameras not T at (W, H), an unknown ``layers``; a path that sees nothing.
     """
     _check_frames(pipe, frames, cameras)
     check_layers(layers)
@@ -226,12 +185,11 @@ def reconstruct_scene(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraP
     parts, d_means, grid = [], [], []  # the layers and the backdrop, in the scene's order
     for s, f in enumerate(frames_of):
         layer, history = photo_layer(images[f], z[s], cameras.viewmats[f], cameras.Ks[f])
-        if s == 0:
-            photo_psnr = history[-1]
         parts.append(layer)
         d_means.append(_layer_motion(motion[:, s], H, W))
         grid.append(torch.full((layer.num_gaussians,), s, dtype=torch.long, device=dev))
         if s == 0:  # the backdrop follows frame 0's layer: static, behind everything
+            photo_psnr = history[-1]
             backdrop = backdrop_layer(images[0], z[0], cameras.viewmats[0], cameras.Ks[0])
             parts.append(backdrop)
             d_means.append(z.new_zeros(T, backdrop.num_gaussians, 3))
@@ -270,13 +228,8 @@ def reconstruct_scene(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraP
 
 
 def clip_cameras(cameras: CameraPath, indices: list[int], source: object = "cameras") -> CameraPath:
-    """The cameras of a clip's frames: ``cameras`` as they are when there is one per clip frame, else the ones at
-    the clip's video frame ``indices`` of a path with one camera per video frame; times i/(T−1) either way.
-
-    Raises:
-        ValueError: naming ``--cameras`` ``source``, when the path has neither as many cameras as the clip nor one
-            for each of its video frames.
-    """
+    """The clip's cameras: ``cameras`` when there is one per clip frame, else those at its video frames
+    ``indices``; times i/(T−1). ValueError naming ``--cameras`` ``source`` when there are neither."""
     T = len(indices)
     if len(cameras) == T:
         index = list(range(T))
@@ -289,19 +242,16 @@ def clip_cameras(cameras: CameraPath, indices: list[int], source: object = "came
 
 
 def scene_slots(width: int, height: int, num_layers: int) -> int:
-    """Gaussians of the unpruned scene of ``num_layers`` photo layers at ``width`` × ``height`` and frame 0's
-    backdrop (:func:`diff4splat.assembly.photo.layer_sizes`): ``GenerationResult.num_slots``."""
+    """``GenerationResult.num_slots``: ``num_layers`` photo layers at ``width`` × ``height`` and one backdrop."""
     photo, backdrop = layer_sizes(width, height)
     return num_layers * photo + backdrop
 
 
 def memory_estimate(pipe: Diff4SplatPipeline, width: int, height: int, frames: int, num_layers: int) -> int:
-    """Upper bound of ``reconstruct``'s peak host memory, bytes (as :meth:`Diff4SplatPipeline.memory_estimate`,
-    whose constants it uses): the process and the weights in host memory; per Gaussian slot
-    (:func:`scene_slots`) its attributes and the deformation at T key times (10 floats) × the copies alive at once
-    plus one (the identity rotations and zero scale offsets are views until the folder is written);
-    the motion maps, T × layers × H × W × 3 floats, twice (the maps and the layers' copies); the consecutive flows;
-    the frames and their renders, T × H × W × 5 floats, twice."""
+    """Upper bound of ``reconstruct``'s peak host memory, bytes (constants of
+    :meth:`Diff4SplatPipeline.memory_estimate`): process and weights; per slot its attributes and T × 10 floats ×
+    (copies + 1); the motion maps (T × layers × H × W × 3 floats) twice; the flows; the frames, T × H × W × 5 floats,
+    twice."""
     slots = scene_slots(width, height, num_layers)
     weights = pipe.runtime.host_weight_bytes() if isinstance(pipe.runtime, TorchRuntime) else 0
     base = MEMORY_BASE_BYTES + (MEMORY_CUDA_BUILD_BYTES if torch.backends.cuda.is_built() else 0)
@@ -310,50 +260,28 @@ def memory_estimate(pipe: Diff4SplatPipeline, width: int, height: int, frames: i
                + 2 * 12 * frames * num_layers * pixels + 16 * frames * pixels + 2 * 20 * frames * pixels)
 
 
-def reconstruct(
-    video: str | os.PathLike,
-    cameras: str | os.PathLike | CameraPath | None = None,
-    *,
-    pipeline: LoadedPipeline | Diff4SplatPipeline | Callable[[], LoadedPipeline] | None = None,
-    frames: int | None = None,
-    stride: int = 1,
-    start: int = 0,
-    resolution: int | None = None,
-    layers: str = DEFAULT_LAYERS,
-    progress: bool = False,
-    out: str | os.PathLike | None = None,
-    overwrite: bool = False,
-    inputs: Iterable[str | os.PathLike | None] = (),
-    fps: float = DEFAULT_FPS,
-    frame_plys: bool = True,
-) -> Generation:
-    """A 4D scene of a video clip, rendered at its own cameras (the ``diff4splat reconstruct`` command).
+def reconstruct(video: str | os.PathLike, cameras: str | os.PathLike | CameraPath | None = None, *,
+                pipeline: LoadedPipeline | Diff4SplatPipeline | Callable[[], LoadedPipeline] | None = None,
+                frames: int | None = None, stride: int = 1, start: int = 0, resolution: int | None = None,
+                layers: str = DEFAULT_LAYERS, progress: bool = False, out: str | os.PathLike | None = None,
+                overwrite: bool = False, inputs: Iterable[str | os.PathLike | None] = (), fps: float = DEFAULT_FPS,
+                frame_plys: bool = True) -> Generation:
+    """A 4D scene of a video clip, rendered at its own cameras (``diff4splat reconstruct``): a
+    :class:`~diff4splat.generate.Generation` of kind :data:`RECONSTRUCT_KIND` (write it with
+    :func:`diff4splat.generate.write`).
 
     Args:
         video: a video file (any format OpenCV reads) or a folder of frames (images, in name order).
-        cameras: a camera file (cameras.json or RealEstate10K .txt: one camera per clip frame, or one per video frame
-            of which the clip's are taken, :func:`clip_cameras`), a :class:`CameraPath` at the output resolution (one
-            per clip frame), or None: a still camera (:func:`still_cameras`).
-        pipeline: as :func:`diff4splat.generate.generate`.
-        frames: T = 1 + 4k frames of the clip (default: the config's).
-        stride, start: the clip is frames ``start + stride·i`` of the video.
-        resolution: output height, pixels (default: 256, or the model's height if larger); every frame is
-            centre-cropped to the model's aspect ratio and resized (as ``generate``'s photograph).
-        layers: which frames become photo layers (:func:`reconstruct_scene`).
-        progress: tqdm progress bar while rendering.
-        out, overwrite, inputs, fps, frame_plys: as :func:`diff4splat.generate.generate` (``out`` checked first, as
-            a folder of :data:`RECONSTRUCT_KIND`).
+        cameras: a camera file (one camera per clip frame or per video frame, :func:`clip_cameras`), a
+            :class:`CameraPath` at the output resolution, or None: a still camera (:func:`still_cameras`).
+        frames, stride, start: the clip is T = 1 + 4k (default: the config's) frames ``start + stride·i`` of the video.
+        resolution: output height, pixels (default as ``generate``'s); frames are cropped and resized as its photo.
+        layers: which frames become photo layers (:data:`LAYERS`).
+        pipeline, progress, out, overwrite, inputs, fps, frame_plys: as :func:`diff4splat.generate.generate`.
 
-    Returns:
-        :class:`~diff4splat.generate.Generation` (write it with :func:`diff4splat.generate.write`; its folder's
-        marker kind is :data:`RECONSTRUCT_KIND`).
-
-    Raises:
-        FileNotFoundError: a missing video or camera file.
-        FileExistsError: as :func:`diff4splat.io.output_folders.check_output_dir`.
-        ValueError: an ``out`` that may not be written (:class:`diff4splat.io.output_folders.OutputDirError`), a
-            bad ``fps``, a bad clip request or one the video is too short for, a malformed video or camera file,
-            limits exceeded (before the networks run), everything :func:`reconstruct_scene` raises.
+    Raises FileNotFoundError for a missing video or camera file, FileExistsError as ``check_output_dir``, ValueError for
+    an ``out`` that may not be written, a bad ``fps`` or clip request, a malformed video or camera file, limits exceeded
+    (before the networks run) and everything :func:`reconstruct_scene` raises.
     """
     t_start = time.perf_counter()
     read = [Path(p) for p in (video, cameras, *inputs) if isinstance(p, (str, os.PathLike))]

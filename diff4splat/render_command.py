@@ -1,35 +1,15 @@
 """``diff4splat render``: re-render an output folder of ``generate`` or ``fit`` along any camera path and time.
 
-Input folder (docs/DESIGN.md, "Output folder of generate"): ``scene.ply`` (canonical Gaussians),
-``deformation.npz`` (optional), ``cameras.json`` (the folder's own path), ``meta.json``, ``depth/0000.exr`` and,
-in a ``fit`` output, ``field.safetensors`` (the HexPlane field, :func:`models.hexplane.load_field`). With a
-field the deformation is queried at exactly the times of the new path (:func:`path_scene`); without one
-``deformation.npz`` is interpolated between its key times as docs/DESIGN.md says
-(:meth:`~diff4splat.scene.dynamic.DynamicGaussians.at`); a folder with neither is static. Every file is read as
-untrusted input (:func:`load_scene_folder`): a malformed, corrupt or inconsistent one is a ``ValueError`` naming
-it (``deformation.npz`` missing while ``meta.json`` says ``"static": false`` included).
-
-Camera path (:func:`load_camera_file`, :func:`trajectory_cameras`), one of:
-
-* a ``cameras.json`` (``generate``'s, or a data_prep scene's ``<cam>/cameras.json``, whose extra
-  ``timestamps`` key is ignored): used as is, in the scene's world frame, with its own size, intrinsics and times;
-* a RealEstate10K text file: intrinsics de-normalised by the folder's width × height, poses re-expressed
-  relative to the file's first camera and placed at the folder's first camera (the path ``generate --cameras``
-  would have followed from that folder's photograph);
-* a preset trajectory (:func:`diff4splat.cameras.make_trajectory`) at the folder's frame-0 intrinsics and
-  size, placed at the folder's first camera, around the scene centre at :func:`scene_depth` metres ahead.
-
-Frame i is rendered at ``cameras.times[i]`` by :func:`diff4splat.render.sequence.render_path`, on the device
-:func:`rerender` is given (``render --device``, default ``auto`` on the command line, the CPU in the library): the
-scene, the field and the cameras are moved there, and the files are written from CPU copies. The output
-folder (kind ``"render"``, written atomically by :func:`diff4splat.io.output_folders.output_dir`, so it never
-replaces a user's folder nor the input)::
+The folder is read as untrusted input (:func:`load_scene_folder`). With a ``field.safetensors`` (``fit``) the
+deformation is queried at exactly the new path's times (:func:`path_scene`), else ``deformation.npz`` is interpolated
+between its key times. The path is a ``cameras.json`` (used as is, in the scene's world frame), a RealEstate10K file
+(placed at the folder's first camera) or a preset (:func:`trajectory_cameras`); frame i is rendered at
+``cameras.times[i]`` on the device :func:`rerender` is given. The output folder (kind ``"render"``, written atomically;
+docs/DESIGN.md, "Output folder of generate")::
 
     rgb/0000.png …      8-bit RGB, lossless: round(255 · clamp(colour, 0, 1))
-    video.mp4           the same frames (an odd width/height is padded by repeating the last column/row:
-                        MPEG-4 Part 2 needs even sizes)
-    depth/0000.exr …    float32 expected depth "Z" (metres; empty pixels filled as generate does,
-                        :func:`~diff4splat.io.scene_folder.fill_empty_depth`) and coverage "A"
+    video.mp4           the same frames (an odd width/height padded by repeating the last column/row)
+    depth/0000.exr …    float32 expected depth "Z" (metres; empty pixels filled as generate does) and coverage "A"
     cameras.json        the path rendered
     viewer.html         the interactive viewer of the source scene, opening at the path's first camera
     meta.json           source folder, camera source, deformation source, frames, size, fps, device, timings
@@ -77,18 +57,8 @@ RENDER_KIND = "render"
 
 
 def path_scene(folder: SceneFolder, times: Tensor) -> DynamicGaussians:
-    """The scene to render at ``times``.
-
-    With a field: its deformation sampled at exactly the distinct values of ``times`` (sorted), so
-    :meth:`DynamicGaussians.at` at each of them returns the field's value there (with the temporal support of
-    ``deformation.npz``, if any). Without: the folder's scene, interpolated between its key times.
-
-    Args:
-        times: (T,) clip times in [0, 1], on any device.
-
-    Returns:
-        The scene on the device of ``folder.scene`` (and its field).
-    """
+    """The scene to render at ``times`` (T,) in [0, 1], on the device of ``folder.scene``: with a field, its
+    deformation sampled at exactly the distinct ``times``; without, the folder's scene."""
     if folder.field is None:
         return folder.scene
     s = folder.scene
@@ -98,27 +68,18 @@ def path_scene(folder: SceneFolder, times: Tensor) -> DynamicGaussians:
 
 
 def render_memory_estimate(folder: SceneFolder, path: CameraPath) -> int:
-    """Upper bound of ``render``'s peak host memory, bytes, once ``folder`` is loaded: what the process holds now,
-    plus :data:`RENDER_BASE_BYTES`, a field's deformation sampled at the path's distinct times (:func:`path_scene`:
-    10 floats per Gaussian and time), :data:`RENDER_BYTES_PER_GAUSSIAN` per Gaussian and the frames (T × H × W × 5
-    floats, twice: floats and encoded). Checked against the memory the process may use
-    (:func:`diff4splat.utils.limits.check_memory`) before any frame is rendered."""
+    """Upper bound of ``render``'s peak host memory, bytes, once ``folder`` is loaded: what the process holds,
+    :data:`RENDER_BASE_BYTES`, a field's deformation (10 floats per Gaussian and distinct time),
+    :data:`RENDER_BYTES_PER_GAUSSIAN` per Gaussian and the frames (T × H × W × 5 floats, twice)."""
     n = folder.scene.num_gaussians
     sampled = 40 * n * len(torch.unique(path.times)) if folder.field is not None else 0
-    held = held_memory()
-    return int(held + RENDER_BASE_BYTES + sampled + RENDER_BYTES_PER_GAUSSIAN * n
+    return int(held_memory() + RENDER_BASE_BYTES + sampled + RENDER_BYTES_PER_GAUSSIAN * n
                + 2 * 20 * len(path) * path.width * path.height)
 
 
 def placed_at(path: CameraPath, first: Tensor) -> CameraPath:
-    """A path given relative to its first camera (viewmats[0] = I), placed at the world-to-camera pose ``first``.
-
-    V_i' = V_i · ``first`` (camera i's pose relative to the first is kept), so V_0' = ``first`` exactly.
-
-    Args:
-        path: T cameras whose world frame is the first camera's.
-        first: (4, 4) world-to-camera pose of the first camera in the target world frame.
-    """
+    """A path relative to its first camera placed at the (4, 4) world-to-camera pose ``first``: V_i' = V_i · ``first``,
+    V_0' = ``first`` exactly."""
     first = first.to(path.viewmats.dtype)
     viewmats = path.viewmats @ first
     viewmats[0] = first
@@ -126,12 +87,8 @@ def placed_at(path: CameraPath, first: Tensor) -> CameraPath:
 
 
 def load_camera_file(path: str | os.PathLike, folder: SceneFolder) -> CameraPath:
-    """``--cameras``: a ``cameras.json`` as is, or a RealEstate10K text file at the folder's size and first
-    camera (module docstring); any suffix other than ``.json`` is read as RealEstate10K.
-
-    Raises:
-        FileNotFoundError / ValueError: the file is missing, not a regular file or malformed (named).
-    """
+    """``--cameras``: a ``cameras.json`` as is, or (any other suffix) a RealEstate10K file at the folder's size and
+    first camera. FileNotFoundError / ValueError: missing, not a regular file or malformed (named)."""
     path = check_input_file(path, "cameras")
     if path.suffix.lower() == ".json":
         return load_cameras_json(path)
@@ -141,22 +98,10 @@ def load_camera_file(path: str | os.PathLike, folder: SceneFolder) -> CameraPath
 
 def trajectory_cameras(folder: SceneFolder, name: str, frames: int | None = None,
                        amplitude: float | None = None) -> tuple[CameraPath, float]:
-    """A preset path (:func:`~diff4splat.cameras.make_trajectory`) at the folder's frame-0 intrinsics and size,
-    around the scene centre :func:`scene_depth` metres ahead of the folder's first camera, placed there.
-
-    Args:
-        name: one of :data:`~diff4splat.cameras.TRAJECTORIES`.
-        frames: T ≥ 1 (default: the folder's frame count).
-        amplitude: the preset's amplitude (radians for ``arc``, units of the scene depth otherwise; None → default).
-
-    Returns:
-        (path whose first camera is the folder's first camera, scene depth in metres).
-
-    Raises:
-        ValueError: unknown preset, bad ``amplitude`` (:func:`make_trajectory`: the checks of ``generate``'s presets),
-            ``frames`` not a positive int or above the ``frames`` limit (:class:`~diff4splat.utils.limits.LimitError`),
-            no scene depth (:func:`scene_depth`).
-    """
+    """Preset ``name`` (:func:`~diff4splat.cameras.make_trajectory`; ``frames`` default: the folder's) at the folder's
+    frame-0 intrinsics and size, around the scene centre :func:`scene_depth` metres ahead, from its first camera;
+    returns (the path, the scene depth in metres). ValueError: unknown preset, bad ``amplitude``, ``frames`` not a
+    positive int or above its limit, no scene depth."""
     c = folder.cameras
     T = _check_frames(len(c) if frames is None else frames)
     depth = scene_depth(folder)
@@ -165,17 +110,13 @@ def trajectory_cameras(folder: SceneFolder, name: str, frames: int | None = None
 
 
 def _check_frames(frames: object) -> int:
-    """``frames`` if it is a positive int within the ``frames`` limit (:func:`diff4splat.utils.limits.check_limit`)."""
+    """``frames`` if it is a positive int within the ``frames`` limit."""
     return check_limit("frames", check_positive_int("--frames", frames), "--frames")
 
 
 def resize_cameras(cameras: CameraPath, width: int | None = None, height: int | None = None) -> CameraPath:
-    """The path at ``width`` × ``height`` pixels (:meth:`CameraPath.fitted`: centre crop to the new aspect ratio,
-    then scale); one of them alone keeps the aspect ratio (the other rounded to the nearest even number ≥ 2).
-
-    Raises:
-        ValueError: ``width``/``height`` not a positive int.
-    """
+    """The path at ``width`` × ``height`` (:meth:`CameraPath.fitted`); one alone keeps the aspect ratio (the other
+    rounded to an even number ≥ 2). ValueError: not a positive int."""
     if width is None and height is None:
         return cameras
     if width is not None:
@@ -189,53 +130,27 @@ def resize_cameras(cameras: CameraPath, width: int | None = None, height: int | 
     return cameras.fitted(width, height)
 
 
-def rerender(
-    folder: str | os.PathLike,
-    out: str | os.PathLike,
-    *,
-    cameras: str | os.PathLike | None = None,
-    trajectory: str | None = None,
-    amplitude: float | None = None,
-    frames: int | None = None,
-    width: int | None = None,
-    height: int | None = None,
-    fps: float = DEFAULT_FPS,
-    overwrite: bool = False,
-    progress: bool = False,
-    device: str | torch.device = "cpu",
-) -> dict:
-    """Render the scene of ``folder`` along a camera path and write the ``render`` output folder ``out``.
+def rerender(folder: str | os.PathLike, out: str | os.PathLike, *, cameras: str | os.PathLike | None = None,
+             trajectory: str | None = None, amplitude: float | None = None, frames: int | None = None,
+             width: int | None = None, height: int | None = None, fps: float = DEFAULT_FPS, overwrite: bool = False,
+             progress: bool = False, device: str | torch.device = "cpu") -> dict:
+    """Render the scene of ``folder`` along a camera path and write the ``render`` output folder ``out``; returns the
+    dict written to ``out/meta.json``.
 
     Args:
         folder: output folder of ``generate`` or ``fit`` (:func:`load_scene_folder`).
-        out: output folder (module docstring); checked before any work, replaced only if empty or an earlier
-            ``render`` output (or ``overwrite``), never ``folder``, the camera file or a folder holding them.
+        out, overwrite: output folder (module docstring), checked before any work, never ``folder`` or the camera
+            file; ``overwrite``: it may replace a folder that is not a ``render`` output.
         cameras: camera file (:func:`load_camera_file`); exactly one of ``cameras`` and ``trajectory``.
-        trajectory: preset name (:func:`trajectory_cameras`).
-        amplitude, frames: the preset's amplitude and frame count (``trajectory`` only).
-        width, height: optional output size in pixels (:func:`resize_cameras`).
-        fps: video frame rate, in (0, 1000].
-        overwrite: also replace an ``out`` that is not a ``render`` output (never one holding the inputs).
-        progress: tqdm progress bar.
-        device: where the scene is rendered: ``"cpu"`` (default), ``"cuda"``, ``"cuda:N"``, ``"auto"`` (CUDA when
-            torch sees a GPU, else the CPU) or a ``torch.device``; checked first
-            (:func:`diff4splat.utils.devices.resolve_device`). The scene, the field and the cameras are moved there; the
-            files are written from CPU copies. On CUDA the renderer may be gsplat (docs/DESIGN.md, "The renderer"),
-            whose images differ slightly from the CPU's.
-
-    Returns:
-        The dict written to ``out/meta.json``.
+        trajectory, amplitude, frames: preset name, amplitude and frame count (:func:`trajectory_cameras`).
+        width, height, fps: optional output size in pixels (:func:`resize_cameras`); video frame rate in (0, 1000].
+        device: where the scene is rendered ("cpu", "cuda", "cuda:N", "auto" or a ``torch.device``; checked first).
 
     Raises:
         ValueError: both or neither of ``cameras``/``trajectory``; ``amplitude``/``frames`` with ``cameras``; a bad
-            ``fps``, size or preset argument; an ``out`` that may not be written
-            (:class:`~diff4splat.io.OutputDirError`); frames or output size above their limits
-            (:class:`~diff4splat.utils.limits.LimitError`); a malformed file of ``folder`` or camera file
-            (:func:`load_scene_folder`); an unknown preset or an ``amplitude`` outside the preset's range
-            (:func:`diff4splat.cameras.trajectories.check_amplitude`, as ``generate``), checked before the folder is
-            read; a camera narrower than 0.1° (:func:`~diff4splat.cameras.path.check_field_of_view`, as ``generate``);
-            a path none of whose frames sees the scene (every pixel background, as ``generate`` refuses it),
-            checked after rendering and before anything is written; a ``device`` this machine does not have.
+            ``fps``, size, preset or ``amplitude``; an ``out`` that may not be written; limits exceeded; a malformed
+            file of ``folder`` or camera file; a camera narrower than 0.1°; a path that sees none of the scene
+            (checked before anything is written); a ``device`` this machine does not have.
         FileNotFoundError: ``folder``, its ``scene.ply``/``cameras.json`` or the camera file is missing.
     """
     t_start = time.perf_counter()
@@ -301,8 +216,7 @@ def rerender(
 
 
 def _check_path_sees_the_scene(alphas: Tensor, trajectory: str | None) -> None:
-    """ValueError when no frame covers a pixel (every alpha < 1/255: the render would be the background alone),
-    naming the likely cause, as ``generate`` refuses a path that sees none of its scene (README, "Limits")."""
+    """ValueError, naming the likely cause, when no frame covers a pixel (every alpha < :data:`ALPHA_MIN`)."""
     if bool((alphas >= ALPHA_MIN).any()):
         return
     cause = ("the folder's first camera does not look at its scene (a cameras.json of another folder?)"

@@ -1,18 +1,9 @@
 """``diff4splat view DIR [--port P]``: serve an output folder's 4D viewer on 127.0.0.1 only.
 
-The page at ``/`` (and ``/viewer.html``) is the viewer (:mod:`diff4splat.io.viewer_page`) with the folder's **full**
-scene, never reduced to the size budget of the embedded ``viewer.html``: the page fetches the canonical
-Gaussians and the keyframes from ``/__diff4splat__/scene.ply`` and ``/__diff4splat__/frames.bin``, which are
-computed once at start from the folder's scene.ply, deformation.npz, cameras.json and meta.json, each checked as
-input (:func:`diff4splat.io.scene_folder.load_scene_folder`). A folder without scene.ply (a ``render`` output) is served
-as it is, its own viewer.html at ``/``.
-
-Besides these, only the files of the output-folder layout are served (:func:`diff4splat.io.scene_folder.is_layout_file`:
-scene.ply, video.mp4, rgb/NNNN.png, depth/NNNN.exr, …), matched on the raw request path, so a percent-encoded
-name (``%2e%2e/``, ``%2F``, ``%00``), a backslash or ``..`` is never one; and only when the file, every symlink
-resolved, lies inside the folder and is a regular file. Anything else is 404.
-
-The server binds 127.0.0.1 (loopback only: nothing on another interface can reach it); Ctrl-C stops it.
+``/`` is the viewer (:mod:`diff4splat.io.viewer_page`) with the folder's full scene, fetched from
+``/__diff4splat__/scene.ply`` and ``frames.bin`` (computed once at start); a folder without scene.ply serves its own
+viewer.html. Otherwise only layout files (:func:`diff4splat.io.scene_folder.is_layout_file`) that are, symlinks
+resolved, regular files inside the folder are served, matched on the raw request path; the rest is 404.
 """
 from __future__ import annotations
 
@@ -38,16 +29,12 @@ DATA_PREFIX = "/__diff4splat__/"
 """URL prefix of the full-size data the served page fetches."""
 _CONTENT_TYPES = {".html": "text/html; charset=utf-8", ".json": "application/json", ".png": "image/png",
                   ".mp4": "video/mp4"}
-"""Content types of the layout's files; the others (PLY, EXR, NPZ, safetensors) are application/octet-stream."""
+"""Content types of the layout's files; the others are application/octet-stream."""
 
 
 def folder_payload(folder: str | os.PathLike) -> ViewerPayload:
-    """The unreduced viewer payload of an output folder of generate, fit or render-with-scene.
-
-    Raises:
-        FileNotFoundError / ValueError: as :func:`diff4splat.io.scene_folder.load_scene_folder` (a malformed or corrupt
-            file of the folder, named).
-    """
+    """The unreduced viewer payload of an output folder with a scene; raises as
+    :func:`diff4splat.io.scene_folder.load_scene_folder`."""
     src = load_scene_folder(folder, load_field=load_field)
     fps = src.meta.get("fps")  # checked by load_scene_folder when present
     return viewer_payload(src.scene, src.cameras, fps=DEFAULT_FPS if fps is None else fps, budget=None,
@@ -55,9 +42,8 @@ def folder_payload(folder: str | os.PathLike) -> ViewerPayload:
 
 
 def served_file(root: Path, url_path: str) -> Path | None:
-    """The file of the folder ``root`` (resolved, absolute) that the raw request path ``url_path`` (no query) names,
-    or None: ``url_path`` is ``/`` + a layout file (:func:`~diff4splat.io.scene_folder.is_layout_file`; ``/`` is
-    ``viewer.html``), and that file, symlinks resolved, is a regular file inside ``root``."""
+    """The file of ``root`` (resolved) that the raw path ``url_path`` names (``/`` + a layout file; ``/``:
+    viewer.html) if it is, symlinks resolved, a regular file inside ``root``; else None."""
     name = VIEWER_NAME if url_path == "/" else url_path[1:] if url_path.startswith("/") else ""
     if not is_layout_file(name):
         return None
@@ -117,17 +103,11 @@ class _Handler(BaseHTTPRequestHandler):
 
 
 def make_server(folder: str | os.PathLike, port: int = 0) -> ThreadingHTTPServer:
-    """A server for ``folder`` bound to 127.0.0.1:``port`` (0: any free port; ``server.server_address[1]``).
-    Call ``serve_forever()``; the caller closes it. ``server.RequestHandlerClass.payload`` is the
-    :class:`~diff4splat.io.viewer_data.ViewerPayload` it serves (None for a folder that holds only viewer.html).
-
-    Raises:
-        FileNotFoundError: ``folder`` is not a folder, or holds neither scene.ply nor viewer.html.
-        ValueError: ``port`` outside 0 … 65535; a malformed file of the folder (named;
-            :func:`diff4splat.io.scene_folder.load_scene_folder`).
-        OSError: the port is taken (``EADDRINUSE``) or needs privileges (``EACCES``); the message names the port
-            and suggests ``--port 0``.
-    """
+    """A server for ``folder`` bound to 127.0.0.1:``port`` (0: any free port); the caller closes it.
+    ``server.RequestHandlerClass.payload`` is the :class:`ViewerPayload` served (None: only viewer.html).
+    FileNotFoundError: ``folder`` is not a folder, or holds neither scene.ply nor viewer.html. ValueError: ``port``
+    outside 0 … 65535; a malformed file of the folder (named). OSError: the port is taken or needs privileges (the
+    message names it and suggests ``--port 0``)."""
     root = Path(folder)
     if not root.is_dir():
         raise FileNotFoundError(f"DIR: {root} is not a folder (give an output folder of generate, fit or render)")
@@ -159,13 +139,8 @@ def _interrupt(signum, frame):
 
 
 def serve(folder: str | os.PathLike, port: int = 8000) -> int:
-    """Serve until Ctrl-C or SIGTERM (prints the address first, "stopped" last). Returns 0.
-
-    SIGINT is handled even where the shell started the process with it ignored (a background job).
-
-    Raises:
-        as :func:`make_server`.
-    """
+    """Serve until Ctrl-C or SIGTERM (even in a background job), printing the address first and "stopped" last.
+    Returns 0; raises as :func:`make_server`."""
     previous = {}
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
