@@ -1,31 +1,8 @@
-"""Training stages of a pretrained diffusers backbone (Wan2.2-TI2V-5B, CogVideoX-5B-I2V) with our LDRM: loading, LoRA,
-freezing and saving (docs/DESIGN.md, "Backbones"; issue 30). The objectives are :mod:`training.objectives`'.
-
-Design:
-
-- **Loading** (:func:`load_backbone_model`). A stage with ``backbone: wan2.2-ti2v`` or ``cogvideox-i2v`` starts from a
-  diffusers folder (``init_from`` with ``model_index.json``: the Hub's, or the previous stage's ``<run_dir>/model``),
-  loaded by :meth:`models.backbone_model.BackboneModel.from_pretrained` with the frozen weights in
-  ``stage.backbone_dtype``. The weights that train (the patch embedding's camera weights, the LDRM) are float32: with
-  a bfloat16 backbone they are read again from the folder in float32, so a bfloat16 load never rounds them.
-- **LoRA** (Hu et al. 2022) through peft's ``inject_adapter_in_model`` on the transformer's attention and FFN linear
-  layers (:class:`training.stage_config.LoraSettings`, :data:`training.stage_config.LORA_TARGETS`): A drawn from
-  ``trainer.seed``, B zero, so step 0 runs the loaded transformer exactly; the adapters are float32.
-- **Freezing** (:func:`apply_backbone_freezing`): ``dit`` trains the adapters and ``camera_weight`` of the
-  :class:`models.backbones.diffusers_backbone.CameraPatchConv`, ``ldrm`` (and its parts) the LDRM in full; everything
-  else of the backbone (VAE, text encoder, the transformer's own weights) is frozen.
-- **Checkpoints** (:mod:`training.checkpoint`) hold the training module's state dict as it is, the adapters under
-  peft's names (``…attn1.to_q.base_layer.weight``, ``…attn1.to_q.lora_A.default.weight``); a resumed run builds the
-  same model and loads them (exact resume, :class:`training.trainer.Trainer`).
-- **Saving** (:func:`save_backbone_model`): the adapters are merged into the saved copy of the transformer only.
-  For the time of the save every adapted ``nn.Linear`` is swapped for a plain one with weight W + (α/r)·B·A (summed
-  in float32, stored in W's dtype) under its own name (:func:`merged_lora`), so ``transformer/`` keeps the
-  checkpoint's key names and the folder is an ordinary :class:`BackboneModel` folder: ``BackboneModel.from_pretrained``
-  and ``generate --checkpoint`` load it without peft, and the next stage puts fresh adapters on the merged weights.
-  The live model is unchanged (its adapters stay separate; no merge/unmerge round trip).
-
-This module imports peft (``pip install 'diff4splat[diffusers]'``); :mod:`training.train` imports it only for a
-diffusers backbone stage.
+"""Training stages of a pretrained diffusers backbone (Wan2.2-TI2V-5B, CogVideoX-5B-I2V) with our LDRM: loading (frozen
+weights in ``stage.backbone_dtype``, trained ones float32), LoRA (Hu et al. 2022, peft: A from ``trainer.seed``, B
+zero), freezing and saving with the adapters merged into the saved transformer only, under its own key names, so the
+folder loads without peft (docs/DESIGN.md, "Backbones" and "Training"). Needs peft (``pip install
+'diff4splat[diffusers]'``); :mod:`training.train` imports it only for such a stage.
 """
 from __future__ import annotations
 
@@ -54,16 +31,10 @@ DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
 
 
 def load_backbone_model(stage: StageConfig) -> BackboneModel:
-    """The model a diffusers backbone stage trains: ``stage.init_from`` loaded (frozen weights in
-    ``stage.backbone_dtype``, camera weights and LDRM in float32), with LoRA adapters on its transformer when the
-    stage trains ``dit`` (module docstring). Nothing is downloaded; the model is on the CPU.
-
-    Raises:
-        FileNotFoundError: ``init_from`` is not a diffusers folder (no ``model_index.json``).
-        ValueError: the folder holds another backbone than ``stage.backbone``, or does not load
-            (:meth:`BackboneModel.from_pretrained`); no transformer module matches ``stage.lora.target_modules``.
-        MissingExtraError: diffusers missing.
-    """
+    """``stage.init_from`` loaded on the CPU (frozen weights in ``stage.backbone_dtype``, camera weights and LDRM in
+    float32), with LoRA when the stage has ``lora``; nothing is downloaded. Raises FileNotFoundError (not a diffusers
+    folder), ValueError (another backbone kind, a folder that does not load, LoRA targets matching nothing),
+    MissingExtraError (no diffusers)."""
     folder = Path(stage.init_from) if stage.init_from else None
     if folder is None:
         raise FileNotFoundError(f"init_from: a {stage.backbone} stage starts from a diffusers folder "
@@ -81,8 +52,7 @@ def load_backbone_model(stage: StageConfig) -> BackboneModel:
 
 
 def _float32_trainables(model: BackboneModel, folder: Path) -> None:
-    """Replace the LDRM and the camera weights of a model loaded in a low-precision dtype by their float32 values in
-    ``folder`` (a random LDRM / zero camera weights of a fresh Hub folder: cast)."""
+    """Reload the LDRM and camera weights of a low-precision load in float32 from ``folder`` (else cast them)."""
     ldrm = folder / LDRM_FOLDER
     model.ldrm = LDRM.from_pretrained(ldrm) if ldrm.is_dir() else model.ldrm.float()
     conv, camera = model.backbone.camera_conv, folder / CAMERA_FOLDER / CAMERA_WEIGHTS
@@ -97,18 +67,9 @@ def lora_layers(module: nn.Module) -> list[tuple[str, LoraLayer]]:
 
 
 def add_lora(transformer: nn.Module, settings: LoraSettings, seed: int = 0) -> int:
-    """Put LoRA adapters (adapter name ``default``) on the modules of ``transformer`` named by
-    ``settings.target_modules``, in place.
-
-    A is initialised from ``seed`` (Kaiming-uniform, peft's default; torch's global RNG is left as it was), B is
-    zero; the adapters are float32 whatever the transformer's dtype.
-
-    Returns:
-        The number of adapted layers.
-
-    Raises:
-        ValueError: no module matches (naming ``stage.lora.target_modules``), or the transformer already has adapters.
-    """
+    """Put float32 LoRA adapters (``default``) on ``transformer``'s ``settings.target_modules`` in place, A from
+    ``seed`` (torch's global RNG left as it was), B zero; returns the number of adapted layers. Raises ValueError
+    when no module matches or the transformer already has adapters."""
     if lora_layers(transformer):
         raise ValueError("the transformer already has LoRA adapters")
     config = LoraConfig(r=settings.rank, lora_alpha=settings.alpha, lora_dropout=settings.dropout,
@@ -128,17 +89,9 @@ def add_lora(transformer: nn.Module, settings: LoraSettings, seed: int = 0) -> i
 
 
 def apply_backbone_freezing(model: BackboneModel, train: tuple[str, ...]) -> dict[str, int]:
-    """Freeze every parameter of a backbone model except: for ``dit`` the transformer's LoRA adapters and the patch
-    embedding's ``camera_weight``; for ``ldrm``, ``ldrm.deformation``, ``ldrm.head``, ``ldrm.image_branch`` as
-    :func:`training.stage_config.apply_freezing`.
-
-    Returns:
-        Trainable parameter count per name of ``train``.
-
-    Raises:
-        ValueError: ``dit`` listed but the transformer has no adapters (:func:`add_lora` first). (``vae`` and
-            ``text_encoder`` are refused by :class:`training.stage_config.StageConfig`.)
-    """
+    """Freeze all but ``train``: ``dit`` is the LoRA adapters and the patch embedding's ``camera_weight``, the LDRM's
+    names as :func:`training.stage_config.apply_freezing`; returns the trainable count per name. Raises ValueError
+    for ``dit`` without adapters."""
     counts = apply_freezing(model, tuple(t for t in train if t != "dit"))
     if "dit" in train:
         layers = lora_layers(model.backbone.transformer)
@@ -154,13 +107,8 @@ def apply_backbone_freezing(model: BackboneModel, train: tuple[str, ...]) -> dic
 
 @contextlib.contextmanager
 def merged_lora(module: nn.Module) -> Iterator[nn.Module]:
-    """Within the block, every LoRA layer of ``module`` is replaced by a plain ``nn.Linear`` with the merged weight
-    W + Σ (α/r)·B·A over its active adapters (float32 sum, W's dtype) and W's bias, under the layer's own name; the
-    LoRA layers are put back after (their weights untouched). A module without adapters is yielded as it is.
-
-    Raises:
-        TypeError: an adapted layer that is not an ``nn.Linear``.
-    """
+    """Within the block, every LoRA layer of ``module`` is a plain ``nn.Linear`` under its own name with weight
+    W + Σ (α/r)·B·A (float32 sum, W's dtype); the LoRA layers are put back after. TypeError for a non-Linear base."""
     swaps = []
     for name, layer in lora_layers(module):
         base = layer.get_base_layer()
@@ -183,17 +131,12 @@ def merged_lora(module: nn.Module) -> Iterator[nn.Module]:
 
 
 def save_backbone_model(model: BackboneModel, directory: str | os.PathLike, *, overwrite: bool = False) -> Path:
-    """:meth:`BackboneModel.save_pretrained` with the transformer's LoRA merged into the saved weights
-    (:func:`merged_lora`): a folder that ``BackboneModel.from_pretrained`` and ``generate --checkpoint`` load.
-
-    Raises:
-        OutputDirError: ``directory`` may not be written or replaced.
-    """
+    """:meth:`BackboneModel.save_pretrained` with the LoRA merged (:func:`merged_lora`); OutputDirError as it."""
     with merged_lora(model.backbone.transformer):
         return model.save_pretrained(directory, overwrite=overwrite)
 
 
 def pixel_multiple(model: BackboneModel) -> int:
-    """Clip heights and widths must be multiples of this many pixels: the VAE's spatial factor × the patch size of the
-    transformer (2×2) and of the LDRM (as :class:`models.backbone_model.BackboneModelConfig` checks its own size)."""
+    """Pixel multiple of clip sizes: the VAE's spatial factor × the larger patch size (transformer 2, LDRM)."""
+
     return model.backbone.latent.spatial_factor * max(2, model.config.ldrm.patch_size)

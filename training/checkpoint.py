@@ -1,17 +1,7 @@
-"""Training checkpoints that never lose work: weights (safetensors) + optimizer/scheduler/RNG/data state.
-
-Layout of ``<run>/checkpoints/step_00001000/``::
-
-    model.safetensors    model weights (state_dict, CPU; only the trained ones when the model's frozen
-                         weights come from elsewhere: ``checkpoint_frozen``, training.trainer.Trainer)
-    ema.safetensors      EMA weights (if EMA is on)
-    state.pt             optimizer, scheduler, RNG states (torch, numpy, python, step generator),
-                         step, epoch, batch position in the epoch, consecutive non-finite count
-    meta.json            step, epoch, position, wall time, config
-
-Each checkpoint folder is written to a temporary folder and renamed (:func:`diff4splat.io.output_folders`,
-kind ``"checkpoint"``); ``<run>/checkpoints/latest`` is a text file naming the newest complete checkpoint,
-replaced atomically after the folder exists. A killed save leaves the previous checkpoint and ``latest`` untouched.
+"""Training checkpoints that never lose work: ``<run>/checkpoints/step_00001000/`` holds ``model.safetensors`` (CPU
+weights), ``ema.safetensors`` (with EMA), ``state.pt`` (optimizer, scheduler, RNG states, data position, non-finite
+count) and ``meta.json``. Each folder is written to a temporary one and renamed; ``latest`` (a text file naming the
+newest complete checkpoint) is replaced atomically after it, so a killed save loses nothing.
 """
 from __future__ import annotations
 
@@ -34,8 +24,7 @@ __all__ = ["save_checkpoint", "load_checkpoint", "latest_checkpoint", "rng_state
 
 _NUMPY_STATE_GLOBALS = [np.ndarray, np.dtype, type(np.dtype(np.uint32)),
                         (np._core if hasattr(np, "_core") else np.core).multiarray._reconstruct]
-"""What ``state.pt`` may hold beyond tensors and plain values: numpy's RNG state, a uint32 array
-(``torch.load(weights_only=True)`` unpickles nothing else, so a crafted checkpoint runs no code)."""
+"""What ``state.pt`` may hold beyond tensors and plain values (numpy's RNG state); nothing else is unpickled."""
 
 
 def rng_state(step_generator: torch.Generator | None = None) -> dict[str, Any]:
@@ -50,9 +39,7 @@ def rng_state(step_generator: torch.Generator | None = None) -> dict[str, Any]:
 
 
 def set_rng_state(state: dict[str, Any], step_generator: torch.Generator | None = None) -> None:
-    """Restore the states captured by :func:`rng_state`. The CUDA states are restored for the GPUs this machine
-    has (a run saved on a node with more GPUs resumes on one with fewer; ``torch.cuda.set_rng_state_all`` would
-    index a GPU that is not there)."""
+    """Restore the states of :func:`rng_state` (CUDA ones for the GPUs this machine has)."""
     torch.set_rng_state(state["torch"])
     if state.get("cuda") and torch.cuda.is_available():
         for index, cuda_state in enumerate(state["cuda"][:torch.cuda.device_count()]):
@@ -72,21 +59,9 @@ def save_checkpoint(
     ema_state: dict[str, torch.Tensor] | None = None,
     keep: int = 3,
 ) -> Path:
-    """Write checkpoint ``step`` atomically, point ``latest`` at it, and keep the newest ``keep``.
-
-    Args:
-        run_dir: the run folder; checkpoints go to ``run_dir/checkpoints``.
-        step: optimizer steps taken so far.
-        model_state: weights (unwrapped module's state_dict).
-        training_state: optimizer/scheduler/RNG/data position: tensors (any device, saved on the CPU), plain values,
-            numpy's RNG state (what :func:`load_checkpoint` reads back).
-        meta: JSON-serialisable description.
-        ema_state: EMA weights or None.
-        keep: how many checkpoints to keep (≥ 1).
-
-    Returns:
-        The checkpoint folder.
-    """
+    """Write checkpoint ``step`` to ``run_dir/checkpoints`` atomically, point ``latest`` at it, keep the newest
+    ``keep`` (≥ 1) and return its folder. ``training_state`` holds tensors (saved on the CPU), plain values and
+    numpy's RNG state; ``meta`` is JSON-serialisable."""
     root = Path(run_dir) / "checkpoints"
     folder = root / f"step_{step:08d}"
     with output_dir(folder, kind="checkpoint", parents=True, overwrite_flag=None) as tmp:
@@ -103,8 +78,7 @@ def save_checkpoint(
 
 
 def on_cpu(obj: Any) -> Any:
-    """``obj`` with every tensor in its dicts, lists and tuples detached and copied to the CPU: what a checkpoint
-    holds."""
+    """``obj`` with every tensor in its dicts, lists and tuples detached and copied to the CPU."""
     if isinstance(obj, torch.Tensor):
         return obj.detach().cpu()
     if isinstance(obj, dict):
@@ -128,14 +102,9 @@ def latest_checkpoint(run_dir: str | os.PathLike) -> Path | None:
 def load_checkpoint(
     folder: str | os.PathLike,
 ) -> tuple[dict[str, torch.Tensor], dict[str, Any], dict[str, torch.Tensor] | None]:
-    """Read (model_state, training_state, ema_state or None) from a checkpoint folder, every tensor on the CPU
-    (a checkpoint written on a GPU resumes on a CPU-only machine; the trainer copies the states onto its device).
+    """(model_state, training_state, ema_state or None) of a checkpoint folder, on the CPU. Raises FileNotFoundError
+    without model.safetensors or state.pt, ValueError when state.pt holds other objects (``weights_only`` load)."""
 
-    Raises:
-        FileNotFoundError: the folder lacks model.safetensors or state.pt.
-        ValueError: state.pt holds objects other than tensors, plain values and numpy's RNG state (it is never
-            unpickled beyond those: ``torch.load(weights_only=True)``).
-    """
     folder = Path(folder)
     for name in ("model.safetensors", "state.pt"):
         if not (folder / name).is_file():

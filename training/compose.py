@@ -1,20 +1,10 @@
 """Assemble a model from networks of several checkpoints: ``python -m training.compose``.
 
 ``python -m training.compose --config base --out runs/init/model vae=models/weights/tiny ldrm=runs/ldrm/model``
-builds the model of ``--config`` and replaces each named network (``vae``, ``text_encoder``, ``dit``, ``ldrm``)
-by the one in the given checkpoint folder. Used to warm-start a new default model from an earlier release and to
-join networks trained in separate processes (the DiT's diffusion objective and the LDRM's rendering losses do not
-interact: they can train side by side, one CPU core each, from the same frozen VAE).
-
-A taken network keeps its checkpoint's config (so the VAE keeps its calibrated latent scaling), overridden by the
-fields that the target YAML sets explicitly for that network (e.g. ``ldrm: {image_branch: 16}``). Its weights are
-loaded strictly, except that parameters of zero-initialised layers that the checkpoint lacks (the LDRM's
-``image_branch``) keep their initial values — which is exactly the checkpoint's function, since a zero-initialised
-branch adds 0.
-
-``--reinit ldrm.head`` starts the named parameters (a network name, a dot, a parameter-name prefix) from their
-initialisation instead: the taken checkpoint's parameters under that prefix are dropped, for a layer the composed
-config replaces (the LDRM's transposed-convolution head by the upsampling head, ``ldrm: {head: upsample}``).
+builds the model of ``--config`` with each named network taken from a checkpoint folder (warm starts; networks
+trained side by side). A taken network keeps its checkpoint's config, overridden by the fields the target YAML sets
+for it; its weights load strictly except zero-initialised layers it lacks (:data:`ZERO_INIT_PREFIXES`). ``--reinit
+ldrm.head`` (network.prefix) starts those parameters from their initialisation instead.
 """
 from __future__ import annotations
 
@@ -30,30 +20,15 @@ from models.pretrained import config_from_dict
 __all__ = ["compose", "main", "ZERO_INIT_PREFIXES"]
 
 ZERO_INIT_PREFIXES = ("image_branch.", "motion.")
-"""Parameter-name prefixes that may be missing from a taken network: layers whose output is exactly 0 at
-initialisation (their last layer is zero-initialised), so leaving them at their initial values keeps the taken
-network's function."""
+"""Parameter-name prefixes that may be missing from a taken network: zero-initialised layers whose output is 0."""
 
 
 def compose(config: str | Path, sources: dict[str, str | Path], seed: int = 0, reinit: tuple[str, ...] = ()
             ) -> Diff4SplatModel:
-    """The model of ``config`` with the networks named in ``sources`` taken from those checkpoint folders.
-
-    Args:
-        config: model config name (``configs/models/<name>.yaml``) or YAML path.
-        sources: {network: checkpoint folder}, network in ``vae``, ``text_encoder``, ``dit``, ``ldrm``.
-        seed: seed of the networks not taken (random initialisation).
-        reinit: "network.prefix" entries: the taken network's parameters under the prefix are not loaded and
-            keep their initialisation (module docstring).
-
-    Returns:
-        The composed model (eval mode).
-
-    Raises:
-        ValueError: an unknown network name; a taken network whose weights do not fit its config (other shapes,
-            unexpected keys, or missing keys outside :data:`ZERO_INIT_PREFIXES` and ``reinit``).
-        FileNotFoundError: a missing config or checkpoint folder.
-    """
+    """The model (eval mode) of ``config`` (name or YAML path) with the networks of ``sources`` {network: folder}
+    taken from those folders, the others seeded with ``seed``; ``reinit`` "network.prefix" entries keep their
+    initialisation. Raises ValueError (unknown network, weights that do not fit), FileNotFoundError (missing config
+    or folder)."""
     for name in sources:
         if name not in NETWORKS:
             raise ValueError(f"network: unknown network {name!r} (known: {', '.join(NETWORKS)})")
@@ -86,6 +61,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str] | None) -> int:
+    """Parse, compose and save."""
+
     ap = argparse.ArgumentParser(prog="python -m training.compose", description=__doc__.splitlines()[0])
     ap.add_argument("--config", required=True, help="model config name or YAML path")
     ap.add_argument("--out", required=True, type=Path, help="output model folder (replaced only if a saved model)")

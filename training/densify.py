@@ -1,23 +1,12 @@
 """Adaptive density control of 3D Gaussian Splatting (Kerbl et al. 2023, §5.2), as ``diff4splat fit`` uses it.
 
-Every ``interval`` iterations between ``start`` and ``until``:
-
-- **clone** Gaussians whose view-space positional gradient, averaged over the views that saw them, is
-  ≥ ``grad_threshold`` and whose largest scale is ≤ ``percent_dense`` × scene extent (under-reconstruction);
-- **split** those above the threshold and larger than that into ``split_n`` = 2 Gaussians sampled from the
-  original (position ~ N(μ, Σ)), each with scales / (0.8·split_n) (over-reconstruction);
-- **prune** Gaussians with opacity < ``min_opacity`` and, after the first opacity reset, those larger than
-  ``max_screen_size`` pixels in a view or ``max_world_size`` × extent in the world;
-- every ``opacity_reset_interval`` iterations opacities are reset to min(o, 0.01).
-
-The gradient is the reference's (``add_densification_stats``): the norm of ∂L/∂(projected mean) in NDC units,
-i.e. the pixel gradient × (W/2, H/2) as gsplat's default strategy computes it, accumulated per view in
-which the Gaussian is visible (radius > 0). Thresholds are the reference's (``arguments/__init__.py``:
-densify_grad_threshold 0.0002, percent_dense 0.01, min opacity 0.005, screen size 20 px, world size 0.1,
-opacity reset 3000); ``start``/``until``/``interval`` are scaled to our short fits in :class:`DensifyConfig`.
-
-Parameters live in a dict ``{name: nn.Parameter}`` with one Adam group per name (``group["name"]``), as the
-reference's ``GaussianModel``: these functions replace each parameter and its Adam moments together.
+Every ``interval`` iterations between ``start`` and ``until``: **clone** Gaussians whose mean NDC positional
+gradient (pixel gradient × (W/2, H/2), over the views that saw them) is ≥ ``grad_threshold`` and whose largest scale
+is ≤ ``percent_dense`` × extent; **split** the larger ones into ``split_n`` samples of N(μ, Σ) with scales
+/ (0.8·split_n); **prune** opacity < ``min_opacity`` and, after the first opacity reset, radii > ``max_screen_size``
+pixels or scales > ``max_world_size`` × extent. Opacities are reset to min(o, 0.01) every ``opacity_reset_interval``.
+Parameters are a dict ``{name: nn.Parameter}`` with one Adam group per name (``group["name"]``); these functions
+replace each parameter and its Adam moments together.
 """
 from __future__ import annotations
 
@@ -33,21 +22,9 @@ __all__ = ["DensifyConfig", "DensityStats", "densify_and_prune", "prune", "reset
 
 @dataclass
 class DensifyConfig:
-    """Adaptive density control (3DGS §5.2; reference ``arguments/__init__.py``).
-
-    Attributes:
-        start: first iteration that densifies (3DGS: 500).
-        until: last iteration that densifies (3DGS: 15,000 of 30,000; ours: half the stage).
-        interval: iterations between densifications (3DGS: 100).
-        grad_threshold: mean NDC positional gradient norm that triggers clone/split (3DGS: 0.0002).
-        percent_dense: clone/split boundary, fraction of the scene extent (3DGS: 0.01).
-        min_opacity: prune below this opacity (3DGS: 0.005).
-        max_screen_size: prune above this 2D radius, pixels, after the first opacity reset (3DGS: 20).
-        max_world_size: prune above this largest scale, fraction of the extent, likewise (3DGS: 0.1).
-        opacity_reset_interval: iterations between opacity resets to ≤ 0.01 (3DGS: 3000); 0 = never.
-        split_n: Gaussians a split makes (3DGS: 2).
-        max_gaussians: cap on the count; candidates beyond it are taken by largest gradient first.
-    """
+    """Density control settings (module docstring); defaults are 3DGS's (``arguments/__init__.py``).
+    ``opacity_reset_interval`` 0 never resets; ``max_gaussians`` caps the count, candidates taken by largest
+    gradient first. Raises ValueError naming ``densify.<field>`` out of range."""
 
     start: int = 500
     until: int = 15000
@@ -80,17 +57,8 @@ class DensifyConfig:
 
 
 class DensityStats:
-    """Accumulated view-space gradient norms and the largest 2D radius of every Gaussian.
-
-    Args:
-        n: number of Gaussians.
-        device: where the statistics live: the Gaussians' device.
-
-    Attributes:
-        grad_accum: (N,) float32 sum of the NDC gradient norms over the views that saw each Gaussian.
-        denom: (N,) float32 number of those views.
-        max_radii: (N,) float32 largest 2D radius, pixels.
-    """
+    """Per-Gaussian statistics of ``n`` Gaussians on ``device``, (N,) float32 each: ``grad_accum`` the sum of NDC
+    gradient norms over the views that saw it, ``denom`` the number of those views, ``max_radii`` in pixels."""
 
     def __init__(self, n: int, device: str | torch.device = "cpu") -> None:
         self.grad_accum = torch.zeros(n, device=device)
@@ -99,18 +67,12 @@ class DensityStats:
 
     @property
     def device(self) -> torch.device:
-        """The device of the statistics (that of ``grad_accum``, ``denom`` and ``max_radii``)."""
+        """The device of the statistics."""
         return self.grad_accum.device
 
     def update(self, means2d_grad: Tensor, radii: Tensor, width: int, height: int) -> None:
-        """Add one view's statistics (no host synchronisation: masked updates are ``torch.where``).
-
-        Args:
-            means2d_grad: (N, 2) ∂L/∂(projected mean), per pixel.
-            radii: (N,) 2D radius in pixels, 0 where the Gaussian was culled in this view; or (N, 2) per-axis
-                radii (gsplat ≥ 1.5), of which the larger is taken.
-            width, height: image size, pixels (the pixel → NDC factor is (W/2, H/2)).
-        """
+        """Add one view's ``means2d_grad`` (N, 2) per pixel and ``radii`` (N,) or per-axis (N, 2) pixels, 0 where
+        culled, for an image of ``width``×``height`` (no host synchronisation)."""
         if radii.dim() == 2:
             radii = radii.amax(dim=-1)
         radii = radii.float()
@@ -127,20 +89,9 @@ class DensityStats:
 
 def replace_params(params: dict[str, nn.Parameter], optimizer: torch.optim.Optimizer,
                    new: dict[str, Tensor], keep: Tensor | None) -> dict[str, nn.Parameter]:
-    """Replace every parameter by ``cat(param[keep], new[name])`` and its Adam moments likewise (new rows
-    start at zero moments), as the reference's ``_prune_optimizer`` + ``cat_tensors_to_optimizer``.
-
-    Args:
-        params: name → (N, ...) parameter, each the only parameter of the Adam group named ``name``.
-        new: name → (M, ...) rows appended (every name of ``params``; M may be 0).
-        keep: (N,) bool rows kept, or None for all.
-
-    Returns:
-        The new parameter dict (the optimizer's groups point at the new parameters).
-
-    Raises:
-        ValueError: a name of ``params`` has no Adam group of that name (checked after the groups were replaced).
-    """
+    """Replace every parameter by ``cat(param[keep], new[name])`` ((N, ...) kept rows, ``keep`` None: all; (M, ...)
+    new rows with zero Adam moments) and its moments likewise; returns the new dict, which the optimizer's groups
+    point at. Raises ValueError for a name of ``params`` without an Adam group (after replacing the groups)."""
     out = {}
     for group in optimizer.param_groups:
         name = group["name"]
@@ -175,18 +126,9 @@ def prune(params: dict[str, nn.Parameter], optimizer: torch.optim.Optimizer, rem
 def densify_and_prune(params: dict[str, nn.Parameter], optimizer: torch.optim.Optimizer, stats: DensityStats,
                       config: DensifyConfig, extent: float, prune_large: bool,
                       generator: torch.Generator) -> tuple[dict[str, nn.Parameter], dict[str, int]]:
-    """One densification step (module docstring): clone, split, then prune; statistics are reset.
-
-    Args:
-        params: "means" (N,3), "scales" (N,3) log, "quats" (N,4), "opacities" (N,) logit, and colour
-            parameters (any other names, copied as they are).
-        extent: scene extent, metres (:func:`training.fit_data.scene_extent`).
-        prune_large: also prune by screen/world size (true after the first opacity reset, as 3DGS).
-        generator: draws the split positions.
-
-    Returns:
-        (new params, counts {"cloned", "split", "pruned"}); ``stats`` is reset to the new count.
-    """
+    """Clone, split (positions drawn on the CPU ``generator``), then prune (by size too when ``prune_large``);
+    ``params`` "means" (N,3), "scales" (N,3) log, "quats" (N,4), "opacities" (N,) logit, others copied; ``extent``
+    in metres. Returns (new params, {"cloned", "split", "pruned"}); ``stats`` is reset to the new count."""
     grad = stats.mean_grad()
     scales = params["scales"].detach().exp()
     big = scales.max(dim=1).values > config.percent_dense * extent
@@ -229,19 +171,9 @@ def densify_and_prune(params: dict[str, nn.Parameter], optimizer: torch.optim.Op
 
 def reset_opacity(params: dict[str, nn.Parameter], optimizer: torch.optim.Optimizer,
                   value: float = 0.01) -> dict[str, nn.Parameter]:
-    """Opacities → min(o, ``value``) with zeroed Adam moments for them (3DGS ``reset_opacity``).
+    """``params`` with opacity logits capped at logit(``value``) and their Adam moments zeroed (3DGS
+    ``reset_opacity``); ValueError when no Adam group is named "opacities"."""
 
-    Args:
-        params: name → parameter; "opacities" (N,) holds logits.
-        optimizer: Adam with one group per parameter, named as in ``params``.
-        value: the cap, an opacity in (0, 1) (applied as its logit).
-
-    Returns:
-        ``params`` with the new "opacities" (N,) parameter (the optimizer's group points at it).
-
-    Raises:
-        ValueError: the optimizer has no group named "opacities".
-    """
     for group in optimizer.param_groups:
         if group["name"] == "opacities":
             old = group["params"][0]

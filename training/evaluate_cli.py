@@ -1,16 +1,8 @@
-"""``diff4splat evaluate``: the command over :mod:`training.evaluate` — its arguments, checked before any model loads,
-and the tables it prints and appends.
-
-``diff4splat evaluate --checkpoint DIR --data DIR [--random] [--per-clip] [--sampling] [--csv FILE] [--quiet]``
-(registered through the ``diff4splat.commands`` entry point, like ``fit``, so the runtime package never imports
-``training``). What is measured, and how: :mod:`training.evaluate`; the metric functions:
-:mod:`training.eval_metrics`.
-
-Every argument, the ``--photo`` (decoded once) and every CSV file it will append to (:mod:`training.eval_csv`)
-are checked before any model loads, so a run that would fail at its end is refused at its start. It prints the
-per-clip table (``--per-clip``), the headline metrics, the depth and motion splits, the model beside its baselines
-and ablations per view-angle bin, and the model's gap over each with a bootstrap interval over clips
-(:func:`training.eval_metrics.gap_intervals`); a tqdm bar counts the clips on stderr unless ``--quiet``.
+"""``diff4splat evaluate --checkpoint DIR --data DIR [--random] [--per-clip] [--sampling] [--csv FILE] [--quiet]``:
+the command over :mod:`training.evaluate` (registered through the ``diff4splat.commands`` entry point). Every
+argument, the ``--photo`` and every CSV output (:mod:`training.eval_csv`) are checked before any model loads. It
+prints the per-clip table, the headline metrics, the depth and motion splits, the model beside its baselines per
+view-angle bin, and its gap over each with a bootstrap interval over clips.
 """
 from __future__ import annotations
 
@@ -48,14 +40,14 @@ __all__ = ["register", "run", "CLIP_COLUMNS", "SAMPLING_COLUMNS"]
 
 
 def _cell(value: object) -> str:
-    """A table cell: floats to 4 significant digits, "—" for NaN (a bin with no frames, a metric a clip does not
-    have; the CSV keeps NaN)."""
+    """A table cell: floats to 4 significant digits, "—" for NaN."""
     if isinstance(value, float):
         return "—" if math.isnan(value) else f"{value:.4g}"
     return str(value)
 
 
 def _print_table(rows: list[dict], header: list[str]) -> str:
+    """A Markdown table of ``rows`` under ``header``."""
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     for r in rows:
         lines.append("| " + " | ".join(_cell(r[h]) for h in header) + " |")
@@ -64,9 +56,7 @@ def _print_table(rows: list[dict], header: list[str]) -> str:
 
 _VARIANT_LABELS = {"model": "model (sampled latents)", "noise": "noise latents (ablation)",
                    "gt": "true-video latents (oracle)", "video": "generated video, decoded (no 3D)",
-                   "repeat": "repeat frame 0",
-                   "repeat_blur": "repeat frame 0, blurred"}
-
+                   "repeat": "repeat frame 0", "repeat_blur": "repeat frame 0, blurred"}
 
 _BIN_LABELS = {name: f"{lo:g}–{hi:g}°" for name, lo, hi in ANGLE_BINS}
 """Column label of each view-angle bin of :data:`training.eval_metrics.ANGLE_BINS`."""
@@ -78,8 +68,7 @@ SAMPLING_COLUMNS = ("sampler", "nfe", "steps", "ms", "latent_rms", "psnr")
 
 
 def _per_clip_rows(evals: list[ClipEvaluation]) -> list[dict]:
-    """One row per clip (:data:`CLIP_COLUMNS`): name, dynamic/static, camera motion size, novel-view PSNR of the
-    model and each variant, displacement error of the model and of no motion."""
+    """One row of :data:`CLIP_COLUMNS` per clip."""
     return [dict(zip(CLIP_COLUMNS, (e.name, "dynamic" if e.dynamic else "static", e.max_angle,
                                     e.metrics["psnr_novel"], *(e.metrics[f"psnr_novel_{v}"] for v in VARIANTS),
                                     e.metrics["motion_disp_epe"], e.metrics["motion_disp_hold"]), strict=True))
@@ -87,8 +76,7 @@ def _per_clip_rows(evals: list[ClipEvaluation]) -> list[dict]:
 
 
 def _aggregate_tables(agg: dict) -> str:
-    """The headline metrics, the depth and motion splits and the model beside its baselines per view-angle bin, from
-    the aggregate row (model, clips, :func:`aggregate`'s keys, optionally photo_psnr)."""
+    """The headline, depth, motion and per-bin baseline tables of the aggregate row."""
     metrics = _print_table([agg], ["model", "clips", *METRICS])
     if "photo_psnr" in agg:
         metrics += "\n\nThe photograph at the input view (output resolution, and area-averaged to the model's):\n"
@@ -109,9 +97,8 @@ def _aggregate_tables(agg: dict) -> str:
 
 
 def _gap_table(evals: list[ClipEvaluation]) -> str:
-    """The model's PSNR minus each variant's, over all frames and per view-angle bin, with the bootstrap interval
-    over clips (:func:`training.eval_metrics.gap_intervals`) and the number of clips with frames in each bin; a
-    variant this runtime could not score (NaN frames: the true-video latents of an ONNX export) is left out."""
+    """The model's PSNR gap over each variant with :func:`training.eval_metrics.gap_intervals` (variants with NaN
+    frames, e.g. the true latents of an ONNX export, left out)."""
     model, angles = [e.frame_mse["model"] for e in evals], [e.angles for e in evals]
     others = {v: [e.frame_mse[v] for e in evals] for v in VARIANTS}
     gaps = {v: gap_intervals(model, other, angles) for v, other in others.items()
@@ -129,16 +116,9 @@ def _gap_table(evals: list[ClipEvaluation]) -> str:
 
 
 def _check_args(args) -> dict:
-    """Every check that needs no model, before anything loads (messages name the flags); returns the CSV outputs
-    (:func:`training.eval_csv.csv_outputs`; none without ``--csv``), each checked to be appendable.
-
-    Raises:
-        ValueError: ``--random`` with ``--checkpoint``; ``--prompt`` without ``--photo``; a count that is not a
-            positive integer (``--limit``, ``--sampling-clips``, ``--frames``, ``--steps``, ``--resolution``) or
-            above its limit; a ``--photo`` that is not a decodable image; a CSV output that could not be appended to
-            (:func:`training.eval_csv.check_csv_outputs`).
-        FileNotFoundError: ``--photo`` does not exist.
-    """
+    """Every check that needs no model; returns the CSV outputs (:func:`training.eval_csv.csv_outputs`), checked.
+    Raises ValueError naming the flag (``--random`` with ``--checkpoint``, ``--prompt`` without ``--photo``, a bad
+    count, an undecodable photo, an unappendable CSV), FileNotFoundError for a missing ``--photo``."""
     if args.random and args.checkpoint is not None:
         raise ValueError(f"--random evaluates the untrained model; --checkpoint {args.checkpoint} would be ignored "
                          "(give one of them)")
@@ -167,15 +147,9 @@ def _check_args(args) -> dict:
 
 
 def run(args) -> int:
-    """``diff4splat evaluate`` (see module docstring).
+    """``diff4splat evaluate``. Raises ValueError (a missing device, a bad argument or output, no clips) and
+    LimitError (a clip or the ``--photo`` scene needing more memory than allowed) before any clip loads."""
 
-    Raises:
-        ValueError: ``--device`` naming a device this machine does not have, a bad argument or output file
-            (:func:`_check_args`), all checked before any model loads; no clips in ``--data``.
-        LimitError: the generation of a clip, or of the ``--photo`` scene at ``--resolution``, would need more
-            memory than the process may use (:func:`diff4splat.utils.limits.check_memory`), checked before any clip
-            loads.
-    """
     device = resolve_device(args.device, "--device")  # before any model is loaded
     outputs = _check_args(args)  # refuse before the evaluation runs, not after
     with warnings.catch_warnings():

@@ -1,30 +1,10 @@
-"""Per-scene fitting of a 4D Gaussian scene to multi-view video (4D Gaussian Splatting, Wu et al., CVPR 2024).
-
-``fit_scene`` optimises canonical 3D Gaussians and a HexPlane deformation field (:mod:`models.hexplane`)
-against every frame of the training cameras of a scene folder (data_prep format):
-
-1. **Initialisation** (:mod:`training.fit_data`): back-projected metric depth (frame 0 of every training
-   camera for a dynamic scene — the canonical state — every frame for a static one), a random box without
-   depth, or a ``generate`` output (``init``).
-2. **Coarse stage** (4DGS §3.3, "coarse"): static 3D Gaussians, ``coarse_iterations`` steps.
-3. **Fine stage**: the field deforms every Gaussian to the view's time (μ + Δμ, normalize(Δq ⊗ q),
-   s·exp(Δs), :func:`diff4splat.scene.dynamic.compose_deformation`); its regularisers are added to the loss.
-   A static scene (``meta.dynamic`` false, or one frame) has no fine stage and no field.
-
-Loss per view: (1 − λ)·L1 + λ·(1 − SSIM) (3DGS Eq. 7, :func:`training.losses.photometric_loss`, λ = 0.2) +
-``depth_weight`` · mean |D̂ − D| / extent over pixels with valid depth (when the scene has depth) + the field's
-regularisers. The background behind the Gaussians is one learned RGB colour by default (``FitConfig.background``).
-Adam with 3DGS's per-parameter learning rates; positions (and the field, 4DGS) decay
-exponentially (:func:`expon_lr`). Adaptive density control: :mod:`training.densify`. One view per step, in a
-seeded random order without replacement per epoch (as the reference's view stack).
-
-Devices (docs/DESIGN.md, "Devices"): the Gaussians, the field, the background and the statistics live on the
-device of the initial points given to :func:`init_state` (the views must be there too,
-:func:`training.fit_data.load_views`); every random draw (view order, split positions, the field's
-initialisation) is made on the CPU and moved, so a seed gives the same draws on every device. A step reads
-nothing back from the device itself (the depth loss and the density statistics are masked with ``torch.where``,
-the progress bar's PSNR is read every :data:`POSTFIX_EVERY` steps) apart from the renderer's own reads and, in the
-fine stage, the field's NaN check of the means (:meth:`models.hexplane.HexPlaneField.features`).
+"""Per-scene fitting of a 4D Gaussian scene to multi-view video (4D Gaussian Splatting, Wu et al., CVPR 2024):
+canonical 3D Gaussians, a static coarse stage, then a fine stage with a HexPlane field (:mod:`models.hexplane`)
+deforming them to each view's time (static scenes have no fine stage). One view per step in a seeded order; loss
+(1 − λ)·L1 + λ·(1 − SSIM) (3DGS Eq. 7) + ``depth_weight``·mean |D̂ − D| / extent + the field's regularisers; Adam
+with 3DGS's rates; density control in :mod:`training.densify`. Schedule, background and differences from the
+reference: docs/DESIGN.md, "Fitting (4D Gaussian Splatting)". Everything lives on the initial points' device;
+every random draw is made on the CPU and moved, so a seed gives the same fit on every device.
 """
 from __future__ import annotations
 
@@ -62,13 +42,8 @@ POSTFIX_EVERY = 10
 
 @dataclass
 class LearningRates:
-    """Adam learning rates (3DGS ``arguments/__init__.py``; field rates from 4DGS's D-NeRF config).
-
-    position_init/final are multiplied by the scene extent (``spatial_lr_scale``), as the reference does;
-    positions, the field's network and its planes decay exponentially from init to final over the stage
-    (:func:`expon_lr`, without a delay: the references' delay multiplier 0.01 takes effect only with
-    ``lr_delay_steps`` > 0, and theirs is 0).
-    """
+    """Adam learning rates (3DGS ``arguments/__init__.py``; field rates from 4DGS's D-NeRF config). Positions and the
+    field are scaled by the scene extent and decay from init to final over the stage (:func:`expon_lr`, no delay)."""
 
     position_init: float = 1.6e-4
     position_final: float = 1.6e-6
@@ -88,18 +63,12 @@ BACKGROUNDS = {"learned": (0.5, 0.5, 0.5), "black": (0.0, 0.0, 0.0), "white": (1
 """``FitConfig.background`` choices and their (starting) RGB in [0, 1]."""
 
 DEPTH_WEIGHTS = {"ground_truth": 1.0, "aligned_estimate": 0.1, "none": 0.0}
-"""Default depth-L1 weight by the scene's ``meta["depth_source"]`` (data_prep FORMAT.md): rendered or sensor
-depth is trusted (1.0), a monocular estimate aligned to metric scale only as a weak prior (0.1). Chosen on
-development scenes (``data_prep synth --seed 2024``): 1.0 instead of 0.1 raised a dynamic scene's held-out
-PSNR over co-visible pixels from 23.2 to 27.6 dB (docs/benchmarks.md, "Fitting (4DGS)")."""
+"""Default depth-L1 weight by the scene's ``meta["depth_source"]`` (data_prep FORMAT.md): true depth is trusted,
+an aligned monocular estimate is a weak prior."""
 
 
 def default_depth_weight(depth_source: str) -> float:
-    """:data:`DEPTH_WEIGHTS` of a scene's depth source.
-
-    Raises:
-        ValueError: an unknown depth source.
-    """
+    """:data:`DEPTH_WEIGHTS` of a scene's depth source; ValueError for an unknown one."""
     if depth_source not in DEPTH_WEIGHTS:
         raise ValueError(f"depth_source must be one of {sorted(DEPTH_WEIGHTS)}, got {depth_source!r}")
     return DEPTH_WEIGHTS[depth_source]
@@ -107,38 +76,16 @@ def default_depth_weight(depth_source: str) -> float:
 
 @dataclass
 class FitConfig:
-    """Settings of :func:`fit_steps` (CLI: ``diff4splat fit``).
+    """Settings of :func:`fit_steps` (CLI: ``diff4splat fit``; defaults scaled to CPU fits of minutes, see
+    docs/DESIGN.md, "Fitting (4D Gaussian Splatting)").
 
-    Attributes:
-        iterations: total optimisation steps (coarse + fine).
-        coarse_iterations: steps of the static coarse stage (4DGS: 3000 of 14,000–20,000; scaled down).
-        sh_degree: largest SH degree; 3DGS starts at 0 and adds one every ``sh_interval`` steps.
-        sh_interval: steps between SH degree increases (3DGS: 1000).
-        init_points: at most this many depth points initialise the Gaussians.
-        init_first_frame: a dynamic scene is initialised from frame 0 of each training camera only (the
-            canonical state) instead of every frame (which covers what moving cameras reveal later, and puts
-            moving objects at several places until density control prunes the extra copies).
-        random_points: points of the random-box initialisation (no depth).
-        ssim_weight: λ of the D-SSIM term (3DGS: 0.2).
-        depth_weight: weight of the depth L1 (divided by the extent, so unitless); 0 turns it off; None (the
-            default) picks it from the scene's depth source (:func:`default_depth_weight`).
-        densify: adaptive density control (:class:`training.densify.DensifyConfig`); default: from step 300 to
-            1200 every 100, at most 25,000 Gaussians (a CPU budget: a step's cost grows with the count).
-        field: the HexPlane field (:class:`models.hexplane.HexPlaneConfig`); default: the reference's D-NeRF
-            config with 16 channels and 32² base planes instead of 32 and 64² (376 k parameters instead of
-            2.44 M; backward of the sampling ~2× faster on a CPU), for fits of minutes at 64².
-        background: the colour behind the Gaussians: "learned" (default; one RGB colour optimised with the
-            Gaussians, sigmoid of 3 logits starting at 0.5 grey, Adam at ``lr.background``; written to meta.json so
-            ``render``/``view`` composite over it), "black" or "white" (fixed). A per-scene fit has no Gaussians at
-            infinity: where the training views see the sky or a constant backdrop (synthetic scenes, D-NeRF's
-            white), over a fixed black background only Gaussians inside the scene can produce its colour, and a
-            new view sees black wherever those Gaussians do not cover it.
-        lr: learning rates.
-
-    Raises:
-        ValueError: a field out of range (named). :class:`diff4splat.utils.limits.LimitError` (a ValueError):
-            ``iterations`` above the ``iterations`` limit, or ``init_points``, ``random_points`` or
-            ``densify.max_gaussians`` above the ``gaussians`` limit.
+    ``iterations`` counts coarse + fine steps; the SH degree grows by one every ``sh_interval`` steps up to
+    ``sh_degree``; ``init_points`` caps the depth points, ``random_points`` sizes the random-box start;
+    ``init_first_frame`` starts a dynamic scene from frame 0 alone; ``depth_weight`` None picks
+    :func:`default_depth_weight`, 0 turns the depth L1 off; ``background`` is one of :data:`BACKGROUNDS`
+    ("learned": 3 sigmoid logits at ``lr.background``).
+    Raises ValueError naming a field out of range; :class:`diff4splat.utils.limits.LimitError` for ``iterations``
+    or a Gaussian count (``init_points``, ``random_points``, ``densify.max_gaussians``) above its limit.
     """
 
     iterations: int = 1800
@@ -183,8 +130,8 @@ class FitConfig:
 
 def expon_lr(step: int, lr_init: float, lr_final: float, max_steps: int, delay_steps: int = 0,
              delay_mult: float = 1.0) -> float:
-    """Log-linear decay from ``lr_init`` to ``lr_final`` over ``max_steps`` with an optional sine warm-up
-    multiplier (3DGS ``get_expon_lr_func``, from Plenoxels/JaxNeRF)."""
+    """Log-linear decay from ``lr_init`` to ``lr_final`` over ``max_steps``, optional sine warm-up (3DGS
+    ``get_expon_lr_func``)."""
     if step < 0 or (lr_init == 0.0 and lr_final == 0.0):
         return 0.0
     delay = 1.0
@@ -196,14 +143,12 @@ def expon_lr(step: int, lr_init: float, lr_final: float, max_steps: int, delay_s
 
 @dataclass
 class FitState:
-    """Everything a fit needs to continue: parameters, optimizer, field, statistics, counters.
+    """Everything a fit needs to continue, on :attr:`device` (``generator`` is a CPU generator).
 
     ``params``: "means" (N,3) metres, "scales" (N,3) log metres, "quats" (N,4) wxyz unnormalised,
     "opacities" (N,) logits, "sh0" (N,1,3), "shN" (N,K−1,3) (K = (sh_degree+1)²). ``background``: (3,) logits
-    of a learned background colour (with ``background_optimizer``), or the fixed RGB in [0, 1]; read it with
-    :meth:`background_rgb`. All of them, the field and ``stats`` on :attr:`device`; ``generator`` is a CPU
-    generator (every random draw of the fit). ``loss``: the last step's loss, a detached 0-d tensor on the device
-    (None before the first step; not checkpointed).
+    when learned (with ``background_optimizer``), else RGB in [0, 1] (:meth:`background_rgb`). ``loss``: the last
+    step's detached loss (None before the first step; not checkpointed).
     """
 
     params: dict[str, nn.Parameter]
@@ -225,12 +170,12 @@ class FitState:
 
     @property
     def num_gaussians(self) -> int:
-        """N, the current number of Gaussians (rows of ``params["means"]``; changes with densification)."""
+        """N, the current number of Gaussians."""
         return self.params["means"].shape[0]
 
     @property
     def device(self) -> torch.device:
-        """Where the fit runs: the device of the Gaussians (and the field, the background, the statistics)."""
+        """The device of the Gaussians, where the fit runs."""
         return self.params["means"].device
 
     def background_rgb(self) -> Tensor:
@@ -239,13 +184,8 @@ class FitState:
 
 
 def init_background(state: FitState, config: FitConfig) -> None:
-    """Set ``state.background`` from ``config.background`` (:data:`BACKGROUNDS`): learned, 3 logits starting at
-    0.5 grey with an Adam at ``config.lr.background``; fixed, the colour.
-
-    A start at the median colour of the training pixels with +inf depth (the sky) was tried on development
-    scenes; the co-visible held-out PSNR (grey / sky start) was 28.84 / 29.12, 22.07 / 21.66, 36.86 / 26.52 and
-    29.16 / 29.67 dB (seed 9191 scene_00001/2, seed 7373 scene_00001/5): no better on average, and it needs a
-    rule for what +inf depth means in other data. On the Gaussians' device."""
+    """Set ``state.background`` from ``config.background`` (:data:`BACKGROUNDS`) on the Gaussians' device: learned,
+    3 logits from 0.5 grey with an Adam at ``config.lr.background``; fixed, the colour."""
     rgb = torch.tensor(BACKGROUNDS[config.background], device=state.device)
     if config.background == "learned":
         state.background = nn.Parameter(torch.logit(rgb))
@@ -255,13 +195,8 @@ def init_background(state: FitState, config: FitConfig) -> None:
 
 
 def gaussian_adam(params: dict[str, nn.Parameter], lr: LearningRates, extent: float) -> torch.optim.Adam:
-    """Adam over the Gaussian parameters, one group per name (``group["name"]``, what :mod:`training.densify`
-    edits), with 3DGS's rates (``GaussianModel.training_setup``): positions × ``extent`` (metres), eps 1e-15.
-
-    Args:
-        params: the :class:`FitState` parameter dict ("means" (N,3), "scales", "quats", "opacities", "sh0", "shN").
-        extent: scene extent, metres (:func:`training.fit_data.scene_extent`).
-    """
+    """Adam over :class:`FitState` ``params``, one group per name (``group["name"]``, edited by
+    :mod:`training.densify`), 3DGS's rates with positions × ``extent`` (metres), eps 1e-15."""
     rates = {"means": lr.position_init * extent, "sh0": lr.sh0, "shN": lr.shN, "opacities": lr.opacities,
              "scales": lr.scales, "quats": lr.quats}
     return torch.optim.Adam([{"params": [p], "lr": rates[k], "name": k} for k, p in params.items()],
@@ -271,14 +206,9 @@ def gaussian_adam(params: dict[str, nn.Parameter], lr: LearningRates, extent: fl
 def init_state(means: Tensor, colors: Tensor, config: FitConfig, extent: float, dynamic: bool, seed: int,
                scales: Tensor | None = None, quats: Tensor | None = None, opacities: Tensor | None = None,
                sh: Tensor | None = None) -> FitState:
-    """Gaussians from points (3DGS ``create_from_pcd``): SH DC from ``colors``, higher SH zero, kNN scales,
-    identity rotation, opacity 0.1 — or the given ``scales``/``quats``/``opacities``/``sh`` (a ``generate``
-    initialisation).
-
-    Args:
-        means: (N, 3) metres, on the device the fit runs on (every other input is moved there).
-        colors: (N, 3) in [0, 1]. extent: scene extent, metres. seed: the fit's seed (the CPU generator's).
-    """
+    """Gaussians from points ``means`` (N, 3) metres, on the fit's device (3DGS ``create_from_pcd``): SH DC from
+    ``colors`` (N, 3) in [0, 1], kNN scales, identity rotation, opacity 0.1 — or the given
+    ``scales``/``quats``/``opacities``/``sh`` (a ``generate`` start). ``seed`` seeds the CPU generator."""
     n, dev = means.shape[0], means.device
     K = (config.sh_degree + 1) ** 2
     sh_full = torch.zeros(n, K, 3, device=dev)
@@ -305,24 +235,16 @@ def init_state(means: Tensor, colors: Tensor, config: FitConfig, extent: float, 
 
 
 def _activated(params: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """(means, quats, scales, opacities, sh) as the renderer takes them."""
     return (params["means"], params["quats"], params["scales"].exp(), torch.sigmoid(params["opacities"]),
             torch.cat([params["sh0"], params["shN"]], dim=1))
 
 
-def _deformed(state: FitState, t: float, means: Tensor, quats: Tensor, scales: Tensor):
-    if state.field is None:
-        return means, quats, scales
-    return compose_deformation(means, quats, scales, *state.field(means, t))
-
-
 def render_view(state: FitState, view: View, sh_degree: int, with_depth: bool):
-    """Render one view with the current parameters (deformed to the view's time in the fine stage).
-
-    Returns:
-        (rgb (H, W, 3), depth (H, W) or None, alpha (H, W), rasterize meta).
-    """
+    """(rgb (H, W, 3), depth (H, W) or None, alpha (H, W), rasterize meta) of one view, deformed to its time."""
     means, quats, scales, opac, sh = _activated(state.params)
-    means, quats, scales = _deformed(state, view.time, means, quats, scales)
+    if state.field is not None:
+        means, quats, scales = compose_deformation(means, quats, scales, *state.field(means, view.time))
     colors, alphas, meta = rasterize(means, quats, scales, opac, sh, view.viewmat[None], view.K[None],
                                      view.width, view.height, sh_degree=sh_degree,
                                      backgrounds=state.background_rgb()[None].to(means.dtype),
@@ -332,12 +254,8 @@ def render_view(state: FitState, view: View, sh_degree: int, with_depth: bool):
 
 
 def start_fine_stage(state: FitState, config: FitConfig) -> None:
-    """Start the fine stage: a new (identity) HexPlane field on the Gaussians' current bounding box (metres; 4DGS
-    sets the box from the point cloud) and its Adam with two groups, "deformation" (MLP) and "grid" (planes),
-    at 4DGS's initial rates × the extent (``deformation_lr_init``, ``grid_lr_init``), decayed by ``fit_steps``.
-
-    The field is initialised on the CPU (from torch's seeded global generator) and moved to the Gaussians'
-    device, so a seed gives the same field on every device."""
+    """Start the fine stage: an identity HexPlane field on the Gaussians' bounding box (built on the CPU from torch's
+    global generator, then moved) and its Adam with groups "deformation" (MLP) and "grid" (planes) at 4DGS's rates."""
     means = state.params["means"].detach()
     bounds = torch.stack([means.min(0).values, means.max(0).values])
     state.field = HexPlaneField(config.field, bounds, device="cpu").to(state.device)
@@ -350,6 +268,7 @@ def start_fine_stage(state: FitState, config: FitConfig) -> None:
 
 
 def _set_lrs(state: FitState, config: FitConfig) -> None:
+    """Decay the position and field learning rates over the current stage."""
     lr, step = config.lr, state.step
     fine = state.field_optimizer is not None
     stage_step = step - config.coarse_iterations if fine else step
@@ -368,24 +287,10 @@ def _set_lrs(state: FitState, config: FitConfig) -> None:
 
 def fit_steps(state: FitState, views: list[View], config: FitConfig, until: int, *, progress: bool = False,
               should_stop=lambda: False, on_step=None) -> FitState:
-    """Run optimisation steps until ``state.step == until`` (or ``should_stop()``).
-
-    ``state.train_time`` adds the wall time of the steps; on CUDA the queued work is waited for once at the
-    end (not per step), so it is exact when this returns and may lag by the work in flight in between.
-
-    Args:
-        views: training views (not empty), on ``state.device``.
-        until: step count to reach (≤ ``config.iterations``).
-        progress: a tqdm bar (its PSNR, an exponential moving average, is read every :data:`POSTFIX_EVERY` steps).
-        should_stop: polled after every step (SIGTERM → checkpoint and return).
-        on_step: ``on_step(state)`` after every step (checkpoints, evaluation).
-
-    Returns:
-        ``state``, advanced in place.
-
-    Raises:
-        ValueError: ``config.depth_weight`` is None (not yet resolved from the scene's depth source).
-    """
+    """Advance ``state`` in place to step ``until`` (≤ ``config.iterations``) over ``views`` (not empty, on
+    ``state.device``), stopping early when ``should_stop()``; ``on_step(state)`` after every step. ``progress``
+    shows a tqdm bar (EMA PSNR read every :data:`POSTFIX_EVERY` steps). ``state.train_time`` adds the steps' wall time
+    (the device is synchronised once at the end). Raises ValueError when ``config.depth_weight`` is None."""
     if config.depth_weight is None:
         raise ValueError("depth_weight is None: resolve it first (default_depth_weight of the scene's depth source)")
     with_depth = config.depth_weight > 0 and views[0].depth is not None
@@ -445,6 +350,7 @@ def fit_steps(state: FitState, views: list[View], config: FitConfig, until: int,
 
 
 def _density_control(state: FitState, config: FitConfig) -> None:
+    """Densify/prune and reset opacities on the steps of ``config.densify``."""
     d, step = config.densify, state.step
     if d.active(step):
         state.params, counts = densify_and_prune(
@@ -460,17 +366,9 @@ def _density_control(state: FitState, config: FitConfig) -> None:
 @torch.no_grad()
 def evaluate_views(state: FitState, views: list[View], sh_degree: int,
                    masks: list[Tensor] | None = None) -> dict[str, float]:
-    """PSNR of the mean squared error over all ``views`` (every pixel of every frame pooled; capped as
-    :func:`training.eval_metrics.psnr_from_mse`) and the mean SSIM (kornia, window 11), renders clamped to
-    [0, 1]; with ``masks`` ((H, W) bool per view, :func:`training.fit_data.covisible_masks`) also the PSNR
-    over the masked pixels only (DyCheck's mPSNR) and the masked fraction.
-
-    Views and masks on ``state.device``; the sums are kept there (float64) and read once at the end.
-
-    Returns:
-        {"psnr", "ssim", "mse", "views", "masked_psnr" (NaN without masks or with empty ones),
-        "covisible" (fraction of masked pixels; NaN without masks)}.
-    """
+    """{"psnr" (pooled MSE), "ssim" (mean, kornia window 11), "mse", "views", "masked_psnr" (DyCheck's mPSNR over
+    ``masks``, (H, W) bool per view), "covisible" (masked fraction)} of renders clamped to [0, 1]; the masked
+    values are NaN without masks. Sums stay on ``state.device`` (float64), read once."""
     zero = torch.zeros((), dtype=torch.float64, device=state.device)
     se, ssim, mse_m, n_m, n = zero, zero, zero, zero, 0
     for i, v in enumerate(views):
@@ -491,9 +389,9 @@ def evaluate_views(state: FitState, views: list[View], sh_degree: int,
 
 @torch.no_grad()
 def to_scene(state: FitState, times: Tensor | None) -> DynamicGaussians:
-    """The fitted scene: activated canonical Gaussians (those with opacity < 1/255, which can never pass
-    the renderer's alpha test, removed and counted in ``state.counts["pruned"]``) plus the field sampled at
-    ``times`` (T,) when there is a field; on ``state.device``."""
+    """The fitted scene on ``state.device``: activated Gaussians (opacity < 1/255 pruned and counted in
+    ``state.counts["pruned"]``) and, with a field, its deformations at ``times`` (T,)."""
+
     keep = torch.sigmoid(state.params["opacities"]) >= ALPHA_MIN
     if not bool(keep.all()):
         state.params = prune(state.params, state.optimizer, ~keep, state.stats)

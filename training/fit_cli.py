@@ -1,21 +1,9 @@
-"""``diff4splat fit SCENE_DIR --out DIR``: fit a 4D Gaussian scene to a scene folder (:mod:`training.fit`).
-
-Registered through the ``diff4splat.commands`` entry point (like ``evaluate``), so ``diff4splat`` never imports
-``training``. The output folder has the layout of ``generate`` (docs/DESIGN.md, "Output folder of generate";
-marker kind "fit"), rendered along the scene's reference camera in the scene's world frame, plus
-``field.safetensors`` (the HexPlane field, :func:`models.hexplane.save_field`; absent for a static fit) and
-``metrics.json``. Checkpoints go to ``DIR.checkpoints/`` (:mod:`training.checkpoint`): every
-``--checkpoint-every`` steps and on SIGTERM/SIGINT; ``--resume`` continues from the newest one (a checkpoint of
-another fit is refused, naming the settings that differ), and the folder is removed when the output is written.
-``--out`` may not lie inside the scene folder or the ``--init`` folder (the fit would write into its own input).
-Every argument is checked, against the limits too (``iterations``, ``gaussians``; :mod:`diff4splat.utils.limits`),
-before the scene is read.
-
-``--device`` (default ``auto``: CUDA when torch sees a GPU, else the CPU) is where the Gaussians, the field, the
-views and the background live. Checkpoints hold CPU tensors only, so a fit checkpointed on one device resumes on
-another; the random draws come from CPU generators, so ``--seed`` gives the same draws on every device (the
-renderers differ slightly: gsplat on CUDA, docs/DESIGN.md "The renderer"). ``metrics.json`` and ``meta.json``
-record the device.
+"""``diff4splat fit SCENE_DIR --out DIR``: fit a 4D Gaussian scene to a scene folder (:mod:`training.fit`), registered
+through the ``diff4splat.commands`` entry point. The output has ``generate``'s layout (docs/DESIGN.md, "Output folder
+of generate"; marker kind "fit") in the scene's world frame, plus ``field.safetensors`` (dynamic fits) and
+``metrics.json``. Checkpoints (CPU tensors, resumable on any device) go to ``DIR.checkpoints/`` every
+``--checkpoint-every`` steps and on SIGTERM/SIGINT, and are removed once the output is written; ``--resume`` refuses
+a checkpoint of another fit. Every argument is checked, limits included, before the scene is read.
 """
 from __future__ import annotations
 
@@ -87,8 +75,7 @@ MAX_LISTED_DIFFERENCES = 6
 
 
 class FitInterrupted(Exception):
-    """SIGTERM/SIGINT stopped the fit after a checkpoint was written (rerun with ``--resume``); ``signum`` is the
-    signal, so the command exits 128 + signum (130 after Ctrl-C, 143 after SIGTERM) as every tool does."""
+    """SIGTERM/SIGINT stopped the fit after a checkpoint was written; the command exits 128 + ``signum``."""
 
     def __init__(self, message: str, signum: int = signal.SIGTERM) -> None:
         super().__init__(message)
@@ -96,25 +83,16 @@ class FitInterrupted(Exception):
 
 
 def _moves(views) -> bool:
+    """Whether the views' cameras move."""
     V = torch.stack([v.viewmat for v in views])
     return bool((V - V[0]).abs().max() > 1e-6)
 
 
 def place_generate_output(init_dir: Path, scene, ref_camera: str) -> DynamicGaussians:
-    """A ``generate`` output folder's scene in the scene folder's world frame.
-
-    generate's world is its first camera's frame, taken to be ``ref_camera`` at frame 0 (c2w = [R | c]); its
-    scale is matched to the scene's depth when the scene has depth: s = median of frame 0's valid depth /
-    median camera-space depth of the Gaussians in front of that camera. Means → s·R μ + c, quats → q_R ⊗ q,
-    scales → s·scales, SH coefficients of degree ≥ 1 rotated by R (:func:`diff4splat.render.sh.rotate_sh`: the
-    colour seen along R·d is the one seen along d); the deformation follows: Δμ → s·R Δμ, Δq → q_R ⊗ Δq ⊗ q_R⁻¹
-    (so the composition of docs/DESIGN.md gives the moved Gaussians), Δs unchanged.
-
-    Raises:
-        FileNotFoundError: ``init_dir`` has no scene.ply.
-        ValueError: a malformed, corrupt or inconsistent file of ``init_dir``, named
-            (:func:`diff4splat.io.scene_folder.load_output_scene`).
-    """
+    """A ``generate`` output folder's scene moved into the scene's world: generate's world is ``ref_camera`` at
+    frame 0 (c2w = [R | c]), scaled by s = median valid depth / median Gaussian depth when the scene has depth.
+    μ → s·R μ + c, q → q_R ⊗ q, scales × s, SH rotated by R (:func:`diff4splat.render.sh.rotate_sh`); Δμ → s·R Δμ,
+    Δq → q_R ⊗ Δq ⊗ q_R⁻¹. Raises FileNotFoundError without scene.ply, ValueError for a bad file (named)."""
     if not (init_dir / SCENE_FILE).is_file():
         raise FileNotFoundError(f"--init: {init_dir / SCENE_FILE} does not exist (give a generate output folder)")
     loaded, _ = load_output_scene(init_dir)  # scene.ply, deformation.npz and meta.json checked as input
@@ -148,9 +126,8 @@ def _plain(value):
 
 
 def run_differences(saved: dict | None, now: dict, prefix: str = "") -> list[str]:
-    """The settings in which a checkpoint's run (``saved``) and this run (``now``) differ, one phrase each:
-    ``"iterations 300 in the checkpoint vs 500 now"``. Nested dicts are walked with dotted names
-    (``densify.max_gaussians``); the fit config's fields are named without their ``config.`` prefix."""
+    """One phrase per setting in which a checkpoint's run (``saved``) and this run (``now``) differ, with dotted
+    names for nested dicts (the fit config's without ``config.``)."""
     saved, now = _plain(saved or {}), _plain(now)
     out = []
     for key in [*now, *(k for k in saved if k not in now)]:
@@ -165,13 +142,8 @@ def run_differences(saved: dict | None, now: dict, prefix: str = "") -> list[str
 
 def _state_from_checkpoint(folder: Path, config: FitConfig, dynamic: bool, run: dict,
                            device: torch.device) -> FitState:
-    """The :class:`FitState` of checkpoint ``folder`` on ``device`` (whatever device wrote it: its tensors are
-    CPU tensors; Adam's ``load_state_dict`` moves the moments to their parameters' device).
-
-    Raises:
-        ValueError: the checkpoint is of another fit (names the settings that differ, at most
-            :data:`MAX_LISTED_DIFFERENCES` of them).
-    """
+    """The :class:`FitState` of checkpoint ``folder`` on ``device``; ValueError naming the differing settings when
+    the checkpoint is of another fit."""
     weights, saved, _ = load_checkpoint(folder)
     differences = run_differences(saved.get("run"), run)
     if differences:
@@ -201,8 +173,7 @@ def _state_from_checkpoint(folder: Path, config: FitConfig, dynamic: bool, run: 
 
 
 def _save(run_dir: Path, state: FitState, config: FitConfig, run: dict) -> None:
-    """Checkpoint ``state`` with CPU tensors only (weights, optimizer moments, statistics), so that it loads on
-    any device; meta.json records the device that wrote it."""
+    """Checkpoint ``state`` with CPU tensors only; meta.json records the device."""
     weights = {k: v.detach() for k, v in state.params.items()}
     weights["background"] = state.background.detach()
     if state.field is not None:
@@ -220,13 +191,8 @@ def _save(run_dir: Path, state: FitState, config: FitConfig, run: dict) -> None:
 
 
 def check_out_outside_inputs(out: str | Path, scene_dir: str | Path, init: str | Path | None = None) -> None:
-    """Refuse an output folder inside the scene folder or the ``init`` folder (symlinks followed): the fit would
-    add files to its own input (a scene folder then fails ``data_prep validate``). ``out`` equal to one of them
-    or an ancestor is :func:`diff4splat.io.output_folders.check_output_dir`'s refusal.
-
-    Raises:
-        ValueError: ``out`` lies inside ``scene_dir`` or ``init``.
-    """
+    """ValueError when ``out`` lies inside ``scene_dir`` or ``init`` (symlinks followed): the fit would write into
+    its own input (equal or ancestor folders are :func:`diff4splat.io.output_folders.check_output_dir`'s)."""
     target = Path(out).resolve()
     for what, folder in (("the scene folder", scene_dir), ("the --init folder", init)):
         if folder is not None and target != Path(folder).resolve() and target.is_relative_to(Path(folder).resolve()):
@@ -235,50 +201,36 @@ def check_out_outside_inputs(out: str | Path, scene_dir: str | Path, init: str |
 
 
 FIT_BYTES_PER_GAUSSIAN = 14_000
-"""Peak memory of ``fit`` per Gaussian: parameters, gradients, Adam moments, the HexPlane field's per-Gaussian
-queries and the renderer's state. Measured 11.7 kB (a dynamic 128² scene of 2 cameras × 9 frames, 20 k against
-183 k Gaussians: 0.68 against 2.59 GB peak, 2-core CPU), with a margin; a static scene needs less. With it
-:func:`fit_memory_estimate` was 1.36-1.45× those peaks."""
+"""Peak memory of ``fit`` per Gaussian (parameters, gradients, Adam moments, field queries, renderer), with a margin
+over the measured value (docs/benchmarks.md)."""
 FIT_BYTES_PER_VIEW_PIXEL = 64
-"""Memory of ``fit`` per pixel of every training view kept in memory (colour, depth, masks, float32), with a
-margin."""
+"""Memory of ``fit`` per pixel of every view kept in memory (colour, depth, masks, float32), with a margin."""
 
 
 def _most_gaussians(config: FitConfig) -> int:
-    """The most Gaussians a fit may hold: the larger of the densification cap and the initial points."""
+    """The most Gaussians a fit may hold: the densification cap or the initial points."""
     return max(config.densify.max_gaussians, config.init_points, config.random_points)
 
 
 def fit_memory_estimate(scene, config: FitConfig) -> int:
-    """Upper bound of ``fit``'s peak host memory, bytes, from the scene's ``meta.json`` and cameras before its frames
-    are loaded: what the process holds now, the renderer's fixed memory
-    (:data:`diff4splat.utils.costs.RENDER_BASE_BYTES`), :data:`FIT_BYTES_PER_VIEW_PIXEL` per pixel of every camera
-    and frame, and
-    :data:`FIT_BYTES_PER_GAUSSIAN` per Gaussian at the most it may hold (the larger of the densification cap and the
-    initial points)."""
+    """Upper bound in bytes of ``fit``'s peak host memory, before the frames are loaded: memory held now,
+    :data:`diff4splat.utils.costs.RENDER_BASE_BYTES`, :data:`FIT_BYTES_PER_VIEW_PIXEL` per pixel of every camera and
+    frame, :data:`FIT_BYTES_PER_GAUSSIAN` per Gaussian at the most it may hold."""
     pixels = sum(c.width * c.height for c in map(scene.cameras, scene.camera_names)) * scene.num_frames
-    gaussians = _most_gaussians(config)
-    held = held_memory()
-    return int(held + RENDER_BASE_BYTES + FIT_BYTES_PER_VIEW_PIXEL * pixels + FIT_BYTES_PER_GAUSSIAN * gaussians)
+    return int(held_memory() + RENDER_BASE_BYTES + FIT_BYTES_PER_VIEW_PIXEL * pixels
+               + FIT_BYTES_PER_GAUSSIAN * _most_gaussians(config))
 
 
 def run_fit(scene_dir: Path, out: Path, config: FitConfig, *, holdout_camera: int | None = None, seed: int = 0,
             init: Path | None = None, resume: bool = False, eval_every: int = 250, checkpoint_every: int = 500,
             fps: float = DEFAULT_FPS, progress: bool = False, overwrite: bool = False,
             device: str | torch.device = "cpu") -> dict:
-    """Fit ``scene_dir`` and write the output folder ``out`` (module docstring). Returns metrics.json's dict.
+    """Fit ``scene_dir`` on ``device`` (:func:`diff4splat.utils.devices.resolve_device`) and write ``out``; returns
+    metrics.json's dict. ``checkpoint_every`` 0 checkpoints only on SIGTERM/SIGINT.
 
-    Args:
-        checkpoint_every: steps between checkpoints, ≥ 1; 0: only on SIGTERM/SIGINT.
-        device: where the fit runs (``"auto"``, ``"cpu"``, ``"cuda"``, a ``torch.device``;
-            :func:`diff4splat.utils.devices.resolve_device`), checked before any work; the CLI's default is ``auto``.
-
-    Raises:
-        FileNotFoundError: the scene or ``init`` is missing. ValueError: bad arguments (``checkpoint_every`` < 0,
-            ``eval_every`` < 1, an ``out`` inside the scene or ``init`` folder, …), a scene that cannot
-            be fitted (one camera that does not move and no depth), ``resume`` without a checkpoint or with one
-            of another fit, a ``device`` this machine does not have.
-        FitInterrupted: SIGTERM/SIGINT (a checkpoint was written first).
+    Raises FileNotFoundError (scene or ``init`` missing); ValueError for a bad argument, an unfittable scene (one
+    still camera, no depth), ``resume`` without a checkpoint or with another fit's, or a missing device;
+    :class:`FitInterrupted` on SIGTERM/SIGINT after a checkpoint.
     """
     t_start = time.perf_counter()
     device = resolve_device(device, "device")
@@ -360,16 +312,19 @@ def run_fit(scene_dir: Path, out: Path, config: FitConfig, *, holdout_camera: in
 
 
 def _history_entry(state: FitState, holdout, sh_degree: int, masks) -> dict:
+    """One metrics.json ``history`` row: held-out PSNRs at the current step."""
     held = evaluate_views(state, holdout, sh_degree, masks)
     return {"step": state.step, "train_time_s": state.train_time, "num_gaussians": state.num_gaussians,
             "holdout_psnr": held["psnr"], "holdout_masked_psnr": _number(held["masked_psnr"])}
 
 
 def _number(x: float) -> float | None:
+    """None for NaN (JSON)."""
     return None if math.isnan(x) else x
 
 
 def _write_output(scene, out: Path, state: FitState, config: FitConfig, train, holdout, masks, opts: dict) -> dict:
+    """Evaluate, render along the reference camera, write ``out`` and remove the checkpoints; metrics.json's dict."""
     deg = min(config.sh_degree, state.step // config.sh_interval)
     ref = scene.cameras(scene.camera_names[0])
     fitted = to_scene(state, ref.times if state.field is not None else None)
@@ -452,12 +407,8 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     """The ``fit`` command: one summary line; 143 after SIGTERM, 130 after SIGINT (checkpoint written first).
+    Raises ValueError naming the flag of a bad argument, one above its limit, or a missing ``--device``."""
 
-    Raises:
-        ValueError: a bad argument (named by its flag), one above a limit (:class:`diff4splat.utils.limits.LimitError`:
-            ``--iterations``, ``--max-gaussians``, ``--init-points``), ``--device`` naming a device this machine
-            does not have (checked first), an ``--out`` inside the scene or ``--init`` folder.
-    """
     device = resolve_device(args.device, "--device")  # before any work
     flag = lambda name: "--" + name.replace("_", "-")  # noqa: E731
     for name in ("iterations", "eval_every", "checkpoint_every", "max_gaussians", "init_points"):

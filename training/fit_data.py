@@ -1,13 +1,7 @@
-"""What ``diff4splat fit`` reads from a scene folder: training/held-out views and the initial Gaussians.
-
-A *view* is one frame of one camera (image, optional metric depth, viewmat, K, time), on the device the fit
-runs on (:func:`load_views`); everything here makes its tensors on the device of its inputs, and random draws
-come from a CPU ``torch.Generator`` and are moved, so a seed gives the same draws on every device
-(docs/DESIGN.md, "Devices"). Initialisation
-follows 3DGS (Kerbl et al. 2023, §5.1): points with colours, isotropic scales from the mean squared
-distance to the 3 nearest neighbours, opacity 0.1, identity rotation; 4DGS (Wu et al. 2024) uses the same
-initialisation for its canonical Gaussians. Our points come from the scene's metric depth (back-projected
-pixels) instead of SfM, or from a random box when the scene has no depth.
+"""What ``diff4splat fit`` reads from a scene folder: training/held-out views (one frame of one camera each) and the
+initial points. Initialisation follows 3DGS (Kerbl et al. 2023, §5.1) with points from back-projected metric depth
+instead of SfM, or a random box without depth. Tensors are made on their inputs' device; random draws come from a
+CPU generator and are moved, so a seed gives the same draws on every device.
 """
 from __future__ import annotations
 
@@ -26,17 +20,9 @@ __all__ = ["View", "load_views", "split_cameras", "depth_points", "random_box_po
 
 @dataclass
 class View:
-    """One training or evaluation frame.
-
-    Attributes:
-        image: (H, W, 3) float32 RGB in [0, 1].
-        depth: (H, W) float32 metric z-depth (+inf where invalid), or None.
-        viewmat: (4, 4) world-to-camera (OpenCV).
-        K: (3, 3) pixels.
-        time: clip time in [0, 1].
-        camera: camera folder name.
-        frame: frame index in the camera.
-    """
+    """One frame: ``image`` (H, W, 3) float32 RGB in [0, 1], ``depth`` (H, W) float32 metric z-depth (+inf where
+    invalid) or None, ``viewmat`` (4, 4) world-to-camera (OpenCV), ``K`` (3, 3) pixels, ``time`` in [0, 1], the
+    ``camera`` folder name and ``frame`` index."""
 
     image: Tensor
     depth: Tensor | None
@@ -48,12 +34,12 @@ class View:
 
     @property
     def width(self) -> int:
-        """W, the image width in pixels (``image.shape[1]``)."""
+        """W, the image width in pixels."""
         return self.image.shape[1]
 
     @property
     def device(self) -> torch.device:
-        """The device of ``image``, the view's device (:meth:`to` returns a copy with every tensor on another)."""
+        """The view's device (that of ``image``)."""
         return self.image.device
 
     def to(self, device: str | torch.device) -> View:
@@ -63,17 +49,13 @@ class View:
 
     @property
     def height(self) -> int:
-        """H, the image height in pixels (``image.shape[0]``)."""
+        """H, the image height in pixels."""
         return self.image.shape[0]
 
 
 def split_cameras(scene: SceneReader, holdout_camera: int | None) -> tuple[list[str], list[str]]:
-    """Training and held-out camera names: camera ``holdout_camera`` (index into ``meta["cameras"]``) is
-    never trained on.
-
-    Raises:
-        ValueError: ``holdout_camera`` outside [0, number of cameras), or no camera left to train on.
-    """
+    """Training and held-out camera names, holding out camera index ``holdout_camera``. Raises ValueError for an
+    index out of range or no camera left to train on."""
     names = scene.camera_names
     if holdout_camera is None:
         return names, []
@@ -99,19 +81,9 @@ def load_views(scene: SceneReader, cameras: list[str], frames: list[int] | None 
 
 
 def depth_points(views: list[View], max_points: int, generator: torch.Generator) -> tuple[Tensor, Tensor]:
-    """Back-project every valid depth pixel of ``views`` (:func:`diff4splat.cameras.unproject_depth`) and
-    keep at most ``max_points``, spread over space (:func:`voxel_subsample`).
-
-    Args:
-        views: views with depth, on one device (the result's).
-        generator: a CPU generator (the subsample's random order).
-
-    Returns:
-        means (N, 3) metres, colours (N, 3) in [0, 1], on the views' device.
-
-    Raises:
-        ValueError: a view has no depth, or no pixel has a finite depth.
-    """
+    """Means (N, 3) metres and colours (N, 3) in [0, 1] of every finite depth pixel of ``views`` back-projected, at
+    most ``max_points`` kept by :func:`voxel_subsample`. Raises ValueError for a view without depth or no finite
+    depth at all."""
     pts, cols = [], []
     for v in views:
         if v.depth is None:
@@ -130,21 +102,9 @@ def depth_points(views: list[View], max_points: int, generator: torch.Generator)
 
 
 def voxel_subsample(points: Tensor, max_points: int, generator: torch.Generator) -> Tensor:
-    """Indices of at most ``max_points`` of ``points`` (P, 3), one random point per occupied cell of the
-    finest cubic grid that has at most ``max_points`` occupied cells (cell edge found by bisection).
-
-    A uniform random subset of back-projected pixels follows pixel density: surfaces that many views see
-    up close get most of the points, and a surface seen only at grazing angles or from far away gets
-    almost none, so its Gaussians start sparse. One point per grid cell spreads them over the surfaces
-    (the voxel-grid downsampling of point-cloud initialisations).
-
-    Args:
-        points: (P, 3) on any device.
-        generator: a CPU generator: the random order is drawn there and moved, so it is the same on every device.
-
-    Returns:
-        (K,) int64 indices on ``points``' device, K ≤ max_points.
-    """
+    """(K,) int64 indices, K ≤ ``max_points``, of ``points`` (P, 3): one random point per occupied cell of the
+    finest cubic grid with at most ``max_points`` occupied cells (edge found by bisection), so points spread over
+    the surfaces instead of following pixel density (docs/DESIGN.md, "Fitting (4D Gaussian Splatting)")."""
     perm = torch.randperm(points.shape[0], generator=generator, device=generator.device).to(points.device)
     pts = points[perm].double()
     lo, span = pts.min(0).values, float((pts.max(0).values - pts.min(0).values).max())
@@ -170,18 +130,9 @@ def voxel_subsample(points: Tensor, max_points: int, generator: torch.Generator)
 
 
 def random_box_points(views: list[View], num_points: int, generator: torch.Generator) -> tuple[Tensor, Tensor]:
-    """Uniform random points with random colours in the box the cameras look into (3DGS's random
-    initialisation for scenes without SfM points): centred on the camera centres' mean pushed one
-    camera-spread (at least 1 m) times the mean of the unit viewing directions (not normalised: its length
-    is 1 for parallel cameras and ~0 for a ring of cameras looking inwards, whose centre is then kept),
-    half-size that spread (at least 1 m).
-
-    Args:
-        generator: a CPU generator (the draws are moved to the views' device).
-
-    Returns:
-        means (num_points, 3) metres, colours (num_points, 3) in [0, 1], on the views' device.
-    """
+    """Means (num_points, 3) metres and colours in [0, 1], uniform in the box the cameras look into (3DGS's random
+    initialisation): centred on the camera centres' mean + spread × mean viewing direction (unnormalised), half-size
+    the cameras' spread (at least 1 m)."""
     V = torch.stack([v.viewmat for v in views]).double()
     centres = camera_centers(V)
     forward = V[:, 2, :3].mean(0)  # (3,), length ≤ 1
@@ -193,15 +144,8 @@ def random_box_points(views: list[View], num_points: int, generator: torch.Gener
 
 
 def knn_scales(means: Tensor, k: int = 3, chunk: int = 1024) -> Tensor:
-    """3DGS initial scale: sqrt of the mean squared distance to the ``k`` nearest other points
-    (``distCUDA2`` in the reference code), the same on the three axes; clamped to ≥ 1e-7 m² before sqrt.
-
-    Args:
-        means: (N, 3) metres, N ≥ 2.
-
-    Returns:
-        (N, 3) scales, metres, > 0, on ``means``' device.
-    """
+    """(N, 3) isotropic scales in metres of ``means`` (N, 3): sqrt of the mean squared distance to the ``k`` nearest
+    other points, ≥ 1e-7 m² before sqrt (3DGS ``distCUDA2``); 1 cm for N < 2."""
     N, dev = means.shape[0], means.device
     if N < 2:
         return torch.full((N, 3), 1e-2, dtype=means.dtype, device=dev)
@@ -216,10 +160,8 @@ def knn_scales(means: Tensor, k: int = 3, chunk: int = 1024) -> Tensor:
 
 
 def scene_extent(views: list[View], points: Tensor | None = None) -> float:
-    """The scene scale of 3DGS (``getNerfppNorm``): 1.1 × the largest distance of a camera centre from
-    their mean, metres. Cameras that (almost) do not move give ~0, so the result is at least 10 % of the
-    diagonal of ``points``' bounding box (when given), and at least 1e-3 m.
-    """
+    """3DGS's scene scale (``getNerfppNorm``) in metres: 1.1 × the largest camera-centre distance from their mean,
+    at least 10 % of ``points``' bounding-box diagonal (when given) and 1e-3 m."""
     centres = camera_centers(torch.stack([v.viewmat for v in views]).double())
     radius = 1.1 * float((centres - centres.mean(0)).norm(dim=-1).max())
     if points is not None and points.shape[0]:
@@ -228,10 +170,9 @@ def scene_extent(views: list[View], points: Tensor | None = None) -> float:
 
 
 def covisible_masks(holdout: list[View], train: list[View], static: bool) -> list[Tensor] | None:
-    """Co-visibility mask (H, W) bool of every held-out view (:func:`training.eval_metrics.covisible_mask`,
-    DyCheck's mPSNR mask): the pixels whose surface point a training view sees — every training view for a
-    static scene, those of the same frame (the same time) for a dynamic one. None without depth. On the views'
-    device."""
+    """:func:`training.eval_metrics.covisible_mask` (H, W) of every held-out view against every training view
+    (static) or those of the same frame (dynamic); None without depth."""
+
     if not holdout or any(v.depth is None for v in holdout + train):
         return None
     out = []

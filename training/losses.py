@@ -1,8 +1,5 @@
-"""Training losses of Diff4Splat (Pan et al. 2025, training objectives), each a pure function.
-
-Weights default to the paper's where it states them; where it does not, the default is the
-standard value of the work the term comes from, named in each docstring (:class:`LossWeights`).
-"""
+"""Training losses of Diff4Splat (Pan et al. 2025), each a pure function; defaults are the paper's or, where it is
+silent, those of the work each term comes from (:class:`LossWeights`)."""
 from __future__ import annotations
 
 import math
@@ -17,43 +14,20 @@ from diff4splat.cameras import project_points
 from diff4splat.utils.devices import autocast_off
 from models.flow_matching import add_noise, sample_logit_normal, shift_sigmas, velocity_target
 
-__all__ = [
-    "LossWeights",
-    "flow_matching_loss",
-    "sample_training_sigmas",
-    "photometric_loss",
-    "depth_correlation_loss",
-    "depth_smoothness_loss",
-    "log_depth_loss",
-    "motion_loss",
-    "displacement_loss",
-    "warp_loss",
-    "gather_track_predictions",
-    "head_distillation_loss",
-]
+__all__ = ["LossWeights", "flow_matching_loss", "sample_training_sigmas", "photometric_loss", "depth_correlation_loss",
+           "depth_smoothness_loss", "log_depth_loss", "motion_loss", "displacement_loss", "warp_loss",
+           "gather_track_predictions", "head_distillation_loss"]
 
 
 @dataclass
 class LossWeights:
-    """Weights of the reconstruction objective
-    L = λ_rgb·L_photo + λ_depth·L_depth + λ_smooth·L_smooth + λ_motion·L_motion + λ_disp·L_disp.
+    """Weights of L = λ_rgb·L_photo + λ_depth·L_depth + λ_metric·L_log + λ_smooth·L_smooth + λ_motion·L_motion
+    + λ_disp·L_disp (+ λ_warp·L_warp for ``tracking``).
 
-    Attributes:
-        ssim: λ of (1 − SSIM) inside the photometric loss; 0.2 as in 3DGS (Kerbl et al. 2023, Eq. 7).
-        rgb: weight of the photometric loss.
-        depth: weight of the depth-correlation loss (Pearson; as in SparseGS / FSGS depth priors).
-        metric_depth: weight of the scale-invariant log loss (:func:`log_depth_loss`, λ = 0.5), which unlike the
-            correlation keeps a share of the depth's scale: for metric reference depth. 0 (the default, and with a
-            relative reference) leaves it out; the correlation alone lets the predicted scale drift.
-        smooth: weight of the edge-aware depth smoothness (Godard et al. 2017 use 1e-3 on disparity).
-        motion: weight of the track loss (stage 3 only).
-        displacement: weight of the track-displacement loss (:func:`displacement_loss`, stage 3 only): the
-            motion relative to frame 0, which the absolute track loss mixes with the frame-0 depth error.
-        warp: weight of the dense warp loss of the ``tracking`` objective (:func:`warp_loss`).
-
-    Raises:
-        ValueError: a weight that is negative or not finite (a negative weight maximises its loss), or an
-            ``ssim`` above 1 (the photometric loss mixes (1 − ssim)·L1 + ssim·(1 − SSIM)).
+    ``ssim`` is the SSIM share inside the photometric loss (0.2, 3DGS Eq. 7); ``depth`` weighs the Pearson depth
+    loss (FSGS/SparseGS), ``metric_depth`` the scale-invariant log loss (0: off, for a relative reference), ``smooth``
+    the edge-aware smoothness (Godard et al.'s 1e-3); ``motion``/``displacement`` are stage-3 track losses.
+    Raises ValueError for a negative or non-finite weight, or ``ssim`` above 1.
     """
 
     ssim: float = 0.2
@@ -77,26 +51,15 @@ class LossWeights:
 
 def sample_training_sigmas(n: int, mean: float = 0.0, std: float = 1.0, shift: float = 1.0,
                            generator: torch.Generator | None = None, device=None) -> Tensor:
-    """Training noise levels: logit-normal σ (SD3, Esser et al. 2024, §3.1 Eq. 19) then the timestep shift
-    σ' = sσ/(1 + (s−1)σ) (SD3 §5.3.2). Returns (n,) in (0, 1)."""
+    """(n,) training σ in (0, 1): logit-normal (SD3 Eq. 19), then shifted σ' = sσ/(1 + (s−1)σ) (SD3 §5.3.2)."""
     return shift_sigmas(sample_logit_normal(n, mean, std, generator, device=device), shift)
 
 
 def flow_matching_loss(velocity_fn, x0: Tensor, noise: Tensor, sigma: Tensor, from_frame: int = 0) -> Tensor:
-    """Conditional flow-matching loss (Lipman et al. 2023; rectified flow, Liu et al. 2023).
+    """Flow-matching loss (Lipman et al. 2023; rectified flow): mean ‖v_θ(x_σ, σ) − (ε − x0)‖², x_σ = (1−σ)x0 + σε.
 
-    x_σ = (1−σ)·x0 + σ·ε; the network predicts v = ε − x0; L = mean ‖v_θ(x_σ, σ) − (ε − x0)‖².
-
-    Args:
-        velocity_fn: ``f(x_sigma, sigma (B,)) -> v`` with the shape of ``x0``.
-        x0: (B, ...) clean latents; (B, c, n, h, w) when ``from_frame`` > 0.
-        noise: (B, ...) standard normal ε.
-        sigma: (B,) noise levels in [0, 1].
-        from_frame: first latent frame (dim 2) of the mean: a network that replaces the first frames of its input
-            by a condition (Wan2.2-TI2V's image latent) has no velocity target there.
-
-    Returns:
-        Scalar mean squared error over every element (of frames ``from_frame`` … n − 1).
+    ``velocity_fn(x_sigma, sigma (B,))`` returns the shape of ``x0`` (B, ...); ``sigma`` (B,) in [0, 1]. The mean
+    starts at latent frame ``from_frame`` (dim 2), for networks that replace the first frames by a condition.
     """
     x_sigma = add_noise(x0, noise, sigma)
     err = velocity_fn(x_sigma, sigma) - velocity_target(x0, noise)
@@ -104,19 +67,8 @@ def flow_matching_loss(velocity_fn, x0: Tensor, noise: Tensor, sigma: Tensor, fr
 
 
 def photometric_loss(pred: Tensor, target: Tensor, ssim_weight: float = 0.2, window_size: int = 11) -> Tensor:
-    """L1 + λ·(1 − SSIM) between images (3DGS, Kerbl et al. 2023, Eq. 7); SSIM from kornia.
-
-    Args:
-        pred, target: (B, 3, H, W) in [0, 1].
-        ssim_weight: λ ∈ [0, 1]; the L1 term has weight 1 − λ as in 3DGS.
-        window_size: odd SSIM window (Gaussian σ = 1.5).
-
-    Returns:
-        Scalar; 0 iff pred == target.
-
-    Raises:
-        ValueError: shapes differ or are not (B, 3, H, W).
-    """
+    """(1 − λ)·L1 + λ·(1 − SSIM) of (B, 3, H, W) images in [0, 1] (3DGS Eq. 7; kornia SSIM, σ 1.5, odd window),
+    in float32 at least. Raises ValueError unless both are (B, C, H, W) of one shape."""
     if pred.shape != target.shape or pred.dim() != 4:
         raise ValueError(
             f"pred and target must both be (B, C, H, W), got {tuple(pred.shape)} and {tuple(target.shape)}")
@@ -129,22 +81,9 @@ def photometric_loss(pred: Tensor, target: Tensor, ssim_weight: float = 0.2, win
 
 
 def depth_correlation_loss(pred: Tensor, reference: Tensor, valid: Tensor | None = None, eps: float = 1e-6) -> Tensor:
-    """1 − Pearson correlation between rendered and reference depth per image over valid pixels.
-
-    Scale- and shift-invariant, so a relative (non-metric) reference depth supervises geometry
-    (FSGS, Zhu et al. 2024; SparseGS, Xiong et al. 2023). With ρ = cov(p, r) / sqrt((var p + eps)(var r + eps)),
-    a constant depth gives ρ = 0 (loss 1), never NaN.
-
-    Args:
-        pred, reference: (B, H, W) depths (any positive units).
-        valid: (B, H, W) bool, or None for all pixels; images with < 2 valid pixels contribute 0.
-
-    Returns:
-        Scalar mean over images of 1 − ρ, in [0, 2].
-
-    Raises:
-        ValueError: ``pred`` and ``reference`` not both (B, H, W) of the same shape.
-    """
+    """Mean over images of 1 − ρ in [0, 2], ρ = cov(p, r) / sqrt((var p + eps)(var r + eps)) of (B, H, W) depths over
+    ``valid`` finite pixels (FSGS, Zhu et al. 2024; SparseGS): scale- and shift-invariant; images with < 2 valid
+    pixels give 0. Raises ValueError unless both are (B, H, W) of one shape."""
     if pred.shape != reference.shape or pred.dim() != 3:
         raise ValueError(
             f"pred and reference must both be (B, H, W), got {tuple(pred.shape)} and {tuple(reference.shape)}")
@@ -165,24 +104,9 @@ def depth_correlation_loss(pred: Tensor, reference: Tensor, valid: Tensor | None
 
 
 def log_depth_loss(pred: Tensor, reference: Tensor, valid: Tensor | None = None, lam: float = 0.5) -> Tensor:
-    """Scale-invariant log error of metric depth (Eigen, Puhrsch & Fergus 2014, Eq. 4), per image.
-
-    With g = log pred − log reference over the n valid pixels, L = mean(g²) − λ·mean(g)²: λ = 0 is the mean squared
-    log error, λ = 1 is invariant to the depth's scale, and 0 < λ < 1 (the paper trains with 0.5) weighs the scale
-    error by 1 − λ while the shape error keeps its full weight.
-
-    Args:
-        pred, reference: (B, H, W) depths in the same units (metres), > 0 where valid; pixels where either is not
-            finite or ≤ 0 are left out.
-        valid: (B, H, W) bool, or None for all pixels; images with no valid pixel contribute 0.
-        lam: λ in [0, 1].
-
-    Returns:
-        Scalar mean over images, ≥ 0 (mean(g²) ≥ mean(g)² ≥ λ·mean(g)²).
-
-    Raises:
-        ValueError: shapes not both (B, H, W), or λ outside [0, 1].
-    """
+    """Scale-invariant log error mean(g²) − λ·mean(g)², g = log pred − log reference (Eigen et al. 2014, Eq. 4),
+    averaged over images, of (B, H, W) depths in metres over ``valid`` pixels where both are finite and > 0 (an
+    image with none gives 0). Raises ValueError unless both are (B, H, W), or for λ outside [0, 1]."""
     if pred.shape != reference.shape or pred.dim() != 3:
         raise ValueError(
             f"pred and reference must both be (B, H, W), got {tuple(pred.shape)} and {tuple(reference.shape)}")
@@ -200,23 +124,10 @@ def log_depth_loss(pred: Tensor, reference: Tensor, valid: Tensor | None = None,
 
 
 def depth_smoothness_loss(depth: Tensor, image: Tensor, valid: Tensor | None = None) -> Tensor:
-    """Edge-aware smoothness of mean-normalised inverse depth (Monodepth2, Godard et al. 2019, Eq. 3), over the
-    pixels ``valid`` marks.
+    """Edge-aware smoothness (Monodepth2, Godard et al. 2019, Eq. 3): mean |∂d*| e^{−|∂I|} over x and y of
+    d* = (1/depth) / mean(1/depth) per image, over ``valid`` pixels (and pairs) with finite depth > 0.
 
-    L = mean |∂x d*| e^{−|∂x I|} + mean |∂y d*| e^{−|∂y I|}, d* = (1/depth) / mean(1/depth) per image,
-    |∂I| averaged over colour channels; the means run over valid pixels (d*'s normaliser) and over neighbour
-    pairs whose two pixels are valid (the differences). Zero for a constant depth on the valid pixels, whatever
-    the others hold (an uncovered pixel renders depth 0: counted, its disparity swamped the normaliser and
-    its edge pulled the covered neighbours towards the camera); small where depth edges align with image edges.
-
-    Args:
-        depth: (B, H, W) metres; only pixels with depth > 0 (finite) count.
-        image: (B, 3, H, W) in [0, 1].
-        valid: (B, H, W) bool, the pixels to regularise (e.g. rendered alpha > 0.5); None: every pixel.
-
-    Returns:
-        Scalar ≥ 0 (0 without a valid neighbour pair).
-    """
+    ``depth`` (B, H, W) metres, ``image`` (B, 3, H, W) in [0, 1]; returns a scalar ≥ 0 (0 with no valid pair)."""
     ok = torch.isfinite(depth) & (depth > 0)
     if valid is not None:
         ok = ok & valid
@@ -239,14 +150,8 @@ def gather_track_predictions(
     d_means: Tensor,  # (B, T, M, 3) mean offsets at the T track times
     index: Tensor,  # (B, P) long: the Gaussian (pixel of the reference frame) each track starts at
 ) -> Tensor:
-    """Predicted 3D positions μ + Δμ(t) of tracked points (Diff4Splat motion supervision).
-
-    Pixel-aligned Gaussians are indexed by their reference-frame pixel (row-major), so a track
-    queried at pixel (i, j) of frame 0 follows Gaussian i·W + j.
-
-    Returns:
-        (B, P, T, 3) metres.
-    """
+    """(B, P, T, 3) positions μ + Δμ(t) in metres of tracked points; a track from frame-0 pixel (i, j) follows
+    Gaussian i·W + j."""
     B, T, M, _ = d_means.shape
     idx = index[:, None, :, None].expand(B, T, index.shape[1], 3)
     pos = torch.gather(means[:, None].expand(B, T, M, 3), 2, idx) + torch.gather(d_means, 2, idx)
@@ -254,21 +159,8 @@ def gather_track_predictions(
 
 
 def motion_loss(pred: Tensor, target: Tensor, visibility: Tensor) -> Tensor:
-    """Visibility-masked mean Euclidean distance between predicted and ground-truth 3D tracks.
-
-    L = Σ_{p,t} v_pt ‖x̂_pt − x_pt‖₂ / max(1, Σ v_pt)   (end-point error in metres).
-
-    Args:
-        pred: (B, P, T, 3) predicted positions, metres.
-        target: (B, P, T, 3) ground-truth positions, metres.
-        visibility: (B, P, T) bool.
-
-    Returns:
-        Scalar metres; 0 when nothing is visible.
-
-    Raises:
-        ValueError: shapes other than ``pred``, ``target`` (B, P, T, 3) alike and ``visibility`` (B, P, T).
-    """
+    """End-point error Σ v‖x̂ − x‖₂ / max(1, Σ v) in metres of (B, P, T, 3) tracks under ``visibility`` (B, P, T);
+    0 when nothing is visible. Raises ValueError on other shapes."""
     if pred.shape != target.shape or visibility.shape != pred.shape[:-1]:
         raise ValueError(f"pred {tuple(pred.shape)}, target {tuple(target.shape)} and visibility "
                          f"{tuple(visibility.shape)} must be (B, P, T, 3), (B, P, T, 3), (B, P, T)")
@@ -279,43 +171,16 @@ def motion_loss(pred: Tensor, target: Tensor, visibility: Tensor) -> Tensor:
 
 
 def displacement_loss(pred: Tensor, target: Tensor, visibility: Tensor) -> Tensor:
-    """:func:`motion_loss` of the displacements from frame 0: ‖(x̂_pt − x̂_p0) − (x_pt − x_p0)‖₂ over the
-    (p, t ≥ 1) with the point visible at 0 and at t.
-
-    The absolute track error is dominated by where the scene puts a point at frame 0 (its metric depth);
-    this term sees only the motion, so its gradient reaches the deformation undiluted (ours; the paper
-    supervises absolute tracks).
-
-    Args:
-        pred, target: (B, P, T, 3) metres.  visibility: (B, P, T) bool.
-
-    Returns:
-        Scalar metres; 0 when no pair is visible.
-    """
+    """:func:`motion_loss` of displacements from frame 0, over (p, t ≥ 1) visible at 0 and t: the motion without the
+    frame-0 depth error (ours; the paper supervises absolute tracks)."""
     vis = visibility[:, :, 1:] & visibility[:, :, :1]
     return motion_loss(pred[:, :, 1:] - pred[:, :, :1], target[:, :, 1:] - target[:, :, :1], vis)
 
 
 def head_distillation_loss(student: Tensor, teacher: Tensor, sigma: float) -> Tensor:
-    """Mean squared error between a student head's raw Gaussian maps and a teacher's, low-passed
-    (knowledge distillation, Hinton et al. 2015, on the regression outputs).
-
-    The teacher (the paper's non-overlapping transposed convolution, :class:`models.ldrm.LDRM` ``head: deconv``)
-    decodes each token into its own f×f block, so its maps step at every block border; blurring them with a
-    Gaussian of ``sigma`` pixels (kornia, borders replicated) keeps what the teacher learned and drops the seams the
-    student (the overlapping upsampler) should not copy. ``sigma`` = 0: the teacher's maps as they are.
-
-    Args:
-        student: (B, 12, S, H, W) raw maps (:meth:`models.ldrm.LDRM.head_maps`).
-        teacher: (B, 12, S, H, W) the teacher's raw maps on the same inputs (no gradient needed).
-        sigma: blur standard deviation, pixels, ≥ 0.
-
-    Returns:
-        scalar loss, mean over every channel, frame and pixel.
-
-    Raises:
-        ValueError: shapes differ, or ``sigma`` negative or not finite.
-    """
+    """MSE of a student head's raw maps (B, 12, S, H, W) (:meth:`models.ldrm.LDRM.head_maps`) against a teacher's,
+    Gaussian-blurred by ``sigma`` ≥ 0 pixels (kornia, replicated borders) to drop its block seams (distillation,
+    Hinton et al. 2015). Raises ValueError for shapes that differ, or a negative or non-finite ``sigma``."""
     if student.shape != teacher.shape or student.dim() != 5:
         raise ValueError(f"student {tuple(student.shape)} and teacher {tuple(teacher.shape)} must both be "
                          "(B, C, S, H, W) maps of one shape")
@@ -333,19 +198,11 @@ def head_distillation_loss(student: Tensor, teacher: Tensor, sigma: float) -> Te
 
 
 def warp_loss(frames: Tensor, points: Tensor, viewmats: Tensor, Ks: Tensor) -> Tensor:
-    """Brightness constancy of moving points: mean L1 between frame 0's colour at each pixel and frame t's colour where
-    that pixel's point is at t, over the (t ≥ 1, pixel) pairs whose point projects inside frame t in front of it
-    (the photometric loss of unsupervised optical flow, e.g. Jonschkowski et al. 2020, dense where tracks are sparse;
-    occlusions are not masked).
+    """Brightness constancy (Jonschkowski et al. 2020): mean L1 between frame 0's colour and frame t's colour where
+    each pixel's point is at t, over (t ≥ 1, pixel) pairs projecting inside frame t in front (occlusions unmasked).
 
-    Args:
-        frames: (T, 3, H, W) in [0, 1].
-        points: (T, H, W, 3) world positions at each frame's time of frame 0's pixels, metres.
-        viewmats: (T, 4, 4) world-to-camera; Ks: (T, 3, 3) pixels at (H, W).
+    ``frames`` (T, 3, H, W) in [0, 1]; ``points`` (T, H, W, 3) metres; ``viewmats`` (T, 4, 4); ``Ks`` (T, 3, 3)."""
 
-    Returns:
-        Scalar ≥ 0; 0 where nothing projects inside a frame.
-    """
     T, _, H, W = frames.shape
     uv, z = project_points(points[1:], viewmats[1:, None, None], Ks[1:, None, None])  # (T−1, H, W, 2)
     size = uv.new_tensor([W, H])

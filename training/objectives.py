@@ -1,24 +1,10 @@
-"""The training objectives of each stage, as one module whose ``forward(batch, generator)`` returns losses.
-
-Computing the objective inside ``forward`` lets DDP / FSDP wrap :class:`TrainingModule` and synchronise
-gradients as usual. The video networks are reached through a :class:`models.backbone.Backbone`
-(``encode_video``, ``encode_text``, ``velocity_model``, ``training_sigmas``), so the same objectives train our networks
-(:class:`models.bundle.Diff4SplatModel`, through :class:`models.backbones.ours.OursBackbone`: the networks' own calls,
-σ shifted by the stage's ``flow_shift``) and a pretrained diffusers backbone with our LDRM
-(:class:`models.backbone_model.BackboneModel`; LoRA, freezing, loading and saving in
-:mod:`training.backbone_training`). Batches are :class:`data_prep.clips.ClipDataset` items collated by the default
-collate (``video`` (B,3,T,H,W) in [0,1], ``viewmats``/``Ks`` (B,T,4,4)/(B,T,3,3), ``times`` (B,T),
-``plucker_packed`` (B,1536,n,h,w) and/or ``plucker`` (B,T,H,W,6), ``depth``/``depth_valid`` (B,T,H,W),
-``tracks`` (B,N,T,3), ``track_visibility`` (B,N,T), ``track_mask`` (B,N), ``caption`` list[str]).
-
-Devices (diff4splat/utils/devices.py): the batch and the model may be on any one device; the step generator is a CPU
-``torch.Generator`` (the trainer's), so every draw (caption dropout, σ, ε, latent noise, rendered frames) is
-made on the generator's device and then moved to the data, and a seed gives the same numbers on every device.
-Under bf16 autocast the VAE latents, the flow-matching targets, are kept in the batch's precision (float32).
-
-Camera conditioning: ``plucker_packed`` is packed for the 4×8×8 grid of our VAE (and CogVideoX's); for a backbone with
-another latent grid (Wan2.2: 4×16×16) the rays (``plucker`` (B,T,H,W,6) when the dataset gives them, else from
-``viewmats``/``Ks``) are packed for the backbone's :class:`models.backbone.LatentFormat`.
+"""The training objectives of each stage: :class:`TrainingModule`, whose ``forward(batch, generator)`` returns the
+losses (so DDP/FSDP wrap it as usual). Video networks are reached through a :class:`models.backbone.Backbone`, so the
+same objectives train our networks and a diffusers backbone with our LDRM (docs/DESIGN.md, "Training"). Batches are
+collated :class:`data_prep.clips.ClipDataset` items (keys in :meth:`TrainingModule.forward`). Every draw is made on
+the CPU step generator and moved to the data, so a seed gives the same numbers on every device; under bf16 autocast
+the VAE latents (the flow targets) stay float32. ``plucker_packed`` fits our 4×8×8 latent grid; for another grid
+the rays are packed here for the backbone's :class:`models.backbone.LatentFormat`.
 """
 from __future__ import annotations
 
@@ -61,28 +47,16 @@ from .stage_config import StageConfig
 __all__ = ["TrainingModule", "render_frames", "track_query_index", "FLOW_LOSS_FROM_FRAME"]
 
 FLOW_LOSS_FROM_FRAME = {"wan2.2-ti2v": 1}
-"""First latent frame of the flow-matching loss per backbone kind (0 when absent): Wan2.2-TI2V's velocity replaces
-latent frame 0 by the photograph's latent, its tokens at timestep 0 (:mod:`models.backbones.wan`), so its output
-there has no target; our DiT and CogVideoX (the image latent on extra channels) denoise frame 0 as the others."""
+"""First latent frame of the flow-matching loss per backbone kind (0 when absent): Wan2.2-TI2V replaces latent
+frame 0 by the photograph's latent (:mod:`models.backbones.wan`), so its output there has no target."""
 
 
 def render_frames(scene: DynamicGaussians, viewmats: Tensor, Ks: Tensor, times: Tensor, frames: list[int],
                   width: int, height: int, *, eps2d: float = EPS2D, background: Tensor | None = None
                   ) -> tuple[Tensor, Tensor, Tensor]:
-    """Differentiable renders of the chosen frames, each with the scene at its own time.
-
-    Args:
-        scene: the (possibly static) scene.
-        viewmats: (T, 4, 4), Ks: (T, 3, 3), times: (T,) of the clip.
-        frames: frame indices to render.
-        eps2d: the screen-space dilation, pixels² (the scene's: :data:`diff4splat.assembly.photo.PHOTO_EPS2D` with a
-        photo
-            layer).
-        background: (3,) RGB in [0, 1] behind the Gaussians, or None (black).
-
-    Returns:
-        rgb (F, 3, H, W), expected depth (F, H, W) metres, alpha (F, H, W).
-    """
+    """Differentiable renders (rgb (F, 3, H, W), expected depth (F, H, W) metres, alpha (F, H, W)) of ``frames`` of a
+    clip (``viewmats`` (T, 4, 4), ``Ks`` (T, 3, 3), ``times`` (T,)), each with the scene at its own time; ``eps2d``
+    in pixels², ``background`` (3,) RGB in [0, 1] or None (black)."""
     bg = None if background is None else background.to(viewmats)[None]  # (1, 3)
 
     def draw(g, vm: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
@@ -100,16 +74,8 @@ def render_frames(scene: DynamicGaussians, viewmats: Tensor, Ks: Tensor, times: 
 
 
 def track_query_index(tracks0: Tensor, K: Tensor, width: int, height: int, valid: Tensor) -> tuple[Tensor, Tensor]:
-    """Reference-frame pixel (row-major index) of each track's frame-0 point, in the reference camera
-    (identity viewmat): u = fx·x/z + cx, v = fy·y/z + cy, pixel (⌊v⌋, ⌊u⌋).
-
-    Args:
-        tracks0: (N, 3) points at frame 0, metres, reference camera frame.
-        K: (3, 3) reference intrinsics.  valid: (N,) bool.
-
-    Returns:
-        index (N,) long (0 where invalid) and the updated validity (N,) bool (in front and in the image).
-    """
+    """Row-major pixel index (N,) long (0 where invalid) of each frame-0 track point ``tracks0`` (N, 3) metres in the
+    reference camera (u = fx·x/z + cx, pixel (⌊v⌋, ⌊u⌋)), and ``valid`` (N,) narrowed to points in front and inside."""
     z = tracks0[:, 2]
     zs = torch.where(z > 1e-6, z, torch.ones_like(z))
     u = K[0, 0] * tracks0[:, 0] / zs + K[0, 2]
@@ -122,12 +88,10 @@ def track_query_index(tracks0: Tensor, K: Tensor, width: int, height: int, valid
 class TrainingModule(nn.Module):
     """Wraps a :class:`Diff4SplatModel` or a :class:`BackboneModel` with a stage's objectives.
 
-    ``forward(batch, generator)`` returns ``{"loss": total, <component>: value, ...}``; components:
-    ``vae_l1``, ``vae_kl`` (vae objective, our VAE only), ``flow`` (diffusion), ``photo``, ``depth``, ``smooth``,
-    ``motion``, ``displacement``, ``metric_depth`` (reconstruction; the last only with a weight > 0), ``distill``,
-    ``mono_depth`` (depth).
-    ``teacher``: the frozen LDRM the ``distill`` objective follows (a sub-module, so it moves with the module; the
-    trained model, ``self.model``, does not hold it).
+    Loss components: ``vae_l1``, ``vae_kl`` (vae), ``flow`` (diffusion), ``photo``, ``depth``, ``smooth``, ``motion``,
+    ``displacement``, ``metric_depth`` (reconstruction; the last with a weight > 0), ``displacement`` and ``warp``
+    (tracking), ``distill``, ``mono_depth`` (depth). ``teacher``: the frozen LDRM that ``distill`` follows, required
+    by it alone (ValueError otherwise).
     """
 
     def __init__(self, model: Diff4SplatModel | BackboneModel, stage: StageConfig, teacher: LDRM | None = None):
@@ -139,10 +103,8 @@ class TrainingModule(nn.Module):
         self.teacher = None if teacher is None else teacher.requires_grad_(False).eval()
 
     def backbone(self) -> Backbone:
-        """The model's video backbone: a diffusers model's own, or our VAE, text encoder and DiT as an
-        :class:`OursBackbone` whose training σ are the model config's logit-normal shifted by the stage's
-        ``flow_shift`` (a view, built per call: it shares the networks and is no sub-module, so the state dict keeps
-        its keys)."""
+        """The model's video backbone: a diffusers model's own, or a per-call :class:`OursBackbone` view of our
+        networks with σ shifted by the stage's ``flow_shift``."""
         m = self.model
         if isinstance(m, BackboneModel):
             return m.backbone
@@ -152,16 +114,13 @@ class TrainingModule(nn.Module):
 
     @property
     def checkpoint_frozen(self) -> bool:
-        """Whether checkpoints hold the frozen weights too (:class:`training.trainer.Trainer`): ours do; a diffusers
-        backbone model's frozen weights are those of its ``init_from`` folder, rebuilt on resume, so its checkpoints
-        hold only what trains (LoRA, camera weights, LDRM) instead of ~20 GB of unchanged weights each."""
+        """Whether checkpoints hold the frozen weights too: ours do; a diffusers backbone's are rebuilt from
+        ``init_from`` on resume."""
         return not isinstance(self.model, BackboneModel)
 
     def fsdp_units(self) -> list[nn.Module]:
-        """The modules FSDP shards one by one before the root (:class:`training.trainer.Trainer`), each gathered only
-        while it runs: the blocks of the video transformer, of the LDRM and of the text encoder (ours; a diffusers
-        backbone's T5/umT5 ``encoder.block``). The rest (VAE, embedders, heads, the patch embedding's camera weights,
-        the deformation network) is sharded with the root."""
+        """The modules FSDP shards one by one before the root: the blocks of the video transformer, the LDRM and the
+        text encoder (a diffusers T5/umT5's ``encoder.block``)."""
         m = self.model
         if isinstance(m, BackboneModel):
             b = m.backbone
@@ -170,16 +129,14 @@ class TrainingModule(nn.Module):
         return [*m.dit.blocks, *m.ldrm.blocks, *m.text_encoder.blocks]
 
     def enable_gradient_checkpointing(self) -> None:
-        """Recompute the video transformer's blocks in the backward pass (``trainer.gradient_checkpointing``): our
-        DiT's ``gradient_checkpointing`` flag, a diffusers transformer's ``enable_gradient_checkpointing()``."""
+        """Recompute the video transformer's blocks in the backward pass (``trainer.gradient_checkpointing``)."""
         if isinstance(self.model, BackboneModel):
             self.model.backbone.transformer.enable_gradient_checkpointing()
         else:
             self.model.dit.gradient_checkpointing = True
 
     def train(self, mode: bool = True) -> TrainingModule:
-        """As :meth:`nn.Module.train`, except that a diffusers backbone's frozen VAE and text encoder and the
-        teacher stay in eval mode (umT5/T5 have dropout 0.1: training mode would perturb the text condition)."""
+        """As :meth:`nn.Module.train`; the teacher and a diffusers backbone's VAE and text encoder stay in eval."""
         super().train(mode)
         if self.teacher is not None:
             self.teacher.eval()
@@ -189,21 +146,13 @@ class TrainingModule(nn.Module):
         return self
 
     def forward(self, batch: dict, generator: torch.Generator) -> dict[str, Tensor]:
-        """The stage's losses on one collated batch (module docstring).
+        """{"loss": weighted total, <component>: value} (0-dim tensors) of the stage's objectives on one batch.
 
-        Args:
-            batch: collated :class:`data_prep.clips.ClipDataset` items: ``video`` (B, 3, T, H, W) RGB in [0, 1],
-                ``viewmats`` (B, T, 4, 4) world-to-camera (metres), ``Ks`` (B, T, 3, 3) pixels, ``times`` (B, T) in
-                [0, 1], ``plucker_packed`` (B, 1536, n, h, w) and/or ``plucker`` (B, T, H, W, 6), ``depth`` /
-                ``depth_valid`` (B, T, H, W) metres / bool, ``tracks`` (B, N, T, 3) metres, ``track_visibility``
-                (B, N, T), ``track_mask`` (B, N), ``caption`` list of B str; each objective reads only its keys.
-            generator: the CPU step generator; every random draw is made on it.
-
-        Returns:
-            {"loss": weighted total, <component>: value, ...}, each a 0-dim tensor (components: class docstring).
-
-        Raises:
-            ValueError: the ``depth`` objective on an LDRM without a monocular depth network (``image_depth`` 0).
+        ``batch``: ``video`` (B, 3, T, H, W) in [0, 1], ``viewmats`` (B, T, 4, 4) world-to-camera (metres), ``Ks``
+        (B, T, 3, 3) pixels, ``times`` (B, T) in [0, 1], ``plucker_packed`` (B, 1536, n, h, w) and/or ``plucker``
+        (B, T, H, W, 6), ``depth``/``depth_valid`` (B, T, H, W), ``tracks`` (B, N, T, 3) metres,
+        ``track_visibility`` (B, N, T), ``track_mask`` (B, N), ``caption`` list of B str. ``generator``: the CPU
+        step generator. Raises ValueError when ``depth`` or ``tracking`` lacks its LDRM network.
         """
         st, m = self.stage, self.model
         video = batch["video"] * 2 - 1  # (B, 3, T, H, W) in [−1, 1]
@@ -245,14 +194,8 @@ class TrainingModule(nn.Module):
         return losses
 
     def _mono_depth(self, batch: dict) -> Tensor:
-        """Scale-invariant log loss (λ 0.5) of the LDRM's monocular depth network (``ldrm.image_depth``) on every
-        frame of the clips: its ray distance, activated as the LDRM's (:func:`models.ldrm.distance_activation`)
-        and turned into z-depth by each pixel's ray (cos of its angle to the optical axis), against the frame's
-        metric depth where valid.
-
-        Raises:
-            ValueError: the LDRM has no monocular depth network (``image_depth`` 0).
-        """
+        """Scale-invariant log loss (λ 0.5) of ``ldrm.image_depth``'s z-depth on every frame against the valid metric
+        depth; ValueError when the LDRM has none."""
         ldrm = self.model.ldrm
         if ldrm.image_depth is None:
             raise ValueError("the depth objective trains ldrm.image_depth; this LDRM has none (image_depth: 0)")
@@ -268,8 +211,7 @@ class TrainingModule(nn.Module):
 
     @staticmethod
     def _plucker(batch: dict, latent: LatentFormat, grid: tuple[int, int, int]) -> Tensor:
-        """The clips' Plücker rays on the latent grid ``grid`` = (n, h, w): (B, 6·t·s², n, h, w). The dataset's
-        ``plucker_packed`` when it is packed for ``latent`` (module docstring), else packed here (float32)."""
+        """(B, 6·t·s², n, h, w) Plücker rays on ``grid`` = (n, h, w): the dataset's when packed for ``latent``."""
         packed = batch.get("plucker_packed")
         if packed is not None and packed.shape[1] == latent.camera_channels and tuple(packed.shape[2:]) == grid:
             return packed
@@ -283,9 +225,7 @@ class TrainingModule(nn.Module):
 
     def _diffusion(self, backbone: Backbone, latents: Tensor, plucker: Tensor, batch: dict, gen: torch.Generator
                    ) -> Tensor:
-        """Flow-matching loss of the backbone's transformer on ``latents`` (B, c, n, h, w) with ``plucker``
-        (B, 6·t·s², n, h, w); ``gen``: the (CPU) step generator. Draws, in order: caption dropout (B,), σ (B,)
-        (:meth:`Backbone.training_sigmas`), ε (the latents' shape)."""
+        """Flow-matching loss on ``latents`` (B, c, n, h, w); draws caption dropout (B,), σ (B,), then ε."""
         st = self.stage
         B, dev = latents.shape[0], latents.device
         captions = list(batch["caption"])
@@ -310,12 +250,8 @@ class TrainingModule(nn.Module):
 
     def _assemble(self, out: LDRMOutput, sources: Tensor, batch: dict, b: int, times: Tensor | None
                   ) -> tuple[DynamicGaussians, dict]:
-        """Clip b's scene as ``generate`` builds it (:func:`diff4splat.assembly.assemble.assemble_scene`): the photo
-        layer (frame 0's pixels on the predicted depth: the depth gets the gradient, the colours are observed), the
-        backdrop and the other source frames' Gaussians as :func:`diff4splat.assembly.prune.settle_generated` leaves
-        them (which to drop and how far to slide chosen without gradient), so the LDRM learns depth and what the
-        photograph cannot show. Those Gaussians keep the LDRM's own opacities and scales, which this trains
-        (``generated_footprint: pixel`` replaces them in ``generate`` only: base model card)."""
+        """Clip b's scene as ``generate`` builds it (``stage.scene: assembled``): photo layer, backdrop and the settled
+        generated Gaussians (drops and slides chosen without gradient), and the photo layer's info."""
         H, W = batch["video"].shape[-2:]
         with autocast_off():
             cams = CameraPath(batch["viewmats"][b].float(), batch["Ks"][b].float(), W, H, batch["times"][b].float())
@@ -326,9 +262,7 @@ class TrainingModule(nn.Module):
         return scene.select(~drop), photo
 
     def _decoded(self, out: LDRMOutput, sources: Tensor, batch: dict, b: int, times: Tensor) -> DynamicGaussians:
-        """Clip b's decoded scene (``stage.scene: decoded``): the LDRM's pixel-aligned Gaussians of every source frame
-        on its source camera (:func:`diff4splat.assembly.assemble.to_gaussians`), deforming when the stage predicts
-        deformation."""
+        """Clip b's decoded scene (``stage.scene: decoded``): every source frame's pixel-aligned Gaussians."""
         with autocast_off():
             g, d_means, d_quats, d_scales = to_gaussians(out, batch["viewmats"][b][sources].float(),
                                                          batch["Ks"][b][sources].float())
@@ -343,16 +277,9 @@ class TrainingModule(nn.Module):
         return ((video.float() + 1) / 2).clamp(0, 1).transpose(1, 2)
 
     def _tracking(self, latents: Tensor, plucker: Tensor, batch: dict, gen: torch.Generator) -> dict[str, Tensor]:
-        """The ``tracking`` objective: the LDRM's motion network alone follows frame 0's pixels through the frames
-        ``generate`` gives it (the decoded (noised) latents), on the LDRM's own frame-0 depth (no gradient; no
-        renders), as :func:`diff4splat.assembly.frame_motion.frame_motion` runs it for source frame 0. Losses, means
-        over the
-        batch: ``displacement`` of the tracks (:func:`training.losses.displacement_loss`) and the dense ``warp``
-        (:func:`training.losses.warp_loss`).
-
-        Raises:
-            ValueError: the LDRM has no motion network.
-        """
+        """The ``tracking`` objective: the motion network alone follows frame 0's pixels through the decoded (noised)
+        latents on the LDRM's frame-0 depth (no gradient, no renders); batch means of ``displacement`` and ``warp``.
+        Raises ValueError when the LDRM has no motion network."""
         m = self.model
         if m.ldrm.motion is None:
             raise ValueError("the tracking objective trains ldrm.motion; this LDRM has none (ldrm.motion: null)")
@@ -381,8 +308,8 @@ class TrainingModule(nn.Module):
         return sums
 
     def _noised(self, latents: Tensor, gen: torch.Generator) -> Tensor:
-        """``latents`` (B, c, n, h, w) with frames 1… mixed with noise, (1 − σ)z + σε, σ ~ U(0, stage.latent_noise)
-        per clip (:class:`StageConfig` ``latent_noise``); unchanged when it is 0. Draws σ (B,) then ε."""
+        """``latents`` with frames 1… noised to (1 − σ)z + σε, σ ~ U(0, ``stage.latent_noise``) per clip (draws σ,
+        then ε); unchanged when it is 0."""
         if self.stage.latent_noise <= 0:
             return latents
         B = latents.shape[0]
@@ -393,9 +320,8 @@ class TrainingModule(nn.Module):
         return torch.cat([latents[:, :, :1], noisy[:, :, 1:]], dim=2)
 
     def _distill(self, latents: Tensor, plucker: Tensor, gen: torch.Generator) -> Tensor:
-        """The ``distill`` objective: the LDRM head's raw maps on the (noised) ``latents`` (B, c, n, h, w) and
-        ``plucker`` against the teacher's own on the same inputs (:func:`training.losses.head_distillation_loss`,
-        blur ``stage.distill_sigma``)."""
+        """The ``distill`` objective: :func:`training.losses.head_distillation_loss` of the head's maps on the noised
+        latents against the teacher's."""
         ldrm, latents = self.model.ldrm, self._noised(latents, gen)
         with torch.no_grad():
             target = self.teacher.head_maps(self.teacher.features(latents, plucker))
@@ -404,8 +330,7 @@ class TrainingModule(nn.Module):
 
     def _reconstruction(self, latent: LatentFormat, latents: Tensor, plucker: Tensor, batch: dict,
                         gen: torch.Generator) -> dict[str, Tensor]:
-        """Rendering losses of the LDRM's scenes from ``latents`` (B, c, n, h, w) in ``latent``'s format and
-        ``plucker`` (B, 6·t·s², n, h, w), averaged over the batch; ``gen``: the (CPU) step generator."""
+        """Rendering losses of the LDRM's scenes from ``latents`` (B, c, n, h, w), averaged over the batch."""
         m, st = self.model, self.stage
         B, _, T, H, W = batch["video"].shape
         image = batch["video"][:, :, 0] * 2 - 1  # (B, 3, H, W) the photograph, for an image branch
@@ -447,9 +372,8 @@ class TrainingModule(nn.Module):
             if st.motion:
                 tracks, vis = batch["tracks"][b], batch["track_visibility"][b] & batch["track_mask"][b][:, None]
                 idx, ok = track_query_index(tracks[:, 0], batch["Ks"][b, 0], W, H, vis[:, 0])
-                # idx < H·W: frame 0's grid comes first, the photo layer's front disks in an assembled scene
-                # (diff4splat.assembly.assemble.assemble_scene), the reference frame's Gaussians in a decoded one
-                # (to_gaussians)
+                # idx < H·W: frame 0's Gaussians (or the photo layer's front disks) come first
+
                 pred = gather_track_predictions(scene.canonical.means[None], scene.d_means[None], idx[None])[0]
                 parts["motion"] = motion_loss(pred, tracks, vis & ok[:, None])
                 parts["displacement"] = displacement_loss(pred[None], tracks[None], (vis & ok[:, None])[None])

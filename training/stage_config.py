@@ -1,19 +1,8 @@
-"""Stage configurations: which modules train, at what resolution, on which scenes, with which losses.
-
-Diff4Splat trains progressively (Pan et al. 2025): (1) static geometry pretraining at low resolution
-with the deformation module frozen, (2) static high-resolution refinement, (3) dynamic fine-tuning
-with everything unfrozen and the motion loss on. Before them, the tiny configuration trains its own
-video VAE (``vae`` stage); the VAE then stays frozen, as the text encoder always does (the paper
-uses a frozen T5; the tiny text encoder is a frozen randomly initialised T5-style network whose
-features the DiT's cross-attention learns to read).
-
-The same stages train a pretrained diffusers backbone (``backbone: wan2.2-ti2v`` or ``cogvideox-i2v``, ``init_from``
-a diffusers folder; :mod:`training.backbone_training`): its VAE and text encoder frozen, its transformer through LoRA
-adapters (``lora:``, :class:`LoraSettings`) plus the zero-initialised camera weights of its patch embedding, our
-LDRM in full.
-
-``configs/training/train_<stage>.yaml`` files (package data; :func:`load_stage` takes their names, e.g.
-``train_stage1``, ``train_wan_stage1``) override :class:`StageConfig`'s defaults.
+"""Stage configurations: which modules train, at what resolution, on which scenes, with which losses. Diff4Splat
+trains progressively (Pan et al. 2025): static at low resolution with the deformation frozen, static at full
+resolution, then dynamic with the motion loss; the same stages train a diffusers backbone through LoRA
+(:mod:`training.backbone_training`). Stages: docs/DESIGN.md, "Training". ``configs/training/train_<stage>.yaml``
+(named by :func:`load_stage`, e.g. ``train_stage1``) override :class:`StageConfig`'s defaults.
 """
 from __future__ import annotations
 
@@ -37,18 +26,13 @@ __all__ = ["StageConfig", "LoraSettings", "load_stage", "stage_names", "apply_fr
            "LORA_TARGETS", "BACKBONE_DTYPES", "RENDERED_SCENES"]
 
 STAGE_CONFIG_DIR = STAGE_CONFIGS
-"""The shipped stage configs (``train_vae``, ``train_stage1`` … ``train_stage3``, ``train_wan_stage1`` … and
-``train_cogvideox_stage1`` …): ``configs/training/``
-(:mod:`diff4splat.utils.config_files`)."""
+"""The shipped stage configs, ``configs/training/`` (:mod:`diff4splat.utils.config_files`)."""
 
 MODULES = ("vae", "vae.decoder", "text_encoder", "dit", "ldrm", "ldrm.deformation", "ldrm.motion", "ldrm.head",
            "ldrm.image_branch", "ldrm.image_depth")
-"""Module names a stage can train (``vae.decoder`` is the VAE's decoder alone: the encoder, hence every latent the
-DiT and the LDRM were trained on, and the latent scaling stay as they are; ``ldrm.deformation`` is the LDRM's
-deformation network; ``ldrm.motion`` its motion network (:mod:`models.motion`); ``ldrm.head`` and
-``ldrm.image_branch`` alone train a new head on the LDRM's features, which the deformation network also reads;
-``ldrm.image_depth`` is the monocular depth network of frame 0, :class:`models.mono_depth.MonoDepth`;
-``dit`` of a diffusers backbone is its transformer's LoRA adapters and camera weights)."""
+"""Module names a stage can train: ``vae.decoder`` alone keeps the encoder and latent scaling; ``ldrm.motion`` is
+:mod:`models.motion`, ``ldrm.image_depth`` :class:`models.mono_depth.MonoDepth`; a diffusers backbone's ``dit`` is
+its LoRA adapters and camera weights."""
 
 OBJECTIVES = ("vae", "diffusion", "reconstruction", "distill", "depth", "tracking")
 
@@ -56,27 +40,17 @@ RENDERED_SCENES = ("decoded", "assembled")
 """What the reconstruction objective renders (:attr:`StageConfig.scene`)."""
 
 LORA_TARGETS = ("to_q", "to_k", "to_v", "to_out.0", "net.0.proj", "net.2")
-"""LoRA target modules (peft suffix match) of both diffusers transformers: the self- and cross-attention projections
-(``blocks.N.attn1|attn2.to_q|to_k|to_v|to_out.0`` of ``WanTransformer3DModel``,
-``transformer_blocks.N.attn1.to_*`` of ``CogVideoXTransformer3DModel``) and the feed-forward layers
-(``blocks.N.ffn.net.0.proj|net.2``, ``transformer_blocks.N.ff.net.0.proj|net.2``); nothing outside the blocks
-(embeddings, patch embedding, adaLN, output projection) matches."""
+"""LoRA target modules (peft suffix match) of both diffusers transformers: the attention projections and the
+feed-forward linears of each block (nothing outside the blocks matches)."""
 
 BACKBONE_DTYPES = ("float32", "bfloat16")
 
 
 @dataclass
 class LoraSettings:
-    """LoRA adapters (Hu et al. 2022, "LoRA: Low-Rank Adaptation of Large Language Models") on a diffusers
-    backbone's transformer: W x + (α/r)·B A x with A (r, in) random, B (out, r) zero, so training starts from the
-    pretrained transformer exactly.
-
-    Attributes:
-        rank: r ≥ 1.
-        alpha: α > 0 (the update is scaled by α/r).
-        dropout: dropout on the adapters' input, in [0, 1) (drawn from torch's global RNG, which checkpoints save).
-        target_modules: module-name suffixes that get adapters (:data:`LORA_TARGETS`: attention and FFN linears).
-    """
+    """LoRA adapters (Hu et al. 2022) on a diffusers transformer: W x + (α/r)·B A x, A random, B zero (training
+    starts from the pretrained transformer). ``rank`` ≥ 1, ``alpha`` > 0, ``dropout`` in [0, 1),
+    ``target_modules`` name suffixes; ValueError naming ``stage.lora.<field>`` otherwise."""
 
     rank: int = 64
     alpha: float = 64.0
@@ -99,56 +73,18 @@ class LoraSettings:
 class StageConfig:
     """One training stage.
 
-    Attributes:
-        name: stage name (``vae``, ``stage1``, ``stage2``, ``stage3``).
-        model_config: model config name (``configs/<name>.yaml``) used when ``init_from`` is None.
-        init_from: a model folder (``Diff4SplatModel.save_pretrained``) to start from, usually the
-            previous stage's ``<run_dir>/model``; None = a seeded random model.
-        data: dataset root in data_prep's format.
-        train: modules whose parameters are optimised (others frozen); see :data:`MODULES`.
-        objectives: subset of ``vae`` (reconstruction + KL), ``diffusion`` (flow matching of the DiT),
-            ``reconstruction`` (rendering losses of the LDRM), ``distill`` (the LDRM head's raw maps regressed onto a
-            teacher LDRM's, low-passed: :func:`training.losses.head_distillation_loss`; a new head learns what an
-            older one knew before the rendering losses refine it), ``depth`` (the LDRM's monocular depth network,
-            ``ldrm.image_depth``, on every frame of the clips against their metric depth: the scale-invariant log
-            loss, λ 0.5, :func:`training.losses.log_depth_loss`).
-        scenes: ``static``, ``dynamic`` or ``all`` (ClipDataset filter).
-        height, width, num_frames: clip size (pixels, frames T = 1 + 4k).
-        render_frames: target frames rendered per clip for the rendering losses (frame 0 always
-            included); fewer frames = faster steps.
-        scene: what the rendering losses render. ``decoded``: the LDRM's pixel-aligned Gaussians of every source
-            frame alone, over black (the paper's LDRM objective, Pan et al. 2025 §3.3: every source frame's
-            Gaussians must explain the views, so later frames learn to read their latents). ``assembled``: the scene
-            ``generate`` builds (:func:`diff4splat.assembly.assemble.assemble_scene`: the photo layer of frame 0 on the
-            predicted depth, the backdrop, the non-redundant later-frame Gaussians over the photo's mean colour),
-            where later frames are seen only through disocclusions.
-        deformation: predict deformation (times passed to the LDRM); off in static stages.
-        motion: motion (track) loss on.
-        latent_noise: largest σ of the noise mixed into latent frames 1… before the LDRM sees them,
-            x = (1 − σ)·z + σ·ε with σ ~ U(0, latent_noise) per clip (the flow-matching interpolant), so the
-            LDRM learns to read imperfect, generated latents; frame 0 (the photo's own latent) stays clean.
-            0 = off (ours; Lyra-style training on generated latents costs a sampler run per step).
-        weights: loss weights (:class:`training.losses.LossWeights`).
-        kl_weight: weight of the VAE KL term (per element, β-VAE style).
-        caption_dropout: probability of training the DiT without text (the empty-prompt path).
-        flow_shift: timestep shift of the logit-normal training σ of our DiT (a diffusers backbone draws σ its own
-            way: :meth:`models.backbone.Backbone.training_sigmas`).
-        backbone: ``ours`` (our VAE, text encoder and DiT) or a diffusers backbone (``wan2.2-ti2v``,
-            ``cogvideox-i2v``), which ``init_from`` must then hold (a folder with ``model_index.json``). A diffusers
-            backbone's ``train`` may list ``dit`` (its transformer through LoRA, plus the camera weights of the
-            patch embedding) and the LDRM's parts; its VAE and text encoder stay frozen, and it has no ``vae``
-            objective.
-        lora: the LoRA adapters of a diffusers backbone's transformer (:class:`LoraSettings`; YAML ``lora:
-            {rank: 64, alpha: 64}``); required when such a stage trains ``dit``, refused for ``ours``.
-        backbone_dtype: ``float32`` or ``bfloat16``: the dtype a diffusers backbone's frozen weights are loaded and
-            kept in (``bfloat16`` halves their memory; it needs ``trainer.bf16``). The trained weights (LoRA,
-            camera, LDRM) are float32 either way.
-        teacher: the model folder whose LDRM the ``distill`` objective follows (required by it, refused otherwise);
-            its own transformer reads the same (noised) latents, so the student's trunk may differ.
-        distill_sigma: blur of the teacher's maps in the ``distill`` objective, pixels (≥ 0).
-        trainer: optimisation, device and precision settings (:class:`training.trainer.TrainerConfig`: ``device``
-            auto/cpu/cuda[:N], ``bf16`` auto = on for CUDA, ``tf32``, ``gradient_checkpointing`` of the DiT,
-            ``strategy`` ddp/fsdp under torchrun).
+    ``init_from``: a model folder (usually the previous stage's ``<run_dir>/model``; None: a seeded random
+    ``model_config``); ``train``: modules optimised (:data:`MODULES`, :func:`apply_freezing`); ``objectives``: of
+    ``vae``, ``diffusion``, ``reconstruction``, ``distill`` (needs ``teacher``, blur ``distill_sigma`` pixels),
+    ``depth`` (``ldrm.image_depth``), ``tracking``; ``scenes``: ClipDataset filter; clip size ``height``×``width``,
+    ``num_frames`` = 1 + 4k; ``render_frames`` per clip (frame 0 included); ``scene``: :data:`RENDERED_SCENES`
+    (``decoded``: every source frame's Gaussians over black, the paper's §3.3; ``assembled``: the scene ``generate``
+    builds); ``deformation``: predict deformation, ``motion``: track loss on (needs ``deformation``); ``kl_weight``:
+    the VAE's KL weight; ``caption_dropout``: probability of no text; ``latent_noise``: largest σ of U(0, σ) noise
+    mixed into latent frames 1… before the LDRM reads them; ``flow_shift``: timestep shift of our DiT's training σ;
+    ``backbone``: ``ours`` or a diffusers kind held by ``init_from`` (then ``lora`` exactly when ``train`` lists
+    ``dit``, frozen weights in ``backbone_dtype``); ``trainer``: :class:`training.trainer.TrainerConfig`. Raises
+    ValueError naming ``stage.<field>``.
     """
 
     name: str = "stage1"
@@ -209,6 +145,7 @@ class StageConfig:
         self._check_backbone()
 
     def _check_backbone(self) -> None:
+        """The backbone fields agree with ``train``, ``objectives`` and ``lora``."""
         if self.backbone not in BACKBONE_KINDS:
             raise ValueError(f"stage.backbone must be one of {BACKBONE_KINDS}, got {self.backbone!r}")
         if self.backbone_dtype not in BACKBONE_DTYPES:
@@ -240,13 +177,9 @@ def stage_names() -> list[str]:
 
 
 def load_stage(name_or_path: str | os.PathLike, **overrides) -> StageConfig:
-    """Load a stage config by name (``configs/training/<name>.yaml``, e.g. ``train_stage1``) or a YAML path;
-    ``overrides`` replace top-level fields (``trainer`` may be a dict of trainer fields).
-
-    Raises:
-        FileNotFoundError: no such name or file (the message lists the shipped names).
-        ValueError: unknown or invalid fields.
-    """
+    """Load a stage config by name (``train_stage1``) or YAML path; non-None ``overrides`` replace top-level fields
+    (a dict merges into a dict field). Raises FileNotFoundError (listing the shipped names), ValueError for bad
+    fields."""
     path = Path(name_or_path)
     if path.suffix not in (".yaml", ".yml"):
         path = STAGE_CONFIG_DIR / f"{name_or_path}.yaml"
@@ -265,16 +198,9 @@ def load_stage(name_or_path: str | os.PathLike, **overrides) -> StageConfig:
 
 
 def apply_freezing(model: nn.Module, train: tuple[str, ...]) -> dict[str, int]:
-    """Freeze every parameter except those of the modules in ``train``.
+    """Freeze every parameter except those of the modules in ``train``; returns the trainable count per name.
+    ``"ldrm"`` leaves out its deformation and motion networks unless they are named too."""
 
-    ``"ldrm"`` trains the LDRM without its deformation and motion networks, which train only when named
-    (``"ldrm.deformation"``, ``"ldrm.motion"``). (A diffusers
-    backbone model's ``"dit"`` is its LoRA and camera weights:
-    :func:`training.backbone_training.apply_backbone_freezing`, which calls this for the rest.)
-
-    Returns:
-        Trainable parameter count per module name.
-    """
     model.requires_grad_(False)
     counts = {}
     for name in train:

@@ -1,23 +1,9 @@
 """Train one stage: ``python -m training.train --config train_stage1 [--resume] [--device cuda]``.
 
-Devices: ``--device`` (default: the YAML's ``trainer.device``, ``auto`` = CUDA when present, else the CPU)
-overrides the stage's ``trainer.device``; on CUDA the step runs under bfloat16 autocast and TF32 matmuls
-unless the YAML says ``bf16: false`` / ``tf32: false`` (:class:`training.trainer.TrainerConfig`);
-``trainer.gradient_checkpointing: true`` recomputes the DiT's blocks in the backward pass.
-
-Backbones: a stage with ``backbone: wan2.2-ti2v`` or ``cogvideox-i2v`` (``configs/training/train_wan_stage1.yaml``
-…) trains a pretrained diffusers backbone from ``init_from`` (a diffusers folder) with LoRA on its transformer, its
-camera weights and our LDRM (:mod:`training.backbone_training`; ``pip install 'diff4splat[diffusers]'``: peft); its
-``<run_dir>/model`` is a diffusers folder with the LoRA merged, which ``generate --checkpoint`` runs and the next
-stage starts from.
-
-Distributed: ``torchrun --nproc_per_node N -m training.train --config ...`` (N ≥ 1; one process per GPU,
-``cuda:$LOCAL_RANK``; DDP, NCCL on CUDA and gloo on the CPU; ``--strategy fsdp`` shards paper-size models
-block by block with FSDP2). At the end rank 0 writes the trained model to ``<run_dir>/model``
-(``Diff4SplatModel.save_pretrained``; EMA weights when EMA is on; gathered from every rank under FSDP), the
-``init_from`` of the next stage; after a stage that trains the VAE's encoder (``train: [vae]``; not
-``vae.decoder``, which leaves the latents as they are) the latent scaling is calibrated first
-(:func:`calibrate_latent_scaling`). Bad input (a bad config, a device this machine lacks): one line on stderr,
+Under ``torchrun --nproc_per_node N`` one process per GPU (DDP, or ``--strategy fsdp``); ``--device`` overrides the
+stage's ``trainer.device`` (docs/DESIGN.md, "Training"). At the end rank 0 writes ``<run_dir>/model`` (EMA weights
+when on; a diffusers backbone with its LoRA merged, :mod:`training.backbone_training`), the next stage's
+``init_from``, after calibrating the latent scaling when the VAE's encoder trained. Bad input: one line on stderr,
 exit code 2.
 """
 from __future__ import annotations
@@ -57,23 +43,12 @@ LATENT_SCALING_CLIPS = 64
 
 def build_training(stage: StageConfig, seed: int | None = None
                    ) -> tuple[Trainer, Diff4SplatModel | BackboneModel, dict[str, int]]:
-    """Model (+ freezing), dataset and :class:`Trainer` for a :class:`StageConfig`.
+    """(trainer, the model it trains inside a :class:`TrainingModule`, trainable count per module) of a stage, on
+    ``stage.trainer.device`` (checked first). ``seed`` is unused: ``trainer.seed`` seeds everything.
 
-    The trainer runs on ``stage.trainer.device`` (checked first, before the model is built). ``seed`` is unused
-    (the stage's ``trainer.seed`` seeds the model, the LoRA adapters, the data and the steps). Our networks get
-    clips with ``plucker_packed`` rays (4×8×8); a diffusers backbone gets the raw rays, which
-    :class:`TrainingModule` packs for its latent grid.
-
-    Returns:
-        (trainer, the Diff4SplatModel or BackboneModel it trains (on the trainer's device, inside a TrainingModule),
-        trainable parameter count per module).
-
-    Raises:
-        ValueError: an unusable ``trainer.device``, a clip size off the model's pixel grid, a clip length that is not
-            1 + t·k, no clips; ``init_from`` of the wrong kind for ``stage.backbone``; ``backbone_dtype: bfloat16``
-            without bf16 autocast.
-        FileNotFoundError: ``init_from`` or ``data`` is not a folder of the right kind.
-        MissingExtraError: a diffusers backbone stage without peft / diffusers installed.
+    Raises ValueError (unusable device, clip size off the model's pixel grid or length not 1 + t·k, no or too few
+    clips, ``init_from`` of the wrong kind, ``backbone_dtype: bfloat16`` without bf16), FileNotFoundError
+    (``init_from``, ``data``), MissingExtraError (a diffusers stage without peft/diffusers).
     """
     device = resolve_device(stage.trainer.device, "trainer.device")
     if stage.backbone == "ours":
@@ -122,11 +97,7 @@ def _ours_model(stage: StageConfig) -> Diff4SplatModel:
 
 
 def _teacher(stage: StageConfig) -> LDRM | None:
-    """The ``distill`` objective's teacher: the LDRM of the ``stage.teacher`` model folder (None without one).
-
-    Raises:
-        FileNotFoundError: ``stage.teacher`` is not a model folder.
-    """
+    """The LDRM of the ``stage.teacher`` model folder (None without one); FileNotFoundError if not a model folder."""
     if stage.teacher is None:
         return None
     if not (Path(stage.teacher) / CONFIG_NAME).is_file():
@@ -135,11 +106,7 @@ def _teacher(stage: StageConfig) -> LDRM | None:
 
 
 def backbone_training():
-    """:mod:`training.backbone_training`, imported on demand (it imports peft; diffusers through the backbones).
-
-    Raises:
-        MissingExtraError: peft or diffusers missing (the message says what to install).
-    """
+    """:mod:`training.backbone_training`, imported on demand; MissingExtraError without peft or diffusers."""
     try:
         return importlib.import_module("training.backbone_training")
     except ModuleNotFoundError as e:
@@ -149,18 +116,9 @@ def backbone_training():
 
 @torch.no_grad()
 def calibrate_latent_scaling(model, dataset, num_clips: int = LATENT_SCALING_CLIPS) -> tuple[float, float]:
-    """Set the VAE's ``scaling_factor``/``shift_factor`` so that the DiT sees zero-mean, unit-variance
-    latents a·(z − b) (:func:`models.vae.estimate_latent_scaling`; Rombach et al. 2022 §4.3.2).
-
-    Uses the posterior means of the first ``num_clips`` clips of ``dataset`` (deterministic). Run once
-    after the VAE stage, before any stage that trains the DiT on latents.
-
-    Returns:
-        (scaling_factor, shift_factor), also written into ``model.config.vae``.
-
-    Raises:
-        ValueError: an empty dataset.
-    """
+    """Set and return the VAE's (``scaling_factor``, ``shift_factor``) so that the DiT sees zero-mean, unit-variance
+    latents a·(z − b), from the posterior means of the first ``num_clips`` clips (Rombach et al. 2022 §4.3.2).
+    Raises ValueError for an empty dataset."""
     if len(dataset) == 0:
         raise ValueError("dataset: no clips to estimate the latent scaling from")
     vae = model.vae
@@ -179,18 +137,9 @@ RUN_FILES = ("metrics.csv", "checkpoints", "model")
 
 
 def check_run_dir(stage: StageConfig, resume: bool) -> None:
-    """Check the run folder before any model or data is built or anything written (README, "Training").
-
-    The run folder is written step by step, not replaced: it may be new, empty, or, with ``resume``, an earlier
-    run that has a checkpoint. It is never the dataset, the ``init_from`` folder, one of diff4splat's installed
-    packages, the current or home directory or a filesystem root, an ancestor of any of them, nor inside the
-    dataset or ``init_from`` (a run inside the dataset made it fail ``data_prep validate``).
-
-    Raises:
-        ValueError: any of the above, one line naming the folder: a non-empty folder that is not a training run;
-            an earlier run without ``resume`` (its metrics and checkpoints would be mixed with the new run's);
-            ``resume`` without a checkpoint (the run would silently start from step 0).
-    """
+    """Check the run folder before anything is built or written (docs/DESIGN.md, "Training"): new, empty, or with
+    ``resume`` an earlier run with a checkpoint; never an input, a protected place, an ancestor of them, nor inside
+    an input. Raises ValueError, one line naming the folder."""
     run = Path(stage.trainer.run_dir)
     inputs = [p for p in (stage.data, stage.init_from) if p]
     check_output_dir(run, inputs=inputs, overwrite=True, kind="training run", parents=True)  # the protected places
@@ -212,13 +161,12 @@ def check_run_dir(stage: StageConfig, resume: bool) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``python -m training.train``. Returns the exit code: 0, 2 after an expected failure
-    (one ``train: error: …`` line: bad config, corrupt checkpoint, OS error on the run folder), 130 after
-    Ctrl-C (:func:`diff4splat.utils.errors.run_cli`); a bug keeps its traceback."""
+    """``python -m training.train``; exit code 0, 2 after an expected failure (one line), 130 after Ctrl-C."""
     return run_cli("train", lambda: _main(argv))
 
 
 def _main(argv: list[str] | None) -> int:
+    """Parse, check, train and write the model."""
     ap = argparse.ArgumentParser(prog="python -m training.train", description=__doc__.splitlines()[0])
     ap.add_argument("--config", required=True,
                     help=f"stage config: a shipped name ({', '.join(stage_config.stage_names())}) or a YAML path")
@@ -260,9 +208,8 @@ def _main(argv: list[str] | None) -> int:
 
 def _write_model(trainer: Trainer, model: Diff4SplatModel | BackboneModel, stage: StageConfig,
                  state: dict | None) -> None:
-    """Rank 0: ``<run_dir>/model`` from ``state`` (keys of the TrainingModule, ``model.<network>…``; None = the
-    model's own weights), after calibrating the latent scaling of a VAE stage; a backbone model with its LoRA merged
-    (:func:`training.backbone_training.save_backbone_model`)."""
+    """Rank 0: write ``<run_dir>/model`` from ``state`` (TrainingModule keys; None: the model's own weights)."""
+
     ours = stage.backbone == "ours"
     if trainer.sharded:  # the trained model holds this rank's shards only: a plain one takes the full weights
         model = Diff4SplatModel(model.config) if ours else backbone_training().load_backbone_model(stage)

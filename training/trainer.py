@@ -1,47 +1,13 @@
 """A trainer that never loses work: AdamW, warm-up + cosine, clipping, EMA, bf16, exact resume, DDP/FSDP.
 
-The trainer is generic: a *step function* ``step_fn(model, batch, generator) -> {"loss": scalar, ...}``
-computes the objective of a stage (see :mod:`training.objectives`); the trainer owns optimisation,
-data order, checkpoints, logging, devices and distribution.
-
-Guarantees:
-- **Exact resume.** Data order is a function of (seed, epoch) (``DistributedSampler`` permutation,
-  ``dataset.set_epoch``), the position inside the epoch is checkpointed, and every random state
-  (torch, numpy, python, the step generator handed to ``step_fn``, the loader's own generator) is
-  saved, so ``--resume`` produces the same losses step for step as an uninterrupted run.
-- **Same numbers on every device.** The step generator is a CPU ``torch.Generator``; step functions draw
-  on it and move the draw to the data (``torch.randn(shape, generator=gen, device=gen.device).to(x)``),
-  so a seed gives the same noise on the CPU and on CUDA, and a float32 run (``bf16: false``,
-  ``tf32: false``) gives the CPU's losses to float32 rounding.
-- **Non-finite losses** (or gradients) skip the optimizer step and are logged; ``max_nonfinite`` in a
-  row stop the run with :class:`NonFiniteLossError`, leaving the last good checkpoint intact.
-- **SIGTERM / SIGINT** finish the current step, save a checkpoint and return cleanly.
-
-Devices and precision (``trainer:`` section of a stage YAML, or ``python -m training.train --device``):
-- ``device: auto`` (default) trains on CUDA when torch sees a GPU — ``cuda:$LOCAL_RANK`` under torchrun —
-  else on the CPU; ``cpu``, ``cuda``, ``cuda:N`` name one (a device this machine lacks is a ValueError
-  naming ``trainer.device``). Batches are copied to it with ``non_blocking=True`` from pinned memory
-  (``pin_memory`` on CUDA).
-- ``bf16`` (default None = auto: on for CUDA, off for the CPU) runs the step function under
-  ``torch.autocast(dtype=bfloat16)``; weights, optimizer state and EMA stay float32. Set ``bf16: false`` on
-  GPUs without bfloat16 units (before Ampere), ``bf16: true`` to autocast on the CPU as well.
-- ``tf32`` (default True) lets float32 matmuls and cuDNN convolutions on CUDA use TF32 tensor cores
-  (``torch.backends.cuda.matmul.allow_tf32``, ``torch.backends.cudnn.allow_tf32``; process-wide, set when
-  a trainer is built on CUDA; ``tf32: false`` gives full float32). No effect on the CPU.
-- ``gradient_checkpointing`` (default False) calls the model's ``enable_gradient_checkpointing()`` when it has
-  one (:class:`training.objectives.TrainingModule`: our DiT, or a diffusers transformer through diffusers' own
-  switch), else sets ``gradient_checkpointing = True`` on every module of the model that has that attribute
-  (:class:`models.dit.VideoDiT`): the blocks' activations are recomputed in the backward pass instead of stored
-  (same loss and gradients, less memory, ~⅓ more compute).
-
-Distributed: under ``torchrun`` (any ``--nproc_per_node``, one included) each process first selects its GPU
-(``torch.cuda.set_device(cuda:$LOCAL_RANK)``), then joins the process group (NCCL on CUDA, with
-``device_id``; gloo on the CPU). ``strategy="ddp"`` wraps the model in DDP; ``strategy="fsdp"`` shards it
-with FSDP2 ``fully_shard``: first every module of ``model.fsdp_units()`` when the model defines it (the
-DiT, LDRM and text-encoder blocks of :class:`training.objectives.TrainingModule`), each with
-``MixedPrecisionPolicy(param_dtype=bfloat16, reduce_dtype=float32)`` when bf16 is on, then the root in
-float32 (so the batch's cameras and depths are never cast). Data is split by ``DistributedSampler``; rank 0
-alone writes checkpoints and logs; full (unsharded) weights are gathered for every checkpoint.
+A *step function* ``step_fn(model, batch, generator) -> {"loss": scalar, ...}`` computes a stage's objective
+(:mod:`training.objectives`); the trainer owns optimisation, data order, checkpoints, logging, devices and
+distribution. Resume is exact: data order is a function of (seed, epoch), the position in the epoch and every
+random state are checkpointed. The step generator is a CPU ``torch.Generator`` (draw on it, move the draw), so a
+float32 run gives the CPU's losses on CUDA to float32 rounding. Non-finite losses or gradients skip the step;
+``max_nonfinite`` in a row raise :class:`NonFiniteLossError`. SIGTERM/SIGINT save a checkpoint and return.
+Devices, bf16/TF32, gradient checkpointing, torchrun with DDP or FSDP2 (``model.fsdp_units()`` sharded first, bf16
+parameters with float32 reduction; the root in float32): docs/DESIGN.md, "Training". Rank 0 alone writes.
 """
 from __future__ import annotations
 
@@ -84,8 +50,7 @@ StepFn = Callable[[nn.Module, Any, torch.Generator], dict[str, Tensor]]
 
 
 def _nonfinite_part(values: dict[str, float], loss_ok: bool, grad_norm: float) -> str:
-    """What was not finite in a skipped step, for its one-line message: the loss terms (``values``: the step
-    function's scalars, ``loss`` their weighted sum) that were, the gradient norm, or another rank's loss."""
+    """What was not finite in a skipped step: the loss terms, the gradient norm, or another rank's loss."""
     if loss_ok:
         return f"gradient (norm {grad_norm})"
     bad = [f"{k} {v}" for k, v in values.items() if k != "loss" and not math.isfinite(v)]
@@ -100,39 +65,15 @@ class NonFiniteLossError(RuntimeError):
 
 @dataclass
 class TrainerConfig:
-    """Optimisation and bookkeeping settings (YAML ``trainer:`` section overrides these).
+    """Optimisation and bookkeeping settings (the YAML ``trainer:`` section).
 
-    Attributes:
-        run_dir: folder for checkpoints and ``metrics.csv``.
-        total_steps: optimizer steps to take.
-        batch_size: per-process batch size.
-        lr: peak learning rate of AdamW (Loshchilov & Hutter 2019).
-        betas, weight_decay: AdamW parameters.
-        warmup_steps: linear warm-up from 0 to ``lr``.
-        min_lr_ratio: the cosine decays to ``lr·min_lr_ratio`` at ``total_steps``.
-        grad_clip: max global gradient norm (0 = off).
-        ema_decay: EMA of weights (e.g. 0.999) or None.
-        device: ``auto`` (CUDA when present — ``cuda:$LOCAL_RANK`` under torchrun — else ``cpu``), ``cpu``,
-            ``cuda`` or ``cuda:N`` (:func:`training_device`); checked when the :class:`Trainer` is built.
-        bf16: autocast the step to bfloat16; None (``auto``) = on for CUDA, off for the CPU (:func:`resolve_bf16`).
-        tf32: allow TF32 matmuls and cuDNN convolutions when training on CUDA (no effect on the CPU).
-        gradient_checkpointing: recompute activations in the backward pass: the model's own
-            ``enable_gradient_checkpointing()`` if it has one, else every module with a ``gradient_checkpointing``
-            attribute (the DiT's blocks).
-        seed: seed of data order and of the step generator.
-        checkpoint_every: steps between checkpoints (a final one is always written).
-        keep_checkpoints: newest checkpoints kept.
-        log_every: steps between progress-bar updates (every step goes to metrics.csv).
-        max_nonfinite: consecutive non-finite steps that stop the run.
-        num_workers: DataLoader workers.
-        strategy: "ddp" or "fsdp" when distributed.
-        find_unused_parameters: DDP option for stages where some trainable modules may be unused.
-        progress: show a tqdm bar.
-
-    Raises:
-        ValueError: a count < 1, lr ≤ 0, a negative warmup_steps, grad_clip, weight_decay or num_workers, a
-            min_lr_ratio outside [0, 1], an unknown strategy, ema_decay outside (0, 1), a device that is not a
-            string, or a bf16 that is not true, false, null or ``auto`` (each naming ``trainer.<field>``).
+    AdamW (Loshchilov & Hutter 2019) at peak ``lr`` after ``warmup_steps``, cosine to ``lr·min_lr_ratio``;
+    ``grad_clip`` 0 is off; ``ema_decay`` None is off; ``device`` ``auto``/``cpu``/``cuda``/``cuda:N``
+    (:func:`training_device`, checked by :class:`Trainer`); ``bf16`` None/``auto`` = on for CUDA
+    (:func:`resolve_bf16`); ``tf32`` on CUDA only; ``log_every`` paces the bar (every step goes to metrics.csv);
+    ``strategy`` "ddp" or "fsdp" when distributed. Raises ValueError naming ``trainer.<field>`` for a count < 1,
+    lr ≤ 0, a negative warmup_steps/grad_clip/weight_decay/num_workers, min_lr_ratio outside [0, 1], an unknown
+    strategy, ema_decay outside (0, 1), a non-string device, or a bf16 not true/false/null/``auto``.
     """
 
     run_dir: str = "runs/default"
@@ -200,29 +141,14 @@ def _full_tensor(t: Tensor) -> Tensor:
 
 
 class Trainer:
-    """Train ``model`` on ``dataset`` with ``step_fn`` (see module docstring).
+    """Train ``model`` (frozen parameters: ``requires_grad=False``) on a map-style ``dataset`` (``set_epoch`` called
+    if present) with ``step_fn``. Optional model hooks: ``fsdp_units()``, ``checkpoint_frozen`` (False: frozen weights
+    left out of checkpoints, rebuilt before :meth:`resume`), ``enable_gradient_checkpointing()``. ``device`` wins over
+    ``config.device``; ``extra_meta`` is stored in every checkpoint.
 
-    Args:
-        model: the module; parameters with ``requires_grad=False`` are frozen (not optimised). Under
-            ``strategy="fsdp"`` a ``model.fsdp_units()`` method, if any, lists the sub-modules sharded one by one.
-            A ``model.checkpoint_frozen`` attribute False leaves the frozen parameters out of checkpoints (they must
-            then be rebuilt identically before :meth:`resume`: a pretrained backbone's, read from its folder).
-        dataset: map-style dataset; ``set_epoch(epoch)`` is called if it exists.
-        step_fn: ``(model, batch, generator) -> {"loss": scalar, other scalars...}``; ``generator`` is a CPU
-            ``torch.Generator`` (draw on it, then move the draw to the batch's device).
-        config: :class:`TrainerConfig`.
-        collate_fn: DataLoader collate function.
-        device: torch device; when given it wins over ``config.device`` (see :func:`training_device`).
-        extra_meta: JSON-able description stored in every checkpoint (e.g. the stage config).
-
-    Raises:
-        ValueError: an unusable device (naming ``device`` or ``trainer.device``), a dataset smaller than one batch
-            per process, a model with no trainable parameter, or ``gradient_checkpointing`` for a model without a
-            module that supports it.
-
-    Warns:
-        UserWarning: bf16 on a CPU whose bfloat16 matmul leaks NaN across rows
-            (:func:`diff4splat.utils.devices.cpu_bf16_warning`).
+    Raises ValueError for an unusable device, a dataset smaller than one batch per process, no trainable parameter,
+    or ``gradient_checkpointing`` without a supporting module. Warns (UserWarning) for bf16 on a CPU whose bfloat16
+    matmul leaks NaN (:func:`diff4splat.utils.devices.cpu_bf16_warning`).
     """
 
     def __init__(self, model: nn.Module, dataset: Dataset, step_fn: StepFn, config: TrainerConfig,
@@ -285,9 +211,7 @@ class Trainer:
 
     @staticmethod
     def _init_distributed(device: torch.device) -> None:
-        """Join the process group when ``torchrun`` started this process (its env:// rendezvous variables), with
-        any number of processes: ``--nproc_per_node 1`` trains with the strategy's wrapper too (DDP or FSDP on one
-        rank, as the Hugging Face Trainer and Lightning do), so one GPU runs the NCCL path that several use."""
+        """Join the process group (NCCL on CUDA, else gloo) when ``torchrun`` started this process, even alone."""
         launched = all(k in os.environ for k in ("MASTER_ADDR", "MASTER_PORT", "RANK", "WORLD_SIZE"))
         if launched and dist.is_available() and not dist.is_initialized():
             if device.type == "cuda":
@@ -311,10 +235,9 @@ class Trainer:
                                                    find_unused_parameters=self.config.find_unused_parameters)
 
     def _model_state(self, frozen: bool = True) -> dict[str, Tensor]:
-        """Full weights (collective under FSDP, where rank 0 gets them on the CPU and the other ranks ``{}``);
-        without the frozen parameters when ``frozen`` is False."""
+        """Full weights (collective under FSDP: on the CPU on rank 0, ``{}`` elsewhere), without the frozen ones when
+        ``frozen`` is False."""
         if self.sharded:
-
             state = get_model_state_dict(self.model, options=StateDictOptions(
                 full_state_dict=True, cpu_offload=True, ignore_frozen_params=not frozen))
         else:
@@ -334,14 +257,12 @@ class Trainer:
 
     def _optimizer_state(self) -> dict:
         if self.sharded:
-
             return get_optimizer_state_dict(self.model, self.optimizer,
                                             options=StateDictOptions(full_state_dict=True, cpu_offload=True))
         return self.optimizer.state_dict()
 
     def _load_states(self, model_state: dict, optim_state: dict, ema: dict[str, Tensor] | None) -> None:
         if self.sharded:
-
             set_state_dict(self.model, self.optimizer, model_state_dict=model_state, optim_state_dict=optim_state,
                            options=StateDictOptions(full_state_dict=True, broadcast_from_rank0=False,
                                                     strict=self.checkpoint_frozen))
@@ -436,8 +357,7 @@ class Trainer:
         self._stop = True
 
     def _to_device(self, batch):
-        """``batch`` (tensors in nested dicts, lists and tuples) on the trainer's device; other leaves unchanged.
-        The copies are asynchronous from pinned memory (ordered before the step's kernels on the same stream)."""
+        """``batch``'s tensors (in nested dicts, lists, tuples) copied non-blocking to the trainer's device."""
         if isinstance(batch, Tensor):
             return batch.to(self.device, non_blocking=True)
         if isinstance(batch, dict):
@@ -453,11 +373,7 @@ class Trainer:
         return bool(flag.item() > 0)
 
     def fit(self, resume: bool = False) -> dict[str, Any]:
-        """Run until ``total_steps`` (or a stop signal). Returns a summary dict.
-
-        Raises:
-            NonFiniteLossError: ``max_nonfinite`` consecutive non-finite steps.
-        """
+        """Run until ``total_steps`` or a stop signal; returns a summary. Raises :class:`NonFiniteLossError`."""
         cfg = self.config
         if resume:
             self.resume()
@@ -569,10 +485,8 @@ class Trainer:
             w.writerow(record)
 
     def ema_state_dict(self) -> dict[str, Tensor] | None:
-        """EMA weights merged into a full state dict (frozen weights as they are), or None without EMA.
-
-        Under FSDP it is collective (every rank calls it) and the dict is complete, on the CPU, on rank 0 only
-        (the other ranks get ``{}``)."""
+        """EMA weights merged into a full state dict (frozen weights as they are), or None without EMA; collective
+        under FSDP, complete on rank 0 only."""
         if self.ema is None:
             return None
         state = {k: v.clone() for k, v in self._model_state().items()}
@@ -582,7 +496,7 @@ class Trainer:
         return state
 
     def final_state_dict(self) -> dict[str, Tensor]:
-        """The weights to publish after training: :meth:`ema_state_dict` when EMA is on, else the model's own,
-        full (unsharded). Collective under FSDP, complete on rank 0 (as :meth:`ema_state_dict`)."""
+        """The weights to publish: :meth:`ema_state_dict` with EMA, else the model's own, full (as it, collective)."""
+
         ema = self.ema_state_dict()
         return ema if ema is not None else self._model_state()
