@@ -4,7 +4,7 @@
 per scene, sorted; ``reasons``: the violated config fields, or ``"error"``), ``accepted.txt``, ``curation.yaml``
 (config and mode) and each accepted scene by ``mode`` (an absolute symlink, a copy, or none), so ``OUT`` is a
 dataset root. Each scene's record ``OUT/.curation/<scene>.json`` is written atomically after its folder, so a rerun
-resumes (DESIGN.md, "Data preparation at scale"). One run at a time per ``OUT``.
+resumes (docs/DESIGN.md, "Data preparation at scale"). One run at a time per ``OUT``.
 """
 from __future__ import annotations
 
@@ -48,16 +48,13 @@ MANIFEST, ACCEPTED, CONFIG_COPY, RECORDS = "manifest.jsonl", "accepted.txt", "cu
 
 @dataclass(frozen=True)
 class CurationConfig:
-    """Filter thresholds (the defaults; ``curation_default.yaml`` mirrors them).
-
-    ``min_*``/``max_*`` bound the :class:`SceneStats` of the same name (``max_*`` None: no bound; ratios in [0, 1]);
-    ``require_depth`` and ``dynamic_requires_tracks`` reject scenes without depth / dynamic scenes without tracks;
+    """Filter thresholds (the defaults; ``curation_default.yaml`` mirrors them). ``min_*``/``max_*`` bound the
+    :class:`SceneStats` of the same name (``max_*`` None: no bound; ratios in [0, 1]); ``require_depth`` and
+    ``dynamic_requires_tracks`` reject scenes without depth / dynamic scenes without tracks;
     ``dynamic_motion_threshold_m``: metres from its frame-0 position beyond which a track moves; ``sample_frames`` (≥
     1): evenly spaced frames per camera read for sharpness and valid depth; ``validate``: also run
-    :func:`data_prep.validate.validate_scene` (reason ``"validate"``).
-
-    Raises ValueError naming the field, for a wrong type or an out-of-range value.
-    """
+    :func:`data_prep.validate.validate_scene` (reason ``"validate"``). Raises ValueError naming the field, for a wrong
+    type or an out-of-range value."""
 
     min_frames: int = 17
     min_translation_m: float = 0.05
@@ -339,15 +336,11 @@ def curate(in_root: str | os.PathLike, out_root: str | os.PathLike, config: Cura
            workers: int = 1, mode: str = "symlink", progress: bool = True,
            engine: Engine | None = None) -> list[dict[str, Any]]:
     """Curate every scene of the dataset root ``in_root`` into ``out_root`` (resumable; see the module docstring).
-
     ``config`` None: the defaults; ``engine`` None: the local pool of ``workers`` (≥ 1) processes (results depend on
     neither); ``mode``: one of :data:`MODES`; ``progress``: a tqdm bar on stderr. Returns all manifest records (earlier
-    runs' too), sorted by scene.
-
-    Raises FileNotFoundError: ``in_root`` is not a folder; ValueError: bad ``workers``/``mode``; an ``in_root`` without
-    scenes; an ``out_root`` that is ``in_root``, holds it or lies inside it, holds other files than an earlier curation,
-    or was curated before with a different config or mode.
-    """
+    runs' too), sorted by scene. Raises FileNotFoundError: ``in_root`` is not a folder; ValueError: bad
+    ``workers``/``mode``; an ``in_root`` without scenes; an ``out_root`` that is ``in_root``, holds it or lies inside
+    it, holds other files than an earlier curation, or was curated before with a different config or mode."""
     config = config or CurationConfig()
     in_root, out_root = Path(in_root), Path(out_root)
     workers = check_int("workers", workers, 1)

@@ -1,6 +1,6 @@
 """Where ``data_prep``'s per-scene work runs (:func:`map_scenes`): ``local``, this process or a pool of spawned
 processes, or ``ray``, Ray Data with one task per scene (the optional extra ``diff4splat[ray]``). The engine decides
-where and in what order scenes are made, never what they hold (DESIGN.md, "Data preparation at scale").
+where and in what order scenes are made, never what they hold (docs/DESIGN.md, "Data preparation at scale").
 """
 from __future__ import annotations
 
@@ -112,13 +112,9 @@ def fault_point(stage: str, scene: str) -> None:
 def map_scenes(fn: Callable[[Any], Any], items: Iterable[Any], engine: Engine, *, desc: str = "scenes",
                progress: bool = True, bar: tqdm | None = None) -> None:
     """Call the picklable ``fn(item)`` once for each picklable item on ``engine`` and wait for all; return values are
-    dropped.
-
-    Items are handed out in order (the local engine draws them lazily) and finish in any order. ``progress``: a tqdm bar
-    labelled ``desc`` (local; or count on ``bar`` when given) or Ray Data's bars.
-
-    Raises the first exception raised by ``fn`` (on Ray too: ``fn``'s own exception).
-    """
+    dropped. Items are handed out in order (the local engine draws them lazily) and finish in any order. ``progress``: a
+    tqdm bar labelled ``desc`` (local; or count on ``bar`` when given) or Ray Data's bars. Raises the first exception
+    raised by ``fn`` (on Ray too: ``fn``'s own exception)."""
     if engine.name == "ray":
         items = list(items)
         if items:

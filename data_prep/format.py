@@ -68,16 +68,13 @@ def _check_depth(depth: Tensor | np.ndarray, shape: tuple[int, int]) -> np.ndarr
 class SceneWriter:
     """Write the scene folder ``path`` atomically (FORMAT.md), as a context manager: it is built in a temporary folder
     beside ``path`` and renamed onto it when the block exits without error and every camera has all T RGB frames (and T
-    depth frames unless ``depth_source == "none"``); on any error ``path`` is left as it was.
-
-    ``source`` … ``depth_shift``, ``extra`` (more JSON keys): the meta fields (:class:`SceneMeta`; ``cameras`` is filled
-    by :meth:`add_camera`). ``replace``: replace a scene folder written by this writer; ``replace_flag``: the option
-    named in the refusal; ``validate``: check the folder (:func:`data_prep.validate.validate_scene`) first.
-
-    Raises ValueError: invalid meta fields (on construction) or an incomplete/invalid scene (on exit); FileExistsError:
-    ``path`` exists and ``replace`` is false; OutputDirError: ``path`` may not be written (a file, a folder that is not
-    a scene written here, …).
-    """
+    depth frames unless ``depth_source == "none"``); on any error ``path`` is left as it was. ``source`` …
+    ``depth_shift``, ``extra`` (more JSON keys): the meta fields (:class:`SceneMeta`; ``cameras`` is filled by
+    :meth:`add_camera`). ``replace``: replace a scene folder written by this writer; ``replace_flag``: the option named
+    in the refusal; ``validate``: check the folder (:func:`data_prep.validate.validate_scene`) first. Raises ValueError:
+    invalid meta fields (on construction) or an incomplete/invalid scene (on exit); FileExistsError: ``path`` exists and
+    ``replace`` is false; OutputDirError: ``path`` may not be written (a file, a folder that is not a scene written
+    here, …)."""
 
     def __init__(self, path: str | os.PathLike, *, source: str, dynamic: bool, depth_source: str,
                  num_frames: int, fps: float, depth_scale: float = 1.0, depth_shift: float = 0.0,
@@ -123,13 +120,10 @@ class SceneWriter:
 
     def add_camera(self, name: str, cameras: CameraPath, timestamps: np.ndarray | Tensor | None = None) -> None:
         """Add camera ``name`` (``[A-Za-z0-9_.-]+``; the first is the reference) and write its ``cameras.json``.
-
         ``cameras``: T = num_frames cameras; ``timestamps``: (T,) non-decreasing seconds whose normalisation (FORMAT.md)
-        equals ``cameras.times``; None → times·(T−1)/fps.
-
-        Raises ValueError: a bad or duplicate name, a path of the wrong length, or timestamps of the wrong shape,
-        non-finite, decreasing, inconsistent with ``cameras.times`` or the reference camera's.
-        """
+        equals ``cameras.times``; None → times·(T−1)/fps. Raises ValueError: a bad or duplicate name, a path of the
+        wrong length, or timestamps of the wrong shape, non-finite, decreasing, inconsistent with ``cameras.times`` or
+        the reference camera's."""
         root = self.tmp_dir
         T = self.meta.num_frames
         if name in self._sizes:
@@ -168,12 +162,9 @@ class SceneWriter:
     def write_frame(self, camera: str, index: int, rgb: Tensor | np.ndarray,
                     depth: Tensor | np.ndarray | None = None) -> None:
         """Write frame ``index`` (in [0, T)) of ``camera``: ``rgb/{index:05d}.png`` and ``depth/{index:05d}.exr``.
-
         ``rgb``: (H, W, 3) uint8, or float in [0, 1] (rounded to 8 bits); ``depth``: (H, W) metric z-depth in metres, >
-        0, +inf where invalid; required unless ``depth_source == "none"`` (then None).
-
-        Raises ValueError: unknown camera, index out of range, wrong shapes, or NaN, −inf or ≤ 0 depth.
-        """
+        0, +inf where invalid; required unless ``depth_source == "none"`` (then None). Raises ValueError: unknown
+        camera, index out of range, wrong shapes, or NaN, −inf or ≤ 0 depth."""
         if camera not in self._sizes:
             raise ValueError(f"unknown camera {camera!r}; call add_camera first")
         if not is_int(index) or not 0 <= index < self.meta.num_frames:

@@ -54,13 +54,10 @@ _FLAGS = {"num_scenes": "--scenes", "seed": "--seed", "size": "--size", "frames"
 def check_synth_request(num_scenes: int, seed: int, *, size: int, frames: int, cameras: int, workers: int,
                         static_ratio: float, texture_ratio: float, flags: bool = False) -> None:
     """Check :func:`synthesize`'s arguments and limits before anything is created; ``flags``: name the arguments by
-    their ``data_prep synth`` flags.
-
-    Raises ValueError: an argument out of range (named). :class:`diff4splat.utils.limits.LimitError` (a ValueError):
-    ``num_scenes`` above the ``scenes`` limit, ``size`` above ``resolution``, ``frames`` above ``frames``,
-    :func:`scene_bytes` above ``synth_bytes``, or this process's memory plus one scene per worker above what it may use
-    (:func:`diff4splat.utils.limits.check_memory`).
-    """
+    their ``data_prep synth`` flags. Raises ValueError: an argument out of range (named).
+    :class:`diff4splat.utils.limits.LimitError` (a ValueError): ``num_scenes`` above the ``scenes`` limit, ``size``
+    above ``resolution``, ``frames`` above ``frames``, :func:`scene_bytes` above ``synth_bytes``, or this process's
+    memory plus one scene per worker above what it may use (:func:`diff4splat.utils.limits.check_memory`)."""
     name = _FLAGS.get if flags else str
     check_limit("scenes", check_int(name("num_scenes"), num_scenes, 1), name("num_scenes"))
     check_int(name("seed"), seed, 0)
@@ -91,18 +88,15 @@ def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, si
                texture_ratio: float = DEFAULT_TEXTURE_RATIO, workers: int = 1,
                progress: bool = True, device: str | torch.device = "cpu", engine: Engine | None = None) -> list[Path]:
     """Generate scenes 0 … num_scenes−1 into the dataset root ``out_dir``, skipping scenes already present (resume).
-
     Every argument and limit is checked first (:func:`check_synth_request`), so a refused request creates nothing; an
     ``out_dir`` this run created is removed again if it fails before writing into it. Scene ``i`` depends on ``seed``
     and ``i`` alone (:func:`data_prep.synth.generate_scene`), whatever the engine, workers or order. ``num_scenes``,
     ``size``, ``frames``: ≥ 1, ≥ 8, ≥ 2, each at most its limit; ``static_ratio``, ``texture_ratio``: probabilities in
     [0, 1] of a static scene and of an image-textured surface; ``workers``: local processes (``engine`` None: the local
     pool); ``device``: where scenes render ("cpu": the same bytes on every machine; on Ray, CUDA gives each task one
-    GPU). Returns all ``num_scenes`` scene folders, in index order.
-
-    Raises ValueError: an argument out of range (named); an ``out_dir`` holding anything but scene folders; a ``device``
-    this machine does not have; :class:`diff4splat.utils.limits.LimitError` above a limit.
-    """
+    GPU). Returns all ``num_scenes`` scene folders, in index order. Raises ValueError: an argument out of range (named);
+    an ``out_dir`` holding anything but scene folders; a ``device`` this machine does not have;
+    :class:`diff4splat.utils.limits.LimitError` above a limit."""
     check_synth_request(num_scenes, seed, size=size, frames=frames, cameras=cameras, workers=workers,
                         static_ratio=static_ratio, texture_ratio=texture_ratio)
     # numpy integers pass the checks; Python ints go on (the seed is written to meta.json)

@@ -192,19 +192,14 @@ def _sample_camera(rng: np.random.Generator, fov: float, kind: str) -> dict[str,
 def sample_scene_spec(rng: np.random.Generator, *, dynamic: bool, num_cameras: int, size: int,
                       num_frames: int, fps: float = 8.0,
                       texture_ratio: float = DEFAULT_TEXTURE_RATIO) -> dict[str, Any]:
-    """Sample a complete scene description from the scene's own generator ``rng``.
-
-    ``dynamic``: at least one object moves (else none); ``num_cameras`` ≥ 1 (camera 0 the reference); ``size``: image
-    width = height, pixels; ``fps``: Hz; ``texture_ratio`` in [0, 1]: probability that a surface gets an image texture,
-    drawn after the procedural scene so that nothing else depends on it.
-
-    Returns a JSON-serialisable dict: ``dynamic``, ``size``, ``num_frames``, ``fps``, ``ground_y``, ``room_radius``,
-    ``light`` {direction (3,), ambient, tint (3,)}, ``background`` (3,), ``ground`` / ``wall`` {material, color_name,
-    color, texture}, ``objects`` (1–4 dicts: shape, half extents (3,) and center (3,) metres, colour, texture, motion
-    or None) and ``cameras`` (kind, fov_x_deg, azimuth, distance, height, target_height, delta).
-
-    Raises ValueError: ``texture_ratio`` is not a number in [0, 1].
-    """
+    """Sample a complete scene description from the scene's own generator ``rng``. ``dynamic``: at least one object
+    moves (else none); ``num_cameras`` ≥ 1 (camera 0 the reference); ``size``: image width = height, pixels; ``fps``:
+    Hz; ``texture_ratio`` in [0, 1]: probability that a surface gets an image texture, drawn after the procedural scene
+    so that nothing else depends on it. Returns a JSON-serialisable dict: ``dynamic``, ``size``, ``num_frames``,
+    ``fps``, ``ground_y``, ``room_radius``, ``light`` {direction (3,), ambient, tint (3,)}, ``background`` (3,),
+    ``ground`` / ``wall`` {material, color_name, color, texture}, ``objects`` (1–4 dicts: shape, half extents (3,) and
+    center (3,) metres, colour, texture, motion or None) and ``cameras`` (kind, fov_x_deg, azimuth, distance, height,
+    target_height, delta). Raises ValueError: ``texture_ratio`` is not a number in [0, 1]."""
     check_number("texture_ratio", texture_ratio, lo=0, hi=1)
     room = float(rng.uniform(5.0, 6.0))
     ground_y = float(rng.uniform(0.8, 1.5))

@@ -241,7 +241,7 @@ def checkpoint_sha256(directory: str | os.PathLike) -> dict[str, str]:
 
 def _onnx():
     """The onnx package, imported on use (kept out of every command's start)."""
-    import onnx
+    import onnx  # lazy: onnx and protobuf would slow every command's start; only exports and checks use them
 
     return onnx
 

@@ -84,7 +84,7 @@ def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | Non
                              "picks CUDA or CPU)")
         if not Path(onnx).is_dir():
             raise FileNotFoundError(f"--onnx: {onnx} is not a folder")
-        import onnxruntime  # optional dependency
+        import onnxruntime  # lazy: optional, and it would slow every command's start; only --runtime onnxruntime
 
         t0 = time.perf_counter()
         pipe = Diff4SplatPipeline.from_onnx(onnx)

@@ -3,7 +3,7 @@ video transformer): the :class:`Backbone` interface, the :class:`LatentFormat` o
 of its velocity. Implementations in :mod:`models.backbones`: ours (the CPU default), Wan2.2-TI2V-5B and
 CogVideoX-5B-I2V (diffusers, the ``diff4splat[diffusers]`` extra).
 
-Conventions every backbone obeys (DESIGN.md "Backbones"): latents are the VAE posterior mean normalised the
+Conventions every backbone obeys (docs/DESIGN.md "Backbones"): latents are the VAE posterior mean normalised the
 backbone's way, (B, c, n, h, w), n = 1 + (T − 1)/t; x_σ = (1 − σ)·x0 + σ·ε and :attr:`Backbone.velocity_model`
 returns v = ε − x0 (CogVideoX's v-prediction converted, :func:`models.backbones.cogvideox.vpred_to_flow`);
 first-frame conditioning from ``image_latent`` (B, c, 1, h, w) happens inside the velocity model; ``plucker``

@@ -1,7 +1,7 @@
 """Spatiotemporal deformation network of the LDRM (Diff4Splat, Pan et al. 2025, LDRM section).
 
 Canonical features (B, C, h, w) and K times → per-pixel deformation maps (Δμ, Δq, Δs) on the (u·h, u·w) pixel grid,
-μ_t = μ + Δμ, q_t = normalize(Δq ⊗ q), s_t = s·exp(Δs) (DESIGN.md "Conventions"). A multi-resolution conv pyramid
+μ_t = μ + Δμ, q_t = normalize(Δq ⊗ q), s_t = s·exp(Δs) (docs/DESIGN.md "Conventions"). A multi-resolution conv pyramid
 is modulated per time by FiLM (Perez et al. 2018) from a NeRF sinusoidal time embedding (Mildenhall et al. 2020
 Eq. 4), fused, mapped by a zero-initialised 1×1 conv to 10 raw channels, upsampled bilinearly and activated
 (:func:`deformation_activations`). Branch-free on tensor values (ONNX-exportable)."""

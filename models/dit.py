@@ -93,7 +93,8 @@ class VideoDiTConfig:
 
     @classmethod
     def paper(cls) -> VideoDiTConfig:
-        """Paper size (DESIGN.md): 32 blocks, hidden 4096, 32 heads, 16 latent channels, patch 1×2×2, T5-XXL text."""
+        """Paper size (docs/DESIGN.md): 32 blocks, hidden 4096, 32 heads, 16 latent channels, patch 1×2×2, T5-XXL
+        text."""
         return cls(latent_channels=16, hidden_size=4096, depth=32, num_heads=32, mlp_ratio=4.0,
                    patch_size=(1, 2, 2), text_dim=4096, camera_channels=1536)
 

@@ -1,7 +1,7 @@
 """Rectified-flow / flow-matching schedule, training-time σ sampling and ODE samplers.
 
 x_σ = (1 − σ)·x0 + σ·ε, σ ∈ [0, 1] (σ = 1 pure noise); the network learns v = dx_σ/dσ = ε − x0 (rectified flow,
-Liu et al. 2022, Eq. 1; Lipman et al. 2023, Eq. 20–23 with t = 1 − σ; DESIGN.md "Conventions"). Sampling integrates
+Liu et al. 2022, Eq. 1; Lipman et al. 2023, Eq. 20–23 with t = 1 − σ; docs/DESIGN.md "Conventions"). Sampling integrates
 dx/dσ = v_θ(x, σ) from σ = 1 to 0. ``velocity_fn(x, sigma)`` is any callable taking the state ``x`` (any shape)
 and a 0-dim ``sigma`` of its dtype/device and returning a velocity of ``x``'s shape."""
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """HexPlane deformation field of 4D Gaussian Splatting (Wu et al., CVPR 2024, §3.2).
 
 A canonical mean μ (metres) and a time t ∈ [0, 1] give a deformation (Δμ, Δq, Δs), composed with the canonical
-Gaussians by :mod:`diff4splat.scene.dynamic` (DESIGN.md "Conventions"). μ maps to box coordinates in [−1, 1]³
+Gaussians by :mod:`diff4splat.scene.dynamic` (docs/DESIGN.md "Conventions"). μ maps to box coordinates in [−1, 1]³
 (clamped) and t to 2t − 1; per scale, six planes (xy, xz, xt, yz, yt, zt) of shape (1, F, res_b, res_a) are sampled
 bilinearly and multiplied; the scales are concatenated, (N, S·F) → trunk → three heads Δμ (metres), Δq (added to
 (1, 0, 0, 0)), Δs (log-scale offset). Reference: hustvl/4DGaussians ``scene/hexplane.py``, ``scene/deformation.py``,

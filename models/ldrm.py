@@ -7,7 +7,7 @@ pre-norm transformer blocks over all tokens, and a head (``"upsample"``, ours, o
 the token volume into 12 raw channels per pixel (:func:`gaussian_activations`). Options beyond the paper: a sharp
 input-view CNN (``image_branch``) and a monocular depth network for frame 0 (``image_depth``). The Gaussians are in
 the world frame of the rays; placing them on rays is ``diff4splat.assembly.assemble``'s job. Source frames,
-heads and branches: DESIGN.md "Data flow of generate", step 6."""
+heads and branches: docs/DESIGN.md "Data flow of generate", step 6."""
 from __future__ import annotations
 
 import math

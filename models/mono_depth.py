@@ -1,5 +1,5 @@
-"""The photo layer's monocular depth network: photograph → frame 0's raw ray-distance channel (ours; DESIGN.md "Data
-flow of generate", step 6).
+"""The photo layer's monocular depth network: photograph → frame 0's raw ray-distance channel (ours;
+docs/DESIGN.md "Data flow of generate", step 6).
 
 As single-image 3D systems take the observed pixels' geometry from a monocular depth network (Flash3D,
 Szymanowicz et al. 2024), a small U-Net (Ronneberger et al. 2015) with a global-context 1×1 at its coarsest level

@@ -6,7 +6,7 @@ around the current estimate, Teed & Deng 2020 §3.2), and predicts each source p
 static reprojection ``uv`` (pixels, pixel (x, y)'s centre at (x + 0.5, y + 0.5)): a feature pyramid
 (:meth:`MotionNetwork.encode`), coarse-to-fine soft-argmax matching (:meth:`MotionNetwork.match`), a dilated-conv
 head with a zero-initialised output, and :func:`motion_activations` (gated match + residual, soft-thresholded so
-still pixels are exactly still). DESIGN.md "The motion path"."""
+still pixels are exactly still). docs/DESIGN.md "The motion path"."""
 from __future__ import annotations
 
 import math

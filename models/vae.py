@@ -4,7 +4,7 @@ A simplified CogVideoX / Wan-style video VAE (Yang et al. 2024 §2.1; Wan Team 2
 with replicated past frames and norms are per frame, so latent i depends only on frames ≤ 4i and decoded frame t
 only on latents ≤ ⌈t/4⌉; a diagonal Gaussian posterior N(mean, exp(logvar)), logvar clamped to [−30, 20]
 (Kingma & Welling 2014; Stable Diffusion's clamp); DC-AE residual shortcuts (Chen et al. 2025 §3.2) around every
-resampling block and the bottleneck; nearest or bilinear spatial upsampling (DESIGN.md "Training", stage 0).
+resampling block and the bottleneck; nearest or bilinear spatial upsampling (docs/DESIGN.md "Training", stage 0).
 No attention in the middle block, no feature cache, no tiling. Tensors ``(B, C, T, H, W)``, pixels in [−1, 1];
 latents ``(B, c, n, H/8, W/8)``."""
 from __future__ import annotations

@@ -60,11 +60,9 @@ def _check_apart(src: str | os.PathLike, out: str | os.PathLike, what: str) -> N
 
 def convert(source: str, src: str | os.PathLike, out: str | os.PathLike, **options) -> Path:
     """Convert one scene/sequence folder ``src`` of ``source`` (layout: CONVERTERS.md) to the scene folder ``out``.
-
     Raises ValueError: unknown ``source`` or option (:func:`check_options`); ``out`` equal to ``src``, holding it or
     inside it; ``src`` not a folder (:func:`.common.require_dir`); the converter's errors; FileNotFoundError: no
-    ``src``, missing source files.
-    """
+    ``src``, missing source files."""
     check_options(source, options)
     require_dir(src, "source")
     _check_apart(src, out, "output scene folder")
@@ -91,17 +89,13 @@ def convert_each(source: str, src_root: str | os.PathLike, out_root: str | os.Pa
                  names: Sequence[str] | None = None, *, engine: Engine | None = None, progress: bool = True,
                  **options) -> list[Path]:
     """Convert the clips ``names`` (None: :func:`list_sources`) of ``src_root`` into the dataset root ``out_root``,
-    scene ``out_root/name`` each, skipping complete ones (a rerun resumes); everything is checked first.
-
-    Clip ``name`` is the folder ``src_root/name``, or for a source of :data:`SELECTORS` the clip its selecting option
-    names. ``engine`` None: this process. ``options`` go to every clip's converter (neither ``replace`` nor the
-    selecting option). Returns the scene folders, in the order of ``names``.
-
-    Raises ValueError: what :func:`check_options` raises; ``replace`` or the selecting option among ``options``; a name
-    that is empty, hidden, a path or repeated; ``out_root`` equal to ``src_root``, inside it or holding it, or holding
-    anything but scene folders; a clip's conversion error (naming the clip); FileNotFoundError: no ``src_root``; a named
-    clip folder missing.
-    """
+    scene ``out_root/name`` each, skipping complete ones (a rerun resumes); everything is checked first. Clip ``name``
+    is the folder ``src_root/name``, or for a source of :data:`SELECTORS` the clip its selecting option names.
+    ``engine`` None: this process. ``options`` go to every clip's converter (neither ``replace`` nor the selecting
+    option). Returns the scene folders, in the order of ``names``. Raises ValueError: what :func:`check_options` raises;
+    ``replace`` or the selecting option among ``options``; a name that is empty, hidden, a path or repeated;
+    ``out_root`` equal to ``src_root``, inside it or holding it, or holding anything but scene folders; a clip's
+    conversion error (naming the clip); FileNotFoundError: no ``src_root``; a named clip folder missing."""
     check_options(source, options)
     selector = SELECTORS.get(source)
     for bad in ("replace", selector):

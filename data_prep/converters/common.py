@@ -300,14 +300,11 @@ def write_scene(out: str | os.PathLike, *, source: str, dynamic: bool, depth_sou
                 tracks: tuple[np.ndarray, np.ndarray] | None = None, depth_scale: float = 1.0,
                 depth_shift: float = 0.0, extra: dict | None = None, replace: bool = False) -> Path:
     """Write one converted scene folder ``out`` with :class:`data_prep.format.SceneWriter` (atomic, validated).
-
     ``source`` … ``extra``: meta fields (FORMAT.md); ``cameras``: name → T-frame path, reference first; ``timestamps``:
     (T,) seconds shared by every camera; ``frames(name)`` yields a camera's T (rgb, depth) pairs; ``tracks``: optional
-    (points (P, T, 3) metres, visibility (P, T) bool). Returns ``out``.
-
-    Raises ValueError: a camera yields a number of frames other than T, or any SceneWriter/validator error (bad shapes,
-    invalid depth values, unsynchronised cameras); FileExistsError: ``out`` exists and ``replace`` is false.
-    """
+    (points (P, T, 3) metres, visibility (P, T) bool). Returns ``out``. Raises ValueError: a camera yields a number of
+    frames other than T, or any SceneWriter/validator error (bad shapes, invalid depth values, unsynchronised cameras);
+    FileExistsError: ``out`` exists and ``replace`` is false."""
     T = len(timestamps)
     with SceneWriter(out, source=source, dynamic=dynamic, depth_source=depth_source, num_frames=T,
                      fps=float(fps), depth_scale=float(depth_scale), depth_shift=float(depth_shift),

@@ -54,16 +54,12 @@ def convert_dnerf(src: str | os.PathLike, out: str | os.PathLike, *, split: str 
                   background: str = "white", downscale: int = 1, fps: float = DNERF_FPS, start: int = 0,
                   stride: int = 1, max_frames: int | None = None, replace: bool = False) -> Path:
     """Convert one split (``"train"``, ``"val"``, ``"test"``) of the D-NeRF object folder ``src`` to a one-camera
-    dynamic scene ``out`` (``depth_source: "none"``) and return it.
-
-    ``background``: ``"white"`` or ``"black"``; ``downscale``: integer factor (``cv2.INTER_AREA``); ``fps``: nominal, Hz
-    (timestamps = time · (N − 1) / fps; meta fps = fps / stride); ``start``, ``stride``, ``max_frames``: the selection
-    in time order.
-
-    Raises FileNotFoundError: missing JSON or image; ValueError: bad ``split``/``background``/``downscale``/``fps``; a
-    missing or malformed ``camera_angle_x``, ``frames``, ``file_path``, ``time`` or ``transform_matrix`` (named with its
-    frame index); images of different sizes; a selection whose times do not span [0, 1].
-    """
+    dynamic scene ``out`` (``depth_source: "none"``) and return it. ``background``: ``"white"`` or ``"black"``;
+    ``downscale``: integer factor (``cv2.INTER_AREA``); ``fps``: nominal, Hz (timestamps = time · (N − 1) / fps; meta
+    fps = fps / stride); ``start``, ``stride``, ``max_frames``: the selection in time order. Raises FileNotFoundError:
+    missing JSON or image; ValueError: bad ``split``/``background``/``downscale``/``fps``; a missing or malformed
+    ``camera_angle_x``, ``frames``, ``file_path``, ``time`` or ``transform_matrix`` (named with its frame index); images
+    of different sizes; a selection whose times do not span [0, 1]."""
     src = Path(src)
     if split not in DNERF_SPLITS:
         raise ValueError(f"split must be one of {DNERF_SPLITS}, got {split!r}")

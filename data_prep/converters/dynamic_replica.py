@@ -57,14 +57,10 @@ def convert_dynamic_replica(src: str | os.PathLike, out: str | os.PathLike, *, s
                             split: str = "train", sides: tuple[str, ...] = ("left", "right"), start: int = 0,
                             stride: int = 1, max_frames: int | None = None, replace: bool = False) -> Path:
     """Convert one Dynamic Replica sequence (None: the split's only one) of the dataset root ``src`` to the scene
-    ``out`` and return it (dynamic, ground-truth depth, timestamps = ``frame_timestamp``).
-
-    ``sides``: ``camera_name`` values, stored as ``cam00``, ``cam01`` in order; ``start``, ``stride``, ``max_frames``:
-    the selection over the frames sorted by ``frame_number``.
-
-    Raises ValueError: unknown/ambiguous sequence, a side missing, unequal frame numbers between sides;
-    FileNotFoundError: missing annotation or frame files.
-    """
+    ``out`` and return it (dynamic, ground-truth depth, timestamps = ``frame_timestamp``). ``sides``: ``camera_name``
+    values, stored as ``cam00``, ``cam01`` in order; ``start``, ``stride``, ``max_frames``: the selection over the
+    frames sorted by ``frame_number``. Raises ValueError: unknown/ambiguous sequence, a side missing, unequal frame
+    numbers between sides; FileNotFoundError: missing annotation or frame files."""
     src = Path(src)
     by_seq: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
     for a in load_frame_annotations(src, split):

@@ -53,11 +53,9 @@ def _array(path: Path, data: dict, key: str, shape: tuple, default=None) -> np.n
 
 def read_nerfies_camera(path: str | os.PathLike) -> NerfiesCamera:
     """Parse a Nerfies/HyperNeRF camera JSON (``tangential`` read as ``tangential_distortion``; absent skew, ratio,
-    distortion: 0, 1, 0).
-
-    Raises FileNotFoundError: missing file; ValueError: invalid JSON, a missing or malformed field (named), a
-    non-positive focal length, ratio or image size, non-zero skew, or an orientation that is not a rotation.
-    """
+    distortion: 0, 1, 0). Raises FileNotFoundError: missing file; ValueError: invalid JSON, a missing or malformed field
+    (named), a non-positive focal length, ratio or image size, non-zero skew, or an orientation that is not a
+    rotation."""
     path = Path(path)
     d = read_json(path, "HyperNeRF camera")
     if "tangential" in d and "tangential_distortion" not in d:
@@ -122,17 +120,13 @@ def convert_hypernerf(src: str | os.PathLike, out: str | os.PathLike, *, scale: 
                       normalize: bool = False, fps: float = HYPERNERF_FPS, start: int = 0, stride: int = 1,
                       max_frames: int | None = None, replace: bool = False) -> Path:
     """Convert one HyperNeRF/Nerfies capture ``src`` to a one- or two-camera dynamic scene ``out`` (``depth_source:
-    "none"``) and return it.
-
-    ``scale``: the ``rgb/<scale>x`` folder (intrinsics ÷ scale); ``split``: ``"all"``, ``"train"`` or ``"val"``;
-    ``normalize``: nerfies' normalised world (X − center)·scale of ``scene.json``; ``fps``: nominal rate of time_ids, Hz
-    (meta fps = fps / stride); ``start``, ``stride``, ``max_frames``: selection among the (common) time_ids.
-
-    Raises FileNotFoundError: missing JSON, camera file, ``rgb/<scale>x`` folder or image; ValueError: bad options; a
-    missing or malformed field in dataset.json, metadata.json, a camera file or scene.json (named); cameras without a
-    common time_id; a repeated time_id in a multi-camera capture; a camera whose image size changes or differs from
-    image_size / scale.
-    """
+    "none"``) and return it. ``scale``: the ``rgb/<scale>x`` folder (intrinsics ÷ scale); ``split``: ``"all"``,
+    ``"train"`` or ``"val"``; ``normalize``: nerfies' normalised world (X − center)·scale of ``scene.json``; ``fps``:
+    nominal rate of time_ids, Hz (meta fps = fps / stride); ``start``, ``stride``, ``max_frames``: selection among the
+    (common) time_ids. Raises FileNotFoundError: missing JSON, camera file, ``rgb/<scale>x`` folder or image;
+    ValueError: bad options; a missing or malformed field in dataset.json, metadata.json, a camera file or scene.json
+    (named); cameras without a common time_id; a repeated time_id in a multi-camera capture; a camera whose image size
+    changes or differs from image_size / scale."""
     src = Path(src)
     if isinstance(scale, bool) or not isinstance(scale, int) or scale < 1:
         raise ValueError(f"scale must be an int ≥ 1 (the rgb/<scale>x folder), got {scale!r}")

@@ -56,15 +56,11 @@ def convert_matrixcity(src: str | os.PathLike, out: str | os.PathLike, *, depth_
                        transforms: str = "transforms.json", metres_per_unit: float = 1.0, start: int = 0,
                        stride: int = 1, max_frames: int | None = None, fps: float = 10.0,
                        replace: bool = False) -> Path:
-    """Convert one MatrixCity block folder ``src`` to the static scene ``out`` and return it.
-
-    ``depth_dir``: folder of ``<image stem>.exr`` (None: ``depth_source="none"``); ``transforms``: the pose file in
-    ``src``; ``metres_per_unit``: its position unit (1 for ``<block>/transforms.json``, 100 for ``pose/<block>``);
-    ``fps``: nominal, Hz (frames are sampled along a path, not in time).
-
-    Raises FileNotFoundError: missing files; ValueError: no intrinsics in the JSON, a transform that is not a uniformly
-    scaled rotation, or images of another size than ``w``×``h``.
-    """
+    """Convert one MatrixCity block folder ``src`` to the static scene ``out`` and return it. ``depth_dir``: folder of
+    ``<image stem>.exr`` (None: ``depth_source="none"``); ``transforms``: the pose file in ``src``; ``metres_per_unit``:
+    its position unit (1 for ``<block>/transforms.json``, 100 for ``pose/<block>``); ``fps``: nominal, Hz (frames are
+    sampled along a path, not in time). Raises FileNotFoundError: missing files; ValueError: no intrinsics in the JSON,
+    a transform that is not a uniformly scaled rotation, or images of another size than ``w``×``h``."""
     src = Path(src)
     meta = load_json_file(src / transforms, "MatrixCity transforms.json")
     frames_meta = meta.get("frames") or []

@@ -48,14 +48,10 @@ def ue_to_opencv_c2w(M_row: np.ndarray) -> np.ndarray:
 def convert_multicamvideo(src: str | os.PathLike, out: str | os.PathLike, *, cameras: tuple[str, ...] | None = None,
                           focal_mm: float | None = None, start: int = 0, stride: int = 1,
                           max_frames: int | None = None, replace: bool = False) -> Path:
-    """Convert one MultiCamVideo scene folder ``src`` to the multi-camera scene ``out`` and return it.
-
-    ``cameras``: source names kept (``cam01`` …), first = reference (None: all of ``frame0``, sorted); ``focal_mm``:
-    None → parsed from the parent folder ``f<mm>_…``; meta fps = 15 / stride.
-
-    Raises ValueError: no focal length, a frame or camera missing in the JSON, or a bad matrix string;
-    FileNotFoundError: missing JSON or video.
-    """
+    """Convert one MultiCamVideo scene folder ``src`` to the multi-camera scene ``out`` and return it. ``cameras``:
+    source names kept (``cam01`` …), first = reference (None: all of ``frame0``, sorted); ``focal_mm``: None → parsed
+    from the parent folder ``f<mm>_…``; meta fps = 15 / stride. Raises ValueError: no focal length, a frame or camera
+    missing in the JSON, or a bad matrix string; FileNotFoundError: missing JSON or video."""
     src = Path(src)
     data = load_json_file(src / "cameras" / "camera_extrinsics.json", "camera_extrinsics.json")
     n_total = sum(1 for k in data if re.fullmatch(r"frame\d+", k))

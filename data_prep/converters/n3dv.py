@@ -66,16 +66,12 @@ def video_info(path: str | os.PathLike) -> tuple[int, float, int, int]:
 def convert_n3dv(src: str | os.PathLike, out: str | os.PathLike, *, cameras: tuple[str, ...] | None = None,
                  downscale: int = 1, start: int = 0, stride: int = 1, max_frames: int | None = None,
                  replace: bool = False) -> Path:
-    """Convert one N3DV scene folder ``src`` to the multi-camera dynamic scene ``out`` and return it.
-
-    ``cameras``: video stems kept as camera names, first = reference (None: all, sorted); ``downscale``: integer factor
-    (``cv2.INTER_AREA``); meta fps = video fps / stride.
-
-    Raises FileNotFoundError: missing ``poses_bounds.npy`` or no ``cam*.mp4``; ValueError: a malformed
-    ``poses_bounds.npy``; its row count differs from the number of videos; an unknown or repeated camera; videos of
-    different fps; a video size whose aspect differs from hwf's; bad ``downscale``; a video shorter than its frame count
-    says.
-    """
+    """Convert one N3DV scene folder ``src`` to the multi-camera dynamic scene ``out`` and return it. ``cameras``: video
+    stems kept as camera names, first = reference (None: all, sorted); ``downscale``: integer factor
+    (``cv2.INTER_AREA``); meta fps = video fps / stride. Raises FileNotFoundError: missing ``poses_bounds.npy`` or no
+    ``cam*.mp4``; ValueError: a malformed ``poses_bounds.npy``; its row count differs from the number of videos; an
+    unknown or repeated camera; videos of different fps; a video size whose aspect differs from hwf's; bad
+    ``downscale``; a video shorter than its frame count says."""
     src = Path(src)
     c2w_llff, hwf, near_far = read_poses_bounds(src / "poses_bounds.npy")
     videos = sorted(src.glob("cam*.mp4"))

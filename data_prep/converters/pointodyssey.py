@@ -36,14 +36,10 @@ def convert_pointodyssey(src: str | os.PathLike, out: str | os.PathLike, *, star
                          max_frames: int | None = None, max_tracks: int = 4096, fps: float = POINTODYSSEY_FPS,
                          replace: bool = False) -> Path:
     """Convert one PointOdyssey sequence folder ``src`` to the scene ``out`` and return it: ``cam00``, ground-truth
-    depth, tracks with visibility ``visibs & valids``.
-
-    ``max_tracks``: at most this many tracks finite in every selected frame, evenly spaced (0: no ``tracks.npz``);
-    ``fps``: source rate, Hz (meta fps = fps / stride).
-
-    Raises FileNotFoundError: missing ``anno.npz`` or frame files; ValueError: ``anno.npz`` misses a key (named) or has
-    inconsistent frame counts.
-    """
+    depth, tracks with visibility ``visibs & valids``. ``max_tracks``: at most this many tracks finite in every selected
+    frame, evenly spaced (0: no ``tracks.npz``); ``fps``: source rate, Hz (meta fps = fps / stride). Raises
+    FileNotFoundError: missing ``anno.npz`` or frame files; ValueError: ``anno.npz`` misses a key (named) or has
+    inconsistent frame counts."""
     src = Path(src)
     anno = load_npz(src / "anno.npz", "PointOdyssey anno.npz", _ANNO_KEYS)
     T_src = anno["extrinsics"].shape[0]

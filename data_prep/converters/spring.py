@@ -42,13 +42,9 @@ def convert_spring(src: str | os.PathLike, out: str | os.PathLike, *, sides: tup
                    start: int = 0, stride: int = 1, max_frames: int | None = None, fps: float = SPRING_FPS,
                    replace: bool = False) -> Path:
     """Convert one Spring train scene folder ``src`` to the scene ``out`` and return it (dynamic, ground-truth depth).
-
     ``sides``: stored as ``cam00``, ``cam01`` in order; ``start``, ``stride``, ``max_frames``: selection over frame
-    indices 0…T−1 (file number = index + 1); ``fps``: nominal, Hz.
-
-    Raises FileNotFoundError / ValueError: missing files, malformed camera files, or a disparity map that is not twice
-    the image size.
-    """
+    indices 0…T−1 (file number = index + 1); ``fps``: nominal, Hz. Raises FileNotFoundError / ValueError: missing files,
+    malformed camera files, or a disparity map that is not twice the image size."""
     src = Path(src)
     intr = _read_rows(src / "cam_data" / "intrinsics.txt", 4)
     extr = _read_rows(src / "cam_data" / "extrinsics.txt", 16).reshape(-1, 4, 4)

@@ -40,14 +40,10 @@ def convert_stereo4d(src: str | os.PathLike, out: str | os.PathLike, *, name: st
                      hfov_deg: float = STEREO4D_HFOV_DEG, start: int = 0, stride: int = 1,
                      max_frames: int | None = None, max_tracks: int = 4096, replace: bool = False) -> Path:
     """Convert one Stereo4D clip (None: the only ``.npz`` of ``src``), left eye, to the scene ``out``; return it
-    (dynamic, ``depth_source="none"``, timestamps from the npz).
-
-    ``hfov_deg``: horizontal field of view of the rectified video, degrees; ``max_tracks``: at most this many tracks
-    defined in every selected frame, evenly spaced (0: none), visible where in front of the camera and in the image.
-
-    Raises ValueError: ambiguous clip, missing npz keys, or frame counts that disagree; FileNotFoundError: missing npz
-    or video.
-    """
+    (dynamic, ``depth_source="none"``, timestamps from the npz). ``hfov_deg``: horizontal field of view of the rectified
+    video, degrees; ``max_tracks``: at most this many tracks defined in every selected frame, evenly spaced (0: none),
+    visible where in front of the camera and in the image. Raises ValueError: ambiguous clip, missing npz keys, or frame
+    counts that disagree; FileNotFoundError: missing npz or video."""
     src = Path(src)
     if name is None:
         name = only_stem(src, "*.npz", "name", ".npz files")

@@ -34,14 +34,10 @@ def read_tartanair_poses(path: str | os.PathLike) -> np.ndarray:
 def convert_tartanair(src: str | os.PathLike, out: str | os.PathLike, *, sides: tuple[str, ...] = ("left", "right"),
                       start: int = 0, stride: int = 1, max_frames: int | None = None, max_depth: float = 1000.0,
                       fps: float = TARTANAIR_FPS, replace: bool = False) -> Path:
-    """Convert one TartanAir trajectory folder ``src`` to the static scene ``out`` and return it.
-
-    ``sides``: stored as ``cam00``, ``cam01`` in order; ``max_depth``: metres beyond which depth (the sky) is +inf;
-    ``fps``: nominal, Hz (meta fps = fps / stride).
-
-    Raises FileNotFoundError: missing pose/frame files; ValueError: malformed poses, frame-count mismatch between pose
-    file and images, or a depth map of another size.
-    """
+    """Convert one TartanAir trajectory folder ``src`` to the static scene ``out`` and return it. ``sides``: stored as
+    ``cam00``, ``cam01`` in order; ``max_depth``: metres beyond which depth (the sky) is +inf; ``fps``: nominal, Hz
+    (meta fps = fps / stride). Raises FileNotFoundError: missing pose/frame files; ValueError: malformed poses,
+    frame-count mismatch between pose file and images, or a depth map of another size."""
     src = Path(src)
     views = {s: read_tartanair_poses(src / f"pose_{s}.txt") for s in sides}
     n_total = min(len(v) for v in views.values())

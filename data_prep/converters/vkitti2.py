@@ -59,13 +59,9 @@ def convert_vkitti2(src: str | os.PathLike, out: str | os.PathLike, *, cameras: 
                     start: int = 0, stride: int = 1, max_frames: int | None = None,
                     replace: bool = False) -> Path:
     """Convert one Virtual KITTI 2 scene/variation folder ``src`` to the dynamic scene ``out`` and return it.
-
     ``cameras``: camera IDs (0 left, 1 right) stored as ``cam00``, ``cam01``… in order, the first the reference; fps =
-    10 / stride.
-
-    Raises FileNotFoundError: a missing table, folder or frame file; ValueError: malformed tables, a frame missing from
-    a table, or invalid output.
-    """
+    10 / stride. Raises FileNotFoundError: a missing table, folder or frame file; ValueError: malformed tables, a frame
+    missing from a table, or invalid output."""
     src = Path(src)
     K_tab = read_vkitti2_table(src / "intrinsic.txt", 6)
     E_tab = read_vkitti2_table(src / "extrinsic.txt", 18)

@@ -1,5 +1,5 @@
 """What the two diffusers backbones share: their components, the camera-widened patch embedding and the Hub folder
-layout (DESIGN.md "Backbones"): ``model_index.json``, ``transformer/``, ``vae/``, ``text_encoder/``,
+layout (docs/DESIGN.md "Backbones"): ``model_index.json``, ``transformer/``, ``vae/``, ``text_encoder/``,
 ``tokenizer/``, ``scheduler/``, loaded by the diffusers pipeline class, plus ``camera/model.safetensors`` with the
 patch embedding's camera weights (zero when absent). Imported only when a diffusers backbone is used."""
 from __future__ import annotations

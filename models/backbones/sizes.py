@@ -1,6 +1,6 @@
 """The pretrained backbones' real sizes: their Hub configurations, shipped as data (``configs/backbones/<name>.json``,
-each with its ``source``: the Hub folders and diffusers' conversion scripts; DESIGN.md "Backbones"), instantiated on
-``torch.device("meta")`` (no weights, nothing downloaded) and counted. :func:`parameter_counts` builds the backbone
+each with its ``source``: the Hub folders and diffusers' conversion scripts; docs/DESIGN.md "Backbones"), instantiated
+on ``torch.device("meta")`` (no weights, nothing downloaded) and counted. :func:`parameter_counts` builds the backbone
 as :class:`models.backbone_model.BackboneModel` does (camera-widened patch embedding, the LDRM at
 :meth:`BackboneModelConfig.for_backbone`'s sizes), so the counts are those of the model ``generate`` runs. Imports
 diffusers and transformers."""

@@ -1,6 +1,6 @@
 """Wan2.2-TI2V-5B as a :class:`models.backbone.Backbone`: diffusers' ``AutoencoderKLWan`` (48 channels, 4×16×16),
 the UMT5-XXL text encoder and ``WanTransformer3DModel`` with its patch embedding widened by the camera channels
-(DESIGN.md "Backbones").
+(docs/DESIGN.md "Backbones").
 
 Sources: the Wan report (arXiv 2503.20314), github.com/Wan-Video/Wan2.2 (``wan/textimage2video.py``,
 ``wan/configs/wan_ti2v_5B.py``), and diffusers' ``WanImageToVideoPipeline`` (``expand_timesteps=True``, the TI2V
