@@ -18,10 +18,11 @@ MEMORY_MAP_COPIES = 2
 """Copies of the LDRM's deformation maps alive at once, at most (the network's output and its flattened view)."""
 MEMORY_BYTES_PER_GAUSSIAN = 600
 """Memory per Gaussian slot besides its deformation: attributes, pruning masks, the renderer's tile lists."""
-TIME_FIXED_SECONDS = 4.5
-"""``generate``'s wall time that does not grow with the output (interpreter, imports, loading, sampling), seconds."""
-TIME_SECONDS_PER_PIXEL_FRAME = 2.4e-6
-"""``generate``'s wall time per output pixel and frame, seconds."""
+TIME_FIXED_SECONDS = 4.0
+"""``generate``'s wall time that does not grow with the output (interpreter, imports, loading, sampling), seconds
+(docs/benchmarks.md, "generate against the output resolution": the 64² run)."""
+TIME_SECONDS_PER_PIXEL_FRAME = 1.9e-6
+"""``generate``'s wall time per output pixel and frame, seconds (the same table's slope to 2048², its steepest)."""
 TIME_ESTIMATE_PRINTED = 60.0
 """Seconds above which ``generate`` prints its time estimate before the work."""
 RENDER_BYTES_PER_GAUSSIAN = 1400
