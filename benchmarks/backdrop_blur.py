@@ -1,6 +1,6 @@
 """The backdrop's blur (:func:`diff4splat.assembly.photo.backdrop_colors`, 4 samples per cell) against its
-full-resolution
-reference (:func:`diff4splat.assembly.photo.backdrop_colors_reference`): time and colour error per photo size.
+full-resolution reference (:func:`diff4splat.assembly.photo.backdrop_colors_reference`): time and colour error per
+photo size.
 
     python benchmarks/backdrop_blur.py [--write]
 

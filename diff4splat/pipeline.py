@@ -411,7 +411,7 @@ class Diff4SplatPipeline:
         runtime, dev = self.runtime, self.device
         (text, text_mask), (uncond, uncond_mask) = conditions
         gen = torch.Generator(device="cpu").manual_seed(seed)  # CPU draws: the same noise on every device
-        noise = torch.randn((1, runtime.latent.latent_channels, n, *image_latent.shape[-2:]),
+        noise = torch.randn((1, runtime.latent.latent_channels, n, *image_latent.shape[-2:]),  # CPU draw, moved
                             generator=gen, device="cpu").to(dev)
         velocity = partial(runtime.velocity, image_latent=image_latent, plucker=plucker, text=text,
                            text_mask=text_mask, guidance=guidance, uncond=uncond, uncond_mask=uncond_mask)

@@ -224,7 +224,7 @@ class DynamicGaussians:
         n = index.shape[0]
         out = (c.means.new_empty(n, 3), c.means.new_empty(n, 4), c.means.new_empty(n, 3))
         bad = torch.zeros(n, dtype=torch.bool, device=dev)
-        host = lambda x: x.detach().cpu().contiguous().numpy()  # noqa: E731  (a no-op copy: CPU, checked above)
+        host = lambda x: x.detach().cpu().contiguous().numpy()  # noqa: E731  device: CPU by contract (checked above)
         kernel(host(index), host(c.means), host(c.quats), host(c.scales), host(self.d_means[k]),
                host(self.d_quats[k]), host(self.d_scales[k]), host(self.d_means[k1]), host(self.d_quats[k1]),
                host(self.d_scales[k1]), float(w), *(host(o) for o in out), host(bad))
