@@ -151,7 +151,7 @@ class TorchRuntime:
         self.model = model.eval() if dtype is None else model.to(dtype).eval()
         self.config = model.config
         self.backbone = model.backbone
-        self.velocity_model = self.backbone.velocity_model
+        self.velocity_model, self.latent_model = self.backbone.velocity_model, self.backbone.latent_model
         self.latent = self.backbone.latent
         self.encodes_empty_prompt = self.backbone.encodes_empty_prompt
         self.networks = model.networks()
@@ -210,7 +210,7 @@ class TorchRuntime:
     def encode_image(self, video: Tensor) -> Tensor:
         """(B, 3, 1, H, W) in [−1, 1] → (B, c, 1, H/s, W/s) DiT-scaled latent (posterior mean), float32."""
         with self._use("vae"):
-            return self.backbone.encode_video(video.to(self.dtype)).float()
+            return self.latent_model.encode_latents(video.to(self.dtype)).float()
 
     def encode_text(self, prompt: str) -> tuple[Tensor, Tensor]:
         """Prompt → tokens (1, L, d_text) float32, mask (1, L) bool on the device (errors of the backbone's)."""
@@ -237,7 +237,7 @@ class TorchRuntime:
     def decode_latents(self, latents: Tensor) -> Tensor:
         """(B, c, n, h, w) DiT-scaled latents → (B, 3, 1 + t·(n − 1), h·s, w·s) in about [−1, 1], float32."""
         with self._use("vae"):
-            return self.backbone.decode_latents(latents.to(self.dtype)).float()
+            return self.latent_model.decode_latents(latents.to(self.dtype)).float()
 
     def motion(self, out: LDRMOutput, frames: Tensor, frame_times: Tensor, viewmats: Tensor, Ks: Tensor,
                sources: Tensor, times: Tensor) -> LDRMOutput:

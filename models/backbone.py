@@ -92,14 +92,16 @@ class Backbone(nn.Module, abc.ABC):
     latent: LatentFormat
     encodes_empty_prompt: bool = False
 
+    @property
     @abc.abstractmethod
-    def encode_video(self, video: Tensor, generator: torch.Generator | None = None) -> Tensor:
-        """(B, 3, T, H, W) in [−1, 1], T = 1 + t·k → normalised latents (B, c, n, h, w): the posterior mean, or a
-        sample drawn with ``generator``."""
+    def latent_model(self) -> nn.Module:
+        """The ``nn.Module`` that maps pixels to the DiT's normalised latents and back (ours: the VAE; a diffusers
+        backbone: itself):
 
-    @abc.abstractmethod
-    def decode_latents(self, latents: Tensor) -> Tensor:
-        """Normalised latents (B, c, n, h, w) → video (B, 3, T, H, W) in about [−1, 1]."""
+        - ``encode_latents(video, generator=None)``: (B, 3, T, H, W) in [−1, 1], T = 1 + t·k, H, W multiples of s →
+          (B, c, n, H/s, W/s), the posterior mean or a sample drawn with ``generator``; ValueError on another shape;
+        - ``decode_latents(latents)``: (B, c, n, h, w) → video (B, 3, 1 + t·(n − 1), s·h, s·w) in about [−1, 1].
+        """
 
     @abc.abstractmethod
     def encode_text(self, prompts: list[str]) -> tuple[Tensor, Tensor]:

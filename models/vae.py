@@ -429,12 +429,12 @@ class VideoVAE(nn.Module, PretrainedMixin):
         z = self.sample(mean, logvar, generator) if sample_posterior else mean
         return self.decode(z), mean, logvar
 
-    def encode_latents(self, video: Tensor, sample_posterior: bool = False,
-                       generator: torch.Generator | None = None) -> Tensor:
-        """Video → DiT latents a·(z − b) (``scaling_factor``, ``shift_factor``), z the posterior mean unless
-        ``sample_posterior``."""
+    def encode_latents(self, video: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """Video (B, 3, T, H, W) in [−1, 1] → DiT latents a·(z − b) (B, c, n, H/8, W/8) (``scaling_factor``,
+        ``shift_factor``), z the posterior mean, or a sample drawn with ``generator``. ValueError from
+        :func:`check_video`."""
         mean, logvar = self.encode(video)
-        z = self.sample(mean, logvar, generator) if sample_posterior else mean
+        z = mean if generator is None else self.sample(mean, logvar, generator)
         return (z - self.config.shift_factor) * self.config.scaling_factor
 
     def decode_latents(self, latents: Tensor) -> Tensor:

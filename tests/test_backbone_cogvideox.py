@@ -213,13 +213,13 @@ def test_training_sigmas_are_sigmas_of_uniform_timesteps(backbone):
 # ---------------------------------------------------------------------------------------------- VAE, text
 
 
-def test_encode_video_scales_the_posterior_and_decode_inverts_the_scale(backbone):
+def test_encode_latents_scales_the_posterior_and_decode_inverts_the_scale(backbone):
     g = torch.Generator().manual_seed(0)
     video = torch.rand(1, 3, FRAMES, HEIGHT, WIDTH, generator=g) * 2 - 1
     with torch.no_grad():
         dist = backbone.vae.encode(video).latent_dist
-        mean = backbone.encode_video(video)
-        sample = backbone.encode_video(video, generator=torch.Generator().manual_seed(3))
+        mean = backbone.encode_latents(video)
+        sample = backbone.encode_latents(video, generator=torch.Generator().manual_seed(3))
         decoded = backbone.decode_latents(mean)
         direct = backbone.vae.decode(dist.mode()).sample
     assert mean.shape == (1, 4, 3, 2, 2) and mean.dtype == torch.float32
@@ -228,9 +228,9 @@ def test_encode_video_scales_the_posterior_and_decode_inverts_the_scale(backbone
     assert decoded.shape == video.shape
     torch.testing.assert_close(decoded, direct, rtol=0, atol=1e-5)
     with pytest.raises(ValueError):
-        backbone.encode_video(video[:, :, :8])
+        backbone.encode_latents(video[:, :, :8])
     with pytest.raises(ValueError):
-        backbone.encode_video(video[..., :12])
+        backbone.encode_latents(video[..., :12])
     with pytest.raises(TypeError):
         backbone.encode_text(PROMPT)
 
@@ -253,7 +253,7 @@ def test_euler_over_sigmas_reproduces_the_pipelines_ddim_latents(backbone, steps
                        generator=torch.Generator().manual_seed(7), latents=noise.clone(), output_type="latent",
                        max_sequence_length=TEXT_LENGTH).frames
         # The pipeline samples the image posterior with its generator: the same seed gives the same image latent.
-        image_latent = backbone.encode_video((2 * image - 1).unsqueeze(2), generator=torch.Generator().manual_seed(7))
+        image_latent = backbone.encode_latents((2 * image - 1).unsqueeze(2), generator=torch.Generator().manual_seed(7))
         text, mask = backbone.encode_text([PROMPT])
         ours = euler_sample(lambda x, s: backbone(x, s.expand(1), image_latent, plucker, text, mask),
                             noise.permute(0, 2, 1, 3, 4), backbone.sigmas(steps))

@@ -80,25 +80,25 @@ def test_not_a_ti2v_transformer_is_refused():
         WanBackbone(**parts)
 
 
-def test_encode_video_normalises_per_channel_and_decode_inverts_it(backbone):
+def test_encode_latents_normalises_per_channel_and_decode_inverts_it(backbone):
     video = torch.rand(1, 3, 5, 32, 32, generator=torch.Generator().manual_seed(0)) * 2 - 1
     c = backbone.vae.config
     mean = torch.tensor(c.latents_mean).view(1, 48, 1, 1, 1)
     std = torch.tensor(c.latents_std).view(1, 48, 1, 1, 1)
     with torch.no_grad():
         z = backbone.vae.encode(video).latent_dist.mode()
-        latents = backbone.encode_video(video)
+        latents = backbone.encode_latents(video)
         assert latents.shape == (1, 48, 2, 2, 2) and latents.dtype == torch.float32
         torch.testing.assert_close(latents, (z - mean) / std)
         torch.testing.assert_close(backbone.decode_latents(latents), backbone.vae.decode(z).sample,
                                    atol=1e-5, rtol=1e-5)
-        a = backbone.encode_video(video, torch.Generator().manual_seed(1))
-        b = backbone.encode_video(video, torch.Generator().manual_seed(1))
+        a = backbone.encode_latents(video, torch.Generator().manual_seed(1))
+        b = backbone.encode_latents(video, torch.Generator().manual_seed(1))
     assert torch.equal(a, b) and not torch.equal(a, latents)
     with pytest.raises(ValueError, match="frames"):
-        backbone.encode_video(video[:, :, :4])
+        backbone.encode_latents(video[:, :, :4])
     with pytest.raises(ValueError, match="multiples of 16"):
-        backbone.encode_video(video[..., :24])
+        backbone.encode_latents(video[..., :24])
     with pytest.raises(ValueError, match="latents"):
         backbone.decode_latents(latents[:, :16])
 
@@ -211,7 +211,7 @@ def test_tensors_are_made_on_the_inputs_device(backbone, request):
         request.getfixturevalue("no_implicit_device")
         outputs = [backbone(x, sigma, image_latent, plucker, text, mask),
                    backbone(x, sigma, image_latent, plucker, None, None),
-                   backbone.decode_latents(backbone.encode_video(video)), backbone.sigmas(3),
+                   backbone.decode_latents(backbone.encode_latents(video)), backbone.sigmas(3),
                    backbone.training_sigmas(4, torch.Generator().manual_seed(0))]
     assert all(o.device.type == "cpu" for o in outputs)
     assert torch.equal(outputs[1], expected)
@@ -224,11 +224,11 @@ def test_on_the_device(backbone, device, full_float32):
     sigma = torch.tensor([0.7])
     video = torch.rand(1, 3, 5, 32, 32, generator=torch.Generator().manual_seed(0)) * 2 - 1
     with torch.no_grad():
-        cpu = [backbone(x, sigma, image_latent, plucker, None, None), backbone.encode_video(video)]
+        cpu = [backbone(x, sigma, image_latent, plucker, None, None), backbone.encode_latents(video)]
         backbone.to(device)
         text, mask = backbone.encode_text([""])
         args = [t.to(device) for t in (x, sigma, image_latent, plucker)]
-        out = [backbone(*args, None, None), backbone.encode_video(video.to(device)),
+        out = [backbone(*args, None, None), backbone.encode_latents(video.to(device)),
                backbone(*args, text, mask)]
         sig = backbone.training_sigmas(8, torch.Generator(device).manual_seed(0))
     assert text.device == mask.device == sig.device == out[0].device == out[1].device
@@ -255,7 +255,7 @@ def test_euler_over_the_backbone_sigmas_reproduces_the_pipeline(backbone):
                          output_type="latent", return_dict=False)[0]
         pixels = pipe.video_processor.preprocess(image, height=HEIGHT, width=WIDTH)
     with torch.no_grad():
-        image_latent = backbone.encode_video(pixels.unsqueeze(2))
+        image_latent = backbone.encode_latents(pixels.unsqueeze(2))
         text, mask = backbone.encode_text([PROMPT])
         plucker = torch.zeros(1, backbone.latent.camera_channels, *LATENT)
         ours = euler_sample(lambda x, s: backbone(x, s.expand(1), image_latent, plucker, text, mask),

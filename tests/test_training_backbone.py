@@ -370,7 +370,7 @@ def test_flow_loss_is_the_backbones_velocity_error_with_the_empty_prompt_for_dro
         flow = TrainingModule(model, stage)(batch, torch.Generator().manual_seed(5))["flow"]
         gen = torch.Generator().manual_seed(5)
         torch.rand(2, generator=gen)  # caption dropout (all dropped)
-        x0 = backbone.encode_video(batch["video"] * 2 - 1)
+        x0 = backbone.encode_latents(batch["video"] * 2 - 1)
         sigma = backbone.training_sigmas(2, gen)
         noise = torch.randn(x0.shape, generator=gen)
         s = sigma[:, None, None, None, None]

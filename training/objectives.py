@@ -166,7 +166,7 @@ class TrainingModule(nn.Module):
         if {"diffusion", "reconstruction", "distill", "tracking"} & set(st.objectives):
             backbone = self.backbone()
             with torch.no_grad():  # the VAE is frozen after its own stage
-                latents = backbone.encode_video(video).to(video.dtype)  # float32 targets under bf16 autocast
+                latents = backbone.latent_model.encode_latents(video).to(video.dtype)  # float32 under bf16 autocast
             plucker = self._plucker(batch, backbone.latent, tuple(latents.shape[2:]))
         if "diffusion" in st.objectives:
             losses["flow"] = self._diffusion(backbone, latents, plucker, batch, generator)
@@ -273,7 +273,7 @@ class TrainingModule(nn.Module):
     def _decoded_frames(self, latents: Tensor) -> Tensor:
         """The VAE's decoding of DiT-scaled ``latents`` (B, c, n, h, w): (B, T, 3, H, W) in [0, 1], no gradient."""
         with torch.no_grad():
-            video = self.backbone().decode_latents(latents)  # (B, 3, T, H, W) in about [−1, 1]
+            video = self.backbone().latent_model.decode_latents(latents)  # (B, 3, T, H, W) in about [−1, 1]
         return ((video.float() + 1) / 2).clamp(0, 1).transpose(1, 2)
 
     def _tracking(self, latents: Tensor, plucker: Tensor, batch: dict, gen: torch.Generator) -> dict[str, Tensor]:

@@ -99,7 +99,7 @@ class CogVideoXBackbone(DiffusersBackbone):
 
     # ---------------------------------------------------------------------------------------------- VAE, text
 
-    def encode_video(self, video: Tensor, generator: torch.Generator | None = None) -> Tensor:
+    def encode_latents(self, video: Tensor, generator: torch.Generator | None = None) -> Tensor:
         """(B, 3, T, H, W) in [−1, 1], T = 1 + 4k, H, W multiples of 8 → ``scaling_factor·z`` (B, c, n, h, w)
         float32, z the posterior mean or ``latent_dist.sample(generator)`` (as the pipeline's ``prepare_latents``);
         ``invert_scale_latents`` is applied in :meth:`forward`. ValueError on a wrong shape."""
@@ -173,7 +173,7 @@ class CogVideoXBackbone(DiffusersBackbone):
         Args:
             x: (B, c, n, h, w) the state at σ.
             sigma: (B,) σ in [0, 1], float32 or float64.
-            image_latent: (B, c, 1, h, w) :meth:`encode_video` of the photograph (divided by scaling_factor² when
+            image_latent: (B, c, 1, h, w) :meth:`encode_latents` of the photograph (divided by scaling_factor² when
                 ``invert_scale_latents`` is set, as the pipeline).
             plucker: (B, 6·4·8², n, h, w) packed Plücker rays.
             text: (B, L, d_text) :meth:`encode_text` tokens, or None for :meth:`empty_text`.

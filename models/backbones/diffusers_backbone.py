@@ -120,6 +120,11 @@ class DiffusersBackbone(Backbone):
         return z.to(device=video.device, dtype=torch.float32)
 
     @property
+    def latent_model(self) -> DiffusersBackbone:
+        """The backbone itself: its ``encode_latents``/``decode_latents`` normalise as the diffusers pipeline does."""
+        return self
+
+    @property
     def velocity_model(self) -> DiffusersBackbone:
         """The backbone itself: its ``forward`` returns the velocity in our convention."""
         return self

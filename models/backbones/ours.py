@@ -33,14 +33,10 @@ class OursBackbone(Backbone):
         self.logit_normal = tuple(logit_normal)
         self.latent = vae.config.latent_format
 
-    def encode_video(self, video: Tensor, generator: torch.Generator | None = None) -> Tensor:
-        """:meth:`VideoVAE.encode_latents`: (B, 3, T, H, W) in [−1, 1] → DiT-scaled latents (B, c, n, H/8, W/8), the
-        posterior mean or a sample drawn with ``generator``. ValueError from :meth:`VideoVAE.encode`."""
-        return self.vae.encode_latents(video, sample_posterior=generator is not None, generator=generator)
-
-    def decode_latents(self, latents: Tensor) -> Tensor:
-        """:meth:`VideoVAE.decode_latents`: (B, c, n, h, w) → (B, 3, 1 + 4(n − 1), 8h, 8w), nominally in [−1, 1]."""
-        return self.vae.decode_latents(latents)
+    @property
+    def latent_model(self) -> VideoVAE:
+        """The VAE (:meth:`VideoVAE.encode_latents`, :meth:`VideoVAE.decode_latents`)."""
+        return self.vae
 
     def encode_text(self, prompts: list[str]) -> tuple[Tensor, Tensor]:
         """:meth:`TextEncoder.encode`: B prompts → tokens (B, L, d_text) and mask (B, L) bool on the encoder's device.

@@ -98,7 +98,7 @@ class WanBackbone(DiffusersBackbone):
         inv_std = 1.0 / torch.tensor(c.latents_std, dtype=torch.float32, device=device).view(1, c.z_dim, 1, 1, 1)
         return mean, inv_std
 
-    def encode_video(self, video: Tensor, generator: torch.Generator | None = None) -> Tensor:
+    def encode_latents(self, video: Tensor, generator: torch.Generator | None = None) -> Tensor:
         """(B, 3, T, H, W) in [−1, 1], T = 1 + 4k, H, W multiples of 16 → normalised latents
         (B, 48, n, H/16, W/16) float32: the posterior's mode, or a sample drawn with ``generator``. ValueError on a
         wrong
