@@ -152,6 +152,7 @@ class TorchRuntime:
         self.config = model.config
         self.backbone = model.backbone
         self.velocity_model, self.latent_model = self.backbone.velocity_model, self.backbone.latent_model
+        self.text_model = self.backbone.text_model
         self.latent = self.backbone.latent
         self.encodes_empty_prompt = self.backbone.encodes_empty_prompt
         self.networks = model.networks()
@@ -215,7 +216,7 @@ class TorchRuntime:
     def encode_text(self, prompt: str) -> tuple[Tensor, Tensor]:
         """Prompt → tokens (1, L, d_text) float32, mask (1, L) bool on the device (errors of the backbone's)."""
         with self._use("text_encoder"):
-            tokens, mask = self.backbone.encode_text([prompt])
+            tokens, mask = self.text_model.encode_text([prompt])
         return tokens.float().to(self.device), mask.to(self.device)
 
     def velocity(self, x: Tensor, sigma: Tensor, image_latent: Tensor, plucker: Tensor, text: Tensor | None,

@@ -103,9 +103,12 @@ class Backbone(nn.Module, abc.ABC):
         - ``decode_latents(latents)``: (B, c, n, h, w) → video (B, 3, 1 + t·(n − 1), s·h, s·w) in about [−1, 1].
         """
 
+    @property
     @abc.abstractmethod
-    def encode_text(self, prompts: list[str]) -> tuple[Tensor, Tensor]:
-        """Prompts → tokens (B, L, d_text) and mask (B, L) bool (True = a token the transformer attends to)."""
+    def text_model(self) -> nn.Module:
+        """The ``nn.Module`` whose ``encode_text(prompts)`` maps B prompts to tokens (B, L, d_text) and mask (B, L) bool
+        (True = a token the transformer attends to) on its own device (ours: the text encoder; a diffusers backbone:
+        itself)."""
 
     @property
     @abc.abstractmethod

@@ -5,7 +5,7 @@ sharing): h_0 = Embed(ids); h' = h + SelfAttn(RMSNorm(h); B); h = h' + W_o(GELU(
 out = RMSNorm(h_L). B is the learned relative position bias per (bucket, head), computed once and shared by all
 layers; logits are not scaled by 1/√d_kv (folded into W_q's initialisation). :meth:`TextEncoderConfig.paper` is
 the T5-v1.1-XXL encoder's shape; :meth:`TextEncoder.forward` takes ids from any tokenizer,
-:meth:`TextEncoder.encode` uses :class:`ByteTokenizer`."""
+:meth:`TextEncoder.encode_text` uses :class:`ByteTokenizer`."""
 from __future__ import annotations
 
 import math
@@ -81,7 +81,7 @@ class TextEncoderConfig:
         d_ff: hidden width of the gated-GELU feed-forward.
         num_buckets: relative-position buckets (even, ≥ 4; half per direction).
         max_distance: offsets ≥ this share the last log-spaced bucket.
-        max_length: tokenizer length limit used by :meth:`TextEncoder.encode`.
+        max_length: tokenizer length limit used by :meth:`TextEncoder.encode_text`.
         eps: RMSNorm epsilon.
 
     Raises:
@@ -259,7 +259,7 @@ class TextEncoder(nn.Module, PretrainedMixin):
         return self.final_norm(x) * mask[..., None].to(x.dtype)
 
     @torch.no_grad()
-    def encode(self, prompts: list[str], padding: str = "longest") -> tuple[Tensor, Tensor]:
+    def encode_text(self, prompts: list[str], padding: str = "longest") -> tuple[Tensor, Tensor]:
         """:class:`ByteTokenizer` then :meth:`forward`, without gradients: → tokens (B, L, d_model) and mask (B, L)
         on the model's device. ValueError from the tokenizer."""
         ids, mask = self.tokenizer(prompts, padding=padding)

@@ -74,13 +74,13 @@ def test_attention_layer_matches_explicit_reference():
 
 def test_padding_does_not_change_token_outputs():
     model = _model(2)
-    alone, mask_alone = model.encode(["a cat"])
-    batch, mask_batch = model.encode(["a cat", "a much longer prompt about a dog running"])
+    alone, mask_alone = model.encode_text(["a cat"])
+    batch, mask_batch = model.encode_text(["a cat", "a much longer prompt about a dog running"])
     n = int(mask_alone.sum())
     assert n == 7 and int(mask_batch[0].sum()) == n and mask_batch.shape[1] > n
     assert torch.allclose(batch[0, :n], alone[0, :n], atol=1e-5)
     assert torch.equal(batch[0, n:], torch.zeros_like(batch[0, n:]))  # padded rows are zeroed
-    padded, _ = model.encode(["a cat"], padding="max_length")
+    padded, _ = model.encode_text(["a cat"], padding="max_length")
     assert padded.shape == (1, 64, 64) and torch.allclose(padded[0, :n], alone[0, :n], atol=1e-5)
     # No absolute positions: left padding (masked keys) shifts every index yet changes nothing.
     ids, mask = model.tokenizer(["a cat"])
@@ -92,7 +92,7 @@ def test_padding_does_not_change_token_outputs():
 
 def test_mask_is_needed_and_prompts_differ():
     model = _model(3)
-    a, _ = model.encode(["a red car", "a red cat"])
+    a, _ = model.encode_text(["a red car", "a red cat"])
     assert a.shape == (2, 11, 64)
     assert not torch.allclose(a[0], a[1], atol=1e-3)
     # The first tokens differ too: attention mixes in the later, different byte (bidirectional).
@@ -106,11 +106,11 @@ def test_mask_is_needed_and_prompts_differ():
 
 def test_empty_prompt_and_errors():
     model = _model(4)
-    tokens, mask = model.encode([""])
+    tokens, mask = model.encode_text([""])
     assert tokens.shape == (1, 2, 64) and mask.tolist() == [[True, True]]
     assert torch.isfinite(tokens).all()
     with pytest.raises(ValueError, match="prompts"):
-        model.encode([])
+        model.encode_text([])
     with pytest.raises(ValueError, match="ids must lie"):
         model(torch.tensor([[1, 300]]))
     with pytest.raises(ValueError, match="at least one real token"):
@@ -136,8 +136,8 @@ def test_save_from_pretrained_round_trip(tmp_path):
     assert loaded.config == model.config and loaded.tokenizer.max_length == 32
     for k, v in model.state_dict().items():
         assert torch.equal(v, loaded.state_dict()[k]), k
-    a, _ = model.encode(["round trip"])
-    b, _ = loaded.encode(["round trip"])
+    a, _ = model.encode_text(["round trip"])
+    b, _ = loaded.encode_text(["round trip"])
     assert torch.equal(a, b)
 
 

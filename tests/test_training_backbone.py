@@ -183,7 +183,7 @@ def test_the_saved_model_reloads_with_the_trained_velocity(run):
     plucker = torch.randn(2, fmt.camera_channels, n, h, w, generator=g)
     sigma = torch.tensor([0.3, 0.8])
     with torch.no_grad():
-        text, mask = model.backbone.encode_text(["a red car drives down the street", ""])
+        text, mask = model.backbone.text_model.encode_text(["a red car drives down the street", ""])
         trained = model.backbone(x, sigma, image, plucker, text, mask)
         loaded = reloaded.backbone(x, sigma, image, plucker, text, mask)
         initial = BackboneModel.from_pretrained(run["init"]).backbone(x, sigma, image, plucker, text, mask)
@@ -326,7 +326,7 @@ def test_lora_starts_as_the_loaded_transformer_and_merges_under_its_own_names(na
             torch.randn(1, fmt.latent_channels, 1, h, w, generator=g),
             torch.randn(1, fmt.camera_channels, n, h, w, generator=g))
     with torch.no_grad():
-        text, mask = backbone.encode_text(["a dog runs"])
+        text, mask = backbone.text_model.encode_text(["a dog runs"])
         base = backbone(*args, text, mask)
         count = add_lora(transformer, LoraSettings(rank=2, alpha=4), seed=1)
         assert count == len(lora_layers(transformer)) > 0

@@ -235,9 +235,9 @@ class TrainingModule(nn.Module):
         with torch.no_grad():  # frozen text encoder (as the paper's frozen T5)
             if backbone.encodes_empty_prompt:  # its unconditional input: the embedding of "" (text=None)
                 prompts = [c if k else "" for c, k in zip(captions, keep.tolist(), strict=True)]
-                text, mask = backbone.encode_text(prompts)
+                text, mask = backbone.text_model.encode_text(prompts)
             else:  # ours: no prompt is no text tokens, and an all-false mask is exactly that path
-                text, mask = backbone.encode_text(captions)
+                text, mask = backbone.text_model.encode_text(captions)
                 mask = mask.to(dev) & keep[:, None]
         text, mask = text.to(dev), mask.to(dev)
         image_latent = latents[:, :, :1]

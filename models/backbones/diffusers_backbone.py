@@ -125,6 +125,11 @@ class DiffusersBackbone(Backbone):
         return self
 
     @property
+    def text_model(self) -> DiffusersBackbone:
+        """The backbone itself: its ``encode_text`` runs the diffusers pipeline's ``encode_prompt``."""
+        return self
+
+    @property
     def velocity_model(self) -> DiffusersBackbone:
         """The backbone itself: its ``forward`` returns the velocity in our convention."""
         return self

@@ -38,10 +38,10 @@ class OursBackbone(Backbone):
         """The VAE (:meth:`VideoVAE.encode_latents`, :meth:`VideoVAE.decode_latents`)."""
         return self.vae
 
-    def encode_text(self, prompts: list[str]) -> tuple[Tensor, Tensor]:
-        """:meth:`TextEncoder.encode`: B prompts → tokens (B, L, d_text) and mask (B, L) bool on the encoder's device.
-        ValueError from the tokenizer."""
-        return self.text_encoder.encode(prompts)
+    @property
+    def text_model(self) -> TextEncoder:
+        """The text encoder (:meth:`TextEncoder.encode_text`)."""
+        return self.text_encoder
 
     @property
     def velocity_model(self) -> VideoDiT:
