@@ -1,5 +1,6 @@
 """Issue 28: the CPU thread settings of diff4splat/utils/devices.py reach the OpenMP runtime that torch, MKL and numba
-share (idle threads sleep: two runs at once share the cores), and the thread counts follow the CPU affinity.
+share (idle threads sleep: two runs at once share the cores), and the thread counts follow the CPU affinity; issue 61:
+torch's large CPU tensors get transparent huge pages.
 
 Each check runs in a fresh interpreter: the runtime reads its environment once, when torch loads it, and this
 test process loaded it long ago.
@@ -15,7 +16,13 @@ from pathlib import Path
 
 import pytest
 
-from diff4splat.utils.devices import THREAD_ENV, USER_THREAD_VARIABLES, set_thread_env
+from diff4splat.utils.devices import (
+    ALLOCATOR_ENV,
+    THREAD_ENV,
+    USER_THREAD_VARIABLES,
+    set_allocator_env,
+    set_thread_env,
+)
 
 REPO = Path(__file__).resolve().parent.parent
 CHILD = """
@@ -73,3 +80,35 @@ def test_thread_counts_follow_the_cpu_affinity():
     first = min(os.sched_getaffinity(0))
     out, shown = _child({}, ("taskset", "-c", str(first)))
     assert out["torch"] == out["numba"] == out["cv2"] == out["cpus"] == 1 and shown["OMP_NUM_THREADS"] == "1"
+
+
+def test_set_allocator_env_asks_for_huge_pages_unless_the_user_chose():
+    env = {"PATH": "/bin"}
+    assert set_allocator_env(env) == ALLOCATOR_ENV == {"THP_MEM_ALLOC_ENABLE": "1"}
+    assert env == {"PATH": "/bin", "THP_MEM_ALLOC_ENABLE": "1"}
+    env = {"THP_MEM_ALLOC_ENABLE": "0"}
+    assert set_allocator_env(env) == {} and env == {"THP_MEM_ALLOC_ENABLE": "0"}
+
+
+HUGE = """
+import diff4splat.cli, torch
+x = torch.ones(64 << 18)  # 64 MiB, touched
+print([int(line.split()[1]) for line in open("/proc/self/smaps_rollup") if line.startswith("AnonHugePages")][0])
+"""
+
+
+def test_torch_large_cpu_tensors_get_transparent_huge_pages():
+    """In a fresh interpreter that imports what the command imports, a 64 MiB tensor is backed by huge pages (the
+    kernel's count of the process's anonymous huge pages); with the user's THP_MEM_ALLOC_ENABLE=0, by none."""
+    mode = Path("/sys/kernel/mm/transparent_hugepage/enabled")
+    if not mode.exists() or "[never]" in mode.read_text() or not Path("/proc/self/smaps_rollup").exists():
+        pytest.skip("the kernel offers no transparent huge pages")
+    kb = {}
+    for value in (None, "0"):
+        env = {k: v for k, v in os.environ.items() if k != "THP_MEM_ALLOC_ENABLE"}
+        env.update({} if value is None else {"THP_MEM_ALLOC_ENABLE": value})
+        run = subprocess.run([sys.executable, "-c", HUGE], capture_output=True, text=True, env=env, cwd=REPO,
+                             timeout=120)
+        assert run.returncode == 0, run.stderr[-2000:]
+        kb[value] = int(run.stdout.split()[-1])
+    assert kb[None] >= 32 * 1024 and kb["0"] < 32 * 1024, kb

@@ -43,3 +43,15 @@ def test_invalid_fields_raise_naming_the_field(field, value, match):
     a[field] = value
     with pytest.raises(ValueError, match=match):
         Gaussians(**a)
+
+
+def test_a_cast_that_underflows_a_scale_is_refused_and_a_move_keeps_the_values():
+    """``to`` validates again when a dtype changes (1e-50 m is 0 in float32, which no Gaussian may have), not when only
+    the device does; ``detach`` keeps the values."""
+    a = {k: v.double() for k, v in _args().items()}
+    a["scales"][0, 0] = 1e-50
+    g = Gaussians(**a)
+    with pytest.raises(ValueError, match="scales must be > 0"):
+        g.to(torch.float32)
+    same = g.to("cpu").detach()
+    assert all(torch.equal(getattr(same, k), v) for k, v in a.items())

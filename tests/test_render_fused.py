@@ -151,3 +151,4 @@ def test_rasterize_compositor_argument():
     torch.testing.assert_close(a, b, atol=1e-5, rtol=0)
     with pytest.raises(ValueError, match="compositor"):
         rasterize(*args, compositor="cuda")
+

@@ -112,8 +112,9 @@ def fill_empty_depth(depths: Tensor, alphas: Tensor, fallback: float) -> Tensor:
     ``depths``: (T, H, W) metres, 0 where empty; ``alphas``: (T, H, W) coverage in [0, 1]; ``fallback`` > 0.
     """
     covered = alphas >= ALPHA_MIN
-    far = float(depths[covered].max()) if bool(covered.any()) else float(fallback)
-    return torch.where(covered & (depths > 0), depths, torch.full_like(depths, far))
+    # depths ≥ 0, so the largest of the covered is the largest with the uncovered read as 0 (no boolean gather)
+    far = float(torch.where(covered, depths, 0.0).amax()) if bool(covered.any()) else float(fallback)
+    return torch.where(covered & (depths > 0), depths, far)
 
 
 _DEFORMATION_KEYS = ("times", "d_means", "d_quats", "d_scales")

@@ -45,9 +45,20 @@ def to_uint8(images: Tensor | np.ndarray, name: str = "images") -> np.ndarray:
         return images
     if not np.issubdtype(images.dtype, np.floating):
         raise ValueError(f"{name} must be uint8 or floating point in [0, 1], got dtype {images.dtype}")
-    if not np.isfinite(images).all():
-        raise ValueError(f"{name} contains NaN or inf values")
-    return np.round(np.clip(images, 0.0, 1.0) * 255.0).astype(np.uint8)
+    flat = np.ascontiguousarray(images).reshape(-1)
+    out = np.empty(flat.shape, np.uint8)
+    for start in range(0, flat.size, _CHUNK):  # chunks: no full-size float temporaries
+        x = flat[start:start + _CHUNK]
+        if not np.isfinite(x).all():
+            raise ValueError(f"{name} contains NaN or inf values")
+        x = np.clip(x, 0.0, 1.0)
+        x *= 255.0
+        out[start:start + _CHUNK] = np.rint(x, out=x)
+    return out.reshape(images.shape)
+
+
+_CHUNK = 1 << 20
+"""Values :func:`to_uint8` converts at a time."""
 
 
 def check_video_size(width: int, height: int, knobs: str = "the output size") -> None:

@@ -50,16 +50,18 @@ def render_path(
     bg = torch.tensor([background], dtype=dtype, device=device)
     viewmats = cameras.viewmats.to(device=device, dtype=dtype)
     Ks = cameras.Ks.to(device=device, dtype=dtype)
-    colors, depths, alphas = [], [], []
-    for i in tqdm(range(len(cameras)), desc="render", disable=not progress, leave=False):
+    T, H, W = len(cameras), cameras.height, cameras.width
+    for i in tqdm(range(T), desc="render", disable=not progress, leave=False):
         g = scene.at(float(cameras.times[i]))
         out, alpha, _ = rasterize(g.means, g.quats, g.scales, g.opacities, g.sh, viewmats[i:i + 1],
-                                  Ks[i:i + 1], cameras.width, cameras.height,
-                                  sh_degree=g.sh_degree, backgrounds=bg, render_mode="RGB+ED", **rasterize_kwargs)
-        colors.append(out[0, ..., :3].clamp(0, 1))
-        depths.append(out[0, ..., 3])
-        alphas.append(alpha[0, ..., 0])
-    return torch.stack(colors), torch.stack(depths), torch.stack(alphas)
+                                  Ks[i:i + 1], W, H, sh_degree=g.sh_degree, backgrounds=bg, render_mode="RGB+ED",
+                                  **rasterize_kwargs)
+        if i == 0:  # the outputs filled frame by frame (no stack of T frames): the renderer's dtype, the scene's device
+            colors, depths = out.new_empty(T, H, W, 3), out.new_empty(T, H, W)
+            alphas = alpha.new_empty(T, H, W)
+        torch.clamp(out[0, ..., :3], 0, 1, out=colors[i])
+        depths[i], alphas[i] = out[0, ..., 3], alpha[0, ..., 0]
+    return colors, depths, alphas
 
 
 def render_rolling_shutter(

@@ -83,12 +83,16 @@ class Gaussians:
         return _unchecked(Gaussians, {f.name: getattr(self, f.name)[index] for f in fields(self)})
 
     def to(self, *args, **kwargs) -> Gaussians:
-        """Move/cast every tensor (``Tensor.to`` arguments)."""
-        return Gaussians(*(getattr(self, f.name).to(*args, **kwargs) for f in fields(self)))
+        """Move/cast every tensor (``Tensor.to`` arguments); validated again only if a dtype changed (a cast can
+        overflow or underflow). ValueError as :meth:`validate`."""
+        moved = {f.name: getattr(self, f.name).to(*args, **kwargs) for f in fields(self)}
+        if all(moved[name].dtype == getattr(self, name).dtype for name in moved):
+            return _unchecked(Gaussians, moved)  # the same values on another device
+        return Gaussians(**moved)
 
     def detach(self) -> Gaussians:
-        """Every tensor detached from autograd (the same storage)."""
-        return Gaussians(*(getattr(self, f.name).detach() for f in fields(self)))
+        """Every tensor detached from autograd (the same storage and values: not validated again)."""
+        return _unchecked(Gaussians, {f.name: getattr(self, f.name).detach() for f in fields(self)})
 
 
 def _unchecked(cls, values: dict):

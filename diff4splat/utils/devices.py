@@ -3,8 +3,9 @@ their inputs' device (a factory call without ``device=`` says why, ``# device: â
 only; random draws use a CPU generator; ``--device auto`` is CUDA when present, else the CPU (:func:`resolve_device`).
 
 CPU threads: torch's libgomp, shared with MKL and numba, spins idle threads, starving concurrent runs;
-:data:`THREAD_ENV` makes them sleep. libgomp reads its environment once, when loaded, so this module sets it before
-importing torch, and ``diff4splat`` imports this module first.
+:data:`THREAD_ENV` makes them sleep. CPU memory: :data:`ALLOCATOR_ENV` backs torch's large CPU tensors with
+transparent huge pages (docs/DESIGN.md, "Devices"). libgomp and torch's allocator read their environment once, when
+loaded, so this module sets both before importing torch, and ``diff4splat`` imports this module first.
 """
 from __future__ import annotations
 
@@ -29,11 +30,26 @@ def set_thread_env(environ: MutableMapping[str, str] = os.environ) -> dict[str, 
     return dict(THREAD_ENV)
 
 
+ALLOCATOR_ENV = {"THP_MEM_ALLOC_ENABLE": "1"}
+"""Environment :func:`set_allocator_env` gives torch's CPU allocator: tensors of 2 MiB and more aligned to 2 MiB and
+advised as transparent huge pages (``madvise(MADV_HUGEPAGE)``; no effect where the kernel's THP mode is "never")."""
+
+
+def set_allocator_env(environ: MutableMapping[str, str] = os.environ) -> dict[str, str]:
+    """Put each :data:`ALLOCATOR_ENV` variable the user has not set into ``environ``; returns the variables it set.
+    Affects only a torch loaded afterwards."""
+    chosen = {name: value for name, value in ALLOCATOR_ENV.items() if name not in environ}
+    environ.update(chosen)
+    return chosen
+
+
 set_thread_env()  # before torch loads libgomp (module docstring)
+set_allocator_env()  # before torch's allocator reads it
 
 import torch  # noqa: E402  (after set_thread_env)
 
-__all__ = ["AUTO", "DEVICE_HELP", "THREAD_ENV", "USER_THREAD_VARIABLES", "set_thread_env", "resolve_device",
+__all__ = ["AUTO", "DEVICE_HELP", "THREAD_ENV", "USER_THREAD_VARIABLES", "set_thread_env", "ALLOCATOR_ENV",
+           "set_allocator_env", "resolve_device",
            "synchronize", "Stopwatch", "autocast_off", "full_precision", "host_values"]
 
 AUTO = "auto"
