@@ -238,8 +238,7 @@ class OnnxRuntime:
         (z,) = self.sessions["vae_encoder"].run(None, {"video": _numpy(video, np.float32)})
         return torch.from_numpy(z)
 
-    def motion(self, out: LDRMOutput, frames: Tensor, frame_times: Tensor, viewmats: Tensor, Ks: Tensor,
-               sources: Tensor, times: Tensor) -> LDRMOutput:
+    def motion_network(self):
         """Not served (``has_motion`` is False): ValueError."""
         raise ValueError("this ONNX export has no motion network (has_motion is False): its scenes keep the "
                          "deformation network's maps")

@@ -17,6 +17,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from diff4splat.assembly.assemble import DEPTH_KINDS, assemble_scene
+from diff4splat.assembly.frame_motion import frame_motion
 from diff4splat.assembly.photo import PHOTO_EPS2D, layer_sizes
 from diff4splat.assembly.prune import settle_and_prune
 from diff4splat.cameras import (
@@ -340,8 +341,9 @@ class Diff4SplatPipeline:
         colors_from_video = cfg.generated_colors == "video" and len(frames) > 1  # the later frames' colours (assemble)
         decoded = runtime.decode_latents(latents) if colors_from_video or motion else None
         if motion:  # the motion network reads the decoded frames
-            out = runtime.motion(out, ((decoded[0].transpose(0, 1) + 1) / 2).clamp(0, 1), cameras_model.times,
-                                 cameras_model.viewmats, cameras_model.Ks, sources, key_times)
+            with runtime.motion_network() as net:
+                out = frame_motion(net, out, ((decoded[0].transpose(0, 1) + 1) / 2).clamp(0, 1), cameras_model.times,
+                                   cameras_model.viewmats, cameras_model.Ks, sources, key_times)
         if not colors_from_video:
             decoded = None
         runtime.release()  # frees an offloaded network before pruning renders

@@ -5,15 +5,15 @@ the other runtime).
 from __future__ import annotations
 
 import warnings
-from contextlib import contextmanager, nullcontext
+from collections.abc import Iterator
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 from dataclasses import fields
 from typing import Protocol, runtime_checkable
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
-from diff4splat.assembly.frame_motion import frame_motion
 from diff4splat.utils.devices import cpu_bf16_warning
 from diff4splat.utils.offload import ModelOffload, weight_bytes
 from models.backbone import LatentFormat
@@ -32,7 +32,8 @@ class NetworkRuntime(Protocol):
 
     Attributes:
         config, latent: the model's config and its VAE's :class:`models.backbone.LatentFormat`.
-        has_deformation, has_motion: whether :meth:`reconstruct` predicts deformation maps; :meth:`motion` is served.
+        has_deformation, has_motion: whether :meth:`reconstruct` predicts deformation maps; whether
+            :meth:`motion_network` is served.
         encodes_empty_prompt: whether the unconditional input is the empty prompt's embedding rather than no text.
         name, attention, compiled: "torch" or "onnxruntime"; the fused attention kernel tried first
             (:data:`ATTENTION_KERNELS`, None outside torch); whether the blocks are ``torch.compile``-d (meta.json).
@@ -68,10 +69,10 @@ class NetworkRuntime(Protocol):
     def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None, image: Tensor) -> LDRMOutput:
         """LDRM (+ deformation when ``times`` (K,) is given) → maps (B, S, H, W, ·); image (1, 3, H, W) in [−1, 1]."""
 
-    def motion(self, out: LDRMOutput, frames: Tensor, frame_times: Tensor, viewmats: Tensor, Ks: Tensor,
-               sources: Tensor, times: Tensor) -> LDRMOutput:
-        """``out`` with its deformation read from the frames (T, 3, H, W) in [0, 1] by the LDRM's motion network
-        (:func:`diff4splat.assembly.frame_motion.frame_motion`)."""
+    def motion_network(self) -> AbstractContextManager[nn.Module]:
+        """Context: the LDRM's motion network (:class:`models.motion.MotionNetwork`) on the runtime's device and in its
+        dtype for the block, for :func:`diff4splat.assembly.frame_motion.frame_motion`; ValueError where
+        ``has_motion`` is False."""
 
     def decode_latents(self, latents: Tensor) -> Tensor:
         """(1, c, n, h, w) DiT-scaled latents → (1, 3, 1 + t·(n − 1), h·s, w·s) pixels in about [−1, 1]."""
@@ -240,15 +241,13 @@ class TorchRuntime:
         with self._use("vae"):
             return self.latent_model.decode_latents(latents.to(self.dtype)).float()
 
-    def motion(self, out: LDRMOutput, frames: Tensor, frame_times: Tensor, viewmats: Tensor, Ks: Tensor,
-               sources: Tensor, times: Tensor) -> LDRMOutput:
-        """:meth:`NetworkRuntime.motion`, outputs in float32."""
+    @contextmanager
+    def motion_network(self) -> Iterator[nn.Module]:
+        """:meth:`NetworkRuntime.motion_network`: the LDRM's, moved to the device for the block if offloaded."""
+        if not self.has_motion:
+            raise ValueError("this model's LDRM has no motion network (has_motion is False)")
         with self._use("ldrm") as ldrm:
-            net = ldrm.motion
-            dt = next(net.parameters()).dtype
-            moved = frame_motion(net, out, frames.to(dt), frame_times.float(), viewmats.float(), Ks.float(), sources,
-                                 times.float())
-        return _float(moved)
+            yield ldrm.motion
 
     def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None, image: Tensor) -> LDRMOutput:
         """:class:`models.ldrm.LDRM` on latents (B, c, n, h, w), plucker (B, 6·t·s², n, h, w), times (K,) in [0, 1]

@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 from helpers import EXAMPLE_IMAGE, tiny_model
 
-import diff4splat.runtime as runtime_module
+import diff4splat.pipeline as pipeline_module
 from diff4splat.assembly.frame_motion import frame_motion, nearest_frames
 from diff4splat.cameras import camera_rays, project_points, unproject_pixels
 from diff4splat.io import load_image
@@ -172,7 +172,7 @@ def test_generate_reads_motion_from_the_decoded_frames(image, monkeypatch):
     def spy(net, out, frames, *args):
         seen["frames"] = frames
         return frame_motion(net, out, frames, *args)
-    monkeypatch.setattr(runtime_module, "frame_motion", spy)
+    monkeypatch.setattr(pipeline_module, "frame_motion", spy)
     cams = pipe.default_cameras("orbit", 9)
     res = pipe(image, cams, "", steps=1)
     frames = seen["frames"]
@@ -190,3 +190,15 @@ def test_a_still_motion_network_makes_the_scene_static_whatever_the_token_networ
     pipe = Diff4SplatPipeline(model)
     res = pipe(image, pipe.default_cameras("orbit", 9), "", steps=1)
     assert res.scene.is_static and res.scene.times is None  # no deformation file
+
+
+def test_the_runtime_lends_its_motion_network_only_where_there_is_one():
+    """``motion_network()`` yields the LDRM's own motion network (the one ``frame_motion`` calls); a model without one
+    refuses with a ValueError naming ``has_motion``."""
+    model = tiny_model(seed=0, dynamic=True, motion=True)
+    with Diff4SplatPipeline(model).runtime.motion_network() as net:
+        assert net is model.ldrm.motion
+    runtime = Diff4SplatPipeline(tiny_model(seed=0, dynamic=True)).runtime
+    assert not runtime.has_motion
+    with pytest.raises(ValueError, match="has_motion is False"), runtime.motion_network():
+        pass

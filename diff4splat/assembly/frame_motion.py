@@ -61,6 +61,7 @@ def frame_motion(
     with torch.no_grad():
         o, d = camera_rays(viewmats[sources].float(), Ks[sources].float(), W, H)
         points = o + d * distance[0].float()[..., None]  # (S, H, W, 3)
+    frames = frames.to(next(net.parameters()).dtype)  # the network's dtype (bfloat16 in a bfloat16 runtime)
     feats = net.encode(frames * 2 - 1)
     d_means = torch.zeros(K, S, H, W, 3, dtype=torch.float32, device=distance.device)
     moving = torch.zeros(K, S, H, W, dtype=torch.bool, device=distance.device)
