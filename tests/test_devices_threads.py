@@ -97,6 +97,7 @@ print([int(line.split()[1]) for line in open("/proc/self/smaps_rollup") if line.
 """
 
 
+@pytest.mark.slow
 def test_torch_large_cpu_tensors_get_transparent_huge_pages():
     """In a fresh interpreter that imports what the command imports, a 64 MiB tensor is backed by huge pages (the
     kernel's count of the process's anonymous huge pages); with the user's THP_MEM_ALLOC_ENABLE=0, by none."""
