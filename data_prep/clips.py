@@ -19,14 +19,16 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset
 
-from diff4splat.cameras import CameraPath, center_crop_box, pack_plucker, plucker_rays
+from diff4splat.cameras import CameraPath, center_crop_box, pack_plucker, plucker_rays, unproject_pixels
 from diff4splat.io import preprocess_image
 from diff4splat.utils.checks import check_int
 
 from .format import SceneMeta, SceneReader, list_scenes, timestamps_to_times
-from .scene_files import META_FILE
+from .object_motion import id_boundaries, pixel_tracks
+from .scene_files import META_FILE, NO_SURFACE
 
-__all__ = ["ClipConfig", "ClipItem", "ClipSpec", "ClipDataset", "resize_depth", "OCCLUSION_TOL_M", "OCCLUSION_TOL_REL"]
+__all__ = ["ClipConfig", "ClipItem", "ClipSpec", "ClipDataset", "resize_nearest", "OCCLUSION_TOL_M",
+           "OCCLUSION_TOL_REL"]
 
 OCCLUSION_TOL_M, OCCLUSION_TOL_REL = 0.02, 0.02
 """Visibility depth test of FORMAT.md (tracks.npz): visible iff depth ≥ z − max(0.02 m, 0.02·z)."""
@@ -106,11 +108,12 @@ class ClipSpec:
     cameras: tuple[str, ...]
 
 
-def resize_depth(depth: np.ndarray, height: int, width: int) -> np.ndarray:
-    """Centre-crop (:func:`center_crop_box`) and resize an (h, w) float32 depth map (metres, +inf invalid) to
-    (height, width) like images, by ``cv2.INTER_NEAREST_EXACT``, so every value stays a source value."""
-    y0, x0, ch, cw = center_crop_box(depth.shape[0], depth.shape[1], height, width)
-    crop = np.ascontiguousarray(depth[y0:y0 + ch, x0:x0 + cw], dtype=np.float32)
+def resize_nearest(values: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Centre-crop (:func:`center_crop_box`) and resize an (h, w) map of values that must not blend (a depth map in
+    metres with +inf invalid, an id map) to (height, width) like images, by ``cv2.INTER_NEAREST_EXACT``, so every
+    value stays a source value; the dtype is kept."""
+    y0, x0, ch, cw = center_crop_box(values.shape[0], values.shape[1], height, width)
+    crop = np.ascontiguousarray(values[y0:y0 + ch, x0:x0 + cw])
     if (ch, cw) == (height, width):
         return crop
     return cv2.resize(crop, (width, height), interpolation=cv2.INTER_NEAREST_EXACT)
@@ -131,6 +134,10 @@ class ClipDataset(Dataset):
     - ``tracks`` (N, T, 3) clip-world metres (0 pads), ``track_visibility`` (N, T) bool: in front of frame k's
       camera, inside the image, and the stored flag (reference camera) or FORMAT.md's occlusion test on the clip
       depth (other cameras; skipped without depth), ``track_mask`` (N,) bool: a real track;
+    - ``pixel_tracks`` (T, H, W, 3) clip-world metres: where the surface point seen at each pixel of frame 0 is at
+      each frame (dense 3D tracks: ``objects.npz``'s poses, FORMAT.md; a static scene's stay put),
+      ``pixel_track_valid`` (H, W) bool: known (``objects.npz`` or a static scene), a surface, not on an object
+      boundary (:func:`data_prep.object_motion.id_boundaries`);
     - ``caption`` str (``""`` without one), ``dynamic`` () bool, ``frame_indices`` (T,) int64 source frames,
       ``camera_indices`` (T,) int64 into ``meta["cameras"]``, ``scene`` str, ``index`` () int64.
 
@@ -223,7 +230,7 @@ class ClipDataset(Dataset):
         video = torch.stack([preprocess_image(reader.rgb(c, f), (H, W))
                              for c, f in zip(spec.cameras, spec.frames, strict=True)])
         if reader.has_depth:
-            depth = torch.from_numpy(np.stack([resize_depth(reader.depth(c, f), H, W)
+            depth = torch.from_numpy(np.stack([resize_nearest(reader.depth(c, f), H, W)
                                                for c, f in zip(spec.cameras, spec.frames, strict=True)]))
         else:
             depth = torch.full((T, H, W), float("inf"), device="cpu")  # items are CPU tensors (DataLoader)
@@ -241,6 +248,7 @@ class ClipDataset(Dataset):
         if cfg.plucker in ("packed", "both"):
             out["plucker_packed"] = pack_plucker(rays[None])[0]
         out.update(self._tracks(reader, spec, clip, world_to_ref, depth, self._rng(index, 1)))
+        out.update(self._pixel_tracks(reader, spec, clip, world_to_ref, depth[0]))
         meta = reader.meta
         out.update({
             "caption": reader.caption or "",
@@ -285,3 +293,28 @@ class ClipDataset(Dataset):
         visible[:n] = inside & ok
         mask[:n] = True
         return {"tracks": tracks, "track_visibility": visible, "track_mask": mask}
+
+    def _pixel_tracks(self, reader: SceneReader, spec: ClipSpec, clip: CameraPath, world_to_ref: Tensor,
+                      depth0: Tensor) -> dict[str, Tensor]:
+        """Dense 3D tracks of frame 0's pixels (the class docstring's ``pixel_tracks``, ``pixel_track_valid``)."""
+        T, H, W = len(spec.frames), clip.height, clip.width
+        v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64, device="cpu") + 0.5,
+                              torch.arange(W, dtype=torch.float64, device="cpu") + 0.5, indexing="ij")
+        valid = torch.isfinite(depth0)
+        z = torch.where(valid, depth0.double(), 1.0)
+        points = unproject_pixels(torch.stack([u, v], -1), z, clip.viewmats[0], clip.Ks[0])  # (H, W, 3) clip world
+        objects = reader.objects()
+        if objects is None:
+            valid &= not reader.meta.dynamic  # a static scene's points stay put; a dynamic one's are unknown
+            tracks = points.expand(T, H, W, 3)
+        else:
+            poses, ids = objects
+            idm = torch.from_numpy(resize_nearest(ids[spec.cameras[0]][spec.frames[0]], H, W))
+            valid &= (idm != NO_SURFACE) & ~id_boundaries(idm)
+            to_source = torch.linalg.inv(world_to_ref)
+            world = points @ to_source[:3, :3].T + to_source[:3, 3]
+            moved = pixel_tracks(world, idm, torch.from_numpy(poses), spec.frames[0],
+                                 torch.tensor(spec.frames, device="cpu"))
+            tracks = moved @ world_to_ref[:3, :3].T + world_to_ref[:3, 3]
+        return {"pixel_tracks": torch.where(valid[..., None], tracks, 0).float().contiguous(),
+                "pixel_track_valid": valid}

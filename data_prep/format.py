@@ -27,6 +27,7 @@ from .scene_files import (
     DEPTH_SUFFIX,
     FORMAT_VERSION,
     META_FILE,
+    OBJECTS_FILE,
     RGB_DIR,
     RGB_SUFFIX,
     SYNC_TOLERANCE_S,
@@ -38,6 +39,7 @@ from .scene_files import (
     frame_name,
     is_scene,
     list_scenes,
+    objects_problem,
     read_rgb,
     read_timestamps,
     size_problem,
@@ -199,6 +201,18 @@ class SceneWriter:
             raise ValueError("a static scene (dynamic=false) cannot have moving tracks")
         np.savez_compressed(self.tmp_dir / TRACKS_FILE, points=pts, visibility=vis)
 
+    def write_objects(self, poses: np.ndarray, ids: dict[str, np.ndarray]) -> None:
+        """Write ``objects.npz`` (FORMAT.md): ``poses`` (O, T, 3, 4) affine world maps of the O objects at each frame
+        (stored float64), ``ids`` camera name → (T, H, W) uint8 id maps, for every added camera. Raises ValueError:
+        a camera missing or unknown, or arrays that break FORMAT.md (:func:`data_prep.scene_files.objects_problem`)."""
+        if set(ids) != set(self._sizes):
+            raise ValueError(f"ids must give every camera's id maps ({sorted(self._sizes)}), got {sorted(ids)}")
+        arrays = {"poses": np.asarray(poses, dtype=np.float64), **{f"ids_{c}": np.asarray(v) for c, v in ids.items()}}
+        why = objects_problem(arrays, self.meta.cameras, self._sizes, self.meta.num_frames, self.meta.dynamic)
+        if why is not None:
+            raise ValueError(why)
+        np.savez_compressed(self.tmp_dir / OBJECTS_FILE, **arrays)
+
     def write_caption(self, caption: str) -> None:
         """Write ``caption.txt``: one non-empty UTF-8 line. Raises ValueError otherwise."""
         if not isinstance(caption, str) or not caption.strip() or "\n" in caption.strip() or "\r" in caption:
@@ -314,6 +328,23 @@ class SceneReader:
                 return np.asarray(data["points"]), np.asarray(data["visibility"])
         except (KeyError, ValueError, OSError) as e:
             raise ValueError(f"could not read {f}: {e}") from None
+
+    def objects(self) -> tuple[np.ndarray, dict[str, np.ndarray]] | None:
+        """``(poses (O, T, 3, 4) float64, camera name → ids (T, H, W) uint8)`` of ``objects.npz`` (FORMAT.md), or None
+        without it. Raises ValueError: the file is unreadable or breaks FORMAT.md."""
+        f = self.path / OBJECTS_FILE
+        if not f.is_file():
+            return None
+        try:
+            with np.load(f, allow_pickle=False) as data:
+                arrays = {k: np.asarray(data[k]) for k in data.files}
+        except (ValueError, OSError) as e:
+            raise ValueError(f"could not read {f}: {e}") from None
+        sizes = {c: self._size(c) for c in self.meta.cameras}
+        why = objects_problem(arrays, self.meta.cameras, sizes, self.meta.num_frames, self.meta.dynamic)
+        if why is not None:
+            raise ValueError(f"{f}: {why}")
+        return arrays["poses"], {c: arrays[f"ids_{c}"] for c in self.meta.cameras}
 
     @property
     def caption(self) -> str | None:

@@ -16,10 +16,11 @@ from diff4splat.io.image import read_image
 from diff4splat.io.structured import read_json
 from diff4splat.utils.checks import check_int, check_number, is_int, is_number
 
-__all__ = ["META_FILE", "CAMERAS_FILE", "CAPTION_FILE", "TRACKS_FILE", "RGB_DIR", "RGB_SUFFIX", "DEPTH_DIR",
+__all__ = ["META_FILE", "CAMERAS_FILE", "CAPTION_FILE", "TRACKS_FILE", "OBJECTS_FILE", "NO_SURFACE",
+           "RGB_DIR", "RGB_SUFFIX", "DEPTH_DIR",
            "DEPTH_SUFFIX", "FORMAT_VERSION", "DEPTH_SOURCES", "SYNC_TOLERANCE_S", "TIMES_TOLERANCE", "SceneMeta",
            "list_scenes", "is_scene", "frame_name", "check_camera_name", "read_rgb", "read_timestamps",
-           "timestamps_to_times", "size_problem", "depth_values_problem"]
+           "timestamps_to_times", "size_problem", "depth_values_problem", "objects_problem"]
 
 META_FILE = "meta.json"
 """A scene's description (:class:`SceneMeta`); a folder holding one is a scene (:func:`is_scene`)."""
@@ -29,6 +30,11 @@ CAPTION_FILE = "caption.txt"
 """A scene's optional caption: one non-empty UTF-8 line."""
 TRACKS_FILE = "tracks.npz"
 """A scene's optional 3D point tracks: ``points`` (P, T, 3) float32 metres, ``visibility`` (P, T) bool."""
+OBJECTS_FILE = "objects.npz"
+"""A scene's optional object motion: ``poses`` (O, T, 3, 4) float64 affine world maps [A | b] of each object at each
+frame, and per camera ``ids_<camera>`` (T, H, W) uint8 id maps (0 background, k + 1 object k, :data:`NO_SURFACE`)."""
+NO_SURFACE = 255
+"""Id of a pixel with no surface (depth +inf) in an ``objects.npz`` id map."""
 RGB_DIR = "rgb"
 """A camera folder's sub-folder of RGB frames, ``frame_name(i, RGB_SUFFIX)``: 8-bit RGB PNG."""
 RGB_SUFFIX = ".png"
@@ -195,3 +201,29 @@ def depth_values_problem(z: np.ndarray) -> str | None:
     if not (nan or neginf or nonpos):
         return None
     return f"depth must be > 0 metres or +inf (invalid): {nan} NaN, {neginf} -inf, {nonpos} ≤ 0 value(s)"
+
+
+def objects_problem(arrays: dict[str, np.ndarray], cameras: list[str], sizes: dict[str, tuple[int, int]],
+                    num_frames: int, dynamic: bool) -> str | None:
+    """Why the arrays of an ``objects.npz`` break FORMAT.md (``poses`` (O, T, 3, 4) float64 finite and invertible,
+    static in a static scene; ``ids_<camera>`` (T, H, W) uint8 ≤ O or :data:`NO_SURFACE` for each of ``cameras``
+    at its ``sizes`` (H, W)), or None."""
+    poses = arrays.get("poses")
+    if poses is None or poses.dtype != np.float64 or poses.ndim != 4 or poses.shape[1:] != (num_frames, 3, 4):
+        got = "none" if poses is None else f"{poses.dtype} {poses.shape}"
+        return f"'poses' must be float64 (O, {num_frames}, 3, 4), got {got}"
+    if not np.isfinite(poses).all():
+        return f"'poses' has {int((~np.isfinite(poses)).sum())} non-finite value(s)"
+    if len(poses) and np.abs(np.linalg.det(poses[..., :3])).min() < 1e-12:
+        return "'poses' has a singular map A (every A must be invertible)"
+    if not dynamic and len(poses) and np.abs(poses - poses[:, :1]).max() > 1e-9:
+        return "object poses change over time in a static scene (dynamic: false)"
+    for c in cameras:
+        ids, (H, W) = arrays.get(f"ids_{c}"), sizes[c]
+        if ids is None or ids.dtype != np.uint8 or ids.shape != (num_frames, H, W):
+            got = "none" if ids is None else f"{ids.dtype} {ids.shape}"
+            return f"'ids_{c}' must be uint8 ({num_frames}, {H}, {W}), got {got}"
+        bad = (ids > len(poses)) & (ids != NO_SURFACE)
+        if bad.any():
+            return f"'ids_{c}' has object id {int(ids[bad].max())}, but 'poses' has {len(poses)} object(s)"
+    return None

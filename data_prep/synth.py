@@ -19,12 +19,14 @@ import numpy as np
 import torch
 
 from diff4splat.cameras import CameraPath, intrinsics_from_fov, look_at
+from diff4splat.render.rasterize import rasterize
 from diff4splat.render.sequence import render_path
 from diff4splat.scene.dynamic import DynamicGaussians
 from diff4splat.scene.gaussians import Gaussians, rgb_to_sh0
 from diff4splat.scene.quaternions import axis_angle_to_quat, quat_to_rotmat, rotmat_to_quat
 
 from .format import SceneWriter
+from .scene_files import NO_SURFACE
 from .synth_world import (
     DEFAULT_CAMERAS,
     DEFAULT_FRAMES,
@@ -37,7 +39,8 @@ from .synth_world import (
 from .textures import image_albedo
 
 __all__ = ["generate_scene", "render_spec", "write_synth_scene", "SynthScene", "build_scene", "build_gaussians",
-           "object_transform", "camera_path", "track_visibility", "scene_name", "MAX_TRACKS", "VISIBILITY_TOL_M",
+           "object_transform", "object_poses", "object_id_maps",
+           "camera_path", "track_visibility", "scene_name", "MAX_TRACKS", "VISIBILITY_TOL_M",
            "VISIBILITY_TOL_REL"]
 
 MAX_TRACKS = 256
@@ -219,6 +222,39 @@ def object_transform(obj: dict[str, Any], t: float) -> tuple[np.ndarray, np.ndar
     return c, d, R, S
 
 
+def object_poses(spec: dict[str, Any]) -> np.ndarray:
+    """(O, T, 3, 4) float64 affine world maps [A | b] of the spec's O objects at the T frame times (objects.npz,
+    FORMAT.md): x = A·p + b with A = R·diag(S), b = p0 + d − A·p0 (:func:`object_transform`)."""
+    T = spec["num_frames"]
+    times = np.linspace(0.0, 1.0, T) if T > 1 else np.zeros(1)
+    poses = np.zeros((len(spec["objects"]), T, 3, 4))
+    for k, obj in enumerate(spec["objects"]):
+        for i, t in enumerate(times):
+            p0, d, R, S = object_transform(obj, float(t))
+            A = R * S[None, :]
+            poses[k, i, :, :3], poses[k, i, :, 3] = A, p0 + d - A @ p0
+    return poses
+
+
+def object_id_maps(scene: DynamicGaussians, object_ids: np.ndarray, num_objects: int,
+                   cameras: CameraPath) -> np.ndarray:
+    """(T, H, W) uint8 id map of each frame of ``cameras`` (objects.npz, FORMAT.md): 0 background, k + 1 object k,
+    :data:`~data_prep.scene_files.NO_SURFACE` where the alpha is below 0.5 (the depth's +inf); the id whose Gaussians
+    weigh most in the pixel (one-hot features composited on the scene's device). ``object_ids`` (M,) as
+    :func:`build_gaussians`."""
+    device, dtype = scene.canonical.means.device, scene.canonical.means.dtype
+    onehot = torch.eye(num_objects + 1, dtype=dtype, device=device)[torch.as_tensor(object_ids + 1, device=device)]
+    viewmats, Ks = cameras.viewmats.to(device, dtype), cameras.Ks.to(device, dtype)
+    maps = np.empty((len(cameras), cameras.height, cameras.width), dtype=np.uint8)
+    for i in range(len(cameras)):
+        g = scene.at(float(cameras.times[i]))
+        weights, alpha, _ = rasterize(g.means, g.quats, g.scales, g.opacities, onehot, viewmats[i:i + 1],
+                                      Ks[i:i + 1], cameras.width, cameras.height, sh_degree=None, render_mode="RGB")
+        ids = torch.where(alpha[0, ..., 0] >= 0.5, weights[0].argmax(-1), NO_SURFACE)
+        maps[i] = ids.to(torch.uint8).cpu().numpy()
+    return maps
+
+
 def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
     q = axis_angle_to_quat(torch.as_tensor(axis, dtype=torch.float64, device="cpu"),
                            torch.tensor(float(angle), dtype=torch.float64, device="cpu"))
@@ -300,8 +336,9 @@ def track_visibility(points: np.ndarray, cameras: CameraPath, depth: np.ndarray)
 @dataclass
 class SynthScene:
     """A rendered synthetic scene, before writing: per camera (reference first) a path, rgb (T, H, W, 3) float32 in
-    [0, 1] and depth (T, H, W) float32 metres; ``object_ids`` (M,) as :func:`build_gaussians`; the tracked
-    Gaussians ``track_ids`` (P,), their ``points`` (P, T, 3) float32 metres and ``visibility`` (P, T) bool."""
+    [0, 1], depth (T, H, W) float32 metres and object id maps (T, H, W) uint8 (:func:`object_id_maps`);
+    ``object_ids`` (M,) as :func:`build_gaussians`; the tracked Gaussians ``track_ids`` (P,), their ``points``
+    (P, T, 3) float32 metres and ``visibility`` (P, T) bool; the objects' ``poses`` (:func:`object_poses`)."""
 
     spec: dict[str, Any]
     scene: DynamicGaussians
@@ -313,6 +350,8 @@ class SynthScene:
     points: np.ndarray
     visibility: np.ndarray
     caption: str
+    id_maps: list[np.ndarray]
+    poses: np.ndarray
 
 
 def render_spec(spec: dict[str, Any], rng: np.random.Generator, device: str | torch.device = "cpu") -> SynthScene:
@@ -325,11 +364,12 @@ def render_spec(spec: dict[str, Any], rng: np.random.Generator, device: str | to
         scene, ids = build_scene(spec, rng)
         paths = [camera_path(spec, c) for c in spec["cameras"]]
         rendered = scene.to(device)
-        rgbs, depths = [], []
+        rgbs, depths, id_maps = [], [], []
         for p in paths:
             rgb, ed, alpha = render_path(rendered, p, background=tuple(spec["background"]))
             rgbs.append(rgb.cpu().numpy())
             depths.append(torch.where(alpha >= 0.5, ed, torch.inf).cpu().numpy())
+            id_maps.append(object_id_maps(rendered, ids, len(spec["objects"]), p))
     finally:
         torch.set_num_threads(threads)
     obj = np.flatnonzero(ids >= 0)
@@ -342,7 +382,8 @@ def render_spec(spec: dict[str, Any], rng: np.random.Generator, device: str | to
     points = points.astype(np.float32)
     visibility = track_visibility(points, paths[0], depths[0])
     caption = caption_for(spec, paths[0].viewmats[0, :3, :3].double().cpu().numpy())
-    return SynthScene(spec, scene, ids, paths, rgbs, depths, pick, points, visibility, caption)
+    return SynthScene(spec, scene, ids, paths, rgbs, depths, pick, points, visibility, caption, id_maps,
+                      object_poses(spec))
 
 
 def write_synth_scene(path: str | os.PathLike, result: SynthScene, extra: dict[str, Any] | None = None,
@@ -358,6 +399,7 @@ def write_synth_scene(path: str | os.PathLike, result: SynthScene, extra: dict[s
             for i in range(T):
                 w.write_frame(name, i, rgb[i], depth[i])
         w.write_tracks(result.points, result.visibility)
+        w.write_objects(result.poses, {f"cam{c:02d}": m for c, m in enumerate(result.id_maps)})
         w.write_caption(result.caption)
     return Path(path)
 

@@ -19,6 +19,7 @@ from .scene_files import (
     DEPTH_DIR,
     DEPTH_SUFFIX,
     META_FILE,
+    OBJECTS_FILE,
     RGB_DIR,
     RGB_SUFFIX,
     SYNC_TOLERANCE_S,
@@ -29,6 +30,7 @@ from .scene_files import (
     frame_name,
     is_scene,
     list_scenes,
+    objects_problem,
     read_rgb,
     read_timestamps,
     size_problem,
@@ -206,6 +208,23 @@ def _check_tracks(problems: list[Problem], f: Path, meta: SceneMeta) -> None:
             problems.append(Problem(f, f"tracks move by up to {motion:.3g} m in a static scene (dynamic: false)"))
 
 
+def _check_objects(problems: list[Problem], f: Path, meta: SceneMeta, scene: Path) -> None:
+    try:
+        sizes = {c: (p.height, p.width) for c in meta.cameras
+                 for p in [load_cameras_json(scene / c / CAMERAS_FILE)]}
+    except (ValueError, FileNotFoundError, OSError):  # a camera file problem is reported with its camera
+        return
+    try:
+        with np.load(f, allow_pickle=False) as data:
+            arrays = {k: np.asarray(data[k]) for k in data.files}
+    except Exception as e:  # numpy raises ValueError/OSError/zipfile errors for corrupt files
+        problems.append(Problem(f, f"could not read as .npz: {e}"))
+        return
+    why = objects_problem(arrays, meta.cameras, sizes, meta.num_frames, meta.dynamic)
+    if why is not None:
+        problems.append(Problem(f, why))
+
+
 def validate_scene(path: str | os.PathLike) -> list[Problem]:
     """Check one scene folder against every rule of FORMAT.md, decoding every file; never raises for a bad scene.
 
@@ -249,6 +268,9 @@ def _scene_problems(scene: Path) -> list[Problem]:
     tracks = scene / TRACKS_FILE
     if _optional_file_problem(problems, tracks):
         _check_tracks(problems, tracks, meta)
+    objects = scene / OBJECTS_FILE
+    if _optional_file_problem(problems, objects):
+        _check_objects(problems, objects, meta, scene)
     return problems
 
 

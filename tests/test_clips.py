@@ -10,7 +10,7 @@ import pytest
 import torch
 from torch.utils.data import DataLoader, DistributedSampler
 
-from data_prep.clips import ClipConfig, ClipDataset, resize_depth
+from data_prep.clips import ClipConfig, ClipDataset, resize_nearest
 from data_prep.format import SceneReader, SceneWriter
 from diff4splat.cameras import CameraPath, center_crop_box, intrinsics_from_fov, invert_rigid, plucker_rays
 
@@ -130,7 +130,9 @@ def test_shapes_and_dtypes(root):
             "plucker_packed": ((6 * 4 * 64, 2, H // 8, W // 8), torch.float32),
             "depth": ((T, H, W), torch.float32), "depth_valid": ((T, H, W), torch.bool),
             "tracks": ((4, T, 3), torch.float32), "track_visibility": ((4, T), torch.bool),
-            "track_mask": ((4,), torch.bool), "dynamic": ((), torch.bool), "frame_indices": ((T,), torch.int64),
+            "track_mask": ((4,), torch.bool), "pixel_tracks": ((T, H, W, 3), torch.float32),
+            "pixel_track_valid": ((H, W), torch.bool),
+            "dynamic": ((), torch.bool), "frame_indices": ((T,), torch.int64),
             "camera_indices": ((T,), torch.int64), "index": ((), torch.int64)}
     assert set(item) == set(want) | {"caption", "scene"}
     for k, (shape, dtype) in want.items():
@@ -257,18 +259,18 @@ def test_track_subsets_are_sampled_per_epoch(root):
 def test_depth_is_metric_and_nearest(root):
     d = np.arange(6 * 9, dtype=np.float32).reshape(6, 9) + 1
     d[0, 0] = np.inf
-    out = resize_depth(d, 2, 2)  # crop 6×6 at x0 = 1, then nearest at pixel centres: rows/cols 1 and 4
+    out = resize_nearest(d, 2, 2)  # crop 6×6 at x0 = 1, then nearest at pixel centres: rows/cols 1 and 4
     np.testing.assert_array_equal(out, d[[1, 4]][:, [2, 5]])
-    np.testing.assert_array_equal(resize_depth(d, 6, 6), d[:, 1:7])
-    up = resize_depth(d, 12, 12)  # enlarging repeats pixels, inf stays inf
+    np.testing.assert_array_equal(resize_nearest(d, 6, 6), d[:, 1:7])
+    up = resize_nearest(d, 12, 12)  # enlarging repeats pixels, inf stays inf
     assert np.isinf(up[:2, :2]).sum() == 0 and set(np.unique(up)) <= set(np.unique(d))
-    assert np.isinf(resize_depth(d, 12, 18)[:2, :2]).all()
+    assert np.isinf(resize_nearest(d, 12, 18)[:2, :2]).all()
     ds = ClipDataset(root, CFG)
     for i in range(4):
         item, spec = ds[i], ds.sample(i)
         r = SceneReader(root / spec.scene)
         for k, (c, f) in enumerate(zip(spec.cameras, spec.frames, strict=True)):
-            np.testing.assert_array_equal(item["depth"][k].numpy(), resize_depth(r.depth(c, f), 32, 32))
+            np.testing.assert_array_equal(item["depth"][k].numpy(), resize_nearest(r.depth(c, f), 32, 32))
         assert torch.equal(item["depth_valid"], torch.isfinite(item["depth"]))
         vals = item["depth"][item["depth_valid"]]
         assert ((vals == PLANE_Z) | ((vals >= 1) & (vals <= 9))).all()  # only source values

@@ -119,7 +119,7 @@ def test_render_frames_uses_each_frames_time_and_camera():
 NETWORKS = ("vae", "text_encoder", "dit", "ldrm", "ldrm.deformation")
 # not the defaults: the sum is checked
 WEIGHTS = LossWeights(ssim=0.2, rgb=2.0, depth=0.5, metric_depth=0.75, smooth=0.25, motion=3.0, displacement=1.5,
-                      warp=0.5)
+                      warp=0.5, scene_flow=2.5)
 
 
 def _network(name: str) -> str:
@@ -137,19 +137,21 @@ CASES = {
                {"flow", "photo", "depth", "metric_depth", "smooth"}, {"dit", "ldrm"}),
     # the deformation network runs (deformation on) but is frozen: it must get no gradient
     "frozen_deformation": (dict(train=("ldrm",), objectives=("reconstruction",), deformation=True, motion=True),
-                           {"photo", "depth", "metric_depth", "smooth", "motion", "displacement"}, {"ldrm"}),
+                           {"photo", "depth", "metric_depth", "smooth", "motion", "displacement", "scene_flow"},
+                           {"ldrm"}),
     "stage3": (dict(train=("dit", "ldrm", "ldrm.deformation"), objectives=("diffusion", "reconstruction"),
                     scenes="all", deformation=True, motion=True),
-               {"flow", "photo", "depth", "metric_depth", "smooth", "motion", "displacement"},
+               {"flow", "photo", "depth", "metric_depth", "smooth", "motion", "displacement", "scene_flow"},
                {"dit", "ldrm", "ldrm.deformation"}),
     # the motion path (diff4splat.assembly.frame_motion) alone: the tracks and the renders reach it through the decoded
     # frames
     "motion_path": (dict(train=("ldrm.motion",), objectives=("reconstruction",), scenes="all", deformation=True,
                          motion=True),
-                    {"photo", "depth", "metric_depth", "smooth", "motion", "displacement"}, {"ldrm.motion"}),
+                    {"photo", "depth", "metric_depth", "smooth", "motion", "displacement", "scene_flow"},
+                    {"ldrm.motion"}),
     # the tracking objective: the motion network alone, no renders
-    "tracking": (dict(train=("ldrm.motion",), objectives=("tracking",), scenes="all"), {"displacement", "warp"},
-                 {"ldrm.motion"}),
+    "tracking": (dict(train=("ldrm.motion",), objectives=("tracking",), scenes="all"),
+                 {"displacement", "warp", "scene_flow"}, {"ldrm.motion"}),
 }
 
 
@@ -168,18 +170,20 @@ def test_forward_losses_and_gradients_reach_only_the_trainable_networks(clips, c
     assert all(v.ndim == 0 and math.isfinite(float(v.detach())) for v in losses.values()), losses
     rendering = lambda t: (2.0 * t["photo"] + 0.5 * t["depth"] + 0.75 * t["metric_depth"]  # noqa: E731
                            + 0.25 * t["smooth"])
+    tracks = lambda t: 3.0 * t["motion"] + 1.5 * t["displacement"] + 2.5 * t["scene_flow"]  # noqa: E731
     expected = {
         "vae": lambda terms: terms["vae_l1"] + stage.kl_weight * terms["vae_kl"],
         "stage1": lambda terms: terms["flow"] + rendering(terms),
-        "frozen_deformation": lambda terms: rendering(terms) + 3.0 * terms["motion"] + 1.5 * terms["displacement"],
-        "motion_path": lambda terms: rendering(terms) + 3.0 * terms["motion"] + 1.5 * terms["displacement"],
-        "tracking": lambda terms: 1.5 * terms["displacement"] + WEIGHTS.warp * terms["warp"],
-        "stage3": lambda terms: (terms["flow"] + rendering(terms) + 3.0 * terms["motion"]
-                                 + 1.5 * terms["displacement"]),
+        "frozen_deformation": lambda terms: rendering(terms) + tracks(terms),
+        "motion_path": lambda terms: rendering(terms) + tracks(terms),
+        "tracking": lambda terms: (1.5 * terms["displacement"] + WEIGHTS.warp * terms["warp"]
+                                   + 2.5 * terms["scene_flow"]),
+        "stage3": lambda terms: terms["flow"] + rendering(terms) + tracks(terms),
     }[case](losses)
     torch.testing.assert_close(losses["loss"], expected)
     if "motion" in keys or "displacement" in keys:
         assert float(losses["displacement"].detach()) > 1e-3  # visible tracks were queried and compared
+        assert float(losses["scene_flow"].detach()) > 1e-3  # so were the dense tracks
     losses["loss"].backward()
     got = {}
     for name, p in model.named_parameters():
@@ -270,8 +274,14 @@ def _check_losses(losses, batch, frames, rgb, depth, alpha, g, dm) -> None:
     errors, moves = _hand_motion(batch, g, dm)
     assert float(losses["motion"]) == pytest.approx(sum(errors) / len(errors), rel=1e-5)
     assert float(losses["displacement"]) == pytest.approx(sum(moves) / len(moves), rel=1e-4)
+    # the dense term: every valid pixel's frame-0 Gaussian (index v·W + u) against the clip's pixel tracks
+    pix, ok = batch["pixel_tracks"][0].double().reshape(FRAMES, -1, 3), batch["pixel_track_valid"][0].reshape(-1)
+    own = dm[:, : SIZE * SIZE].double()
+    flow = ((own[1:] - own[:1]) - (pix[1:] - pix[:1])).norm(dim=-1)[:, ok]
+    assert ok.sum() > 100 and float(losses["scene_flow"]) == pytest.approx(float(flow.mean()), rel=1e-4)
     weighted = (2.0 * losses["photo"] + 0.5 * losses["depth"] + 0.75 * losses["metric_depth"]
-                + 0.25 * losses["smooth"] + 3.0 * losses["motion"] + 1.5 * losses["displacement"])
+                + 0.25 * losses["smooth"] + 3.0 * losses["motion"] + 1.5 * losses["displacement"]
+                + 2.5 * losses["scene_flow"])
     torch.testing.assert_close(losses["loss"], weighted)
 
 

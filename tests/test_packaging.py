@@ -162,7 +162,8 @@ def test_readme_starts_with_the_two_commands_ci_runs():
     lines = block.group(1).strip().splitlines()
     assert len(lines) == 2
     assert "diff4splat generate examples/" in lines[0]
-    assert lines[1] == 'pip install -e ".[test,diffusers]" && python -m pytest'  # the backbone tests run, not skip
+    # the backbone tests run, not skip; two pytest-xdist processes (the test extra installs pytest-xdist)
+    assert lines[1] == 'pip install -e ".[test,diffusers]" && python -m pytest -n 2'
     ci = (ROOT / ".ci" / "run").read_text()
     assert "grep -m1 -F 'pip install -e \".[test' README.md" in ci and 'eval "$test_cmd"' in ci
     assert "-m venv" in ci and "torch==2.13.0" in ci

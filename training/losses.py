@@ -15,18 +15,19 @@ from diff4splat.utils.devices import autocast_off
 from models.flow_matching import add_noise, sample_logit_normal, shift_sigmas, velocity_target
 
 __all__ = ["LossWeights", "flow_matching_loss", "sample_training_sigmas", "photometric_loss", "depth_correlation_loss",
-           "depth_smoothness_loss", "log_depth_loss", "motion_loss", "displacement_loss", "warp_loss",
-           "gather_track_predictions", "head_distillation_loss"]
+           "depth_smoothness_loss", "log_depth_loss", "motion_loss", "displacement_loss", "scene_flow_loss",
+           "warp_loss", "gather_track_predictions", "head_distillation_loss"]
 
 
 @dataclass
 class LossWeights:
     """Weights of L = λ_rgb·L_photo + λ_depth·L_depth + λ_metric·L_log + λ_smooth·L_smooth + λ_motion·L_motion
-    + λ_disp·L_disp (+ λ_warp·L_warp for ``tracking``).
+    + λ_disp·L_disp + λ_flow·L_flow (+ λ_warp·L_warp for ``tracking``).
 
     ``ssim`` is the SSIM share inside the photometric loss (0.2, 3DGS Eq. 7); ``depth`` weighs the Pearson depth
     loss (FSGS/SparseGS), ``metric_depth`` the scale-invariant log loss (0: off, for a relative reference), ``smooth``
-    the edge-aware smoothness (Godard et al.'s 1e-3); ``motion``/``displacement`` are stage-3 track losses.
+    the edge-aware smoothness (Godard et al.'s 1e-3); ``motion``/``displacement`` are stage-3 track losses,
+    ``scene_flow`` the dense one over every pixel of frame 0 (:func:`scene_flow_loss`; 0: off).
     Raises ValueError for a negative or non-finite weight, or ``ssim`` above 1.
     """
 
@@ -37,6 +38,7 @@ class LossWeights:
     smooth: float = 1e-3
     motion: float = 1.0
     displacement: float = 0.0
+    scene_flow: float = 0.0
     warp: float = 1.0
 
     def __post_init__(self) -> None:
@@ -175,6 +177,19 @@ def displacement_loss(pred: Tensor, target: Tensor, visibility: Tensor) -> Tenso
     frame-0 depth error (ours; the paper supervises absolute tracks)."""
     vis = visibility[:, :, 1:] & visibility[:, :, :1]
     return motion_loss(pred[:, :, 1:] - pred[:, :, :1], target[:, :, 1:] - target[:, :, :1], vis)
+
+
+def scene_flow_loss(points: Tensor, target: Tensor, valid: Tensor) -> Tensor:
+    """Dense :func:`displacement_loss`: mean end-point error in metres of the displacements from frame 0 of every
+    pixel's point, ``points`` (T, H, W, 3) against ``target`` (T, H, W, 3) (``ClipDataset``'s ``pixel_tracks``), over
+    the ``valid`` (H, W) pixels and t ≥ 1 (DGS-LRM's scene-flow supervision, Lin et al. 2025). Raises ValueError on
+    other shapes."""
+    T, H, W, _ = target.shape
+    if points.shape != target.shape or valid.shape != (H, W):
+        raise ValueError(f"points {tuple(points.shape)}, target {tuple(target.shape)} and valid {tuple(valid.shape)} "
+                         "must be (T, H, W, 3), (T, H, W, 3), (H, W)")
+    flat = lambda x: x.reshape(T, H * W, 3).transpose(0, 1)[None]  # noqa: E731  (1, H·W, T, 3) tracks
+    return displacement_loss(flat(points), flat(target), valid.reshape(1, H * W, 1).expand(1, H * W, T))
 
 
 def head_distillation_loss(student: Tensor, teacher: Tensor, sigma: float) -> Tensor:

@@ -40,6 +40,7 @@ from .losses import (
     log_depth_loss,
     motion_loss,
     photometric_loss,
+    scene_flow_loss,
     warp_loss,
 )
 from .stage_config import StageConfig
@@ -183,10 +184,15 @@ class TrainingModule(nn.Module):
                 total = total + w.metric_depth * rec["metric_depth"]
             if "motion" in rec:
                 total = total + w.motion * rec["motion"] + w.displacement * rec["displacement"]
+            if "scene_flow" in rec:
+                total = total + w.scene_flow * rec["scene_flow"]
         if "tracking" in st.objectives:
             tracking = self._tracking(latents, plucker, batch, generator)
             losses.update(tracking)
-            total = total + st.weights.displacement * tracking["displacement"] + st.weights.warp * tracking["warp"]
+            w = st.weights
+            total = total + w.displacement * tracking["displacement"] + w.warp * tracking["warp"]
+            if "scene_flow" in tracking:
+                total = total + w.scene_flow * tracking["scene_flow"]
         if "depth" in st.objectives:
             losses["mono_depth"] = self._mono_depth(batch)
             total = total + losses["mono_depth"]
@@ -303,9 +309,20 @@ class TrainingModule(nn.Module):
                 pred = points.reshape(T, H * W, 3)[:, idx].transpose(0, 1)  # (N, T, 3)
                 parts = {"displacement": displacement_loss(pred[None], tracks[None], (vis & ok[:, None])[None]),
                          "warp": warp_loss(frames[b], points, vm, Ks)}
+                if self.stage.weights.scene_flow > 0:
+                    parts["scene_flow"] = scene_flow_loss(points, *self._pixel_tracks(batch, b))
             for k, v in parts.items():
                 sums[k] = sums.get(k, 0) + v / B
         return sums
+
+    @staticmethod
+    def _pixel_tracks(batch: dict, b: int) -> tuple[Tensor, Tensor]:
+        """Clip ``b``'s dense 3D tracks (T, H, W, 3) metres and their valid pixels (H, W) (``ClipDataset``). Raises
+        ValueError when the batch has none (weights.scene_flow > 0 needs them)."""
+        if "pixel_tracks" not in batch:
+            raise ValueError("weights.scene_flow > 0 needs the batch's pixel_tracks and pixel_track_valid "
+                             "(data_prep.clips.ClipDataset gives them)")
+        return batch["pixel_tracks"][b], batch["pixel_track_valid"][b]
 
     def _noised(self, latents: Tensor, gen: torch.Generator) -> Tensor:
         """``latents`` with frames 1… noised to (1 − σ)z + σε, σ ~ U(0, ``stage.latent_noise``) per clip (draws σ,
@@ -377,6 +394,9 @@ class TrainingModule(nn.Module):
                 pred = gather_track_predictions(scene.canonical.means[None], scene.d_means[None], idx[None])[0]
                 parts["motion"] = motion_loss(pred, tracks, vis & ok[:, None])
                 parts["displacement"] = displacement_loss(pred[None], tracks[None], (vis & ok[:, None])[None])
+            if st.motion and st.weights.scene_flow > 0:  # frame 0's Gaussians: the first H·W, pixel-aligned
+                g = scene.canonical.means[None, :H * W] + scene.d_means[:, :H * W]  # (T, H·W, 3)
+                parts["scene_flow"] = scene_flow_loss(g.reshape(T, H, W, 3), *self._pixel_tracks(batch, b))
             for k, v in parts.items():
                 sums[k] = sums.get(k, 0) + v / B
         return sums
