@@ -342,8 +342,8 @@ class Diff4SplatPipeline:
         decoded = runtime.decode_latents(latents) if colors_from_video or motion else None
         if motion:  # the motion network reads the decoded frames
             with runtime.motion_network() as net:
-                out = frame_motion(net, out, ((decoded[0].transpose(0, 1) + 1) / 2).clamp(0, 1), cameras_model.times,
-                                   cameras_model.viewmats, cameras_model.Ks, sources, key_times)
+                out = frame_motion(net, out, ((decoded.transpose(1, 2) + 1) / 2).clamp(0, 1), cameras_model.times[None],
+                                   cameras_model.viewmats[None], cameras_model.Ks[None], sources, key_times[None])
         if not colors_from_video:
             decoded = None
         runtime.release()  # frees an offloaded network before pruning renders

@@ -63,7 +63,7 @@ def test_a_fresh_network_is_the_identity_and_a_static_scene_keeps_no_deformation
     vm[:, 0, 3] = torch.linspace(0, 0.3, T)  # a moving camera: its motion is the geometry's, not the scene's
     out = LDRMOutput(distance=torch.full((1, 2, H, W), 2.0), scales=None, quats=None, opacities=None, colors=None)
     times = torch.linspace(0, 1, T)
-    moved = frame_motion(net, out, frames, times, vm, K, torch.tensor([0, 4]), times)
+    moved = frame_motion(net, out, frames[None], times[None], vm[None], K[None], torch.tensor([0, 4]), times[None])
     assert torch.all(moved.d_means == 0) and torch.all(moved.d_scales == 0)
     assert torch.all(moved.d_quats == torch.tensor([1.0, 0, 0, 0]))
     g = Gaussians(torch.zeros(2 * H * W, 3), torch.ones(2 * H * W, 4) / 2, torch.full((2 * H * W, 3), 0.01),
@@ -121,7 +121,8 @@ def test_frame_motion_lifts_a_flow_to_its_closed_form_3d_displacement(monkeypatc
     # distance along each ray = z-depth / cos: place every pixel at z-depth 2 m
     _, dirs = camera_rays(vm[:1], K[:1], W, H)
     out.distance = (z / dirs[..., 2])[None]
-    moved = frame_motion(net, out, torch.rand(T, 3, H, W), times, vm, K, torch.tensor([0]), times)
+    moved = frame_motion(net, out, torch.rand(1, T, 3, H, W), times[None], vm[None], K[None], torch.tensor([0]),
+                         times[None])
     for k in range(T):  # the window follows the point: k steps of the flow, at constant depth
         expected = torch.cat([step * k * z / f, torch.zeros(1)])
         torch.testing.assert_close(moved.d_means[0, k, 0], expected.expand(H, W, 3), atol=1e-5, rtol=0)
@@ -143,6 +144,37 @@ def test_project_and_unproject_are_inverse_and_use_pixel_centres():
     torch.testing.assert_close(uv3, torch.tensor([2.5, 1.5]))
 
 
+def test_a_batch_of_scenes_moves_as_each_scene_alone():
+    """frame_motion on B = 3 scenes at once (different frames, cameras, depths and key times) equals three calls of
+    one scene each, with a network whose output is not zero (its gate open), so pixels move."""
+    torch.manual_seed(0)
+    net = MotionNetwork(MotionConfig(features=4, hidden=8, levels=2, radius=1, min_flow=0.1))
+    torch.nn.init.normal_(net.out.weight, std=0.5)
+    torch.nn.init.normal_(net.out.bias, std=0.5)
+    B, T, S, H, W = 3, 5, 2, 12, 12
+    g = torch.Generator().manual_seed(1)
+    frames = torch.rand(B, T, 3, H, W, generator=g)
+    vm = torch.eye(4).repeat(B, T, 1, 1)
+    vm[..., :3, 3] = torch.rand(B, T, 3, generator=g) * 0.2
+    K = torch.tensor([[15.0, 0, 6], [0, 15.0, 6], [0, 0, 1]]).repeat(B, T, 1, 1)
+    K[:, :, 0, 0] += torch.arange(B)[:, None]
+    frame_times = torch.linspace(0, 1, T).repeat(B, 1)
+    times = torch.stack([torch.linspace(0, 1, 4), torch.tensor([0.0, 0.2, 0.6, 1.0]), torch.linspace(0.1, 0.9, 4)])
+    out = LDRMOutput(distance=1 + torch.rand(B, S, H, W, generator=g), scales=None, quats=None, opacities=None,
+                     colors=None, d_quats=torch.randn(B, 4, S, H, W, 4, generator=g),
+                     d_scales=torch.randn(B, 4, S, H, W, 3, generator=g))
+    sources = torch.tensor([0, 3])
+    with torch.no_grad():
+        batched = frame_motion(net, out, frames, frame_times, vm, K, sources, times)
+        assert batched.d_means.shape == (B, 4, S, H, W, 3) and batched.d_means.abs().amax() > 0.01
+        for b in range(B):
+            one = LDRMOutput(**{k: None if v is None else v[b:b + 1] for k, v in vars(out).items()})
+            alone = frame_motion(net, one, frames[b:b + 1], frame_times[b:b + 1], vm[b:b + 1], K[b:b + 1], sources,
+                                 times[b:b + 1])
+            for name in ("d_means", "d_quats", "d_scales"):
+                torch.testing.assert_close(getattr(batched, name)[b:b + 1], getattr(alone, name))
+
+
 def test_nearest_frames_picks_the_closest_time():
     frames = torch.tensor([0.0, 0.25, 0.5, 0.75, 1.0])
     assert nearest_frames(torch.tensor([0.0, 0.3, 0.74, 1.0]), frames).tolist() == [0, 1, 3, 4]
@@ -153,8 +185,9 @@ def test_frame_motion_refuses_frames_that_do_not_match_the_maps():
     out = LDRMOutput(distance=torch.full((1, 1, 8, 8), 2.0), scales=None, quats=None, opacities=None, colors=None)
     T = 3
     with pytest.raises(ValueError, match="must agree"):
-        frame_motion(net, out, torch.rand(T, 3, 16, 16), torch.linspace(0, 1, T), torch.eye(4).repeat(T, 1, 1),
-                     torch.eye(3).repeat(T, 1, 1), torch.tensor([0]), torch.linspace(0, 1, T))
+        frame_motion(net, out, torch.rand(1, T, 3, 16, 16), torch.linspace(0, 1, T)[None],
+                     torch.eye(4).repeat(1, T, 1, 1), torch.eye(3).repeat(1, T, 1, 1), torch.tensor([0]),
+                     torch.linspace(0, 1, T)[None])
 
 
 @pytest.fixture(scope="module")
@@ -176,9 +209,9 @@ def test_generate_reads_motion_from_the_decoded_frames(image, monkeypatch):
     cams = pipe.default_cameras("orbit", 9)
     res = pipe(image, cams, "", steps=1)
     frames = seen["frames"]
-    assert frames.shape == (9, 3, 64, 64) and frames.min() >= 0 and frames.max() <= 1
+    assert frames.shape == (1, 9, 3, 64, 64) and frames.min() >= 0 and frames.max() <= 1
     decoded = ((pipe.runtime.decode_latents(res.latents)[0].transpose(0, 1) + 1) / 2).clamp(0, 1)
-    torch.testing.assert_close(frames, decoded)
+    torch.testing.assert_close(frames[0], decoded)
     assert not res.scene.is_static and res.scene.d_means.abs().max() > 0
 
 

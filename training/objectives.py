@@ -296,11 +296,13 @@ class TrainingModule(nn.Module):
             distance = m.ldrm(latents, plucker, None, batch["video"][:, :, 0] * 2 - 1).distance[:, :1].float()
         source = torch.zeros(1, dtype=torch.long, device=latents.device)
         sums: dict[str, Tensor] = {}
+        with autocast_off():  # the B clips' pixels through the motion network together
+            times, viewmats, intrinsics = batch["times"].float(), batch["viewmats"].float(), batch["Ks"].float()
+            maps = LDRMOutput(distance=distance, scales=None, quats=None, opacities=None, colors=None)
+            moved = frame_motion(m.ldrm.motion, maps, frames, times, viewmats, intrinsics, source, times)
         for b in range(B):
             with autocast_off():
-                times, vm, Ks = batch["times"][b].float(), batch["viewmats"][b].float(), batch["Ks"][b].float()
-                maps = LDRMOutput(distance=distance[b:b + 1], scales=None, quats=None, opacities=None, colors=None)
-                d = frame_motion(m.ldrm.motion, maps, frames[b], times, vm, Ks, source, times).d_means[0, :, 0]
+                vm, Ks, d = viewmats[b], intrinsics[b], moved.d_means[b, :, 0]  # d: (T, H, W, 3)
                 o, dirs = camera_rays(vm[:1], Ks[:1], W, H)
                 points = (o + dirs * distance[b, 0, ..., None])[0] + d  # (T, H, W, 3)
                 tracks = batch["tracks"][b]
@@ -364,8 +366,9 @@ class TrainingModule(nn.Module):
                 out = m.ldrm(latents[b:b + 1], plucker[b:b + 1], times, image[b:b + 1])
                 if seen is not None:  # the motion path reads the frames (diff4splat.assembly.frame_motion)
                     with autocast_off():
-                        out = frame_motion(m.ldrm.motion, out, seen[b], batch["times"][b].float(),
-                                           batch["viewmats"][b].float(), batch["Ks"][b].float(), sources, times)
+                        out = frame_motion(m.ldrm.motion, out, seen[b:b + 1], batch["times"][b:b + 1].float(),
+                                           batch["viewmats"][b:b + 1].float(), batch["Ks"][b:b + 1].float(),
+                                           sources, times[None])
             else:
                 out = LDRMOutput(**{k: None if v is None else v[b:b + 1] for k, v in vars(outs).items()})
             if st.scene == "assembled":

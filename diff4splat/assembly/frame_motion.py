@@ -19,52 +19,54 @@ from models.motion import MotionNetwork
 __all__ = ["frame_motion", "nearest_frames"]
 
 
-def nearest_frames(times: Tensor, frame_times: Tensor) -> Tensor:  # (K,), (T,) → (K,) long
-    """(K,) long index into ``frame_times`` (T,) of the frame nearest each of ``times`` (K,) (earlier on a tie)."""
-    return (times[:, None] - frame_times[None, :]).abs().argmin(dim=1)
+def nearest_frames(times: Tensor, frame_times: Tensor) -> Tensor:  # (..., K), (..., T) → (..., K) long
+    """(..., K) long index into ``frame_times`` (..., T) of the frame nearest each of ``times`` (..., K) (earlier on a
+    tie), batched over the leading dimensions."""
+    return (times[..., :, None] - frame_times[..., None, :]).abs().argmin(dim=-1)
 
 
 def frame_motion(
     net: MotionNetwork,
     out: LDRMOutput,
-    frames: Tensor,  # (T, 3, H, W) in [0, 1], the model resolution
-    frame_times: Tensor,  # (T,)
-    viewmats: Tensor,  # (T, 4, 4) world-to-camera of the frames
-    Ks: Tensor,  # (T, 3, 3) pixels at (H, W)
-    sources: Tensor,  # (S,) long: the source frames' indices into the frames
-    times: Tensor,  # (K,) key times
+    frames: Tensor,  # (B, T, 3, H, W) in [0, 1], the model resolution
+    frame_times: Tensor,  # (B, T)
+    viewmats: Tensor,  # (B, T, 4, 4) world-to-camera of the frames
+    Ks: Tensor,  # (B, T, 3, 3) pixels at (H, W)
+    sources: Tensor,  # (S,) long: the source frames' indices into each scene's frames
+    times: Tensor,  # (B, K) key times
 ) -> LDRMOutput:
-    """``out`` (batch 1) with its deformation maps read from ``frames`` by ``net`` (module docstring).
+    """``out`` (batch B: B scenes of the same sizes) with its deformation maps read from ``frames`` by ``net`` (module
+    docstring). The B scenes' source pixels go through the network together, one call per step.
 
     Returns:
-        An :class:`LDRMOutput` with d_means (1, K, S, H, W, 3) metres, world frame, and d_quats (1, K, S, H, W, 4) /
-        d_scales (1, K, S, H, W, 3): ``out``'s where a pixel moves at that time, else (or without any) the identity.
+        An :class:`LDRMOutput` with d_means (B, K, S, H, W, 3) metres, world frame, and d_quats (B, K, S, H, W, 4) /
+        d_scales (B, K, S, H, W, 3): ``out``'s where a pixel moves at that time, else (or without any) the identity.
 
     Raises:
-        ValueError: ``out`` not of batch 1, or frames / cameras / times whose shapes do not match.
+        ValueError: frames / cameras / times whose shapes do not match ``out``'s (B, S, H, W).
     """
-    distance = out.distance  # (1, S, H, W)
-    if distance.shape[0] != 1:
-        raise ValueError(f"frame_motion takes one scene, got a batch of {distance.shape[0]}")
-    S, H, W = distance.shape[1:]
-    T = frames.shape[0]
-    shapes = (frames.shape, viewmats.shape, Ks.shape, frame_times.shape)
-    if shapes != ((T, 3, H, W), (T, 4, 4), (T, 3, 3), (T,)):
-        raise ValueError(f"frames (T, 3, {H}, {W}), viewmats (T, 4, 4), Ks (T, 3, 3) and frame_times (T,) must "
-                         f"agree, got {tuple(frames.shape)}, {tuple(viewmats.shape)}, {tuple(Ks.shape)}, "
-                         f"{tuple(frame_times.shape)}")
-    if sources.shape != (S,):
-        raise ValueError(f"sources must have shape ({S},), got {tuple(sources.shape)}")
-    K = times.shape[0]
-    at = nearest_frames(times.to(frame_times.dtype), frame_times)  # (K,) the frame seen at each key time
-    home = nearest_frames(frame_times[sources], times.to(frame_times.dtype))  # (S,) each source's own key time
+    distance = out.distance  # (B, S, H, W)
+    B, S, H, W = distance.shape
+    T, K = frames.shape[1], times.shape[-1]
+    shapes = (frames.shape, frame_times.shape, viewmats.shape, Ks.shape, sources.shape, times.shape)
+    if shapes != ((B, T, 3, H, W), (B, T), (B, T, 4, 4), (B, T, 3, 3), (S,), (B, K)):
+        raise ValueError(f"frames ({B}, T, 3, {H}, {W}), frame_times ({B}, T), viewmats ({B}, T, 4, 4), Ks "
+                         f"({B}, T, 3, 3), sources ({S},) and times ({B}, K) must agree with the maps, got "
+                         + ", ".join(str(tuple(x)) for x in shapes))
+    at = nearest_frames(times.to(frame_times.dtype), frame_times)  # (B, K) the frame seen at each key time
+    home = nearest_frames(frame_times[:, sources], times.to(frame_times.dtype))  # (B, S) each source's key time
+    # Rows r = b·S + s: scene b's source s. Frames, cameras and features are indexed flat, b·T + frame.
+    scene = torch.arange(B, device=distance.device).repeat_interleave(S)  # (R,)
+    home, base = home.reshape(-1), scene * T
+    frames, viewmats, Ks = frames.flatten(0, 1), viewmats.flatten(0, 1).float(), Ks.flatten(0, 1).float()
+    own = base + sources.repeat(B)  # (R,) each row's source frame
     with torch.no_grad():
-        o, d = camera_rays(viewmats[sources].float(), Ks[sources].float(), W, H)
-        points = o + d * distance[0].float()[..., None]  # (S, H, W, 3)
+        o, d = camera_rays(viewmats[own], Ks[own], W, H)
+        points = o + d * distance.reshape(B * S, H, W).float()[..., None]  # (R, H, W, 3)
     frames = frames.to(next(net.parameters()).dtype)  # the network's dtype (bfloat16 in a bfloat16 runtime)
     feats = net.encode(frames * 2 - 1)
-    d_means = torch.zeros(K, S, H, W, 3, dtype=torch.float32, device=distance.device)
-    moving = torch.zeros(K, S, H, W, dtype=torch.bool, device=distance.device)
+    d_means = torch.zeros(K, B * S, H, W, 3, dtype=torch.float32, device=distance.device)
+    moving = torch.zeros(K, B * S, H, W, dtype=torch.bool, device=distance.device)
     # Step j reads key times home ± j, starting from the estimate at home ± (j − 1): a short look-up window suffices
     # however far a point travels over the clip, and every step compares against the source frame's own features.
     prior = {sign: (points, moving[0].clone()) for sign in (1, -1)}
@@ -74,25 +76,28 @@ def frame_motion(
             live = ((k >= 0) & (k < K)).nonzero()[:, 0]
             if len(live) == 0:
                 continue
-            s, k = live, k[live]
+            r, k = live, k[live]
+            seen = base[r] + at[scene[r], k]  # (P,) the frame each live row reads at its key time
             position, was_moving = prior[sign]
             with torch.no_grad():
-                cams, intr = viewmats[at[k]].float()[:, None, None], Ks[at[k]].float()[:, None, None]
-                uv, z = project_points(position[s], cams, intr)  # (P, H, W, 2), (P, H, W)
-            flow, log_depth = net([f[sources[s]] for f in feats], [f[at[k]] for f in feats], uv.to(frames.dtype))
-            now = was_moving[s] | ((flow != 0).any(-1) & (z > 0))  # still pixels stay exactly still
+                cams, intr = viewmats[seen][:, None, None], Ks[seen][:, None, None]
+                uv, z = project_points(position[r], cams, intr)  # (P, H, W, 2), (P, H, W)
+            flow, log_depth = net([f[own[r]] for f in feats], [f[seen] for f in feats], uv.to(frames.dtype))
+            now = was_moving[r] | ((flow != 0).any(-1) & (z > 0))  # still pixels stay exactly still
             target = unproject_pixels(uv + flow.float(), z * torch.exp(log_depth.float()), cams, intr)
-            delta = target - points[s]  # still pixels: exactly 0, their gradient passes (models.motion)
+            delta = target - points[r]  # still pixels: exactly 0, their gradient passes (models.motion)
             delta = delta - torch.where(now[..., None], torch.zeros_like(delta), delta.detach())
-            d_means[k, s], moving[k, s] = delta, now
+            d_means[k, r], moving[k, r] = delta, now
             new_position, new_moving = position.clone(), was_moving.clone()
-            new_position[s], new_moving[s] = points[s] + delta.detach(), now
+            new_position[r], new_moving[r] = points[r] + delta.detach(), now
             prior[sign] = (new_position, new_moving)
+    d_means = d_means.unflatten(1, (B, S)).transpose(0, 1)  # (B, K, S, H, W, 3)
+    moving = moving.unflatten(1, (B, S)).transpose(0, 1)
     fields = {}
     for name, identity in (("d_quats", IDENTITY_QUAT), ("d_scales", (0.0, 0.0, 0.0))):
         ident = torch.tensor(identity, dtype=torch.float32, device=distance.device)
         token = getattr(out, name)
-        fields[name] = (ident.expand(1, K, S, H, W, len(identity)) if token is None
-                        else torch.where(moving[None, ..., None], token.float(), ident))
-    return dataclasses.replace(out, d_means=d_means[None].to(distance.dtype), **{
+        fields[name] = (ident.expand(B, K, S, H, W, len(identity)) if token is None
+                        else torch.where(moving[..., None], token.float(), ident))
+    return dataclasses.replace(out, d_means=d_means.to(distance.dtype), **{
         k: v.to(distance.dtype) for k, v in fields.items()})
