@@ -183,12 +183,19 @@ def _check_camera(problems: list[Problem], scene: Path, name: str, meta: SceneMe
     return ts
 
 
-def _check_tracks(problems: list[Problem], f: Path, meta: SceneMeta) -> None:
+def _read_npz(problems: list[Problem], f: Path) -> dict[str, np.ndarray] | None:
+    """Every array of the .npz ``f``, or None with the problem recorded."""
     try:
         with np.load(f, allow_pickle=False) as data:
-            arrays = {k: np.asarray(data[k]) for k in data.files}
+            return {k: np.asarray(data[k]) for k in data.files}
     except Exception as e:  # numpy raises ValueError/OSError/zipfile errors for corrupt files
         problems.append(Problem(f, f"could not read as .npz: {e}"))
+        return None
+
+
+def _check_tracks(problems: list[Problem], f: Path, meta: SceneMeta) -> None:
+    arrays = _read_npz(problems, f)
+    if arrays is None:
         return
     missing = [k for k in ("points", "visibility") if k not in arrays]
     if missing:
@@ -214,11 +221,8 @@ def _check_objects(problems: list[Problem], f: Path, meta: SceneMeta, scene: Pat
                  for p in [load_cameras_json(scene / c / CAMERAS_FILE)]}
     except (ValueError, FileNotFoundError, OSError):  # a camera file problem is reported with its camera
         return
-    try:
-        with np.load(f, allow_pickle=False) as data:
-            arrays = {k: np.asarray(data[k]) for k in data.files}
-    except Exception as e:  # numpy raises ValueError/OSError/zipfile errors for corrupt files
-        problems.append(Problem(f, f"could not read as .npz: {e}"))
+    arrays = _read_npz(problems, f)
+    if arrays is None:
         return
     why = objects_problem(arrays, meta.cameras, sizes, meta.num_frames, meta.dynamic)
     if why is not None:
