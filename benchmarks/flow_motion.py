@@ -32,7 +32,7 @@ from diff4splat.geometry.scene_flow import FB_TOLERANCE_PX, FLOW_UPSAMPLE, GATE_
 from diff4splat.pipeline import load_model  # noqa: E402
 from diff4splat.utils.devices import resolve_device  # noqa: E402
 from training.eval_metrics import motion_errors  # noqa: E402
-from training.evaluate import _held_out_clips  # noqa: E402
+from training.evaluate import held_out_clips  # noqa: E402
 from training.objectives import track_query_index  # noqa: E402
 
 VARIANTS = [  # (label, frames, upsample, preset, fb_tolerance, gate_px)
@@ -87,7 +87,7 @@ def main() -> None:
         model, _ = load_model(args.checkpoint)
     vae = model.vae.to(device).eval()
     cfg = model.config
-    clips = [clip for root in args.data for clip in _held_out_clips(root, cfg.height, cfg.width, cfg.num_frames, None)]
+    clips = [clip for root in args.data for clip in held_out_clips(root, cfg.height, cfg.width, cfg.num_frames, None)]
     frames = {}
     with torch.no_grad():
         for i, clip in enumerate(clips):

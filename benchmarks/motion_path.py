@@ -5,7 +5,9 @@ For each clip the pipeline builds the scene twice, from the clip's own latents (
 latents it samples with the clip's caption as the prompt; the photo layer's points at the tracks' frame-0 pixels are
 followed through the scene (:func:`training.evaluate.scene_motion`). Reported per set, means over clips: the
 displacement error (m) and the same for holding still, its ratio, EPE3D (m, absolute positions), δ5cm / δ10cm of the
-displacement (TAPVid-3D's thresholds), and on static clips the mean predicted displacement (mm):
+displacement (TAPVid-3D's thresholds), the ratio and δ over every valid frame-0 pixel (the clips' ``pixel_tracks``:
+dense scene flow, ``flow_disp_*``), and on static clips the mean predicted displacement (mm), at the tracks and at
+every pixel:
 
     python benchmarks/motion_path.py --data data/synth_heldout --checkpoint runs/x/model [--write SECTION]
 
@@ -26,10 +28,7 @@ from _common import markdown_table, write_section  # noqa: E402
 
 from diff4splat.cameras import CameraPath  # noqa: E402
 from diff4splat.pipeline import Diff4SplatPipeline  # noqa: E402
-from training.evaluate import _held_out_clips, scene_motion  # noqa: E402
-
-KEYS = ("motion_disp_epe", "motion_disp_hold", "motion_epe", "motion_disp_d5", "motion_disp_d10",
-        "motion_disp_hold_d5", "motion_disp_hold_d10")
+from training.evaluate import held_out_clips, scene_motion  # noqa: E402
 
 
 def clip_motion(pipe: Diff4SplatPipeline, clip: dict, latents: str, steps: int | None) -> dict[str, float]:
@@ -64,7 +63,7 @@ def main() -> None:
     torch.manual_seed(0)
     pipe = Diff4SplatPipeline.from_pretrained(args.checkpoint, device=args.device)
     cfg = pipe.config
-    clips = _held_out_clips(args.data, cfg.height, cfg.width, cfg.num_frames, args.limit)
+    clips = held_out_clips(args.data, cfg.height, cfg.width, cfg.num_frames, args.limit)
     rows = []
     for which in args.latents.split(","):
         per = {True: [], False: []}
@@ -77,11 +76,13 @@ def main() -> None:
                      f"{_mean(dyn, 'motion_epe'):.4f}",
                      f"{_mean(dyn, 'motion_disp_d5'):.3f} / {_mean(dyn, 'motion_disp_d10'):.3f}",
                      f"{_mean(dyn, 'motion_disp_hold_d5'):.3f} / {_mean(dyn, 'motion_disp_hold_d10'):.3f}",
+                     f"{_mean(dyn, 'flow_disp_epe') / _mean(dyn, 'flow_disp_hold'):.3f}",
+                     f"{_mean(dyn, 'flow_disp_d5'):.3f} / {_mean(dyn, 'flow_disp_d10'):.3f}",
                      len(sta), f"{1000 * _mean(sta, 'motion_disp_epe'):.2f}",
-                     f"{sum(r['deformed'] for r in sta):.0f}"])
+                     f"{1000 * _mean(sta, 'flow_disp_epe'):.2f}", f"{sum(r['deformed'] for r in sta):.0f}"])
     head = ["latents", "dynamic clips", "displacement error (m)", "holding still (m)", "ratio", "EPE3D (m)",
-            "δ5cm / δ10cm", "δ holding still", "static clips", "static: mean displacement (mm)",
-            "static scenes with deformation"]
+            "δ5cm / δ10cm", "δ holding still", "every pixel: ratio", "every pixel: δ5cm / δ10cm", "static clips",
+            "static: mean displacement (mm)", "static, every pixel (mm)", "static scenes with deformation"]
     table = markdown_table(head, rows)
     print(table)
     if args.write:

@@ -24,7 +24,7 @@ from _common import markdown_table, parse_pipeline_run, publish  # noqa: E402
 
 from diff4splat.cameras import CameraPath  # noqa: E402
 from diff4splat.reconstruct import LAYERS, reconstruct_scene  # noqa: E402
-from training.evaluate import _held_out_clips, scene_motion  # noqa: E402
+from training.evaluate import held_out_clips, scene_motion  # noqa: E402
 
 
 def main() -> None:
@@ -32,7 +32,7 @@ def main() -> None:
     ap.add_argument("--data", type=Path, nargs="+", required=True, help="held-out sets (data_prep synth)")
     args, loaded = parse_pipeline_run(ap)
     pipe, cfg = loaded.pipeline, loaded.pipeline.config
-    clips = [clip for root in args.data for clip in _held_out_clips(root, cfg.height, cfg.width, cfg.num_frames, None)]
+    clips = [clip for root in args.data for clip in held_out_clips(root, cfg.height, cfg.width, cfg.num_frames, None)]
     dynamic = [c for c in clips if bool(c["dynamic"])]
     rows, hold = [], None
     for layers in LAYERS:

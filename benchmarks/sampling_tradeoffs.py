@@ -20,7 +20,7 @@ from _common import machine, markdown_table, repo_relative, write_section  # noq
 from data_prep.synth_dataset import synthesize  # noqa: E402
 from diff4splat.pipeline import Diff4SplatPipeline, load_model  # noqa: E402
 from models.bundle import DEFAULT_CONFIG  # noqa: E402
-from training.evaluate import _held_out_clips, sampling_tradeoffs, stiffness_profile  # noqa: E402
+from training.evaluate import held_out_clips, sampling_tradeoffs, stiffness_profile  # noqa: E402
 
 
 def main() -> None:
@@ -41,7 +41,7 @@ def main() -> None:
         if data is None:
             synthesize(tmp, args.clips, seed=777, size=cfg.width, frames=cfg.num_frames, cameras=1, progress=False)
             data = tmp
-        clips = _held_out_clips(data, cfg.height, cfg.width, cfg.num_frames, args.clips)
+        clips = held_out_clips(data, cfg.height, cfg.width, cfg.num_frames, args.clips)
         rows = sampling_tradeoffs(pipe, clips)
         stiff = stiffness_profile(pipe, clips[0], steps=16)
     sweep = markdown_table(["sampler", "NFE", "steps", "ms / scene", "RMS to 256-step latent", "video PSNR dB"],

@@ -34,7 +34,7 @@ from diff4splat.cameras import CameraPath  # noqa: E402
 from diff4splat.io import load_image  # noqa: E402
 from diff4splat.render.sequence import render_path  # noqa: E402
 from training.eval_metrics import ablation_noise, binned_psnr, frame_mse, psnr_from_mse, view_angles  # noqa: E402
-from training.evaluate import _held_out_clips  # noqa: E402
+from training.evaluate import held_out_clips  # noqa: E402
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
 
@@ -80,7 +80,7 @@ def _prune_ms(pipe, runs: int = 5) -> float:
 def main() -> None:
     args, pipe, source = held_out_run(__doc__.splitlines()[0], "held-out dataset roots")
     cfg = pipe.config
-    sets = {d: _held_out_clips(d, cfg.height, cfg.width, cfg.num_frames, args.limit) for d in args.data}
+    sets = {d: held_out_clips(d, cfg.height, cfg.width, cfg.num_frames, args.limit) for d in args.data}
     rows = []
     for name, factors in LADDERS.items():
         with mock.patch.object(pipeline_module, "settle_generated",

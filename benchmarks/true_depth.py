@@ -33,7 +33,7 @@ from diff4splat.pipeline import Diff4SplatPipeline  # noqa: E402
 from diff4splat.render.sequence import render_path  # noqa: E402
 from diff4splat.scene.dynamic import DynamicGaussians  # noqa: E402
 from training.eval_metrics import ANGLE_BINS, binned_psnr, frame_mse, psnr_from_mse, repeat_baselines, view_angles  # noqa: E402
-from training.evaluate import _held_out_clips  # noqa: E402
+from training.evaluate import held_out_clips  # noqa: E402
 
 VARIANTS = ("oracle", "generate, true depth", "generate", "repeat frame 0")
 
@@ -65,7 +65,7 @@ def main() -> None:
     cfg = pipe.config
     rows = []
     for data in args.data:
-        clips = _held_out_clips(data, cfg.height, cfg.width, cfg.num_frames, args.limit)
+        clips = held_out_clips(data, cfg.height, cfg.width, cfg.num_frames, args.limit)
         acc: dict[str, list[torch.Tensor]] = {k: [] for k in VARIANTS}
         angles = []
         for clip in clips:

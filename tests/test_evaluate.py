@@ -18,6 +18,7 @@ from diff4splat.cli import main
 from diff4splat.pipeline import Diff4SplatPipeline
 from diff4splat.render.sequence import render_path
 from diff4splat.runtime import TorchRuntime
+from diff4splat.scene.dynamic import DynamicGaussians
 from training.eval_csv import append_csv, check_csv_outputs, csv_outputs
 from training.eval_metrics import ablation_noise, image_psnr, kept_index_map
 from training.evaluate import (
@@ -27,11 +28,12 @@ from training.evaluate import (
     METRICS,
     VARIANTS,
     ClipEvaluation,
-    _held_out_clips,
     aggregate,
     binned_keys,
     evaluate_clip,
+    held_out_clips,
     sampling_tradeoffs,
+    scene_motion,
     stiffness_profile,
 )
 
@@ -40,14 +42,14 @@ from training.evaluate import (
 def clips(tmp_path_factory):
     root = tmp_path_factory.mktemp("heldout")
     generate_scene(root, 0, seed=123, size=64, frames=9, cameras=1, static_ratio=0.0)
-    return _held_out_clips(root, 64, 64, 9, None)
+    return held_out_clips(root, 64, 64, 9, None)
 
 
 @pytest.fixture(scope="module")
 def static_clip(tmp_path_factory):
     root = tmp_path_factory.mktemp("heldout_static")
     generate_scene(root, 0, seed=124, size=64, frames=9, cameras=1, static_ratio=1.0)
-    (clip,) = _held_out_clips(root, 64, 64, 9, None)
+    (clip,) = held_out_clips(root, 64, 64, 9, None)
     assert not bool(clip["dynamic"])
     return clip
 
@@ -131,6 +133,36 @@ def test_motion_diagnostics_of_an_identity_deformation(clips):
     assert m["motion_disp_hold"] > 1e-3  # a dynamic clip: the tracks move
     assert m["motion_disp_epe"] == pytest.approx(m["motion_disp_hold"], abs=1e-6)
     assert m["motion_disp_epe_gt"] == pytest.approx(m["motion_disp_hold"], abs=1e-6)  # the oracle scene too
+    assert m["flow_disp_hold"] > 1e-3 and m["flow_disp_epe"] == pytest.approx(m["flow_disp_hold"], abs=1e-6)
+    assert m["flow_disp_epe_gt"] == pytest.approx(m["flow_disp_hold"], abs=1e-6)
+
+
+@pytest.mark.slow
+def test_dense_scene_flow_terms_score_each_pixels_gaussian_against_the_pixel_tracks(clips):
+    """A scene whose frame-0 pixel Gaussians move exactly as the clip's pixel tracks, plus 3 cm along x from frame 1
+    on, has a dense displacement error of 3 cm, every pixel within 5 cm (δ5 = δ10 = 1); 6 cm puts every pixel outside δ5
+    and inside δ10."""
+    clip = clips[0]
+    res = Diff4SplatPipeline(tiny_model())(clip["video"][:, 0].permute(1, 2, 0), CameraPath(
+        clip["viewmats"].double(), clip["Ks"].double(), 64, 64, clip["times"].double()), clip["caption"], steps=1)
+    T, HW = clip["times"].shape[0], 64 * 64
+    kept = kept_index_map(res.gaussian_index.cpu(), res.num_slots)[:HW]
+    flow = clip["pixel_tracks"].reshape(T, HW, 3).double()
+    valid = clip["pixel_track_valid"].reshape(HW) & (kept >= 0)
+    assert valid.sum() > 1000
+    for shift, d5 in ((0.03, 1.0), (0.06, 0.0)):
+        d_means = torch.zeros(T, res.scene.num_gaussians, 3, dtype=torch.float64)
+        d_means[:, kept[valid]] = flow[:, valid] - flow[:1, valid]
+        d_means[1:, kept[valid], 0] += shift
+        quats = torch.zeros(T, res.scene.num_gaussians, 4, dtype=torch.float64)
+        quats[..., 0] = 1
+        scene = DynamicGaussians(res.scene.canonical.to(torch.float64), clip["times"].double(), d_means, quats,
+                                 torch.zeros_like(d_means))
+        m = scene_motion(None, dataclasses.replace(res, scene=scene), clip)
+        assert m["flow_disp_epe"] == pytest.approx(shift, abs=1e-5)
+        assert m["flow_disp_d5"] == d5 and m["flow_disp_d10"] == 1.0
+        moves = (flow[1:, valid] - flow[:1, valid]).norm(dim=-1)
+        assert moves.max() > 0.1 and m["flow_disp_hold"] == pytest.approx(float(moves.mean()), rel=1e-6)
 
 
 @pytest.mark.slow

@@ -57,7 +57,7 @@ from .objectives import track_query_index
 
 __all__ = ["evaluate_clip", "evaluate_clips", "evaluate_all", "aggregate", "ClipEvaluation", "sampling_tradeoffs",
            "photo_fidelity", "stiffness_profile", "METRICS", "DIAGNOSTICS", "DEPTH_DIAGNOSTICS", "BASELINES",
-           "VARIANTS", "PHOTO_KEYS", "binned_keys", "scene_motion"]
+           "VARIANTS", "PHOTO_KEYS", "binned_keys", "scene_motion", "held_out_clips"]
 
 METRICS = ("psnr_input", "ssim_input", "psnr_novel", "ssim_novel", "depth_corr", "motion_epe", "loop_psnr",
            "vae_psnr")
@@ -65,9 +65,12 @@ METRICS = ("psnr_input", "ssim_input", "psnr_novel", "ssim_novel", "depth_corr",
 
 DIAGNOSTICS = ("motion_epe_t0", "motion_epe_hold", "motion_disp_epe", "motion_disp_hold", "motion_disp_d5",
                "motion_disp_d10", "motion_disp_hold_d5", "motion_disp_hold_d10", "motion_epe_gt",
-               "motion_disp_epe_gt")
+               "motion_disp_epe_gt", "flow_disp_epe", "flow_disp_hold", "flow_disp_d5", "flow_disp_d10",
+               "flow_disp_epe_gt")
 """Reported beside ``motion_epe`` (metres; :func:`training.eval_metrics.motion_errors`): frame-0 error, holding
-still, the displacement from frame 0 and its δ fractions (higher is better), and ``*_gt`` for the true latents."""
+still, the displacement from frame 0 and its δ fractions (higher is better), and ``*_gt`` for the true latents;
+``flow_*`` the same displacement terms over every valid frame-0 pixel (the clip's ``pixel_tracks``: dense scene flow;
+on a static clip ``flow_disp_epe`` is the mean spurious motion)."""
 
 DEPTH_DIAGNOSTICS = ("depth_abs_rel", "depth_scale")
 """Beside ``depth_corr`` (:func:`training.eval_metrics.depth_errors`): AbsRel and the median rendered/true ratio."""
@@ -86,7 +89,7 @@ def binned_keys() -> tuple[str, ...]:
                                                  f"frames_{name}"))
 
 
-def _held_out_clips(data: str | Path, height: int, width: int, num_frames: int, limit: int | None):
+def held_out_clips(data: str | Path, height: int, width: int, num_frames: int, limit: int | None):
     """The first ``limit`` clips (CPU tensors) of a dataset, reference camera first, all scenes."""
     ds = ClipDataset(data, ClipConfig(num_frames=num_frames, height=height, width=width, scenes="all",
                                       reference_camera="first", target_cameras="same", plucker="raw", seed=0))
@@ -110,16 +113,22 @@ class ClipEvaluation:
 
 def scene_motion(pipe: Diff4SplatPipeline, res: GenerationResult, clip: dict) -> dict[str, float]:
     """:func:`motion_errors` on the CPU of a generated scene: each track follows the photo layer's front disk at its
-    frame-0 pixel (the first H·W unpruned slots, ``res.gaussian_index``) through the clip's times."""
+    frame-0 pixel (the first H·W unpruned slots, ``res.gaussian_index``) through the clip's times; the ``flow_disp_*``
+    terms (:data:`DIAGNOSTICS`) follow every frame-0 pixel against the clip's ``pixel_tracks``."""
     H, W = res.cameras.height, res.cameras.width
     tracks, vis = clip["tracks"], clip["track_visibility"] & clip["track_mask"][:, None]
     idx, ok = track_query_index(tracks[:, 0], clip["Ks"][0], W, H, vis[:, 0])
-    kept = kept_index_map(res.gaussian_index.cpu(), res.num_slots)
-    g_idx = kept[idx]
-    ok = ok & (g_idx >= 0)
+    kept = kept_index_map(res.gaussian_index.cpu(), res.num_slots)[: H * W]  # frame 0's pixel → its Gaussian
     # gate 0: every Gaussian at every time (a scene with temporal opacity leaves the faded ones out by default)
-    pred = torch.stack([res.scene.at(t, gate=0).means.cpu()[g_idx.clamp(min=0)] for t in res.cameras.times.tolist()], 1)
-    return motion_errors(pred, tracks, vis & ok[:, None])
+    means = torch.stack([res.scene.at(t, gate=0).means.cpu() for t in res.cameras.times.tolist()], 1)  # (M, T, 3)
+    pixels = means[kept.clamp(min=0)]  # (H·W, T, 3)
+    out = motion_errors(pixels[idx], tracks, vis & ok[:, None] & (kept[idx] >= 0)[:, None])
+    T = pixels.shape[1]
+    flow = clip["pixel_tracks"].reshape(T, H * W, 3).transpose(0, 1)
+    dense = clip["pixel_track_valid"].reshape(H * W) & (kept >= 0)
+    errors = motion_errors(pixels, flow, dense[:, None].expand(H * W, T))
+    return out | {"flow" + k[len("motion"):]: v for k, v in errors.items() if k.startswith("motion_disp")
+                  and "hold_" not in k}
 
 
 def _clip_inputs(pipe: Diff4SplatPipeline, clip: dict) -> tuple[CameraPath, Tensor]:
@@ -169,7 +178,7 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
     noisy = pipe(image, cams, clip["caption"], video_latents=ablation_noise(res.latents.shape, seed), **gen)
     mse["noise"] = frame_mse(_render(noisy)[0][1:].permute(0, 3, 1, 2), gt[1:])
     mse["gt"] = torch.full((T - 1,), float("nan"), dtype=torch.float64, device="cpu")
-    out["vae_psnr"] = out["motion_epe_gt"] = out["motion_disp_epe_gt"] = float("nan")
+    out["vae_psnr"] = out["motion_epe_gt"] = out["motion_disp_epe_gt"] = out["flow_disp_epe_gt"] = float("nan")
     if pipe.model is not None:
         # through the runtime, as the pipeline does: in its dtype, and on the device with model offload
         latents = pipe.runtime.encode_image(clip["video"][None].to(pipe.device) * 2 - 1)
@@ -179,6 +188,7 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
         mse["gt"] = frame_mse(_render(oracle)[0][1:].permute(0, 3, 1, 2), gt[1:])
         motion = scene_motion(pipe, oracle, clip)
         out["motion_epe_gt"], out["motion_disp_epe_gt"] = motion["motion_epe"], motion["motion_disp_epe"]
+        out["flow_disp_epe_gt"] = motion["flow_disp_epe"]
     out["psnr_novel"] = psnr_from_mse(float(mse["model"].mean()))
     out.update({f"psnr_novel_{v}": psnr_from_mse(float(mse[v].mean())) for v in VARIANTS})
     angles = view_angles(clip["viewmats"])

@@ -28,10 +28,10 @@ from .evaluate import (
     PHOTO_KEYS,
     VARIANTS,
     ClipEvaluation,
-    _held_out_clips,
     aggregate,
     binned_keys,
     evaluate_all,
+    held_out_clips,
     photo_fidelity,
     sampling_tradeoffs,
 )
@@ -164,7 +164,7 @@ def run(args) -> int:
         width, height = pipe.output_size(args.resolution)
         check_memory(pipe.memory_estimate(width, height, cfg.num_frames),
                      f"--photo at {width}×{height}, {cfg.num_frames} frames", "--resolution")
-    clips = _held_out_clips(args.data, cfg.height, cfg.width, frames, args.limit)
+    clips = held_out_clips(args.data, cfg.height, cfg.width, frames, args.limit)
     if not clips:
         raise ValueError(f"--data: no clips in {args.data}")
     evals = evaluate_all(pipe, clips, steps=args.steps, progress=not args.quiet)
