@@ -86,7 +86,9 @@ def level_correlation(query: Tensor, target: Tensor, uv: Tensor, level: int, rad
     # one look-up for every offset: the D offsets stacked along the sampled rows
     sampled = F.grid_sample(target, _grid(at, h, w).flatten(1, 2), mode="bilinear", padding_mode="zeros",
                             align_corners=False)  # (N, F, D·H, W)
-    return F.cosine_similarity(query[:, :, None], sampled.unflatten(2, (len(offsets), H)), dim=1, eps=COS_EPS)
+    # cosine similarity, each side normalised first (F.cosine_similarity on the broadcast query was 3x slower)
+    unit = lambda x: x / x.norm(dim=1, keepdim=True).clamp_min(COS_EPS)  # noqa: E731
+    return (unit(query)[:, :, None] * unit(sampled.unflatten(2, (len(offsets), H)))).sum(1)
 
 
 def _query(source: list[Tensor], level: int) -> Tensor:
