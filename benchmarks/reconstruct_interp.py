@@ -12,7 +12,9 @@ held, and the mean of the two given neighbours (a cross-fade is not motion), for
 ``--video``: a real video, still camera (the default of ``reconstruct``); ``--data``: each scene of a
 ``data_prep synth`` set (17 frames, so T = 9 at stride 2), its first camera's frames and true cameras.
 ``--write`` puts the table into docs/benchmarks.md (section ``reconstruct_interp_<label>``, ``--label`` default:
-the video's or set's name).
+the video's or set's name). ``--strip PNG`` saves, for the first clip and ``--layers every``, four held-out frames
+(columns) as the true frame, the 4D scene's render, the blend of the two neighbours and the previous frame held
+(rows, labelled), to look at.
 """
 from __future__ import annotations
 
@@ -21,13 +23,15 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
+import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import markdown_table, parse_pipeline_run, publish  # noqa: E402
 
 from diff4splat.cameras import CameraPath  # noqa: E402
-from diff4splat.io import load_cameras_json  # noqa: E402
+from diff4splat.io import load_cameras_json, save_image  # noqa: E402
 from diff4splat.io.image import preprocess_image  # noqa: E402
 from diff4splat.io.video_input import read_video_clip  # noqa: E402
 from diff4splat.reconstruct import LAYERS, reconstruct, still_cameras  # noqa: E402
@@ -36,10 +40,10 @@ from training.eval_metrics import psnr_from_mse  # noqa: E402
 
 
 def held_out_scores(loaded, video: Path, frames: int, stride: int, start: int, resolution: int | None,
-                    cameras: CameraPath | None, layers: str) -> dict[str, float]:
+                    cameras: CameraPath | None, layers: str, strip: Path | None = None) -> dict[str, float]:
     """Squared errors summed over the held-out frames of one clip ({"scene", "hold", "blend"}: sum of per-frame MSE),
     their count, the seconds ``reconstruct`` took and its Gaussians. ``cameras``: the video's cameras at every frame
-    (None: still)."""
+    (None: still); ``strip``: where to save the frame strip (module docstring)."""
     pipe = loaded.pipeline
     given = [start + 2 * stride * i for i in range(frames)]
     between = [g + stride for g in given[:-1]]
@@ -65,8 +69,23 @@ def held_out_scores(loaded, video: Path, frames: int, stride: int, start: int, r
                            background=gen.result.background)[0].cpu()
     target, prev, nxt = truth[1::2], truth[0:-1:2], truth[2::2]
     mse = lambda a: float(((a - target) ** 2).mean(dim=(1, 2, 3)).sum())  # noqa: E731
+    if strip is not None:
+        save_strip(strip, {"true": target, "4D scene": rendered, "blend": (prev + nxt) / 2, "hold": prev})
     return {"scene": mse(rendered), "hold": mse(prev), "blend": mse((prev + nxt) / 2), "frames": len(between),
             "seconds": seconds, "gaussians": scene.num_gaussians}
+
+
+def save_strip(path: Path, rows: dict[str, torch.Tensor], columns: int = 4) -> None:
+    """A PNG of ``columns`` evenly spaced frames of each labelled row of (N, H, W, 3) frames in [0, 1]."""
+    n = next(iter(rows.values())).shape[0]
+    pick = np.linspace(0, n - 1, min(columns, n)).round().astype(int)
+    lines = []
+    for label, frames in rows.items():
+        line = np.concatenate([(frames[i].clamp(0, 1).numpy() * 255).astype(np.uint8) for i in pick], axis=1)
+        line = np.ascontiguousarray(line)
+        cv2.putText(line, label, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 0), 1, cv2.LINE_AA)
+        lines.append(line)
+    save_image(path, np.concatenate(lines, axis=0))
 
 
 def _subset(cameras: CameraPath, index: list[int]) -> CameraPath:
@@ -82,6 +101,7 @@ def main() -> None:
     ap.add_argument("--stride", type=int, default=1, help="stride of the video's frames (the clip takes every 2nd)")
     ap.add_argument("--frames", type=int, default=None, help="T given frames (default: 17, or 9 for --data)")
     ap.add_argument("--resolution", type=int, default=None)
+    ap.add_argument("--strip", type=Path, default=None, help="save a frame strip of the first clip (PNG)")
     args, loaded = parse_pipeline_run(ap)
     if args.video is not None:
         jobs = [(args.video, None)]
@@ -93,8 +113,10 @@ def main() -> None:
     rows, psnr = [], {}
     for layers in LAYERS:
         total = {"scene": 0.0, "hold": 0.0, "blend": 0.0, "frames": 0, "seconds": 0.0, "gaussians": 0}
-        for video, cameras in jobs:
-            scores = held_out_scores(loaded, video, frames, args.stride, args.start, args.resolution, cameras, layers)
+        for j, (video, cameras) in enumerate(jobs):
+            strip = args.strip if j == 0 and layers == "every" else None
+            scores = held_out_scores(loaded, video, frames, args.stride, args.start, args.resolution, cameras, layers,
+                                     strip)
             total = {k: total[k] + scores[k] for k in total}
             print(video, layers, {k: round(psnr_from_mse(scores[k] / scores["frames"]), 2)
                                   for k in ("scene", "hold", "blend")}, flush=True)
