@@ -9,7 +9,10 @@ displacement (TAPVid-3D's thresholds), the ratio and δ over every valid frame-0
 dense scene flow, ``flow_disp_*``), and on static clips the mean predicted displacement (mm), at the tracks and at
 every pixel:
 
-    python benchmarks/motion_path.py --data data/synth_heldout --checkpoint runs/x/model [--write SECTION]
+    python benchmarks/motion_path.py --data data/synth_heldout --checkpoint runs/x/model [--direction] [--write SECTION]
+
+``--direction`` adds the direction test (:mod:`training.direction_test`): on each dynamic clip whose caption names
+one direction, the scene from the true latents, and from sampled ones with the caption and with its direction flipped.
 
 ``--write`` puts the table in docs/benchmarks.md under ``motion_path_<SECTION>``.
 """
@@ -28,21 +31,56 @@ from _common import markdown_table, write_section  # noqa: E402
 
 from diff4splat.cameras import CameraPath  # noqa: E402
 from diff4splat.pipeline import Diff4SplatPipeline  # noqa: E402
-from training.evaluate import held_out_clips, scene_motion  # noqa: E402
+from training.direction_test import (  # noqa: E402
+    caption_direction,
+    directional_motion,
+    flip_direction,
+    moves_named_way,
+    moving_pixels,
+)
+from training.evaluate import held_out_clips, pixel_positions, scene_motion  # noqa: E402
 
 
-def clip_motion(pipe: Diff4SplatPipeline, clip: dict, latents: str, steps: int | None) -> dict[str, float]:
-    """:func:`scene_motion` of ``clip``'s scene from its ``latents`` ("true": VAE-encoded; "generated": sampled)."""
+def clip_scene(pipe: Diff4SplatPipeline, clip: dict, latents: str, steps: int | None, prompt: str | None = None):
+    """``clip``'s generation from its ``latents`` ("true": VAE-encoded; "generated": sampled with ``prompt``, default
+    the clip's caption)."""
     cfg = pipe.config
     cams = CameraPath(clip["viewmats"].double(), clip["Ks"].double(), cfg.width, cfg.height, clip["times"].double())
     image = clip["video"][:, 0].permute(1, 2, 0)
     video_latents = None
     if latents == "true":
         video_latents = pipe.runtime.encode_image(clip["video"][None].to(pipe.device) * 2 - 1)
-    res = pipe(image, cams, clip["caption"], steps=steps, video_latents=video_latents)
+    return pipe(image, cams, clip["caption"] if prompt is None else prompt, steps=steps, video_latents=video_latents)
+
+
+def clip_motion(pipe: Diff4SplatPipeline, clip: dict, latents: str, steps: int | None) -> dict[str, float]:
+    """:func:`scene_motion` of ``clip``'s scene from its ``latents`` (:func:`clip_scene`)."""
+    res = clip_scene(pipe, clip, latents, steps)
     out = scene_motion(pipe, res, clip)
     out["deformed"] = float(res.scene.d_means is not None)
     return out
+
+
+def direction_rows(pipe: Diff4SplatPipeline, clips: list[dict], steps: int | None) -> list[list]:
+    """The direction test (:mod:`training.direction_test`) on the dynamic clips whose caption names one direction:
+    per variant (true latents with the caption, generated with the caption, generated with it flipped) the clips
+    moved the named way and the mean displacement along the named axis times its sign (metres)."""
+    tally = {"true latents, caption": [], "generated, caption": [], "generated, flipped caption": []}
+    for clip in clips:
+        named = caption_direction(clip["caption"]) if bool(clip["dynamic"]) else None
+        moving = moving_pixels(clip["pixel_tracks"], clip["pixel_track_valid"]).reshape(-1)
+        if named is None or not bool(moving.any()):
+            continue
+        _, axis, sign = named
+        for name, latents, prompt, s in (("true latents, caption", "true", None, sign),
+                                         ("generated, caption", "generated", None, sign),
+                                         ("generated, flipped caption", "generated", flip_direction(clip["caption"]),
+                                          -sign)):
+            positions, kept = pixel_positions(clip_scene(pipe, clip, latents, steps, prompt))
+            d = directional_motion(positions, moving & kept, axis)
+            tally[name].append((moves_named_way(d, s), s * d if math.isfinite(d) else 0.0))
+    return [[name, len(v), f"{sum(ok for ok, _ in v) / max(1, len(v)):.2f}",
+             f"{sum(d for _, d in v) / max(1, len(v)):+.4f}"] for name, v in tally.items()]
 
 
 def _mean(rows: list[dict[str, float]], key: str) -> float:
@@ -59,6 +97,7 @@ def main() -> None:
     ap.add_argument("--latents", default="true,generated")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--write", default=None, help="section suffix in docs/benchmarks.md")
+    ap.add_argument("--direction", action="store_true", help="also the direction test (training.direction_test)")
     args = ap.parse_args()
     torch.manual_seed(0)
     pipe = Diff4SplatPipeline.from_pretrained(args.checkpoint, device=args.device)
@@ -84,6 +123,11 @@ def main() -> None:
             "δ5cm / δ10cm", "δ holding still", "every pixel: ratio", "every pixel: δ5cm / δ10cm", "static clips",
             "static: mean displacement (mm)", "static, every pixel (mm)", "static scenes with deformation"]
     table = markdown_table(head, rows)
+    if args.direction:
+        with torch.no_grad():
+            table += "\n\nDirection test (`training.direction_test`):\n\n" + markdown_table(
+                ["scene from", "clips", "moved the named way", "mean displacement along it (m)"],
+                direction_rows(pipe, clips, args.steps))
     print(table)
     if args.write:
         cmd = shlex.join(["python", "benchmarks/motion_path.py", *sys.argv[1:]])

@@ -22,8 +22,8 @@ from diff4splat.utils.checks import check_number
 from .textures import IMAGE_TEXTURES, load_texture, texture_names
 
 __all__ = ["COLORS", "SHAPES", "MOTIONS", "CAMERA_MOTIONS", "TEXTURES", "sample_scene_spec", "caption_for",
-           "direction_word", "DEFAULT_SIZE", "DEFAULT_FRAMES", "DEFAULT_CAMERAS", "DEFAULT_STATIC_RATIO",
-           "DEFAULT_TEXTURE_RATIO"]
+           "direction_word", "DIRECTION_PHRASES", "DEFAULT_SIZE", "DEFAULT_FRAMES", "DEFAULT_CAMERAS",
+           "DEFAULT_STATIC_RATIO", "DEFAULT_TEXTURE_RATIO"]
 
 DEFAULT_SIZE = 64
 """Image width = height of a synthetic scene when none is given, pixels (the ``base`` model's resolution)."""
@@ -111,13 +111,16 @@ def _apply_image_textures(rng: np.random.Generator, spec: dict[str, Any], ratio:
                 surface["material"] = IMAGE_TEXTURES[surface["texture"]["file"]]
 
 
+DIRECTION_PHRASES: tuple[tuple[str, str], ...] = (("to the right", "to the left"), ("downwards", "upwards"),
+                                                  ("away from the camera", "towards the camera"))
+"""Caption phrases of the camera frame's axes x, y, z (x right, y down, z forward): (positive, negative)."""
+
+
 def direction_word(v_cam: np.ndarray) -> str:
-    """Dominant direction of a camera-frame vector (x right, y down, z forward) as a caption phrase."""
+    """Dominant direction of a camera-frame vector (x right, y down, z forward) as a caption phrase
+    (:data:`DIRECTION_PHRASES`)."""
     axis = int(np.argmax(np.abs(v_cam)))
-    pos = v_cam[axis] > 0
-    phrases = [("to the right", "to the left"), ("downwards", "upwards"),
-               ("away from the camera", "towards the camera")]
-    return phrases[axis][0 if pos else 1]
+    return DIRECTION_PHRASES[axis][0 if v_cam[axis] > 0 else 1]
 
 
 def _sample_motion(rng: np.random.Generator, shape: str, center: np.ndarray, room: float) -> dict[str, Any]:

@@ -57,7 +57,8 @@ from .objectives import track_query_index
 
 __all__ = ["evaluate_clip", "evaluate_clips", "evaluate_all", "aggregate", "ClipEvaluation", "sampling_tradeoffs",
            "photo_fidelity", "stiffness_profile", "METRICS", "DIAGNOSTICS", "DEPTH_DIAGNOSTICS", "BASELINES",
-           "VARIANTS", "PHOTO_KEYS", "binned_keys", "scene_motion", "held_out_clips"]
+           "VARIANTS", "PHOTO_KEYS", "binned_keys", "scene_motion", "held_out_clips",
+           "pixel_positions"]
 
 METRICS = ("psnr_input", "ssim_input", "psnr_novel", "ssim_novel", "depth_corr", "motion_epe", "loop_psnr",
            "vae_psnr")
@@ -111,6 +112,16 @@ class ClipEvaluation:
     frame_mse: dict[str, Tensor] = field(default_factory=dict)
 
 
+def pixel_positions(res: GenerationResult) -> tuple[Tensor, Tensor]:
+    """CPU positions (H·W, T, 3), metres, of the photo layer's front disk at each frame-0 pixel (the first H·W slots,
+    ``res.gaussian_index``) at the scene's camera times, and (H·W,) bool: the pixel's disk was kept (not pruned)."""
+    H, W = res.cameras.height, res.cameras.width
+    kept = kept_index_map(res.gaussian_index.cpu(), res.num_slots)[: H * W]  # frame 0's pixel → its Gaussian
+    # gate 0: every Gaussian at every time (a scene with temporal opacity leaves the faded ones out by default)
+    means = torch.stack([res.scene.at(t, gate=0).means.cpu() for t in res.cameras.times.tolist()], 1)  # (M, T, 3)
+    return means[kept.clamp(min=0)], kept >= 0
+
+
 def scene_motion(pipe: Diff4SplatPipeline, res: GenerationResult, clip: dict) -> dict[str, float]:
     """:func:`motion_errors` on the CPU of a generated scene: each track follows the photo layer's front disk at its
     frame-0 pixel (the first H·W unpruned slots, ``res.gaussian_index``) through the clip's times; the ``flow_disp_*``
@@ -118,14 +129,11 @@ def scene_motion(pipe: Diff4SplatPipeline, res: GenerationResult, clip: dict) ->
     H, W = res.cameras.height, res.cameras.width
     tracks, vis = clip["tracks"], clip["track_visibility"] & clip["track_mask"][:, None]
     idx, ok = track_query_index(tracks[:, 0], clip["Ks"][0], W, H, vis[:, 0])
-    kept = kept_index_map(res.gaussian_index.cpu(), res.num_slots)[: H * W]  # frame 0's pixel → its Gaussian
-    # gate 0: every Gaussian at every time (a scene with temporal opacity leaves the faded ones out by default)
-    means = torch.stack([res.scene.at(t, gate=0).means.cpu() for t in res.cameras.times.tolist()], 1)  # (M, T, 3)
-    pixels = means[kept.clamp(min=0)]  # (H·W, T, 3)
-    out = motion_errors(pixels[idx], tracks, vis & ok[:, None] & (kept[idx] >= 0)[:, None])
+    pixels, kept = pixel_positions(res)
+    out = motion_errors(pixels[idx], tracks, vis & ok[:, None] & kept[idx][:, None])
     T = pixels.shape[1]
     flow = clip["pixel_tracks"].reshape(T, H * W, 3).transpose(0, 1)
-    dense = clip["pixel_track_valid"].reshape(H * W) & (kept >= 0)
+    dense = clip["pixel_track_valid"].reshape(H * W) & kept
     errors = motion_errors(pixels, flow, dense[:, None].expand(H * W, T))
     return out | {"flow" + k[len("motion"):]: v for k, v in errors.items() if k.startswith("motion_disp")
                   and "hold_" not in k}
