@@ -161,6 +161,8 @@ def test_dense_scene_flow_terms_score_each_pixels_gaussian_against_the_pixel_tra
         m = scene_motion(None, dataclasses.replace(res, scene=scene), clip)
         assert m["flow_disp_epe"] == pytest.approx(shift, abs=1e-5)
         assert m["flow_disp_d5"] == d5 and m["flow_disp_d10"] == 1.0
+        still = ((flow[1:, valid] - flow[:1, valid]).norm(dim=-1) < 0.05).double().mean()
+        assert m["flow_disp_hold_d5"] == pytest.approx(float(still))  # holding still's δ5 from the truth alone
         moves = (flow[1:, valid] - flow[:1, valid]).norm(dim=-1)
         assert moves.max() > 0.1 and m["flow_disp_hold"] == pytest.approx(float(moves.mean()), rel=1e-6)
 

@@ -67,7 +67,7 @@ METRICS = ("psnr_input", "ssim_input", "psnr_novel", "ssim_novel", "depth_corr",
 DIAGNOSTICS = ("motion_epe_t0", "motion_epe_hold", "motion_disp_epe", "motion_disp_hold", "motion_disp_d5",
                "motion_disp_d10", "motion_disp_hold_d5", "motion_disp_hold_d10", "motion_epe_gt",
                "motion_disp_epe_gt", "flow_disp_epe", "flow_disp_hold", "flow_disp_d5", "flow_disp_d10",
-               "flow_disp_epe_gt")
+               "flow_disp_hold_d5", "flow_disp_hold_d10", "flow_disp_epe_gt")
 """Reported beside ``motion_epe`` (metres; :func:`training.eval_metrics.motion_errors`): frame-0 error, holding
 still, the displacement from frame 0 and its δ fractions (higher is better), and ``*_gt`` for the true latents;
 ``flow_*`` the same displacement terms over every valid frame-0 pixel (the clip's ``pixel_tracks``: dense scene flow;
@@ -135,8 +135,7 @@ def scene_motion(pipe: Diff4SplatPipeline, res: GenerationResult, clip: dict) ->
     flow = clip["pixel_tracks"].reshape(T, H * W, 3).transpose(0, 1)
     dense = clip["pixel_track_valid"].reshape(H * W) & kept
     errors = motion_errors(pixels, flow, dense[:, None].expand(H * W, T))
-    return out | {"flow" + k[len("motion"):]: v for k, v in errors.items() if k.startswith("motion_disp")
-                  and "hold_" not in k}
+    return out | {"flow" + k[len("motion"):]: v for k, v in errors.items() if k.startswith("motion_disp")}
 
 
 def _clip_inputs(pipe: Diff4SplatPipeline, clip: dict) -> tuple[CameraPath, Tensor]:
