@@ -20,7 +20,7 @@ import torch
 
 from diff4splat.cameras import CameraPath, intrinsics_from_fov, look_at
 from diff4splat.render.rasterize import rasterize
-from diff4splat.render.sequence import render_path
+from diff4splat.render.sh import color_features
 from diff4splat.scene.dynamic import DynamicGaussians
 from diff4splat.scene.gaussians import Gaussians, rgb_to_sh0
 from diff4splat.scene.quaternions import axis_angle_to_quat, quat_to_rotmat, rotmat_to_quat
@@ -39,7 +39,7 @@ from .synth_world import (
 from .textures import image_albedo
 
 __all__ = ["generate_scene", "render_spec", "write_synth_scene", "SynthScene", "build_scene", "build_gaussians",
-           "object_transform", "object_poses", "object_id_maps",
+           "object_transform", "object_poses", "render_camera",
            "camera_path", "track_visibility", "scene_name", "MAX_TRACKS", "VISIBILITY_TOL_M",
            "VISIBILITY_TOL_REL"]
 
@@ -236,23 +236,33 @@ def object_poses(spec: dict[str, Any]) -> np.ndarray:
     return poses
 
 
-def object_id_maps(scene: DynamicGaussians, object_ids: np.ndarray, num_objects: int,
-                   cameras: CameraPath) -> np.ndarray:
-    """(T, H, W) uint8 id map of each frame of ``cameras`` (objects.npz, FORMAT.md): 0 background, k + 1 object k,
-    :data:`~data_prep.scene_files.NO_SURFACE` where the alpha is below 0.5 (the depth's +inf); the id whose Gaussians
-    weigh most in the pixel (one-hot features composited on the scene's device). ``object_ids`` (M,) as
-    :func:`build_gaussians`."""
+def render_camera(scene: DynamicGaussians, object_ids: np.ndarray, num_objects: int, cameras: CameraPath,
+                  background: tuple[float, float, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Frame i of ``cameras`` with the scene at ``cameras.times[i]``, on the scene's device, in one render: colour
+    (T, H, W, 3) float32 in [0, 1] over ``background``, z-depth (T, H, W) float32 metres where the alpha is ≥ 0.5
+    (+inf elsewhere), and the object id map (T, H, W) uint8 (objects.npz, FORMAT.md: 0 background, k + 1 object k,
+    :data:`~data_prep.scene_files.NO_SURFACE` where the depth is +inf; the id whose Gaussians weigh most in the
+    pixel, ``object_ids`` (M,) as :func:`build_gaussians`). The colours are the SH colours
+    (:func:`diff4splat.render.sh.color_features`) composited beside the one-hot ids, channel by channel as
+    :func:`~diff4splat.render.sequence.render_path` composites them alone."""
     device, dtype = scene.canonical.means.device, scene.canonical.means.dtype
     onehot = torch.eye(num_objects + 1, dtype=dtype, device=device)[torch.as_tensor(object_ids + 1, device=device)]
+    bg = torch.tensor([[*background, *([0.0] * (num_objects + 1))]], dtype=dtype, device=device)
     viewmats, Ks = cameras.viewmats.to(device, dtype), cameras.Ks.to(device, dtype)
-    maps = np.empty((len(cameras), cameras.height, cameras.width), dtype=np.uint8)
-    for i in range(len(cameras)):
+    T, H, W = len(cameras), cameras.height, cameras.width
+    rgb, depth = np.empty((T, H, W, 3), np.float32), np.empty((T, H, W), np.float32)
+    ids = np.empty((T, H, W), dtype=np.uint8)
+    for i in range(T):
         g = scene.at(float(cameras.times[i]))
-        weights, alpha, _ = rasterize(g.means, g.quats, g.scales, g.opacities, onehot, viewmats[i:i + 1],
-                                      Ks[i:i + 1], cameras.width, cameras.height, sh_degree=None, render_mode="RGB")
-        ids = torch.where(alpha[0, ..., 0] >= 0.5, weights[0].argmax(-1), NO_SURFACE)
-        maps[i] = ids.to(torch.uint8).cpu().numpy()
-    return maps
+        colors = color_features(g.sh, g.means, viewmats[i:i + 1], g.sh_degree)[0]
+        out, alpha, _ = rasterize(g.means, g.quats, g.scales, g.opacities, torch.cat([colors, onehot], -1),
+                                  viewmats[i:i + 1], Ks[i:i + 1], W, H, sh_degree=None, backgrounds=bg,
+                                  render_mode="RGB+ED")
+        surface = alpha[0, ..., 0] >= 0.5
+        rgb[i] = out[0, ..., :3].clamp(0, 1).cpu().numpy()
+        depth[i] = torch.where(surface, out[0, ..., -1], torch.inf).cpu().numpy()
+        ids[i] = torch.where(surface, out[0, ..., 3:-1].argmax(-1), NO_SURFACE).to(torch.uint8).cpu().numpy()
+    return rgb, depth, ids
 
 
 def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
@@ -336,7 +346,7 @@ def track_visibility(points: np.ndarray, cameras: CameraPath, depth: np.ndarray)
 @dataclass
 class SynthScene:
     """A rendered synthetic scene, before writing: per camera (reference first) a path, rgb (T, H, W, 3) float32 in
-    [0, 1], depth (T, H, W) float32 metres and object id maps (T, H, W) uint8 (:func:`object_id_maps`);
+    [0, 1], depth (T, H, W) float32 metres and object id maps (T, H, W) uint8 (:func:`render_camera`);
     ``object_ids`` (M,) as :func:`build_gaussians`; the tracked Gaussians ``track_ids`` (P,), their ``points``
     (P, T, 3) float32 metres and ``visibility`` (P, T) bool; the objects' ``poses`` (:func:`object_poses`)."""
 
@@ -366,10 +376,10 @@ def render_spec(spec: dict[str, Any], rng: np.random.Generator, device: str | to
         rendered = scene.to(device)
         rgbs, depths, id_maps = [], [], []
         for p in paths:
-            rgb, ed, alpha = render_path(rendered, p, background=tuple(spec["background"]))
-            rgbs.append(rgb.cpu().numpy())
-            depths.append(torch.where(alpha >= 0.5, ed, torch.inf).cpu().numpy())
-            id_maps.append(object_id_maps(rendered, ids, len(spec["objects"]), p))
+            rgb, depth, id_map = render_camera(rendered, ids, len(spec["objects"]), p, tuple(spec["background"]))
+            rgbs.append(rgb)
+            depths.append(depth)
+            id_maps.append(id_map)
     finally:
         torch.set_num_threads(threads)
     obj = np.flatnonzero(ids >= 0)

@@ -14,10 +14,11 @@ from data_prep.clips import ClipDataset
 from data_prep.format import SceneReader
 from data_prep.object_motion import homogeneous, id_boundaries, pixel_tracks
 from data_prep.scene_files import NO_SURFACE, OBJECTS_FILE
-from data_prep.synth import build_scene, generate_scene, object_poses
+from data_prep.synth import build_scene, camera_path, generate_scene, object_poses, render_camera
 from data_prep.synth_world import sample_scene_spec
 from data_prep.validate import validate_scene
 from diff4splat.cameras import project_points
+from diff4splat.render.sequence import render_path
 from training.losses import displacement_loss, scene_flow_loss
 
 
@@ -83,6 +84,20 @@ def test_object_poses_move_the_synthetic_objects_gaussians_exactly(seed):
             torch.testing.assert_close(means[t][sel], want, atol=2e-5, rtol=0)
             moved = max(moved, float((means[t][sel] - means[0][sel]).norm(dim=-1).max()))
     assert moved > 0.1  # something moved
+
+
+def test_one_render_gives_render_paths_colours_and_depth_and_the_ids():
+    """Compositing the one-hot ids beside the colours changes no colour or depth bit of render_path's frames."""
+    rng = np.random.default_rng(3)
+    spec = sample_scene_spec(rng, dynamic=True, num_cameras=1, size=32, num_frames=3, texture_ratio=0.0)
+    scene, ids = build_scene(spec, rng)
+    path = camera_path(spec, spec["cameras"][0])
+    rgb, depth, id_maps = render_camera(scene, ids, len(spec["objects"]), path, tuple(spec["background"]))
+    colors, ed, alpha = render_path(scene, path, background=tuple(spec["background"]))
+    np.testing.assert_array_equal(rgb, colors.numpy())
+    np.testing.assert_array_equal(depth, torch.where(alpha >= 0.5, ed, torch.inf).numpy())
+    assert set(np.unique(id_maps)) <= set(range(len(spec["objects"]) + 1)) | {NO_SURFACE}
+    assert (id_maps[0] > 0).any()  # an object in view
 
 
 @pytest.fixture(scope="module")
