@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset
 
-from diff4splat.cameras import CameraPath, center_crop_box, pack_plucker, plucker_rays, unproject_pixels
+from diff4splat.cameras import CameraPath, center_crop_box, pack_plucker, plucker_rays, unproject_depth
 from diff4splat.io import preprocess_image
 from diff4splat.utils.checks import check_int
 
@@ -298,11 +298,9 @@ class ClipDataset(Dataset):
                       depth0: Tensor) -> dict[str, Tensor]:
         """Dense 3D tracks of frame 0's pixels (the class docstring's ``pixel_tracks``, ``pixel_track_valid``)."""
         T, H, W = len(spec.frames), clip.height, clip.width
-        v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64, device="cpu") + 0.5,
-                              torch.arange(W, dtype=torch.float64, device="cpu") + 0.5, indexing="ij")
         valid = torch.isfinite(depth0)
         z = torch.where(valid, depth0.double(), 1.0)
-        points = unproject_pixels(torch.stack([u, v], -1), z, clip.viewmats[0], clip.Ks[0])  # (H, W, 3) clip world
+        points = unproject_depth(clip.viewmats[:1], clip.Ks[:1], z[None])[0]  # (H, W, 3) clip world
         objects = reader.objects()
         if objects is None:
             valid &= not reader.meta.dynamic  # a static scene's points stay put; a dynamic one's are unknown

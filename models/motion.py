@@ -86,7 +86,8 @@ def level_correlation(query: Tensor, target: Tensor, uv: Tensor, level: int, rad
     # one look-up for every offset: the D offsets stacked along the sampled rows
     sampled = F.grid_sample(target, _grid(at, h, w).flatten(1, 2), mode="bilinear", padding_mode="zeros",
                             align_corners=False)  # (N, F, D·H, W)
-    # cosine similarity, each side normalised first (F.cosine_similarity on the broadcast query was 3x slower)
+    # cosine similarity, each side normalised first: F.cosine_similarity on the broadcast query is slower
+    # (docs/benchmarks.md, "Motion path and synth costs")
     unit = lambda x: x / x.norm(dim=1, keepdim=True).clamp_min(COS_EPS)  # noqa: E731
     return (unit(query)[:, :, None] * unit(sampled.unflatten(2, (len(offsets), H)))).sum(1)
 
