@@ -9,6 +9,7 @@ the T5-v1.1-XXL encoder's shape; :meth:`TextEncoder.forward` takes ids from any 
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import torch
@@ -22,8 +23,9 @@ __all__ = ["ByteTokenizer", "TextEncoderConfig", "TextEncoder", "relative_positi
 
 class ByteTokenizer:
     """UTF-8 byte tokenizer: id = byte + 3, pad = 0, bos = 1, eos = 2 (vocabulary 259). A prompt becomes
-    ``[bos, b_1 + 3, …, eos]``, keeping its first ``max_length − 2`` bytes; a batch is right-padded to the longest
-    prompt, or to ``max_length`` with ``padding="max_length"``.
+    ``[bos, b_1 + 3, …, eos]``, keeping its first ``max_length − 2`` bytes (a longer prompt is cut with a
+    ``UserWarning``, as diffusers' pipelines warn of a truncated prompt; the rest never reaches the model); a batch is
+    right-padded to the longest prompt, or to ``max_length`` with ``padding="max_length"``.
 
     Raises:
         ValueError: ``max_length`` (including bos and eos) < 2.
@@ -53,9 +55,13 @@ class ByteTokenizer:
             raise ValueError("prompts must contain only str")
         if padding not in ("longest", "max_length"):
             raise ValueError(f"padding must be 'longest' or 'max_length', got {padding!r}")
-        seqs = []
+        seqs, room = [], self.max_length - 2
+        if any(len(p.encode("utf-8")) > room for p in prompts):
+            # one message per tokenizer size, so that a training run's captions warn once, not every step
+            warnings.warn(f"a prompt longer than {room} UTF-8 bytes is cut to its first {room} (the byte tokenizer's "
+                          f"max_length {self.max_length}): the rest does not reach the model", stacklevel=2)
         for p in prompts:
-            body = [b + self.offset for b in p.encode("utf-8")[: self.max_length - 2]]
+            body = [b + self.offset for b in p.encode("utf-8")[:room]]
             seqs.append([self.bos_id, *body, self.eos_id])
         length = self.max_length if padding == "max_length" else max(len(s) for s in seqs)
         ids = torch.full((len(seqs), length), self.pad_id, dtype=torch.long, device="cpu")  # as tokenizers do

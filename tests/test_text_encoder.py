@@ -1,6 +1,8 @@
 """Tests for models/text_encoder.py: byte tokenizer, T5 buckets, masking, paper size, save/load."""
 from __future__ import annotations
 
+import warnings
+
 import pytest
 import torch
 
@@ -27,7 +29,8 @@ def _model(seed: int = 0, **kw) -> TextEncoder:
 
 def test_byte_tokenizer_ids_mask_truncation():
     tok = ByteTokenizer(max_length=8)
-    ids, mask = tok(["ab", "", "héllo wörld"])
+    with pytest.warns(UserWarning, match="cut to its first 6"):
+        ids, mask = tok(["ab", "", "héllo wörld"])
     assert ids.dtype == torch.long and mask.dtype == torch.bool and ids.shape == (3, 8)
     assert ids[0, :4].tolist() == [1, ord("a") + 3, ord("b") + 3, 2] and ids[0, 4:].tolist() == [0] * 4
     assert ids[1, :2].tolist() == [1, 2] and mask[1].tolist() == [True, True] + [False] * 6
@@ -44,6 +47,17 @@ def test_byte_tokenizer_ids_mask_truncation():
         ByteTokenizer(1)
     with pytest.raises(ValueError, match="padding"):
         tok(["a"], padding="right")
+
+
+def test_byte_tokenizer_warns_only_when_it_cuts():
+    tok = ByteTokenizer(max_length=8)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ids, _ = tok(["abcdef", "héllo"])  # 6 bytes each: room for both
+    assert tok.decode(ids) == ["abcdef", "héllo"]
+    with pytest.warns(UserWarning, match="max_length 8"):
+        ids, _ = tok(["abcdefg"])  # 7 bytes
+    assert tok.decode(ids) == ["abcdef"]
 
 
 def test_relative_position_bucket_known_values():
