@@ -119,12 +119,12 @@ def _check_frames(problems: list[Problem], folder: Path, suffix: str, T: int) ->
 
 
 def _check_camera(problems: list[Problem], scene: Path, name: str, meta: SceneMeta,
-                  ref_ts: np.ndarray | None) -> np.ndarray | None:
-    """Validate one camera folder; returns its timestamps (None if unreadable)."""
+                  ref_ts: np.ndarray | None) -> tuple[np.ndarray | None, tuple[int, int] | None]:
+    """Validate one camera folder; returns its timestamps and its (height, width) (each None if unreadable)."""
     folder, T = scene / name, meta.num_frames
     if not folder.is_dir():
         problems.append(Problem(folder, "missing camera folder (listed in meta.json 'cameras')"))
-        return None
+        return None, None
     cam_file = folder / CAMERAS_FILE
     size, ts = None, None
     why = _file_problem(cam_file)
@@ -170,7 +170,7 @@ def _check_camera(problems: list[Problem], scene: Path, name: str, meta: SceneMe
     if meta.depth_source == "none":
         if depth_dir.exists():
             problems.append(Problem(depth_dir, "depth folder present but meta.json depth_source is 'none'"))
-        return ts
+        return ts, size
     for f in _check_frames(problems, depth_dir, DEPTH_SUFFIX, T):
         try:
             z = load_depth_exr(f)
@@ -180,7 +180,7 @@ def _check_camera(problems: list[Problem], scene: Path, name: str, meta: SceneMe
         for why in (None if size is None else size_problem("depth", z.shape, size), depth_values_problem(z)):
             if why is not None:
                 problems.append(Problem(f, why))
-    return ts
+    return ts, size
 
 
 def _read_npz(problems: list[Problem], f: Path) -> dict[str, np.ndarray] | None:
@@ -215,11 +215,9 @@ def _check_tracks(problems: list[Problem], f: Path, meta: SceneMeta) -> None:
             problems.append(Problem(f, f"tracks move by up to {motion:.3g} m in a static scene (dynamic: false)"))
 
 
-def _check_objects(problems: list[Problem], f: Path, meta: SceneMeta, scene: Path) -> None:
-    try:
-        sizes = {c: (p.height, p.width) for c in meta.cameras
-                 for p in [load_cameras_json(scene / c / CAMERAS_FILE)]}
-    except (ValueError, FileNotFoundError, OSError):  # a camera file problem is reported with its camera
+def _check_objects(problems: list[Problem], f: Path, meta: SceneMeta, sizes: dict[str, tuple[int, int] | None]
+                   ) -> None:
+    if any(size is None for size in sizes.values()):  # a camera file problem is reported with its camera
         return
     arrays = _read_npz(problems, f)
     if arrays is None:
@@ -261,9 +259,9 @@ def _scene_problems(scene: Path) -> list[Problem]:
                 problems.append(Problem(cap, "caption must be one non-empty line"))
         except UnicodeDecodeError as e:
             problems.append(Problem(cap, f"not UTF-8 text: {e}"))
-    ref_ts = None
+    ref_ts, sizes = None, {}
     for k, name in enumerate(meta.cameras):
-        ts = _check_camera(problems, scene, name, meta, ref_ts)
+        ts, sizes[name] = _check_camera(problems, scene, name, meta, ref_ts)
         if k == 0:
             ref_ts = ts
     for c in sorted(scene.iterdir()):
@@ -274,7 +272,7 @@ def _scene_problems(scene: Path) -> list[Problem]:
         _check_tracks(problems, tracks, meta)
     objects = scene / OBJECTS_FILE
     if _optional_file_problem(problems, objects):
-        _check_objects(problems, objects, meta, scene)
+        _check_objects(problems, objects, meta, sizes)
     return problems
 
 
