@@ -15,10 +15,13 @@ import warnings
 from pathlib import Path
 from unittest import mock
 
+import cv2
+import numpy as np
 import torch
 from torch._subclasses.fake_tensor import FakeTensorMode
 
 from diff4splat import generate
+from diff4splat.io import save_image
 from diff4splat.pipeline import Diff4SplatPipeline, load_model
 from models import dit as dit_module
 from models.bundle import DEFAULT_CONFIG, load_config
@@ -224,3 +227,18 @@ def held_out_run(description: str, data_help: str) -> tuple[argparse.Namespace, 
     ap.add_argument("--write", action="store_true")
     args = ap.parse_args()
     return (args, *load_pipeline(args.checkpoint, args.config))
+
+
+def save_strip(path: Path, rows: dict[str, torch.Tensor], columns: int = 4, scale: int = 1) -> None:
+    """An image (PNG or JPEG by ``path``'s suffix) of ``columns`` evenly spaced frames of each labelled row of
+    (N, H, W, 3) frames in [0, 1], each enlarged ``scale``× (nearest neighbour: the pixels as they are)."""
+    n = next(iter(rows.values())).shape[0]
+    pick = np.linspace(0, n - 1, min(columns, n)).round().astype(int)
+    lines = []
+    for label, frames in rows.items():
+        line = np.concatenate([(frames[i].clamp(0, 1).numpy() * 255).astype(np.uint8) for i in pick], axis=1)
+        line = line.repeat(scale, axis=0).repeat(scale, axis=1)
+        line = np.ascontiguousarray(line)
+        cv2.putText(line, label, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 0), 1, cv2.LINE_AA)
+        lines.append(line)
+    save_image(path, np.concatenate(lines, axis=0))

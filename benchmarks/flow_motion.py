@@ -12,7 +12,8 @@ latents could see of it). With the true depth this is the route's upper bound: w
 path reading the true video's latents is ≤ 0.5× holding still. Static clips report the spurious motion (mean
 displacement of their tracks, mm). Time: tracking and lifting one 17-frame 64² clip on one thread.
 ``--write`` puts the table into docs/benchmarks.md (section ``flow_motion_<label>``, ``--label`` default: the first
-set's folder name).
+set's folder name). ``--strip IMAGE`` saves, for the ``--strip-clips`` dynamic clips whose tracks move most, nine
+evenly spaced frames (columns) of the clip and of its VAE round trip (rows, labelled, enlarged 2×), to look at.
 """
 from __future__ import annotations
 
@@ -26,7 +27,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import markdown_table, publish  # noqa: E402
+from _common import markdown_table, publish, save_strip  # noqa: E402
 
 from diff4splat.geometry.scene_flow import FB_TOLERANCE_PX, FLOW_UPSAMPLE, GATE_PX, lift_tracks, track_pixels  # noqa: E402
 from diff4splat.pipeline import load_model  # noqa: E402
@@ -79,6 +80,8 @@ def main() -> None:
     ap.add_argument("--label", default=None, help="section name suffix in docs/benchmarks.md")
     ap.add_argument("--note", default="", help="a sentence on the sets for the table's note")
     ap.add_argument("--write", action="store_true")
+    ap.add_argument("--strip", type=Path, default=None, help="image of clips and their VAE round trips")
+    ap.add_argument("--strip-clips", type=int, default=3, help="dynamic clips in --strip")
     args = ap.parse_args()
     device = resolve_device(args.device)
     torch.set_num_threads(1)
@@ -97,6 +100,12 @@ def main() -> None:
             frames[i, "vae"] = ((decoded + 1) / 2).clamp(0, 1).transpose(0, 1)
     dynamic = [i for i, c in enumerate(clips) if bool(c["dynamic"])]
     static = [i for i, c in enumerate(clips) if not bool(c["dynamic"])]
+    if args.strip is not None:
+        moving = sorted(dynamic, key=lambda i: -float(clips[i]["tracks"].diff(dim=1).norm(dim=-1).sum(1).mean()))
+        save_strip(args.strip, {f"{kind} {i}": frames[i, source].permute(0, 2, 3, 1).cpu()
+                                for i in moving[:args.strip_clips] for kind, source in (("clip", "true"),
+                                                                                         ("VAE", "vae"))},
+                   columns=9, scale=2)
     rows = []
     for label, source, up, preset, fb, gate in VARIANTS:
         results = {i: clip_motion(clips[i], frames[i, source], up, preset, fb, gate) for i in range(len(clips))}

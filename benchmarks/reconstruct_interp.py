@@ -23,15 +23,13 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
-import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import markdown_table, parse_pipeline_run, publish  # noqa: E402
+from _common import markdown_table, parse_pipeline_run, publish, save_strip  # noqa: E402
 
 from diff4splat.cameras import CameraPath  # noqa: E402
-from diff4splat.io import load_cameras_json, save_image  # noqa: E402
+from diff4splat.io import load_cameras_json  # noqa: E402
 from diff4splat.io.image import preprocess_image  # noqa: E402
 from diff4splat.io.video_input import read_video_clip  # noqa: E402
 from diff4splat.reconstruct import LAYERS, reconstruct, still_cameras  # noqa: E402
@@ -73,19 +71,6 @@ def held_out_scores(loaded, video: Path, frames: int, stride: int, start: int, r
         save_strip(strip, {"true": target, "4D scene": rendered, "blend": (prev + nxt) / 2, "hold": prev})
     return {"scene": mse(rendered), "hold": mse(prev), "blend": mse((prev + nxt) / 2), "frames": len(between),
             "seconds": seconds, "gaussians": scene.num_gaussians}
-
-
-def save_strip(path: Path, rows: dict[str, torch.Tensor], columns: int = 4) -> None:
-    """A PNG of ``columns`` evenly spaced frames of each labelled row of (N, H, W, 3) frames in [0, 1]."""
-    n = next(iter(rows.values())).shape[0]
-    pick = np.linspace(0, n - 1, min(columns, n)).round().astype(int)
-    lines = []
-    for label, frames in rows.items():
-        line = np.concatenate([(frames[i].clamp(0, 1).numpy() * 255).astype(np.uint8) for i in pick], axis=1)
-        line = np.ascontiguousarray(line)
-        cv2.putText(line, label, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 0), 1, cv2.LINE_AA)
-        lines.append(line)
-    save_image(path, np.concatenate(lines, axis=0))
 
 
 def _subset(cameras: CameraPath, index: list[int]) -> CameraPath:
