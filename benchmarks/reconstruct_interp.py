@@ -7,8 +7,12 @@ the previous frame and blending the two neighbours.
 The clip given to :func:`diff4splat.reconstruct.reconstruct` is every other frame (frames start, start + 2S, …,
 T of them); the T − 1 frames between them are held out. Each is rendered from the scene at its time (halfway
 between its neighbours' clip times) and camera, and scored (PSNR of the mean squared error over all held-out
-frames, RGB in [0, 1]) against the true frame, beside two baselines that need no scene: the previous given frame
-held, and the mean of the two given neighbours (a cross-fade is not motion), for each ``--layers`` choice.
+frames, RGB in [0, 1]) against the true frame, beside baselines that need no scene: the previous given frame held,
+the mean of the two given neighbours (a cross-fade is not motion), and a 2D frame interpolation from the same optical
+flow (DIS between the two neighbours, :func:`~diff4splat.geometry.scene_flow.optical_flow` at ``reconstruct``'s
+upsampling; Super SloMo's flows to the middle, Jiang et al. 2018 eq. 4 at t = ½, each neighbour warped by
+``kornia.geometry.transform.remap`` and the two averaged, no occlusion reasoning), for each ``--layers`` choice. The
+PSNR is also given over the moving pixels alone (where the two neighbours differ by more than 0.05 in a channel).
 ``--video``: a real video, still camera (the default of ``reconstruct``); ``--data``: each scene of a
 ``data_prep synth`` set (17 frames, so T = 9 at stride 2), its first camera's frames and true cameras.
 ``--write`` puts the table into docs/benchmarks.md (section ``reconstruct_interp_<label>``, ``--label`` default:
@@ -24,24 +28,34 @@ import time
 from pathlib import Path
 
 import torch
+from kornia.geometry.transform import remap
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import markdown_table, parse_pipeline_run, publish, save_strip  # noqa: E402
 
 from diff4splat.cameras import CameraPath  # noqa: E402
+from diff4splat.geometry.scene_flow import optical_flow  # noqa: E402
 from diff4splat.io import load_cameras_json  # noqa: E402
 from diff4splat.io.image import preprocess_image  # noqa: E402
 from diff4splat.io.video_input import read_video_clip  # noqa: E402
-from diff4splat.reconstruct import LAYERS, reconstruct, still_cameras  # noqa: E402
+from diff4splat.reconstruct import FLOW_SIZE, LAYERS, reconstruct, still_cameras  # noqa: E402
 from diff4splat.render.sequence import render_path  # noqa: E402
 from training.eval_metrics import psnr_from_mse  # noqa: E402
+
+MOVING_DIFFERENCE = 0.05
+"""A pixel is moving when its two given neighbours differ by more than this in some channel (RGB in [0, 1])."""
+STRIP_LABELS = {"scene": "4D scene", "hold": "hold", "blend": "blend", "flow": "2D flow interp."}
+BASELINES = {"hold": "previous given frame held", "blend": "mean of the two given neighbours",
+             "flow": "2D flow interpolation (DIS, Super SloMo's t = ½ flows)"}
 
 
 def held_out_scores(loaded, video: Path, frames: int, stride: int, start: int, resolution: int | None,
                     cameras: CameraPath | None, layers: str, strip: Path | None = None) -> dict[str, float]:
-    """Squared errors summed over the held-out frames of one clip ({"scene", "hold", "blend"}: sum of per-frame MSE),
-    their count, the seconds ``reconstruct`` took and its Gaussians. ``cameras``: the video's cameras at every frame
-    (None: still); ``strip``: where to save the frame strip (module docstring)."""
+    """Squared errors summed over the held-out frames of one clip ({"scene", "hold", "blend", "flow"}: sum of
+    per-frame MSE; the same keys + " moving": the squared errors' sum over the moving pixels, and "moving", their
+    count; "pixels": all pixels' count), the held-out frames' count, the seconds ``reconstruct`` took and its
+    Gaussians. ``cameras``: the video's cameras at every frame (None: still); ``strip``: where to save the frame
+    strip (module docstring)."""
     pipe = loaded.pipeline
     given = [start + 2 * stride * i for i in range(frames)]
     between = [g + stride for g in given[:-1]]
@@ -66,11 +80,28 @@ def held_out_scores(loaded, video: Path, frames: int, stride: int, start: int, r
     rendered = render_path(scene, mid.to(scene.canonical.means.device), eps2d=gen.result.eps2d,
                            background=gen.result.background)[0].cpu()
     target, prev, nxt = truth[1::2], truth[0:-1:2], truth[2::2]
-    mse = lambda a: float(((a - target) ** 2).mean(dim=(1, 2, 3)).sum())  # noqa: E731
+    moving = (nxt - prev).abs().amax(dim=-1) > MOVING_DIFFERENCE  # (T − 1, H, W)
+    outputs = {"scene": rendered, "hold": prev, "blend": (prev + nxt) / 2,
+               "flow": flow_interpolation(prev, nxt, max(1, round(FLOW_SIZE / H)))}
     if strip is not None:
-        save_strip(strip, {"true": target, "4D scene": rendered, "blend": (prev + nxt) / 2, "hold": prev})
-    return {"scene": mse(rendered), "hold": mse(prev), "blend": mse((prev + nxt) / 2), "frames": len(between),
-            "seconds": seconds, "gaussians": scene.num_gaussians}
+        save_strip(strip, {"true": target, **{STRIP_LABELS[k]: v for k, v in outputs.items()}})
+    scores = {"frames": len(between), "seconds": seconds, "gaussians": scene.num_gaussians,
+              "moving": int(moving.sum()), "pixels": moving.numel()}
+    for key, frames_out in outputs.items():
+        error = ((frames_out - target) ** 2).mean(dim=-1)  # (T − 1, H, W)
+        scores[key], scores[f"{key} moving"] = float(error.mean(dim=(1, 2)).sum()), float(error[moving].sum())
+    return scores
+
+
+def flow_interpolation(prev: torch.Tensor, nxt: torch.Tensor, upsample: int) -> torch.Tensor:
+    """The frames halfway between ``prev`` and ``nxt`` (N, H, W, 3) in [0, 1] from their DIS flows (module
+    docstring): F_½→0 = (F_1→0 − F_0→1)/4, F_½→1 = −F_½→0 (Jiang et al. 2018, eq. 4)."""
+    a, b = prev.permute(0, 3, 1, 2), nxt.permute(0, 3, 1, 2)
+    half = (optical_flow(b, a, upsample=upsample) - optical_flow(a, b, upsample=upsample)) / 4  # (N, H, W, 2)
+    N, _, H, W = a.shape
+    y, x = torch.meshgrid(torch.arange(H, dtype=a.dtype), torch.arange(W, dtype=a.dtype), indexing="ij")
+    warp = lambda img, f: remap(img, x + f[..., 0], y + f[..., 1], padding_mode="border", align_corners=True)  # noqa: E731
+    return ((warp(a, half) + warp(b, -half)) / 2).permute(0, 2, 3, 1)
 
 
 def _subset(cameras: CameraPath, index: list[int]) -> CameraPath:
@@ -95,29 +126,32 @@ def main() -> None:
         jobs = [(d / "cam00" / "rgb", load_cameras_json(d / "cam00" / "cameras.json"))
                 for d in sorted(args.data.iterdir()) if (d / "cam00").is_dir()]
         frames = args.frames or 9
-    rows, psnr = [], {}
+    rows, psnr, keys = [], {}, ("scene", *BASELINES)
     for layers in LAYERS:
-        total = {"scene": 0.0, "hold": 0.0, "blend": 0.0, "frames": 0, "seconds": 0.0, "gaussians": 0}
+        total = dict.fromkeys([*keys, *(f"{k} moving" for k in keys), "moving", "pixels", "frames", "seconds",
+                                 "gaussians"], 0)
         for j, (video, cameras) in enumerate(jobs):
             strip = args.strip if j == 0 and layers == "every" else None
             scores = held_out_scores(loaded, video, frames, args.stride, args.start, args.resolution, cameras, layers,
                                      strip)
             total = {k: total[k] + scores[k] for k in total}
-            print(video, layers, {k: round(psnr_from_mse(scores[k] / scores["frames"]), 2)
-                                  for k in ("scene", "hold", "blend")}, flush=True)
+            print(video, layers, {k: round(psnr_from_mse(scores[k] / scores["frames"]), 2) for k in keys},
+                  flush=True)
         n = total["frames"]
-        psnr = {k: psnr_from_mse(total[k] / n) for k in ("scene", "hold", "blend")}
-        rows.append([f"4D scene, `--layers {layers}`", f"{psnr['scene']:.2f}", f"{psnr['scene'] - psnr['hold']:+.2f}",
-                     f"{psnr['scene'] - psnr['blend']:+.2f}", f"{total['seconds'] / len(jobs):.1f}",
-                     f"{total['gaussians'] // len(jobs):,}"])
-    rows += [["previous given frame held", f"{psnr['hold']:.2f}", "—", "—", "—", "—"],
-             ["mean of the two given neighbours", f"{psnr['blend']:.2f}", "—", "—", "—", "—"]]
-    table = markdown_table(["in-between frames", "PSNR (dB)", "− hold", "− blend", "`reconstruct` s per clip",
-                            "Gaussians"], rows)
+        psnr = {k: psnr_from_mse(total[k] / n) for k in keys}
+        psnr.update({f"{k} moving": psnr_from_mse(total[f"{k} moving"] / max(total["moving"], 1)) for k in keys})
+        rows.append([f"4D scene, `--layers {layers}`", f"{psnr['scene']:.2f}", f"{psnr['scene moving']:.2f}",
+                     f"{psnr['scene'] - psnr['hold']:+.2f}", f"{psnr['scene'] - psnr['blend']:+.2f}",
+                     f"{total['seconds'] / len(jobs):.1f}", f"{total['gaussians'] // len(jobs):,}"])
+    rows += [[label, f"{psnr[k]:.2f}", f"{psnr[k + ' moving']:.2f}", "—", "—", "—", "—"]
+             for k, label in BASELINES.items()]
+    table = markdown_table(["in-between frames", "PSNR (dB)", "moving pixels (dB)", "− hold", "− blend",
+                            "`reconstruct` s per clip", "Gaussians"], rows)
     what = str(args.video) if args.video is not None else f"{len(jobs)} scenes of {args.data}"
     label = args.label or (args.video.stem if args.video is not None else args.data.name)
     publish(f"reconstruct_interp_{label}", f"`reconstruct` between its frames ({what}, start {args.start}, "
-            f"{frames} given frames)", f"{args.note} {n} held-out frames, rendered at their times; `reconstruct`'s "
+            f"{frames} given frames)", f"{args.note} {n} held-out frames, rendered at their times "
+            f"({100 * total['moving'] / total['pixels']:.1f} % of their pixels moving); `reconstruct`'s "
             "seconds: load excluded (encode, LDRM, motion, assembly, rendering the given frames).".strip(),
             table, args.write)
 
