@@ -94,12 +94,14 @@ def held_out_scores(loaded, video: Path, frames: int, stride: int, start: int, r
 
 
 def flow_interpolation(prev: torch.Tensor, nxt: torch.Tensor, upsample: int) -> torch.Tensor:
-    """The frames halfway between ``prev`` and ``nxt`` (N, H, W, 3) in [0, 1] from their DIS flows (module
-    docstring): F_½→0 = (F_1→0 − F_0→1)/4, F_½→1 = −F_½→0 (Jiang et al. 2018, eq. 4)."""
+    """The frames (N, H, W, 3) in [0, 1] halfway between ``prev`` and ``nxt`` (N, H, W, 3) in [0, 1], from their DIS
+    flows (:func:`optical_flow` on the frames upsampled ``upsample``×; module docstring): F_½→0 = (F_1→0 − F_0→1)/4,
+    F_½→1 = −F_½→0 pixels (Jiang et al. 2018, eq. 4 at t = ½), each neighbour warped by ``remap``, on their device."""
     a, b = prev.permute(0, 3, 1, 2), nxt.permute(0, 3, 1, 2)
     half = (optical_flow(b, a, upsample=upsample) - optical_flow(a, b, upsample=upsample)) / 4  # (N, H, W, 2)
-    N, _, H, W = a.shape
-    y, x = torch.meshgrid(torch.arange(H, dtype=a.dtype), torch.arange(W, dtype=a.dtype), indexing="ij")
+    H, W = a.shape[-2:]
+    y, x = torch.meshgrid(torch.arange(H, dtype=a.dtype, device=a.device),
+                          torch.arange(W, dtype=a.dtype, device=a.device), indexing="ij")
     warp = lambda img, f: remap(img, x + f[..., 0], y + f[..., 1], padding_mode="border", align_corners=True)  # noqa: E731
     return ((warp(a, half) + warp(b, -half)) / 2).permute(0, 2, 3, 1)
 
