@@ -3,8 +3,9 @@
 The VAE encodes the clip and the LDRM gives its source frames' depth (nothing is sampled); every frame (or the source
 frames alone) becomes a photo layer (:func:`diff4splat.assembly.photo.photo_layer`) on that depth carried along the
 optical flow (:func:`carried_depth`), moved by the motion measured from the frames
-(:func:`diff4splat.geometry.scene_flow.source_frame_motion`) and faded away from its own frame's time
-(:data:`TIME_SIGMA`); a still clip gives a static scene (docs/DESIGN.md, "Motion measured from frames …")::
+(:func:`diff4splat.geometry.scene_flow.source_frame_motion`) and shown only between its neighbours' times, where the
+two layers around a time cross-fade exactly (:func:`layer_support`); a still clip gives a static scene
+(docs/DESIGN.md, "Motion measured from frames …")::
 
     from diff4splat.generate import write
     from diff4splat.reconstruct import reconstruct
@@ -26,6 +27,7 @@ from diff4splat.assembly.assemble import z_depth
 from diff4splat.assembly.photo import PHOTO_EPS2D, backdrop_layer, layer_sizes, photo_layer, upsample_depth
 from diff4splat.assembly.prune import prune_mask, settle_and_prune
 from diff4splat.cameras import CameraPath, intrinsics_from_fov
+from diff4splat.cameras.path import camera_centers
 from diff4splat.generate import (
     Generation,
     LoadedPipeline,
@@ -58,20 +60,19 @@ from models.deformation import IDENTITY_QUAT
 from models.ldrm import source_frame_indices
 
 __all__ = ["reconstruct", "reconstruct_scene", "still_cameras", "clip_cameras", "carried_depth", "check_layers",
-           "layer_frames", "scene_slots", "memory_estimate", "RECONSTRUCT_KIND", "TIME_SIGMA", "BACKDROP_TIME_SIGMA",
+           "layer_frames", "scene_slots", "memory_estimate", "layer_support", "RECONSTRUCT_KIND", "LAYER_ORDER_OFFSET",
            "FLOW_SIZE", "GATE_PX", "FB_TOLERANCE_PX", "MOVING_FRACTION", "LAYERS", "DEFAULT_LAYERS"]
 
 RECONSTRUCT_KIND = "reconstruct"
 """Marker kind of a ``reconstruct`` output folder (the layout is ``generate``'s)."""
-TIME_SIGMA = 0.6
-"""Temporal standard deviation of a layer's opacity (``DynamicGaussians.t_scales``), in spacings between layer frames:
-a neighbour's layer shows at 0.25, both neighbours at 0.71 halfway between them."""
+LAYER_ORDER_OFFSET = 0.015
+"""The odd layers lie this fraction farther along their camera's rays than the even ones (more than a photo layer's
+backing, :data:`~diff4splat.assembly.photo.BACKING_OFFSET`), so an even layer fading in front of an opaque odd
+one cross-fades the two (:func:`layer_support`)."""
 GATE_PX = 0.5
 """Rigidity gate of the motion, pixels of the output frames (``scene_flow.lift_tracks``)."""
 FB_TOLERANCE_PX = 1.5
 """Forward-backward tolerance of the tracking, pixels of the output frames."""
-BACKDROP_TIME_SIGMA = 1e3
-"""The backdrop's temporal standard deviation (clip time): present at every time."""
 MOVING_FRACTION = 0.005
 """A clip is dynamic when, at some frame, more than this fraction of a layer's pixels has moved by more than the
 config's ``static_atol`` (so codec noise does not make a still video move)."""
@@ -135,6 +136,37 @@ def layer_frames(pipe: Diff4SplatPipeline, num_frames: int, layers: str) -> tupl
     return sources, list(range(num_frames)) if layers == "every" else sources
 
 
+def layer_support(times: Tensor, layer: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Temporal support (t_means, t_scales, t_ramps; ``DynamicGaussians``' trapezoid) of Gaussians of the layers
+    ``layer`` (K,) int64 (−1: the backdrop), the layers at the equally spaced clip times ``times`` (L,), spacing Δ:
+
+    - an even layer is the triangle 1 − |t − t_l|/Δ, in front (:data:`LAYER_ORDER_OFFSET`);
+    - an odd layer is the box |t − t_l| < Δ, opaque behind;
+    - the backdrop is there at every t ∈ [0, 1].
+
+    Between two layers' times exactly one is even, in front at opacity (1 − α)·o (α the weight of the later time), over
+    the other at o: with the photo layers' o ≈ 1, (1 − α)·front + α·back, the cross-fade of the two, each moved to t.
+    At a layer's own time only that layer is shown, so the given frames come back as their photo layers render them.
+    """
+    L = times.shape[0]
+    spacing = times[1] - times[0] if L > 1 else times.new_tensor(1.0)
+    own = times[layer.clamp(min=0)]
+    even = layer % 2 == 0
+    back = layer < 0
+    t_means = torch.where(back, times.new_tensor(0.5), own)
+    t_scales = torch.where(back, times.new_tensor(1.0), spacing.expand_as(own))
+    t_ramps = torch.where(even & ~back, spacing.expand_as(own), times.new_zeros(()))
+    return t_means, t_scales, t_ramps
+
+
+def _pushed_back(layer: Gaussians, viewmat: Tensor, factor: float) -> Gaussians:
+    """``layer`` scaled by ``factor`` about its camera's centre (``viewmat`` (4, 4) world-to-camera): each Gaussian
+    ``factor`` times as far along its ray, and as large, so its image does not change."""
+    centre = camera_centers(viewmat[None])[0]
+    return Gaussians(centre + (layer.means - centre) * factor, layer.quats, layer.scales * factor, layer.opacities,
+                     layer.sh)
+
+
 def _layer_motion(motion: Tensor, height: int, width: int) -> Tensor:
     """Per-pixel displacements (T, H, W, 3) → the photo layer's (T, H·W + ⌈H/2⌉·⌈W/2⌉, 3) (backing: 2×2 means)."""
     T = motion.shape[0]
@@ -175,8 +207,10 @@ def reconstruct_scene(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraP
     timings["reconstruct"] = clock.lap()
     flows = consecutive_flows(images.permute(0, 3, 1, 2), upsample=max(1, round(FLOW_SIZE / H)))
     z = torch.stack([carried_depth(z_src, indices, f, flows) for f in frames_of])  # (L, H, W)
+    spacing = frames_of[1] - frames_of[0] if len(frames_of) > 1 else 1  # a layer is seen this far from its frame
     motion = source_frame_motion(images.permute(0, 3, 1, 2), z, frames_of, cameras.Ks, cameras.viewmats,
-                                 fb_tolerance=FB_TOLERANCE_PX, gate_px=GATE_PX, flows=flows)  # (T, L, H, W, 3)
+                                 fb_tolerance=FB_TOLERANCE_PX, gate_px=GATE_PX, flows=flows,
+                                 unchecked=spacing)  # (T, L, H, W, 3)
     moved = (motion.abs() > cfg.static_atol).any(dim=-1).flatten(2).float().mean(dim=-1)  # (T, L)
     dynamic = bool((moved > MOVING_FRACTION).any())
     if not dynamic:
@@ -185,8 +219,9 @@ def reconstruct_scene(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraP
     parts, d_means, grid = [], [], []  # the layers and the backdrop, in the scene's order
     for s, f in enumerate(frames_of):
         layer, history = photo_layer(images[f], z[s], cameras.viewmats[f], cameras.Ks[f])
-        parts.append(layer)
-        d_means.append(_layer_motion(motion[:, s], H, W))
+        factor = 1 + LAYER_ORDER_OFFSET if dynamic and s % 2 else 1.0  # odd layers behind (layer_support)
+        parts.append(_pushed_back(layer, cameras.viewmats[f], factor) if factor != 1 else layer)
+        d_means.append(_layer_motion(motion[:, s], H, W) * factor)
         grid.append(torch.full((layer.num_gaussians,), s, dtype=torch.long, device=dev))
         if s == 0:  # the backdrop follows frame 0's layer: static, behind everything
             photo_psnr = history[-1]
@@ -198,14 +233,14 @@ def reconstruct_scene(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraP
                             for f in ("means", "quats", "scales", "opacities", "sh")))
     grid = torch.cat(grid)
     N, n0 = canonical.num_gaussians, parts[0].num_gaussians
-    if dynamic:  # each layer at its frame's time, fading over TIME_SIGMA of the spacing; the backdrop always
-        own = cameras.times[torch.tensor(frames_of, device=dev)][grid]
-        sigma = torch.full_like(own, TIME_SIGMA * float(cameras.times[frames_of[1]] - cameras.times[frames_of[0]]))
-        back = slice(n0, n0 + backdrop.num_gaussians)
-        own[back], sigma[back] = 0.5, BACKDROP_TIME_SIGMA
+    back = slice(n0, n0 + backdrop.num_gaussians)
+    if dynamic:  # each layer between its neighbours' times, the two around a time cross-faded (layer_support)
+        layer_of = grid.clone()
+        layer_of[back] = -1  # the backdrop
+        support = layer_support(cameras.times[torch.tensor(frames_of, device=dev)].float(), layer_of)
         scene = DynamicGaussians(canonical, cameras.times, torch.cat(d_means, 1),
                                  canonical.means.new_tensor(IDENTITY_QUAT).expand(T, N, 4),
-                                 canonical.means.new_zeros(()).expand(T, N, 3), own, sigma)
+                                 canonical.means.new_zeros(()).expand(T, N, 3), *support)
     else:  # a still world: the layers of one static scene, overlaps settled as generate settles its frames
         scene = DynamicGaussians(canonical)
     timings["assemble"] = clock.lap()

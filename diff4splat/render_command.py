@@ -64,7 +64,7 @@ def path_scene(folder: SceneFolder, times: Tensor) -> DynamicGaussians:
     s = folder.scene
     keys = torch.unique(times.detach().float().cpu()).to(s.canonical.means)  # sorted, strictly increasing
     d_means, d_quats, d_scales = folder.field.deformations_at(s.canonical.means, keys)
-    return DynamicGaussians(s.canonical, keys, d_means, d_quats, d_scales, s.t_means, s.t_scales)
+    return DynamicGaussians(s.canonical, keys, d_means, d_quats, d_scales, s.t_means, s.t_scales, s.t_ramps)
 
 
 def render_memory_estimate(folder: SceneFolder, path: CameraPath) -> int:

@@ -65,7 +65,7 @@ def test_encode_decode_round_trip(dtype):
     frames = keyframes(scene, keyframe_times(scene))
     data = encode_keyframes(frames, dtype, (scene.t_means, scene.t_scales))
     assert len(data) == 8 * 30 + 3 * 30 * 10 * (2 if dtype == "float16" else 4)
-    assert len(data) == payload_bytes(30, 0, 3, True, 2 if dtype == "float16" else 4) - 30 * 17 * 4  # less the PLY
+    assert len(data) == payload_bytes(30, 0, 3, 2, 2 if dtype == "float16" else 4) - 30 * 17 * 4  # less the PLY
     back = decode_keyframes(data, {"numGaussians": 30, "times": [0, 0.5, 1], "temporal": True, "dtype": dtype})
     np.testing.assert_array_equal(back["t_means"], scene.t_means.numpy())  # float32 whatever the keyframes' dtype
     np.testing.assert_array_equal(back["t_scales"], scene.t_scales.numpy())
@@ -132,18 +132,18 @@ def test_ply_is_the_canonical_scene(tmp_path):
     torch.testing.assert_close(g.sh, scene.canonical.sh)
     assert p.config["shDegree"] == 2 and p.config["numGaussians"] == 25 and p.config["note"] == ""
     assert p.config["bytesPerGaussianPerFrame"] == 20  # 10 float16 values
-    assert len(p.ply) - p.ply.index(b"end_header\n") - 11 + len(p.frames) == payload_bytes(25, 2, 5, False, 2)
+    assert len(p.ply) - p.ply.index(b"end_header\n") - 11 + len(p.frames) == payload_bytes(25, 2, 5, 0, 2)
 
 
 def test_budget_reductions_in_order():
     scene, cams = moving_patch_scene(n=200, frames=9, sh_degree=3)
-    full = payload_bytes(200, 3, 9, False, 2)
+    full = payload_bytes(200, 3, 9, 0, 2)
     assert viewer_payload(scene, cams, budget=full).reductions == []
     # just under: SH 3 → 0 is enough
     p = viewer_payload(scene, cams, budget=full - 1)
     assert p.reductions == ["SH degree 3 → 0"] and p.config["shDegree"] == 0 and "reduced" in p.config["note"]
     # a budget for the PLY at SH 0 plus 3 keyframes: 9 → 3 keyframes, the first and the last kept
-    budget = payload_bytes(200, 0, 3, False, 2)
+    budget = payload_bytes(200, 0, 3, 0, 2)
     p = viewer_payload(scene, cams, budget=budget)
     assert p.reductions == ["SH degree 3 → 0", "9 → 3 keyframes"]
     assert p.config["times"] == pytest.approx([0.0, 0.5, 1.0])
@@ -153,9 +153,9 @@ def test_budget_reductions_in_order():
     c = scene.canonical
     scene = type(scene)(type(c)(c.means, c.quats, c.scales, opac, c.sh), scene.times, scene.d_means,
                         scene.d_quats, scene.d_scales)
-    p = viewer_payload(scene, cams, budget=payload_bytes(50, 0, 2, False, 2))
+    p = viewer_payload(scene, cams, budget=payload_bytes(50, 0, 2, 0, 2))
     assert p.config["numGaussians"] == 50 and len(p.reductions) == 3
-    assert payload_bytes(50, 0, 2, False, 2) >= len(p.frames) + 50 * 17 * 4
+    assert payload_bytes(50, 0, 2, 0, 2) >= len(p.frames) + 50 * 17 * 4
     decoded = decode_keyframes(p.frames, p.config)
     kept = torch.arange(150, 200)
     np.testing.assert_allclose(decoded["means"][0], scene.at(0.0).means[kept].numpy(), atol=2e-3)
@@ -202,7 +202,7 @@ def test_the_payload_equals_the_one_built_from_every_keyframe(far):
     dtype = "float16" if err <= FLOAT16_MAX_PX and all(_fits_float16(v) for v in every.values()) else "float32"
     assert dtype == ("float32" if far else "float16")
     itemsize = 2 if dtype == "float16" else 4
-    budget = payload_bytes(n // 3, 0, 3, True, itemsize)  # fewer keyframes, then a third of the Gaussians
+    budget = payload_bytes(n // 3, 0, 3, 2, itemsize)  # fewer keyframes, then a third of the Gaussians
     p = viewer_payload(scene, cams, budget=budget)
     assert p.config["dtype"] == dtype and p.config["float16ErrorPx"] == err
     m = p.config["numGaussians"]

@@ -312,7 +312,7 @@ def test_static_scene_has_no_time_controls(browser, tmp_path):
 @pytest.mark.slow
 def test_reduced_scene_says_so(browser, tmp_path):
     scene, cams = moving_patch_scene(n=200, sh_degree=2)
-    write_viewer(tmp_path / "viewer.html", scene, cams, budget=payload_bytes(200, 0, 5, False, 2))
+    write_viewer(tmp_path / "viewer.html", scene, cams, budget=payload_bytes(200, 0, 5, 0, 2))
     page = _open(browser, (tmp_path / "viewer.html").as_uri())
     assert "SH degree 2 → 0" in page.locator("#note").inner_text()
     assert page.evaluate("d4s.numGaussians") == 200

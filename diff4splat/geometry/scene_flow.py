@@ -113,13 +113,16 @@ def consecutive_flows(frames: Tensor, *, upsample: int = FLOW_UPSAMPLE, preset: 
             optical_flow(frames[1:], frames[:-1], upsample=upsample, preset=preset))
 
 
-def chain_flows(forward: Tensor, backward: Tensor, *, fb_tolerance: float = FB_TOLERANCE_PX) -> tuple[Tensor, Tensor]:
+def chain_flows(forward: Tensor, backward: Tensor, *, fb_tolerance: float = FB_TOLERANCE_PX,
+                unchecked: int = 0) -> tuple[Tensor, Tensor]:
     """Follow every pixel of the first frame through a sequence: ``forward[k]`` maps frame k to k + 1, ``backward[k]``
-    frame k + 1 to k, each (T − 1, H, W, 2) pixels; ``fb_tolerance`` > 0 pixels (``inf`` keeps every track).
+    frame k + 1 to k, each (T − 1, H, W, 2) pixels; ``fb_tolerance`` > 0 pixels (``inf`` keeps every track), checked
+    from link ``unchecked`` ≥ 0 on (the first ``unchecked`` links are followed whatever their forward-backward error).
 
     Returns:
         positions (T, H, W, 2) pixels (frame 0: the centres); tracked (T, H, W) bool, False from the step the track
-        was lost (its position is then held).
+        was lost (its position is then held: at the last position that passed the check, so a track that fails an
+        unchecked link is shown moved at that link and held at its start after it).
 
     Raises:
         ValueError: flows of different or wrong shapes, ``fb_tolerance`` not > 0.
@@ -129,18 +132,22 @@ def chain_flows(forward: Tensor, backward: Tensor, *, fb_tolerance: float = FB_T
                          f"{tuple(backward.shape)}")
     if not float(fb_tolerance) > 0:
         raise ValueError(f"fb_tolerance must be > 0 pixels, got {fb_tolerance}")
+    if unchecked < 0:
+        raise ValueError(f"unchecked must be ≥ 0 links, got {unchecked}")
     _, H, W, _ = forward.shape
-    uv = pixel_centres(H, W, forward)
-    positions, tracked = [uv], [torch.ones(H, W, dtype=torch.bool, device=forward.device)]
+    uv = pixel_centres(H, W, forward)  # (H, W, 2) where each track is, held where it was lost
+    alive = torch.ones(H, W, dtype=torch.bool, device=forward.device)
+    positions, tracked = [uv], [alive]
     for k in range(forward.shape[0]):
         step = sample_pixels(forward[k:k + 1], uv[None])[0]
         moved = uv + step
         back = sample_pixels(backward[k:k + 1], moved[None])[0]
-        inside = (moved[..., 0] >= 0) & (moved[..., 0] <= W) & (moved[..., 1] >= 0) & (moved[..., 1] <= H)
-        ok = tracked[-1] & inside & ((step + back).norm(dim=-1) <= fb_tolerance)
-        uv = torch.where(ok[..., None], moved, uv)
-        positions.append(uv)
-        tracked.append(ok)
+        inside = alive & (moved[..., 0] >= 0) & (moved[..., 0] <= W) & (moved[..., 1] >= 0) & (moved[..., 1] <= H)
+        alive = inside & ((step + back).norm(dim=-1) <= fb_tolerance)
+        shown = inside if k < unchecked else alive  # an unchecked link is followed, later links go on from the check
+        positions.append(torch.where(shown[..., None], moved, uv))
+        tracked.append(shown)
+        uv = torch.where(alive[..., None], moved, uv)
     return torch.stack(positions), torch.stack(tracked)
 
 
@@ -268,11 +275,13 @@ def lift_tracks(positions: Tensor, tracked: Tensor, depths: Tensor, Ks: Tensor, 
 
 def source_frame_motion(frames: Tensor, depths: Tensor, sources: list[int], Ks: Tensor, viewmats: Tensor, *,
                         upsample: int = FLOW_UPSAMPLE, fb_tolerance: float = FB_TOLERANCE_PX,
-                        gate_px: float = GATE_PX, flows: tuple[Tensor, Tensor] | None = None) -> Tensor:
+                        gate_px: float = GATE_PX, flows: tuple[Tensor, Tensor] | None = None,
+                        unchecked: int = 0) -> Tensor:
     """(T, S, H, W, 3) displacement Δμ(t), metres, world frame, of each source frame's pixels from their position at
     their own frame ``sources[s]`` (S increasing indices in [0, T)): tracked both ways (:func:`chain_flows` over the
     video's :func:`consecutive_flows`, ``flows`` when given) and lifted with the source frames' ``depths`` (S, H, W)
-    (:func:`lift_tracks`). ``frames`` (T, 3, H, W) RGB in [0, 1]; ``Ks``, ``viewmats`` (T, 3, 3), (T, 4, 4).
+    (:func:`lift_tracks`). ``frames`` (T, 3, H, W) RGB in [0, 1]; ``Ks``, ``viewmats`` (T, 3, 3), (T, 4, 4);
+    ``unchecked``: as :func:`chain_flows`, in each direction.
 
     Raises:
         ValueError: ``depths`` not (S, H, W), sources not increasing within [0, T), or as :func:`chain_flows` and
@@ -294,7 +303,7 @@ def source_frame_motion(frames: Tensor, depths: Tensor, sources: list[int], Ks: 
             if len(order) < 2:
                 continue
             keys = [i for i, frame in enumerate(order) if frame in sources]
-            positions, tracked = chain_flows(forward, backward, fb_tolerance=fb_tolerance)
+            positions, tracked = chain_flows(forward, backward, fb_tolerance=fb_tolerance, unchecked=unchecked)
             points, _ = lift_tracks(positions, tracked, depths[[sources.index(order[i]) for i in keys]],
                                     Ks[order], viewmats[order], depth_frames=keys, gate_px=gate_px)
             out[order, s] = (points - points[:1]).to(out.dtype)

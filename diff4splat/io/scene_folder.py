@@ -120,7 +120,7 @@ def fill_empty_depth(depths: Tensor, alphas: Tensor, fallback: float) -> Tensor:
 _DEFORMATION_KEYS = ("times", "d_means", "d_quats", "d_scales")
 _TEMPORAL_KEYS = ("t_means", "t_scales")
 _SHAPES = {"times": ("K",), "d_means": ("K", "M", 3), "d_quats": ("K", "M", 4), "d_scales": ("K", "M", 3),
-           "t_means": ("M",), "t_scales": ("M",)}
+           "t_means": ("M",), "t_scales": ("M",), "t_ramps": ("M",)}
 """Shape of each array of ``deformation.npz``: K key times, M Gaussians."""
 DEFORMATION_ARRAYS = tuple(_SHAPES)
 """The arrays ``deformation.npz`` may hold, the keyword arguments of ``DynamicGaussians`` after the canonical ones."""
@@ -139,7 +139,7 @@ def _zip_call(path: Path, what: str, fn: Callable, *args):
 
 def save_deformation(path: str | os.PathLike, scene: DynamicGaussians) -> None:
     """Write ``deformation.npz`` atomically: float32 times, d_means, d_quats, d_scales when the scene deforms, and
-    t_means (M,), t_scales (M,) when it has temporal support.
+    t_means (M,), t_scales (M,) (and t_ramps (M,) for a trapezoid) when it has temporal support.
 
     Raises:
         ValueError: the scene has neither (nothing to write).
@@ -147,6 +147,7 @@ def save_deformation(path: str | os.PathLike, scene: DynamicGaussians) -> None:
     if not scene.changes_with_time:
         raise ValueError("a static scene without temporal support has no deformation to save")
     keys = (() if scene.is_static else _DEFORMATION_KEYS) + (_TEMPORAL_KEYS if scene.has_temporal else ())
+    keys += ("t_ramps",) if scene.t_ramps is not None else ()
     arrays = {k: getattr(scene, k).detach().cpu().float().numpy() for k in keys}  # device: np.savez writes host arrays
     with atomic_output_path(Path(path)) as tmp:
         with open(tmp, "wb") as f:
@@ -190,7 +191,7 @@ def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, path: Path, dims: d
 
 def load_deformation(path: str | os.PathLike, num_gaussians: int | None = None) -> dict[str, np.ndarray]:
     """Read ``deformation.npz`` → float32 arrays {"times", "d_means", "d_quats", "d_scales"} and/or
-    {"t_means", "t_scales"} (``DynamicGaussians`` keyword arguments), with :mod:`zipfile` and numpy's ``.npy``
+    {"t_means", "t_scales"}, with "t_ramps" for a trapezoid (``DynamicGaussians`` keyword arguments), with :mod:`zipfile` and numpy's ``.npy``
     header parser (never unpickling); each array's dtype and shape are checked before its data is read.
 
     Args:
@@ -200,7 +201,7 @@ def load_deformation(path: str | os.PathLike, num_gaussians: int | None = None) 
         FileNotFoundError / ValueError: ``path`` missing or not a regular file (:func:`check_input_file`).
         ValueError: starting with ``path``: not a zip archive, a corrupt member, an unknown entry, a partial set of
             either group, an array not floating-point or not of shape times (K,), d_means (K, M, 3), d_quats
-            (K, M, 4), d_scales (K, M, 3), t_means (M,), t_scales (M,); K above the ``frames`` limit (LimitError).
+            (K, M, 4), d_scales (K, M, 3), t_means / t_scales / t_ramps (M,); t_ramps without t_means; K above the ``frames`` limit (LimitError).
             Values are checked by ``DynamicGaussians``.
     """
     path = check_input_file(path, "deformation")
@@ -218,6 +219,8 @@ def load_deformation(path: str | os.PathLike, num_gaussians: int | None = None) 
     for group in (_DEFORMATION_KEYS, _TEMPORAL_KEYS):
         if 0 < sum(k in out for k in group) < len(group):
             raise ValueError(f"{path}: needs all of {group} or none, got {sorted(out)}")
+    if "t_ramps" in out and "t_means" not in out:
+        raise ValueError(f"{path}: t_ramps needs t_means and t_scales, got {sorted(out)}")
     return out
 
 

@@ -196,9 +196,9 @@ def _keyframes_fit_float16(scene: DynamicGaussians, times: Tensor) -> bool:
 
 
 def encode_keyframes(frames: dict[str, Tensor] | None, dtype: str,
-                     temporal: tuple[Tensor, Tensor] | None = None) -> bytes:
-    """The frame data as little-endian bytes: with ``temporal`` = (t_means (N,), t_scales (N,)), both as float32
-    (8·N bytes: σ_t keeps its precision whatever ``dtype``); then, keyframe by keyframe, means (N·3), quats (N·4,
+                     temporal: tuple[Tensor, ...] | None = None) -> bytes:
+    """The frame data as little-endian bytes: with ``temporal`` = (t_means (N,), t_scales (N,)[, t_ramps (N,)]), each
+    as float32 (4·N bytes each: σ_t keeps its precision whatever ``dtype``); then, keyframe by keyframe, means (N·3), quats (N·4,
     wxyz), scales (N·3) in ``dtype`` ("float16" or "float32"). The page's ``splitFrames`` reads this.
 
     Raises:
@@ -217,11 +217,12 @@ def encode_keyframes(frames: dict[str, Tensor] | None, dtype: str,
     return out
 
 
-def payload_bytes(num_gaussians: int, sh_degree: int, num_frames: int, temporal: bool, itemsize: int) -> int:
+def payload_bytes(num_gaussians: int, sh_degree: int, num_frames: int, temporal_arrays: int, itemsize: int) -> int:
     """Bytes of embedded data (before base64): PLY rows of (17 + 3·((d+1)² − 1)) float32, the temporal support's
-    2 float32 per Gaussian, and ``num_frames`` keyframes of 10 values of ``itemsize`` bytes per Gaussian."""
+    ``temporal_arrays`` (0; 2: μ_t, σ_t; 3: with ramps) float32 per Gaussian, and ``num_frames`` keyframes of 10 values of
+    ``itemsize`` bytes per Gaussian."""
     ply = num_gaussians * 4 * (17 + 3 * ((sh_degree + 1) ** 2 - 1))
-    return ply + (8 * num_gaussians if temporal else 0) + num_frames * num_gaussians * 10 * itemsize
+    return ply + 4 * temporal_arrays * num_gaussians + num_frames * num_gaussians * 10 * itemsize
 
 
 def _camera_list(cameras: CameraPath) -> list[dict]:
@@ -259,24 +260,27 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
     canonical: Gaussians = scene.canonical
     degree = canonical.sh_degree
     n, temporal = canonical.num_gaussians, scene.has_temporal
+    support_arrays = () if not temporal else (scene.t_means, scene.t_scales) + (
+        () if scene.t_ramps is None else (scene.t_ramps,))
     reductions: list[str] = []
     dtype, err = ("float32", None) if times is None else keyframe_dtype(scene, times, cameras)
     itemsize = 2 if dtype == "float16" else 4
     F = 0 if times is None else times.shape[0]
-    size = lambda: payload_bytes(n, degree, F, temporal, itemsize)  # noqa: E731
+    size = lambda: payload_bytes(n, degree, F, len(support_arrays), itemsize)  # noqa: E731
     if budget is not None and size() > budget and degree > 0:
         reductions.append(f"SH degree {degree} → 0")
         degree = 0
     if budget is not None and size() > budget and F > 2:
         per_frame = n * 10 * itemsize
-        keep_f = int(min(F, max(2, (budget - payload_bytes(n, degree, 0, temporal, itemsize)) // max(per_frame, 1))))
+        keep_f = int(min(F, max(2, (budget - payload_bytes(n, degree, 0, len(support_arrays), itemsize))
+                                // max(per_frame, 1))))
         if keep_f < F:
             idx = evenly_spaced(F, keep_f, times.device).unique()
             reductions.append(f"{F} → {idx.numel()} keyframes")
             times, F = times[idx], idx.numel()
     keep = None
     if budget is not None and size() > budget:
-        per = payload_bytes(1, degree, F, temporal, itemsize)
+        per = payload_bytes(1, degree, F, len(support_arrays), itemsize)
         m = max(1, budget // per)
         keep = torch.argsort(canonical.opacities.detach().cpu(), descending=True)[:m].sort().values
         reductions.append(f"{n:,} → {m:,} Gaussians (the most opaque)")
@@ -287,10 +291,11 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
     frames = None if times is None else keyframes(scene, times, keep)  # the kept key times and Gaussians only
     support = None
     if temporal:
-        support = (scene.t_means, scene.t_scales) if keep is None else (scene.t_means[keep], scene.t_scales[keep])
+        support = support_arrays if keep is None else tuple(a[keep] for a in support_arrays)
     first = frames["means"][0] if frames is not None else g.means.detach()
     config = {
         "numGaussians": n, "shDegree": degree, "dynamic": span is not None, "temporal": temporal,
+        "temporalRamps": scene.t_ramps is not None,
         "times": [] if times is None else [float(t) for t in times], "timeRange": [] if span is None else list(span),
         "dtype": dtype, "float16ErrorPx": err, "width": cameras.width, "height": cameras.height,
         "duration": (len(cameras) - 1) / fps if len(cameras) > 1 else 1.0 / fps,
@@ -309,13 +314,16 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
 
 
 def decode_keyframes(data: bytes, config: dict) -> dict[str, np.ndarray]:
-    """Inverse of :func:`encode_keyframes` given the page config (tests and tools): "t_means", "t_scales" (N,)
-    with temporal support, "means", "quats", "scales" (F, N, ·) for F key times (F = 0 without deformation)."""
+    """Inverse of :func:`encode_keyframes` given the page config (tests and tools): "t_means", "t_scales" (and
+    "t_ramps" when ``config["temporalRamps"]``) (N,) with temporal support, "means", "quats", "scales" (F, N, ·) for F key times (F = 0 without deformation)."""
     n, F = config["numGaussians"], len(config["times"])
     out, start = {}, 0
     if config["temporal"]:
-        support = np.frombuffer(data, dtype="<f4", count=2 * n).astype(np.float32)
-        out["t_means"], out["t_scales"], start = support[:n], support[n:], 8 * n
+        k = 3 if config.get("temporalRamps") else 2
+        support = np.frombuffer(data, dtype="<f4", count=k * n).astype(np.float32)
+        out["t_means"], out["t_scales"], start = support[:n], support[n:2 * n], 4 * k * n
+        if k == 3:
+            out["t_ramps"] = support[2 * n:]
     flat = np.frombuffer(data[start:], dtype="<f2" if config["dtype"] == "float16" else "<f4").astype(np.float32)
     flat = flat.reshape(F, n * 10)
     out.update(means=flat[:, :3 * n].reshape(F, n, 3), quats=flat[:, 3 * n:7 * n].reshape(F, n, 4),

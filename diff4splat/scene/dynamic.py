@@ -3,8 +3,10 @@ at time t").
 
 Per Gaussian and key time: Δμ (metres), Δq (wxyz, identity (1, 0, 0, 0)) and a log-scale offset Δs, interpolated
 linearly between key times (Δq by nlerp): μ_t = μ + Δμ(t), q_t = normalize(Δq(t) ⊗ q), s_t = s·exp(Δs(t)).
-Optional temporal support (Yang et al., ICLR 2024, §3.2): opacity at t is o·p(t), p(t) = exp(−½((t − μ_t)/σ_t)²),
-unnormalised as in the authors' code; Gaussians with o·p(t) below the gate
+Optional temporal support: opacity at t is o·p(t). By default p(t) = exp(−½((t − μ_t)/σ_t)²) (Yang et al., ICLR 2024,
+§3.2; unnormalised as in the authors' code); with ramps r_t it is the trapezoid p(t) = clamp((σ_t − |t − μ_t|)/r_t,
+0, 1): 1 within σ_t − r_t of μ_t, 0 from σ_t on, a box open at its ends when r_t = 0 (the layers of ``reconstruct``,
+which cross-fade exactly; docs/DESIGN.md, "Motion measured from frames …"). Gaussians with o·p(t) below the gate
 (:data:`~diff4splat.utils.constants.ALPHA_MIN`) cannot pass the alpha test and are left out before projection.
 """
 from __future__ import annotations
@@ -47,12 +49,13 @@ class DynamicGaussians:
     """Canonical Gaussians (M, world frame, metres) plus optional deformation at T key times ``times`` ((T,) in [0, 1],
     strictly increasing, or None for a static scene): ``d_means`` (T, M, 3) metres, ``d_quats`` (T, M, 4) wxyz,
     ``d_scales`` (T, M, 3) log-scale offsets; and optional temporal support, ``t_means`` (M,) clip times and
-    ``t_scales`` (M,) > 0, given together.
+    ``t_scales`` (M,) > 0, given together (a Gaussian's σ_t, or with ``t_ramps`` (M,) ≥ 0 a trapezoid's half-width
+    at zero; module docstring).
 
     Raises:
         ValueError: deformation arrays given partially, with wrong shapes, non-finite values, zero-norm rotations,
-            or times outside [0, 1] / not strictly increasing; t_means/t_scales given alone, not (M,), non-finite,
-            or t_scales ≤ 0.
+            or times outside [0, 1] / not strictly increasing; t_means/t_scales given alone, t_ramps without them,
+            any of the three not (M,) or non-finite, t_scales ≤ 0, t_ramps < 0 or > t_scales.
     """
 
     canonical: Gaussians
@@ -62,6 +65,7 @@ class DynamicGaussians:
     d_scales: Tensor | None = None
     t_means: Tensor | None = None
     t_scales: Tensor | None = None
+    t_ramps: Tensor | None = None
 
     def __post_init__(self) -> None:
         self._check_temporal()
@@ -87,17 +91,21 @@ class DynamicGaussians:
 
     def _check_temporal(self) -> None:
         if self.t_means is None and self.t_scales is None:
+            if self.t_ramps is not None:
+                raise ValueError("t_ramps needs t_means and t_scales")
             return
         if self.t_means is None or self.t_scales is None:
             raise ValueError("t_means and t_scales must be given together (or neither)")
         M = self.canonical.num_gaussians
-        for name in ("t_means", "t_scales"):
+        for name in ("t_means", "t_scales") + (() if self.t_ramps is None else ("t_ramps",)):
             t = getattr(self, name)
             if tuple(t.shape) != (M,):
                 raise ValueError(f"{name} must have shape ({M},) (one per Gaussian), got {tuple(t.shape)}")
             check_finite(name, t)
         if M and bool((self.t_scales <= 0).any()):
             raise ValueError(f"t_scales must be > 0, min is {float(self.t_scales.min())}")
+        if M and self.t_ramps is not None and bool(((self.t_ramps < 0) | (self.t_ramps > self.t_scales)).any()):
+            raise ValueError("t_ramps must lie in [0, t_scales]")
 
     @property
     def is_static(self) -> bool:
@@ -115,12 +123,16 @@ class DynamicGaussians:
         return not self.is_static or self.has_temporal
 
     def temporal_opacity(self, t: float) -> Tensor:
-        """(M,) marginal p(t) = exp(−½((t − μ_t)/σ_t)²) in [0, 1], ones without temporal support; ValueError for t
-        outside [0, 1] or not finite."""
+        """(M,) p(t) in [0, 1] (module docstring: the Gaussian, or the trapezoid with ``t_ramps``), ones without
+        temporal support; ValueError for t outside [0, 1] or not finite."""
         t = _check_time(t)
         if not self.has_temporal:
             return torch.ones_like(self.canonical.opacities)
-        return torch.exp(-0.5 * ((t - self.t_means) / self.t_scales) ** 2)
+        if self.t_ramps is None:
+            return torch.exp(-0.5 * ((t - self.t_means) / self.t_scales) ** 2)
+        inside = self.t_scales - (t - self.t_means).abs()  # ≤ 0 outside the support
+        ramp = (inside / self.t_ramps.clamp(min=torch.finfo(inside.dtype).tiny)).clamp(0, 1)
+        return torch.where(self.t_ramps > 0, ramp, (inside > 0).to(inside.dtype))
 
     def active_indices(self, t: float, gate: float = ALPHA_MIN) -> Tensor | None:
         """(K,) int64 ascending indices of the Gaussians with o·p(t) ≥ ``gate`` (≥ 0), or None without temporal support
@@ -234,7 +246,8 @@ class DynamicGaussians:
         """Subset by boolean mask (M,) or indices; deformation and temporal arrays follow (not validated again)."""
         values = {"canonical": self.canonical.select(index), "times": self.times}
         if self.has_temporal:
-            values.update(t_means=self.t_means[index], t_scales=self.t_scales[index])
+            values.update(t_means=self.t_means[index], t_scales=self.t_scales[index],
+                          t_ramps=None if self.t_ramps is None else self.t_ramps[index])
         if not self.is_static:
             values.update(d_means=self.d_means[:, index], d_quats=self.d_quats[:, index],
                           d_scales=self.d_scales[:, index])
@@ -247,13 +260,14 @@ class DynamicGaussians:
         if self.num_gaussians and not (_within(self.d_means, atol) and _within(self.d_scales, atol)
                                        and _identity_rotations(self.d_quats, atol)):
             return self
-        return DynamicGaussians(self.canonical, t_means=self.t_means, t_scales=self.t_scales)
+        return DynamicGaussians(self.canonical, t_means=self.t_means, t_scales=self.t_scales, t_ramps=self.t_ramps)
 
     def to(self, *args, **kwargs) -> DynamicGaussians:
         """Move/cast every tensor, temporal arrays included (``Tensor.to`` arguments)."""
         mv = lambda x: None if x is None else x.to(*args, **kwargs)  # noqa: E731
         return DynamicGaussians(self.canonical.to(*args, **kwargs), mv(self.times), mv(self.d_means),
-                                mv(self.d_quats), mv(self.d_scales), mv(self.t_means), mv(self.t_scales))
+                                mv(self.d_quats), mv(self.d_scales), mv(self.t_means), mv(self.t_scales),
+                                mv(self.t_ramps))
 
 
 _UNSET = object()

@@ -6,7 +6,7 @@
 // absolute per-keyframe means/quats(wxyz)/scales computed in Python by DynamicGaussians.at(). The page never
 // re-implements the deformation: between two keyframes it interpolates as the renderer interpolates the
 // deformation (means linearly, quaternions by nlerp, scales geometrically: s·exp(Δs) with Δs linear), evaluates
-// the temporal opacity o·exp(−½((t − μ_t)/σ_t)²), and writes the result into Spark's PackedSplats with setSplat +
+// the temporal opacity (o·exp(−½((t − μ_t)/σ_t)²), or o times the trapezoid of the ramps), and writes the result into Spark's PackedSplats with setSplat +
 // needsUpdate.
 //
 // Conventions: the scene's world and cameras.json use OpenCV world-to-camera matrices (x right, y down,
@@ -72,16 +72,18 @@ function keyframeDecoder(frames, dtype) {
 }
 
 // Frame data layout (little endian; diff4splat/io/viewer_data.py encode_keyframes): when cfg.temporal, the time
-// means (N) then the time standard deviations (N) as float32; then for each keyframe f (cfg.times), means (N, 3),
+// means (N), the time scales (N) and, when cfg.temporalRamps, the trapezoid ramps (N) as float32; then for each keyframe f (cfg.times), means (N, 3),
 // quats (N, 4) wxyz and scales (N, 3) in cfg.dtype.
 function splitFrames(bytes, cfg) {
   const n = cfg.numGaussians;
   let temporal = null, rest = bytes;
   if (cfg.temporal) {
-    const b = bytes.byteOffset % 4 ? bytes.slice(0, 8 * n) : bytes;  // a Float32Array needs an aligned offset
-    const support = new Float32Array(b.buffer, b.byteOffset, 2 * n);
-    temporal = { means: support.subarray(0, n), scales: support.subarray(n, 2 * n) };
-    rest = bytes.subarray(8 * n);
+    const k = cfg.temporalRamps ? 3 : 2;
+    const b = bytes.byteOffset % 4 ? bytes.slice(0, 4 * k * n) : bytes;  // a Float32Array needs an aligned offset
+    const support = new Float32Array(b.buffer, b.byteOffset, k * n);
+    temporal = { means: support.subarray(0, n), scales: support.subarray(n, 2 * n),
+                 ramps: cfg.temporalRamps ? support.subarray(2 * n, 3 * n) : null };
+    rest = bytes.subarray(4 * k * n);
   }
   const flat = keyframeArray(rest, cfg.dtype), per = 10 * n, frames = [];
   for (let f = 0; f < cfg.times.length; f++) {
@@ -235,8 +237,13 @@ async function main() {
     const sb = d < 0 ? -w : w, sa = 1 - w;
     q.set(sa * a.quats[i4 + 1] + sb * b.quats[i4 + 1], sa * a.quats[i4 + 2] + sb * b.quats[i4 + 2],
           sa * a.quats[i4 + 3] + sb * b.quats[i4 + 3], sa * a.quats[i4] + sb * b.quats[i4]).normalize();
-    if (!data.temporal) return opac[i];
-    const z = (t - data.temporal.means[i]) / data.temporal.scales[i];
+    const tp = data.temporal;
+    if (!tp) return opac[i];
+    if (tp.ramps) {  // the trapezoid clamp((σ_t − |t − μ_t|)/r_t, 0, 1); r_t = 0: a box open at its ends
+      const inside = tp.scales[i] - Math.abs(t - tp.means[i]);
+      return opac[i] * (tp.ramps[i] > 0 ? Math.min(1, Math.max(0, inside / tp.ramps[i])) : (inside > 0 ? 1 : 0));
+    }
+    const z = (t - tp.means[i]) / tp.scales[i];
     return opac[i] * Math.exp(-0.5 * z * z);
   }
   function setTime(t) {
