@@ -8,6 +8,7 @@ import torch
 
 from diff4splat.cameras import intrinsics_from_fov, look_at
 from diff4splat.geometry.scene_flow import (
+    chain_flows,
     lift_tracks,
     optical_flow,
     pixel_centres,
@@ -63,6 +64,29 @@ def test_tracking_chains_small_steps_and_loses_pixels_that_leave(texture, device
     assert float(ok[4][:, -4:].float().mean()) < 0.2
     assert float(pos[..., 0].max()) <= 48
 
+
+
+def test_an_unchecked_link_is_followed_and_the_check_resumes_after_it(device):
+    """Forward flows of +1 px then +2 px, the backward flows of the first link wrong by 3 px (over the 1.5 px
+    tolerance): checked, every track is lost at once and held at its start; with ``unchecked=1`` the first link is
+    followed (tracked), and the next link goes on from the last position that passed the check, the start."""
+    H = W = 8
+    fw = torch.zeros(2, H, W, 2, device=device)
+    fw[0, ..., 0], fw[1, ..., 0] = 1.0, 2.0
+    bw = -fw.clone()
+    bw[0, ..., 0] += 3.0
+    centres = pixel_centres(H, W, fw)
+    pos, ok = chain_flows(fw, bw)
+    assert not bool(ok[1:].any()) and torch.equal(pos[2], centres)
+    pos, ok = chain_flows(fw, bw, unchecked=1)
+    inner = (slice(None), slice(0, W - 3))  # a step of 1 px stays inside
+    assert bool(ok[1][inner].all()) and torch.allclose(pos[1][inner], centres[inner] + torch.tensor([1.0, 0.0],
+                                                                                                   device=device))
+    assert not bool(ok[2].any()) and torch.equal(pos[2], centres)
+    bw[0, ..., 0] -= 3.0  # consistent flows: unchecked changes nothing
+    assert all(torch.equal(a, b) for a, b in zip(chain_flows(fw, bw), chain_flows(fw, bw, unchecked=1), strict=True))
+    with pytest.raises(ValueError, match="unchecked"):
+        chain_flows(fw, bw, unchecked=-1)
 
 def _plane_setup(device, T=3):
     K = intrinsics_from_fov(32, 32, fov_x_deg=60.0, dtype=torch.float64)

@@ -176,3 +176,43 @@ def test_deformation_npz_round_trip_with_temporal_support(tmp_path, deform):
     np.savez(tmp_path / "bad.npz", t_means=d["t_means"])
     with pytest.raises(ValueError, match="t_scales"):
         load_deformation(tmp_path / "bad.npz")
+
+
+def test_trapezoid_support_is_its_closed_form_and_a_box_is_open_at_its_ends():
+    """With ramps, p(t) = clamp((σ_t − |t − μ_t|)/r_t, 0, 1): a triangle (r = σ) falls linearly to 0 at μ ± σ, a
+    trapezoid is flat within σ − r, and a box (r = 0) is 1 strictly inside (μ − σ, μ + σ) and 0 at its ends."""
+    g = _gaussians(4)
+    scene = DynamicGaussians(g, t_means=torch.tensor([0.5, 0.5, 0.5, 0.5], dtype=D),
+                             t_scales=torch.tensor([0.25, 0.25, 0.25, 0.25], dtype=D),
+                             t_ramps=torch.tensor([0.25, 0.1, 0.0, 0.0], dtype=D))
+    for t, want in ((0.5, [1, 1, 1, 1]), (0.375, [0.5, 1, 1, 1]), (0.7, [0.2, 0.5, 1, 1]), (0.75, [0, 0, 0, 0]),
+                    (0.25, [0, 0, 0, 0]), (0.2, [0, 0, 0, 0]), (0.7499, [0.0004, 0.001, 1, 1])):
+        torch.testing.assert_close(scene.temporal_opacity(t), torch.tensor(want, dtype=D), rtol=0, atol=1e-12)
+    assert scene.active_indices(0.75, gate=1e-9).numel() == 0  # the box's end: gated out, as the triangle's
+    torch.testing.assert_close(scene.at(0.375, gate=0.0).opacities, g.opacities * torch.tensor([0.5, 1, 1, 1], dtype=D))
+    sub, f32 = scene.select(torch.tensor([3, 0])), scene.to(torch.float32)
+    assert torch.equal(sub.t_ramps, scene.t_ramps[[3, 0]]) and f32.t_ramps.dtype == torch.float32
+    one = torch.ones(4, dtype=D)
+    with pytest.raises(ValueError, match="t_ramps needs"):
+        DynamicGaussians(g, t_ramps=one)
+    with pytest.raises(ValueError, match=r"t_ramps must lie in \[0, t_scales\]"):
+        DynamicGaussians(g, t_means=one, t_scales=one, t_ramps=one * 2)
+    with pytest.raises(ValueError, match=r"t_ramps must lie"):
+        DynamicGaussians(g, t_means=one, t_scales=one, t_ramps=-one)
+    with pytest.raises(ValueError, match="t_ramps must have shape"):
+        DynamicGaussians(g, t_means=one, t_scales=one, t_ramps=one[:3])
+
+
+def test_deformation_npz_round_trip_with_ramps(tmp_path):
+    base = _temporal_scene(m=12)
+    scene = DynamicGaussians(base.canonical, t_means=base.t_means, t_scales=base.t_scales,
+                             t_ramps=base.t_scales * torch.linspace(0, 1, 12, dtype=D))
+    save_deformation(tmp_path / "d.npz", scene)
+    d = load_deformation(tmp_path / "d.npz")
+    assert set(d) == {"t_means", "t_scales", "t_ramps"}
+    back = DynamicGaussians(scene.canonical.to(torch.float32), **{k: torch.from_numpy(v) for k, v in d.items()})
+    for t in (0.1, 0.45, 0.9):
+        torch.testing.assert_close(back.temporal_opacity(t), scene.temporal_opacity(t).float(), rtol=0, atol=1e-5)
+    np.savez(tmp_path / "bad.npz", t_ramps=d["t_ramps"])
+    with pytest.raises(ValueError, match="t_ramps needs t_means"):
+        load_deformation(tmp_path / "bad.npz")

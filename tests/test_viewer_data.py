@@ -23,6 +23,7 @@ from diff4splat.io.viewer_data import (
     time_range,
     viewer_payload,
 )
+from diff4splat.scene.dynamic import DynamicGaussians
 
 
 def test_keyframes_are_the_scene_at_its_key_times():
@@ -74,6 +75,23 @@ def test_encode_decode_round_trip(dtype):
         np.testing.assert_array_equal(back[k], ref)
     with pytest.raises(ValueError, match="dtype"):
         encode_keyframes(frames, "int8")
+
+
+def test_ramps_travel_after_the_time_scales():
+    """A trapezoid's ramps (DynamicGaussians.t_ramps) follow μ_t and σ_t as float32, the config says so, and the
+    payload's size counts three arrays."""
+    scene, cams = moving_patch_scene(n=30, frames=3, temporal=True)
+    scene = DynamicGaussians(scene.canonical, scene.times, scene.d_means, scene.d_quats, scene.d_scales,
+                             scene.t_means, scene.t_scales, scene.t_scales * 0.5)
+    p = viewer_payload(scene, cams)
+    assert p.config["temporal"] and p.config["temporalRamps"]
+    assert len(p.frames) == payload_bytes(30, 0, 3, 3, p.config["bytesPerGaussianPerFrame"] // 10) - 30 * 17 * 4
+    back = decode_keyframes(p.frames, p.config)
+    np.testing.assert_array_equal(back["t_ramps"], scene.t_ramps.numpy())
+    np.testing.assert_array_equal(back["t_scales"], scene.t_scales.numpy())
+    np.testing.assert_allclose(back["means"][1], scene.at(0.5, gate=0.0).means.numpy(), atol=2e-3)
+    assert not viewer_payload(DynamicGaussians(scene.canonical, t_means=scene.t_means, t_scales=scene.t_scales),
+                              cams).config["temporalRamps"]
 
 
 def test_float16_error_closed_form():

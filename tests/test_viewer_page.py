@@ -273,17 +273,20 @@ def test_a_horizontal_drag_orbits_about_the_cameras_up(browser, tmp_path, world)
 
 
 @pytest.mark.slow
-def test_between_keyframes_the_page_has_the_renderers_gaussians(browser, tmp_path):
+@pytest.mark.parametrize("ramps", [False, True])
+def test_between_keyframes_the_page_has_the_renderers_gaussians(browser, tmp_path, ramps):
     """At times between keyframes the page's Gaussians (before Spark packs them) are DynamicGaussians.at's: the
     scales interpolate geometrically as s·exp(Δs) with Δs linear (Δs from 0 to ln 4 gives 2s halfway, not the
     2.5s of a linear blend of the keyframes), and temporal opacities o·exp(−½((t − μ_t)/σ_t)²) peak at μ_t
-    between keyframes (a linear blend of the keyframes' opacities gave 3e-6 instead of o at t = μ_t = 0.5)."""
+    between keyframes (a linear blend of the keyframes' opacities gave 3e-6 instead of o at t = μ_t = 0.5); with
+    ramps, the trapezoid's (boxes, trapezoids and a triangle)."""
     scene, cams = moving_patch_scene(n=40, frames=2, temporal=True)
     d_scales = torch.zeros(2, 40, 3)
     d_scales[1] = math.log(4.0)
     t_means = torch.linspace(0.3, 0.7, 40)
     scene = DynamicGaussians(scene.canonical, scene.times, scene.d_means, scene.d_quats, d_scales,
-                             t_means=t_means, t_scales=torch.full((40,), 0.1))
+                             t_means=t_means, t_scales=torch.full((40,), 0.1),
+                             t_ramps=None if not ramps else torch.linspace(0, 0.1, 40))  # a box to a triangle
     write_viewer(tmp_path / "viewer.html", scene, cams)
     page = _open(browser, (tmp_path / "viewer.html").as_uri())
     for t in (0.25, 0.5, 0.6):

@@ -191,7 +191,8 @@ def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, path: Path, dims: d
 
 def load_deformation(path: str | os.PathLike, num_gaussians: int | None = None) -> dict[str, np.ndarray]:
     """Read ``deformation.npz`` → float32 arrays {"times", "d_means", "d_quats", "d_scales"} and/or
-    {"t_means", "t_scales"}, with "t_ramps" for a trapezoid (``DynamicGaussians`` keyword arguments), with :mod:`zipfile` and numpy's ``.npy``
+    {"t_means", "t_scales"}, with "t_ramps" for a trapezoid (``DynamicGaussians`` keyword arguments), with
+    :mod:`zipfile` and numpy's ``.npy``
     header parser (never unpickling); each array's dtype and shape are checked before its data is read.
 
     Args:
@@ -201,7 +202,8 @@ def load_deformation(path: str | os.PathLike, num_gaussians: int | None = None) 
         FileNotFoundError / ValueError: ``path`` missing or not a regular file (:func:`check_input_file`).
         ValueError: starting with ``path``: not a zip archive, a corrupt member, an unknown entry, a partial set of
             either group, an array not floating-point or not of shape times (K,), d_means (K, M, 3), d_quats
-            (K, M, 4), d_scales (K, M, 3), t_means / t_scales / t_ramps (M,); t_ramps without t_means; K above the ``frames`` limit (LimitError).
+            (K, M, 4), d_scales (K, M, 3), t_means / t_scales / t_ramps (M,); t_ramps without t_means; K above
+            the ``frames`` limit (LimitError).
             Values are checked by ``DynamicGaussians``.
     """
     path = check_input_file(path, "deformation")

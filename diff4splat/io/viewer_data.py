@@ -198,8 +198,9 @@ def _keyframes_fit_float16(scene: DynamicGaussians, times: Tensor) -> bool:
 def encode_keyframes(frames: dict[str, Tensor] | None, dtype: str,
                      temporal: tuple[Tensor, ...] | None = None) -> bytes:
     """The frame data as little-endian bytes: with ``temporal`` = (t_means (N,), t_scales (N,)[, t_ramps (N,)]), each
-    as float32 (4·N bytes each: σ_t keeps its precision whatever ``dtype``); then, keyframe by keyframe, means (N·3), quats (N·4,
-    wxyz), scales (N·3) in ``dtype`` ("float16" or "float32"). The page's ``splitFrames`` reads this.
+    as float32 (4·N bytes each: σ_t keeps its precision whatever ``dtype``); then, keyframe by keyframe, means
+    (N·3), quats (N·4, wxyz), scales (N·3) in ``dtype`` ("float16" or "float32"). The page's ``splitFrames`` reads
+    this.
 
     Raises:
         ValueError: another ``dtype``.
@@ -219,8 +220,8 @@ def encode_keyframes(frames: dict[str, Tensor] | None, dtype: str,
 
 def payload_bytes(num_gaussians: int, sh_degree: int, num_frames: int, temporal_arrays: int, itemsize: int) -> int:
     """Bytes of embedded data (before base64): PLY rows of (17 + 3·((d+1)² − 1)) float32, the temporal support's
-    ``temporal_arrays`` (0; 2: μ_t, σ_t; 3: with ramps) float32 per Gaussian, and ``num_frames`` keyframes of 10 values of
-    ``itemsize`` bytes per Gaussian."""
+    ``temporal_arrays`` (0; 2: μ_t, σ_t; 3: with ramps) float32 per Gaussian, and ``num_frames`` keyframes of 10
+    values of ``itemsize`` bytes per Gaussian."""
     ply = num_gaussians * 4 * (17 + 3 * ((sh_degree + 1) ** 2 - 1))
     return ply + 4 * temporal_arrays * num_gaussians + num_frames * num_gaussians * 10 * itemsize
 
@@ -315,7 +316,8 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
 
 def decode_keyframes(data: bytes, config: dict) -> dict[str, np.ndarray]:
     """Inverse of :func:`encode_keyframes` given the page config (tests and tools): "t_means", "t_scales" (and
-    "t_ramps" when ``config["temporalRamps"]``) (N,) with temporal support, "means", "quats", "scales" (F, N, ·) for F key times (F = 0 without deformation)."""
+    "t_ramps" when ``config["temporalRamps"]``) (N,) with temporal support, "means", "quats", "scales" (F, N, ·) for
+    F key times (F = 0 without deformation)."""
     n, F = config["numGaussians"], len(config["times"])
     out, start = {}, 0
     if config["temporal"]:
