@@ -19,6 +19,7 @@ from diff4splat.io.viewer_data import (
     float16_error_px,
     keyframe_times,
     keyframes,
+    most_covering,
     payload_bytes,
     time_range,
     viewer_payload,
@@ -75,6 +76,22 @@ def test_encode_decode_round_trip(dtype):
         np.testing.assert_array_equal(back[k], ref)
     with pytest.raises(ValueError, match="dtype"):
         encode_keyframes(frames, "int8")
+
+
+def test_most_covering_ranks_opacity_times_area_and_spreads_ties():
+    """The kept Gaussians are the top m of o·(s₁s₂s₃)^⅔ by a brute-force ranking (a 2× larger Gaussian at half
+    the opacity covers more), and among equal scores (ten alike layers of 100) every layer keeps about its share
+    instead of the first five whole."""
+    g = torch.Generator().manual_seed(3)
+    opac, scales = torch.rand(300, generator=g), 0.01 + torch.rand(300, 3, generator=g)
+    score = [float(opac[i]) * float(scales[i].prod()) ** (2 / 3) for i in range(300)]
+    want = sorted(sorted(range(300), key=lambda i: -score[i])[:40])
+    assert most_covering(opac, scales, 40).tolist() == want
+    assert most_covering(torch.tensor([0.9, 0.5]), torch.tensor([[1.0] * 3, [2.0] * 3]), 1).tolist() == [1]
+    kept = most_covering(torch.full((1000,), 0.995), torch.full((1000, 3), 0.01), 500)
+    per_layer = torch.bincount(kept // 100, minlength=10)
+    assert kept.numel() == 500 and int(per_layer.min()) >= 35 and int(per_layer.max()) <= 65, per_layer.tolist()
+    assert torch.equal(kept, most_covering(torch.full((1000,), 0.995), torch.full((1000, 3), 0.01), 500))
 
 
 def test_ramps_travel_after_the_time_scales():
@@ -166,7 +183,7 @@ def test_budget_reductions_in_order():
     assert p.reductions == ["SH degree 3 → 0", "9 → 3 keyframes"]
     assert p.config["times"] == pytest.approx([0.0, 0.5, 1.0])
     assert len(p.frames) == 3 * 200 * 10 * 2
-    # room for 50 Gaussians at 2 keyframes: the 50 most opaque are kept
+    # room for 50 Gaussians at 2 keyframes: the 50 most opaque are kept (all of one size: most_covering)
     opac = torch.linspace(0.1, 0.9, 200)
     c = scene.canonical
     scene = type(scene)(type(c)(c.means, c.quats, c.scales, opac, c.sh), scene.times, scene.d_means,
@@ -226,7 +243,7 @@ def test_the_payload_equals_the_one_built_from_every_keyframe(far):
     m = p.config["numGaussians"]
     assert len(p.reductions) == 2 and 0 < m < n and len(p.config["times"]) < F  # both reductions taken
     kept_t = torch.tensor([times.tolist().index(t) for t in p.config["times"]])
-    kept = torch.argsort(scene.canonical.opacities, descending=True)[:m].sort().values
+    kept = most_covering(scene.canonical.opacities, scene.canonical.scales, m)  # its own test: brute force
     want = encode_keyframes({k: v[kept_t][:, kept] for k, v in every.items()}, dtype,
                             (scene.t_means[kept], scene.t_scales[kept]))
     assert p.frames == want

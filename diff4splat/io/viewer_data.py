@@ -16,7 +16,7 @@ Keyframes are stored as float16 when rounding the means to float16 moves no Gaus
 is within float16's range (|x| ≤ 65504), else float32.
 Size per Gaussian per keyframe: 10 values × 2 or 4 bytes, plus 8 bytes once with temporal support, × 4/3 once
 base64-encoded into ``viewer.html``. Above :data:`VIEWER_BUDGET_BYTES` of embedded data the page gets a reduced
-scene (:func:`viewer_payload`: SH degree 0, then fewer keyframes, then the most opaque Gaussians) and says
+scene (:func:`viewer_payload`: SH degree 0, then fewer keyframes, then the Gaussians covering most) and says
 so on screen; ``diff4splat view`` serves the full one.
 """
 from __future__ import annotations
@@ -36,8 +36,8 @@ from diff4splat.scene.dynamic import DynamicGaussians
 from diff4splat.scene.gaussians import Gaussians
 
 __all__ = ["VIEWER_BUDGET_BYTES", "FLOAT16_MAX_PX", "NEAR", "ViewerPayload", "keyframe_times", "time_range",
-           "keyframes", "evenly_spaced", "float16_error_px", "encode_keyframes", "decode_keyframes", "viewer_payload",
-           "payload_bytes"]
+           "keyframes", "evenly_spaced", "most_covering", "float16_error_px", "encode_keyframes", "decode_keyframes",
+           "viewer_payload", "payload_bytes"]
 
 VIEWER_BUDGET_BYTES = 50 * 2**20
 """Most bytes of data (PLY + keyframes, before base64) embedded in one viewer.html."""
@@ -239,13 +239,26 @@ def _target_distance(means: Tensor, viewmat: Tensor) -> float:
     return float(z.median()) if z.numel() else 1.0
 
 
+def most_covering(opacities: Tensor, scales: Tensor, m: int) -> Tensor:
+    """(m,) ascending indices of the ``m`` Gaussians that cover most: opacity times footprint, o·(s₁s₂s₃)^⅔ (a
+    Gaussian's area, m², for ``opacities`` (N,) and ``scales`` (N, 3) metres; the opacity × volume importance of 3DGS
+    pruning, as an area). Equal scores (a photo layer's disks are alike) are taken in a fixed pseudo-random order
+    (seed 0), so a scene of many alike layers keeps part of each, spread over its pixels, not the first layers whole."""
+    n = opacities.shape[0]
+    score = opacities.double() * scales.double().prod(dim=-1).pow(2 / 3)
+    order = torch.randperm(n, generator=torch.Generator(device="cpu").manual_seed(0)).to(opacities.device)
+    order = order[torch.argsort(score[order], descending=True, stable=True)]
+    return order[:m].sort().values
+
+
 def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float = DEFAULT_FPS,
                    budget: int | None = VIEWER_BUDGET_BYTES,
                    background: tuple[float, float, float] = BACKGROUND, eps2d: float = EPS2D) -> ViewerPayload:
     """The data of one viewer page (module docstring), reduced to at most ``budget`` bytes (None: never).
 
     Reductions, in order, each only while over budget: SH degree → 0; keyframes subsampled (first and last
-    kept, at least 2); the most opaque Gaussians kept. Each one taken is listed in ``config["note"]``.
+    kept, at least 2); the Gaussians covering most kept (:func:`most_covering`). Each one taken is listed in
+    ``config["note"]``.
     ``background``: RGB in [0, 1] behind the Gaussians (as the CPU renderer composites it); ``eps2d``: the scene's
     screen-space dilation, pixels² (Spark's ``preBlurAmount``; meta.json ``eps2d``).
 
@@ -283,8 +296,8 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
     if budget is not None and size() > budget:
         per = payload_bytes(1, degree, F, len(support_arrays), itemsize)
         m = max(1, budget // per)
-        keep = torch.argsort(canonical.opacities.detach().cpu(), descending=True)[:m].sort().values
-        reductions.append(f"{n:,} → {m:,} Gaussians (the most opaque)")
+        keep = most_covering(canonical.opacities.detach().cpu(), canonical.scales.detach().cpu(), int(m))
+        reductions.append(f"{n:,} → {m:,} Gaussians (those covering most)")
         n = int(m)
     g = canonical if keep is None else canonical.select(keep)
     if degree < canonical.sh_degree:
