@@ -246,7 +246,8 @@ def most_covering(opacities: Tensor, scales: Tensor, m: int) -> Tensor:
     (seed 0), so a scene of many alike layers keeps part of each, spread over its pixels, not the first layers whole."""
     n = opacities.shape[0]
     score = opacities.double() * scales.double().prod(dim=-1).pow(2 / 3)
-    order = torch.randperm(n, generator=torch.Generator(device="cpu").manual_seed(0)).to(opacities.device)
+    order = torch.randperm(n, generator=torch.Generator(device="cpu").manual_seed(0),
+                           device="cpu").to(opacities.device)  # the same order on every device: a CPU generator
     order = order[torch.argsort(score[order], descending=True, stable=True)]
     return order[:m].sort().values
 
