@@ -141,7 +141,8 @@ def layer_support(times: Tensor, layer: Tensor) -> tuple[Tensor, Tensor, Tensor]
     ``layer`` (K,) int64 (−1: the backdrop), the layers at the equally spaced clip times ``times`` (L,), spacing Δ:
 
     - an even layer is the triangle 1 − |t − t_l|/Δ, in front (:data:`LAYER_ORDER_OFFSET`);
-    - an odd layer is the box |t − t_l| < Δ, opaque behind;
+    - an odd layer is the box |t − t_l| < Δ·(1 − 10⁻³), opaque behind (the margin: off at its neighbours' times
+      whatever the rounding of clip times like i/12);
     - the backdrop is there at every t ∈ [0, 1].
 
     Between two layers' times exactly one is even, in front at opacity (1 − α)·o (α the weight of the later time), over
@@ -154,7 +155,7 @@ def layer_support(times: Tensor, layer: Tensor) -> tuple[Tensor, Tensor, Tensor]
     even = layer % 2 == 0
     back = layer < 0
     t_means = torch.where(back, times.new_tensor(0.5), own)
-    t_scales = torch.where(back, times.new_tensor(1.0), spacing.expand_as(own))
+    t_scales = torch.where(back, times.new_tensor(1.0), torch.where(even, spacing, spacing * (1 - 1e-3)))
     t_ramps = torch.where(even & ~back, spacing.expand_as(own), times.new_zeros(()))
     return t_means, t_scales, t_ramps
 
