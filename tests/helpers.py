@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from filelock import FileLock
 
 from diff4splat.cameras.path import CameraPath
 from diff4splat.cli import main
@@ -101,24 +102,30 @@ def parity_model(image_branch: int = 0):
 
 
 def exported(tmp_path_factory, *, text=True, deformation=True, cli=False, image_branch=0):
-    """(checkpoint folder, export folder) of :func:`parity_model`, built once per session.
+    """(checkpoint folder, export folder) of :func:`parity_model`, built once per test run: under pytest-xdist in
+    the run's temporary root that its workers share (each export takes about a minute of torch.export), one worker
+    building it while the others wait on a file lock.
 
     ``cli`` makes the export through ``diff4splat export-onnx`` (flags ``--no-text`` / ``--static``);
     ``image_branch`` > 0 exports ``parity_model(image_branch)`` (its own checkpoint folder).
     """
-    base = tmp_path_factory.getbasetemp() / "onnx_cache"
+    own = tmp_path_factory.getbasetemp()
+    base = (own.parent if os.environ.get("PYTEST_XDIST_WORKER") else own) / "onnx_cache"
+    base.mkdir(parents=True, exist_ok=True)
     suffix = f"_image{image_branch}" if image_branch else ""
     ckpt = base / f"checkpoint{suffix}"
-    if not (ckpt / "config.json").exists():
-        parity_model(image_branch).save_pretrained(ckpt)
     out = base / f"export_text{int(text)}_deformation{int(deformation)}{suffix}"
-    if not (out / MANIFEST_NAME).exists():
-        if cli:
-            flags = (["--no-text"] if not text else []) + (["--static"] if not deformation else [])
-            assert main(["export-onnx", "--checkpoint", str(ckpt), "--out", str(out), *flags]) == 0
-        else:
-            model = Diff4SplatModel.from_pretrained(ckpt).eval()
-            export_onnx(model, out, text=text, deformation=deformation, checkpoint=ckpt, source=str(ckpt))
+    with FileLock(str(base / f"{ckpt.name}.lock")):
+        if not (ckpt / "config.json").exists():
+            parity_model(image_branch).save_pretrained(ckpt)
+    with FileLock(str(base / f"{out.name}.lock")):
+        if not (out / MANIFEST_NAME).exists():
+            if cli:
+                flags = (["--no-text"] if not text else []) + (["--static"] if not deformation else [])
+                assert main(["export-onnx", "--checkpoint", str(ckpt), "--out", str(out), *flags]) == 0
+            else:
+                model = Diff4SplatModel.from_pretrained(ckpt).eval()
+                export_onnx(model, out, text=text, deformation=deformation, checkpoint=ckpt, source=str(ckpt))
     return ckpt, out
 
 

@@ -194,7 +194,7 @@ def test_prompt_changes_the_onnx_sample(full, image):
 @pytest.mark.slow
 def test_generate_cli_onnxruntime_writes_the_same_folder(full, tmp_path, tmp_path_factory):
     model, out = full
-    ckpt = tmp_path_factory.getbasetemp() / "onnx_cache" / "checkpoint"
+    ckpt = exported(tmp_path_factory)[0]
     common = ["generate", str(EXAMPLE_IMAGE), "--frames", "5", "--steps", "2", "--prompt", PROMPT, "--quiet"]
     assert main(common + ["--checkpoint", str(ckpt), "--device", "cpu", "--out", str(tmp_path / "torch")]) == 0
     assert main(common + ["--onnx", str(out), "--out", str(tmp_path / "ort")]) == 0  # --onnx: onnxruntime
