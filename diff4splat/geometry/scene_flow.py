@@ -125,7 +125,7 @@ def chain_flows(forward: Tensor, backward: Tensor, *, fb_tolerance: float = FB_T
         unchecked link is shown moved at that link and held at its start after it).
 
     Raises:
-        ValueError: flows of different or wrong shapes, ``fb_tolerance`` not > 0.
+        ValueError: flows of different or wrong shapes, ``fb_tolerance`` not > 0, ``unchecked`` < 0.
     """
     if forward.dim() != 4 or forward.shape[-1] != 2 or forward.shape != backward.shape:
         raise ValueError(f"forward and backward must both be (T − 1, H, W, 2), got {tuple(forward.shape)} and "

@@ -192,8 +192,8 @@ def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, path: Path, dims: d
 def load_deformation(path: str | os.PathLike, num_gaussians: int | None = None) -> dict[str, np.ndarray]:
     """Read ``deformation.npz`` → float32 arrays {"times", "d_means", "d_quats", "d_scales"} and/or
     {"t_means", "t_scales"}, with "t_ramps" for a trapezoid (``DynamicGaussians`` keyword arguments), with
-    :mod:`zipfile` and numpy's ``.npy``
-    header parser (never unpickling); each array's dtype and shape are checked before its data is read.
+    :mod:`zipfile` and numpy's ``.npy`` header parser (never unpickling); each array's dtype and shape are checked
+    before its data is read.
 
     Args:
         num_gaussians: M of the scene's ``scene.ply``, or None to take it from the file.

@@ -14,10 +14,10 @@ log-linear in Δs), so at every time, not only at key times, the page shows the 
 Keyframes are stored as float16 when rounding the means to float16 moves no Gaussian by more than
 :data:`FLOAT16_MAX_PX` pixels in any camera of the path (measured, :func:`float16_error_px`) and every value
 is within float16's range (|x| ≤ 65504), else float32.
-Size per Gaussian per keyframe: 10 values × 2 or 4 bytes, plus 8 bytes once with temporal support, × 4/3 once
-base64-encoded into ``viewer.html``. Above :data:`VIEWER_BUDGET_BYTES` of embedded data the page gets a reduced
-scene (:func:`viewer_payload`: SH degree 0, then fewer keyframes, then the Gaussians covering most) and says
-so on screen; ``diff4splat view`` serves the full one.
+Size per Gaussian per keyframe: 10 values × 2 or 4 bytes, plus 8 bytes once with temporal support (12 with
+ramps), × 4/3 once base64-encoded into ``viewer.html``. Above :data:`VIEWER_BUDGET_BYTES` of embedded data the
+page gets a reduced scene (:func:`viewer_payload`: SH degree 0, then fewer keyframes, then the Gaussians covering
+most) and says so on screen; ``diff4splat view`` serves the full one.
 """
 from __future__ import annotations
 

@@ -6,8 +6,8 @@
 // absolute per-keyframe means/quats(wxyz)/scales computed in Python by DynamicGaussians.at(). The page never
 // re-implements the deformation: between two keyframes it interpolates as the renderer interpolates the
 // deformation (means linearly, quaternions by nlerp, scales geometrically: s·exp(Δs) with Δs linear), evaluates
-// the temporal opacity (o·exp(−½((t − μ_t)/σ_t)²), or o times the trapezoid of the ramps), and writes the result into Spark's PackedSplats with setSplat +
-// needsUpdate.
+// the temporal opacity (o·exp(−½((t − μ_t)/σ_t)²), or o times the trapezoid of the ramps), and writes the result
+// into Spark's PackedSplats with setSplat + needsUpdate.
 //
 // Conventions: the scene's world and cameras.json use OpenCV world-to-camera matrices (x right, y down,
 // z forward); three.js cameras are OpenGL (x right, y up, looking down −z), so c2w_gl = inv(viewmat) ·
@@ -72,8 +72,8 @@ function keyframeDecoder(frames, dtype) {
 }
 
 // Frame data layout (little endian; diff4splat/io/viewer_data.py encode_keyframes): when cfg.temporal, the time
-// means (N), the time scales (N) and, when cfg.temporalRamps, the trapezoid ramps (N) as float32; then for each keyframe f (cfg.times), means (N, 3),
-// quats (N, 4) wxyz and scales (N, 3) in cfg.dtype.
+// means (N), the time scales (N) and, when cfg.temporalRamps, the trapezoid ramps (N) as float32; then for each
+// keyframe f (cfg.times), means (N, 3), quats (N, 4) wxyz and scales (N, 3) in cfg.dtype.
 function splitFrames(bytes, cfg) {
   const n = cfg.numGaussians;
   let temporal = null, rest = bytes;
