@@ -1,17 +1,18 @@
 """Size and load time of ``viewer.html`` (the self-contained 4D viewer, diff4splat/io/viewer_page.py).
 
-Rows: the shipped example (``diff4splat generate examples/chelsea.png``, default model) and synthetic dynamic
-scenes (random Gaussians, 17 keyframes) of 10,000 and 65,536 Gaussians at SH degree 0 and 3. Columns: the
-keyframe bytes per Gaussian per frame (float16 or float32, chosen by the measured float16 error), that error
-in pixels, the embedded PLY and keyframe sizes, the whole file, whether the size budget reduced the scene,
-and — when Chromium and Playwright are installed — the time from navigation until the page reports ready
-(headless Chromium, software WebGL, this machine), the milliseconds one change of time takes in the page
-(interpolating every Gaussian between two keyframes and writing it into Spark's PackedSplats; float16 keyframes
-are decoded when the time enters a new pair, which each of these changes does) and the page's JavaScript heap once
-ready. A last row serves a paper-size scene (1,311,201 Gaussians, 49 keyframes: what the paper model keeps) with
-``diff4splat view``, which never reduces the scene.
+Rows: the shipped example (``diff4splat generate examples/chelsea.png``, default model), synthetic dynamic
+scenes (random Gaussians, 17 keyframes) of 10,000 and 65,536 Gaussians at SH degree 0 and 3, and with ``--video``
+the ``diff4splat reconstruct`` of a clip (``--start``, 17 frames, stride 2: short-lived layers, each holding only
+the keys around its window). Columns: the key times, the held keyframes as a fraction of Gaussians × key times
+(still Gaussians hold none, windowed ones a few), the keyframe bytes per Gaussian per held key (float16 or float32,
+chosen by the measured float16 error), that error in pixels, the embedded PLY and keyframe sizes, the whole file,
+whether the size budget reduced the scene, and — when Chromium and Playwright are installed — the time from
+navigation until the page reports ready (headless Chromium, software WebGL, this machine), the milliseconds one
+change of time takes in the page (interpolating every Gaussian between two keyframes and writing it into Spark's
+PackedSplats) and the page's JavaScript heap once ready. A last row serves a paper-size scene (1,311,201 Gaussians,
+49 keyframes: what the paper model keeps) with ``diff4splat view``, which never reduces the scene.
 
-    python benchmarks/viewer_size.py --write
+    python benchmarks/viewer_size.py --write [--video clip.mp4 --start 100]
 """
 from __future__ import annotations
 
@@ -30,9 +31,10 @@ from _common import machine, markdown_table, write_section  # noqa: E402
 
 from diff4splat.cameras.path import CameraPath  # noqa: E402
 from diff4splat.generate import generate, write  # noqa: E402
-from diff4splat.io.scene_folder import load_scene_folder, write_scene_folder  # noqa: E402
+from diff4splat.io.scene_folder import load_scene_folder, meta_background, meta_eps2d, write_scene_folder  # noqa: E402
 from diff4splat.io.viewer_data import viewer_payload  # noqa: E402
 from diff4splat.io.viewer_page import write_viewer  # noqa: E402
+from diff4splat.reconstruct import reconstruct  # noqa: E402
 from diff4splat.scene.dynamic import DynamicGaussians  # noqa: E402
 from diff4splat.scene.gaussians import Gaussians  # noqa: E402
 from diff4splat.viewer_server import HOST, make_server  # noqa: E402
@@ -93,7 +95,8 @@ def row(name: str, path: Path, payload, url: str | None = None) -> list:
     mb = lambda x: f"{x / 2**20:.2f}"  # noqa: E731
     t = load_seconds(url or path.as_uri())
     ready, step, heap = (None, None, None) if t is None else t
-    return [name, f"{c['numGaussians']:,}", c["shDegree"], len(c["times"]), c["dtype"],
+    held = c["heldKeyframes"] / max(1, c["numGaussians"] * len(c["times"])) if c["times"] else 0.0
+    return [name, f"{c['numGaussians']:,}", c["shDegree"], len(c["times"]), f"{held:.2f}", c["dtype"],
             "—" if c["float16ErrorPx"] is None else f"{c['float16ErrorPx']:.3f}",
             c["bytesPerGaussianPerFrame"], f"{c['bytesPerGaussianPerFrame'] * 4 / 3:.1f}",
             mb(len(payload.ply)), mb(len(payload.frames or b"")), mb(path.stat().st_size),
@@ -123,6 +126,8 @@ def served_row(tmp: Path, n: int, frames: int) -> list:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--write", action="store_true", help="write the table into docs/benchmarks.md")
+    p.add_argument("--video", type=Path, help="also a reconstruct row: this clip, 17 frames, stride 2")
+    p.add_argument("--start", type=int, default=0, help="the reconstruct clip's first frame")
     args = p.parse_args()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -136,9 +141,16 @@ def main() -> None:
                 scene, cams = synthetic(n, d)
                 path = Path(tmp) / f"s{n}_{d}.html"
                 rows.append(row("synthetic, 17 keyframes", path, write_viewer(path, scene, cams)))
+        if args.video is not None:
+            rec = Path(tmp) / "rec"
+            write(reconstruct(args.video, frames=17, stride=2, start=args.start, frame_plys=False), rec)
+            src = load_scene_folder(rec)  # the payload reconstruct embedded (recomputed from the folder's files)
+            rows.append(row(f"`reconstruct` {args.video.name}, start {args.start}", rec / "viewer.html",
+                            viewer_payload(src.scene, src.cameras, fps=src.meta.get("fps", 8),
+                                           background=meta_background(src.meta), eps2d=meta_eps2d(src.meta))))
         rows.append(served_row(Path(tmp), 1_311_201, 49))
-    body = markdown_table(["scene", "Gaussians", "SH", "keyframes", "dtype", "float16 error px",
-                           "bytes / Gaussian / frame", "in the page (base64)", "PLY MiB", "keyframes MiB",
+    body = markdown_table(["scene", "Gaussians", "SH", "key times", "held keyframes", "dtype", "float16 error px",
+                           "bytes / Gaussian / held key", "in the page (base64)", "PLY MiB", "keyframes MiB",
                            "viewer.html MiB", "reduced", "ready s", "time change ms", "page heap MiB"], rows)
     print(body)
     if args.write:

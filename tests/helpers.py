@@ -162,6 +162,26 @@ def moving_patch_scene(n: int = 400, frames: int = 5, shift: float = 0.6, sh_deg
     return scene, CameraPath(torch.eye(4).repeat(frames, 1, 1), K.repeat(frames, 1, 1), width, height)
 
 
+def windowed_patch_scene(n: int = 60, frames: int = 9, seed: int = 1):
+    """A moving patch whose Gaussians have bounded temporal support (trapezoids and boxes of random centre and
+    half-width, some past the clip's ends) and whose first third does not move."""
+    scene, cams = moving_patch_scene(n=n, frames=frames)
+    g = torch.Generator().manual_seed(seed)
+    t_means = 1.4 * torch.rand(n, generator=g) - 0.2
+    t_scales = 0.02 + 0.4 * torch.rand(n, generator=g)
+    t_ramps = torch.where(torch.arange(n) % 2 == 0, t_scales * torch.rand(n, generator=g), torch.zeros(n))
+    spacing = 1 / (frames - 1)  # ten windows whose ends are key times, as reconstruct's layers
+    t_means[20:30] = torch.arange(10) % frames * spacing
+    t_scales[20:30] = spacing * (1 + torch.arange(10) % 2)
+    t_ramps[20:30] = torch.where(torch.arange(10) % 3 == 0, 0.0, spacing)
+    d_means, d_quats, d_scales = scene.d_means.clone(), scene.d_quats.clone(), scene.d_scales.clone()
+    d_means[:, : n // 3] = 0
+    d_quats[:, : n // 3] = torch.tensor([2.0, 0, 0, 0])  # the identity, unnormalised
+    d_scales[:, : n // 3] = 0
+    return DynamicGaussians(scene.canonical, scene.times, d_means, d_quats, d_scales, t_means, t_scales,
+                            t_ramps), cams
+
+
 def perturbed_field(means: torch.Tensor, seed: int = 0) -> HexPlaneField:
     """A small HexPlane field over the box of ``means`` (N, 3) whose deformation varies with time (every parameter
     perturbed by N(0, 0.3²); a new field is the identity), the same for a seed whatever torch's global generator

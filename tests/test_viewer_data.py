@@ -6,7 +6,8 @@ from fractions import Fraction
 import numpy as np
 import pytest
 import torch
-from helpers import moving_patch_scene
+from helpers import moving_patch_scene, windowed_patch_scene
+from torch import Tensor
 
 from diff4splat.cameras.path import CameraPath
 from diff4splat.io import load_ply
@@ -17,10 +18,13 @@ from diff4splat.io.viewer_data import (
     encode_keyframes,
     evenly_spaced,
     float16_error_px,
+    held_keyframes,
+    key_windows,
     keyframe_times,
     keyframes,
     most_covering,
     payload_bytes,
+    still_gaussians,
     time_range,
     viewer_payload,
 )
@@ -61,13 +65,26 @@ def test_key_times_of_static_and_temporal_only_scenes():
     assert back["means"].shape == (0, 10, 3)
 
 
+def _ragged(every: dict, first: Tensor, count: Tensor) -> Tensor:
+    """Reference: the rows of held keyframes from every keyframe (F, N, ·) of every Gaussian, a loop per Gaussian."""
+    dense = torch.cat([every["means"], every["quats"], every["scales"]], dim=-1)  # (F, N, 10)
+    rows = [dense[int(f):int(f) + int(c), i] for i, (f, c) in enumerate(zip(first, count, strict=True))]
+    return torch.cat(rows) if rows else dense.new_zeros(0, 10)
+
+
 @pytest.mark.parametrize("dtype", ["float16", "float32"])
 def test_encode_decode_round_trip(dtype):
     scene, cams = moving_patch_scene(n=30, frames=3, temporal=True)
-    frames = keyframes(scene, keyframe_times(scene))
-    data = encode_keyframes(frames, dtype, (scene.t_means, scene.t_scales))
-    assert len(data) == 8 * 30 + 3 * 30 * 10 * (2 if dtype == "float16" else 4)
-    assert len(data) == payload_bytes(30, 0, 3, 2, 2 if dtype == "float16" else 4) - 30 * 17 * 4  # less the PLY
+    times = keyframe_times(scene)
+    frames = keyframes(scene, times)
+    first, count = key_windows(scene, times)
+    assert first.tolist() == [0] * 30 and count.tolist() == [3] * 30  # all move, unbounded support: every key
+    held = held_keyframes(scene, times, first, count)
+    torch.testing.assert_close(held, _ragged(frames, first, count), rtol=0, atol=0)
+    data = encode_keyframes(held, (first, count), dtype, (scene.t_means, scene.t_scales))
+    itemsize = 2 if dtype == "float16" else 4
+    assert len(data) == 8 * 30 + 4 * 30 + 3 * 30 * 10 * itemsize
+    assert len(data) == payload_bytes(30, 0, 90, 2, itemsize, True) - 30 * 17 * 4  # less the PLY
     back = decode_keyframes(data, {"numGaussians": 30, "times": [0, 0.5, 1], "temporal": True, "dtype": dtype})
     np.testing.assert_array_equal(back["t_means"], scene.t_means.numpy())  # float32 whatever the keyframes' dtype
     np.testing.assert_array_equal(back["t_scales"], scene.t_scales.numpy())
@@ -75,7 +92,66 @@ def test_encode_decode_round_trip(dtype):
         ref = v.numpy().astype(np.float16).astype(np.float32) if dtype == "float16" else v.numpy()
         np.testing.assert_array_equal(back[k], ref)
     with pytest.raises(ValueError, match="dtype"):
-        encode_keyframes(frames, "int8")
+        encode_keyframes(held, (first, count), "int8")
+    with pytest.raises(ValueError, match="one row per held key"):
+        encode_keyframes(held[1:], (first, count), dtype)
+
+
+def _page_keys(times: list[float], t: float) -> tuple[int, int]:
+    """The two keys the page (and DynamicGaussians.deformation_at) interpolates between at time t."""
+    k = 0
+    while k < len(times) - 2 and t > times[k + 1]:
+        k += 1
+    return k, min(k + 1, len(times) - 1)
+
+
+def test_key_windows_hold_exactly_the_keys_the_page_reads_where_a_gaussian_is_seen():
+    """Brute force over 4001 times and each window's edges: a Gaussian with bounded support holds the keys the page
+    reads at every time it is seen (opacity > 0) and no other; a still one (Δ the identity) holds none, and its
+    canonical pose is DynamicGaussians.at's at every time, exactly."""
+    scene, cams = windowed_patch_scene()
+    times = keyframe_times(scene)
+    first, count = key_windows(scene, times)
+    still = still_gaussians(scene)
+    assert still.tolist() == [i < 20 for i in range(60)]
+    ts = sorted(set(np.linspace(0, 1, 4001).tolist()) | {
+        min(1.0, max(0.0, float(m + e))) for m, s in zip(scene.t_means, scene.t_scales, strict=True)
+        for e in (-s + 1e-9, s - 1e-9)})
+    needed = [set() for _ in range(60)]
+    for t in ts:
+        seen = scene.temporal_opacity(t) > 0
+        for i in torch.nonzero(seen).squeeze(1).tolist():
+            needed[i].update(_page_keys(times.tolist(), t))
+    for i in range(20, 60):
+        held = set(range(int(first[i]), int(first[i] + count[i])))
+        assert needed[i] <= held, i
+        if needed[i]:  # seen in [0, 1]: no key more than it needs
+            assert held == set(range(min(needed[i]), max(needed[i]) + 1)), (i, needed[i], held)
+    assert count[:20].tolist() == [0] * 20
+    for t in (0.0, 0.37, 1.0):
+        g = scene.at(t, gate=0.0, index=torch.arange(20))
+        assert torch.equal(g.means, scene.canonical.means[:20]) and torch.equal(g.scales, scene.canonical.scales[:20])
+        torch.testing.assert_close(g.quats, scene.canonical.quats[:20], rtol=0, atol=0)
+    assert bool(still_gaussians(moving_patch_scene(n=10, shift=0.0)[0]).all())
+
+
+def test_the_payload_holds_the_windows_and_decodes_to_the_scene_where_seen():
+    """viewer_payload's frame data: each Gaussian's held keys are DynamicGaussians.at's there (NaN elsewhere), the
+    size is payload_bytes' of the held count, and the held count is below N·F (still Gaussians and windows)."""
+    scene, cams = windowed_patch_scene()
+    p = viewer_payload(scene, cams, budget=None)
+    c = p.config
+    first, count = key_windows(scene, keyframe_times(scene))
+    assert c["heldKeyframes"] == int(count.sum()) < 60 * 9 and c["dtype"] == "float16"
+    assert len(p.frames) == payload_bytes(60, 0, c["heldKeyframes"], 3, 2, True) - 60 * 17 * 4
+    back = decode_keyframes(p.frames, c)
+    np.testing.assert_array_equal(back["key_first"], first.numpy())
+    np.testing.assert_array_equal(back["key_count"], count.numpy())
+    for f, t in enumerate(c["times"]):
+        held = (first <= f) & (f < first + count)
+        g = scene.at(t, gate=0.0)
+        np.testing.assert_allclose(back["means"][f][held.numpy()], g.means[held].numpy(), atol=2e-3)
+        assert np.isnan(back["means"][f][~held.numpy()]).all()
 
 
 def test_most_covering_ranks_opacity_times_area_and_spreads_ties():
@@ -102,7 +178,9 @@ def test_ramps_travel_after_the_time_scales():
                              scene.t_means, scene.t_scales, scene.t_scales * 0.5)
     p = viewer_payload(scene, cams)
     assert p.config["temporal"] and p.config["temporalRamps"]
-    assert len(p.frames) == payload_bytes(30, 0, 3, 3, p.config["bytesPerGaussianPerFrame"] // 10) - 30 * 17 * 4
+    held = p.config["heldKeyframes"]
+    itemsize = p.config["bytesPerGaussianPerFrame"] // 10
+    assert len(p.frames) == payload_bytes(30, 0, held, 3, itemsize, True) - 30 * 17 * 4
     back = decode_keyframes(p.frames, p.config)
     np.testing.assert_array_equal(back["t_ramps"], scene.t_ramps.numpy())
     np.testing.assert_array_equal(back["t_scales"], scene.t_scales.numpy())
@@ -167,33 +245,53 @@ def test_ply_is_the_canonical_scene(tmp_path):
     torch.testing.assert_close(g.sh, scene.canonical.sh)
     assert p.config["shDegree"] == 2 and p.config["numGaussians"] == 25 and p.config["note"] == ""
     assert p.config["bytesPerGaussianPerFrame"] == 20  # 10 float16 values
-    assert len(p.ply) - p.ply.index(b"end_header\n") - 11 + len(p.frames) == payload_bytes(25, 2, 5, 0, 2)
+    assert len(p.ply) - p.ply.index(b"end_header\n") - 11 + len(p.frames) == payload_bytes(25, 2, 125, 0, 2, True)
 
 
 def test_budget_reductions_in_order():
     scene, cams = moving_patch_scene(n=200, frames=9, sh_degree=3)
-    full = payload_bytes(200, 3, 9, 0, 2)
+    full = payload_bytes(200, 3, 9 * 200, 0, 2, True)
     assert viewer_payload(scene, cams, budget=full).reductions == []
     # just under: SH 3 → 0 is enough
     p = viewer_payload(scene, cams, budget=full - 1)
     assert p.reductions == ["SH degree 3 → 0"] and p.config["shDegree"] == 0 and "reduced" in p.config["note"]
     # a budget for the PLY at SH 0 plus 3 keyframes: 9 → 3 keyframes, the first and the last kept
-    budget = payload_bytes(200, 0, 3, 0, 2)
+    budget = payload_bytes(200, 0, 3 * 200, 0, 2, True)
     p = viewer_payload(scene, cams, budget=budget)
     assert p.reductions == ["SH degree 3 → 0", "9 → 3 keyframes"]
     assert p.config["times"] == pytest.approx([0.0, 0.5, 1.0])
-    assert len(p.frames) == 3 * 200 * 10 * 2
-    # room for 50 Gaussians at 2 keyframes: the 50 most opaque are kept (all of one size: most_covering)
+    assert len(p.frames) == 200 * 4 + 3 * 200 * 10 * 2
+    # room for 50 Gaussians at 2 keyframes: keyframes go only while they are the larger part of the payload (at 3,
+    # 60 bytes a Gaussian against the PLY's 68 and the window's 4), then the most opaque at 3 keyframes fill it (all
+    # of one size: most_covering)
     opac = torch.linspace(0.1, 0.9, 200)
     c = scene.canonical
     scene = type(scene)(type(c)(c.means, c.quats, c.scales, opac, c.sh), scene.times, scene.d_means,
                         scene.d_quats, scene.d_scales)
-    p = viewer_payload(scene, cams, budget=payload_bytes(50, 0, 2, 0, 2))
-    assert p.config["numGaussians"] == 50 and len(p.reductions) == 3
-    assert payload_bytes(50, 0, 2, 0, 2) >= len(p.frames) + 50 * 17 * 4
+    budget = payload_bytes(50, 0, 2 * 50, 0, 2, True)
+    p = viewer_payload(scene, cams, budget=budget)
+    m = budget // (17 * 4 + 4 + 3 * 20)
+    assert p.reductions[1] == "9 → 3 keyframes" and p.config["numGaussians"] == m == 42 and len(p.reductions) == 3
+    assert budget >= len(p.frames) + m * 17 * 4 > budget - (17 * 4 + 4 + 3 * 20)
     decoded = decode_keyframes(p.frames, p.config)
-    kept = torch.arange(150, 200)
+    kept = torch.arange(200 - m, 200)
     np.testing.assert_allclose(decoded["means"][0], scene.at(0.0).means[kept].numpy(), atol=2e-3)
+
+
+def test_a_scene_of_short_lived_layers_keeps_every_keyframe_and_fewer_gaussians():
+    """Gaussians that each hold a few keys (windows) and still ones (none) make keyframes the smaller part of the
+    payload: over budget, every key time stays (no motion smeared between far keys) and the Gaussians covering most
+    are kept, each counted at its own size, the payload filling the budget to within one Gaussian."""
+    scene, cams = windowed_patch_scene(n=600)
+    full = viewer_payload(scene, cams, budget=None)
+    held = full.config["heldKeyframes"]
+    assert held < 600 * 9 * 0.6
+    budget = (len(full.ply) - full.ply.index(b"end_header\n") - 11 + len(full.frames)) // 2
+    p = viewer_payload(scene, cams, budget=budget)
+    assert p.reductions == [f"600 → {p.config['numGaussians']} Gaussians (those covering most)"]
+    assert len(p.config["times"]) == 9
+    used = len(p.ply) - p.ply.index(b"end_header\n") - 11 + len(p.frames)
+    assert budget - (17 * 4 + 12 + 4 + 9 * 20) < used <= budget
 
 
 def test_config_cameras_and_errors():
@@ -237,13 +335,15 @@ def test_the_payload_equals_the_one_built_from_every_keyframe(far):
     dtype = "float16" if err <= FLOAT16_MAX_PX and all(_fits_float16(v) for v in every.values()) else "float32"
     assert dtype == ("float32" if far else "float16")
     itemsize = 2 if dtype == "float16" else 4
-    budget = payload_bytes(n // 3, 0, 3, 2, itemsize)  # fewer keyframes, then a third of the Gaussians
+    # a third of the Gaussians at 3 keyframes: fewer keyframes, then fewer Gaussians
+    budget = payload_bytes(n // 3, 0, 3 * (n // 3), 2, itemsize, True)
     p = viewer_payload(scene, cams, budget=budget)
     assert p.config["dtype"] == dtype and p.config["float16ErrorPx"] == err
     m = p.config["numGaussians"]
     assert len(p.reductions) == 2 and 0 < m < n and len(p.config["times"]) < F  # both reductions taken
     kept_t = torch.tensor([times.tolist().index(t) for t in p.config["times"]])
     kept = most_covering(scene.canonical.opacities, scene.canonical.scales, m)  # its own test: brute force
-    want = encode_keyframes({k: v[kept_t][:, kept] for k, v in every.items()}, dtype,
-                            (scene.t_means[kept], scene.t_scales[kept]))
+    first, count = torch.zeros(m, dtype=torch.int64), torch.full((m,), len(kept_t))  # every Gaussian moves
+    held = _ragged({k: v[kept_t][:, kept] for k, v in every.items()}, first, count)
+    want = encode_keyframes(held, (first, count), dtype, (scene.t_means[kept], scene.t_scales[kept]))
     assert p.frames == want

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from helpers import moving_patch_scene, moving_patch_video
+from helpers import moving_patch_scene, moving_patch_video, windowed_patch_scene
 
 import diff4splat.io.viewer_data as viewer_data
 from diff4splat.cameras.path import CameraPath
@@ -303,6 +303,33 @@ def test_between_keyframes_the_page_has_the_renderers_gaussians(browser, tmp_pat
 
 
 @pytest.mark.slow
+def test_gaussians_holding_few_keyframes_are_drawn_as_the_renderer_draws_them(browser, tmp_path):
+    """A scene of short-lived Gaussians (bounded windows, each holding only its keys) and still ones (holding none,
+    posed from the PLY as Spark packed it): wherever a Gaussian is seen, between and at key times, the page's is
+    DynamicGaussians.at's; the page holds fewer keyframes than N·F."""
+    scene, cams = windowed_patch_scene(n=60, frames=9)
+    p = write_viewer(tmp_path / "viewer.html", scene, cams)
+    assert p.config["heldKeyframes"] < 60 * 9 * 0.6
+    page = _open(browser, (tmp_path / "viewer.html").as_uri())
+    checked = 0
+    for t in (0.0, 0.1, 0.33, 0.5, 0.8125, 0.97):
+        ref = scene.at(t, gate=0.0)
+        for i in range(0, 60, 3):
+            got = page.evaluate("([t, i]) => d4s.splatAt(t, i)", [t, i])
+            assert got["opacity"] == pytest.approx(float(ref.opacities[i]), abs=3e-3), (t, i)
+            if float(ref.opacities[i]) == 0:
+                continue  # not seen: its pose is the nearest held key's
+            checked += 1
+            np.testing.assert_allclose(got["mean"], ref.means[i].numpy(), atol=3e-3)
+            q = ref.quats[i] / ref.quats[i].norm()
+            assert abs(float(np.dot(got["quat"], q.numpy()))) == pytest.approx(1.0, abs=1e-4), (t, i)
+            # a still one's pose is the PLY's as Spark packed it (scales in 8-bit log steps), as it is drawn
+            np.testing.assert_allclose(got["scale"], ref.scales[i].numpy(), rtol=3e-3 if i >= 20 else 2.5e-2)
+    assert checked >= 40  # of 120: seen, posed and checked
+    page.close()
+
+
+@pytest.mark.slow
 def test_static_scene_has_no_time_controls(browser, tmp_path):
     scene, cams = moving_patch_scene(n=200, shift=0.0)
     write_viewer(tmp_path / "viewer.html", scene, cams)
@@ -315,7 +342,7 @@ def test_static_scene_has_no_time_controls(browser, tmp_path):
 @pytest.mark.slow
 def test_reduced_scene_says_so(browser, tmp_path):
     scene, cams = moving_patch_scene(n=200, sh_degree=2)
-    write_viewer(tmp_path / "viewer.html", scene, cams, budget=payload_bytes(200, 0, 5, 0, 2))
+    write_viewer(tmp_path / "viewer.html", scene, cams, budget=payload_bytes(200, 0, 5 * 200, 0, 2, True))
     page = _open(browser, (tmp_path / "viewer.html").as_uri())
     assert "SH degree 2 → 0" in page.locator("#note").inner_text()
     assert page.evaluate("d4s.numGaussians") == 200

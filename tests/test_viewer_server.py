@@ -84,7 +84,7 @@ def test_listens_on_loopback_127_0_0_1_only(served):
 def test_full_scene_even_when_the_page_on_disk_is_reduced(tmp_path):
     out, scene = _folder(tmp_path, sh_degree=2)
     src = load_scene_folder(out)
-    small = write_viewer(out / "viewer.html", src.scene, src.cameras, budget=payload_bytes(120, 0, 5, 0, 2))
+    small = write_viewer(out / "viewer.html", src.scene, src.cameras, budget=payload_bytes(120, 0, 5 * 120, 0, 2, True))
     assert small.config["shDegree"] == 0
     assert folder_payload(out).config["shDegree"] == 2 and folder_payload(out).reductions == []
 

@@ -2,10 +2,12 @@
 
 A viewer payload is the canonical Gaussians as INRIA PLY bytes (:func:`diff4splat.io.ply_bytes`: colours,
 opacities, SH) and, for a scene that changes with time, the frame data (:func:`encode_keyframes`): with temporal
-support each Gaussian's time mean μ_t and standard deviation σ_t, from which the page evaluates the opacity
-o·exp(−½((t − μ_t)/σ_t)²) at any t as :meth:`DynamicGaussians.at` does; for a deforming scene **absolute**
-keyframes, for each of the deformation's key times t the means (N, 3) metres, quats (N, 4) wxyz and scales (N, 3)
-metres of :meth:`DynamicGaussians.at` (t, gate 0), the same code that writes ``frames/NNNN.ply``. Between two
+support each Gaussian's time mean μ_t and standard deviation σ_t (and trapezoid ramp), from which the page evaluates
+the opacity at any t as :meth:`DynamicGaussians.at` does; for a deforming scene **absolute** keyframes, for the key
+times t of the deformation the means (3) metres, quats (4) wxyz and scales (3) metres of :meth:`DynamicGaussians.at`
+(t, gate 0), the same code that writes ``frames/NNNN.ply``. Each Gaussian holds only the keys it needs
+(:func:`key_windows`): none when it does not move (its pose is the PLY's), those around its temporal window when its
+support is bounded (a ``reconstruct`` layer is seen only between its neighbours' times), else all. Between two
 keyframes the page reproduces the renderer's interpolation of the deformation (:meth:`DynamicGaussians.
 deformation_at`, linear in Δμ, Δs and nlerp in Δq): the means linearly (μ + Δμ is affine in Δμ), the quaternions
 by nlerp (Δq ⊗ q with a unit q keeps the nlerp's weights and sign) and the scales geometrically (s·exp(Δs) is
@@ -14,10 +16,11 @@ log-linear in Δs), so at every time, not only at key times, the page shows the 
 Keyframes are stored as float16 when rounding the means to float16 moves no Gaussian by more than
 :data:`FLOAT16_MAX_PX` pixels in any camera of the path (measured, :func:`float16_error_px`) and every value
 is within float16's range (|x| ≤ 65504), else float32.
-Size per Gaussian per keyframe: 10 values × 2 or 4 bytes, plus 8 bytes once with temporal support (12 with
-ramps), × 4/3 once base64-encoded into ``viewer.html``. Above :data:`VIEWER_BUDGET_BYTES` of embedded data the
-page gets a reduced scene (:func:`viewer_payload`: SH degree 0, then fewer keyframes, then the Gaussians covering
-most) and says so on screen; ``diff4splat view`` serves the full one.
+Size: per Gaussian, 8 bytes with temporal support (12 with ramps), 4 for its key window in a deforming scene, and 10
+values × 2 or 4 bytes per held keyframe (:func:`payload_bytes`), × 4/3 once base64-encoded into ``viewer.html``.
+Above :data:`VIEWER_BUDGET_BYTES` of embedded data the page gets a reduced scene (:func:`viewer_payload`: SH degree
+0, then fewer keyframes, then the Gaussians covering most) and says so on screen; ``diff4splat view`` serves the full
+one.
 """
 from __future__ import annotations
 
@@ -36,7 +39,8 @@ from diff4splat.scene.dynamic import DynamicGaussians
 from diff4splat.scene.gaussians import Gaussians
 
 __all__ = ["VIEWER_BUDGET_BYTES", "FLOAT16_MAX_PX", "NEAR", "ViewerPayload", "keyframe_times", "time_range",
-           "keyframes", "evenly_spaced", "most_covering", "float16_error_px", "encode_keyframes", "decode_keyframes",
+           "keyframes", "still_gaussians", "key_windows", "held_keyframes", "evenly_spaced", "covering_order",
+           "most_covering", "float16_error_px", "encode_keyframes", "decode_keyframes",
            "viewer_payload", "payload_bytes"]
 
 VIEWER_BUDGET_BYTES = 50 * 2**20
@@ -102,6 +106,65 @@ def keyframes(scene: DynamicGaussians, times: Tensor, index: Tensor | None = Non
         for key, dst in out.items():
             src = getattr(g, key).detach()
             dst[i] = (src / src.norm(dim=-1, keepdim=True) if key == "quats" else src).to("cpu", torch.float32)
+    return out
+
+
+def still_gaussians(scene: DynamicGaussians) -> Tensor:
+    """(M,) bool: the Gaussians whose deformation is the identity at every key time (Δμ = 0, Δs = 0, Δq a positive
+    multiple of (1, 0, 0, 0)), so :meth:`DynamicGaussians.at` gives exactly their canonical pose at every t. All
+    True for a scene without deformation."""
+    n = scene.num_gaussians
+    if scene.is_static:
+        return torch.ones(n, dtype=torch.bool, device=scene.canonical.means.device)
+    moving = (scene.d_means != 0).any(dim=-1).any(dim=0) | (scene.d_scales != 0).any(dim=-1).any(dim=0)
+    return ~(moving | (scene.d_quats[..., 1:] != 0).any(dim=-1).any(dim=0) | (scene.d_quats[..., 0] <= 0).any(dim=0))
+
+
+def key_windows(scene: DynamicGaussians, times: Tensor, still: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """The keyframes the page needs of each Gaussian, out of the key times ``times`` (F,) ascending: (first (M,),
+    count (M,)) int64, the consecutive keys first … first + count − 1.
+
+    - count 0 for a still Gaussian (``still`` (M,) bool, default :func:`still_gaussians`): its canonical pose, from
+      the PLY, at every time;
+    - with bounded temporal support (``t_ramps``: opacity 0 where |t − μ_t| ≥ σ_t) the keys around that window, from
+      the last key at or before μ_t − σ_t to the first at or after μ_t + σ_t: wherever the Gaussian is seen, the two
+      keys the page interpolates between (its clamped lookup, as :meth:`DynamicGaussians.deformation_at`) are held;
+    - all F keys otherwise.
+    """
+    n, F = scene.num_gaussians, times.shape[0]
+    times = times.double().cpu()
+    still = (still_gaussians(scene) if still is None else still).cpu()
+    cpu = times.device  # the windows are page data: built on the host
+    first = torch.zeros(n, dtype=torch.int64, device=cpu)
+    last = torch.full((n,), F - 1, dtype=torch.int64, device=cpu)
+    if scene.t_ramps is not None:
+        mu, sigma = scene.t_means.detach().double().cpu(), scene.t_scales.detach().double().cpu()
+        first = (torch.searchsorted(times, mu - sigma, right=True) - 1).clamp(0, F - 1)
+        last = torch.searchsorted(times, mu + sigma).clamp(0, F - 1)
+    count = torch.where(still, 0, last - first + 1)
+    return torch.where(still, 0, first), count
+
+
+@torch.no_grad()
+def held_keyframes(scene: DynamicGaussians, times: Tensor, first: Tensor, count: Tensor,
+                   index: Tensor | None = None) -> Tensor:
+    """The keyframes the page holds (:func:`key_windows`) of the Gaussians ``index`` ((K,) ascending; None: all),
+    Gaussian by Gaussian and within one by key time: (Σ count, 10) float32 on the CPU, each row the means (3) metres,
+    unit quats (4) wxyz and scales (3) metres of :meth:`DynamicGaussians.at` (gate 0) at that key time, the same
+    values as :func:`keyframes` at the held keys. ``first``, ``count``: (K,) of the Gaussians ``index``."""
+    first, count = first.cpu(), count.cpu()
+    start = torch.cumsum(count, 0) - count  # each Gaussian's first row
+    out = torch.empty(int(count.sum()), 10, device="cpu")  # page data: built on the host
+    for f, t in enumerate(times.tolist()):  # one time at a time: memory of the held rows only
+        held = torch.nonzero((first <= f) & (f < first + count)).squeeze(1)
+        if held.numel() == 0:
+            continue
+        g = scene.at(float(t), gate=0.0, index=held.to(scene.canonical.means.device) if index is None
+                     else index[held.to(index.device)])
+        quats = g.quats.detach()
+        out[start[held] + f - first[held]] = torch.cat(
+            [g.means.detach(), quats / quats.norm(dim=-1, keepdim=True), g.scales.detach()], dim=1).to("cpu",
+                                                                                                    torch.float32)
     return out
 
 
@@ -195,15 +258,16 @@ def _keyframes_fit_float16(scene: DynamicGaussians, times: Tensor) -> bool:
     return True
 
 
-def encode_keyframes(frames: dict[str, Tensor] | None, dtype: str,
+def encode_keyframes(held: Tensor | None, windows: tuple[Tensor, Tensor] | None, dtype: str,
                      temporal: tuple[Tensor, ...] | None = None) -> bytes:
     """The frame data as little-endian bytes: with ``temporal`` = (t_means (N,), t_scales (N,)[, t_ramps (N,)]), each
-    as float32 (4·N bytes each: σ_t keeps its precision whatever ``dtype``); then, keyframe by keyframe, means
-    (N·3), quats (N·4, wxyz), scales (N·3) in ``dtype`` ("float16" or "float32"). The page's ``splitFrames`` reads
-    this.
+    as float32 (4·N bytes each: σ_t keeps its precision whatever ``dtype``); then, for a scene with key times,
+    ``windows`` = (first (N,), count (N,)) of :func:`key_windows` as uint16 (2·N bytes each) and the ``held``
+    keyframes (Σ count, 10) of :func:`held_keyframes` in ``dtype`` ("float16" or "float32"), Gaussian by Gaussian: per
+    held key its means (3), quats (4, wxyz) and scales (3). The page's ``splitFrames`` reads this.
 
     Raises:
-        ValueError: another ``dtype``.
+        ValueError: another ``dtype``; ``held`` without ``windows`` or rows ≠ Σ count; a window past 65535 keys.
     """
     if dtype not in ("float16", "float32"):
         raise ValueError(f"dtype must be 'float16' or 'float32', got {dtype!r}")
@@ -211,19 +275,26 @@ def encode_keyframes(frames: dict[str, Tensor] | None, dtype: str,
     if temporal is not None:
         out = torch.cat([v.detach().reshape(-1) for v in temporal]).to(torch.float32).cpu().numpy().astype("<f4")
         out = out.tobytes()
-    if frames is not None:
-        F = frames["means"].shape[0]
-        parts = [frames[k].reshape(F, -1) for k in ("means", "quats", "scales")]
-        out += torch.cat(parts, dim=1).cpu().numpy().astype("<f2" if dtype == "float16" else "<f4").tobytes()
-    return out
+    if held is None and windows is None:
+        return out
+    if held is None or windows is None or held.shape[0] != int(windows[1].sum()):
+        raise ValueError("held keyframes need their windows, one row per held key")
+    first, count = (w.cpu() for w in windows)
+    if first.numel() and int((first + count).max()) > 65535:
+        raise ValueError("key windows are uint16: at most 65535 key times")
+    out += torch.cat([first, count]).cpu().numpy().astype("<u2").tobytes()
+    return out + held.reshape(-1).cpu().numpy().astype("<f2" if dtype == "float16" else "<f4").tobytes()
 
 
-def payload_bytes(num_gaussians: int, sh_degree: int, num_frames: int, temporal_arrays: int, itemsize: int) -> int:
+def payload_bytes(num_gaussians: int, sh_degree: int, held_keyframes: int, temporal_arrays: int, itemsize: int,
+                  keyed: bool) -> int:
     """Bytes of embedded data (before base64): PLY rows of (17 + 3·((d+1)² − 1)) float32, the temporal support's
-    ``temporal_arrays`` (0; 2: μ_t, σ_t; 3: with ramps) float32 per Gaussian, and ``num_frames`` keyframes of 10
-    values of ``itemsize`` bytes per Gaussian."""
+    ``temporal_arrays`` (0; 2: μ_t, σ_t; 3: with ramps) float32 per Gaussian, for a ``keyed`` scene (one with key
+    times) the key windows (2 uint16 per Gaussian), and ``held_keyframes`` (Σ count of :func:`key_windows`; N·F
+    when every Gaussian holds every key) of 10 values of ``itemsize`` bytes."""
     ply = num_gaussians * 4 * (17 + 3 * ((sh_degree + 1) ** 2 - 1))
-    return ply + 4 * temporal_arrays * num_gaussians + num_frames * num_gaussians * 10 * itemsize
+    windows = 4 * num_gaussians if keyed else 0
+    return ply + 4 * temporal_arrays * num_gaussians + windows + held_keyframes * 10 * itemsize
 
 
 def _camera_list(cameras: CameraPath) -> list[dict]:
@@ -239,17 +310,22 @@ def _target_distance(means: Tensor, viewmat: Tensor) -> float:
     return float(z.median()) if z.numel() else 1.0
 
 
-def most_covering(opacities: Tensor, scales: Tensor, m: int) -> Tensor:
-    """(m,) ascending indices of the ``m`` Gaussians that cover most: opacity times footprint, o·(s₁s₂s₃)^⅔ (a
-    Gaussian's area, m², for ``opacities`` (N,) and ``scales`` (N, 3) metres; the opacity × volume importance of 3DGS
-    pruning, as an area). Equal scores (a photo layer's disks are alike) are taken in a fixed pseudo-random order
-    (seed 0), so a scene of many alike layers keeps part of each, spread over its pixels, not the first layers whole."""
+def covering_order(opacities: Tensor, scales: Tensor) -> Tensor:
+    """(N,) int64: the Gaussians from the one that covers most to the one that covers least, opacity times
+    footprint, o·(s₁s₂s₃)^⅔ (a Gaussian's area, m², for ``opacities`` (N,) and ``scales`` (N, 3) metres; the
+    opacity × volume importance of 3DGS pruning, as an area). Equal scores (a photo layer's disks are alike) are
+    taken in a fixed pseudo-random order (seed 0), so a scene of many alike layers keeps part of each, spread over its
+    pixels, not the first layers whole."""
     n = opacities.shape[0]
     score = opacities.double() * scales.double().prod(dim=-1).pow(2 / 3)
     order = torch.randperm(n, generator=torch.Generator(device="cpu").manual_seed(0),
                            device="cpu").to(opacities.device)  # the same order on every device: a CPU generator
-    order = order[torch.argsort(score[order], descending=True, stable=True)]
-    return order[:m].sort().values
+    return order[torch.argsort(score[order], descending=True, stable=True)]
+
+
+def most_covering(opacities: Tensor, scales: Tensor, m: int) -> Tensor:
+    """(m,) ascending indices of the ``m`` Gaussians that cover most (the first ``m`` of :func:`covering_order`)."""
+    return covering_order(opacities, scales)[:m].sort().values
 
 
 def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float = DEFAULT_FPS,
@@ -257,8 +333,9 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
                    background: tuple[float, float, float] = BACKGROUND, eps2d: float = EPS2D) -> ViewerPayload:
     """The data of one viewer page (module docstring), reduced to at most ``budget`` bytes (None: never).
 
-    Reductions, in order, each only while over budget: SH degree → 0; keyframes subsampled (first and last
-    kept, at least 2); the Gaussians covering most kept (:func:`most_covering`). Each one taken is listed in
+    Reductions, in order, each only while over budget: SH degree → 0; keyframes subsampled (first and last kept, at
+    least 2) while the held keyframes take more bytes than the rest of the payload; the Gaussians covering most kept
+    (:func:`covering_order`, each at its own size: a still Gaussian holds no keyframe). Each one taken is listed in
     ``config["note"]``.
     ``background``: RGB in [0, 1] behind the Gaussians (as the CPU renderer composites it); ``eps2d``: the scene's
     screen-space dilation, pixels² (Spark's ``preBlurAmount``; meta.json ``eps2d``).
@@ -274,64 +351,75 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
     times, span = keyframe_times(scene), time_range(scene, cameras)
     canonical: Gaussians = scene.canonical
     degree = canonical.sh_degree
-    n, temporal = canonical.num_gaussians, scene.has_temporal
-    support_arrays = () if not temporal else (scene.t_means, scene.t_scales) + (
+    n, keyed = canonical.num_gaussians, times is not None
+    support_arrays = () if not scene.has_temporal else (scene.t_means, scene.t_scales) + (
         () if scene.t_ramps is None else (scene.t_ramps,))
     reductions: list[str] = []
     dtype, err = ("float32", None) if times is None else keyframe_dtype(scene, times, cameras)
     itemsize = 2 if dtype == "float16" else 4
-    F = 0 if times is None else times.shape[0]
-    size = lambda: payload_bytes(n, degree, F, len(support_arrays), itemsize)  # noqa: E731
+    still = None if times is None else still_gaussians(scene)
+    first, count = (None, None) if times is None else key_windows(scene, times, still)
+    held = lambda: 0 if count is None else int(count.sum())  # noqa: E731
+    size = lambda: payload_bytes(n, degree, held(), len(support_arrays), itemsize, keyed)  # noqa: E731
     if budget is not None and size() > budget and degree > 0:
         reductions.append(f"SH degree {degree} → 0")
         degree = 0
-    if budget is not None and size() > budget and F > 2:
-        per_frame = n * 10 * itemsize
-        keep_f = int(min(F, max(2, (budget - payload_bytes(n, degree, 0, len(support_arrays), itemsize))
-                                // max(per_frame, 1))))
-        if keep_f < F:
-            idx = evenly_spaced(F, keep_f, times.device).unique()
-            reductions.append(f"{F} → {idx.numel()} keyframes")
-            times, F = times[idx], idx.numel()
+    F = 0 if times is None else times.shape[0]
+    keep_f = F
+    while budget is not None and size() > budget and keep_f > 2 and 2 * held() * 10 * itemsize > size():
+        keep_f -= 1  # fewer keyframes while they are the larger part of the payload
+        first, count = key_windows(scene, times[evenly_spaced(F, keep_f).unique()], still)
+    if keep_f < F:
+        idx = evenly_spaced(F, keep_f).unique()
+        reductions.append(f"{F} → {idx.numel()} keyframes")
+        times = times[idx]
     keep = None
     if budget is not None and size() > budget:
-        per = payload_bytes(1, degree, F, len(support_arrays), itemsize)
-        m = max(1, budget // per)
-        keep = most_covering(canonical.opacities.detach().cpu(), canonical.scales.detach().cpu(), int(m))
+        order = covering_order(canonical.opacities.detach().cpu(), canonical.scales.detach().cpu())
+        cost = payload_bytes(1, degree, 0, len(support_arrays), itemsize, keyed)
+        cost = (torch.full((n,), cost, dtype=torch.int64, device=order.device)
+                + (0 if count is None else count[order] * 10 * itemsize))
+        m = max(1, int(torch.searchsorted(torch.cumsum(cost, 0), budget, right=True)))
+        keep = order[:m].sort().values
         reductions.append(f"{n:,} → {m:,} Gaussians (those covering most)")
-        n = int(m)
+        n = m
+        if count is not None:
+            first, count = first[keep], count[keep]
     g = canonical if keep is None else canonical.select(keep)
     if degree < canonical.sh_degree:
         g = Gaussians(g.means, g.quats, g.scales, g.opacities, g.sh[:, :1])
-    frames = None if times is None else keyframes(scene, times, keep)  # the kept key times and Gaussians only
+    frames = None if times is None else held_keyframes(scene, times, first, count, keep)  # kept keys and Gaussians
     support = None
-    if temporal:
+    if scene.has_temporal:
         support = support_arrays if keep is None else tuple(a[keep] for a in support_arrays)
-    first = frames["means"][0] if frames is not None else g.means.detach()
+    first_pose = g.means.detach() if times is None else scene.at(float(times[0]), gate=0.0, index=keep).means
     config = {
-        "numGaussians": n, "shDegree": degree, "dynamic": span is not None, "temporal": temporal,
+        "numGaussians": n, "shDegree": degree, "dynamic": span is not None, "temporal": scene.has_temporal,
         "temporalRamps": scene.t_ramps is not None,
         "times": [] if times is None else [float(t) for t in times], "timeRange": [] if span is None else list(span),
+        "heldKeyframes": held(),
         "dtype": dtype, "float16ErrorPx": err, "width": cameras.width, "height": cameras.height,
         "duration": (len(cameras) - 1) / fps if len(cameras) > 1 else 1.0 / fps,
         "cameras": _camera_list(cameras), "near": NEAR, "background": [float(c) for c in background],
         "eps2d": float(eps2d),
-        "far": max(100.0, 10 * float(first.double().norm(dim=1).max()) if first.numel() else 100.0),
-        "targetDistance": _target_distance(first, cameras.viewmats[0].detach().cpu()),
+        "far": max(100.0, 10 * float(first_pose.double().norm(dim=1).max()) if first_pose.numel() else 100.0),
+        "targetDistance": _target_distance(first_pose, cameras.viewmats[0].detach().cpu()),
         "note": ("reduced to fit the viewer's size budget: " + "; ".join(reductions) +
                  " — run `diff4splat view DIR` for the full scene") if reductions else "",
         "bytesPerGaussianPerFrame": 10 * itemsize if frames is not None else 0,
     }
     if not math.isfinite(config["far"]):
         config["far"] = 1e4
-    data = None if span is None else encode_keyframes(frames, dtype, support)
+    data = None if span is None else encode_keyframes(frames, None if first is None else (first, count), dtype,
+                                                      support)
     return ViewerPayload(config, ply_bytes(g), data, reductions)
 
 
 def decode_keyframes(data: bytes, config: dict) -> dict[str, np.ndarray]:
     """Inverse of :func:`encode_keyframes` given the page config (tests and tools): "t_means", "t_scales" (and
-    "t_ramps" when ``config["temporalRamps"]``) (N,) with temporal support, "means", "quats", "scales" (F, N, ·) for
-    F key times (F = 0 without deformation)."""
+    "t_ramps" when ``config["temporalRamps"]``) (N,) with temporal support; "key_first", "key_count" (N,) int64 and
+    "means", "quats", "scales" (F, N, ·) float32 for F key times (F = 0 without deformation), NaN at the keys a
+    Gaussian does not hold (outside its window; every key of a still one, whose pose is the PLY's)."""
     n, F = config["numGaussians"], len(config["times"])
     out, start = {}, 0
     if config["temporal"]:
@@ -340,8 +428,15 @@ def decode_keyframes(data: bytes, config: dict) -> dict[str, np.ndarray]:
         out["t_means"], out["t_scales"], start = support[:n], support[n:2 * n], 4 * k * n
         if k == 3:
             out["t_ramps"] = support[2 * n:]
-    flat = np.frombuffer(data[start:], dtype="<f2" if config["dtype"] == "float16" else "<f4").astype(np.float32)
-    flat = flat.reshape(F, n * 10)
-    out.update(means=flat[:, :3 * n].reshape(F, n, 3), quats=flat[:, 3 * n:7 * n].reshape(F, n, 4),
-               scales=flat[:, 7 * n:10 * n].reshape(F, n, 3))
+    dense = np.full((F, n, 10), np.nan, dtype=np.float32)
+    if F:
+        windows = np.frombuffer(data, dtype="<u2", count=2 * n, offset=start).astype(np.int64)
+        first, count = windows[:n], windows[n:]
+        rows = np.frombuffer(data[start + 4 * n:], dtype="<f2" if config["dtype"] == "float16" else "<f4")
+        rows = rows.astype(np.float32).reshape(-1, 10)
+        gaussian = np.repeat(np.arange(n), count)
+        key = first[gaussian] + np.arange(rows.shape[0]) - np.repeat(np.cumsum(count) - count, count)
+        dense[key, gaussian] = rows
+        out["key_first"], out["key_count"] = first, count
+    out.update(means=dense[..., :3], quats=dense[..., 3:7], scales=dense[..., 7:])
     return out

@@ -3,7 +3,8 @@
 // Reads what diff4splat/io/viewer_page.py embedded in viewer.html (or, under `diff4splat view`, fetches the
 // full-size data): the canonical Gaussians as INRIA PLY bytes (colours, opacities, SH) and, for a scene that changes
 // with time, each Gaussian's time mean and standard deviation (temporal support) and, for a deforming scene,
-// absolute per-keyframe means/quats(wxyz)/scales computed in Python by DynamicGaussians.at(). The page never
+// absolute per-keyframe means/quats(wxyz)/scales computed in Python by DynamicGaussians.at(), only at the keys each
+// Gaussian needs (none for one that does not move, those around its window for bounded support). The page never
 // re-implements the deformation: between two keyframes it interpolates as the renderer interpolates the
 // deformation (means linearly, quaternions by nlerp, scales geometrically: s·exp(Δs) with Δs linear), evaluates
 // the temporal opacity (o·exp(−½((t − μ_t)/σ_t)²), or o times the trapezoid of the ramps), and writes the result
@@ -39,9 +40,9 @@ const HALF = (() => {
   return t;
 })();
 
-// The keyframes as loaded, without a copy: a Float32Array or (float16) Uint16Array view of the bytes. Only the
-// two keyframes around the current time are decoded to float32 (keyframeDecoder): a paper-size scene's keyframes
-// (1.3 M Gaussians × 49 frames, 1.3 GB in float16) decoded all at once took 2.6 GB more, on top of the bytes.
+// The held keyframes as loaded, without a copy: a Float32Array or (float16) Uint16Array view of the bytes, read
+// value by value (float16 through the HALF table): a paper-size scene's keyframes (1.3 M Gaussians × 49 frames,
+// 1.3 GB in float16) decoded all at once took 2.6 GB more, on top of the bytes.
 function keyframeArray(bytes, dtype) {
   const size = dtype === "float32" ? 4 : 2;
   const b = bytes.byteOffset % size ? bytes.slice() : bytes;  // a typed view needs an aligned offset
@@ -49,51 +50,29 @@ function keyframeArray(bytes, dtype) {
     : new Uint16Array(b.buffer, b.byteOffset, b.byteLength / 2);
 }
 
-// keyframe(f) → frame f's fields in float32, decoded from float16 on first use; the last two used are kept (the
-// pair the time lies between), so playing decodes each keyframe once per pass.
-function keyframeDecoder(frames, dtype) {
-  if (dtype === "float32") return (f) => frames[f];
-  const kept = new Map();
-  const decode = (h) => {
-    if (!h) return null;
-    const out = new Float32Array(h.length);
-    for (let i = 0; i < h.length; i++) out[i] = HALF[h[i]];
-    return out;
-  };
-  return (f) => {
-    let d = kept.get(f);
-    if (d) { kept.delete(f); kept.set(f, d); return d; }  // most recently used last
-    const src = frames[f];
-    d = { means: decode(src.means), quats: decode(src.quats), scales: decode(src.scales) };
-    kept.set(f, d);
-    if (kept.size > 2) kept.delete(kept.keys().next().value);
-    return d;
-  };
-}
-
 // Frame data layout (little endian; diff4splat/io/viewer_data.py encode_keyframes): when cfg.temporal, the time
-// means (N), the time scales (N) and, when cfg.temporalRamps, the trapezoid ramps (N) as float32; then for each
-// keyframe f (cfg.times), means (N, 3), quats (N, 4) wxyz and scales (N, 3) in cfg.dtype.
+// means (N), the time scales (N) and, when cfg.temporalRamps, the trapezoid ramps (N) as float32; then, with key
+// times (cfg.times), each Gaussian's key window, first key (N) and count (N) as uint16, and the held keyframes
+// Gaussian by Gaussian, key by key: means (3), quats (4, wxyz), scales (3) in cfg.dtype. A Gaussian holding no key
+// does not move: its pose is the PLY's.
 function splitFrames(bytes, cfg) {
   const n = cfg.numGaussians;
   let temporal = null, rest = bytes;
+  const aligned = (b, len) => (b.byteOffset % 4 ? b.slice(0, len) : b);  // typed views need aligned offsets
   if (cfg.temporal) {
     const k = cfg.temporalRamps ? 3 : 2;
-    const b = bytes.byteOffset % 4 ? bytes.slice(0, 4 * k * n) : bytes;  // a Float32Array needs an aligned offset
+    const b = aligned(bytes, 4 * k * n);
     const support = new Float32Array(b.buffer, b.byteOffset, k * n);
     temporal = { means: support.subarray(0, n), scales: support.subarray(n, 2 * n),
                  ramps: cfg.temporalRamps ? support.subarray(2 * n, 3 * n) : null };
     rest = bytes.subarray(4 * k * n);
   }
-  const flat = keyframeArray(rest, cfg.dtype), per = 10 * n, frames = [];
-  for (let f = 0; f < cfg.times.length; f++) {
-    const o = f * per;
-    frames.push({
-      means: flat.subarray(o, o + 3 * n), quats: flat.subarray(o + 3 * n, o + 7 * n),
-      scales: flat.subarray(o + 7 * n, o + 10 * n),
-    });
-  }
-  return { temporal, frames };
+  if (!cfg.times.length) return { temporal, keys: null };
+  const w = aligned(rest, 4 * n), windows = new Uint16Array(w.buffer, w.byteOffset, 2 * n);
+  const first = windows.subarray(0, n), count = windows.subarray(n, 2 * n), start = new Uint32Array(n);
+  for (let i = 1; i < n; i++) start[i] = start[i - 1] + count[i - 1];
+  const values = keyframeArray(rest.subarray(4 * n), cfg.dtype);
+  return { temporal, keys: { first, count, start, values, half: cfg.dtype !== "float32" } };
 }
 
 function projectionFromK(K, w, h, near, far) {
@@ -198,10 +177,12 @@ async function main() {
   // per-Gaussian colour, opacity and (for a scene with temporal support only) pose as loaded: setSplat rewrites
   // all of a splat's packed fields
   const data = cfg.dynamic ? splitFrames(frameBytes, cfg) : null;
-  const keyframe = data && data.frames.length ? keyframeDecoder(data.frames, cfg.dtype) : null;
+  const keys = data && data.keys;
   const colors = [], opac = new Float32Array(n);
-  // the pose is kept only where no keyframe holds it (temporal support alone): 40 bytes a Gaussian otherwise unused
-  const canon = data && !keyframe
+  // the PLY's pose is kept only where a Gaussian holds no keyframe (a still one, or temporal support alone): 40
+  // bytes a Gaussian otherwise unused
+  const needCanon = data && (!keys || keys.count.some((c) => c === 0));
+  const canon = needCanon
     ? { means: new Float32Array(3 * n), quats: new Float32Array(4 * n), scales: new Float32Array(3 * n) } : null;
   for (let i = 0; i < n; i++) {
     const s = packed.getSplat(i);
@@ -213,30 +194,43 @@ async function main() {
       canon.scales.set([s.scales.x, s.scales.y, s.scales.z], 3 * i);
     }
   }
-  // The keyframes around time t and the weight of the second: DynamicGaussians.deformation_at's clamped lookup.
+  // The key times around t and the weight of the second: DynamicGaussians.deformation_at's clamped lookup.
   function bracket(t) {
     const ts = cfg.times;
-    if (!keyframe) return { a: canon, b: canon, w: 0 };
+    if (!keys) return { k: 0, k1: 0, w: 0 };
     let k = 0;
     while (k < ts.length - 2 && t > ts[k + 1]) k++;
     const k1 = Math.min(k + 1, ts.length - 1);
     const w = k1 === k ? 0 : Math.min(1, Math.max(0, (t - ts[k]) / (ts[k1] - ts[k])));
-    return { a: keyframe(k), b: keyframe(k1), w };
+    return { k, k1, w };
   }
   const c = new THREE.Vector3(), sc = new THREE.Vector3(), q = new THREE.Quaternion();
-  // Gaussian i at time t between keyframes a and b (weight w of b) into c, q, sc; returns its opacity.
-  function splatAt(a, b, w, t, i) {
-    const i3 = 3 * i, i4 = 4 * i;
-    c.set(a.means[i3] + w * (b.means[i3] - a.means[i3]), a.means[i3 + 1] + w * (b.means[i3 + 1] - a.means[i3 + 1]),
-          a.means[i3 + 2] + w * (b.means[i3 + 2] - a.means[i3 + 2]));
+  const ka = new Float32Array(10), kb = new Float32Array(10);
+  // Gaussian i's pose at key k into out (means, quats wxyz, scales): its held key nearest to k (outside its window
+  // it is not seen), or the PLY's for a Gaussian that holds none.
+  function poseAt(i, k, out) {
+    const m = keys ? keys.count[i] : 0;
+    if (m === 0) {
+      for (let j = 0; j < 3; j++) { out[j] = canon.means[3 * i + j]; out[7 + j] = canon.scales[3 * i + j]; }
+      for (let j = 0; j < 4; j++) out[3 + j] = canon.quats[4 * i + j];
+      return;
+    }
+    const o = 10 * (keys.start[i] + Math.min(m - 1, Math.max(0, k - keys.first[i]))), v = keys.values;
+    if (keys.half) for (let j = 0; j < 10; j++) out[j] = HALF[v[o + j]];
+    else for (let j = 0; j < 10; j++) out[j] = v[o + j];
+  }
+  // Gaussian i at time t between key times k and k1 (weight w of k1) into c, q, sc; returns its opacity.
+  function splatAt(k, k1, w, t, i) {
+    poseAt(i, k, ka);
+    poseAt(i, k1, kb);
+    c.set(ka[0] + w * (kb[0] - ka[0]), ka[1] + w * (kb[1] - ka[1]), ka[2] + w * (kb[2] - ka[2]));
     // s·exp((1 − w)·Δs_a + w·Δs_b) = s_a^(1−w) · s_b^w (a float16 scale rounded to 0 falls back to linear)
     const geo = (x, y) => (x > 0 && y > 0 ? x * Math.pow(y / x, w) : x + w * (y - x));
-    sc.set(geo(a.scales[i3], b.scales[i3]), geo(a.scales[i3 + 1], b.scales[i3 + 1]), geo(a.scales[i3 + 2], b.scales[i3 + 2]));
+    sc.set(geo(ka[7], kb[7]), geo(ka[8], kb[8]), geo(ka[9], kb[9]));
     // nlerp on the shorter arc; wxyz in the data, THREE.Quaternion is (x, y, z, w)
-    const d = a.quats[i4] * b.quats[i4] + a.quats[i4 + 1] * b.quats[i4 + 1] + a.quats[i4 + 2] * b.quats[i4 + 2] + a.quats[i4 + 3] * b.quats[i4 + 3];
+    const d = ka[3] * kb[3] + ka[4] * kb[4] + ka[5] * kb[5] + ka[6] * kb[6];
     const sb = d < 0 ? -w : w, sa = 1 - w;
-    q.set(sa * a.quats[i4 + 1] + sb * b.quats[i4 + 1], sa * a.quats[i4 + 2] + sb * b.quats[i4 + 2],
-          sa * a.quats[i4 + 3] + sb * b.quats[i4 + 3], sa * a.quats[i4] + sb * b.quats[i4]).normalize();
+    q.set(sa * ka[4] + sb * kb[4], sa * ka[5] + sb * kb[5], sa * ka[6] + sb * kb[6], sa * ka[3] + sb * kb[3]).normalize();
     const tp = data.temporal;
     if (!tp) return opac[i];
     if (tp.ramps) {  // the trapezoid clamp((σ_t − |t − μ_t|)/r_t, 0, 1); r_t = 0: a box open at its ends
@@ -249,9 +243,9 @@ async function main() {
   function setTime(t) {
     state.time = t;
     if (!data) return;
-    const { a, b, w } = bracket(t);
+    const { k, k1, w } = bracket(t);
     for (let i = 0; i < n; i++) {
-      const o = splatAt(a, b, w, t, i);
+      const o = splatAt(k, k1, w, t, i);
       packed.setSplat(i, c, sc, q, o, colors[i]);
     }
     packed.needsUpdate = true;
@@ -260,7 +254,7 @@ async function main() {
   // For tests: Gaussian i at time t as setTime writes it, before Spark packs it.
   state.splatAt = (t, i) => {
     if (!data) return null;  // a scene that does not change with time keeps the PLY's Gaussians
-    const { a, b, w } = bracket(t), o = splatAt(a, b, w, t, i);
+    const { k, k1, w } = bracket(t), o = splatAt(k, k1, w, t, i);
     return { mean: c.toArray(), quat: [q.w, q.x, q.y, q.z], scale: sc.toArray(), opacity: o };
   };
   // For tests: the view camera's pose (three.js, OpenGL axes) and the orbit's target.
