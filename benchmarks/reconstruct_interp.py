@@ -2,7 +2,7 @@
 the previous frame and blending the two neighbours.
 
     python benchmarks/reconstruct_interp.py (--video FILE_OR_DIR [--start K] [--stride S] | --data DIR)
-        [--frames T] [--resolution R] [--checkpoint DIR] [--device cpu] [--write]
+        [--frames T] [--resolution R] [--ablation] [--checkpoint DIR] [--device cpu] [--write]
 
 The clip given to :func:`diff4splat.reconstruct.reconstruct` is every other frame (frames start, start + 2S, …,
 T of them); the T − 1 frames between them are held out. Each is rendered from the scene at its time (halfway
@@ -18,7 +18,10 @@ PSNR is also given over the moving pixels alone (where the two neighbours differ
 ``--write`` puts the table into docs/benchmarks.md (section ``reconstruct_interp_<label>``, ``--label`` default:
 the video's or set's name). ``--strip PNG`` saves, for the first clip and ``--layers every``, four held-out frames
 (columns) as the true frame, the 4D scene's render, the blend of the two neighbours and the previous frame held
-(rows, labelled), to look at.
+(rows, labelled), to look at. ``--ablation`` scores, instead of the two layer choices, ``--layers every`` as
+shipped beside variants of its layers (:data:`ABLATION`: the odd layers' push along their rays, 0 and 3 % against
+1.5 %; every link of flow checked against the first links followed unchecked; ``reconstruct_scene``'s
+``order_offset`` and ``unchecked``).
 """
 from __future__ import annotations
 
@@ -38,7 +41,7 @@ from diff4splat.geometry.scene_flow import optical_flow  # noqa: E402
 from diff4splat.io import load_cameras_json  # noqa: E402
 from diff4splat.io.image import preprocess_image  # noqa: E402
 from diff4splat.io.video_input import read_video_clip  # noqa: E402
-from diff4splat.reconstruct import FLOW_SIZE, LAYERS, reconstruct, still_cameras  # noqa: E402
+from diff4splat.reconstruct import FLOW_SIZE, LAYER_ORDER_OFFSET, LAYERS, reconstruct, still_cameras  # noqa: E402
 from diff4splat.render.sequence import render_path  # noqa: E402
 from training.eval_metrics import psnr_from_mse  # noqa: E402
 
@@ -50,12 +53,13 @@ BASELINES = {"hold": "previous given frame held", "blend": "mean of the two give
 
 
 def held_out_scores(loaded, video: Path, frames: int, stride: int, start: int, resolution: int | None,
-                    cameras: CameraPath | None, layers: str, strip: Path | None = None) -> dict[str, float]:
+                    cameras: CameraPath | None, layers: str, strip: Path | None = None,
+                    order_offset: float = LAYER_ORDER_OFFSET, unchecked: int | None = None) -> dict[str, float]:
     """Squared errors summed over the held-out frames of one clip ({"scene", "hold", "blend", "flow"}: sum of
     per-frame MSE; the same keys + " moving": the squared errors' sum over the moving pixels, and "moving", their
     count; "pixels": all pixels' count), the held-out frames' count, the seconds ``reconstruct`` took and its
     Gaussians. ``cameras``: the video's cameras at every frame (None: still); ``strip``: where to save the frame
-    strip (module docstring)."""
+    strip (module docstring); ``order_offset``, ``unchecked``: as :func:`~diff4splat.reconstruct.reconstruct_scene`."""
     pipe = loaded.pipeline
     given = [start + 2 * stride * i for i in range(frames)]
     between = [g + stride for g in given[:-1]]
@@ -63,7 +67,7 @@ def held_out_scores(loaded, video: Path, frames: int, stride: int, start: int, r
     path = None if cameras is None else _subset(cameras, given).fitted(width, height)
     t0 = time.perf_counter()
     gen = reconstruct(video, path, pipeline=loaded, frames=frames, stride=2 * stride, start=start,
-                      resolution=resolution, layers=layers)
+                      resolution=resolution, layers=layers, order_offset=order_offset, unchecked=unchecked)
     seconds = time.perf_counter() - t0
     H, W = gen.colors.shape[1:3]
     clip = read_video_clip(video, 2 * frames - 1, stride, start)
@@ -110,6 +114,36 @@ def _subset(cameras: CameraPath, index: list[int]) -> CameraPath:
     return CameraPath(cameras.viewmats[index], cameras.Ks[index], cameras.width, cameras.height)
 
 
+ABLATION = (("shipped", LAYER_ORDER_OFFSET, None), ("odd layers not pushed back (offset 0)", 0.0, None),
+            ("odd layers pushed back 3 %", 0.03, None),
+            ("every link of flow checked (unchecked 0)", LAYER_ORDER_OFFSET, 0))
+"""``--ablation``'s variants of the layers, ``--layers every``: (name, order_offset, unchecked)."""
+
+
+def scored(loaded, jobs, frames: int, args, layers: str, order_offset: float, unchecked: int | None,
+           strip: Path | None) -> tuple[dict[str, float], dict[str, float]]:
+    """(PSNR of the 4D scene and each baseline, all pixels and moving ones; the summed counts) over ``jobs``."""
+    keys = ("scene", *BASELINES)
+    total = dict.fromkeys([*keys, *(f"{k} moving" for k in keys), "moving", "pixels", "frames", "seconds",
+                           "gaussians"], 0)
+    for j, (video, cameras) in enumerate(jobs):
+        scores = held_out_scores(loaded, video, frames, args.stride, args.start, args.resolution, cameras, layers,
+                                 strip if j == 0 else None, order_offset, unchecked)
+        total = {k: total[k] + scores[k] for k in total}
+        print(video, layers, order_offset, unchecked,
+              {k: round(psnr_from_mse(scores[k] / scores["frames"]), 2) for k in keys}, flush=True)
+    n = total["frames"]
+    psnr = {k: psnr_from_mse(total[k] / n) for k in keys}
+    psnr.update({f"{k} moving": psnr_from_mse(total[f"{k} moving"] / max(total["moving"], 1)) for k in keys})
+    return psnr, total
+
+
+def scene_row(name: str, psnr: dict[str, float], total: dict[str, float], clips: int) -> list:
+    return [name, f"{psnr['scene']:.2f}", f"{psnr['scene moving']:.2f}", f"{psnr['scene'] - psnr['hold']:+.2f}",
+            f"{psnr['scene'] - psnr['blend']:+.2f}", f"{total['seconds'] / clips:.1f}",
+            f"{total['gaussians'] // clips:,}"]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     source = ap.add_mutually_exclusive_group(required=True)
@@ -120,6 +154,9 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=None, help="T given frames (default: 17, or 9 for --data)")
     ap.add_argument("--resolution", type=int, default=None)
     ap.add_argument("--strip", type=Path, default=None, help="save a frame strip of the first clip (PNG)")
+    ap.add_argument("--ablation", action="store_true",
+                    help="the layers' variants (ABLATION) instead of the layer choices, in section "
+                         "reconstruct_ablation_<label>")
     args, loaded = parse_pipeline_run(ap)
     if args.video is not None:
         jobs = [(args.video, None)]
@@ -128,31 +165,26 @@ def main() -> None:
         jobs = [(d / "cam00" / "rgb", load_cameras_json(d / "cam00" / "cameras.json"))
                 for d in sorted(args.data.iterdir()) if (d / "cam00").is_dir()]
         frames = args.frames or 9
-    rows, psnr, keys = [], {}, ("scene", *BASELINES)
-    for layers in LAYERS:
-        total = dict.fromkeys([*keys, *(f"{k} moving" for k in keys), "moving", "pixels", "frames", "seconds",
-                                 "gaussians"], 0)
-        for j, (video, cameras) in enumerate(jobs):
-            strip = args.strip if j == 0 and layers == "every" else None
-            scores = held_out_scores(loaded, video, frames, args.stride, args.start, args.resolution, cameras, layers,
-                                     strip)
-            total = {k: total[k] + scores[k] for k in total}
-            print(video, layers, {k: round(psnr_from_mse(scores[k] / scores["frames"]), 2) for k in keys},
-                  flush=True)
-        n = total["frames"]
-        psnr = {k: psnr_from_mse(total[k] / n) for k in keys}
-        psnr.update({f"{k} moving": psnr_from_mse(total[f"{k} moving"] / max(total["moving"], 1)) for k in keys})
-        rows.append([f"4D scene, `--layers {layers}`", f"{psnr['scene']:.2f}", f"{psnr['scene moving']:.2f}",
-                     f"{psnr['scene'] - psnr['hold']:+.2f}", f"{psnr['scene'] - psnr['blend']:+.2f}",
-                     f"{total['seconds'] / len(jobs):.1f}", f"{total['gaussians'] // len(jobs):,}"])
+    rows = []
+    if args.ablation:
+        for name, offset, unchecked in ABLATION:
+            psnr, total = scored(loaded, jobs, frames, args, "every", offset, unchecked, None)
+            rows.append(scene_row(name, psnr, total, len(jobs)))
+    else:
+        for layers in LAYERS:
+            strip = args.strip if layers == "every" else None
+            psnr, total = scored(loaded, jobs, frames, args, layers, LAYER_ORDER_OFFSET, None, strip)
+            rows.append(scene_row(f"4D scene, `--layers {layers}`", psnr, total, len(jobs)))
     rows += [[label, f"{psnr[k]:.2f}", f"{psnr[k + ' moving']:.2f}", "—", "—", "—", "—"]
              for k, label in BASELINES.items()]
-    table = markdown_table(["in-between frames", "PSNR (dB)", "moving pixels (dB)", "− hold", "− blend",
-                            "`reconstruct` s per clip", "Gaussians"], rows)
+    table = markdown_table(["in-between frames" if not args.ablation else "`--layers every`", "PSNR (dB)",
+                            "moving pixels (dB)", "− hold", "− blend", "`reconstruct` s per clip", "Gaussians"], rows)
     what = str(args.video) if args.video is not None else f"{len(jobs)} scenes of {args.data}"
     label = args.label or (args.video.stem if args.video is not None else args.data.name)
-    publish(f"reconstruct_interp_{label}", f"`reconstruct` between its frames ({what}, start {args.start}, "
-            f"{frames} given frames)", f"{args.note} {n} held-out frames, rendered at their times "
+    kind = "reconstruct_ablation" if args.ablation else "reconstruct_interp"
+    title = "`reconstruct`'s layers, variants," if args.ablation else "`reconstruct`"
+    publish(f"{kind}_{label}", f"{title} between its frames ({what}, start {args.start}, {frames} given frames)",
+            f"{args.note} {total['frames']} held-out frames, rendered at their times "
             f"({100 * total['moving'] / total['pixels']:.1f} % of their pixels moving); `reconstruct`'s "
             "seconds: load excluded (encode, LDRM, motion, assembly, rendering the given frames).".strip(),
             table, args.write)

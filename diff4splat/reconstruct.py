@@ -14,6 +14,7 @@ two layers around a time cross-fade exactly (:func:`layer_support`); a still cli
 """
 from __future__ import annotations
 
+import math
 import os
 import time
 from collections.abc import Callable, Iterable
@@ -60,7 +61,8 @@ from models.deformation import IDENTITY_QUAT
 from models.ldrm import source_frame_indices
 
 __all__ = ["reconstruct", "reconstruct_scene", "still_cameras", "clip_cameras", "carried_depth", "check_layers",
-           "layer_frames", "scene_slots", "memory_estimate", "layer_support", "RECONSTRUCT_KIND", "LAYER_ORDER_OFFSET",
+           "layer_frames", "check_layer_knobs", "scene_slots", "memory_estimate", "layer_support", "RECONSTRUCT_KIND",
+           "LAYER_ORDER_OFFSET",
            "FLOW_SIZE", "GATE_PX", "FB_TOLERANCE_PX", "MOVING_FRACTION", "LAYERS", "DEFAULT_LAYERS"]
 
 RECONSTRUCT_KIND = "reconstruct"
@@ -111,6 +113,15 @@ def check_layers(layers: object) -> str:
     if layers not in LAYERS:
         raise ValueError(f"--layers must be one of {LAYERS}, got {layers!r}")
     return layers
+
+
+def check_layer_knobs(order_offset: object, unchecked: object) -> None:
+    """ValueError unless ``order_offset`` is a finite number ≥ 0 and ``unchecked`` None or an int ≥ 0
+    (:func:`reconstruct_scene`)."""
+    if isinstance(order_offset, bool) or not isinstance(order_offset, (int, float)) or not 0 <= order_offset < math.inf:
+        raise ValueError(f"order_offset must be a finite number >= 0, got {order_offset!r}")
+    if unchecked is not None and (isinstance(unchecked, bool) or not isinstance(unchecked, int) or unchecked < 0):
+        raise ValueError(f"unchecked must be None or an int >= 0, got {unchecked!r}")
 
 
 def carried_depth(depths: Tensor, sources: list[int], frame: int, flows: tuple[Tensor, Tensor]) -> Tensor:
@@ -177,18 +188,24 @@ def _layer_motion(motion: Tensor, height: int, width: int) -> Tensor:
 
 @torch.no_grad()
 def reconstruct_scene(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraPath, *,
-                      layers: str = DEFAULT_LAYERS) -> GenerationResult:
+                      layers: str = DEFAULT_LAYERS, order_offset: float = LAYER_ORDER_OFFSET,
+                      unchecked: int | None = None) -> GenerationResult:
     """The 4D scene (module docstring) of a clip ``frames`` (T, H, W, 3) in [0, 1] at the output resolution and the
     model's aspect ratio, T = 1 + 4k, seen by ``cameras`` (T at the output resolution, made relative to the first),
-    ``layers`` (:data:`LAYERS`) its photo layers. Returns a :class:`~diff4splat.pipeline.GenerationResult` (``steps`` 0,
-    ``sampler`` "none", ``latents`` the video's, ``source_frames`` the layer frames; unpruned order: frame 0's layer,
-    the backdrop, the other layers).
+    ``layers`` (:data:`LAYERS`) its photo layers; ``order_offset`` how far odd layers are pushed back along their rays
+    (a fraction of their distance, :func:`layer_support`); ``unchecked`` how many first links of flow each layer
+    follows whatever their forward-backward error (None: the spacing of layer frames, as far as the layer is seen;
+    :func:`~diff4splat.geometry.scene_flow.chain_flows`). Returns a :class:`~diff4splat.pipeline.GenerationResult`
+    (``steps`` 0, ``sampler`` "none", ``latents`` the video's, ``source_frames`` the layer frames; unpruned order:
+    frame 0's layer, the backdrop, the other layers).
 
     Raises:
-        ValueError: bad frames, T ≠ 1 + 4k, cameras not T at (W, H), an unknown ``layers``; a path that sees nothing.
+        ValueError: bad frames, T ≠ 1 + 4k, cameras not T at (W, H), an unknown ``layers``, ``order_offset`` not finite
+            and ≥ 0, ``unchecked`` < 0; a path that sees nothing.
     """
     _check_frames(pipe, frames, cameras)
     check_layers(layers)
+    check_layer_knobs(order_offset, unchecked)
     cfg, runtime, dev = pipe.config, pipe.runtime, pipe.device
     T, H, W = frames.shape[:3]
     cameras = cameras.relative_to_first().to(dtype=torch.float32, device=dev)
@@ -211,7 +228,7 @@ def reconstruct_scene(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraP
     spacing = frames_of[1] - frames_of[0] if len(frames_of) > 1 else 1  # a layer is seen this far from its frame
     motion = source_frame_motion(images.permute(0, 3, 1, 2), z, frames_of, cameras.Ks, cameras.viewmats,
                                  fb_tolerance=FB_TOLERANCE_PX, gate_px=GATE_PX, flows=flows,
-                                 unchecked=spacing)  # (T, L, H, W, 3)
+                                 unchecked=spacing if unchecked is None else unchecked)  # (T, L, H, W, 3)
     moved = (motion.abs() > cfg.static_atol).any(dim=-1).flatten(2).float().mean(dim=-1)  # (T, L)
     dynamic = bool((moved > MOVING_FRACTION).any())
     if not dynamic:
@@ -220,7 +237,7 @@ def reconstruct_scene(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraP
     parts, d_means, grid = [], [], []  # the layers and the backdrop, in the scene's order
     for s, f in enumerate(frames_of):
         layer, history = photo_layer(images[f], z[s], cameras.viewmats[f], cameras.Ks[f])
-        factor = 1 + LAYER_ORDER_OFFSET if dynamic and s % 2 else 1.0  # odd layers behind (layer_support)
+        factor = 1 + order_offset if dynamic and s % 2 else 1.0  # odd layers behind (layer_support)
         parts.append(_pushed_back(layer, cameras.viewmats[f], factor) if factor != 1 else layer)
         d_means.append(_layer_motion(motion[:, s], H, W) * factor)
         grid.append(torch.full((layer.num_gaussians,), s, dtype=torch.long, device=dev))
@@ -299,7 +316,8 @@ def memory_estimate(pipe: Diff4SplatPipeline, width: int, height: int, frames: i
 def reconstruct(video: str | os.PathLike, cameras: str | os.PathLike | CameraPath | None = None, *,
                 pipeline: LoadedPipeline | Diff4SplatPipeline | Callable[[], LoadedPipeline] | None = None,
                 frames: int | None = None, stride: int = 1, start: int = 0, resolution: int | None = None,
-                layers: str = DEFAULT_LAYERS, progress: bool = False, out: str | os.PathLike | None = None,
+                layers: str = DEFAULT_LAYERS, order_offset: float = LAYER_ORDER_OFFSET, unchecked: int | None = None,
+                progress: bool = False, out: str | os.PathLike | None = None,
                 overwrite: bool = False, inputs: Iterable[str | os.PathLike | None] = (), fps: float = DEFAULT_FPS,
                 frame_plys: bool = True) -> Generation:
     """A 4D scene of a video clip, rendered at its own cameras (``diff4splat reconstruct``): a
@@ -313,6 +331,8 @@ def reconstruct(video: str | os.PathLike, cameras: str | os.PathLike | CameraPat
         frames, stride, start: the clip is T = 1 + 4k (default: the config's) frames ``start + stride·i`` of the video.
         resolution: output height, pixels (default as ``generate``'s); frames are cropped and resized as its photo.
         layers: which frames become photo layers (:data:`LAYERS`).
+        order_offset, unchecked: as :func:`reconstruct_scene` (the layers' order and how far their tracks are
+            followed unchecked).
         pipeline, progress, out, overwrite, inputs, fps, frame_plys: as :func:`diff4splat.generate.generate`.
 
     Raises FileNotFoundError for a missing video or camera file, FileExistsError as ``check_output_dir``, ValueError for
@@ -332,6 +352,7 @@ def reconstruct(video: str | os.PathLike, cameras: str | os.PathLike | CameraPat
     if resolution is not None:
         check_limit("resolution", check_positive_int("--resolution", resolution), "--resolution")
     check_layers(layers)
+    check_layer_knobs(order_offset, unchecked)
     loaded = resolve_pipeline(pipeline)
     pipe, cfg = loaded.pipeline, loaded.pipeline.config
     T = frames or cfg.num_frames
@@ -351,7 +372,7 @@ def reconstruct(video: str | os.PathLike, cameras: str | os.PathLike | CameraPat
     check_output_size(T, width, height, scene_slots(width, height, num_layers), knobs=knobs, out=out,
                       frame_plys=frame_plys)
     check_memory(memory_estimate(pipe, width, height, T, num_layers), f"{T} frames at {width}×{height}", knobs)
-    result = reconstruct_scene(pipe, images, path, layers=layers)
+    result = reconstruct_scene(pipe, images, path, layers=layers, order_offset=order_offset, unchecked=unchecked)
     t0 = time.perf_counter()
     colors, depths, alphas = render_path(result.scene, result.cameras, eps2d=result.eps2d,
                                          background=result.background, progress=progress)

@@ -2,6 +2,7 @@
 asked, its scene moves as the video does (in-between frames rendered from it beat holding the previous frame), a
 still video gives a static scene, and the command writes generate's folder or fails in one line."""
 import json
+import math
 from unittest import mock
 
 import numpy as np
@@ -139,6 +140,25 @@ def test_the_two_layers_around_a_time_cross_fade(videos, base_pipeline):
     front = lambda layer: z[(unpruned == layer) & (index % n0 < SIZE * SIZE)]  # noqa: E731  the front disks
     ratio = front(1) / front(0)[: front(1).numel()]
     assert float(ratio.median()) == pytest.approx(1 + LAYER_ORDER_OFFSET, rel=2e-3)
+
+
+def test_the_layers_knobs_reach_the_scene_and_bad_ones_fail_first(videos, base_pipeline):
+    """``order_offset`` is the odd layers' push (0.05: their front disks 1.05× as deep as the even ones'); a bad
+    ``order_offset`` or ``unchecked`` fails before any network runs (the pipeline is never loaded)."""
+    root, _ = videos
+    gen = reconstruct(root / "moving", pipeline=base_pipeline, frames=5, resolution=SIZE, order_offset=0.05)
+    scene, index, n0 = gen.result.scene, gen.result.gaussian_index, gen.result.photo_gaussians
+    backdrop = gen.result.num_slots - 5 * n0
+    unpruned = torch.where(index < n0, 0, torch.where(index < n0 + backdrop, -1, 1 + (index - n0 - backdrop) // n0))
+    z = scene.canonical.means[:, 2]
+    front = lambda layer: z[(unpruned == layer) & (index % n0 < SIZE * SIZE)]  # noqa: E731  the front disks
+    assert float((front(1) / front(0)[: front(1).numel()]).median()) == pytest.approx(1.05, rel=2e-3)
+    never = lambda: pytest.fail("the pipeline was loaded")  # noqa: E731
+    for kwargs, match in (({"order_offset": -0.01}, "order_offset"), ({"order_offset": math.inf}, "order_offset"),
+                          ({"unchecked": -1}, "unchecked"), ({"unchecked": 1.5}, "unchecked")):
+        with pytest.raises(ValueError, match=match):
+            reconstruct(root / "moving", pipeline=never, frames=5, resolution=SIZE, **kwargs)
+
 
 def test_a_frame_s_depth_is_carried_from_the_nearest_source_frame_along_the_flow():
     """Content moving 2 px right per frame: frame 1's pixel u was at u − 2 in source frame 0, so it takes the depth
