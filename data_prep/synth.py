@@ -19,8 +19,7 @@ import numpy as np
 import torch
 
 from diff4splat.cameras import CameraPath, intrinsics_from_fov, look_at
-from diff4splat.render.rasterize import rasterize
-from diff4splat.render.sh import color_features
+from diff4splat.render.sequence import render_path
 from diff4splat.scene.dynamic import DynamicGaussians
 from diff4splat.scene.gaussians import Gaussians, rgb_to_sh0
 from diff4splat.scene.quaternions import axis_angle_to_quat, quat_to_rotmat, rotmat_to_quat
@@ -242,26 +241,15 @@ def render_camera(scene: DynamicGaussians, object_ids: np.ndarray, num_objects: 
     (T, H, W, 3) float32 in [0, 1] over ``background``, z-depth (T, H, W) float32 metres where the alpha is ≥ 0.5
     (+inf elsewhere), and the object id map (T, H, W) uint8 (objects.npz, FORMAT.md: 0 background, k + 1 object k,
     :data:`~data_prep.scene_files.NO_SURFACE` where the depth is +inf; the id whose Gaussians weigh most in the
-    pixel, ``object_ids`` (M,) as :func:`build_gaussians`). The colours are the SH colours
-    (:func:`diff4splat.render.sh.color_features`) composited beside the one-hot ids, channel by channel as
-    :func:`~diff4splat.render.sequence.render_path` composites them alone."""
+    pixel, ``object_ids`` (M,) as :func:`build_gaussians`): the one-hot ids composited beside the colours by
+    :func:`~diff4splat.render.sequence.render_path` (``features``)."""
     device, dtype = scene.canonical.means.device, scene.canonical.means.dtype
     onehot = torch.eye(num_objects + 1, dtype=dtype, device=device)[torch.as_tensor(object_ids + 1, device=device)]
-    bg = torch.tensor([[*background, *([0.0] * (num_objects + 1))]], dtype=dtype, device=device)
-    viewmats, Ks = cameras.viewmats.to(device, dtype), cameras.Ks.to(device, dtype)
-    T, H, W = len(cameras), cameras.height, cameras.width
-    rgb, depth = np.empty((T, H, W, 3), np.float32), np.empty((T, H, W), np.float32)
-    ids = np.empty((T, H, W), dtype=np.uint8)
-    for i in range(T):
-        g = scene.at(float(cameras.times[i]))
-        colors = color_features(g.sh, g.means, viewmats[i:i + 1], g.sh_degree)[0]
-        out, alpha, _ = rasterize(g.means, g.quats, g.scales, g.opacities, torch.cat([colors, onehot], -1),
-                                  viewmats[i:i + 1], Ks[i:i + 1], W, H, sh_degree=None, backgrounds=bg,
-                                  render_mode="RGB+ED")
-        surface = alpha[0, ..., 0] >= 0.5
-        rgb[i] = out[0, ..., :3].clamp(0, 1).cpu().numpy()
-        depth[i] = torch.where(surface, out[0, ..., -1], torch.inf).cpu().numpy()
-        ids[i] = torch.where(surface, out[0, ..., 3:-1].argmax(-1), NO_SURFACE).to(torch.uint8).cpu().numpy()
+    out, expected, alpha = render_path(scene, cameras, background=background, features=onehot)
+    surface = alpha >= 0.5
+    rgb = out[..., :3].cpu().numpy().astype(np.float32)
+    depth = torch.where(surface, expected, torch.inf).cpu().numpy().astype(np.float32)
+    ids = torch.where(surface, out[..., 3:].argmax(-1), NO_SURFACE).to(torch.uint8).cpu().numpy()
     return rgb, depth, ids
 
 

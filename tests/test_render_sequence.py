@@ -1,9 +1,11 @@
+import pytest
 import torch
+from helpers import moving_patch_scene
 
 from diff4splat.cameras import CameraPath, intrinsics_from_fov
 from diff4splat.render.sequence import render_path
 from diff4splat.scene.dynamic import DynamicGaussians
-from diff4splat.scene.gaussians import Gaussians, rgb_to_sh0
+from diff4splat.scene.gaussians import Gaussians, rgb_to_sh0, sh0_to_rgb
 
 
 def test_each_frame_renders_the_scene_at_its_own_time():
@@ -32,3 +34,22 @@ def test_each_frame_renders_the_scene_at_its_own_time():
         assert abs(centroid_x - expected) < 0.2, (i, centroid_x, expected)
         peak = alphas[i].argmax()
         torch.testing.assert_close(depths[i].flatten()[peak], torch.tensor(2.0, dtype=torch.float64), atol=1e-9, rtol=0)
+
+
+def test_features_are_composited_beside_the_colours_in_the_same_pass():
+    """With temporal support (only the Gaussians seen at t are drawn): a feature equal to each Gaussian's own colour
+    (SH degree 0) renders as the colour over a black background, the scene's depth and alpha unchanged; one-hot
+    channels sum to the alpha (they are composited over 0); a (M, C) shape is required."""
+    scene, cams = moving_patch_scene(n=200, frames=5, temporal=True, width=48, height=40)
+    rgb = sh0_to_rgb(scene.canonical.sh[:, 0])
+    plain, depth, alpha = render_path(scene, cams, background=(0.0, 0.0, 0.0))
+    both, depth2, alpha2 = render_path(scene, cams, background=(0.0, 0.0, 0.0),
+                                       features=torch.cat([rgb, torch.nn.functional.one_hot(
+                                           torch.arange(200) % 3, 3).float()], 1))
+    assert both.shape == (5, 40, 48, 9) and torch.equal(both[..., :3], plain)
+    torch.testing.assert_close(both[..., 3:6], plain, atol=1e-5, rtol=0)
+    torch.testing.assert_close(both[..., 6:].sum(-1), alpha, atol=1e-5, rtol=0)
+    assert torch.equal(depth, depth2) and torch.equal(alpha, alpha2)
+    assert float(alpha.amax()) > 0.5  # something is drawn at every one of these times
+    with pytest.raises(ValueError, match="features"):
+        render_path(scene, cams, features=torch.zeros(199, 2))

@@ -17,6 +17,7 @@ from diff4splat.cameras.path import CameraPath
 from diff4splat.render.rasterize import rasterize
 from diff4splat.render.raytrace import raytrace
 from diff4splat.render.settings import BACKGROUND
+from diff4splat.render.sh import color_features
 from diff4splat.scene.dynamic import DynamicGaussians
 
 __all__ = ["render_path", "render_rolling_shutter"]
@@ -28,6 +29,7 @@ def render_path(
     cameras: CameraPath,
     *,
     background: tuple[float, float, float] = BACKGROUND,
+    features: Tensor | None = None,
     progress: bool = False,
     **rasterize_kwargs,
 ) -> tuple[Tensor, Tensor, Tensor]:
@@ -36,31 +38,45 @@ def render_path(
     Args:
         scene: canonical Gaussians (SH colours) + optional deformation; cameras: T cameras with times in [0, 1].
         background: RGB in [0, 1] behind the Gaussians; progress: tqdm progress bar over frames.
+        features: (M, C) per-Gaussian channels (e.g. one-hot object ids) composited beside the colours over 0, in
+            the same pass (the SH colours are then evaluated by :func:`~diff4splat.render.sh.color_features`).
         **rasterize_kwargs: passed to :func:`diff4splat.render.rasterize` (e.g. ``tile_size``, ``eps2d``); not
             ``render_mode`` ("RGB+ED"), ``backgrounds`` or ``sh_degree`` (the scene's), which are set here.
 
     Returns:
-        colors (T, H, W, 3) in [0, 1] (clamped), expected depth (T, H, W) metres (0 where alpha = 0),
-        alphas (T, H, W) in [0, 1]; on the scene's device.
+        colors (T, H, W, 3) in [0, 1] (clamped; with ``features`` (T, H, W, 3 + C), the features unclamped after
+        the colours), expected depth (T, H, W) metres (0 where alpha = 0), alphas (T, H, W) in [0, 1]; on the
+        scene's device.
 
     Raises:
-        ValueError: as :func:`~diff4splat.render.rasterize`.
+        ValueError: as :func:`~diff4splat.render.rasterize`; ``features`` not (M, C).
     """
     dtype, device = scene.canonical.means.dtype, scene.canonical.means.device
-    bg = torch.tensor([background], dtype=dtype, device=device)
+    M, C = scene.num_gaussians, 0 if features is None else features.shape[-1]
+    if features is not None and (features.dim() != 2 or features.shape[0] != M):
+        raise ValueError(f"features must be (M, C) = ({M}, C), got {tuple(features.shape)}")
+    bg = torch.tensor([[*background, *([0.0] * C)]], dtype=dtype, device=device)
     viewmats = cameras.viewmats.to(device=device, dtype=dtype)
     Ks = cameras.Ks.to(device=device, dtype=dtype)
     T, H, W = len(cameras), cameras.height, cameras.width
     for i in tqdm(range(T), desc="render", disable=not progress, leave=False):
-        g = scene.at(float(cameras.times[i]))
-        out, alpha, _ = rasterize(g.means, g.quats, g.scales, g.opacities, g.sh, viewmats[i:i + 1],
-                                  Ks[i:i + 1], W, H, sh_degree=g.sh_degree, backgrounds=bg, render_mode="RGB+ED",
+        t = float(cameras.times[i])
+        g = scene.at(t)
+        colors_in, degree = g.sh, g.sh_degree
+        if features is not None:  # the Gaussians at(t) keeps, in order, with their channels beside their colours
+            kept = scene.active_indices(t)
+            colors_in = torch.cat([color_features(g.sh, g.means, viewmats[i:i + 1], g.sh_degree)[0],
+                                   (features if kept is None else features[kept]).to(device, dtype)], -1)
+            degree = None
+        out, alpha, _ = rasterize(g.means, g.quats, g.scales, g.opacities, colors_in, viewmats[i:i + 1],
+                                  Ks[i:i + 1], W, H, sh_degree=degree, backgrounds=bg, render_mode="RGB+ED",
                                   **rasterize_kwargs)
         if i == 0:  # the outputs filled frame by frame (no stack of T frames): the renderer's dtype, the scene's device
-            colors, depths = out.new_empty(T, H, W, 3), out.new_empty(T, H, W)
+            colors, depths = out.new_empty(T, H, W, 3 + C), out.new_empty(T, H, W)
             alphas = alpha.new_empty(T, H, W)
-        torch.clamp(out[0, ..., :3], 0, 1, out=colors[i])
-        depths[i], alphas[i] = out[0, ..., 3], alpha[0, ..., 0]
+        torch.clamp(out[0, ..., :3], 0, 1, out=colors[i, ..., :3])
+        colors[i, ..., 3:] = out[0, ..., 3:-1]
+        depths[i], alphas[i] = out[0, ..., -1], alpha[0, ..., 0]
     return colors, depths, alphas
 
 
