@@ -326,6 +326,15 @@ def test_gaussians_holding_few_keyframes_are_drawn_as_the_renderer_draws_them(br
             # a still one's pose is the PLY's as Spark packed it (scales in 8-bit log steps), as it is drawn
             np.testing.assert_allclose(got["scale"], ref.scales[i].numpy(), rtol=3e-3 if i >= 20 else 2.5e-2)
     assert checked >= 40  # of 120: seen, posed and checked
+    # after time changes (each writing only the Gaussians seen then or now), Spark holds every Gaussian as a fresh
+    # write at the last time would: opacity within its 8-bit step, seen ones at their pose (float16 centres)
+    for t in (0.1, 0.5, 0.3, 0.97):
+        page.evaluate("t => d4s.setTime(t)", t)
+    for i in range(60):
+        want, got = page.evaluate("i => d4s.splatAt(0.97, i)", i), page.evaluate("i => d4s.packedSplat(i)", i)
+        assert got["opacity"] == pytest.approx(want["opacity"], abs=3e-3), i
+        if want["opacity"] > 0:
+            np.testing.assert_allclose(got["mean"], want["mean"], atol=3e-3)
     page.close()
 
 

@@ -231,6 +231,10 @@ async function main() {
     const d = ka[3] * kb[3] + ka[4] * kb[4] + ka[5] * kb[5] + ka[6] * kb[6];
     const sb = d < 0 ? -w : w, sa = 1 - w;
     q.set(sa * ka[4] + sb * kb[4], sa * ka[5] + sb * kb[5], sa * ka[6] + sb * kb[6], sa * ka[3] + sb * kb[3]).normalize();
+    return opacityAt(t, i);
+  }
+  // Gaussian i's opacity at time t: o, or o times its temporal support.
+  function opacityAt(t, i) {
     const tp = data.temporal;
     if (!tp) return opac[i];
     if (tp.ramps) {  // the trapezoid clamp((σ_t − |t − μ_t|)/r_t, 0, 1); r_t = 0: a box open at its ends
@@ -240,13 +244,21 @@ async function main() {
     const z = (t - tp.means[i]) / tp.scales[i];
     return opac[i] * Math.exp(-0.5 * z * z);
   }
+  // The opacity last written into Spark's splat i (−1: never): a Gaussian unseen then and now, or one that holds no
+  // keyframe and has no temporal support (its pose and opacity never change), is not written again.
+  const written = new Float32Array(n).fill(-1);
   function setTime(t) {
     state.time = t;
     if (!data) return;
     const { k, k1, w } = bracket(t);
     for (let i = 0; i < n; i++) {
+      if (written[i] >= 0) {
+        if (!data.temporal && keys && keys.count[i] === 0) continue;
+        if (written[i] === 0 && opacityAt(t, i) === 0) continue;
+      }
       const o = splatAt(k, k1, w, t, i);
       packed.setSplat(i, c, sc, q, o, colors[i]);
+      written[i] = o;
     }
     packed.needsUpdate = true;
     splats.updateVersion?.();
@@ -256,6 +268,11 @@ async function main() {
     if (!data) return null;  // a scene that does not change with time keeps the PLY's Gaussians
     const { k, k1, w } = bracket(t), o = splatAt(k, k1, w, t, i);
     return { mean: c.toArray(), quat: [q.w, q.x, q.y, q.z], scale: sc.toArray(), opacity: o };
+  };
+  // For tests: Gaussian i as Spark holds it now (packed: centre float16, opacity 8-bit).
+  state.packedSplat = (i) => {
+    const s = packed.getSplat(i);
+    return { mean: [s.center.x, s.center.y, s.center.z], opacity: s.opacity };
   };
   // For tests: the view camera's pose (three.js, OpenGL axes) and the orbit's target.
   state.pose = () => ({ position: camera.position.toArray(), quaternion: camera.quaternion.toArray(),
