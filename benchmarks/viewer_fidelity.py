@@ -9,6 +9,12 @@ splats), against the photograph as the output shows it (centre-cropped, resized)
 thumbnail of the photograph and the CPU render of frame 0 (``rgb/0000.png``) against the same photograph.
 
     python benchmarks/viewer_fidelity.py [PHOTO ...] [--scales 1 3] [--write]   # default: examples/chelsea.png
+    python benchmarks/viewer_fidelity.py --video CLIP [--start K] [--write]
+
+``--video``: ``reconstruct`` of every other frame of a clip (17 given frames, stride 2, from ``--start``) and the
+folder's embedded viewer.html (reduced to its size budget as written) at every frame time of the clip, given and
+in between, from the still camera at 1×, against the video's frames; beside it the CPU render of the given frames
+(``rgb/``), and for the in-between frames holding the previous given frame and blending the two neighbours.
 """
 from __future__ import annotations
 
@@ -28,6 +34,8 @@ from _common import markdown_table, publish  # noqa: E402
 
 from diff4splat.generate import generate, write  # noqa: E402
 from diff4splat.io.image import preprocess_image, read_image  # noqa: E402
+from diff4splat.io.video_input import read_video_clip  # noqa: E402
+from diff4splat.reconstruct import reconstruct  # noqa: E402
 from training.eval_metrics import image_psnr, thumbnail  # noqa: E402
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
@@ -56,12 +64,56 @@ def canvas_at_input_camera(browser, viewer: Path, width: int, height: int, scale
     return img
 
 
+def canvas_at_time(page, t: float, width: int, height: int) -> np.ndarray:
+    """The open page's canvas (1×, the first path camera) once it has drawn time ``t``: (height, width, 3) in [0, 1]."""
+    page.evaluate("t => d4s.setTime(t)", t)
+    drawn = page.evaluate("d4s.renders")
+    page.wait_for_function(f"d4s.renders > {drawn + 4}", timeout=120_000)
+    page.wait_for_timeout(300)  # the worker's sort
+    png = page.screenshot(clip=page.locator("#view").bounding_box(), timeout=300_000)  # large scenes draw slowly
+    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[..., ::-1].astype(np.float32) / 255
+    if img.shape[:2] != (height, width):
+        raise RuntimeError(f"canvas {img.shape[1]}×{img.shape[0]}, expected {width}×{height}")
+    return img
+
+
+def reconstruct_row(browser, video: Path, start: int, tmp: Path) -> list:
+    """The ``--video`` row (module docstring)."""
+    frames = 17
+    out = tmp / "rec"
+    write(reconstruct(video, frames=frames, stride=2, start=start, frame_plys=False), out)
+    H, W = (int(x) for x in cv2.imread(str(out / "rgb" / "0000.png")).shape[:2])
+    clip = read_video_clip(video, 2 * frames - 1, 1, start)
+    truth = [preprocess_image(f, (H, W)).numpy() for f in clip.frames]
+    page = browser.new_page(viewport={"width": W, "height": H + 400})  # room for the controls and the note
+    page.goto((out / "viewer.html").as_uri())
+    page.wait_for_function("window.d4s && (window.d4s.ready || window.d4s.error)", timeout=600_000)
+    if page.evaluate("d4s.error") is not None:
+        raise RuntimeError(f"{out}/viewer.html: {page.evaluate('d4s.error')}")
+    note = page.locator("#note").inner_text()
+    mse = {"given": [], "between": []}
+    for j in range(2 * frames - 1):
+        canvas = canvas_at_time(page, j / (2 * frames - 2), W, H)
+        mse["given" if j % 2 == 0 else "between"].append(float(((canvas - truth[j]) ** 2).mean()))
+    page.close()
+    cpu = [cv2.imread(str(out / "rgb" / f"{k:04d}.png"))[..., ::-1].astype(np.float32) / 255 for k in range(frames)]
+    err = lambda a, b: float(((a - b) ** 2).mean())  # noqa: E731
+    db = lambda m: f"{-10 * np.log10(np.mean(m)):.2f}"  # noqa: E731
+    hold = [err(truth[2 * k], truth[2 * k + 1]) for k in range(frames - 1)]
+    blend = [err((truth[2 * k] + truth[2 * k + 2]) / 2, truth[2 * k + 1]) for k in range(frames - 1)]
+    return [f"{video.name}, start {start}", f"{W}×{H}", note.split(":")[-1].split("—")[0].strip() or "no",
+            db(mse["given"]), db([err(cpu[k], truth[2 * k]) for k in range(frames)]), db(mse["between"]),
+            db(hold), db(blend)]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("photos", nargs="*", type=Path, default=[EXAMPLE])
     ap.add_argument("--scales", type=int, nargs="+", default=[1, 3],
                     help="canvas pixels per output pixel, odd (default: 1 3)")
     ap.add_argument("--write", action="store_true", help="write the table into docs/benchmarks.md")
+    ap.add_argument("--video", type=Path, help="a reconstruct row instead of photos (module docstring)")
+    ap.add_argument("--start", type=int, default=0, help="--video's first frame")
     args = ap.parse_args()
     if any(s < 1 or s % 2 == 0 for s in args.scales):
         ap.error(f"--scales must be odd positive integers (an output pixel's centre is a canvas pixel's), "
@@ -69,6 +121,21 @@ def main() -> None:
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
     if chromium is None:
         raise SystemExit("viewer_fidelity: needs Chromium (apt-get install chromium)")
+    if args.video is not None:
+        with tempfile.TemporaryDirectory() as tmp, sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=chromium, args=CHROMIUM_FLAGS)
+            row = reconstruct_row(browser, args.video, args.start, Path(tmp))
+            browser.close()
+        table = markdown_table(["clip", "output", "page reduced", "page, given frames dB",
+                                "CPU render (rgb/), given dB", "page, in-between frames dB", "hold dB", "blend dB"],
+                               [row])
+        publish(f"viewer_fidelity_reconstruct_{args.video.stem}_{args.start}",
+                "A `reconstruct` folder's viewer.html against its video",
+                "Shipped base model; `reconstruct` of every other frame (17 given, `--no-frame-plys`), its "
+                "embedded viewer.html (as written: reduced to the size budget) opened from disk in headless Chromium "
+                "(SwiftShader WebGL, Spark) at 1× from the still camera at each frame time of the clip, against the "
+                "video's frames; the in-between frames were not given to `reconstruct`.", table, args.write)
+        return
     rows = []
     with tempfile.TemporaryDirectory() as tmp, sync_playwright() as p:
         browser = p.chromium.launch(executable_path=chromium, args=CHROMIUM_FLAGS)

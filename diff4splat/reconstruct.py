@@ -62,8 +62,8 @@ from models.ldrm import source_frame_indices
 
 __all__ = ["reconstruct", "reconstruct_scene", "still_cameras", "clip_cameras", "carried_depth", "check_layers",
            "layer_frames", "check_layer_knobs", "scene_slots", "memory_estimate", "layer_support", "RECONSTRUCT_KIND",
-           "LAYER_ORDER_OFFSET",
-           "FLOW_SIZE", "GATE_PX", "FB_TOLERANCE_PX", "MOVING_FRACTION", "LAYERS", "DEFAULT_LAYERS"]
+           "LAYER_ORDER_OFFSET", "FLOW_SIZE", "GATE_PX", "FB_TOLERANCE_PX", "MOVING_FRACTION", "LAYERS",
+           "DEFAULT_LAYERS"]
 
 RECONSTRUCT_KIND = "reconstruct"
 """Marker kind of a ``reconstruct`` output folder (the layout is ``generate``'s)."""
@@ -200,8 +200,8 @@ def reconstruct_scene(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraP
     frame 0's layer, the backdrop, the other layers).
 
     Raises:
-        ValueError: bad frames, T ≠ 1 + 4k, cameras not T at (W, H), an unknown ``layers``, ``order_offset`` not finite
-            and ≥ 0, ``unchecked`` < 0; a path that sees nothing.
+        ValueError: bad frames, T ≠ 1 + 4k, cameras not T at (W, H), an unknown ``layers``, an ``order_offset`` that
+            is not a finite number ≥ 0, an ``unchecked`` that is not None or an int ≥ 0; a path that sees nothing.
     """
     _check_frames(pipe, frames, cameras)
     check_layers(layers)
