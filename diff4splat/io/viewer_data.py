@@ -134,9 +134,9 @@ def key_windows(scene: DynamicGaussians, times: Tensor, still: Tensor | None = N
     n, F = scene.num_gaussians, times.shape[0]
     times = times.double().cpu()
     still = (still_gaussians(scene) if still is None else still).cpu()
-    cpu = times.device  # the windows are page data: built on the host
-    first = torch.zeros(n, dtype=torch.int64, device=cpu)
-    last = torch.full((n,), F - 1, dtype=torch.int64, device=cpu)
+    host = times.device  # the windows are page data: built on the host
+    first = torch.zeros(n, dtype=torch.int64, device=host)
+    last = torch.full((n,), F - 1, dtype=torch.int64, device=host)
     if scene.t_ramps is not None:
         mu, sigma = scene.t_means.detach().double().cpu(), scene.t_scales.detach().double().cpu()
         first = (torch.searchsorted(times, mu - sigma, right=True) - 1).clamp(0, F - 1)
@@ -282,8 +282,9 @@ def encode_keyframes(held: Tensor | None, windows: tuple[Tensor, Tensor] | None,
     first, count = (w.cpu() for w in windows)
     if first.numel() and int((first + count).max()) > 65535:
         raise ValueError("key windows are uint16: at most 65535 key times")
-    out += torch.cat([first, count]).cpu().numpy().astype("<u2").tobytes()
-    return out + held.reshape(-1).cpu().numpy().astype("<f2" if dtype == "float16" else "<f4").tobytes()
+    out += torch.cat([first, count]).cpu().numpy().astype("<u2").tobytes()  # device: the page's bytes, on the host
+    values = held.reshape(-1).cpu().numpy()  # device: the page's bytes, on the host
+    return out + values.astype("<f2" if dtype == "float16" else "<f4").tobytes()
 
 
 def payload_bytes(num_gaussians: int, sh_degree: int, held_keyframes: int, temporal_arrays: int, itemsize: int,
@@ -365,14 +366,14 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
         reductions.append(f"SH degree {degree} → 0")
         degree = 0
     F = 0 if times is None else times.shape[0]
-    keep_f = F
-    while budget is not None and size() > budget and keep_f > 2 and 2 * held() * 10 * itemsize > size():
-        keep_f -= 1  # fewer keyframes while they are the larger part of the payload
-        first, count = key_windows(scene, times[evenly_spaced(F, keep_f).unique()], still)
-    if keep_f < F:
-        idx = evenly_spaced(F, keep_f).unique()
-        reductions.append(f"{F} → {idx.numel()} keyframes")
-        times = times[idx]
+    kept_times = times
+    while (budget is not None and kept_times is not None and size() > budget and len(kept_times) > 2
+           and 2 * held() * 10 * itemsize > size()):
+        kept_times = times[evenly_spaced(F, len(kept_times) - 1).unique()]  # fewer while they are the larger part
+        first, count = key_windows(scene, kept_times, still)
+    if kept_times is not None and len(kept_times) < F:
+        reductions.append(f"{F} → {len(kept_times)} keyframes")
+        times = kept_times
     keep = None
     if budget is not None and size() > budget:
         order = covering_order(canonical.opacities.detach().cpu(), canonical.scales.detach().cpu())
