@@ -12,10 +12,12 @@ from diff4splat.cameras import CameraPath, intrinsics_from_fov
 from diff4splat.io import MARKER, load_depth_exr, load_ply, load_video, save_ply
 from diff4splat.io.scene_folder import (
     DEFORMATION_ARRAYS,
+    deflated,
     fill_empty_depth,
     is_layout_file,
     load_deformation,
     load_output_scene,
+    save_deformation,
     write_scene_folder,
 )
 from diff4splat.scene.dynamic import DynamicGaussians
@@ -182,6 +184,62 @@ def test_load_deformation_round_trip_and_frames_limit(tmp_path, monkeypatch):
     np.testing.assert_array_equal(got["d_means"], a["d_means"])
     monkeypatch.setenv("DIFF4SPLAT_MAX_FRAMES", "4")  # K = 5 key times: checked from the header, before reading
     _refused(path, load_deformation, path, match="exceeds the limit of 4 frames")
+
+
+def _layered_scene(M=400, K=5, moving=10, dense=False):
+    """A scene of M Gaussians, ``moving`` of them displaced (all with ``dense``), identity rotations and scales,
+    trapezoid temporal support: a ``reconstruct``-like deformation, mostly identity rows."""
+    scene, *_ = _inputs(T=K, M=M)
+    g = torch.Generator().manual_seed(1)
+    d_means = torch.randn(K, M, 3, generator=g) * 0.1
+    if not dense:
+        d_means[:, moving:] = 0
+    return DynamicGaussians(scene.canonical, scene.times, d_means, scene.d_quats, scene.d_scales,
+                            torch.rand(M, generator=g), torch.full((M,), 0.25), torch.full((M,), 0.25))
+
+
+def test_save_deformation_deflates_mostly_identity_arrays_and_stores_dense_ones(tmp_path):
+    path = tmp_path / "deformation.npz"
+    scene = _layered_scene()
+    save_deformation(path, scene)
+    keys = ("times", "d_means", "d_quats", "d_scales", "t_means", "t_scales", "t_ramps")
+    with zipfile.ZipFile(path) as zf:
+        infos = {i.filename: i for i in zf.infolist()}
+    assert sorted(infos) == sorted(f"{k}.npy" for k in keys)
+    assert all(i.compress_type == zipfile.ZIP_DEFLATED for i in infos.values())
+    raw = sum(getattr(scene, k).numel() * 4 for k in keys)
+    assert path.stat().st_size < raw / 5  # the identity rows are runs zlib shrinks
+    got, plain = load_deformation(path, 400), np.load(path)  # ours and numpy's own reader: the same exact arrays
+    for k in keys:
+        np.testing.assert_array_equal(got[k], getattr(scene, k).numpy())
+        np.testing.assert_array_equal(plain[k], got[k])
+    dense = _layered_scene(dense=True)
+    save_deformation(path, dense)
+    with zipfile.ZipFile(path) as zf:
+        methods = {i.filename: i.compress_type for i in zf.infolist()}
+    assert methods["d_means.npy"] == zipfile.ZIP_STORED and methods["d_quats.npy"] == zipfile.ZIP_DEFLATED
+    np.testing.assert_array_equal(load_deformation(path, 400)["d_means"], dense.d_means.numpy())
+    data = bytearray(path.read_bytes())  # a deflated member's stream broken: one error naming the file
+    at = data.index(b"t_means.npy") + 40
+    data[at:at + 8] = bytes(8)
+    path.write_bytes(bytes(data))
+    _refused(path, load_deformation, path, 400)
+
+
+def test_deflated_counts_identity_rows_not_values():
+    rows = np.zeros((2, 4, 3), np.float32)
+    assert deflated("d_means", rows)
+    rows[:, :, 1] = 1.0  # two of three values zero in every row, but no row the identity
+    assert not deflated("d_means", rows)
+    rows[:, :2, 1] = 0.0  # exactly half the rows the identity
+    assert deflated("d_means", rows)
+    rows[0, 1, 1] = 1.0  # one row fewer
+    assert not deflated("d_means", rows)
+    quats = np.zeros((1, 4, 4), np.float32)
+    quats[..., 0] = 1.0
+    assert deflated("d_quats", quats) and not deflated("d_quats", -quats)  # (−1, 0, 0, 0): not the stored identity
+    assert not deflated("d_scales", np.full((1, 4, 3), 0.1, np.float32))
+    assert deflated("t_means", np.random.default_rng(0).random(8).astype(np.float32))
 
 
 def _folder(tmp_path, dynamic=True, meta=None):

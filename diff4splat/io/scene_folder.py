@@ -9,6 +9,7 @@ import json
 import math
 import os
 import platform
+import time
 import zipfile
 import zlib
 from collections.abc import Callable, Iterable
@@ -137,9 +138,29 @@ def _zip_call(path: Path, what: str, fn: Callable, *args):
         raise ValueError(f"{path}: {what} ({' '.join(str(e).split()) or type(e).__name__})") from None
 
 
-def save_deformation(path: str | os.PathLike, scene: DynamicGaussians) -> None:
+IDENTITY_DEFORMATION = {"d_means": (0.0, 0.0, 0.0), "d_quats": (1.0, 0.0, 0.0, 0.0), "d_scales": (0.0, 0.0, 0.0)}
+"""Each deformation array's identity row: no displacement, no rotation (wxyz), no log-scale change."""
+DEFLATE_LEVEL = 1
+"""zlib level of the members :func:`save_deformation` deflates (level 6, numpy's, took 1.7× as long on a
+``reconstruct`` scene for 3 % fewer bytes; docs/benchmarks.md, "deformation.npz")."""
+
+
+def deflated(key: str, array: np.ndarray) -> bool:
+    """Whether :func:`save_deformation` deflates the member ``key``: a deformation array (K, M, c) when at least half
+    of its rows are the identity (:data:`IDENTITY_DEFORMATION`: a still Gaussian's, or a scene of layers, each moving
+    near its own time: zlib shrinks those runs ~25×, where a dense deformation's float noise gains ~30 % for 20× the
+    write time); the per-Gaussian temporal arrays (M,) and ``times`` always (few distinct values, small)."""
+    if key not in IDENTITY_DEFORMATION:
+        return True
+    identity = (array == np.asarray(IDENTITY_DEFORMATION[key], dtype=array.dtype)).all(axis=-1)
+    return 2 * int(np.count_nonzero(identity)) >= identity.size
+
+
+def save_deformation(path: str | os.PathLike, scene: DynamicGaussians, *, level: int = DEFLATE_LEVEL) -> None:
     """Write ``deformation.npz`` atomically: float32 times, d_means, d_quats, d_scales when the scene deforms, and
-    t_means (M,), t_scales (M,) (and t_ramps (M,) for a trapezoid) when it has temporal support.
+    t_means (M,), t_scales (M,) (and t_ramps (M,) for a trapezoid) when it has temporal support. A standard ``.npz``
+    (``numpy.load`` reads it); the members :func:`deflated` says are zlib-deflated at ``level`` (1–9), the others
+    stored.
 
     Raises:
         ValueError: the scene has neither (nothing to write).
@@ -148,10 +169,16 @@ def save_deformation(path: str | os.PathLike, scene: DynamicGaussians) -> None:
         raise ValueError("a static scene without temporal support has no deformation to save")
     keys = (() if scene.is_static else _DEFORMATION_KEYS) + (_TEMPORAL_KEYS if scene.has_temporal else ())
     keys += ("t_ramps",) if scene.t_ramps is not None else ()
-    arrays = {k: getattr(scene, k).detach().cpu().float().numpy() for k in keys}  # device: np.savez writes host arrays
-    with atomic_output_path(Path(path)) as tmp:
-        with open(tmp, "wb") as f:
-            np.savez(f, **arrays)
+    with (atomic_output_path(Path(path)) as tmp,
+          zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=level) as zf):
+        for key in keys:  # one array at a time, streamed into its member as np.savez does
+            array = getattr(scene, key).detach().cpu().float().numpy()  # device: the .npy bytes are written from host
+            member = f"{key}.npy"  # a name takes the archive's deflate; a ZipInfo says stored
+            if not deflated(key, array):
+                member = zipfile.ZipInfo(member, date_time=time.localtime()[:6])
+                member.compress_type = zipfile.ZIP_STORED
+            with zf.open(member, "w", force_zip64=True) as f:
+                np.lib.format.write_array(f, np.ascontiguousarray(array), allow_pickle=False)
 
 
 def _npy_header(f) -> tuple[tuple[int, ...], bool, np.dtype]:
