@@ -90,7 +90,7 @@ def reconstruct_row(browser, video: Path, start: int, tmp: Path) -> list:
     page.wait_for_function("window.d4s && (window.d4s.ready || window.d4s.error)", timeout=600_000)
     if page.evaluate("d4s.error") is not None:
         raise RuntimeError(f"{out}/viewer.html: {page.evaluate('d4s.error')}")
-    note = page.locator("#note").inner_text()
+    reductions = page.evaluate("JSON.parse(document.getElementById('d4s-config').textContent).reductions")
     mse = {"given": [], "between": []}
     for j in range(2 * frames - 1):
         canvas = canvas_at_time(page, j / (2 * frames - 2), W, H)
@@ -101,7 +101,7 @@ def reconstruct_row(browser, video: Path, start: int, tmp: Path) -> list:
     db = lambda m: f"{-10 * np.log10(np.mean(m)):.2f}"  # noqa: E731
     hold = [err(truth[2 * k], truth[2 * k + 1]) for k in range(frames - 1)]
     blend = [err((truth[2 * k] + truth[2 * k + 2]) / 2, truth[2 * k + 1]) for k in range(frames - 1)]
-    return [f"{video.name}, start {start}", f"{W}×{H}", note.split(":")[-1].split("—")[0].strip() or "no",
+    return [f"{video.name}, start {start}", f"{W}×{H}", "; ".join(reductions) or "no",
             db(mse["given"]), db([err(cpu[k], truth[2 * k]) for k in range(frames)]), db(mse["between"]),
             db(hold), db(blend)]
 

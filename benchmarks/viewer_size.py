@@ -98,7 +98,7 @@ def row(name: str, path: Path, payload, url: str | None = None) -> list:
     held = c["heldKeyframes"] / max(1, c["numGaussians"] * len(c["times"])) if c["times"] else 0.0
     return [name, f"{c['numGaussians']:,}", c["shDegree"], len(c["times"]), f"{held:.2f}", c["dtype"],
             "—" if c["float16ErrorPx"] is None else f"{c['float16ErrorPx']:.3f}",
-            c["bytesPerGaussianPerFrame"], f"{c['bytesPerGaussianPerFrame'] * 4 / 3:.1f}",
+            c["bytesPerHeldKey"], f"{c['bytesPerHeldKey'] * 4 / 3:.1f}",
             mb(len(payload.ply)), mb(len(payload.frames or b"")), mb(path.stat().st_size),
             "; ".join(payload.reductions) or "no", "—" if ready is None else f"{ready:.1f}",
             "—" if step is None else f"{step:.0f}", "—" if heap is None else f"{heap:.0f}"]

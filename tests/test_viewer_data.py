@@ -58,7 +58,7 @@ def test_key_times_of_static_and_temporal_only_scenes():
     p = viewer_payload(temporal, cams)
     assert p.config["dynamic"] is True and p.config["times"] == []
     assert p.config["timeRange"] == pytest.approx([0.2, 0.7])
-    assert len(p.frames) == 8 * 10 and p.config["bytesPerGaussianPerFrame"] == 0
+    assert len(p.frames) == 8 * 10 and p.config["bytesPerHeldKey"] == 0
     back = decode_keyframes(p.frames, p.config)
     np.testing.assert_array_equal(back["t_means"], temporal.t_means.numpy())
     np.testing.assert_array_equal(back["t_scales"], temporal.t_scales.numpy())
@@ -179,7 +179,7 @@ def test_ramps_travel_after_the_time_scales():
     p = viewer_payload(scene, cams)
     assert p.config["temporal"] and p.config["temporalRamps"]
     held = p.config["heldKeyframes"]
-    itemsize = p.config["bytesPerGaussianPerFrame"] // 10
+    itemsize = p.config["bytesPerHeldKey"] // 10
     assert len(p.frames) == payload_bytes(30, 0, held, 3, itemsize, True) - 30 * 17 * 4
     back = decode_keyframes(p.frames, p.config)
     np.testing.assert_array_equal(back["t_ramps"], scene.t_ramps.numpy())
@@ -244,7 +244,8 @@ def test_ply_is_the_canonical_scene(tmp_path):
     torch.testing.assert_close(g.means, scene.canonical.means)
     torch.testing.assert_close(g.sh, scene.canonical.sh)
     assert p.config["shDegree"] == 2 and p.config["numGaussians"] == 25 and p.config["note"] == ""
-    assert p.config["bytesPerGaussianPerFrame"] == 20  # 10 float16 values
+    assert p.config["reductions"] == []
+    assert p.config["bytesPerHeldKey"] == 20  # 10 float16 values
     assert len(p.ply) - p.ply.index(b"end_header\n") - 11 + len(p.frames) == payload_bytes(25, 2, 125, 0, 2, True)
 
 
@@ -255,6 +256,7 @@ def test_budget_reductions_in_order():
     # just under: SH 3 → 0 is enough
     p = viewer_payload(scene, cams, budget=full - 1)
     assert p.reductions == ["SH degree 3 → 0"] and p.config["shDegree"] == 0 and "reduced" in p.config["note"]
+    assert p.config["reductions"] == p.reductions
     # a budget for the PLY at SH 0 plus 3 keyframes: 9 → 3 keyframes, the first and the last kept
     budget = payload_bytes(200, 0, 3 * 200, 0, 2, True)
     p = viewer_payload(scene, cams, budget=budget)

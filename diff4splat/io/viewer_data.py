@@ -407,7 +407,8 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
         "targetDistance": _target_distance(first_pose, cameras.viewmats[0].detach().cpu()),
         "note": ("reduced to fit the viewer's size budget: " + "; ".join(reductions) +
                  " — run `diff4splat view DIR` for the full scene") if reductions else "",
-        "bytesPerGaussianPerFrame": 10 * itemsize if frames is not None else 0,
+        "reductions": list(reductions),
+        "bytesPerHeldKey": 10 * itemsize if frames is not None else 0,
     }
     if not math.isfinite(config["far"]):
         config["far"] = 1e4
