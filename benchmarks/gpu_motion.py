@@ -89,6 +89,7 @@ def copy_out(run: Path, out: Path) -> None:
 
 def unpack(weights: Path, out: Path) -> Path:
     """A model folder ``out`` from :func:`start_model` and a checkpoint's ``model.safetensors``."""
+    out.parent.mkdir(parents=True, exist_ok=True)
     model = start_model(out.parent)
     state = {k[len("model."):]: v for k, v in load_weights(weights).items() if k.startswith("model.")}
     model.load_state_dict(state, strict=True)
