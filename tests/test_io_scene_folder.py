@@ -240,6 +240,11 @@ def test_deflated_counts_identity_rows_not_values():
     assert deflated("d_quats", quats) and not deflated("d_quats", -quats)  # (−1, 0, 0, 0): not the stored identity
     assert not deflated("d_scales", np.full((1, 4, 3), 0.1, np.float32))
     assert deflated("t_means", np.random.default_rng(0).random(8).astype(np.float32))
+    big = np.zeros((2, 50_000, 3), np.float32)  # more rows than are sampled: the sample still tells the share
+    big[:, ::4, 2] = 0.5
+    assert deflated("d_scales", big)
+    big[:, 1::4, 2] = big[:, 2::4, 2] = 0.5
+    assert not deflated("d_scales", big)
 
 
 def _folder(tmp_path, dynamic=True, meta=None):
