@@ -141,8 +141,8 @@ def _zip_call(path: Path, what: str, fn: Callable, *args):
 IDENTITY_DEFORMATION = {"d_means": (0.0, 0.0, 0.0), "d_quats": (1.0, 0.0, 0.0, 0.0), "d_scales": (0.0, 0.0, 0.0)}
 """Each deformation array's identity row: no displacement, no rotation (wxyz), no log-scale change."""
 DEFLATE_LEVEL = 1
-"""zlib level of the members :func:`save_deformation` deflates (level 6, numpy's, took 1.7× as long on a
-``reconstruct`` scene for 3 % fewer bytes; docs/benchmarks.md, "deformation.npz")."""
+"""zlib level of the members :func:`save_deformation` deflates (level 6, numpy's, took 1.5× as long on a
+``reconstruct`` scene for 12 % fewer bytes; docs/benchmarks.md, "deformation.npz: stored against deflated")."""
 
 
 DEFLATE_SAMPLE_ROWS = 65536
