@@ -157,8 +157,8 @@ def deflated(key: str, array: np.ndarray) -> bool:
     per-Gaussian temporal arrays (M,) and ``times`` always (few distinct values, small)."""
     if key not in IDENTITY_DEFORMATION:
         return True
-    rows = array.reshape(-1, array.shape[-1])
-    rows = rows[::-(-len(rows) // DEFLATE_SAMPLE_ROWS)] if len(rows) > DEFLATE_SAMPLE_ROWS else rows
+    n = math.prod(array.shape[:-1])  # rows picked by index: no copy of an expanded (stride-0) array
+    rows = array[np.unravel_index(np.arange(0, n, max(1, -(-n // DEFLATE_SAMPLE_ROWS))), array.shape[:-1])]
     identity = (rows == np.asarray(IDENTITY_DEFORMATION[key], dtype=array.dtype)).all(axis=-1)
     return 2 * int(np.count_nonzero(identity)) >= identity.size
 
@@ -185,7 +185,7 @@ def save_deformation(path: str | os.PathLike, scene: DynamicGaussians, *, level:
                 member = zipfile.ZipInfo(member, date_time=time.localtime()[:6])
                 member.compress_type = zipfile.ZIP_STORED
             with zf.open(member, "w", force_zip64=True) as f:
-                np.lib.format.write_array(f, np.ascontiguousarray(array), allow_pickle=False)
+                np.lib.format.write_array(f, array, allow_pickle=False)  # in chunks, strided or not
 
 
 def _npy_header(f) -> tuple[tuple[int, ...], bool, np.dtype]:
