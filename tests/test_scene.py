@@ -86,6 +86,24 @@ def test_select_keeps_deformation_aligned():
     torch.testing.assert_close(sub.at(1.0).means, scene.at(1.0).means[mask])
 
 
+def test_select_keeps_a_row_shared_by_every_gaussian_a_view():
+    g = _gaussians(6)
+    times = torch.tensor([0.0, 0.5, 1.0], dtype=torch.float64)
+    per_key = torch.randn(3, 1, 3, dtype=torch.float64)  # one log-scale row per key, shared by every Gaussian
+    shared = DynamicGaussians(g, times, torch.randn(3, 6, 3, dtype=torch.float64),
+                              torch.tensor([1.0, 0, 0, 0], dtype=torch.float64).expand(3, 6, 4),
+                              per_key.expand(3, 6, 3))
+    dense = DynamicGaussians(g, times, shared.d_means, shared.d_quats.clone(), shared.d_scales.clone())
+    mask = torch.tensor([True, False, True, False, False, True])
+    for index in (mask, torch.tensor([4, 1, 1]), torch.tensor([], dtype=torch.long)):
+        sub, ref = shared.select(index), dense.select(index)
+        assert sub.d_quats.stride()[:2] == (0, 0) and sub.d_scales.stride(1) == 0  # still views
+        for key in ("d_means", "d_quats", "d_scales"):
+            assert torch.equal(getattr(sub, key), getattr(ref, key)), key
+        for t in (0.0, 0.3, 1.0):
+            torch.testing.assert_close(sub.at(t).scales, ref.at(t).scales)
+
+
 @pytest.mark.parametrize("temporal", [False, True])
 @pytest.mark.parametrize("gate", [0.0, 0.2])
 @pytest.mark.parametrize("static", [False, True])

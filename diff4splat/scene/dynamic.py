@@ -249,8 +249,8 @@ class DynamicGaussians:
             values.update(t_means=self.t_means[index], t_scales=self.t_scales[index],
                           t_ramps=None if self.t_ramps is None else self.t_ramps[index])
         if not self.is_static:
-            values.update(d_means=self.d_means[:, index], d_quats=self.d_quats[:, index],
-                          d_scales=self.d_scales[:, index])
+            n = values["canonical"].num_gaussians
+            values.update({k: _select_rows(getattr(self, k), index, n) for k in ("d_means", "d_quats", "d_scales")})
         return _unchecked(DynamicGaussians, values)
 
     def without_deformation(self, atol: float = 0.0) -> DynamicGaussians:
@@ -272,6 +272,12 @@ class DynamicGaussians:
 
 _UNSET = object()
 _KERNEL = [_UNSET]
+
+
+def _select_rows(x: Tensor, index: Tensor, n: int) -> Tensor:
+    """``x[:, index]`` (K, n, c); a view when ``x`` (K, M, c) repeats one row for every Gaussian (stride 0, as
+    ``reconstruct``'s identity rotations and scales), which indexing would copy K·n·c times over."""
+    return x[:, :1].expand(x.shape[0], n, x.shape[2]) if x.stride(1) == 0 else x[:, index]
 
 
 def _deform_kernel():
