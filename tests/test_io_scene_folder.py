@@ -224,6 +224,10 @@ def test_save_deformation_deflates_mostly_identity_arrays_and_stores_dense_ones(
     data[at:at + 8] = bytes(8)
     path.write_bytes(bytes(data))
     _refused(path, load_deformation, path, 400)
+    for level in (0, 10, 1.0, True):
+        with pytest.raises(ValueError, match="level must be an int in 1–9"):
+            save_deformation(tmp_path / "other.npz", scene, level=level)
+    assert not (tmp_path / "other.npz").exists()
 
 
 def test_deflated_counts_identity_rows_not_values():

@@ -170,8 +170,10 @@ def save_deformation(path: str | os.PathLike, scene: DynamicGaussians, *, level:
     stored.
 
     Raises:
-        ValueError: the scene has neither (nothing to write).
+        ValueError: the scene has neither (nothing to write); ``level`` not an int in 1–9.
     """
+    if isinstance(level, bool) or not isinstance(level, int) or not 1 <= level <= 9:
+        raise ValueError(f"level must be an int in 1–9 (zlib's), got {level!r}")
     if not scene.changes_with_time:
         raise ValueError("a static scene without temporal support has no deformation to save")
     keys = (() if scene.is_static else _DEFORMATION_KEYS) + (_TEMPORAL_KEYS if scene.has_temporal else ())
