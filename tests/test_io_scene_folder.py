@@ -207,6 +207,11 @@ def test_save_deformation_deflates_mostly_identity_arrays_and_stores_dense_ones(
         infos = {i.filename: i for i in zf.infolist()}
     assert sorted(infos) == sorted(f"{k}.npy" for k in keys)
     assert all(i.compress_type == zipfile.ZIP_DEFLATED for i in infos.values())
+    assert all(i.date_time == (1980, 1, 1, 0, 0, 0) for i in infos.values())  # no clock: the same bytes each time
+    fast = path.stat().st_size
+    save_deformation(path, scene, level=9)  # the level reaches zlib: smaller at 9 than at 1
+    assert path.stat().st_size < fast
+    save_deformation(path, scene)
     raw = sum(getattr(scene, k).numel() * 4 for k in keys)
     assert path.stat().st_size < raw / 5  # the identity rows are runs zlib shrinks
     got, plain = load_deformation(path, 400), np.load(path)  # ours and numpy's own reader: the same exact arrays

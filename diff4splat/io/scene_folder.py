@@ -9,7 +9,6 @@ import json
 import math
 import os
 import platform
-import time
 import zipfile
 import zlib
 from collections.abc import Callable, Iterable
@@ -182,10 +181,11 @@ def save_deformation(path: str | os.PathLike, scene: DynamicGaussians, *, level:
           zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=level) as zf):
         for key in keys:  # one array at a time, streamed into its member as np.savez does
             array = getattr(scene, key).detach().cpu().float().numpy()  # device: the .npy bytes are written from host
-            member = f"{key}.npy"  # a name takes the archive's deflate; a ZipInfo says stored
-            if not deflated(key, array):
-                member = zipfile.ZipInfo(member, date_time=time.localtime()[:6])
-                member.compress_type = zipfile.ZIP_STORED
+            # the zip epoch as every member's time: the same scene gives the same bytes
+            member = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            member.compress_type = zipfile.ZIP_DEFLATED if deflated(key, array) else zipfile.ZIP_STORED
+            # a member's zlib level: ZipInfo.compress_level from Python 3.13, its _compresslevel slot before
+            setattr(member, "compress_level" if hasattr(member, "compress_level") else "_compresslevel", level)
             with zf.open(member, "w", force_zip64=True) as f:
                 np.lib.format.write_array(f, array, allow_pickle=False)  # in chunks, strided or not
 
