@@ -142,8 +142,6 @@ IDENTITY_DEFORMATION = {"d_means": (0.0, 0.0, 0.0), "d_quats": (1.0, 0.0, 0.0, 0
 DEFLATE_LEVEL = 1
 """zlib level of the members :func:`save_deformation` deflates (level 6, numpy's, took 1.5× as long on a
 ``reconstruct`` scene for 12 % fewer bytes; docs/benchmarks.md, "deformation.npz: stored against deflated")."""
-
-
 DEFLATE_SAMPLE_ROWS = 65536
 """At most this many evenly spaced rows of a deformation array are looked at by :func:`deflated`."""
 
@@ -177,8 +175,7 @@ def save_deformation(path: str | os.PathLike, scene: DynamicGaussians, *, level:
         raise ValueError("a static scene without temporal support has no deformation to save")
     keys = (() if scene.is_static else _DEFORMATION_KEYS) + (_TEMPORAL_KEYS if scene.has_temporal else ())
     keys += ("t_ramps",) if scene.t_ramps is not None else ()
-    with (atomic_output_path(Path(path)) as tmp,
-          zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=level) as zf):
+    with atomic_output_path(Path(path)) as tmp, zipfile.ZipFile(tmp, "w") as zf:  # each member says its method
         for key in keys:  # one array at a time, streamed into its member as np.savez does
             array = getattr(scene, key).detach().cpu().float().numpy()  # device: the .npy bytes are written from host
             # the zip epoch as every member's time: the same scene gives the same bytes
