@@ -3,8 +3,9 @@
 The VAE encodes the clip and the LDRM gives its source frames' depth (nothing is sampled); every frame (or the source
 frames alone) becomes a photo layer (:func:`diff4splat.assembly.photo.photo_layer`) on that depth carried along the
 optical flow (:func:`carried_depth`), moved by the motion measured from the frames
-(:func:`diff4splat.geometry.scene_flow.source_frame_motion`) and shown only between its neighbours' times, where the
-two layers around a time cross-fade exactly (:func:`layer_support`); a still clip gives a static scene
+(:func:`diff4splat.geometry.scene_flow.source_motion`) and shown only between its neighbours' times, where the
+two layers around a time cross-fade exactly (:func:`layer_support`), so only there is it tracked
+(:func:`layer_spans`; frame 0's layer over the whole clip); a still clip gives a static scene
 (docs/DESIGN.md, "Motion measured from frames …")::
 
     from diff4splat.generate import write
@@ -38,7 +39,7 @@ from diff4splat.generate import (
     generation_meta,
     resolve_pipeline,
 )
-from diff4splat.geometry.scene_flow import chain_flows, consecutive_flows, sample_pixels, source_frame_motion
+from diff4splat.geometry.scene_flow import chain_flows, consecutive_flows, sample_pixels, source_motion
 from diff4splat.io.image import preprocess_image
 from diff4splat.io.inputs import check_input_file
 from diff4splat.io.video import DEFAULT_FPS
@@ -62,7 +63,7 @@ from models.ldrm import source_frame_indices
 
 __all__ = ["reconstruct", "reconstruct_scene", "still_cameras", "clip_cameras", "carried_depth", "check_layers",
            "layer_frames", "check_layer_knobs", "scene_slots", "memory_estimate", "layer_support", "RECONSTRUCT_KIND",
-           "LAYER_ORDER_OFFSET", "FLOW_SIZE", "GATE_PX", "FB_TOLERANCE_PX", "MOVING_FRACTION", "LAYERS",
+           "LAYER_ORDER_OFFSET", "layer_spans", "FLOW_SIZE", "GATE_PX", "FB_TOLERANCE_PX", "MOVING_FRACTION", "LAYERS",
            "DEFAULT_LAYERS"]
 
 RECONSTRUCT_KIND = "reconstruct"
@@ -179,11 +180,19 @@ def _pushed_back(layer: Gaussians, viewmat: Tensor, factor: float) -> Gaussians:
                      layer.sh)
 
 
+def layer_spans(frames_of: list[int]) -> list[tuple[int, int]]:
+    """Each layer's tracked frames (first, last): frame 0's layer over the whole clip (the clip's 3D tracks), every
+    other from its previous layer's frame to its next one's, the only times it is shown (:func:`layer_support`)."""
+    last = frames_of[-1]
+    return [(0, last) if s == 0 else (frames_of[s - 1], frames_of[min(s + 1, len(frames_of) - 1)])
+            for s in range(len(frames_of))]
+
+
 def _layer_motion(motion: Tensor, height: int, width: int) -> Tensor:
-    """Per-pixel displacements (T, H, W, 3) → the photo layer's (T, H·W + ⌈H/2⌉·⌈W/2⌉, 3) (backing: 2×2 means)."""
-    T = motion.shape[0]
+    """Per-pixel displacements (K, H, W, 3) → the photo layer's (K, H·W + ⌈H/2⌉·⌈W/2⌉, 3) (backing: 2×2 means)."""
+    K = motion.shape[0]
     block = F.avg_pool2d(motion.permute(0, 3, 1, 2), 2, ceil_mode=True).permute(0, 2, 3, 1)
-    return torch.cat([motion.reshape(T, height * width, 3), block.reshape(T, -1, 3)], dim=1)
+    return torch.cat([motion.reshape(K, height * width, 3), block.reshape(K, -1, 3)], dim=1)
 
 
 @torch.no_grad()
@@ -226,49 +235,62 @@ def reconstruct_scene(pipe: Diff4SplatPipeline, frames: Tensor, cameras: CameraP
     flows = consecutive_flows(images.permute(0, 3, 1, 2), upsample=max(1, round(FLOW_SIZE / H)))
     z = torch.stack([carried_depth(z_src, indices, f, flows) for f in frames_of])  # (L, H, W)
     spacing = frames_of[1] - frames_of[0] if len(frames_of) > 1 else 1  # a layer is seen this far from its frame
-    motion = source_frame_motion(images.permute(0, 3, 1, 2), z, frames_of, cameras.Ks, cameras.viewmats,
-                                 fb_tolerance=FB_TOLERANCE_PX, gate_px=GATE_PX, flows=flows,
-                                 unchecked=spacing if unchecked is None else unchecked)  # (T, L, H, W, 3)
-    moved = (motion.abs() > cfg.static_atol).any(dim=-1).flatten(2).float().mean(dim=-1)  # (T, L)
-    dynamic = bool((moved > MOVING_FRACTION).any())
-    if not dynamic:
-        motion = motion.zero_()
+    # The backdrop (static, behind everything) first: when the scene moves, the only pruning is of its cells that no
+    # camera sees, so the layers' motion is laid out for the kept cells alone and never copied by a selection.
+    backdrop = backdrop_layer(images[0], z[0], cameras.viewmats[0], cameras.Ks[0])
+    seen, stats = prune_mask(DynamicGaussians(backdrop), cameras, min_opacity=cfg.prune_opacity)
+    timings["backdrop"] = clock.lap()
+    photo, L = layer_sizes(W, H)[0], len(frames_of)
+    kept = int(seen.sum())
+    offsets = [0] + [photo + kept + (s - 1) * photo for s in range(1, L)]  # each layer's first Gaussian
+    # Each layer's motion, tracked only over the frames it is shown at (layer_spans), written in place: the scene's
+    # (T, N, 3) is the one copy of it.
+    d_means = z.new_zeros(T, L * photo + kept, 3)
+    dynamic = False
+    for s, (lo, hi) in enumerate(layer_spans(frames_of)):
+        motion = source_motion(flows, z, frames_of, s, cameras.Ks, cameras.viewmats, (lo, hi),
+                               fb_tolerance=FB_TOLERANCE_PX, gate_px=GATE_PX,
+                               unchecked=spacing if unchecked is None else unchecked)  # (hi − lo + 1, H, W, 3)
+        moved = (motion.abs() > cfg.static_atol).any(dim=-1).flatten(1).float().mean(dim=-1)  # (hi − lo + 1,)
+        dynamic = dynamic or bool((moved > MOVING_FRACTION).any())
+        d_means[lo:hi + 1, offsets[s]:offsets[s] + photo] = _layer_motion(motion, H, W)
+        del motion
     timings["motion"] = clock.lap()
-    parts, d_means, grid = [], [], []  # the layers and the backdrop, in the scene's order
+    if not dynamic:  # a still world: every backdrop cell goes to settle_and_prune with the layers
+        del d_means
+    parts, grid = [], []  # the layers and the backdrop, in the scene's order
     for s, f in enumerate(frames_of):
         layer, history = photo_layer(images[f], z[s], cameras.viewmats[f], cameras.Ks[f])
-        factor = 1 + order_offset if dynamic and s % 2 else 1.0  # odd layers behind (layer_support)
-        parts.append(_pushed_back(layer, cameras.viewmats[f], factor) if factor != 1 else layer)
-        d_means.append(_layer_motion(motion[:, s], H, W) * factor)
+        if dynamic and s % 2:  # odd layers behind (layer_support)
+            parts.append(_pushed_back(layer, cameras.viewmats[f], 1 + order_offset))
+            d_means[:, offsets[s]:offsets[s] + photo] *= 1 + order_offset
+        else:
+            parts.append(layer)
         grid.append(torch.full((layer.num_gaussians,), s, dtype=torch.long, device=dev))
-        if s == 0:  # the backdrop follows frame 0's layer: static, behind everything
+        if s == 0:
             photo_psnr = history[-1]
-            backdrop = backdrop_layer(images[0], z[0], cameras.viewmats[0], cameras.Ks[0])
-            parts.append(backdrop)
-            d_means.append(z.new_zeros(T, backdrop.num_gaussians, 3))
-            grid.append(torch.zeros(backdrop.num_gaussians, dtype=torch.long, device=dev))
+            parts.append(backdrop.select(seen) if dynamic else backdrop)
+            grid.append(torch.zeros(parts[-1].num_gaussians, dtype=torch.long, device=dev))
     canonical = Gaussians(*(torch.cat([getattr(g, f) for g in parts])
                             for f in ("means", "quats", "scales", "opacities", "sh")))
     grid = torch.cat(grid)
-    N, n0 = canonical.num_gaussians, parts[0].num_gaussians
-    back = slice(n0, n0 + backdrop.num_gaussians)
+    N, n0, n_back = L * photo + backdrop.num_gaussians, parts[0].num_gaussians, parts[1].num_gaussians
     if dynamic:  # each layer between its neighbours' times, the two around a time cross-faded (layer_support)
         layer_of = grid.clone()
-        layer_of[back] = -1  # the backdrop
+        layer_of[n0:n0 + n_back] = -1  # the backdrop
         support = layer_support(cameras.times[torch.tensor(frames_of, device=dev)].float(), layer_of)
-        scene = DynamicGaussians(canonical, cameras.times, torch.cat(d_means, 1),
-                                 canonical.means.new_tensor(IDENTITY_QUAT).expand(T, N, 4),
-                                 canonical.means.new_zeros(()).expand(T, N, 3), *support)
+        M = canonical.num_gaussians
+        scene = DynamicGaussians(canonical, cameras.times, d_means,
+                                 canonical.means.new_tensor(IDENTITY_QUAT).expand(T, M, 4),
+                                 canonical.means.new_zeros(()).expand(T, M, 3), *support)
+        timings["assemble"] = clock.lap()
+        # every layer is observed: only the backdrop's unseen cells went (above)
+        slots, end = torch.arange(N, device=dev), n0 + backdrop.num_gaussians
+        index = torch.cat([slots[:n0], slots[n0:end][seen], slots[end:]])
+        stats = {**stats, "before": N, "after": M, "duplicates": 0, "slid": 0, "occluders": 0}
     else:  # a still world: the layers of one static scene, overlaps settled as generate settles its frames
         scene = DynamicGaussians(canonical)
-    timings["assemble"] = clock.lap()
-    if dynamic:  # every layer is observed: only the backdrop's cells that no camera sees go
-        index = torch.arange(N, device=dev)
-        keep = torch.ones(N, dtype=torch.bool, device=dev)
-        keep[back], stats = prune_mask(scene.select(index[back]), cameras, min_opacity=cfg.prune_opacity)
-        scene, index = scene.select(keep), index[keep]
-        stats = {**stats, "before": N, "after": int(keep.sum()), "duplicates": 0, "slid": 0, "occluders": 0}
-    else:
+        timings["assemble"] = clock.lap()
         scene, index, stats = settle_and_prune(scene, grid, cameras, torch.tensor(frames_of, device=dev), z[0], n0,
                                                cfg.prune_opacity)
     timings["prune"] = clock.lap()
@@ -302,15 +324,16 @@ def scene_slots(width: int, height: int, num_layers: int) -> int:
 
 def memory_estimate(pipe: Diff4SplatPipeline, width: int, height: int, frames: int, num_layers: int) -> int:
     """Upper bound of ``reconstruct``'s peak host memory, bytes (constants of
-    :meth:`Diff4SplatPipeline.memory_estimate`): process and weights; per slot its attributes and T × 10 floats ×
-    (copies + 1); the motion maps (T × layers × H × W × 3 floats) twice; the flows; the frames, T × H × W × 5 floats,
-    twice."""
+    :meth:`Diff4SplatPipeline.memory_estimate`): process and weights; per slot its attributes and its Δμ, T × 3
+    floats, × (copies + 1) (the rotations and scales are one row shared by every Gaussian); one layer's motion over
+    the whole clip (frame 0's, :func:`layer_spans`), T × H × W × 3 floats, four times (its tracks, its lifting and
+    its layer's copy); the flows; the frames, T × H × W × 5 floats, twice."""
     slots = scene_slots(width, height, num_layers)
     weights = pipe.runtime.host_weight_bytes() if isinstance(pipe.runtime, TorchRuntime) else 0
     base = MEMORY_BASE_BYTES + (MEMORY_CUDA_BUILD_BYTES if torch.backends.cuda.is_built() else 0)
     pixels = width * height
-    return int(base + weights + slots * (MEMORY_BYTES_PER_GAUSSIAN + 40 * frames * (MEMORY_SCENE_COPIES + 1))
-               + 2 * 12 * frames * num_layers * pixels + 16 * frames * pixels + 2 * 20 * frames * pixels)
+    return int(base + weights + slots * (MEMORY_BYTES_PER_GAUSSIAN + 12 * frames * (MEMORY_SCENE_COPIES + 1))
+               + 4 * 12 * frames * pixels + 16 * frames * pixels + 2 * 20 * frames * pixels)
 
 
 def reconstruct(video: str | os.PathLike, cameras: str | os.PathLike | CameraPath | None = None, *,

@@ -16,7 +16,14 @@ from diff4splat.generate import load_pipeline
 from diff4splat.geometry.scene_flow import consecutive_flows
 from diff4splat.io import OutputDirError, load_cameras_json, load_image, save_cameras_json, save_image, save_video
 from diff4splat.io.video_input import read_video_clip
-from diff4splat.reconstruct import LAYER_ORDER_OFFSET, carried_depth, memory_estimate, reconstruct, still_cameras
+from diff4splat.reconstruct import (
+    LAYER_ORDER_OFFSET,
+    carried_depth,
+    layer_spans,
+    memory_estimate,
+    reconstruct,
+    still_cameras,
+)
 from diff4splat.render.sequence import render_path
 
 SIZE = 64
@@ -140,6 +147,25 @@ def test_the_two_layers_around_a_time_cross_fade(videos, base_pipeline):
     front = lambda layer: z[(unpruned == layer) & (index % n0 < SIZE * SIZE)]  # noqa: E731  the front disks
     ratio = front(1) / front(0)[: front(1).numel()]
     assert float(ratio.median()) == pytest.approx(1 + LAYER_ORDER_OFFSET, rel=2e-3)
+
+
+def test_a_layer_is_tracked_only_where_it_is_shown_and_frame_0_s_over_the_clip(videos, base_pipeline):
+    """layer_spans: a layer k ≥ 1 is shown only between its neighbours' times (the test above), so its motion is
+    measured there and is exactly zero at every other key time; frame 0's layer is tracked over the whole clip (the
+    patch's pixels have moved 16 px by the last frame)."""
+    root, _ = videos
+    gen = reconstruct(root / "moving", pipeline=base_pipeline, frames=9, stride=2, resolution=SIZE)
+    scene, index, n0 = gen.result.scene, gen.result.gaussian_index, gen.result.photo_gaussians
+    backdrop = gen.result.num_slots - 9 * n0
+    unpruned = torch.where(index < n0, 0, torch.where(index < n0 + backdrop, -1, 1 + (index - n0 - backdrop) // n0))
+    moved = scene.d_means.norm(dim=-1) > 0  # (T, N)
+    for k in range(1, 9):
+        outside = [t for t in range(9) if abs(t - k) > 1]
+        assert not bool(moved[outside][:, unpruned == k].any()), k
+        assert bool(moved[min(k + 1, 8)][unpruned == k].any() | moved[k - 1][unpruned == k].any()), k
+    assert bool(moved[8][unpruned == 0].any())
+    assert layer_spans([0, 1, 2, 3]) == [(0, 3), (0, 2), (1, 3), (2, 3)]
+    assert layer_spans([0, 4, 8]) == [(0, 8), (0, 8), (4, 8)]
 
 
 def test_the_layers_knobs_reach_the_scene_and_bad_ones_fail_first(videos, base_pipeline):

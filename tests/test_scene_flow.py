@@ -9,6 +9,7 @@ import torch
 from diff4splat.cameras import intrinsics_from_fov, look_at
 from diff4splat.geometry.scene_flow import (
     chain_flows,
+    consecutive_flows,
     lift_tracks,
     optical_flow,
     pixel_centres,
@@ -189,6 +190,38 @@ def test_source_frames_move_with_the_video(texture, device):
             dx = d[t, s][inner][..., 0]
             assert abs(float(dx.median()) - (t - f) * 2 * metres_per_px) < 0.25 * metres_per_px, (s, t)
             assert float(d[t, s][inner][..., 2].abs().median()) < 1e-6
+
+
+def test_a_span_gives_the_whole_clips_motion_within_it_and_zero_outside(texture, device):
+    """Tracking is causal and a span ends on source frames, so each source's motion within its span is the whole
+    clip's to the bit (content that accelerates, with varied depth so the depth interpolation matters), and zero
+    outside."""
+    T, size = 7, 40
+    frames = torch.stack([_window(texture, 60, 60 - t * t // 2, size) for t in range(T)]).to(device)
+    K = intrinsics_from_fov(size, size, fov_x_deg=60.0, dtype=torch.float64).to(device)
+    Ks, viewmats = K[None].expand(T, 3, 3), torch.eye(4, dtype=torch.float64, device=device)[None].expand(T, 4, 4)
+    sources = [0, 2, 3, 6]
+    depths = (2.0 + torch.rand(len(sources), size, size, dtype=torch.float64,
+                               generator=torch.Generator().manual_seed(0))).to(device)
+    flows = consecutive_flows(frames)
+    whole = source_frame_motion(frames, depths, sources, Ks, viewmats, flows=flows, gate_px=0.5)
+    spans = [(0, 6), (0, 3), (2, 6), (3, 6)]
+    part = source_frame_motion(frames, depths, sources, Ks, viewmats, flows=flows, gate_px=0.5, spans=spans)
+    assert all(float(whole[f, s].abs().max()) == 0.0 for s, f in enumerate(sources))  # each source at home
+    for s, (lo, hi) in enumerate(spans):
+        assert torch.equal(part[lo:hi + 1, s], whole[lo:hi + 1, s]), s
+        assert float(part[:lo, s].abs().sum() + part[hi + 1:, s].abs().sum()) == 0.0
+        assert float(whole[lo:hi + 1, s].abs().max()) > 0 or s == 3
+    assert float(whole[[0, 1, 6], 1].abs().max()) > 0  # what the span of source 1 leaves out was motion
+
+
+def test_bad_spans_are_refused(device):
+    frames = torch.rand(5, 3, 8, 8, device=device)
+    Ks, viewmats = _plane_setup(device, 5)
+    depths = torch.ones(2, 8, 8, device=device)
+    for spans in ([(0, 4)], [(1, 4), (0, 4)], [(0, 5), (0, 4)], [(0, 3), (2, 4)], [(0, 2.0), (0, 4)]):
+        with pytest.raises(ValueError, match="spans"):
+            source_frame_motion(frames, depths, [0, 2], Ks, viewmats, spans=spans)
 
 
 def test_bad_inputs_are_refused(device):

@@ -27,7 +27,8 @@ from diff4splat.cameras import invert_rigid
 from diff4splat.utils.checks import check_positive_int
 
 __all__ = ["DIS_PRESETS", "FLOW_UPSAMPLE", "FB_TOLERANCE_PX", "GATE_PX", "optical_flow", "consecutive_flows",
-           "chain_flows", "track_pixels", "lift_tracks", "source_frame_motion", "sample_pixels", "pixel_centres",
+           "chain_flows", "track_pixels", "lift_tracks", "source_frame_motion", "source_motion", "check_sources",
+           "check_spans", "sample_pixels", "pixel_centres",
            "RIGID_DEPTH_FACTORS"]
 
 DIS_PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
@@ -273,38 +274,81 @@ def lift_tracks(positions: Tensor, tracked: Tensor, depths: Tensor, Ks: Tensor, 
     return torch.stack(points), torch.stack(moving)
 
 
+def check_sources(sources: list[int], num_frames: int, depths_shape: tuple, height: int, width: int) -> list[int]:
+    """``sources`` as ints if they increase within [0, ``num_frames``) and ``depths_shape`` is (S, ``height``,
+    ``width``); else ValueError."""
+    sources = [int(f) for f in sources]
+    if tuple(depths_shape) != (len(sources), height, width) or any(b <= a for a, b in pairwise(sources)) \
+            or not sources or sources[0] < 0 or sources[-1] >= num_frames:
+        raise ValueError(f"depths {tuple(depths_shape)} must be (S, {height}, {width}) for S increasing sources within "
+                         f"[0, {num_frames}), got sources {sources}")
+    return sources
+
+
+def source_motion(flows: tuple[Tensor, Tensor], depths: Tensor, sources: list[int], s: int, Ks: Tensor,
+                  viewmats: Tensor, span: tuple[int, int], *, fb_tolerance: float = FB_TOLERANCE_PX,
+                  gate_px: float = GATE_PX, unchecked: int = 0) -> Tensor:
+    """(hi − lo + 1, H, W, 3) displacement Δμ, metres, world frame, of source ``s``'s pixels (frame ``sources[s]``) at
+    frames ``span`` = (lo, hi) (:func:`check_spans`): :func:`source_frame_motion` of one source over part of the
+    clip. Tracking is causal in each direction and the span ends on source frames or the clip's ends, so every frame
+    of the span gets exactly what the whole clip's tracking gives it. ``flows``: the clip's
+    :func:`consecutive_flows`; the other arguments as :func:`source_frame_motion` (checked there)."""
+    f = sources[s]
+    lo, hi = span
+    fw, bw = flows
+    H, W = depths.shape[-2:]
+    out = depths.new_zeros(hi - lo + 1, H, W, 3, dtype=torch.promote_types(depths.dtype, torch.float32))
+    for order, forward, backward in ((list(range(f, hi + 1)), fw[f:hi], bw[f:hi]),  # forward in time from f
+                                     (list(range(f, lo - 1, -1)), bw[lo:f].flip(0), fw[lo:f].flip(0))):  # backward
+        if len(order) < 2:
+            continue
+        keys = [i for i, frame in enumerate(order) if frame in sources]
+        positions, tracked = chain_flows(forward, backward, fb_tolerance=fb_tolerance, unchecked=unchecked)
+        points, _ = lift_tracks(positions, tracked, depths[[sources.index(order[i]) for i in keys]],
+                                Ks[order], viewmats[order], depth_frames=keys, gate_px=gate_px)
+        out[[frame - lo for frame in order]] = (points - points[:1]).to(out.dtype)
+    return out
+
+
+def check_spans(spans: list[tuple[int, int]] | None, sources: list[int], num_frames: int) -> list[tuple[int, int]]:
+    """Each source's (first, last) tracked frame: ``spans`` if every one is a pair of ints with 0 ≤ first ≤ source ≤
+    last < ``num_frames``, each a source frame or an end of the clip (where the depth between source frames is
+    interpolated, :func:`lift_tracks`, both of its ends are then in the span), one per source; None: the whole clip
+    for each. Else ValueError."""
+    if spans is None:
+        return [(0, num_frames - 1)] * len(sources)
+    spans = [tuple(x) for x in spans]
+    if len(spans) != len(sources) or any(len(x) != 2 or not all(isinstance(v, int) for v in x) for x in spans) \
+            or any(not 0 <= lo <= f <= hi < num_frames for (lo, hi), f in zip(spans, sources, strict=True)) \
+            or any(end not in sources and end not in (0, num_frames - 1) for span in spans for end in span):
+        raise ValueError(f"spans must be one (first, last) frame pair per source with 0 <= first <= source <= last < "
+                         f"{num_frames}, each a source frame or an end of the clip, got {spans} for sources {sources}")
+    return spans
+
+
 def source_frame_motion(frames: Tensor, depths: Tensor, sources: list[int], Ks: Tensor, viewmats: Tensor, *,
                         upsample: int = FLOW_UPSAMPLE, fb_tolerance: float = FB_TOLERANCE_PX,
                         gate_px: float = GATE_PX, flows: tuple[Tensor, Tensor] | None = None,
-                        unchecked: int = 0) -> Tensor:
+                        unchecked: int = 0, spans: list[tuple[int, int]] | None = None) -> Tensor:
     """(T, S, H, W, 3) displacement Δμ(t), metres, world frame, of each source frame's pixels from their position at
     their own frame ``sources[s]`` (S increasing indices in [0, T)): tracked both ways (:func:`chain_flows` over the
     video's :func:`consecutive_flows`, ``flows`` when given) and lifted with the source frames' ``depths`` (S, H, W)
     (:func:`lift_tracks`). ``frames`` (T, 3, H, W) RGB in [0, 1]; ``Ks``, ``viewmats`` (T, 3, 3), (T, 4, 4);
-    ``unchecked``: as :func:`chain_flows`, in each direction.
+    ``unchecked``: as :func:`chain_flows`, in each direction; ``spans``: per source the (first, last) frame it is
+    tracked to (:func:`check_spans`; None: the whole clip), zero outside (:func:`source_motion`).
 
     Raises:
-        ValueError: ``depths`` not (S, H, W), sources not increasing within [0, T), or as :func:`chain_flows` and
-            :func:`lift_tracks`.
+        ValueError: ``depths`` not (S, H, W), sources not increasing within [0, T), bad ``spans``, or as
+            :func:`chain_flows` and :func:`lift_tracks`.
     """
     T, _, H, W = frames.shape
-    sources = [int(f) for f in sources]
-    if depths.shape != (len(sources), H, W) or any(b <= a for a, b in pairwise(sources)) \
-            or not sources or sources[0] < 0 or sources[-1] >= T:
-        raise ValueError(f"depths {tuple(depths.shape)} must be (S, {H}, {W}) for S increasing sources within "
-                         f"[0, {T}), got sources {sources}")
+    sources = check_sources(sources, T, depths.shape, H, W)
+    spans = check_spans(spans, sources, T)
     out = depths.new_zeros(T, len(sources), H, W, 3, dtype=torch.promote_types(depths.dtype, torch.float32))
     if T < 2:
         return out
-    fw, bw = consecutive_flows(frames, upsample=upsample) if flows is None else flows
-    for s, f in enumerate(sources):
-        for order, forward, backward in ((list(range(f, T)), fw[f:], bw[f:]),  # forward in time from f
-                                         (list(range(f, -1, -1)), bw[:f].flip(0), fw[:f].flip(0))):  # backward
-            if len(order) < 2:
-                continue
-            keys = [i for i, frame in enumerate(order) if frame in sources]
-            positions, tracked = chain_flows(forward, backward, fb_tolerance=fb_tolerance, unchecked=unchecked)
-            points, _ = lift_tracks(positions, tracked, depths[[sources.index(order[i]) for i in keys]],
-                                    Ks[order], viewmats[order], depth_frames=keys, gate_px=gate_px)
-            out[order, s] = (points - points[:1]).to(out.dtype)
+    flows = consecutive_flows(frames, upsample=upsample) if flows is None else flows
+    for s, (lo, hi) in enumerate(spans):
+        out[lo:hi + 1, s] = source_motion(flows, depths, sources, s, Ks, viewmats, (lo, hi),
+                                          fb_tolerance=fb_tolerance, gate_px=gate_px, unchecked=unchecked)
     return out
