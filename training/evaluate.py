@@ -145,8 +145,7 @@ def _clip_inputs(pipe: Diff4SplatPipeline, clip: dict) -> tuple[CameraPath, Tens
     return cams, clip["video"][:, 0].permute(1, 2, 0)
 
 
-def _render(res: GenerationResult
-, cameras: CameraPath | None = None) -> tuple[Tensor, Tensor, Tensor]:
+def _render(res: GenerationResult, cameras: CameraPath | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """CPU (colors, depths, alphas) of :func:`render_path` of a scene along ``cameras`` (default: its own path)."""
     cameras = res.cameras if cameras is None else cameras
     out = render_path(res.scene, cameras.to(res.scene.canonical.means.device), eps2d=res.eps2d,
