@@ -14,6 +14,7 @@ from diff4splat.io import load_ply
 from diff4splat.io.viewer_data import (
     FLOAT16_MAX_PX,
     _fits_float16,
+    _keyframes_fit_float16,
     decode_keyframes,
     encode_keyframes,
     evenly_spaced,
@@ -29,6 +30,7 @@ from diff4splat.io.viewer_data import (
     viewer_payload,
 )
 from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.scene.gaussians import Gaussians
 
 
 def test_keyframes_are_the_scene_at_its_key_times():
@@ -187,6 +189,30 @@ def test_ramps_travel_after_the_time_scales():
     np.testing.assert_allclose(back["means"][1], scene.at(0.5, gate=0.0).means.numpy(), atol=2e-3)
     assert not viewer_payload(DynamicGaussians(scene.canonical, t_means=scene.t_means, t_scales=scene.t_scales),
                               cams).config["temporalRamps"]
+
+
+@pytest.mark.parametrize("shared_means", [False, True])
+def test_rows_shared_by_every_gaussian_give_what_their_dense_copies_give(shared_means):
+    """``reconstruct`` gives every Gaussian one identity rotation and scale row (stride 0); still_gaussians,
+    without_deformation and the payload's float16 check read only that row (distinct_rows) and answer as on dense
+    copies: a Gaussian moved by Δμ alone is not still, a scale row off the identity moves every Gaussian, and a scale
+    bound past float16 forces float32."""
+    g = Gaussians(torch.randn(5, 3), torch.tensor([1.0, 0, 0, 0]).expand(5, 4).clone(), torch.full((5, 3), 0.1),
+                  torch.full((5,), 0.9), torch.rand(5, 1, 3))
+    times = torch.tensor([0.0, 0.5, 1.0])
+    d_means = torch.zeros(3, 1, 3).expand(3, 5, 3) if shared_means else torch.zeros(3, 5, 3)
+    if not shared_means:
+        d_means[2, 3, 0] = 0.01
+    for row, still in ((0.0, [True] * 5 if shared_means else [True, True, True, False, True]), (0.2, [False] * 5),
+                       (14.0, [False] * 5)):  # 0.1 m·e¹⁴ ≈ 1.2e5 > 65504
+        d_scales = torch.tensor([0.0, 0.0, row]).expand(3, 3)[:, None].expand(3, 5, 3)
+        d_quats = torch.tensor([1.0, 0, 0, 0]).expand(3, 5, 4)
+        shared = DynamicGaussians(g, times, d_means, d_quats, d_scales)
+        dense = DynamicGaussians(g, times, d_means.clone(), d_quats.clone(), d_scales.clone())
+        assert shared.d_scales.stride(1) == 0 and shared.d_quats.stride(1) == 0
+        assert still_gaussians(shared).tolist() == still_gaussians(dense).tolist() == still
+        assert shared.without_deformation().is_static == dense.without_deformation().is_static == all(still)
+        assert _keyframes_fit_float16(shared, times) == _keyframes_fit_float16(dense, times) == (row < 14)
 
 
 def test_float16_error_closed_form():

@@ -35,7 +35,7 @@ from diff4splat.cameras.path import CameraPath
 from diff4splat.io.ply import ply_bytes
 from diff4splat.io.video import DEFAULT_FPS
 from diff4splat.render.settings import BACKGROUND, EPS2D, NEAR_PLANE
-from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.scene.dynamic import DynamicGaussians, distinct_rows
 from diff4splat.scene.gaussians import Gaussians
 
 __all__ = ["VIEWER_BUDGET_BYTES", "FLOAT16_MAX_PX", "NEAR", "ViewerPayload", "keyframe_times", "time_range",
@@ -116,8 +116,10 @@ def still_gaussians(scene: DynamicGaussians) -> Tensor:
     n = scene.num_gaussians
     if scene.is_static:
         return torch.ones(n, dtype=torch.bool, device=scene.canonical.means.device)
-    moving = (scene.d_means != 0).any(dim=-1).any(dim=0) | (scene.d_scales != 0).any(dim=-1).any(dim=0)
-    return ~(moving | (scene.d_quats[..., 1:] != 0).any(dim=-1).any(dim=0) | (scene.d_quats[..., 0] <= 0).any(dim=0))
+    d_means, d_quats, d_scales = (distinct_rows(x) for x in (scene.d_means, scene.d_quats, scene.d_scales))
+    moving = (d_means != 0).any(dim=-1).any(dim=0) | (d_scales != 0).any(dim=-1).any(dim=0)
+    moving = moving | (d_quats[..., 1:] != 0).any(dim=-1).any(dim=0) | (d_quats[..., 0] <= 0).any(dim=0)
+    return ~moving.expand(n)  # (M,): a shared row's answer holds for every Gaussian
 
 
 def key_windows(scene: DynamicGaussians, times: Tensor, still: Tensor | None = None) -> tuple[Tensor, Tensor]:
@@ -247,8 +249,9 @@ def _keyframes_fit_float16(scene: DynamicGaussians, times: Tensor) -> bool:
     c = scene.canonical
     if c.num_gaussians == 0:
         return True
-    bound = max(float(c.means.detach().abs().max()) + float(scene.d_means.detach().abs().max()),
-                float(c.scales.detach().max()) * math.exp(float(scene.d_scales.detach().max())))
+    lo, hi = torch.aminmax(distinct_rows(scene.d_means.detach()))
+    bound = max(float(c.means.detach().abs().max()) + float(torch.maximum(-lo, hi)),
+                float(c.scales.detach().max()) * math.exp(float(distinct_rows(scene.d_scales.detach()).max())))
     if bound < 65520:
         return True
     for t in times:

@@ -21,7 +21,7 @@ from diff4splat.scene.quaternions import quat_multiply, quat_nlerp, quat_normali
 from diff4splat.utils.checks import check_finite
 from diff4splat.utils.constants import ALPHA_MIN
 
-__all__ = ["DynamicGaussians", "compose_deformation"]
+__all__ = ["DynamicGaussians", "compose_deformation", "distinct_rows"]
 
 
 def compose_deformation(
@@ -257,8 +257,9 @@ class DynamicGaussians:
         """Drop the deformation if it is the identity within ``atol`` (metres / quaternion / log-scale)."""
         if self.is_static:
             return self
-        if self.num_gaussians and not (_within(self.d_means, atol) and _within(self.d_scales, atol)
-                                       and _identity_rotations(self.d_quats, atol)):
+        if self.num_gaussians and not (_within(distinct_rows(self.d_means), atol)
+                                       and _within(distinct_rows(self.d_scales), atol)
+                                       and _identity_rotations(distinct_rows(self.d_quats), atol)):
             return self
         return DynamicGaussians(self.canonical, t_means=self.t_means, t_scales=self.t_scales, t_ramps=self.t_ramps)
 
@@ -272,6 +273,13 @@ class DynamicGaussians:
 
 _UNSET = object()
 _KERNEL = [_UNSET]
+
+
+def distinct_rows(x: Tensor) -> Tensor:
+    """``x`` (K, M, c), or its first row (K, 1, c) when it repeats one row for every Gaussian (stride 0, as
+    ``reconstruct``'s identity rotations and scales): a reduction over the Gaussians gives the same on either, and
+    reads K·c values instead of K·M·c."""
+    return x[:, :1] if x.shape[1] > 0 and x.stride(1) == 0 else x
 
 
 def _select_rows(x: Tensor, index: Tensor, n: int) -> Tensor:
