@@ -20,7 +20,7 @@ from diff4splat.cameras import DEFAULT_AMPLITUDES, DEFAULT_TRAJECTORY, CameraPat
 from diff4splat.cli import build_parser, main
 from diff4splat.io import load_depth_exr, load_image, load_ply, load_video, ply_property_names, save_cameras_json
 from diff4splat.io.image import preprocess_image, read_image
-from diff4splat.io.scene_folder import load_deformation
+from diff4splat.io.scene_folder import deformation_tensors, load_deformation
 from diff4splat.pipeline import Diff4SplatPipeline
 from diff4splat.scene.dynamic import DynamicGaussians
 from diff4splat.scene.quaternions import quat_to_rotmat
@@ -71,7 +71,7 @@ def _check_folder(out, frames, size=64):
 def _check_frames_follow_deformation(out, frames):
     """Every per-frame PLY equals the canonical scene deformed by deformation.npz at that frame's time."""
     canonical = load_ply(out / "scene.ply")
-    d = {k: torch.from_numpy(v) for k, v in load_deformation(out / "deformation.npz").items()}
+    d = deformation_tensors(load_deformation(out / "deformation.npz"))
     assert d["d_means"].shape == (frames, canonical.num_gaussians, 3)
     scene = DynamicGaussians(canonical, d["times"], d["d_means"], d["d_quats"], d["d_scales"])
     times = json.loads((out / "cameras.json").read_text())["times"]

@@ -1,15 +1,18 @@
 """4D Gaussians with temporal support (t_means, t_scales): marginal opacity, exact temporal gating,
 gated Gaussians cost nothing, pruning and the deformation.npz round trip."""
 import math
+import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+import diff4splat.io.scene_folder as scene_folder
 import diff4splat.render.sequence as render_sequence_module
 from diff4splat.assembly.prune import prune_scene
 from diff4splat.cameras import CameraPath, intrinsics_from_fov
-from diff4splat.io.scene_folder import load_deformation, save_deformation
+from diff4splat.io.scene_folder import deformation_tensors, load_deformation, save_deformation
 from diff4splat.render import rasterize, rasterize_dense
 from diff4splat.render.sequence import render_path
 from diff4splat.scene.dynamic import DynamicGaussians
@@ -169,7 +172,7 @@ def test_deformation_npz_round_trip_with_temporal_support(tmp_path, deform):
     d = load_deformation(tmp_path / "d.npz")
     assert set(d) == ({"times", "d_means", "d_quats", "d_scales"} if deform else set()) | {"t_means", "t_scales"}
     np.testing.assert_allclose(d["t_means"], scene.t_means.float().numpy())
-    back = DynamicGaussians(scene.canonical.to(torch.float32), **{k: torch.from_numpy(v) for k, v in d.items()})
+    back = DynamicGaussians(scene.canonical.to(torch.float32), **deformation_tensors(d))
     torch.testing.assert_close(back.at(0.4).opacities, scene.at(0.4).opacities.float())
     with pytest.raises(ValueError, match="no deformation"):
         save_deformation(tmp_path / "e.npz", DynamicGaussians(scene.canonical))
@@ -210,9 +213,46 @@ def test_deformation_npz_round_trip_with_ramps(tmp_path):
     save_deformation(tmp_path / "d.npz", scene)
     d = load_deformation(tmp_path / "d.npz")
     assert set(d) == {"t_means", "t_scales", "t_ramps"}
-    back = DynamicGaussians(scene.canonical.to(torch.float32), **{k: torch.from_numpy(v) for k, v in d.items()})
+    back = DynamicGaussians(scene.canonical.to(torch.float32), **deformation_tensors(d))
     for t in (0.1, 0.45, 0.9):
         torch.testing.assert_close(back.temporal_opacity(t), scene.temporal_opacity(t).float(), rtol=0, atol=1e-5)
     np.savez(tmp_path / "bad.npz", t_ramps=d["t_ramps"])
     with pytest.raises(ValueError, match="t_ramps needs t_means"):
         load_deformation(tmp_path / "bad.npz")
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_rows_shared_by_every_gaussian_are_read_once_and_others_whole(tmp_path, monkeypatch, dtype):
+    """load_deformation streams a (K, M, c) member key by key in small chunks (3 rows here): one row per key for
+    every Gaussian comes back broadcast (stride 0, read-only) and as an expanded tensor through the folder loader;
+    a row differing anywhere (the first Gaussian, mid-chunk, the very last) switches to the whole array, equal to
+    np.load's to the bit, the rows already read written back; a truncated member is one error."""
+    K, M = 3, 11
+    monkeypatch.setattr(scene_folder, "READ_CHUNK_BYTES", 3 * 4 * np.dtype(dtype).itemsize)
+    rng = np.random.default_rng(0)
+    quats = np.broadcast_to(rng.normal(size=(K, 1, 4)).astype(dtype), (K, M, 4))
+    rest = {"times": np.linspace(0, 1, K, dtype=dtype), "d_means": rng.normal(size=(K, M, 3)).astype(dtype),
+            "d_scales": np.zeros((K, M, 3), dtype)}
+
+    def written(name: str, d_quats: np.ndarray) -> Path:
+        np.savez_compressed(tmp_path / name, d_quats=d_quats, **rest)
+        return tmp_path / name
+
+    d = load_deformation(written("shared.npz", quats))
+    assert d["d_quats"].strides[1] == 0 and not d["d_quats"].flags.writeable and d["d_quats"].dtype == np.float32
+    assert np.array_equal(d["d_quats"], quats.astype(np.float32)) and d["d_scales"].strides[1] == 0
+    assert np.array_equal(d["d_means"], rest["d_means"].astype(np.float32))  # differs at once: read whole
+    tensor = deformation_tensors({"d_quats": d["d_quats"]})["d_quats"]
+    assert tensor.stride(1) == 0 and torch.equal(tensor, torch.from_numpy(quats.astype(np.float32)))
+    for k, m in ((0, 0), (0, 1), (1, 4), (2, M - 1)):
+        odd = quats.copy()
+        odd[k, m, 2] += 1
+        d = load_deformation(written("odd.npz", odd))["d_quats"]
+        assert d.strides[1] != 0 and np.array_equal(d, np.load(tmp_path / "odd.npz")["d_quats"].astype(np.float32))
+    with zipfile.ZipFile(tmp_path / "short.npz", "w") as zf:
+        for key, value in {"d_quats": quats.copy(), **rest}.items():
+            np.save(tmp_path / f"{key}.npy", value)
+            raw = (tmp_path / f"{key}.npy").read_bytes()
+            zf.writestr(f"{key}.npy", raw[:-5] if key == "d_quats" else raw)
+    with pytest.raises(ValueError, match="truncated"):
+        load_deformation(tmp_path / "short.npz")

@@ -37,7 +37,8 @@ from diff4splat.utils.checks import check_positive
 from diff4splat.utils.constants import ALPHA_MIN
 from diff4splat.utils.limits import check_limit
 
-__all__ = ["write_scene_folder", "fill_empty_depth", "save_deformation", "load_deformation", "json_default",
+__all__ = ["write_scene_folder", "fill_empty_depth", "save_deformation", "load_deformation", "deformation_tensors",
+           "json_default",
            "load_output_scene", "folder_file", "DEFORMATION_ARRAYS", "is_layout_file", "LAYOUT_FILES", "LAYOUT_FRAMES",
            "layout_frame", "SCENE_FILE", "DEFORMATION_FILE", "CAMERAS_FILE", "META_FILE", "VIDEO_FILE", "FIELD_FILE",
            "METRICS_FILE", "SceneFolder", "load_scene_folder", "scene_depth", "estimate_scene_depth", "scene_meta",
@@ -117,6 +118,8 @@ def fill_empty_depth(depths: Tensor, alphas: Tensor, fallback: float) -> Tensor:
     return torch.where(covered & (depths > 0), depths, far)
 
 
+READ_CHUNK_BYTES = 1 << 24
+"""Bytes of a ``deformation.npz`` member read at a time (into the array's own buffer)."""
 _DEFORMATION_KEYS = ("times", "d_means", "d_quats", "d_scales")
 _TEMPORAL_KEYS = ("t_means", "t_scales")
 _SHAPES = {"times": ("K",), "d_means": ("K", "M", 3), "d_quats": ("K", "M", 4), "d_scales": ("K", "M", 3),
@@ -197,9 +200,51 @@ def _npy_header(f) -> tuple[tuple[int, ...], bool, np.dtype]:
     raise ValueError(f".npy format version {version}, expected 1.0 or 2.0")
 
 
+def _fill(read, view: memoryview, done: int) -> int:
+    """Read into ``view`` from byte ``done`` on, :data:`READ_CHUNK_BYTES` at a time (one read of a deflated member
+    would grow a bytes object); the bytes of ``view`` filled in all."""
+    while done < len(view):
+        chunk = read(min(READ_CHUNK_BYTES, len(view) - done))
+        if not chunk:
+            break
+        view[done:done + len(chunk)] = chunk
+        done += len(chunk)
+    return done
+
+
+def _read_rows(read, shape: tuple[int, int, int], dtype: np.dtype) -> tuple[np.ndarray, int]:
+    """A C-order (K, M, c) array read key by key, (array, bytes read): while every Gaussian's row at each key equals
+    that key's first, the K first rows broadcast to (K, M, c) (float32, read-only, stride 0 along M); at the first row
+    that differs, the whole array in one buffer of ``dtype``, the rows already read written back from their key's
+    first."""
+    K, M, c = shape
+    row = c * dtype.itemsize
+    per_chunk = max(1, READ_CHUNK_BYTES // row)
+    firsts = np.empty((K, 1, c), dtype=dtype)
+    buffer = np.empty(min(per_chunk, M) * row, dtype=np.uint8)
+    done = 0
+    for k in range(K):
+        for start in range(0, M, per_chunk):
+            n = min(per_chunk, M - start)
+            got = _fill(read, memoryview(buffer)[:n * row], 0)
+            done += got
+            if got < n * row:  # truncated: the caller says so
+                return firsts, done
+            piece = buffer[:n * row].view(dtype).reshape(n, c)
+            if start == 0:
+                firsts[k, 0] = piece[0]
+            if not np.array_equal(piece, np.broadcast_to(firsts[k], (n, c))):
+                full = np.empty(shape, dtype=dtype)
+                full[:k], full[k, :start], full[k, start:start + n] = firsts[:k], firsts[k], piece
+                return full, _fill(read, memoryview(full.reshape(-1).view(np.uint8)), done)
+    return np.broadcast_to(firsts.astype(np.float32), shape), done
+
+
 def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, path: Path, dims: dict[str, int]) -> np.ndarray:
     """One array of ``deformation.npz`` as float32, its header (floating dtype, :data:`_SHAPES` with K, M bound in
-    ``dims`` on first sight) checked before its data is read."""
+    ``dims`` on first sight) checked before its data is read. A (K, M, c) array in which every Gaussian has the same
+    row at each key (``reconstruct``'s identity rotations and scales) comes back as those K rows broadcast (read-only,
+    stride 0 along M; :func:`_read_rows`): it is never held whole."""
     key = info.filename[:-len(".npy")]
     corrupt = f"'{key}' is not a readable .npy array"
     with _zip_call(path, corrupt, zf.open, info) as f:
@@ -216,17 +261,31 @@ def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, path: Path, dims: d
             raise ValueError(f"{path}: '{key}' must have shape ({named}) (K key times, M Gaussians of scene.ply), "
                              f"got {shape}")
         size = math.prod(shape) * dtype.itemsize  # bounded: K by the frames limit, M by scene.ply
-        data = _zip_call(path, corrupt, f.read, size)
-    if len(data) != size:
-        raise ValueError(f"{path}: '{key}' is truncated ({len(data)} of {size} bytes)")
-    return np.frombuffer(data, dtype=dtype).reshape(shape, order="F" if fortran else "C").astype(np.float32)
+        read = lambda n: _zip_call(path, corrupt, f.read, n)  # noqa: E731
+        if len(shape) == 3 and not fortran:
+            array, done = _read_rows(read, shape, dtype)
+        else:
+            data = np.empty(size, dtype=np.uint8)
+            done = _fill(read, memoryview(data), 0)
+            array = data.view(dtype).reshape(shape, order="F" if fortran else "C")
+    if done != size:
+        raise ValueError(f"{path}: '{key}' is truncated ({done} of {size} bytes)")
+    return array.astype(np.float32, copy=False)
+
+
+def deformation_tensors(arrays: dict[str, np.ndarray]) -> dict[str, Tensor]:
+    """:func:`load_deformation`'s arrays as CPU tensors on their memory (``DynamicGaussians`` keyword arguments); a
+    broadcast row (stride 0 along M) stays one row in memory, expanded."""
+    return {k: torch.from_numpy(v[:, :1].copy()).expand(v.shape) if v.ndim == 3 and v.strides[1] == 0
+            else torch.from_numpy(v) for k, v in arrays.items()}
 
 
 def load_deformation(path: str | os.PathLike, num_gaussians: int | None = None) -> dict[str, np.ndarray]:
     """Read ``deformation.npz`` → float32 arrays {"times", "d_means", "d_quats", "d_scales"} and/or
     {"t_means", "t_scales"}, with "t_ramps" for a trapezoid (``DynamicGaussians`` keyword arguments), with
     :mod:`zipfile` and numpy's ``.npy`` header parser (never unpickling); each array's dtype and shape are checked
-    before its data is read.
+    before its data is read. A (K, M, c) array whose Gaussians all have the same row at each key comes back as
+    those rows broadcast (read-only, stride 0 along M; :func:`deformation_tensors` keeps them so as tensors).
 
     Args:
         num_gaussians: M of the scene's ``scene.ply``, or None to take it from the file.
@@ -390,7 +449,8 @@ def load_output_scene(folder: str | os.PathLike) -> tuple[DynamicGaussians, dict
     ``deformation.npz``).
 
     Returns:
-        (the canonical Gaussians with their deformation and temporal support, on the CPU; ``meta.json``, {} if absent).
+        (the canonical Gaussians with their deformation and temporal support, on the CPU, an array that is one row
+        for every Gaussian held once (stride 0, :func:`load_deformation`); ``meta.json``, {} if absent).
 
     Raises:
         FileNotFoundError: ``folder`` does not exist, is not a folder, or has no ``scene.ply``.
@@ -419,7 +479,7 @@ def load_output_scene(folder: str | os.PathLike) -> tuple[DynamicGaussians, dict
     if npz is not None:
         arrays = load_deformation(npz, canonical.num_gaussians)
         try:
-            scene = DynamicGaussians(canonical, **{k: torch.from_numpy(v) for k, v in arrays.items()})
+            scene = DynamicGaussians(canonical, **deformation_tensors(arrays))
         except ValueError as e:
             raise ValueError(f"{npz}: {e}") from None
     npz = path / DEFORMATION_FILE
