@@ -104,6 +104,26 @@ def test_select_keeps_a_row_shared_by_every_gaussian_a_view():
             torch.testing.assert_close(sub.at(t).scales, ref.at(t).scales)
 
 
+def test_a_shared_row_is_checked_once_and_deforms_as_its_dense_copy():
+    """Rows shared by every Gaussian (stride 0) are validated on their one row (a zero rotation or a NaN scale
+    still fails, naming the array) and the numba kernel reads them in place: at() equals the dense copy's."""
+    g = _gaussians(7)
+    times = torch.tensor([0.0, 1.0], dtype=torch.float64)
+    d_means = torch.randn(2, 7, 3, dtype=torch.float64)
+    quat = torch.tensor([[0.9, 0.1, -0.2, 0.3], [1.0, 0.0, 0.0, 0.0]], dtype=torch.float64)[:, None].expand(2, 7, 4)
+    log_scale = torch.tensor([[0.1, -0.2, 0.0], [0.0, 0.3, 0.0]], dtype=torch.float64)[:, None].expand(2, 7, 3)
+    shared = DynamicGaussians(g, times, d_means, quat, log_scale)
+    dense = DynamicGaussians(g, times, d_means, quat.clone(), log_scale.clone())
+    for t in (0.0, 0.4, 1.0):
+        a, b = shared.at(t), dense.at(t)
+        for key in ("means", "quats", "scales"):
+            torch.testing.assert_close(getattr(a, key), getattr(b, key), rtol=0, atol=0)
+    with pytest.raises(ValueError, match="d_quats"):
+        DynamicGaussians(g, times, d_means, torch.zeros(2, 1, 4, dtype=torch.float64).expand(2, 7, 4), log_scale)
+    with pytest.raises(ValueError, match="d_scales"):
+        DynamicGaussians(g, times, d_means, quat, torch.full((2, 1, 3), math.nan, dtype=torch.float64).expand(2, 7, 3))
+
+
 @pytest.mark.parametrize("temporal", [False, True])
 @pytest.mark.parametrize("gate", [0.0, 0.2])
 @pytest.mark.parametrize("static", [False, True])

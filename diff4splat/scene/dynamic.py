@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -81,13 +82,13 @@ class DynamicGaussians:
             t = getattr(self, name)
             if tuple(t.shape) != (T, M, c):
                 raise ValueError(f"{name} must have shape {(T, M, c)}, got {tuple(t.shape)}")
-            check_finite(name, t)
+            check_finite(name, distinct_rows(t))
         check_finite("times", self.times)
         if bool(((self.times < 0) | (self.times > 1)).any()):
             raise ValueError(f"times must lie in [0, 1], got {self.times.tolist()}")
         if T > 1 and not bool((self.times[1:] > self.times[:-1]).all()):
             raise ValueError("times must be strictly increasing")
-        quat_norms(self.d_quats, "d_quats")  # zero norm → ValueError naming d_quats
+        quat_norms(distinct_rows(self.d_quats), "d_quats")  # zero norm → ValueError naming d_quats
 
     def _check_temporal(self) -> None:
         if self.t_means is None and self.t_scales is None:
@@ -236,7 +237,7 @@ class DynamicGaussians:
         n = index.shape[0]
         out = (c.means.new_empty(n, 3), c.means.new_empty(n, 4), c.means.new_empty(n, 3))
         bad = torch.zeros(n, dtype=torch.bool, device=dev)
-        host = lambda x: x.detach().cpu().contiguous().numpy()  # noqa: E731  device: CPU by contract (checked above)
+        host = lambda x: _host_rows(x.detach().cpu())  # noqa: E731  device: CPU by contract (checked above)
         kernel(host(index), host(c.means), host(c.quats), host(c.scales), host(self.d_means[k]),
                host(self.d_quats[k]), host(self.d_scales[k]), host(self.d_means[k1]), host(self.d_quats[k1]),
                host(self.d_scales[k1]), float(w), *(host(o) for o in out), host(bad))
@@ -286,6 +287,13 @@ def _select_rows(x: Tensor, index: Tensor, n: int) -> Tensor:
     """``x[:, index]`` (K, n, c); a view when ``x`` (K, M, c) repeats one row for every Gaussian (stride 0, as
     ``reconstruct``'s identity rotations and scales), which indexing would copy K·n·c times over."""
     return x[:, :1].expand(x.shape[0], n, x.shape[2]) if x.stride(1) == 0 else x[:, index]
+
+
+def _host_rows(x: Tensor) -> np.ndarray:
+    """A CPU tensor as the kernel's array: a key's rows shared by every Gaussian (stride 0) stay one row in memory,
+    anything else contiguous."""
+    shared = x.dim() == 2 and x.shape[0] > 1 and x.stride(0) == 0
+    return (x if shared else x.contiguous()).numpy()  # device: a CPU tensor (the caller's .cpu())
 
 
 def _deform_kernel():
