@@ -27,9 +27,8 @@ from diff4splat.cameras import invert_rigid
 from diff4splat.utils.checks import check_positive_int
 
 __all__ = ["DIS_PRESETS", "FLOW_UPSAMPLE", "FB_TOLERANCE_PX", "GATE_PX", "optical_flow", "consecutive_flows",
-           "chain_flows", "track_pixels", "lift_tracks", "source_frame_motion", "source_motion", "check_sources",
-           "check_spans", "sample_pixels", "pixel_centres",
-           "RIGID_DEPTH_FACTORS"]
+           "chain_flows", "track_pixels", "lift_tracks", "source_frame_motion", "source_motion", "sample_pixels",
+           "pixel_centres", "RIGID_DEPTH_FACTORS"]
 
 DIS_PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
                "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
@@ -274,9 +273,13 @@ def lift_tracks(positions: Tensor, tracked: Tensor, depths: Tensor, Ks: Tensor, 
     return torch.stack(points), torch.stack(moving)
 
 
-def check_sources(sources: list[int], num_frames: int, depths_shape: tuple, height: int, width: int) -> list[int]:
-    """``sources`` as ints if they increase within [0, ``num_frames``) and ``depths_shape`` is (S, ``height``,
-    ``width``); else ValueError."""
+def _check_sources(sources: list[int], num_frames: int, depths_shape: tuple, height: int, width: int) -> list[int]:
+    """``sources`` as ints, if they increase within [0, ``num_frames``) and ``depths_shape`` is (S, ``height``,
+    ``width``).
+
+    Raises:
+        ValueError: naming both.
+    """
     sources = [int(f) for f in sources]
     if tuple(depths_shape) != (len(sources), height, width) or any(b <= a for a, b in pairwise(sources)) \
             or not sources or sources[0] < 0 or sources[-1] >= num_frames:
@@ -289,7 +292,7 @@ def source_motion(flows: tuple[Tensor, Tensor], depths: Tensor, sources: list[in
                   viewmats: Tensor, span: tuple[int, int], *, fb_tolerance: float = FB_TOLERANCE_PX,
                   gate_px: float = GATE_PX, unchecked: int = 0) -> Tensor:
     """(hi − lo + 1, H, W, 3) displacement Δμ, metres, world frame, of source ``s``'s pixels (frame ``sources[s]``) at
-    frames ``span`` = (lo, hi) (:func:`check_spans`): :func:`source_frame_motion` of one source over part of the
+    frames ``span`` = (lo, hi) (:func:`_check_spans`): :func:`source_frame_motion` of one source over part of the
     clip. Tracking is causal in each direction and the span ends on source frames or the clip's ends, so every frame
     of the span gets exactly what the whole clip's tracking gives it. ``flows``: the clip's
     :func:`consecutive_flows`; the other arguments as :func:`source_frame_motion` (checked there)."""
@@ -310,7 +313,7 @@ def source_motion(flows: tuple[Tensor, Tensor], depths: Tensor, sources: list[in
     return out
 
 
-def check_spans(spans: list[tuple[int, int]] | None, sources: list[int], num_frames: int) -> list[tuple[int, int]]:
+def _check_spans(spans: list[tuple[int, int]] | None, sources: list[int], num_frames: int) -> list[tuple[int, int]]:
     """Each source's (first, last) tracked frame: ``spans`` if every one is a pair of ints with 0 ≤ first ≤ source ≤
     last < ``num_frames``, each a source frame or an end of the clip (where the depth between source frames is
     interpolated, :func:`lift_tracks`, both of its ends are then in the span), one per source; None: the whole clip
@@ -335,15 +338,15 @@ def source_frame_motion(frames: Tensor, depths: Tensor, sources: list[int], Ks: 
     video's :func:`consecutive_flows`, ``flows`` when given) and lifted with the source frames' ``depths`` (S, H, W)
     (:func:`lift_tracks`). ``frames`` (T, 3, H, W) RGB in [0, 1]; ``Ks``, ``viewmats`` (T, 3, 3), (T, 4, 4);
     ``unchecked``: as :func:`chain_flows`, in each direction; ``spans``: per source the (first, last) frame it is
-    tracked to (:func:`check_spans`; None: the whole clip), zero outside (:func:`source_motion`).
+    tracked to (:func:`_check_spans`; None: the whole clip), zero outside (:func:`source_motion`).
 
     Raises:
         ValueError: ``depths`` not (S, H, W), sources not increasing within [0, T), bad ``spans``, or as
             :func:`chain_flows` and :func:`lift_tracks`.
     """
     T, _, H, W = frames.shape
-    sources = check_sources(sources, T, depths.shape, H, W)
-    spans = check_spans(spans, sources, T)
+    sources = _check_sources(sources, T, depths.shape, H, W)
+    spans = _check_spans(spans, sources, T)
     out = depths.new_zeros(T, len(sources), H, W, 3, dtype=torch.promote_types(depths.dtype, torch.float32))
     if T < 2:
         return out

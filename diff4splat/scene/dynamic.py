@@ -286,7 +286,8 @@ def distinct_rows(x: Tensor) -> Tensor:
 def _select_rows(x: Tensor, index: Tensor, n: int) -> Tensor:
     """``x[:, index]`` (K, n, c); a view when ``x`` (K, M, c) repeats one row for every Gaussian (stride 0, as
     ``reconstruct``'s identity rotations and scales), which indexing would copy K·n·c times over."""
-    return x[:, :1].expand(x.shape[0], n, x.shape[2]) if x.stride(1) == 0 else x[:, index]
+    rows = distinct_rows(x)
+    return rows.expand(x.shape[0], n, x.shape[2]) if rows is not x else x[:, index]
 
 
 def _host_rows(x: Tensor) -> np.ndarray:
