@@ -12,7 +12,10 @@ every pixel:
     python benchmarks/motion_path.py --data data/synth_heldout --checkpoint runs/x/model [--direction] [--write SECTION]
 
 ``--direction`` adds the direction test (:mod:`training.direction_test`): on each dynamic clip whose caption names
-one direction, the scene from the true latents, and from sampled ones with the caption and with its direction flipped.
+one direction, the scene from the true latents, and from sampled ones with the caption and with its direction flipped;
+and, as the test's control (motion that is certainly there, read without a prompt), ``reconstruct``'s scene of the
+clip's own frames (:func:`diff4splat.reconstruct.reconstruct_scene`, the classical route of docs/DESIGN.md). A set
+for it: ``data_prep synth --static-ratio 0 --motions translate --max-movers 1`` (every caption names one direction).
 
 ``--write`` puts the table in docs/benchmarks.md under ``motion_path_<SECTION>``.
 """
@@ -31,21 +34,18 @@ from _common import markdown_table, write_section  # noqa: E402
 
 from diff4splat.cameras import CameraPath  # noqa: E402
 from diff4splat.pipeline import Diff4SplatPipeline  # noqa: E402
-from training.direction_test import (  # noqa: E402
-    caption_direction,
-    directional_motion,
-    flip_direction,
-    moves_named_way,
-    moving_pixels,
-)
+from diff4splat.reconstruct import reconstruct_scene  # noqa: E402
+from training.direction_test import direction_query, flip_direction, named_way_score  # noqa: E402
 from training.evaluate import held_out_clips, pixel_positions, scene_motion  # noqa: E402
 
 
 def clip_scene(pipe: Diff4SplatPipeline, clip: dict, latents: str, steps: int | None, prompt: str | None = None):
     """``clip``'s generation from its ``latents`` ("true": VAE-encoded; "generated": sampled with ``prompt``, default
-    the clip's caption)."""
+    the clip's caption; "frames": ``reconstruct`` of the clip's frames, no prompt)."""
     cfg = pipe.config
     cams = CameraPath(clip["viewmats"].double(), clip["Ks"].double(), cfg.width, cfg.height, clip["times"].double())
+    if latents == "frames":
+        return reconstruct_scene(pipe, clip["video"].permute(1, 2, 3, 0), cams)
     image = clip["video"][:, 0].permute(1, 2, 0)
     video_latents = None
     if latents == "true":
@@ -63,22 +63,22 @@ def clip_motion(pipe: Diff4SplatPipeline, clip: dict, latents: str, steps: int |
 
 def direction_rows(pipe: Diff4SplatPipeline, clips: list[dict], steps: int | None) -> list[list]:
     """The direction test (:mod:`training.direction_test`) on the dynamic clips whose caption names one direction:
-    per variant (true latents with the caption, generated with the caption, generated with it flipped) the clips
-    moved the named way and the mean displacement along the named axis times its sign (metres)."""
-    tally = {"true latents, caption": [], "generated, caption": [], "generated, flipped caption": []}
+    per variant (true latents with the caption, generated with the caption, generated with it flipped, and the
+    control: ``reconstruct`` of the clip's frames) the clips moved the named way and the mean displacement along the
+    named axis times its sign (metres)."""
+    variants = ("true latents, caption", "generated, caption", "generated, flipped caption",
+                "the clip's frames (`reconstruct`, control)")
+    tally: dict[str, list] = {name: [] for name in variants}
     for clip in clips:
-        named = caption_direction(clip["caption"]) if bool(clip["dynamic"]) else None
-        moving = moving_pixels(clip["pixel_tracks"], clip["pixel_track_valid"]).reshape(-1)
-        if named is None or not bool(moving.any()):
+        query = direction_query(clip)
+        if query is None:
             continue
-        _, axis, sign = named
-        for name, latents, prompt, s in (("true latents, caption", "true", None, sign),
-                                         ("generated, caption", "generated", None, sign),
-                                         ("generated, flipped caption", "generated", flip_direction(clip["caption"]),
-                                          -sign)):
-            positions, kept = pixel_positions(clip_scene(pipe, clip, latents, steps, prompt))
-            d = directional_motion(positions, moving & kept, axis)
-            tally[name].append((moves_named_way(d, s), s * d if math.isfinite(d) else 0.0))
+        axis, sign, moving = query
+        for name, latents, prompt, s in zip(variants, ("true", "generated", "generated", "frames"),
+                                            (None, None, flip_direction(clip["caption"]), None),
+                                            (sign, sign, -sign, sign), strict=True):
+            tally[name].append(named_way_score(*pixel_positions(clip_scene(pipe, clip, latents, steps, prompt)),
+                                               moving, axis, s))
     return [[name, len(v), f"{sum(ok for ok, _ in v) / max(1, len(v)):.2f}",
              f"{sum(d for _, d in v) / max(1, len(v)):+.4f}"] for name, v in tally.items()]
 

@@ -19,7 +19,14 @@ from .convert_cli import register as _add_convert  # data_prep convert SOURCE IN
 from .curate import DEFAULT_CONFIG_PATH, MODES, CurationConfig, curate
 from .engine import add_engine_arguments, engine_from_args
 from .synth_dataset import check_synth_request, synthesize
-from .synth_world import DEFAULT_CAMERAS, DEFAULT_FRAMES, DEFAULT_SIZE, DEFAULT_STATIC_RATIO, DEFAULT_TEXTURE_RATIO
+from .synth_world import (
+    DEFAULT_CAMERAS,
+    DEFAULT_FRAMES,
+    DEFAULT_SIZE,
+    DEFAULT_STATIC_RATIO,
+    DEFAULT_TEXTURE_RATIO,
+    MOTIONS,
+)
 from .validate import summarize, validate_path
 
 __all__ = ["main", "build_parser", "SUBCOMMANDS"]
@@ -59,12 +66,13 @@ def _add_validate(sub) -> None:
 def _synth(args: argparse.Namespace) -> int:
     check_synth_request(args.scenes, args.seed, size=args.size, frames=args.frames, cameras=args.cameras,
                         workers=args.workers, static_ratio=args.static_ratio, texture_ratio=args.texture_ratio,
-                        flags=True)  # the messages name the flags
+                        motions=args.motions, max_movers=args.max_movers, flags=True)  # the messages name the flags
     t0 = time.perf_counter()
     resolve_device(args.device, "--device")  # before anything is created
     engine = engine_from_args(args)
     paths = synthesize(args.out, args.scenes, args.seed, size=args.size, frames=args.frames, cameras=args.cameras,
-                       static_ratio=args.static_ratio, texture_ratio=args.texture_ratio, workers=args.workers,
+                       static_ratio=args.static_ratio, texture_ratio=args.texture_ratio, motions=args.motions,
+                       max_movers=args.max_movers, workers=args.workers,
                        progress=not args.quiet, device=args.device, engine=engine)
     print(f"{len(paths)} scene(s) in {args.out} ({time.perf_counter() - t0:.1f} s)")
     return 0
@@ -89,6 +97,12 @@ def _add_synth(sub) -> None:
     p.add_argument("--texture-ratio", type=_unit_float, default=DEFAULT_TEXTURE_RATIO,
                    help="probability in [0, 1] that a surface gets a crop of a bundled photograph as texture "
                         f"(data_prep/textures/); 0: procedural textures only (default {DEFAULT_TEXTURE_RATIO})")
+    p.add_argument("--motions", type=lambda text: tuple(text.split(",")), default=MOTIONS,
+                   help=f"comma-separated kinds a moving object draws from (default: all, {','.join(MOTIONS)})")
+    p.add_argument("--max-movers", type=int, default=None,
+                   help="at most this many objects move in a dynamic scene (default: each with probability 0.7, at "
+                        "least one); --motions translate --max-movers 1 makes every dynamic caption name one "
+                        "direction (the direction test, training/direction_test.py)")
     add_engine_arguments(p, default_workers=1)
     p.add_argument("--device", default="cpu",
                    help="torch device that renders the scenes: cpu, cuda, cuda:N or auto (default: cpu, so a seed "

@@ -32,7 +32,9 @@ from .synth_world import (
     DEFAULT_SIZE,
     DEFAULT_STATIC_RATIO,
     DEFAULT_TEXTURE_RATIO,
+    MOTIONS,
     caption_for,
+    check_motions,
     sample_scene_spec,
 )
 from .textures import image_albedo
@@ -405,13 +407,22 @@ def write_synth_scene(path: str | os.PathLike, result: SynthScene, extra: dict[s
 def generate_scene(out_dir: str | os.PathLike, index: int, seed: int, *, size: int = DEFAULT_SIZE,
                    frames: int = DEFAULT_FRAMES, cameras: int = DEFAULT_CAMERAS,
                    static_ratio: float = DEFAULT_STATIC_RATIO, texture_ratio: float = DEFAULT_TEXTURE_RATIO,
+                   motions: tuple[str, ...] = MOTIONS, max_movers: int | None = None,
                    replace: bool = False, device: str | torch.device = "cpu") -> Path:
     """Sample, render (on ``device``) and write scene ``index`` of run ``seed`` to ``out_dir/scene_{index:05d}``;
-    static with probability ``static_ratio``, each surface image-textured with probability ``texture_ratio``.
-    Returns the folder. Raises FileExistsError: the scene exists and ``replace`` is false."""
+    static with probability ``static_ratio``, each surface image-textured with probability ``texture_ratio``, its
+    moving objects' kinds from ``motions``, at most ``max_movers`` of them (:func:`sample_scene_spec`; meta.json's
+    ``synth`` records the two when they restrict the draw). Returns the folder. Raises FileExistsError: the
+    scene exists and ``replace`` is false; ValueError: bad ``motions`` or ``max_movers``."""
+    kinds, max_movers = check_motions(motions, max_movers)
     rng = np.random.default_rng([seed, index])
     dynamic = bool(rng.random() >= static_ratio)
     spec = sample_scene_spec(rng, dynamic=dynamic, num_cameras=cameras, size=size, num_frames=frames,
-                             texture_ratio=texture_ratio)
+                             texture_ratio=texture_ratio, motions=kinds, max_movers=max_movers)
     result = render_spec(spec, rng, device)
-    return write_synth_scene(Path(out_dir) / scene_name(index), result, {"seed": seed, "index": index}, replace)
+    extra = {"seed": seed, "index": index}
+    if kinds != MOTIONS:
+        extra["motions"] = list(kinds)
+    if max_movers is not None:
+        extra["max_movers"] = max_movers
+    return write_synth_scene(Path(out_dir) / scene_name(index), result, extra, replace)

@@ -20,7 +20,15 @@ from .engine import Engine, fault_point, map_scenes
 from .format import check_dataset_root
 from .scene_files import is_scene
 from .synth import generate_scene, scene_name
-from .synth_world import DEFAULT_CAMERAS, DEFAULT_FRAMES, DEFAULT_SIZE, DEFAULT_STATIC_RATIO, DEFAULT_TEXTURE_RATIO
+from .synth_world import (
+    DEFAULT_CAMERAS,
+    DEFAULT_FRAMES,
+    DEFAULT_SIZE,
+    DEFAULT_STATIC_RATIO,
+    DEFAULT_TEXTURE_RATIO,
+    MOTIONS,
+    check_motions,
+)
 
 __all__ = ["synthesize", "check_synth_request", "max_gaussians", "scene_bytes", "BYTES_PER_PIXEL",
            "BYTES_PER_GAUSSIAN_FRAME"]
@@ -47,14 +55,17 @@ def scene_bytes(size: int, frames: int, cameras: int) -> int:
 
 
 _FLAGS = {"num_scenes": "--scenes", "seed": "--seed", "size": "--size", "frames": "--frames", "cameras": "--cameras",
-          "workers": "--workers", "static_ratio": "--static-ratio", "texture_ratio": "--texture-ratio"}
+          "workers": "--workers", "static_ratio": "--static-ratio", "texture_ratio": "--texture-ratio",
+          "motions": "--motions", "max_movers": "--max-movers"}
 """The ``data_prep synth`` flag of each :func:`synthesize` argument (the CLI's messages name the flags)."""
 
 
 def check_synth_request(num_scenes: int, seed: int, *, size: int, frames: int, cameras: int, workers: int,
-                        static_ratio: float, texture_ratio: float, flags: bool = False) -> None:
+                        static_ratio: float, texture_ratio: float, motions: tuple[str, ...] = MOTIONS,
+                        max_movers: int | None = None, flags: bool = False) -> None:
     """Check :func:`synthesize`'s arguments and limits before anything is created; ``flags``: name the arguments by
-    their ``data_prep synth`` flags. Raises ValueError: an argument out of range (named).
+    their ``data_prep synth`` flags. Raises ValueError: an argument out of range (named), bad ``motions`` or
+    ``max_movers`` (:func:`data_prep.synth_world.check_motions`).
     :class:`diff4splat.utils.limits.LimitError` (a ValueError): ``num_scenes`` above the ``scenes`` limit, ``size``
     above ``resolution``, ``frames`` above ``frames``, :func:`scene_bytes` above ``synth_bytes``, or this process's
     memory plus one scene per worker above what it may use (:func:`diff4splat.utils.limits.check_memory`)."""
@@ -67,6 +78,7 @@ def check_synth_request(num_scenes: int, seed: int, *, size: int, frames: int, c
     check_int(name("workers"), workers, 1)
     for key, value in (("static_ratio", static_ratio), ("texture_ratio", texture_ratio)):
         check_number(name(key), value, lo=0, hi=1)
+    check_motions(motions, max_movers, (name("motions"), name("max_movers")))
     one = f"one scene of {name('cameras')} {cameras} × {name('frames')} {frames} at {name('size')} {size}"
     check_limit("synth_bytes", scene_bytes(size, frames, cameras), f"{one}: estimated")
     # the memory this process (and each worker, under the same ulimits) may use: its own plus one scene per worker
@@ -85,20 +97,23 @@ def _make_scene(index: int, out: Path, seed: int, kw: dict) -> None:
 
 def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, size: int = DEFAULT_SIZE,
                frames: int = DEFAULT_FRAMES, cameras: int = DEFAULT_CAMERAS, static_ratio: float = DEFAULT_STATIC_RATIO,
-               texture_ratio: float = DEFAULT_TEXTURE_RATIO, workers: int = 1,
+               texture_ratio: float = DEFAULT_TEXTURE_RATIO, motions: tuple[str, ...] = MOTIONS,
+               max_movers: int | None = None, workers: int = 1,
                progress: bool = True, device: str | torch.device = "cpu", engine: Engine | None = None) -> list[Path]:
     """Generate scenes 0 … num_scenes−1 into the dataset root ``out_dir``, skipping scenes already present (resume).
     Every argument and limit is checked first (:func:`check_synth_request`), so a refused request creates nothing; an
     ``out_dir`` this run created is removed again if it fails before writing into it. Scene ``i`` depends on ``seed``
     and ``i`` alone (:func:`data_prep.synth.generate_scene`), whatever the engine, workers or order. ``num_scenes``,
     ``size``, ``frames``: ≥ 1, ≥ 8, ≥ 2, each at most its limit; ``static_ratio``, ``texture_ratio``: probabilities in
-    [0, 1] of a static scene and of an image-textured surface; ``workers``: local processes (``engine`` None: the local
-    pool); ``device``: where scenes render ("cpu": the same bytes on every machine; on Ray, CUDA gives each task one
-    GPU). Returns all ``num_scenes`` scene folders, in index order. Raises ValueError: an argument out of range (named);
-    an ``out_dir`` holding anything but scene folders; a ``device`` this machine does not have;
-    :class:`diff4splat.utils.limits.LimitError` above a limit."""
+    [0, 1] of a static scene and of an image-textured surface; ``motions``, ``max_movers``: the kinds a moving object
+    draws from and at most how many objects move (:func:`data_prep.synth_world.sample_scene_spec`); ``workers``: local
+    processes (``engine`` None: the local pool); ``device``: where scenes render ("cpu": the same bytes on every
+    machine; on Ray, CUDA gives each task one GPU). Returns all ``num_scenes`` scene folders, in index order. Raises
+    ValueError: an argument out of range (named); an ``out_dir`` holding anything but scene folders; a ``device`` this
+    machine does not have; :class:`diff4splat.utils.limits.LimitError` above a limit."""
     check_synth_request(num_scenes, seed, size=size, frames=frames, cameras=cameras, workers=workers,
-                        static_ratio=static_ratio, texture_ratio=texture_ratio)
+                        static_ratio=static_ratio, texture_ratio=texture_ratio, motions=motions, max_movers=max_movers)
+    motions, max_movers = check_motions(motions, max_movers)
     # numpy integers pass the checks; Python ints go on (the seed is written to meta.json)
     num_scenes, seed, size, frames, cameras, workers = map(int, (num_scenes, seed, size, frames, cameras, workers))
     engine = engine or Engine(workers=workers)
@@ -110,7 +125,7 @@ def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, si
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     kw = dict(size=size, frames=frames, cameras=cameras, static_ratio=float(static_ratio),
-              texture_ratio=float(texture_ratio), device=device)
+              texture_ratio=float(texture_ratio), motions=motions, max_movers=max_movers, device=device)
     bar = tqdm(total=num_scenes, desc="synth", unit="scene", disable=not progress or engine.name != "local")
 
     def todo():

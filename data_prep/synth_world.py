@@ -17,12 +17,12 @@ from typing import Any
 
 import numpy as np
 
-from diff4splat.utils.checks import check_number
+from diff4splat.utils.checks import check_int, check_number
 
 from .textures import IMAGE_TEXTURES, load_texture, texture_names
 
 __all__ = ["COLORS", "SHAPES", "MOTIONS", "CAMERA_MOTIONS", "TEXTURES", "sample_scene_spec", "caption_for",
-           "direction_word", "DIRECTION_PHRASES", "DEFAULT_SIZE", "DEFAULT_FRAMES", "DEFAULT_CAMERAS",
+           "direction_word", "check_motions", "DIRECTION_PHRASES", "DEFAULT_SIZE", "DEFAULT_FRAMES", "DEFAULT_CAMERAS",
            "DEFAULT_STATIC_RATIO", "DEFAULT_TEXTURE_RATIO"]
 
 DEFAULT_SIZE = 64
@@ -48,6 +48,7 @@ SHAPES: dict[str, str] = {"sphere": "ball", "box": "box", "ellipsoid": "egg", "b
 """Object shapes and the noun used in captions."""
 
 MOTIONS: tuple[str, ...] = ("translate", "rotate", "bounce", "deform")
+"""Object motion kinds (module docstring); a scene draws each moving object's kind uniformly from these."""
 CAMERA_MOTIONS: tuple[str, ...] = ("orbit", "dolly", "pan", "truck", "static")
 TEXTURES: dict[str, str] = {"plain": "", "checker": "checkered", "stripes": "striped", "noise": "spotted"}
 """Procedural textures and their caption adjective (kind ``"image"``: :data:`data_prep.textures.IMAGE_TEXTURES`)."""
@@ -123,8 +124,22 @@ def direction_word(v_cam: np.ndarray) -> str:
     return DIRECTION_PHRASES[axis][0 if v_cam[axis] > 0 else 1]
 
 
-def _sample_motion(rng: np.random.Generator, shape: str, center: np.ndarray, room: float) -> dict[str, Any]:
-    kind = MOTIONS[int(rng.integers(len(MOTIONS)))]
+def check_motions(motions: object, max_movers: object, names: tuple[str, str] = ("motions", "max_movers")
+                  ) -> tuple[tuple[str, ...], int | None]:
+    """``motions`` as a tuple: a non-empty sequence of distinct :data:`MOTIONS` kinds (in :data:`MOTIONS`' order, so
+    the same set draws the same scenes); ``max_movers`` None or an int ≥ 1. ``names``: how messages call the two.
+    Raises ValueError: an unknown, repeated or missing kind, or a bad ``max_movers`` (named)."""
+    kinds = (motions,) if isinstance(motions, str) else tuple(motions) if isinstance(motions, (list, tuple)) else None
+    if not kinds or len(set(kinds)) != len(kinds) or any(k not in MOTIONS for k in kinds):
+        raise ValueError(f"{names[0]} must be distinct kinds among {', '.join(MOTIONS)}, got {motions!r}")
+    if max_movers is not None:
+        check_int(names[1], max_movers, 1)
+    return tuple(k for k in MOTIONS if k in kinds), None if max_movers is None else int(max_movers)
+
+
+def _sample_motion(rng: np.random.Generator, shape: str, center: np.ndarray, room: float,
+                   kinds: tuple[str, ...]) -> dict[str, Any]:
+    kind = kinds[int(rng.integers(len(kinds)))]
     heading = rng.uniform(0, 2 * math.pi)
     direction = np.array([math.cos(heading), 0.0, math.sin(heading)])
     # keep the end point within 55% of the room radius from the centre
@@ -193,17 +208,20 @@ def _sample_camera(rng: np.random.Generator, fov: float, kind: str) -> dict[str,
 
 
 def sample_scene_spec(rng: np.random.Generator, *, dynamic: bool, num_cameras: int, size: int,
-                      num_frames: int, fps: float = 8.0,
-                      texture_ratio: float = DEFAULT_TEXTURE_RATIO) -> dict[str, Any]:
+                      num_frames: int, fps: float = 8.0, texture_ratio: float = DEFAULT_TEXTURE_RATIO,
+                      motions: tuple[str, ...] = MOTIONS, max_movers: int | None = None) -> dict[str, Any]:
     """Sample a complete scene description from the scene's own generator ``rng``. ``dynamic``: at least one object
     moves (else none); ``num_cameras`` ≥ 1 (camera 0 the reference); ``size``: image width = height, pixels; ``fps``:
     Hz; ``texture_ratio`` in [0, 1]: probability that a surface gets an image texture, drawn after the procedural scene
-    so that nothing else depends on it. Returns a JSON-serialisable dict: ``dynamic``, ``size``, ``num_frames``,
-    ``fps``, ``ground_y``, ``room_radius``, ``light`` {direction (3,), ambient, tint (3,)}, ``background`` (3,),
-    ``ground`` / ``wall`` {material, color_name, color, texture}, ``objects`` (1–4 dicts: shape, half extents (3,) and
-    center (3,) metres, colour, texture, motion or None) and ``cameras`` (kind, fov_x_deg, azimuth, distance, height,
-    target_height, delta). Raises ValueError: ``texture_ratio`` is not a number in [0, 1]."""
+    so that nothing else depends on it; ``motions``: the kinds a moving object draws from (:func:`check_motions`);
+    ``max_movers``: at most this many objects move (None: each object moves with probability 0.7, at least one). Returns
+    a JSON-serialisable dict: ``dynamic``, ``size``, ``num_frames``, ``fps``, ``ground_y``, ``room_radius``, ``light``
+    {direction (3,), ambient, tint (3,)}, ``background`` (3,), ``ground`` / ``wall`` {material, color_name, color,
+    texture}, ``objects`` (1–4 dicts: shape, half extents (3,) and center (3,) metres, colour, texture, motion or None)
+    and ``cameras`` (kind, fov_x_deg, azimuth, distance, height, target_height, delta). Raises ValueError:
+    ``texture_ratio`` is not a number in [0, 1]; bad ``motions`` or ``max_movers``."""
     check_number("texture_ratio", texture_ratio, lo=0, hi=1)
+    kinds, max_movers = check_motions(motions, max_movers)
     room = float(rng.uniform(5.0, 6.0))
     ground_y = float(rng.uniform(0.8, 1.5))
     light = rng.normal(size=3)
@@ -230,9 +248,9 @@ def sample_scene_spec(rng: np.random.Generator, *, dynamic: bool, num_cameras: i
             objects.append(obj)
     if dynamic:
         movers = [i for i in range(len(objects)) if rng.random() < 0.7] or [int(rng.integers(len(objects)))]
-        for i in movers:
+        for i in movers[:max_movers]:
             o = objects[i]
-            o["motion"] = _sample_motion(rng, o["shape"], np.asarray(o["center"]), room)
+            o["motion"] = _sample_motion(rng, o["shape"], np.asarray(o["center"]), room, kinds)
     spec["objects"] = objects
     fov = float(rng.uniform(45, 70))
     spec["cameras"] = [_sample_camera(rng, fov, CAMERA_MOTIONS[int(rng.integers(len(CAMERA_MOTIONS)))])

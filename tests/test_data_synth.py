@@ -35,6 +35,7 @@ from data_prep.synth_world import CAMERA_MOTIONS, MOTIONS, SHAPES, TEXTURES, cap
 from data_prep.textures import IMAGE_TEXTURES, image_albedo
 from data_prep.validate import validate_path, validate_scene
 from diff4splat.scene.gaussians import sh0_to_rgb
+from training.direction_test import caption_direction
 
 SIZE, T = 32, 5
 VERBS = {"translate": ("slides", "rolls"), "rotate": ("spins", "tumbles"), "bounce": ("bounces",),
@@ -503,3 +504,64 @@ def test_synth_checks_one_scene_per_worker_against_the_memory_it_may_use(tmp_pat
     assert not (tmp_path / "d").exists()
     data_prep.synth_dataset.check_synth_request(2, 0, size=64, frames=17, cameras=2, workers=1, static_ratio=0.4,
                                                 texture_ratio=0.5)
+
+
+# --------------------------------------------------------------------------- motion kinds and movers (issue 58)
+
+def test_default_motion_knobs_draw_the_recorded_scenes():
+    """The held-out sets on record (seeds 777, 20261202, 20261203) were drawn before ``motions``/``max_movers``
+    existed: the defaults must draw the same specs (this digest was taken from the sampler without the knobs)."""
+    specs = [sample_scene_spec(np.random.default_rng([5, k]), dynamic=True, num_cameras=2, size=64, num_frames=17)
+             for k in range(8)]
+    digest = hashlib.sha256(json.dumps(specs, sort_keys=True).encode()).hexdigest()
+    assert digest == "6b4df60abe8cc6a98cf7ac11c707f19f1a2dd1ae16e6fe879b73581a2c4e784b"
+    explicit = [sample_scene_spec(np.random.default_rng([5, k]), dynamic=True, num_cameras=2, size=64, num_frames=17,
+                                  motions=tuple(reversed(MOTIONS)), max_movers=None) for k in range(8)]
+    assert explicit == specs  # the kinds are a set: their order does not change the draw
+
+
+def test_one_translating_mover_names_one_direction():
+    for k in range(20):
+        spec = sample_scene_spec(np.random.default_rng([9, k]), dynamic=True, num_cameras=1, size=SIZE,
+                                 num_frames=T, motions=("translate",), max_movers=1)
+        moving = [o["motion"] for o in spec["objects"] if o["motion"] is not None]
+        assert len(moving) == 1 and moving[0]["kind"] == "translate"
+        assert caption_direction(caption_for(spec, np.eye(3))) is not None
+    kinds = set()
+    for k in range(30):
+        spec = sample_scene_spec(np.random.default_rng([9, k]), dynamic=True, num_cameras=1, size=SIZE,
+                                 num_frames=T, motions=["bounce", "rotate"], max_movers=2)
+        moving = [o["motion"]["kind"] for o in spec["objects"] if o["motion"] is not None]
+        assert 1 <= len(moving) <= 2
+        kinds |= set(moving)
+    assert kinds == {"bounce", "rotate"}
+
+
+@pytest.mark.parametrize("motions, max_movers, message", [
+    (("spin",), None, "motions must be distinct kinds"), ((), None, "motions must be distinct kinds"),
+    (("translate", "translate"), None, "motions must be distinct kinds"), (None, None, "motions must be"),
+    (MOTIONS, 0, "max_movers must be an integer ≥ 1"), (MOTIONS, 1.5, "max_movers must be an integer"),
+])
+def test_bad_motion_knobs_are_refused(motions, max_movers, message):
+    with pytest.raises(ValueError, match=message):
+        sample_scene_spec(np.random.default_rng(0), dynamic=True, num_cameras=1, size=SIZE, num_frames=T,
+                          motions=motions, max_movers=max_movers)
+
+
+def test_cli_motion_knobs(tmp_path, capsys):
+    out = tmp_path / "dir"
+    args = ["synth", "--scenes", "2", "--out", str(out), "--size", "16", "--frames", "3", "--static-ratio", "0",
+            "--motions", "translate", "--max-movers", "1", "--quiet"]
+    assert main(args) == 0
+    for i in range(2):
+        synth = load_scene(out / scene_name(i)).meta.extra["synth"]
+        assert synth["motions"] == ["translate"] and synth["max_movers"] == 1
+        assert [o["motion"]["kind"] for o in synth["spec"]["objects"] if o["motion"]] == ["translate"]
+    default = tmp_path / "default"
+    assert main(["synth", "--scenes", "1", "--out", str(default), "--size", "16", "--frames", "3", "--quiet"]) == 0
+    assert set(load_scene(default / scene_name(0)).meta.extra["synth"]) == {"seed", "index", "spec"}
+    for flag, value, start in (("--motions", "translate,spin", "data_prep: error: --motions"),
+                               ("--max-movers", "0", "data_prep: error: --max-movers")):
+        assert main(["synth", "--scenes", "1", "--out", str(tmp_path / "bad"), flag, value]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(start) and err.count("\n") == 1 and not (tmp_path / "bad").exists()

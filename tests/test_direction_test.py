@@ -12,10 +12,12 @@ from data_prep.synth_world import DIRECTION_PHRASES, caption_for, direction_word
 from training.direction_test import (
     MOVING_M,
     caption_direction,
+    direction_query,
     directional_motion,
     flip_direction,
     moves_named_way,
     moving_pixels,
+    named_way_score,
 )
 
 
@@ -75,3 +77,23 @@ def test_moving_pixels_and_the_displacement_along_the_named_axis():
     assert still == 0.0 and not moves_named_way(still, 1) and not moves_named_way(still, -1)  # holding still fails
     assert math.isnan(directional_motion(positions, torch.zeros(H * W, dtype=torch.bool), 0))
     assert not moves_named_way(float("nan"), 1)
+
+
+def test_a_clip_takes_part_and_a_scene_is_scored_for_each_caption():
+    """A clip takes part when it is dynamic, names one direction and its tracks move; a scene that moves as the
+    truth answers the caption and fails the flipped one; one that dropped the moving pixel's point scores 0."""
+    T, H, W = 3, 2, 2
+    tracks = torch.zeros(T, H, W, 3)
+    tracks[:, 0, 1, 0] = torch.tensor([0.0, -0.1, -0.3])  # 0.3 m to the left (−x)
+    valid = torch.ones(H, W, dtype=torch.bool)
+    clip = {"dynamic": torch.tensor(True), "caption": "a red ball rolls to the left on a wooden floor, while the "
+            "camera stays still", "pixel_tracks": tracks, "pixel_track_valid": valid}
+    axis, sign, moving = direction_query(clip)
+    assert (axis, sign) == (0, -1) and moving.tolist() == [False, True, False, False]
+    positions, kept = tracks.reshape(T, H * W, 3).transpose(0, 1), torch.ones(H * W, dtype=torch.bool)
+    assert named_way_score(positions, kept, moving, axis, sign) == (True, pytest.approx(0.3))
+    assert named_way_score(positions, kept, moving, axis, -sign) == (False, pytest.approx(-0.3))  # flipped caption
+    assert named_way_score(positions, torch.tensor([True, False, True, True]), moving, axis, sign) == (False, 0.0)
+    assert direction_query({**clip, "dynamic": torch.tensor(False)}) is None
+    assert direction_query({**clip, "caption": "a ball rolls to the left and a box slides to the right"}) is None
+    assert direction_query({**clip, "pixel_tracks": torch.zeros_like(tracks)}) is None  # nothing moves

@@ -19,12 +19,14 @@ from diff4splat.pipeline import Diff4SplatPipeline
 from diff4splat.render.sequence import render_path
 from diff4splat.runtime import TorchRuntime
 from diff4splat.scene.dynamic import DynamicGaussians
+from training.direction_test import caption_direction, flip_direction
 from training.eval_csv import append_csv, check_csv_outputs, csv_outputs
 from training.eval_metrics import ablation_noise, image_psnr, kept_index_map
 from training.evaluate import (
     BASELINES,
     DEPTH_DIAGNOSTICS,
     DIAGNOSTICS,
+    DIRECTION,
     METRICS,
     VARIANTS,
     ClipEvaluation,
@@ -62,7 +64,7 @@ def test_metrics_of_a_generated_scene_match_independent_computations(clips):
     pipe = Diff4SplatPipeline(tiny_model(dynamic=True))
     e = evaluate_clip(pipe, clip, steps=2)
     m = e.metrics
-    assert set(m) == set(METRICS + DIAGNOSTICS + DEPTH_DIAGNOSTICS + BASELINES)
+    assert set(m) == set(METRICS + DIAGNOSTICS + DEPTH_DIAGNOSTICS + BASELINES + DIRECTION)
     cams = CameraPath(clip["viewmats"].double(), clip["Ks"].double(), 64, 64, clip["times"].double())
     res = pipe(clip["video"][:, 0].permute(1, 2, 0), cams, clip["caption"], steps=2, seed=0)
     colors, depths, alphas = render_path(res.scene, res.cameras, eps2d=res.eps2d, background=res.background)
@@ -99,7 +101,8 @@ def test_metrics_of_a_generated_scene_match_independent_computations(clips):
                                                abs=1e-6)
     assert e.dynamic and e.max_angle == pytest.approx(float(e.angles.max())) and e.max_angle > 1.0
     agg = aggregate([e])
-    assert set(agg) == set(METRICS + DIAGNOSTICS + DEPTH_DIAGNOSTICS + BASELINES + binned_keys())
+    assert set(agg) == set(METRICS + DIAGNOSTICS + DEPTH_DIAGNOSTICS + BASELINES + DIRECTION + binned_keys()
+                           + ("direction_clips",))
     assert agg["psnr_novel"] == m["psnr_novel"] and sum(agg[k] for k in agg if k.startswith("frames_")) == 8
     with pytest.raises(ValueError, match="evals"):
         aggregate([])
@@ -121,6 +124,34 @@ def test_loop_psnr_of_a_static_scene_is_its_orbit_input_view_psnr(static_clip):
     # predicted motion moves the loop-closing frame away from the photograph: a different score
     moving = evaluate_clip(Diff4SplatPipeline(tiny_model(dynamic=True)), static_clip, steps=1).metrics["loop_psnr"]
     assert math.isfinite(moving) and abs(moving - loop) > 1e-3
+
+
+@pytest.mark.slow
+def test_direction_test_generates_the_flipped_caption_once_and_scores_both(tmp_path, static_clip, monkeypatch):
+    """A clip whose caption names one direction (one translating object) is generated once more with the phrase
+    flipped; a scene without deformation holds the object still, so it moves the named way with neither caption
+    (0 / 0, 0 m along it). A static clip takes no part: no extra generation, NaN. The aggregate counts the clips."""
+    generate_scene(tmp_path, 0, seed=5, size=64, frames=9, cameras=1, static_ratio=0.0, motions=("translate",),
+                   max_movers=1)
+    (clip,) = held_out_clips(tmp_path, 64, 64, 9, None)
+    named = caption_direction(clip["caption"])
+    assert named is not None
+    pipe = Diff4SplatPipeline(tiny_model())
+    prompts = []
+    original = Diff4SplatPipeline.__call__
+    monkeypatch.setattr(Diff4SplatPipeline, "__call__",
+                        lambda self, image, cams, prompt, **kw: prompts.append(prompt) or original(self, image, cams,
+                                                                                                  prompt, **kw))
+    e = evaluate_clip(pipe, clip, steps=1)
+    assert prompts.count(flip_direction(clip["caption"])) == 1
+    assert {k: e.metrics[k] for k in DIRECTION} == {"direction_caption": 0.0, "direction_flipped": 0.0,
+                                                    "direction_along_caption": 0.0, "direction_along_flipped": 0.0}
+    prompts.clear()
+    s = evaluate_clip(pipe, static_clip, steps=1)
+    assert all(math.isnan(s.metrics[k]) for k in DIRECTION)
+    assert prompts == [static_clip["caption"]] * 4  # the scene, loop orbit, noise ablation, true latents: no flip
+    agg = aggregate([e, s])
+    assert agg["direction_clips"] == 1 and agg["direction_caption"] == 0.0
 
 
 @pytest.mark.slow
@@ -284,7 +315,7 @@ def test_pooled_psnr_is_that_of_the_mean_mse_over_every_bin():
     """psnr_pooled: the PSNR of the mean MSE over all novel frames of all clips (frame-count weighted bins)."""
     def clip(mses, angles):
         mse = torch.tensor(mses, dtype=torch.float64)
-        metrics = {k: 1.0 for k in METRICS + DIAGNOSTICS + DEPTH_DIAGNOSTICS + BASELINES}
+        metrics = {k: 1.0 for k in METRICS + DIAGNOSTICS + DEPTH_DIAGNOSTICS + BASELINES + DIRECTION}
         return ClipEvaluation(name="c", dynamic=True, max_angle=max(angles), metrics=metrics,
                               angles=torch.tensor(angles, dtype=torch.float64),
                               frame_mse={v: mse for v in ("model", *VARIANTS)})

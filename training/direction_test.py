@@ -15,7 +15,7 @@ from torch import Tensor
 from data_prep.synth_world import DIRECTION_PHRASES
 
 __all__ = ["MOVING_M", "NAMED_WAY_M", "caption_direction", "flip_direction", "moving_pixels", "directional_motion",
-           "moves_named_way"]
+           "moves_named_way", "direction_query", "named_way_score"]
 
 MOVING_M = 0.05
 """A frame-0 pixel whose true track moved more than this by the last frame (metres) belongs to the moving object."""
@@ -59,3 +59,23 @@ def moves_named_way(displacement: float, sign: int) -> bool:
     """Whether a mean displacement (metres) along the named axis goes the named way (``sign`` ±1) by more than
     :data:`NAMED_WAY_M`; NaN is False."""
     return sign * displacement > NAMED_WAY_M
+
+
+def direction_query(clip: dict) -> tuple[int, int, Tensor] | None:
+    """What the test asks of a clip (``ClipDataset`` item: ``dynamic``, ``caption``, ``pixel_tracks`` (T, H, W, 3),
+    ``pixel_track_valid`` (H, W)): (axis, sign, moving (H·W,) bool of :func:`moving_pixels`), or None when the clip
+    does not take part (static, its caption names no direction or more than one, or nothing moves)."""
+    named = caption_direction(clip["caption"]) if bool(clip["dynamic"]) else None
+    if named is None:
+        return None
+    moving = moving_pixels(clip["pixel_tracks"], clip["pixel_track_valid"]).reshape(-1)
+    return (named[1], named[2], moving) if bool(moving.any()) else None
+
+
+def named_way_score(positions: Tensor, kept: Tensor, moving: Tensor, axis: int, sign: int) -> tuple[bool, float]:
+    """A scene's answer for one caption: frame 0's pixels' points ``positions`` (H·W, T, 3) metres, ``kept`` (H·W,)
+    bool (the pixel's point exists), the clip's ``moving`` (H·W,) bool, the named ``axis`` and ``sign`` (±1).
+    Returns (moved the named way, :func:`moves_named_way`; the mean displacement along the named way, ``sign`` times
+    :func:`directional_motion`, metres, 0 when no moving pixel was kept)."""
+    d = directional_motion(positions, moving & kept, axis)
+    return moves_named_way(d, sign), sign * d if d == d else 0.0  # NaN: no moving pixel kept

@@ -7,7 +7,10 @@ frame, camera path and caption, and rendered along its cameras at its times:
   :data:`DEPTH_DIAGNOSTICS` on the same pixels; ``motion_epe`` (metres) of the tracks, split by :data:`DIAGNOSTICS`;
 - ``loop_psnr`` (static clips, else NaN): a 360° ``orbit`` from frame 0 around its median true depth, rendered from
   the first camera at t = 1 against the true frame 0;
-- ``vae_psnr``: the VAE round trip of the clip, the ceiling of every render (PyTorch models only, else NaN).
+- ``vae_psnr``: the VAE round trip of the clip, the ceiling of every render (PyTorch models only, else NaN);
+- :data:`DIRECTION` (issue 58's direction test, :mod:`training.direction_test`; NaN unless the clip is dynamic and
+  its caption names one direction): the scene generated with the caption and one generated with its direction
+  flipped, each moved the named way (1 / 0) and by how much along it (metres).
 
 :data:`BASELINES` score frames 1…T−1 of variants: ``repeat``/``repeat_blur`` (frame 0 held), ``noise`` (sampled
 latents replaced by noise), ``gt`` (the true video's latents; PyTorch only), ``video`` (the sampled latents decoded,
@@ -37,6 +40,7 @@ from diff4splat.render.sequence import render_path
 from diff4splat.utils.devices import synchronize
 from models.flow_matching import SAMPLERS, heun_sample, sigma_schedule
 
+from .direction_test import direction_query, flip_direction, named_way_score
 from .eval_metrics import (
     ANGLE_BINS,
     ablation_noise,
@@ -57,7 +61,7 @@ from .objectives import track_query_index
 
 __all__ = ["evaluate_clip", "evaluate_clips", "evaluate_all", "aggregate", "ClipEvaluation", "sampling_tradeoffs",
            "photo_fidelity", "stiffness_profile", "METRICS", "DIAGNOSTICS", "DEPTH_DIAGNOSTICS", "BASELINES",
-           "VARIANTS", "PHOTO_KEYS", "binned_keys", "scene_motion", "held_out_clips",
+           "VARIANTS", "PHOTO_KEYS", "DIRECTION", "binned_keys", "scene_motion", "held_out_clips",
            "pixel_positions"]
 
 METRICS = ("psnr_input", "ssim_input", "psnr_novel", "ssim_novel", "depth_corr", "motion_epe", "loop_psnr",
@@ -72,6 +76,11 @@ DIAGNOSTICS = ("motion_epe_t0", "motion_epe_hold", "motion_disp_epe", "motion_di
 still, the displacement from frame 0 and its δ fractions (higher is better), and ``*_gt`` for the true latents;
 ``flow_*`` the same displacement terms over every valid frame-0 pixel (the clip's ``pixel_tracks``: dense scene flow;
 on a static clip ``flow_disp_epe`` is the mean spurious motion)."""
+
+DIRECTION = ("direction_caption", "direction_flipped", "direction_along_caption", "direction_along_flipped")
+"""The direction test (module docstring): the fraction of taking-part clips whose scene moved the captioned object
+the named way, with the caption and with its direction flipped, and the mean displacement along the named way
+(metres; holding still scores 0 and 0). :func:`aggregate` adds ``direction_clips``, how many took part."""
 
 DEPTH_DIAGNOSTICS = ("depth_abs_rel", "depth_scale")
 """Beside ``depth_corr`` (:func:`training.eval_metrics.depth_errors`): AbsRel and the median rendered/true ratio."""
@@ -101,7 +110,8 @@ def held_out_clips(data: str | Path, height: int, width: int, num_frames: int, l
 @dataclass
 class ClipEvaluation:
     """What :func:`evaluate_clip` measures on one clip: ``max_angle`` the largest view angle (degrees); ``metrics``
-    for :data:`METRICS`, :data:`DIAGNOSTICS`, :data:`DEPTH_DIAGNOSTICS`, :data:`BASELINES`; ``angles`` (T−1,) degrees
+    for :data:`METRICS`, :data:`DIAGNOSTICS`, :data:`DEPTH_DIAGNOSTICS`, :data:`BASELINES`, :data:`DIRECTION`;
+    ``angles`` (T−1,) degrees
     and ``frame_mse`` {"model" or variant: (T−1,) float64, NaN where unavailable} of frames 1…T−1."""
 
     name: str
@@ -180,6 +190,7 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
     out.update(depth_errors(depths[valid], clip["depth"][valid]))
     out.update(scene_motion(pipe, res, clip))
     out["loop_psnr"] = _loop_psnr(pipe, image, clip, T, **gen)
+    out.update(_direction(pipe, clip, res, **gen))
 
     noisy = pipe(image, cams, clip["caption"], video_latents=ablation_noise(res.latents.shape, seed), **gen)
     mse["noise"] = frame_mse(_render(noisy)[0][1:].permute(0, 3, 1, 2), gt[1:])
@@ -200,6 +211,22 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
     angles = view_angles(clip["viewmats"])
     return ClipEvaluation(name=str(clip.get("scene", "")), dynamic=bool(clip["dynamic"]),
                           max_angle=float(angles.max()), metrics=out, angles=angles[1:], frame_mse=mse)
+
+
+def _direction(pipe: Diff4SplatPipeline, clip: dict, res: GenerationResult, **kw) -> dict[str, float]:
+    """:data:`DIRECTION` of one clip from its scene ``res`` (generated with the caption) and one more generated with
+    the caption's direction flipped; NaN when the clip does not take part (no extra generation then)."""
+    query = direction_query(clip)
+    if query is None:
+        return dict.fromkeys(DIRECTION, float("nan"))
+    axis, sign, moving = query
+    cams, image = _clip_inputs(pipe, clip)
+    flipped = pipe(image, cams, flip_direction(clip["caption"]), **kw)
+    out = {}
+    for name, scene, s in (("caption", res, sign), ("flipped", flipped, -sign)):
+        named_way, along = named_way_score(*pixel_positions(scene), moving, axis, s)
+        out[f"direction_{name}"], out[f"direction_along_{name}"] = float(named_way), along
+    return out
 
 
 def _loop_psnr(pipe: Diff4SplatPipeline, image: Tensor, clip: dict, num_frames: int, **kw) -> float:
@@ -245,12 +272,14 @@ def photo_fidelity(pipe: Diff4SplatPipeline, image_path: str | Path, prompt: str
 
 
 def aggregate(evals: list[ClipEvaluation]) -> dict[str, float]:
-    """Mean over clips of every metric, diagnostic and baseline (NaNs skipped), and :func:`binned_keys`: the PSNR
+    """Mean over clips of every metric, diagnostic, baseline and :data:`DIRECTION` key (NaNs skipped), how many clips
+    took part in the direction test (``direction_clips``), and :func:`binned_keys`: the PSNR
     of the frames' mean MSE pooled over all clips, per view-angle bin and in all. Raises ValueError when empty."""
     if not evals:
         raise ValueError("evals: no clip evaluations to aggregate")
     out = {k: statistics.fmean([e.metrics[k] for e in evals if not math.isnan(e.metrics[k])] or [float("nan")])
-           for k in METRICS + DIAGNOSTICS + DEPTH_DIAGNOSTICS + BASELINES}
+           for k in METRICS + DIAGNOSTICS + DEPTH_DIAGNOSTICS + BASELINES + DIRECTION}
+    out["direction_clips"] = float(sum(not math.isnan(e.metrics["direction_caption"]) for e in evals))
     angles = torch.cat([e.angles for e in evals])
     for variant in ("model", *VARIANTS):
         mse = torch.cat([e.frame_mse[variant] for e in evals])
@@ -271,7 +300,7 @@ def evaluate_all(pipe: Diff4SplatPipeline, clips: list[dict], *, progress: bool 
 
 def evaluate_clips(pipe: Diff4SplatPipeline, clips: list[dict], **kw) -> dict[str, float]:
     """:func:`aggregate` of :func:`evaluate_all`: {key: value} for :data:`METRICS`, :data:`DIAGNOSTICS`,
-    :data:`DEPTH_DIAGNOSTICS`, :data:`BASELINES` and :func:`binned_keys`."""
+    :data:`DEPTH_DIAGNOSTICS`, :data:`BASELINES`, :data:`DIRECTION` with ``direction_clips`` and :func:`binned_keys`."""
     return aggregate(evaluate_all(pipe, clips, **kw))
 
 

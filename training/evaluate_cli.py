@@ -24,6 +24,7 @@ from .evaluate import (
     BASELINES,
     DEPTH_DIAGNOSTICS,
     DIAGNOSTICS,
+    DIRECTION,
     METRICS,
     PHOTO_KEYS,
     VARIANTS,
@@ -83,6 +84,7 @@ def _aggregate_tables(agg: dict) -> str:
         metrics += _print_table([agg], list(PHOTO_KEYS))
     depth = _print_table([agg], ["depth_corr", *DEPTH_DIAGNOSTICS])
     motion = _print_table([agg], ["motion_epe", *DIAGNOSTICS])
+    direction = _print_table([agg], ["direction_clips", *DIRECTION])
     bins = {name: f"{_BIN_LABELS[name]} ({int(agg[f'frames_{name}'])} frames)" for name, _, _ in ANGLE_BINS}
     rows = []
     for v in ("model", *VARIANTS):
@@ -92,7 +94,9 @@ def _aggregate_tables(agg: dict) -> str:
                      **{bins[name]: agg[f"psnr_{name}{suffix}"] for name, _, _ in ANGLE_BINS}})
     versus = _print_table(rows, ["novel views, PSNR dB", "mean of clips", "all frames, pooled", *bins.values()])
     return (f"{metrics}\n\nDepth (rendered against true, covered valid pixels):\n{depth}\n\nMotion (metres):\n"
-            f"{motion}\n\nNovel views beside the baselines; by view angle from the input camera, the PSNR of the "
+            f"{motion}\n\nDirection test (dynamic clips whose caption names one direction: the fraction moved the "
+            f"named way and the mean displacement along it, metres, with the caption and with it flipped):\n"
+            f"{direction}\n\nNovel views beside the baselines; by view angle from the input camera, the PSNR of the "
             f"mean MSE over the bin's frames of all clips:\n{versus}")
 
 
@@ -138,7 +142,8 @@ def _check_args(args) -> dict:
             raise ValueError(f"--photo: {e}") from None
     if not args.csv:
         return {}
-    columns = ["model", "clips", *METRICS, *DIAGNOSTICS, *DEPTH_DIAGNOSTICS, *BASELINES, *binned_keys()]
+    columns = ["model", "clips", *METRICS, *DIAGNOSTICS, *DEPTH_DIAGNOSTICS, *BASELINES, "direction_clips", *DIRECTION,
+               *binned_keys()]
     columns += list(PHOTO_KEYS) if args.photo is not None else []
     outputs = csv_outputs(Path(args.csv), columns, ["model", *CLIP_COLUMNS] if args.per_clip else None,
                           ["model", *SAMPLING_COLUMNS] if args.sampling else None)
