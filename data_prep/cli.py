@@ -97,7 +97,7 @@ def _add_synth(sub) -> None:
     p.add_argument("--texture-ratio", type=_unit_float, default=DEFAULT_TEXTURE_RATIO,
                    help="probability in [0, 1] that a surface gets a crop of a bundled photograph as texture "
                         f"(data_prep/textures/); 0: procedural textures only (default {DEFAULT_TEXTURE_RATIO})")
-    p.add_argument("--motions", type=lambda text: tuple(text.split(",")), default=MOTIONS,
+    p.add_argument("--motions", type=lambda text: tuple(k.strip() for k in text.split(",")), default=MOTIONS,
                    help=f"comma-separated kinds a moving object draws from (default: all, {','.join(MOTIONS)})")
     p.add_argument("--max-movers", type=int, default=None,
                    help="at most this many objects move in a dynamic scene (default: each with probability 0.7, at "

@@ -551,7 +551,7 @@ def test_bad_motion_knobs_are_refused(motions, max_movers, message):
 def test_cli_motion_knobs(tmp_path, capsys):
     out = tmp_path / "dir"
     args = ["synth", "--scenes", "2", "--out", str(out), "--size", "16", "--frames", "3", "--static-ratio", "0",
-            "--motions", "translate", "--max-movers", "1", "--quiet"]
+            "--motions", " translate", "--max-movers", "1", "--quiet"]
     assert main(args) == 0
     for i in range(2):
         synth = load_scene(out / scene_name(i)).meta.extra["synth"]
