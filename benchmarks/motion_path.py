@@ -36,7 +36,7 @@ from diff4splat.cameras import CameraPath  # noqa: E402
 from diff4splat.pipeline import Diff4SplatPipeline  # noqa: E402
 from diff4splat.reconstruct import reconstruct_scene  # noqa: E402
 from training.direction_test import direction_query, flip_direction, named_way_score  # noqa: E402
-from training.evaluate import held_out_clips, pixel_positions, scene_motion  # noqa: E402
+from training.evaluate import decoded_video, held_out_clips, pixel_positions, scene_motion  # noqa: E402
 
 
 def clip_scene(pipe: Diff4SplatPipeline, clip: dict, latents: str, steps: int | None, prompt: str | None = None):
@@ -61,12 +61,6 @@ def clip_motion(pipe: Diff4SplatPipeline, clip: dict, latents: str, steps: int |
     return out
 
 
-def _decoded(pipe: Diff4SplatPipeline, res) -> torch.Tensor:
-    """(3, T, h, w) CPU colours in [0, 1] of a generation's latents decoded by the VAE."""
-    video = res.video if res.video is not None else pipe.runtime.decode_latents(res.latents)
-    return ((video[0].float().cpu() + 1) / 2).clamp(0, 1)
-
-
 def direction_rows(pipe: Diff4SplatPipeline, clips: list[dict], steps: int | None) -> tuple[list[list], str]:
     """The direction test (:mod:`training.direction_test`) on the dynamic clips whose caption names one direction:
     per variant (true latents with the caption, generated with the caption, generated with it flipped, and the
@@ -87,7 +81,7 @@ def direction_rows(pipe: Diff4SplatPipeline, clips: list[dict], steps: int | Non
                                              (None, None, flip_direction(clip["caption"]), None), strict=True)]
         for name, scene, s in zip(variants, scenes, (sign, sign, -sign, sign), strict=True):
             tally[name].append(named_way_score(*pixel_positions(scene), moving, axis, s))
-        changes.append(float((_decoded(pipe, scenes[1]) - _decoded(pipe, scenes[2]))[:, 1:].abs().mean()))
+        changes.append(float((decoded_video(pipe, scenes[1]) - decoded_video(pipe, scenes[2]))[:, 1:].abs().mean()))
     rows = [[name, len(v), f"{sum(ok for ok, _ in v) / max(1, len(v)):.2f}",
              f"{sum(d for _, d in v) / max(1, len(v)):+.4f}"] for name, v in tally.items()]
     reach = (f"Flipping the caption's direction changes the decoded generated video (frames 1…) by a mean absolute "

@@ -62,7 +62,7 @@ from .objectives import track_query_index
 __all__ = ["evaluate_clip", "evaluate_clips", "evaluate_all", "aggregate", "ClipEvaluation", "sampling_tradeoffs",
            "photo_fidelity", "stiffness_profile", "METRICS", "DIAGNOSTICS", "DEPTH_DIAGNOSTICS", "BASELINES",
            "VARIANTS", "PHOTO_KEYS", "DIRECTION", "binned_keys", "scene_motion", "held_out_clips",
-           "pixel_positions"]
+           "pixel_positions", "decoded_video"]
 
 METRICS = ("psnr_input", "ssim_input", "psnr_novel", "ssim_novel", "depth_corr", "motion_epe", "loop_psnr",
            "vae_psnr")
@@ -111,8 +111,8 @@ def held_out_clips(data: str | Path, height: int, width: int, num_frames: int, l
 class ClipEvaluation:
     """What :func:`evaluate_clip` measures on one clip: ``max_angle`` the largest view angle (degrees); ``metrics``
     for :data:`METRICS`, :data:`DIAGNOSTICS`, :data:`DEPTH_DIAGNOSTICS`, :data:`BASELINES`, :data:`DIRECTION`;
-    ``angles`` (T−1,) degrees
-    and ``frame_mse`` {"model" or variant: (T−1,) float64, NaN where unavailable} of frames 1…T−1."""
+    ``angles`` (T−1,) degrees and ``frame_mse`` {"model" or variant: (T−1,) float64, NaN where unavailable} of
+    frames 1…T−1."""
 
     name: str
     dynamic: bool
@@ -179,8 +179,7 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
     colors, depths, alphas = _render(res)
     pred = colors.permute(0, 3, 1, 2)
     mse = {"model": frame_mse(pred[1:], gt[1:]), **repeat_baselines(clip["video"])}
-    decoded = res.video if res.video is not None else pipe.runtime.decode_latents(res.latents)  # decoded once
-    video = ((decoded[0].float().cpu() + 1) / 2).clamp(0, 1)  # (3, T, h, w)
+    video = decoded_video(pipe, res)  # (3, T, h, w)
     mse["video"] = frame_mse(video.permute(1, 0, 2, 3)[1:], gt[1:])
     out = {"psnr_input": image_psnr(pred[:1], gt[:1]), "ssim_input": image_ssim(pred[:1], gt[:1]),
            "ssim_novel": image_ssim(pred[1:], gt[1:])}
@@ -190,7 +189,7 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
     out.update(depth_errors(depths[valid], clip["depth"][valid]))
     out.update(scene_motion(pipe, res, clip))
     out["loop_psnr"] = _loop_psnr(pipe, image, clip, T, **gen)
-    out.update(_direction(pipe, clip, res, **gen))
+    out.update(_direction(pipe, clip, res, cams, image, **gen))
 
     noisy = pipe(image, cams, clip["caption"], video_latents=ablation_noise(res.latents.shape, seed), **gen)
     mse["noise"] = frame_mse(_render(noisy)[0][1:].permute(0, 3, 1, 2), gt[1:])
@@ -213,14 +212,22 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
                           max_angle=float(angles.max()), metrics=out, angles=angles[1:], frame_mse=mse)
 
 
-def _direction(pipe: Diff4SplatPipeline, clip: dict, res: GenerationResult, **kw) -> dict[str, float]:
-    """:data:`DIRECTION` of one clip from its scene ``res`` (generated with the caption) and one more generated with
-    the caption's direction flipped; NaN when the clip does not take part (no extra generation then)."""
+def decoded_video(pipe: Diff4SplatPipeline, res: GenerationResult) -> Tensor:
+    """(3, T, h, w) CPU colours in [0, 1] of a generation's latents decoded by the VAE: ``res.video`` where the
+    pipeline kept it (decoded once per generation), else ``res.latents`` decoded through ``pipe.runtime``."""
+    decoded = res.video if res.video is not None else pipe.runtime.decode_latents(res.latents)
+    return ((decoded[0].float().cpu() + 1) / 2).clamp(0, 1)
+
+
+def _direction(pipe: Diff4SplatPipeline, clip: dict, res: GenerationResult, cams: CameraPath, image: Tensor,
+               **kw) -> dict[str, float]:
+    """:data:`DIRECTION` of one clip from its scene ``res`` (generated from ``image`` along ``cams`` with the caption)
+    and one more generated with the caption's direction flipped; NaN when the clip does not take part (no extra
+    generation then)."""
     query = direction_query(clip)
     if query is None:
         return dict.fromkeys(DIRECTION, float("nan"))
     axis, sign, moving = query
-    cams, image = _clip_inputs(pipe, clip)
     flipped = pipe(image, cams, flip_direction(clip["caption"]), **kw)
     out = {}
     for name, scene, s in (("caption", res, sign), ("flipped", flipped, -sign)):
