@@ -264,10 +264,10 @@ class TextEncoder(nn.Module, PretrainedMixin):
             x = block(x, bias)
         return self.final_norm(x) * mask[..., None].to(x.dtype)
 
-    @torch.no_grad()
     def encode_text(self, prompts: list[str], padding: str = "longest") -> tuple[Tensor, Tensor]:
-        """:class:`ByteTokenizer` then :meth:`forward`, without gradients: → tokens (B, L, d_model) and mask (B, L)
-        on the model's device. ValueError from the tokenizer."""
+        """:class:`ByteTokenizer` then :meth:`forward` → tokens (B, L, d_model) and mask (B, L) on the model's
+        device; with a graph where gradients are enabled (a stage that trains the text encoder), so inference calls
+        it under ``torch.no_grad``. ValueError from the tokenizer."""
         ids, mask = self.tokenizer(prompts, padding=padding)
         device = self.embed.weight.device
         ids, mask = ids.to(device), mask.to(device)

@@ -149,6 +149,9 @@ CASES = {
                          motion=True),
                     {"photo", "depth", "metric_depth", "smooth", "motion", "displacement", "scene_flow"},
                     {"ldrm.motion"}),
+    # the text encoder trains through the flow-matching loss when listed (frozen and without a graph otherwise)
+    "text": (dict(train=("text_encoder", "dit"), objectives=("diffusion",), scenes="all"), {"flow"},
+             {"text_encoder", "dit"}),
     # the tracking objective: the motion network alone, no renders
     "tracking": (dict(train=("ldrm.motion",), objectives=("tracking",), scenes="all"),
                  {"displacement", "warp", "scene_flow"}, {"ldrm.motion"}),
@@ -161,7 +164,8 @@ def test_forward_losses_and_gradients_reach_only_the_trainable_networks(clips, c
     kwargs, keys, trained = CASES[case]
     stage = StageConfig(height=SIZE, width=SIZE, num_frames=FRAMES, render_frames=2, weights=WEIGHTS, **kwargs)
     # a non-zero deformation head (and motion network): they shape the renders
-    model = tiny_model(seed=1, dynamic=True, motion=case in ("motion_path", "tracking"))
+    # the text case needs the DiT's zero-initialised cross-attention open for a gradient to reach the text encoder
+    model = tiny_model(seed=1, dynamic=True, motion=case in ("motion_path", "tracking"), active_dit=case == "text")
     apply_freezing(model, stage.train)
     module = TrainingModule(model, stage).train()
     batch = default_collate(clips[1:] if stage.deformation or case == "tracking" else clips[:1])
@@ -174,6 +178,7 @@ def test_forward_losses_and_gradients_reach_only_the_trainable_networks(clips, c
     expected = {
         "vae": lambda terms: terms["vae_l1"] + stage.kl_weight * terms["vae_kl"],
         "stage1": lambda terms: terms["flow"] + rendering(terms),
+        "text": lambda terms: terms["flow"],
         "frozen_deformation": lambda terms: rendering(terms) + tracks(terms),
         "motion_path": lambda terms: rendering(terms) + tracks(terms),
         "tracking": lambda terms: (1.5 * terms["displacement"] + WEIGHTS.warp * terms["warp"]

@@ -8,6 +8,7 @@ the rays are packed here for the backbone's :class:`models.backbone.LatentFormat
 """
 from __future__ import annotations
 
+import contextlib
 from functools import partial
 
 import torch
@@ -238,7 +239,9 @@ class TrainingModule(nn.Module):
         drop = (torch.rand(B, generator=gen, device=gen.device) < st.caption_dropout).to(dev)
         has_text = torch.tensor([bool(c.strip()) for c in captions], device=dev)
         keep = ~drop & has_text
-        with torch.no_grad():  # frozen text encoder (as the paper's frozen T5)
+        # the paper's T5 is frozen (no graph); a stage that lists text_encoder trains ours through this loss
+        trains_text = any(p.requires_grad for p in backbone.text_model.parameters())
+        with contextlib.nullcontext() if trains_text else torch.no_grad():
             if backbone.encodes_empty_prompt:  # its unconditional input: the embedding of "" (text=None)
                 prompts = [c if k else "" for c, k in zip(captions, keep.tolist(), strict=True)]
                 text, mask = backbone.text_model.encode_text(prompts)
