@@ -13,9 +13,11 @@ every pixel:
 
 ``--direction`` adds the direction test (:mod:`training.direction_test`): on each dynamic clip whose caption names
 one direction, the scene from the true latents, and from sampled ones with the caption and with its direction flipped;
-and, as the test's control (motion that is certainly there, read without a prompt), ``reconstruct``'s scene of the
-clip's own frames (:func:`diff4splat.reconstruct.reconstruct_scene`, the classical route of docs/DESIGN.md). A set
-for it: ``data_prep synth --static-ratio 0 --motions translate --max-movers 1`` (every caption names one direction).
+then, link by link, what the chain holds before the LDRM: the two decoded sampled videos and the true latents'
+decoding, each read by ``reconstruct`` (:func:`diff4splat.reconstruct.reconstruct_scene`, the classical route of
+docs/DESIGN.md, no prompt): the DiT's motion and the VAE's; and, as the test's control (motion that is certainly
+there), ``reconstruct`` of the clip's own frames. A set for it: ``data_prep synth --static-ratio 0 --motions
+translate --max-movers 1`` (every caption names one direction). ``--latents ''`` leaves out the motion table.
 
 ``--write`` puts the table in docs/benchmarks.md under ``motion_path_<SECTION>``.
 """
@@ -32,25 +34,36 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import markdown_table, write_section  # noqa: E402
 
-from diff4splat.cameras import CameraPath  # noqa: E402
 from diff4splat.pipeline import Diff4SplatPipeline  # noqa: E402
 from diff4splat.reconstruct import reconstruct_scene  # noqa: E402
 from training.direction_test import direction_query, flip_direction, named_way_score  # noqa: E402
-from training.evaluate import decoded_video, held_out_clips, pixel_positions, scene_motion  # noqa: E402
+from training.evaluate import (  # noqa: E402
+    clip_inputs,
+    decoded_video,
+    held_out_clips,
+    pixel_positions,
+    scene_motion,
+)
 
 
 def clip_scene(pipe: Diff4SplatPipeline, clip: dict, latents: str, steps: int | None, prompt: str | None = None):
     """``clip``'s generation from its ``latents`` ("true": VAE-encoded; "generated": sampled with ``prompt``, default
     the clip's caption; "frames": ``reconstruct`` of the clip's frames, no prompt)."""
-    cfg = pipe.config
-    cams = CameraPath(clip["viewmats"].double(), clip["Ks"].double(), cfg.width, cfg.height, clip["times"].double())
     if latents == "frames":
-        return reconstruct_scene(pipe, clip["video"].permute(1, 2, 3, 0), cams)
-    image = clip["video"][:, 0].permute(1, 2, 0)
+        return read_video(pipe, clip, None)
+    cams, image = clip_inputs(pipe, clip)
     video_latents = None
     if latents == "true":
         video_latents = pipe.runtime.encode_image(clip["video"][None].to(pipe.device) * 2 - 1)
-    return pipe(image, cams, clip["caption"] if prompt is None else prompt, steps=steps, video_latents=video_latents)
+    prompt = clip["caption"] if prompt is None else prompt
+    return pipe(image, cams, prompt, steps=steps, video_latents=video_latents)
+
+
+def read_video(pipe: Diff4SplatPipeline, clip: dict, video: torch.Tensor | None):
+    """``reconstruct``'s scene (the classical route, no prompt) of ``video`` (3, T, H, W) colours in [0, 1] along
+    ``clip``'s cameras; None: the clip's own frames."""
+    frames = (clip["video"] if video is None else video).permute(1, 2, 3, 0)
+    return reconstruct_scene(pipe, frames, clip_inputs(pipe, clip)[0])
 
 
 def clip_motion(pipe: Diff4SplatPipeline, clip: dict, latents: str, steps: int | None) -> dict[str, float]:
@@ -63,25 +76,31 @@ def clip_motion(pipe: Diff4SplatPipeline, clip: dict, latents: str, steps: int |
 
 def direction_rows(pipe: Diff4SplatPipeline, clips: list[dict], steps: int | None) -> tuple[list[list], str]:
     """The direction test (:mod:`training.direction_test`) on the dynamic clips whose caption names one direction:
-    per variant (true latents with the caption, generated with the caption, generated with it flipped, and the
-    control: ``reconstruct`` of the clip's frames) the clips moved the named way and the mean displacement along the
-    named axis times its sign (metres); and a sentence on how far the flip reaches the generated video (the mean
-    absolute colour difference of the two decoded videos, frames 1…, per clip)."""
-    variants = ("true latents, caption", "generated, caption", "generated, flipped caption",
-                "the clip's frames (`reconstruct`, control)")
-    tally: dict[str, list] = {name: [] for name in variants}
+    per variant the clips moved the named way and the mean displacement along the named axis times its sign
+    (metres); and a sentence on how far the flip reaches the generated video (the mean absolute colour difference
+    of the two decoded videos, frames 1…, per clip). The variants follow the chain link by link: the scene
+    ``generate`` builds from the true latents and from sampled ones (caption, flipped caption); the decoded sampled
+    videos read by ``reconstruct`` (the DiT's motion without the LDRM's); the decoded true latents read by
+    ``reconstruct`` (what the VAE keeps of the motion); and the control, ``reconstruct`` of the clip's frames."""
+    names = ("true latents, caption", "generated, caption", "generated, flipped caption",
+             "generated video read by `reconstruct`, caption", "generated video read by `reconstruct`, flipped",
+             "true latents' decoding read by `reconstruct` (the VAE's bound)",
+             "the clip's frames (`reconstruct`, control)")
+    tally: dict[str, list] = {name: [] for name in names}
     changes = []
     for clip in clips:
         query = direction_query(clip)
         if query is None:
             continue
         axis, sign, moving = query
-        scenes = [clip_scene(pipe, clip, latents, steps, prompt)
-                  for latents, prompt in zip(("true", "generated", "generated", "frames"),
-                                             (None, None, flip_direction(clip["caption"]), None), strict=True)]
-        for name, scene, s in zip(variants, scenes, (sign, sign, -sign, sign), strict=True):
+        true, gen, flip = (clip_scene(pipe, clip, latents, steps, prompt)
+                           for latents, prompt in zip(("true", "generated", "generated"),
+                                                      (None, None, flip_direction(clip["caption"])), strict=True))
+        videos = [decoded_video(pipe, res) for res in (gen, flip, true)]
+        scenes = [true, gen, flip, *(read_video(pipe, clip, v) for v in videos), read_video(pipe, clip, None)]
+        for name, scene, s in zip(names, scenes, (sign, sign, -sign, sign, -sign, sign, sign), strict=True):
             tally[name].append(named_way_score(*pixel_positions(scene), moving, axis, s))
-        changes.append(float((decoded_video(pipe, scenes[1]) - decoded_video(pipe, scenes[2]))[:, 1:].abs().mean()))
+        changes.append(float((videos[0] - videos[1])[:, 1:].abs().mean()))
     rows = [[name, len(v), f"{sum(ok for ok, _ in v) / max(1, len(v)):.2f}",
              f"{sum(d for _, d in v) / max(1, len(v)):+.4f}"] for name, v in tally.items()]
     reach = (f"Flipping the caption's direction changes the decoded generated video (frames 1…) by a mean absolute "
@@ -101,7 +120,7 @@ def main() -> None:
     ap.add_argument("--checkpoint", default=None, help="model folder (default: the shipped weights)")
     ap.add_argument("--limit", type=int, default=None)
     ap.add_argument("--steps", type=int, default=None)
-    ap.add_argument("--latents", default="true,generated")
+    ap.add_argument("--latents", default="true,generated", help="the motion table's rows ('': none)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--write", default=None, help="section suffix in docs/benchmarks.md")
     ap.add_argument("--direction", action="store_true", help="also the direction test (training.direction_test)")
@@ -111,7 +130,7 @@ def main() -> None:
     cfg = pipe.config
     clips = held_out_clips(args.data, cfg.height, cfg.width, cfg.num_frames, args.limit)
     rows = []
-    for which in args.latents.split(","):
+    for which in [w for w in args.latents.split(",") if w]:
         per = {True: [], False: []}
         with torch.no_grad():
             for clip in clips:
@@ -131,11 +150,11 @@ def main() -> None:
             "δ5cm / δ10cm", "δ holding still", "every pixel: ratio", "every pixel: δ5cm / δ10cm",
             "every pixel: δ holding still", "static clips", "static: mean displacement (mm)",
             "static, every pixel (mm)", "static scenes with deformation"]
-    table = markdown_table(head, rows)
+    table = markdown_table(head, rows) if rows else ""
     if args.direction:
         with torch.no_grad():
             rows, reach = direction_rows(pipe, clips, args.steps)
-            table += "\n\nDirection test (`training.direction_test`):\n\n" + markdown_table(
+            table += "\n\n" * bool(table) + "Direction test (`training.direction_test`):\n\n" + markdown_table(
                 ["scene from", "clips", "moved the named way", "mean displacement along it (m)"], rows)
             table += f"\n\n{reach}" if reach else ""
     print(table)

@@ -62,7 +62,7 @@ from .objectives import track_query_index
 __all__ = ["evaluate_clip", "evaluate_clips", "evaluate_all", "aggregate", "ClipEvaluation", "sampling_tradeoffs",
            "photo_fidelity", "stiffness_profile", "METRICS", "DIAGNOSTICS", "DEPTH_DIAGNOSTICS", "BASELINES",
            "VARIANTS", "PHOTO_KEYS", "DIRECTION", "binned_keys", "scene_motion", "held_out_clips",
-           "pixel_positions", "decoded_video"]
+           "pixel_positions", "decoded_video", "clip_inputs"]
 
 METRICS = ("psnr_input", "ssim_input", "psnr_novel", "ssim_novel", "depth_corr", "motion_epe", "loop_psnr",
            "vae_psnr")
@@ -148,7 +148,7 @@ def scene_motion(pipe: Diff4SplatPipeline, res: GenerationResult, clip: dict) ->
     return out | {"flow" + k[len("motion"):]: v for k, v in errors.items() if k.startswith("motion_disp")}
 
 
-def _clip_inputs(pipe: Diff4SplatPipeline, clip: dict) -> tuple[CameraPath, Tensor]:
+def clip_inputs(pipe: Diff4SplatPipeline, clip: dict) -> tuple[CameraPath, Tensor]:
     """The clip's camera path (float64) and its first frame (H, W, 3)."""
     cfg = pipe.config
     cams = CameraPath(clip["viewmats"].double(), clip["Ks"].double(), cfg.width, cfg.height, clip["times"].double())
@@ -171,7 +171,7 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
     T = clip["video"].shape[1]
     if T < 2:
         raise ValueError(f"clip must have at least 2 frames, got {T}")
-    cams, image = _clip_inputs(pipe, clip)
+    cams, image = clip_inputs(pipe, clip)
     gt = clip["video"].permute(1, 0, 2, 3)
     gen = dict(steps=steps, sampler=sampler, seed=seed)
 
@@ -319,7 +319,7 @@ def sampling_tradeoffs(pipe: Diff4SplatPipeline, clips: list[dict], nfes=(1, 2, 
     solve, and the renders' PSNR against the clip."""
     rows, refs = [], []
     for c in clips:
-        cams, image = _clip_inputs(pipe, c)
+        cams, image = clip_inputs(pipe, c)
         refs.append((c, cams, image, pipe(image, cams, c["caption"], steps=reference_steps, sampler="heun").latents))
     for sampler in SAMPLERS:
         for nfe in nfes:
@@ -348,7 +348,7 @@ def stiffness_profile(pipe: Diff4SplatPipeline, clip: dict, steps: int = 16, sub
     ``lipschitz`` ‖v(x+δ) − v(x)‖ / ‖δ‖ with ‖δ‖ = 1e-3·‖x‖."""
     cfg = pipe.config
     runtime = pipe.runtime
-    cams, image = _clip_inputs(pipe, clip)
+    cams, image = clip_inputs(pipe, clip)
     captured: dict = {}
     original = runtime.velocity
 
