@@ -32,7 +32,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import markdown_table, write_section  # noqa: E402
+from _common import markdown_table, save_strip, write_section  # noqa: E402
 
 from diff4splat.pipeline import Diff4SplatPipeline  # noqa: E402
 from diff4splat.reconstruct import reconstruct_scene  # noqa: E402
@@ -74,20 +74,23 @@ def clip_motion(pipe: Diff4SplatPipeline, clip: dict, latents: str, steps: int |
     return out
 
 
-def direction_rows(pipe: Diff4SplatPipeline, clips: list[dict], steps: int | None) -> tuple[list[list], str]:
+def direction_rows(pipe: Diff4SplatPipeline, clips: list[dict], steps: int | None, strip: Path | None = None,
+                   strip_clips: int = 2) -> tuple[list[list], str]:
     """The direction test (:mod:`training.direction_test`) on the dynamic clips whose caption names one direction:
     per variant the clips moved the named way and the mean displacement along the named axis times its sign
     (metres); and a sentence on how far the flip reaches the generated video (the mean absolute colour difference
     of the two decoded videos, frames 1…, per clip). The variants follow the chain link by link: the scene
     ``generate`` builds from the true latents and from sampled ones (caption, flipped caption); the decoded sampled
     videos read by ``reconstruct`` (the DiT's motion without the LDRM's); the decoded true latents read by
-    ``reconstruct`` (what the VAE keeps of the motion); and the control, ``reconstruct`` of the clip's frames."""
+    ``reconstruct`` (what the VAE keeps of the motion); and the control, ``reconstruct`` of the clip's frames.
+    ``strip``: an image of the first ``strip_clips`` taking-part clips, nine frames each of the clip, its decoded
+    generated videos with the caption and flipped, and its true latents' decoding (rows, enlarged 2×)."""
     names = ("true latents, caption", "generated, caption", "generated, flipped caption",
              "generated video read by `reconstruct`, caption", "generated video read by `reconstruct`, flipped",
              "true latents' decoding read by `reconstruct` (the VAE's bound)",
              "the clip's frames (`reconstruct`, control)")
     tally: dict[str, list] = {name: [] for name in names}
-    changes = []
+    changes, looked = [], {}
     for clip in clips:
         query = direction_query(clip)
         if query is None:
@@ -101,6 +104,12 @@ def direction_rows(pipe: Diff4SplatPipeline, clips: list[dict], steps: int | Non
         for name, scene, s in zip(names, scenes, (sign, sign, -sign, sign, -sign, sign, sign), strict=True):
             tally[name].append(named_way_score(*pixel_positions(scene), moving, axis, s))
         changes.append(float((videos[0] - videos[1])[:, 1:].abs().mean()))
+        if strip is not None and len(looked) < 4 * strip_clips:
+            k = len(looked) // 4
+            for label, v in zip(("frames", "caption", "flipped", "VAE"), (clip["video"], *videos), strict=True):
+                looked[f"{k}: {label}"] = v.permute(1, 2, 3, 0).float().cpu()
+    if looked:
+        save_strip(strip, looked, columns=9, scale=2)
     rows = [[name, len(v), f"{sum(ok for ok, _ in v) / max(1, len(v)):.2f}",
              f"{sum(d for _, d in v) / max(1, len(v)):+.4f}"] for name, v in tally.items()]
     reach = (f"Flipping the caption's direction changes the decoded generated video (frames 1…) by a mean absolute "
@@ -124,6 +133,7 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--write", default=None, help="section suffix in docs/benchmarks.md")
     ap.add_argument("--direction", action="store_true", help="also the direction test (training.direction_test)")
+    ap.add_argument("--strip", type=Path, default=None, help="with --direction: an image of clips and their videos")
     args = ap.parse_args()
     torch.manual_seed(0)
     pipe = Diff4SplatPipeline.from_pretrained(args.checkpoint, device=args.device)
@@ -153,7 +163,7 @@ def main() -> None:
     table = markdown_table(head, rows) if rows else ""
     if args.direction:
         with torch.no_grad():
-            rows, reach = direction_rows(pipe, clips, args.steps)
+            rows, reach = direction_rows(pipe, clips, args.steps, args.strip)
             table += "\n\n" * bool(table) + "Direction test (`training.direction_test`):\n\n" + markdown_table(
                 ["scene from", "clips", "moved the named way", "mean displacement along it (m)"], rows)
             table += f"\n\n{reach}" if reach else ""

@@ -35,6 +35,7 @@ from data_prep.synth_world import CAMERA_MOTIONS, MOTIONS, SHAPES, TEXTURES, cap
 from data_prep.textures import IMAGE_TEXTURES, image_albedo
 from data_prep.validate import validate_path, validate_scene
 from diff4splat.scene.gaussians import sh0_to_rgb
+from models.bundle import DEFAULT_CONFIG, WEIGHTS_DIR, load_config
 from training.direction_test import caption_direction
 
 SIZE, T = 32, 5
@@ -144,6 +145,19 @@ def test_static_and_dynamic_scenes(tmp_path):
     assert d.meta.dynamic and np.abs(pd - pd[:, :1]).max() > 0.05 and vd.any()
     assert d.meta.depth_source == "ground_truth" and np.isfinite(d.depth("cam00", 0)).mean() > 0.5
     assert (d.depth("cam00", 0)[np.isfinite(d.depth("cam00", 0))] > 0).all()
+
+
+def test_shipped_tokenizer_holds_every_synthetic_caption_whole():
+    # The shipped base model's text sees a training caption whole, direction words included (the byte tokenizer cuts
+    # a longer one). About 1 in 600 sampled captions exceeds 254 bytes, so 3,000 of them catch a 256-token limit.
+    room = min(load_config(c).text_encoder.max_length for c in (DEFAULT_CONFIG, WEIGHTS_DIR / DEFAULT_CONFIG /
+                                                                "config.json")) - 2
+    longest = 0
+    for k in range(3000):
+        rng = np.random.default_rng([2026, k])
+        spec = sample_scene_spec(rng, dynamic=k % 4 != 0, num_cameras=1, size=SIZE, num_frames=T)
+        longest = max(longest, len(caption_for(spec, np.eye(3)).encode("utf-8")))
+    assert 254 < longest <= room
 
 
 def test_captions_mention_sampled_motions():
