@@ -34,7 +34,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import markdown_table, save_strip, write_section  # noqa: E402
 
-from diff4splat.pipeline import Diff4SplatPipeline  # noqa: E402
+from diff4splat.pipeline import Diff4SplatPipeline, GenerationResult  # noqa: E402
 from diff4splat.reconstruct import reconstruct_scene  # noqa: E402
 from training.direction_test import direction_query, flip_direction, named_way_score  # noqa: E402
 from training.evaluate import (  # noqa: E402
@@ -59,7 +59,7 @@ def clip_scene(pipe: Diff4SplatPipeline, clip: dict, latents: str, steps: int | 
     return pipe(image, cams, prompt, steps=steps, video_latents=video_latents)
 
 
-def read_video(pipe: Diff4SplatPipeline, clip: dict, video: torch.Tensor | None):
+def read_video(pipe: Diff4SplatPipeline, clip: dict, video: torch.Tensor | None) -> GenerationResult:
     """``reconstruct``'s scene (the classical route, no prompt) of ``video`` (3, T, H, W) colours in [0, 1] along
     ``clip``'s cameras; None: the clip's own frames."""
     frames = (clip["video"] if video is None else video).permute(1, 2, 3, 0)

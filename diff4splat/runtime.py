@@ -215,8 +215,9 @@ class TorchRuntime:
             return self.latent_model.encode_latents(video.to(self.dtype)).float()
 
     def encode_text(self, prompt: str) -> tuple[Tensor, Tensor]:
-        """Prompt → tokens (1, L, d_text) float32, mask (1, L) bool on the device (errors of the backbone's)."""
-        with self._use("text_encoder"):
+        """Prompt → tokens (1, L, d_text) float32, mask (1, L) bool on the device (errors of the backbone's); no
+        graph (inference: the text model builds one only for training)."""
+        with self._use("text_encoder"), torch.no_grad():
             tokens, mask = self.text_model.encode_text([prompt])
         return tokens.float().to(self.device), mask.to(self.device)
 

@@ -149,7 +149,8 @@ def scene_motion(pipe: Diff4SplatPipeline, res: GenerationResult, clip: dict) ->
 
 
 def clip_inputs(pipe: Diff4SplatPipeline, clip: dict) -> tuple[CameraPath, Tensor]:
-    """The clip's camera path (float64) and its first frame (H, W, 3)."""
+    """A :func:`held_out_clips` clip's reference camera path (float64 viewmats, Ks in pixels and times in seconds, at
+    the model's width × height) and its first frame (H, W, 3) colours in [0, 1], as ``pipe`` takes them."""
     cfg = pipe.config
     cams = CameraPath(clip["viewmats"].double(), clip["Ks"].double(), cfg.width, cfg.height, clip["times"].double())
     return cams, clip["video"][:, 0].permute(1, 2, 0)
