@@ -15,6 +15,7 @@ from training.losses import (
     head_distillation_loss,
     log_depth_loss,
     motion_loss,
+    moving_cells,
     photometric_loss,
     sample_training_sigmas,
     warp_loss,
@@ -32,6 +33,41 @@ def test_flow_matching_loss_is_zero_for_the_exact_velocity_and_closed_form_other
     seen = []
     flow_matching_loss(lambda x, s: seen.append((x, s)) or x, x0, eps, sigma)
     torch.testing.assert_close(seen[0][0], (1 - sigma.view(2, 1, 1, 1, 1)) * x0 + sigma.view(2, 1, 1, 1, 1) * eps)
+
+
+def test_moving_cells_match_a_per_point_loop_and_leave_still_scenes_empty():
+    """Every moving pixel's point, projected at each frame, marks its latent cell (brute force: one point at a time);
+    still points and points behind the camera mark none; latent frame 0 stays empty."""
+    g = torch.Generator().manual_seed(3)
+    B, T, H, W, n, h, w, tf = 2, 9, 16, 24, 3, 4, 6, 4
+    K = torch.tensor([[20.0, 0, 12], [0, 20.0, 8], [0, 0, 1]])
+    Ks = K.expand(B, T, 3, 3)
+    viewmats = torch.eye(4).repeat(B, T, 1, 1)
+    viewmats[..., 0, 3] = torch.linspace(0, 0.3, T)  # a camera sliding along x
+    base = torch.cat([torch.rand(B, 1, H, W, 2, generator=g) * 2 - 1, 2 + torch.rand(B, 1, H, W, 1, generator=g)], -1)
+    tracks = base.repeat(1, T, 1, 1, 1)
+    movers = torch.rand(B, H, W, generator=g) < 0.2
+    step = torch.linspace(0, 1, T)[None, :, None, None, None] * torch.tensor([0.6, -0.4, 0.0])
+    tracks = torch.where(movers[:, None, ..., None], tracks + step, tracks)
+    tracks[0, :, 0, 0, 2] = -1.0  # behind the camera throughout (and moving: its x changes)
+    movers[0, 0, 0] = True
+    valid = torch.ones(B, H, W, dtype=torch.bool)
+    cells = moving_cells(tracks, valid, viewmats, Ks, (n, h, w), tf)
+    expected = torch.zeros(B, n, h, w, dtype=torch.bool)
+    for b, y, x in movers.nonzero().tolist():
+        for t in range(1, T):
+            p = viewmats[b, t, :3, :3] @ tracks[b, t, y, x] + viewmats[b, t, :3, 3]
+            if p[2] <= 0:
+                continue
+            u, v = float(K[0, 0] * p[0] / p[2] + K[0, 2]), float(K[1, 1] * p[1] / p[2] + K[1, 2])
+            if 0 <= u < W and 0 <= v < H:
+                expected[b, 1 + (t - 1) // tf, int(v // (H // h)), int(u // (W // w))] = True
+    assert expected.any() and not expected[:, 0].any()
+    assert torch.equal(cells, expected)
+    still = moving_cells(base.repeat(1, T, 1, 1, 1), valid, viewmats, Ks, (n, h, w), tf)
+    assert not still.any()
+    with pytest.raises(ValueError, match="latent grid"):
+        moving_cells(tracks, valid, viewmats, Ks, (2, h, w), tf)
 
 
 def test_training_sigmas_are_logit_normal_and_shifted():

@@ -119,7 +119,7 @@ def test_render_frames_uses_each_frames_time_and_camera():
 NETWORKS = ("vae", "text_encoder", "dit", "ldrm", "ldrm.deformation")
 # not the defaults: the sum is checked
 WEIGHTS = LossWeights(ssim=0.2, rgb=2.0, depth=0.5, metric_depth=0.75, smooth=0.25, motion=3.0, displacement=1.5,
-                      warp=0.5, scene_flow=2.5)
+                      warp=0.5, scene_flow=2.5, mover=1.25)
 
 
 def _network(name: str) -> str:
@@ -134,15 +134,15 @@ CASES = {
     "vae": (dict(name="vae", train=("vae",), objectives=("vae",), scenes="all", kl_weight=0.01),
             {"vae_l1", "vae_kl"}, {"vae"}),
     "stage1": (dict(train=("dit", "ldrm"), objectives=("diffusion", "reconstruction")),
-               {"flow", "photo", "depth", "metric_depth", "smooth"}, {"dit", "ldrm"}),
+               {"flow", "flow_mover", "photo", "depth", "metric_depth", "smooth"}, {"dit", "ldrm"}),
     # the deformation network runs (deformation on) but is frozen: it must get no gradient
     "frozen_deformation": (dict(train=("ldrm",), objectives=("reconstruction",), deformation=True, motion=True),
                            {"photo", "depth", "metric_depth", "smooth", "motion", "displacement", "scene_flow"},
                            {"ldrm"}),
     "stage3": (dict(train=("dit", "ldrm", "ldrm.deformation"), objectives=("diffusion", "reconstruction"),
                     scenes="all", deformation=True, motion=True),
-               {"flow", "photo", "depth", "metric_depth", "smooth", "motion", "displacement", "scene_flow"},
-               {"dit", "ldrm", "ldrm.deformation"}),
+               {"flow", "flow_mover", "photo", "depth", "metric_depth", "smooth", "motion", "displacement",
+                "scene_flow"}, {"dit", "ldrm", "ldrm.deformation"}),
     # the motion path (diff4splat.assembly.frame_motion) alone: the tracks and the renders reach it through the decoded
     # frames
     "motion_path": (dict(train=("ldrm.motion",), objectives=("reconstruction",), scenes="all", deformation=True,
@@ -150,7 +150,8 @@ CASES = {
                     {"photo", "depth", "metric_depth", "smooth", "motion", "displacement", "scene_flow"},
                     {"ldrm.motion"}),
     # the text encoder trains through the flow-matching loss when listed (frozen and without a graph otherwise)
-    "text": (dict(train=("text_encoder", "dit"), objectives=("diffusion",), scenes="all"), {"flow"},
+    # (on the dynamic clip: the moving object's cells weigh in, weights.mover)
+    "text": (dict(train=("text_encoder", "dit"), objectives=("diffusion",), scenes="all"), {"flow", "flow_mover"},
              {"text_encoder", "dit"}),
     # the tracking objective: the motion network alone, no renders
     "tracking": (dict(train=("ldrm.motion",), objectives=("tracking",), scenes="all"),
@@ -168,7 +169,7 @@ def test_forward_losses_and_gradients_reach_only_the_trainable_networks(clips, c
     model = tiny_model(seed=1, dynamic=True, motion=case in ("motion_path", "tracking"), active_dit=case == "text")
     apply_freezing(model, stage.train)
     module = TrainingModule(model, stage).train()
-    batch = default_collate(clips[1:] if stage.deformation or case == "tracking" else clips[:1])
+    batch = default_collate(clips[1:] if stage.deformation or case in ("tracking", "text") else clips[:1])
     losses = module(batch, torch.Generator().manual_seed(0))
     assert set(losses) == keys | {"loss"}
     assert all(v.ndim == 0 and math.isfinite(float(v.detach())) for v in losses.values()), losses
@@ -177,15 +178,17 @@ def test_forward_losses_and_gradients_reach_only_the_trainable_networks(clips, c
     tracks = lambda t: 3.0 * t["motion"] + 1.5 * t["displacement"] + 2.5 * t["scene_flow"]  # noqa: E731
     expected = {
         "vae": lambda terms: terms["vae_l1"] + stage.kl_weight * terms["vae_kl"],
-        "stage1": lambda terms: terms["flow"] + rendering(terms),
-        "text": lambda terms: terms["flow"],
+        "stage1": lambda terms: terms["flow"] + 1.25 * terms["flow_mover"] + rendering(terms),
+        "text": lambda terms: terms["flow"] + 1.25 * terms["flow_mover"],
         "frozen_deformation": lambda terms: rendering(terms) + tracks(terms),
         "motion_path": lambda terms: rendering(terms) + tracks(terms),
         "tracking": lambda terms: (1.5 * terms["displacement"] + WEIGHTS.warp * terms["warp"]
                                    + 2.5 * terms["scene_flow"]),
-        "stage3": lambda terms: terms["flow"] + rendering(terms) + tracks(terms),
+        "stage3": lambda terms: terms["flow"] + 1.25 * terms["flow_mover"] + rendering(terms) + tracks(terms),
     }[case](losses)
     torch.testing.assert_close(losses["loss"], expected)
+    if "flow_mover" in keys:  # zero exactly where no object moves
+        assert (float(losses["flow_mover"].detach()) > 1e-4) == bool(batch["dynamic"].any())
     if "motion" in keys or "displacement" in keys:
         assert float(losses["displacement"].detach()) > 1e-3  # visible tracks were queried and compared
         assert float(losses["scene_flow"].detach()) > 1e-3  # so were the dense tracks

@@ -42,9 +42,9 @@ def flip_direction(caption: str) -> str:
 
 
 def moving_pixels(pixel_tracks: Tensor, valid: Tensor) -> Tensor:
-    """(H, W) bool: the ``valid`` (H, W) pixels whose true track ``pixel_tracks`` (T, H, W, 3) metres moved more than
-    :data:`MOVING_M` from frame 0 to the last frame."""
-    return valid & ((pixel_tracks[-1] - pixel_tracks[0]).norm(dim=-1) > MOVING_M)
+    """(..., H, W) bool: the ``valid`` (..., H, W) pixels whose true track ``pixel_tracks`` (..., T, H, W, 3) metres
+    moved more than :data:`MOVING_M` from frame 0 to the last frame (leading dimensions: clips of a batch)."""
+    return valid & ((pixel_tracks.select(-4, -1) - pixel_tracks.select(-4, 0)).norm(dim=-1) > MOVING_M)
 
 
 def directional_motion(positions: Tensor, moving: Tensor, axis: int) -> float:

@@ -14,9 +14,11 @@ from diff4splat.cameras import project_points
 from diff4splat.utils.devices import autocast_off
 from models.flow_matching import add_noise, sample_logit_normal, shift_sigmas, velocity_target
 
-__all__ = ["LossWeights", "flow_matching_loss", "sample_training_sigmas", "photometric_loss", "depth_correlation_loss",
-           "depth_smoothness_loss", "log_depth_loss", "motion_loss", "displacement_loss", "scene_flow_loss",
-           "warp_loss", "gather_track_predictions", "head_distillation_loss"]
+from .direction_test import moving_pixels
+
+__all__ = ["LossWeights", "flow_matching_loss", "flow_matching_errors", "moving_cells", "sample_training_sigmas",
+           "photometric_loss", "depth_correlation_loss", "depth_smoothness_loss", "log_depth_loss", "motion_loss",
+           "displacement_loss", "scene_flow_loss", "warp_loss", "gather_track_predictions", "head_distillation_loss"]
 
 
 @dataclass
@@ -27,7 +29,10 @@ class LossWeights:
     ``ssim`` is the SSIM share inside the photometric loss (0.2, 3DGS Eq. 7); ``depth`` weighs the Pearson depth
     loss (FSGS/SparseGS), ``metric_depth`` the scale-invariant log loss (0: off, for a relative reference), ``smooth``
     the edge-aware smoothness (Godard et al.'s 1e-3); ``motion``/``displacement`` are stage-3 track losses,
-    ``scene_flow`` the dense one over every pixel of frame 0 (:func:`scene_flow_loss`; 0: off).
+    ``scene_flow`` the dense one over every pixel of frame 0 (:func:`scene_flow_loss`; 0: off); ``mover`` adds the
+    ``diffusion`` objective's mean flow-matching error over the latent cells a moving object covers
+    (:func:`moving_cells`; 0: off), so that the few cells where the objects' motion is seen are not drowned by the
+    rest of the frame.
     Raises ValueError for a negative or non-finite weight, or ``ssim`` above 1.
     """
 
@@ -40,6 +45,7 @@ class LossWeights:
     displacement: float = 0.0
     scene_flow: float = 0.0
     warp: float = 1.0
+    mover: float = 0.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -57,15 +63,51 @@ def sample_training_sigmas(n: int, mean: float = 0.0, std: float = 1.0, shift: f
     return shift_sigmas(sample_logit_normal(n, mean, std, generator, device=device), shift)
 
 
-def flow_matching_loss(velocity_fn, x0: Tensor, noise: Tensor, sigma: Tensor, from_frame: int = 0) -> Tensor:
-    """Flow-matching loss (Lipman et al. 2023; rectified flow): mean ‖v_θ(x_σ, σ) − (ε − x0)‖², x_σ = (1−σ)x0 + σε.
-
-    ``velocity_fn(x_sigma, sigma (B,))`` returns the shape of ``x0`` (B, ...); ``sigma`` (B,) in [0, 1]. The mean
-    starts at latent frame ``from_frame`` (dim 2), for networks that replace the first frames by a condition.
-    """
+def flow_matching_errors(velocity_fn, x0: Tensor, noise: Tensor, sigma: Tensor) -> Tensor:
+    """Squared flow-matching errors (v_θ(x_σ, σ) − (ε − x0))², x_σ = (1−σ)x0 + σε (Lipman et al. 2023; rectified flow),
+    of the shape of ``x0`` (B, ...). ``velocity_fn(x_sigma, sigma (B,))`` returns that shape; ``sigma`` (B,) in
+    [0, 1]."""
     x_sigma = add_noise(x0, noise, sigma)
-    err = velocity_fn(x_sigma, sigma) - velocity_target(x0, noise)
-    return torch.mean((err[:, :, from_frame:] if from_frame else err) ** 2)
+    return (velocity_fn(x_sigma, sigma) - velocity_target(x0, noise)) ** 2
+
+
+def flow_matching_loss(velocity_fn, x0: Tensor, noise: Tensor, sigma: Tensor, from_frame: int = 0) -> Tensor:
+    """Flow-matching loss: the mean of :func:`flow_matching_errors` from latent frame ``from_frame`` (dim 2) on, for
+    networks that replace the first frames by a condition."""
+    err = flow_matching_errors(velocity_fn, x0, noise, sigma)
+    return torch.mean(err[:, :, from_frame:] if from_frame else err)
+
+
+def moving_cells(
+    pixel_tracks: Tensor,  # (B, T, H, W, 3) clip-world metres: frame 0's pixels' true 3D tracks
+    valid: Tensor,  # (B, H, W) bool
+    viewmats: Tensor,  # (B, T, 4, 4) world-to-camera
+    Ks: Tensor,  # (B, T, 3, 3) pixels
+    grid: tuple[int, int, int],  # (n, h, w) latent frames, rows, columns
+    temporal_factor: int,
+) -> Tensor:
+    """(B, n, h, w) bool: the latent cells that a moving object covers — every cell into which frame t's camera
+    projects the point of a moving pixel (:func:`training.direction_test.moving_pixels`) at frame t, latent frame
+    1 + (t − 1) // ``temporal_factor`` for t ≥ 1. Latent frame 0 (the photograph's, a condition) is all False.
+    Raises ValueError when T is not 1 + (n − 1)·``temporal_factor`` or H, W are not multiples of h, w."""
+    B, T, H, W, _ = pixel_tracks.shape
+    n, h, w = grid
+    if T != 1 + (n - 1) * temporal_factor or H % h or W % w:
+        raise ValueError(f"pixel_tracks {tuple(pixel_tracks.shape)} do not fit the latent grid {grid} "
+                         f"(temporal factor {temporal_factor})")
+    moving = moving_pixels(pixel_tracks, valid).flatten(1)  # (B, H·W)
+    uv, z = project_points(pixel_tracks.flatten(2, 3), viewmats[:, :, None], Ks[:, :, None])  # (B, T, H·W, 2), (…)
+    uv = torch.where(torch.isfinite(uv), uv, -1.0)
+    col = torch.floor(uv[..., 0] / (W // w)).long()
+    row = torch.floor(uv[..., 1] / (H // h)).long()
+    frames = torch.arange(T, device=uv.device)
+    latent_frame = torch.where(frames > 0, 1 + (frames - 1).clamp(min=0) // temporal_factor, 0)  # (T,)
+    hit = moving[:, None] & (z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h) & (frames > 0)[None, :, None]
+    clip = torch.arange(B, device=uv.device)[:, None, None]
+    flat = ((clip * n + latent_frame[None, :, None]) * h + row) * w + col  # (B, T, H·W)
+    cells = torch.zeros(B * n * h * w, dtype=torch.bool, device=uv.device)
+    cells[flat[hit]] = True
+    return cells.view(B, n, h, w)
 
 
 def photometric_loss(pred: Tensor, target: Tensor, ssim_weight: float = 0.2, window_size: int = 11) -> Tensor:

@@ -35,11 +35,12 @@ from .losses import (
     depth_correlation_loss,
     depth_smoothness_loss,
     displacement_loss,
-    flow_matching_loss,
+    flow_matching_errors,
     gather_track_predictions,
     head_distillation_loss,
     log_depth_loss,
     motion_loss,
+    moving_cells,
     photometric_loss,
     scene_flow_loss,
     warp_loss,
@@ -171,8 +172,8 @@ class TrainingModule(nn.Module):
                 latents = backbone.latent_model.encode_latents(video).to(video.dtype)  # float32 under bf16 autocast
             plucker = self._plucker(batch, backbone.latent, tuple(latents.shape[2:]))
         if "diffusion" in st.objectives:
-            losses["flow"] = self._diffusion(backbone, latents, plucker, batch, generator)
-            total = total + losses["flow"]
+            losses.update(self._diffusion(backbone, latents, plucker, batch, generator))
+            total = total + losses["flow"] + st.weights.mover * losses.get("flow_mover", 0)
         if "distill" in st.objectives:
             losses["distill"] = self._distill(latents, plucker, generator)
             total = total + losses["distill"]
@@ -231,8 +232,11 @@ class TrainingModule(nn.Module):
             return pack_plucker(rays.float(), latent.temporal_factor, latent.spatial_factor)
 
     def _diffusion(self, backbone: Backbone, latents: Tensor, plucker: Tensor, batch: dict, gen: torch.Generator
-                   ) -> Tensor:
-        """Flow-matching loss on ``latents`` (B, c, n, h, w); draws caption dropout (B,), σ (B,), then ε."""
+                   ) -> dict[str, Tensor]:
+        """{"flow": flow-matching loss on ``latents`` (B, c, n, h, w)} and, with ``weights.mover`` > 0, "flow_mover":
+        its mean over the cells moving objects cover (:func:`training.losses.moving_cells`; 0 where none does); draws
+        caption dropout (B,), σ (B,), then ε. ValueError when ``weights.mover`` > 0 and the batch has no
+        ``pixel_tracks``."""
         st = self.stage
         B, dev = latents.shape[0], latents.device
         captions = list(batch["caption"])
@@ -254,8 +258,19 @@ class TrainingModule(nn.Module):
         noise = torch.randn(latents.shape, generator=gen, device=gen.device).to(latents)
         velocity = partial(backbone.velocity_model, image_latent=image_latent, plucker=plucker, text=text,
                            text_mask=mask)
-        return flow_matching_loss(velocity, latents, noise, sigma,
-                                  from_frame=FLOW_LOSS_FROM_FRAME.get(backbone.kind, 0))
+        err = flow_matching_errors(velocity, latents, noise, sigma)  # (B, c, n, h, w)
+        first = FLOW_LOSS_FROM_FRAME.get(backbone.kind, 0)
+        out = {"flow": err[:, :, first:].mean()}
+        if st.weights.mover > 0:
+            if "pixel_tracks" not in batch:
+                raise ValueError("weights.mover > 0 needs the batch's pixel_tracks and pixel_track_valid "
+                                 "(data_prep.clips.ClipDataset gives them)")
+            cells = moving_cells(batch["pixel_tracks"], batch["pixel_track_valid"], batch["viewmats"], batch["Ks"],
+                                 tuple(latents.shape[2:]), backbone.latent.temporal_factor)
+            cells[:, :first] = False
+            per_cell = err.mean(1)  # (B, n, h, w)
+            out["flow_mover"] = (per_cell * cells).sum() / cells.sum().clamp(min=1)
+        return out
 
     def _assemble(self, out: LDRMOutput, sources: Tensor, batch: dict, b: int, times: Tensor | None
                   ) -> tuple[DynamicGaussians, dict]:
