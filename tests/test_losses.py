@@ -64,6 +64,15 @@ def test_moving_cells_match_a_per_point_loop_and_leave_still_scenes_empty():
                 expected[b, 1 + (t - 1) // tf, int(v // (H // h)), int(u // (W // w))] = True
     assert expected.any() and not expected[:, 0].any()
     assert torch.equal(cells, expected)
+    # a point 0.01 px left of a cell's edge (u = 7.99, cells 4 px wide) stays in its cell under bf16 autocast, as a
+    # bf16 training step calls it (bfloat16 rounds u to 8.0)
+    edge = torch.tensor([-0.401, 0.0, 2.0]).expand(1, 5, H, W, 3).clone()
+    edge[:, 0, ..., 0] = 0.3  # frame 0 elsewhere: the point moves
+    one = torch.zeros(1, H, W, dtype=torch.bool)
+    one[0, 0, 0] = True
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        got = moving_cells(edge, one, torch.eye(4).expand(1, 5, 4, 4), K.expand(1, 5, 3, 3), (2, h, w), 4)
+    assert got[0, 1].nonzero().tolist() == [[2, 1]]  # row v = 8 // 4, column 7.99 // 4
     still = moving_cells(base.repeat(1, T, 1, 1, 1), valid, viewmats, Ks, (n, h, w), tf)
     assert not still.any()
     with pytest.raises(ValueError, match="latent grid"):

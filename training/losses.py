@@ -96,7 +96,9 @@ def moving_cells(
         raise ValueError(f"pixel_tracks {tuple(pixel_tracks.shape)} do not fit the latent grid {grid} "
                          f"(temporal factor {temporal_factor})")
     moving = moving_pixels(pixel_tracks, valid).flatten(1)  # (B, H·W)
-    uv, z = project_points(pixel_tracks.flatten(2, 3), viewmats[:, :, None], Ks[:, :, None])  # (B, T, H·W, 2), (…)
+    with autocast_off():  # bfloat16 would move points near a cell's edge into the next cell
+        uv, z = project_points(pixel_tracks.flatten(2, 3).float(), viewmats[:, :, None].float(),
+                               Ks[:, :, None].float())  # (B, T, H·W, 2), (B, T, H·W)
     uv = torch.where(torch.isfinite(uv), uv, -1.0)
     col = torch.floor(uv[..., 0] / (W // w)).long()
     row = torch.floor(uv[..., 1] / (H // h)).long()
