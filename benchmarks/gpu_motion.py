@@ -1,21 +1,30 @@
-"""The LDRM's motion path trained on a GPU (issue 58): ``train_base_motion`` from the shipped base model.
+"""Issue 58's motion stages trained on a GPU from the shipped base model: ``train_base_motion`` (the LDRM's motion
+path, the default) or ``train_base_text_mover`` (the DiT and the text encoder on one-mover clips, the moving cells
+weighted: does the DiT learn to follow the caption's direction word?).
 
-Builds the starting model (the shipped networks, the motion network at its zero-initialised identity:
-``training.compose``), trains the motion network alone on the base data (``gpu_training.py --part data`` makes it:
-300 scenes of seed 1) with the trainer's defaults for the device, and copies the last checkpoint's weights and the
-run's metrics.csv to ``--out``. A SIGINT (``gpu_session.sh``'s deadline) reaches the trainer, which saves the step it
-is at; the copy is made from it:
+For ``train_base_motion`` the starting model is the shipped networks with the motion network at its
+zero-initialised identity (``training.compose``), trained on the base data (``gpu_training.py --part data`` makes it:
+300 scenes of seed 1); ``train_base_text_mover`` starts from the shipped model itself, on ``--mover-scenes``
+one-mover scenes made here when ``--data`` is missing (``data_prep synth --static-ratio 0 --motions translate
+--max-movers 1``, seed 20261206, on every core). The trainer runs with its defaults for the device; the last
+checkpoint's weights and the run's metrics.csv are copied to ``--out``. A SIGINT (``gpu_session.sh``'s deadline)
+reaches the trainer, which saves the step it is at; the copy is made from it:
 
     python benchmarks/gpu_motion.py --work runs/gpu_training --out $OUT --steps 4000
+    python benchmarks/gpu_motion.py --stage train_base_text_mover --data runs/gpu_training/train_mover \
+        --mover-scenes 3000 --batch-size 16 --work runs/gpu_training --out $OUT --steps 8000
     python benchmarks/gpu_motion.py --work /tmp/gm --device cpu --steps 2 --data data/synth_heldout   # a dry run
 
 The model this trains is rebuilt here from the copied weights with ``--unpack DIR`` (``DIR/model``: a model folder
-for ``diff4splat evaluate --checkpoint`` and ``generate --checkpoint``).
+for ``diff4splat evaluate --checkpoint`` and ``generate --checkpoint``; the same ``--stage``). Score
+``train_base_text_mover`` with ``benchmarks/motion_path.py --data <a one-mover set> --checkpoint DIR/model
+--direction --latents ''`` (its last line: whether the DiT reads the direction word).
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import shutil
 import sys
 import time
@@ -33,7 +42,9 @@ from models.pretrained import load_weights  # noqa: E402
 from training.compose import compose  # noqa: E402
 from training.stage_config import STAGE_CONFIG_DIR  # noqa: E402
 
-STAGE = "train_base_motion"
+STAGES = ("train_base_motion", "train_base_text_mover")
+MOVER_SEED = "20261206"
+"""Seed of the one-mover training scenes (the CPU run of the model card's "This release" took its first 300)."""
 
 
 def motion_config(work: Path) -> Path:
@@ -47,22 +58,37 @@ def motion_config(work: Path) -> Path:
     return path
 
 
-def start_model(work: Path) -> Diff4SplatModel:
-    """The shipped base networks and a zero-initialised motion network (the identity: no motion)."""
-    return compose(motion_config(work), {name: SHIPPED for name in ("vae", "text_encoder", "dit", "ldrm")})
+def start_model(work: Path, stage: str = STAGES[0]) -> Diff4SplatModel:
+    """``stage``'s starting model: for ``train_base_motion`` the shipped base networks and a zero-initialised motion
+    network (the identity: no motion); otherwise the shipped base model."""
+    if stage == "train_base_motion":
+        return compose(motion_config(work), {name: SHIPPED for name in ("vae", "text_encoder", "dit", "ldrm")})
+    return Diff4SplatModel.from_pretrained(SHIPPED)
 
 
-def train(work: Path, data: Path, device: str, steps: int, every: int) -> Path:
-    """``train_base_motion`` for ``steps`` steps from :func:`start_model` in ``work``; returns the run folder."""
-    run = work / "base_motion"
-    stage = yaml.safe_load((STAGE_CONFIG_DIR / f"{STAGE}.yaml").read_text())
+def mover_data(data: Path, scenes: int) -> None:
+    """``scenes`` one-mover training scenes in ``data`` (module docstring), unless the folder is there."""
+    if data.is_dir():
+        print(f"{data}: there already", flush=True)
+        return
+    _run([sys.executable, "-m", "data_prep.cli", "synth", "--scenes", str(scenes), "--seed", MOVER_SEED,
+          "--static-ratio", "0", "--motions", "translate", "--max-movers", "1", "--workers",
+          str(os.cpu_count() or 1), "--quiet", "--out", str(data)])
+
+
+def train(work: Path, data: Path, device: str, steps: int, every: int, stage_name: str = STAGES[0],
+          batch_size: int | None = None) -> Path:
+    """``stage_name`` for ``steps`` steps from :func:`start_model` in ``work`` (``batch_size``: the stage's when
+    None); returns the run folder."""
+    run = work / stage_name.removeprefix("train_")
+    stage = yaml.safe_load((STAGE_CONFIG_DIR / f"{stage_name}.yaml").read_text())
     stage["trainer"].update(total_steps=steps, checkpoint_every=every, run_dir=str(run), device=device,
-                            progress=False)
-    init = work / "init_motion"
+                            progress=False, **({} if batch_size is None else {"batch_size": batch_size}))
+    init = work / f"init_{stage_name.removeprefix('train_')}"
     if not (init / "config.json").is_file():
-        start_model(work).save_pretrained(init, overwrite=True)
+        start_model(work, stage_name).save_pretrained(init, overwrite=True)
     stage.update(init_from=str(init), data=str(data))
-    config = work / f"{STAGE}.yaml"
+    config = work / f"{stage_name}.yaml"
     config.write_text(yaml.safe_dump(stage, sort_keys=False))
     if run.exists():
         if not (run / "metrics.csv").is_file():
@@ -87,10 +113,10 @@ def copy_out(run: Path, out: Path) -> None:
     shutil.copy(run / "metrics.csv", out / "metrics.csv")
 
 
-def unpack(weights: Path, out: Path) -> Path:
-    """A model folder ``out`` from :func:`start_model` and a checkpoint's ``model.safetensors``."""
+def unpack(weights: Path, out: Path, stage: str = STAGES[0]) -> Path:
+    """A model folder ``out`` from ``stage``'s :func:`start_model` and a checkpoint's ``model.safetensors``."""
     out.parent.mkdir(parents=True, exist_ok=True)
-    model = start_model(out.parent)
+    model = start_model(out.parent, stage)
     state = {k[len("model."):]: v for k, v in load_weights(weights).items() if k.startswith("model.")}
     model.load_state_dict(state, strict=True)
     return model.save_pretrained(out, overwrite=True)
@@ -105,12 +131,19 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=4000)
     ap.add_argument("--every", type=int, default=250, help="steps between checkpoints (default 250)")
     ap.add_argument("--unpack", type=Path, default=None, help="make DIR/model from --out's weights, no training")
+    ap.add_argument("--stage", choices=STAGES, default=STAGES[0])
+    ap.add_argument("--mover-scenes", type=int, default=None,
+                    help="make this many one-mover scenes in --data first where it is missing")
+    ap.add_argument("--batch-size", type=int, default=None, help="clips a step (default: the stage config's)")
     args = ap.parse_args()
     if args.unpack is not None:
-        print("wrote", unpack(args.out / "model.safetensors", args.unpack / "model"))
+        print("wrote", unpack(args.out / "model.safetensors", args.unpack / "model", args.stage))
         return
     args.work.mkdir(parents=True, exist_ok=True)
-    run = train(args.work, args.data or args.work / "train", args.device, args.steps, args.every)
+    data = args.data or args.work / "train"
+    if args.mover_scenes is not None:
+        mover_data(data, args.mover_scenes)
+    run = train(args.work, data, args.device, args.steps, args.every, args.stage, args.batch_size)
     if args.out is not None:
         copy_out(run, args.out)
 

@@ -49,6 +49,10 @@
 #   motion     benchmarks/gpu_motion.py: the LDRM's motion network (train_base_motion) from the shipped weights on
 #              gt-data's scenes, GPU_MOTION_STEPS steps (default 1500); the last checkpoint's weights and metrics.csv
 #              to $OUT (`gpu_motion.py --out DIR --unpack DIR` makes the model folder here). One call: `gt-data motion`
+#   direction  benchmarks/gpu_motion.py --stage train_base_text_mover: the DiT and text encoder on 3000 one-mover
+#              scenes it makes first (~1 on 16 cores), batch 16, GPU_DIRECTION_STEPS steps (default 8000), the
+#              moving cells weighted; the weights to $OUT/direction (`gpu_motion.py --stage train_base_text_mover
+#              --out DIR --unpack DIR` here; then `motion_path.py --direction` on data/synth_dir14). One call
 #   all        every step above, in that order
 #
 # Set-up on this side, once (the wheels the GPU image lacks; 22 MB; .whl is ignored, name it in `carry`):
@@ -84,8 +88,9 @@ declare -A COMMANDS=(
   [gt-train]="python benchmarks/gpu_training.py --part train --work $WORK"
   [gt-eval]="python benchmarks/gpu_training.py --part eval --work $WORK --write"
   [motion]="python benchmarks/gpu_motion.py --work $WORK --out $OUT --steps ${GPU_MOTION_STEPS:-1500}"
+  [direction]="python benchmarks/gpu_motion.py --stage train_base_text_mover --data $WORK/train_mover --mover-scenes 3000 --batch-size 16 --work $WORK --out $OUT/direction --steps ${GPU_DIRECTION_STEPS:-8000}"
 )
-ORDER=(suite command block generate amx cuda suite-1 suite-2 render train gt-data gt-train gt-eval motion)
+ORDER=(suite command block generate amx cuda suite-1 suite-2 render train gt-data gt-train gt-eval motion direction)
 
 steps=()
 for s in "$@"; do

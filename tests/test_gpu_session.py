@@ -25,7 +25,7 @@ def test_every_step_runs_a_command_that_accepts_its_flags():
     proc = _session("all")
     assert proc.returncode == 0, proc.stderr
     commands = [shlex.split(line) for line in proc.stdout.splitlines()]
-    assert len(commands) == 14
+    assert len(commands) == 15
     helps: dict[str, str] = {}
     halves, whole = [], []
     for cmd in commands:
