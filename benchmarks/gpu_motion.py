@@ -80,11 +80,12 @@ def train(work: Path, data: Path, device: str, steps: int, every: int, stage_nam
           batch_size: int | None = None) -> Path:
     """``stage_name`` for ``steps`` steps from :func:`start_model` in ``work`` (``batch_size``: the stage's when
     None); returns the run folder."""
-    run = work / stage_name.removeprefix("train_")
+    short = stage_name.removeprefix("train_")
+    run = work / short
     stage = yaml.safe_load((STAGE_CONFIG_DIR / f"{stage_name}.yaml").read_text())
     stage["trainer"].update(total_steps=steps, checkpoint_every=every, run_dir=str(run), device=device,
                             progress=False, **({} if batch_size is None else {"batch_size": batch_size}))
-    init = work / f"init_{stage_name.removeprefix('train_')}"
+    init = work / f"init_{short}"
     if not (init / "config.json").is_file():
         start_model(work, stage_name).save_pretrained(init, overwrite=True)
     stage.update(init_from=str(init), data=str(data))

@@ -103,7 +103,7 @@ def moving_cells(
     col = torch.floor(uv[..., 0] / (W // w)).long()
     row = torch.floor(uv[..., 1] / (H // h)).long()
     frames = torch.arange(T, device=uv.device)
-    latent_frame = torch.where(frames > 0, 1 + (frames - 1).clamp(min=0) // temporal_factor, 0)  # (T,)
+    latent_frame = 1 + (frames - 1) // temporal_factor  # (T,) floor division: frame 0 → 0
     hit = moving[:, None] & (z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h) & (frames > 0)[None, :, None]
     clip = torch.arange(B, device=uv.device)[:, None, None]
     flat = ((clip * n + latent_frame[None, :, None]) * h + row) * w + col  # (B, T, H·W)

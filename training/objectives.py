@@ -267,7 +267,7 @@ class TrainingModule(nn.Module):
                                  "(data_prep.clips.ClipDataset gives them)")
             cells = moving_cells(batch["pixel_tracks"], batch["pixel_track_valid"], batch["viewmats"], batch["Ks"],
                                  tuple(latents.shape[2:]), backbone.latent.temporal_factor)
-            cells[:, :first] = False
+            cells[:, :first] = False  # frames the backbone replaces by a condition have no target
             per_cell = err.mean(1)  # (B, n, h, w)
             out["flow_mover"] = (per_cell * cells).sum() / cells.sum().clamp(min=1)
         return out
