@@ -37,8 +37,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, markdown_table, write_section  # noqa: E402
 
 from data_prep.format import list_scenes, load_scene  # noqa: E402
-from diff4splat.generate import generate, write  # noqa: E402
+from diff4splat.generate import generate  # noqa: E402
 from diff4splat.render import rasterize  # noqa: E402
+from diff4splat.request import write  # noqa: E402
 from training.eval_metrics import masked_psnr, psnr_from_mse  # noqa: E402
 from training.fit import FitConfig  # noqa: E402
 from training.fit_cli import place_generate_output, run_fit  # noqa: E402

@@ -14,7 +14,7 @@ every pixel:
 ``--direction`` adds the direction test (:mod:`training.direction_test`): on each dynamic clip whose caption names
 one direction, the scene from the true latents, and from sampled ones with the caption and with its direction flipped;
 then, link by link, what the chain holds before the LDRM: the two decoded sampled videos and the true latents'
-decoding, each read by ``reconstruct`` (:func:`diff4splat.reconstruct.reconstruct_scene`, the classical route of
+decoding, each read by ``reconstruct`` (:meth:`Diff4SplatPipeline.reconstruct`, the classical route of
 docs/DESIGN.md, no prompt): the DiT's motion and the VAE's; and, as the test's control (motion that is certainly
 there), ``reconstruct`` of the clip's own frames; and, without sampling, whether the DiT's flow-matching error over
 the moving object's cells is lower with the caption than with its direction flipped (:func:`text_use`). A set for
@@ -38,7 +38,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import markdown_table, save_strip, write_section  # noqa: E402
 
 from diff4splat.pipeline import Diff4SplatPipeline, GenerationResult  # noqa: E402
-from diff4splat.reconstruct import reconstruct_scene  # noqa: E402
 from training.direction_test import direction_query, flip_direction, named_way_score  # noqa: E402
 from training.evaluate import (  # noqa: E402
     clip_inputs,
@@ -67,7 +66,7 @@ def read_video(pipe: Diff4SplatPipeline, clip: dict, video: torch.Tensor | None)
     """``reconstruct``'s scene (the classical route, no prompt) of ``video`` (3, T, H, W) colours in [0, 1] along
     ``clip``'s cameras; None: the clip's own frames."""
     frames = (clip["video"] if video is None else video).permute(1, 2, 3, 0)
-    return reconstruct_scene(pipe, frames, clip_inputs(pipe, clip)[0])
+    return pipe.reconstruct(frames, clip_inputs(pipe, clip)[0])
 
 
 def clip_motion(pipe: Diff4SplatPipeline, clip: dict, latents: str, steps: int | None) -> dict[str, float]:

@@ -31,10 +31,11 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import load_pipeline, markdown_table, publish, repo_relative  # noqa: E402
 
-from diff4splat.generate import generate, write  # noqa: E402
-from diff4splat.generate import load_pipeline as load_generate_pipeline  # noqa: E402
+from diff4splat.generate import generate  # noqa: E402
 from diff4splat.io import load_image  # noqa: E402
 from diff4splat.pipeline import DEFAULT_RESOLUTION  # noqa: E402
+from diff4splat.request import load_pipeline as load_generate_pipeline  # noqa: E402
+from diff4splat.request import write  # noqa: E402
 from models.bundle import DEFAULT_CONFIG  # noqa: E402
 from training.eval_metrics import image_psnr  # noqa: E402
 from training.evaluate import photo_fidelity  # noqa: E402

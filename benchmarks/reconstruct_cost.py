@@ -24,7 +24,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import load_pipeline, markdown_table, publish  # noqa: E402
 
-from diff4splat.reconstruct import LAYERS, layer_frames, memory_estimate  # noqa: E402
+from diff4splat.assembly.layers import LAYERS, layer_frames  # noqa: E402
+from diff4splat.reconstruct import memory_estimate  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 PARTS = ("deformation.npz", "scene.ply", "viewer.html")
@@ -66,7 +67,7 @@ def main() -> None:
             files = [f for f in out.rglob("*") if f.is_file()]
             total = sum(f.stat().st_size for f in files)
             parts = [(out / name).stat().st_size if (out / name).is_file() else 0 for name in PARTS]
-        layers = len(layer_frames(pipe, frames, args.layers)[1])
+        layers = len(layer_frames(pipe.source_frames(frames), frames, args.layers))
         bound = memory_estimate(pipe, meta["width"], meta["height"], frames, layers)
         rows.append([frames, f"{meta['width']}×{meta['height']}", layers, f"{meta['num_gaussians']:,}",
                      f"{seconds:.1f}", f"{peak / 1e9:.2f}", f"{bound / 1e9:.2f}", f"{total / 1e9:.3f}",

@@ -20,7 +20,7 @@ the video's or set's name). ``--strip PNG`` saves, for the first clip and ``--la
 (columns) as the true frame, the 4D scene's render, the blend of the two neighbours and the previous frame held
 (rows, labelled), to look at. ``--ablation`` scores, instead of the two layer choices, ``--layers every`` as
 shipped beside variants of its layers (:data:`ABLATION`: the odd layers' push along their rays, 0 and 3 % against
-1.5 %; every link of flow checked against the first links followed unchecked; ``reconstruct_scene``'s
+1.5 %; every link of flow checked against the first links followed unchecked; ``Diff4SplatPipeline.reconstruct``'s
 ``order_offset`` and ``unchecked``).
 """
 from __future__ import annotations
@@ -36,12 +36,13 @@ from kornia.geometry.transform import remap
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import markdown_table, parse_pipeline_run, publish, save_strip  # noqa: E402
 
+from diff4splat.assembly.layers import FLOW_SIZE, LAYER_ORDER_OFFSET, LAYERS  # noqa: E402
 from diff4splat.cameras import CameraPath  # noqa: E402
 from diff4splat.geometry.scene_flow import optical_flow  # noqa: E402
 from diff4splat.io import load_cameras_json  # noqa: E402
 from diff4splat.io.image import preprocess_image  # noqa: E402
 from diff4splat.io.video_input import read_video_clip  # noqa: E402
-from diff4splat.reconstruct import FLOW_SIZE, LAYER_ORDER_OFFSET, LAYERS, reconstruct, still_cameras  # noqa: E402
+from diff4splat.reconstruct import reconstruct, still_cameras  # noqa: E402
 from diff4splat.render.sequence import render_path  # noqa: E402
 from training.eval_metrics import psnr_from_mse  # noqa: E402
 
@@ -59,7 +60,7 @@ def held_out_scores(loaded, video: Path, frames: int, stride: int, start: int, r
     per-frame MSE; the same keys + " moving": the squared errors' sum over the moving pixels, and "moving", their
     count; "pixels": all pixels' count), the held-out frames' count, the seconds ``reconstruct`` took and its
     Gaussians. ``cameras``: the video's cameras at every frame (None: still); ``strip``: where to save the frame
-    strip (module docstring); ``order_offset``, ``unchecked``: as :func:`~diff4splat.reconstruct.reconstruct_scene`."""
+    strip (module docstring); ``order_offset``, ``unchecked``: as :func:`~diff4splat.assembly.layers.layered_scene`."""
     pipe = loaded.pipeline
     given = [start + 2 * stride * i for i in range(frames)]
     between = [g + stride for g in given[:-1]]

@@ -3,7 +3,7 @@
     python benchmarks/reconstruct_motion.py --data DIR [DIR ...] [--checkpoint DIR] [--device cpu] [--write]
 
 Each held-out clip of a ``data_prep synth`` set (its first camera, 17 frames at the model's 64²) is given to
-:func:`diff4splat.reconstruct.reconstruct_scene` as a video with its true cameras — the true frames, so the
+:meth:`Diff4SplatPipeline.reconstruct` as a video with its true cameras — the true frames, so the
 LDRM reads the clip's own latents and the motion is measured on the frames themselves — and the scene's motion is
 scored as ``diff4splat evaluate`` scores ``generate``'s (:func:`training.evaluate.scene_motion`: the photo layer's
 point at each track's frame-0 pixel, deformed to each time; :func:`training.eval_metrics.motion_errors`): the
@@ -22,8 +22,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import markdown_table, parse_pipeline_run, publish  # noqa: E402
 
+from diff4splat.assembly.layers import LAYERS  # noqa: E402
 from diff4splat.cameras import CameraPath  # noqa: E402
-from diff4splat.reconstruct import LAYERS, reconstruct_scene  # noqa: E402
 from training.evaluate import held_out_clips, scene_motion  # noqa: E402
 
 
@@ -41,7 +41,7 @@ def main() -> None:
             cams = CameraPath(clip["viewmats"].double(), clip["Ks"].double(), cfg.width, cfg.height,
                               clip["times"].double())
             t0 = time.perf_counter()
-            result = reconstruct_scene(pipe, clip["video"].permute(1, 2, 3, 0), cams, layers=layers)
+            result = pipe.reconstruct(clip["video"].permute(1, 2, 3, 0), cams, layers=layers)
             found["seconds"].append(time.perf_counter() - t0)
             found["dynamic" if bool(clip["dynamic"]) else "static"].append(scene_motion(pipe, result, clip))
 

@@ -34,8 +34,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import markdown_table, publish, repo_relative  # noqa: E402
 
 from diff4splat.cameras import CameraPath  # noqa: E402
-from diff4splat.generate import generate, load_pipeline  # noqa: E402
+from diff4splat.generate import generate  # noqa: E402
 from diff4splat.io import load_image  # noqa: E402
+from diff4splat.request import load_pipeline  # noqa: E402
 from diff4splat.utils.devices import AUTO, DEVICE_HELP  # noqa: E402
 from training.eval_metrics import image_psnr  # noqa: E402
 

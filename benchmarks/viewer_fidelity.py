@@ -32,10 +32,11 @@ from playwright.sync_api import sync_playwright
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import markdown_table, publish  # noqa: E402
 
-from diff4splat.generate import generate, write  # noqa: E402
+from diff4splat.generate import generate  # noqa: E402
 from diff4splat.io.image import preprocess_image, read_image  # noqa: E402
 from diff4splat.io.video_input import read_video_clip  # noqa: E402
 from diff4splat.reconstruct import reconstruct  # noqa: E402
+from diff4splat.request import write  # noqa: E402
 from training.eval_metrics import image_psnr, thumbnail  # noqa: E402
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"

@@ -16,9 +16,17 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from diff4splat.assembly.assemble import DEPTH_KINDS, assemble_scene
+from diff4splat.assembly.assemble import DEPTH_KINDS, assemble_scene, z_depth
 from diff4splat.assembly.frame_motion import frame_motion
-from diff4splat.assembly.photo import PHOTO_EPS2D, layer_sizes
+from diff4splat.assembly.layers import (
+    DEFAULT_LAYERS,
+    LAYER_ORDER_OFFSET,
+    check_layer_knobs,
+    check_layers,
+    layer_frames,
+    layered_scene,
+)
+from diff4splat.assembly.photo import PHOTO_EPS2D, layer_sizes, upsample_depth
 from diff4splat.assembly.prune import settle_and_prune
 from diff4splat.cameras import (
     DEFAULT_TRAJECTORY,
@@ -51,7 +59,8 @@ from models.flow_matching import check_guidance, integrator
 from models.ldrm import source_frame_indices
 from models.pretrained import CONFIG_NAME
 
-__all__ = ["Diff4SplatPipeline", "GenerationResult", "load_model", "check_seed", "check_prompt", "SEED_RANGE",
+__all__ = ["Diff4SplatPipeline", "SceneResult", "GenerationResult", "ReconstructionResult", "load_model",
+           "check_seed", "check_prompt", "SEED_RANGE",
            "DEFAULT_RESOLUTION"]
 
 DEFAULT_RESOLUTION = 256
@@ -84,35 +93,27 @@ def check_prompt(prompt: object, name: str = "prompt") -> str:
     return prompt
 
 
-@dataclass
-class GenerationResult:
-    """What :meth:`Diff4SplatPipeline.__call__` returns.
+@dataclass(kw_only=True)
+class SceneResult:
+    """What the pipeline makes of a request: the scene and how it was built.
 
     Attributes:
         scene: the 4D scene (world frame = the first camera's, metres); the photo layer first.
         cameras: the camera path used, relative to its first camera, at the output resolution.
-        latents: (1, c, n, h, w) the sampled video latent fed to the LDRM.
-        steps, sampler, shift, guidance: the sampler settings actually used (guidance 1 without a prompt).
-        timings: seconds per stage ("encode_image", "encode_text", "sample", "reconstruct", "prune").
+        latents: (1, c, n, h, w) the video latent fed to the LDRM.
+        timings: seconds per stage, in the order they ran.
         high_water: on CUDA, the running peak of allocated memory (bytes) at the end of each stage; else empty.
-        prune_stats: counts of :func:`diff4splat.assembly.prune.settle_and_prune`.
-        source_frames: (S,) long, the video frame of each source frame (``models.ldrm.source_frame_indices``).
-        gaussian_index: (M,) long, increasing index of each kept Gaussian in the unpruned scene (order of
-            :func:`diff4splat.assembly.assemble.assemble_scene`).
+        prune_stats: counts of the pruning (:mod:`diff4splat.assembly.prune`).
+        source_frames: (S,) long, the video frame of each source frame (or photo layer).
+        gaussian_index: (M,) long, increasing index of each kept Gaussian in the unpruned scene.
         eps2d, background: the screen-space dilation (pixels²) and RGB background in [0, 1] the scene is rendered with.
         photo_psnr_db: PSNR, dB, of the photo layer alone rendered at the input camera against the photograph.
         photo_gaussians, num_slots: the photo layer's share (H·W + ⌈H/2⌉·⌈W/2⌉) and size of the unpruned scene.
-        video: (1, 3, T, h, w) ``latents`` decoded by the VAE, in about [−1, 1], when ``generated_colors: video``
-            needed it, else None.
     """
 
     scene: DynamicGaussians
     cameras: CameraPath
     latents: Tensor
-    steps: int
-    sampler: str
-    guidance: float
-    shift: float
     timings: dict[str, float] = field(default_factory=dict)
     high_water: dict[str, int] = field(default_factory=dict)
     prune_stats: dict[str, int] = field(default_factory=dict)
@@ -123,7 +124,39 @@ class GenerationResult:
     photo_psnr_db: float = float("nan")
     num_slots: int = 0
     photo_gaussians: int = 0
+
+
+@dataclass(kw_only=True)
+class GenerationResult(SceneResult):
+    """What :meth:`Diff4SplatPipeline.__call__` returns: a :class:`SceneResult` (timings "encode_image",
+    "encode_text", "sample", "reconstruct", "prune"; ``latents`` sampled; the unpruned order of
+    :func:`diff4splat.assembly.assemble.assemble_scene`) and the sampling.
+
+    Attributes:
+        steps, sampler, shift, guidance: the sampler settings actually used (guidance 1 without a prompt).
+        video: (1, 3, T, h, w) ``latents`` decoded by the VAE, in about [−1, 1], when ``generated_colors: video``
+            needed it, else None.
+    """
+
+    steps: int
+    sampler: str
+    guidance: float
+    shift: float
     video: Tensor | None = None
+
+
+@dataclass(kw_only=True)
+class ReconstructionResult(SceneResult):
+    """What :meth:`Diff4SplatPipeline.reconstruct` returns: a :class:`SceneResult` of a clip's frames (timings
+    "encode_video", "reconstruct", "backdrop", "motion", "assemble", "prune"; ``latents`` the clip's own;
+    ``source_frames`` the frames that became photo layers; the unpruned order of
+    :func:`diff4splat.assembly.layers.layered_scene`).
+
+    Attributes:
+        layers: which frames became photo layers (:data:`diff4splat.assembly.layers.LAYERS`).
+    """
+
+    layers: str
 
 
 def load_model(checkpoint: str | Path | None = None, config: str = DEFAULT_CONFIG, seed: int = 0, *,
@@ -227,10 +260,8 @@ class Diff4SplatPipeline:
     def scene_slots(self, width: int, height: int, num_frames: int) -> int:
         """``GenerationResult.num_slots`` for a ``width`` × ``height`` output of ``num_frames`` frames: photo layer and
         backdrop plus h·w per later source frame. ValueError: ``num_frames`` not 1 + 4k."""
-        c, latent = self.config, self.runtime.latent
-        sources = source_frame_indices(c.ldrm.gaussian_frames, latent.num_latent_frames(num_frames),
-                                       latent.temporal_factor)
-        return sum(layer_sizes(width, height)) + (len(sources) - 1) * c.height * c.width
+        c = self.config
+        return sum(layer_sizes(width, height)) + (len(self.source_frames(num_frames)) - 1) * c.height * c.width
 
     def memory_estimate(self, width: int, height: int, num_frames: int) -> int:
         """Upper bound of ``generate``'s peak host memory, bytes, for a ``width`` × ``height`` output of
@@ -307,8 +338,8 @@ class Diff4SplatPipeline:
                 or ``depth_kind``, limits exceeded (:class:`diff4splat.utils.limits.LimitError`), all before any network
                 runs; ``video_latents`` of the wrong shape; a camera path that sees none of the scene.
         """
-        steps, sampler, guidance, seed, prompt = self._check_call(image, cameras, prompt, steps, sampler, guidance,
-                                                                  seed, depth, depth_kind)
+        steps, sampler, guidance, seed, prompt = self.check_inputs(image, cameras, prompt, steps, sampler, guidance,
+                                                                   seed, depth, depth_kind)
         cfg, runtime, dev = self.config, self.runtime, self.device
         H_o, W_o = int(image.shape[0]), int(image.shape[1])
         n = runtime.latent.num_latent_frames(len(cameras))
@@ -335,7 +366,7 @@ class Diff4SplatPipeline:
         key_times = torch.unique(cameras.times)
         # A runtime without the deformation network (a static ONNX export) makes static scenes.
         out = runtime.reconstruct(latents, plucker, key_times if runtime.has_deformation else None, video[:, :, 0])
-        frames = source_frame_indices(cfg.ldrm.gaussian_frames, n, runtime.latent.temporal_factor)
+        frames = self.source_frames(len(cameras))
         sources = torch.tensor(frames, device=dev)
         motion = runtime.has_motion and out.d_means is not None
         colors_from_video = cfg.generated_colors == "video" and len(frames) > 1  # the later frames' colours (assemble)
@@ -364,8 +395,91 @@ class Diff4SplatPipeline:
                                 photo_psnr_db=photo["photo_psnr_db"], num_slots=int(grid.shape[0]),
                                 photo_gaussians=photo["photo_gaussians"], video=decoded)
 
-    def _check_call(self, image, cameras, prompt, steps, sampler, guidance, seed, depth, depth_kind) -> tuple:
-        """:meth:`__call__`'s checks; returns (steps, sampler, guidance, seed, prompt) with the config's defaults."""
+    @torch.no_grad()
+    def reconstruct(self, frames: Tensor, cameras: CameraPath, *, layers: str = DEFAULT_LAYERS,
+                    order_offset: float = LAYER_ORDER_OFFSET, unchecked: int | None = None) -> ReconstructionResult:
+        """The 4D scene of a video clip (``diff4splat reconstruct``; :mod:`diff4splat.assembly.layers`): the VAE
+        encodes the clip and the LDRM gives its source frames' depth (nothing is sampled), then
+        :func:`~diff4splat.assembly.layers.layered_scene` makes the frames photo layers moved by the motion measured
+        from them.
+
+        Args:
+            frames: (T, H, W, 3) float in [0, 1] at the output resolution and the model's aspect ratio, T = 1 + 4k.
+            cameras: T cameras at W × H; re-expressed relative to the first.
+            layers, order_offset, unchecked: as :func:`~diff4splat.assembly.layers.layered_scene`
+                (:data:`~diff4splat.assembly.layers.LAYERS`).
+
+        Raises:
+            ValueError: bad frames, T ≠ 1 + 4k, cameras not T at (W, H), an unknown ``layers``, an ``order_offset``
+                that is not a finite number ≥ 0, an ``unchecked`` that is not None or an int ≥ 0 (all before any
+                network runs); a path that sees nothing.
+        """
+        self.check_clip(frames, cameras, layers, order_offset, unchecked)
+        cfg, runtime, dev = self.config, self.runtime, self.device
+        T = frames.shape[0]
+        cameras = cameras.relative_to_first().to(dtype=torch.float32, device=dev)
+        cameras_model = cameras.resized(cfg.width, cfg.height)
+        clock, timings = Stopwatch(dev), {}
+        images = frames.to(dev, torch.float32)  # (T, H, W, 3)
+        small = F.interpolate(images.permute(0, 3, 1, 2), size=(cfg.height, cfg.width), mode="area")
+        video = (small * 2 - 1).transpose(0, 1)[None]  # (1, 3, T, h, w) in [−1, 1]
+        latents = runtime.encode_image(video)  # the clip's own latents (posterior mean)
+        timings["encode_video"] = clock.lap()
+        out = runtime.reconstruct(latents, self.packed_plucker(cameras_model), None, video[:, :, 0])
+        runtime.release()
+        sources = self.source_frames(T)
+        frames_of = layer_frames(sources, T, layers)
+        index = torch.tensor(sources, device=dev)
+        z_model = z_depth(out.distance[0], cameras_model.viewmats[index], cameras_model.Ks[index])  # (S, h, w)
+        z_src = torch.stack([upsample_depth(z_model[s], images[f]) for s, f in enumerate(sources)])  # (S, H, W)
+        timings["reconstruct"] = clock.lap()
+        scene, kept, stats, photo_psnr, slots, n0 = layered_scene(
+            images, z_src, sources, frames_of, cameras, static_atol=cfg.static_atol, prune_opacity=cfg.prune_opacity,
+            order_offset=order_offset, unchecked=unchecked, clock=clock, timings=timings)
+        return ReconstructionResult(scene=scene, cameras=cameras, latents=latents, layers=layers, timings=timings,
+                                    high_water=dict(zip(timings, clock.high_water, strict=False)), prune_stats=stats,
+                                    source_frames=torch.tensor(frames_of, device=dev), gaussian_index=kept,
+                                    eps2d=PHOTO_EPS2D,
+                                    background=tuple(float(c) for c in images[0].reshape(-1, 3).mean(0)),
+                                    photo_psnr_db=photo_psnr, num_slots=slots, photo_gaussians=n0)
+
+    def source_frames(self, num_frames: int) -> list[int]:
+        """The video frame of each of the LDRM's source frames for a ``num_frames`` path
+        (:func:`models.ldrm.source_frame_indices`). ValueError: ``num_frames`` not 1 + 4k."""
+        latent = self.runtime.latent
+        return source_frame_indices(self.config.ldrm.gaussian_frames, latent.num_latent_frames(num_frames),
+                                    latent.temporal_factor)
+
+    def check_frame_count(self, frames: int) -> None:
+        """ValueError naming ``--frames`` unless ``frames`` is a length the VAE takes (T = 1 + 4k)."""
+        try:
+            self.runtime.latent.num_latent_frames(frames)
+        except ValueError:
+            raise ValueError(f"--frames {frames}: the frame count must be {self.runtime.latent.frames_rule}") from None
+
+    @staticmethod
+    def check_settings(prompt: object = "", steps: object = None, sampler: object = None, guidance: object = None,
+                       seed: object = 0, *, flags: bool = False) -> None:
+        """The checks of the sampling settings that need no model (:meth:`__call__`'s ``prompt``, ``steps``,
+        ``sampler``, ``guidance``, ``seed``; None: the config's default), run by :meth:`check_inputs` and, before a
+        model loads, by the request layer (``flags``: messages name the command's ``--flags``). ValueError: a prompt
+        that is not UTF-8, steps not a positive int or above the limit, an unknown sampler, a guidance outside
+        [0, 30], a seed outside :data:`SEED_RANGE`."""
+        name = (lambda n: f"--{n}") if flags else (lambda n: n)  # noqa: E731
+        if steps is not None:
+            check_limit("steps", check_positive_int(name("steps"), steps), name("steps"))
+        if sampler is not None:
+            integrator(sampler)  # raises for an unknown sampler
+        if guidance is not None:
+            check_guidance(guidance, name("guidance"))
+        check_seed(seed, name("seed"))
+        check_prompt(prompt, name("prompt"))
+
+    def check_inputs(self, image: Tensor, cameras: CameraPath, prompt: str = "", steps: int | None = None,
+                     sampler: str | None = None, guidance: float | None = None, seed: int = 0,
+                     depth: Tensor | None = None, depth_kind: str = "metric") -> tuple[int, str, float, int, str]:
+        """:meth:`__call__`'s checks, all before any network runs; returns (steps, sampler, guidance, seed, prompt)
+        with the config's defaults. ValueError: as :meth:`__call__`."""
         cfg, runtime = self.config, self.runtime
         if not isinstance(image, Tensor):
             raise ValueError(f"image must be a torch.Tensor (H, W, 3) in [0, 1], got {type(image).__name__} "
@@ -388,12 +502,31 @@ class Diff4SplatPipeline:
         runtime.latent.num_latent_frames(len(cameras))  # raises for T ≠ 1 + t·k
         steps = cfg.sampling.steps if steps is None else steps
         sampler = cfg.sampling.sampler if sampler is None else sampler
-        integrator(sampler)  # raises for an unknown sampler
-        steps = check_limit("steps", check_positive_int("steps", steps), "steps")
-        guidance = check_guidance(cfg.sampling.guidance if guidance is None else guidance)
+        guidance = cfg.sampling.guidance if guidance is None else guidance
+        self.check_settings(prompt, steps, sampler, guidance, seed)
         check_limit("frames", len(cameras), "cameras: a path of")
         check_field_of_view(cameras)
-        return steps, sampler, guidance, check_seed(seed), check_prompt(prompt)
+        return int(steps), sampler, float(guidance), int(seed), prompt
+
+    def check_clip(self, frames: Tensor, cameras: CameraPath, layers: str = DEFAULT_LAYERS,
+                   order_offset: float = LAYER_ORDER_OFFSET, unchecked: int | None = None) -> None:
+        """:meth:`reconstruct`'s checks, all before any network runs. ValueError: as :meth:`reconstruct`."""
+        cfg = self.config
+        tensor = isinstance(frames, Tensor)
+        if not tensor or frames.dim() != 4 or frames.shape[-1] != 3 or not frames.is_floating_point():
+            shape = tuple(frames.shape) if tensor else type(frames).__name__
+            raise ValueError(f"frames must be a float tensor (T, H, W, 3), got {shape} "
+                             f"{getattr(frames, 'dtype', '')}".rstrip())
+        T, H, W = frames.shape[:3]
+        if not bool(((frames >= 0) & (frames <= 1)).all()):
+            raise ValueError("frames must lie in [0, 1]")
+        if H * cfg.width != W * cfg.height:
+            raise ValueError(f"frames are {W}×{H}; the model's aspect ratio is {cfg.width}:{cfg.height}")
+        if len(cameras) != T or (cameras.width, cameras.height) != (W, H):
+            raise ValueError(f"cameras: {len(cameras)} at {cameras.width}×{cameras.height}, the frames: {T} at {W}×{H}")
+        self.check_frame_count(T)
+        check_layers(layers)
+        check_layer_knobs(order_offset, unchecked)
 
     def _encode_prompt(self, prompt: str, guidance: float) -> tuple[tuple, float]:
         """((text, text_mask), (uncond, uncond_mask)), None where unused, and the guidance (1 for an empty prompt)."""

@@ -13,7 +13,7 @@ import torch
 from helpers import EXAMPLE_IMAGE
 from plyfile import PlyData
 
-import diff4splat.generate as generate_module
+import diff4splat.commands.generate as generate_module
 import diff4splat.pipeline
 from diff4splat.assembly.photo import PHOTO_EPS2D
 from diff4splat.cameras import DEFAULT_AMPLITUDES, DEFAULT_TRAJECTORY, CameraPath, intrinsics_from_fov

@@ -10,7 +10,7 @@ import torch
 from helpers import EXAMPLE_IMAGE
 
 import diff4splat.assembly.assemble as assemble
-import diff4splat.generate as generate_module
+import diff4splat.commands.generate as generate_module
 from diff4splat.assembly.assemble import photo_depth
 from diff4splat.cameras import camera_rays, intrinsics_from_fov
 from diff4splat.cli import main

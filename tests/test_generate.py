@@ -9,10 +9,11 @@ import torch
 from helpers import EXAMPLE_IMAGE, tiny_model
 
 from diff4splat.cli import main
-from diff4splat.generate import LoadedPipeline, generate, write
+from diff4splat.generate import generate
 from diff4splat.io import load_ply
 from diff4splat.io.output_folders import OutputDirError
 from diff4splat.pipeline import Diff4SplatPipeline, check_seed
+from diff4splat.request import LoadedPipeline, write
 
 
 def _never():

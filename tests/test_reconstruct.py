@@ -11,20 +11,15 @@ import torch
 from helpers import TEXTURES, moving_patch_video
 
 from data_prep.synth import generate_scene
+from diff4splat.assembly.layers import LAYER_ORDER_OFFSET, carried_depth, layer_spans
 from diff4splat.cli import main
-from diff4splat.generate import load_pipeline
 from diff4splat.geometry.scene_flow import consecutive_flows
 from diff4splat.io import OutputDirError, load_cameras_json, load_image, save_cameras_json, save_image, save_video
 from diff4splat.io.video_input import read_video_clip
-from diff4splat.reconstruct import (
-    LAYER_ORDER_OFFSET,
-    carried_depth,
-    layer_spans,
-    memory_estimate,
-    reconstruct,
-    still_cameras,
-)
+from diff4splat.pipeline import Diff4SplatPipeline
+from diff4splat.reconstruct import memory_estimate, reconstruct, still_cameras
 from diff4splat.render.sequence import render_path
+from diff4splat.request import load_pipeline
 
 SIZE = 64
 
@@ -217,7 +212,7 @@ def test_a_request_beyond_the_memory_limit_is_refused_before_the_networks_run(vi
     every = memory_estimate(base_pipeline.pipeline, SIZE, SIZE, 9, 9)
     assert memory_estimate(base_pipeline.pipeline, SIZE, SIZE, 9, 3) < every
     monkeypatch.setenv("DIFF4SPLAT_MAX_MEMORY_BYTES", str(every - 1))
-    with mock.patch("diff4splat.reconstruct.reconstruct_scene", side_effect=AssertionError("ran")):
+    with mock.patch.object(Diff4SplatPipeline, "reconstruct", side_effect=AssertionError("ran")):
         with pytest.raises(ValueError, match="--layers source"):
             reconstruct(root / "moving", pipeline=base_pipeline, frames=9, stride=2, resolution=SIZE)
         with pytest.raises(AssertionError, match="ran"):  # a quarter of the layers fits

@@ -31,7 +31,6 @@ from diff4splat.io import load_cameras_json
 from diff4splat.io.image import read_image
 from diff4splat.io.scene_folder import load_scene_folder
 from diff4splat.pipeline import Diff4SplatPipeline
-from diff4splat.reconstruct import reconstruct_scene
 from diff4splat.utils.devices import resolve_device
 from diff4splat.utils.offload import ModelOffload
 from models.hexplane import save_field
@@ -248,7 +247,7 @@ def test_reconstruct_on_simulated_cuda_gives_the_cpus_scene(tmp_path, cpu_tile_p
     cams = CameraPath(cams.viewmats[:9], cams.Ks[:9], cams.width, cams.height)
 
     def run(device):
-        return reconstruct_scene(Diff4SplatPipeline(tiny_model(), device), video.float() / 255, cams)
+        return Diff4SplatPipeline(tiny_model(), device).reconstruct(video.float() / 255, cams)
 
     ref = run("cpu")
     with simulated_cuda():

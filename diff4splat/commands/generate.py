@@ -1,30 +1,30 @@
-"""The ``diff4splat generate`` command: its arguments and the call of :func:`diff4splat.generate.generate` and
-:func:`diff4splat.generate.write` (the library does the work and every check; this module only maps flags)."""
+"""``diff4splat generate``: its flags and the call of :func:`diff4splat.generate.generate` and
+:func:`diff4splat.request.write` (the library does the work and every check; this module only maps flags)."""
 from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Callable
 from pathlib import Path
 
 from diff4splat.assembly.assemble import DEPTH_KINDS
 from diff4splat.cameras import DEFAULT_AMPLITUDES, DEFAULT_TRAJECTORY, TRAJECTORIES
 from diff4splat.cameras.trajectories import amplitude_help
-from diff4splat.generate import generate, load_pipeline, write
+from diff4splat.commands.options import add_out_flags, config_help, report_scene
+from diff4splat.generate import generate
 from diff4splat.io.video import DEFAULT_FPS
 from diff4splat.pipeline import DEFAULT_RESOLUTION
+from diff4splat.request import load_pipeline, write
 from diff4splat.runtime import ATTENTION_KERNELS, OFFLOAD_MODES
 from diff4splat.utils.devices import AUTO, DEVICE_HELP
 from diff4splat.utils.errors import print_warnings
 from models.flow_matching import SAMPLERS
 
-__all__ = ["add_generate_parser", "generate_command"]
+__all__ = ["register", "run"]
 
 
-def add_generate_parser(subparsers, *, out_type: Callable[[str], Path], out_help: str, overwrite_help: str,
-                        config_help: str) -> argparse.ArgumentParser:
+def register(sub) -> argparse.ArgumentParser:
     """Add ``generate`` and its flags to the ``diff4splat`` subparsers; returns its parser."""
-    g = subparsers.add_parser("generate", help="generate a 4D scene from an image",
+    g = sub.add_parser("generate", help="generate a 4D scene from an image",
                        description="Generate a 4D Gaussian scene from one image and write the output folder.")
     g.add_argument("image", help="input photograph (any format OpenCV reads: RGB, RGBA, grey, 8/16-bit)")
     cam = g.add_mutually_exclusive_group()
@@ -55,7 +55,7 @@ def add_generate_parser(subparsers, *, out_type: Callable[[str], Path], out_help
     g.add_argument("--seed", type=int, default=0, help="noise seed (default: 0)")
     g.add_argument("--checkpoint", type=Path, default=None,
                    help="model folder (default: the shipped weights of --config)")
-    g.add_argument("--config", default=None, help=config_help)
+    g.add_argument("--config", default=None, help=config_help())
     g.add_argument("--fps", type=float, default=DEFAULT_FPS, help=f"video frame rate (default: {DEFAULT_FPS:g})")
     g.add_argument("--device", default=AUTO, help=DEVICE_HELP)
     g.add_argument("--dtype", choices=("float32", "bfloat16", "float16"), default="float32",
@@ -81,15 +81,15 @@ def add_generate_parser(subparsers, *, out_type: Callable[[str], Path], out_help
                    help="leave out frames/NNNN.ply, the scene at each frame's time (scene.ply and deformation.npz "
                         "hold the same; frames/ is most of a long path's folder: 4.4 of 7.2 GB at the paper size)")
     g.add_argument("--quiet", action="store_true", help="no progress bars (notes and warnings still print)")
-    g.add_argument("--out", type=out_type, required=True, help=out_help)
-    g.add_argument("--overwrite", action="store_true", help=overwrite_help)
+    add_out_flags(g)
+    g.set_defaults(func=run)
     return g
 
 
-def generate_command(args) -> dict:
+def run(args: argparse.Namespace) -> int:
     """Run ``generate``: :func:`diff4splat.generate.generate` (the output folder, the frame rate and the request
-    checked before the model loads) and :func:`diff4splat.generate.write`. Returns the meta dict of meta.json."""
-    generation = generate(
+    checked before the model loads) and :func:`diff4splat.request.write`; prints the folder's line, returns 0."""
+    output = generate(
         args.image, args.cameras, pipeline=lambda: print_warnings(
             load_pipeline, args.checkpoint, args.config, runtime=args.runtime, onnx=args.onnx, device=args.device,
             dtype=args.dtype, offload=args.offload, attention=args.attention, compile=args.compile),
@@ -98,6 +98,4 @@ def generate_command(args) -> dict:
         depth=args.depth, depth_kind=args.depth_kind, progress=not args.quiet,
         notes=lambda note: print(f"diff4splat: note: {note}", file=sys.stderr), out=args.out,
         overwrite=args.overwrite, inputs=[args.checkpoint, args.onnx], fps=args.fps, frame_plys=args.frame_plys)
-    return write(generation, args.out, overwrite=args.overwrite)
-
-
+    return report_scene(args.out, write(output, args.out, overwrite=args.overwrite))
