@@ -43,13 +43,10 @@ from diff4splat.runtime import NetworkRuntime, TorchRuntime
 from diff4splat.scene.dynamic import DynamicGaussians
 from diff4splat.utils.checks import check_positive_int, is_int
 from diff4splat.utils.costs import (
-    MEMORY_BASE_BYTES,
-    MEMORY_BYTES_PER_GAUSSIAN,
-    MEMORY_CUDA_BUILD_BYTES,
     MEMORY_MAP_COPIES,
-    MEMORY_SCENE_COPIES,
     TIME_FIXED_SECONDS,
     TIME_SECONDS_PER_PIXEL_FRAME,
+    generate_memory,
 )
 from diff4splat.utils.devices import Stopwatch
 from diff4splat.utils.limits import check_limit
@@ -265,20 +262,15 @@ class Diff4SplatPipeline:
 
     def memory_estimate(self, width: int, height: int, num_frames: int) -> int:
         """Upper bound of ``generate``'s peak host memory, bytes, for a ``width`` × ``height`` output of
-        ``num_frames`` frames, from the config alone (checked by ``check_memory``): the process and the weights held
-        in host memory; the unpruned scene's deformation (:meth:`scene_slots` × K × 10 floats ×
-        :data:`MEMORY_SCENE_COPIES`); on the CPU the LDRM's deformation maps (n × K × h·w × 10 floats ×
-        :data:`MEMORY_MAP_COPIES`); :data:`MEMORY_BYTES_PER_GAUSSIAN` per slot; the frames, T × H × W × 5 floats,
-        twice. ValueError: ``num_frames`` not 1 + 4k."""
+        ``num_frames`` frames, from the config alone (:func:`diff4splat.utils.costs.generate_memory`; checked by
+        ``check_memory``). ValueError: ``num_frames`` not 1 + 4k."""
         c = self.config
         n = self.runtime.latent.num_latent_frames(num_frames)
-        slots = self.scene_slots(width, height, num_frames)
-        keys = num_frames if self.runtime.has_deformation else 0
-        weights = self.runtime.host_weight_bytes() if isinstance(self.runtime, TorchRuntime) else 0
-        maps = MEMORY_MAP_COPIES * n * c.height * c.width if self.device.type == "cpu" else 0
-        base = MEMORY_BASE_BYTES + (MEMORY_CUDA_BUILD_BYTES if torch.backends.cuda.is_built() else 0)
-        return int(base + weights + MEMORY_BYTES_PER_GAUSSIAN * slots + 40 * keys * (MEMORY_SCENE_COPIES * slots + maps)
-                   + 2 * 20 * num_frames * width * height)
+        return generate_memory(
+            slots=self.scene_slots(width, height, num_frames), keys=num_frames if self.runtime.has_deformation else 0,
+            maps=MEMORY_MAP_COPIES * n * c.height * c.width if self.device.type == "cpu" else 0,
+            weights=self.runtime.host_weight_bytes() if isinstance(self.runtime, TorchRuntime) else 0,
+            frames=num_frames, width=width, height=height)
 
     def time_estimate(self, width: int, height: int, num_frames: int) -> float:
         """Rough CPU wall time of ``generate``, seconds: (:data:`TIME_FIXED_SECONDS` +

@@ -42,12 +42,7 @@ from diff4splat.request import (
     resolve_pipeline,
 )
 from diff4splat.runtime import TorchRuntime
-from diff4splat.utils.costs import (
-    MEMORY_BASE_BYTES,
-    MEMORY_BYTES_PER_GAUSSIAN,
-    MEMORY_CUDA_BUILD_BYTES,
-    MEMORY_SCENE_COPIES,
-)
+from diff4splat.utils.costs import reconstruct_memory
 from diff4splat.utils.limits import check_memory, check_output_size
 
 __all__ = ["reconstruct", "still_cameras", "clip_cameras", "memory_estimate", "RECONSTRUCT_KIND"]
@@ -78,17 +73,11 @@ def clip_cameras(cameras: CameraPath, indices: list[int], source: object = "came
 
 
 def memory_estimate(pipe: Diff4SplatPipeline, width: int, height: int, frames: int, num_layers: int) -> int:
-    """Upper bound of ``reconstruct``'s peak host memory, bytes (constants of
-    :meth:`Diff4SplatPipeline.memory_estimate`): process and weights; per slot its attributes and its Δμ, T × 3
-    floats, × (copies + 1) (the rotations and scales are one row shared by every Gaussian); one layer's motion over
-    the whole clip (frame 0's, :func:`~diff4splat.assembly.layers.layer_spans`), T × H × W × 3 floats, four times
-    (its tracks, its lifting and its layer's copy); the flows; the frames, T × H × W × 5 floats, twice."""
-    slots = layer_slots(width, height, num_layers)
-    weights = pipe.runtime.host_weight_bytes() if isinstance(pipe.runtime, TorchRuntime) else 0
-    base = MEMORY_BASE_BYTES + (MEMORY_CUDA_BUILD_BYTES if torch.backends.cuda.is_built() else 0)
-    pixels = width * height
-    return int(base + weights + slots * (MEMORY_BYTES_PER_GAUSSIAN + 12 * frames * (MEMORY_SCENE_COPIES + 1))
-               + 4 * 12 * frames * pixels + 16 * frames * pixels + 2 * 20 * frames * pixels)
+    """Upper bound of ``reconstruct``'s peak host memory, bytes, for ``frames`` frames at ``width`` × ``height`` and
+    ``num_layers`` photo layers (:func:`diff4splat.utils.costs.reconstruct_memory`)."""
+    return reconstruct_memory(
+        slots=layer_slots(width, height, num_layers), frames=frames, width=width, height=height,
+        weights=pipe.runtime.host_weight_bytes() if isinstance(pipe.runtime, TorchRuntime) else 0)
 
 
 def reconstruct(video: str | os.PathLike, cameras: str | os.PathLike | CameraPath | None = None, *,
