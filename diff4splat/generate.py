@@ -12,6 +12,7 @@ from pathlib import Path
 
 from torch import Tensor
 
+from diff4splat import request
 from diff4splat.assembly.assemble import DEPTH_KINDS
 from diff4splat.cameras import DEFAULT_TRAJECTORY, TRAJECTORIES, CameraPath
 from diff4splat.cameras.trajectories import check_amplitude
@@ -20,19 +21,8 @@ from diff4splat.io.image import preprocess_image, read_image
 from diff4splat.io.inputs import check_input_file
 from diff4splat.io.video import DEFAULT_FPS
 from diff4splat.pipeline import Diff4SplatPipeline
-from diff4splat.request import (
-    LoadedPipeline,
-    SceneOutput,
-    cameras_from_file,
-    check_destination,
-    check_size_flags,
-    file_argument,
-    output_size,
-    render_output,
-    resolve_pipeline,
-)
+from diff4splat.request import LoadedPipeline, SceneOutput
 from diff4splat.utils.costs import TIME_ESTIMATE_PRINTED
-from diff4splat.utils.limits import check_memory, check_output_size
 
 __all__ = ["generate", "GENERATE_KIND"]
 
@@ -45,7 +35,7 @@ def _check_request(image, cameras, trajectory, amplitude, frames, resolution, st
     """The request's own checks, made before any model loads (messages name the command's flags)."""
     if isinstance(image, (str, os.PathLike)):
         check_input_file(image, "image")
-    check_size_flags(frames, resolution, cameras)
+    request.check_size_flags(frames, resolution, cameras)
     if isinstance(depth, (str, os.PathLike)):
         check_input_file(depth, "--depth")
     if depth_kind not in DEPTH_KINDS:
@@ -104,14 +94,14 @@ def generate(image: str | os.PathLike | Tensor, cameras: str | os.PathLike | Cam
     t_start = time.perf_counter()
     files = {"image": image, "cameras_file": cameras, "depth_file": depth}  # as given, for meta.json
     read = [Path(p) for p in (*files.values(), *inputs) if isinstance(p, (str, os.PathLike))]
-    check_destination(out, fps, inputs=read, overwrite=overwrite, kind=GENERATE_KIND)
+    request.check_destination(out, fps, inputs=read, overwrite=overwrite, kind=GENERATE_KIND)
     _check_request(image, cameras, trajectory, amplitude, frames, resolution, steps, sampler, seed, prompt, depth,
                    depth_kind, guidance)
     if isinstance(image, Tensor) and resolution is not None and resolution != image.shape[0]:
         raise ValueError(f"resolution={resolution} but the image tensor is {image.shape[0]} pixels high: a tensor "
                          "is used at its own resolution (resize it, or pass a photo file)")
     raw_depth = read_depth_map(depth, depth_kind) if isinstance(depth, (str, os.PathLike)) else None  # before the model
-    loaded = resolve_pipeline(pipeline)
+    loaded = request.resolve_pipeline(pipeline)
     pipe, cfg = loaded.pipeline, loaded.pipeline.config
     if frames is not None:  # T = 1 + 4k, before any decoding
         pipe.check_frame_count(frames)
@@ -120,7 +110,7 @@ def generate(image: str | os.PathLike | Tensor, cameras: str | os.PathLike | Cam
         pipe.output_size(height)  # the resolution limit
         photo_shape = (height, width)
     else:
-        width, height = output_size(pipe, resolution)
+        width, height = request.output_size(pipe, resolution)
     if not isinstance(image, Tensor):
         photo = read_image(image)
         photo_shape = photo.shape[:2]
@@ -134,27 +124,25 @@ def generate(image: str | os.PathLike | Tensor, cameras: str | os.PathLike | Cam
     elif isinstance(cameras, CameraPath):
         path = cameras
     else:
-        path = cameras_from_file(Path(cameras), frames, photo_shape, width, height)
+        path = request.cameras_from_file(Path(cameras), frames, photo_shape, width, height)
         try:  # the frame count the VAE needs, named by the file (else "video: T=7 frames" from the sampler)
             cfg.vae.num_latent_frames(len(path))
         except ValueError as e:
             raise ValueError(f"--cameras {cameras}: {len(path)} cameras, one per frame: {e}") from None
-    check_output_size(len(path), path.width, path.height,  # before any network runs
-                      pipe.scene_slots(path.width, path.height, len(path)), knobs="--frames or --resolution", out=out,
-                      frame_plys=frame_plys)
-    check_memory(pipe.memory_estimate(path.width, path.height, len(path)),
-                 f"{len(path)} frames at {path.width}×{path.height}", "--frames or --resolution")
+    request.check_budget(path, pipe.scene_slots(path.width, path.height, len(path)),  # before any network runs
+                         pipe.memory_estimate(path.width, path.height, len(path)), knobs="--frames or --resolution",
+                         out=out, frame_plys=frame_plys)
     seconds = pipe.time_estimate(path.width, path.height, len(path))
     if seconds > TIME_ESTIMATE_PRINTED and notes is not None and pipe.device.type == "cpu":
         notes(f"{len(path)} frames at {path.width}×{path.height}: estimated {seconds:.0f} s on this CPU (lower "
               "--resolution or --frames for less)")
     result = pipe(image, path, prompt, steps=steps, sampler=sampler, guidance=guidance, seed=seed, progress=progress,
                   depth=depth if isinstance(depth, Tensor) else None, depth_kind=depth_kind)
-    request = {"image": file_argument(files["image"]), "prompt": prompt,
-               "trajectory": None if cameras is not None else trajectory,
-               "cameras_file": file_argument(files["cameras_file"]), "depth_file": file_argument(files["depth_file"]),
-               "depth_kind": depth_kind if files["depth_file"] is not None else None, "seed": seed,
-               "steps": result.steps, "sampler": result.sampler, "guidance": result.guidance, "shift": result.shift}
-    return render_output(loaded, result, request, kind=GENERATE_KIND, fps=fps, frame_plys=frame_plys, inputs=read,
-                         started=t_start, progress=progress)
+    file = {key: request.file_argument(value) for key, value in files.items()}
+    settings = {"image": file["image"], "prompt": prompt, "trajectory": None if cameras is not None else trajectory,
+                "cameras_file": file["cameras_file"], "depth_file": file["depth_file"],
+                "depth_kind": depth_kind if file["depth_file"] is not None else None, "seed": seed,
+                "steps": result.steps, "sampler": result.sampler, "guidance": result.guidance, "shift": result.shift}
+    return request.render_output(loaded, result, settings, kind=GENERATE_KIND, fps=fps, frame_plys=frame_plys,
+                                 inputs=read, started=t_start, progress=progress)
 

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import torch
 
+from diff4splat import request
 from diff4splat.assembly.layers import (
     DEFAULT_LAYERS,
     LAYER_ORDER_OFFSET,
@@ -30,20 +31,9 @@ from diff4splat.io.inputs import check_input_file
 from diff4splat.io.video import DEFAULT_FPS
 from diff4splat.io.video_input import check_clip_request, read_video_clip
 from diff4splat.pipeline import Diff4SplatPipeline
-from diff4splat.request import (
-    LoadedPipeline,
-    SceneOutput,
-    cameras_from_file,
-    check_destination,
-    check_size_flags,
-    file_argument,
-    output_size,
-    render_output,
-    resolve_pipeline,
-)
+from diff4splat.request import LoadedPipeline, SceneOutput
 from diff4splat.runtime import TorchRuntime
 from diff4splat.utils.costs import reconstruct_memory
-from diff4splat.utils.limits import check_memory, check_output_size
 
 __all__ = ["reconstruct", "still_cameras", "clip_cameras", "memory_estimate", "RECONSTRUCT_KIND"]
 
@@ -108,18 +98,18 @@ def reconstruct(video: str | os.PathLike, cameras: str | os.PathLike | CameraPat
     """
     t_start = time.perf_counter()
     read = [Path(p) for p in (video, cameras, *inputs) if isinstance(p, (str, os.PathLike))]
-    check_destination(out, fps, inputs=read, overwrite=overwrite, kind=RECONSTRUCT_KIND)
+    request.check_destination(out, fps, inputs=read, overwrite=overwrite, kind=RECONSTRUCT_KIND)
     if not Path(video).is_dir():
         check_input_file(video, "video")
-    check_size_flags(frames, resolution, cameras)
+    request.check_size_flags(frames, resolution, cameras)
     check_clip_request(frames or 1, stride, start)
     check_layers(layers)
     check_layer_knobs(order_offset, unchecked)
-    loaded = resolve_pipeline(pipeline)
+    loaded = request.resolve_pipeline(pipeline)
     pipe, cfg = loaded.pipeline, loaded.pipeline.config
     T = frames or cfg.num_frames
     pipe.check_frame_count(T)
-    width, height = output_size(pipe, resolution)
+    width, height = request.output_size(pipe, resolution)
     clip = read_video_clip(video, T, stride, start)
     shape = clip.frames[0].shape[:2]
     images = torch.stack([preprocess_image(f, (height, width)) for f in clip.frames])  # (T, H, W, 3)
@@ -128,15 +118,14 @@ def reconstruct(video: str | os.PathLike, cameras: str | os.PathLike | CameraPat
     elif isinstance(cameras, CameraPath):
         path = cameras
     else:
-        path = clip_cameras(cameras_from_file(Path(cameras), None, shape, width, height), clip.indices, cameras)
+        path = clip_cameras(request.cameras_from_file(Path(cameras), None, shape, width, height), clip.indices,
+                            cameras)
     num_layers = len(layer_frames(pipe.source_frames(T), T, layers))
-    knobs = "--frames, --resolution or --layers source"
-    check_output_size(T, width, height, layer_slots(width, height, num_layers), knobs=knobs, out=out,
-                      frame_plys=frame_plys)
-    check_memory(memory_estimate(pipe, width, height, T, num_layers), f"{T} frames at {width}×{height}", knobs)
+    memory = memory_estimate(pipe, width, height, T, num_layers)
+    request.check_budget(path, layer_slots(width, height, num_layers), memory,
+                         knobs="--frames, --resolution or --layers source", out=out, frame_plys=frame_plys)
     result = pipe.reconstruct(images, path, layers=layers, order_offset=order_offset, unchecked=unchecked)
-    request = {"cameras_file": file_argument(cameras),
-               "video": str(video), "video_frames": clip.indices, "video_fps": clip.fps, "kind": RECONSTRUCT_KIND,
-               "layers": layers}
-    return render_output(loaded, result, request, kind=RECONSTRUCT_KIND, fps=fps, frame_plys=frame_plys, inputs=read,
-                         started=t_start, progress=progress)
+    settings = {"cameras_file": request.file_argument(cameras), "video": str(video), "video_frames": clip.indices,
+                "video_fps": clip.fps, "kind": RECONSTRUCT_KIND, "layers": layers}
+    return request.render_output(loaded, result, settings, kind=RECONSTRUCT_KIND, fps=fps, frame_plys=frame_plys,
+                                 inputs=read, started=t_start, progress=progress)

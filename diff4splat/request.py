@@ -27,11 +27,12 @@ from diff4splat.render.sequence import render_path
 from diff4splat.runtime import ATTENTION_KERNELS, DTYPES, check_offload
 from diff4splat.utils.checks import check_positive_int
 from diff4splat.utils.devices import AUTO, resolve_device
-from diff4splat.utils.limits import check_limit
+from diff4splat.utils.limits import check_limit, check_memory, check_output_size
 from models.bundle import DEFAULT_CONFIG
 
 __all__ = ["RUNTIMES", "LoadedPipeline", "SceneOutput", "load_pipeline", "resolve_pipeline", "check_destination",
-           "check_size_flags", "output_size", "cameras_from_file", "file_argument", "render_output", "write"]
+           "check_size_flags", "output_size", "check_budget", "cameras_from_file", "file_argument", "render_output",
+           "write"]
 
 RUNTIMES = ("torch", "onnxruntime")
 """What runs the networks: PyTorch, or onnxruntime over an ``export-onnx`` folder."""
@@ -165,6 +166,15 @@ def output_size(pipe: Diff4SplatPipeline, resolution: int | None) -> tuple[int, 
     """(width, height) of the output at ``resolution`` pixels of height (None: :data:`DEFAULT_RESOLUTION` or the
     model's height if larger); ValueError as :meth:`Diff4SplatPipeline.output_size`."""
     return pipe.output_size(resolution if resolution is not None else max(DEFAULT_RESOLUTION, pipe.config.height))
+
+
+def check_budget(path: CameraPath, slots: int, memory: int, *, knobs: str, out: str | os.PathLike | None,
+                 frame_plys: bool) -> None:
+    """Before any network runs: the output folder of ``path`` with ``slots`` Gaussian slots fits its disk and the
+    output-size limit (:func:`diff4splat.utils.limits.check_output_size`), and ``memory`` bytes, the command's
+    estimate (:mod:`diff4splat.utils.costs`), fit the memory limit; a LimitError names the ``knobs`` that lower them."""
+    check_output_size(len(path), path.width, path.height, slots, knobs=knobs, out=out, frame_plys=frame_plys)
+    check_memory(memory, f"{len(path)} frames at {path.width}×{path.height}", knobs)
 
 
 def cameras_from_file(path: Path, frames: int | None, photo_shape: tuple[int, int], width: int,

@@ -3,9 +3,8 @@ from __future__ import annotations
 
 import argparse
 from functools import partial
-from pathlib import Path
 
-from diff4splat.commands.options import add_out_flags, config_help
+from diff4splat.commands.options import add_model_flags, add_out_flags
 from diff4splat.export import MAX_OPSET, MIN_OPSET, export_checkpoint
 from diff4splat.pipeline import load_model
 from diff4splat.utils.errors import print_warnings
@@ -21,9 +20,7 @@ def register(sub) -> argparse.ArgumentParser:
                                    "(+ deformation) as ONNX graphs with dynamic batch/frames/resolution, "
                                    "plus manifest.json. The export runs on the CPU in float32 (it has no "
                                    "--device); the graphs run on any onnxruntime provider, CUDA included.")
-    e.add_argument("--checkpoint", type=Path, default=None,
-                   help="model folder (default: the shipped weights of --config)")
-    e.add_argument("--config", default=DEFAULT_CONFIG, help=config_help())
+    add_model_flags(e, DEFAULT_CONFIG)
     add_out_flags(e)
     e.add_argument("--no-text", action="store_true", help="leave out the text encoder (empty prompt only)")
     e.add_argument("--static", action="store_true",

@@ -9,7 +9,7 @@ from pathlib import Path
 from diff4splat.assembly.assemble import DEPTH_KINDS
 from diff4splat.cameras import DEFAULT_AMPLITUDES, DEFAULT_TRAJECTORY, TRAJECTORIES
 from diff4splat.cameras.trajectories import amplitude_help
-from diff4splat.commands.options import add_out_flags, config_help, report_scene
+from diff4splat.commands.options import add_model_flags, add_out_flags, report_scene
 from diff4splat.generate import generate
 from diff4splat.io.video import DEFAULT_FPS
 from diff4splat.pipeline import DEFAULT_RESOLUTION
@@ -53,9 +53,7 @@ def register(sub) -> argparse.ArgumentParser:
                    help="classifier-free guidance scale with a prompt, in [0, 30]; 1 = off (default: config: 1 for "
                         "ours, 5 for Wan2.2, 6 for CogVideoX)")
     g.add_argument("--seed", type=int, default=0, help="noise seed (default: 0)")
-    g.add_argument("--checkpoint", type=Path, default=None,
-                   help="model folder (default: the shipped weights of --config)")
-    g.add_argument("--config", default=None, help=config_help())
+    add_model_flags(g)
     g.add_argument("--fps", type=float, default=DEFAULT_FPS, help=f"video frame rate (default: {DEFAULT_FPS:g})")
     g.add_argument("--device", default=AUTO, help=DEVICE_HELP)
     g.add_argument("--dtype", choices=("float32", "bfloat16", "float16"), default="float32",

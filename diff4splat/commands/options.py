@@ -6,7 +6,7 @@ from pathlib import Path
 
 from models.bundle import DEFAULT_CONFIG, config_names
 
-__all__ = ["OUT_HELP", "OVERWRITE_HELP", "out_path", "add_out_flags", "config_help", "report_scene"]
+__all__ = ["OUT_HELP", "OVERWRITE_HELP", "out_path", "add_out_flags", "add_model_flags", "report_scene"]
 
 OUT_HELP = ("output folder, written atomically; an existing one is replaced only if it is empty or an "
             "earlier output of this command (README, 'Output folders')")
@@ -27,9 +27,13 @@ def add_out_flags(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
 
 
-def config_help() -> str:
-    """Help of ``--config``: the shipped config names or a YAML path."""
-    return f"shipped model config ({', '.join(config_names())}) or a YAML path (default: {DEFAULT_CONFIG})"
+def add_model_flags(parser: argparse.ArgumentParser, config_default: str | None = None) -> None:
+    """``--checkpoint DIR`` and ``--config NAME|YAML`` (default ``config_default``; None: the checkpoint's, else
+    :data:`models.bundle.DEFAULT_CONFIG`)."""
+    parser.add_argument("--checkpoint", type=Path, default=None,
+                        help="model folder (default: the shipped weights of --config)")
+    parser.add_argument("--config", default=config_default, help=f"shipped model config ({', '.join(config_names())}) "
+                        f"or a YAML path (default: {DEFAULT_CONFIG})")
 
 
 def report_scene(out: Path, meta: dict) -> int:

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from diff4splat.assembly.layers import DEFAULT_LAYERS, LAYERS
-from diff4splat.commands.options import add_out_flags, config_help, report_scene
+from diff4splat.commands.options import add_model_flags, add_out_flags, report_scene
 from diff4splat.io.video import DEFAULT_FPS
 from diff4splat.reconstruct import reconstruct
 from diff4splat.request import load_pipeline, write
@@ -37,9 +37,7 @@ def register(sub) -> argparse.ArgumentParser:
                     help="frames kept as photo layers: every frame (T·1.25 Gaussians per output pixel), or the "
                          "LDRM's source frames 0, 4, 8, … (a quarter; coarser between frames) "
                          f"(default: {DEFAULT_LAYERS})")
-    rc.add_argument("--checkpoint", type=Path, default=None,
-                    help="model folder (default: the shipped weights of --config)")
-    rc.add_argument("--config", default=None, help=config_help())
+    add_model_flags(rc)
     rc.add_argument("--fps", type=float, default=DEFAULT_FPS, help=f"video frame rate (default: {DEFAULT_FPS:g})")
     rc.add_argument("--device", default=AUTO, help=DEVICE_HELP)
     rc.add_argument("--no-frame-plys", dest="frame_plys", action="store_false",
