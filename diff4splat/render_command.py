@@ -19,28 +19,29 @@ from __future__ import annotations
 import os
 import time
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from diff4splat.cameras import CameraPath, make_trajectory
 from diff4splat.cameras.path import check_field_of_view
 from diff4splat.cameras.trajectories import check_amplitude
-from diff4splat.io import load_cameras_json, load_realestate10k
+from diff4splat.io import load_cameras_json, load_depth_exr, load_realestate10k
 from diff4splat.io.inputs import check_input_file
 from diff4splat.io.output_folders import MARKER, check_output_dir, read_marker
 from diff4splat.io.scene_folder import (
     SceneFolder,
-    estimate_scene_depth,
     folder_file,
+    layout_frame,
     load_scene_folder,
     meta_background,
     meta_eps2d,
-    scene_depth,
     scene_meta,
     write_scene_folder,
 )
 from diff4splat.io.video import DEFAULT_FPS, check_fps, check_video_size
 from diff4splat.render.sequence import render_path
+from diff4splat.render.settings import NEAR_PLANE
 from diff4splat.scene.dynamic import DynamicGaussians
 from diff4splat.utils.checks import check_positive_int
 from diff4splat.utils.constants import ALPHA_MIN
@@ -50,10 +51,12 @@ from diff4splat.utils.limits import check_limit, check_memory, check_output_size
 from models.hexplane import load_field
 
 __all__ = ["RENDER_KIND", "path_scene", "placed_at", "load_camera_file", "trajectory_cameras", "resize_cameras",
-           "render_memory_estimate", "rerender"]
+           "render_memory_estimate", "rerender", "estimate_scene_depth", "scene_depth"]
 
 RENDER_KIND = "render"
 """Output-folder kind of ``diff4splat render`` (:data:`diff4splat.io.MARKER`)."""
+COVERED = 0.5
+"""Pixels of ``depth/0000.exr`` with coverage "A" above this give the scene depth (:func:`scene_depth`)."""
 
 
 def path_scene(folder: SceneFolder, times: Tensor) -> DynamicGaussians:
@@ -94,6 +97,47 @@ def load_camera_file(path: str | os.PathLike, folder: SceneFolder) -> CameraPath
         return load_cameras_json(path)
     cams = load_realestate10k(path, folder.cameras.width, folder.cameras.height, relative=True)
     return placed_at(cams, folder.cameras.viewmats[0])
+
+
+def estimate_scene_depth(folder: SceneFolder) -> float | None:
+    """:func:`scene_depth` (metres, > 0), or None when none of its sources exists.
+
+    Raises:
+        ValueError: ``depth/0000.exr`` unreadable, without "Z", or with "Z" and "A" of different sizes.
+    """
+    value = folder.meta.get("scene_depth")  # checked by load_output_scene: a finite number > 0, or absent
+    if value is not None:
+        return float(value)
+    exr = folder_file(folder.path, layout_frame("depth", 0))
+    if exr is not None:
+        z, a = load_depth_exr(exr, return_alpha=True)
+        if a is not None and a.shape != z.shape:
+            raise ValueError(f"{exr}: channels 'Z' {z.shape} and 'A' {a.shape} differ in size")
+        keep = np.isfinite(z) & (z > 0) & (a > COVERED if a is not None else True)
+        if keep.any():
+            return float(np.median(z[keep]))
+    means = folder.scene.canonical.means.double()
+    vm = folder.cameras.viewmats[0].to(means)
+    z = means @ vm[2, :3] + vm[2, 3]  # camera-0 depth of each mean
+    z = z[z > NEAR_PLANE]
+    return float(z.median()) if z.numel() else None
+
+
+def scene_depth(folder: SceneFolder) -> float:
+    """Distance from the folder's first camera to the scene centre, metres: where presets look.
+
+    The first of: meta.json's ``scene_depth``; the median "Z" of ``depth/0000.exr`` over pixels with "A" >
+    :data:`COVERED` (every finite Z > 0 without "A"); the median depth of the canonical means in front of the
+    first camera (z > NEAR_PLANE).
+
+    Raises:
+        ValueError: none of the three exists; ``depth/0000.exr`` unreadable or without "Z".
+    """
+    depth = estimate_scene_depth(folder)
+    if depth is None:
+        raise ValueError(f"scene folder {folder.path}: cannot estimate the scene depth (no depth/0000.exr coverage "
+                         "and no Gaussian in front of the first camera)")
+    return depth
 
 
 def trajectory_cameras(folder: SceneFolder, name: str, frames: int | None = None,

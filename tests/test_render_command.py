@@ -16,11 +16,11 @@ from diff4splat.cameras.trajectories import check_amplitude
 from diff4splat.cli import main
 from diff4splat.io import MARKER, OutputDirError, load_cameras_json, load_depth_exr, load_video, save_realestate10k
 from diff4splat.io.image import read_image
-from diff4splat.io.scene_folder import SceneFolder, fill_empty_depth, scene_depth, write_scene_folder
+from diff4splat.io.scene_folder import SceneFolder, fill_empty_depth, write_scene_folder
 from diff4splat.io.scene_folder import load_scene_folder as _load_scene_folder
 from diff4splat.io.video import to_uint8
 from diff4splat.render.sequence import render_path
-from diff4splat.render_command import path_scene, rerender, resize_cameras
+from diff4splat.render_command import path_scene, rerender, resize_cameras, scene_depth
 from diff4splat.scene.dynamic import DynamicGaussians
 from diff4splat.scene.gaussians import Gaussians
 from diff4splat.utils.errors import one_line

@@ -11,12 +11,10 @@ from torch import Tensor
 
 from diff4splat.cameras.path import CameraPath
 from diff4splat.io import load_ply
-from diff4splat.io.viewer_data import (
-    FLOAT16_MAX_PX,
+from diff4splat.io.viewer_data import FLOAT16_MAX_PX, decode_keyframes, encode_keyframes, payload_bytes, viewer_payload
+from diff4splat.render.keyframes import (
     _fits_float16,
     _keyframes_fit_float16,
-    decode_keyframes,
-    encode_keyframes,
     evenly_spaced,
     float16_error_px,
     held_keyframes,
@@ -24,10 +22,8 @@ from diff4splat.io.viewer_data import (
     keyframe_times,
     keyframes,
     most_covering,
-    payload_bytes,
     still_gaussians,
     time_range,
-    viewer_payload,
 )
 from diff4splat.scene.dynamic import DynamicGaussians
 from diff4splat.scene.gaussians import Gaussians

@@ -24,25 +24,24 @@ from diff4splat import __version__
 from diff4splat.cameras.path import CameraPath
 from diff4splat.io.atomic import atomic_output_path
 from diff4splat.io.cameras import load_cameras_json, save_cameras_json
-from diff4splat.io.exr import load_depth_exr, save_depth_exr
+from diff4splat.io.exr import save_depth_exr
 from diff4splat.io.inputs import check_input_file
 from diff4splat.io.output_folders import output_dir
 from diff4splat.io.ply import load_ply, save_ply
 from diff4splat.io.structured import read_json
 from diff4splat.io.video import DEFAULT_FPS, check_fps, save_image, save_video, to_uint8
 from diff4splat.io.viewer_page import VIEWER_NAME, write_viewer
-from diff4splat.render.settings import BACKGROUND, EPS2D, NEAR_PLANE
+from diff4splat.render.settings import BACKGROUND, EPS2D
 from diff4splat.scene.dynamic import DynamicGaussians
 from diff4splat.utils.checks import check_positive
 from diff4splat.utils.constants import ALPHA_MIN
 from diff4splat.utils.limits import check_limit
 
 __all__ = ["write_scene_folder", "fill_empty_depth", "save_deformation", "load_deformation", "deformation_tensors",
-           "json_default",
-           "load_output_scene", "folder_file", "DEFORMATION_ARRAYS", "is_layout_file", "LAYOUT_FILES", "LAYOUT_FRAMES",
-           "layout_frame", "SCENE_FILE", "DEFORMATION_FILE", "CAMERAS_FILE", "META_FILE", "VIDEO_FILE", "FIELD_FILE",
-           "METRICS_FILE", "SceneFolder", "load_scene_folder", "scene_depth", "estimate_scene_depth", "scene_meta",
-           "meta_background", "meta_eps2d"]
+           "json_default", "load_output_scene", "folder_file", "DEFORMATION_ARRAYS", "is_layout_file", "LAYOUT_FILES",
+           "LAYOUT_FRAMES", "layout_frame", "SCENE_FILE", "DEFORMATION_FILE", "CAMERAS_FILE", "META_FILE", "VIDEO_FILE",
+           "FIELD_FILE", "METRICS_FILE", "SceneFolder", "load_scene_folder", "scene_meta", "meta_background",
+           "meta_eps2d"]
 
 SCENE_FILE = "scene.ply"
 """The canonical Gaussians, INRIA PLY layout (:func:`diff4splat.io.ply.save_ply`)."""
@@ -63,8 +62,6 @@ LAYOUT_FILES = (SCENE_FILE, DEFORMATION_FILE, CAMERAS_FILE, META_FILE, VIDEO_FIL
 """The files at the top of an output folder of generate, fit or render (module docstring)."""
 LAYOUT_FRAMES = {"frames": ".ply", "rgb": ".png", "depth": ".exr"}
 """The per-frame sub-folders of an output folder and the suffix of their files ``NNNN<suffix>`` (4+ digits)."""
-COVERED = 0.5
-"""Pixels of ``depth/0000.exr`` with coverage "A" above this give the scene depth (:func:`scene_depth`)."""
 
 
 def meta_background(meta: dict) -> tuple[float, float, float]:
@@ -540,44 +537,3 @@ def load_scene_folder(folder: str | os.PathLike, device: str | torch.device = "c
     field_file = folder_file(path, FIELD_FILE) if load_field is not None else None
     field = None if field_file is None else load_field(field_file, map_location=device)
     return SceneFolder(path, scene.to(device), cameras, meta, field)
-
-
-def estimate_scene_depth(folder: SceneFolder) -> float | None:
-    """:func:`scene_depth` (metres, > 0), or None when none of its sources exists.
-
-    Raises:
-        ValueError: ``depth/0000.exr`` unreadable, without "Z", or with "Z" and "A" of different sizes.
-    """
-    value = folder.meta.get("scene_depth")  # checked by load_output_scene: a finite number > 0, or absent
-    if value is not None:
-        return float(value)
-    exr = folder_file(folder.path, layout_frame("depth", 0))
-    if exr is not None:
-        z, a = load_depth_exr(exr, return_alpha=True)
-        if a is not None and a.shape != z.shape:
-            raise ValueError(f"{exr}: channels 'Z' {z.shape} and 'A' {a.shape} differ in size")
-        keep = np.isfinite(z) & (z > 0) & (a > COVERED if a is not None else True)
-        if keep.any():
-            return float(np.median(z[keep]))
-    means = folder.scene.canonical.means.double()
-    vm = folder.cameras.viewmats[0].to(means)
-    z = means @ vm[2, :3] + vm[2, 3]  # camera-0 depth of each mean
-    z = z[z > NEAR_PLANE]
-    return float(z.median()) if z.numel() else None
-
-
-def scene_depth(folder: SceneFolder) -> float:
-    """Distance from the folder's first camera to the scene centre, metres: where presets look.
-
-    The first of: meta.json's ``scene_depth``; the median "Z" of ``depth/0000.exr`` over pixels with "A" >
-    :data:`COVERED` (every finite Z > 0 without "A"); the median depth of the canonical means in front of the
-    first camera (z > NEAR_PLANE).
-
-    Raises:
-        ValueError: none of the three exists; ``depth/0000.exr`` unreadable or without "Z".
-    """
-    depth = estimate_scene_depth(folder)
-    if depth is None:
-        raise ValueError(f"scene folder {folder.path}: cannot estimate the scene depth (no depth/0000.exr coverage "
-                         "and no Gaussian in front of the first camera)")
-    return depth

@@ -1,26 +1,14 @@
-"""What the 4D viewer shows, computed in Python (the page only interpolates; docs/DESIGN.md, "Viewer").
+"""The viewer's payload: what one ``viewer.html`` embeds, as bytes (docs/DESIGN.md, "Viewer").
 
-A viewer payload is the canonical Gaussians as INRIA PLY bytes (:func:`diff4splat.io.ply_bytes`: colours,
-opacities, SH) and, for a scene that changes with time, the frame data (:func:`encode_keyframes`): with temporal
-support each Gaussian's time mean μ_t and standard deviation σ_t (and trapezoid ramp), from which the page evaluates
-the opacity at any t as :meth:`DynamicGaussians.at` does; for a deforming scene **absolute** keyframes, for the key
-times t of the deformation the means (3) metres, quats (4) wxyz and scales (3) metres of :meth:`DynamicGaussians.at`
-(t, gate 0), the same code that writes ``frames/NNNN.ply``. Each Gaussian holds only the keys it needs
-(:func:`key_windows`): none when it does not move (its pose is the PLY's), those around its temporal window when its
-support is bounded (a ``reconstruct`` layer is seen only between its neighbours' times), else all. Between two
-keyframes the page reproduces the renderer's interpolation of the deformation (:meth:`DynamicGaussians.
-deformation_at`, linear in Δμ, Δs and nlerp in Δq): the means linearly (μ + Δμ is affine in Δμ), the quaternions
-by nlerp (Δq ⊗ q with a unit q keeps the nlerp's weights and sign) and the scales geometrically (s·exp(Δs) is
-log-linear in Δs), so at every time, not only at key times, the page shows the Gaussians the renderer draws.
-
-Keyframes are stored as float16 when rounding the means to float16 moves no Gaussian by more than
-:data:`FLOAT16_MAX_PX` pixels in any camera of the path (measured, :func:`float16_error_px`) and every value
-is within float16's range (|x| ≤ 65504), else float32.
-Size: per Gaussian, 8 bytes with temporal support (12 with ramps), 4 for its key window in a deforming scene, and 10
-values × 2 or 4 bytes per held keyframe (:func:`payload_bytes`), × 4/3 once base64-encoded into ``viewer.html``.
-Above :data:`VIEWER_BUDGET_BYTES` of embedded data the page gets a reduced scene (:func:`viewer_payload`: SH degree
-0, then fewer keyframes, then the Gaussians covering most) and says so on screen; ``diff4splat view`` serves the full
-one.
+The canonical Gaussians as INRIA PLY bytes (:func:`diff4splat.io.ply_bytes`: colours, opacities, SH) and, for a scene
+that changes with time, the frame data (:func:`encode_keyframes`): with temporal support each Gaussian's μ_t and σ_t
+(and trapezoid ramp), from which the page evaluates the opacity at any t as :meth:`DynamicGaussians.at` does; for a
+deforming scene each Gaussian's key window and held keyframes (:mod:`diff4splat.render.keyframes`), float16 when
+their means move ≤ :data:`FLOAT16_MAX_PX` pixels and every value fits (``keyframe_dtype``), else float32. Size: per
+Gaussian, 8 bytes with temporal support (12 with ramps), 4 for its key window in a deforming scene, and 10 values × 2
+or 4 bytes per held keyframe (:func:`payload_bytes`), × 4/3 in base64. Above :data:`VIEWER_BUDGET_BYTES` of embedded
+data the page gets a reduced scene (:func:`viewer_payload`: SH degree 0, then fewer keyframes, then the Gaussians
+covering most) and says so on screen; ``diff4splat view`` serves the full one.
 """
 from __future__ import annotations
 
@@ -34,13 +22,12 @@ from torch import Tensor
 from diff4splat.cameras.path import CameraPath
 from diff4splat.io.ply import ply_bytes
 from diff4splat.io.video import DEFAULT_FPS
+from diff4splat.render import keyframes
 from diff4splat.render.settings import BACKGROUND, EPS2D, NEAR_PLANE
-from diff4splat.scene.dynamic import DynamicGaussians, distinct_rows
+from diff4splat.scene.dynamic import DynamicGaussians
 from diff4splat.scene.gaussians import Gaussians
 
-__all__ = ["VIEWER_BUDGET_BYTES", "FLOAT16_MAX_PX", "NEAR", "ViewerPayload", "keyframe_times", "time_range",
-           "keyframes", "still_gaussians", "key_windows", "held_keyframes", "evenly_spaced", "covering_order",
-           "most_covering", "float16_error_px", "encode_keyframes", "decode_keyframes",
+__all__ = ["VIEWER_BUDGET_BYTES", "FLOAT16_MAX_PX", "ViewerPayload", "encode_keyframes", "decode_keyframes",
            "viewer_payload", "payload_bytes"]
 
 VIEWER_BUDGET_BYTES = 50 * 2**20
@@ -48,9 +35,6 @@ VIEWER_BUDGET_BYTES = 50 * 2**20
 
 FLOAT16_MAX_PX = 0.5
 """Keyframes are float16 only if float16 means reproject within this many pixels of the float32 ones."""
-
-NEAR = NEAR_PLANE
-"""Near plane of the page's camera, metres (the CPU renderer's)."""
 
 
 @dataclass
@@ -71,203 +55,13 @@ class ViewerPayload:
     reductions: list[str] = field(default_factory=list)
 
 
-def keyframe_times(scene: DynamicGaussians) -> Tensor | None:
-    """Key times (F,) in [0, 1]: the deformation's own times, None for a scene without deformation (with temporal
-    support only, the page evaluates the opacities at any time from μ_t and σ_t: no keyframes)."""
-    return None if scene.is_static else scene.times.detach().cpu().double()
-
-
-def time_range(scene: DynamicGaussians, cameras: CameraPath) -> tuple[float, float] | None:
-    """The time slider's range in [0, 1]: the deformation's first and last key times, else (with temporal support
-    only) the path's first and last frame times; None for a scene that does not change with time (no controls)."""
-    times = keyframe_times(scene)
-    if times is None and scene.has_temporal:
-        times = cameras.times.detach().cpu().double()
-    return None if times is None else (float(times.min()), float(times.max()))
-
-
-@torch.no_grad()
-def keyframes(scene: DynamicGaussians, times: Tensor, index: Tensor | None = None) -> dict[str, Tensor]:
-    """Absolute Gaussians at every key time (:meth:`DynamicGaussians.at` with gate 0, so all N in order).
-
-    Args:
-        index: (N,) ascending indices of the Gaussians wanted (the ones a reduced page keeps); None: all.
-
-    Returns:
-        {"means": (F, N, 3) metres, "quats": (F, N, 4) unit wxyz, "scales": (F, N, 3) metres}, float32 on the CPU
-        (opacities are not keyframed: with temporal support the page evaluates them from μ_t and σ_t).
-    """
-    F, N = len(times), scene.num_gaussians if index is None else index.shape[0]
-    cpu = torch.device("cpu")  # the payload is bytes for the page: built on the host
-    out = {"means": torch.empty(F, N, 3, device=cpu), "quats": torch.empty(F, N, 4, device=cpu),
-           "scales": torch.empty(F, N, 3, device=cpu)}
-    for i, t in enumerate(times):  # one time at a time into the outputs: memory F·N·10 floats, not twice that
-        g = scene.at(float(t), gate=0.0, index=index)
-        for key, dst in out.items():
-            src = getattr(g, key).detach()
-            dst[i] = (src / src.norm(dim=-1, keepdim=True) if key == "quats" else src).to("cpu", torch.float32)
-    return out
-
-
-def still_gaussians(scene: DynamicGaussians) -> Tensor:
-    """(M,) bool: the Gaussians whose deformation is the identity at every key time (Δμ = 0, Δs = 0, Δq a positive
-    multiple of (1, 0, 0, 0)), so :meth:`DynamicGaussians.at` gives exactly their canonical pose at every t. All
-    True for a scene without deformation."""
-    n = scene.num_gaussians
-    if scene.is_static:
-        return torch.ones(n, dtype=torch.bool, device=scene.canonical.means.device)
-    d_means, d_quats, d_scales = (distinct_rows(x) for x in (scene.d_means, scene.d_quats, scene.d_scales))
-    moving = (d_means != 0).any(dim=-1).any(dim=0) | (d_scales != 0).any(dim=-1).any(dim=0)
-    moving = moving | (d_quats[..., 1:] != 0).any(dim=-1).any(dim=0) | (d_quats[..., 0] <= 0).any(dim=0)
-    return ~moving.expand(n)  # (M,): a shared row's answer holds for every Gaussian
-
-
-def key_windows(scene: DynamicGaussians, times: Tensor, still: Tensor | None = None) -> tuple[Tensor, Tensor]:
-    """The keyframes the page needs of each Gaussian, out of the key times ``times`` (F,) ascending: (first (M,),
-    count (M,)) int64, the consecutive keys first … first + count − 1.
-
-    - count 0 for a still Gaussian (``still`` (M,) bool, default :func:`still_gaussians`): its canonical pose, from
-      the PLY, at every time;
-    - with bounded temporal support (``t_ramps``: opacity 0 where |t − μ_t| ≥ σ_t) the keys around that window, from
-      the last key at or before μ_t − σ_t to the first at or after μ_t + σ_t: wherever the Gaussian is seen, the two
-      keys the page interpolates between (its clamped lookup, as :meth:`DynamicGaussians.deformation_at`) are held;
-    - all F keys otherwise.
-    """
-    n, F = scene.num_gaussians, times.shape[0]
-    times = times.double().cpu()
-    still = (still_gaussians(scene) if still is None else still).cpu()
-    host = times.device  # the windows are page data: built on the host
-    first = torch.zeros(n, dtype=torch.int64, device=host)
-    last = torch.full((n,), F - 1, dtype=torch.int64, device=host)
-    if scene.t_ramps is not None:
-        mu, sigma = scene.t_means.detach().double().cpu(), scene.t_scales.detach().double().cpu()
-        first = (torch.searchsorted(times, mu - sigma, right=True) - 1).clamp(0, F - 1)
-        last = torch.searchsorted(times, mu + sigma).clamp(0, F - 1)
-    count = torch.where(still, 0, last - first + 1)
-    return torch.where(still, 0, first), count
-
-
-@torch.no_grad()
-def held_keyframes(scene: DynamicGaussians, times: Tensor, first: Tensor, count: Tensor,
-                   index: Tensor | None = None) -> Tensor:
-    """The keyframes the page holds (:func:`key_windows`) of the Gaussians ``index`` ((K,) ascending; None: all),
-    Gaussian by Gaussian and within one by key time: (Σ count, 10) float32 on the CPU, each row the means (3) metres,
-    unit quats (4) wxyz and scales (3) metres of :meth:`DynamicGaussians.at` (gate 0) at that key time, the same
-    values as :func:`keyframes` at the held keys. ``first``, ``count``: (K,) of the Gaussians ``index``."""
-    first, count = first.cpu(), count.cpu()
-    start = torch.cumsum(count, 0) - count  # each Gaussian's first row
-    out = torch.empty(int(count.sum()), 10, device="cpu")  # page data: built on the host
-    for f, t in enumerate(times.tolist()):  # one time at a time: memory of the held rows only
-        held = torch.nonzero((first <= f) & (f < first + count)).squeeze(1)
-        if held.numel() == 0:
-            continue
-        g = scene.at(float(t), gate=0.0, index=held.to(scene.canonical.means.device) if index is None
-                     else index[held.to(index.device)])
-        quats = g.quats.detach()
-        out[start[held] + f - first[held]] = torch.cat(
-            [g.means.detach(), quats / quats.norm(dim=-1, keepdim=True), g.scales.detach()], dim=1).to("cpu",
-                                                                                                    torch.float32)
-    return out
-
-
-def evenly_spaced(n: int, k: int, device: torch.device | str = "cpu") -> Tensor:
-    """(k,) int64 indices into ``n`` items, evenly spaced from 0 to n − 1: round(i · (n − 1) / (k − 1)), halves up,
-    in exact integer arithmetic (a float32 ``linspace`` rounds n − 1 up to n above 2²⁴ items: an index past the
-    end). ``k`` ≥ 1 (k = 1: [0]); indices repeat when k > n."""
-    i = torch.arange(k, dtype=torch.int64, device=device)
-    if k == 1:
-        return i
-    return (2 * i * (n - 1) + (k - 1)) // (2 * (k - 1))
-
-
-FLOAT16_CHECK_POINTS = 200_000
-"""Most keyframe means :func:`float16_error_px` measures (an evenly spaced subset of the F·N)."""
-
-
-def float16_error_px(
-    means: Tensor,  # (F, N, 3) world, metres
-    viewmats: Tensor,  # (C, 4, 4) world-to-camera (OpenCV)
-    Ks: Tensor,  # (C, 3, 3) pixels
-    near: float = NEAR,
-    max_points: int = FLOAT16_CHECK_POINTS,
-    max_cameras: int = 9,
-) -> float:
-    """Largest image-plane displacement, pixels, caused by rounding ``means`` to float16, over the cameras and
-    the Gaussians in front of them (z > ``near``) whose projection lies within 4× the principal point's
-    distance from the image origin; 0.0 when no Gaussian is in view. Large inputs are measured on a seeded
-    evenly spaced subset of ``max_points`` points and ``max_cameras`` evenly spaced cameras (first and last kept)."""
-    pts = means.reshape(-1, 3)
-    if pts.shape[0] > max_points:
-        pts = pts[evenly_spaced(pts.shape[0], max_points, pts.device)]  # the same subset on every device
-    pts = pts.double()  # after the pick: a float64 copy of the subset, not of every frame's means
-    if viewmats.shape[0] > max_cameras:
-        pick = evenly_spaced(viewmats.shape[0], max_cameras, viewmats.device)
-        viewmats, Ks = viewmats[pick], Ks[pick]
-    half = pts.half().double()
-    worst = 0.0
-    for vm, K in zip(viewmats.double(), Ks.double(), strict=True):
-        a, b = pts @ vm[:3, :3].T + vm[:3, 3], half @ vm[:3, :3].T + vm[:3, 3]
-        ok = (a[:, 2] > near) & (b[:, 2] > near)
-        if not bool(ok.any()):
-            continue
-        pa = (a[ok] @ K.T)[:, :2] / a[ok, 2:3]
-        pb = (b[ok] @ K.T)[:, :2] / b[ok, 2:3]
-        lim = 4 * float(max(K[0, 2], K[1, 2]))  # ignore Gaussians far outside the image (grazing angles)
-        keep = (pa.abs() < lim).all(1)
-        if bool(keep.any()):
-            worst = max(worst, float((pa[keep] - pb[keep]).norm(dim=1).max()))
-    return worst
-
-
-def _fits_float16(x: Tensor) -> bool:
-    """Every value rounds to a finite float16: |x| < 65520 (the largest float16 is 65504; from 65520 on, rounding
-    gives inf) and no NaN, from one min/max pass instead of a float16 copy of the keyframes."""
-    lo, hi = torch.aminmax(x)
-    return bool(torch.maximum(-lo, hi) < 65520)  # NaN compares False
-
-
-@torch.no_grad()
-def keyframe_dtype(scene: DynamicGaussians, times: Tensor, cameras: CameraPath) -> tuple[str, float]:
-    """("float16" or "float32", :func:`float16_error_px`) of the keyframes of all N Gaussians at ``times`` (F,),
-    without holding them: the error from the evenly spaced F·N means it measures, deformed at their own times
-    (:meth:`DynamicGaussians.at` with ``index``); the range from a bound, max |μ| + max |Δμ| and
-    max s·exp(max Δs) below 65520, else from every keyframe's values one time at a time."""
-    F, N = len(times), scene.num_gaussians
-    dev = scene.canonical.means.device
-    pick = (evenly_spaced(F * N, FLOAT16_CHECK_POINTS, dev) if F * N > FLOAT16_CHECK_POINTS
-            else torch.arange(F * N, device=dev))
-    means = [scene.at(float(times[f]), gate=0.0, index=pick[pick // N == f] % N).means.detach()
-             for f in range(F)]
-    err = float16_error_px(torch.cat(means)[None].cpu(), cameras.viewmats.detach().cpu(),
-                           cameras.Ks.detach().cpu())
-    return ("float16" if err <= FLOAT16_MAX_PX and _keyframes_fit_float16(scene, times) else "float32"), err
-
-
-def _keyframes_fit_float16(scene: DynamicGaussians, times: Tensor) -> bool:
-    """Every keyframe value rounds to a finite float16 (the quaternions are unit): true when the bound
-    max |μ| + max |Δμ| and max s·exp(max Δs) is below 65520, else checked at each time."""
-    c = scene.canonical
-    if c.num_gaussians == 0:
-        return True
-    lo, hi = torch.aminmax(distinct_rows(scene.d_means.detach()))
-    bound = max(float(c.means.detach().abs().max()) + float(torch.maximum(-lo, hi)),
-                float(c.scales.detach().max()) * math.exp(float(distinct_rows(scene.d_scales.detach()).max())))
-    if bound < 65520:
-        return True
-    for t in times:
-        g = scene.at(float(t), gate=0.0)
-        if not (_fits_float16(g.means.detach()) and _fits_float16(g.scales.detach())):
-            return False
-    return True
-
-
 def encode_keyframes(held: Tensor | None, windows: tuple[Tensor, Tensor] | None, dtype: str,
                      temporal: tuple[Tensor, ...] | None = None) -> bytes:
     """The frame data as little-endian bytes: with ``temporal`` = (t_means (N,), t_scales (N,)[, t_ramps (N,)]), each
     as float32 (4·N bytes each: σ_t keeps its precision whatever ``dtype``); then, for a scene with key times,
-    ``windows`` = (first (N,), count (N,)) of :func:`key_windows` as uint16 (2·N bytes each) and the ``held``
-    keyframes (Σ count, 10) of :func:`held_keyframes` in ``dtype`` ("float16" or "float32"), Gaussian by Gaussian: per
-    held key its means (3), quats (4, wxyz) and scales (3). The page's ``splitFrames`` reads this.
+    ``windows`` = (first (N,), count (N,)) of :func:`keyframes.key_windows` as uint16 (2·N bytes each) and the
+    ``held`` keyframes (Σ count, 10) of :func:`keyframes.held_keyframes` in ``dtype`` ("float16" or "float32"),
+    Gaussian by Gaussian: per held key its means (3), quats (4, wxyz), scales (3). The page's splitFrames reads this.
 
     Raises:
         ValueError: another ``dtype``; ``held`` without ``windows`` or rows ≠ Σ count; a window past 65535 keys.
@@ -294,8 +88,8 @@ def payload_bytes(num_gaussians: int, sh_degree: int, held_keyframes: int, tempo
                   keyed: bool) -> int:
     """Bytes of embedded data (before base64): PLY rows of (17 + 3·((d+1)² − 1)) float32, the temporal support's
     ``temporal_arrays`` (0; 2: μ_t, σ_t; 3: with ramps) float32 per Gaussian, for a ``keyed`` scene (one with key
-    times) the key windows (2 uint16 per Gaussian), and ``held_keyframes`` (Σ count of :func:`key_windows`; N·F
-    when every Gaussian holds every key) of 10 values of ``itemsize`` bytes."""
+    times) the key windows (2 uint16 per Gaussian), and ``held_keyframes`` (Σ count of
+    :func:`keyframes.key_windows`; N·F when every Gaussian holds every key) of 10 values of ``itemsize`` bytes."""
     ply = num_gaussians * 4 * (17 + 3 * ((sh_degree + 1) ** 2 - 1))
     windows = 4 * num_gaussians if keyed else 0
     return ply + 4 * temporal_arrays * num_gaussians + windows + held_keyframes * 10 * itemsize
@@ -307,31 +101,6 @@ def _camera_list(cameras: CameraPath) -> list[dict]:
             for i in range(len(cameras))]
 
 
-def _target_distance(means: Tensor, viewmat: Tensor) -> float:
-    """Median z-depth of the Gaussians in front of the first camera (the orbit centre's distance), metres."""
-    z = (means.double() @ viewmat[:3, :3].double().T + viewmat[:3, 3].double())[:, 2]
-    z = z[z > NEAR]
-    return float(z.median()) if z.numel() else 1.0
-
-
-def covering_order(opacities: Tensor, scales: Tensor) -> Tensor:
-    """(N,) int64: the Gaussians from the one that covers most to the one that covers least, opacity times
-    footprint, o·(s₁s₂s₃)^⅔ (a Gaussian's area, m², for ``opacities`` (N,) and ``scales`` (N, 3) metres; the
-    opacity × volume importance of 3DGS pruning, as an area). Equal scores (a photo layer's disks are alike) are
-    taken in a fixed pseudo-random order (seed 0), so a scene of many alike layers keeps part of each, spread over its
-    pixels, not the first layers whole."""
-    n = opacities.shape[0]
-    score = opacities.double() * scales.double().prod(dim=-1).pow(2 / 3)
-    order = torch.randperm(n, generator=torch.Generator(device="cpu").manual_seed(0),
-                           device="cpu").to(opacities.device)  # the same order on every device: a CPU generator
-    return order[torch.argsort(score[order], descending=True, stable=True)]
-
-
-def most_covering(opacities: Tensor, scales: Tensor, m: int) -> Tensor:
-    """(m,) ascending indices of the ``m`` Gaussians that cover most (the first ``m`` of :func:`covering_order`)."""
-    return covering_order(opacities, scales)[:m].sort().values
-
-
 def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float = DEFAULT_FPS,
                    budget: int | None = VIEWER_BUDGET_BYTES,
                    background: tuple[float, float, float] = BACKGROUND, eps2d: float = EPS2D) -> ViewerPayload:
@@ -339,8 +108,8 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
 
     Reductions, in order, each only while over budget: SH degree → 0; keyframes subsampled (first and last kept, at
     least 2) while the held keyframes take more bytes than the rest of the payload; the Gaussians covering most kept
-    (:func:`covering_order`, each at its own size: a still Gaussian holds no keyframe). Each one taken is listed in
-    ``config["note"]``.
+    (:func:`keyframes.covering_order`, each at its own size: a still Gaussian holds no keyframe). Each one taken is
+    listed in ``config["note"]``.
     ``background``: RGB in [0, 1] behind the Gaussians (as the CPU renderer composites it); ``eps2d``: the scene's
     screen-space dilation, pixels² (Spark's ``preBlurAmount``; meta.json ``eps2d``).
 
@@ -352,17 +121,17 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
     if not fps > 0:
         raise ValueError(f"fps must be > 0, got {fps}")
     scene = scene.to("cpu")
-    times, span = keyframe_times(scene), time_range(scene, cameras)
+    times, span = keyframes.keyframe_times(scene), keyframes.time_range(scene, cameras)
     canonical: Gaussians = scene.canonical
     degree = canonical.sh_degree
     n, keyed = canonical.num_gaussians, times is not None
     support_arrays = () if not scene.has_temporal else (scene.t_means, scene.t_scales) + (
         () if scene.t_ramps is None else (scene.t_ramps,))
     reductions: list[str] = []
-    dtype, err = ("float32", None) if times is None else keyframe_dtype(scene, times, cameras)
+    dtype, err = ("float32", None) if times is None else keyframes.keyframe_dtype(scene, times, cameras, FLOAT16_MAX_PX)
     itemsize = 2 if dtype == "float16" else 4
-    still = None if times is None else still_gaussians(scene)
-    first, count = (None, None) if times is None else key_windows(scene, times, still)
+    still = None if times is None else keyframes.still_gaussians(scene)
+    first, count = (None, None) if times is None else keyframes.key_windows(scene, times, still)
     held = lambda: 0 if count is None else int(count.sum())  # noqa: E731
     size = lambda: payload_bytes(n, degree, held(), len(support_arrays), itemsize, keyed)  # noqa: E731
     if budget is not None and size() > budget and degree > 0:
@@ -372,14 +141,14 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
     kept_times = times
     while (budget is not None and kept_times is not None and size() > budget and len(kept_times) > 2
            and 2 * held() * 10 * itemsize > size()):
-        kept_times = times[evenly_spaced(F, len(kept_times) - 1).unique()]  # fewer while they are the larger part
-        first, count = key_windows(scene, kept_times, still)
+        kept_times = times[keyframes.evenly_spaced(F, len(kept_times) - 1).unique()]  # fewer while the larger part
+        first, count = keyframes.key_windows(scene, kept_times, still)
     if kept_times is not None and len(kept_times) < F:
         reductions.append(f"{F} → {len(kept_times)} keyframes")
         times = kept_times
     keep = None
     if budget is not None and size() > budget:
-        order = covering_order(canonical.opacities.detach().cpu(), canonical.scales.detach().cpu())
+        order = keyframes.covering_order(canonical.opacities.detach().cpu(), canonical.scales.detach().cpu())
         cost = payload_bytes(1, degree, 0, len(support_arrays), itemsize, keyed)
         cost = (torch.full((n,), cost, dtype=torch.int64, device=order.device)
                 + (0 if count is None else count[order] * 10 * itemsize))
@@ -392,7 +161,7 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
     g = canonical if keep is None else canonical.select(keep)
     if degree < canonical.sh_degree:
         g = Gaussians(g.means, g.quats, g.scales, g.opacities, g.sh[:, :1])
-    frames = None if times is None else held_keyframes(scene, times, first, count, keep)  # kept keys and Gaussians
+    frames = None if times is None else keyframes.held_keyframes(scene, times, first, count, keep)  # what was kept
     support = None
     if scene.has_temporal:
         support = support_arrays if keep is None else tuple(a[keep] for a in support_arrays)
@@ -404,10 +173,10 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
         "heldKeyframes": held(),
         "dtype": dtype, "float16ErrorPx": err, "width": cameras.width, "height": cameras.height,
         "duration": (len(cameras) - 1) / fps if len(cameras) > 1 else 1.0 / fps,
-        "cameras": _camera_list(cameras), "near": NEAR, "background": [float(c) for c in background],
+        "cameras": _camera_list(cameras), "near": NEAR_PLANE, "background": [float(c) for c in background],
         "eps2d": float(eps2d),
         "far": max(100.0, 10 * float(first_pose.double().norm(dim=1).max()) if first_pose.numel() else 100.0),
-        "targetDistance": _target_distance(first_pose, cameras.viewmats[0].detach().cpu()),
+        "targetDistance": keyframes.target_distance(first_pose, cameras.viewmats[0].detach().cpu()),
         "note": ("reduced to fit the viewer's size budget: " + "; ".join(reductions) +
                  " — run `diff4splat view DIR` for the full scene") if reductions else "",
         "reductions": list(reductions),
