@@ -1,5 +1,5 @@
 """Peak memory of ``render`` and ``fit`` against the estimate each checks before its heavy work
-(:func:`diff4splat.render_command.render_memory_estimate`, :func:`training.fit_cli.fit_memory_estimate`; constants in
+(:func:`diff4splat.commands.render.render_memory_estimate`, :func:`training.fit_cli.fit_memory_estimate`; constants in
 :mod:`diff4splat.utils.costs` and ``training.fit_cli``).
 
     python benchmarks/command_memory.py [--quick] [--write]

@@ -30,6 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, markdown_table, write_section  # noqa: E402
 
 from diff4splat.cameras.path import CameraPath  # noqa: E402
+from diff4splat.commands.view import HOST, make_server  # noqa: E402
 from diff4splat.generate import generate  # noqa: E402
 from diff4splat.io.scene_folder import load_scene_folder, meta_background, meta_eps2d, write_scene_folder  # noqa: E402
 from diff4splat.io.viewer_data import viewer_payload  # noqa: E402
@@ -38,7 +39,6 @@ from diff4splat.reconstruct import reconstruct  # noqa: E402
 from diff4splat.request import write  # noqa: E402
 from diff4splat.scene.dynamic import DynamicGaussians  # noqa: E402
 from diff4splat.scene.gaussians import Gaussians  # noqa: E402
-from diff4splat.viewer_server import HOST, make_server  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 

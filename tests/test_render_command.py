@@ -1,4 +1,4 @@
-"""``diff4splat render`` (diff4splat/render_command.py): re-rendering an output folder along any camera path and
+"""``diff4splat render`` (diff4splat/commands/render.py): re-rendering an output folder along any camera path and
 time."""
 import json
 import re
@@ -14,18 +14,18 @@ import diff4splat.utils.limits as limits
 from diff4splat.cameras import CameraPath, intrinsics_from_fov, look_at, make_trajectory
 from diff4splat.cameras.trajectories import check_amplitude
 from diff4splat.cli import main
+from diff4splat.commands.render import path_scene, rerender, resize_cameras, scene_depth
+from diff4splat.commands.view import folder_payload, make_server
 from diff4splat.io import MARKER, OutputDirError, load_cameras_json, load_depth_exr, load_video, save_realestate10k
 from diff4splat.io.image import read_image
 from diff4splat.io.scene_folder import SceneFolder, fill_empty_depth, write_scene_folder
 from diff4splat.io.scene_folder import load_scene_folder as _load_scene_folder
 from diff4splat.io.video import to_uint8
 from diff4splat.render.sequence import render_path
-from diff4splat.render_command import path_scene, rerender, resize_cameras, scene_depth
 from diff4splat.scene.dynamic import DynamicGaussians
 from diff4splat.scene.gaussians import Gaussians
 from diff4splat.utils.errors import one_line
 from diff4splat.utils.limits import LimitError
-from diff4splat.viewer_server import folder_payload, make_server
 from models.hexplane import load_field, save_field
 from training.fit_cli import place_generate_output
 
@@ -547,7 +547,7 @@ def test_a_size_mp4_cannot_hold_is_refused_before_rendering(tmp_path, capsys, mo
     """``render --width 1 --height 100000`` rendered every frame, then died in OpenCV's video writer (issue 61):
     MPEG-4 allows at most 8190 pixels a side, checked before any frame is rendered."""
     folder, *_ = _folder(tmp_path)
-    monkeypatch.setattr("diff4splat.render_command.render_path", _never)
+    monkeypatch.setattr("diff4splat.commands.render.render_path", _never)
     code = main(["render", str(folder), "--trajectory", "arc", "--frames", "2", "--width", str(width), "--height",
                  str(height), "--quiet", "--out", str(tmp_path / "r")])
     err = capsys.readouterr().err
@@ -563,7 +563,7 @@ def test_render_checks_its_memory_against_what_the_process_may_use_before_render
     """With room for less than the estimate (the machine's, a cgroup's or a ulimit's: limits.available_memory),
     ``render`` is one line naming the request and the knobs, exit 2, before any frame; with room it renders."""
     folder, *_ = _folder(tmp_path)
-    monkeypatch.setattr("diff4splat.render_command.render_path", _never)
+    monkeypatch.setattr("diff4splat.commands.render.render_path", _never)
     monkeypatch.setattr(limits, "available_memory", lambda: psutil.Process().memory_info().rss + (64 << 20))
     code = main(["render", str(folder), "--trajectory", "arc", "--frames", "3", "--quiet", "--out",
                  str(tmp_path / "r")])

@@ -1,4 +1,4 @@
-"""Tests of diff4splat/viewer_server.py (``diff4splat view``): served on 127.0.0.1 only, the full scene (not the
+"""Tests of diff4splat/commands/view.py (``diff4splat view``): served on 127.0.0.1 only, the full scene (not the
 size-reduced embedded copy), files of the folder, clear errors, Ctrl-C stops it."""
 import errno
 import http.client
@@ -17,10 +17,10 @@ import torch
 from helpers import moving_patch_scene
 
 from diff4splat.cli import main
+from diff4splat.commands.view import DATA_PREFIX, HOST, folder_payload, make_server
 from diff4splat.io.scene_folder import load_scene_folder, write_scene_folder
 from diff4splat.io.viewer_data import payload_bytes
 from diff4splat.io.viewer_page import write_viewer
-from diff4splat.viewer_server import DATA_PREFIX, HOST, folder_payload, make_server
 
 
 def _folder(tmp_path, **kw):
