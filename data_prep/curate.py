@@ -30,6 +30,7 @@ from diff4splat.io import atomic_output_path, check_output_dir, output_dir
 from diff4splat.io.structured import read_yaml
 from diff4splat.utils.checks import check_int
 from diff4splat.utils.config_files import CURATION_DEFAULT
+from diff4splat.utils.errors import parse_naming
 
 from .engine import Engine, map_scenes
 from .format import SCENE_KIND, SceneReader, list_scenes
@@ -112,11 +113,7 @@ class CurationConfig:
     @classmethod
     def from_yaml(cls, path: str | os.PathLike) -> CurationConfig:
         """Read a YAML mapping. Raises FileNotFoundError, or ValueError (bad YAML or fields) naming ``path``."""
-        data = read_yaml(path, "curation config", expect=None)
-        try:
-            return cls.from_dict(data)
-        except (ValueError, TypeError) as e:
-            raise ValueError(f"{path}: {e}") from None
+        return parse_naming(path, cls.from_dict, read_yaml(path, "curation config", expect=None))
 
     def to_dict(self) -> dict[str, Any]:
         """Field: value mapping (YAML/JSON-serialisable)."""

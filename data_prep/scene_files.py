@@ -15,6 +15,7 @@ import numpy as np
 from diff4splat.io.image import read_image
 from diff4splat.io.structured import read_json
 from diff4splat.utils.checks import check_int, check_number, is_int, is_number
+from diff4splat.utils.errors import parse_naming
 
 __all__ = ["META_FILE", "CAMERAS_FILE", "CAPTION_FILE", "TRACKS_FILE", "OBJECTS_FILE", "NO_SURFACE",
            "RGB_DIR", "RGB_SUFFIX", "DEPTH_DIR",
@@ -133,11 +134,7 @@ class SceneMeta:
     @classmethod
     def load(cls, path: str | os.PathLike) -> SceneMeta:
         """Read and parse ``meta.json``. Raises FileNotFoundError, or ValueError (invalid JSON or field) naming it."""
-        data = read_json(path, "scene meta", expect=None)
-        try:
-            return cls.from_dict(data)
-        except (ValueError, TypeError) as e:
-            raise ValueError(f"{path}: {e}") from None
+        return parse_naming(path, cls.from_dict, read_json(path, "scene meta", expect=None))
 
 
 def timestamps_to_times(timestamps: np.ndarray) -> np.ndarray:

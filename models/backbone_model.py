@@ -16,7 +16,6 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from diff4splat.io.output_folders import output_dir
 from diff4splat.io.structured import read_json
 from diff4splat.utils.checks import MissingExtraError
 
@@ -24,7 +23,14 @@ from .backbone import Backbone, LatentFormat
 from .bundle import Diff4SplatConfig, check_generated
 from .flow_matching import FlowMatchingConfig
 from .ldrm import LDRM, LDRMConfig
-from .pretrained import CONFIG_NAME, MODEL_KIND, WEIGHTS_NAME, check_model_size, config_from_dict, count_parameters
+from .pretrained import (
+    CONFIG_NAME,
+    WEIGHTS_NAME,
+    check_model_size,
+    config_from_dict,
+    count_parameters,
+    save_model_folder,
+)
 
 __all__ = ["BackboneModel", "BackboneModelConfig", "backbone_class", "folder_backbone", "DEFAULTS",
            "CONFIG_FILE", "INDEX_FILE", "PIPELINES"]
@@ -216,16 +222,14 @@ class BackboneModel(nn.Module):
         return counts
 
     def save_pretrained(self, directory: str | os.PathLike, *, overwrite: bool = False) -> Path:
-        """Write the Hub layout, ``camera/``, ``ldrm/`` and ``diff4splat.json`` atomically
-        (:func:`diff4splat.io.output_folders.output_dir`, kind ``"model"``). OutputDirError if ``directory`` may not be
-        written."""
-        directory = Path(directory)
-        with output_dir(directory, kind=MODEL_KIND, overwrite=overwrite, parents=True,
-                        overwrite_flag="overwrite=True") as tmp:
-            self.backbone.write_pretrained(tmp)
-            self.ldrm.write_pretrained(tmp / LDRM_FOLDER)
-            (tmp / CONFIG_FILE).write_text(json.dumps(self.config.to_dict(), indent=2))
-        return directory
+        """Write the Hub layout, ``camera/``, ``ldrm/`` and ``diff4splat.json`` into ``directory``
+        (:func:`~models.pretrained.save_model_folder`: atomic, its replacement rules and errors)."""
+        def write(folder: Path) -> None:
+            self.backbone.write_pretrained(folder)
+            self.ldrm.write_pretrained(folder / LDRM_FOLDER)
+            (folder / CONFIG_FILE).write_text(json.dumps(self.config.to_dict(), indent=2))
+
+        return save_model_folder(directory, write, overwrite)
 
     @classmethod
     def from_pretrained(cls, directory: str | os.PathLike, torch_dtype: torch.dtype | None = None,

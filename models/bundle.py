@@ -12,7 +12,6 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from diff4splat.io.output_folders import output_dir
 from diff4splat.io.structured import read_json, read_yaml
 from diff4splat.utils.config_files import MODEL_CONFIGS
 
@@ -20,7 +19,7 @@ from .backbones.ours import OursBackbone
 from .dit import VideoDiT, VideoDiTConfig
 from .flow_matching import FlowMatchingConfig
 from .ldrm import LDRM, LDRMConfig
-from .pretrained import CONFIG_NAME, MODEL_KIND, check_model_size, config_from_dict, count_parameters, skip_init
+from .pretrained import CONFIG_NAME, check_model_size, config_from_dict, count_parameters, save_model_folder, skip_init
 from .text_encoder import TextEncoder, TextEncoderConfig
 from .vae import VideoVAE, VideoVAEConfig
 
@@ -221,20 +220,14 @@ class Diff4SplatModel(nn.Module):
         return counts
 
     def save_pretrained(self, directory: str | os.PathLike, *, overwrite: bool = False) -> Path:
-        """Write ``config.json`` and one sub-folder per network atomically
-        (:func:`diff4splat.io.output_folders.output_dir`,
-        kind ``"model"``: an existing folder is replaced only if empty, an earlier saved model, or ``overwrite``).
-
-        Raises:
-            OutputDirError: ``directory`` may not be written or replaced.
-        """
-        directory = Path(directory)
-        with output_dir(directory, kind=MODEL_KIND, overwrite=overwrite, parents=True,
-                        overwrite_flag="overwrite=True") as tmp:
-            (tmp / CONFIG_NAME).write_text(json.dumps(self.config.to_dict(), indent=2))
+        """Write ``config.json`` and one sub-folder per network into ``directory`` (:func:`save_model_folder`:
+        atomic, its replacement rules and errors). Returns the directory."""
+        def write(folder: Path) -> None:
+            (folder / CONFIG_NAME).write_text(json.dumps(self.config.to_dict(), indent=2))
             for name in _MODULES:
-                getattr(self, name).write_pretrained(tmp / name)
-        return directory
+                getattr(self, name).write_pretrained(folder / name)
+
+        return save_model_folder(directory, write, overwrite)
 
     @classmethod
     def from_pretrained(cls, directory: str | os.PathLike, map_location: str = "cpu",

@@ -5,7 +5,7 @@ import contextlib
 import dataclasses
 import json
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, ClassVar, TypeVar, get_type_hints
 
@@ -142,6 +142,17 @@ def check_model_size(build: Any, where: str, host_dtype: torch.dtype | None = No
     return n
 
 
+def save_model_folder(directory: str | os.PathLike, write: Callable[[Path], None], overwrite: bool = False) -> Path:
+    """``write(folder)`` into a new folder then replacing ``directory`` atomically (:func:`diff4splat.io.output_dir`,
+    kind :data:`MODEL_KIND`: an existing folder is replaced only if empty, an earlier saved model, or ``overwrite``).
+    Returns ``directory`` as a Path; raises OutputDirError where ``directory`` may not be written or replaced."""
+    directory = Path(directory)
+    with output_dir(directory, kind=MODEL_KIND, overwrite=overwrite, parents=True,
+                    overwrite_flag="overwrite=True") as tmp:
+        write(tmp)
+    return directory
+
+
 class PretrainedMixin:
     """Mixin for ``nn.Module`` subclasses with a dataclass ``config``; subclasses set ``config_class`` and take the
     config as their only ``__init__`` argument."""
@@ -149,19 +160,9 @@ class PretrainedMixin:
     config_class: ClassVar[type]
 
     def save_pretrained(self, directory: str | os.PathLike, *, overwrite: bool = False) -> Path:
-        """Write ``model.safetensors`` and ``config.json`` into ``directory`` atomically
-        (:func:`diff4splat.io.output_folders.output_dir`, kind ``"model"``: an existing folder is replaced only if
-        empty,
-        an earlier saved model, or ``overwrite``). Returns the directory.
-
-        Raises:
-            OutputDirError: ``directory`` may not be written or replaced.
-        """
-        directory = Path(directory)
-        with output_dir(directory, kind=MODEL_KIND, overwrite=overwrite, parents=True,
-                        overwrite_flag="overwrite=True") as tmp:
-            self.write_pretrained(tmp)
-        return directory
+        """Write ``model.safetensors`` and ``config.json`` into ``directory`` (:func:`save_model_folder`: atomic, its
+        replacement rules and errors). Returns the directory."""
+        return save_model_folder(directory, self.write_pretrained, overwrite)
 
     def write_pretrained(self, folder: Path) -> None:
         """Write ``model.safetensors`` and ``config.json`` into the existing ``folder`` (the caller owns it)."""

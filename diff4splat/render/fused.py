@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from diff4splat.render.projection import Projection, project_gaussians
-from diff4splat.render.tiles import composite_tiles
+from diff4splat.render.tiles import composite_tiles, tile_binning
 from diff4splat.scene.quaternions import quat_normalize
 
 __all__ = ["project_fused", "composite_fused", "fused_available", "bin_tiles_fused"]
@@ -221,13 +221,7 @@ def bin_tiles_fused(
         counts = np.zeros(tiles_x * tiles_y, np.int64)
         flatten_ids, isect_tiles = np.empty(n_isect, np.int64), np.empty(n_isect, np.int64)
         kernels.bin_kernel(tbox, per_gauss, _np(depths.double()), tiles_x, counts, flatten_ids, isect_tiles)
-    counts_t = torch.from_numpy(counts)
-    return {
-        "tiles_x": tiles_x, "tiles_y": tiles_y, "box": torch.from_numpy(box),
-        "tiles_per_gauss": torch.from_numpy(per_gauss),
-        "flatten_ids": torch.from_numpy(flatten_ids), "isect_tiles": torch.from_numpy(isect_tiles),
-        "tile_counts": counts_t, "isect_offsets": torch.cumsum(counts_t, 0) - counts_t,
-    }
+    return tile_binning(tiles_x, tiles_y, *map(torch.from_numpy, (box, per_gauss, flatten_ids, isect_tiles, counts)))
 
 
 def composite_fused(

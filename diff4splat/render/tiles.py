@@ -14,7 +14,7 @@ from diff4splat.render.projection import splat_alpha, splat_sigma, support_exten
 from diff4splat.utils.constants import ALPHA_MAX, LOG_T_MIN, T_MIN
 
 __all__ = ["tile_boxes", "bin_tiles", "composite_tiles", "composite_dense", "keep_in_graph", "pair_budget",
-           "PAIR_BUDGET", "PAIR_BUDGET_DEVICE", "CHUNK_PIXELS", "CHUNK_PIXELS_DEVICE"]
+           "tile_binning", "PAIR_BUDGET", "PAIR_BUDGET_DEVICE", "CHUNK_PIXELS", "CHUNK_PIXELS_DEVICE"]
 
 PAIR_BUDGET = 1 << 18
 """Most (pixel, Gaussian) pairs composited at once on the CPU (per-pair arrays of a chunk stay cache-sized)."""
@@ -87,11 +87,15 @@ def bin_tiles(
     tile_ids = (ty0[gid] + local // tw_g) * tiles_x + tx0[gid] + local % tw_g
     perm = torch.argsort(tile_ids, stable=True)
     counts = torch.bincount(tile_ids, minlength=tiles_x * tiles_y)
-    return {
-        "tiles_x": tiles_x, "tiles_y": tiles_y, "box": box,
-        "tiles_per_gauss": per_gauss, "flatten_ids": gid[perm], "isect_tiles": tile_ids[perm],
-        "tile_counts": counts, "isect_offsets": torch.cumsum(counts, 0) - counts,
-    }
+    return tile_binning(tiles_x, tiles_y, box, per_gauss, gid[perm], tile_ids[perm], counts)
+
+
+def tile_binning(tiles_x: int, tiles_y: int, box: Tensor, tiles_per_gauss: Tensor, flatten_ids: Tensor,
+                 isect_tiles: Tensor, tile_counts: Tensor) -> dict:
+    """:func:`bin_tiles`' dict from its parts (shapes there); isect_offsets = exclusive cumsum of tile_counts."""
+    return {"tiles_x": tiles_x, "tiles_y": tiles_y, "box": box, "tiles_per_gauss": tiles_per_gauss,
+            "flatten_ids": flatten_ids, "isect_tiles": isect_tiles, "tile_counts": tile_counts,
+            "isect_offsets": torch.cumsum(tile_counts, 0) - tile_counts}
 
 
 def _stable_argsort_small(keys: Tensor, n_keys: int) -> Tensor:

@@ -14,13 +14,14 @@ import sys
 import warnings
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import torch
 
 from diff4splat.utils.checks import MissingExtraError
 
 __all__ = ["print_warnings", "EXIT_USAGE", "EXIT_INTERRUPTED", "EXPECTED_ERRNOS", "is_expected",
-           "one_line", "run_cli", "quiet_c_stderr"]
+           "one_line", "run_cli", "quiet_c_stderr", "parse_naming"]
 
 EXIT_USAGE = 2
 """Exit code of an expected failure (bad input, corrupt file, unavailable device, OS error on a path)."""
@@ -41,6 +42,15 @@ def is_expected(exc: BaseException) -> bool:
     if isinstance(exc, (ValueError, MissingExtraError, torch.OutOfMemoryError, *_EXPECTED_OS_ERRORS)):  # message only
         return True
     return isinstance(exc, OSError) and exc.errno in EXPECTED_ERRNOS
+
+
+def parse_naming(path: str | os.PathLike, parse: Callable[[Any], Any], data: Any) -> Any:
+    """``parse(data)`` for data read from the file ``path``; a ``ValueError`` or ``TypeError`` it raises is raised
+    again as ``ValueError("<path>: <message>")`` (no chained traceback), so a bad field names its file."""
+    try:
+        return parse(data)
+    except (ValueError, TypeError) as e:
+        raise ValueError(f"{path}: {e}") from None
 
 
 def one_line(exc: BaseException) -> str:
