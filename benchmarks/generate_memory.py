@@ -20,6 +20,7 @@ from unittest import mock
 
 from _common import markdown_table, publish, run_with_peak_memory
 
+from diff4splat.generate import memory_estimate, scene_slots
 from diff4splat.pipeline import Diff4SplatPipeline
 from diff4splat.utils.limits import LIMITS, LimitError, check_memory, check_output_size
 
@@ -50,8 +51,8 @@ def longest_path(pipe: Diff4SplatPipeline, resolution: int) -> int:
     with mock.patch.dict(os.environ, laptop):
         for frames in range(1, LIMITS["frames"].default + 1, 4):
             try:
-                check_output_size(frames, resolution, resolution, pipe.scene_slots(resolution, resolution, frames))
-                check_memory(pipe.memory_estimate(resolution, resolution, frames), "", "")
+                check_output_size(frames, resolution, resolution, scene_slots(pipe, resolution, resolution, frames))
+                check_memory(memory_estimate(pipe, resolution, resolution, frames), "", "")
             except LimitError:
                 break
             best = frames
@@ -65,11 +66,11 @@ def main() -> None:
     args = ap.parse_args()
     pipe = Diff4SplatPipeline.from_pretrained()
     cases = sorted(((int(f), int(r)) for f, r in (c.split("x") for c in args.cases)),
-                   key=lambda c: pipe.memory_estimate(c[1], c[1], c[0]))
+                   key=lambda c: memory_estimate(pipe, c[1], c[1], c[0]))
     rows = []
     for frames, res in cases:
         peak, count = peak_of_generate(frames, res)
-        est = pipe.memory_estimate(res, res, frames)
+        est = memory_estimate(pipe, res, res, frames)
         rows.append([frames, f"{res}²", f"{count:,}", f"{peak / 2**30:.2f}", f"{est / 2**30:.2f}", f"{est / peak:.2f}"])
     table = markdown_table(["frames", "output", "Gaussians kept", "peak RSS GiB", "estimate GiB", "estimate / peak"],
                            rows)

@@ -27,6 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import markdown_table, publish, run_with_peak_memory  # noqa: E402
 
 from diff4splat.pipeline import Diff4SplatPipeline, load_model  # noqa: E402
+from diff4splat.utils.costs import generate_seconds  # noqa: E402
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
 
@@ -65,7 +66,7 @@ def main() -> None:
         width, height = pipe.output_size(r)
         ratio = "" if base is None or base == fixed else f"{(wall - fixed) / (base - fixed):.1f}×"
         rows.append([f"{width}×{height}", f"{wall:.1f}", ratio, f"{(width * height) / 256**2:g}×", f"{peak:.2f}",
-                     f"{pipe.time_estimate(width, height, 17):.0f}", estimate or "—"])
+                     f"{generate_seconds(width, height, 17):.0f}", estimate or "—"])
     table = markdown_table(["output", "wall s", "× 256² (less fixed)", "pixels × 256²", "peak GB",
                             "time_estimate s", "printed"], rows)
     note = (f"17 frames, the shipped base model, the fastest of {args.repeats} runs; fixed = "

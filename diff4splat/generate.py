@@ -14,6 +14,7 @@ from torch import Tensor
 
 from diff4splat import request
 from diff4splat.assembly.assemble import DEPTH_KINDS
+from diff4splat.assembly.photo import layer_sizes
 from diff4splat.cameras import DEFAULT_TRAJECTORY, TRAJECTORIES, CameraPath
 from diff4splat.cameras.trajectories import check_amplitude
 from diff4splat.io.depth_maps import fit_depth_map, read_depth_map
@@ -22,12 +23,33 @@ from diff4splat.io.inputs import check_input_file
 from diff4splat.io.video import DEFAULT_FPS
 from diff4splat.pipeline import Diff4SplatPipeline
 from diff4splat.request import LoadedPipeline, SceneOutput
-from diff4splat.utils.costs import TIME_ESTIMATE_PRINTED
+from diff4splat.runtime import TorchRuntime
+from diff4splat.utils.costs import MEMORY_MAP_COPIES, TIME_ESTIMATE_PRINTED, generate_memory, generate_seconds
 
-__all__ = ["generate", "GENERATE_KIND"]
+__all__ = ["generate", "scene_slots", "memory_estimate", "GENERATE_KIND"]
 
 GENERATE_KIND = "generate"
 """Marker kind of a ``generate`` output folder (:mod:`diff4splat.io.output_folders`)."""
+
+
+def scene_slots(pipe: Diff4SplatPipeline, width: int, height: int, num_frames: int) -> int:
+    """``GenerationResult.num_slots`` for a ``width`` × ``height`` output of ``num_frames`` frames: photo layer and
+    backdrop plus h·w per later source frame. ValueError: ``num_frames`` not 1 + 4k."""
+    c = pipe.config
+    return sum(layer_sizes(width, height)) + (len(pipe.source_frames(num_frames)) - 1) * c.height * c.width
+
+
+def memory_estimate(pipe: Diff4SplatPipeline, width: int, height: int, num_frames: int) -> int:
+    """Upper bound of ``generate``'s peak host memory, bytes, for a ``width`` × ``height`` output of ``num_frames``
+    frames, from the config alone (:func:`diff4splat.utils.costs.generate_memory`; the LDRM's maps count on the
+    CPU). ValueError: ``num_frames`` not 1 + 4k."""
+    c, runtime = pipe.config, pipe.runtime
+    n = runtime.latent.num_latent_frames(num_frames)
+    return generate_memory(
+        slots=scene_slots(pipe, width, height, num_frames), keys=num_frames if runtime.has_deformation else 0,
+        maps=MEMORY_MAP_COPIES * n * c.height * c.width if pipe.device.type == "cpu" else 0,
+        weights=runtime.host_weight_bytes() if isinstance(runtime, TorchRuntime) else 0,
+        frames=num_frames, width=width, height=height)
 
 
 def _check_request(image, cameras, trajectory, amplitude, frames, resolution, steps, sampler, seed, prompt, depth,
@@ -129,10 +151,10 @@ def generate(image: str | os.PathLike | Tensor, cameras: str | os.PathLike | Cam
             cfg.vae.num_latent_frames(len(path))
         except ValueError as e:
             raise ValueError(f"--cameras {cameras}: {len(path)} cameras, one per frame: {e}") from None
-    request.check_budget(path, pipe.scene_slots(path.width, path.height, len(path)),  # before any network runs
-                         pipe.memory_estimate(path.width, path.height, len(path)), knobs="--frames or --resolution",
+    request.check_budget(path, scene_slots(pipe, path.width, path.height, len(path)),  # before any network runs
+                         memory_estimate(pipe, path.width, path.height, len(path)), knobs="--frames or --resolution",
                          out=out, frame_plys=frame_plys)
-    seconds = pipe.time_estimate(path.width, path.height, len(path))
+    seconds = generate_seconds(path.width, path.height, len(path))
     if seconds > TIME_ESTIMATE_PRINTED and notes is not None and pipe.device.type == "cpu":
         notes(f"{len(path)} frames at {path.width}×{path.height}: estimated {seconds:.0f} s on this CPU (lower "
               "--resolution or --frames for less)")

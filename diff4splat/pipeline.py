@@ -26,7 +26,7 @@ from diff4splat.assembly.layers import (
     layer_frames,
     layered_scene,
 )
-from diff4splat.assembly.photo import PHOTO_EPS2D, layer_sizes, upsample_depth
+from diff4splat.assembly.photo import PHOTO_EPS2D, upsample_depth
 from diff4splat.assembly.prune import settle_and_prune
 from diff4splat.cameras import (
     DEFAULT_TRAJECTORY,
@@ -42,12 +42,6 @@ from diff4splat.render.settings import BACKGROUND
 from diff4splat.runtime import NetworkRuntime, TorchRuntime
 from diff4splat.scene.dynamic import DynamicGaussians
 from diff4splat.utils.checks import check_positive_int, is_int
-from diff4splat.utils.costs import (
-    MEMORY_MAP_COPIES,
-    TIME_FIXED_SECONDS,
-    TIME_SECONDS_PER_PIXEL_FRAME,
-    generate_memory,
-)
 from diff4splat.utils.devices import Stopwatch
 from diff4splat.utils.limits import check_limit
 from models.backbone_model import INDEX_FILE, BackboneModel
@@ -253,30 +247,6 @@ class Diff4SplatPipeline:
         pipe = cls(runtime)
         pipe.source = f"onnx:{directory} ({runtime.manifest['source']})"
         return pipe
-
-    def scene_slots(self, width: int, height: int, num_frames: int) -> int:
-        """``GenerationResult.num_slots`` for a ``width`` × ``height`` output of ``num_frames`` frames: photo layer and
-        backdrop plus h·w per later source frame. ValueError: ``num_frames`` not 1 + 4k."""
-        c = self.config
-        return sum(layer_sizes(width, height)) + (len(self.source_frames(num_frames)) - 1) * c.height * c.width
-
-    def memory_estimate(self, width: int, height: int, num_frames: int) -> int:
-        """Upper bound of ``generate``'s peak host memory, bytes, for a ``width`` × ``height`` output of
-        ``num_frames`` frames, from the config alone (:func:`diff4splat.utils.costs.generate_memory`; checked by
-        ``check_memory``). ValueError: ``num_frames`` not 1 + 4k."""
-        c = self.config
-        n = self.runtime.latent.num_latent_frames(num_frames)
-        return generate_memory(
-            slots=self.scene_slots(width, height, num_frames), keys=num_frames if self.runtime.has_deformation else 0,
-            maps=MEMORY_MAP_COPIES * n * c.height * c.width if self.device.type == "cpu" else 0,
-            weights=self.runtime.host_weight_bytes() if isinstance(self.runtime, TorchRuntime) else 0,
-            frames=num_frames, width=width, height=height)
-
-    def time_estimate(self, width: int, height: int, num_frames: int) -> float:
-        """Rough CPU wall time of ``generate``, seconds: (:data:`TIME_FIXED_SECONDS` +
-        :data:`TIME_SECONDS_PER_PIXEL_FRAME` · pixels · frames) scaled by 2 / torch's threads (base model)."""
-        scale = 2 / max(1, torch.get_num_threads())
-        return scale * (TIME_FIXED_SECONDS + TIME_SECONDS_PER_PIXEL_FRAME * width * height * num_frames)
 
     def output_size(self, resolution: int | None = None) -> tuple[int, int]:
         """(width, height) of the output at ``resolution`` pixels of height (None: the model's) and its aspect ratio.

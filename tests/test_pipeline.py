@@ -9,6 +9,7 @@ from helpers import EXAMPLE_IMAGE, tiny_model
 from diff4splat.assembly.assemble import to_gaussians, video_colors
 from diff4splat.assembly.photo import BACKDROP_CELLS, BACKDROP_EXTEND
 from diff4splat.cameras import camera_rays, pack_plucker, plucker_rays
+from diff4splat.generate import scene_slots
 from diff4splat.io import load_image
 from diff4splat.pipeline import Diff4SplatPipeline
 from diff4splat.runtime import TorchRuntime
@@ -41,7 +42,7 @@ def test_untrained_deformation_gives_a_static_scene_with_pixel_aligned_gaussians
     assert res.photo_gaussians == 64 * 64 + 32 * 32  # the photo layer: front disks, backing disks per 2×2 pixels
     backdrop = (1 + 2 * BACKDROP_EXTEND) ** 2 * BACKDROP_CELLS**2  # 64 px: 4-pixel cells over 5 × 5 image sizes
     assert res.prune_stats["before"] == res.num_slots == res.photo_gaussians + backdrop + (S - 1) * 64 * 64
-    assert pipe.scene_slots(64, 64, FRAMES) == res.num_slots  # what generate's output-size check counts
+    assert scene_slots(pipe, 64, 64, FRAMES) == res.num_slots  # what generate's output-size check counts
     stats = res.prune_stats
     assert stats["after"] == (stats["before"] - stats["duplicates"] - stats["occluders"] - stats["low_opacity"]
                               - stats["unseen"])

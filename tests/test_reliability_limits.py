@@ -25,6 +25,7 @@ from data_prep.clips import ClipConfig, ClipDataset
 from data_prep.synth import generate_scene
 from diff4splat.cameras import CameraPath
 from diff4splat.cli import main
+from diff4splat.generate import memory_estimate
 from diff4splat.io import load_cameras_json, load_realestate10k, save_cameras_json
 from diff4splat.io.image import header_size, read_image
 from diff4splat.pipeline import Diff4SplatPipeline, load_model
@@ -150,13 +151,13 @@ def test_memory_estimate_grows_with_key_times_times_slots():
     quadruples the excess over the fixed part; a runtime without deformation leaves the key-time terms out."""
     pipe = Diff4SplatPipeline(TorchRuntime(Diff4SplatModel(load_config("tiny"))))
     c = pipe.config
-    fixed = pipe.memory_estimate(c.width, c.height, 1)
-    grow = [pipe.memory_estimate(c.width, c.height, t) - fixed for t in (201, 401)]
+    fixed = memory_estimate(pipe, c.width, c.height, 1)
+    grow = [memory_estimate(pipe, c.width, c.height, t) - fixed for t in (201, 401)]
     assert 3.5 < grow[1] / grow[0] < 4.5
     pipe.runtime.has_deformation = False
-    assert pipe.memory_estimate(c.width, c.height, 401) - fixed < grow[1] / 10
+    assert memory_estimate(pipe, c.width, c.height, 401) - fixed < grow[1] / 10
     pipe.runtime.has_deformation = True
-    huge = pipe.memory_estimate(4096, 4096, 1001)
+    huge = memory_estimate(pipe, 4096, 4096, 1001)
     assert huge > 2**41  # 2 TiB: above any one machine's memory (the GPU machines have 128 GB)
     with pytest.raises(LimitError, match="GiB exceeds the .* GiB"):
         check_memory(huge, "x", "y")
@@ -174,7 +175,7 @@ def test_memory_estimate_on_a_gpu_counts_host_memory_only():
         cpu = Diff4SplatPipeline(Diff4SplatModel(cfg), "cpu")
         gpu = Diff4SplatPipeline(Diff4SplatModel(cfg), "cuda")
         off = Diff4SplatPipeline(Diff4SplatModel(cfg), "cuda", offload="model")
-        est = {k: p.memory_estimate(cfg.width, cfg.height, frames) for k, p in (("cpu", cpu), ("gpu", gpu),
+        est = {k: memory_estimate(p, cfg.width, cfg.height, frames) for k, p in (("cpu", cpu), ("gpu", gpu),
                                                                                    ("off", off))}
         nets = cpu.runtime.networks.values()
         assert n == cpu.runtime.latent.num_latent_frames(frames)
@@ -197,7 +198,7 @@ def test_memory_estimate_bounds_the_measured_peak_of_generate(tmp_path):
                                        "--frames", str(frames), "--resolution", str(res), "--device", "cpu",
                                        "--quiet", "--out", str(tmp_path / "o")])
     assert done.returncode == 0
-    estimate = Diff4SplatPipeline.from_pretrained().memory_estimate(res, res, frames)
+    estimate = memory_estimate(Diff4SplatPipeline.from_pretrained(), res, res, frames)
     assert peak <= estimate <= 2 * peak, (peak, estimate)
 
 

@@ -10,6 +10,7 @@ import math
 import warnings
 from pathlib import Path
 
+from diff4splat.generate import memory_estimate
 from diff4splat.io.image import read_image
 from diff4splat.io.inputs import check_input_file
 from diff4splat.pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, load_model
@@ -163,11 +164,11 @@ def run(args) -> int:
     pipe = Diff4SplatPipeline(model, device=device)
     cfg = pipe.config
     frames = args.frames or cfg.num_frames
-    check_memory(pipe.memory_estimate(cfg.width, cfg.height, frames), f"{frames} frames at {cfg.width}×{cfg.height}",
+    check_memory(memory_estimate(pipe, cfg.width, cfg.height, frames), f"{frames} frames at {cfg.width}×{cfg.height}",
                  "--frames")
     if args.photo is not None:
         width, height = pipe.output_size(args.resolution)
-        check_memory(pipe.memory_estimate(width, height, cfg.num_frames),
+        check_memory(memory_estimate(pipe, width, height, cfg.num_frames),
                      f"--photo at {width}×{height}, {cfg.num_frames} frames", "--resolution")
     clips = held_out_clips(args.data, cfg.height, cfg.width, frames, args.limit)
     if not clips:

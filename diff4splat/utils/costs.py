@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["process_bytes", "frames_bytes", "generate_memory", "reconstruct_memory", "render_memory",
-           "MEMORY_BASE_BYTES", "MEMORY_CUDA_BUILD_BYTES", "MEMORY_SCENE_COPIES", "MEMORY_MAP_COPIES",
+__all__ = ["process_bytes", "frames_bytes", "generate_memory", "generate_seconds", "reconstruct_memory",
+           "render_memory", "MEMORY_BASE_BYTES", "MEMORY_CUDA_BUILD_BYTES", "MEMORY_SCENE_COPIES", "MEMORY_MAP_COPIES",
            "MEMORY_BYTES_PER_GAUSSIAN", "TIME_FIXED_SECONDS", "TIME_SECONDS_PER_PIXEL_FRAME", "TIME_ESTIMATE_PRINTED",
            "RENDER_BYTES_PER_GAUSSIAN", "RENDER_BASE_BYTES"]
 
@@ -52,6 +52,13 @@ def generate_memory(*, slots: int, keys: int, maps: int, weights: int, frames: i
     :data:`MEMORY_BYTES_PER_GAUSSIAN` per slot; :func:`frames_bytes`."""
     return int(process_bytes() + weights + MEMORY_BYTES_PER_GAUSSIAN * slots
                + 40 * keys * (MEMORY_SCENE_COPIES * slots + maps) + frames_bytes(frames, width, height))
+
+
+def generate_seconds(width: int, height: int, frames: int) -> float:
+    """Rough CPU wall time of ``generate``, seconds: (:data:`TIME_FIXED_SECONDS` + :data:`TIME_SECONDS_PER_PIXEL_FRAME`
+    · pixels · frames) scaled by 2 / torch's threads (base model)."""
+    scale = 2 / max(1, torch.get_num_threads())
+    return scale * (TIME_FIXED_SECONDS + TIME_SECONDS_PER_PIXEL_FRAME * width * height * frames)
 
 
 def reconstruct_memory(*, slots: int, weights: int, frames: int, width: int, height: int) -> int:
