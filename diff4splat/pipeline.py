@@ -3,7 +3,8 @@
 The networks run at the model resolution, the photograph and path at the output resolution: VAE encoder → text
 encoder (skipped for an empty prompt) → Plücker rays → flow-matching sampler over the DiT (frame 0 replaced by the
 photograph's latent) → LDRM → :func:`diff4splat.assembly.assemble.assemble_scene` → pruning (docs/DESIGN.md, "Data
-flow of generate"). The networks are reached through a :class:`NetworkRuntime`; the rest is this module's alone.
+flow of generate"). :meth:`Diff4SplatPipeline.reconstruct` is the other route: a video's own latents → LDRM → its
+frames as photo layers (:mod:`diff4splat.assembly.layers`). The networks are reached through a :class:`NetworkRuntime`.
 """
 from __future__ import annotations
 
