@@ -153,7 +153,8 @@ class CameraPath:
 
     def relative_to_first(self) -> CameraPath:
         """The same path in the first camera's frame: V_i' = V_i · V_0⁻¹ (V_0' = I exactly); images unchanged."""
-        rel = self.viewmats @ invert_rigid(self.viewmats[:1])
+        # an explicit sum of products, not a matmul: the same rounding whichever BLAS kernel a backend would pick
+        rel = (self.viewmats[:, :, :, None] * invert_rigid(self.viewmats[:1])[:, None, :, :]).sum(dim=-2)
         rel[0] = torch.eye(4, dtype=rel.dtype, device=rel.device)  # exact, not V_0·V_0⁻¹ ≈ I
         return CameraPath(rel, self.Ks.clone(), self.width, self.height, self.times.clone())
 
