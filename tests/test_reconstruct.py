@@ -239,6 +239,7 @@ def test_a_still_video_gives_a_static_scene(videos, base_pipeline):
     assert _psnr(gen.colors[4], gen.colors[0]) > 60
 
 
+@pytest.mark.slow  # two whole runs of the command (video, viewer, PLYs written)
 def test_the_command_writes_generate_s_folder(videos, tmp_path, capsys):
     root, _ = videos
     out = tmp_path / "out"
