@@ -46,6 +46,7 @@ def test_engine_ray_without_the_extra_is_one_line_naming_it_and_nothing_is_made(
     assert not (tmp_path / "d").exists()
 
 
+@pytest.mark.slow
 def test_the_default_engine_imports_no_ray(tmp_path):
     """``data_prep synth`` and ``curate`` on the local engine, in a fresh interpreter: ray is never imported."""
     code = (f"import sys; from data_prep.cli import main; "

@@ -79,6 +79,7 @@ def test_steps_at_once_and_generate_rows():
             in one.stdout)
 
 
+@pytest.mark.slow
 def test_an_unknown_or_missing_step_is_one_line_exit_2():
     for args in (("bogus",), (), ("suite+bogus",)):
         proc = _session(*args)
@@ -103,6 +104,7 @@ def test_the_command_part_runs_the_readme_command_in_a_child_and_measures_its_fo
     assert float(cells[8].split()[0]) > 0 and cells[8].endswith("(0.00 in frames/)")
 
 
+@pytest.mark.slow
 def test_the_amx_check_runs_its_matmul_case_under_both_instruction_sets():
     """benchmarks/amx_nan_check.py (step ``amx``): the host line, then the matmul case in a child per ISA; whether
     NaN leaks depends on the CPU (oneDNN#5717 needs AMX), so only the report's form is asserted here."""

@@ -43,6 +43,14 @@ def base_pipeline():
     return load_pipeline(device="cpu")
 
 
+@pytest.fixture(scope="module")
+def moving_every_other(videos, base_pipeline):
+    """``reconstruct`` of every other frame of the moving video (9 frames, stride 2, every frame a layer): the same
+    call in each test that reads it, so it is made once for the module (the tests only read the result)."""
+    root, _ = videos
+    return reconstruct(root / "moving", pipeline=base_pipeline, frames=9, stride=2, resolution=SIZE)
+
+
 def test_a_clip_is_the_frames_asked_for(videos):
     root, moving = videos
     clip = read_video_clip(root / "moving", 5, stride=3, start=2)
@@ -98,11 +106,11 @@ def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     return float(-10 * torch.log10(((a - b) ** 2).mean()))
 
 
-def test_the_scene_moves_as_the_video_does(videos, base_pipeline):
+def test_the_scene_moves_as_the_video_does(videos, base_pipeline, moving_every_other):
     """Every other frame of a patch moving 1 px per frame: the scene at its own frames shows them, and rendered at
     the held-out frames between them it beats holding the previous given frame (the patch is where it was)."""
-    root, moving = videos
-    gen = reconstruct(root / "moving", pipeline=base_pipeline, frames=9, stride=2, resolution=SIZE)
+    _, moving = videos
+    gen = moving_every_other
     scene = gen.result.scene
     assert not scene.is_static and gen.kind == "reconstruct" and gen.meta["video_frames"] == list(range(0, 17, 2))
     truth = torch.from_numpy(moving).float() / 255
@@ -144,12 +152,11 @@ def test_the_two_layers_around_a_time_cross_fade(videos, base_pipeline):
     assert float(ratio.median()) == pytest.approx(1 + LAYER_ORDER_OFFSET, rel=2e-3)
 
 
-def test_a_layer_is_tracked_only_where_it_is_shown_and_frame_0_s_over_the_clip(videos, base_pipeline):
+def test_a_layer_is_tracked_only_where_it_is_shown_and_frame_0_s_over_the_clip(moving_every_other):
     """layer_spans: a layer k ≥ 1 is shown only between its neighbours' times (the test above), so its motion is
     measured there and is exactly zero at every other key time; frame 0's layer is tracked over the whole clip (the
     patch's pixels have moved 16 px by the last frame)."""
-    root, _ = videos
-    gen = reconstruct(root / "moving", pipeline=base_pipeline, frames=9, stride=2, resolution=SIZE)
+    gen = moving_every_other
     scene, index, n0 = gen.result.scene, gen.result.gaussian_index, gen.result.photo_gaussians
     backdrop = gen.result.num_slots - 9 * n0
     unpruned = torch.where(index < n0, 0, torch.where(index < n0 + backdrop, -1, 1 + (index - n0 - backdrop) // n0))
@@ -197,9 +204,9 @@ def test_a_frame_s_depth_is_carried_from_the_nearest_source_frame_along_the_flow
     assert torch.equal(carried_depth(depths, [0, 4], 4, flows), depths[1])
 
 
-def test_source_layers_are_fewer_and_still_move(videos, base_pipeline):
+def test_source_layers_are_fewer_and_still_move(videos, base_pipeline, moving_every_other):
     root, _ = videos
-    every = reconstruct(root / "moving", pipeline=base_pipeline, frames=9, stride=2, resolution=SIZE)
+    every = moving_every_other
     source = reconstruct(root / "moving", pipeline=base_pipeline, frames=9, stride=2, resolution=SIZE, layers="source")
     assert source.result.source_frames.tolist() == [0, 4, 8] and every.result.source_frames.tolist() == list(range(9))
     assert source.result.num_slots < every.result.num_slots / 2 and not source.result.scene.is_static
@@ -227,6 +234,7 @@ def test_a_still_video_gives_a_static_scene(videos, base_pipeline):
     assert _psnr(gen.colors[4], gen.colors[0]) > 60
 
 
+@pytest.mark.slow  # two whole runs of the command (video, viewer, PLYs written)
 def test_the_command_writes_generate_s_folder(videos, tmp_path, capsys):
     root, _ = videos
     out = tmp_path / "out"
