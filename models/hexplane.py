@@ -323,8 +323,7 @@ class HexPlaneField(nn.Module):
     def regularization(self) -> Tensor:
         """Weighted plane regulariser (reference ``compute_regulation``), summed over scales:
         ``plane_tv_weight``·Σ_spatial R + ``time_smoothness_weight``·Σ_time :func:`time_smoothness` +
-        ``l1_time_planes``·
-        Σ_time :func:`time_l1`, R chosen by ``plane_reg``. Scalar ≥ 0, differentiable."""
+        ``l1_time_planes``·Σ_time :func:`time_l1`, R chosen by ``plane_reg``. Scalar ≥ 0, differentiable."""
         cfg = self.config
         spatial = time_smoothness if cfg.plane_reg == "smoothness" else plane_tv
         total = self.grids[0][0].new_zeros(())

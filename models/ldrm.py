@@ -386,8 +386,7 @@ class LDRM(nn.Module, PretrainedMixin):
     def head_maps(self, volume: Tensor) -> Tensor:  # (B, D, n', h', w') → (B, 12, S, H, W)
         """Raw Gaussian channels (B, 12, S, H, W) of the S source frames from a :meth:`features` volume
         (B, D, n', h', w'); H = h'·p·vae_spatial; S = n', or vae_temporal·(n' − 1) + 1 for "all" (the deconv head's
-        first
-        vae_temporal − 1 frames dropped)."""
+        first vae_temporal − 1 frames dropped)."""
         cfg = self.config
         B, D, nv, hp, wp = volume.shape
         if cfg.head == "deconv":

@@ -186,8 +186,7 @@ class MotionNetwork(nn.Module, PretrainedMixin):
 
     def encode(self, frames: Tensor) -> list[Tensor]:  # frames: (N, 3, H, W) in [−1, 1]
         """Feature pyramid of ``frames`` (N, 3, H, W) in [−1, 1]: ``levels`` tensors (N, F, H/2^l, W/2^l),
-        average-pooled
-        (H, W divisible by 2^(levels−1))."""
+        average-pooled (H, W divisible by 2^(levels−1))."""
         feats = [self.encoder(frames)]
         for _ in range(self.config.levels - 1):
             feats.append(F.avg_pool2d(feats[-1], 2))
@@ -216,8 +215,7 @@ class MotionNetwork(nn.Module, PretrainedMixin):
 
         Returns:
             flow (N, H, W, 2) pixels to add to ``uv`` (exactly 0 for still pixels); log_depth (N, H, W), log of the
-            target
-            z-depth over the reprojected one (0 where flow is 0).
+            target z-depth over the reprojected one (0 where flow is 0).
         """
         H, W = source[0].shape[-2:]
         match, corr = self.match(source, target, uv)

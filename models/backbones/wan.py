@@ -101,8 +101,7 @@ class WanBackbone(DiffusersBackbone):
     def encode_latents(self, video: Tensor, generator: torch.Generator | None = None) -> Tensor:
         """(B, 3, T, H, W) in [−1, 1], T = 1 + 4k, H, W multiples of 16 → normalised latents
         (B, 48, n, H/16, W/16) float32: the posterior's mode, or a sample drawn with ``generator``. ValueError on a
-        wrong
-        shape."""
+        wrong shape."""
         mean, inv_std = self._latent_stats(video.device)
         return (self.posterior(video, generator) - mean) * inv_std
 
