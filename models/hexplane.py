@@ -6,12 +6,7 @@ Gaussians by :mod:`diff4splat.scene.dynamic` (docs/DESIGN.md "Conventions"). μ 
 bilinearly and multiplied; the scales are concatenated, (N, S·F) → trunk → three heads Δμ (metres), Δq (added to
 (1, 0, 0, 0)), Δs (log-scale offset). Reference: hustvl/4DGaussians ``scene/hexplane.py``, ``scene/deformation.py``,
 ``scene/regulation.py``; defaults from its D-NeRF config; the same initialisation (spatial planes U(0.1, 0.5), time
-planes 1, Xavier Linear weights).
-
-Differences from the reference: the last Linear of each head starts at zero (a new field is the identity); time
-maps to 2t − 1 (the reference samples only the upper half of its time axis); the box maps min → −1 (the reference
-mirrors it); rotation composes normalize(Δq ⊗ q) (the reference adds); no Δopacity/ΔSH heads (off in every
-reference config)."""
+planes 1, Xavier Linear weights). Differences from the reference: docs/DESIGN.md, "Fitting (4D Gaussian Splatting)"."""
 from __future__ import annotations
 
 import dataclasses
