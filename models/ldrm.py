@@ -349,10 +349,8 @@ class LDRM(nn.Module, PretrainedMixin):
         self.norm = nn.LayerNorm(d)
         up = config.vae_spatial * p
         kt = config.vae_temporal if config.gaussian_frames == "all" else 1
-        if config.head == "deconv":
-            self.head = nn.ConvTranspose3d(d, RAW_GAUSSIAN_CHANNELS, kernel_size=(kt, up, up), stride=(kt, up, up))
-        else:
-            self.head = UpsampleHead(d, up, config.head_channels)
+        self.head = (nn.ConvTranspose3d(d, RAW_GAUSSIAN_CHANNELS, kernel_size=(kt, up, up), stride=(kt, up, up))
+                     if config.head == "deconv" else UpsampleHead(d, up, config.head_channels))
         self.image_branch = ImageBranch(config.image_branch) if config.image_branch > 0 else None
         self.image_depth = (MonoDepth(config.image_depth, grid=config.image_depth_grid) if config.image_depth > 0
                             else None)
