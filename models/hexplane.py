@@ -245,8 +245,7 @@ class HexPlaneField(nn.Module):
             if t.dim() == 0:
                 t = t.reshape(1).expand(n)
             if tuple(t.shape) != (n,):
-                raise ValueError(f"t must be a float or a tensor of shape ({n},) (one per point), "
-                                 f"got {tuple(t.shape)}")
+                raise ValueError(f"t must be a float or a tensor of shape ({n},) (one per point), got {tuple(t.shape)}")
             t = t.to(like)
             if n and not bool(((t >= 0) & (t <= 1)).all()):
                 raise ValueError(f"t must lie in [0, 1], got values from {float(t.min())} to {float(t.max())}")

@@ -317,8 +317,7 @@ def check_ldrm_inputs(config: LDRMConfig, latents: Tensor, plucker: Tensor, time
     if h % cfg.patch_size or w % cfg.patch_size:
         raise ValueError(f"latents: h, w = {h}, {w} must be multiples of patch_size {cfg.patch_size}")
     if plucker.dim() != 5 or plucker.shape[1] != cfg.plucker_channels:
-        raise ValueError(f"plucker must have shape (B, {cfg.plucker_channels}, n, h, w), "
-                         f"got {tuple(plucker.shape)}")
+        raise ValueError(f"plucker must have shape (B, {cfg.plucker_channels}, n, h, w), got {tuple(plucker.shape)}")
     if plucker.shape[0] != B or tuple(plucker.shape[2:]) != (n, h, w):
         raise ValueError(f"plucker {tuple(plucker.shape)} must match latents {tuple(latents.shape)} in B, n, h, w "
                          "(equal token counts)")

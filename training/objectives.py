@@ -362,8 +362,7 @@ class TrainingModule(nn.Module):
         ldrm, latents = self.model.ldrm, self._noised(latents, gen)
         with torch.no_grad():
             target = self.teacher.head_maps(self.teacher.features(latents, plucker))
-        return head_distillation_loss(ldrm.head_maps(ldrm.features(latents, plucker)), target,
-                                      self.stage.distill_sigma)
+        return head_distillation_loss(ldrm.head_maps(ldrm.features(latents, plucker)), target, self.stage.distill_sigma)
 
     def _reconstruction(self, latent: LatentFormat, latents: Tensor, plucker: Tensor, batch: dict,
                         gen: torch.Generator) -> dict[str, Tensor]:
