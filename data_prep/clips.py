@@ -209,10 +209,8 @@ class ClipDataset(Dataset):
         stride = int(rng.integers(cfg.min_stride, min(cfg.max_stride, fit) + 1))
         cams = meta.cameras
         ref = cams[0] if cfg.reference_camera == "first" else cams[int(rng.integers(len(cams)))]
-        if cfg.target_cameras == "same":
-            targets = [ref] * (T - 1)
-        else:
-            targets = [cams[int(j)] for j in rng.integers(len(cams), size=T - 1)]
+        targets = ([ref] * (T - 1) if cfg.target_cameras == "same"
+                   else [cams[int(j)] for j in rng.integers(len(cams), size=T - 1)])
         frames = tuple(item.start + k * stride for k in range(T))
         return ClipSpec(item.scene, item.start, stride, frames, (ref, *targets))
 

@@ -114,11 +114,10 @@ class Backbone(nn.Module, abc.ABC):
     @abc.abstractmethod
     def velocity_model(self) -> nn.Module:
         """The ``nn.Module`` whose call ``(x, sigma, image_latent, plucker, text, text_mask)`` computes ε − x0 (ours:
-        the
-        DiT; a diffusers backbone: itself): x (B, c, n, h, w), sigma (B,) float32 in [0, 1], image_latent (B, c, 1, h,
-        w),
-        plucker (B, 6·t·s², n, h, w), text (B, L, d_text) and mask (B, L) or None → (B, c, n, h, w) (float32 from a
-        diffusers backbone, the DiT's dtype from ours); ValueError from :func:`check_velocity_inputs`."""
+        the DiT; a diffusers backbone: itself): x (B, c, n, h, w), sigma (B,) float32 in [0, 1], image_latent
+        (B, c, 1, h, w), plucker (B, 6·t·s², n, h, w), text (B, L, d_text) and mask (B, L) or None →
+        (B, c, n, h, w) (float32 from a diffusers backbone, the DiT's dtype from ours); ValueError from
+        :func:`check_velocity_inputs`."""
 
     @abc.abstractmethod
     def sigmas(self, steps: int) -> Tensor:
@@ -135,7 +134,6 @@ class Backbone(nn.Module, abc.ABC):
     def compile_blocks(self) -> None:
         """Regional compilation: ``torch.compile`` each of :meth:`transformer_blocks` in place (diffusers'
         ``compile_repeated_blocks``); identical blocks share one graph. Same outputs up to rounding; needs a C++
-        compiler
-        on the CPU and Triton on CUDA."""
+        compiler on the CPU and Triton on CUDA."""
         for block in self.transformer_blocks():
             block.compile()

@@ -196,8 +196,7 @@ def backbone_class(kind: str) -> type[Backbone]:
     try:
         return getattr(importlib.import_module(module), name)
     except ModuleNotFoundError as e:
-        raise MissingExtraError(f"the {kind} backbone needs {e.name}: pip install 'diff4splat[diffusers]'"
-                                ) from None
+        raise MissingExtraError(f"the {kind} backbone needs {e.name}: pip install 'diff4splat[diffusers]'") from None
 
 
 class BackboneModel(nn.Module):

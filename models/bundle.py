@@ -118,8 +118,7 @@ class Diff4SplatConfig:
 
     def to_dict(self) -> dict:
         """The config as nested plain dicts (``dataclasses.asdict``), JSON-serialisable: what ``config.json`` and the
-        ONNX
-        manifest hold, read back by :func:`models.pretrained.config_from_dict`."""
+        ONNX manifest hold, read back by :func:`models.pretrained.config_from_dict`."""
         return dataclasses.asdict(self)
 
 

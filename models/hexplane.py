@@ -6,12 +6,7 @@ Gaussians by :mod:`diff4splat.scene.dynamic` (docs/DESIGN.md "Conventions"). μ 
 bilinearly and multiplied; the scales are concatenated, (N, S·F) → trunk → three heads Δμ (metres), Δq (added to
 (1, 0, 0, 0)), Δs (log-scale offset). Reference: hustvl/4DGaussians ``scene/hexplane.py``, ``scene/deformation.py``,
 ``scene/regulation.py``; defaults from its D-NeRF config; the same initialisation (spatial planes U(0.1, 0.5), time
-planes 1, Xavier Linear weights).
-
-Differences from the reference: the last Linear of each head starts at zero (a new field is the identity); time
-maps to 2t − 1 (the reference samples only the upper half of its time axis); the box maps min → −1 (the reference
-mirrors it); rotation composes normalize(Δq ⊗ q) (the reference adds); no Δopacity/ΔSH heads (off in every
-reference config)."""
+planes 1, Xavier Linear weights). Differences from the reference: docs/DESIGN.md, "Fitting (4D Gaussian Splatting)"."""
 from __future__ import annotations
 
 import dataclasses
@@ -250,8 +245,7 @@ class HexPlaneField(nn.Module):
             if t.dim() == 0:
                 t = t.reshape(1).expand(n)
             if tuple(t.shape) != (n,):
-                raise ValueError(f"t must be a float or a tensor of shape ({n},) (one per point), "
-                                 f"got {tuple(t.shape)}")
+                raise ValueError(f"t must be a float or a tensor of shape ({n},) (one per point), got {tuple(t.shape)}")
             t = t.to(like)
             if n and not bool(((t >= 0) & (t <= 1)).all()):
                 raise ValueError(f"t must lie in [0, 1], got values from {float(t.min())} to {float(t.max())}")
@@ -323,8 +317,7 @@ class HexPlaneField(nn.Module):
     def regularization(self) -> Tensor:
         """Weighted plane regulariser (reference ``compute_regulation``), summed over scales:
         ``plane_tv_weight``·Σ_spatial R + ``time_smoothness_weight``·Σ_time :func:`time_smoothness` +
-        ``l1_time_planes``·
-        Σ_time :func:`time_l1`, R chosen by ``plane_reg``. Scalar ≥ 0, differentiable."""
+        ``l1_time_planes``·Σ_time :func:`time_l1`, R chosen by ``plane_reg``. Scalar ≥ 0, differentiable."""
         cfg = self.config
         spatial = time_smoothness if cfg.plane_reg == "smoothness" else plane_tv
         total = self.grids[0][0].new_zeros(())

@@ -195,8 +195,7 @@ class SelfAttention(_MultiHead):
 
 def _attend(q: Tensor, k: Tensor, v: Tensor, keep: Tensor | None = None) -> Tensor:
     """Scaled dot-product attention on heads-inner tensors: q (B, N, heads, d), k, v (B, L, heads, d), keep (B, L) bool
-    or
-    None → (B, N, heads, d); passed to the kernel as transposed views, so no copies."""
+    or None → (B, N, heads, d); passed to the kernel as transposed views, so no copies."""
     mask = None if keep is None else keep[:, None, None, :]
     return F.scaled_dot_product_attention(q.transpose(1, 2), k.transpose(1, 2), v.transpose(1, 2),
                                           attn_mask=mask).transpose(1, 2)
@@ -219,8 +218,7 @@ class CrossAttention(_MultiHead):
         context_mask: Tensor | None = None,  # (B, L) bool, True = real token
     ) -> Tensor:
         """``x`` (B, N, D) attends to ``context`` (B, L, context_dim) → (B, N, D). Masked tokens get zero weight; a
-        sample
-        with an all-False mask gives exactly zero (tensor ops only, so it traces).
+        sample with an all-False mask gives exactly zero (tensor ops only, so it traces).
 
         Raises:
             ValueError: ``context_mask`` given but not a bool tensor of shape (B, L).

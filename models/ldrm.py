@@ -317,8 +317,7 @@ def check_ldrm_inputs(config: LDRMConfig, latents: Tensor, plucker: Tensor, time
     if h % cfg.patch_size or w % cfg.patch_size:
         raise ValueError(f"latents: h, w = {h}, {w} must be multiples of patch_size {cfg.patch_size}")
     if plucker.dim() != 5 or plucker.shape[1] != cfg.plucker_channels:
-        raise ValueError(f"plucker must have shape (B, {cfg.plucker_channels}, n, h, w), "
-                         f"got {tuple(plucker.shape)}")
+        raise ValueError(f"plucker must have shape (B, {cfg.plucker_channels}, n, h, w), got {tuple(plucker.shape)}")
     if plucker.shape[0] != B or tuple(plucker.shape[2:]) != (n, h, w):
         raise ValueError(f"plucker {tuple(plucker.shape)} must match latents {tuple(latents.shape)} in B, n, h, w "
                          "(equal token counts)")
@@ -349,10 +348,8 @@ class LDRM(nn.Module, PretrainedMixin):
         self.norm = nn.LayerNorm(d)
         up = config.vae_spatial * p
         kt = config.vae_temporal if config.gaussian_frames == "all" else 1
-        if config.head == "deconv":
-            self.head = nn.ConvTranspose3d(d, RAW_GAUSSIAN_CHANNELS, kernel_size=(kt, up, up), stride=(kt, up, up))
-        else:
-            self.head = UpsampleHead(d, up, config.head_channels)
+        self.head = (nn.ConvTranspose3d(d, RAW_GAUSSIAN_CHANNELS, kernel_size=(kt, up, up), stride=(kt, up, up))
+                     if config.head == "deconv" else UpsampleHead(d, up, config.head_channels))
         self.image_branch = ImageBranch(config.image_branch) if config.image_branch > 0 else None
         self.image_depth = (MonoDepth(config.image_depth, grid=config.image_depth_grid) if config.image_depth > 0
                             else None)
@@ -386,8 +383,7 @@ class LDRM(nn.Module, PretrainedMixin):
     def head_maps(self, volume: Tensor) -> Tensor:  # (B, D, n', h', w') → (B, 12, S, H, W)
         """Raw Gaussian channels (B, 12, S, H, W) of the S source frames from a :meth:`features` volume
         (B, D, n', h', w'); H = h'·p·vae_spatial; S = n', or vae_temporal·(n' − 1) + 1 for "all" (the deconv head's
-        first
-        vae_temporal − 1 frames dropped)."""
+        first vae_temporal − 1 frames dropped)."""
         cfg = self.config
         B, D, nv, hp, wp = volume.shape
         if cfg.head == "deconv":

@@ -1,12 +1,9 @@
-"""Motion network of the LDRM: where each source pixel is at time t, read from the frames at pixel resolution.
-
-Unlike the token deformation network (:mod:`models.deformation`, 8×8 tokens, time alone), it sees the frames, as
-optical-flow networks do (correlation of learned features, FlowNet, Dosovitskiy et al. 2015 §3; RAFT's lookups
-around the current estimate, Teed & Deng 2020 §3.2), and predicts each source pixel's residual motion around its
-static reprojection ``uv`` (pixels, pixel (x, y)'s centre at (x + 0.5, y + 0.5)): a feature pyramid
-(:meth:`MotionNetwork.encode`), coarse-to-fine soft-argmax matching (:meth:`MotionNetwork.match`), a dilated-conv
-head with a zero-initialised output, and :func:`motion_activations` (gated match + residual, soft-thresholded so
-still pixels are exactly still). docs/DESIGN.md "The motion path"."""
+"""Motion network of the LDRM: where each source pixel is at time t, read from the frames at pixel resolution
+(docs/DESIGN.md, "The motion path"). Each source pixel's residual motion around its static reprojection ``uv``
+(pixels, pixel (x, y)'s centre at (x + 0.5, y + 0.5)) comes from a feature pyramid (:meth:`MotionNetwork.encode`),
+coarse-to-fine soft-argmax matching of learned features (:meth:`MotionNetwork.match`; FlowNet, Dosovitskiy et al.
+2015 §3; RAFT, Teed & Deng 2020 §3.2), a dilated-conv head with a zero-initialised output and
+:func:`motion_activations`."""
 from __future__ import annotations
 
 import math
@@ -186,8 +183,7 @@ class MotionNetwork(nn.Module, PretrainedMixin):
 
     def encode(self, frames: Tensor) -> list[Tensor]:  # frames: (N, 3, H, W) in [−1, 1]
         """Feature pyramid of ``frames`` (N, 3, H, W) in [−1, 1]: ``levels`` tensors (N, F, H/2^l, W/2^l),
-        average-pooled
-        (H, W divisible by 2^(levels−1))."""
+        average-pooled (H, W divisible by 2^(levels−1))."""
         feats = [self.encoder(frames)]
         for _ in range(self.config.levels - 1):
             feats.append(F.avg_pool2d(feats[-1], 2))
@@ -216,8 +212,7 @@ class MotionNetwork(nn.Module, PretrainedMixin):
 
         Returns:
             flow (N, H, W, 2) pixels to add to ``uv`` (exactly 0 for still pixels); log_depth (N, H, W), log of the
-            target
-            z-depth over the reprojected one (0 where flow is 0).
+            target z-depth over the reprojected one (0 where flow is 0).
         """
         H, W = source[0].shape[-2:]
         match, corr = self.match(source, target, uv)

@@ -76,10 +76,7 @@ def config_from_dict(cls: type, data: dict[str, Any], where: str = "config") -> 
                 f.default if f.default is not dataclasses.MISSING else None)
             merged = _shallow_asdict(base) if dataclasses.is_dataclass(base) else {}
             for k, v in value.items():
-                if isinstance(v, dict) and isinstance(merged.get(k), dict):
-                    merged[k] = {**merged[k], **v}
-                else:
-                    merged[k] = v
+                merged[k] = {**merged[k], **v} if isinstance(v, dict) and isinstance(merged.get(k), dict) else v
             value = config_from_dict(sub, merged, f"{where}.{key}")
         elif isinstance(value, list) and (isinstance(f.default, tuple) or "tuple" in str(f.type)):
             value = tuple(value)

@@ -203,9 +203,7 @@ def causal_mean_pool(x: Tensor, temporal: bool) -> Tensor:
 def causal_repeat(x: Tensor, temporal: bool) -> Tensor:
     """DC-AE up shortcut (time only): with ``temporal`` frame 0 stays alone and every later frame becomes two.
     (B, C, n, H, W) → (B, C, 1 + 2(n − 1), H, W), else unchanged."""
-    if not temporal:
-        return x
-    return torch.cat([x[:, :, :1], x[:, :, 1:].repeat_interleave(2, dim=2)], dim=2)
+    return torch.cat([x[:, :, :1], x[:, :, 1:].repeat_interleave(2, dim=2)], dim=2) if temporal else x
 
 
 class Downsample(nn.Module):

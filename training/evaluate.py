@@ -64,8 +64,7 @@ __all__ = ["evaluate_clip", "evaluate_clips", "evaluate_all", "aggregate", "Clip
            "VARIANTS", "PHOTO_KEYS", "DIRECTION", "binned_keys", "scene_motion", "held_out_clips",
            "pixel_positions", "decoded_video", "clip_inputs"]
 
-METRICS = ("psnr_input", "ssim_input", "psnr_novel", "ssim_novel", "depth_corr", "motion_epe", "loop_psnr",
-           "vae_psnr")
+METRICS = ("psnr_input", "ssim_input", "psnr_novel", "ssim_novel", "depth_corr", "motion_epe", "loop_psnr", "vae_psnr")
 """Reported metrics; higher is better except ``motion_epe`` (metres)."""
 
 DIAGNOSTICS = ("motion_epe_t0", "motion_epe_hold", "motion_disp_epe", "motion_disp_hold", "motion_disp_d5",

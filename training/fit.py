@@ -199,8 +199,7 @@ def gaussian_adam(params: dict[str, nn.Parameter], lr: LearningRates, extent: fl
     :mod:`training.densify`), 3DGS's rates with positions × ``extent`` (metres), eps 1e-15."""
     rates = {"means": lr.position_init * extent, "sh0": lr.sh0, "shN": lr.shN, "opacities": lr.opacities,
              "scales": lr.scales, "quats": lr.quats}
-    return torch.optim.Adam([{"params": [p], "lr": rates[k], "name": k} for k, p in params.items()],
-                            lr=0.0, eps=1e-15)
+    return torch.optim.Adam([{"params": [p], "lr": rates[k], "name": k} for k, p in params.items()], lr=0.0, eps=1e-15)
 
 
 def init_state(means: Tensor, colors: Tensor, config: FitConfig, extent: float, dynamic: bool, seed: int,
@@ -276,8 +275,7 @@ def _set_lrs(state: FitState, config: FitConfig) -> None:
     stage_len = config.iterations - config.coarse_iterations if fine else max(coarse_len, 1)
     for g in state.optimizer.param_groups:
         if g["name"] == "means":
-            g["lr"] = expon_lr(stage_step, lr.position_init * state.extent, lr.position_final * state.extent,
-                               stage_len)
+            g["lr"] = expon_lr(stage_step, lr.position_init * state.extent, lr.position_final * state.extent, stage_len)
     if fine:
         for g in state.field_optimizer.param_groups:
             init, final = ((lr.deformation_init, lr.deformation_final) if g["name"] == "deformation"

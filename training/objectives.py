@@ -290,9 +290,7 @@ class TrainingModule(nn.Module):
         with autocast_off():
             g, d_means, d_quats, d_scales = to_gaussians(out, batch["viewmats"][b][sources].float(),
                                                          batch["Ks"][b][sources].float())
-        if d_means is None:
-            return DynamicGaussians(g)
-        return DynamicGaussians(g, times, d_means, d_quats, d_scales)
+        return DynamicGaussians(g) if d_means is None else DynamicGaussians(g, times, d_means, d_quats, d_scales)
 
     def _decoded_frames(self, latents: Tensor) -> Tensor:
         """The VAE's decoding of DiT-scaled ``latents`` (B, c, n, h, w): (B, T, 3, H, W) in [0, 1], no gradient."""
@@ -362,8 +360,7 @@ class TrainingModule(nn.Module):
         ldrm, latents = self.model.ldrm, self._noised(latents, gen)
         with torch.no_grad():
             target = self.teacher.head_maps(self.teacher.features(latents, plucker))
-        return head_distillation_loss(ldrm.head_maps(ldrm.features(latents, plucker)), target,
-                                      self.stage.distill_sigma)
+        return head_distillation_loss(ldrm.head_maps(ldrm.features(latents, plucker)), target, self.stage.distill_sigma)
 
     def _reconstruction(self, latent: LatentFormat, latents: Tensor, plucker: Tensor, batch: dict,
                         gen: torch.Generator) -> dict[str, Tensor]:

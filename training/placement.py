@@ -15,9 +15,7 @@ __all__ = ["resolve_bf16", "training_device", "dist_info"]
 def resolve_bf16(bf16: bool | None, device: str | torch.device) -> bool:
     """Whether a trainer on ``device`` autocasts to bfloat16: ``bf16`` when it is set, else (None = auto)
     True for a CUDA device and False for any other (the CPU's bfloat16 matmuls are slower than float32)."""
-    if bf16 is None:
-        return torch.device(device).type == "cuda"
-    return bool(bf16)
+    return torch.device(device).type == "cuda" if bf16 is None else bool(bf16)
 
 
 def training_device(device: str | torch.device | None = AUTO, name: str = "trainer.device") -> torch.device:

@@ -188,12 +188,8 @@ def load_stage(name_or_path: str | os.PathLike, **overrides) -> StageConfig:
                                 f"(shipped: {', '.join(stage_names())}; or a .yaml path)")
     data = read_yaml(path, "stage config")
     for k, v in overrides.items():
-        if v is None:
-            continue
-        if isinstance(v, dict) and isinstance(data.get(k), dict):
-            data[k] = {**data[k], **v}
-        else:
-            data[k] = v
+        if v is not None:
+            data[k] = {**data[k], **v} if isinstance(v, dict) and isinstance(data.get(k), dict) else v
     return config_from_dict(StageConfig, data, str(path))
 
 

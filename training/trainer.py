@@ -251,9 +251,7 @@ class Trainer:
 
     def _ema_state(self) -> dict[str, Tensor] | None:
         """Full EMA weights (collective under FSDP: every rank calls it), or None without EMA."""
-        if self.ema is None:
-            return None
-        return {k: _full_tensor(v) for k, v in self.ema.items()}
+        return None if self.ema is None else {k: _full_tensor(v) for k, v in self.ema.items()}
 
     def _optimizer_state(self) -> dict:
         if self.sharded:

@@ -168,8 +168,7 @@ def convert_hypernerf(src: str | os.PathLike, out: str | os.PathLike, *, scale: 
         (W, H), = sizes
         K = np.stack([cam.K for cam in cams])
         K[:, :2] /= scale
-        V = rigid(np.stack([cam.R for cam in cams]),
-                  np.stack([-cam.R @ ((cam.position - center) * s) for cam in cams]))
+        V = rigid(np.stack([cam.R for cam in cams]), np.stack([-cam.R @ ((cam.position - center) * s) for cam in cams]))
         paths[names[c]] = camera_path(V, K, W, H, ts)
         undist[names[c]] = [(rgb_dir / f"{ids[k]}.png", K[j], cams[j].dist) for j, k in enumerate(idx)]
 

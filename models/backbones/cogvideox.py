@@ -2,11 +2,10 @@
 (``THUDM/CogVideoX-5b-I2V``: ``CogVideoXTransformer3DModel``, ``AutoencoderKLCogVideoX``, T5-XXL,
 ``CogVideoXDDIMScheduler``), in the Hub folder layout (:mod:`.diffusers_backbone`).
 
-CogVideoX is a v-prediction DDPM (Salimans & Ho 2022 §4): x_t = α·x0 + s·ε, α = √ᾱ_t, s = √(1 − ᾱ_t), zero
-terminal SNR (Lin et al. 2024), v = α·ε − s·x0. Then x_t/(α + s) = (1 − σ)·x0 + σ·ε with σ = s/(α + s) is our
-straight path and the v-prediction gives its velocity ε − x0 (:func:`vpred_to_flow`). A DDIM step (η = 0) and an
-Euler step of dx/dσ = ε̂ − x̂0 between the same σ land on the same point, so our Euler sampler over
-:meth:`CogVideoXBackbone.sigmas` reproduces the pipeline's DDIM latents. Imports diffusers."""
+CogVideoX is a v-prediction DDPM with zero terminal SNR (Salimans & Ho 2022 §4; Lin et al. 2024): at
+σ = s/(α + s) the state x_t/(α + s) is our straight path and :func:`vpred_to_flow` its velocity; our Euler sampler
+over :meth:`CogVideoXBackbone.sigmas` reproduces the pipeline's DDIM latents (docs/DESIGN.md, "Backbones"). Imports
+diffusers."""
 from __future__ import annotations
 
 import torch

@@ -101,8 +101,7 @@ class WanBackbone(DiffusersBackbone):
     def encode_latents(self, video: Tensor, generator: torch.Generator | None = None) -> Tensor:
         """(B, 3, T, H, W) in [−1, 1], T = 1 + 4k, H, W multiples of 16 → normalised latents
         (B, 48, n, H/16, W/16) float32: the posterior's mode, or a sample drawn with ``generator``. ValueError on a
-        wrong
-        shape."""
+        wrong shape."""
         mean, inv_std = self._latent_stats(video.device)
         return (self.posterior(video, generator) - mean) * inv_std
 
@@ -110,8 +109,7 @@ class WanBackbone(DiffusersBackbone):
         """Normalised latents (B, 48, n, h, w) → video (B, 3, 1 + 4(n − 1), 16h, 16w) float32 in [−1, 1] (the VAE
         clamps). ValueError on another shape."""
         if latents.dim() != 5 or latents.shape[1] != self.latent.latent_channels:
-            raise ValueError(f"latents must be (B, {self.latent.latent_channels}, n, h, w), "
-                             f"got {tuple(latents.shape)}")
+            raise ValueError(f"latents must be (B, {self.latent.latent_channels}, n, h, w), got {tuple(latents.shape)}")
         mean, inv_std = self._latent_stats(latents.device)
         z = latents.to(torch.float32) / inv_std + mean
         return self.vae.decode(z.to(self.vae.dtype), return_dict=False)[0].to(torch.float32)
