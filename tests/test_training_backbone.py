@@ -205,9 +205,11 @@ def test_a_bfloat16_backbone_trains_float32_weights(data, tmp_path):
     assert all(torch.equal(v, saved.ldrm.state_dict()[k]) for k, v in model.ldrm.state_dict().items())
     assert torch.equal(model.backbone.camera_conv.camera_weight, saved.backbone.camera_conv.camera_weight)
     assert float(saved.backbone.camera_conv.camera_weight.detach().abs().max()) > 0
-    assert trainer.bf16 and trainer.fit()["step"] == 2
+    # On a CPU whose oneDNN bfloat16 matmul leaks NaN across rows (oneDNN#5717, Intel AMX; the library warns of it,
+    # tests/test_cpu_bf16.py) the steps run on torch's own kernels: this test is of the training, not of that bug.
+    with torch.backends.mkldnn.flags(enabled=cpu_bf16_warning() is None):
+        assert trainer.bf16 and trainer.fit()["step"] == 2
     rows = _metrics(tmp_path / "run")  # every loss term of every step, skipped ones included, in the message
-    # on a CPU whose bfloat16 matmul leaks NaN across rows (oneDNN#5717) the message says so
     assert all(math.isfinite(float(r["loss"])) for r in rows), (rows, cpu_bf16_warning())
 
 
