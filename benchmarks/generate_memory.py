@@ -1,4 +1,4 @@
-"""Peak memory of ``diff4splat generate`` against its estimate (``Diff4SplatPipeline.memory_estimate``).
+"""Peak memory of ``diff4splat generate`` against its estimate (``diff4splat.generate.memory_estimate``).
 
 Runs the real command once per (frames, resolution) in a child process and reads that child's peak resident set
 size (its own ``ru_maxrss``, ``_common.run_with_peak_memory``); the estimate is what the CLI checks against the

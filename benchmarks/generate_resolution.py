@@ -10,7 +10,7 @@ The networks run at the model's own resolution (64²) whatever the output, so th
 is the photo layer, assembly, pruning, rendering and writing. ``fixed`` is the wall time at 64² (imports, model
 load, sampling, the least output); ``× 256²`` is (wall − fixed) / (wall at 256² − fixed), to hold against the
 pixel ratio (16× at 1024², 64× at 2048²: linear cost). ``estimate`` is what ``generate`` printed as its time
-estimate (:meth:`diff4splat.pipeline.Diff4SplatPipeline.time_estimate`; printed above a minute).
+estimate (:func:`diff4splat.utils.costs.generate_seconds`; printed above a minute).
 
 ``--write`` puts the table into docs/benchmarks.md (section ``generate_resolution`` or ``generate_resolution_<label>``).
 """
