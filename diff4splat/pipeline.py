@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field
-from functools import partial
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+from tqdm.auto import tqdm
 
 from diff4splat.assembly.assemble import DEPTH_KINDS, assemble_scene, z_depth
 from diff4splat.assembly.frame_motion import frame_motion
@@ -47,7 +47,7 @@ from diff4splat.utils.devices import Stopwatch
 from diff4splat.utils.limits import check_limit
 from models.backbone_model import INDEX_FILE, BackboneModel
 from models.bundle import DEFAULT_CONFIG, WEIGHTS_DIR, Diff4SplatModel, load_config, random_init_device
-from models.flow_matching import check_guidance, integrator
+from models.flow_matching import ODESteps, check_guidance, check_sampler
 from models.ldrm import source_frame_indices
 from models.pretrained import CONFIG_NAME
 
@@ -432,7 +432,7 @@ class Diff4SplatPipeline:
         if steps is not None:
             check_limit("steps", check_positive_int(name("steps"), steps), name("steps"))
         if sampler is not None:
-            integrator(sampler)  # raises for an unknown sampler
+            check_sampler(sampler, name("sampler"))
         if guidance is not None:
             check_guidance(guidance, name("guidance"))
         check_seed(seed, name("seed"))
@@ -511,10 +511,12 @@ class Diff4SplatPipeline:
         gen = torch.Generator(device="cpu").manual_seed(seed)  # CPU draws: the same noise on every device
         noise = torch.randn((1, runtime.latent.latent_channels, n, *image_latent.shape[-2:]),  # CPU draw, moved
                             generator=gen, device="cpu").to(dev)
-        velocity = partial(runtime.velocity, image_latent=image_latent, plucker=plucker, text=text,
-                           text_mask=text_mask, guidance=guidance, uncond=uncond, uncond_mask=uncond_mask)
-        if video_latents is None:
-            latents = integrator(sampler)(velocity, noise, runtime.sigmas(steps), progress=progress)
+        if video_latents is None:  # the flow-matching ODE from σ = 1 to 0: one velocity a σ of ode.sigmas
+            latents, ode = noise, ODESteps(sampler, runtime.sigmas(steps), noise)
+            condition = dict(image_latent=image_latent, plucker=plucker, text=text, text_mask=text_mask,
+                             guidance=guidance, uncond=uncond, uncond_mask=uncond_mask)
+            for sigma in tqdm(ode.sigmas, disable=not progress, desc=sampler):
+                latents = ode.step(runtime.velocity(latents, sigma, **condition), latents)
         elif tuple(video_latents.shape) != tuple(noise.shape):
             raise ValueError(f"video_latents must have shape {tuple(noise.shape)}, got {tuple(video_latents.shape)}")
         else:

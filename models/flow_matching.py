@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-__all__ = ["FlowMatchingConfig", "check_guidance", "MAX_GUIDANCE", "PAPER_FLOW_MATCHING", "SAMPLERS", "integrator",
+__all__ = ["FlowMatchingConfig", "check_guidance", "check_sampler", "MAX_GUIDANCE", "PAPER_FLOW_MATCHING", "SAMPLERS", "ODESteps",
            "shift_sigmas", "sigma_schedule", "sample_logit_normal", "add_noise", "velocity_target", "euler_sample",
            "heun_sample", "sample"]
 
@@ -47,7 +47,7 @@ class FlowMatchingConfig:
 
     def __post_init__(self) -> None:
         _check_shift(self.shift)
-        _check_sampler(self.sampler)
+        check_sampler(self.sampler)
         _check_steps(self.steps)
         if not self.logit_normal_std > 0:
             raise ValueError(f"FlowMatchingConfig.logit_normal_std must be > 0, got {self.logit_normal_std}")
@@ -83,9 +83,10 @@ def _check_shift(shift: float) -> None:
         raise ValueError(f"shift must be a finite number > 0, got {shift!r}")
 
 
-def _check_sampler(sampler: str) -> None:
+def check_sampler(sampler: str, name: str = "sampler") -> None:
+    """ValueError (naming ``name``) unless ``sampler`` is one of :data:`SAMPLERS`."""
     if sampler not in SAMPLERS:
-        raise ValueError(f"sampler must be one of {SAMPLERS}, got {sampler!r}")
+        raise ValueError(f"{name} must be one of {SAMPLERS}, got {sampler!r}")
 
 
 def _check_steps(steps: int) -> None:
@@ -173,16 +174,55 @@ def _check_sigmas(sigmas: Tensor) -> None:
         raise ValueError("sigmas must be strictly decreasing (from noise to data)")
 
 
-def _checked(v: Tensor, x: Tensor) -> Tensor:
-    """``v`` after checking it has ``x``'s shape."""
-    if v.shape != x.shape:
-        raise ValueError(f"velocity_fn returned shape {tuple(v.shape)}, expected {tuple(x.shape)}")
-    return v
+class ODESteps:
+    """The samplers as a loop the caller drives, one velocity evaluation at a time (as diffusers' ``scheduler.step``):
+    for each σ of :attr:`sigmas` evaluate v at the current state, and :meth:`step` returns the next state to evaluate
+    at; after the last, the state at σ_N.
+
+    - ``"euler"``: x_{i+1} = x_i + (σ_{i+1} − σ_i)·v(x_i, σ_i); NFE = N.
+    - ``"heun"`` (Karras et al. 2022, Algorithm 1): d = v(x_i, σ_i), x̃ = x_i + h·d,
+      x_{i+1} = x_i + h·(d + v(x̃, σ_{i+1}))/2; a step ending at σ = 0 is plain Euler (the network is never evaluated
+      at σ = 0), so NFE = 2·N − 1.
+
+    Args:
+        sampler: one of :data:`SAMPLERS`.
+        sigmas: (N + 1,) strictly decreasing, e.g. :func:`sigma_schedule`; cast to ``noise``'s dtype and device.
+        noise: the state at σ_0 (any shape; its dtype and device are the loop's).
+
+    Raises:
+        ValueError: an unknown ``sampler``; ``sigmas`` not 1-D, shorter than 2 or not decreasing; (:meth:`step`) a
+            velocity of the wrong shape.
+    """
+
+    def __init__(self, sampler: str, sigmas: Tensor, noise: Tensor):
+        check_sampler(sampler)
+        _check_sigmas(sigmas)
+        self.sampler = sampler
+        self._sig = sigmas.to(dtype=noise.dtype, device=noise.device)
+        is_zero = (sigmas == 0).tolist()  # host-side flags: no device sync inside the loop
+        # each evaluation: (step i, whether it is Heun's corrector at σ_{i+1})
+        self._plan = [(i, corrector) for i in range(len(is_zero) - 1)
+                      for corrector in ((False, True) if sampler == "heun" and not is_zero[i + 1] else (False,))]
+        self.sigmas = [self._sig[i + corrector] for i, corrector in self._plan]  # (NFE,) 0-dim tensors
+        self._k = 0
+        self._x = self._d = None  # Heun: x_i and d while its corrector is pending
+
+    def step(self, velocity: Tensor, x: Tensor) -> Tensor:
+        """The velocity ``velocity`` at the state ``x`` and σ = ``sigmas[k]`` (the k-th call) → the next state."""
+        if velocity.shape != x.shape:
+            raise ValueError(f"velocity_fn returned shape {tuple(velocity.shape)}, expected {tuple(x.shape)}")
+        i, corrector = self._plan[self._k]
+        self._k += 1
+        h = self._sig[i + 1] - self._sig[i]
+        if corrector:
+            return self._x + h * 0.5 * (self._d + velocity)
+        if self._k < len(self._plan) and self._plan[self._k] == (i, True):
+            self._x, self._d = x, velocity
+        return x + h * velocity
 
 
 def euler_sample(velocity_fn: VelocityFn, noise: Tensor, sigmas: Tensor, progress: bool = False) -> Tensor:
-    """Integrate dx/dσ = v(x, σ) over ``sigmas`` with explicit Euler steps x_{i+1} = x_i + (σ_{i+1} − σ_i)·v(x_i, σ_i);
-    NFE = len(sigmas) − 1.
+    """Integrate dx/dσ = v(x, σ) over ``sigmas`` with explicit Euler steps (:class:`ODESteps`); NFE = len(sigmas) − 1.
 
     Args:
         velocity_fn: ``f(x, sigma) -> v``.
@@ -195,46 +235,29 @@ def euler_sample(velocity_fn: VelocityFn, noise: Tensor, sigmas: Tensor, progres
     Raises:
         ValueError: ``sigmas`` not 1-D, shorter than 2 or not decreasing; a velocity of the wrong shape.
     """
-    _check_sigmas(sigmas)
-    sig = sigmas.to(dtype=noise.dtype, device=noise.device)
-    x = noise
-    for i in tqdm(range(sig.shape[0] - 1), disable=not progress, desc="euler"):
-        x = x + (sig[i + 1] - sig[i]) * _checked(velocity_fn(x, sig[i]), x)
-    return x
+    return _integrate(ODESteps("euler", sigmas, noise), velocity_fn, noise, progress)
 
 
 def heun_sample(velocity_fn: VelocityFn, noise: Tensor, sigmas: Tensor, progress: bool = False) -> Tensor:
-    """Integrate dx/dσ = v(x, σ) with Heun's second-order method (Karras et al. 2022, Algorithm 1):
-    d = v(x_i, σ_i), x̃ = x_i + h·d, x_{i+1} = x_i + h·(d + v(x̃, σ_{i+1}))/2. A step ending at σ = 0 is plain Euler
-    (the network is never evaluated at σ = 0), so NFE = 2·N − 1. Args, returns, raises: as :func:`euler_sample`."""
-    _check_sigmas(sigmas)
-    sig = sigmas.to(dtype=noise.dtype, device=noise.device)
-    is_zero = (sigmas == 0).tolist()  # host-side flags: no device sync inside the loop
-    x = noise
-    for i in tqdm(range(sig.shape[0] - 1), disable=not progress, desc="heun"):
-        h = sig[i + 1] - sig[i]
-        d = _checked(velocity_fn(x, sig[i]), x)
-        x_pred = x + h * d
-        if is_zero[i + 1]:
-            x = x_pred
-        else:
-            x = x + h * 0.5 * (d + _checked(velocity_fn(x_pred, sig[i + 1]), x_pred))
+    """Integrate dx/dσ = v(x, σ) with Heun's second-order method (:class:`ODESteps`); NFE = 2·N − 1. Args, returns,
+    raises: as :func:`euler_sample`."""
+    return _integrate(ODESteps("heun", sigmas, noise), velocity_fn, noise, progress)
+
+
+def _integrate(steps: ODESteps, velocity_fn: VelocityFn, x: Tensor, progress: bool) -> Tensor:
+    """``steps`` driven by ``velocity_fn`` from ``x``: the state at the last σ."""
+    for sigma in tqdm(steps.sigmas, disable=not progress, desc=steps.sampler):
+        x = steps.step(velocity_fn(x, sigma), x)
     return x
 
 
 def sample(velocity_fn: VelocityFn, noise: Tensor, steps: int, sampler: str = "euler", shift: float = 1.0,
            progress: bool = False) -> Tensor:
-    """Integrate from noise (σ = 1) to data (σ = 0) over :func:`sigma_schedule` ``(steps, shift)`` with
-    :func:`integrator` ``(sampler)``; ``noise`` standard normal, any shape → samples of its shape.
+    """Integrate from noise (σ = 1) to data (σ = 0) over :func:`sigma_schedule` ``(steps, shift)`` with the
+    ``sampler`` (:class:`ODESteps`); ``noise`` standard normal, any shape → samples of its shape.
 
     Raises:
         ValueError: unknown ``sampler``, ``steps`` not an int ≥ 1, ``shift`` ≤ 0.
     """
-    fn = integrator(sampler)
-    return fn(velocity_fn, noise, sigma_schedule(steps, shift, dtype=torch.float64), progress=progress)
-
-
-def integrator(sampler: str) -> Callable[..., Tensor]:
-    """:func:`euler_sample` or :func:`heun_sample` for ``sampler``; ValueError unless in :data:`SAMPLERS`."""
-    _check_sampler(sampler)
-    return {"euler": euler_sample, "heun": heun_sample}[sampler]
+    return _integrate(ODESteps(sampler, sigma_schedule(steps, shift, dtype=torch.float64), noise), velocity_fn,
+                      noise, progress)

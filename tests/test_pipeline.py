@@ -11,6 +11,7 @@ from diff4splat.assembly.photo import BACKDROP_CELLS, BACKDROP_EXTEND
 from diff4splat.cameras import camera_rays, pack_plucker, plucker_rays
 from diff4splat.generate import scene_slots
 from diff4splat.io import load_image
+from diff4splat import pipeline as pipeline_module
 from diff4splat.pipeline import Diff4SplatPipeline
 from diff4splat.runtime import TorchRuntime
 from diff4splat.scene.gaussians import sh0_to_rgb
@@ -307,10 +308,9 @@ def test_result_reports_the_steps_and_sampler_actually_used(image, monkeypatch):
     pipe = Diff4SplatPipeline(tiny_model())
     assert isinstance(pipe.runtime, TorchRuntime) and pipe.runtime.name == "torch"
     seen = []
-    for name in ("euler", "heun"):
-        real = getattr(flow_matching, f"{name}_sample")  # what models.flow_matching.integrator hands the pipeline
-        monkeypatch.setattr(flow_matching, f"{name}_sample", lambda v, x, sigmas, real=real, name=name, **kw:
-                            seen.append((len(sigmas) - 1, name)) or real(v, x, sigmas, **kw))
+    real = flow_matching.ODESteps  # the sampler loop the pipeline drives
+    monkeypatch.setattr(pipeline_module, "ODESteps", lambda name, sigmas, noise:
+                        seen.append((len(sigmas) - 1, name)) or real(name, sigmas, noise))
     cams = pipe.default_cameras("orbit", 5)
     pipe.config.sampling.steps, pipe.config.sampling.sampler = 3, "heun"
     res = pipe(image, cams, "")
