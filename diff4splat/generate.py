@@ -52,12 +52,11 @@ def memory_estimate(pipe: Diff4SplatPipeline, width: int, height: int, num_frame
         frames=num_frames, width=width, height=height)
 
 
-def _check_request(image, cameras, trajectory, amplitude, frames, resolution, steps, sampler, seed, prompt, depth,
-                   depth_kind, guidance) -> None:
+def _check_request(image, cameras, trajectory, amplitude, steps, sampler, seed, prompt, depth, depth_kind,
+                   guidance) -> None:
     """The request's own checks, made before any model loads (messages name the command's flags)."""
     if isinstance(image, (str, os.PathLike)):
         check_input_file(image, "image")
-    request.check_size_flags(frames, resolution, cameras)
     if isinstance(depth, (str, os.PathLike)):
         check_input_file(depth, "--depth")
     if depth_kind not in DEPTH_KINDS:
@@ -102,8 +101,9 @@ def generate(image: str | os.PathLike | Tensor, cameras: str | os.PathLike | Cam
         depth: the photograph's depth map of ``depth_kind`` (:data:`DEPTH_KINDS`): a file (EXR channel Z, .npy,
             16-bit PNG/TIFF in millimetres) or an (H, W) tensor at the output resolution.
         notes: called with one-line notes for the user (e.g. a depth map resized).
-        out, overwrite: the folder :func:`write` will fill, if known, checked first (:func:`check_destination`) and
-            against its disk's free space; ``overwrite``: it may replace a folder that is not a ``generate`` output.
+        out, overwrite: the folder :func:`write` will fill, if known, checked first
+            (:func:`~diff4splat.request.check_request`) and against its disk's free space; ``overwrite``: it may
+            replace a folder that is not a ``generate`` output.
         inputs: further paths the request reads (e.g. ``--checkpoint``): no output folder may be or hold one.
         fps, frame_plys: meta.json's frame rate (1 … 1000) and whether :func:`write` writes frames/NNNN.ply.
 
@@ -116,9 +116,8 @@ def generate(image: str | os.PathLike | Tensor, cameras: str | os.PathLike | Cam
     t_start = time.perf_counter()
     files = {"image": image, "cameras_file": cameras, "depth_file": depth}  # as given, for meta.json
     read = [Path(p) for p in (*files.values(), *inputs) if isinstance(p, (str, os.PathLike))]
-    request.check_destination(out, fps, inputs=read, overwrite=overwrite, kind=GENERATE_KIND)
-    _check_request(image, cameras, trajectory, amplitude, frames, resolution, steps, sampler, seed, prompt, depth,
-                   depth_kind, guidance)
+    request.check_request(out, fps, frames, resolution, cameras, inputs=read, overwrite=overwrite, kind=GENERATE_KIND)
+    _check_request(image, cameras, trajectory, amplitude, steps, sampler, seed, prompt, depth, depth_kind, guidance)
     if isinstance(image, Tensor) and resolution is not None and resolution != image.shape[0]:
         raise ValueError(f"resolution={resolution} but the image tensor is {image.shape[0]} pixels high: a tensor "
                          "is used at its own resolution (resize it, or pass a photo file)")

@@ -98,10 +98,10 @@ def reconstruct(video: str | os.PathLike, cameras: str | os.PathLike | CameraPat
     """
     t_start = time.perf_counter()
     read = [Path(p) for p in (video, cameras, *inputs) if isinstance(p, (str, os.PathLike))]
-    request.check_destination(out, fps, inputs=read, overwrite=overwrite, kind=RECONSTRUCT_KIND)
+    request.check_request(out, fps, frames, resolution, cameras, inputs=read, overwrite=overwrite,
+                          kind=RECONSTRUCT_KIND)
     if not Path(video).is_dir():
         check_input_file(video, "video")
-    request.check_size_flags(frames, resolution, cameras)
     check_clip_request(frames or 1, stride, start)
     check_layers(layers)
     check_layer_knobs(order_offset, unchecked)

@@ -1,6 +1,6 @@
 """The request layer of ``generate`` and ``reconstruct``: what both share between the command line and the pipeline.
 
-Loading the networks (:func:`load_pipeline`), the destination's checks (:func:`check_destination`), camera files
+Loading the networks (:func:`load_pipeline`), the checks of the flags both share (:func:`check_request`), camera files
 (:func:`cameras_from_file`), the scene rendered along its path with the request's meta.json (:func:`render_output`),
 and writing the output folder (:func:`write`). Each user input is checked once, where it enters (docs/DESIGN.md,
 "Inputs"): a file or flag here or in the command's library function, a tensor in the pipeline's ``check_inputs``.
@@ -30,8 +30,8 @@ from diff4splat.utils.devices import AUTO, resolve_device
 from diff4splat.utils.limits import check_limit, check_memory, check_output_size
 from models.bundle import DEFAULT_CONFIG
 
-__all__ = ["RUNTIMES", "LoadedPipeline", "SceneOutput", "load_pipeline", "resolve_pipeline", "check_destination",
-           "check_size_flags", "output_size", "check_budget", "cameras_from_file", "file_argument", "render_output",
+__all__ = ["RUNTIMES", "LoadedPipeline", "SceneOutput", "load_pipeline", "resolve_pipeline", "check_request",
+           "output_size", "check_budget", "cameras_from_file", "file_argument", "render_output",
            "write"]
 
 RUNTIMES = ("torch", "onnxruntime")
@@ -141,20 +141,16 @@ def resolve_pipeline(pipeline: LoadedPipeline | Diff4SplatPipeline | Callable[[]
     return loaded
 
 
-def check_destination(out: str | os.PathLike | None, fps: float, *, inputs: Iterable[str | os.PathLike | None],
-                      overwrite: bool, kind: str) -> None:
-    """Check before any work that ``out`` (when given) may be written as a folder of ``kind``
-    (:func:`diff4splat.io.output_folders.check_output_dir`: OutputDirError, FileExistsError) and ``fps`` is a frame
-    rate (ValueError naming ``--fps``)."""
+def check_request(out: str | os.PathLike | None, fps: float, frames: object, resolution: object, cameras: object, *,
+                  inputs: Iterable[str | os.PathLike | None], overwrite: bool, kind: str) -> None:
+    """The flags ``generate`` and ``reconstruct`` share, checked before any model loads, each error naming its flag:
+    ``out`` (when given) may be written as a folder of ``kind`` (:func:`diff4splat.io.output_folders.check_output_dir`:
+    OutputDirError, FileExistsError), ``--fps`` a frame rate, ``--frames`` and ``--resolution`` positive ints within
+    their limits (None: the defaults; ValueError, LimitError), ``--cameras`` an existing file when it is a path
+    (FileNotFoundError)."""
     if out is not None:
         check_output_dir(out, inputs=inputs, overwrite=overwrite, kind=kind)
     check_fps(fps, "--fps")
-
-
-def check_size_flags(frames: object, resolution: object, cameras: object) -> None:
-    """The flags that size a request, before any model loads: ``--frames`` and ``--resolution`` positive ints within
-    their limits (None: the defaults), ``--cameras`` an existing file when it is a path (ValueError, LimitError,
-    FileNotFoundError, each naming its flag)."""
     for name, value in (("frames", frames), ("resolution", resolution)):
         if value is not None:
             check_limit(name, check_positive_int(f"--{name}", value), f"--{name}")

@@ -14,9 +14,9 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-__all__ = ["FlowMatchingConfig", "check_guidance", "check_sampler", "MAX_GUIDANCE", "PAPER_FLOW_MATCHING", "SAMPLERS", "ODESteps",
-           "shift_sigmas", "sigma_schedule", "sample_logit_normal", "add_noise", "velocity_target", "euler_sample",
-           "heun_sample", "sample"]
+__all__ = ["FlowMatchingConfig", "check_guidance", "check_sampler", "MAX_GUIDANCE", "PAPER_FLOW_MATCHING", "SAMPLERS",
+           "ODESteps", "shift_sigmas", "sigma_schedule", "sample_logit_normal", "add_noise", "velocity_target",
+           "euler_sample", "heun_sample", "sample"]
 
 VelocityFn = Callable[[Tensor, Tensor], Tensor]
 SAMPLERS = ("euler", "heun")

@@ -6,12 +6,12 @@ import pytest
 import torch
 from helpers import EXAMPLE_IMAGE, tiny_model
 
+from diff4splat import pipeline as pipeline_module
 from diff4splat.assembly.assemble import to_gaussians, video_colors
 from diff4splat.assembly.photo import BACKDROP_CELLS, BACKDROP_EXTEND
 from diff4splat.cameras import camera_rays, pack_plucker, plucker_rays
 from diff4splat.generate import scene_slots
 from diff4splat.io import load_image
-from diff4splat import pipeline as pipeline_module
 from diff4splat.pipeline import Diff4SplatPipeline
 from diff4splat.runtime import TorchRuntime
 from diff4splat.scene.gaussians import sh0_to_rgb
