@@ -19,14 +19,7 @@ from .convert_cli import register as _add_convert  # data_prep convert SOURCE IN
 from .curate import DEFAULT_CONFIG_PATH, MODES, CurationConfig, curate
 from .engine import add_engine_arguments, engine_from_args
 from .synth_dataset import check_synth_request, synthesize
-from .synth_world import (
-    DEFAULT_CAMERAS,
-    DEFAULT_FRAMES,
-    DEFAULT_SIZE,
-    DEFAULT_STATIC_RATIO,
-    DEFAULT_TEXTURE_RATIO,
-    MOTIONS,
-)
+from .synth_world import SYNTH
 from .validate import summarize, validate_path
 
 __all__ = ["main", "build_parser", "SUBCOMMANDS"]
@@ -87,18 +80,18 @@ def _add_synth(sub) -> None:
     p.add_argument("--scenes", type=int, required=True, help="number of scenes N (scene_00000 … )")
     p.add_argument("--out", type=Path, required=True, help="dataset root to write")
     p.add_argument("--seed", type=int, default=0, help="global seed ≥ 0 (default 0)")
-    p.add_argument("--size", type=int, default=DEFAULT_SIZE,
-                   help=f"image width = height, pixels (default {DEFAULT_SIZE})")
-    p.add_argument("--frames", type=int, default=DEFAULT_FRAMES, help=f"frames per camera (default {DEFAULT_FRAMES})")
-    p.add_argument("--cameras", type=int, default=DEFAULT_CAMERAS,
-                   help=f"synchronised cameras per scene (default {DEFAULT_CAMERAS})")
-    p.add_argument("--static-ratio", type=float, default=DEFAULT_STATIC_RATIO,
-                   help=f"fraction of static scenes in [0, 1] (default {DEFAULT_STATIC_RATIO})")
-    p.add_argument("--texture-ratio", type=_unit_float, default=DEFAULT_TEXTURE_RATIO,
+    p.add_argument("--size", type=int, default=SYNTH.size,
+                   help=f"image width = height, pixels (default {SYNTH.size})")
+    p.add_argument("--frames", type=int, default=SYNTH.frames, help=f"frames per camera (default {SYNTH.frames})")
+    p.add_argument("--cameras", type=int, default=SYNTH.cameras,
+                   help=f"synchronised cameras per scene (default {SYNTH.cameras})")
+    p.add_argument("--static-ratio", type=float, default=SYNTH.static_ratio,
+                   help=f"fraction of static scenes in [0, 1] (default {SYNTH.static_ratio})")
+    p.add_argument("--texture-ratio", type=_unit_float, default=SYNTH.texture_ratio,
                    help="probability in [0, 1] that a surface gets a crop of a bundled photograph as texture "
-                        f"(data_prep/textures/); 0: procedural textures only (default {DEFAULT_TEXTURE_RATIO})")
-    p.add_argument("--motions", type=lambda text: tuple(k.strip() for k in text.split(",")), default=MOTIONS,
-                   help=f"comma-separated kinds a moving object draws from (default: all, {','.join(MOTIONS)})")
+                        f"(data_prep/textures/); 0: procedural textures only (default {SYNTH.texture_ratio})")
+    p.add_argument("--motions", type=lambda text: tuple(k.strip() for k in text.split(",")), default=SYNTH.motions,
+                   help=f"comma-separated kinds a moving object draws from (default: all, {','.join(SYNTH.motions)})")
     p.add_argument("--max-movers", type=int, default=None,
                    help="at most this many objects move in a dynamic scene (default: each with probability 0.7, at "
                         "least one); --motions translate --max-movers 1 makes every dynamic caption name one "

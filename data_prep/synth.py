@@ -26,17 +26,7 @@ from diff4splat.scene.quaternions import axis_angle_to_quat, quat_to_rotmat, rot
 
 from .format import SceneWriter
 from .scene_files import NO_SURFACE
-from .synth_world import (
-    DEFAULT_CAMERAS,
-    DEFAULT_FRAMES,
-    DEFAULT_SIZE,
-    DEFAULT_STATIC_RATIO,
-    DEFAULT_TEXTURE_RATIO,
-    MOTIONS,
-    caption_for,
-    check_motions,
-    sample_scene_spec,
-)
+from .synth_world import MOTIONS, SYNTH, caption_for, check_motions, sample_scene_spec
 from .textures import image_albedo
 
 __all__ = ["generate_scene", "render_spec", "write_synth_scene", "SynthScene", "build_scene", "build_gaussians",
@@ -404,10 +394,10 @@ def write_synth_scene(path: str | os.PathLike, result: SynthScene, extra: dict[s
     return Path(path)
 
 
-def generate_scene(out_dir: str | os.PathLike, index: int, seed: int, *, size: int = DEFAULT_SIZE,
-                   frames: int = DEFAULT_FRAMES, cameras: int = DEFAULT_CAMERAS,
-                   static_ratio: float = DEFAULT_STATIC_RATIO, texture_ratio: float = DEFAULT_TEXTURE_RATIO,
-                   motions: tuple[str, ...] = MOTIONS, max_movers: int | None = None,
+def generate_scene(out_dir: str | os.PathLike, index: int, seed: int, *, size: int = SYNTH.size,
+                   frames: int = SYNTH.frames, cameras: int = SYNTH.cameras,
+                   static_ratio: float = SYNTH.static_ratio, texture_ratio: float = SYNTH.texture_ratio,
+                   motions: tuple[str, ...] = SYNTH.motions, max_movers: int | None = None,
                    replace: bool = False, device: str | torch.device = "cpu") -> Path:
     """Sample, render (on ``device``) and write scene ``index`` of run ``seed`` to ``out_dir/scene_{index:05d}``;
     static with probability ``static_ratio``, each surface image-textured with probability ``texture_ratio``, its

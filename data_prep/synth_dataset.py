@@ -20,15 +20,7 @@ from .engine import Engine, fault_point, map_scenes
 from .format import check_dataset_root
 from .scene_files import is_scene
 from .synth import generate_scene, scene_name
-from .synth_world import (
-    DEFAULT_CAMERAS,
-    DEFAULT_FRAMES,
-    DEFAULT_SIZE,
-    DEFAULT_STATIC_RATIO,
-    DEFAULT_TEXTURE_RATIO,
-    MOTIONS,
-    check_motions,
-)
+from .synth_world import SYNTH, check_motions
 
 __all__ = ["synthesize", "check_synth_request", "max_gaussians", "scene_bytes", "BYTES_PER_PIXEL",
            "BYTES_PER_GAUSSIAN_FRAME"]
@@ -61,7 +53,7 @@ _FLAGS = {"num_scenes": "--scenes", "seed": "--seed", "size": "--size", "frames"
 
 
 def check_synth_request(num_scenes: int, seed: int, *, size: int, frames: int, cameras: int, workers: int,
-                        static_ratio: float, texture_ratio: float, motions: tuple[str, ...] = MOTIONS,
+                        static_ratio: float, texture_ratio: float, motions: tuple[str, ...] = SYNTH.motions,
                         max_movers: int | None = None, flags: bool = False) -> None:
     """Check :func:`synthesize`'s arguments and limits before anything is created; ``flags``: name the arguments by
     their ``data_prep synth`` flags. Raises ValueError: an argument out of range (named), bad ``motions`` or
@@ -95,9 +87,9 @@ def _make_scene(index: int, out: Path, seed: int, kw: dict) -> None:
     fault_point("done", scene_name(index))  # a test's injected worker death: the scene written, the task not done
 
 
-def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, size: int = DEFAULT_SIZE,
-               frames: int = DEFAULT_FRAMES, cameras: int = DEFAULT_CAMERAS, static_ratio: float = DEFAULT_STATIC_RATIO,
-               texture_ratio: float = DEFAULT_TEXTURE_RATIO, motions: tuple[str, ...] = MOTIONS,
+def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, size: int = SYNTH.size,
+               frames: int = SYNTH.frames, cameras: int = SYNTH.cameras, static_ratio: float = SYNTH.static_ratio,
+               texture_ratio: float = SYNTH.texture_ratio, motions: tuple[str, ...] = SYNTH.motions,
                max_movers: int | None = None, workers: int = 1,
                progress: bool = True, device: str | torch.device = "cpu", engine: Engine | None = None) -> list[Path]:
     """Generate scenes 0 … num_scenes−1 into the dataset root ``out_dir``, skipping scenes already present (resume).

@@ -13,6 +13,7 @@ centre (0, ground_y, 0), inside a cylindrical wall of radius ``room_radius``. Ob
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -22,19 +23,7 @@ from diff4splat.utils.checks import check_int, check_number
 from .textures import IMAGE_TEXTURES, load_texture, texture_names
 
 __all__ = ["COLORS", "SHAPES", "MOTIONS", "CAMERA_MOTIONS", "TEXTURES", "sample_scene_spec", "caption_for",
-           "direction_word", "check_motions", "DIRECTION_PHRASES", "DEFAULT_SIZE", "DEFAULT_FRAMES", "DEFAULT_CAMERAS",
-           "DEFAULT_STATIC_RATIO", "DEFAULT_TEXTURE_RATIO"]
-
-DEFAULT_SIZE = 64
-"""Image width = height of a synthetic scene when none is given, pixels (the ``base`` model's resolution)."""
-DEFAULT_FRAMES = 17
-"""Frames per camera when none is given (the ``base`` model's clip length, 1 + 4·4)."""
-DEFAULT_CAMERAS = 2
-"""Synchronised cameras per scene when none is given (one to train on, one to supervise novel views)."""
-DEFAULT_STATIC_RATIO = 0.3
-"""Probability of a static scene when none is given."""
-DEFAULT_TEXTURE_RATIO = 0.5
-"""Probability that a surface gets a crop of a bundled photograph as texture when none is given."""
+           "direction_word", "check_motions", "DIRECTION_PHRASES", "SynthDefaults", "SYNTH"]
 
 COLORS: dict[str, tuple[float, float, float]] = {
     "red": (0.85, 0.12, 0.10), "orange": (0.95, 0.50, 0.08), "yellow": (0.95, 0.85, 0.15),
@@ -52,6 +41,32 @@ MOTIONS: tuple[str, ...] = ("translate", "rotate", "bounce", "deform")
 CAMERA_MOTIONS: tuple[str, ...] = ("orbit", "dolly", "pan", "truck", "static")
 TEXTURES: dict[str, str] = {"plain": "", "checker": "checkered", "stripes": "striped", "noise": "spotted"}
 """Procedural textures and their caption adjective (kind ``"image"``: :data:`data_prep.textures.IMAGE_TEXTURES`)."""
+
+
+@dataclass(frozen=True)
+class SynthDefaults:
+    """What a synthetic scene is made with when the caller names nothing: the one home of the defaults of
+    ``data_prep synth``, :func:`data_prep.synth_dataset.synthesize` and :func:`data_prep.synth.generate_scene`.
+
+    Attributes:
+        size: image width = height, pixels (the ``base`` model's resolution).
+        frames: frames per camera (the ``base`` model's clip length, 1 + 4·4).
+        cameras: synchronised cameras per scene (one to train on, one to supervise novel views).
+        static_ratio: probability of a static scene.
+        texture_ratio: probability that a surface gets a crop of a bundled photograph as texture.
+        motions: the kinds a moving object draws from (all of :data:`MOTIONS`).
+    """
+
+    size: int = 64
+    frames: int = 17
+    cameras: int = 2
+    static_ratio: float = 0.3
+    texture_ratio: float = 0.5
+    motions: tuple[str, ...] = MOTIONS
+
+
+SYNTH = SynthDefaults()
+"""The defaults of a synthetic scene (:class:`SynthDefaults`)."""
 
 _MATERIALS = ("wooden", "tiled", "concrete", "carpeted", "grassy", "sandy")
 
@@ -208,7 +223,7 @@ def _sample_camera(rng: np.random.Generator, fov: float, kind: str) -> dict[str,
 
 
 def sample_scene_spec(rng: np.random.Generator, *, dynamic: bool, num_cameras: int, size: int,
-                      num_frames: int, fps: float = 8.0, texture_ratio: float = DEFAULT_TEXTURE_RATIO,
+                      num_frames: int, fps: float = 8.0, texture_ratio: float = SYNTH.texture_ratio,
                       motions: tuple[str, ...] = MOTIONS, max_movers: int | None = None) -> dict[str, Any]:
     """Sample a complete scene description from the scene's own generator ``rng``. ``dynamic``: at least one object
     moves (else none); ``num_cameras`` ≥ 1 (camera 0 the reference); ``size``: image width = height, pixels; ``fps``:

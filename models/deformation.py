@@ -14,6 +14,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from diff4splat.utils.checks import check_number, check_ranges, ranged
+
 from .pretrained import PretrainedMixin
 from .tracing import tracing
 
@@ -47,20 +49,15 @@ class DeformationConfig:
         ValueError: a field out of range.
     """
 
-    in_channels: int = 64
-    hidden: int = 32
-    levels: int = 3
-    time_frequencies: int = 6
-    max_offset: float = 2.0
-    max_log_scale: float = 3.0
+    in_channels: int = ranged(64)
+    hidden: int = ranged(32)
+    levels: int = ranged(3)
+    time_frequencies: int = ranged(6)
+    max_offset: float = ranged(2.0, check_number, lo=0, lo_open=True)
+    max_log_scale: float = ranged(3.0, check_number, lo=0, lo_open=True)
 
     def __post_init__(self) -> None:
-        for name in ("in_channels", "hidden", "levels", "time_frequencies"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"DeformationConfig.{name} must be ≥ 1, got {getattr(self, name)}")
-        for name in ("max_offset", "max_log_scale"):
-            if not float(getattr(self, name)) > 0:
-                raise ValueError(f"DeformationConfig.{name} must be > 0, got {getattr(self, name)}")
+        check_ranges("DeformationConfig", self)
 
 
 def time_embedding(times: Tensor, frequencies: int) -> Tensor:  # times: (K,)

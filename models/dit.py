@@ -15,6 +15,7 @@ import torch
 from torch import Tensor, nn
 from torch.utils.checkpoint import checkpoint
 
+from diff4splat.utils.checks import check_ranges, ranged
 from models.backbone import check_velocity_inputs
 from models.layers import (
     CrossAttention,
@@ -56,26 +57,22 @@ class VideoDiTConfig:
         ValueError: a field out of range.
     """
 
-    latent_channels: int = 16
-    hidden_size: int = 32
-    depth: int = 2
-    num_heads: int = 2
+    latent_channels: int = ranged(16)
+    hidden_size: int = ranged(32)
+    depth: int = ranged(2)
+    num_heads: int = ranged(2)
     mlp_ratio: float = 4.0
     patch_size: tuple[int, int, int] = (1, 2, 2)
-    text_dim: int = 32
-    camera_channels: int = 1536
-    frequency_embedding_size: int = 256
+    text_dim: int = ranged(32)
+    camera_channels: int = ranged(1536)
+    frequency_embedding_size: int = ranged(256)
     rope_theta: float = 10000.0
     qk_norm: bool = True
     norm_eps: float = 1e-6
 
     def __post_init__(self):
         self.patch_size = tuple(int(p) for p in self.patch_size)
-        for name in ("latent_channels", "hidden_size", "depth", "num_heads", "text_dim", "camera_channels",
-                     "frequency_embedding_size"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or value < 1:
-                raise ValueError(f"VideoDiTConfig.{name} must be a positive int, got {value!r}")
+        check_ranges("VideoDiTConfig", self)
         if len(self.patch_size) != 3 or min(self.patch_size) < 1:
             raise ValueError(f"VideoDiTConfig.patch_size must be 3 positive ints, got {self.patch_size!r}")
         if self.hidden_size % self.num_heads:

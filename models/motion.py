@@ -13,6 +13,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from diff4splat.utils.checks import check_number, check_ranges, ranged
+
 from .pretrained import PretrainedMixin
 
 COS_EPS = 1e-6
@@ -38,21 +40,16 @@ class MotionConfig:
         ValueError: a field out of range.
     """
 
-    features: int = 8
-    hidden: int = 32
-    levels: int = 3
-    radius: int = 2
-    max_flow: float = 8.0
+    features: int = ranged(8)
+    hidden: int = ranged(32)
+    levels: int = ranged(3)
+    radius: int = ranged(2)
+    max_flow: float = ranged(8.0, check_number, lo=0, lo_open=True)
     min_flow: float = 0.5
-    max_log_depth: float = 0.1
+    max_log_depth: float = ranged(0.1, check_number, lo=0, lo_open=True)
 
     def __post_init__(self) -> None:
-        for name in ("features", "hidden", "levels", "radius"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"MotionConfig.{name} must be ≥ 1, got {getattr(self, name)}")
-        for name in ("max_flow", "max_log_depth"):
-            if not float(getattr(self, name)) > 0:
-                raise ValueError(f"MotionConfig.{name} must be > 0, got {getattr(self, name)}")
+        check_ranges("MotionConfig", self)
         if not 0 <= float(self.min_flow) < float(self.max_flow):
             raise ValueError(f"MotionConfig.min_flow must be in [0, max_flow), got {self.min_flow}")
 

@@ -16,6 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from diff4splat.utils.checks import check_ranges, ranged
 from models.pretrained import PretrainedMixin
 
 __all__ = ["ByteTokenizer", "TextEncoderConfig", "TextEncoder", "relative_position_bucket", "RMSNorm"]
@@ -94,23 +95,19 @@ class TextEncoderConfig:
         ValueError: a field out of range.
     """
 
-    vocab_size: int = 259
-    d_model: int = 64
-    num_layers: int = 2
-    num_heads: int = 4
-    d_kv: int = 16
-    d_ff: int = 128
-    num_buckets: int = 32
-    max_distance: int = 128
-    max_length: int = 64
+    vocab_size: int = ranged(259)
+    d_model: int = ranged(64)
+    num_layers: int = ranged(2)
+    num_heads: int = ranged(4)
+    d_kv: int = ranged(16)
+    d_ff: int = ranged(128)
+    num_buckets: int = ranged(32)
+    max_distance: int = ranged(128)
+    max_length: int = ranged(64)
     eps: float = 1e-6
 
     def __post_init__(self) -> None:
-        for name in ("vocab_size", "d_model", "num_layers", "num_heads", "d_kv", "d_ff", "num_buckets",
-                     "max_distance", "max_length"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"TextEncoderConfig.{name} must be a positive int, got {value!r}")
+        check_ranges("TextEncoderConfig", self)
         if self.vocab_size < ByteTokenizer.vocab_size:
             raise ValueError(f"TextEncoderConfig.vocab_size must be >= {ByteTokenizer.vocab_size} "
                              f"(byte tokenizer), got {self.vocab_size}")

@@ -15,6 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from diff4splat.utils.checks import check_ranges, ranged
 from models.backbone import LatentFormat
 from models.pretrained import PretrainedMixin
 from models.tracing import tracing
@@ -51,13 +52,13 @@ class VideoVAEConfig:
     widths, an unknown ``upsample`` or ``scaling_factor`` ≤ 0.
     """
 
-    in_channels: int = 3
-    latent_channels: int = 4
-    base_channels: int = 8
+    in_channels: int = ranged(3)
+    latent_channels: int = ranged(4)
+    base_channels: int = ranged(8)
     channel_mults: tuple[int, ...] = (1, 2, 2, 2)
     temporal_downsample: tuple[bool, ...] = (False, True, True)
-    num_res_blocks: int = 1
-    norm_groups: int = 4
+    num_res_blocks: int = ranged(1)
+    norm_groups: int = ranged(4)
     shortcuts: bool = True
     upsample: str = "nearest"
     scaling_factor: float = 1.0
@@ -66,10 +67,7 @@ class VideoVAEConfig:
     def __post_init__(self) -> None:
         self.channel_mults = tuple(self.channel_mults)
         self.temporal_downsample = tuple(bool(t) for t in self.temporal_downsample)
-        for name in ("in_channels", "latent_channels", "base_channels", "num_res_blocks", "norm_groups"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"VideoVAEConfig.{name} must be a positive int, got {value!r}")
+        check_ranges("VideoVAEConfig", self)
         if len(self.channel_mults) < 1 or any(int(m) < 1 for m in self.channel_mults):
             raise ValueError(f"VideoVAEConfig.channel_mults must be positive ints, got {self.channel_mults}")
         if len(self.temporal_downsample) != len(self.channel_mults) - 1:

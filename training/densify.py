@@ -16,6 +16,7 @@ import torch
 from torch import Tensor, nn
 
 from diff4splat.scene.quaternions import quat_to_rotmat
+from diff4splat.utils.checks import check_int, check_number, check_ranges, ranged
 
 __all__ = ["DensifyConfig", "DensityStats", "densify_and_prune", "prune", "reset_opacity", "replace_params"]
 
@@ -26,30 +27,23 @@ class DensifyConfig:
     ``opacity_reset_interval`` 0 never resets; ``max_gaussians`` caps the count, candidates taken by largest
     gradient first. Raises ValueError naming ``densify.<field>`` out of range."""
 
-    start: int = 500
-    until: int = 15000
-    interval: int = 100
-    grad_threshold: float = 2e-4
-    percent_dense: float = 0.01
-    min_opacity: float = 0.005
-    max_screen_size: float = 20.0
-    max_world_size: float = 0.1
-    opacity_reset_interval: int = 3000
-    split_n: int = 2
-    max_gaussians: int = 200_000
+    start: int = ranged(500, check_int, lo=0)
+    until: int = ranged(15000, check_int, lo=0)
+    interval: int = ranged(100, check_int, lo=0)
+    grad_threshold: float = ranged(2e-4, check_number, lo=0)
+    percent_dense: float = ranged(0.01, check_number, lo=0)
+    min_opacity: float = ranged(0.005, check_number, lo=0)
+    max_screen_size: float = ranged(20.0, check_number, lo=0)
+    max_world_size: float = ranged(0.1, check_number, lo=0)
+    opacity_reset_interval: int = ranged(3000, check_int, lo=0)
+    split_n: int = ranged(2, check_int, lo=0)
+    max_gaussians: int = ranged(200_000, check_int, lo=0)
 
     def __post_init__(self) -> None:
-        for name in ("start", "until", "interval", "opacity_reset_interval", "split_n", "max_gaussians"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < 0:
-                raise ValueError(f"densify.{name} must be an int ≥ 0, got {v!r}")
+        check_ranges("densify", self)
         if self.interval < 1 or self.split_n < 2 or self.max_gaussians < 1:
             raise ValueError(f"densify: interval ≥ 1, split_n ≥ 2, max_gaussians ≥ 1 required, got "
                              f"{self.interval}, {self.split_n}, {self.max_gaussians}")
-        for name in ("grad_threshold", "percent_dense", "min_opacity", "max_screen_size", "max_world_size"):
-            v = getattr(self, name)
-            if not isinstance(v, (int, float)) or isinstance(v, bool) or not v >= 0:
-                raise ValueError(f"densify.{name} must be a number ≥ 0, got {v!r}")
 
     def active(self, iteration: int) -> bool:
         """True when ``iteration`` (1-based count of steps taken) densifies."""

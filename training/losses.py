@@ -3,7 +3,7 @@ silent, those of the work each term comes from (:class:`LossWeights`)."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import kornia
 import torch
@@ -11,6 +11,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from diff4splat.cameras import project_points
+from diff4splat.utils.checks import check_number, check_ranges, ranged
 from diff4splat.utils.devices import autocast_off
 from models.flow_matching import add_noise, sample_logit_normal, shift_sigmas, velocity_target
 
@@ -19,6 +20,11 @@ from .direction_test import moving_pixels
 __all__ = ["LossWeights", "flow_matching_loss", "flow_matching_errors", "moving_cells", "sample_training_sigmas",
            "photometric_loss", "depth_correlation_loss", "depth_smoothness_loss", "log_depth_loss", "motion_loss",
            "displacement_loss", "scene_flow_loss", "warp_loss", "gather_track_predictions", "head_distillation_loss"]
+
+
+def _weight(default: float) -> float:
+    """A :class:`LossWeights` field defaulting to ``default``: a finite number ≥ 0 (checked on construction)."""
+    return ranged(default, check_number, lo=0)
 
 
 @dataclass
@@ -36,22 +42,19 @@ class LossWeights:
     Raises ValueError for a negative or non-finite weight, or ``ssim`` above 1.
     """
 
-    ssim: float = 0.2
-    rgb: float = 1.0
-    depth: float = 0.1
-    metric_depth: float = 0.0
-    smooth: float = 1e-3
-    motion: float = 1.0
-    displacement: float = 0.0
-    scene_flow: float = 0.0
-    warp: float = 1.0
-    mover: float = 0.0
+    ssim: float = _weight(0.2)
+    rgb: float = _weight(1.0)
+    depth: float = _weight(0.1)
+    metric_depth: float = _weight(0.0)
+    smooth: float = _weight(1e-3)
+    motion: float = _weight(1.0)
+    displacement: float = _weight(0.0)
+    scene_flow: float = _weight(0.0)
+    warp: float = _weight(1.0)
+    mover: float = _weight(0.0)
 
     def __post_init__(self) -> None:
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if not 0 <= value < math.inf:
-                raise ValueError(f"stage.weights.{f.name} must be a finite number ≥ 0, got {value}")
+        check_ranges("stage.weights", self)
         if self.ssim > 1:
             raise ValueError(f"stage.weights.ssim must lie in [0, 1] (the SSIM share of the photometric loss), "
                              f"got {self.ssim}")

@@ -39,6 +39,7 @@ from torch.utils.data import DataLoader, Dataset, DistributedSampler
 from tqdm.auto import tqdm
 
 from diff4splat.io.atomic import atomic_output_path
+from diff4splat.utils.checks import check_number, check_ranges, ranged
 from diff4splat.utils.devices import AUTO, cpu_bf16_warning
 
 from .checkpoint import latest_checkpoint, load_checkpoint, rng_state, save_checkpoint, set_rng_state
@@ -77,38 +78,31 @@ class TrainerConfig:
     """
 
     run_dir: str = "runs/default"
-    total_steps: int = 100
-    batch_size: int = 2
-    lr: float = 1e-4
+    total_steps: int = ranged(100)
+    batch_size: int = ranged(2)
+    lr: float = ranged(1e-4, check_number, lo=0, lo_open=True)
     betas: tuple[float, float] = (0.9, 0.999)
-    weight_decay: float = 0.01
-    warmup_steps: int = 10
+    weight_decay: float = ranged(0.01, check_number, lo=0)
+    warmup_steps: int = ranged(10, check_number, lo=0)
     min_lr_ratio: float = 0.1
-    grad_clip: float = 1.0
+    grad_clip: float = ranged(1.0, check_number, lo=0)
     ema_decay: float | None = None
     device: str = AUTO
     bf16: bool | None = None
     tf32: bool = True
     gradient_checkpointing: bool = False
     seed: int = 0
-    checkpoint_every: int = 50
-    keep_checkpoints: int = 3
-    log_every: int = 1
-    max_nonfinite: int = 5
-    num_workers: int = 0
+    checkpoint_every: int = ranged(50)
+    keep_checkpoints: int = ranged(3)
+    log_every: int = ranged(1)
+    max_nonfinite: int = ranged(5)
+    num_workers: int = ranged(0, check_number, lo=0)
     strategy: str = "ddp"
     find_unused_parameters: bool = False
     progress: bool = True
 
     def __post_init__(self) -> None:
-        for name in ("total_steps", "batch_size", "checkpoint_every", "keep_checkpoints", "log_every", "max_nonfinite"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"trainer.{name} must be ≥ 1, got {getattr(self, name)}")
-        if not 0 < self.lr < math.inf:
-            raise ValueError(f"trainer.lr must be > 0, got {self.lr}")
-        for name in ("warmup_steps", "grad_clip", "weight_decay", "num_workers"):  # grad_clip < 0 turned clipping off
-            if not 0 <= getattr(self, name) < math.inf:
-                raise ValueError(f"trainer.{name} must be ≥ 0, got {getattr(self, name)}")
+        check_ranges("trainer", self)  # grad_clip < 0 turned clipping off
         if not 0 <= self.min_lr_ratio <= 1:
             raise ValueError(f"trainer.min_lr_ratio must lie in [0, 1], got {self.min_lr_ratio}")
         if self.strategy not in ("ddp", "fsdp"):

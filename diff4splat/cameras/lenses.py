@@ -19,7 +19,7 @@ from torch import Tensor
 
 from diff4splat.cameras.path import camera_centers
 from diff4splat.cameras.rays import camera_rays
-from diff4splat.utils.checks import check_number, check_positive_int
+from diff4splat.utils.checks import check_number, check_positive_int, check_ranges, ranged
 from diff4splat.utils.constants import CAMERA_MODEL
 
 __all__ = ["RAY_CAMERA_MODELS", "FisheyePolynomial", "FisheyeKB", "ThinLens", "RollingShutter", "check_camera",
@@ -118,17 +118,16 @@ class FisheyePolynomial:
         ValueError: naming the field: a non-finite coefficient, k0 ≠ 0 or k1 ≤ 0.
     """
 
-    k0: float = 0.0
-    k1: float = 0.0
-    k2: float = 0.0
-    k3: float = 0.0
-    k4: float = 0.0
+    k0: float = ranged(0.0, check_number)
+    k1: float = ranged(0.0, check_number)
+    k2: float = ranged(0.0, check_number)
+    k3: float = ranged(0.0, check_number)
+    k4: float = ranged(0.0, check_number)
     r_max: float = field(init=False, repr=False, compare=False)
     theta_max: float = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        for name in ("k0", "k1", "k2", "k3", "k4"):
-            check_number(f"FisheyePolynomial.{name}", getattr(self, name))
+        check_ranges("FisheyePolynomial", self)
         if self.k0 != 0.0:
             raise ValueError(f"FisheyePolynomial.k0 must be 0 (r = 0 is the optical axis), got {self.k0!r}")
         if not self.k1 > 0:
@@ -188,16 +187,15 @@ class FisheyeKB:
         ValueError: naming the field: a non-finite coefficient.
     """
 
-    k1: float = 0.0
-    k2: float = 0.0
-    k3: float = 0.0
-    k4: float = 0.0
+    k1: float = ranged(0.0, check_number)
+    k2: float = ranged(0.0, check_number)
+    k3: float = ranged(0.0, check_number)
+    k4: float = ranged(0.0, check_number)
     theta_max: float = field(init=False, repr=False, compare=False)
     theta_d_max: float = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        for name in ("k1", "k2", "k3", "k4"):
-            check_number(f"FisheyeKB.{name}", getattr(self, name))
+        check_ranges("FisheyeKB", self)
         x_turn = _smallest_positive_root([1.0, 3 * self.k1, 5 * self.k2, 7 * self.k3, 9 * self.k4])
         theta_max = min(math.pi, math.sqrt(x_turn))
         object.__setattr__(self, "theta_max", theta_max)

@@ -108,32 +108,22 @@ class _FusedProjection(torch.autograd.Function):
 _REFERENCE = inspect.signature(project_gaussians)
 
 
-def project_fused(
-    means: Tensor,  # (N, 3)
-    quats: Tensor,  # (N, 4)
-    scales: Tensor,  # (N, 3)
-    opacities: Tensor,  # (N,)
-    viewmats: Tensor,  # (C, 4, 4)
-    Ks: Tensor,  # (C, 3, 3)
-    width: int,
-    height: int,
-    **settings,
-) -> Projection:
-    """:func:`~diff4splat.render.projection.project_gaussians` (its keywords and defaults, its
+def project_fused(*args, **kwargs) -> Projection:
+    """:func:`~diff4splat.render.projection.project_gaussians` (its signature: arguments, keywords and defaults, its
     :class:`~diff4splat.render.projection.Projection` in ``means``' dtype) by the fused kernels, or by the reference
     itself without numba, for a non-pinhole model, non-CPU tensors or ``viewmats``/``Ks`` requiring gradients.
 
     Raises:
-        TypeError: a keyword the reference does not take.
+        TypeError: arguments the reference does not take.
         ValueError: unknown camera model or zero-norm quaternion (the reference's checks).
     """
-    bound = _REFERENCE.bind(means, quats, scales, opacities, viewmats, Ks, width, height, **settings)
+    bound = _REFERENCE.bind(*args, **kwargs)
     bound.apply_defaults()
-    a = bound.arguments
-    if (a["camera_model"] != "pinhole" or not fused_available() or means.device.type != "cpu"
+    means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d, antialiased, model = (
+        bound.arguments.values())  # in the reference's order
+    if (model != "pinhole" or not fused_available() or means.device.type != "cpu"
             or viewmats.requires_grad or Ks.requires_grad):
         return project_gaussians(*bound.args, **bound.kwargs)
-    near_plane, far_plane, eps2d, antialiased = a["near_plane"], a["far_plane"], a["eps2d"], a["antialiased"]
     means2d, depths, covars2d, conics, opac, radii, comps = _FusedProjection.apply(
         means, quat_normalize(quats), scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d,
         antialiased)

@@ -6,13 +6,17 @@ Each check raises ``ValueError`` naming the parameter and the value it got (``wi
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from dataclasses import field, fields
+from functools import partial
 from numbers import Integral, Real
+from typing import Any
 
 import torch
 from torch import Tensor
 
 __all__ = ["is_int", "is_number", "check_int", "check_positive_int", "check_number", "check_positive", "check_finite",
-           "MissingExtraError"]
+           "ranged", "check_ranges", "MissingExtraError"]
 
 
 class MissingExtraError(ModuleNotFoundError):
@@ -99,6 +103,24 @@ def check_positive(name: str, value: object) -> float:
     if not math.isfinite(v) or v <= 0:
         raise ValueError(f"{name} must be a positive finite number, got {value!r}")
     return v
+
+
+def ranged(default: object, check: Callable[..., object] = check_positive_int, **bounds: object) -> Any:
+    """A dataclass field defaulting to ``default`` whose value :func:`check_ranges` checks with
+    ``check(name, value, **bounds)`` (one of this module's checks, default :func:`check_positive_int`)."""
+    return field(default=default, metadata={"check": partial(check, **bounds)})
+
+
+def check_ranges(owner: str, obj: object) -> None:
+    """Check each field of the dataclass instance ``obj`` declared with :func:`ranged`, named ``owner.field``.
+
+    Raises:
+        ValueError: the first field out of its range (its check's message).
+    """
+    for f in fields(obj):
+        check = f.metadata.get("check")
+        if check is not None:
+            check(f"{owner}.{f.name}", getattr(obj, f.name))
 
 
 def check_finite(name: str, tensor: Tensor) -> None:
