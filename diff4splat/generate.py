@@ -15,8 +15,8 @@ from torch import Tensor
 from diff4splat import request
 from diff4splat.assembly.assemble import DEPTH_KINDS
 from diff4splat.assembly.photo import layer_sizes
-from diff4splat.cameras import DEFAULT_TRAJECTORY, TRAJECTORIES, CameraPath
-from diff4splat.cameras.trajectories import check_amplitude
+from diff4splat.cameras import DEFAULT_TRAJECTORY, CameraPath
+from diff4splat.cameras.trajectories import check_amplitude, check_trajectory
 from diff4splat.io.depth_maps import fit_depth_map, read_depth_map
 from diff4splat.io.image import preprocess_image, read_image
 from diff4splat.io.inputs import check_input_file
@@ -70,8 +70,7 @@ def _check_request(image, cameras, trajectory, amplitude, steps, sampler, seed, 
             raise ValueError("--amplitude scales a --trajectory preset; it does not apply to --cameras "
                              "(the camera file fixes the path)")
     else:
-        if trajectory not in TRAJECTORIES:
-            raise ValueError(f"--trajectory must be one of {TRAJECTORIES}, got {trajectory!r}")
+        check_trajectory(trajectory, "--trajectory")
         check_amplitude(trajectory, amplitude, "--amplitude")
 
 

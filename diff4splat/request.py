@@ -24,7 +24,7 @@ from diff4splat.io.scene_folder import scene_meta, write_scene_folder
 from diff4splat.io.video import check_fps
 from diff4splat.pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, SceneResult
 from diff4splat.render.sequence import render_path
-from diff4splat.runtime import ATTENTION_KERNELS, DTYPES, check_offload
+from diff4splat.runtime import DTYPES, check_attention, check_offload
 from diff4splat.utils.checks import check_positive_int
 from diff4splat.utils.devices import AUTO, resolve_device
 from diff4splat.utils.limits import check_limit, check_memory, check_output_size
@@ -90,8 +90,7 @@ def load_pipeline(checkpoint: str | os.PathLike | None = None, config: str | Non
         raise ValueError("--onnx runs the export with onnxruntime, not --runtime torch")
     if dtype not in DTYPES:
         raise ValueError(f"--dtype must be one of {sorted(DTYPES)}, got {dtype!r}")
-    if attention not in ATTENTION_KERNELS:
-        raise ValueError(f"--attention must be one of {tuple(ATTENTION_KERNELS)}, got {attention!r}")
+    check_attention(attention, "--attention")
     check_offload(offload, compile)
     device = resolve_device(device, "--device")  # before any model is loaded
     if checkpoint is not None and not Path(checkpoint).is_dir():

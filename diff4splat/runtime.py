@@ -23,7 +23,7 @@ from models.dit import VideoDiT
 from models.ldrm import LDRMOutput
 
 __all__ = ["NetworkRuntime", "TorchRuntime", "OFFLOAD_MODES", "check_offload", "DTYPES", "FF_CHUNK_TOKENS",
-           "ATTENTION_KERNELS", "attention_priority"]
+           "ATTENTION_KERNELS", "check_attention", "attention_priority"]
 
 
 @runtime_checkable
@@ -112,11 +112,16 @@ _FALLBACK_ORDER = (SDPBackend.FLASH_ATTENTION, SDPBackend.EFFICIENT_ATTENTION, S
                    SDPBackend.MATH)  # behind the preferred kernel; math last: it takes every call
 
 
+def check_attention(attention: object, name: str = "attention") -> None:
+    """ValueError (naming ``name``) unless ``attention`` is one of :data:`ATTENTION_KERNELS`."""
+    if attention not in ATTENTION_KERNELS:
+        raise ValueError(f"{name} must be one of {tuple(ATTENTION_KERNELS)}, got {attention!r}")
+
+
 def attention_priority(name: str) -> list[SDPBackend] | None:
     """The SDPA kernel order for ``name`` (:data:`ATTENTION_KERNELS`): it, then the others; None for ``auto``.
-    ValueError for an unknown name."""
-    if name not in ATTENTION_KERNELS:
-        raise ValueError(f"attention must be one of {tuple(ATTENTION_KERNELS)}, got {name!r}")
+    ValueError for an unknown name (:func:`check_attention`)."""
+    check_attention(name)
     first = ATTENTION_KERNELS[name]
     return None if first is None else [first, *(b for b in _FALLBACK_ORDER if b != first)]
 
@@ -142,7 +147,7 @@ class TorchRuntime:
                  dtype: torch.dtype | None = None, offload: str = "none", attention: str = "auto",
                  compile: bool = False):
         check_offload(offload, compile)
-        attention_priority(attention)  # an unknown name fails here, before any model moves
+        check_attention(attention)  # before any model moves
         self.attention = attention
         if dtype is not None and dtype not in DTYPES.values():
             raise ValueError(f"dtype must be one of {sorted(DTYPES)} (torch dtypes), got {dtype!r}")

@@ -23,8 +23,8 @@ from torch import Tensor
 from diff4splat.cameras.path import CameraPath
 from diff4splat.utils.checks import check_positive_int
 
-__all__ = ["TRAJECTORIES", "DEFAULT_TRAJECTORY", "DEFAULT_AMPLITUDES", "AMPLITUDE_LIMITS", "check_amplitude",
-           "amplitude_help", "look_at", "make_trajectory"]
+__all__ = ["TRAJECTORIES", "DEFAULT_TRAJECTORY", "DEFAULT_AMPLITUDES", "AMPLITUDE_LIMITS", "check_trajectory",
+           "check_amplitude", "amplitude_help", "look_at", "make_trajectory"]
 
 TRAJECTORIES: tuple[str, ...] = ("arc", "orbit", "spiral", "forward", "backward", "up", "down", "pan-left", "pan-right")
 """Names accepted by :func:`make_trajectory`."""
@@ -54,6 +54,12 @@ _LIMIT_REASONS = {
 _DIRECTIONS = {"forward": (0.0, 0.0, 1.0), "backward": (0.0, 0.0, -1.0), "up": (0.0, -1.0, 0.0),
                "down": (0.0, 1.0, 0.0), "pan-left": (-1.0, 0.0, 0.0), "pan-right": (1.0, 0.0, 0.0)}
 
+def check_trajectory(trajectory: object, name: str = "trajectory") -> None:
+    """ValueError (naming ``name``) unless ``trajectory`` is one of :data:`TRAJECTORIES`."""
+    if trajectory not in TRAJECTORIES:
+        raise ValueError(f"{name} must be one of {TRAJECTORIES}, got {trajectory!r}")
+
+
 def check_amplitude(trajectory: str, amplitude: object, name: str = "amplitude") -> float | None:
     """The amplitude ``trajectory`` will use: ``amplitude`` (radians for ``arc``, scene depths otherwise) checked
     against :data:`AMPLITUDE_LIMITS`, or the preset's default for None; None for ``orbit``. ``name`` is the
@@ -63,8 +69,7 @@ def check_amplitude(trajectory: str, amplitude: object, name: str = "amplitude")
         ValueError: an unknown ``trajectory``; ``amplitude`` not a finite number in range, or given for ``orbit``
             (naming ``name``, the preset, the range and unit).
     """
-    if trajectory not in TRAJECTORIES:
-        raise ValueError(f"trajectory must be one of {TRAJECTORIES}, got {trajectory!r}")
+    check_trajectory(trajectory)
     if trajectory == "orbit":
         if amplitude is not None:
             raise ValueError(f"{name} does not apply to orbit: it is the full 360° circle around the scene centre, "
@@ -157,8 +162,7 @@ def make_trajectory(
         ValueError: naming ``name``, ``num_frames``, ``scene_depth``, ``amplitude``, ``K`` (not (3, 3)) or a field
             of :meth:`CameraPath.validate`.
     """
-    if name not in TRAJECTORIES:
-        raise ValueError(f"name must be one of {TRAJECTORIES}, got {name!r}")
+    check_trajectory(name, "name")
     num_frames = check_positive_int("num_frames", num_frames)
     if not isinstance(scene_depth, (int, float)) or not math.isfinite(scene_depth) or scene_depth <= 0:
         raise ValueError(f"scene_depth must be a finite number > 0 metres, got {scene_depth!r}")
