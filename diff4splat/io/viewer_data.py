@@ -25,7 +25,6 @@ from diff4splat.io.video import DEFAULT_FPS
 from diff4splat.render import keyframes
 from diff4splat.render.settings import BACKGROUND, EPS2D, NEAR_PLANE
 from diff4splat.scene.dynamic import DynamicGaussians
-from diff4splat.scene.gaussians import Gaussians
 
 __all__ = ["VIEWER_BUDGET_BYTES", "FLOAT16_MAX_PX", "ViewerPayload", "encode_keyframes", "decode_keyframes",
            "viewer_payload", "payload_bytes"]
@@ -104,12 +103,8 @@ def _camera_list(cameras: CameraPath) -> list[dict]:
 def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float = DEFAULT_FPS,
                    budget: int | None = VIEWER_BUDGET_BYTES,
                    background: tuple[float, float, float] = BACKGROUND, eps2d: float = EPS2D) -> ViewerPayload:
-    """The data of one viewer page (module docstring), reduced to at most ``budget`` bytes (None: never).
-
-    Reductions, in order, each only while over budget: SH degree → 0; keyframes subsampled (first and last kept, at
-    least 2) while the held keyframes take more bytes than the rest of the payload; the Gaussians covering most kept
-    (:func:`keyframes.covering_order`, each at its own size: a still Gaussian holds no keyframe). Each one taken is
-    listed in ``config["note"]``.
+    """The data of one viewer page (module docstring), reduced to at most ``budget`` bytes (None: never) by
+    :func:`diff4splat.render.keyframes.page_scene`; each reduction taken is listed in ``config["note"]``.
     ``background``: RGB in [0, 1] behind the Gaussians (as the CPU renderer composites it); ``eps2d``: the scene's
     screen-space dilation, pixels² (Spark's ``preBlurAmount``; meta.json ``eps2d``).
 
@@ -120,73 +115,28 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
         raise ValueError("cameras: the viewer needs at least one camera")
     if not fps > 0:
         raise ValueError(f"fps must be > 0, got {fps}")
-    scene = scene.to("cpu")
-    times, span = keyframes.keyframe_times(scene), keyframes.time_range(scene, cameras)
-    canonical: Gaussians = scene.canonical
-    degree = canonical.sh_degree
-    n, keyed = canonical.num_gaussians, times is not None
-    support_arrays = () if not scene.has_temporal else (scene.t_means, scene.t_scales) + (
-        () if scene.t_ramps is None else (scene.t_ramps,))
-    reductions: list[str] = []
-    dtype, err = ("float32", None) if times is None else keyframes.keyframe_dtype(scene, times, cameras, FLOAT16_MAX_PX)
-    itemsize = 2 if dtype == "float16" else 4
-    still = None if times is None else keyframes.still_gaussians(scene)
-    first, count = (None, None) if times is None else keyframes.key_windows(scene, times, still)
-    held = lambda: 0 if count is None else int(count.sum())  # noqa: E731
-    size = lambda: payload_bytes(n, degree, held(), len(support_arrays), itemsize, keyed)  # noqa: E731
-    if budget is not None and size() > budget and degree > 0:
-        reductions.append(f"SH degree {degree} → 0")
-        degree = 0
-    F = 0 if times is None else times.shape[0]
-    kept_times = times
-    while (budget is not None and kept_times is not None and size() > budget and len(kept_times) > 2
-           and 2 * held() * 10 * itemsize > size()):
-        kept_times = times[keyframes.evenly_spaced(F, len(kept_times) - 1).unique()]  # fewer while the larger part
-        first, count = keyframes.key_windows(scene, kept_times, still)
-    if kept_times is not None and len(kept_times) < F:
-        reductions.append(f"{F} → {len(kept_times)} keyframes")
-        times = kept_times
-    keep = None
-    if budget is not None and size() > budget:
-        order = keyframes.covering_order(canonical.opacities.detach().cpu(), canonical.scales.detach().cpu())
-        cost = payload_bytes(1, degree, 0, len(support_arrays), itemsize, keyed)
-        cost = (torch.full((n,), cost, dtype=torch.int64, device=order.device)
-                + (0 if count is None else count[order] * 10 * itemsize))
-        m = max(1, int(torch.searchsorted(torch.cumsum(cost, 0), budget, right=True)))
-        keep = order[:m].sort().values
-        reductions.append(f"{n:,} → {m:,} Gaussians (those covering most)")
-        n = m
-        if count is not None:
-            first, count = first[keep], count[keep]
-    g = canonical if keep is None else canonical.select(keep)
-    if degree < canonical.sh_degree:
-        g = Gaussians(g.means, g.quats, g.scales, g.opacities, g.sh[:, :1])
-    frames = None if times is None else keyframes.held_keyframes(scene, times, first, count, keep)  # what was kept
-    support = None
-    if scene.has_temporal:
-        support = support_arrays if keep is None else tuple(a[keep] for a in support_arrays)
-    first_pose = g.means.detach() if times is None else scene.at(float(times[0]), gate=0.0, index=keep).means
+    page = keyframes.page_scene(scene.to("cpu"), cameras, budget, payload_bytes, FLOAT16_MAX_PX)
+    g, times, span, held, pose = page.gaussians, page.times, page.span, page.held, page.first_pose
     config = {
-        "numGaussians": n, "shDegree": degree, "dynamic": span is not None, "temporal": scene.has_temporal,
-        "temporalRamps": scene.t_ramps is not None,
+        "numGaussians": g.num_gaussians, "shDegree": g.sh_degree, "dynamic": span is not None,
+        "temporal": scene.has_temporal, "temporalRamps": scene.t_ramps is not None,
         "times": [] if times is None else [float(t) for t in times], "timeRange": [] if span is None else list(span),
-        "heldKeyframes": held(),
-        "dtype": dtype, "float16ErrorPx": err, "width": cameras.width, "height": cameras.height,
+        "heldKeyframes": 0 if held is None else held.shape[0],
+        "dtype": page.dtype, "float16ErrorPx": page.float16_error_px, "width": cameras.width, "height": cameras.height,
         "duration": (len(cameras) - 1) / fps if len(cameras) > 1 else 1.0 / fps,
         "cameras": _camera_list(cameras), "near": NEAR_PLANE, "background": [float(c) for c in background],
         "eps2d": float(eps2d),
-        "far": max(100.0, 10 * float(first_pose.double().norm(dim=1).max()) if first_pose.numel() else 100.0),
-        "targetDistance": keyframes.target_distance(first_pose, cameras.viewmats[0].detach().cpu()),
-        "note": ("reduced to fit the viewer's size budget: " + "; ".join(reductions) +
-                 " — run `diff4splat view DIR` for the full scene") if reductions else "",
-        "reductions": list(reductions),
-        "bytesPerHeldKey": 10 * itemsize if frames is not None else 0,
+        "far": max(100.0, 10 * float(pose.double().norm(dim=1).max()) if pose.numel() else 100.0),
+        "targetDistance": page.target_distance,
+        "note": ("reduced to fit the viewer's size budget: " + "; ".join(page.reductions) +
+                 " — run `diff4splat view DIR` for the full scene") if page.reductions else "",
+        "reductions": list(page.reductions),
+        "bytesPerHeldKey": 10 * (2 if page.dtype == "float16" else 4) if held is not None else 0,
     }
     if not math.isfinite(config["far"]):
         config["far"] = 1e4
-    data = None if span is None else encode_keyframes(frames, None if first is None else (first, count), dtype,
-                                                      support)
-    return ViewerPayload(config, ply_bytes(g), data, reductions)
+    data = None if span is None else encode_keyframes(held, page.windows, page.dtype, page.support)
+    return ViewerPayload(config, ply_bytes(g), data, page.reductions)
 
 
 def decode_keyframes(data: bytes, config: dict) -> dict[str, np.ndarray]:

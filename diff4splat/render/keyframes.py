@@ -1,10 +1,13 @@
-"""What the WebGL viewer renders of a scene (docs/DESIGN.md, "Viewer"): absolute keyframes (:meth:`DynamicGaussians.at`
-at the key times, gate 0), the keys each Gaussian holds, the float16 error bound and the Gaussians covering most; the
-page interpolates keyframes as :meth:`DynamicGaussians.deformation_at` does. Bytes: :mod:`diff4splat.io.viewer_data`.
+"""What the WebGL viewer renders of a scene (docs/DESIGN.md, "Viewer"), reduced to a byte budget (:func:`page_scene`):
+absolute keyframes (:meth:`DynamicGaussians.at` at the key times, gate 0), the keys each Gaussian holds, the float16
+error bound and the Gaussians covering most; the page interpolates keyframes as
+:meth:`DynamicGaussians.deformation_at` does. Bytes: :mod:`diff4splat.io.viewer_data`.
 """
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -12,9 +15,101 @@ from torch import Tensor
 from diff4splat.cameras.path import CameraPath
 from diff4splat.render.settings import NEAR_PLANE
 from diff4splat.scene.dynamic import DynamicGaussians, distinct_rows
+from diff4splat.scene.gaussians import Gaussians
 
-__all__ = ["keyframe_times", "time_range", "keyframes", "still_gaussians", "key_windows", "held_keyframes",
-           "evenly_spaced", "float16_error_px", "keyframe_dtype", "target_distance", "covering_order", "most_covering"]
+__all__ = ["PageScene", "page_scene", "keyframe_times", "time_range", "keyframes", "still_gaussians", "key_windows",
+           "held_keyframes", "evenly_spaced", "float16_error_px", "keyframe_dtype", "target_distance", "covering_order",
+           "most_covering"]
+
+
+@dataclass
+class PageScene:
+    """What one viewer page shows of a scene (:func:`page_scene`).
+
+    Attributes:
+        gaussians: the canonical Gaussians kept (N), at the SH degree kept.
+        times: (F,) float64 key times kept, ascending in [0, 1]; None for a scene without deformation.
+        span: the time slider's range (:func:`time_range`); None for a scene that does not change with time.
+        windows: (first (N,), count (N,)) int64 key windows of the kept Gaussians (:func:`key_windows`), or None.
+        held: (Σ count, 10) float32 held keyframes (:func:`held_keyframes`), or None.
+        support: the kept Gaussians' temporal support (t_means, t_scales[, t_ramps]) (N,) each, or None.
+        dtype, float16_error_px: the keyframes' dtype and the float16 error, pixels (:func:`keyframe_dtype`; None
+            without keyframes).
+        first_pose: (N, 3) means at the first key time (canonical without keyframes), metres.
+        target_distance: :func:`target_distance` of ``first_pose`` from the first camera, metres.
+        reductions: what the size budget took away, in words (empty: the full scene).
+    """
+
+    gaussians: Gaussians
+    times: Tensor | None
+    span: tuple[float, float] | None
+    windows: tuple[Tensor, Tensor] | None
+    held: Tensor | None
+    support: tuple[Tensor, ...] | None
+    dtype: str
+    float16_error_px: float | None
+    first_pose: Tensor
+    target_distance: float
+    reductions: list[str]
+
+
+def page_scene(scene: DynamicGaussians, cameras: CameraPath, budget: int | None, size: Callable[..., int],
+               max_px: float) -> PageScene:
+    """The scene one viewer page shows, reduced to at most ``budget`` bytes (None: never) as measured by
+    ``size(num_gaussians, sh_degree, held_keyframes, temporal_arrays, itemsize, keyed)``
+    (:func:`diff4splat.io.viewer_data.payload_bytes`); keyframes float16 within ``max_px`` pixels
+    (:func:`keyframe_dtype`). ``scene`` on the CPU.
+
+    Reductions, in order, each only while over budget: SH degree → 0; keyframes subsampled (first and last kept, at
+    least 2) while the held keyframes take more bytes than the rest of the payload; the Gaussians covering most kept
+    (:func:`covering_order`, each at its own size: a still Gaussian holds no keyframe).
+    """
+    times, span = keyframe_times(scene), time_range(scene, cameras)
+    canonical: Gaussians = scene.canonical
+    degree = canonical.sh_degree
+    n, keyed = canonical.num_gaussians, times is not None
+    support_arrays = () if not scene.has_temporal else (scene.t_means, scene.t_scales) + (
+        () if scene.t_ramps is None else (scene.t_ramps,))
+    reductions: list[str] = []
+    dtype, err = ("float32", None) if times is None else keyframe_dtype(scene, times, cameras, max_px)
+    itemsize = 2 if dtype == "float16" else 4
+    still = None if times is None else still_gaussians(scene)
+    first, count = (None, None) if times is None else key_windows(scene, times, still)
+    held = lambda: 0 if count is None else int(count.sum())  # noqa: E731
+    total = lambda: size(n, degree, held(), len(support_arrays), itemsize, keyed)  # noqa: E731
+    if budget is not None and total() > budget and degree > 0:
+        reductions.append(f"SH degree {degree} → 0")
+        degree = 0
+    F = 0 if times is None else times.shape[0]
+    kept_times = times
+    while (budget is not None and kept_times is not None and total() > budget and len(kept_times) > 2
+           and 2 * held() * 10 * itemsize > total()):
+        kept_times = times[evenly_spaced(F, len(kept_times) - 1).unique()]  # fewer while the larger part
+        first, count = key_windows(scene, kept_times, still)
+    if kept_times is not None and len(kept_times) < F:
+        reductions.append(f"{F} → {len(kept_times)} keyframes")
+        times = kept_times
+    keep = None
+    if budget is not None and total() > budget:
+        order = covering_order(canonical.opacities.detach().cpu(), canonical.scales.detach().cpu())
+        cost = size(1, degree, 0, len(support_arrays), itemsize, keyed)
+        cost = (torch.full((n,), cost, dtype=torch.int64, device=order.device)
+                + (0 if count is None else count[order] * 10 * itemsize))
+        m = max(1, int(torch.searchsorted(torch.cumsum(cost, 0), budget, right=True)))
+        keep = order[:m].sort().values
+        reductions.append(f"{n:,} → {m:,} Gaussians (those covering most)")
+        if count is not None:
+            first, count = first[keep], count[keep]
+    g = canonical if keep is None else canonical.select(keep)
+    if degree < canonical.sh_degree:
+        g = Gaussians(g.means, g.quats, g.scales, g.opacities, g.sh[:, :1])
+    frames = None if times is None else held_keyframes(scene, times, first, count, keep)  # what was kept
+    support = None
+    if scene.has_temporal:
+        support = support_arrays if keep is None else tuple(a[keep] for a in support_arrays)
+    first_pose = g.means.detach() if times is None else scene.at(float(times[0]), gate=0.0, index=keep).means
+    return PageScene(g, times, span, None if first is None else (first, count), frames, support, dtype, err,
+                     first_pose, target_distance(first_pose, cameras.viewmats[0].detach().cpu()), reductions)
 
 
 def keyframe_times(scene: DynamicGaussians) -> Tensor | None:
