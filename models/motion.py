@@ -53,11 +53,6 @@ class MotionConfig:
         if not 0 <= float(self.min_flow) < float(self.max_flow):
             raise ValueError(f"MotionConfig.min_flow must be in [0, max_flow), got {self.min_flow}")
 
-    @property
-    def correlation_channels(self) -> int:
-        """levels·(2r+1)², the correlation volume's channels."""
-        return self.levels * (2 * self.radius + 1) ** 2
-
 
 def _grid(uv: Tensor, height: int, width: int) -> Tensor:  # uv: (N, H, W, 2) pixels → grid_sample's [−1, 1]
     size = torch.tensor([width, height], dtype=uv.dtype, device=uv.device)

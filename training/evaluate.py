@@ -59,7 +59,7 @@ from .eval_metrics import (
 )
 from .objectives import track_query_index
 
-__all__ = ["evaluate_clip", "evaluate_clips", "evaluate_all", "aggregate", "ClipEvaluation", "sampling_tradeoffs",
+__all__ = ["evaluate_clip", "evaluate_all", "aggregate", "ClipEvaluation", "sampling_tradeoffs",
            "photo_fidelity", "stiffness_profile", "METRICS", "DIAGNOSTICS", "DEPTH_DIAGNOSTICS", "BASELINES",
            "VARIANTS", "PHOTO_KEYS", "DIRECTION", "binned_keys", "scene_motion", "held_out_clips",
            "pixel_positions", "decoded_video", "clip_inputs"]
@@ -303,12 +303,6 @@ def evaluate_all(pipe: Diff4SplatPipeline, clips: list[dict], *, progress: bool 
     """:func:`evaluate_clip` of every clip (keywords passed on), with a tqdm bar when ``progress``."""
     return [evaluate_clip(pipe, c, **kw) for c in tqdm(clips, desc="evaluate", unit="clip", disable=not progress,
                                                         dynamic_ncols=True)]
-
-
-def evaluate_clips(pipe: Diff4SplatPipeline, clips: list[dict], **kw) -> dict[str, float]:
-    """:func:`aggregate` of :func:`evaluate_all`: {key: value} for :data:`METRICS`, :data:`DIAGNOSTICS`,
-    :data:`DEPTH_DIAGNOSTICS`, :data:`BASELINES`, :data:`DIRECTION` with ``direction_clips`` and :func:`binned_keys`."""
-    return aggregate(evaluate_all(pipe, clips, **kw))
 
 
 @torch.no_grad()
