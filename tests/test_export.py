@@ -30,6 +30,9 @@ from diff4splat.io import MARKER, OutputDirError
 from models.bundle import Diff4SplatConfig, Diff4SplatModel
 from models.pretrained import config_from_dict
 
+pytestmark = pytest.mark.xdist_group("onnx_export")  # under `--dist loadgroup` one worker builds and uses the
+# shared exports (helpers.exported) instead of another waiting on their file lock
+
 TOL = 1e-4  # float32 max abs difference, ONNX vs eager
 
 

@@ -24,6 +24,9 @@ from diff4splat.render.sequence import render_path
 from diff4splat.runtime import TorchRuntime
 from models.bundle import Diff4SplatModel
 
+pytestmark = pytest.mark.xdist_group("onnx_export")  # under `--dist loadgroup` one worker builds and uses the
+# shared exports (helpers.exported) instead of another waiting on their file lock
+
 FRAMES = 9
 PROMPT = "a cat turns its head"
 

@@ -133,6 +133,7 @@ def test_libpng_warning_of_a_bad_iccp_chunk_is_silenced(tmp_path, capfd):
 # --- diff4splat generate: each expected failure is one line, exit 2, nothing written --------------------------
 
 
+@pytest.mark.xdist_group("onnx_export")  # the one worker that builds the shared export
 @pytest.mark.slow
 @pytest.mark.parametrize("case", ["truncated_weights", "garbage_weights", "config_list", "config_not_json"])
 def test_corrupt_checkpoint_is_one_line(tmp_path_factory, tmp_path, capsys, case):
@@ -301,6 +302,7 @@ MANIFEST_EDITS = {
 }
 
 
+@pytest.mark.xdist_group("onnx_export")  # the one worker that builds the shared export
 @pytest.mark.slow  # uses the session's ONNX export (tests/helpers.exported)
 @pytest.mark.parametrize("case", sorted(MANIFEST_EDITS))
 def test_edited_manifest_is_refused(tmp_path_factory, tmp_path, case):
@@ -313,6 +315,7 @@ def test_edited_manifest_is_refused(tmp_path_factory, tmp_path, case):
     assert needle in str(info.value)
 
 
+@pytest.mark.xdist_group("onnx_export")  # the one worker that builds the shared export
 @pytest.mark.slow  # uses the session's ONNX export (tests/helpers.exported)
 @pytest.mark.parametrize("case", ["parent", "absolute", "subfolder", "symlink_outside"])
 def test_manifest_file_entries_stay_inside_the_export(tmp_path_factory, tmp_path, case):
@@ -337,6 +340,7 @@ def test_manifest_file_entries_stay_inside_the_export(tmp_path_factory, tmp_path
         load_manifest(folder)
 
 
+@pytest.mark.xdist_group("onnx_export")  # the one worker that builds the shared export
 @pytest.mark.slow
 @pytest.mark.parametrize("case", ["no_files", "truncated_graph", "resolution"])
 def test_cli_onnx_errors_are_one_line(tmp_path_factory, tmp_path, capsys, case):
@@ -357,6 +361,7 @@ def test_cli_onnx_errors_are_one_line(tmp_path_factory, tmp_path, capsys, case):
 # --- the other tools share the path ----------------------------------------------------------------------------
 
 
+@pytest.mark.xdist_group("onnx_export")  # the one worker that builds the shared export
 @pytest.mark.slow
 def test_evaluate_with_corrupt_weights_is_one_line(tmp_path_factory, tmp_path, capsys):
     ckpt = _checkpoint(tmp_path_factory, tmp_path)
