@@ -345,7 +345,7 @@ def test_loop_psnr_makes_nothing_on_the_default_device(static_clip, no_implicit_
 
 
 @pytest.mark.slow
-def test_evaluate_cli_on_each_device(clips, tmp_path, device, capsys):
+def test_evaluate_cli_on_each_device(tmp_path, device, capsys):
     """``diff4splat evaluate --device``: the pipeline generates and renders there, the metrics come out on the CPU
     (on CUDA close to the CPU's: the same noise, slightly different arithmetic)."""
     root = tmp_path / "data"
