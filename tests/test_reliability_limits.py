@@ -427,6 +427,19 @@ def test_non_utf8_prompt_is_named(tmp_path, capsys):
     _one_line(code, lines, "--prompt: not valid UTF-8 (byte 0xff at position 6)")
 
 
+@pytest.mark.slow
+def test_a_prompt_cut_to_the_tokenizers_length_is_one_warning_line(tmp_path, capsys):
+    """A 100 k-character prompt: the text encoder's truncation warning is one ``diff4splat: warning:`` line (it was
+    Python's raw ``UserWarning`` with its file and source line), and the scene is written."""
+    code = main(["generate", str(EXAMPLE_IMAGE), "--quiet", "--out", str(tmp_path / "out"), "--prompt", "a" * 100_000,
+                 "--frames", "5", "--steps", "1", "--no-frame-plys"])
+    lines = capsys.readouterr().err.splitlines()
+    assert code == 0 and (tmp_path / "out" / "meta.json").is_file(), lines
+    warned = [line for line in lines if "prompt longer than" in line]
+    assert len(warned) == 1 and warned[0].startswith("diff4splat: warning: a prompt longer than "), lines
+    assert not [line for line in lines if "UserWarning" in line or "ids, mask" in line], lines
+
+
 # --------------------------------------------------------------------------- data_prep and evaluate wording
 
 def test_validate_on_an_empty_folder_says_no_scenes(tmp_path, capsys):

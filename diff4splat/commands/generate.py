@@ -86,9 +86,10 @@ def register(sub) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``generate``: :func:`diff4splat.generate.generate` (the output folder, the frame rate and the request
-    checked before the model loads) and :func:`diff4splat.request.write`; prints the folder's line, returns 0."""
-    output = generate(
-        args.image, args.cameras, pipeline=lambda: print_warnings(
+    checked before the model loads; the loader's and the run's warnings printed as ``diff4splat: warning:`` lines)
+    and :func:`diff4splat.request.write`; prints the folder's line, returns 0."""
+    output = print_warnings(  # warnings of the run (a prompt cut to the tokenizer's length) as one line each
+        generate, args.image, args.cameras, pipeline=lambda: print_warnings(
             load_pipeline, args.checkpoint, args.config, runtime=args.runtime, onnx=args.onnx, device=args.device,
             dtype=args.dtype, offload=args.offload, attention=args.attention, compile=args.compile),
         trajectory=args.trajectory, amplitude=args.amplitude, frames=args.frames, resolution=args.resolution,

@@ -50,9 +50,9 @@ def register(sub) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``reconstruct`` and :func:`diff4splat.request.write`; prints the folder's line, returns 0."""
-    output = reconstruct(
-        args.video, args.cameras, pipeline=lambda: print_warnings(load_pipeline, args.checkpoint, args.config,
-                                                                  device=args.device),
+    output = print_warnings(  # the loader's and the run's warnings as one line each
+        reconstruct, args.video, args.cameras,
+        pipeline=lambda: print_warnings(load_pipeline, args.checkpoint, args.config, device=args.device),
         frames=args.frames, stride=args.stride, start=args.start, resolution=args.resolution, layers=args.layers,
         progress=not args.quiet, out=args.out, overwrite=args.overwrite, inputs=[args.checkpoint], fps=args.fps,
         frame_plys=args.frame_plys)
