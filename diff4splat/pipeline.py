@@ -373,9 +373,9 @@ class Diff4SplatPipeline:
                 (:data:`~diff4splat.assembly.layers.LAYERS`).
 
         Raises:
-            ValueError: bad frames, T ≠ 1 + 4k, cameras not T at (W, H), an unknown ``layers``, an ``order_offset``
-                that is not a finite number ≥ 0, an ``unchecked`` that is not None or an int ≥ 0 (all before any
-                network runs); a path that sees nothing.
+            ValueError: bad frames, T < 2 or T ≠ 1 + 4k, cameras not T at (W, H), an unknown ``layers``, an
+                ``order_offset`` that is not a finite number ≥ 0, an ``unchecked`` that is not None or an int ≥ 0
+                (all before any network runs); a path that sees nothing.
         """
         self.check_clip(frames, cameras, layers, order_offset, unchecked)
         cfg, runtime, dev = self.config, self.runtime, self.device
@@ -487,6 +487,8 @@ class Diff4SplatPipeline:
             raise ValueError(f"frames are {W}×{H}; the model's aspect ratio is {cfg.width}:{cfg.height}")
         if len(cameras) != T or (cameras.width, cameras.height) != (W, H):
             raise ValueError(f"cameras: {len(cameras)} at {cameras.width}×{cameras.height}, the frames: {T} at {W}×{H}")
+        if T < 2:
+            raise ValueError(f"frames: a clip needs at least 2 frames (a frame count the VAE takes: 5, 9, …), got {T}")
         self.check_frame_count(T)
         check_layers(layers)
         check_layer_knobs(order_offset, unchecked)

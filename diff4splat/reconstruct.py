@@ -102,7 +102,7 @@ def reconstruct(video: str | os.PathLike, cameras: str | os.PathLike | CameraPat
                           kind=RECONSTRUCT_KIND)
     if not Path(video).is_dir():
         check_input_file(video, "video")
-    check_clip_request(frames or 1, stride, start)
+    check_clip_request(frames, stride, start)
     check_layers(layers)
     check_layer_knobs(order_offset, unchecked)
     loaded = request.resolve_pipeline(pipeline)

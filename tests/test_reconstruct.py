@@ -270,7 +270,8 @@ def test_a_camera_file_of_every_video_frame_gives_the_clip_s_cameras(tmp_path, b
         reconstruct(video, tmp_path / "five.json", pipeline=base_pipeline, frames=9, stride=2, resolution=SIZE)
 
 
-@pytest.mark.parametrize("case", ["missing", "frames_not_1_plus_4k", "too_short", "zero_stride", "generate_folder"])
+@pytest.mark.parametrize("case", ["missing", "frames_not_1_plus_4k", "one_frame", "too_short", "zero_stride",
+                                  "generate_folder"])
 def test_bad_input_is_one_line_exit_2_and_no_output(videos, tmp_path, capsys, case):
     root, _ = videos
     out = tmp_path / "out"
@@ -280,6 +281,8 @@ def test_bad_input_is_one_line_exit_2_and_no_output(videos, tmp_path, capsys, ca
         args[1] = str(tmp_path / "none.mp4")
     elif case == "frames_not_1_plus_4k":
         args[3] = "8"
+    elif case == "one_frame":  # a one-frame clip: was the optical flow's "(T, 3, H, W) with T ≥ 2"
+        args[3] = "1"
     elif case == "too_short":
         args += ["--start", "10"]
     elif case == "zero_stride":
@@ -293,3 +296,12 @@ def test_bad_input_is_one_line_exit_2_and_no_output(videos, tmp_path, capsys, ca
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("diff4splat: error:"), err
     assert not out.exists() or case == "generate_folder"
+    if case == "one_frame":
+        assert err[0] == "diff4splat: error: --frames 1: a clip needs at least 2 frames (a frame count the VAE " \
+                         "takes: 5, 9, 13, …)"
+
+
+def test_a_one_frame_clip_is_refused_before_the_networks_run(base_pipeline):
+    frames = torch.rand(1, SIZE, SIZE, 3)
+    with pytest.raises(ValueError, match=r"^frames: a clip needs at least 2 frames .*got 1$"):
+        base_pipeline.pipeline.reconstruct(frames, still_cameras(base_pipeline.pipeline, 1, SIZE, SIZE))

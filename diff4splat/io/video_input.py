@@ -36,17 +36,19 @@ class VideoClip:
     fps: float | None
 
 
-def check_clip_request(frames: object, stride: object, start: object) -> tuple[int, int, int]:
-    """``(frames, stride, start)`` as ints: frames, stride ≥ 1, start ≥ 0.
+def check_clip_request(frames: object, stride: object, start: object) -> tuple[int | None, int, int]:
+    """``(frames, stride, start)`` as ints: frames ≥ 2 (None: the caller's default), stride ≥ 1, start ≥ 0.
 
     Raises:
         ValueError: naming the flag (``--frames``, ``--stride``, ``--start``) and the value.
     """
-    frames = check_positive_int("--frames", frames)
+    if frames is not None and check_positive_int("--frames", frames) < 2:
+        raise ValueError(f"--frames {frames}: a clip needs at least 2 frames "
+                         f"(a frame count the VAE takes: 5, 9, 13, …)")
     stride = check_positive_int("--stride", stride)
     if isinstance(start, bool) or not isinstance(start, (int, np.integer)) or int(start) < 0:
         raise ValueError(f"--start must be an integer ≥ 0, got {start!r}")
-    return frames, stride, int(start)
+    return None if frames is None else int(frames), stride, int(start)
 
 
 def _short(path: Path, found: int, start: int, stride: int, frames: int) -> ValueError:
