@@ -7,19 +7,22 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
+import numpy as np
 from torch import Tensor
 
 from diff4splat import request
 from diff4splat.assembly.assemble import DEPTH_KINDS
 from diff4splat.assembly.photo import layer_sizes
-from diff4splat.cameras import DEFAULT_TRAJECTORY, CameraPath
+from diff4splat.cameras import DEFAULT_TRAJECTORY, CameraPath, center_crop_box
 from diff4splat.cameras.trajectories import check_amplitude, check_trajectory
+from diff4splat.geometry.drags import Drags, drags_from_flags, drags_from_tracks, parse_drag
 from diff4splat.io.depth_maps import fit_depth_map, read_depth_map
 from diff4splat.io.image import preprocess_image, read_image
 from diff4splat.io.inputs import check_input_file
+from diff4splat.io.tracks import read_tracks
 from diff4splat.io.video import DEFAULT_FPS
 from diff4splat.pipeline import Diff4SplatPipeline
 from diff4splat.request import LoadedPipeline, SceneOutput
@@ -53,8 +56,12 @@ def memory_estimate(pipe: Diff4SplatPipeline, width: int, height: int, num_frame
 
 
 def _check_request(image, cameras, trajectory, amplitude, steps, sampler, seed, prompt, depth, depth_kind,
-                   guidance) -> None:
+                   guidance, drags, tracks) -> None:
     """The request's own checks, made before any model loads (messages name the command's flags)."""
+    for text in drags:
+        parse_drag(text)
+    if drags and tracks is not None:
+        raise ValueError("--drag and --tracks: give the motion one way (a tracks file holds any number of points)")
     if isinstance(image, (str, os.PathLike)):
         check_input_file(image, "image")
     if isinstance(depth, (str, os.PathLike)):
@@ -82,7 +89,8 @@ def generate(image: str | os.PathLike | Tensor, cameras: str | os.PathLike | Cam
              depth_kind: str = "metric", progress: bool = False, notes: Callable[[str], None] | None = None,
              out: str | os.PathLike | None = None, overwrite: bool = False,
              inputs: Iterable[str | os.PathLike | None] = (), fps: float = DEFAULT_FPS,
-             frame_plys: bool = True) -> SceneOutput:
+             frame_plys: bool = True, drags: Sequence[str] = (),
+             tracks: str | os.PathLike | None = None) -> SceneOutput:
     """A 4D scene from one photograph, rendered along its camera path (``diff4splat generate``); write the returned
     :class:`~diff4splat.request.SceneOutput` with :func:`~diff4splat.request.write`.
 
@@ -105,6 +113,12 @@ def generate(image: str | os.PathLike | Tensor, cameras: str | os.PathLike | Cam
             replace a folder that is not a ``generate`` output.
         inputs: further paths the request reads (e.g. ``--checkpoint``): no output folder may be or hold one.
         fps, frame_plys: meta.json's frame rate (1 … 1000) and whether :func:`write` writes frames/NNNN.ply.
+        drags: ``"X,Y:DX,DY[@T]"`` texts (:func:`~diff4splat.geometry.drags.parse_drag`): the point (X, Y), pixels of
+            the photograph as given (a file's before its crop; a tensor's own), moves by (DX, DY) pixels by
+            normalised clip time T (default 1); the scene then moves only where dragged
+            (:mod:`diff4splat.assembly.drag_scene`).
+        tracks: instead of ``drags``, an (N, T, 2) ``.npy`` of point tracks in the same pixels
+            (:func:`~diff4splat.io.tracks.read_tracks`).
 
     Raises:
         ValueError: an argument out of range, a limit exceeded (:class:`diff4splat.utils.limits.LimitError`), an
@@ -113,14 +127,19 @@ def generate(image: str | os.PathLike | Tensor, cameras: str | os.PathLike | Cam
         FileNotFoundError, FileExistsError: a missing input file; as ``check_output_dir``.
     """
     t_start = time.perf_counter()
-    files = {"image": image, "cameras_file": cameras, "depth_file": depth}  # as given, for meta.json
+    files = {"image": image, "cameras_file": cameras, "depth_file": depth, "tracks_file": tracks}  # for meta.json
     read = [Path(p) for p in (*files.values(), *inputs) if isinstance(p, (str, os.PathLike))]
     request.check_request(out, fps, frames, resolution, cameras, inputs=read, overwrite=overwrite, kind=GENERATE_KIND)
-    _check_request(image, cameras, trajectory, amplitude, steps, sampler, seed, prompt, depth, depth_kind, guidance)
+    drags = list(drags)
+    _check_request(image, cameras, trajectory, amplitude, steps, sampler, seed, prompt, depth, depth_kind, guidance,
+                   drags, tracks)
     if isinstance(image, Tensor) and resolution is not None and resolution != image.shape[0]:
         raise ValueError(f"resolution={resolution} but the image tensor is {image.shape[0]} pixels high: a tensor "
                          "is used at its own resolution (resize it, or pass a photo file)")
     raw_depth = read_depth_map(depth, depth_kind) if isinstance(depth, (str, os.PathLike)) else None  # before the model
+    photo = None if isinstance(image, Tensor) else read_image(image)
+    moves = _drags(drags, None if tracks is None else read_tracks(tracks),
+                   tuple(photo.shape[:2]) if photo is not None else tuple(image.shape[:2]))
     loaded = request.resolve_pipeline(pipeline)
     pipe, cfg = loaded.pipeline, loaded.pipeline.config
     if frames is not None:  # T = 1 + 4k, before any decoding
@@ -131,10 +150,15 @@ def generate(image: str | os.PathLike | Tensor, cameras: str | os.PathLike | Cam
         photo_shape = (height, width)
     else:
         width, height = request.output_size(pipe, resolution)
-    if not isinstance(image, Tensor):
-        photo = read_image(image)
+    if photo is not None:
         photo_shape = photo.shape[:2]
         image = preprocess_image(photo, (height, width))
+        if moves is not None:
+            y0, x0, ch, cw = center_crop_box(*photo_shape, height, width)
+            try:
+                moves = moves.resized((x0, y0, x0 + cw, y0 + ch), width, height)
+            except ValueError as e:
+                raise ValueError(f"{'--drag' if drags else '--tracks'}: {e}") from None
     if raw_depth is not None:
         depth, note = fit_depth_map(raw_depth, photo_shape, (height, width))
         if note is not None and notes is not None:
@@ -157,12 +181,27 @@ def generate(image: str | os.PathLike | Tensor, cameras: str | os.PathLike | Cam
         notes(f"{len(path)} frames at {path.width}×{path.height}: estimated {seconds:.0f} s on this CPU (lower "
               "--resolution or --frames for less)")
     result = pipe(image, path, prompt, steps=steps, sampler=sampler, guidance=guidance, seed=seed, progress=progress,
-                  depth=depth if isinstance(depth, Tensor) else None, depth_kind=depth_kind)
+                  depth=depth if isinstance(depth, Tensor) else None, depth_kind=depth_kind, drags=moves)
     file = {key: request.file_argument(value) for key, value in files.items()}
     settings = {"image": file["image"], "prompt": prompt, "trajectory": None if cameras is not None else trajectory,
                 "cameras_file": file["cameras_file"], "depth_file": file["depth_file"],
                 "depth_kind": depth_kind if file["depth_file"] is not None else None, "seed": seed,
-                "steps": result.steps, "sampler": result.sampler, "guidance": result.guidance, "shift": result.shift}
+                "steps": result.steps, "sampler": result.sampler, "guidance": result.guidance, "shift": result.shift,
+                "drags": drags, "tracks_file": file["tracks_file"]}
     return request.render_output(loaded, result, settings, kind=GENERATE_KIND, fps=fps, frame_plys=frame_plys,
                                  inputs=read, started=t_start, progress=progress)
 
+
+
+def _drags(texts: list[str], tracks: np.ndarray | None, shape: tuple[int, int]) -> Drags | None:
+    """The request's drags on a photograph of ``shape`` = (height, width), or None. ValueError: a point outside it
+    (naming ``--drag`` or ``--tracks``)."""
+    height, width = shape
+    if texts:
+        return drags_from_flags(texts, width, height)
+    if tracks is not None:
+        try:
+            return drags_from_tracks(tracks, width, height)
+        except ValueError as e:
+            raise ValueError(f"--tracks: {e}") from None
+    return None

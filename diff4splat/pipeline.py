@@ -18,6 +18,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from diff4splat.assembly.assemble import DEPTH_KINDS, assemble_scene, z_depth
+from diff4splat.assembly.drag_scene import dragged_scene
 from diff4splat.assembly.frame_motion import frame_motion
 from diff4splat.assembly.layers import (
     DEFAULT_LAYERS,
@@ -38,6 +39,7 @@ from diff4splat.cameras import (
     plucker_rays,
 )
 from diff4splat.cameras.path import check_field_of_view
+from diff4splat.geometry.drags import Drags
 from diff4splat.io.depth_maps import check_depth_values
 from diff4splat.render.settings import BACKGROUND
 from diff4splat.runtime import NetworkRuntime, TorchRuntime
@@ -282,7 +284,7 @@ class Diff4SplatPipeline:
     def __call__(self, image: Tensor, cameras: CameraPath, prompt: str = "", *, steps: int | None = None,
                  sampler: str | None = None, guidance: float | None = None, seed: int = 0, progress: bool = False,
                  video_latents: Tensor | None = None, depth: Tensor | None = None,
-                 depth_kind: str = "metric") -> GenerationResult:
+                 depth_kind: str = "metric", drags: Drags | None = None) -> GenerationResult:
         """Generate a 4D scene; returns a :class:`GenerationResult`.
 
         Args:
@@ -295,14 +297,18 @@ class Diff4SplatPipeline:
             video_latents: (1, c, n, h, w) DiT-scaled latent used instead of sampling (ablations); frame 0 replaced.
             depth: (H, W) depth of the photograph for the photo layer (NaN/inf/≤ 0: holes the network fills);
                 ``depth_kind``: "metric" (metres), "relative" or "inverse" (aligned to the network's depth).
+            drags: motion of the photograph's points at its W × H (:class:`~diff4splat.geometry.drags.Drags`):
+                their regions of the photo layer move with them (:mod:`diff4splat.assembly.drag_scene`) and the
+                rest of the scene stays still; None: the networks' motion.
 
         Raises:
             ValueError: a bad image, cameras, T, sampler, steps, seed, prompt (not UTF-8, or no text encoder), depth map
-                or ``depth_kind``, limits exceeded (:class:`diff4splat.utils.limits.LimitError`), all before any network
-                runs; ``video_latents`` of the wrong shape; a camera path that sees none of the scene.
+                or ``depth_kind``, drags not a :class:`Drags` at W × H, limits exceeded
+                (:class:`diff4splat.utils.limits.LimitError`), all before any network runs; ``video_latents`` of the
+                wrong shape; a camera path that sees none of the scene.
         """
         steps, sampler, guidance, seed, prompt = self.check_inputs(image, cameras, prompt, steps, sampler, guidance,
-                                                                   seed, depth, depth_kind)
+                                                                   seed, depth, depth_kind, drags)
         cfg, runtime, dev = self.config, self.runtime, self.device
         H_o, W_o = int(image.shape[0]), int(image.shape[1])
         n = runtime.latent.num_latent_frames(len(cameras))
@@ -345,6 +351,9 @@ class Diff4SplatPipeline:
         scene, grid, photo = assemble_scene(out, sources, cameras_model, cameras, image, times, depth=depth,
                                             depth_kind=depth_kind, video=decoded, footprint=cfg.generated_footprint)
         scene = scene.without_deformation(cfg.static_atol)
+        if drags is not None:
+            scene, kept = dragged_scene(scene, grid, drags, image, photo["photo_depth"], cameras.Ks[0], key_times)
+            grid = grid[kept]
         timings["reconstruct"] = clock.lap()
 
         scene, index, stats = settle_and_prune(scene, grid, cameras, sources, photo["photo_depth"],
@@ -440,7 +449,8 @@ class Diff4SplatPipeline:
 
     def check_inputs(self, image: Tensor, cameras: CameraPath, prompt: str = "", steps: int | None = None,
                      sampler: str | None = None, guidance: float | None = None, seed: int = 0,
-                     depth: Tensor | None = None, depth_kind: str = "metric") -> tuple[int, str, float, int, str]:
+                     depth: Tensor | None = None, depth_kind: str = "metric",
+                     drags: Drags | None = None) -> tuple[int, str, float, int, str]:
         """:meth:`__call__`'s checks, all before any network runs; returns (steps, sampler, guidance, seed, prompt)
         with the config's defaults. ValueError: as :meth:`__call__`."""
         cfg, runtime = self.config, self.runtime
@@ -462,6 +472,9 @@ class Diff4SplatPipeline:
             if tuple(depth.shape) != (H_o, W_o):
                 raise ValueError(f"depth must have shape ({H_o}, {W_o}) like the image, got {tuple(depth.shape)}")
             check_depth_values(depth, depth_kind)
+        if drags is not None and (not isinstance(drags, Drags) or (drags.width, drags.height) != (W_o, H_o)):
+            size = f"at {drags.width}×{drags.height}" if isinstance(drags, Drags) else f"a {type(drags).__name__}"
+            raise ValueError(f"drags must be Drags at the image's {W_o}×{H_o} (Drags.resized), got {size}")
         runtime.latent.num_latent_frames(len(cameras))  # raises for T ≠ 1 + t·k
         steps = cfg.sampling.steps if steps is None else steps
         sampler = cfg.sampling.sampler if sampler is None else sampler

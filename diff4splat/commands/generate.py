@@ -47,6 +47,13 @@ def register(sub) -> argparse.ArgumentParser:
                    help="metric (z-depth in metres, used as given), relative (depth up to scale and shift) or inverse "
                         "(disparity up to scale and shift), both fitted to the network's depth (default: metric)")
     g.add_argument("--prompt", default="", help="text describing the motion; empty = no text encoder")
+    g.add_argument("--drag", action="append", default=[], metavar="X,Y:DX,DY[@T]",
+                   help="move the photograph's point (X, Y) (pixels of the file as given) by (DX, DY) pixels by "
+                        "normalised clip time T in (0, 1] (default 1, the end); repeatable. The region of like colour "
+                        "and depth around each point moves with it at its depth; the rest of the scene stays still")
+    g.add_argument("--tracks", type=Path, default=None, metavar="FILE",
+                   help="instead of --drag: an N × T × 2 .npy of point tracks (x, y pixels of the photograph over T "
+                        "evenly spaced clip times, as TAPIR writes), each point moving its region as a drag does")
     g.add_argument("--steps", type=int, default=None, help="sampler steps (default: config)")
     g.add_argument("--sampler", choices=SAMPLERS, default=None, help="ODE sampler (default: config)")
     g.add_argument("--guidance", type=float, default=None,
@@ -96,5 +103,6 @@ def run(args: argparse.Namespace) -> int:
         prompt=args.prompt, steps=args.steps, sampler=args.sampler, guidance=args.guidance, seed=args.seed,
         depth=args.depth, depth_kind=args.depth_kind, progress=not args.quiet,
         notes=lambda note: print(f"diff4splat: note: {note}", file=sys.stderr), out=args.out,
-        overwrite=args.overwrite, inputs=[args.checkpoint, args.onnx], fps=args.fps, frame_plys=args.frame_plys)
+        overwrite=args.overwrite, inputs=[args.checkpoint, args.onnx], fps=args.fps, frame_plys=args.frame_plys,
+        drags=args.drag, tracks=args.tracks)
     return report_scene(args.out, write(output, args.out, overwrite=args.overwrite))

@@ -1,0 +1,165 @@
+"""Drags (diff4splat/geometry/drags.py, assembly/drag_scene.py, ``generate --drag/--tracks``): the forms and their
+errors, the dense motion against its closed form on a square at a known depth, the scene that moves only where
+dragged, and the command end to end."""
+import json
+
+import numpy as np
+import pytest
+import torch
+from helpers import EXAMPLE_IMAGE, tiny_model
+
+from diff4splat.cameras import CameraPath, intrinsics_from_fov
+from diff4splat.cli import main
+from diff4splat.geometry.drags import drag_motion, drags_from_flags, drags_from_tracks, parse_drag
+from diff4splat.io.tracks import read_tracks
+from diff4splat.pipeline import Diff4SplatPipeline
+
+SIZE = 64
+
+
+def _square_scene():
+    """A red 16×16 square (rows and columns 24–39) 2 m away before a grey wall 5 m away; its camera (f = 60 px)."""
+    image = torch.full((SIZE, SIZE, 3), 0.5)
+    image[24:40, 24:40] = torch.tensor([0.9, 0.1, 0.1])
+    depth = torch.full((SIZE, SIZE), 5.0)
+    depth[24:40, 24:40] = 2.0
+    K = torch.tensor([[60.0, 0.0, 32.0], [0.0, 60.0, 32.0], [0.0, 0.0, 1.0]])
+    return image, depth, K
+
+
+def test_a_drag_reads_its_point_offset_and_time():
+    assert parse_drag("10,20.5:-3,4") == (10.0, 20.5, -3.0, 4.0, 1.0)
+    assert parse_drag(" 1,2:3,4@0.25 ") == (1.0, 2.0, 3.0, 4.0, 0.25)
+    d = drags_from_flags(["10,20:8,0@0.5", "30,30:0,-6"], 64, 64)
+    assert d.times.tolist() == [0.0, 0.5, 1.0]
+    assert np.allclose(d.at(0.25), [[14, 20], [30, 28.5]]) and np.allclose(d.at(1.0), [[18, 20], [30, 24]])
+
+
+@pytest.mark.parametrize("text, match", [("10,20", "expected X,Y:DX,DY"), ("a,2:3,4", "must be numbers"),
+                                         ("nan,2:3,4", "finite"), ("1,2:3,4@0", r"T must lie in \(0, 1\]"),
+                                         ("1,2:3,4@1.5", r"T must lie in \(0, 1\]")])
+def test_a_malformed_drag_is_named(text, match):
+    with pytest.raises(ValueError, match=match):
+        parse_drag(text)
+
+
+def test_drags_outside_the_photograph_or_its_crop_are_refused():
+    with pytest.raises(ValueError, match=r"drag 2 starts at \(70, 3\), outside the 64×48 photograph"):
+        drags_from_flags(["1,1:2,2", "70,3:1,1"], 64, 48)
+    with pytest.raises(ValueError, match=r"must be \(N, T, 2\)"):
+        drags_from_tracks(np.zeros((3, 1, 2)), 64, 48)
+    d = drags_from_tracks(np.array([[[40.0, 10.0], [44.0, 10.0]]]), 100, 50)  # a 100×50 photo cropped to 50×50
+    small = d.resized((25, 0, 75, 50), 64, 64)
+    assert np.allclose(small.positions, [[[19.2, 12.8], [24.32, 12.8]]])
+    with pytest.raises(ValueError, match="outside the part of the photograph the model sees"):
+        drags_from_tracks(np.array([[[10.0, 10.0], [12.0, 10.0]]]), 100, 50).resized((25, 0, 75, 50), 64, 64)
+
+
+def test_a_tracks_file_of_the_wrong_shape_or_kind_is_named(tmp_path):
+    good = tmp_path / "good.npy"
+    np.save(good, np.zeros((2, 5, 2), np.float32))
+    assert read_tracks(good).shape == (2, 5, 2)
+    for name, array in (("flat.npy", np.zeros((5, 2))), ("three.npy", np.zeros((2, 5, 3))),
+                        ("nan.npy", np.full((1, 2, 2), np.nan))):
+        np.save(tmp_path / name, array)
+        with pytest.raises(ValueError, match=f"--tracks: .*{name}"):
+            read_tracks(tmp_path / name)
+    (tmp_path / "text.npy").write_text("not an array")
+    with pytest.raises(ValueError, match="not a readable .npy"):
+        read_tracks(tmp_path / "text.npy")
+
+
+def test_a_dragged_square_moves_at_its_depth_and_nothing_else_moves():
+    """Closed form: a drag of (dx, dy) px at depth z moves its region by z·(dx/fx, dy/fy, 0) m at the drag's time,
+    linearly before it; the wall stays."""
+    image, depth, K = _square_scene()
+    drags = drags_from_flags(["30,30:12,-6@0.5"], SIZE, SIZE)
+    motion, moving = drag_motion(drags, image, depth, K, torch.tensor([0.0, 0.25, 0.5, 1.0]))
+    square = torch.zeros(SIZE, SIZE, dtype=torch.bool)
+    square[24:40, 24:40] = True
+    assert torch.equal(moving, square)
+    full = torch.tensor([2.0 * 12 / 60, 2.0 * -6 / 60, 0.0])
+    for k, w in enumerate((0.0, 0.5, 1.0, 1.0)):
+        assert torch.allclose(motion[k][square], w * full, atol=1e-6)
+        assert torch.equal(motion[k][~square], torch.zeros(int((~square).sum()), 3))
+
+
+def test_two_drags_in_one_region_each_move_their_nearest_pixels():
+    image, depth, K = _square_scene()
+    drags = drags_from_flags(["26,32:4,0", "38,32:-4,0"], SIZE, SIZE)
+    motion, _ = drag_motion(drags, image, depth, K, torch.tensor([0.0, 1.0]))
+    assert motion[1, 32, 25, 0] > 0 and motion[1, 32, 38, 0] < 0
+
+
+def _still_path(pipe, frames=5):
+    K = intrinsics_from_fov(SIZE, SIZE, fov_y_deg=pipe.config.fov_y_deg)
+    return CameraPath(torch.eye(4).expand(frames, 4, 4).clone(), K.expand(frames, 3, 3).clone(), SIZE, SIZE,
+                      torch.linspace(0, 1, frames))
+
+
+@pytest.mark.slow
+def test_the_generated_scene_moves_only_where_dragged():
+    """The photo layer's front disks on the square move by the closed form at the last time (the photo layer is at
+    the given depth); the wall's disks and the backdrop stay; the scene is dynamic only through the drags."""
+    image, depth, _ = _square_scene()
+    pipe = Diff4SplatPipeline(tiny_model(dynamic=False))
+    path = _still_path(pipe)
+    still = pipe(image, path, steps=1, depth=depth)
+    assert still.scene.is_static
+    drags = drags_from_flags(["30,30:12,0"], SIZE, SIZE)
+    res = pipe(image, path, steps=1, depth=depth, drags=drags)
+    scene = res.scene
+    assert not scene.is_static
+    front = res.gaussian_index < SIZE * SIZE  # the photo layer's front disks, pixel index = slot
+    pixel = res.gaussian_index[front]
+    rows, cols = pixel // SIZE, pixel % SIZE
+    on_square = (rows >= 24) & (rows < 40) & (cols >= 24) & (cols < 40)
+    d_last = scene.d_means[-1][front]
+    fx = float(path.Ks[0, 0, 0])
+    expected = torch.tensor([2.0 * 12 / fx, 0.0, 0.0])
+    assert bool(on_square.any()) and torch.allclose(d_last[on_square], expected, atol=1e-5)
+    assert float(d_last[~on_square].abs().max()) == 0.0
+    others = ~(res.gaussian_index < SIZE * SIZE + (SIZE // 2) ** 2)  # backdrop and generated: still
+    assert float(scene.d_means[:, others].abs().max()) == 0.0
+    with pytest.raises(ValueError, match="drags must be Drags at the image's 64×64"):
+        pipe(image, path, steps=1, drags=drags_from_flags(["3,3:1,1"], 32, 32))
+
+
+@pytest.mark.slow
+def test_generate_with_a_drag_writes_its_motion_and_records_it(tmp_path):
+    out = tmp_path / "out"
+    args = ["generate", str(EXAMPLE_IMAGE), "--frames", "5", "--steps", "1", "--resolution", str(SIZE), "--quiet",
+            "--no-frame-plys", "--out", str(out)]
+    assert main(args + ["--drag", "225,150:40,0"]) == 0
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["drags"] == ["225,150:40,0"] and meta["tracks_file"] is None
+    assert (out / "deformation.npz").is_file()
+    tracks = tmp_path / "tracks.npy"
+    np.save(tracks, np.array([[[225.0, 150.0], [245.0, 150.0], [265.0, 150.0]]]))
+    assert main(args + ["--tracks", str(tracks), "--overwrite"]) == 0
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["drags"] == [] and meta["tracks_file"] == str(tracks)
+
+
+@pytest.mark.parametrize("case", ["form", "outside", "outside_crop", "both", "tracks_shape", "tracks_missing"])
+def test_bad_drags_are_one_line_exit_2_before_the_model_loads(tmp_path, capsys, monkeypatch, case):
+    """chelsea.png is 451×300: the model sees its centre 300×300 (x 75–375)."""
+    import diff4splat.request as request_module
+
+    def never(*args, **kwargs):
+        raise AssertionError("the model was loaded")
+
+    if case != "outside_crop":  # the crop is known only with the model's aspect ratio
+        monkeypatch.setattr(request_module, "load_pipeline", never)
+    bad = tmp_path / "bad.npy"
+    np.save(bad, np.zeros((4, 2)))
+    extra = {"form": ["--drag", "1,2:3"], "outside": ["--drag", "460,10:1,1"], "outside_crop": ["--drag", "20,10:1,1"],
+             "both": ["--drag", "100,100:1,1", "--tracks", str(bad)], "tracks_shape": ["--tracks", str(bad)],
+             "tracks_missing": ["--tracks", str(tmp_path / "none.npy")]}[case]
+    out = tmp_path / "out"
+    capsys.readouterr()
+    code = main(["generate", str(EXAMPLE_IMAGE), "--frames", "5", "--steps", "1", "--resolution", str(SIZE),
+                 "--quiet", "--out", str(out), *extra])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and err[0].startswith("diff4splat: error:"), err
+    assert ("--drag" in err[0] or "--tracks" in err[0]) and not out.exists(), err
