@@ -6,13 +6,16 @@ import json
 import numpy as np
 import pytest
 import torch
-from helpers import EXAMPLE_IMAGE, tiny_model
+from helpers import EXAMPLE_IMAGE, benchmark_module, tiny_model
 
+from data_prep.cli import main as data_prep_main
 from diff4splat.cameras import CameraPath, intrinsics_from_fov
 from diff4splat.cli import main
 from diff4splat.geometry.drags import drag_motion, drags_from_flags, drags_from_tracks, parse_drag
 from diff4splat.io.tracks import read_tracks
 from diff4splat.pipeline import Diff4SplatPipeline
+from training.drag_eval import true_drags
+from training.evaluate import held_out_clips
 
 SIZE = 64
 
@@ -163,3 +166,41 @@ def test_bad_drags_are_one_line_exit_2_before_the_model_loads(tmp_path, capsys, 
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and err[0].startswith("diff4splat: error:"), err
     assert ("--drag" in err[0] or "--tracks" in err[0]) and not out.exists(), err
+
+
+def test_true_drags_follow_each_moving_object_from_its_central_pixel():
+    """A 4×4 patch (rows/columns 10–13) of a still plane 2 m away moves 0.1 m along +x over 5 frames: one drag, at
+    the patch pixel nearest its centroid, moving f·0.1/2 px right; a still clip has none."""
+    T, H, W = 5, 24, 24
+    K = torch.tensor([[30.0, 0.0, 12.0], [0.0, 30.0, 12.0], [0.0, 0.0, 1.0]])
+    v, u = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    points = torch.stack([(u - 12) / 30 * 2, (v - 12) / 30 * 2, torch.full((H, W), 2.0)], -1)  # (H, W, 3)
+    tracks = points.expand(T, H, W, 3).clone()
+    tracks[:, 10:14, 10:14, 0] += torch.linspace(0, 0.1, T)[:, None, None]
+    clip = {"pixel_tracks": tracks, "pixel_track_valid": torch.ones(H, W, dtype=torch.bool), "Ks": K.expand(T, 3, 3)}
+    drags = true_drags(clip)
+    assert len(drags) == 1 and drags.times.tolist() == [0, 0.25, 0.5, 0.75, 1]
+    x0, y0 = drags.positions[0, 0]
+    assert 10 <= x0 - 0.5 <= 13 and 10 <= y0 - 0.5 <= 13
+    assert np.allclose(drags.positions[0, :, 0] - x0, np.linspace(0, 30 * 0.1 / 2, T), atol=1e-9)
+    assert np.allclose(drags.positions[0, :, 1], y0)
+    assert len(true_drags(clip, per_object=3)) == 3
+    clip["pixel_tracks"] = points.expand(T, H, W, 3).clone()
+    assert true_drags(clip) is None
+
+
+@pytest.mark.slow
+def test_the_drags_benchmark_scores_every_variant_on_a_tiny_set(tmp_path):
+    """benchmarks/drags.py's rows on two synthetic scenes at the tiny model: every variant scores, the oracle that
+    moves the true objects by their true track beats holding still at the moving pixels."""
+    bench = benchmark_module("drags")
+    assert data_prep_main(["synth", "--scenes", "2", "--out", str(tmp_path / "d"), "--seed", "3", "--static-ratio",
+                           "0", "--motions", "translate", "--max-movers", "1", "--frames", "5", "--quiet"]) == 0
+    pipe = Diff4SplatPipeline(tiny_model(dynamic=True))
+    clips = [c for c in held_out_clips(tmp_path / "d", 64, 64, 5, None) if true_drags(c) is not None]
+    assert clips
+    for variant in bench.VARIANTS:
+        row, _ = bench.clip_row(pipe, clips[0], variant)
+        assert np.isfinite(row["moving_epe"]) and np.isfinite(row["motion_disp_hold"]), variant
+        if variant == bench.VARIANTS[-1]:
+            assert row["moving_epe"] < 0.5 * row["moving_hold"]
