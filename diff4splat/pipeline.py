@@ -290,7 +290,7 @@ class Diff4SplatPipeline:
         Args:
             image: (H, W, 3) float in [0, 1] at the output resolution and the model's aspect ratio.
             cameras: T = 1 + 4k cameras at W × H; re-expressed relative to the first.
-            prompt: text describing the motion; "" runs no text encoder.
+            prompt: text describing the motion; "" runs no text encoder and, without ``drags``, gives a static scene.
             steps, sampler, guidance: sampler steps, "euler" | "heun" and the classifier-free guidance scale g ≥ 0,
                 v_u + g·(v_p − v_u) (Ho & Salimans 2022; 1: one call per step); defaults: ``config.sampling``.
             seed, progress: seed of the initial noise (drawn on the CPU); tqdm progress bars.
@@ -333,8 +333,10 @@ class Diff4SplatPipeline:
         timings["sample"] = clock.lap()
 
         key_times = torch.unique(cameras.times)
-        # A runtime without the deformation network (a static ONNX export) makes static scenes.
-        out = runtime.reconstruct(latents, plucker, key_times if runtime.has_deformation else None, video[:, :, 0])
+        # Motion only where asked for: the networks' deformation with a prompt, the drags' instead of it; no prompt and
+        # no drag is a static scene. A runtime without the deformation network (a static ONNX export) is static too.
+        networks_move = runtime.has_deformation and bool(prompt.strip()) and drags is None
+        out = runtime.reconstruct(latents, plucker, key_times if networks_move else None, video[:, :, 0])
         frames = self.source_frames(len(cameras))
         sources = torch.tensor(frames, device=dev)
         motion = runtime.has_motion and out.d_means is not None

@@ -134,7 +134,7 @@ def test_without_shipped_weights_a_seeded_random_model_is_used_with_a_warning(tm
 @pytest.mark.slow
 def test_no_frame_plys_leaves_out_frames_and_nothing_else(tmp_path, dynamic_checkpoint):
     """`--no-frame-plys`: no frames/, meta.json says so, every other file the same bytes as with them."""
-    args = ["--checkpoint", str(dynamic_checkpoint), "--trajectory", "spiral", "--frames", "5"]
+    args = ["--checkpoint", str(dynamic_checkpoint), "--trajectory", "spiral", "--frames", "5", "--prompt", "it moves"]
     (tmp_path / "a").mkdir()
     (tmp_path / "b").mkdir()
     code, with_plys = _generate(tmp_path / "a", *args)
@@ -151,7 +151,8 @@ def test_no_frame_plys_leaves_out_frames_and_nothing_else(tmp_path, dynamic_chec
 
 @pytest.mark.slow
 def test_dynamic_checkpoint_frames_differ_only_through_the_deformation(tmp_path, dynamic_checkpoint):
-    code, out = _generate(tmp_path, "--checkpoint", str(dynamic_checkpoint), "--trajectory", "spiral", "--frames", "5")
+    code, out = _generate(tmp_path, "--checkpoint", str(dynamic_checkpoint), "--trajectory", "spiral", "--frames", "5",
+                          "--prompt", "it moves")  # no prompt: a static scene
     assert code == 0
     meta = _check_folder(out, 5)
     assert not meta["static"]

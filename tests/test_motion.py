@@ -207,7 +207,7 @@ def test_generate_reads_motion_from_the_decoded_frames(image, monkeypatch):
         return frame_motion(net, out, frames, *args)
     monkeypatch.setattr(pipeline_module, "frame_motion", spy)
     cams = pipe.default_cameras("orbit", 9)
-    res = pipe(image, cams, "", steps=1)
+    res = pipe(image, cams, "it moves", steps=1)
     frames = seen["frames"]
     assert frames.shape == (1, 9, 3, 64, 64) and frames.min() >= 0 and frames.max() <= 1
     decoded = ((pipe.runtime.decode_latents(res.latents)[0].transpose(0, 1) + 1) / 2).clamp(0, 1)
@@ -221,7 +221,7 @@ def test_a_still_motion_network_makes_the_scene_static_whatever_the_token_networ
         model.ldrm.motion.out.weight.zero_()
         model.ldrm.motion.out.bias.zero_()
     pipe = Diff4SplatPipeline(model)
-    res = pipe(image, pipe.default_cameras("orbit", 9), "", steps=1)
+    res = pipe(image, pipe.default_cameras("orbit", 9), "it moves", steps=1)
     assert res.scene.is_static and res.scene.times is None  # no deformation file
 
 

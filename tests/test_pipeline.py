@@ -61,9 +61,21 @@ def test_untrained_deformation_gives_a_static_scene_with_pixel_aligned_gaussians
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("trajectory", ["arc", "orbit"])
+def test_no_prompt_and_no_drag_give_a_static_scene_on_any_path(image, trajectory):
+    """Motion only where asked for (issue 78): a model whose deformation head moves every pixel makes a static scene
+    (no deformation, so no deformation.npz) without a prompt, a blank one included; with one it moves."""
+    pipe = Diff4SplatPipeline(tiny_model(dynamic=True))
+    cams = pipe.default_cameras(trajectory, FRAMES)
+    for prompt in ("", "   "):
+        res = pipe(image, cams, prompt, steps=1)
+        assert res.scene.is_static and res.scene.times is None, prompt
+    assert not pipe(image, cams, "a cat turns its head", steps=1).scene.is_static
+
+
 def test_dynamic_head_gives_deformation_at_every_frame_time(image):
     pipe = Diff4SplatPipeline(tiny_model(dynamic=True))
-    res = _run(pipe, image)
+    res = _run(pipe, image, prompt="a cat turns its head")  # motion is asked for
     scene = res.scene
     assert not scene.is_static
     torch.testing.assert_close(scene.times, res.cameras.times)

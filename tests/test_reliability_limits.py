@@ -196,7 +196,7 @@ def test_memory_estimate_bounds_the_measured_peak_of_generate(tmp_path):
     frames, res = 65, 64
     done, peak = run_with_peak_memory([sys.executable, "-m", "diff4splat.cli", "generate", str(EXAMPLE_IMAGE),
                                        "--frames", str(frames), "--resolution", str(res), "--device", "cpu",
-                                       "--quiet", "--out", str(tmp_path / "o")])
+                                       "--prompt", "a cat turns its head", "--quiet", "--out", str(tmp_path / "o")])
     assert done.returncode == 0
     estimate = memory_estimate(Diff4SplatPipeline.from_pretrained(), res, res, frames)
     assert peak <= estimate <= 2 * peak, (peak, estimate)

@@ -388,7 +388,8 @@ def test_reconstruct_output_plays_its_video(browser, tmp_path):
 
 @pytest.mark.slow
 def test_generate_output_of_the_shipped_photo_in_the_browser(browser, tmp_path):
-    """The done-when path: `diff4splat generate examples/chelsea.png` (shipped model; at 128 px, twice the model's
+    """The done-when path: the README's `diff4splat generate examples/chelsea.png --prompt …` (shipped model; a prompt,
+    so the scene moves; at 128 px, twice the model's
     64: the photo layer upsampled as at the default 256, a quarter of its Gaussians and pixels for SwiftShader to
     draw) writes viewer.html; opened from disk it shows the scene from the input camera (≥ 25 dB against the CPU
     render of frames/0000.ply on 4×-downsampled images) and, at the last frame's time, the last frame (the same
@@ -397,7 +398,8 @@ def test_generate_output_of_the_shipped_photo_in_the_browser(browser, tmp_path):
     closed once its canvas is read (its render loop takes the cores while it is open)."""
     photo = Path(__file__).resolve().parent.parent / "examples" / "chelsea.png"
     out = tmp_path / "gen"
-    assert main(["generate", str(photo), "--frames", "5", "--resolution", "128", "--quiet", "--out", str(out)]) == 0
+    assert main(["generate", str(photo), "--frames", "5", "--resolution", "128", "--prompt", "a cat turns its head",
+                 "--quiet", "--out", str(out)]) == 0
     meta = json.loads((out / "meta.json").read_text())
     assert (meta["width"], meta["height"]) == (128, 128)
     cams = load_cameras_json(out / "cameras.json")
