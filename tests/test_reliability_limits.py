@@ -466,6 +466,27 @@ def test_convert_source_that_is_not_a_folder_says_what_it_is(tmp_path, capsys, k
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("kind, text", [("fifo", "is a FIFO (named pipe), not a folder"),
+                                        ("loop", "is a symlink loop, not a folder"),
+                                        ("file", "is a regular file, not a folder")])
+@pytest.mark.parametrize("command", ["fit", "fit --init", "render", "evaluate"])
+def test_a_folder_argument_that_is_not_a_folder_says_what_it_is(tmp_path, capsys, kind, text, command):
+    """issue 81, cases 8 and 15: ``fit`` with a symlink loop as the scene or ``--init`` printed a 34-line traceback;
+    ``evaluate --data``, ``fit SCENE`` and ``render DIR`` said "not found" / "does not exist" of a FIFO, a loop or
+    a file. Now one line naming the argument and what is there, exit 2, nothing written."""
+    bad = not_a_folder(tmp_path / "bad", kind)
+    out = tmp_path / "out"
+    (tmp_path / "scene").mkdir()
+    args, name = {"fit": (["fit", str(bad), "--out", str(out)], "scene"),
+                  "fit --init": (["fit", str(tmp_path / "scene"), "--init", str(bad), "--out", str(out)], "--init"),
+                  "render": (["render", str(bad), "--trajectory", "arc", "--out", str(out)], "scene folder"),
+                  "evaluate": (["evaluate", "--data", str(bad), "--random", "--config", "tiny"], "--data")}[command]
+    code = main(args)
+    err = capsys.readouterr().err.splitlines()
+    assert code == 2 and err == [f"diff4splat: error: {name}: {bad} {text}"], err
+    assert not out.exists()
+
+
 def test_convert_of_an_empty_camera_file_names_it(tmp_path, capsys):
     """issue 28: an empty RealEstate10K ``clip.txt`` said "the source sequence has no frames" without naming it."""
     (tmp_path / "src").mkdir()

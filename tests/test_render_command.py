@@ -241,14 +241,18 @@ def test_width_height_resize_the_intrinsics_and_odd_sizes_pad_only_the_video(tmp
     _assert_frames(tmp_path / "r", scene, out)
 
 
-def test_bad_folders_raise_file_not_found_naming_them(tmp_path):
+def test_bad_folders_raise_naming_them(tmp_path):
+    """A missing folder or one without a scene: FileNotFoundError; a file where the folder should be: ValueError
+    saying so (issue 81: it was "not found")."""
     (tmp_path / "afile").write_text("x")
     (tmp_path / "empty").mkdir()
-    for bad in ("missing", "afile", "empty"):
-        with pytest.raises(FileNotFoundError, match=re.escape(str(tmp_path / bad))):
+    for bad, error in (("missing", FileNotFoundError), ("afile", ValueError), ("empty", FileNotFoundError)):
+        with pytest.raises(error, match=re.escape(str(tmp_path / bad))):
             load_scene_folder(tmp_path / bad)
-        with pytest.raises(FileNotFoundError, match=re.escape(str(tmp_path / bad))):
+        with pytest.raises(error, match=re.escape(str(tmp_path / bad))):
             rerender(tmp_path / bad, tmp_path / "r", trajectory="arc")
+    with pytest.raises(ValueError, match="is a regular file, not a folder"):
+        load_scene_folder(tmp_path / "afile")
     assert not (tmp_path / "r").exists()
 
 

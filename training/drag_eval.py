@@ -46,7 +46,7 @@ def true_drags(clip: dict, per_object: int = 1, min_pixels: int = 3) -> Drags | 
             picks.append(int(np.argmax(gap)))
         for p in picks:
             seen = tracks[:, ys[p], xs[p]] @ K.T  # (T, 3)
-            uv = (seen[:, :2] / seen[:, 2:]).numpy()
+            uv = (seen[:, :2] / seen[:, 2:]).cpu().numpy()  # device: the drags are host arrays
             paths.append(uv - uv[0] + np.array([xs[p] + 0.5, ys[p] + 0.5]))
     if not paths:
         return None

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from diff4splat.generate import memory_estimate
 from diff4splat.io.image import read_image
-from diff4splat.io.inputs import check_input_file
+from diff4splat.io.inputs import check_input_file, check_input_folder
 from diff4splat.pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, load_model
 from diff4splat.utils.checks import check_positive_int
 from diff4splat.utils.devices import AUTO, DEVICE_HELP, resolve_device
@@ -123,7 +123,9 @@ def _gap_table(evals: list[ClipEvaluation]) -> str:
 def _check_args(args) -> dict:
     """Every check that needs no model; returns the CSV outputs (:func:`training.eval_csv.csv_outputs`), checked.
     Raises ValueError naming the flag (``--random`` with ``--checkpoint``, ``--prompt`` without ``--photo``, a bad
-    count, an undecodable photo, an unappendable CSV), FileNotFoundError for a missing ``--photo``."""
+    count, an undecodable photo, an unappendable CSV, a ``--data`` that is a file, FIFO or symlink loop),
+    FileNotFoundError for a missing ``--photo`` or ``--data``."""
+    check_input_folder(args.data, "--data")
     if args.random and args.checkpoint is not None:
         raise ValueError(f"--random evaluates the untrained model; --checkpoint {args.checkpoint} would be ignored "
                          "(give one of them)")

@@ -19,6 +19,7 @@ from pathlib import Path
 import torch
 
 from data_prep.format import load_scene
+from diff4splat.io.inputs import check_input_folder
 from diff4splat.io.output_folders import check_output_dir
 from diff4splat.io.scene_folder import (
     DEFORMATION_ARRAYS,
@@ -418,6 +419,9 @@ def run(args) -> int:
         check_limit("gaussians", getattr(args, name), flag(name))
     check_fps(args.fps, "--fps")
     check_seed(args.seed, "--seed")
+    check_input_folder(args.scene, "scene")  # a file, FIFO or symlink loop said as such, before any path is resolved
+    if args.init is not None:
+        check_input_folder(args.init, "--init")
     check_out_outside_inputs(args.out, args.scene, args.init)
     d = FitConfig()
     config = FitConfig(iterations=args.iterations, coarse_iterations=args.coarse_iterations,

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from diff4splat.cameras import CameraPath
-from diff4splat.io.inputs import check_input_file
+from diff4splat.io.inputs import check_input_file, check_input_folder
 from diff4splat.io.structured import read_json
 
 from ..format import SceneWriter
@@ -54,19 +54,14 @@ def only_stem(folder: Path, pattern: str, option: str, what: str) -> str:
 
 def require_dir(path: str | os.PathLike, what: str) -> Path:
     """``Path(path)`` if it is a folder (or a link to one). Raises FileNotFoundError: nothing is there, or a dangling
-    link; ValueError: something else, said as such."""
+    link; ValueError: something else, said as such (:func:`diff4splat.io.inputs.check_input_folder`)."""
     p = Path(path)
-    if p.is_dir():
-        return p
-    try:  # what is there instead (the same words as for files), or nothing
-        check_input_file(p, f"{what} folder")
+    try:
+        return check_input_folder(p, f"{what} folder")
     except FileNotFoundError as e:
         if os.path.islink(p):
             raise
         raise FileNotFoundError(f"{what} folder not found: {p}") from e
-    except ValueError as e:
-        raise ValueError(str(e).replace("not a file", "not a folder")) from None
-    raise ValueError(f"{what} folder: {p} is a regular file, not a folder")
 
 
 _NUMPY_READ_ERRORS = (EOFError, ValueError, zipfile.BadZipFile, pickle.UnpicklingError, zlib.error)

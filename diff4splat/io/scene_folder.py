@@ -25,7 +25,7 @@ from diff4splat.cameras.path import CameraPath
 from diff4splat.io.atomic import atomic_output_path
 from diff4splat.io.cameras import load_cameras_json, save_cameras_json
 from diff4splat.io.exr import save_depth_exr
-from diff4splat.io.inputs import check_input_file
+from diff4splat.io.inputs import check_input_file, check_input_folder
 from diff4splat.io.output_folders import output_dir
 from diff4splat.io.ply import load_ply, save_ply
 from diff4splat.io.structured import read_json
@@ -450,17 +450,14 @@ def load_output_scene(folder: str | os.PathLike) -> tuple[DynamicGaussians, dict
         for every Gaussian held once (stride 0, :func:`load_deformation`); ``meta.json``, {} if absent).
 
     Raises:
-        FileNotFoundError: ``folder`` does not exist, is not a folder, or has no ``scene.ply``.
-        ValueError: naming the file: a malformed or corrupt ``scene.ply`` (or one without Gaussians) or
-            ``deformation.npz`` (:func:`load_deformation`), one not fitting the other, ``meta.json`` not a JSON
+        FileNotFoundError: ``folder`` does not exist or has no ``scene.ply``.
+        ValueError: ``folder`` is a file, FIFO or symlink loop (said as such); naming the file: a malformed or
+            corrupt ``scene.ply`` (or one without Gaussians) or ``deformation.npz`` (:func:`load_deformation`), one
+            not fitting the other, ``meta.json`` not a JSON
             object, with a bad field or a ``static`` the deformation contradicts; a file that is a folder, FIFO or
             dangling symlink; a deformation above the ``frames`` limit (LimitError).
     """
-    path = Path(folder)
-    if not path.exists():
-        raise FileNotFoundError(f"scene folder {path} does not exist")
-    if not path.is_dir():
-        raise FileNotFoundError(f"scene folder {path} is not a folder (give an output folder of generate or fit)")
+    path = check_input_folder(folder, "scene folder")  # says what is there instead: a file, a FIFO, a symlink loop
     ply = folder_file(path, SCENE_FILE)
     if ply is None:
         raise FileNotFoundError(f"scene folder {path} has no scene.ply (not an output folder of generate or fit)")
