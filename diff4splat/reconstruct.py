@@ -48,17 +48,22 @@ def still_cameras(pipe: Diff4SplatPipeline, num_frames: int, width: int, height:
     return CameraPath(eye.expand(num_frames, 4, 4).clone(), K.expand(num_frames, 3, 3).clone(), width, height)
 
 
-def clip_cameras(cameras: CameraPath, indices: list[int], source: object = "cameras") -> CameraPath:
+def clip_cameras(cameras: CameraPath, indices: list[int], source: object = "cameras",
+                 total: int | None = None) -> CameraPath:
     """The clip's cameras: ``cameras`` when there is one per clip frame, else those at its video frames
-    ``indices``; times i/(T−1). ValueError naming ``--cameras`` ``source`` when there are neither."""
+    ``indices`` when there is one per video frame (``total`` of them; None: a video that does not state its count,
+    at least up to its last frame); times i/(T−1). ValueError naming ``--cameras`` ``source`` when there are
+    neither."""
     T = len(indices)
     if len(cameras) == T:
         index = list(range(T))
-    elif len(cameras) > indices[-1]:
+    elif len(cameras) == total or (total is None and len(cameras) > indices[-1]):
         index = indices
     else:
+        per_video = f"{total} (one per video frame)" if total is not None else \
+            f"one per video frame up to frame {indices[-1]}"
         raise ValueError(f"--cameras {source}: {len(cameras)} cameras, but the clip needs {T} (one per clip frame) "
-                         f"or one per video frame up to frame {indices[-1]}")
+                         f"or {per_video}")
     return CameraPath(cameras.viewmats[index], cameras.Ks[index], cameras.width, cameras.height)
 
 
@@ -119,7 +124,7 @@ def reconstruct(video: str | os.PathLike, cameras: str | os.PathLike | CameraPat
         path = cameras
     else:
         path = clip_cameras(request.cameras_from_file(Path(cameras), None, shape, width, height), clip.indices,
-                            cameras)
+                            cameras, clip.total)
     num_layers = len(layer_frames(pipe.source_frames(T), T, layers))
     memory = memory_estimate(pipe, width, height, T, num_layers)
     request.check_budget(path, layer_slots(width, height, num_layers), memory,

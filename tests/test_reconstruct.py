@@ -54,11 +54,11 @@ def moving_every_other(videos, base_pipeline):
 def test_a_clip_is_the_frames_asked_for(videos):
     root, moving = videos
     clip = read_video_clip(root / "moving", 5, stride=3, start=2)
-    assert clip.indices == [2, 5, 8, 11, 14] and clip.fps is None
+    assert clip.indices == [2, 5, 8, 11, 14] and clip.fps is None and clip.total == 17
     for frame, i in zip(clip.frames, clip.indices, strict=True):
         assert np.array_equal(frame, moving[i])  # PNG is lossless
     video = read_video_clip(root / "moving.mp4", 5, stride=3, start=2)
-    assert video.indices == clip.indices and video.fps == pytest.approx(8.0)
+    assert video.indices == clip.indices and video.fps == pytest.approx(8.0) and video.total == 17  # the header's
     for frame, i in zip(video.frames, video.indices, strict=True):  # MPEG-4 is lossy: close, and the right frame
         err = np.abs(frame.astype(float) - moving[i]).mean()
         assert err < 12 and all(err < np.abs(frame.astype(float) - moving[j]).mean() for j in (i - 1, i + 1))
@@ -255,7 +255,7 @@ def test_the_command_writes_generate_s_folder(videos, tmp_path, capsys):
 def test_a_camera_file_of_every_video_frame_gives_the_clip_s_cameras(tmp_path, base_pipeline):
     """A synthetic scene's first camera (a moving one): its 17 frames and the cameras.json of all 17; the clip every
     other frame takes the cameras of frames 0, 2, …, 16, relative to the first, at the clip's times. A file with
-    neither the clip's nor the video's count is refused, naming both."""
+    neither the clip's nor the video's count (fewer, or more than the video's frames) is refused, naming both."""
     scene = generate_scene(tmp_path, 0, seed=3)
     video, cams_file = scene / "cam00" / "rgb", scene / "cam00" / "cameras.json"
     gen = reconstruct(video, cams_file, pipeline=base_pipeline, frames=9, stride=2, resolution=SIZE)
@@ -266,8 +266,13 @@ def test_a_camera_file_of_every_video_frame_gives_the_clip_s_cameras(tmp_path, b
     short = load_cameras_json(cams_file)
     save_cameras_json(tmp_path / "five.json", type(short)(short.viewmats[:5], short.Ks[:5], short.width,
                                                           short.height))
-    with pytest.raises(ValueError, match=r"5 cameras, but the clip needs 9 .* up to frame 16"):
+    with pytest.raises(ValueError, match=r"5 cameras, but the clip needs 9 .*or 17 \(one per video frame\)"):
         reconstruct(video, tmp_path / "five.json", pipeline=base_pipeline, frames=9, stride=2, resolution=SIZE)
+    # issue 81, case 12: 40 cameras for a 17-frame video were used silently (cameras 0–16 of 40)
+    many = torch.cat([short.viewmats] * 3)[:40], torch.cat([short.Ks] * 3)[:40]
+    save_cameras_json(tmp_path / "forty.json", type(short)(*many, short.width, short.height))
+    with pytest.raises(ValueError, match=r"40 cameras, but the clip needs 9 .*or 17 \(one per video frame\)"):
+        reconstruct(video, tmp_path / "forty.json", pipeline=base_pipeline, frames=9, stride=2, resolution=SIZE)
 
 
 @pytest.mark.parametrize("case", ["missing", "frames_not_1_plus_4k", "one_frame", "too_short", "zero_stride",

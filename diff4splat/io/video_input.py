@@ -29,11 +29,14 @@ class VideoClip:
             them (a folder).
         indices: (T,) the frames' indices in the source (0 = its first frame).
         fps: the file's frame rate, frames per second, or None (a folder, or a file that does not say).
+        total: the source's frame count (a folder's images; the frame count a video file's header states), or None
+            when a video file does not state it.
     """
 
     frames: list[np.ndarray]
     indices: list[int]
     fps: float | None
+    total: int | None = None
 
 
 def check_clip_request(frames: object, stride: object, start: object) -> tuple[int | None, int, int]:
@@ -75,19 +78,20 @@ def read_video_clip(path: str | os.PathLike, frames: int, stride: int = 1, start
         if wanted[-1] >= len(files):
             raise _short(path, len(files), start, stride, frames)
         images = [read_image(files[i]) for i in wanted]
-        fps = None
+        fps, total = None, len(files)
     elif path.is_file():
-        images, fps = _decode(path, wanted, start, stride, frames)
+        images, fps, total = _decode(path, wanted, start, stride, frames)
     else:
         raise FileNotFoundError(f"video not found: {path}")
     if len({im.shape[:2] for im in images}) > 1:
         raise ValueError(f"{path}: the frames differ in size ({sorted({im.shape[:2] for im in images})})")
-    return VideoClip(images, wanted, fps)
+    return VideoClip(images, wanted, fps, total)
 
 
 def _decode(path: Path, wanted: list[int], start: int, stride: int,
-            frames: int) -> tuple[list[np.ndarray], float | None]:
-    """The frames ``wanted`` of a video file (decoding stops after the last) and its frame rate."""
+            frames: int) -> tuple[list[np.ndarray], float | None, int | None]:
+    """The frames ``wanted`` of a video file (decoding stops after the last), its frame rate and the frame count its
+    header states (None if it states none, or fewer frames than were decoded)."""
     images, index, keep = [], 0, set(wanted)
     with quiet_c_stderr():  # FFmpeg's complaints about a damaged file; the errors below name it
         cap = cv2.VideoCapture(str(path))
@@ -95,6 +99,7 @@ def _decode(path: Path, wanted: list[int], start: int, stride: int,
             if not cap.isOpened():
                 raise ValueError(f"{path}: not a video OpenCV can open")
             fps = float(cap.get(cv2.CAP_PROP_FPS)) or None
+            stated = cap.get(cv2.CAP_PROP_FRAME_COUNT)
             while index <= wanted[-1]:
                 if not cap.grab():
                     break
@@ -111,4 +116,5 @@ def _decode(path: Path, wanted: list[int], start: int, stride: int,
         raise ValueError(f"{path}: could not decode any frame (not a video OpenCV reads, or damaged)")
     if len(images) < len(wanted):
         raise _short(path, index, start, stride, frames)
-    return images, fps if fps is None or np.isfinite(fps) and fps > 0 else None
+    total = int(stated) if np.isfinite(stated) and int(stated) >= index else None
+    return images, fps if fps is None or np.isfinite(fps) and fps > 0 else None, total
