@@ -51,7 +51,8 @@ def config_from_dict(cls: type, data: dict[str, Any], where: str = "config") -> 
 
     Raises:
         ValueError: naming the field and ``where``: ``data`` not a dict, an unknown field, a non-integer for an
-            ``int`` field (e.g. ``1e9``), or a non-number (a string, a bool) for a ``float`` field.
+            ``int`` field (e.g. ``1e9``), a non-number (a string, a bool) for a ``float`` field, or values the
+            config's own checks refuse (e.g. sizes that do not fit each other).
     """
     if not isinstance(data, dict):
         raise ValueError(f"{where}: expected an object of config fields, got {type(data).__name__} {data!r:.60}")
@@ -81,7 +82,10 @@ def config_from_dict(cls: type, data: dict[str, Any], where: str = "config") -> 
         elif isinstance(value, list) and (isinstance(f.default, tuple) or "tuple" in str(f.type)):
             value = tuple(value)
         kwargs[key] = value
-    return cls(**kwargs)
+    try:
+        return cls(**kwargs)
+    except ValueError as e:  # the config's own consistency checks (__post_init__), named by where they were read
+        raise ValueError(f"{where}: {e}") from None
 
 
 def _shallow_asdict(obj: Any) -> dict[str, Any]:

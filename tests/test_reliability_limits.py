@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from helpers import EXAMPLE_IMAGE, benchmark_module, not_a_folder
+from helpers import EXAMPLE_IMAGE, benchmark_module, not_a_folder, tiny_model
 from simulated_cuda import simulated_cuda
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_leaves
@@ -376,6 +376,18 @@ def test_float_for_an_int_config_field_is_a_clear_type_error(tmp_path):
     with pytest.raises(ValueError, match="field 'depth' of LDRMConfig must be an integer, got 1000000000.0"):
         config_from_dict(load_config("tiny").__class__, {"ldrm": {"depth": 1e9}})  # accepted by the old code
     assert config_from_dict(VideoVAEConfig, {"base_channels": 16}).base_channels == 16
+
+
+def test_a_checkpoint_config_of_sizes_that_do_not_fit_names_its_file(tmp_path, capsys):
+    """issue 81, case 14: a config.json whose LDRM embed_dim no longer fits its deformation network said only
+    "LDRMConfig.deformation.in_channels (…) must equal embed_dim (…)"; now the file is named, one line, exit 2."""
+    ckpt = tmp_path / "ckpt"
+    tiny_model().save_pretrained(ckpt)
+    config = json.loads((ckpt / "config.json").read_text())
+    config["ldrm"]["embed_dim"] = 10**9
+    (ckpt / "config.json").write_text(json.dumps(config))
+    code, lines = _generate(capsys, tmp_path, "--checkpoint", ckpt)
+    _one_line(code, lines, f"{ckpt / 'config.json'}.ldrm: ", "must equal embed_dim (1000000000)")
 
 
 def test_random_model_counts_its_parameters_first(monkeypatch):
