@@ -13,6 +13,8 @@ import errno
 import os
 import shutil
 import signal
+import socket
+import sys
 import threading
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
@@ -104,6 +106,19 @@ class _Handler(BaseHTTPRequestHandler):
         self._respond(body=False)
 
 
+class _Server(ThreadingHTTPServer):
+    """http.server's threading server with a listen backlog of ``socket.SOMAXCONN`` (the default 5 drops the SYNs of
+    a burst of requests, whose clients then wait for TCP's retransmission: seconds each), quiet about clients that
+    hang up mid-response."""
+
+    request_queue_size = socket.SOMAXCONN
+
+    def handle_error(self, request, client_address):
+        if isinstance(sys.exc_info()[1], (ConnectionResetError, BrokenPipeError, ConnectionAbortedError)):
+            return  # the client left (a page closed, a download stopped): nothing to report
+        super().handle_error(request, client_address)
+
+
 def make_server(folder: str | os.PathLike, port: int = 0) -> ThreadingHTTPServer:
     """A server for ``folder`` bound to 127.0.0.1:``port`` (0: any free port); the caller closes it.
     ``server.RequestHandlerClass.payload`` is the :class:`ViewerPayload` served (None: only viewer.html).
@@ -125,7 +140,7 @@ def make_server(folder: str | os.PathLike, port: int = 0) -> ThreadingHTTPServer
         raise FileNotFoundError(f"DIR: {root} has neither {SCENE_FILE} nor {VIEWER_NAME} (not an output folder)")
     handler = type("Handler", (_Handler,), {"root": root.resolve(), "page": page, "data": data, "payload": payload})
     try:
-        return ThreadingHTTPServer((HOST, port), handler)
+        return _Server((HOST, port), handler)
     except OSError as e:
         if e.errno == errno.EADDRINUSE:
             why = "already in use (another server?); choose another --port, or --port 0 for any free one"
