@@ -50,6 +50,7 @@ from diff4splat.onnx_runtime import (
     STATIC_LDRM_OUTPUTS,
 )
 from diff4splat.pipeline import load_model
+from diff4splat.utils.limits import check_disk
 from models.backbone_model import INDEX_FILE
 from models.bundle import DEFAULT_CONFIG, NETWORKS, Diff4SplatModel
 from models.pretrained import WEIGHTS_NAME
@@ -64,6 +65,8 @@ MIN_OPSET = 18
 """The oldest opset the dynamo exporter emits."""
 MAX_OPSET = 25
 """The newest opset whose graphs pass ``onnx.checker`` (from 26 on the exporter's Gelu/Attention fail it)."""
+EXPORT_OVERHEAD_BYTES = 64 << 20
+"""Bytes an export writes beside its weights (graphs, names, the manifest), with a margin: the free space it needs."""
 EXTERNAL_DATA_BYTES = 2_000_000_000
 """Graphs with this many bytes of weights store them in ``<file>.onnx.data`` (a protobuf is at most 2 GiB)."""
 _MAX = 1 << 14  # upper bound of every dynamic dimension
@@ -353,6 +356,8 @@ def export_onnx(model: Diff4SplatModel, out_dir: str | os.PathLike, *, text: boo
     Raises:
         ValueError: ``opset`` out of range; ``model`` is not a :class:`~models.bundle.Diff4SplatModel`.
         OutputDirError, FileNotFoundError: ``out_dir`` may not be written; ``checkpoint`` lacks a network's weights.
+        LimitError: the weights (float32) and :data:`EXPORT_OVERHEAD_BYTES` above the free space of ``out_dir``'s
+            disk (:func:`diff4splat.utils.limits.check_disk`), before anything is exported.
         torch._dynamo.exc.UserError: a dynamic dimension cannot be honoured by a network (a bug).
     """
     if not isinstance(model, Diff4SplatModel):
@@ -375,6 +380,7 @@ def export_checkpoint(checkpoint: str | os.PathLike | None, out_dir: str | os.Pa
 
     Raises:
         OutputDirError, FileExistsError: ``out_dir`` may not be written.
+        LimitError: as :func:`export_onnx`.
         ValueError: a bad ``opset``; ``checkpoint`` is a diffusers backbone folder or malformed.
         FileNotFoundError: ``checkpoint`` is not a folder; an unknown config name.
     """
@@ -397,6 +403,9 @@ def _export(model: Diff4SplatModel, out_dir: str | os.PathLike, *, text: bool, d
     weights = ({"kind": "checkpoint", "path": str(checkpoint), "sha256": checkpoint_sha256(checkpoint)}
                if checkpoint is not None else {"kind": "state_dict", "sha256": state_dict_sha256(model)})
     model = model.to("cpu", torch.float32).eval()
+    weight_bytes = 4 * sum(t.numel() for t in model.state_dict().values())  # float32 in the graphs, each weight once
+    check_disk(weight_bytes + EXPORT_OVERHEAD_BYTES, f"export-onnx of {weight_bytes // 4:,} weights",
+               "the model's size", out_dir)  # before the export's minutes, not at its write
     manifest = {
         "format": MANIFEST_FORMAT,
         "opset": opset,

@@ -19,7 +19,9 @@ from simulated_cuda import simulated_cuda
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_leaves
 
+import diff4splat.export as export_module
 import diff4splat.pipeline as pipeline
+import training.fit_cli as fit_cli
 from data_prep.cli import main as data_prep_main
 from data_prep.clips import ClipConfig, ClipDataset
 from data_prep.synth import generate_scene
@@ -388,6 +390,29 @@ def test_a_checkpoint_config_of_sizes_that_do_not_fit_names_its_file(tmp_path, c
     (ckpt / "config.json").write_text(json.dumps(config))
     code, lines = _generate(capsys, tmp_path, "--checkpoint", ckpt)
     _one_line(code, lines, f"{ckpt / 'config.json'}.ldrm: ", "must equal embed_dim (1000000000)")
+
+
+@pytest.mark.parametrize("command", ["export-onnx", "fit"])
+def test_fit_and_export_check_the_free_space_before_their_work(tmp_path, capsys, monkeypatch, command):
+    """issue 81, case 19: onto a full disk, fit and export-onnx failed cleanly but only at the write (after 58 s and
+    87 s). The output's estimate is checked against the disk's free space (here a limit of 100 kB) before any work:
+    one line naming the request and the variable, exit 2, nothing written."""
+    monkeypatch.setenv("DIFF4SPLAT_MAX_OUTPUT_BYTES", "100000")
+    out = tmp_path / "out"
+
+    def never(*args, **kwargs):
+        raise AssertionError("the work started")
+
+    if command == "fit":
+        scene = generate_scene(tmp_path / "data", 0, seed=3)
+        args = ["fit", str(scene), "--out", str(out), "--iterations", "10"]
+        monkeypatch.setattr(fit_cli, "load_views", never)  # the frames are read only once the checks pass
+    else:
+        args = ["export-onnx", "--config", "tiny", "--out", str(out)]
+        monkeypatch.setattr(export_module, "_export_graph", never)
+    code, lines = _cli(capsys, *args)
+    _one_line(code, lines, "exceeds the limit of 97.7 KiB", "DIFF4SPLAT_MAX_OUTPUT_BYTES")
+    assert not out.exists()
 
 
 def test_random_model_counts_its_parameters_first(monkeypatch):

@@ -40,7 +40,7 @@ from diff4splat.scene.quaternions import quat_conjugate, quat_multiply, rotmat_t
 from diff4splat.utils.checks import check_positive_int
 from diff4splat.utils.costs import RENDER_BASE_BYTES
 from diff4splat.utils.devices import AUTO, DEVICE_HELP, resolve_device
-from diff4splat.utils.limits import check_limit, check_memory, held_memory
+from diff4splat.utils.limits import check_limit, check_memory, check_output_size, held_memory
 from models.hexplane import save_field
 from training.checkpoint import latest_checkpoint, load_checkpoint, on_cpu, save_checkpoint
 from training.densify import DensityStats
@@ -230,7 +230,8 @@ def run_fit(scene_dir: Path, out: Path, config: FitConfig, *, holdout_camera: in
     metrics.json's dict. ``checkpoint_every`` 0 checkpoints only on SIGTERM/SIGINT.
 
     Raises FileNotFoundError (scene or ``init`` missing); ValueError for a bad argument, an unfittable scene (one
-    still camera, no depth), ``resume`` without a checkpoint or with another fit's, or a missing device;
+    still camera, no depth), ``resume`` without a checkpoint or with another fit's, or a missing device; LimitError: the
+    fit's memory or its output folder above the machine's room (before any fitting);
     :class:`FitInterrupted` on SIGTERM/SIGINT after a checkpoint.
     """
     t_start = time.perf_counter()
@@ -244,6 +245,8 @@ def run_fit(scene_dir: Path, out: Path, config: FitConfig, *, holdout_camera: in
     gaussians = _most_gaussians(config)
     check_memory(fit_memory_estimate(scene, config), f"a fit of up to {gaussians:,} Gaussians on {scene_dir}",
                  "--max-gaussians or --init-points")
+    ref = scene.cameras(scene.camera_names[0])  # the written folder: the fit rendered along the first camera
+    check_output_size(len(ref), ref.width, ref.height, gaussians, knobs="--max-gaussians or --init-points", out=out)
     torch.manual_seed(seed)
     train_names, holdout_names = split_cameras(scene, holdout_camera)
     train = load_views(scene, train_names, device=device)

@@ -19,7 +19,7 @@ try:
 except ImportError:  # Windows
     resource = None
 
-__all__ = ["Limit", "LIMITS", "LimitError", "limit", "check_limit", "check_output_size", "check_memory",
+__all__ = ["Limit", "LIMITS", "LimitError", "limit", "check_limit", "check_output_size", "check_disk", "check_memory",
            "available_memory", "held_memory", "memory_caps", "tightest_memory_cap", "cgroup_room", "free_disk",
            "OUTPUT_BYTES_PER_PIXEL", "OUTPUT_BYTES_PER_GAUSSIAN", "OUTPUT_DEFORMATION_BYTES_PER_GAUSSIAN", "size_text"]
 
@@ -271,10 +271,20 @@ def check_output_size(frames: int, width: int, height: int, gaussians: int = 0,
     estimate = int(frames) * int(width) * int(height) * OUTPUT_BYTES_PER_PIXEL
     per_frame = OUTPUT_BYTES_PER_GAUSSIAN if frame_plys else OUTPUT_DEFORMATION_BYTES_PER_GAUSSIAN
     estimate += int(gaussians) * (OUTPUT_BYTES_PER_GAUSSIAN + int(frames) * per_frame)
+    return check_disk(estimate, f"output of {frames} frames at {width}×{height}", knobs, out)
+
+
+def check_disk(estimate: int, request: str, knobs: str, out: str | os.PathLike | None) -> int:
+    """Check an estimate (bytes, an upper bound) of what a command writes to ``out`` against
+    ``DIFF4SPLAT_MAX_OUTPUT_BYTES`` when set, else :func:`free_disk` of ``out``, else the ``output_bytes`` limit;
+    returns it. ``request``: what was asked; ``knobs``: the arguments that lower the estimate.
+
+    Raises:
+        LimitError: one line with the request, the estimate and the bound, the knobs and the variable.
+    """
     bound, then = _bound("output_bytes", None if out is None else free_disk(out), f"free on the disk of {out}", knobs)
     if estimate > bound:
-        raise LimitError(f"output of {frames} frames at {width}×{height}: estimated {size_text(estimate)} "
-                         f"exceeds {then}")
+        raise LimitError(f"{request}: estimated {size_text(estimate)} exceeds {then}")
     return estimate
 
 
