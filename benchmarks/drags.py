@@ -14,7 +14,6 @@ docs/benchmarks.md under ``drags_<SECTION>``.
 from __future__ import annotations
 
 import argparse
-import shlex
 import sys
 import time
 from pathlib import Path
@@ -24,7 +23,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import markdown_table, save_strip, write_section  # noqa: E402
+from _common import markdown_table, publish, save_strip  # noqa: E402
 
 from diff4splat.cameras import CameraPath  # noqa: E402
 from diff4splat.generate import generate  # noqa: E402
@@ -171,10 +170,7 @@ def main() -> None:
         save_strip(args.strip, {k: looked[k] for k in clips_rows}, columns=9, scale=3)
         photo = {k: v for k, v in looked.items() if k not in clips_rows}
         save_strip(args.strip.with_name(args.strip.stem + "_photo" + args.strip.suffix), photo, columns=5)
-    print(text)
-    if args.write:
-        cmd = shlex.join(["python", "benchmarks/drags.py", *sys.argv[1:]])
-        write_section(f"drags_{args.write}", f"`{cmd}` (device: {args.device})\n\n{text}")
+    publish(f"drags_{args.write}", "Drags against holding still", f"Device: {args.device}.", text, bool(args.write))
 
 
 if __name__ == "__main__":
