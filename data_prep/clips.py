@@ -190,11 +190,6 @@ class ClipDataset(Dataset):
         """Generator of item ``index`` in this epoch; stream 0: stride and cameras, 1: tracks."""
         return np.random.default_rng((self.config.seed, self.epoch, index, stream))
 
-    def _reader(self, scene: str) -> SceneReader:
-        if scene not in self._readers:
-            self._readers[scene] = SceneReader(self.root / scene)
-        return self._readers[scene]
-
     def _check_index(self, index: int) -> int:
         if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not -len(self) <= index < len(self):
             raise IndexError(f"clip index must be an int in [0, {len(self)}), got {index!r}")
@@ -217,7 +212,9 @@ class ClipDataset(Dataset):
     def __getitem__(self, index: int) -> dict[str, Any]:
         index = self._check_index(index)
         cfg, spec = self.config, self.sample(index)
-        reader, H, W, T = self._reader(spec.scene), cfg.height, cfg.width, cfg.num_frames
+        if spec.scene not in self._readers:
+            self._readers[spec.scene] = SceneReader(self.root / spec.scene)
+        reader, H, W, T = self._readers[spec.scene], cfg.height, cfg.width, cfg.num_frames
         fitted = {c: reader.cameras(c).fitted(W, H).to(torch.float64) for c in set(spec.cameras)}
         vm = torch.stack([fitted[c].viewmats[f] for c, f in zip(spec.cameras, spec.frames, strict=True)])
         Ks = torch.stack([fitted[c].Ks[f] for c, f in zip(spec.cameras, spec.frames, strict=True)])

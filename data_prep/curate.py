@@ -153,11 +153,6 @@ def laplacian_variance(rgb: np.ndarray) -> float:
     return float(lap.double().var(unbiased=False))
 
 
-def _sample_indices(num_frames: int, k: int) -> list[int]:
-    """k evenly spaced frame indices in [0, T) including the first and the last (unique, sorted)."""
-    return sorted({int(round(x)) for x in np.linspace(0, num_frames - 1, min(k, num_frames))})
-
-
 def scene_statistics(scene: SceneReader, config: CurationConfig) -> SceneStats:
     """Measure one scene (reads cameras, tracks and ``config.sample_frames`` frames per camera). Raises ValueError,
     FileNotFoundError or OSError: an unreadable file of the scene."""
@@ -172,7 +167,7 @@ def scene_statistics(scene: SceneReader, config: CurationConfig) -> SceneStats:
         cos = (np.einsum("tij,ij->t", vm[:, :3, :3], ref[:3, :3]) - 1.0) / 2.0  # tr(R Rref^T)
         rot = max(rot, float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).max()))
 
-    frames = _sample_indices(T, config.sample_frames)
+    frames = sorted({int(round(x)) for x in np.linspace(0, T - 1, min(config.sample_frames, T))})  # first and last
     sharp, valid, total = [], 0, 0
     for name in names:
         for i in frames:
@@ -225,11 +220,6 @@ def judge(stats: SceneStats, config: CurationConfig) -> list[tuple[str, str]]:
     return out
 
 
-def _write_json(path: Path, obj: Any) -> None:
-    with atomic_output_path(path) as tmp:
-        Path(tmp).write_text(json.dumps(obj, sort_keys=True) + "\n", encoding="utf-8")
-
-
 def _place(src: Path, dst: Path, mode: str) -> None:
     """Make accepted scene ``src`` appear at ``dst`` atomically (skipped if ``dst`` already exists)."""
     if mode == "none" or dst.exists() or dst.is_symlink():
@@ -260,7 +250,8 @@ def curate_scene(src: str | os.PathLike, out_root: str | os.PathLike, config: Cu
               "messages": [m for _, m in failed], "stats": stats_dict}
     if record["accepted"]:
         _place(src, out_root / src.name, mode)
-    _write_json(out_root / RECORDS / f"{src.name}.json", record)
+    with atomic_output_path(out_root / RECORDS / f"{src.name}.json") as tmp:
+        Path(tmp).write_text(json.dumps(record, sort_keys=True) + "\n", encoding="utf-8")
     return record
 
 

@@ -94,11 +94,6 @@ def _texture(rng: np.random.Generator, kinds: tuple[str, ...], base: list[float]
     return tex
 
 
-def _bright(base: list[float]) -> np.ndarray:
-    """0.2 + 1.5·base, clipped to [0, 1]."""
-    return np.clip(0.2 + 1.5 * np.asarray(base), 0.0, 1.0)
-
-
 def _image_texture(rng: np.random.Generator, base: list[float]) -> dict[str, Any]:
     """An image texture (fields: :mod:`data_prep.textures`): a random square crop of a bundled image, tinted."""
     names = texture_names()
@@ -108,7 +103,7 @@ def _image_texture(rng: np.random.Generator, base: list[float]) -> dict[str, Any
     c = float(rng.uniform(0.4, 1.0) * min(h, w))
     crop = [float(rng.uniform(0, w - c)), float(rng.uniform(0, h - c)), c]
     grey = img.ndim == 2
-    bright = _bright(base)
+    bright = np.clip(0.2 + 1.5 * np.asarray(base), 0.0, 1.0)
     tint = bright if grey else 1 - rng.uniform(0.0, 0.25) * (1 - bright)
     return {"kind": "image", "file": name, "grey": grey, "crop": np.round(crop, 3).tolist(),
             "metres": float(rng.uniform(0.5, 3.0)),
@@ -274,15 +269,13 @@ def sample_scene_spec(rng: np.random.Generator, *, dynamic: bool, num_cameras: i
     return spec
 
 
-def _texture_word(tex: dict[str, Any]) -> str:
-    return IMAGE_TEXTURES[tex["file"]] if tex["kind"] == "image" else TEXTURES[tex["kind"]]
-
-
 def _object_phrase(o: dict[str, Any]) -> str:
     """"a red striped ball"; an RGB image texture shows its own colours, so it gets no colour word."""
     tex = o["texture"]
-    colour = "" if tex["kind"] == "image" and not tex["grey"] else o["color_name"]
-    words = " ".join(w for w in (colour, _texture_word(tex), SHAPES[o["shape"]]) if w)
+    image = tex["kind"] == "image"
+    colour = "" if image and not tex["grey"] else o["color_name"]
+    texture = IMAGE_TEXTURES[tex["file"]] if image else TEXTURES[tex["kind"]]
+    words = " ".join(w for w in (colour, texture, SHAPES[o["shape"]]) if w)
     return ("an " if words[0] in "aeiou" else "a ") + words
 
 

@@ -263,10 +263,5 @@ class TorchRuntime:
         with self._use("ldrm") as ldrm:
             # times stay float32 (bfloat16 would round clip times near 1 by up to 2⁻⁹)
             out = ldrm(latents.to(dt), plucker.to(dt), None if times is None else times.float(), image.to(dt))
-        return _float(out)
-
-
-def _float(out: LDRMOutput) -> LDRMOutput:
-    """``out`` with every map in float32."""
-    return LDRMOutput(**{f.name: None if getattr(out, f.name) is None else getattr(out, f.name).float()
-                         for f in fields(out)})
+        return LDRMOutput(**{f.name: None if getattr(out, f.name) is None else getattr(out, f.name).float()
+                             for f in fields(out)})

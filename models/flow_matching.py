@@ -167,13 +167,6 @@ def velocity_target(x0: Tensor, noise: Tensor) -> Tensor:
     return noise - x0
 
 
-def _check_sigmas(sigmas: Tensor) -> None:
-    if sigmas.ndim != 1 or sigmas.shape[0] < 2:
-        raise ValueError(f"sigmas must be a 1-D tensor with >= 2 entries, got shape {tuple(sigmas.shape)}")
-    if bool((sigmas[1:] >= sigmas[:-1]).any()):
-        raise ValueError("sigmas must be strictly decreasing (from noise to data)")
-
-
 class ODESteps:
     """The samplers as a loop the caller drives, one velocity evaluation at a time (as diffusers' ``scheduler.step``):
     for each σ of :attr:`sigmas` evaluate v at the current state, and :meth:`step` returns the next state to evaluate
@@ -196,7 +189,10 @@ class ODESteps:
 
     def __init__(self, sampler: str, sigmas: Tensor, noise: Tensor):
         check_sampler(sampler)
-        _check_sigmas(sigmas)
+        if sigmas.ndim != 1 or sigmas.shape[0] < 2:
+            raise ValueError(f"sigmas must be a 1-D tensor with >= 2 entries, got shape {tuple(sigmas.shape)}")
+        if bool((sigmas[1:] >= sigmas[:-1]).any()):
+            raise ValueError("sigmas must be strictly decreasing (from noise to data)")
         self.sampler = sampler
         self._sig = sigmas.to(dtype=noise.dtype, device=noise.device)
         is_zero = (sigmas == 0).tolist()  # host-side flags: no device sync inside the loop

@@ -54,11 +54,6 @@ class MotionConfig:
             raise ValueError(f"MotionConfig.min_flow must be in [0, max_flow), got {self.min_flow}")
 
 
-def _grid(uv: Tensor, height: int, width: int) -> Tensor:  # uv: (N, H, W, 2) pixels → grid_sample's [−1, 1]
-    size = torch.tensor([width, height], dtype=uv.dtype, device=uv.device)
-    return uv / size * 2 - 1
-
-
 def _offsets(radius: int, like: Tensor) -> Tensor:
     """(D, 2) integer offsets (dx, dy) of a (2r+1)² window, dx fastest."""
     d = torch.arange(-radius, radius + 1, dtype=like.dtype, device=like.device)
@@ -73,7 +68,8 @@ def level_correlation(query: Tensor, target: Tensor, uv: Tensor, level: int, rad
     offsets = _offsets(radius, uv)
     at = uv[:, None] / (2 ** level) + offsets[None, :, None, None]  # (N, D, H, W, 2) level-l pixel coordinates
     # one look-up for every offset: the D offsets stacked along the sampled rows
-    sampled = F.grid_sample(target, _grid(at, h, w).flatten(1, 2), mode="bilinear", padding_mode="zeros",
+    grid = at / torch.tensor([w, h], dtype=at.dtype, device=at.device) * 2 - 1  # pixels → grid_sample's [−1, 1]
+    sampled = F.grid_sample(target, grid.flatten(1, 2), mode="bilinear", padding_mode="zeros",
                             align_corners=False)  # (N, F, D·H, W)
     # cosine similarity, each side normalised first: F.cosine_similarity on the broadcast query is slower
     # (docs/benchmarks.md, "Motion path and synth costs")

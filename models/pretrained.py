@@ -71,14 +71,13 @@ def config_from_dict(cls: type, data: dict[str, Any], where: str = "config") -> 
                                  f"({type(value).__name__})")
             value = float(value)
         f = fields[key]
-        sub = _dataclass_type(cls, key)
-        if sub is not None and isinstance(value, dict):
+        if dataclasses.is_dataclass(hint) and isinstance(value, dict):
             base = f.default_factory() if f.default_factory is not dataclasses.MISSING else (
                 f.default if f.default is not dataclasses.MISSING else None)
             merged = _shallow_asdict(base) if dataclasses.is_dataclass(base) else {}
             for k, v in value.items():
                 merged[k] = {**merged[k], **v} if isinstance(v, dict) and isinstance(merged.get(k), dict) else v
-            value = config_from_dict(sub, merged, f"{where}.{key}")
+            value = config_from_dict(hint, merged, f"{where}.{key}")
         elif isinstance(value, list) and (isinstance(f.default, tuple) or "tuple" in str(f.type)):
             value = tuple(value)
         kwargs[key] = value
@@ -92,12 +91,6 @@ def _shallow_asdict(obj: Any) -> dict[str, Any]:
     """Field dict of a dataclass instance, nested dataclasses as dicts."""
     return {f.name: (_shallow_asdict(v) if dataclasses.is_dataclass(v := getattr(obj, f.name)) else v)
             for f in dataclasses.fields(obj)}
-
-
-def _dataclass_type(cls: type, name: str) -> type | None:
-    hints = get_type_hints(cls)
-    t = hints.get(name)
-    return t if dataclasses.is_dataclass(t) else None
 
 
 @contextlib.contextmanager

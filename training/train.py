@@ -24,7 +24,6 @@ from diff4splat.utils.devices import resolve_device
 from diff4splat.utils.errors import run_cli
 from models.backbone_model import INDEX_FILE, BackboneModel
 from models.bundle import Diff4SplatModel, load_config
-from models.ldrm import LDRM
 from models.pretrained import CONFIG_NAME
 from models.vae import estimate_latent_scaling
 
@@ -77,7 +76,12 @@ def build_training(stage: StageConfig, seed: int | None = None
                          f"{stage.scenes} (stage.scenes: {stage.scenes}), fewer than one batch of "
                          f"{stage.trainer.batch_size}: make more {stage.scenes} scenes (data_prep synth {ratio}) or "
                          "lower trainer.batch_size")
-    module = TrainingModule(model, stage, _teacher(stage))
+    teacher = None  # the LDRM of the stage.teacher model folder
+    if stage.teacher is not None:
+        if not (Path(stage.teacher) / CONFIG_NAME).is_file():
+            raise FileNotFoundError(f"teacher: {stage.teacher} is not a model folder (no config.json)")
+        teacher = Diff4SplatModel.from_pretrained(stage.teacher).ldrm
+    module = TrainingModule(model, stage, teacher)
     trainer = Trainer(module, dataset, lambda mod, batch, gen: mod(batch, gen), stage.trainer,
                       extra_meta={"stage": dataclasses.asdict(stage), "trainable": counts})
     return trainer, model, counts
@@ -94,15 +98,6 @@ def _ours_model(stage: StageConfig) -> Diff4SplatModel:
     if not (folder / CONFIG_NAME).is_file():
         raise FileNotFoundError(f"init_from: {stage.init_from} is not a model folder (no config.json)")
     return Diff4SplatModel.from_pretrained(folder)
-
-
-def _teacher(stage: StageConfig) -> LDRM | None:
-    """The LDRM of the ``stage.teacher`` model folder (None without one); FileNotFoundError if not a model folder."""
-    if stage.teacher is None:
-        return None
-    if not (Path(stage.teacher) / CONFIG_NAME).is_file():
-        raise FileNotFoundError(f"teacher: {stage.teacher} is not a model folder (no config.json)")
-    return Diff4SplatModel.from_pretrained(stage.teacher).ldrm
 
 
 def backbone_training():

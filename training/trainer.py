@@ -129,11 +129,6 @@ def warmup_cosine(step: int, warmup: int, total: int, min_ratio: float) -> float
     return min_ratio + (1 - min_ratio) * 0.5 * (1 + math.cos(math.pi * progress))
 
 
-def _full_tensor(t: Tensor) -> Tensor:
-    """The whole tensor of an FSDP2 shard (a DTensor; collective: every rank calls it), else ``t``."""
-    return t.full_tensor() if hasattr(t, "full_tensor") else t
-
-
 class Trainer:
     """Train ``model`` (frozen parameters: ``requires_grad=False``) on a map-style ``dataset`` (``set_epoch`` called
     if present) with ``step_fn``. Optional model hooks: ``fsdp_units()``, ``checkpoint_frozen`` (False: frozen weights
@@ -244,14 +239,10 @@ class Trainer:
         return {n for n, p in self.module.named_parameters(remove_duplicate=False) if not p.requires_grad}
 
     def _ema_state(self) -> dict[str, Tensor] | None:
-        """Full EMA weights (collective under FSDP: every rank calls it), or None without EMA."""
-        return None if self.ema is None else {k: _full_tensor(v) for k, v in self.ema.items()}
-
-    def _optimizer_state(self) -> dict:
-        if self.sharded:
-            return get_optimizer_state_dict(self.model, self.optimizer,
-                                            options=StateDictOptions(full_state_dict=True, cpu_offload=True))
-        return self.optimizer.state_dict()
+        """Full EMA weights (an FSDP2 shard is a DTensor: collective, every rank calls it), or None without EMA."""
+        if self.ema is None:
+            return None
+        return {k: v.full_tensor() if hasattr(v, "full_tensor") else v for k, v in self.ema.items()}
 
     def _load_states(self, model_state: dict, optim_state: dict, ema: dict[str, Tensor] | None) -> None:
         if self.sharded:
@@ -276,7 +267,9 @@ class Trainer:
     def save(self) -> Path | None:
         """Write a checkpoint (rank 0; other ranks wait at a barrier). Returns its folder on rank 0."""
         model_state = self._model_state(frozen=self.checkpoint_frozen)
-        optim_state = self._optimizer_state()
+        optim_state = (get_optimizer_state_dict(self.model, self.optimizer,
+                                                options=StateDictOptions(full_state_dict=True, cpu_offload=True))
+                       if self.sharded else self.optimizer.state_dict())
         ema_state = self._ema_state()
         folder = None
         if self.rank == 0:
@@ -489,6 +482,5 @@ class Trainer:
 
     def final_state_dict(self) -> dict[str, Tensor]:
         """The weights to publish: :meth:`ema_state_dict` with EMA, else the model's own, full (as it, collective)."""
-
         ema = self.ema_state_dict()
         return ema if ema is not None else self._model_state()

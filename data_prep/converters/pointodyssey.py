@@ -24,14 +24,6 @@ POINTODYSSEY_FPS = 30.0
 _ANNO_KEYS = ("trajs_3d", "visibs", "valids", "intrinsics", "extrinsics")
 
 
-def _select_tracks(pts: np.ndarray, vis: np.ndarray, max_tracks: int) -> tuple[np.ndarray, np.ndarray]:
-    """Tracks finite in every selected frame, evenly subsampled to at most ``max_tracks`` (deterministic)."""
-    keep = np.flatnonzero(np.isfinite(pts).all(axis=(1, 2)))
-    if keep.size > max_tracks:
-        keep = keep[np.linspace(0, keep.size - 1, max_tracks).round().astype(int)]
-    return pts[keep], vis[keep]
-
-
 def convert_pointodyssey(src: str | os.PathLike, out: str | os.PathLike, *, start: int = 0, stride: int = 1,
                          max_frames: int | None = None, max_tracks: int = 4096, fps: float = POINTODYSSEY_FPS,
                          replace: bool = False) -> Path:
@@ -62,8 +54,10 @@ def convert_pointodyssey(src: str | os.PathLike, out: str | os.PathLike, *, star
     if max_tracks > 0:
         pts = np.swapaxes(anno["trajs_3d"][idx], 0, 1).astype(np.float64)  # (N, T, 3)
         vis = np.swapaxes(anno["visibs"][idx].astype(bool) & anno["valids"][idx].astype(bool), 0, 1)
-        pts, vis = _select_tracks(pts, vis, max_tracks)
-        tracks = (pts, vis) if pts.shape[0] else None
+        keep = np.flatnonzero(np.isfinite(pts).all(axis=(1, 2)))  # finite in every selected frame
+        if keep.size > max_tracks:
+            keep = keep[np.linspace(0, keep.size - 1, max_tracks).round().astype(int)]
+        tracks = (pts[keep], vis[keep]) if keep.size else None
     return write_scene(out, source="pointodyssey", dynamic=True, depth_source="ground_truth", fps=fps / stride,
                        cameras=cams, timestamps=ts, frames=frames, tracks=tracks, replace=replace,
                        extra={"source_id": src.resolve().name, "source_frames": idx,

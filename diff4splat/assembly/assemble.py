@@ -152,11 +152,6 @@ def rebase_deformation(d_means: Tensor, d_quats: Tensor, d_scales: Tensor, refer
     return d_means - m0, quat_multiply(quat_normalize(d_quats, "d_quats"), quat_conjugate(q0)), d_scales - s0
 
 
-def _upsample_maps(maps: Tensor, size: tuple[int, int]) -> Tensor:
-    """(K, h, w, C) → (K, H, W, C) bilinear."""
-    return F.interpolate(maps.permute(0, 3, 1, 2), size=size, mode="bilinear", align_corners=False).permute(0, 2, 3, 1)
-
-
 def video_colors(
     out: LDRMOutput,
     video: Tensor,  # (1, 3, T, h, w) the decoded generated video, about [−1, 1]
@@ -288,7 +283,9 @@ def _deformation(out: LDRMOutput, grid: Gaussians, times: Tensor, t0: float, siz
         start = 0
         for grid_size in (size, size_back):
             n = grid_size[0] * grid_size[1]
-            d[:, start:start + n] = _upsample_maps(r.reshape(K, h, w, c), grid_size).reshape(K, n, c)
+            up = F.interpolate(r.reshape(K, h, w, c).permute(0, 3, 1, 2), size=grid_size, mode="bilinear",
+                               align_corners=False)  # (K, c, H, W)
+            d[:, start:start + n] = up.permute(0, 2, 3, 1).reshape(K, n, c)
             start += n
         d[:, n_photo:n_photo + n_back] = torch.tensor(identity, dtype=dtype, device=d.device)
         d[:, n_photo + n_back:].view(K, S - 1, h, w, c).copy_(m[:, 1:])  # converts the dtype while copying

@@ -131,13 +131,6 @@ def layer_spans(frames_of: list[int]) -> list[tuple[int, int]]:
             for s in range(len(frames_of))]
 
 
-def _layer_motion(motion: Tensor, height: int, width: int) -> Tensor:
-    """Per-pixel displacements (K, H, W, 3) → the photo layer's (K, H·W + ⌈H/2⌉·⌈W/2⌉, 3) (backing: 2×2 means)."""
-    K = motion.shape[0]
-    block = F.avg_pool2d(motion.permute(0, 3, 1, 2), 2, ceil_mode=True).permute(0, 2, 3, 1)
-    return torch.cat([motion.reshape(K, height * width, 3), block.reshape(K, -1, 3)], dim=1)
-
-
 def layered_scene(images: Tensor, depths: Tensor, sources: list[int], frames_of: list[int], cameras: CameraPath, *,
                   static_atol: float, prune_opacity: float, order_offset: float = LAYER_ORDER_OFFSET,
                   unchecked: int | None = None, clock: Stopwatch, timings: dict[str, float]
@@ -180,7 +173,9 @@ def layered_scene(images: Tensor, depths: Tensor, sources: list[int], frames_of:
                                unchecked=spacing if unchecked is None else unchecked)  # (hi − lo + 1, H, W, 3)
         moved = (motion.abs() > static_atol).any(dim=-1).flatten(1).float().mean(dim=-1)  # (hi − lo + 1,)
         dynamic = dynamic or bool((moved > MOVING_FRACTION).any())
-        d_means[lo:hi + 1, offsets[s]:offsets[s] + photo] = _layer_motion(motion, H, W)
+        # the photo layer's (H·W + ⌈H/2⌉·⌈W/2⌉) Gaussians: the pixels', then the backing's (2×2 means)
+        block = F.avg_pool2d(motion.permute(0, 3, 1, 2), 2, ceil_mode=True).permute(0, 2, 3, 1)
+        d_means[lo:hi + 1, offsets[s]:offsets[s] + photo] = torch.cat([motion.flatten(1, 2), block.flatten(1, 2)], 1)
         del motion
     timings["motion"] = clock.lap()
     if not dynamic:  # a still world: every backdrop cell goes to settle_and_prune with the layers

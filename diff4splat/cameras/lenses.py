@@ -89,15 +89,10 @@ def _direction(theta: Tensor, ex: Tensor, ey: Tensor, rho: Tensor) -> Tensor:
     return torch.stack([s * cx, s * cy, torch.cos(theta)], dim=-1)
 
 
-def _angle(points: Tensor) -> tuple[Tensor, Tensor]:
-    """θ = atan2(ρ, z) ∈ [0, π] and ρ = ‖(x, y)‖ of camera-frame points (..., 3)."""
-    rho = torch.sqrt(points[..., 0] ** 2 + points[..., 1] ** 2)
-    return torch.atan2(rho, points[..., 2]), rho
-
-
 def _radial(points: Tensor, theta_max: float, fn: Callable[[Tensor], Tensor]) -> tuple[Tensor, Tensor, Tensor]:
     """fn(θ) of camera-frame points (..., 3), valid (θ < theta_max, not the origin) and ρ (1 where 0)."""
-    theta, rho = _angle(points)
+    rho = torch.sqrt(points[..., 0] ** 2 + points[..., 1] ** 2)
+    theta = torch.atan2(rho, points[..., 2])  # ∈ [0, π]
     valid = (theta < theta_max) & (points.norm(dim=-1) > 0)
     safe = torch.where(rho > 0, rho, torch.ones_like(rho))
     return fn(torch.where(valid, theta, torch.zeros_like(theta))), valid, safe

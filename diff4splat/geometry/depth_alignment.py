@@ -146,11 +146,6 @@ def fit_scale_shift(
     return DepthAlignment(s, t, space, int(x.size), int(x.size), float(np.sqrt(np.mean(r * r))))
 
 
-def _robust_sigma(r: np.ndarray) -> float:
-    """MAD estimate of the residual standard deviation, 1.4826·median|r − median r|."""
-    return float(_MAD_TO_SIGMA * np.median(np.abs(r - np.median(r))))
-
-
 def _lmeds(x: np.ndarray, y: np.ndarray, iters: int, rng: np.random.Generator, max_eval: int
            ) -> tuple[float, float] | None:
     """Least-median-of-squares over random 2-point samples; ``None`` if no sample was usable."""
@@ -215,7 +210,7 @@ def fit_scale_shift_robust(
     w = np.ones_like(x)
     for _ in range(irls_iters):
         r = s * x + t - y
-        sigma = _robust_sigma(r)
+        sigma = float(_MAD_TO_SIGMA * np.median(np.abs(r - np.median(r))))  # robust standard deviation
         if sigma <= exact_tol:
             w = (np.abs(r) <= exact_tol).astype(np.float64)
             s, t = _weighted_ls(x, y, w) if w.sum() >= 2 else (s, t)

@@ -44,13 +44,6 @@ GATE_PX = 2.0
 """Default rigidity gate, pixels: a tracked pixel this close to its camera-motion-only position is static."""
 
 
-def _gray_uint8(frames: Tensor) -> np.ndarray:  # (P, 3, H, W) in [0, 1] → (P, H, W) uint8
-    """(P, 3, H, W) in [0, 1] → (P, H, W) uint8 grey, on the host."""
-    rgb = (frames.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(0, 2, 3, 1)
-    rgb = rgb.cpu().numpy()  # device: OpenCV reads host arrays (the flow goes back to the frames' device)
-    return np.stack([cv2.cvtColor(np.ascontiguousarray(x), cv2.COLOR_RGB2GRAY) for x in rgb])
-
-
 def optical_flow(src: Tensor, dst: Tensor, *, upsample: int = FLOW_UPSAMPLE, preset: str = "medium") -> Tensor:
     """Dense optical flow (OpenCV DIS) from each ``src`` to its ``dst`` frame, (P, 3, H, W) RGB in [0, 1] (clamped),
     computed on frames resized ``upsample``× (bicubic; 1: none) and averaged back; ``preset``: one of
@@ -71,7 +64,9 @@ def optical_flow(src: Tensor, dst: Tensor, *, upsample: int = FLOW_UPSAMPLE, pre
     both = torch.cat([src, dst]).float()
     if up > 1:
         both = F.interpolate(both, scale_factor=up, mode="bicubic", align_corners=False)
-    gray = _gray_uint8(both)
+    rgb = (both.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(0, 2, 3, 1)
+    rgb = rgb.cpu().numpy()  # device: OpenCV reads host arrays (the flow goes back to the frames' device)
+    gray = np.stack([cv2.cvtColor(np.ascontiguousarray(x), cv2.COLOR_RGB2GRAY) for x in rgb])  # (2P, uH, uW) uint8
     dis = cv2.DISOpticalFlow_create(DIS_PRESETS[preset])
     P = src.shape[0]
     flows = np.stack([dis.calc(gray[i], gray[P + i], None) for i in range(P)])  # (P, uH, uW, 2)

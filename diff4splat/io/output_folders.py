@@ -49,13 +49,6 @@ class _ExistingFolderError(OutputDirError):
     """A refusal that depends on what the existing ``out`` holds (it may be seen mid-swap, unlocked)."""
 
 
-def _name_max(parent: Path) -> int:
-    try:
-        return int(os.pathconf(parent, "PC_NAME_MAX"))
-    except (OSError, ValueError):
-        return 255
-
-
 def _stem(name: str) -> str:
     """The part of temporary/lock names that identifies ``name`` (a hash for long names)."""
     if len(os.fsencode(name)) <= _SHORT_NAME_BYTES:
@@ -221,7 +214,10 @@ def check_output_dir(out: str | os.PathLike, *, inputs: Iterable[str | os.PathLi
         raise OutputDirError(f"{label}: parent folder {parent} does not exist")
     if not parent.is_dir():
         raise OutputDirError(f"{label}: parent {parent} is not a folder")
-    name_max = _name_max(parent)
+    try:
+        name_max = int(os.pathconf(parent, "PC_NAME_MAX"))
+    except (OSError, ValueError):
+        name_max = 255
     if len(os.fsencode(target.name)) > name_max:
         raise OutputDirError(f"{label}: name is {len(os.fsencode(target.name))} bytes, longer than the "
                              f"{name_max} the file system allows")

@@ -94,12 +94,6 @@ def payload_bytes(num_gaussians: int, sh_degree: int, held_keyframes: int, tempo
     return ply + 4 * temporal_arrays * num_gaussians + windows + held_keyframes * 10 * itemsize
 
 
-def _camera_list(cameras: CameraPath) -> list[dict]:
-    V, K, t = cameras.viewmats.detach().cpu().double(), cameras.Ks.detach().cpu().double(), cameras.times
-    return [{"viewmat": V[i].reshape(-1).tolist(), "K": K[i].reshape(-1).tolist(), "time": float(t[i])}
-            for i in range(len(cameras))]
-
-
 def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float = DEFAULT_FPS,
                    budget: int | None = VIEWER_BUDGET_BYTES,
                    background: tuple[float, float, float] = BACKGROUND, eps2d: float = EPS2D) -> ViewerPayload:
@@ -117,6 +111,7 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
         raise ValueError(f"fps must be > 0, got {fps}")
     page = keyframes.page_scene(scene.to("cpu"), cameras, budget, payload_bytes, FLOAT16_MAX_PX)
     g, times, span, held, pose = page.gaussians, page.times, page.span, page.held, page.first_pose
+    V, K = cameras.viewmats.detach().cpu().double(), cameras.Ks.detach().cpu().double()
     config = {
         "numGaussians": g.num_gaussians, "shDegree": g.sh_degree, "dynamic": span is not None,
         "temporal": scene.has_temporal, "temporalRamps": scene.t_ramps is not None,
@@ -124,8 +119,9 @@ def viewer_payload(scene: DynamicGaussians, cameras: CameraPath, *, fps: float =
         "heldKeyframes": 0 if held is None else held.shape[0],
         "dtype": page.dtype, "float16ErrorPx": page.float16_error_px, "width": cameras.width, "height": cameras.height,
         "duration": (len(cameras) - 1) / fps if len(cameras) > 1 else 1.0 / fps,
-        "cameras": _camera_list(cameras), "near": NEAR_PLANE, "background": [float(c) for c in background],
-        "eps2d": float(eps2d),
+        "cameras": [{"viewmat": V[i].reshape(-1).tolist(), "K": K[i].reshape(-1).tolist(),
+                     "time": float(cameras.times[i])} for i in range(len(cameras))],
+        "near": NEAR_PLANE, "background": [float(c) for c in background], "eps2d": float(eps2d),
         "far": max(100.0, 10 * float(pose.double().norm(dim=1).max()) if pose.numel() else 100.0),
         "targetDistance": page.target_distance,
         "note": ("reduced to fit the viewer's size budget: " + "; ".join(page.reductions) +

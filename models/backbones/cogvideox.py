@@ -135,11 +135,6 @@ class CogVideoXBackbone(DiffusersBackbone):
         table = self._schedule[2].to(sigma.device)
         return (table[None, :] - sigma.to(torch.float64)[:, None]).abs().argmin(dim=1)
 
-    def ddpm_coefficients(self, t: Tensor) -> tuple[Tensor, Tensor]:
-        """Timesteps t (B,) → (α, s) = (√ᾱ_t, √(1 − ᾱ_t)), each (B,) float64 on t's device."""
-        table = self._schedule.to(t.device)
-        return table[0, t], table[1, t]
-
     def sigmas(self, steps: int) -> Tensor:
         """(steps + 1,) float64 on the CPU: σ_t of the scheduler's own timesteps (``set_timesteps`` on a copy,
         "trailing": t = 999, …, σ = 1 first), then 0. Equal to the pipeline's samples when ``steps`` divides 1000;
@@ -193,7 +188,8 @@ class CogVideoXBackbone(DiffusersBackbone):
             raise ValueError(f"this CogVideoX transformer has learned positional embeddings for "
                              f"{cfg.sample_height}x{cfg.sample_width} latents; got {h}x{w}")
         t = self.timesteps(sigma)
-        alpha, s = self.ddpm_coefficients(t)
+        table = self._schedule.to(t.device)
+        alpha, s = table[0, t], table[1, t]  # √ᾱ_t, √(1 − ᾱ_t): (B,) float64
         x_t = (alpha + s).float().view(-1, 1, 1, 1, 1) * x.float()
         if text is None:
             text = self.empty_text(b, x.device)

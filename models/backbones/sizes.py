@@ -61,7 +61,8 @@ def _diffusers_init_kwargs(cls: type, values: dict) -> dict:
     return {k: v for k, v in values.items() if k in params}
 
 
-def _build(config: dict, component: str) -> nn.Module:
+def _build(config: dict, component: str) -> object:
+    """``component`` of a backbone from its config: a network (an ``nn.Module``) or the scheduler."""
     cls = _component_class(config, component)
     values = config[component]
     if issubclass(cls, transformers.PreTrainedModel):
@@ -77,18 +78,14 @@ def meta_backbone(name: str) -> dict[str, nn.Module]:
         return {component: _build(config, component) for component in COMPONENTS}
 
 
-def _scheduler(config: dict):
-    cls = _component_class(config, "scheduler")
-    return cls.from_config(_diffusers_init_kwargs(cls, config["scheduler"]))
-
-
 def meta_model(name: str) -> BackboneModel:
     """The :class:`BackboneModel` a Hub folder of this backbone loads as, on the meta device, without tokenizer.
     ValueError for an unknown name or a configuration the backbone class rejects."""
     config = backbone_config(name)
     kind = PIPELINES[config["model_index"]["_class_name"]]
     nets = meta_backbone(name)
-    backbone = backbone_class(kind)(**nets, tokenizer=None, scheduler=_scheduler(config))  # widens the patch conv
+    scheduler = _build(config, "scheduler")
+    backbone = backbone_class(kind)(**nets, tokenizer=None, scheduler=scheduler)  # widens the patch conv
     model_config = BackboneModelConfig.for_backbone(kind, backbone.latent)
     with torch.device("meta"):
         ldrm = LDRM(model_config.ldrm)
