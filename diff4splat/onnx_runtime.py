@@ -204,11 +204,8 @@ class OnnxRuntime:
                  threads: int | None = None, profile_prefix: str | None = None):
         self.directory = Path(directory)
         self.manifest = load_manifest(self.directory)
-        where = str(self.directory / MANIFEST_NAME)
-        try:
-            self.config: Diff4SplatConfig = config_from_dict(Diff4SplatConfig, self.manifest["config"], where)
-        except ValueError as e:  # the config's own checks do not know the file
-            raise ValueError(str(e) if where in str(e) else f"{where}: config: {e}") from None
+        where = f"{self.directory / MANIFEST_NAME}: config"  # config_from_dict names it in every error
+        self.config: Diff4SplatConfig = config_from_dict(Diff4SplatConfig, self.manifest["config"], where)
         parts = self.manifest["parts"]
         self.has_text = bool(parts["text_encoder"])
         self.dit_text_inputs = bool(parts["dit_text_inputs"])
