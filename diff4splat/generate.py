@@ -18,7 +18,7 @@ from diff4splat.assembly.assemble import DEPTH_KINDS
 from diff4splat.assembly.photo import layer_sizes
 from diff4splat.cameras import DEFAULT_TRAJECTORY, CameraPath, center_crop_box
 from diff4splat.cameras.trajectories import check_amplitude, check_trajectory
-from diff4splat.geometry.drags import Drags, drags_from_flags, drags_from_tracks, parse_drag
+from diff4splat.geometry.drags import Drags, drags_from_flags, drags_from_tracks
 from diff4splat.io.depth_maps import fit_depth_map, read_depth_map
 from diff4splat.io.image import preprocess_image, read_image
 from diff4splat.io.inputs import check_input_file
@@ -58,8 +58,6 @@ def memory_estimate(pipe: Diff4SplatPipeline, width: int, height: int, num_frame
 def _check_request(image, cameras, trajectory, amplitude, steps, sampler, seed, prompt, depth, depth_kind,
                    guidance, drags, tracks) -> None:
     """The request's own checks, made before any model loads (messages name the command's flags)."""
-    for text in drags:
-        parse_drag(text)
     if drags and tracks is not None:
         raise ValueError("--drag and --tracks: give the motion one way (a tracks file holds any number of points)")
     if isinstance(image, (str, os.PathLike)):

@@ -1,4 +1,4 @@
-"""Drags taken from a clip's true motion, for evaluation (issue 78: ``motion_disp_epe_drag``): what a user who
+"""Drags taken from a clip's true motion, for evaluation (the drag rows of benchmarks/drags.py): what a user who
 drags each moving object by where it truly goes would give :meth:`Diff4SplatPipeline.__call__`.
 
 A moving object is a connected region of frame 0's valid pixels whose dense track (``ClipDataset``'s

@@ -150,7 +150,7 @@ def drag_segments(image: Tensor, depth: Tensor, *, k: float = SEGMENT_K, depth_w
     h = min(H, SEGMENT_HEIGHT)
     w = max(1, round(W * h / H))
     rgb = (image.detach().float().clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()  # device: OpenCV on host
-    z = depth.detach().double().cpu().numpy()
+    z = depth.detach().double().cpu().numpy()  # device: OpenCV segments on the host; labels are host arrays
     ok = np.isfinite(z) & (z > 0)
     z = np.where(ok, z, z[ok].max() if ok.any() else 1.0)
     lab = cv2.cvtColor(cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA), cv2.COLOR_RGB2LAB).astype(np.float32)
@@ -178,7 +178,7 @@ def drag_motion(drags: Drags, image: Tensor, depth: Tensor, K: Tensor, times: Te
     H, W = image.shape[:2]
     labels = drag_segments(image, depth) if segments is None else segments
     z = depth.detach().double().cpu().numpy()  # device: the dense maps are built on the host, moved back below
-    Kinv = np.linalg.inv(K.detach().double().cpu().numpy())
+    Kinv = np.linalg.inv(K.detach().double().cpu().numpy())  # device: a 3×3 on the host, beside the maps
     start = drags.positions[:, 0]
     cols = np.clip(start[:, 0].astype(int), 0, W - 1)
     rows = np.clip(start[:, 1].astype(int), 0, H - 1)

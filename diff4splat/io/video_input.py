@@ -69,6 +69,8 @@ def read_video_clip(path: str | os.PathLike, frames: int, stride: int = 1, start
             a frame above the ``image_pixels`` limit, fewer frames than the request needs.
     """
     frames, stride, start = check_clip_request(frames, stride, start)
+    if frames is None:
+        raise ValueError("--frames: a clip's frame count must be given (an int ≥ 2)")
     path = Path(path)
     wanted = [start + stride * i for i in range(frames)]
     if path.is_dir():
