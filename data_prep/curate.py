@@ -31,8 +31,9 @@ from diff4splat.io.structured import read_yaml
 from diff4splat.utils.checks import check_int
 from diff4splat.utils.config_files import CURATION_DEFAULT
 from diff4splat.utils.errors import parse_naming
+from diff4splat.utils.limits import check_disk
 
-from .engine import Engine, map_scenes
+from .engine import Engine, engine_session, map_scenes
 from .format import SCENE_KIND, SceneReader, list_scenes
 from .validate import validate_scene
 
@@ -229,8 +230,22 @@ def _place(src: Path, dst: Path, mode: str) -> None:
         os.symlink(src.resolve(), tmp, target_is_directory=True)
         os.replace(tmp, dst)
     else:
+        size = sum(f.stat().st_size for f in src.rglob("*") if f.is_file() and not f.name.startswith("."))
+        check_disk(size, f"--mode copy of {src}", "--mode symlink", dst.parent)
+        failures: list[OSError] = []
+
+        def copy(a: str, b: str) -> None:
+            try:
+                shutil.copy2(a, b)
+            except OSError as e:  # copytree keeps only the message; the first error is raised whole below
+                failures.append(e)
+                raise
+
         with output_dir(dst, kind=SCENE_KIND, replace=False, parents=True) as tmp:
-            shutil.copytree(src, tmp, dirs_exist_ok=True, ignore=shutil.ignore_patterns(".*"))
+            try:
+                shutil.copytree(src, tmp, dirs_exist_ok=True, ignore=shutil.ignore_patterns(".*"), copy_function=copy)
+            except shutil.Error as e:  # (src, dst, why) triples
+                raise failures[0] if failures else ValueError(f"copying {src}: {e.args[0][0][2]}") from None
 
 
 def curate_scene(src: str | os.PathLike, out_root: str | os.PathLike, config: CurationConfig,
@@ -346,18 +361,20 @@ def curate(in_root: str | os.PathLike, out_root: str | os.PathLike, config: Cura
         if previous != settings:
             raise ValueError(f"{out_root} was curated with a different config or mode ({cfg_file}); "
                              "use a new output folder or delete it")
-    (out_root / RECORDS).mkdir(parents=True, exist_ok=True)
-    _remove_leftovers(out_root)
-    if not cfg_file.is_file():
-        with atomic_output_path(cfg_file) as tmp:
-            Path(tmp).write_text(yaml.safe_dump(settings, sort_keys=False), encoding="utf-8")
-    done = {f.stem for f in (out_root / RECORDS).glob("*.json") if not f.name.startswith(".")}
-    todo = [s for s in scenes if s.name not in done]
-    bar = tqdm(total=len(scenes), initial=len(scenes) - len(todo), desc="curate", unit="scene",
-               disable=not progress or engine.name != "local", file=sys.stderr)
-    try:
-        map_scenes(partial(_curate_task, out_root=out_root, config=config, mode=mode), todo, engine, bar=bar)
-    finally:
-        bar.close()
-        records = _finalize(out_root)
+    with engine_session(engine):  # a Ray that cannot be reached is refused here, before OUT is written
+        (out_root / RECORDS).mkdir(parents=True, exist_ok=True)
+        _remove_leftovers(out_root)
+        if not cfg_file.is_file():
+            with atomic_output_path(cfg_file) as tmp:
+                Path(tmp).write_text(yaml.safe_dump(settings, sort_keys=False), encoding="utf-8")
+        done = {f.stem for f in (out_root / RECORDS).glob("*.json") if not f.name.startswith(".")}
+        todo = [s for s in scenes if s.name not in done]
+        bar = tqdm(total=len(scenes), initial=len(scenes) - len(todo), desc="curate", unit="scene",
+                   disable=not progress or engine.name != "local", file=sys.stderr)
+        try:
+            map_scenes(partial(_curate_task, out_root=out_root, config=config, mode=mode), todo, engine,
+                       progress=progress, bar=bar)
+        finally:
+            bar.close()
+            records = _finalize(out_root)
     return records

@@ -9,20 +9,27 @@ import functools
 import logging
 import os
 import pickle
+import resource
 import signal
-from collections.abc import Callable, Iterable, Sequence, Sized
+import socket
+import threading
+from collections.abc import Callable, Iterable, Iterator, Sequence, Sized
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
-from multiprocessing import get_context
+from multiprocessing import active_children, get_context
 from typing import Any
 
 import torch
 from tqdm.auto import tqdm
 
 from diff4splat.utils.checks import MissingExtraError, check_int
+from diff4splat.utils.errors import quiet_c_stderr
+from diff4splat.utils.limits import LimitError, size_text
 
-__all__ = ["Engine", "ENGINES", "check_engine", "add_engine_arguments", "engine_from_args", "map_scenes",
-           "fault_point", "import_ray", "FAULT_ENV", "RAY_EXTRA"]
+__all__ = ["Engine", "ENGINES", "check_engine", "add_engine_arguments", "engine_from_args", "engine_session",
+           "map_scenes", "fault_point", "import_ray", "FAULT_ENV", "RAY_EXTRA", "RAY_CONNECT_TIMEOUT_S",
+           "RAY_MIN_ADDRESS_SPACE"]
 
 ENGINES = ("local", "ray")
 """The engines :func:`map_scenes` runs on."""
@@ -30,6 +37,12 @@ FAULT_ENV = "DIFF4SPLAT_FAULT"
 """Environment variable of :func:`fault_point`."""
 RAY_EXTRA = "pip install 'diff4splat[ray]'"
 """The install command named when Ray is asked for and missing."""
+RAY_CONNECT_TIMEOUT_S = 10.0
+"""Seconds ``--ray-address host:port`` (or ``ray://host:port``) gets to accept a TCP connection before it is refused."""
+_GCS_WAIT_ENV = "RAY_gcs_server_port_wait_time_s"  # Ray's budget, in seconds, for reaching a cluster's GCS
+RAY_MIN_ADDRESS_SPACE = 4 << 30
+"""Bytes of ``ulimit -v`` (RLIMIT_AS) a Ray started here needs: every process of it (GCS, raylet, the driver and the
+workers, which load torch) runs under the limit. Measured on Ray 2.60, torch 2.13: 3.8 GiB starts, 3.5 GiB aborts."""
 
 
 @dataclass(frozen=True)
@@ -130,7 +143,9 @@ def map_scenes(fn: Callable[[Any], Any], items: Iterable[Any], engine: Engine, *
                 fn(item)
                 bar.update()
             return
-        with ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_init_worker) as pool:
+        others = set(active_children())
+        pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_init_worker)
+        try:
             running: set = set()
             for item in items:
                 running.add(pool.submit(fn, item))
@@ -138,6 +153,16 @@ def map_scenes(fn: Callable[[Any], Any], items: Iterable[Any], engine: Engine, *
                     running = _collect(running, bar)
             while running:
                 running = _collect(running, bar)
+        except Exception:  # a failed scene: those running finish (whole), the rest are not started
+            pool.shutdown(cancel_futures=True)
+            raise
+        except BaseException:  # Ctrl-C, SIGTERM: the workers end now, with the command, not after their scenes
+            for proc in set(active_children()) - others:
+                proc.terminate()
+                proc.join()
+            pool.shutdown(cancel_futures=True)  # its queues' semaphores released (no resource_tracker warning)
+            raise
+        pool.shutdown()
     finally:
         if own_bar:
             bar.close()
@@ -145,6 +170,9 @@ def map_scenes(fn: Callable[[Any], Any], items: Iterable[Any], engine: Engine, *
 
 def _init_worker() -> None:
     torch.set_num_threads(1)  # one process per core; no oversubscription
+    # a thread lock for tqdm, not its default multiprocessing one: a worker terminated with the driver leaves no
+    # semaphore for the resource tracker to report
+    tqdm.set_lock(threading.RLock())
 
 
 def _collect(running: set, bar: tqdm) -> set:
@@ -170,28 +198,110 @@ def _ray_row(row: dict[str, Any], fn: Callable[[Any], Any], items: Sequence[Any]
     return {"index": row["index"], "error": b""}
 
 
+@contextmanager
+def engine_session(engine: Engine) -> Iterator[None]:
+    """Start or join ``engine``'s workers for the block; run it before anything is written, so a cluster that cannot be
+    reached leaves no output behind. ``local``: nothing to start. ``ray``: ``ray.init`` unless this process already
+    joined a Ray (then that one is used and left running): ``ray_address`` None starts a Ray here of ``workers`` CPUs
+    (under a virtual-memory limit, ``ulimit -v``, its object store is sized to it), ``"auto"`` joins the cluster
+    ``ray start`` left, ``host:port`` or ``ray://host:port`` must accept a TCP connection within
+    :data:`RAY_CONNECT_TIMEOUT_S`; a Ray started here is shut down after the block. SIGTERM keeps the handler it had
+    (Ray's ``init`` installs its own), so a terminated driver shuts its Ray down.
+
+    Raises:
+        ValueError: ``ray_address`` is not ``auto``, ``host:port`` or ``ray://host:port``; nothing answers there; no
+            cluster is running for ``auto``; :class:`~diff4splat.utils.limits.LimitError`: a virtual-memory limit
+            below :data:`RAY_MIN_ADDRESS_SPACE` for a Ray started here.
+        MissingExtraError: Ray is not installed (:func:`import_ray`).
+    """
+    if engine.name != "ray":
+        yield
+        return
+    ray = import_ray()
+    if ray.is_initialized():
+        yield
+        return
+    _init_ray(ray, engine)
+    try:
+        yield
+    finally:
+        ray.shutdown()
+
+
+def _init_ray(ray, engine: Engine) -> None:
+    """``ray.init`` for :func:`engine_session`, its failures as one-line ValueErrors naming ``--ray-address``."""
+    address = engine.ray_address
+    # "local": a new Ray here, even where `ray start` left one running (None would join that one)
+    kw: dict[str, Any] = dict(address=address or "local", logging_level=logging.ERROR, log_to_driver=False,
+                              include_dashboard=False)
+    if address is None:
+        soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+        limited = soft != resource.RLIM_INFINITY
+        if limited and soft < RAY_MIN_ADDRESS_SPACE:
+            raise LimitError(f"--engine ray: a Ray started here needs a virtual-memory limit (ulimit -v) of at least "
+                             f"{size_text(RAY_MIN_ADDRESS_SPACE)}, and this process has {size_text(soft)}: raise it, "
+                             "or use --engine local")
+        # the object store is one mapping in every process of the Ray, driver included, which the limit caps; it
+        # holds only the tasks' rows here (tens of bytes a scene): a sixteenth of the limit, Ray's minimum 75 MiB
+        kw.update(num_cpus=engine.workers, object_store_memory=max(75 << 20, soft // 16) if limited else None)
+    elif address != "auto":
+        _probe(address)
+    handler = signal.getsignal(signal.SIGTERM)
+    # joining: Ray's GCS client retries once a second (20 by default), each retry a warning on fd 2
+    wait = os.environ.get(_GCS_WAIT_ENV)
+    os.environ[_GCS_WAIT_ENV] = wait or str(int(RAY_CONNECT_TIMEOUT_S))
+    try:
+        with quiet_c_stderr() if address is not None else nullcontext():
+            ray.init(**kw)
+    except ConnectionError as e:  # "auto" with no cluster; a port that answers but is no Ray
+        raise ValueError(f"--ray-address {address}: {str(e).split('. ')[0]}: start one with `ray start --head`, or "
+                         "leave --ray-address out to start a Ray here") from None
+    finally:
+        if wait is None:
+            del os.environ[_GCS_WAIT_ENV]
+        if handler is not None and threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGTERM, handler)  # Ray's init replaced it with sys.exit(15)
+
+
+def _probe(address: str) -> None:
+    """Refuse ``host:port`` / ``ray://host:port`` unless it accepts a TCP connection within
+    :data:`RAY_CONNECT_TIMEOUT_S` (``ray.init`` itself retries for minutes)."""
+    hostport = address.split("://", 1)[1] if "://" in address else address
+    host, sep, port = hostport.rpartition(":")
+    if not sep or not host or not port.isdigit():
+        raise ValueError(f"--ray-address {address}: give auto, host:port or ray://host:port")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=RAY_CONNECT_TIMEOUT_S).close()
+    except OSError as e:
+        why = "no answer" if isinstance(e, TimeoutError) else (e.strerror or type(e).__name__)
+        raise ValueError(f"--ray-address {address}: no Ray cluster reached there ({why} within "
+                         f"{RAY_CONNECT_TIMEOUT_S:g} s)") from None
+
+
 def _map_ray(fn: Callable[[Any], Any], items: Sequence[Any], engine: Engine, progress: bool) -> None:
     ray = import_ray()
-    started = not ray.is_initialized()
-    if started:
-        # "local": a new Ray here, even where `ray start` left one running (None would join that one)
-        kw: dict[str, Any] = dict(address=engine.ray_address or "local", logging_level=logging.ERROR,
-                                  log_to_driver=False, include_dashboard=False)
-        if engine.ray_address is None:
-            kw["num_cpus"] = engine.workers
-        ray.init(**kw)
-    try:
-        ctx = ray.data.DataContext.get_current()
-        ctx.enable_progress_bars = progress
-        ctx.print_on_execution_start = progress
-        if not progress:  # no "progress bars disabled" warning, no execution log lines
-            logging.getLogger("ray.data").setLevel(logging.ERROR)
-        ds = ray.data.from_items([{"index": i} for i in range(len(items))], override_num_blocks=len(items))
-        ds = ds.map(functools.partial(_ray_row, fn=fn, items=list(items)), num_cpus=engine.cpus_per_task,
-                    num_gpus=engine.gpus_per_task or None)
-        for row in ds.iter_rows():
-            if row["error"]:
-                raise pickle.loads(row["error"])
-    finally:
-        if started:
-            ray.shutdown()
+    with engine_session(engine):
+        if ray.util.client.ray.is_connected():  # Ray Client: Ray Data's executor needs a driver on the cluster
+            try:
+                ray.get(ray.remote(num_cpus=0)(_run_dataset).remote(fn, items, engine, progress=False))
+            except ray.exceptions.RayTaskError as e:  # fn's own exception, not Ray's wrapper and its traceback
+                raise e.cause from None
+        else:
+            _run_dataset(fn, items, engine, progress)
+
+
+def _run_dataset(fn: Callable[[Any], Any], items: Sequence[Any], engine: Engine, progress: bool) -> None:
+    """The Ray Data dataset of one task per item, run to its end in this process (a driver, or a task on the cluster
+    for a Ray Client); raises the first of ``fn``'s exceptions."""
+    ray = import_ray()
+    ctx = ray.data.DataContext.get_current()
+    ctx.enable_progress_bars = progress
+    ctx.print_on_execution_start = progress
+    if not progress:  # no "progress bars disabled" warning, no execution log lines
+        logging.getLogger("ray.data").setLevel(logging.ERROR)
+    ds = ray.data.from_items([{"index": i} for i in range(len(items))], override_num_blocks=len(items))
+    ds = ds.map(functools.partial(_ray_row, fn=fn, items=list(items)), num_cpus=engine.cpus_per_task,
+                num_gpus=engine.gpus_per_task or None)
+    for row in ds.iter_rows():
+        if row["error"]:
+            raise pickle.loads(row["error"])

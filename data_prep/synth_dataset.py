@@ -16,7 +16,7 @@ from diff4splat.utils.checks import check_int, check_number
 from diff4splat.utils.devices import resolve_device
 from diff4splat.utils.limits import check_limit, check_memory, held_memory
 
-from .engine import Engine, fault_point, map_scenes
+from .engine import Engine, engine_session, fault_point, map_scenes
 from .format import check_dataset_root
 from .scene_files import is_scene
 from .synth import generate_scene, scene_name
@@ -114,26 +114,27 @@ def synthesize(out_dir: str | os.PathLike, num_scenes: int, seed: int = 0, *, si
         engine = replace(engine, gpus_per_task=engine.gpus_per_task or 1.0)
     out = Path(out_dir)
     check_dataset_root(out, "--out")
-    created = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
-    kw = dict(size=size, frames=frames, cameras=cameras, static_ratio=float(static_ratio),
-              texture_ratio=float(texture_ratio), motions=motions, max_movers=max_movers, device=device)
-    bar = tqdm(total=num_scenes, desc="synth", unit="scene", disable=not progress or engine.name != "local")
+    with engine_session(engine):  # a Ray that cannot be reached is refused here, before --out is made
+        created = not out.exists()
+        out.mkdir(parents=True, exist_ok=True)
+        kw = dict(size=size, frames=frames, cameras=cameras, static_ratio=float(static_ratio),
+                  texture_ratio=float(texture_ratio), motions=motions, max_movers=max_movers, device=device)
+        bar = tqdm(total=num_scenes, desc="synth", unit="scene", disable=not progress or engine.name != "local")
 
-    def todo():
-        for i in range(num_scenes):
-            if is_scene(out / scene_name(i)):
-                bar.update()
-            else:
-                yield i
+        def todo():
+            for i in range(num_scenes):
+                if is_scene(out / scene_name(i)):
+                    bar.update()
+                else:
+                    yield i
 
-    try:
-        items = todo() if engine.name == "local" else range(num_scenes)
-        map_scenes(partial(_make_scene, out=out, seed=seed, kw=kw), items, engine, progress=progress, bar=bar)
-    except BaseException:
-        if created and out.is_dir() and not any(out.iterdir()):
-            out.rmdir()
-        raise
-    finally:
-        bar.close()
+        try:
+            items = todo() if engine.name == "local" else range(num_scenes)
+            map_scenes(partial(_make_scene, out=out, seed=seed, kw=kw), items, engine, progress=progress, bar=bar)
+        except BaseException:
+            if created and out.is_dir() and not any(out.iterdir()):
+                out.rmdir()
+            raise
+        finally:
+            bar.close()
     return [out / scene_name(i) for i in range(num_scenes)]

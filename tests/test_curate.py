@@ -1,9 +1,11 @@
 """data_prep.curate: statistics, each filter, manifest, resumability (injected failure and a real kill), workers."""
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
+import shutil
 import signal
 import struct
 import subprocess
@@ -375,3 +377,35 @@ def test_a_frame_too_large_or_not_a_file_is_rejected_before_decoding(tmp_path, k
     expected = ("100000×100000 = 10000000000 exceeds the limit of 100000000 pixels" if kind == "huge"
                 else "is a FIFO (named pipe), not a file")
     assert expected in record["messages"][0] and str(frame) in record["messages"][0], record["messages"]
+
+
+def test_copy_onto_a_full_disk_is_one_line_naming_the_file_and_leaves_no_half_scene(dataset, tmp_path, capsys,
+                                                                                  monkeypatch):
+    """``--mode copy`` when the disk fills mid-scene (the third file copied fails with ENOSPC): one line naming the
+    file under OUT, exit 2, no partly copied scene (copytree's shutil.Error was a 49-line traceback); a scene
+    larger than the free space is refused before its copy starts."""
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text(yaml.safe_dump(CONFIG.to_dict()))
+    real, copied = shutil.copy2, []
+
+    def fills(src, dst, **kw):
+        copied.append(dst)
+        if len(copied) == 3:
+            raise OSError(errno.ENOSPC, "No space left on device", dst)
+        return real(src, dst, **kw)
+
+    monkeypatch.setattr(cm.shutil, "copy2", fills)
+    out = tmp_path / "out"
+    assert cli_main(["curate", str(dataset), str(out), "--config", str(cfg), "--mode", "copy", "--workers", "1",
+                     "--quiet"]) == 2
+    rel = Path(copied[2]).relative_to(out)  # .<scene>.<pid>.<random>.tmp/<file>: the scene's temporary folder
+    named = out / rel.parts[0].split(".")[1] / Path(*rel.parts[1:])
+    assert capsys.readouterr().err == f"data_prep: error: {named}: No space left on device\n"
+    assert [p.name for p in out.iterdir() if p.name.startswith("scene")] == []  # nothing half-copied
+    assert not [p for p in out.iterdir() if ".tmp" in p.name]
+    monkeypatch.setattr(cm.shutil, "copy2", real)
+    monkeypatch.setenv("DIFF4SPLAT_MAX_OUTPUT_BYTES", "1000")
+    assert cli_main(["curate", str(dataset), str(tmp_path / "small"), "--config", str(cfg), "--mode", "copy",
+                     "--workers", "1", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--mode copy of" in err and "--mode symlink" in err, err

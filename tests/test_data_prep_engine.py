@@ -3,6 +3,7 @@ of ``--engine``/``--workers``/``--ray-address``, the ray extra imported only whe
 the local engine (resume, names, errors) and the fault hook's parsing. Ray itself: tests/test_data_prep_ray*.py."""
 from __future__ import annotations
 
+import contextlib
 import json
 import subprocess
 import sys
@@ -166,6 +167,7 @@ def test_synth_on_ray_with_a_cuda_device_asks_one_gpu_per_task(tmp_path, monkeyp
     seen = []
     monkeypatch.setattr(sd, "resolve_device", lambda device, flag: "cuda:0" if device == "cuda" else "cpu")
     monkeypatch.setattr(sd, "map_scenes", lambda fn, items, engine, **kw: seen.append(engine))
+    monkeypatch.setattr(sd, "engine_session", lambda engine: contextlib.nullcontext())  # no Ray started
     for device, engine in (("cuda", Engine("ray")), ("cpu", Engine("ray")), ("cuda", None)):
         sd.synthesize(tmp_path / "d", 2, size=16, frames=2, device=device, engine=engine, progress=False)
     assert [e.gpus_per_task for e in seen] == [1.0, 0.0, 0.0]

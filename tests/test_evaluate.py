@@ -1,9 +1,12 @@
 """Tests of training/evaluate.py and its command (training/evaluate_cli.py): every metric against an independent
 computation, baselines and ablations, the sampler sweep, the CLI, and devices (``--device``, nothing made on torch's
 default device)."""
+import contextlib
 import csv
 import dataclasses
 import math
+import os
+from pathlib import Path
 
 import kornia
 import numpy as np
@@ -15,10 +18,13 @@ import training.evaluate_cli
 from data_prep.synth import generate_scene
 from diff4splat.cameras import CameraPath, make_trajectory
 from diff4splat.cli import main
+from diff4splat.io import atomic_output_path
 from diff4splat.pipeline import Diff4SplatPipeline
 from diff4splat.render.sequence import render_path
 from diff4splat.runtime import TorchRuntime
 from diff4splat.scene.dynamic import DynamicGaussians
+from diff4splat.utils.errors import one_line
+from training import eval_csv
 from training.direction_test import caption_direction, flip_direction
 from training.eval_csv import append_csv, check_csv_outputs, csv_outputs
 from training.eval_metrics import ablation_noise, image_psnr, kept_index_map
@@ -426,6 +432,30 @@ def test_csv_outputs_are_appended_with_one_header(tmp_path):
     check_csv_outputs(outputs)  # same columns: appendable
     with pytest.raises(ValueError, match="other columns"):
         check_csv_outputs(csv_outputs(tmp_path / "e.csv", ["model", "b"], None, None))
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full")
+def test_a_csv_append_on_a_full_disk_names_the_file_and_keeps_it_whole(tmp_path, monkeypatch):
+    """The row is written with the file's old rows beside it and renamed over: on a full disk (every write fails
+    with ENOSPC: the temporary file is /dev/full) the error names the CSV, an existing file keeps its rows and a new
+    one is not left empty."""
+    kept = tmp_path / "kept.csv"
+    append_csv(kept, {"model": "m", "a": 1.5})
+    before = kept.read_bytes()
+
+    @contextlib.contextmanager
+    def full(path):
+        with atomic_output_path(path) as tmp:
+            os.symlink("/dev/full", tmp)
+            yield tmp
+
+    monkeypatch.setattr(eval_csv, "atomic_output_path", full)
+    for path in (kept, tmp_path / "new.csv"):
+        with pytest.raises(OSError) as info:
+            append_csv(path, {"model": "m", "a": 2.5})
+        assert one_line(info.value) == f"{path}: No space left on device"
+    assert kept.read_bytes() == before and not (tmp_path / "new.csv").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["kept.csv"]
 
 
 @pytest.mark.slow

@@ -6,6 +6,7 @@ import os
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import psutil
 import pytest
@@ -275,3 +276,31 @@ def test_generate_under_a_real_ulimit_v_is_refused_before_the_work_naming_the_ca
     assert r.returncode == 2, r.stderr[-2000:]
     assert r.stderr.count("\n") == 1 and "ulimit -v, RLIMIT_AS" in r.stderr, r.stderr
     assert not out.exists()
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="bash's ulimit -v")
+@pytest.mark.parametrize("command", ["diff4splat generate {photo} --quiet --out {out}",
+                                     "data_prep synth --scenes 1 --out {out}",
+                                     "{python} -m training.train --config train_stage1 --run-dir {out}"])
+def test_a_ulimit_v_too_small_to_load_torch_is_one_line_at_import(tmp_path, command):
+    """``ulimit -v 1000000`` (0.95 GiB): ``import cv2`` after torch segfaulted (exit −11, nothing on stderr); now
+    the package's first import refuses it in one line naming the limit, exit 2, for the console scripts and
+    ``python -m``; imported as a library it is an ImportError."""
+    bin_dir = Path(sys.executable).parent
+    cmd = command.format(photo=EXAMPLE_IMAGE, out=tmp_path / "out", python=sys.executable)
+    first, rest = cmd.split(" ", 1)
+    if not first.startswith("/"):
+        if not (bin_dir / first).is_file():
+            pytest.skip(f"no {first} console script beside {sys.executable}")
+        first = str(bin_dir / first)
+    r = subprocess.run(["bash", "-c", f"ulimit -v 1000000 && exec {first} {rest}"], capture_output=True, text=True,
+                       timeout=120)
+    name = {"diff4splat": "diff4splat", "data_prep": "data_prep"}.get(Path(first).name, "train")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, (r.returncode, r.stderr[-2000:])
+    assert r.stderr.startswith(f"{name}: error: this process may map 0.95 GiB (ulimit -v, RLIMIT_AS)"), r.stderr
+    assert not (tmp_path / "out").exists()
+    lib = subprocess.run(["bash", "-c", f"ulimit -v 1000000 && exec {sys.executable} -c 'import diff4splat'"],
+                         capture_output=True, text=True, timeout=120)
+    assert lib.returncode == 1 and lib.stderr.strip().splitlines()[-1].startswith(
+        "ImportError: diff4splat: this process may map 0.95 GiB"), lib.stderr

@@ -12,6 +12,7 @@ import csv
 import os
 from pathlib import Path
 
+from diff4splat.io import atomic_output_path
 from diff4splat.io.inputs import check_input_file
 
 __all__ = ["csv_outputs", "check_csv_outputs", "check_output_file", "check_csv_header", "append_csv"]
@@ -78,10 +79,18 @@ def check_csv_outputs(outputs: dict[str, tuple[Path, list[str]]], what: str = "-
 
 
 def append_csv(path: Path, row: dict) -> None:
-    """Append ``row`` to ``path``; a new (or empty) file gets the header first."""
-    new = not path.exists() or not path.stat().st_size
-    with open(path, "a", newline="") as f:
+    """Append ``row`` to ``path`` (a new or empty file gets the header first). The file is written whole beside
+    itself and renamed over (:func:`diff4splat.io.atomic_output_path`; a symlink's target is the file replaced), so a
+    full disk leaves it as it was and the error names it.
+
+    Raises:
+        OSError: the write failed (naming ``path``).
+    """
+    path = Path(os.path.realpath(path))
+    old = path.read_text(encoding="utf-8") if path.exists() else ""
+    with atomic_output_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as f:
+        f.write(old)
         w = csv.DictWriter(f, fieldnames=list(row))
-        if new:
+        if not old:
             w.writeheader()
         w.writerow(row)

@@ -11,7 +11,7 @@ from collections.abc import Sequence
 from functools import partial
 from pathlib import Path
 
-from ..engine import Engine, map_scenes
+from ..engine import Engine, engine_session, map_scenes
 from ..format import check_dataset_root
 from ..scene_files import is_scene
 from .common import require_dir
@@ -114,15 +114,17 @@ def convert_each(source: str, src_root: str | os.PathLike, out_root: str | os.Pa
             require_dir(src_root / n, "source")
     _check_apart(src_root, out_root, "output dataset root")
     check_dataset_root(out_root, "OUT")
-    created = not out_root.exists()
-    out_root.mkdir(parents=True, exist_ok=True)
-    task = partial(_convert_task, source=source, src_root=src_root, out_root=out_root, options=options)
-    try:
-        map_scenes(task, names, engine or Engine(), desc=f"convert {source}", progress=progress)
-    except BaseException:
-        if created and not any(out_root.iterdir()):  # nothing written: no empty folder left behind
-            out_root.rmdir()
-        raise
+    engine = engine or Engine()
+    with engine_session(engine):  # a Ray that cannot be reached is refused here, before OUT is made
+        created = not out_root.exists()
+        out_root.mkdir(parents=True, exist_ok=True)
+        task = partial(_convert_task, source=source, src_root=src_root, out_root=out_root, options=options)
+        try:
+            map_scenes(task, names, engine, desc=f"convert {source}", progress=progress)
+        except BaseException:
+            if created and not any(out_root.iterdir()):  # nothing written: no empty folder left behind
+                out_root.rmdir()
+            raise
     return [out_root / n for n in names]
 
 

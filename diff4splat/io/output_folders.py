@@ -3,9 +3,9 @@
 ``.<name>.<pid>.<random>.tmp`` and renamed into place (:func:`output_dir`), and an existing folder is replaced only if
 it is empty or an earlier output of the same kind holding only the files its :data:`MARKER` lists (or with
 ``overwrite``), never if it holds inputs. A symlink ``out`` is followed. Temporaries are removed on error, SIGINT
-and SIGTERM (exit 143), and those of killed runs by the next run; concurrent writers are serialised by ``flock``
-on ``.<name>.lock``. Files follow the umask, and write errors name the file under ``out``
-(:mod:`diff4splat.io.atomic`).
+and SIGTERM (exit 143, :func:`diff4splat.utils.errors.sigterm_raises`), and those of killed runs by the next run;
+concurrent writers are serialised by ``flock`` on ``.<name>.lock``. Files follow the umask, and write errors name the
+file under ``out`` (:mod:`diff4splat.io.atomic`).
 """
 from __future__ import annotations
 
@@ -16,14 +16,13 @@ import json
 import os
 import re
 import shutil
-import signal
-import threading
 import uuid
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
 from diff4splat.io.atomic import follow_umask, naming_os_errors
+from diff4splat.utils.errors import sigterm_raises
 
 __all__ = ["MARKER", "INSTALLED_PACKAGES", "OutputDirError", "check_output_dir", "output_dir", "read_marker",
            "remove_stale_temps"]
@@ -38,7 +37,6 @@ of them or a folder holding one."""
 
 _MARKER_FORMAT = 2
 _SHORT_NAME_BYTES = 200  # longer names use a hash in temporary/lock names (suffixes need ≤ 55 bytes)
-EXIT_SIGTERM = 128 + signal.SIGTERM
 
 
 class OutputDirError(ValueError):
@@ -295,23 +293,6 @@ def _locked(target: Path) -> Iterator[None]:
         os.close(fd)
 
 
-def _on_sigterm(signum, frame):
-    raise SystemExit(EXIT_SIGTERM)  # unwinds through output_dir's cleanup
-
-
-@contextmanager
-def _sigterm_cleans_up() -> Iterator[None]:
-    """While the body runs, SIGTERM raises SystemExit(143); only in the main thread, over the default handler."""
-    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) != signal.SIG_DFL:
-        yield
-        return
-    signal.signal(signal.SIGTERM, _on_sigterm)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, signal.SIG_DFL)
-
-
 @contextmanager
 def output_dir(out: str | os.PathLike, *, kind: str, inputs: Iterable[str | os.PathLike | None] = (),
                overwrite: bool = False, replace: bool = True, parents: bool = False,
@@ -335,7 +316,7 @@ def output_dir(out: str | os.PathLike, *, kind: str, inputs: Iterable[str | os.P
         target.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temps(target)
     tmp = target.parent / _temp_name(target.name, "tmp")
-    with _sigterm_cleans_up():
+    with sigterm_raises():
         with naming_os_errors(out, tmp):
             os.mkdir(tmp)  # mode 0o777 & ~umask
         try:

@@ -2,7 +2,9 @@
 
 An expected failure (bad input, a malformed file, an unavailable device, an OS error on the user's path, a GPU out
 of memory) prints one line ``<prog>: error: <what>: <why>`` on stderr and exits :data:`EXIT_USAGE`; Ctrl-C prints
-``<prog>: interrupted`` and exits :data:`EXIT_INTERRUPTED`; anything else is a bug and keeps its traceback (exit 1).
+``<prog>: interrupted`` and exits :data:`EXIT_INTERRUPTED`, SIGTERM the same line and :data:`EXIT_TERMINATED`
+(:func:`sigterm_raises`: it unwinds through every ``finally``, so temporary outputs are removed and worker processes
+ended before the exit); anything else is a bug and keeps its traceback (exit 1).
 :func:`quiet_c_stderr` silences C libraries (libpng, libjpeg) that write to file descriptor 2 directly.
 """
 from __future__ import annotations
@@ -10,7 +12,9 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import signal
 import sys
+import threading
 import warnings
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -19,14 +23,16 @@ from typing import Any
 import torch
 
 from diff4splat.utils.checks import MissingExtraError
+from diff4splat.utils.preflight import EXIT_USAGE
 
-__all__ = ["print_warnings", "EXIT_USAGE", "EXIT_INTERRUPTED", "EXPECTED_ERRNOS", "is_expected",
+__all__ = ["print_warnings", "EXIT_USAGE", "EXIT_INTERRUPTED", "EXIT_TERMINATED", "Terminated", "sigterm_raises",
+           "EXPECTED_ERRNOS", "is_expected",
            "one_line", "run_cli", "quiet_c_stderr", "parse_naming"]
 
-EXIT_USAGE = 2
-"""Exit code of an expected failure (bad input, corrupt file, unavailable device, OS error on a path)."""
 EXIT_INTERRUPTED = 130
 """Exit code after Ctrl-C (128 + SIGINT, as shells report it)."""
+EXIT_TERMINATED = 128 + signal.SIGTERM
+"""Exit code after SIGTERM (143, as shells report it)."""
 
 EXPECTED_ERRNOS = frozenset({errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT, errno.ENAMETOOLONG,
                              errno.ENOTDIR, errno.EEXIST, errno.ENOENT, errno.EISDIR, errno.EADDRINUSE})
@@ -72,26 +78,58 @@ def one_line(exc: BaseException) -> str:
     return " ".join(text.split()) or type(exc).__name__
 
 
+class Terminated(SystemExit):
+    """SIGTERM arrived while :func:`sigterm_raises` was active. A ``SystemExit`` of code :data:`EXIT_TERMINATED`:
+    it unwinds through every ``finally`` like Ctrl-C, and uncaught it exits 143 without a traceback."""
+
+    def __init__(self) -> None:
+        super().__init__(EXIT_TERMINATED)
+
+
+def _raise_terminated(signum, frame):
+    raise Terminated
+
+
+@contextlib.contextmanager
+def sigterm_raises() -> Iterator[None]:
+    """While the block runs, SIGTERM raises :class:`Terminated` in the main thread. Only over the default handler (one
+    installed by someone else stays), and only in the main thread (where Python handles signals); the default is put
+    back after the block."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) != signal.SIG_DFL:
+        yield
+        return
+    signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 def run_cli(prog: str, body: Callable[[], int], expected: tuple[type[BaseException], ...] = ()) -> int:
     """Run a command's ``body`` (returns its exit code) under the module docstring's rules; ``prog`` is printed before
     ``error:``, ``expected`` adds exception types reported as one line.
 
     Returns:
-        ``body()``'s code; :data:`EXIT_USAGE` after an expected failure; :data:`EXIT_INTERRUPTED` after Ctrl-C.
+        ``body()``'s code; :data:`EXIT_USAGE` after an expected failure; :data:`EXIT_INTERRUPTED` after Ctrl-C,
+        :data:`EXIT_TERMINATED` after SIGTERM (:func:`sigterm_raises` is active while ``body`` runs).
 
     Raises:
         Any other exception of ``body``, unchanged.
     """
-    try:
-        return body()
-    except KeyboardInterrupt:
-        print(f"{prog}: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    except Exception as e:
-        if not (isinstance(e, expected) or is_expected(e)):
-            raise
-        print(f"{prog}: error: {one_line(e)}", file=sys.stderr)
-        return EXIT_USAGE
+    with sigterm_raises():
+        try:
+            return body()
+        except KeyboardInterrupt:
+            print(f"{prog}: interrupted", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        except Terminated:
+            print(f"{prog}: interrupted", file=sys.stderr)
+            return EXIT_TERMINATED
+        except Exception as e:
+            if not (isinstance(e, expected) or is_expected(e)):
+                raise
+            print(f"{prog}: error: {one_line(e)}", file=sys.stderr)
+            return EXIT_USAGE
 
 
 @contextlib.contextmanager
