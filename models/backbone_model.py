@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import json
+import logging
 import os
 import warnings
 from dataclasses import dataclass, field
@@ -148,13 +149,14 @@ def _read_index(directory: str | os.PathLike) -> tuple[dict, str]:
 
 def check_backbone_folder(directory: str | os.PathLike) -> tuple[str, BackboneModelConfig | None]:
     """Check a diffusers backbone folder before anything is imported or loaded: the index names a known pipeline,
-    every component folder holds its config, a ``diff4splat.json`` describes this backbone with an LDRM within the
-    ``parameters`` limit, an ``ldrm/`` holds its config and weights. Returns (kind, the ``diff4splat.json`` config or
-    None).
+    every component folder holds its config (each a JSON object), a model's (``config.json``) its weights, a
+    ``diff4splat.json`` describes this backbone with an LDRM within the ``parameters`` limit, an ``ldrm/`` holds its
+    config and weights. Returns (kind, the ``diff4splat.json`` config or None).
 
     Raises:
-        FileNotFoundError: no index, a component folder or its config missing, ``ldrm/`` without its files.
-        ValueError: an unreadable index or ``diff4splat.json``, another pipeline or backbone;
+        FileNotFoundError: no index, a component folder, its config or a model's weights missing, ``ldrm/`` without
+            its files.
+        ValueError: an unreadable index, component config or ``diff4splat.json``, another pipeline or backbone;
             :class:`diff4splat.utils.limits.LimitError` for an LDRM above the limit.
     """
     directory = Path(directory)
@@ -166,9 +168,17 @@ def check_backbone_folder(directory: str | os.PathLike) -> tuple[str, BackboneMo
         if not folder.is_dir():
             raise FileNotFoundError(f"checkpoint: {directory} has no {name}/ folder, which {INDEX_FILE} names "
                                     f"({value[0]}.{value[1]})")
-        if not any(folder.glob("*config*.json")):
+        configs = sorted(folder.glob("*config*.json"))
+        if not configs:
             raise FileNotFoundError(f"checkpoint: {folder} holds no config file (config.json, scheduler_config.json, "
                                     f"tokenizer_config.json) for its {value[1]}")
+        for file in configs:
+            if not isinstance(read_json(file, "checkpoint"), dict):
+                raise ValueError(f"checkpoint: {file} is not a JSON object")
+        if (folder / "config.json").is_file() and not any(
+                f for pattern in ("*.safetensors", "*.bin") for f in folder.glob(pattern)):
+            raise FileNotFoundError(f"checkpoint: {folder} holds no weights (*.safetensors, *.bin) for its "
+                                    f"{value[1]}")
     config = None
     if (directory / CONFIG_FILE).is_file():
         where = str(directory / CONFIG_FILE)
@@ -193,10 +203,18 @@ def backbone_class(kind: str) -> type[Backbone]:
     if kind not in _MODULES:
         raise ValueError(f"backbone must be one of {sorted(_MODULES)}, got {kind!r}")
     module, name = _MODULES[kind]
+    # transformers' import notes at error level meanwhile: diffusers' pipelines import classes the backbones never use,
+    # and transformers notes each missing optional backend (CLIPImageProcessor "requires torchvision") on stderr (its
+    # own logger: transformers resets its root logger's level when it is first imported)
+    notes = logging.getLogger("transformers.utils.import_utils")
+    level = notes.level
+    notes.setLevel(logging.ERROR)
     try:
         return getattr(importlib.import_module(module), name)
     except ModuleNotFoundError as e:
         raise MissingExtraError(f"the {kind} backbone needs {e.name}: pip install 'diff4splat[diffusers]'") from None
+    finally:
+        notes.setLevel(level)
 
 
 class BackboneModel(nn.Module):

@@ -22,8 +22,9 @@ COMPONENTS = {"transformer": ("diffusers", "WanTransformer3DModel", "config.json
               "scheduler": ("diffusers", "UniPCMultistepScheduler", "scheduler_config.json")}
 
 
-def hub_folder(root: Path, drop_folder: str | None = None, drop_config: str | None = None) -> Path:
-    """A Wan2.2 Hub layout of configs only (no weights): enough for the checks, which run before any load."""
+def hub_folder(root: Path, drop_folder: str | None = None, drop_config: str | None = None,
+               drop_weights: str | None = None, empty_config: str | None = None) -> Path:
+    """A Wan2.2 Hub layout of configs and empty weight files: enough for the checks, which run before any load."""
     index = {"_class_name": "WanPipeline", "_diffusers_version": "0.42.0", "transformer_2": [None, None],
              "boundary_ratio": None, "expand_timesteps": True}
     for name, (library, cls, config) in COMPONENTS.items():
@@ -31,7 +32,9 @@ def hub_folder(root: Path, drop_folder: str | None = None, drop_config: str | No
         if name != drop_folder:
             (root / name).mkdir(parents=True)
             if name != drop_config:
-                (root / name / config).write_text("{}")
+                (root / name / config).write_text("" if name == empty_config else "{}")
+            if config == "config.json" and name != drop_weights:  # a model: its weights (empty: the checks only look)
+                (root / name / "model.safetensors").write_bytes(b"")
     (root / "model_index.json").write_text(json.dumps(index))
     return root
 
@@ -54,6 +57,9 @@ def test_a_complete_folder_passes_the_checks(tmp_path):
                                     "(diffusers.UniPCMultistepScheduler)"),
     (dict(drop_config="scheduler"), "scheduler holds no config file"),
     (dict(drop_config="tokenizer"), "tokenizer holds no config file"),
+    (dict(drop_weights="text_encoder"), "text_encoder holds no weights (*.safetensors, *.bin) for its "
+                                        "UMT5EncoderModel"),
+    (dict(empty_config="vae"), "vae/config.json is not valid JSON (Expecting value at line 1 column 1)"),
 ])
 def test_a_missing_component_is_one_line_naming_it(tmp_path, capsys, drop, needle):
     err = _one_line_exit_2(capsys, tmp_path, hub_folder(tmp_path / "wan", **drop))

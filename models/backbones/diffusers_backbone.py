@@ -11,8 +11,10 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import ClassVar
 
+import diffusers
 import torch
 import torch.nn.functional as F
+import transformers
 from diffusers import DiffusionPipeline
 from safetensors.torch import load_file, save_file
 from torch import Tensor, nn
@@ -197,7 +199,8 @@ class DiffusersBackbone(Backbone):
                              f"{', '.join(cls.pipeline_names)}")
         cls.check_index(data, index)
         dtype = {} if torch_dtype is None else {"dtype": torch_dtype}
-        pipe = cls.pipeline_class.from_pretrained(str(directory), local_files_only=True, **dtype)
+        with _quiet_loading():
+            pipe = cls.pipeline_class.from_pretrained(str(directory), local_files_only=True, **dtype)
         parts = {k: v for k, v in pipe.components.items() if k in ("transformer", "vae", "text_encoder",
                                                                     "tokenizer", "scheduler")}
         backbone = cls(**parts)
@@ -222,3 +225,19 @@ class DiffusersBackbone(Backbone):
         diffusers signatures."""
         return list(self.transformer.transformer_blocks if hasattr(self.transformer, "transformer_blocks")
                     else self.transformer.blocks)
+
+
+@contextlib.contextmanager
+def _quiet_loading() -> Iterator[None]:
+    """No progress bars of diffusers or transformers while a pipeline loads from local files (a command's ``--quiet``
+    is quiet, and a local load takes seconds); each library's setting is put back after."""
+    libraries = (diffusers.utils.logging, transformers.utils.logging)
+    bars = [lib.is_progress_bar_enabled() for lib in libraries]
+    for lib in libraries:
+        lib.disable_progress_bar()
+    try:
+        yield
+    finally:
+        for lib, enabled in zip(libraries, bars, strict=True):
+            if enabled:
+                lib.enable_progress_bar()
