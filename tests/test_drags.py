@@ -2,6 +2,7 @@
 errors, the dense motion against its closed form on a square at a known depth, the scene that moves only where
 dragged, and the command end to end."""
 import json
+import math
 
 import numpy as np
 import pytest
@@ -11,7 +12,7 @@ from helpers import EXAMPLE_IMAGE, benchmark_module, tiny_model
 from data_prep.cli import main as data_prep_main
 from diff4splat.cameras import CameraPath, intrinsics_from_fov
 from diff4splat.cli import main
-from diff4splat.geometry.drags import drag_motion, drags_from_flags, drags_from_tracks, parse_drag
+from diff4splat.geometry.drags import drag_motion, drags_from_flags, drags_from_tracks, parse_drag, support_normal
 from diff4splat.io.tracks import read_tracks
 from diff4splat.pipeline import Diff4SplatPipeline
 from training.drag_eval import true_drags
@@ -92,6 +93,41 @@ def test_two_drags_in_one_region_each_move_their_nearest_pixels():
     drags = drags_from_flags(["26,32:4,0", "38,32:-4,0"], SIZE, SIZE)
     motion, _ = drag_motion(drags, image, depth, K, torch.tensor([0.0, 1.0]))
     assert motion[1, 32, 25, 0] > 0 and motion[1, 32, 38, 0] < 0
+
+
+def _floor_scene(pitch_deg=20.0, height=1.5):
+    """A grey floor 1.5 m below a camera pitched down by 20° (f = 60 px), with a red block standing on it (rows 20–31,
+    columns 26–37, a face at the depth of the floor under its bottom edge); the floor's up normal in the camera's
+    frame."""
+    c, s = math.cos(math.radians(pitch_deg)), math.sin(math.radians(pitch_deg))
+    up = torch.tensor([0.0, -c, -s], dtype=torch.float64)  # the world's up seen by a camera looking down
+    K = torch.tensor([[60.0, 0.0, 32.0], [0.0, 60.0, 32.0], [0.0, 0.0, 1.0]])
+    v, u = torch.meshgrid(torch.arange(SIZE) + 0.5, torch.arange(SIZE) + 0.5, indexing="ij")
+    rays = torch.stack([(u - 32) / 60, (v - 32) / 60, torch.ones_like(u)], -1).double()
+    along = rays @ up
+    depth = torch.where(along < -1e-3, -height / along, torch.full_like(along, 50.0)).float()  # floor, else far
+    image = torch.full((SIZE, SIZE, 3), 0.5)
+    image[20:32, 26:38] = torch.tensor([0.9, 0.1, 0.1])
+    depth[20:32, 26:38] = depth[31, 32]
+    return image, depth, K, up
+
+
+def test_a_drag_on_a_floor_moves_its_object_along_the_floor_to_the_dragged_pixel():
+    """Closed form: the floor's normal is found (RANSAC) within 1°; a block dragged down the image by 10 px moves
+    parallel to the floor (toward the camera, not into the floor) and lands where the drag ends: its point projects
+    to the drag's target pixel."""
+    image, depth, K, up = _floor_scene()
+    normal = support_normal(depth.double().numpy(), np.linalg.inv(K.double().numpy()))
+    assert normal is not None and math.degrees(math.acos(min(1.0, float(normal @ up.numpy())))) < 1.0
+    drags = drags_from_flags(["32,28:0,10"], SIZE, SIZE)
+    motion, moving = drag_motion(drags, image, depth, K, torch.tensor([0.0, 1.0]))
+    assert moving[25, 30] and not moving[50, 10]
+    point = depth[28, 32].double() * torch.tensor([0.0, (28.0 - 32) / 60, 1.0], dtype=torch.float64)  # (32, 28)
+    moved = point + motion[1, 28, 32].double()
+    assert abs(float(motion[1, 28, 32].double() @ up)) < 1e-4  # along the floor
+    assert float(motion[1, 28, 32, 2]) < -0.1  # toward the camera: dragged down the image
+    target = K.double() @ (moved / moved[2])
+    assert torch.allclose(target[:2], torch.tensor([32.0, 38.0], dtype=torch.float64), atol=1e-3)
 
 
 def _still_path(pipe, frames=5):

@@ -7,8 +7,13 @@ normalised clip time. :func:`drag_motion` makes them a dense 3D motion of the ph
 1. :func:`drag_segments`: the photograph is cut into regions of like colour and depth (Felzenszwalb & Huttenlocher's
    graph segmentation, IJCV 2004, OpenCV's ``ximgproc``, on CIELAB colour and log depth at
    :data:`SEGMENT_HEIGHT` pixels of height); the regions holding a drag's point move, the rest of the photograph stays.
-2. Each dragged pixel takes the motion of the nearest drag in its region, lifted at the drag point's own depth
-   (a translation parallel to the image plane: a 2D drag carries no motion in depth).
+2. Each dragged pixel takes the motion of the nearest drag in its region, a translation lifted to 3D along the
+   surface the scene rests on (:func:`support_normal`: the plane of the depth map's largest upward-facing surface,
+   fitted by RANSAC, Fischler & Bolles 1981): the dragged point's target is where the drag's pixel ray meets the
+   plane through the point parallel to that surface, so a drag down the image moves an object on a floor toward the
+   camera rather than into the floor. Where no such surface is found, or the ray meets the plane behind the camera
+   or beyond :data:`LIFT_RANGE` of the point's depth, the drag is lifted at the point's own depth (parallel to the
+   image plane).
 
 Pixel (i, j) is centred at (j + 0.5, i + 0.5); x to the right, y down; depths are z-depths in metres; the motion is
 in the camera's frame (the scene's world frame for the path's first camera).
@@ -25,7 +30,8 @@ import torch
 from torch import Tensor
 
 __all__ = ["Drags", "parse_drag", "drags_from_flags", "drags_from_tracks", "drag_segments", "drag_motion",
-           "SEGMENT_HEIGHT", "SEGMENT_K", "SEGMENT_SIGMA", "DEPTH_WEIGHT"]
+           "support_normal", "SEGMENT_HEIGHT", "SEGMENT_K", "SEGMENT_SIGMA", "DEPTH_WEIGHT", "SUPPORT_TILT_DEG",
+           "SUPPORT_INLIER", "SUPPORT_MIN_FRACTION", "SUPPORT_SPREAD", "LIFT_RANGE"]
 
 SEGMENT_HEIGHT = 64
 """Height, pixels, at which :func:`drag_segments` cuts the photograph (regions then scale with the image)."""
@@ -37,6 +43,17 @@ SEGMENT_SIGMA = 0.0
 DEPTH_WEIGHT = 96.0
 """Weight of log depth beside CIELAB colour (0–255 per channel) in :func:`drag_segments`: a depth ratio of ×2.7
 weighs as 96 colour levels."""
+SUPPORT_TILT_DEG = 60.0
+"""A surface whose normal is within this angle of the camera's up (−y) may be the support of :func:`support_normal`."""
+SUPPORT_INLIER = 0.02
+"""RANSAC inlier distance of :func:`support_normal`, as a fraction of the median depth."""
+SUPPORT_MIN_FRACTION = 0.1
+"""The least fraction of the valid pixels a support plane of :func:`support_normal` holds."""
+SUPPORT_SPREAD = 0.25
+"""The least ratio of a support plane's inliers' two in-plane spreads (singular values): a surface, not a band."""
+LIFT_RANGE = 2.0
+"""A plane-lifted target farther than this factor from the dragged point's depth (or nearer than its inverse) falls
+back to the constant-depth lift."""
 _DRAG = re.compile(r"^\s*([^,:@]+),([^,:@]+):([^,:@]+),([^,:@]+)(?:@([^,:@]+))?\s*$")
 
 
@@ -161,6 +178,56 @@ def drag_segments(image: Tensor, depth: Tensor, *, k: float = SEGMENT_K, depth_w
     return cv2.resize(labels, (W, H), interpolation=cv2.INTER_NEAREST)
 
 
+def support_normal(depth: np.ndarray, Kinv: np.ndarray, *, iterations: int = 256, seed: int = 0) -> np.ndarray | None:
+    """The unit normal, pointing up, of the surface the scene rests on, in the camera's frame: the plane of RANSAC
+    (Fischler & Bolles 1981) over the back-projected pixels of :data:`SEGMENT_HEIGHT` rows that holds the most points
+    within :data:`SUPPORT_INLIER` × the median depth, among planes whose normal is within :data:`SUPPORT_TILT_DEG` of
+    the camera's up (−y), then refitted to its inliers by least squares.
+
+    Args:
+        depth: (H, W) z-depth, metres (non-finite or ≤ 0: no point). Kinv: (3, 3) inverse intrinsics, pixels.
+        iterations: RANSAC's samples; seed: its generator's (the result is the same for the same input).
+
+    Returns:
+        (3,) float64 with n·(0, −1, 0) > 0, or None: fewer than :data:`SUPPORT_MIN_FRACTION` of the points on any
+        such plane, or its inliers a band rather than a surface (:data:`SUPPORT_SPREAD`): no floor, table or ground
+        in view.
+    """
+    H, W = depth.shape
+    step = max(1, H // SEGMENT_HEIGHT)
+    rows, cols = np.mgrid[0:H:step, 0:W:step]
+    z = depth[rows, cols]
+    valid = np.isfinite(z) & (z > 0)
+    if valid.sum() < 3:
+        return None
+    pix = np.stack([cols[valid] + 0.5, rows[valid] + 0.5, np.ones(int(valid.sum()))], axis=1)
+    points = (pix @ Kinv.T) * z[valid][:, None]  # (P, 3) metres
+    tol, up = SUPPORT_INLIER * float(np.median(z[valid])), np.array([0.0, -1.0, 0.0])
+    cos_tilt = math.cos(math.radians(SUPPORT_TILT_DEG))
+    rng = np.random.default_rng(seed)
+    best, best_count = None, int(SUPPORT_MIN_FRACTION * len(points))
+    for _ in range(iterations):
+        a, b, c = points[rng.choice(len(points), 3, replace=False)]
+        n = np.cross(b - a, c - a)
+        norm = np.linalg.norm(n)
+        if norm < 1e-12:
+            continue
+        n = n / norm * (1.0 if n @ up >= 0 else -1.0)
+        if n @ up < cos_tilt:
+            continue
+        inliers = np.abs((points - a) @ n) < tol
+        if inliers.sum() > best_count:
+            best, best_count = inliers, int(inliers.sum())
+    if best is None:
+        return None
+    on = points[best]
+    _, spread, vt = np.linalg.svd(on - on.mean(axis=0), full_matrices=False)  # vt[2]: the least-variance direction
+    if spread[1] < SUPPORT_SPREAD * spread[0]:
+        return None  # a band (a wall's row of pixels and what else lies near it), not a surface
+    n = vt[2]
+    return n * (1.0 if n @ up >= 0 else -1.0)
+
+
 def drag_motion(drags: Drags, image: Tensor, depth: Tensor, K: Tensor, times: Tensor,
                 segments: np.ndarray | None = None) -> tuple[Tensor, Tensor]:
     """Dense motion of the photograph's pixels (module docstring).
@@ -179,6 +246,7 @@ def drag_motion(drags: Drags, image: Tensor, depth: Tensor, K: Tensor, times: Te
     labels = drag_segments(image, depth) if segments is None else segments
     z = depth.detach().double().cpu().numpy()  # device: the dense maps are built on the host, moved back below
     Kinv = np.linalg.inv(K.detach().double().cpu().numpy())  # device: a 3×3 on the host, beside the maps
+    normal = support_normal(z, Kinv)
     start = drags.positions[:, 0]
     cols = np.clip(start[:, 0].astype(int), 0, W - 1)
     rows = np.clip(start[:, 1].astype(int), 0, H - 1)
@@ -189,10 +257,19 @@ def drag_motion(drags: Drags, image: Tensor, depth: Tensor, K: Tensor, times: Te
     distance[labels[yy, xx][:, None] != labels[rows, cols][None, :]] = np.inf
     nearest = np.argmin(distance, axis=1)
     zd = np.where(np.isfinite(z[rows, cols]) & (z[rows, cols] > 0), z[rows, cols], 1.0)  # (N,)
+    ones = np.ones((len(drags), 1))
+    points = (np.concatenate([start, ones], axis=1) @ Kinv.T) * zd[:, None]  # (N, 3) the dragged points
     out = np.zeros((len(times), H, W, 3))
     for k, t in enumerate(times.detach().double().cpu().tolist()):
         now = drags.at(t)  # (N, 2)
-        rays = np.concatenate([now - start, np.zeros((len(drags), 1))], axis=1) @ Kinv.T  # (N, 3) per pixel of depth
-        out[k, yy, xx] = (rays * zd[:, None])[nearest]
+        flat = (np.concatenate([now - start, 0 * ones], axis=1) @ Kinv.T) * zd[:, None]  # constant-depth lift
+        motion = flat
+        if normal is not None:
+            rays = np.concatenate([now, ones], axis=1) @ Kinv.T  # (N, 3) each target pixel's ray, z = 1
+            along = rays @ normal
+            scale = np.divide(points @ normal, along, out=np.full(len(drags), np.nan), where=np.abs(along) > 1e-9)
+            ok = np.isfinite(scale) & (scale > zd / LIFT_RANGE) & (scale < zd * LIFT_RANGE)
+            motion = np.where(ok[:, None], rays * np.where(ok, scale, 0.0)[:, None] - points, flat)
+        out[k, yy, xx] = motion[nearest]
     dev = image.device
     return torch.from_numpy(out).float().to(dev), torch.from_numpy(moving).to(dev)
