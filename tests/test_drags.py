@@ -113,13 +113,14 @@ def _floor_scene(pitch_deg=20.0, height=1.5):
 
 
 def test_a_drag_on_a_floor_moves_its_object_along_the_floor_to_the_dragged_pixel():
-    """Closed form: the floor's normal is found (RANSAC) within 1°; a block dragged down the image by 10 px moves
+    """Closed form: the floor's normal is found (RANSAC) within 1°; a block dragged down the image by 2 px moves
     parallel to the floor (toward the camera, not into the floor) and lands where the drag ends: its point projects
-    to the drag's target pixel."""
+    to the drag's target pixel. Dragged 10 px, the floor's target would change its depth by more than LIFT_RANGE: the
+    drag is lifted at the point's depth instead (z·K⁻¹(Δu, Δv, 0))."""
     image, depth, K, up = _floor_scene()
     normal = support_normal(depth.double().numpy(), np.linalg.inv(K.double().numpy()))
     assert normal is not None and math.degrees(math.acos(min(1.0, float(normal @ up.numpy())))) < 1.0
-    drags = drags_from_flags(["32,28:0,10"], SIZE, SIZE)
+    drags = drags_from_flags(["32,28:0,2"], SIZE, SIZE)
     motion, moving = drag_motion(drags, image, depth, K, torch.tensor([0.0, 1.0]))
     assert moving[25, 30] and not moving[50, 10]
     point = depth[28, 32].double() * torch.tensor([0.0, (28.0 - 32) / 60, 1.0], dtype=torch.float64)  # (32, 28)
@@ -127,7 +128,9 @@ def test_a_drag_on_a_floor_moves_its_object_along_the_floor_to_the_dragged_pixel
     assert abs(float(motion[1, 28, 32].double() @ up)) < 1e-4  # along the floor
     assert float(motion[1, 28, 32, 2]) < -0.1  # toward the camera: dragged down the image
     target = K.double() @ (moved / moved[2])
-    assert torch.allclose(target[:2], torch.tensor([32.0, 38.0], dtype=torch.float64), atol=1e-3)
+    assert torch.allclose(target[:2], torch.tensor([32.0, 30.0], dtype=torch.float64), atol=1e-3)
+    far, _ = drag_motion(drags_from_flags(["32,28:0,10"], SIZE, SIZE), image, depth, K, torch.tensor([1.0]))
+    assert torch.allclose(far[0, 28, 32], depth[28, 32] * torch.tensor([0.0, 10 / 60, 0.0]), atol=1e-6)
 
 
 def _still_path(pipe, frames=5):

@@ -51,9 +51,11 @@ SUPPORT_MIN_FRACTION = 0.1
 """The least fraction of the valid pixels a support plane of :func:`support_normal` holds."""
 SUPPORT_SPREAD = 0.25
 """The least ratio of a support plane's inliers' two in-plane spreads (singular values): a surface, not a band."""
-LIFT_RANGE = 2.0
+LIFT_RANGE = 1.15
 """A plane-lifted target farther than this factor from the dragged point's depth (or nearer than its inverse) falls
-back to the constant-depth lift."""
+back to the constant-depth lift: a drag up the image is an object sliding away over the floor or one rising off it,
+and only a small change of depth is taken as the first (chosen on the development sets among 1.15, 1.4 and 2,
+docs/benchmarks.md "Drags")."""
 _DRAG = re.compile(r"^\s*([^,:@]+),([^,:@]+):([^,:@]+),([^,:@]+)(?:@([^,:@]+))?\s*$")
 
 
