@@ -26,6 +26,7 @@ from diff4splat.scene.dynamic import DynamicGaussians
 from diff4splat.utils.errors import one_line
 from training import eval_csv
 from training.direction_test import caption_direction, flip_direction
+from training.drag_eval import true_drags
 from training.eval_csv import append_csv, check_csv_outputs, csv_outputs
 from training.eval_metrics import ablation_noise, image_psnr, kept_index_map
 from training.evaluate import (
@@ -38,6 +39,7 @@ from training.evaluate import (
     ClipEvaluation,
     aggregate,
     binned_keys,
+    clip_inputs,
     evaluate_clip,
     held_out_clips,
     sampling_tradeoffs,
@@ -172,6 +174,24 @@ def test_motion_diagnostics_of_an_identity_deformation(clips):
     assert m["motion_disp_epe_gt"] == pytest.approx(m["motion_disp_hold"], abs=1e-6)  # the oracle scene too
     assert m["flow_disp_hold"] > 1e-3 and m["flow_disp_epe"] == pytest.approx(m["flow_disp_hold"], abs=1e-6)
     assert m["flow_disp_epe_gt"] == pytest.approx(m["flow_disp_hold"], abs=1e-6)
+
+
+@pytest.mark.slow
+def test_drags_from_the_true_tracks_score_the_dragged_scene(clips):
+    """``evaluate --drags K``: the ``*_drag`` terms are ``scene_motion`` of the scene generated with K drags per moving
+    object from the clip's true tracks (recomputed here), that scene moves (its error is not holding still's), and
+    without drags they are NaN."""
+    pipe, clip = Diff4SplatPipeline(tiny_model()), clips[0]
+    m = evaluate_clip(pipe, clip, steps=1, drags=2).metrics
+    cams, image = clip_inputs(pipe, clip)
+    drags = true_drags(clip, per_object=2)
+    assert drags is not None and len(drags) >= 2
+    want = scene_motion(pipe, pipe(image, cams, clip["caption"], steps=1, drags=drags), clip)
+    assert m["motion_disp_epe_drag"] == pytest.approx(want["motion_disp_epe"], rel=1e-6)
+    assert (m["motion_disp_drag_d5"], m["motion_disp_drag_d10"]) == (want["motion_disp_d5"], want["motion_disp_d10"])
+    assert abs(m["motion_disp_epe_drag"] - m["motion_disp_hold"]) > 1e-3
+    plain = evaluate_clip(pipe, clip, steps=1).metrics
+    assert all(math.isnan(plain[k]) for k in ("motion_disp_epe_drag", "motion_disp_drag_d5", "motion_disp_drag_d10"))
 
 
 @pytest.mark.slow

@@ -41,6 +41,7 @@ from diff4splat.utils.devices import synchronize
 from models.flow_matching import SAMPLERS, heun_sample, sigma_schedule
 
 from .direction_test import direction_query, flip_direction, named_way_score
+from .drag_eval import true_drags
 from .eval_metrics import (
     ANGLE_BINS,
     ablation_noise,
@@ -70,11 +71,14 @@ METRICS = ("psnr_input", "ssim_input", "psnr_novel", "ssim_novel", "depth_corr",
 DIAGNOSTICS = ("motion_epe_t0", "motion_epe_hold", "motion_disp_epe", "motion_disp_hold", "motion_disp_d5",
                "motion_disp_d10", "motion_disp_hold_d5", "motion_disp_hold_d10", "motion_epe_gt",
                "motion_disp_epe_gt", "flow_disp_epe", "flow_disp_hold", "flow_disp_d5", "flow_disp_d10",
-               "flow_disp_hold_d5", "flow_disp_hold_d10", "flow_disp_epe_gt")
+               "flow_disp_hold_d5", "flow_disp_hold_d10", "flow_disp_epe_gt", "motion_disp_epe_drag",
+               "motion_disp_drag_d5", "motion_disp_drag_d10")
 """Reported beside ``motion_epe`` (metres; :func:`training.eval_metrics.motion_errors`): frame-0 error, holding
 still, the displacement from frame 0 and its δ fractions (higher is better), and ``*_gt`` for the true latents;
 ``flow_*`` the same displacement terms over every valid frame-0 pixel (the clip's ``pixel_tracks``: dense scene flow;
-on a static clip ``flow_disp_epe`` is the mean spurious motion)."""
+on a static clip ``flow_disp_epe`` is the mean spurious motion); ``*_drag`` the displacement terms of the scene
+generated with ``drags`` points per moving object taken from its true track (:func:`training.drag_eval.true_drags`;
+NaN without ``drags`` or moving objects)."""
 
 DIRECTION = ("direction_caption", "direction_flipped", "direction_along_caption", "direction_along_flipped")
 """The direction test (module docstring): the fraction of taking-part clips whose scene moved the captioned object
@@ -165,9 +169,11 @@ def _render(res: GenerationResult, cameras: CameraPath | None = None) -> tuple[T
 
 @torch.no_grad()
 def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = None, sampler: str | None = None,
-                  seed: int = 0) -> ClipEvaluation:
+                  seed: int = 0, drags: int = 0) -> ClipEvaluation:
     """Metrics, baselines and ablations (module docstring) of one clip of CPU tensors: generated with sampled,
-    noise and (PyTorch only) true latents, plus the loop orbit of a static clip. Raises ValueError for T < 2."""
+    noise and (PyTorch only) true latents, plus the loop orbit of a static clip; with ``drags`` > 0 once more with that
+    many drags per moving object from the true tracks (``*_drag`` of :data:`DIAGNOSTICS`). Raises ValueError for
+    T < 2."""
     T = clip["video"].shape[1]
     if T < 2:
         raise ValueError(f"clip must have at least 2 frames, got {T}")
@@ -188,6 +194,11 @@ def evaluate_clip(pipe: Diff4SplatPipeline, clip: dict, *, steps: int | None = N
                          if valid.sum() > 1 else float("nan"))
     out.update(depth_errors(depths[valid], clip["depth"][valid]))
     out.update(scene_motion(pipe, res, clip))
+    true = true_drags(clip, per_object=drags) if drags else None
+    dragged = scene_motion(pipe, pipe(image, cams, clip["caption"], drags=true, **gen), clip) if true else {}
+    out.update({key: dragged.get(of, float("nan")) for key, of in (("motion_disp_epe_drag", "motion_disp_epe"),
+                                                                   ("motion_disp_drag_d5", "motion_disp_d5"),
+                                                                   ("motion_disp_drag_d10", "motion_disp_d10"))})
     out["loop_psnr"] = _loop_psnr(pipe, image, clip, T, **gen)
     out.update(_direction(pipe, clip, res, cams, image, **gen))
 

@@ -1,7 +1,7 @@
-"""``diff4splat evaluate --checkpoint DIR --data DIR [--random] [--per-clip] [--sampling] [--csv FILE] [--quiet]``:
-the command over :mod:`training.evaluate` (registered through the ``diff4splat.commands`` entry point). Every
-argument, the ``--photo`` and every CSV output (:mod:`training.eval_csv`) are checked before any model loads. It
-prints the per-clip table, the headline metrics, the depth and motion splits, the model beside its baselines per
+"""``diff4splat evaluate --checkpoint DIR --data DIR [--random] [--per-clip] [--drags K] [--sampling] [--csv FILE]
+[--quiet]``: the command over :mod:`training.evaluate` (registered through the ``diff4splat.commands`` entry point).
+Every argument, the ``--photo`` and every CSV output (:mod:`training.eval_csv`) are checked before any model loads.
+It prints the per-clip table, the headline metrics, the depth and motion splits, the model beside its baselines per
 view-angle bin, and its gap over each with a bootstrap interval over clips.
 """
 from __future__ import annotations
@@ -14,7 +14,7 @@ from diff4splat.generate import memory_estimate
 from diff4splat.io.image import read_image
 from diff4splat.io.inputs import check_input_file, check_input_folder
 from diff4splat.pipeline import DEFAULT_RESOLUTION, Diff4SplatPipeline, load_model
-from diff4splat.utils.checks import check_positive_int
+from diff4splat.utils.checks import check_int, check_positive_int
 from diff4splat.utils.devices import AUTO, DEVICE_HELP, resolve_device
 from diff4splat.utils.limits import check_limit, check_memory
 from models.bundle import DEFAULT_CONFIG
@@ -123,14 +123,15 @@ def _gap_table(evals: list[ClipEvaluation]) -> str:
 def _check_args(args) -> dict:
     """Every check that needs no model; returns the CSV outputs (:func:`training.eval_csv.csv_outputs`), checked.
     Raises ValueError naming the flag (``--random`` with ``--checkpoint``, ``--prompt`` without ``--photo``, a bad
-    count, an undecodable photo, an unappendable CSV, a ``--data`` that is a file, FIFO or symlink loop),
-    FileNotFoundError for a missing ``--photo`` or ``--data``."""
+    count or ``--drags`` below 0, an undecodable photo, an unappendable CSV, a ``--data`` that is a file, FIFO or
+    symlink loop), FileNotFoundError for a missing ``--photo`` or ``--data``."""
     check_input_folder(args.data, "--data")
     if args.random and args.checkpoint is not None:
         raise ValueError(f"--random evaluates the untrained model; --checkpoint {args.checkpoint} would be ignored "
                          "(give one of them)")
     if args.prompt and args.photo is None:
         raise ValueError("--prompt is used with --photo (the held-out clips have their own captions); give --photo")
+    check_int("--drags", args.drags, 0)
     for name in ("limit", "frames", "steps", "resolution", "sampling_clips"):
         value = getattr(args, name)
         if value is not None:
@@ -175,7 +176,7 @@ def run(args) -> int:
     clips = held_out_clips(args.data, cfg.height, cfg.width, frames, args.limit)
     if not clips:
         raise ValueError(f"--data: no clips in {args.data}")
-    evals = evaluate_all(pipe, clips, steps=args.steps, progress=not args.quiet)
+    evals = evaluate_all(pipe, clips, steps=args.steps, drags=args.drags, progress=not args.quiet)
     row = {"model": source, "clips": len(clips), **aggregate(evals)}
     if args.photo is not None:
         row.update(photo_fidelity(pipe, args.photo, args.prompt, resolution=args.resolution, steps=args.steps))
@@ -216,6 +217,9 @@ def register(subparsers) -> None:
     e.add_argument("--limit", type=int, default=None, help="evaluate at most this many clips")
     e.add_argument("--per-clip", action="store_true",
                    help="also print a table per clip (dynamic, largest view angle, model vs baselines, motion)")
+    e.add_argument("--drags", type=int, default=0, metavar="K",
+                   help="also generate each clip with K drags per moving object taken from its true tracks "
+                        "(motion_disp_epe_drag, δ5cm/δ10cm; default 0: not)")
     e.add_argument("--sampling", action="store_true", help="also measure sampler error vs NFE")
     e.add_argument("--sampling-clips", type=int, default=4, help="clips used for the sampling sweep")
     e.add_argument("--photo", type=Path, default=None,
