@@ -62,7 +62,10 @@ def test_an_address_nobody_answers_is_refused_at_once_and_writes_nothing(tmp_pat
 
 
 def test_auto_without_a_running_cluster_is_one_line(tmp_path, capsys):
-    assert not [p for p in psutil.process_iter(["name"]) if p.info["name"] == "gcs_server"], "a Ray is running"
+    """(A Ray the group's earlier modules shut down may take seconds to end its GCS: waited for first.)"""
+    running = [p for p in psutil.process_iter(["name"]) if p.info["name"] == "gcs_server"]
+    _, alive = psutil.wait_procs(running, timeout=60)
+    assert not alive, f"a Ray is running: {alive}"
     _one_line(capsys, [*SYNTH, "--scenes", "1", "--out", str(tmp_path / "o"), "--engine", "ray", "--ray-address",
                        "auto"], "--ray-address auto: Could not find any running Ray instance")
     assert sorted(tmp_path.iterdir()) == []
