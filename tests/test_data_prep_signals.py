@@ -98,6 +98,14 @@ def test_ray_client_address_runs_the_local_dataset(tmp_path, capsys, dataset):
     port = _free_port()
     cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 2, "ray_client_server_port": port})
     try:
+        deadline = time.monotonic() + 120  # the client server starts after the head, and slower on a loaded machine
+        while True:
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=1).close()
+                break
+            except OSError:
+                assert time.monotonic() < deadline, "Ray's client server did not start"
+                time.sleep(0.2)
         assert main([*SYNTH, "--scenes", "2", "--out", str(tmp_path / "o"), "--engine", "ray",
                      "--ray-address", f"ray://127.0.0.1:{port}"]) == 0
     finally:
