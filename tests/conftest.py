@@ -36,17 +36,9 @@ def pytest_ignore_collect(collection_path, config):
     return None
 
 
-LONG_FIRST = ("test_simulated_cuda.py", "test_viewer_page.py", "test_gpu_training.py", "test_training_backbone.py")
-"""Modules holding the suite's longest ungrouped tests (30–100 s each on 2 cores), collected first in this order:
-pytest-xdist hands out tests in collection order (after its groups, largest first: the ONNX exports, the Ray
-modules), and one of these started last keeps a worker busy while the other has run out of work."""
-
-
 def pytest_collection_modifyitems(config, items):
-    """:data:`LONG_FIRST` first (otherwise in collection order); tests marked ``cuda`` (the ``device`` fixture's CUDA
-    case included) skip cleanly without a GPU; ``python -m pytest -m cuda`` runs only them."""
-    rank = {name: i for i, name in enumerate(LONG_FIRST)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(LONG_FIRST)))  # stable: each module's order is kept
+    """Tests marked ``cuda`` (the ``device`` fixture's CUDA case included) skip cleanly without a GPU;
+    ``python -m pytest -m cuda`` runs only them."""
     if CUDA:
         return
     skip = pytest.mark.skip(reason="needs CUDA (torch.cuda.is_available() is False)")
