@@ -106,11 +106,15 @@ def test_ray_client_address_runs_the_local_dataset(tmp_path, capsys, dataset):
             except OSError:
                 assert time.monotonic() < deadline, "Ray's client server did not start"
                 time.sleep(0.2)
-        assert main([*SYNTH, "--scenes", "2", "--out", str(tmp_path / "o"), "--engine", "ray",
-                     "--ray-address", f"ray://127.0.0.1:{port}"]) == 0
+        for _ in range(3):  # Ray's proxier starts a server per client; on a loaded machine that can time out
+            code = main([*SYNTH, "--scenes", "2", "--out", str(tmp_path / "o"), "--engine", "ray",
+                         "--ray-address", f"ray://127.0.0.1:{port}"])
+            err = capsys.readouterr().err
+            if "Starting Ray client server failed" not in err:
+                break
     finally:
         cluster.shutdown()
-    assert capsys.readouterr().err == ""
+    assert code == 0 and err == "", err
     got, want = tree(tmp_path / "o"), tree(dataset)
     assert got.keys() == want.keys() and all(got[k] == want[k] for k in got)
 
