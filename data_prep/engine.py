@@ -9,7 +9,6 @@ import functools
 import logging
 import os
 import pickle
-import resource
 import signal
 import socket
 import threading
@@ -26,6 +25,7 @@ from tqdm.auto import tqdm
 from diff4splat.utils.checks import MissingExtraError, check_int
 from diff4splat.utils.errors import quiet_c_stderr
 from diff4splat.utils.limits import LimitError, size_text
+from diff4splat.utils.preflight import address_space_limit
 
 __all__ = ["Engine", "ENGINES", "check_engine", "add_engine_arguments", "engine_from_args", "engine_session",
            "map_scenes", "fault_point", "import_ray", "FAULT_ENV", "RAY_EXTRA", "RAY_CONNECT_TIMEOUT_S",
@@ -235,15 +235,14 @@ def _init_ray(ray, engine: Engine) -> None:
     kw: dict[str, Any] = dict(address=address or "local", logging_level=logging.ERROR, log_to_driver=False,
                               include_dashboard=False)
     if address is None:
-        soft, _ = resource.getrlimit(resource.RLIMIT_AS)
-        limited = soft != resource.RLIM_INFINITY
-        if limited and soft < RAY_MIN_ADDRESS_SPACE:
+        soft = address_space_limit()
+        if soft is not None and soft < RAY_MIN_ADDRESS_SPACE:
             raise LimitError(f"--engine ray: a Ray started here needs a virtual-memory limit (ulimit -v) of at least "
                              f"{size_text(RAY_MIN_ADDRESS_SPACE)}, and this process has {size_text(soft)}: raise it, "
                              "or use --engine local")
         # the object store is one mapping in every process of the Ray, driver included, which the limit caps; it
         # holds only the tasks' rows here (tens of bytes a scene): a sixteenth of the limit, Ray's minimum 75 MiB
-        kw.update(num_cpus=engine.workers, object_store_memory=max(75 << 20, soft // 16) if limited else None)
+        kw.update(num_cpus=engine.workers, object_store_memory=None if soft is None else max(75 << 20, soft // 16))
     elif address != "auto":
         _probe(address)
     handler = signal.getsignal(signal.SIGTERM)

@@ -10,7 +10,7 @@ import resource
 import sys
 from pathlib import Path
 
-__all__ = ["MIN_ADDRESS_SPACE", "EXIT_USAGE", "COMMANDS", "check_address_space"]
+__all__ = ["MIN_ADDRESS_SPACE", "EXIT_USAGE", "COMMANDS", "check_address_space", "address_space_limit"]
 
 MIN_ADDRESS_SPACE = 3 << 29
 """Bytes of address space (1.5 GiB) that loading the package and a command's libraries needs. Measured with torch
@@ -24,6 +24,12 @@ COMMANDS = {"diff4splat": "diff4splat", "data_prep": "data_prep", "diff4splat.cl
 :func:`check_address_space` is one ``<name>: error:`` line and exit :data:`EXIT_USAGE` rather than an ImportError."""
 
 
+def address_space_limit() -> int | None:
+    """This process's soft ``ulimit -v`` (RLIMIT_AS), bytes; None where it is unlimited."""
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    return None if soft == resource.RLIM_INFINITY else int(soft)
+
+
 def check_address_space() -> None:
     """Refuse a virtual-memory limit below :data:`MIN_ADDRESS_SPACE`.
 
@@ -31,8 +37,8 @@ def check_address_space() -> None:
         ImportError: the limit, named with what it needs (imported as a library).
         SystemExit: :data:`EXIT_USAGE`, after printing the same as one line (run as one of :data:`COMMANDS`).
     """
-    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
-    if soft == resource.RLIM_INFINITY or soft >= MIN_ADDRESS_SPACE:
+    soft = address_space_limit()
+    if soft is None or soft >= MIN_ADDRESS_SPACE:
         return
     message = (f"this process may map {soft / 2**30:.2f} GiB (ulimit -v, RLIMIT_AS), and loading torch, OpenCV and "
                f"the model needs at least {MIN_ADDRESS_SPACE / 2**30:.1f} GiB: raise the limit (ulimit -v)")
