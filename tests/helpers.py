@@ -2,16 +2,21 @@
 session-cached ONNX export. Test modules import from here, never from each other or from conftest."""
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import importlib.util
+import json
 import os
+import shutil
 import types
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 from filelock import FileLock
 
+import diff4splat.export
 from diff4splat.cameras.path import CameraPath
 from diff4splat.cli import main
 from diff4splat.export import MANIFEST_NAME, export_onnx
@@ -122,11 +127,36 @@ def exported(tmp_path_factory, *, text=True, deformation=True, cli=False, image_
         if not (out / MANIFEST_NAME).exists():
             if cli:
                 flags = (["--no-text"] if not text else []) + (["--static"] if not deformation else [])
-                assert main(["export-onnx", "--checkpoint", str(ckpt), "--out", str(out), *flags]) == 0
+                with _vae_graphs_of(None if image_branch else exported(tmp_path_factory)[1]):
+                    assert main(["export-onnx", "--checkpoint", str(ckpt), "--out", str(out), *flags]) == 0
             else:
                 model = Diff4SplatModel.from_pretrained(ckpt).eval()
                 export_onnx(model, out, text=text, deformation=deformation, checkpoint=ckpt, source=str(ckpt))
     return ckpt, out
+
+
+@contextlib.contextmanager
+def _vae_graphs_of(full: Path | None):
+    """Within it, an export copies its VAE encoder and decoder graphs (and their manifest entries) from the export
+    folder ``full`` of the same checkpoint at the same opset instead of tracing them again (about 40 s): they do not
+    depend on ``--no-text`` / ``--static``, and ``full`` has them checked against PyTorch. ``None``: no sharing."""
+    if full is None:
+        yield
+        return
+    manifest = json.loads((full / MANIFEST_NAME).read_text())
+    trace = diff4splat.export._export_graph
+
+    def shared(graph, path: Path, opset: int, external_data_bytes: int, config: dict) -> dict:
+        if graph.name not in ("vae_encoder", "vae_decoder") or opset != manifest["opset"]:
+            return trace(graph, path, opset, external_data_bytes, config)
+        entry = manifest["files"][graph.name]
+        for name in entry["files"]:
+            shutil.copyfile(full / name, path.parent / name)
+        return entry
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(diff4splat.export, "_export_graph", shared)
+        yield
 
 
 def moving_patch_scene(n: int = 400, frames: int = 5, shift: float = 0.6, sh_degree: int = 0, temporal: bool = False,
