@@ -389,6 +389,7 @@ def test_a_bad_guidance_is_one_line_exit_2_before_the_model_loads(tmp_path, caps
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.slow
 def test_guidance_is_recorded_in_meta(tmp_path):
     code, out = _generate(tmp_path, "--prompt", "a cat turns its head", "--guidance", "2.5", frames=5)
     assert code == 0 and json.loads((out / "meta.json").read_text())["guidance"] == 2.5

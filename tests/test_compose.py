@@ -52,6 +52,7 @@ def test_mismatched_weights_and_bad_names_raise(checkpoints, tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.slow
 def test_reinit_starts_a_replaced_head_from_its_initialisation(tmp_path, capsys):
     """A deconv-head LDRM taken into an upsampling-head config: refused without --reinit (the head's weights do not
     fit), and with ``--reinit ldrm.head`` every other LDRM weight is the checkpoint's and the head is the seeded

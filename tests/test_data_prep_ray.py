@@ -23,7 +23,7 @@ from training.stage_config import StageConfig  # noqa: E402
 from training.trainer import TrainerConfig  # noqa: E402
 
 # one worker runs the modules that start a Ray (`--ray-address auto` joins any; tests/test_data_prep_signals.py)
-pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("ray")]
+pytestmark = pytest.mark.slow
 
 SIZE, FRAMES = 32, 9
 RAY = Engine("ray")  # joins the Ray this module started

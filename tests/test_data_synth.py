@@ -147,6 +147,7 @@ def test_static_and_dynamic_scenes(tmp_path):
     assert (d.depth("cam00", 0)[np.isfinite(d.depth("cam00", 0))] > 0).all()
 
 
+@pytest.mark.slow
 def test_shipped_tokenizer_holds_every_synthetic_caption_whole():
     # The shipped base model's text sees a training caption whole, direction words included (the byte tokenizer cuts
     # a longer one). About 1 in 600 sampled captions exceeds 254 bytes, so 3,000 of them catch a 256-token limit.

@@ -35,6 +35,7 @@ def _violations(source: str) -> list[str]:
             if COMMIT.search(text) or HISTORY.search(text) or TEST_PATH.search(text)]
 
 
+@pytest.mark.slow
 def test_no_commit_hash_history_or_test_path_in_the_packages_docstrings_and_comments():
     files = [f for p in PACKAGES for f in sorted((ROOT / p).rglob("*.py"))]
     assert len(files) > 100  # the glob found the packages

@@ -168,6 +168,7 @@ def test_field_regularization_is_the_reference_weighted_sum(plane_reg):
     assert all(p.grad is not None for planes in field.grids for p in planes)
 
 
+@pytest.mark.slow
 def test_gradients_match_finite_differences():
     field = _perturbed(HexPlaneConfig(**TINY), dtype=torch.float64)
     names = ["grids.0.0", "grids.1.2", "grids.1.5", "trunk.0.weight", "trunk.2.bias"]

@@ -215,6 +215,7 @@ def test_generate_reads_motion_from_the_decoded_frames(image, monkeypatch):
     assert not res.scene.is_static and res.scene.d_means.abs().max() > 0
 
 
+@pytest.mark.slow
 def test_a_still_motion_network_makes_the_scene_static_whatever_the_token_network_says(image):
     model = tiny_model(seed=0, dynamic=True, motion=True)  # the token network's maps are not the identity
     with torch.no_grad():

@@ -109,6 +109,7 @@ def synth_root(tmp_path_factory):
     return root
 
 
+@pytest.mark.slow
 def test_synthetic_scenes_write_valid_object_ids_exactly_where_there_is_depth(synth_root):
     for scene in sorted(synth_root.glob("scene_*")):
         r = SceneReader(scene)
@@ -162,6 +163,7 @@ def test_clip_pixel_tracks_follow_the_exact_point_tracks(synth_root):
     assert hold > 0.5 and err < 0.2 * hold, (err, hold)
 
 
+@pytest.mark.slow
 def test_static_scenes_pixel_tracks_stay_put_and_unknown_motion_is_not_supervised(synth_root, tmp_path):
     static = ClipDataset(synth_root, height=32, width=32, num_frames=5, scenes="static")[0]
     assert static["pixel_track_valid"].float().mean() > 0.7

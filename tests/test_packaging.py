@@ -78,6 +78,7 @@ def test_every_runtime_import_is_a_declared_dependency():
     assert not missing, "undeclared runtime dependencies: " + "; ".join(missing)
 
 
+@pytest.mark.slow
 def test_optional_imports_are_guarded():
     """gsplat (extra ``cuda``) and matplotlib (extra ``bench``) are imported only inside functions, so the
     base install never needs them."""

@@ -46,7 +46,7 @@ def _depths(H, W, seed=0):
     }
 
 
-@pytest.mark.parametrize("H,W", [(16, 16), (48, 80), (256, 256)])
+@pytest.mark.parametrize("H,W", [(16, 16), (48, 80), pytest.param(256, 256, marks=pytest.mark.slow)])
 @pytest.mark.parametrize("photo", ["chelsea", "grass"])
 def test_the_layer_alone_reproduces_the_photo_at_the_input_camera(H, W, photo):
     """≥ 40 dB for every depth map (plane, tilt, noise, depth steps) at low and high resolution, on the demo photo

@@ -413,6 +413,7 @@ def test_cudnn_attention_matches_the_math_kernel_on_the_dits_layout():
     torch.testing.assert_close(out.float(), ref, atol=2e-2, rtol=2e-2)
 
 
+@pytest.mark.slow
 def test_random_models_are_built_in_the_dtype_and_on_the_device_asked_for():
     cfg = load_config("tiny")
     m = Diff4SplatModel.random(cfg, seed=0, dtype=torch.bfloat16)

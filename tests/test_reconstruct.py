@@ -106,6 +106,7 @@ def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     return float(-10 * torch.log10(((a - b) ** 2).mean()))
 
 
+@pytest.mark.slow
 def test_the_scene_moves_as_the_video_does(videos, base_pipeline, moving_every_other):
     """Every other frame of a patch moving 1 px per frame: the scene at its own frames shows them, and rendered at
     the held-out frames between them it beats holding the previous given frame (the patch is where it was)."""
@@ -125,6 +126,7 @@ def test_the_scene_moves_as_the_video_does(videos, base_pipeline, moving_every_o
 
 
 
+@pytest.mark.slow
 def test_the_two_layers_around_a_time_cross_fade(videos, base_pipeline):
     """layer_support on the scene of a moving video: at a layer's time only it is shown (with the backdrop); at
     α of the way to the next layer exactly the two are, the even one in front (pushed back by nothing, the odd one
@@ -152,6 +154,7 @@ def test_the_two_layers_around_a_time_cross_fade(videos, base_pipeline):
     assert float(ratio.median()) == pytest.approx(1 + LAYER_ORDER_OFFSET, rel=2e-3)
 
 
+@pytest.mark.slow
 def test_a_layer_is_tracked_only_where_it_is_shown_and_frame_0_s_over_the_clip(moving_every_other):
     """layer_spans: a layer k ≥ 1 is shown only between its neighbours' times (the test above), so its motion is
     measured there and is exactly zero at every other key time; frame 0's layer is tracked over the whole clip (the
@@ -204,6 +207,7 @@ def test_a_frame_s_depth_is_carried_from_the_nearest_source_frame_along_the_flow
     assert torch.equal(carried_depth(depths, [0, 4], 4, flows), depths[1])
 
 
+@pytest.mark.slow
 def test_source_layers_are_fewer_and_still_move(videos, base_pipeline, moving_every_other):
     root, _ = videos
     every = moving_every_other
@@ -226,6 +230,7 @@ def test_a_request_beyond_the_memory_limit_is_refused_before_the_networks_run(vi
             reconstruct(root / "moving", pipeline=base_pipeline, frames=9, stride=2, resolution=SIZE, layers="source")
 
 
+@pytest.mark.slow
 def test_a_still_video_gives_a_static_scene(videos, base_pipeline):
     root, _ = videos
     gen = reconstruct(root / "still", pipeline=base_pipeline, frames=9, resolution=SIZE)
@@ -252,6 +257,7 @@ def test_the_command_writes_generate_s_folder(videos, tmp_path, capsys):
     assert "wrote" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_a_camera_file_of_every_video_frame_gives_the_clip_s_cameras(tmp_path, base_pipeline):
     """A synthetic scene's first camera (a moving one): its 17 frames and the cameras.json of all 17; the clip every
     other frame takes the cameras of frames 0, 2, …, 16, relative to the first, at the clip's times. A file with

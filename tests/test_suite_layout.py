@@ -3,6 +3,8 @@ from conftest or another test module (pytest may import them under other names, 
 import ast
 from pathlib import Path
 
+import pytest
+
 TESTS = Path(__file__).resolve().parent
 
 
@@ -23,6 +25,7 @@ def _forbidden(name: str) -> bool:
     return top == "conftest" or top.startswith("test_") or name.startswith("tests.")
 
 
+@pytest.mark.slow
 def test_no_test_module_imports_conftest_or_another_test_module():
     files = sorted(TESTS.glob("test_*.py"))
     assert len(files) > 40  # the glob really found the suite

@@ -340,6 +340,7 @@ def test_fits_float16_is_a_finite_float16_cast_without_the_copy(dtype):
 
 
 @pytest.mark.parametrize("far", [False, True])
+@pytest.mark.slow
 def test_the_payload_equals_the_one_built_from_every_keyframe(far):
     """``viewer_payload`` deforms only the kept Gaussians at the kept key times, and decides the dtype from the
     means ``float16_error_px`` would pick out of all F·N (more than it measures) and from a range bound (``far``:
