@@ -22,7 +22,6 @@ from data_prep.engine import Engine  # noqa: E402
 from training.stage_config import StageConfig  # noqa: E402
 from training.trainer import TrainerConfig  # noqa: E402
 
-# one worker runs the modules that start a Ray (`--ray-address auto` joins any; tests/test_data_prep_signals.py)
 pytestmark = pytest.mark.slow
 
 SIZE, FRAMES = 32, 9

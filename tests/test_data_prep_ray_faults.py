@@ -15,7 +15,6 @@ from _data_prep_fixtures import tree  # noqa: E402
 from data_prep.engine import FAULT_ENV, Engine  # noqa: E402
 from data_prep.synth_dataset import synthesize  # noqa: E402
 
-# one worker runs the modules that start a Ray (`--ray-address auto` joins any; tests/test_data_prep_signals.py)
 pytestmark = pytest.mark.slow
 
 KW = dict(seed=4, size=32, frames=9, cameras=2, static_ratio=0.3, progress=False)

@@ -64,6 +64,7 @@ def test_auto_without_a_running_cluster_is_one_line(tmp_path, capsys, monkeypatc
     """``auto`` on a machine where Ray finds no cluster: its lookup (the address file of a ``ray start`` and any
     running ``gcs_server``, which includes the Rays of the suite's other worker) is made to find none."""
     monkeypatch.delenv("RAY_ADDRESS", raising=False)
+
     def no_gcs():
         return []
 

@@ -187,8 +187,9 @@ def test_play_advances_time_and_a_drag_moves_the_view(browser, dynamic_page_file
     page = _open(browser, path.as_uri())
     before = _canvas(page)
     page.locator("#play").click()
-    page.wait_for_function("d4s.time > 0.05", timeout=10_000)  # playback's pace follows the frame rate (a loaded
-    assert page.locator("#play").inner_text() == "pause"       # machine draws few frames a second)
+    # playback's pace follows the frame rate, and a loaded machine draws few frames a second
+    page.wait_for_function("d4s.time > 0.05", timeout=10_000)
+    assert page.locator("#play").inner_text() == "pause"
     page.locator("#play").click()
     page.evaluate("d4s.setTime(0)")
     box = page.locator("#view").bounding_box()
