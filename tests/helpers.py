@@ -12,6 +12,7 @@ import types
 from pathlib import Path
 
 import numpy as np
+import onnx
 import pytest
 import torch
 from filelock import FileLock
@@ -23,7 +24,7 @@ from diff4splat.export import MANIFEST_NAME, export_onnx
 from diff4splat.io import load_image
 from diff4splat.scene.dynamic import DynamicGaussians
 from diff4splat.scene.gaussians import Gaussians, rgb_to_sh0
-from models.bundle import Diff4SplatConfig, Diff4SplatModel
+from models.bundle import NETWORKS, Diff4SplatConfig, Diff4SplatModel
 from models.hexplane import HexPlaneConfig, HexPlaneField
 from models.motion import MotionConfig
 
@@ -112,7 +113,9 @@ def exported(tmp_path_factory, *, text=True, deformation=True, cli=False, image_
     building it while the others wait on a file lock.
 
     ``cli`` makes the export through ``diff4splat export-onnx`` (flags ``--no-text`` / ``--static``);
-    ``image_branch`` > 0 exports ``parity_model(image_branch)`` (its own checkpoint folder).
+    ``image_branch`` > 0 exports ``parity_model(image_branch)`` (its own checkpoint folder). Graphs an earlier
+    export of the run already holds are copied from it (:func:`_graphs_from`): the lean export's from the full one,
+    the image-branch export's from both.
     """
     own = tmp_path_factory.getbasetemp()
     base = (own.parent if os.environ.get("PYTEST_XDIST_WORKER") else own) / "onnx_cache"
@@ -125,34 +128,64 @@ def exported(tmp_path_factory, *, text=True, deformation=True, cli=False, image_
             parity_model(image_branch).save_pretrained(ckpt)
     with FileLock(str(base / f"{out.name}.lock")):
         if not (out / MANIFEST_NAME).exists():
-            if cli:
-                flags = (["--no-text"] if not text else []) + (["--static"] if not deformation else [])
-                with _vae_graphs_of(None if image_branch else exported(tmp_path_factory)[1]):
+            full = text and deformation and not image_branch
+            sources = [] if full else [exported(tmp_path_factory)]
+            if image_branch:
+                sources.append(exported(tmp_path_factory, text=False, deformation=False, cli=True))
+            with _graphs_from(sources):
+                if cli:
+                    flags = (["--no-text"] if not text else []) + (["--static"] if not deformation else [])
                     assert main(["export-onnx", "--checkpoint", str(ckpt), "--out", str(out), *flags]) == 0
-            else:
-                model = Diff4SplatModel.from_pretrained(ckpt).eval()
-                export_onnx(model, out, text=text, deformation=deformation, checkpoint=ckpt, source=str(ckpt))
+                else:
+                    model = Diff4SplatModel.from_pretrained(ckpt).eval()
+                    export_onnx(model, out, text=text, deformation=deformation, checkpoint=ckpt, source=str(ckpt))
     return ckpt, out
 
 
+UNREAD_CONFIG = {"vae_encoder": ("upsample",)}
+"""Fields of its network's config a graph does not read (``VideoVAEConfig.upsample`` is the decoder's,
+models/vae.py): left out when :func:`_graphs_from` compares two networks."""
+
+
+def _graph_key(graph_name: str, part: str, network: torch.nn.Module, config: dict) -> tuple:
+    """What a traced graph depends on: its network's weights and the model config without the other networks'
+    configs and without its :data:`UNREAD_CONFIG` fields."""
+    own = {k: v for k, v in config.items() if k == part or k not in NETWORKS}
+    own[part] = {k: v for k, v in own[part].items() if k not in UNREAD_CONFIG.get(graph_name, ())}
+    return diff4splat.export.state_dict_sha256(network), json.dumps(own, sort_keys=True)
+
+
 @contextlib.contextmanager
-def _vae_graphs_of(full: Path | None):
-    """Within it, an export copies its VAE encoder and decoder graphs (and their manifest entries) from the export
-    folder ``full`` of the same checkpoint at the same opset instead of tracing them again (about 40 s): they do not
-    depend on ``--no-text`` / ``--static``, and ``full`` has them checked against PyTorch. ``None``: no sharing."""
-    if full is None:
+def _graphs_from(sources: list[tuple[Path, Path]]):
+    """Within it, an export copies a graph from an earlier export of the run instead of tracing it again (10–20 s a
+    graph): from the first of ``sources`` ((checkpoint folder, export folder) pairs of :func:`exported`) whose graph
+    of that name has the same opset, input and output names and the same :func:`_graph_key`; the copy's metadata is
+    then the exporting model's (:func:`diff4splat.export.graph_metadata`). Each source graph is checked against
+    PyTorch by the tests of its own export."""
+    if not sources:
         yield
         return
-    manifest = json.loads((full / MANIFEST_NAME).read_text())
     trace = diff4splat.export._export_graph
+    known = [(Diff4SplatModel.from_pretrained(ckpt), out, json.loads((out / MANIFEST_NAME).read_text()))
+             for ckpt, out in sources]
 
     def shared(graph, path: Path, opset: int, external_data_bytes: int, config: dict) -> dict:
-        if graph.name not in ("vae_encoder", "vae_decoder") or opset != manifest["opset"]:
-            return trace(graph, path, opset, external_data_bytes, config)
-        entry = manifest["files"][graph.name]
-        for name in entry["files"]:
-            shutil.copyfile(full / name, path.parent / name)
-        return entry
+        part = graph.module.part
+        key = _graph_key(graph.name, part, getattr(graph.module, part), config)
+        for model, out, manifest in known:
+            entry = manifest["files"].get(graph.name)
+            if (entry is None or manifest["opset"] != opset
+                    or [i["name"] for i in entry["inputs"]] != list(graph.input_names)
+                    or [o["name"] for o in entry["outputs"]] != list(graph.output_names)
+                    or _graph_key(graph.name, part, getattr(model, part), manifest["config"]) != key):
+                continue
+            for name in entry["files"]:
+                shutil.copyfile(out / name, path.parent / name)
+            proto = onnx.load(str(path), load_external_data=False)
+            onnx.helper.set_model_props(proto, diff4splat.export.graph_metadata(graph.name, config, entry["dims"]))
+            onnx.save(proto, str(path))
+            return entry
+        return trace(graph, path, opset, external_data_bytes, config)
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(diff4splat.export, "_export_graph", shared)
