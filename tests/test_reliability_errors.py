@@ -622,6 +622,13 @@ def test_only_warnings_that_concern_the_user_are_printed_once_each(capsys):
         warnings.warn_explicit("TF32 is off", UserWarning, theirs, 4)
         return 7
 
-    assert errors.print_warnings(run) == 7
+    with errors.printed_warnings():
+        result = run()
+    assert result == 7
     assert capsys.readouterr().err.splitlines() == ["diff4splat: warning: the model is random",
                                                     "_script: UserWarning: TF32 is off"]
+    # a block that fails still prints what was raised before the failure (the error's own line comes after)
+    with pytest.raises(ValueError, match="late"), errors.printed_warnings():
+        warnings.warn_explicit("the model is random", UserWarning, ours, 3)
+        raise ValueError("late")
+    assert capsys.readouterr().err.splitlines() == ["diff4splat: warning: the model is random"]

@@ -2,12 +2,10 @@
 from __future__ import annotations
 
 import argparse
-from functools import partial
 
 from diff4splat.commands.options import add_model_flags, add_out_flags
 from diff4splat.export import MAX_OPSET, MIN_OPSET, export_checkpoint
-from diff4splat.pipeline import load_model
-from diff4splat.utils.errors import print_warnings
+from diff4splat.utils.errors import printed_warnings
 from models.bundle import DEFAULT_CONFIG
 
 __all__ = ["register", "run"]
@@ -34,9 +32,9 @@ def register(sub) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     """Run ``export-onnx`` (:func:`diff4splat.export.export_checkpoint`, warnings printed); prints the files written,
     returns 0."""
-    manifest = export_checkpoint(args.checkpoint, args.out, config=args.config, text=not args.no_text,
-                                 deformation=not args.static, opset=args.opset, overwrite=args.overwrite,
-                                 load=partial(print_warnings, load_model))
+    with printed_warnings():
+        manifest = export_checkpoint(args.checkpoint, args.out, config=args.config, text=not args.no_text,
+                                     deformation=not args.static, opset=args.opset, overwrite=args.overwrite)
     print(f"wrote {args.out} ({', '.join(f['file'] for f in manifest['files'].values())}, "
           f"opset {manifest['opset']})")
     return 0

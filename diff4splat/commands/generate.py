@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from functools import partial
 from pathlib import Path
 
 from diff4splat.assembly.assemble import DEPTH_KINDS
@@ -16,7 +17,7 @@ from diff4splat.pipeline import DEFAULT_RESOLUTION
 from diff4splat.request import load_pipeline, write
 from diff4splat.runtime import ATTENTION_KERNELS, OFFLOAD_MODES
 from diff4splat.utils.devices import AUTO, DEVICE_HELP
-from diff4splat.utils.errors import print_warnings
+from diff4splat.utils.errors import printed_warnings
 from models.flow_matching import SAMPLERS
 
 __all__ = ["register", "run"]
@@ -95,14 +96,15 @@ def run(args: argparse.Namespace) -> int:
     """Run ``generate``: :func:`diff4splat.generate.generate` (the output folder, the frame rate and the request
     checked before the model loads; the loader's and the run's warnings printed as ``diff4splat: warning:`` lines)
     and :func:`diff4splat.request.write`; prints the folder's line, returns 0."""
-    output = print_warnings(  # warnings of the run (a prompt cut to the tokenizer's length) as one line each
-        generate, args.image, args.cameras, pipeline=lambda: print_warnings(
-            load_pipeline, args.checkpoint, args.config, runtime=args.runtime, onnx=args.onnx, device=args.device,
-            dtype=args.dtype, offload=args.offload, attention=args.attention, compile=args.compile),
-        trajectory=args.trajectory, amplitude=args.amplitude, frames=args.frames, resolution=args.resolution,
-        prompt=args.prompt, steps=args.steps, sampler=args.sampler, guidance=args.guidance, seed=args.seed,
-        depth=args.depth, depth_kind=args.depth_kind, progress=not args.quiet,
-        notes=lambda note: print(f"diff4splat: note: {note}", file=sys.stderr), out=args.out,
-        overwrite=args.overwrite, inputs=[args.checkpoint, args.onnx], fps=args.fps, frame_plys=args.frame_plys,
-        drags=args.drag, tracks=args.tracks)
+    with printed_warnings():  # the loader's and the run's (a prompt cut to the tokenizer's length), one line each
+        output = generate(
+            args.image, args.cameras, pipeline=partial(
+                load_pipeline, args.checkpoint, args.config, runtime=args.runtime, onnx=args.onnx, device=args.device,
+                dtype=args.dtype, offload=args.offload, attention=args.attention, compile=args.compile),
+            trajectory=args.trajectory, amplitude=args.amplitude, frames=args.frames, resolution=args.resolution,
+            prompt=args.prompt, steps=args.steps, sampler=args.sampler, guidance=args.guidance, seed=args.seed,
+            depth=args.depth, depth_kind=args.depth_kind, progress=not args.quiet,
+            notes=lambda note: print(f"diff4splat: note: {note}", file=sys.stderr), out=args.out,
+            overwrite=args.overwrite, inputs=[args.checkpoint, args.onnx], fps=args.fps, frame_plys=args.frame_plys,
+            drags=args.drag, tracks=args.tracks)
     return report_scene(args.out, write(output, args.out, overwrite=args.overwrite))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from functools import partial
 from pathlib import Path
 
 from diff4splat.assembly.layers import DEFAULT_LAYERS, LAYERS
@@ -11,7 +12,7 @@ from diff4splat.io.video import DEFAULT_FPS
 from diff4splat.reconstruct import reconstruct
 from diff4splat.request import load_pipeline, write
 from diff4splat.utils.devices import AUTO, DEVICE_HELP
-from diff4splat.utils.errors import print_warnings
+from diff4splat.utils.errors import printed_warnings
 
 __all__ = ["register", "run"]
 
@@ -50,10 +51,10 @@ def register(sub) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``reconstruct`` and :func:`diff4splat.request.write`; prints the folder's line, returns 0."""
-    output = print_warnings(  # the loader's and the run's warnings as one line each
-        reconstruct, args.video, args.cameras,
-        pipeline=lambda: print_warnings(load_pipeline, args.checkpoint, args.config, device=args.device),
-        frames=args.frames, stride=args.stride, start=args.start, resolution=args.resolution, layers=args.layers,
-        progress=not args.quiet, out=args.out, overwrite=args.overwrite, inputs=[args.checkpoint], fps=args.fps,
-        frame_plys=args.frame_plys)
+    with printed_warnings():  # the loader's and the run's, one line each
+        output = reconstruct(
+            args.video, args.cameras, pipeline=partial(load_pipeline, args.checkpoint, args.config, device=args.device),
+            frames=args.frames, stride=args.stride, start=args.start, resolution=args.resolution, layers=args.layers,
+            progress=not args.quiet, out=args.out, overwrite=args.overwrite, inputs=[args.checkpoint], fps=args.fps,
+            frame_plys=args.frame_plys)
     return report_scene(args.out, write(output, args.out, overwrite=args.overwrite))

@@ -139,7 +139,8 @@ def _check_existing(label: str, target: Path, kind: str, overwrite: bool, replac
     if not target.is_dir():
         raise _ExistingFolderError(f"{label} is a file, not a folder")
     try:
-        empty = next(os.scandir(target), None) is None
+        with os.scandir(target) as entries:  # closed here: an open iterator would warn when collected
+            empty = next(entries, None) is None
     except OSError as e:
         raise _ExistingFolderError(f"{label} cannot be read: {e.strerror}") from None
     data = None if empty else _marker(target)

@@ -25,7 +25,7 @@ import torch
 from diff4splat.utils.checks import MissingExtraError
 from diff4splat.utils.preflight import EXIT_USAGE
 
-__all__ = ["print_warnings", "EXIT_USAGE", "EXIT_INTERRUPTED", "EXIT_TERMINATED", "Terminated", "sigterm_raises",
+__all__ = ["printed_warnings", "EXIT_USAGE", "EXIT_INTERRUPTED", "EXIT_TERMINATED", "Terminated", "sigterm_raises",
            "EXPECTED_ERRNOS", "is_expected",
            "one_line", "run_cli", "quiet_c_stderr", "parse_naming"]
 
@@ -162,21 +162,23 @@ _DEVELOPER_WARNINGS = (DeprecationWarning, PendingDeprecationWarning, FutureWarn
 """Categories that concern a library's developers, not the user."""
 
 
-def print_warnings(call: Callable, *args, prog: str = "diff4splat", **kwargs):
-    """``call(*args, **kwargs)`` with the warnings that concern the user printed once each on stderr; returns its
-    result. Ours as ``<prog>: warning: …``; a dependency's deprecation and future warnings dropped, any other printed as
-    ``<module>: <Category>: …``."""
+@contextlib.contextmanager
+def printed_warnings(prog: str = "diff4splat") -> Iterator[None]:
+    """Record the warnings raised inside the block and print those that concern the user once each on stderr when it
+    ends, also when it ends by an exception (before that error's line). Ours as ``<prog>: warning: …``; a
+    dependency's deprecation and future warnings dropped, any other printed as ``<module>: <Category>: …``."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        out = call(*args, **kwargs)
-    seen = set()
-    for w in caught:
-        ours = os.path.abspath(w.filename).startswith(_OUR_PACKAGES)
-        if not ours and issubclass(w.category, _DEVELOPER_WARNINGS):
-            continue
-        line = (f"{prog}: warning: {w.message}" if ours else
-                f"{Path(w.filename).stem}: {w.category.__name__}: {w.message}")
-        if line not in seen:
-            seen.add(line)
-            print(line, file=sys.stderr)
-    return out
+        try:
+            yield
+        finally:
+            seen = set()
+            for w in caught:
+                ours = os.path.abspath(w.filename).startswith(_OUR_PACKAGES)
+                if not ours and issubclass(w.category, _DEVELOPER_WARNINGS):
+                    continue
+                line = (f"{prog}: warning: {w.message}" if ours else
+                        f"{Path(w.filename).stem}: {w.category.__name__}: {w.message}")
+                if line not in seen:
+                    seen.add(line)
+                    print(line, file=sys.stderr)
