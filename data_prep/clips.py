@@ -138,7 +138,8 @@ class ClipDataset(Dataset):
       each frame (dense 3D tracks: ``objects.npz``'s poses, FORMAT.md; a static scene's stay put),
       ``pixel_track_valid`` (H, W) bool: known (``objects.npz`` or a static scene), a surface, not on an object
       boundary (:func:`data_prep.object_motion.id_boundaries`);
-    - ``caption`` str (``""`` without one), ``dynamic`` () bool, ``frame_indices`` (T,) int64 source frames,
+    - ``caption`` str (``""`` without one, or when the reference camera is not the scene's first, whose view the
+      caption describes: FORMAT.md), ``dynamic`` () bool, ``frame_indices`` (T,) int64 source frames,
       ``camera_indices`` (T,) int64 into ``meta["cameras"]``, ``scene`` str, ``index`` () int64.
 
     Raises FileNotFoundError: ``root`` is not a folder; ValueError: bad config/overrides, no scene folder in ``root``,
@@ -246,7 +247,9 @@ class ClipDataset(Dataset):
         out.update(self._pixel_tracks(reader, spec, clip, world_to_ref, depth[0]))
         meta = reader.meta
         out.update({
-            "caption": reader.caption or "",
+            # a caption describes the scene as its first camera sees it (directions, the camera's motion): another
+            # reference camera's clip would teach the opposite words, so it goes uncaptioned
+            "caption": (reader.caption or "") if spec.cameras[0] == meta.cameras[0] else "",
             "dynamic": torch.tensor(meta.dynamic, device="cpu"),
             "frame_indices": torch.tensor(spec.frames, dtype=torch.int64, device="cpu"),
             "camera_indices": torch.tensor([meta.cameras.index(c) for c in spec.cameras], dtype=torch.int64,

@@ -52,7 +52,7 @@ from diff4splat.onnx_runtime import (
 from diff4splat.pipeline import load_model
 from diff4splat.utils.limits import check_disk
 from models.backbone_model import INDEX_FILE
-from models.bundle import DEFAULT_CONFIG, NETWORKS, Diff4SplatModel
+from models.bundle import DEFAULT_CONFIG, NETWORKS, OPTIONAL_NETWORKS, Diff4SplatModel
 from models.pretrained import WEIGHTS_NAME
 
 __all__ = ["export_onnx", "export_checkpoint", "check_opset", "state_dict_sha256", "checkpoint_sha256",
@@ -226,12 +226,14 @@ def state_dict_sha256(module: nn.Module) -> str:
 
 
 def checkpoint_sha256(directory: str | os.PathLike) -> dict[str, str]:
-    """{"vae/model.safetensors": hex SHA-256, …} of the four networks of a :meth:`Diff4SplatModel.save_pretrained`
-    folder. FileNotFoundError: a weights file is missing."""
+    """{"vae/model.safetensors": hex SHA-256, …} of the networks of a :meth:`Diff4SplatModel.save_pretrained`
+    folder (an optional network's when its folder is there). FileNotFoundError: a weights file is missing."""
     directory = Path(directory)
     out = {}
     for name in NETWORKS:
         path = directory / name / WEIGHTS_NAME
+        if name in OPTIONAL_NETWORKS and not path.parent.exists():
+            continue
         if not path.is_file():
             raise FileNotFoundError(f"checkpoint: {path} does not exist")
         digest = hashlib.sha256()

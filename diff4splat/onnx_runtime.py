@@ -211,6 +211,7 @@ class OnnxRuntime:
         self.dit_text_inputs = bool(parts["dit_text_inputs"])
         self.has_deformation = bool(parts["deformation"])
         self.has_motion = False  # the motion network is not exported
+        self.has_motion_generator = False  # nor the motion generator
         self.ldrm_image_input = bool(parts["ldrm_image_input"])
         self.tokenizer = ByteTokenizer(self.config.text_encoder.max_length)
         self.latent = self.config.vae.latent_format
@@ -239,6 +240,10 @@ class OnnxRuntime:
         """Not served (``has_motion`` is False): ValueError."""
         raise ValueError("this ONNX export has no motion network (has_motion is False): its scenes keep the "
                          "deformation network's maps")
+
+    def motion_generator(self):
+        """Not served (``has_motion_generator`` is False): ValueError."""
+        raise ValueError("this ONNX export has no motion generator (has_motion_generator is False)")
 
     def decode_latents(self, latents: Tensor) -> Tensor:
         """(B, c, n, h, w) DiT latents → (B, 3, 1 + 4(n − 1), 8h, 8w) pixels on the latents' device; ValueError as

@@ -18,8 +18,9 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from diff4splat.assembly.assemble import DEPTH_KINDS, assemble_scene, z_depth
-from diff4splat.assembly.drag_scene import dragged_scene
+from diff4splat.assembly.drag_scene import dragged_scene, moved_scene
 from diff4splat.assembly.frame_motion import frame_motion
+from diff4splat.assembly.generated_motion import generated_motion
 from diff4splat.assembly.layers import (
     DEFAULT_LAYERS,
     LAYER_ORDER_OFFSET,
@@ -291,6 +292,9 @@ class Diff4SplatPipeline:
             image: (H, W, 3) float in [0, 1] at the output resolution and the model's aspect ratio.
             cameras: T = 1 + 4k cameras at W × H; re-expressed relative to the first.
             prompt: text describing the motion; "" runs no text encoder and, without ``drags``, gives a static scene.
+                With a motion generator in the model, it generates the photo layer's motion
+                (:mod:`diff4splat.assembly.generated_motion`, moved as drags move it) instead of the deformation
+                network's.
             steps, sampler, guidance: sampler steps, "euler" | "heun" and the classifier-free guidance scale g ≥ 0,
                 v_u + g·(v_p − v_u) (Ho & Salimans 2022; 1: one call per step); defaults: ``config.sampling``.
             seed, progress: seed of the initial noise (drawn on the CPU); tqdm progress bars.
@@ -333,9 +337,12 @@ class Diff4SplatPipeline:
         timings["sample"] = clock.lap()
 
         key_times = torch.unique(cameras.times)
-        # Motion only where asked for: the networks' deformation with a prompt, the drags' instead of it; no prompt and
-        # no drag is a static scene. A runtime without the deformation network (a static ONNX export) is static too.
-        networks_move = runtime.has_deformation and bool(prompt.strip()) and drags is None
+        # Motion only where asked for: with a prompt the motion generator's (where the model has one), else the
+        # networks' deformation; the drags' instead of either; no prompt and no drag is a static scene. A runtime
+        # without the deformation network or the motion generator (a static ONNX export) is static too.
+        prompted = bool(prompt.strip()) and drags is None
+        generates_motion = prompted and runtime.has_motion_generator
+        networks_move = prompted and runtime.has_deformation and not generates_motion
         out = runtime.reconstruct(latents, plucker, key_times if networks_move else None, video[:, :, 0])
         frames = self.source_frames(len(cameras))
         sources = torch.tensor(frames, device=dev)
@@ -356,6 +363,14 @@ class Diff4SplatPipeline:
         if drags is not None:
             scene, kept = dragged_scene(scene, grid, drags, image, photo["photo_depth"], cameras.Ks[0], key_times)
             grid = grid[kept]
+        elif generates_motion:
+            span = float(key_times[-1] - key_times[0]) or 1.0
+            with runtime.motion_generator() as net:
+                motion, moving = generated_motion(net, image, photo["photo_depth"], (key_times - key_times[0]) / span,
+                                                  prompt, seed=seed)
+            if bool(moving.any()):  # else nothing moves: the scene stays static
+                scene, kept = moved_scene(scene, grid, motion, moving, photo["photo_depth"], cameras.Ks[0], key_times)
+                grid = grid[kept]
         timings["reconstruct"] = clock.lap()
 
         scene, index, stats = settle_and_prune(scene, grid, cameras, sources, photo["photo_depth"],

@@ -32,8 +32,8 @@ class NetworkRuntime(Protocol):
 
     Attributes:
         config, latent: the model's config and its VAE's :class:`models.backbone.LatentFormat`.
-        has_deformation, has_motion: whether :meth:`reconstruct` predicts deformation maps; whether
-            :meth:`motion_network` is served.
+        has_deformation, has_motion, has_motion_generator: whether :meth:`reconstruct` predicts deformation maps;
+            whether :meth:`motion_network` is served; whether :meth:`motion_generator` is.
         encodes_empty_prompt: whether the unconditional input is the empty prompt's embedding rather than no text.
         name, attention, compiled: "torch" or "onnxruntime"; the fused attention kernel tried first
             (:data:`ATTENTION_KERNELS`, None outside torch); whether the blocks are ``torch.compile``-d (meta.json).
@@ -44,6 +44,7 @@ class NetworkRuntime(Protocol):
     latent: LatentFormat
     has_deformation: bool
     has_motion: bool
+    has_motion_generator: bool
     encodes_empty_prompt: bool
     name: str
     input_dtype: torch.dtype
@@ -73,6 +74,10 @@ class NetworkRuntime(Protocol):
         """Context: the LDRM's motion network (:class:`models.motion.MotionNetwork`) on the runtime's device and in its
         dtype for the block, for :func:`diff4splat.assembly.frame_motion.frame_motion`; ValueError where
         ``has_motion`` is False."""
+
+    def motion_generator(self) -> AbstractContextManager[nn.Module]:
+        """Context: the motion generator (:class:`models.motion_generator.MotionGenerator`) on the runtime's device
+        for the block; ValueError where ``has_motion_generator`` is False."""
 
     def decode_latents(self, latents: Tensor) -> Tensor:
         """(1, c, n, h, w) DiT-scaled latents → (1, 3, 1 + t·(n − 1), h·s, w·s) pixels in about [−1, 1]."""
@@ -175,6 +180,7 @@ class TorchRuntime:
                 net.to("cpu" if self.text_visits and name == "text_encoder" else self.device)
         ldrm = self.networks.get("ldrm")
         self.has_motion = getattr(ldrm, "motion", None) is not None
+        self.has_motion_generator = "motion_generator" in self.networks
         self.compiled = bool(compile)
         if self.compiled:
             self.backbone.compile_blocks()
@@ -254,6 +260,14 @@ class TorchRuntime:
             raise ValueError("this model's LDRM has no motion network (has_motion is False)")
         with self._use("ldrm") as ldrm:
             yield ldrm.motion
+
+    @contextmanager
+    def motion_generator(self) -> Iterator[nn.Module]:
+        """:meth:`NetworkRuntime.motion_generator`, moved to the device for the block if offloaded."""
+        if not self.has_motion_generator:
+            raise ValueError("this model has no motion generator (has_motion_generator is False)")
+        with self._use("motion_generator") as net:
+            yield net
 
     def reconstruct(self, latents: Tensor, plucker: Tensor, times: Tensor | None, image: Tensor) -> LDRMOutput:
         """:class:`models.ldrm.LDRM` on latents (B, c, n, h, w), plucker (B, 6·t·s², n, h, w), times (K,) in [0, 1]

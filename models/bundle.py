@@ -1,6 +1,7 @@
-"""The whole Diff4Splat model: video VAE, text encoder, video DiT and LDRM under one config. A checkpoint folder
-holds ``config.json`` (:class:`Diff4SplatConfig`) and one sub-folder per network, each written by its
-``save_pretrained``; ``configs/models/<name>.yaml`` files override the dataclass defaults."""
+"""The whole Diff4Splat model: video VAE, text encoder, video DiT and LDRM (and, where its config names one, the
+motion generator) under one config. A checkpoint folder holds ``config.json`` (:class:`Diff4SplatConfig`) and one
+sub-folder per network, each written by its ``save_pretrained``; ``configs/models/<name>.yaml`` files override the
+dataclass defaults."""
 from __future__ import annotations
 
 import dataclasses
@@ -19,12 +20,14 @@ from .backbones.ours import OursBackbone
 from .dit import VideoDiT, VideoDiTConfig
 from .flow_matching import FlowMatchingConfig
 from .ldrm import LDRM, LDRMConfig
+from .motion_generator import MotionGenerator, MotionGeneratorConfig
 from .pretrained import CONFIG_NAME, check_model_size, config_from_dict, count_parameters, save_model_folder, skip_init
 from .text_encoder import TextEncoder, TextEncoderConfig
 from .vae import VideoVAE, VideoVAEConfig
 
 __all__ = ["Diff4SplatConfig", "Diff4SplatModel", "load_config", "config_path", "config_names", "CONFIG_DIR",
-           "WEIGHTS_DIR", "DEFAULT_CONFIG", "NETWORKS", "GENERATED_COLORS", "GENERATED_FOOTPRINTS", "check_generated",
+           "WEIGHTS_DIR", "DEFAULT_CONFIG", "NETWORKS", "OPTIONAL_NETWORKS", "GENERATED_COLORS", "GENERATED_FOOTPRINTS",
+           "check_generated",
            "largest_network_bytes", "random_init_device"]
 
 CONFIG_DIR = MODEL_CONFIGS
@@ -36,14 +39,17 @@ DEFAULT_CONFIG = "base"
 :func:`diff4splat.pipeline.load_model`, training, benchmarks); its shipped weights (``WEIGHTS_DIR / DEFAULT_CONFIG``,
 model card ``models/weights/base/MODEL_CARD.md``) are what a plain ``generate`` runs."""
 
-_MODULES = {"vae": VideoVAE, "text_encoder": TextEncoder, "dit": VideoDiT, "ldrm": LDRM}
+_MODULES = {"vae": VideoVAE, "text_encoder": TextEncoder, "dit": VideoDiT, "ldrm": LDRM,
+            "motion_generator": MotionGenerator}
 NETWORKS = tuple(_MODULES)
-"""The four networks' attribute names on :class:`Diff4SplatModel`, in data-flow order."""
+"""The networks' attribute names on :class:`Diff4SplatModel`, in data-flow order."""
+OPTIONAL_NETWORKS = ("motion_generator",)
+"""Networks a config may leave out (its field None): the model's attribute is then None and its folder absent."""
 
 
 @dataclass
 class Diff4SplatConfig:
-    """Top-level configuration: model resolution, default camera and sampling, and the four networks.
+    """Top-level configuration: model resolution, default camera and sampling, and the networks.
 
     Attributes:
         name: model name; names ``models/weights/<name>``.
@@ -60,6 +66,7 @@ class Diff4SplatConfig:
             maps, ``"pixel"`` opaque disks tiling the source frame
             (:func:`diff4splat.assembly.assemble.pixel_footprint`).
         vae, text_encoder, dit, ldrm, sampling: the networks' and the sampler's configs.
+        motion_generator: the motion generator's config (:mod:`models.motion_generator`), or None (no such network).
 
     Raises:
         ValueError: from :meth:`validate`.
@@ -80,8 +87,12 @@ class Diff4SplatConfig:
     dit: VideoDiTConfig = field(default_factory=lambda: VideoDiTConfig(latent_channels=4, text_dim=64))
     ldrm: LDRMConfig = field(default_factory=LDRMConfig)
     sampling: FlowMatchingConfig = field(default_factory=FlowMatchingConfig)
+    motion_generator: MotionGeneratorConfig | None = None
 
     def __post_init__(self) -> None:
+        if isinstance(self.motion_generator, dict):
+            self.motion_generator = config_from_dict(MotionGeneratorConfig, self.motion_generator,
+                                                     "motion_generator")
         self.validate()
 
     def validate(self) -> None:
@@ -190,14 +201,18 @@ def load_config(name_or_path: str | os.PathLike) -> Diff4SplatConfig:
 
 
 class Diff4SplatModel(nn.Module):
-    """The four networks of Diff4Splat (Pan et al. 2025, Fig. 2) under one config."""
+    """The networks of Diff4Splat (Pan et al. 2025, Fig. 2; the motion generator where the config names one) under one
+    config."""
 
     def __init__(self, config: Diff4SplatConfig, *, place: str | torch.device | None = None):
-        """Build the four networks in :data:`NETWORKS` order (one random stream); ``place``: move each there once
-        built."""
+        """Build the networks in :data:`NETWORKS` order (one random stream; an optional network whose config is None
+        is None); ``place``: move each there once built."""
         super().__init__()
         self.config = config
         for name, module_cls in _MODULES.items():
+            if getattr(config, name) is None:
+                setattr(self, name, None)
+                continue
             network = module_cls(getattr(config, name))
             setattr(self, name, network if place is None else network.to(place))
 
@@ -209,12 +224,12 @@ class Diff4SplatModel(nn.Module):
         return OursBackbone(self.vae, self.text_encoder, self.dit, s.shift, (s.logit_normal_mean, s.logit_normal_std))
 
     def networks(self) -> dict[str, nn.Module]:
-        """The four networks by name (:data:`NETWORKS`)."""
-        return {name: getattr(self, name) for name in _MODULES}
+        """The networks by name (:data:`NETWORKS`), those the config leaves out omitted."""
+        return {name: getattr(self, name) for name in _MODULES if getattr(self, name) is not None}
 
     def parameter_counts(self) -> dict[str, int]:
         """Parameters per network and in total (works on the meta device)."""
-        counts = {name: count_parameters(getattr(self, name)) for name in _MODULES}
+        counts = {name: count_parameters(net) for name, net in self.networks().items()}
         counts["total"] = sum(counts.values())
         return counts
 
@@ -223,8 +238,8 @@ class Diff4SplatModel(nn.Module):
         atomic, its replacement rules and errors). Returns the directory."""
         def write(folder: Path) -> None:
             (folder / CONFIG_NAME).write_text(json.dumps(self.config.to_dict(), indent=2))
-            for name in _MODULES:
-                getattr(self, name).write_pretrained(folder / name)
+            for name, net in self.networks().items():
+                net.write_pretrained(folder / name)
 
         return save_model_folder(directory, write, overwrite)
 
@@ -253,6 +268,9 @@ class Diff4SplatModel(nn.Module):
         nn.Module.__init__(model)
         model.config = config
         for name, module_cls in _MODULES.items():
+            if getattr(config, name) is None:
+                setattr(model, name, None)
+                continue
             sub = module_cls.from_pretrained(directory / name, map_location=map_location, dtype=dtype)
             if sub.config != getattr(config, name):
                 raise ValueError(f"checkpoint: {directory / name} config differs from {directory / CONFIG_NAME}")

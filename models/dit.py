@@ -98,14 +98,17 @@ class VideoDiTConfig:
 
 class VideoDiTBlock(nn.Module):
     """Transformer block: x += g₁·SelfAttn(modulate(LN(x), β₁, γ₁)) (3D RoPE); x += CrossAttn(LN'(x), text)
-    (skipped without text); x += g₂·MLP(modulate(LN(x), β₂, γ₂)); (β, γ, g) = Linear(SiLU(c)) of the σ embedding."""
+    (skipped without text); x += g₂·MLP(modulate(LN(x), β₂, γ₂)); (β, γ, g) = Linear(SiLU(c)) of the σ embedding.
+    ``cross_attention`` False builds no text branch (a block conditioned through ``c`` alone, DiT's adaLN-Zero)."""
 
-    def __init__(self, hidden_size: int, num_heads: int, mlp_ratio: float, qk_norm: bool, eps: float):
+    def __init__(self, hidden_size: int, num_heads: int, mlp_ratio: float, qk_norm: bool, eps: float,
+                 cross_attention: bool = True):
         super().__init__()
         self.norm1 = nn.LayerNorm(hidden_size, elementwise_affine=False, eps=eps)
         self.attn = SelfAttention(hidden_size, num_heads, qk_norm=qk_norm, eps=eps)
-        self.norm2 = nn.LayerNorm(hidden_size, elementwise_affine=True, eps=eps)
-        self.cross_attn = CrossAttention(hidden_size, hidden_size, num_heads, qk_norm=qk_norm, eps=eps)
+        self.norm2 = nn.LayerNorm(hidden_size, elementwise_affine=True, eps=eps) if cross_attention else None
+        self.cross_attn = (CrossAttention(hidden_size, hidden_size, num_heads, qk_norm=qk_norm, eps=eps)
+                           if cross_attention else None)
         self.norm3 = nn.LayerNorm(hidden_size, elementwise_affine=False, eps=eps)
         self.mlp = Mlp(hidden_size, int(hidden_size * mlp_ratio))
         self.adaLN_modulation = nn.Sequential(nn.SiLU(), nn.Linear(hidden_size, 6 * hidden_size))
@@ -125,7 +128,7 @@ class VideoDiTBlock(nn.Module):
             x: (B, N, D) video tokens, frame-major.
             c: (B, D) σ embedding.
             rope: (cos, sin), each (N, head_dim/2), from :func:`models.rope.rope_3d`.
-            context: (B, L, D) projected text tokens, or None.
+            context: (B, L, D) projected text tokens, or None (required None without a text branch).
             context_mask: (B, L) bool, True = real token, or None.
             ff_chunk_tokens: the MLP over at most this many tokens at a time; None: all at once.
 

@@ -38,7 +38,7 @@ class LossWeights:
     ``scene_flow`` the dense one over every pixel of frame 0 (:func:`scene_flow_loss`; 0: off); ``mover`` adds the
     ``diffusion`` objective's mean flow-matching error over the latent cells a moving object covers
     (:func:`moving_cells`; 0: off), so that the few cells where the objects' motion is seen are not drowned by the
-    rest of the frame.
+    rest of the frame; ``motion_flow`` weighs the ``motion_generation`` objective's flow-matching loss.
     Raises ValueError for a negative or non-finite weight, or ``ssim`` above 1.
     """
 
@@ -52,6 +52,7 @@ class LossWeights:
     scene_flow: float = _weight(0.0)
     warp: float = _weight(1.0)
     mover: float = _weight(0.0)
+    motion_flow: float = _weight(1.0)
 
     def __post_init__(self) -> None:
         check_ranges("stage.weights", self)

@@ -29,6 +29,7 @@ from models.backbone_model import BackboneModel
 from models.backbones.ours import OursBackbone
 from models.bundle import Diff4SplatModel
 from models.ldrm import LDRM, LDRMOutput, distance_activation, source_frame_indices
+from models.motion_generator import motion_targets
 from models.vae import kl_divergence
 
 from .losses import (
@@ -45,6 +46,7 @@ from .losses import (
     scene_flow_loss,
     warp_loss,
 )
+from .motion_generation import mirror, motion_generation_loss
 from .stage_config import StageConfig
 
 __all__ = ["TrainingModule", "render_frames", "track_query_index", "FLOW_LOSS_FROM_FRAME"]
@@ -93,8 +95,8 @@ class TrainingModule(nn.Module):
 
     Loss components: ``vae_l1``, ``vae_kl`` (vae), ``flow`` (diffusion), ``photo``, ``depth``, ``smooth``, ``motion``,
     ``displacement``, ``metric_depth`` (reconstruction; the last with a weight > 0), ``displacement`` and ``warp``
-    (tracking), ``distill``, ``mono_depth`` (depth). ``teacher``: the frozen LDRM that ``distill`` follows, required
-    by it alone (ValueError otherwise).
+    (tracking), ``distill``, ``mono_depth`` (depth), ``motion_flow`` (motion_generation). ``teacher``: the frozen
+    LDRM that ``distill`` follows, required by it alone (ValueError otherwise).
     """
 
     def __init__(self, model: Diff4SplatModel | BackboneModel, stage: StageConfig, teacher: LDRM | None = None):
@@ -198,8 +200,31 @@ class TrainingModule(nn.Module):
         if "depth" in st.objectives:
             losses["mono_depth"] = self._mono_depth(batch)
             total = total + losses["mono_depth"]
+        if "motion_generation" in st.objectives:
+            losses["motion_flow"] = self._motion_generation(batch, generator)
+            total = total + st.weights.motion_flow * losses["motion_flow"]
         losses["loss"] = total
         return losses
+
+    def _motion_generation(self, batch: dict, generator: torch.Generator) -> Tensor:
+        """:func:`training.motion_generation.motion_generation_loss` of the motion generator on frame 0 of each clip
+        and its dense true tracks, half of them mirrored (:func:`training.motion_generation.mirror`), the caption
+        dropped at ``caption_dropout``. ValueError: the model has no motion generator, or the clips are not its
+        ``image_size``."""
+        mg = self.model.motion_generator
+        if mg is None:
+            raise ValueError("the motion_generation objective trains motion_generator; this model has none")
+        cfg, (H, W) = mg.config, batch["video"].shape[-2:]
+        if H != cfg.image_size or W != cfg.image_size:
+            raise ValueError(f"motion_generation: clips of {H}×{W} pixels, the motion generator reads "
+                             f"{cfg.image_size}×{cfg.image_size} (set stage.height and width)")
+        with autocast_off():
+            motion, weight = motion_targets(batch["pixel_tracks"].float(), batch["pixel_track_valid"],
+                                            cfg.key_frames, cfg.grid, cfg.motion_scale)
+        flip = torch.rand(len(motion), generator=generator, device="cpu") < 0.5
+        return motion_generation_loss(mg, *mirror(flip, batch["video"][:, :, 0] * 2 - 1, batch["depth"][:, 0], motion,
+                                                  weight, list(batch["caption"])),
+                                      generator, p_uncond=self.stage.caption_dropout)
 
     def _mono_depth(self, batch: dict) -> Tensor:
         """Scale-invariant log loss (λ 0.5) of ``ldrm.image_depth``'s z-depth on every frame against the valid metric

@@ -29,12 +29,12 @@ STAGE_CONFIG_DIR = STAGE_CONFIGS
 """The shipped stage configs, ``configs/training/`` (:mod:`diff4splat.utils.config_files`)."""
 
 MODULES = ("vae", "vae.decoder", "text_encoder", "dit", "ldrm", "ldrm.deformation", "ldrm.motion", "ldrm.head",
-           "ldrm.image_branch", "ldrm.image_depth")
+           "ldrm.image_branch", "ldrm.image_depth", "motion_generator")
 """Module names a stage can train: ``vae.decoder`` alone keeps the encoder and latent scaling; ``ldrm.motion`` is
 :mod:`models.motion`, ``ldrm.image_depth`` :class:`models.mono_depth.MonoDepth`; a diffusers backbone's ``dit`` is
-its LoRA adapters and camera weights."""
+its LoRA adapters and camera weights; ``motion_generator`` :mod:`models.motion_generator`."""
 
-OBJECTIVES = ("vae", "diffusion", "reconstruction", "distill", "depth", "tracking")
+OBJECTIVES = ("vae", "diffusion", "reconstruction", "distill", "depth", "tracking", "motion_generation")
 
 RENDERED_SCENES = ("decoded", "assembled")
 """What the reconstruction objective renders (:attr:`StageConfig.scene`)."""
@@ -76,7 +76,8 @@ class StageConfig:
     ``init_from``: a model folder (usually the previous stage's ``<run_dir>/model``; None: a seeded random
     ``model_config``); ``train``: modules optimised (:data:`MODULES`, :func:`apply_freezing`); ``objectives``: of
     ``vae``, ``diffusion``, ``reconstruction``, ``distill`` (needs ``teacher``, blur ``distill_sigma`` pixels),
-    ``depth`` (``ldrm.image_depth``), ``tracking``; ``scenes``: ClipDataset filter; clip size ``height``×``width``,
+    ``depth`` (``ldrm.image_depth``), ``tracking``, ``motion_generation`` (``motion_generator``; the clip's height and
+    width its ``image_size``); ``scenes``: ClipDataset filter; clip size ``height``×``width``,
     ``num_frames`` = 1 + 4k; ``render_frames`` per clip (frame 0 included); ``scene``: :data:`RENDERED_SCENES`
     (``decoded``: every source frame's Gaussians over black, the paper's §3.3; ``assembled``: the scene ``generate``
     builds); ``deformation``: predict deformation, ``motion``: track loss on (needs ``deformation``); ``kl_weight``:
@@ -205,7 +206,7 @@ def apply_freezing(model: nn.Module, train: tuple[str, ...]) -> dict[str, int]:
             params = [p for n, p in model.ldrm.named_parameters() if not n.startswith(skip)]
         else:  # an optional part the model does not have (an LDRM without image branch) trains nothing
             parent, _, leaf = name.rpartition(".")
-            module = getattr(model.get_submodule(parent), leaf, None) if parent else model.get_submodule(name)
+            module = getattr(model.get_submodule(parent) if parent else model, leaf, None)
             params = [] if module is None else list(module.parameters())
         for p in params:
             p.requires_grad_(True)

@@ -1,0 +1,211 @@
+"""Training and measuring the motion generator (:mod:`models.motion_generator`; docs/DESIGN.md, "The motion
+generator"). Examples are frame 0 of :class:`data_prep.clips.ClipDataset` clips with their dense true tracks; the
+loss is flow matching on the motion tensor, each cell weighted by its valid pixels, with the caption dropped (the
+null embedding) at ``p_uncond``. A left-right mirror of the photograph (p = 0.5) negates x, mirrors the cells and
+swaps "to the left" and "to the right" in the caption: every example also teaches the opposite word.
+
+The motion stage's direction test (issue 78's ``motion_dir_stage``): for each clip whose caption names one direction
+(:func:`training.direction_test.direction_query`), the motion sampled with the caption and with its direction
+flipped moves the captioned object's frame-0 pixels (true depth) the named way; the magnitude ratio is the generated
+mean displacement along the named way over the true one.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+from tqdm import tqdm
+
+from data_prep.clips import ClipDataset
+from data_prep.synth_world import DIRECTION_PHRASES
+from models.flow_matching import add_noise, sample_logit_normal, velocity_target
+from models.motion_generator import MotionGenerator, depth_features, motion_displacements, motion_targets, sample_motion
+
+from .direction_test import direction_query, flip_direction, named_way_score
+
+__all__ = ["MotionExamples", "motion_examples", "mirror", "motion_generation_loss", "train_motion_generator",
+           "MotionStageScores", "motion_stage_scores", "static_motion_mm"]
+
+
+@dataclass
+class MotionExamples:
+    """Frame 0 of N clips: ``image`` (N, 3, S, S) in [−1, 1], ``depth`` (N, S, S) metres (+inf: none), ``motion``
+    (N, 3K, g, g) and ``weight`` (N, 1, g, g) (:func:`models.motion_generator.motion_targets`), ``captions``, and for
+    the direction test ``pixel_tracks`` (N, 2, S, S, 3) (frame 0 and the last frame, clip-world metres),
+    ``valid`` (N, S, S) bool and ``dynamic`` (N,) bool."""
+
+    image: Tensor
+    depth: Tensor
+    motion: Tensor
+    weight: Tensor
+    captions: list[str]
+    pixel_tracks: Tensor
+    valid: Tensor
+    dynamic: Tensor
+
+    def __len__(self) -> int:
+        return len(self.captions)
+
+
+def motion_examples(roots: Iterable[str], model: MotionGenerator, *, epochs: int = 1, progress: bool = False
+                    ) -> MotionExamples:
+    """Every clip of the dataset ``roots`` at the model's image size, ``epochs`` times (each epoch draws its own
+    reference camera); raises as :class:`data_prep.clips.ClipDataset`."""
+    cfg = model.config
+    parts: dict[str, list] = {k: [] for k in ("image", "depth", "motion", "weight", "captions", "pixel_tracks",
+                                              "valid", "dynamic")}
+    for root in roots:
+        data = ClipDataset(root, height=cfg.image_size, width=cfg.image_size, num_tracks=1, reference_camera="first")
+        for epoch in range(epochs):
+            data.set_epoch(epoch)
+            for i in tqdm(range(len(data)), disable=not progress, desc=f"{root} epoch {epoch}"):
+                clip = data[i]
+                tracks = clip["pixel_tracks"][None]
+                motion, weight = motion_targets(tracks, clip["pixel_track_valid"][None], cfg.key_frames, cfg.grid,
+                                                cfg.motion_scale)
+                parts["image"].append(clip["video"][:, 0] * 2 - 1)
+                parts["depth"].append(clip["depth"][0])
+                parts["motion"].append(motion[0])
+                parts["weight"].append(weight[0])
+                parts["captions"].append(clip["caption"])
+                parts["pixel_tracks"].append(clip["pixel_tracks"][[0, -1]])
+                parts["valid"].append(clip["pixel_track_valid"])
+                parts["dynamic"].append(clip["dynamic"])
+    return MotionExamples(**{k: v if k == "captions" else torch.stack(v) for k, v in parts.items()})
+
+
+def mirror(flip: Tensor, image: Tensor, depth: Tensor, motion: Tensor, weight: Tensor, captions: list[str]
+           ) -> tuple[Tensor, Tensor, Tensor, Tensor, list[str]]:
+    """The examples where ``flip`` (B,) bool mirrored left-right: ``image`` (B, 3, S, S), ``depth`` (B, S, S),
+    ``motion`` (B, 3K, g, g) with its x components negated, ``weight`` (B, 1, g, g), and the captions with "to the
+    right" and "to the left" swapped (a centred principal point is assumed, as the synthetic cameras have)."""
+    right, left = DIRECTION_PHRASES[0]
+    sign = torch.tensor([-1.0, 1.0, 1.0], dtype=motion.dtype, device=motion.device).repeat(motion.shape[1] // 3)
+    f = flip.to(image.device)
+
+    def where(x: Tensor, mirrored: Tensor) -> Tensor:
+        return torch.where(f.reshape(-1, *[1] * (x.ndim - 1)), mirrored, x)
+
+    swapped = [c.replace(right, "\0").replace(left, right).replace("\0", left) if bool(b) else c
+               for b, c in zip(flip, captions, strict=True)]
+    return (where(image, image.flip(-1)), where(depth, depth.flip(-1)),
+            where(motion, motion.flip(-1) * sign[:, None, None]), where(weight, weight.flip(-1)), swapped)
+
+
+def motion_generation_loss(model: MotionGenerator, image: Tensor, depth: Tensor, motion: Tensor, weight: Tensor,
+                           captions: list[str], generator: torch.Generator, *, p_uncond: float = 0.1) -> Tensor:
+    """The weighted flow-matching loss Σ w·|v − (ε − x0)|² / (Σ w · 3K) on a batch (shapes of
+    :class:`MotionExamples`); σ logit-normal (SD3), ε and the caption drop drawn on the CPU ``generator``."""
+    B = image.shape[0]
+    sigma = sample_logit_normal(B, generator=generator).to(image)
+    noise = torch.randn(motion.shape, generator=generator, device="cpu").to(motion)
+    drop = torch.rand(B, generator=generator, device="cpu") < p_uncond
+    prompts = ["" if bool(d) else c for d, c in zip(drop, captions, strict=True)]
+    v = model(add_noise(motion, noise, sigma), sigma, image, depth_features(depth), model.encode_prompts(prompts))
+    err = (v - velocity_target(motion, noise)).square() * weight
+    return err.sum() / (weight.sum() * motion.shape[1]).clamp_min(1e-12)
+
+
+def train_motion_generator(model: MotionGenerator, examples: MotionExamples, *, steps: int, batch_size: int = 32,
+                           lr: float = 3e-4, p_uncond: float = 0.1, seed: int = 0, progress: bool = False
+                           ) -> list[float]:
+    """AdamW (cosine decay after 5 % warm-up) on random batches of ``examples``, each mirrored with p = 0.5; returns
+    the loss of each step."""
+    generator = torch.Generator(device="cpu").manual_seed(seed)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=0.0)
+    warm = max(1, steps // 20)
+    schedule = torch.optim.lr_scheduler.LambdaLR(
+        optimizer, lambda k: min(1.0, (k + 1) / warm) * 0.5 * (1 + math.cos(math.pi * min(k, steps) / steps)))
+    model.train()
+    losses = []
+    for _ in tqdm(range(steps), disable=not progress, desc="motion generator"):
+        idx = torch.randint(len(examples), (batch_size,), generator=generator, device="cpu")
+        flip = torch.rand(batch_size, generator=generator, device="cpu") < 0.5
+        batch = mirror(flip, examples.image[idx], examples.depth[idx], examples.motion[idx], examples.weight[idx],
+                       [examples.captions[i] for i in idx.tolist()])
+        loss = motion_generation_loss(model, *batch, generator, p_uncond=p_uncond)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        optimizer.step()
+        schedule.step()
+        losses.append(float(loss.detach()))
+    model.eval()
+    return losses
+
+
+@dataclass
+class MotionStageScores:
+    """The direction test of the motion stage: clips taking part, fractions moved the named way with the caption and
+    with the flipped caption, the median ratio of the generated to the true displacement along the named way (with
+    the caption), and the per-clip ratios."""
+
+    clips: int
+    caption: float
+    flipped: float
+    magnitude_ratio: float
+    ratios: list[float]
+
+
+def motion_stage_scores(model: MotionGenerator, examples: MotionExamples, *, steps: int = 16, guidance: float = 3.0,
+                        seed: int = 0, batch_size: int = 32,
+                        sampler: Callable[[list[int], list[str]], Tensor] | None = None) -> MotionStageScores:
+    """:class:`MotionStageScores` of ``model`` on ``examples`` (module docstring); noise seeded by ``seed``.
+    ``sampler(indices, prompts)`` → (b, 3K, g, g) replaces :func:`~models.motion_generator.sample_motion` (a
+    baseline or the true motion)."""
+    generator = torch.Generator(device="cpu").manual_seed(seed)
+    if sampler is None:
+        def sampler(idx: list[int], prompts: list[str]) -> Tensor:
+            return sample_motion(model, examples.image[idx], examples.depth[idx], prompts, steps=steps,
+                                 guidance=guidance, generator=generator)
+    queries = []
+    for i in range(len(examples)):
+        q = direction_query({"dynamic": examples.dynamic[i], "caption": examples.captions[i],
+                             "pixel_tracks": examples.pixel_tracks[i], "pixel_track_valid": examples.valid[i]})
+        if q is not None:
+            queries.append((i, *q))
+    hits = {"caption": [], "flipped": []}
+    ratios = []
+    for start in range(0, len(queries), batch_size):
+        chunk = queries[start:start + batch_size]
+        idx = [q[0] for q in chunk]
+        depth = examples.depth[idx]
+        for which in hits:
+            prompts = [examples.captions[i] if which == "caption" else flip_direction(examples.captions[i])
+                       for i in idx]
+            last = motion_displacements(sampler(idx, prompts), depth, model.config.motion_scale)[:, -1]  # metres
+            for j, (i, axis, sign, moving) in enumerate(chunk):
+                x0 = examples.pixel_tracks[i, 0].reshape(-1, 3)
+                positions = torch.stack([x0, x0 + last[j].reshape(-1, 3)], dim=1)
+                kept = torch.isfinite(depth[j]).reshape(-1)
+                ok, along = named_way_score(positions, kept, moving, axis, sign if which == "caption" else -sign)
+                hits[which].append(ok)
+                if which == "caption":
+                    truth = examples.pixel_tracks[i].permute(1, 2, 0, 3).reshape(-1, 2, 3)
+                    _, true_along = named_way_score(truth, kept, moving, axis, sign)
+                    ratios.append(along / true_along if true_along > 0 else float("nan"))
+    n = len(queries)
+    return MotionStageScores(n, float(np.mean(hits["caption"])) if n else float("nan"),
+                             float(np.mean(hits["flipped"])) if n else float("nan"),
+                             float(np.nanmedian(ratios)) if n else float("nan"), ratios)
+
+
+def static_motion_mm(model: MotionGenerator, examples: MotionExamples, *, steps: int = 16, guidance: float = 3.0,
+                     seed: int = 0, batch_size: int = 32) -> float:
+    """The mean length (mm) of the displacement by the clip's end that ``model`` gives the valid pixels of the
+    static clips of ``examples`` with their captions (which name no motion); NaN without a static clip."""
+    idx = [i for i in range(len(examples)) if not bool(examples.dynamic[i])]
+    generator = torch.Generator(device="cpu").manual_seed(seed)
+    lengths = []
+    for start in range(0, len(idx), batch_size):
+        chunk = idx[start:start + batch_size]
+        depth = examples.depth[chunk]
+        motion = sample_motion(model, examples.image[chunk], depth, [examples.captions[i] for i in chunk],
+                               steps=steps, guidance=guidance, generator=generator)
+        last = motion_displacements(motion, depth, model.config.motion_scale)[:, -1].norm(dim=-1)  # (b, S, S)
+        lengths += [float(d[v].mean()) for d, v in zip(last, examples.valid[chunk], strict=True) if bool(v.any())]
+    return 1000 * float(np.mean(lengths)) if lengths else float("nan")
