@@ -15,7 +15,7 @@ from data_prep.clips import ClipConfig, ClipDataset
 from data_prep.synth import generate_scene
 from diff4splat.export import checkpoint_sha256
 from models.bundle import Diff4SplatConfig, Diff4SplatModel
-from models.flow_matching import sigma_schedule
+from models.flow_matching import sample_logit_normal, sigma_schedule
 from models.motion_generator import (
     MotionGenerator,
     MotionGeneratorConfig,
@@ -28,10 +28,12 @@ from models.motion_generator import (
 from models.text_encoder import TextEncoderConfig
 from training.losses import LossWeights
 from training.motion_generation import (
+    MOVING_CELL,
     MotionExamples,
     mirror,
     motion_generation_loss,
     motion_stage_scores,
+    moving_cells,
     train_motion_generator,
 )
 from training.objectives import TrainingModule
@@ -271,3 +273,26 @@ def test_the_motion_generation_objective_is_the_mirrored_flow_loss_and_trains_on
     with pytest.raises(ValueError, match="reads 32×32"):
         TrainingModule(model, small)(default_collate([ClipDataset(root, num_frames=9, height=16, width=16,
                                                                   plucker="packed")[0]]), torch.Generator())
+
+
+def test_the_loss_weighs_moving_cells_by_one_plus_mover():
+    """An untrained generator predicts v = 0, so the loss is the weighted mean of (ε − x0)² by hand, moving cells
+    (above MOVING_CELL at some key time) weighing 1 + mover times their valid fraction."""
+    torch.manual_seed(0)
+    model = MotionGenerator(tiny_config())
+    B = 3
+    image, depth = torch.rand(B, 3, 16, 16) * 2 - 1, torch.rand(B, 16, 16) + 1
+    motion = torch.zeros(B, 6, 4, 4)
+    motion[0, 3:, 1, 2] = torch.tensor([0.5, 0.0, 0.0])  # moves at the second key time only
+    motion[1, 0, 0, 0] = MOVING_CELL / 2  # below the threshold: still
+    weight = torch.rand(B, 1, 4, 4)
+    assert moving_cells(motion).sum() == 1 and bool(moving_cells(motion)[0, 0, 1, 2])
+    loss = motion_generation_loss(model, image, depth, motion, weight, ["a", "b", "c"],
+                                  torch.Generator().manual_seed(4), mover=7.0)
+    g = torch.Generator().manual_seed(4)
+    sample_logit_normal(B, generator=g)
+    noise = torch.randn(motion.shape, generator=g)
+    w = weight.clone()
+    w[0, 0, 1, 2] *= 8.0
+    want = ((noise - motion).square() * w).sum() / (w.sum() * 6)
+    torch.testing.assert_close(loss, want)
