@@ -14,6 +14,7 @@ A learned null embedding stands for the dropped caption (classifier-free guidanc
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -28,8 +29,8 @@ from .pretrained import PretrainedMixin
 from .rope import rope_3d
 from .text_encoder import TextEncoder, TextEncoderConfig
 
-__all__ = ["MotionGeneratorConfig", "MotionGenerator", "key_frame_indices", "depth_features", "motion_targets",
-           "motion_displacements", "sample_motion"]
+__all__ = ["MotionGeneratorConfig", "MotionGenerator", "PromptEmbedding", "key_frame_indices", "depth_features",
+           "motion_targets", "motion_displacements", "sample_motion"]
 
 
 @dataclass
@@ -44,6 +45,8 @@ class MotionGeneratorConfig:
         motion_scale: the unit of the motion tensor: displacement over z-depth (dimensionless).
         text: the prompt's text encoder (its tokens are mean-pooled; 320 bytes: a synthetic caption naming several
             objects and the camera runs to ~260).
+        text_attention: the cells also cross-attend to the text tokens (PixArt-α), beside the pooled embedding's
+            adaLN (the ablation of DiT's finding).
         norm_eps: LayerNorm epsilon.
 
     Raises:
@@ -60,6 +63,7 @@ class MotionGeneratorConfig:
     mlp_ratio: float = ranged(4.0, check_number, lo=0, lo_open=True)
     motion_scale: float = ranged(0.1, check_number, lo=0, lo_open=True)
     text: TextEncoderConfig = field(default_factory=lambda: TextEncoderConfig(max_length=320))
+    text_attention: bool = False
     norm_eps: float = 1e-6
 
     def __post_init__(self) -> None:
@@ -140,6 +144,24 @@ def motion_displacements(motion: Tensor, depth: Tensor, motion_scale: float) -> 
     return up * z[:, None, ..., None]
 
 
+class PromptEmbedding(NamedTuple):
+    """The prompts as the generator reads them: ``pooled`` (B, d_text); with ``text_attention``, ``tokens``
+    (B, L, d_text) and ``mask`` (B, L) bool (all False for a dropped caption: no cross-attention), else None."""
+
+    pooled: Tensor
+    tokens: Tensor | None = None
+    mask: Tensor | None = None
+
+    def cat(self, other: PromptEmbedding) -> PromptEmbedding:
+        """Both batches, this one first (token sequences padded to the longer)."""
+        if self.tokens is None:
+            return PromptEmbedding(torch.cat([self.pooled, other.pooled]))
+        L = max(self.tokens.shape[1], other.tokens.shape[1])
+        tokens = [F.pad(t, (0, 0, 0, L - t.shape[1])) for t in (self.tokens, other.tokens)]
+        masks = [F.pad(m, (0, L - m.shape[1])) for m in (self.mask, other.mask)]
+        return PromptEmbedding(torch.cat([self.pooled, other.pooled]), torch.cat(tokens), torch.cat(masks))
+
+
 class MotionGenerator(nn.Module, PretrainedMixin):
     """Flow-matching velocity of the motion tensor (module docstring); the untrained network predicts v = 0."""
 
@@ -158,16 +180,20 @@ class MotionGenerator(nn.Module, PretrainedMixin):
         self.text_embedder = Mlp(config.text.d_model, D, D)
         # the dropped caption's pooled embedding
         self.null_text = nn.Parameter(torch.zeros(config.text.d_model))  # device: built where the module is
+        self.context_embedder = nn.Linear(config.text.d_model, D) if config.text_attention else None
         self.blocks = nn.ModuleList(
-            VideoDiTBlock(D, config.num_heads, config.mlp_ratio, True, config.norm_eps, cross_attention=False)
+            VideoDiTBlock(D, config.num_heads, config.mlp_ratio, True, config.norm_eps,
+                          cross_attention=config.text_attention)
             for _ in range(config.depth))
         self.final_layer = FinalLayer(D, 1, config.channels, config.norm_eps)
         self.initialize_weights()
 
     def initialize_weights(self) -> None:
-        """DiT's initialisation: xavier linears, adaLN-Zero gates and a zero final layer (each block starts as the
-        identity and the network predicts v = 0)."""
-        for module in (self.x_embedder, self.text_embedder, *self.blocks, self.final_layer):  # not the text encoder
+        """DiT's initialisation: xavier linears, adaLN-Zero gates, zero cross-attention outputs (PixArt-α) and a zero
+        final layer (each block starts as the identity and the network predicts v = 0)."""
+        for module in (self.x_embedder, self.text_embedder, self.context_embedder, *self.blocks, self.final_layer):
+            if module is None:  # no cross-attention
+                continue
             for m in module.modules():
                 if isinstance(m, nn.Linear):
                     nn.init.xavier_uniform_(m.weight)
@@ -175,20 +201,30 @@ class MotionGenerator(nn.Module, PretrainedMixin):
         for block in self.blocks:
             nn.init.zeros_(block.adaLN_modulation[-1].weight)
             nn.init.zeros_(block.adaLN_modulation[-1].bias)
+            if block.cross_attn is not None:
+                nn.init.zeros_(block.cross_attn.proj.weight)
+                nn.init.zeros_(block.cross_attn.proj.bias)
         for p in (*self.final_layer.adaLN_modulation[-1].parameters(), *self.final_layer.linear.parameters()):
             nn.init.zeros_(p)
 
-    def encode_prompts(self, prompts: list[str]) -> Tensor:
-        """(B, d_text) pooled prompt embeddings: the text encoder's tokens averaged over each prompt's real tokens;
-        ``""`` gives the learned null embedding (the unconditional branch)."""
-        device = self.null_text.device
-        out = self.null_text.expand(len(prompts), -1).clone()
+    def encode_prompts(self, prompts: list[str]) -> PromptEmbedding:
+        """The prompts' :class:`PromptEmbedding`: the text encoder's tokens averaged over each prompt's real tokens;
+        ``""`` gives the learned null embedding and no tokens (the unconditional branch)."""
+        pooled = self.null_text.expand(len(prompts), -1).clone()
         given = [i for i, p in enumerate(prompts) if p]
-        if given:
-            tokens, mask = self.text_encoder.encode_text([prompts[i] for i in given])
-            m = mask.to(tokens.dtype)[..., None]
-            out[torch.tensor(given, device=device)] = (tokens * m).sum(1) / m.sum(1).clamp_min(1)
-        return out
+        if not given:
+            return PromptEmbedding(pooled, *((pooled[:, None], pooled.new_zeros(len(prompts), 1, dtype=torch.bool))
+                                             if self.config.text_attention else ()))
+        tokens, mask = self.text_encoder.encode_text([prompts[i] for i in given])
+        m = mask.to(tokens.dtype)[..., None]
+        rows = torch.tensor(given, device=pooled.device)
+        pooled[rows] = (tokens * m).sum(1) / m.sum(1).clamp_min(1)
+        if not self.config.text_attention:
+            return PromptEmbedding(pooled)
+        all_tokens = tokens.new_zeros(len(prompts), *tokens.shape[1:])
+        all_mask = mask.new_zeros(len(prompts), mask.shape[1])
+        all_tokens[rows], all_mask[rows] = tokens, mask
+        return PromptEmbedding(pooled, all_tokens, all_mask)
 
     def forward(
         self,
@@ -196,22 +232,23 @@ class MotionGenerator(nn.Module, PretrainedMixin):
         sigma: Tensor,  # (B,) noise level in [0, 1]
         image: Tensor,  # (B, 3, S, S) photograph in [−1, 1]
         depth: Tensor,  # (B, 2, S, S) depth_features
-        text: Tensor,  # (B, d_text) encode_prompts
+        text: PromptEmbedding,  # encode_prompts
     ) -> Tensor:
         """Velocity v = ε − x0 (B, 3K, g, g). Raises ValueError for inputs of the wrong shape (named)."""
         cfg = self.config
         B, g, S = x.shape[0], cfg.grid, cfg.image_size
         for name, t, shape in (("x", x, (B, cfg.channels, g, g)), ("image", image, (B, 3, S, S)),
-                               ("depth", depth, (B, 2, S, S)), ("text", text, (B, cfg.text.d_model)),
+                               ("depth", depth, (B, 2, S, S)), ("text.pooled", text.pooled, (B, cfg.text.d_model)),
                                ("sigma", sigma, (B,))):
             if tuple(t.shape) != shape:
                 raise ValueError(f"MotionGenerator: {name} must have shape {shape}, got {tuple(t.shape)}")
         tokens = self.x_embedder(x.flatten(2).transpose(1, 2))  # (B, g², D)
         tokens = tokens + self.image_embedder(torch.cat([image, depth], 1)).flatten(2).transpose(1, 2)
-        c = self.t_embedder(sigma) + self.text_embedder(text)  # (B, D)
+        c = self.t_embedder(sigma) + self.text_embedder(text.pooled)  # (B, D)
+        context = None if self.context_embedder is None else self.context_embedder(text.tokens)  # (B, L, D)
         rope = rope_3d(1, g, g, cfg.hidden_size // cfg.num_heads, dtype=x.dtype, device=x.device)
         for block in self.blocks:
-            tokens = block(tokens, c, rope)
+            tokens = block(tokens, c, rope, context, None if context is None else text.mask)
         return self.final_layer(tokens, c).transpose(1, 2).reshape(B, cfg.channels, g, g)
 
 
@@ -229,10 +266,10 @@ def sample_motion(model: MotionGenerator, image: Tensor, depth: Tensor, prompts:
     noise = torch.randn(B, cfg.channels, cfg.grid, cfg.grid, generator=generator, device="cpu").to(image)
     with torch.no_grad():
         cond = model.encode_prompts(prompts)
-        both = torch.cat([cond, model.encode_prompts([""] * B)]) if guidance != 1 else cond
+        both = cond.cat(model.encode_prompts([""] * B)) if guidance != 1 else cond
 
         def velocity(x: Tensor, sigma: Tensor) -> Tensor:
-            n = len(both) // B
+            n = len(both.pooled) // B
             s = sigma.to(x).expand(B * n)
             v = model(x.repeat(n, 1, 1, 1), s, image.repeat(n, 1, 1, 1), feats.repeat(n, 1, 1, 1), both)
             if n == 1:

@@ -124,9 +124,10 @@ def test_untrained_generator_predicts_zero_and_learns_from_the_first_step():
         model(x, torch.rand(B), image[..., :8], depth_features(depth), model.encode_prompts(["", ""]))
 
 
-def test_guidance_matches_a_hand_written_euler_loop_and_weights_round_trip(tmp_path):
+@pytest.mark.parametrize("text_attention", [False, True])
+def test_guidance_matches_a_hand_written_euler_loop_and_weights_round_trip(tmp_path, text_attention):
     torch.manual_seed(1)
-    model = MotionGenerator(tiny_config()).eval()
+    model = MotionGenerator(tiny_config(text_attention=text_attention)).eval()
     for p in model.parameters():  # every branch live
         p.data.add_(torch.randn_like(p) * 0.05)
     image, depth = torch.rand(2, 3, 16, 16) * 2 - 1, torch.rand(2, 16, 16) + 1
