@@ -36,6 +36,7 @@ from training.motion_generation import (
     moving_cells,
     train_motion_generator,
 )
+from training.motion_generation import main as motion_generation_main
 from training.objectives import TrainingModule
 from training.stage_config import StageConfig, apply_freezing
 
@@ -297,3 +298,28 @@ def test_the_loss_weighs_moving_cells_by_one_plus_mover():
     w[0, 0, 1, 2] *= 8.0
     want = ((noise - motion).square() * w).sum() / (w.sum() * 6)
     torch.testing.assert_close(loss, want)
+
+
+@pytest.mark.slow
+def test_the_command_trains_a_generator_into_a_model_folder_and_refuses_bad_input_first(tmp_path, capsys):
+    root = tmp_path / "data"
+    generate_scene(root, 0, seed=13, size=64, frames=9, cameras=1, static_ratio=0.0)
+    base = Diff4SplatModel.random(Diff4SplatConfig(num_frames=9), seed=0)
+    base.save_pretrained(tmp_path / "base")
+    out = tmp_path / "with_generator"
+    args = ["--data", str(root), "--into", str(tmp_path / "base"), "--steps", "2", "--batch-size", "2", "--quiet",
+            "--device", "cpu"]
+    assert motion_generation_main([*args, "--out", str(out)]) == 0, capsys.readouterr().err
+    model = Diff4SplatModel.from_pretrained(out)
+    assert model.motion_generator is not None and model.config.motion_generator.image_size == 64
+    for name in ("vae", "dit", "ldrm"):  # the other networks are the folder's
+        for a, b in zip(getattr(model, name).state_dict().values(), getattr(base, name).state_dict().values(),
+                        strict=True):
+            torch.testing.assert_close(a, b)
+    capsys.readouterr()
+    for bad in ([*args[:2], "--into", str(tmp_path / "none"), *args[4:], "--out", str(tmp_path / "o2")],
+                [*args, "--out", str(root)]):  # no model folder; the output is the data
+        assert motion_generation_main(bad) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("motion_generation: error:"), err
+    assert not (tmp_path / "o2").exists()

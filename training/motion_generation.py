@@ -8,12 +8,20 @@ The motion stage's direction test (issue 78's ``motion_dir_stage``): for each cl
 (:func:`training.direction_test.direction_query`), the motion sampled with the caption and with its direction
 flipped moves the captioned object's frame-0 pixels (true depth) the named way; the magnitude ratio is the generated
 mean displacement along the named way over the true one.
+
+``python -m training.motion_generation --data ROOT [ROOT …] --steps N --into MODEL_DIR --out DIR`` trains one on the
+CPU-friendly route (the examples held in memory: frame 0 and its tracks, not the clip) and writes ``MODEL_DIR``'s
+model with it as ``DIR`` (``generate --checkpoint DIR``); ``python -m training.train --config
+train_base_motion_generator`` trains it through the trainer (torchrun, bf16, checkpoints) with the same loss.
 """
 from __future__ import annotations
 
+import argparse
+import dataclasses
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -22,14 +30,26 @@ from tqdm import tqdm
 
 from data_prep.clips import ClipDataset
 from data_prep.synth_world import DIRECTION_PHRASES
+from diff4splat.io.output_folders import check_output_dir
+from diff4splat.utils.devices import AUTO, DEVICE_HELP, resolve_device
+from diff4splat.utils.errors import run_cli
+from models.bundle import Diff4SplatModel
 from models.flow_matching import add_noise, sample_logit_normal, velocity_target
-from models.motion_generator import MotionGenerator, depth_features, motion_displacements, motion_targets, sample_motion
+from models.motion_generator import (
+    MotionGenerator,
+    MotionGeneratorConfig,
+    depth_features,
+    motion_displacements,
+    motion_targets,
+    sample_motion,
+)
+from models.pretrained import MODEL_KIND
 
 from .direction_test import direction_query, flip_direction, named_way_score
 
 __all__ = ["MOVING_CELL", "MOVER_WEIGHT", "moving_cells", "MotionExamples", "motion_examples", "mirror",
            "motion_generation_loss", "train_motion_generator", "MotionStageScores", "motion_stage_scores",
-           "static_motion_mm"]
+           "static_motion_mm", "main"]
 
 MOVING_CELL = 0.1
 """A cell moves when its motion exceeds this at some key time (units of ``motion_scale``; at the default 0.1, 1 % of
@@ -58,15 +78,17 @@ class MotionExamples:
         return len(self.captions)
 
 
-def motion_examples(roots: Iterable[str], model: MotionGenerator, *, epochs: int = 1, progress: bool = False
-                    ) -> MotionExamples:
-    """Every clip of the dataset ``roots`` at the model's image size, ``epochs`` times (each epoch draws its own
-    reference camera); raises as :class:`data_prep.clips.ClipDataset`."""
+def motion_examples(roots: Iterable[str], model: MotionGenerator, *, num_frames: int = 17, epochs: int = 1,
+                    progress: bool = False) -> MotionExamples:
+    """Every clip of ``num_frames`` frames of the dataset ``roots`` at the model's image size, from each scene's
+    first camera (the captions'), ``epochs`` times (other windows and strides); raises as
+    :class:`data_prep.clips.ClipDataset`."""
     cfg = model.config
     parts: dict[str, list] = {k: [] for k in ("image", "depth", "motion", "weight", "captions", "pixel_tracks",
                                               "valid", "dynamic")}
     for root in roots:
-        data = ClipDataset(root, height=cfg.image_size, width=cfg.image_size, num_tracks=1, reference_camera="first")
+        data = ClipDataset(root, num_frames=num_frames, height=cfg.image_size, width=cfg.image_size, num_tracks=1,
+                           reference_camera="first")
         for epoch in range(epochs):
             data.set_epoch(epoch)
             for i in tqdm(range(len(data)), disable=not progress, desc=f"{root} epoch {epoch}"):
@@ -227,3 +249,45 @@ def static_motion_mm(model: MotionGenerator, examples: MotionExamples, *, steps:
         last = motion_displacements(motion, depth, model.config.motion_scale)[:, -1].norm(dim=-1)  # (b, S, S)
         lengths += [float(d[v].mean()) for d, v in zip(last, examples.valid[chunk], strict=True) if bool(v.any())]
     return 1000 * float(np.mean(lengths)) if lengths else float("nan")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m training.motion_generation`` (module docstring); one line and exit code 2 on bad input."""
+    return run_cli("motion_generation", lambda: _main(argv))
+
+
+def _main(argv: list[str] | None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m training.motion_generation",
+                                 description="Train a motion generator and add it to a model folder.")
+    ap.add_argument("--data", nargs="+", required=True, help="dataset roots (data_prep format)")
+    ap.add_argument("--into", required=True, type=Path, help="the model folder it joins (e.g. models/weights/base)")
+    ap.add_argument("--out", required=True, type=Path, help="output model folder (replaced only if a saved model)")
+    ap.add_argument("--steps", type=int, default=2400)
+    ap.add_argument("--batch-size", type=int, default=32)
+    ap.add_argument("--lr", type=float, default=4e-4)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--text-attention", action="store_true", help="cross-attention to the prompt's tokens too")
+    ap.add_argument("--device", default=AUTO, help=DEVICE_HELP)
+    ap.add_argument("--quiet", action="store_true", help="no progress bars")
+    args = ap.parse_args(argv)
+    device = resolve_device(args.device)
+    check_output_dir(args.out, inputs=[args.into, *args.data], kind=MODEL_KIND, parents=True, overwrite_flag=None)
+    model = Diff4SplatModel.from_pretrained(args.into)  # both checked before the examples are read
+    size = model.config.height
+    torch.manual_seed(args.seed)
+    net = MotionGenerator(MotionGeneratorConfig(image_size=size, text_attention=args.text_attention)).to(device)
+    examples = motion_examples(args.data, net, num_frames=model.config.num_frames, progress=not args.quiet)
+    for name in ("image", "depth", "motion", "weight"):
+        setattr(examples, name, getattr(examples, name).to(device))
+    losses = train_motion_generator(net, examples, steps=args.steps, batch_size=args.batch_size, lr=args.lr,
+                                    seed=args.seed, progress=not args.quiet)
+    model.config = dataclasses.replace(model.config, motion_generator=net.config)
+    model.motion_generator = net.cpu()
+    model.save_pretrained(args.out)
+    print(f"wrote {args.out}: {len(examples)} examples, {args.steps} steps, loss {np.mean(losses[:50]):.3f} → "
+          f"{np.mean(losses[-50:]):.3f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -24,6 +24,7 @@ from diff4splat.utils.devices import resolve_device
 from diff4splat.utils.errors import run_cli
 from models.backbone_model import INDEX_FILE, BackboneModel
 from models.bundle import Diff4SplatModel, load_config
+from models.motion_generator import MotionGenerator, MotionGeneratorConfig
 from models.pretrained import CONFIG_NAME
 from models.vae import estimate_latent_scaling
 
@@ -88,7 +89,28 @@ def build_training(stage: StageConfig, seed: int | None = None
 
 
 def _ours_model(stage: StageConfig) -> Diff4SplatModel:
-    """``init_from`` (a :meth:`Diff4SplatModel.save_pretrained` folder), else a random model of ``model_config``."""
+    """``init_from`` (a :meth:`Diff4SplatModel.save_pretrained` folder), else a random model of ``model_config``;
+    with :func:`_with_motion_generator` where the stage trains one."""
+    return _with_motion_generator(_initial_model(stage), stage)
+
+
+def _with_motion_generator(model: Diff4SplatModel, stage: StageConfig) -> Diff4SplatModel:
+    """``model`` with a fresh motion generator (:class:`models.motion_generator.MotionGeneratorConfig` defaults at the
+    stage's clip size, seeded by ``trainer.seed``) when the stage trains ``motion_generator`` and it has none; else
+    ``model``. ValueError: a clip that is not square."""
+    if "motion_generator" not in stage.train or model.motion_generator is not None:
+        return model
+    if stage.height != stage.width:
+        raise ValueError(f"height and width must be equal for a motion generator, got {stage.height}×{stage.width}")
+    model.config = dataclasses.replace(model.config, motion_generator=MotionGeneratorConfig(image_size=stage.height))
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(stage.trainer.seed)
+        model.motion_generator = MotionGenerator(model.config.motion_generator)
+    return model
+
+
+def _initial_model(stage: StageConfig) -> Diff4SplatModel:
+    """``init_from``, else a random model of ``model_config``."""
     if not stage.init_from:
         return Diff4SplatModel.random(load_config(stage.model_config), seed=stage.trainer.seed)
     folder = Path(stage.init_from)
