@@ -77,7 +77,8 @@ def strip(model: MotionGenerator, ex, guidance: float, steps: int, seed: int, pa
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("::")[0])
-    ap.add_argument("--checkpoint", required=True, help="a MotionGenerator folder (save_pretrained)")
+    ap.add_argument("--checkpoint", required=True, type=Path,
+                    help="a model folder with a motion generator, or a MotionGenerator folder")
     ap.add_argument("--data", nargs="+", required=True, help="held-out dataset roots")
     ap.add_argument("--guidance", type=float, nargs="+", default=[1.0, 3.0])
     ap.add_argument("--steps", type=int, default=16, help="Euler steps (NFE per branch)")
@@ -87,7 +88,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--strip", type=Path, default=None, help="image of the first set's first direction-test clips")
     args = ap.parse_args(argv)
     device = resolve_device(args.device)
-    model = MotionGenerator.from_pretrained(args.checkpoint).to(device).eval()
+    folder = args.checkpoint / "motion_generator"  # a model folder holds it there
+    model = MotionGenerator.from_pretrained(folder if folder.is_dir() else args.checkpoint).to(device).eval()
     rows = []
     for n, root in enumerate(args.data):
         ex = motion_examples([root], model)

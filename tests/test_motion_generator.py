@@ -26,6 +26,7 @@ from models.motion_generator import (
     sample_motion,
 )
 from models.text_encoder import TextEncoderConfig
+from training import train as train_module
 from training.losses import LossWeights
 from training.motion_generation import (
     MOVING_CELL,
@@ -209,7 +210,7 @@ def test_a_tiny_generator_learns_the_direction_word_and_passes_the_direction_tes
     model = MotionGenerator(cfg)
     before = motion_stage_scores(model, examples, steps=8, guidance=2.0)
     assert before.clips == 2 and before.caption + before.flipped <= 1
-    losses = train_motion_generator(model, examples, steps=300, batch_size=8, lr=2e-3, p_uncond=0.2)
+    losses = train_motion_generator(model, examples, steps=120, batch_size=8, lr=3e-3, p_uncond=0.2)
     assert np.mean(losses[-30:]) < 0.5 * np.mean(losses[:30])
     after = motion_stage_scores(model, examples, steps=8, guidance=2.0)
     assert after.caption == 1 and after.flipped == 1, after
@@ -323,3 +324,20 @@ def test_the_command_trains_a_generator_into_a_model_folder_and_refuses_bad_inpu
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("motion_generation: error:"), err
     assert not (tmp_path / "o2").exists()
+
+
+def test_a_stage_that_trains_the_motion_generator_starts_a_fresh_one_at_its_clip_size():
+    stage = StageConfig(height=32, width=32, num_frames=9, train=("motion_generator",),
+                        objectives=("motion_generation",), scenes="all")
+    model = train_module._with_motion_generator(Diff4SplatModel.random(Diff4SplatConfig(), seed=0), stage)
+    assert model.config.motion_generator == MotionGeneratorConfig(image_size=32)
+    assert model.motion_generator.config is model.config.motion_generator
+    again = train_module._with_motion_generator(Diff4SplatModel.random(Diff4SplatConfig(), seed=0), stage)
+    for a, b in zip(model.motion_generator.parameters(), again.motion_generator.parameters(), strict=True):
+        torch.testing.assert_close(a, b)  # seeded by trainer.seed
+    assert train_module._with_motion_generator(model, stage) is model  # one it has stays
+    plain = Diff4SplatModel.random(Diff4SplatConfig(), seed=0)
+    unchanged = train_module._with_motion_generator(plain, dataclasses.replace(stage, train=("dit",)))
+    assert unchanged.motion_generator is None
+    with pytest.raises(ValueError, match="must be equal for a motion generator"):
+        train_module._with_motion_generator(plain, dataclasses.replace(stage, width=64))

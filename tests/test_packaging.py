@@ -142,7 +142,8 @@ def test_model_and_stage_config_names_are_separate():
     assert config_names() == ["base", "paper", "small", "tiny"]
     assert stage_names() == [
         "train_base_depth", "train_base_depth_scale", "train_base_dit", "train_base_ldrm", "train_base_ldrm_depth",
-        "train_base_ldrm_distill", "train_base_motion", "train_base_text", "train_base_text_mover",
+        "train_base_ldrm_distill", "train_base_motion", "train_base_motion_generator", "train_base_text",
+        "train_base_text_mover",
         "train_base_vae_decoder", "train_cogvideox_stage1", "train_cogvideox_stage2", "train_cogvideox_stage3",
         "train_stage1", "train_stage2", "train_stage3", "train_vae", "train_wan_stage1", "train_wan_stage2",
         "train_wan_stage3"]
