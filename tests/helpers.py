@@ -18,6 +18,7 @@ import torch
 from filelock import FileLock
 
 import diff4splat.export
+from diff4splat.cameras import intrinsics_from_fov
 from diff4splat.cameras.path import CameraPath
 from diff4splat.cli import main
 from diff4splat.export import MANIFEST_NAME, export_onnx
@@ -27,6 +28,8 @@ from diff4splat.scene.gaussians import Gaussians, rgb_to_sh0
 from models.bundle import NETWORKS, Diff4SplatConfig, Diff4SplatModel
 from models.hexplane import HexPlaneConfig, HexPlaneField
 from models.motion import MotionConfig
+from models.motion_generator import MotionGeneratorConfig
+from models.text_encoder import TextEncoderConfig
 
 OBJECTIVE_CASES = {
     "vae": (dict(train=("vae",), objectives=("vae",)), 0),
@@ -303,3 +306,35 @@ def moving_patch_video(frames: int, step: int = 1) -> np.ndarray:
         img[22:42, x:x + 20] = patch
         out.append((img.numpy() * 255).round().astype(np.uint8))
     return np.stack(out)
+
+
+SQUARE_SIZE = 64
+"""Side of :func:`square_scene`'s photograph, pixels."""
+
+
+def square_scene():
+    """A red 16×16 square (rows and columns 24–39) 2 m away before a grey wall 5 m away, 64² pixels; its camera
+    (f = 60 px): (image (H, W, 3), depth (H, W) metres, K (3, 3))."""
+    size = SQUARE_SIZE
+    image = torch.full((size, size, 3), 0.5)
+    image[24:40, 24:40] = torch.tensor([0.9, 0.1, 0.1])
+    depth = torch.full((size, size), 5.0)
+    depth[24:40, 24:40] = 2.0
+    K = torch.tensor([[60.0, 0.0, 32.0], [0.0, 60.0, 32.0], [0.0, 0.0, 1.0]])
+    return image, depth, K
+
+
+def still_path(pipe, frames=5):
+    """``frames`` cameras at the identity with ``pipe``'s field of view at :data:`SQUARE_SIZE`², times 0…1."""
+    size = SQUARE_SIZE
+    K = intrinsics_from_fov(size, size, fov_y_deg=pipe.config.fov_y_deg)
+    return CameraPath(torch.eye(4).expand(frames, 4, 4).clone(), K.expand(frames, 3, 3).clone(), size, size,
+                      torch.linspace(0, 1, frames))
+
+
+def tiny_motion_generator_config(**kw) -> MotionGeneratorConfig:
+    """A motion generator small enough for a test: 16² photographs, 4² cells, 2 key times, a one-layer text encoder;
+    ``kw`` overrides fields."""
+    text = TextEncoderConfig(d_model=16, num_layers=1, num_heads=2, d_kv=8, d_ff=32, max_length=96)
+    return MotionGeneratorConfig(**{"image_size": 16, "grid": 4, "key_frames": 2, "hidden_size": 24, "depth": 2,
+                                    "num_heads": 2, "text": text, **kw})

@@ -7,10 +7,9 @@ import math
 import numpy as np
 import pytest
 import torch
-from helpers import EXAMPLE_IMAGE, benchmark_module, tiny_model
+from helpers import EXAMPLE_IMAGE, benchmark_module, square_scene, still_path, tiny_model
 
 from data_prep.cli import main as data_prep_main
-from diff4splat.cameras import CameraPath, intrinsics_from_fov
 from diff4splat.cli import main
 from diff4splat.geometry.drags import drag_motion, drags_from_flags, drags_from_tracks, parse_drag, support_normal
 from diff4splat.io.tracks import read_tracks
@@ -19,16 +18,6 @@ from training.drag_eval import true_drags
 from training.evaluate import held_out_clips
 
 SIZE = 64
-
-
-def _square_scene():
-    """A red 16×16 square (rows and columns 24–39) 2 m away before a grey wall 5 m away; its camera (f = 60 px)."""
-    image = torch.full((SIZE, SIZE, 3), 0.5)
-    image[24:40, 24:40] = torch.tensor([0.9, 0.1, 0.1])
-    depth = torch.full((SIZE, SIZE), 5.0)
-    depth[24:40, 24:40] = 2.0
-    K = torch.tensor([[60.0, 0.0, 32.0], [0.0, 60.0, 32.0], [0.0, 0.0, 1.0]])
-    return image, depth, K
 
 
 def test_a_drag_reads_its_point_offset_and_time():
@@ -76,7 +65,7 @@ def test_a_tracks_file_of_the_wrong_shape_or_kind_is_named(tmp_path):
 def test_a_dragged_square_moves_at_its_depth_and_nothing_else_moves():
     """Closed form: a drag of (dx, dy) px at depth z moves its region by z·(dx/fx, dy/fy, 0) m at the drag's time,
     linearly before it; the wall stays."""
-    image, depth, K = _square_scene()
+    image, depth, K = square_scene()
     drags = drags_from_flags(["30,30:12,-6@0.5"], SIZE, SIZE)
     motion, moving = drag_motion(drags, image, depth, K, torch.tensor([0.0, 0.25, 0.5, 1.0]))
     square = torch.zeros(SIZE, SIZE, dtype=torch.bool)
@@ -89,7 +78,7 @@ def test_a_dragged_square_moves_at_its_depth_and_nothing_else_moves():
 
 
 def test_two_drags_in_one_region_each_move_their_nearest_pixels():
-    image, depth, K = _square_scene()
+    image, depth, K = square_scene()
     drags = drags_from_flags(["26,32:4,0", "38,32:-4,0"], SIZE, SIZE)
     motion, _ = drag_motion(drags, image, depth, K, torch.tensor([0.0, 1.0]))
     assert motion[1, 32, 25, 0] > 0 and motion[1, 32, 38, 0] < 0
@@ -133,19 +122,13 @@ def test_a_drag_on_a_floor_moves_its_object_along_the_floor_to_the_dragged_pixel
     assert torch.allclose(far[0, 28, 32], depth[28, 32] * torch.tensor([0.0, 10 / 60, 0.0]), atol=1e-6)
 
 
-def _still_path(pipe, frames=5):
-    K = intrinsics_from_fov(SIZE, SIZE, fov_y_deg=pipe.config.fov_y_deg)
-    return CameraPath(torch.eye(4).expand(frames, 4, 4).clone(), K.expand(frames, 3, 3).clone(), SIZE, SIZE,
-                      torch.linspace(0, 1, frames))
-
-
 @pytest.mark.slow
 def test_the_generated_scene_moves_only_where_dragged():
     """The photo layer's front disks on the square move by the closed form at the last time (the photo layer is at
     the given depth); the wall's disks and the backdrop stay; the scene is dynamic only through the drags."""
-    image, depth, _ = _square_scene()
+    image, depth, _ = square_scene()
     pipe = Diff4SplatPipeline(tiny_model(dynamic=False))
-    path = _still_path(pipe)
+    path = still_path(pipe)
     still = pipe(image, path, steps=1, depth=depth)
     assert still.scene.is_static
     drags = drags_from_flags(["30,30:12,0"], SIZE, SIZE)

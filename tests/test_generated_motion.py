@@ -5,9 +5,8 @@ import dataclasses
 
 import pytest
 import torch
-from helpers import tiny_model
-from test_drags import SIZE, _square_scene, _still_path
-from test_motion_generator import tiny_config
+from helpers import SQUARE_SIZE as SIZE
+from helpers import square_scene, still_path, tiny_model, tiny_motion_generator_config
 
 from diff4splat.assembly.generated_motion import (
     MIN_RELATIVE_MOTION,
@@ -29,13 +28,14 @@ def test_key_time_weights_interpolate_linearly_between_key_times():
 
 
 def test_motion_below_the_dead_zone_is_none_and_above_it_is_the_decoded_sample():
-    image, depth, _ = _square_scene()
+    image, depth, _ = square_scene()
     times = torch.linspace(0, 1, 3)  # the tiny generator's key times (K = 2) and time 0
     torch.manual_seed(0)
-    quiet = MotionGenerator(tiny_config(motion_scale=MIN_RELATIVE_MOTION / 100))  # untrained: motion = noise·scale
+    # untrained: the motion is the noise times motion_scale
+    quiet = MotionGenerator(tiny_motion_generator_config(motion_scale=MIN_RELATIVE_MOTION / 100))
     motion, moving = generated_motion(quiet, image, depth, times, "a box slides to the left", seed=1)
     assert not moving.any() and motion.eq(0).all()
-    loud = MotionGenerator(tiny_config(motion_scale=0.004))
+    loud = MotionGenerator(tiny_motion_generator_config(motion_scale=0.004))
     motion, moving = generated_motion(loud, image, depth, times, "a box slides to the left", seed=1)
     # by hand: the sample at 16², decoded at 64² with the depth; the key times are these times exactly
     small = torch.nn.functional.interpolate(image.permute(2, 0, 1)[None], size=(16, 16), mode="area") * 2 - 1
@@ -52,14 +52,14 @@ def test_motion_below_the_dead_zone_is_none_and_above_it_is_the_decoded_sample()
 
 @pytest.mark.slow
 def test_a_prompted_scene_moves_its_photo_layer_by_the_generated_motion_and_no_prompt_stays_static():
-    image, depth, _ = _square_scene()
+    image, depth, _ = square_scene()
     base = tiny_model(dynamic=True)
-    config = dataclasses.replace(base.config, motion_generator=tiny_config(motion_scale=0.5))
+    config = dataclasses.replace(base.config, motion_generator=tiny_motion_generator_config(motion_scale=0.5))
     model = Diff4SplatModel(config)
     model.load_state_dict(base.state_dict(), strict=False)  # the tiny networks, a fresh motion generator
     pipe = Diff4SplatPipeline(model.eval())
     assert pipe.runtime.has_motion_generator
-    path = _still_path(pipe)
+    path = still_path(pipe)
     assert pipe(image, path, steps=1, depth=depth).scene.is_static  # no prompt: no motion generator, no motion
     res = pipe(image, path, "a red box slides to the left", steps=1, depth=depth, seed=3)
     scene = res.scene

@@ -9,6 +9,7 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+from helpers import tiny_motion_generator_config
 from torch.utils.data import default_collate
 
 from data_prep.clips import ClipConfig, ClipDataset
@@ -25,7 +26,6 @@ from models.motion_generator import (
     motion_targets,
     sample_motion,
 )
-from models.text_encoder import TextEncoderConfig
 from training import train as train_module
 from training.losses import LossWeights
 from training.motion_generation import (
@@ -40,12 +40,6 @@ from training.motion_generation import (
 from training.motion_generation import main as motion_generation_main
 from training.objectives import TrainingModule
 from training.stage_config import StageConfig, apply_freezing
-
-
-def tiny_config(**kw) -> MotionGeneratorConfig:
-    text = TextEncoderConfig(d_model=16, num_layers=1, num_heads=2, d_kv=8, d_ff=32, max_length=96)
-    return MotionGeneratorConfig(**{"image_size": 16, "grid": 4, "key_frames": 2, "hidden_size": 24, "depth": 2,
-                                    "num_heads": 2, "text": text, **kw})
 
 
 def random_tracks(B=2, T=5, H=8, W=8, seed=0):
@@ -111,7 +105,7 @@ def test_depth_features_are_scale_free_and_flag_missing_depth():
 
 def test_untrained_generator_predicts_zero_and_learns_from_the_first_step():
     torch.manual_seed(0)
-    model = MotionGenerator(tiny_config())
+    model = MotionGenerator(tiny_motion_generator_config())
     B = 2
     x, image = torch.randn(B, 6, 4, 4), torch.rand(B, 3, 16, 16) * 2 - 1
     depth = torch.rand(B, 16, 16) + 1
@@ -129,7 +123,7 @@ def test_untrained_generator_predicts_zero_and_learns_from_the_first_step():
 @pytest.mark.parametrize("text_attention", [False, True])
 def test_guidance_matches_a_hand_written_euler_loop_and_weights_round_trip(tmp_path, text_attention):
     torch.manual_seed(1)
-    model = MotionGenerator(tiny_config(text_attention=text_attention)).eval()
+    model = MotionGenerator(tiny_motion_generator_config(text_attention=text_attention)).eval()
     for p in model.parameters():  # every branch live
         p.data.add_(torch.randn_like(p) * 0.05)
     image, depth = torch.rand(2, 3, 16, 16) * 2 - 1, torch.rand(2, 16, 16) + 1
@@ -199,7 +193,7 @@ def test_a_tiny_generator_learns_the_direction_word_and_passes_the_direction_tes
     apart (and the mirror augmentation turns every caption into its opposite too). Untrained, its motion is the
     noise whatever the caption, so no clip can pass with both the caption and its flip."""
     clips = [square_clip("to the right"), square_clip("to the left")]
-    cfg = tiny_config()
+    cfg = tiny_motion_generator_config()
     tracks = torch.stack([c["tracks"] for c in clips])
     valid = torch.ones(2, 16, 16, dtype=torch.bool)
     motion, weight = motion_targets(tracks, valid, cfg.key_frames, cfg.grid, cfg.motion_scale)
@@ -219,7 +213,8 @@ def test_a_tiny_generator_learns_the_direction_word_and_passes_the_direction_tes
 
 @pytest.fixture(scope="module")
 def bundle_with_generator():
-    config = dataclasses.replace(Diff4SplatConfig(), motion_generator=tiny_config(image_size=32, grid=8))
+    config = dataclasses.replace(Diff4SplatConfig(),
+                                 motion_generator=tiny_motion_generator_config(image_size=32, grid=8))
     return Diff4SplatModel.random(config, seed=0)
 
 
@@ -282,7 +277,7 @@ def test_the_loss_weighs_moving_cells_by_one_plus_mover():
     """An untrained generator predicts v = 0, so the loss is the weighted mean of (ε − x0)² by hand, moving cells
     (above MOVING_CELL at some key time) weighing 1 + mover times their valid fraction."""
     torch.manual_seed(0)
-    model = MotionGenerator(tiny_config())
+    model = MotionGenerator(tiny_motion_generator_config())
     B = 3
     image, depth = torch.rand(B, 3, 16, 16) * 2 - 1, torch.rand(B, 16, 16) + 1
     motion = torch.zeros(B, 6, 4, 4)
