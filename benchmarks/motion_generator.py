@@ -1,4 +1,4 @@
-"""The motion generator alone on held-out synthetic clips (issue 78's ``motion_dir_stage``;
+"""The motion generator alone on held-out synthetic clips (``motion_dir_stage``;
 :mod:`training.motion_generation`): the fraction of direction-test clips whose generated motion moves the captioned
 object the named way with the caption and with its direction flipped, the median ratio of the generated to the true
 displacement along the named way, and the static clips' motion (mm), for each guidance scale, against holding still

@@ -93,8 +93,7 @@ def depth_features(depth: Tensor) -> Tensor:
     finite flag, from ``depth`` (B, H, W) metres (+inf or NaN: no surface). Scale-free: depth × s gives the same."""
     valid = torch.isfinite(depth) & (depth > 0)
     log_z = torch.where(valid, depth, torch.ones_like(depth)).log()
-    median = torch.stack([z[v].median() if bool(v.any()) else z.new_zeros(())
-                          for z, v in zip(log_z, valid, strict=True)])
+    median = torch.where(valid, log_z, float("nan")).flatten(1).nanmedian(dim=1).values.nan_to_num(0.0)
     return torch.stack([torch.where(valid, log_z - median[:, None, None], 0.0), valid.to(depth.dtype)], dim=1)
 
 

@@ -4,7 +4,7 @@ loss is flow matching on the motion tensor, each cell weighted by its valid pixe
 null embedding) at ``p_uncond``. A left-right mirror of the photograph (p = 0.5) negates x, mirrors the cells and
 swaps "to the left" and "to the right" in the caption: every example also teaches the opposite word.
 
-The motion stage's direction test (issue 78's ``motion_dir_stage``): for each clip whose caption names one direction
+The motion stage's direction test (``motion_dir_stage``): for each clip whose caption names one direction
 (:func:`training.direction_test.direction_query`), the motion sampled with the caption and with its direction
 flipped moves the captioned object's frame-0 pixels (true depth) the named way; the magnitude ratio is the generated
 mean displacement along the named way over the true one.
@@ -48,8 +48,8 @@ from models.pretrained import MODEL_KIND
 from .direction_test import direction_query, flip_direction, named_way_score
 
 __all__ = ["MOVING_CELL", "MOVER_WEIGHT", "moving_cells", "MotionExamples", "motion_examples", "mirror",
-           "motion_generation_loss", "train_motion_generator", "MotionStageScores", "motion_stage_scores",
-           "static_motion_mm", "main"]
+           "mirrored_loss", "motion_generation_loss", "train_motion_generator", "MotionStageScores",
+           "motion_stage_scores", "static_motion_mm", "main"]
 
 MOVING_CELL = 0.1
 """A cell moves when its motion exceeds this at some key time (units of ``motion_scale``; at the default 0.1, 1 % of
@@ -78,32 +78,28 @@ class MotionExamples:
         return len(self.captions)
 
 
-def motion_examples(roots: Iterable[str], model: MotionGenerator, *, num_frames: int = 17, epochs: int = 1,
+def motion_examples(roots: Iterable[str], model: MotionGenerator, *, num_frames: int = 17,
                     progress: bool = False) -> MotionExamples:
     """Every clip of ``num_frames`` frames of the dataset ``roots`` at the model's image size, from each scene's
-    first camera (the captions'), ``epochs`` times (other windows and strides); raises as
-    :class:`data_prep.clips.ClipDataset`."""
+    first camera (the captions'); raises as :class:`data_prep.clips.ClipDataset`."""
     cfg = model.config
     parts: dict[str, list] = {k: [] for k in ("image", "depth", "motion", "weight", "captions", "pixel_tracks",
                                               "valid", "dynamic")}
     for root in roots:
         data = ClipDataset(root, num_frames=num_frames, height=cfg.image_size, width=cfg.image_size, num_tracks=1,
                            reference_camera="first")
-        for epoch in range(epochs):
-            data.set_epoch(epoch)
-            for i in tqdm(range(len(data)), disable=not progress, desc=f"{root} epoch {epoch}"):
-                clip = data[i]
-                tracks = clip["pixel_tracks"][None]
-                motion, weight = motion_targets(tracks, clip["pixel_track_valid"][None], cfg.key_frames, cfg.grid,
-                                                cfg.motion_scale)
-                parts["image"].append(clip["video"][:, 0] * 2 - 1)
-                parts["depth"].append(clip["depth"][0])
-                parts["motion"].append(motion[0])
-                parts["weight"].append(weight[0])
-                parts["captions"].append(clip["caption"])
-                parts["pixel_tracks"].append(clip["pixel_tracks"][[0, -1]])
-                parts["valid"].append(clip["pixel_track_valid"])
-                parts["dynamic"].append(clip["dynamic"])
+        for i in tqdm(range(len(data)), disable=not progress, desc=str(root)):
+            clip = data[i]
+            motion, weight = motion_targets(clip["pixel_tracks"][None], clip["pixel_track_valid"][None],
+                                            cfg.key_frames, cfg.grid, cfg.motion_scale)
+            parts["image"].append(clip["video"][:, 0] * 2 - 1)
+            parts["depth"].append(clip["depth"][0])
+            parts["motion"].append(motion[0])
+            parts["weight"].append(weight[0])
+            parts["captions"].append(clip["caption"])
+            parts["pixel_tracks"].append(clip["pixel_tracks"][[0, -1]])
+            parts["valid"].append(clip["pixel_track_valid"])
+            parts["dynamic"].append(clip["dynamic"])
     return MotionExamples(**{k: v if k == "captions" else torch.stack(v) for k, v in parts.items()})
 
 
@@ -150,6 +146,15 @@ def motion_generation_loss(model: MotionGenerator, image: Tensor, depth: Tensor,
     return err.sum() / (weight.sum() * motion.shape[1]).clamp_min(1e-12)
 
 
+def mirrored_loss(model: MotionGenerator, image: Tensor, depth: Tensor, motion: Tensor, weight: Tensor,
+                  captions: list[str], generator: torch.Generator, *, p_uncond: float = 0.1) -> Tensor:
+    """:func:`motion_generation_loss` of the batch with each example mirrored (:func:`mirror`) with p = 0.5, the
+    coins drawn first on the CPU ``generator``; shapes as :class:`MotionExamples`."""
+    flip = torch.rand(image.shape[0], generator=generator, device="cpu") < 0.5
+    return motion_generation_loss(model, *mirror(flip, image, depth, motion, weight, captions), generator,
+                                  p_uncond=p_uncond)
+
+
 def train_motion_generator(model: MotionGenerator, examples: MotionExamples, *, steps: int, batch_size: int = 32,
                            lr: float = 3e-4, p_uncond: float = 0.1, seed: int = 0, progress: bool = False
                            ) -> list[float]:
@@ -164,10 +169,9 @@ def train_motion_generator(model: MotionGenerator, examples: MotionExamples, *, 
     losses = []
     for _ in tqdm(range(steps), disable=not progress, desc="motion generator"):
         idx = torch.randint(len(examples), (batch_size,), generator=generator, device="cpu")
-        flip = torch.rand(batch_size, generator=generator, device="cpu") < 0.5
-        batch = mirror(flip, examples.image[idx], examples.depth[idx], examples.motion[idx], examples.weight[idx],
-                       [examples.captions[i] for i in idx.tolist()])
-        loss = motion_generation_loss(model, *batch, generator, p_uncond=p_uncond)
+        loss = mirrored_loss(model, examples.image[idx], examples.depth[idx], examples.motion[idx],
+                             examples.weight[idx], [examples.captions[i] for i in idx.tolist()], generator,
+                             p_uncond=p_uncond)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)

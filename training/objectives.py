@@ -46,7 +46,7 @@ from .losses import (
     scene_flow_loss,
     warp_loss,
 )
-from .motion_generation import mirror, motion_generation_loss
+from .motion_generation import mirrored_loss
 from .stage_config import StageConfig
 
 __all__ = ["TrainingModule", "render_frames", "track_query_index", "FLOW_LOSS_FROM_FRAME"]
@@ -207,10 +207,9 @@ class TrainingModule(nn.Module):
         return losses
 
     def _motion_generation(self, batch: dict, generator: torch.Generator) -> Tensor:
-        """:func:`training.motion_generation.motion_generation_loss` of the motion generator on frame 0 of each clip
-        and its dense true tracks, half of them mirrored (:func:`training.motion_generation.mirror`), the caption
-        dropped at ``caption_dropout``. ValueError: the model has no motion generator, or the clips are not its
-        ``image_size``."""
+        """:func:`training.motion_generation.mirrored_loss` of the motion generator on frame 0 of each clip and its
+        dense true tracks, the caption dropped at ``caption_dropout``. ValueError: the model has no motion generator,
+        or the clips are not its ``image_size``."""
         mg = self.model.motion_generator
         if mg is None:
             raise ValueError("the motion_generation objective trains motion_generator; this model has none")
@@ -221,10 +220,8 @@ class TrainingModule(nn.Module):
         with autocast_off():
             motion, weight = motion_targets(batch["pixel_tracks"].float(), batch["pixel_track_valid"],
                                             cfg.key_frames, cfg.grid, cfg.motion_scale)
-        flip = torch.rand(len(motion), generator=generator, device="cpu") < 0.5
-        return motion_generation_loss(mg, *mirror(flip, batch["video"][:, :, 0] * 2 - 1, batch["depth"][:, 0], motion,
-                                                  weight, list(batch["caption"])),
-                                      generator, p_uncond=self.stage.caption_dropout)
+        return mirrored_loss(mg, batch["video"][:, :, 0] * 2 - 1, batch["depth"][:, 0], motion, weight,
+                             list(batch["caption"]), generator, p_uncond=self.stage.caption_dropout)
 
     def _mono_depth(self, batch: dict) -> Tensor:
         """Scale-invariant log loss (λ 0.5) of ``ldrm.image_depth``'s z-depth on every frame against the valid metric
